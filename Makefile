@@ -1,0 +1,34 @@
+# Two commands set up a fresh machine: `make demo` (the fleet demo) and `make test`.
+PY ?= python3
+VENV := .venv
+BIN := $(VENV)/bin
+STAMP := $(VENV)/.installed
+
+.PHONY: setup test demo bench system-deps clean
+
+$(STAMP): pyproject.toml
+	$(PY) -m venv $(VENV)
+	$(BIN)/pip install --quiet --upgrade pip
+	$(BIN)/pip install --quiet -e '.[test]'
+	touch $(STAMP)
+
+## setup: create .venv, install rce with its test extras and the Debian packages tests need (when root)
+setup: $(STAMP) system-deps
+
+system-deps:
+	@bash .ci/system-deps
+
+## test: the whole suite
+test: setup
+	$(BIN)/python -m pytest -q -p no:cacheprovider $(PYTEST_ARGS)
+
+## demo: run the fleet demo (3 robots on the project's own map)
+demo: setup
+	$(BIN)/rce-fleet demo $(DEMO_ARGS)
+
+## bench: all benchmarks, results in bench/results/
+bench: setup
+	$(BIN)/python bench/run_all.py
+
+clean:
+	rm -rf $(VENV) bench/results
