@@ -1,0 +1,219 @@
+"""The bus server: node processes reach a :class:`~rce.bus.core.Bus` over a Unix socket.
+
+Link protocol (internal framing, :mod:`rce.framing`): CONTROL requests
+``hello``, ``advertise``, ``unadvertise``, ``subscribe``, ``unsubscribe``,
+``advertise_service``, ``unadvertise_service``, ``resolve_service``,
+``get_param``, ``set_param``, ``delete_param``, ``describe``; DATA frames:
+
+- node -> bus ``MSG dst=publisher handle`` publishes;
+- bus -> node ``MSG dst=subscription handle`` delivers;
+- bus -> node ``SRV_REQ dst=service handle call_id=c``; node answers
+  ``SRV_RESP``/``SRV_ERR call_id=c``;
+- node -> bus ``SRV_REQ dst=resolved service handle call_id=c``; bus answers
+  ``SRV_RESP``/``SRV_ERR call_id=c``.
+
+A node's subscriptions are bounded by the bytes waiting in its socket
+(``max_buffer``); messages beyond it are dropped and counted.
+"""
+from __future__ import annotations
+
+import asyncio
+import itertools
+import os
+from pathlib import Path
+
+from rce import framing
+from rce.bus.core import Bus, Subscription, Topic
+from rce.errors import NotFound, RCEError, RequestError
+from rce.log import get_logger
+from rce.rpc import RpcPeer
+
+log = get_logger("rce.bus")
+
+
+class _Session:
+    """One connected node."""
+
+    def __init__(self, server: "BusServer", peer: RpcPeer, sid: int):
+        self.server, self.bus, self.peer = server, server.bus, peer
+        self.owner = f"conn{sid}"
+        self.node: str | None = None
+        self.pubs: dict[int, Topic] = {}
+        self.subs: dict[int, Subscription] = {}
+        self.services: dict[int, str] = {}
+        self.resolved: dict[int, str] = {}
+        self.calls: dict[int, asyncio.Future] = {}
+        self.ids = itertools.count(1)
+        self.transport = peer.writer.transport
+        peer.handlers.update({op[3:]: getattr(self, op) for op in dir(self) if op.startswith("op_")})
+        peer.on_data = self.on_data
+        peer.on_close = lambda _p: self.close()
+
+    # -- control ops ---------------------------------------------------------------------------
+    async def op_hello(self, a: dict) -> dict:
+        self.node = a.get("name") or self.owner
+        self.owner = self.node
+        self.bus.nodes[self.node] = {"pid": a.get("pid"), "container": a.get("container")}
+        self.server.changed()
+        return {"bus": self.bus.name}
+
+    async def op_advertise(self, a: dict) -> int:
+        t = self.bus.advertise(a["topic"], a["type"], self.owner)
+        h = next(self.ids)
+        self.pubs[h] = t
+        self.server.changed()
+        return h
+
+    async def op_unadvertise(self, a: dict) -> None:
+        t = self.pubs.pop(a["handle"], None)
+        if t:
+            self.bus.unadvertise(t.name, self.owner)
+
+    async def op_subscribe(self, a: dict) -> int:
+        h = next(self.ids)
+        max_buffer = self.server.max_buffer
+        transport, write = self.transport, self.peer.writer.write
+
+        def deliver(payload: bytes, _h=h) -> bool:
+            if transport.is_closing() or transport.get_write_buffer_size() > max_buffer:
+                return False
+            write(framing.encode_data_header(framing.MSG, _h, 0, 0, len(payload)))
+            write(payload)
+            return True
+        self.subs[h] = self.bus.subscribe(a["topic"], a["type"], deliver, self.owner, a.get("queue_size", 100))
+        self.server.changed()
+        return h
+
+    async def op_unsubscribe(self, a: dict) -> None:
+        sub = self.subs.pop(a["handle"], None)
+        if sub:
+            self.bus.unsubscribe(sub)
+
+    async def op_advertise_service(self, a: dict) -> int:
+        h = next(self.ids)
+
+        async def handler(payload: bytes, _h=h) -> bytes:
+            cid = next(self.ids)
+            fut = asyncio.get_running_loop().create_future()
+            self.calls[cid] = fut
+            try:
+                self.peer.send_raw(framing.encode_data(framing.SRV_REQ, _h, 0, cid, payload))
+                return await fut
+            finally:
+                self.calls.pop(cid, None)
+        self.bus.advertise_service(a["service"], a["type"], handler, self.owner)
+        self.services[h] = a["service"]
+        self.server.changed()
+        return h
+
+    async def op_unadvertise_service(self, a: dict) -> None:
+        name = self.services.pop(a["handle"], None)
+        if name:
+            self.bus.unadvertise_service(name, self.owner)
+
+    async def op_resolve_service(self, a: dict) -> dict:
+        s = self.bus.services.get(a["service"])
+        if s is None:
+            raise NotFound(f"service {a['service']!r} is not provided on {self.bus.name}")
+        h = next(self.ids)
+        self.resolved[h] = s.name
+        return {"handle": h, "type": s.type}
+
+    async def op_get_param(self, a: dict):
+        return self.bus.get_param(a["name"])
+
+    async def op_set_param(self, a: dict) -> None:
+        self.bus.set_param(a["name"], a.get("value"))
+
+    async def op_delete_param(self, a: dict) -> None:
+        self.bus.delete_param(a["name"])
+
+    async def op_describe(self, a: dict) -> dict:
+        return self.bus.describe()
+
+    # -- data ----------------------------------------------------------------------------------
+    def on_data(self, f: framing.DataFrame) -> None:
+        if f.op == framing.MSG:
+            t = self.pubs.get(f.dst)
+            if t is not None:
+                self.bus.publish(t, bytes(f.payload))
+        elif f.op in (framing.SRV_RESP, framing.SRV_ERR):
+            fut = self.calls.get(f.call_id)
+            if fut and not fut.done():
+                if f.op == framing.SRV_RESP:
+                    fut.set_result(bytes(f.payload))
+                else:
+                    fut.set_exception(RequestError(bytes(f.payload).decode(errors="replace")))
+        elif f.op == framing.SRV_REQ:
+            asyncio.create_task(self._serve_call(f.dst, f.call_id, bytes(f.payload)))
+
+    async def _serve_call(self, handle: int, call_id: int, payload: bytes) -> None:
+        name = self.resolved.get(handle)
+        try:
+            if name is None:
+                raise NotFound(f"unknown service handle {handle}")
+            resp = await self.bus.call_service(name, payload)
+            self.peer.send_raw(framing.encode_data(framing.SRV_RESP, 0, 0, call_id, resp))
+        except RCEError as e:
+            self.peer.send_raw(framing.encode_data(framing.SRV_ERR, 0, 0, call_id, e.message.encode()))
+        except Exception as e:
+            self.peer.send_raw(framing.encode_data(framing.SRV_ERR, 0, 0, call_id, f"{type(e).__name__}: {e}".encode()))
+
+    def close(self) -> None:
+        for t in self.pubs.values():
+            self.bus.unadvertise(t.name, self.owner)
+        for sub in self.subs.values():
+            self.bus.unsubscribe(sub)
+        for name in self.services.values():
+            self.bus.unadvertise_service(name, self.owner)
+        for fut in self.calls.values():
+            if not fut.done():
+                fut.set_exception(RequestError(f"node {self.owner!r} left while serving a call"))
+        if self.node:
+            self.bus.nodes.pop(self.node, None)
+        self.pubs, self.subs, self.services = {}, {}, {}
+        self.server.sessions.discard(self)
+        self.server.changed()
+
+
+class BusServer:
+    """Serves ``bus`` on Unix socket(s). ``max_buffer``: bytes that may wait per node connection."""
+
+    def __init__(self, bus: Bus, max_buffer: int = 16 * 1024 * 1024):
+        self.bus = bus
+        self.max_buffer = max_buffer
+        self.sessions: set[_Session] = set()
+        self._servers: list[asyncio.AbstractServer] = []
+        self._ids = itertools.count(1)
+
+    def changed(self) -> None:
+        for cb in self.bus.on_change:
+            cb()
+
+    async def listen(self, path: str | Path) -> None:
+        """Listen on Unix socket ``path`` (replacing a stale socket file); mode 0660."""
+        path = str(path)
+        Path(path).parent.mkdir(parents=True, exist_ok=True)
+        if os.path.exists(path):
+            os.unlink(path)
+        srv = await asyncio.start_unix_server(self._accept, path, limit=2**20)
+        os.chmod(path, 0o666)
+        self._servers.append(srv)
+
+    async def _accept(self, reader: asyncio.StreamReader, writer: asyncio.StreamWriter) -> None:
+        peer = RpcPeer(reader, writer, name=f"{self.bus.name}-node")
+        self.sessions.add(_Session(self, peer, next(self._ids)))
+        peer.start()
+
+    async def close(self) -> None:
+        """Stop listening and drop every node connection."""
+        for s in self._servers:
+            s.close()
+        for sess in list(self.sessions):
+            await sess.peer.close()
+        for s in self._servers:
+            try:
+                await asyncio.wait_for(s.wait_closed(), 2)
+            except asyncio.TimeoutError:
+                pass
+        self._servers.clear()

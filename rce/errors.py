@@ -1,0 +1,77 @@
+"""One error type per layer, each with a stable ``code`` and a human message.
+
+Every refusal the engine makes (an ER frame to a robot, an HTTP error, a
+control-plane error reply) carries one of these, so a client can tell *what*
+was wrong (``code``) and read *where* (``message``).
+"""
+from __future__ import annotations
+
+
+class RCEError(Exception):
+    """Base error: ``code`` is a short machine-readable token, ``message`` a one-line reason."""
+
+    code = "error"
+
+    def __init__(self, message: str, *, code: str | None = None):
+        super().__init__(message)
+        self.message = message
+        if code is not None:
+            self.code = code
+
+    def to_dict(self) -> dict:
+        """The wire form used on the control plane: ``{"code": ..., "message": ...}``."""
+        return {"code": self.code, "message": self.message}
+
+    @classmethod
+    def from_dict(cls, d: dict) -> "RCEError":
+        """Rebuild an error received over the control plane (inverse of :meth:`to_dict`)."""
+        return _BY_CODE.get(d.get("code", ""), RCEError)(str(d.get("message", "")), code=d.get("code"))
+
+    def __str__(self) -> str:
+        return self.message
+
+
+class ProtocolError(RCEError):
+    """A client or internal frame that does not follow the protocol (DESIGN section 3)."""
+
+    code = "protocol"
+
+
+class MessageError(RCEError):
+    """An unknown message class, or a message that does not fit its class (DESIGN section 4)."""
+
+    code = "message"
+
+
+class ConfigError(RCEError):
+    """A robot config or command-line configuration that cannot be used."""
+
+    code = "config"
+
+
+class RequestError(RCEError):
+    """A well-formed request the master refuses (unknown tag, duplicate, unpairable interfaces...)."""
+
+    code = "request"
+
+
+class AuthError(RCEError):
+    """Bad credentials (login or websocket handshake)."""
+
+    code = "auth"
+
+
+class NotFound(RequestError):
+    """A tag, name or resource that does not exist."""
+
+    code = "not_found"
+
+
+class Unavailable(RCEError):
+    """A resource that exists but cannot serve now (no container host, host lost, timeout)."""
+
+    code = "unavailable"
+
+
+_BY_CODE = {c.code: c for c in (RCEError, ProtocolError, MessageError, ConfigError, RequestError,
+                                AuthError, NotFound, Unavailable)}

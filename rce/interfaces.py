@@ -1,0 +1,97 @@
+"""Interfaces: the ends of connections (DESIGN section 3.5), sans transport details.
+
+An interface has a kind (prefix) and a side (suffix). Each is named on the side
+where it acts:
+
+- ``Subscriber*`` takes messages from its local side (the robot, or the
+  container's bus) and sends them to every connected ``Publisher*``;
+- ``Publisher*`` hands what it receives to its local side;
+- ``ServiceProvider*`` provides a service to its local side and forwards each
+  call to its connected ``ServiceClient*``;
+- ``ServiceClient*`` executes calls it receives against its local side.
+
+This module holds the data-plane half every endpoint shares; robot endpoints
+(converters, forwarders) and environments (bus interfaces) subclass it for
+their local side.
+"""
+from __future__ import annotations
+
+from typing import TYPE_CHECKING
+
+from rce import framing
+from rce.errors import RequestError, Unavailable
+
+if TYPE_CHECKING:
+    from rce.dataplane import DataPlane
+
+PAIRS = {"Publisher": "Subscriber", "Subscriber": "Publisher",
+         "ServiceClient": "ServiceProvider", "ServiceProvider": "ServiceClient"}
+SERVICE_KINDS = ("ServiceClient", "ServiceProvider")
+
+
+class Interface:
+    """Data-plane half of an interface.
+
+    ``iid``: the master-assigned id; ``tag``: ``endpointTag/interfaceTag``; ``kind``: prefix
+    (Publisher, Subscriber, ServiceClient, ServiceProvider); ``cls``: message or service class
+    (wire name); ``peers``: connected interface id -> data address."""
+
+    call_timeout = 30.0   # s, service calls forwarded to a peer
+
+    def __init__(self, plane: "DataPlane", iid: int, tag: str, kind: str, cls: str):
+        self.plane, self.iid, self.tag, self.kind, self.cls = plane, iid, tag, kind, cls
+        self.peers: dict[int, str] = {}
+        self.msgs_in = self.msgs_out = self.dropped = 0
+
+    # -- lifecycle -----------------------------------------------------------------------------
+    async def start(self) -> None:
+        """Attach to the local side (subclasses) and to the data plane."""
+        self.plane.interfaces[self.iid] = self
+
+    async def stop(self) -> None:
+        """Detach from the data plane and the local side."""
+        self.plane.interfaces.pop(self.iid, None)
+        self.peers.clear()
+
+    def connect(self, peer_iid: int, addr: str) -> None:
+        """Add a connection to interface ``peer_iid`` reachable at data address ``addr``."""
+        self.peers[peer_iid] = addr
+        self.on_peers_changed()
+
+    def disconnect(self, peer_iid: int) -> None:
+        self.peers.pop(peer_iid, None)
+        self.on_peers_changed()
+
+    def on_peers_changed(self) -> None:
+        """Hook: the set of connections changed (robot endpoints send an ST)."""
+
+    # -- data ----------------------------------------------------------------------------------
+    def send_message(self, payload: bytes | memoryview) -> int:
+        """(Subscriber*) Send a serialized message to every connected peer; returns how many took it."""
+        n = 0
+        for peer, addr in self.peers.items():
+            if self.plane.send(addr, framing.MSG, peer, self.iid, 0, payload):
+                n += 1
+            else:
+                self.dropped += 1
+        self.msgs_out += 1
+        return n
+
+    async def call_peer(self, payload: bytes) -> bytes:
+        """(ServiceProvider*) Forward a serialized request to the connected ServiceClient.
+
+        Raises :class:`Unavailable` with no connection or on timeout; :class:`RequestError`
+        with the remote reason when the call fails there."""
+        if not self.peers:
+            raise Unavailable(f"service interface {self.tag} is not connected")
+        peer, addr = next(iter(self.peers.items()))
+        self.msgs_out += 1
+        return await self.plane.call(addr, peer, self.iid, payload, self.call_timeout)
+
+    def on_message(self, payload: memoryview) -> None:
+        """(Publisher*) A message arrived from a peer. Subclasses deliver it locally."""
+        raise RequestError(f"{self.kind} interface {self.tag} does not receive messages")
+
+    async def serve(self, payload: bytes) -> bytes:
+        """(ServiceClient*) Execute a call that arrived from a peer; returns the response bytes."""
+        raise RequestError(f"{self.kind} interface {self.tag} does not serve calls")

@@ -1,0 +1,320 @@
+"""The node API: what a node program imports, in the spirit of rospy, asyncio-native.
+
+::
+
+    import rce.node
+
+    async def main(node: rce.node.Node):
+        pub = await node.publisher("chatter", "std_msgs/String", queue_size=10)
+        await node.subscriber("echo", "std_msgs/String", lambda m: print(m.data))
+        await node.service("add", "Test/StringEcho", lambda req: {"data": req.data})
+        await pub.publish({"data": "hi"})
+        await node.spin()
+
+    rce.node.run(main, "talker")          # the blocking convenience
+
+A node connects to its bus (a container's environment, or the robot's local bus
+under ``rce-ros``) through the Unix socket named by ``RCE_BUS`` (or ``bus=``).
+Its name and namespace come from the arguments, ``RCE_NODE_NAME`` /
+``RCE_NAMESPACE``, or ROS-style ``__name:=`` / ``__ns:=`` command-line
+remappings. Names resolve as in ROS (:mod:`rce.naming`).
+
+Messages handed to callbacks are rosbags typestore instances (attribute access
+like rospy messages); ``publish`` and service handlers accept an instance or a
+JSON-form dict (:mod:`rce.messages`).
+"""
+from __future__ import annotations
+
+import asyncio
+import inspect
+import itertools
+import os
+import signal
+import sys
+from typing import Any, Awaitable, Callable
+
+from rce import framing, rpc
+from rce.errors import MessageError, RCEError, RequestError, Unavailable
+from rce.messages import MessageRegistry, default_registry, wire_name
+from rce.naming import join, resolve
+from rce.packages import load_package_types
+
+_NO = object()
+
+
+def _argv_remaps(argv: list[str]) -> dict[str, str]:
+    return dict(a.split(":=", 1) for a in argv if a.startswith("__") and ":=" in a)
+
+
+def node_argv(argv: list[str] | None = None) -> list[str]:
+    """``sys.argv[1:]`` without ROS-style ``__name:=``/``__ns:=`` remappings (like ``rospy.myargv``)."""
+    argv = sys.argv[1:] if argv is None else argv
+    return [a for a in argv if not (a.startswith("__") and ":=" in a)]
+
+
+class Publisher:
+    """Publishes messages of one class on one topic."""
+
+    def __init__(self, node: "Node", topic: str, typename: str, handle: int):
+        self.node, self.topic, self.typename, self.handle = node, topic, typename, handle
+        self.published = 0
+
+    async def publish(self, msg: Any) -> None:
+        """Publish ``msg`` (typestore instance or JSON-form dict). Raises :class:`MessageError`
+        if it does not fit the topic's class."""
+        self.publish_nowait(msg)
+        await self.node._peer.writer.drain()
+
+    def publish_nowait(self, msg: Any) -> None:
+        """Publish without waiting for the socket to drain (for callbacks)."""
+        payload = self.node._encode(self.typename, msg)
+        self.node._send(framing.MSG, self.handle, payload)
+        self.published += 1
+
+    async def unregister(self) -> None:
+        await self.node._peer.call("unadvertise", handle=self.handle)
+
+
+class Subscriber:
+    """Receives messages of one topic into a bounded queue (``queue_size``, oldest dropped first)."""
+
+    def __init__(self, node: "Node", topic: str, typename: str, callback: Callable, queue_size: int):
+        self.node, self.topic, self.typename, self.callback = node, topic, typename, callback
+        self.queue: asyncio.Queue = asyncio.Queue(maxsize=max(1, queue_size))
+        self.dropped = 0
+        self.received = 0
+        self.handle = 0
+        self._task = asyncio.create_task(self._consume())
+
+    def _push(self, payload: bytes) -> None:
+        if self.queue.full():
+            self.queue.get_nowait()
+            self.dropped += 1
+        self.queue.put_nowait(payload)
+
+    async def _consume(self) -> None:
+        reg = self.node.registry
+        while True:
+            payload = await self.queue.get()
+            self.received += 1
+            try:
+                msg = reg.deserialize(self.typename, payload)
+                r = self.callback(msg)
+                if inspect.isawaitable(r):
+                    await r
+            except Exception as e:
+                print(f"[{self.node.full_name}] subscriber callback for {self.topic} failed: {e!r}", file=sys.stderr)
+
+    async def unregister(self) -> None:
+        self._task.cancel()
+        await self.node._peer.call("unsubscribe", handle=self.handle)
+
+
+class ServiceProxy:
+    """Calls one service: ``resp = await proxy(request)``."""
+
+    def __init__(self, node: "Node", name: str, req_type: str, resp_type: str):
+        self.node, self.name, self.req_type, self.resp_type = node, name, req_type, resp_type
+        self.handle: int | None = None
+
+    async def __call__(self, request: Any = None, timeout: float | None = 30.0) -> Any:
+        """Call with ``request`` (instance or dict; None = empty request). Raises the provider's
+        :class:`RCEError`, or :class:`Unavailable` when the service is absent or times out."""
+        payload = self.node._encode(self.req_type, {} if request is None else request)
+        if self.handle is None:
+            r = await self.node._peer.call("resolve_service", service=self.name)
+            self.handle = r["handle"]
+        data = await self.node._call(self.handle, payload, timeout)
+        return self.node.registry.deserialize(self.resp_type, data)
+
+
+class Node:
+    """A node connected to a bus. Create with :func:`init_node`."""
+
+    def __init__(self, name: str, namespace: str, bus_path: str, registry: MessageRegistry):
+        self.name, self.namespace, self.bus_path = name, namespace, bus_path
+        self.registry = registry
+        self.full_name = join(namespace, name)
+        self._peer: rpc.RpcPeer | None = None
+        self._subs: dict[int, Subscriber] = {}
+        self._services: dict[int, tuple[Callable, str, str]] = {}
+        self._calls: dict[int, asyncio.Future] = {}
+        self._ids = itertools.count(1)
+        self._shutdown = asyncio.Event()
+
+    async def _connect(self) -> None:
+        self._peer = await rpc.connect_unix(self.bus_path, name=f"node {self.full_name}", on_data=self._on_data,
+                                            on_close=lambda _p: self._shutdown.set())
+        await self._peer.call("hello", name=self.full_name, pid=os.getpid(),
+                              container=os.environ.get("RCE_CONTAINER"))
+
+    def resolve(self, name: str) -> str:
+        """Resolve a graph name for this node (global, relative or ``~private``)."""
+        return resolve(name, self.namespace, self.name)
+
+    def _encode(self, typename: str, msg: Any) -> bytes:
+        if isinstance(msg, dict):
+            msg = self.registry.from_json(typename, msg)
+        elif getattr(msg, "__msgtype__", typename) != typename:
+            raise MessageError(f"expected a {wire_name(typename)} message, got {msg.__msgtype__}")
+        return self.registry.serialize(typename, msg)
+
+    def _send(self, op: int, dst: int, payload: bytes, call_id: int = 0) -> None:
+        w = self._peer.writer
+        w.write(framing.encode_data_header(op, dst, 0, call_id, len(payload)))
+        w.write(payload)
+
+    async def _call(self, handle: int, payload: bytes, timeout: float | None) -> bytes:
+        cid = next(self._ids)
+        fut = asyncio.get_running_loop().create_future()
+        self._calls[cid] = fut
+        try:
+            self._send(framing.SRV_REQ, handle, payload, cid)
+            return await asyncio.wait_for(fut, timeout)
+        except asyncio.TimeoutError:
+            raise Unavailable(f"service call timed out after {timeout} s") from None
+        finally:
+            self._calls.pop(cid, None)
+
+    def _on_data(self, f: framing.DataFrame) -> None:
+        if f.op == framing.MSG:
+            sub = self._subs.get(f.dst)
+            if sub:
+                sub._push(bytes(f.payload))
+        elif f.op in (framing.SRV_RESP, framing.SRV_ERR):
+            fut = self._calls.get(f.call_id)
+            if fut and not fut.done():
+                if f.op == framing.SRV_RESP:
+                    fut.set_result(bytes(f.payload))
+                else:
+                    fut.set_exception(RequestError(bytes(f.payload).decode(errors="replace")))
+        elif f.op == framing.SRV_REQ:
+            asyncio.create_task(self._serve(f.dst, f.call_id, bytes(f.payload)))
+
+    async def _serve(self, handle: int, call_id: int, payload: bytes) -> None:
+        handler, req_t, resp_t = self._services[handle]
+        try:
+            req = self.registry.deserialize(req_t, payload)
+            resp = handler(req)
+            if inspect.isawaitable(resp):
+                resp = await resp
+            self._send(framing.SRV_RESP, 0, self._encode(resp_t, resp), call_id)
+        except RCEError as e:
+            self._send(framing.SRV_ERR, 0, e.message.encode(), call_id)
+        except Exception as e:
+            self._send(framing.SRV_ERR, 0, f"{type(e).__name__}: {e}".encode(), call_id)
+
+    # -- public API ----------------------------------------------------------------------------
+    async def publisher(self, topic: str, msg_class: str, queue_size: int = 10) -> Publisher:
+        """Advertise ``topic`` with ``msg_class`` (``pkg/Name``). Raises :class:`MessageError`
+        for an unknown class or a topic of another class."""
+        t = self.registry.msg_type(msg_class)
+        name = self.resolve(topic)
+        h = await self._peer.call("advertise", topic=name, type=wire_name(t))
+        return Publisher(self, name, t, h)
+
+    async def subscriber(self, topic: str, msg_class: str, callback: Callable[[Any], Any],
+                         queue_size: int = 10) -> Subscriber:
+        """Subscribe ``callback(msg)`` (sync or async) to ``topic``; at most ``queue_size``
+        messages wait, the oldest is dropped first (and counted in ``dropped``)."""
+        t = self.registry.msg_type(msg_class)
+        name = self.resolve(topic)
+        sub = Subscriber(self, name, t, callback, queue_size)
+        sub.handle = await self._peer.call("subscribe", topic=name, type=wire_name(t), queue_size=queue_size)
+        self._subs[sub.handle] = sub
+        return sub
+
+    async def service(self, name: str, srv_class: str, handler: Callable[[Any], Any]) -> int:
+        """Provide service ``name`` of ``srv_class``; ``handler(request)`` returns the response
+        (instance or dict; may be async). Returns the service handle."""
+        req_t, resp_t = self.registry.srv_types(srv_class)
+        h = await self._peer.call("advertise_service", service=self.resolve(name), type=srv_class.strip("/"))
+        self._services[h] = (handler, req_t, resp_t)
+        return h
+
+    async def service_proxy(self, name: str, srv_class: str) -> ServiceProxy:
+        """A callable proxy for service ``name`` of ``srv_class``."""
+        req_t, resp_t = self.registry.srv_types(srv_class)
+        return ServiceProxy(self, self.resolve(name), req_t, resp_t)
+
+    async def get_param(self, name: str, default: Any = _NO) -> Any:
+        """Parameter value (JSON types). Raises :class:`NotFound` unless ``default`` is given."""
+        try:
+            return await self._peer.call("get_param", name=self.resolve(name))
+        except RCEError:
+            if default is _NO:
+                raise
+            return default
+
+    async def set_param(self, name: str, value: Any) -> None:
+        await self._peer.call("set_param", name=self.resolve(name), value=value)
+
+    async def delete_param(self, name: str) -> None:
+        await self._peer.call("delete_param", name=self.resolve(name))
+
+    async def describe(self) -> dict:
+        """Topics, services, parameters and nodes of the bus."""
+        return await self._peer.call("describe")
+
+    @property
+    def is_shutdown(self) -> bool:
+        return self._shutdown.is_set()
+
+    def shutdown(self) -> None:
+        """Make :meth:`spin` return."""
+        self._shutdown.set()
+
+    async def spin(self) -> None:
+        """Run until :meth:`shutdown`, a signal, or the bus going away."""
+        await self._shutdown.wait()
+
+    async def close(self) -> None:
+        self._shutdown.set()
+        for s in self._subs.values():
+            s._task.cancel()
+        if self._peer:
+            await self._peer.close()
+
+
+async def init_node(name: str | None = None, *, namespace: str | None = None, bus: str | None = None,
+                    argv: list[str] | None = None, registry: MessageRegistry | None = None) -> Node:
+    """Connect a new node to its bus and return it.
+
+    ``name``/``namespace`` default to ``__name:=``/``__ns:=`` remappings, then ``RCE_NODE_NAME``/
+    ``RCE_NAMESPACE``; ``bus`` to ``RCE_BUS``. Raises :class:`Unavailable` if no bus is reachable."""
+    remaps = _argv_remaps(sys.argv[1:] if argv is None else argv)
+    name = remaps.get("__name") or os.environ.get("RCE_NODE_NAME") or name or "node"
+    namespace = remaps.get("__ns") or os.environ.get("RCE_NAMESPACE") or namespace or "/"
+    bus = bus or os.environ.get("RCE_BUS")
+    if not bus:
+        raise Unavailable("no bus: set RCE_BUS to the bus socket (rce-ros prints it) or pass bus=")
+    reg = registry or default_registry()
+    load_package_types(reg)
+    node = Node(name, join("/", namespace), bus, reg)
+    try:
+        await node._connect()
+    except OSError as e:
+        raise Unavailable(f"cannot reach the bus at {bus}: {e.strerror or e}") from None
+    return node
+
+
+def run(main: Callable[[Node], Awaitable[Any]], name: str | None = None, **kw) -> None:
+    """Blocking convenience: init a node, run ``await main(node)`` until it returns or
+    SIGINT/SIGTERM, then close. Exits non-zero with the reason on :class:`RCEError`."""
+    async def _amain() -> None:
+        node = await init_node(name, **kw)
+        loop = asyncio.get_running_loop()
+        task = asyncio.current_task()
+        for sig in (signal.SIGINT, signal.SIGTERM):
+            loop.add_signal_handler(sig, task.cancel)
+        try:
+            await main(node)
+        except asyncio.CancelledError:
+            pass
+        finally:
+            await node.close()
+    try:
+        asyncio.run(_amain())
+    except RCEError as e:
+        print(f"{name or 'node'}: {e}", file=sys.stderr)
+        sys.exit(1)
