@@ -170,7 +170,10 @@ class MessageRegistry:
         Raises :class:`MessageError` naming the class and the field path (``pose.pose.position.x``)."""
         if not isinstance(obj, dict):
             raise MessageError(f"{wire_name(typename)}: message must be a JSON object, got {type(obj).__name__}")
-        return self._encoder(typename)(obj, "")
+        try:
+            return self._encoder(typename)(obj, "")
+        except MessageError as e:   # nested encoders name their own class; name the outer one
+            raise MessageError(f"{wire_name(typename)}: {e.message.split(': ', 1)[-1]}") from None
 
     def to_json(self, typename: str, msg: Any) -> dict:
         """JSON-ready dict of typestore instance ``msg`` of ``typename``."""
