@@ -1,0 +1,66 @@
+"""``rce-robot MASTER_IP``: the robot task set (websocket on 9010, data plane on 10030)."""
+from __future__ import annotations
+
+import argparse
+import asyncio
+import json
+import os
+import signal
+import socket
+import sys
+from pathlib import Path
+
+from rce.errors import RCEError
+from rce.log import get_logger, setup_logging
+from rce_robot.endpoint import RobotEndpoint
+
+log = get_logger("rce.robot")
+
+
+def parser() -> argparse.ArgumentParser:
+    p = argparse.ArgumentParser(prog="rce-robot", description="RCE robot task set: robot endpoints.")
+    p.add_argument("master_ip", help="address of rce-master's control plane")
+    p.add_argument("--master-port", type=int, default=8080, help="rce-master control port (default 8080)")
+    p.add_argument("--bind", default="127.0.0.1", help="address to listen on (default 127.0.0.1)")
+    p.add_argument("--port", type=int, default=9010, help="websocket port for robots (0 = ephemeral)")
+    p.add_argument("--data-port", type=int, default=10030, help="data-plane port (0 = ephemeral)")
+    p.add_argument("--metrics-port", type=int, default=None, help="serve Prometheus /metrics on this port")
+    p.add_argument("--advertise-host", default=None, help="address robots and environments reach this host by")
+    p.add_argument("--name", default=None, help="task set name (default: hostname:port)")
+    p.add_argument("--max-message", type=int, default=32 * 1024 * 1024,
+                   help="largest websocket frame taken, bytes (larger: ER)")
+    p.add_argument("--queue-size", type=int, default=1000, help="data messages that may wait per robot")
+    p.add_argument("--expiry", type=float, default=60.0, help="seconds an incomplete message waits for binary parts")
+    p.add_argument("--ready-file", type=Path, help="write {ws_port, data_addr, pid} here once registered")
+    return p
+
+
+async def amain(args: argparse.Namespace) -> None:
+    ep = RobotEndpoint(name=args.name or f"{socket.gethostname()}-robot-{os.getpid()}",
+                       advertise_host=args.advertise_host or args.bind, max_message=args.max_message,
+                       queue_size=args.queue_size, expiry=args.expiry)
+    await ep.start(args.master_ip, args.master_port, args.bind, args.port, args.data_port, args.metrics_port)
+    if args.ready_file:
+        tmp = args.ready_file.with_suffix(".tmp")
+        tmp.write_text(json.dumps({"ws_port": ep.ws_port, "data_addr": ep.plane.addr, "pid": os.getpid(),
+                                   "metrics_port": ep.metrics_port}))
+        tmp.replace(args.ready_file)
+    loop = asyncio.get_running_loop()
+    for sig in (signal.SIGINT, signal.SIGTERM):
+        loop.add_signal_handler(sig, ep.stopped.set)
+    await ep.stopped.wait()
+    log.info("robot endpoint stopping")
+    await ep.stop()
+
+
+def main(argv: list[str] | None = None) -> None:
+    args = parser().parse_args(argv)
+    setup_logging()
+    try:
+        asyncio.run(amain(args))
+    except RCEError as e:
+        print(f"rce-robot: {e}", file=sys.stderr)
+        sys.exit(1)
+    except OSError as e:
+        print(f"rce-robot: {e.strerror or e}", file=sys.stderr)
+        sys.exit(1)

@@ -1,0 +1,37 @@
+"""Shared fixtures: the real engine as processes on loopback."""
+from __future__ import annotations
+
+import sys
+from pathlib import Path
+
+import pytest
+
+sys.path.insert(0, str(Path(__file__).parent))
+from engine import Engine, start_engine  # noqa: E402
+
+SHARED_DATA = Path(__file__).resolve().parents[1].parent / "shared" / "data"
+
+
+@pytest.fixture
+def engine(tmp_path: Path):
+    """A fresh engine per test: master (--dev: testUser/testUser), one robot task set, one container host."""
+    e = start_engine(tmp_path / "engine")
+    yield e
+    e.stop()
+
+
+@pytest.fixture(scope="module")
+def shared_engine(tmp_path_factory):
+    """One engine for a whole test module (tests must use distinct robot IDs and container tags)."""
+    e = start_engine(tmp_path_factory.mktemp("engine"))
+    yield e
+    e.stop()
+
+
+def pytest_runtest_makereport(item, call):
+    """Attach the engine's process logs to a failing test's report."""
+    if call.when == "call" and call.excinfo is not None:
+        for name in ("engine", "shared_engine"):
+            e = item.funcargs.get(name) if hasattr(item, "funcargs") else None
+            if isinstance(e, Engine):
+                item.add_report_section("call", "engine logs", e.log_text())
