@@ -1,0 +1,619 @@
+"""Asyncio client library for the RCE client protocol (DESIGN section 3).
+
+::
+
+    conn = await Connection.connect("http://127.0.0.1:9000/", "testUser", "testUser", "testRobot")
+    await conn.create_container("cTag_01")
+    await conn.add_node("cTag_01", "strEcho", "Test", "stringEcho.py")
+    await conn.add_interface("cTag_01", "stringEchoService", "ServiceClientInterface",
+                             "Test/StringEcho", "/stringEchoService")
+    await conn.add_interface("testRobot", "stringEchoService", "ServiceProviderConverter", "Test/StringEcho")
+    await conn.connect("cTag_01/stringEchoService", "testRobot/stringEchoService")
+    await conn.wait_interfaces_up(["stringEchoService"], timeout=30)
+    svc = conn.service("stringEchoService", "Test/StringEcho")
+    print(await svc.call({"data": "hello"}))        # {'data': 'hello'}
+    await conn.close()
+
+Login is ``GET master_url?userID=U&version=V`` (JSON ``{"url": ws_url, "current"?}``),
+then a websocket to ``ws_url?userID=U&robotID=R&password=P`` with ``P`` the hex SHA-256
+of the password. Requests (CC, DC, CN, CX) are fire-and-forget as in the RCE alpha:
+the cloud answers a refused request with an ER string (:meth:`Connection.on_error`)
+and reports interface and node states with ST (:meth:`Connection.on_status`).
+:meth:`Connection.barrier` waits until the cloud has processed everything sent before.
+
+Typed endpoints are bound to the robot's own (robot-side) interfaces, named on the
+side where they act (docs/INTERNALS.md):
+
+=========================================  ============================================
+robot-side interface (eTag = robotID)      client endpoint
+=========================================  ============================================
+``SubscriberConverter/Forwarder``          :meth:`Connection.publisher` (robot -> cloud)
+``PublisherConverter/Forwarder``           :meth:`Connection.subscriber` (cloud -> robot)
+``ServiceProviderConverter/Forwarder``     :meth:`Connection.service` (robot calls the cloud)
+``ServiceClientConverter/Forwarder``       :meth:`Connection.service_provider` (cloud calls the robot)
+=========================================  ============================================
+
+A Converter carries messages as JSON objects (:mod:`rce.messages` JSON form); a
+Forwarder carries ROS 1 serialized bytes as the binary part ``msg*``. Either way a
+``bytes`` message is sent as a binary part and a received binary part arrives as
+``bytes`` (:class:`rce.protocol.Assembler`, :func:`rce.protocol.encode`).
+"""
+from __future__ import annotations
+
+import asyncio
+import hashlib
+import inspect
+import json
+import time
+import uuid
+from typing import Any, Awaitable, Callable, Iterable
+from urllib.parse import parse_qsl, urlencode, urlsplit, urlunsplit
+
+import aiohttp
+from websockets.asyncio.client import ClientConnection, connect as ws_connect
+from websockets.exceptions import ConnectionClosed, InvalidHandshake, InvalidStatus, InvalidURI
+
+from rce import protocol
+from rce.errors import AuthError, ProtocolError, RCEError, RequestError, Unavailable
+from rce.log import get_logger
+
+log = get_logger("rce.client")
+
+CLIENT_VERSION = "20130902"      # the RCE alpha client protocol version
+DEFAULT_CALL_TIMEOUT = 30.0      # s
+MAX_FRAME = 256 * 1024 * 1024    # bytes, largest websocket frame accepted
+
+Message = dict | bytes            # JSON-form message (Converter) or serialized bytes (Forwarder)
+StatusCallback = Callable[[dict], Any]
+ErrorCallback = Callable[[str], Any]
+
+
+def hash_password(password: str) -> str:
+    """The wire form of a password: hex SHA-256 of its UTF-8 bytes (64 chars)."""
+    return hashlib.sha256(password.encode()).hexdigest()
+
+
+def _reason(body: bytes | str, fallback: str) -> str:
+    """One-line reason from an HTTP error body: plain text, or JSON ``error``/``message``/``reason``."""
+    text = body.decode(errors="replace") if isinstance(body, (bytes, bytearray)) else str(body)
+    text = text.strip()
+    try:
+        obj = json.loads(text)
+    except ValueError:
+        obj = None
+    if isinstance(obj, dict):
+        for k in ("reason", "message", "error"):
+            v = obj.get(k)
+            if isinstance(v, dict):
+                v = v.get("message") or v.get("reason")
+            if isinstance(v, str) and v:
+                return v
+    line = text.splitlines()[0].strip() if text else ""
+    return line or fallback
+
+
+def _with_query(url: str, **params: str) -> str:
+    parts = urlsplit(url)
+    query = dict(parse_qsl(parts.query))
+    query.update(params)
+    return urlunsplit((parts.scheme, parts.netloc, parts.path or "/", urlencode(query), parts.fragment))
+
+
+async def login(master_url: str, user_id: str, version: str = CLIENT_VERSION, timeout: float = 10.0) -> str:
+    """Ask the master for this user's robot endpoint; returns its websocket URL.
+
+    ``GET master_url?userID=U&version=V`` -> ``{"url": ws_url, "current"?: V'}`` (``current``
+    only when this client is outdated: logged as a warning). Raises :class:`AuthError`
+    (HTTP 401/403) or :class:`Unavailable` (any other HTTP error, an unreachable master,
+    a malformed answer) with the master's one-line reason."""
+    url = _with_query(master_url, userID=user_id, version=version)
+    try:
+        async with aiohttp.ClientSession(timeout=aiohttp.ClientTimeout(total=timeout)) as http:
+            async with http.get(url) as resp:
+                body = await resp.read()
+                if resp.status in (401, 403):
+                    raise AuthError(f"login refused by {master_url}: {_reason(body, resp.reason or 'unauthorized')}")
+                if resp.status >= 400:
+                    raise Unavailable(f"login at {master_url} failed (HTTP {resp.status}): "
+                                      f"{_reason(body, resp.reason or 'error')}")
+    except (aiohttp.ClientError, asyncio.TimeoutError, OSError) as e:
+        raise Unavailable(f"cannot reach the master at {master_url}: {e or type(e).__name__}") from None
+    try:
+        answer = json.loads(body)
+        ws_url = answer["url"]
+        if not isinstance(ws_url, str) or not ws_url:
+            raise ValueError
+    except (ValueError, KeyError, TypeError):
+        raise Unavailable(f"login at {master_url}: answer has no websocket 'url': {body[:200]!r}") from None
+    if answer.get("current"):
+        log.warning("client protocol version is outdated", version=version, current=answer["current"])
+    return ws_url
+
+
+class _ClassOrInstance:
+    """A method that does one thing on the class and another on an instance: the RCE alpha
+    names both the login (``Connection.connect(...)``) and the CX request (``conn.connect(a, b)``)."""
+
+    def __init__(self, on_class: classmethod, on_instance: Callable):
+        self.on_class, self.on_instance = on_class, on_instance
+        self.__doc__ = (f"On the class: {on_class.__func__.__doc__}\n\n"
+                        f"On an instance: {on_instance.__doc__}")
+
+    def __get__(self, obj: Any, objtype: type | None = None) -> Callable:
+        if obj is None:
+            return self.on_class.__get__(None, objtype)
+        return self.on_instance.__get__(obj, objtype)
+
+
+class Publisher:
+    """Sends messages to a robot-side ``SubscriberConverter``/``SubscriberForwarder``."""
+
+    def __init__(self, conn: "Connection", itag: str, cls: str):
+        self.conn, self.itag, self.cls = conn, itag, cls
+        self.sent = 0
+
+    async def publish(self, msg: Message) -> None:
+        """Send one message: a JSON-form dict (Converter) or ROS 1 serialized bytes
+        (Forwarder; sent as binary part ``msg*``). Raises :class:`Unavailable` when closed."""
+        await self.conn.send(protocol.DM, {"iTag": self.itag, "type": self.cls, "msg": msg})
+        self.sent += 1
+
+
+class Subscriber:
+    """Receives messages from a robot-side ``PublisherConverter``/``PublisherForwarder``:
+    ``callback(msg)`` (sync or async) gets a dict (Converter) or bytes (Forwarder)."""
+
+    def __init__(self, conn: "Connection", itag: str, cls: str, callback: Callable[[Message], Any]):
+        self.conn, self.itag, self.cls, self.callback = conn, itag, cls, callback
+        self.received = 0
+
+    def close(self) -> None:
+        """Stop receiving (later DMs for this iTag are logged as unhandled)."""
+        if self.conn._handlers.get(self.itag) is self:
+            del self.conn._handlers[self.itag]
+
+
+class ServiceClient:
+    """Calls the cloud through a robot-side ``ServiceProviderConverter``/``ServiceProviderForwarder``."""
+
+    def __init__(self, conn: "Connection", itag: str, srv_cls: str):
+        self.conn, self.itag, self.srv_cls = conn, itag, srv_cls
+        self.calls = 0
+
+    async def call(self, request: Message | None = None, timeout: float | None = DEFAULT_CALL_TIMEOUT) -> Message:
+        """Send ``DM {iTag, type, msgID, msg: request}`` with a fresh msgID and return the ``msg``
+        of the response DM with the same msgID (dict for a Converter, bytes for a Forwarder).
+
+        Raises :class:`Unavailable` on timeout (``timeout`` s) or when the connection closes,
+        :class:`RequestError` when the cloud answers the call with an ER naming it."""
+        msg_id = uuid.uuid4().hex
+        fut = asyncio.get_running_loop().create_future()
+        self.conn._calls[msg_id] = (self.itag, fut)
+        self.calls += 1
+        try:
+            await self.conn.send(protocol.DM, {"iTag": self.itag, "type": self.srv_cls, "msgID": msg_id,
+                                               "msg": {} if request is None else request})
+            return await asyncio.wait_for(fut, timeout)
+        except asyncio.TimeoutError:
+            raise Unavailable(f"service {self.itag!r} ({self.srv_cls}) did not answer within {timeout} s") from None
+        finally:
+            self.conn._calls.pop(msg_id, None)
+
+
+class ServiceProvider:
+    """Serves calls from the cloud arriving at a robot-side ``ServiceClientConverter``/
+    ``ServiceClientForwarder``: ``handler(request)`` (sync or async) returns the response
+    (dict or bytes), sent back as a DM with the request's msgID. A handler that raises
+    gets no reply (the cloud's caller times out); the failure is logged and counted."""
+
+    def __init__(self, conn: "Connection", itag: str, srv_cls: str, handler: Callable[[Message], Any]):
+        self.conn, self.itag, self.srv_cls, self.handler = conn, itag, srv_cls, handler
+        self.served = self.failed = 0
+
+    def close(self) -> None:
+        if self.conn._handlers.get(self.itag) is self:
+            del self.conn._handlers[self.itag]
+
+    async def _on_dm(self, data: dict) -> None:
+        msg_id = data.get("msgID")
+        try:
+            resp = self.handler(data.get("msg"))
+            if inspect.isawaitable(resp):
+                resp = await resp
+        except Exception as e:
+            self.failed += 1
+            reason = e.message if isinstance(e, RCEError) else f"{type(e).__name__}: {e}"
+            log.warning("service call from the cloud failed", itag=self.itag, msg_id=msg_id, reason=reason)
+            return
+        self.served += 1
+        out = {"iTag": self.itag, "type": data.get("type") or self.srv_cls, "msg": resp}
+        if msg_id is not None:
+            out["msgID"] = msg_id
+        await self.conn.send(protocol.DM, out)
+
+
+class Connection:
+    """One robot's connection to the cloud. Create with :meth:`connect`.
+
+    Attributes: ``user_id``, ``robot_id``, ``ws_url``; ``interfaces``: iTag -> last ST ``iu``
+    status (bool); ``errors``: every ER string received (most recent last, bounded);
+    ``dropped``: DMs with no handler, malformed frames and expired binary parts."""
+
+    def __init__(self, ws: ClientConnection, user_id: str, robot_id: str, ws_url: str,
+                 expiry: float = protocol.DEFAULT_EXPIRY):
+        self.ws, self.user_id, self.robot_id, self.ws_url = ws, user_id, robot_id, ws_url
+        self.assembler = protocol.Assembler(expiry=expiry)
+        self.interfaces: dict[str, bool] = {}
+        self.errors: list[str] = []
+        self.dropped = 0
+        self.close_reason: str | None = None
+        self._handlers: dict[str, Subscriber | ServiceProvider] = {}
+        self._calls: dict[str, tuple[str, asyncio.Future]] = {}
+        self._status_cbs: list[StatusCallback] = []
+        self._error_cbs: list[ErrorCallback] = []
+        self._changed = asyncio.Event()
+        self._barriers: dict[str, asyncio.Future] = {}
+        self._barrier_ok = True
+        self._tasks: set[asyncio.Task] = set()
+        self._send_lock = asyncio.Lock()
+        self._closed = asyncio.Event()
+        self._reader = asyncio.create_task(self._read_loop(), name=f"rce-client-{robot_id}")
+        self._housekeeper = asyncio.create_task(self._expire_loop())
+
+    # -- connect / close ---------------------------------------------------------------------
+    @classmethod
+    async def login_connect(cls, master_url: str, user_id: str, password: str, robot_id: str, *,
+                      version: str = CLIENT_VERSION, timeout: float = 10.0,
+                      expiry: float = protocol.DEFAULT_EXPIRY) -> "Connection":
+        """Log in at the master and open the robot's websocket.
+
+        ``master_url``: ``http://HOST:9000/``; ``password`` in clear (hashed here);
+        ``timeout``: s for each of login and handshake; ``expiry``: s an incomplete message
+        waits for its binary parts. Raises :class:`AuthError` (bad credentials: HTTP or
+        handshake 401/403, with the cloud's reason) or :class:`Unavailable`."""
+        ws_url = await login(master_url, user_id, version, timeout)
+        return await cls.open(ws_url, user_id, password, robot_id, timeout=timeout, expiry=expiry)
+
+    @classmethod
+    async def open(cls, ws_url: str, user_id: str, password: str, robot_id: str, *,
+                   timeout: float = 10.0, expiry: float = protocol.DEFAULT_EXPIRY) -> "Connection":
+        """Open the websocket at a known robot endpoint ``ws_url`` (skips the login).
+        Raises :class:`AuthError` or :class:`Unavailable` as :meth:`connect`."""
+        url = _with_query(ws_url, userID=user_id, robotID=robot_id, password=hash_password(password))
+        try:
+            ws = await ws_connect(url, open_timeout=timeout, max_size=MAX_FRAME, proxy=None,
+                                  compression=None, user_agent_header="rce-client")
+        except InvalidStatus as e:
+            status = e.response.status_code
+            reason = _reason(e.response.body or b"", e.response.reason_phrase or str(status))
+            if status in (401, 403):
+                raise AuthError(f"robot endpoint {ws_url} refused {user_id}/{robot_id}: {reason}") from None
+            raise Unavailable(f"robot endpoint {ws_url} refused the connection (HTTP {status}): {reason}") from None
+        except (InvalidHandshake, InvalidURI, OSError, asyncio.TimeoutError) as e:
+            raise Unavailable(f"cannot connect to the robot endpoint {ws_url}: {e or type(e).__name__}") from None
+        log.info("connected", user=user_id, robot=robot_id, url=ws_url)
+        return cls(ws, user_id, robot_id, ws_url, expiry)
+
+    @property
+    def closed(self) -> bool:
+        return self._closed.is_set()
+
+    async def wait_closed(self) -> str:
+        """Wait until the connection ends (either side); returns the reason."""
+        await self._closed.wait()
+        return self.close_reason or "closed"
+
+    async def close(self) -> None:
+        """Close the websocket; pending service calls fail with :class:`Unavailable`."""
+        if self.close_reason is None:
+            self.close_reason = "closed by the client"
+        try:
+            await self.ws.close()
+        except Exception:   # closing a broken socket never raises out of close()
+            pass
+        try:
+            await asyncio.wait_for(asyncio.shield(self._reader), 5)
+        except (asyncio.TimeoutError, asyncio.CancelledError):
+            self._reader.cancel()
+        self._finish()
+
+    def _finish(self) -> None:
+        if self._closed.is_set():
+            return
+        self._closed.set()
+        self._housekeeper.cancel()
+        for t in list(self._tasks):
+            t.cancel()
+        for _, fut in list(self._calls.values()) + [(None, f) for f in self._barriers.values()]:
+            if not fut.done():
+                fut.set_exception(Unavailable(f"connection to the cloud closed: {self.close_reason}"))
+        self._changed.set()
+
+    async def __aenter__(self) -> "Connection":
+        return self
+
+    async def __aexit__(self, *exc) -> None:
+        await self.close()
+
+    # -- sending -----------------------------------------------------------------------------
+    async def send(self, type_: str, data: Any) -> None:
+        """Send one message ``{"type": type_, "data": data}``; ``bytes`` values anywhere in
+        ``data`` go as binary parts (JSON frame first, then one binary frame per part).
+        Raises :class:`Unavailable` when the connection is closed."""
+        text, frames = protocol.encode({"type": type_, "data": data})
+        if self.closed:
+            raise Unavailable(f"connection to the cloud is closed: {self.close_reason}")
+        try:
+            async with self._send_lock:
+                await self.ws.send(text)
+                for f in frames:
+                    await self.ws.send(f)
+        except ConnectionClosed as e:
+            raise Unavailable(f"connection to the cloud closed: {_close_text(e)}") from None
+
+    async def create_container(self, tag: str, group: str | None = None, **container_data: Any) -> None:
+        """CC: create container ``tag``. ``container_data`` keys: ``groupIp``, ``size``, ``cpu``
+        (cores), ``memory`` (MiB), ``bandwidth``, ``specialFeatures`` (None values are left out)."""
+        cd = {k: v for k, v in {"group": group, **container_data}.items() if v is not None}
+        data: dict = {"containerTag": tag}
+        if cd:
+            data["containerData"] = cd
+        await self.send(protocol.CC, data)
+
+    async def destroy_container(self, tag: str) -> None:
+        """DC: destroy container ``tag`` (with its nodes, interfaces and connections)."""
+        await self.send(protocol.DC, {"containerTag": tag})
+
+    async def configure(self, cn_data: dict) -> None:
+        """CN with raw data: any of ``addNodes``, ``removeNodes``, ``setParam``, ``deleteParam``,
+        ``addInterfaces``, ``removeInterfaces``, each a list of components."""
+        await self.send(protocol.CN, cn_data)
+
+    async def add_node(self, ctag: str, ntag: str, pkg: str, exe: str, args: str | list[str] = "",
+                       name: str | None = None, namespace: str | None = None,
+                       respawn: bool | dict | None = None) -> None:
+        """CN addNodes: launch ``pkg``/``exe`` with ``args`` in container ``ctag`` as node ``ntag``."""
+        node = {"containerTag": ctag, "nodeTag": ntag, "pkg": pkg, "exe": exe}
+        for k, v in (("args", args), ("name", name), ("namespace", namespace), ("respawn", respawn)):
+            if v not in (None, ""):
+                node[k] = v
+        await self.configure({"addNodes": [node]})
+
+    async def remove_node(self, ctag: str, ntag: str) -> None:
+        """CN removeNodes: stop node ``ntag`` of container ``ctag``."""
+        await self.configure({"removeNodes": [{"containerTag": ctag, "nodeTag": ntag}]})
+
+    async def set_param(self, ctag: str, name: str, value: Any) -> None:
+        """CN setParam: set parameter ``name`` of container ``ctag`` to a JSON value."""
+        await self.configure({"setParam": [{"containerTag": ctag, "name": name, "value": value}]})
+
+    async def delete_param(self, ctag: str, name: str) -> None:
+        """CN deleteParam: delete parameter ``name`` of container ``ctag``."""
+        await self.configure({"deleteParam": [{"containerTag": ctag, "name": name}]})
+
+    async def add_interface(self, etag: str, itag: str, itype: str, cls: str, addr: str | None = None) -> None:
+        """CN addInterfaces: interface ``itag`` of type ``itype`` (e.g. ``PublisherInterface``,
+        ``SubscriberConverter``) and message/service class ``cls`` on endpoint ``etag`` (a
+        container tag, or this robot's ID for robot-side interfaces); ``addr`` is the topic or
+        service name on that endpoint's bus."""
+        itf = {"endpointTag": etag, "interfaceTag": itag, "interfaceType": itype, "className": cls}
+        if addr:
+            itf["addr"] = addr
+        await self.configure({"addInterfaces": [itf]})
+
+    async def remove_interface(self, etag: str, itag: str) -> None:
+        """CN removeInterfaces: remove interface ``etag/itag``."""
+        await self.configure({"removeInterfaces": [{"endpointTag": etag, "interfaceTag": itag}]})
+
+    async def connect_interfaces(self, tag_a: str, tag_b: str) -> None:
+        """CX connect: wire interfaces ``tag_a`` and ``tag_b`` (each ``endpointTag/interfaceTag``)."""
+        await self.send(protocol.CX, {"connect": [{"tagA": tag_a, "tagB": tag_b}]})
+
+    #: ``await Connection.connect(master_url, user_id, password, robot_id)`` logs in
+    #: (:meth:`login_connect`); ``await conn.connect(tag_a, tag_b)`` wires two interfaces
+    #: (:meth:`connect_interfaces`).
+    connect = _ClassOrInstance(login_connect, connect_interfaces)
+
+    async def disconnect(self, tag_a: str, tag_b: str) -> None:
+        """CX disconnect: remove the connection between ``tag_a`` and ``tag_b``."""
+        await self.send(protocol.CX, {"disconnect": [{"tagA": tag_a, "tagB": tag_b}]})
+
+    async def barrier(self, timeout: float = 30.0) -> bool:
+        """Wait until the cloud has processed every request sent before this call.
+
+        The protocol has no acks, but the master handles a robot's requests one at a time,
+        in order, and answers each refusal with an ER: this sends a CX between two interfaces
+        that cannot exist and waits for the ER naming them (which is not passed to
+        :meth:`on_error` callbacks). Returns True when passed; False when the cloud did not
+        answer within ``timeout`` s, after which barriers are skipped (return False at once)
+        for the rest of the connection. Raises :class:`Unavailable` when the connection closes."""
+        if not self._barrier_ok:
+            return False
+        token = f"rcesync{uuid.uuid4().hex[:12]}"
+        fut = asyncio.get_running_loop().create_future()
+        self._barriers[token] = fut
+        try:
+            await self.send(protocol.CX, {"connect": [{"tagA": f"{token}/a", "tagB": f"{token}/b"}]})
+            await asyncio.wait_for(fut, timeout)
+            return True
+        except asyncio.TimeoutError:
+            self._barrier_ok = False
+            log.warning("the cloud did not answer a sync probe; barriers disabled", timeout=timeout)
+            return False
+        finally:
+            self._barriers.pop(token, None)
+
+    # -- typed endpoints ---------------------------------------------------------------------
+    def publisher(self, itag: str, cls: str) -> Publisher:
+        """Bind to robot-side ``SubscriberConverter``/``Forwarder`` ``itag`` of message class ``cls``."""
+        return Publisher(self, itag, cls)
+
+    def subscriber(self, itag: str, cls: str, callback: Callable[[Message], Any]) -> Subscriber:
+        """Receive the DMs of robot-side ``PublisherConverter``/``Forwarder`` ``itag``; one
+        handler per iTag (a new one replaces the old)."""
+        sub = Subscriber(self, itag, cls, callback)
+        self._handlers[itag] = sub
+        return sub
+
+    def service(self, itag: str, srv_cls: str) -> ServiceClient:
+        """Bind to robot-side ``ServiceProviderConverter``/``Forwarder`` ``itag`` (calls to the cloud)."""
+        return ServiceClient(self, itag, srv_cls)
+
+    def service_provider(self, itag: str, srv_cls: str, handler: Callable[[Message], Any]) -> ServiceProvider:
+        """Serve the cloud's calls arriving at robot-side ``ServiceClientConverter``/``Forwarder``
+        ``itag``; one handler per iTag."""
+        prov = ServiceProvider(self, itag, srv_cls, handler)
+        self._handlers[itag] = prov
+        return prov
+
+    # -- status ------------------------------------------------------------------------------
+    def on_status(self, cb: StatusCallback) -> None:
+        """Call ``cb(data)`` (sync or async) for every ST: ``{"topic": "iu", "iTag", "status"}``
+        or ``{"topic": "node", "cTag", "nTag", "status", ...}``."""
+        self._status_cbs.append(cb)
+
+    def on_error(self, cb: ErrorCallback) -> None:
+        """Call ``cb(reason)`` (sync or async) for every ER from the cloud (they are logged too)."""
+        self._error_cbs.append(cb)
+
+    async def wait_interfaces_up(self, itags: Iterable[str], timeout: float = 30.0) -> None:
+        """Wait until the last ST ``iu`` status of every iTag in ``itags`` is true.
+
+        Raises :class:`Unavailable` after ``timeout`` s naming the interfaces still down
+        (with the last ER received, if any), or when the connection closes."""
+        itags = list(itags)
+        deadline = asyncio.get_running_loop().time() + timeout
+        while True:
+            down = [t for t in itags if not self.interfaces.get(t)]
+            if not down:
+                return
+            if self.closed:
+                raise Unavailable(f"connection to the cloud closed ({self.close_reason}) while interfaces "
+                                  f"{', '.join(down)} were down")
+            left = deadline - asyncio.get_running_loop().time()
+            self._changed.clear()
+            try:
+                if left <= 0:
+                    raise asyncio.TimeoutError
+                await asyncio.wait_for(self._changed.wait(), left)
+            except asyncio.TimeoutError:
+                hint = f"; last error from the cloud: {self.errors[-1]}" if self.errors else ""
+                raise Unavailable(f"interfaces still down after {timeout:g} s: {', '.join(down)}{hint}") from None
+
+    # -- receiving ---------------------------------------------------------------------------
+    async def _read_loop(self) -> None:
+        try:
+            async for frame in self.ws:
+                now = time.monotonic()
+                try:
+                    msgs = (self.assembler.feed_text(frame, now) if isinstance(frame, str)
+                            else self.assembler.feed_binary(frame, now))
+                except ProtocolError as e:
+                    self.dropped += 1
+                    log.warning("malformed frame from the cloud", reason=e.message)
+                    continue
+                for m in msgs:
+                    self._dispatch(m)
+            self.close_reason = self.close_reason or _close_text(self.ws)
+        except ConnectionClosed as e:
+            self.close_reason = self.close_reason or _close_text(e)
+        except Exception as e:   # the reader never dies silently
+            self.close_reason = self.close_reason or f"reader failed: {type(e).__name__}: {e}"
+            log.exception("client reader failed", robot=self.robot_id)
+        finally:
+            if self.close_reason != "closed by the client":
+                log.info("connection closed", robot=self.robot_id, reason=self.close_reason)
+            self._finish()
+
+    async def _expire_loop(self) -> None:
+        period = max(0.05, min(self.assembler.expiry / 4, 5.0))
+        while True:
+            await asyncio.sleep(period)   # a timer, not a synchronisation
+            for reason in self.assembler.expire(time.monotonic()):
+                self.dropped += 1
+                log.warning("incomplete message dropped", reason=reason)
+
+    def _spawn(self, coro: Awaitable) -> None:
+        t = asyncio.ensure_future(coro)
+        self._tasks.add(t)
+        t.add_done_callback(self._task_done)
+
+    def _task_done(self, t: asyncio.Task) -> None:
+        self._tasks.discard(t)
+        if not t.cancelled() and t.exception() is not None:
+            e = t.exception()
+            log.warning("client callback failed", reason=e.message if isinstance(e, RCEError) else repr(e))
+
+    def _run_cb(self, cb: Callable, arg: Any) -> None:
+        try:
+            r = cb(arg)
+            if inspect.isawaitable(r):
+                self._spawn(r)
+        except Exception as e:
+            log.warning("client callback failed", reason=repr(e))
+
+    def _dispatch(self, m: dict) -> None:
+        t, data = m.get("type"), m.get("data")
+        if t == protocol.DM and isinstance(data, dict):
+            self._on_dm(data)
+        elif t == protocol.ST and isinstance(data, dict):
+            if data.get("topic") == "iu" and isinstance(data.get("iTag"), str):
+                self.interfaces[data["iTag"]] = bool(data.get("status"))
+                self._changed.set()
+            for cb in self._status_cbs:
+                self._run_cb(cb, data)
+        elif t == protocol.ER:
+            self._on_er(data if isinstance(data, str) else json.dumps(data))
+        else:
+            self.dropped += 1
+            log.warning("unexpected message from the cloud", type=t)
+
+    def _on_dm(self, data: dict) -> None:
+        itag, msg_id = data.get("iTag"), data.get("msgID")
+        if msg_id is not None:
+            pending = self._calls.get(str(msg_id))
+            if pending is not None and pending[0] == itag:
+                if not pending[1].done():
+                    pending[1].set_result(data.get("msg"))
+                return
+        handler = self._handlers.get(itag)
+        if handler is None:
+            self.dropped += 1
+            log.warning("data message for an interface with no handler", itag=itag, msg_id=msg_id)
+            return
+        if isinstance(handler, ServiceProvider):
+            self._spawn(handler._on_dm(data))      # calls are served concurrently
+        else:
+            handler.received += 1                  # messages are delivered in order
+            self._run_cb(handler.callback, data.get("msg"))
+
+    def _on_er(self, reason: str) -> None:
+        for token, fut in self._barriers.items():
+            if token in reason:
+                if not fut.done():
+                    fut.set_result(None)
+                return
+        self.errors.append(reason)
+        del self.errors[:-100]
+        log.warning("error from the cloud", reason=reason)
+        self._changed.set()
+        # A refused service call: fail it now rather than let it time out.
+        for msg_id, (itag, fut) in self._calls.items():
+            if msg_id in reason and not fut.done():
+                fut.set_exception(RequestError(reason))
+                break
+        else:
+            for itag in {i for i, _ in self._calls.values()}:
+                mine = [f for i, f in self._calls.values() if i == itag and not f.done()]
+                if len(mine) == 1 and (f"'{itag}'" in reason or f"/{itag}" in reason or f'"{itag}"' in reason):
+                    mine[0].set_exception(RequestError(reason))
+        for cb in self._error_cbs:
+            self._run_cb(cb, reason)
+
+
+def _close_text(src: Any) -> str:
+    """Human text for a websocket close (an exception or a connection)."""
+    rcvd = getattr(src, "rcvd", None) or getattr(src, "close_rcvd", None)
+    if rcvd is not None:
+        return f"code {rcvd.code}" + (f": {rcvd.reason}" if rcvd.reason else "")
+    return "connection lost"

@@ -1,0 +1,450 @@
+"""``rce-ros CONFIG``: connect a robot to the cloud and bridge its local bus.
+
+::
+
+    rce-ros configs/debug.config [--bus PATH] [--timeout S] [--keep] [--url MASTER_URL]
+
+1. Loads the robot config (:func:`rce.config.load_config`, JSON or YAML). A bad config is
+   refused before anything is sent: exit code 2 and the ConfigError (file, key path, reason).
+2. Runs the robot's LOCAL BUS (:class:`rce.bus.core.Bus` served by
+   :class:`rce.bus.server.BusServer`, the same implementation as a container's) on a Unix
+   socket (``--bus``, default ``$XDG_RUNTIME_DIR/rce/<robotID>.sock`` or
+   ``/tmp/rce-<uid>/<robotID>.sock``) and prints ``export RCE_BUS=...`` for local programs
+   (:mod:`rce.node`, ``rce-topic``, ``rce-service``).
+3. Logs in and sends, in order: CC for each container (with its containerData), CN setParam,
+   CN addNodes, CN addInterfaces, CX connect; then waits until every robot-side interface
+   (eTag == robotID) is up (ST ``iu``; ``--timeout`` s, default 30) and prints ``ready``.
+4. Bridges each robot-side interface to the local bus at its ``addr`` (default ``/<iTag>``):
+
+   - ``SubscriberConverter/Forwarder``: the local topic's messages go to the cloud as DMs
+     (Converter: JSON; Forwarder: the serialized bytes as binary part ``msg*``);
+   - ``PublisherConverter/Forwarder``: DMs from the cloud are published on the local topic;
+   - ``ServiceProviderConverter/Forwarder``: a local service ``addr`` whose calls go to the cloud;
+   - ``ServiceClientConverter/Forwarder``: the cloud's calls run against the local service ``addr``.
+
+Every ER from the cloud is printed with its reason. SIGINT/SIGTERM tear down: the interfaces
+and containers this run created are removed (unless ``--keep``), the websocket is closed,
+the socket removed; exit code 0. Exit code 1: login refused, interfaces not up in time,
+or the connection lost.
+"""
+from __future__ import annotations
+
+import argparse
+import asyncio
+import os
+import signal
+import socket
+import sys
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any, Awaitable, Callable
+
+from rce.bus.core import Bus, Subscription
+from rce.bus.server import BusServer
+from rce.config import InterfaceSpec, RobotConfig, load_config
+from rce.errors import ConfigError, MessageError, RCEError, Unavailable
+from rce.log import get_logger, setup_logging
+from rce.messages import MessageRegistry, default_registry, wire_name
+from rce.naming import validate_name
+from rce.packages import load_package_types
+from rce.protocol import split_interface_type
+from rce_client.connection import Connection, Message
+from rce_client.paths import default_bus_path
+
+log = get_logger("rce.ros")
+OWNER = "/rce_ros"
+QUEUE_SIZE = 100            # messages waiting to go to the cloud, per interface
+TEARDOWN_TIMEOUT = 5.0      # s to wait for the cloud to process the teardown requests
+
+
+class _Stopped(Exception):
+    """SIGINT/SIGTERM arrived."""
+
+
+@dataclass
+class _Kind:
+    """What a robot-side interface is: prefix, forwarder?, local address, bus type name."""
+    spec: InterfaceSpec
+    prefix: str
+    forwarder: bool
+    addr: str
+    bus_type: str
+    types: tuple[str, ...]   # store names: (msg,) or (request, response); () for an unknown forwarder class
+
+
+def classify(spec: InterfaceSpec, registry: MessageRegistry, where: str) -> _Kind:
+    """Resolve a robot-side interface for the bridge. Raises :class:`ConfigError` (``where``
+    names it, e.g. ``configs/x.config: interfaces[4].iCls``) when a Converter's class is
+    unknown locally: the robot converts between JSON and ROS 1 bytes, so it needs the class."""
+    prefix, suffix = split_interface_type(spec.iType)
+    forwarder = suffix == "Forwarder"
+    is_srv = prefix in ("ServiceClient", "ServiceProvider")
+    try:
+        if is_srv:
+            types = registry.srv_types(spec.iCls)
+            bus_type = spec.iCls.strip("/")
+        else:
+            t = registry.msg_type(spec.iCls)
+            types, bus_type = (t,), wire_name(t)
+    except MessageError as e:
+        if not forwarder:
+            raise ConfigError(f"{where}: {e.message} (a {spec.iType} converts on the robot, so the class must "
+                              f"be known locally: put its package on RCE_PACKAGE_PATH, or use a Forwarder)") from None
+        types, bus_type = (), spec.iCls.strip("/")
+    return _Kind(spec, prefix, forwarder, spec.addr or f"/{spec.iTag}", bus_type, types)
+
+
+class _ToCloud:
+    """Local topic -> SubscriberConverter/Forwarder: a bounded queue and a sender task."""
+
+    def __init__(self, bridge: "RosBridge", kind: _Kind):
+        self.bridge, self.kind = bridge, kind
+        self.itag = kind.spec.iTag
+        self.pub = bridge.conn.publisher(self.itag, kind.spec.iCls)
+        self.queue: asyncio.Queue[bytes] = asyncio.Queue(maxsize=QUEUE_SIZE)
+        self.dropped = 0
+        self._warned = False
+        self.sub: Subscription = bridge.bus.subscribe(kind.addr, kind.bus_type, self.deliver, OWNER, QUEUE_SIZE)
+        self.task = asyncio.create_task(self._pump())
+
+    def deliver(self, payload: bytes) -> bool:
+        if not self.bridge.conn.interfaces.get(self.itag):
+            self.dropped += 1
+            if not self._warned:
+                self._warned = True
+                log.warning("interface not connected yet: local messages dropped", itag=self.itag, topic=self.kind.addr)
+            return False
+        try:
+            self.queue.put_nowait(payload)
+            return True
+        except asyncio.QueueFull:
+            self.dropped += 1
+            return False
+
+    async def _pump(self) -> None:
+        reg = self.bridge.registry
+        while True:
+            payload = await self.queue.get()
+            try:
+                msg: Message = payload if self.kind.forwarder else reg.bytes_to_json(self.kind.types[0], payload)
+                await self.pub.publish(msg)
+            except RCEError as e:
+                self.dropped += 1
+                log.warning("message not sent to the cloud", itag=self.itag, reason=e.message)
+
+    def close(self) -> None:
+        self.task.cancel()
+        self.bridge.bus.unsubscribe(self.sub)
+
+
+class RosBridge:
+    """One ``rce-ros`` run: local bus, cloud connection, setup, bridges, teardown.
+
+    ``out(line)`` prints status lines (stdout); ``err(line)`` prints errors (stderr)."""
+
+    def __init__(self, config: RobotConfig, source: str, bus_path: str, *, timeout: float = 30.0,
+                 keep: bool = False, url: str | None = None, registry: MessageRegistry | None = None,
+                 out: Callable[[str], None] | None = None, err: Callable[[str], None] | None = None):
+        self.cfg, self.source, self.bus_path = config, source, bus_path
+        self.timeout, self.keep = timeout, keep
+        self.url = url or config.url
+        self.registry = registry or default_registry()
+        self.out = out or (lambda s: print(s, flush=True))
+        self.err = err or (lambda s: print(s, file=sys.stderr, flush=True))
+        self.bus = Bus(f"robot {config.robotID}")
+        self.server = BusServer(self.bus)
+        self.conn: Connection | None = None
+        self.stop = asyncio.Event()
+        self.ready = False
+        self.created: list[str] = []            # containers this run created
+        self._to_cloud: list[_ToCloud] = []
+        self._cleanup: list[Callable[[], None]] = []
+        robot = config.robotID
+        self.robot_side = [i for i in config.interfaces if i.eTag == robot]
+        self.kinds: list[_Kind] = []
+
+    # -- helpers -----------------------------------------------------------------------------
+    async def _until_stop(self, aw: Awaitable) -> Any:
+        """Await ``aw`` unless a stop signal or the connection's end comes first."""
+        task = asyncio.ensure_future(aw)
+        waits = [task, asyncio.ensure_future(self.stop.wait())]
+        if self.conn is not None:
+            waits.append(asyncio.ensure_future(self.conn.wait_closed()))
+        try:
+            await asyncio.wait(waits, return_when=asyncio.FIRST_COMPLETED)
+        finally:
+            for w in waits[1:]:
+                w.cancel()
+        if task.done():
+            return task.result()
+        task.cancel()
+        if self.stop.is_set():
+            raise _Stopped
+        raise Unavailable(f"connection to the cloud closed: {self.conn.close_reason}")
+
+    def _check_local_types(self) -> None:
+        """Resolve the robot-side interfaces and check their local addresses agree with each other
+        (one class per topic, one interface per service). Raises :class:`ConfigError`."""
+        topics: dict[str, str] = {}
+        services: dict[str, str] = {}
+        for i, itf in enumerate(self.cfg.interfaces):
+            if itf.eTag != self.cfg.robotID:
+                continue
+            k = classify(itf, self.registry, f"{self.source}: interfaces[{i}].iCls")
+            where = f"{self.source}: interfaces[{i}].addr"
+            try:
+                validate_name(k.addr, "address")
+            except RCEError as e:
+                raise ConfigError(f"{where}: {e.message}") from None
+            if k.prefix in ("Publisher", "Subscriber"):
+                if topics.setdefault(k.addr, k.bus_type) != k.bus_type:
+                    raise ConfigError(f"{where}: local topic {k.addr} is used with classes {topics[k.addr]} "
+                                      f"and {k.bus_type}")
+            elif k.addr in services:
+                raise ConfigError(f"{where}: local service {k.addr} is already bridged by {services[k.addr]}")
+            else:
+                services[k.addr] = itf.iTag
+            self.kinds.append(k)
+
+    # -- run ---------------------------------------------------------------------------------
+    async def run(self) -> int:
+        """Run until stopped; returns the exit code (0 clean stop, 1 failure)."""
+        load_package_types(self.registry)
+        self._check_local_types()     # ConfigError before anything is sent
+        await self._start_bus()
+        try:
+            try:
+                await self._connect_and_setup()
+                await self._until_stop(self.conn.wait_closed())
+                # only returns when the cloud closed the connection
+                self.err(f"rce-ros: connection to the cloud closed: {self.conn.close_reason}")
+                return 1
+            except _Stopped:
+                self.out("rce-ros: stopping")
+                await self._teardown()
+                return 0
+            except RCEError as e:
+                self.err(f"rce-ros: {e.message}")
+                if self.conn is not None and not self.conn.closed:
+                    await self._teardown()
+                return 1
+        finally:
+            await self._stop_bus()
+
+    async def _start_bus(self) -> None:
+        path = Path(self.bus_path)
+        if path.exists():
+            if _socket_alive(str(path)):
+                raise Unavailable(f"another rce-ros already serves a bus at {path} (pass --bus for another path)")
+        if not path.parent.exists():
+            path.parent.mkdir(parents=True, mode=0o700, exist_ok=True)
+        await self.server.listen(path)
+        self.bus.nodes[OWNER] = {"pid": os.getpid(), "container": None}
+        self.out(f"rce-ros: local bus of robot {self.cfg.robotID} at {path}")
+        self.out(f"  export RCE_BUS={path}")
+
+    async def _stop_bus(self) -> None:
+        for c in self._to_cloud:
+            c.close()
+        for f in self._cleanup:
+            f()
+        await self.server.close()
+        try:
+            os.unlink(self.bus_path)
+        except OSError:
+            pass
+
+    async def _connect_and_setup(self) -> None:
+        cfg = self.cfg
+        self.out(f"rce-ros: logging in at {self.url} as {cfg.userID}/{cfg.robotID}")
+        self.conn = await self._until_stop(Connection.connect(self.url, cfg.userID, cfg.password, cfg.robotID))
+        conn = self.conn
+        conn.on_error(lambda reason: self.err(f"rce-ros: error from the cloud: {reason}"))
+        conn.on_status(self._on_status)
+        self.out(f"rce-ros: connected to {conn.ws_url}")
+        self._bridge()
+
+        for c in cfg.containers:
+            n = len(conn.errors)
+            data = c.container_data()
+            await conn.create_container(c.cTag, **data)
+            checked = await self._until_stop(conn.barrier(self.timeout))
+            if not checked or len(conn.errors) == n:
+                self.created.append(c.cTag)
+        if cfg.parameters:
+            await conn.configure({"setParam": [{"containerTag": p.cTag, "name": p.name, "value": p.value}
+                                               for p in cfg.parameters]})
+        if cfg.nodes:
+            await conn.configure({"addNodes": [n.component() for n in cfg.nodes]})
+        if cfg.interfaces:
+            await conn.configure({"addInterfaces": [i.component() for i in cfg.interfaces]})
+        if cfg.connections:
+            await conn.send("CX", {"connect": [{"tagA": c.tagA, "tagB": c.tagB} for c in cfg.connections]})
+
+        itags = [i.iTag for i in self.robot_side]
+        if itags:
+            self.out(f"rce-ros: waiting for {len(itags)} interface(s) to come up: {', '.join(itags)}")
+        await self._until_stop(conn.wait_interfaces_up(itags, self.timeout))
+        self.ready = True
+        self.out(f"rce-ros: ready ({len(itags)} interface(s) up; Ctrl-C to stop)")
+
+    # -- bridges -----------------------------------------------------------------------------
+    def _bridge(self) -> None:
+        """Attach every robot-side interface to the local bus (messages flow once it is up)."""
+        for k in self.kinds:
+            try:
+                if k.prefix == "Subscriber":
+                    self._to_cloud.append(_ToCloud(self, k))
+                elif k.prefix == "Publisher":
+                    self._from_cloud(k)
+                elif k.prefix == "ServiceProvider":
+                    self._local_service(k)
+                else:
+                    self._cloud_calls(k)
+            except RCEError as e:
+                raise ConfigError(f"{self.source}: interface {k.spec.iTag} at {k.addr}: {e.message}") from None
+            log.info("bridged", itag=k.spec.iTag, itype=k.spec.iType, addr=k.addr)
+
+    def _from_cloud(self, k: _Kind) -> None:
+        """PublisherConverter/Forwarder: DMs from the cloud published on the local topic."""
+        topic = self.bus.advertise(k.addr, k.bus_type, OWNER)
+        self._cleanup.append(lambda: self.bus.unadvertise(k.addr, OWNER))
+        reg = self.registry
+
+        def on_msg(msg: Message) -> None:
+            try:
+                payload = bytes(msg) if isinstance(msg, (bytes, bytearray)) else reg.json_to_bytes(k.types[0], msg)
+            except (RCEError, IndexError) as e:
+                log.warning("message from the cloud not published", itag=k.spec.iTag, topic=k.addr,
+                            reason=getattr(e, "message", repr(e)))
+                return
+            self.bus.publish(topic, payload)
+        self.conn.subscriber(k.spec.iTag, k.spec.iCls, on_msg)
+
+    def _local_service(self, k: _Kind) -> None:
+        """ServiceProviderConverter/Forwarder: a local service whose calls go to the cloud."""
+        client = self.conn.service(k.spec.iTag, k.spec.iCls)
+        reg, itag = self.registry, k.spec.iTag
+
+        async def handler(payload: bytes) -> bytes:
+            if not self.conn.interfaces.get(itag):
+                raise Unavailable(f"service {k.addr}: interface {itag} is not connected to the cloud")
+            if k.forwarder:
+                resp = await client.call(payload, timeout=None)
+                if isinstance(resp, (bytes, bytearray)):
+                    return bytes(resp)
+                if not k.types:
+                    raise MessageError(f"service {k.addr}: the cloud answered JSON for unknown class {k.spec.iCls}")
+                return reg.json_to_bytes(k.types[1], resp)
+            resp = await client.call(reg.bytes_to_json(k.types[0], payload), timeout=None)
+            if isinstance(resp, (bytes, bytearray)):
+                return bytes(resp)
+            return reg.json_to_bytes(k.types[1], resp)
+        self.bus.advertise_service(k.addr, k.bus_type, handler, OWNER)
+        self._cleanup.append(lambda: self.bus.unadvertise_service(k.addr, OWNER))
+
+    def _cloud_calls(self, k: _Kind) -> None:
+        """ServiceClientConverter/Forwarder: the cloud's calls run against the local service."""
+        reg = self.registry
+
+        async def handler(req: Message) -> Message:
+            if isinstance(req, (bytes, bytearray)):
+                payload = bytes(req)
+            elif k.types:
+                payload = reg.json_to_bytes(k.types[0], req)
+            else:
+                raise MessageError(f"service {k.addr}: JSON request for unknown class {k.spec.iCls}")
+            resp = await self.bus.call_service(k.addr, payload, k.bus_type)
+            return resp if k.forwarder else reg.bytes_to_json(k.types[1], resp)
+        self.conn.service_provider(k.spec.iTag, k.spec.iCls, handler)
+
+    def _on_status(self, st: dict) -> None:
+        if st.get("topic") == "iu":
+            if self.ready:
+                self.out(f"rce-ros: interface {st.get('iTag')} {'up' if st.get('status') else 'down'}")
+        elif st.get("topic") == "node":
+            extra = "".join(f" {k}={st[k]}" for k in ("code", "signal", "reason") if st.get(k) is not None)
+            self.out(f"rce-ros: node {st.get('cTag')}/{st.get('nTag')}: {st.get('status')}{extra}")
+
+    # -- teardown ----------------------------------------------------------------------------
+    async def _teardown(self) -> None:
+        """Remove what this run created (unless ``keep``), then close the websocket."""
+        conn = self.conn
+        if conn is None:
+            return
+        try:
+            if not self.keep and not conn.closed:
+                created = set(self.created)
+                remove = [{"endpointTag": i.eTag, "interfaceTag": i.iTag} for i in self.cfg.interfaces
+                          if i.eTag not in created]
+                nodes = [{"containerTag": n.cTag, "nodeTag": n.nTag} for n in self.cfg.nodes if n.cTag not in created]
+                if remove:
+                    await conn.configure({"removeInterfaces": remove})
+                if nodes:
+                    await conn.configure({"removeNodes": nodes})
+                for tag in self.created:
+                    await conn.destroy_container(tag)
+                await conn.barrier(TEARDOWN_TIMEOUT)
+                self.out(f"rce-ros: removed {len(remove)} interface(s), destroyed {len(self.created)} container(s)")
+        except RCEError as e:
+            self.err(f"rce-ros: teardown incomplete: {e.message}")
+        finally:
+            await conn.close()
+
+
+def _socket_alive(path: str) -> bool:
+    s = socket.socket(socket.AF_UNIX, socket.SOCK_STREAM)
+    try:
+        s.settimeout(1.0)
+        s.connect(path)
+        return True
+    except OSError:
+        return False
+    finally:
+        s.close()
+
+
+def build_parser() -> argparse.ArgumentParser:
+    p = argparse.ArgumentParser(prog="rce-ros", description="Connect this robot to the cloud as its config says "
+                                "and bridge its local bus to its interfaces.")
+    p.add_argument("config", help="robot config (JSON like the seed's robot1.config, or YAML)")
+    p.add_argument("--bus", metavar="PATH", help="local bus socket (default $XDG_RUNTIME_DIR/rce/<robotID>.sock "
+                   "or /tmp/rce-<uid>/<robotID>.sock)")
+    p.add_argument("--timeout", type=float, default=30.0, metavar="S",
+                   help="seconds to wait for the robot-side interfaces to come up (default 30)")
+    p.add_argument("--keep", action="store_true", help="do not remove interfaces and containers on exit")
+    p.add_argument("--url", metavar="MASTER_URL", help="master login URL (overrides the config's url)")
+    return p
+
+
+def main(argv: list[str] | None = None) -> None:
+    """Entry point of ``rce-ros``: exits 0 after a clean stop, 1 on failure, 2 on a bad config."""
+    args = build_parser().parse_args(argv)
+    setup_logging()
+    try:
+        cfg = load_config(args.config)
+    except ConfigError as e:
+        print(f"rce-ros: {e.message}", file=sys.stderr)
+        sys.exit(2)
+    bus_path = args.bus or default_bus_path(cfg.robotID)
+
+    async def amain() -> int:
+        bridge = RosBridge(cfg, args.config, bus_path, timeout=args.timeout, keep=args.keep, url=args.url)
+        loop = asyncio.get_running_loop()
+        for sig in (signal.SIGINT, signal.SIGTERM):
+            loop.add_signal_handler(sig, bridge.stop.set)
+        return await bridge.run()
+
+    try:
+        code = asyncio.run(amain())
+    except ConfigError as e:
+        print(f"rce-ros: {e.message}", file=sys.stderr)
+        code = 2
+    except RCEError as e:
+        print(f"rce-ros: {e.message}", file=sys.stderr)
+        code = 1
+    sys.exit(code)
+
+
+if __name__ == "__main__":
+    main()
