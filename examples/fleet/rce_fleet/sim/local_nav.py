@@ -1,0 +1,316 @@
+"""The robot's own local navigation: drive to a goal pose, avoid what the lidar sees.
+
+Plays the part of move_base's local planner on each simulated robot.  It is a
+Dynamic Window Approach (Fox, Burgard, Thrun, "The Dynamic Window Approach to
+Collision Avoidance", IEEE RAM 1997): sample (v, w) pairs, roll each out as a
+circular arc over ``horizon`` seconds, drop those whose arc comes closer than
+``safety_margin`` to any lidar hit (the robot is a disc, so turning in place is
+always safe), and score the rest by heading to the goal, progress toward it,
+clearance and speed, plus a small smoothness term.
+
+Plain DWA stalls in front of an obstacle lying across the straight line to the
+goal (heading and progress both favour creeping at it).  So the arcs are
+scored against a sub-goal: the goal itself while the corridor to it (robot
+width plus margin) is free, otherwise a point ``lookahead`` metres out along
+the free corridor closest in angle to the goal direction, a one-step version
+of the Vector Field Histogram's valley choice (Borenstein and Koren 1991), with
+hysteresis and a preference for passing on the right.  Because an arc that would
+hit anything within the horizon is never chosen, the robot creeps ever slower
+toward an obstacle in its way and stops short of it; it never drives into a
+wall, box or robot that its lidar sees.
+
+States: ``idle`` (no goal), ``driving``, ``reached`` (within ``xy_tolerance``
+and, if a goal yaw was given, ``yaw_tolerance``), ``blocked`` (no progress of
+``progress_epsilon`` for ``blocked_after`` seconds; the navigator keeps trying
+and goes back to ``driving`` when it progresses again, so whoever sent the
+goal decides whether to cancel).
+
+Sans-I/O: the caller passes ``dt`` and the latest scan and pose estimate.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+from typing import Any, Iterable
+
+import numpy as np
+from scipy.spatial import cKDTree
+
+from .lidar import LidarParams, scan_to_points
+from .localisation import wrap_angle
+from .obstacles import ObstacleDetector, detected_obstacles as _detected
+
+
+@dataclass(frozen=True)
+class NavParams:
+    """Local planner parameters (SI units: m, s, rad).
+
+    radius: robot radius, m; max_linear m/s; max_angular rad/s (the planner's,
+    below the robot's 2.84); xy_tolerance m, yaw_tolerance rad;
+    safety_margin: minimum gap kept between the robot's edge and any lidar
+    hit along a chosen arc, m; horizon: arc length in time, s; sim_dt: arc
+    sampling step, s; v_samples x w_samples: velocity samples;
+    slowdown_gain: near the goal the speed is capped at gain * distance, 1/s;
+    lookahead: length of the free corridor a detour direction needs, m;
+    max_detour: largest detour angle off the goal direction, rad;
+    detour_step: angular step of the detour search, rad;
+    min_approach_speed m/s; clearance_cap: clearances beyond this score
+    alike, m; blocked_after s, progress_epsilon m: see module doc;
+    weights: heading, progress, clearance, velocity, smoothness.
+    """
+
+    radius: float = 0.105
+    max_linear: float = 0.22
+    max_angular: float = 1.5
+    xy_tolerance: float = 0.08
+    yaw_tolerance: float = 0.1
+    safety_margin: float = 0.05
+    horizon: float = 1.5
+    sim_dt: float = 0.1
+    v_samples: int = 8
+    w_samples: int = 21
+    slowdown_gain: float = 0.8
+    min_approach_speed: float = 0.05
+    clearance_cap: float = 0.4
+    lookahead: float = 0.8
+    max_detour: float = 1.75
+    detour_step: float = 0.0873
+    blocked_after: float = 3.0
+    progress_epsilon: float = 0.05
+    w_heading: float = 1.0
+    w_progress: float = 2.0
+    w_clearance: float = 0.4
+    w_velocity: float = 0.2
+    w_smooth: float = 0.05
+
+
+class LocalNavigator:
+    """Per-robot local planner (DWA, see module doc).
+
+    Use: ``set_goal(x, y, yaw=None)``; then every control period
+    ``v, w = nav.update(pose, dt, scan)`` and send ``(v, w)`` to the robot's
+    ``cmd_vel``.  ``pose`` is the pose estimate (x m, y m, yaw rad), e.g. the
+    localisation output; ``scan`` a (n,) lidar scan taken at ``pose`` (omit it
+    between scans: the last scan's hits are kept in world coordinates and
+    re-projected, so control can run faster than the lidar).
+    """
+
+    STATES = ("idle", "driving", "reached", "blocked")
+
+    def __init__(self, params: NavParams | None = None, *,
+                 lidar_params: LidarParams | None = None,
+                 obstacle_detector: ObstacleDetector | None = None) -> None:
+        self.params = p = params or NavParams()
+        self.lidar_params = lidar_params or LidarParams()
+        self.obstacle_detector = obstacle_detector
+        self.goal: tuple[float, float, float | None] | None = None
+        self.state = "idle"
+        self._points = np.zeros((0, 2))  # last scan's hits, world frame
+        self._last_cmd = (0.0, 0.0)
+        self._best_dist = math.inf
+        self._stall_time = 0.0
+        self._at_position = False
+        self._detour: float | None = None  # world angle of the current detour
+        # Sample grid and arc time stamps (fixed, precomputed).
+        v = np.linspace(0.0, 1.0, p.v_samples)
+        w = np.linspace(-1.0, 1.0, p.w_samples)
+        self._vs, self._ws = (a.ravel() for a in np.meshgrid(v, w, indexing="ij"))
+        k = max(1, int(round(p.horizon / p.sim_dt)))
+        self._t = np.arange(1, k + 1) * (p.horizon / k)
+
+    # -- goals ---------------------------------------------------------------
+    def set_goal(self, x: float, y: float, yaw: float | None = None) -> None:
+        """Drive to (x m, y m) and, if ``yaw`` (rad) is given, turn to it."""
+        self.goal = (float(x), float(y), None if yaw is None else float(yaw))
+        self.state = "driving"
+        self._best_dist = math.inf
+        self._stall_time = 0.0
+        self._at_position = False
+        self._detour = None
+
+    def cancel(self) -> None:
+        """Drop the goal and stop (state ``idle``)."""
+        self.goal = None
+        self.state = "idle"
+        self._last_cmd = (0.0, 0.0)
+
+    # -- sensing ---------------------------------------------------------------
+    def set_scan(self, scan: np.ndarray, pose: tuple[float, float, float]) -> None:
+        """Store a scan's hits (world frame) taken at ``pose`` (x, y, yaw)."""
+        self._points = scan_to_points(scan, pose, self.lidar_params,
+                                      include_too_close=True)
+
+    def detected_obstacles(self, scan: np.ndarray, pose: tuple[float, float, float],
+                           exclude: Iterable[tuple[float, float, float]] = ()
+                           ) -> list[tuple[float, float]]:
+        """Lidar hits (x m, y m) in world coordinates not explained by the
+        static map (when the navigator has an ``obstacle_detector``; all hits
+        otherwise), minus hits inside ``exclude`` discs (x, y, r)."""
+        return _detected(scan, pose, self.obstacle_detector, exclude)
+
+    # -- control -------------------------------------------------------------
+    def update(self, pose: tuple[float, float, float], dt: float,
+               scan: np.ndarray | None = None) -> tuple[float, float]:
+        """One control step: returns (v m/s, w rad/s) for ``cmd_vel``."""
+        if scan is not None:
+            self.set_scan(scan, pose)
+        if self.goal is None or self.state in ("idle", "reached"):
+            self._last_cmd = (0.0, 0.0)
+            return 0.0, 0.0
+        p = self.params
+        x, y, yaw = (float(c) for c in pose)
+        gx, gy, gyaw = self.goal
+        dist = math.hypot(gx - x, gy - y)
+
+        # Position reached (with hysteresis): only the final turn remains.
+        if dist < p.xy_tolerance:
+            self._at_position = True
+        elif dist > 2.0 * p.xy_tolerance:
+            self._at_position = False
+        if self._at_position:
+            if gyaw is None:
+                return self._finish()
+            err = wrap_angle(gyaw - yaw)
+            if abs(err) < p.yaw_tolerance:
+                return self._finish()
+            w = max(-p.max_angular, min(p.max_angular, 2.0 * err))
+            if abs(w) < 0.3:
+                w = math.copysign(0.3, err)
+            self._progress(dist, dt, moving=True)
+            self._last_cmd = (0.0, w)
+            return 0.0, w
+
+        v, w = self._dwa(x, y, yaw, gx, gy, dist)
+        self._progress(dist, dt, moving=False)
+        self._last_cmd = (v, w)
+        return v, w
+
+    def _finish(self) -> tuple[float, float]:
+        self.state = "reached"
+        self._last_cmd = (0.0, 0.0)
+        return 0.0, 0.0
+
+    def _progress(self, dist: float, dt: float, moving: bool) -> None:
+        # ``moving``: the final turn in place, which is progress by itself.
+        p = self.params
+        if moving or dist < self._best_dist - p.progress_epsilon:
+            if not moving:
+                self._best_dist = dist
+            self._stall_time = 0.0
+            self.state = "driving"
+            return
+        self._stall_time += max(0.0, dt)
+        if self._stall_time >= p.blocked_after:
+            self.state = "blocked"
+
+    def _dwa(self, x: float, y: float, yaw: float, gx: float, gy: float,
+             dist: float) -> tuple[float, float]:
+        p = self.params
+        c, s = math.cos(yaw), math.sin(yaw)
+        # Goal and obstacles in the robot frame.
+        dxg, dyg = gx - x, gy - y
+        goal_r = (c * dxg + s * dyg, -s * dxg + c * dyg)
+        reach = max(p.max_linear * p.horizon + p.radius + p.clearance_cap,
+                    p.lookahead + p.radius + p.safety_margin + 0.1)
+        pts = self._points
+        if len(pts):
+            d = pts - (x, y)
+            local = np.column_stack((c * d[:, 0] + s * d[:, 1], -s * d[:, 0] + c * d[:, 1]))
+            local = local[np.hypot(local[:, 0], local[:, 1]) < reach]
+        else:
+            local = np.zeros((0, 2))
+
+        target, dist_t = self._subgoal(local, goal_r, dist, yaw)
+        v_cap = min(p.max_linear, max(p.min_approach_speed, p.slowdown_gain * dist))
+        vs = self._vs * v_cap
+        ws = self._ws * p.max_angular
+        t = self._t
+        # Arc roll-out from the origin, shape (N, K).
+        wt = np.outer(ws, t)
+        straight = np.abs(ws) < 1e-6
+        safe_w = np.where(straight, 1.0, ws)
+        ax = np.where(straight[:, None], np.outer(vs, t),
+                      (vs / safe_w)[:, None] * np.sin(wt))
+        ay = np.where(straight[:, None], 0.0,
+                      (vs / safe_w)[:, None] * (1.0 - np.cos(wt)))
+
+        if len(local):
+            tree = cKDTree(local)
+            d_now = float(tree.query((0.0, 0.0))[0]) - p.radius
+            dists, _ = tree.query(np.column_stack((ax.ravel(), ay.ravel())),
+                                  distance_upper_bound=p.radius + p.clearance_cap + 1.0)
+            clearance = dists.reshape(ax.shape).min(axis=1) - p.radius
+            # Admissible: keeps the margin, or (if already inside it) gets no closer.
+            floor = min(p.safety_margin, d_now - 1e-3)
+            ok = (clearance >= floor) | (vs == 0.0)
+        else:
+            clearance = np.full(len(vs), np.inf)
+            ok = np.ones(len(vs), dtype=bool)
+
+        ex, ey, eth = ax[:, -1], ay[:, -1], wt[:, -1]
+        tx, ty = target
+        # Closest approach along the arc counts, so arcs that pass the target
+        # are not punished for where they would be after it.
+        along = np.hypot(tx - ax, ty - ay).min(axis=1)
+        progress = (dist_t - along) / (p.max_linear * p.horizon)
+        bearing = np.arctan2(ty - ey, tx - ex) - eth
+        heading_err = np.abs(np.arctan2(np.sin(bearing), np.cos(bearing)))
+        heading = 1.0 - heading_err / math.pi
+        clear_score = np.minimum(clearance, p.clearance_cap) / p.clearance_cap
+        vel_score = vs / p.max_linear
+        smooth = np.abs(ws - self._last_cmd[1]) / (2.0 * p.max_angular)
+        # Tie-break: prefer turning right (pass others on the right).
+        right = 0.01 * (ws < 0)
+        score = (p.w_heading * heading + p.w_progress * progress
+                 + p.w_clearance * clear_score + p.w_velocity * vel_score
+                 - p.w_smooth * smooth + right)
+        score = np.where(ok, score, -np.inf)
+        i = int(np.argmax(score))
+        if not np.isfinite(score[i]):
+            return 0.0, 0.0
+        v, w = float(vs[i]), float(ws[i])
+        if v < 1e-3:
+            v = 0.0
+        return v, w
+
+    def _free_distance(self, local: np.ndarray, angles: np.ndarray) -> np.ndarray:
+        """Free length, m, of a straight corridor of half-width radius +
+        safety_margin from the robot along each robot-frame angle (rad)."""
+        p = self.params
+        free = np.full(len(angles), np.inf)
+        if not len(local):
+            return free
+        half = p.radius + p.safety_margin
+        ux, uy = np.cos(angles)[:, None], np.sin(angles)[:, None]
+        a = ux * local[:, 0] + uy * local[:, 1]  # along, (A, P)
+        b = np.abs(ux * local[:, 1] - uy * local[:, 0])  # lateral
+        hit = (b < half) & (a > 0.0)
+        d = np.where(hit, a - np.sqrt(np.maximum(half * half - b * b, 0.0)), np.inf)
+        return np.maximum(d.min(axis=1), 0.0)
+
+    def _subgoal(self, local: np.ndarray, goal_r: tuple[float, float], dist: float,
+                 yaw: float) -> tuple[tuple[float, float], float]:
+        """Robot-frame point to steer for, and its distance (see module doc)."""
+        p = self.params
+        goal_dir = math.atan2(goal_r[1], goal_r[0])
+        need = min(dist, p.lookahead)
+        n = int(p.max_detour // p.detour_step)
+        offsets = np.arange(-n, n + 1) * p.detour_step
+        free = self._free_distance(local, goal_dir + offsets)
+        if free[n] >= need:
+            self._detour = None
+            return goal_r, dist
+        ok = free >= need
+        if not ok.any():
+            self._detour = None
+            return goal_r, dist
+        cost = np.abs(offsets) - 1e-3 * (offsets < 0)  # ties: pass on the right
+        if self._detour is not None:
+            world = yaw + goal_dir + offsets
+            cost = cost + 0.5 * np.abs(np.arctan2(np.sin(world - self._detour),
+                                                  np.cos(world - self._detour)))
+        i = int(np.argmin(np.where(ok, cost, np.inf)))
+        ang = goal_dir + float(offsets[i])
+        self._detour = yaw + ang
+        return (p.lookahead * math.cos(ang), p.lookahead * math.sin(ang)), p.lookahead
