@@ -89,7 +89,7 @@ def validate(msg: Any) -> tuple[str, dict]:
     Raises :class:`ProtocolError` naming the type and key path of the first problem."""
     msg = _obj(msg, "message")
     t = msg.get("type")
-    if t not in ROBOT_TO_CLOUD:
+    if not isinstance(t, str) or t not in ROBOT_TO_CLOUD:
         if "type" not in msg:
             raise ProtocolError("message: missing key 'type'")
         raise ProtocolError(f"message: unknown type {t!r} (expected one of CC, DC, CN, CX, DM)")
@@ -258,22 +258,27 @@ class Assembler:
         if not _HEX_ID.match(ref):
             raise ProtocolError("binary frame does not start with a 32-hex-char id")
         payload = bytes(data[ID_LEN:])
-        if self._bytes + len(payload) > self.max_pending_bytes:
+        old = self._parts.get(ref)
+        held = self._bytes - (len(old[0]) if old else 0)   # the same part sent again replaces the first copy
+        if held + len(payload) > self.max_pending_bytes:
             raise ProtocolError(f"binary parts waiting for their message exceed {self.max_pending_bytes} bytes")
         self._parts[ref] = (payload, now)
-        self._bytes += len(payload)
-        done = []
-        for p in list(self._pending):
+        self._bytes = held + len(payload)
+        # the first message waiting for this id takes it (an id reused by a client is consumed once per message)
+        p = next((p for p in self._pending if ref in p.missing), None)
+        if p is not None:
             p.missing.discard(ref)
             if not p.missing:
                 self._pending.remove(p)
-                done.append(self._complete(p.msg, p.refs))
-        return done
+                return [self._complete(p.msg, p.refs)]
+        return []
 
     def _complete(self, msg: dict, refs: list[str]) -> dict:
         parts = {r: self._parts[r][0] for r in refs}
         for r in set(refs):
             self._bytes -= len(self._parts.pop(r)[0])
+        for p in self._pending:   # messages that reuse a consumed id wait for it again
+            p.missing.update(r for r in p.refs if r in parts)
         return _resolve(msg, parts)
 
     def expire(self, now: float) -> list[str]:
@@ -308,17 +313,23 @@ def new_id() -> str:
 
 def encode(msg: dict) -> tuple[str, list[bytes]]:
     """Encode an outgoing message: every ``bytes`` value under key ``k`` becomes ``k*: id``
-    and a binary frame ``id || bytes``. Returns ``(json_text, binary_frames)``."""
+    and a binary frame ``id || bytes``; a list of ``bytes`` becomes ``k*: [ids]``.
+    Returns ``(json_text, binary_frames)``."""
     frames: list[bytes] = []
+
+    def part(v: bytes | bytearray | memoryview) -> str:
+        ref = new_id()
+        frames.append(ref.encode() + bytes(v))
+        return ref
 
     def walk(obj: Any) -> Any:
         if isinstance(obj, dict):
             out = {}
             for k, v in obj.items():
                 if isinstance(v, (bytes, bytearray, memoryview)):
-                    ref = new_id()
-                    frames.append(ref.encode() + bytes(v))
-                    out[k + "*"] = ref
+                    out[k + "*"] = part(v)
+                elif isinstance(v, list) and v and all(isinstance(x, (bytes, bytearray, memoryview)) for x in v):
+                    out[k + "*"] = [part(x) for x in v]
                 else:
                     out[k] = walk(v)
             return out
