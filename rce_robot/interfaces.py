@@ -82,11 +82,12 @@ class RobotInterface(Interface):
         """Handle a DM the robot sent to this interface. Raises :class:`RCEError` to answer ER."""
         msg = data.get("msg")
         if self.kind == "Subscriber":
+            payload = self._encode(self.msg_t, msg)
+            self.msgs_in += 1
             if not self.peers:
                 self.dropped += 1
                 return
-            self.msgs_in += 1
-            self.send_message(self._encode(self.msg_t, msg))
+            self.send_message(payload)
         elif self.kind == "ServiceProvider":
             self.msgs_in += 1
             msg_id = data.get("msgID") or ""

@@ -36,6 +36,9 @@ class RobotNamespace:
         self.out: asyncio.Queue = asyncio.Queue()
         self.out_data = 0                      # data messages waiting in ``out``
         self.requests: asyncio.Queue = asyncio.Queue()
+        self.in_flight = 0                     # requests queued or running
+        self.idle = asyncio.Event()            # set when no request is queued or running
+        self.idle.set()
         self.dropped = self.msgs_in = self.msgs_out = self.errors = 0
 
     # -- outgoing ----------------------------------------------------------------------------------
@@ -117,15 +120,28 @@ class RobotNamespace:
             return
         if t == protocol.DM:
             iface = self.interfaces.get(data["iTag"])
-            if iface is None:
-                self.send_error(f"DM: no interface {data['iTag']!r} on robot {self.robot!r}")
+            if iface is None and not self.idle.is_set():
+                # the interface may be created by a request sent before this DM: keep the robot's order
+                asyncio.create_task(self._dm_after_requests(data))
                 return
-            if str(data["type"]).strip("/") != iface.cls:
-                self.send_error(f"DM: interface {data['iTag']!r} carries {iface.cls!r}, not {data['type']!r}")
-                return
-            asyncio.create_task(self._dm(iface, data))
+            self._route_dm(iface, data)
         else:
+            self.in_flight += 1
+            self.idle.clear()
             self.requests.put_nowait((t, data))
+
+    async def _dm_after_requests(self, data: dict) -> None:
+        await self.idle.wait()
+        self._route_dm(self.interfaces.get(data["iTag"]), data)
+
+    def _route_dm(self, iface: "RobotInterface | None", data: dict) -> None:
+        if iface is None:
+            self.send_error(f"DM: no interface {data['iTag']!r} on robot {self.robot!r}")
+            return
+        if str(data["type"]).strip("/") != iface.cls:
+            self.send_error(f"DM: interface {data['iTag']!r} carries {iface.cls!r}, not {data['type']!r}")
+            return
+        asyncio.create_task(self._dm(iface, data))
 
     async def _dm(self, iface: "RobotInterface", data: dict) -> None:
         try:
@@ -144,6 +160,10 @@ class RobotNamespace:
                 await master.call("robot_request", timeout=120, user=self.user, robot=self.robot, type=t, data=data)
             except RCEError as e:
                 self.send_error(f"{t}: {e.message}")
+            finally:
+                self.in_flight -= 1
+                if self.in_flight == 0:
+                    self.idle.set()
 
     async def _expire(self) -> None:
         while True:
