@@ -425,3 +425,15 @@ def test_detected_obstacles_drop_static_walls_and_known_robots():
     # Without a detector every hit comes back, in world coordinates.
     all_hits = LocalNavigator().detected_obstacles(robot.scan(), pose)
     assert len(all_hits) == len(scan_to_points(robot.scan(), pose, include_too_close=False))
+
+
+def test_lidar_fast_path_matches_public_pymunk_api():
+    world = SimWorld(room(), seed=0)
+    world.add_box("b", 3.0, 3.5, 0.3, 0.6)
+    robot = world.add_robot("a", 2.0, 3.0, 0.2)
+    world.add_robot("other", 2.5, 2.2, 0.0)
+    lidar = robot.lidar
+    fast = lidar.true_ranges(*robot.pose(), robot.shape.filter)
+    lidar.fast = False
+    slow = lidar.true_ranges(*robot.pose(), robot.shape.filter)
+    assert np.array_equal(fast, slow)

@@ -6,7 +6,11 @@ Collision Avoidance", IEEE RAM 1997): sample (v, w) pairs, roll each out as a
 circular arc over ``horizon`` seconds, drop those whose arc comes closer than
 ``safety_margin`` to any lidar hit (the robot is a disc, so turning in place is
 always safe), and score the rest by heading to the goal, progress toward it,
-clearance and speed, plus a small smoothness term.
+clearance and speed, plus a small smoothness term.  The samples span the
+whole velocity range (0..max_linear x -max_angular..max_angular, capped near
+the goal); the robot's own acceleration limits (2.5 m/s^2, 3.2 rad/s^2) then
+smooth the command, since at a 10 Hz control rate the dynamic window already
+covers nearly all of it.
 
 Plain DWA stalls in front of an obstacle lying across the straight line to the
 goal (heading and progress both favour creeping at it).  So the arcs are
@@ -32,7 +36,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
-from typing import Any, Iterable
+from typing import Iterable
 
 import numpy as np
 from scipy.spatial import cKDTree
