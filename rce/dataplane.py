@@ -162,6 +162,8 @@ class DataPlane:
             pass
         except ProtocolError as e:
             log.warning("closing data link on bad frame", plane=self.name, reason=str(e))
+        except asyncio.CancelledError:
+            pass   # close(): end normally, or Python 3.11's stream callback logs the cancellation as an error
         finally:
             self._readers.discard(task)
             writer.close()

@@ -61,6 +61,11 @@ class RpcPeer:
     async def call(self, op: str, timeout: float | None = 30.0, **args) -> Any:
         """Send request ``op`` and await its result. Raises the peer's :class:`RCEError`,
         or :class:`Unavailable` when the link closes or ``timeout`` (s) passes."""
+        return await self.request(op, args, timeout)
+
+    async def request(self, op: str, args: dict, timeout: float | None = 30.0) -> Any:
+        """:meth:`call` with the op's arguments as a dict, for arguments that may include a key
+        named ``timeout`` (``bus_call``, ``bus_sample``), which ``call(**args)`` cannot pass."""
         if self.closed.is_set():
             raise Unavailable(f"control link to {self.name} is closed")
         rid = next(self._ids)
