@@ -1,0 +1,81 @@
+"""``rce-container MASTER_IP``: the container task set of one host (see :mod:`rce_container.host`).
+
+Exit codes: 0 after SIGINT/SIGTERM (every container destroyed), 1 when the master link
+drops or registration fails, 2 for bad arguments.
+"""
+from __future__ import annotations
+
+import argparse
+import asyncio
+import os
+import signal
+import socket
+import sys
+import tempfile
+
+from rce import framing
+from rce.errors import RCEError
+from rce.log import get_logger, setup_logging
+from rce_container import sandbox as sandboxes
+from rce_container.host import ContainerHost, write_ready_file
+
+log = get_logger("rce.container")
+
+
+def parser() -> argparse.ArgumentParser:
+    p = argparse.ArgumentParser(prog="rce-container", description="rce container task set: runs the "
+                                "containers (environments and their nodes) the master places on this host")
+    p.add_argument("master", metavar="MASTER_IP", help="address of the rce-master control port")
+    p.add_argument("--master-port", type=int, default=8080, help="master control port (default 8080)")
+    p.add_argument("--bind", default="127.0.0.1",
+                   help="address environments' data-plane listeners bind to (default 127.0.0.1)")
+    p.add_argument("--advertise-host", default=None,
+                   help="address other hosts reach this host's environments by (default: --bind)")
+    p.add_argument("--name", default=None, help="task set name (default: the hostname)")
+    p.add_argument("--runtime-dir", default=None,
+                   help="sockets and per-container dirs (default: a fresh dir under $XDG_RUNTIME_DIR or /tmp, "
+                        "removed on exit)")
+    p.add_argument("--ready-file", default=None, metavar="PATH",
+                   help='write {"tid": ..., "pid": ...} as JSON here once registered with the master')
+    p.add_argument("--max-frame", type=int, default=framing.DEFAULT_MAX_FRAME,
+                   help=f"largest frame accepted on any link, bytes (default {framing.DEFAULT_MAX_FRAME})")
+    p.add_argument("--sandbox", default="auto", choices=["auto", *sorted(sandboxes.REGISTRY)],
+                   help="node isolation (default auto: the strongest this host supports)")
+    p.add_argument("--grace", type=float, default=3.0,
+                   help="seconds between SIGTERM and SIGKILL when stopping nodes (default 3)")
+    return p
+
+
+async def amain(args: argparse.Namespace) -> int:
+    own = args.runtime_dir is None
+    runtime_dir = args.runtime_dir or tempfile.mkdtemp(
+        prefix="rce-container-", dir=os.environ.get("XDG_RUNTIME_DIR") or None)
+    host = ContainerHost(args.master, args.master_port, name=args.name or socket.gethostname(), bind=args.bind,
+                         advertise_host=args.advertise_host, runtime_dir=runtime_dir, own_runtime_dir=own,
+                         sandbox=args.sandbox, max_frame=args.max_frame, grace=args.grace)
+    loop = asyncio.get_running_loop()
+    for sig in (signal.SIGINT, signal.SIGTERM):
+        loop.add_signal_handler(sig, host.stop)
+    try:
+        tid = await host.start()
+    except (OSError, RCEError) as e:
+        log.error("cannot register with the master", master=f"{args.master}:{args.master_port}", reason=str(e))
+        await host.close()
+        return 1
+    if args.ready_file:
+        write_ready_file(args.ready_file, tid)
+    return await host.run()
+
+
+def main(argv: list[str] | None = None) -> None:
+    args = parser().parse_args(argv)
+    setup_logging()
+    try:
+        sys.exit(asyncio.run(amain(args)))
+    except RCEError as e:        # configuration errors (e.g. an unavailable sandbox)
+        print(f"rce-container: {e}", file=sys.stderr)
+        sys.exit(2)
+
+
+if __name__ == "__main__":
+    main()

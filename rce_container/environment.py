@@ -1,0 +1,407 @@
+"""The environment process: the ROS-like master of one container group of one user.
+
+Run by the container task set as ``python -m rce_container.environment --control SOCK
+--env-id N ...``. It owns
+
+- one :class:`~rce.bus.core.Bus` shared by the group's containers, served to each container
+  on its own Unix socket (``RUNTIME/c<cid>/bus.sock``, one :class:`~rce.bus.server.BusServer`
+  per container, all on the same bus) — a container's nodes get only their own socket;
+- one :class:`~rce.dataplane.DataPlane` (its address is the group's ``data_addr``);
+- per container: a sandbox, a node :class:`~rce_container.launcher.Launcher` and its
+  container-side interfaces.
+
+It dials its task set's control socket, says ``hello {env_id, pid, data_addr}``, then serves
+the ops the task set relays (docs/INTERNALS.md, "Master -> container task set") plus
+``add_container``, ``remove_container``, ``shutdown``, ``stats`` and ``logs``. It sends
+``node_status`` notifications up the same link and exits (killing its nodes) when the link
+closes or on SIGTERM/SIGINT.
+"""
+from __future__ import annotations
+
+import argparse
+import asyncio
+import os
+import shutil
+import signal
+import sys
+import time
+from pathlib import Path
+from typing import Any
+
+from rce import framing, rpc
+from rce.bus.core import Bus
+from rce.bus.server import BusServer
+from rce.dataplane import DataPlane
+from rce.errors import NotFound, RCEError, RequestError
+from rce.log import get_logger, setup_logging
+from rce.messages import MessageRegistry, default_registry, wire_name
+from rce.naming import resolve
+from rce.packages import load_package_types
+from rce_container import sandbox as sandboxes
+from rce_container.interfaces import BusInterface, make_interface
+from rce_container.launcher import LOG_LINES, Launcher
+
+log = get_logger("rce.container.env")
+
+SOCKET_NAME = "bus.sock"
+MAX_SAMPLE = 10000        # messages, bound of one bus_sample
+MAX_SAMPLE_TIMEOUT = 300  # s
+
+
+class Container:
+    """One container of the group: its bus socket and server, sandbox, launcher, interfaces."""
+
+    def __init__(self, env: "Environment", cid: int, ctag: str, user: str, group: str | None, limits: dict):
+        self.env, self.cid, self.ctag, self.user, self.group = env, cid, ctag, user, group
+        self.limits = limits
+        self.workdir = env.runtime_dir / f"c{cid}"
+        self.socket = str(env.socket_dir / f"c{cid}" / SOCKET_NAME)
+        self.server = BusServer(env.bus)
+        self.sandbox = env.sandbox_cls(cid, ctag, limits, self.workdir, grace=env.grace)
+        self.launcher = Launcher(self.sandbox, self.socket, ctag, self._status)
+        self.interfaces: dict[int, BusInterface] = {}
+
+    def _status(self, ntag: str, status: str, **fields: Any) -> None:
+        self.env.notify_status(self.cid, ntag, status, **fields)
+
+    async def start(self) -> None:
+        if len(self.socket.encode()) > 107:
+            raise RCEError(f"bus socket path {self.socket!r} is too long for a Unix socket; "
+                           "use a shorter --runtime-dir")
+        self.workdir.mkdir(parents=True, exist_ok=True)
+        Path(self.socket).parent.mkdir(parents=True, exist_ok=True)
+        await self.sandbox.setup()
+        await self.server.listen(self.socket)
+
+    async def close(self) -> None:
+        """Kill the nodes, drop the interfaces, close the socket, remove the workdir."""
+        await self.launcher.close()
+        await self.sandbox.close()
+        for iface in list(self.interfaces.values()):
+            await self.env.drop_interface(iface)
+        await self.server.close()
+        shutil.rmtree(self.workdir, ignore_errors=True)
+        shutil.rmtree(Path(self.socket).parent, ignore_errors=True)
+
+    def stats(self) -> dict:
+        """Per-container counters; see :meth:`Environment.op_stats`."""
+        ifs = [i.stats() for i in self.interfaces.values()]
+        node_subs = [s for sess in self.server.sessions for s in sess.subs.values()]
+        iface_subs = [i.sub for i in self.interfaces.values() if getattr(i, "sub", None) is not None]
+        nodes = [n.info() for n in self.launcher.nodes.values()]
+        return {
+            "cid": self.cid, "ctag": self.ctag, "group": self.group, "sandbox": self.sandbox.status,
+            "nodes": {"count": len(nodes), "running": sum(n["running"] for n in nodes),
+                      "starts": self.launcher.starts, "restarts": sum(n["restarts"] for n in nodes)},
+            "msgs_in": sum(i["msgs_in"] for i in ifs), "msgs_out": sum(i["msgs_out"] for i in ifs),
+            "bytes_in": sum(i["bytes_in"] for i in ifs), "bytes_out": sum(i["bytes_out"] for i in ifs),
+            "dropped": {"interfaces": sum(i["dropped"] for i in ifs),
+                        "bus": sum(s.dropped for s in node_subs + iface_subs)},
+            "interfaces": ifs,
+        }
+
+
+class Environment:
+    """The environment of one container group (see the module doc).
+
+    ``env_id``: the task set's id for it; ``runtime_dir``: where container dirs and sockets go;
+    ``bind``/``advertise_host``: data-plane listener and the address peers dial; ``sandbox``:
+    sandbox kind (:func:`rce_container.sandbox.select`); ``grace``: s between SIGTERM and
+    SIGKILL when nodes are stopped."""
+
+    def __init__(self, env_id: int, runtime_dir: str | Path, *, socket_dir: str | Path | None = None,
+                 bind: str = "127.0.0.1",
+                 advertise_host: str | None = None, sandbox: str = "auto",
+                 max_frame: int = framing.DEFAULT_MAX_FRAME, grace: float = 3.0,
+                 registry: MessageRegistry | None = None):
+        self.env_id = env_id
+        self.runtime_dir = Path(runtime_dir)
+        self.socket_dir = Path(socket_dir or runtime_dir)
+        self.bind, self.advertise_host = bind, advertise_host or bind
+        self.sandbox_cls = sandboxes.select(sandbox)
+        self.max_frame, self.grace = max_frame, grace
+        self.registry = registry or default_registry()
+        self.bus = Bus(f"env{env_id}")
+        self.plane = DataPlane(f"env{env_id}", max_frame=max_frame)
+        self.containers: dict[int, Container] = {}
+        self.interfaces: dict[int, BusInterface] = {}
+        self.peer: rpc.RpcPeer | None = None
+        self.done = asyncio.Event()
+        self._closed = False
+
+    # -- lifecycle -----------------------------------------------------------------------------
+    async def start(self, control_path: str) -> None:
+        """Listen on the data plane, dial the task set at ``control_path`` and say hello."""
+        load_package_types(self.registry)
+        await self.plane.listen(self.bind, 0, self.advertise_host)
+        handlers = {op[3:]: getattr(self, op) for op in dir(self) if op.startswith("op_")}
+        self.peer = await rpc.connect_unix(control_path, handlers, name="container task set",
+                                           on_close=lambda _p: self.done.set(), max_frame=self.max_frame)
+        await self.peer.call("hello", env_id=self.env_id, pid=os.getpid(), data_addr=self.plane.addr)
+        log.info("environment ready", env=self.env_id, data_addr=self.plane.addr,
+                 sandbox=self.sandbox_cls.kind)
+
+    async def close(self) -> None:
+        """Destroy every container (killing their nodes) and close the data plane. Idempotent."""
+        if self._closed:
+            return
+        self._closed = True
+        await asyncio.gather(*(c.close() for c in self.containers.values()), return_exceptions=True)
+        self.containers.clear()
+        await self.plane.close()
+        if self.peer:
+            await self.peer.close()
+
+    def notify_status(self, cid: int, ntag: str, status: str, **fields: Any) -> None:
+        """Send ``node_status {cid, ntag, status, ...}`` to the task set."""
+        if self.peer:
+            self.peer.notify("node_status", cid=cid, ntag=ntag, status=status, **fields)
+
+    def _container(self, a: dict) -> Container:
+        c = self.containers.get(a.get("cid"))
+        if c is None:
+            raise NotFound(f"container {a.get('cid')!r} is not in this environment")
+        return c
+
+    async def drop_interface(self, iface: BusInterface) -> None:
+        self.interfaces.pop(iface.iid, None)
+        c = self.containers.get(iface.cid)
+        if c:
+            c.interfaces.pop(iface.iid, None)
+        await iface.stop()
+
+    # -- containers ----------------------------------------------------------------------------
+    async def op_add_container(self, a: dict) -> dict:
+        """``{cid, ctag, user, group, limits}`` -> ``{data_addr, sandbox, socket}``."""
+        cid = a["cid"]
+        c = self.containers.get(cid)
+        if c is None:
+            c = Container(self, cid, a.get("ctag") or f"c{cid}", a.get("user", ""), a.get("group"),
+                          a.get("limits") or {})
+            self.containers[cid] = c
+            try:
+                await c.start()
+            except BaseException:
+                self.containers.pop(cid, None)
+                await c.close()
+                raise
+            log.info("container added", env=self.env_id, cid=cid, ctag=c.ctag, socket=c.socket)
+        return {"data_addr": self.plane.addr, "sandbox": c.sandbox.status, "socket": c.socket}
+
+    async def op_remove_container(self, a: dict) -> dict:
+        """``{cid}``: kill the container's nodes, drop its interfaces and socket."""
+        c = self._container(a)
+        del self.containers[c.cid]
+        await c.close()
+        log.info("container removed", env=self.env_id, cid=c.cid, ctag=c.ctag)
+        return {}
+
+    async def op_shutdown(self, a: dict) -> dict:
+        """Destroy every container; the task set closes the link afterwards."""
+        await asyncio.gather(*(c.close() for c in self.containers.values()), return_exceptions=True)
+        self.containers.clear()
+        return {}
+
+    async def op_resize_container(self, a: dict) -> dict:
+        """``{cid, limits: {cpu, memory, size, bandwidth}}`` -> ``{sandbox, limits}``: new limits
+        for the container's sandbox (recorded only by the unconfined sandbox)."""
+        c = self._container(a)
+        await c.sandbox.resize(a.get("limits") or {})
+        return {"sandbox": c.sandbox.status, "limits": c.sandbox.limits}
+
+    # -- nodes ---------------------------------------------------------------------------------
+    async def op_add_node(self, a: dict) -> dict:
+        """``{cid, ntag, pkg, exe, args, name, namespace, respawn}`` -> ``{ntag, pid}``."""
+        return await self._container(a).launcher.add(a)
+
+    async def op_remove_node(self, a: dict) -> dict:
+        """``{cid, ntag}``: stop the node (SIGTERM, then SIGKILL after the grace period)."""
+        await self._container(a).launcher.remove(a["ntag"])
+        return {}
+
+    async def op_logs(self, a: dict) -> dict:
+        """``{cid, ntag, lines?}`` -> ``{stdout: [line...], stderr: [line...]}`` (last lines)."""
+        return self._container(a).launcher.logs(a["ntag"], a.get("lines", LOG_LINES))
+
+    # -- parameters ----------------------------------------------------------------------------
+    async def op_set_param(self, a: dict) -> dict:
+        """``{cid, name, value}``: set a parameter (global name) on the group's bus."""
+        self._container(a)
+        self.bus.set_param(resolve(a["name"], "/"), a.get("value"))
+        return {}
+
+    async def op_delete_param(self, a: dict) -> dict:
+        """``{cid, name}``: delete a parameter (and its subtree). NotFound if not set."""
+        self._container(a)
+        self.bus.delete_param(resolve(a["name"], "/"))
+        return {}
+
+    # -- interfaces ----------------------------------------------------------------------------
+    async def op_add_interface(self, a: dict) -> dict:
+        """``{cid, iid, tag, itype, cls, addr?}`` -> ``{iid, addr}``: create and start a
+        container-side interface. Idempotent for the same spec; MessageError for an unknown class."""
+        c = self._container(a)
+        iid = a["iid"]
+        old = self.interfaces.get(iid)
+        iface = make_interface(self.plane, self.bus, c.cid, iid, a.get("tag"), a.get("itype"), a.get("cls"),
+                               a.get("addr"), self.registry)
+        if old is not None:
+            if (old.cid, old.kind, old.cls, old.addr) == (c.cid, iface.kind, iface.cls, iface.addr):
+                return {"iid": iid, "addr": old.addr}
+            raise RequestError(f"interface id {iid} is already in use by {old.tag!r}")
+        await iface.start()
+        self.interfaces[iid] = c.interfaces[iid] = iface
+        log.info("interface added", cid=c.cid, iid=iid, tag=iface.tag, kind=iface.kind, cls=iface.cls,
+                 addr=iface.addr)
+        return {"iid": iid, "addr": iface.addr}
+
+    def _interface(self, a: dict) -> BusInterface:
+        c = self._container(a)
+        iface = c.interfaces.get(a.get("iid"))
+        if iface is None:
+            raise NotFound(f"interface {a.get('iid')!r} does not exist in container {c.ctag!r}")
+        return iface
+
+    async def op_remove_interface(self, a: dict) -> dict:
+        """``{cid, iid}``: stop and drop an interface (its connections go with it)."""
+        await self.drop_interface(self._interface(a))
+        return {}
+
+    async def op_connect(self, a: dict) -> dict:
+        """``{cid, iid, peer_iid, peer_addr}``: connect an interface to a peer interface."""
+        self._interface(a).connect(int(a["peer_iid"]), a["peer_addr"])
+        return {}
+
+    async def op_disconnect(self, a: dict) -> dict:
+        """``{cid, iid, peer_iid}``: drop one connection (no error if absent)."""
+        self._interface(a).disconnect(int(a["peer_iid"]))
+        return {}
+
+    # -- bus tools -----------------------------------------------------------------------------
+    async def op_describe(self, a: dict) -> dict:
+        """``{cid}`` -> :meth:`Bus.describe` of the group's bus, plus ``launched``: the
+        container's nodes as the launcher sees them (``ntag, pid, running, restarts, argv``)."""
+        c = self._container(a)
+        return {**self.bus.describe(), "launched": [n.info() for n in c.launcher.nodes.values()]}
+
+    async def op_bus_publish(self, a: dict) -> dict:
+        """``{cid, topic, type, msg}`` -> ``{delivered}``: publish a JSON message once."""
+        self._container(a)
+        topic = resolve(a["topic"], "/")
+        typename = self.registry.msg_type(a["type"])
+        payload = self.registry.json_to_bytes(typename, a.get("msg") or {})
+        owner = "admin:bus_publish"
+        t = self.bus.advertise(topic, wire_name(typename), owner)
+        try:
+            return {"delivered": self.bus.publish(t, payload)}
+        finally:
+            self.bus.unadvertise(topic, owner)
+
+    async def op_bus_call(self, a: dict) -> Any:
+        """``{cid, service, request, timeout}`` -> the JSON response. NotFound for an absent
+        service, Unavailable on timeout (s, default 10), the provider's error otherwise."""
+        self._container(a)
+        name = resolve(a["service"], "/")
+        s = self.bus.services.get(name)
+        if s is None:
+            raise NotFound(f"service {name!r} is not provided in container {a['cid']}")
+        req_t, resp_t = self.registry.srv_types(s.type)
+        payload = self.registry.json_to_bytes(req_t, a.get("request") or {})
+        resp = await self.bus.call_service(name, payload, None, float(a.get("timeout") or 10.0))
+        return self.registry.bytes_to_json(resp_t, resp)
+
+    async def op_bus_sample(self, a: dict) -> list:
+        """``{cid, topic, count, timeout, type?}`` -> up to ``count`` JSON messages received on
+        ``topic`` within ``timeout`` s. The type comes from the topic (or ``type``); NotFound
+        if neither is known."""
+        self._container(a)
+        topic = resolve(a["topic"], "/")
+        t = self.bus.topics.get(topic)
+        wire = t.type if t is not None else a.get("type")
+        if not wire:
+            raise NotFound(f"topic {topic!r} does not exist; give its 'type' to wait for it")
+        typename = self.registry.msg_type(wire)
+        count = max(1, min(int(a.get("count") or 1), MAX_SAMPLE))
+        timeout = max(0.0, min(float(a.get("timeout") or 5.0), MAX_SAMPLE_TIMEOUT))
+        got: list[bytes] = []
+        full = asyncio.Event()
+
+        def deliver(payload: bytes) -> bool:
+            if len(got) < count:
+                got.append(payload)
+                if len(got) >= count:
+                    full.set()
+            return True
+        sub = self.bus.subscribe(topic, wire_name(typename), deliver, "admin:bus_sample", count)
+        try:
+            await asyncio.wait_for(full.wait(), timeout)
+        except asyncio.TimeoutError:
+            pass
+        finally:
+            self.bus.unsubscribe(sub)
+        return [self.registry.bytes_to_json(typename, p) for p in got]
+
+    # -- status --------------------------------------------------------------------------------
+    async def op_stats(self, a: dict) -> dict:
+        """``{cid}`` -> counters of the container and of its group::
+
+            {cid, ctag, group, sandbox,
+             nodes: {count, running, starts, restarts},
+             msgs_in, msgs_out, bytes_in, bytes_out,          # over the container's interfaces
+             dropped: {interfaces, bus},                       # refused by peer links / bus subscriptions
+             interfaces: [{iid, tag, kind, cls, addr, peers, msgs_in, msgs_out, bytes_in, bytes_out, dropped}],
+             environment: {env_id, pid, containers, data_addr,
+                           bus: {topics, services, nodes, messages, bytes, dropped},
+                           dataplane: {msgs_in, msgs_out, bytes_in, bytes_out, dropped, links}}}
+        """
+        c = self._container(a)
+        topics = self.bus.topics.values()
+        return {**c.stats(), "environment": {
+            "env_id": self.env_id, "pid": os.getpid(), "containers": len(self.containers),
+            "data_addr": self.plane.addr,
+            "bus": {"topics": len(self.bus.topics), "services": len(self.bus.services),
+                    "nodes": len(self.bus.nodes), "messages": sum(t.messages for t in topics),
+                    "bytes": sum(t.bytes for t in topics), "dropped": sum(t.dropped for t in topics)},
+            "dataplane": self.plane.stats()}}
+
+
+async def run(args: argparse.Namespace) -> int:
+    """Start the environment, serve until the link closes or a signal; returns the exit code."""
+    env = Environment(args.env_id, args.runtime_dir, socket_dir=args.socket_dir, bind=args.bind, advertise_host=args.advertise_host,
+                      sandbox=args.sandbox, max_frame=args.max_frame, grace=args.grace)
+    loop = asyncio.get_running_loop()
+    for sig in (signal.SIGINT, signal.SIGTERM):
+        loop.add_signal_handler(sig, env.done.set)
+    t0 = time.monotonic()
+    try:
+        await env.start(args.control)
+    except (OSError, RCEError) as e:
+        log.error("environment failed to start", env=args.env_id, reason=str(e))
+        await env.close()
+        return 1
+    log.debug("environment started", env=args.env_id, ms=round((time.monotonic() - t0) * 1000, 1))
+    await env.done.wait()
+    log.info("environment stopping", env=args.env_id)
+    await env.close()
+    return 0
+
+
+def main(argv: list[str] | None = None) -> None:
+    p = argparse.ArgumentParser(prog="python -m rce_container.environment",
+                                description="rce environment of one container group (started by rce-container)")
+    p.add_argument("--control", required=True, help="Unix socket of the container task set")
+    p.add_argument("--env-id", type=int, required=True)
+    p.add_argument("--runtime-dir", required=True)
+    p.add_argument("--socket-dir", default=None, help="where bus sockets go (default: --runtime-dir)")
+    p.add_argument("--bind", default="127.0.0.1")
+    p.add_argument("--advertise-host", default=None)
+    p.add_argument("--sandbox", default="auto")
+    p.add_argument("--max-frame", type=int, default=framing.DEFAULT_MAX_FRAME)
+    p.add_argument("--grace", type=float, default=3.0, help="s between SIGTERM and SIGKILL for nodes")
+    args = p.parse_args(argv)
+    setup_logging()
+    sys.exit(asyncio.run(run(args)))
+
+
+if __name__ == "__main__":
+    main()

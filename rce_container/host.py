@@ -1,0 +1,441 @@
+"""The container task set: registers with the master and runs its containers' environments.
+
+Links (docs/INTERNALS.md): this process dials the master's control port and registers
+``{kind: "container", name, host, sandbox, capacity}``; it listens on a Unix control socket
+(``RUNTIME/host.sock``) that its environment processes dial. The master never talks to an
+environment: every container op arrives here, names its ``cid``, and is relayed to the
+environment that serves the container's group. ``node_status`` notifications travel the other
+way (environment -> here -> master).
+
+Groups: containers of one user created with the same ``group`` share one environment (one
+bus); a container without a group gets an environment of its own. An environment is spawned
+on the group's first ``create_container`` and stopped with its last container.
+"""
+from __future__ import annotations
+
+import asyncio
+import hashlib
+import itertools
+import json
+import os
+import shutil
+import signal
+import socket
+import sys
+import tempfile
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import psutil
+
+from rce import framing, rpc
+from rce.errors import NotFound, RCEError, RequestError, Unavailable
+from rce.log import get_logger
+from rce_container import sandbox as sandboxes
+
+log = get_logger("rce.container")
+
+CONTROL_SOCKET = "host.sock"
+RELAYED_OPS = ("add_node", "remove_node", "set_param", "delete_param", "add_interface", "remove_interface",
+               "connect", "disconnect", "describe", "bus_publish", "bus_call", "bus_sample", "logs",
+               "resize_container")
+MAX_SOCKET_PATH = 107     # bytes, sun_path minus the NUL
+
+
+def socket_dir_for(runtime_dir: Path) -> Path:
+    """Where the Unix sockets go: ``runtime_dir`` itself, or, when its path is too long for a
+    socket path (``c<cid>/bus.sock`` must fit in 107 bytes), a short directory in the system
+    temp dir derived from it."""
+    if len(str(runtime_dir / "c0000000000" / "bus.sock").encode()) <= MAX_SOCKET_PATH:
+        return runtime_dir
+    digest = hashlib.sha1(str(runtime_dir.resolve()).encode()).hexdigest()[:12]
+    return Path(tempfile.gettempdir()) / f"rce-{digest}"
+
+
+@dataclass(eq=False)
+class EnvHandle:
+    """The task set's view of one environment process."""
+    env_id: int
+    key: tuple
+    proc: asyncio.subprocess.Process | None = None
+    peer: rpc.RpcPeer | None = None
+    data_addr: str = ""
+    cids: set[int] = field(default_factory=set)
+    stopping: bool = False
+    exit_code: int | None = None
+    started: float = 0.0          # monotonic s, spawn time
+
+    @property
+    def alive(self) -> bool:
+        return self.exit_code is None and self.peer is not None and not self.peer.closed.is_set()
+
+
+@dataclass(eq=False)
+class ContainerRecord:
+    """A container this task set hosts: ids, its environment and its known nodes (nTag -> pid)."""
+    cid: int
+    user: str
+    ctag: str
+    group: str | None
+    env: EnvHandle
+    result: dict
+    nodes: dict[str, int | None] = field(default_factory=dict)
+
+
+class ContainerHost:
+    """The container task set (``rce-container``).
+
+    ``master``/``master_port``: the master's control address; ``name``: this task set's name;
+    ``bind``: where environments' data planes listen; ``advertise_host``: the address peers
+    reach them by; ``runtime_dir``: sockets and per-container dirs (created if missing;
+    removed on exit only if ``own_runtime_dir``); ``sandbox``: sandbox kind or ``"auto"``;
+    ``env_timeout``: s to wait for a new environment's hello; ``grace``: s between SIGTERM
+    and SIGKILL for nodes."""
+
+    def __init__(self, master: str, master_port: int = 8080, *, name: str | None = None,
+                 bind: str = "127.0.0.1", advertise_host: str | None = None, runtime_dir: str | Path,
+                 own_runtime_dir: bool = False, sandbox: str = "auto",
+                 max_frame: int = framing.DEFAULT_MAX_FRAME, env_timeout: float = 30.0, grace: float = 3.0):
+        self.master_addr = (master, master_port)
+        self.name = name or socket.gethostname()
+        self.bind, self.advertise_host = bind, advertise_host or bind
+        self.runtime_dir = Path(runtime_dir)
+        self.own_runtime_dir = own_runtime_dir
+        self.sandbox_cls = sandboxes.select(sandbox)
+        self.max_frame, self.env_timeout, self.grace = max_frame, env_timeout, grace
+        self.socket_dir = socket_dir_for(self.runtime_dir)
+        self.control_path = str(self.socket_dir / CONTROL_SOCKET)
+        self.master: rpc.RpcPeer | None = None
+        self.tid: Any = None
+        self.containers: dict[int, ContainerRecord] = {}
+        self.groups: dict[tuple, EnvHandle] = {}
+        self.envs: set[EnvHandle] = set()
+        self.stopped = asyncio.Event()
+        self.exit_code = 0
+        self._server: asyncio.AbstractServer | None = None
+        self._env_ids = itertools.count(1)
+        self._hellos: dict[int, asyncio.Future] = {}
+        self._group_locks: dict[tuple, asyncio.Lock] = {}
+        self._tasks: set[asyncio.Task] = set()
+        self._closing = False
+
+    # -- lifecycle -----------------------------------------------------------------------------
+    async def start(self) -> Any:
+        """Listen for environments, dial the master and register; returns the ``tid``.
+
+        Raises :class:`OSError` if the master is unreachable, :class:`RCEError` if it refuses."""
+        self.runtime_dir.mkdir(parents=True, exist_ok=True, mode=0o700)
+        self.socket_dir.mkdir(parents=True, exist_ok=True, mode=0o700)
+        if os.path.exists(self.control_path):
+            os.unlink(self.control_path)
+        self._server = await asyncio.start_unix_server(self._accept_env, self.control_path, limit=2**20)
+        os.chmod(self.control_path, 0o600)
+        handlers = {op: self._relay_handler(op) for op in RELAYED_OPS}
+        handlers.update(create_container=self.op_create_container, destroy_container=self.op_destroy_container,
+                        stats=self.op_stats)
+        self.master = await rpc.connect(*self.master_addr, handlers, name="master",
+                                        on_close=self._master_lost, max_frame=self.max_frame)
+        res = await self.master.call(
+            "register", kind="container", name=self.name, host=self.advertise_host,
+            sandbox=self.sandbox_cls.kind,
+            capacity={"cpu": os.cpu_count() or 1, "memory": psutil.virtual_memory().total // 2**20})
+        self.tid = (res or {}).get("tid")
+        log.info("registered with the master", master=f"{self.master_addr[0]}:{self.master_addr[1]}",
+                 tid=self.tid, name=self.name, sandbox=self.sandbox_cls.kind, runtime_dir=str(self.runtime_dir))
+        return self.tid
+
+    def _master_lost(self, _peer: rpc.RpcPeer) -> None:
+        if not self._closing:
+            log.error("control link to the master lost; destroying every container and exiting")
+            self.exit_code = 1
+            self.stopped.set()
+
+    def stop(self, code: int = 0) -> None:
+        """Ask :meth:`run` to shut down with exit ``code``."""
+        self.exit_code = self.exit_code or code
+        self.stopped.set()
+
+    async def close(self) -> None:
+        """Destroy every container (killing every node), close the links, remove the sockets."""
+        if self._closing:
+            return
+        self._closing = True
+        await asyncio.gather(*(self._stop_env(e) for e in list(self.envs)), return_exceptions=True)
+        self.containers.clear()
+        if self.master:
+            await self.master.close()
+        if self._server:
+            self._server.close()
+        try:
+            os.unlink(self.control_path)
+        except FileNotFoundError:
+            pass
+        if self.socket_dir != self.runtime_dir:
+            shutil.rmtree(self.socket_dir, ignore_errors=True)
+        if self.own_runtime_dir:
+            shutil.rmtree(self.runtime_dir, ignore_errors=True)
+        log.info("container task set stopped", name=self.name)
+
+    async def run(self) -> int:
+        """Serve until :meth:`stop` or the master link drops, then :meth:`close`; exit code."""
+        await self.stopped.wait()
+        await self.close()
+        return self.exit_code
+
+    # -- environments --------------------------------------------------------------------------
+    async def _accept_env(self, reader: asyncio.StreamReader, writer: asyncio.StreamWriter) -> None:
+        peer = rpc.RpcPeer(reader, writer, name="environment", max_frame=self.max_frame)
+
+        async def hello(a: dict) -> dict:
+            fut = self._hellos.get(a.get("env_id"))
+            if fut is None or fut.done():
+                raise RequestError(f"unexpected environment {a.get('env_id')!r}")
+            fut.set_result((peer, a))
+            return {}
+
+        async def node_status(a: dict) -> None:
+            self._on_node_status(a)
+        peer.handlers.update(hello=hello, node_status=node_status)
+        peer.start()
+
+    async def _spawn_env(self, key: tuple) -> EnvHandle:
+        env = EnvHandle(next(self._env_ids), key, started=time.monotonic())
+        fut = asyncio.get_running_loop().create_future()
+        self._hellos[env.env_id] = fut
+        argv = [sys.executable, "-m", "rce_container.environment", "--control", self.control_path,
+                "--env-id", str(env.env_id), "--runtime-dir", str(self.runtime_dir),
+                "--socket-dir", str(self.socket_dir), "--bind", self.bind,
+                "--advertise-host", self.advertise_host, "--sandbox", self.sandbox_cls.kind,
+                "--max-frame", str(self.max_frame), "--grace", str(self.grace)]
+        try:
+            env.proc = await asyncio.create_subprocess_exec(*argv, stdin=asyncio.subprocess.DEVNULL,
+                                                            start_new_session=True)
+            waiter = asyncio.create_task(env.proc.wait())
+            done, _ = await asyncio.wait({fut, waiter}, timeout=self.env_timeout,
+                                         return_when=asyncio.FIRST_COMPLETED)
+            if fut not in done:
+                if waiter in done:
+                    raise Unavailable(f"environment process exited with code {env.proc.returncode} "
+                                      "before it was ready (see its log)")
+                await self._kill_env_proc(env)
+                raise Unavailable(f"environment process did not report ready within {self.env_timeout} s")
+            waiter.cancel()
+        finally:
+            self._hellos.pop(env.env_id, None)
+        env.peer, info = fut.result()
+        env.peer.name = f"environment {env.env_id}"
+        env.peer.on_close = lambda _p, e=env: self._env_link_closed(e)
+        env.data_addr = info.get("data_addr", "")
+        self.envs.add(env)
+        self._spawn(self._watch_env(env))
+        log.info("environment started", env=env.env_id, pid=env.proc.pid, data_addr=env.data_addr,
+                 ms=round((time.monotonic() - env.started) * 1000, 1))
+        return env
+
+    def _spawn(self, coro) -> None:
+        t = asyncio.create_task(coro)
+        self._tasks.add(t)
+        t.add_done_callback(self._tasks.discard)
+
+    def _env_link_closed(self, env: EnvHandle) -> None:
+        if not env.stopping:
+            log.error("control link to an environment lost", env=env.env_id, containers=sorted(env.cids))
+
+    async def _watch_env(self, env: EnvHandle) -> None:
+        env.exit_code = await env.proc.wait()
+        if env.stopping:
+            return
+        log.error("environment exited unexpectedly", env=env.env_id, code=env.exit_code,
+                  containers=sorted(env.cids))
+        if env.peer:
+            await env.peer.close()
+        for cid in sorted(env.cids):
+            c = self.containers.get(cid)
+            if c is None:
+                continue
+            for ntag, pid in list(c.nodes.items()):
+                if pid:
+                    _kill_group(pid)
+                self._to_master("node_status", cid=cid, ntag=ntag, status="exited",
+                                reason=f"environment exited with code {env.exit_code}")
+                c.nodes[ntag] = None
+
+    async def _stop_env(self, env: EnvHandle) -> None:
+        """Ask the environment to destroy its containers, close its link, reap it (SIGKILL after
+        a timeout), and kill any node process group it left behind."""
+        env.stopping = True
+        self.envs.discard(env)
+        if self.groups.get(env.key) is env:
+            del self.groups[env.key]
+        clean = False
+        if env.alive:
+            try:
+                await env.peer.call("shutdown", timeout=self.grace + 10)
+                clean = True
+            except RCEError as e:
+                log.warning("environment did not shut down cleanly", env=env.env_id, reason=e.message)
+        if env.peer:
+            await env.peer.close()
+        await self._kill_env_proc(env)
+        if not clean:       # the environment could not kill its nodes: do it from here
+            for cid in env.cids:
+                c = self.containers.get(cid)
+                for pid in (c.nodes.values() if c else ()):
+                    if pid:
+                        _kill_group(pid)
+
+    async def _kill_env_proc(self, env: EnvHandle) -> None:
+        if env.proc is None:
+            return
+        try:
+            await asyncio.wait_for(env.proc.wait(), self.grace + 5)
+        except asyncio.TimeoutError:
+            log.warning("environment did not exit, killing it", env=env.env_id, pid=env.proc.pid)
+            _kill_group(env.proc.pid)
+            await env.proc.wait()
+
+    # -- master ops ----------------------------------------------------------------------------
+    def _to_master(self, op: str, **args: Any) -> None:
+        if self.master:
+            self.master.notify(op, **args)
+
+    def _on_node_status(self, a: dict) -> None:
+        c = self.containers.get(a.get("cid"))
+        if c is not None:
+            ntag, status = a.get("ntag"), a.get("status")
+            if status == "started":
+                c.nodes[ntag] = a.get("pid")
+            elif status in ("exited", "respawning"):
+                c.nodes[ntag] = None
+        self._to_master("node_status", **a)
+
+    def _record(self, a: dict) -> ContainerRecord:
+        c = self.containers.get(a.get("cid"))
+        if c is None:
+            raise NotFound(f"container {a.get('cid')!r} does not exist on container host {self.name!r}")
+        if not c.env.alive:
+            raise Unavailable(f"the environment of container {c.ctag!r} is gone"
+                              + (f" (exit code {c.env.exit_code})" if c.env.exit_code is not None else ""))
+        return c
+
+    async def op_create_container(self, a: dict) -> dict:
+        """``{cid, user, ctag, group, limits}`` -> ``{data_addr, sandbox, startup_ms}`` once the
+        environment serves the container. Idempotent for a repeated cid with the same tag.
+
+        Raises :class:`RequestError` for a cid reused with another tag, :class:`Unavailable`
+        if the environment cannot start."""
+        cid, user, ctag, group = a.get("cid"), a.get("user", ""), a.get("ctag"), a.get("group") or None
+        if not isinstance(cid, int) or isinstance(cid, bool):
+            raise RequestError(f"create_container needs an integer 'cid', got {cid!r}")
+        old = self.containers.get(cid)
+        if old is not None:
+            if (old.user, old.ctag) == (user, ctag):
+                return old.result
+            raise RequestError(f"container id {cid} is already in use by {old.ctag!r}")
+        t0 = time.monotonic()
+        key = ("group", user, group) if group else ("solo", cid)
+        lock = self._group_locks.setdefault(key, asyncio.Lock())
+        async with lock:
+            old = self.containers.get(cid)
+            if old is not None:      # a concurrent replay of the same request won the race
+                if (old.user, old.ctag) == (user, ctag):
+                    return old.result
+                raise RequestError(f"container id {cid} is already in use by {old.ctag!r}")
+            env = self.groups.get(key)
+            if env is None or not env.alive:
+                env = await self._spawn_env(key)
+                self.groups[key] = env
+            env.cids.add(cid)
+            try:
+                res = await env.peer.call("add_container", cid=cid, ctag=ctag, user=user, group=group,
+                                          limits=a.get("limits") or {}, timeout=self.env_timeout)
+            except BaseException:
+                env.cids.discard(cid)
+                if not env.cids:
+                    await self._stop_env(env)
+                raise
+            result = {"data_addr": res["data_addr"], "sandbox": res["sandbox"],
+                      "startup_ms": round((time.monotonic() - t0) * 1000, 1)}
+            self.containers[cid] = ContainerRecord(cid, user, ctag, group, env, result)
+        log.info("container created", cid=cid, user=user, ctag=ctag, group=group, env=env.env_id,
+                 data_addr=result["data_addr"], startup_ms=result["startup_ms"])
+        return result
+
+    async def op_destroy_container(self, a: dict) -> dict:
+        """``{cid}``: kill every node of the container, drop its interfaces and socket; stop its
+        environment if it was the group's last container. Raises :class:`NotFound`."""
+        c = self.containers.get(a.get("cid"))
+        if c is None:
+            raise NotFound(f"container {a.get('cid')!r} does not exist on container host {self.name!r}")
+        env = c.env
+        async with self._group_locks.setdefault(env.key, asyncio.Lock()):
+            del self.containers[c.cid]
+            env.cids.discard(c.cid)
+            clean = False
+            if env.alive:
+                try:
+                    await env.peer.call("remove_container", cid=c.cid, timeout=self.grace + 10)
+                    clean = True
+                except RCEError as e:
+                    log.warning("environment failed to remove a container", cid=c.cid, reason=e.message)
+            if not clean:   # the environment could not kill the nodes: do it from here
+                for pid in c.nodes.values():
+                    if pid:
+                        _kill_group(pid)
+            if not env.cids:
+                await self._stop_env(env)
+                self._group_locks.pop(env.key, None)
+        log.info("container destroyed", cid=c.cid, ctag=c.ctag)
+        return {}
+
+    def _relay_handler(self, op: str):
+        async def relay(a: dict) -> Any:
+            c = self._record(a)
+            timeout = 30.0
+            if op in ("bus_call", "bus_sample"):
+                timeout = float(a.get("timeout") or 10.0) + 10.0
+            elif op == "remove_node":
+                timeout = self.grace + 10.0
+            result = await c.env.peer.request(op, a, timeout)
+            if op == "add_node":
+                c.nodes.setdefault(a.get("ntag"), (result or {}).get("pid"))
+            elif op == "remove_node":
+                c.nodes.pop(a.get("ntag"), None)
+            return result
+        relay.__doc__ = f"Relay ``{op}`` to the environment of the op's ``cid``."
+        return relay
+
+    async def op_stats(self, a: dict) -> dict:
+        """``{cid}`` -> the container's counters (see ``Environment.op_stats``); without a cid,
+        ``{name, tid, sandbox, environments, containers: [per-container stats...]}``."""
+        if a.get("cid") is not None:
+            c = self._record(a)
+            return await c.env.peer.call("stats", cid=c.cid)
+        out = []
+        for c in list(self.containers.values()):
+            if c.env.alive:
+                try:
+                    out.append(await c.env.peer.call("stats", cid=c.cid))
+                except RCEError as e:
+                    out.append({"cid": c.cid, "ctag": c.ctag, "error": e.message})
+            else:
+                out.append({"cid": c.cid, "ctag": c.ctag, "error": "environment gone"})
+        return {"name": self.name, "tid": self.tid, "sandbox": self.sandbox_cls.kind,
+                "environments": len(self.envs), "containers": out}
+
+
+def _kill_group(pgid: int) -> None:
+    try:
+        os.killpg(pgid, signal.SIGKILL)
+    except (ProcessLookupError, PermissionError):
+        pass
+
+
+def write_ready_file(path: str | Path, tid: Any) -> None:
+    """Write ``{"tid", "pid"}`` to ``path`` atomically (tests wait for it)."""
+    path = Path(path)
+    tmp = path.with_name(path.name + ".tmp")
+    tmp.write_text(json.dumps({"tid": tid, "pid": os.getpid()}))
+    os.replace(tmp, path)

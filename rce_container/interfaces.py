@@ -1,0 +1,191 @@
+"""Container-side interfaces: the ends of connections that live on a container's bus.
+
+Each is a :class:`rce.interfaces.Interface` (data-plane half) whose local side is the
+environment's :class:`~rce.bus.core.Bus`, named on the side where it acts:
+
+- :class:`PublisherInterface` publishes into the container what its peers send;
+- :class:`SubscriberInterface` subscribes in the container and sends to its peers;
+- :class:`ServiceClientInterface` executes its peers' calls against a container service;
+- :class:`ServiceProviderInterface` provides a service in the container and forwards each
+  call to its connected peer.
+
+``addr`` (the topic or service) is a global name; absent, it is ``/`` + the interface tag.
+Payloads stay ROS 1 serialized bytes end to end. Bus owners are ``interface:<tag>``.
+"""
+from __future__ import annotations
+
+from rce.bus.core import Bus, Subscription, Topic
+from rce.dataplane import DataPlane
+from rce.errors import MessageError, RequestError
+from rce.interfaces import Interface
+from rce.messages import MessageRegistry, default_registry, store_name, wire_name
+from rce.naming import resolve
+from rce.packages import load_package_types
+from rce.protocol import split_interface_type
+
+DEFAULT_QUEUE = 100   # messages, bound of a SubscriberInterface's bus subscription
+
+
+class BusInterface(Interface):
+    """Base of the container-side interfaces: an :class:`Interface` bound to a bus name.
+
+    ``bus``: the group's bus; ``cid``: the owning container; ``tag``: the interface tag as
+    the master names it; ``cls``: wire class name (``std_msgs/String``, ``Test/StringEcho``);
+    ``addr``: resolved global topic/service name.
+
+    Counters: ``msgs_in``/``bytes_in`` count what came from the data plane into the container
+    (messages, service requests or responses), ``msgs_out``/``bytes_out`` what went out onto
+    it; ``dropped`` counts messages a saturated peer link refused."""
+
+    kind = ""
+
+    def __init__(self, plane: DataPlane, bus: Bus, cid: int, iid: int, tag: str, cls: str, addr: str):
+        super().__init__(plane, iid, tag, self.kind, cls)
+        self.bus, self.cid, self.addr = bus, cid, addr
+        self.owner = f"interface:{tag}"
+        self.bytes_in = self.bytes_out = 0
+
+    def send_message(self, payload: bytes | memoryview) -> int:
+        n = super().send_message(payload)
+        self.bytes_out += len(payload) * n
+        return n
+
+    def stats(self) -> dict:
+        """``{iid, tag, kind, cls, addr, peers, msgs_in, msgs_out, bytes_in, bytes_out, dropped}``."""
+        return {"iid": self.iid, "tag": self.tag, "kind": self.kind, "cls": self.cls, "addr": self.addr,
+                "peers": len(self.peers), "msgs_in": self.msgs_in, "msgs_out": self.msgs_out,
+                "bytes_in": self.bytes_in, "bytes_out": self.bytes_out, "dropped": self.dropped}
+
+
+class PublisherInterface(BusInterface):
+    """Publishes on topic ``addr`` every message a connected peer sends."""
+
+    kind = "Publisher"
+    topic: Topic | None = None
+
+    async def start(self) -> None:
+        self.topic = self.bus.advertise(self.addr, self.cls, self.owner)
+        await super().start()
+
+    async def stop(self) -> None:
+        await super().stop()
+        self.bus.unadvertise(self.addr, self.owner)
+
+    def on_message(self, payload: memoryview) -> None:
+        self.msgs_in += 1
+        self.bytes_in += len(payload)
+        self.bus.publish(self.topic, bytes(payload))
+
+
+class SubscriberInterface(BusInterface):
+    """Subscribes to topic ``addr`` (bounded by ``queue_size``) and sends each message to
+    every connected peer; a message a saturated peer link refuses is dropped and counted."""
+
+    kind = "Subscriber"
+    sub: Subscription | None = None
+    queue_size = DEFAULT_QUEUE
+
+    async def start(self) -> None:
+        self.sub = self.bus.subscribe(self.addr, self.cls, self._deliver, self.owner, self.queue_size)
+        await super().start()
+
+    async def stop(self) -> None:
+        await super().stop()
+        if self.sub is not None:
+            self.bus.unsubscribe(self.sub)
+
+    def _deliver(self, payload: bytes) -> bool:
+        if not self.peers:
+            return True            # nobody connected: nothing to lose
+        return self.send_message(payload) == len(self.peers)
+
+
+class ServiceClientInterface(BusInterface):
+    """Executes calls from its peer against service ``addr`` on the bus."""
+
+    kind = "ServiceClient"
+    call_timeout = 30.0   # s
+    service_wait = 10.0   # s a call waits for its service to be provided (its node may be starting)
+
+    async def serve(self, payload: bytes) -> bytes:
+        self.msgs_in += 1
+        self.bytes_in += len(payload)
+        resp = await self.bus.call_service(self.addr, payload, self.cls, self.call_timeout, wait=self.service_wait)
+        self.msgs_out += 1
+        self.bytes_out += len(resp)
+        return resp
+
+
+class ServiceProviderInterface(BusInterface):
+    """Provides service ``addr`` on the bus; every call goes to the connected peer."""
+
+    kind = "ServiceProvider"
+
+    async def start(self) -> None:
+        self.bus.advertise_service(self.addr, self.cls, self._call, self.owner)
+        await super().start()
+
+    async def stop(self) -> None:
+        await super().stop()
+        self.bus.unadvertise_service(self.addr, self.owner)
+
+    async def _call(self, payload: bytes) -> bytes:
+        self.bytes_out += len(payload)
+        resp = await self.call_peer(payload)
+        self.msgs_in += 1
+        self.bytes_in += len(resp)
+        return resp
+
+
+KINDS: dict[str, type[BusInterface]] = {c.kind: c for c in (PublisherInterface, SubscriberInterface,
+                                                            ServiceClientInterface, ServiceProviderInterface)}
+
+
+def interface_kind(itype: str) -> str:
+    """``"PublisherInterface"`` (or a legacy name like ``"ServiceInterface"``) -> ``"Publisher"``.
+
+    Raises :class:`RequestError` for a robot-side type (Converter/Forwarder) and
+    :class:`~rce.errors.ProtocolError` for an unknown one."""
+    prefix, suffix = split_interface_type(itype)
+    if suffix != "Interface":
+        raise RequestError(f"{itype!r} is a robot-side interface type; containers take *Interface types")
+    return prefix
+
+
+def check_class(kind: str, cls: str, registry: MessageRegistry | None = None) -> str:
+    """Validate the class of a ``kind`` interface and return its wire name.
+
+    Message kinds need a message class, service kinds a service class; package types are
+    (re)loaded once before refusing. Raises :class:`MessageError` naming the class."""
+    reg = registry or default_registry()
+    service = kind.startswith("Service")
+
+    def lookup() -> str:
+        if service:
+            reg.srv_types(cls)
+            return wire_name(store_name(cls))
+        return wire_name(reg.msg_type(cls))
+    try:
+        return lookup()
+    except MessageError:
+        load_package_types(reg)   # a package installed since start may bring the class
+    try:
+        return lookup()
+    except MessageError:
+        what = "service" if service else "message"
+        raise MessageError(f"unknown {what} class {cls!r} for a {kind}Interface") from None
+
+
+def make_interface(plane: DataPlane, bus: Bus, cid: int, iid: int, tag: str, itype: str, cls: str,
+                   addr: str | None = None, registry: MessageRegistry | None = None) -> BusInterface:
+    """Build (not start) the container-side interface for an ``add_interface`` op.
+
+    ``addr`` defaults to ``/`` + the last part of ``tag`` (the interface tag). Raises
+    :class:`MessageError` for an unknown class, :class:`RequestError` for a bad name or a
+    robot-side type, :class:`~rce.errors.ProtocolError` for an unknown type."""
+    kind = interface_kind(itype)
+    wire = check_class(kind, cls, registry)
+    if not isinstance(tag, str) or not tag:
+        raise RequestError("add_interface needs a non-empty 'tag'")
+    name = resolve(addr, "/") if addr else resolve(tag.rsplit("/", 1)[-1], "/")
+    return KINDS[kind](plane, bus, cid, iid, tag, wire, name)

@@ -1,0 +1,297 @@
+"""The node launcher of one container: starts node packages' executables in the container's
+sandbox, keeps their output, watches their exits and respawns them on request.
+
+A node spec is the ``add_node`` op (docs/INTERNALS.md): ``{ntag, pkg, exe, args, name,
+namespace, respawn}``.
+
+- ``pkg``/``exe`` are found with :func:`rce.packages.find_executable`; a ``.py`` executable
+  runs with this interpreter, anything else is executed directly.
+- ``args`` is a list of strings, or a string split like a shell (:mod:`shlex`) after the RCE
+  alpha / roslaunch directives ``$(find PKG)`` (package directory), ``$(env VAR)`` (must be
+  set) and ``$(optenv VAR [default])`` are expanded.
+- ``name`` (default: the nTag) and ``namespace`` reach :mod:`rce.node` as ``RCE_NODE_NAME``
+  and ``RCE_NAMESPACE``; ``RCE_BUS`` is the container's bus socket, ``RCE_CONTAINER`` its cTag.
+- ``respawn``: ``true`` or ``{"delay": s, "limit": n}`` (roslaunch's respawn/respawn_delay;
+  ``limit`` counts restarts, absent = unlimited).
+
+Statuses are reported through ``on_status(ntag, status, **fields)`` with status ``started``
+(``pid``), ``respawning`` (``code``/``signal`` of the exit, ``restarts``) or ``exited``
+(``code``/``signal``, ``reason``).
+"""
+from __future__ import annotations
+
+import asyncio
+import collections
+import os
+import re
+import shlex
+import sys
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, Callable
+
+from rce.errors import NotFound, RCEError, RequestError
+from rce.log import get_logger
+from rce.naming import join, validate_name
+from rce.packages import find_executable, find_package
+from rce_container.sandbox import Sandbox
+
+log = get_logger("rce.container.launcher")
+
+LOG_LINES = 1000            # lines of stdout and of stderr kept per node
+DEFAULT_RESPAWN_DELAY = 1.0  # s, when ``respawn`` is just ``true``
+
+StatusCallback = Callable[..., None]   # on_status(ntag, status, **fields)
+
+_DIRECTIVE = re.compile(r"\$\((\w+)((?:\s+[^()\s]+)*)\s*\)")
+
+
+def expand_directives(text: str, env: dict[str, str] | None = None) -> str:
+    """Expand ``$(find PKG)``, ``$(env VAR)`` and ``$(optenv VAR [default])`` in ``text``.
+
+    Raises :class:`NotFound` for an unknown package, :class:`RequestError` for an unset
+    ``$(env VAR)``, an unknown directive or a wrong number of arguments."""
+    env = os.environ if env is None else env
+
+    def sub(m: re.Match) -> str:
+        kind, args = m.group(1), m.group(2).split()
+        if kind == "find" and len(args) == 1:
+            return str(find_package(args[0], env))
+        if kind == "env" and len(args) == 1:
+            if args[0] not in env:
+                raise RequestError(f"$(env {args[0]}): environment variable {args[0]!r} is not set")
+            return env[args[0]]
+        if kind == "optenv" and len(args) >= 1:
+            return env.get(args[0], " ".join(args[1:]))
+        raise RequestError(f"unsupported substitution {m.group(0)!r}: expected $(find PKG), "
+                           "$(env VAR) or $(optenv VAR [default])")
+    return _DIRECTIVE.sub(sub, text)
+
+
+def build_args(args: str | list | None, env: dict[str, str] | None = None) -> list[str]:
+    """Node arguments as a list: a string is split like a shell, directives expanded in each
+    word (so an expanded path with spaces stays one argument); a list is taken item by item.
+
+    Raises :class:`RequestError` for unbalanced quotes or a non-string item."""
+    if args is None or args == "":
+        return []
+    if isinstance(args, list):
+        if not all(isinstance(a, (str, int, float)) for a in args):
+            raise RequestError(f"node args must be a string or a list of strings, got {args!r}")
+        return [expand_directives(str(a), env) for a in args]
+    if not isinstance(args, str):
+        raise RequestError(f"node args must be a string or a list of strings, got {args!r}")
+    # Protect directives (which contain spaces) from the shell split, then expand per word.
+    found: list[str] = []
+
+    def hide(m: re.Match) -> str:
+        found.append(m.group(0))
+        return f"\x00{len(found) - 1}\x00"
+    hidden = _DIRECTIVE.sub(hide, args)
+    try:
+        words = shlex.split(hidden)
+    except ValueError as e:
+        raise RequestError(f"cannot split node args {args!r}: {e}") from None
+    restore = re.compile("\x00(\\d+)\x00")
+    return [expand_directives(restore.sub(lambda m: found[int(m.group(1))], w), env) for w in words]
+
+
+def parse_respawn(spec: Any) -> tuple[bool, float, int | None]:
+    """``respawn`` of a node spec -> ``(enabled, delay s, limit or None)``.
+
+    Raises :class:`RequestError` for a malformed value."""
+    if spec in (None, False):
+        return False, 0.0, None
+    if spec is True:
+        return True, DEFAULT_RESPAWN_DELAY, None
+    if isinstance(spec, dict):
+        unknown = set(spec) - {"delay", "limit"}
+        delay, limit = spec.get("delay", DEFAULT_RESPAWN_DELAY), spec.get("limit")
+        if unknown or isinstance(delay, bool) or not isinstance(delay, (int, float)) or delay < 0 or \
+                (limit is not None and (isinstance(limit, bool) or not isinstance(limit, int) or limit < 0)):
+            raise RequestError(f"respawn must be true or {{\"delay\": seconds >= 0, \"limit\": int >= 0}}, "
+                               f"got {spec!r}")
+        return True, float(delay), limit
+    raise RequestError(f"respawn must be true, false or an object, got {spec!r}")
+
+
+@dataclass(eq=False)
+class NodeProcess:
+    """One launched node: its spec, current process, output tails and counters."""
+    ntag: str
+    argv: list[str]
+    env: dict[str, str]
+    respawn: bool
+    delay: float
+    limit: int | None
+    proc: asyncio.subprocess.Process | None = None
+    restarts: int = 0
+    stopping: bool = False
+    stdout: collections.deque = field(default_factory=lambda: collections.deque(maxlen=LOG_LINES))
+    stderr: collections.deque = field(default_factory=lambda: collections.deque(maxlen=LOG_LINES))
+    task: asyncio.Task | None = None
+    stop_event: asyncio.Event = field(default_factory=asyncio.Event)
+    spec: dict = field(default_factory=dict)
+
+    @property
+    def pid(self) -> int | None:
+        return self.proc.pid if self.proc and self.proc.returncode is None else None
+
+    def info(self) -> dict:
+        """``{ntag, pid, running, restarts, argv}`` for status and ``describe``."""
+        return {"ntag": self.ntag, "pid": self.pid, "running": self.pid is not None,
+                "restarts": self.restarts, "argv": self.argv}
+
+
+class Launcher:
+    """Starts, watches and stops the nodes of one container.
+
+    ``sandbox``: where processes run; ``bus_path``: the container's bus socket; ``ctag``: the
+    container tag (``RCE_CONTAINER``); ``on_status(ntag, status, **fields)``: status reports."""
+
+    def __init__(self, sandbox: Sandbox, bus_path: str, ctag: str, on_status: StatusCallback):
+        self.sandbox, self.bus_path, self.ctag = sandbox, bus_path, ctag
+        self.on_status = on_status
+        self.nodes: dict[str, NodeProcess] = {}
+        self.starts = 0   # processes started, respawns included
+
+    def _prepare(self, spec: dict) -> NodeProcess:
+        ntag = spec.get("ntag")
+        if not isinstance(ntag, str) or not ntag:
+            raise RequestError("add_node needs a non-empty 'ntag'")
+        pkg, exe = spec.get("pkg"), spec.get("exe")
+        try:
+            path = find_executable(pkg, exe)
+        except RCEError as e:
+            raise NotFound(f"node {ntag!r}: cannot find executable {exe!r} of package {pkg!r}: {e.message}") from None
+        name = spec.get("name") or ntag
+        namespace = spec.get("namespace") or "/"
+        validate_name(name, "node name")
+        validate_name(namespace, "node namespace")
+        if name.startswith(("/", "~")) or "/" in name.strip("/"):
+            raise RequestError(f"node name {name!r} must be a base name (use 'namespace' to place it)")
+        enabled, delay, limit = parse_respawn(spec.get("respawn"))
+        env = dict(os.environ)
+        for k in ("RCE_BUS", "RCE_NODE_NAME", "RCE_NAMESPACE", "RCE_CONTAINER"):
+            env.pop(k, None)
+        args = build_args(spec.get("args"), env)
+        env.update(RCE_BUS=self.bus_path, RCE_CONTAINER=self.ctag, RCE_NODE_NAME=name,
+                   RCE_NAMESPACE=join("/", namespace), PYTHONUNBUFFERED="1")
+        argv = ([sys.executable, str(path)] if path.suffix == ".py" else [str(path)]) + args
+        if path.suffix != ".py" and not os.access(path, os.X_OK):
+            raise RequestError(f"node {ntag!r}: {path} is not executable (and not a .py script)")
+        return NodeProcess(ntag, argv, env, enabled, delay, limit, spec=dict(spec))
+
+    async def add(self, spec: dict) -> dict:
+        """Launch the node of ``spec``; returns ``{ntag, pid}`` once the process is started.
+
+        Idempotent for a repeated identical spec. Raises :class:`NotFound` naming ``pkg`` and
+        ``exe`` when the executable is unknown, :class:`RequestError` for a duplicate nTag with
+        another spec or a malformed spec, :class:`RCEError` if the process cannot start."""
+        ntag = spec.get("ntag")
+        old = self.nodes.get(ntag)
+        if old is not None:
+            if {k: v for k, v in old.spec.items() if k != "cid"} == {k: v for k, v in spec.items() if k != "cid"}:
+                return {"ntag": ntag, "pid": old.pid}
+            raise RequestError(f"node {ntag!r} already exists in container {self.ctag!r}")
+        node = self._prepare(spec)
+        self.nodes[ntag] = node
+        try:
+            await self._start(node)
+        except BaseException:
+            self.nodes.pop(ntag, None)
+            raise
+        node.task = asyncio.create_task(self._watch(node), name=f"node-{self.ctag}-{ntag}")
+        return {"ntag": ntag, "pid": node.pid}
+
+    async def _start(self, node: NodeProcess) -> None:
+        try:
+            node.proc = await self.sandbox.spawn(node.argv, node.env)
+        except OSError as e:
+            raise RCEError(f"node {node.ntag!r}: cannot start {node.argv[0]}: {e.strerror or e}") from None
+        self.starts += 1
+        log.info("node started", container=self.ctag, ntag=node.ntag, pid=node.proc.pid)
+        self.on_status(node.ntag, "started", pid=node.proc.pid)
+
+    async def _watch(self, node: NodeProcess) -> None:
+        while True:
+            proc = node.proc
+            readers = [asyncio.create_task(_pump(proc.stdout, node.stdout)),
+                       asyncio.create_task(_pump(proc.stderr, node.stderr))]
+            code = await proc.wait()
+            await self.sandbox.kill(proc)    # the node's own children go with it
+            _, hung = await asyncio.wait(readers, timeout=1.0)   # pipes inherited by escaped processes
+            for t in hung:
+                t.cancel()
+            if node.stopping:
+                return
+            fields = {"signal": -code} if code < 0 else {"code": code}
+            if not node.respawn or (node.limit is not None and node.restarts >= node.limit):
+                reason = "respawn limit reached" if node.respawn else None
+                log.info("node exited", container=self.ctag, ntag=node.ntag, reason=reason, **fields)
+                self.on_status(node.ntag, "exited", **fields, **({"reason": reason} if reason else {}))
+                return
+            node.restarts += 1
+            log.info("node respawning", container=self.ctag, ntag=node.ntag, restarts=node.restarts, **fields)
+            self.on_status(node.ntag, "respawning", restarts=node.restarts, **fields)
+            try:
+                await asyncio.wait_for(node.stop_event.wait(), node.delay)
+                return                       # removed while waiting to respawn
+            except asyncio.TimeoutError:
+                pass
+            try:
+                await self._start(node)
+            except RCEError as e:
+                self.on_status(node.ntag, "exited", reason=e.message, **fields)
+                return
+            if node.stopping:                # removed while starting
+                await self.sandbox.kill(node.proc)
+                return
+
+    async def remove(self, ntag: str, reason: str | None = "removed") -> None:
+        """Stop node ``ntag`` (and its children); reports ``exited`` with ``reason`` unless None.
+
+        Raises :class:`NotFound` for an unknown nTag."""
+        node = self.nodes.pop(ntag, None)
+        if node is None:
+            raise NotFound(f"node {ntag!r} does not exist in container {self.ctag!r}")
+        node.stopping = True
+        node.stop_event.set()
+        was_running = node.pid is not None
+        if node.proc is not None:
+            await self.sandbox.kill(node.proc)
+        if node.task:
+            await node.task
+        if reason is not None and was_running:
+            code = node.proc.returncode
+            self.on_status(ntag, "exited", reason=reason, **({"signal": -code} if code < 0 else {"code": code}))
+
+    async def close(self) -> None:
+        """Stop every node without status reports (the container is going away)."""
+        await asyncio.gather(*(self.remove(t, None) for t in list(self.nodes)), return_exceptions=True)
+        await self.sandbox.kill_all()
+
+    def logs(self, ntag: str, lines: int = LOG_LINES) -> dict:
+        """The last ``lines`` lines of stdout and stderr of node ``ntag``: ``{stdout: [...], stderr: [...]}``.
+
+        Raises :class:`NotFound` for an unknown nTag."""
+        node = self.nodes.get(ntag)
+        if node is None:
+            raise NotFound(f"node {ntag!r} does not exist in container {self.ctag!r}")
+        lines = max(0, int(lines))
+        return {"stdout": list(node.stdout)[-lines:] if lines else [],
+                "stderr": list(node.stderr)[-lines:] if lines else []}
+
+
+async def _pump(stream: asyncio.StreamReader | None, sink: collections.deque) -> None:
+    """Copy lines of ``stream`` into the bounded ``sink`` until EOF."""
+    if stream is None:
+        return
+    while True:
+        try:
+            line = await stream.readline()
+        except ValueError:               # a line longer than the stream limit: keep its head
+            line = await stream.read(65536)
+        if not line:
+            return
+        sink.append(line.decode(errors="replace").rstrip("\n"))

@@ -1,0 +1,1 @@
+"""Container task set tests (real processes on loopback)."""

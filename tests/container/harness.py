@@ -1,0 +1,209 @@
+"""Test harness for the container task set: a tiny control server that plays the master,
+the real ``rce-container`` process, and a robot-side data plane.
+
+Readiness always comes from an event (the task set's ``register``, a ``node_status``, a
+condition on ``describe``), never from sleeping.
+"""
+from __future__ import annotations
+
+import asyncio
+import json
+import os
+import signal
+import sys
+import tempfile
+import time
+from pathlib import Path
+from typing import Any, Callable
+
+import psutil
+
+from rce.dataplane import DataPlane
+from rce.interfaces import Interface
+from rce.rpc import RpcPeer
+
+BIN = Path(sys.executable).parent
+STEP = 15.0   # s, the longest any single wait may take
+
+# A helper node package for the tests (found through RCE_PACKAGE_PATH).
+HELPER_PKG = {
+    "exiter.py": (
+        "import sys\n"
+        "print('argv=' + '|'.join(sys.argv[1:]), flush=True)\n"
+        "print('bye', file=sys.stderr, flush=True)\n"
+        "sys.exit(int(sys.argv[1]) if len(sys.argv) > 1 else 0)\n"),
+    # Forks a grandchild and ignores SIGTERM: teardown must SIGKILL the whole process group.
+    "stubborn.py": (
+        "import signal, subprocess, sys, time\n"
+        "signal.signal(signal.SIGTERM, signal.SIG_IGN)\n"
+        "child = subprocess.Popen(['sleep', '600'])\n"
+        "print(f'child={child.pid}', flush=True)\n"
+        "time.sleep(600)\n"),
+    "run.sh": "#!/bin/sh\necho shell-node \"$@\" \"$RCE_CONTAINER\"\n",
+}
+
+
+def make_helper_package(root: Path) -> Path:
+    pkg = root / "CTest"
+    pkg.mkdir(parents=True)
+    for name, text in HELPER_PKG.items():
+        (pkg / name).write_text(text)
+    (pkg / "run.sh").chmod(0o755)
+    return root
+
+
+class FakeMaster:
+    """Plays rce-master's control port: records ``register`` and ``node_status`` and lets the
+    test call ops on the registered task set."""
+
+    def __init__(self) -> None:
+        self.server: asyncio.AbstractServer | None = None
+        self.port = 0
+        self.peer: RpcPeer | None = None
+        self.registration: dict = {}
+        self.registered = asyncio.Event()
+        self.statuses: list[dict] = []
+        self._changed = asyncio.Condition()
+
+    async def start(self) -> None:
+        self.server = await asyncio.start_server(self._accept, "127.0.0.1", 0)
+        self.port = self.server.sockets[0].getsockname()[1]
+
+    async def _accept(self, reader, writer) -> None:
+        peer = RpcPeer(reader, writer, name="task set")
+
+        async def register(a: dict) -> dict:
+            self.peer, self.registration = peer, a
+            self.registered.set()
+            return {"tid": 7}
+
+        async def node_status(a: dict) -> None:
+            async with self._changed:
+                self.statuses.append(a)
+                self._changed.notify_all()
+        peer.handlers.update(register=register, node_status=node_status)
+        peer.start()
+
+    async def call(self, op: str, **args) -> Any:
+        return await self.peer.request(op, args, STEP + 10)
+
+    async def wait_status(self, pred: Callable[[dict], bool], timeout: float = STEP) -> dict:
+        """The first recorded node_status matching ``pred`` (waits for it)."""
+        async def find() -> dict:
+            async with self._changed:
+                while True:
+                    for s in self.statuses:
+                        if pred(s):
+                            return s
+                    await self._changed.wait()
+        return await asyncio.wait_for(find(), timeout)
+
+    def statuses_of(self, cid: int, ntag: str) -> list[dict]:
+        return [s for s in self.statuses if s["cid"] == cid and s["ntag"] == ntag]
+
+    async def wait_bus(self, cid: int, pred: Callable[[dict], bool], timeout: float = STEP) -> dict:
+        """Poll ``describe`` until ``pred(description)`` holds (a condition, not a delay)."""
+        deadline = time.monotonic() + timeout
+        while True:
+            d = await self.call("describe", cid=cid)
+            if pred(d):
+                return d
+            if time.monotonic() > deadline:
+                raise AssertionError(f"bus of container {cid} never reached the condition: {d}")
+            await asyncio.sleep(0.02)
+
+    async def close(self) -> None:
+        if self.peer:
+            await self.peer.close()
+        if self.server:
+            self.server.close()
+
+
+def topic(d: dict, name: str) -> dict:
+    return next((t for t in d["topics"] if t["name"] == name), {"publishers": [], "subscribers": []})
+
+
+def has_service(d: dict, name: str) -> bool:
+    return any(s["name"] == name for s in d["services"])
+
+
+class ContainerProcess:
+    """The real ``rce-container`` process, registered with a :class:`FakeMaster`."""
+
+    def __init__(self, workdir: Path, master: FakeMaster, extra_env: dict | None = None):
+        self.workdir, self.master = workdir, master
+        self.runtime_dir = Path(tempfile.mkdtemp(prefix="rcec-"))
+        self.ready_file = workdir / "container.ready"
+        self.log_path = workdir / "container.log"
+        self.env = {**os.environ, "RCE_LOG_JSON": "0", **(extra_env or {})}
+        self.proc: asyncio.subprocess.Process | None = None
+
+    async def start(self) -> None:
+        self._log = open(self.log_path, "wb")
+        self.proc = await asyncio.create_subprocess_exec(
+            str(BIN / "rce-container"), "127.0.0.1", "--master-port", str(self.master.port),
+            "--ready-file", str(self.ready_file), "--runtime-dir", str(self.runtime_dir), "--grace", "1",
+            "--name", "test-host", stdout=self._log, stderr=self._log, env=self.env)
+        waiter = asyncio.create_task(self.proc.wait())
+        reg = asyncio.create_task(self.master.registered.wait())
+        done, _ = await asyncio.wait({waiter, reg}, timeout=STEP, return_when=asyncio.FIRST_COMPLETED)
+        waiter.cancel()
+        if reg not in done:
+            reg.cancel()
+            raise AssertionError(f"rce-container did not register:\n{self.log_text()}")
+
+    def ready_info(self) -> dict:
+        return json.loads(self.ready_file.read_text())
+
+    async def terminate(self, sig: int = signal.SIGTERM) -> int:
+        if self.proc.returncode is None:
+            self.proc.send_signal(sig)
+        return await asyncio.wait_for(self.proc.wait(), STEP)
+
+    async def kill(self) -> None:
+        if self.proc and self.proc.returncode is None:
+            self.proc.kill()
+            await self.proc.wait()
+
+    def log_text(self) -> str:
+        try:
+            return self.log_path.read_text(errors="replace")[-20000:]
+        except FileNotFoundError:
+            return ""
+
+
+class RobotInterface(Interface):
+    """A robot-side interface on the test's data plane: records what arrives."""
+
+    def __init__(self, plane: DataPlane, iid: int, tag: str, kind: str, cls: str):
+        super().__init__(plane, iid, tag, kind, cls)
+        self.inbox: asyncio.Queue = asyncio.Queue()
+
+    def on_message(self, payload) -> None:
+        self.inbox.put_nowait(bytes(payload))
+
+
+def gone(pid: int) -> bool:
+    """True if ``pid`` no longer runs (absent, or a zombie nobody reaped yet)."""
+    try:
+        return psutil.Process(pid).status() == psutil.STATUS_ZOMBIE
+    except psutil.NoSuchProcess:
+        return True
+
+
+async def wait_gone(pids: list[int], timeout: float = STEP) -> list[int]:
+    """Wait (polling) until every pid in ``pids`` is gone; returns those still alive."""
+    deadline = time.monotonic() + timeout
+    while True:
+        alive = [p for p in pids if not gone(p)]
+        if not alive or time.monotonic() > deadline:
+            return alive
+        await asyncio.sleep(0.02)
+
+
+def kill_leftovers(pids: list[int]) -> None:
+    for p in pids:
+        try:
+            os.kill(p, signal.SIGKILL)
+        except (ProcessLookupError, PermissionError):
+            pass
