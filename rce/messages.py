@@ -83,14 +83,24 @@ class MessageRegistry:
         """Register message class ``wire`` (``pkg/Name``) from ``.msg`` definition ``text``.
 
         Raises :class:`MessageError` if the definition does not parse or names unknown types."""
-        name = store_name(wire)
+        types = self._parse_msg(wire, text)
+        self._check_resolvable(types)
+        self._register(wire, types)
+
+    def _parse_msg(self, wire: str, text: str) -> dict:
         try:
-            types = get_types_from_msg(text, name)
-            with self._lock:
-                self.store.register(types)
+            return get_types_from_msg(text, store_name(wire))
+        except MessageError:
+            raise
         except Exception as e:  # rosbags raises several parser error types
             raise MessageError(f"cannot register message class {wire!r}: {e}") from e
-        self._check_resolvable(name, wire)
+
+    def _register(self, wire: str, types: dict) -> None:
+        try:
+            with self._lock:
+                self.store.register(types)
+        except Exception as e:
+            raise MessageError(f"cannot register message class {wire!r}: {e}") from e
 
     def register_srv(self, wire: str, text: str) -> None:
         """Register service class ``wire`` from ``.srv`` text (request ``---`` response)."""
@@ -107,23 +117,45 @@ class MessageRegistry:
     def load_definitions(self, pkg: str, pkg_dir: Path) -> list[str]:
         """Register every ``msg/*.msg`` and ``srv/*.srv`` of package ``pkg`` at ``pkg_dir``.
 
-        Returns the wire names registered. Raises :class:`MessageError` naming the file on error."""
-        done = []
-        for kind in ("msg", "srv"):
-            for f in sorted((pkg_dir / kind).glob(f"*.{kind}")):
-                wire = f"{pkg}/{f.stem}"
-                try:
-                    (self.register_msg if kind == "msg" else self.register_srv)(wire, f.read_text())
-                except MessageError as e:
-                    raise MessageError(f"{f}: {e.message}") from e
-                done.append(wire)
+        Returns the wire names registered. Raises :class:`MessageError` naming the file on error.
+        The package's messages are checked together (they may refer to each other in any order)
+        and registered only if all of them are good."""
+        msgs = []
+        for f in sorted((pkg_dir / "msg").glob("*.msg")):
+            try:
+                msgs.append((f, f"{pkg}/{f.stem}", self._parse_msg(f"{pkg}/{f.stem}", f.read_text())))
+            except MessageError as e:
+                raise MessageError(f"{f}: {e.message}") from e
+        own = {name: t for _, _, types in msgs for name, t in types.items()}
+        for f, _, types in msgs:
+            try:
+                self._check_resolvable(types, own)
+            except MessageError as e:
+                raise MessageError(f"{f}: {e.message}") from e
+        for f, wire, types in msgs:
+            try:
+                self._register(wire, types)
+            except MessageError as e:
+                raise MessageError(f"{f}: {e.message}") from e
+        done = [wire for _, wire, _ in msgs]
+        for f in sorted((pkg_dir / "srv").glob("*.srv")):
+            wire = f"{pkg}/{f.stem}"
+            try:
+                self.register_srv(wire, f.read_text())
+            except MessageError as e:
+                raise MessageError(f"{f}: {e.message}") from e
+            done.append(wire)
         return done
 
-    def _check_resolvable(self, name: str, wire: str) -> None:
-        for _, (nt, arg) in self.store.fielddefs[name][1]:
-            sub = arg[0] if nt in (Nodetype.ARRAY, Nodetype.SEQUENCE) else (nt, arg)
-            if sub[0] == Nodetype.NAME and sub[1] not in self.store.fielddefs:
-                raise MessageError(f"message class {wire!r} uses unknown type {wire_name(sub[1])!r}")
+    def _check_resolvable(self, types: dict, also_known: dict | None = None) -> None:
+        """Raise :class:`MessageError` if a field of ``types`` names a type that is neither in the
+        store, nor in ``types``, nor in ``also_known``."""
+        for name, (_, fields) in types.items():
+            for _, (nt, arg) in fields:
+                sub = arg[0] if nt in (Nodetype.ARRAY, Nodetype.SEQUENCE) else (nt, arg)
+                if (sub[0] == Nodetype.NAME and sub[1] not in self.store.fielddefs and sub[1] not in types
+                        and sub[1] not in (also_known or {})):
+                    raise MessageError(f"message class {wire_name(name)!r} uses unknown type {wire_name(sub[1])!r}")
 
     # -- lookup -----------------------------------------------------------------------------
     def msg_type(self, wire: str) -> str:
@@ -210,15 +242,20 @@ class MessageRegistry:
         def encode(obj: Any, path: str) -> Any:
             if not isinstance(obj, dict):
                 raise MessageError(f"{wire}: field '{path or '.'}' must be an object, got {type(obj).__name__}")
+            shown = None   # time/duration: field -> the JSON key the client used (for error paths)
             if is_time:
-                obj = {"sec": obj.get("secs", obj.get("sec", 0)), "nanosec": obj.get("nsecs", obj.get("nanosec", 0))}
+                extra = set(obj) - {"secs", "nsecs", "sec", "nanosec"}
+                shown = {"sec": "sec" if "sec" in obj and "secs" not in obj else "secs",
+                         "nanosec": "nanosec" if "nanosec" in obj and "nsecs" not in obj else "nsecs"}
+                obj = {"sec": obj.get("secs", obj.get("sec", _MISSING)),
+                       "nanosec": obj.get("nsecs", obj.get("nanosec", _MISSING))}
             else:
                 extra = set(obj) - names
-                if extra:
-                    raise MessageError(f"{wire}: unknown field '{_join(path, sorted(extra)[0])}'")
+            if extra:
+                raise MessageError(f"{wire}: unknown field '{_join(path, sorted(extra)[0])}'")
             kwargs = {}
             for fname, fenc in fields:
-                kwargs[fname] = fenc(obj.get(fname, _MISSING), _join(path, fname))
+                kwargs[fname] = fenc(obj.get(fname, _MISSING), _join(path, shown[fname] if shown else fname))
             return cls(**kwargs)
 
         return encode
