@@ -74,6 +74,13 @@ def decode_body(kind: int, body: bytes) -> dict | DataFrame:
     raise ProtocolError(f"unknown frame kind {kind}")
 
 
+def _check_length(n: int, max_frame: int) -> None:
+    if n < 1:
+        raise ProtocolError("frame length 0 leaves no room for its kind byte")
+    if n - 1 > max_frame:
+        raise ProtocolError(f"frame of {n - 1} bytes exceeds the limit of {max_frame} bytes")
+
+
 class FrameDecoder:
     """Sans-I/O incremental decoder: ``feed(bytes)`` returns the complete frames so far.
 
@@ -88,8 +95,7 @@ class FrameDecoder:
         out = []
         while len(self._buf) >= _HEAD.size:
             n, kind = _HEAD.unpack_from(self._buf)
-            if n - 1 > self.max_frame:
-                raise ProtocolError(f"frame of {n - 1} bytes exceeds the limit of {self.max_frame} bytes")
+            _check_length(n, self.max_frame)
             if len(self._buf) < 4 + n:
                 break
             body = bytes(self._buf[_HEAD.size:4 + n])
@@ -103,6 +109,5 @@ async def read_frame(reader: asyncio.StreamReader, max_frame: int = DEFAULT_MAX_
     :class:`ProtocolError` for an oversized or malformed frame."""
     head = await reader.readexactly(_HEAD.size)
     n, kind = _HEAD.unpack(head)
-    if n - 1 > max_frame:
-        raise ProtocolError(f"frame of {n - 1} bytes exceeds the limit of {max_frame} bytes")
+    _check_length(n, max_frame)
     return decode_body(kind, await reader.readexactly(n - 1))
