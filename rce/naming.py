@@ -11,7 +11,7 @@ _VALID = re.compile(r"^[~/]?([A-Za-z_][A-Za-z0-9_]*)?(/[A-Za-z_][A-Za-z0-9_]*)*/
 
 def validate_name(name: str, what: str = "name") -> str:
     """Return ``name`` if it is a legal ROS graph name, else raise :class:`RequestError`."""
-    if not isinstance(name, str) or not name or not _VALID.match(name):
+    if not isinstance(name, str) or not name or not _VALID.match(name) or "//" in name:
         raise RequestError(f"illegal {what} {name!r}: ROS names are [~/]word(/word)* with words [A-Za-z_][A-Za-z0-9_]*")
     return name
 
