@@ -155,7 +155,7 @@ class RosBridge:
         self.server = BusServer(self.bus)
         self.conn: Connection | None = None
         self.stop = asyncio.Event()
-        self.ready = False
+        self.ready = asyncio.Event()            # set once every robot-side interface is up
         self.created: list[str] = []            # containers this run created
         self._to_cloud: list[_ToCloud] = []
         self._cleanup: list[Callable[[], None]] = []
@@ -285,7 +285,7 @@ class RosBridge:
         if itags:
             self.out(f"rce-ros: waiting for {len(itags)} interface(s) to come up: {', '.join(itags)}")
         await self._until_stop(conn.wait_interfaces_up(itags, self.timeout))
-        self.ready = True
+        self.ready.set()
         self.out(f"rce-ros: ready ({len(itags)} interface(s) up; Ctrl-C to stop)")
 
     # -- bridges -----------------------------------------------------------------------------
@@ -360,7 +360,7 @@ class RosBridge:
 
     def _on_status(self, st: dict) -> None:
         if st.get("topic") == "iu":
-            if self.ready:
+            if self.ready.is_set():
                 self.out(f"rce-ros: interface {st.get('iTag')} {'up' if st.get('status') else 'down'}")
         elif st.get("topic") == "node":
             extra = "".join(f" {k}={st[k]}" for k in ("code", "signal", "reason") if st.get(k) is not None)

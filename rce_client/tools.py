@@ -16,7 +16,8 @@ Which bus (options go before or after the command):
 - a local bus (the robot's, run by ``rce-ros``): ``--bus PATH``, else ``$RCE_BUS``, else the
   only socket in ``$XDG_RUNTIME_DIR/rce`` (``/tmp/rce-<uid>``);
 - a container's bus through the master's admin API: ``--container CTAG --master URL --user U``
-  with a token from ``--admin-token``, ``$RCE_ADMIN_TOKEN`` or ``~/.config/rce/admin-token``.
+  with a token from ``--admin-token``, ``$RCE_ADMIN_TOKEN`` or ``~/.config/rce/admin-token``
+  (``$XDG_CONFIG_HOME/rce/admin-token``).
 
 Messages are YAML as with rostopic (``'{data: hello}'``), in the JSON form of
 :mod:`rce.messages`. A TYPE left out is taken from the bus (``describe``). ``echo`` prints
@@ -45,7 +46,9 @@ from rce_client.connection import _reason
 from rce_client.paths import bus_dir, running_buses
 
 POLL = 0.2          # s between describe polls while waiting for a topic to appear
-TOKEN_FILE = Path("~/.config/rce/admin-token")
+def token_file() -> Path:
+    """``$XDG_CONFIG_HOME/rce/admin-token`` (default ``~/.config/rce/admin-token``), as the master writes it."""
+    return Path(os.environ.get("XDG_CONFIG_HOME") or Path.home() / ".config") / "rce" / "admin-token"
 
 
 # -- output ----------------------------------------------------------------------------------
@@ -156,21 +159,19 @@ class AdminBus:
                 data = await resp.read()
                 if resp.status >= 400:
                     reason = _reason(data, resp.reason or str(resp.status))
-                    where = f"{self.user}/{self.ctag}"
                     if resp.status in (401, 403):
-                        raise AuthError(f"admin API refused ({resp.status}): {reason}")
+                        raise AuthError(f"admin API of {self.master} refused: {reason}")
                     if resp.status == 404:
-                        raise NotFound(f"container {where}: {reason}")
+                        raise NotFound(reason)
                     if resp.status < 500:
-                        raise RequestError(f"container {where}: {reason}")
-                    raise Unavailable(f"container {where}: {reason} (HTTP {resp.status})")
+                        raise RequestError(reason)
+                    raise Unavailable(f"{reason} (HTTP {resp.status})")
                 return await resp.json(content_type=None)
         except (aiohttp.ClientError, asyncio.TimeoutError, OSError) as e:
             raise Unavailable(f"cannot reach the master at {self.master}: {e or type(e).__name__}") from None
 
     async def describe(self) -> dict:
-        d = await self._req("GET", "bus")
-        return d.get("bus", d) if isinstance(d, dict) and "topics" not in d else d
+        return await self._req("GET", "bus")
 
     async def publisher(self, topic: str, type_: str) -> Callable[[dict], Any]:
         async def publish(msg: dict) -> None:
@@ -180,28 +181,27 @@ class AdminBus:
     async def flush(self) -> None:
         return None
 
-    async def sample(self, topic: str, count: int, timeout: float) -> list[dict]:
-        """Up to ``count`` messages of ``topic`` received within ``timeout`` s (JSON form)."""
-        d = await self._req("POST", "sample", {"topic": topic, "count": count, "timeout": timeout}, timeout)
-        if isinstance(d, dict):
-            d = d.get("messages", [])
-        return list(d or [])
+    async def sample(self, topic: str, count: int, timeout: float, type_: str | None = None) -> list[dict]:
+        """Up to ``count`` messages of ``topic`` received within ``timeout`` s (JSON form);
+        ``type_`` lets the container wait for a topic that does not exist yet."""
+        body = {"topic": topic, "count": count, "timeout": timeout}
+        if type_:
+            body["type"] = type_
+        return list(await self._req("POST", "sample", body, timeout) or [])
 
     async def call(self, service: str, type_: str | None, request: dict, timeout: float) -> dict:
-        d = await self._req("POST", "call", {"service": service, "request": request, "timeout": timeout}, timeout)
-        if isinstance(d, dict) and set(d) == {"response"}:
-            d = d["response"]
-        return d
+        """The JSON response of ``service`` (its type is the container's; ``type_`` is unused)."""
+        return await self._req("POST", "call", {"service": service, "request": request, "timeout": timeout}, timeout)
 
 
 def admin_token(explicit: str | None) -> str:
-    """``--admin-token``, else ``$RCE_ADMIN_TOKEN``, else ``~/.config/rce/admin-token``.
+    """``--admin-token``, else ``$RCE_ADMIN_TOKEN``, else :func:`token_file`.
     Raises :class:`AuthError` when none is set."""
     if explicit:
         return explicit
     if os.environ.get("RCE_ADMIN_TOKEN"):
         return os.environ["RCE_ADMIN_TOKEN"]
-    p = TOKEN_FILE.expanduser()
+    p = token_file()
     try:
         tok = p.read_text().strip()
     except OSError:
@@ -401,7 +401,7 @@ async def _echo(args, backend, topic: str) -> int:
     if isinstance(backend, AdminBus):
         _err(f"sampling {topic} through the admin API")
         while limit is None or count < limit:
-            for m in await backend.sample(topic, min(limit - count, 100) if limit else 10, 5.0):
+            for m in await backend.sample(topic, min(limit - count, 100) if limit else 10, 5.0, args.type):
                 show(m)
         return 0
     type_ = await _topic_type(backend, topic, args.type, True, _err)
