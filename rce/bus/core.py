@@ -168,14 +168,18 @@ class Bus:
 
     # -- parameters ----------------------------------------------------------------------------
     def set_param(self, name: str, value: Any) -> None:
-        """Set parameter ``name`` (global name) to a JSON value; a dict sets a subtree."""
+        """Set parameter ``name`` (global name) to a JSON value; a dict sets a subtree.
+
+        As on the ROS parameter server, the new value replaces whatever was at ``name`` (a
+        value or a whole subtree) and a value on the path above it."""
         validate_name(name, "parameter name")
         name = "/" + name.strip("/")
-        if isinstance(value, dict):
-            for k, v in value.items():
-                self.set_param(f"{name}/{k}", v)
-            return
-        self.params[name] = value
+        leaves: dict[str, Any] = {}
+        _flatten(name, value, leaves)
+        prefix = name.rstrip("/") + "/"
+        for k in [k for k in self.params if k == name or k.startswith(prefix) or name.startswith(k + "/")]:
+            del self.params[k]
+        self.params.update(leaves)
 
     def get_param(self, name: str) -> Any:
         """Value of ``name``, or a dict of the subtree under it. Raises :class:`NotFound`."""
@@ -219,3 +223,14 @@ class Bus:
             "params": sorted(self.params),
             "nodes": [{"name": n, **info} for n, info in sorted(self.nodes.items())],
         }
+
+
+def _flatten(name: str, value: Any, out: dict[str, Any]) -> None:
+    """Leaves of ``value`` under ``name`` (a dict is a subtree); checks every key is a legal name."""
+    if isinstance(value, dict):
+        for k, v in value.items():
+            child = f"{name.rstrip('/')}/{k}"
+            validate_name(child, "parameter name")
+            _flatten(child, v, out)
+    else:
+        out[name] = value
