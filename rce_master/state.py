@@ -176,7 +176,7 @@ class MasterState:
     def authenticate(self, user: str, digest_hex: str) -> None:
         """Raise :class:`AuthError` unless ``digest_hex`` is the user's password digest."""
         u = self.users.get(user)
-        if u is None or not u.check(digest_hex):
+        if u is None or not isinstance(digest_hex, str) or not u.check(digest_hex):
             raise AuthError(f"invalid user ID or password for user {user!r}")
 
     # -- task sets -----------------------------------------------------------------------------
