@@ -1,0 +1,413 @@
+"""rce_fleet.planner: single-robot Dijkstra, multi-robot conflict-free plans, blocking,
+unreachable goals and execution clearance (action dependency graph) under delays."""
+from __future__ import annotations
+
+import random
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from rce_fleet.grid import make_grid
+from rce_fleet.lab_map import lab_map
+from rce_fleet.planner import (ActionDependencyGraph, Conflict, FleetPlanner, GridGraph, PlannerError,
+                               UnreachableGoal, check_conflicts, load_movingai_scen, shortest_path)
+
+DATA = Path(__file__).resolve().parents[2] / ".." / "shared" / "data"
+needs_data = pytest.mark.skipif(not DATA.is_dir(), reason="../shared/data not present")
+
+
+# -- helpers ---------------------------------------------------------------------
+def random_graph(rng: random.Random, rows: int, cols: int, density: float) -> GridGraph:
+    free = np.array([[rng.random() > density for _ in range(cols)] for _ in range(rows)])
+    return GridGraph.from_array(free)
+
+
+def components(g: GridGraph) -> list[set[int]]:
+    seen, out = set(), []
+    for c in range(g.n_cells):
+        if g.is_free(c) and c not in seen:
+            comp, todo = {c}, [c]
+            while todo:
+                for n in g.neighbours(todo.pop()):
+                    if n not in comp:
+                        comp.add(n)
+                        todo.append(n)
+            seen |= comp
+            out.append(comp)
+    return out
+
+
+def bfs_dist(g: GridGraph, a: int, b: int, blocked=()) -> int | None:
+    p = shortest_path(g, a, b, blocked)
+    return None if p is None else len(p) - 1
+
+
+def assert_valid_paths(g: GridGraph, fp: FleetPlanner) -> None:
+    for r, p in fp.paths.items():
+        assert p[0] == fp.positions[r]
+        for a, b in zip(p, p[1:]):
+            assert a == b or b in g.neighbours(a), f"{r}: {a}->{b} is not a move"
+        for c in p[1:]:
+            assert c not in fp.blocked or c == p[0], f"{r} enters blocked cell {c}"
+    assert check_conflicts(fp.paths) == []
+
+
+def lab_planner() -> FleetPlanner:
+    return FleetPlanner(make_grid(lab_map()))
+
+
+# -- graph loading ---------------------------------------------------------------------
+def test_movingai_formats(tmp_path):
+    (tmp_path / "m.map").write_text("2\n3\n0 0 1\n0 0 0\n")
+    g = GridGraph.from_movingai(tmp_path / "m.map")
+    assert (g.rows, g.cols) == (2, 3) and g.free.tolist() == [[True, True, False], [True, True, True]]
+    assert sorted(g.neighbours(1)) == [0, 4] and sorted(g.neighbours(5)) == [4]
+    (tmp_path / "o.map").write_text("type octile\nheight 2\nwidth 3\nmap\n..@\n.G.\n")
+    assert GridGraph.from_movingai(tmp_path / "o.map").free.tolist() == g.free.tolist()
+    (tmp_path / "s.scen").write_text("2\n0 0 2 1\n1 1\t0 1\n")
+    assert load_movingai_scen(tmp_path / "s.scen", g) == [(0, 5), (4, 3)]
+    (tmp_path / "bad.map").write_text("3\n3\n0 0\n")
+    with pytest.raises(ValueError, match="bad.map"):
+        GridGraph.from_movingai(tmp_path / "bad.map")
+
+
+@needs_data
+def test_movingai_warehouse_instance():
+    g = GridGraph.from_movingai(DATA / "mapf" / "warehouse-10-20-10-2-1.map")
+    sc = load_movingai_scen(DATA / "mapf" / "warehouse-10-20-10-2-1-random-1.scen", g)
+    assert (g.rows, g.cols) == (63, 161) and len(sc) == 1000
+    assert sc[0] == (57 * 161 + 143, 16 * 161 + 10)
+    assert all(g.is_free(s) and g.is_free(t) for s, t in sc)
+
+
+# -- single robot -------------------------------------------------------------------------
+def test_single_robot_is_dijkstra_optimal():
+    rng = random.Random(1)
+    for _ in range(30):
+        g = random_graph(rng, rng.randint(4, 12), rng.randint(4, 12), 0.25)
+        comp = max(components(g), key=len)
+        if len(comp) < 2:
+            continue
+        s, t = rng.sample(sorted(comp), 2)
+        fp = FleetPlanner(g)
+        fp.set_position("r", s)
+        res = fp.set_goal("r", t)
+        assert res.ok and res.changed == {"r"}
+        path = fp.paths["r"]
+        assert path[0] == s and path[-1] == t
+        assert len(path) - 1 == bfs_dist(g, s, t) == fp.distance(s, t)
+        assert len(set(path)) == len(path)        # no waits, no revisits
+        d = g.distances_to([t])[0]
+        assert d[s] == len(path) - 1
+
+
+def test_distances_respect_blocked_cells():
+    g = GridGraph.from_array(np.ones((3, 3), dtype=bool))
+    assert g.distances_to([0])[0][8] == 4
+    d = g.distances_to([0], blocked=[1, 4])[0]
+    assert d[2] == 6 and d[4] == np.inf
+    assert shortest_path(g, 2, 0, blocked=[1, 4]) == [2, 5, 8, 7, 6, 3, 0]
+
+
+# -- conflicts -----------------------------------------------------------------------------
+def test_check_conflicts_detects_crafted_conflicts():
+    # 0 1 2 / 3 4 5 numbering does not matter to the checker
+    assert check_conflicts({"a": [0, 1, 2], "b": [5, 4, 3]}) == []
+    v = check_conflicts({"a": [0, 1, 2], "b": [5, 1, 3]})
+    assert v == [Conflict("vertex", ("a", "b"), (1,), 1)]
+    s = check_conflicts({"a": [0, 1, 2], "b": [2, 1, 0]})
+    assert [c.kind for c in s] == ["vertex"]                 # meet in the middle
+    sw = check_conflicts({"a": [0, 1, 2], "b": [3, 2, 1]})
+    assert sw == [Conflict("swap", ("a", "b"), (1, 2), 1)]
+    # a robot stays at its final cell for ever: passing it later is a conflict
+    late = check_conflicts({"a": [7], "b": [6, 7, 8]})
+    assert late == [Conflict("vertex", ("a", "b"), (7,), 1)]
+    assert check_conflicts({"a": [1, 2], "b": [3, 3, 3, 3, 2]})[0].step == 4
+    # following is allowed
+    assert check_conflicts({"a": [0, 1, 2, 3], "b": [1, 2, 3, 4]}) == []
+    assert check_conflicts({"a": [5, 6], "b": [5, 4]}, ignore_start=True) == []
+    assert len(check_conflicts({"a": [5, 6], "b": [5, 4]})) == 1
+
+
+# -- many robots ------------------------------------------------------------------------------
+def test_random_instances_are_conflict_free():
+    rng = random.Random(7)
+    instances = reached = total = 0
+    while instances < 50:
+        g = random_graph(rng, rng.randint(5, 14), rng.randint(5, 14), rng.choice([0.0, 0.15, 0.3]))
+        comp = sorted(max(components(g), key=len))
+        n = rng.randint(2, 20)
+        if len(comp) < 2 * n + 4:
+            continue
+        instances += 1
+        starts = rng.sample(comp, n)
+        goals = rng.sample(comp, n)
+        fp = FleetPlanner(g)
+        for i, s in enumerate(starts):
+            fp.set_position(f"r{i}", s)
+        fp.set_goals({f"r{i}": t for i, t in enumerate(goals)})     # all goals, one plan
+        assert_valid_paths(g, fp)
+        for i, t in enumerate(goals):
+            r = f"r{i}"
+            total += 1
+            if r in fp.unreachable:
+                assert fp.paths[r] == [starts[i]]
+                assert fp.unreachable[r]
+            else:
+                assert fp.paths[r][-1] == t
+                reached += 1
+    assert reached >= 0.95 * total
+
+
+def test_goals_set_one_by_one_keep_plans_valid():
+    rng = random.Random(3)
+    g = random_graph(rng, 10, 10, 0.15)
+    comp = sorted(max(components(g), key=len))
+    cells = rng.sample(comp, 16)
+    fp = FleetPlanner(g)
+    for i in range(8):
+        fp.set_position(f"r{i}", cells[i])
+    for i in range(8):
+        res = fp.set_goal(f"r{i}", cells[8 + i])
+        assert f"r{i}" in res.changed or f"r{i}" in res.unreachable
+        assert_valid_paths(g, fp)
+
+
+# -- blocking ---------------------------------------------------------------------------------
+def test_block_returns_exactly_the_crossing_robots():
+    rng = random.Random(11)
+    checked = 0
+    for trial in range(40):
+        g = random_graph(rng, 9, 9, 0.1)
+        comp = sorted(max(components(g), key=len))
+        cells = rng.sample(comp, 10)
+        fp = FleetPlanner(g)
+        for i in range(5):
+            fp.set_position(f"r{i}", cells[i])
+        fp.set_goals({f"r{i}": cells[5 + i] for i in range(5)})
+        # let robots make some cleared progress first
+        for _ in range(rng.randint(0, 4)):
+            for r in list(fp.paths):
+                nxt = fp.cleared_cells(r)
+                if nxt:
+                    fp.advance(r, nxt[0])
+        pos = {r: fp.positions[r] for r in fp.paths}
+        remaining = {r: fp.paths[r][fp.progress(r):] for r in fp.paths}
+        on_paths = sorted({c for p in remaining.values() for c in p[1:]} - set(pos.values()))
+        if not on_paths:
+            continue
+        cell = rng.choice(on_paths)
+        expect = {r for r, p in remaining.items() if cell in p[1:]}
+        got = fp.block(cell)
+        assert got == expect
+        assert fp.last_result.cancelled == expect
+        assert_valid_paths(g, fp)
+        for r, p in fp.paths.items():
+            assert cell not in p
+            if r not in fp.unreachable:
+                assert p[-1] == fp.goals[r]
+        for r in expect:
+            assert r in fp.last_result.changed or r in fp.unreachable
+        checked += 1
+    assert checked >= 30
+
+
+def test_block_keeps_unaffected_paths():
+    fp = lab_planner()
+    fp.set_position("A", 0)
+    fp.set_position("B", 63)
+    fp.set_goals({"A": 7, "B": 56})
+    a_path, b_path = list(fp.paths["A"]), list(fp.paths["B"])
+    assert 3 in a_path and 60 in b_path     # A drives along the top row, B along the bottom
+    assert fp.block(60) == {"B"}
+    assert fp.paths["A"] == a_path and not fp.last_result.full
+    assert "A" not in fp.last_result.changed and "B" in fp.last_result.changed
+    assert 60 not in fp.paths["B"] and fp.paths["B"][-1] == 56
+    assert fp.replans["B"] == 2 and fp.replans["A"] == 1
+    assert fp.block(60) == set()            # already blocked
+
+
+def test_paper_scenario_block_cell_26():
+    fp = lab_planner()
+    fp.set_position("Robot1", 24)
+    fp.set_position("Robot2", 16)
+    fp.set_position("Robot3", 40)
+    fp.set_goal("Robot1", 28)
+    fp.set_goal("Robot2", 63)
+    fp.set_goal("Robot3", 7)
+    crossing = {r for r, p in fp.paths.items() if 26 in p}
+    assert "Robot1" in crossing
+    assert fp.block(26) == crossing
+    assert all(26 not in p for p in fp.paths.values())
+    assert check_conflicts(fp.paths) == []
+    assert all(fp.paths[r][-1] == fp.goals[r] for r in fp.paths)
+    res = fp.unblock(26)
+    assert 26 not in fp.blocked and res.ok
+
+
+def test_robot_standing_in_blocked_cell_may_leave():
+    fp = lab_planner()
+    fp.set_position("A", 26)
+    fp.set_goal("A", 30)
+    assert fp.block(26) == set()
+    fp.set_goal("A", 31)
+    assert fp.paths["A"][0] == 26 and 26 not in fp.paths["A"][1:] and fp.paths["A"][-1] == 31
+
+
+# -- unreachable goals ------------------------------------------------------------------------
+def test_unreachable_goals_are_reported_with_reasons():
+    free = np.ones((3, 5), dtype=bool)
+    free[:, 2] = False                        # a wall: columns 3, 4 are cut off
+    free[0, 0] = False
+    g = GridGraph.from_array(free)
+    fp = FleetPlanner(g)
+    fp.set_position("A", 5)
+    res = fp.set_goal("A", 4)
+    assert "cannot be reached" in res.unreachable["A"] and fp.paths["A"] == [5]
+    res = fp.set_goal("A", 0)
+    assert "not a free cell" in res.unreachable["A"]
+    with pytest.raises(UnreachableGoal) as ei:
+        fp.set_goal("A", 2, strict=True)
+    assert ei.value.robot == "A" and ei.value.goal == 2
+    fp.block(11)
+    res = fp.set_goal("A", 11)
+    assert "blocked" in res.unreachable["A"]
+    res = fp.unblock(11)
+    assert res.ok and fp.paths["A"][-1] == 11 and "A" not in fp.unreachable
+    with pytest.raises(PlannerError):
+        fp.set_goal("A", 99)
+    with pytest.raises(PlannerError):
+        fp.set_goal("nobody", 1)
+
+
+def test_goal_conflicts_with_other_robots_are_reported():
+    fp = lab_planner()
+    fp.set_position("A", 0)
+    fp.set_position("B", 7)
+    fp.set_position("C", 63)
+    assert "parked there" in fp.set_goal("A", 7).unreachable["A"]     # B has no goal, sits in 7
+    fp.set_goal("B", 56)
+    assert fp.last_result.ok and fp.paths["A"][-1] == 7            # A retried once B moves off
+    res = fp.set_goal("C", 56)
+    assert "already the goal of robot B" in res.unreachable["C"]
+
+
+def test_blocking_the_only_way_makes_goal_unreachable_not_waited_on():
+    free = np.ones((1, 6), dtype=bool)            # a corridor 0..5
+    fp = FleetPlanner(GridGraph.from_array(free))
+    fp.set_position("A", 0)
+    fp.set_goal("A", 5)
+    assert fp.block(3) == {"A"}
+    assert "cannot be reached" in fp.unreachable["A"] and fp.paths["A"] == [0]
+    fp.unblock(3)
+    assert fp.paths["A"][-1] == 5 and not fp.unreachable
+
+
+# -- execution ---------------------------------------------------------------------------------
+def simulate(fp: FleetPlanner, rng: random.Random, p_move: float, max_ticks: int = 5000,
+             events=None) -> int:
+    """Robots step to their next cell only when cleared, each with probability p_move per tick.
+
+    All moves of a tick are decided from the clearances at its start and happen
+    together. Checks: never two robots in one cell, never a swap. Returns ticks used.
+    """
+    events = events or {}
+    for tick in range(max_ticks):
+        if tick in events:
+            events[tick](fp)
+            assert check_conflicts(fp.paths, ignore_start=False) == []
+        pos = dict(fp.positions)
+        assert len(set(pos.values())) == len(pos), f"two robots share a cell at tick {tick}"
+        done = all(len(set(fp.paths[r][fp.progress(r):])) == 1 for r in fp.paths)   # all in final cells
+        if done and tick not in events and all(t <= tick for t in events):
+            return tick
+        moves = {}
+        for r in fp.paths:
+            nxt = fp.cleared_cells(r)
+            if nxt and rng.random() < p_move:
+                moves[r] = nxt[0]
+        for r, c in moves.items():
+            fp.advance(r, c)
+        new = dict(fp.positions)
+        assert len(set(new.values())) == len(new), f"two robots share a cell after tick {tick}"
+        for a in moves:
+            for b in moves:
+                if a < b:
+                    assert not (pos[a] == new[b] and pos[b] == new[a]), f"{a} and {b} swapped"
+    raise AssertionError("robots did not finish: deadlock?")
+
+
+def test_execution_with_random_delays_is_safe_and_deadlock_free():
+    rng = random.Random(5)
+    for trial in range(25):
+        g = random_graph(rng, rng.randint(6, 10), rng.randint(6, 10), 0.15)
+        comp = sorted(max(components(g), key=len))
+        n = rng.randint(2, 12)
+        if len(comp) < 2 * n + 4:
+            continue
+        cells = rng.sample(comp, 2 * n)
+        fp = FleetPlanner(g)
+        for i in range(n):
+            fp.set_position(f"r{i}", cells[i])
+        fp.set_goals({f"r{i}": cells[n + i] for i in range(n)})
+        simulate(fp, rng, p_move=rng.choice([0.2, 0.5, 0.9]))
+        for r in fp.paths:
+            if r not in fp.unreachable:
+                assert fp.positions[r] == fp.goals[r]
+
+
+def test_execution_survives_blocks_and_new_goals_midway():
+    rng = random.Random(9)
+    for trial in range(15):
+        g = random_graph(rng, 9, 9, 0.1)
+        comp = sorted(max(components(g), key=len))
+        cells = rng.sample(comp, 16)
+        fp = FleetPlanner(g)
+        for i in range(6):
+            fp.set_position(f"r{i}", cells[i])
+        fp.set_goals({f"r{i}": cells[6 + i] for i in range(6)})
+
+        def block_something(fp):
+            occupied = set(fp.positions.values()) | {fp.goals[r] for r in fp.goals}
+            on = [c for r in fp.paths for c in fp.paths[r][fp.progress(r):] if c not in occupied]
+            if on:
+                fp.block(rng.choice(on))
+
+        def new_goal(fp):
+            taken = set(fp.positions.values()) | set(fp.goals.values()) | set(fp.blocked)
+            free = [c for c in comp if c not in taken]
+            fp.set_goal("r0", rng.choice(free))
+
+        simulate(fp, rng, p_move=0.5, events={3: block_something, 6: new_goal, 8: block_something})
+        for r in fp.paths:
+            if r not in fp.unreachable:
+                assert fp.positions[r] == fp.goals[r]
+
+
+def test_adg_orders_cell_entries():
+    # b must wait in 1 until a has passed through 2; a enters 2 first in the plan
+    adg = ActionDependencyGraph({"a": [0, 2, 3], "b": [1, 1, 2]})
+    assert adg.clearance("a") == 2
+    assert adg.clearance("b") == 1                # may not enter 2 yet
+    adg.progress["a"] = 1                         # a in 2
+    assert adg.clearance("b") == 1
+    adg.progress["a"] = 2                         # a left 2
+    assert adg.clearance("b") == 2
+
+
+def test_advance_reports_clearance_changes_and_handles_off_plan():
+    fp = FleetPlanner(GridGraph.from_array(np.ones((1, 5), dtype=bool)))
+    fp.set_position("a", 0)
+    fp.set_position("b", 4)
+    fp.set_goals({"a": 3})
+    assert fp.paths["a"] == [0, 1, 2, 3]
+    assert fp.clearance("a") == 3
+    changes = fp.advance("a", 1)
+    assert changes == {} and fp.progress("a") == 1
+    assert fp.advance("a", 0) == {}                       # jitter back: ignored
+    fp.advance("a", 2)
+    assert fp.progress("a") == 2
+    # off plan: re-planned from the reported cell
+    fp.advance("a", 0)
+    assert fp.paths["a"][0] == 0 and fp.paths["a"][-1] == 3 and fp.replans["a"] == 2
