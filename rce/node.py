@@ -220,16 +220,28 @@ class Node:
         t = self.registry.msg_type(msg_class)
         name = self.resolve(topic)
         sub = Subscriber(self, name, t, callback, queue_size)
-        sub.handle = await self._peer.call("subscribe", topic=name, type=wire_name(t), queue_size=queue_size)
-        self._subs[sub.handle] = sub
+        sub.handle = next(self._ids)
+        self._subs[sub.handle] = sub       # before the request: messages may arrive before its reply
+        try:
+            await self._peer.call("subscribe", topic=name, type=wire_name(t), queue_size=queue_size,
+                                  handle=sub.handle)
+        except BaseException:
+            self._subs.pop(sub.handle, None)
+            sub._task.cancel()
+            raise
         return sub
 
     async def service(self, name: str, srv_class: str, handler: Callable[[Any], Any]) -> int:
         """Provide service ``name`` of ``srv_class``; ``handler(request)`` returns the response
         (instance or dict; may be async). Returns the service handle."""
         req_t, resp_t = self.registry.srv_types(srv_class)
-        h = await self._peer.call("advertise_service", service=self.resolve(name), type=srv_class.strip("/"))
-        self._services[h] = (handler, req_t, resp_t)
+        h = next(self._ids)
+        self._services[h] = (handler, req_t, resp_t)   # before the request: calls may arrive before its reply
+        try:
+            await self._peer.call("advertise_service", service=self.resolve(name), type=srv_class.strip("/"), handle=h)
+        except BaseException:
+            self._services.pop(h, None)
+            raise
         return h
 
     async def service_proxy(self, name: str, srv_class: str) -> ServiceProxy:

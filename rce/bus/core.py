@@ -71,6 +71,7 @@ class Bus:
         self.nodes: dict[str, dict] = {}          # node name -> info (pid, ...)
         self.on_change: list[Callable[[], None]] = []
         self._ids = itertools.count(1)
+        self._service_added: asyncio.Event | None = None
 
     # -- topics --------------------------------------------------------------------------------
     def _topic(self, name: str, type_: str) -> Topic:
@@ -137,6 +138,9 @@ class Bus:
         if s is not None and s.owner != owner:
             raise RequestError(f"service {name!r} is already provided by {s.owner!r}")
         s = self.services[name] = Service(name, type_, owner, handler)
+        if self._service_added is not None:
+            self._service_added.set()
+            self._service_added = None
         return s
 
     def unadvertise_service(self, name: str, owner: str) -> None:
@@ -145,15 +149,36 @@ class Bus:
         if s and s.owner == owner:
             del self.services[name]
 
+    async def wait_for_service(self, name: str, timeout: float) -> Service | None:
+        """The service ``name`` once provided (like ``rospy.wait_for_service``), or None after
+        ``timeout`` s."""
+        loop = asyncio.get_running_loop()
+        deadline = loop.time() + timeout
+        while (s := self.services.get(name)) is None:
+            left = deadline - loop.time()
+            if left <= 0:
+                return None
+            if self._service_added is None:
+                self._service_added = asyncio.Event()
+            try:
+                await asyncio.wait_for(self._service_added.wait(), left)
+            except asyncio.TimeoutError:
+                return None
+        return s
+
     async def call_service(self, name: str, payload: bytes, type_: str | None = None,
-                           timeout: float | None = 30.0) -> bytes:
+                           timeout: float | None = 30.0, wait: float = 0.0) -> bytes:
         """Call service ``name`` with a serialized request; returns the serialized response.
+        ``wait``: s to wait for the service to be provided (a node may still be starting).
 
         Raises :class:`NotFound` (no such service), :class:`MessageError` (type mismatch),
         :class:`Unavailable` (timeout, s) or the provider's error."""
         s = self.services.get(name)
+        if s is None and wait > 0:
+            s = await self.wait_for_service(name, wait)
         if s is None:
-            raise NotFound(f"service {name!r} is not provided on {self.name}")
+            raise NotFound(f"service {name!r} is not provided on {self.name}"
+                           + (f" (waited {wait:g} s)" if wait > 0 else ""))
         if type_ is not None and type_ != s.type:
             raise MessageError(f"service {name!r} has type {s.type!r}, not {type_!r}")
         s.calls += 1

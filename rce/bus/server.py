@@ -44,6 +44,7 @@ class _Session:
         self.resolved: dict[int, str] = {}
         self.calls: dict[int, asyncio.Future] = {}
         self.ids = itertools.count(1)
+        self.call_ids = itertools.count(1)
         self.transport = peer.writer.transport
         peer.handlers.update({op[3:]: getattr(self, op) for op in dir(self) if op.startswith("op_")})
         peer.on_data = self.on_data
@@ -69,8 +70,17 @@ class _Session:
         if t:
             self.bus.unadvertise(t.name, self.owner)
 
+    def _handle(self, a: dict) -> int:
+        """The handle the node chose (so frames can arrive before the reply), or a fresh one."""
+        h = a.get("handle")
+        if h is None:
+            return next(self.ids) + (1 << 40)
+        if not isinstance(h, int) or h <= 0 or h >= (1 << 40) or h in self.subs or h in self.services:
+            raise RequestError(f"bad or duplicate handle {h!r}")
+        return h
+
     async def op_subscribe(self, a: dict) -> int:
-        h = next(self.ids)
+        h = self._handle(a)
         max_buffer = self.server.max_buffer
         transport, write = self.transport, self.peer.writer.write
 
@@ -90,10 +100,10 @@ class _Session:
             self.bus.unsubscribe(sub)
 
     async def op_advertise_service(self, a: dict) -> int:
-        h = next(self.ids)
+        h = self._handle(a)
 
         async def handler(payload: bytes, _h=h) -> bytes:
-            cid = next(self.ids)
+            cid = next(self.call_ids)
             fut = asyncio.get_running_loop().create_future()
             self.calls[cid] = fut
             try:
