@@ -85,6 +85,7 @@ def start_engine(workdir: Path | None = None, *, robot_tasksets: int = 1, contai
                  master_args: tuple = (), robot_args: tuple = (), container_args: tuple = ()) -> Engine:
     """Start master (``--dev``), robot task set(s) and container host(s); returns the :class:`Engine`."""
     workdir = Path(workdir or tempfile.mkdtemp(prefix="rce-engine-"))
+    workdir.mkdir(parents=True, exist_ok=True)
     env = dict(os.environ, RCE_ADMIN_TOKEN="test-admin-token", RCE_LOG_JSON="1",
                XDG_CONFIG_HOME=str(workdir / "config"))
     e = Engine(workdir, env, admin_token="test-admin-token")
