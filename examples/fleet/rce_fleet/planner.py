@@ -8,14 +8,22 @@ the robots whose paths crossed it. What it lacks, and this module adds:
   (one cell per step, a wait is a repeated cell). No two robots occupy one cell
   at one step, no two swap cells between steps, and a robot that has arrived
   stays at its goal for ever (its cell is reserved for all later steps).
-  Algorithm: prioritized planning with space-time A* and a reservation table
-  (Silver 2005, "Cooperative Pathfinding", AIIDE; Erdmann & Lozano-Perez 1987),
-  with the true-distance heuristic of a reverse Dijkstra (breadth-first search,
-  unit costs) from each goal. A robot that cannot be planned is moved to the
-  front of the priority order and the plan restarted (priority bumping); when
-  restarts or the time budget run out, robots that still cannot be planned are
-  parked where they are and reported in ``unreachable``, so nobody waits for
-  ever on a goal that will not come.
+  Algorithm: prioritized planning with a reservation table (Erdmann &
+  Lozano-Perez 1987; Silver 2005, "Cooperative Pathfinding", AIIDE), each robot
+  planned by space-time A* over safe intervals (SIPP, Phillips & Likhachev
+  2011), with the true-distance heuristic of a reverse Dijkstra from its goal
+  (unit costs, scipy ``csgraph``). Priority: shorter trips first (they park
+  early; long trips route around them, instead of short trips waiting for a
+  long one to pass their goal). A robot that cannot be planned is moved to the
+  front of the order and the plan restarted (priority bumping); when restarts
+  or the time budget run out, robots that still cannot be planned are parked
+  where they are and reported in ``unreachable``, so nobody waits for ever on
+  a goal that will not come.
+* **Re-planning.** After a block only the robots whose remaining paths cross
+  the cell are re-planned, around the others' kept remaining paths; if that
+  fails (or the kept paths no longer fit together) everybody is re-planned.
+  A robot already cleared into its next cell keeps that move (it may be
+  driving), so re-plans never pull a cell from under a moving robot.
 * **Execution that keeps the plan's order under delays.** Robots do not move in
   lock-step. :class:`ActionDependencyGraph` (Hoenig et al. 2019, "Persistent
   and Robust Execution of MAPF Schedules in Warehouses", IEEE RA-L) lets a robot
@@ -45,7 +53,7 @@ from scipy.sparse.csgraph import dijkstra as _csgraph_dijkstra
 
 __all__ = [
     "PlannerError", "UnreachableGoal", "GridGraph", "load_movingai_scen", "shortest_path",
-    "Conflict", "check_conflicts", "safe_interval_astar", "space_time_astar", "Reservations", "ActionDependencyGraph",
+    "Conflict", "check_conflicts", "safe_interval_astar", "Reservations", "ActionDependencyGraph",
     "PlanResult", "FleetPlanner",
 ]
 
@@ -106,8 +114,12 @@ class GridGraph:
             for x in nbrs[cell]:
                 src.append(int(cell))
                 dst.append(x)
-        self._src = np.asarray(src, dtype=np.int64)
-        self._dst = np.asarray(dst, dtype=np.int64)
+        # distances are computed on the free cells only (compact numbering)
+        self._free_idx = np.flatnonzero(flat)
+        self._compact = np.full(n, -1, dtype=np.int64)
+        self._compact[self._free_idx] = np.arange(self._free_idx.size)
+        self._src = self._compact[np.asarray(src, dtype=np.int64)]
+        self._dst = self._compact[np.asarray(dst, dtype=np.int64)]
         self._csr_cache: tuple[frozenset, csr_matrix] | None = None
 
     # -- constructors ------------------------------------------------------
@@ -177,9 +189,10 @@ class GridGraph:
             return self._csr_cache[1]
         keep = np.ones(self._src.size, dtype=bool)
         if blocked:
-            b = np.fromiter(blocked, dtype=np.int64)
+            b = self._compact[np.fromiter(blocked, dtype=np.int64)]
+            b = b[b >= 0]
             keep &= ~np.isin(self._src, b) & ~np.isin(self._dst, b)
-        n = self.n_cells
+        n = self._free_idx.size
         m = csr_matrix((np.ones(int(keep.sum())), (self._src[keep], self._dst[keep])), shape=(n, n))
         self._csr_cache = (blocked, m)
         return m
@@ -196,8 +209,9 @@ class GridGraph:
         out = np.full((len(goals), self.n_cells), np.inf)
         ok = [i for i, g in enumerate(goals) if self.is_free(g) and g not in blocked]
         if ok:
-            out[ok] = _csgraph_dijkstra(self._csr(blocked), directed=True, unweighted=True,
-                                        indices=[goals[i] for i in ok])
+            d = _csgraph_dijkstra(self._csr(blocked), directed=True, unweighted=True,
+                                  indices=self._compact[[goals[i] for i in ok]])
+            out[np.ix_(ok, self._free_idx)] = d
         return out
 
 
@@ -496,12 +510,6 @@ def safe_interval_astar(nbrs: Sequence[Sequence[int]], start: int, goal: int, h:
                 s_int = vts[k] + 1
                 k += 1
     return None
-
-
-def space_time_astar(nbrs: Sequence[Sequence[int]], start: int, goal: int, h: Sequence[float],
-                     res: Reservations, max_expansions: int, t0: int = 0, weight: float = 1.0) -> list[int] | None:
-    """Alias of :func:`safe_interval_astar` (space-time A* with implicit waits)."""
-    return safe_interval_astar(nbrs, start, goal, h, res, max_expansions, t0, weight)
 
 
 # ---------------------------------------------------------------------------

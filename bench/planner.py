@@ -1,0 +1,209 @@
+"""Benchmark the fleet planner (rce_fleet.planner).
+
+1. MovingAI MAPF instance ``warehouse-10-20-10-2-1`` (161 x 63 cells) with the
+   first K agents of ``...-random-1.scen`` for K = 10, 50, 100, 200: planning
+   time, conflicts (must be 0), sum of costs (arrival steps), makespan, the
+   lower bound (sum of individual shortest paths) and the ratio.
+2. One re-plan after blocking a cell on the ``warehouse.yaml`` cell grid with
+   10 robots.
+
+Usage::
+
+    .venv/bin/python bench/planner.py [--agents 10 50 100 200] [--repeat 3]
+        [--data ../shared/data] [--json PATH] [--plot PATH]
+
+Results go to ``bench/results/`` by default (planner.json, planner.png).
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import random
+import statistics
+import sys
+import time
+from pathlib import Path
+
+ROOT = Path(__file__).resolve().parents[1]
+try:
+    import rce_fleet  # noqa: F401
+except ImportError:    # running from a checkout without the package installed
+    sys.path.insert(0, str(ROOT / "examples" / "fleet"))
+
+from rce_fleet.grid import make_grid  # noqa: E402
+from rce_fleet.maps import load_map  # noqa: E402
+from rce_fleet.planner import FleetPlanner, GridGraph, check_conflicts, load_movingai_scen  # noqa: E402
+
+DEFAULT_DATA = (ROOT / ".." / "shared" / "data").resolve()
+RESULTS = ROOT / "bench" / "results"
+
+
+def run_mapf(graph: GridGraph, scen: list[tuple[int, int]], k: int, repeat: int) -> dict:
+    """Plan the first ``k`` agents ``repeat`` times with a fresh planner; report the median time."""
+    times, out = [], {}
+    for _ in range(repeat):
+        fp = FleetPlanner(graph)
+        for i, (s, _) in enumerate(scen[:k]):
+            fp.set_position(f"a{i}", s)
+        t0 = time.perf_counter()
+        res = fp.set_goals({f"a{i}": g for i, (_, g) in enumerate(scen[:k])})
+        times.append(time.perf_counter() - t0)
+        paths = res.paths
+        conflicts = check_conflicts(paths)
+        soc = sum(len(p) - 1 for p in paths.values())
+        lb = sum(int(fp.distance(s, g)) for s, g in scen[:k])
+        out = {
+            "agents": k,
+            "conflicts": len(conflicts),
+            "unreachable": len(res.unreachable),
+            "reached": sum(1 for i, (_, g) in enumerate(scen[:k]) if paths[f"a{i}"][-1] == g),
+            "sum_of_costs": soc,
+            "makespan": max(len(p) - 1 for p in paths.values()),
+            "lower_bound": lb,
+            "ratio": soc / lb if lb else 1.0,
+        }
+    out["time_s"] = statistics.median(times)
+    out["time_min_s"] = min(times)
+    return out
+
+
+def run_block_replan(map_yaml: Path, cell_m: float, robots: int, seed: int = 1) -> dict:
+    """10 robots on the warehouse.yaml grid; block a cell in the middle of robot 0's path; time the re-plan."""
+    m = load_map(map_yaml)
+    t0 = time.perf_counter()
+    grid = make_grid(m, cell_m=cell_m)
+    t_grid = time.perf_counter() - t0
+    graph = GridGraph.from_cellgrid(grid)
+    # the largest connected set of free cells
+    seen, best = set(), set()
+    for c in grid.free_cells():
+        if c in seen:
+            continue
+        comp, todo = {c}, [c]
+        while todo:
+            for n in graph.neighbours(todo.pop()):
+                if n not in comp:
+                    comp.add(n)
+                    todo.append(n)
+        seen |= comp
+        best = max(best, comp, key=len)
+    rng = random.Random(seed)
+    cells = rng.sample(sorted(best), 2 * robots)
+    fp = FleetPlanner(graph)
+    for i in range(robots):
+        fp.set_position(f"Robot{i + 1}", cells[i])
+    t0 = time.perf_counter()
+    fp.set_goals({f"Robot{i + 1}": cells[robots + i] for i in range(robots)})
+    t_plan = time.perf_counter() - t0
+    path = fp.paths["Robot1"]
+    occupied = set(fp.positions.values()) | {g for g in fp.goals.values() if g is not None}
+    candidates = [c for c in path[len(path) // 3: 2 * len(path) // 3] if c not in occupied] or \
+                 [c for c in path if c not in occupied]
+    cell = candidates[len(candidates) // 2]
+    t0 = time.perf_counter()
+    cancelled = fp.block(cell)
+    t_block = time.perf_counter() - t0
+    res = fp.last_result
+    return {
+        "map": str(map_yaml.name), "cell_m": cell_m, "grid": f"{grid.rows}x{grid.cols}",
+        "free_cells": len(grid.free_cells()), "robots": robots, "grid_build_s": t_grid,
+        "initial_plan_s": t_plan, "blocked_cell": cell, "cancelled": sorted(cancelled),
+        "changed": sorted(res.changed), "full_replan": res.full, "replan_s": t_block,
+        "conflicts": len(check_conflicts(fp.paths)), "unreachable": len(fp.unreachable),
+    }
+
+
+def print_tables(rows: list[dict], block: dict | None) -> None:
+    try:
+        from rich.console import Console
+        from rich.table import Table
+    except ImportError:  # plain text fallback
+        for r in rows:
+            print(r)
+        if block:
+            print(block)
+        return
+    con = Console(width=max(Console().width, 110))
+    t = Table(title="FleetPlanner on MovingAI warehouse-10-20-10-2-1 (random-1.scen)")
+    for col in ("agents", "time (s)", "conflicts", "reached", "sum of costs", "lower bound", "ratio", "makespan"):
+        t.add_column(col, justify="right")
+    for r in rows:
+        t.add_row(str(r["agents"]), f"{r['time_s']:.3f}", str(r["conflicts"]), f"{r['reached']}/{r['agents']}",
+                  str(r["sum_of_costs"]), str(r["lower_bound"]), f"{r['ratio']:.4f}", str(r["makespan"]))
+    con.print(t)
+    if block:
+        b = Table(title=f"Re-plan after block on {block['map']} ({block['grid']} cells of {block['cell_m']} m)")
+        for col in ("robots", "free cells", "initial plan (ms)", "blocked cell", "cancelled",
+                    "changed", "full re-plan", "re-plan (ms)", "conflicts"):
+            b.add_column(col, justify="right")
+        b.add_row(str(block["robots"]), str(block["free_cells"]), f"{block['initial_plan_s'] * 1e3:.1f}",
+                  str(block["blocked_cell"]), ", ".join(block["cancelled"]) or "-",
+                  ", ".join(block["changed"]) or "-", str(block["full_replan"]),
+                  f"{block['replan_s'] * 1e3:.1f}", str(block["conflicts"]))
+        con.print(b)
+
+
+def plot(rows: list[dict], path: Path) -> None:
+    import matplotlib
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    ks = [r["agents"] for r in rows]
+    fig, (ax1, ax2) = plt.subplots(1, 2, figsize=(10, 4))
+    ax1.plot(ks, [r["time_s"] for r in rows], "o-")
+    ax1.axhline(1.0, color="grey", ls="--", lw=0.8, label="1 s target (100 agents)")
+    ax1.set_xlabel("agents")
+    ax1.set_ylabel("planning time (s)")
+    ax1.set_title("time to plan")
+    ax1.legend()
+    ax2.plot(ks, [r["ratio"] for r in rows], "o-")
+    ax2.axhline(1.2, color="grey", ls="--", lw=0.8, label="1.2 x lower bound")
+    ax2.set_xlabel("agents")
+    ax2.set_ylabel("sum of costs / lower bound")
+    ax2.set_ylim(0.95, max(1.25, max(r["ratio"] for r in rows) + 0.05))
+    ax2.set_title("solution quality")
+    ax2.legend()
+    fig.suptitle("FleetPlanner, MovingAI warehouse-10-20-10-2-1")
+    fig.tight_layout()
+    fig.savefig(path, dpi=120)
+    plt.close(fig)
+
+
+def main(argv: list[str] | None = None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    ap.add_argument("--data", type=Path, default=DEFAULT_DATA, help="the shared data directory")
+    ap.add_argument("--agents", type=int, nargs="+", default=[10, 50, 100, 200])
+    ap.add_argument("--repeat", type=int, default=3, help="runs per K (median time reported)")
+    ap.add_argument("--cell-m", type=float, default=1.0, help="cell size for the warehouse.yaml grid")
+    ap.add_argument("--json", type=Path, default=RESULTS / "planner.json")
+    ap.add_argument("--plot", type=Path, default=RESULTS / "planner.png")
+    args = ap.parse_args(argv)
+
+    mapf = args.data / "mapf"
+    map_file = mapf / "warehouse-10-20-10-2-1.map"
+    scen_file = mapf / "warehouse-10-20-10-2-1-random-1.scen"
+    if not map_file.is_file() or not scen_file.is_file():
+        print(f"MovingAI instance not found under {mapf}", file=sys.stderr)
+        return 2
+    graph = GridGraph.from_movingai(map_file)
+    scen = load_movingai_scen(scen_file, graph)
+    rows = [run_mapf(graph, scen, k, args.repeat) for k in args.agents]
+    wh = args.data / "maps" / "warehouse.yaml"
+    block = run_block_replan(wh, args.cell_m, 10) if wh.is_file() else None
+    print_tables(rows, block)
+
+    for p in (args.json, args.plot):
+        if p is not None:
+            p.parent.mkdir(parents=True, exist_ok=True)
+    if args.json:
+        args.json.write_text(json.dumps({"mapf": rows, "block_replan": block}, indent=2))
+        print(f"wrote {args.json}")
+    if args.plot:
+        plot(rows, args.plot)
+        print(f"wrote {args.plot}")
+    bad = [r for r in rows if r["conflicts"]]
+    return 1 if bad or (block and block["conflicts"]) else 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
