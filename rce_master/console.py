@@ -1,0 +1,226 @@
+"""``rce-console``: the operator's CLI onto the master's admin API.
+
+::
+
+    rce-console [--master URL] robots|containers|nodes|interfaces|connections|tasksets|parameters|users
+    rce-console user add NAME [--password-stdin]      # prompts twice when not reading stdin
+    rce-console user del NAME
+    rce-console logs USER CTAG NTAG                   # a node's kept stdout/stderr
+    rce-console container resize USER CTAG [--cpu CORES] [--memory MIB] [--size N]
+    rce-console top [--interval S] [--once]           # per-container CPU, memory, processes, traffic
+    rce-console users add NAME --file users.json      # offline: add a hashed record to a --users file
+
+The admin token comes from ``--admin-token``, ``RCE_ADMIN_TOKEN`` or the token file the
+master created (``~/.config/rce/admin-token``).
+"""
+from __future__ import annotations
+
+import argparse
+import getpass
+import json
+import sys
+import time
+import urllib.error
+import urllib.request
+from pathlib import Path
+from typing import Any
+
+from rich.console import Console
+from rich.live import Live
+from rich.table import Table
+
+from rce_master import token as admin_token
+from rce_master.state import User
+
+COLUMNS = {
+    "users": ["name"],
+    "robots": ["user", "robot", "endpoint", "since"],
+    "containers": ["user", "ctag", "owner", "host", "group", "state", "sandbox", "data"],
+    "nodes": ["user", "ctag", "ntag", "pkg", "exe", "status", "code", "signal"],
+    "parameters": ["user", "ctag", "name", "value"],
+    "interfaces": ["user", "tag", "type", "class", "addr", "connections"],
+    "connections": ["user", "tagA", "tagB"],
+    "tasksets": ["tid", "kind", "name", "host", "robots", "containers", "cpu_load", "mem_load", "sandbox"],
+}
+
+
+class ConsoleError(Exception):
+    pass
+
+
+class AdminClient:
+    """Minimal client of the admin API (``base`` like ``http://127.0.0.1:9000/``)."""
+
+    def __init__(self, base: str, token: str | None):
+        self.base = base if base.endswith("/") else base + "/"
+        self.token = token
+
+    def request(self, method: str, path: str, body: Any = None) -> Any:
+        data = json.dumps(body).encode() if body is not None else None
+        req = urllib.request.Request(self.base + path.lstrip("/"), data=data, method=method,
+                                     headers={"Content-Type": "application/json",
+                                              **({"Authorization": f"Bearer {self.token}"} if self.token else {})})
+        try:
+            with urllib.request.urlopen(req, timeout=30) as r:
+                return json.loads(r.read() or b"null")
+        except urllib.error.HTTPError as e:
+            raise ConsoleError(f"{method} {path}: HTTP {e.code}: {e.read().decode(errors='replace').strip()}") from None
+        except urllib.error.URLError as e:
+            raise ConsoleError(f"cannot reach the master at {self.base}: {e.reason}") from None
+
+
+def _cell(v: Any) -> str:
+    if v is None:
+        return ""
+    if isinstance(v, float) and v > 1e9:   # timestamps
+        return time.strftime("%H:%M:%S", time.localtime(v))
+    if isinstance(v, (dict, list)):
+        return json.dumps(v, separators=(",", ":"))
+    return str(v)
+
+
+def table(title: str, rows: list[dict], columns: list[str]) -> Table:
+    t = Table(title=f"{title} ({len(rows)})", title_justify="left")
+    for c in columns:
+        t.add_column(c)
+    for r in rows:
+        t.add_row(*(_cell(r.get(c)) for c in columns))
+    return t
+
+
+def top_table(client: AdminClient) -> Table:
+    rows = []
+    for c in client.request("GET", "/api/containers"):
+        if c["state"] != "running":
+            rows.append({"container": f"{c['user']}/{c['ctag']}", "state": c["state"]})
+            continue
+        try:
+            s = client.request("GET", f"/api/containers/{c['user']}/{c['ctag']}/stats")
+        except ConsoleError as e:
+            rows.append({"container": f"{c['user']}/{c['ctag']}", "state": str(e)})
+            continue
+        rows.append({"container": f"{c['user']}/{c['ctag']}", "state": c["state"], **_flatten_stats(s)})
+    cols = ["container", "state", "cpu_percent", "rss_mib", "processes", "msgs_in", "msgs_out", "bytes_in",
+            "bytes_out", "dropped"]
+    return table("containers", rows, cols)
+
+
+def _flatten_stats(s: dict) -> dict:
+    out = {}
+    for k in ("cpu_percent", "rss_mib", "processes", "msgs_in", "msgs_out", "bytes_in", "bytes_out", "dropped"):
+        v = s.get(k)
+        if v is None:
+            for sub in s.values():
+                if isinstance(sub, dict) and k in sub:
+                    v = sub[k]
+                    break
+        if isinstance(v, float):
+            v = round(v, 1)
+        out[k] = v
+    return out
+
+
+def _read_password(from_stdin: bool) -> str:
+    if from_stdin:
+        pw = sys.stdin.readline().rstrip("\n")
+    else:
+        pw = getpass.getpass("password: ")
+        if getpass.getpass("again: ") != pw:
+            raise ConsoleError("the passwords differ")
+    if not pw:
+        raise ConsoleError("the password must not be empty")
+    return pw
+
+
+def parser() -> argparse.ArgumentParser:
+    p = argparse.ArgumentParser(prog="rce-console", description="Inspect and manage an rce master.")
+    p.add_argument("--master", default="http://127.0.0.1:9000/", help="master URL (default http://127.0.0.1:9000/)")
+    p.add_argument("--admin-token", default=None, help="admin token (default: RCE_ADMIN_TOKEN or the token file)")
+    p.add_argument("--json", action="store_true", help="print JSON instead of tables")
+    sub = p.add_subparsers(dest="cmd", required=True)
+    for name in COLUMNS:
+        sub.add_parser(name, help=f"list {name}")
+    u = sub.add_parser("user", help="add or delete a user")
+    u.add_argument("action", choices=["add", "del"])
+    u.add_argument("name")
+    u.add_argument("--password-stdin", action="store_true", help="read the password from stdin")
+    u.add_argument("--file", type=Path, help="offline: edit this --users file instead of asking the master")
+    lg = sub.add_parser("logs", help="a node's kept stdout and stderr")
+    lg.add_argument("user")
+    lg.add_argument("ctag")
+    lg.add_argument("ntag")
+    c = sub.add_parser("container", help="container operations")
+    c.add_argument("action", choices=["resize"])
+    c.add_argument("user")
+    c.add_argument("ctag")
+    c.add_argument("--cpu", type=float, help="cores (may be fractional)")
+    c.add_argument("--memory", type=float, help="MiB")
+    c.add_argument("--size", type=float)
+    t = sub.add_parser("top", help="per-container resource use, refreshing")
+    t.add_argument("--interval", type=float, default=2.0, help="seconds between refreshes")
+    t.add_argument("--once", action="store_true", help="print one table and exit")
+    return p
+
+
+def run(args: argparse.Namespace, out: Console) -> None:
+    client = AdminClient(args.master, args.admin_token or admin_token.read())
+    if args.cmd in COLUMNS:
+        rows = client.request("GET", f"/api/{args.cmd}")
+        if args.json:
+            print(json.dumps(rows, indent=1))
+        else:
+            out.print(table(args.cmd, rows, COLUMNS[args.cmd]))
+    elif args.cmd == "user":
+        if args.file:
+            _user_file(args)
+        elif args.action == "add":
+            client.request("POST", "/api/users", {"name": args.name, "password": _read_password(args.password_stdin)})
+            out.print(f"user {args.name!r} added")
+        else:
+            client.request("DELETE", f"/api/users/{args.name}")
+            out.print(f"user {args.name!r} deleted")
+    elif args.cmd == "logs":
+        logs = client.request("GET", f"/api/containers/{args.user}/{args.ctag}/logs/{args.ntag}")
+        for stream in ("stdout", "stderr"):
+            for line in logs.get(stream, []):
+                print(f"{stream}: {line}")
+    elif args.cmd == "container":
+        limits = {k: getattr(args, k) for k in ("cpu", "memory", "size") if getattr(args, k) is not None}
+        if not limits:
+            raise ConsoleError("give at least one of --cpu, --memory, --size")
+        res = client.request("POST", f"/api/containers/{args.user}/{args.ctag}/resize", limits)
+        out.print(f"container {args.ctag!r} resized: {json.dumps(res)}")
+    elif args.cmd == "top":
+        if args.once:
+            out.print(top_table(client))
+            return
+        with Live(top_table(client), console=out, refresh_per_second=4) as live:
+            while True:
+                time.sleep(args.interval)
+                live.update(top_table(client))
+
+
+def _user_file(args: argparse.Namespace) -> None:
+    path: Path = args.file
+    data = json.loads(path.read_text()) if path.exists() else {"users": []}
+    users = [r for r in data.get("users", []) if r["name"] != args.name]
+    if args.action == "add":
+        if len(users) != len(data.get("users", [])):
+            raise ConsoleError(f"user {args.name!r} already exists in {path}")
+        users.append(User.create(args.name, _read_password(args.password_stdin)).to_record())
+    elif len(users) == len(data.get("users", [])):
+        raise ConsoleError(f"no user {args.name!r} in {path}")
+    path.write_text(json.dumps({"users": users}, indent=1))
+    path.chmod(0o600)
+    print(f"{path}: user {args.name!r} {'added' if args.action == 'add' else 'deleted'}")
+
+
+def main(argv: list[str] | None = None) -> None:
+    args = parser().parse_args(argv)
+    try:
+        run(args, Console(width=None if sys.stdout.isatty() else 240))
+    except ConsoleError as e:
+        print(f"rce-console: {e}", file=sys.stderr)
+        sys.exit(1)
+    except KeyboardInterrupt:
+        pass
