@@ -1,0 +1,166 @@
+"""rce.framing: the one framing of internal links, decoded sans I/O."""
+from __future__ import annotations
+
+import asyncio
+import json
+import struct
+
+import pytest
+
+from rce import framing
+from rce.errors import ProtocolError
+from rce.framing import (CONTROL, DATA, MSG, SRV_ERR, SRV_REQ, SRV_RESP, DataFrame, FrameDecoder, decode_body,
+                         encode_control, encode_data, encode_data_header, read_frame)
+
+
+def test_control_frame_layout():
+    f = encode_control({"op": "x", "n": 1})
+    n, kind = struct.unpack("!IB", f[:5])
+    assert kind == CONTROL and n == len(f) - 4
+    assert json.loads(f[5:]) == {"op": "x", "n": 1}
+
+
+def test_data_frame_layout():
+    f = encode_data(SRV_REQ, 7, 2**64 - 1, 42, b"payload")
+    n, kind = struct.unpack("!IB", f[:5])
+    assert kind == DATA and n == len(f) - 4 == 1 + 25 + 7
+    assert struct.unpack("!BQQQ", f[5:30]) == (SRV_REQ, 7, 2**64 - 1, 42)
+    assert f[30:] == b"payload"
+    assert encode_data_header(SRV_REQ, 7, 2**64 - 1, 42, 7) + b"payload" == f
+
+
+def test_ops_are_distinct():
+    assert len({MSG, SRV_REQ, SRV_RESP, SRV_ERR}) == 4 and CONTROL != DATA
+
+
+def test_decoder_whole_frames_in_one_feed():
+    d = FrameDecoder()
+    out = d.feed(encode_control({"a": 1}) + encode_data(MSG, 1, 2, 0, b"xyz") + encode_control({"b": [2]}))
+    assert out[0] == {"a": 1} and out[2] == {"b": [2]}
+    df = out[1]
+    assert isinstance(df, DataFrame) and (df.op, df.dst, df.src, df.call_id) == (MSG, 1, 2, 0)
+    assert bytes(df.payload) == b"xyz"
+
+
+def test_decoder_byte_by_byte():
+    stream = (encode_control({"op": "hello", "text": "ü" * 3}) + encode_data(SRV_RESP, 3, 4, 99, b"\x00" * 300)
+              + encode_data(MSG, 5, 6, 0, b"") + encode_control({}))
+    d = FrameDecoder()
+    out = []
+    counts = []
+    for i in range(len(stream)):
+        got = d.feed(stream[i:i + 1])
+        out += got
+        counts.append(len(got))
+    assert len(out) == 4 and sum(counts) == 4 and max(counts) == 1
+    assert out[0] == {"op": "hello", "text": "üüü"} and out[3] == {}
+    assert (out[1].op, out[1].dst, out[1].src, out[1].call_id, bytes(out[1].payload)) == (SRV_RESP, 3, 4, 99, b"\x00" * 300)
+    assert bytes(out[2].payload) == b"" and out[2].dst == 5
+    # nothing is left over
+    assert d.feed(b"") == []
+
+
+@pytest.mark.parametrize("cut", [1, 3, 4, 5, 6, 20, 31])
+def test_decoder_split_anywhere(cut):
+    f = encode_data(SRV_ERR, 1, 1, 1, b"reason") + encode_control({"k": "v"})
+    d = FrameDecoder()
+    first = d.feed(f[:cut])
+    rest = d.feed(f[cut:])
+    out = first + rest
+    assert [type(x).__name__ for x in out] == ["DataFrame", "dict"]
+    assert bytes(out[0].payload) == b"reason" and out[1] == {"k": "v"}
+
+
+def test_decoder_oversized_frame_refused_from_the_header_alone():
+    d = FrameDecoder(max_frame=100)
+    assert len(d.feed(encode_control({"x": "a" * 80}))) == 1          # under the limit
+    with pytest.raises(ProtocolError) as ei:
+        d.feed(struct.pack("!IB", 102, CONTROL))                       # body of 101 bytes announced
+    assert "101 bytes" in ei.value.message and "100" in ei.value.message
+
+
+def test_decoder_frame_exactly_at_limit():
+    body = json.dumps({"x": "a" * 50}).encode()
+    d = FrameDecoder(max_frame=len(body))
+    assert d.feed(struct.pack("!IB", len(body) + 1, CONTROL) + body) == [{"x": "a" * 50}]
+
+
+@pytest.mark.parametrize("body, what", [
+    (b"{not json", "not valid JSON"),
+    (b"\xff\xfe", "not valid JSON"),
+    (b"[1,2]", "JSON object"),
+    (b"3", "JSON object"),
+])
+def test_decoder_bad_control_body(body, what):
+    with pytest.raises(ProtocolError) as ei:
+        FrameDecoder().feed(struct.pack("!IB", len(body) + 1, CONTROL) + body)
+    assert what in ei.value.message
+
+
+def test_decoder_short_data_frame():
+    with pytest.raises(ProtocolError) as ei:
+        FrameDecoder().feed(struct.pack("!IB", 1 + 10, DATA) + b"\x00" * 10)
+    assert "shorter than its header" in ei.value.message
+
+
+@pytest.mark.parametrize("kind", [0, 3, 255])
+def test_decoder_unknown_kind(kind):
+    with pytest.raises(ProtocolError) as ei:
+        FrameDecoder().feed(struct.pack("!IB", 3, kind) + b"{}")
+    assert f"unknown frame kind {kind}" in ei.value.message
+
+
+def test_decoder_zero_length_frame():
+    """A length of 0 cannot even hold the kind byte."""
+    with pytest.raises(ProtocolError):
+        FrameDecoder().feed(b"\x00\x00\x00\x00" + encode_control({"next": 1}))
+
+
+def test_decode_body_directly():
+    assert decode_body(CONTROL, b'{"a":1}') == {"a": 1}
+    df = decode_body(DATA, struct.pack("!BQQQ", MSG, 1, 2, 3) + b"p")
+    assert (df.op, df.dst, df.src, df.call_id, bytes(df.payload)) == (MSG, 1, 2, 3, b"p")
+    assert isinstance(df.payload, memoryview)
+
+
+def test_default_max_frame():
+    assert FrameDecoder().max_frame == framing.DEFAULT_MAX_FRAME == 64 * 1024 * 1024
+
+
+# read_frame on an in-memory StreamReader (no sockets)
+def reader_with(data: bytes, eof: bool = True) -> asyncio.StreamReader:
+    r = asyncio.StreamReader()
+    r.feed_data(data)
+    if eof:
+        r.feed_eof()
+    return r
+
+
+async def test_read_frame_sequence_and_eof():
+    r = reader_with(encode_control({"a": 1}) + encode_data(MSG, 9, 8, 7, b"zz"))
+    assert await read_frame(r) == {"a": 1}
+    df = await read_frame(r)
+    assert (df.dst, df.src, df.call_id, bytes(df.payload)) == (9, 8, 7, b"zz")
+    with pytest.raises(asyncio.IncompleteReadError):
+        await read_frame(r)
+
+
+async def test_read_frame_truncated_body():
+    with pytest.raises(asyncio.IncompleteReadError):
+        await read_frame(reader_with(encode_control({"a": 1})[:-1]))
+
+
+async def test_read_frame_oversized():
+    with pytest.raises(ProtocolError) as ei:
+        await read_frame(reader_with(struct.pack("!IB", 1001, CONTROL), eof=False), max_frame=999)
+    assert "1000 bytes" in ei.value.message
+
+
+async def test_read_frame_zero_length():
+    with pytest.raises(ProtocolError):
+        await read_frame(reader_with(b"\x00\x00\x00\x00" + encode_control({}), eof=False))
+
+
+async def test_read_frame_bad_kind():
+    with pytest.raises(ProtocolError):
+        await read_frame(reader_with(struct.pack("!IB", 1, 9)))

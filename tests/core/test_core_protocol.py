@@ -1,0 +1,491 @@
+"""rce.protocol: validation of robot -> cloud messages, interface type names, binary parts."""
+from __future__ import annotations
+
+import json
+
+import pytest
+
+from rce.errors import ProtocolError
+from rce.protocol import (DEFAULT_EXPIRY, ID_LEN, Assembler, encode, new_id, split_interface_type,
+                          validate)
+
+ID1, ID2, ID3 = "0" * 31 + "1", "a" * 31 + "2", "F" * 31 + "3"
+
+
+def frame(ref: str, payload: bytes) -> bytes:
+    return ref.encode() + payload
+
+
+def raises(match_parts: list[str], fn, *args):
+    """Call ``fn`` expecting a ProtocolError whose message contains every string of ``match_parts``."""
+    with pytest.raises(ProtocolError) as ei:
+        fn(*args)
+    for part in match_parts:
+        assert part in ei.value.message, (part, ei.value.message)
+    assert ei.value.code == "protocol"
+    return ei.value
+
+
+# -- validate: the message envelope ------------------------------------------------------------
+@pytest.mark.parametrize("msg, parts", [
+    ([], ["message", "JSON object", "list"]),
+    ("CC", ["message", "JSON object"]),
+    ({}, ["message", "missing key 'type'"]),
+    ({"type": "XX", "data": {}}, ["unknown type 'XX'"]),
+    ({"type": "ST", "data": {}}, ["unknown type 'ST'"]),      # cloud -> robot only
+    ({"type": "ER", "data": "x"}, ["unknown type 'ER'"]),
+    ({"type": None, "data": {}}, ["unknown type None"]),
+    ({"type": ["CC"], "data": {}}, ["unknown type ['CC']"]),   # unhashable type value
+    ({"type": {"a": 1}, "data": {}}, ["unknown type"]),
+    ({"type": "CC"}, ["CC", "missing key 'data'"]),
+    ({"type": "DM", "data": []}, ["DM.data", "JSON object"]),
+    ({"type": "CN", "data": "x"}, ["CN.data", "JSON object"]),
+])
+def test_validate_envelope_errors(msg, parts):
+    raises(parts, validate, msg)
+
+
+# -- CC / DC ------------------------------------------------------------------------------------
+def test_validate_cc_minimal_and_full():
+    assert validate({"type": "CC", "data": {"containerTag": "c1"}}) == ("CC", {"containerTag": "c1"})
+    full = {"containerTag": "c1", "containerData": {
+        "group": "g", "groupIp": "10.0.0.1", "size": 2, "cpu": 0.5, "memory": 256, "bandwidth": 0,
+        "specialFeatures": ["gpu"]}}
+    t, data = validate({"type": "CC", "data": full})
+    assert t == "CC" and data is not None and data["containerData"]["cpu"] == 0.5
+    # containerData: null is the same as absent
+    assert validate({"type": "CC", "data": {"containerTag": "c1", "containerData": None}})[0] == "CC"
+
+
+@pytest.mark.parametrize("data, parts", [
+    ({}, ["CC.data", "missing key 'containerTag'"]),
+    ({"containerTag": ""}, ["CC.data", "'containerTag'", "non-empty str"]),
+    ({"containerTag": 7}, ["CC.data", "'containerTag'", "got 7"]),
+    ({"containerTag": "c", "containerData": []}, ["CC.data.containerData", "JSON object"]),
+    ({"containerTag": "c", "containerData": {"cpu": -1}}, ["CC.data.containerData.cpu", "non-negative"]),
+    ({"containerTag": "c", "containerData": {"memory": "1G"}}, ["CC.data.containerData.memory", "'1G'"]),
+    ({"containerTag": "c", "containerData": {"size": True}}, ["CC.data.containerData.size", "True"]),
+    ({"containerTag": "c", "containerData": {"bandwidth": [1]}}, ["CC.data.containerData.bandwidth"]),
+    ({"containerTag": "c", "containerData": {"group": 3}}, ["CC.data.containerData", "'group'", "str"]),
+    ({"containerTag": "c", "containerData": {"groupIp": []}}, ["CC.data.containerData", "'groupIp'"]),
+    ({"containerTag": "c", "containerData": {"specialFeatures": "gpu"}},
+     ["CC.data.containerData", "'specialFeatures'", "list"]),
+])
+def test_validate_cc_errors(data, parts):
+    raises(parts, validate, {"type": "CC", "data": data})
+
+
+def test_validate_dc():
+    assert validate({"type": "DC", "data": {"containerTag": "c1"}}) == ("DC", {"containerTag": "c1"})
+    raises(["DC.data", "missing key 'containerTag'"], validate, {"type": "DC", "data": {}})
+    raises(["DC.data", "'containerTag'"], validate, {"type": "DC", "data": {"containerTag": None}})
+
+
+# -- CN -----------------------------------------------------------------------------------------
+GOOD_CN = {
+    "addNodes": [{"containerTag": "c", "nodeTag": "n", "pkg": "Test", "exe": "stringEcho.py"},
+                 {"containerTag": "c", "nodeTag": "n2", "pkg": "Test", "exe": "e", "args": ["-v"],
+                  "name": "echo", "namespace": "/ns", "respawn": True},
+                 {"containerTag": "c", "nodeTag": "n3", "pkg": "Test", "exe": "e", "args": "a b",
+                  "respawn": {"max": 3}}],
+    "removeNodes": [{"containerTag": "c", "nodeTag": "n"}],
+    "setParam": [{"containerTag": "c", "name": "p", "value": None},
+                 {"containerTag": "c", "name": "q", "value": {"a": [1, 2]}}],
+    "deleteParam": [{"containerTag": "c", "name": "p"}],
+    "addInterfaces": [{"endpointTag": "c", "interfaceTag": "i", "interfaceType": "PublisherInterface",
+                       "className": "std_msgs/String", "addr": "/chatter"},
+                      {"endpointTag": "r", "interfaceTag": "s", "interfaceType": "ServiceConverter",
+                       "className": "Test/StringEcho"}],
+    "removeInterfaces": [{"endpointTag": "c", "interfaceTag": "i"}],
+    "resizeContainer": [{"containerTag": "c", "cpu": 2, "memory": 512}],
+}
+
+
+@pytest.mark.parametrize("key", list(GOOD_CN))
+def test_validate_cn_each_key_alone(key):
+    t, data = validate({"type": "CN", "data": {key: GOOD_CN[key]}})
+    assert t == "CN" and data[key] == GOOD_CN[key]
+
+
+def test_validate_cn_all_keys_and_empty():
+    assert validate({"type": "CN", "data": GOOD_CN})[0] == "CN"
+    assert validate({"type": "CN", "data": {}}) == ("CN", {})
+    assert validate({"type": "CN", "data": {"addNodes": []}})[0] == "CN"
+
+
+@pytest.mark.parametrize("data, parts", [
+    ({"addNode": []}, ["CN.data", "unknown key 'addNode'"]),
+    ({"addNodes": {"containerTag": "c"}}, ["CN.data", "'addNodes' must be a list", "dict"]),
+    ({"setParam": None}, ["CN.data", "'setParam' must be a list"]),
+    ({"addNodes": ["x"]}, ["CN.data.addNodes[0]", "JSON object"]),
+    ({"addNodes": [GOOD_CN["addNodes"][0], {"containerTag": "c", "nodeTag": "n", "pkg": "p"}]},
+     ["CN.data.addNodes[1]", "missing key 'exe'"]),
+    ({"addNodes": [{"containerTag": "c", "nodeTag": "", "pkg": "p", "exe": "e"}]},
+     ["CN.data.addNodes[0]", "'nodeTag'", "non-empty"]),
+    ({"addNodes": [{"containerTag": "c", "nodeTag": "n", "pkg": "p", "exe": "e", "args": 5}]},
+     ["CN.data.addNodes[0]", "'args'", "str/list"]),
+    ({"addNodes": [{"containerTag": "c", "nodeTag": "n", "pkg": "p", "exe": "e", "namespace": 1}]},
+     ["CN.data.addNodes[0]", "'namespace'"]),
+    ({"addNodes": [{"containerTag": "c", "nodeTag": "n", "pkg": "p", "exe": "e", "name": ["a"]}]},
+     ["CN.data.addNodes[0]", "'name'"]),
+    ({"addNodes": [{"containerTag": "c", "nodeTag": "n", "pkg": "p", "exe": "e", "respawn": "yes"}]},
+     ["CN.data.addNodes[0]", "'respawn'", "bool/dict"]),
+    ({"removeNodes": [{"containerTag": "c"}]}, ["CN.data.removeNodes[0]", "missing key 'nodeTag'"]),
+    ({"removeNodes": [{"nodeTag": "n"}]}, ["CN.data.removeNodes[0]", "missing key 'containerTag'"]),
+    ({"setParam": [{"containerTag": "c", "name": "p"}]}, ["CN.data.setParam[0]", "missing key 'value'"]),
+    ({"setParam": [{"containerTag": "c", "value": 1}]}, ["CN.data.setParam[0]", "missing key 'name'"]),
+    ({"deleteParam": [{"containerTag": "c", "name": 3}]}, ["CN.data.deleteParam[0]", "'name'"]),
+    ({"addInterfaces": [{"endpointTag": "c", "interfaceTag": "i", "interfaceType": "PublisherInterface"}]},
+     ["CN.data.addInterfaces[0]", "missing key 'className'"]),
+    ({"addInterfaces": [{"endpointTag": "c", "interfaceTag": "i", "interfaceType": "Publisher",
+                         "className": "std_msgs/String"}]},
+     ["CN.data.addInterfaces[0].interfaceType", "unknown interface type 'Publisher'"]),
+    ({"addInterfaces": [{"endpointTag": "c", "interfaceTag": "i", "interfaceType": "PublisherInterface",
+                         "className": "std_msgs/String", "addr": 5}]},
+     ["CN.data.addInterfaces[0]", "'addr'"]),
+    ({"removeInterfaces": [{"endpointTag": "c"}]}, ["CN.data.removeInterfaces[0]", "missing key 'interfaceTag'"]),
+    ({"resizeContainer": [{"cpu": 1}]}, ["CN.data.resizeContainer[0]", "missing key 'containerTag'"]),
+    ({"resizeContainer": [{"containerTag": "c", "memory": -5}]}, ["CN.data.resizeContainer[0].memory"]),
+])
+def test_validate_cn_errors(data, parts):
+    raises(parts, validate, {"type": "CN", "data": data})
+
+
+# -- CX -----------------------------------------------------------------------------------------
+def test_validate_cx_good():
+    data = {"connect": [{"tagA": "c/i", "tagB": "r/j"}], "disconnect": [{"tagA": "c/i", "tagB": "c2/k"}]}
+    assert validate({"type": "CX", "data": data}) == ("CX", data)
+    assert validate({"type": "CX", "data": {}}) == ("CX", {})
+
+
+@pytest.mark.parametrize("tag", ["ci", "/c/i", "c/i/", "c/i/j", "/", "c//i", ""])
+@pytest.mark.parametrize("key", ["connect", "disconnect"])
+def test_validate_cx_tag_format(key, tag):
+    data = {key: [{"tagA": "c/ok", "tagB": "r/ok"}, {"tagA": "c/ok", "tagB": tag}]}
+    raises([f"CX.data.{key}[1]", "tagB"], validate, {"type": "CX", "data": data})
+
+
+@pytest.mark.parametrize("data, parts", [
+    ({"connect": [{"tagB": "r/j"}]}, ["CX.data.connect[0]", "missing key 'tagA'"]),
+    ({"connect": [{"tagA": 1, "tagB": "r/j"}]}, ["CX.data.connect[0]", "'tagA'"]),
+    ({"connect": ["c/i"]}, ["CX.data.connect[0]", "JSON object"]),
+    ({"connect": {"tagA": "c/i"}}, ["CX.data", "'connect' must be a list"]),
+    ({"link": []}, ["CX.data", "unknown key 'link'"]),
+])
+def test_validate_cx_errors(data, parts):
+    raises(parts, validate, {"type": "CX", "data": data})
+
+
+def test_validate_cx_error_names_the_tag_format():
+    e = raises(["CX.data.connect[0].tagA"], validate, {"type": "CX", "data": {"connect": [{"tagA": "x", "tagB": "c/i"}]}})
+    assert "'endpointTag/interfaceTag'" in e.message
+
+
+# -- DM -----------------------------------------------------------------------------------------
+@pytest.mark.parametrize("data", [
+    {"iTag": "i", "type": "std_msgs/String", "msg": {"data": "x"}},
+    {"iTag": "i", "type": "std_msgs/String", "msg": {"data": "x"}, "msgID": "abc"},
+    {"iTag": "i", "type": "std_msgs/String", "msg": {}, "msgID": 7},
+    {"iTag": "i", "type": "std_msgs/String", "msg": b"\x00", "msgID": None},
+    {"iTag": "i", "type": "std_msgs/String", "msg*": ID1},
+])
+def test_validate_dm_good(data):
+    assert validate({"type": "DM", "data": data}) == ("DM", data)
+
+
+@pytest.mark.parametrize("data, parts", [
+    ({"type": "std_msgs/String", "msg": {}}, ["DM.data", "missing key 'iTag'"]),
+    ({"iTag": "i", "msg": {}}, ["DM.data", "missing key 'type'"]),
+    ({"iTag": "i", "type": ""}, ["DM.data", "'type'"]),
+    ({"iTag": "i", "type": "std_msgs/String"}, ["DM.data", "missing key 'msg'"]),
+    ({"iTag": "i", "type": "std_msgs/String", "msg": {}, "msgID": [1]}, ["DM.data", "'msgID'", "str/int"]),
+    ({"iTag": 3, "type": "std_msgs/String", "msg": {}}, ["DM.data", "'iTag'"]),
+])
+def test_validate_dm_errors(data, parts):
+    raises(parts, validate, {"type": "DM", "data": data})
+
+
+# -- interface types ----------------------------------------------------------------------------
+@pytest.mark.parametrize("prefix", ["ServiceClient", "ServiceProvider", "Publisher", "Subscriber"])
+@pytest.mark.parametrize("suffix", ["Interface", "Converter", "Forwarder"])
+def test_split_interface_type_all_kinds(prefix, suffix):
+    assert split_interface_type(prefix + suffix) == (prefix, suffix)
+
+
+@pytest.mark.parametrize("legacy, expected", [
+    ("ServiceInterface", ("ServiceClient", "Interface")),
+    ("ServiceConverter", ("ServiceClient", "Converter")),
+    ("ServiceForwarder", ("ServiceClient", "Forwarder")),
+])
+def test_split_interface_type_legacy_names(legacy, expected):
+    assert split_interface_type(legacy) == expected
+
+
+@pytest.mark.parametrize("bad", ["", "Publisher", "Interface", "PublisherInterfaceX", "publisherInterface",
+                                 "ServiceProvider", "Service", "ServicePublisher", "SubscriberConverterForwarder"])
+def test_split_interface_type_unknown(bad):
+    e = raises(["unknown interface type", repr(bad)], split_interface_type, bad)
+    assert "Publisher" in e.message and "Converter" in e.message   # lists what is allowed
+
+
+# -- Assembler ----------------------------------------------------------------------------------
+def dm(**data) -> str:
+    return json.dumps({"type": "DM", "data": {"iTag": "i", "type": "std_msgs/String", **data}})
+
+
+def test_assembler_plain_message_passes_through():
+    a = Assembler()
+    out = a.feed_text(json.dumps({"type": "DC", "data": {"containerTag": "c"}}), now=0)
+    assert out == [{"type": "DC", "data": {"containerTag": "c"}}]
+    assert a.pending == 0
+
+
+def test_assembler_accepts_bytes_text():
+    assert Assembler().feed_text(b'{"type": "CC", "data": {}}', now=0) == [{"type": "CC", "data": {}}]
+
+
+def test_assembler_binary_after_json():
+    a = Assembler()
+    assert a.feed_text(dm(**{"msg*": ID1}), now=0) == []
+    assert a.pending == 1
+    out = a.feed_binary(frame(ID1, b"\x01\x02payload"), now=1)
+    assert out == [{"type": "DM", "data": {"iTag": "i", "type": "std_msgs/String", "msg": b"\x01\x02payload"}}]
+    assert a.pending == 0
+
+
+def test_assembler_binary_before_json():
+    a = Assembler()
+    assert a.feed_binary(frame(ID1, b"abc"), now=0) == []
+    assert a.pending == 1
+    out = a.feed_text(dm(**{"msg*": ID1}), now=0.5)
+    assert out[0]["data"]["msg"] == b"abc" and "msg*" not in out[0]["data"]
+    assert a.pending == 0
+
+
+def test_assembler_empty_payload_part():
+    a = Assembler()
+    a.feed_text(dm(**{"msg*": ID1}), now=0)
+    assert a.feed_binary(frame(ID1, b""), now=0)[0]["data"]["msg"] == b""
+
+
+def test_assembler_several_parts_any_order():
+    a = Assembler()
+    assert a.feed_binary(frame(ID2, b"two"), now=0) == []
+    assert a.feed_text(json.dumps({"type": "DM", "data": {"a*": ID1, "b*": ID2, "c*": ID3}}), now=0) == []
+    assert a.feed_binary(frame(ID3, b"three"), now=0) == []
+    out = a.feed_binary(frame(ID1, b"one"), now=0)
+    assert out == [{"type": "DM", "data": {"a": b"one", "b": b"two", "c": b"three"}}]
+    assert a.pending == 0
+
+
+def test_assembler_list_of_ids_under_one_key_keeps_order():
+    a = Assembler()
+    a.feed_text(json.dumps({"type": "DM", "data": {"imgs*": [ID3, ID1, ID2]}}), now=0)
+    a.feed_binary(frame(ID1, b"1"), now=0)
+    assert a.feed_binary(frame(ID2, b"2"), now=0) == []
+    out = a.feed_binary(frame(ID3, b"3"), now=0)
+    assert out[0]["data"] == {"imgs": [b"3", b"1", b"2"]}
+
+
+def test_assembler_nested_star_keys_in_objects_and_lists():
+    a = Assembler()
+    msg = {"type": "DM", "data": {"iTag": "i", "msg": {"header": {"x": 1}, "img": {"data*": ID1},
+                                                       "list": [{"blob*": ID2}, {"plain": 3}]}}}
+    a.feed_binary(frame(ID2, b"B"), now=0)
+    assert a.feed_text(json.dumps(msg), now=0) == []
+    out = a.feed_binary(frame(ID1, b"A"), now=0)
+    assert out[0]["data"]["msg"] == {"header": {"x": 1}, "img": {"data": b"A"},
+                                     "list": [{"blob": b"B"}, {"plain": 3}]}
+
+
+def test_assembler_two_messages_complete_independently():
+    a = Assembler()
+    a.feed_text(dm(**{"msg*": ID1}, msgID=1), now=0)
+    a.feed_text(dm(**{"msg*": ID2}, msgID=2), now=0)
+    out = a.feed_binary(frame(ID2, b"second"), now=0)
+    assert [m["data"]["msgID"] for m in out] == [2]
+    out = a.feed_binary(frame(ID1, b"first"), now=0)
+    assert [(m["data"]["msgID"], m["data"]["msg"]) for m in out] == [(1, b"first")]
+    assert a.pending == 0
+
+
+@pytest.mark.parametrize("ref", ["abc", "g" * 32, "0" * 33, 5, None, {"id": ID1}, [ID1, "short"]])
+def test_assembler_bad_reference_in_json(ref):
+    e = raises(["msg*", "32-hex-char id"], Assembler().feed_text, json.dumps({"type": "DM", "data": {"msg*": ref}}), 0)
+    assert e is not None
+
+
+@pytest.mark.parametrize("text", ["{not json", "", "\xff", b"\xff\xfe", "[1, 2]", '"DM"', "null"])
+def test_assembler_malformed_json(text):
+    a = Assembler()
+    with pytest.raises(ProtocolError):
+        a.feed_text(text, now=0)
+    assert a.pending == 0
+
+
+@pytest.mark.parametrize("data", [b"", b"0" * (ID_LEN - 1), ("z" * ID_LEN).encode() + b"x",
+                                  b"\xff" * ID_LEN + b"x", ("0" * 31 + "-").encode()])
+def test_assembler_bad_binary_frames(data):
+    a = Assembler()
+    with pytest.raises(ProtocolError) as ei:
+        a.feed_binary(data, now=0)
+    assert "id" in ei.value.message
+    assert a.pending == 0
+
+
+def test_assembler_exact_id_length_frame_is_an_empty_part():
+    a = Assembler()
+    assert a.feed_binary(ID1.encode(), now=0) == []
+    assert a.pending == 1
+
+
+def test_assembler_accepts_memoryview_and_bytearray():
+    a = Assembler()
+    a.feed_text(dm(**{"msg*": ID1}), now=0)
+    out = a.feed_binary(memoryview(bytearray(frame(ID1, b"mv"))), now=0)
+    assert out[0]["data"]["msg"] == b"mv" and isinstance(out[0]["data"]["msg"], bytes)
+
+
+def test_assembler_default_expiry_is_60s():
+    assert DEFAULT_EXPIRY == 60.0 and Assembler().expiry == 60.0
+
+
+def test_assembler_expires_incomplete_message():
+    a = Assembler(expiry=10)
+    a.feed_text(dm(**{"msg*": ID1}), now=100)
+    assert a.expire(now=110) == []          # exactly at the limit: still waiting
+    assert a.pending == 1
+    reasons = a.expire(now=110.5)
+    assert len(reasons) == 1 and "DM" in reasons[0] and "'i'" in reasons[0] and "expired" in reasons[0]
+    assert "1 binary part" in reasons[0]
+    assert a.pending == 0 and a.dropped == 1
+    # the late part is now an orphan, not a completion
+    assert a.feed_binary(frame(ID1, b"late"), now=111) == []
+    assert a.pending == 1
+
+
+def test_assembler_expires_orphan_parts():
+    a = Assembler(expiry=5)
+    a.feed_binary(frame(ID1, b"x" * 10), now=0)
+    a.feed_binary(frame(ID2, b"y"), now=4)
+    reasons = a.expire(now=6)
+    assert len(reasons) == 1 and ID1 in reasons[0] and "no message" in reasons[0]
+    assert a.pending == 1 and a.dropped == 1
+    # the expired part no longer completes a message; the fresh one still does
+    assert a.feed_text(dm(**{"msg*": ID1}), now=6) == []
+    a2 = a.feed_text(dm(**{"msg*": ID2}), now=6)
+    assert a2[0]["data"]["msg"] == b"y"
+
+
+def test_assembler_parts_of_a_waiting_message_are_kept_until_the_message_expires():
+    a = Assembler(expiry=5)
+    a.feed_text(json.dumps({"type": "DM", "data": {"a*": ID1, "b*": ID2}}), now=3)
+    a.feed_binary(frame(ID1, b"a"), now=0.5)   # arrived "early" (clock passed explicitly)
+    assert a.expire(now=7) == []               # the part is old, but its message still waits
+    assert a.pending == 2
+    out = a.feed_binary(frame(ID2, b"b"), now=7.5)
+    assert out[0]["data"] == {"a": b"a", "b": b"b"}
+
+
+def test_assembler_expired_message_releases_its_parts():
+    a = Assembler(expiry=5)
+    a.feed_text(json.dumps({"type": "DM", "data": {"a*": ID1, "b*": ID2}}), now=0)
+    a.feed_binary(frame(ID1, b"a"), now=0)
+    reasons = a.expire(now=10)
+    assert len(reasons) == 2 and a.pending == 0 and a.dropped == 2
+
+
+def test_assembler_max_pending_bytes():
+    a = Assembler(max_pending_bytes=10)
+    a.feed_binary(frame(ID1, b"x" * 6), now=0)
+    with pytest.raises(ProtocolError) as ei:
+        a.feed_binary(frame(ID2, b"y" * 5), now=0)
+    assert "10 bytes" in ei.value.message
+    assert a.pending == 1                       # the refused part is not kept
+    a.feed_binary(frame(ID2, b"y" * 4), now=0)  # exactly at the limit is fine
+    # completing the message frees the bytes again
+    a.feed_text(json.dumps({"type": "DM", "data": {"a*": ID1, "b*": ID2}}), now=0)
+    assert a.pending == 0
+    a.feed_binary(frame(ID3, b"z" * 10), now=0)
+
+
+def test_assembler_max_pending_bytes_freed_by_expiry():
+    a = Assembler(max_pending_bytes=8, expiry=1)
+    a.feed_binary(frame(ID1, b"x" * 8), now=0)
+    with pytest.raises(ProtocolError):
+        a.feed_binary(frame(ID2, b"y"), now=0)
+    a.expire(now=2)
+    a.feed_binary(frame(ID2, b"y" * 8), now=2)
+    assert a.pending == 1
+
+
+def test_assembler_resent_part_is_counted_once():
+    a = Assembler(max_pending_bytes=10)
+    a.feed_binary(frame(ID1, b"x" * 4), now=0)
+    a.feed_binary(frame(ID1, b"x" * 4), now=0)     # the client sent the same part twice
+    assert a.pending == 1
+    out = a.feed_text(dm(**{"msg*": ID1}), now=0)
+    assert out[0]["data"]["msg"] == b"xxxx"
+    # nothing is held any more, so the full budget is available
+    a.feed_binary(frame(ID2, b"y" * 10), now=0)
+    assert a.pending == 1
+
+
+# -- encode -------------------------------------------------------------------------------------
+def test_new_id_is_32_hex_and_fresh():
+    ids = {new_id() for _ in range(50)}
+    assert len(ids) == 50 and all(len(i) == 32 and int(i, 16) >= 0 for i in ids)
+
+
+def test_encode_without_bytes_is_plain_json():
+    text, frames = encode({"type": "ER", "data": "reason"})
+    assert json.loads(text) == {"type": "ER", "data": "reason"} and frames == []
+
+
+def test_encode_round_trip_through_assembler():
+    msg = {"type": "DM", "data": {"iTag": "i", "type": "std_msgs/String", "msgID": "m1",
+                                  "msg": b"\x00\x01\xff", "nested": {"img": bytearray(b"IMG"), "n": 1},
+                                  "list": [{"p": memoryview(b"P")}, 2]}}
+    text, frames = encode(msg)
+    wire = json.loads(text)
+    assert set(wire["data"]) == {"iTag", "type", "msgID", "msg*", "nested", "list"}
+    assert set(wire["data"]["nested"]) == {"img*", "n"} and "p*" in wire["data"]["list"][0]
+    assert len(frames) == 3 and all(len(f) >= ID_LEN for f in frames)
+    assert frames[0][:ID_LEN].decode() == wire["data"]["msg*"] and frames[0][ID_LEN:] == b"\x00\x01\xff"
+    expected = {"type": "DM", "data": {"iTag": "i", "type": "std_msgs/String", "msgID": "m1",
+                                       "msg": b"\x00\x01\xff", "nested": {"img": b"IMG", "n": 1},
+                                       "list": [{"p": b"P"}, 2]}}
+    # JSON first, then the parts
+    a = Assembler()
+    assert a.feed_text(text, now=0) == []
+    outs = [m for f in frames for m in a.feed_binary(f, now=0)]
+    assert outs == [expected]
+    # parts first (reversed), then the JSON
+    a = Assembler()
+    for f in reversed(frames):
+        assert a.feed_binary(f, now=0) == []
+    assert a.feed_text(text, now=0) == [expected]
+    assert validate(expected) == ("DM", expected["data"])
+
+
+def test_encode_list_of_bytes_round_trips_as_list_of_ids():
+    msg = {"type": "DM", "data": {"iTag": "i", "type": "t", "msg": {}, "imgs": [b"a", b"bb", b""]}}
+    text, frames = encode(msg)
+    wire = json.loads(text)
+    assert isinstance(wire["data"]["imgs*"], list) and len(wire["data"]["imgs*"]) == 3 and len(frames) == 3
+    a = Assembler()
+    a.feed_text(text, now=0)
+    outs = [m for f in frames for m in a.feed_binary(f, now=0)]
+    assert outs == [msg]
+
+
+def test_assembler_id_reused_by_two_messages_is_consumed_once_each():
+    a = Assembler()
+    a.feed_text(dm(**{"msg*": ID1}, msgID=1), now=0)
+    a.feed_text(json.dumps({"type": "DM", "data": {"a*": ID1, "b*": ID2, "msgID": 2}}), now=0)
+    out = a.feed_binary(frame(ID1, b"one"), now=0)
+    assert [m["data"]["msgID"] for m in out] == [1]
+    assert a.feed_binary(frame(ID2, b"two"), now=0) == []     # the second still needs its own ID1
+    out = a.feed_binary(frame(ID1, b"uno"), now=0)
+    assert out == [{"type": "DM", "data": {"a": b"uno", "b": b"two", "msgID": 2}}]
+    assert a.pending == 0
