@@ -48,14 +48,19 @@ MAX_SAMPLE = 10000        # messages, bound of one bus_sample
 MAX_SAMPLE_TIMEOUT = 300  # s
 
 
+def container_paths(runtime_dir: Path, socket_dir: Path, cid: int) -> tuple[Path, Path]:
+    """(private workdir, bus socket path) of container ``cid``: the one place the layout lives."""
+    return Path(runtime_dir) / f"c{cid}", Path(socket_dir) / f"c{cid}" / SOCKET_NAME
+
+
 class Container:
     """One container of the group: its bus socket and server, sandbox, launcher, interfaces."""
 
     def __init__(self, env: "Environment", cid: int, ctag: str, user: str, group: str | None, limits: dict):
         self.env, self.cid, self.ctag, self.user, self.group = env, cid, ctag, user, group
         self.limits = limits
-        self.workdir = env.runtime_dir / f"c{cid}"
-        self.socket = str(env.socket_dir / f"c{cid}" / SOCKET_NAME)
+        self.workdir, socket = container_paths(env.runtime_dir, env.socket_dir, cid)
+        self.socket = str(socket)
         self.server = BusServer(env.bus)
         self.sandbox = env.sandbox_cls(cid, ctag, limits, self.workdir, grace=env.grace)
         self.launcher = Launcher(self.sandbox, self.socket, ctag, self._status)

@@ -34,6 +34,7 @@ from rce import framing, rpc
 from rce.errors import NotFound, RCEError, RequestError, Unavailable
 from rce.log import get_logger
 from rce_container import sandbox as sandboxes
+from rce_container.environment import container_paths
 
 log = get_logger("rce.container")
 
@@ -279,12 +280,18 @@ class ContainerHost:
         if env.peer:
             await env.peer.close()
         await self._kill_env_proc(env)
-        if not clean:       # the environment could not kill its nodes: do it from here
+        if not clean:       # the environment could not clean up: kill its nodes, remove the dirs
             for cid in env.cids:
                 c = self.containers.get(cid)
                 for pid in (c.nodes.values() if c else ()):
                     if pid:
                         _kill_group(pid)
+                self._remove_dirs(cid)
+
+    def _remove_dirs(self, cid: int) -> None:
+        workdir, sock = container_paths(self.runtime_dir, self.socket_dir, cid)
+        shutil.rmtree(workdir, ignore_errors=True)
+        shutil.rmtree(sock.parent, ignore_errors=True)
 
     async def _kill_env_proc(self, env: EnvHandle) -> None:
         if env.proc is None:
@@ -380,10 +387,11 @@ class ContainerHost:
                     clean = True
                 except RCEError as e:
                     log.warning("environment failed to remove a container", cid=c.cid, reason=e.message)
-            if not clean:   # the environment could not kill the nodes: do it from here
+            if not clean:   # the environment could not clean up: kill the nodes, remove the dirs
                 for pid in c.nodes.values():
                     if pid:
                         _kill_group(pid)
+                self._remove_dirs(c.cid)
             if not env.cids:
                 await self._stop_env(env)
                 self._group_locks.pop(env.key, None)

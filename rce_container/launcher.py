@@ -290,8 +290,9 @@ async def _pump(stream: asyncio.StreamReader | None, sink: collections.deque) ->
     while True:
         try:
             line = await stream.readline()
-        except ValueError:               # a line longer than the stream limit: keep its head
-            line = await stream.read(65536)
+        except ValueError:               # a line longer than the stream limit (64 KiB) was discarded
+            sink.append("<line longer than 64 KiB dropped>")
+            continue
         if not line:
             return
         sink.append(line.decode(errors="replace").rstrip("\n"))

@@ -52,7 +52,7 @@ class Sandbox:
 
     def __init__(self, cid: int, ctag: str, limits: dict | None, workdir: Path, *, grace: float = 3.0):
         self.cid, self.ctag = cid, ctag
-        self.limits = dict(limits or {})
+        self.limits = {k: v for k, v in (limits or {}).items() if v is not None}
         self.workdir = Path(workdir)
         self.grace = grace
         self.procs: set[asyncio.subprocess.Process] = set()

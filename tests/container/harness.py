@@ -139,11 +139,11 @@ class ContainerProcess:
         self.proc: asyncio.subprocess.Process | None = None
 
     async def start(self) -> None:
-        self._log = open(self.log_path, "wb")
-        self.proc = await asyncio.create_subprocess_exec(
-            str(BIN / "rce-container"), "127.0.0.1", "--master-port", str(self.master.port),
-            "--ready-file", str(self.ready_file), "--runtime-dir", str(self.runtime_dir), "--grace", "1",
-            "--name", "test-host", stdout=self._log, stderr=self._log, env=self.env)
+        with open(self.log_path, "wb") as logf:
+            self.proc = await asyncio.create_subprocess_exec(
+                str(BIN / "rce-container"), "127.0.0.1", "--master-port", str(self.master.port),
+                "--ready-file", str(self.ready_file), "--runtime-dir", str(self.runtime_dir), "--grace", "1",
+                "--name", "test-host", stdout=logf, stderr=logf, env=self.env)
         waiter = asyncio.create_task(self.proc.wait())
         reg = asyncio.create_task(self.master.registered.wait())
         done, _ = await asyncio.wait({waiter, reg}, timeout=STEP, return_when=asyncio.FIRST_COMPLETED)

@@ -4,6 +4,7 @@ data plane to a robot-side data plane in the test process."""
 from __future__ import annotations
 
 import asyncio
+import os
 import shutil
 import signal
 from pathlib import Path
@@ -11,7 +12,7 @@ from pathlib import Path
 import pytest
 
 from rce.dataplane import DataPlane
-from rce.errors import MessageError, NotFound, ProtocolError, RequestError
+from rce.errors import MessageError, NotFound, ProtocolError, RequestError, Unavailable
 from rce.messages import default_registry
 from rce.packages import load_package_types
 
@@ -178,6 +179,8 @@ async def test_parameters(rig):
     assert resp["msg"].splitlines()[0] == "int:   <not set>"
     with pytest.raises(NotFound):
         await master.call("delete_param", cid=2, name="int")
+    resized = await master.call("resize_container", cid=2, limits={"cpu": 2, "memory": None})
+    assert resized == {"sandbox": "unconfined", "limits": {"cpu": 2}}
 
 
 async def test_group_shares_one_bus_and_others_do_not_see_it(rig):
@@ -293,14 +296,14 @@ async def test_exit_codes_respawn_args_and_logs(rig):
     stats = await master.call("stats", cid=4)
     assert stats["nodes"]["restarts"] == 2 and stats["nodes"]["running"] == 0
 
-    # remove_node of a running node: SIGTERM, reported as exited with the signal
+    # remove_node of a running node: SIGTERM (an rce.node program exits 0 on it), reported as exited
     await add_node(master, 4, "echo")
     pid = (await master.wait_status(lambda s: s["ntag"] == "echo" and s["status"] == "started"))["pid"]
     await master.wait_bus(4, echo_ready("echo"))
     await master.call("remove_node", cid=4, ntag="echo")
     assert gone(pid)
     st = await master.wait_status(lambda s: s["ntag"] == "echo" and s["status"] == "exited")
-    assert st["signal"] == signal.SIGTERM and st["reason"] == "removed"
+    assert st["code"] == 0 and st["reason"] == "removed"
     with pytest.raises(NotFound):
         await master.call("remove_node", cid=4, ntag="echo")
 
@@ -352,3 +355,20 @@ async def test_shutdown_on_master_loss_tears_everything_down(tmp_path):
         await cp.kill()
         await master.close()
         shutil.rmtree(cp.runtime_dir, ignore_errors=True)
+
+
+async def test_environment_crash_is_reported_and_cleaned_up(rig):
+    master, _ = rig
+    await create(master, 7, "fragile")
+    pid = (await add_node(master, 7, "stubborn", pkg="CTest", exe="stubborn.py"))["pid"]
+    env_pid = (await master.call("stats", cid=7))["environment"]["pid"]
+    os.kill(env_pid, signal.SIGKILL)
+    st = await master.wait_status(lambda s: s["ntag"] == "stubborn" and s["status"] == "exited")
+    assert st["cid"] == 7 and "environment exited" in st["reason"]
+    assert not await wait_gone([pid], 5), "the task set did not kill the nodes of a crashed environment"
+    with pytest.raises(Unavailable) as e:
+        await master.call("describe", cid=7)
+    assert "fragile" in str(e.value)
+    await master.call("destroy_container", cid=7)
+    # the host serves new containers after the crash
+    assert (await create(master, 8, "fresh"))["sandbox"] == "unconfined"
