@@ -220,11 +220,12 @@ def test_block_keeps_unaffected_paths():
     fp.set_goals({"A": 7, "B": 56})
     a_path, b_path = list(fp.paths["A"]), list(fp.paths["B"])
     assert 3 in a_path and 60 in b_path     # A drives along the top row, B along the bottom
+    before = dict(fp.replans)
     assert fp.block(60) == {"B"}
     assert fp.paths["A"] == a_path and not fp.last_result.full
     assert "A" not in fp.last_result.changed and "B" in fp.last_result.changed
     assert 60 not in fp.paths["B"] and fp.paths["B"][-1] == 56
-    assert fp.replans["B"] == 2 and fp.replans["A"] == 1
+    assert fp.replans["B"] == before["B"] + 1 and fp.replans["A"] == before["A"]
     assert fp.block(60) == set()            # already blocked
 
 
@@ -409,5 +410,62 @@ def test_advance_reports_clearance_changes_and_handles_off_plan():
     fp.advance("a", 2)
     assert fp.progress("a") == 2
     # off plan: re-planned from the reported cell
-    fp.advance("a", 0)
-    assert fp.paths["a"][0] == 0 and fp.paths["a"][-1] == 3 and fp.replans["a"] == 2
+    before = fp.replans["a"]
+    changes = fp.advance("a", 0)
+    assert fp.paths["a"] == [0, 1, 2, 3] and fp.replans["a"] == before + 1
+    assert changes["a"] == 3 and fp.last_result.changed == {"a"}
+
+
+def test_new_robot_in_the_way_triggers_replan():
+    fp = lab_planner()
+    fp.set_position("A", 24)
+    fp.set_goal("A", 31)
+    on_way = fp.paths["A"][len(fp.paths["A"]) // 2]
+    fp.set_position("B", on_way)                  # appears on A's way, without a goal: parked there
+    assert "A" in fp.last_result.changed
+    assert on_way not in fp.paths["A"] and fp.paths["A"][-1] == 31
+    assert check_conflicts(fp.paths) == []
+
+
+def test_committed_move_is_kept_on_replan():
+    free = np.array([[1, 1, 1, 1, 1],
+                     [1, 0, 0, 0, 1],
+                     [1, 1, 1, 1, 1]], dtype=bool)
+    fp = FleetPlanner(GridGraph.from_array(free))
+    fp.set_position("A", 0)
+    fp.set_goal("A", 4)
+    assert fp.paths["A"] == [0, 1, 2, 3, 4] and fp.clearance("A") == 4   # A may be driving into 1
+    assert fp.block(2) == {"A"}
+    assert fp.paths["A"][:3] == [0, 1, 0]         # finishes its move into 1, then turns round
+    assert fp.paths["A"][-1] == 4 and 2 not in fp.paths["A"]
+
+
+def test_remove_robot_releases_waiting_robots():
+    fp = FleetPlanner(GridGraph.from_array(np.ones((1, 4), dtype=bool)))
+    fp.set_position("a", 0)
+    fp.set_position("b", 1)
+    fp.set_goals({"b": 3, "a": 2})
+    assert check_conflicts(fp.paths) == []
+    fp.remove_robot("b")
+    assert "b" not in fp.paths and fp.clearance("a") == len(fp.paths["a"]) - 1
+    with pytest.raises(PlannerError):
+        fp.clearance("b")
+
+
+@pytest.mark.skipif(not (DATA / "maps").is_dir(), reason="../shared/data not present")
+def test_turtlebot3_world_grid_three_robots_block_26():
+    from rce_fleet.maps import load_map
+    grid = make_grid(load_map(DATA / "maps" / "turtlebot3_world.yaml"))
+    fp = FleetPlanner(grid)
+    fp.set_position("Robot1", 25)
+    fp.set_position("Robot2", 11)
+    fp.set_position("Robot3", 51)
+    fp.set_goals({"Robot1": 30, "Robot2": 53, "Robot3": 14})
+    assert fp.last_result.ok and 26 in fp.paths["Robot1"]
+    crossing = {r for r, p in fp.paths.items() if 26 in p[1:]}
+    assert fp.block(26) == crossing
+    assert all(26 not in p for p in fp.paths.values()) and fp.last_result.ok
+    assert check_conflicts(fp.paths) == []
+    for r, p in fp.paths.items():
+        for a, b in zip(p, p[1:]):
+            assert a == b or grid.connected(a, b)

@@ -738,8 +738,9 @@ class FleetPlanner:
         """Register ``robot`` in ``cell``, or update its cell (e.g. after re-localisation).
 
         On its planned path (current or a cleared cell) this is :meth:`advance`.
-        Anywhere else the robot's plan is stale: it is re-planned by the next
-        :meth:`plan`, :meth:`set_goal`, :meth:`block` or :meth:`unblock`.
+        A new robot, or one found off its plan, is re-planned at once (others
+        whose paths now run into it too); the outcome is in ``last_result``
+        (publish the paths of ``last_result.changed``).
         Raises PlannerError for a cell outside the grid.
         """
         cell = self._check_cell(cell)
@@ -752,6 +753,7 @@ class FleetPlanner:
             self.replans.setdefault(robot, 0)
         self.positions[robot] = cell
         self._dirty.add(robot)
+        self._replan(self._dirty | set(self.unreachable))
 
     def remove_robot(self, robot: str) -> None:
         """Forget ``robot`` (disconnected). Others keep their paths; call :meth:`plan` to use the freed cells."""
@@ -1104,7 +1106,3 @@ class FleetPlanner:
             return []
         return _compress(p[self.progress(robot):self.clearance(robot) + 1])[1:]
 
-    @property
-    def needs_plan(self) -> bool:
-        """True when some robot's position is not on its plan (call :meth:`plan`)."""
-        return bool(self._dirty)
