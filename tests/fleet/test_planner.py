@@ -124,6 +124,8 @@ def test_check_conflicts_detects_crafted_conflicts():
     late = check_conflicts({"a": [7], "b": [6, 7, 8]})
     assert late == [Conflict("vertex", ("a", "b"), (7,), 1)]
     assert check_conflicts({"a": [1, 2], "b": [3, 3, 3, 3, 2]})[0].step == 4
+    # two robots parked in one cell: reported once, not at every later step
+    assert len(check_conflicts({"a": [2], "b": [3, 2], "c": [0, 0, 0, 0, 0]})) == 1
     # following is allowed
     assert check_conflicts({"a": [0, 1, 2, 3], "b": [1, 2, 3, 4]}) == []
     assert check_conflicts({"a": [5, 6], "b": [5, 4]}, ignore_start=True) == []

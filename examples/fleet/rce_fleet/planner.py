@@ -215,15 +215,15 @@ class GridGraph:
         return out
 
 
-def load_movingai_scen(path: str | Path, graph: GridGraph | None = None) -> list[tuple[int, int]]:
+def load_movingai_scen(path: str | Path, graph: GridGraph) -> list[tuple[int, int]]:
     """Read a MovingAI scenario in the converted text form: line 1 = N, then ``sx sy gx gy``.
 
     Also accepts the original ``version 1`` .scen format. x is the column, y the
-    row. Returns (start_cell, goal_cell) per agent; needs ``graph`` for the
-    number of columns (``cell = y * cols + x``). Raises ValueError naming the file.
+    row. Returns (start_cell, goal_cell) per agent, numbered on ``graph``
+    (``cell = y * cols + x``). Raises ValueError naming the file.
     """
     path = Path(path)
-    cols = graph.cols if graph is not None else None
+    cols = graph.cols
     out = []
     lines = [ln for ln in path.read_text().splitlines() if ln.strip()]
     try:
@@ -235,8 +235,6 @@ def load_movingai_scen(path: str | Path, graph: GridGraph | None = None) -> list
             xy = [tuple(int(v) for v in ln.split()[:4]) for ln in lines[1:1 + n]]
     except (ValueError, IndexError) as exc:
         raise ValueError(f"{path}: not a MovingAI scenario: {exc}") from exc
-    if cols is None:
-        raise ValueError("load_movingai_scen needs the graph to number cells")
     for sx, sy, gx, gy in xy:
         out.append((sy * cols + sx, gy * cols + gx))
     return out
@@ -297,7 +295,8 @@ def check_conflicts(paths: Mapping[str, Sequence[int]], ignore_start: bool = Fal
     robot stays in its final cell for ever (so a robot passing through another's
     final cell later is a conflict). Empty paths are ignored. With
     ``ignore_start`` shared cells at step 0 are not reported (robots that were
-    localised into one cell). Cost O(sum of path lengths + robots x makespan).
+    localised into one cell). Two robots that stay in one cell for ever are
+    reported once. Cost O(robots x makespan).
     """
     items = [(r, list(p)) for r, p in paths.items() if len(p)]
     if not items:
@@ -305,13 +304,15 @@ def check_conflicts(paths: Mapping[str, Sequence[int]], ignore_start: bool = Fal
     horizon = max(len(p) for _, p in items)
     out: list[Conflict] = []
     prev: dict[int, str] = {}
+    lengths = dict((r, len(p)) for r, p in items)
     for t in range(horizon):
         at: dict[int, str] = {}
         for r, p in items:
             c = p[t] if t < len(p) else p[-1]
             other = at.get(c)
             if other is not None:
-                if not (ignore_start and t == 0):
+                static = t > lengths[r] - 1 and t > lengths[other] - 1   # both parked since before t
+                if not (ignore_start and t == 0) and not static:
                     out.append(Conflict("vertex", (other, r), (c,), t))
             else:
                 at[c] = r
