@@ -1,0 +1,353 @@
+"""Round-trip time robot -> container node -> robot against payload size, with the peers in
+the same run.
+
+Paths (the real engine as processes on loopback, the raw wire protocol as a robot speaks it):
+
+- ``rce_converter``: DM with a JSON ``std_msgs/String`` -> SubscriberConverter ->
+  container ``/stringEchoReq`` -> ``Test/stringEcho.py`` -> ``/stringEchoResp`` ->
+  PublisherConverter -> DM back (JSON).
+- ``rce_forwarder``: the same through forwarders: the DM carries the ROS 1 serialized
+  ``std_msgs/String`` as the binary part ``msg*``.
+- ``rce_c2c``: container to container, through forwarders: robot -> container A
+  (``/relay``) -> interface link A -> B -> ``stringEcho`` in B -> robot. Its difference
+  to ``rce_forwarder`` is the cost of the extra container hop.
+
+Peers: ``ros1`` = ``shared/anchors/ros1_rtt.py`` (Debian's rospy, single master, TCPROS;
+installed with apt-get when missing and running as root), ``ws_floor`` =
+``shared/anchors/ws_rtt.py`` (raw websockets echo of the same JSON DM: the transport floor).
+The anchors report medians only; rce paths report median and p90.
+
+Each rce round trip is timed from just before the first frame is sent to the reply parsed
+(JSON decoded; for forwarders the JSON frame and its binary part both received), the
+outgoing frames built beforehand, as the ws anchor does.
+
+Usage::
+
+    .venv/bin/python bench/rtt.py [--sizes 3,1623,...] [--reps N] [--no-ros1] [--no-ws]
+        [--paths converter,forwarder,c2c] [--json PATH] [--plot PATH]
+
+``REPS`` (environment, default 20) sets the repetitions per size like the anchors (a quarter,
+at least 3, for sizes >= 1 MB); ``--reps`` overrides it.
+Results: ``bench/results/rtt.json`` and ``bench/results/rtt.png`` by default.
+"""
+from __future__ import annotations
+
+import argparse
+import asyncio
+import json
+import math
+import os
+import sys
+import tempfile
+import time
+import uuid
+from pathlib import Path
+
+from common import (RESULTS, USER, RawRobot, VENV_PY, SYS_PY, anchor_sizes, console, engine, ensure_ros1,
+                    fmt_ms, fmt_ratio, fmt_size, free_port, geomean, median, percentile, progress, pyplot,
+                    ratio, run_anchor, write_json)
+
+PATHS = ("converter", "forwarder", "c2c")
+STRING = "std_msgs/String"
+
+
+def reps_for(size: int, reps: int) -> int:
+    """As the anchors: REPS per size, a quarter (at least 3) from 1 MB up."""
+    return reps if size < 1_000_000 else max(3, reps // 4)
+
+
+def ros1_string(payload: str) -> bytes:
+    """ROS 1 serialization of std_msgs/String: uint32 length + bytes."""
+    b = payload.encode()
+    return len(b).to_bytes(4, "little") + b
+
+
+# -- setting up the paths --------------------------------------------------------------------
+
+async def setup_echo(r: RawRobot, ctag: str, side: str) -> tuple[str, str]:
+    """Container ``ctag`` with Test/stringEcho.py, robot-side interfaces of ``side``
+    (Converter/Forwarder); returns (request iTag, response iTag)."""
+    rid = r.robot
+    await r.send("CC", {"containerTag": ctag})
+    await r.cn(addNodes=[{"containerTag": ctag, "nodeTag": "echo", "pkg": "Test", "exe": "stringEcho.py"}],
+               addInterfaces=[
+                   {"endpointTag": ctag, "interfaceTag": "req", "interfaceType": "PublisherInterface",
+                    "className": STRING, "addr": "/stringEchoReq"},
+                   {"endpointTag": ctag, "interfaceTag": "resp", "interfaceType": "SubscriberInterface",
+                    "className": STRING, "addr": "/stringEchoResp"},
+                   {"endpointTag": rid, "interfaceTag": "req", "interfaceType": f"Subscriber{side}", "className": STRING},
+                   {"endpointTag": rid, "interfaceTag": "resp", "interfaceType": f"Publisher{side}", "className": STRING}])
+    await r.send("CX", {"connect": [{"tagA": f"{ctag}/{t}", "tagB": f"{rid}/{t}"} for t in ("req", "resp")]})
+    await r.wait_up("req", "resp")
+    return "req", "resp"
+
+
+async def setup_c2c(r: RawRobot, prefix: str) -> tuple[str, str]:
+    """robot -> A:/relay -> (A/toB -> B/fromA) -> B:/stringEchoReq -> echo -> B:/stringEchoResp -> robot."""
+    a, b, rid = f"{prefix}A", f"{prefix}B", r.robot
+    await r.send("CC", {"containerTag": a})
+    await r.send("CC", {"containerTag": b})
+    ifs = [(a, "in", "PublisherInterface", "/relay"), (a, "toB", "SubscriberInterface", "/relay"),
+           (b, "fromA", "PublisherInterface", "/stringEchoReq"), (b, "out", "SubscriberInterface", "/stringEchoResp"),
+           (rid, "in", "SubscriberForwarder", None), (rid, "out", "PublisherForwarder", None)]
+    await r.cn(addNodes=[{"containerTag": b, "nodeTag": "echo", "pkg": "Test", "exe": "stringEcho.py"}],
+               addInterfaces=[{"endpointTag": e, "interfaceTag": t, "interfaceType": k, "className": STRING,
+                               **({"addr": ad} if ad else {})} for e, t, k, ad in ifs])
+    await r.send("CX", {"connect": [{"tagA": f"{a}/in", "tagB": f"{rid}/in"}, {"tagA": f"{a}/toB", "tagB": f"{b}/fromA"},
+                                    {"tagA": f"{b}/out", "tagB": f"{rid}/out"}]})
+    await r.wait_up("in", "out")
+    return "in", "out"
+
+
+# -- one round trip ------------------------------------------------------------------------------
+
+class Path_:
+    """One measured path on one robot connection: ``prepare(size)`` builds the outgoing frames,
+    ``roundtrip(frames, size, timeout)`` sends them and waits for the echo; returns ms or NaN."""
+
+    def __init__(self, r: RawRobot, kind: str, req: str, resp: str):
+        self.r, self.kind, self.req, self.resp = r, kind, req, resp
+        self.binary = kind != "converter"
+
+    def prepare(self, size: int) -> list:
+        data = "a" * size
+        if not self.binary:
+            return [json.dumps({"type": "DM", "data": {"iTag": self.req, "type": STRING, "msgID": "",
+                                                       "msg": {"data": data}}})]
+        ref = uuid.uuid4().hex
+        return [json.dumps({"type": "DM", "data": {"iTag": self.req, "type": STRING, "msgID": "", "msg*": ref}}),
+                ref.encode() + ros1_string(data)]
+
+    async def roundtrip(self, frames: list, size: int, timeout: float) -> float:
+        ws, loop = self.r.ws, asyncio.get_running_loop()
+        t0 = time.perf_counter()
+        for f in frames:
+            await ws.send(f)
+        deadline = loop.time() + timeout
+        dm, parts = None, {}
+        try:
+            while True:
+                m = await asyncio.wait_for(ws.recv(), max(0.001, deadline - loop.time()))
+                if isinstance(m, str):
+                    d = json.loads(m)
+                    if d.get("type") != "DM" or d["data"].get("iTag") != self.resp:
+                        continue
+                    if not self.binary:
+                        if len(d["data"]["msg"]["data"]) == size:
+                            return (time.perf_counter() - t0) * 1000
+                        continue       # a late echo of an earlier message
+                    dm = d["data"]
+                else:
+                    parts[m[:32].decode()] = m
+                if dm is not None and dm.get("msg*") in parts:
+                    if len(parts[dm["msg*"]]) == 32 + 4 + size:
+                        return (time.perf_counter() - t0) * 1000
+                    dm, parts = None, {}
+        except (TimeoutError, asyncio.TimeoutError):
+            return float("nan")
+
+    async def drain(self, quiet: float = 0.3) -> None:
+        """Read whatever is still coming until ``quiet`` s pass without a frame."""
+        while True:
+            try:
+                await asyncio.wait_for(self.r.ws.recv(), quiet)
+            except (TimeoutError, asyncio.TimeoutError):
+                return
+
+    async def warm_up(self, tries: int = 60, wait: float = 0.5) -> int:
+        """Repeat a small message until its echo comes (the node may subscribe a moment after the
+        interfaces are up); bounded. Returns the tries it took."""
+        for i in range(1, tries + 1):
+            if math.isfinite(await self.roundtrip(self.prepare(3), 3, wait)):
+                await self.drain()
+                return i
+        raise RuntimeError(f"{self.kind}: no echo after {tries} tries ({tries * wait:.0f} s)")
+
+
+async def measure_rce(master_url: str, paths: list[str], sizes: list[int], reps: int, prog) -> dict:
+    """{path: {size: [ms, ...]}} for the rce paths, on one engine, one robot connection per path."""
+    out: dict = {}
+    robots = []
+    try:
+        ready = {}
+        for kind in paths:
+            r = RawRobot(master_url, f"rtt{kind.capitalize()}")
+            await r.__aenter__()
+            robots.append(r)
+            if kind == "c2c":
+                req, resp = await setup_c2c(r, "rttC2c")
+            else:
+                req, resp = await setup_echo(r, f"rtt{kind.capitalize()}C", kind.capitalize())
+            p = Path_(r, kind, req, resp)
+            p.tries = await p.warm_up()
+            ready[kind] = p
+        for kind in paths:
+            p = ready[kind]
+            task = prog.add_task(f"rce {kind}", total=sum(reps_for(s, reps) for s in sizes))
+            res = out[kind] = {}
+            for size in sizes:
+                samples = []
+                timeout = 10.0 if size < 1_000_000 else 60.0
+                for _ in range(reps_for(size, reps)):
+                    frames = p.prepare(size)
+                    ms = await p.roundtrip(frames, size, timeout)
+                    if not math.isfinite(ms):
+                        await p.drain()
+                    samples.append(ms)
+                    prog.advance(task)
+                res[size] = samples
+                prog.update(task, description=f"rce {kind} {fmt_size(size)}: {fmt_ms(median(samples))} ms")
+    finally:
+        for r in robots:
+            try:
+                await r.__aexit__(None, None, None)
+            except Exception:
+                pass
+    return out
+
+
+# -- main ------------------------------------------------------------------------------------------
+
+def parse_args(argv=None):
+    p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0], formatter_class=argparse.RawDescriptionHelpFormatter)
+    p.add_argument("--sizes", help="comma-separated subset of sizes in bytes (default: shared/anchors/sizes.py)")
+    p.add_argument("--reps", type=int, default=int(os.environ.get("REPS", "20")),
+                   help="repetitions per size (default: $REPS or 20; a quarter, >= 3, from 1 MB)")
+    p.add_argument("--paths", default=",".join(PATHS), help=f"rce paths to measure (default {','.join(PATHS)})")
+    p.add_argument("--no-ros1", action="store_true", help="skip the ROS 1 peer (no apt-get)")
+    p.add_argument("--no-ws", action="store_true", help="skip the raw websockets floor")
+    p.add_argument("--json", type=Path, default=RESULTS / "rtt.json", help="JSON results (default bench/results/rtt.json)")
+    p.add_argument("--plot", type=Path, default=RESULTS / "rtt.png", help="PNG plot (default bench/results/rtt.png)")
+    return p.parse_args(argv)
+
+
+def main(argv=None) -> int:
+    args = parse_args(argv)
+    con = console()
+    all_sizes = anchor_sizes()
+    sizes = [int(s) for s in args.sizes.split(",")] if args.sizes else all_sizes
+    paths = [p for p in args.paths.split(",") if p]
+    bad = [p for p in paths if p not in PATHS]
+    if bad:
+        con.print(f"[red]unknown path(s) {bad}; known: {PATHS}")
+        return 2
+    notes = []
+    if any(s not in all_sizes for s in sizes):
+        notes.append("sizes not in shared/anchors/sizes.py have no peer values")
+
+    # peers first, on a quiet machine (no engine running yet)
+    peers = {}
+    if not args.no_ws:
+        with con.status("raw websockets floor (shared/anchors/ws_rtt.py) ..."):
+            peers["ws_floor"] = run_anchor("ws_rtt.py", VENV_PY, args.reps)
+        con.print(f"ws floor done ({peers['ws_floor']['peer']})")
+    if not args.no_ros1:
+        ok, why = ensure_ros1(log=con.print)
+        if ok:
+            with con.status("ROS 1 single master (shared/anchors/ros1_rtt.py) ..."):
+                peers["ros1"] = run_anchor("ros1_rtt.py", SYS_PY, args.reps,
+                                           env={"ROS1_PORT": str(free_port()),
+                                                "ROS_HOME": tempfile.mkdtemp(prefix="ros1rtt-")})
+            con.print(f"ROS 1 done ({peers['ros1']['peer']})")
+        else:
+            notes.append(f"ROS 1 skipped: {why}")
+            con.print(f"[yellow]ROS 1 skipped: {why}")
+
+    with engine() as eng, progress(con) as prog:
+        samples = asyncio.run(measure_rce(eng.master_url, paths, sizes, args.reps, prog))
+
+    res = {"sizes": sizes, "reps": args.reps, "reps_by_size": [reps_for(s, args.reps) for s in sizes],
+           "paths": {"rce_converter": "robot -> SubscriberConverter (JSON) -> Test/stringEcho -> PublisherConverter -> robot",
+                     "rce_forwarder": "robot -> SubscriberForwarder (msg* binary) -> Test/stringEcho -> PublisherForwarder -> robot",
+                     "rce_c2c": "robot -> forwarder -> container A /relay -> interface link -> container B stringEcho -> forwarder -> robot",
+                     "ros1_ms": "shared/anchors/ros1_rtt.py (rospy, single master, TCPROS; medians only)",
+                     "ws_floor_ms": "shared/anchors/ws_rtt.py (raw websockets + JSON DM echo; medians only)"}}
+    for kind in PATHS:
+        key = f"rce_{kind}"
+        s = samples.get(kind)
+        res[f"{key}_ms"] = [median(s[z]) for z in sizes] if s else None
+        res[f"{key}_p90_ms"] = [percentile(s[z], 90) for z in sizes] if s else None
+        res[f"{key}_lost"] = [sum(1 for x in s[z] if not math.isfinite(x)) for z in sizes] if s else None
+    for peer, key in (("ros1", "ros1_ms"), ("ws_floor", "ws_floor_ms")):
+        res[key] = [peers[peer]["rtt_ms"].get(z, float("nan")) for z in sizes] if peer in peers else None
+    small = [i for i, z in enumerate(sizes) if z <= 1623]
+    large = [i for i, z in enumerate(sizes) if z >= 1_000_000]
+
+    def gm(a, b, idx):
+        if not res.get(a) or not res.get(b) or not idx:
+            return None
+        return geomean(ratio(res[a][i], res[b][i]) for i in idx)
+    res["summary"] = {
+        "converter_over_ros1_small_geomean": gm("rce_converter_ms", "ros1_ms", small),
+        "forwarder_over_ros1_large_geomean": gm("rce_forwarder_ms", "ros1_ms", large),
+        "converter_over_ws_small_geomean": gm("rce_converter_ms", "ws_floor_ms", small),
+        "forwarder_over_ws_large_geomean": gm("rce_forwarder_ms", "ws_floor_ms", large),
+        "small": "sizes <= 1623 B", "large": "sizes >= 1 MB"}
+    res["notes"] = notes
+    write_json(args.json, res)
+    print_table(con, res)
+    plot(res, args.plot)
+    con.print(f"results: {args.json}  plot: {args.plot}")
+    return 0
+
+
+def print_table(con, res: dict) -> None:
+    from rich.table import Table
+    t = Table(title="round trip, ms (median / p90 for rce; medians for peers)")
+    for c in ("size", "conv", "conv p90", "fwd", "fwd p90", "c2c", "c2c p90", "ros1", "ws",
+              "conv/ros1", "fwd/ros1", "c2c/ros1", "conv/ws", "fwd/ws"):
+        t.add_column(c, justify="right")
+    g = lambda k, i: (res.get(k) or [float("nan")] * len(res["sizes"]))[i]  # noqa: E731
+    for i, z in enumerate(res["sizes"]):
+        t.add_row(fmt_size(z), fmt_ms(g("rce_converter_ms", i)), fmt_ms(g("rce_converter_p90_ms", i)),
+                  fmt_ms(g("rce_forwarder_ms", i)), fmt_ms(g("rce_forwarder_p90_ms", i)),
+                  fmt_ms(g("rce_c2c_ms", i)), fmt_ms(g("rce_c2c_p90_ms", i)),
+                  fmt_ms(g("ros1_ms", i)), fmt_ms(g("ws_floor_ms", i)),
+                  fmt_ratio(ratio(g("rce_converter_ms", i), g("ros1_ms", i))),
+                  fmt_ratio(ratio(g("rce_forwarder_ms", i), g("ros1_ms", i))),
+                  fmt_ratio(ratio(g("rce_c2c_ms", i), g("ros1_ms", i))),
+                  fmt_ratio(ratio(g("rce_converter_ms", i), g("ws_floor_ms", i))),
+                  fmt_ratio(ratio(g("rce_forwarder_ms", i), g("ws_floor_ms", i))))
+    con.print(t)
+    s = res["summary"]
+    con.print(f"geometric mean ratios: converter/ros1 at <= 1.6 kB = {fmt_ratio(s['converter_over_ros1_small_geomean'])}, "
+              f"forwarder/ros1 at >= 1 MB = {fmt_ratio(s['forwarder_over_ros1_large_geomean'])}, "
+              f"converter/ws at <= 1.6 kB = {fmt_ratio(s['converter_over_ws_small_geomean'])}, "
+              f"forwarder/ws at >= 1 MB = {fmt_ratio(s['forwarder_over_ws_large_geomean'])}")
+    for n in res["notes"]:
+        con.print(f"[yellow]note: {n}")
+
+
+def plot(res: dict, path: Path) -> None:
+    plt = pyplot()
+    fig, ax = plt.subplots(figsize=(8, 5.5))
+    series = [("rce_converter", "rce converter (JSON)", "o-"), ("rce_forwarder", "rce forwarder (binary)", "s-"),
+              ("rce_c2c", "rce container->container (fwd)", "^-"), ("ros1", "ROS 1 rospy (anchor)", "x--"),
+              ("ws_floor", "raw websockets + JSON (floor)", "+:")]
+    for key, label, style in series:
+        ys = res.get(f"{key}_ms")
+        if not ys:
+            continue
+        pts = [(x, y) for x, y in zip(res["sizes"], ys) if y is not None and math.isfinite(y) and y > 0]
+        if pts:
+            ax.plot(*zip(*pts), style, label=label, markersize=4)
+        p90 = res.get(f"{key}_p90_ms")
+        if p90:
+            q = [(x, y) for x, y in zip(res["sizes"], p90) if y is not None and math.isfinite(y) and y > 0]
+            if q:
+                ax.plot(*zip(*q), style[0] + ":", alpha=0.35, color=ax.lines[-1].get_color(), markersize=2)
+    ax.set_xscale("log")
+    ax.set_yscale("log")
+    ax.set_xlabel("payload size, bytes")
+    ax.set_ylabel("round trip, ms (median; faint: rce p90)")
+    ax.set_title("RTT robot -> container echo -> robot, loopback")
+    ax.grid(True, which="both", alpha=0.3)
+    ax.legend()
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+
+
+if __name__ == "__main__":
+    sys.exit(main())
