@@ -41,6 +41,8 @@ def parser() -> argparse.ArgumentParser:
                    help=f"largest frame accepted on any link, bytes (default {framing.DEFAULT_MAX_FRAME})")
     p.add_argument("--sandbox", default="auto", choices=["auto", *sorted(sandboxes.REGISTRY)],
                    help="node isolation (default auto: the strongest this host supports)")
+    p.add_argument("--warm", type=int, default=1,
+                   help="idle environments kept started for fast container creation (default 1; 0 = none)")
     p.add_argument("--grace", type=float, default=3.0,
                    help="seconds between SIGTERM and SIGKILL when stopping nodes (default 3)")
     return p
@@ -52,7 +54,7 @@ async def amain(args: argparse.Namespace) -> int:
         prefix="rce-container-", dir=os.environ.get("XDG_RUNTIME_DIR") or None)
     host = ContainerHost(args.master, args.master_port, name=args.name or socket.gethostname(), bind=args.bind,
                          advertise_host=args.advertise_host, runtime_dir=runtime_dir, own_runtime_dir=own,
-                         sandbox=args.sandbox, max_frame=args.max_frame, grace=args.grace)
+                         sandbox=args.sandbox, max_frame=args.max_frame, grace=args.grace, warm=args.warm)
     loop = asyncio.get_running_loop()
     for sig in (signal.SIGINT, signal.SIGTERM):
         loop.add_signal_handler(sig, host.stop)

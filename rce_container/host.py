@@ -59,7 +59,7 @@ def socket_dir_for(runtime_dir: Path) -> Path:
 class EnvHandle:
     """The task set's view of one environment process."""
     env_id: int
-    key: tuple
+    key: tuple | None              # the group it serves; None while it is a warm spare
     proc: asyncio.subprocess.Process | None = None
     peer: rpc.RpcPeer | None = None
     data_addr: str = ""
@@ -93,12 +93,14 @@ class ContainerHost:
     reach them by; ``runtime_dir``: sockets and per-container dirs (created if missing;
     removed on exit only if ``own_runtime_dir``); ``sandbox``: sandbox kind or ``"auto"``;
     ``env_timeout``: s to wait for a new environment's hello; ``grace``: s between SIGTERM
-    and SIGKILL for nodes."""
+    and SIGKILL for nodes; ``warm``: idle environments kept started, so that a new group's
+    ``create_container`` does not wait for a Python process to start."""
 
     def __init__(self, master: str, master_port: int = 8080, *, name: str | None = None,
                  bind: str = "127.0.0.1", advertise_host: str | None = None, runtime_dir: str | Path,
                  own_runtime_dir: bool = False, sandbox: str = "auto",
-                 max_frame: int = framing.DEFAULT_MAX_FRAME, env_timeout: float = 30.0, grace: float = 3.0):
+                 max_frame: int = framing.DEFAULT_MAX_FRAME, env_timeout: float = 30.0, grace: float = 3.0,
+                 warm: int = 1):
         self.master_addr = (master, master_port)
         self.name = name or socket.gethostname()
         self.bind, self.advertise_host = bind, advertise_host or bind
@@ -106,6 +108,9 @@ class ContainerHost:
         self.own_runtime_dir = own_runtime_dir
         self.sandbox_cls = sandboxes.select(sandbox)
         self.max_frame, self.env_timeout, self.grace = max_frame, env_timeout, grace
+        self.warm = max(0, warm)
+        self.spares: list[EnvHandle] = []
+        self._spare_tasks: list[asyncio.Task] = []
         self.socket_dir = socket_dir_for(self.runtime_dir)
         self.control_path = str(self.socket_dir / CONTROL_SOCKET)
         self.master: rpc.RpcPeer | None = None
@@ -138,6 +143,7 @@ class ContainerHost:
                         stats=self.op_stats)
         self.master = await rpc.connect(*self.master_addr, handlers, name="master",
                                         on_close=self._master_lost, max_frame=self.max_frame)
+        self.master.keepalive()
         res = await self.master.call(
             "register", kind="container", name=self.name, host=self.advertise_host,
             sandbox=self.sandbox_cls.kind,
@@ -145,6 +151,7 @@ class ContainerHost:
         self.tid = (res or {}).get("tid")
         log.info("registered with the master", master=f"{self.master_addr[0]}:{self.master_addr[1]}",
                  tid=self.tid, name=self.name, sandbox=self.sandbox_cls.kind, runtime_dir=str(self.runtime_dir))
+        self._refill_spares()
         return self.tid
 
     def _master_lost(self, _peer: rpc.RpcPeer) -> None:
@@ -201,7 +208,37 @@ class ContainerHost:
         peer.handlers.update(hello=hello, node_status=node_status)
         peer.start()
 
-    async def _spawn_env(self, key: tuple) -> EnvHandle:
+    def _refill_spares(self) -> None:
+        """Start environments in the background until ``warm`` spares are ready or starting."""
+        while not self._closing and len(self.spares) + len(self._spare_tasks) < self.warm:
+            t = asyncio.create_task(self._start_spare())
+            self._spare_tasks.append(t)
+            t.add_done_callback(self._spare_tasks.remove)
+
+    async def _start_spare(self) -> None:
+        try:
+            env = await self._spawn_env(None)
+        except RCEError as e:
+            log.warning("could not start a spare environment", reason=e.message)
+            return
+        if self._closing:
+            await self._stop_env(env)
+        else:
+            self.spares.append(env)
+
+    async def _take_spare(self) -> EnvHandle | None:
+        """A ready spare environment, waiting for one that is starting (it started earlier than
+        a new one would); None if there is none."""
+        while True:
+            while self.spares:
+                env = self.spares.pop(0)
+                if env.alive:
+                    return env
+            if not self._spare_tasks:
+                return None
+            await asyncio.wait([self._spare_tasks[0]])
+
+    async def _spawn_env(self, key: tuple | None) -> EnvHandle:
         env = EnvHandle(next(self._env_ids), key, started=time.monotonic())
         fut = asyncio.get_running_loop().create_future()
         self._hellos[env.env_id] = fut
@@ -248,6 +285,12 @@ class ContainerHost:
         env.exit_code = await env.proc.wait()
         if env.stopping:
             return
+        if env.key is None:                  # a spare: just forget it
+            log.warning("a spare environment exited", env=env.env_id, code=env.exit_code)
+            self.envs.discard(env)
+            if env in self.spares:
+                self.spares.remove(env)
+            return
         log.error("environment exited unexpectedly", env=env.env_id, code=env.exit_code,
                   containers=sorted(env.cids))
         if env.peer:
@@ -268,6 +311,8 @@ class ContainerHost:
         a timeout), and kill any node process group it left behind."""
         env.stopping = True
         self.envs.discard(env)
+        if env in self.spares:
+            self.spares.remove(env)
         if self.groups.get(env.key) is env:
             del self.groups[env.key]
         clean = False
@@ -352,8 +397,13 @@ class ContainerHost:
                 raise RequestError(f"container id {cid} is already in use by {old.ctag!r}")
             env = self.groups.get(key)
             if env is None or not env.alive:
-                env = await self._spawn_env(key)
+                env = await self._take_spare()
+                if env is not None:
+                    env.key = key
+                else:
+                    env = await self._spawn_env(key)
                 self.groups[key] = env
+                self._refill_spares()
             env.cids.add(cid)
             try:
                 res = await env.peer.call("add_container", cid=cid, ctag=ctag, user=user, group=group,
@@ -431,7 +481,7 @@ class ContainerHost:
             else:
                 out.append({"cid": c.cid, "ctag": c.ctag, "error": "environment gone"})
         return {"name": self.name, "tid": self.tid, "sandbox": self.sandbox_cls.kind,
-                "environments": len(self.envs), "containers": out}
+                "environments": len(self.envs), "spares": len(self.spares), "containers": out}
 
 
 def _kill_group(pgid: int) -> None:
