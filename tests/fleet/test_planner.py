@@ -126,8 +126,11 @@ def test_check_conflicts_detects_crafted_conflicts():
     assert check_conflicts({"a": [1, 2], "b": [3, 3, 3, 3, 2]})[0].step == 4
     # two robots parked in one cell: reported once, not at every later step
     assert len(check_conflicts({"a": [2], "b": [3, 2], "c": [0, 0, 0, 0, 0]})) == 1
-    # following is allowed
+    # following is allowed ...
     assert check_conflicts({"a": [0, 1, 2, 3], "b": [1, 2, 3, 4]}) == []
+    # ... but not in a closed rotation (2x2 block 0 1 / 3 4, all turning clockwise)
+    rot = check_conflicts({"a": [0, 1], "b": [1, 4], "c": [4, 3], "d": [3, 0]})
+    assert [c.kind for c in rot] == ["cycle"] and set(rot[0].robots) == {"a", "b", "c", "d"}
     assert check_conflicts({"a": [5, 6], "b": [5, 4]}, ignore_start=True) == []
     assert len(check_conflicts({"a": [5, 6], "b": [5, 4]})) == 1
 
@@ -358,6 +361,24 @@ def test_execution_with_random_delays_is_safe_and_deadlock_free():
         for r in fp.paths:
             if r not in fp.unreachable:
                 assert fp.positions[r] == fp.goals[r]
+
+
+def test_dense_instances_execute_without_deadlock():
+    # crowded small grids: rotations (cycles of robots following each other) would deadlock
+    rng = random.Random(2)
+    for trial in range(60):
+        g = random_graph(rng, rng.randint(4, 6), rng.randint(4, 6), rng.choice([0.0, 0.1]))
+        comp = sorted(max(components(g), key=len))
+        n = rng.randint(4, 12)
+        if len(comp) < n + 2:
+            continue
+        starts, goals = rng.sample(comp, n), rng.sample(comp, n)
+        fp = FleetPlanner(g)
+        for i, s in enumerate(starts):
+            fp.set_position(f"r{i}", s)
+        fp.set_goals({f"r{i}": t for i, t in enumerate(goals)})
+        assert check_conflicts(fp.paths) == []
+        simulate(fp, rng, p_move=0.6)
 
 
 def test_execution_survives_blocks_and_new_goals_midway():

@@ -278,18 +278,20 @@ def shortest_path(graph: GridGraph, start: int, goal: int, blocked: Iterable[int
 # ---------------------------------------------------------------------------
 @dataclass(frozen=True)
 class Conflict:
-    """Two robots in one cell at one step (``kind='vertex'``, ``cells=(c,)``), or
+    """Two robots in one cell at one step (``kind='vertex'``, ``cells=(c,)``);
     swapping cells between ``step`` and ``step + 1`` (``kind='swap'``, ``cells=(a, b)``:
-    ``robots[0]`` goes a -> b, ``robots[1]`` b -> a)."""
+    ``robots[0]`` goes a -> b, ``robots[1]`` b -> a); or a rotation (``kind='cycle'``):
+    three or more robots each entering, between ``step`` and ``step + 1``, the cell
+    the next one leaves (``cells``: where each robot starts the move)."""
 
     kind: str
-    robots: tuple[str, str]
+    robots: tuple[str, ...]
     cells: tuple[int, ...]
     step: int
 
 
 def check_conflicts(paths: Mapping[str, Sequence[int]], ignore_start: bool = False) -> list[Conflict]:
-    """All vertex and swap conflicts in a set of space-time paths.
+    """All vertex, swap and rotation conflicts in a set of space-time paths.
 
     ``paths[robot][k]`` is the robot's cell at step k; after its last step a
     robot stays in its final cell for ever (so a robot passing through another's
@@ -327,7 +329,38 @@ def check_conflicts(paths: Mapping[str, Sequence[int]], ignore_start: bool = Fal
                 if o is not None and o != r and at.get(a) == o:   # ... and is in a at t
                     if r < o:   # report each swap once
                         out.append(Conflict("swap", (r, o), (a, b), t - 1))
+            out.extend(_rotations(items, prev, t))
         prev = at
+    return out
+
+
+def _rotations(items: list[tuple[str, list[int]]], prev: dict[int, str], t: int) -> list[Conflict]:
+    """Cycles of >= 3 robots each moving into the cell the next one leaves, between t-1 and t.
+
+    A plan may not contain them: executed with :class:`ActionDependencyGraph`
+    (enter a cell only after its previous occupant has left) they deadlock.
+    """
+    nxt: dict[str, str] = {}
+    move: dict[str, tuple[int, int]] = {}
+    for r, p in items:
+        if t < len(p) and p[t] != p[t - 1]:
+            o = prev.get(p[t])
+            move[r] = (p[t - 1], p[t])
+            if o is not None and o != r:
+                nxt[r] = o
+    out, done = [], set()
+    for r in nxt:
+        if r in done:
+            continue
+        seen, x = [], r
+        while x in nxt and x not in seen and x not in done and x in move:
+            seen.append(x)
+            x = nxt[x]
+        if x in seen and x in move:
+            cyc = seen[seen.index(x):]
+            if len(cyc) >= 3:
+                out.append(Conflict("cycle", tuple(cyc), tuple(move[c][0] for c in cyc), t - 1))
+        done.update(seen)
     return out
 
 
@@ -339,23 +372,53 @@ class Reservations:
 
     ``vertex[t * n + cell] = owner`` for every reserved (cell, step);
     ``occ[cell]``: sorted steps at which ``cell`` is reserved;
-    ``parked[cell] = t``: the owner stays in ``cell`` from step t for ever.
+    ``parked[cell] = t``: the owner stays in ``cell`` from step t for ever;
+    ``paths[owner]``: the owner's reserved cells from step 0 (``parks[owner]``:
+    whether it stays in the last one for ever).
     """
 
-    __slots__ = ("n", "vertex", "occ", "parked")
+    __slots__ = ("n", "vertex", "occ", "parked", "paths", "parks")
 
     def __init__(self, n_cells: int):
         self.n = n_cells
         self.vertex: dict[int, int] = {}
         self.occ: dict[int, list[int]] = {}
         self.parked: dict[int, int] = {}
+        self.paths: dict[int, list[int]] = {}
+        self.parks: dict[int, bool] = {}
 
     def copy(self) -> "Reservations":
         """An independent copy."""
         r = Reservations(self.n)
         r.vertex, r.parked = dict(self.vertex), dict(self.parked)
         r.occ = {c: list(ts) for c, ts in self.occ.items()}
+        r.paths, r.parks = dict(self.paths), dict(self.parks)
         return r
+
+    def cell_of(self, owner: int, t: int) -> int | None:
+        """Where ``owner`` is at step ``t`` (None when not known: an unplanned robot past its start)."""
+        p = self.paths.get(owner)
+        if p is None:
+            return None
+        if t < len(p):
+            return p[t]
+        return p[-1] if self.parks.get(owner) else None
+
+    def closes_rotation(self, u: int, v: int, t: int) -> bool:
+        """True when moving u -> v between t and t + 1 closes a cycle of robots each
+        entering the cell the next one leaves (a swap is the 2-cycle)."""
+        n, vertex = self.n, self.vertex
+        o = vertex.get(t * n + v)
+        for _ in range(len(self.paths) + 1):
+            if o is None:
+                return False
+            x = self.cell_of(o, t + 1)
+            if x is None:
+                return False
+            if x == u:
+                return True
+            o = vertex.get(t * n + x)
+        return False
 
     def reserve(self, path: Sequence[int], owner: int, park: bool = True, t0: int = 0) -> None:
         """Reserve ``path[k]`` at step ``t0 + k``; with ``park`` the final cell for ever after."""
@@ -376,10 +439,15 @@ class Reservations:
                 bisect.insort(ts, t)
         if park:
             self.parked[path[-1]] = t0 + len(path) - 1
+        if t0 == 0:
+            self.paths[owner] = list(path)
+            self.parks[owner] = park
 
     def release(self, path: Sequence[int], owner: int, t0: int = 0) -> None:
         """Undo :meth:`reserve` (without ``park``) of ``path`` for ``owner``."""
         n = self.n
+        self.paths.pop(owner, None)
+        self.parks.pop(owner, None)
         for k, c in enumerate(path):
             t = t0 + k
             if self.vertex.get(t * n + c) == owner:
@@ -410,7 +478,8 @@ def safe_interval_astar(nbrs: Sequence[Sequence[int]], start: int, goal: int, h:
     Finds a path for one robot from ``start`` at step ``t0`` to ``goal``
     around the reservations ``res``: never in a reserved (cell, step), never
     in a parked cell from its park step on, never swapping cells with the
-    owner of its target cell, and arriving in the goal's last, unbounded safe
+    owner of its target cell nor closing a rotation (a cycle of robots each
+    following the next, which ordered execution could not carry out), and arriving in the goal's last, unbounded safe
     interval, so the robot can stay there for ever. Waiting is implicit: a
     state is (cell, safe interval) reached at its earliest step, which keeps
     the search small even when a robot must wait a long time (e.g. until
@@ -493,10 +562,12 @@ def safe_interval_astar(nbrs: Sequence[Sequence[int]], start: int, goal: int, h:
                 if e_int >= s_int and e_int >= lo:
                     t_arr = lo if lo > s_int else s_int
                     last_ok = e_int if e_int < hi else hi
-                    # no swap: whoever is in v at t_arr - 1 must not be in u at t_arr
+                    # following whoever is in v at t_arr - 1: no swap, no rotation
                     while t_arr <= last_ok:
                         o = vertex.get((t_arr - 1) * N + v)
-                        if o is None or vertex.get(t_arr * N + u) != o:
+                        if o is None:
+                            break
+                        if vertex.get(t_arr * N + u) != o and not res.closes_rotation(u, v, t_arr - 1):
                             break
                         t_arr += 1
                     if t_arr <= last_ok:
