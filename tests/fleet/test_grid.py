@@ -6,7 +6,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from rce_fleet.grid import CellGrid, make_grid
+from rce_fleet.grid import make_grid
 from rce_fleet.lab_map import lab_map, write_lab_map
 from rce_fleet.maps import OccupancyMap, load_map
 
