@@ -24,7 +24,8 @@
 
 Every ER from the cloud is printed with its reason. SIGINT/SIGTERM tear down: the interfaces
 and containers this run created are removed (unless ``--keep``), the websocket is closed,
-the socket removed; exit code 0. Exit code 1: login refused, interfaces not up in time,
+the socket removed; exit code 0. (With ``--keep`` nothing is removed by rce-ros, but today's
+master still destroys the containers a robot created when that robot disconnects.) Exit code 1: login refused, interfaces not up in time,
 or the connection lost.
 """
 from __future__ import annotations
@@ -412,7 +413,8 @@ def build_parser() -> argparse.ArgumentParser:
                    "or /tmp/rce-<uid>/<robotID>.sock)")
     p.add_argument("--timeout", type=float, default=30.0, metavar="S",
                    help="seconds to wait for the robot-side interfaces to come up (default 30)")
-    p.add_argument("--keep", action="store_true", help="do not remove interfaces and containers on exit")
+    p.add_argument("--keep", action="store_true", help="do not remove interfaces and containers on exit (note: "
+                   "the master still destroys a robot's containers when the robot disconnects)")
     p.add_argument("--url", metavar="MASTER_URL", help="master login URL (overrides the config's url)")
     return p
 
