@@ -46,12 +46,30 @@ class RpcPeer:
         self._pending: dict[int, asyncio.Future] = {}
         self._tasks: set[asyncio.Task] = set()
         self._reader_task: asyncio.Task | None = None
+        self._keepalive_task: asyncio.Task | None = None
+        self.last_rx = 0.0          # loop time of the last frame received
         self.closed = asyncio.Event()
+        self.handlers.setdefault("ping", _pong)
 
     def start(self) -> "RpcPeer":
         """Start reading the link in the background; returns self."""
         self._reader_task = asyncio.create_task(self._read_loop(), name=f"rpc-{self.name}")
         return self
+
+    def keepalive(self, interval: float = 1.0, timeout: float = 4.0) -> None:
+        """Send a ``ping`` notification every ``interval`` s and close the link when nothing has
+        arrived for ``timeout`` s (a peer that is gone without closing its socket, or a
+        partitioned network, is detected within ``timeout``)."""
+        async def run() -> None:
+            loop = asyncio.get_running_loop()
+            while not self.closed.is_set():
+                await asyncio.sleep(interval)
+                if loop.time() - self.last_rx > timeout:
+                    log.warning("control link silent, closing", peer=self.name, silent_s=round(loop.time() - self.last_rx, 1))
+                    await self.close()
+                    return
+                self.notify("ping")
+        self._keepalive_task = asyncio.create_task(run())
 
     @property
     def peername(self) -> str:
@@ -91,6 +109,8 @@ class RpcPeer:
 
     async def close(self) -> None:
         """Close the link and wait for the reader to stop."""
+        if self._keepalive_task and self._keepalive_task is not asyncio.current_task():
+            self._keepalive_task.cancel()
         if self._reader_task and not self._reader_task.done():
             self._reader_task.cancel()
         try:
@@ -118,9 +138,12 @@ class RpcPeer:
                 log.exception("on_close handler failed", peer=self.name)
 
     async def _read_loop(self) -> None:
+        loop = asyncio.get_running_loop()
+        self.last_rx = loop.time()
         try:
             while True:
                 frame = await framing.read_frame(self.reader, self.max_frame)
+                self.last_rx = loop.time()
                 if isinstance(frame, framing.DataFrame):
                     if self.on_data:
                         self.on_data(frame)
@@ -179,6 +202,10 @@ class RpcPeer:
     def _reply(self, rid: int, ok: bool, **kw) -> None:
         if not self.closed.is_set():
             self.writer.write(framing.encode_control({"re": rid, "ok": ok, **kw}))
+
+
+async def _pong(args: dict) -> None:
+    return None
 
 
 async def connect(host: str, port: int, handlers: dict[str, Handler] | None = None, **kw) -> RpcPeer:

@@ -121,6 +121,7 @@ class Master:
         peer.info["tid"] = ts.tid
         peer.name = f"{ts.kind}:{ts.name}"
         self.peers[ts.tid] = peer
+        peer.keepalive()      # a host gone silent is lost within 4 s (its containers marked lost)
         if ts.kind == "robot":
             peer.handlers.update({
                 "auth": self._auth, "robot_connected": lambda x, t=ts.tid: self._robot_connected(t, x),

@@ -85,6 +85,7 @@ class RobotEndpoint:
                     ("add_interface", "remove_interface", "connect", "disconnect", "notify", "close_robot")}
         self.master = await rpc.connect(master_host, master_port, handlers, name="master",
                                         on_close=lambda _p: self.stopped.set())
+        self.master.keepalive()
         await self.master.call("register", kind="robot", name=self.name, host=self.advertise_host,
                                ws_url=f"ws://{host}:{self.ws_port}/", data_addr=self.plane.addr)
         if metrics_port is not None:
