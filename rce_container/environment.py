@@ -32,7 +32,7 @@ from rce import framing, rpc
 from rce.bus.core import Bus
 from rce.bus.server import BusServer
 from rce.dataplane import DataPlane
-from rce.errors import NotFound, RCEError, RequestError
+from rce.errors import MessageError, NotFound, RCEError, RequestError
 from rce.log import get_logger, setup_logging
 from rce.messages import MessageRegistry, default_registry, wire_name
 from rce.naming import resolve
@@ -137,7 +137,10 @@ class Environment:
     # -- lifecycle -----------------------------------------------------------------------------
     async def start(self, control_path: str) -> None:
         """Listen on the data plane, dial the task set at ``control_path`` and say hello."""
-        load_package_types(self.registry)
+        try:
+            load_package_types(self.registry)
+        except MessageError as e:   # one broken package must not take every container down
+            log.warning("cannot load the message types of a package", reason=e.message)
         await self.plane.listen(self.bind, 0, self.advertise_host)
         handlers = {op[3:]: getattr(self, op) for op in dir(self) if op.startswith("op_")}
         self.peer = await rpc.connect_unix(control_path, handlers, name="container task set",

@@ -168,7 +168,10 @@ def check_class(kind: str, cls: str, registry: MessageRegistry | None = None) ->
     try:
         return lookup()
     except MessageError:
-        load_package_types(reg)   # a package installed since start may bring the class
+        try:
+            load_package_types(reg)   # a package installed since start may bring the class
+        except MessageError:
+            pass                      # a broken package elsewhere; the lookup below decides
     try:
         return lookup()
     except MessageError:

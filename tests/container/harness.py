@@ -83,6 +83,7 @@ class FakeMaster:
                 self._changed.notify_all()
         peer.handlers.update(register=register, node_status=node_status)
         peer.start()
+        peer.keepalive()        # as rce-master does: the task set sees pings, and must answer them
 
     async def call(self, op: str, **args) -> Any:
         return await self.peer.request(op, args, STEP + 10)
