@@ -1,0 +1,50 @@
+"""Browser fixtures for the web page tests: Debian's chromium driven by Playwright (sync API).
+
+Never ``playwright install``: the browser is the system's ``/usr/bin/chromium``."""
+from __future__ import annotations
+
+import os
+import shutil
+from pathlib import Path
+
+import pytest
+
+WEB_DIR = Path(__file__).resolve().parents[2] / "examples" / "fleet" / "rce_fleet" / "web"
+CHROMIUM = os.environ.get("RCE_CHROMIUM", "/usr/bin/chromium")
+CHROMIUM_ARGS = ["--no-sandbox", "--disable-gpu", "--disable-background-networking", "--disable-quic",
+                 "--no-first-run", "--disable-component-update", "--disable-sync"]
+
+
+@pytest.fixture(scope="session")
+def browser():
+    if not shutil.which(CHROMIUM) and not Path(CHROMIUM).exists():
+        pytest.skip(f"no chromium at {CHROMIUM} (apt-get install chromium)")
+    sync_api = pytest.importorskip("playwright.sync_api")
+    with sync_api.sync_playwright() as p:
+        b = p.chromium.launch(executable_path=CHROMIUM, headless=True, args=CHROMIUM_ARGS)
+        yield b
+        b.close()
+
+
+@pytest.fixture
+def page(browser, tmp_path):
+    """A fresh page (own context); console messages and page errors are kept in ``page.rce_log``
+    and shown when a test fails; a screenshot is left in the test's tmp dir either way."""
+    ctx = browser.new_context(viewport={"width": 1400, "height": 900})
+    pg = ctx.new_page()
+    pg.rce_log = []
+    pg.on("console", lambda m: pg.rce_log.append(f"console.{m.type}: {m.text}"))
+    pg.on("pageerror", lambda e: pg.rce_log.append(f"pageerror: {e}"))
+    yield pg
+    try:
+        pg.screenshot(path=str(tmp_path / "final.png"))
+    except Exception:
+        pass
+    ctx.close()
+
+
+def pytest_runtest_makereport(item, call):
+    if call.when == "call" and call.excinfo is not None:
+        pg = getattr(item, "funcargs", {}).get("page")
+        if pg is not None and getattr(pg, "rce_log", None):
+            item.add_report_section("call", "browser console", "\n".join(pg.rce_log[-200:]))
