@@ -69,7 +69,8 @@ def expand_directives(text: str, env: dict[str, str] | None = None) -> str:
 
 def build_args(args: str | list | None, env: dict[str, str] | None = None) -> list[str]:
     """Node arguments as a list: a string is split like a shell, directives expanded in each
-    word (so an expanded path with spaces stays one argument); a list is taken item by item.
+    word (so an expanded path with spaces stays one argument; a word that is only a directive
+    expanding to nothing is dropped, as roslaunch does); a list is taken item by item.
 
     Raises :class:`RequestError` for unbalanced quotes or a non-string item."""
     if args is None or args == "":
@@ -92,7 +93,12 @@ def build_args(args: str | list | None, env: dict[str, str] | None = None) -> li
     except ValueError as e:
         raise RequestError(f"cannot split node args {args!r}: {e}") from None
     restore = re.compile("\x00(\\d+)\x00")
-    return [expand_directives(restore.sub(lambda m: found[int(m.group(1))], w), env) for w in words]
+    out = []
+    for w in words:
+        value = expand_directives(restore.sub(lambda m: found[int(m.group(1))], w), env)
+        if value or not restore.fullmatch(w):    # a lone directive that expands to "" is no argument
+            out.append(value)
+    return out
 
 
 def parse_respawn(spec: Any) -> tuple[bool, float, int | None]:
@@ -112,6 +118,18 @@ def parse_respawn(spec: Any) -> tuple[bool, float, int | None]:
                                f"got {spec!r}")
         return True, float(delay), limit
     raise RequestError(f"respawn must be true, false or an object, got {spec!r}")
+
+
+def _python_shebang(path: Path) -> bool:
+    """True for a script whose first line is a Python shebang (``#!/usr/bin/env python3``):
+    like a ``.py`` file it runs with this interpreter, so it sees the packages installed with
+    rce (rosrun-style executables without a suffix)."""
+    try:
+        with open(path, "rb") as f:
+            first = f.readline(200)
+    except OSError:
+        return False
+    return first.startswith(b"#!") and b"python" in first
 
 
 @dataclass(eq=False)
@@ -176,8 +194,9 @@ class Launcher:
         args = build_args(spec.get("args"), env)
         env.update(RCE_BUS=self.bus_path, RCE_CONTAINER=self.ctag, RCE_NODE_NAME=name,
                    RCE_NAMESPACE=join("/", namespace), PYTHONUNBUFFERED="1")
-        argv = ([sys.executable, str(path)] if path.suffix == ".py" else [str(path)]) + args
-        if path.suffix != ".py" and not os.access(path, os.X_OK):
+        python = path.suffix == ".py" or _python_shebang(path)
+        argv = ([sys.executable, str(path)] if python else [str(path)]) + args
+        if not python and not os.access(path, os.X_OK):
             raise RequestError(f"node {ntag!r}: {path} is not executable (and not a .py script)")
         return NodeProcess(ntag, argv, env, enabled, delay, limit, spec=dict(spec))
 
