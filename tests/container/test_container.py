@@ -69,11 +69,13 @@ async def add_node(master: FakeMaster, cid: int, ntag: str, pkg: str = "Test", e
                              respawn=kw.pop("respawn", None))
 
 
-def echo_ready(ntag: str):
-    """describe() condition: the stringEcho node ``ntag`` is subscribed and serves its service."""
-    node = "/" + ntag
-    return lambda d: (node in topic(d, "/stringEchoReq")["subscribers"]
-                      and node in topic(d, "/stringEchoResp")["publishers"] and has_service(d, "/stringEchoService"))
+def echo_ready(name: str, ns: str = ""):
+    """describe() condition: the stringEcho node ``name`` in namespace ``ns`` is subscribed,
+    publishes and serves its service (its names are relative: they resolve in ``ns``)."""
+    node = f"{ns}/{name}"
+    return lambda d: (node in topic(d, f"{ns}/stringEchoReq")["subscribers"]
+                      and node in topic(d, f"{ns}/stringEchoResp")["publishers"]
+                      and has_service(d, f"{ns}/stringEchoService"))
 
 
 async def test_register_echo_and_service_over_the_data_plane(rig, registry):
@@ -295,10 +297,11 @@ async def test_exit_codes_respawn_args_and_logs(rig):
     stats = await master.call("stats", cid=4)
     assert stats["nodes"]["restarts"] == 2 and stats["nodes"]["running"] == 0
 
-    # remove_node of a running node: SIGTERM (an rce.node program exits 0 on it), reported as exited
-    await add_node(master, 4, "echo")
+    # name and namespace place the node; remove_node of a running node: SIGTERM (an rce.node
+    # program exits 0 on it), reported as exited
+    await add_node(master, 4, "echo", name="nsEcho", namespace="robot1")
     pid = (await master.wait_status(lambda s: s["ntag"] == "echo" and s["status"] == "started"))["pid"]
-    await master.wait_bus(4, echo_ready("echo"))
+    await master.wait_bus(4, echo_ready("nsEcho", "/robot1"))
     await master.call("remove_node", cid=4, ntag="echo")
     assert gone(pid)
     st = await master.wait_status(lambda s: s["ntag"] == "echo" and s["status"] == "exited")
