@@ -1,0 +1,387 @@
+"""The global planner node's logic, sans-I/O: robot poses, operator goals and blocks and
+lidar obstacles in; cell paths, cancelGoal, execution clearances and the fleet state out.
+
+The node (``packages/fleet/global_planner``) is a thin shell: it subscribes the topics,
+feeds each message to :class:`GlobalPlannerCore` and publishes the :class:`Out` items it
+returns, in order. Planning itself is :class:`rce_fleet.planner.FleetPlanner`.
+
+Topics (per robot N; DESIGN section 6 and the seed paper, section III-C):
+
+=============================  ===================================  ==============================
+topic                          type                                 meaning
+=============================  ===================================  ==============================
+``/RobotN/amcl_pose``          geometry_msgs/PoseWithCovarianceStamped  robot pose (in)
+``/RobotN/obstacles``          geometry_msgs/PoseArray              lidar points not on the map (in)
+``/RobotN/progress``           fleet/MoveProgress                   its move_client's progress (in)
+``/fleet/goal``                fleet/RobotGoal                      operator goal (in)
+``/fleet/block``               fleet/CellBlock                      operator block/unblock (in)
+``/RobotN/goalNodesList``      std_msgs/Int32MultiArray             the cell path (out)
+``/RobotN/cancelGoal``         std_msgs/Bool                        True: drop the old path (out)
+``/RobotN/clearance``          fleet/Clearance                      how far it may drive (out)
+``/fleet/state``               fleet/FleetState                     everything, ~5 Hz (out)
+=============================  ===================================  ==============================
+
+Plans. ``goalNodesList.data`` is the robot's remaining cell path (its current cell first,
+consecutive cells distinct); ``layout.dim[0].label`` is ``"plan <id>"``. A ``Clearance``
+names the plan it refers to and an index into that list: the robot may drive up to and
+into that cell. When the planner re-plans and a robot's remaining cells are unchanged it
+keeps its plan id (clearance indices keep counting in the list it already has); a robot
+whose cells change gets a new plan id and list. Only robots whose paths crossed a newly
+blocked cell get ``cancelGoal`` (True), before their new path, as the paper describes.
+"""
+from __future__ import annotations
+
+import math
+import time
+from collections import deque
+from dataclasses import dataclass, field
+from typing import Any, Callable, NamedTuple
+
+import numpy as np
+
+from .geometry import GridGeometry
+from .planner import INF, FleetPlanner, GridGraph, PlannerError
+from .tracking import CellTracker, ObstacleFilter
+
+__all__ = ["Out", "GlobalPlannerCore", "compress", "compressed_index"]
+
+MAX_ERRORS = 20
+CLEARANCE_REPEAT_S = 0.5   # clearances are repeated this often (lost or reordered messages heal)
+PATH_REPEAT_S = 2.0        # paths are repeated this often (a move_client that starts late gets one)
+RETRY_S = 1.0              # robots parked for want of a collision-free path are retried this often
+
+
+class Out(NamedTuple):
+    """One message to publish: ``topic``, message class ``type`` (wire name), JSON-form ``msg``."""
+    topic: str
+    type: str
+    msg: dict
+
+
+def compress(path) -> list[int]:
+    """Drop repeated consecutive cells (waits) from a space-time path."""
+    out: list[int] = []
+    for c in path:
+        c = int(c)
+        if not out or out[-1] != c:
+            out.append(c)
+    return out
+
+
+def compressed_index(path, k: int) -> int:
+    """Index in ``compress(path)`` of the cell at step ``k`` of ``path``."""
+    n = 0
+    for i in range(1, min(k, len(path) - 1) + 1):
+        if path[i] != path[i - 1]:
+            n += 1
+    return n
+
+
+@dataclass
+class _Robot:
+    name: str
+    tracker: CellTracker
+    pose: tuple[float, float, float] | None = None
+    pending_goal: int | None = None
+    plan: int = 0
+    cells: list[int] = field(default_factory=list)   # the path last sent (goalNodesList.data)
+    base: int = 0                                     # index in ``cells`` of the planner's paths[r][0]
+    cleared: int = -1                                 # last clearance index sent
+    cancels: int = 0
+    progress: dict = field(default_factory=dict)
+    obstacles_seen: int = 0
+
+
+class GlobalPlannerCore:
+    """See the module docstring. ``robots``: robot IDs served; ``clock``: monotonic seconds
+    (for repeats and obstacle confirmation); planner keyword arguments go to FleetPlanner."""
+
+    def __init__(self, geometry: GridGeometry, robots: list[str] = (), *, clock: Callable[[], float] = time.monotonic,
+                 lidar_blocking: bool = True, obstacle_filter: ObstacleFilter | None = None,
+                 log: Callable[..., None] | None = None, **planner_kw: Any):
+        self.geo = geometry
+        free = np.array(geometry.free, dtype=bool).reshape(geometry.rows, geometry.cols)
+        self.graph = GridGraph(free, [geometry.neighbours(c) for c in range(geometry.n_cells)])
+        self.fp = FleetPlanner(self.graph, **planner_kw)
+        self.clock = clock
+        self.lidar_blocking = lidar_blocking
+        self.obstacles = obstacle_filter or ObstacleFilter(geometry)
+        self.log = log or (lambda msg, **kw: None)
+        self.robots: dict[str, _Robot] = {}
+        self.errors: deque[str] = deque(maxlen=MAX_ERRORS)
+        self.replans = 0
+        self.plan_times: list[float] = []   # seconds per re-plan
+        self._seen_result = None
+        self._plan_ids = 0
+        self._seq = 0
+        self._last_clear_repeat = -math.inf
+        self._last_path_repeat = -math.inf
+        self._last_retry = -math.inf
+        for r in robots:
+            self.add_robot(r)
+
+    # -- robots ---------------------------------------------------------------------------
+    def add_robot(self, robot: str) -> bool:
+        """Serve ``robot`` (no-op if known). Returns True when it is new."""
+        if robot in self.robots:
+            return False
+        self.robots[robot] = _Robot(robot, CellTracker(self.geo))
+        return True
+
+    def _error(self, text: str, **fields) -> None:
+        self.errors.append(text)
+        self.log("error", text=text, **fields)
+
+    # -- inputs -----------------------------------------------------------------------------
+    def on_pose(self, robot: str, x: float, y: float, yaw: float) -> list[Out]:
+        """A pose estimate (``/RobotN/amcl_pose``)."""
+        rec = self.robots.get(robot)
+        if rec is None:
+            return []
+        rec.pose = (float(x), float(y), float(yaw))
+        before = rec.tracker.cell
+        cell = rec.tracker.update(x, y)
+        if cell is None or cell == before:
+            return []
+        try:
+            self.fp.set_position(robot, cell)
+        except PlannerError as e:
+            self._error(f"{robot}: {e}", robot=robot)
+            return []
+        out = []
+        if rec.pending_goal is not None:
+            goal, rec.pending_goal = rec.pending_goal, None
+            out += self._set_goals({robot: goal})
+        return out + self._sync()
+
+    def on_goal(self, robot: str, cell: int) -> list[Out]:
+        """An operator goal (``/fleet/goal``); ``cell`` -1 drops the goal."""
+        return self.on_goals({robot: cell})
+
+    def on_goals(self, goals: dict[str, int]) -> list[Out]:
+        """Several goals at once (planned together: one re-plan)."""
+        ok: dict[str, int] = {}
+        out: list[Out] = []
+        for robot, cell in goals.items():
+            rec = self.robots.get(robot)
+            if rec is None:
+                self._error(f"goal for unknown robot {robot!r} refused (robots: {', '.join(sorted(self.robots))})",
+                            robot=robot)
+                continue
+            cell = int(cell)
+            if cell < 0:
+                if robot in self.fp.positions:
+                    self.fp.clear_goal(robot)
+                rec.pending_goal = None
+                self.log("goal cleared", robot=robot)
+                continue
+            if not self.geo.valid(cell):
+                self._error(f"{robot}: goal cell {cell} is outside the {self.geo.rows}x{self.geo.cols} grid "
+                            f"(cells 0..{self.geo.n_cells - 1})", robot=robot)
+                continue
+            if robot not in self.fp.positions:
+                rec.pending_goal = cell
+                self.log("goal pending until the robot's first pose", robot=robot, goal=cell)
+                continue
+            ok[robot] = cell
+        if ok:
+            out += self._set_goals(ok)
+        return out + self._sync()
+
+    def _set_goals(self, goals: dict[str, int]) -> list[Out]:
+        try:
+            res = self.fp.set_goals(goals)
+        except PlannerError as e:
+            self._error(str(e))
+            return []
+        for r, g in goals.items():
+            self.log("goal", robot=r, goal=g, start=self.fp.positions.get(r))
+            if r in res.unreachable:
+                self._error(f"{r}: goal cell {g} unreachable: {res.unreachable[r]}", robot=r, goal=g)
+        return []
+
+    def on_block(self, cell: int, blocked: bool = True, source: str = "operator") -> list[Out]:
+        """Block (or unblock) ``cell`` (``/fleet/block`` or a lidar sighting). Re-plans at once;
+        the robots whose paths crossed the cell get cancelGoal before their new path."""
+        cell = int(cell)
+        source = source or "operator"
+        if not self.geo.valid(cell):
+            self._error(f"cannot {'block' if blocked else 'unblock'} cell {cell}: outside the "
+                        f"{self.geo.rows}x{self.geo.cols} grid", cell=cell)
+            return []
+        if blocked:
+            if cell in self.fp.blocked:
+                return []
+            t0 = time.perf_counter()
+            hit = self.fp.block(cell, source)
+            self.log("cell blocked", cell=cell, source=source, cancelled=sorted(hit),
+                     replan_ms=round((time.perf_counter() - t0) * 1e3, 2))
+            return self._sync(cancelled=hit)
+        if cell not in self.fp.blocked:
+            return []
+        self.fp.unblock(cell)
+        self.log("cell unblocked", cell=cell)
+        return self._sync()
+
+    def on_obstacles(self, robot: str, points: list[tuple[float, float]]) -> list[Out]:
+        """Lidar points of ``robot`` not explained by the static map (``/RobotN/obstacles``)."""
+        rec = self.robots.get(robot)
+        if rec is None or not self.lidar_blocking:
+            return []
+        rec.obstacles_seen += 1
+        poses = {r: (v.pose[0], v.pose[1]) for r, v in self.robots.items() if v.pose is not None}
+        cells = self.obstacles.update(poses.get(robot), points, self.clock(), poses,
+                                      set(self.fp.positions.values()), self.fp.blocked)
+        out: list[Out] = []
+        for c in cells:
+            out += self.on_block(c, True, f"lidar:{robot}")
+        return out
+
+    def on_progress(self, robot: str, progress: dict) -> None:
+        """A move_client's ``/RobotN/progress`` (kept for the fleet state)."""
+        rec = self.robots.get(robot)
+        if rec is not None:
+            rec.progress = progress
+
+    def tick(self) -> list[Out]:
+        """Periodic work: retry robots parked for want of a collision-free path, repeat paths
+        and clearances (so a lost or late message never stalls a robot)."""
+        now = self.clock()
+        out: list[Out] = []
+        if now - self._last_retry >= RETRY_S:
+            self._last_retry = now
+            retry = {r: self.fp.goals[r] for r in self.fp.unreachable
+                     if self.fp.goals.get(r) is not None and not self._permanent(r)}
+            if retry:
+                self.fp.set_goals(retry)
+                out += self._sync()
+        if now - self._last_path_repeat >= PATH_REPEAT_S:
+            self._last_path_repeat = now
+            out += [self._path_msg(r) for r, rec in self.robots.items() if rec.plan]
+        if now - self._last_clear_repeat >= CLEARANCE_REPEAT_S:
+            self._last_clear_repeat = now
+            out += [self._clear_msg(r) for r, rec in self.robots.items() if rec.plan and rec.cleared >= 0]
+        return out
+
+    # -- outputs ------------------------------------------------------------------------------
+    def _path_msg(self, r: str) -> Out:
+        rec = self.robots[r]
+        return Out(f"/{r}/goalNodesList", "std_msgs/Int32MultiArray",
+                   {"layout": {"dim": [{"label": f"plan {rec.plan}", "size": len(rec.cells), "stride": len(rec.cells)}],
+                               "data_offset": 0},
+                    "data": list(rec.cells)})
+
+    def _clear_msg(self, r: str) -> Out:
+        rec = self.robots[r]
+        return Out(f"/{r}/clearance", "fleet/Clearance", {"plan": rec.plan, "index": rec.cleared})
+
+    def _sync(self, cancelled: set[str] = frozenset()) -> list[Out]:
+        """Publish what the planner's last re-plan changed: cancels, paths, clearances."""
+        fp = self.fp
+        out: list[Out] = []
+        res = fp.last_result
+        replanned = res is not None and res is not self._seen_result
+        if replanned:
+            self._seen_result = res
+            self.replans += 1
+            self.plan_times.append(res.elapsed_s)
+            if res.unreachable:
+                for r, why in res.unreachable.items():
+                    if r in (res.changed | set(cancelled)):
+                        self.log("unreachable", robot=r, goal=fp.goals.get(r), reason=why)
+        for r in cancelled:
+            rec = self.robots[r]
+            rec.cancels += 1
+            out.append(Out(f"/{r}/cancelGoal", "std_msgs/Bool", {"data": True}))
+        for r, path in fp.paths.items():
+            rec = self.robots.get(r)
+            if rec is None:
+                continue
+            new = compress(path)
+            if replanned or not rec.plan:
+                # unchanged cells: the new path is a tail of the list the robot has (it moved on)
+                cur, keep = 0, False
+                if rec.plan and r not in cancelled:
+                    for i in range(rec.base, len(rec.cells)):
+                        if rec.cells[i:] == new:
+                            cur, keep = i, True
+                            break
+                if keep:
+                    rec.base = cur
+                else:
+                    self._plan_ids += 1
+                    rec.plan, rec.cells, rec.base, rec.cleared = self._plan_ids, new, 0, -1
+                    out.append(self._path_msg(r))
+                    self.log("path", robot=r, plan=rec.plan, cells=new, goal=fp.goals.get(r))
+            k = fp.clearance(r)
+            idx = rec.base + compressed_index(path, k)
+            if idx != rec.cleared:
+                rec.cleared = idx
+                out.append(self._clear_msg(r))
+        return out
+
+    # -- state ------------------------------------------------------------------------------
+    def _permanent(self, r: str) -> bool:
+        """True when ``r``'s goal cannot be reached until the map or the blocked cells change."""
+        fp = self.fp
+        g = fp.goals.get(r)
+        if g is None:
+            return False
+        if not self.graph.is_free(g) or g in fp.blocked:
+            return True
+        pos = fp.positions.get(r)
+        return pos is not None and pos != g and fp.distance(pos, g) == INF
+
+    def robot_state(self, r: str) -> dict:
+        fp, rec = self.fp, self.robots[r]
+        cell = fp.positions.get(r, rec.tracker.cell if rec.tracker.cell is not None else -1)
+        goal = fp.goals.get(r)
+        if goal is None:
+            goal = rec.pending_goal
+        path = rec.cells[rec.base:] if rec.plan else []
+        if r in fp.positions and rec.plan:
+            # index of the robot's current cell in the remaining path
+            cur = compressed_index(fp.paths[r], fp.progress(r)) if r in fp.paths else 0
+            path = rec.cells[rec.base + cur:]
+            cleared = max(rec.cleared - rec.base - cur, 0)
+        else:
+            cleared = 0
+        if r not in fp.positions:
+            state = "unknown"
+        elif r in fp.unreachable:
+            state = "unreachable"
+        elif goal is None:
+            state = "idle"
+        elif cell == goal and len(path) <= 1:
+            state = "arrived"
+        elif cleared > 0:
+            state = "moving"
+        else:
+            state = "waiting"
+        x, y, yaw = rec.pose if rec.pose is not None else (math.nan, math.nan, math.nan)
+        p = rec.progress
+        return {"robot": r, "cell": int(cell), "goal": -1 if goal is None else int(goal),
+                "x": x, "y": y, "yaw": yaw, "path": [int(c) for c in path], "plan": rec.plan,
+                "cleared": int(cleared), "replans": int(fp.replans.get(r, 0)), "cancels": rec.cancels,
+                "state": state, "error": fp.unreachable.get(r, ""),
+                "error_permanent": state == "unreachable" and self._permanent(r),
+                "client_state": str(p.get("state", "")), "distance_left": float(p.get("distance_left", 0.0))}
+
+    def state(self, stamp: float | None = None) -> dict:
+        """The ``fleet/FleetState`` message (JSON form)."""
+        self._seq += 1
+        geo = self.geo
+        gx, gy = geo.grid_corner()
+        stamp = time.time() if stamp is None else stamp
+        blocked = sorted(self.fp.blocked)
+        times = self.plan_times
+        return {"header": {"stamp": {"secs": int(stamp), "nsecs": int((stamp % 1) * 1e9)}, "frame_id": "map"},
+                "seq": self._seq, "rows": geo.rows, "cols": geo.cols, "cell_w": geo.cell_w_m, "cell_h": geo.cell_h_m,
+                "grid_x": gx, "grid_y": gy, "map_resolution": geo.resolution,
+                "map_origin": {"x": geo.origin[0], "y": geo.origin[1], "theta": geo.origin[2]},
+                "free": "".join("1" if f else "0" for f in geo.free),
+                "blocked": blocked, "blocked_by": [self.fp.blocked[c] for c in blocked],
+                "robots": [self.robot_state(r) for r in sorted(self.robots)],
+                "errors": list(self.errors), "replans": self.replans,
+                "last_plan_ms": times[-1] * 1e3 if times else 0.0,
+                "max_plan_ms": max(times) * 1e3 if times else 0.0}
