@@ -27,6 +27,7 @@ import re
 import shlex
 import sys
 from dataclasses import dataclass, field
+from pathlib import Path
 from typing import Any, Callable
 
 from rce.errors import NotFound, RCEError, RequestError
