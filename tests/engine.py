@@ -1,105 +1,11 @@
 """Start the real engine (rce-master, rce-robot, rce-container) as processes on loopback
 with ephemeral ports, for tests and benchmarks. Readiness comes from each process's
-``--ready-file``, never from sleeping."""
+``--ready-file``, never from sleeping.
+
+The implementation lives in :mod:`rce_fleet.launch` (the fleet demo starts the engine the
+same way); this module keeps the tests' and benchmarks' imports working."""
 from __future__ import annotations
 
-import json
-import os
-import signal
-import subprocess
-import sys
-import tempfile
-import time
-from dataclasses import dataclass, field
-from pathlib import Path
+from rce_fleet.launch import BIN, Engine, command, start_engine, wait_file  # noqa: F401
 
-BIN = Path(sys.executable).parent
-
-
-def wait_file(path: Path, proc: subprocess.Popen, timeout: float = 30.0) -> dict:
-    """Wait until ``path`` exists (JSON) or ``proc`` dies; returns the JSON."""
-    deadline = time.monotonic() + timeout
-    while time.monotonic() < deadline:
-        if path.exists():
-            return json.loads(path.read_text())
-        if proc.poll() is not None:
-            raise RuntimeError(f"{proc.args[0]} exited with {proc.returncode} before it was ready")
-        time.sleep(0.02)
-    raise TimeoutError(f"{proc.args[0]} not ready within {timeout} s")
-
-
-@dataclass
-class Engine:
-    """A running engine: ``master_url`` (http://127.0.0.1:PORT/), ``admin_token``, process handles."""
-    workdir: Path
-    env: dict
-    procs: list[subprocess.Popen] = field(default_factory=list)
-    master_url: str = ""
-    control_port: int = 0
-    admin_token: str = ""
-    robot_ready: list[dict] = field(default_factory=list)
-    logs: list[Path] = field(default_factory=list)
-
-    def spawn(self, name: str, argv: list[str], ready: Path | None = None, timeout: float = 30.0) -> tuple[subprocess.Popen, dict]:
-        log = self.workdir / f"{name}.log"
-        self.logs.append(log)
-        p = subprocess.Popen(argv, stdout=open(log, "wb"), stderr=subprocess.STDOUT, env=self.env,
-                             start_new_session=True)
-        self.procs.append(p)
-        info = wait_file(ready, p, timeout) if ready else {}
-        return p, info
-
-    def add_robot_taskset(self, *extra: str) -> dict:
-        n = len(self.robot_ready)
-        ready = self.workdir / f"robot{n}.ready"
-        _, info = self.spawn(f"robot{n}", [str(BIN / "rce-robot"), "127.0.0.1", "--master-port", str(self.control_port),
-                                           "--port", "0", "--data-port", "0", "--metrics-port", "0",
-                                           "--ready-file", str(ready), *extra], ready)
-        self.robot_ready.append(info)
-        return info
-
-    def add_container_host(self, *extra: str) -> subprocess.Popen:
-        n = sum(1 for p in self.procs if "rce-container" in p.args[0])
-        ready = self.workdir / f"container{n}.ready"
-        p, _ = self.spawn(f"container{n}", [str(BIN / "rce-container"), "127.0.0.1", "--master-port",
-                                            str(self.control_port), "--runtime-dir", str(self.workdir / f"rt{n}"),
-                                            "--ready-file", str(ready), *extra], ready)
-        return p
-
-    def stop(self) -> None:
-        for p in reversed(self.procs):
-            if p.poll() is None:
-                p.send_signal(signal.SIGTERM)
-        for p in reversed(self.procs):
-            try:
-                p.wait(10)
-            except subprocess.TimeoutExpired:
-                os.killpg(p.pid, signal.SIGKILL)
-                p.wait()
-
-    def log_text(self) -> str:
-        return "\n".join(f"== {p.name}\n{p.read_text(errors='replace')[-4000:]}" for p in self.logs if p.exists())
-
-
-def start_engine(workdir: Path | None = None, *, robot_tasksets: int = 1, container_hosts: int = 1,
-                 master_args: tuple = (), robot_args: tuple = (), container_args: tuple = ()) -> Engine:
-    """Start master (``--dev``), robot task set(s) and container host(s); returns the :class:`Engine`."""
-    workdir = Path(workdir or tempfile.mkdtemp(prefix="rce-engine-"))
-    workdir.mkdir(parents=True, exist_ok=True)
-    env = dict(os.environ, RCE_ADMIN_TOKEN="test-admin-token", RCE_LOG_JSON="1",
-               XDG_CONFIG_HOME=str(workdir / "config"))
-    e = Engine(workdir, env, admin_token="test-admin-token")
-    ready = workdir / "master.ready"
-    _, info = e.spawn("master", [str(BIN / "rce-master"), "--dev", "--port", "0", "--control-port", "0",
-                                 "--ready-file", str(ready), *master_args], ready)
-    e.master_url = f"http://127.0.0.1:{info['http_port']}/"
-    e.control_port = info["control_port"]
-    try:
-        for _ in range(robot_tasksets):
-            e.add_robot_taskset(*robot_args)
-        for _ in range(container_hosts):
-            e.add_container_host(*container_args)
-    except Exception:
-        e.stop()
-        raise
-    return e
+__all__ = ["BIN", "Engine", "start_engine", "wait_file", "command"]
