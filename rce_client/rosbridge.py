@@ -141,9 +141,12 @@ class _ToCloud:
 class RosBridge:
     """One ``rce-ros`` run: local bus, cloud connection, setup, bridges, teardown.
 
-    ``out(line)`` prints status lines (stdout); ``err(line)`` prints errors (stderr)."""
+    ``out(line)`` prints status lines (stdout); ``err(line)`` prints errors (stderr).
+    ``bus_path`` None serves no socket: an in-process robot (the fleet simulator runs one
+    bridge per simulated robot) publishes and subscribes on ``self.bus`` directly; ``run()``
+    in a task, ``ready`` tells when the interfaces are up, ``stop.set()`` tears down."""
 
-    def __init__(self, config: RobotConfig, source: str, bus_path: str, *, timeout: float = 30.0,
+    def __init__(self, config: RobotConfig, source: str, bus_path: str | None, *, timeout: float = 30.0,
                  keep: bool = False, url: str | None = None, registry: MessageRegistry | None = None,
                  out: Callable[[str], None] | None = None, err: Callable[[str], None] | None = None):
         self.cfg, self.source, self.bus_path = config, source, bus_path
@@ -233,6 +236,9 @@ class RosBridge:
             await self._stop_bus()
 
     async def _start_bus(self) -> None:
+        if self.bus_path is None:       # in-process: the owner uses ``self.bus`` directly
+            self.bus.nodes[OWNER] = {"pid": os.getpid(), "container": None}
+            return
         path = Path(self.bus_path)
         if path.exists():
             if _socket_alive(str(path)):
@@ -249,6 +255,8 @@ class RosBridge:
             c.close()
         for f in self._cleanup:
             f()
+        if self.bus_path is None:
+            return
         await self.server.close()
         try:
             os.unlink(self.bus_path)
