@@ -66,3 +66,32 @@ def test_sha256_fallback_matches_subtle(ui_engine, page):
         return out;
     }""")
     assert all(ok), ok
+
+
+def test_binary_parts_and_nan_tolerant_json(ui_engine, page):
+    """The Assembler takes a message's binary parts before or after its JSON frame (nested keys
+    and lists of ids too), and the JSON reader takes Python's NaN/Infinity (as null)."""
+    page.goto(ui_engine.master_url + "ui/echo.html")
+    out = page.evaluate("""async () => {
+        const m = await import('./rce.js');
+        const enc = (s) => new TextEncoder().encode(s);
+        const a = new m.Assembler(60);
+        const id1 = 'a'.repeat(32), id2 = 'b'.repeat(32), id3 = 'c'.repeat(32);
+        const frame = (id, s) => { const b = new Uint8Array(32 + s.length); b.set(enc(id)); b.set(enc(s), 32); return b.buffer; };
+        const early = a.addPart(frame(id1, 'one'));                      // part before its message
+        const none = a.addMessage({type: 'DM', data: {iTag: 't', msg: {'x*': id1, inner: {'y*': [id2, id3]}}}});
+        const mid = a.addPart(frame(id2, 'two'));
+        const done = a.addPart(frame(id3, 'three'));                     // completes the message
+        const d = new TextDecoder();
+        const msg = done[0].data.msg;
+        const [text, frames] = m.encodeMessage({type: 'DM', data: {msg: new Uint8Array([1, 2, 3]), list: [new Uint8Array([4])]}});
+        const sent = JSON.parse(text);
+        const parsed = m.parseJSON('{"x": NaN, "y": -Infinity, "s": "NaN \\\\" Infinity", "z": [Infinity, 1.5]}');
+        return {early: early.length, none, mid: mid.length, x: d.decode(msg.x), y: msg.inner.y.map(v => d.decode(v)),
+                left: a.parts.size + a.waiting.length, sentKeys: Object.keys(sent.data).sort(), nframes: frames.length,
+                frameLen: frames[0].length, parsed};
+    }""")
+    assert out["early"] == 0 and out["none"] is None and out["mid"] == 0
+    assert out["x"] == "one" and out["y"] == ["two", "three"] and out["left"] == 0
+    assert out["sentKeys"] == ["list*", "msg*"] and out["nframes"] == 2 and out["frameLen"] == 35
+    assert out["parsed"] == {"x": None, "y": None, "s": 'NaN " Infinity', "z": [None, 1.5]}

@@ -19,9 +19,8 @@
 //
 // The protocol acknowledges nothing on success: CC/CN/CX requests are answered only by an ER when
 // they fail, and interfaces report ST {topic: "iu", status: true} once connected. `request()`
-// resolves after `settle` ms without an ER (the robot endpoint runs a robot's requests one at a
-// time, in order, so an ER during that window belongs to the latest request); `waitUp()` is the
-// positive confirmation.
+// follows each request with a probe the cloud must refuse (see barrier()), so it resolves when the
+// request was handled and rejects with the ERs it caused; `waitUp()` waits for the interfaces.
 
 export const CLIENT_VERSION = "20130902";
 const enc = new TextEncoder();
@@ -132,6 +131,33 @@ export async function login(master, userID, version = CLIENT_VERSION) {
   }
   if (typeof data.url !== "string") throw new RCEError("login", `the master's login answer has no url: ${body}`);
   return data;
+}
+
+/**
+ * JSON.parse that also takes the NaN, Infinity and -Infinity tokens Python's json module writes
+ * for non-finite floats (a pose not known yet is NaN); they become null.
+ */
+export function parseJSON(text) {
+  try {
+    return JSON.parse(text);
+  } catch (e) {
+    if (!/NaN|Infinity/.test(text)) throw e;
+  }
+  let out = "", i = 0, inStr = false;
+  while (i < text.length) {
+    const ch = text[i];
+    if (inStr) {
+      out += ch;
+      if (ch === "\\") { out += text[i + 1] ?? ""; i += 2; continue; }
+      if (ch === '"') inStr = false;
+      i++;
+    } else if (ch === '"') { inStr = true; out += ch; i++; }
+    else if (text.startsWith("NaN", i)) { out += "null"; i += 3; }
+    else if (text.startsWith("-Infinity", i)) { out += "null"; i += 9; }
+    else if (text.startsWith("Infinity", i)) { out += "null"; i += 8; }
+    else { out += ch; i++; }
+  }
+  return JSON.parse(out);
 }
 
 // ---------------------------------------------------------------------------------------------
@@ -259,21 +285,21 @@ export class Assembler {
 export class Client {
   /**
    * options: master (login URL, e.g. "http://127.0.0.1:9000/"), userID, robotID, password (clear
-   * text, hashed here, never stored), version, expiry (s, binary parts), settle (ms, see request()).
+   * text, hashed here, never stored), version, expiry (s, binary parts).
    */
-  constructor({ master, userID, robotID, password, version = CLIENT_VERSION, expiry = 60, settle = 400 }) {
+  constructor({ master, userID, robotID, password, version = CLIENT_VERSION, expiry = 60 }) {
     this.master = master;
     this.userID = userID;
     this.robotID = robotID;
     this._password = password;
     this.version = version;
-    this.settle = settle;
     this.ws = null;
     this.wsUrl = null;
     this.assembler = new Assembler(expiry);
     this.handlers = new Map();            // event -> Set(fn)
     this.subscribers = new Map();         // iTag -> Set(fn)
     this.calls = new Map();               // msgID -> {resolve, reject, timer}
+    this._barriers = new Map();           // probe token -> {resolve, reject}
     this.iu = new Map();                  // iTag -> bool (robot-side interface connected)
     this.errors = [];                     // last ERs, newest last
     this.stats = { in: 0, out: 0, dm: 0, er: 0, st: 0 };
@@ -337,6 +363,8 @@ export class Client {
     clearInterval(this._expiryTimer);
     for (const [, c] of this.calls) { clearTimeout(c.timer); c.reject(new RCEError("closed", "connection closed")); }
     this.calls.clear();
+    for (const [, b] of this._barriers) b.reject(new RCEError("closed", "connection closed"));
+    this._barriers.clear();
     this._emit("close", { code, reason });
   }
 
@@ -356,14 +384,39 @@ export class Client {
   }
 
   /**
-   * A CC/DC/CN/CX request. Resolves when no ER came within `settle` ms (the protocol has no
-   * positive ack; see the top of this file), rejects with the ER's reason otherwise.
+   * A CC/DC/CN/CX request: resolves once the cloud has handled it, rejects with the ER(s) it
+   * caused. The protocol has no positive ack, but the master handles a robot's requests one at a
+   * time and in order and refuses each bad one with an ER; so after the request we send a probe
+   * (a CX between two interfaces that cannot exist, see barrier()) and the probe's ER marks the
+   * end: ERs that came before it belong to the request. (rce_client.Connection.barrier does the same.)
    */
-  request(type, data, settle = this.settle) {
+  async request(type, data, timeout = 60000) {
+    const errs = [];
+    const off = this.on("error", (reason) => errs.push(reason));
+    try {
+      this.send(type, data);
+      await this.barrier(timeout);
+    } finally {
+      off();
+    }
+    if (errs.length) throw new RCEError("cloud", errs.join("; "));
+  }
+
+  /** Resolve when the cloud has handled every request sent before (see request()). */
+  barrier(timeout = 60000) {
+    const token = `rcesync${newId().slice(0, 12)}`;
     return new Promise((resolve, reject) => {
-      const off = this.on("error", (reason) => { clearTimeout(t); off(); reject(new RCEError("cloud", reason)); });
-      const t = setTimeout(() => { off(); resolve(); }, settle);
-      try { this.send(type, data); } catch (e) { clearTimeout(t); off(); reject(e); }
+      const timer = setTimeout(() => { this._barriers.delete(token); reject(new RCEError("timeout",
+        `the cloud did not answer within ${timeout / 1000} s`)); }, timeout);
+      this._barriers.set(token, { resolve: () => { clearTimeout(timer); resolve(); },
+                                  reject: (e) => { clearTimeout(timer); reject(e); } });
+      try {
+        this.send("CX", { connect: [{ tagA: `${token}/a`, tagB: `${token}/b` }] });
+      } catch (e) {
+        this._barriers.delete(token);
+        clearTimeout(timer);
+        reject(e);
+      }
     });
   }
 
@@ -431,7 +484,7 @@ export class Client {
     let complete = [];
     try {
       if (typeof data === "string") {
-        const m = JSON.parse(data);
+        const m = parseJSON(data);
         if (!m || typeof m !== "object" || typeof m.type !== "string") throw new Error("not {type, data}");
         const done = this.assembler.addMessage(m);
         if (done) complete = [done];
@@ -465,6 +518,9 @@ export class Client {
     } else if (m.type === "ER") {
       this.stats.er++;
       const reason = typeof d === "string" ? d : JSON.stringify(d);
+      for (const [token, b] of this._barriers) {
+        if (reason.includes(token)) { this._barriers.delete(token); b.resolve(); return; }
+      }
       this.errors.push({ t: Date.now(), reason });
       if (this.errors.length > 50) this.errors.shift();
       this._emit("error", reason);
