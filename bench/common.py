@@ -260,6 +260,7 @@ class CpuMeter:
             return None
 
     def start(self) -> None:
+        self.labels = {p.pid: proc_label(p) for p in self.procs}
         self.w0 = time.monotonic()
         self.t0 = {p.pid: self._cpu(p) for p in self.procs}
 
@@ -280,7 +281,7 @@ class CpuMeter:
         secs = self.seconds()
         for p in self.procs:
             if p.pid in secs:
-                k = proc_label(p)
+                k = self.labels.get(p.pid) or proc_label(p)
                 out[k] = out.get(k, 0.0) + 100.0 * secs[p.pid] / self.wall
         return {k: round(v, 2) for k, v in sorted(out.items(), key=lambda kv: -kv[1])}
 
