@@ -1,0 +1,130 @@
+"""``rce-fleet``: the fleet system's command line.
+
+::
+
+    rce-fleet demo [--map YAML] [--robots N] [--grid RxC | --cell M] [--seed S] [--speedup K]
+                   [--goal RobotN=CELL]... [--start RobotN=CELL]... [--block CELL@S]...
+                   [--obstacle CELL@S]... [--timeout S] [--plot PNG] [--report JSON] [--headless]
+    rce-fleet serve [same options, no mission]      # until Ctrl-C
+    rce-fleet configs [--out DIR] [--robots N] [--url URL]   # write robot1.config ...
+    rce-fleet grid [--map YAML] [--grid RxC | --cell M]     # print the grid's cell numbers
+"""
+from __future__ import annotations
+
+import argparse
+import sys
+
+__all__ = ["main", "build_parser"]
+
+
+def _grid(text: str) -> tuple[int, int]:
+    r, sep, c = text.lower().partition("x")
+    try:
+        if not sep:
+            raise ValueError
+        rows, cols = int(r), int(c)
+        if rows < 1 or cols < 1:
+            raise ValueError
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected ROWSxCOLS like 8x8, got {text!r}") from None
+    return rows, cols
+
+
+def _positive(text: str) -> float:
+    try:
+        v = float(text)
+        if not v > 0:
+            raise ValueError
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected a number > 0, got {text!r}") from None
+    return v
+
+
+def _map_args(p: argparse.ArgumentParser) -> None:
+    p.add_argument("--map", metavar="YAML", help="ROS map_server map (default: the project's lab map, generated)")
+    g = p.add_mutually_exclusive_group()
+    g.add_argument("--grid", type=_grid, metavar="ROWSxCOLS", help="grid size (default 8x8, as in the paper)")
+    g.add_argument("--cell", type=_positive, metavar="METERS", help="square cells of this side instead")
+
+
+def _run_args(p: argparse.ArgumentParser, mission: bool) -> None:
+    _map_args(p)
+    p.add_argument("--robots", type=int, default=3, metavar="N", help="number of simulated robots (default 3)")
+    p.add_argument("--seed", type=int, default=1, help="random starts/goals and sensor noise (default 1)")
+    p.add_argument("--speedup", type=_positive, default=2.0, metavar="K",
+                   help="simulated time runs K times faster than wall time (default 2)")
+    p.add_argument("--start", action="append", default=[], metavar="RobotN=CELL", help="start cell of a robot")
+    p.add_argument("--headless", action="store_true", help="no web page (the page is a later issue)")
+    p.add_argument("--timeout", type=_positive, default=300.0 if mission else 10 ** 9, metavar="S",
+                   help="give up after S wall seconds" + (" (default 300)" if mission else ""))
+    p.add_argument("--no-lidar-blocking", action="store_true",
+                   help="the planner ignores obstacles the robots' lidars report")
+    p.add_argument("--workdir", metavar="DIR", help="keep engine logs, configs and the map here (default: a temp dir)")
+    p.add_argument("--keep", action="store_true", help="keep the temp dir")
+    p.add_argument("--plot", metavar="PNG", default="fleet_paths.png" if mission else None,
+                   help="PNG of the map, grid, blocked cells and driven paths" +
+                   (" (default fleet_paths.png)" if mission else ""))
+    p.add_argument("--report", metavar="JSON", help="write a JSON report of the run")
+    p.add_argument("--live", dest="live", action="store_true", default=None, help="live table even without a terminal")
+    p.add_argument("--no-live", dest="live", action="store_false", help="plain progress lines instead of the live table")
+
+
+def build_parser() -> argparse.ArgumentParser:
+    p = argparse.ArgumentParser(prog="rce-fleet", description="The warehouse fleet on rce: demo, serve, configs.")
+    sub = p.add_subparsers(dest="cmd", required=True)
+    d = sub.add_parser("demo", help="run a mission to the end (exit 0 when every robot reached its goal)")
+    _run_args(d, True)
+    d.add_argument("--goal", action="append", default=[], metavar="RobotN=CELL",
+                   help="goal cell of a robot (repeatable; the others get random free cells)")
+    d.add_argument("--block", action="append", default=[], metavar="CELL@S",
+                   help="block CELL S sim seconds after the goals were sent (repeatable)")
+    d.add_argument("--obstacle", action="append", default=[], metavar="CELL@S",
+                   help="drop a box in CELL at S sim seconds, unannounced: the robots' lidars must find it")
+    s = sub.add_parser("serve", help="the same system without a mission, until Ctrl-C")
+    _run_args(s, False)
+    c = sub.add_parser("configs", help="write the robots' configs (robot1.config ...)")
+    c.add_argument("--out", default="configs", metavar="DIR", help="directory (default configs)")
+    c.add_argument("--robots", type=int, default=10, metavar="N", help="how many (default 10)")
+    c.add_argument("--url", default="http://127.0.0.1:9000/", help="master login URL written into them")
+    g = sub.add_parser("grid", help="print the grid's cell numbers (## = not free)")
+    _map_args(g)
+    return p
+
+
+def main(argv: list[str] | None = None) -> None:
+    args = build_parser().parse_args(argv)
+    if args.cmd == "configs":
+        from .configs import write_configs
+        for path in write_configs(args.out, args.robots, args.url):
+            print(path)
+        return
+    if args.cmd == "grid":
+        import tempfile
+        from .grid import make_grid
+        from .lab_map import write_lab_map
+        from .maps import load_map
+        with tempfile.TemporaryDirectory() as d:
+            m = load_map(args.map or write_lab_map(d))
+        g = make_grid(m, args.grid, args.cell) if (args.grid or args.cell) else make_grid(m)
+        print(f"{g.rows}x{g.cols} cells of {g.cell_w_m:.3f} x {g.cell_h_m:.3f} m, {len(g.free_cells())} free")
+        print(g.ascii())
+        return
+    from .demo import EXIT_USAGE, Options, UsageError, parse_cell_at, parse_robot_cell, run
+    mission = args.cmd == "demo"
+    try:
+        opts = Options(map=args.map, robots=args.robots, grid=args.grid, cell=args.cell, seed=args.seed,
+                       speedup=args.speedup, headless=args.headless, timeout=args.timeout,
+                       goals=parse_robot_cell(getattr(args, "goal", []), "goal"),
+                       starts=parse_robot_cell(args.start, "start"),
+                       blocks=parse_cell_at(getattr(args, "block", []), "block"),
+                       obstacles=parse_cell_at(getattr(args, "obstacle", []), "obstacle"),
+                       plot=args.plot, report=args.report, workdir=args.workdir, keep=args.keep,
+                       lidar_blocking=not args.no_lidar_blocking, mission=mission, live=args.live)
+    except UsageError as e:
+        print(f"rce-fleet: {e}", file=sys.stderr)
+        sys.exit(EXIT_USAGE)
+    sys.exit(run(opts))
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,100 @@
+"""Robot configs of the fleet (the seed paper's ``robot1.config`` format, section III-C-2).
+
+``robot_config(n)`` is the config of simulated robot ``RobotN``; ``configs/robot1.config``
+... ``configs/robot10.config`` are its output (``rce-fleet configs`` rewrites them;
+``tests/fleet/test_fleet_e2e.py`` checks they match). The fleet manager
+(:mod:`rce_fleet.manager`, robotID ``fleetManager``) creates the fleet container
+``cTag_01`` and the global planner before the robots connect, so a robot's config adds
+only its own move_client node, interfaces and connections to that container:
+
+================================  ================================  =====================================
+container side (eTag cTag_01)     robot side (eTag RobotN)          topic, class
+================================  ================================  =====================================
+amclPoseReceiver_N  Publisher     amclPoseSender_N  SubscriberFwd   /RobotN/amcl_pose <- /amcl_pose,
+                    Interface                                       geometry_msgs/PoseWithCovarianceStamped
+obstaclesReceiver_N Publisher     obstaclesSender_N SubscriberFwd   /RobotN/obstacles <- /obstacles,
+                    Interface                                       geometry_msgs/PoseArray
+goalSender_N  SubscriberInterface goalReceiver_N  PublisherFwd      /RobotN/move_base_simple/goal ->
+                                                                    /move_base_simple/goal, PoseStamped
+cancelSender_N SubscriberInterface cancelReceiver_N PublisherFwd    /RobotN/move_base/cancel ->
+                                                                    /move_base/cancel, actionlib_msgs/GoalID
+================================  ================================  =====================================
+
+Robot-side interfaces are Forwarders (the serialized ROS message as a binary part: no JSON
+on the robot's side); the robot's local topics carry the names a TurtleBot's ``amcl`` and
+``move_base`` use.
+"""
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+__all__ = ["robot_config", "write_configs", "FLEET_CTAG", "DEFAULT_URL", "USER", "PASSWORD"]
+
+FLEET_CTAG = "cTag_01"
+DEFAULT_URL = "http://127.0.0.1:9000/"
+USER = "testUser"
+PASSWORD = "testUser"
+
+# (container iTag, container iType, robot iTag, robot iType, class, container addr, robot addr)
+_LINKS = [
+    ("amclPoseReceiver_{n}", "PublisherInterface", "amclPoseSender_{n}", "SubscriberForwarder",
+     "geometry_msgs/PoseWithCovarianceStamped", "/Robot{n}/amcl_pose", "/amcl_pose"),
+    ("obstaclesReceiver_{n}", "PublisherInterface", "obstaclesSender_{n}", "SubscriberForwarder",
+     "geometry_msgs/PoseArray", "/Robot{n}/obstacles", "/obstacles"),
+    ("goalSender_{n}", "SubscriberInterface", "goalReceiver_{n}", "PublisherForwarder",
+     "geometry_msgs/PoseStamped", "/Robot{n}/move_base_simple/goal", "/move_base_simple/goal"),
+    ("cancelSender_{n}", "SubscriberInterface", "cancelReceiver_{n}", "PublisherForwarder",
+     "actionlib_msgs/GoalID", "/Robot{n}/move_base/cancel", "/move_base/cancel"),
+]
+
+
+def robot_config(n: int, url: str = DEFAULT_URL, user: str = USER, password: str = PASSWORD,
+                 ctag: str = FLEET_CTAG) -> dict:
+    """The config of robot ``Robot<n>`` (a dict in the seed's JSON format)."""
+    rid = f"Robot{n}"
+    interfaces, connections = [], []
+    for c_tag, c_type, r_tag, r_type, cls, c_addr, r_addr in _LINKS:
+        c_tag, r_tag, c_addr = c_tag.format(n=n), r_tag.format(n=n), c_addr.format(n=n)
+        interfaces.append({"eTag": ctag, "iTag": c_tag, "iType": c_type, "iCls": cls, "addr": c_addr})
+        interfaces.append({"eTag": rid, "iTag": r_tag, "iType": r_type, "iCls": cls, "addr": r_addr})
+        connections.append({"tagA": f"{ctag}/{c_tag}", "tagB": f"{rid}/{r_tag}"})
+    return {
+        "url": url, "userID": user, "password": password, "robotID": rid,
+        "containers": [],
+        "nodes": [{"cTag": ctag, "nTag": f"move_client_node_{n}", "pkg": "fleet", "exe": "move_client",
+                   "args": f"--robot {rid}", "namespace": rid}],
+        "parameters": [],
+        "interfaces": interfaces,
+        "connections": connections,
+    }
+
+
+def dumps(cfg: dict) -> str:
+    """The config as the committed files have it: JSON, one interface/connection a line."""
+    lines = ["{"]
+    for k in ("url", "userID", "password", "robotID"):
+        lines.append(f"    {json.dumps(k)}: {json.dumps(cfg[k])},")
+    for k in ("containers", "nodes", "parameters", "interfaces", "connections"):
+        items = cfg[k]
+        if not items:
+            lines.append(f"    {json.dumps(k)}: [],")
+            continue
+        lines.append(f"    {json.dumps(k)}: [")
+        lines += [f"        {json.dumps(it)}," for it in items[:-1]] + [f"        {json.dumps(items[-1])}"]
+        lines.append("    ],")
+    lines[-1] = lines[-1].rstrip(",")
+    lines.append("}")
+    return "\n".join(lines) + "\n"
+
+
+def write_configs(directory: str | Path, robots: int, url: str = DEFAULT_URL) -> list[Path]:
+    """Write ``robot1.config`` ... ``robot<robots>.config`` into ``directory``; returns the paths."""
+    d = Path(directory)
+    d.mkdir(parents=True, exist_ok=True)
+    out = []
+    for n in range(1, robots + 1):
+        p = d / f"robot{n}.config"
+        p.write_text(dumps(robot_config(n, url)))
+        out.append(p)
+    return out

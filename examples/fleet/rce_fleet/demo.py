@@ -1,0 +1,556 @@
+"""``rce-fleet demo`` / ``rce-fleet serve``: the whole fleet system on one machine.
+
+1. The engine as processes on 127.0.0.1 with ephemeral ports (:mod:`rce_fleet.launch`):
+   rce-master ``--dev``, rce-robot, rce-container.
+2. The fleet manager (:mod:`rce_fleet.manager`, robotID ``fleetManager``): the fleet
+   container ``cTag_01``, the grid parameter and the ``global_planner`` node.
+3. N simulated robots in one :class:`rce_fleet.simhost.SimHost`, each connected as an
+   rce-ros client with its own robot config (:func:`rce_fleet.configs.robot_config`),
+   which starts its ``move_client`` in the fleet container.
+4. The mission (``demo``): goals (``--goal RobotN=CELL`` or random free cells from
+   ``--seed``), optional cell blocks (``--block CELL@SECONDS``, sim seconds after the
+   goals were sent) and unannounced obstacles (``--obstacle CELL@SECONDS``: a box only the
+   robots' lidars can find); a live table; a PNG of the driven paths (``--plot``); a JSON
+   report (``--report``). Exit 0 when every robot has reached its goal; otherwise non-zero
+   with the reason (1 failure or timeout, 2 bad arguments, 3 an unreachable goal).
+
+``serve`` runs the same system without a mission until Ctrl-C (or ``--timeout``).
+"""
+from __future__ import annotations
+
+import asyncio
+import json
+import math
+import random
+import shutil
+import signal
+import sys
+import tempfile
+import time
+from collections import deque
+from dataclasses import dataclass, field
+from pathlib import Path
+
+from rce.errors import RCEError
+from rce.log import get_logger, setup_logging
+from rce.messages import default_registry
+from rce.packages import load_package_types
+
+from .configs import robot_config
+from .geometry import GridGeometry
+from .grid import make_grid
+from .lab_map import write_lab_map
+from .launch import Engine, start_engine
+from .manager import FleetManager
+from .maps import MapError, load_map
+from .simhost import SimHost
+
+log = get_logger("fleet.demo")
+
+EXIT_OK, EXIT_FAIL, EXIT_USAGE, EXIT_UNREACHABLE = 0, 1, 2, 3
+REACH_TOL = 0.25       # m between the robot's true centre and its goal cell's centre
+
+
+class UsageError(ValueError):
+    """A bad flag value; the message says which and why."""
+
+
+@dataclass
+class Options:
+    map: str | None = None
+    robots: int = 3
+    grid: tuple[int, int] | None = None
+    cell: float | None = None
+    seed: int = 1
+    speedup: float = 2.0
+    headless: bool = False
+    timeout: float = 300.0
+    goals: dict[str, int] = field(default_factory=dict)
+    starts: dict[str, int] = field(default_factory=dict)
+    blocks: list[tuple[int, float]] = field(default_factory=list)
+    obstacles: list[tuple[int, float]] = field(default_factory=list)
+    plot: str | None = "fleet_paths.png"
+    report: str | None = None
+    workdir: str | None = None
+    keep: bool = False
+    lidar_blocking: bool = True
+    mission: bool = True
+    live: bool | None = None        # None: when stdout is a terminal
+
+
+def parse_robot_cell(items: list[str], what: str) -> dict[str, int]:
+    """``["Robot1=12", ...]`` -> ``{"Robot1": 12}``; raises UsageError."""
+    out = {}
+    for it in items or []:
+        rid, sep, cell = it.partition("=")
+        try:
+            if not sep or not rid:
+                raise ValueError
+            out[rid] = int(cell)
+        except ValueError:
+            raise UsageError(f"--{what} {it!r}: expected ROBOT=CELL, e.g. Robot1=42") from None
+    return out
+
+
+def parse_cell_at(items: list[str], what: str) -> list[tuple[int, float]]:
+    """``["26@5", ...]`` -> ``[(26, 5.0)]``; raises UsageError."""
+    out = []
+    for it in items or []:
+        cell, sep, t = it.partition("@")
+        try:
+            if not sep:
+                raise ValueError
+            out.append((int(cell), float(t)))
+        except ValueError:
+            raise UsageError(f"--{what} {it!r}: expected CELL@SECONDS, e.g. 26@5") from None
+        if out[-1][1] < 0:
+            raise UsageError(f"--{what} {it!r}: seconds must be >= 0")
+    return out
+
+
+def components(geo: GridGeometry) -> list[set[int]]:
+    """Connected sets of free cells, largest first."""
+    seen: set[int] = set()
+    comps = []
+    for c in geo.free_cells():
+        if c in seen:
+            continue
+        comp, todo = {c}, [c]
+        seen.add(c)
+        while todo:
+            u = todo.pop()
+            for v in geo.neighbours(u):
+                if v not in seen:
+                    seen.add(v)
+                    comp.add(v)
+                    todo.append(v)
+        comps.append(comp)
+    return sorted(comps, key=len, reverse=True)
+
+
+def choose_cells(geo: GridGeometry, robots: list[str], seed: int, starts: dict[str, int],
+                 goals: dict[str, int], mission: bool) -> tuple[dict[str, int], dict[str, int]]:
+    """Starts and goals: the given ones, the others random distinct free cells (seeded) of the
+    largest connected part of the grid. Raises UsageError for a given start that is not free."""
+    rng = random.Random(seed)
+    comps = components(geo)
+    if not comps:
+        raise UsageError("the grid has no free cell (try another --grid/--cell)")
+    pool = sorted(comps[0])
+    for r, c in starts.items():
+        if not geo.is_free(c):
+            raise UsageError(f"--start {r}={c}: cell {c} is not a free cell of the grid")
+    if len(set(starts.values())) != len(starts):
+        raise UsageError("--start: two robots in one cell")
+    need = len(robots) - len(starts)
+    free_starts = [c for c in pool if c not in starts.values()]
+    if need > len(free_starts):
+        raise UsageError(f"{len(robots)} robots do not fit in the {len(pool)} connected free cells of the grid")
+    picked = rng.sample(free_starts, need)
+    st = dict(starts)
+    for r in robots:
+        if r not in st:
+            st[r] = picked.pop()
+    gl = dict(goals)
+    if mission:
+        taken = set(gl.values())
+        for r in robots:
+            if r in gl:
+                continue
+            cands = [c for c in pool if c != st[r] and c not in taken]
+            if not cands:
+                raise UsageError("not enough free cells for distinct goals")
+            gl[r] = rng.choice(cands)
+            taken.add(gl[r])
+    return st, gl
+
+
+def _fmt_state(s: str) -> str:
+    colours = {"arrived": "green", "moving": "cyan", "waiting": "yellow", "unreachable": "red", "unknown": "dim"}
+    c = colours.get(s)
+    return f"[{c}]{s}[/{c}]" if c else s
+
+
+class Run:
+    """One demo/serve run (see the module docstring)."""
+
+    def __init__(self, opts: Options):
+        self.o = opts
+        self.robots = [f"Robot{i}" for i in range(1, opts.robots + 1)]
+        self.engine: Engine | None = None
+        self.manager: FleetManager | None = None
+        self.sim: SimHost | None = None
+        self.state: dict | None = None
+        self.t_mission: float | None = None       # sim time the goals were sent
+        self.wall_mission: float | None = None
+        self.reached: dict[str, float] = {}       # robot -> sim time
+        self.block_log: list[dict] = []
+        self.obstacle_log: list[dict] = []
+        self.result: tuple[int, str] | None = None
+        self.events: deque[str] = deque(maxlen=6)
+        self.node_failures: list[str] = []
+        self._stop = asyncio.Event()
+
+    # -- set-up ---------------------------------------------------------------------------------
+    def prepare(self) -> None:
+        o = self.o
+        if o.robots < 1:
+            raise UsageError("--robots must be >= 1")
+        if o.speedup <= 0:
+            raise UsageError("--speedup must be > 0")
+        self.workdir = Path(o.workdir) if o.workdir else Path(tempfile.mkdtemp(prefix="rce-fleet-"))
+        self.workdir.mkdir(parents=True, exist_ok=True)
+        map_path = o.map or str(write_lab_map(self.workdir / "map"))
+        self.map_path = map_path
+        try:
+            self.occ = load_map(map_path)
+        except (MapError, OSError) as e:
+            raise UsageError(f"--map: {e}") from None
+        try:
+            grid = make_grid(self.occ, o.grid, o.cell) if (o.grid or o.cell) else make_grid(self.occ)
+        except ValueError as e:
+            raise UsageError(f"--grid/--cell: {e}") from None
+        self.geo = GridGeometry.from_cellgrid(grid)
+        for r in list(o.goals) + list(o.starts):
+            if r not in self.robots:
+                raise UsageError(f"unknown robot {r!r}: the robots are Robot1..Robot{o.robots}")
+        for r, c in o.goals.items():
+            if not self.geo.valid(c):
+                raise UsageError(f"--goal {r}={c}: cell outside the {self.geo.rows}x{self.geo.cols} grid")
+        for c, _ in o.blocks + o.obstacles:
+            if not self.geo.valid(c):
+                raise UsageError(f"cell {c} is outside the {self.geo.rows}x{self.geo.cols} grid")
+        self.starts, self.goals = choose_cells(self.geo, self.robots, o.seed, o.starts, o.goals, o.mission)
+
+    # -- run --------------------------------------------------------------------------------------
+    async def run(self) -> int:
+        o = self.o
+        loop = asyncio.get_running_loop()
+        for sig in (signal.SIGINT, signal.SIGTERM):
+            try:
+                loop.add_signal_handler(sig, self._interrupt)
+            except (NotImplementedError, RuntimeError):
+                pass
+        wall0 = time.monotonic()
+        self.deadline = wall0 + o.timeout
+        try:
+            code, reason = await self._run()
+        except RCEError as e:
+            code, reason = EXIT_FAIL, e.message
+        except (RuntimeError, TimeoutError, OSError) as e:
+            code, reason = EXIT_FAIL, str(e)
+        self.result = (code, reason)
+        self.wall_total = time.monotonic() - wall0
+        try:
+            self._outputs(code, reason)
+        finally:
+            await self._teardown()
+        return code
+
+    def _interrupt(self) -> None:
+        self.events.append("interrupted")
+        self._stop.set()
+
+    async def _run(self) -> tuple[int, str]:
+        o = self.o
+        self.engine = await asyncio.to_thread(start_engine, self.workdir / "engine",
+                                              admin_token=f"fleet-{random.getrandbits(64):016x}")
+        log.info("engine up", master=self.engine.master_url, workdir=str(self.workdir))
+        args = "" if o.lidar_blocking else "--no-lidar-blocking"
+        self.manager = FleetManager(self.engine.master_url, self.geo, self.robots, planner_args=args,
+                                    on_state=self._on_state)
+        await self._bounded(self.manager.start(timeout=60.0), "fleet manager setup")
+        reg = default_registry()
+        load_package_types(reg)
+        self.sim = SimHost(self.occ, self.geo, reg, seed=o.seed, speedup=o.speedup)
+        for r in self.robots:
+            self.sim.spawn(r, self.starts[r])
+        self.sim.start()
+        cfgs = {r: robot_config(int(r[5:]), self.engine.master_url) for r in self.robots}
+        (self.workdir / "configs").mkdir(exist_ok=True)
+        for r, cfg in cfgs.items():
+            (self.workdir / "configs" / f"robot{r[5:]}.config").write_text(json.dumps(cfg, indent=2))
+        # connect the robots a few at a time (each sets up its node and interfaces)
+        sem = asyncio.Semaphore(4)
+
+        async def connect(r: str) -> None:
+            async with sem:
+                await self.sim.connect(r, cfgs[r], self.engine.master_url, timeout=60.0)
+        await self._bounded(asyncio.gather(*(connect(r) for r in self.robots)), "robots connecting")
+        log.info("robots connected", robots=len(self.robots), t_wall=round(time.monotonic() - (self.deadline - o.timeout), 1))
+
+        def ready(st: dict) -> bool:
+            rs = {x["robot"]: x for x in st.get("robots", [])}
+            return all(r in rs and rs[r]["cell"] >= 0 and rs[r]["client_state"] not in ("", "no_pose")
+                       for r in self.robots)
+        await self._bounded(self.manager.wait_state(ready, max(1.0, self.deadline - time.monotonic())),
+                            "robots and move_clients reporting")
+        if not o.headless:
+            self.events.append("web page: not available yet (a later issue); running headless")
+        if not o.mission:
+            log.info("serving", robots=len(self.robots), note="Ctrl-C to stop")
+            await self._watch(mission=False)
+            return EXIT_OK, "stopped"
+        # the mission
+        self.t_mission = self.sim.time
+        self.wall_mission = time.monotonic()
+        for c, at in o.blocks:
+            self.sim.at(self.t_mission + at, lambda c=c, at=at: self._do_block(c, at))
+        for c, at in o.obstacles:
+            self.sim.at(self.t_mission + at, lambda c=c, at=at: self._do_obstacle(c, at))
+        for r in self.robots:
+            await self.manager.set_goal(r, self.goals[r])
+        log.info("mission started", goals=self.goals, starts=self.starts, t_sim=round(self.t_mission, 2))
+        return await self._watch(mission=True)
+
+    async def _bounded(self, aw, what: str):
+        left = self.deadline - time.monotonic()
+        try:
+            return await asyncio.wait_for(aw, max(left, 0.1))
+        except asyncio.TimeoutError:
+            raise TimeoutError(f"timeout ({self.o.timeout:g} s wall) during {what}") from None
+
+    def _on_state(self, st: dict) -> None:
+        self.state = st
+        if self.sim is not None:
+            self.sim.set_blocked(dict(zip(st.get("blocked", []), st.get("blocked_by", []))))
+
+    def _do_block(self, cell: int, at: float) -> None:
+        paths = {x["robot"]: x["path"] for x in (self.state or {}).get("robots", [])}
+        rec = {"cell": cell, "at_s": at, "sent_sim_s": round(self.sim.time - self.t_mission, 3),
+               "sent_t": self.sim.time,
+               "paths_crossed": sorted(r for r, p in paths.items() if cell in p[1:]),
+               "robot_cells": {r: b.cells[-1][1] for r, b in self.sim.bots.items()}}
+        self.block_log.append(rec)
+        self.events.append(f"t={at:g}s: block cell {cell} (paths crossing it: {', '.join(rec['paths_crossed']) or 'none'})")
+        log.info("blocking cell", cell=cell, t=at, paths_crossed=rec["paths_crossed"])
+        asyncio.get_running_loop().create_task(self.manager.block(cell, True, "operator"))
+
+    def _do_obstacle(self, cell: int, at: float) -> None:
+        x, y, w, h = self.sim._box(cell)
+        self.sim.world.add_box(f"obstacle{cell}", x, y, w, h)
+        self.obstacle_log.append({"cell": cell, "at_s": at, "sent_t": self.sim.time})
+        self.events.append(f"t={at:g}s: unannounced obstacle in cell {cell}")
+        log.info("obstacle placed (only the lidars can tell)", cell=cell, t=at)
+
+    # -- watching ------------------------------------------------------------------------------
+    def _robot_states(self) -> dict[str, dict]:
+        return {x["robot"]: x for x in (self.state or {}).get("robots", [])}
+
+    def _check(self) -> tuple[int, str] | None:
+        """The mission's end, if reached: (exit code, reason)."""
+        st = self._robot_states()
+        for r in self.robots:
+            s = st.get(r)
+            if s is None:
+                continue
+            if s["state"] == "unreachable" and s.get("error_permanent"):
+                return EXIT_UNREACHABLE, f"{r}: goal cell {self.goals[r]} unreachable: {s['error']}"
+            if r not in self.reached and s["state"] == "arrived" and s["client_state"] == "arrived" \
+                    and s["goal"] == self.goals[r]:
+                x, y, _ = self.sim.bots[r].robot.pose()
+                gx, gy = self.geo.center(self.goals[r])
+                if math.hypot(x - gx, y - gy) <= REACH_TOL:
+                    self.reached[r] = self.sim.time
+                    self.events.append(f"{r} reached cell {self.goals[r]} at t={self.sim.time - self.t_mission:.1f}s")
+                    log.info("goal reached", robot=r, goal=self.goals[r], t=round(self.sim.time - self.t_mission, 2))
+        if len(self.reached) == len(self.robots):
+            return EXIT_OK, "every robot reached its goal"
+        return None
+
+    def _engine_problem(self) -> str | None:
+        dead = self.engine.alive() if self.engine else []
+        if dead:
+            return f"engine process exited: {', '.join(dead)}"
+        if self.sim is not None:
+            for r, b in self.sim.bots.items():
+                if b.task is not None and b.task.done():
+                    return f"{r}: its rce-ros bridge stopped"
+        if self.manager is not None and self.manager.conn is not None and self.manager.conn.closed:
+            return "the fleet manager lost its connection"
+        return None
+
+    async def _watch(self, mission: bool) -> tuple[int, str]:
+        live = self.o.live if self.o.live is not None else sys.stdout.isatty()
+        if live:
+            from rich.live import Live
+            with Live(self._table(), refresh_per_second=4, redirect_stderr=True, redirect_stdout=True) as lv:
+                setup_logging()         # logs go above the table
+                _quiet_libraries()
+                return await self._loop(mission, lambda: lv.update(self._table()))
+        last = [0.0]
+
+        def plain() -> None:
+            if time.monotonic() - last[0] >= 5.0:
+                last[0] = time.monotonic()
+                print(self._line(), flush=True)
+        return await self._loop(mission, plain)
+
+    async def _loop(self, mission: bool, show) -> tuple[int, str]:
+        while True:
+            show()
+            if self._stop.is_set():
+                return (EXIT_FAIL, "interrupted") if mission else (EXIT_OK, "stopped")
+            prob = self._engine_problem()
+            if prob:
+                return EXIT_FAIL, prob
+            if mission:
+                end = self._check()
+                if end is not None:
+                    show()
+                    return end
+            if time.monotonic() > self.deadline:
+                if not mission:
+                    return EXIT_OK, "timeout reached (serve)"
+                missing = [r for r in self.robots if r not in self.reached]
+                st = self._robot_states()
+                detail = "; ".join(f"{r} in cell {st.get(r, {}).get('cell')} ({st.get(r, {}).get('state')}, "
+                                   f"goal {self.goals[r]})" for r in missing)
+                return EXIT_FAIL, f"timeout after {self.o.timeout:g} s wall: not at their goals: {detail}"
+            try:
+                await asyncio.wait_for(self._stop.wait(), 0.25)
+            except asyncio.TimeoutError:
+                pass
+
+    # -- display --------------------------------------------------------------------------------
+    def _mission_t(self) -> float:
+        return (self.sim.time - self.t_mission) if (self.sim and self.t_mission is not None) else 0.0
+
+    def _line(self) -> str:
+        st = self._robot_states()
+        parts = [f"{r}:{st.get(r, {}).get('cell', '?')}->{self.goals.get(r, '-')} {st.get(r, {}).get('state', '?')}"
+                 for r in self.robots]
+        return f"t={self._mission_t():6.1f}s  reached {len(self.reached)}/{len(self.robots)}  " + "  ".join(parts)
+
+    def _table(self):
+        from rich.console import Group
+        from rich.table import Table
+        from rich.text import Text
+        t = Table(title=f"rce fleet: {len(self.robots)} robots, grid {self.geo.rows}x{self.geo.cols}, "
+                        f"speedup {self.o.speedup:g}", expand=False)
+        for col, j in (("robot", "left"), ("cell", "right"), ("goal", "right"), ("left m", "right"),
+                       ("replans", "right"), ("cancels", "right"), ("state", "left")):
+            t.add_column(col, justify=j)
+        st = self._robot_states()
+        for r in self.robots:
+            s = st.get(r, {})
+            state = "reached" if r in self.reached else s.get("state", "?")
+            t.add_row(r, str(s.get("cell", "?")), str(self.goals.get(r, "-")),
+                      f"{s.get('distance_left', 0.0):.1f}", str(s.get("replans", 0)), str(s.get("cancels", 0)),
+                      _fmt_state(state))
+        blocked = (self.state or {}).get("blocked", [])
+        mp = self.sim.min_pair if self.sim else math.inf
+        foot = Text(f"t={self._mission_t():.1f} s sim   blocked: {blocked or '-'}   "
+                    f"closest robots: {mp:.2f} m   re-plans: {(self.state or {}).get('replans', 0)}")
+        return Group(t, foot, *(Text(e, style="dim") for e in self.events))
+
+    # -- outputs --------------------------------------------------------------------------------
+    def _outputs(self, code: int, reason: str) -> None:
+        o = self.o
+        report = self.report(code, reason)
+        if o.plot and self.sim is not None:
+            from .plot import plot_run
+            blocked = dict(zip((self.state or {}).get("blocked", []), (self.state or {}).get("blocked_by", [])))
+            traces = {r: [(x, y) for _, x, y in b.trace] for r, b in self.sim.bots.items()}
+            title = (f"{Path(self.map_path).name}: {len(self.robots)} robots, grid {self.geo.rows}x{self.geo.cols}, "
+                     f"{'all goals reached' if code == EXIT_OK else 'FAILED: ' + reason[:60]} "
+                     f"(t={report.get('mission_time_s') or 0:.1f} s sim)")
+            try:
+                p = plot_run(o.plot, self.occ, self.geo, traces, self.starts, self.goals if o.mission else {},
+                             blocked, title, {r: r in self.reached for r in self.robots})
+                report["plot"] = str(p.resolve())
+            except Exception as e:  # a plot never hides the result
+                report["plot_error"] = repr(e)
+        if o.report:
+            Path(o.report).parent.mkdir(parents=True, exist_ok=True)
+            Path(o.report).write_text(json.dumps(report, indent=2))
+        verdict = "OK" if code == EXIT_OK else "FAILED"
+        print(f"rce-fleet: {verdict}: {reason}", file=sys.stdout if code == EXIT_OK else sys.stderr, flush=True)
+        if report.get("mission_time_s") is not None:
+            print(f"rce-fleet: mission time {report['mission_time_s']:.1f} s sim, "
+                  f"{report['mission_wall_s']:.1f} s wall; closest robots {report['min_pair_distance_m']:.3f} m; "
+                  f"re-plans {report['planner']['replans']} (max {report['planner']['max_plan_ms']:.1f} ms)", flush=True)
+        if report.get("plot"):
+            print(f"rce-fleet: paths plotted to {report['plot']}", flush=True)
+
+    def report(self, code: int, reason: str) -> dict:
+        st = self._robot_states()
+        sim = self.sim
+        t0 = self.t_mission
+        per = {}
+        for r in self.robots:
+            s = st.get(r, {})
+            b = sim.bots.get(r) if sim else None
+            cells = [(round(t - (t0 or 0.0), 2), c) for t, c in b.cells] if b else []
+            per[r] = {"start": self.starts.get(r), "goal": self.goals.get(r), "reached": r in self.reached,
+                      "reached_at_s": round(self.reached[r] - t0, 2) if r in self.reached and t0 is not None else None,
+                      "state": s.get("state"), "error": s.get("error", ""),
+                      "cancel_goal": s.get("cancels", 0), "replans": s.get("replans", 0),
+                      "robot_cancels_received": b.cancels_received if b else 0,
+                      "waypoints_received": b.goals_received if b else 0,
+                      "distance_m": round(b.distance, 3) if b else 0.0,
+                      "cells": cells}
+        blocks = []
+        for rec in self.block_log:
+            entries = sim.entries_after(rec["cell"], rec["sent_t"]) if sim else []
+            blocks.append({k: v for k, v in rec.items() if k != "sent_t"} |
+                          {"entered_after": [{"robot": rr, "t_s": round(t - t0, 2)} for rr, t in entries]})
+        mission_t = (max(self.reached.values()) - t0) if (self.reached and len(self.reached) == len(self.robots)) else None
+        fs = self.state or {}
+        return {
+            "ok": code == EXIT_OK, "exit_code": code, "reason": reason,
+            "map": str(self.map_path), "robots": len(self.robots), "seed": self.o.seed, "speedup": self.o.speedup,
+            "grid": {"rows": self.geo.rows, "cols": self.geo.cols, "cell_w_m": self.geo.cell_w_m,
+                     "cell_h_m": self.geo.cell_h_m, "free_cells": len(self.geo.free_cells())},
+            "mission_time_s": round(mission_t, 2) if mission_t is not None else None,
+            "mission_wall_s": round(time.monotonic() - self.wall_mission, 2) if self.wall_mission else None,
+            "run_wall_s": round(getattr(self, "wall_total", 0.0), 2),
+            "sim_time_s": round(sim.time - (t0 or 0.0), 2) if sim else 0.0,
+            "sim_lag_resets": sim.lag_resets if sim else 0,
+            "sim_max_speedup": round(sim.effective_speedup(), 2) if sim else None,
+            "robot_radius_m": sim.radius if sim else None,
+            "min_pair_distance_m": round(sim.min_pair, 4) if sim and math.isfinite(sim.min_pair) else None,
+            "min_pair_at": ({"t_s": round(sim.min_pair_at[0] - (t0 or 0.0), 2), "robots": list(sim.min_pair_at[1:])}
+                            if sim and sim.min_pair_at else None),
+            "blocks": blocks,
+            "obstacles": [{k: v for k, v in o.items() if k != "sent_t"} for o in self.obstacle_log],
+            "blocked": dict(zip(map(str, fs.get("blocked", [])), fs.get("blocked_by", []))),
+            "planner": {"replans": fs.get("replans", 0), "max_plan_ms": fs.get("max_plan_ms", 0.0),
+                        "last_plan_ms": fs.get("last_plan_ms", 0.0)},
+            "errors": fs.get("errors", []),
+            "per_robot": per,
+            "workdir": str(self.workdir),
+        }
+
+    async def _teardown(self) -> None:
+        try:
+            if self.sim is not None:
+                await self.sim.stop(timeout=5.0)
+            if self.manager is not None:
+                await asyncio.wait_for(self.manager.close(), 10.0)
+        except (asyncio.TimeoutError, RCEError, OSError) as e:
+            log.warning("teardown incomplete", reason=str(e))
+        finally:
+            if self.engine is not None:
+                await asyncio.to_thread(self.engine.stop)
+            if not self.o.keep and not self.o.workdir:
+                shutil.rmtree(self.workdir, ignore_errors=True)
+
+
+def _quiet_libraries() -> None:
+    import logging
+    for name in ("rce.ros", "rce.client"):
+        logging.getLogger(name).setLevel(logging.WARNING)
+
+
+def run(opts: Options) -> int:
+    """Run the demo (or ``serve`` when ``opts.mission`` is False); returns the exit code."""
+    setup_logging()
+    _quiet_libraries()
+    r = Run(opts)
+    try:
+        r.prepare()
+    except UsageError as e:
+        print(f"rce-fleet: {e}", file=sys.stderr)
+        return EXIT_USAGE
+    return asyncio.run(r.run())

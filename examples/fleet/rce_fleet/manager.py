@@ -1,0 +1,150 @@
+"""The fleet manager: the cloud side's operator client (robotID ``fleetManager``).
+
+An RCE client like any robot (login, websocket, CC/CN/CX requests, the client library of
+:mod:`rce_client.connection`). It
+
+1. creates the fleet container ``cTag_01`` (the paper: one container for all),
+2. sets the parameters ``/fleet/grid`` (:class:`rce_fleet.geometry.GridGeometry`) and
+   ``/fleet/robots``,
+3. starts the ``fleet/global_planner`` node,
+4. adds the operator interfaces and connects them:
+
+   =========================  ==========================  ========================
+   container side (cTag_01)   manager side                topic, class
+   =========================  ==========================  ========================
+   fleetGoalReceiver  PubIf   fleetGoalSender  SubConv    /fleet/goal  fleet/RobotGoal
+   fleetBlockReceiver PubIf   fleetBlockSender SubConv    /fleet/block fleet/CellBlock
+   fleetStateSender   SubIf   fleetStateReceiver PubConv  /fleet/state fleet/FleetState
+   =========================  ==========================  ========================
+
+The manager's interfaces are Converters (JSON), as a browser's would be.
+"""
+from __future__ import annotations
+
+import asyncio
+from typing import Callable
+
+from rce.errors import RCEError, Unavailable
+from rce.log import get_logger
+from rce_client.connection import Connection
+
+from .configs import FLEET_CTAG, PASSWORD, USER
+from .geometry import GRID_PARAM, ROBOTS_PARAM, GridGeometry
+
+log = get_logger("fleet.manager")
+
+MANAGER_ID = "fleetManager"
+
+_IFACES = [  # container iTag, container type, manager iTag, manager type, class, topic
+    ("fleetGoalReceiver", "PublisherInterface", "fleetGoalSender", "SubscriberConverter", "fleet/RobotGoal", "/fleet/goal"),
+    ("fleetBlockReceiver", "PublisherInterface", "fleetBlockSender", "SubscriberConverter", "fleet/CellBlock", "/fleet/block"),
+    ("fleetStateSender", "SubscriberInterface", "fleetStateReceiver", "PublisherConverter", "fleet/FleetState", "/fleet/state"),
+]
+
+
+class FleetManager:
+    """Create the fleet's cloud side and talk to its global planner.
+
+    ``on_state(state_dict)`` receives every ``/fleet/state``; ``latest`` keeps the last one."""
+
+    def __init__(self, master_url: str, geometry: GridGeometry, robots: list[str], *, user: str = USER,
+                 password: str = PASSWORD, robot_id: str = MANAGER_ID, ctag: str = FLEET_CTAG,
+                 planner_args: str = "", on_state: Callable[[dict], None] | None = None):
+        self.master_url, self.geo, self.robots = master_url, geometry, list(robots)
+        self.user, self.password, self.robot_id, self.ctag = user, password, robot_id, ctag
+        self.planner_args = planner_args
+        self.on_state = on_state
+        self.conn: Connection | None = None
+        self.latest: dict | None = None
+        self.states = 0
+        self.errors: list[str] = []
+        self._goal_pub = self._block_pub = None
+        self._state_event = asyncio.Event()
+
+    async def start(self, timeout: float = 60.0) -> None:
+        """Log in, create the container, the planner and the operator interfaces; returns when
+        the interfaces are up. Raises :class:`RCEError` with the cloud's reason."""
+        conn = self.conn = await Connection.connect(self.master_url, self.user, self.password, self.robot_id)
+        conn.on_error(self._on_error)
+        conn.on_status(self._on_status)
+        await conn.create_container(self.ctag)
+        await conn.configure({"setParam": [
+            {"containerTag": self.ctag, "name": GRID_PARAM, "value": self.geo.to_param()},
+            {"containerTag": self.ctag, "name": ROBOTS_PARAM, "value": self.robots}]})
+        await conn.configure({"addNodes": [{"containerTag": self.ctag, "nodeTag": "global_planner", "pkg": "fleet",
+                                            "exe": "global_planner", "args": self.planner_args}]})
+        adds, links = [], []
+        for c_tag, c_type, m_tag, m_type, cls, topic in _IFACES:
+            adds.append({"endpointTag": self.ctag, "interfaceTag": c_tag, "interfaceType": c_type,
+                         "className": cls, "addr": topic})
+            adds.append({"endpointTag": self.robot_id, "interfaceTag": m_tag, "interfaceType": m_type,
+                         "className": cls})
+            links.append({"tagA": f"{self.ctag}/{c_tag}", "tagB": f"{self.robot_id}/{m_tag}"})
+        conn.subscriber("fleetStateReceiver", "fleet/FleetState", self._on_fleet_state)
+        self._goal_pub = conn.publisher("fleetGoalSender", "fleet/RobotGoal")
+        self._block_pub = conn.publisher("fleetBlockSender", "fleet/CellBlock")
+        await conn.configure({"addInterfaces": adds})
+        await conn.send("CX", {"connect": links})
+        n = len(self.errors)
+        await conn.barrier(timeout)
+        if len(self.errors) > n:
+            raise Unavailable(f"fleet manager setup refused: {self.errors[n]}")
+        await conn.wait_interfaces_up([m for _, _, m, _, _, _ in _IFACES], timeout)
+        log.info("fleet container up", ctag=self.ctag, robots=len(self.robots))
+
+    def _on_error(self, reason: str) -> None:
+        self.errors.append(reason)
+        log.warning("error from the cloud", reason=reason)
+
+    def _on_status(self, st: dict) -> None:
+        if st.get("topic") == "node" and st.get("status") not in ("started",):
+            log.warning("node status", node=st.get("nTag"), status=st.get("status"),
+                        **{k: st[k] for k in ("code", "signal", "reason") if st.get(k) is not None})
+
+    def _on_fleet_state(self, msg) -> None:
+        if not isinstance(msg, dict):
+            return
+        self.latest = msg
+        self.states += 1
+        self._state_event.set()
+        if self.on_state:
+            self.on_state(msg)
+
+    async def wait_state(self, pred: Callable[[dict], bool], timeout: float) -> dict:
+        """The first fleet state (current or later) for which ``pred`` holds; raises
+        :class:`Unavailable` after ``timeout`` s."""
+        loop = asyncio.get_running_loop()
+        deadline = loop.time() + timeout
+        while True:
+            if self.latest is not None and pred(self.latest):
+                return self.latest
+            left = deadline - loop.time()
+            if left <= 0:
+                raise Unavailable(f"fleet state condition not met within {timeout:g} s")
+            self._state_event.clear()
+            try:
+                await asyncio.wait_for(self._state_event.wait(), left)
+            except asyncio.TimeoutError:
+                pass
+
+    async def set_goal(self, robot: str, cell: int) -> None:
+        """Publish a ``fleet/RobotGoal`` on ``/fleet/goal`` (-1 drops the goal)."""
+        await self._goal_pub.publish({"robot": robot, "cell": int(cell)})
+
+    async def block(self, cell: int, blocked: bool = True, source: str = "operator") -> None:
+        """Publish a ``fleet/CellBlock`` on ``/fleet/block``."""
+        await self._block_pub.publish({"cell": int(cell), "blocked": bool(blocked), "source": source})
+
+    async def close(self, destroy: bool = True) -> None:
+        """Destroy the fleet container (unless ``destroy`` is False) and close the connection."""
+        conn = self.conn
+        if conn is None or conn.closed:
+            return
+        try:
+            if destroy:
+                await conn.destroy_container(self.ctag)
+                await conn.barrier(5.0)
+        except RCEError as e:
+            log.warning("teardown incomplete", reason=e.message)
+        finally:
+            await conn.close()
