@@ -32,7 +32,7 @@ ROS1_MODULES = ("rospy", "rosmaster", "std_msgs.msg", "sensor_msgs.msg")
 
 sys.path.insert(0, str(ROOT / "tests"))           # engine.py, wsclient.py: the engine as processes
 from engine import Engine, start_engine  # noqa: E402
-from wsclient import RawRobot, login  # noqa: E402
+from wsclient import RawRobot, login  # noqa: E402,F401  (re-exported)
 
 USER, PASSWORD = "testUser", "testUser"            # the master's --dev user
 
@@ -284,6 +284,61 @@ class CpuMeter:
                 k = self.labels.get(p.pid) or proc_label(p)
                 out[k] = out.get(k, 0.0) + 100.0 * secs[p.pid] / self.wall
         return {k: round(v, 2) for k, v in sorted(out.items(), key=lambda kv: -kv[1])}
+
+
+class ForeignLoad:
+    """How busy the machine was with work that is not ours over a phase: machine-wide busy CPU
+    (psutil.cpu_times, all cores) minus our own CPU (this process, its reaped children, and its
+    live descendants with their reaped children). ``stop()`` returns cores: ``other_cores`` near
+    0 means the phase ran on an otherwise quiet machine; 1.0 = one core taken by someone else."""
+
+    @staticmethod
+    def _busy() -> float:
+        import psutil
+        t = psutil.cpu_times()
+        return sum(t) - t.idle - getattr(t, "iowait", 0.0) - getattr(t, "guest", 0.0) - getattr(t, "guest_nice", 0.0)
+
+    @staticmethod
+    def _mine() -> float:
+        import resource
+
+        import psutil
+        s, c = resource.getrusage(resource.RUSAGE_SELF), resource.getrusage(resource.RUSAGE_CHILDREN)
+        total = s.ru_utime + s.ru_stime + c.ru_utime + c.ru_stime
+        for p in psutil.Process().children(recursive=True):
+            try:
+                t = p.cpu_times()
+                total += t.user + t.system + t.children_user + t.children_system
+            except psutil.Error:
+                pass
+        return total
+
+    def start(self) -> "ForeignLoad":
+        self.w0, self.b0, self.m0 = time.monotonic(), self._busy(), self._mine()
+        return self
+
+    def stop(self) -> dict:
+        wall = time.monotonic() - self.w0
+        busy, mine = self._busy() - self.b0, self._mine() - self.m0
+        return {"wall_s": round(wall, 2), "machine_busy_cores": round(busy / wall, 2),
+                "own_cores": round(mine / wall, 2), "other_cores": round(max(0.0, busy - mine) / wall, 2)}
+
+
+def wait_quiet(max_wait: float, threshold: float = 0.3, window: float = 3.0, log=print) -> dict | None:
+    """Wait (at most ``max_wait`` s) until other processes use less than ``threshold`` cores over a
+    ``window``; returns the last :class:`ForeignLoad` reading (None if ``max_wait`` <= 0)."""
+    if max_wait <= 0:
+        return None
+    deadline = time.monotonic() + max_wait
+    while True:
+        fl = ForeignLoad().start()
+        time.sleep(window)
+        r = fl.stop()
+        if r["other_cores"] < threshold or time.monotonic() >= deadline:
+            log(f"machine load before measuring: other processes use {r['other_cores']:.2f} cores"
+                + ("" if r["other_cores"] < threshold else f" (still >= {threshold} after {max_wait:.0f} s; going on)"))
+            return r
+        log(f"waiting for a quieter machine: other processes use {r['other_cores']:.2f} cores")
 
 
 # -- network: two namespaces joined by a veth pair ---------------------------------------------

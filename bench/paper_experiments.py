@@ -59,15 +59,16 @@ import urllib.request
 import uuid
 from pathlib import Path
 
-from common import (BENCH, RESULTS, SYS_PY, USER, VENV_PY, CpuMeter, NetLab, RawRobot, WsRobot, console, engine,
-                    ensure_ros1, fmt_ratio, free_port, login, median, percentile, proc_tree, pyplot, write_json)
+from common import (BENCH, CpuMeter, ForeignLoad, NetLab, RawRobot, RESULTS, SYS_PY, USER, VENV_PY, WsRobot, console,
+                    engine, ensure_ros1, fmt_ratio, free_port, login, median, percentile, proc_tree, pyplot,
+                    wait_quiet, write_json)
 
 SYSTEMS = ("ros1", "rce-forwarder", "rce-converter")
 EXPERIMENTS = {
     "exp1": {"title": "Experiment 1: 5 robots, LaserScan 360 beams", "kind": "scan", "type": "sensor_msgs/LaserScan",
-             "robots": 5, "rate": 10.0, "topic": "scan"},
+             "robots": 5, "rate": 10.0, "topic": "scan", "short": "Exp. 1, 5 robots, LaserScan 10 Hz"},
     "exp2": {"title": "Experiment 2: Image 640x480 rgb8, 1 publisher", "kind": "image", "type": "sensor_msgs/Image",
-             "robots": 1, "rate": 15.0, "topic": "image"},
+             "robots": 1, "rate": 15.0, "topic": "image", "short": "Exp. 2, Image 640x480 15 Hz"},
 }
 CTAG = "bench"
 PACKAGES = BENCH / "packages"
@@ -435,6 +436,7 @@ def run_one(lab: NetLab, system: str, exp: str, args, workdir: Path, rce_srv: Rc
         cproc = proc_tree([c.p.pid for c in clients])
         scpu, ccpu = CpuMeter(sproc), CpuMeter(cproc)
         net0 = lab.counters()
+        fl = ForeignLoad().start()
         scpu.start()
         ccpu.start()
         for c in clients:
@@ -442,6 +444,7 @@ def run_one(lab: NetLab, system: str, exp: str, args, workdir: Path, rce_srv: Rc
         done = [json.loads(c.expect("DONE", args.duration + 60)) for c in clients]
         scpu.stop()
         ccpu.stop()
+        load = fl.stop()
         net1 = lab.counters()
         c1 = server_counts()
         tp["measured"] = time.monotonic()
@@ -478,6 +481,7 @@ def run_one(lab: NetLab, system: str, exp: str, args, workdir: Path, rce_srv: Rc
            if args.back else None,
            "cpu": {"server_pct": scpu.percent(), "client_pct": ccpu.percent(),
                    "server_by_proc": scpu.by_label(), "client_by_proc": ccpu.by_label()},
+           "machine_load": load,
            "payload_kBps": msg_bytes * sent / wall / 1e3 if wall else None,
            "phases_s": {"server_setup": tp["server_up"] - tp["start"], "clients_setup": tp["clients_ready"] - tp["server_up"],
                         "measure": tp["measured"] - tp["clients_ready"], "teardown": tp["stopped"] - tp["measured"]}}
@@ -502,6 +506,8 @@ def parse_args(argv=None):
     p.add_argument("--experiments", default="exp1,exp2", help="comma list of exp1,exp2")
     p.add_argument("--no-ros1", action="store_true", help="skip ROS 1 (no apt-get)")
     p.add_argument("--back", action="store_true", help="the server echoes every message back to its robot")
+    p.add_argument("--wait-quiet", type=float, default=0.0, metavar="S",
+                   help="first wait up to S s for other processes to use < 0.3 cores (shared machines)")
     p.add_argument("--json", type=Path, default=RESULTS / "paper_experiments.json")
     p.add_argument("--plot", type=Path, default=RESULTS / "paper_experiments.png")
     return p.parse_args(argv)
@@ -547,6 +553,7 @@ def main(argv=None) -> int:
             con.print(f"[yellow]ROS 1 skipped: {why}")
     workdir = Path(tempfile.mkdtemp(prefix="rce-paper-"))
     runs = []
+    wait_quiet(args.wait_quiet, log=con.print)
     rce_srv = RceServer()
     with NetLab() as lab, contextlib.closing(rce_srv):
         if not lab.ok:
@@ -557,6 +564,9 @@ def main(argv=None) -> int:
                 with con.status(f"{EXPERIMENTS[exp]['title']}: {system} ({args.duration:.0f} s) ..."):
                     res = run_one(lab, system, exp, args, workdir, rce_srv)
                 runs.append(res)
+                if res["machine_load"]["other_cores"] > 0.25:
+                    notes.append(f"{exp} {system}: other processes kept {res['machine_load']['other_cores']:.2f} cores "
+                                 f"busy during the window; CPU % and rates are perturbed")
                 con.print(f"{exp} {system}: sent {res['sent']}, server got {res['server_received']}, "
                           f"server CPU {res['cpu']['server_pct']:.1f} %, client CPU {res['cpu']['client_pct']:.1f} %"
                           + (f", {res['net']['total_kBps']:.1f} kB/s" if res["net"] else ""))
@@ -575,27 +585,31 @@ def main(argv=None) -> int:
     return 0
 
 
+SHORT = {"rce_container.environment": "env", "rce-container": "container", "rce-robot": "robot",
+         "rce-master": "master", "echo.py": "echo"}
 LABEL = {"ros1": "SMS (ROS 1)", "rce-forwarder": "CRS (rce fwd)", "rce-converter": "CRS (rce conv)"}
 
 
 def print_table(con, out: dict) -> None:
     from rich.table import Table
     for exp in out["experiments"]:
-        t = Table(title=f"{EXPERIMENTS[exp]['title']} @ {EXPERIMENTS[exp]['rate']:g} Hz, {out['duration_s']:g} s, "
-                        f"{out['mode']}")
-        for c in ("system", "msg B", "rate Hz", "delivered %", "net in kB/s", "net out kB/s", "net/payload",
-                  "server CPU %", "client CPU %", "server CPU by process"):
-            t.add_column(c, justify="right" if c != "server CPU by process" else "left")
-        for r in out["runs"]:
-            if r["experiment"] != exp:
-                continue
+        runs = [r for r in out["runs"] if r["experiment"] == exp]
+        if not runs:
+            continue
+        t = Table(title=f"{EXPERIMENTS[exp]['title']} ({runs[0]['msg_bytes']} B serialized) @ "
+                        f"{EXPERIMENTS[exp]['rate']:g} Hz, {out['duration_s']:g} s, {out['mode']}")
+        for c in ("system", "rate Hz", "deliv. %", "in kB/s", "out kB/s", "net/payload",
+                  "server CPU %", "client CPU %", "other load", "server CPU % by process"):
+            t.add_column(c, justify="left" if c in ("system", "server CPU % by process") else "right")
+        for r in runs:
             net = r["net"]
-            t.add_row(LABEL[r["system"]], str(r["msg_bytes"]), f"{r['client_rate_hz']:.2f}",
+            t.add_row(LABEL[r["system"]], f"{r['client_rate_hz']:.2f}",
                       "-" if r["delivered_pct"] is None else f"{r['delivered_pct']:.1f}",
                       f"{net['rx_kBps']:.1f}" if net else "-", f"{net['tx_kBps']:.1f}" if net else "-",
                       fmt_ratio(net["overhead_vs_payload"]) if net else "-",
                       f"{r['cpu']['server_pct']:.1f}", f"{r['cpu']['client_pct']:.1f}",
-                      ", ".join(f"{k} {v:.1f}" for k, v in list(r["cpu"]["server_by_proc"].items())[:5]))
+                      f"{r['machine_load']['other_cores']:.2f}",
+                      ", ".join(f"{SHORT.get(k, k)} {v:.1f}" for k, v in list(r["cpu"]["server_by_proc"].items())[:4]))
         con.print(t)
     for n in out["notes"]:
         con.print(f"[yellow]note: {n}")
@@ -613,13 +627,14 @@ def plot(out: dict, path: Path) -> None:
         if all(r["net"] for r in runs):
             ax.bar([i - 0.2 for i in x], [r["net"]["rx_kBps"] for r in runs], 0.4, label="in (robots -> server)")
             ax.bar([i + 0.2 for i in x], [r["net"]["tx_kBps"] for r in runs], 0.4, label="out (server -> robots)")
-            ax.plot(list(x), [r["payload_kBps"] for r in runs], "k_", markersize=30, label="payload")
+            ax.plot(list(x), [r["payload_kBps"] for r in runs], "k_", markersize=30, linestyle="none",
+                    label="serialized payload")
             ax.legend(fontsize=8)
         else:
             ax.text(0.5, 0.5, "network bytes not counted", ha="center", transform=ax.transAxes)
         ax.set_xticks(list(x), names)
         ax.set_ylabel("server network, kB/s")
-        ax.set_title(f"{EXPERIMENTS[exp]['title']}: network", fontsize=10)
+        ax.set_title(f"{EXPERIMENTS[exp]['short']}: server network", fontsize=10)
         ax = row[1]
         ax.bar([i - 0.2 for i in x], [r["cpu"]["server_pct"] for r in runs], 0.4, label="server (-S)")
         ax.bar([i + 0.2 for i in x], [r["cpu"]["client_pct"] for r in runs], 0.4, label="clients (-C)")
@@ -628,7 +643,7 @@ def plot(out: dict, path: Path) -> None:
                         ha="center", va="bottom", fontsize=8)
         ax.set_xticks(list(x), names)
         ax.set_ylabel("CPU, % of one core")
-        ax.set_title(f"{EXPERIMENTS[exp]['title']}: CPU (publish rate on top)", fontsize=10)
+        ax.set_title(f"{EXPERIMENTS[exp]['short']}: CPU (achieved publish rate on top)", fontsize=10)
         ax.legend(fontsize=8)
     fig.tight_layout()
     path.parent.mkdir(parents=True, exist_ok=True)

@@ -17,7 +17,10 @@ installed with apt-get when missing and running as root), ``ws_floor`` =
 ``shared/anchors/ws_rtt.py`` (raw websockets echo of the same JSON DM: the transport floor).
 The anchors report medians only; rce paths report median and p90.
 
-Each rce round trip is timed from just before the first frame is sent to the reply parsed
+The three rce paths are measured interleaved (each repetition of a size goes through every
+path in turn). ``machine_load`` in the JSON tells, per phase, how many cores other processes
+(not this bench's) kept busy: the peers and rce run one after the other, so load from elsewhere
+perturbs their ratios. Each rce round trip is timed from just before the first frame is sent to the reply parsed
 (JSON decoded; for forwarders the JSON frame and its binary part both received), the
 outgoing frames built beforehand, as the ws anchor does.
 
@@ -43,9 +46,9 @@ import time
 import uuid
 from pathlib import Path
 
-from common import (RESULTS, USER, RawRobot, VENV_PY, SYS_PY, anchor_sizes, console, engine, ensure_ros1,
-                    fmt_ms, fmt_ratio, fmt_size, free_port, geomean, median, percentile, progress, pyplot,
-                    ratio, run_anchor, write_json)
+from common import (ForeignLoad, RawRobot, RESULTS, SYS_PY, VENV_PY, anchor_sizes, console, engine,
+                    ensure_ros1, fmt_ms, fmt_ratio, fmt_size, free_port, geomean, median, percentile, progress,
+                    pyplot, ratio, run_anchor, wait_quiet, write_json)
 
 PATHS = ("converter", "forwarder", "c2c")
 STRING = "std_msgs/String"
@@ -181,22 +184,26 @@ async def measure_rce(master_url: str, paths: list[str], sizes: list[int], reps:
             p = Path_(r, kind, req, resp)
             p.tries = await p.warm_up()
             ready[kind] = p
+        # interleaved: each repetition of a size goes through every path in turn, so that the paths
+        # see the same conditions on a machine whose load changes
+        task = prog.add_task("rce " + ", ".join(paths), total=len(paths) * sum(reps_for(s, reps) for s in sizes))
         for kind in paths:
-            p = ready[kind]
-            task = prog.add_task(f"rce {kind}", total=sum(reps_for(s, reps) for s in sizes))
-            res = out[kind] = {}
-            for size in sizes:
-                samples = []
-                timeout = 10.0 if size < 1_000_000 else 60.0
-                for _ in range(reps_for(size, reps)):
+            out[kind] = {}
+        for size in sizes:
+            timeout = 10.0 if size < 1_000_000 else 60.0
+            for kind in paths:
+                out[kind][size] = []
+            for _ in range(reps_for(size, reps)):
+                for kind in paths:
+                    p = ready[kind]
                     frames = p.prepare(size)
                     ms = await p.roundtrip(frames, size, timeout)
                     if not math.isfinite(ms):
                         await p.drain()
-                    samples.append(ms)
+                    out[kind][size].append(ms)
                     prog.advance(task)
-                res[size] = samples
-                prog.update(task, description=f"rce {kind} {fmt_size(size)}: {fmt_ms(median(samples))} ms")
+            prog.update(task, description=f"rce {fmt_size(size)}: " + ", ".join(
+                f"{k} {fmt_ms(median(out[k][size]))}" for k in paths) + " ms")
     finally:
         for r in robots:
             try:
@@ -216,6 +223,8 @@ def parse_args(argv=None):
     p.add_argument("--paths", default=",".join(PATHS), help=f"rce paths to measure (default {','.join(PATHS)})")
     p.add_argument("--no-ros1", action="store_true", help="skip the ROS 1 peer (no apt-get)")
     p.add_argument("--no-ws", action="store_true", help="skip the raw websockets floor")
+    p.add_argument("--wait-quiet", type=float, default=0.0, metavar="S",
+                   help="first wait up to S s for other processes to use < 0.3 cores (shared machines)")
     p.add_argument("--json", type=Path, default=RESULTS / "rtt.json", help="JSON results (default bench/results/rtt.json)")
     p.add_argument("--plot", type=Path, default=RESULTS / "rtt.png", help="PNG plot (default bench/results/rtt.png)")
     return p.parse_args(argv)
@@ -236,25 +245,36 @@ def main(argv=None) -> int:
         notes.append("sizes not in shared/anchors/sizes.py have no peer values")
 
     # peers first, on a quiet machine (no engine running yet)
-    peers = {}
+    peers, load = {}, {}
+    wait_quiet(args.wait_quiet, log=con.print)
     if not args.no_ws:
         with con.status("raw websockets floor (shared/anchors/ws_rtt.py) ..."):
+            fl = ForeignLoad().start()
             peers["ws_floor"] = run_anchor("ws_rtt.py", VENV_PY, args.reps)
+            load["ws_floor"] = fl.stop()
         con.print(f"ws floor done ({peers['ws_floor']['peer']})")
     if not args.no_ros1:
         ok, why = ensure_ros1(log=con.print)
         if ok:
             with con.status("ROS 1 single master (shared/anchors/ros1_rtt.py) ..."):
+                fl = ForeignLoad().start()
                 peers["ros1"] = run_anchor("ros1_rtt.py", SYS_PY, args.reps,
                                            env={"ROS1_PORT": str(free_port()),
                                                 "ROS_HOME": tempfile.mkdtemp(prefix="ros1rtt-")})
+                load["ros1"] = fl.stop()
             con.print(f"ROS 1 done ({peers['ros1']['peer']})")
         else:
             notes.append(f"ROS 1 skipped: {why}")
             con.print(f"[yellow]ROS 1 skipped: {why}")
 
     with engine() as eng, progress(con) as prog:
+        fl = ForeignLoad().start()
         samples = asyncio.run(measure_rce(eng.master_url, paths, sizes, args.reps, prog))
+        load["rce"] = fl.stop()
+    busy = {k: v["other_cores"] for k, v in load.items() if v["other_cores"] > 0.25}
+    if busy:
+        notes.append(f"other work on the machine while measuring (cores busy with processes not of this bench): "
+                     f"{busy}; absolute times and ratios are perturbed")
 
     res = {"sizes": sizes, "reps": args.reps, "reps_by_size": [reps_for(s, args.reps) for s in sizes],
            "paths": {"rce_converter": "robot -> SubscriberConverter (JSON) -> Test/stringEcho -> PublisherConverter -> robot",
@@ -283,6 +303,7 @@ def main(argv=None) -> int:
         "converter_over_ws_small_geomean": gm("rce_converter_ms", "ws_floor_ms", small),
         "forwarder_over_ws_large_geomean": gm("rce_forwarder_ms", "ws_floor_ms", large),
         "small": "sizes <= 1623 B", "large": "sizes >= 1 MB"}
+    res["machine_load"] = load
     res["notes"] = notes
     write_json(args.json, res)
     print_table(con, res)
