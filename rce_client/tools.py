@@ -459,9 +459,13 @@ async def service_cmd(args: argparse.Namespace, backend) -> int:
     request = parse_yaml(args.request, "request")
     type_ = args.type
     if type_ is None:
-        s = await _find(backend, "services", name)
-        if s is None:
-            raise NotFound(f"service {name} is not on the bus")
+        # like `rosservice call --wait`: the node providing it may still be starting
+        loop = asyncio.get_running_loop()
+        deadline = loop.time() + (args.timeout or 10.0)
+        while (s := await _find(backend, "services", name)) is None:
+            if loop.time() >= deadline:
+                raise NotFound(f"service {name} is not on the bus (waited {args.timeout or 10.0:g} s)")
+            await asyncio.sleep(0.1)
         type_ = s["type"]
     resp = await backend.call(name, type_, request, args.timeout)
     _out(to_yaml(resp) if resp else "")

@@ -86,7 +86,7 @@ def routes(master: "Master", app: web.Application) -> None:
                 res = await peer.call(op, cid=c.cid, limits=limits)
                 c.data.update(limits)
             else:
-                res = await peer.call(op, timeout=timeout, cid=c.cid, **args)
+                res = await peer.request(op, {"cid": c.cid, **args}, timeout)
             return web.json_response(res)
         return handler
 

@@ -180,9 +180,6 @@ async def test_admin_api_call_and_sample(engine, robot):
     ros, bus, env = robot
     adm = ["--container", "cTag_01", "--master", engine.master_url, "--user", "testUser"]
     rc, out, err = await tool("rce-service", "call", "parameterTest", "{}", *adm, env=env)
-    if rc != 0 and "HTTP 500" in err:
-        pytest.xfail("master admin API answers HTTP 500 for bodies with 'timeout' "
-                     "(rce_master/admin.py passes timeout twice to RpcPeer.call)")
     assert (rc, out) == (0, PARAMS), err
     echo = await Proc.start(str(BIN / "rce-topic"), "echo", "/stringEchoReq", "-n", "1", *adm, env=env)
     await echo.wait_line(r"^sampling /stringEchoReq", key="err")
