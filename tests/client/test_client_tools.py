@@ -139,7 +139,7 @@ async def test_failures_name_what_was_wrong(bus, capsys):
     with pytest.raises(MessageError, match="unknown field 'nope'"):
         await run("service", ["--bus", path, "call", "stringEchoService", "{nope: 1}"], capsys)
     with pytest.raises(NotFound, match="service /nothing is not on the bus"):
-        await run("service", ["--bus", path, "call", "nothing", "{}"], capsys)
+        await run("service", ["--bus", path, "call", "nothing", "{}", "--timeout", "0.5"], capsys)
     with pytest.raises(NotFound, match="topic /nothing is not on the bus"):
         await run("topic", ["--bus", path, "pub", "nothing", "{data: x}"], capsys)
     with pytest.raises(Unavailable, match="cannot reach the bus at /nonexistent.sock"):
