@@ -4,7 +4,7 @@
 
     rce-fleet demo [--map YAML] [--robots N] [--grid RxC | --cell M] [--seed S] [--speedup K]
                    [--goal RobotN=CELL]... [--start RobotN=CELL]... [--block CELL@S]...
-                   [--obstacle CELL@S]... [--timeout S] [--plot PNG] [--report JSON] [--headless]
+                   [--obstacle CELL@S]... [--timeout S] [--plot PNG] [--report JSON] [--headless] [--web-port P]
     rce-fleet serve [same options, no mission]      # until Ctrl-C
     rce-fleet configs [--out DIR] [--robots N] [--url URL]   # write robot1.config ...
     rce-fleet grid [--map YAML] [--grid RxC | --cell M]     # print the grid's cell numbers
@@ -54,7 +54,9 @@ def _run_args(p: argparse.ArgumentParser, mission: bool) -> None:
     p.add_argument("--speedup", type=_positive, default=2.0, metavar="K",
                    help="simulated time runs K times faster than wall time (default 2)")
     p.add_argument("--start", action="append", default=[], metavar="RobotN=CELL", help="start cell of a robot")
-    p.add_argument("--headless", action="store_true", help="no web page (the page is a later issue)")
+    p.add_argument("--headless", action="store_true", help="no operator web page")
+    p.add_argument("--web-port", type=int, default=8000, metavar="PORT",
+                   help="port of the operator's web page (default 8000; any free port when taken)")
     p.add_argument("--timeout", type=_positive, default=300.0 if mission else 10 ** 9, metavar="S",
                    help="give up after S wall seconds" + (" (default 300)" if mission else ""))
     p.add_argument("--no-lidar-blocking", action="store_true",
@@ -119,7 +121,8 @@ def main(argv: list[str] | None = None) -> None:
                        blocks=parse_cell_at(getattr(args, "block", []), "block"),
                        obstacles=parse_cell_at(getattr(args, "obstacle", []), "obstacle"),
                        plot=args.plot, report=args.report, workdir=args.workdir, keep=args.keep,
-                       lidar_blocking=not args.no_lidar_blocking, mission=mission, live=args.live)
+                       lidar_blocking=not args.no_lidar_blocking, mission=mission, live=args.live,
+                       web_port=args.web_port)
     except UsageError as e:
         print(f"rce-fleet: {e}", file=sys.stderr)
         sys.exit(EXIT_USAGE)

@@ -76,6 +76,7 @@ class Options:
     lidar_blocking: bool = True
     mission: bool = True
     live: bool | None = None        # None: when stdout is a terminal
+    web_port: int = 8000            # the operator's web page (rce_fleet.webui); taken if free, else any
 
 
 def parse_robot_cell(items: list[str], what: str) -> dict[str, int]:
@@ -286,7 +287,7 @@ class Run:
         await self._bounded(self.manager.wait_state(ready, max(1.0, self.deadline - time.monotonic())),
                             "robots and move_clients reporting")
         if not o.headless:
-            self.events.append("web page: not available yet (a later issue); running headless")
+            await self._start_web()
         if not o.mission:
             log.info("serving", robots=len(self.robots), note="Ctrl-C to stop")
             await self._watch(mission=False)
@@ -522,8 +523,21 @@ class Run:
             "workdir": str(self.workdir),
         }
 
+    # -- the operator's web page (rce_fleet.webui, owned by the web page's code) ----------------
+    async def _start_web(self) -> None:
+        from .configs import FLEET_CTAG, PASSWORD, USER
+        from .webui import WebUI
+        self.web = WebUI(self.engine.master_url, self.occ, self.geo, self.robots, ctag=FLEET_CTAG, user=USER,
+                         password=PASSWORD, port=self.o.web_port)
+        url = await self._bounded(self.web.start(), "web page setup")
+        self.events.append(f"operator page: {url}")
+        print(f"rce-fleet: operator page: {url}  (log in as {USER}; rce-master --dev password {PASSWORD})",
+              flush=True)
+
     async def _teardown(self) -> None:
         try:
+            if getattr(self, "web", None) is not None:
+                await asyncio.wait_for(self.web.stop(), 10.0)
             if self.sim is not None:
                 await self.sim.stop(timeout=5.0)
             if self.manager is not None:

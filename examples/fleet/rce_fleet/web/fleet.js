@@ -337,9 +337,13 @@ function onFleetState(st) {
     const v = view.visits[r.robot] || (view.visits[r.robot] = []);
     if (!v.length || v[v.length - 1][1] !== rec.cell) v.push([Date.now(), rec.cell]);
     if (prev && prev.state !== rec.state) {
-      if (rec.state === "arrived") log("ok", `${r.robot} arrived at cell ${rec.goal}`);
-      else if (rec.state === "unreachable") log("error", `${r.robot}: goal ${rec.goal} unreachable: ${rec.error}`);
-    }
+      const key = `${rec.state}:${rec.goal}:${rec.plan}`;
+      if (rec.state === "arrived" && prev.announced !== key) log("ok", `${r.robot} arrived at cell ${rec.goal}`);
+      else if (rec.state === "unreachable" && prev.announced !== key) {
+        log("error", `${r.robot}: goal ${rec.goal} unreachable: ${rec.error}`);
+      }
+      rec.announced = key;
+    } else if (prev) rec.announced = prev.announced;
     if (prev && prev.cancels !== rec.cancels) log("info", `${r.robot}: path cancelled and re-planned (cancelGoal)`);
   }
   for (const n of Object.keys(view.robots)) if (!seen.has(n)) delete view.robots[n];
@@ -376,11 +380,12 @@ function toggleBlock(cell) {
     publish(tags.block, "fleet/CellBlock", { cell, blocked: block, source: `operator:${view.robotID}` });
   } catch (e) { log("error", `${what}: ${e.message}`); return; }
   const r0 = view.replans;
+  const cancels0 = Object.fromEntries(Object.entries(view.robots).map(([n, r]) => [n, r.cancels]));
   track(what, (st) => {
     const now = (st.blocked || []).includes(cell);
     if (now !== block) return null;
     if (!block) return [true, "done"];
-    const hit = (st.robots || []).filter((r) => r.cancels !== view.robots[r.robot]?.cancels).map((r) => r.robot);
+    const hit = (st.robots || []).filter((r) => r.cancels !== (cancels0[r.robot] ?? r.cancels)).map((r) => r.robot);
     return [true, `blocked${g && !g.free[cell] ? " (an occupied cell anyway)" : ""}; re-plans ${r0} -> ${st.replans}` +
                   (hit.length ? `; ${hit.join(", ")} re-routed` : "")];
   }, (err) => new RegExp(`\\bcell ${cell}\\b`).test(err) && /block/.test(err));
@@ -705,16 +710,22 @@ function frame(now) {
       ctx.fillStyle = "rgba(255, 215, 0, 0.55)";
       ctx.beginPath(); ctx.arc(px, py, R * 1.7, 0, 2 * Math.PI); ctx.fill();
     }
+    // heading: world yaw is counter-clockwise from +x; the canvas y axis points down
+    const [hx0, hy0] = W2C(d.x + Math.cos(d.yaw) * 0.3, d.y + Math.sin(d.yaw) * 0.3);
+    const hl = Math.hypot(hx0 - px, hy0 - py) || 1;
+    const ux = (hx0 - px) / hl, uy = (hy0 - py) / hl;
     ctx.fillStyle = col;
     ctx.strokeStyle = "#fff";
     ctx.lineWidth = Math.max(1, T.dpr * 1.5);
     ctx.beginPath(); ctx.arc(px, py, R, 0, 2 * Math.PI); ctx.fill(); ctx.stroke();
-    // heading: world yaw is counter-clockwise from +x; the canvas y axis points down
-    const [ox, oy] = W2C(d.x + Math.cos(d.yaw) * 0.3, d.y + Math.sin(d.yaw) * 0.3);
-    const hx = ox - px, hy = oy - py, hl = Math.hypot(hx, hy) || 1;
-    ctx.strokeStyle = "#111";
-    ctx.lineWidth = Math.max(1.5, T.dpr * 2);
-    ctx.beginPath(); ctx.moveTo(px, py); ctx.lineTo(px + hx / hl * R * 1.5, py + hy / hl * R * 1.5); ctx.stroke();
+    ctx.fillStyle = "#fff";            // a white arrow head inside the disc, pointing where it heads
+    ctx.beginPath();
+    ctx.moveTo(px + ux * R * 0.85, py + uy * R * 0.85);
+    ctx.lineTo(px - ux * R * 0.35 - uy * R * 0.5, py - uy * R * 0.35 + ux * R * 0.5);
+    ctx.lineTo(px - ux * R * 0.1, py - uy * R * 0.1);
+    ctx.lineTo(px - ux * R * 0.35 + uy * R * 0.5, py - uy * R * 0.35 - ux * R * 0.5);
+    ctx.closePath();
+    ctx.fill();
     ctx.font = `bold ${Math.max(10 * T.dpr, R * 0.9)}px system-ui, sans-serif`;
     ctx.textBaseline = "bottom";
     ctx.lineWidth = 3 * T.dpr;
