@@ -304,3 +304,21 @@ def test_repeats_and_plan_ids(tb3):
     out = core.on_pose("Robot1", *tb3.center(cells[1]), 0.0)
     assert core.robots["Robot1"].plan == plan
     assert all(o.topic != "/Robot1/goalNodesList" for o in out)
+
+
+def test_no_obstacles_reported_at_the_map_border():
+    """The simulator closes the map's border with walls; the robots' obstacle detector must
+    count them as static even where the image's edge pixels are free (warehouse.yaml's bottom
+    edge), or cells along the border get blocked by phantom lidar obstacles."""
+    from rce_fleet.sim import ObstacleDetector, SimWorld
+    m = load_map(SHARED / "warehouse.yaml")
+    geo = GridGeometry.from_cellgrid(make_grid(m, cell_m=1.2))
+    world = SimWorld(m, seed=3)
+    det = ObstacleDetector(m)
+    bottom = [c for c in geo.free_cells() if geo.rc(c)[0] == geo.rows - 1]
+    assert bottom
+    for c in bottom[::3]:
+        x, y = geo.center(c)
+        r = world.add_robot(f"r{c}", x, y - 0.2, -1.57)
+        assert det.detect(r.scan(), r.pose()) == [], c
+        world.remove_robot(f"r{c}")

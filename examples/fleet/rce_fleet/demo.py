@@ -453,9 +453,9 @@ class Run:
             from .plot import plot_run
             blocked = dict(zip((self.state or {}).get("blocked", []), (self.state or {}).get("blocked_by", [])))
             traces = {r: [(x, y) for _, x, y in b.trace] for r, b in self.sim.bots.items()}
+            t = report.get("mission_time_s") or report.get("sim_time_s") or 0.0
             title = (f"{Path(self.map_path).name}: {len(self.robots)} robots, grid {self.geo.rows}x{self.geo.cols}, "
-                     f"{'all goals reached' if code == EXIT_OK else 'FAILED: ' + reason[:60]} "
-                     f"(t={report.get('mission_time_s') or 0:.1f} s sim)")
+                     f"t={t:.1f} s sim\n" + ("all goals reached" if code == EXIT_OK else "FAILED: " + reason[:90]))
             try:
                 p = plot_run(o.plot, self.occ, self.geo, traces, self.starts, self.goals if o.mission else {},
                              blocked, title, {r: r in self.reached for r in self.robots})

@@ -37,8 +37,11 @@ class ObstacleDetector:
         self.height, self.width = occ.shape
         self.wall_tolerance = float(wall_tolerance)
         self.lidar_params = lidar_params or LidarParams()
-        # Distance (m) from each pixel centre to the nearest blocked pixel centre.
-        self._dist = (ndimage.distance_transform_edt(~blocked_mask(occ))
+        # Distance (m) from each pixel centre to the nearest blocked pixel centre. The
+        # outside of the image is blocked (SimWorld closes the border with walls), so hits
+        # on that border are static too, even where the image's edge pixels are free.
+        blocked = np.pad(blocked_mask(occ), 1, constant_values=True)
+        self._dist = (ndimage.distance_transform_edt(~blocked)[1:-1, 1:-1]
                       * self.resolution).astype(np.float32)
 
     def distance_to_wall(self, points: np.ndarray) -> np.ndarray:
