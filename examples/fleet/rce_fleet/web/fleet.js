@@ -58,7 +58,11 @@ const view = window.fleetView = {
   cloudErrors: [],       // ER texts
   mission: null,         // {available: bool, running: bool}
   map: { loaded: false, error: null, width: 0, height: 0 },
-  // helpers for tests (client coordinates, CSS px)
+  listeners: [],         // fn(fleetState) called for every /fleet/state (tests record with it)
+  fps: 0, drawMs: 0,     // frames per second, mean drawing time per frame (ms)
+  // helpers for tests (client coordinates, CSS px); applyState draws a fleet state as if it came
+  // from the cloud (replays, rendering tests)
+  applyState: (st) => onFleetState(st),
   cellCenterClient: (cell) => cellCenterClient(cell),
   robotClient: (name) => robotClient(name),
   cellAtClient: (x, y) => cellAtClient(x, y),
@@ -317,7 +321,7 @@ function onFleetState(st) {
   view.lastPlanMs = st.last_plan_ms;
   view.maxPlanMs = st.max_plan_ms;
 
-  const names = (st.robots || []).map((r) => r.robot).sort();
+  const names = (st.robots || []).map((r) => r.robot).sort((a, b) => a.localeCompare(b, "en", { numeric: true }));
   if (names.join() !== view.order.join()) { view.order = names; needTable = true; }
   const seen = new Set();
   for (const r of st.robots || []) {
@@ -362,6 +366,9 @@ function onFleetState(st) {
   if (before !== pending.length || view.updates === 1) needTable = true;
   if (view.updates === 1) log("ok", `fleet state received: ${st.rows}x${st.cols} grid, ${names.length} robot(s)`);
   needTable = true;
+  for (const fn of view.listeners) {
+    try { fn(st); } catch (e) { console.error("fleetView listener failed", e); }
+  }
 }
 
 // ---------------------------------------------------------------------------------------------
@@ -592,13 +599,23 @@ function cellCentre(cell) {
 }
 
 let lastFrame = performance.now();
-let frames = 0, fpsT = performance.now();
+let frames = 0, fpsT = performance.now(), drawSum = 0;
 function frame(now) {
   requestAnimationFrame(frame);
+  const t0 = performance.now();
+  draw(now);
+  drawSum += performance.now() - t0;
+  frames++;
+  if (now - fpsT > 1000) {
+    view.fps = frames * 1000 / (now - fpsT);
+    view.drawMs = drawSum / frames;
+    frames = 0; drawSum = 0; fpsT = now;
+  }
+}
+
+function draw(now) {
   const dt = Math.min(0.25, (now - lastFrame) / 1000);
   lastFrame = now;
-  frames++;
-  if (now - fpsT > 1000) { view.fps = frames * 1000 / (now - fpsT); frames = 0; fpsT = now; }
   layout();
   const g = view.grid;
   ctx.setTransform(1, 0, 0, 1, 0, 0);

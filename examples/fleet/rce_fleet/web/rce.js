@@ -344,8 +344,9 @@ export class Client {
       ws.onclose = (ev) => {
         if (!open) {
           // a browser does not show the refused handshake's status (401/403/409) to the page
-          reject(new RCEError("connect", `the robot endpoint ${info.url} refused the connection: wrong user or ` +
-                                         `password, or robot ID ${JSON.stringify(this.robotID)} already connected`));
+          reject(new RCEError("connect", `login refused by the robot endpoint ${info.url}: wrong password? ` +
+                                         `(or robot ID ${JSON.stringify(this.robotID)} already connected; ` +
+                                         `a browser does not see the reason)`));
           return;
         }
         this._closed(ev.code, ev.reason);
