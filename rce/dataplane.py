@@ -20,7 +20,7 @@ import itertools
 from typing import TYPE_CHECKING
 
 from rce import framing
-from rce.errors import ProtocolError, RequestError, Unavailable
+from rce.errors import ProtocolError, Unavailable
 from rce.log import get_logger
 from rce.rpc import nodelay
 
@@ -172,12 +172,7 @@ class DataPlane:
         self.msgs_in += 1
         self.bytes_in += len(f.payload)
         if f.op in (framing.SRV_RESP, framing.SRV_ERR):
-            fut = self._calls.get(f.call_id)
-            if fut and not fut.done():
-                if f.op == framing.SRV_RESP:
-                    fut.set_result(bytes(f.payload))
-                else:
-                    fut.set_exception(RequestError(bytes(f.payload).decode(errors="replace")))
+            framing.settle_call(self._calls, f)
             return
         iface = self.interfaces.get(f.dst)
         if iface is None:

@@ -13,7 +13,7 @@ import json
 import struct
 from dataclasses import dataclass
 
-from rce.errors import ProtocolError
+from rce.errors import ProtocolError, RequestError
 
 CONTROL = 1
 DATA = 2
@@ -37,6 +37,18 @@ class DataFrame:
     src: int
     call_id: int
     payload: bytes | memoryview
+
+
+def settle_call(pending: dict[int, "asyncio.Future"], f: DataFrame) -> None:
+    """Complete the call future ``pending[f.call_id]`` from a SRV_RESP (result: the response
+    bytes) or SRV_ERR frame (exception: :class:`RequestError` with the remote reason)."""
+    fut = pending.get(f.call_id)
+    if fut is None or fut.done():
+        return
+    if f.op == SRV_RESP:
+        fut.set_result(bytes(f.payload))
+    else:
+        fut.set_exception(RequestError(bytes(f.payload).decode(errors="replace")))
 
 
 def encode_control(obj: dict) -> bytes:

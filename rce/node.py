@@ -34,7 +34,7 @@ import sys
 from typing import Any, Awaitable, Callable
 
 from rce import framing, rpc
-from rce.errors import MessageError, RCEError, RequestError, Unavailable
+from rce.errors import MessageError, RCEError, Unavailable
 from rce.messages import MessageRegistry, default_registry, wire_name
 from rce.naming import join, resolve
 from rce.packages import load_package_types
@@ -182,12 +182,7 @@ class Node:
             if sub:
                 sub._push(bytes(f.payload))
         elif f.op in (framing.SRV_RESP, framing.SRV_ERR):
-            fut = self._calls.get(f.call_id)
-            if fut and not fut.done():
-                if f.op == framing.SRV_RESP:
-                    fut.set_result(bytes(f.payload))
-                else:
-                    fut.set_exception(RequestError(bytes(f.payload).decode(errors="replace")))
+            framing.settle_call(self._calls, f)
         elif f.op == framing.SRV_REQ:
             asyncio.create_task(self._serve(f.dst, f.call_id, bytes(f.payload)))
 

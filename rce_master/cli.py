@@ -3,14 +3,12 @@ from __future__ import annotations
 
 import argparse
 import asyncio
-import json
 import os
 import signal
-import sys
 from pathlib import Path
 
-from rce.errors import RCEError
-from rce.log import get_logger, setup_logging
+from rce.cli import run, write_ready_file
+from rce.log import get_logger
 from rce_master import token
 from rce_master.server import Master
 
@@ -40,11 +38,8 @@ async def amain(args: argparse.Namespace) -> None:
         prefix, _, d = s.partition("=")
         static[prefix] = Path(d)
     await master.start(args.bind, args.port, args.control_port, static)
-    if args.ready_file:
-        tmp = args.ready_file.with_suffix(".tmp")
-        tmp.write_text(json.dumps({"http_port": master.http_port, "control_port": master.control_port,
-                                   "pid": os.getpid()}))
-        tmp.replace(args.ready_file)
+    write_ready_file(args.ready_file, {"http_port": master.http_port, "control_port": master.control_port,
+                                   "pid": os.getpid()})
     stop = asyncio.Event()
     loop = asyncio.get_running_loop()
     for sig in (signal.SIGINT, signal.SIGTERM):
@@ -55,13 +50,4 @@ async def amain(args: argparse.Namespace) -> None:
 
 
 def main(argv: list[str] | None = None) -> None:
-    args = parser().parse_args(argv)
-    setup_logging()
-    try:
-        asyncio.run(amain(args))
-    except RCEError as e:
-        print(f"rce-master: {e}", file=sys.stderr)
-        sys.exit(1)
-    except OSError as e:
-        print(f"rce-master: cannot listen: {e.strerror or e}", file=sys.stderr)
-        sys.exit(1)
+    run("rce-master", amain, parser().parse_args(argv))

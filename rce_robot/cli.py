@@ -3,15 +3,13 @@ from __future__ import annotations
 
 import argparse
 import asyncio
-import json
 import os
 import signal
 import socket
-import sys
 from pathlib import Path
 
-from rce.errors import RCEError
-from rce.log import get_logger, setup_logging
+from rce.cli import run, write_ready_file
+from rce.log import get_logger
 from rce_robot.endpoint import RobotEndpoint
 
 log = get_logger("rce.robot")
@@ -40,11 +38,8 @@ async def amain(args: argparse.Namespace) -> None:
                        advertise_host=args.advertise_host or args.bind, max_message=args.max_message,
                        queue_size=args.queue_size, expiry=args.expiry)
     await ep.start(args.master_ip, args.master_port, args.bind, args.port, args.data_port, args.metrics_port)
-    if args.ready_file:
-        tmp = args.ready_file.with_suffix(".tmp")
-        tmp.write_text(json.dumps({"ws_port": ep.ws_port, "data_addr": ep.plane.addr, "pid": os.getpid(),
-                                   "metrics_port": ep.metrics_port}))
-        tmp.replace(args.ready_file)
+    write_ready_file(args.ready_file, {"ws_port": ep.ws_port, "data_addr": ep.plane.addr, "pid": os.getpid(),
+                                   "metrics_port": ep.metrics_port})
     loop = asyncio.get_running_loop()
     for sig in (signal.SIGINT, signal.SIGTERM):
         loop.add_signal_handler(sig, ep.stopped.set)
@@ -54,13 +49,4 @@ async def amain(args: argparse.Namespace) -> None:
 
 
 def main(argv: list[str] | None = None) -> None:
-    args = parser().parse_args(argv)
-    setup_logging()
-    try:
-        asyncio.run(amain(args))
-    except RCEError as e:
-        print(f"rce-robot: {e}", file=sys.stderr)
-        sys.exit(1)
-    except OSError as e:
-        print(f"rce-robot: {e.strerror or e}", file=sys.stderr)
-        sys.exit(1)
+    run("rce-robot", amain, parser().parse_args(argv))

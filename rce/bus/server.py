@@ -148,12 +148,7 @@ class _Session:
             if t is not None:
                 self.bus.publish(t, bytes(f.payload))
         elif f.op in (framing.SRV_RESP, framing.SRV_ERR):
-            fut = self.calls.get(f.call_id)
-            if fut and not fut.done():
-                if f.op == framing.SRV_RESP:
-                    fut.set_result(bytes(f.payload))
-                else:
-                    fut.set_exception(RequestError(bytes(f.payload).decode(errors="replace")))
+            framing.settle_call(self.calls, f)
         elif f.op == framing.SRV_REQ:
             asyncio.create_task(self._serve_call(f.dst, f.call_id, bytes(f.payload)))
 
