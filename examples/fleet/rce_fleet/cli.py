@@ -43,7 +43,8 @@ def _positive(text: str) -> float:
 def _map_args(p: argparse.ArgumentParser) -> None:
     p.add_argument("--map", metavar="YAML", help="ROS map_server map (default: the project's lab map, generated)")
     g = p.add_mutually_exclusive_group()
-    g.add_argument("--grid", type=_grid, metavar="ROWSxCOLS", help="grid size (default 8x8, as in the paper)")
+    g.add_argument("--grid", type=_grid, metavar="ROWSxCOLS", help="grid size (default 8x8 as in the paper; on a map where that gives cells over 2 m, "
+                   "square cells of 1.2 m)")
     g.add_argument("--cell", type=_positive, metavar="METERS", help="square cells of this side instead")
 
 
@@ -51,8 +52,8 @@ def _run_args(p: argparse.ArgumentParser, mission: bool) -> None:
     _map_args(p)
     p.add_argument("--robots", type=int, default=3, metavar="N", help="number of simulated robots (default 3)")
     p.add_argument("--seed", type=int, default=1, help="random starts/goals and sensor noise (default 1)")
-    p.add_argument("--speedup", type=_positive, default=2.0, metavar="K",
-                   help="simulated time runs K times faster than wall time (default 2)")
+    p.add_argument("--speedup", type=_positive, default=3.0, metavar="K",
+                   help="simulated time runs K times faster than wall time (default 3)")
     p.add_argument("--start", action="append", default=[], metavar="RobotN=CELL", help="start cell of a robot")
     p.add_argument("--headless", action="store_true", help="no operator web page")
     p.add_argument("--web-port", type=int, default=8000, metavar="PORT",

@@ -49,6 +49,9 @@ log = get_logger("fleet.demo")
 
 EXIT_OK, EXIT_FAIL, EXIT_USAGE, EXIT_UNREACHABLE = 0, 1, 2, 3
 REACH_TOL = 0.25       # m between the robot's true centre and its goal cell's centre
+LARGE_CELL_M = 2.0     # without --grid/--cell: 8x8, unless its cells would be larger than this ...
+DEFAULT_LARGE_MAP_CELL_M = 1.2   # ... then square cells of this side
+STUCK_S = 30.0         # wall s every robot still on its way may stay unplannable before the run fails
 
 
 class UsageError(ValueError):
@@ -62,7 +65,7 @@ class Options:
     grid: tuple[int, int] | None = None
     cell: float | None = None
     seed: int = 1
-    speedup: float = 2.0
+    speedup: float = 3.0
     headless: bool = False
     timeout: float = 300.0
     goals: dict[str, int] = field(default_factory=dict)
@@ -190,6 +193,8 @@ class Run:
         self.result: tuple[int, str] | None = None
         self.events: deque[str] = deque(maxlen=6)
         self.node_failures: list[str] = []
+        self.grid_note = ""
+        self._stuck_since: float | None = None
         self._stop = asyncio.Event()
 
     # -- set-up ---------------------------------------------------------------------------------
@@ -209,6 +214,11 @@ class Run:
             raise UsageError(f"--map: {e}") from None
         try:
             grid = make_grid(self.occ, o.grid, o.cell) if (o.grid or o.cell) else make_grid(self.occ)
+            if not (o.grid or o.cell) and max(grid.cell_w_m, grid.cell_h_m) > LARGE_CELL_M:
+                # the paper's 8x8 suits a lab; on a warehouse it gives cells of several metres
+                grid = make_grid(self.occ, cell_m=DEFAULT_LARGE_MAP_CELL_M)
+                self.grid_note = (f"grid: {grid.rows}x{grid.cols} cells of {DEFAULT_LARGE_MAP_CELL_M} m (8x8 would give "
+                                  f"cells over {LARGE_CELL_M:g} m on this map; pass --grid or --cell to choose)")
         except ValueError as e:
             raise UsageError(f"--grid/--cell: {e}") from None
         self.geo = GridGeometry.from_cellgrid(grid)
@@ -222,6 +232,9 @@ class Run:
             if not self.geo.valid(c):
                 raise UsageError(f"cell {c} is outside the {self.geo.rows}x{self.geo.cols} grid")
         self.starts, self.goals = choose_cells(self.geo, self.robots, o.seed, o.starts, o.goals, o.mission)
+        if self.grid_note:
+            log.info(self.grid_note)
+            self.events.append(self.grid_note)
 
     # -- run --------------------------------------------------------------------------------------
     async def run(self) -> int:
@@ -357,6 +370,16 @@ class Run:
                     log.info("goal reached", robot=r, goal=self.goals[r], t=round(self.sim.time - self.t_mission, 2))
         if len(self.reached) == len(self.robots):
             return EXIT_OK, "every robot reached its goal"
+        # no plan for anybody still on the way (the planner retries every second): give up after a while
+        left = [r for r in self.robots if r not in self.reached]
+        if left and all(st.get(r, {}).get("state") == "unreachable" for r in left):
+            if self._stuck_since is None:
+                self._stuck_since = time.monotonic()
+            elif time.monotonic() - self._stuck_since > STUCK_S:
+                why = "; ".join(f"{r}: {st[r]['error']}" for r in left)
+                return EXIT_UNREACHABLE, f"no collision-free plan for {len(left)} robot(s) for {STUCK_S:g} s: {why}"
+        else:
+            self._stuck_since = None
         return None
 
     def _engine_problem(self) -> str | None:
