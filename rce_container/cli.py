@@ -40,11 +40,15 @@ def parser() -> argparse.ArgumentParser:
     p.add_argument("--max-frame", type=int, default=framing.DEFAULT_MAX_FRAME,
                    help=f"largest frame accepted on any link, bytes (default {framing.DEFAULT_MAX_FRAME})")
     p.add_argument("--sandbox", default="auto", choices=["auto", *sorted(sandboxes.REGISTRY)],
-                   help="node isolation (default auto: the strongest this host supports)")
+                   help="node isolation (default auto: 'namespaced' -- namespaces and a cgroup per "
+                        "container -- when running as root, else 'unconfined')")
     p.add_argument("--warm", type=int, default=1,
                    help="idle environments kept started for fast container creation (default 1; 0 = none)")
     p.add_argument("--grace", type=float, default=3.0,
                    help="seconds between SIGTERM and SIGKILL when stopping nodes (default 3)")
+    p.add_argument("--metrics-port", type=int, default=None, metavar="PORT",
+                   help="serve Prometheus /metrics on --bind at this port (0: ephemeral, written to the "
+                        "ready file; default: off)")
     return p
 
 
@@ -54,7 +58,8 @@ async def amain(args: argparse.Namespace) -> int:
         prefix="rce-container-", dir=os.environ.get("XDG_RUNTIME_DIR") or None)
     host = ContainerHost(args.master, args.master_port, name=args.name or socket.gethostname(), bind=args.bind,
                          advertise_host=args.advertise_host, runtime_dir=runtime_dir, own_runtime_dir=own,
-                         sandbox=args.sandbox, max_frame=args.max_frame, grace=args.grace, warm=args.warm)
+                         sandbox=args.sandbox, max_frame=args.max_frame, grace=args.grace, warm=args.warm,
+                         metrics_port=args.metrics_port)
     loop = asyncio.get_running_loop()
     for sig in (signal.SIGINT, signal.SIGTERM):
         loop.add_signal_handler(sig, host.stop)
@@ -65,7 +70,7 @@ async def amain(args: argparse.Namespace) -> int:
         await host.close()
         return 1
     if args.ready_file:
-        write_ready_file(args.ready_file, tid)
+        write_ready_file(args.ready_file, tid, metrics_port=host.metrics_port, sandbox=host.sandbox_cls.kind)
     return await host.run()
 
 

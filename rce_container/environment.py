@@ -40,6 +40,7 @@ from rce.packages import load_package_types
 from rce_container import sandbox as sandboxes
 from rce_container.interfaces import BusInterface, make_interface
 from rce_container.launcher import LOG_LINES, Launcher
+from rce_container.usage import CpuRate, measure
 
 log = get_logger("rce.container.env")
 
@@ -62,7 +63,8 @@ class Container:
         self.workdir, socket = container_paths(env.runtime_dir, env.socket_dir, cid)
         self.socket = str(socket)
         self.server = BusServer(env.bus)
-        self.sandbox = env.sandbox_cls(cid, ctag, limits, self.workdir, grace=env.grace)
+        self.sandbox = env.sandbox_cls(cid, ctag, limits, self.workdir, grace=env.grace, bus_socket=self.socket,
+                                       scope=env.scope)
         self.launcher = Launcher(self.sandbox, self.socket, ctag, self._status)
         self.interfaces: dict[int, BusInterface] = {}
 
@@ -75,7 +77,7 @@ class Container:
                            "use a shorter --runtime-dir")
         self.workdir.mkdir(parents=True, exist_ok=True)
         Path(self.socket).parent.mkdir(parents=True, exist_ok=True)
-        await self.sandbox.setup()
+        await self.sandbox.setup()          # before the socket exists: its directory is bind-mounted
         await self.server.listen(self.socket)
 
     async def close(self) -> None:
@@ -88,16 +90,58 @@ class Container:
         shutil.rmtree(self.workdir, ignore_errors=True)
         shutil.rmtree(Path(self.socket).parent, ignore_errors=True)
 
+    def usage(self) -> tuple[dict, dict]:
+        """(container-level use, {ntag: per-node use}): CPU %, resident memory, processes, and
+        per node its bus traffic. The container level comes from the sandbox's cgroup when it
+        has one (every process of the container, its init included), else from the sum of the
+        nodes' process trees."""
+        rates = self.env.rates
+        sessions = {s.node: s for s in self.server.sessions if s.node}
+        per_node, total = {}, {"cpu_seconds": 0.0, "rss_bytes": 0, "processes": 0}
+        for n in self.launcher.nodes.values():
+            m = measure(self.sandbox.node_pids(n.proc))
+            for k in total:
+                total[k] += m[k]
+            pid = n.pid
+            sess = sessions.get(n.full_name)
+            bus = sess.stats() if sess else {"msgs_in": 0, "bytes_in": 0, "msgs_out": 0, "bytes_out": 0, "dropped": 0}
+            info = n.info()
+            info.pop("argv")
+            per_node[n.ntag] = {
+                **info,
+                "cpu_percent": round(rates.percent(("node", self.cid, n.ntag, pid), m["cpu_seconds"], n.started), 1)
+                if pid else 0.0,
+                "rss_mib": round(m["rss_bytes"] / 2**20, 2), "processes": m["processes"],
+                "connected": sess is not None, **{k: bus[k] for k in ("msgs_in", "msgs_out", "bytes_in", "bytes_out",
+                                                                     "dropped")}}
+        box = self.sandbox.usage()
+        if "pids" in box:
+            m = measure(box["pids"])
+            cpu = box["cpu_seconds"] if box.get("cpu_seconds") is not None else m["cpu_seconds"]
+            total = {"cpu_seconds": cpu, "rss_bytes": m["rss_bytes"], "processes": m["processes"]}
+        out = {"cpu_percent": round(rates.percent(("container", self.cid), total["cpu_seconds"],
+                                                  self.sandbox.started), 1),
+               "rss_mib": round(total["rss_bytes"] / 2**20, 2), "processes": total["processes"]}
+        mem = box.get("memory") or {}
+        if "usage_bytes" in mem:
+            out["memory"] = {"usage_mib": round(mem["usage_bytes"] / 2**20, 2),
+                             "limit_mib": None if mem.get("limit_bytes") is None else round(mem["limit_bytes"] / 2**20, 2),
+                             "oom_kills": mem.get("oom_kills", 0), "failcnt": mem.get("failcnt", 0)}
+        return out, per_node
+
     def stats(self) -> dict:
         """Per-container counters; see :meth:`Environment.op_stats`."""
         ifs = [i.stats() for i in self.interfaces.values()]
         node_subs = [s for sess in self.server.sessions for s in sess.subs.values()]
         iface_subs = [i.sub for i in self.interfaces.values() if getattr(i, "sub", None) is not None]
         nodes = [n.info() for n in self.launcher.nodes.values()]
+        use, per_node = self.usage()
         return {
-            "cid": self.cid, "ctag": self.ctag, "group": self.group, "sandbox": self.sandbox.status,
+            "cid": self.cid, "user": self.user, "ctag": self.ctag, "group": self.group,
+            "sandbox": self.sandbox.status, "limits": dict(self.sandbox.limits), **use,
             "nodes": {"count": len(nodes), "running": sum(n["running"] for n in nodes),
                       "starts": self.launcher.starts, "restarts": sum(n["restarts"] for n in nodes)},
+            "per_node": per_node,
             "msgs_in": sum(i["msgs_in"] for i in ifs), "msgs_out": sum(i["msgs_out"] for i in ifs),
             "bytes_in": sum(i["bytes_in"] for i in ifs), "bytes_out": sum(i["bytes_out"] for i in ifs),
             "dropped": {"interfaces": sum(i["dropped"] for i in ifs),
@@ -118,12 +162,14 @@ class Environment:
                  bind: str = "127.0.0.1",
                  advertise_host: str | None = None, sandbox: str = "auto",
                  max_frame: int = framing.DEFAULT_MAX_FRAME, grace: float = 3.0,
-                 registry: MessageRegistry | None = None):
+                 registry: MessageRegistry | None = None, scope: str | None = None):
         self.env_id = env_id
         self.runtime_dir = Path(runtime_dir)
         self.socket_dir = Path(socket_dir or runtime_dir)
         self.bind, self.advertise_host = bind, advertise_host or bind
-        self.sandbox_cls = sandboxes.select(sandbox)
+        self.sandbox_cls = sandboxes.select(sandbox, check=False)    # the task set has checked it
+        self.scope = scope or sandboxes.host_scope("env")
+        self.rates = CpuRate()
         self.max_frame, self.grace = max_frame, grace
         self.registry = registry or default_registry()
         self.bus = Bus(f"env{env_id}")
@@ -132,6 +178,7 @@ class Environment:
         self.interfaces: dict[int, BusInterface] = {}
         self.peer: rpc.RpcPeer | None = None
         self.done = asyncio.Event()
+        self.t0 = time.monotonic()
         self._closed = False
 
     # -- lifecycle -----------------------------------------------------------------------------
@@ -211,11 +258,19 @@ class Environment:
         return {}
 
     async def op_resize_container(self, a: dict) -> dict:
-        """``{cid, limits: {cpu, memory, size, bandwidth}}`` -> ``{sandbox, limits}``: new limits
-        for the container's sandbox (recorded only by the unconfined sandbox)."""
+        """``{cid, limits: {cpu, memory, size, bandwidth}}`` -> ``{sandbox, limits, cgroup?}``:
+        new limits for the container's sandbox, written into its cgroup while its nodes keep
+        running (recorded only by the unconfined sandbox); 0 removes a limit. ``cgroup``: the
+        limit files as the kernel now reports them."""
         c = self._container(a)
-        await c.sandbox.resize(a.get("limits") or {})
-        return {"sandbox": c.sandbox.status, "limits": c.sandbox.limits}
+        limits = a.get("limits") or {}
+        if not isinstance(limits, dict):
+            raise RequestError(f"resize_container: 'limits' must be an object, got {limits!r}")
+        await c.sandbox.resize(limits)
+        log.info("container resized", cid=c.cid, ctag=c.ctag, limits=c.sandbox.limits)
+        info = c.sandbox.info()
+        return {"sandbox": c.sandbox.status, "limits": c.sandbox.limits,
+                **({"cgroup": info["cgroup"]["files"]} if "cgroup" in info else {})}
 
     # -- nodes ---------------------------------------------------------------------------------
     async def op_add_node(self, a: dict) -> dict:
@@ -353,18 +408,26 @@ class Environment:
     async def op_stats(self, a: dict) -> dict:
         """``{cid}`` -> counters of the container and of its group::
 
-            {cid, ctag, group, sandbox,
+            {cid, user, ctag, group, sandbox, limits: {cpu?, memory?, size?, bandwidth?},
+             cpu_percent, rss_mib, processes,                  # every process of the container
+             memory?: {usage_mib, limit_mib, oom_kills, failcnt},   # its memory cgroup, when it has one
              nodes: {count, running, starts, restarts},
+             per_node: {ntag: {ntag, name, pid, running, restarts, last_exit, cpu_percent, rss_mib,
+                               processes, connected, msgs_in, msgs_out, bytes_in, bytes_out, dropped}},
              msgs_in, msgs_out, bytes_in, bytes_out,          # over the container's interfaces
              dropped: {interfaces, bus},                       # refused by peer links / bus subscriptions
              interfaces: [{iid, tag, kind, cls, addr, peers, msgs_in, msgs_out, bytes_in, bytes_out, dropped}],
-             environment: {env_id, pid, containers, data_addr,
+             sandbox_info: {kind, limits, init_pid?, namespaces?, cgroup?: {version, dirs, files}},
+             environment: {env_id, pid, rss_mib, cpu_percent, containers, data_addr,
                            bus: {topics, services, nodes, messages, bytes, dropped},
                            dataplane: {msgs_in, msgs_out, bytes_in, bytes_out, dropped, links}}}
         """
         c = self._container(a)
         topics = self.bus.topics.values()
-        return {**c.stats(), "environment": {
+        env_mem = measure([os.getpid()])
+        return {**c.stats(), "sandbox_info": c.sandbox.info(), "environment": {
+            "rss_mib": round(env_mem["rss_bytes"] / 2**20, 2),
+            "cpu_percent": round(self.rates.percent("environment", env_mem["cpu_seconds"], self.t0), 1),
             "env_id": self.env_id, "pid": os.getpid(), "containers": len(self.containers),
             "data_addr": self.plane.addr,
             "bus": {"topics": len(self.bus.topics), "services": len(self.bus.services),
@@ -375,8 +438,9 @@ class Environment:
 
 async def run(args: argparse.Namespace) -> int:
     """Start the environment, serve until the link closes or a signal; returns the exit code."""
-    env = Environment(args.env_id, args.runtime_dir, socket_dir=args.socket_dir, bind=args.bind, advertise_host=args.advertise_host,
-                      sandbox=args.sandbox, max_frame=args.max_frame, grace=args.grace)
+    env = Environment(args.env_id, args.runtime_dir, socket_dir=args.socket_dir, bind=args.bind,
+                      advertise_host=args.advertise_host, sandbox=args.sandbox, max_frame=args.max_frame,
+                      grace=args.grace, scope=args.scope)
     loop = asyncio.get_running_loop()
     for sig in (signal.SIGINT, signal.SIGTERM):
         loop.add_signal_handler(sig, env.done.set)
@@ -404,6 +468,7 @@ def main(argv: list[str] | None = None) -> None:
     p.add_argument("--bind", default="127.0.0.1")
     p.add_argument("--advertise-host", default=None)
     p.add_argument("--sandbox", default="auto")
+    p.add_argument("--scope", default=None, help="the task set's sandbox scope (cgroup directory rce/NAME-PID)")
     p.add_argument("--max-frame", type=int, default=framing.DEFAULT_MAX_FRAME)
     p.add_argument("--grace", type=float, default=3.0, help="s between SIGTERM and SIGKILL for nodes")
     args = p.parse_args(argv)

@@ -29,12 +29,16 @@ from pathlib import Path
 from typing import Any
 
 import psutil
+from aiohttp import web
+from prometheus_client import CONTENT_TYPE_LATEST, generate_latest
 
 from rce import framing, rpc
 from rce.errors import NotFound, RCEError, RequestError, Unavailable
 from rce.log import get_logger
+from rce_container import metrics
 from rce_container import sandbox as sandboxes
 from rce_container.environment import container_paths
+from rce_container.usage import measure
 
 log = get_logger("rce.container")
 
@@ -94,19 +98,24 @@ class ContainerHost:
     removed on exit only if ``own_runtime_dir``); ``sandbox``: sandbox kind or ``"auto"``;
     ``env_timeout``: s to wait for a new environment's hello; ``grace``: s between SIGTERM
     and SIGKILL for nodes; ``warm``: idle environments kept started, so that a new group's
-    ``create_container`` does not wait for a Python process to start."""
+    ``create_container`` does not wait for a Python process to start; ``metrics_port``: serve
+    Prometheus ``/metrics`` on ``bind`` at this port (0: an ephemeral one, read back from
+    ``self.metrics_port``; None: no metrics server)."""
 
     def __init__(self, master: str, master_port: int = 8080, *, name: str | None = None,
                  bind: str = "127.0.0.1", advertise_host: str | None = None, runtime_dir: str | Path,
                  own_runtime_dir: bool = False, sandbox: str = "auto",
                  max_frame: int = framing.DEFAULT_MAX_FRAME, env_timeout: float = 30.0, grace: float = 3.0,
-                 warm: int = 1):
+                 warm: int = 1, metrics_port: int | None = None):
         self.master_addr = (master, master_port)
         self.name = name or socket.gethostname()
         self.bind, self.advertise_host = bind, advertise_host or bind
         self.runtime_dir = Path(runtime_dir)
         self.own_runtime_dir = own_runtime_dir
         self.sandbox_cls = sandboxes.select(sandbox)
+        self.scope = sandboxes.host_scope(self.name)
+        self.metrics_port = metrics_port
+        self._http = None
         self.max_frame, self.env_timeout, self.grace = max_frame, env_timeout, grace
         self.warm = max(0, warm)
         self.spares: list[EnvHandle] = []
@@ -138,6 +147,10 @@ class ContainerHost:
             os.unlink(self.control_path)
         self._server = await asyncio.start_unix_server(self._accept_env, self.control_path, limit=2**20)
         os.chmod(self.control_path, 0o600)
+        how = await asyncio.to_thread(self.sandbox_cls.prepare_host, self.scope)
+        log.info("sandbox", kind=self.sandbox_cls.kind, uses=how, scope=self.scope)
+        if self.metrics_port is not None:
+            await self._start_metrics()
         handlers = {op: self._relay_handler(op) for op in RELAYED_OPS}
         handlers.update(create_container=self.op_create_container, destroy_container=self.op_destroy_container,
                         stats=self.op_stats)
@@ -172,6 +185,9 @@ class ContainerHost:
         self._closing = True
         await asyncio.gather(*(self._stop_env(e) for e in list(self.envs)), return_exceptions=True)
         self.containers.clear()
+        await asyncio.to_thread(self.sandbox_cls.cleanup_host, self.scope)   # anything a crash left behind
+        if self._http is not None:
+            await self._http.cleanup()
         if self.master:
             await self.master.close()
         if self._server:
@@ -246,7 +262,7 @@ class ContainerHost:
                 "--env-id", str(env.env_id), "--runtime-dir", str(self.runtime_dir),
                 "--socket-dir", str(self.socket_dir), "--bind", self.bind,
                 "--advertise-host", self.advertise_host, "--sandbox", self.sandbox_cls.kind,
-                "--max-frame", str(self.max_frame), "--grace", str(self.grace)]
+                "--max-frame", str(self.max_frame), "--grace", str(self.grace), "--scope", self.scope]
         try:
             env.proc = await asyncio.create_subprocess_exec(*argv, stdin=asyncio.subprocess.DEVNULL,
                                                             start_new_session=True)
@@ -305,6 +321,7 @@ class ContainerHost:
                 self._to_master("node_status", cid=cid, ntag=ntag, status="exited",
                                 reason=f"environment exited with code {env.exit_code}")
                 c.nodes[ntag] = None
+            await asyncio.to_thread(self.sandbox_cls.cleanup_container, self.scope, cid)
 
     async def _stop_env(self, env: EnvHandle) -> None:
         """Ask the environment to destroy its containers, close its link, reap it (SIGKILL after
@@ -331,9 +348,11 @@ class ContainerHost:
                 for pid in (c.nodes.values() if c else ()):
                     if pid:
                         _kill_group(pid)
-                self._remove_dirs(cid)
+                await self._remove_dirs(cid)
 
-    def _remove_dirs(self, cid: int) -> None:
+    async def _remove_dirs(self, cid: int) -> None:
+        """Remove what container ``cid`` left: its sandbox's processes and cgroups, its dirs."""
+        await asyncio.to_thread(self.sandbox_cls.cleanup_container, self.scope, cid)
         workdir, sock = container_paths(self.runtime_dir, self.socket_dir, cid)
         shutil.rmtree(workdir, ignore_errors=True)
         shutil.rmtree(sock.parent, ignore_errors=True)
@@ -441,7 +460,7 @@ class ContainerHost:
                 for pid in c.nodes.values():
                     if pid:
                         _kill_group(pid)
-                self._remove_dirs(c.cid)
+                await self._remove_dirs(c.cid)
             if not env.cids:
                 await self._stop_env(env)
                 self._group_locks.pop(env.key, None)
@@ -480,8 +499,29 @@ class ContainerHost:
                     out.append({"cid": c.cid, "ctag": c.ctag, "error": e.message})
             else:
                 out.append({"cid": c.cid, "ctag": c.ctag, "error": "environment gone"})
-        return {"name": self.name, "tid": self.tid, "sandbox": self.sandbox_cls.kind,
-                "environments": len(self.envs), "spares": len(self.spares), "containers": out}
+        envs = {}
+        for e in list(self.envs):
+            if e.proc is not None and e.proc.returncode is None:
+                envs[e.env_id] = measure([e.proc.pid])["rss_bytes"]
+        return {"name": self.name, "tid": self.tid, "sandbox": self.sandbox_cls.kind, "scope": self.scope,
+                "environments": len(self.envs), "spares": len(self.spares),
+                "environment_rss_mib": {str(k): round(v / 2**20, 2) for k, v in envs.items()},
+                "containers": out}
+
+    # -- Prometheus ----------------------------------------------------------------------------
+    async def _start_metrics(self) -> None:
+        app = web.Application()
+        app.router.add_get("/metrics", self._metrics)
+        self._http = web.AppRunner(app, access_log=None)
+        await self._http.setup()
+        site = web.TCPSite(self._http, self.bind, self.metrics_port)
+        await site.start()
+        self.metrics_port = site._server.sockets[0].getsockname()[1]
+        log.info("metrics served", url=f"http://{self.bind}:{self.metrics_port}/metrics")
+
+    async def _metrics(self, request: web.Request) -> web.Response:
+        registry = metrics.snapshot_registry(await self.op_stats({}))
+        return web.Response(body=generate_latest(registry), headers={"Content-Type": CONTENT_TYPE_LATEST})
 
 
 def _kill_group(pgid: int) -> None:
@@ -491,9 +531,9 @@ def _kill_group(pgid: int) -> None:
         pass
 
 
-def write_ready_file(path: str | Path, tid: Any) -> None:
-    """Write ``{"tid", "pid"}`` to ``path`` atomically (tests wait for it)."""
+def write_ready_file(path: str | Path, tid: Any, **extra: Any) -> None:
+    """Write ``{"tid", "pid", **extra}`` to ``path`` atomically (tests wait for it)."""
     path = Path(path)
     tmp = path.with_name(path.name + ".tmp")
-    tmp.write_text(json.dumps({"tid": tid, "pid": os.getpid()}))
+    tmp.write_text(json.dumps({"tid": tid, "pid": os.getpid(), **extra}))
     os.replace(tmp, path)

@@ -26,6 +26,7 @@ import os
 import re
 import shlex
 import sys
+import time
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Callable
@@ -150,15 +151,22 @@ class NodeProcess:
     task: asyncio.Task | None = None
     stop_event: asyncio.Event = field(default_factory=asyncio.Event)
     spec: dict = field(default_factory=dict)
+    started: float = 0.0                 # monotonic s, the current process's start
+    last_exit: dict | None = None        # {code|signal, reason?} of the last exit
 
     @property
     def pid(self) -> int | None:
         return self.proc.pid if self.proc and self.proc.returncode is None else None
 
+    @property
+    def full_name(self) -> str:
+        """The node's name on the bus (``RCE_NAMESPACE`` joined with ``RCE_NODE_NAME``)."""
+        return join(self.env.get("RCE_NAMESPACE", "/"), self.env.get("RCE_NODE_NAME", self.ntag))
+
     def info(self) -> dict:
-        """``{ntag, pid, running, restarts, argv}`` for status and ``describe``."""
-        return {"ntag": self.ntag, "pid": self.pid, "running": self.pid is not None,
-                "restarts": self.restarts, "argv": self.argv}
+        """``{ntag, name, pid, running, restarts, last_exit, argv}`` for status and ``describe``."""
+        return {"ntag": self.ntag, "name": self.full_name, "pid": self.pid, "running": self.pid is not None,
+                "restarts": self.restarts, "last_exit": self.last_exit, "argv": self.argv}
 
 
 class Launcher:
@@ -229,6 +237,7 @@ class Launcher:
         except OSError as e:
             raise RCEError(f"node {node.ntag!r}: cannot start {node.argv[0]}: {e.strerror or e}") from None
         self.starts += 1
+        node.started = time.monotonic()
         log.info("node started", container=self.ctag, ntag=node.ntag, pid=node.proc.pid)
         self.on_status(node.ntag, "started", pid=node.proc.pid)
 
@@ -244,11 +253,16 @@ class Launcher:
                 t.cancel()
             if node.stopping:
                 return
-            fields = {"signal": -code} if code < 0 else {"code": code}
+            fields: dict[str, Any] = {"signal": -code} if code < 0 else {"code": code}
+            why = self.sandbox.exit_reason(proc, code)      # e.g. the kernel's OOM killer
+            if why:
+                fields["reason"] = why
+            node.last_exit = dict(fields)
             if not node.respawn or (node.limit is not None and node.restarts >= node.limit):
-                reason = "respawn limit reached" if node.respawn else None
-                log.info("node exited", container=self.ctag, ntag=node.ntag, reason=reason, **fields)
-                self.on_status(node.ntag, "exited", **fields, **({"reason": reason} if reason else {}))
+                if node.respawn:
+                    fields["reason"] = f"{why}; respawn limit reached" if why else "respawn limit reached"
+                log.info("node exited", container=self.ctag, ntag=node.ntag, **fields)
+                self.on_status(node.ntag, "exited", **fields)
                 return
             node.restarts += 1
             log.info("node respawning", container=self.ctag, ntag=node.ntag, restarts=node.restarts, **fields)

@@ -46,9 +46,17 @@ class _Session:
         self.ids = itertools.count(1)
         self.call_ids = itertools.count(1)
         self.transport = peer.writer.transport
+        # what this node published (in) and was delivered (out), for per-node statistics
+        self.msgs_in = self.bytes_in = self.msgs_out = self.bytes_out = 0
         peer.handlers.update({op[3:]: getattr(self, op) for op in dir(self) if op.startswith("op_")})
         peer.on_data = self.on_data
         peer.on_close = lambda _p: self.close()
+
+    def stats(self) -> dict:
+        """``{node, msgs_in, bytes_in, msgs_out, bytes_out, dropped}``: in = published by the
+        node, out = delivered to it, dropped = messages its subscriptions could not take."""
+        return {"node": self.node, "msgs_in": self.msgs_in, "bytes_in": self.bytes_in, "msgs_out": self.msgs_out,
+                "bytes_out": self.bytes_out, "dropped": sum(s.dropped for s in self.subs.values())}
 
     # -- control ops ---------------------------------------------------------------------------
     async def op_hello(self, a: dict) -> dict:
@@ -89,6 +97,8 @@ class _Session:
                 return False
             write(framing.encode_data_header(framing.MSG, _h, 0, 0, len(payload)))
             write(payload)
+            self.msgs_out += 1
+            self.bytes_out += len(payload)
             return True
         self.subs[h] = self.bus.subscribe(a["topic"], a["type"], deliver, self.owner, a.get("queue_size", 100))
         self.server.changed()
@@ -146,6 +156,8 @@ class _Session:
         if f.op == framing.MSG:
             t = self.pubs.get(f.dst)
             if t is not None:
+                self.msgs_in += 1
+                self.bytes_in += len(f.payload)
                 self.bus.publish(t, bytes(f.payload))
         elif f.op in (framing.SRV_RESP, framing.SRV_ERR):
             framing.settle_call(self.calls, f)

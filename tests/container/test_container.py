@@ -8,12 +8,14 @@ import os
 import shutil
 import signal
 
+import psutil
 import pytest
 
 from rce.dataplane import DataPlane
 from rce.errors import MessageError, NotFound, ProtocolError, RequestError, Unavailable
 from rce.messages import default_registry
 from rce.packages import load_package_types
+from rce_container import sandbox as sandboxes
 
 from .harness import (STEP, ContainerProcess, FakeMaster, RobotInterface, gone, has_service, kill_leftovers,
                       make_helper_package, topic, wait_gone)
@@ -21,6 +23,7 @@ from .harness import (STEP, ContainerProcess, FakeMaster, RobotInterface, gone, 
 pytestmark = pytest.mark.timeout(90)
 
 STRING = "std_msgs/msg/String"
+SANDBOX = sandboxes.select("auto").kind     # "namespaced" as root (CI), else "unconfined"
 
 
 @pytest.fixture
@@ -82,13 +85,13 @@ async def test_register_echo_and_service_over_the_data_plane(rig, registry):
     master, cp = rig
     reg = master.registration
     assert reg["kind"] == "container" and reg["name"] == "test-host" and reg["host"] == "127.0.0.1"
-    assert reg["sandbox"] == "unconfined"
+    assert reg["sandbox"] == SANDBOX
     assert reg["capacity"]["cpu"] >= 1 and reg["capacity"]["memory"] > 0
 
     res = await create(master, 1, "cTag_01")
-    assert res["sandbox"] == "unconfined" and res["data_addr"].startswith("127.0.0.1:")
+    assert res["sandbox"] == SANDBOX and res["data_addr"].startswith("127.0.0.1:")
     print(f"container start (create_container -> environment ready): {res['startup_ms']} ms")
-    assert cp.ready_info() == {"tid": 7, "pid": cp.proc.pid}
+    assert cp.ready_info() == {"tid": 7, "pid": cp.proc.pid, "metrics_port": None, "sandbox": SANDBOX}
     assert await create(master, 1, "cTag_01") == res          # a replayed request is idempotent
 
     started = await add_node(master, 1, "strEcho", name="stringEcho")
@@ -181,7 +184,7 @@ async def test_parameters(rig):
     with pytest.raises(NotFound):
         await master.call("delete_param", cid=2, name="int")
     resized = await master.call("resize_container", cid=2, limits={"cpu": 2, "memory": None})
-    assert resized == {"sandbox": "unconfined", "limits": {"cpu": 2}}
+    assert resized["sandbox"] == SANDBOX and resized["limits"] == {"cpu": 2}
 
 
 async def test_group_shares_one_bus_and_others_do_not_see_it(rig):
@@ -321,7 +324,8 @@ async def test_destroy_container_kills_every_node_process(rig):
     while not (out := (await master.call("logs", cid=5, ntag="stubborn"))["stdout"]):
         assert asyncio.get_running_loop().time() < deadline, "stubborn node never started"
         await asyncio.sleep(0.02)
-    grandchild = int(out[0].split("=")[1])
+    # the child's pid as the host sees it (in a PID namespace the node prints its own view)
+    grandchild = next(p.pid for p in psutil.Process(stubborn).children(recursive=True) if p.name() == "sleep")
     socket_path = cp.runtime_dir / "c5" / "bus.sock"
     assert socket_path.exists()
     env_pid = (await master.call("stats", cid=5))["environment"]["pid"]
@@ -373,4 +377,4 @@ async def test_environment_crash_is_reported_and_cleaned_up(rig):
     assert "fragile" in str(e.value)
     await master.call("destroy_container", cid=7)
     # the host serves new containers after the crash
-    assert (await create(master, 8, "fresh"))["sandbox"] == "unconfined"
+    assert (await create(master, 8, "fresh"))["sandbox"] == SANDBOX

@@ -2,16 +2,19 @@
 types and classes, sandbox selection, socket paths."""
 from __future__ import annotations
 
+import os
+import time
 from pathlib import Path
 
 import pytest
 
 from rce.errors import ConfigError, MessageError, NotFound, ProtocolError, RequestError
 from rce.packages import BUILTIN_DIR
-from rce_container import sandbox
+from rce_container import cgroups, sandbox
 from rce_container.host import MAX_SOCKET_PATH, socket_dir_for
 from rce_container.interfaces import check_class, interface_kind
 from rce_container.launcher import build_args, expand_directives, parse_respawn
+from rce_container.usage import CpuRate
 
 
 def test_build_args_splits_like_a_shell_and_expands_directives():
@@ -63,7 +66,15 @@ def test_interface_types_and_classes():
 
 
 def test_sandbox_selection():
-    assert sandbox.select("auto") is sandbox.ProcessGroupSandbox
+    if os.geteuid() == 0:       # CI runs as root: the namespaced sandbox must work there, not be skipped
+        assert sandbox.NamespaceSandbox.available(), "running as root, but unshare/nsenter/setsid/setpriv fail"
+        strongest = sandbox.NamespaceSandbox
+    else:
+        assert not sandbox.NamespaceSandbox.available()
+        with pytest.raises(ConfigError, match="needs root"):
+            sandbox.select("namespaced")
+        strongest = sandbox.ProcessGroupSandbox
+    assert sandbox.select("auto") is strongest
     assert sandbox.select("unconfined") is sandbox.ProcessGroupSandbox
     with pytest.raises(ConfigError, match="jail"):
         sandbox.select("jail")
@@ -75,7 +86,7 @@ def test_sandbox_selection():
         def available(cls) -> bool:
             return False
     try:
-        assert sandbox.select("auto") is sandbox.ProcessGroupSandbox
+        assert sandbox.select("auto") is strongest
         with pytest.raises(ConfigError, match="not available"):
             sandbox.select("test-unavailable")
     finally:
@@ -89,3 +100,78 @@ def test_socket_dir_falls_back_to_a_short_path():
     alt = socket_dir_for(deep)
     assert alt != deep and alt == socket_dir_for(deep)                # deterministic
     assert len(str(alt / "c0000000000" / "bus.sock")) <= MAX_SOCKET_PATH
+
+
+MOUNTINFO_V1 = """\
+23 1 0:21 / /sys rw,nosuid,nodev,noexec,relatime shared:7 - sysfs sysfs rw
+31 23 0:28 / /sys/fs/cgroup rw,relatime - tmpfs tmpfs rw,mode=755
+32 31 0:29 / /sys/fs/cgroup/cpu rw,relatime - cgroup cgroup rw,cpu
+33 31 0:30 / /sys/fs/cgroup/cpuacct rw,relatime - cgroup cgroup rw,cpuacct
+35 31 0:32 / /sys/fs/cgroup/memory rw,relatime - cgroup cgroup rw,memory
+39 31 0:36 / /sys/fs/cgroup/pids rw,relatime - cgroup cgroup rw,pids
+40 31 0:37 / /sys/fs/cgroup/systemd rw,relatime - cgroup cgroup rw,name=systemd
+41 31 0:38 / /sys/fs/cgroup/unified rw,relatime - cgroup2 cgroup2 rw
+"""
+PROC_CGROUP_V1 = "9:name=systemd:/\n8:pids:/\n4:memory:/outer/job7\n2:cpuacct:/\n1:cpu:/\n0::/\n"
+MOUNTINFO_V2 = "30 23 0:26 / /sys/fs/cgroup rw,nosuid,nodev,noexec,relatime - cgroup2 cgroup2 rw,nsdelegate\n"
+
+
+def test_cgroup_layout_detection():
+    v1 = cgroups.detect("rce/h-1", MOUNTINFO_V1, PROC_CGROUP_V1, "")
+    assert v1.version == 1
+    # nested under the task set's own cgroup in each hierarchy
+    assert v1.bases == {"cpu": "/sys/fs/cgroup/cpu/rce/h-1", "cpuacct": "/sys/fs/cgroup/cpuacct/rce/h-1",
+                        "memory": "/sys/fs/cgroup/memory/outer/job7/rce/h-1", "pids": "/sys/fs/cgroup/pids/rce/h-1"}
+    co = cgroups.detect("s", "32 31 0:29 / /c rw - cgroup cgroup rw,cpu,cpuacct\n35 31 0:32 / /m rw - cgroup cgroup rw,memory\n",
+                        "3:cpu,cpuacct:/\n2:memory:/\n", None)
+    assert co.bases == {"cpu": "/c/s", "cpuacct": "/c/s", "memory": "/m/s"}          # co-mounted cpu,cpuacct
+    v2 = cgroups.detect("rce/h-1", MOUNTINFO_V2, "0::/user.slice/x.scope\n", "cpuset cpu io memory pids")
+    assert v2.version == 2 and v2.bases == {"": "/sys/fs/cgroup/rce/h-1"} and v2.v2_root == "/sys/fs/cgroup"
+    # a v2 hierarchy without the controllers (like this machine's /sys/fs/cgroup/unified) is unusable
+    assert cgroups.detect("s", MOUNTINFO_V2, "0::/\n", "") is None
+    assert cgroups.detect("s", "", "", None) is None
+
+
+def _fake_v1(root: Path) -> cgroups.Layout:
+    bases = {c: str(root / c / "rce" / "h") for c in ("cpu", "cpuacct", "memory", "pids")}
+    return cgroups.Layout(1, bases)
+
+
+def test_cgroup_limits_v1_and_v2_files(tmp_path):
+    cg = cgroups.CgroupSet(_fake_v1(tmp_path), "c5")
+    cg.create()
+    for f in ("memory.limit_in_bytes", "memory.memsw.limit_in_bytes"):     # as the kernel says "unlimited"
+        (cg.dirs["memory"] / f).write_text("9223372036854771712")
+    assert cg.apply({"cpu": 0.5, "memory": 64, "size": 32, "bandwidth": 10}) == {"cpu": 0.5, "memory": 64.0, "size": 32}
+    assert cg.files() == {"cpu.cfs_quota_us": "50000", "cpu.cfs_period_us": "100000",
+                          "memory.limit_in_bytes": str(64 << 20), "memory.memsw.limit_in_bytes": str(64 << 20),
+                          "pids.max": "32"}
+    assert cg.procs_files[2] == str(tmp_path / "memory/rce/h/c5/cgroup.procs")
+    cg.apply({"cpu": 1.5})                      # only what is given changes
+    assert cg.files()["cpu.cfs_quota_us"] == "150000" and cg.files()["pids.max"] == "32"
+    cg.apply({"cpu": 0, "memory": 0, "size": 0})  # 0 = no limit
+    assert cg.files()["cpu.cfs_quota_us"] == "-1" and cg.files()["memory.limit_in_bytes"] == "-1"
+    assert cg.files()["pids.max"] == "max"
+    with pytest.raises(RequestError, match="memory"):
+        cg.apply({"memory": -1})
+
+    root = tmp_path / "v2"
+    root.mkdir()
+    (root / "cgroup.controllers").write_text("cpu memory pids\n")
+    (root / "cgroup.subtree_control").write_text("")
+    v2 = cgroups.CgroupSet(cgroups.Layout(2, {"": str(root / "rce" / "h")}, v2_root=str(root)), "c1")
+    v2.create()
+    assert (root / "cgroup.subtree_control").read_text() == "+cpu +memory +pids"
+    (v2.dirs[""] / "memory.swap.max").write_text("max")
+    v2.apply({"cpu": 2, "memory": 128, "size": 10})
+    assert v2.files() == {"cpu.max": "200000 100000", "memory.max": str(128 << 20), "memory.swap.max": "0",
+                          "pids.max": "10"}
+    assert v2.procs_files == [str(root / "rce/h/c1/cgroup.procs")]
+
+
+def test_cpu_rate():
+    r = CpuRate()
+    first = r.percent("k", 1.0, time.monotonic() - 2.0)
+    assert 45 < first < 55                       # first reading: 1 s of CPU over 2 s since the start
+    assert r.percent("k", 5.0) == first          # within MIN_INTERVAL: the same value again, not noise
+    assert r.percent("other", 3.0) == 0.0        # no start known: nothing to say yet

@@ -1,0 +1,129 @@
+"""The init (PID 1) of a namespaced container; stdlib only, run as
+``unshare --pid --fork --mount --ipc --uts --net --mount-proc --kill-child python -I -S nsinit.py SPEC``.
+
+``SPEC`` is JSON: ``{"hostname": str, "masks": [[dir, [keep, ...]], ...]}``. In its new mount
+namespace (private propagation, /proc already remounted by unshare) it
+
+1. hides each mask ``dir`` under an empty tmpfs, except the ``keep`` directories below it,
+   which are bind-mounted back (the container's own workdir and bus socket directory stay
+   reachable; other containers' sockets and the host's control socket do not);
+2. makes ``/sys`` (cgroupfs included) and ``/proc/sys`` read-only, so a node cannot leave
+   its cgroup, raise its limits or change kernel settings;
+3. brings ``lo`` up in the new (otherwise empty) network namespace and sets the hostname;
+
+then prints ``ready`` on stdout and reaps orphans until stdin closes (its environment went
+away) or SIGTERM. When it exits the kernel kills every process left in the PID namespace.
+On a setup error it prints ``error: REASON`` and exits 1.
+"""
+import ctypes
+import fcntl
+import json
+import os
+import select
+import signal
+import socket
+import struct
+import sys
+
+MS_RDONLY, MS_NOSUID, MS_NODEV, MS_NOEXEC = 1, 2, 4, 8
+MS_REMOUNT, MS_NOATIME, MS_NODIRATIME, MS_BIND = 32, 1024, 2048, 4096
+MS_RELATIME, MS_STRICTATIME = 1 << 21, 1 << 24
+FLAG_OPTS = {"nosuid": MS_NOSUID, "nodev": MS_NODEV, "noexec": MS_NOEXEC, "noatime": MS_NOATIME,
+             "nodiratime": MS_NODIRATIME, "relatime": MS_RELATIME, "strictatime": MS_STRICTATIME}
+SIOCGIFFLAGS, SIOCSIFFLAGS, IFF_UP = 0x8913, 0x8914, 0x1
+
+_libc = ctypes.CDLL(None, use_errno=True)
+_libc.mount.argtypes = [ctypes.c_char_p, ctypes.c_char_p, ctypes.c_char_p, ctypes.c_ulong, ctypes.c_char_p]
+
+
+def mount(src, target, fstype, flags, data=None):
+    enc = (lambda s: s.encode() if s is not None else None)
+    if _libc.mount(enc(src), enc(target), enc(fstype), flags, enc(data)) != 0:
+        e = ctypes.get_errno()
+        raise OSError(e, f"mount {target}: {os.strerror(e)}")
+
+
+def mask(directory, keep):
+    """Empty tmpfs over ``directory``; each ``keep`` (below it) bind-mounted back."""
+    fds = {k: os.open(k, os.O_PATH | os.O_DIRECTORY) for k in keep}
+    mount("tmpfs", directory, "tmpfs", MS_NOSUID | MS_NODEV, "mode=0755,size=64k")
+    for k, fd in fds.items():
+        target = os.path.join(directory, os.path.relpath(k, directory))
+        os.makedirs(target, exist_ok=True)
+        mount(f"/proc/self/fd/{fd}", target, None, MS_BIND)
+        os.close(fd)
+
+
+def readonly(prefixes):
+    """Remount every mount at or below one of ``prefixes`` read-only (this namespace only)."""
+    with open("/proc/self/mountinfo") as f:
+        lines = f.read().splitlines()
+    for line in lines:
+        fields = line.split()
+        point = fields[4].replace("\\040", " ")
+        if not any(point == p or point.startswith(p.rstrip("/") + "/") for p in prefixes):
+            continue
+        flags = MS_REMOUNT | MS_BIND | MS_RDONLY
+        for opt in fields[5].split(","):
+            flags |= FLAG_OPTS.get(opt, 0)
+        try:
+            mount(None, point, None, flags)
+        except OSError as e:
+            print(f"warning: {e}", file=sys.stderr, flush=True)
+
+
+def lo_up():
+    s = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+    try:
+        req = struct.pack("16sH22x", b"lo", 0)
+        flags = struct.unpack("16sH22x", fcntl.ioctl(s, SIOCGIFFLAGS, req))[1]
+        fcntl.ioctl(s, SIOCSIFFLAGS, struct.pack("16sH22x", b"lo", flags | IFF_UP))
+    finally:
+        s.close()
+
+
+def setup(spec):
+    for directory, keep in spec.get("masks", []):
+        mask(directory, keep)
+    mount("/proc/sys", "/proc/sys", None, MS_BIND)
+    readonly(["/sys", "/proc/sys"])
+    lo_up()
+    if spec.get("hostname"):
+        socket.sethostname(spec["hostname"])
+
+
+def reap_forever():
+    r, w = os.pipe()
+    os.set_blocking(w, False)
+    signal.set_wakeup_fd(w)
+    signal.signal(signal.SIGCHLD, lambda *_: None)
+    signal.signal(signal.SIGTERM, lambda *_: os._exit(0))
+    while True:
+        try:
+            ready = select.select([0, r], [], [])[0]
+        except InterruptedError:
+            ready = []
+        if 0 in ready and not os.read(0, 4096):
+            os._exit(0)                          # the environment is gone
+        if r in ready:
+            os.read(r, 4096)
+        try:
+            while os.waitpid(-1, os.WNOHANG)[0] > 0:
+                pass
+        except ChildProcessError:
+            pass
+
+
+def main():
+    try:
+        setup(json.loads(sys.argv[1]))
+    except (OSError, ValueError, IndexError) as e:
+        print(f"error: {e}", flush=True)
+        sys.exit(1)
+    print("ready", flush=True)
+    os.dup2(os.open(os.devnull, os.O_WRONLY), 1)
+    reap_forever()
+
+
+if __name__ == "__main__":
+    main()
