@@ -61,7 +61,7 @@ from pathlib import Path
 
 from common import (BENCH, CpuMeter, ForeignLoad, NetLab, RawRobot, RESULTS, SYS_PY, USER, VENV_PY, WsRobot, console,
                     engine, ensure_ros1, fmt_ratio, free_port, login, median, percentile, proc_tree, pyplot,
-                    wait_quiet, write_json)
+                    set_nice, wait_quiet, write_json)
 
 SYSTEMS = ("ros1", "rce-forwarder", "rce-converter")
 EXPERIMENTS = {
@@ -506,6 +506,8 @@ def parse_args(argv=None):
     p.add_argument("--experiments", default="exp1,exp2", help="comma list of exp1,exp2")
     p.add_argument("--no-ros1", action="store_true", help="skip ROS 1 (no apt-get)")
     p.add_argument("--back", action="store_true", help="the server echoes every message back to its robot")
+    p.add_argument("--nice", type=int, default=None, metavar="N",
+                   help="run the bench and all it starts at niceness N (e.g. -10 as root on a shared machine)")
     p.add_argument("--wait-quiet", type=float, default=0.0, metavar="S",
                    help="first wait up to S s for other processes to use < 0.3 cores (shared machines)")
     p.add_argument("--json", type=Path, default=RESULTS / "paper_experiments.json")
@@ -553,6 +555,7 @@ def main(argv=None) -> int:
             con.print(f"[yellow]ROS 1 skipped: {why}")
     workdir = Path(tempfile.mkdtemp(prefix="rce-paper-"))
     runs = []
+    set_nice(args.nice, log=con.print)
     wait_quiet(args.wait_quiet, log=con.print)
     rce_srv = RceServer()
     with NetLab() as lab, contextlib.closing(rce_srv):
@@ -577,7 +580,7 @@ def main(argv=None) -> int:
            if lab.ok else None,
            "cpu_method": "psutil user+system CPU time of all server-side / client processes over the window, % of one core",
            "rce_client": "raw RCE wire protocol websocket client per robot (forwarder: DM + binary msg*; converter: JSON DM)",
-           "runs": runs, "notes": notes, "logs": str(workdir)}
+           "nice": args.nice, "runs": runs, "notes": notes, "logs": str(workdir)}
     write_json(args.json, out)
     print_table(con, out)
     plot(out, args.plot)
