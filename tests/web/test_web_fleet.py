@@ -142,6 +142,12 @@ def test_goal_by_clicking(op, tmp_path):
     p = page.evaluate("fleetView.robotClient('Robot2')")
     page.mouse.click(p["x"], p["y"])
     assert page.evaluate("fleetView.selected") == "Robot2"
+    # a cell robots cannot use (a table stands in it): the planner's refusal is shown
+    g = page.evaluate("fleetView.grid")
+    wall = next(i for i, f in enumerate(g["free"]) if not f)
+    click_cell(page, wall)
+    entry = last_log(page, f"Robot2 -> cell {wall}")
+    assert entry["kind"] == "error" and "unreachable" in entry["text"], entry
     goal = far_goal(page, "Robot2", 3)
     click_cell(page, goal)
     entry = last_log(page, f"Robot2 -> cell {goal}")
@@ -155,6 +161,9 @@ def test_goal_by_clicking(op, tmp_path):
         }})()""", timeout=90_000)
     assert any(f"Robot2 arrived at cell {goal}" in e["text"] for e in page.evaluate("fleetView.log"))
     page.screenshot(path=str(tmp_path / "goal.png"))
+    page.click("#logout")
+    page.wait_for_selector("#login", state="visible")
+    assert page.evaluate("fleetView.connected") is False
 
 
 def test_block_a_cell_on_the_path(op, tmp_path):

@@ -164,6 +164,9 @@ async function onLogin(ev) {
   try {
     await c.connect();
     client = c;
+    view.updates = 0;                 // a new session: its first state is announced again
+    lastErrors = [];
+    pending = [];
     view.robotID = robotID;
     view.container = container;
     c.on("close", onClosed);
@@ -241,7 +244,8 @@ async function setupInterfaces(c, ctag, rid) {
 async function cleanup(c) {
   // container-side interfaces outlive our session (the master removes only robot-side ones): remove them
   if (!tags || !view.container) return;
-  const rm = ["cstate", "cgoal", "cblock", "cmission"].map((k) => ({ endpointTag: view.container, interfaceTag: tags[k] }));
+  const rm = ["cstate", "cgoal", "cblock", "cmission"].filter((k) => k !== "cmission" || cfg.missionTopic)
+    .map((k) => ({ endpointTag: view.container, interfaceTag: tags[k] }));
   try { c.send("CN", { removeInterfaces: rm }); } catch (e) { /* closing anyway */ }
 }
 
@@ -279,11 +283,22 @@ function onClosed() {
 
 async function onLogout() {
   if (!client) return;
+  const c = client;
   view.phase = "closing";
-  await cleanup(client);
-  await new Promise((r) => setTimeout(r, 200));
+  $("logout").disabled = true;
+  if (tags && view.container) {
+    // remove our container interfaces and wait until the cloud has (bounded), then leave
+    const rm = ["cstate", "cgoal", "cblock", "cmission"].filter((k) => k !== "cmission" || cfg.missionTopic)
+      .map((k) => ({ endpointTag: view.container, interfaceTag: tags[k] }));
+    try {
+      await Promise.race([c.request("CN", { removeInterfaces: rm }), new Promise((r) => setTimeout(r, 3000))]);
+    } catch (e) {
+      log("error", `logout: ${e.message}`);
+    }
+  }
   view.connected = false;
-  client.close();
+  $("logout").disabled = false;
+  c.close();
   log("info", "logged out");
 }
 
@@ -418,10 +433,12 @@ function mission(cmd) {
     publish(tags.mission, "std_msgs/String", { data: cmd });
   } catch (e) { log("error", `${what}: ${e.message}`); return; }
   view.mission.running = cmd === "start";
-  // a random mission gives every robot a goal; stop drops them
+  // a random mission gives every robot a new goal; stop drops them
+  const goals0 = Object.fromEntries(Object.entries(view.robots).map(([n, r]) => [n, r.goal]));
   track(what, (st) => {
     const goals = (st.robots || []).filter((r) => r.goal >= 0).length;
-    if (cmd === "start" && goals > 0) return [true, `${goals} robot(s) have goals`];
+    const fresh = (st.robots || []).filter((r) => r.goal >= 0 && r.goal !== goals0[r.robot]).length;
+    if (cmd === "start" && fresh > 0) return [true, `${goals} robot(s) have goals`];
     if (cmd === "stop" && goals === 0) return [true, "every robot stopped"];
     return null;
   }, (err) => /mission/i.test(err));
