@@ -370,7 +370,7 @@ class NetLab:
     SRV_IP, CLI_IP = "10.213.77.1", "10.213.77.2"
 
     def __init__(self, tag: str | None = None):
-        tag = tag or f"{os.getpid() % 100000}"
+        tag = tag or str(os.getpid())           # names stay within IFNAMSIZ (15) for pids < 10**10
         self.srv, self.cli = f"rceb{tag}s", f"rceb{tag}c"
         self.vs, self.vc = f"vb{tag}s", f"vb{tag}c"
         self.ok, self.reason = False, ""
@@ -382,6 +382,7 @@ class NetLab:
         if os.geteuid() != 0 or not shutil.which("ip"):
             self.reason = "network namespaces need root and iproute2: network bytes not counted"
             return self
+        self._reap_stale()
         try:
             self._ip("netns", "add", self.srv)
             self._ip("netns", "add", self.cli)
@@ -397,6 +398,16 @@ class NetLab:
             self.reason = f"cannot make network namespaces ({getattr(e, 'stderr', '') or e}): network bytes not counted"
             self.__exit__()
         return self
+
+    @staticmethod
+    def _reap_stale() -> None:
+        """Delete namespaces this class made in a bench run that was killed (its pid is gone)."""
+        import re
+        r = subprocess.run(["ip", "netns", "list"], capture_output=True, text=True)
+        for line in r.stdout.splitlines():
+            m = re.match(r"(rceb(\d+)[sc])\b", line)
+            if m and not os.path.exists(f"/proc/{m.group(2)}"):
+                subprocess.run(["ip", "netns", "del", m.group(1)], capture_output=True)
 
     def __exit__(self, *exc) -> None:
         for ns in (self.srv, self.cli):   # deleting a namespace deletes its end of the veth pair, and so the pair
