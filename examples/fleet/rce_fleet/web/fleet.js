@@ -358,7 +358,8 @@ function onFleetState(st) {
     if (prev && prev.state !== rec.state) {
       const key = `${rec.state}:${rec.goal}:${rec.plan}`;
       if (rec.state === "arrived" && prev.announced !== key) log("ok", `${r.robot} arrived at cell ${rec.goal}`);
-      else if (rec.state === "unreachable" && prev.announced !== key) {
+      else if (rec.state === "unreachable" && prev.announced !== key &&
+               !view.log.slice(-6).some((l) => rec.error && l.text.includes(rec.error))) {
         log("error", `${r.robot}: goal ${rec.goal} unreachable: ${rec.error}`);
       }
       rec.announced = key;
