@@ -21,10 +21,11 @@ const ACTION_TIMEOUT = 6000;     // ms to wait for the planner to confirm an act
 const TABLE_EVERY = 250;         // ms between status table refreshes
 
 // ---------------------------------------------------------------------------------------------
-// configuration: URL query (master, user, container, map) > config.json next to the page > defaults
+// configuration: URL query (master, user, container, map, mission) > config.json next to the page >
+// defaults (the master that serves the page, the fleet container cTag_01, map.png next to the page)
 // ---------------------------------------------------------------------------------------------
 async function loadConfig() {
-  const cfg = { master: location.origin + "/", user: "", container: "fleet", map: "map.png",
+  const cfg = { master: location.origin + "/", user: "", container: "cTag_01", map: "map.png",
                 robotPrefix: "operator", missionTopic: null, title: "" };
   try {
     const r = await fetch("config.json", { cache: "no-store" });
@@ -32,6 +33,7 @@ async function loadConfig() {
   } catch (e) { /* no config.json: served by rce-master --static, defaults are right */ }
   const q = new URLSearchParams(location.search);
   for (const k of ["master", "user", "container", "map"]) if (q.get(k)) cfg[k] = q.get(k);
+  if (q.get("mission")) cfg.missionTopic = q.get("mission");
   if (q.has("password")) {
     // never take a password from the URL (it ends up in history and logs)
     history.replaceState(null, "", location.pathname + location.search.replace(/([?&])password=[^&]*&?/, "$1"));
