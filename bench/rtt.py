@@ -15,10 +15,13 @@ Paths (the real engine as processes on loopback, the raw wire protocol as a robo
 Peers: ``ros1`` = ``shared/anchors/ros1_rtt.py`` (Debian's rospy, single master, TCPROS;
 installed with apt-get when missing and running as root), ``ws_floor`` =
 ``shared/anchors/ws_rtt.py`` (raw websockets echo of the same JSON DM: the transport floor).
-The anchors report medians only; rce paths report median and p90.
+The anchors report medians only; rce paths report median and p90 (and p10 in the JSON: on a
+busy machine, rce's many process hops make its median drift up with other load, while p10
+stays near the uncontended cost).
 
-The three rce paths are measured interleaved (each repetition of a size goes through every
-path in turn). ``machine_load`` in the JSON tells, per phase, how many cores other processes
+The rce paths take turns size by size: for each size, one block of back-to-back repetitions
+per path, after one unmeasured round trip of that size (the processes are hot, as in the
+anchors' loops). ``machine_load`` in the JSON tells, per phase, how many cores other processes
 (not this bench's) kept busy: the peers and rce run one after the other, so load from elsewhere
 perturbs their ratios. Each rce round trip is timed from just before the first frame is sent to the reply parsed
 (JSON decoded; for forwarders the JSON frame and its binary part both received), the
@@ -184,23 +187,25 @@ async def measure_rce(master_url: str, paths: list[str], sizes: list[int], reps:
             p = Path_(r, kind, req, resp)
             p.tries = await p.warm_up()
             ready[kind] = p
-        # interleaved: each repetition of a size goes through every path in turn, so that the paths
-        # see the same conditions on a machine whose load changes
+        # per size, one block of back-to-back repetitions per path (the paths take turns size by
+        # size, so they see similar machine load; within a block the processes stay hot, as in the
+        # anchors' loops), each block after one unmeasured round trip of that size
         task = prog.add_task("rce " + ", ".join(paths), total=len(paths) * sum(reps_for(s, reps) for s in sizes))
         for kind in paths:
             out[kind] = {}
         for size in sizes:
             timeout = 10.0 if size < 1_000_000 else 60.0
             for kind in paths:
-                out[kind][size] = []
-            for _ in range(reps_for(size, reps)):
-                for kind in paths:
-                    p = ready[kind]
+                p = ready[kind]
+                if not math.isfinite(await p.roundtrip(p.prepare(size), size, timeout)):
+                    await p.drain()
+                samples = out[kind][size] = []
+                for _ in range(reps_for(size, reps)):
                     frames = p.prepare(size)
                     ms = await p.roundtrip(frames, size, timeout)
                     if not math.isfinite(ms):
                         await p.drain()
-                    out[kind][size].append(ms)
+                    samples.append(ms)
                     prog.advance(task)
             prog.update(task, description=f"rce {fmt_size(size)}: " + ", ".join(
                 f"{k} {fmt_ms(median(out[k][size]))}" for k in paths) + " ms")
@@ -290,6 +295,7 @@ def main(argv=None) -> int:
         s = samples.get(kind)
         res[f"{key}_ms"] = [median(s[z]) for z in sizes] if s else None
         res[f"{key}_p90_ms"] = [percentile(s[z], 90) for z in sizes] if s else None
+        res[f"{key}_p10_ms"] = [percentile(s[z], 10) for z in sizes] if s else None
         res[f"{key}_lost"] = [sum(1 for x in s[z] if not math.isfinite(x)) for z in sizes] if s else None
     for peer, key in (("ros1", "ros1_ms"), ("ws_floor", "ws_floor_ms")):
         res[key] = [peers[peer]["rtt_ms"].get(z, float("nan")) for z in sizes] if peer in peers else None
