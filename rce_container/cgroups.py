@@ -311,6 +311,22 @@ class CgroupSet:
             pass
         return None
 
+    def throttling(self) -> dict:
+        """``{periods, throttled, throttled_s}`` of the CPU controller: enforcement periods, and
+        in how many (for how long) the container hit its CPU limit. Empty if not readable."""
+        d = self._dir("cpu")
+        if d is None:
+            return {}
+        try:
+            st = _keyed(_read(d / "cpu.stat"))
+        except OSError:
+            return {}
+        if self.layout.version == 2:
+            return {"periods": st.get("nr_periods", 0), "throttled": st.get("nr_throttled", 0),
+                    "throttled_s": st.get("throttled_usec", 0) / 1e6}
+        return {"periods": st.get("nr_periods", 0), "throttled": st.get("nr_throttled", 0),
+                "throttled_s": st.get("throttled_time", 0) / 1e9}
+
     def memory(self) -> dict:
         """``{usage_bytes, limit_bytes, oom_kills, failcnt}`` of the memory controller (what
         is readable; an unlimited limit is None)."""

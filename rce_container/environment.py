@@ -122,6 +122,8 @@ class Container:
         out = {"cpu_percent": round(rates.percent(("container", self.cid), total["cpu_seconds"],
                                                   self.sandbox.started), 1),
                "rss_mib": round(total["rss_bytes"] / 2**20, 2), "processes": total["processes"]}
+        if box.get("cpu"):
+            out["cpu"] = {**box["cpu"], "throttled_s": round(box["cpu"]["throttled_s"], 3)}
         mem = box.get("memory") or {}
         if "usage_bytes" in mem:
             out["memory"] = {"usage_mib": round(mem["usage_bytes"] / 2**20, 2),
@@ -411,6 +413,7 @@ class Environment:
             {cid, user, ctag, group, sandbox, limits: {cpu?, memory?, size?, bandwidth?},
              cpu_percent, rss_mib, processes,                  # every process of the container
              memory?: {usage_mib, limit_mib, oom_kills, failcnt},   # its memory cgroup, when it has one
+             cpu?: {periods, throttled, throttled_s},          # CPU-limit enforcement periods, how many hit it
              nodes: {count, running, starts, restarts},
              per_node: {ntag: {ntag, name, pid, running, restarts, last_exit, cpu_percent, rss_mib,
                                processes, connected, msgs_in, msgs_out, bytes_in, bytes_out, dropped}},

@@ -466,7 +466,8 @@ class NamespaceSandbox(Sandbox):
     def usage(self) -> dict:
         if self.cg is None:
             return {}
-        return {"pids": self.cg.pids(), "cpu_seconds": self.cg.cpu_seconds(), "memory": self.cg.memory()}
+        return {"pids": self.cg.pids(), "cpu_seconds": self.cg.cpu_seconds(), "memory": self.cg.memory(),
+                "cpu": self.cg.throttling()}
 
     def exit_reason(self, proc, code):
         if self.cg is None or code != -signal.SIGKILL:

@@ -88,32 +88,50 @@ def table(title: str, rows: list[dict], columns: list[str]) -> Table:
     return t
 
 
-def top_table(client: AdminClient) -> Table:
+TOP_COLUMNS = ["container", "node", "state", "cpu_percent", "rss_mib", "processes", "msgs_in", "msgs_out",
+               "bytes_in", "bytes_out", "dropped", "restarts", "limits"]
+
+
+def top_rows(client: AdminClient) -> list[dict]:
+    """One row per container (its whole use: every process, interface traffic) followed by one
+    row per node (its process tree, its bus traffic: in = published by the node)."""
     rows = []
     for c in client.request("GET", "/api/containers"):
+        name = f"{c['user']}/{c['ctag']}"
         if c["state"] != "running":
-            rows.append({"container": f"{c['user']}/{c['ctag']}", "state": c["state"]})
+            rows.append({"container": name, "state": c["state"]})
             continue
         try:
             s = client.request("GET", f"/api/containers/{c['user']}/{c['ctag']}/stats")
         except ConsoleError as e:
-            rows.append({"container": f"{c['user']}/{c['ctag']}", "state": str(e)})
+            rows.append({"container": name, "state": str(e)})
             continue
-        rows.append({"container": f"{c['user']}/{c['ctag']}", "state": c["state"], **_flatten_stats(s)})
-    cols = ["container", "state", "cpu_percent", "rss_mib", "processes", "msgs_in", "msgs_out", "bytes_in",
-            "bytes_out", "dropped"]
-    return table("containers", rows, cols)
+        limits = s.get("limits") or {}
+        rows.append({"container": name, "state": s.get("sandbox") or c["state"], **_flatten_stats(s),
+                     "restarts": (s.get("nodes") or {}).get("restarts"),
+                     "limits": " ".join(f"{k}={v:g}" for k, v in sorted(limits.items()) if isinstance(v, (int, float)))})
+        for ntag, n in sorted((s.get("per_node") or {}).items()):
+            if n.get("running"):
+                state = "running"
+            else:
+                ex = n.get("last_exit") or {}
+                state = "exited" + (f" signal {ex['signal']}" if ex.get("signal") else
+                                    f" code {ex['code']}" if ex.get("code") is not None else "")
+            rows.append({"container": "", "node": ntag, "state": state, **_flatten_stats(n),
+                         "restarts": n.get("restarts")})
+    return rows
+
+
+def top_table(client: AdminClient) -> Table:
+    return table("containers", top_rows(client), TOP_COLUMNS)
 
 
 def _flatten_stats(s: dict) -> dict:
     out = {}
     for k in ("cpu_percent", "rss_mib", "processes", "msgs_in", "msgs_out", "bytes_in", "bytes_out", "dropped"):
         v = s.get(k)
-        if v is None:
-            for sub in s.values():
-                if isinstance(sub, dict) and k in sub:
-                    v = sub[k]
-                    break
+        if isinstance(v, dict):           # dropped: {interfaces, bus}
+            v = sum(x for x in v.values() if isinstance(x, (int, float)))
         if isinstance(v, float):
             v = round(v, 1)
         out[k] = v
@@ -192,7 +210,10 @@ def run(args: argparse.Namespace, out: Console) -> None:
         out.print(f"container {args.ctag!r} resized: {json.dumps(res)}")
     elif args.cmd == "top":
         if args.once:
-            out.print(top_table(client))
+            if args.json:
+                print(json.dumps(top_rows(client), indent=1))
+            else:
+                out.print(top_table(client))
             return
         with Live(top_table(client), console=out, refresh_per_second=4) as live:
             while True:

@@ -226,6 +226,9 @@ class Master:
             raise
         self.state.container_ready(c, res["data_addr"], res.get("sandbox", ""))
         log.info("container created", user=user, ctag=ctag, cid=c.cid, host=host.name, sandbox=c.sandbox)
+        # the robot learns what isolation its container got ("namespaced", or "unconfined" on a host without root)
+        self._notify_robot(user, robot, "ST", {"topic": "container", "cTag": ctag, "status": "running",
+                                               "sandbox": c.sandbox})
 
     async def _destroy_container(self, user: str, ctag: str) -> None:
         c, ifaces = self.state.remove_container(user, ctag)

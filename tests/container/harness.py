@@ -40,6 +40,59 @@ HELPER_PKG = {
         "print(f'child={child.pid}', flush=True)\n"
         "time.sleep(600)\n"),
     "run.sh": "#!/bin/sh\necho shell-node \"$@\" \"$RCE_CONTAINER\"\n",
+    # Allocates (and touches) 4 MiB at a time until the kernel stops it.
+    "hog.py": (
+        "import time\n"
+        "chunks = []\n"
+        "while True:\n"
+        "    chunks.append(b'x' * (4 << 20))\n"
+        "    time.sleep(0.002)\n"),
+    # Burns CPU.
+    "spin.py": "while True:\n    pass\n",
+    # Looks around from inside its container; prints one JSON line (see tests/container/test_sandbox.py).
+    "probe.py": (
+        "import errno, json, os, socket, sys\n"
+        "import rce.node\n"
+        "def attempt(fn):\n"
+        "    try:\n"
+        "        fn()\n"
+        "        return 'ok'\n"
+        "    except OSError as e:\n"
+        "        return errno.errorcode.get(e.errno, str(e))\n"
+        "def unix(path):\n"
+        "    s = socket.socket(socket.AF_UNIX)\n"
+        "    s.settimeout(2)\n"
+        "    try:\n"
+        "        s.connect(path)\n"
+        "    finally:\n"
+        "        s.close()\n"
+        "def open_for_writing(path):\n"      # opening is enough to tell: nothing is written
+        "    open(path, 'a').close()\n"
+        "async def main(node):\n"
+        "    port, others = int(sys.argv[1]), sys.argv[2:]\n"
+        "    out = {'tcp': attempt(lambda: socket.create_connection(('127.0.0.1', port), timeout=2).close())}\n"
+        "    out['unix'] = {p: attempt(lambda p=p: unix(p)) for p in others}\n"
+        "    out['own_bus'] = attempt(lambda: unix(os.environ['RCE_BUS']))\n"
+        "    procs = {}\n"
+        "    for d in os.listdir('/proc'):\n"
+        "        if d.isdigit():\n"
+        "            try:\n"
+        "                procs[d] = open(f'/proc/{d}/cmdline', 'rb').read().replace(b'\\0', b' ').decode().strip()\n"
+        "            except OSError:\n"
+        "                pass\n"
+        "    out['procs'] = procs\n"
+        "    out['hostname'] = socket.gethostname()\n"
+        "    out['links'] = sorted(n for _, n in socket.if_nameindex())\n"
+        "    cap = next(l for l in open('/proc/self/status') if l.startswith('CapBnd'))\n"
+        "    out['cap_sys_admin'] = bool(int(cap.split()[1], 16) >> 21 & 1)\n"
+        "    mounts = [l.split() for l in open('/proc/self/mountinfo')]\n"
+        "    roots = [m[4] for m in mounts if m[m.index('-') + 1] in ('cgroup', 'cgroup2')]\n"
+        "    out['cgroup_escape'] = {r: attempt(lambda r=r: open_for_writing(r + '/cgroup.procs')) for r in roots}\n"
+        "    rt = os.path.dirname(os.path.dirname(os.environ['RCE_BUS']))\n"
+        "    out['runtime_dir'] = sorted(os.listdir(rt))\n"
+        "    out['topics'] = sorted(t['name'] for t in (await node.describe())['topics'])\n"
+        "    print(json.dumps(out), flush=True)\n"
+        "rce.node.run(main, 'probe')\n"),
 }
 
 
@@ -131,8 +184,9 @@ def has_service(d: dict, name: str) -> bool:
 class ContainerProcess:
     """The real ``rce-container`` process, registered with a :class:`FakeMaster`."""
 
-    def __init__(self, workdir: Path, master: FakeMaster, extra_env: dict | None = None):
+    def __init__(self, workdir: Path, master: FakeMaster, extra_env: dict | None = None, args: tuple = ()):
         self.workdir, self.master = workdir, master
+        self.args = tuple(args)
         self.runtime_dir = Path(tempfile.mkdtemp(prefix="rcec-"))
         self.ready_file = workdir / "container.ready"
         self.log_path = workdir / "container.log"
@@ -144,7 +198,7 @@ class ContainerProcess:
             self.proc = await asyncio.create_subprocess_exec(
                 str(BIN / "rce-container"), "127.0.0.1", "--master-port", str(self.master.port),
                 "--ready-file", str(self.ready_file), "--runtime-dir", str(self.runtime_dir), "--grace", "1",
-                "--name", "test-host", stdout=logf, stderr=logf, env=self.env)
+                "--name", "test-host", *self.args, stdout=logf, stderr=logf, env=self.env)
         waiter = asyncio.create_task(self.proc.wait())
         reg = asyncio.create_task(self.master.registered.wait())
         done, _ = await asyncio.wait({waiter, reg}, timeout=STEP, return_when=asyncio.FIRST_COMPLETED)
