@@ -20,7 +20,6 @@ the others' goals), and a new one each time it arrives, until ``stop`` drops eve
 """
 from __future__ import annotations
 
-import asyncio
 import io
 import json
 import random
