@@ -118,7 +118,8 @@ def test_obstacle_seen_by_lidar_blocks_its_cell(tmp_path):
 
 def _warehouse_swap() -> list[str]:
     """10 robots in the open middle of the warehouse: five in a row at y ~ -3 m and five in a
-    row at y ~ +3 m swap rows, each going to the mirrored column, so their paths cross."""
+    row at y ~ +3 m swap rows. The bottom ones go straight up, head-on against the top ones
+    coming down, which also swap columns pairwise, so paths meet and cross in the middle."""
     geo = GridGeometry.from_cellgrid(make_grid(load_map(WAREHOUSE), cell_m=1.2))
     lo, hi = geo.cell_of(0.0, -3.0), geo.cell_of(0.0, 3.0)
     row_lo, row_hi = geo.rc(lo)[0], geo.rc(hi)[0]
@@ -127,11 +128,11 @@ def _warehouse_swap() -> list[str]:
     assert len(cols) >= 10, cols
     pick = cols[::max(1, len(cols) // 5)][:5]
     args = []
+    partner = {0: 1, 1: 0, 2: 3, 3: 2, 4: 4}
     for i, c in enumerate(pick):
-        mirror = pick[len(pick) - 1 - i]
         a, b = f"Robot{i + 1}", f"Robot{i + 6}"
-        args += ["--start", f"{a}={row_lo * geo.cols + c}", "--goal", f"{a}={row_hi * geo.cols + mirror}",
-                 "--start", f"{b}={row_hi * geo.cols + c}", "--goal", f"{b}={row_lo * geo.cols + mirror}"]
+        args += ["--start", f"{a}={row_lo * geo.cols + c}", "--goal", f"{a}={row_hi * geo.cols + c}",
+                 "--start", f"{b}={row_hi * geo.cols + c}", "--goal", f"{b}={row_lo * geo.cols + pick[partner[i]]}"]
     return args
 
 

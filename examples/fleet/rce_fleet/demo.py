@@ -491,8 +491,10 @@ class Run:
         verdict = "OK" if code == EXIT_OK else "FAILED"
         print(f"rce-fleet: {verdict}: {reason}", file=sys.stdout if code == EXIT_OK else sys.stderr, flush=True)
         if report.get("mission_time_s") is not None:
+            mp = report["min_pair_distance_m"]
             print(f"rce-fleet: mission time {report['mission_time_s']:.1f} s sim, "
-                  f"{report['mission_wall_s']:.1f} s wall; closest robots {report['min_pair_distance_m']:.3f} m; "
+                  f"{report['mission_wall_s']:.1f} s wall; closest robots "
+                  f"{'-' if mp is None else format(mp, '.3f')} m; "
                   f"re-plans {report['planner']['replans']} (max {report['planner']['max_plan_ms']:.1f} ms)", flush=True)
         if report.get("plot"):
             print(f"rce-fleet: paths plotted to {report['plot']}", flush=True)
@@ -558,6 +560,7 @@ class Run:
               flush=True)
 
     async def _teardown(self) -> None:
+        t0 = time.monotonic()
         try:
             if getattr(self, "web", None) is not None:
                 await asyncio.wait_for(self.web.stop(), 10.0)
@@ -568,10 +571,12 @@ class Run:
         except (asyncio.TimeoutError, RCEError, OSError) as e:
             log.warning("teardown incomplete", reason=str(e))
         finally:
+            t1 = time.monotonic()
             if self.engine is not None:
                 await asyncio.to_thread(self.engine.stop)
             if not self.o.keep and not self.o.workdir:
                 shutil.rmtree(self.workdir, ignore_errors=True)
+            log.info("stopped", clients_s=round(t1 - t0, 2), engine_s=round(time.monotonic() - t1, 2))
 
 
 def _quiet_libraries() -> None:
