@@ -13,7 +13,8 @@ internal hop carries.
 JSON form (converters, ``rce-topic pub``): a message is an object with one key
 per field; ``time``/``duration`` are ``{"secs", "nsecs"}`` (``{"sec",
 "nanosec"}`` is accepted too); ``uint8[]``/``char[]`` arrays are base64 strings
-on output and a base64 string or a list of ints on input (the rosbridge v2
+on output; non-finite floats (NaN, +-inf, e.g. lidar ranges) are ``null`` on output and
+``null`` reads back as NaN and a base64 string or a list of ints on input (the rosbridge v2
 convention); missing fields take their ROS default (0, "", empty).
 """
 from __future__ import annotations
@@ -326,7 +327,8 @@ def _join(path: str, name: str) -> str:
 
 def _base_decoder(t: str) -> Decoder:
     if t in _FLOATS:
-        return lambda v: float(v) if math.isfinite(v) else (None if math.isnan(v) else float(v))
+        # JSON has no NaN or Infinity: non-finite values go out as null, as rosbridge sends them
+        return lambda v: float(v) if math.isfinite(v) else None
     if t == "bool":
         return bool
     if t == "string":

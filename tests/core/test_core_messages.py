@@ -416,3 +416,19 @@ def test_load_definitions_bad_definition_names_the_file(tmp_path, kind, fname, t
     msg = msg_error(r.load_definitions, "bad_pkg", d)
     assert str(d / kind / f"{fname}.{kind}") in msg
     assert f"bad_pkg/{fname}" in msg
+
+
+def test_non_finite_floats_are_null_in_json():
+    """JSON has no NaN/Infinity: a LaserScan with inf ranges goes out as null (rosbridge's choice)."""
+    import json as _json
+    import math as _math
+    from rce.messages import MessageRegistry
+    reg = MessageRegistry()
+    t = reg.msg_type("sensor_msgs/LaserScan")
+    data = reg.json_to_bytes(t, {"ranges": [1.0, None], "range_max": 3.5})
+    scan = reg.deserialize(t, data)
+    scan.ranges[1] = float("inf")
+    out = reg.to_json(t, scan)
+    assert out["ranges"] == [1.0, None]
+    _json.loads(_json.dumps(out, allow_nan=False))     # strictly valid JSON
+    assert _math.isnan(reg.from_json(t, {"ranges": [None]}).ranges[0])
