@@ -401,7 +401,11 @@ class Run:
             with Live(self._table(), refresh_per_second=4, redirect_stderr=True, redirect_stdout=True) as lv:
                 setup_logging()         # logs go above the table
                 _quiet_libraries()
-                return await self._loop(mission, lambda: lv.update(self._table()))
+                end = await self._loop(mission, lambda: lv.update(self._table()))
+            setup_logging()
+            _quiet_libraries()
+            print(flush=True)
+            return end
         last = [0.0]
 
         def plain() -> None:
@@ -438,13 +442,17 @@ class Run:
 
     # -- display --------------------------------------------------------------------------------
     def _mission_t(self) -> float:
-        return (self.sim.time - self.t_mission) if (self.sim and self.t_mission is not None) else 0.0
+        """Sim seconds since the goals were sent (since the simulator started when serving)."""
+        if self.sim is None:
+            return 0.0
+        return self.sim.time - (self.t_mission if self.t_mission is not None else 0.0)
 
     def _line(self) -> str:
         st = self._robot_states()
         parts = [f"{r}:{st.get(r, {}).get('cell', '?')}->{self.goals.get(r, '-')} {st.get(r, {}).get('state', '?')}"
                  for r in self.robots]
-        return f"t={self._mission_t():6.1f}s  reached {len(self.reached)}/{len(self.robots)}  " + "  ".join(parts)
+        head = f"reached {len(self.reached)}/{len(self.robots)}  " if self.o.mission else ""
+        return f"t={self._mission_t():6.1f}s  {head}" + "  ".join(parts)
 
     def _table(self):
         from rich.console import Group
