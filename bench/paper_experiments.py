@@ -238,9 +238,9 @@ async def rce_robot(args) -> int:
             else:
                 print("FAIL no echo", flush=True)
                 return 1
-            await asyncio.sleep(0.5)
+            await asyncio.sleep(0.3)
         else:
-            await asyncio.sleep(0.5)
+            await asyncio.sleep(0.3)
         print("READY", flush=True)
         loop = asyncio.get_running_loop()
         if (await loop.run_in_executor(None, sys.stdin.readline)).strip() != "GO":
@@ -409,7 +409,7 @@ def run_one(lab: NetLab, system: str, exp: str, args, workdir: Path, rce_srv: Rc
                                     env=cenv, log=wd / f"robot{i}.err"))
 
             def server_counts():
-                time.sleep(0.7)           # a report line is printed every 0.5 s
+                time.sleep(0.3)           # the echo node prints its counts every 0.2 s
                 return {"node": last_json_line(echo_log)}
         else:
             side = "Forwarder" if system == "rce-forwarder" else "Converter"
@@ -423,14 +423,14 @@ def run_one(lab: NetLab, system: str, exp: str, args, workdir: Path, rce_srv: Rc
                                     log=wd / f"robot{i}.err"))
 
             def server_counts():
-                time.sleep(0.7)
+                time.sleep(0.3)
                 srv.say("COUNTS")
                 return json.loads(srv.expect("{", 30, keep=True))
         tp["server_up"] = time.monotonic()
         for c in clients:
             c.expect("READY", 120)
         tp["clients_ready"] = time.monotonic()
-        time.sleep(0.5)
+        time.sleep(0.2)
         c0 = server_counts()
         sproc = [p for p in proc_tree(server_pids) if system == "ros1" or p.pid != server_pids[0]]
         cproc = proc_tree([c.p.pid for c in clients])
@@ -500,8 +500,8 @@ def run_one(lab: NetLab, system: str, exp: str, args, workdir: Path, rce_srv: Rc
 
 def parse_args(argv=None):
     p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0], formatter_class=argparse.RawDescriptionHelpFormatter)
-    p.add_argument("--quick", action="store_true", help="short runs (smoke test): 1.5 s each")
-    p.add_argument("--duration", type=float, default=None, help="seconds each robot publishes (default 20; --quick: 1.5)")
+    p.add_argument("--quick", action="store_true", help="short runs (smoke test): 1 s each")
+    p.add_argument("--duration", type=float, default=None, help="seconds each robot publishes (default 20; --quick: 1)")
     p.add_argument("--systems", default=",".join(SYSTEMS), help=f"comma list of {','.join(SYSTEMS)}")
     p.add_argument("--experiments", default="exp1,exp2", help="comma list of exp1,exp2")
     p.add_argument("--no-ros1", action="store_true", help="skip ROS 1 (no apt-get)")
@@ -536,7 +536,7 @@ def main(argv=None) -> int:
         return asyncio.run(rce_robot(p.parse_args(argv[1:])))
 
     args = parse_args(argv)
-    args.duration = args.duration or (1.5 if args.quick else 20.0)
+    args.duration = args.duration or (1.0 if args.quick else 20.0)
     con = console()
     systems = [s for s in args.systems.split(",") if s]
     exps = [e for e in args.experiments.split(",") if e]

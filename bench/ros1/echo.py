@@ -1,7 +1,7 @@
 #!/usr/bin/python3
 """ROS 1 (rospy) server node of bench/paper_experiments.py, the peer of bench/packages/benchecho.
 
-    echo.py --type sensor_msgs/LaserScan [--back] [--suffix _echo] [--report 0.5] TOPIC...
+    echo.py --type sensor_msgs/LaserScan [--back] [--suffix _echo] [--report 0.2] TOPIC...
 
 Subscribes to every TOPIC (tcp_nodelay, as the anchors); with --back publishes each message
 again on TOPIC + suffix; without, only counts (``rostopic echo`` minus the printing). Prints one
@@ -27,7 +27,7 @@ def main():
     p.add_argument("--type", required=True)
     p.add_argument("--back", action="store_true")
     p.add_argument("--suffix", default="_echo")
-    p.add_argument("--report", type=float, default=0.5)
+    p.add_argument("--report", type=float, default=0.2)
     p.add_argument("--queue", type=int, default=100)
     p.add_argument("topics", nargs="+")
     a = p.parse_args(rospy.myargv()[1:])

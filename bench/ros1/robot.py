@@ -80,9 +80,9 @@ def main():
         else:
             print("FAIL no echo", flush=True)
             return 1
-        time.sleep(0.5)
+        time.sleep(0.3)
     else:
-        time.sleep(0.5)        # the subscriber's connection is up on both ends
+        time.sleep(0.3)        # the subscriber's connection is up on both ends
     print("READY", flush=True)
     if sys.stdin.readline().strip() != "GO":
         return 1

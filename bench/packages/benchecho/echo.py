@@ -1,7 +1,7 @@
 #!/usr/bin/env python3
 """benchecho/echo.py: the server node of bench/paper_experiments.py.
 
-    echo.py --type sensor_msgs/LaserScan [--back] [--suffix _echo] [--report 0.5] TOPIC...
+    echo.py --type sensor_msgs/LaserScan [--back] [--suffix _echo] [--report 0.2] TOPIC...
 
 Subscribes to every TOPIC (messages are deserialized, as a subscriber always does). With
 ``--back`` it publishes each message again on ``TOPIC + suffix`` (echo back to the sender);
@@ -20,7 +20,7 @@ async def main(node: rce.node.Node) -> None:
     p.add_argument("--type", required=True)
     p.add_argument("--back", action="store_true")
     p.add_argument("--suffix", default="_echo")
-    p.add_argument("--report", type=float, default=0.5)
+    p.add_argument("--report", type=float, default=0.2)
     p.add_argument("--queue", type=int, default=100)
     p.add_argument("topics", nargs="+")
     a = p.parse_args(rce.node.node_argv())
