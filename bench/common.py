@@ -227,16 +227,16 @@ def proc_tree(pids: Iterable[int], include_roots: bool = True) -> list:
 
 
 def proc_label(p) -> str:
-    """Short name of a process for CPU breakdowns: the script or program it runs."""
+    """Short name of a process for CPU breakdowns: the script, entry point or module it runs."""
     try:
         cmd = p.cmdline()
     except Exception:
         return "?"
-    for a in cmd[:3]:
+    for a in cmd:
         b = os.path.basename(a)
         if b.startswith(("rce-", "rosmaster")) or b.endswith(".py"):
             return b
-    if "-m" in cmd:
+    if "-m" in cmd and cmd.index("-m") + 1 < len(cmd):
         return cmd[cmd.index("-m") + 1]
     return os.path.basename(cmd[0]) if cmd else "?"
 
