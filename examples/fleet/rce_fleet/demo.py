@@ -326,6 +326,9 @@ class Run:
 
     def _on_state(self, st: dict) -> None:
         self.state = st
+        for rec in self.block_log:      # the planner's time for the re-plan the block caused
+            if "replan_ms" not in rec and rec["cell"] in st.get("blocked", []):
+                rec["replan_ms"] = round(st.get("last_plan_ms", 0.0), 3)
         if self.sim is not None:
             self.sim.set_blocked(dict(zip(st.get("blocked", []), st.get("blocked_by", []))))
 

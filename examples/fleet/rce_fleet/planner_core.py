@@ -285,6 +285,9 @@ class GlobalPlannerCore:
             self._seen_result = res
             self.replans += 1
             self.plan_times.append(res.elapsed_s)
+            if res.elapsed_s > 0.05:
+                self.log("slow re-plan", ms=round(res.elapsed_s * 1e3, 1), full=res.full, changed=sorted(res.changed),
+                         unreachable=sorted(res.unreachable))
             if res.unreachable:
                 for r, why in res.unreachable.items():
                     if r in (res.changed | set(cancelled)):
