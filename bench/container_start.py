@@ -11,6 +11,10 @@ destroyed (DC) before the next, after one unmeasured warm-up. The container host
 warm spare environment (its default); each repetition waits until the spare is back, so every
 CC finds the host in the same state.
 
+Sandbox alone: in this process, a sandbox's setup (cgroup, namespaces, init ready), one
+spawn of ``/bin/true`` to its exit, and close -- what the sandbox itself costs, without the
+engine and the nodes' Python start.
+
 Memory: with the container and its nodes running, resident (RSS) and unique (USS) memory of
 the environment process, of the sandbox's own processes (``unshare`` + the container's init +
 one waiting ``nsenter`` per node; nothing for ``unconfined``) and of the nodes.
@@ -157,6 +161,43 @@ async def run_mode(mode: str, reps: int, nodes: int) -> dict:
     return {"started_ms": summary(started_ms), "ready_ms": summary(ready_ms), "memory": footprint}
 
 
+async def sandbox_micro(mode: str, reps: int) -> dict:
+    """In this process, without the engine: a sandbox's ``setup`` (cgroup + namespaces + init
+    ready), one ``spawn`` of ``/bin/true`` to its exit, and ``close`` (ms, median of ``reps``)."""
+    import tempfile
+    from rce_container import sandbox as sandboxes
+    cls = sandboxes.select(mode)
+    scope = sandboxes.host_scope("bench-micro")
+    root = Path(tempfile.mkdtemp(prefix="rce-micro-"))
+    setup, spawn, close = [], [], []
+    try:
+        cls.prepare_host(scope)
+        for i in range(reps + 1):
+            wd = root / f"c{i}"
+            wd.mkdir()
+            sb = cls(10_000 + i, "micro", {"cpu": 1, "memory": 256, "size": 100}, wd, bus_socket=wd / "bus.sock",
+                     scope=scope, grace=1)
+            t0 = time.perf_counter()
+            await sb.setup()
+            t1 = time.perf_counter()
+            proc = await sb.spawn(["/bin/true"], dict(os.environ))
+            await proc.wait()
+            await sb.kill(proc)
+            t2 = time.perf_counter()
+            await sb.close()
+            t3 = time.perf_counter()
+            if i:
+                setup.append((t1 - t0) * 1000)
+                spawn.append((t2 - t1) * 1000)
+                close.append((t3 - t2) * 1000)
+    finally:
+        cls.cleanup_host(scope)
+        import shutil
+        shutil.rmtree(root, ignore_errors=True)
+    return {"setup_ms": median(setup), "spawn_true_ms": median(spawn), "close_ms": median(close),
+            "setup_p90_ms": percentile(setup, 90)}
+
+
 def main(argv=None) -> int:
     p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     p.add_argument("--reps", type=int, default=20, help="measured containers per sandbox kind (default 20)")
@@ -173,8 +214,11 @@ def main(argv=None) -> int:
         modes.remove("namespaced")
     results = {}
     for mode in modes:
+        print(f"== {mode}: sandbox setup/spawn/close, {a.reps} times", flush=True)
+        micro = asyncio.run(sandbox_micro(mode, a.reps))
         print(f"== {mode}: {a.reps} containers of {a.nodes} nodes", flush=True)
         results[mode] = asyncio.run(run_mode(mode, a.reps, a.nodes))
+        results[mode]["sandbox"] = micro
     load = os.getloadavg()
     print(f"\ncontainer start, CC -> all nodes running ({a.nodes} stringEcho nodes, median of {a.reps}; "
           f"load average {load[0]:.1f} on {os.cpu_count()} CPUs)")
@@ -185,6 +229,12 @@ def main(argv=None) -> int:
         print(f"{mode:<12}{r['started_ms']['median']:>12.1f}{r['ready_ms']['median']:>10.1f}"
               f"{r['ready_ms']['p10']:>8.1f}{r['ready_ms']['p90']:>8.1f}{m['environment_rss_mib']:>9.1f}M"
               f"{m['sandbox_rss_mib']:>12.1f}M{m['overhead_rss_mib']:>13.1f}M{m['overhead_uss_mib']:>13.1f}M")
+    print(f"\nsandbox alone (in-process, median of {a.reps})")
+    print(f"{'sandbox':<12}{'setup ms':>10}{'setup p90':>11}{'spawn /bin/true ms':>20}{'close ms':>10}")
+    for mode, r in results.items():
+        sb = r["sandbox"]
+        print(f"{mode:<12}{sb['setup_ms']:>10.1f}{sb['setup_p90_ms']:>11.1f}{sb['spawn_true_ms']:>20.1f}"
+              f"{sb['close_ms']:>10.1f}")
     write_json(a.out, {"reps": a.reps, "nodes": a.nodes, "host": platform.node(), "cpus": os.cpu_count(),
                        "loadavg": load, "kernel": platform.release(), "python": platform.python_version(),
                        "results": results})

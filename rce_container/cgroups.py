@@ -222,7 +222,8 @@ class CgroupSet:
 
     # -- lifecycle -----------------------------------------------------------------------------
     def create(self) -> None:
-        """Make the directories (and, on v2, enable the controllers on the way down)."""
+        """Make the directories (and, on v2, enable the controllers on the way down), then
+        :meth:`rebalance` the CPU weights above them."""
         if self.layout.version == 2:
             root = Path(self.layout.v2_root)
             d = self.dirs[""]
@@ -232,9 +233,35 @@ class CgroupSet:
                 _enable_v2(cur)
                 cur = cur / part
                 cur.mkdir(exist_ok=True)
+        else:
+            for d in self.unique_dirs:
+                d.mkdir(parents=True, exist_ok=True)
+        self.rebalance()
+
+    def rebalance(self) -> None:
+        """Give the two directories above the containers (``<scope>`` and ``rce``) the CPU
+        weight of what they hold: each container weighs what one process does (v1 shares
+        1024, v2 weight 100), so under contention a container is not squeezed into the single
+        share of a parent that all containers (of every task set on the machine) would
+        otherwise divide among themselves."""
+        d = self._dir("cpu")
+        if d is None:
             return
-        for d in self.unique_dirs:
-            d.mkdir(parents=True, exist_ok=True)
+        one, cap, name = (100, 10000, "cpu.weight") if self.layout.version == 2 else (1024, 262144, "cpu.shares")
+        scope, top = d.parent, d.parent.parent
+        try:
+            n = sum(1 for c in scope.iterdir() if c.is_dir())
+            _write(scope / name, str(min(cap, one * max(1, n))))
+            total = 0
+            for sc in top.iterdir():
+                if sc.is_dir():
+                    try:
+                        total += int(_read(sc / name))
+                    except (OSError, ValueError):
+                        pass
+            _write(top / name, str(min(cap, max(one, total))))
+        except OSError as e:
+            log.debug("cannot rebalance CPU weights", dir=str(scope), reason=e.strerror)
 
     def apply(self, limits: dict) -> dict:
         """Write ``limits`` (keys cpu, memory, size; a missing key is left alone; None or 0 =
@@ -377,7 +404,9 @@ class CgroupSet:
 
     def remove(self, timeout: float = 5.0) -> list[Path]:
         """Kill what is left and remove the directories; returns those that could not be removed."""
-        return remove_tree(self.unique_dirs, timeout)
+        left = remove_tree(self.unique_dirs, timeout)
+        self.rebalance()
+        return left
 
 
 def _enable_v2(d: Path) -> None:

@@ -154,6 +154,10 @@ def test_cgroup_limits_v1_and_v2_files(tmp_path):
     assert cg.files()["pids.max"] == "max"
     with pytest.raises(RequestError, match="memory"):
         cg.apply({"memory": -1})
+    # CPU weights above the containers: each container weighs one process, the parents their sum
+    cgroups.CgroupSet(_fake_v1(tmp_path), "c6").create()
+    assert (tmp_path / "cpu/rce/h/cpu.shares").read_text() == "2048"
+    assert (tmp_path / "cpu/rce/cpu.shares").read_text() == "2048"
 
     root = tmp_path / "v2"
     root.mkdir()
