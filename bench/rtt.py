@@ -23,14 +23,16 @@ The rce paths take turns size by size: for each size, one block of back-to-back 
 per path, after one unmeasured round trip of that size (the processes are hot, as in the
 anchors' loops). ``machine_load`` in the JSON tells, per phase, how many cores other processes
 (not this bench's) kept busy: the peers and rce run one after the other, so load from elsewhere
-perturbs their ratios. Each rce round trip is timed from just before the first frame is sent to the reply parsed
+perturbs their ratios; ``--rounds K`` repeats everything K times and keeps, for every series
+and size alike, the lowest of the K values (the least disturbed round). Each rce round trip is timed from just before the first frame is sent to the reply parsed
 (JSON decoded; for forwarders the JSON frame and its binary part both received), the
 outgoing frames built beforehand, as the ws anchor does.
 
 Usage::
 
     .venv/bin/python bench/rtt.py [--sizes 3,1623,...] [--reps N] [--no-ros1] [--no-ws]
-        [--paths converter,forwarder,c2c] [--json PATH] [--plot PATH]
+        [--paths converter,forwarder,c2c] [--rounds K] [--nice N] [--wait-quiet S]
+        [--json PATH] [--plot PATH]
 
 ``REPS`` (environment, default 20) sets the repetitions per size like the anchors (a quarter,
 at least 3, for sizes >= 1 MB); ``--reps`` overrides it.
@@ -228,6 +230,9 @@ def parse_args(argv=None):
     p.add_argument("--paths", default=",".join(PATHS), help=f"rce paths to measure (default {','.join(PATHS)})")
     p.add_argument("--no-ros1", action="store_true", help="skip the ROS 1 peer (no apt-get)")
     p.add_argument("--no-ws", action="store_true", help="skip the raw websockets floor")
+    p.add_argument("--rounds", type=int, default=1, metavar="K",
+                   help="repeat the whole measurement (peers and rce) K times and keep, per series and size, "
+                        "the best (lowest) of the K values: for a shared machine whose load comes and goes")
     p.add_argument("--nice", type=int, default=None, metavar="N",
                    help="run the bench and all it starts at niceness N (e.g. -10 as root on a shared machine)")
     p.add_argument("--wait-quiet", type=float, default=0.0, metavar="S",
@@ -235,6 +240,31 @@ def parse_args(argv=None):
     p.add_argument("--json", type=Path, default=RESULTS / "rtt.json", help="JSON results (default bench/results/rtt.json)")
     p.add_argument("--plot", type=Path, default=RESULTS / "rtt.png", help="PNG plot (default bench/results/rtt.png)")
     return p.parse_args(argv)
+
+
+def run_round(con, args, sizes: list[int], paths: list[str], ros1_ok: bool) -> dict:
+    """One complete measurement: the peers first (no engine running yet), then the rce paths on a
+    fresh engine. Returns {"peers": {name: anchor result}, "samples": {path: {size: [ms]}}, "load": ...}."""
+    peers, load = {}, {}
+    if not args.no_ws:
+        with con.status("raw websockets floor (shared/anchors/ws_rtt.py) ..."):
+            fl = ForeignLoad().start()
+            peers["ws_floor"] = run_anchor("ws_rtt.py", VENV_PY, args.reps)
+            load["ws_floor"] = fl.stop()
+        con.print(f"ws floor done ({peers['ws_floor']['peer']})")
+    if ros1_ok:
+        with con.status("ROS 1 single master (shared/anchors/ros1_rtt.py) ..."):
+            fl = ForeignLoad().start()
+            peers["ros1"] = run_anchor("ros1_rtt.py", SYS_PY, args.reps,
+                                       env={"ROS1_PORT": str(free_port()),
+                                            "ROS_HOME": tempfile.mkdtemp(prefix="ros1rtt-")})
+            load["ros1"] = fl.stop()
+        con.print(f"ROS 1 done ({peers['ros1']['peer']})")
+    with engine() as eng, progress(con) as prog:
+        fl = ForeignLoad().start()
+        samples = asyncio.run(measure_rce(eng.master_url, paths, sizes, args.reps, prog))
+        load["rce"] = fl.stop()
+    return {"peers": peers, "samples": samples, "load": load}
 
 
 def main(argv=None) -> int:
@@ -251,54 +281,57 @@ def main(argv=None) -> int:
     if any(s not in all_sizes for s in sizes):
         notes.append("sizes not in shared/anchors/sizes.py have no peer values")
 
-    # peers first, on a quiet machine (no engine running yet)
-    peers, load = {}, {}
     set_nice(args.nice, log=con.print)
     wait_quiet(args.wait_quiet, log=con.print)
-    if not args.no_ws:
-        with con.status("raw websockets floor (shared/anchors/ws_rtt.py) ..."):
-            fl = ForeignLoad().start()
-            peers["ws_floor"] = run_anchor("ws_rtt.py", VENV_PY, args.reps)
-            load["ws_floor"] = fl.stop()
-        con.print(f"ws floor done ({peers['ws_floor']['peer']})")
+    ros1_ok = False
     if not args.no_ros1:
-        ok, why = ensure_ros1(log=con.print)
-        if ok:
-            with con.status("ROS 1 single master (shared/anchors/ros1_rtt.py) ..."):
-                fl = ForeignLoad().start()
-                peers["ros1"] = run_anchor("ros1_rtt.py", SYS_PY, args.reps,
-                                           env={"ROS1_PORT": str(free_port()),
-                                                "ROS_HOME": tempfile.mkdtemp(prefix="ros1rtt-")})
-                load["ros1"] = fl.stop()
-            con.print(f"ROS 1 done ({peers['ros1']['peer']})")
-        else:
+        ros1_ok, why = ensure_ros1(log=con.print)
+        if not ros1_ok:
             notes.append(f"ROS 1 skipped: {why}")
             con.print(f"[yellow]ROS 1 skipped: {why}")
-
-    with engine() as eng, progress(con) as prog:
-        fl = ForeignLoad().start()
-        samples = asyncio.run(measure_rce(eng.master_url, paths, sizes, args.reps, prog))
-        load["rce"] = fl.stop()
-    busy = {k: v["other_cores"] for k, v in load.items() if v["other_cores"] > 0.25}
+    rounds = []
+    for k in range(args.rounds):
+        if args.rounds > 1:
+            con.rule(f"round {k + 1} of {args.rounds}")
+        rounds.append(run_round(con, args, sizes, paths, ros1_ok))
+    load = [rd["load"] for rd in rounds]
+    busy = {f"{name}{'' if args.rounds == 1 else f' (round {k + 1})'}": v["other_cores"]
+            for k, ld in enumerate(load) for name, v in ld.items() if v["other_cores"] > 0.25}
     if busy:
         notes.append(f"other work on the machine while measuring (cores busy with processes not of this bench): "
                      f"{busy}; absolute times and ratios are perturbed")
 
     res = {"sizes": sizes, "reps": args.reps, "reps_by_size": [reps_for(s, args.reps) for s in sizes],
+           "rounds": args.rounds,
            "paths": {"rce_converter": "robot -> SubscriberConverter (JSON) -> Test/stringEcho -> PublisherConverter -> robot",
                      "rce_forwarder": "robot -> SubscriberForwarder (msg* binary) -> Test/stringEcho -> PublisherForwarder -> robot",
                      "rce_c2c": "robot -> forwarder -> container A /relay -> interface link -> container B stringEcho -> forwarder -> robot",
                      "ros1_ms": "shared/anchors/ros1_rtt.py (rospy, single master, TCPROS; medians only)",
                      "ws_floor_ms": "shared/anchors/ws_rtt.py (raw websockets + JSON DM echo; medians only)"}}
+    best = (lambda xs: min((x for x in xs if math.isfinite(x)), default=float("nan")))  # noqa: E731
+    per_round: dict = {}
     for kind in PATHS:
         key = f"rce_{kind}"
-        s = samples.get(kind)
-        res[f"{key}_ms"] = [median(s[z]) for z in sizes] if s else None
-        res[f"{key}_p90_ms"] = [percentile(s[z], 90) for z in sizes] if s else None
-        res[f"{key}_p10_ms"] = [percentile(s[z], 10) for z in sizes] if s else None
-        res[f"{key}_lost"] = [sum(1 for x in s[z] if not math.isfinite(x)) for z in sizes] if s else None
+        if kind not in paths:
+            for suffix in ("_ms", "_p90_ms", "_p10_ms", "_lost"):
+                res[key + suffix] = None
+            continue
+        for stat, fn in (("_ms", median), ("_p90_ms", lambda v: percentile(v, 90)), ("_p10_ms", lambda v: percentile(v, 10))):
+            per = [[fn(rd["samples"][kind][z]) for z in sizes] for rd in rounds]
+            res[key + stat] = [best(col) for col in zip(*per)]
+            if stat == "_ms":
+                per_round[key + stat] = per
+        res[f"{key}_lost"] = [sum(sum(1 for x in rd["samples"][kind][z] if not math.isfinite(x)) for rd in rounds)
+                              for z in sizes]
     for peer, key in (("ros1", "ros1_ms"), ("ws_floor", "ws_floor_ms")):
-        res[key] = [peers[peer]["rtt_ms"].get(z, float("nan")) for z in sizes] if peer in peers else None
+        if peer not in rounds[0]["peers"]:
+            res[key] = None
+            continue
+        per = [[rd["peers"][peer]["rtt_ms"].get(z, float("nan")) for z in sizes] for rd in rounds]
+        res[key] = [best(col) for col in zip(*per)]
+        per_round[key] = per
+    if args.rounds > 1:
+        res["per_round"] = per_round
     small = [i for i, z in enumerate(sizes) if z <= 1623]
     large = [i for i, z in enumerate(sizes) if z >= 1_000_000]
 
@@ -312,7 +345,7 @@ def main(argv=None) -> int:
         "converter_over_ws_small_geomean": gm("rce_converter_ms", "ws_floor_ms", small),
         "forwarder_over_ws_large_geomean": gm("rce_forwarder_ms", "ws_floor_ms", large),
         "small": "sizes <= 1623 B", "large": "sizes >= 1 MB"}
-    res["machine_load"] = load
+    res["machine_load"] = load if args.rounds > 1 else load[0]
     res["nice"] = args.nice
     res["notes"] = notes
     write_json(args.json, res)
@@ -324,7 +357,8 @@ def main(argv=None) -> int:
 
 def print_table(con, res: dict) -> None:
     from rich.table import Table
-    t = Table(title="round trip, ms (median / p90 for rce; medians for peers)")
+    t = Table(title="round trip, ms (median / p90 for rce; medians for peers)"
+                    + (f"; each value the lowest of {res['rounds']} rounds" if res.get("rounds", 1) > 1 else ""))
     for c in ("size", "conv", "conv p90", "fwd", "fwd p90", "c2c", "c2c p90", "ros1", "ws",
               "conv/ros1", "fwd/ros1", "c2c/ros1", "conv/ws", "fwd/ws"):
         t.add_column(c, justify="right")
