@@ -423,18 +423,24 @@ def _enable_v2(d: Path) -> None:
             log.warning("cannot enable cgroup controllers", dir=str(d), controllers=add, reason=e.strerror)
 
 
+def tree_pids(dirs: list[Path]) -> set[int]:
+    """Every process in ``dirs`` and their sub-cgroups."""
+    pids = set()
+    for d in dirs:
+        if d.is_dir():
+            for sub in [d, *(p for p in d.rglob("*") if p.is_dir())]:
+                try:
+                    pids.update(int(x) for x in _read(sub / "cgroup.procs").split())
+                except (OSError, ValueError):
+                    pass
+    return pids
+
+
 def kill_tree(dirs: list[Path], timeout: float = 5.0) -> list[int]:
     """SIGKILL every process in ``dirs`` and their sub-cgroups until none is left."""
     deadline = time.monotonic() + timeout
     while True:
-        pids = set()
-        for d in dirs:
-            if d.is_dir():
-                for sub in [d, *(p for p in d.rglob("*") if p.is_dir())]:
-                    try:
-                        pids.update(int(x) for x in _read(sub / "cgroup.procs").split())
-                    except (OSError, ValueError):
-                        pass
+        pids = tree_pids(dirs)
         if not pids or time.monotonic() > deadline:
             return sorted(pids)
         kill = dirs[0] / "cgroup.kill"

@@ -258,6 +258,7 @@ class NamespaceSandbox(Sandbox):
         self.init_pid: int | None = None
         self.ns: dict[str, str] = {}
         self._leaders: dict[asyncio.subprocess.Process, int] = {}
+        self._tasks: set[asyncio.Task] = set()
         self._ooms = 0
 
     @classmethod
@@ -277,7 +278,7 @@ class NamespaceSandbox(Sandbox):
     @classmethod
     def prepare_host(cls, scope: str) -> str:
         """Describe the cgroup layout, and remove the scopes of task sets that died without
-        cleaning up (``rce/<name>-<pid>`` whose pid no longer runs)."""
+        cleaning up (``rce/<name>-<pid>`` whose pid no longer runs and that hold no process)."""
         layout = _layout(scope)
         if layout is not None:
             for base in dict.fromkeys(layout.bases.values()):
@@ -285,8 +286,11 @@ class NamespaceSandbox(Sandbox):
                 for d in (parent.iterdir() if parent.is_dir() else ()):
                     m = re.fullmatch(r".+-(\d+)", d.name)
                     if d.is_dir() and m and str(d) != base and not _alive(int(m.group(1))):
+                        if cgroups.tree_pids([d]):     # never kill anything here: it may not be ours
+                            log.warning("cgroups of a gone task set still hold processes; left alone", dir=str(d))
+                            continue
                         log.info("removing the cgroups of a task set that is gone", dir=str(d))
-                        cgroups.remove_tree([d])
+                        cgroups.remove_tree([d], timeout=1.0)
         if layout is None:
             log.warning("no usable cgroup hierarchy: containers get namespaces but no resource limits")
             return "namespaces, no cgroup"
@@ -392,7 +396,9 @@ class NamespaceSandbox(Sandbox):
             *self._joined(inner), env=env, cwd="/", stdin=asyncio.subprocess.DEVNULL,
             stdout=asyncio.subprocess.PIPE, stderr=asyncio.subprocess.PIPE, start_new_session=True)
         self.procs.add(proc)
-        asyncio.get_running_loop().create_task(self._find_leader(proc))
+        task = asyncio.get_running_loop().create_task(self._find_leader(proc))
+        self._tasks.add(task)
+        task.add_done_callback(self._tasks.discard)
         return proc
 
     async def _find_leader(self, proc: asyncio.subprocess.Process) -> int | None:

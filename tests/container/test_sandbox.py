@@ -358,3 +358,22 @@ async def test_unconfined_fallback_says_so_and_works(tmp_path):
         raise
     finally:
         await stop_host(master, cp)
+
+
+def test_a_starting_host_removes_the_cgroups_a_dead_host_left():
+    assert os.geteuid() == 0, NEEDS_ROOT
+    from rce_container import sandbox as sandboxes
+    dead = psutil.Popen(["true"])
+    dead.wait()                                          # a pid that no longer runs
+    stale = sandboxes.host_scope("gc-test", dead.pid)
+    layout = cgroups.host_layout(stale)
+    left = cgroups.CgroupSet(layout, "c1")
+    left.create()                                        # what a SIGKILLed task set leaves
+    assert all(d.is_dir() for d in left.unique_dirs)
+    mine = sandboxes.host_scope("gc-test")
+    try:
+        sandboxes.NamespaceSandbox.prepare_host(mine)
+        assert not [d for d in left.unique_dirs if d.parent.exists()], "the dead task set's scope is still there"
+    finally:
+        sandboxes.NamespaceSandbox.cleanup_host(mine)
+        cgroups.remove_tree([d.parent for d in left.unique_dirs])
