@@ -40,6 +40,21 @@ def yaw_from_quaternion(q: Any) -> float:
     return math.atan2(2.0 * (w * z + x * y), 1.0 - 2.0 * (y * y + z * z))
 
 
+
+def pixel_f_to_world(origin: tuple[float, float, float], resolution: float, height_px: float,
+                     row_f: float, col_f: float) -> tuple[float, float]:
+    """Continuous pixel coordinates of a map_server image (row 0 at the top) -> world (x, y) in m.
+
+    ``origin`` is the (x, y, yaw) of the lower-left pixel corner (m, m, rad), ``resolution``
+    m/pixel, ``height_px`` the image height in pixels (map_server YAML convention)."""
+    ox, oy, yaw = origin
+    u = col_f * resolution
+    v = (height_px - row_f) * resolution
+    if yaw:
+        cs, sn = math.cos(yaw), math.sin(yaw)
+        u, v = cs * u - sn * v, sn * u + cs * v
+    return ox + u, oy + v
+
 @dataclass(frozen=True, eq=False)
 class GridGeometry:
     """Cell geometry and connectivity of the planner's grid.
@@ -153,13 +168,7 @@ class GridGeometry:
 
     # -- metric --------------------------------------------------------------
     def _pixel_f_to_world(self, row_f: float, col_f: float) -> tuple[float, float]:
-        ox, oy, yaw = self.origin
-        u = col_f * self.resolution
-        v = (self.map_height_px - row_f) * self.resolution
-        if yaw:
-            cs, sn = math.cos(yaw), math.sin(yaw)
-            u, v = cs * u - sn * v, sn * u + cs * v
-        return ox + u, oy + v
+        return pixel_f_to_world(self.origin, self.resolution, self.map_height_px, row_f, col_f)
 
     def _world_to_cell_f(self, x: float, y: float) -> tuple[float, float]:
         """World point -> continuous (row, col) in cell units (cell (r, c) covers [r, r+1) x [c, c+1))."""

@@ -39,6 +39,8 @@ import numpy as np
 import yaml
 from PIL import Image
 
+from rce_fleet.geometry import pixel_f_to_world
+
 __all__ = ["MapError", "OccupancyMap", "load_map", "save_map", "FREE", "OCCUPIED", "UNKNOWN"]
 
 FREE = 0
@@ -126,13 +128,7 @@ class OccupancyMap:
 
     def pixel_f_to_world(self, row_f: float, col_f: float) -> tuple[float, float]:
         """Continuous pixel coordinates (row_f, col_f) -> world (x, y) in metres."""
-        ox, oy, yaw = self.origin
-        u = col_f * self.resolution
-        v = (self.height - row_f) * self.resolution
-        if yaw:
-            cs, sn = math.cos(yaw), math.sin(yaw)
-            u, v = cs * u - sn * v, sn * u + cs * v
-        return ox + u, oy + v
+        return pixel_f_to_world(self.origin, self.resolution, self.height, row_f, col_f)
 
     def world_to_pixel(self, x: float, y: float) -> tuple[int, int]:
         """World (m) -> (row, col) of the pixel containing the point, row 0 at the top.
