@@ -20,12 +20,22 @@ def write_ready_file(path: Path | None, data: dict) -> None:
     tmp.replace(path)
 
 
+def run_loop(coro: Awaitable[Any]) -> Any:
+    """``asyncio.run(coro)`` on uvloop when it is installed (libuv's loop: about half the per-hop
+    cost of the default loop on every socket this process serves), else the default loop."""
+    try:
+        import uvloop
+    except ImportError:
+        return asyncio.run(coro)
+    return uvloop.run(coro)
+
+
 def run(prog: str, amain: Callable[[Any], Awaitable[Any]], args: Any) -> None:
     """Set up logging and run ``amain(args)``; an :class:`RCEError` or an OS error (a port in use,
     an unreachable master) exits 1 with a one-line reason instead of a traceback."""
     setup_logging()
     try:
-        code = asyncio.run(amain(args))
+        code = run_loop(amain(args))
     except RCEError as e:
         print(f"{prog}: {e}", file=sys.stderr)
         sys.exit(1)

@@ -33,6 +33,7 @@ import signal
 import sys
 from typing import Any, Awaitable, Callable
 
+from rce.cli import run_loop
 from rce import framing, rpc
 from rce.errors import MessageError, RCEError, Unavailable
 from rce.messages import MessageRegistry, default_registry, wire_name
@@ -321,7 +322,7 @@ def run(main: Callable[[Node], Awaitable[Any]], name: str | None = None, **kw) -
         finally:
             await node.close()
     try:
-        asyncio.run(_amain())
+        run_loop(_amain())
     except RCEError as e:
         print(f"{name or 'node'}: {e}", file=sys.stderr)
         sys.exit(1)

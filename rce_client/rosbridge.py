@@ -40,6 +40,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Awaitable, Callable
 
+from rce.cli import run_loop
 from rce.bus.core import Bus, Subscription
 from rce.bus.server import BusServer
 from rce.config import InterfaceSpec, RobotConfig, load_config
@@ -446,7 +447,7 @@ def main(argv: list[str] | None = None) -> None:
         return await bridge.run()
 
     try:
-        code = asyncio.run(amain())
+        code = run_loop(amain())
     except ConfigError as e:
         print(f"rce-ros: {e.message}", file=sys.stderr)
         code = 2

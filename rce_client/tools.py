@@ -39,6 +39,7 @@ from typing import Any, Callable
 import aiohttp
 import yaml
 
+from rce.cli import run_loop
 from rce.errors import AuthError, MessageError, NotFound, RCEError, RequestError, Unavailable
 from rce.log import setup_logging
 from rce.naming import resolve
@@ -489,7 +490,7 @@ def _run(prog: str, parser: argparse.ArgumentParser, cmd, argv: list[str] | None
             await backend.close()
 
     try:
-        code = asyncio.run(amain())
+        code = run_loop(amain())
     except asyncio.CancelledError:
         code = 0
     except RCEError as e:

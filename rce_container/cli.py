@@ -13,6 +13,7 @@ import socket
 import sys
 import tempfile
 
+from rce.cli import run_loop
 from rce import framing
 from rce.errors import RCEError
 from rce.log import get_logger, setup_logging
@@ -78,7 +79,7 @@ def main(argv: list[str] | None = None) -> None:
     args = parser().parse_args(argv)
     setup_logging()
     try:
-        sys.exit(asyncio.run(amain(args)))
+        sys.exit(run_loop(amain(args)))
     except RCEError as e:        # configuration errors (e.g. an unavailable sandbox)
         print(f"rce-container: {e}", file=sys.stderr)
         sys.exit(2)

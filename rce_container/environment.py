@@ -28,6 +28,7 @@ import time
 from pathlib import Path
 from typing import Any
 
+from rce.cli import run_loop
 from rce import framing, rpc
 from rce.bus.core import Bus
 from rce.bus.server import BusServer
@@ -476,7 +477,7 @@ def main(argv: list[str] | None = None) -> None:
     p.add_argument("--grace", type=float, default=3.0, help="s between SIGTERM and SIGKILL for nodes")
     args = p.parse_args(argv)
     setup_logging()
-    sys.exit(asyncio.run(run(args)))
+    sys.exit(run_loop(run(args)))
 
 
 if __name__ == "__main__":

@@ -31,6 +31,7 @@ from collections import deque
 from dataclasses import dataclass, field
 from pathlib import Path
 
+from rce.cli import run_loop
 from rce.errors import RCEError
 from rce.log import get_logger, setup_logging
 from rce.messages import default_registry
@@ -606,4 +607,4 @@ def run(opts: Options) -> int:
     except UsageError as e:
         print(f"rce-fleet: {e}", file=sys.stderr)
         return EXIT_USAGE
-    return asyncio.run(r.run())
+    return run_loop(r.run())
