@@ -13,7 +13,6 @@ import re
 import signal
 import sys
 import tempfile
-import urllib.request
 from pathlib import Path
 
 import pytest
@@ -118,11 +117,6 @@ async def robot(engine):
         d.rmdir()
 
 
-def admin_get(engine, path: str):
-    req = urllib.request.Request(engine.master_url + path.lstrip("/"),
-                                 headers={"Authorization": f"Bearer {engine.admin_token}"})
-    with urllib.request.urlopen(req, timeout=30) as r:
-        return json.loads(r.read())
 
 
 async def test_debug_config_end_to_end(engine, robot):
@@ -170,8 +164,8 @@ async def test_debug_config_end_to_end(engine, robot):
     assert await ros.wait(30) == 0, ros.dump()
     assert "rce-ros: removed 4 interface(s), destroyed 1 container(s)" in ros.text()
     assert not os.path.exists(bus)
-    assert not [c for c in admin_get(engine, "/api/containers") if c.get("ctag") == "cTag_01"]
-    assert not [r for r in admin_get(engine, "/api/robots") if r.get("robot") == "testRobot"]
+    assert not [c for c in engine.admin("/api/containers") if c.get("ctag") == "cTag_01"]
+    assert not [r for r in engine.admin("/api/robots") if r.get("robot") == "testRobot"]
     assert "error from the cloud" not in ros.human_err(), ros.dump()
 
 
@@ -186,7 +180,7 @@ async def test_admin_api_call_and_sample(engine, robot):
     # publish from the robot once the container's bus shows the sampling subscriber
     deadline = asyncio.get_running_loop().time() + 30
     while not any("admin:bus_sample" in t["subscribers"] for t in
-                  (await asyncio.to_thread(admin_get, engine, "/api/containers/testUser/cTag_01/bus"))["topics"]
+                  (await asyncio.to_thread(engine.admin, "/api/containers/testUser/cTag_01/bus"))["topics"]
                   if t["name"] == "/stringEchoReq"):
         assert asyncio.get_running_loop().time() < deadline, "the sample never subscribed"
     rc, _, err = await tool("rce-topic", "pub", "/stringEchoReq", "{data: sampled}", env=env)

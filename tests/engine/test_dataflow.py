@@ -3,8 +3,6 @@ and forwarders (binary parts), container <-> container, parameters, statuses, te
 Real processes on loopback, the raw wire protocol."""
 from __future__ import annotations
 
-import json
-import urllib.request
 
 import pytest
 from rosbags.typesys import Stores, get_typestore
@@ -20,13 +18,6 @@ def eng(shared_engine):
     return shared_engine
 
 
-def admin(eng, path: str, body: dict | None = None):
-    req = urllib.request.Request(eng.master_url + path.lstrip("/"), method="POST" if body is not None else "GET",
-                                 data=json.dumps(body).encode() if body is not None else None,
-                                 headers={"Authorization": f"Bearer {eng.admin_token}",
-                                          "Content-Type": "application/json"})
-    with urllib.request.urlopen(req, timeout=30) as r:
-        return json.loads(r.read())
 
 
 async def _echo_container(r: RawRobot, ctag: str, side: str) -> None:
@@ -142,7 +133,7 @@ async def test_container_to_container(eng):
             except TimeoutError:
                 continue
         assert dm["msg"]["data"] == "via A and B"
-        conns = admin(eng, "/api/connections")
+        conns = eng.admin("/api/connections")
         assert {"user": "testUser", "tagA": "c2cA/toB", "tagB": "c2cB/fromA"} in [
             {k: c[k] for k in ("user", "tagA", "tagB")} for c in conns] or any(
             {c["tagA"], c["tagB"]} == {"c2cA/toB", "c2cB/fromA"} for c in conns)
@@ -154,11 +145,11 @@ async def test_status_on_disconnect_and_teardown_on_robot_leave(eng):
         await r.send("CX", {"disconnect": [{"tagA": "leaverC/req", "tagB": "leaver/req"}]})
         st = await r.expect("ST", pred=lambda d: d.get("topic") == "iu" and d["iTag"] == "req")
         assert st["status"] is False
-        state = admin(eng, "/api/state")
+        state = eng.admin("/api/state")
         assert any(c["ctag"] == "leaverC" and c["state"] == "running" for c in state["containers"])
     # the robot left: its container, nodes and interfaces are gone
     for _ in range(200):
-        state = admin(eng, "/api/state")
+        state = eng.admin("/api/state")
         if not any(c["ctag"] == "leaverC" for c in state["containers"]):
             break
         import asyncio

@@ -2,12 +2,9 @@
 owning robot is told (ST and ER), and a restarted host registers cleanly."""
 from __future__ import annotations
 
-import asyncio
-import json
 import os
 import signal
 import time
-import urllib.request
 
 import pytest
 
@@ -16,10 +13,6 @@ from wsclient import RawRobot
 pytestmark = pytest.mark.asyncio
 
 
-def state(eng) -> dict:
-    req = urllib.request.Request(eng.master_url + "api/state", headers={"Authorization": f"Bearer {eng.admin_token}"})
-    with urllib.request.urlopen(req, timeout=10) as r:
-        return json.loads(r.read())
 
 
 async def test_silent_host_is_lost_within_5s_and_a_new_host_registers(engine):
@@ -29,7 +22,7 @@ async def test_silent_host_is_lost_within_5s_and_a_new_host_registers(engine):
         await r.cn(addNodes=[{"containerTag": "lostC", "nodeTag": "echo", "pkg": "Test", "exe": "stringEcho.py"}])
         await r.send("DC", {"containerTag": "noSuchC"})          # a marker: once its ER is back, CC is done
         await r.expect("ER", pred=lambda d: "noSuchC" in d)
-        assert [c["state"] for c in state(engine)["containers"]] == ["running"]
+        assert [c["state"] for c in engine.admin('/api/state')["containers"]] == ["running"]
         os.kill(host.pid, signal.SIGSTOP)                       # silent: socket open, nothing sent
         t0 = time.monotonic()
         try:
@@ -41,15 +34,15 @@ async def test_silent_host_is_lost_within_5s_and_a_new_host_registers(engine):
         assert st == {"topic": "container", "cTag": "lostC", "status": "lost"}
         assert "host went away" in er
         assert lost_after < 5.0
-        s = state(engine)
+        s = engine.admin('/api/state')
         assert [c["state"] for c in s["containers"]] == ["lost"]
         assert not any(t["kind"] == "container" for t in s["tasksets"])
         # the frozen host, woken up, finds its master link gone and stops with its containers
         host.wait(15)
         # a restarted host registers cleanly and serves new containers
         engine.add_container_host()
-        assert sum(t["kind"] == "container" for t in state(engine)["tasksets"]) == 1
+        assert sum(t["kind"] == "container" for t in engine.admin('/api/state')["tasksets"]) == 1
         await r.send("CC", {"containerTag": "afterC"})
         await r.send("DC", {"containerTag": "noSuchC2"})
         await r.expect("ER", pred=lambda d: "noSuchC2" in d)
-        assert {c["ctag"]: c["state"] for c in state(engine)["containers"]}["afterC"] == "running"
+        assert {c["ctag"]: c["state"] for c in engine.admin('/api/state')["containers"]}["afterC"] == "running"

@@ -9,7 +9,6 @@ import os
 import subprocess
 import sys
 import time
-import urllib.request
 from pathlib import Path
 
 import psutil
@@ -41,13 +40,6 @@ def console(eng, *args) -> str:
     return p.stdout
 
 
-def api(eng, path: str, body: dict | None = None):
-    req = urllib.request.Request(eng.master_url + path.lstrip("/"), method="POST" if body is not None else "GET",
-                                 data=json.dumps(body).encode() if body is not None else None,
-                                 headers={"Authorization": f"Bearer {eng.admin_token}",
-                                          "Content-Type": "application/json"})
-    with urllib.request.urlopen(req, timeout=30) as r:
-        return json.loads(r.read())
 
 
 def node_st(ctag: str, ntag: str, status: str):
@@ -88,7 +80,7 @@ async def test_containers_end_to_end_through_master_and_console(sb_engine):
 
         # usage: admin API and rce-console top (container row, then one row per node)
         deadline = time.monotonic() + 20
-        while not (s := api(eng, "/api/containers/testUser/sbC/stats"))["per_node"]["echo"]["connected"]:
+        while not (s := eng.admin("/api/containers/testUser/sbC/stats"))["per_node"]["echo"]["connected"]:
             assert time.monotonic() < deadline, s
             time.sleep(0.1)
         assert s["sandbox"] == "namespaced" and s["processes"] >= 3 and s["rss_mib"] > 5
@@ -111,29 +103,29 @@ async def test_containers_end_to_end_through_master_and_console(sb_engine):
         assert "resized" in out
         await r.cn(resizeContainer=[{"containerTag": "sbC", "size": 80}])
         deadline = time.monotonic() + 20
-        while (files := api(eng, "/api/containers/testUser/sbC/stats")["sandbox_info"]["cgroup"]["files"]) \
+        while (files := eng.admin("/api/containers/testUser/sbC/stats")["sandbox_info"]["cgroup"]["files"]) \
                 .get("pids.max") != "80":
             assert time.monotonic() < deadline, files
             time.sleep(0.05)
         assert files.get("cpu.cfs_quota_us", files.get("cpu.max", "").split(" ")[0]) == "150000"
         assert files.get("memory.limit_in_bytes", files.get("memory.max")) == str(300 << 20)
-        s = api(eng, "/api/containers/testUser/sbC/stats")
+        s = eng.admin("/api/containers/testUser/sbC/stats")
         assert s["limits"] == {"cpu": 1.5, "memory": 300, "size": 80}
         assert s["per_node"]["echo"]["pid"] == echo_pid and psutil.Process(echo_pid).is_running()
-        assert api(eng, "/api/containers/testUser/sbC/call",
+        assert eng.admin("/api/containers/testUser/sbC/call",
                    {"service": "/stringEchoService", "request": {"data": "resized"}}) == {"data": "resized"}
         assert {c["ctag"]: c for c in json.loads(console(eng, "--json", "containers"))}["sbC"]["data"]["memory"] == 300
 
         # what must be gone after the robot leaves
         footprint = []
         for ctag in ("sbC", "oomC"):
-            info = api(eng, f"/api/containers/testUser/{ctag}/stats")["sandbox_info"]
+            info = eng.admin(f"/api/containers/testUser/{ctag}/stats")["sandbox_info"]
             dirs = [Path(d) for d in info["cgroup"]["dirs"]]
             footprint.append((dirs, [int(p) for p in (dirs[0] / "cgroup.procs").read_text().split()]))
         assert footprint[0][1]
     # robot disconnect: the master destroys its containers; the host kills and removes everything
     deadline = time.monotonic() + 20
-    while api(eng, "/api/containers"):
+    while eng.admin("/api/containers"):
         assert time.monotonic() < deadline
         time.sleep(0.05)
     for dirs, pids in footprint:

@@ -20,6 +20,7 @@ import subprocess
 import sys
 import tempfile
 import time
+import urllib.request
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -64,6 +65,17 @@ class Engine:
     admin_token: str = ""
     robot_ready: list[dict] = field(default_factory=list)
     logs: list[Path] = field(default_factory=list)
+
+    def admin(self, path: str, body: dict | None = None, method: str | None = None):
+        """Call the master's admin API: GET ``path`` (or POST ``body``); returns the JSON answer.
+        Raises :class:`urllib.error.HTTPError` with the master's reason on refusal."""
+        req = urllib.request.Request(self.master_url + path.lstrip("/"),
+                                     method=method or ("POST" if body is not None else "GET"),
+                                     data=json.dumps(body).encode() if body is not None else None,
+                                     headers={"Authorization": f"Bearer {self.admin_token}",
+                                              "Content-Type": "application/json"})
+        with urllib.request.urlopen(req, timeout=30) as r:
+            return json.loads(r.read() or b"null")
 
     def spawn(self, name: str, argv: list[str], ready: Path | None = None, timeout: float = 30.0) -> tuple[subprocess.Popen, dict]:
         log = self.workdir / f"{name}.log"
