@@ -1,0 +1,1206 @@
+"""Fleet load: N lightweight robots (no physics) on one fleet container, N = 10, 100, 300, 1000.
+
+What runs (a fresh engine per N, processes on loopback, :mod:`common`'s ``engine``):
+
+- rce-master ``--dev`` (user testUser), one rce-robot task set, one rce-container host;
+- the fleet manager (:class:`rce_fleet.manager.FleetManager`, robotID ``fleetManager``, in
+  this orchestrating process): the fleet container ``cTag_01`` with the real
+  ``fleet/global_planner`` node (``--no-lidar-blocking``), the ``/fleet/grid`` and
+  ``/fleet/robots`` parameters and the operator interfaces (its ``/fleet/state`` at 5 Hz
+  comes back here through a PublisherConverter, as on the operator's page);
+- in the same container, a pose echo node: ``benchecho/echo.py`` (``bench/packages``)
+  subscribed to every ``/RobotN/amcl_pose`` (the planner's own subscription topic), which
+  publishes each pose back unchanged on ``/RobotN/amcl_pose_echo``;
+- N robots ``Robot1..RobotN`` (distinct robot IDs, the same user), each its own websocket
+  and login, spread over ``--clients`` worker processes (asyncio, the raw wire protocol).
+
+Each robot wires, through its own CN/CX requests, what a fleet robot wires
+(``rce_fleet.configs.robot_config``): its pose ``/amcl_pose`` -> robot-side
+``amclPoseSender_N`` (SubscriberForwarder, or SubscriberConverter with ``--converter``) ->
+container ``amclPoseReceiver_N`` (PublisherInterface ``/RobotN/amcl_pose``, where the
+global planner listens). Back to the robot, through robot-side Publisher Forwarders
+(Converters): the planner's ``/RobotN/goalNodesList``, ``/RobotN/cancelGoal`` and
+``/RobotN/clearance`` (a lightweight robot has no move_client: it takes the planner's
+output itself; one move_client process per robot would not fit 1000 robots), and the echo
+``/RobotN/amcl_pose_echo``.
+
+Load: every robot publishes ``geometry_msgs/PoseWithCovarianceStamped`` at ``--rate`` Hz
+(10), phases spread evenly, standing in its own grid cell (an all-free grid, 1 m cells,
+2 cells per robot). After warm-up every robot gets a goal (the neighbouring cell) through
+``/fleet/goal``: the planner then sends each robot its path, a clearance, and repeats them
+(paths every 2 s, clearances every 0.5 s) for the whole run.
+
+Measured, over a window of ``--duration`` s after warm-up:
+
+- latency: ``header.stamp`` is the robot's wall clock just before it sends pose ``seq``;
+  latency = the same robot's clock when the echo of that pose (same ``header.seq``, same
+  stamp) has fully arrived (JSON frame and binary part) minus the stamp. The path measured:
+  robot websocket -> rce-robot (forwarder checks the message) -> data plane -> environment
+  -> container bus ``/RobotN/amcl_pose`` (fanned out to the planner and the echo node) ->
+  echo node (deserialise, serialise) -> bus ``/RobotN/amcl_pose_echo`` -> SubscriberInterface
+  -> data plane -> rce-robot -> websocket -> robot. p50/p99 over all echoes of poses sent
+  in the window. The echo is its own node process, so the planner's own processing is not in
+  this number (the planner view age below covers it).
+- lost: per robot, poses sent in the window (``header.seq`` is 0, 1, 2, ... per robot) minus
+  distinct seqs echoed back within ``--drain`` s after the window (an echo later than that
+  counts as lost). Also reported: drops the engine counted (rce-robot's per-robot queue, the
+  container's bus subscriptions, interface links, data plane) over the window.
+- planner view age: the planner's ``/fleet/state`` carries each robot's last pose; the robot
+  encodes its send time (ms mod 100 s, 1e-6 m per ms) in ``position.y``, so for each state
+  received here, age = now - send time of the newest pose the planner had processed (includes
+  up to one pose period, 100 ms at 10 Hz, plus the state's own trip). Shows whether the
+  planner itself keeps up (its subscriber queues drop silently when it does not).
+- CPU % (of one core; the machine has ``os.cpu_count()``) of each process over the window
+  (psutil CPU times): master, robot task set, container host, environment, planner node,
+  echo node, client workers, this orchestrator; peak RSS (psutil, sampled every 0.5 s for
+  the whole N, setup included).
+- bytes on the wire per robot per second, counted at the websocket by the clients: every
+  frame's payload plus its websocket header (2..14 bytes, the client's 4-byte mask
+  included), up (robot -> cloud) and down; TCP/IP headers not included.
+- setup (not part of the latency): engine start, fleet container + planner, echo node,
+  robots (login, websocket with the master's scrypt check, CN 10 interfaces, CX 5
+  connections, all interfaces up; ``--setup-concurrency`` robots at a time), warm-up (every
+  robot's pose echoed and seen by the planner) and goals (every robot has its path).
+
+The run stops at the first N whose p99 passes ``--max-p99`` ms (100) or that loses anything,
+and says so; an engine process that exits (e.g. a task set dropped by the control plane's
+keepalive under overload) ends it too, with the engine's warnings. Other processes on the
+machine are not ours to stop: their load over each window is reported (``other load``). Results: a table on stdout, ``--json`` (bench/results/fleet_load.json),
+``--plot`` (bench/results/fleet_load.png: p50/p99 and CPU against N).
+
+Usage::
+
+    .venv/bin/python bench/fleet_load.py [--robots 10,100,300,1000] [--duration 10] [--rate 10]
+        [--converter] [--clients 2] [--setup-concurrency 16] [--drain 3] [--max-p99 100]
+        [--no-stop] [--profile S] [--wait-quiet S] [--raw DIR] [--json PATH] [--plot PATH]
+
+``--profile S``: after each window, with the load still on, record the two hottest processes
+for S s each with py-spy (when installed: ``pip install py-spy``; not a project dependency) and
+list their top functions. ``--no-stop`` runs every N even past the first failure (which is
+still the one reported). ``--raw DIR`` writes every echo as CSV. The clients, the engine and
+the nodes all share the machine's cores: a client worker near 100 % of a core, or a send rate
+below ``--rate``, is reported.
+"""
+from __future__ import annotations
+
+import argparse
+import asyncio
+import importlib.util
+import json
+import math
+import multiprocessing as mp
+import os
+import random
+import shutil
+import struct
+import subprocess
+import sys
+import tempfile
+import threading
+import time
+import urllib.request
+from collections import defaultdict
+from pathlib import Path
+
+from common import (BENCH, PASSWORD, RESULTS, USER, ForeignLoad, console, engine, fmt_ms, median, percentile,
+                    pyplot, set_nice, wait_quiet, write_json)
+
+if importlib.util.find_spec("rce_fleet") is None:    # a checkout without the project installed
+    sys.path.insert(0, str(BENCH.parent / "examples" / "fleet"))
+
+POSE = "geometry_msgs/PoseWithCovarianceStamped"
+CTAG = "cTag_01"
+ECHO_SUFFIX = "_echo"
+Y_MS_SCALE = 1e-6          # m of position.y per ms of the send time (mod Y_MS_MOD)
+Y_MS_MOD = 100_000         # ms
+DEFAULT_ROBOTS = "10,100,300,1000"
+PACKAGES = BENCH / "packages"
+# the planner's outputs a lightweight robot takes directly: (topic under /RobotN/, class)
+DOWN = [("goalNodesList", "std_msgs/Int32MultiArray"), ("cancelGoal", "std_msgs/Bool"),
+        ("clearance", "fleet/Clearance")]
+
+
+# == the robots' plan (shared by the orchestrator and the workers) ==============================
+
+def grid_for(n: int):
+    """An all-free map with a grid of 1 m cells, two cells per robot: (GridGeometry, rows, cols)."""
+    import numpy as np
+    from rce_fleet.geometry import GridGeometry
+    from rce_fleet.grid import make_grid
+    from rce_fleet.maps import FREE, OccupancyMap
+    rows = max(2, math.ceil(math.sqrt(n)))
+    cols = 2 * rows
+    occ = np.full((rows * 10, cols * 10), FREE, dtype=np.int8)
+    geo = GridGeometry.from_cellgrid(make_grid(OccupancyMap(occupancy=occ, resolution=0.1, origin=(0.0, 0.0, 0.0)),
+                                               (rows, cols)))
+    return geo, rows, cols
+
+
+def placements(n: int, cols: int) -> list[tuple[int, int]]:
+    """(start cell, goal cell) of robot i (0-based): starts in even columns, goal to the east."""
+    half = cols // 2
+    return [((i // half) * cols + 2 * (i % half), (i // half) * cols + 2 * (i % half) + 1) for i in range(n)]
+
+
+def robot_wiring(n: int, side: str) -> tuple[list[dict], list[dict], dict]:
+    """CN addInterfaces and CX connect items of robot ``n``, and its robot-side iTags by role.
+
+    The pose link is the fleet robot's own (rce_fleet.configs.robot_config); the others take
+    the planner's outputs and the echo the same way (container SubscriberInterface -> robot
+    Publisher<side>)."""
+    from rce_fleet.configs import robot_config
+    rid = f"Robot{n}"
+    cfg = robot_config(n)
+    pose = [i for i in cfg["interfaces"] if i["iCls"] == POSE]
+    links = []
+    c_pose = next(i for i in pose if i["eTag"] == CTAG)
+    r_pose = next(i for i in pose if i["eTag"] == rid)
+    links.append((c_pose["iTag"], c_pose["iType"], r_pose["iTag"], r_pose["iType"].replace("Forwarder", side),
+                  POSE, c_pose["addr"]))
+    for topic, cls in [("amcl_pose" + ECHO_SUFFIX, POSE)] + DOWN:
+        base = "poseEcho" if topic.startswith("amcl_pose") else topic
+        links.append((f"{base}Sender_{n}", "SubscriberInterface", f"{base}Receiver_{n}", f"Publisher{side}",
+                      cls, f"/{rid}/{topic}"))
+    adds, conns = [], []
+    for c_tag, c_type, r_tag, r_type, cls, addr in links:
+        adds.append({"endpointTag": CTAG, "interfaceTag": c_tag, "interfaceType": c_type, "className": cls, "addr": addr})
+        adds.append({"endpointTag": rid, "interfaceTag": r_tag, "interfaceType": r_type, "className": cls})
+        conns.append({"tagA": f"{CTAG}/{c_tag}", "tagB": f"{rid}/{r_tag}"})
+    roles = {"pose": links[0][2], "echo": links[1][2], **{t: links[2 + k][2] for k, (t, _) in enumerate(DOWN)}}
+    return adds, conns, roles
+
+
+def path_cells(msg) -> list[int]:
+    """The cells of a ``std_msgs/Int32MultiArray`` path: JSON form, or a binary part
+    (32-byte id + ROS 1 serialization: dims (label, size, stride), data_offset, int32[])."""
+    if not isinstance(msg, (bytes, bytearray)):
+        return list(msg.get("data", []))
+    off = 32
+    (ndim,) = struct.unpack_from("<I", msg, off)
+    off += 4
+    for _ in range(ndim):
+        (ln,) = struct.unpack_from("<I", msg, off)
+        off += 4 + ln + 8
+    off += 4
+    (cnt,) = struct.unpack_from("<I", msg, off)
+    return list(struct.unpack_from(f"<{cnt}i", msg, off + 4))
+
+
+def ws_header(n: int, masked: bool) -> int:
+    """Bytes of a websocket frame header for an ``n``-byte payload (RFC 6455)."""
+    return 2 + (0 if n < 126 else 2 if n < 65536 else 8) + (4 if masked else 0)
+
+
+# == a lightweight robot (runs in a worker process) ============================================
+
+class Bot:
+    """One robot: its websocket, its pose stream and what comes back."""
+
+    def __init__(self, w: "Worker", n: int, x: float, y: float, phase: float, goal: int):
+        self.w, self.n, self.rid, self.x, self.y0, self.phase, self.goal = w, n, f"Robot{n}", x, y, phase, goal
+        self.adds, self.conns, self.roles = robot_wiring(n, w.side)
+        self.role_of = {v: k for k, v in self.roles.items()}
+        self.ws = None
+        self.up: set[str] = set()
+        self.errors: list[str] = []
+        self.seq = 0
+        self.got: set[int] = set()          # seqs echoed (window ones only)
+        self.first_echo: float | None = None
+        self.first_path: float | None = None
+        self.win_first: int | None = None   # first and last seq sent in the window
+        self.win_last: int | None = None
+        self.dups = 0
+        self.down = defaultdict(int)        # role -> messages received in the window
+        self.pending: dict[str, str] = {}   # binary part id -> iTag (forwarder)
+        self.setup_s = float("nan")
+        self._upd = asyncio.Event()
+        self.tasks: list[asyncio.Task] = []
+        self.buf = bytearray(w.template) if w.side == "Forwarder" else None
+
+    # -- setup ---------------------------------------------------------------------------------
+    async def setup(self, master_url: str, timeout: float) -> None:
+        from rce_client.connection import hash_password, login
+        from websockets.asyncio.client import connect
+        t0 = time.monotonic()
+        last = None
+        for attempt in range(4):
+            try:
+                url = await login(master_url, USER)
+                self.ws = await connect(f"{url}?userID={USER}&robotID={self.rid}&password={hash_password(PASSWORD)}",
+                                        max_size=None, compression=None, open_timeout=60, ping_interval=None,
+                                        max_queue=None)
+                break
+            except Exception as e:     # a busy master (scrypt per handshake): try again
+                last = e
+                await asyncio.sleep(0.5 * (attempt + 1) + random.random())
+        else:
+            raise RuntimeError(f"{self.rid}: cannot connect: {last}")
+        self.tasks.append(asyncio.create_task(self._reader()))
+        await self.ws.send(json.dumps({"type": "CN", "data": {"addInterfaces": self.adds}}))
+        await self.ws.send(json.dumps({"type": "CX", "data": {"connect": self.conns}}))
+        want = set(self.roles.values())
+        deadline = time.monotonic() + timeout
+        while not want <= self.up:
+            if self.errors:
+                raise RuntimeError(f"{self.rid}: {self.errors[0]}")
+            left = deadline - time.monotonic()
+            if left <= 0:
+                raise RuntimeError(f"{self.rid}: interfaces still down after {timeout:g} s: {sorted(want - self.up)}")
+            self._upd.clear()
+            try:
+                await asyncio.wait_for(self._upd.wait(), left)
+            except asyncio.TimeoutError:
+                pass
+        self.setup_s = time.monotonic() - t0
+
+    # -- receiving -----------------------------------------------------------------------------
+    async def _reader(self) -> None:
+        from websockets.exceptions import ConnectionClosed
+        w = self.w
+        try:
+            async for frame in self.ws:
+                now = time.time_ns()
+                if w.counting:
+                    w.bytes_down += len(frame) + ws_header(len(frame), False)
+                if isinstance(frame, str):
+                    m = json.loads(frame)
+                    t, data = m.get("type"), m.get("data")
+                    if t == "DM":
+                        itag = data.get("iTag")
+                        ref = data.get("msg*")
+                        if ref is not None:
+                            self.pending[ref] = itag
+                        else:
+                            self._on_msg(itag, data.get("msg"), now)
+                    elif t == "ST":
+                        if data.get("topic") == "iu" and data.get("status"):
+                            self.up.add(data["iTag"])
+                            self._upd.set()
+                    elif t == "ER":
+                        self.errors.append(str(data))
+                        w.errors += 1
+                        self._upd.set()
+                else:
+                    itag = self.pending.pop(frame[:32].decode(), None)
+                    if itag is not None:
+                        self._on_msg(itag, frame, now)
+        except ConnectionClosed:
+            pass
+
+    def _on_msg(self, itag: str, msg, now: int) -> None:
+        role = self.role_of.get(itag)
+        w = self.w
+        if role == "echo":
+            if isinstance(msg, (bytes, bytearray)):
+                seq, secs, nsecs = struct.unpack_from("<III", msg, 32)
+            else:
+                h = msg["header"]
+                seq, secs, nsecs = h["seq"], h["stamp"]["secs"], h["stamp"]["nsecs"]
+            if self.first_echo is None:
+                self.first_echo = time.time()
+            stamp = secs * 1_000_000_000 + nsecs
+            if w.win_start_ns <= stamp <= w.win_end_ns:
+                if seq in self.got:
+                    self.dups += 1
+                    return
+                self.got.add(seq)
+                w.lat.append((now - stamp) / 1e6)
+                if w.raw is not None:
+                    w.raw.append((self.n, seq, stamp / 1e9, (now - stamp) / 1e6))
+        elif role is not None:
+            if role == "goalNodesList" and self.first_path is None and self.goal in path_cells(msg):
+                self.first_path = time.time()
+            if w.counting:
+                self.down[role] += 1
+
+    # -- sending -------------------------------------------------------------------------------
+    async def publish_loop(self, t_start: float, period: float) -> None:
+        """Publish every ``period`` s from ``t_start`` (wall), on a fixed grid; a late tick is
+        sent at once and the missed ones are skipped (never a burst)."""
+        w = self.w
+        k = 0
+        mono0 = time.monotonic() + (t_start - time.time())
+        ws = self.ws
+        fwd = w.side == "Forwarder"
+        itag = self.roles["pose"]
+        while True:
+            due = mono0 + k * period
+            delay = due - time.monotonic()
+            if delay > 0:
+                await asyncio.sleep(delay)
+            else:
+                k += int(-delay // period)       # skip missed ticks
+            k += 1
+            t_ns = time.time_ns()
+            late = time.monotonic() - due
+            seq = self.seq
+            self.seq += 1
+            y = self.y0 + ((t_ns // 1_000_000) % Y_MS_MOD) * Y_MS_SCALE
+            secs, nsecs = divmod(t_ns, 1_000_000_000)
+            if fwd:
+                ref = f"{self.n:08x}{seq:024x}"
+                text = w.text_tpl % (itag, ref)
+                buf = self.buf
+                buf[0:32] = ref.encode()
+                struct.pack_into("<III", buf, 32, seq, secs, nsecs)
+                struct.pack_into("<dd", buf, 32 + w.pos_off, self.x, y)
+                frames = (text, bytes(buf))
+            else:
+                frames = (w.text_tpl % (itag, seq, secs, nsecs, self.x, y),)
+            try:
+                for f in frames:
+                    await ws.send(f)
+                    if w.counting:
+                        w.bytes_up += len(f) + ws_header(len(f), True)
+            except Exception:       # the connection is gone: this robot stops (its window poses count)
+                return
+            if w.win_start_ns <= t_ns <= w.win_end_ns:
+                if self.win_first is None:
+                    self.win_first = seq
+                self.win_last = seq
+                w.send_late.append(late * 1e3)
+
+
+class Worker:
+    """A client worker process: its share of the robots on one event loop; commands and replies
+    (dicts) on the pipe ``conn``."""
+
+    def __init__(self, conn, master_url: str, robots: list[tuple[int, float, float, float, int]], side: str, rate: float,
+                 concurrency: int):
+        from rce.messages import default_registry
+        self.conn, self.master_url, self.side, self.rate, self.concurrency = conn, master_url, side, rate, concurrency
+        self.robots_spec = robots
+        self.bots: list[Bot] = []
+        self.lat: list[float] = []
+        self.send_late: list[float] = []
+        self.bytes_up = self.bytes_down = 0
+        self.errors = 0
+        self.raw: list | None = None       # (robot, seq, stamp s, latency ms) with --raw
+        self.counting = False
+        self.win_start_ns = self.win_end_ns = -1
+        reg = default_registry()
+        cov = [0.0] * 36
+        cov[0] = cov[7] = 0.05
+        cov[35] = 0.02
+        msg = {"header": {"seq": 0, "stamp": {"secs": 0, "nsecs": 0}, "frame_id": "map"},
+               "pose": {"pose": {"position": {"x": 0.0, "y": 0.0, "z": 0.0},
+                                 "orientation": {"x": 0.0, "y": 0.0, "z": 0.0, "w": 1.0}},
+                        "covariance": cov}}
+        typ = reg.msg_type(POSE)
+        payload = reg.json_to_bytes(typ, msg)
+        self.pos_off = 12 + 4 + len(b"map")          # header: seq, stamp, frame_id; then position x, y
+        probe = bytearray(payload)
+        struct.pack_into("<dd", probe, self.pos_off, 1.25, 2.5)
+        p = reg.bytes_to_json(typ, bytes(probe))["pose"]["pose"]["position"]
+        assert (p["x"], p["y"]) == (1.25, 2.5), p
+        self.template = b"\0" * 32 + payload
+        if side == "Forwarder":
+            self.text_tpl = '{"type":"DM","data":{"iTag":"%s","type":"' + POSE + '","msgID":"","msg*":"%s"}}'
+        else:
+            cov_s = json.dumps(cov)
+            self.text_tpl = ('{"type":"DM","data":{"iTag":"%s","type":"' + POSE + '","msgID":"","msg":'
+                             '{"header":{"seq":%d,"stamp":{"secs":%d,"nsecs":%d},"frame_id":"map"},'
+                             '"pose":{"pose":{"position":{"x":%r,"y":%r,"z":0.0},'
+                             '"orientation":{"x":0.0,"y":0.0,"z":0.0,"w":1.0}},"covariance":' + cov_s + '}}}}')
+
+    def reply(self, **kw) -> None:
+        self.conn.send(kw)
+
+    async def recv(self) -> dict:
+        return await asyncio.get_running_loop().run_in_executor(None, self.conn.recv)
+
+    async def main(self) -> None:
+        while True:
+            cmd = await self.recv()
+            op = cmd["op"]
+            if op == "setup":
+                await self.setup(cmd["timeout"])
+            elif op == "publish":
+                for b in self.bots:
+                    b.tasks.append(asyncio.create_task(b.publish_loop(cmd["t_start"] + b.phase, 1.0 / self.rate)))
+                self.reply(ok=True)
+            elif op == "status":
+                self.reply(echoed=sum(1 for b in self.bots if b.first_echo is not None),
+                           pathed={b.rid: b.first_path for b in self.bots if b.first_path is not None},
+                           errors=self.errors, last_errors=[e for b in self.bots for e in b.errors][-3:])
+            elif op == "window":
+                await self.window(cmd["start"], cmd["end"], cmd["drain"], cmd.get("raw", False))
+            elif op == "exit":
+                self.reply(ok=True)
+                return
+
+    async def setup(self, timeout: float) -> None:
+        sem = asyncio.Semaphore(self.concurrency)
+        n_total = len(self.robots_spec)
+        self.bots = [Bot(self, *spec) for spec in self.robots_spec]
+        failures: list[str] = []
+
+        async def one(b: Bot) -> None:
+            async with sem:
+                try:
+                    await b.setup(self.master_url, timeout)
+                except Exception as e:
+                    failures.append(str(e))
+        t0 = time.monotonic()
+        await asyncio.gather(*(one(b) for b in self.bots))
+        self.reply(setup_s=[b.setup_s for b in self.bots], wall_s=time.monotonic() - t0, failures=failures[:5],
+                   failed=len(failures), robots=n_total)
+
+    async def window(self, start: float, end: float, drain: float, raw: bool = False) -> None:
+        self.raw = [] if raw else None
+        self.lat.clear()
+        self.send_late.clear()
+        for b in self.bots:
+            b.got.clear()
+            b.win_first = b.win_last = None
+            b.dups = 0
+            b.down.clear()
+        self.win_start_ns, self.win_end_ns = int(start * 1e9), int(end * 1e9)
+        await asyncio.sleep(max(0.0, start - time.time()))
+        self.bytes_up = self.bytes_down = 0
+        self.counting = True
+        await asyncio.sleep(max(0.0, end - time.time()))
+        self.counting = False
+        up, down = self.bytes_up, self.bytes_down
+        # every echo of a window pose that is coming comes within ``drain`` s
+        deadline = time.time() + drain
+        while time.time() < deadline:
+            if all(b.win_first is None or len(b.got) >= b.win_last - b.win_first + 1 for b in self.bots):
+                break
+            await asyncio.sleep(0.05)
+        per_robot = {}
+        for b in self.bots:
+            sent = 0 if b.win_first is None else b.win_last - b.win_first + 1
+            per_robot[b.rid] = {"sent": sent, "received": len(b.got), "lost": sent - len(b.got), "dups": b.dups,
+                                "down": dict(b.down)}
+        self.reply(lat=self.lat, raw=self.raw, send_late=self.send_late, bytes_up=up, bytes_down=down, robots=per_robot,
+                   errors=self.errors)
+
+
+def worker_main(conn, master_url, robots, side, rate, concurrency) -> None:
+    """Entry point of a client worker process."""
+    w = Worker(conn, master_url, robots, side, rate, concurrency)
+    try:
+        asyncio.run(w.main())
+    except (KeyboardInterrupt, EOFError, BrokenPipeError):
+        pass
+
+
+# == the orchestrator ===========================================================================
+
+class Procs:
+    """The processes of one run, labelled: engine task sets, the container's environment and
+    nodes, the client workers and this process. :meth:`sample` keeps each label's peak RSS."""
+
+    ORDER = ("master", "robot", "container host", "environment", "planner", "echo node", "sandbox",
+             "clients", "orchestrator")
+
+    def __init__(self, eng, workers: list):
+        self.eng, self.workers = eng, workers
+        self.peak: dict[str, float] = defaultdict(float)     # MiB
+        self._stop = threading.Event()
+        self._thread: threading.Thread | None = None
+
+    def label(self, p, root_label: str) -> str:
+        if root_label != "container host" or p.pid == self.eng.procs[2].pid:
+            return root_label
+        try:
+            cmd = " ".join(p.cmdline())
+        except Exception:
+            return "sandbox"
+        if "global_planner" in cmd:
+            return "planner"
+        if "echo.py" in cmd:
+            return "echo node"
+        if "environment" in cmd:
+            return "environment"
+        return "sandbox"
+
+    def snapshot(self) -> dict:
+        """{pid: (label, process)} of everything alive now."""
+        import psutil
+        roots = [(self.eng.procs[0].pid, "master"), (self.eng.procs[1].pid, "robot"),
+                 (self.eng.procs[2].pid, "container host"), (os.getpid(), "orchestrator")]
+        roots += [(w.pid, "clients") for w in self.workers if w.pid]
+        out = {}
+        for pid, lab in roots:
+            try:
+                root = psutil.Process(pid)
+                kids = root.children(recursive=True) if lab != "orchestrator" else []
+            except psutil.Error:
+                continue
+            for p in [root] + kids:
+                out.setdefault(p.pid, (self.label(p, lab), p))
+        return out
+
+    def sample(self) -> None:
+        sums: dict[str, float] = defaultdict(float)
+        for lab, p in self.snapshot().values():
+            try:
+                sums[lab] += p.memory_info().rss / 2**20
+            except Exception:
+                pass
+        sums["container (all)"] = sum(v for k, v in sums.items()
+                                      if k in ("container host", "environment", "planner", "echo node", "sandbox"))
+        for k, v in sums.items():
+            self.peak[k] = max(self.peak[k], v)
+
+    def start(self, interval: float = 0.5) -> "Procs":
+        def run() -> None:
+            while not self._stop.wait(interval):
+                self.sample()
+        self.sample()
+        self._thread = threading.Thread(target=run, daemon=True)
+        self._thread.start()
+        return self
+
+    def stop(self) -> None:
+        self._stop.set()
+        if self._thread:
+            self._thread.join(5)
+
+
+class CpuWindow:
+    """CPU time per label between :meth:`start` and :meth:`stop` (processes alive at both)."""
+
+    def __init__(self, procs: Procs):
+        self.procs = procs
+
+    @staticmethod
+    def _times(snap: dict) -> dict:
+        out = {}
+        for pid, (lab, p) in snap.items():
+            try:
+                t = p.cpu_times()
+                out[pid] = (lab, t.user + t.system)
+            except Exception:
+                pass
+        return out
+
+    def start(self) -> None:
+        import psutil
+        self.t0 = self._times(self.procs.snapshot())
+        self.w0 = time.monotonic()
+        self.m0 = psutil.cpu_times()
+
+    def stop(self) -> dict:
+        import psutil
+        t1 = self._times(self.procs.snapshot())
+        wall = time.monotonic() - self.w0
+        m1 = psutil.cpu_times()
+        pct: dict[str, float] = defaultdict(float)
+        by_pid = {}
+        for pid, (lab, c1) in t1.items():
+            if pid in self.t0:
+                d = 100.0 * (c1 - self.t0[pid][1]) / wall
+                pct[lab] += d
+                by_pid[pid] = (lab, d)
+        pct["container (all)"] = sum(v for k, v in pct.items()
+                                     if k in ("container host", "environment", "planner", "echo node", "sandbox"))
+        busy = lambda t: sum(t) - t.idle - getattr(t, "iowait", 0.0)  # noqa: E731
+        pct["machine"] = 100.0 * (busy(m1) - busy(self.m0)) / wall
+        self.by_pid = by_pid
+        return {k: round(v, 1) for k, v in pct.items()}
+
+
+def admin_get(eng, path: str, timeout: float = 30.0):
+    req = urllib.request.Request(eng.master_url + path.lstrip("/"),
+                                 headers={"Authorization": f"Bearer {eng.admin_token}"})
+    with urllib.request.urlopen(req, timeout=timeout) as r:
+        return json.loads(r.read())
+
+
+def engine_drops(eng) -> dict:
+    """Drop counters of the engine: the fleet container (bus subscriptions, interfaces, its data
+    plane, per node) and the robot task set (per-robot queues, its data plane)."""
+    out = {}
+    try:
+        st = admin_get(eng, f"api/containers/{USER}/{CTAG}/stats")
+        out["container_bus"] = st["dropped"]["bus"]
+        out["container_interfaces"] = st["dropped"]["interfaces"]
+        out["container_dataplane"] = st["environment"]["dataplane"]["dropped"]
+        for ntag, nd in st.get("per_node", {}).items():
+            out[f"node_{ntag}"] = nd.get("dropped", 0)
+    except Exception as e:       # noqa: BLE001  (reported, not fatal)
+        out["container_error"] = str(e)
+    port = (eng.robot_ready[0] if eng.robot_ready else {}).get("metrics_port")
+    if port:
+        try:
+            with urllib.request.urlopen(f"http://127.0.0.1:{port}/metrics", timeout=30) as r:
+                for line in r.read().decode().splitlines():
+                    name, _, val = line.partition(" ")
+                    if name in ("rce_robot_dropped_total", "rce_robot_dataplane_dropped"):
+                        out[name.replace("rce_robot_", "robot_").replace("_total", "")] = int(float(val))
+        except Exception as e:   # noqa: BLE001
+            out["robot_error"] = str(e)
+    return out
+
+
+def engine_events(eng, limit: int = 8) -> list[str]:
+    """The engine's warnings and errors (JSON log lines), most recent last: what broke."""
+    out = []
+    for path in eng.logs:
+        try:
+            lines = path.read_text(errors="replace").splitlines()
+        except OSError:
+            continue
+        seen = set()
+        for line in lines:
+            try:
+                d = json.loads(line)
+            except ValueError:
+                continue
+            if d.get("level") not in ("warning", "error", "critical") or d.get("msg") in seen:
+                continue
+            seen.add(d.get("msg"))     # one line per kind of event and process
+            extra = {k: v for k, v in d.items() if k not in ("ts", "level", "logger", "msg")}
+            out.append((d.get("ts", 0), f"{path.stem}: {d.get('msg')} {json.dumps(extra)[:160]}"))
+    return [t for _, t in sorted(out)][-limit:]
+
+
+def check_engine(eng, what: str) -> None:
+    """Raise when an engine process has exited (the run cannot go on), naming what the logs say."""
+    dead = eng.alive()
+    if dead:
+        names = sorted({os.path.basename(d) for d in dead})
+        raise RuntimeError(f"engine collapsed during {what}: {', '.join(names)} exited; "
+                           + " | ".join(engine_events(eng, 5)))
+
+
+def diff_drops(a: dict, b: dict) -> dict:
+    return {k: b[k] - a.get(k, 0) for k in b if isinstance(b[k], int)}
+
+
+WAIT_FRAMES = ("EpollSelector.select", "Runner.run", "_worker", "BaseEventLoop.run_forever", "BaseEventLoop._run_once",
+               "BaseEventLoop.run_until_complete")
+
+
+def pyspy_top(pid: int, seconds: float, out: Path, top: int = 12) -> dict:
+    """Record ``pid`` with py-spy for ``seconds`` (100 Hz, idle samples left out); returns the
+    share of samples waiting in the event loop (``wait_pct``: the process was runnable in or
+    right after ``epoll``, i.e. mostly waiting for a CPU on a busy machine), the functions
+    with the most own samples, and the heaviest inclusive ones below the event loop (% of all
+    samples)."""
+    exe = shutil.which("py-spy") or (str(Path(sys.executable).parent / "py-spy")
+                                     if (Path(sys.executable).parent / "py-spy").exists() else None)
+    if not exe:
+        return {"error": "py-spy not installed"}
+    r = subprocess.run([exe, "record", "--pid", str(pid), "--duration", str(int(max(1, seconds))), "--rate", "100",
+                        "--format", "raw", "--output", str(out)], capture_output=True, text=True)
+    if r.returncode != 0 or not out.exists():
+        return {"error": (r.stderr or r.stdout).strip()[-300:]}
+    own: dict[str, int] = defaultdict(int)
+    incl: dict[str, int] = defaultdict(int)
+    total = wait = 0
+    for line in out.read_text().splitlines():
+        stack, _, cnt = line.rpartition(" ")
+        if not stack or not cnt.isdigit():
+            continue
+        n = int(cnt)
+        total += n
+        frames = []
+        for f in stack.split(";"):        # "func (path/file.py:line)" -> "func (file.py)"
+            name, _, where = f.partition(" (")
+            frames.append(f"{name} ({os.path.basename(where.split(':')[0])})" if where else name)
+        if frames[-1].split(" (")[0] in WAIT_FRAMES:
+            wait += n
+            continue
+        own[frames[-1]] += n
+        for f in set(frames):
+            if f.split(" (")[0] not in WAIT_FRAMES:
+                incl[f] += n
+    if not total:
+        return {"error": "no samples"}
+    def pct(d: dict, skip_above: float) -> list:
+        return [(k, round(100.0 * v / total, 1)) for k, v in sorted(d.items(), key=lambda kv: -kv[1])
+                if v <= skip_above][:top]
+    # inclusive: leave out the frames (nearly) every busy sample has (<module>, main, the loop's run)
+    return {"samples": total, "wait_pct": round(100.0 * wait / total, 1), "own": pct(own, total),
+            "inclusive": pct(incl, 0.9 * (total - wait))}
+
+
+class Run:
+    """One N: engine, fleet container, echo node, workers, warm-up, goals, window."""
+
+    def __init__(self, n: int, args, con):
+        self.n, self.args, self.con = n, args, con
+        self.side = "Converter" if args.converter else "Forwarder"
+        self.geo, self.rows, self.cols = grid_for(n)
+        self.place = placements(n, self.cols)
+        self.robots = [f"Robot{i + 1}" for i in range(n)]
+        self.res: dict = {"robots": n, "mode": self.side.lower(), "rate_hz": args.rate, "duration_s": args.duration,
+                          "grid": f"{self.rows}x{self.cols}", "setup": {}, "notes": []}
+        self.ages: list[float] = []
+        self.states = self.states_win = 0
+        self.planner_seen: set[str] = set()
+        self.counting_ages = False
+
+    def log(self, text: str) -> None:
+        self.con.print(f"[dim]N={self.n}:[/dim] {text}")
+
+    # -- the fleet state: planner view age ------------------------------------------------------
+    def on_state(self, st: dict) -> None:
+        self.states += 1
+        now_ms = time.time() * 1e3
+        for r in st.get("robots", []):
+            if r.get("cell", -1) < 0:
+                continue
+            self.planner_seen.add(r["robot"])
+            if not self.counting_ages:
+                continue
+            if r is st["robots"][0]:
+                self.states_win += 1
+            i = int(r["robot"][5:]) - 1
+            y0 = self.geo.center(self.place[i][0])[1]
+            y = r.get("y")
+            if y is None or not math.isfinite(y):
+                continue
+            sent_ms = round((y - y0) / Y_MS_SCALE)
+            self.ages.append((now_ms % Y_MS_MOD - sent_ms) % Y_MS_MOD)
+
+    # -- workers ---------------------------------------------------------------------------------
+    def start_workers(self, master_url: str) -> None:
+        ctx = mp.get_context("spawn")
+        k = max(1, min(self.args.clients, self.n))
+        per = [[] for _ in range(k)]
+        period = 1.0 / self.args.rate
+        for i in range(self.n):
+            x, y = self.geo.center(self.place[i][0])
+            per[i % k].append((i + 1, x, y, period * i / self.n, self.place[i][1]))
+        conc = max(1, self.args.setup_concurrency // k)
+        self.pipes = []
+        for chunk in per:
+            a, b = ctx.Pipe()
+            p = ctx.Process(target=worker_main, args=(b, master_url, chunk, self.side, self.args.rate, conc),
+                            daemon=True)
+            p.start()
+            self.pipes.append(a)
+            self.workers.append(p)
+
+    async def ask_all(self, cmd: dict, timeout: float) -> list[dict]:
+        for c in self.pipes:
+            c.send(cmd)
+        loop = asyncio.get_running_loop()
+
+        def recv(c):
+            if not c.poll(timeout):
+                raise TimeoutError(f"client worker did not answer {cmd['op']!r} within {timeout:g} s")
+            return c.recv()
+        return await asyncio.gather(*(loop.run_in_executor(None, recv, c) for c in self.pipes))
+
+    def stop_workers(self) -> None:
+        for c in getattr(self, "pipes", []):
+            try:
+                c.send({"op": "exit"})
+            except Exception:
+                pass
+        for p in getattr(self, "workers", []):
+            p.join(5)
+            if p.is_alive():
+                p.terminate()
+                p.join(5)
+
+    # -- the run --------------------------------------------------------------------------------
+    async def measure(self, eng, procs: Procs) -> None:
+        try:
+            await self._measure(eng, procs)
+        finally:
+            mgr = getattr(self, "mgr", None)
+            if mgr is not None:
+                try:
+                    await asyncio.wait_for(mgr.close(destroy=False), 5)
+                except Exception:    # noqa: BLE001  (the engine goes next anyway)
+                    pass
+
+    async def _measure(self, eng, procs: Procs) -> None:
+        from rce.errors import RCEError
+        from rce_fleet.manager import FleetManager
+        a, res, n = self.args, self.res, self.n
+        setup = res["setup"]
+        t = time.monotonic()
+        mgr = FleetManager(eng.master_url, self.geo, self.robots, planner_args="--no-lidar-blocking",
+                           on_state=self.on_state)
+        self.mgr = mgr
+        await mgr.start(timeout=120 + n * 0.05)
+        # the pose echo, in the fleet container, on the planner's own input topics
+        echo_args = ["--type", POSE, "--back", "--suffix", ECHO_SUFFIX, "--report", "5", "--queue", "100"]
+        echo_args += [f"/{r}/amcl_pose" for r in self.robots]
+        await mgr.conn.add_node(CTAG, "pose_echo", "benchecho", "echo.py", args=echo_args)
+        nerr = len(mgr.errors)
+        await mgr.conn.barrier(120)
+        if len(mgr.errors) > nerr:
+            raise RuntimeError(f"echo node refused: {mgr.errors[nerr]}")
+        setup["fleet_container_s"] = round(time.monotonic() - t, 2)
+        self.log(f"fleet container, planner and echo node up in {setup['fleet_container_s']} s")
+
+        # robots: login, websocket, CN, CX, interfaces up
+        t = time.monotonic()
+        self.start_workers(eng.master_url)
+        reps = await self.ask_all({"op": "setup", "timeout": 120 + n * 0.2}, timeout=600 + n * 2)
+        failed = sum(r["failed"] for r in reps)
+        per_robot = [s for r in reps for s in r["setup_s"] if s == s]
+        setup["robots_s"] = round(time.monotonic() - t, 2)
+        setup["per_robot_p50_s"] = round(median(per_robot), 3)
+        setup["per_robot_p99_s"] = round(percentile(per_robot, 99), 3)
+        setup["robots_failed"] = failed
+        if failed:
+            raise RuntimeError(f"{failed} of {n} robots failed to set up: {[f for r in reps for f in r['failures']][:3]}")
+        self.log(f"{n} robots connected and wired in {setup['robots_s']} s "
+                 f"(per robot p50 {setup['per_robot_p50_s']} s, p99 {setup['per_robot_p99_s']} s)")
+
+        # warm-up: every pose echoed, every robot seen by the planner
+        t = time.monotonic()
+        await self.ask_all({"op": "publish", "t_start": time.time() + 0.3}, timeout=60)
+        deadline = time.monotonic() + a.warmup_timeout + n * 0.05
+        while True:
+            await asyncio.sleep(0.5)
+            st = await self.ask_all({"op": "status"}, timeout=60)
+            echoed = sum(s["echoed"] for s in st)
+            check_engine(eng, "warm-up")
+            if echoed == n and len(self.planner_seen) == n and time.monotonic() - t >= a.warmup:
+                break
+            if time.monotonic() > deadline:     # overloaded: measure anyway, and say so
+                errs = [e for s in st for e in s["last_errors"]]
+                res["notes"].append(f"warm-up incomplete after {time.monotonic() - t:.0f} s: {echoed}/{n} robots echoed, "
+                                    f"planner saw {len(self.planner_seen)}/{n}" + (f"; errors: {errs}" if errs else ""))
+                break
+        setup["warmup_s"] = round(time.monotonic() - t, 2)
+        check_engine(eng, "warm-up")
+
+        # goals: the neighbouring cell, through /fleet/goal, paced for the planner's goal queue
+        t = time.monotonic()
+        sent_at: dict[str, float] = {}
+
+        async def send_goals(which: list[str]) -> None:
+            try:
+                for k, r in enumerate(which):
+                    sent_at[r] = time.time()
+                    await mgr.set_goal(r, self.place[int(r[5:]) - 1][1])
+                    if k % 25 == 24:
+                        await asyncio.sleep(0.05)
+            except RCEError as e:       # the operator's link is part of the load: say it broke, go on
+                res["notes"].append(f"fleet manager could not send goals: {e.message}")
+        await send_goals(self.robots)
+        deadline = time.monotonic() + 60 + n * 0.05
+        resent = False
+        while True:
+            await asyncio.sleep(0.5)
+            st = await self.ask_all({"op": "status"}, timeout=60)
+            pathed = {r: tp for s in st for r, tp in s["pathed"].items()}
+            check_engine(eng, "goals")
+            if len(pathed) == n or mgr.conn.closed:
+                break
+            if not resent and time.monotonic() - t > 15:
+                resent = True
+                await send_goals([r for r in self.robots if r not in pathed])
+            if time.monotonic() > deadline:
+                errs = (self.mgr.latest or {}).get("errors", [])[-3:]
+                res["notes"].append(f"goals: only {len(pathed)}/{n} robots got their path within "
+                                    f"{time.monotonic() - t:.0f} s" + (f"; planner errors: {errs}" if errs else ""))
+                break
+        g2p = [(pathed[r] - sent_at[r]) * 1e3 for r in self.robots if r in pathed]
+        setup["goals_s"] = round(time.monotonic() - t, 2)
+        res["goal_to_path_ms"] = {"p50": median(g2p), "max": max(g2p, default=float("nan")), "resent": resent,
+                                  "robots_with_path": len(pathed)}
+        self.log(f"warm-up {setup['warmup_s']} s; {len(pathed)}/{n} robots have their path ({setup['goals_s']} s, "
+                 f"goal->path p50 {fmt_ms(median(g2p))} ms)")
+
+        check_engine(eng, "goals")
+        # the window
+        start = time.time() + 0.5
+        end = start + a.duration
+        drops0 = await asyncio.to_thread(engine_drops, eng)
+        for c in self.pipes:
+            c.send({"op": "window", "start": start, "end": end, "drain": a.drain, "raw": a.raw is not None})
+        await asyncio.sleep(max(0.0, start - time.time()))
+        cpu = CpuWindow(procs)
+        fl = ForeignLoad().start()
+        cpu.start()
+        self.counting_ages = True
+        await asyncio.sleep(max(0.0, end - time.time()))
+        res["cpu_pct"] = cpu.stop()
+        self.counting_ages = False
+        res["machine_load"] = fl.stop()
+        loop = asyncio.get_running_loop()
+        reps = await asyncio.gather(*(loop.run_in_executor(None, c.recv) for c in self.pipes))
+        check_engine(eng, "the measured window")
+        drops1 = await asyncio.to_thread(engine_drops, eng)
+        res["engine_drops"] = diff_drops(drops0, drops1)
+        for k in ("container_error", "robot_error"):
+            if k in drops1:
+                res["notes"].append(f"engine counters: {drops1[k]}")
+
+        lat = [x for r in reps for x in r["lat"]]
+        if a.raw is not None:
+            a.raw.mkdir(parents=True, exist_ok=True)
+            with open(a.raw / f"latency_{n}.csv", "w") as f:
+                f.write("robot,seq,stamp_s,latency_ms\n")
+                for row in sorted((x for r in reps for x in r["raw"]), key=lambda x: x[2]):
+                    f.write("%d,%d,%.6f,%.3f\n" % row)
+        late = [x for r in reps for x in r["send_late"]]
+        robots = {k: v for r in reps for k, v in r["robots"].items()}
+        sent = sum(v["sent"] for v in robots.values())
+        lost = sum(v["lost"] for v in robots.values())
+        res.update({
+            "latency_ms": {"p50": median(lat), "p90": percentile(lat, 90), "p99": percentile(lat, 99),
+                           "max": max(lat) if lat else float("nan"), "samples": len(lat)},
+            "sent": sent, "received": sum(v["received"] for v in robots.values()), "lost": lost,
+            "duplicates": sum(v["dups"] for v in robots.values()),
+            "robots_losing": sorted((k for k, v in robots.items() if v["lost"]), key=lambda r: int(r[5:]))[:20],
+            "lost_per_robot_max": max((v["lost"] for v in robots.values()), default=0),
+            "send_rate_hz": sent / a.duration / n,
+            "send_late_ms": {"p50": median(late), "p99": percentile(late, 99)},
+            "planner_view_age_ms": {"p50": median(self.ages), "p99": percentile(self.ages, 99),
+                                    "samples": len(self.ages)},
+            "fleet_states_per_s": self.states_win / a.duration,
+            "bytes_per_robot_s": {"up": sum(r["bytes_up"] for r in reps) / a.duration / n,
+                                  "down": sum(r["bytes_down"] for r in reps) / a.duration / n},
+            "down_msgs_per_robot_s": {role: sum(v["down"].get(role, 0) for v in robots.values()) / a.duration / n
+                                      for role in [t for t, _ in DOWN]},
+            "client_errors": sum(r["errors"] for r in reps),
+        })
+        res["bytes_per_robot_s"]["total"] = res["bytes_per_robot_s"]["up"] + res["bytes_per_robot_s"]["down"]
+        res["cpu_by_process"] = [{"pid": pid, "label": lab, "pct": round(p, 1)}
+                                 for pid, (lab, p) in sorted(cpu.by_pid.items(), key=lambda kv: -kv[1][1])[:12]]
+        hot = res["cpu_by_process"][0] if res["cpu_by_process"] else None
+        res["hottest"] = hot
+        clients = [x for x in res["cpu_by_process"] if x["label"] == "clients"]
+        res["client_saturated"] = any(x["pct"] >= 90 for x in clients)
+        if res["send_rate_hz"] < 0.95 * a.rate:
+            res["notes"].append(f"the clients sent {res['send_rate_hz']:.2f} Hz per robot, not {a.rate:g} Hz "
+                                f"(send lateness p99 {fmt_ms(res['send_late_ms']['p99'])} ms): they did not get the CPU")
+        if a.profile > 0:
+            prof = {}
+            for x in res["cpu_by_process"][:2]:
+                self.log(f"py-spy: recording {x['label']} (pid {x['pid']}, {x['pct']} % CPU) for {a.profile:g} s")
+                prof[x["label"]] = {"pid": x["pid"], "cpu_pct": x["pct"], **await asyncio.to_thread(
+                    pyspy_top, x["pid"], a.profile, Path(tempfile.mkdtemp(prefix="fleetload-spy-")) / "raw.txt")}
+            res["profile"] = prof
+
+    def run(self) -> dict:
+        a = self.args
+        t0 = time.monotonic()
+        workdir = Path(tempfile.mkdtemp(prefix=f"rce-fleetload-{self.n}-"))
+        procs = None
+        try:
+            with engine(workdir, env={"RCE_PACKAGE_PATH": str(PACKAGES)}) as eng:
+                self.res["setup"]["engine_s"] = round(time.monotonic() - t0, 2)
+                self.workers = []
+                procs = Procs(eng, self.workers).start()
+                try:
+                    asyncio.run(self.measure(eng, procs))
+                except Exception as e:      # noqa: BLE001  (the run stops here, with the reason)
+                    self.res["error"] = f"{type(e).__name__}: {e}"
+                    self.res["engine_dead"] = eng.alive()
+                    self.res["engine_events"] = engine_events(eng)
+                    for ntag in ("global_planner", "pose_echo"):
+                        try:
+                            lg = admin_get(eng, f"api/containers/{USER}/{CTAG}/logs/{ntag}")
+                            self.res.setdefault("node_logs", {})[ntag] = lg
+                        except Exception as e2:   # noqa: BLE001
+                            self.res.setdefault("node_logs", {})[ntag] = f"unavailable: {e2}"
+                    st = getattr(getattr(self, "mgr", None), "latest", None) or {}
+                    self.res["last_fleet_state"] = {
+                        "robots": len(st.get("robots", [])), "errors": st.get("errors", [])[-5:],
+                        "states": dict(sorted(__import__("collections").Counter(
+                            x.get("state") for x in st.get("robots", [])).items(), key=str)),
+                        "fleet_states_received": self.states}
+                finally:
+                    procs.stop()
+                    self.res["peak_rss_mib"] = {k: round(v, 1) for k, v in procs.peak.items()}
+        finally:
+            self.stop_workers()
+            if not a.keep:
+                shutil.rmtree(workdir, ignore_errors=True)
+            else:
+                self.res["workdir"] = str(workdir)
+        s = self.res["setup"]
+        s["total_s"] = round(sum(s.get(k, 0) for k in ("engine_s", "fleet_container_s", "robots_s", "warmup_s",
+                                                          "goals_s")), 2)
+        self.res["run_s"] = round(time.monotonic() - t0, 2)
+        return self.res
+
+
+# == main =======================================================================================
+
+def verdict(r: dict, max_p99: float) -> str | None:
+    """Why the run stops at this N (None: go on)."""
+    if r.get("error"):
+        return f"failed: {r['error']}"
+    reasons = []
+    p99 = r["latency_ms"]["p99"]
+    if not (p99 <= max_p99):
+        reasons.append(f"p99 {fmt_ms(p99)} ms > {max_p99:g} ms")
+    if r["lost"]:
+        reasons.append(f"{r['lost']} of {r['sent']} poses lost ({len(r['robots_losing'])}+ robots)")
+    drops = {k: v for k, v in r.get("engine_drops", {}).items() if v}
+    if drops:
+        reasons.append(f"engine dropped {drops}")
+    return "; ".join(reasons) or None
+
+
+def parse_args(argv=None):
+    p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0], formatter_class=argparse.RawDescriptionHelpFormatter)
+    p.add_argument("--robots", default=DEFAULT_ROBOTS, help=f"fleet sizes, in order (default {DEFAULT_ROBOTS})")
+    p.add_argument("--duration", type=float, default=10.0, help="measured window per N, s (default 10)")
+    p.add_argument("--rate", type=float, default=10.0, help="pose rate per robot, Hz (default 10)")
+    p.add_argument("--converter", action="store_true", help="robot-side Converters (JSON) instead of Forwarders")
+    p.add_argument("--clients", type=int, default=2, help="client worker processes (default 2)")
+    p.add_argument("--setup-concurrency", type=int, default=16, help="robots setting up at once (default 16)")
+    p.add_argument("--warmup", type=float, default=2.0, help="minimum warm-up, s (default 2)")
+    p.add_argument("--warmup-timeout", type=float, default=60.0, help="warm-up limit, s (+0.05 s per robot)")
+    p.add_argument("--drain", type=float, default=3.0, help="s after the window an echo may still come (default 3)")
+    p.add_argument("--max-p99", type=float, default=100.0, help="stop when p99 passes this, ms (default 100)")
+    p.add_argument("--no-stop", action="store_true",
+                   help="run every N even after one failed the limits (the first failure is still reported)")
+    p.add_argument("--profile", type=float, default=0.0, metavar="S",
+                   help="after each window, py-spy the two hottest processes for S s (default off)")
+    p.add_argument("--nice", type=int, default=None, metavar="N",
+                   help="run the bench and all it starts at niceness N (e.g. -10 as root on a shared machine)")
+    p.add_argument("--wait-quiet", type=float, default=0.0, metavar="S",
+                   help="before each N, wait up to S s for other processes to use < 0.3 cores (shared machines)")
+    p.add_argument("--keep", action="store_true", help="keep the engine's work directories (logs)")
+    p.add_argument("--raw", type=Path, default=None, metavar="DIR",
+                   help="also write every echo (robot, seq, stamp, latency) to DIR/latency_N.csv")
+    p.add_argument("--json", type=Path, default=RESULTS / "fleet_load.json", help="JSON results")
+    p.add_argument("--plot", type=Path, default=RESULTS / "fleet_load.png", help="PNG plot")
+    return p.parse_args(argv)
+
+
+def main(argv=None) -> int:
+    args = parse_args(argv)
+    con = console()
+    try:
+        sizes = [int(x) for x in args.robots.split(",") if x.strip()]
+        if not sizes or min(sizes) < 1:
+            raise ValueError
+    except ValueError:
+        con.print(f"[red]--robots: expected a comma-separated list of positive integers, got {args.robots!r}")
+        return 2
+    res = {"robots": sizes, "mode": "converter" if args.converter else "forwarder", "rate_hz": args.rate,
+           "duration_s": args.duration, "drain_s": args.drain, "max_p99_ms": args.max_p99, "clients": args.clients,
+           "cpu_count": os.cpu_count(), "runs": [], "stopped_at": None, "stop_reason": None,
+           "definitions": {
+               "latency": "robot wall clock at the echo's arrival minus header.stamp (robot wall clock just before "
+                          "sending pose seq): robot -> SubscriberForwarder/Converter -> cTag_01 bus /RobotN/amcl_pose "
+                          "(planner + echo node) -> benchecho -> /RobotN/amcl_pose_echo -> Publisher* -> robot",
+               "lost": "poses sent in the window minus distinct seqs echoed back within drain_s after it",
+               "planner_view_age": "at each /fleet/state received: now - send time of the newest pose of that "
+                                   "robot the planner had processed (encoded in position.y)",
+               "bytes_per_robot_s": "websocket frames (payload + header) counted by the clients in the window",
+               "cpu_pct": "user+system CPU of each process over the window, % of one core",
+               "peak_rss_mib": "psutil RSS sampled every 0.5 s over the whole N (setup included), summed per label"}}
+    set_nice(args.nice, log=con.print)
+    res["nice"] = args.nice
+    for n in sizes:
+        con.rule(f"N = {n} robots ({res['mode']})")
+        wait_quiet(args.wait_quiet, log=con.print)
+        r = Run(n, args, con).run()
+        res["runs"].append(r)
+        why = verdict(r, args.max_p99)
+        if r.get("latency_ms"):
+            con.print(f"N={n}: p50 {fmt_ms(r['latency_ms']['p50'])} ms, p99 {fmt_ms(r['latency_ms']['p99'])} ms, "
+                      f"lost {r['lost']}/{r['sent']}, CPU {r['cpu_pct']}")
+        r["verdict"] = why
+        if why and r.get("error"):
+            res["stopped_at"], res["stop_reason"] = n, why
+            con.print(f"[bold red]stopping at N={n}: {why}")
+            break
+        if why and res["stopped_at"] is None:
+            res["stopped_at"], res["stop_reason"] = n, why
+            if not args.no_stop:
+                con.print(f"[bold red]stopping at N={n}: {why}")
+                break
+            con.print(f"[bold red]N={n} fails ({why}); going on (--no-stop)")
+    if res["stopped_at"] is None:
+        res["stop_reason"] = f"every N passed (p99 <= {args.max_p99:g} ms, nothing lost)"
+    write_json(args.json, res)
+    print_table(con, res)
+    plot(res, args.plot)
+    con.print(f"results: {args.json}  plot: {args.plot}")
+    return 0
+
+
+def print_table(con, res: dict) -> None:
+    from rich.table import Table
+    f0 = lambda x: "-" if x is None or (isinstance(x, float) and not math.isfinite(x)) else f"{x:.0f}"  # noqa: E731
+    t = Table(title=f"fleet load: {res['mode']}s, poses at {res['rate_hz']:g} Hz per robot, "
+                    f"{res['duration_s']:g} s window per N (latency = pose -> fleet container echo -> robot)")
+    for c in ("N", "p50 ms", "p99 ms", "max ms", "lost", "engine drops", "planner view p50/p99 ms",
+              "B/robot/s up/down", "setup s (robots)", "goal->path ms"):
+        t.add_column(c, justify="right")
+    for r in res["runs"]:
+        if not r.get("latency_ms"):
+            t.add_row(str(r["robots"]), *["-"] * 7, f"{r['setup'].get('robots_s', '-')}",
+                      "-", style="red")
+            continue
+        L, s = r["latency_ms"], r["setup"]
+        drops = sum(v for v in r.get("engine_drops", {}).values())
+        pv = r["planner_view_age_ms"]
+        b = r["bytes_per_robot_s"]
+        t.add_row(str(r["robots"]), fmt_ms(L["p50"]), fmt_ms(L["p99"]), fmt_ms(L["max"]),
+                  f"{r['lost']}/{r['sent']}", str(drops), f"{fmt_ms(pv['p50'])} / {fmt_ms(pv['p99'])}",
+                  f"{f0(b['up'])} / {f0(b['down'])}",
+                  f"{s.get('total_s', '-')} ({s.get('robots_s', '-')})", fmt_ms(r["goal_to_path_ms"]["p50"]),
+                  style=None if verdict(r, res["max_p99_ms"]) is None else "red")
+    con.print(t)
+    labels = ("master", "robot", "container host", "environment", "planner", "echo node", "clients", "orchestrator")
+    t2 = Table(title="CPU % of one core over the window (peak RSS MiB over the run); "
+                     f"the machine has {res['cpu_count']} cores")
+    t2.add_column("N", justify="right")
+    for c in labels + ("container (all)", "machine busy", "other load"):
+        t2.add_column(c, justify="right")
+    for r in res["runs"]:
+        cpu, rss = r.get("cpu_pct", {}), r.get("peak_rss_mib", {})
+        cell = lambda k: f"{f0(cpu.get(k))} ({f0(rss.get(k))})"  # noqa: E731
+        other = r.get("machine_load", {}).get("other_cores")
+        t2.add_row(str(r["robots"]), *[cell(k) for k in labels], cell("container (all)"), f0(cpu.get("machine")),
+                   "-" if other is None else f"{other:.2f} cores")
+    con.print(t2)
+    for r in res["runs"]:
+        for n in r.get("notes", []):
+            con.print(f"[yellow]N={r['robots']}: {n}")
+        if r.get("client_saturated"):
+            con.print(f"[yellow]N={r['robots']}: a client worker used >= 90 % of a core: the clients may be a bottleneck")
+        for lab, p in (r.get("profile") or {}).items():
+            if p.get("own"):
+                con.print(f"N={r['robots']} py-spy {lab} ({p['cpu_pct']} % CPU; {p['wait_pct']} % of samples waiting in "
+                          f"the event loop), own time: " + ", ".join(f"{k} {v}%" for k, v in p["own"][:8]))
+    con.print(f"[bold]{'stopped at N=' + str(res['stopped_at']) + ': ' if res['stopped_at'] else ''}{res['stop_reason']}")
+
+
+def plot(res: dict, path: Path) -> None:
+    plt = pyplot()
+    runs = [r for r in res["runs"] if r.get("latency_ms")]
+    fig, (ax1, ax2) = plt.subplots(1, 2, figsize=(12, 5))
+    if runs:
+        xs = [r["robots"] for r in runs]
+        ax1.plot(xs, [r["latency_ms"]["p50"] for r in runs], "o-", label="p50")
+        ax1.plot(xs, [r["latency_ms"]["p99"] for r in runs], "s-", label="p99")
+        ax1.plot(xs, [r["planner_view_age_ms"]["p99"] for r in runs], "^:", label="planner view age p99", alpha=0.6)
+        ax1.axhline(res["max_p99_ms"], color="red", ls="--", lw=0.8, label=f"{res['max_p99_ms']:g} ms limit")
+        for lab, style in (("master", "o-"), ("robot", "s-"), ("container (all)", "^-"), ("environment", "v--"),
+                           ("planner", "x--"), ("echo node", "+--"), ("clients", "d:"), ("machine", "k-")):
+            ys = [r["cpu_pct"].get(lab, float("nan")) for r in runs]
+            ax2.plot(xs, ys, style, label=lab if lab != "machine" else "whole machine", markersize=4)
+        ax2.axhline(100 * (res.get("cpu_count") or 1), color="red", ls="--", lw=0.8, label="all cores")
+    for ax in (ax1, ax2):
+        ax.set_xscale("log")
+        ax.set_xlabel("robots (N)")
+        ax.grid(True, which="both", alpha=0.3)
+        ax.legend(fontsize=8)
+    ax1.set_yscale("log")
+    ax1.set_ylabel("ms")
+    ax1.set_title(f"pose -> fleet container echo -> robot ({res['mode']})")
+    ax2.set_ylabel("CPU % of one core")
+    ax2.set_title("CPU per task set over the window")
+    if res.get("stopped_at"):
+        fig.suptitle(f"stopped at N={res['stopped_at']}: {res['stop_reason']}"[:140], fontsize=9)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+
+
+if __name__ == "__main__":
+    sys.exit(main())
