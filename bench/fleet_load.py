@@ -479,9 +479,10 @@ class Worker:
 
 def worker_main(conn, master_url, robots, side, rate, concurrency) -> None:
     """Entry point of a client worker process."""
+    from rce.cli import run_loop     # uvloop when installed, as the engine's processes
     w = Worker(conn, master_url, robots, side, rate, concurrency)
     try:
-        asyncio.run(w.main())
+        run_loop(w.main())
     except (KeyboardInterrupt, EOFError, BrokenPipeError):
         pass
 
@@ -671,8 +672,10 @@ def diff_drops(a: dict, b: dict) -> dict:
     return {k: b[k] - a.get(k, 0) for k in b if isinstance(b[k], int)}
 
 
-WAIT_FRAMES = ("EpollSelector.select", "Runner.run", "_worker", "BaseEventLoop.run_forever", "BaseEventLoop._run_once",
-               "BaseEventLoop.run_until_complete")
+# leaf frames of a thread waiting in its event loop (asyncio's, or uvloop's C loop under run/Runner.run) or
+# in an idle executor thread
+WAIT_FRAMES = ("EpollSelector.select", "Runner.run", "run", "_worker", "BaseEventLoop.run_forever",
+               "BaseEventLoop._run_once", "BaseEventLoop.run_until_complete")
 
 
 def pyspy_top(pid: int, seconds: float, out: Path, top: int = 12) -> dict:
@@ -716,7 +719,7 @@ def pyspy_top(pid: int, seconds: float, out: Path, top: int = 12) -> dict:
                 if v <= skip_above][:top]
     # inclusive: leave out the frames (nearly) every busy sample has (<module>, main, the loop's run)
     return {"samples": total, "wait_pct": round(100.0 * wait / total, 1), "own": pct(own, total),
-            "inclusive": pct(incl, 0.9 * (total - wait))}
+            "inclusive": pct(incl, 0.9 * max(incl.values(), default=0))}
 
 
 class Run:
@@ -988,7 +991,8 @@ class Run:
                 self.workers = []
                 procs = Procs(eng, self.workers).start()
                 try:
-                    asyncio.run(self.measure(eng, procs))
+                    from rce.cli import run_loop
+                    run_loop(self.measure(eng, procs))
                 except Exception as e:      # noqa: BLE001  (the run stops here, with the reason)
                     self.res["error"] = f"{type(e).__name__}: {e}"
                     self.res["engine_dead"] = eng.alive()
