@@ -41,6 +41,9 @@ from rce_container.environment import container_paths
 from rce_container.usage import measure
 
 log = get_logger("rce.container")
+# s of master silence before this task set gives up on it. Longer than the master's own 4 s
+# verdict on task sets: a busy master is not a lost one, and giving up tears containers down.
+MASTER_SILENCE = 15.0
 
 CONTROL_SOCKET = "host.sock"
 RELAYED_OPS = ("add_node", "remove_node", "set_param", "delete_param", "add_interface", "remove_interface",
@@ -156,7 +159,7 @@ class ContainerHost:
                         stats=self.op_stats)
         self.master = await rpc.connect(*self.master_addr, handlers, name="master",
                                         on_close=self._master_lost, max_frame=self.max_frame)
-        self.master.keepalive()
+        self.master.keepalive(timeout=MASTER_SILENCE)
         res = await self.master.call(
             "register", kind="container", name=self.name, host=self.advertise_host,
             sandbox=self.sandbox_cls.kind,

@@ -153,7 +153,9 @@ class Master:
 
     # -- robot endpoint ops --------------------------------------------------------------------
     async def _auth(self, a: dict) -> dict:
-        self.state.authenticate(a.get("user", ""), a.get("password", ""))
+        # scrypt costs ~50 ms of CPU by design: run it off the event loop so logins never stall
+        # the control plane (keepalives, other robots' requests)
+        await asyncio.to_thread(self.state.authenticate, a.get("user", ""), a.get("password", ""))
         return {}
 
     async def _robot_connected(self, tid: int, a: dict) -> dict:
@@ -303,7 +305,7 @@ class Master:
                     await self._endpoint_call(rec, "add_interface", iid=rec.iid, tag=rec.tag, itype=rec.itype,
                                               cls=rec.cls, addr=rec.addr)
             except RCEError:
-                self.state.interfaces.pop((user, rec.etag, rec.itag), None)
+                self.state.forget_interfaces([rec])
                 raise
 
         async def remove_interface(spec: dict) -> None:

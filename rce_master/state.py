@@ -150,6 +150,9 @@ class MasterState:
         self.params: dict[tuple[str, str, str], Any] = {}
         self.interfaces: dict[tuple[str, str, str], InterfaceRec] = {}
         self.connections: set[ConnectionRec] = set()
+        # indexes, so that a robot leaving with many interfaces costs O(its connections)
+        self._by_iid: dict[int, InterfaceRec] = {}
+        self._links: dict[int, set[ConnectionRec]] = {}     # iid -> its connections
         self._tids = itertools.count(1)
         self._cids = itertools.count(1)
         self._iids = itertools.count(1)
@@ -361,6 +364,7 @@ class MasterState:
         rec = InterfaceRec(next(self._iids), user, etag, itag, f"{kind}{side}", kind, side,
                            spec["className"].strip("/"), spec.get("addr"), location)
         self.interfaces[key] = rec
+        self._by_iid[rec.iid] = rec
         return rec
 
     def interface(self, user: str, tag: str) -> InterfaceRec:
@@ -373,30 +377,44 @@ class MasterState:
 
     def remove_interface(self, user: str, etag: str, itag: str) -> tuple[InterfaceRec, list[tuple[InterfaceRec, InterfaceRec]]]:
         """Forget an interface; returns it and the connections removed with it (pairs of records)."""
-        rec = self.interfaces.pop((user, etag, itag), None)
+        rec = self.interfaces.get((user, etag, itag))
         if rec is None:
             raise NotFound(f"interface {etag}/{itag} does not exist")
-        return rec, self._drop_connections_of(rec)
+        return rec, self.forget_interfaces([rec])
 
-    def _drop_connections_of(self, rec: InterfaceRec) -> list[tuple[InterfaceRec, InterfaceRec]]:
-        gone = [c for c in self.connections if rec.iid in (c.a, c.b)]
-        by_iid = {i.iid: i for i in self.interfaces.values()}
-        by_iid[rec.iid] = rec
-        out = []
-        for c in gone:
-            self.connections.discard(c)
-            a, b = by_iid.get(c.a), by_iid.get(c.b)
-            if a and b:
-                out.append((a, b))
-        return out
+    def _add_link(self, conn: ConnectionRec) -> None:
+        self.connections.add(conn)
+        self._links.setdefault(conn.a, set()).add(conn)
+        self._links.setdefault(conn.b, set()).add(conn)
+
+    def _drop_link(self, conn: ConnectionRec) -> None:
+        self.connections.discard(conn)
+        for iid in (conn.a, conn.b):
+            links = self._links.get(iid)
+            if links is not None:
+                links.discard(conn)
+                if not links:
+                    del self._links[iid]
 
     def forget_interfaces(self, recs: list[InterfaceRec]) -> list[tuple[InterfaceRec, InterfaceRec]]:
-        """Remove several interfaces (robot left, container destroyed); returns removed connections."""
+        """Remove interfaces (one removed, a robot left, a container destroyed, a failed add) with
+        their connections; returns the removed connections as pairs of records. O(their connections)."""
         out = []
         for rec in recs:
             self.interfaces.pop((rec.user, rec.etag, rec.itag), None)
-            out += self._drop_connections_of(rec)
+            self._by_iid.pop(rec.iid, None)
+            for conn in list(self._links.get(rec.iid, ())):
+                self._drop_link(conn)
+                other = self._by_iid.get(conn.b if conn.a == rec.iid else conn.a)
+                if other is None:
+                    other = next((r for r in recs if r.iid in (conn.a, conn.b) and r is not rec), None)
+                if other is not None:
+                    out.append((rec, other) if conn.a == rec.iid else (other, rec))
         return out
+
+    def connection_count(self, iid: int) -> int:
+        """How many connections interface ``iid`` has."""
+        return len(self._links.get(iid, ()))
 
     def connect(self, user: str, tag_a: str, tag_b: str) -> tuple[InterfaceRec, InterfaceRec]:
         """Connect two interfaces. Raises :class:`RequestError` if they cannot be paired
@@ -418,7 +436,7 @@ class MasterState:
         conn = ConnectionRec(user, min(a.iid, b.iid), max(a.iid, b.iid))
         if conn in self.connections:
             raise RequestError(f"{a.tag} and {b.tag} are already connected")
-        self.connections.add(conn)
+        self._add_link(conn)
         return a, b
 
     def disconnect(self, user: str, tag_a: str, tag_b: str) -> tuple[InterfaceRec, InterfaceRec]:
@@ -426,7 +444,7 @@ class MasterState:
         conn = ConnectionRec(user, min(a.iid, b.iid), max(a.iid, b.iid))
         if conn not in self.connections:
             raise NotFound(f"{a.tag} and {b.tag} are not connected")
-        self.connections.discard(conn)
+        self._drop_link(conn)
         return a, b
 
     def data_addr(self, rec: InterfaceRec) -> str:
@@ -466,7 +484,7 @@ class MasterState:
                       for n in sorted(self.nodes.values(), key=lambda n: (n.user, n.ctag, n.ntag))],
             "parameters": [{"user": u, "ctag": c, "name": n, "value": v} for (u, c, n), v in sorted(self.params.items())],
             "interfaces": [{"user": i.user, "tag": i.tag, "type": i.itype, "class": i.cls, "addr": i.addr,
-                            "iid": i.iid, "connections": sum(1 for c in self.connections if i.iid in (c.a, c.b))}
+                            "iid": i.iid, "connections": self.connection_count(i.iid)}
                            for i in sorted(self.interfaces.values(), key=lambda i: i.iid)],
             "connections": [{"user": c.user, "tagA": by_iid[c.a].tag, "tagB": by_iid[c.b].tag}
                             for c in sorted(self.connections, key=lambda c: (c.a, c.b))

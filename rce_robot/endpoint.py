@@ -23,6 +23,9 @@ from rce_robot.interfaces import RobotInterface
 from rce_robot.namespace import RobotNamespace
 
 log = get_logger("rce.robot")
+# s of master silence before this task set gives up on it. Longer than the master's own 4 s
+# verdict on task sets: a busy master is not a lost one, and giving up tears containers down.
+MASTER_SILENCE = 15.0
 
 
 def normalise_password(p: str) -> str:
@@ -85,7 +88,7 @@ class RobotEndpoint:
                     ("add_interface", "remove_interface", "connect", "disconnect", "notify", "close_robot")}
         self.master = await rpc.connect(master_host, master_port, handlers, name="master",
                                         on_close=lambda _p: self.stopped.set())
-        self.master.keepalive()
+        self.master.keepalive(timeout=MASTER_SILENCE)
         await self.master.call("register", kind="robot", name=self.name, host=self.advertise_host,
                                ws_url=f"ws://{host}:{self.ws_port}/", data_addr=self.plane.addr)
         if metrics_port is not None:
