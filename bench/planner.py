@@ -25,14 +25,10 @@ import time
 from pathlib import Path
 
 ROOT = Path(__file__).resolve().parents[1]
-try:
-    import rce_fleet  # noqa: F401
-except ImportError:    # running from a checkout without the package installed
-    sys.path.insert(0, str(ROOT / "examples" / "fleet"))
 
-from rce_fleet.grid import make_grid  # noqa: E402
-from rce_fleet.maps import load_map  # noqa: E402
-from rce_fleet.planner import FleetPlanner, GridGraph, check_conflicts, load_movingai_scen  # noqa: E402
+from rce_fleet.grid import make_grid
+from rce_fleet.maps import load_map
+from rce_fleet.planner import FleetPlanner, GridGraph, check_conflicts, load_movingai_scen
 
 DEFAULT_DATA = (ROOT / ".." / "shared" / "data").resolve()
 RESULTS = ROOT / "bench" / "results"

@@ -35,3 +35,11 @@ def pytest_runtest_makereport(item, call):
             e = item.funcargs.get(name) if hasattr(item, "funcargs") else None
             if isinstance(e, Engine):
                 item.add_report_section("call", "engine logs", e.log_text())
+
+
+def pytest_sessionstart(session):
+    """The real maps and benchmark data live in ../shared/data (never copied into the repository).
+    Tests that use them must not silently skip: say clearly what is missing instead."""
+    if not SHARED_DATA.is_dir():
+        raise pytest.UsageError(f"{SHARED_DATA} is missing: the tests read the real maps and MAPF data from "
+                                "../shared/data beside the project (see the project's shared folder)")

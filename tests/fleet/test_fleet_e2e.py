@@ -33,7 +33,6 @@ WAREHOUSE = MAPS / "warehouse.yaml"
 RCE_FLEET = Path(sys.executable).parent / "rce-fleet"
 RADIUS = 0.105
 
-needs_maps = pytest.mark.skipif(not TB3.exists() or not WAREHOUSE.exists(), reason="../shared/data/maps not available")
 
 # turtlebot3_world 8x8: cell 26 links only 25 and 27, so Robot1 (30 -> 17) and Robot2
 # (14 -> 25) must cross it on their shortest paths; Robot3 (50 -> 38) does not. At 5 s
@@ -70,7 +69,6 @@ def test_committed_robot_configs_are_the_generators_output():
         assert path.read_text() == dumps(robot_config(n)), f"{path} differs: run `rce-fleet configs`"
 
 
-@needs_maps
 def test_three_robots_turtlebot3_world_reach_their_goals(tmp_path):
     code, rep, out = run_demo(tmp_path, "--map", str(TB3), "--grid", "8x8", "--speedup", "4", *TB3_MISSION)
     assert code == 0 and rep["ok"], _explain(rep, out)
@@ -81,7 +79,6 @@ def test_three_robots_turtlebot3_world_reach_their_goals(tmp_path):
     assert all(v["cancel_goal"] == 0 for v in rep["per_robot"].values())
 
 
-@needs_maps
 def test_blocking_cell_26_reroutes_exactly_the_robots_that_crossed_it(tmp_path):
     code, rep, out = run_demo(tmp_path, "--map", str(TB3), "--grid", "8x8", "--speedup", "4", *TB3_MISSION,
                               "--block", "26@5")
@@ -106,7 +103,6 @@ def test_blocking_cell_26_reroutes_exactly_the_robots_that_crossed_it(tmp_path):
     assert rep["_wall_s"] < 90
 
 
-@needs_maps
 def test_obstacle_seen_by_lidar_blocks_its_cell(tmp_path):
     code, rep, out = run_demo(tmp_path, "--map", str(TB3), "--grid", "8x8", "--speedup", "4",
                               "--start", "Robot1=30", "--goal", "Robot1=17", "--obstacle", "26@3", "--robots", "1")
@@ -136,7 +132,6 @@ def _warehouse_swap() -> list[str]:
     return args
 
 
-@needs_maps
 def test_ten_robots_warehouse_swap_sides_without_collisions(tmp_path):
     code, rep, out = run_demo(tmp_path, "--map", str(WAREHOUSE), "--cell", "1.2", "--robots", "10", "--speedup", "3",
                               *_warehouse_swap(), timeout=85)

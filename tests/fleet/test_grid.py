@@ -11,7 +11,6 @@ from rce_fleet.lab_map import lab_map, write_lab_map
 from rce_fleet.maps import OccupancyMap, load_map
 
 MAPS = Path(__file__).resolve().parents[2] / ".." / "shared" / "data" / "maps"
-needs_data = pytest.mark.skipif(not MAPS.is_dir(), reason="../shared/data not present")
 
 
 def open_room(h_px=40, w_px=60, res=0.05, origin=(0.0, 0.0, 0.0)) -> OccupancyMap:
@@ -111,7 +110,6 @@ def test_lab_map_default_grid(tmp_path):
     assert seen == set(g.free_cells())
 
 
-@needs_data
 def test_turtlebot3_world_8x8():
     g = make_grid(load_map(MAPS / "turtlebot3_world.yaml"))
     assert (g.rows, g.cols) == (8, 8)
@@ -125,7 +123,6 @@ def test_turtlebot3_world_8x8():
     assert g.cell_of(-0.5, 0.0) in (27, 35)
 
 
-@needs_data
 def test_warehouse_1m_cells():
     g = make_grid(load_map(MAPS / "warehouse.yaml"), cell_m=1.0)
     assert (g.rows, g.cols) == (51, 31)

@@ -12,7 +12,6 @@ from rce_fleet.maps import MapError, OccupancyMap, load_map, save_map
 
 DATA = Path(__file__).resolve().parents[2] / ".." / "shared" / "data"
 MAPS = DATA / "maps"
-needs_data = pytest.mark.skipif(not MAPS.is_dir(), reason="../shared/data not present")
 
 
 def write(tmp_path: Path, pixels, mode_line: str = "", negate: int = 0, image_mode: str = "L",
@@ -154,7 +153,6 @@ def test_invalid_yaml_and_missing_file(tmp_path):
         load_map(y)
 
 
-@needs_data
 def test_turtlebot3_world_loads():
     m = load_map(MAPS / "turtlebot3_world.yaml")
     assert m.occupancy.shape == (384, 384)
@@ -165,7 +163,6 @@ def test_turtlebot3_world_loads():
     assert m.world_to_pixel(-10.0 + 1e-9, -10.0 + 1e-9) == (383, 0)
 
 
-@needs_data
 def test_warehouse_loads():
     m = load_map(MAPS / "warehouse.yaml")
     assert m.occupancy.shape == (1674, 1006)          # 50.22 m high x 30.18 m wide

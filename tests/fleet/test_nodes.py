@@ -2,7 +2,6 @@
 core, the cell tracker and the obstacle filter, wired together without sockets."""
 from __future__ import annotations
 
-import math
 from pathlib import Path
 
 import pytest

@@ -14,7 +14,6 @@ from rce_fleet.planner import (ActionDependencyGraph, Conflict, FleetPlanner, Gr
                                UnreachableGoal, check_conflicts, load_movingai_scen, shortest_path)
 
 DATA = Path(__file__).resolve().parents[2] / ".." / "shared" / "data"
-needs_data = pytest.mark.skipif(not DATA.is_dir(), reason="../shared/data not present")
 
 
 # -- helpers ---------------------------------------------------------------------
@@ -72,7 +71,6 @@ def test_movingai_formats(tmp_path):
         GridGraph.from_movingai(tmp_path / "bad.map")
 
 
-@needs_data
 def test_movingai_warehouse_instance():
     g = GridGraph.from_movingai(DATA / "mapf" / "warehouse-10-20-10-2-1.map")
     sc = load_movingai_scen(DATA / "mapf" / "warehouse-10-20-10-2-1-random-1.scen", g)
@@ -475,7 +473,6 @@ def test_remove_robot_releases_waiting_robots():
         fp.clearance("b")
 
 
-@pytest.mark.skipif(not (DATA / "maps").is_dir(), reason="../shared/data not present")
 def test_turtlebot3_world_grid_three_robots_block_26():
     from rce_fleet.maps import load_map
     grid = make_grid(load_map(DATA / "maps" / "turtlebot3_world.yaml"))

@@ -3,7 +3,6 @@ localisation stand-in, local navigation (DWA) and obstacle detection."""
 from __future__ import annotations
 
 import math
-import sys
 import time
 from pathlib import Path
 
@@ -11,20 +10,14 @@ import numpy as np
 import pytest
 
 ROOT = Path(__file__).resolve().parents[2]
-try:
-    import rce_fleet  # noqa: F401
-except ImportError:  # not installed: use the source tree
-    sys.path.insert(0, str(ROOT / "examples" / "fleet"))
-
-from rce_fleet.maps import OccupancyMap  # noqa: E402
-from rce_fleet.sim import (  # noqa: E402
+from rce_fleet.maps import OccupancyMap
+from rce_fleet.sim import (
     LidarParams, LocalNavigator, ObstacleDetector, SimWorld, blocked_mask,
     merge_rectangles, scan_to_points,
 )
 from rce_fleet.sim.walls import rasterise  # noqa: E402
 
 MAPS = ROOT.parent / "shared" / "data" / "maps"
-needs_data = pytest.mark.skipif(not MAPS.is_dir(), reason="../shared/data not present")
 
 R = 0.105  # TurtleBot3 burger radius, m
 
@@ -112,7 +105,6 @@ def test_world_walls_match_map_coordinates():
     assert world.bounds == pytest.approx((-2.0, 1.0, 4.0, 5.0))
 
 
-@needs_data
 def test_real_map_turtlebot3_world_builds():
     from rce_fleet.maps import load_map
 
@@ -129,7 +121,6 @@ def test_real_map_turtlebot3_world_builds():
     assert np.isfinite(scan).sum() > 100
 
 
-@needs_data
 def test_real_map_warehouse_builds_fast():
     from rce_fleet.maps import load_map
 
