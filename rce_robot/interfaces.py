@@ -78,8 +78,10 @@ class RobotInterface(Interface):
             self.ns.send_status({"topic": "iu", "iTag": self.itag, "status": up})
 
     # -- robot -> cloud ----------------------------------------------------------------------------
-    async def from_robot(self, data: dict) -> None:
-        """Handle a DM the robot sent to this interface. Raises :class:`RCEError` to answer ER."""
+    def from_robot(self, data: dict) -> None:
+        """Handle a DM the robot sent to a Subscriber* (a topic message) or ServiceClient* (the
+        robot's reply to a call from the cloud), inline: nothing here waits. Service calls the
+        robot makes go through :meth:`call_from_robot`. Raises :class:`RCEError` to answer ER."""
         msg = data.get("msg")
         if self.kind == "Subscriber":
             payload = self._encode(self.msg_t, msg)
@@ -88,12 +90,6 @@ class RobotInterface(Interface):
                 self.dropped += 1
                 return
             self.send_message(payload)
-        elif self.kind == "ServiceProvider":
-            self.msgs_in += 1
-            msg_id = data.get("msgID") or ""
-            payload = self._encode(self.req_t, msg)
-            resp = await self.call_peer(payload)
-            self.ns.send_dm(self.itag, self.cls, msg_id, self._decode(self.resp_t, resp))
         elif self.kind == "ServiceClient":
             fut = self._robot_calls.get(str(data.get("msgID") or ""))
             if fut is None:
@@ -107,6 +103,15 @@ class RobotInterface(Interface):
         else:
             raise RequestError(f"{self.itype} {self.itag!r} sends messages to the robot; it does not take "
                                f"messages from it (use a SubscriberConverter)")
+
+    async def call_from_robot(self, data: dict) -> None:
+        """(ServiceProvider*) The robot calls the connected service: forward the request, answer
+        with a DM carrying the same msgID. Raises :class:`RCEError` to answer ER."""
+        self.msgs_in += 1
+        msg_id = data.get("msgID") or ""
+        payload = self._encode(self.req_t, data.get("msg"))
+        resp = await self.call_peer(payload)
+        self.ns.send_dm(self.itag, self.cls, msg_id, self._decode(self.resp_t, resp))
 
     # -- cloud -> robot ----------------------------------------------------------------------------
     def on_message(self, payload: memoryview) -> None:

@@ -141,16 +141,19 @@ class RobotNamespace:
         if str(data["type"]).strip("/") != iface.cls:
             self.send_error(f"DM: interface {data['iTag']!r} carries {iface.cls!r}, not {data['type']!r}")
             return
-        asyncio.create_task(self._dm(iface, data))
-
-    async def _dm(self, iface: "RobotInterface", data: dict) -> None:
+        if iface.kind == "ServiceProvider":      # the only DM that waits (for the service's reply)
+            asyncio.create_task(self._call(iface, data))
+            return
         try:
-            await iface.from_robot(data)
+            iface.from_robot(data)
         except RCEError as e:
-            if iface.kind == "ServiceProvider":
-                self.send_error(f"service call {data.get('msgID')!r} on {iface.itag!r} failed: {e.message}")
-            else:
-                self.send_error(e.message)
+            self.send_error(e.message)
+
+    async def _call(self, iface: "RobotInterface", data: dict) -> None:
+        try:
+            await iface.call_from_robot(data)
+        except RCEError as e:
+            self.send_error(f"service call {data.get('msgID')!r} on {iface.itag!r} failed: {e.message}")
 
     async def _requests(self) -> None:
         master = self.endpoint.master
