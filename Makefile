@@ -20,6 +20,7 @@ system-deps:
 
 ## test: the whole suite
 test: setup
+	$(BIN)/ruff check .
 	$(BIN)/python -m pytest -q -p no:cacheprovider $(PYTEST_ARGS)
 
 ## demo: run the fleet demo (3 robots on the project's own map)

@@ -479,7 +479,7 @@ class Worker:
 
 def worker_main(conn, master_url, robots, side, rate, concurrency) -> None:
     """Entry point of a client worker process."""
-    from rce.cli import run_loop     # uvloop when installed, as the engine's processes
+    from rce.process import run_loop     # uvloop when installed, as the engine's processes
     w = Worker(conn, master_url, robots, side, rate, concurrency)
     try:
         run_loop(w.main())
@@ -991,7 +991,7 @@ class Run:
                 self.workers = []
                 procs = Procs(eng, self.workers).start()
                 try:
-                    from rce.cli import run_loop
+                    from rce.process import run_loop
                     run_loop(self.measure(eng, procs))
                 except Exception as e:      # noqa: BLE001  (the run stops here, with the reason)
                     self.res["error"] = f"{type(e).__name__}: {e}"

@@ -73,5 +73,14 @@ class Unavailable(RCEError):
     code = "unavailable"
 
 
+class Timeout(RCEError, TimeoutError):
+    """A call that got no answer in time (a control request, a service call, a robot's reply).
+
+    A :class:`TimeoutError` too, so ``except TimeoutError`` catches it; not an
+    :class:`Unavailable`: the peer may be alive and merely slow."""
+
+    code = "timeout"
+
+
 _BY_CODE = {c.code: c for c in (RCEError, ProtocolError, MessageError, ConfigError, RequestError,
-                                AuthError, NotFound, Unavailable)}
+                                AuthError, NotFound, Unavailable, Timeout)}

@@ -33,12 +33,12 @@ import signal
 import sys
 from typing import Any, Awaitable, Callable
 
-from rce.cli import run_loop
+from rce.process import run_loop
 from rce import framing, rpc
 from rce.errors import MessageError, RCEError, Unavailable
 from rce.messages import MessageRegistry, default_registry, wire_name
 from rce.naming import join, resolve
-from rce.packages import load_package_types
+from rce.package_path import load_package_types
 
 _NO = object()
 

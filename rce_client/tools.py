@@ -39,7 +39,7 @@ from typing import Any, Callable
 import aiohttp
 import yaml
 
-from rce.cli import run_loop
+from rce.process import run_loop
 from rce.errors import AuthError, MessageError, NotFound, RCEError, RequestError, Unavailable
 from rce.log import setup_logging
 from rce.naming import resolve

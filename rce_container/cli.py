@@ -13,7 +13,7 @@ import socket
 import sys
 import tempfile
 
-from rce.cli import run_loop
+from rce.process import run_loop
 from rce import framing
 from rce.errors import RCEError
 from rce.log import get_logger, setup_logging

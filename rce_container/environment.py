@@ -28,7 +28,7 @@ import time
 from pathlib import Path
 from typing import Any
 
-from rce.cli import run_loop
+from rce.process import run_loop
 from rce import framing, rpc
 from rce.bus.core import Bus
 from rce.bus.server import BusServer
@@ -37,7 +37,7 @@ from rce.errors import MessageError, NotFound, RCEError, RequestError
 from rce.log import get_logger, setup_logging
 from rce.messages import MessageRegistry, default_registry, wire_name
 from rce.naming import resolve
-from rce.packages import load_package_types
+from rce.package_path import load_package_types
 from rce_container import sandbox as sandboxes
 from rce_container.interfaces import BusInterface, make_interface
 from rce_container.launcher import LOG_LINES, Launcher

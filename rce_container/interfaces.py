@@ -20,7 +20,7 @@ from rce.errors import MessageError, RequestError
 from rce.interfaces import Interface
 from rce.messages import MessageRegistry, default_registry, store_name, wire_name
 from rce.naming import resolve
-from rce.packages import load_package_types
+from rce.package_path import load_package_types
 from rce.protocol import split_interface_type
 
 DEFAULT_QUEUE = 100   # messages, bound of a SubscriberInterface's bus subscription

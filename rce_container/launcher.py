@@ -4,7 +4,7 @@ sandbox, keeps their output, watches their exits and respawns them on request.
 A node spec is the ``add_node`` op (docs/INTERNALS.md): ``{ntag, pkg, exe, args, name,
 namespace, respawn}``.
 
-- ``pkg``/``exe`` are found with :func:`rce.packages.find_executable`; a ``.py`` executable
+- ``pkg``/``exe`` are found with :func:`rce.package_path.find_executable`; a ``.py`` executable
   runs with this interpreter, anything else is executed directly.
 - ``args`` is a list of strings, or a string split like a shell (:mod:`shlex`) after the RCE
   alpha / roslaunch directives ``$(find PKG)`` (package directory), ``$(env VAR)`` (must be
@@ -34,7 +34,7 @@ from typing import Any, Callable
 from rce.errors import NotFound, RCEError, RequestError
 from rce.log import get_logger
 from rce.naming import join, validate_name
-from rce.packages import find_executable, find_package
+from rce.package_path import find_executable, find_package
 from rce_container.sandbox import Sandbox
 
 log = get_logger("rce.container.launcher")

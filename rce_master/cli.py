@@ -7,7 +7,7 @@ import os
 import signal
 from pathlib import Path
 
-from rce.cli import run, write_ready_file
+from rce.process import run, write_ready_file
 from rce.log import get_logger
 from rce_master import token
 from rce_master.server import Master

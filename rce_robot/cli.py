@@ -8,7 +8,7 @@ import signal
 import socket
 from pathlib import Path
 
-from rce.cli import run, write_ready_file
+from rce.process import run, write_ready_file
 from rce.log import get_logger
 from rce_robot.endpoint import RobotEndpoint
 

@@ -17,7 +17,7 @@ from rce.dataplane import DataPlane
 from rce.errors import AuthError, NotFound, RCEError, RequestError
 from rce.log import get_logger
 from rce.messages import default_registry
-from rce.packages import load_package_types
+from rce.package_path import load_package_types
 from rce.protocol import split_interface_type
 from rce_robot.interfaces import RobotInterface
 from rce_robot.namespace import RobotNamespace

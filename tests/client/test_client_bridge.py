@@ -1,4 +1,4 @@
-"""rce-ros's bridge (RosBridge, in-process) against a minimal stand-in cloud: converters and
+"""rce-ros's bridge (RobotBridge, in-process) against a minimal stand-in cloud: converters and
 forwarders in every direction between the local bus and the websocket, ER/ST printing,
 interfaces that never come up, a cloud that goes away, and teardown."""
 from __future__ import annotations
@@ -12,7 +12,7 @@ import pytest
 import rce.node
 from rce.config import parse_config
 from rce.messages import default_registry
-from rce_client.rosbridge import RosBridge
+from rce_client.rce_ros import RobotBridge
 
 from .fakecloud import FakeEndpoint, login_server, ws_url_answer
 
@@ -42,14 +42,14 @@ def config(url: str, connect: list[str] | None = None) -> dict:
 
 
 class Run:
-    """A RosBridge running in the test's loop, with its printed lines."""
+    """A RobotBridge running in the test's loop, with its printed lines."""
 
     def __init__(self, cfg: dict, **kw):
         self.dir = tempfile.mkdtemp(prefix="rce-b-")
         self.bus = os.path.join(self.dir, "r1.sock")
         self.out: list[str] = []
         self.err: list[str] = []
-        self.bridge = RosBridge(parse_config(cfg, "test.config"), "test.config", self.bus,
+        self.bridge = RobotBridge(parse_config(cfg, "test.config"), "test.config", self.bus,
                                 out=self.out.append, err=self.err.append, **kw)
         self.task = asyncio.create_task(self.bridge.run())
 
@@ -213,7 +213,7 @@ async def test_second_bridge_on_the_same_socket_is_refused(cloud):
     run = Run(config(cloud.login_url))
     await run.ready()
     try:
-        other = RosBridge(parse_config(config(cloud.login_url), "x"), "x", run.bus, out=lambda s: None,
+        other = RobotBridge(parse_config(config(cloud.login_url), "x"), "x", run.bus, out=lambda s: None,
                           err=lambda s: None)
         with pytest.raises(Exception, match="another rce-ros already serves a bus at"):
             await other.run()

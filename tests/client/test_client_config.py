@@ -10,7 +10,7 @@ import yaml
 
 from rce.config import load_config
 from rce.errors import ConfigError
-from rce_client import rosbridge
+from rce_client import rce_ros
 
 CONFIGS = Path(__file__).resolve().parents[2] / "configs"
 
@@ -113,7 +113,7 @@ def test_yaml_errors_name_the_key_path_too(tmp_path):
 
 def _run_rce_ros(argv, capsys) -> tuple[int, str, str]:
     with pytest.raises(SystemExit) as ei:
-        rosbridge.main(argv)
+        rce_ros.main(argv)
     out, err = capsys.readouterr()
     return ei.value.code, out, err
 

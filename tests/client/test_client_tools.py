@@ -14,7 +14,7 @@ from aiohttp import web
 from rce.bus.core import Bus
 from rce.bus.server import BusServer
 from rce.errors import AuthError, MessageError, NotFound, Unavailable
-from rce.packages import BUILTIN_DIR
+from rce.package_path import BUILTIN_DIR
 from rce_client import tools
 
 BIN = Path(sys.executable).parent

@@ -14,7 +14,7 @@ import pytest
 from rce.dataplane import DataPlane
 from rce.errors import MessageError, NotFound, ProtocolError, RequestError, Unavailable
 from rce.messages import default_registry
-from rce.packages import load_package_types
+from rce.package_path import load_package_types
 from rce_container import sandbox as sandboxes
 
 from .harness import (STEP, ContainerProcess, FakeMaster, RobotInterface, gone, has_service, kill_leftovers,

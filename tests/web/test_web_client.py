@@ -8,7 +8,7 @@ from __future__ import annotations
 import pytest
 
 from conftest import WEB_DIR
-from engine import start_engine
+from rce.launch import start_engine
 
 
 @pytest.fixture(scope="module")

@@ -8,7 +8,7 @@ import time
 import pytest
 
 from conftest import WEB_DIR
-from engine import start_engine
+from rce.launch import start_engine
 
 
 @pytest.fixture(scope="module")

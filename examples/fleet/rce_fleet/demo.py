@@ -1,6 +1,6 @@
 """``rce-fleet demo`` / ``rce-fleet serve``: the whole fleet system on one machine.
 
-1. The engine as processes on 127.0.0.1 with ephemeral ports (:mod:`rce_fleet.launch`):
+1. The engine as processes on 127.0.0.1 with ephemeral ports (:mod:`rce.launch`):
    rce-master ``--dev``, rce-robot, rce-container.
 2. The fleet manager (:mod:`rce_fleet.manager`, robotID ``fleetManager``): the fleet
    container ``cTag_01``, the grid parameter and the ``global_planner`` node.
@@ -31,11 +31,11 @@ from collections import deque
 from dataclasses import dataclass, field
 from pathlib import Path
 
-from rce.cli import run_loop
+from rce.process import run_loop
 from rce.errors import RCEError
 from rce.log import get_logger, setup_logging
 from rce.messages import default_registry
-from rce.packages import load_package_types
+from rce.package_path import load_package_types
 
 from .configs import robot_config
 from .geometry import GridGeometry

@@ -1,5 +1,5 @@
 """The fleet simulator host: one :class:`rce_fleet.sim.SimWorld`, and per simulated robot
-the rce-ros bridge IN-PROCESS (:class:`rce_client.rosbridge.RosBridge`, the code
+the rce-ros bridge IN-PROCESS (:class:`rce_client.rce_ros.RobotBridge`, the code
 ``rce-ros CONFIG`` runs, without a socket: one local :class:`rce.bus.core.Bus` per robot).
 
 Each robot, on its own local bus, like a TurtleBot running ``amcl`` and ``move_base``:
@@ -37,7 +37,7 @@ import numpy as np
 from rce.config import parse_config
 from rce.log import get_logger
 from rce.messages import MessageRegistry
-from rce_client.rosbridge import RosBridge
+from rce_client.rce_ros import RobotBridge
 
 from .geometry import GridGeometry, quaternion_from_yaw
 from .sim import LocalNavigator, ObstacleDetector, SimWorld
@@ -61,7 +61,7 @@ class SimBot:
     robot: object
     nav: LocalNavigator
     start_cell: int
-    bridge: RosBridge | None = None
+    bridge: RobotBridge | None = None
     task: asyncio.Task | None = None
     topics: dict = field(default_factory=dict)
     last_scan: tuple | None = None
@@ -136,7 +136,7 @@ class SimHost:
             errors.append(line)
             log.warning("bridge", robot=rid, line=line)
 
-        bridge = RosBridge(parse_config(config, source), source, None, timeout=timeout, url=master_url,
+        bridge = RobotBridge(parse_config(config, source), source, None, timeout=timeout, url=master_url,
                            registry=self.registry, out=lambda line: log.debug("bridge", robot=rid, line=line), err=err)
         bot.bridge = bridge
         bus = bridge.bus

@@ -1,5 +1,5 @@
-"""Start the real engine (rce-master, rce-robot, rce-container) as processes on loopback
-with ephemeral ports, for the fleet demo, tests and benchmarks. Readiness comes from each
+"""The engine launcher: start the real engine (rce-master, rce-robot, rce-container) as
+processes on loopback with ephemeral ports, for the fleet demo, tests and benchmarks. Readiness comes from each
 process's ``--ready-file``, never from sleeping.
 
 ::
@@ -7,8 +7,6 @@ process's ``--ready-file``, never from sleeping.
     e = start_engine(workdir)            # master --dev (testUser/testUser), 1 robot task set, 1 container host
     e.master_url                          # http://127.0.0.1:PORT/
     e.stop()
-
-``tests/engine.py`` re-exports this module for the test suite.
 """
 from __future__ import annotations
 

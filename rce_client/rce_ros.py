@@ -40,7 +40,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Awaitable, Callable
 
-from rce.cli import run_loop
+from rce.process import run_loop
 from rce.bus.core import Bus, Subscription
 from rce.bus.server import BusServer
 from rce.config import InterfaceSpec, RobotConfig, load_config
@@ -48,7 +48,7 @@ from rce.errors import ConfigError, MessageError, RCEError, Unavailable
 from rce.log import get_logger, setup_logging
 from rce.messages import MessageRegistry, default_registry, wire_name
 from rce.naming import validate_name
-from rce.packages import load_package_types
+from rce.package_path import load_package_types
 from rce.protocol import split_interface_type
 from rce_client.connection import Connection, Message
 from rce_client.paths import default_bus_path
@@ -99,7 +99,7 @@ def classify(spec: InterfaceSpec, registry: MessageRegistry, where: str) -> _Kin
 class _ToCloud:
     """Local topic -> SubscriberConverter/Forwarder: a bounded queue and a sender task."""
 
-    def __init__(self, bridge: "RosBridge", kind: _Kind):
+    def __init__(self, bridge: "RobotBridge", kind: _Kind):
         self.bridge, self.kind = bridge, kind
         self.itag = kind.spec.iTag
         self.pub = bridge.conn.publisher(self.itag, kind.spec.iCls)
@@ -139,7 +139,7 @@ class _ToCloud:
         self.bridge.bus.unsubscribe(self.sub)
 
 
-class RosBridge:
+class RobotBridge:
     """One ``rce-ros`` run: local bus, cloud connection, setup, bridges, teardown.
 
     ``out(line)`` prints status lines (stdout); ``err(line)`` prints errors (stderr).
@@ -440,7 +440,7 @@ def main(argv: list[str] | None = None) -> None:
     bus_path = args.bus or default_bus_path(cfg.robotID)
 
     async def amain() -> int:
-        bridge = RosBridge(cfg, args.config, bus_path, timeout=args.timeout, keep=args.keep, url=args.url)
+        bridge = RobotBridge(cfg, args.config, bus_path, timeout=args.timeout, keep=args.keep, url=args.url)
         loop = asyncio.get_running_loop()
         for sig in (signal.SIGINT, signal.SIGTERM):
             loop.add_signal_handler(sig, bridge.stop.set)
