@@ -1,0 +1,145 @@
+"""The shape of the code base (issue 9's "done when"): no import circle among the project's
+modules, no function over 80 lines in the engine packages, and engine tests import nothing
+from ``examples/``. Read from the source with :mod:`ast`; nothing is imported or run."""
+from __future__ import annotations
+
+import ast
+from pathlib import Path
+
+ROOT = Path(__file__).resolve().parents[2]
+ENGINE = ("rce", "rce_master", "rce_robot", "rce_container", "rce_client")
+FLEET = ROOT / "examples" / "fleet" / "rce_fleet"
+MAX_FUNCTION_LINES = 80
+
+
+def _modules() -> dict[str, Path]:
+    """Module name -> file, for the engine packages and rce_fleet (node-package scripts excluded)."""
+    mods: dict[str, Path] = {}
+    roots = [(ROOT / p, p) for p in ENGINE] + [(FLEET, "rce_fleet")]
+    for base, name in roots:
+        for f in base.rglob("*.py"):
+            rel = f.relative_to(base)
+            if "packages" in rel.parts:          # node programs, run as scripts, not imported
+                continue
+            parts = [name, *rel.with_suffix("").parts]
+            if parts[-1] == "__init__":
+                parts.pop()
+            mods[".".join(parts)] = f
+    return mods
+
+
+def _imports(path: Path, module: str, known: set[str]) -> set[str]:
+    """The project modules ``module`` imports anywhere: at load time, under ``TYPE_CHECKING``
+    and inside functions alike (a circle hidden in a function is still a circle in the design)."""
+    tree = ast.parse(path.read_text(), str(path))
+    out: set[str] = set()
+    pkg = module if path.name == "__init__.py" else module.rpartition(".")[0]
+
+    def add(name: str) -> None:
+        while name and name not in known:
+            name = name.rpartition(".")[0]
+        if name and name != module:
+            out.add(name)
+
+    for sub in ast.walk(tree):
+        if isinstance(sub, ast.Import):
+            for a in sub.names:
+                add(a.name)
+        elif isinstance(sub, ast.ImportFrom):
+            base = sub.module or ""
+            if sub.level:
+                up = pkg.split(".")[: len(pkg.split(".")) - (sub.level - 1)]
+                base = ".".join(up + ([base] if base else []))
+            for a in sub.names:
+                add(f"{base}.{a.name}" if f"{base}.{a.name}" in known else base)
+    return out
+
+
+def _cycle(graph: dict[str, set[str]]) -> list[str] | None:
+    """One import circle in ``graph``, as a list of modules, or None."""
+    WHITE, GREY, BLACK = 0, 1, 2
+    colour = dict.fromkeys(graph, WHITE)
+    stack: list[str] = []
+
+    def visit(m: str) -> list[str] | None:
+        colour[m] = GREY
+        stack.append(m)
+        for n in sorted(graph.get(m, ())):
+            if colour.get(n) == GREY:
+                return stack[stack.index(n):] + [n]
+            if colour.get(n) == WHITE:
+                found = visit(n)
+                if found:
+                    return found
+        stack.pop()
+        colour[m] = BLACK
+        return None
+
+    for m in sorted(graph):
+        if colour[m] == WHITE:
+            found = visit(m)
+            if found:
+                return found
+    return None
+
+
+def test_cycle_finder_finds_a_circle():
+    assert _cycle({"a": {"b"}, "b": {"c"}, "c": {"a"}}) == ["a", "b", "c", "a"]
+    assert _cycle({"a": {"b"}, "b": set()}) is None
+
+
+def test_no_import_circle():
+    mods = _modules()
+    known = set(mods)
+    graph = {m: _imports(p, m, known) for m, p in mods.items()}
+    # a package's __init__ importing its own submodules is not a circle through the package
+    for m in graph:
+        graph[m] = {n for n in graph[m] if not m.startswith(n + ".") or mods[n].name != "__init__.py"}
+    assert _cycle(graph) is None, f"import circle: {' -> '.join(_cycle(graph))}"
+
+
+def _long_functions(path: Path) -> list[str]:
+    tree = ast.parse(path.read_text(), str(path))
+    out = []
+    for node in ast.walk(tree):
+        if isinstance(node, (ast.FunctionDef, ast.AsyncFunctionDef)):
+            n = node.end_lineno - node.lineno + 1
+            if n > MAX_FUNCTION_LINES:
+                out.append(f"{path.relative_to(ROOT)}:{node.lineno} {node.name} ({n} lines)")
+    return out
+
+
+def test_long_function_finder_counts_lines(tmp_path: Path):
+    f = tmp_path / "m.py"
+    f.write_text("def f():\n" + "    x = 1\n" * MAX_FUNCTION_LINES + "\ndef g():\n    pass\n")
+    global ROOT
+    old, ROOT = ROOT, tmp_path
+    try:
+        assert _long_functions(f) == [f"m.py:1 f ({MAX_FUNCTION_LINES + 1} lines)"]
+    finally:
+        ROOT = old
+
+
+def test_no_function_over_80_lines_in_the_engine():
+    long = [x for p in ENGINE for f in sorted((ROOT / p).rglob("*.py")) for x in _long_functions(f)]
+    assert not long, "functions over 80 lines:\n" + "\n".join(long)
+
+
+ENGINE_TESTS = ("core", "engine", "client", "container", "bench")
+
+
+def test_engine_tests_import_nothing_from_examples():
+    offenders = []
+    for f in sorted(f for d in ENGINE_TESTS for f in (ROOT / "tests" / d).rglob("*.py")):
+        if f == Path(__file__).resolve():
+            continue
+        text = f.read_text()
+        tree = ast.parse(text, str(f))
+        for node in ast.walk(tree):
+            names = ([a.name for a in node.names] if isinstance(node, ast.Import)
+                     else [node.module or ""] if isinstance(node, ast.ImportFrom) else [])
+            if any(n == "rce_fleet" or n.startswith("rce_fleet.") for n in names):
+                offenders.append(f"{f.relative_to(ROOT)}:{node.lineno}")
+        if "examples" in text and "sys.path" in text:
+            offenders.append(f"{f.relative_to(ROOT)}: puts examples/ on sys.path")
+    assert not offenders, "engine tests importing the fleet example:\n" + "\n".join(offenders)
