@@ -46,13 +46,6 @@ from wsclient import RawRobot  # noqa: E402
 PLUMBING = ("unshare", "nsenter", "sh")
 
 
-def api(eng, path: str):
-    req = urllib.request.Request(eng.master_url + path.lstrip("/"),
-                                 headers={"Authorization": f"Bearer {eng.admin_token}"})
-    with urllib.request.urlopen(req, timeout=30) as r:
-        return json.loads(r.read())
-
-
 def spares(metrics_port: int) -> int:
     with urllib.request.urlopen(f"http://127.0.0.1:{metrics_port}/metrics", timeout=10) as r:
         for line in r.read().decode().splitlines():
@@ -82,7 +75,7 @@ def mem(pids) -> tuple[float, float]:
 
 
 def memory_footprint(eng, ctag: str) -> dict:
-    s = api(eng, f"/api/containers/testUser/{ctag}/stats")
+    s = eng.admin(f"/api/containers/testUser/{ctag}/stats")
     env_pid = s["environment"]["pid"]
     info = s["sandbox_info"]
     if "cgroup" in info:
@@ -122,7 +115,7 @@ async def one(eng, r: RawRobot, ctag: str, nodes: int) -> tuple[float, float]:
             raise RuntimeError(f"node {d['nTag']} exited: {d}")
     t_started = time.perf_counter()
     while True:
-        bus = await asyncio.to_thread(api, eng, f"/api/containers/testUser/{ctag}/bus")
+        bus = await asyncio.to_thread(eng.admin, f"/api/containers/testUser/{ctag}/bus")
         if all(any(n["name"] == name for n in bus["nodes"]) for name in names):
             break
         if time.perf_counter() - t0 > 60:
@@ -150,7 +143,7 @@ async def run_mode(mode: str, reps: int, nodes: int) -> dict:
                       f"ready {rd:7.1f} ms", flush=True)
                 await r.send("DC", {"containerTag": ctag})
                 deadline = time.monotonic() + 30
-                while await asyncio.to_thread(api, eng, "/api/containers"):
+                while await asyncio.to_thread(eng.admin, "/api/containers"):
                     if time.monotonic() > deadline:
                         raise TimeoutError(f"{ctag} was not destroyed")
                     await asyncio.sleep(0.01)

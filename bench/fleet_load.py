@@ -65,7 +65,8 @@ Measured, over a window of ``--duration`` s after warm-up:
 The run stops at the first N whose p99 passes ``--max-p99`` ms (100) or that loses anything,
 and says so; an engine process that exits (e.g. a task set dropped by the control plane's
 keepalive under overload) ends it too, with the engine's warnings. Other processes on the
-machine are not ours to stop: their load over each window is reported (``other load``). Results: a table on stdout, ``--json`` (bench/results/fleet_load.json),
+machine are not ours to stop: their load over each window is reported (``other load``).
+Results: a table on stdout, ``--json`` (bench/results/fleet_load.json),
 ``--plot`` (bench/results/fleet_load.png: p50/p99 and CPU against N).
 
 Usage::
@@ -163,7 +164,8 @@ def robot_wiring(n: int, side: str) -> tuple[list[dict], list[dict], dict]:
                       cls, f"/{rid}/{topic}"))
     adds, conns = [], []
     for c_tag, c_type, r_tag, r_type, cls, addr in links:
-        adds.append({"endpointTag": CTAG, "interfaceTag": c_tag, "interfaceType": c_type, "className": cls, "addr": addr})
+        adds.append({"endpointTag": CTAG, "interfaceTag": c_tag, "interfaceType": c_type, "className": cls,
+                     "addr": addr})
         adds.append({"endpointTag": rid, "interfaceTag": r_tag, "interfaceType": r_type, "className": cls})
         conns.append({"tagA": f"{CTAG}/{c_tag}", "tagB": f"{rid}/{r_tag}"})
     roles = {"pose": links[0][2], "echo": links[1][2], **{t: links[2 + k][2] for k, (t, _) in enumerate(DOWN)}}
@@ -365,8 +367,8 @@ class Worker:
     """A client worker process: its share of the robots on one event loop; commands and replies
     (dicts) on the pipe ``conn``."""
 
-    def __init__(self, conn, master_url: str, robots: list[tuple[int, float, float, float, int]], side: str, rate: float,
-                 concurrency: int):
+    def __init__(self, conn, master_url: str, robots: list[tuple[int, float, float, float, int]], side: str,
+                 rate: float, concurrency: int):
         from rce.messages import default_registry
         self.conn, self.master_url, self.side, self.rate, self.concurrency = conn, master_url, side, rate, concurrency
         self.robots_spec = robots
@@ -604,19 +606,12 @@ class CpuWindow:
         return {k: round(v, 1) for k, v in pct.items()}
 
 
-def admin_get(eng, path: str, timeout: float = 30.0):
-    req = urllib.request.Request(eng.master_url + path.lstrip("/"),
-                                 headers={"Authorization": f"Bearer {eng.admin_token}"})
-    with urllib.request.urlopen(req, timeout=timeout) as r:
-        return json.loads(r.read())
-
-
 def engine_drops(eng) -> dict:
     """Drop counters of the engine: the fleet container (bus subscriptions, interfaces, its data
     plane, per node) and the robot task set (per-robot queues, its data plane)."""
     out = {}
     try:
-        st = admin_get(eng, f"api/containers/{USER}/{CTAG}/stats")
+        st = eng.admin(f"api/containers/{USER}/{CTAG}/stats")
         out["container_bus"] = st["dropped"]["bus"]
         out["container_interfaces"] = st["dropped"]["interfaces"]
         out["container_dataplane"] = st["environment"]["dataplane"]["dropped"]
@@ -847,7 +842,8 @@ class Run:
         setup["per_robot_p99_s"] = round(percentile(per_robot, 99), 3)
         setup["robots_failed"] = failed
         if failed:
-            raise RuntimeError(f"{failed} of {n} robots failed to set up: {[f for r in reps for f in r['failures']][:3]}")
+            first = [f for r in reps for f in r["failures"]][:3]
+            raise RuntimeError(f"{failed} of {n} robots failed to set up: {first}")
         self.log(f"{n} robots connected and wired in {setup['robots_s']} s "
                  f"(per robot p50 {setup['per_robot_p50_s']} s, p99 {setup['per_robot_p99_s']} s)")
 
@@ -864,8 +860,9 @@ class Run:
                 break
             if time.monotonic() > deadline:     # overloaded: measure anyway, and say so
                 errs = [e for s in st for e in s["last_errors"]]
-                res["notes"].append(f"warm-up incomplete after {time.monotonic() - t:.0f} s: {echoed}/{n} robots echoed, "
-                                    f"planner saw {len(self.planner_seen)}/{n}" + (f"; errors: {errs}" if errs else ""))
+                res["notes"].append(f"warm-up incomplete after {time.monotonic() - t:.0f} s: {echoed}/{n} robots "
+                                    f"echoed, planner saw {len(self.planner_seen)}/{n}"
+                                    + (f"; errors: {errs}" if errs else ""))
                 break
         setup["warmup_s"] = round(time.monotonic() - t, 2)
         check_engine(eng, "warm-up")
@@ -971,7 +968,8 @@ class Run:
         res["client_saturated"] = any(x["pct"] >= 90 for x in clients)
         if res["send_rate_hz"] < 0.95 * a.rate:
             res["notes"].append(f"the clients sent {res['send_rate_hz']:.2f} Hz per robot, not {a.rate:g} Hz "
-                                f"(send lateness p99 {fmt_ms(res['send_late_ms']['p99'])} ms): they did not get the CPU")
+                                f"(send lateness p99 {fmt_ms(res['send_late_ms']['p99'])} ms): "
+                                "they did not get the CPU")
         if a.profile > 0:
             prof = {}
             for x in res["cpu_by_process"][:2]:
@@ -999,7 +997,7 @@ class Run:
                     self.res["engine_events"] = engine_events(eng)
                     for ntag in ("global_planner", "pose_echo"):
                         try:
-                            lg = admin_get(eng, f"api/containers/{USER}/{CTAG}/logs/{ntag}")
+                            lg = eng.admin(f"api/containers/{USER}/{CTAG}/logs/{ntag}")
                             self.res.setdefault("node_logs", {})[ntag] = lg
                         except Exception as e2:   # noqa: BLE001
                             self.res.setdefault("node_logs", {})[ntag] = f"unavailable: {e2}"
@@ -1044,7 +1042,8 @@ def verdict(r: dict, max_p99: float) -> str | None:
 
 
 def parse_args(argv=None):
-    p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0], formatter_class=argparse.RawDescriptionHelpFormatter)
+    p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0],
+                                formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("--robots", default=DEFAULT_ROBOTS, help=f"fleet sizes, in order (default {DEFAULT_ROBOTS})")
     p.add_argument("--duration", type=float, default=10.0, help="measured window per N, s (default 10)")
     p.add_argument("--rate", type=float, default=10.0, help="pose rate per robot, Hz (default 10)")
@@ -1156,7 +1155,7 @@ def print_table(con, res: dict) -> None:
         t2.add_column(c, justify="right")
     for r in res["runs"]:
         cpu, rss = r.get("cpu_pct", {}), r.get("peak_rss_mib", {})
-        cell = lambda k: f"{f0(cpu.get(k))} ({f0(rss.get(k))})"  # noqa: E731
+        cell = lambda k, cpu=cpu, rss=rss: f"{f0(cpu.get(k))} ({f0(rss.get(k))})"  # noqa: E731
         other = r.get("machine_load", {}).get("other_cores")
         t2.add_row(str(r["robots"]), *[cell(k) for k in labels], cell("container (all)"), f0(cpu.get("machine")),
                    "-" if other is None else f"{other:.2f} cores")
@@ -1165,12 +1164,14 @@ def print_table(con, res: dict) -> None:
         for n in r.get("notes", []):
             con.print(f"[yellow]N={r['robots']}: {n}")
         if r.get("client_saturated"):
-            con.print(f"[yellow]N={r['robots']}: a client worker used >= 90 % of a core: the clients may be a bottleneck")
+            con.print(f"[yellow]N={r['robots']}: a client worker used >= 90 % of a core: "
+                      "the clients may be a bottleneck")
         for lab, p in (r.get("profile") or {}).items():
             if p.get("own"):
-                con.print(f"N={r['robots']} py-spy {lab} ({p['cpu_pct']} % CPU; {p['wait_pct']} % of samples waiting in "
-                          f"the event loop), own time: " + ", ".join(f"{k} {v}%" for k, v in p["own"][:8]))
-    con.print(f"[bold]{'stopped at N=' + str(res['stopped_at']) + ': ' if res['stopped_at'] else ''}{res['stop_reason']}")
+                con.print(f"N={r['robots']} py-spy {lab} ({p['cpu_pct']} % CPU; {p['wait_pct']} % of samples "
+                          f"waiting in the event loop), own time: " + ", ".join(f"{k} {v}%" for k, v in p["own"][:8]))
+    stopped = f"stopped at N={res['stopped_at']}: " if res["stopped_at"] else ""
+    con.print(f"[bold]{stopped}{res['stop_reason']}")
 
 
 def plot(res: dict, path: Path) -> None:

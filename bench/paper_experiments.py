@@ -54,10 +54,10 @@ import sys
 import tempfile
 import threading
 import time
-import urllib.error
-import urllib.request
 import uuid
 from pathlib import Path
+
+from rce.errors import RCEError
 
 from common import (BENCH, CpuMeter, ForeignLoad, NetLab, RawRobot, RESULTS, SYS_PY, USER, VENV_PY, WsRobot, console,
                     engine, ensure_ros1, fmt_ratio, free_port, login, median, percentile, proc_tree, pyplot,
@@ -102,12 +102,6 @@ def serialized_size(kind: str) -> int:
 
 # -- rce server (runs in the server namespace) ---------------------------------------------------
 
-def admin_get(eng, path: str):
-    req = urllib.request.Request(eng.master_url + path.lstrip("/"), headers={"Authorization": f"Bearer {eng.admin_token}"})
-    with urllib.request.urlopen(req, timeout=30) as r:
-        return json.loads(r.read())
-
-
 async def rce_server(args) -> None:
     """Start the engine, the container with benchecho and the container-side interfaces; print
     ``{"ws_url": ...}``; then answer COUNTS on stdin with the node's last count line, until EXIT."""
@@ -131,8 +125,8 @@ async def rce_server(args) -> None:
             bus = None
             for _ in range(300):
                 try:
-                    bus = admin_get(eng, f"/api/containers/{USER}/{CTAG}/bus")
-                except urllib.error.HTTPError:      # the container is not there yet
+                    bus = eng.admin(f"/api/containers/{USER}/{CTAG}/bus")
+                except RCEError:      # the container is not there yet
                     await asyncio.sleep(0.1)
                     continue
                 subs = {t["name"]: t["subscribers"] for t in bus["topics"]}
@@ -146,9 +140,9 @@ async def rce_server(args) -> None:
             while True:
                 cmd = (await loop.run_in_executor(None, sys.stdin.readline)).strip()
                 if cmd == "COUNTS":
-                    logs = admin_get(eng, f"/api/containers/{USER}/{CTAG}/logs/echo")
+                    logs = eng.admin(f"/api/containers/{USER}/{CTAG}/logs/echo")
                     lines = [ln for ln in logs.get("stdout", []) if ln.startswith("{")]
-                    bus = admin_get(eng, f"/api/containers/{USER}/{CTAG}/bus")
+                    bus = eng.admin(f"/api/containers/{USER}/{CTAG}/bus")
                     print(json.dumps({"node": json.loads(lines[-1]) if lines else None,
                                       "bus": {t["name"]: {k: t[k] for k in ("messages", "bytes", "dropped")}
                                               for t in bus["topics"]}}), flush=True)
@@ -172,7 +166,8 @@ async def rce_robot(args) -> int:
     st = {"echoes": 0, "measuring": False}
     got = asyncio.Event()
     async with WsRobot(args.ws_url, rid) as r:
-        ifs = [{"endpointTag": rid, "interfaceTag": "data", "interfaceType": f"Subscriber{side}", "className": args.type}]
+        ifs = [{"endpointTag": rid, "interfaceTag": "data", "interfaceType": f"Subscriber{side}",
+                "className": args.type}]
         cx = [{"tagA": f"{CTAG}/in{i}", "tagB": f"{rid}/data"}]
         if args.back:
             ifs.append({"endpointTag": rid, "interfaceTag": "echo", "interfaceType": f"Publisher{side}",
@@ -388,7 +383,8 @@ def run_one(lab: NetLab, system: str, exp: str, args, workdir: Path, rce_srv: Rc
             master = f"http://{lab.srv_ip}:{port}"
             senv = dict(os.environ, ROS_MASTER_URI=master, ROS_HOSTNAME=lab.srv_ip, ROS_HOME=str(wd / "roshome"))
             rm = subprocess.Popen(lab.wrap_srv(["rosmaster", "--core", "-p", str(port)]), env=senv,
-                                  stdout=open(wd / "rosmaster.log", "wb"), stderr=subprocess.STDOUT, start_new_session=True)
+                                  stdout=open(wd / "rosmaster.log", "wb"), stderr=subprocess.STDOUT,
+                                  start_new_session=True)
             server_procs.append(rm)
             echo_log = wd / "echo.out"
             ep = subprocess.Popen(lab.wrap_srv([SYS_PY, str(ROS1_DIR / "echo.py"), "--type", typ, *back, *topics]),
@@ -415,7 +411,7 @@ def run_one(lab: NetLab, system: str, exp: str, args, workdir: Path, rce_srv: Rc
             side = "Forwarder" if system == "rce-forwarder" else "Converter"
             srv = rce_srv.get(lab, exp, args, wd)
             server_pids = [srv.p.pid]
-            for i, t in enumerate(topics):
+            for i, _topic in enumerate(topics):
                 clients.append(Proc(lab.wrap_cli([VENV_PY, __file__, "_rce-robot", "--ws-url", srv.ws_url,
                                                   "--robot", f"{system.split('-')[1]}{i}",
                                                   "--index", str(i), "--iface", side, "--type", typ, "--kind", kind,
@@ -483,7 +479,8 @@ def run_one(lab: NetLab, system: str, exp: str, args, workdir: Path, rce_srv: Rc
                    "server_by_proc": scpu.by_label(), "client_by_proc": ccpu.by_label()},
            "machine_load": load,
            "payload_kBps": msg_bytes * sent / wall / 1e3 if wall else None,
-           "phases_s": {"server_setup": tp["server_up"] - tp["start"], "clients_setup": tp["clients_ready"] - tp["server_up"],
+           "phases_s": {"server_setup": tp["server_up"] - tp["start"],
+                        "clients_setup": tp["clients_ready"] - tp["server_up"],
                         "measure": tp["measured"] - tp["clients_ready"], "teardown": tp["stopped"] - tp["measured"]}}
     if system != "ros1" and c1.get("bus"):
         out["bus_dropped"] = sum(v["dropped"] for v in c1["bus"].values())
@@ -499,7 +496,8 @@ def run_one(lab: NetLab, system: str, exp: str, args, workdir: Path, rce_srv: Rc
 
 
 def parse_args(argv=None):
-    p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0], formatter_class=argparse.RawDescriptionHelpFormatter)
+    p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0],
+                                formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("--quick", action="store_true", help="short runs (smoke test): 1 s each")
     p.add_argument("--duration", type=float, default=None, help="seconds each robot publishes (default 20; --quick: 1)")
     p.add_argument("--systems", default=",".join(SYSTEMS), help=f"comma list of {','.join(SYSTEMS)}")
@@ -578,8 +576,10 @@ def main(argv=None) -> int:
            "network_method": ("veth between a server and a client network namespace; server-end interface counters "
                               "(ip -s link), rx = robots -> server, tx = server -> robots; frames with headers")
            if lab.ok else None,
-           "cpu_method": "psutil user+system CPU time of all server-side / client processes over the window, % of one core",
-           "rce_client": "raw RCE wire protocol websocket client per robot (forwarder: DM + binary msg*; converter: JSON DM)",
+           "cpu_method": "psutil user+system CPU time of all server-side / client processes over the window, "
+                         "% of one core",
+           "rce_client": "raw RCE wire protocol websocket client per robot (forwarder: DM + binary msg*; "
+                         "converter: JSON DM)",
            "nice": args.nice, "runs": runs, "notes": notes, "logs": str(workdir)}
     write_json(args.json, out)
     print_table(con, out)
@@ -622,7 +622,7 @@ def plot(out: dict, path: Path) -> None:
     plt = pyplot()
     exps = list(out["experiments"])
     fig, axes = plt.subplots(len(exps), 2, figsize=(11, 3.6 * len(exps)), squeeze=False)
-    for row, exp in zip(axes, exps):
+    for row, exp in zip(axes, exps, strict=False):
         runs = [r for r in out["runs"] if r["experiment"] == exp]
         names = [LABEL[r["system"]] for r in runs]
         x = range(len(runs))
@@ -641,7 +641,7 @@ def plot(out: dict, path: Path) -> None:
         ax = row[1]
         ax.bar([i - 0.2 for i in x], [r["cpu"]["server_pct"] for r in runs], 0.4, label="server (-S)")
         ax.bar([i + 0.2 for i in x], [r["cpu"]["client_pct"] for r in runs], 0.4, label="clients (-C)")
-        for i, r in zip(x, runs):
+        for i, r in zip(x, runs, strict=False):
             ax.annotate(f"{r['client_rate_hz']:.1f} Hz", (i, max(r["cpu"]["server_pct"], r["cpu"]["client_pct"])),
                         ha="center", va="bottom", fontsize=8)
         ax.set_xticks(list(x), names)

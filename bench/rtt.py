@@ -24,7 +24,8 @@ per path, after one unmeasured round trip of that size (the processes are hot, a
 anchors' loops). ``machine_load`` in the JSON tells, per phase, how many cores other processes
 (not this bench's) kept busy: the peers and rce run one after the other, so load from elsewhere
 perturbs their ratios; ``--rounds K`` repeats everything K times and keeps, for every series
-and size alike, the lowest of the K values (the least disturbed round). Each rce round trip is timed from just before the first frame is sent to the reply parsed
+and size alike, the lowest of the K values (the least disturbed round). Each rce round trip is
+timed from just before the first frame is sent to the reply parsed
 (JSON decoded; for forwarders the JSON frame and its binary part both received), the
 outgoing frames built beforehand, as the ws anchor does.
 
@@ -83,8 +84,10 @@ async def setup_echo(r: RawRobot, ctag: str, side: str) -> tuple[str, str]:
                     "className": STRING, "addr": "/stringEchoReq"},
                    {"endpointTag": ctag, "interfaceTag": "resp", "interfaceType": "SubscriberInterface",
                     "className": STRING, "addr": "/stringEchoResp"},
-                   {"endpointTag": rid, "interfaceTag": "req", "interfaceType": f"Subscriber{side}", "className": STRING},
-                   {"endpointTag": rid, "interfaceTag": "resp", "interfaceType": f"Publisher{side}", "className": STRING}])
+                   {"endpointTag": rid, "interfaceTag": "req", "interfaceType": f"Subscriber{side}",
+                    "className": STRING},
+                   {"endpointTag": rid, "interfaceTag": "resp", "interfaceType": f"Publisher{side}",
+                    "className": STRING}])
     await r.send("CX", {"connect": [{"tagA": f"{ctag}/{t}", "tagB": f"{rid}/{t}"} for t in ("req", "resp")]})
     await r.wait_up("req", "resp")
     return "req", "resp"
@@ -101,7 +104,8 @@ async def setup_c2c(r: RawRobot, prefix: str) -> tuple[str, str]:
     await r.cn(addNodes=[{"containerTag": b, "nodeTag": "echo", "pkg": "Test", "exe": "stringEcho.py"}],
                addInterfaces=[{"endpointTag": e, "interfaceTag": t, "interfaceType": k, "className": STRING,
                                **({"addr": ad} if ad else {})} for e, t, k, ad in ifs])
-    await r.send("CX", {"connect": [{"tagA": f"{a}/in", "tagB": f"{rid}/in"}, {"tagA": f"{a}/toB", "tagB": f"{b}/fromA"},
+    await r.send("CX", {"connect": [{"tagA": f"{a}/in", "tagB": f"{rid}/in"},
+                                    {"tagA": f"{a}/toB", "tagB": f"{b}/fromA"},
                                     {"tagA": f"{b}/out", "tagB": f"{rid}/out"}]})
     await r.wait_up("in", "out")
     return "in", "out"
@@ -223,7 +227,8 @@ async def measure_rce(master_url: str, paths: list[str], sizes: list[int], reps:
 # -- main ------------------------------------------------------------------------------------------
 
 def parse_args(argv=None):
-    p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0], formatter_class=argparse.RawDescriptionHelpFormatter)
+    p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0],
+                                formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("--sizes", help="comma-separated subset of sizes in bytes (default: shared/anchors/sizes.py)")
     p.add_argument("--reps", type=int, default=int(os.environ.get("REPS", "20")),
                    help="repetitions per size (default: $REPS or 20; a quarter, >= 3, from 1 MB)")
@@ -237,7 +242,8 @@ def parse_args(argv=None):
                    help="run the bench and all it starts at niceness N (e.g. -10 as root on a shared machine)")
     p.add_argument("--wait-quiet", type=float, default=0.0, metavar="S",
                    help="first wait up to S s for other processes to use < 0.3 cores (shared machines)")
-    p.add_argument("--json", type=Path, default=RESULTS / "rtt.json", help="JSON results (default bench/results/rtt.json)")
+    p.add_argument("--json", type=Path, default=RESULTS / "rtt.json",
+                   help="JSON results (default bench/results/rtt.json)")
     p.add_argument("--plot", type=Path, default=RESULTS / "rtt.png", help="PNG plot (default bench/results/rtt.png)")
     return p.parse_args(argv)
 
@@ -303,9 +309,12 @@ def main(argv=None) -> int:
 
     res = {"sizes": sizes, "reps": args.reps, "reps_by_size": [reps_for(s, args.reps) for s in sizes],
            "rounds": args.rounds,
-           "paths": {"rce_converter": "robot -> SubscriberConverter (JSON) -> Test/stringEcho -> PublisherConverter -> robot",
-                     "rce_forwarder": "robot -> SubscriberForwarder (msg* binary) -> Test/stringEcho -> PublisherForwarder -> robot",
-                     "rce_c2c": "robot -> forwarder -> container A /relay -> interface link -> container B stringEcho -> forwarder -> robot",
+           "paths": {"rce_converter": "robot -> SubscriberConverter (JSON) -> Test/stringEcho -> PublisherConverter "
+                                     "-> robot",
+                     "rce_forwarder": "robot -> SubscriberForwarder (msg* binary) -> Test/stringEcho -> "
+                                      "PublisherForwarder -> robot",
+                     "rce_c2c": "robot -> forwarder -> container A /relay -> interface link -> container B "
+                                "stringEcho -> forwarder -> robot",
                      "ros1_ms": "shared/anchors/ros1_rtt.py (rospy, single master, TCPROS; medians only)",
                      "ws_floor_ms": "shared/anchors/ws_rtt.py (raw websockets + JSON DM echo; medians only)"}}
     best = (lambda xs: min((x for x in xs if math.isfinite(x)), default=float("nan")))  # noqa: E731
@@ -316,9 +325,10 @@ def main(argv=None) -> int:
             for suffix in ("_ms", "_p90_ms", "_p10_ms", "_lost"):
                 res[key + suffix] = None
             continue
-        for stat, fn in (("_ms", median), ("_p90_ms", lambda v: percentile(v, 90)), ("_p10_ms", lambda v: percentile(v, 10))):
+        for stat, fn in (("_ms", median), ("_p90_ms", lambda v: percentile(v, 90)),
+                         ("_p10_ms", lambda v: percentile(v, 10))):
             per = [[fn(rd["samples"][kind][z]) for z in sizes] for rd in rounds]
-            res[key + stat] = [best(col) for col in zip(*per)]
+            res[key + stat] = [best(col) for col in zip(*per, strict=True)]
             if stat == "_ms":
                 per_round[key + stat] = per
         res[f"{key}_lost"] = [sum(sum(1 for x in rd["samples"][kind][z] if not math.isfinite(x)) for rd in rounds)
@@ -328,7 +338,7 @@ def main(argv=None) -> int:
             res[key] = None
             continue
         per = [[rd["peers"][peer]["rtt_ms"].get(z, float("nan")) for z in sizes] for rd in rounds]
-        res[key] = [best(col) for col in zip(*per)]
+        res[key] = [best(col) for col in zip(*per, strict=True)]
         per_round[key] = per
     if args.rounds > 1:
         res["per_round"] = per_round
@@ -375,7 +385,8 @@ def print_table(con, res: dict) -> None:
                   fmt_ratio(ratio(g("rce_forwarder_ms", i), g("ws_floor_ms", i))))
     con.print(t)
     s = res["summary"]
-    con.print(f"geometric mean ratios: converter/ros1 at <= 1.6 kB = {fmt_ratio(s['converter_over_ros1_small_geomean'])}, "
+    con.print("geometric mean ratios: "
+              f"converter/ros1 at <= 1.6 kB = {fmt_ratio(s['converter_over_ros1_small_geomean'])}, "
               f"forwarder/ros1 at >= 1 MB = {fmt_ratio(s['forwarder_over_ros1_large_geomean'])}, "
               f"converter/ws at <= 1.6 kB = {fmt_ratio(s['converter_over_ws_small_geomean'])}, "
               f"forwarder/ws at >= 1 MB = {fmt_ratio(s['forwarder_over_ws_large_geomean'])}")
@@ -393,14 +404,15 @@ def plot(res: dict, path: Path) -> None:
         ys = res.get(f"{key}_ms")
         if not ys:
             continue
-        pts = [(x, y) for x, y in zip(res["sizes"], ys) if y is not None and math.isfinite(y) and y > 0]
+        pts = [(x, y) for x, y in zip(res["sizes"], ys, strict=False) if y is not None and math.isfinite(y) and y > 0]
         if pts:
-            ax.plot(*zip(*pts), style, label=label, markersize=4)
+            ax.plot(*zip(*pts, strict=True), style, label=label, markersize=4)
         p90 = res.get(f"{key}_p90_ms")
         if p90:
-            q = [(x, y) for x, y in zip(res["sizes"], p90) if y is not None and math.isfinite(y) and y > 0]
+            q = [(x, y) for x, y in zip(res["sizes"], p90, strict=False)
+                 if y is not None and math.isfinite(y) and y > 0]
             if q:
-                ax.plot(*zip(*q), style[0] + ":", alpha=0.35, color=ax.lines[-1].get_color(), markersize=2)
+                ax.plot(*zip(*q, strict=True), style[0] + ":", alpha=0.35, color=ax.lines[-1].get_color(), markersize=2)
     ax.set_xscale("log")
     ax.set_yscale("log")
     ax.set_xlabel("payload size, bytes")

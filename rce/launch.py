@@ -18,9 +18,10 @@ import subprocess
 import sys
 import tempfile
 import time
-import urllib.request
 from dataclasses import dataclass, field
 from pathlib import Path
+
+from rce.admin_client import AdminClient
 
 __all__ = ["BIN", "Engine", "start_engine", "wait_file", "command"]
 
@@ -65,17 +66,14 @@ class Engine:
     logs: list[Path] = field(default_factory=list)
 
     def admin(self, path: str, body: dict | None = None, method: str | None = None):
-        """Call the master's admin API: GET ``path`` (or POST ``body``); returns the JSON answer.
-        Raises :class:`urllib.error.HTTPError` with the master's reason on refusal."""
-        req = urllib.request.Request(self.master_url + path.lstrip("/"),
-                                     method=method or ("POST" if body is not None else "GET"),
-                                     data=json.dumps(body).encode() if body is not None else None,
-                                     headers={"Authorization": f"Bearer {self.admin_token}",
-                                              "Content-Type": "application/json"})
-        with urllib.request.urlopen(req, timeout=30) as r:
-            return json.loads(r.read() or b"null")
+        """Call the master's admin API (:class:`~rce.admin_client.AdminClient`): GET ``path`` (or
+        POST ``body``); returns the JSON answer. A refusal raises the :class:`~rce.errors.RCEError`
+        subclass for its HTTP status with the master's reason (:mod:`rce.admin_client`)."""
+        client = AdminClient(self.master_url, self.admin_token)
+        return client.request(method or ("POST" if body is not None else "GET"), path, body)
 
-    def spawn(self, name: str, argv: list[str], ready: Path | None = None, timeout: float = 30.0) -> tuple[subprocess.Popen, dict]:
+    def spawn(self, name: str, argv: list[str], ready: Path | None = None,
+              timeout: float = 30.0) -> tuple[subprocess.Popen, dict]:
         log = self.workdir / f"{name}.log"
         self.logs.append(log)
         p = subprocess.Popen(argv, stdout=open(log, "wb"), stderr=subprocess.STDOUT, env=self.env,
@@ -94,7 +92,8 @@ class Engine:
         return info
 
     def add_container_host(self, *extra: str) -> subprocess.Popen:
-        n = sum(1 for p in self.procs if any("rce-container" in str(a) or "rce_container" in str(a) for a in p.args[:3]))
+        n = sum(1 for p in self.procs
+                if any("rce-container" in str(a) or "rce_container" in str(a) for a in p.args[:3]))
         ready = self.workdir / f"container{n}.ready"
         p, _ = self.spawn(f"container{n}", [*command("rce-container"), "127.0.0.1", "--master-port",
                                             str(self.control_port), "--runtime-dir", str(self.workdir / f"rt{n}"),

@@ -15,8 +15,9 @@ Which bus (options go before or after the command):
 
 - a local bus (the robot's, run by ``rce-ros``): ``--bus PATH``, else ``$RCE_BUS``, else the
   only socket in ``$XDG_RUNTIME_DIR/rce`` (``/tmp/rce-<uid>``);
-- a container's bus through the master's admin API: ``--container CTAG --master URL --user U``
-  with a token from ``--admin-token``, ``$RCE_ADMIN_TOKEN`` or ``~/.config/rce/admin-token``
+- a container's bus through the master's admin API (:mod:`rce.admin_client`):
+  ``--container CTAG --master URL --user U`` with a token from ``--admin-token``,
+  ``$RCE_ADMIN_TOKEN``, ``--admin-token-file`` or ``~/.config/rce/admin-token``
   (``$XDG_CONFIG_HOME/rce/admin-token``).
 
 Messages are YAML as with rostopic (``'{data: hello}'``), in the JSON form of
@@ -36,20 +37,19 @@ import time
 from pathlib import Path
 from typing import Any, Callable
 
-import aiohttp
 import yaml
 
-from rce.process import run_loop
-from rce.errors import AuthError, MessageError, NotFound, RCEError, RequestError, Unavailable
+from rce.admin_client import AdminClient
+from rce.errors import MessageError, NotFound, RCEError, RequestError, Unavailable
 from rce.log import setup_logging
 from rce.naming import resolve
-from rce_client.connection import _reason
+from rce.process import run_loop
 from rce_client.paths import bus_dir, running_buses
 
 POLL = 0.2          # s between describe polls while waiting for a topic to appear
-def token_file() -> Path:
-    """``$XDG_CONFIG_HOME/rce/admin-token`` (default ``~/.config/rce/admin-token``), as the master writes it."""
-    return Path(os.environ.get("XDG_CONFIG_HOME") or Path.home() / ".config") / "rce" / "admin-token"
+ECHO_SAMPLE_TIMEOUT = 5.0   # s, one admin API sample of ``echo --container`` (then the next one)
+SERVICE_WAIT = 10.0         # s, ``rce-service call`` waits for the service to appear (without --timeout)
+HZ_PERIOD = 1.0             # s between ``rce-topic hz`` reports (as rostopic hz)
 
 
 # -- output ----------------------------------------------------------------------------------
@@ -132,51 +132,25 @@ class LocalBus:
 
 
 class AdminBus:
-    """A container's bus through the master's admin API (a thin HTTP client).
+    """A container's bus through the master's admin API (``/api/containers/{user}/{ctag}/...``:
+    ``bus``, ``publish``, ``call``, ``sample``); errors as :mod:`rce.admin_client` raises them."""
 
-    Routes (``Authorization: Bearer TOKEN``): ``GET /api/containers/{user}/{ctag}/bus``
-    (describe), ``POST .../publish {topic, type, msg}``, ``POST .../call {service, request,
-    timeout}``, ``POST .../sample {topic, count, timeout}``. HTTP 401/403 raise
-    :class:`AuthError`, 404 :class:`NotFound`, other 4xx :class:`RequestError`, 5xx and an
-    unreachable master :class:`Unavailable`, each with the master's reason."""
-
-    def __init__(self, master: str, user: str, ctag: str, token: str):
-        self.base = f"{master.rstrip('/')}/api/containers/{user}/{ctag}"
-        self.master, self.user, self.ctag, self.token = master, user, ctag, token
-        self.http: aiohttp.ClientSession | None = None
+    def __init__(self, client: AdminClient, user: str, ctag: str):
+        self.client, self.user, self.ctag = client, user, ctag
+        self.base = f"/api/containers/{user}/{ctag}"
 
     async def open(self) -> None:
-        self.http = aiohttp.ClientSession(headers={"Authorization": f"Bearer {self.token}"})
+        return None
 
     async def close(self) -> None:
-        if self.http is not None:
-            await self.http.close()
-
-    async def _req(self, method: str, route: str, body: dict | None = None, timeout: float = 30.0) -> Any:
-        url = f"{self.base}/{route}"
-        try:
-            async with self.http.request(method, url, json=body,
-                                         timeout=aiohttp.ClientTimeout(total=timeout + 10)) as resp:
-                data = await resp.read()
-                if resp.status >= 400:
-                    reason = _reason(data, resp.reason or str(resp.status))
-                    if resp.status in (401, 403):
-                        raise AuthError(f"admin API of {self.master} refused: {reason}")
-                    if resp.status == 404:
-                        raise NotFound(reason)
-                    if resp.status < 500:
-                        raise RequestError(reason)
-                    raise Unavailable(f"{reason} (HTTP {resp.status})")
-                return await resp.json(content_type=None)
-        except (aiohttp.ClientError, asyncio.TimeoutError, OSError) as e:
-            raise Unavailable(f"cannot reach the master at {self.master}: {e or type(e).__name__}") from None
+        await self.client.aclose()
 
     async def describe(self) -> dict:
-        return await self._req("GET", "bus")
+        return await self.client.arequest("GET", f"{self.base}/bus")
 
     async def publisher(self, topic: str, type_: str) -> Callable[[dict], Any]:
         async def publish(msg: dict) -> None:
-            await self._req("POST", "publish", {"topic": topic, "type": type_, "msg": msg})
+            await self.client.arequest("POST", f"{self.base}/publish", {"topic": topic, "type": type_, "msg": msg})
         return publish
 
     async def flush(self) -> None:
@@ -188,28 +162,12 @@ class AdminBus:
         body = {"topic": topic, "count": count, "timeout": timeout}
         if type_:
             body["type"] = type_
-        return list(await self._req("POST", "sample", body, timeout) or [])
+        return list(await self.client.arequest("POST", f"{self.base}/sample", body, timeout) or [])
 
     async def call(self, service: str, type_: str | None, request: dict, timeout: float) -> dict:
         """The JSON response of ``service`` (its type is the container's; ``type_`` is unused)."""
-        return await self._req("POST", "call", {"service": service, "request": request, "timeout": timeout}, timeout)
-
-
-def admin_token(explicit: str | None) -> str:
-    """``--admin-token``, else ``$RCE_ADMIN_TOKEN``, else :func:`token_file`.
-    Raises :class:`AuthError` when none is set."""
-    if explicit:
-        return explicit
-    if os.environ.get("RCE_ADMIN_TOKEN"):
-        return os.environ["RCE_ADMIN_TOKEN"]
-    p = token_file()
-    try:
-        tok = p.read_text().strip()
-    except OSError:
-        tok = ""
-    if not tok:
-        raise AuthError(f"no admin token: pass --admin-token, set RCE_ADMIN_TOKEN or write it to {p}")
-    return tok
+        body = {"service": service, "request": request, "timeout": timeout}
+        return await self.client.arequest("POST", f"{self.base}/call", body, timeout)
 
 
 def pick_backend(args: argparse.Namespace) -> LocalBus | AdminBus:
@@ -218,7 +176,8 @@ def pick_backend(args: argparse.Namespace) -> LocalBus | AdminBus:
         missing = [o for o, v in (("--master", args.master), ("--user", args.user)) if not v]
         if missing:
             raise Unavailable(f"--container needs {' and '.join(missing)}")
-        return AdminBus(args.master, args.user, args.container, admin_token(args.admin_token))
+        return AdminBus(AdminClient.from_options(args.master, args.admin_token, args.admin_token_file),
+                        args.user, args.container)
     path = args.bus or os.environ.get("RCE_BUS")
     if not path:
         found = running_buses()
@@ -263,6 +222,8 @@ def _common(p: argparse.ArgumentParser, suppress: bool) -> None:
     g.add_argument("--user", metavar="U", help="owner of the container for --container", **d)
     g.add_argument("--admin-token", metavar="TOKEN", help="admin API token (default $RCE_ADMIN_TOKEN or "
                    "~/.config/rce/admin-token)", **d)
+    g.add_argument("--admin-token-file", metavar="PATH", type=Path, help="the master's admin token file "
+                   "(default ~/.config/rce/admin-token)", **d)
 
 
 def _parser(prog: str, desc: str) -> tuple[argparse.ArgumentParser, Any, Callable]:
@@ -402,7 +363,8 @@ async def _echo(args, backend, topic: str) -> int:
     if isinstance(backend, AdminBus):
         _err(f"sampling {topic} through the admin API")
         while limit is None or count < limit:
-            for m in await backend.sample(topic, min(limit - count, 100) if limit else 10, 5.0, args.type):
+            for m in await backend.sample(topic, min(limit - count, 100) if limit else 10, ECHO_SAMPLE_TIMEOUT,
+                                          args.type):
                 show(m)
         return 0
     type_ = await _topic_type(backend, topic, args.type, True, _err)
@@ -429,14 +391,14 @@ async def _hz(args, backend, topic: str) -> int:
     _err(f"subscribed to {topic} [{type_}]")
     reports, last_total = 0, 0
     while args.reports is None or reports < args.reports:
-        await asyncio.sleep(1.0)   # the report period
+        await asyncio.sleep(HZ_PERIOD)   # the report period
         reports += 1
         if total == last_total or len(stamps) < 2:
             _out("no new messages")
             last_total = total
             continue
         last_total = total
-        gaps = [b - a for a, b in zip(stamps, stamps[1:])]
+        gaps = [b - a for a, b in zip(stamps, stamps[1:], strict=False)]
         mean = sum(gaps) / len(gaps)
         std = math.sqrt(sum((g - mean) ** 2 for g in gaps) / len(gaps))
         _out(f"average rate: {1.0 / mean:.3f}\n\tmin: {min(gaps):.3f}s max: {max(gaps):.3f}s "
@@ -462,11 +424,12 @@ async def service_cmd(args: argparse.Namespace, backend) -> int:
     if type_ is None:
         # like `rosservice call --wait`: the node providing it may still be starting
         loop = asyncio.get_running_loop()
-        deadline = loop.time() + (args.timeout or 10.0)
+        wait = args.timeout or SERVICE_WAIT
+        deadline = loop.time() + wait
         while (s := await _find(backend, "services", name)) is None:
             if loop.time() >= deadline:
-                raise NotFound(f"service {name} is not on the bus (waited {args.timeout or 10.0:g} s)")
-            await asyncio.sleep(0.1)
+                raise NotFound(f"service {name} is not on the bus (waited {wait:g} s)")
+            await asyncio.sleep(POLL)   # polling the bus description, a timer
         type_ = s["type"]
     resp = await backend.call(name, type_, request, args.timeout)
     _out(to_yaml(resp) if resp else "")

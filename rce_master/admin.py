@@ -1,6 +1,8 @@
-"""The master's JSON admin API (what rce-console and rce-topic --container use).
+"""The master's JSON admin API (what rce-console, rce-topic --container and the launcher use,
+through :mod:`rce.admin_client`).
 
-All routes need ``Authorization: Bearer TOKEN`` (the master's admin token).
+All routes need ``Authorization: Bearer TOKEN`` (the master's admin token). Refusals are HTTP
+errors with a one-line reason (:mod:`rce_master.server`).
 
 | route | result |
 |---|---|
@@ -12,33 +14,57 @@ All routes need ``Authorization: Bearer TOKEN`` (the master's admin token).
 | ``POST /api/containers/{user}/{ctag}/call`` ``{service, request, timeout}`` | call a service on its bus |
 | ``POST /api/containers/{user}/{ctag}/sample`` ``{topic, count, timeout}`` | up to count messages |
 | ``GET /api/containers/{user}/{ctag}/stats`` | the container's counters from its host |
-| ``POST /api/containers/{user}/{ctag}/resize`` ``{cpu?, memory?, size?}`` | new limits, nodes keep running |
+| ``POST /api/containers/{user}/{ctag}/resize`` ``{cpu?, memory?, size?, bandwidth?}`` | new limits |
 | ``GET /api/containers/{user}/{ctag}/logs/{ntag}`` | a node's kept stdout/stderr |
 """
 from __future__ import annotations
 
 import hmac
-from typing import TYPE_CHECKING
 
 from aiohttp import web
 
 from rce.errors import AuthError, RequestError
-
-if TYPE_CHECKING:
-    from rce_master.server import Master
+from rce_master.control import Control
+from rce_master.requests import Request, ResizeContainer
+from rce_master.state import MasterState
+from rce_master.users import UsersFile
 
 LISTS = ("users", "robots", "containers", "nodes", "parameters", "interfaces", "connections", "tasksets")
+BUS_TIMEOUT = 10.0          # s, a bus op without its own "timeout" (call, sample), and describe/stats/logs
+BUS_TIMEOUT_MARGIN = 5.0    # s, added to the op's own timeout: the host answers only once that has passed
+HOST_OPS = {"bus": ("describe", "GET"), "publish": ("bus_publish", "POST"), "call": ("bus_call", "POST"),
+            "sample": ("bus_sample", "POST"), "stats": ("stats", "GET")}   # route -> (host op, method)
 
 
-def routes(master: "Master", app: web.Application) -> None:
-    """Add the admin routes of ``master`` to ``app``."""
+class AdminApi:
+    """The admin routes onto ``state`` and the task sets (``control``); ``users``: the users file
+    kept up to date on user changes (None: none)."""
 
-    def check(request: web.Request) -> None:
+    def __init__(self, state: MasterState, control: Control, token: str, users: UsersFile | None = None):
+        self.state, self.control, self.token, self.users = state, control, token, users
+
+    def add_routes(self, app: web.Application) -> None:
+        """Add the admin routes to ``app``."""
+        app.router.add_get("/api/state", self._state)
+        for name in LISTS:
+            app.router.add_get(f"/api/{name}", self._one_list)
+        app.router.add_post("/api/users", self._add_user)
+        app.router.add_delete("/api/users/{name}", self._del_user)
+        base = "/api/containers/{user}/{ctag}"
+        for route, (op, method) in HOST_OPS.items():
+            app.router.add_route(method, f"{base}/{route}", self._host_op(op))
+        app.router.add_get(base + "/logs/{ntag}", self._host_op("logs"))
+        app.router.add_post(base + "/resize", self._resize)
+
+    def _check(self, request: web.Request) -> None:
         auth = request.headers.get("Authorization", "")
-        if not auth.startswith("Bearer ") or not hmac.compare_digest(auth[7:].strip(), master.admin_token):
+        if not auth.startswith("Bearer ") or not hmac.compare_digest(auth[7:].strip(), self.token):
             raise AuthError("admin API: missing or wrong bearer token (see --admin-token-file)")
 
-    async def body(request: web.Request) -> dict:
+    async def _body(self, request: web.Request) -> dict:
+        self._check(request)
+        if request.method != "POST":
+            return {}
         try:
             d = await request.json()
         except ValueError:
@@ -47,59 +73,40 @@ def routes(master: "Master", app: web.Application) -> None:
             raise RequestError("request body must be a JSON object")
         return d
 
-    async def state(request: web.Request) -> web.Response:
-        check(request)
-        return web.json_response(master.state.snapshot())
+    async def _state(self, request: web.Request) -> web.Response:
+        self._check(request)
+        return web.json_response(self.state.snapshot())
 
-    def one_list(name: str):
-        async def handler(request: web.Request) -> web.Response:
-            check(request)
-            return web.json_response(master.state.snapshot()[name])
-        return handler
+    async def _one_list(self, request: web.Request) -> web.Response:
+        self._check(request)
+        return web.json_response(self.state.snapshot()[request.path.rsplit("/", 1)[1]])
 
-    async def add_user(request: web.Request) -> web.Response:
-        check(request)
-        d = await body(request)
-        master.state.add_user(str(d.get("name", "")), str(d.get("password", "")))
-        master._save_users()
-        return web.json_response({"name": d["name"]}, status=201)
+    async def _add_user(self, request: web.Request) -> web.Response:
+        d = await self._body(request)
+        u = self.state.add_user(str(d.get("name", "")), str(d.get("password", "")))
+        if self.users:
+            self.users.save(self.state)
+        return web.json_response({"name": u.name}, status=201)
 
-    async def del_user(request: web.Request) -> web.Response:
-        check(request)
-        master.state.del_user(request.match_info["name"])
-        master._save_users()
+    async def _del_user(self, request: web.Request) -> web.Response:
+        self._check(request)
+        self.state.del_user(request.match_info["name"])
+        if self.users:
+            self.users.save(self.state)
         return web.json_response({})
 
-    def container_op(op: str, method: str):
+    def _host_op(self, op: str):
         async def handler(request: web.Request) -> web.Response:
-            check(request)
-            c = master.state.container(request.match_info["user"], request.match_info["ctag"])
-            args = await body(request) if method == "POST" else {}
+            args = await self._body(request)
+            c = self.state.container(request.match_info["user"], request.match_info["ctag"])
             if "ntag" in request.match_info:
                 args["ntag"] = request.match_info["ntag"]
-            timeout = float(args.get("timeout") or 10) + 5
-            peer = master.peers.get(c.tid)
-            if peer is None:
-                raise RequestError(f"the host of container {c.ctag!r} is gone")
-            if op == "resize_container":
-                limits = {k: args[k] for k in ("cpu", "memory", "size") if args.get(k) is not None}
-                res = await peer.call(op, cid=c.cid, limits=limits)
-                c.data.update(limits)
-            else:
-                res = await peer.request(op, {"cid": c.cid, **args}, timeout)
-            return web.json_response(res)
+            timeout = float(args.get("timeout") or BUS_TIMEOUT) + BUS_TIMEOUT_MARGIN
+            return web.json_response(await self.control.host_request(c, op, args, timeout))
         return handler
 
-    app.router.add_get("/api/state", state)
-    for name in LISTS:
-        app.router.add_get(f"/api/{name}", one_list(name))
-    app.router.add_post("/api/users", add_user)
-    app.router.add_delete("/api/users/{name}", del_user)
-    base = "/api/containers/{user}/{ctag}"
-    app.router.add_get(base + "/bus", container_op("describe", "GET"))
-    app.router.add_post(base + "/publish", container_op("bus_publish", "POST"))
-    app.router.add_post(base + "/call", container_op("bus_call", "POST"))
-    app.router.add_post(base + "/sample", container_op("bus_sample", "POST"))
-    app.router.add_get(base + "/stats", container_op("stats", "GET"))
-    app.router.add_post(base + "/resize", container_op("resize_container", "POST"))
-    app.router.add_get(base + "/logs/{ntag}", container_op("logs", "GET"))
+    async def _resize(self, request: web.Request) -> web.Response:
+        args = await self._body(request)
+        req = Request(request.match_info["user"], "", self.state, self.control)
+        answer = await ResizeContainer().run(req, {**args, "containerTag": request.match_info["ctag"]})
+        return web.json_response(answer)

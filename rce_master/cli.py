@@ -23,7 +23,8 @@ def parser() -> argparse.ArgumentParser:
     p.add_argument("--control-port", type=int, default=8080, help="control-plane port for task sets (0 = ephemeral)")
     p.add_argument("--users", type=Path, help="JSON file of hashed user records, kept up to date")
     p.add_argument("--admin-token-file", type=Path, default=None,
-                   help=f"admin API token file (default {token.DEFAULT_TOKEN_FILE}; RCE_ADMIN_TOKEN overrides)")
+                   help="admin API token file (default ~/.config/rce/admin-token, or under $XDG_CONFIG_HOME; "
+                        "RCE_ADMIN_TOKEN overrides)")
     p.add_argument("--static", action="append", default=[], metavar="PREFIX=DIR",
                    help="serve DIR under URL PREFIX (e.g. the operator's web page)")
     p.add_argument("--ready-file", type=Path, help="write {http_port, control_port, pid} here once listening")

@@ -10,8 +10,8 @@
     rce-console top [--interval S] [--once]           # per-container CPU, memory, processes, traffic
     rce-console users add NAME --file users.json      # offline: add a hashed record to a --users file
 
-The admin token comes from ``--admin-token``, ``RCE_ADMIN_TOKEN`` or the token file the
-master created (``~/.config/rce/admin-token``).
+The admin token comes from ``--admin-token``, ``RCE_ADMIN_TOKEN``, ``--admin-token-file`` or the
+token file the master created (``~/.config/rce/admin-token``); see :mod:`rce.admin_client`.
 """
 from __future__ import annotations
 
@@ -20,8 +20,6 @@ import getpass
 import json
 import sys
 import time
-import urllib.error
-import urllib.request
 from pathlib import Path
 from typing import Any
 
@@ -29,8 +27,10 @@ from rich.console import Console
 from rich.live import Live
 from rich.table import Table
 
-from rce_master import token as admin_token
-from rce_master.state import User
+from rce.admin_client import AdminClient
+from rce.errors import RCEError, RequestError
+from rce_master.state import MasterState
+from rce_master.users import UsersFile
 
 COLUMNS = {
     "users": ["name"],
@@ -42,31 +42,6 @@ COLUMNS = {
     "connections": ["user", "tagA", "tagB"],
     "tasksets": ["tid", "kind", "name", "host", "robots", "containers", "cpu_load", "mem_load", "sandbox"],
 }
-
-
-class ConsoleError(Exception):
-    pass
-
-
-class AdminClient:
-    """Minimal client of the admin API (``base`` like ``http://127.0.0.1:9000/``)."""
-
-    def __init__(self, base: str, token: str | None):
-        self.base = base if base.endswith("/") else base + "/"
-        self.token = token
-
-    def request(self, method: str, path: str, body: Any = None) -> Any:
-        data = json.dumps(body).encode() if body is not None else None
-        req = urllib.request.Request(self.base + path.lstrip("/"), data=data, method=method,
-                                     headers={"Content-Type": "application/json",
-                                              **({"Authorization": f"Bearer {self.token}"} if self.token else {})})
-        try:
-            with urllib.request.urlopen(req, timeout=30) as r:
-                return json.loads(r.read() or b"null")
-        except urllib.error.HTTPError as e:
-            raise ConsoleError(f"{method} {path}: HTTP {e.code}: {e.read().decode(errors='replace').strip()}") from None
-        except urllib.error.URLError as e:
-            raise ConsoleError(f"cannot reach the master at {self.base}: {e.reason}") from None
 
 
 def _cell(v: Any) -> str:
@@ -103,13 +78,14 @@ def top_rows(client: AdminClient) -> list[dict]:
             continue
         try:
             s = client.request("GET", f"/api/containers/{c['user']}/{c['ctag']}/stats")
-        except ConsoleError as e:
+        except RCEError as e:
             rows.append({"container": name, "state": str(e)})
             continue
         limits = s.get("limits") or {}
         rows.append({"container": name, "state": s.get("sandbox") or c["state"], **_flatten_stats(s),
                      "restarts": (s.get("nodes") or {}).get("restarts"),
-                     "limits": " ".join(f"{k}={v:g}" for k, v in sorted(limits.items()) if isinstance(v, (int, float)))})
+                     "limits": " ".join(f"{k}={v:g}" for k, v in sorted(limits.items())
+                                        if isinstance(v, (int, float)))})
         for ntag, n in sorted((s.get("per_node") or {}).items()):
             if n.get("running"):
                 state = "running"
@@ -144,9 +120,9 @@ def _read_password(from_stdin: bool) -> str:
     else:
         pw = getpass.getpass("password: ")
         if getpass.getpass("again: ") != pw:
-            raise ConsoleError("the passwords differ")
+            raise RequestError("the passwords differ")
     if not pw:
-        raise ConsoleError("the password must not be empty")
+        raise RequestError("the password must not be empty")
     return pw
 
 
@@ -154,6 +130,8 @@ def parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(prog="rce-console", description="Inspect and manage an rce master.")
     p.add_argument("--master", default="http://127.0.0.1:9000/", help="master URL (default http://127.0.0.1:9000/)")
     p.add_argument("--admin-token", default=None, help="admin token (default: RCE_ADMIN_TOKEN or the token file)")
+    p.add_argument("--admin-token-file", type=Path, default=None,
+                   help="the master's admin token file (default ~/.config/rce/admin-token)")
     p.add_argument("--json", action="store_true", help="print JSON instead of tables")
     sub = p.add_subparsers(dest="cmd", required=True)
     for name in COLUMNS:
@@ -181,7 +159,10 @@ def parser() -> argparse.ArgumentParser:
 
 
 def run(args: argparse.Namespace, out: Console) -> None:
-    client = AdminClient(args.master, args.admin_token or admin_token.read())
+    if args.cmd == "user" and args.file:
+        _user_file(args)
+        return
+    client = AdminClient.from_options(args.master, args.admin_token, args.admin_token_file)
     if args.cmd in COLUMNS:
         rows = client.request("GET", f"/api/{args.cmd}")
         if args.json:
@@ -189,9 +170,7 @@ def run(args: argparse.Namespace, out: Console) -> None:
         else:
             out.print(table(args.cmd, rows, COLUMNS[args.cmd]))
     elif args.cmd == "user":
-        if args.file:
-            _user_file(args)
-        elif args.action == "add":
+        if args.action == "add":
             client.request("POST", "/api/users", {"name": args.name, "password": _read_password(args.password_stdin)})
             out.print(f"user {args.name!r} added")
         else:
@@ -205,7 +184,7 @@ def run(args: argparse.Namespace, out: Console) -> None:
     elif args.cmd == "container":
         limits = {k: getattr(args, k) for k in ("cpu", "memory", "size") if getattr(args, k) is not None}
         if not limits:
-            raise ConsoleError("give at least one of --cpu, --memory, --size")
+            raise RequestError("give at least one of --cpu, --memory, --size")
         res = client.request("POST", f"/api/containers/{args.user}/{args.ctag}/resize", limits)
         out.print(f"container {args.ctag!r} resized: {json.dumps(res)}")
     elif args.cmd == "top":
@@ -222,25 +201,27 @@ def run(args: argparse.Namespace, out: Console) -> None:
 
 
 def _user_file(args: argparse.Namespace) -> None:
-    path: Path = args.file
-    data = json.loads(path.read_text()) if path.exists() else {"users": []}
-    users = [r for r in data.get("users", []) if r["name"] != args.name]
-    if args.action == "add":
-        if len(users) != len(data.get("users", [])):
-            raise ConsoleError(f"user {args.name!r} already exists in {path}")
-        users.append(User.create(args.name, _read_password(args.password_stdin)).to_record())
-    elif len(users) == len(data.get("users", [])):
-        raise ConsoleError(f"no user {args.name!r} in {path}")
-    path.write_text(json.dumps({"users": users}, indent=1))
-    path.chmod(0o600)
-    print(f"{path}: user {args.name!r} {'added' if args.action == 'add' else 'deleted'}")
+    """Offline: add or delete a user in a ``--users`` file, by the master's own rules."""
+    users, state = UsersFile(args.file), MasterState()
+    users.load(state)
+    if args.action == "add" and args.name in state.users:      # before asking for the password
+        raise RequestError(f"{args.file}: user {args.name!r} already exists")
+    try:
+        if args.action == "add":
+            state.add_user(args.name, _read_password(args.password_stdin))
+        else:
+            state.del_user(args.name)
+    except RCEError as e:
+        raise RequestError(f"{args.file}: {e}") from None
+    users.save(state)
+    print(f"{args.file}: user {args.name!r} {'added' if args.action == 'add' else 'deleted'}")
 
 
 def main(argv: list[str] | None = None) -> None:
     args = parser().parse_args(argv)
     try:
         run(args, Console(width=None if sys.stdout.isatty() else 240))
-    except ConsoleError as e:
+    except RCEError as e:
         print(f"rce-console: {e}", file=sys.stderr)
         sys.exit(1)
     except KeyboardInterrupt:

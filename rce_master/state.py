@@ -1,180 +1,140 @@
-"""The master's command data structure (DESIGN section 1), sans I/O.
+"""The master's command data structure (DESIGN section 1) and every change to it, sans I/O.
 
-Users, task sets, robots, containers, nodes, parameters, interfaces and
-connections, with every rule the master enforces: tags are scoped per user,
-robot-side interfaces belong to the robot that asks, container-side ones to a
-container of the user, connections pair Publisher with Subscriber and
-ServiceClient with ServiceProvider of the same class. Every method validates
-before it changes anything and raises :class:`RequestError` (or a subclass)
-naming what was wrong; the asyncio shell (:mod:`rce_master.server`) performs
-the I/O the state asks for.
+Users, task sets, robots, containers, nodes, parameters, interfaces and connections, with every
+rule the master enforces: tags are scoped per user, robot-side interfaces belong to the robot
+that asks, container-side ones to a container of the user, connections pair Publisher with
+Subscriber and ServiceClient with ServiceProvider of the same class.
 
-Requests are keyed by tags, so replaying one (after a reconnect) either
-succeeds identically or names the duplicate.
+Every operation validates before it changes anything and raises :class:`RequestError` (or a
+subclass) naming what was wrong; it returns what the asyncio shell (:mod:`rce_master.server`,
+:mod:`rce_master.requests`) must tell the task sets. The shell never changes a record itself.
+A request the task sets refuse half way is undone by the matching operation (``container_failed``,
+``node_failed``, ``interface_refused``, ``connection_failed``), which also removes what was hung
+on the half-made record meanwhile.
+
+Each operation is one batch of store changes (:mod:`rce_master.store`): applied all or nothing,
+and rolled back in memory too when it fails part way. Requests are keyed by tags, so replaying
+one (after a reconnect) either succeeds identically or names the duplicate.
 """
 from __future__ import annotations
 
-import hashlib
-import hmac
-import itertools
-import os
+import functools
+import json
 import time
-from dataclasses import dataclass, field
+from collections.abc import Iterator
+from contextlib import contextmanager
 from typing import Any
 
 from rce.errors import AuthError, NotFound, RequestError, Unavailable
 from rce.interfaces import PAIRS
 from rce.protocol import split_interface_type
+from rce_master.index import StateIndex
+from rce_master.model import (ConnectionRec, Container, InterfaceRec, NodeRec, Robot, TaskSet, User,
+                              param_key)
+from rce_master.store import Key, MemoryStore, Store, encode
 
-SCRYPT = {"n": 2**14, "r": 8, "p": 1}
-
-
-def password_digest(password: str) -> str:
-    """The hex SHA-256 a client sends for ``password`` (DESIGN section 3.2)."""
-    return hashlib.sha256(password.encode()).hexdigest()
-
-
-def _scrypt(digest_hex: str, salt: bytes) -> bytes:
-    return hashlib.scrypt(digest_hex.lower().encode(), salt=salt, dklen=32, **SCRYPT)
+Pairs = list[tuple[InterfaceRec, InterfaceRec]]     # connections removed: the shell disconnects both ends
 
 
-@dataclass
-class User:
-    """A user; the password is kept only as scrypt(sha256_hex(password), salt)."""
-    name: str
-    salt: bytes
-    key: bytes
-
-    @classmethod
-    def create(cls, name: str, password: str) -> "User":
-        salt = os.urandom(16)
-        return cls(name, salt, _scrypt(password_digest(password), salt))
-
-    def check(self, digest_hex: str) -> bool:
-        """True if ``digest_hex`` (hex SHA-256 of the password) matches."""
-        return hmac.compare_digest(_scrypt(digest_hex, self.salt), self.key)
-
-    def to_record(self) -> dict:
-        return {"name": self.name, "salt": self.salt.hex(), "scrypt": self.key.hex()}
-
-    @classmethod
-    def from_record(cls, r: dict) -> "User":
-        return cls(r["name"], bytes.fromhex(r["salt"]), bytes.fromhex(r["scrypt"]))
+def _atomic(op):
+    """Run the operation as one batch of store changes (see :meth:`MasterState._change`)."""
+    @functools.wraps(op)
+    def run(self: "MasterState", *args, **kwargs):
+        with self._change():
+            return op(self, *args, **kwargs)
+    return run
 
 
-@dataclass
-class TaskSet:
-    """A robot task set (endpoints) or container task set (host)."""
-    tid: int
-    kind: str                 # "robot" | "container"
-    name: str
-    host: str
-    info: dict = field(default_factory=dict)
-    robots: int = 0
-    cpu_load: float = 0.0     # sum of cpu requested by its containers (cores)
-    mem_load: float = 0.0     # MiB requested
-    containers: int = 0
-    lost: bool = False
+class MasterState(StateIndex):
+    """All master state on ``store`` (default: a new :class:`MemoryStore`); a store that holds
+    records is loaded, so the state a previous master left comes back."""
 
+    def __init__(self, store: Store | None = None) -> None:
+        super().__init__()
+        self.store = store if store is not None else MemoryStore()
+        self._batch: list[tuple[Key, dict | None, dict | None]] | None = None
+        self._latest: dict[Key, dict | None] = {}
+        self.load(self.store)
 
-@dataclass
-class Robot:
-    user: str
-    robot: str
-    tid: int
-    since: float
+    # -- the one way to change: records in batches ----------------------------------------------------
+    @contextmanager
+    def _change(self) -> Iterator[None]:
+        """One batch: commit its changes to the store at the end, or, when the operation or the
+        store fails, put the view back as it was. Nested operations join the outer batch."""
+        if self._batch is not None:
+            yield
+            return
+        self._batch, self._latest = [], {}
+        try:
+            yield
+            if self._batch:
+                self.store.commit([(key, new) for key, _, new in self._batch])
+        except BaseException:
+            for key, old, new in reversed(self._batch):
+                self.apply(key, new, old)
+            raise
+        finally:
+            self._batch, self._latest = None, {}
+            self._removed.clear()
 
+    def _write(self, key: Key, new: dict | None) -> None:
+        if self._batch is None:
+            raise RuntimeError("MasterState changes only inside an operation")
+        if new is not None:
+            new = json.loads(encode(key, new))                # a copy, and JSON before anything changes
+        old = self._latest[key] if key in self._latest else self.store.get(key)
+        self._batch.append((key, old, new))
+        self._latest[key] = new
+        self.apply(key, old, new)
 
-@dataclass
-class Container:
-    cid: int
-    user: str
-    ctag: str
-    owner: str                # robotID that created it
-    tid: int                  # container host
-    group: str | None
-    data: dict
-    state: str = "starting"   # starting | running | lost | stopping
-    data_addr: str = ""
-    sandbox: str = ""
+    def _put(self, obj: Any, **changes: Any) -> None:
+        self._write(obj.store_key, {**obj.to_record(), **changes})
 
+    def _delete(self, obj: Any) -> None:
+        self._write(obj.store_key, None)
 
-@dataclass
-class NodeRec:
-    user: str
-    ctag: str
-    ntag: str
-    spec: dict
-    status: str = "starting"
-    detail: dict = field(default_factory=dict)
+    def _next_id(self, name: str) -> int:
+        n = self.counters.get(name, 1)
+        self._write(("counter", name), {"next": n + 1})
+        return n
 
-
-@dataclass
-class InterfaceRec:
-    iid: int
-    user: str
-    etag: str
-    itag: str
-    itype: str
-    kind: str                 # Publisher | Subscriber | ServiceClient | ServiceProvider
-    side: str                 # Interface | Converter | Forwarder
-    cls: str
-    addr: str | None
-    location: int             # cid (container side) or robot task set tid (robot side)
-
-    @property
-    def tag(self) -> str:
-        return f"{self.etag}/{self.itag}"
-
-    @property
-    def robot_side(self) -> bool:
-        return self.side != "Interface"
-
-
-@dataclass(frozen=True)
-class ConnectionRec:
-    user: str
-    a: int                    # iid
-    b: int
-
-
-class MasterState:
-    """All master state; methods validate, mutate, and return what the shell must do."""
-
-    def __init__(self) -> None:
-        self.users: dict[str, User] = {}
-        self.tasksets: dict[int, TaskSet] = {}
-        self.robots: dict[tuple[str, str], Robot] = {}
-        self.containers: dict[tuple[str, str], Container] = {}
-        self.nodes: dict[tuple[str, str, str], NodeRec] = {}
-        self.params: dict[tuple[str, str, str], Any] = {}
-        self.interfaces: dict[tuple[str, str, str], InterfaceRec] = {}
-        self.connections: set[ConnectionRec] = set()
-        # indexes, so that a robot leaving with many interfaces costs O(its connections)
-        self._by_iid: dict[int, InterfaceRec] = {}
-        self._links: dict[int, set[ConnectionRec]] = {}     # iid -> its connections
-        self._tids = itertools.count(1)
-        self._cids = itertools.count(1)
-        self._iids = itertools.count(1)
-
-    # -- users ---------------------------------------------------------------------------------
+    # -- users -------------------------------------------------------------------------------------------
+    @_atomic
     def add_user(self, name: str, password: str) -> User:
-        """Add a user. Raises :class:`RequestError` for an empty/duplicate name or empty password."""
-        if not name or not name.replace("_", "").replace("-", "").replace(".", "").isalnum():
-            raise RequestError(f"illegal user name {name!r}: use letters, digits, '_', '-', '.'")
+        """Add a user. Raises :class:`RequestError` for an illegal/duplicate name or empty password."""
+        _check_user_name(name)
         if name in self.users:
             raise RequestError(f"user {name!r} already exists")
         if not password:
             raise RequestError("the password must not be empty")
-        u = self.users[name] = User.create(name, password)
-        return u
+        u = User.create(name, password)
+        self._write(u.store_key, u.to_record())
+        return self.users[name]
 
+    @_atomic
     def del_user(self, name: str) -> None:
+        """Delete a user. Raises :class:`NotFound`, or :class:`RequestError` while it has robots."""
         if name not in self.users:
             raise NotFound(f"no user {name!r}")
         if any(r.user == name for r in self.robots.values()):
             raise RequestError(f"user {name!r} has connected robots; disconnect them first")
-        del self.users[name]
+        self._delete(self.users[name])
+
+    @_atomic
+    def load_users(self, records: list) -> None:
+        """Add (or replace) users from hashed records (a users file's ``users`` list).
+        Raises :class:`RequestError` naming the first bad record; then none is loaded."""
+        for i, r in enumerate(records, 1):
+            try:
+                u = User.from_record(r)
+                _check_user_name(u.name)
+            except (KeyError, ValueError, TypeError, RequestError) as e:
+                raise RequestError(f"user record {i}: {e}") from None
+            self._write(u.store_key, u.to_record())
+
+    def user_records(self) -> list[dict]:
+        """The hashed records of every user (what a users file keeps)."""
+        return [self.users[n].to_record() for n in sorted(self.users)]
 
     def authenticate(self, user: str, digest_hex: str) -> None:
         """Raise :class:`AuthError` unless ``digest_hex`` is the user's password digest."""
@@ -182,23 +142,28 @@ class MasterState:
         if u is None or not isinstance(digest_hex, str) or not u.check(digest_hex):
             raise AuthError(f"invalid user ID or password for user {user!r}")
 
-    # -- task sets -----------------------------------------------------------------------------
+    # -- task sets ---------------------------------------------------------------------------------------
+    @_atomic
     def register_taskset(self, kind: str, name: str, host: str, info: dict) -> TaskSet:
+        """Record a task set that registered (``info``: its register args). Raises :class:`RequestError`."""
         if kind not in ("robot", "container"):
             raise RequestError(f"unknown task set kind {kind!r}")
-        ts = TaskSet(next(self._tids), kind, name, host, info)
-        self.tasksets[ts.tid] = ts
-        return ts
+        ts = TaskSet(self._next_id("tid"), kind, name, host, dict(info))
+        self._write(ts.store_key, ts.to_record())
+        return self.tasksets[ts.tid]
 
+    @_atomic
     def drop_taskset(self, tid: int) -> tuple[list[Container], list[Robot]]:
-        """Remove a task set that went away. Returns its containers (now ``lost``) and robots."""
-        ts = self.tasksets.pop(tid, None)
+        """Remove a task set that went away. Returns its containers (now ``lost``: the shell then
+        calls :meth:`forget_lost_container`) and its robots (the shell disconnects them)."""
+        ts = self.tasksets.get(tid)
         if ts is None:
             return [], []
         lost = [c for c in self.containers.values() if c.tid == tid]
         for c in lost:
-            c.state = "lost"
+            self._put(c, state="lost")
         robots = [r for r in self.robots.values() if r.tid == tid]
+        self._delete(ts)
         return lost, robots
 
     def pick_robot_taskset(self) -> TaskSet:
@@ -231,7 +196,8 @@ class MasterState:
                               f"(cpu {cpu:g} cores, memory {mem:g} MiB); start rce-container")
         return best
 
-    # -- robots --------------------------------------------------------------------------------
+    # -- robots ------------------------------------------------------------------------------------------
+    @_atomic
     def robot_connect(self, user: str, robot: str, tid: int) -> Robot:
         """Record a connected robot. Raises :class:`RequestError` for a duplicate robotID or one
         that clashes with a container tag of the user."""
@@ -239,106 +205,146 @@ class MasterState:
             raise RequestError(f"robot {robot!r} of user {user!r} is already connected")
         if (user, robot) in self.containers:
             raise RequestError(f"robot ID {robot!r} is already used as a container tag")
-        r = self.robots[(user, robot)] = Robot(user, robot, tid, time.time())
-        if tid in self.tasksets:
-            self.tasksets[tid].robots += 1
-        return r
+        r = Robot(user, robot, tid, time.time())
+        self._write(r.store_key, r.to_record())
+        return self.robots[(user, robot)]
 
-    def robot_disconnect(self, user: str, robot: str) -> tuple[list[InterfaceRec], list[Container]]:
-        """Forget a robot: removes its interfaces (and their connections); returns those
-        interfaces and the containers it owns (the shell destroys them)."""
-        r = self.robots.pop((user, robot), None)
+    @_atomic
+    def robot_disconnect(self, user: str, robot: str) -> tuple[Pairs, list[Container]]:
+        """Forget a robot with its interfaces (and their connections). Returns the connections
+        removed and the containers it owns (the shell destroys them)."""
+        r = self.robots.get((user, robot))
         if r is None:
             return [], []
-        if r.tid in self.tasksets:
-            self.tasksets[r.tid].robots -= 1
-        ifaces = [i for i in self.interfaces.values() if i.user == user and i.etag == robot and i.robot_side]
+        pairs = self.forget_interfaces(self.interfaces_of(user, robot, robot_side=True))
         owned = [c for c in self.containers.values() if c.user == user and c.owner == robot]
-        return ifaces, owned
+        self._delete(r)
+        return pairs, owned
 
-    # -- containers ----------------------------------------------------------------------------
+    # -- containers --------------------------------------------------------------------------------------
+    @_atomic
     def add_container(self, user: str, owner: str, ctag: str, data: dict | None) -> tuple[Container, TaskSet]:
-        """Reserve a new container (state ``starting``) on the chosen host."""
+        """Reserve a new container (state ``starting``) on the chosen host; returns it and the host."""
         if (user, ctag) in self.containers:
             raise RequestError(f"container {ctag!r} already exists")
         if (user, ctag) in self.robots:
             raise RequestError(f"container tag {ctag!r} is already used as a robot ID")
         data = dict(data or {})
         host = self.pick_container_host(data)
-        c = Container(next(self._cids), user, ctag, owner, host.tid, data.get("group") or None, data)
-        self.containers[(user, ctag)] = c
-        host.containers += 1
-        host.cpu_load += float(data.get("cpu") or 0)
-        host.mem_load += float(data.get("memory") or 0)
-        return c, host
+        c = Container(self._next_id("cid"), user, ctag, owner, host.tid, data.get("group") or None, data)
+        self._write(c.store_key, c.to_record())
+        return self.containers[(user, ctag)], host
 
+    @_atomic
     def container_ready(self, c: Container, data_addr: str, sandbox: str) -> None:
-        c.state, c.data_addr, c.sandbox = "running", data_addr, sandbox
+        """The host created ``c``. Raises :class:`Unavailable` when it was removed or lost meanwhile."""
+        if not _current(self.containers, (c.user, c.ctag), c) or c.state == "lost":
+            raise Unavailable(f"container {c.ctag!r} was removed or lost while it was created")
+        self._put(c, state="running", data_addr=data_addr, sandbox=sandbox)
 
-    def container(self, user: str, ctag: str) -> Container:
-        """The user's container ``ctag``. Raises :class:`NotFound`, or :class:`Unavailable` if lost."""
+    @_atomic
+    def container_failed(self, c: Container) -> Pairs:
+        """Undo a container its host did not create (nothing when it is already gone)."""
+        if not _current(self.containers, (c.user, c.ctag), c):
+            return []
+        return self._forget_container(c)
+
+    @_atomic
+    def remove_container(self, user: str, ctag: str) -> tuple[Container, Pairs]:
+        """Forget a container with its nodes, parameters and interfaces; returns the container
+        and the connections removed (the shell disconnects their peers). Raises :class:`NotFound`."""
         c = self.containers.get((user, ctag))
         if c is None:
             raise NotFound(f"container {ctag!r} does not exist")
-        if c.state == "lost":
-            raise Unavailable(f"container {ctag!r} was lost with its host")
+        return c, self._forget_container(c)
+
+    def _forget_container(self, c: Container) -> Pairs:
+        for n in [n for k, n in self.nodes.items() if k[:2] == (c.user, c.ctag)]:
+            self._delete(n)
+        for k in [k for k in self.params if k[:2] == (c.user, c.ctag)]:
+            self._write(param_key(*k), None)
+        pairs = self.forget_interfaces(self.interfaces_of(c.user, c.ctag))
+        self._delete(c)
+        return pairs
+
+    @_atomic
+    def forget_lost_container(self, c: Container) -> Pairs:
+        """Forget the interfaces (and connections) of a lost container; it stays, ``lost``, until
+        its robot destroys it or leaves. Returns the connections removed."""
+        if not _current(self.containers, (c.user, c.ctag), c) or c.state != "lost":
+            return []
+        return self.forget_interfaces(self.interfaces_of(c.user, c.ctag))
+
+    @_atomic
+    def resize(self, user: str, ctag: str, limits: dict) -> Container:
+        """Record new limits of a container its host applied (host load follows)."""
+        c = self.container(user, ctag)
+        self._put(c, data={**c.data, **limits})
         return c
 
-    def remove_container(self, user: str, ctag: str) -> tuple[Container, list[InterfaceRec]]:
-        """Forget a container with its nodes, parameters and interfaces; returns the container
-        and its interfaces (the shell disconnects their peers)."""
-        c = self.containers.get((user, ctag))
-        if c is None:
-            raise NotFound(f"container {ctag!r} does not exist")
-        del self.containers[(user, ctag)]
-        host = self.tasksets.get(c.tid)
-        if host:
-            host.containers -= 1
-            host.cpu_load -= float(c.data.get("cpu") or 0)
-            host.mem_load -= float(c.data.get("memory") or 0)
-        for k in [k for k in self.nodes if k[:2] == (user, ctag)]:
-            del self.nodes[k]
-        for k in [k for k in self.params if k[:2] == (user, ctag)]:
-            del self.params[k]
-        ifaces = [i for i in self.interfaces.values() if i.user == user and i.etag == ctag]
-        return c, ifaces
-
-    # -- nodes and parameters --------------------------------------------------------------------
+    # -- nodes and parameters ----------------------------------------------------------------------------
+    @_atomic
     def add_node(self, user: str, spec: dict) -> tuple[Container, NodeRec]:
+        """Reserve node ``spec`` (an addNodes entry; status ``starting``). Raises :class:`RequestError`."""
         c = self.container(user, spec["containerTag"])
         key = (user, c.ctag, spec["nodeTag"])
         if key in self.nodes:
             raise RequestError(f"node {spec['nodeTag']!r} already exists in container {c.ctag!r}")
-        n = self.nodes[key] = NodeRec(user, c.ctag, spec["nodeTag"], dict(spec))
-        return c, n
+        n = NodeRec(user, c.ctag, spec["nodeTag"], dict(spec))
+        self._write(n.store_key, n.to_record())
+        return c, self.nodes[key]
 
+    @_atomic
+    def node_running(self, n: NodeRec) -> None:
+        """The host launched ``n``: ``running``, unless a status report came first."""
+        if _current(self.nodes, (n.user, n.ctag, n.ntag), n) and n.status == "starting":
+            self._put(n, status="running")
+
+    @_atomic
+    def node_failed(self, n: NodeRec) -> None:
+        """Undo a node the host did not launch (nothing when it is already gone)."""
+        if _current(self.nodes, (n.user, n.ctag, n.ntag), n):
+            self._delete(n)
+
+    @_atomic
     def remove_node(self, user: str, ctag: str, ntag: str) -> Container:
+        """Forget a node; returns its container. Raises :class:`NotFound`."""
         c = self.container(user, ctag)
-        if self.nodes.pop((user, ctag, ntag), None) is None:
+        n = self.nodes.get((user, ctag, ntag))
+        if n is None:
             raise NotFound(f"node {ntag!r} does not exist in container {ctag!r}")
+        self._delete(n)
         return c
 
+    @_atomic
     def node_status(self, cid: int, ntag: str, status: str, detail: dict) -> NodeRec | None:
-        c = next((c for c in self.containers.values() if c.cid == cid), None)
+        """A host's report on node ``ntag`` of container ``cid``; None for a node not known."""
+        c = self.container_by_cid(cid)
         n = self.nodes.get((c.user, c.ctag, ntag)) if c else None
-        if n:
-            n.status, n.detail = status, detail
+        if n is not None:
+            self._put(n, status=status, detail=dict(detail))
         return n
 
+    @_atomic
     def set_param(self, user: str, ctag: str, name: str, value: Any) -> Container:
+        """Record a parameter the container's bus has set. Raises :class:`NotFound`/:class:`RequestError`."""
         c = self.container(user, ctag)
-        self.params[(user, ctag, name)] = value
+        self._write(param_key(user, ctag, name), {"user": user, "ctag": ctag, "name": name, "value": value})
         return c
 
+    @_atomic
     def delete_param(self, user: str, ctag: str, name: str) -> Container:
+        """Forget a parameter; returns its container. Raises :class:`NotFound`."""
         c = self.container(user, ctag)
-        if self.params.pop((user, ctag, name), _NONE) is _NONE:
+        if (user, ctag, name) not in self.params:
             raise NotFound(f"parameter {name!r} is not set in container {ctag!r}")
+        self._write(param_key(user, ctag, name), None)
         return c
 
-    # -- interfaces and connections --------------------------------------------------------------
-    def add_interface(self, user: str, robot: str, spec: dict, cls_known: bool = True) -> InterfaceRec:
-        """Add an interface for the robot ``robot`` of ``user`` asking.
+    # -- interfaces and connections ----------------------------------------------------------------------
+    @_atomic
+    def add_interface(self, user: str, robot: str, spec: dict) -> InterfaceRec:
+        """Add interface ``spec`` (an addInterfaces entry) for the robot ``robot`` of ``user`` asking.
 
         Robot-side kinds (Converter/Forwarder) must name the asking robot as endpoint; container
         kinds (Interface) a container of the user. Raises :class:`RequestError`/:class:`NotFound`."""
@@ -348,8 +354,7 @@ class MasterState:
         if "/" in itag:
             raise RequestError(f"interface tag {itag!r} must not contain '/'")
         if side == "Interface":
-            c = self.container(user, etag)
-            location = c.cid
+            location = self.container(user, etag).cid
         else:
             if etag != robot:
                 raise RequestError(f"a {itype} is created on the robot's own endpoint: endpointTag must be "
@@ -358,64 +363,43 @@ class MasterState:
             if r is None:
                 raise NotFound(f"robot {robot!r} is not connected")
             location = r.tid
-        key = (user, etag, itag)
-        if key in self.interfaces:
+        if (user, etag, itag) in self.interfaces:
             raise RequestError(f"interface {etag}/{itag} already exists")
-        rec = InterfaceRec(next(self._iids), user, etag, itag, f"{kind}{side}", kind, side,
+        rec = InterfaceRec(self._next_id("iid"), user, etag, itag, f"{kind}{side}", kind, side,
                            spec["className"].strip("/"), spec.get("addr"), location)
-        self.interfaces[key] = rec
-        self._by_iid[rec.iid] = rec
-        return rec
+        self._write(rec.store_key, rec.to_record())
+        return self.interfaces[(user, etag, itag)]
 
-    def interface(self, user: str, tag: str) -> InterfaceRec:
-        """Look up ``endpointTag/interfaceTag``. Raises :class:`NotFound`."""
-        etag, _, itag = tag.partition("/")
-        rec = self.interfaces.get((user, etag, itag))
-        if rec is None:
-            raise NotFound(f"interface {tag!r} does not exist")
-        return rec
+    @_atomic
+    def interface_refused(self, rec: InterfaceRec) -> Pairs:
+        """Undo an interface its endpoint refused (nothing when it is already gone)."""
+        if not _current(self.interfaces, (rec.user, rec.etag, rec.itag), rec):
+            return []
+        return self.forget_interfaces([rec])
 
-    def remove_interface(self, user: str, etag: str, itag: str) -> tuple[InterfaceRec, list[tuple[InterfaceRec, InterfaceRec]]]:
-        """Forget an interface; returns it and the connections removed with it (pairs of records)."""
+    @_atomic
+    def remove_interface(self, user: str, etag: str, itag: str) -> tuple[InterfaceRec, Pairs]:
+        """Forget an interface; returns it and the connections removed with it. Raises :class:`NotFound`."""
         rec = self.interfaces.get((user, etag, itag))
         if rec is None:
             raise NotFound(f"interface {etag}/{itag} does not exist")
         return rec, self.forget_interfaces([rec])
 
-    def _add_link(self, conn: ConnectionRec) -> None:
-        self.connections.add(conn)
-        self._links.setdefault(conn.a, set()).add(conn)
-        self._links.setdefault(conn.b, set()).add(conn)
-
-    def _drop_link(self, conn: ConnectionRec) -> None:
-        self.connections.discard(conn)
-        for iid in (conn.a, conn.b):
-            links = self._links.get(iid)
-            if links is not None:
-                links.discard(conn)
-                if not links:
-                    del self._links[iid]
-
-    def forget_interfaces(self, recs: list[InterfaceRec]) -> list[tuple[InterfaceRec, InterfaceRec]]:
-        """Remove interfaces (one removed, a robot left, a container destroyed, a failed add) with
+    @_atomic
+    def forget_interfaces(self, recs: list[InterfaceRec]) -> Pairs:
+        """Remove interfaces (one removed, a robot left, a container destroyed, a refused add) with
         their connections; returns the removed connections as pairs of records. O(their connections)."""
-        out = []
+        out: Pairs = []
         for rec in recs:
-            self.interfaces.pop((rec.user, rec.etag, rec.itag), None)
-            self._by_iid.pop(rec.iid, None)
             for conn in list(self._links.get(rec.iid, ())):
-                self._drop_link(conn)
-                other = self._by_iid.get(conn.b if conn.a == rec.iid else conn.a)
-                if other is None:
-                    other = next((r for r in recs if r.iid in (conn.a, conn.b) and r is not rec), None)
-                if other is not None:
-                    out.append((rec, other) if conn.a == rec.iid else (other, rec))
+                a, b = self._by_iid.get(conn.a), self._by_iid.get(conn.b)
+                self._delete(conn)
+                if a is not None and b is not None:
+                    out.append((a, b))
+            self._delete(rec)
         return out
 
-    def connection_count(self, iid: int) -> int:
-        """How many connections interface ``iid`` has."""
-        return len(self._links.get(iid, ()))
-
+    @_atomic
     def connect(self, user: str, tag_a: str, tag_b: str) -> tuple[InterfaceRec, InterfaceRec]:
         """Connect two interfaces. Raises :class:`RequestError` if they cannot be paired
         (kinds, classes, same endpoint side rules) or are already connected."""
@@ -430,66 +414,38 @@ class MasterState:
                                "connect each to a container interface")
         for x in (a, b):
             if not x.robot_side:
-                c = next((c for c in self.containers.values() if c.cid == x.location), None)
+                c = self.container_by_cid(x.location)
                 if c is None or c.state != "running":
                     raise Unavailable(f"container {x.etag!r} of interface {x.tag} is not running")
         conn = ConnectionRec(user, min(a.iid, b.iid), max(a.iid, b.iid))
         if conn in self.connections:
             raise RequestError(f"{a.tag} and {b.tag} are already connected")
-        self._add_link(conn)
+        self._write(conn.store_key, conn.to_record())
         return a, b
 
+    @_atomic
     def disconnect(self, user: str, tag_a: str, tag_b: str) -> tuple[InterfaceRec, InterfaceRec]:
+        """Remove the connection of two interfaces. Raises :class:`NotFound`."""
         a, b = self.interface(user, tag_a), self.interface(user, tag_b)
         conn = ConnectionRec(user, min(a.iid, b.iid), max(a.iid, b.iid))
         if conn not in self.connections:
             raise NotFound(f"{a.tag} and {b.tag} are not connected")
-        self._drop_link(conn)
+        self._delete(conn)
         return a, b
 
-    def data_addr(self, rec: InterfaceRec) -> str:
-        """Data-plane address of the endpoint holding interface ``rec``."""
-        if rec.robot_side:
-            ts = self.tasksets.get(rec.location)
-            if ts is None:
-                raise Unavailable(f"the robot endpoint of {rec.tag} is gone")
-            return ts.info["data_addr"]
-        c = next((c for c in self.containers.values() if c.cid == rec.location), None)
-        if c is None or not c.data_addr:
-            raise Unavailable(f"container {rec.etag!r} of {rec.tag} is not running")
-        return c.data_addr
-
-    def container_by_cid(self, cid: int) -> Container | None:
-        return next((c for c in self.containers.values() if c.cid == cid), None)
-
-    # -- views (admin API) -----------------------------------------------------------------------
-    def snapshot(self) -> dict:
-        """JSON view of everything (admin API and rce-console)."""
-        ts = self.tasksets
-        by_iid = {i.iid: i for i in self.interfaces.values()}
-        return {
-            "users": [{"name": u} for u in sorted(self.users)],
-            "tasksets": [{"tid": t.tid, "kind": t.kind, "name": t.name, "host": t.host, "robots": t.robots,
-                          "containers": t.containers, "cpu_load": t.cpu_load, "mem_load": t.mem_load,
-                          **{k: v for k, v in t.info.items() if k in ("ws_url", "data_addr", "sandbox", "capacity")}}
-                         for t in sorted(ts.values(), key=lambda t: t.tid)],
-            "robots": [{"user": r.user, "robot": r.robot, "endpoint": ts[r.tid].name if r.tid in ts else "?",
-                        "since": r.since} for r in sorted(self.robots.values(), key=lambda r: (r.user, r.robot))],
-            "containers": [{"user": c.user, "ctag": c.ctag, "owner": c.owner, "cid": c.cid,
-                            "host": ts[c.tid].name if c.tid in ts else "(lost)", "group": c.group, "state": c.state,
-                            "sandbox": c.sandbox, "data": c.data}
-                           for c in sorted(self.containers.values(), key=lambda c: c.cid)],
-            "nodes": [{"user": n.user, "ctag": n.ctag, "ntag": n.ntag, "pkg": n.spec.get("pkg"),
-                       "exe": n.spec.get("exe"), "status": n.status, **n.detail}
-                      for n in sorted(self.nodes.values(), key=lambda n: (n.user, n.ctag, n.ntag))],
-            "parameters": [{"user": u, "ctag": c, "name": n, "value": v} for (u, c, n), v in sorted(self.params.items())],
-            "interfaces": [{"user": i.user, "tag": i.tag, "type": i.itype, "class": i.cls, "addr": i.addr,
-                            "iid": i.iid, "connections": self.connection_count(i.iid)}
-                           for i in sorted(self.interfaces.values(), key=lambda i: i.iid)],
-            "connections": [{"user": c.user, "tagA": by_iid[c.a].tag, "tagB": by_iid[c.b].tag}
-                            for c in sorted(self.connections, key=lambda c: (c.a, c.b))
-                            if c.a in by_iid and c.b in by_iid],
-        }
+    @_atomic
+    def connection_failed(self, a: InterfaceRec, b: InterfaceRec) -> None:
+        """Undo a connection an endpoint refused (nothing when it is already gone)."""
+        conn = ConnectionRec(a.user, min(a.iid, b.iid), max(a.iid, b.iid))
+        if conn in self.connections:
+            self._delete(conn)
 
 
-_NONE = object()
+def _check_user_name(name: Any) -> None:
+    if not isinstance(name, str) or not name or not name.replace("_", "").replace("-", "").replace(".", "").isalnum():
+        raise RequestError(f"illegal user name {name!r}: use letters, digits, '_', '-', '.'")
+
+
+def _current(table: dict, k: Any, obj: Any) -> bool:
+    """True while ``obj`` is still the record at ``table[k]`` (not removed, nor replaced meanwhile)."""
+    return table.get(k) is obj

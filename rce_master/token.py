@@ -1,19 +1,20 @@
-"""The admin token shared by rce-master and its tools (rce-console, rce-topic --container)."""
+"""The master's admin token (its clients find it with :func:`rce.admin_client.find_token`)."""
 from __future__ import annotations
 
 import os
 import secrets
 from pathlib import Path
 
-DEFAULT_TOKEN_FILE = Path(os.environ.get("XDG_CONFIG_HOME", Path.home() / ".config")) / "rce" / "admin-token"
+from rce.admin_client import TOKEN_ENV, token_file
 
 
 def load_or_create(path: Path | None) -> str:
-    """``RCE_ADMIN_TOKEN`` if set, else the token in ``path`` (created with mode 0600 if missing)."""
-    env = os.environ.get("RCE_ADMIN_TOKEN")
+    """``RCE_ADMIN_TOKEN`` if set, else the token in ``path`` (default
+    :func:`~rce.admin_client.token_file`), created with mode 0600 if missing."""
+    env = os.environ.get(TOKEN_ENV)
     if env:
         return env
-    path = path or DEFAULT_TOKEN_FILE
+    path = path or token_file()
     if path.exists():
         return path.read_text().strip()
     path.parent.mkdir(parents=True, exist_ok=True)
@@ -22,12 +23,3 @@ def load_or_create(path: Path | None) -> str:
     with os.fdopen(fd, "w") as f:
         f.write(token + "\n")
     return token
-
-
-def read(path: Path | None = None) -> str | None:
-    """The token for a client: ``RCE_ADMIN_TOKEN``, else the token file, else None."""
-    env = os.environ.get("RCE_ADMIN_TOKEN")
-    if env:
-        return env
-    path = path or DEFAULT_TOKEN_FILE
-    return path.read_text().strip() if path.exists() else None

@@ -11,9 +11,10 @@ from pathlib import Path
 import pytest
 from aiohttp import web
 
+from rce.admin_client import AdminClient, find_token, refusal
 from rce.bus.core import Bus
 from rce.bus.server import BusServer
-from rce.errors import AuthError, MessageError, NotFound, Unavailable
+from rce.errors import AuthError, MessageError, NotFound, RequestError, Timeout, Unavailable
 from rce.package_path import BUILTIN_DIR
 from rce_client import tools
 
@@ -233,3 +234,52 @@ async def test_admin_api_path(admin, capsys, monkeypatch):
                             "list"], capsys)
     with pytest.raises(Unavailable, match="hz needs a live subscription"):
         await run("topic", opts + ["--admin-token", "s3cret", "hz", "/stringEchoResp"], capsys)
+
+
+# -- the one admin-API client (rce.admin_client) ----------------------------------------------------
+def test_admin_token_is_found_in_order(monkeypatch, tmp_path):
+    monkeypatch.setenv("XDG_CONFIG_HOME", str(tmp_path))
+    monkeypatch.delenv("RCE_ADMIN_TOKEN", raising=False)
+    with pytest.raises(AuthError, match=f"no admin token: .* write it to {tmp_path}/rce/admin-token"):
+        find_token()
+    (tmp_path / "rce").mkdir()
+    (tmp_path / "rce" / "admin-token").write_text("from-file\n")      # what the master writes
+    assert find_token() == "from-file"
+    other = tmp_path / "other-token"
+    other.write_text("other\n")
+    assert find_token(path=other) == "other"                          # --admin-token-file
+    monkeypatch.setenv("RCE_ADMIN_TOKEN", "from-env")
+    assert find_token(path=other) == "from-env" and find_token("given") == "given"
+
+
+@pytest.mark.parametrize("status, cls", [(400, RequestError), (401, AuthError), (403, AuthError), (404, NotFound),
+                                         (409, RequestError), (500, Unavailable), (503, Unavailable),
+                                         (504, Timeout)])
+def test_admin_refusals_carry_the_masters_reason(status, cls):
+    e = refusal("POST", "/api/users", status, b"\nuser 'x' already exists\nmore\n")
+    assert type(e) is cls and e.status == status
+    assert e.message == f"POST /api/users: HTTP {status}: user 'x' already exists"
+
+
+async def test_admin_client_blocking_and_asyncio(admin):
+    url, seen, _ = admin
+    client = AdminClient(url, "s3cret")
+    bus = await asyncio.to_thread(client.request, "GET", "/api/containers/u/cTag_01/bus")
+    assert bus["topics"][0]["name"] == "/stringEchoResp" and seen[-1] == ("bus", "u")
+    assert await client.arequest("POST", "api/containers/u/cTag_01/publish", {"topic": "/t", "msg": {}}) == \
+        {"delivered": 1}
+    for call in (lambda: asyncio.to_thread(client.request, "GET", "/api/containers/u/nope/bus"),
+                 lambda: client.arequest("GET", "/api/containers/u/nope/bus")):
+        with pytest.raises(NotFound, match="GET /api/containers/u/nope/bus: HTTP 404: container 'nope' does not exist"):
+            await call()
+    wrong = AdminClient(url, "wrong")
+    with pytest.raises(AuthError, match="HTTP 401: admin API: missing or wrong bearer token"):
+        await wrong.arequest("GET", "/api/containers/u/cTag_01/bus")
+    await wrong.aclose()
+    await client.aclose()
+    gone = AdminClient("http://127.0.0.1:9/", "t")
+    with pytest.raises(Unavailable, match="cannot reach the master at http://127.0.0.1:9/"):
+        await asyncio.to_thread(gone.request, "GET", "/api/state")
+    with pytest.raises(Unavailable, match="cannot reach the master at http://127.0.0.1:9/"):
+        await gone.arequest("GET", "/api/state")
+    await gone.aclose()

@@ -7,7 +7,8 @@ import json
 import pytest
 
 from rce.errors import AuthError, NotFound, RCEError, RequestError, Unavailable
-from rce_master.state import MasterState, User, password_digest
+from rce_master.model import User, password_digest
+from rce_master.state import MasterState
 
 U, V = "alice", "bob"
 
@@ -303,8 +304,11 @@ def test_remove_container_drops_its_nodes_and_params_only(ms):
         ms.set_param(user, ctag, "p", 1)
     i1 = iface(ms, U, "r1", "c1", "pub", "PublisherInterface")
     iface(ms, U, "r1", "c2", "pub", "PublisherInterface")
-    c, ifaces = ms.remove_container(U, "c1")
-    assert c.ctag == "c1" and ifaces == [i1]
+    wired_to = iface(ms, U, "r1", "c2", "sub", "SubscriberInterface")
+    ms.connect(U, "c1/pub", "c2/sub")
+    c, pairs = ms.remove_container(U, "c1")
+    assert c.ctag == "c1" and pairs == [(i1, wired_to)]
+    assert (U, "c1", "pub") not in ms.interfaces and ms.connections == set()
     assert set(ms.nodes) == {(U, "c2", "n"), (V, "c1", "n")}
     assert set(ms.params) == {(U, "c2", "p"), (V, "c1", "p")}
 
@@ -574,7 +578,7 @@ def test_forget_interfaces(wired):
     assert list(wired.interfaces.values()) == [c] and wired.connections == set()
 
 
-def test_robot_disconnect_returns_its_interfaces_and_owned_containers(wired):
+def test_robot_disconnect_forgets_its_interfaces_and_returns_owned_containers(wired):
     wired.robot_connect(U, "r2", 1)
     own = running(wired, U, "mine", owner="r1")
     running(wired, U, "theirs", owner="r2")
@@ -585,18 +589,18 @@ def test_robot_disconnect_returns_its_interfaces_and_owned_containers(wired):
     ic = iface(wired, U, "r1", "mine", "x", "SubscriberInterface")
     wired.connect(U, "r1/a", "mine/x")
     assert wired.tasksets[1].robots == 2
-    ifaces, owned = wired.robot_disconnect(U, "r1")
-    assert sorted(i.tag for i in ifaces) == ["r1/a", "r1/b"] and {i.iid for i in ifaces} == {i1.iid, i2.iid}
-    assert ic not in ifaces
+    pairs, owned = wired.robot_disconnect(U, "r1")
+    # its robot-side interfaces are gone with their connections (returned, for the shell to tell)
+    assert [(a.tag, b.tag) for a, b in pairs] == [("r1/a", "mine/x")] and pairs[0][0] is i1
+    assert {i.iid for i in wired.interfaces.values()} & {i1.iid, i2.iid} == set()
+    assert wired.interface(U, "mine/x") is ic and wired.interface(U, "r2/a")
+    assert wired.connections == set()
     owned_keys = {(c.user, c.ctag) for c in owned}
     assert owned_keys == {(U, "c1"), (U, "c2"), (U, "mine")} and own in owned   # not 'theirs', not bob's
     assert (U, "r1") not in wired.robots and wired.tasksets[1].robots == 1
     # a robot that is not connected: nothing to do
     assert wired.robot_disconnect(U, "r1") == ([], [])
     assert wired.tasksets[1].robots == 1
-    # the shell then forgets the interfaces, which drops their connections
-    assert [(a.tag, b.tag) for a, b in wired.forget_interfaces(ifaces)] == [("r1/a", "mine/x")]
-    assert wired.connections == set()
     # the robot ID can connect again
     wired.robot_connect(U, "r1", 1)
 

@@ -26,8 +26,9 @@ async def test_tables_show_what_runs(engine):
     async with RawRobot(engine.master_url, "consoleBot") as r:
         await r.send("CC", {"containerTag": "consoleC", "containerData": {"group": "g1"}})
         await r.cn(addNodes=[{"containerTag": "consoleC", "nodeTag": "echo", "pkg": "Test", "exe": "stringEcho.py"}],
-                   addInterfaces=[{"endpointTag": "consoleC", "interfaceTag": "req", "interfaceType": "PublisherInterface",
-                                   "className": "std_msgs/String", "addr": "/stringEchoReq"},
+                   addInterfaces=[{"endpointTag": "consoleC", "interfaceTag": "req",
+                                   "interfaceType": "PublisherInterface", "className": "std_msgs/String",
+                                   "addr": "/stringEchoReq"},
                                   {"endpointTag": "consoleBot", "interfaceTag": "req",
                                    "interfaceType": "SubscriberConverter", "className": "std_msgs/String"}])
         await r.send("CX", {"connect": [{"tagA": "consoleC/req", "tagB": "consoleBot/req"}]})
@@ -75,3 +76,11 @@ def test_users_file_is_hashed_and_loaded(tmp_path):
         assert login(e.master_url, "bob")["url"].startswith("ws://")
     finally:
         e.stop()
+    offline = [str(BIN / "rce-console"), "user", "add", "bob", "--file", str(f), "--password-stdin"]
+    dup = subprocess.run(offline, input="x\n", capture_output=True, text=True, timeout=30)
+    assert dup.returncode == 1 and f"{f}: user 'bob' already exists" in dup.stderr
+    offline[2] = "del"
+    assert subprocess.run(offline, capture_output=True, text=True, timeout=30).returncode == 0
+    assert json.loads(f.read_text()) == {"users": []}
+    gone = subprocess.run(offline, capture_output=True, text=True, timeout=30)
+    assert gone.returncode == 1 and "no user 'bob'" in gone.stderr

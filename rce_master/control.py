@@ -1,0 +1,126 @@
+"""The master's side of the control plane (docs/INTERNALS.md, "Control ops"): its links to the
+task sets, and the I/O that requests, the admin API and teardowns share (call a container's
+host or an interface's endpoint, tell both ends of a connection, tell a robot, destroy a
+container). It reads :class:`~rce_master.state.MasterState` and changes it only through its
+operations.
+"""
+from __future__ import annotations
+
+from collections.abc import Awaitable
+from typing import Any
+
+from rce.errors import RCEError, Unavailable
+from rce.log import get_logger
+from rce.rpc import CALL_TIMEOUT, RpcPeer
+from rce_master.model import Container, InterfaceRec, NodeRec
+from rce_master.state import MasterState, Pairs
+
+log = get_logger("rce.master")
+
+CREATE_TIMEOUT = 60.0     # s, create_container: it returns once the environment is up (sandbox, bus, ready)
+
+
+class Control:
+    """The registered task sets' links (``peers``: tid -> :class:`RpcPeer`) and what is said on them.
+
+    A call raises the far end's :class:`RCEError`, :class:`Unavailable` when the link is gone, or
+    :class:`rce.errors.Timeout` when the far end did not answer in time (it may still do what
+    was asked: the request handlers undo that too, see :mod:`rce_master.requests`)."""
+
+    def __init__(self, state: MasterState):
+        self.state = state
+        self.peers: dict[int, RpcPeer] = {}
+
+    # -- calls ----------------------------------------------------------------------------------------
+    async def host_request(self, c: Container, op: str, args: dict, timeout: float = CALL_TIMEOUT) -> Any:
+        """Send ``op`` with ``args`` (plus ``cid``) to the host of container ``c``; its answer."""
+        peer = self.peers.get(c.tid)
+        if peer is None:
+            raise Unavailable(f"the host of container {c.ctag!r} is gone")
+        return await peer.request(op, {"cid": c.cid, **args}, timeout)
+
+    async def host_call(self, c: Container, op: str, **args: Any) -> Any:
+        """:meth:`host_request` with the op's arguments as keywords (timeout: ``rce.rpc.CALL_TIMEOUT``)."""
+        return await self.host_request(c, op, args)
+
+    async def endpoint_call(self, rec: InterfaceRec, op: str, **args: Any) -> Any:
+        """Send ``op`` to the endpoint holding interface ``rec``: its robot task set (robot side)
+        or its container's host (container side, with ``cid``)."""
+        if not rec.robot_side:
+            c = self.state.container_by_cid(rec.location)
+            if c is None:
+                raise Unavailable(f"container {rec.etag!r} is gone")
+            return await self.host_request(c, op, args)
+        peer = self.peers.get(rec.location)
+        if peer is None:
+            raise Unavailable(f"the robot endpoint of {rec.tag} is gone")
+        return await peer.request(op, args, CALL_TIMEOUT)
+
+    @staticmethod
+    async def quiet(call: Awaitable[Any]) -> None:
+        """Await ``call``, logging a refusal instead of raising it (teardown and undo)."""
+        try:
+            await call
+        except RCEError as e:
+            log.debug("ignored on teardown", reason=str(e))
+
+    # -- what both ends and the robot are told --------------------------------------------------------
+    async def tell_connect(self, a: InterfaceRec, b: InterfaceRec) -> None:
+        """Tell both ends of a new connection the other's iid and data address."""
+        addr_a, addr_b = self.state.data_addr(a), self.state.data_addr(b)
+        await self.endpoint_call(a, "connect", iid=a.iid, peer_iid=b.iid, peer_addr=addr_b)
+        await self.endpoint_call(b, "connect", iid=b.iid, peer_iid=a.iid, peer_addr=addr_a)
+
+    async def tell_disconnect(self, a: InterfaceRec, b: InterfaceRec) -> None:
+        """Tell both ends a connection is gone (quietly: either may be gone too)."""
+        await self.quiet(self.endpoint_call(a, "disconnect", iid=a.iid, peer_iid=b.iid))
+        await self.quiet(self.endpoint_call(b, "disconnect", iid=b.iid, peer_iid=a.iid))
+
+    async def tell_disconnects(self, pairs: Pairs) -> None:
+        for a, b in pairs:
+            await self.tell_disconnect(a, b)
+
+    def notify_robot(self, user: str, robot: str, type_: str, data: Any) -> None:
+        """Send the robot an ST or ER (``notify``) through its endpoint, if it is connected."""
+        r = self.state.robot(user, robot)
+        peer = self.peers.get(r.tid) if r else None
+        if peer:
+            peer.notify("notify", user=user, robot=robot, type=type_, data=data)
+
+    def tell_node_status(self, c: Container, n: NodeRec, status: str, detail: dict) -> None:
+        """ST ``node`` to the container's owner; an ER too when the node exited with an error."""
+        self.notify_robot(c.user, c.owner, "ST", {"topic": "node", "cTag": c.ctag, "nTag": n.ntag,
+                                                  "status": status, **detail})
+        if status in ("exited", "failed") and (detail.get("code") or detail.get("signal")):
+            how = f"code {detail['code']}" if detail.get("code") is not None else f"signal {detail.get('signal')}"
+            self.notify_robot(c.user, c.owner, "ER", f"node {n.ntag!r} in container {c.ctag!r} exited with {how}"
+                              + (f": {detail['reason']}" if detail.get("reason") else ""))
+
+    # -- teardowns --------------------------------------------------------------------------------------
+    async def destroy(self, c: Container, pairs: Pairs) -> None:
+        """After :meth:`MasterState.remove_container`: disconnect its interfaces' peers and
+        destroy it on its host (unless lost)."""
+        await self.tell_disconnects(pairs)
+        if c.state != "lost" and c.tid in self.peers:
+            try:
+                await self.host_call(c, "destroy_container")
+            except RCEError as e:
+                log.warning("destroy failed", ctag=c.ctag, reason=str(e))
+        log.info("container destroyed", user=c.user, ctag=c.ctag, cid=c.cid)
+
+    async def robot_gone(self, user: str, robot: str) -> None:
+        """A robot left: forget it with its interfaces and destroy the containers it owns."""
+        pairs, owned = self.state.robot_disconnect(user, robot)
+        await self.tell_disconnects(pairs)
+        for c in owned:
+            if self.state.containers.get((c.user, c.ctag)) is c:
+                await self.destroy(*self.state.remove_container(c.user, c.ctag))
+
+    async def taskset_lost(self, lost: list[Container], robots: list) -> None:
+        """After :meth:`MasterState.drop_taskset`: its robots are gone, its containers lost."""
+        for r in robots:
+            await self.robot_gone(r.user, r.robot)
+        for c in lost:
+            await self.tell_disconnects(self.state.forget_lost_container(c))
+            self.notify_robot(c.user, c.owner, "ST", {"topic": "container", "cTag": c.ctag, "status": "lost"})
+            self.notify_robot(c.user, c.owner, "ER", f"container {c.ctag!r} was lost: its host went away")

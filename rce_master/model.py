@@ -1,0 +1,195 @@
+"""The records of the master's command data structure (DESIGN section 1): users, task sets,
+robots, containers, nodes, parameters, interfaces and connections.
+
+Each record class knows its store key (:mod:`rce_master.store`) and its JSON form
+(``to_record``/``from_record``); :class:`~rce_master.state.MasterState` holds them and is the
+only one that changes them.
+"""
+from __future__ import annotations
+
+import dataclasses
+import hashlib
+import hmac
+import os
+from dataclasses import dataclass, field
+from typing import Any
+
+from rce_master.store import Key
+
+SCRYPT = {"n": 2**14, "r": 8, "p": 1}     # RFC 7914 cost: ~50 ms of CPU per check, by design
+LIMIT_KEYS = ("cpu", "memory", "size", "bandwidth")   # container limits (docs/INTERNALS.md)
+
+
+def password_digest(password: str) -> str:
+    """The hex SHA-256 a client sends for ``password`` (DESIGN section 3.2)."""
+    return hashlib.sha256(password.encode()).hexdigest()
+
+
+def _scrypt(digest_hex: str, salt: bytes) -> bytes:
+    return hashlib.scrypt(digest_hex.lower().encode(), salt=salt, dklen=32, **SCRYPT)
+
+
+class _Record:
+    """JSON form of a record dataclass: its fields, less those in ``DERIVED`` (recomputed on load)."""
+
+    DERIVED: tuple[str, ...] = ()
+
+    def to_record(self) -> dict:
+        return {f.name: getattr(self, f.name) for f in dataclasses.fields(self) if f.name not in self.DERIVED}
+
+    @classmethod
+    def from_record(cls, r: dict):
+        return cls(**{f.name: r[f.name] for f in dataclasses.fields(cls) if f.name not in cls.DERIVED})
+
+
+@dataclass
+class User:
+    """A user; the password is kept only as scrypt(sha256_hex(password), salt).
+
+    Record (also the users file's): ``{"name", "salt": hex, "scrypt": hex}``."""
+    name: str
+    salt: bytes
+    key: bytes
+
+    @classmethod
+    def create(cls, name: str, password: str) -> "User":
+        salt = os.urandom(16)
+        return cls(name, salt, _scrypt(password_digest(password), salt))
+
+    def check(self, digest_hex: str) -> bool:
+        """True if ``digest_hex`` (hex SHA-256 of the password) matches."""
+        return hmac.compare_digest(_scrypt(digest_hex, self.salt), self.key)
+
+    @property
+    def store_key(self) -> Key:
+        return ("user", self.name)
+
+    def to_record(self) -> dict:
+        return {"name": self.name, "salt": self.salt.hex(), "scrypt": self.key.hex()}
+
+    @classmethod
+    def from_record(cls, r: dict) -> "User":
+        """Raises KeyError/ValueError/TypeError for a malformed record."""
+        return cls(r["name"], bytes.fromhex(r["salt"]), bytes.fromhex(r["scrypt"]))
+
+
+@dataclass
+class TaskSet(_Record):
+    """A robot task set (endpoints) or container task set (host). ``info``: its ``register`` args."""
+    tid: int
+    kind: str                 # "robot" | "container"
+    name: str
+    host: str
+    info: dict = field(default_factory=dict)
+    lost: bool = False
+    # derived from the robots and containers on it (kept up to date by MasterState, not stored)
+    robots: int = 0
+    cpu_load: float = 0.0     # sum of cpu requested by its containers (cores)
+    mem_load: float = 0.0     # MiB requested
+    containers: int = 0
+    DERIVED = ("robots", "cpu_load", "mem_load", "containers")
+
+    @property
+    def store_key(self) -> Key:
+        return ("taskset", str(self.tid))
+
+
+@dataclass
+class Robot(_Record):
+    """A connected robot: on robot task set ``tid`` since ``since`` (Unix time, s)."""
+    user: str
+    robot: str
+    tid: int
+    since: float
+
+    @property
+    def store_key(self) -> Key:
+        return ("robot", self.user, self.robot)
+
+
+@dataclass
+class Container(_Record):
+    """A container of ``user`` created by robot ``owner`` on container host ``tid``."""
+    cid: int
+    user: str
+    ctag: str
+    owner: str                # robotID that created it
+    tid: int                  # container host
+    group: str | None
+    data: dict                # containerData, with the limits as last resized
+    state: str = "starting"   # starting | running | lost
+    data_addr: str = ""
+    sandbox: str = ""
+
+    @property
+    def store_key(self) -> Key:
+        return ("container", self.user, self.ctag)
+
+    def load(self) -> tuple[float, float]:
+        """(cpu cores, memory MiB) it asked of its host."""
+        return float(self.data.get("cpu") or 0), float(self.data.get("memory") or 0)
+
+
+@dataclass
+class NodeRec(_Record):
+    """A node in container ``ctag``; ``spec``: its addNodes entry; ``detail``: code/signal/reason."""
+    user: str
+    ctag: str
+    ntag: str
+    spec: dict
+    status: str = "starting"
+    detail: dict = field(default_factory=dict)
+
+    @property
+    def store_key(self) -> Key:
+        return ("node", self.user, self.ctag, self.ntag)
+
+
+@dataclass
+class InterfaceRec(_Record):
+    """An interface ``etag/itag``; ``location`` is the cid (container side) or the robot task
+    set's tid (robot side)."""
+    iid: int
+    user: str
+    etag: str
+    itag: str
+    itype: str
+    kind: str                 # Publisher | Subscriber | ServiceClient | ServiceProvider
+    side: str                 # Interface | Converter | Forwarder
+    cls: str
+    addr: str | None
+    location: int
+
+    @property
+    def tag(self) -> str:
+        return f"{self.etag}/{self.itag}"
+
+    @property
+    def robot_side(self) -> bool:
+        return self.side != "Interface"
+
+    @property
+    def store_key(self) -> Key:
+        return ("interface", self.user, self.etag, self.itag)
+
+
+@dataclass(frozen=True)
+class ConnectionRec(_Record):
+    """A connection between interfaces ``a`` < ``b`` (iids) of ``user``."""
+    user: str
+    a: int
+    b: int
+
+    @property
+    def store_key(self) -> Key:
+        return ("connection", self.user, str(self.a), str(self.b))
+
+
+def param_key(user: str, ctag: str, name: str) -> Key:
+    """Store key of a parameter; its record is ``{"user", "ctag", "name", "value"}``."""
+    return ("param", user, ctag, name)
+
+
+def limits_of(spec: dict) -> dict[str, Any]:
+    """The limits (``cpu``, ``memory``, ``size``, ``bandwidth``) given in ``spec``, None ones left out."""
+    return {k: spec[k] for k in LIMIT_KEYS if spec.get(k) is not None}

@@ -1,0 +1,270 @@
+"""The robot requests (DESIGN section 3: CC, DC, CN, CX), one handler each, in one table
+(:data:`REQUESTS`), the way rosbridge_suite registers its capabilities
+(``rosbridge_library/capabilities/``, listed in ``rosbridge_protocol.py``): adding a request
+type, or a CN/CX component, touches one class and one table entry.
+
+A request reaches a handler already validated against the protocol schema by the robot
+endpoint; the handler's body only asks :class:`~rce_master.state.MasterState` (which enforces
+the rules) and tells the task sets (:class:`~rce_master.control.Control`). Each component is a
+:class:`Step`: ``reserve`` (the state change), ``tell`` (the I/O), ``confirm`` (the state change
+once told) and ``undo`` (when telling failed). A step whose far end timed out may still have
+been done there, so its undo takes it back on the far end too.
+
+CN and CX are lists of components (:class:`Lists`): each item is handled on its own, in the
+order of :data:`CN_STEPS`/:data:`CX_STEPS`; the refused ones are named together in one error.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Any
+
+from rce.errors import RCEError, RequestError, Timeout
+from rce.log import get_logger
+from rce_master.control import CREATE_TIMEOUT, Control
+from rce_master.model import LIMIT_KEYS, limits_of
+from rce_master.state import MasterState
+
+log = get_logger("rce.master")
+
+
+@dataclass
+class Request:
+    """Who asks (``user``, ``robot``; the admin API asks with robot ``""``) and what answers."""
+    user: str
+    robot: str
+    state: MasterState
+    control: Control
+
+
+class Step:
+    """One component of a request; ``key`` names its list in the request data."""
+    key = ""
+
+    def reserve(self, req: Request, item: dict) -> Any:
+        """Change the state (validating); returns what :meth:`tell` and :meth:`undo` need."""
+        return None
+
+    async def tell(self, req: Request, item: dict, held: Any) -> Any:
+        """Tell the task sets; returns their answer."""
+        return None
+
+    def confirm(self, req: Request, item: dict, held: Any, answer: Any) -> None:
+        """Change the state once the task sets have done it."""
+
+    async def undo(self, req: Request, held: Any, told: bool) -> None:
+        """Take back :meth:`reserve` (and, when ``told``, what the far end did or may have done)."""
+
+    async def run(self, req: Request, item: dict) -> Any:
+        """Reserve, tell, confirm; undo when telling or confirming fails. Returns the answer."""
+        held = self.reserve(req, item)
+        try:
+            answer = await self.tell(req, item, held)
+        except Exception as e:
+            await self.undo(req, held, told=isinstance(e, Timeout))
+            raise
+        try:
+            self.confirm(req, item, held, answer)
+        except Exception:
+            await self.undo(req, held, told=True)
+            raise
+        return answer
+
+
+# -- CC, DC ----------------------------------------------------------------------------------------------
+class CreateContainer(Step):
+    """CC ``{containerTag, containerData?}``: place it on a host, create it there, ST ``running``."""
+
+    def reserve(self, req, item):
+        return req.state.add_container(req.user, req.robot, item["containerTag"], item.get("containerData"))[0]
+
+    async def tell(self, req, item, c):
+        data = item.get("containerData") or {}
+        return await req.control.host_request(c, "create_container", {
+            "user": req.user, "ctag": c.ctag, "group": c.group, "limits": {k: data.get(k) for k in LIMIT_KEYS}},
+            CREATE_TIMEOUT)
+
+    def confirm(self, req, item, c, answer):
+        req.state.container_ready(c, answer["data_addr"], answer.get("sandbox", ""))
+        log.info("container created", user=req.user, ctag=c.ctag, cid=c.cid, tid=c.tid, sandbox=c.sandbox)
+        # the robot learns what isolation its container got ("namespaced", or "unconfined" on a host without root)
+        req.control.notify_robot(req.user, req.robot, "ST", {"topic": "container", "cTag": c.ctag,
+                                                             "status": "running", "sandbox": c.sandbox})
+
+    async def undo(self, req, c, told):
+        await req.control.tell_disconnects(req.state.container_failed(c))
+        if told:
+            await req.control.quiet(req.control.host_call(c, "destroy_container"))
+
+
+class DestroyContainer(Step):
+    """DC ``{containerTag}``: forget it with everything in it, disconnect its peers, destroy it."""
+
+    def reserve(self, req, item):
+        req.state.container(req.user, item["containerTag"])          # a lost container is refused
+        return req.state.remove_container(req.user, item["containerTag"])
+
+    async def tell(self, req, item, held):
+        await req.control.destroy(*held)
+
+
+# -- CN ----------------------------------------------------------------------------------------------------
+class AddNode(Step):
+    key = "addNodes"
+
+    def reserve(self, req, spec):
+        return req.state.add_node(req.user, spec)
+
+    async def tell(self, req, spec, held):
+        c, n = held
+        await req.control.host_call(c, "add_node", ntag=n.ntag, pkg=spec["pkg"], exe=spec["exe"],
+                                    args=spec.get("args", ""), name=spec.get("name"),
+                                    namespace=spec.get("namespace"), respawn=spec.get("respawn"))
+
+    def confirm(self, req, spec, held, answer):
+        req.state.node_running(held[1])
+
+    async def undo(self, req, held, told):
+        c, n = held
+        req.state.node_failed(n)
+        if told:
+            await req.control.quiet(req.control.host_call(c, "remove_node", ntag=n.ntag))
+
+
+class RemoveNode(Step):
+    key = "removeNodes"
+
+    def reserve(self, req, spec):
+        return req.state.remove_node(req.user, spec["containerTag"], spec["nodeTag"])
+
+    async def tell(self, req, spec, c):
+        await req.control.host_call(c, "remove_node", ntag=spec["nodeTag"])
+
+
+class SetParam(Step):
+    key = "setParam"
+
+    def reserve(self, req, spec):
+        return req.state.container(req.user, spec["containerTag"])
+
+    async def tell(self, req, spec, c):
+        await req.control.host_call(c, "set_param", name=spec["name"], value=spec["value"])
+
+    def confirm(self, req, spec, c, answer):
+        req.state.set_param(req.user, c.ctag, spec["name"], spec["value"])
+
+
+class DeleteParam(Step):
+    key = "deleteParam"
+
+    def reserve(self, req, spec):
+        return req.state.delete_param(req.user, spec["containerTag"], spec["name"])
+
+    async def tell(self, req, spec, c):
+        await req.control.host_call(c, "delete_param", name=spec["name"])
+
+
+class AddInterface(Step):
+    key = "addInterfaces"
+
+    def reserve(self, req, spec):
+        return req.state.add_interface(req.user, req.robot, spec)
+
+    async def tell(self, req, spec, rec):
+        if rec.robot_side:
+            await req.control.endpoint_call(rec, "add_interface", user=req.user, robot=rec.etag, iid=rec.iid,
+                                            itag=rec.itag, itype=rec.itype, cls=rec.cls)
+        else:
+            await req.control.endpoint_call(rec, "add_interface", iid=rec.iid, tag=rec.tag, itype=rec.itype,
+                                            cls=rec.cls, addr=rec.addr)
+
+    async def undo(self, req, rec, told):
+        await req.control.tell_disconnects(req.state.interface_refused(rec))
+        if told:
+            await req.control.quiet(req.control.endpoint_call(rec, "remove_interface", iid=rec.iid))
+
+
+class RemoveInterface(Step):
+    key = "removeInterfaces"
+
+    def reserve(self, req, spec):
+        return req.state.remove_interface(req.user, spec["endpointTag"], spec["interfaceTag"])
+
+    async def tell(self, req, spec, held):
+        rec, pairs = held
+        for a, b in pairs:
+            other = b if a.iid == rec.iid else a
+            await req.control.quiet(req.control.endpoint_call(other, "disconnect", iid=other.iid, peer_iid=rec.iid))
+        await req.control.quiet(req.control.endpoint_call(rec, "remove_interface", iid=rec.iid))
+
+
+class ResizeContainer(Step):
+    """CN ``resizeContainer`` (and the admin API's resize): new limits; the nodes keep running."""
+    key = "resizeContainer"
+
+    def reserve(self, req, spec):
+        return req.state.container(req.user, spec["containerTag"])
+
+    async def tell(self, req, spec, c):
+        return await req.control.host_call(c, "resize_container", limits=limits_of(spec))
+
+    def confirm(self, req, spec, c, answer):
+        req.state.resize(req.user, c.ctag, limits_of(spec))
+
+
+# -- CX ----------------------------------------------------------------------------------------------------
+class Connect(Step):
+    key = "connect"
+
+    def reserve(self, req, item):
+        return req.state.connect(req.user, item["tagA"], item["tagB"])
+
+    async def tell(self, req, item, held):
+        await req.control.tell_connect(*held)
+
+    async def undo(self, req, held, told):
+        req.state.connection_failed(*held)
+        await req.control.tell_disconnect(*held)          # one end may have connected already
+
+
+class Disconnect(Step):
+    key = "disconnect"
+
+    def reserve(self, req, item):
+        return req.state.disconnect(req.user, item["tagA"], item["tagB"])
+
+    async def tell(self, req, item, held):
+        await req.control.tell_disconnect(*held)
+
+
+# -- the table -------------------------------------------------------------------------------------------
+class Lists:
+    """A request made of lists of components (CN, CX): every item of every step's list, in order."""
+
+    def __init__(self, *steps: Step):
+        self.steps = {s.key: s for s in steps}
+
+    async def run(self, req: Request, data: dict) -> None:
+        """Raises one :class:`RequestError` naming every refused item (the others are done)."""
+        errors: list[str] = []
+        for key, step in self.steps.items():
+            for item in data.get(key) or []:
+                try:
+                    await step.run(req, item)
+                except RCEError as e:
+                    errors.append(e.message)
+        if errors:
+            raise RequestError("; ".join(errors))
+
+
+CN_STEPS = Lists(AddNode(), RemoveNode(), SetParam(), DeleteParam(), AddInterface(), RemoveInterface(),
+                 ResizeContainer())
+CX_STEPS = Lists(Connect(), Disconnect())
+REQUESTS: dict[str, Step | Lists] = {"CC": CreateContainer(), "DC": DestroyContainer(), "CN": CN_STEPS, "CX": CX_STEPS}
+
+
+async def handle(req: Request, type_: str, data: dict) -> None:
+    """Handle robot request ``type_`` (CC, DC, CN, CX) with its ``data``. Raises :class:`RCEError`."""
+    handler = REQUESTS.get(type_)
+    if handler is None:
+        raise RequestError(f"unknown request type {type_!r}")
+    await handler.run(req, data)

@@ -1,0 +1,80 @@
+"""The store under the master's state (DESIGN section 8, "state in a store"): every change to
+:class:`~rce_master.state.MasterState` passes through it as records put and deleted by key.
+
+- A **key** is a tuple of strings whose first element names the kind of record:
+  ``("user", name)``, ``("taskset", tid)``, ``("robot", user, robot)``,
+  ``("container", user, ctag)``, ``("node", user, ctag, ntag)``, ``("param", user, ctag, name)``,
+  ``("interface", user, etag, itag)``, ``("connection", user, iid_a, iid_b)``, ``("counter", name)``
+  (the master's id counters). Ids in keys are decimal strings.
+- A **record** is a JSON object (dict); the shapes are those of ``to_record`` in
+  :mod:`rce_master.model`. The records alone rebuild the whole state (:class:`MasterState`
+  built on a store loads it).
+- Changes arrive in **batches** (:meth:`Store.commit`): one state operation (a request's step,
+  or its undo) is one batch, applied all or nothing. This module has the in-memory store; a file
+  store (SQLite) and a replicated one (etcd) implement the same three methods.
+"""
+from __future__ import annotations
+
+import json
+from abc import ABC, abstractmethod
+from collections.abc import Iterable, Iterator
+
+from rce.errors import RequestError
+
+Key = tuple[str, ...]
+Change = tuple[Key, "dict | None"]        # (key, record), or (key, None) to delete
+
+
+class Store(ABC):
+    """Records by key. Implementations keep records as JSON: what :meth:`get` returns is a copy."""
+
+    @abstractmethod
+    def get(self, key: Key) -> dict | None:
+        """The record at ``key``, or None."""
+
+    @abstractmethod
+    def items(self, kind: str | None = None) -> Iterator[tuple[Key, dict]]:
+        """Every ``(key, record)`` (of one ``kind`` when given), in key order."""
+
+    @abstractmethod
+    def commit(self, changes: Iterable[Change]) -> None:
+        """Apply a batch of puts (record) and deletes (None) in order, all or nothing.
+        Raises :class:`RequestError` for a record that is not JSON."""
+
+
+def encode(key: Key, record: dict) -> str:
+    """The JSON text of ``record``; raises :class:`RequestError` naming ``key`` when it is not JSON."""
+    try:
+        return json.dumps(record, allow_nan=False, separators=(",", ":"))
+    except (TypeError, ValueError) as e:
+        raise RequestError(f"record {'/'.join(key)} is not JSON: {e}") from None
+
+
+class MemoryStore(Store):
+    """The store in memory (``rce-master`` without ``--state``): lost when the master exits.
+
+    ``MemoryStore(other.items())`` copies another store's records."""
+
+    def __init__(self, records: Iterable[tuple[Key, dict]] = ()):
+        self._data: dict[Key, str] = {}
+        self.commit(records)
+
+    def __len__(self) -> int:
+        return len(self._data)
+
+    def get(self, key: Key) -> dict | None:
+        text = self._data.get(tuple(key))
+        return None if text is None else json.loads(text)
+
+    def items(self, kind: str | None = None) -> Iterator[tuple[Key, dict]]:
+        for key in sorted(self._data):
+            if kind is None or key[0] == kind:
+                yield key, json.loads(self._data[key])
+
+    def commit(self, changes: Iterable[Change]) -> None:
+        staged = [(tuple(k), None if r is None else encode(k, r)) for k, r in changes]   # all encode, or none lands
+        for key, text in staged:
+            if text is None:
+                self._data.pop(key, None)
+            else:
+                self._data[key] = text
