@@ -3,8 +3,11 @@
 Never ``playwright install``: the browser is the system's ``/usr/bin/chromium``."""
 from __future__ import annotations
 
+import functools
 import os
 import shutil
+import threading
+from http.server import SimpleHTTPRequestHandler, ThreadingHTTPServer
 from pathlib import Path
 
 import pytest
@@ -25,6 +28,24 @@ def browser():
         b = p.chromium.launch(executable_path=CHROMIUM, headless=True, args=CHROMIUM_ARGS)
         yield b
         b.close()
+
+
+class _QuietHandler(SimpleHTTPRequestHandler):
+    def log_message(self, format, *args):     # no request lines in the test output
+        pass
+
+
+@pytest.fixture(scope="session")
+def web_root():
+    """The web directory served over HTTP on 127.0.0.1 (a free port; a secure context, so
+    ``crypto.subtle`` exists), for tests of rce.js that need no engine; yields its URL, ending in /."""
+    server = ThreadingHTTPServer(("127.0.0.1", 0), functools.partial(_QuietHandler, directory=str(WEB_DIR)))
+    thread = threading.Thread(target=server.serve_forever, name="web-root", daemon=True)
+    thread.start()
+    yield f"http://127.0.0.1:{server.server_address[1]}/"
+    server.shutdown()
+    server.server_close()
+    thread.join()
 
 
 @pytest.fixture

@@ -2,7 +2,8 @@
 the page is served by rce-master itself (``--static /ui=WEB``, same origin), logs in, creates a
 container with the Test package's stringEcho.py and gets echoes back through converters (topic and
 service) and forwarders (binary parts); a bad request comes back as the ER; a wrong password is
-shown as an error; the SHA-256 fallback for non-secure contexts matches crypto.subtle."""
+shown as an error. Without an engine (the web directory on a local server): the SHA-256 fallback for
+non-secure contexts matches crypto.subtle, and the session's binary parts with random ids."""
 from __future__ import annotations
 
 import pytest
@@ -53,8 +54,8 @@ def test_unknown_user_shows_the_masters_reason(ui_engine, page, tmp_path):
     assert "HTTP 401" in page.text_content("#error") and "nobody" in page.text_content("#error")
 
 
-def test_sha256_fallback_matches_subtle(ui_engine, page):
-    page.goto(ui_engine.master_url + "ui/echo.html")
+def test_sha256_fallback_matches_subtle(web_root, page):
+    page.goto(web_root)
     ok = page.evaluate("""async () => {
         const m = await import('./rce.js');
         const hex = (b) => Array.from(b, x => x.toString(16).padStart(2, '0')).join('');
@@ -68,30 +69,35 @@ def test_sha256_fallback_matches_subtle(ui_engine, page):
     assert all(ok), ok
 
 
-def test_binary_parts_and_nan_tolerant_json(ui_engine, page):
-    """The Assembler takes a message's binary parts before or after its JSON frame (nested keys
-    and lists of ids too), and the JSON reader takes Python's NaN/Infinity (as null)."""
-    page.goto(ui_engine.master_url + "ui/echo.html")
+def test_session_binary_parts_with_random_ids(web_root, page):
+    """The session takes a message's binary parts before or after its JSON frame (nested keys and
+    lists of ids too) and hands them over as Uint8Array; outgoing bytes become parts under fresh
+    random ids (the shared vectors fix the ids; this checks the default id source)."""
+    page.goto(web_root)
     out = page.evaluate("""async () => {
         const m = await import('./rce.js');
         const enc = (s) => new TextEncoder().encode(s);
-        const a = new m.Assembler(60);
+        const s = new m.ClientSession();
         const id1 = 'a'.repeat(32), id2 = 'b'.repeat(32), id3 = 'c'.repeat(32);
-        const frame = (id, s) => { const b = new Uint8Array(32 + s.length); b.set(enc(id)); b.set(enc(s), 32); return b.buffer; };
-        const early = a.addPart(frame(id1, 'one'));                      // part before its message
-        const none = a.addMessage({type: 'DM', data: {iTag: 't', msg: {'x*': id1, inner: {'y*': [id2, id3]}}}});
-        const mid = a.addPart(frame(id2, 'two'));
-        const done = a.addPart(frame(id3, 'three'));                     // completes the message
+        const frame = (id, t) => {
+            const b = new Uint8Array(32 + t.length); b.set(enc(id)); b.set(enc(t), 32); return b.buffer; };
+        const early = s.receiveBinary(frame(id1, 'one'));                      // part before its message
+        const dm = {type: 'DM', data: {iTag: 't', msg: {'x*': id1, inner: {'y*': [id2, id3]}}}};
+        const none = s.receiveText(JSON.stringify(dm));
+        const mid = s.receiveBinary(frame(id2, 'two'));
+        const done = s.receiveBinary(frame(id3, 'three'));                     // completes the message
         const d = new TextDecoder();
-        const msg = done[0].data.msg;
-        const [text, frames] = m.encodeMessage({type: 'DM', data: {msg: new Uint8Array([1, 2, 3]), list: [new Uint8Array([4])]}});
-        const sent = JSON.parse(text);
-        const parsed = m.parseJSON('{"x": NaN, "y": -Infinity, "s": "NaN \\\\" Infinity", "z": [Infinity, 1.5]}');
-        return {early: early.length, none, mid: mid.length, x: d.decode(msg.x), y: msg.inner.y.map(v => d.decode(v)),
-                left: a.parts.size + a.waiting.length, sentKeys: Object.keys(sent.data).sort(), nframes: frames.length,
-                frameLen: frames[0].length, parsed};
+        const msg = done[0].msg;
+        const sent = s.send('DM', {msg: new Uint8Array([1, 2, 3]), list: [new Uint8Array([4])]});
+        const text = JSON.parse(sent[0].frame.text);
+        const ids = [text.data['msg*'], text.data['list*'][0]];
+        return {early: early.length, none: none.length, mid: mid.length, event: done[0].event, x: d.decode(msg.x),
+                y: msg.inner.y.map(v => d.decode(v)), left: s.assembler.parts.size + s.assembler.waiting.length,
+                sentKeys: Object.keys(text.data).sort(), nframes: sent.length, frameLen: sent[1].frame.binary.length,
+                ids, framedIds: sent.slice(1).map(o => d.decode(o.frame.binary.subarray(0, 32)))};
     }""")
-    assert out["early"] == 0 and out["none"] is None and out["mid"] == 0
+    assert out["early"] == 0 and out["none"] == 0 and out["mid"] == 0 and out["event"] == "message"
     assert out["x"] == "one" and out["y"] == ["two", "three"] and out["left"] == 0
-    assert out["sentKeys"] == ["list*", "msg*"] and out["nframes"] == 2 and out["frameLen"] == 35
-    assert out["parsed"] == {"x": None, "y": None, "s": 'NaN " Infinity', "z": [None, 1.5]}
+    assert out["sentKeys"] == ["list*", "msg*"] and out["nframes"] == 3 and out["frameLen"] == 35
+    assert out["ids"] == out["framedIds"] and len(set(out["ids"])) == 2
+    assert all(len(i) == 32 and int(i, 16) >= 0 for i in out["ids"])

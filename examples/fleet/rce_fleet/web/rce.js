@@ -12,6 +12,13 @@
 //     c.publish("req", "std_msgs/String", { data: "hi" });
 //     const resp = await c.call("srv", "Test/StringEcho", { data: "x" });
 //
+// Two layers, as rce.protocol.session and rce_client in Python:
+// - `ClientSession` holds the rules of the robot side of a session, sans I/O: frames in, frames to
+//   send and events out, time passed in as an argument. Its rules and its event names are those
+//   of tests/vectors/README.md; tests/vectors/session.json checks them, here (in Chromium, by
+//   tests/web/test_web_vectors.py) and in Python, so that the two cannot drift.
+// - `Client` is the shell: the login, the websocket, the timers, promises and callbacks.
+//
 // Binary parts: an outgoing message value that is a Uint8Array/ArrayBuffer under key k is sent
 // as `k*: id` plus a binary frame `id || bytes`; incoming `k*` keys (an id or a list of ids) are
 // resolved from the binary frames, in either order, and handed over as `k: Uint8Array` (or a
@@ -23,10 +30,19 @@
 // request was handled and rejects with the ERs it caused; `waitUp()` waits for the interfaces.
 
 export const CLIENT_VERSION = "20130902";
+/** s an incomplete message or an orphan binary part waits (rce.protocol.DEFAULT_EXPIRY). */
+export const DEFAULT_EXPIRY = 60;
+/** bytes of binary parts held while they wait for their message (rce.protocol.Assembler). */
+export const MAX_PENDING_BYTES = 256 * 1024 * 1024;
+const ID_LEN = 32;                       // chars of a binary part id (32 hex)
+const HEX_ID = /^[0-9a-fA-F]{32}$/;
 const enc = new TextEncoder();
 const dec = new TextDecoder();
 
-/** Errors from this library: `kind` is "login", "connect", "cloud" (an ER), "timeout" or "closed". */
+/**
+ * Errors from this library: `kind` is "login", "connect", "cloud" (an ER), "timeout", "closed",
+ * "protocol" (a frame the session cannot take) or "usage" (a bad argument).
+ */
 export class RCEError extends Error {
   constructor(kind, message) {
     super(message);
@@ -133,161 +149,347 @@ export async function login(master, userID, version = CLIENT_VERSION) {
   return data;
 }
 
+
+// ---------------------------------------------------------------------------------------------
+// JSON values and binary parts (DESIGN 3.4)
+// ---------------------------------------------------------------------------------------------
+const isBytes = (v) => v instanceof Uint8Array || v instanceof ArrayBuffer;
+const isObject = (v) => v !== null && typeof v === "object" && !Array.isArray(v);
+const nonEmpty = (what, v) => {
+  if (typeof v !== "string" || !v) throw new RCEError("usage", `${what} must be a non-empty string: ${JSON.stringify(v)}`);
+};
+const kindOf = (v) => (v === null ? "null" : Array.isArray(v) ? "array" : typeof v);
+
+/** Python's bool() of a JSON value: empty arrays and objects are false too. */
+function truthy(v) {
+  if (Array.isArray(v)) return v.length > 0;
+  if (isObject(v)) return Object.keys(v).length > 0;
+  return !!v;
+}
+
 /**
- * JSON.parse that also takes the NaN, Infinity and -Infinity tokens Python's json module writes
- * for non-finite floats (a pose not known yet is NaN); they become null.
+ * Outgoing: each bytes value under key k becomes `k*: id` (a list of bytes `k*: [ids]`), ids from
+ * `nextId()`. Returns [jsonText, [binary frames `id || bytes`]], parts depth first in key order.
  */
-export function parseJSON(text) {
-  try {
-    return JSON.parse(text);
-  } catch (e) {
-    if (!/NaN|Infinity/.test(text)) throw e;
-  }
-  let out = "", i = 0, inStr = false;
-  while (i < text.length) {
-    const ch = text[i];
-    if (inStr) {
-      out += ch;
-      if (ch === "\\") { out += text[i + 1] ?? ""; i += 2; continue; }
-      if (ch === '"') inStr = false;
-      i++;
-    } else if (ch === '"') { inStr = true; out += ch; i++; }
-    else if (text.startsWith("NaN", i)) { out += "null"; i += 3; }
-    else if (text.startsWith("-Infinity", i)) { out += "null"; i += 9; }
-    else if (text.startsWith("Infinity", i)) { out += "null"; i += 8; }
-    else { out += ch; i++; }
-  }
-  return JSON.parse(out);
-}
-
-// ---------------------------------------------------------------------------------------------
-// Binary parts
-// ---------------------------------------------------------------------------------------------
-function isBytes(v) {
-  return v instanceof Uint8Array || v instanceof ArrayBuffer;
-}
-
-/** Outgoing: bytes values become `k*` ids; returns [jsonText, [binary frames]]. */
-export function encodeMessage(obj) {
+function encodeMessage(obj, nextId) {
   const frames = [];
   const part = (v) => {
-    const id = newId();
+    const id = nextId();
+    if (typeof id !== "string" || !HEX_ID.test(id)) {
+      throw new RCEError("usage", `binary part id ${JSON.stringify(id)} is not 32 hex chars`);
+    }
     const data = v instanceof ArrayBuffer ? new Uint8Array(v) : v;
-    const f = new Uint8Array(32 + data.length);
+    const f = new Uint8Array(ID_LEN + data.length);
     f.set(enc.encode(id));
-    f.set(data, 32);
+    f.set(data, ID_LEN);
     frames.push(f);
     return id;
   };
   const walk = (o) => {
     if (Array.isArray(o)) return o.map(walk);
-    if (o && typeof o === "object" && !isBytes(o)) {
-      const out = {};
-      for (const [k, v] of Object.entries(o)) {
-        if (isBytes(v)) out[k + "*"] = part(v);
-        else if (Array.isArray(v) && v.length && v.every(isBytes)) out[k + "*"] = v.map(part);
-        else out[k] = walk(v);
-      }
-      return out;
+    if (!isObject(o) || isBytes(o)) return o;
+    const out = {};
+    for (const [k, v] of Object.entries(o)) {
+      if (isBytes(v)) out[k + "*"] = part(v);
+      else if (Array.isArray(v) && v.length && v.every(isBytes)) out[k + "*"] = v.map(part);
+      else out[k] = walk(v);
     }
-    return o;
+    return out;
   };
   return [JSON.stringify(walk(obj)), frames];
 }
 
-/** Ids referenced by `*` keys anywhere in `obj`. */
+/** Ids referenced by `*` keys anywhere in `obj`, in order; RCEError "protocol" for a bad id. */
 function refsOf(obj, acc = []) {
   if (Array.isArray(obj)) obj.forEach((v) => refsOf(v, acc));
-  else if (obj && typeof obj === "object") {
+  else if (isObject(obj)) {
     for (const [k, v] of Object.entries(obj)) {
-      if (k.endsWith("*")) {
-        for (const id of Array.isArray(v) ? v : [v]) {
-          if (typeof id !== "string" || !/^[0-9a-fA-F]{32}$/.test(id)) {
-            throw new RCEError("cloud", `binary part key ${JSON.stringify(k)} holds ${JSON.stringify(id)}, not a 32-hex-char id`);
-          }
-          acc.push(id.toLowerCase());
+      if (!k.endsWith("*")) { refsOf(v, acc); continue; }
+      for (const id of Array.isArray(v) ? v : [v]) {
+        if (typeof id !== "string" || !HEX_ID.test(id)) {
+          throw new RCEError("protocol", `binary reference under key ${JSON.stringify(k)} must be a 32-hex-char id, ` +
+                                         `got ${JSON.stringify(id)}`);
         }
-      } else refsOf(v, acc);
+        acc.push(id);
+      }
     }
   }
   return acc;
 }
 
+/** `k*: id` -> `k: bytes` (`k*: [ids]` -> a list of bytes). */
 function resolveRefs(obj, parts) {
   if (Array.isArray(obj)) return obj.map((v) => resolveRefs(v, parts));
-  if (obj && typeof obj === "object") {
-    const out = {};
-    for (const [k, v] of Object.entries(obj)) {
-      if (k.endsWith("*")) {
-        const key = k.slice(0, -1);
-        out[key] = Array.isArray(v) ? v.map((id) => parts.get(id.toLowerCase())) : parts.get(v.toLowerCase());
-      } else out[k] = resolveRefs(v, parts);
-    }
-    return out;
+  if (!isObject(obj)) return obj;
+  const out = {};
+  for (const [k, v] of Object.entries(obj)) {
+    if (k.endsWith("*")) out[k.slice(0, -1)] = Array.isArray(v) ? v.map((id) => parts.get(id)) : parts.get(v);
+    else out[k] = resolveRefs(v, parts);
   }
-  return obj;
+  return out;
 }
 
-/** Collects JSON messages and binary parts in either order (DESIGN 3.4). */
-export class Assembler {
-  constructor(expiry = 60) {
-    this.expiry = expiry * 1000;
-    this.parts = new Map();      // id -> {data, t}
-    this.waiting = [];           // {msg, refs:Set, t}
-    this.expired = 0;
+/**
+ * Joins JSON messages and their binary parts, in either order (as rce.protocol.Assembler): the
+ * first message waiting for an id takes the part; parts wait at most `maxPendingBytes` in all.
+ * Times are s; what waited more than `expiry` s goes in expire().
+ */
+class Assembler {
+  constructor(expiry, maxPendingBytes) {
+    this.expiry = expiry;
+    this.maxPendingBytes = maxPendingBytes;
+    this.waiting = [];           // {msg, refs, missing: Set, since}, oldest first
+    this.parts = new Map();      // id -> {data, since}
+    this.bytes = 0;              // payload bytes in this.parts
   }
 
-  /** A JSON message; returns it complete (parts resolved) or null while parts are missing. */
-  addMessage(msg) {
+  /** A JSON message (an object); returns the messages it completed (0 or 1). */
+  text(msg, now) {
     const refs = refsOf(msg);
-    if (!refs.length) return msg;
+    if (!refs.length) return [msg];
     const missing = new Set(refs.filter((id) => !this.parts.has(id)));
-    if (!missing.size) return this._complete(msg, refs);
-    this.waiting.push({ msg, refs, missing, t: Date.now() });
-    return null;
+    if (!missing.size) return [this._complete(msg, refs)];
+    this.waiting.push({ msg, refs, missing, since: now });
+    return [];
   }
 
-  /** A binary frame `id || bytes`; returns the messages it completed. */
-  addPart(buf) {
-    const bytes = new Uint8Array(buf);
-    if (bytes.length < 32) throw new RCEError("cloud", `binary frame of ${bytes.length} bytes has no 32-char id`);
-    const id = dec.decode(bytes.subarray(0, 32)).toLowerCase();
-    this.parts.set(id, { data: bytes.subarray(32), t: Date.now() });
-    const done = [];
-    this.waiting = this.waiting.filter((w) => {
-      w.missing.delete(id);
-      if (w.missing.size) return true;
-      done.push(this._complete(w.msg, w.refs));
-      return false;
-    });
-    return done;
+  /** A binary frame `id || bytes`; returns the messages it completed (0 or 1). */
+  binary(bytes, now) {
+    if (bytes.length < ID_LEN) {
+      throw new RCEError("protocol", `binary frame of ${bytes.length} bytes is shorter than its ${ID_LEN}-char id`);
+    }
+    const id = String.fromCharCode(...bytes.subarray(0, ID_LEN));
+    if (!HEX_ID.test(id)) throw new RCEError("protocol", "binary frame does not start with a 32-hex-char id");
+    const data = bytes.subarray(ID_LEN);
+    const held = this.bytes - (this.parts.get(id)?.data.length ?? 0);   // a part sent again replaces the first
+    if (held + data.length > this.maxPendingBytes) {
+      throw new RCEError("protocol", `binary parts waiting for their message exceed ${this.maxPendingBytes} bytes`);
+    }
+    this.parts.set(id, { data, since: now });
+    this.bytes = held + data.length;
+    const w = this.waiting.find((x) => x.missing.has(id));
+    if (!w) return [];
+    w.missing.delete(id);
+    if (w.missing.size) return [];
+    this.waiting.splice(this.waiting.indexOf(w), 1);
+    return [this._complete(w.msg, w.refs)];
   }
 
   _complete(msg, refs) {
-    const out = resolveRefs(msg, new Map(refs.map((id) => [id, this.parts.get(id).data])));
-    refs.forEach((id) => this.parts.delete(id));
-    return out;
+    const taken = new Map(refs.map((id) => [id, this.parts.get(id).data]));
+    for (const [id, data] of taken) { this.parts.delete(id); this.bytes -= data.length; }
+    for (const w of this.waiting) w.refs.forEach((id) => taken.has(id) && w.missing.add(id));  // reused ids wait again
+    return resolveRefs(msg, taken);
   }
 
-  /** Drop what waited longer than `expiry`; returns how many messages/parts were dropped. */
-  expire(now = Date.now()) {
-    let n = 0;
-    this.waiting = this.waiting.filter((w) => (now - w.t < this.expiry) || (n++, false));
-    for (const [id, p] of this.parts) if (now - p.t >= this.expiry) { this.parts.delete(id); n++; }
-    this.expired += n;
-    return n;
+  /** Drop messages and orphan parts that waited more than `expiry` s; one reason per drop. */
+  expire(now) {
+    const reasons = [];
+    this.waiting = this.waiting.filter((w) => {
+      if (now - w.since <= this.expiry) return true;
+      const iTag = isObject(w.msg.data) ? w.msg.data.iTag : undefined;
+      reasons.push(`message ${w.msg.type} for interface ${JSON.stringify(iTag ?? null)} expired after ` +
+                   `${this.expiry} s waiting for ${w.missing.size} binary part(s)`);
+      return false;
+    });
+    const wanted = new Set(this.waiting.flatMap((w) => w.refs));
+    for (const [id, p] of this.parts) {
+      if (now - p.since <= this.expiry || wanted.has(id)) continue;
+      this.parts.delete(id);
+      this.bytes -= p.data.length;
+      reasons.push(`binary part ${id} expired after ${this.expiry} s with no message referring to it`);
+    }
+    return reasons;
   }
 }
 
 // ---------------------------------------------------------------------------------------------
-// The client
+// The session, sans I/O (tests/vectors/README.md)
 // ---------------------------------------------------------------------------------------------
+/**
+ * The robot side of an RCE session without a socket, a timer or a clock: the same rules as
+ * rce.protocol.session.ClientSession, checked by the shared vectors (tests/vectors/session.json).
+ *
+ * Every method returns the outputs, in order: `{frame: {text: string}}` and `{frame: {binary:
+ * Uint8Array}}` to send, and events `{event: NAME, ...fields}` for the application:
+ * status {data}, interface {iTag, up}, error {reason}, message {iTag, type, msgID, msg},
+ * response {msgID, msg}, call_failed {msgID, reason}, barrier {token}, barrier_failed {token,
+ * reason}, dropped {reason}. Times (`now`) are s on any monotonic clock; a frame without one is
+ * taken at the last time seen.
+ *
+ * options: expiry (s an incomplete message waits for its binary parts), maxPendingBytes (bytes
+ * of binary parts held while waiting), newId (the source of binary part ids; a test fixes them).
+ * Misuse (a msgID or token already pending, sending after close) throws RCEError "usage"/"closed".
+ */
+export class ClientSession {
+  constructor({ expiry = DEFAULT_EXPIRY, maxPendingBytes = MAX_PENDING_BYTES, newId: ids = newId, ...rest } = {}) {
+    const unknown = Object.keys(rest);
+    if (unknown.length) throw new RCEError("usage", `ClientSession: unknown option(s) ${unknown.join(", ")}`);
+    this.assembler = new Assembler(expiry, maxPendingBytes);
+    this.newId = ids;
+    this.interfaces = new Map();      // iTag -> bool: its last ST iu
+    this.calls = new Map();           // msgID -> {iTag, seq}: calls waiting for their response
+    this.barriers = new Map();        // token -> seq: probes waiting for their ER
+    this.seq = 0;                     // start order of calls and barriers
+    this.now = 0;                     // s, the last time given
+    this.dropped = 0;                 // frames and parts dropped (each also a `dropped` event)
+    this.closed = false;
+  }
+
+  /** A text frame from the cloud. */
+  receiveText(text, now = this.now) {
+    this.now = now;
+    let msg;
+    try {
+      msg = JSON.parse(text);
+    } catch (e) {
+      return this._drop(`malformed JSON: ${e.message}`);
+    }
+    if (!isObject(msg)) return this._drop(`message must be a JSON object, got ${kindOf(msg)}`);
+    return this._take(() => this.assembler.text(msg, now));
+  }
+
+  /** A binary frame `id || bytes` from the cloud (Uint8Array or ArrayBuffer). */
+  receiveBinary(data, now = this.now) {
+    this.now = now;
+    return this._take(() => this.assembler.binary(data instanceof Uint8Array ? data : new Uint8Array(data), now));
+  }
+
+  /** Send `{type, data}`; bytes values become binary parts. */
+  send(type, data) {
+    if (this.closed) throw new RCEError("closed", "the session is closed");
+    const [text, frames] = encodeMessage({ type, data }, this.newId);
+    return [{ frame: { text } }, ...frames.map((binary) => ({ frame: { binary } }))];
+  }
+
+  /** Start a service call: DM {iTag, type, msgID, msg}; settled by `response` or `call_failed`. */
+  call(iTag, type, msg, msgID) {
+    nonEmpty("iTag", iTag);
+    nonEmpty("msgID", msgID);
+    if (this.calls.has(msgID)) throw new RCEError("usage", `a call with msgID ${msgID} is already pending`);
+    const out = this.send("DM", { iTag, type, msgID, msg });
+    this.calls.set(msgID, { iTag, seq: this.seq++ });
+    return out;
+  }
+
+  /**
+   * Start a barrier: a CX between two interfaces that cannot exist, which the cloud refuses with
+   * an ER naming them after every request sent before it (`barrier {token}`).
+   */
+  barrier(token) {
+    nonEmpty("token", token);
+    if (this.barriers.has(token)) throw new RCEError("usage", `a barrier with token ${token} is already pending`);
+    const out = this.send("CX", { connect: [{ tagA: `${token}/a`, tagB: `${token}/b` }] });
+    this.barriers.set(token, this.seq++);
+    return out;
+  }
+
+  /** Forget a call or a barrier the application gave up on (its timeout); no outputs. */
+  forget(msgIDOrToken) {
+    this.calls.delete(msgIDOrToken);
+    this.barriers.delete(msgIDOrToken);
+  }
+
+  /** Time passes: drop incomplete messages and orphan parts older than `expiry`. */
+  tick(now) {
+    this.now = now;
+    return this.assembler.expire(now).flatMap((reason) => this._drop(reason));
+  }
+
+  /** The link closed: every pending call and barrier fails, in the order they were started. */
+  close(reason) {
+    if (this.closed) return [];
+    this.closed = true;
+    const why = `connection closed: ${reason}`;
+    const pending = [...[...this.calls].map(([msgID, c]) => [c.seq, { event: "call_failed", msgID, reason: why }]),
+                     ...[...this.barriers].map(([token, seq]) => [seq, { event: "barrier_failed", token,
+                                                                         reason: why }])];
+    this.calls.clear();
+    this.barriers.clear();
+    return pending.sort((a, b) => a[0] - b[0]).map(([, ev]) => ev);
+  }
+
+  _drop(reason) {
+    this.dropped++;
+    return [{ event: "dropped", reason }];
+  }
+
+  /** Run an assembler step; a protocol error becomes `dropped`, complete messages are dispatched. */
+  _take(step) {
+    let done;
+    try {
+      done = step();
+    } catch (e) {
+      if (e instanceof RCEError && e.kind === "protocol") return this._drop(e.message);
+      throw e;
+    }
+    return done.flatMap((m) => this._dispatch(m));
+  }
+
+  _dispatch({ type, data }) {
+    if (type === "ST") return this._status(data);
+    if (type === "ER") return this._error(typeof data === "string" ? data : JSON.stringify(data ?? null));
+    if (type !== "DM") return this._drop(`unexpected message type ${JSON.stringify(type ?? null)}, not DM, ST or ER`);
+    if (!isObject(data)) return this._drop(`DM data must be a JSON object, got ${kindOf(data)}`);
+    const msgID = data.msgID ?? null;
+    const call = msgID === null ? undefined : this.calls.get(String(msgID));
+    if (call && call.iTag === data.iTag) {
+      this.calls.delete(String(msgID));
+      return [{ event: "response", msgID: String(msgID), msg: data.msg ?? null }];
+    }
+    return [{ event: "message", iTag: data.iTag ?? null, type: data.type ?? null, msgID, msg: data.msg ?? null }];
+  }
+
+  _status(data) {
+    const out = [];
+    if (isObject(data) && data.topic === "iu" && typeof data.iTag === "string") {
+      const up = truthy(data.status);
+      this.interfaces.set(data.iTag, up);
+      out.push({ event: "interface", iTag: data.iTag, up });
+    }
+    out.push({ event: "status", data: data ?? null });
+    return out;
+  }
+
+  /** An ER: the barrier whose token it holds passes, or the call it names fails, or it is the application's. */
+  _error(reason) {
+    for (const token of this.barriers.keys()) {
+      if (reason.includes(token)) { this.barriers.delete(token); return [{ event: "barrier", token }]; }
+    }
+    const calls = [...this.calls];                          // in the order they were started
+    const alone = (iTag) => calls.filter(([, c]) => c.iTag === iTag).length === 1;
+    const names = (iTag) => [`'${iTag}'`, `"${iTag}"`, `/${iTag}`].some((s) => reason.includes(s));
+    const call = calls.find(([id]) => reason.includes(id)) || calls.find(([, c]) => alone(c.iTag) && names(c.iTag));
+    const msgID = call?.[0];
+    if (msgID === undefined) return [{ event: "error", reason }];
+    this.calls.delete(msgID);
+    return [{ event: "call_failed", msgID, reason }];
+  }
+}
+
+// ---------------------------------------------------------------------------------------------
+// The client: a websocket shell around ClientSession
+// ---------------------------------------------------------------------------------------------
+/** ms the cloud may take to handle a request and its barrier (request(), barrier()). */
+export const REQUEST_TIMEOUT_MS = 60000;
+/** ms a service call waits for its response (call()). */
+export const CALL_TIMEOUT_MS = 30000;
+/** ms waitUp() waits for the interfaces' ST iu. */
+export const WAIT_UP_TIMEOUT_MS = 30000;
+/** ms between two passes that expire incomplete messages (a period, not a deadline). */
+const EXPIRE_PERIOD_MS = 5000;
+const clock = () => performance.now() / 1000;      // s, monotonic
+
 export class Client {
   /**
    * options: master (login URL, e.g. "http://127.0.0.1:9000/"), userID, robotID, password (clear
    * text, hashed here, never stored), version, expiry (s, binary parts).
+   *
+   * Events (on()): "status" (data of every ST), "interface" (iTag, up), "error" (the text of an
+   * ER that no call or barrier took), "message" (dm: {iTag, type, msgID, msg}), "notice" (text:
+   * what the session dropped, a version note), "close" ({code, reason}).
    */
-  constructor({ master, userID, robotID, password, version = CLIENT_VERSION, expiry = 60 }) {
+  constructor({ master, userID, robotID, password, version = CLIENT_VERSION, expiry = DEFAULT_EXPIRY }) {
     this.master = master;
     this.userID = userID;
     this.robotID = robotID;
@@ -295,14 +497,10 @@ export class Client {
     this.version = version;
     this.ws = null;
     this.wsUrl = null;
-    this.assembler = new Assembler(expiry);
+    this.session = new ClientSession({ expiry });
     this.handlers = new Map();            // event -> Set(fn)
     this.subscribers = new Map();         // iTag -> Set(fn)
-    this.calls = new Map();               // msgID -> {resolve, reject, timer}
-    this._barriers = new Map();           // probe token -> {resolve, reject}
-    this.iu = new Map();                  // iTag -> bool (robot-side interface connected)
-    this.errors = [];                     // last ERs, newest last
-    this.stats = { in: 0, out: 0, dm: 0, er: 0, st: 0 };
+    this._waiting = new Map();            // msgID or barrier token -> {resolve, reject}
     this.closed = false;
     this._expiryTimer = null;
   }
@@ -340,7 +538,8 @@ export class Client {
       ws.binaryType = "arraybuffer";
       this.ws = ws;
       ws.onopen = () => { open = true; resolve(); };
-      ws.onmessage = (ev) => this._receive(ev.data);
+      ws.onmessage = (ev) => this._apply(typeof ev.data === "string" ? this.session.receiveText(ev.data, clock())
+                                                                      : this.session.receiveBinary(ev.data, clock()));
       ws.onclose = (ev) => {
         if (!open) {
           // a browser does not show the refused handshake's status (401/403/409) to the page
@@ -352,20 +551,14 @@ export class Client {
         this._closed(ev.code, ev.reason);
       };
     });
-    this._expiryTimer = setInterval(() => {
-      const n = this.assembler.expire();
-      if (n) this._emit("notice", `${n} incomplete message(s)/binary part(s) expired`);
-    }, 5000);
+    this._expiryTimer = setInterval(() => this._apply(this.session.tick(clock())), EXPIRE_PERIOD_MS);
   }
 
   _closed(code, reason) {
     if (this.closed) return;
     this.closed = true;
     clearInterval(this._expiryTimer);
-    for (const [, c] of this.calls) { clearTimeout(c.timer); c.reject(new RCEError("closed", "connection closed")); }
-    this.calls.clear();
-    for (const [, b] of this._barriers) b.reject(new RCEError("closed", "connection closed"));
-    this._barriers.clear();
+    this._apply(this.session.close(reason || `code ${code}`));
     this._emit("close", { code, reason });
   }
 
@@ -374,14 +567,69 @@ export class Client {
     this._closed(1000, "closed by the page");
   }
 
+  /** Carry out the session's outputs: frames go to the websocket, events to promises and callbacks. */
+  _apply(outputs) {
+    for (const o of outputs) {
+      if (o.frame) { this.ws.send("text" in o.frame ? o.frame.text : o.frame.binary); continue; }
+      switch (o.event) {
+        case "status": this._emit("status", o.data); break;
+        case "interface": this._emit("interface", o.iTag, o.up); break;
+        case "error": this._emit("error", o.reason); break;
+        case "message": this._message({ iTag: o.iTag, type: o.type, msgID: o.msgID, msg: o.msg }); break;
+        case "response": this._settle(o.msgID, null, o.msg); break;
+        case "call_failed": this._settle(o.msgID, new RCEError(this.closed ? "closed" : "cloud", o.reason)); break;
+        case "barrier": this._settle(o.token, null); break;
+        case "barrier_failed": this._settle(o.token, new RCEError("closed", o.reason)); break;
+        case "dropped": this._emit("notice", `dropped from the cloud: ${o.reason}`); break;
+        default: console.error(`rce.js: unknown session output`, o);
+      }
+    }
+  }
+
+  _message(dm) {
+    for (const fn of this.subscribers.get(dm.iTag) || []) {
+      try { fn(dm.msg, dm); } catch (e) { console.error(`rce.js: subscriber of ${dm.iTag} failed`, e); }
+    }
+    this._emit("message", dm);
+  }
+
+  _settle(key, err, value) {
+    const w = this._waiting.get(key);
+    if (!w) return;
+    this._waiting.delete(key);
+    if (err) w.reject(err); else w.resolve(value);
+  }
+
+  /** A promise settled by the session's events for `key` (a msgID or a token), or by a timeout. */
+  _await(key, timeout, timeoutText, start) {
+    return new Promise((resolve, reject) => {
+      const timer = setTimeout(() => {
+        this._waiting.delete(key);
+        this.session.forget(key);
+        reject(new RCEError("timeout", timeoutText));
+      }, timeout);
+      this._waiting.set(key, { resolve: (v) => { clearTimeout(timer); resolve(v); },
+                               reject: (e) => { clearTimeout(timer); reject(e); } });
+      try {
+        this._requireOpen();
+        this._apply(start());
+      } catch (e) {
+        this._settle(key, e);
+      }
+    });
+  }
+
+  _requireOpen() {
+    if (this.closed || !this.ws || this.ws.readyState !== WebSocket.OPEN) {
+      throw new RCEError("closed", "not connected to the cloud");
+    }
+  }
+
   // -- outgoing ----------------------------------------------------------------------------------
   /** Send one protocol message `{type, data}` (bytes values become binary parts). */
   send(type, data) {
-    if (!this.ws || this.ws.readyState !== WebSocket.OPEN) throw new RCEError("closed", "not connected to the cloud");
-    const [text, frames] = encodeMessage({ type, data });
-    this.ws.send(text);
-    for (const f of frames) this.ws.send(f);
-    this.stats.out++;
+    this._requireOpen();
+    this._apply(this.session.send(type, data));
   }
 
   /**
@@ -391,7 +639,7 @@ export class Client {
    * (a CX between two interfaces that cannot exist, see barrier()) and the probe's ER marks the
    * end: ERs that came before it belong to the request. (rce_client.Connection.barrier does the same.)
    */
-  async request(type, data, timeout = 60000) {
+  async request(type, data, timeout = REQUEST_TIMEOUT_MS) {
     const errs = [];
     const off = this.on("error", (reason) => errs.push(reason));
     try {
@@ -403,22 +651,11 @@ export class Client {
     if (errs.length) throw new RCEError("cloud", errs.join("; "));
   }
 
-  /** Resolve when the cloud has handled every request sent before (see request()). */
-  barrier(timeout = 60000) {
+  /** Resolve when the cloud has handled every request sent before (see request()); timeout in ms. */
+  barrier(timeout = REQUEST_TIMEOUT_MS) {
     const token = `rcesync${newId().slice(0, 12)}`;
-    return new Promise((resolve, reject) => {
-      const timer = setTimeout(() => { this._barriers.delete(token); reject(new RCEError("timeout",
-        `the cloud did not answer within ${timeout / 1000} s`)); }, timeout);
-      this._barriers.set(token, { resolve: () => { clearTimeout(timer); resolve(); },
-                                  reject: (e) => { clearTimeout(timer); reject(e); } });
-      try {
-        this.send("CX", { connect: [{ tagA: `${token}/a`, tagB: `${token}/b` }] });
-      } catch (e) {
-        this._barriers.delete(token);
-        clearTimeout(timer);
-        reject(e);
-      }
-    });
+    return this._await(token, timeout, `the cloud did not answer within ${timeout / 1000} s`,
+                       () => this.session.barrier(token));
   }
 
   createContainer(containerTag, containerData) {
@@ -436,16 +673,14 @@ export class Client {
     return this.request("CX", { disconnect: pairs.map(([tagA, tagB]) => ({ tagA, tagB })) });
   }
 
-  /** Resolve when each robot-side interface in `iTags` reported ST iu true; reject on an ER or timeout. */
-  waitUp(iTags, timeout = 30000) {
-    const left = new Set(iTags.filter((t) => !this.iu.get(t)));
+  /** Resolve when each robot-side interface in `iTags` reported ST iu true; reject on an ER, close or timeout (ms). */
+  waitUp(iTags, timeout = WAIT_UP_TIMEOUT_MS) {
+    const left = new Set(iTags.filter((t) => !this.session.interfaces.get(t)));
     if (!left.size) return Promise.resolve();
     return new Promise((resolve, reject) => {
       const offs = [];
       const done = (err) => { clearTimeout(timer); offs.forEach((f) => f()); err ? reject(err) : resolve(); };
-      offs.push(this.on("status", (d) => {
-        if (d.topic === "iu" && d.status === true) { left.delete(d.iTag); if (!left.size) done(); }
-      }));
+      offs.push(this.on("interface", (iTag, up) => { if (up) { left.delete(iTag); if (!left.size) done(); } }));
       offs.push(this.on("error", (reason) => done(new RCEError("cloud", reason))));
       offs.push(this.on("close", () => done(new RCEError("closed", "connection closed"))));
       const timer = setTimeout(() => done(new RCEError("timeout",
@@ -456,20 +691,13 @@ export class Client {
   /** Publish on a robot-side SubscriberConverter (msg: JSON) or SubscriberForwarder (msg: Uint8Array). */
   publish(iTag, type, msg, msgID = "") {
     this.send("DM", { iTag, type, msgID, msg });      // bytes become the binary part msg*
-    this.stats.dm++;
   }
 
-  /** Call a service through a robot-side ServiceProvider interface; resolves with the response msg. */
-  call(iTag, type, msg, timeout = 30000) {
+  /** Call a service through a robot-side ServiceProvider interface; resolves with the response msg (timeout in ms). */
+  call(iTag, type, msg, timeout = CALL_TIMEOUT_MS) {
     const msgID = newId();
-    return new Promise((resolve, reject) => {
-      const timer = setTimeout(() => { this.calls.delete(msgID); reject(new RCEError("timeout",
-        `no response from ${iTag} (${type}) within ${timeout / 1000} s`)); }, timeout);
-      this.calls.set(msgID, { resolve, reject, timer });
-      try { this.send("DM", { iTag, type, msgID, msg }); } catch (e) {
-        clearTimeout(timer); this.calls.delete(msgID); reject(e);
-      }
-    });
+    return this._await(msgID, timeout, `no response from ${iTag} (${type}) within ${timeout / 1000} s`,
+                       () => this.session.call(iTag, type, msg, msgID));
   }
 
   /** fn(msg, dm) for each DM arriving on the robot-side interface `iTag`. Returns an unsubscribe function. */
@@ -477,56 +705,5 @@ export class Client {
     if (!this.subscribers.has(iTag)) this.subscribers.set(iTag, new Set());
     this.subscribers.get(iTag).add(fn);
     return () => this.subscribers.get(iTag).delete(fn);
-  }
-
-  // -- incoming ----------------------------------------------------------------------------------
-  _receive(data) {
-    this.stats.in++;
-    let complete = [];
-    try {
-      if (typeof data === "string") {
-        const m = parseJSON(data);
-        if (!m || typeof m !== "object" || typeof m.type !== "string") throw new Error("not {type, data}");
-        const done = this.assembler.addMessage(m);
-        if (done) complete = [done];
-      } else {
-        complete = this.assembler.addPart(data);
-      }
-    } catch (e) {
-      this._emit("notice", `bad frame from the cloud ignored: ${e.message}`);
-      return;
-    }
-    for (const m of complete) this._dispatch(m);
-  }
-
-  _dispatch(m) {
-    const d = m.data;
-    if (m.type === "DM") {
-      const call = d.msgID && this.calls.get(d.msgID);
-      if (call) {
-        clearTimeout(call.timer);
-        this.calls.delete(d.msgID);
-        call.resolve(d.msg);
-      }
-      for (const fn of this.subscribers.get(d.iTag) || []) {
-        try { fn(d.msg, d); } catch (e) { console.error(`rce.js: subscriber of ${d.iTag} failed`, e); }
-      }
-      this._emit("message", d);
-    } else if (m.type === "ST") {
-      this.stats.st++;
-      if (d && d.topic === "iu") this.iu.set(d.iTag, !!d.status);
-      this._emit("status", d);
-    } else if (m.type === "ER") {
-      this.stats.er++;
-      const reason = typeof d === "string" ? d : JSON.stringify(d);
-      for (const [token, b] of this._barriers) {
-        if (reason.includes(token)) { this._barriers.delete(token); b.resolve(); return; }
-      }
-      this.errors.push({ t: Date.now(), reason });
-      if (this.errors.length > 50) this.errors.shift();
-      this._emit("error", reason);
-    } else {
-      this._emit("notice", `unknown message type ${m.type} from the cloud`);
-    }
   }
 }
