@@ -9,31 +9,26 @@ from __future__ import annotations
 
 import json
 from pathlib import Path
-from typing import Any, Union
+from typing import Any
 
 import yaml
-from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator, model_validator
+from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_validator
 
-from rce.errors import ConfigError, ProtocolError
-from rce.protocol import split_interface_type
+from rce.errors import ConfigError
+from rce.protocol import schema
+from rce.protocol.schema import key_path, split_interface_type
 
-JSONValue = Union[bool, int, float, str, list, dict, None]
+# A config file uses the schema's field names (the short keys) and refuses keys it does not know.
+_FILE = ConfigDict(extra="forbid", validate_by_name=True, validate_by_alias=False, loc_by_alias=False)
 
 
 class _Model(BaseModel):
-    model_config = ConfigDict(extra="forbid", populate_by_name=True)
+    model_config = _FILE
 
 
-class ContainerSpec(_Model):
+class ContainerSpec(schema.Container):
     """A container to create: tag and optional placement and limits (cpu in cores, memory in MiB)."""
-    cTag: str = Field(min_length=1)
-    group: str | None = None
-    groupIp: str | None = None
-    size: float | None = Field(default=None, ge=0)
-    cpu: float | None = Field(default=None, ge=0)
-    memory: float | None = Field(default=None, ge=0)
-    bandwidth: float | None = Field(default=None, ge=0)
-    specialFeatures: list[str] = Field(default_factory=list)
+    model_config = _FILE
 
     def container_data(self) -> dict:
         """The CC ``containerData`` object for this spec (only keys that are set)."""
@@ -43,71 +38,32 @@ class ContainerSpec(_Model):
         return d
 
 
-class NodeSpec(_Model):
+class NodeSpec(schema.Node):
     """A node to launch in a container (RCE addNodes component)."""
-    cTag: str = Field(min_length=1)
-    nTag: str = Field(min_length=1)
-    pkg: str = Field(min_length=1)
-    exe: str = Field(min_length=1)
-    args: str | list[str] = ""
-    name: str | None = None
-    namespace: str | None = None
-    respawn: bool | dict | None = None
+    model_config = _FILE
 
     def component(self) -> dict:
         """The CN addNodes component for this node."""
-        d = {"containerTag": self.cTag, "nodeTag": self.nTag, "pkg": self.pkg, "exe": self.exe}
-        for k in ("args", "name", "namespace", "respawn"):
-            v = getattr(self, k)
-            if v not in (None, ""):
-                d[k] = v
-        return d
+        return {k: v for k, v in self.model_dump(by_alias=True).items() if v not in (None, "")}
 
 
-class ParameterSpec(_Model):
+class ParameterSpec(schema.Parameter):
     """A container parameter (any JSON value)."""
-    cTag: str = Field(min_length=1)
-    name: str = Field(min_length=1)
-    value: JSONValue
+    model_config = _FILE
 
 
-class InterfaceSpec(_Model):
+class InterfaceSpec(schema.Interface):
     """An interface on an endpoint (a container tag, or the robot's own robotID)."""
-    eTag: str = Field(min_length=1)
-    iTag: str = Field(min_length=1)
-    iType: str
-    iCls: str = Field(min_length=1)
-    addr: str | None = None
-
-    @field_validator("iType")
-    @classmethod
-    def _known_type(cls, v: str) -> str:
-        try:
-            split_interface_type(v)
-        except ProtocolError as e:
-            raise ValueError(e.message) from None
-        return v
+    model_config = _FILE
 
     def component(self) -> dict:
         """The CN addInterfaces component for this interface."""
-        d = {"endpointTag": self.eTag, "interfaceTag": self.iTag, "interfaceType": self.iType,
-             "className": self.iCls}
-        if self.addr:
-            d["addr"] = self.addr
-        return d
+        return {k: v for k, v in self.model_dump(by_alias=True).items() if v not in (None, "")}
 
 
-class ConnectionSpec(_Model):
+class ConnectionSpec(schema.Connection):
     """A connection between two interfaces, each ``endpointTag/interfaceTag``."""
-    tagA: str
-    tagB: str
-
-    @field_validator("tagA", "tagB")
-    @classmethod
-    def _tag_form(cls, v: str) -> str:
-        if v.count("/") != 1 or v.startswith("/") or v.endswith("/"):
-            raise ValueError(f"{v!r} must be 'endpointTag/interfaceTag'")
-        return v
+    model_config = _FILE
 
 
 class RobotConfig(_Model):
@@ -152,13 +108,6 @@ class _KeyError(ValueError):
         self.path, self.reason = path, reason
 
 
-def _loc(loc: tuple) -> str:
-    out = ""
-    for p in loc:
-        out += f"[{p}]" if isinstance(p, int) else (f".{p}" if out else str(p))
-    return out or "(top level)"
-
-
 def parse_config(data: Any, source: str = "<config>") -> RobotConfig:
     """Validate an already-parsed config object. Raises :class:`ConfigError`."""
     if not isinstance(data, dict):
@@ -175,7 +124,7 @@ def parse_config(data: Any, source: str = "<config>") -> RobotConfig:
         msg = err["msg"].removeprefix("Value error, ")
         if err["type"] == "extra_forbidden":
             msg = "unknown key"
-        raise ConfigError(f"{source}: {_loc(err['loc'])}: {msg}") from None
+        raise ConfigError(f"{source}: {key_path(tuple(err['loc'])) or '(top level)'}: {msg}") from None
 
 
 def load_config(path: str | Path) -> RobotConfig:

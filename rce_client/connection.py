@@ -36,7 +36,8 @@ robot-side interface (eTag = robotID)      client endpoint
 A Converter carries messages as JSON objects (:mod:`rce.messages` JSON form); a
 Forwarder carries ROS 1 serialized bytes as the binary part ``msg*``. Either way a
 ``bytes`` message is sent as a binary part and a received binary part arrives as
-``bytes`` (:class:`rce.protocol.Assembler`, :func:`rce.protocol.encode`).
+``bytes``. The protocol's rules (binary parts, msgID tables, the barrier, ER attribution)
+are :class:`rce.protocol.session.ClientSession`'s; this module is the asyncio shell around it.
 """
 from __future__ import annotations
 
@@ -45,7 +46,6 @@ import hashlib
 import inspect
 import json
 import time
-import uuid
 from typing import Any, Awaitable, Callable, Iterable
 from urllib.parse import parse_qsl, urlencode, urlsplit, urlunsplit
 
@@ -54,14 +54,21 @@ from websockets.asyncio.client import ClientConnection, connect as ws_connect
 from websockets.exceptions import ConnectionClosed, InvalidHandshake, InvalidStatus, InvalidURI
 
 from rce import protocol
-from rce.errors import AuthError, ProtocolError, RCEError, RequestError, Unavailable
+from rce.errors import AuthError, RCEError, Timeout, Unavailable
 from rce.log import get_logger
+from rce.protocol.session import ClientSession
+from rce.tasks import Tasks
 
 log = get_logger("rce.client")
 
 CLIENT_VERSION = "20130902"      # the RCE alpha client protocol version
-DEFAULT_CALL_TIMEOUT = 30.0      # s
+DEFAULT_CALL_TIMEOUT = 30.0      # s a service call waits for the cloud's response
+CONNECT_TIMEOUT = 10.0           # s for each of the login and the websocket handshake
+WAIT_TIMEOUT = 30.0              # s a barrier or wait_interfaces_up waits for the cloud by default
+CLOSE_TIMEOUT = 5.0              # s close() waits for the reader to see the closing handshake
+EXPIRY_CHECK_MIN, EXPIRY_CHECK_MAX = 0.05, 5.0   # s between expiry checks: a quarter of the expiry, within these
 MAX_FRAME = 256 * 1024 * 1024    # bytes, largest websocket frame accepted
+ERRORS_KEPT = 100                # ERs kept in Connection.errors
 
 Message = dict | bytes            # JSON-form message (Converter) or serialized bytes (Forwarder)
 StatusCallback = Callable[[dict], Any]
@@ -99,7 +106,8 @@ def _with_query(url: str, **params: str) -> str:
     return urlunsplit((parts.scheme, parts.netloc, parts.path or "/", urlencode(query), parts.fragment))
 
 
-async def login(master_url: str, user_id: str, version: str = CLIENT_VERSION, timeout: float = 10.0) -> str:
+async def login(master_url: str, user_id: str, version: str = CLIENT_VERSION,
+                timeout: float = CONNECT_TIMEOUT) -> str:
     """Ask the master for this user's robot endpoint; returns its websocket URL.
 
     ``GET master_url?userID=U&version=V`` -> ``{"url": ws_url, "current"?: V'}`` (``current``
@@ -184,20 +192,19 @@ class ServiceClient:
         """Send ``DM {iTag, type, msgID, msg: request}`` with a fresh msgID and return the ``msg``
         of the response DM with the same msgID (dict for a Converter, bytes for a Forwarder).
 
-        Raises :class:`Unavailable` on timeout (``timeout`` s) or when the connection closes,
-        :class:`RequestError` when the cloud answers the call with an ER naming it."""
-        msg_id = uuid.uuid4().hex
-        fut = asyncio.get_running_loop().create_future()
-        self.conn._calls[msg_id] = (self.itag, fut)
+        Raises :class:`rce.errors.Timeout` (a :class:`TimeoutError`) after ``timeout`` s (None: no
+        limit), :class:`Unavailable` when the connection closes, :class:`RequestError` when the
+        cloud answers the call with an ER naming it."""
+        session = self.conn.session
+        msg_id = session.call(self.itag, self.srv_cls, {} if request is None else request)
         self.calls += 1
         try:
-            await self.conn.send(protocol.DM, {"iTag": self.itag, "type": self.srv_cls, "msgID": msg_id,
-                                               "msg": {} if request is None else request})
-            return await asyncio.wait_for(fut, timeout)
-        except asyncio.TimeoutError:
-            raise Unavailable(f"service {self.itag!r} ({self.srv_cls}) did not answer within {timeout} s") from None
+            await self.conn._flush(session.data_to_send())
+            return await session.pending.wait(msg_id, timeout)
+        except Timeout:
+            raise Timeout(f"service {self.itag!r} ({self.srv_cls}) did not answer within {timeout:g} s") from None
         finally:
-            self.conn._calls.pop(msg_id, None)
+            session.pending.forget(msg_id)
 
 
 class ServiceProvider:
@@ -233,38 +240,46 @@ class ServiceProvider:
 
 
 class Connection:
-    """One robot's connection to the cloud. Create with :meth:`connect`.
+    """One robot's connection to the cloud: the websocket shell of a
+    :class:`~rce.protocol.session.ClientSession` (which holds the rules). Create with :meth:`connect`.
 
     Attributes: ``user_id``, ``robot_id``, ``ws_url``; ``interfaces``: iTag -> last ST ``iu``
-    status (bool); ``errors``: every ER string received (most recent last, bounded);
-    ``dropped``: DMs with no handler, malformed frames and expired binary parts."""
+    status (bool); ``errors``: every ER string received (most recent last, the last
+    :data:`ERRORS_KEPT`); ``dropped``: DMs with no handler, malformed frames and expired binary parts."""
 
     def __init__(self, ws: ClientConnection, user_id: str, robot_id: str, ws_url: str,
                  expiry: float = protocol.DEFAULT_EXPIRY):
         self.ws, self.user_id, self.robot_id, self.ws_url = ws, user_id, robot_id, ws_url
-        self.assembler = protocol.Assembler(expiry=expiry)
-        self.interfaces: dict[str, bool] = {}
+        self.session = ClientSession(expiry=expiry)
         self.errors: list[str] = []
-        self.dropped = 0
+        self.unhandled = 0                          # DMs for an iTag with no handler
         self.close_reason: str | None = None
         self._handlers: dict[str, Subscriber | ServiceProvider] = {}
-        self._calls: dict[str, tuple[str, asyncio.Future]] = {}
         self._status_cbs: list[StatusCallback] = []
         self._error_cbs: list[ErrorCallback] = []
         self._changed = asyncio.Event()
-        self._barriers: dict[str, asyncio.Future] = {}
         self._barrier_ok = True
-        self._tasks: set[asyncio.Task] = set()
         self._send_lock = asyncio.Lock()
         self._closed = asyncio.Event()
-        self._reader = asyncio.create_task(self._read_loop(), name=f"rce-client-{robot_id}")
-        self._housekeeper = asyncio.create_task(self._expire_loop())
+        self.tasks = Tasks(f"rce-client {robot_id}")
+        self._reader = self.tasks.spawn(self._read_loop(), name="reader")
+        self.tasks.spawn(self._expire_loop(), name="expire")
+
+    @property
+    def interfaces(self) -> dict[str, bool]:
+        """iTag -> last ST ``iu`` status."""
+        return self.session.interfaces
+
+    @property
+    def dropped(self) -> int:
+        """DMs with no handler, malformed frames, expired binary parts, unexpected messages."""
+        return self.session.dropped + self.unhandled
 
     # -- connect / close ---------------------------------------------------------------------
     @classmethod
     async def login_connect(cls, master_url: str, user_id: str, password: str, robot_id: str, *,
-                      version: str = CLIENT_VERSION, timeout: float = 10.0,
-                      expiry: float = protocol.DEFAULT_EXPIRY) -> "Connection":
+                            version: str = CLIENT_VERSION, timeout: float = CONNECT_TIMEOUT,
+                            expiry: float = protocol.DEFAULT_EXPIRY) -> "Connection":
         """Log in at the master and open the robot's websocket.
 
         ``master_url``: ``http://HOST:9000/``; ``password`` in clear (hashed here);
@@ -276,7 +291,7 @@ class Connection:
 
     @classmethod
     async def open(cls, ws_url: str, user_id: str, password: str, robot_id: str, *,
-                   timeout: float = 10.0, expiry: float = protocol.DEFAULT_EXPIRY) -> "Connection":
+                   timeout: float = CONNECT_TIMEOUT, expiry: float = protocol.DEFAULT_EXPIRY) -> "Connection":
         """Open the websocket at a known robot endpoint ``ws_url`` (skips the login).
         Raises :class:`AuthError` or :class:`Unavailable` as :meth:`connect`."""
         url = _with_query(ws_url, userID=user_id, robotID=robot_id, password=hash_password(password))
@@ -312,22 +327,19 @@ class Connection:
         except Exception:   # closing a broken socket never raises out of close()
             pass
         try:
-            await asyncio.wait_for(asyncio.shield(self._reader), 5)
+            await asyncio.wait_for(asyncio.shield(self._reader), CLOSE_TIMEOUT)
         except (asyncio.TimeoutError, asyncio.CancelledError):
             self._reader.cancel()
-        self._finish()
+        await self._finish()
 
-    def _finish(self) -> None:
+    async def _finish(self) -> None:
         if self._closed.is_set():
             return
         self._closed.set()
-        self._housekeeper.cancel()
-        for t in list(self._tasks):
-            t.cancel()
-        for _, fut in list(self._calls.values()) + [(None, f) for f in self._barriers.values()]:
-            if not fut.done():
-                fut.set_exception(Unavailable(f"connection to the cloud closed: {self.close_reason}"))
+        self.session.close(self.close_reason or "closed")
+        self.session.events_received()           # call_failed/barrier_failed: their waiters have the error
         self._changed.set()
+        await self.tasks.cancel_all()
 
     async def __aenter__(self) -> "Connection":
         return self
@@ -340,12 +352,13 @@ class Connection:
         """Send one message ``{"type": type_, "data": data}``; ``bytes`` values anywhere in
         ``data`` go as binary parts (JSON frame first, then one binary frame per part).
         Raises :class:`Unavailable` when the connection is closed."""
-        text, frames = protocol.encode({"type": type_, "data": data})
-        if self.closed:
-            raise Unavailable(f"connection to the cloud is closed: {self.close_reason}")
+        self.session.send(type_, data)
+        await self._flush(self.session.data_to_send())
+
+    async def _flush(self, frames: list[str | bytes]) -> None:
+        """Write one message's frames, in order. Raises :class:`Unavailable` when the link closed."""
         try:
             async with self._send_lock:
-                await self.ws.send(text)
                 for f in frames:
                     await self.ws.send(f)
         except ConnectionClosed as e:
@@ -418,7 +431,7 @@ class Connection:
         """CX disconnect: remove the connection between ``tag_a`` and ``tag_b``."""
         await self.send(protocol.CX, {"disconnect": [{"tagA": tag_a, "tagB": tag_b}]})
 
-    async def barrier(self, timeout: float = 30.0) -> bool:
+    async def barrier(self, timeout: float = WAIT_TIMEOUT) -> bool:
         """Wait until the cloud has processed every request sent before this call.
 
         The protocol has no acks, but the master handles a robot's requests one at a time,
@@ -429,19 +442,17 @@ class Connection:
         for the rest of the connection. Raises :class:`Unavailable` when the connection closes."""
         if not self._barrier_ok:
             return False
-        token = f"rcesync{uuid.uuid4().hex[:12]}"
-        fut = asyncio.get_running_loop().create_future()
-        self._barriers[token] = fut
+        token = self.session.barrier()
         try:
-            await self.send(protocol.CX, {"connect": [{"tagA": f"{token}/a", "tagB": f"{token}/b"}]})
-            await asyncio.wait_for(fut, timeout)
+            await self._flush(self.session.data_to_send())
+            await self.session.pending.wait(token, timeout)
             return True
-        except asyncio.TimeoutError:
+        except Timeout:
             self._barrier_ok = False
             log.warning("the cloud did not answer a sync probe; barriers disabled", timeout=timeout)
             return False
         finally:
-            self._barriers.pop(token, None)
+            self.session.pending.forget(token)
 
     # -- typed endpoints ---------------------------------------------------------------------
     def publisher(self, itag: str, cls: str) -> Publisher:
@@ -476,7 +487,7 @@ class Connection:
         """Call ``cb(reason)`` (sync or async) for every ER from the cloud (they are logged too)."""
         self._error_cbs.append(cb)
 
-    async def wait_interfaces_up(self, itags: Iterable[str], timeout: float = 30.0) -> None:
+    async def wait_interfaces_up(self, itags: Iterable[str], timeout: float = WAIT_TIMEOUT) -> None:
         """Wait until the last ST ``iu`` status of every iTag in ``itags`` is true.
 
         Raises :class:`Unavailable` after ``timeout`` s naming the interfaces still down
@@ -504,16 +515,11 @@ class Connection:
     async def _read_loop(self) -> None:
         try:
             async for frame in self.ws:
-                now = time.monotonic()
-                try:
-                    msgs = (self.assembler.feed_text(frame, now) if isinstance(frame, str)
-                            else self.assembler.feed_binary(frame, now))
-                except ProtocolError as e:
-                    self.dropped += 1
-                    log.warning("malformed frame from the cloud", reason=e.message)
-                    continue
-                for m in msgs:
-                    self._dispatch(m)
+                if isinstance(frame, str):
+                    self.session.receive_text(frame, time.monotonic())
+                else:
+                    self.session.receive_binary(frame, time.monotonic())
+                self._dispatch()
             self.close_reason = self.close_reason or _close_text(self.ws)
         except ConnectionClosed as e:
             self.close_reason = self.close_reason or _close_text(e)
@@ -523,92 +529,61 @@ class Connection:
         finally:
             if self.close_reason != "closed by the client":
                 log.info("connection closed", robot=self.robot_id, reason=self.close_reason)
-            self._finish()
+            await self._finish()
 
     async def _expire_loop(self) -> None:
-        period = max(0.05, min(self.assembler.expiry / 4, 5.0))
+        period = max(EXPIRY_CHECK_MIN, min(self.session.assembler.expiry / 4, EXPIRY_CHECK_MAX))
         while True:
             await asyncio.sleep(period)   # a timer, not a synchronisation
-            for reason in self.assembler.expire(time.monotonic()):
-                self.dropped += 1
-                log.warning("incomplete message dropped", reason=reason)
-
-    def _spawn(self, coro: Awaitable) -> None:
-        t = asyncio.ensure_future(coro)
-        self._tasks.add(t)
-        t.add_done_callback(self._task_done)
-
-    def _task_done(self, t: asyncio.Task) -> None:
-        self._tasks.discard(t)
-        if not t.cancelled() and t.exception() is not None:
-            e = t.exception()
-            log.warning("client callback failed", reason=e.message if isinstance(e, RCEError) else repr(e))
+            self.session.tick(time.monotonic())
+            self._dispatch()
 
     def _run_cb(self, cb: Callable, arg: Any) -> None:
         try:
             r = cb(arg)
             if inspect.isawaitable(r):
-                self._spawn(r)
+                self.tasks.spawn(_awaited(r), name="callback")
         except Exception as e:
             log.warning("client callback failed", reason=repr(e))
 
-    def _dispatch(self, m: dict) -> None:
-        t, data = m.get("type"), m.get("data")
-        if t == protocol.DM and isinstance(data, dict):
-            self._on_dm(data)
-        elif t == protocol.ST and isinstance(data, dict):
-            if data.get("topic") == "iu" and isinstance(data.get("iTag"), str):
-                self.interfaces[data["iTag"]] = bool(data.get("status"))
+    def _dispatch(self) -> None:
+        """Do what the session's events say: callbacks, handlers, errors."""
+        for ev in self.session.events_received():
+            f = ev.fields
+            if ev.name == "message":
+                self._on_message(f)
+            elif ev.name == "status":
+                for cb in self._status_cbs:
+                    self._run_cb(cb, f["data"])
+            elif ev.name == "interface":
                 self._changed.set()
-            for cb in self._status_cbs:
-                self._run_cb(cb, data)
-        elif t == protocol.ER:
-            self._on_er(data if isinstance(data, str) else json.dumps(data))
-        else:
-            self.dropped += 1
-            log.warning("unexpected message from the cloud", type=t)
+            elif ev.name in ("error", "call_failed"):      # an ER that failed a call is an error too
+                self._on_error(f["reason"])
+            elif ev.name == "dropped":
+                log.warning("dropped a message from the cloud", reason=f["reason"])
 
-    def _on_dm(self, data: dict) -> None:
-        itag, msg_id = data.get("iTag"), data.get("msgID")
-        if msg_id is not None:
-            pending = self._calls.get(str(msg_id))
-            if pending is not None and pending[0] == itag:
-                if not pending[1].done():
-                    pending[1].set_result(data.get("msg"))
-                return
-        handler = self._handlers.get(itag)
+    def _on_message(self, f: dict) -> None:
+        handler = self._handlers.get(f["iTag"])
         if handler is None:
-            self.dropped += 1
-            log.warning("data message for an interface with no handler", itag=itag, msg_id=msg_id)
-            return
-        if isinstance(handler, ServiceProvider):
-            self._spawn(handler._on_dm(data))      # calls are served concurrently
+            self.unhandled += 1
+            log.warning("data message for an interface with no handler", itag=f["iTag"], msg_id=f["msgID"])
+        elif isinstance(handler, ServiceProvider):
+            self.tasks.spawn(handler._on_dm(f), name="serve")      # calls are served concurrently
         else:
-            handler.received += 1                  # messages are delivered in order
-            self._run_cb(handler.callback, data.get("msg"))
+            handler.received += 1                                   # messages are delivered in order
+            self._run_cb(handler.callback, f["msg"])
 
-    def _on_er(self, reason: str) -> None:
-        for token, fut in self._barriers.items():
-            if token in reason:
-                if not fut.done():
-                    fut.set_result(None)
-                return
+    def _on_error(self, reason: str) -> None:
         self.errors.append(reason)
-        del self.errors[:-100]
+        del self.errors[:-ERRORS_KEPT]
         log.warning("error from the cloud", reason=reason)
         self._changed.set()
-        # A refused service call: fail it now rather than let it time out.
-        for msg_id, (itag, fut) in self._calls.items():
-            if msg_id in reason and not fut.done():
-                fut.set_exception(RequestError(reason))
-                break
-        else:
-            for itag in {i for i, _ in self._calls.values()}:
-                mine = [f for i, f in self._calls.values() if i == itag and not f.done()]
-                if len(mine) == 1 and (f"'{itag}'" in reason or f"/{itag}" in reason or f'"{itag}"' in reason):
-                    mine[0].set_exception(RequestError(reason))
         for cb in self._error_cbs:
             self._run_cb(cb, reason)
+
+
+async def _awaited(aw: Awaitable) -> Any:
+    return await aw
 
 
 def _close_text(src: Any) -> str:

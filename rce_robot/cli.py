@@ -8,8 +8,10 @@ import signal
 import socket
 from pathlib import Path
 
-from rce.process import run, write_ready_file
 from rce.log import get_logger
+from rce.process import run, write_ready_file
+from rce.protocol.frames import DEFAULT_EXPIRY
+from rce.protocol.session import DEFAULT_MAX_MESSAGE, DEFAULT_QUEUE_SIZE
 from rce_robot.endpoint import RobotEndpoint
 
 log = get_logger("rce.robot")
@@ -25,10 +27,12 @@ def parser() -> argparse.ArgumentParser:
     p.add_argument("--metrics-port", type=int, default=None, help="serve Prometheus /metrics on this port")
     p.add_argument("--advertise-host", default=None, help="address robots and environments reach this host by")
     p.add_argument("--name", default=None, help="task set name (default: hostname:port)")
-    p.add_argument("--max-message", type=int, default=32 * 1024 * 1024,
+    p.add_argument("--max-message", type=int, default=DEFAULT_MAX_MESSAGE,
                    help="largest websocket frame taken, bytes (larger: ER)")
-    p.add_argument("--queue-size", type=int, default=1000, help="data messages that may wait per robot")
-    p.add_argument("--expiry", type=float, default=60.0, help="seconds an incomplete message waits for binary parts")
+    p.add_argument("--queue-size", type=int, default=DEFAULT_QUEUE_SIZE,
+                   help="messages that may wait per robot in each queue (data to it, requests, early DMs, calls)")
+    p.add_argument("--expiry", type=float, default=DEFAULT_EXPIRY,
+                   help="seconds an incomplete message waits for binary parts")
     p.add_argument("--ready-file", type=Path, help="write {ws_port, data_addr, pid} here once registered")
     return p
 

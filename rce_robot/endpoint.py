@@ -5,20 +5,23 @@ from __future__ import annotations
 
 import asyncio
 import hashlib
+from collections import Counter
 from http import HTTPStatus
 from urllib.parse import parse_qs, urlsplit
 
 from aiohttp import web
-from prometheus_client import CollectorRegistry, Counter, Gauge, generate_latest, CONTENT_TYPE_LATEST
+from prometheus_client import CONTENT_TYPE_LATEST, CollectorRegistry, Gauge, generate_latest
+from prometheus_client.core import CounterMetricFamily
 from websockets.asyncio.server import serve
 
 from rce import rpc
 from rce.dataplane import DataPlane
-from rce.errors import AuthError, NotFound, RCEError, RequestError
+from rce.errors import AuthError, NotFound, RCEError
 from rce.log import get_logger
 from rce.messages import default_registry
 from rce.package_path import load_package_types
-from rce.protocol import split_interface_type
+from rce.protocol.frames import DEFAULT_EXPIRY
+from rce.protocol.session import DEFAULT_MAX_MESSAGE, DEFAULT_QUEUE_SIZE, RobotSession, robot_interface_type
 from rce_robot.interfaces import RobotInterface
 from rce_robot.namespace import RobotNamespace
 
@@ -26,6 +29,9 @@ log = get_logger("rce.robot")
 # s of master silence before this task set gives up on it. Longer than the master's own 4 s
 # verdict on task sets: a busy master is not a lost one, and giving up tears containers down.
 MASTER_SILENCE = 15.0
+PING_INTERVAL = 20.0     # s between websocket pings to a robot
+PING_TIMEOUT = 60.0      # s a robot may leave a ping unanswered before its link counts as lost (slow links)
+WS_MAX_QUEUE = 64        # frames the websocket reads ahead of the session
 
 
 def normalise_password(p: str) -> str:
@@ -37,13 +43,23 @@ def normalise_password(p: str) -> str:
     return raw.hex() if len(raw) == 32 else hashlib.sha256(b"\0invalid").hexdigest()
 
 
+# RobotSession counter -> (Prometheus counter, help), summed over the sessions, live and ended
+SESSION_COUNTERS = {"msgs_in": ("rce_robot_messages_in", "Messages from robots"),
+                    "msgs_out": ("rce_robot_messages_out", "Messages to robots"),
+                    "dropped": ("rce_robot_dropped", "Messages to robots dropped (queue full)"),
+                    "dropped_in": ("rce_robot_dropped_in", "Messages from robots refused (queue full)"),
+                    "errors": ("rce_robot_errors", "ER messages sent to robots")}
+
+
 class Metrics:
+    """The endpoint's Prometheus metrics: session counters (those of ended sessions are kept in
+    ``ended``), connections, interfaces, the data plane, the outgoing queue depth."""
+
     def __init__(self, ep: "RobotEndpoint"):
+        self.ep = ep
+        self.ended: Counter[str] = Counter()
         self.registry = r = CollectorRegistry()
-        self.msgs_in = Counter("rce_robot_messages_in", "Messages from robots", registry=r)
-        self.msgs_out = Counter("rce_robot_messages_out", "Messages to robots", registry=r)
-        self.dropped = Counter("rce_robot_dropped", "Messages to robots dropped (queue full)", registry=r)
-        self.errors = Counter("rce_robot_errors", "ER messages sent to robots", registry=r)
+        r.register(self)
         Gauge("rce_robot_connections", "Connected robots", registry=r).set_function(lambda: len(ep.namespaces))
         Gauge("rce_robot_interfaces", "Robot-side interfaces", registry=r).set_function(
             lambda: sum(len(n.interfaces) for n in ep.namespaces.values()))
@@ -51,15 +67,26 @@ class Metrics:
             Gauge(f"rce_robot_dataplane_{k}", f"Data plane {k}", registry=r).set_function(
                 lambda k=k: getattr(ep.plane, k))
         Gauge("rce_robot_queue_depth", "Data messages waiting to go to robots", registry=r).set_function(
-            lambda: sum(n.out_data for n in ep.namespaces.values()))
+            lambda: sum(n.session.out_data for n in ep.namespaces.values()))
+
+    def session_ended(self, session: RobotSession) -> None:
+        stats = session.stats()
+        self.ended.update({k: stats[k] for k in SESSION_COUNTERS})
+
+    def collect(self):
+        """(prometheus_client collector) The session counters."""
+        live = [n.session.stats() for n in self.ep.namespaces.values()]
+        for key, (name, doc) in SESSION_COUNTERS.items():
+            yield CounterMetricFamily(name, doc, value=self.ended[key] + sum(s[key] for s in live))
 
 
 class RobotEndpoint:
     """One robot task set. ``max_message``: largest websocket frame taken (bytes; larger ones get
-    an ER); ``queue_size``: data messages that may wait per robot; ``expiry``: s for binary parts."""
+    an ER); ``queue_size``: bound of each of a robot's queues (:class:`RobotSession`); ``expiry``: s for
+    binary parts."""
 
-    def __init__(self, *, name: str, advertise_host: str, max_message: int = 32 * 1024 * 1024,
-                 queue_size: int = 1000, expiry: float = 60.0):
+    def __init__(self, *, name: str, advertise_host: str, max_message: int = DEFAULT_MAX_MESSAGE,
+                 queue_size: int = DEFAULT_QUEUE_SIZE, expiry: float = DEFAULT_EXPIRY):
         self.name, self.advertise_host = name, advertise_host
         self.max_message, self.queue_size, self.expiry = max_message, queue_size, expiry
         self.registry = default_registry()
@@ -81,7 +108,8 @@ class RobotEndpoint:
         # frames up to twice the limit are read and refused with an ER; beyond that the socket closes
         self._ws_server = await serve(self._session, bind, port, process_request=self._handshake,
                                       max_size=2 * self.max_message + 1024, compression=None,
-                                      ping_interval=20, ping_timeout=60, max_queue=64)
+                                      ping_interval=PING_INTERVAL, ping_timeout=PING_TIMEOUT,
+                                      max_queue=WS_MAX_QUEUE)
         self.ws_port = self._ws_server.sockets[0].getsockname()[1]
         host = f"[{self.advertise_host}]" if ":" in self.advertise_host else self.advertise_host
         handlers = {op: getattr(self, "_op_" + op) for op in
@@ -137,14 +165,16 @@ class RobotEndpoint:
 
     async def _session(self, ws) -> None:
         user, robot = ws.rce_identity
-        ns = RobotNamespace(self, ws, user, robot)
+        session = RobotSession(robot, max_message=self.max_message, queue_size=self.queue_size, expiry=self.expiry)
+        ns = RobotNamespace(ws, user, robot, self.master, session)
         self.namespaces[(user, robot)] = ns
         log.info("robot connected", user=user, robot=robot, peer=str(ws.remote_address))
         try:
             await ns.run()
         finally:
             self.namespaces.pop((user, robot), None)
-            for iid in [i for i, itf in self.by_iid.items() if itf.ns is ns]:
+            self.metrics.session_ended(session)
+            for iid in [i for i, itf in self.by_iid.items() if itf.link is ns]:
                 del self.by_iid[iid]
             try:
                 await self.master.call("robot_disconnected", user=user, robot=robot)
@@ -167,19 +197,17 @@ class RobotEndpoint:
 
     async def _op_add_interface(self, a: dict) -> dict:
         ns = self._ns(a)
-        kind, side = split_interface_type(a["itype"])
-        if side == "Interface":
-            raise RequestError(f"{a['itype']} is a container interface, not a robot-side one")
+        kind, side = robot_interface_type(a["itype"])
         iface = RobotInterface(ns, self.plane, self.registry, a["iid"], a["itag"], kind, side, a["cls"])
         await iface.start()
-        ns.interfaces[a["itag"]] = iface
+        ns.add_interface(iface)
         self.by_iid[iface.iid] = iface
         return {}
 
     async def _op_remove_interface(self, a: dict) -> dict:
         iface = self.by_iid.pop(a["iid"], None)
         if iface:
-            iface.ns.interfaces.pop(iface.itag, None)
+            iface.link.remove_interface(iface)
             await iface.stop()
             iface.on_peers_changed()
         return {}

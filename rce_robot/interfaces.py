@@ -1,38 +1,60 @@
 """Robot-side interfaces: converters (JSON <-> ROS message) and forwarders (serialized
 ROS message as a binary part ``msg*``), DESIGN section 3.5.
 
-Each lives in one robot namespace and is connected over the data plane to
-container interfaces. What the robot sends arrives here as a DM; what peers
-send leaves as a DM.
+Each lives in one robot's session and is connected over the data plane to container
+interfaces. What the robot sends arrives here (:meth:`RobotInterface.from_robot`,
+:meth:`RobotInterface.call_from_robot`) once the session has routed the DM; what peers send
+leaves through the session's :class:`RobotLink`. Whether a DM suits its interface's class,
+direction and encoding is the session's rule (:mod:`rce.protocol.session`); whether the
+message fits its class is decided here, with the message registry.
 """
 from __future__ import annotations
 
-import asyncio
-from typing import TYPE_CHECKING, Any
+from typing import TYPE_CHECKING, Any, Protocol
 
-from rce.errors import MessageError, ProtocolError, RequestError, Unavailable
+from rce.errors import MessageError, ProtocolError, Unavailable
 from rce.interfaces import Interface
 from rce.messages import MessageRegistry
+from rce.pending import PendingCalls
 from rce.protocol import new_id
 
 if TYPE_CHECKING:
     from rce.dataplane import DataPlane
-    from rce_robot.namespace import RobotNamespace
+
+# s a container's call to the robot's service waits for the robot's reply
+ROBOT_CALL_TIMEOUT = 30.0
+
+
+class RobotLink(Protocol):
+    """What an interface needs of its robot's session (:class:`rce_robot.namespace.RobotNamespace`)."""
+
+    robot: str
+
+    def send_dm(self, itag: str, cls: str, msg_id: Any, msg: Any, data: bool = False) -> bool:
+        """Queue a DM for the robot; ``data=True``: droppable topic data (False when dropped)."""
+
+    def send_status(self, data: dict) -> None:
+        """Queue an ST for the robot."""
+
+    def send_error(self, reason: str) -> None:
+        """Queue an ER for the robot."""
 
 
 class RobotInterface(Interface):
     """A converter (``side == "Converter"``) or forwarder (``"Forwarder"``) of kind
-    Publisher, Subscriber, ServiceClient or ServiceProvider, for class ``cls``.
+    Publisher, Subscriber, ServiceClient or ServiceProvider, for class ``cls``, in the
+    session ``link`` of its robot. ``robot_call_timeout``: s a call from the cloud waits
+    for the robot's reply (ServiceClient kinds).
 
     Raises :class:`MessageError` at creation if ``cls`` is not a known message (or, for the
     service kinds, service) class."""
 
-    robot_call_timeout = 30.0   # s, a cloud -> robot service call waiting for the robot's reply
-
-    def __init__(self, ns: "RobotNamespace", plane: "DataPlane", registry: MessageRegistry,
-                 iid: int, itag: str, kind: str, side: str, cls: str):
-        super().__init__(plane, iid, f"{ns.robot}/{itag}", kind, cls)
-        self.ns, self.registry, self.itag, self.side = ns, registry, itag, side
+    def __init__(self, link: RobotLink, plane: "DataPlane", registry: MessageRegistry,
+                 iid: int, itag: str, kind: str, side: str, cls: str, *,
+                 robot_call_timeout: float = ROBOT_CALL_TIMEOUT):
+        super().__init__(plane, iid, f"{link.robot}/{itag}", kind, cls)
+        self.link, self.registry, self.itag, self.side = link, registry, itag, side
+        self.robot_call_timeout = robot_call_timeout
         if kind in ("ServiceClient", "ServiceProvider"):
             self.req_t, self.resp_t = registry.srv_types(cls)
             self.msg_t = ""
@@ -40,7 +62,7 @@ class RobotInterface(Interface):
             self.msg_t = registry.msg_type(cls)
             self.req_t = self.resp_t = ""
         self._up = False
-        self._robot_calls: dict[str, asyncio.Future] = {}
+        self._robot_calls = PendingCalls(f"robot {link.robot!r}")     # msgID -> a call from the cloud
 
     @property
     def itype(self) -> str:
@@ -49,21 +71,13 @@ class RobotInterface(Interface):
     # -- encoding (the only place converters and forwarders differ) ------------------------------
     def _encode(self, typename: str, msg: Any) -> bytes:
         """Robot message -> serialized bytes. Raises :class:`MessageError` naming the interface."""
-        if self.side == "Converter":
-            if isinstance(msg, (bytes, bytearray)):
-                raise MessageError(f"{self.itype} {self.itag!r} takes JSON messages; use a "
-                                   f"{self.kind}Forwarder for serialized binary messages")
-            try:
-                return self.registry.json_to_bytes(typename, msg)
-            except MessageError as e:
-                raise MessageError(f"interface {self.itag!r}: {e.message}") from None
-        if not isinstance(msg, (bytes, bytearray)):
-            raise MessageError(f"{self.itype} {self.itag!r} takes the serialized message as binary part 'msg*'")
         try:
+            if self.side == "Converter":
+                return self.registry.json_to_bytes(typename, msg)
             self.registry.deserialize(typename, bytes(msg))
+            return bytes(msg)
         except MessageError as e:
             raise MessageError(f"interface {self.itag!r}: {e.message}") from None
-        return bytes(msg)
 
     def _decode(self, typename: str, payload: bytes | memoryview) -> Any:
         if self.side == "Converter":
@@ -75,11 +89,11 @@ class RobotInterface(Interface):
         up = bool(self.peers)
         if up != self._up:
             self._up = up
-            self.ns.send_status({"topic": "iu", "iTag": self.itag, "status": up})
+            self.link.send_status({"topic": "iu", "iTag": self.itag, "status": up})
 
     # -- robot -> cloud ----------------------------------------------------------------------------
     def from_robot(self, data: dict) -> None:
-        """Handle a DM the robot sent to a Subscriber* (a topic message) or ServiceClient* (the
+        """Take a DM the robot sent to a Subscriber* (a topic message) or a ServiceClient* (the
         robot's reply to a call from the cloud), inline: nothing here waits. Service calls the
         robot makes go through :meth:`call_from_robot`. Raises :class:`RCEError` to answer ER."""
         msg = data.get("msg")
@@ -90,28 +104,22 @@ class RobotInterface(Interface):
                 self.dropped += 1
                 return
             self.send_message(payload)
-        elif self.kind == "ServiceClient":
-            fut = self._robot_calls.get(str(data.get("msgID") or ""))
-            if fut is None:
-                raise ProtocolError(f"interface {self.itag!r}: response with unknown msgID {data.get('msgID')!r}")
-            if not fut.done():
-                try:
-                    fut.set_result(self._encode(self.resp_t, msg))
-                except Exception as e:
-                    fut.set_exception(e)
-                    raise
-        else:
-            raise RequestError(f"{self.itype} {self.itag!r} sends messages to the robot; it does not take "
-                               f"messages from it (use a SubscriberConverter)")
+            return
+        msg_id = str(data.get("msgID") or "")
+        if msg_id not in self._robot_calls:
+            raise ProtocolError(f"interface {self.itag!r}: response with unknown msgID {data.get('msgID')!r}")
+        try:
+            self._robot_calls.settle(msg_id, self._encode(self.resp_t, msg))
+        except MessageError as e:
+            self._robot_calls.fail(msg_id, e)
+            raise
 
-    async def call_from_robot(self, data: dict) -> None:
-        """(ServiceProvider*) The robot calls the connected service: forward the request, answer
-        with a DM carrying the same msgID. Raises :class:`RCEError` to answer ER."""
+    async def call_from_robot(self, data: dict) -> Any:
+        """(ServiceProvider*) The robot calls the connected service: forward the request; returns
+        the response in the robot's form. Raises :class:`RCEError` (the session's ER)."""
         self.msgs_in += 1
-        msg_id = data.get("msgID") or ""
-        payload = self._encode(self.req_t, data.get("msg"))
-        resp = await self.call_peer(payload)
-        self.ns.send_dm(self.itag, self.cls, msg_id, self._decode(self.resp_t, resp))
+        resp = await self.call_peer(self._encode(self.req_t, data.get("msg")))
+        return self._decode(self.resp_t, resp)
 
     # -- cloud -> robot ----------------------------------------------------------------------------
     def on_message(self, payload: memoryview) -> None:
@@ -120,29 +128,21 @@ class RobotInterface(Interface):
             return
         self.msgs_in += 1
         try:
-            self.ns.send_dm(self.itag, self.cls, "", self._decode(self.msg_t, payload), data=True)
+            self.link.send_dm(self.itag, self.cls, "", self._decode(self.msg_t, payload), data=True)
         except MessageError as e:
             self.dropped += 1
-            self.ns.send_error(f"interface {self.itag!r}: dropped a message from the cloud: {e.message}")
+            self.link.send_error(f"interface {self.itag!r}: dropped a message from the cloud: {e.message}")
 
     async def serve(self, payload: bytes) -> bytes:
-        """A container calls the robot's service: DM request to the robot, wait for its reply."""
+        """A container calls the robot's service: DM request to the robot, wait for its reply.
+        Raises :class:`rce.errors.Timeout` after ``robot_call_timeout`` s."""
         if self.kind != "ServiceClient":
-            raise RequestError(f"{self.itype} {self.itag!r} does not serve calls")
-        msg_id = new_id()
-        fut = asyncio.get_running_loop().create_future()
-        self._robot_calls[msg_id] = fut
-        try:
-            self.ns.send_dm(self.itag, self.cls, msg_id, self._decode(self.req_t, payload))
-            return await asyncio.wait_for(fut, self.robot_call_timeout)
-        except asyncio.TimeoutError:
-            raise Unavailable(f"robot {self.ns.robot!r} did not answer the call on {self.itag!r} within "
-                              f"{self.robot_call_timeout:g} s") from None
-        finally:
-            self._robot_calls.pop(msg_id, None)
+            return await super().serve(payload)
+        request = self._decode(self.req_t, payload)
+        return await self._robot_calls.call(
+            lambda msg_id: self.link.send_dm(self.itag, self.cls, msg_id, request), self.robot_call_timeout,
+            what=f"the call on {self.itag!r}", key=new_id())
 
     async def stop(self) -> None:
-        for fut in self._robot_calls.values():
-            if not fut.done():
-                fut.set_exception(Unavailable(f"interface {self.itag!r} was removed"))
+        self._robot_calls.fail_all(Unavailable(f"interface {self.itag!r} was removed"))
         await super().stop()

@@ -1,183 +1,160 @@
-"""A robot namespace: one connected robot's session on a robot endpoint.
+"""A robot namespace: the websocket shell of one connected robot's session.
 
-It reads the robot's websocket (JSON text frames and binary parts, DESIGN
-section 3), hands CC/DC/CN/CX to the master one at a time and in order, routes
-DMs to the robot's interfaces, and writes everything the robot receives
-through one bounded outgoing queue (data messages beyond the bound are
-dropped and counted; ST and ER are never dropped). Any bad frame gets an ER
-naming what was wrong; the session goes on.
+The rules live in :class:`rce.protocol.session.RobotSession` (frames, binary parts,
+validation, ordering, the bounded outbox, error accounting); this shell moves frames between
+the websocket and the session and does what the session's events ask: a request goes to
+the master (one at a time), a DM to its interface, a service call runs in a task. Every
+task is kept (:class:`rce.tasks.Tasks`).
 """
 from __future__ import annotations
 
 import asyncio
 import time
-from typing import TYPE_CHECKING, Any
+from typing import Any
 
 from websockets.exceptions import ConnectionClosed
 
-from rce import protocol
-from rce.errors import ProtocolError, RCEError
+from rce.errors import RCEError
 from rce.log import get_logger
-
-if TYPE_CHECKING:
-    from rce_robot.endpoint import RobotEndpoint
-    from rce_robot.interfaces import RobotInterface
+from rce.protocol.session import Event, RobotSession
+from rce.rpc import RpcPeer
+from rce.tasks import Tasks
+from rce_robot.interfaces import RobotInterface
 
 log = get_logger("rce.robot")
 
+# s a robot's request (CC, DC, CN, CX) waits for the master: creating a container (an environment
+# process, its sandbox, its nodes) can take tens of seconds on a loaded host
+REQUEST_TIMEOUT = 120.0
+# s between two expiry checks at most (half the expiry when that is shorter)
+EXPIRY_CHECK = 5.0
+CLOSE_POLICY = 1008       # websocket close code when the cloud ends a session (policy violation)
+CLOSE_REASON_MAX = 120    # chars of a close reason (a close frame holds 123 bytes)
+
 
 class RobotNamespace:
-    """Session of robot ``robot`` of user ``user`` on websocket ``ws``."""
+    """Session of robot ``robot`` of user ``user`` on websocket ``ws``; ``master``: the control
+    link its requests go through. Implements :class:`rce_robot.interfaces.RobotLink`."""
 
-    def __init__(self, endpoint: "RobotEndpoint", ws, user: str, robot: str):
-        self.endpoint, self.ws, self.user, self.robot = endpoint, ws, user, robot
-        self.interfaces: dict[str, "RobotInterface"] = {}
-        self.assembler = protocol.Assembler(expiry=endpoint.expiry)
-        self.out: asyncio.Queue = asyncio.Queue()
-        self.out_data = 0                      # data messages waiting in ``out``
-        self.requests: asyncio.Queue = asyncio.Queue()
-        self.in_flight = 0                     # requests queued or running
-        self.idle = asyncio.Event()            # set when no request is queued or running
-        self.idle.set()
-        self.dropped = self.msgs_in = self.msgs_out = self.errors = 0
+    def __init__(self, ws: Any, user: str, robot: str, master: RpcPeer, session: RobotSession):
+        self.ws, self.user, self.robot, self.master, self.session = ws, user, robot, master, session
+        self.interfaces: dict[str, RobotInterface] = {}
+        self.tasks = Tasks(f"robot {user}/{robot}")
+        self._wake = asyncio.Event()
 
-    # -- outgoing ----------------------------------------------------------------------------------
-    def _enqueue(self, obj: dict, data: bool) -> None:
-        if data:
-            if self.out_data >= self.endpoint.queue_size:
-                self.dropped += 1
-                self.endpoint.metrics.dropped.inc()
-                return
-            self.out_data += 1
-        self.out.put_nowait((obj, data))
+    # -- the interface table -------------------------------------------------------------------------
+    def add_interface(self, iface: RobotInterface) -> None:
+        """Robot-side interface ``iface`` now exists (the master's ``add_interface``)."""
+        self.session.add_interface(iface.itag, iface.itype, iface.cls)
+        self.interfaces[iface.itag] = iface
 
-    def send_dm(self, itag: str, cls: str, msg_id: str, msg: Any, data: bool = False) -> None:
-        """Queue a DM to the robot; ``data=True`` marks droppable topic data."""
-        self._enqueue({"type": "DM", "data": {"iTag": itag, "type": cls, "msgID": msg_id, "msg": msg}}, data)
+    def remove_interface(self, iface: RobotInterface) -> None:
+        if self.interfaces.get(iface.itag) is iface:
+            del self.interfaces[iface.itag]
+            self.session.remove_interface(iface.itag)
+
+    # -- to the robot (RobotLink) ----------------------------------------------------------------------
+    def send_dm(self, itag: str, cls: str, msg_id: Any, msg: Any, data: bool = False) -> bool:
+        """Queue a DM to the robot; ``data=True`` marks droppable topic data (False: dropped)."""
+        ok = self.session.send_dm(itag, cls, msg_id, msg, data)
+        self._pump()
+        return ok
 
     def send_status(self, data: dict) -> None:
-        self._enqueue({"type": "ST", "data": data}, False)
+        self.session.send_status(data)
+        self._pump()
 
     def send_error(self, reason: str) -> None:
-        self.errors += 1
-        self.endpoint.metrics.errors.inc()
         log.info("ER to robot", user=self.user, robot=self.robot, reason=reason)
-        self._enqueue({"type": "ER", "data": reason}, False)
+        self.session.send_error(reason)
+        self._pump()
 
     async def _writer(self) -> None:
         while True:
-            obj, data = await self.out.get()
-            if data:
-                self.out_data -= 1
-            text, frames = protocol.encode(obj)
-            await self.ws.send(text)
-            for f in frames:
-                await self.ws.send(f)
-            self.msgs_out += 1
-            self.endpoint.metrics.msgs_out.inc()
+            await self._wake.wait()
+            self._wake.clear()
+            while frames := self.session.data_to_send(1):     # one message at a time: the outbox stays the bound
+                for f in frames:
+                    await self.ws.send(f)
 
-    # -- incoming ----------------------------------------------------------------------------------
+    # -- from the robot --------------------------------------------------------------------------------
     async def run(self) -> None:
         """Serve the session until the websocket closes."""
-        tasks = [asyncio.create_task(self._writer()), asyncio.create_task(self._requests()),
-                 asyncio.create_task(self._expire())]
+        self.tasks.spawn(self._writer(), name="writer")
+        self.tasks.spawn(self._expire(), name="expire")
         try:
             async for frame in self.ws:
-                self._on_frame(frame)
+                if isinstance(frame, str):
+                    self.session.receive_text(frame, time.monotonic())
+                else:
+                    self.session.receive_binary(frame, time.monotonic())
+                self._pump()
         except ConnectionClosed:
             pass
         finally:
-            for t in tasks:
-                t.cancel()
+            await self.tasks.cancel_all()
             for iface in list(self.interfaces.values()):
                 await iface.stop()
             self.interfaces.clear()
 
-    def _on_frame(self, frame: str | bytes) -> None:
-        limit = self.endpoint.max_message
-        now = time.monotonic()
-        try:
-            if len(frame) > limit:
-                raise ProtocolError(f"{'binary' if isinstance(frame, bytes) else 'text'} frame of {len(frame)} "
-                                    f"bytes exceeds the limit of {limit} bytes; dropped")
-            if isinstance(frame, bytes):
-                done = self.assembler.feed_binary(frame, now)
-            else:
-                done = self.assembler.feed_text(frame, now)
-        except RCEError as e:
-            self.send_error(e.message)
-            return
-        for msg in done:
-            self._on_message(msg)
+    def _pump(self) -> None:
+        """Do what the session's events ask; wake the writer when frames wait."""
+        while events := self.session.events_received():
+            for ev in events:
+                self._on_event(ev)
+        if self.session.outbox:
+            self._wake.set()
 
-    def _on_message(self, msg: dict) -> None:
-        self.msgs_in += 1
-        self.endpoint.metrics.msgs_in.inc()
-        try:
-            t, data = protocol.validate(msg)
-        except RCEError as e:
-            self.send_error(e.message)
-            return
-        if t == protocol.DM:
-            iface = self.interfaces.get(data["iTag"])
-            if iface is None and not self.idle.is_set():
-                # the interface may be created by a request sent before this DM: keep the robot's order
-                asyncio.create_task(self._dm_after_requests(data))
-                return
-            self._route_dm(iface, data)
-        else:
-            self.in_flight += 1
-            self.idle.clear()
-            self.requests.put_nowait((t, data))
-
-    async def _dm_after_requests(self, data: dict) -> None:
-        await self.idle.wait()
-        self._route_dm(self.interfaces.get(data["iTag"]), data)
-
-    def _route_dm(self, iface: "RobotInterface | None", data: dict) -> None:
-        if iface is None:
-            self.send_error(f"DM: no interface {data['iTag']!r} on robot {self.robot!r}")
-            return
-        if str(data["type"]).strip("/") != iface.cls:
-            self.send_error(f"DM: interface {data['iTag']!r} carries {iface.cls!r}, not {data['type']!r}")
-            return
-        if iface.kind == "ServiceProvider":      # the only DM that waits (for the service's reply)
-            asyncio.create_task(self._call(iface, data))
-            return
-        try:
-            iface.from_robot(data)
-        except RCEError as e:
-            self.send_error(e.message)
-
-    async def _call(self, iface: "RobotInterface", data: dict) -> None:
-        try:
-            await iface.call_from_robot(data)
-        except RCEError as e:
-            self.send_error(f"service call {data.get('msgID')!r} on {iface.itag!r} failed: {e.message}")
-
-    async def _requests(self) -> None:
-        master = self.endpoint.master
-        while True:
-            t, data = await self.requests.get()
+    def _on_event(self, ev: Event) -> None:
+        f = ev.fields
+        if ev.name == "request":
+            self.tasks.spawn(self._request(f["type"], f["data"]), name="request")
+        elif ev.name == "deliver":
+            iface = self.interfaces.get(f["iTag"])
             try:
-                await master.call("robot_request", timeout=120, user=self.user, robot=self.robot, type=t, data=data)
+                if iface is None:
+                    raise RCEError(f"DM: no interface {f['iTag']!r} on robot {self.robot!r}")
+                iface.from_robot(f["data"])
             except RCEError as e:
-                self.send_error(f"{t}: {e.message}")
-            finally:
-                self.in_flight -= 1
-                if self.in_flight == 0:
-                    self.idle.set()
+                self.send_error(e.message)
+        elif ev.name == "call":
+            self.tasks.spawn(self._call(f["iTag"], f["data"]), name="call")
+        elif ev.name == "close":
+            log.warning("closing a robot that does not read", user=self.user, robot=self.robot, reason=f["reason"])
+            self.tasks.spawn(self.close(f["reason"]), name="close")
+
+    async def _request(self, type_: str, data: dict) -> None:
+        try:
+            await self.master.call("robot_request", timeout=REQUEST_TIMEOUT, user=self.user, robot=self.robot,
+                                   type=type_, data=data)
+        except RCEError as e:
+            self.session.request_done(e.message)
+        else:
+            self.session.request_done()
+        self._pump()
+
+    async def _call(self, itag: str, data: dict) -> None:
+        iface = self.interfaces.get(itag)
+        try:
+            if iface is None:
+                raise RCEError(f"interface {itag!r} was removed")
+            resp = await iface.call_from_robot(data)
+        except RCEError as e:
+            self.session.fail_call(data, e.message)
+        else:
+            self.session.answer_call(data, resp)
+        self._pump()
 
     async def _expire(self) -> None:
         while True:
-            await asyncio.sleep(min(5.0, self.endpoint.expiry / 2))
-            for reason in self.assembler.expire(time.monotonic()):
-                self.send_error(reason)
+            await asyncio.sleep(min(EXPIRY_CHECK, self.session.assembler.expiry / 2))   # a timer
+            self.session.tick(time.monotonic())
+            self._pump()
 
     async def close(self, reason: str) -> None:
-        await self.ws.close(1008, reason[:120])
+        """End the session: the robot sees a close with ``reason``."""
+        await self.ws.close(CLOSE_POLICY, reason[:CLOSE_REASON_MAX])
 
     def stats(self) -> dict:
-        return {"user": self.user, "robot": self.robot, "interfaces": len(self.interfaces), "msgs_in": self.msgs_in,
-                "msgs_out": self.msgs_out, "dropped": self.dropped, "errors": self.errors,
-                "pending_binary": self.assembler.pending}
+        """This robot's counters (:meth:`RobotSession.stats`) with its user and robot ID."""
+        return {"user": self.user, "robot": self.robot, **self.session.stats()}

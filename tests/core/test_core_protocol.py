@@ -1,4 +1,5 @@
-"""rce.protocol: validation of robot -> cloud messages, interface type names, binary parts."""
+"""rce.protocol: the schema of robot -> cloud messages (shared with the robot config), interface type
+names, frames and binary parts."""
 from __future__ import annotations
 
 import json
@@ -59,17 +60,19 @@ def test_validate_cc_minimal_and_full():
 
 @pytest.mark.parametrize("data, parts", [
     ({}, ["CC.data", "missing key 'containerTag'"]),
-    ({"containerTag": ""}, ["CC.data", "'containerTag'", "non-empty str"]),
-    ({"containerTag": 7}, ["CC.data", "'containerTag'", "got 7"]),
+    ({"containerTag": ""}, ["CC.data.containerTag: ", "non-empty string", "got ''"]),
+    ({"containerTag": 7}, ["CC.data.containerTag: ", "got 7"]),
     ({"containerTag": "c", "containerData": []}, ["CC.data.containerData", "JSON object"]),
-    ({"containerTag": "c", "containerData": {"cpu": -1}}, ["CC.data.containerData.cpu", "non-negative"]),
+    ({"containerTag": "c", "containerData": {"cpu": -1}},
+     ["CC.data.containerData.cpu: ", "greater than or equal to 0", "-1"]),
     ({"containerTag": "c", "containerData": {"memory": "1G"}}, ["CC.data.containerData.memory", "'1G'"]),
     ({"containerTag": "c", "containerData": {"size": True}}, ["CC.data.containerData.size", "True"]),
     ({"containerTag": "c", "containerData": {"bandwidth": [1]}}, ["CC.data.containerData.bandwidth"]),
-    ({"containerTag": "c", "containerData": {"group": 3}}, ["CC.data.containerData", "'group'", "str"]),
-    ({"containerTag": "c", "containerData": {"groupIp": []}}, ["CC.data.containerData", "'groupIp'"]),
+    ({"containerTag": "c", "containerData": {"group": 3}},
+     ["CC.data.containerData.group: ", "must be a string", "got 3"]),
+    ({"containerTag": "c", "containerData": {"groupIp": []}}, ["CC.data.containerData.groupIp: ", "must be a string"]),
     ({"containerTag": "c", "containerData": {"specialFeatures": "gpu"}},
-     ["CC.data.containerData", "'specialFeatures'", "list"]),
+     ["CC.data.containerData.specialFeatures: ", "list of strings"]),
 ])
 def test_validate_cc_errors(data, parts):
     raises(parts, validate, {"type": "CC", "data": data})
@@ -78,7 +81,7 @@ def test_validate_cc_errors(data, parts):
 def test_validate_dc():
     assert validate({"type": "DC", "data": {"containerTag": "c1"}}) == ("DC", {"containerTag": "c1"})
     raises(["DC.data", "missing key 'containerTag'"], validate, {"type": "DC", "data": {}})
-    raises(["DC.data", "'containerTag'"], validate, {"type": "DC", "data": {"containerTag": None}})
+    raises(["DC.data.containerTag: ", "got None"], validate, {"type": "DC", "data": {"containerTag": None}})
 
 
 # -- CN -----------------------------------------------------------------------------------------
@@ -115,26 +118,26 @@ def test_validate_cn_all_keys_and_empty():
 
 @pytest.mark.parametrize("data, parts", [
     ({"addNode": []}, ["CN.data", "unknown key 'addNode'"]),
-    ({"addNodes": {"containerTag": "c"}}, ["CN.data", "'addNodes' must be a list", "dict"]),
-    ({"setParam": None}, ["CN.data", "'setParam' must be a list"]),
+    ({"addNodes": {"containerTag": "c"}}, ["CN.data.addNodes: must be a list", "dict"]),
+    ({"setParam": None}, ["CN.data.setParam: must be a list"]),
     ({"addNodes": ["x"]}, ["CN.data.addNodes[0]", "JSON object"]),
     ({"addNodes": [GOOD_CN["addNodes"][0], {"containerTag": "c", "nodeTag": "n", "pkg": "p"}]},
      ["CN.data.addNodes[1]", "missing key 'exe'"]),
     ({"addNodes": [{"containerTag": "c", "nodeTag": "", "pkg": "p", "exe": "e"}]},
-     ["CN.data.addNodes[0]", "'nodeTag'", "non-empty"]),
+     ["CN.data.addNodes[0].nodeTag: ", "non-empty"]),
     ({"addNodes": [{"containerTag": "c", "nodeTag": "n", "pkg": "p", "exe": "e", "args": 5}]},
-     ["CN.data.addNodes[0]", "'args'", "str/list"]),
+     ["CN.data.addNodes[0].args: ", "a string or a list of strings"]),
     ({"addNodes": [{"containerTag": "c", "nodeTag": "n", "pkg": "p", "exe": "e", "namespace": 1}]},
-     ["CN.data.addNodes[0]", "'namespace'"]),
+     ["CN.data.addNodes[0].namespace: ", "must be a string"]),
     ({"addNodes": [{"containerTag": "c", "nodeTag": "n", "pkg": "p", "exe": "e", "name": ["a"]}]},
-     ["CN.data.addNodes[0]", "'name'"]),
+     ["CN.data.addNodes[0].name: ", "got ['a']"]),
     ({"addNodes": [{"containerTag": "c", "nodeTag": "n", "pkg": "p", "exe": "e", "respawn": "yes"}]},
-     ["CN.data.addNodes[0]", "'respawn'", "bool/dict"]),
+     ["CN.data.addNodes[0].respawn: ", "a boolean or an object"]),
     ({"removeNodes": [{"containerTag": "c"}]}, ["CN.data.removeNodes[0]", "missing key 'nodeTag'"]),
     ({"removeNodes": [{"nodeTag": "n"}]}, ["CN.data.removeNodes[0]", "missing key 'containerTag'"]),
     ({"setParam": [{"containerTag": "c", "name": "p"}]}, ["CN.data.setParam[0]", "missing key 'value'"]),
     ({"setParam": [{"containerTag": "c", "value": 1}]}, ["CN.data.setParam[0]", "missing key 'name'"]),
-    ({"deleteParam": [{"containerTag": "c", "name": 3}]}, ["CN.data.deleteParam[0]", "'name'"]),
+    ({"deleteParam": [{"containerTag": "c", "name": 3}]}, ["CN.data.deleteParam[0].name: ", "got 3"]),
     ({"addInterfaces": [{"endpointTag": "c", "interfaceTag": "i", "interfaceType": "PublisherInterface"}]},
      ["CN.data.addInterfaces[0]", "missing key 'className'"]),
     ({"addInterfaces": [{"endpointTag": "c", "interfaceTag": "i", "interfaceType": "Publisher",
@@ -142,7 +145,7 @@ def test_validate_cn_all_keys_and_empty():
      ["CN.data.addInterfaces[0].interfaceType", "unknown interface type 'Publisher'"]),
     ({"addInterfaces": [{"endpointTag": "c", "interfaceTag": "i", "interfaceType": "PublisherInterface",
                          "className": "std_msgs/String", "addr": 5}]},
-     ["CN.data.addInterfaces[0]", "'addr'"]),
+     ["CN.data.addInterfaces[0].addr: ", "got 5"]),
     ({"removeInterfaces": [{"endpointTag": "c"}]}, ["CN.data.removeInterfaces[0]", "missing key 'interfaceTag'"]),
     ({"resizeContainer": [{"cpu": 1}]}, ["CN.data.resizeContainer[0]", "missing key 'containerTag'"]),
     ({"resizeContainer": [{"containerTag": "c", "memory": -5}]}, ["CN.data.resizeContainer[0].memory"]),
@@ -167,9 +170,9 @@ def test_validate_cx_tag_format(key, tag):
 
 @pytest.mark.parametrize("data, parts", [
     ({"connect": [{"tagB": "r/j"}]}, ["CX.data.connect[0]", "missing key 'tagA'"]),
-    ({"connect": [{"tagA": 1, "tagB": "r/j"}]}, ["CX.data.connect[0]", "'tagA'"]),
+    ({"connect": [{"tagA": 1, "tagB": "r/j"}]}, ["CX.data.connect[0].tagA: ", "got 1"]),
     ({"connect": ["c/i"]}, ["CX.data.connect[0]", "JSON object"]),
-    ({"connect": {"tagA": "c/i"}}, ["CX.data", "'connect' must be a list"]),
+    ({"connect": {"tagA": "c/i"}}, ["CX.data.connect: must be a list"]),
     ({"link": []}, ["CX.data", "unknown key 'link'"]),
 ])
 def test_validate_cx_errors(data, parts):
@@ -177,7 +180,8 @@ def test_validate_cx_errors(data, parts):
 
 
 def test_validate_cx_error_names_the_tag_format():
-    e = raises(["CX.data.connect[0].tagA"], validate, {"type": "CX", "data": {"connect": [{"tagA": "x", "tagB": "c/i"}]}})
+    e = raises(["CX.data.connect[0].tagA"], validate,
+               {"type": "CX", "data": {"connect": [{"tagA": "x", "tagB": "c/i"}]}})
     assert "'endpointTag/interfaceTag'" in e.message
 
 
@@ -196,10 +200,10 @@ def test_validate_dm_good(data):
 @pytest.mark.parametrize("data, parts", [
     ({"type": "std_msgs/String", "msg": {}}, ["DM.data", "missing key 'iTag'"]),
     ({"iTag": "i", "msg": {}}, ["DM.data", "missing key 'type'"]),
-    ({"iTag": "i", "type": ""}, ["DM.data", "'type'"]),
+    ({"iTag": "i", "type": ""}, ["DM.data.type: ", "non-empty"]),
     ({"iTag": "i", "type": "std_msgs/String"}, ["DM.data", "missing key 'msg'"]),
-    ({"iTag": "i", "type": "std_msgs/String", "msg": {}, "msgID": [1]}, ["DM.data", "'msgID'", "str/int"]),
-    ({"iTag": 3, "type": "std_msgs/String", "msg": {}}, ["DM.data", "'iTag'"]),
+    ({"iTag": "i", "type": "std_msgs/String", "msg": {}, "msgID": [1]}, ["DM.data.msgID: ", "a string or an integer"]),
+    ({"iTag": 3, "type": "std_msgs/String", "msg": {}}, ["DM.data.iTag: ", "got 3"]),
 ])
 def test_validate_dm_errors(data, parts):
     raises(parts, validate, {"type": "DM", "data": data})
@@ -489,3 +493,76 @@ def test_assembler_id_reused_by_two_messages_is_consumed_once_each():
     out = a.feed_binary(frame(ID1, b"uno"), now=0)
     assert out == [{"type": "DM", "data": {"a": b"uno", "b": b"two", "msgID": 2}}]
     assert a.pending == 0
+
+
+def test_encode_with_given_ids_numbers_parts_depth_first():
+    text, frames = encode({"type": "DM", "data": {"a": b"A", "b": {"c": [b"C1", b"C2"]}}}, ids=[ID1, ID2, ID3])
+    assert json.loads(text)["data"] == {"a*": ID1, "b": {"c*": [ID2, ID3]}}
+    assert frames == [frame(ID1, b"A"), frame(ID2, b"C1"), frame(ID3, b"C2")]
+    with pytest.raises(ProtocolError, match="binary part 1: needs a 32-hex-char id"):
+        encode({"type": "DM", "data": {"a": b"A", "b": b"B"}}, ids=[ID1])
+    with pytest.raises(ProtocolError, match="binary part 0"):
+        encode({"type": "DM", "data": {"a": b"A"}}, ids=["0" * 32 + "\n"])
+
+
+def test_assembler_bounds_the_messages_waiting_for_parts():
+    a = Assembler(max_pending_messages=2)
+    a.feed_text(dm(**{"msg*": ID1}), now=0)
+    a.feed_text(dm(**{"msg*": ID2}), now=0)
+    with pytest.raises(ProtocolError, match="2 messages already wait for their binary parts"):
+        a.feed_text(dm(**{"msg*": ID3}), now=0)
+    assert a.pending == 2
+    assert a.feed_text(dm(msg={}), now=0) != []        # a message without parts never waits
+
+
+# -- one schema for the wire and the robot config -----------------------------------------------
+def test_wire_components_take_keys_they_do_not_know():
+    """The RCE alpha client may send more than DESIGN section 3 names: components and DM data
+    take unknown keys; only the CN and CX objects (whose keys say what to do) refuse them."""
+    node = {"containerTag": "c", "nodeTag": "n", "pkg": "Test", "exe": "e", "launcher": "x"}
+    assert validate({"type": "CN", "data": {"addNodes": [node]}})[1]["addNodes"][0] == node
+    assert validate({"type": "CC", "data": {"containerTag": "c", "extra": 1}})[0] == "CC"
+    assert validate({"type": "DM", "data": {"iTag": "i", "type": "t", "msg": {}, "seq": 3}})[0] == "DM"
+    assert validate({"type": "CC", "data": {"containerTag": "c"}, "id": 7})[0] == "CC"
+
+
+def test_wire_uses_the_long_keys_only():
+    raises(["CC.data", "missing key 'containerTag'"], validate, {"type": "CC", "data": {"cTag": "c"}})
+    raises(["CN.data.addInterfaces[0]", "missing key 'endpointTag'"], validate,
+           {"type": "CN", "data": {"addInterfaces": [{"eTag": "c", "iTag": "i", "iType": "PublisherInterface",
+                                                      "iCls": "std_msgs/String"}]}})
+
+
+def test_the_config_builds_on_the_schema_components():
+    from rce.config import ConnectionSpec, ContainerSpec, InterfaceSpec, NodeSpec, ParameterSpec, parse_config
+    from rce.protocol import schema
+    for spec, wire in ((ContainerSpec, schema.Container), (NodeSpec, schema.Node), (ParameterSpec, schema.Parameter),
+                       (InterfaceSpec, schema.Interface), (ConnectionSpec, schema.Connection)):
+        assert issubclass(spec, wire)
+    cfg = parse_config({"url": "http://m/", "userID": "u", "password": "p", "robotID": "r",
+                        "containers": [{"cTag": "c", "cpu": 1, "group": "g"}],
+                        "nodes": [{"cTag": "c", "nTag": "n", "pkg": "Test", "exe": "e", "args": ["-v"]}],
+                        "interfaces": [{"eTag": "c", "iTag": "i", "iType": "PublisherInterface",
+                                        "iCls": "std_msgs/String", "addr": "/p"}],
+                        "connections": [{"tagA": "c/i", "tagB": "r/i"}]})
+    # what the config sends passes the wire schema unchanged
+    cc = {"containerTag": "c", "containerData": cfg.containers[0].container_data()}
+    assert validate({"type": "CC", "data": cc}) == ("CC", {"containerTag": "c",
+                                                           "containerData": {"group": "g", "cpu": 1}})
+    cn = {"addNodes": [n.component() for n in cfg.nodes], "addInterfaces": [i.component() for i in cfg.interfaces]}
+    assert validate({"type": "CN", "data": cn})[1]["addNodes"] == [
+        {"containerTag": "c", "nodeTag": "n", "pkg": "Test", "exe": "e", "args": ["-v"]}]
+    assert cn["addInterfaces"] == [{"endpointTag": "c", "interfaceTag": "i", "interfaceType": "PublisherInterface",
+                                    "className": "std_msgs/String", "addr": "/p"}]
+
+
+def test_the_same_rule_words_its_error_the_same_on_the_wire_and_in_a_config():
+    from rce.config import parse_config
+    from rce.errors import ConfigError
+    base = {"url": "http://m/", "userID": "u", "password": "p", "robotID": "r"}
+    with pytest.raises(ConfigError) as ei:
+        parse_config({**base, "nodes": [{"cTag": "c", "nTag": "n", "pkg": "Test", "exe": "e", "respawn": "yes"}]}, "f")
+    assert ei.value.message == "f: nodes[0].respawn: must be a boolean or an object, got 'yes'"
+    wire = raises([], validate, {"type": "CN", "data": {"addNodes": [
+        {"containerTag": "c", "nodeTag": "n", "pkg": "Test", "exe": "e", "respawn": "yes"}]}})
+    assert wire.message == "CN.data.addNodes[0].respawn: must be a boolean or an object, got 'yes'"

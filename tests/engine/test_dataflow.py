@@ -46,7 +46,7 @@ async def test_converter_topic_and_service_echo(eng):
     async with RawRobot(eng.master_url, "conv") as r:
         await _echo_container(r, "convC", "Converter")
         # the node may subscribe a moment after the interfaces are up: repeat until the echo arrives
-        for i in range(50):
+        for _ in range(50):
             await r.send("DM", {"iTag": "req", "type": "std_msgs/String", "msgID": "", "msg": {"data": "hello"}})
             try:
                 dm = await r.expect("DM", timeout=0.5, pred=lambda d: d["iTag"] == "resp")
@@ -96,7 +96,8 @@ async def test_parameters_reach_nodes(eng):
         await r.cn(setParam=[{"containerTag": "paramC", "name": n, "value": v}
                              for n, v in (("int", 99), ("str", "foo"), ("float", 3.3), ("bool", True))],
                    addNodes=[{"containerTag": "paramC", "nodeTag": "pt", "pkg": "Test", "exe": "paramTest.py"}],
-                   addInterfaces=[{"endpointTag": "paramC", "interfaceTag": "pt", "interfaceType": "ServiceClientInterface",
+                   addInterfaces=[{"endpointTag": "paramC", "interfaceTag": "pt",
+                                   "interfaceType": "ServiceClientInterface",
                                    "className": "Test/ParameterTest", "addr": "/parameterTest"},
                                   {"endpointTag": "params", "interfaceTag": "pt",
                                    "interfaceType": "ServiceProviderConverter", "className": "Test/ParameterTest"}])
@@ -120,12 +121,14 @@ async def test_container_to_container(eng):
                ("c2cB", "out", "SubscriberInterface", "/stringEchoResp"),
                ("c2c", "in", "SubscriberConverter", None), ("c2c", "out", "PublisherConverter", None)]
         await r.cn(addNodes=[{"containerTag": "c2cB", "nodeTag": "echo", "pkg": "Test", "exe": "stringEcho.py"}],
-                   addInterfaces=[{"endpointTag": e, "interfaceTag": t, "interfaceType": k, "className": "std_msgs/String",
-                                   **({"addr": a} if a else {})} for e, t, k, a in ifs])
-        await r.send("CX", {"connect": [{"tagA": "c2cA/in", "tagB": "c2c/in"}, {"tagA": "c2cA/toB", "tagB": "c2cB/fromA"},
+                   addInterfaces=[{"endpointTag": e, "interfaceTag": t, "interfaceType": k,
+                                   "className": "std_msgs/String", **({"addr": a} if a else {})}
+                                  for e, t, k, a in ifs])
+        await r.send("CX", {"connect": [{"tagA": "c2cA/in", "tagB": "c2c/in"},
+                                        {"tagA": "c2cA/toB", "tagB": "c2cB/fromA"},
                                         {"tagA": "c2cB/out", "tagB": "c2c/out"}]})
         await r.wait_up("in", "out")
-        for i in range(50):
+        for _ in range(50):
             await r.send("DM", {"iTag": "in", "type": "std_msgs/String", "msgID": "", "msg": {"data": "via A and B"}})
             try:
                 dm = await r.expect("DM", timeout=0.5, pred=lambda d: d["iTag"] == "out")

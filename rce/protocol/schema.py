@@ -1,0 +1,310 @@
+"""The one schema of robot -> cloud requests (DESIGN section 3.3): CC, DC, CN (with each
+component kind), CX and DM, as pydantic models.
+
+Each rule is written once, as a field type with its own error text (:data:`Tag`,
+:data:`Limit`, :data:`InterfaceType`, :data:`InterfaceRef`...), and shared: the robot
+config (:mod:`rce.config`) builds its models on the component models here, under its short
+keys (``cTag``, ``nTag``, ``eTag``, ``iTag``, ``iType``, ``iCls``; the field names) where the
+wire uses the long ones (``containerTag``, ``nodeTag``...; the aliases).
+
+:func:`validate` checks a complete message and raises :class:`ProtocolError` naming the
+type and the key path of the first problem, e.g. ``CN.data.addNodes[0]: missing key 'pkg'``.
+Wire components take keys they do not know (the RCE alpha client may send more); the CN and
+CX objects do not.
+"""
+from __future__ import annotations
+
+from typing import Annotated, Any, Literal, Union
+
+from pydantic import BaseModel, ConfigDict, Field, PlainValidator, TypeAdapter, ValidationError, model_validator
+from pydantic_core import PydanticCustomError
+
+from rce.errors import ProtocolError
+from rce.protocol.frames import CC, CN, CX, DC, DM
+
+ROBOT_TO_CLOUD = (CC, DC, CN, CX, DM)
+INTERFACE_PREFIXES = ("ServiceClient", "ServiceProvider", "Publisher", "Subscriber")
+INTERFACE_SUFFIXES = ("Interface", "Converter", "Forwarder")
+# Names the RCE alpha client used for the service-client kinds.
+LEGACY_INTERFACE_NAMES = {"ServiceInterface": "ServiceClientInterface",
+                          "ServiceConverter": "ServiceClientConverter",
+                          "ServiceForwarder": "ServiceClientForwarder"}
+
+
+def split_interface_type(itype: str) -> tuple[str, str]:
+    """``"PublisherConverter"`` -> ``("Publisher", "Converter")``; legacy names are mapped.
+
+    Raises :class:`ProtocolError` for an unknown interface type."""
+    itype = LEGACY_INTERFACE_NAMES.get(itype, itype)
+    for p in INTERFACE_PREFIXES:
+        if itype.startswith(p) and itype[len(p):] in INTERFACE_SUFFIXES:
+            return p, itype[len(p):]
+    raise ProtocolError(f"unknown interface type {itype!r}: expected one of "
+                        f"{{{', '.join(INTERFACE_PREFIXES)}}} x {{{', '.join(INTERFACE_SUFFIXES)}}}")
+
+
+# -- the rules, each with its error text ---------------------------------------------------------
+def _refuse(text: str, value: Any) -> PydanticCustomError:
+    return PydanticCustomError("rce", "{text}, got {value}", {"text": text, "value": repr(value)})
+
+
+def _rule(check, text: str):
+    """A field type accepting the values ``check`` passes, refusing others with ``text``."""
+    def validate(v: Any) -> Any:
+        if not check(v):
+            raise _refuse(text, v)
+        return v
+    return PlainValidator(validate)
+
+
+def _is_str(v: Any) -> bool:
+    return isinstance(v, str)
+
+
+def _is_number(v: Any) -> bool:
+    return isinstance(v, (int, float)) and not isinstance(v, bool)
+
+
+def _interface_type(v: Any) -> str:
+    if not isinstance(v, str):
+        raise _refuse("must be a string", v)
+    try:
+        split_interface_type(v)
+    except ProtocolError as e:
+        raise PydanticCustomError("rce", "{text}", {"text": e.message}) from None
+    return v
+
+
+def _interface_ref(v: Any) -> str:
+    if not isinstance(v, str) or not v:
+        raise _refuse("must be a non-empty string", v)
+    if v.count("/") != 1 or v.startswith("/") or v.endswith("/"):
+        raise PydanticCustomError("rce", "{value} must be 'endpointTag/interfaceTag'", {"value": repr(v)})
+    return v
+
+
+#: A tag or name: a non-empty string.
+Tag = Annotated[str, _rule(lambda v: _is_str(v) and v != "", "must be a non-empty string")]
+#: An optional string (a node's name or namespace, a group, an address).
+Text = Annotated[str, _rule(_is_str, "must be a string")]
+#: A resource limit: cpu in cores, memory in MiB, size in tasks, bandwidth (recorded only).
+Limit = Annotated[float, _rule(lambda v: _is_number(v) and v >= 0, "must be a number greater than or equal to 0")]
+#: A node's arguments: one string, or a list of strings.
+Args = Annotated[Union[str, list[str]], _rule(lambda v: _is_str(v) or (isinstance(v, list) and all(map(_is_str, v))),
+                                               "must be a string or a list of strings")]
+#: Restart a node that exits: true/false, or an object of restart settings.
+Respawn = Annotated[Union[bool, dict], _rule(lambda v: isinstance(v, (bool, dict)), "must be a boolean or an object")]
+#: A DM's msgID: a string or an integer.
+MsgID = Annotated[Union[str, int], _rule(lambda v: _is_str(v) or (isinstance(v, int) and not isinstance(v, bool)),
+                                          "must be a string or an integer")]
+Features = Annotated[list[str], _rule(lambda v: isinstance(v, list) and all(map(_is_str, v)),
+                                      "must be a list of strings")]
+#: An interface type (prefix x suffix, DESIGN section 3.5; RCE alpha names accepted).
+InterfaceType = Annotated[str, PlainValidator(_interface_type)]
+#: An interface named ``endpointTag/interfaceTag``.
+InterfaceRef = Annotated[str, PlainValidator(_interface_ref)]
+
+
+# -- components (field names: the config's short keys; aliases: the wire's keys) -----------------
+class Component(BaseModel):
+    """A wire object: keys by alias, unknown keys ignored, error paths by alias."""
+    model_config = ConfigDict(extra="ignore", validate_by_alias=True, validate_by_name=False)
+
+
+class ContainerData(Component):
+    """A container's placement and limits (CC ``containerData``)."""
+    group: Text | None = None
+    groupIp: Text | None = None
+    size: Limit | None = None
+    cpu: Limit | None = None
+    memory: Limit | None = None
+    bandwidth: Limit | None = None
+    specialFeatures: Features | None = None
+
+
+class Container(ContainerData):
+    """A container tag with its placement and limits, flat (CN ``resizeContainer``, config ``containers``)."""
+    cTag: Tag = Field(alias="containerTag")
+
+
+class Node(Component):
+    """A node to launch in a container (CN ``addNodes``)."""
+    cTag: Tag = Field(alias="containerTag")
+    nTag: Tag = Field(alias="nodeTag")
+    pkg: Tag
+    exe: Tag
+    args: Args = ""
+    name: Text | None = None
+    namespace: Text | None = None
+    respawn: Respawn | None = None
+
+
+class Parameter(Component):
+    """A container parameter and its JSON value (CN ``setParam``; ``value`` may be null, not absent)."""
+    cTag: Tag = Field(alias="containerTag")
+    name: Tag
+    value: Any
+
+
+class Interface(Component):
+    """An interface on an endpoint: a container tag, or the robot's own robotID (CN ``addInterfaces``)."""
+    eTag: Tag = Field(alias="endpointTag")
+    iTag: Tag = Field(alias="interfaceTag")
+    iType: InterfaceType = Field(alias="interfaceType")
+    iCls: Tag = Field(alias="className")
+    addr: Text | None = None
+
+
+class Connection(Component):
+    """A connection between two interfaces (CX ``connect``/``disconnect``)."""
+    tagA: InterfaceRef
+    tagB: InterfaceRef
+
+
+class NodeRef(Component):
+    """CN ``removeNodes``."""
+    cTag: Tag = Field(alias="containerTag")
+    nTag: Tag = Field(alias="nodeTag")
+
+
+class ParameterRef(Component):
+    """CN ``deleteParam``."""
+    cTag: Tag = Field(alias="containerTag")
+    name: Tag
+
+
+class InterfaceRefs(Component):
+    """CN ``removeInterfaces``."""
+    eTag: Tag = Field(alias="endpointTag")
+    iTag: Tag = Field(alias="interfaceTag")
+
+
+class _Closed(Component):
+    """An object whose keys are all known: an unknown one is refused, naming the known ones."""
+
+    @model_validator(mode="before")
+    @classmethod
+    def _known_keys(cls, data: Any) -> Any:
+        if isinstance(data, dict):
+            known = [f.alias or name for name, f in cls.model_fields.items()]
+            unknown = [k for k in data if k not in known]
+            if unknown:
+                raise PydanticCustomError("rce", "unknown key {key} (expected {known})",
+                                          {"key": repr(unknown[0]), "known": ", ".join(known)})
+        return data
+
+
+# -- requests ------------------------------------------------------------------------------------
+class CreateContainer(Component):
+    """CC data."""
+    cTag: Tag = Field(alias="containerTag")
+    containerData: ContainerData | None = None
+
+
+class DestroyContainer(Component):
+    """DC data."""
+    cTag: Tag = Field(alias="containerTag")
+
+
+class Configure(_Closed):
+    """CN data: any of its keys, each a list of components."""
+    addNodes: list[Node] = []
+    removeNodes: list[NodeRef] = []
+    setParam: list[Parameter] = []
+    deleteParam: list[ParameterRef] = []
+    addInterfaces: list[Interface] = []
+    removeInterfaces: list[InterfaceRefs] = []
+    resizeContainer: list[Container] = []
+
+
+class Connect(_Closed):
+    """CX data."""
+    connect: list[Connection] = []
+    disconnect: list[Connection] = []
+
+
+class DataMessage(Component):
+    """DM data: ``msg`` (or its binary part ``msg*``) for interface ``iTag`` of class ``type``."""
+    iTag: Tag
+    type: Tag
+    msgID: MsgID | None = None
+    msg: Any = None
+
+    @model_validator(mode="wrap")
+    @classmethod
+    def _has_msg(cls, data: Any, handler: Any) -> Any:
+        out = handler(data)                  # the fields first: their errors come before this one
+        if "msg" not in data and "msg*" not in data:
+            raise PydanticCustomError("rce", "missing key 'msg'")
+        return out
+
+
+class _Message(BaseModel):
+    model_config = ConfigDict(extra="ignore")
+
+
+class CCMessage(_Message):
+    type: Literal["CC"]
+    data: CreateContainer
+
+
+class DCMessage(_Message):
+    type: Literal["DC"]
+    data: DestroyContainer
+
+
+class CNMessage(_Message):
+    type: Literal["CN"]
+    data: Configure
+
+
+class CXMessage(_Message):
+    type: Literal["CX"]
+    data: Connect
+
+
+class DMMessage(_Message):
+    type: Literal["DM"]
+    data: DataMessage
+
+
+Request = Annotated[Union[CCMessage, DCMessage, CNMessage, CXMessage, DMMessage], Field(discriminator="type")]
+_REQUEST = TypeAdapter(Request)
+
+
+# -- errors --------------------------------------------------------------------------------------
+def key_path(loc: tuple) -> str:
+    """A pydantic error location as a key path: ``("CN", "data", "addNodes", 0)`` ->
+    ``CN.data.addNodes[0]``."""
+    out = ""
+    for p in loc:
+        out += f"[{p}]" if isinstance(p, int) else (f".{p}" if out else str(p))
+    return out
+
+
+def _describe(err: dict, msg: Any) -> str:
+    """One line for the first error of a request: the key path, then what is wrong."""
+    kind, loc, value = err["type"], tuple(err["loc"]), err.get("input")
+    if kind == "union_tag_not_found":
+        return "message: missing key 'type'"
+    if kind == "union_tag_invalid":
+        return f"message: unknown type {msg.get('type')!r} (expected one of {', '.join(ROBOT_TO_CLOUD)})"
+    where = key_path(loc) or "message"
+    if kind == "missing" and loc and isinstance(loc[-1], str):
+        return f"{key_path(loc[:-1])}: missing key '{loc[-1]}'"
+    if kind in ("model_type", "model_attributes_type", "dict_type"):
+        return f"{where}: must be a JSON object, got {type(value).__name__}"
+    if kind == "list_type":
+        return f"{where}: must be a list, got {type(value).__name__}"
+    return f"{where}: {err['msg']}"
+
+
+def validate(msg: Any) -> tuple[str, dict]:
+    """Check a complete robot -> cloud message; return ``(type, data)`` with ``data`` as sent.
+
+    Raises :class:`ProtocolError` naming the type and key path of the first problem."""
+    try:
+        _REQUEST.validate_python(msg)
+    except ValidationError as e:
+        raise ProtocolError(_describe(e.errors(include_url=False)[0], msg)) from None
+    return msg["type"], msg["data"]

@@ -1,0 +1,449 @@
+"""The rules of a robot session, sans I/O, in the manner of the ``websockets`` library's
+``Protocol``: frames in (:meth:`receive_text`, :meth:`receive_binary`), time in
+(:meth:`tick`), and out come the frames to send (:meth:`data_to_send`) and :class:`Event`\\ s
+for the application (:meth:`events_received`). No sockets and no tasks: the robot endpoint
+(:mod:`rce_robot.namespace`) and the client library (:mod:`rce_client.connection`) are
+shells that move frames and run what the events ask for.
+
+- :class:`RobotSession` is the cloud side of one connected robot: binary parts and expiry,
+  the one schema (:func:`rce.protocol.schema.validate`), requests to the master one at a
+  time and in order, the DM ordering rule, the bounded outbox, error accounting.
+- :class:`ClientSession` is the robot side: pending calls and barriers (one
+  :class:`~rce.pending.PendingCalls` table keyed by msgID or token), the interface status
+  table, ER attribution. Its rules are those of ``tests/vectors/README.md``, which the
+  browser client (``rce.js``) follows too; ``tests/vectors/session.json`` checks both.
+"""
+from __future__ import annotations
+
+import json
+import uuid
+from collections import deque
+from dataclasses import dataclass, field
+from typing import Any
+
+from rce.errors import ProtocolError, RequestError, Unavailable
+from rce.pending import PendingCalls
+from rce.protocol.frames import (CX, DEFAULT_EXPIRY, DEFAULT_MAX_PENDING_BYTES, DM, ER, ST, Assembler, encode)
+from rce.protocol.schema import split_interface_type, validate
+
+DEFAULT_QUEUE_SIZE = 1000                   # messages per robot in each bounded queue (like a ROS queue_size)
+DEFAULT_MAX_MESSAGE = 32 * 1024 * 1024      # bytes (chars for text) of the largest frame a robot endpoint takes
+CONTROL_BACKLOG = 10                        # x queue_size: STs and ERs waiting before a robot that does not
+                                            # read is closed (they are never dropped)
+BARRIER_PREFIX = "rcesync"                  # barrier tokens: interfaces named so cannot exist
+
+
+@dataclass(frozen=True)
+class Event:
+    """What the application must do or learn: ``name`` and its ``fields`` (wire key names).
+
+    RobotSession: ``request {type, data}`` (send it to the master, then :meth:`RobotSession.request_done`),
+    ``deliver {iTag, data}`` (a DM for that interface), ``call {iTag, data}`` (a service call through a
+    ServiceProvider interface: answer with :meth:`RobotSession.answer_call` or
+    :meth:`RobotSession.fail_call`), ``close {reason}`` (the robot does not read: close its link).
+
+    ClientSession: ``status {data}``, ``interface {iTag, up}``, ``error {reason}``, ``message {iTag, type,
+    msgID, msg}``, ``response {msgID, msg}``, ``call_failed {msgID, reason}``, ``barrier {token}``,
+    ``barrier_failed {token, reason}``, ``dropped {reason}`` (tests/vectors/README.md)."""
+
+    name: str
+    fields: dict[str, Any] = field(default_factory=dict)
+
+
+class _Session:
+    """What both sides share: binary parts and expiry, events. A subclass takes complete messages
+    (``_on_message``) and says what becomes of bad input (``_bad_input``: an ER, or a drop)."""
+
+    max_message: int | None = None      # bytes (text: chars) of the largest frame taken; None: any
+
+    def __init__(self, expiry: float, max_pending_bytes: int):
+        self.assembler = Assembler(expiry=expiry, max_pending_bytes=max_pending_bytes)
+        self._events: list[Event] = []
+
+    def _emit(self, name: str, **fields: Any) -> None:
+        self._events.append(Event(name, fields))
+
+    def events_received(self) -> list[Event]:
+        """The events produced since the last call, in order."""
+        events, self._events = self._events, []
+        return events
+
+    def receive_text(self, text: str, now: float) -> None:
+        """A text frame from the peer, at time ``now`` (s)."""
+        self._receive(text, now)
+
+    def receive_binary(self, data: bytes, now: float) -> None:
+        """A binary frame ``id || bytes`` from the peer, at time ``now`` (s)."""
+        self._receive(data, now)
+
+    def tick(self, now: float) -> None:
+        """Time is ``now`` (s): incomplete messages and orphan parts past their expiry are bad input."""
+        for reason in self.assembler.expire(now):
+            self._bad_input(reason)
+
+    def _receive(self, frame: str | bytes, now: float) -> None:
+        if self.max_message is not None and len(frame) > self.max_message:
+            kind = "text" if isinstance(frame, str) else "binary"
+            self._bad_input(f"{kind} frame of {len(frame)} bytes exceeds the limit of {self.max_message} bytes; "
+                            f"dropped")
+            return
+        try:
+            done = (self.assembler.feed_text(frame, now) if isinstance(frame, str)
+                    else self.assembler.feed_binary(frame, now))
+        except ProtocolError as e:
+            self._bad_input(e.message)
+            return
+        for msg in done:
+            self._on_message(msg)
+
+    def _on_message(self, msg: dict) -> None:
+        raise NotImplementedError
+
+    def _bad_input(self, reason: str) -> None:
+        raise NotImplementedError
+
+
+# -- the cloud side -------------------------------------------------------------------------------
+@dataclass
+class _Held:
+    data: dict
+    after: int          # the DM waits until this many requests are done
+
+
+class RobotSession(_Session):
+    """The cloud side of robot ``robot``'s session.
+
+    ``max_message``: largest frame taken (bytes; text: chars), larger ones get an ER;
+    ``queue_size``: bound of each queue (data DMs waiting to go out, requests waiting for
+    the master, DMs waiting for earlier requests, service calls in flight), beyond which
+    messages are dropped, counted, and (inbound ones) refused with an ER; ``expiry``: s
+    an incomplete message waits for its binary parts.
+
+    Every bad input gets an ER naming what was wrong; the session goes on."""
+
+    def __init__(self, robot: str, *, max_message: int = DEFAULT_MAX_MESSAGE, queue_size: int = DEFAULT_QUEUE_SIZE,
+                 expiry: float = DEFAULT_EXPIRY, max_pending_bytes: int = DEFAULT_MAX_PENDING_BYTES):
+        super().__init__(expiry, max_pending_bytes)
+        self.robot, self.max_message, self.queue_size = robot, max_message, queue_size
+        self.interfaces: dict[str, tuple[str, str, str]] = {}     # iTag -> (kind, side, cls)
+        self._out: deque[tuple[dict, bool]] = deque()             # (message, droppable data)
+        self.out_data = 0                                         # data DMs in _out
+        self._requests: deque[tuple[str, dict]] = deque()
+        self._in_flight: str | None = None                        # type of the request the master handles
+        self._received = self._done = 0                           # requests taken / answered
+        self._held: deque[_Held] = deque()
+        self.calls = 0                                            # service calls in flight
+        self.msgs_in = self.msgs_out = self.dropped = self.dropped_in = self.errors = 0
+        self._overrun = False
+
+    # -- frames in --------------------------------------------------------------------------------
+    def _bad_input(self, reason: str) -> None:
+        self.send_error(reason)
+
+    def _on_message(self, msg: dict) -> None:
+        self.msgs_in += 1
+        try:
+            t, data = validate(msg)
+        except ProtocolError as e:
+            self.send_error(e.message)
+            return
+        if t == DM:
+            self._on_dm(data)
+        elif len(self._requests) >= self.queue_size:
+            self.dropped_in += 1
+            self.send_error(f"{t}: refused: {len(self._requests)} requests already wait for the master")
+        else:
+            self._received += 1
+            self._requests.append((t, data))
+            self._next_request()
+
+    # -- requests, one at a time and in order -------------------------------------------------------
+    def _next_request(self) -> None:
+        if self._in_flight is None and self._requests:
+            t, data = self._requests.popleft()
+            self._in_flight = t
+            self._emit("request", type=t, data=data)
+
+    def request_done(self, error: str | None = None) -> None:
+        """The master answered the request of the last ``request`` event; ``error``: its refusal.
+        DMs that waited for it are routed, then the next request goes out."""
+        if self._in_flight is None:
+            raise ProtocolError("request_done with no request in flight")
+        if error is not None:
+            self.send_error(f"{self._in_flight}: {error}")
+        self._in_flight = None
+        self._done += 1
+        while self._held and self._held[0].after <= self._done:
+            self._route(self._held.popleft().data)
+        self._next_request()
+
+    # -- DMs ----------------------------------------------------------------------------------------
+    def _on_dm(self, data: dict) -> None:
+        # A DM for an interface that an earlier request may create waits for that request; once
+        # one waits, every later DM waits behind it, so the robot's order is kept.
+        if self._held or (data["iTag"] not in self.interfaces and self._done < self._received):
+            if len(self._held) >= self.queue_size:
+                self.dropped_in += 1
+                self.send_error(f"DM for interface {data['iTag']!r} dropped: {len(self._held)} messages already "
+                                f"wait for earlier requests")
+                return
+            self._held.append(_Held(data, self._received))
+            return
+        self._route(data)
+
+    def _route(self, data: dict) -> None:
+        itag = data["iTag"]
+        itf = self.interfaces.get(itag)
+        if itf is None:
+            self.send_error(f"DM: no interface {itag!r} on robot {self.robot!r}")
+            return
+        kind, side, cls = itf
+        refusal = _refusal(itag, kind, side, cls, data)
+        if refusal:
+            self.send_error(refusal)
+        elif kind != "ServiceProvider":
+            self._emit("deliver", iTag=itag, data=data)
+        elif self.calls >= self.queue_size:
+            self.dropped_in += 1
+            self.send_error(f"service call {data.get('msgID')!r} on {itag!r} refused: {self.calls} calls in flight")
+        else:
+            self.calls += 1
+            self._emit("call", iTag=itag, data=data)
+
+    def answer_call(self, call: dict, msg: Any) -> None:
+        """The service of a ``call`` event (its ``data``: ``call``) answered ``msg``: the response goes to
+        the robot with the call's msgID (never dropped)."""
+        self.calls -= 1
+        itag = call["iTag"]
+        self.send_dm(itag, self.interfaces.get(itag, ("", "", call["type"]))[2], call.get("msgID") or "", msg)
+
+    def fail_call(self, call: dict, reason: str) -> None:
+        """The service of a ``call`` event (its ``data``: ``call``) failed: an ER naming the call's
+        msgID and interface."""
+        self.calls -= 1
+        self.send_error(f"service call {call.get('msgID')!r} on {call['iTag']!r} failed: {reason}")
+
+    # -- the interface table ------------------------------------------------------------------------
+    def add_interface(self, itag: str, itype: str, cls: str) -> None:
+        """A robot-side interface ``itag`` of type ``itype`` and class ``cls`` now exists.
+        Raises as :func:`robot_interface_type`."""
+        kind, side = robot_interface_type(itype)
+        self.interfaces[itag] = (kind, side, cls)
+
+    def remove_interface(self, itag: str) -> None:
+        """Robot-side interface ``itag`` is gone."""
+        self.interfaces.pop(itag, None)
+
+    # -- frames out ---------------------------------------------------------------------------------
+    def send_dm(self, itag: str, cls: str, msg_id: Any, msg: Any, data: bool = False) -> bool:
+        """Queue ``DM {iTag, type, msgID, msg}`` for the robot. ``data=True`` marks topic data, dropped
+        (and counted) when ``queue_size`` data DMs already wait; returns False then."""
+        return self._queue({"type": DM, "data": {"iTag": itag, "type": cls, "msgID": msg_id, "msg": msg}}, data)
+
+    def send_status(self, data: dict) -> None:
+        """Queue ``ST data`` for the robot (never dropped)."""
+        self._queue({"type": ST, "data": data}, False)
+
+    def send_error(self, reason: str) -> None:
+        """Queue ``ER reason`` for the robot (never dropped) and count it."""
+        self.errors += 1
+        self._queue({"type": ER, "data": reason}, False)
+
+    def _queue(self, msg: dict, data: bool) -> bool:
+        if data:
+            if self.out_data >= self.queue_size:
+                self.dropped += 1
+                return False
+            self.out_data += 1
+        elif len(self._out) - self.out_data >= CONTROL_BACKLOG * self.queue_size and not self._overrun:
+            self._overrun = True
+            self._emit("close", reason=f"robot {self.robot!r} does not read: {len(self._out)} messages wait for it")
+        self._out.append((msg, data))
+        return True
+
+    @property
+    def outbox(self) -> int:
+        """Messages waiting to be sent."""
+        return len(self._out)
+
+    def data_to_send(self, max_messages: int | None = None) -> list[str | bytes]:
+        """Frames of up to ``max_messages`` waiting messages (all by default), each message's JSON
+        text frame followed by its binary parts; they count as sent."""
+        frames: list[str | bytes] = []
+        n = len(self._out) if max_messages is None else min(max_messages, len(self._out))
+        for _ in range(n):
+            msg, data = self._out.popleft()
+            if data:
+                self.out_data -= 1
+            text, parts = encode(msg)
+            frames.append(text)
+            frames.extend(parts)
+            self.msgs_out += 1
+        return frames
+
+    def stats(self) -> dict:
+        """Counters: messages in and out, drops out (data DMs, queue full) and in (refused for a full
+        queue), ERs sent, messages and parts waiting for binary parts, queue depths."""
+        return {"interfaces": len(self.interfaces), "msgs_in": self.msgs_in, "msgs_out": self.msgs_out,
+                "dropped": self.dropped, "dropped_in": self.dropped_in, "errors": self.errors,
+                "pending_binary": self.assembler.pending, "outbox": len(self._out),
+                "requests_waiting": len(self._requests) + (self._in_flight is not None), "held": len(self._held),
+                "calls": self.calls}
+
+
+def robot_interface_type(itype: str) -> tuple[str, str]:
+    """``(kind, side)`` of a robot-side interface type (a Converter or Forwarder). Raises
+    :class:`ProtocolError` for an unknown type, :class:`RequestError` for a container-side one."""
+    kind, side = split_interface_type(itype)
+    if side == "Interface":
+        raise RequestError(f"{itype} is a container interface, not a robot-side one")
+    return kind, side
+
+
+def _refusal(itag: str, kind: str, side: str, cls: str, data: dict) -> str | None:
+    """Why interface ``itag`` cannot take this DM, or None."""
+    if str(data["type"]).strip("/") != cls:
+        return f"DM: interface {itag!r} carries {cls!r}, not {data['type']!r}"
+    itype = kind + side
+    if kind == "Publisher":
+        return (f"{itype} {itag!r} sends messages to the robot; it does not take messages from it "
+                f"(use a SubscriberConverter)")
+    binary = isinstance(data.get("msg"), (bytes, bytearray))
+    if side == "Converter" and binary:
+        return f"{itype} {itag!r} takes JSON messages; use a {kind}Forwarder for serialized binary messages"
+    if side == "Forwarder" and not binary:
+        return f"{itype} {itag!r} takes the serialized message as binary part 'msg*'"
+    return None
+
+
+# -- the robot side -------------------------------------------------------------------------------
+@dataclass
+class _Waiting:
+    kind: str               # "call" or "barrier"
+    itag: str | None        # a call's interface
+    done: bool = False
+
+
+class ClientSession(_Session):
+    """The robot side of a session: what the cloud sends becomes events; calls and barriers wait in
+    :attr:`pending` (a :class:`PendingCalls` keyed by msgID or token: the shell awaits
+    ``pending.wait(key, timeout)``; a call's result is the response's ``msg``, a failure
+    :class:`RequestError` (an ER) or :class:`Unavailable` (the link closed)). Opening a call
+    needs a running asyncio loop (the table's futures); nothing else here does.
+
+    ``expiry``: s an incomplete message waits for its binary parts. :attr:`interfaces`: iTag ->
+    last ``iu`` status; :attr:`dropped`: malformed frames, expired parts, unexpected messages."""
+
+    def __init__(self, *, expiry: float = DEFAULT_EXPIRY, max_pending_bytes: int = DEFAULT_MAX_PENDING_BYTES):
+        super().__init__(expiry, max_pending_bytes)
+        self.pending = PendingCalls("the cloud")
+        self.interfaces: dict[str, bool] = {}
+        self.dropped = 0
+        self._frames: list[str | bytes] = []
+
+    # -- frames out ---------------------------------------------------------------------------------
+    def data_to_send(self) -> list[str | bytes]:
+        """The frames to send, in order (each message's text frame, then its binary parts)."""
+        frames, self._frames = self._frames, []
+        return frames
+
+    def send(self, type_: str, data: Any, ids: list[str] | None = None) -> None:
+        """Send ``{"type": type_, "data": data}``; ``bytes`` values become binary parts (with the
+        given ``ids``, default fresh ones). Raises the table's error once the link closed."""
+        if self.pending.closed is not None:
+            raise type(self.pending.closed)(self.pending.closed.message)
+        text, parts = encode({"type": type_, "data": data}, ids)
+        self._frames.append(text)
+        self._frames.extend(parts)
+
+    def call(self, itag: str, type_: str, msg: Any, msg_id: str | None = None, ids: list[str] | None = None) -> str:
+        """Start a service call through robot-side interface ``itag`` of service class ``type_``:
+        sends ``DM {iTag, type, msgID, msg}``; returns the msgID (default a fresh 32-hex-char one)."""
+        msg_id = self.pending.open(msg_id or uuid.uuid4().hex, _Waiting("call", itag))
+        try:
+            self.send(DM, {"iTag": itag, "type": type_, "msgID": msg_id, "msg": msg}, ids)
+        except BaseException:
+            self.pending.forget(msg_id)
+            raise
+        return msg_id
+
+    def barrier(self, token: str | None = None) -> str:
+        """Start a barrier: a CX between two interfaces that cannot exist, ``TOKEN/a`` and
+        ``TOKEN/b``; the ER naming them means every request sent before was handled. Returns the token."""
+        token = self.pending.open(token or f"{BARRIER_PREFIX}{uuid.uuid4().hex[:12]}", _Waiting("barrier", None))
+        self.send(CX, {"connect": [{"tagA": f"{token}/a", "tagB": f"{token}/b"}]})
+        return token
+
+    # -- frames in ----------------------------------------------------------------------------------
+    def _bad_input(self, reason: str) -> None:
+        self.dropped += 1
+        self._emit("dropped", reason=reason)
+
+    def _on_message(self, m: dict) -> None:
+        t, data = m.get("type"), m.get("data")
+        if t == DM and isinstance(data, dict):
+            self._on_dm(data)
+        elif t == ST and isinstance(data, dict):
+            if data.get("topic") == "iu" and isinstance(data.get("iTag"), str):
+                self.interfaces[data["iTag"]] = up = bool(data.get("status"))
+                self._emit("interface", iTag=data["iTag"], up=up)
+            self._emit("status", data=data)
+        elif t == ER:
+            self._on_er(data if isinstance(data, str) else json.dumps(data, separators=(",", ":"), ensure_ascii=False))
+        else:
+            self._bad_input(f"unexpected message from the cloud: type {t!r}")
+
+    def close(self, reason: str) -> None:
+        """The link closed: every pending call and barrier fails, in the order they were started,
+        and later calls, barriers and sends raise :class:`Unavailable`."""
+        error = f"connection to the cloud closed: {reason}"
+        for key, w in self.pending.items():
+            if not w.done:
+                self._finish(key, w, Unavailable(error))
+                self._emit("call_failed" if w.kind == "call" else "barrier_failed",
+                           **{"msgID" if w.kind == "call" else "token": key, "reason": error})
+        self.pending.fail_all(Unavailable(error))
+
+    def _finish(self, key: str, w: _Waiting, error: Exception | None = None, result: Any = None) -> None:
+        w.done = True
+        if error is None:
+            self.pending.settle(key, result)
+        else:
+            self.pending.fail(key, error)
+
+    def _waiting(self, kind: str) -> list[tuple[str, _Waiting]]:
+        return [(k, w) for k, w in self.pending.items() if w.kind == kind and not w.done]
+
+    def _on_dm(self, data: dict) -> None:
+        itag, msg_id = data.get("iTag"), data.get("msgID")
+        if msg_id is not None:
+            key = str(msg_id)
+            w = self.pending.info(key)
+            if w is not None and w.kind == "call" and not w.done and w.itag == itag:
+                self._finish(key, w, result=data.get("msg"))
+                self._emit("response", msgID=key, msg=data.get("msg"))
+                return
+        self._emit("message", iTag=itag, type=data.get("type"), msgID=msg_id, msg=data.get("msg"))
+
+    def _on_er(self, reason: str) -> None:
+        for token, w in self._waiting("barrier"):
+            if token in reason:
+                self._finish(token, w)
+                self._emit("barrier", token=token)
+                return
+        calls = self._waiting("call")
+        named = [(k, w) for k, w in calls if k in reason]
+        if not named:
+            named = [(k, w) for k, w in calls if _names(reason, w.itag)
+                     and sum(1 for _, o in calls if o.itag == w.itag) == 1]
+        if named:
+            key, w = named[0]
+            self._finish(key, w, RequestError(reason))
+            self._emit("call_failed", msgID=key, reason=reason)
+            return
+        self._emit("error", reason=reason)
+
+
+def _names(reason: str, itag: str | None) -> bool:
+    """Does an ER's text name interface ``itag`` (as ``'iTag'``, ``"iTag"`` or ``/iTag``)?"""
+    return bool(itag) and (f"'{itag}'" in reason or f'"{itag}"' in reason or f"/{itag}" in reason)

@@ -1,0 +1,156 @@
+"""RobotSession (the cloud side of a robot's session), frames in, events and frames out, no
+sockets: what the shared vectors (tests/vectors/session.json) do not pin, and the check that
+every bad input of tests/engine/test_bad_input.py is covered at the session level."""
+from __future__ import annotations
+
+import ast
+import json
+from pathlib import Path
+
+import pytest
+
+from rce.errors import ProtocolError, RequestError
+from rce.protocol.frames import ID_LEN, Assembler
+from rce.protocol.session import CONTROL_BACKLOG, Event, RobotSession, robot_interface_type
+
+TESTS = Path(__file__).resolve().parents[1]
+VECTORS = {v["name"]: v for v in json.loads((TESTS / "vectors" / "session.json").read_text())["robot"]}
+
+# Each test of tests/engine/test_bad_input.py -> the robot vectors that check the same input at the
+# session level, or why the session has no part in it.
+BAD_INPUT = {
+    "test_malformed_json": ["bad_malformed_json"],
+    "test_unknown_message_type": ["bad_unknown_type"],
+    "test_missing_keys": ["bad_missing_keys", "bad_values"],
+    "test_unknown_tags": ["bad_unknown_tags"],
+    "test_unknown_package_names_pkg_and_exe": ["bad_unknown_tags"],          # the master refuses: request_done
+    "test_unpairable_interfaces": ["bad_interface_type", "bad_unknown_tags"],
+    "test_unknown_message_class": ["bad_unknown_tags"],                       # the master refuses: request_done
+    "test_message_that_does_not_fit_its_class": ["bad_message_for_its_interface"],
+    "test_frame_over_size_limit": ["bad_frame_over_size_limit"],
+    "test_binary_part_errors": ["bad_binary_parts"],
+    "test_bad_credentials_at_login": "the master's HTTP login: no session yet",
+    "test_bad_credentials_at_websocket": "the websocket handshake: no session yet",
+    "test_duplicate_robot_id_refused": "the websocket handshake: no session yet",
+}
+
+
+def test_every_bad_input_has_its_session_vectors():
+    tree = ast.parse((TESTS / "engine" / "test_bad_input.py").read_text())
+    tests = {f.name for f in tree.body if isinstance(f, ast.AsyncFunctionDef | ast.FunctionDef)
+             and f.name.startswith("test_")}
+    assert tests == set(BAD_INPUT), "map each test of test_bad_input.py to its session vectors"
+    for name, covered in BAD_INPUT.items():
+        if isinstance(covered, list):
+            assert covered and all(v in VECTORS for v in covered), name
+
+
+def frames_of(s: RobotSession) -> list:
+    return [json.loads(f) if isinstance(f, str) else f for f in s.data_to_send()]
+
+
+def ers(s: RobotSession) -> list[str]:
+    return [f["data"] for f in frames_of(s) if isinstance(f, dict) and f["type"] == "ER"]
+
+
+def test_dm_to_the_robot_with_bytes_goes_as_its_binary_part():
+    s = RobotSession("r1")
+    s.send_dm("cam", "sensor_msgs/Image", "", b"\x00\x01raw", data=True)
+    text, part = s.data_to_send()
+    msg = json.loads(text)
+    ref = msg["data"]["msg*"]
+    assert part[:ID_LEN].decode() == ref and part[ID_LEN:] == b"\x00\x01raw"
+    a = Assembler()                               # what the robot makes of it
+    assert a.feed_text(text, 0) == [] and a.feed_binary(part, 0)[0]["data"]["msg"] == b"\x00\x01raw"
+
+
+def test_data_to_send_one_message_at_a_time_keeps_parts_with_their_message():
+    s = RobotSession("r1")
+    s.send_dm("a", "t", "", b"1", data=True)
+    s.send_status({"topic": "iu", "iTag": "a", "status": True})
+    first = s.data_to_send(1)
+    assert len(first) == 2 and isinstance(first[0], str) and isinstance(first[1], bytes)
+    assert s.outbox == 1 and s.out_data == 0
+    assert json.loads(s.data_to_send(1)[0])["type"] == "ST"
+    assert s.data_to_send(1) == [] and s.stats()["msgs_out"] == 2
+
+
+def test_a_robot_that_does_not_read_is_closed_once_and_loses_nothing():
+    s = RobotSession("r1", queue_size=2)
+    for i in range(CONTROL_BACKLOG * 2 + 5):
+        s.send_error(f"e{i}")
+    closes = [e for e in s.events_received() if e.name == "close"]
+    assert len(closes) == 1 and "'r1' does not read" in closes[0].fields["reason"]
+    assert [f["data"] for f in frames_of(s)] == [f"e{i}" for i in range(CONTROL_BACKLOG * 2 + 5)]
+
+
+def test_request_done_without_a_request_is_a_bug():
+    with pytest.raises(ProtocolError, match="no request in flight"):
+        RobotSession("r1").request_done()
+
+
+def test_interface_types_of_the_robot_side():
+    assert robot_interface_type("ServiceConverter") == ("ServiceClient", "Converter")     # RCE alpha name
+    assert robot_interface_type("PublisherForwarder") == ("Publisher", "Forwarder")
+    with pytest.raises(RequestError, match="PublisherInterface is a container interface"):
+        robot_interface_type("PublisherInterface")
+    with pytest.raises(ProtocolError, match="unknown interface type 'Publisher'"):
+        RobotSession("r1").add_interface("x", "Publisher", "std_msgs/String")
+
+
+def test_removed_interface_takes_no_more_dms():
+    s = RobotSession("r1")
+    s.add_interface("req", "SubscriberConverter", "std_msgs/String")
+    dm = {"type": "DM", "data": {"iTag": "req", "type": "std_msgs/String", "msgID": "", "msg": {"data": "x"}}}
+    s.receive_text(json.dumps(dm), 0)
+    assert s.events_received() == [Event("deliver", {"iTag": "req", "data": dm["data"]})]
+    s.remove_interface("req")
+    s.receive_text(json.dumps(dm), 0)
+    assert s.events_received() == [] and ers(s) == ["DM: no interface 'req' on robot 'r1'"]
+
+
+def test_a_dm_with_a_legacy_service_type_routes_as_service_client():
+    s = RobotSession("r1")
+    s.add_interface("prov", "ServiceConverter", "Test/StringEcho")
+    dm = {"iTag": "prov", "type": "Test/StringEcho", "msgID": "c0", "msg": {"data": "reply"}}
+    s.receive_text(json.dumps({"type": "DM", "data": dm}), 0)
+    assert s.events_received() == [Event("deliver", {"iTag": "prov", "data": dm})]
+
+
+def test_one_robots_bad_input_leaves_another_session_alone():
+    a, b = RobotSession("a"), RobotSession("b")
+    for s in (a, b):
+        s.add_interface("req", "SubscriberConverter", "std_msgs/String")
+    a.receive_text('{"type": "CN", "data": ', 0)
+    a.receive_binary(b"x" * 5, 0)
+    good = json.dumps({"type": "DM", "data": {"iTag": "req", "type": "std_msgs/String", "msg": {"data": "x"}}})
+    b.receive_text(good, 0)
+    assert len(ers(a)) == 2 and a.stats()["errors"] == 2
+    assert frames_of(b) == [] and [e.name for e in b.events_received()] == ["deliver"]
+    assert b.stats()["errors"] == 0
+
+
+def test_stats_names_every_counter_the_endpoint_exports():
+    from rce_robot.endpoint import SESSION_COUNTERS
+    stats = RobotSession("r1").stats()
+    assert set(SESSION_COUNTERS) <= set(stats)
+    assert {"pending_binary", "outbox", "requests_waiting", "held", "calls", "interfaces"} <= set(stats)
+
+
+def test_endpoint_metrics_sum_live_and_ended_sessions():
+    from types import SimpleNamespace
+
+    from prometheus_client import generate_latest
+
+    from rce_robot.endpoint import Metrics
+    live, ended = RobotSession("a"), RobotSession("b")
+    live.receive_text("nope", 0)
+    live.send_dm("x", "t", "", {}, data=True)
+    ended.receive_text("[]", 0)
+    plane = SimpleNamespace(msgs_in=0, msgs_out=0, bytes_in=0, bytes_out=0, dropped=0)
+    ep = SimpleNamespace(namespaces={("u", "a"): SimpleNamespace(session=live, interfaces={})}, plane=plane)
+    m = Metrics(ep)
+    m.session_ended(ended)
+    text = generate_latest(m.registry).decode()
+    assert "rce_robot_errors_total 2.0" in text and "rce_robot_queue_depth 1.0" in text
+    assert "rce_robot_dropped_total 0.0" in text and "rce_robot_connections 1.0" in text
