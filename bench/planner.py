@@ -1,4 +1,4 @@
-"""Benchmark the fleet planner (rce_fleet.planner).
+"""Benchmark the fleet planner (rce_fleet.planning).
 
 1. MovingAI MAPF instance ``warehouse-10-20-10-2-1`` (161 x 63 cells) with the
    first K agents of ``...-random-1.scen`` for K = 10, 50, 100, 200: planning
@@ -24,12 +24,12 @@ import sys
 import time
 from pathlib import Path
 
-ROOT = Path(__file__).resolve().parents[1]
-
+from rce_fleet.geometry import components
 from rce_fleet.grid import make_grid
 from rce_fleet.maps import load_map
-from rce_fleet.planner import FleetPlanner, GridGraph, check_conflicts, load_movingai_scen
+from rce_fleet.planning import FleetPlanner, GridGraph, check_conflicts, load_movingai_map, load_movingai_scen
 
+ROOT = Path(__file__).resolve().parents[1]
 DEFAULT_DATA = (ROOT / ".." / "shared" / "data").resolve()
 RESULTS = ROOT / "bench" / "results"
 
@@ -72,19 +72,7 @@ def run_block_replan(map_yaml: Path, cell_m: float, robots: int, seed: int = 1) 
     grid = make_grid(m, cell_m=cell_m)
     t_grid = time.perf_counter() - t0
     graph = GridGraph.from_cellgrid(grid)
-    # the largest connected set of free cells
-    seen, best = set(), set()
-    for c in grid.free_cells():
-        if c in seen:
-            continue
-        comp, todo = {c}, [c]
-        while todo:
-            for n in graph.neighbours(todo.pop()):
-                if n not in comp:
-                    comp.add(n)
-                    todo.append(n)
-        seen |= comp
-        best = max(best, comp, key=len)
+    best = components(grid)[0]          # the largest connected set of free cells
     rng = random.Random(seed)
     cells = rng.sample(sorted(best), 2 * robots)
     fp = FleetPlanner(graph)
@@ -112,6 +100,7 @@ def run_block_replan(map_yaml: Path, cell_m: float, robots: int, seed: int = 1) 
 
 
 def print_tables(rows: list[dict], block: dict | None) -> None:
+    """The results as tables (rich), or one dict a line without rich."""
     try:
         from rich.console import Console
         from rich.table import Table
@@ -123,11 +112,13 @@ def print_tables(rows: list[dict], block: dict | None) -> None:
         return
     con = Console(width=max(Console().width, 110))
     t = Table(title="FleetPlanner on MovingAI warehouse-10-20-10-2-1 (random-1.scen)")
-    for col in ("agents", "time (s)", "cpu (s)", "conflicts", "reached", "sum of costs", "lower bound", "ratio", "makespan"):
+    for col in ("agents", "time (s)", "cpu (s)", "conflicts", "reached", "sum of costs", "lower bound", "ratio",
+                "makespan"):
         t.add_column(col, justify="right")
     for r in rows:
-        t.add_row(str(r["agents"]), f"{r['time_s']:.3f}", f"{r['cpu_s']:.3f}", str(r["conflicts"]), f"{r['reached']}/{r['agents']}",
-                  str(r["sum_of_costs"]), str(r["lower_bound"]), f"{r['ratio']:.4f}", str(r["makespan"]))
+        t.add_row(str(r["agents"]), f"{r['time_s']:.3f}", f"{r['cpu_s']:.3f}", str(r["conflicts"]),
+                  f"{r['reached']}/{r['agents']}", str(r["sum_of_costs"]), str(r["lower_bound"]), f"{r['ratio']:.4f}",
+                  str(r["makespan"]))
     con.print(t)
     if block:
         b = Table(title=f"Re-plan after block on {block['map']} ({block['grid']} cells of {block['cell_m']} m)")
@@ -142,6 +133,7 @@ def print_tables(rows: list[dict], block: dict | None) -> None:
 
 
 def plot(rows: list[dict], path: Path) -> None:
+    """PNG at ``path``: planning time and sum of costs / lower bound against the number of agents."""
     import matplotlib
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
@@ -183,7 +175,7 @@ def main(argv: list[str] | None = None) -> int:
     if not map_file.is_file() or not scen_file.is_file():
         print(f"MovingAI instance not found under {mapf}", file=sys.stderr)
         return 2
-    graph = GridGraph.from_movingai(map_file)
+    graph = load_movingai_map(map_file)
     scen = load_movingai_scen(scen_file, graph)
     rows = [run_mapf(graph, scen, k, args.repeat) for k in args.agents]
     wh = args.data / "maps" / "warehouse.yaml"

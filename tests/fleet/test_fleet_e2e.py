@@ -32,6 +32,8 @@ TB3 = MAPS / "turtlebot3_world.yaml"
 WAREHOUSE = MAPS / "warehouse.yaml"
 RCE_FLEET = Path(sys.executable).parent / "rce-fleet"
 RADIUS = 0.105
+DEMO_TIMEOUT_S = 80.0   # wall s a demo's mission may take (its --timeout)
+EXIT_GRACE_S = 60.0     # wall s beyond --timeout for the demo's teardown and report before it is killed
 
 
 # turtlebot3_world 8x8: cell 26 links only 25 and 27, so Robot1 (30 -> 17) and Robot2
@@ -41,13 +43,13 @@ TB3_MISSION = ["--start", "Robot1=30", "--goal", "Robot1=17", "--start", "Robot2
                "--start", "Robot3=50", "--goal", "Robot3=38"]
 
 
-def run_demo(tmp_path: Path, *args: str, timeout: float = 80.0) -> tuple[int, dict, str]:
+def run_demo(tmp_path: Path, *args: str, timeout: float = DEMO_TIMEOUT_S) -> tuple[int, dict, str]:
     """Run ``rce-fleet demo --headless`` with a report; returns (exit code, report, output)."""
     report, plot = tmp_path / "report.json", tmp_path / "paths.png"
     argv = [str(RCE_FLEET), "demo", "--headless", "--no-live", "--report", str(report), "--plot", str(plot),
             "--workdir", str(tmp_path / "run"), "--timeout", str(timeout), *args]
     t0 = time.monotonic()
-    p = subprocess.run(argv, capture_output=True, text=True, timeout=timeout + 60, cwd=tmp_path)
+    p = subprocess.run(argv, capture_output=True, text=True, timeout=timeout + EXIT_GRACE_S, cwd=tmp_path)
     out = p.stdout + p.stderr
     assert report.exists(), f"no report ({time.monotonic() - t0:.1f} s):\n{out[-4000:]}"
     rep = json.loads(report.read_text())

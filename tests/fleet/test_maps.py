@@ -159,7 +159,7 @@ def test_turtlebot3_world_loads():
     assert m.resolution == 0.05 and m.origin == (-10.0, -10.0, 0.0)
     vals, counts = np.unique(m.occupancy, return_counts=True)
     assert vals.tolist() == [-1, 0, 100]
-    assert dict(zip(vals.tolist(), counts.tolist())) == {-1: 138722, 0: 7939, 100: 795}
+    assert dict(zip(vals.tolist(), counts.tolist(), strict=True)) == {-1: 138722, 0: 7939, 100: 795}
     assert m.world_to_pixel(-10.0 + 1e-9, -10.0 + 1e-9) == (383, 0)
 
 

@@ -10,8 +10,9 @@ from rce_fleet.geometry import GridGeometry, quaternion_from_yaw, yaw_from_quate
 from rce_fleet.grid import make_grid
 from rce_fleet.lab_map import write_lab_map
 from rce_fleet.maps import load_map
-from rce_fleet.move_core import MoveClientCore, plan_id_of
-from rce_fleet.planner_core import GlobalPlannerCore, compress, compressed_index
+from rce_fleet.global_planner_core import GlobalPlannerCore
+from rce_fleet.move_client_core import MoveClientCore, plan_id_of
+from rce_fleet.planning import compress, compressed_index
 from rce_fleet.tracking import CellTracker, ObstacleFilter
 
 SHARED = Path(__file__).resolve().parents[2].parent / "shared" / "data" / "maps"

@@ -1,4 +1,4 @@
-"""rce_fleet.planner: single-robot Dijkstra, multi-robot conflict-free plans, blocking,
+"""rce_fleet.planning: single-robot Dijkstra, multi-robot conflict-free plans, blocking,
 unreachable goals and execution clearance (action dependency graph) under delays."""
 from __future__ import annotations
 
@@ -10,8 +10,9 @@ import pytest
 
 from rce_fleet.grid import make_grid
 from rce_fleet.lab_map import lab_map
-from rce_fleet.planner import (ActionDependencyGraph, Conflict, FleetPlanner, GridGraph, PlannerError,
-                               UnreachableGoal, check_conflicts, load_movingai_scen, shortest_path)
+from rce_fleet.planning import (ActionDependencyGraph, Conflict, DistanceTable, FleetPlanner, GridGraph, PlannerError,
+                                UnreachableGoal, check_conflicts, load_movingai_map, load_movingai_scen,
+                                shortest_path)
 
 DATA = Path(__file__).resolve().parents[2] / ".." / "shared" / "data"
 
@@ -45,7 +46,7 @@ def bfs_dist(g: GridGraph, a: int, b: int, blocked=()) -> int | None:
 def assert_valid_paths(g: GridGraph, fp: FleetPlanner) -> None:
     for r, p in fp.paths.items():
         assert p[0] == fp.positions[r]
-        for a, b in zip(p, p[1:]):
+        for a, b in zip(p, p[1:], strict=False):
             assert a == b or b in g.neighbours(a), f"{r}: {a}->{b} is not a move"
         for c in p[1:]:
             assert c not in fp.blocked or c == p[0], f"{r} enters blocked cell {c}"
@@ -59,20 +60,20 @@ def lab_planner() -> FleetPlanner:
 # -- graph loading ---------------------------------------------------------------------
 def test_movingai_formats(tmp_path):
     (tmp_path / "m.map").write_text("2\n3\n0 0 1\n0 0 0\n")
-    g = GridGraph.from_movingai(tmp_path / "m.map")
+    g = load_movingai_map(tmp_path / "m.map")
     assert (g.rows, g.cols) == (2, 3) and g.free.tolist() == [[True, True, False], [True, True, True]]
     assert sorted(g.neighbours(1)) == [0, 4] and sorted(g.neighbours(5)) == [4]
     (tmp_path / "o.map").write_text("type octile\nheight 2\nwidth 3\nmap\n..@\n.G.\n")
-    assert GridGraph.from_movingai(tmp_path / "o.map").free.tolist() == g.free.tolist()
+    assert load_movingai_map(tmp_path / "o.map").free.tolist() == g.free.tolist()
     (tmp_path / "s.scen").write_text("2\n0 0 2 1\n1 1\t0 1\n")
     assert load_movingai_scen(tmp_path / "s.scen", g) == [(0, 5), (4, 3)]
     (tmp_path / "bad.map").write_text("3\n3\n0 0\n")
     with pytest.raises(ValueError, match="bad.map"):
-        GridGraph.from_movingai(tmp_path / "bad.map")
+        load_movingai_map(tmp_path / "bad.map")
 
 
 def test_movingai_warehouse_instance():
-    g = GridGraph.from_movingai(DATA / "mapf" / "warehouse-10-20-10-2-1.map")
+    g = load_movingai_map(DATA / "mapf" / "warehouse-10-20-10-2-1.map")
     sc = load_movingai_scen(DATA / "mapf" / "warehouse-10-20-10-2-1-random-1.scen", g)
     assert (g.rows, g.cols) == (63, 161) and len(sc) == 1000
     assert sc[0] == (57 * 161 + 143, 16 * 161 + 10)
@@ -106,6 +107,17 @@ def test_distances_respect_blocked_cells():
     d = g.distances_to([0], blocked=[1, 4])[0]
     assert d[2] == 6 and d[4] == np.inf
     assert shortest_path(g, 2, 0, blocked=[1, 4]) == [2, 5, 8, 7, 6, 3, 0]
+
+
+def test_distance_table_is_bounded_and_counts_its_clears():
+    g = GridGraph.from_array(np.ones((3, 3), dtype=bool))
+    table = DistanceTable(g, max_cached=2 * g.n_cells)      # room for two goals' rows
+    blocked: dict[int, str] = {}
+    table.fill([0, 8], blocked)
+    assert table.clears == 0 and table.row(8, blocked)[0] == 4
+    assert table.row(4, blocked)[0] == 2 and table.clears == 1     # a third goal: the cache starts again
+    assert table.distance(0, 8, {4: "operator"}) == 4 and table.distance(0, 4, {4: "operator"}) == np.inf
+    assert table.clears == 2
 
 
 # -- conflicts -----------------------------------------------------------------------------
@@ -181,7 +193,7 @@ def test_goals_set_one_by_one_keep_plans_valid():
 def test_block_returns_exactly_the_crossing_robots():
     rng = random.Random(11)
     checked = 0
-    for trial in range(40):
+    for _ in range(40):
         g = random_graph(rng, 9, 9, 0.1)
         comp = sorted(max(components(g), key=len))
         cells = rng.sample(comp, 10)
@@ -344,7 +356,7 @@ def simulate(fp: FleetPlanner, rng: random.Random, p_move: float, max_ticks: int
 
 def test_execution_with_random_delays_is_safe_and_deadlock_free():
     rng = random.Random(5)
-    for trial in range(25):
+    for _ in range(25):
         g = random_graph(rng, rng.randint(6, 10), rng.randint(6, 10), 0.15)
         comp = sorted(max(components(g), key=len))
         n = rng.randint(2, 12)
@@ -364,7 +376,7 @@ def test_execution_with_random_delays_is_safe_and_deadlock_free():
 def test_dense_instances_execute_without_deadlock():
     # crowded small grids: rotations (cycles of robots following each other) would deadlock
     rng = random.Random(2)
-    for trial in range(60):
+    for _ in range(60):
         g = random_graph(rng, rng.randint(4, 6), rng.randint(4, 6), rng.choice([0.0, 0.1]))
         comp = sorted(max(components(g), key=len))
         n = rng.randint(4, 12)
@@ -381,7 +393,7 @@ def test_dense_instances_execute_without_deadlock():
 
 def test_execution_survives_blocks_and_new_goals_midway():
     rng = random.Random(9)
-    for trial in range(15):
+    for _ in range(15):
         g = random_graph(rng, 9, 9, 0.1)
         comp = sorted(max(components(g), key=len))
         cells = rng.sample(comp, 16)
@@ -396,7 +408,7 @@ def test_execution_survives_blocks_and_new_goals_midway():
             if on:
                 fp.block(rng.choice(on))
 
-        def new_goal(fp):
+        def new_goal(fp, comp=comp):
             taken = set(fp.positions.values()) | set(fp.goals.values()) | set(fp.blocked)
             free = [c for c in comp if c not in taken]
             fp.set_goal("r0", rng.choice(free))
@@ -486,6 +498,6 @@ def test_turtlebot3_world_grid_three_robots_block_26():
     assert fp.block(26) == crossing
     assert all(26 not in p for p in fp.paths.values()) and fp.last_result.ok
     assert check_conflicts(fp.paths) == []
-    for r, p in fp.paths.items():
-        for a, b in zip(p, p[1:]):
+    for p in fp.paths.values():
+        for a, b in zip(p, p[1:], strict=False):
             assert a == b or grid.connected(a, b)

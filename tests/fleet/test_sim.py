@@ -9,14 +9,14 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-ROOT = Path(__file__).resolve().parents[2]
 from rce_fleet.maps import OccupancyMap
 from rce_fleet.sim import (
     LidarParams, LocalNavigator, ObstacleDetector, SimWorld, blocked_mask,
     merge_rectangles, scan_to_points,
 )
-from rce_fleet.sim.walls import rasterise  # noqa: E402
+from rce_fleet.sim.walls import rasterise
 
+ROOT = Path(__file__).resolve().parents[2]
 MAPS = ROOT.parent / "shared" / "data" / "maps"
 
 R = 0.105  # TurtleBot3 burger radius, m

@@ -21,6 +21,17 @@ import pytest
 BIN = Path(sys.executable).parent
 STARTS = {"Robot1": 32, "Robot2": 7, "Robot3": 63}
 URL_RE = re.compile(r"operator page: (http://\S+)")
+URL_TIMEOUT_S = 90        # wall s for rce-fleet to start the engine, the fleet and the page and print its URL
+LOG_POLL_S = 0.1          # wall s between reads of rce-fleet's output while waiting for the URL
+STOP_TIMEOUT_S = 30       # wall s rce-fleet gets to stop after SIGINT before it is killed
+STATES_TIMEOUT_MS = 30_000     # logged in, fleet states arriving
+LOG_TIMEOUT_S = 15.0           # a request the page sent is settled in its log (ok or error)
+STOP_LOG_TIMEOUT_S = 20.0      # the mission's stop is settled (a goal drop for every robot)
+MOVE_TIMEOUT_MS = 60_000       # every robot has moved 0.5 m on the random mission
+ARRIVE_TIMEOUT_MS = 90_000     # a robot reaches a goal several cells away (sped-up simulation)
+PATH_TIMEOUT_MS = 20_000       # a new goal's path is shown
+HTTP_TIMEOUT_S = 10            # one request to the page's server
+DEMO_TIMEOUT_S = 120           # wall s for the two-robot demo to run to its end
 
 
 @pytest.fixture(scope="module")
@@ -34,26 +45,31 @@ def fleet(tmp_path_factory):
     out = open(log, "wb")
     p = subprocess.Popen(argv, stdout=out, stderr=subprocess.STDOUT, start_new_session=True,
                          env=dict(os.environ, RCE_LOG_JSON="1"))
-    url = None
-    deadline = time.monotonic() + 90
-    while time.monotonic() < deadline and url is None:
-        m = URL_RE.search(log.read_text(errors="replace"))
-        if m:
-            url = m.group(1)
-        elif p.poll() is not None:
-            break
-        else:
-            time.sleep(0.2)
+    url = wait_url(log, p)
     if url is None:
         p.kill()
         pytest.fail(f"rce-fleet serve printed no page URL:\n{log.read_text(errors='replace')[-3000:]}")
     yield {"url": url, "proc": p, "log": log, "dir": d}
     p.send_signal(signal.SIGINT)
     try:
-        p.wait(30)
+        p.wait(STOP_TIMEOUT_S)
     except subprocess.TimeoutExpired:
         os.killpg(p.pid, signal.SIGKILL)
         p.wait()
+
+
+def wait_url(log: Path, proc: subprocess.Popen) -> str | None:
+    """The page's URL once rce-fleet has printed it to ``log``; None when it exits first or
+    takes over URL_TIMEOUT_S."""
+    deadline = time.monotonic() + URL_TIMEOUT_S
+    while time.monotonic() < deadline:
+        m = URL_RE.search(log.read_text(errors="replace"))
+        if m:
+            return m.group(1)
+        if proc.poll() is not None:
+            return None
+        time.sleep(LOG_POLL_S)
+    return None
 
 
 def login(page, fleet, password="testUser"):
@@ -69,7 +85,7 @@ def op(page, fleet):
     """A logged-in page with the fleet state flowing; a recorder of every state in window.rec."""
     login(page, fleet)
     page.wait_for_function("fleetView.connected && fleetView.updates >= 2 && Object.keys(fleetView.robots).length == 3",
-                           timeout=30_000)
+                           timeout=STATES_TIMEOUT_MS)
     page.evaluate("""() => { window.rec = [];
         fleetView.listeners.push((st) => rec.push({t: Date.now(), blocked: st.blocked.slice(),
             robots: Object.fromEntries(st.robots.map(r => [r.robot, {cell: r.cell, x: r.x, y: r.y, goal: r.goal,
@@ -86,10 +102,10 @@ def click_cell(page, cell: int) -> None:
     page.mouse.click(c["x"], c["y"])
 
 
-def last_log(page, needle: str, timeout: float = 15.0) -> dict:
-    """The page's log entry about ``needle`` once it is settled (ok or error)."""
-    page.wait_for_function(
-        "(n) => fleetView.log.some(l => l.text.includes(n) && l.kind !== 'pending')", arg=needle, timeout=timeout * 1000)
+def last_log(page, needle: str, timeout: float = LOG_TIMEOUT_S) -> dict:
+    """The page's log entry about ``needle`` once it is settled (ok or error), within ``timeout`` s."""
+    page.wait_for_function("(n) => fleetView.log.some(l => l.text.includes(n) && l.kind !== 'pending')",
+                           arg=needle, timeout=timeout * 1000)
     return page.evaluate("(n) => fleetView.log.filter(l => l.text.includes(n) && l.kind !== 'pending').pop()", needle)
 
 
@@ -124,14 +140,14 @@ def test_login_cross_origin_and_every_robot_moves(op, fleet, tmp_path):
     page.click("#mission-start")
     assert last_log(page, "mission start")["kind"] == "ok"
     page.wait_for_function("""(b) => Object.entries(fleetView.robots).every(([n, r]) =>
-        Math.hypot(r.x - b[n].x, r.y - b[n].y) > 0.5)""", arg=before, timeout=60_000)
+        Math.hypot(r.x - b[n].x, r.y - b[n].y) > 0.5)""", arg=before, timeout=MOVE_TIMEOUT_MS)
     page.screenshot(path=str(tmp_path / "mission.png"))
     # positions come in continuously, and the page drew them: trails, states, status table
     moved = page.evaluate("Object.fromEntries(Object.entries(fleetView.trails).map(([n, t]) => [n, t.length]))")
     assert all(v >= 5 for v in moved.values()), moved
     assert page.evaluate("document.querySelectorAll('#robots tbody tr').length") == 3
     page.click("#mission-stop")
-    assert last_log(page, "mission stop", timeout=20)["kind"] == "ok"
+    assert last_log(page, "mission stop", timeout=STOP_LOG_TIMEOUT_S)["kind"] == "ok"
     assert all(r["goal"] == -1 for r in robots(page).values())
 
 
@@ -156,9 +172,11 @@ def test_goal_by_clicking(op, tmp_path):
     assert page.evaluate("fleetView.selected") is None
     # arrived: the planner has it in the goal cell, its move_client says so, and it stands near the centre
     page.wait_for_function(f"""(() => {{ const r = fleetView.robots.Robot2, g = fleetView.grid;
-        const cx = g.grid_x + ({goal} % g.cols + 0.5) * g.cell_w, cy = g.grid_y - (Math.floor({goal} / g.cols) + 0.5) * g.cell_h;
-        return r.state === 'arrived' && r.clientState === 'arrived' && r.cell === {goal} && Math.hypot(r.x - cx, r.y - cy) < 0.3;
-        }})()""", timeout=90_000)
+        const cx = g.grid_x + ({goal} % g.cols + 0.5) * g.cell_w;
+        const cy = g.grid_y - (Math.floor({goal} / g.cols) + 0.5) * g.cell_h;
+        return r.state === 'arrived' && r.clientState === 'arrived' && r.cell === {goal}
+            && Math.hypot(r.x - cx, r.y - cy) < 0.3;
+        }})()""", timeout=ARRIVE_TIMEOUT_MS)
     assert any(f"Robot2 arrived at cell {goal}" in e["text"] for e in page.evaluate("fleetView.log"))
     page.screenshot(path=str(tmp_path / "goal.png"))
     page.click("#logout")
@@ -174,7 +192,7 @@ def test_block_a_cell_on_the_path(op, tmp_path):
     assert last_log(page, f"Robot1 -> cell {goal}")["kind"] == "ok"
     page.click("#deselect")
     # a free cell on its planned path, a few cells ahead, not the goal and not where a robot is
-    page.wait_for_function("fleetView.robots.Robot1.path.length >= 5", timeout=20_000)
+    page.wait_for_function("fleetView.robots.Robot1.path.length >= 5", timeout=PATH_TIMEOUT_MS)
     path = robots(page)["Robot1"]["path"]
     occupied = {r["cell"] for r in robots(page).values()}
     cell = next(c for c in path[3:-1] if c not in occupied)
@@ -184,7 +202,7 @@ def test_block_a_cell_on_the_path(op, tmp_path):
     t_block = page.evaluate(f"rec.find(s => s.blocked.includes({cell})).t")
     page.screenshot(path=str(tmp_path / "blocked.png"))
     page.wait_for_function(f"fleetView.robots.Robot1.state === 'arrived' && fleetView.robots.Robot1.cell === {goal} "
-                           "&& fleetView.robots.Robot1.clientState === 'arrived'", timeout=90_000)
+                           "&& fleetView.robots.Robot1.clientState === 'arrived'", timeout=ARRIVE_TIMEOUT_MS)
     page.screenshot(path=str(tmp_path / "rerouted.png"))
     after = page.evaluate(f"rec.filter(s => s.t >= {t_block}).map(s => s.robots.Robot1)")
     assert len(after) > 5
@@ -220,25 +238,21 @@ def test_demo_prints_and_serves_the_page(tmp_path):
     log = tmp_path / "demo.log"
     argv = [str(BIN / "rce-fleet"), "demo", "--robots", "2", "--speedup", "5",
             "--start", "Robot1=33", "--start", "Robot2=7", "--goal", "Robot1=35", "--goal", "Robot2=5",
-            "--web-port", "0", "--no-live", "--plot", str(tmp_path / "paths.png"), "--timeout", "120",
+            "--web-port", "0", "--no-live", "--plot", str(tmp_path / "paths.png"), "--timeout", str(DEMO_TIMEOUT_S),
             "--workdir", str(tmp_path / "work")]
     p = subprocess.Popen(argv, stdout=open(log, "wb"), stderr=subprocess.STDOUT, start_new_session=True)
     try:
-        url = None
-        deadline = time.monotonic() + 90
-        while url is None and time.monotonic() < deadline and p.poll() is None:
-            m = URL_RE.search(log.read_text(errors="replace"))
-            url = m.group(1) if m else time.sleep(0.1)
+        url = wait_url(log, p)
         assert url, log.read_text(errors="replace")[-3000:]
         base = url.split("?")[0]
-        with urllib.request.urlopen(base + "config.json", timeout=10) as r:
+        with urllib.request.urlopen(base + "config.json", timeout=HTTP_TIMEOUT_S) as r:
             cfg = json.loads(r.read())
         assert cfg["container"] == "cTag_01" and cfg["master"].startswith("http://") and "password" not in cfg
-        with urllib.request.urlopen(base + "map.png", timeout=10) as r:
+        with urllib.request.urlopen(base + "map.png", timeout=HTTP_TIMEOUT_S) as r:
             assert r.read(8) == b"\x89PNG\r\n\x1a\n"
-        with urllib.request.urlopen(url, timeout=10) as r:
+        with urllib.request.urlopen(url, timeout=HTTP_TIMEOUT_S) as r:
             assert b'src="fleet.js"' in r.read()
-        assert p.wait(120) == 0, log.read_text(errors="replace")[-3000:]
+        assert p.wait(DEMO_TIMEOUT_S) == 0, log.read_text(errors="replace")[-3000:]
     finally:
         if p.poll() is None:
             os.killpg(p.pid, signal.SIGKILL)

@@ -16,6 +16,9 @@ import sys
 
 __all__ = ["main", "build_parser"]
 
+DEMO_TIMEOUT_S = 300.0   # wall s a demo mission may take by default (--timeout)
+SERVE_TIMEOUT_S = 10 ** 9   # wall s ``serve`` runs by default: until Ctrl-C
+
 
 def _grid(text: str) -> tuple[int, int]:
     r, sep, c = text.lower().partition("x")
@@ -43,7 +46,8 @@ def _positive(text: str) -> float:
 def _map_args(p: argparse.ArgumentParser) -> None:
     p.add_argument("--map", metavar="YAML", help="ROS map_server map (default: the project's lab map, generated)")
     g = p.add_mutually_exclusive_group()
-    g.add_argument("--grid", type=_grid, metavar="ROWSxCOLS", help="grid size (default 8x8 as in the paper; on a map where that gives cells over 2 m, "
+    g.add_argument("--grid", type=_grid, metavar="ROWSxCOLS",
+                   help="grid size (default 8x8 as in the paper; on a map where that gives cells over 2 m, "
                    "square cells of 1.2 m)")
     g.add_argument("--cell", type=_positive, metavar="METERS", help="square cells of this side instead")
 
@@ -58,7 +62,7 @@ def _run_args(p: argparse.ArgumentParser, mission: bool) -> None:
     p.add_argument("--headless", action="store_true", help="no operator web page")
     p.add_argument("--web-port", type=int, default=8000, metavar="PORT",
                    help="port of the operator's web page (default 8000; any free port when taken)")
-    p.add_argument("--timeout", type=_positive, default=300.0 if mission else 10 ** 9, metavar="S",
+    p.add_argument("--timeout", type=_positive, default=DEMO_TIMEOUT_S if mission else SERVE_TIMEOUT_S, metavar="S",
                    help="give up after S wall seconds" + (" (default 300)" if mission else ""))
     p.add_argument("--no-lidar-blocking", action="store_true",
                    help="the planner ignores obstacles the robots' lidars report")
@@ -68,11 +72,14 @@ def _run_args(p: argparse.ArgumentParser, mission: bool) -> None:
                    help="PNG of the map, grid, blocked cells and driven paths" +
                    (" (default fleet_paths.png)" if mission else ""))
     p.add_argument("--report", metavar="JSON", help="write a JSON report of the run")
-    p.add_argument("--live", dest="live", action="store_true", default=None, help="live table even without a terminal")
-    p.add_argument("--no-live", dest="live", action="store_false", help="plain progress lines instead of the live table")
+    p.add_argument("--live", dest="live", action="store_true", default=None,
+                   help="live table even without a terminal")
+    p.add_argument("--no-live", dest="live", action="store_false",
+                   help="plain progress lines instead of the live table")
 
 
 def build_parser() -> argparse.ArgumentParser:
+    """The ``rce-fleet`` argument parser (sub-commands demo, serve, configs, grid)."""
     p = argparse.ArgumentParser(prog="rce-fleet", description="The warehouse fleet on rce: demo, serve, configs.")
     sub = p.add_subparsers(dest="cmd", required=True)
     d = sub.add_parser("demo", help="run a mission to the end (exit 0 when every robot reached its goal)")
@@ -95,6 +102,8 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 def main(argv: list[str] | None = None) -> None:
+    """Run ``rce-fleet``; exits with the demo's code (0 ok, 1 failure or timeout, 2 bad
+    flags, 3 an unreachable goal)."""
     args = build_parser().parse_args(argv)
     if args.cmd == "configs":
         from .configs import write_configs

@@ -31,17 +31,18 @@ from collections import deque
 from dataclasses import dataclass, field
 from pathlib import Path
 
-from rce.process import run_loop
 from rce.errors import RCEError
+from rce.launch import Engine, start_engine
 from rce.log import get_logger, setup_logging
 from rce.messages import default_registry
 from rce.package_path import load_package_types
+from rce.process import run_loop
+from rce.tasks import Tasks
 
 from .configs import robot_config
-from .geometry import GridGeometry
+from .geometry import GridGeometry, components
 from .grid import make_grid
 from .lab_map import write_lab_map
-from .launch import Engine, start_engine
 from .manager import FleetManager
 from .maps import MapError, load_map
 from .simhost import SimHost
@@ -53,6 +54,14 @@ REACH_TOL = 0.25       # m between the robot's true centre and its goal cell's c
 LARGE_CELL_M = 2.0     # without --grid/--cell: 8x8, unless its cells would be larger than this ...
 DEFAULT_LARGE_MAP_CELL_M = 1.2   # ... then square cells of this side
 STUCK_S = 30.0         # wall s every robot still on its way may stay unplannable before the run fails
+SETUP_TIMEOUT_S = 60.0     # wall s for the fleet manager's setup, and for each robot's connection
+MIN_STEP_TIMEOUT_S = 0.1   # wall s a set-up step gets even when the run's --timeout is (nearly) used up
+MIN_READY_WAIT_S = 1.0     # wall s the wait for every robot and move_client to report gets at least
+CONNECTING_AT_ONCE = 4     # robots connecting at the same time (each sets up its node and interfaces)
+WATCH_PERIOD_S = 0.25      # wall s between checks of the run (mission end, engine, Ctrl-C)
+PROGRESS_EVERY_S = 5.0     # wall s between plain progress lines (no live table)
+TEARDOWN_TIMEOUT_S = 10.0  # wall s the web page and the fleet manager each get to close before they are left
+SIM_STOP_TIMEOUT_S = 5.0   # wall s the robots' bridges get to remove their nodes and interfaces
 
 
 class UsageError(ValueError):
@@ -61,6 +70,8 @@ class UsageError(ValueError):
 
 @dataclass
 class Options:
+    """What to run: the ``rce-fleet demo``/``serve`` flags (see :mod:`rce_fleet.cli`)."""
+
     map: str | None = None
     robots: int = 3
     grid: tuple[int, int] | None = None
@@ -68,7 +79,7 @@ class Options:
     seed: int = 1
     speedup: float = 3.0
     headless: bool = False
-    timeout: float = 300.0
+    timeout: float = 300.0          # wall s the run may take (``--timeout``; ``serve``: until Ctrl-C)
     goals: dict[str, int] = field(default_factory=dict)
     starts: dict[str, int] = field(default_factory=dict)
     blocks: list[tuple[int, float]] = field(default_factory=list)
@@ -113,26 +124,6 @@ def parse_cell_at(items: list[str], what: str) -> list[tuple[int, float]]:
     return out
 
 
-def components(geo: GridGeometry) -> list[set[int]]:
-    """Connected sets of free cells, largest first."""
-    seen: set[int] = set()
-    comps = []
-    for c in geo.free_cells():
-        if c in seen:
-            continue
-        comp, todo = {c}, [c]
-        seen.add(c)
-        while todo:
-            u = todo.pop()
-            for v in geo.neighbours(u):
-                if v not in seen:
-                    seen.add(v)
-                    comp.add(v)
-                    todo.append(v)
-        comps.append(comp)
-    return sorted(comps, key=len, reverse=True)
-
-
 def choose_cells(geo: GridGeometry, robots: list[str], seed: int, starts: dict[str, int],
                  goals: dict[str, int], mission: bool) -> tuple[dict[str, int], dict[str, int]]:
     """Starts and goals: the given ones, the others random distinct free cells (seeded) of the
@@ -170,6 +161,11 @@ def choose_cells(geo: GridGeometry, robots: list[str], seed: int, starts: dict[s
     return st, gl
 
 
+def _blocked_by(state: dict) -> dict[int, str]:
+    """A fleet state's blocked cells: cell -> who blocked it."""
+    return dict(zip(state.get("blocked", []), state.get("blocked_by", []), strict=False))
+
+
 def _fmt_state(s: str) -> str:
     colours = {"arrived": "green", "moving": "cyan", "waiting": "yellow", "unreachable": "red", "unknown": "dim"}
     c = colours.get(s)
@@ -193,13 +189,15 @@ class Run:
         self.obstacle_log: list[dict] = []
         self.result: tuple[int, str] | None = None
         self.events: deque[str] = deque(maxlen=6)
-        self.node_failures: list[str] = []
         self.grid_note = ""
         self._stuck_since: float | None = None
         self._stop = asyncio.Event()
+        self.tasks = Tasks("fleet-demo")           # operator requests sent from sim timers
 
     # -- set-up ---------------------------------------------------------------------------------
     def prepare(self) -> None:
+        """Check the options, load the map, cut the grid, choose starts and goals; raises
+        UsageError naming the bad flag."""
         o = self.o
         if o.robots < 1:
             raise UsageError("--robots must be >= 1")
@@ -218,8 +216,9 @@ class Run:
             if not (o.grid or o.cell) and max(grid.cell_w_m, grid.cell_h_m) > LARGE_CELL_M:
                 # the paper's 8x8 suits a lab; on a warehouse it gives cells of several metres
                 grid = make_grid(self.occ, cell_m=DEFAULT_LARGE_MAP_CELL_M)
-                self.grid_note = (f"grid: {grid.rows}x{grid.cols} cells of {DEFAULT_LARGE_MAP_CELL_M} m (8x8 would give "
-                                  f"cells over {LARGE_CELL_M:g} m on this map; pass --grid or --cell to choose)")
+                self.grid_note = (f"grid: {grid.rows}x{grid.cols} cells of {DEFAULT_LARGE_MAP_CELL_M} m "
+                                  f"(8x8 would give cells over {LARGE_CELL_M:g} m on this map; pass --grid or "
+                                  f"--cell to choose)")
         except ValueError as e:
             raise UsageError(f"--grid/--cell: {e}") from None
         self.geo = GridGeometry.from_cellgrid(grid)
@@ -239,6 +238,8 @@ class Run:
 
     # -- run --------------------------------------------------------------------------------------
     async def run(self) -> int:
+        """Start everything, run the mission (or serve), write the outputs, tear down;
+        returns the exit code."""
         o = self.o
         loop = asyncio.get_running_loop()
         for sig in (signal.SIGINT, signal.SIGTERM):
@@ -274,7 +275,7 @@ class Run:
         args = "" if o.lidar_blocking else "--no-lidar-blocking"
         self.manager = FleetManager(self.engine.master_url, self.geo, self.robots, planner_args=args,
                                     on_state=self._on_state)
-        await self._bounded(self.manager.start(timeout=60.0), "fleet manager setup")
+        await self._bounded(self.manager.start(timeout=SETUP_TIMEOUT_S), "fleet manager setup")
         reg = default_registry()
         load_package_types(reg)
         self.sim = SimHost(self.occ, self.geo, reg, seed=o.seed, speedup=o.speedup)
@@ -286,19 +287,20 @@ class Run:
         for r, cfg in cfgs.items():
             (self.workdir / "configs" / f"robot{r[5:]}.config").write_text(json.dumps(cfg, indent=2))
         # connect the robots a few at a time (each sets up its node and interfaces)
-        sem = asyncio.Semaphore(4)
+        sem = asyncio.Semaphore(CONNECTING_AT_ONCE)
 
         async def connect(r: str) -> None:
             async with sem:
-                await self.sim.connect(r, cfgs[r], self.engine.master_url, timeout=60.0)
+                await self.sim.connect(r, cfgs[r], self.engine.master_url, timeout=SETUP_TIMEOUT_S)
         await self._bounded(asyncio.gather(*(connect(r) for r in self.robots)), "robots connecting")
-        log.info("robots connected", robots=len(self.robots), t_wall=round(time.monotonic() - (self.deadline - o.timeout), 1))
+        log.info("robots connected", robots=len(self.robots),
+                 t_wall=round(time.monotonic() - (self.deadline - o.timeout), 1))
 
         def ready(st: dict) -> bool:
             rs = {x["robot"]: x for x in st.get("robots", [])}
             return all(r in rs and rs[r]["cell"] >= 0 and rs[r]["client_state"] not in ("", "no_pose")
                        for r in self.robots)
-        await self._bounded(self.manager.wait_state(ready, max(1.0, self.deadline - time.monotonic())),
+        await self._bounded(self.manager.wait_state(ready, max(MIN_READY_WAIT_S, self.deadline - time.monotonic())),
                             "robots and move_clients reporting")
         if not o.headless:
             await self._start_web()
@@ -321,7 +323,7 @@ class Run:
     async def _bounded(self, aw, what: str):
         left = self.deadline - time.monotonic()
         try:
-            return await asyncio.wait_for(aw, max(left, 0.1))
+            return await asyncio.wait_for(aw, max(left, MIN_STEP_TIMEOUT_S))
         except asyncio.TimeoutError:
             raise TimeoutError(f"timeout ({self.o.timeout:g} s wall) during {what}") from None
 
@@ -331,7 +333,7 @@ class Run:
             if "replan_ms" not in rec and rec["cell"] in st.get("blocked", []):
                 rec["replan_ms"] = round(st.get("last_plan_ms", 0.0), 3)
         if self.sim is not None:
-            self.sim.set_blocked(dict(zip(st.get("blocked", []), st.get("blocked_by", []))))
+            self.sim.set_blocked(_blocked_by(st))
 
     def _do_block(self, cell: int, at: float) -> None:
         paths = {x["robot"]: x["path"] for x in (self.state or {}).get("robots", [])}
@@ -340,9 +342,10 @@ class Run:
                "paths_crossed": sorted(r for r, p in paths.items() if cell in p[1:]),
                "robot_cells": {r: b.cells[-1][1] for r, b in self.sim.bots.items()}}
         self.block_log.append(rec)
-        self.events.append(f"t={at:g}s: block cell {cell} (paths crossing it: {', '.join(rec['paths_crossed']) or 'none'})")
+        crossed = ", ".join(rec["paths_crossed"]) or "none"
+        self.events.append(f"t={at:g}s: block cell {cell} (paths crossing it: {crossed})")
         log.info("blocking cell", cell=cell, t=at, paths_crossed=rec["paths_crossed"])
-        asyncio.get_running_loop().create_task(self.manager.block(cell, True, "operator"))
+        self.tasks.spawn(self.manager.block(cell, True, "operator"), name=f"block-{cell}")
 
     def _do_obstacle(self, cell: int, at: float) -> None:
         x, y, w, h = self.sim._box(cell)
@@ -413,7 +416,7 @@ class Run:
         last = [0.0]
 
         def plain() -> None:
-            if time.monotonic() - last[0] >= 5.0:
+            if time.monotonic() - last[0] >= PROGRESS_EVERY_S:
                 last[0] = time.monotonic()
                 print(self._line(), flush=True)
         return await self._loop(mission, plain)
@@ -440,7 +443,7 @@ class Run:
                                    f"goal {self.goals[r]})" for r in missing)
                 return EXIT_FAIL, f"timeout after {self.o.timeout:g} s wall: not at their goals: {detail}"
             try:
-                await asyncio.wait_for(self._stop.wait(), 0.25)
+                await asyncio.wait_for(self._stop.wait(), WATCH_PERIOD_S)
             except asyncio.TimeoutError:
                 pass
 
@@ -486,7 +489,7 @@ class Run:
         report = self.report(code, reason)
         if o.plot and self.sim is not None:
             from .plot import plot_run
-            blocked = dict(zip((self.state or {}).get("blocked", []), (self.state or {}).get("blocked_by", [])))
+            blocked = _blocked_by(self.state or {})
             traces = {r: [(x, y) for _, x, y in b.trace] for r, b in self.sim.bots.items()}
             t = report.get("mission_time_s") or report.get("sim_time_s") or 0.0
             title = (f"{Path(self.map_path).name}: {len(self.robots)} robots, grid {self.geo.rows}x{self.geo.cols}, "
@@ -507,11 +510,13 @@ class Run:
             print(f"rce-fleet: mission time {report['mission_time_s']:.1f} s sim, "
                   f"{report['mission_wall_s']:.1f} s wall; closest robots "
                   f"{'-' if mp is None else format(mp, '.3f')} m; "
-                  f"re-plans {report['planner']['replans']} (max {report['planner']['max_plan_ms']:.1f} ms)", flush=True)
+                  f"re-plans {report['planner']['replans']} (max {report['planner']['max_plan_ms']:.1f} ms)",
+                  flush=True)
         if report.get("plot"):
             print(f"rce-fleet: paths plotted to {report['plot']}", flush=True)
 
     def report(self, code: int, reason: str) -> dict:
+        """The ``--report`` JSON (per robot, blocks, obstacles, planner, simulator ground truth)."""
         st = self._robot_states()
         sim = self.sim
         t0 = self.t_mission
@@ -533,7 +538,8 @@ class Run:
             entries = sim.entries_after(rec["cell"], rec["sent_t"]) if sim else []
             blocks.append({k: v for k, v in rec.items() if k != "sent_t"} |
                           {"entered_after": [{"robot": rr, "t_s": round(t - t0, 2)} for rr, t in entries]})
-        mission_t = (max(self.reached.values()) - t0) if (self.reached and len(self.reached) == len(self.robots)) else None
+        all_reached = self.reached and len(self.reached) == len(self.robots)
+        mission_t = (max(self.reached.values()) - t0) if all_reached else None
         fs = self.state or {}
         return {
             "ok": code == EXIT_OK, "exit_code": code, "reason": reason,
@@ -552,7 +558,7 @@ class Run:
                             if sim and sim.min_pair_at else None),
             "blocks": blocks,
             "obstacles": [{k: v for k, v in o.items() if k != "sent_t"} for o in self.obstacle_log],
-            "blocked": dict(zip(map(str, fs.get("blocked", [])), fs.get("blocked_by", []))),
+            "blocked": {str(c): src for c, src in _blocked_by(fs).items()},
             "planner": {"replans": fs.get("replans", 0), "max_plan_ms": fs.get("max_plan_ms", 0.0),
                         "last_plan_ms": fs.get("last_plan_ms", 0.0)},
             "errors": fs.get("errors", []),
@@ -574,12 +580,13 @@ class Run:
     async def _teardown(self) -> None:
         t0 = time.monotonic()
         try:
+            await self.tasks.cancel_all()
             if getattr(self, "web", None) is not None:
-                await asyncio.wait_for(self.web.stop(), 10.0)
+                await asyncio.wait_for(self.web.stop(), TEARDOWN_TIMEOUT_S)
             if self.sim is not None:
-                await self.sim.stop(timeout=5.0)
+                await self.sim.stop(timeout=SIM_STOP_TIMEOUT_S)
             if self.manager is not None:
-                await asyncio.wait_for(self.manager.close(), 10.0)
+                await asyncio.wait_for(self.manager.close(), TEARDOWN_TIMEOUT_S)
         except (asyncio.TimeoutError, RCEError, OSError) as e:
             log.warning("teardown incomplete", reason=str(e))
         finally:

@@ -18,7 +18,7 @@ import math
 from dataclasses import dataclass
 from typing import Any
 
-__all__ = ["GridGeometry", "GRID_PARAM", "ROBOTS_PARAM", "quaternion_from_yaw", "yaw_from_quaternion"]
+__all__ = ["GridGeometry", "GRID_PARAM", "ROBOTS_PARAM", "components", "quaternion_from_yaw", "yaw_from_quaternion"]
 
 #: Container parameter holding the grid (a dict, see :meth:`GridGeometry.to_param`).
 GRID_PARAM = "/fleet/grid"
@@ -40,6 +40,26 @@ def yaw_from_quaternion(q: Any) -> float:
     return math.atan2(2.0 * (w * z + x * y), 1.0 - 2.0 * (y * y + z * z))
 
 
+def components(grid: Any) -> list[set[int]]:
+    """Connected sets of free cells, largest first (equal sizes: in the order of their smallest
+    cell). ``grid``: a :class:`GridGeometry` or :class:`rce_fleet.grid.CellGrid` (anything with
+    ``free_cells()`` and ``neighbours(cell)``)."""
+    seen: set[int] = set()
+    comps = []
+    for c in grid.free_cells():
+        if c in seen:
+            continue
+        comp, todo = {c}, [c]
+        seen.add(c)
+        while todo:
+            for v in grid.neighbours(todo.pop()):
+                if v not in seen:
+                    seen.add(v)
+                    comp.add(v)
+                    todo.append(v)
+        comps.append(comp)
+    return sorted(comps, key=len, reverse=True)
+
 
 def pixel_f_to_world(origin: tuple[float, float, float], resolution: float, height_px: float,
                      row_f: float, col_f: float) -> tuple[float, float]:
@@ -54,6 +74,7 @@ def pixel_f_to_world(origin: tuple[float, float, float], resolution: float, heig
         cs, sn = math.cos(yaw), math.sin(yaw)
         u, v = cs * u - sn * v, sn * u + cs * v
     return ox + u, oy + v
+
 
 @dataclass(frozen=True, eq=False)
 class GridGeometry:
@@ -132,6 +153,7 @@ class GridGeometry:
     # -- numbering -----------------------------------------------------------
     @property
     def n_cells(self) -> int:
+        """rows * cols."""
         return self.rows * self.cols
 
     @property
@@ -140,15 +162,19 @@ class GridGeometry:
         return min(self.cell_w_m, self.cell_h_m)
 
     def rc(self, cell: int) -> tuple[int, int]:
+        """Cell number -> (row, col)."""
         return divmod(int(cell), self.cols)
 
     def valid(self, cell: int) -> bool:
+        """True when ``cell`` is a cell number of the grid (free or not)."""
         return 0 <= cell < self.n_cells
 
     def is_free(self, cell: int) -> bool:
+        """True when ``cell`` is inside the grid and free."""
         return 0 <= cell < self.n_cells and self.free[cell]
 
     def free_cells(self) -> list[int]:
+        """Numbers of all free cells, ascending."""
         return [i for i, f in enumerate(self.free) if f]
 
     def neighbours(self, cell: int) -> list[int]:
@@ -212,7 +238,7 @@ class GridGeometry:
     def path_length(self, cells: list[int]) -> float:
         """Metres along the centres of ``cells``."""
         total = 0.0
-        for a, b in zip(cells, cells[1:]):
+        for a, b in zip(cells, cells[1:], strict=False):
             (ax, ay), (bx, by) = self.center(a), self.center(b)
             total += math.hypot(bx - ax, by - ay)
         return total

@@ -1,5 +1,5 @@
 """The ``fleet/global_planner`` container node: I/O shell around
-:class:`rce_fleet.planner_core.GlobalPlannerCore` (topics: see that module).
+:class:`rce_fleet.global_planner_core.GlobalPlannerCore` (topics: see that module).
 
 Arguments: ``[--robots Robot1,Robot2,...] [--rate HZ] [--no-lidar-blocking] [--batch S]``.
 Robot IDs come from ``--robots`` or the ``/fleet/robots`` parameter (re-read every 2 s,
@@ -18,12 +18,15 @@ from rce.node import node_argv
 
 from .geometry import ROBOTS_PARAM, yaw_from_quaternion
 from .node_common import Publishers, load_geometry
-from .planner_core import GlobalPlannerCore
+from .global_planner_core import GlobalPlannerCore
 
 log = get_logger("fleet.global_planner")
 
+ROBOTS_REFRESH_S = 2.0   # s between reads of the /fleet/robots parameter (robots that join are served)
+
 
 def parse_args(argv: list[str]) -> argparse.Namespace:
+    """The node's arguments (see the module docstring)."""
     p = argparse.ArgumentParser(prog="global_planner")
     p.add_argument("--robots", default="", help="comma-separated robot IDs (default: the /fleet/robots parameter)")
     p.add_argument("--rate", type=float, default=5.0, help="fleet state rate, Hz (default 5)")
@@ -33,6 +36,7 @@ def parse_args(argv: list[str]) -> argparse.Namespace:
 
 
 async def main(node) -> None:
+    """Run the global planner on ``node`` (an :class:`rce.node.Node`) until it shuts down."""
     setup_logging()
     args = parse_args(node_argv())
     geo = await load_geometry(node)
@@ -106,7 +110,7 @@ async def main(node) -> None:
     while not node.is_shutdown:
         pubs.send(core.tick())
         pubs.pubs["/fleet/state"].publish_nowait(core.state())
-        if loop.time() - last_refresh > 2.0:
+        if loop.time() - last_refresh > ROBOTS_REFRESH_S:
             last_refresh = loop.time()
             await refresh_robots()
         await asyncio.sleep(period)

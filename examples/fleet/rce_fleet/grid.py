@@ -136,20 +136,6 @@ class CellGrid:
         return self.map.pixel_f_to_world(self.row0_px + (r + 0.5) * self.cell_h_px,
                                          self.col0_px + (c + 0.5) * self.cell_w_px)
 
-    def corners(self, cell: int) -> list[tuple[float, float]]:
-        """World (x, y) of the cell's four corners: top-left, top-right, bottom-right, bottom-left."""
-        r, c = self.rc(cell)
-        t, b = self.row0_px + r * self.cell_h_px, self.row0_px + (r + 1) * self.cell_h_px
-        left, right = self.col0_px + c * self.cell_w_px, self.col0_px + (c + 1) * self.cell_w_px
-        f = self.map.pixel_f_to_world
-        return [f(t, left), f(t, right), f(b, right), f(b, left)]
-
-    def bounds_m(self) -> tuple[float, float, float, float]:
-        """(x_min, y_min, x_max, y_max) of the whole grid in world metres (axis-aligned box)."""
-        pts = self.corners(0) + self.corners(self.n_cells - 1)
-        xs, ys = [p[0] for p in pts], [p[1] for p in pts]
-        return min(xs), min(ys), max(xs), max(ys)
-
     # -- connectivity -----------------------------------------------------
     def connected(self, a: int, b: int) -> bool:
         """True when a robot can drive between adjacent free cells ``a`` and ``b``."""
@@ -199,6 +185,76 @@ def _clearance_px(blocked: np.ndarray, pad_blocked: bool) -> np.ndarray:
     return np.where(d > 0, d - math.sqrt(0.5), -1.0)
 
 
+@dataclass(frozen=True)
+class _Cut:
+    """Where the grid lies on the image: top-left corner of cell 0 (continuous pixel
+    coordinates), cells per side and cell size in pixels."""
+    r0: float
+    c0: float
+    rows: int
+    cols: int
+    cell_h_px: float
+    cell_w_px: float
+
+
+def _cut(m: OccupancyMap, rows_cols: tuple[int, int] | None, cell_m: float | None, crop: bool) -> _Cut:
+    """The grid's placement for :func:`make_grid`'s ``rows_cols``/``cell_m``/``crop``; raises ValueError."""
+    r0, c0, r1, c1 = m.known_bounds() if crop else (0, 0, m.height, m.width)
+    area_h, area_w = r1 - r0, c1 - c0
+    if cell_m is not None:
+        if not cell_m > 0:
+            raise ValueError(f"cell_m must be > 0, got {cell_m!r}")
+        cell_h_px = cell_w_px = cell_m / m.resolution
+        rows = max(1, math.ceil(area_h / cell_h_px - 1e-9))
+        cols = max(1, math.ceil(area_w / cell_w_px - 1e-9))
+    else:
+        rows, cols = rows_cols if rows_cols is not None else DEFAULT_ROWS_COLS
+        if int(rows) != rows or int(cols) != cols or rows < 1 or cols < 1:
+            raise ValueError(f"rows_cols must be two positive integers, got {rows_cols!r}")
+        rows, cols = int(rows), int(cols)
+        cell_h_px, cell_w_px = area_h / rows, area_w / cols
+    return _Cut(r0, c0, rows, cols, cell_h_px, cell_w_px)
+
+
+def _free_fractions(m: OccupancyMap, free_px: np.ndarray, g: _Cut) -> np.ndarray:
+    """(rows, cols) free share of each cell's area: every pixel belongs to the cell holding
+    its centre; area outside the image is not free."""
+    rows, cols = g.rows, g.cols
+    span_r = np.arange(math.floor(g.r0), math.ceil(g.r0 + rows * g.cell_h_px))
+    span_c = np.arange(math.floor(g.c0), math.ceil(g.c0 + cols * g.cell_w_px))
+    ri = np.floor((span_r + 0.5 - g.r0) / g.cell_h_px).astype(np.int64)
+    ci = np.floor((span_c + 0.5 - g.c0) / g.cell_w_px).astype(np.int64)
+    keep_r, keep_c = (ri >= 0) & (ri < rows), (ci >= 0) & (ci < cols)
+    span_r, ri, span_c, ci = span_r[keep_r], ri[keep_r], span_c[keep_c], ci[keep_c]
+    in_r = (span_r >= 0) & (span_r < m.height)
+    in_c = (span_c >= 0) & (span_c < m.width)
+    sub = np.zeros((span_r.size, span_c.size), dtype=bool)
+    sub[np.ix_(in_r, in_c)] = free_px[np.ix_(span_r[in_r], span_c[in_c])]
+    ids = (ri[:, None] * cols + ci[None, :]).ravel()
+    total = np.bincount(ids, minlength=rows * cols).astype(np.float64)
+    nfree = np.bincount(ids, weights=sub.ravel().astype(np.float64), minlength=rows * cols)
+    return (nfree / np.maximum(total, 1.0)).reshape(rows, cols)
+
+
+def _clearance_at(clear_m: np.ndarray, rf: np.ndarray, cf: np.ndarray) -> np.ndarray:
+    """Clearance (m) at continuous pixel coordinates; -inf outside the image."""
+    ri, ci = np.floor(rf).astype(np.int64), np.floor(cf).astype(np.int64)
+    ok = (ri >= 0) & (ri < clear_m.shape[0]) & (ci >= 0) & (ci < clear_m.shape[1])
+    out = np.full(rf.shape, -np.inf)
+    out[ok] = clear_m[ri[ok], ci[ok]]
+    return out
+
+
+def _segment_min(clear_m: np.ndarray, rf0: np.ndarray, cf0: np.ndarray, rf1: np.ndarray, cf1: np.ndarray,
+                 length_px: float) -> np.ndarray:
+    """Smallest clearance (m) along the segments from (rf0, cf0) to (rf1, cf1), sampled every half pixel."""
+    n = max(2, int(math.ceil(length_px * 2)) + 1)
+    t = np.linspace(0.0, 1.0, n)
+    rf = rf0[..., None] + (rf1 - rf0)[..., None] * t
+    cf = cf0[..., None] + (cf1 - cf0)[..., None] * t
+    return _clearance_at(clear_m, rf, cf).min(axis=-1)
+
+
 def make_grid(m: OccupancyMap, rows_cols: tuple[int, int] | None = None, cell_m: float | None = None,
               free_fraction: float = 0.8, robot_radius: float = ROBOT_RADIUS,
               unknown_is_occupied: bool = True, *, margin: float = ROBOT_MARGIN,
@@ -229,20 +285,8 @@ def make_grid(m: OccupancyMap, rows_cols: tuple[int, int] | None = None, cell_m:
     if robot_radius < 0 or margin < 0:
         raise ValueError("robot_radius and margin must be >= 0")
     res = m.resolution
-    r0, c0, r1, c1 = m.known_bounds() if crop else (0, 0, m.height, m.width)
-    area_h, area_w = r1 - r0, c1 - c0
-    if cell_m is not None:
-        if not cell_m > 0:
-            raise ValueError(f"cell_m must be > 0, got {cell_m!r}")
-        cell_h_px = cell_w_px = cell_m / res
-        rows = max(1, math.ceil(area_h / cell_h_px - 1e-9))
-        cols = max(1, math.ceil(area_w / cell_w_px - 1e-9))
-    else:
-        rows, cols = rows_cols if rows_cols is not None else DEFAULT_ROWS_COLS
-        if int(rows) != rows or int(cols) != cols or rows < 1 or cols < 1:
-            raise ValueError(f"rows_cols must be two positive integers, got {rows_cols!r}")
-        rows, cols = int(rows), int(cols)
-        cell_h_px, cell_w_px = area_h / rows, area_w / cols
+    g = _cut(m, rows_cols, cell_m, crop)
+    rows, cols, cell_h_px, cell_w_px = g.rows, g.cols, g.cell_h_px, g.cell_w_px
     need = robot_radius + margin
     if min(cell_h_px, cell_w_px) * res < 2 * need - 1e-9:
         raise ValueError(f"cells of {cell_w_px * res:.3f} x {cell_h_px * res:.3f} m are smaller than the "
@@ -250,47 +294,16 @@ def make_grid(m: OccupancyMap, rows_cols: tuple[int, int] | None = None, cell_m:
 
     free_px = m.free_mask(unknown_is_occupied)
     clear_m = _clearance_px(~free_px, pad_blocked=unknown_is_occupied) * res
-
-    # 1. free fraction: every pixel belongs to the cell holding its centre; area outside the image is not free.
-    span_r = np.arange(math.floor(r0), math.ceil(r0 + rows * cell_h_px))
-    span_c = np.arange(math.floor(c0), math.ceil(c0 + cols * cell_w_px))
-    ri = np.floor((span_r + 0.5 - r0) / cell_h_px).astype(np.int64)
-    ci = np.floor((span_c + 0.5 - c0) / cell_w_px).astype(np.int64)
-    keep_r, keep_c = (ri >= 0) & (ri < rows), (ci >= 0) & (ci < cols)
-    span_r, ri, span_c, ci = span_r[keep_r], ri[keep_r], span_c[keep_c], ci[keep_c]
-    in_r = (span_r >= 0) & (span_r < m.height)
-    in_c = (span_c >= 0) & (span_c < m.width)
-    sub = np.zeros((span_r.size, span_c.size), dtype=bool)
-    sub[np.ix_(in_r, in_c)] = free_px[np.ix_(span_r[in_r], span_c[in_c])]
-    ids = (ri[:, None] * cols + ci[None, :]).ravel()
-    total = np.bincount(ids, minlength=rows * cols).astype(np.float64)
-    nfree = np.bincount(ids, weights=sub.ravel().astype(np.float64), minlength=rows * cols)
-    frac = (nfree / np.maximum(total, 1.0)).reshape(rows, cols)
-
-    # 2. clearance at cell centres (points outside the image have none).
-    def clearance_at(rf: np.ndarray, cf: np.ndarray) -> np.ndarray:
-        ri_, ci_ = np.floor(rf).astype(np.int64), np.floor(cf).astype(np.int64)
-        ok = (ri_ >= 0) & (ri_ < m.height) & (ci_ >= 0) & (ci_ < m.width)
-        out = np.full(rf.shape, -np.inf)
-        out[ok] = clear_m[ri_[ok], ci_[ok]]
-        return out
-
-    cr = r0 + (np.arange(rows) + 0.5) * cell_h_px
-    cc = c0 + (np.arange(cols) + 0.5) * cell_w_px
-    centre_clear = clearance_at(np.repeat(cr[:, None], cols, 1), np.repeat(cc[None, :], rows, 0))
+    # 1. free fraction; 2. clearance at cell centres (points outside the image have none)
+    frac = _free_fractions(m, free_px, g)
+    cr = g.r0 + (np.arange(rows) + 0.5) * cell_h_px
+    cc = g.c0 + (np.arange(cols) + 0.5) * cell_w_px
+    centre_clear = _clearance_at(clear_m, np.repeat(cr[:, None], cols, 1), np.repeat(cc[None, :], rows, 0))
     free = (frac >= free_fraction - 1e-12) & (centre_clear >= need)
-
     # 3. connections: clearance along the segment between neighbouring centres.
-    def segment_min(rf0, cf0, rf1, cf1, length_px):
-        n = max(2, int(math.ceil(length_px * 2)) + 1)
-        t = np.linspace(0.0, 1.0, n)
-        rf = rf0[..., None] + (rf1 - rf0)[..., None] * t
-        cf = cf0[..., None] + (cf1 - cf0)[..., None] * t
-        return clearance_at(rf, cf).min(axis=-1)
-
     R, C = np.meshgrid(cr, cc, indexing="ij")
-    open_east = segment_min(R[:, :-1], C[:, :-1], R[:, 1:], C[:, 1:], cell_w_px) >= need
-    open_south = segment_min(R[:-1, :], C[:-1, :], R[1:, :], C[1:, :], cell_h_px) >= need
+    open_east = _segment_min(clear_m, R[:, :-1], C[:, :-1], R[:, 1:], C[:, 1:], cell_w_px) >= need
+    open_south = _segment_min(clear_m, R[:-1, :], C[:-1, :], R[1:, :], C[1:, :], cell_h_px) >= need
     return CellGrid(rows=rows, cols=cols, cell_w_m=cell_w_px * res, cell_h_m=cell_h_px * res,
-                    free=free, map=m, row0_px=float(r0), col0_px=float(c0), free_fraction=frac,
+                    free=free, map=m, row0_px=float(g.r0), col0_px=float(g.c0), free_fraction=frac,
                     clearance=centre_clear, open_east=open_east, open_south=open_south)

@@ -34,11 +34,16 @@ from .geometry import GRID_PARAM, ROBOTS_PARAM, GridGeometry
 log = get_logger("fleet.manager")
 
 MANAGER_ID = "fleetManager"
+SETUP_TIMEOUT_S = 60.0   # s for the fleet container, its planner and the operator interfaces to come up
+CLOSE_TIMEOUT_S = 5.0    # s the cloud gets to confirm the container's removal at close
 
 _IFACES = [  # container iTag, container type, manager iTag, manager type, class, topic
-    ("fleetGoalReceiver", "PublisherInterface", "fleetGoalSender", "SubscriberConverter", "fleet/RobotGoal", "/fleet/goal"),
-    ("fleetBlockReceiver", "PublisherInterface", "fleetBlockSender", "SubscriberConverter", "fleet/CellBlock", "/fleet/block"),
-    ("fleetStateSender", "SubscriberInterface", "fleetStateReceiver", "PublisherConverter", "fleet/FleetState", "/fleet/state"),
+    ("fleetGoalReceiver", "PublisherInterface", "fleetGoalSender", "SubscriberConverter", "fleet/RobotGoal",
+     "/fleet/goal"),
+    ("fleetBlockReceiver", "PublisherInterface", "fleetBlockSender", "SubscriberConverter", "fleet/CellBlock",
+     "/fleet/block"),
+    ("fleetStateSender", "SubscriberInterface", "fleetStateReceiver", "PublisherConverter", "fleet/FleetState",
+     "/fleet/state"),
 ]
 
 
@@ -61,9 +66,10 @@ class FleetManager:
         self._goal_pub = self._block_pub = None
         self._state_event = asyncio.Event()
 
-    async def start(self, timeout: float = 60.0) -> None:
+    async def start(self, timeout: float = SETUP_TIMEOUT_S) -> None:
         """Log in, create the container, the planner and the operator interfaces; returns when
-        the interfaces are up. Raises :class:`RCEError` with the cloud's reason."""
+        the interfaces are up (within ``timeout`` s). Raises :class:`RCEError` with the cloud's
+        reason."""
         conn = self.conn = await Connection.connect(self.master_url, self.user, self.password, self.robot_id)
         conn.on_error(self._on_error)
         conn.on_status(self._on_status)
@@ -143,7 +149,7 @@ class FleetManager:
         try:
             if destroy:
                 await conn.destroy_container(self.ctag)
-                await conn.barrier(5.0)
+                await conn.barrier(CLOSE_TIMEOUT_S)
         except RCEError as e:
             log.warning("teardown incomplete", reason=e.message)
         finally:

@@ -1,5 +1,5 @@
 """The ``fleet/move_client`` container node (one per robot, namespace ``RobotN``): I/O shell
-around :class:`rce_fleet.move_core.MoveClientCore` (topics: see that module).
+around :class:`rce_fleet.move_client_core.MoveClientCore` (topics: see that module).
 
 Arguments: ``[--robot RobotN] [--rate HZ]``; the robot ID defaults to the node's namespace.
 Publishes ``/RobotN/move_base_simple/goal`` (geometry_msgs/PoseStamped),
@@ -15,13 +15,14 @@ from rce.log import get_logger, setup_logging
 from rce.node import node_argv
 
 from .geometry import yaw_from_quaternion
-from .move_core import MoveClientCore, plan_id_of
+from .move_client_core import MoveClientCore, plan_id_of
 from .node_common import Publishers, load_geometry
 
 log = get_logger("fleet.move_client")
 
 
 def parse_args(argv: list[str]) -> argparse.Namespace:
+    """The node's arguments (see the module docstring)."""
     p = argparse.ArgumentParser(prog="move_client")
     p.add_argument("--robot", default="", help="robot ID (default: the node's namespace)")
     p.add_argument("--rate", type=float, default=2.0, help="progress rate, Hz (default 2)")
@@ -29,6 +30,7 @@ def parse_args(argv: list[str]) -> argparse.Namespace:
 
 
 async def main(node) -> None:
+    """Run one robot's move client on ``node`` (an :class:`rce.node.Node`) until it shuts down."""
     setup_logging()
     args = parse_args(node_argv())
     robot = args.robot or node.namespace.strip("/").split("/")[-1]

@@ -37,6 +37,7 @@ import numpy as np
 from rce.config import parse_config
 from rce.log import get_logger
 from rce.messages import MessageRegistry
+from rce.tasks import Tasks
 from rce_client.rce_ros import RobotBridge
 
 from .geometry import GridGeometry, quaternion_from_yaw
@@ -48,6 +49,21 @@ OWNER = "/simulator"
 T_POSE, T_OBST = "geometry_msgs/PoseWithCovarianceStamped", "geometry_msgs/PoseArray"
 T_ODOM, T_SCAN = "nav_msgs/Odometry", "sensor_msgs/LaserScan"
 T_GOAL, T_CANCEL = "geometry_msgs/PoseStamped", "actionlib_msgs/GoalID"
+
+#: s a robot's bridge may take to log in and bring its node and interfaces up (the bridge's
+#: own setup timeout; :meth:`SimHost.connect` waits ``BRIDGE_GRACE_S`` longer, so the
+#: bridge's own reason is the one reported).
+CONNECT_TIMEOUT_S = 60.0
+BRIDGE_GRACE_S = 5.0
+#: s the bridges get at :meth:`SimHost.stop` to remove their nodes and interfaces before
+#: they are cancelled.
+STOP_TIMEOUT_S = 10.0
+#: wall s the sim loop may fall behind its schedule before it re-anchors (sim time then runs
+#: slower; it never bursts to catch up).
+MAX_LAG_S = 0.5
+#: lidar points per ``/obstacles`` message; further points are dropped (counted in
+#: ``SimHost.obstacle_points_dropped``).
+MAX_OBSTACLE_POINTS = 120
 
 
 def _stamp(t: float) -> dict:
@@ -97,14 +113,14 @@ class SimHost:
         self.min_pair_at: tuple[float, str, str] | None = None
         self.boxes: dict[int, str] = {}          # cell -> box id, placed
         self.pending_boxes: set[int] = set()     # wanted, not yet placed (a robot is there)
-        self.box_log: list[tuple[float, int, bool]] = []   # (t, cell, placed/removed)
         self.wall_per_sim: list[float] = []
         self.lag_resets = 0
         self._timers: list = []
         self._timer_ids = itertools.count()
+        self.obstacle_points_dropped = 0
+        self.tasks = Tasks("fleet-sim")          # the sim loop, the bridges
         self._task: asyncio.Task | None = None
         self._stopping = False
-        self.on_tick: list[Callable[[], None]] = []
         self.radius = self.world.robot_params.radius
 
     @property
@@ -124,7 +140,7 @@ class SimHost:
         self.bots[rid] = bot
         return bot
 
-    async def connect(self, rid: str, config: dict, master_url: str, timeout: float = 60.0) -> None:
+    async def connect(self, rid: str, config: dict, master_url: str, timeout: float = CONNECT_TIMEOUT_S) -> None:
         """Connect robot ``rid`` to the cloud with ``config`` (its robot config dict) through an
         in-process rce-ros bridge; returns when its interfaces are up. Raises RuntimeError
         with the bridge's reason when it fails."""
@@ -163,9 +179,10 @@ class SimHost:
 
         bus.subscribe("/move_base_simple/goal", T_GOAL, on_goal, OWNER, 100)
         bus.subscribe("/move_base/cancel", T_CANCEL, on_cancel, OWNER, 100)
-        bot.task = asyncio.create_task(bridge.run(), name=f"bridge-{rid}")
-        ready = asyncio.create_task(bridge.ready.wait())
-        done, _ = await asyncio.wait({ready, bot.task}, timeout=timeout + 5, return_when=asyncio.FIRST_COMPLETED)
+        bot.task = self.tasks.spawn(bridge.run(), name=f"bridge-{rid}")
+        ready = self.tasks.spawn(bridge.ready.wait(), name=f"ready-{rid}")
+        done, _ = await asyncio.wait({ready, bot.task}, timeout=timeout + BRIDGE_GRACE_S,
+                                     return_when=asyncio.FIRST_COMPLETED)
         if ready not in done:
             ready.cancel()
             why = errors[-1] if errors else f"interfaces not up within {timeout:g} s"
@@ -179,7 +196,6 @@ class SimHost:
         for c in list(self.boxes):
             if c not in want:
                 self.world.remove_box(self.boxes.pop(c))
-                self.box_log.append((self.time, c, False))
         self.pending_boxes = {c for c in want if c not in self.boxes}
         self._place_boxes()
 
@@ -203,7 +219,6 @@ class SimHost:
                 self.world.add_box(box_id, x, y, w, h)
                 self.boxes[c] = box_id
                 self.pending_boxes.discard(c)
-                self.box_log.append((self.time, c, True))
                 log.info("box placed", cell=c, t=round(self.time, 2))
 
     # -- time ------------------------------------------------------------------------------------
@@ -214,7 +229,7 @@ class SimHost:
     def start(self) -> None:
         """Start the sim loop (a task on the running event loop)."""
         if self._task is None:
-            self._task = asyncio.create_task(self._run(), name="sim-loop")
+            self._task = self.tasks.spawn(self._run(), name="sim-loop")
 
     async def _run(self) -> None:
         loop = asyncio.get_running_loop()
@@ -227,7 +242,7 @@ class SimHost:
                 del self.wall_per_sim[:100]
             target = wall0 + (self.time - sim0) / self.speedup
             now = loop.time()
-            if now - target > 0.5:                 # cannot keep up: re-anchor, never burst to catch up
+            if now - target > MAX_LAG_S:           # cannot keep up: re-anchor, never burst to catch up
                 wall0, sim0 = now, self.time
                 self.lag_resets += 1
                 await asyncio.sleep(0)
@@ -280,8 +295,6 @@ class SimHost:
                 cb()
             except Exception:
                 log.exception("sim timer callback failed")
-        for cb in self.on_tick:
-            cb()
         self.ticks += 1
 
     def _closest_pair(self) -> tuple[str, str]:
@@ -307,7 +320,8 @@ class SimHost:
             if k % self.pose_every == 0:
                 x, y, yaw, cov = bot.robot.localisation()
                 msg = {"header": {"stamp": _stamp(t), "frame_id": "map"},
-                       "pose": {"pose": {"position": {"x": x, "y": y, "z": 0.0}, "orientation": quaternion_from_yaw(yaw)},
+                       "pose": {"pose": {"position": {"x": x, "y": y, "z": 0.0},
+                                         "orientation": quaternion_from_yaw(yaw)},
                                 "covariance": cov}}
                 bus.publish(tp["pose"], reg.json_to_bytes(reg.msg_type(T_POSE), msg))
             if tp["odom"].subscriptions:
@@ -328,13 +342,16 @@ class SimHost:
                 pts = [(px, py) for px, py in self.detector.detect(scan, pose)
                        if math.hypot(px - pose[0], py - pose[1]) <= self.obstacle_range]
                 if pts:
+                    self.obstacle_points_dropped += max(0, len(pts) - MAX_OBSTACLE_POINTS)
                     msg = {"header": {"stamp": _stamp(t), "frame_id": "map"},
-                           "poses": [{"position": {"x": px, "y": py}, "orientation": {"w": 1.0}} for px, py in pts[:120]]}
+                           "poses": [{"position": {"x": px, "y": py}, "orientation": {"w": 1.0}}
+                                     for px, py in pts[:MAX_OBSTACLE_POINTS]]}
                     bus.publish(tp["obstacles"], reg.json_to_bytes(reg.msg_type(T_OBST), msg))
 
     # -- teardown ----------------------------------------------------------------------------------
-    async def stop(self, timeout: float = 10.0) -> None:
-        """Stop the loop and every bridge (each removes its node and interfaces from the cloud)."""
+    async def stop(self, timeout: float = STOP_TIMEOUT_S) -> None:
+        """Stop the loop and every bridge (each removes its node and interfaces from the cloud
+        within ``timeout`` s, or is cancelled)."""
         self._stopping = True
         if self._task is not None:
             await asyncio.gather(self._task, return_exceptions=True)
@@ -344,9 +361,8 @@ class SimHost:
                 bot.bridge.stop.set()
                 tasks.append(bot.task)
         if tasks:
-            done, pending = await asyncio.wait(tasks, timeout=timeout)
-            for t in pending:
-                t.cancel()
+            await asyncio.wait(tasks, timeout=timeout)
+        await self.tasks.cancel_all()
 
     # -- ground truth --------------------------------------------------------------------------------
     def entries_after(self, cell: int, t: float) -> list[tuple[str, float]]:

@@ -63,7 +63,8 @@ class ObstacleFilter:
                  max_range: float = 2.0, robot_clearance: float = 0.3, edge_margin: float = 0.15):
         self.geo = geometry
         self.min_points, self.confirm, self.window_s = int(min_points), int(confirm), float(window_s)
-        self.max_range, self.robot_clearance, self.edge_margin = float(max_range), float(robot_clearance), float(edge_margin)
+        self.max_range, self.robot_clearance = float(max_range), float(robot_clearance)
+        self.edge_margin = float(edge_margin)
         self.sightings: dict[int, list[float]] = {}
 
     def _near_blocked(self, x: float, y: float, blocked: set[int]) -> bool:

@@ -32,7 +32,7 @@ from rce.errors import RCEError, Unavailable
 from rce.log import get_logger
 from rce_client.connection import Connection
 
-from .geometry import GridGeometry
+from .geometry import GridGeometry, components
 
 log = get_logger("fleet.web")
 
@@ -40,6 +40,8 @@ WEB_DIR = Path(__file__).parent / "web"
 MISSION_TOPIC = "/fleet/mission"
 MISSION_ID = "fleetMission"
 DEFAULT_PORT = 8000
+SETUP_TIMEOUT_S = 30.0   # s for the mission runner's interfaces to come up
+CLOSE_TIMEOUT_S = 5.0    # s the cloud gets to confirm the removal of the mission runner's interfaces
 
 
 def map_png(occ) -> bytes:
@@ -65,23 +67,6 @@ def map_png(occ) -> bytes:
     return buf.getvalue()
 
 
-def _components(geo: GridGeometry) -> dict[int, int]:
-    """cell -> id of its connected part of the grid (free cells only)."""
-    comp: dict[int, int] = {}
-    for start in geo.free_cells():
-        if start in comp:
-            continue
-        comp[start] = start
-        todo = [start]
-        while todo:
-            u = todo.pop()
-            for v in geo.neighbours(u):
-                if v not in comp:
-                    comp[v] = start
-                    todo.append(v)
-    return comp
-
-
 class MissionRunner:
     """The random mission behind the page's start/stop buttons (see the module docstring)."""
 
@@ -90,7 +75,7 @@ class MissionRunner:
         self.master_url, self.geo, self.robots = master_url, geo, list(robots)
         self.user, self.password, self.ctag, self.robot_id = user, password, ctag, robot_id
         self.rng = random.Random(seed)
-        self.comp = _components(geo)
+        self.comp = {c: i for i, part in enumerate(components(geo)) for c in sorted(part)}   # cell -> its part
         self.conn: Connection | None = None
         self.running = False
         self.goals: dict[str, int] = {}          # robot -> goal this mission gave it
@@ -99,7 +84,9 @@ class MissionRunner:
         self._goal_pub = None
         self._state: dict | None = None
 
-    async def start(self, timeout: float = 30.0) -> None:
+    async def start(self, timeout: float = SETUP_TIMEOUT_S) -> None:
+        """Log in as ``fleetMission`` and connect the mission topics; returns when they are up
+        (within ``timeout`` s). Raises :class:`RCEError` with the cloud's reason."""
         c = self.conn = await Connection.connect(self.master_url, self.user, self.password, self.robot_id)
         c.on_error(lambda r: log.warning("mission: error from the cloud", reason=r))
         links = [("missionCmd", "SubscriberInterface", "PublisherConverter", "std_msgs/String", MISSION_TOPIC),
@@ -125,11 +112,13 @@ class MissionRunner:
         log.info("mission runner up", topic=MISSION_TOPIC)
 
     async def close(self) -> None:
+        """Remove the mission's interfaces from the fleet container and log out."""
         if self.conn is not None and not self.conn.closed:
             try:
                 await self.conn.configure({"removeInterfaces": [
-                    {"endpointTag": self.ctag, "interfaceTag": t} for t in ("missionCmd", "missionState", "missionGoal")]})
-                await self.conn.barrier(5.0)
+                    {"endpointTag": self.ctag, "interfaceTag": t}
+                    for t in ("missionCmd", "missionState", "missionGoal")]})
+                await self.conn.barrier(CLOSE_TIMEOUT_S)
             except RCEError:
                 pass
             await self.conn.close()
@@ -200,11 +189,14 @@ class WebUI:
         self._runner: web.AppRunner | None = None
 
     def config(self) -> dict:
+        """The page's ``config.json`` (no password in it)."""
         return {"master": self.master_url, "user": self.user, "container": self.ctag, "map": "map.png",
                 "missionTopic": MISSION_TOPIC if self.mission else None, "title": self.title,
                 "robots": self.robots}
 
     async def start(self) -> str:
+        """Start the mission runner and the HTTP server (on ``port``, or any free port when it
+        is taken); returns the page's URL."""
         png = map_png(self.occ)
         cfg = json.dumps(self.config())
         nocache = {"Cache-Control": "no-store"}
@@ -244,6 +236,7 @@ class WebUI:
         return self.url
 
     async def stop(self) -> None:
+        """Stop the mission runner and the HTTP server."""
         if self.mission is not None:
             await self.mission.close()
         if self._runner is not None:

@@ -24,8 +24,8 @@ from .walls import PixelRect, blocked_mask, merge_rectangles, rect_to_world
 from .world import SimWorld
 
 __all__ = [
-    "Lidar", "LidarParams", "LocalNavigator", "NavParams", "ObstacleDetector", "LocalisationModel", "LocalisationParams",
-    "Odometry", "OdometryNoise", "PixelRect", "RobotParams", "SimRobot",
+    "Lidar", "LidarParams", "LocalNavigator", "NavParams", "ObstacleDetector", "LocalisationModel",
+    "LocalisationParams", "Odometry", "OdometryNoise", "PixelRect", "RobotParams", "SimRobot",
     "SimWorld", "blocked_mask", "detected_obstacles", "merge_rectangles", "rect_to_world",
     "scan_to_points", "wrap_angle",
 ]

@@ -28,6 +28,9 @@ try:  # pymunk's own cffi binding: skips building a result object per beam
 except ImportError:  # pragma: no cover - other pymunk layouts
     _ffi = _lib = None
 
+#: The shape filter that excludes nothing (a lidar on no robot).
+ALL_SHAPES = pymunk.ShapeFilter()
+
 
 @dataclass(frozen=True)
 class LidarParams:
@@ -84,7 +87,7 @@ class Lidar:
         self._sin = np.sin(a)
 
     def true_ranges(self, x: float, y: float, yaw: float,
-                    shape_filter: pymunk.ShapeFilter = pymunk.ShapeFilter()) -> np.ndarray:
+                    shape_filter: pymunk.ShapeFilter = ALL_SHAPES) -> np.ndarray:
         """Noise-free distances to the first hit per beam, m; ``inf`` if none
         within ``range_max``.  (n_beams,) float64."""
         p = self.params
@@ -95,7 +98,7 @@ class Lidar:
         start = (x, y)
         out = np.full(p.n_beams, np.inf)
         rmax = p.range_max
-        ends = zip((dx + x).tolist(), (dy + y).tolist())
+        ends = zip((dx + x).tolist(), (dy + y).tolist(), strict=True)
         cspace = getattr(self.space, "_space", None)
         if self.fast and _lib is not None and cspace is not None:
             info = _ffi.new("cpSegmentQueryInfo *")
@@ -113,7 +116,7 @@ class Lidar:
         return out
 
     def scan(self, x: float, y: float, yaw: float,
-             shape_filter: pymunk.ShapeFilter = pymunk.ShapeFilter()) -> np.ndarray:
+             shape_filter: pymunk.ShapeFilter = ALL_SHAPES) -> np.ndarray:
         """A noisy scan: (n_beams,) float32 ranges, m, with REP 117 +-inf."""
         p = self.params
         r = self.true_ranges(x, y, yaw, shape_filter)

@@ -100,8 +100,6 @@ class LocalNavigator:
     re-projected, so control can run faster than the lidar).
     """
 
-    STATES = ("idle", "driving", "reached", "blocked")
-
     def __init__(self, params: NavParams | None = None, *,
                  lidar_params: LidarParams | None = None,
                  obstacle_detector: ObstacleDetector | None = None) -> None:

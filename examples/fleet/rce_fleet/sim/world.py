@@ -81,7 +81,6 @@ class SimWorld:
             s.friction = 0.0
             s.elasticity = 0.0
         self.space.add(*shapes)
-        self.wall_shapes = shapes
 
     # -- contents ------------------------------------------------------------
     @property
@@ -153,10 +152,6 @@ class SimWorld:
         return n
 
     # -- observation ---------------------------------------------------------
-    def ground_truth(self) -> dict[str, tuple[float, float, float]]:
-        """True pose (x m, y m, yaw rad) of every robot."""
-        return {rid: r.pose() for rid, r in self.robots.items()}
-
     def min_pair_distance(self) -> float:
         """Smallest centre-to-centre distance between two robots, m (inf with
         fewer than two).  Robots overlap when this is < 2 * radius."""

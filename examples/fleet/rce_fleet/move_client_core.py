@@ -26,19 +26,11 @@ cancelGoal before the new path on one link, so they arrive in that order.
 from __future__ import annotations
 
 import math
-from typing import NamedTuple
-
 from .geometry import GridGeometry, quaternion_from_yaw
+from .node_common import Out
 from .tracking import CellTracker
 
-__all__ = ["MoveClientCore", "Out", "plan_id_of"]
-
-
-class Out(NamedTuple):
-    """One message to publish: ``topic``, message class ``type`` (wire name), JSON-form ``msg``."""
-    topic: str
-    type: str
-    msg: dict
+__all__ = ["MoveClientCore", "plan_id_of"]
 
 
 def plan_id_of(layout_label: str) -> int:
@@ -77,10 +69,12 @@ class MoveClientCore:
 
     @property
     def goal_topic(self) -> str:
+        """Where the robot's waypoints go (``geometry_msgs/PoseStamped``)."""
         return f"/{self.robot}/move_base_simple/goal"
 
     @property
     def cancel_topic(self) -> str:
+        """Where the robot's cancels go (``actionlib_msgs/GoalID``)."""
         return f"/{self.robot}/move_base/cancel"
 
     # -- inputs -------------------------------------------------------------------------------
@@ -196,6 +190,7 @@ class MoveClientCore:
     # -- progress --------------------------------------------------------------------------------
     @property
     def state(self) -> str:
+        """``no_pose``, ``cancelled``, ``idle``, ``driving``, ``waiting`` (for clearance) or ``arrived``."""
         if self.pose is None:
             return "no_pose"
         if self._cancelled:

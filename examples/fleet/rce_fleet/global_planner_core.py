@@ -3,7 +3,7 @@ lidar obstacles in; cell paths, cancelGoal, execution clearances and the fleet s
 
 The node (``packages/fleet/global_planner``) is a thin shell: it subscribes the topics,
 feeds each message to :class:`GlobalPlannerCore` and publishes the :class:`Out` items it
-returns, in order. Planning itself is :class:`rce_fleet.planner.FleetPlanner`.
+returns, in order. Planning itself is :class:`rce_fleet.planning.FleetPlanner`.
 
 Topics (per robot N; DESIGN section 6 and the seed paper, section III-C):
 
@@ -35,46 +35,22 @@ import math
 import time
 from collections import deque
 from dataclasses import dataclass, field
-from typing import Any, Callable, NamedTuple
+from typing import Any, Callable
 
 import numpy as np
 
 from .geometry import GridGeometry
-from .planner import INF, FleetPlanner, GridGraph, PlannerError
+from .node_common import Out
+from .planning import FleetPlanner, GridGraph, PlannerError, compress, compressed_index
 from .tracking import CellTracker, ObstacleFilter
 
-__all__ = ["Out", "GlobalPlannerCore", "compress", "compressed_index"]
+__all__ = ["GlobalPlannerCore"]
 
-MAX_ERRORS = 20
+MAX_ERRORS = 20            # errors kept for the fleet state (the oldest are dropped)
 CLEARANCE_REPEAT_S = 0.5   # clearances are repeated this often (lost or reordered messages heal)
 PATH_REPEAT_S = 2.0        # paths are repeated this often (a move_client that starts late gets one)
 RETRY_S = 1.0              # robots parked for want of a collision-free path are retried this often
-
-
-class Out(NamedTuple):
-    """One message to publish: ``topic``, message class ``type`` (wire name), JSON-form ``msg``."""
-    topic: str
-    type: str
-    msg: dict
-
-
-def compress(path) -> list[int]:
-    """Drop repeated consecutive cells (waits) from a space-time path."""
-    out: list[int] = []
-    for c in path:
-        c = int(c)
-        if not out or out[-1] != c:
-            out.append(c)
-    return out
-
-
-def compressed_index(path, k: int) -> int:
-    """Index in ``compress(path)`` of the cell at step ``k`` of ``path``."""
-    n = 0
-    for i in range(1, min(k, len(path) - 1) + 1):
-        if path[i] != path[i - 1]:
-            n += 1
-    return n
+SLOW_REPLAN_S = 0.05       # a re-plan that takes longer than this is logged
 
 
 @dataclass
@@ -109,6 +85,7 @@ class GlobalPlannerCore:
         self.log = log or (lambda msg, **kw: None)
         self.robots: dict[str, _Robot] = {}
         self.errors: deque[str] = deque(maxlen=MAX_ERRORS)
+        self.errors_dropped = 0             # errors pushed out of ``errors`` by newer ones
         self.replans = 0
         self.plan_times: list[float] = []   # seconds per re-plan
         self._seen_result = None
@@ -129,6 +106,8 @@ class GlobalPlannerCore:
         return True
 
     def _error(self, text: str, **fields) -> None:
+        if len(self.errors) == self.errors.maxlen:
+            self.errors_dropped += 1
         self.errors.append(text)
         self.log("error", text=text, **fields)
 
@@ -285,7 +264,7 @@ class GlobalPlannerCore:
             self._seen_result = res
             self.replans += 1
             self.plan_times.append(res.elapsed_s)
-            if res.elapsed_s > 0.05:
+            if res.elapsed_s > SLOW_REPLAN_S:
                 self.log("slow re-plan", ms=round(res.elapsed_s * 1e3, 1), full=res.full, changed=sorted(res.changed),
                          unreachable=sorted(res.unreachable))
             if res.unreachable:
@@ -333,9 +312,10 @@ class GlobalPlannerCore:
         if not self.graph.is_free(g) or g in fp.blocked:
             return True
         pos = fp.positions.get(r)
-        return pos is not None and pos != g and fp.distance(pos, g) == INF
+        return pos is not None and pos != g and fp.distance(pos, g) == math.inf
 
     def robot_state(self, r: str) -> dict:
+        """Robot ``r``'s entry of the fleet state (``fleet/RobotState``, JSON form)."""
         fp, rec = self.fp, self.robots[r]
         cell = fp.positions.get(r, rec.tracker.cell if rec.tracker.cell is not None else -1)
         goal = fp.goals.get(r)

@@ -1,0 +1,107 @@
+"""The reservation table of prioritized planning (Silver 2005, "Cooperative Pathfinding",
+AIIDE): which robot holds which cell at which plan step, for robots planned earlier.
+
+Robots are numbered owners (ints); steps are plan time steps (one cell move or one wait).
+"""
+from __future__ import annotations
+
+import bisect
+from collections.abc import Sequence
+
+__all__ = ["Reservations"]
+
+
+class Reservations:
+    """Reservation table for prioritized planning (Silver 2005).
+
+    ``vertex[t * n + cell] = owner`` for every reserved (cell, step);
+    ``occ[cell]``: sorted steps at which ``cell`` is reserved;
+    ``parked[cell] = t``: the owner stays in ``cell`` from step t for ever;
+    ``paths[owner]``: the owner's reserved cells from step 0 (``parks[owner]``:
+    whether it stays in the last one for ever).
+    """
+
+    __slots__ = ("n", "vertex", "occ", "parked", "paths", "parks")
+
+    def __init__(self, n_cells: int):
+        self.n = n_cells
+        self.vertex: dict[int, int] = {}
+        self.occ: dict[int, list[int]] = {}
+        self.parked: dict[int, int] = {}
+        self.paths: dict[int, list[int]] = {}
+        self.parks: dict[int, bool] = {}
+
+    def copy(self) -> "Reservations":
+        """An independent copy."""
+        r = Reservations(self.n)
+        r.vertex, r.parked = dict(self.vertex), dict(self.parked)
+        r.occ = {c: list(ts) for c, ts in self.occ.items()}
+        r.paths, r.parks = dict(self.paths), dict(self.parks)
+        return r
+
+    def cell_of(self, owner: int, t: int) -> int | None:
+        """Where ``owner`` is at step ``t`` (None when not known: an unplanned robot past its start)."""
+        p = self.paths.get(owner)
+        if p is None:
+            return None
+        if t < len(p):
+            return p[t]
+        return p[-1] if self.parks.get(owner) else None
+
+    def closes_rotation(self, u: int, v: int, t: int) -> bool:
+        """True when moving u -> v between t and t + 1 closes a cycle of robots each
+        entering the cell the next one leaves (a swap is the 2-cycle)."""
+        n, vertex = self.n, self.vertex
+        o = vertex.get(t * n + v)
+        for _ in range(len(self.paths) + 1):
+            if o is None:
+                return False
+            x = self.cell_of(o, t + 1)
+            if x is None:
+                return False
+            if x == u:
+                return True
+            o = vertex.get(t * n + x)
+        return False
+
+    def reserve(self, path: Sequence[int], owner: int, park: bool = True, t0: int = 0) -> None:
+        """Reserve ``path[k]`` at step ``t0 + k``; with ``park`` the final cell for ever after."""
+        n, vertex, occ = self.n, self.vertex, self.occ
+        for k, c in enumerate(path):
+            t = t0 + k
+            key = t * n + c
+            if key in vertex:
+                vertex[key] = owner
+                continue
+            vertex[key] = owner
+            ts = occ.get(c)
+            if ts is None:
+                occ[c] = [t]
+            elif ts[-1] < t:
+                ts.append(t)
+            else:
+                bisect.insort(ts, t)
+        if park:
+            self.parked[path[-1]] = t0 + len(path) - 1
+        if t0 == 0:
+            self.paths[owner] = list(path)
+            self.parks[owner] = park
+
+    def release(self, path: Sequence[int], owner: int, t0: int = 0) -> None:
+        """Undo :meth:`reserve` (without ``park``) of ``path`` for ``owner``."""
+        n = self.n
+        self.paths.pop(owner, None)
+        self.parks.pop(owner, None)
+        for k, c in enumerate(path):
+            t = t0 + k
+            if self.vertex.get(t * n + c) == owner:
+                del self.vertex[t * n + c]
+                ts = self.occ[c]
+                ts.pop(bisect.bisect_left(ts, t))
+                if not ts:
+                    del self.occ[c]
+
+    def last(self, cell: int) -> int:
+        """Last reserved step of ``cell`` (-1 if none)."""
+        ts = self.occ.get(cell)
+        return ts[-1] if ts else -1
