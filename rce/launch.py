@@ -125,11 +125,12 @@ def start_engine(workdir: Path | None = None, *, robot_tasksets: int = 1, contai
     """Start master (``--dev``), robot task set(s) and container host(s); returns the :class:`Engine`.
 
     ``env`` is added to the processes' environment (``os.environ`` plus the admin token,
-    JSON logs and a private ``XDG_CONFIG_HOME``)."""
+    JSON logs, and a private ``XDG_CONFIG_HOME`` and ``XDG_STATE_HOME``: the master's state
+    file is the engine's own)."""
     workdir = Path(workdir or tempfile.mkdtemp(prefix="rce-engine-"))
     workdir.mkdir(parents=True, exist_ok=True)
     penv = dict(os.environ, RCE_ADMIN_TOKEN=admin_token, RCE_LOG_JSON="1",
-                XDG_CONFIG_HOME=str(workdir / "config"), **(env or {}))
+                XDG_CONFIG_HOME=str(workdir / "config"), XDG_STATE_HOME=str(workdir / "state"), **(env or {}))
     e = Engine(workdir, penv, admin_token=admin_token)
     ready = workdir / "master.ready"
     _, info = e.spawn("master", [*command("rce-master"), "--dev", "--port", "0", "--control-port", "0",

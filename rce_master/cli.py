@@ -1,4 +1,5 @@
-"""``rce-master``: the master task set (login on 9000, control plane on 8080)."""
+"""``rce-master``: the master task set (login on 9000, control plane on 8080), its state in a
+SQLite file (``--state``, default :func:`default_state_path`) or in memory (``--state :memory:``)."""
 from __future__ import annotations
 
 import argparse
@@ -10,9 +11,29 @@ from pathlib import Path
 from rce.process import run, write_ready_file
 from rce.log import get_logger
 from rce_master import token
+from rce_master.reconcile import RECONCILE_GRACE
 from rce_master.server import Master
+from rce_master.sqlite_store import SqliteStore
+from rce_master.store import MemoryStore, Store
 
 log = get_logger("rce.master")
+MEMORY = ":memory:"          # --state value for a state kept in memory only (lost when the master exits)
+
+
+def default_state_path() -> Path:
+    """``$XDG_STATE_HOME/rce/master.sqlite3``, else ``~/.local/state/rce/master.sqlite3`` (XDG Base
+    Directory specification: state that persists between restarts)."""
+    base = os.environ.get("XDG_STATE_HOME") or os.path.join(os.path.expanduser("~"), ".local", "state")
+    return Path(base) / "rce" / "master.sqlite3"
+
+
+def open_store(state: str | None) -> Store:
+    """The store for ``--state``: :data:`MEMORY` gives a :class:`MemoryStore`, a path (default
+    :func:`default_state_path`) a :class:`SqliteStore`. Raises :class:`ConfigError` when the file
+    is held by another master or is not a state file."""
+    if state == MEMORY:
+        return MemoryStore()
+    return SqliteStore(Path(state) if state else default_state_path())
 
 
 def parser() -> argparse.ArgumentParser:
@@ -22,6 +43,12 @@ def parser() -> argparse.ArgumentParser:
     p.add_argument("--port", type=int, default=9000, help="HTTP port: login, admin API, /metrics (0 = ephemeral)")
     p.add_argument("--control-port", type=int, default=8080, help="control-plane port for task sets (0 = ephemeral)")
     p.add_argument("--users", type=Path, help="JSON file of hashed user records, kept up to date")
+    p.add_argument("--state", default=None, metavar="PATH",
+                   help="SQLite file of the master's state, restored on start (default $XDG_STATE_HOME/rce/"
+                        f"master.sqlite3, else ~/.local/state/rce/master.sqlite3); {MEMORY} keeps it in memory")
+    p.add_argument("--reconcile-grace", type=float, default=RECONCILE_GRACE, metavar="S",
+                   help=f"s task sets found in the state may take to re-register before their containers are "
+                        f"lost and their robots gone (default {RECONCILE_GRACE:g})")
     p.add_argument("--admin-token-file", type=Path, default=None,
                    help="admin API token file (default ~/.config/rce/admin-token, or under $XDG_CONFIG_HOME; "
                         "RCE_ADMIN_TOKEN overrides)")
@@ -33,7 +60,13 @@ def parser() -> argparse.ArgumentParser:
 
 async def amain(args: argparse.Namespace) -> None:
     admin_token = token.load_or_create(args.admin_token_file)
-    master = Master(users_file=args.users, admin_token=admin_token, dev=args.dev)
+    with open_store(args.state) as store:
+        await serve(args, Master(users_file=args.users, admin_token=admin_token, dev=args.dev, store=store,
+                                 reconcile_grace=args.reconcile_grace))
+
+
+async def serve(args: argparse.Namespace, master: Master) -> None:
+    """Run ``master`` until SIGINT or SIGTERM."""
     static = {}
     for s in args.static:
         prefix, _, d = s.partition("=")

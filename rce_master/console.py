@@ -40,7 +40,7 @@ COLUMNS = {
     "parameters": ["user", "ctag", "name", "value"],
     "interfaces": ["user", "tag", "type", "class", "addr", "connections"],
     "connections": ["user", "tagA", "tagB"],
-    "tasksets": ["tid", "kind", "name", "host", "robots", "containers", "cpu_load", "mem_load", "sandbox"],
+    "tasksets": ["tid", "kind", "name", "host", "absent", "robots", "containers", "cpu_load", "mem_load", "sandbox"],
 }
 
 

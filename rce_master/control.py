@@ -12,8 +12,9 @@ from typing import Any
 from rce.errors import RCEError, Unavailable
 from rce.log import get_logger
 from rce.rpc import CALL_TIMEOUT, RpcPeer
-from rce_master.model import Container, InterfaceRec, NodeRec
-from rce_master.state import MasterState, Pairs
+from rce_master.model import Container, InterfaceRec, NodeRec, Robot
+from rce_master.reconcile import Reconciled
+from rce_master.state import MasterState, Pairs, TaskSetAbsent
 
 log = get_logger("rce.master")
 
@@ -25,7 +26,8 @@ class Control:
 
     A call raises the far end's :class:`RCEError`, :class:`Unavailable` when the link is gone, or
     :class:`rce.errors.Timeout` when the far end did not answer in time (it may still do what
-    was asked: the request handlers undo that too, see :mod:`rce_master.requests`)."""
+    was asked: the request handlers undo that too, see :mod:`rce_master.requests`), and
+    :class:`TaskSetAbsent` when that task set has not re-registered since the master restarted."""
 
     def __init__(self, state: MasterState):
         self.state = state
@@ -36,8 +38,14 @@ class Control:
         """Send ``op`` with ``args`` (plus ``cid``) to the host of container ``c``; its answer."""
         peer = self.peers.get(c.tid)
         if peer is None:
+            self._check_absent(c.tid, f"the host of container {c.ctag!r}")
             raise Unavailable(f"the host of container {c.ctag!r} is gone")
         return await peer.request(op, {"cid": c.cid, **args}, timeout)
+
+    def _check_absent(self, tid: int, what: str) -> None:
+        ts = self.state.tasksets.get(tid)
+        if ts is not None and ts.lost:
+            raise TaskSetAbsent(f"{what} has not re-registered since the master restarted; try again later")
 
     async def host_call(self, c: Container, op: str, **args: Any) -> Any:
         """:meth:`host_request` with the op's arguments as keywords (timeout: ``rce.rpc.CALL_TIMEOUT``)."""
@@ -53,6 +61,7 @@ class Control:
             return await self.host_request(c, op, args)
         peer = self.peers.get(rec.location)
         if peer is None:
+            self._check_absent(rec.location, f"the robot endpoint of {rec.tag}")
             raise Unavailable(f"the robot endpoint of {rec.tag} is gone")
         return await peer.request(op, args, CALL_TIMEOUT)
 
@@ -79,6 +88,14 @@ class Control:
     async def tell_disconnects(self, pairs: Pairs) -> None:
         for a, b in pairs:
             await self.tell_disconnect(a, b)
+
+    async def readdress(self, c: Container) -> None:
+        """Container ``c`` has a new data address: tell the peers of its interfaces' connections
+        (a ``connect`` for a connection that exists replaces the peer's address)."""
+        for rec in self.state.interfaces_of(c.user, c.ctag):
+            for me, peer in self.state.connections_of(rec.iid):
+                await self.quiet(self.endpoint_call(peer, "connect", iid=peer.iid, peer_iid=me.iid,
+                                                    peer_addr=c.data_addr))
 
     def notify_robot(self, user: str, robot: str, type_: str, data: Any) -> None:
         """Send the robot an ST or ER (``notify``) through its endpoint, if it is connected."""
@@ -116,11 +133,37 @@ class Control:
             if self.state.containers.get((c.user, c.ctag)) is c:
                 await self.destroy(*self.state.remove_container(c.user, c.ctag))
 
-    async def taskset_lost(self, lost: list[Container], robots: list) -> None:
+    async def taskset_lost(self, lost: list[Container], robots: list[Robot], why: str = "its host went away") -> None:
         """After :meth:`MasterState.drop_taskset`: its robots are gone, its containers lost."""
         for r in robots:
             await self.robot_gone(r.user, r.robot)
+        await self.containers_lost(lost, why)
+
+    async def containers_lost(self, lost: list[Container], why: str) -> None:
+        """Containers just marked lost: forget their interfaces (telling the peers), and tell each
+        owner ``ST {topic: container, cTag, status: lost}`` and an ER saying ``why``."""
         for c in lost:
             await self.tell_disconnects(self.state.forget_lost_container(c))
-            self.notify_robot(c.user, c.owner, "ST", {"topic": "container", "cTag": c.ctag, "status": "lost"})
-            self.notify_robot(c.user, c.owner, "ER", f"container {c.ctag!r} was lost: its host went away")
+            self.tell_lost(c, why)
+
+    def tell_lost(self, c: Container, why: str) -> None:
+        self.notify_robot(c.user, c.owner, "ST", {"topic": "container", "cTag": c.ctag, "status": "lost"})
+        self.notify_robot(c.user, c.owner, "ER", f"container {c.ctag!r} was lost: {why}")
+
+    async def reconciled(self, out: Reconciled) -> None:
+        """After :func:`rce_master.reconcile.register`: tell the peers of forgotten interfaces and
+        of moved containers, the robots of lost containers and nodes (again, for lost containers
+        of the robots it kept: their endpoint was absent when they were lost), and forget the
+        robots it did not report."""
+        await self.tell_disconnects(out.pairs)
+        for c in out.readdressed:
+            await self.readdress(c)
+        for c, ntag in out.nodes_lost:
+            self.notify_robot(c.user, c.owner, "ST", {"topic": "node", "cTag": c.ctag, "nTag": ntag, "status": "lost"})
+        await self.containers_lost(out.lost, "its host re-registered without it after the master restarted")
+        kept = {(r.user, r.robot) for r in out.kept}
+        for c in self.state.containers.values():
+            if c.state == "lost" and (c.user, c.owner) in kept:
+                self.tell_lost(c, "its host went away")
+        for r in out.gone:
+            await self.robot_gone(r.user, r.robot)

@@ -183,6 +183,15 @@ class StateIndex:
         return [i for i in self.interfaces.values()
                 if i.user == user and i.etag == etag and robot_side in (None, i.robot_side)]
 
+    def connections_of(self, iid: int) -> list[tuple[InterfaceRec, InterfaceRec]]:
+        """The connections of interface ``iid``, each as (that interface, its peer)."""
+        out = []
+        for conn in self._links.get(iid, ()):
+            me, peer = self._by_iid.get(iid), self._by_iid.get(conn.b if conn.a == iid else conn.a)
+            if me is not None and peer is not None:
+                out.append((me, peer))
+        return sorted(out, key=lambda pair: pair[1].iid)
+
     def connection_count(self, iid: int) -> int:
         """How many connections interface ``iid`` has."""
         return len(self._links.get(iid, ()))
@@ -205,8 +214,9 @@ class StateIndex:
         by_iid = self._by_iid
         return {
             "users": [{"name": u} for u in sorted(self.users)],
-            "tasksets": [{"tid": t.tid, "kind": t.kind, "name": t.name, "host": t.host, "robots": t.robots,
-                          "containers": t.containers, "cpu_load": t.cpu_load, "mem_load": t.mem_load,
+            "tasksets": [{"tid": t.tid, "kind": t.kind, "name": t.name, "host": t.host, "absent": t.lost,
+                          "robots": t.robots, "containers": t.containers, "cpu_load": t.cpu_load,
+                          "mem_load": t.mem_load,
                           **{k: v for k, v in t.info.items() if k in ("ws_url", "data_addr", "sandbox", "capacity")}}
                          for t in sorted(ts.values(), key=lambda t: t.tid)],
             "robots": [{"user": r.user, "robot": r.robot, "endpoint": ts[r.tid].name if r.tid in ts else "?",

@@ -75,7 +75,10 @@ class User:
 
 @dataclass
 class TaskSet(_Record):
-    """A robot task set (endpoints) or container task set (host). ``info``: its ``register`` args."""
+    """A robot task set (endpoints) or container task set (host). ``info``: its ``register`` args.
+
+    ``lost``: absent, i.e. known from the store a previous master left but not re-registered
+    since this master started (no placement on it, no calls to it)."""
     tid: int
     kind: str                 # "robot" | "container"
     name: str

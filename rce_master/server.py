@@ -7,6 +7,11 @@
 
 No data flows through the master, and the shell changes no state itself: it asks
 :class:`MasterState`, and tells the task sets what that returns (:class:`~rce_master.control.Control`).
+
+On a store a previous master left, the state comes back with every task set absent; each one
+that re-registers is reconciled (:mod:`rce_master.reconcile`), and those still absent after the
+reconciliation grace are dropped as if their link had closed (docs/INTERNALS.md, "Master state
+and restart").
 """
 from __future__ import annotations
 
@@ -21,10 +26,11 @@ from rce.errors import AuthError, NotFound, RCEError, RequestError, Timeout, Una
 from rce.log import get_logger
 from rce.rpc import RpcPeer, nodelay
 from rce.tasks import Tasks
+from rce_master import reconcile
 from rce_master.admin import AdminApi
 from rce_master.control import Control
 from rce_master.requests import Request, handle
-from rce_master.state import MasterState
+from rce_master.state import MasterState, TaskSetAbsent
 from rce_master.store import Store
 from rce_master.users import UsersFile
 
@@ -34,6 +40,8 @@ CLIENT_VERSION = "20130902"                        # the RCE alpha client's vers
 SUPPORTED_VERSIONS = {"20130902", "20130210"}
 MAX_HTTP_BODY = 16 * 1024 * 1024                   # bytes, an admin API request body
 HTTP_STATUS = ((AuthError, 401), (NotFound, 404), (Timeout, 504), (Unavailable, 503), (RCEError, 400))
+RETRY_AFTER = 5                                    # s, Retry-After of a 503 for an absent task set (login, admin
+#                                                    API): about a reconnecting task set's backoff
 
 
 class Metrics:
@@ -53,15 +61,20 @@ class Metrics:
             ("rce_master_tasksets", "Registered task sets", state.tasksets),
         ]:
             Gauge(name, help_, registry=r).set_function(table.__len__)
+        Gauge("rce_master_tasksets_absent", "Task sets from the stored state that have not re-registered",
+              registry=r).set_function(lambda: sum(t.lost for t in state.tasksets.values()))
 
 
 class Master:
     """The running master. ``users_file``: JSON file of hashed user records (read and kept up to
-    date); ``store``: where the state is kept (default: in memory)."""
+    date); ``store``: where the state is kept (default: in memory); ``reconcile_grace`` (s): how
+    long task sets found in the store may take to re-register."""
 
     def __init__(self, *, users_file: Path | None = None, admin_token: str, dev: bool = False,
-                 store: Store | None = None):
+                 store: Store | None = None, reconcile_grace: float = reconcile.RECONCILE_GRACE):
         self.state = MasterState(store)
+        self.reconcile_grace = reconcile_grace
+        self.restored = self.state.mark_tasksets_absent()        # the task sets a previous master knew
         self.control = Control(self.state)
         self.users = UsersFile(users_file) if users_file else None
         self.admin = AdminApi(self.state, self.control, admin_token, self.users)
@@ -71,6 +84,7 @@ class Master:
         self._control: asyncio.AbstractServer | None = None
         self._runner: web.AppRunner | None = None
         self.http_port = self.control_port = 0
+        self._stopping = False
         if self.users:
             self.users.load(self.state)
         if dev and "testUser" not in self.state.users:
@@ -88,9 +102,28 @@ class Master:
         site = web.TCPSite(self._runner, bind, http_port)
         await site.start()
         self.http_port = site._server.sockets[0].getsockname()[1]
-        log.info("master up", http_port=self.http_port, control_port=self.control_port, bind=bind)
+        log.info("master up", http_port=self.http_port, control_port=self.control_port, bind=bind,
+                 restored_tasksets=len(self.restored), containers=len(self.state.containers))
+        if self.restored:
+            self.tasks.spawn(self._end_grace(), name="reconcile-grace")
+
+    async def _end_grace(self) -> None:
+        """After the reconciliation grace, drop the task sets that did not come back (a timer)."""
+        await asyncio.sleep(self.reconcile_grace)
+        why = f"its host did not re-register within {self.reconcile_grace:g} s after the master restarted"
+        for ts in self.state.absent_tasksets():
+            if not ts.lost:           # it came back while the ones before it were being dropped
+                continue
+            lost, robots = self.state.drop_taskset(ts.tid)
+            log.warning("task set did not come back", tid=ts.tid, name=ts.name, containers=len(lost),
+                        robots=len(robots))
+            await self.control.taskset_lost(lost, robots, why)
 
     async def stop(self) -> None:
+        """Close every link and server. The task sets stay in the store as they were (a master
+        started on it later reconciles with them), rather than being dropped as they would be
+        if they left."""
+        self._stopping = True
         if self._control:
             self._control.close()
         for p in list(self.control.peers.values()):
@@ -109,8 +142,9 @@ class Master:
     async def _register(self, peer: RpcPeer, a: dict) -> dict:
         if "tid" in peer.info:
             raise RequestError("this task set is already registered")
-        ts = self.state.register_taskset(a.get("kind", ""), a.get("name") or peer.peername,
-                                         a.get("host") or "127.0.0.1", a)
+        out = reconcile.register(self.state, a.get("kind", ""), a.get("name") or peer.peername,
+                                 a.get("host") or "127.0.0.1", a)
+        ts = out.taskset
         peer.info["tid"] = ts.tid
         peer.name = f"{ts.kind}:{ts.name}"
         self.control.peers[ts.tid] = peer
@@ -118,15 +152,19 @@ class Master:
         if ts.kind == "robot":
             peer.handlers.update({
                 "auth": self._auth, "robot_connected": lambda x, t=ts.tid: self._robot_connected(t, x),
-                "robot_disconnected": self._robot_disconnected, "robot_request": self._robot_request})
+                "robot_disconnected": lambda x, t=ts.tid: self._robot_disconnected(t, x),
+                "robot_request": self._robot_request})
         else:
             peer.handlers.update({"node_status": self._node_status})
-        log.info("task set registered", tid=ts.tid, kind=ts.kind, name=ts.name, host=ts.host)
-        return {"tid": ts.tid}
+        log.info("task set registered", tid=ts.tid, kind=ts.kind, name=ts.name, host=ts.host, resumed=out.resumed,
+                 lost=len(out.lost), dropped=len(out.drop_containers) + len(out.drop_interfaces),
+                 robots_gone=len(out.gone))
+        self.tasks.spawn(self.control.reconciled(out), name=f"taskset-{ts.tid}-reconciled")
+        return out.answer()
 
     def _peer_closed(self, peer: RpcPeer) -> None:
         tid = peer.info.get("tid")
-        if tid is None:
+        if tid is None or self._stopping:
             return
         self.control.peers.pop(tid, None)
         lost, robots = self.state.drop_taskset(tid)
@@ -141,11 +179,21 @@ class Master:
         return {}
 
     async def _robot_connected(self, tid: int, a: dict) -> dict:
-        self.state.robot_connect(a["user"], a["robot"], tid)
-        log.info("robot connected", user=a["user"], robot=a["robot"])
+        user, robot = a["user"], a["robot"]
+        old = self.state.robot(user, robot)
+        host = self.state.tasksets.get(old.tid) if old is not None else None
+        if old is not None and old.tid != tid and host is not None and host.lost:
+            # its session on an endpoint that has not come back since the master restarted is over
+            async with self.robot_locks[(user, robot)]:
+                await self.control.robot_gone(user, robot)
+        self.state.robot_connect(user, robot, tid)
+        log.info("robot connected", user=user, robot=robot)
         return {}
 
-    async def _robot_disconnected(self, a: dict) -> dict:
+    async def _robot_disconnected(self, tid: int, a: dict) -> dict:
+        r = self.state.robot(a["user"], a["robot"])
+        if r is None or r.tid != tid:          # not (or no longer) on this endpoint: nothing to forget
+            return {}
         async with self.robot_locks[(a["user"], a["robot"])]:
             await self.control.robot_gone(a["user"], a["robot"])
         self.robot_locks.pop((a["user"], a["robot"]), None)
@@ -189,6 +237,8 @@ class Master:
         except RCEError as e:
             status = next(s for cls, s in HTTP_STATUS if isinstance(e, cls))
             resp = web.Response(status=status, text=e.message + "\n")
+            if isinstance(e, TaskSetAbsent):
+                resp.headers["Retry-After"] = str(RETRY_AFTER)
         if request.path.startswith("/api/") or request.path == "/":
             # the operator's web page may be served from another origin (rce-fleet); login and the
             # read-only parts are safe to share, the admin API itself still needs its token

@@ -13,8 +13,12 @@ A request the task sets refuse half way is undone by the matching operation (``c
 on the half-made record meanwhile.
 
 Each operation is one batch of store changes (:mod:`rce_master.store`): applied all or nothing,
-and rolled back in memory too when it fails part way. Requests are keyed by tags, so replaying
-one (after a reconnect) either succeeds identically or names the duplicate.
+and rolled back in memory too when it fails part way; :meth:`MasterState.batch` makes several
+operations one batch (the reconciliation of :mod:`rce_master.reconcile`). Requests are keyed by
+tags, so replaying one (after a reconnect) either succeeds identically or names the duplicate.
+
+Built on a store that holds records, the state is the one a previous master left; its task sets
+are then absent (``lost``) until they re-register (:meth:`MasterState.mark_tasksets_absent`).
 """
 from __future__ import annotations
 
@@ -36,11 +40,17 @@ from rce_master.store import Key, MemoryStore, Store, encode
 Pairs = list[tuple[InterfaceRec, InterfaceRec]]     # connections removed: the shell disconnects both ends
 
 
+class TaskSetAbsent(Unavailable):
+    """What is asked needs a task set that is not registered now (none started yet, or one the
+    master knows from its store that has not re-registered since the master restarted): asking
+    again later may work (HTTP answers 503 with ``Retry-After``)."""
+
+
 def _atomic(op):
-    """Run the operation as one batch of store changes (see :meth:`MasterState._change`)."""
+    """Run the operation as one batch of store changes (see :meth:`MasterState.batch`)."""
     @functools.wraps(op)
     def run(self: "MasterState", *args, **kwargs):
-        with self._change():
+        with self.batch():
             return op(self, *args, **kwargs)
     return run
 
@@ -58,9 +68,9 @@ class MasterState(StateIndex):
 
     # -- the one way to change: records in batches ----------------------------------------------------
     @contextmanager
-    def _change(self) -> Iterator[None]:
+    def batch(self) -> Iterator[None]:
         """One batch: commit its changes to the store at the end, or, when the operation or the
-        store fails, put the view back as it was. Nested operations join the outer batch."""
+        store fails, put the view back as it was. Nested operations (and batches) join the outer one."""
         if self._batch is not None:
             yield
             return
@@ -153,24 +163,48 @@ class MasterState(StateIndex):
         return self.tasksets[ts.tid]
 
     @_atomic
+    def taskset_back(self, tid: int, name: str, host: str, info: dict) -> TaskSet:
+        """An absent task set re-registered (same ``tid``, its new name, host and register args).
+        Raises :class:`RequestError` when ``tid`` is not an absent task set."""
+        ts = self.tasksets.get(tid)
+        if ts is None or not ts.lost:
+            raise RequestError(f"task set {tid} is not absent: it is " + ("unknown" if ts is None else "registered"))
+        self._put(ts, name=name, host=host, info=dict(info), lost=False)
+        return ts
+
+    @_atomic
+    def mark_tasksets_absent(self) -> list[TaskSet]:
+        """On start on a store a previous master left: every task set in it is absent (``lost``:
+        no placement, no calls) until it re-registers or the reconciliation grace ends. Returns them."""
+        for ts in self.tasksets.values():
+            if not ts.lost:
+                self._put(ts, lost=True)
+        return sorted(self.tasksets.values(), key=lambda t: t.tid)
+
+    def absent_tasksets(self) -> list[TaskSet]:
+        """The task sets still absent, container hosts first (their containers are lost before
+        the robots of absent robot task sets leave), then by tid."""
+        return sorted((t for t in self.tasksets.values() if t.lost), key=lambda t: (t.kind != "container", t.tid))
+
+    @_atomic
     def drop_taskset(self, tid: int) -> tuple[list[Container], list[Robot]]:
         """Remove a task set that went away. Returns its containers (now ``lost``: the shell then
         calls :meth:`forget_lost_container`) and its robots (the shell disconnects them)."""
         ts = self.tasksets.get(tid)
         if ts is None:
             return [], []
-        lost = [c for c in self.containers.values() if c.tid == tid]
+        lost = [c for c in self.containers.values() if c.tid == tid and c.state != "lost"]
         for c in lost:
-            self._put(c, state="lost")
+            self.container_lost(c)
         robots = [r for r in self.robots.values() if r.tid == tid]
         self._delete(ts)
         return lost, robots
 
     def pick_robot_taskset(self) -> TaskSet:
-        """The least loaded robot task set. Raises :class:`Unavailable` if there is none."""
+        """The least loaded robot task set. Raises :class:`TaskSetAbsent` if none is registered."""
         cands = [t for t in self.tasksets.values() if t.kind == "robot" and not t.lost]
         if not cands:
-            raise Unavailable("no robot endpoint is available; start rce-robot")
+            raise TaskSetAbsent("no robot endpoint is available; start rce-robot")
         return min(cands, key=lambda t: (t.robots, t.tid))
 
     def pick_container_host(self, data: dict) -> TaskSet:
@@ -241,6 +275,17 @@ class MasterState(StateIndex):
         if not _current(self.containers, (c.user, c.ctag), c) or c.state == "lost":
             raise Unavailable(f"container {c.ctag!r} was removed or lost while it was created")
         self._put(c, state="running", data_addr=data_addr, sandbox=sandbox)
+
+    @_atomic
+    def container_lost(self, c: Container) -> None:
+        """``c`` is gone with its host (or its host re-registered without it): ``lost``, until
+        :meth:`forget_lost_container` and its robot's DC."""
+        self._put(c, state="lost")
+
+    @_atomic
+    def container_found(self, c: Container, tid: int, data_addr: str, sandbox: str) -> None:
+        """Host ``tid`` reported ``c`` running when it re-registered: ``running`` there, at ``data_addr``."""
+        self._put(c, tid=tid, data_addr=data_addr, sandbox=sandbox, state="running")
 
     @_atomic
     def container_failed(self, c: Container) -> Pairs:

@@ -10,8 +10,9 @@
   :mod:`rce_master.model`. The records alone rebuild the whole state (:class:`MasterState`
   built on a store loads it).
 - Changes arrive in **batches** (:meth:`Store.commit`): one state operation (a request's step,
-  or its undo) is one batch, applied all or nothing. This module has the in-memory store; a file
-  store (SQLite) and a replicated one (etcd) implement the same three methods.
+  or its undo) is one batch, applied all or nothing. This module has the in-memory store; the
+  file store is :class:`rce_master.sqlite_store.SqliteStore`, and a replicated one (etcd)
+  implements the same three methods.
 """
 from __future__ import annotations
 
@@ -40,6 +41,15 @@ class Store(ABC):
     def commit(self, changes: Iterable[Change]) -> None:
         """Apply a batch of puts (record) and deletes (None) in order, all or nothing.
         Raises :class:`RequestError` for a record that is not JSON."""
+
+    def close(self) -> None:  # noqa: B027 (a store that holds nothing needs no close)
+        """Release what the store holds (a file, its lock); nothing for the memory store."""
+
+    def __enter__(self) -> "Store":
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()
 
 
 def encode(key: Key, record: dict) -> str:

@@ -74,6 +74,8 @@ def wait_url(log: Path, proc: subprocess.Popen) -> str | None:
 
 def login(page, fleet, password="testUser"):
     page.goto(fleet["url"])
+    # fleet.js fills the form after its config.json arrives: wait for that, then check it
+    page.wait_for_function("document.querySelector('#user').value !== ''", timeout=STATES_TIMEOUT_MS)
     assert page.input_value("#user") == "testUser"          # prefilled from the URL
     assert page.input_value("#password") == ""              # never the password
     page.fill("#password", password)
