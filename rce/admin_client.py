@@ -14,6 +14,12 @@ A refusal raises the :class:`RCEError` subclass for its HTTP status with the mas
 reason, as ``"GET /api/robots: HTTP 401: <reason>"`` (``.status`` holds the code): 401/403
 :class:`AuthError`, 404 :class:`NotFound`, 504 :class:`Timeout`, other 5xx and an unreachable
 master :class:`Unavailable`, other 4xx :class:`RequestError`.
+
+Several masters (``AdminClient("http://m1:9000/,http://m2:9000/", ...)`` or a list; docs/INTERNALS.md,
+"Several masters"): a request goes to the master that answered last, and to the others in turn
+while they cannot be reached (refused or reset: a master that does not answer in time raises
+:class:`Timeout`, as it may have done what was asked). A standby refuses what needs the leader
+with 503 and the leader's URL in the ``X-RCE-Leader`` header: the request goes there next.
 """
 from __future__ import annotations
 
@@ -21,6 +27,7 @@ import json
 import os
 import urllib.error
 import urllib.request
+from collections.abc import Iterator, Sequence
 from pathlib import Path
 from typing import Any
 
@@ -31,6 +38,7 @@ from rce.errors import AuthError, NotFound, RCEError, RequestError, Timeout, Una
 TIMEOUT = 30.0        # s, an admin API request, on top of the op's own timeout (a bus call's, a sample's)
 TOKEN_ENV = "RCE_ADMIN_TOKEN"
 MAX_REASON = 300      # chars of an error body kept as the reason
+LEADER_HEADER = "X-RCE-Leader"   # a standby's refusal names the leader's URL in it (empty: none elected now)
 
 
 def token_file() -> Path:
@@ -67,63 +75,124 @@ def refusal(method: str, path: str, status: int, body: bytes | str) -> RCEError:
     return err
 
 
+def master_urls(masters: str | Sequence[str]) -> list[str]:
+    """The master URLs in ``masters`` (one URL, several separated by commas, or a list of such),
+    each ending with ``/``. Raises :class:`RequestError` when there is none."""
+    items = [masters] if isinstance(masters, str) else list(masters)
+    urls = [u.strip() for item in items for u in item.split(",") if u.strip()]
+    if not urls:
+        raise RequestError("no master URL given")
+    return [u if u.endswith("/") else u + "/" for u in urls]
+
+
+class _Tries:
+    """One request's walk over the masters (the module says the order); collects why each failed."""
+
+    def __init__(self, client: "AdminClient", method: str, path: str, timeout: float):
+        self.client, self.method, self.path, self.timeout = client, method, path, timeout
+        self.queue = [client.base] + [b for b in client.bases if b != client.base]
+        self.failures: list[RCEError] = []
+
+    def __iter__(self) -> Iterator[str]:
+        tried = set()
+        while self.queue:
+            base = self.queue.pop(0)
+            if base not in tried:
+                tried.add(base)
+                yield base
+
+    def answered(self, base: str) -> None:
+        self.client.base = base
+
+    def unreachable(self, base: str, e: BaseException) -> None:
+        """``base`` could not be reached; raises :class:`Timeout` when it did not answer in time."""
+        if isinstance(e, TimeoutError) or isinstance(getattr(e, "reason", None), TimeoutError):
+            raise Timeout(f"the master at {base} did not answer {self.method} {self.path} within "
+                          f"{self.timeout:g} s") from None
+        why = getattr(e, "reason", None) or e or type(e).__name__
+        self.failures.append(Unavailable(f"cannot reach the master at {base}: {why}"))
+
+    def refused(self, status: int, headers: Any, body: bytes) -> None:
+        """``base`` refused: a standby's refusal sends the request to the leader it names, any
+        other refusal is raised."""
+        err = refusal(self.method, self.path, status, body)
+        leader = headers.get(LEADER_HEADER) if status == 503 else None
+        if leader is None:
+            raise err
+        self.failures.append(err)
+        if leader:
+            self.queue.insert(0, master_urls(leader)[0])
+
+    def error(self) -> RCEError:
+        """What to raise when no master answered."""
+        refusals = [e for e in self.failures if getattr(e, "status", None)]     # standbys' (HTTP 503)
+        if refusals or len(self.failures) == 1:
+            return (refusals or self.failures)[-1]
+        return Unavailable("cannot reach any master: " + "; ".join(e.message for e in self.failures))
+
+
 class AdminClient:
-    """The admin API of the master at ``base`` (``http://HOST:9000/``) with ``token``.
+    """The admin API of the master(s) at ``base`` (``http://HOST:9000/``; several: a list, or
+    URLs separated by commas) with ``token``.
 
     ``timeout`` (s) bounds each request, plus the ``op_timeout`` a request passes for an op that
-    waits on its own (a service call, a sample)."""
+    waits on its own (a service call, a sample). :attr:`base` is the master that answered last."""
 
-    def __init__(self, base: str, token: str, timeout: float = TIMEOUT):
-        self.base = base if base.endswith("/") else base + "/"
+    def __init__(self, base: str | Sequence[str], token: str, timeout: float = TIMEOUT):
+        self.bases = master_urls(base)
+        self.base = self.bases[0]
         self.token = token
         self.timeout = timeout
         self._session: aiohttp.ClientSession | None = None
 
     @classmethod
-    def from_options(cls, base: str, token: str | None = None, token_path: Path | None = None) -> "AdminClient":
+    def from_options(cls, base: str | Sequence[str], token: str | None = None,
+                     token_path: Path | None = None) -> "AdminClient":
         """A client with the token :func:`find_token` finds. Raises :class:`AuthError` when there is none."""
         return cls(base, find_token(token, token_path))
 
-    def _url(self, path: str) -> str:
-        return self.base + path.lstrip("/")
-
     def _headers(self) -> dict[str, str]:
         return {"Authorization": f"Bearer {self.token}", "Content-Type": "application/json"}
-
-    def _failed(self, e: BaseException, what: str, timeout: float) -> RCEError:
-        if isinstance(e, TimeoutError) or isinstance(getattr(e, "reason", None), TimeoutError):
-            return Timeout(f"the master at {self.base} did not answer {what} within {timeout:g} s")
-        why = getattr(e, "reason", None) or e or type(e).__name__
-        return Unavailable(f"cannot reach the master at {self.base}: {why}")
 
     def request(self, method: str, path: str, body: Any = None, op_timeout: float = 0.0) -> Any:
         """``method path`` with JSON ``body`` (None: no body), blocking; the JSON answer.
         Raises as the module says."""
         data = json.dumps(body).encode() if body is not None else None
-        req = urllib.request.Request(self._url(path), data=data, method=method, headers=self._headers())
-        timeout = self.timeout + op_timeout
-        try:
-            with urllib.request.urlopen(req, timeout=timeout) as r:
-                return json.loads(r.read() or b"null")
-        except urllib.error.HTTPError as e:
-            raise refusal(method, path, e.code, e.read()) from None
-        except (urllib.error.URLError, OSError) as e:
-            raise self._failed(e, f"{method} {path}", timeout) from None
+        tries = _Tries(self, method, path, self.timeout + op_timeout)
+        for base in tries:
+            req = urllib.request.Request(base + path.lstrip("/"), data=data, method=method, headers=self._headers())
+            try:
+                with urllib.request.urlopen(req, timeout=tries.timeout) as r:
+                    answer = r.read()
+            except urllib.error.HTTPError as e:
+                tries.refused(e.code, e.headers, e.read())
+                continue
+            except (urllib.error.URLError, OSError) as e:
+                tries.unreachable(base, e)
+                continue
+            tries.answered(base)
+            return json.loads(answer or b"null")
+        raise tries.error()
 
     async def arequest(self, method: str, path: str, body: Any = None, op_timeout: float = 0.0) -> Any:
         """:meth:`request` for asyncio (one HTTP session, kept until :meth:`aclose`)."""
         if self._session is None:
             self._session = aiohttp.ClientSession(headers=self._headers())
-        timeout = self.timeout + op_timeout
-        try:
-            async with self._session.request(method, self._url(path), json=body,
-                                             timeout=aiohttp.ClientTimeout(total=timeout)) as r:
-                status, data = r.status, await r.read()
-        except (aiohttp.ClientError, OSError) as e:           # OSError: TimeoutError too
-            raise self._failed(e, f"{method} {path}", timeout) from None
-        if status >= 400:
-            raise refusal(method, path, status, data)
-        return json.loads(data or b"null")
+        tries = _Tries(self, method, path, self.timeout + op_timeout)
+        for base in tries:
+            try:
+                async with self._session.request(method, base + path.lstrip("/"), json=body,
+                                                 timeout=aiohttp.ClientTimeout(total=tries.timeout)) as r:
+                    status, headers, data = r.status, r.headers, await r.read()
+            except (aiohttp.ClientError, OSError) as e:           # OSError: TimeoutError too
+                tries.unreachable(base, e)
+                continue
+            if status >= 400:
+                tries.refused(status, headers, data)
+                continue
+            tries.answered(base)
+            return json.loads(data or b"null")
+        raise tries.error()
 
     async def aclose(self) -> None:
         """Close the session :meth:`arequest` opened."""

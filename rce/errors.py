@@ -25,7 +25,10 @@ class RCEError(Exception):
     @classmethod
     def from_dict(cls, d: dict) -> "RCEError":
         """Rebuild an error received over the control plane (inverse of :meth:`to_dict`)."""
-        return _BY_CODE.get(d.get("code", ""), RCEError)(str(d.get("message", "")), code=d.get("code"))
+        err = _BY_CODE.get(d.get("code", ""), RCEError)(str(d.get("message", "")), code=d.get("code"))
+        if isinstance(err, NotLeader) and isinstance(d.get("leader"), dict):
+            err.leader = d["leader"]
+        return err
 
     def __str__(self) -> str:
         return self.message
@@ -73,6 +76,22 @@ class Unavailable(RCEError):
     code = "unavailable"
 
 
+class NotLeader(Unavailable):
+    """Asked of a master that stands by (several masters on etcd, docs/INTERNALS.md "Several
+    masters"): only the leader takes task sets and changes the state. ``leader`` is the leader's
+    ``{"control": "HOST:PORT", "http": "http://HOST:PORT/"}``, or None while none is known; the
+    control plane carries it as the error's ``"leader"`` field."""
+
+    code = "not_leader"
+
+    def __init__(self, message: str, *, code: str | None = None, leader: dict | None = None):
+        super().__init__(message, code=code)
+        self.leader = leader
+
+    def to_dict(self) -> dict:
+        return {**super().to_dict(), "leader": self.leader}
+
+
 class Timeout(RCEError, TimeoutError):
     """A call that got no answer in time (a control request, a service call, a robot's reply).
 
@@ -83,4 +102,4 @@ class Timeout(RCEError, TimeoutError):
 
 
 _BY_CODE = {c.code: c for c in (RCEError, ProtocolError, MessageError, ConfigError, RequestError,
-                                AuthError, NotFound, Unavailable, Timeout)}
+                                AuthError, NotFound, Unavailable, NotLeader, Timeout)}

@@ -8,12 +8,12 @@ message, carried as opaque bytes: no JSON and no re-encoding on internal hops.
 """
 from __future__ import annotations
 
-import asyncio
 import json
 import struct
+from collections.abc import Iterator
 from dataclasses import dataclass
 
-from rce.errors import ProtocolError, RequestError
+from rce.errors import ProtocolError
 
 CONTROL = 1
 DATA = 2
@@ -31,24 +31,12 @@ DEFAULT_MAX_FRAME = 64 * 1024 * 1024   # bytes
 
 @dataclass(slots=True)
 class DataFrame:
-    """A decoded DATA frame. ``payload`` is a memoryview slice of the received buffer."""
+    """A decoded DATA frame. ``payload`` is a memoryview slice of the received bytes (no copy)."""
     op: int
     dst: int
     src: int
     call_id: int
     payload: bytes | memoryview
-
-
-def settle_call(pending: dict[int, "asyncio.Future"], f: DataFrame) -> None:
-    """Complete the call future ``pending[f.call_id]`` from a SRV_RESP (result: the response
-    bytes) or SRV_ERR frame (exception: :class:`RequestError` with the remote reason)."""
-    fut = pending.get(f.call_id)
-    if fut is None or fut.done():
-        return
-    if f.op == SRV_RESP:
-        fut.set_result(bytes(f.payload))
-    else:
-        fut.set_exception(RequestError(bytes(f.payload).decode(errors="replace")))
 
 
 def encode_control(obj: dict) -> bytes:
@@ -68,11 +56,12 @@ def encode_data(op: int, dst: int, src: int, call_id: int, payload: bytes) -> by
     return encode_data_header(op, dst, src, call_id, len(payload)) + payload
 
 
-def decode_body(kind: int, body: bytes) -> dict | DataFrame:
-    """Decode a frame body by ``kind``; raises :class:`ProtocolError` on malformed input."""
+def decode_body(kind: int, body: bytes | memoryview) -> dict | DataFrame:
+    """Decode a frame body by ``kind``; raises :class:`ProtocolError` on malformed input.
+    A DATA frame's payload is a view of ``body`` (no copy)."""
     if kind == CONTROL:
         try:
-            obj = json.loads(body)
+            obj = json.loads(body if isinstance(body, (bytes, bytearray)) else bytes(body))
         except (ValueError, UnicodeDecodeError) as e:
             raise ProtocolError(f"control frame is not valid JSON: {e}") from None
         if not isinstance(obj, dict):
@@ -94,32 +83,60 @@ def _check_length(n: int, max_frame: int) -> None:
 
 
 class FrameDecoder:
-    """Sans-I/O incremental decoder: ``feed(bytes)`` returns the complete frames so far.
+    """Sans-I/O incremental decoder: bytes in (as they arrive from a stream), frames out.
 
-    Raises :class:`ProtocolError` when a frame announces more than ``max_frame`` bytes."""
+    :meth:`frames` yields each complete frame as soon as it is decoded (a frame before a bad
+    one is still delivered); :meth:`feed` returns them as a list. Whole frames in a chunk are
+    decoded in place (a DATA payload is a view of the chunk); an incomplete frame's pieces
+    are kept and joined once, when the last one arrives, so a large frame costs one copy.
+
+    Raises :class:`ProtocolError` for a frame that announces more than ``max_frame`` bytes
+    (as soon as its header is in) or is malformed; the stream is then out of step and the
+    decoder must not be fed again."""
 
     def __init__(self, max_frame: int = DEFAULT_MAX_FRAME):
         self.max_frame = max_frame
-        self._buf = bytearray()
+        self._parts: list[bytes | memoryview] = []   # the start of an incomplete frame, as it came in
+        self._have = 0                    # bytes in _parts
+        self._need = _HEAD.size           # bytes the incomplete frame needs before decoding can go on
 
     def feed(self, data: bytes) -> list[dict | DataFrame]:
-        self._buf += data
-        out = []
-        while len(self._buf) >= _HEAD.size:
-            n, kind = _HEAD.unpack_from(self._buf)
+        """Every frame completed by ``data``, in order."""
+        return list(self.frames(data))
+
+    def frames(self, data: bytes) -> Iterator[dict | DataFrame]:
+        """Yield every frame completed by ``data`` (immutable bytes), in order."""
+        view = memoryview(data)
+        pos, end = 0, len(data)
+        while self._parts:                   # first complete the frame that began in earlier data
+            missing = self._need - self._have
+            if end - pos < missing:
+                if pos < end:
+                    self._parts.append(view[pos:])
+                    self._have += end - pos
+                return
+            self._parts.append(view[pos:pos + missing])
+            pos += missing
+            buf = b"".join(self._parts)      # the frame's one copy: its pieces, no byte more
+            self._parts.clear()
+            n, kind = _HEAD.unpack_from(buf)
             _check_length(n, self.max_frame)
-            if len(self._buf) < 4 + n:
+            if len(buf) < 4 + n:             # so far only its header
+                self._parts.append(buf)
+                self._have, self._need = len(buf), 4 + n
+                continue
+            yield decode_body(kind, memoryview(buf)[_HEAD.size:])
+        while True:                          # whole frames, decoded in place
+            if end - pos < _HEAD.size:
+                need = _HEAD.size
                 break
-            body = bytes(self._buf[_HEAD.size:4 + n])
-            del self._buf[:4 + n]
-            out.append(decode_body(kind, body))
-        return out
-
-
-async def read_frame(reader: asyncio.StreamReader, max_frame: int = DEFAULT_MAX_FRAME) -> dict | DataFrame:
-    """Read one frame from ``reader``. Raises :class:`asyncio.IncompleteReadError` at EOF and
-    :class:`ProtocolError` for an oversized or malformed frame."""
-    head = await reader.readexactly(_HEAD.size)
-    n, kind = _HEAD.unpack(head)
-    _check_length(n, max_frame)
-    return decode_body(kind, await reader.readexactly(n - 1))
+            n, kind = _HEAD.unpack_from(data, pos)
+            _check_length(n, self.max_frame)
+            if end - pos < 4 + n:
+                need = 4 + n
+                break
+            start, pos = pos + _HEAD.size, pos + 4 + n
+            yield decode_body(kind, view[start:pos])
+        if pos < end:
+            self._parts.append(view[pos:])
+            self._have, self._need = end - pos, need

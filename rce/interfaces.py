@@ -10,23 +10,21 @@ where it acts:
   call to its connected ``ServiceClient*``;
 - ``ServiceClient*`` executes calls it receives against its local side.
 
-This module holds the data-plane half every endpoint shares; robot endpoints
+This module holds the data-plane half every endpoint shares (an interface is a
+:class:`rce.dataplane.Receiver` of its endpoint's data plane); robot endpoints
 (converters, forwarders) and environments (bus interfaces) subclass it for
 their local side.
 """
 from __future__ import annotations
 
-from typing import TYPE_CHECKING
-
 from rce import framing
+from rce.dataplane import DataPlane
 from rce.errors import RequestError, Unavailable
-
-if TYPE_CHECKING:
-    from rce.dataplane import DataPlane
 
 PAIRS = {"Publisher": "Subscriber", "Subscriber": "Publisher",
          "ServiceClient": "ServiceProvider", "ServiceProvider": "ServiceClient"}
 SERVICE_KINDS = ("ServiceClient", "ServiceProvider")
+SERVICE_CALL_TIMEOUT = 30.0   # s a service call forwarded to a peer interface waits for its response
 
 
 class Interface:
@@ -36,9 +34,9 @@ class Interface:
     (Publisher, Subscriber, ServiceClient, ServiceProvider); ``cls``: message or service class
     (wire name); ``peers``: connected interface id -> data address."""
 
-    call_timeout = 30.0   # s, service calls forwarded to a peer
+    call_timeout = SERVICE_CALL_TIMEOUT
 
-    def __init__(self, plane: "DataPlane", iid: int, tag: str, kind: str, cls: str):
+    def __init__(self, plane: DataPlane, iid: int, tag: str, kind: str, cls: str):
         self.plane, self.iid, self.tag, self.kind, self.cls = plane, iid, tag, kind, cls
         self.peers: dict[int, str] = {}
         self.msgs_in = self.msgs_out = self.dropped = 0
@@ -59,6 +57,7 @@ class Interface:
         self.on_peers_changed()
 
     def disconnect(self, peer_iid: int) -> None:
+        """Drop the connection to interface ``peer_iid`` (no error if absent)."""
         self.peers.pop(peer_iid, None)
         self.on_peers_changed()
 
@@ -80,8 +79,9 @@ class Interface:
     async def call_peer(self, payload: bytes) -> bytes:
         """(ServiceProvider*) Forward a serialized request to the connected ServiceClient.
 
-        Raises :class:`Unavailable` with no connection or on timeout; :class:`RequestError`
-        with the remote reason when the call fails there."""
+        Raises :class:`Unavailable` with no connection (or a saturated link),
+        :class:`~rce.errors.Timeout` after ``call_timeout`` s, :class:`RequestError` with the
+        remote reason when the call fails there."""
         if not self.peers:
             raise Unavailable(f"service interface {self.tag} is not connected")
         peer, addr = next(iter(self.peers.items()))

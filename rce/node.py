@@ -33,14 +33,18 @@ import signal
 import sys
 from typing import Any, Awaitable, Callable
 
-from rce.process import run_loop
 from rce import framing, rpc
-from rce.errors import MessageError, RCEError, Unavailable
+from rce.errors import MessageError, NotFound, RCEError, Unavailable
+from rce.link import Responder, settle_reply
 from rce.messages import MessageRegistry, default_registry, wire_name
 from rce.naming import join, resolve
 from rce.package_path import load_package_types
+from rce.pending import PendingCalls
+from rce.process import run_loop
+from rce.tasks import Tasks
 
 _NO = object()
+SERVICE_TIMEOUT = 30.0   # s a service call waits for its response unless the caller says otherwise
 
 
 def _argv_remaps(argv: list[str]) -> dict[str, str]:
@@ -59,18 +63,30 @@ class Publisher:
     def __init__(self, node: "Node", topic: str, typename: str, handle: int):
         self.node, self.topic, self.typename, self.handle = node, topic, typename, handle
         self.published = 0
+        self.dropped = 0
 
     async def publish(self, msg: Any) -> None:
-        """Publish ``msg`` (typestore instance or JSON-form dict). Raises :class:`MessageError`
-        if it does not fit the topic's class."""
-        self.publish_nowait(msg)
-        await self.node._peer.writer.drain()
-
-    def publish_nowait(self, msg: Any) -> None:
-        """Publish without waiting for the socket to drain (for callbacks)."""
+        """Publish ``msg`` (typestore instance or JSON-form dict), then wait for the socket to
+        drain (backpressure: nothing is lost). Raises :class:`MessageError` if it does not fit
+        the topic's class."""
         payload = self.node._encode(self.typename, msg)
-        self.node._send(framing.MSG, self.handle, payload)
+        self.node._peer.send_raw(self._head(payload), payload)
         self.published += 1
+        await self.node._peer.link.drain()
+
+    def publish_nowait(self, msg: Any) -> bool:
+        """Publish without waiting for the socket to drain (for callbacks). A message that would
+        pass the link's bound (the bus is not reading) is dropped, counted in ``dropped``, and
+        False returned."""
+        payload = self.node._encode(self.typename, msg)
+        if not self.node._peer.link.offer(self._head(payload), payload):
+            self.dropped += 1
+            return False
+        self.published += 1
+        return True
+
+    def _head(self, payload: bytes) -> bytes:
+        return framing.encode_data_header(framing.MSG, self.handle, 0, 0, len(payload))
 
     async def unregister(self) -> None:
         await self.node._peer.call("unadvertise", handle=self.handle)
@@ -85,7 +101,7 @@ class Subscriber:
         self.dropped = 0
         self.received = 0
         self.handle = 0
-        self._task = asyncio.create_task(self._consume())
+        self._task = node.tasks.spawn(self._consume(), name=f"subscriber {topic}")
 
     def _push(self, payload: bytes) -> None:
         if self.queue.full():
@@ -118,9 +134,10 @@ class ServiceProxy:
         self.node, self.name, self.req_type, self.resp_type = node, name, req_type, resp_type
         self.handle: int | None = None
 
-    async def __call__(self, request: Any = None, timeout: float | None = 30.0) -> Any:
+    async def __call__(self, request: Any = None, timeout: float | None = SERVICE_TIMEOUT) -> Any:
         """Call with ``request`` (instance or dict; None = empty request). Raises the provider's
-        :class:`RCEError`, or :class:`Unavailable` when the service is absent or times out."""
+        :class:`RCEError`, :class:`NotFound` when the service is absent, and
+        :class:`~rce.errors.Timeout` after ``timeout`` s."""
         payload = self.node._encode(self.req_type, {} if request is None else request)
         if self.handle is None:
             r = await self.node._peer.call("resolve_service", service=self.name)
@@ -139,7 +156,9 @@ class Node:
         self._peer: rpc.RpcPeer | None = None
         self._subs: dict[int, Subscriber] = {}
         self._services: dict[int, tuple[Callable, str, str]] = {}
-        self._calls: dict[int, asyncio.Future] = {}
+        self._calls = PendingCalls(f"the bus (node {self.full_name})")
+        self.tasks = Tasks(f"node {self.full_name}")
+        self._responder = Responder(f"node {self.full_name}", self.tasks)
         self._ids = itertools.count(1)
         self._shutdown = asyncio.Event()
 
@@ -161,21 +180,12 @@ class Node:
         return self.registry.serialize(typename, msg)
 
     def _send(self, op: int, dst: int, payload: bytes, call_id: int = 0) -> None:
-        w = self._peer.writer
-        w.write(framing.encode_data_header(op, dst, 0, call_id, len(payload)))
-        w.write(payload)
+        """A service request or reply: must not be lost (:meth:`rce.rpc.RpcPeer.send_raw`)."""
+        self._peer.send_raw(framing.encode_data_header(op, dst, 0, call_id, len(payload)), payload)
 
     async def _call(self, handle: int, payload: bytes, timeout: float | None) -> bytes:
-        cid = next(self._ids)
-        fut = asyncio.get_running_loop().create_future()
-        self._calls[cid] = fut
-        try:
-            self._send(framing.SRV_REQ, handle, payload, cid)
-            return await asyncio.wait_for(fut, timeout)
-        except asyncio.TimeoutError:
-            raise Unavailable(f"service call timed out after {timeout} s") from None
-        finally:
-            self._calls.pop(cid, None)
+        return await self._calls.call(lambda cid: self._send(framing.SRV_REQ, handle, payload, cid), timeout,
+                                      what="the service call")
 
     def _on_data(self, f: framing.DataFrame) -> None:
         if f.op == framing.MSG:
@@ -183,22 +193,23 @@ class Node:
             if sub:
                 sub._push(bytes(f.payload))
         elif f.op in (framing.SRV_RESP, framing.SRV_ERR):
-            framing.settle_call(self._calls, f)
+            settle_reply(self._calls, f)
         elif f.op == framing.SRV_REQ:
-            asyncio.create_task(self._serve(f.dst, f.call_id, bytes(f.payload)))
+            call_id, handle, payload = f.call_id, f.dst, bytes(f.payload)
+            self._responder.serve(
+                lambda: self._serve(handle, payload),
+                lambda resp: self._send(framing.SRV_RESP, 0, resp, call_id),
+                lambda e: self._send(framing.SRV_ERR, 0, e.message.encode(), call_id), f"service call {handle}")
 
-    async def _serve(self, handle: int, call_id: int, payload: bytes) -> None:
+    async def _serve(self, handle: int, payload: bytes) -> bytes:
+        """Run the handler of service ``handle`` on a serialized request; the serialized response."""
+        if handle not in self._services:
+            raise NotFound(f"node {self.full_name} provides no service with handle {handle}")
         handler, req_t, resp_t = self._services[handle]
-        try:
-            req = self.registry.deserialize(req_t, payload)
-            resp = handler(req)
-            if inspect.isawaitable(resp):
-                resp = await resp
-            self._send(framing.SRV_RESP, 0, self._encode(resp_t, resp), call_id)
-        except RCEError as e:
-            self._send(framing.SRV_ERR, 0, e.message.encode(), call_id)
-        except Exception as e:
-            self._send(framing.SRV_ERR, 0, f"{type(e).__name__}: {e}".encode(), call_id)
+        resp = handler(self.registry.deserialize(req_t, payload))
+        if inspect.isawaitable(resp):
+            resp = await resp
+        return self._encode(resp_t, resp)
 
     # -- public API ----------------------------------------------------------------------------
     async def publisher(self, topic: str, msg_class: str, queue_size: int = 10) -> Publisher:
@@ -277,9 +288,9 @@ class Node:
         await self._shutdown.wait()
 
     async def close(self) -> None:
+        """Disconnect from the bus; subscriber callbacks and service handlers stop."""
         self._shutdown.set()
-        for s in self._subs.values():
-            s._task.cancel()
+        await self.tasks.cancel_all()
         if self._peer:
             await self._peer.close()
 

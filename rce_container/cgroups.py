@@ -14,11 +14,11 @@ Layout (``scope`` is ``rce/<host name>-<host pid>``, one per container task set)
 
 Limits (what ``containerData`` asks; 0 or absent = no limit):
 
-| limit | v1 | v2 |
-|---|---|---|
-| ``cpu`` cores (fractional) | ``cpu.cfs_quota_us`` = cores x ``cpu.cfs_period_us`` (100 ms) | ``cpu.max`` = ``"QUOTA 100000"`` |
-| ``memory`` MiB | ``memory.limit_in_bytes`` and ``memory.memsw.limit_in_bytes`` (no swapping past it) | ``memory.max``, ``memory.swap.max 0`` |
-| ``size`` tasks | ``pids.max`` | ``pids.max`` |
+- ``cpu`` cores (fractional): v1 ``cpu.cfs_quota_us`` = cores x ``cpu.cfs_period_us``
+  (100 ms); v2 ``cpu.max`` = ``"QUOTA 100000"``.
+- ``memory`` MiB: v1 ``memory.limit_in_bytes`` and ``memory.memsw.limit_in_bytes`` (no
+  swapping past it); v2 ``memory.max``, ``memory.swap.max 0``.
+- ``size`` tasks: ``pids.max`` (v1 and v2).
 
 Parsing (:func:`parse_mountinfo`, :func:`parse_proc_cgroup`, :func:`detect`) is pure; the
 file I/O is in :class:`CgroupSet`, which takes any root so tests can point it at a fake tree.
@@ -38,6 +38,8 @@ from rce.log import get_logger
 log = get_logger("rce.container.cgroups")
 
 CFS_PERIOD_US = 100_000
+KILL_TIMEOUT = 5.0      # s to empty a cgroup tree with SIGKILL (only a process stuck in the kernel takes long)
+POLL = 0.01             # s between looks at a cgroup that is emptying
 MIN_QUOTA_US = 1_000        # the kernel refuses quotas below 1 ms
 V1_CONTROLLERS = ("cpu", "cpuacct", "memory", "pids")
 V2_CONTROLLERS = ("cpu", "memory", "pids")
@@ -397,12 +399,12 @@ class CgroupSet:
         return out
 
     # -- teardown ------------------------------------------------------------------------------
-    def kill_all(self, timeout: float = 5.0) -> list[int]:
+    def kill_all(self, timeout: float = KILL_TIMEOUT) -> list[int]:
         """SIGKILL every process in the cgroup until it is empty; returns the pids still
         there after ``timeout`` s (none, unless a process is stuck in the kernel)."""
         return kill_tree(self.unique_dirs, timeout)
 
-    def remove(self, timeout: float = 5.0) -> list[Path]:
+    def remove(self, timeout: float = KILL_TIMEOUT) -> list[Path]:
         """Kill what is left and remove the directories; returns those that could not be removed."""
         left = remove_tree(self.unique_dirs, timeout)
         self.rebalance()
@@ -423,20 +425,31 @@ def _enable_v2(d: Path) -> None:
             log.warning("cannot enable cgroup controllers", dir=str(d), controllers=add, reason=e.strerror)
 
 
+def _tree(d: Path) -> list[Path]:
+    """``d`` and every cgroup below it, deepest first; [] when ``d`` is gone (another cleanup,
+    e.g. of a crashed environment, may be removing the same tree)."""
+    try:
+        subs = [p for p in d.rglob("*") if p.is_dir()] if d.is_dir() else None
+    except OSError:
+        subs = None
+    if subs is None:
+        return []
+    return [*sorted(subs, key=lambda p: len(p.parts), reverse=True), d]
+
+
 def tree_pids(dirs: list[Path]) -> set[int]:
     """Every process in ``dirs`` and their sub-cgroups."""
     pids = set()
     for d in dirs:
-        if d.is_dir():
-            for sub in [d, *(p for p in d.rglob("*") if p.is_dir())]:
-                try:
-                    pids.update(int(x) for x in _read(sub / "cgroup.procs").split())
-                except (OSError, ValueError):
-                    pass
+        for sub in _tree(d):
+            try:
+                pids.update(int(x) for x in _read(sub / "cgroup.procs").split())
+            except (OSError, ValueError):
+                pass
     return pids
 
 
-def kill_tree(dirs: list[Path], timeout: float = 5.0) -> list[int]:
+def kill_tree(dirs: list[Path], timeout: float = KILL_TIMEOUT) -> list[int]:
     """SIGKILL every process in ``dirs`` and their sub-cgroups until none is left."""
     deadline = time.monotonic() + timeout
     while True:
@@ -454,20 +467,17 @@ def kill_tree(dirs: list[Path], timeout: float = 5.0) -> list[int]:
                 os.kill(p, signal.SIGKILL)
             except (ProcessLookupError, PermissionError):
                 pass
-        time.sleep(0.01)
+        time.sleep(POLL)
 
 
-def remove_tree(dirs: list[Path], timeout: float = 5.0) -> list[Path]:
+def remove_tree(dirs: list[Path], timeout: float = KILL_TIMEOUT) -> list[Path]:
     """Kill every process in ``dirs`` (and below) and rmdir them bottom-up. Returns the
     directories left behind."""
     kill_tree(dirs, timeout)
     left = []
     deadline = time.monotonic() + timeout
     for d in dirs:
-        if not d.is_dir():
-            continue
-        subs = sorted((p for p in d.rglob("*") if p.is_dir()), key=lambda p: len(p.parts), reverse=True)
-        for sub in [*subs, d]:
+        for sub in _tree(d):
             while True:
                 try:
                     sub.rmdir()
@@ -476,7 +486,7 @@ def remove_tree(dirs: list[Path], timeout: float = 5.0) -> list[Path]:
                     break
                 except OSError as e:
                     if e.errno == errno.EBUSY and time.monotonic() < deadline:   # exiting tasks not yet gone
-                        time.sleep(0.01)
+                        time.sleep(POLL)
                         continue
                     left.append(sub)
                     break

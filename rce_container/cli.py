@@ -45,8 +45,9 @@ def parser() -> argparse.ArgumentParser:
                         "container -- when running as root, else 'unconfined')")
     p.add_argument("--warm", type=int, default=1,
                    help="idle environments kept started for fast container creation (default 1; 0 = none)")
-    p.add_argument("--grace", type=float, default=3.0,
-                   help="seconds between SIGTERM and SIGKILL when stopping nodes (default 3)")
+    p.add_argument("--grace", type=float, default=sandboxes.DEFAULT_GRACE,
+                   help="seconds between SIGTERM and SIGKILL when stopping nodes "
+                        f"(default {sandboxes.DEFAULT_GRACE:g})")
     p.add_argument("--metrics-port", type=int, default=None, metavar="PORT",
                    help="serve Prometheus /metrics on --bind at this port (0: ephemeral, written to the "
                         "ready file; default: off)")

@@ -47,7 +47,10 @@ log = get_logger("rce.container.env")
 
 SOCKET_NAME = "bus.sock"
 MAX_SAMPLE = 10000        # messages, bound of one bus_sample
-MAX_SAMPLE_TIMEOUT = 300  # s
+MAX_SAMPLE_TIMEOUT = 300  # s, the longest a bus_sample may wait
+BUS_CALL_TIMEOUT = 10.0   # s a bus_call waits for the service when the request gives no timeout
+BUS_SAMPLE_TIMEOUT = 5.0  # s a bus_sample waits for messages when the request gives no timeout
+MAX_SOCKET_PATH = 107     # bytes, sun_path minus the NUL
 
 
 def container_paths(runtime_dir: Path, socket_dir: Path, cid: int) -> tuple[Path, Path]:
@@ -73,7 +76,7 @@ class Container:
         self.env.notify_status(self.cid, ntag, status, **fields)
 
     async def start(self) -> None:
-        if len(self.socket.encode()) > 107:
+        if len(self.socket.encode()) > MAX_SOCKET_PATH:
             raise RCEError(f"bus socket path {self.socket!r} is too long for a Unix socket; "
                            "use a shorter --runtime-dir")
         self.workdir.mkdir(parents=True, exist_ok=True)
@@ -127,8 +130,9 @@ class Container:
             out["cpu"] = {**box["cpu"], "throttled_s": round(box["cpu"]["throttled_s"], 3)}
         mem = box.get("memory") or {}
         if "usage_bytes" in mem:
+            limit = mem.get("limit_bytes")
             out["memory"] = {"usage_mib": round(mem["usage_bytes"] / 2**20, 2),
-                             "limit_mib": None if mem.get("limit_bytes") is None else round(mem["limit_bytes"] / 2**20, 2),
+                             "limit_mib": None if limit is None else round(limit / 2**20, 2),
                              "oom_kills": mem.get("oom_kills", 0), "failcnt": mem.get("failcnt", 0)}
         return out, per_node
 
@@ -164,7 +168,7 @@ class Environment:
     def __init__(self, env_id: int, runtime_dir: str | Path, *, socket_dir: str | Path | None = None,
                  bind: str = "127.0.0.1",
                  advertise_host: str | None = None, sandbox: str = "auto",
-                 max_frame: int = framing.DEFAULT_MAX_FRAME, grace: float = 3.0,
+                 max_frame: int = framing.DEFAULT_MAX_FRAME, grace: float = sandboxes.DEFAULT_GRACE,
                  registry: MessageRegistry | None = None, scope: str | None = None):
         self.env_id = env_id
         self.runtime_dir = Path(runtime_dir)
@@ -204,8 +208,7 @@ class Environment:
         if self._closed:
             return
         self._closed = True
-        await asyncio.gather(*(c.close() for c in self.containers.values()), return_exceptions=True)
-        self.containers.clear()
+        await self._close_containers()
         await self.plane.close()
         if self.peer:
             await self.peer.close()
@@ -256,9 +259,17 @@ class Environment:
 
     async def op_shutdown(self, a: dict) -> dict:
         """Destroy every container; the task set closes the link afterwards."""
-        await asyncio.gather(*(c.close() for c in self.containers.values()), return_exceptions=True)
-        self.containers.clear()
+        await self._close_containers()
         return {}
+
+    async def _close_containers(self) -> None:
+        """Close every container at once; one that fails to close is logged, the others go on."""
+        cs = list(self.containers.values())
+        results = await asyncio.gather(*(c.close() for c in cs), return_exceptions=True)
+        self.containers.clear()
+        for c, r in zip(cs, results, strict=True):
+            if isinstance(r, Exception):
+                log.error("container did not close cleanly", env=self.env_id, cid=c.cid, exc_info=r)
 
     async def op_resize_container(self, a: dict) -> dict:
         """``{cid, limits: {cpu, memory, size, bandwidth}}`` -> ``{sandbox, limits, cgroup?}``:
@@ -365,7 +376,8 @@ class Environment:
 
     async def op_bus_call(self, a: dict) -> Any:
         """``{cid, service, request, timeout}`` -> the JSON response. NotFound for an absent
-        service, Unavailable on timeout (s, default 10), the provider's error otherwise."""
+        service, Timeout after ``timeout`` s (default :data:`BUS_CALL_TIMEOUT`), the provider's
+        error otherwise."""
         self._container(a)
         name = resolve(a["service"], "/")
         s = self.bus.services.get(name)
@@ -373,7 +385,7 @@ class Environment:
             raise NotFound(f"service {name!r} is not provided in container {a['cid']}")
         req_t, resp_t = self.registry.srv_types(s.type)
         payload = self.registry.json_to_bytes(req_t, a.get("request") or {})
-        resp = await self.bus.call_service(name, payload, None, float(a.get("timeout") or 10.0))
+        resp = await self.bus.call_service(name, payload, None, float(a.get("timeout") or BUS_CALL_TIMEOUT))
         return self.registry.bytes_to_json(resp_t, resp)
 
     async def op_bus_sample(self, a: dict) -> list:
@@ -388,7 +400,7 @@ class Environment:
             raise NotFound(f"topic {topic!r} does not exist; give its 'type' to wait for it")
         typename = self.registry.msg_type(wire)
         count = max(1, min(int(a.get("count") or 1), MAX_SAMPLE))
-        timeout = max(0.0, min(float(a.get("timeout") or 5.0), MAX_SAMPLE_TIMEOUT))
+        timeout = max(0.0, min(float(a.get("timeout") or BUS_SAMPLE_TIMEOUT), MAX_SAMPLE_TIMEOUT))
         got: list[bytes] = []
         full = asyncio.Event()
 
@@ -474,7 +486,8 @@ def main(argv: list[str] | None = None) -> None:
     p.add_argument("--sandbox", default="auto")
     p.add_argument("--scope", default=None, help="the task set's sandbox scope (cgroup directory rce/NAME-PID)")
     p.add_argument("--max-frame", type=int, default=framing.DEFAULT_MAX_FRAME)
-    p.add_argument("--grace", type=float, default=3.0, help="s between SIGTERM and SIGKILL for nodes")
+    p.add_argument("--grace", type=float, default=sandboxes.DEFAULT_GRACE,
+                   help="s between SIGTERM and SIGKILL for nodes")
     args = p.parse_args(argv)
     setup_logging()
     sys.exit(run_loop(run(args)))

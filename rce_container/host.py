@@ -33,23 +33,30 @@ from aiohttp import web
 from prometheus_client import CONTENT_TYPE_LATEST, generate_latest
 
 from rce import framing, rpc
-from rce.errors import NotFound, RCEError, RequestError, Unavailable
+from rce.errors import NotFound, RCEError, RequestError, Timeout, Unavailable
+from rce.link import STREAM_LIMIT
 from rce.log import get_logger
+from rce.pending import PendingCalls
+from rce.tasks import Tasks
 from rce_container import metrics
 from rce_container import sandbox as sandboxes
-from rce_container.environment import container_paths
+from rce_container.environment import BUS_CALL_TIMEOUT, MAX_SOCKET_PATH, container_paths
 from rce_container.usage import measure
 
 log = get_logger("rce.container")
 # s of master silence before this task set gives up on it. Longer than the master's own 4 s
 # verdict on task sets: a busy master is not a lost one, and giving up tears containers down.
 MASTER_SILENCE = 15.0
+ENV_TIMEOUT = 30.0         # s a new environment has to say hello (start Python, load packages, listen)
+RELAY_TIMEOUT = 30.0       # s an op relayed to an environment waits for its answer
+REPLY_MARGIN = 10.0        # s on top of an op's own time limit (a bus_call's timeout, the grace period of
+                           # stopping nodes) for the environment to answer it
+EXIT_MARGIN = 5.0          # s on top of the grace period for an environment to exit before it is killed
 
 CONTROL_SOCKET = "host.sock"
 RELAYED_OPS = ("add_node", "remove_node", "set_param", "delete_param", "add_interface", "remove_interface",
                "connect", "disconnect", "describe", "bus_publish", "bus_call", "bus_sample", "logs",
                "resize_container")
-MAX_SOCKET_PATH = 107     # bytes, sun_path minus the NUL
 
 
 def socket_dir_for(runtime_dir: Path) -> Path:
@@ -108,7 +115,8 @@ class ContainerHost:
     def __init__(self, master: str, master_port: int = 8080, *, name: str | None = None,
                  bind: str = "127.0.0.1", advertise_host: str | None = None, runtime_dir: str | Path,
                  own_runtime_dir: bool = False, sandbox: str = "auto",
-                 max_frame: int = framing.DEFAULT_MAX_FRAME, env_timeout: float = 30.0, grace: float = 3.0,
+                 max_frame: int = framing.DEFAULT_MAX_FRAME, env_timeout: float = ENV_TIMEOUT,
+                 grace: float = sandboxes.DEFAULT_GRACE,
                  warm: int = 1, metrics_port: int | None = None):
         self.master_addr = (master, master_port)
         self.name = name or socket.gethostname()
@@ -134,9 +142,9 @@ class ContainerHost:
         self.exit_code = 0
         self._server: asyncio.AbstractServer | None = None
         self._env_ids = itertools.count(1)
-        self._hellos: dict[int, asyncio.Future] = {}
+        self._hellos = PendingCalls("new environments")     # env_id -> (peer, hello args)
         self._group_locks: dict[tuple, asyncio.Lock] = {}
-        self._tasks: set[asyncio.Task] = set()
+        self.tasks = Tasks("container task set")
         self._closing = False
 
     # -- lifecycle -----------------------------------------------------------------------------
@@ -148,7 +156,7 @@ class ContainerHost:
         self.socket_dir.mkdir(parents=True, exist_ok=True, mode=0o700)
         if os.path.exists(self.control_path):
             os.unlink(self.control_path)
-        self._server = await asyncio.start_unix_server(self._accept_env, self.control_path, limit=2**20)
+        self._server = await asyncio.start_unix_server(self._accept_env, self.control_path, limit=STREAM_LIMIT)
         os.chmod(self.control_path, 0o600)
         how = await asyncio.to_thread(self.sandbox_cls.prepare_host, self.scope)
         log.info("sandbox", kind=self.sandbox_cls.kind, uses=how, scope=self.scope)
@@ -186,7 +194,11 @@ class ContainerHost:
         if self._closing:
             return
         self._closing = True
-        await asyncio.gather(*(self._stop_env(e) for e in list(self.envs)), return_exceptions=True)
+        envs = list(self.envs)
+        for env, r in zip(envs, await asyncio.gather(*(self._stop_env(e) for e in envs), return_exceptions=True),
+                          strict=True):
+            if isinstance(r, Exception):
+                log.error("environment did not stop cleanly", env=env.env_id, exc_info=r)
         self.containers.clear()
         await asyncio.to_thread(self.sandbox_cls.cleanup_host, self.scope)   # anything a crash left behind
         if self._http is not None:
@@ -203,6 +215,7 @@ class ContainerHost:
             shutil.rmtree(self.socket_dir, ignore_errors=True)
         if self.own_runtime_dir:
             shutil.rmtree(self.runtime_dir, ignore_errors=True)
+        await self.tasks.cancel_all()
         log.info("container task set stopped", name=self.name)
 
     async def run(self) -> int:
@@ -216,10 +229,9 @@ class ContainerHost:
         peer = rpc.RpcPeer(reader, writer, name="environment", max_frame=self.max_frame)
 
         async def hello(a: dict) -> dict:
-            fut = self._hellos.get(a.get("env_id"))
-            if fut is None or fut.done():
-                raise RequestError(f"unexpected environment {a.get('env_id')!r}")
-            fut.set_result((peer, a))
+            env_id = a.get("env_id")
+            if not isinstance(env_id, int) or not self._hellos.settle(env_id, (peer, a)):
+                raise RequestError(f"unexpected environment {env_id!r}")
             return {}
 
         async def node_status(a: dict) -> None:
@@ -230,7 +242,7 @@ class ContainerHost:
     def _refill_spares(self) -> None:
         """Start environments in the background until ``warm`` spares are ready or starting."""
         while not self._closing and len(self.spares) + len(self._spare_tasks) < self.warm:
-            t = asyncio.create_task(self._start_spare())
+            t = self.tasks.spawn(self._start_spare(), name="spare environment")
             self._spare_tasks.append(t)
             t.add_done_callback(self._spare_tasks.remove)
 
@@ -259,8 +271,7 @@ class ContainerHost:
 
     async def _spawn_env(self, key: tuple | None) -> EnvHandle:
         env = EnvHandle(next(self._env_ids), key, started=time.monotonic())
-        fut = asyncio.get_running_loop().create_future()
-        self._hellos[env.env_id] = fut
+        self._hellos.open(key=env.env_id)
         argv = [sys.executable, "-m", "rce_container.environment", "--control", self.control_path,
                 "--env-id", str(env.env_id), "--runtime-dir", str(self.runtime_dir),
                 "--socket-dir", str(self.socket_dir), "--bind", self.bind,
@@ -269,32 +280,29 @@ class ContainerHost:
         try:
             env.proc = await asyncio.create_subprocess_exec(*argv, stdin=asyncio.subprocess.DEVNULL,
                                                             start_new_session=True)
-            waiter = asyncio.create_task(env.proc.wait())
-            done, _ = await asyncio.wait({fut, waiter}, timeout=self.env_timeout,
-                                         return_when=asyncio.FIRST_COMPLETED)
-            if fut not in done:
-                if waiter in done:
-                    raise Unavailable(f"environment process exited with code {env.proc.returncode} "
-                                      "before it was ready (see its log)")
+            early_exit = self.tasks.spawn(self._exit_before_hello(env), name=f"environment {env.env_id} start")
+            try:
+                env.peer, info = await self._hellos.wait(env.env_id, self.env_timeout)
+            except Timeout:
                 await self._kill_env_proc(env)
-                raise Unavailable(f"environment process did not report ready within {self.env_timeout} s")
-            waiter.cancel()
+                raise Timeout(f"environment process did not report ready within {self.env_timeout:g} s") from None
+            finally:
+                early_exit.cancel()
         finally:
-            self._hellos.pop(env.env_id, None)
-        env.peer, info = fut.result()
+            self._hellos.forget(env.env_id)
         env.peer.name = f"environment {env.env_id}"
         env.peer.on_close = lambda _p, e=env: self._env_link_closed(e)
         env.data_addr = info.get("data_addr", "")
         self.envs.add(env)
-        self._spawn(self._watch_env(env))
+        self.tasks.spawn(self._watch_env(env), name=f"environment {env.env_id}")
         log.info("environment started", env=env.env_id, pid=env.proc.pid, data_addr=env.data_addr,
                  ms=round((time.monotonic() - env.started) * 1000, 1))
         return env
 
-    def _spawn(self, coro) -> None:
-        t = asyncio.create_task(coro)
-        self._tasks.add(t)
-        t.add_done_callback(self._tasks.discard)
+    async def _exit_before_hello(self, env: EnvHandle) -> None:
+        code = await env.proc.wait()
+        self._hellos.fail(env.env_id, Unavailable(f"environment process exited with code {code} "
+                                                  "before it was ready (see its log)"))
 
     def _env_link_closed(self, env: EnvHandle) -> None:
         if not env.stopping:
@@ -338,7 +346,7 @@ class ContainerHost:
         clean = False
         if env.alive:
             try:
-                await env.peer.call("shutdown", timeout=self.grace + 10)
+                await env.peer.call("shutdown", timeout=self.grace + REPLY_MARGIN)
                 clean = True
             except RCEError as e:
                 log.warning("environment did not shut down cleanly", env=env.env_id, reason=e.message)
@@ -364,7 +372,7 @@ class ContainerHost:
         if env.proc is None:
             return
         try:
-            await asyncio.wait_for(env.proc.wait(), self.grace + 5)
+            await asyncio.wait_for(env.proc.wait(), self.grace + EXIT_MARGIN)
         except asyncio.TimeoutError:
             log.warning("environment did not exit, killing it", env=env.env_id, pid=env.proc.pid)
             _kill_group(env.proc.pid)
@@ -399,7 +407,8 @@ class ContainerHost:
         environment serves the container. Idempotent for a repeated cid with the same tag.
 
         Raises :class:`RequestError` for a cid reused with another tag, :class:`Unavailable`
-        if the environment cannot start."""
+        if the environment exits before it is ready, :class:`Timeout` if it does not get
+        ready within ``env_timeout`` s."""
         cid, user, ctag, group = a.get("cid"), a.get("user", ""), a.get("ctag"), a.get("group") or None
         if not isinstance(cid, int) or isinstance(cid, bool):
             raise RequestError(f"create_container needs an integer 'cid', got {cid!r}")
@@ -455,7 +464,7 @@ class ContainerHost:
             clean = False
             if env.alive:
                 try:
-                    await env.peer.call("remove_container", cid=c.cid, timeout=self.grace + 10)
+                    await env.peer.call("remove_container", cid=c.cid, timeout=self.grace + REPLY_MARGIN)
                     clean = True
                 except RCEError as e:
                     log.warning("environment failed to remove a container", cid=c.cid, reason=e.message)
@@ -473,11 +482,11 @@ class ContainerHost:
     def _relay_handler(self, op: str):
         async def relay(a: dict) -> Any:
             c = self._record(a)
-            timeout = 30.0
+            timeout = RELAY_TIMEOUT
             if op in ("bus_call", "bus_sample"):
-                timeout = float(a.get("timeout") or 10.0) + 10.0
+                timeout = float(a.get("timeout") or BUS_CALL_TIMEOUT) + REPLY_MARGIN
             elif op == "remove_node":
-                timeout = self.grace + 10.0
+                timeout = self.grace + REPLY_MARGIN
             result = await c.env.peer.request(op, a, timeout)
             if op == "add_node":
                 c.nodes.setdefault(a.get("ntag"), (result or {}).get("pid"))

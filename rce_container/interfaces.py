@@ -14,7 +14,7 @@ Payloads stay ROS 1 serialized bytes end to end. Bus owners are ``interface:<tag
 """
 from __future__ import annotations
 
-from rce.bus.core import Bus, Subscription, Topic
+from rce.bus.core import SERVICE_TIMEOUT, Bus, Subscription, Topic
 from rce.dataplane import DataPlane
 from rce.errors import MessageError, RequestError
 from rce.interfaces import Interface
@@ -24,6 +24,7 @@ from rce.package_path import load_package_types
 from rce.protocol import split_interface_type
 
 DEFAULT_QUEUE = 100   # messages, bound of a SubscriberInterface's bus subscription
+SERVICE_WAIT = 10.0   # s a call from a peer waits for its service to be provided (its node may be starting)
 
 
 class BusInterface(Interface):
@@ -104,8 +105,8 @@ class ServiceClientInterface(BusInterface):
     """Executes calls from its peer against service ``addr`` on the bus."""
 
     kind = "ServiceClient"
-    call_timeout = 30.0   # s
-    service_wait = 10.0   # s a call waits for its service to be provided (its node may be starting)
+    call_timeout = SERVICE_TIMEOUT
+    service_wait = SERVICE_WAIT
 
     async def serve(self, payload: bytes) -> bytes:
         self.msgs_in += 1

@@ -35,12 +35,15 @@ from rce.errors import NotFound, RCEError, RequestError
 from rce.log import get_logger
 from rce.naming import join, validate_name
 from rce.package_path import find_executable, find_package
+from rce.tasks import Tasks
 from rce_container.sandbox import Sandbox
 
 log = get_logger("rce.container.launcher")
 
 LOG_LINES = 1000            # lines of stdout and of stderr kept per node
 DEFAULT_RESPAWN_DELAY = 1.0  # s, when ``respawn`` is just ``true``
+PIPE_DRAIN_TIMEOUT = 1.0     # s to read what is left in a dead node's stdout/stderr (a process it left
+                             # behind may hold the pipes open: then its output is no longer read)
 
 StatusCallback = Callable[..., None]   # on_status(ntag, status, **fields)
 
@@ -180,6 +183,7 @@ class Launcher:
         self.on_status = on_status
         self.nodes: dict[str, NodeProcess] = {}
         self.starts = 0   # processes started, respawns included
+        self.tasks = Tasks(f"launcher of {ctag}")
 
     def _prepare(self, spec: dict) -> NodeProcess:
         ntag = spec.get("ntag")
@@ -228,7 +232,7 @@ class Launcher:
         except BaseException:
             self.nodes.pop(ntag, None)
             raise
-        node.task = asyncio.create_task(self._watch(node), name=f"node-{self.ctag}-{ntag}")
+        node.task = self.tasks.spawn(self._watch(node), name=f"node {ntag}")
         return {"ntag": ntag, "pid": node.pid}
 
     async def _start(self, node: NodeProcess) -> None:
@@ -244,11 +248,11 @@ class Launcher:
     async def _watch(self, node: NodeProcess) -> None:
         while True:
             proc = node.proc
-            readers = [asyncio.create_task(_pump(proc.stdout, node.stdout)),
-                       asyncio.create_task(_pump(proc.stderr, node.stderr))]
+            readers = [self.tasks.spawn(_pump(proc.stdout, node.stdout), name=f"stdout of {node.ntag}"),
+                       self.tasks.spawn(_pump(proc.stderr, node.stderr), name=f"stderr of {node.ntag}")]
             code = await proc.wait()
             await self.sandbox.kill(proc)    # the node's own children go with it
-            _, hung = await asyncio.wait(readers, timeout=1.0)   # pipes inherited by escaped processes
+            _, hung = await asyncio.wait(readers, timeout=PIPE_DRAIN_TIMEOUT)   # pipes inherited by escaped processes
             for t in hung:
                 t.cancel()
             if node.stopping:
@@ -303,6 +307,7 @@ class Launcher:
         """Stop every node without status reports (the container is going away)."""
         await asyncio.gather(*(self.remove(t, None) for t in list(self.nodes)), return_exceptions=True)
         await self.sandbox.kill_all()
+        await self.tasks.cancel_all()
 
     def logs(self, ntag: str, lines: int = LOG_LINES) -> dict:
         """The last ``lines`` lines of stdout and stderr of node ``ntag``: ``{stdout: [...], stderr: [...]}``.

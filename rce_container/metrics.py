@@ -3,19 +3,25 @@
 Built per scrape from the task set's ``stats`` (:meth:`ContainerHost.op_stats`): containers
 are labelled ``user``, ``ctag``; nodes ``user``, ``ctag``, ``node`` (the nTag).
 
-| metric | labels | meaning |
-|---|---|---|
-| ``rce_container_host_containers`` / ``_environments`` / ``_spares`` | | what the task set runs |
-| ``rce_environment_rss_bytes`` | ``env`` | resident memory of each environment process |
-| ``rce_container_cpu_percent`` | user, ctag | CPU use of every process of the container (100 = one core) |
-| ``rce_container_rss_bytes``, ``rce_container_processes`` | user, ctag | resident memory, process count |
-| ``rce_container_cpu_limit_cores``, ``rce_container_memory_limit_bytes``, ``rce_container_tasks_limit`` | user, ctag | limits in force (absent = none) |
-| ``rce_container_oom_kills_total`` | user, ctag | processes the kernel killed for memory |
-| ``rce_container_messages_{in,out}_total``, ``rce_container_bytes_{in,out}_total`` | user, ctag | traffic over the container's interfaces |
-| ``rce_container_dropped_total`` | user, ctag, where (interfaces, bus) | messages dropped |
-| ``rce_node_cpu_percent``, ``rce_node_rss_bytes``, ``rce_node_processes``, ``rce_node_running`` | user, ctag, node | per node |
-| ``rce_node_messages_{in,out}_total``, ``rce_node_bytes_{in,out}_total``, ``rce_node_dropped_total`` | user, ctag, node | the node's bus traffic (in = published by it) |
-| ``rce_node_restarts_total`` | user, ctag, node | respawns |
+Metrics (labels in brackets):
+
+- ``rce_container_host_containers`` / ``_environments`` / ``_spares``: what the task set runs
+- ``rce_environment_rss_bytes`` [env]: resident memory of each environment process
+- ``rce_container_cpu_percent`` [user, ctag]: CPU use of every process of the container
+  (100 = one core)
+- ``rce_container_rss_bytes``, ``rce_container_processes`` [user, ctag]: resident memory,
+  process count
+- ``rce_container_cpu_limit_cores``, ``rce_container_memory_limit_bytes``,
+  ``rce_container_tasks_limit`` [user, ctag]: limits in force (absent = none)
+- ``rce_container_oom_kills_total`` [user, ctag]: processes the kernel killed for memory
+- ``rce_container_messages_{in,out}_total``, ``rce_container_bytes_{in,out}_total``
+  [user, ctag]: traffic over the container's interfaces
+- ``rce_container_dropped_total`` [user, ctag, where (interfaces, bus)]: messages dropped
+- ``rce_node_cpu_percent``, ``rce_node_rss_bytes``, ``rce_node_processes``,
+  ``rce_node_running`` [user, ctag, node]: per node
+- ``rce_node_messages_{in,out}_total``, ``rce_node_bytes_{in,out}_total``,
+  ``rce_node_dropped_total`` [user, ctag, node]: the node's bus traffic (in = published by it)
+- ``rce_node_restarts_total`` [user, ctag, node]: respawns
 """
 from __future__ import annotations
 
@@ -44,7 +50,8 @@ class _Snapshot:
         yield env
 
         fam = {
-            "cpu": g("rce_container_cpu_percent", "CPU use of the container's processes, percent of one core", labels=C_LABELS),
+            "cpu": g("rce_container_cpu_percent", "CPU use of the container's processes, percent of one core",
+                     labels=C_LABELS),
             "rss": g("rce_container_rss_bytes", "Resident memory of the container's processes", labels=C_LABELS),
             "procs": g("rce_container_processes", "Processes in the container", labels=C_LABELS),
             "lcpu": g("rce_container_cpu_limit_cores", "CPU limit in force, cores", labels=C_LABELS),
@@ -56,7 +63,8 @@ class _Snapshot:
                                        labels=C_LABELS),
             "mout": CounterMetricFamily("rce_container_messages_out", "Messages out of the container's interfaces",
                                         labels=C_LABELS),
-            "bin": CounterMetricFamily("rce_container_bytes_in", "Bytes into the container's interfaces", labels=C_LABELS),
+            "bin": CounterMetricFamily("rce_container_bytes_in", "Bytes into the container's interfaces",
+                                       labels=C_LABELS),
             "bout": CounterMetricFamily("rce_container_bytes_out", "Bytes out of the container's interfaces",
                                         labels=C_LABELS),
             "drop": CounterMetricFamily("rce_container_dropped", "Messages dropped", labels=[*C_LABELS, "where"]),

@@ -36,9 +36,12 @@ _libc = ctypes.CDLL(None, use_errno=True)
 _libc.mount.argtypes = [ctypes.c_char_p, ctypes.c_char_p, ctypes.c_char_p, ctypes.c_ulong, ctypes.c_char_p]
 
 
+def _enc(s):
+    return s.encode() if s is not None else None
+
+
 def mount(src, target, fstype, flags, data=None):
-    enc = (lambda s: s.encode() if s is not None else None)
-    if _libc.mount(enc(src), enc(target), enc(fstype), flags, enc(data)) != 0:
+    if _libc.mount(_enc(src), _enc(target), _enc(fstype), flags, _enc(data)) != 0:
         e = ctypes.get_errno()
         raise OSError(e, f"mount {target}: {os.strerror(e)}")
 

@@ -38,9 +38,12 @@ from typing import ClassVar
 
 from rce.errors import ConfigError, RCEError
 from rce.log import get_logger
+from rce.tasks import Tasks
 from rce_container import cgroups, usage
 
 log = get_logger("rce.container.sandbox")
+
+DEFAULT_GRACE = 3.0          # s between SIGTERM and SIGKILL when a node is stopped (its chance to clean up)
 
 #: kind -> sandbox class; filled by :meth:`Sandbox.__init_subclass__`.
 REGISTRY: dict[str, type["Sandbox"]] = {}
@@ -73,7 +76,7 @@ class Sandbox:
         if cls.kind:
             REGISTRY[cls.kind] = cls
 
-    def __init__(self, cid: int, ctag: str, limits: dict | None, workdir: Path, *, grace: float = 3.0,
+    def __init__(self, cid: int, ctag: str, limits: dict | None, workdir: Path, *, grace: float = DEFAULT_GRACE,
                  bus_socket: str | Path | None = None, scope: str | None = None):
         self.cid, self.ctag = cid, ctag
         self.limits = {k: v for k, v in (limits or {}).items() if v is not None}
@@ -205,6 +208,12 @@ TOOLS = ("unshare", "nsenter", "setsid", "setpriv")
 #: sh prologue: write our pid into each cgroup.procs file given before "--", then exec the rest.
 JOIN_CGROUPS = 'while [ "$1" != -- ]; do echo $$ > "$1" || exit 126; shift; done; shift; exec "$@"'
 INIT_TIMEOUT = 15.0          # s for a container's init to report ready
+INIT_ERROR_TIMEOUT = 1.0     # s to read the reason a failed init wrote on stderr
+INIT_EXIT_TIMEOUT = 2.0      # s for the init to exit once its stdin is closed, before it is killed
+PROBE_TIMEOUT = 10.0         # s for the one-off ``unshare`` probe of :meth:`NamespaceSandbox.available`
+STALE_CGROUP_TIMEOUT = 1.0   # s to empty and remove the cgroups of a task set that is gone
+LEADER_TIMEOUT = 5.0         # s to find a node's program under its nsenter (it forks at once)
+LEADER_POLL = 0.002          # s between looks for it
 _layouts: dict[str, cgroups.Layout | None] = {}
 
 
@@ -258,7 +267,7 @@ class NamespaceSandbox(Sandbox):
         self.init_pid: int | None = None
         self.ns: dict[str, str] = {}
         self._leaders: dict[asyncio.subprocess.Process, int] = {}
-        self._tasks: set[asyncio.Task] = set()
+        self._tasks = Tasks(f"sandbox of {self.ctag}")
         self._ooms = 0
 
     @classmethod
@@ -269,7 +278,8 @@ class NamespaceSandbox(Sandbox):
             if ok:
                 try:
                     ok = subprocess.run(["unshare", "--pid", "--fork", "--mount", "--ipc", "--uts", "--net",
-                                         "--mount-proc", "true"], capture_output=True, timeout=10).returncode == 0
+                                         "--mount-proc", "true"], capture_output=True,
+                                        timeout=PROBE_TIMEOUT).returncode == 0
                 except (OSError, subprocess.TimeoutExpired):
                     ok = False
             cls._available = ok
@@ -290,7 +300,7 @@ class NamespaceSandbox(Sandbox):
                             log.warning("cgroups of a gone task set still hold processes; left alone", dir=str(d))
                             continue
                         log.info("removing the cgroups of a task set that is gone", dir=str(d))
-                        cgroups.remove_tree([d], timeout=1.0)
+                        cgroups.remove_tree([d], timeout=STALE_CGROUP_TIMEOUT)
         if layout is None:
             log.warning("no usable cgroup hierarchy: containers get namespaces but no resource limits")
             return "namespaces, no cgroup"
@@ -367,7 +377,7 @@ class NamespaceSandbox(Sandbox):
                 err = b""
                 if self.init.returncode is not None or line.startswith(b"error"):
                     try:
-                        err = await asyncio.wait_for(self.init.stderr.read(4096), 1)
+                        err = await asyncio.wait_for(self.init.stderr.read(4096), INIT_ERROR_TIMEOUT)
                     except asyncio.TimeoutError:
                         pass
                 why = (line.decode(errors="replace").strip() or "init exited") + \
@@ -396,9 +406,7 @@ class NamespaceSandbox(Sandbox):
             *self._joined(inner), env=env, cwd="/", stdin=asyncio.subprocess.DEVNULL,
             stdout=asyncio.subprocess.PIPE, stderr=asyncio.subprocess.PIPE, start_new_session=True)
         self.procs.add(proc)
-        task = asyncio.get_running_loop().create_task(self._find_leader(proc))
-        self._tasks.add(task)
-        task.add_done_callback(self._tasks.discard)
+        self._tasks.spawn(self._find_leader(proc), name=f"leader of {proc.pid}")
         return proc
 
     async def _find_leader(self, proc: asyncio.subprocess.Process) -> int | None:
@@ -406,13 +414,13 @@ class NamespaceSandbox(Sandbox):
         remembered so its group can be signalled after nsenter is gone."""
         if proc in self._leaders:
             return self._leaders[proc]
-        deadline = time.monotonic() + 5.0
+        deadline = time.monotonic() + LEADER_TIMEOUT
         while proc.returncode is None and time.monotonic() < deadline:
             kids = _children(proc.pid)
             if kids:
                 self._leaders[proc] = kids[0]
                 return kids[0]
-            await asyncio.sleep(0.002)
+            await asyncio.sleep(LEADER_POLL)
         return self._leaders.get(proc)
 
     async def kill(self, proc):
@@ -442,13 +450,14 @@ class NamespaceSandbox(Sandbox):
         if self.init.returncode is None:
             try:
                 self.init.stdin.close()          # the init exits; the kernel kills its namespace
-                await asyncio.wait_for(self.init.wait(), 2.0)
+                await asyncio.wait_for(self.init.wait(), INIT_EXIT_TIMEOUT)
             except (asyncio.TimeoutError, OSError):
                 _signal_group(self.init.pid, signal.SIGKILL)     # unshare --kill-child takes the init along
                 await self.init.wait()
 
     async def close(self) -> None:
         await self.kill_all()
+        await self._tasks.cancel_all()
         await self._stop_init()
         if self.cg is not None:
             left = await asyncio.to_thread(self.cg.remove)

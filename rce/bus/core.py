@@ -16,11 +16,12 @@ import itertools
 from dataclasses import dataclass, field
 from typing import Any, Awaitable, Callable
 
-from rce.errors import MessageError, NotFound, RequestError, Unavailable
+from rce.errors import MessageError, NotFound, RequestError, Timeout
 from rce.naming import validate_name
 
 Deliver = Callable[[bytes], bool]                 # returns False when the message was dropped
 ServiceHandler = Callable[[bytes], Awaitable[bytes]]
+SERVICE_TIMEOUT = 30.0   # s a service call waits for its provider unless the caller says otherwise
 
 
 @dataclass(eq=False)
@@ -167,12 +168,12 @@ class Bus:
         return s
 
     async def call_service(self, name: str, payload: bytes, type_: str | None = None,
-                           timeout: float | None = 30.0, wait: float = 0.0) -> bytes:
+                           timeout: float | None = SERVICE_TIMEOUT, wait: float = 0.0) -> bytes:
         """Call service ``name`` with a serialized request; returns the serialized response.
         ``wait``: s to wait for the service to be provided (a node may still be starting).
 
         Raises :class:`NotFound` (no such service), :class:`MessageError` (type mismatch),
-        :class:`Unavailable` (timeout, s) or the provider's error."""
+        :class:`Timeout` (after ``timeout`` s) or the provider's error."""
         s = self.services.get(name)
         if s is None and wait > 0:
             s = await self.wait_for_service(name, wait)
@@ -186,7 +187,7 @@ class Bus:
             return await asyncio.wait_for(s.handler(payload), timeout)
         except asyncio.TimeoutError:
             s.errors += 1
-            raise Unavailable(f"service {name!r} did not answer within {timeout} s") from None
+            raise Timeout(f"service {name!r} did not answer within {timeout:g} s") from None
         except Exception:
             s.errors += 1
             raise

@@ -13,7 +13,8 @@ Link protocol (internal framing, :mod:`rce.framing`): CONTROL requests
   ``SRV_RESP``/``SRV_ERR call_id=c``.
 
 A node's subscriptions are bounded by the bytes waiting in its socket
-(``max_buffer``); messages beyond it are dropped and counted.
+(``max_buffer``); messages beyond it are dropped and counted. Service calls either way
+use the link layer's :class:`~rce.pending.PendingCalls` and :class:`~rce.link.Responder`.
 """
 from __future__ import annotations
 
@@ -25,10 +26,15 @@ from pathlib import Path
 from rce import framing
 from rce.bus.core import Bus, Subscription, Topic
 from rce.errors import NotFound, RCEError, RequestError
+from rce.link import STREAM_LIMIT, Responder, settle_reply
 from rce.log import get_logger
+from rce.pending import PendingCalls
 from rce.rpc import RpcPeer
 
 log = get_logger("rce.bus")
+
+DEFAULT_MAX_BUFFER = 16 * 1024 * 1024   # bytes that may wait unread per node connection
+CLOSE_TIMEOUT = 2.0                     # s :meth:`BusServer.close` waits for its listeners to close
 
 
 class _Session:
@@ -42,10 +48,9 @@ class _Session:
         self.subs: dict[int, Subscription] = {}
         self.services: dict[int, str] = {}
         self.resolved: dict[int, str] = {}
-        self.calls: dict[int, asyncio.Future] = {}
+        self.calls = PendingCalls(f"node {self.owner}")
+        self.responder = Responder(f"bus {self.bus.name} for {self.owner}", peer.tasks)
         self.ids = itertools.count(1)
-        self.call_ids = itertools.count(1)
-        self.transport = peer.writer.transport
         # what this node published (in) and was delivered (out), for per-node statistics
         self.msgs_in = self.bytes_in = self.msgs_out = self.bytes_out = 0
         peer.handlers.update({op[3:]: getattr(self, op) for op in dir(self) if op.startswith("op_")})
@@ -61,7 +66,7 @@ class _Session:
     # -- control ops ---------------------------------------------------------------------------
     async def op_hello(self, a: dict) -> dict:
         self.node = a.get("name") or self.owner
-        self.owner = self.node
+        self.owner = self.calls.name = self.node
         self.bus.nodes[self.node] = {"pid": a.get("pid"), "container": a.get("container")}
         self.server.changed()
         return {"bus": self.bus.name}
@@ -89,14 +94,11 @@ class _Session:
 
     async def op_subscribe(self, a: dict) -> int:
         h = self._handle(a)
-        max_buffer = self.server.max_buffer
-        transport, write = self.transport, self.peer.writer.write
+        offer = self.peer.link.offer
 
         def deliver(payload: bytes, _h=h) -> bool:
-            if transport.is_closing() or transport.get_write_buffer_size() > max_buffer:
+            if not offer(framing.encode_data_header(framing.MSG, _h, 0, 0, len(payload)), payload):
                 return False
-            write(framing.encode_data_header(framing.MSG, _h, 0, 0, len(payload)))
-            write(payload)
             self.msgs_out += 1
             self.bytes_out += len(payload)
             return True
@@ -113,14 +115,10 @@ class _Session:
         h = self._handle(a)
 
         async def handler(payload: bytes, _h=h) -> bytes:
-            cid = next(self.call_ids)
-            fut = asyncio.get_running_loop().create_future()
-            self.calls[cid] = fut
-            try:
-                self.peer.send_raw(framing.encode_data(framing.SRV_REQ, _h, 0, cid, payload))
-                return await fut
-            finally:
-                self.calls.pop(cid, None)
+            # no timeout of its own: the bus's call_service bounds the call and cancels this
+            return await self.calls.call(
+                lambda cid: self.peer.send_raw(framing.encode_data_header(framing.SRV_REQ, _h, 0, cid, len(payload)),
+                                               payload), None, what=f"the call to its service {a['service']!r}")
         self.bus.advertise_service(a["service"], a["type"], handler, self.owner)
         self.services[h] = a["service"]
         self.server.changed()
@@ -160,21 +158,26 @@ class _Session:
                 self.bytes_in += len(f.payload)
                 self.bus.publish(t, bytes(f.payload))
         elif f.op in (framing.SRV_RESP, framing.SRV_ERR):
-            framing.settle_call(self.calls, f)
+            settle_reply(self.calls, f)
         elif f.op == framing.SRV_REQ:
-            asyncio.create_task(self._serve_call(f.dst, f.call_id, bytes(f.payload)))
+            self._serve_call(f.dst, f.call_id, bytes(f.payload))
 
-    async def _serve_call(self, handle: int, call_id: int, payload: bytes) -> None:
+    def _serve_call(self, handle: int, call_id: int, payload: bytes) -> None:
+        """The node calls the service it resolved as ``handle``; the answer goes back with ``call_id``."""
         name = self.resolved.get(handle)
-        try:
+        send = self.peer.send_raw
+
+        async def call() -> bytes:
             if name is None:
                 raise NotFound(f"unknown service handle {handle}")
-            resp = await self.bus.call_service(name, payload)
-            self.peer.send_raw(framing.encode_data(framing.SRV_RESP, 0, 0, call_id, resp))
-        except RCEError as e:
-            self.peer.send_raw(framing.encode_data(framing.SRV_ERR, 0, 0, call_id, e.message.encode()))
-        except Exception as e:
-            self.peer.send_raw(framing.encode_data(framing.SRV_ERR, 0, 0, call_id, f"{type(e).__name__}: {e}".encode()))
+            return await self.bus.call_service(name, payload)
+
+        def reply(resp: bytes) -> None:
+            send(framing.encode_data_header(framing.SRV_RESP, 0, 0, call_id, len(resp)), resp)
+
+        def refuse(e: RCEError) -> None:
+            send(framing.encode_data(framing.SRV_ERR, 0, 0, call_id, e.message.encode()))
+        self.responder.serve(call, reply, refuse, f"call to {name or handle}")
 
     def close(self) -> None:
         for t in self.pubs.values():
@@ -183,9 +186,7 @@ class _Session:
             self.bus.unsubscribe(sub)
         for name in self.services.values():
             self.bus.unadvertise_service(name, self.owner)
-        for fut in self.calls.values():
-            if not fut.done():
-                fut.set_exception(RequestError(f"node {self.owner!r} left while serving a call"))
+        self.calls.fail_all(RequestError(f"node {self.owner!r} left while serving a call"))
         if self.node:
             self.bus.nodes.pop(self.node, None)
         self.pubs, self.subs, self.services = {}, {}, {}
@@ -196,7 +197,7 @@ class _Session:
 class BusServer:
     """Serves ``bus`` on Unix socket(s). ``max_buffer``: bytes that may wait per node connection."""
 
-    def __init__(self, bus: Bus, max_buffer: int = 16 * 1024 * 1024):
+    def __init__(self, bus: Bus, max_buffer: int = DEFAULT_MAX_BUFFER):
         self.bus = bus
         self.max_buffer = max_buffer
         self.sessions: set[_Session] = set()
@@ -204,6 +205,7 @@ class BusServer:
         self._ids = itertools.count(1)
 
     def changed(self) -> None:
+        """Tell the bus's ``on_change`` listeners that its graph changed (a node came, a topic...)."""
         for cb in self.bus.on_change:
             cb()
 
@@ -213,12 +215,12 @@ class BusServer:
         Path(path).parent.mkdir(parents=True, exist_ok=True)
         if os.path.exists(path):
             os.unlink(path)
-        srv = await asyncio.start_unix_server(self._accept, path, limit=2**20)
+        srv = await asyncio.start_unix_server(self._accept, path, limit=STREAM_LIMIT)
         os.chmod(path, 0o666)
         self._servers.append(srv)
 
     async def _accept(self, reader: asyncio.StreamReader, writer: asyncio.StreamWriter) -> None:
-        peer = RpcPeer(reader, writer, name=f"{self.bus.name}-node")
+        peer = RpcPeer(reader, writer, name=f"{self.bus.name}-node", max_buffer=self.max_buffer)
         self.sessions.add(_Session(self, peer, next(self._ids)))
         peer.start()
 
@@ -230,7 +232,7 @@ class BusServer:
             await sess.peer.close()
         for s in self._servers:
             try:
-                await asyncio.wait_for(s.wait_closed(), 2)
+                await asyncio.wait_for(s.wait_closed(), CLOSE_TIMEOUT)
             except asyncio.TimeoutError:
                 pass
         self._servers.clear()

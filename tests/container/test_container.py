@@ -151,7 +151,8 @@ async def test_register_echo_and_service_over_the_data_plane(rig, registry):
         assert pub == {"delivered": 1}
         assert await sample == [{"data": "from admin"}]
         # ... and the robot saw it too, through the SubscriberInterface
-        assert registry.bytes_to_json(STRING, await asyncio.wait_for(from_cloud.inbox.get(), STEP)) == {"data": "from admin"}
+        got = await asyncio.wait_for(from_cloud.inbox.get(), STEP)
+        assert registry.bytes_to_json(STRING, got) == {"data": "from admin"}
         assert await master.call("bus_call", cid=1, service="/stringEchoService", request={"data": "x"},
                                  timeout=5) == {"data": "x"}
 
@@ -321,7 +322,7 @@ async def test_destroy_container_kills_every_node_process(rig):
     await master.wait_bus(5, echo_ready("echo"))
     # wait until the stubborn node ignores SIGTERM and has forked its grandchild
     deadline = asyncio.get_running_loop().time() + STEP
-    while not (out := (await master.call("logs", cid=5, ntag="stubborn"))["stdout"]):
+    while not (await master.call("logs", cid=5, ntag="stubborn"))["stdout"]:
         assert asyncio.get_running_loop().time() < deadline, "stubborn node never started"
         await asyncio.sleep(0.02)
     # the child's pid as the host sees it (in a PID namespace the node prints its own view)

@@ -96,7 +96,8 @@ def echo_ready(node: str):
 async def wait_stdout(master, cid, ntag) -> list[str]:
     deadline = time.monotonic() + STEP
     while not (out := (await master.call("logs", cid=cid, ntag=ntag))["stdout"]):
-        assert time.monotonic() < deadline, f"node {ntag} printed nothing: {await master.call('logs', cid=cid, ntag=ntag)}"
+        assert time.monotonic() < deadline, \
+            f"node {ntag} printed nothing: {await master.call('logs', cid=cid, ntag=ntag)}"
         await asyncio.sleep(0.05)
     return out
 

@@ -122,7 +122,8 @@ def test_cgroup_layout_detection():
     # nested under the task set's own cgroup in each hierarchy
     assert v1.bases == {"cpu": "/sys/fs/cgroup/cpu/rce/h-1", "cpuacct": "/sys/fs/cgroup/cpuacct/rce/h-1",
                         "memory": "/sys/fs/cgroup/memory/outer/job7/rce/h-1", "pids": "/sys/fs/cgroup/pids/rce/h-1"}
-    co = cgroups.detect("s", "32 31 0:29 / /c rw - cgroup cgroup rw,cpu,cpuacct\n35 31 0:32 / /m rw - cgroup cgroup rw,memory\n",
+    co = cgroups.detect("s", "32 31 0:29 / /c rw - cgroup cgroup rw,cpu,cpuacct\n"
+                             "35 31 0:32 / /m rw - cgroup cgroup rw,memory\n",
                         "3:cpu,cpuacct:/\n2:memory:/\n", None)
     assert co.bases == {"cpu": "/c/s", "cpuacct": "/c/s", "memory": "/m/s"}          # co-mounted cpu,cpuacct
     v2 = cgroups.detect("rce/h-1", MOUNTINFO_V2, "0::/user.slice/x.scope\n", "cpuset cpu io memory pids")

@@ -1,7 +1,6 @@
 """rce.framing: the one framing of internal links, decoded sans I/O."""
 from __future__ import annotations
 
-import asyncio
 import json
 import struct
 
@@ -10,7 +9,7 @@ import pytest
 from rce import framing
 from rce.errors import ProtocolError
 from rce.framing import (CONTROL, DATA, MSG, SRV_ERR, SRV_REQ, SRV_RESP, DataFrame, FrameDecoder, decode_body,
-                         encode_control, encode_data, encode_data_header, read_frame)
+                         encode_control, encode_data, encode_data_header)
 
 
 def test_control_frame_layout():
@@ -54,7 +53,8 @@ def test_decoder_byte_by_byte():
         counts.append(len(got))
     assert len(out) == 4 and sum(counts) == 4 and max(counts) == 1
     assert out[0] == {"op": "hello", "text": "üüü"} and out[3] == {}
-    assert (out[1].op, out[1].dst, out[1].src, out[1].call_id, bytes(out[1].payload)) == (SRV_RESP, 3, 4, 99, b"\x00" * 300)
+    assert (out[1].op, out[1].dst, out[1].src, out[1].call_id) == (SRV_RESP, 3, 4, 99)
+    assert bytes(out[1].payload) == b"\x00" * 300
     assert bytes(out[2].payload) == b"" and out[2].dst == 5
     # nothing is left over
     assert d.feed(b"") == []
@@ -127,40 +127,29 @@ def test_default_max_frame():
     assert FrameDecoder().max_frame == framing.DEFAULT_MAX_FRAME == 64 * 1024 * 1024
 
 
-# read_frame on an in-memory StreamReader (no sockets)
-def reader_with(data: bytes, eof: bool = True) -> asyncio.StreamReader:
-    r = asyncio.StreamReader()
-    r.feed_data(data)
-    if eof:
-        r.feed_eof()
-    return r
-
-
-async def test_read_frame_sequence_and_eof():
-    r = reader_with(encode_control({"a": 1}) + encode_data(MSG, 9, 8, 7, b"zz"))
-    assert await read_frame(r) == {"a": 1}
-    df = await read_frame(r)
+def test_decoder_yields_the_frames_before_a_bad_one():
+    """A link dispatches every good frame that arrived before a bad one, then closes."""
+    d = FrameDecoder()
+    gen = d.frames(encode_control({"a": 1}) + encode_data(MSG, 9, 8, 7, b"zz") + struct.pack("!IB", 1, 9))
+    assert next(gen) == {"a": 1}
+    df = next(gen)
     assert (df.dst, df.src, df.call_id, bytes(df.payload)) == (9, 8, 7, b"zz")
-    with pytest.raises(asyncio.IncompleteReadError):
-        await read_frame(r)
-
-
-async def test_read_frame_truncated_body():
-    with pytest.raises(asyncio.IncompleteReadError):
-        await read_frame(reader_with(encode_control({"a": 1})[:-1]))
-
-
-async def test_read_frame_oversized():
     with pytest.raises(ProtocolError) as ei:
-        await read_frame(reader_with(struct.pack("!IB", 1001, CONTROL), eof=False), max_frame=999)
-    assert "1000 bytes" in ei.value.message
+        next(gen)
+    assert "unknown frame kind 9" in ei.value.message
 
 
-async def test_read_frame_zero_length():
-    with pytest.raises(ProtocolError):
-        await read_frame(reader_with(b"\x00\x00\x00\x00" + encode_control({}), eof=False))
+def test_decoder_large_frame_in_many_pieces():
+    payload = bytes(range(256)) * 4096                       # 1 MiB
+    stream = encode_data(MSG, 1, 2, 3, payload) + encode_control({"after": True})
+    d = FrameDecoder()
+    out = []
+    for i in range(0, len(stream), 65536):
+        out += d.feed(stream[i:i + 65536])
+    assert len(out) == 2 and bytes(out[0].payload) == payload and out[1] == {"after": True}
 
 
-async def test_read_frame_bad_kind():
-    with pytest.raises(ProtocolError):
-        await read_frame(reader_with(struct.pack("!IB", 1, 9)))
+def test_decoder_payload_is_a_view_of_the_chunk():
+    chunk = encode_data(MSG, 1, 2, 3, b"abc")
+    (df,) = FrameDecoder().feed(chunk)
+    assert isinstance(df.payload, memoryview) and df.payload.obj is chunk

@@ -1,0 +1,225 @@
+"""rce.link: the framed link, serve-and-reply and settle, on in-memory streams (no sockets)."""
+from __future__ import annotations
+
+import asyncio
+import logging
+import struct
+
+import pytest
+from memlink import lone, pipe
+
+from rce import framing
+from rce.errors import NotFound, RequestError, Unavailable
+from rce.framing import CONTROL, MSG, SRV_ERR, SRV_RESP, DataFrame, encode_control, encode_data
+from rce.link import FramedLink, LinkFull, Responder, settle_reply
+from rce.pending import PendingCalls
+
+STEP = 5.0   # s, the longest any single wait may take
+
+
+def link_on(reader, writer, **kw) -> tuple[FramedLink, list, list]:
+    frames, closes = [], []
+    link = FramedLink(reader, writer, name="test", on_frame=kw.pop("on_frame", frames.append),
+                      on_close=closes.append, **kw)
+    return link, frames, closes
+
+
+async def closed(link: FramedLink) -> None:
+    await asyncio.wait_for(link.closed.wait(), STEP)
+    await asyncio.wait_for(link.wait_closed(), STEP)
+
+
+# -- reading ------------------------------------------------------------------------------------------
+async def test_frames_in_order_then_eof_closes_once():
+    link, frames, closes = link_on(*lone(encode_control({"a": 1}) + encode_data(MSG, 2, 3, 0, b"xy"), eof=True))
+    link.start()
+    await closed(link)
+    assert frames[0] == {"a": 1} and bytes(frames[1].payload) == b"xy"
+    assert closes == [link] and link.close_reason == "closed by the peer"
+    assert link.writer.transport.closing
+    link.close()                                   # idempotent: on_close ran once
+    assert closes == [link]
+
+
+async def test_bad_frame_is_logged_and_closes_after_the_good_ones(caplog):
+    bad = struct.pack("!IB", 1, 9)
+    link, frames, closes = link_on(*lone(encode_control({"first": True}) + bad + encode_control({"never": 1})))
+    with caplog.at_level(logging.WARNING, logger="rce.link"):
+        link.start()
+        await closed(link)
+    assert frames == [{"first": True}]
+    assert closes == [link] and "unknown frame kind 9" in link.close_reason
+    assert any("bad frame" in r.getMessage() for r in caplog.records)
+
+
+async def test_oversized_frame_closes_from_its_header():
+    link, frames, closes = link_on(*lone(struct.pack("!IB", 1001, CONTROL)), max_frame=999)
+    link.start()
+    await closed(link)
+    assert frames == [] and "1000 bytes" in link.close_reason
+
+
+async def test_a_failing_handler_is_logged_with_its_traceback_and_closes(caplog):
+    def boom(frame):
+        raise ZeroDivisionError("handler bug")
+    link, _, closes = link_on(*lone(encode_control({})), on_frame=boom)
+    with caplog.at_level(logging.ERROR, logger="rce.link"):
+        link.start()
+        await closed(link)
+    assert closes == [link] and "ZeroDivisionError" in link.close_reason
+    assert any(r.exc_info and r.exc_info[0] is ZeroDivisionError for r in caplog.records)
+
+
+async def test_protocol_error_from_the_handler_is_a_bad_frame():
+    def refuse(frame):
+        raise framing.ProtocolError("reply to a request that does not exist")
+    link, _, _ = link_on(*lone(encode_control({})), on_frame=refuse)
+    link.start()
+    await closed(link)
+    assert link.close_reason == "bad frame: reply to a request that does not exist"
+
+
+async def test_close_from_the_handler_stops_delivery():
+    got = []
+
+    def first_only(frame):
+        got.append(frame)
+        link.close("enough")
+    link, _, closes = link_on(*lone(encode_control({"n": 1}) + encode_control({"n": 2})), on_frame=first_only)
+    link.start()
+    await closed(link)
+    assert got == [{"n": 1}] and closes == [link] and link.close_reason == "enough"
+
+
+async def test_close_is_idempotent_and_ends_the_read_loop():
+    link, _, closes = link_on(*lone())
+    link.start()
+    link.close("first")
+    link.close("second")
+    await closed(link)
+    assert closes == [link] and link.close_reason == "first"
+
+
+async def test_last_rx_moves_with_received_bytes():
+    reader, writer = lone()
+    link, frames, _ = link_on(reader, writer)
+    link.start()
+    before = link.last_rx
+    reader.feed_data(encode_control({"k": 1}))
+    reader.feed_eof()
+    await closed(link)
+    assert frames == [{"k": 1}] and link.last_rx >= before
+
+
+# -- writing ------------------------------------------------------------------------------------------
+async def test_offer_writes_header_and_payload_within_the_bound():
+    link, _, _ = link_on(*lone(), max_buffer=100)
+    assert link.offer(b"head", memoryview(b"payload"))
+    assert bytes(link.writer.transport.written) == b"headpayload"
+
+
+async def test_offer_drops_and_counts_past_the_bound():
+    link, _, _ = link_on(*lone(), max_buffer=100)
+    t = link.writer.transport
+    t.waiting = 90
+    assert not link.offer(b"h" * 5, b"p" * 10)        # 90 + 15 > 100
+    assert link.offer(b"h" * 5, b"p" * 5)             # 90 + 10 = 100
+    assert link.dropped == 1 and len(t.written) == 10
+
+
+async def test_an_idle_link_takes_a_frame_larger_than_its_bound():
+    link, _, _ = link_on(*lone(), max_buffer=10)
+    assert link.offer(b"h", b"p" * 50) and link.dropped == 0
+
+
+async def test_send_may_pass_the_offer_bound_up_to_the_hard_bound():
+    link, _, _ = link_on(*lone(), max_buffer=100)
+    t = link.writer.transport
+    t.waiting = 150
+    assert not link.offer(b"x")
+    link.send(b"c" * 50)                               # 200 = 2 x max_buffer: still goes
+    t.waiting = 195
+    with pytest.raises(LinkFull) as ei:
+        link.send(b"c" * 6)
+    assert isinstance(ei.value, Unavailable) and "saturated" in ei.value.message
+    assert (link.dropped, link.refused) == (1, 1) and bytes(t.written) == b"c" * 50
+
+
+async def test_writes_on_a_closed_link():
+    link, _, _ = link_on(*lone())
+    link.close()
+    assert not link.offer(b"x") and link.dropped == 1
+    with pytest.raises(Unavailable, match="closed"):
+        link.send(b"x")
+
+
+# -- serve and reply ----------------------------------------------------------------------------------
+async def serve(responder: Responder, handler) -> tuple[str, object]:
+    done = asyncio.get_running_loop().create_future()
+    responder.serve(handler, lambda r: done.set_result(("reply", r)), lambda e: done.set_result(("refuse", e)),
+                    "test request")
+    return await asyncio.wait_for(done, STEP)
+
+
+async def test_responder_replies_with_the_result():
+    async def handler():
+        return {"ok": 1}
+    assert await serve(Responder("t"), handler) == ("reply", {"ok": 1})
+
+
+async def test_responder_refuses_with_the_rce_error_as_raised():
+    async def handler():
+        raise NotFound("no such thing")
+    how, e = await serve(Responder("t"), handler)
+    assert how == "refuse" and type(e) is NotFound and e.message == "no such thing"
+
+
+async def test_responder_turns_a_crash_into_an_internal_error_and_logs_it(caplog):
+    async def handler():
+        raise KeyError("k")
+    with caplog.at_level(logging.ERROR, logger="rce.link"):
+        how, e = await serve(Responder("t"), handler)
+    assert how == "refuse" and e.message == "internal error: KeyError: 'k'"
+    assert any(r.exc_info and r.exc_info[0] is KeyError for r in caplog.records)
+
+
+async def test_responder_bounds_the_requests_in_flight():
+    gate = asyncio.Event()
+    r = Responder("t", max_in_flight=1)
+
+    async def slow():
+        await gate.wait()
+        return "late"
+    first = asyncio.get_running_loop().create_future()
+    r.serve(slow, first.set_result, first.set_exception, "first")
+    how, e = await serve(r, slow)
+    assert how == "refuse" and isinstance(e, Unavailable) and r.refused == 1
+    gate.set()
+    assert await asyncio.wait_for(first, STEP) == "late"
+    await r.tasks.cancel_all()
+    assert r.in_flight == 0
+
+
+async def test_settle_reply():
+    calls = PendingCalls("peer")
+    ok, bad = calls.open(), calls.open()
+    assert settle_reply(calls, DataFrame(SRV_RESP, 0, 0, ok, memoryview(b"resp")))
+    assert settle_reply(calls, DataFrame(SRV_ERR, 0, 0, bad, memoryview(b"it broke")))
+    assert not settle_reply(calls, DataFrame(SRV_RESP, 0, 0, 999, memoryview(b"late")))
+    assert await calls.wait(ok, STEP) == b"resp"
+    with pytest.raises(RequestError, match="it broke"):
+        await calls.wait(bad, STEP)
+
+
+async def test_a_pair_of_links_talks_both_ways():
+    (ra, wa), (rb, wb) = pipe()
+    got_a, got_b = asyncio.Queue(), asyncio.Queue()
+    a = FramedLink(ra, wa, name="a", on_frame=got_a.put_nowait).start()
+    b = FramedLink(rb, wb, name="b", on_frame=got_b.put_nowait).start()
+    a.send(encode_control({"to": "b"}))
+    b.offer(framing.encode_data_header(MSG, 1, 2, 0, 3), b"abc")
+    assert await asyncio.wait_for(got_b.get(), STEP) == {"to": "b"}
+    assert bytes((await asyncio.wait_for(got_a.get(), STEP)).payload) == b"abc"
+    a.close()
+    await closed(b)                                   # EOF reaches the other end
+    assert b.close_reason == "closed by the peer"

@@ -1,0 +1,101 @@
+"""rce.node <-> rce.bus.server: nodes on a bus over in-memory streams (the Unix socket a node
+dials is replaced by a pair of in-memory streams into the server; no sockets)."""
+from __future__ import annotations
+
+import asyncio
+
+import pytest
+from memlink import pipe
+
+import rce.node
+from rce.bus.core import Bus
+from rce.bus.server import BusServer
+from rce.errors import NotFound, RequestError, Timeout
+
+STEP = 5.0   # s, the longest any single wait may take
+ECHO = "Test/StringEcho"
+
+
+@pytest.fixture
+async def bus(monkeypatch):
+    """A bus and its server; ``rce.node.init_node(bus="mem")`` connects to it."""
+    b = Bus("mem-bus")
+    server = BusServer(b)
+
+    async def open_unix_connection(path, limit=None):
+        (ra, wa), (rb, wb) = pipe()
+        await server._accept(rb, wb)           # what the server's listener does with a new connection
+        return ra, wa
+    monkeypatch.setattr(asyncio, "open_unix_connection", open_unix_connection)
+    nodes = []
+
+    async def node(name: str) -> rce.node.Node:
+        n = await rce.node.init_node(name, bus="mem", argv=[])
+        nodes.append(n)
+        return n
+    yield b, server, node
+    for n in nodes:
+        await n.close()
+    await server.close()
+
+
+async def test_topic_between_two_nodes(bus):
+    b, server, node = bus
+    talker, listener = await node("talker"), await node("listener")
+    got = asyncio.Queue()
+    await listener.subscriber("chatter", "std_msgs/String", lambda m: got.put_nowait(m.data))
+    pub = await talker.publisher("chatter", "std_msgs/String")
+    await pub.publish({"data": "one"})
+    assert pub.publish_nowait({"data": "two"})
+    assert [await asyncio.wait_for(got.get(), STEP) for _ in range(2)] == ["one", "two"]
+    assert sorted(s.node for s in server.sessions) == ["/listener", "/talker"]
+
+
+async def test_publish_nowait_drops_and_counts_when_the_bus_does_not_read(bus):
+    _, _, node = bus
+    talker = await node("talker")
+    pub = await talker.publisher("chatter", "std_msgs/String")
+    talker._peer.link.writer.transport.waiting = talker._peer.link.max_buffer
+    assert not pub.publish_nowait({"data": "lost"})
+    assert (pub.published, pub.dropped) == (0, 1)
+
+
+async def test_service_answers_and_refusals(bus):
+    _, _, node = bus
+    provider, caller = await node("provider"), await node("caller")
+
+    def handler(req):
+        if req.data == "missing":
+            raise NotFound("nothing called missing")
+        if req.data == "crash":
+            raise ValueError("handler bug")
+        return {"data": req.data.upper()}
+    await provider.service("echo", ECHO, handler)
+    echo = await caller.service_proxy("/echo", ECHO)
+    assert (await echo({"data": "hi"})).data == "HI"
+    with pytest.raises(RequestError, match="^nothing called missing$"):
+        await echo({"data": "missing"})
+    with pytest.raises(RequestError, match="^internal error: ValueError: handler bug$"):
+        await echo({"data": "crash"})
+    with pytest.raises(NotFound):
+        await (await caller.service_proxy("/absent", ECHO))()
+
+
+async def test_call_timeout_and_a_provider_leaving_mid_call(bus):
+    _, _, node = bus
+    provider, caller = await node("provider"), await node("caller")
+    entered = asyncio.Queue()
+
+    async def stuck(req):
+        entered.put_nowait(req.data)
+        await asyncio.Event().wait()
+    await provider.service("stuck", ECHO, stuck)
+    proxy = await caller.service_proxy("/stuck", ECHO)
+    with pytest.raises(Timeout, match="within 0.05 s"):
+        await proxy({"data": "x"}, timeout=0.05)
+    call = asyncio.ensure_future(proxy({"data": "y"}, timeout=STEP))
+    while await asyncio.wait_for(entered.get(), STEP) != "y":     # until the provider serves the second call
+        pass
+    await provider.close()
+    with pytest.raises(RequestError, match="node '/provider' left while serving a call"):
+        await asyncio.wait_for(call, STEP)
