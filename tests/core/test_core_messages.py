@@ -113,8 +113,8 @@ def test_pose_with_covariance_round_trip(reg, ts):
     # the same message built with rosbags directly serializes to the same bytes
     T = ts.types
     ref = T["geometry_msgs/msg/PoseWithCovarianceStamped"](
-        header=T["std_msgs/msg/Header"](seq=7, stamp=T["builtin_interfaces/msg/Time"](sec=1700000000, nanosec=123456789),
-                                        frame_id="map"),
+        header=T["std_msgs/msg/Header"](
+            seq=7, stamp=T["builtin_interfaces/msg/Time"](sec=1700000000, nanosec=123456789), frame_id="map"),
         pose=T["geometry_msgs/msg/PoseWithCovariance"](
             pose=T["geometry_msgs/msg/Pose"](position=T["geometry_msgs/msg/Point"](x=1.5, y=-2.25, z=0.0),
                                              orientation=T["geometry_msgs/msg/Quaternion"](
@@ -146,7 +146,8 @@ def test_laserscan_round_trip_with_nan_and_float32(reg, ts):
     assert math.isclose(back["scan_time"], 0.1, rel_tol=1e-6)    # float32 precision
     T = ts.types
     ref = T["sensor_msgs/msg/LaserScan"](
-        header=T["std_msgs/msg/Header"](seq=1, stamp=T["builtin_interfaces/msg/Time"](sec=5, nanosec=0), frame_id="laser"),
+        header=T["std_msgs/msg/Header"](
+            seq=1, stamp=T["builtin_interfaces/msg/Time"](sec=5, nanosec=0), frame_id="laser"),
         angle_min=-1.5, angle_max=1.5, angle_increment=0.5, time_increment=0.0, scan_time=0.1, range_min=0.1,
         range_max=10.0, ranges=np.array([1.0, 2.5, np.nan, 0.25, 3.0], dtype=np.float32),
         intensities=np.array([100.0], dtype=np.float32))
@@ -169,7 +170,8 @@ def test_image_data_base64_out_list_or_base64_in(reg, ts):
     assert back["data"] == b64 and back == image_json(b64)
     T = ts.types
     ref = T["sensor_msgs/msg/Image"](
-        header=T["std_msgs/msg/Header"](seq=0, stamp=T["builtin_interfaces/msg/Time"](sec=1, nanosec=2), frame_id="cam"),
+        header=T["std_msgs/msg/Header"](
+            seq=0, stamp=T["builtin_interfaces/msg/Time"](sec=1, nanosec=2), frame_id="cam"),
         height=2, width=3, encoding="mono8", is_bigendian=0, step=3, data=np.array(pixels, dtype=np.uint8))
     assert from_list == bytes(ts.serialize_ros1(ref, t))
 
@@ -238,7 +240,8 @@ PWCS = "geometry_msgs/PoseWithCovarianceStamped"
     ("sensor_msgs/LaserScan", {"ranges": [1.0, "x"]}, ["field 'ranges[1]'", "number"]),
     ("sensor_msgs/LaserScan", {"ranges": {"a": 1}}, ["field 'ranges'", "list"]),
     ("std_msgs/Int32MultiArray", {"data": [1, 2**31]}, ["field 'data[1]'", "out of range for int32"]),
-    ("std_msgs/Int32MultiArray", {"layout": {"dim": [{}, {"size": -1}]}}, ["field 'layout.dim[1].size'", "out of range"]),
+    ("std_msgs/Int32MultiArray", {"layout": {"dim": [{}, {"size": -1}]}},
+     ["field 'layout.dim[1].size'", "out of range"]),
     ("std_msgs/Int32MultiArray", {"layout": {"dim": [{"lable": "x"}]}}, ["unknown field 'layout.dim[0].lable'"]),
     ("std_msgs/Int32MultiArray", {"layout": {"dim": {"label": "x"}}}, ["field 'layout.dim'", "list"]),
     ("std_msgs/String", {"data": None}, ["field 'data'", "string"]),
