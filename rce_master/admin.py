@@ -16,6 +16,13 @@ errors with a one-line reason (:mod:`rce_master.server`).
 | ``GET /api/containers/{user}/{ctag}/stats`` | the container's counters from its host |
 | ``POST /api/containers/{user}/{ctag}/resize`` ``{cpu?, memory?, size?, bandwidth?}`` | new limits |
 | ``GET /api/containers/{user}/{ctag}/logs/{ntag}`` | a node's kept stdout/stderr |
+| ``GET /api/leader`` | ``{leading, leader, self}``: whether this master leads, the leader's and its own addresses |
+
+A master that stands by (several masters on etcd) answers ``GET /api/state``, the lists and
+``/api/leader`` from the state it follows; everything else needs the leader (a change, or a call
+on a container's host, whose link only the leader holds) and is refused with 503 and the
+leader's URL in the ``X-RCE-Leader`` header (:mod:`rce_master.office`). A change is answered
+once the store has it.
 """
 from __future__ import annotations
 
@@ -25,6 +32,7 @@ from aiohttp import web
 
 from rce.errors import AuthError, RequestError
 from rce_master.control import Control
+from rce_master.office import Alone, Office, require_leader
 from rce_master.requests import Request, ResizeContainer
 from rce_master.state import MasterState
 from rce_master.users import UsersFile
@@ -38,14 +46,17 @@ HOST_OPS = {"bus": ("describe", "GET"), "publish": ("bus_publish", "POST"), "cal
 
 class AdminApi:
     """The admin routes onto ``state`` and the task sets (``control``); ``users``: the users file
-    kept up to date on user changes (None: none)."""
+    kept up to date on user changes (None: none); ``office``: whether this master leads."""
 
-    def __init__(self, state: MasterState, control: Control, token: str, users: UsersFile | None = None):
+    def __init__(self, state: MasterState, control: Control, token: str, users: UsersFile | None = None,
+                 office: Office | None = None):
         self.state, self.control, self.token, self.users = state, control, token, users
+        self.office = office if office is not None else Alone()
 
     def add_routes(self, app: web.Application) -> None:
         """Add the admin routes to ``app``."""
         app.router.add_get("/api/state", self._state)
+        app.router.add_get("/api/leader", self._leader)
         for name in LISTS:
             app.router.add_get(f"/api/{name}", self._one_list)
         app.router.add_post("/api/users", self._add_user)
@@ -62,7 +73,9 @@ class AdminApi:
             raise AuthError("admin API: missing or wrong bearer token (see --admin-token-file)")
 
     async def _body(self, request: web.Request) -> dict:
+        """Check the token and that this master leads; the JSON body of a POST (else ``{}``)."""
         self._check(request)
+        require_leader(self.office, f"{request.method} {request.path}")
         if request.method != "POST":
             return {}
         try:
@@ -77,6 +90,11 @@ class AdminApi:
         self._check(request)
         return web.json_response(self.state.snapshot())
 
+    async def _leader(self, request: web.Request) -> web.Response:
+        self._check(request)
+        return web.json_response({"leading": self.office.leading, "leader": self.office.leader,
+                                  "self": self.office.me or None})
+
     async def _one_list(self, request: web.Request) -> web.Response:
         self._check(request)
         return web.json_response(self.state.snapshot()[request.path.rsplit("/", 1)[1]])
@@ -84,13 +102,15 @@ class AdminApi:
     async def _add_user(self, request: web.Request) -> web.Response:
         d = await self._body(request)
         u = self.state.add_user(str(d.get("name", "")), str(d.get("password", "")))
+        await self.state.store.flush()
         if self.users:
             self.users.save(self.state)
         return web.json_response({"name": u.name}, status=201)
 
     async def _del_user(self, request: web.Request) -> web.Response:
-        self._check(request)
+        await self._body(request)
         self.state.del_user(request.match_info["name"])
+        await self.state.store.flush()
         if self.users:
             self.users.save(self.state)
         return web.json_response({})
@@ -109,4 +129,5 @@ class AdminApi:
         args = await self._body(request)
         req = Request(request.match_info["user"], "", self.state, self.control)
         answer = await ResizeContainer().run(req, {**args, "containerTag": request.match_info["ctag"]})
+        await self.state.store.flush()
         return web.json_response(answer)

@@ -1,16 +1,21 @@
 """``rce-master``: the master task set (login on 9000, control plane on 8080), its state in a
-SQLite file (``--state``, default :func:`default_state_path`) or in memory (``--state :memory:``)."""
+SQLite file (``--state``, default :func:`default_state_path`), in memory (``--state :memory:``),
+or in etcd shared with other masters (``--store etcd://HOST:PORT[,HOST:PORT...][/PREFIX/]``: one
+leads, the others stand by; :mod:`rce_master.leadership`)."""
 from __future__ import annotations
 
 import argparse
 import asyncio
+import functools
 import os
 import signal
+import socket
 from pathlib import Path
 
+from rce.errors import ConfigError
 from rce.process import run, write_ready_file
 from rce.log import get_logger
-from rce_master import token
+from rce_master import leadership, token
 from rce_master.reconcile import RECONCILE_GRACE
 from rce_master.server import Master
 from rce_master.sqlite_store import SqliteStore
@@ -46,6 +51,12 @@ def parser() -> argparse.ArgumentParser:
     p.add_argument("--state", default=None, metavar="PATH",
                    help="SQLite file of the master's state, restored on start (default $XDG_STATE_HOME/rce/"
                         f"master.sqlite3, else ~/.local/state/rce/master.sqlite3); {MEMORY} keeps it in memory")
+    p.add_argument("--store", default=None, metavar="etcd://HOST:PORT[,HOST:PORT...][/PREFIX/]",
+                   help="keep the state in etcd, shared with other masters: one leads, the others stand by "
+                        "(key prefix default /rce/; instead of --state)")
+    p.add_argument("--advertise", default=None, metavar="HOST",
+                   help="host name other masters and task sets reach this one at (default: --bind, or this "
+                        "machine's name when --bind is a wildcard); with --store")
     p.add_argument("--reconcile-grace", type=float, default=RECONCILE_GRACE, metavar="S",
                    help=f"s task sets found in the state may take to re-register before their containers are "
                         f"lost and their robots gone (default {RECONCILE_GRACE:g})")
@@ -60,27 +71,52 @@ def parser() -> argparse.ArgumentParser:
 
 async def amain(args: argparse.Namespace) -> None:
     admin_token = token.load_or_create(args.admin_token_file)
+    make = functools.partial(Master, users_file=args.users, admin_token=admin_token, dev=args.dev,
+                             reconcile_grace=args.reconcile_grace)
+    stop = stop_event()
+    if args.store:
+        if args.state:
+            raise ConfigError("give --state (one master, SQLite or memory) or --store (etcd), not both")
+        await leadership.run(args.store, lambda store, office: make(store=store, office=office),
+                             functools.partial(start, args), functools.partial(ready, args), stop)
+        return
     with open_store(args.state) as store:
-        await serve(args, Master(users_file=args.users, admin_token=admin_token, dev=args.dev, store=store,
-                                 reconcile_grace=args.reconcile_grace))
+        master = make(store=store)
+        await start(args, master)
+        ready(args, master)
+        await stop.wait()
+        log.info("master stopping")
+        await master.stop()
 
 
-async def serve(args: argparse.Namespace, master: Master) -> None:
-    """Run ``master`` until SIGINT or SIGTERM."""
+def stop_event() -> asyncio.Event:
+    """An event set on SIGINT or SIGTERM."""
+    stop = asyncio.Event()
+    loop = asyncio.get_running_loop()
+    for sig in (signal.SIGINT, signal.SIGTERM):
+        loop.add_signal_handler(sig, stop.set)
+    return stop
+
+
+async def start(args: argparse.Namespace, master: Master) -> dict:
+    """Start ``master`` listening; returns its addresses as other masters and task sets reach them
+    (``{"control": "HOST:PORT", "http": "http://HOST:PORT/", "name", "pid"}``)."""
     static = {}
     for s in args.static:
         prefix, _, d = s.partition("=")
         static[prefix] = Path(d)
     await master.start(args.bind, args.port, args.control_port, static)
+    host = args.advertise or (socket.getfqdn() if args.bind in ("0.0.0.0", "::", "") else args.bind)
+    host = f"[{host}]" if ":" in host else host
+    return {"control": f"{host}:{master.control_port}", "http": f"http://{host}:{master.http_port}/",
+            "name": socket.gethostname(), "pid": os.getpid()}
+
+
+def ready(args: argparse.Namespace, master: Master) -> None:
+    """Write the ready file: ``{http_port, control_port, pid, leading}`` (several masters: once this
+    one leads or knows it stands by)."""
     write_ready_file(args.ready_file, {"http_port": master.http_port, "control_port": master.control_port,
-                                   "pid": os.getpid()})
-    stop = asyncio.Event()
-    loop = asyncio.get_running_loop()
-    for sig in (signal.SIGINT, signal.SIGTERM):
-        loop.add_signal_handler(sig, stop.set)
-    await stop.wait()
-    log.info("master stopping")
-    await master.stop()
+                                       "pid": os.getpid(), "leading": master.office.leading})
 
 
 def main(argv: list[str] | None = None) -> None:

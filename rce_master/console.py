@@ -2,13 +2,17 @@
 
 ::
 
-    rce-console [--master URL] robots|containers|nodes|interfaces|connections|tasksets|parameters|users
+    rce-console [--master URL[,URL...]] robots|containers|nodes|interfaces|connections|tasksets|parameters|users
     rce-console user add NAME [--password-stdin]      # prompts twice when not reading stdin
     rce-console user del NAME
     rce-console logs USER CTAG NTAG                   # a node's kept stdout/stderr
     rce-console container resize USER CTAG [--cpu CORES] [--memory MIB] [--size N]
     rce-console top [--interval S] [--once]           # per-container CPU, memory, processes, traffic
     rce-console users add NAME --file users.json      # offline: add a hashed record to a --users file
+    rce-console leader                                # which master leads (several masters on etcd)
+
+With several masters (``--master`` repeated, or URLs separated by commas) a request goes to one
+that answers, and a change to the leader (:mod:`rce.admin_client`).
 
 The admin token comes from ``--admin-token``, ``RCE_ADMIN_TOKEN``, ``--admin-token-file`` or the
 token file the master created (``~/.config/rce/admin-token``); see :mod:`rce.admin_client`.
@@ -32,6 +36,7 @@ from rce.errors import RCEError, RequestError
 from rce_master.state import MasterState
 from rce_master.users import UsersFile
 
+DEFAULT_MASTER = "http://127.0.0.1:9000/"
 COLUMNS = {
     "users": ["name"],
     "robots": ["user", "robot", "endpoint", "since"],
@@ -128,7 +133,9 @@ def _read_password(from_stdin: bool) -> str:
 
 def parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(prog="rce-console", description="Inspect and manage an rce master.")
-    p.add_argument("--master", default="http://127.0.0.1:9000/", help="master URL (default http://127.0.0.1:9000/)")
+    p.add_argument("--master", action="append", default=None, metavar="URL[,URL...]",
+                   help=f"master URL; repeat it (or separate URLs by commas) for several masters "
+                        f"(default {DEFAULT_MASTER})")
     p.add_argument("--admin-token", default=None, help="admin token (default: RCE_ADMIN_TOKEN or the token file)")
     p.add_argument("--admin-token-file", type=Path, default=None,
                    help="the master's admin token file (default ~/.config/rce/admin-token)")
@@ -136,6 +143,7 @@ def parser() -> argparse.ArgumentParser:
     sub = p.add_subparsers(dest="cmd", required=True)
     for name in COLUMNS:
         sub.add_parser(name, help=f"list {name}")
+    sub.add_parser("leader", help="which master leads, and the one that answered")
     u = sub.add_parser("user", help="add or delete a user")
     u.add_argument("action", choices=["add", "del"])
     u.add_argument("name")
@@ -162,8 +170,19 @@ def run(args: argparse.Namespace, out: Console) -> None:
     if args.cmd == "user" and args.file:
         _user_file(args)
         return
-    client = AdminClient.from_options(args.master, args.admin_token, args.admin_token_file)
-    if args.cmd in COLUMNS:
+    client = AdminClient.from_options(args.master or DEFAULT_MASTER, args.admin_token, args.admin_token_file)
+    if args.cmd == "leader":
+        answer = client.request("GET", "/api/leader")
+        if args.json:
+            print(json.dumps(answer, indent=1))
+        else:
+            leader = answer.get("leader") or {}
+            if answer.get("leading") and not leader:
+                out.print(f"{client.base} leads: it is the only master")
+                return
+            out.print(f"leader: {leader.get('http', '(none elected now)')} (control {leader.get('control', '-')}); "
+                      f"asked {client.base}, which {'leads' if answer.get('leading') else 'stands by'}")
+    elif args.cmd in COLUMNS:
         rows = client.request("GET", f"/api/{args.cmd}")
         if args.json:
             print(json.dumps(rows, indent=1))

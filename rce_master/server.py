@@ -12,6 +12,12 @@ On a store a previous master left, the state comes back with every task set abse
 that re-registers is reconciled (:mod:`rce_master.reconcile`), and those still absent after the
 reconciliation grace are dropped as if their link had closed (docs/INTERNALS.md, "Master state
 and restart").
+
+Several masters on etcd (docs/INTERNALS.md, "Several masters"): a master that stands by (its
+``office`` does not lead, :mod:`rce_master.office`) serves login and admin reads from the state it
+follows, and refuses ``register`` and admin writes with :class:`~rce.errors.NotLeader` naming the
+leader; once elected, :meth:`Master.take_office` makes it the master that restarted on the state.
+Every answer that follows a change waits until the store has it (:meth:`Store.flush`).
 """
 from __future__ import annotations
 
@@ -22,13 +28,16 @@ from pathlib import Path
 from aiohttp import web
 from prometheus_client import CollectorRegistry, Counter, Gauge, generate_latest, CONTENT_TYPE_LATEST
 
-from rce.errors import AuthError, NotFound, RCEError, RequestError, Timeout, Unavailable
+from rce.admin_client import LEADER_HEADER
+from rce.errors import AuthError, NotFound, NotLeader, RCEError, RequestError, Timeout, Unavailable
 from rce.log import get_logger
 from rce.rpc import RpcPeer, nodelay
 from rce.tasks import Tasks
 from rce_master import reconcile
 from rce_master.admin import AdminApi
 from rce_master.control import Control
+from rce_master.model import TaskSet
+from rce_master.office import RETRY_AFTER_NO_LEADER, Alone, Office, require_leader
 from rce_master.requests import Request, handle
 from rce_master.state import MasterState, TaskSetAbsent
 from rce_master.store import Store
@@ -47,7 +56,7 @@ RETRY_AFTER = 5                                    # s, Retry-After of a 503 for
 class Metrics:
     """Prometheus metrics of the master."""
 
-    def __init__(self, state: MasterState):
+    def __init__(self, state: MasterState, office: Office):
         self.registry = CollectorRegistry()
         r = self.registry
         self.logins = Counter("rce_master_logins", "Robot logins over HTTP", ["result"], registry=r)
@@ -63,34 +72,58 @@ class Metrics:
             Gauge(name, help_, registry=r).set_function(table.__len__)
         Gauge("rce_master_tasksets_absent", "Task sets from the stored state that have not re-registered",
               registry=r).set_function(lambda: sum(t.lost for t in state.tasksets.values()))
+        Gauge("rce_master_leader", "1 while this master leads (always, alone; one of several on etcd)",
+              registry=r).set_function(lambda: int(office.leading))
+        Gauge("rce_master_store_pending", "Changes of the state not yet written to the store (etcd)",
+              registry=r).set_function(lambda: getattr(state.store, "pending", 0))
 
 
 class Master:
     """The running master. ``users_file``: JSON file of hashed user records (read and kept up to
     date); ``store``: where the state is kept (default: in memory); ``reconcile_grace`` (s): how
-    long task sets found in the store may take to re-register."""
+    long task sets found in the store may take to re-register; ``office``: whether it leads
+    (default: alone, it always does; on etcd its election)."""
 
     def __init__(self, *, users_file: Path | None = None, admin_token: str, dev: bool = False,
-                 store: Store | None = None, reconcile_grace: float = reconcile.RECONCILE_GRACE):
+                 store: Store | None = None, reconcile_grace: float = reconcile.RECONCILE_GRACE,
+                 office: Office | None = None):
+        self.office = office if office is not None else Alone()
         self.state = MasterState(store)
         self.reconcile_grace = reconcile_grace
-        self.restored = self.state.mark_tasksets_absent()        # the task sets a previous master knew
+        self.dev = dev
+        self.restored: list[TaskSet] = []          # the task sets a previous master knew
         self.control = Control(self.state)
         self.users = UsersFile(users_file) if users_file else None
-        self.admin = AdminApi(self.state, self.control, admin_token, self.users)
+        self.admin = AdminApi(self.state, self.control, admin_token, self.users, self.office)
         self.robot_locks: dict[tuple[str, str], asyncio.Lock] = defaultdict(asyncio.Lock)
-        self.metrics = Metrics(self.state)
+        self.metrics = Metrics(self.state, self.office)
         self.tasks = Tasks("rce-master")
         self._control: asyncio.AbstractServer | None = None
         self._runner: web.AppRunner | None = None
         self.http_port = self.control_port = 0
         self._stopping = False
+        if self.office.leading:
+            self._office_duties()
+
+    def _office_duties(self) -> None:
+        """What a master does as it starts to lead on its store: the task sets there are absent
+        until they re-register; the users file is loaded; ``--dev`` provisions testUser."""
+        self.restored = self.state.mark_tasksets_absent()
         if self.users:
             self.users.load(self.state)
-        if dev and "testUser" not in self.state.users:
+        if self.dev and "testUser" not in self.state.users:
             self.state.add_user("testUser", "testUser")
             log.warning("DEV MODE: user 'testUser' with password 'testUser' is provisioned; never use --dev on a "
                         "reachable network")
+
+    def take_office(self) -> None:
+        """This master has just been elected (several masters on etcd) and its store holds the
+        state as the last leader left it: take it over as a master restarted on it would (its
+        task sets absent until they re-register, dropped after the reconciliation grace)."""
+        self._office_duties()
+        log.info("master leads", restored_tasksets=len(self.restored), containers=len(self.state.containers))
+        if self.restored:
+            self.tasks.spawn(self._end_grace(), name="reconcile-grace")
 
     # -- lifecycle -----------------------------------------------------------------------------
     async def start(self, bind: str, http_port: int, control_port: int,
@@ -103,8 +136,9 @@ class Master:
         await site.start()
         self.http_port = site._server.sockets[0].getsockname()[1]
         log.info("master up", http_port=self.http_port, control_port=self.control_port, bind=bind,
-                 restored_tasksets=len(self.restored), containers=len(self.state.containers))
-        if self.restored:
+                 leading=self.office.leading, restored_tasksets=len(self.restored),
+                 containers=len(self.state.containers))
+        if self.office.leading and self.restored:
             self.tasks.spawn(self._end_grace(), name="reconcile-grace")
 
     async def _end_grace(self) -> None:
@@ -140,6 +174,7 @@ class Master:
         peer.start()
 
     async def _register(self, peer: RpcPeer, a: dict) -> dict:
+        require_leader(self.office, "register")
         if "tid" in peer.info:
             raise RequestError("this task set is already registered")
         out = reconcile.register(self.state, a.get("kind", ""), a.get("name") or peer.peername,
@@ -160,6 +195,7 @@ class Master:
                  lost=len(out.lost), dropped=len(out.drop_containers) + len(out.drop_interfaces),
                  robots_gone=len(out.gone))
         self.tasks.spawn(self.control.reconciled(out), name=f"taskset-{ts.tid}-reconciled")
+        await self.state.store.flush()
         return out.answer()
 
     def _peer_closed(self, peer: RpcPeer) -> None:
@@ -187,6 +223,7 @@ class Master:
             async with self.robot_locks[(user, robot)]:
                 await self.control.robot_gone(user, robot)
         self.state.robot_connect(user, robot, tid)
+        await self.state.store.flush()
         log.info("robot connected", user=user, robot=robot)
         return {}
 
@@ -197,6 +234,7 @@ class Master:
         async with self.robot_locks[(a["user"], a["robot"])]:
             await self.control.robot_gone(a["user"], a["robot"])
         self.robot_locks.pop((a["user"], a["robot"]), None)
+        await self.state.store.flush()
         log.info("robot disconnected", user=a["user"], robot=a["robot"])
         return {}
 
@@ -206,6 +244,7 @@ class Master:
         async with self.robot_locks[(user, robot)]:
             try:
                 await handle(Request(user, robot, self.state, self.control), t, a.get("data") or {})
+                await self.state.store.flush()
             except RCEError:
                 self.metrics.requests.labels(t, "error").inc()
                 raise
@@ -239,11 +278,16 @@ class Master:
             resp = web.Response(status=status, text=e.message + "\n")
             if isinstance(e, TaskSetAbsent):
                 resp.headers["Retry-After"] = str(RETRY_AFTER)
+            elif isinstance(e, NotLeader):
+                resp.headers[LEADER_HEADER] = (e.leader or {}).get("http") or ""
+                if not e.leader:
+                    resp.headers["Retry-After"] = str(RETRY_AFTER_NO_LEADER)
         if request.path.startswith("/api/") or request.path == "/":
             # the operator's web page may be served from another origin (rce-fleet); login and the
             # read-only parts are safe to share, the admin API itself still needs its token
             resp.headers["Access-Control-Allow-Origin"] = "*"
             resp.headers["Access-Control-Allow-Headers"] = "Authorization, Content-Type"
+            resp.headers["Access-Control-Expose-Headers"] = LEADER_HEADER
         return resp
 
     async def _login(self, request: web.Request) -> web.Response:

@@ -87,6 +87,14 @@ class MasterState(StateIndex):
             self._batch, self._latest = None, {}
             self._removed.clear()
 
+    def followed(self, key: Key, old: dict | None, new: dict | None) -> None:
+        """A change another master made to the store (a standby follows the leader's writes in
+        etcd, :mod:`rce_master.etcd_store`): make the view follow it. Never inside a batch."""
+        if self._batch is not None:
+            raise RuntimeError("a followed change arrived inside an operation")
+        self.apply(key, old, new)
+        self._removed.clear()
+
     def _write(self, key: Key, new: dict | None) -> None:
         if self._batch is None:
             raise RuntimeError("MasterState changes only inside an operation")

@@ -11,8 +11,10 @@
   built on a store loads it).
 - Changes arrive in **batches** (:meth:`Store.commit`): one state operation (a request's step,
   or its undo) is one batch, applied all or nothing. This module has the in-memory store; the
-  file store is :class:`rce_master.sqlite_store.SqliteStore`, and a replicated one (etcd)
-  implements the same three methods.
+  file store is :class:`rce_master.sqlite_store.SqliteStore`, the replicated one
+  :class:`rce_master.etcd_store.EtcdStore`.
+- A commit may return before its batch is durable (etcd: written behind, in order):
+  :meth:`Store.flush` waits until it is. The master awaits it before it answers a request.
 """
 from __future__ import annotations
 
@@ -42,6 +44,10 @@ class Store(ABC):
         """Apply a batch of puts (record) and deletes (None) in order, all or nothing.
         Raises :class:`RequestError` for a record that is not JSON."""
 
+    async def flush(self) -> None:  # noqa: B027 (a store whose commits are durable at once has nothing to wait for)
+        """Return once every batch committed so far is durable. Raises :class:`~rce.errors.Unavailable`
+        when one never will be (the store failed). Nothing to wait for in memory or SQLite."""
+
     def close(self) -> None:  # noqa: B027 (a store that holds nothing needs no close)
         """Release what the store holds (a file, its lock); nothing for the memory store."""
 
@@ -58,6 +64,12 @@ def encode(key: Key, record: dict) -> str:
         return json.dumps(record, allow_nan=False, separators=(",", ":"))
     except (TypeError, ValueError) as e:
         raise RequestError(f"record {'/'.join(key)} is not JSON: {e}") from None
+
+
+def stage(changes: Iterable[Change]) -> list[tuple[Key, str | None]]:
+    """A batch with keys as tuples and records as JSON text (None: delete): every record encodes,
+    or :func:`encode` raises and nothing of the batch lands."""
+    return [(tuple(k), None if r is None else encode(k, r)) for k, r in changes]
 
 
 class MemoryStore(Store):
@@ -82,7 +94,10 @@ class MemoryStore(Store):
                 yield key, json.loads(self._data[key])
 
     def commit(self, changes: Iterable[Change]) -> None:
-        staged = [(tuple(k), None if r is None else encode(k, r)) for k, r in changes]   # all encode, or none lands
+        self._apply_texts(stage(changes))
+
+    def _apply_texts(self, staged: list[tuple[Key, str | None]]) -> None:
+        """Put (JSON text) and delete (None) records that :func:`stage` encoded."""
         for key, text in staged:
             if text is None:
                 self._data.pop(key, None)

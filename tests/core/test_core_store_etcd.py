@@ -115,18 +115,31 @@ async def test_a_batch_is_one_transaction_and_the_state_reloads_whole(clients, p
     assert_same(s, MasterState(again))
 
 
-async def test_a_batch_too_large_or_not_json_changes_nothing(clients, prefix):
+async def test_a_record_too_large_or_not_json_changes_nothing(clients, prefix):
     _, store = await leader(clients(), prefix, "a")
-    store.max_txn_ops = 3
-    before = dict(store.items())
-    with pytest.raises(RequestError, match="touches 4 records .* raise etcd's --max-txn-ops"):
-        store.commit([(("user", f"u{i}"), {"name": f"u{i}"}) for i in range(4)])
+    store.commit([(("user", U), {"name": U})])
+    with pytest.raises(RequestError, match="record param/alice/c/p is too large for etcd"):
+        store.commit([(("user", U), None), (("param", U, "c", "p"), {"v": "x" * 2_000_000})])
     with pytest.raises(RequestError, match="record param/alice/c/p is not JSON"):
-        store.commit([(("user", U), {"name": U}), (("param", U, "c", "p"), {"v": float("nan")})])
-    assert dict(store.items()) == before and store.pending == 0 and store.refused == 1
-    store.commit([(("user", f"u{i}"), {"name": f"u{i}"}) for i in range(3)])
+        store.commit([(("user", U), None), (("param", U, "c", "p"), {"v": float("nan")})])
+    assert dict(store.items()) == {("user", U): {"name": U}} and store.pending <= 1 and store.refused == 1
     await store.flush()
-    assert [k for k, _ in store.items()] == [("user", "u0"), ("user", "u1"), ("user", "u2")]
+    again = EtcdStore(clients(), prefix)
+    await again.load()
+    assert dict(again.items()) == {("user", U): {"name": U}}
+
+
+async def test_a_batch_larger_than_a_transaction_is_written_as_several_in_order(clients, prefix):
+    client = clients()
+    _, store = await leader(client, prefix, "a")
+    store.max_txn_ops = 3
+    store.commit([(("user", f"u{i}"), {"name": f"u{i}"}) for i in range(7)] + [(("user", "u0"), None)])
+    await store.flush()
+    assert store.split == 1 and store.written == 1
+    records = (prefix + "records/").encode()
+    _, kvs, _ = await client.range(records, range_end(records))
+    assert len({x["mod_revision"] for x in kvs}) == 3                      # 3 + 3 + 2 operations
+    assert [x["key"][len(records):] for x in kvs] == [f'["user","u{i}"]'.encode() for i in range(1, 7)]
 
 
 async def test_a_standby_refuses_to_write_and_follows_the_leader(clients, prefix):
