@@ -101,6 +101,19 @@ def fmt_size(n: int) -> str:
     return f"{n} B" if n < 1000 else f"{n / 1e3:.1f} kB" if n < 1e6 else f"{n / 1e6:.1f} MB"
 
 
+def git_head() -> str:
+    """``git log -1 --oneline`` of the checkout, with ``(+N files changed)`` when the work tree differs
+    from that commit; ``"unknown"`` outside git."""
+    try:
+        head = subprocess.run(["git", "log", "-1", "--oneline"], cwd=ROOT, capture_output=True, text=True,
+                              timeout=10).stdout.strip()
+        changed = subprocess.run(["git", "status", "--porcelain"], cwd=ROOT, capture_output=True, text=True,
+                                 timeout=10).stdout.splitlines()
+    except (OSError, subprocess.SubprocessError):
+        return "unknown"
+    return (head or "unknown") + (f" (+{len(changed)} files changed)" if changed else "")
+
+
 # -- console, plots ----------------------------------------------------------------------------
 
 def console():
