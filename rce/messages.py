@@ -11,11 +11,19 @@ Internal format: ROS 1 serialization (``serialize_ros1``), the bytes every
 internal hop carries.
 
 JSON form (converters, ``rce-topic pub``): a message is an object with one key
-per field; ``time``/``duration`` are ``{"secs", "nsecs"}`` (``{"sec",
-"nanosec"}`` is accepted too); ``uint8[]``/``char[]`` arrays are base64 strings
-on output; non-finite floats (NaN, +-inf, e.g. lidar ranges) are ``null`` on output and
-``null`` reads back as NaN and a base64 string or a list of ints on input (the rosbridge v2
-convention); missing fields take their ROS default (0, "", empty).
+per field; missing fields take their ROS default (0, "", empty); non-finite floats (NaN,
++-inf, e.g. lidar ranges) are ``null`` on output and ``null`` reads back as NaN (the rosbridge
+v2 convention). ``time``/``duration``, ``sensor_msgs/Image`` and ``uint8[]``/``char[]``
+arrays have several forms (:mod:`rce.message_forms`): every form is accepted on input
+(time ``{"secs", "nsecs"}``, ``{"sec", "nanosec"}`` or ISO 8601; duration those or float
+seconds; an image an object or a PNG/JPEG binary part, i.e. a ``bytes`` value; a byte array
+base64, a list of ints or ``bytes``), and the output takes the forms a :class:`JsonForms`
+names (default: rce's, ``{"secs", "nsecs"}``, objects, base64). A client's session passes its
+own :class:`JsonForms` to :meth:`MessageRegistry.json_to_bytes` and
+:meth:`MessageRegistry.bytes_to_json` and so gets back the forms it used.
+
+Forwarders do not convert: :meth:`MessageRegistry.check_structure` checks that serialized
+bytes fit their class without decoding them (:mod:`rce.message_structure`).
 """
 from __future__ import annotations
 
@@ -30,6 +38,9 @@ from rosbags.typesys import Stores, get_types_from_msg, get_typestore
 from rosbags.typesys.base import Nodetype
 
 from rce.errors import MessageError
+from rce.message_forms import (RCE_FORMS, JsonForms, duration_to_seconds, image_from_bytes, image_to_bytes,
+                               iso_to_time, seconds_to_duration, time_to_iso)
+from rce.message_structure import Short, Walker, compile_walker
 
 _INT_RANGES = {
     "bool": None, "byte": (0, 255), "char": (0, 255),
@@ -40,10 +51,23 @@ _FLOATS = {"float32", "float64"}
 _NP_DTYPES = {"bool": np.bool_, "byte": np.uint8, "char": np.uint8, "int8": np.int8, "uint8": np.uint8,
               "int16": np.int16, "uint16": np.uint16, "int32": np.int32, "uint32": np.uint32,
               "int64": np.int64, "uint64": np.uint64, "float32": np.float32, "float64": np.float64}
-_TIME_TYPES = {"builtin_interfaces/msg/Time", "builtin_interfaces/msg/Duration"}
+_TIME, _DURATION = "builtin_interfaces/msg/Time", "builtin_interfaces/msg/Duration"
+_TIME_TYPES = {_TIME, _DURATION}
+IMAGE = "sensor_msgs/msg/Image"        # the class whose messages may travel as PNG/JPEG binary parts
+_BINARY = (bytes, bytearray, memoryview)
 
-Encoder = Callable[[Any, str], Any]   # (json value, field path) -> typestore value
-Decoder = Callable[[Any], Any]        # typestore value -> json value
+Encoder = Callable[[Any, str, JsonForms], Any]   # (json value, field path, the client's forms) -> typestore value
+Decoder = Callable[[Any], Any]                   # typestore value -> json value
+FormsKey = tuple[str, str, str, str]             # JsonForms.key: what a decoder's output depends on
+
+
+def takes_binary_message(cls: str) -> bool:
+    """Can a converter of message class ``cls`` (``pkg/Name``) take a whole message as one binary
+    part? True for ``sensor_msgs/Image`` (a PNG or JPEG file, as the original RCE's image converter)."""
+    try:
+        return store_name(cls) == IMAGE
+    except MessageError:
+        return False
 
 
 def store_name(wire: str) -> str:
@@ -76,7 +100,8 @@ class MessageRegistry:
         self.store = get_typestore(Stores.ROS1_NOETIC)
         self._lock = threading.Lock()
         self._encoders: dict[str, Encoder] = {}
-        self._decoders: dict[str, Decoder] = {}
+        self._decoders: dict[tuple[str, FormsKey], Decoder] = {}
+        self._walkers: dict[str, Walker] = {}
         self._services: set[str] = set()   # wire names of registered services
 
     # -- registration -----------------------------------------------------------------------
@@ -197,28 +222,48 @@ class MessageRegistry:
         except Exception as e:
             raise MessageError(f"{len(data)} bytes do not deserialize as {wire_name(typename)}: {e}") from e
 
-    def from_json(self, typename: str, obj: Any) -> Any:
-        """Build a typestore instance of ``typename`` from JSON ``obj``.
+    def check_structure(self, typename: str, payload: bytes | memoryview) -> None:
+        """Check that ROS 1 serialized ``payload`` fits store type ``typename`` without decoding it
+        (what a forwarder does: strings are not decoded, numbers not read; :mod:`rce.message_structure`).
+        Raises :class:`MessageError` naming the class, the field and the offset where it does not fit."""
+        walk = self._walkers.get(typename)
+        if walk is None:
+            walk = compile_walker(self.store.fielddefs, typename, self._walkers)
+        buf = memoryview(payload)
+        try:
+            end = walk(buf, 0, len(buf))
+        except Short as e:
+            raise MessageError(f"{len(buf)} bytes do not fit {wire_name(typename)}: field '{e.path}' {e.why}") from None
+        if end != len(buf):
+            raise MessageError(f"{len(buf)} bytes do not fit {wire_name(typename)}: {len(buf) - end} byte(s) "
+                               f"left after the last field")
+
+    def from_json(self, typename: str, obj: Any, forms: JsonForms | None = None) -> Any:
+        """Build a typestore instance of ``typename`` from JSON ``obj`` (an object; for
+        ``sensor_msgs/Image`` also a PNG or JPEG file as ``bytes``). ``forms``: the sending client's
+        :class:`JsonForms`, told the forms it used (default: none told).
 
         Raises :class:`MessageError` naming the class and the field path (``pose.pose.position.x``)."""
-        if not isinstance(obj, dict):
+        if not isinstance(obj, dict) and not (typename == IMAGE and isinstance(obj, _BINARY)):
             raise MessageError(f"{wire_name(typename)}: message must be a JSON object, got {type(obj).__name__}")
         try:
-            return self._encoder(typename)(obj, "")
+            return self._encoder(typename)(obj, "", forms or RCE_FORMS)
         except MessageError as e:   # nested encoders name their own class; name the outer one
             raise MessageError(f"{wire_name(typename)}: {e.message.split(': ', 1)[-1]}") from None
 
-    def to_json(self, typename: str, msg: Any) -> dict:
-        """JSON-ready dict of typestore instance ``msg`` of ``typename``."""
-        return self._decoder(typename)(msg)
+    def to_json(self, typename: str, msg: Any, forms: JsonForms | None = None) -> Any:
+        """JSON-ready form of typestore instance ``msg`` of ``typename``, in ``forms`` (default rce's):
+        a dict, or ``bytes`` (a binary part) for an image in the ``png``/``jpeg`` form. Raises
+        :class:`MessageError` when the message has no such form (an image encoding PNG cannot hold)."""
+        return self._decoder(typename, (forms or RCE_FORMS).key)(msg)
 
-    def json_to_bytes(self, typename: str, obj: Any) -> bytes:
+    def json_to_bytes(self, typename: str, obj: Any, forms: JsonForms | None = None) -> bytes:
         """JSON -> ROS 1 serialized bytes (what a converter does with a robot's message)."""
-        return self.serialize(typename, self.from_json(typename, obj))
+        return self.serialize(typename, self.from_json(typename, obj, forms))
 
-    def bytes_to_json(self, typename: str, data: bytes) -> dict:
-        """ROS 1 serialized bytes -> JSON dict (what a converter sends to a robot)."""
-        return self.to_json(typename, self.deserialize(typename, data))
+    def bytes_to_json(self, typename: str, data: bytes, forms: JsonForms | None = None) -> Any:
+        """ROS 1 serialized bytes -> JSON (what a converter sends to a robot), in ``forms``."""
+        return self.to_json(typename, self.deserialize(typename, data), forms)
 
     # -- codec compilation --------------------------------------------------------------------
     def _encoder(self, typename: str) -> Encoder:
@@ -227,38 +272,48 @@ class MessageRegistry:
             enc = self._encoders[typename] = self._compile_encoder(typename)
         return enc
 
-    def _decoder(self, typename: str) -> Decoder:
-        dec = self._decoders.get(typename)
+    def _decoder(self, typename: str, key: FormsKey) -> Decoder:
+        dec = self._decoders.get((typename, key))
         if dec is None:
-            dec = self._decoders[typename] = self._compile_decoder(typename)
+            dec = self._decoders[(typename, key)] = self._compile_decoder(typename, key)
         return dec
 
     def _compile_encoder(self, typename: str) -> Encoder:
+        if typename in _TIME_TYPES:
+            return _time_encoder(typename == _DURATION, self.store.types[typename])
         cls = self.store.types[typename]
         wire = wire_name(typename)
         fields = [(fname, self._field_encoder(ftype, wire)) for fname, ftype in self.store.fielddefs[typename][1]]
         names = {f for f, _ in fields}
-        is_time = typename in _TIME_TYPES
+        image = self._image_encoder(cls) if typename == IMAGE else None
 
-        def encode(obj: Any, path: str) -> Any:
+        def encode(obj: Any, path: str, forms: JsonForms) -> Any:
+            if obj is _MISSING:
+                obj = {}
+            elif image is not None:
+                if isinstance(obj, _BINARY):
+                    return image(obj, path, forms)
+                forms.saw("images", "json")
             if not isinstance(obj, dict):
                 raise MessageError(f"{wire}: field '{path or '.'}' must be an object, got {type(obj).__name__}")
-            shown = None   # time/duration: field -> the JSON key the client used (for error paths)
-            if is_time:
-                extra = set(obj) - {"secs", "nsecs", "sec", "nanosec"}
-                shown = {"sec": "sec" if "sec" in obj and "secs" not in obj else "secs",
-                         "nanosec": "nanosec" if "nanosec" in obj and "nsecs" not in obj else "nsecs"}
-                obj = {"sec": obj.get("secs", obj.get("sec", _MISSING)),
-                       "nanosec": obj.get("nsecs", obj.get("nanosec", _MISSING))}
-            else:
-                extra = set(obj) - names
+            extra = set(obj) - names
             if extra:
                 raise MessageError(f"{wire}: unknown field '{_join(path, sorted(extra)[0])}'")
-            kwargs = {}
-            for fname, fenc in fields:
-                kwargs[fname] = fenc(obj.get(fname, _MISSING), _join(path, shown[fname] if shown else fname))
-            return cls(**kwargs)
+            return cls(**{fname: fenc(obj.get(fname, _MISSING), _join(path, fname), forms) for fname, fenc in fields})
 
+        return encode
+
+    def _image_encoder(self, cls: Any) -> Encoder:
+        """``sensor_msgs/Image`` from a PNG or JPEG file (header left at its default: the file has none)."""
+        header = self._encoder("std_msgs/msg/Header")
+
+        def encode(data: Any, path: str, forms: JsonForms) -> Any:
+            try:
+                fields, fmt = image_from_bytes(bytes(data))
+            except ValueError as e:
+                raise MessageError(f"sensor_msgs/Image: field '{path or '.'}': {e}") from None
+            forms.saw("images", fmt)
+            return cls(header=header(_MISSING, _join(path, "header"), forms), **fields)
         return encode
 
     def _field_encoder(self, ftype: tuple, owner: str) -> Encoder:
@@ -267,8 +322,8 @@ class MessageRegistry:
             return _base_encoder(arg[0], owner)
         if nt == Nodetype.NAME:
             sub_name = arg
-            def enc_name(v: Any, path: str, _n=sub_name) -> Any:
-                return self._encoder(_n)({} if v is _MISSING else v, path)
+            def enc_name(v: Any, path: str, forms: JsonForms, _n=sub_name) -> Any:
+                return self._encoder(_n)(v, path, forms)
             return enc_name
         (sub_nt, sub_arg), length = arg
         fixed = length if nt == Nodetype.ARRAY else None
@@ -276,7 +331,7 @@ class MessageRegistry:
             return _numeric_array_encoder(sub_arg[0], fixed, owner)
         item = self._field_encoder((sub_nt, sub_arg), owner)
 
-        def enc_list(v: Any, path: str) -> list:
+        def enc_list(v: Any, path: str, forms: JsonForms) -> list:
             if v is _MISSING:
                 v = []
             if not isinstance(v, list):
@@ -285,31 +340,43 @@ class MessageRegistry:
                 if v:
                     raise MessageError(f"{owner}: field '{path}' must have {fixed} items, got {len(v)}")
                 v = [_MISSING] * fixed
-            return [item(x, f"{path}[{i}]") for i, x in enumerate(v)]
+            return [item(x, f"{path}[{i}]", forms) for i, x in enumerate(v)]
         return enc_list
 
-    def _compile_decoder(self, typename: str) -> Decoder:
-        if typename in _TIME_TYPES:
-            return lambda m: {"secs": int(m.sec), "nsecs": int(m.nanosec)}
-        fields = [(fname, self._field_decoder(ftype)) for fname, ftype in self.store.fielddefs[typename][1]]
+    def _compile_decoder(self, typename: str, key: FormsKey) -> Decoder:
+        time_form, duration_form, image_form, _ = key
+        if typename == _TIME:
+            return _time_decoder(time_form)
+        if typename == _DURATION:
+            return _time_decoder(duration_form)
+        if typename == IMAGE and image_form != "json":
+            def encode_image(m: Any) -> bytes:
+                try:
+                    return image_to_bytes(m, image_form)
+                except ValueError as e:
+                    raise MessageError(f"sensor_msgs/Image: {e}") from None
+            return encode_image
+        fields = [(fname, self._field_decoder(ftype, key)) for fname, ftype in self.store.fielddefs[typename][1]]
 
         def decode(m: Any) -> dict:
             return {fname: fdec(getattr(m, fname)) for fname, fdec in fields}
         return decode
 
-    def _field_decoder(self, ftype: tuple) -> Decoder:
+    def _field_decoder(self, ftype: tuple, key: FormsKey) -> Decoder:
         nt, arg = ftype
         if nt == Nodetype.BASE:
             return _base_decoder(arg[0])
         if nt == Nodetype.NAME:
-            return lambda v, _n=arg: self._decoder(_n)(v)
+            return lambda v, _n=arg: self._decoder(_n, key)(v)
         (sub_nt, sub_arg), _ = arg
         if sub_nt == Nodetype.BASE and sub_arg[0] in ("uint8", "char", "byte"):
+            if key[3] == "binary":
+                return lambda v: bytes(np.asarray(v, dtype=np.uint8))
             return lambda v: base64.b64encode(bytes(np.asarray(v, dtype=np.uint8))).decode()
         if sub_nt == Nodetype.BASE and sub_arg[0] in _NP_DTYPES:
             conv = _base_decoder(sub_arg[0])
             return lambda v: [conv(x) for x in np.asarray(v).tolist()]
-        item = self._field_decoder((sub_nt, sub_arg))
+        item = self._field_decoder((sub_nt, sub_arg), key)
         return lambda v: [item(x) for x in v]
 
 
@@ -325,6 +392,57 @@ def _join(path: str, name: str) -> str:
     return f"{path}.{name}" if path else name
 
 
+# -- time and duration: every form in, the client's form out (rce.message_forms) ---------------------------
+_TIME_KEYS = {"secs", "nsecs", "sec", "nanosec"}
+
+
+def _time_encoder(duration: bool, cls: Any) -> Encoder:
+    """Time (or ``duration``) class ``cls`` from any of its JSON forms; tells ``forms`` which one."""
+    owner = "builtin_interfaces/Duration" if duration else "builtin_interfaces/Time"
+    sec_enc, ns_enc = _base_encoder("int32", owner), _base_encoder("uint32", owner)
+    other = "seconds (a number)" if duration else "an ISO 8601 string"
+
+    def encode(v: Any, path: str, forms: JsonForms) -> Any:
+        if v is _MISSING:
+            return cls(sec=0, nanosec=0)
+        if isinstance(v, dict):
+            extra = set(v) - _TIME_KEYS
+            if extra:
+                raise MessageError(f"{owner}: unknown field '{_join(path, sorted(extra)[0])}'")
+            sk = "sec" if "sec" in v and "secs" not in v else "secs"
+            nk = "nanosec" if "nanosec" in v and "nsecs" not in v else "nsecs"
+            if v:
+                forms.saw("time", "sec" if sk == "sec" and nk == "nanosec" else "secs")
+            return cls(sec=sec_enc(v.get(sk, _MISSING), _join(path, sk), forms),
+                       nanosec=ns_enc(v.get(nk, _MISSING), _join(path, nk), forms))
+        try:
+            if duration and not isinstance(v, (dict, list)):
+                sec, ns = seconds_to_duration(v)
+                sec_enc(sec, path, forms)
+                forms.saw("time", "float")
+                return cls(sec=sec, nanosec=ns)
+            if not duration and isinstance(v, str):
+                sec, ns = iso_to_time(v)
+                sec_enc(sec, path, forms)
+                forms.saw("time", "iso")
+                return cls(sec=sec, nanosec=ns)
+        except ValueError as e:
+            raise MessageError(f"{owner}: field '{path or '.'}': {e}") from None
+        raise MessageError(f"{owner}: field '{path or '.'}' must be an object {{secs, nsecs}} or {other}, "
+                           f"got {type(v).__name__}")
+    return encode
+
+
+def _time_decoder(form: str) -> Decoder:
+    if form == "sec":
+        return lambda m: {"sec": int(m.sec), "nanosec": int(m.nanosec)}
+    if form == "iso":
+        return lambda m: time_to_iso(m.sec, m.nanosec)
+    if form == "float":
+        return lambda m: duration_to_seconds(m.sec, m.nanosec)
+    return lambda m: {"secs": int(m.sec), "nsecs": int(m.nanosec)}
+
+
 def _base_decoder(t: str) -> Decoder:
     if t in _FLOATS:
         # JSON has no NaN or Infinity: non-finite values go out as null, as rosbridge sends them
@@ -338,7 +456,7 @@ def _base_decoder(t: str) -> Decoder:
 
 def _base_encoder(t: str, owner: str) -> Encoder:
     if t == "string":
-        def enc_str(v: Any, path: str) -> str:
+        def enc_str(v: Any, path: str, forms: JsonForms) -> str:
             if v is _MISSING:
                 return ""
             if not isinstance(v, str):
@@ -346,7 +464,7 @@ def _base_encoder(t: str, owner: str) -> Encoder:
             return v
         return enc_str
     if t == "bool":
-        def enc_bool(v: Any, path: str) -> bool:
+        def enc_bool(v: Any, path: str, forms: JsonForms) -> bool:
             if v is _MISSING:
                 return False
             if not isinstance(v, bool):
@@ -354,7 +472,7 @@ def _base_encoder(t: str, owner: str) -> Encoder:
             return v
         return enc_bool
     if t in _FLOATS:
-        def enc_float(v: Any, path: str) -> float:
+        def enc_float(v: Any, path: str, forms: JsonForms) -> float:
             if v is _MISSING:
                 return 0.0
             if v is None:
@@ -365,7 +483,7 @@ def _base_encoder(t: str, owner: str) -> Encoder:
         return enc_float
     lo, hi = _INT_RANGES[t]
 
-    def enc_int(v: Any, path: str) -> int:
+    def enc_int(v: Any, path: str, forms: JsonForms) -> int:
         if v is _MISSING:
             return 0
         if isinstance(v, bool) or not isinstance(v, int):
@@ -384,19 +502,23 @@ def _numeric_array_encoder(t: str, fixed: int | None, owner: str) -> Encoder:
     is_bytes = t in ("uint8", "char", "byte")
     item = _base_encoder(t, owner)
 
-    def enc(v: Any, path: str) -> np.ndarray:
+    def enc(v: Any, path: str, forms: JsonForms) -> np.ndarray:
         if v is _MISSING:
             return np.zeros(fixed or 0, dtype=dtype)
-        if is_bytes and isinstance(v, str):
+        if is_bytes and isinstance(v, _BINARY):
+            arr = np.frombuffer(bytes(v), dtype=np.uint8).copy()
+            forms.saw("byte_arrays", "binary")
+        elif is_bytes and isinstance(v, str):
             try:
                 arr = np.frombuffer(base64.b64decode(v, validate=True), dtype=np.uint8)
             except ValueError:
                 raise MessageError(f"{owner}: field '{path}' is not valid base64") from None
+            forms.saw("byte_arrays", "base64")
         elif isinstance(v, list):
-            arr = np.array([item(x, f"{path}[{i}]") for i, x in enumerate(v)], dtype=dtype)
+            arr = np.array([item(x, f"{path}[{i}]", forms) for i, x in enumerate(v)], dtype=dtype)
         else:
-            raise MessageError(f"{owner}: field '{path}' must be a list{' or base64 string' if is_bytes else ''}, "
-                               f"got {type(v).__name__}")
+            what = " or base64 string (or a binary part)" if is_bytes else ""
+            raise MessageError(f"{owner}: field '{path}' must be a list{what}, got {type(v).__name__}")
         if fixed is not None and len(arr) != fixed:
             raise MessageError(f"{owner}: field '{path}' must have {fixed} items, got {len(arr)}")
         return arr

@@ -7,6 +7,7 @@
     rce-topic pub TOPIC [TYPE] YAML_MSG [-r HZ] [-n N] [-1/--once]
     rce-topic hz TOPIC [-w WINDOW] [--type T] [--reports N]
     rce-topic type TOPIC | info TOPIC
+    rce-topic record -o FILE.bag TOPIC... [--duration S] [--count N]
     rce-service list [-v]
     rce-service call SERVICE [YAML_REQ] [--type T] [--timeout S]
     rce-service type SERVICE
@@ -24,6 +25,14 @@ Messages are YAML as with rostopic (``'{data: hello}'``), in the JSON form of
 :mod:`rce.messages`. A TYPE left out is taken from the bus (``describe``). ``echo`` prints
 YAML documents separated by ``---``; ``pub`` without ``-r`` publishes once and exits (the
 bus does not latch). Exit codes: 0 ok, 1 failure (reason on stderr), 2 usage.
+
+``record`` writes a ROS 1 bag (:mod:`rce_client.bag`) until Ctrl-C or SIGTERM, ``--duration``
+S seconds or ``--count`` N messages (all topics together); a topic not published yet is
+recorded from when it appears. On a local bus every message is recorded (a subscription
+with a queue of :data:`RECORD_QUEUE`; what overflows is counted and reported). Through the
+admin API a container's topics are sampled one message per request, as ``echo`` does: a
+message published during a request's round trip is not recorded (fine for a fleet's rates;
+for every message, record on a robot's bus or through forwarders, :func:`rce_client.bag.record_container`).
 """
 from __future__ import annotations
 
@@ -42,14 +51,20 @@ import yaml
 from rce.admin_client import AdminClient
 from rce.errors import MessageError, NotFound, RCEError, RequestError, Unavailable
 from rce.log import setup_logging
+from rce.messages import MessageRegistry, default_registry
 from rce.naming import resolve
+from rce.package_path import load_package_types
 from rce.process import run_loop
+from rce.tasks import Tasks
+from rce_client.bag import BagRecorder
 from rce_client.paths import bus_dir, running_buses
 
 POLL = 0.2          # s between describe polls while waiting for a topic to appear
 ECHO_SAMPLE_TIMEOUT = 5.0   # s, one admin API sample of ``echo --container`` (then the next one)
 SERVICE_WAIT = 10.0         # s, ``rce-service call`` waits for the service to appear (without --timeout)
 HZ_PERIOD = 1.0             # s between ``rce-topic hz`` reports (as rostopic hz)
+RECORD_QUEUE = 10000        # messages a recorded topic may have waiting on a local bus (oldest dropped, counted)
+RECORD_SAMPLE_TIMEOUT = 1.0  # s, one admin API sample of ``record --container`` (then the next: a stop is seen)
 
 
 # -- output ----------------------------------------------------------------------------------
@@ -118,10 +133,20 @@ class LocalBus:
         """Round trip to the bus: everything published before has been routed."""
         await self.node.describe()
 
+    @property
+    def registry(self) -> MessageRegistry:
+        return self.node.registry
+
     async def subscribe(self, topic: str, type_: str, cb: Callable[[dict], Any], queue_size: int = 1000) -> None:
         reg = self.node.registry
         store = reg.msg_type(type_)
         await self.node.subscriber(topic, type_, lambda m: cb(reg.to_json(store, m)), queue_size=queue_size)
+
+    async def subscribe_raw(self, topic: str, type_: str, cb: Callable[[bytes], Any], queue_size: int) -> Any:
+        """Subscribe ``cb(serialized bytes)``; returns the subscriber (its ``dropped`` counts overflow)."""
+        reg = self.node.registry
+        store = reg.msg_type(type_)
+        return await self.node.subscriber(topic, type_, lambda m: cb(reg.serialize(store, m)), queue_size=queue_size)
 
     async def call(self, service: str, type_: str, request: dict, timeout: float) -> dict:
         reg = self.node.registry
@@ -138,6 +163,15 @@ class AdminBus:
     def __init__(self, client: AdminClient, user: str, ctag: str):
         self.client, self.user, self.ctag = client, user, ctag
         self.base = f"/api/containers/{user}/{ctag}"
+        self._registry: MessageRegistry | None = None
+
+    @property
+    def registry(self) -> MessageRegistry:
+        """The message classes here (with the node packages' on this machine): the container sends JSON."""
+        if self._registry is None:
+            self._registry = default_registry()
+            load_package_types(self._registry)
+        return self._registry
 
     async def open(self) -> None:
         return None
@@ -262,6 +296,11 @@ def topic_parser() -> argparse.ArgumentParser:
     sp.add_argument("topic")
     sp = add("info", "print a topic's class, publishers, subscribers and counters")
     sp.add_argument("topic")
+    sp = add("record", "record topics into a ROS 1 bag file (like rosbag record)")
+    sp.add_argument("topics", nargs="+", metavar="TOPIC")
+    sp.add_argument("-o", "--output", required=True, metavar="FILE.bag", help="the bag to write (replaced)")
+    sp.add_argument("--duration", type=float, metavar="S", help="stop after S seconds")
+    sp.add_argument("--count", type=int, metavar="N", help="stop after N messages (all topics together)")
     return p
 
 
@@ -297,6 +336,8 @@ async def topic_cmd(args: argparse.Namespace, backend) -> int:
             else:
                 _out(t["name"])
         return 0
+    if args.cmd == "record":
+        return await _record(args, backend)
     topic = _global(args.topic)
     if args.cmd in ("type", "info"):
         t = await _find(backend, "topics", topic)
@@ -320,6 +361,56 @@ async def topic_cmd(args: argparse.Namespace, backend) -> int:
     if args.cmd == "hz":
         return await _hz(args, backend, topic)
     raise RequestError(f"unknown command {args.cmd}")
+
+
+async def _record(args, backend) -> int:
+    """``rce-topic record``: every topic fed into one bag until the duration, the count or a signal."""
+    topics = [_global(t) for t in args.topics]
+    bag = BagRecorder(args.output, backend.registry)
+    bag.open()
+    stop = asyncio.Event()
+    failures: list[RCEError] = []
+    subs: list[Any] = []
+    tasks = Tasks("rce-topic record")
+
+    def got(topic: str, cls: str, payload: bytes) -> None:
+        if stop.is_set():
+            return
+        bag.write(topic, cls, payload)
+        if args.count is not None and bag.total >= args.count:
+            stop.set()
+
+    async def feed(topic: str) -> None:
+        try:
+            cls = await _topic_type(backend, topic, None, True, _err)
+            typename = backend.registry.msg_type(cls)
+            _err(f"recording {topic} [{cls}]")
+            if not isinstance(backend, AdminBus):
+                subs.append(await backend.subscribe_raw(topic, cls, lambda p: got(topic, cls, p), RECORD_QUEUE))
+                return
+            while not stop.is_set():
+                for m in await backend.sample(topic, 1, RECORD_SAMPLE_TIMEOUT, cls):
+                    got(topic, cls, backend.registry.json_to_bytes(typename, m))
+        except RCEError as e:
+            failures.append(e)
+            stop.set()
+
+    for t in topics:
+        tasks.spawn(feed(t), name=t)
+    _err(f"recording to {args.output} (Ctrl-C to stop)")
+    try:
+        await asyncio.wait_for(stop.wait(), args.duration)
+    except asyncio.TimeoutError:
+        pass
+    finally:
+        stop.set()
+        await tasks.cancel_all()
+        bag.close()
+        dropped = sum(s.dropped for s in subs)
+        _err(bag.summary() + (f"; {dropped} dropped (queue of {RECORD_QUEUE} full)" if dropped else ""))
+    if failures:
+        raise failures[0]
+    return 0
 
 
 async def _pub(args, backend, topic: str) -> int:

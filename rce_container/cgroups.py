@@ -18,7 +18,10 @@ Limits (what ``containerData`` asks; 0 or absent = no limit):
   (100 ms); v2 ``cpu.max`` = ``"QUOTA 100000"``.
 - ``memory`` MiB: v1 ``memory.limit_in_bytes`` and ``memory.memsw.limit_in_bytes`` (no
   swapping past it); v2 ``memory.max``, ``memory.swap.max 0``.
-- ``size`` tasks: ``pids.max`` (v1 and v2).
+- ``pids`` tasks (processes and threads): ``pids.max`` (v1 and v2).
+
+``size`` is not a limit: the original RCE's container size class (its client always sends
+``size: 1``), recorded and left alone here.
 
 Parsing (:func:`parse_mountinfo`, :func:`parse_proc_cgroup`, :func:`detect`) is pure; the
 file I/O is in :class:`CgroupSet`, which takes any root so tests can point it at a fake tree.
@@ -176,20 +179,23 @@ def _keyed(text: str) -> dict[str, int]:
     return out
 
 
+LIMITS = ("cpu", "memory", "pids")      # the limits a cgroup enforces (``size``, ``bandwidth``: recorded only)
+
+
 def limits_of(limits: dict) -> dict:
-    """Normalized limits: cpu (float cores), memory (float MiB), size (int tasks); 0 or None
+    """Normalized limits: cpu (float cores), memory (float MiB), pids (int tasks); 0 or None
     means unlimited (None). Raises :class:`RequestError` for a negative or non-numeric value."""
     out = {}
-    for k in ("cpu", "memory", "size"):
+    for k in LIMITS:
         v = limits.get(k)
         if v is None:
             out[k] = None
             continue
         if isinstance(v, bool) or not isinstance(v, (int, float)) or v < 0:
             raise RequestError(f"limit {k!r} must be a non-negative number, got {v!r}")
-        out[k] = None if v == 0 else (int(v) if k == "size" else float(v))
-    if out["size"] is not None and out["size"] < 1:
-        raise RequestError(f"limit 'size' must be at least 1 task, got {limits['size']!r}")
+        out[k] = None if v == 0 else (int(v) if k == "pids" else float(v))
+    if out["pids"] is not None and out["pids"] < 1:
+        raise RequestError(f"limit 'pids' must be at least 1 task, got {limits['pids']!r}")
     return out
 
 
@@ -266,11 +272,11 @@ class CgroupSet:
             log.debug("cannot rebalance CPU weights", dir=str(scope), reason=e.strerror)
 
     def apply(self, limits: dict) -> dict:
-        """Write ``limits`` (keys cpu, memory, size; a missing key is left alone; None or 0 =
+        """Write ``limits`` (keys cpu, memory, pids; a missing key is left alone; None or 0 =
         unlimited). Returns the limits now in force, normalized. Raises :class:`RCEError`
         naming the file when the kernel refuses a value (e.g. memory below what is in use)."""
         want = limits_of(limits)
-        given = {k for k in ("cpu", "memory", "size") if k in limits}
+        given = {k for k in LIMITS if k in limits}
         v2 = self.layout.version == 2
         if "cpu" in given and self._dir("cpu"):
             d = self._dir("cpu")
@@ -301,8 +307,8 @@ class CgroupSet:
                         self._set(f, value)
                 else:
                     self._set(d / "memory.limit_in_bytes", value)
-        if "size" in given and self._dir("pids"):
-            n = want["size"]
+        if "pids" in given and self._dir("pids"):
+            n = want["pids"]
             self._set(self._dir("pids") / "pids.max", "max" if n is None else str(n))
         return want
 

@@ -92,8 +92,8 @@ class _Snapshot:
                 fam["lcpu"].add_metric(lab, limits["cpu"])
             if limits.get("memory"):
                 fam["lmem"].add_metric(lab, limits["memory"] * 2**20)
-            if limits.get("size"):
-                fam["ltasks"].add_metric(lab, limits["size"])
+            if limits.get("pids"):
+                fam["ltasks"].add_metric(lab, limits["pids"])
             fam["oom"].add_metric(lab, (c.get("memory") or {}).get("oom_kills", 0))
             fam["min"].add_metric(lab, c.get("msgs_in", 0))
             fam["mout"].add_metric(lab, c.get("msgs_out", 0))

@@ -58,9 +58,10 @@ def host_scope(name: str, pid: int | None = None) -> str:
 class Sandbox:
     """Base class: spawns and kills the node processes of one container.
 
-    ``cid``/``ctag``: the container; ``limits``: ``{cpu, memory, size, bandwidth}`` as the
-    master sent them (cpu in cores, memory in MiB, size in tasks, bandwidth in bytes/s; any may
-    be absent, 0 means no limit); ``workdir``: the container's private directory (node cwd);
+    ``cid``/``ctag``: the container; ``limits``: ``{cpu, memory, pids, size, bandwidth}`` as the
+    master sent them (cpu in cores, memory in MiB, pids in tasks; size, the original RCE's
+    container size class, and bandwidth in bytes/s are recorded only; any may be absent, 0 means
+    no limit); ``workdir``: the container's private directory (node cwd);
     ``bus_socket``: the container's bus socket path; ``scope``: the task set's
     :func:`host_scope`; ``grace``: seconds between SIGTERM and SIGKILL on teardown.
 
@@ -355,7 +356,7 @@ class NamespaceSandbox(Sandbox):
         if self.cg is not None:
             await asyncio.to_thread(self.cg.create)
             try:
-                in_force = self.cg.apply({k: self.limits.get(k) for k in ("cpu", "memory", "size")})
+                in_force = self.cg.apply({k: self.limits.get(k) for k in cgroups.LIMITS})
             except RCEError:
                 await asyncio.to_thread(self.cg.remove)
                 raise
@@ -469,7 +470,7 @@ class NamespaceSandbox(Sandbox):
         :class:`RCEError` when the kernel refuses one (e.g. memory below what is in use)."""
         if self.cg is not None:
             await asyncio.to_thread(self.cg.apply, {k: v for k, v in limits.items()
-                                                    if k in ("cpu", "memory", "size") and v is not None})
+                                                    if k in cgroups.LIMITS and v is not None})
         return await super().resize(limits)
 
     # -- observation ---------------------------------------------------------------------------

@@ -87,7 +87,8 @@ def _interface_ref(v: Any) -> str:
 Tag = Annotated[str, _rule(lambda v: _is_str(v) and v != "", "must be a non-empty string")]
 #: An optional string (a node's name or namespace, a group, an address).
 Text = Annotated[str, _rule(_is_str, "must be a string")]
-#: A resource limit: cpu in cores, memory in MiB, size in tasks, bandwidth (recorded only).
+#: A resource amount: cpu in cores, memory in MiB, pids in tasks (limits); size (the original RCE's
+#: container size class, in slots) and bandwidth (bytes/s) are recorded only.
 Limit = Annotated[float, _rule(lambda v: _is_number(v) and v >= 0, "must be a number greater than or equal to 0")]
 #: A node's arguments: one string, or a list of strings.
 Args = Annotated[Union[str, list[str]], _rule(lambda v: _is_str(v) or (isinstance(v, list) and all(map(_is_str, v))),
@@ -112,12 +113,15 @@ class Component(BaseModel):
 
 
 class ContainerData(Component):
-    """A container's placement and limits (CC ``containerData``)."""
+    """A container's placement and limits (CC ``containerData``): ``cpu`` cores, ``memory`` MiB and
+    ``pids`` tasks are limits (absent or 0: none); ``size`` is the original RCE's container size
+    class (its client always sends ``size: 1``) and ``bandwidth`` bytes/s: both recorded only."""
     group: Text | None = None
     groupIp: Text | None = None
     size: Limit | None = None
     cpu: Limit | None = None
     memory: Limit | None = None
+    pids: Limit | None = None
     bandwidth: Limit | None = None
     specialFeatures: Features | None = None
 

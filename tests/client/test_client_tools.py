@@ -130,7 +130,7 @@ async def test_service_calls(bus, capsys):
     assert out == "data: hello\n"
     out, _ = await run("service", ["--bus", path, "call", "/parameterTest", "{}", "--type", "Test/ParameterTest"],
                        capsys)
-    assert out == "msg: |-\n  int:   99\n  str:   foo\n  float:   <not set>\n  bool:   <not set>\n"
+    assert out == "msg: |-\n  int:   99\n  str:   foo\n  float: <not set>\n  bool:  <not set>\n"
 
 
 async def test_failures_name_what_was_wrong(bus, capsys):

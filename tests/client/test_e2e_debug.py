@@ -19,7 +19,7 @@ import pytest
 
 BIN = Path(sys.executable).parent
 CONFIG = Path(__file__).resolve().parents[2] / "configs" / "debug.config"
-PARAMS = "msg: |-\n  int:   99\n  str:   foo\n  float:   3.3\n  bool:   true\n"
+PARAMS = "msg: |-\n  int:   99\n  str:   foo\n  float: 3.3\n  bool:  True\n"
 
 
 class Proc:

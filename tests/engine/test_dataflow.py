@@ -107,7 +107,7 @@ async def test_parameters_reach_nodes(eng):
         await r.send("DM", {"iTag": "pt", "type": "Test/ParameterTest", "msgID": "p1", "msg": {}})
         m = await r.expect("DM", pred=lambda d: d["iTag"] == "pt")
         assert m["msgID"] == "p1"
-        assert m["msg"]["msg"].splitlines() == ["int:   99", "str:   foo", "float:   3.3", "bool:   true"]
+        assert m["msg"]["msg"].splitlines() == ["int:   99", "str:   foo", "float: 3.3", "bool:  True"]
 
 
 async def test_container_to_container(eng):

@@ -50,7 +50,8 @@ def node_st(ctag: str, ntag: str, status: str):
 async def test_containers_end_to_end_through_master_and_console(sb_engine):
     eng = sb_engine
     async with RawRobot(eng.master_url, "sbBot") as r:
-        await r.send("CC", {"containerTag": "sbC", "containerData": {"cpu": 0.5, "memory": 256, "size": 64}})
+        # size 1: what the original RCE's client always sends (a size class, not a limit)
+        await r.send("CC", {"containerTag": "sbC", "containerData": {"cpu": 0.5, "memory": 256, "pids": 64, "size": 1}})
         st = await r.expect("ST", pred=lambda d: d.get("topic") == "container")
         assert st == {"topic": "container", "cTag": "sbC", "status": "running", "sandbox": "namespaced"}
         await r.cn(addNodes=[
@@ -99,18 +100,18 @@ async def test_containers_end_to_end_through_master_and_console(sb_engine):
 
         # resize while running: from the console, and from the robot (CN resizeContainer)
         echo_pid = s["per_node"]["echo"]["pid"]
-        out = console(eng, "container", "resize", "testUser", "sbC", "--cpu", "1.5", "--memory", "300")
+        out = console(eng, "container", "resize", "testUser", "sbC", "--cpu", "1.5", "--memory", "300", "--pids", "80")
         assert "resized" in out
-        await r.cn(resizeContainer=[{"containerTag": "sbC", "size": 80}])
+        await r.cn(resizeContainer=[{"containerTag": "sbC", "size": 2}])      # a size class: recorded only
         deadline = time.monotonic() + 20
-        while (files := eng.admin("/api/containers/testUser/sbC/stats")["sandbox_info"]["cgroup"]["files"]) \
-                .get("pids.max") != "80":
-            assert time.monotonic() < deadline, files
+        while (s := eng.admin("/api/containers/testUser/sbC/stats"))["limits"].get("size") != 2:
+            assert time.monotonic() < deadline, s["limits"]
             time.sleep(0.05)
+        files = s["sandbox_info"]["cgroup"]["files"]
+        assert files["pids.max"] == "80"
         assert files.get("cpu.cfs_quota_us", files.get("cpu.max", "").split(" ")[0]) == "150000"
         assert files.get("memory.limit_in_bytes", files.get("memory.max")) == str(300 << 20)
-        s = eng.admin("/api/containers/testUser/sbC/stats")
-        assert s["limits"] == {"cpu": 1.5, "memory": 300, "size": 80}
+        assert s["limits"] == {"cpu": 1.5, "memory": 300, "pids": 80, "size": 2}
         assert s["per_node"]["echo"]["pid"] == echo_pid and psutil.Process(echo_pid).is_running()
         assert eng.admin("/api/containers/testUser/sbC/call",
                    {"service": "/stringEchoService", "request": {"data": "resized"}}) == {"data": "resized"}

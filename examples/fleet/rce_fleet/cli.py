@@ -4,7 +4,8 @@
 
     rce-fleet demo [--map YAML] [--robots N] [--grid RxC | --cell M] [--seed S] [--speedup K]
                    [--goal RobotN=CELL]... [--start RobotN=CELL]... [--block CELL@S]...
-                   [--obstacle CELL@S]... [--timeout S] [--plot PNG] [--report JSON] [--headless] [--web-port P]
+                   [--obstacle CELL@S]... [--timeout S] [--plot PNG] [--report JSON] [--bag FILE.bag]
+                   [--headless] [--web-port P]
     rce-fleet serve [same options, no mission]      # until Ctrl-C
     rce-fleet configs [--out DIR] [--robots N] [--url URL]   # write robot1.config ...
     rce-fleet grid [--map YAML] [--grid RxC | --cell M]     # print the grid's cell numbers
@@ -72,6 +73,8 @@ def _run_args(p: argparse.ArgumentParser, mission: bool) -> None:
                    help="PNG of the map, grid, blocked cells and driven paths" +
                    (" (default fleet_paths.png)" if mission else ""))
     p.add_argument("--report", metavar="JSON", help="write a JSON report of the run")
+    p.add_argument("--bag", metavar="FILE.bag", help="record the fleet topics (poses, paths, cancelGoal, fleet state) "
+                   "into a ROS 1 bag")
     p.add_argument("--live", dest="live", action="store_true", default=None,
                    help="live table even without a terminal")
     p.add_argument("--no-live", dest="live", action="store_false",
@@ -130,7 +133,7 @@ def main(argv: list[str] | None = None) -> None:
                        starts=parse_robot_cell(args.start, "start"),
                        blocks=parse_cell_at(getattr(args, "block", []), "block"),
                        obstacles=parse_cell_at(getattr(args, "obstacle", []), "obstacle"),
-                       plot=args.plot, report=args.report, workdir=args.workdir, keep=args.keep,
+                       plot=args.plot, report=args.report, bag=args.bag, workdir=args.workdir, keep=args.keep,
                        lidar_blocking=not args.no_lidar_blocking, mission=mission, live=args.live,
                        web_port=args.web_port)
     except UsageError as e:

@@ -11,8 +11,11 @@
    ``--seed``), optional cell blocks (``--block CELL@SECONDS``, sim seconds after the
    goals were sent) and unannounced obstacles (``--obstacle CELL@SECONDS``: a box only the
    robots' lidars can find); a live table; a PNG of the driven paths (``--plot``); a JSON
-   report (``--report``). Exit 0 when every robot has reached its goal; otherwise non-zero
-   with the reason (1 failure or timeout, 2 bad arguments, 3 an unreachable goal).
+   report (``--report``); a ROS 1 bag of the fleet topics (``--bag``: every robot's
+   ``amcl_pose``, ``goalNodesList`` and ``cancelGoal`` and ``/fleet/state``, recorded from the
+   fleet container through forwarders of the client ``fleetRecorder``, :mod:`rce_client.bag`,
+   from when the robots are ready until the end). Exit 0 when every robot has reached its goal;
+   otherwise non-zero with the reason (1 failure or timeout, 2 bad arguments, 3 an unreachable goal).
 
 ``serve`` runs the same system without a mission until Ctrl-C (or ``--timeout``).
 """
@@ -38,8 +41,10 @@ from rce.messages import default_registry
 from rce.package_path import load_package_types
 from rce.process import run_loop
 from rce.tasks import Tasks
+from rce_client.bag import BagRecorder, record_container
+from rce_client.connection import Connection
 
-from .configs import robot_config
+from .configs import FLEET_CTAG, PASSWORD, USER, robot_config
 from .geometry import GridGeometry, components
 from .grid import make_grid
 from .lab_map import write_lab_map
@@ -62,6 +67,7 @@ WATCH_PERIOD_S = 0.25      # wall s between checks of the run (mission end, engi
 PROGRESS_EVERY_S = 5.0     # wall s between plain progress lines (no live table)
 TEARDOWN_TIMEOUT_S = 10.0  # wall s the web page and the fleet manager each get to close before they are left
 SIM_STOP_TIMEOUT_S = 5.0   # wall s the robots' bridges get to remove their nodes and interfaces
+RECORDER_ID = "fleetRecorder"   # robotID of the --bag recorder's connection
 
 
 class UsageError(ValueError):
@@ -86,6 +92,7 @@ class Options:
     obstacles: list[tuple[int, float]] = field(default_factory=list)
     plot: str | None = "fleet_paths.png"
     report: str | None = None
+    bag: str | None = None          # ROS 1 bag of the fleet topics (``--bag``)
     workdir: str | None = None
     keep: bool = False
     lidar_blocking: bool = True
@@ -189,6 +196,8 @@ class Run:
         self.obstacle_log: list[dict] = []
         self.result: tuple[int, str] | None = None
         self.events: deque[str] = deque(maxlen=6)
+        self.bag: BagRecorder | None = None
+        self.recorder: Connection | None = None
         self.grid_note = ""
         self._stuck_since: float | None = None
         self._stop = asyncio.Event()
@@ -258,6 +267,10 @@ class Run:
         self.result = (code, reason)
         self.wall_total = time.monotonic() - wall0
         try:
+            await self._stop_bag()           # before the report, which gives its counts
+        except (asyncio.TimeoutError, RCEError, OSError) as e:
+            log.warning("the bag recorder did not disconnect", reason=str(e))
+        try:
             self._outputs(code, reason)
         finally:
             await self._teardown()
@@ -304,6 +317,8 @@ class Run:
                             "robots and move_clients reporting")
         if not o.headless:
             await self._start_web()
+        if o.bag:
+            await self._bounded(self._start_bag(reg), "bag recorder setup")
         if not o.mission:
             log.info("serving", robots=len(self.robots), note="Ctrl-C to stop")
             await self._watch(mission=False)
@@ -562,13 +577,40 @@ class Run:
             "planner": {"replans": fs.get("replans", 0), "max_plan_ms": fs.get("max_plan_ms", 0.0),
                         "last_plan_ms": fs.get("last_plan_ms", 0.0)},
             "errors": fs.get("errors", []),
+            "bag": {"path": str(self.bag.path), "messages": dict(self.bag.counts)} if self.bag else None,
             "per_robot": per,
             "workdir": str(self.workdir),
         }
 
+    # -- the --bag recorder ------------------------------------------------------------------------
+    def fleet_topics(self) -> list[tuple[str, str]]:
+        """(topic, class) of the fleet container's topics a ``--bag`` records."""
+        per_robot = [(f"/{r}/{name}", cls) for r in self.robots for name, cls in (
+            ("amcl_pose", "geometry_msgs/PoseWithCovarianceStamped"), ("goalNodesList", "std_msgs/Int32MultiArray"),
+            ("cancelGoal", "std_msgs/Bool"))]
+        return [*per_robot, ("/fleet/state", "fleet/FleetState")]
+
+    async def _start_bag(self, reg) -> None:
+        self.bag = BagRecorder(self.o.bag, reg)
+        self.bag.open()
+        self.recorder = await Connection.connect(self.engine.master_url, USER, PASSWORD, RECORDER_ID)
+        await record_container(self.recorder, FLEET_CTAG, self.fleet_topics(), self.bag, timeout=SETUP_TIMEOUT_S)
+        self.events.append(f"recording the fleet topics to {self.o.bag}")
+        log.info("recording", bag=self.o.bag, topics=len(self.fleet_topics()))
+
+    async def _stop_bag(self) -> None:
+        """Disconnect the recorder and finish the bag (once; again is a no-op)."""
+        rec, self.recorder = self.recorder, None
+        try:
+            if rec is not None:
+                await asyncio.wait_for(rec.close(), TEARDOWN_TIMEOUT_S)
+        finally:
+            if self.bag is not None and self.bag.is_open:
+                self.bag.close()
+                print(f"rce-fleet: {self.bag.summary()}", flush=True)
+
     # -- the operator's web page (rce_fleet.webui, owned by the web page's code) ----------------
     async def _start_web(self) -> None:
-        from .configs import FLEET_CTAG, PASSWORD, USER
         from .webui import WebUI
         self.web = WebUI(self.engine.master_url, self.occ, self.geo, self.robots, ctag=FLEET_CTAG, user=USER,
                          password=PASSWORD, port=self.o.web_port)
@@ -581,6 +623,7 @@ class Run:
         t0 = time.monotonic()
         try:
             await self.tasks.cancel_all()
+            await self._stop_bag()
             if getattr(self, "web", None) is not None:
                 await asyncio.wait_for(self.web.stop(), TEARDOWN_TIMEOUT_S)
             if self.sim is not None:
