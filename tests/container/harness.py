@@ -106,8 +106,8 @@ def make_helper_package(root: Path) -> Path:
 
 
 class FakeMaster:
-    """Plays rce-master's control port: records ``register`` and ``node_status`` and lets the
-    test call ops on the registered task set."""
+    """Plays rce-master's control port: records ``register`` (answering ``answer``) and
+    ``node_status`` and lets the test call ops on the registered task set."""
 
     def __init__(self) -> None:
         self.server: asyncio.AbstractServer | None = None
@@ -115,6 +115,7 @@ class FakeMaster:
         self.peer: RpcPeer | None = None
         self.registration: dict = {}
         self.registered = asyncio.Event()
+        self.answer: dict = {"tid": 7}
         self.statuses: list[dict] = []
         self._changed = asyncio.Condition()
 
@@ -128,7 +129,7 @@ class FakeMaster:
         async def register(a: dict) -> dict:
             self.peer, self.registration = peer, a
             self.registered.set()
-            return {"tid": 7}
+            return self.answer
 
         async def node_status(a: dict) -> None:
             async with self._changed:

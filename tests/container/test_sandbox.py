@@ -80,7 +80,8 @@ async def ns_rig(tmp_path):
 
 async def create(master, cid, ctag, group=None, **limits) -> dict:
     return await master.call("create_container", cid=cid, user="u", ctag=ctag, group=group,
-                             limits={"cpu": None, "memory": None, "size": None, "bandwidth": None, **limits})
+                             limits={"cpu": None, "memory": None, "pids": None, "size": None, "bandwidth": None,
+                                     **limits})
 
 
 async def add_node(master, cid, ntag, pkg="Test", exe="stringEcho.py", args="", respawn=None, name=None) -> dict:
@@ -173,7 +174,7 @@ async def test_a_node_reaches_nothing_but_its_container_bus(ns_rig):
 
 async def test_limits_resize_usage_and_metrics(ns_rig):
     master, cp = ns_rig
-    res = await create(master, 4, "lim", cpu=0.25, memory=200, size=64)
+    res = await create(master, 4, "lim", cpu=0.25, memory=200, pids=64, size=1)   # size: the original's class
     assert res["sandbox"] == "namespaced"
     info = (await master.call("stats", cid=4))["sandbox_info"]
     files = info["cgroup"]["files"]
@@ -206,11 +207,11 @@ async def test_limits_resize_usage_and_metrics(ns_rig):
     e = s["per_node"]["echo"]
     assert e["running"] and e["pid"] == echo and e["processes"] >= 2 and e["connected"]
     assert e["msgs_out"] == 3 and e["msgs_in"] == 3 and e["bytes_in"] == e["bytes_out"] > 30   # in = published
-    assert s["limits"] == {"cpu": 0.25, "memory": 200, "size": 64}
+    assert s["limits"] == {"cpu": 0.25, "memory": 200, "pids": 64, "size": 1}
 
     # resize while running: new files, same processes, still answering
-    r = await master.call("resize_container", cid=4, limits={"cpu": 1.5, "memory": 300, "size": 100})
-    assert r["limits"] == {"cpu": 1.5, "memory": 300, "size": 100}
+    r = await master.call("resize_container", cid=4, limits={"cpu": 1.5, "memory": 300, "pids": 100})
+    assert r["limits"] == {"cpu": 1.5, "memory": 300, "pids": 100, "size": 1}
     files = (await master.call("stats", cid=4))["sandbox_info"]["cgroup"]["files"]
     assert files.get("cpu.cfs_quota_us", files.get("cpu.max", "").split(" ")[0]) == "150000"
     assert files.get("memory.limit_in_bytes", files.get("memory.max")) == str(300 << 20)
@@ -226,8 +227,8 @@ async def test_limits_resize_usage_and_metrics(ns_rig):
     # a limit the kernel refuses is an error naming it, and changes nothing else
     with pytest.raises(RCEError, match="memory"):
         await master.call("resize_container", cid=4, limits={"memory": 1})
-    with pytest.raises(RCEError, match="size"):
-        await master.call("resize_container", cid=4, limits={"size": -3})
+    with pytest.raises(RCEError, match="pids"):
+        await master.call("resize_container", cid=4, limits={"pids": -3})
     # 0 lifts a limit
     r = await master.call("resize_container", cid=4, limits={"cpu": 0})
     assert "cpu" not in r["limits"]
@@ -241,6 +242,20 @@ async def test_limits_resize_usage_and_metrics(ns_rig):
     assert 'rce_node_messages_out_total{ctag="lim",node="echo",user="u"} 3.0' in text
     assert 'rce_node_rss_bytes{ctag="lim",node="spin",user="u"}' in text
     assert "rce_environment_rss_bytes{" in text and "rce_container_host_containers 1.0" in text
+    assert 'rce_container_tasks_limit{ctag="lim",user="u"} 100.0' in text
+
+
+async def test_the_original_clients_size_is_not_a_task_limit(ns_rig):
+    # rce-comm 20130902 always sends containerData {size: 1}: a size class, recorded; its nodes run
+    master, _ = ns_rig
+    assert (await create(master, 7, "orig", size=1))["sandbox"] == "namespaced"
+    info = (await master.call("stats", cid=7))["sandbox_info"]
+    assert info["cgroup"]["files"]["pids.max"] == "max"
+    await add_node(master, 7, "echo", name="echo")
+    await master.wait_bus(7, echo_ready("echo"))
+    assert await master.call("bus_call", cid=7, service="/stringEchoService", request={"data": "size 1"},
+                             timeout=5) == {"data": "size 1"}
+    assert (await master.call("stats", cid=7))["limits"] == {"size": 1}
 
 
 async def test_out_of_memory_kill_is_reported_and_respawned(ns_rig):
@@ -292,7 +307,7 @@ def _port_closed(port: int) -> bool:
 
 async def test_teardown_leaves_no_process_cgroup_namespace_or_port(ns_rig, tmp_path):
     master, cp = ns_rig
-    await create(master, 6, "doomed", memory=256, size=50)
+    await create(master, 6, "doomed", memory=256, pids=50)
     await add_node(master, 6, "echo", name="echo")
     stubborn = (await add_node(master, 6, "stubborn", pkg="CTest", exe="stubborn.py"))["pid"]  # ignores TERM, forks
     await master.wait_bus(6, echo_ready("echo"))

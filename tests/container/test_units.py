@@ -143,18 +143,23 @@ def test_cgroup_limits_v1_and_v2_files(tmp_path):
     cg.create()
     for f in ("memory.limit_in_bytes", "memory.memsw.limit_in_bytes"):     # as the kernel says "unlimited"
         (cg.dirs["memory"] / f).write_text("9223372036854771712")
-    assert cg.apply({"cpu": 0.5, "memory": 64, "size": 32, "bandwidth": 10}) == {"cpu": 0.5, "memory": 64.0, "size": 32}
+    assert cg.apply({"cpu": 0.5, "memory": 64, "pids": 32, "size": 1, "bandwidth": 10}) == \
+        {"cpu": 0.5, "memory": 64.0, "pids": 32}
     assert cg.files() == {"cpu.cfs_quota_us": "50000", "cpu.cfs_period_us": "100000",
                           "memory.limit_in_bytes": str(64 << 20), "memory.memsw.limit_in_bytes": str(64 << 20),
                           "pids.max": "32"}
     assert cg.procs_files[2] == str(tmp_path / "memory/rce/h/c5/cgroup.procs")
     cg.apply({"cpu": 1.5})                      # only what is given changes
     assert cg.files()["cpu.cfs_quota_us"] == "150000" and cg.files()["pids.max"] == "32"
-    cg.apply({"cpu": 0, "memory": 0, "size": 0})  # 0 = no limit
+    cg.apply({"size": 4})                       # the original RCE's size class: no limit, nothing written
+    assert cg.files()["pids.max"] == "32"
+    cg.apply({"cpu": 0, "memory": 0, "pids": 0})  # 0 = no limit
     assert cg.files()["cpu.cfs_quota_us"] == "-1" and cg.files()["memory.limit_in_bytes"] == "-1"
     assert cg.files()["pids.max"] == "max"
     with pytest.raises(RequestError, match="memory"):
         cg.apply({"memory": -1})
+    with pytest.raises(RequestError, match="limit 'pids' must be at least 1 task"):
+        cg.apply({"pids": 0.5})
     # CPU weights above the containers: each container weighs one process, the parents their sum
     cgroups.CgroupSet(_fake_v1(tmp_path), "c6").create()
     assert (tmp_path / "cpu/rce/h/cpu.shares").read_text() == "2048"
@@ -168,7 +173,7 @@ def test_cgroup_limits_v1_and_v2_files(tmp_path):
     v2.create()
     assert (root / "cgroup.subtree_control").read_text() == "+cpu +memory +pids"
     (v2.dirs[""] / "memory.swap.max").write_text("max")
-    v2.apply({"cpu": 2, "memory": 128, "size": 10})
+    v2.apply({"cpu": 2, "memory": 128, "pids": 10, "size": 1})
     assert v2.files() == {"cpu.max": "200000 100000", "memory.max": str(128 << 20), "memory.swap.max": "0",
                           "pids.max": "10"}
     assert v2.procs_files == [str(root / "rce/h/c1/cgroup.procs")]
