@@ -38,6 +38,17 @@ Forwarder carries ROS 1 serialized bytes as the binary part ``msg*``. Either way
 ``bytes`` message is sent as a binary part and a received binary part arrives as
 ``bytes``. The protocol's rules (binary parts, msgID tables, the barrier, ER attribution)
 are :class:`rce.protocol.session.ClientSession`'s; this module is the asyncio shell around it.
+
+With ``allow_reconnect=True`` the connection asks for session resume (docs/INTERNALS.md
+"Session resume") and, as nats.py does, outlives a lost link: it dials the same robot
+endpoint again with backoff and resumes the session with its token. Messages sent meanwhile
+are kept and sent after the resume, calls and barriers in flight stay pending, and what the
+cloud sent meanwhile arrives; :meth:`Connection.on_disconnected`, :meth:`Connection.on_reconnected`
+and :meth:`Connection.on_resumed` tell the application. The connection closes (as today) when
+the cloud refuses the resume (the grace passed) or it could not reconnect in time::
+
+    conn = await Connection.connect(master, "testUser", "testUser", "testRobot", allow_reconnect=True)
+    conn.on_resumed(lambda st: print("resumed; lost", st["dropped"]))
 """
 from __future__ import annotations
 
@@ -46,6 +57,7 @@ import hashlib
 import inspect
 import json
 import time
+from dataclasses import dataclass
 from typing import Any, Awaitable, Callable, Iterable
 from urllib.parse import parse_qsl, urlencode, urlsplit, urlunsplit
 
@@ -56,6 +68,8 @@ from websockets.exceptions import ConnectionClosed, InvalidHandshake, InvalidSta
 from rce import protocol
 from rce.errors import AuthError, RCEError, Timeout, Unavailable
 from rce.log import get_logger
+from rce.masterlink import Backoff
+from rce.protocol.resume import DEFAULT_GRACE, DEFAULT_RESUME_BUFFER
 from rce.protocol.session import ClientSession
 from rce.tasks import Tasks
 
@@ -69,6 +83,10 @@ CLOSE_TIMEOUT = 5.0              # s close() waits for the reader to see the clo
 EXPIRY_CHECK_MIN, EXPIRY_CHECK_MAX = 0.05, 5.0   # s between expiry checks: a quarter of the expiry, within these
 MAX_FRAME = 256 * 1024 * 1024    # bytes, largest websocket frame accepted
 ERRORS_KEPT = 100                # ERs kept in Connection.errors
+RECONNECT_WAIT = 0.05            # s before the second attempt to reconnect; it doubles after each failure ...
+RECONNECT_WAIT_MAX = 1.0         # s ... up to this: a robot endpoint that is reachable again is found within 1 s
+ACK_TICK_FRACTION = 0.5          # with resume, ticks come at least every ack delay x this: AKs go out on time
+FINAL_CLOSE = (1000, 1008)       # close codes by which the cloud ends a session: nothing to resume
 
 Message = dict | bytes            # JSON-form message (Converter) or serialized bytes (Forwarder)
 StatusCallback = Callable[[dict], Any]
@@ -199,7 +217,7 @@ class ServiceClient:
         msg_id = session.call(self.itag, self.srv_cls, {} if request is None else request)
         self.calls += 1
         try:
-            await self.conn._flush(session.data_to_send())
+            await self.conn._write()
             return await session.pending.wait(msg_id, timeout)
         except Timeout:
             raise Timeout(f"service {self.itag!r} ({self.srv_cls}) did not answer within {timeout:g} s") from None
@@ -239,31 +257,67 @@ class ServiceProvider:
         await self.conn.send(protocol.DM, out)
 
 
+@dataclass(frozen=True)
+class Reconnect:
+    """How a connection with ``allow_reconnect`` reconnects and resumes (the knobs of nats.py's
+    ``connect``): ``max_attempts`` dials per gap (None: until the session's grace, which the cloud
+    gives, has passed since the drop); ``time_wait``: s before the second dial, doubling after each
+    failure up to ``max_wait`` s (with jitter, :class:`rce.masterlink.Backoff`); ``resume_buffer``:
+    messages kept until the cloud acks them (past it the oldest are lost and counted);
+    ``timeout``: s for each dial's handshake."""
+
+    max_attempts: int | None = None
+    time_wait: float = RECONNECT_WAIT
+    max_wait: float = RECONNECT_WAIT_MAX
+    resume_buffer: int = DEFAULT_RESUME_BUFFER
+    timeout: float = CONNECT_TIMEOUT
+
+
+class _Refused(Exception):
+    """A websocket handshake refused with an HTTP status (and the endpoint's reason)."""
+
+    def __init__(self, status: int, reason: str):
+        super().__init__(f"HTTP {status}: {reason}")
+        self.status, self.reason = status, reason
+
+
 class Connection:
     """One robot's connection to the cloud: the websocket shell of a
     :class:`~rce.protocol.session.ClientSession` (which holds the rules). Create with :meth:`connect`.
 
     Attributes: ``user_id``, ``robot_id``, ``ws_url``; ``interfaces``: iTag -> last ST ``iu``
     status (bool); ``errors``: every ER string received (most recent last, the last
-    :data:`ERRORS_KEPT`); ``dropped``: DMs with no handler, malformed frames and expired binary parts."""
+    :data:`ERRORS_KEPT`); ``dropped``: DMs with no handler, malformed frames and expired binary parts;
+    ``reconnect``: the :class:`Reconnect` settings, None without ``allow_reconnect``; ``resumes``:
+    sessions resumed; ``connected``: False while a lost link is being replaced."""
 
     def __init__(self, ws: ClientConnection, user_id: str, robot_id: str, ws_url: str,
-                 expiry: float = protocol.DEFAULT_EXPIRY):
+                 expiry: float = protocol.DEFAULT_EXPIRY, reconnect: Reconnect | None = None):
         self.ws, self.user_id, self.robot_id, self.ws_url = ws, user_id, robot_id, ws_url
-        self.session = ClientSession(expiry=expiry)
+        self.reconnect = reconnect
+        self.session = ClientSession(expiry=expiry, resume=reconnect is not None,
+                                     resume_buffer=reconnect.resume_buffer if reconnect else DEFAULT_RESUME_BUFFER)
+        self.resumes = 0
         self.errors: list[str] = []
         self.unhandled = 0                          # DMs for an iTag with no handler
         self.close_reason: str | None = None
         self._handlers: dict[str, Subscriber | ServiceProvider] = {}
         self._status_cbs: list[StatusCallback] = []
         self._error_cbs: list[ErrorCallback] = []
+        self._link_cbs: dict[str, list[Callable[[Any], Any]]] = {"disconnected": [], "reconnected": [], "resumed": []}
         self._changed = asyncio.Event()
         self._barrier_ok = True
         self._send_lock = asyncio.Lock()
         self._closed = asyncio.Event()
+        self._kicked = False                        # a writer task is due to send what the session produced
         self.tasks = Tasks(f"rce-client {robot_id}")
-        self._reader = self.tasks.spawn(self._read_loop(), name="reader")
+        self._reader = self.tasks.spawn(self._read_loop(ws), name="reader")
         self.tasks.spawn(self._expire_loop(), name="expire")
+
+    @property
+    def connected(self) -> bool:
+        """Is the session on a live link (False while it waits for a resume, and once closed)?"""
+        return not self.closed and self.session.state not in ("detached", "resuming")
 
     @property
     def interfaces(self) -> dict[str, bool]:
@@ -279,35 +333,40 @@ class Connection:
     @classmethod
     async def login_connect(cls, master_url: str, user_id: str, password: str, robot_id: str, *,
                             version: str = CLIENT_VERSION, timeout: float = CONNECT_TIMEOUT,
-                            expiry: float = protocol.DEFAULT_EXPIRY) -> "Connection":
+                            **options: Any) -> "Connection":
         """Log in at the master and open the robot's websocket.
 
         ``master_url``: ``http://HOST:9000/``; ``password`` in clear (hashed here);
-        ``timeout``: s for each of login and handshake; ``expiry``: s an incomplete message
-        waits for its binary parts. Raises :class:`AuthError` (bad credentials: HTTP or
+        ``timeout``: s for each of login and handshake; ``options``: those of :meth:`open`
+        (``expiry``, ``allow_reconnect``, ...). Raises :class:`AuthError` (bad credentials: HTTP or
         handshake 401/403, with the cloud's reason) or :class:`Unavailable`."""
         ws_url = await login(master_url, user_id, version, timeout)
-        return await cls.open(ws_url, user_id, password, robot_id, timeout=timeout, expiry=expiry)
+        return await cls.open(ws_url, user_id, password, robot_id, timeout=timeout, **options)
 
     @classmethod
     async def open(cls, ws_url: str, user_id: str, password: str, robot_id: str, *,
-                   timeout: float = CONNECT_TIMEOUT, expiry: float = protocol.DEFAULT_EXPIRY) -> "Connection":
+                   timeout: float = CONNECT_TIMEOUT, expiry: float = protocol.DEFAULT_EXPIRY,
+                   allow_reconnect: bool = False, max_reconnect_attempts: int | None = None,
+                   reconnect_time_wait: float = RECONNECT_WAIT, max_reconnect_wait: float = RECONNECT_WAIT_MAX,
+                   resume_buffer: int = DEFAULT_RESUME_BUFFER) -> "Connection":
         """Open the websocket at a known robot endpoint ``ws_url`` (skips the login).
+
+        ``expiry``: s an incomplete message waits for its binary parts. ``allow_reconnect``: ask for
+        session resume and reconnect after a lost link (:class:`Reconnect` gives the other settings).
         Raises :class:`AuthError` or :class:`Unavailable` as :meth:`connect`."""
-        url = _with_query(ws_url, userID=user_id, robotID=robot_id, password=hash_password(password))
+        reconnect = Reconnect(max_reconnect_attempts, reconnect_time_wait, max_reconnect_wait, resume_buffer,
+                              timeout) if allow_reconnect else None
+        query = {"userID": user_id, "robotID": robot_id, "password": hash_password(password)}
         try:
-            ws = await ws_connect(url, open_timeout=timeout, max_size=MAX_FRAME, proxy=None,
-                                  compression=None, user_agent_header="rce-client")
-        except InvalidStatus as e:
-            status = e.response.status_code
-            reason = _reason(e.response.body or b"", e.response.reason_phrase or str(status))
-            if status in (401, 403):
-                raise AuthError(f"robot endpoint {ws_url} refused {user_id}/{robot_id}: {reason}") from None
-            raise Unavailable(f"robot endpoint {ws_url} refused the connection (HTTP {status}): {reason}") from None
-        except (InvalidHandshake, InvalidURI, OSError, asyncio.TimeoutError) as e:
-            raise Unavailable(f"cannot connect to the robot endpoint {ws_url}: {e or type(e).__name__}") from None
-        log.info("connected", user=user_id, robot=robot_id, url=ws_url)
-        return cls(ws, user_id, robot_id, ws_url, expiry)
+            ws = await _dial(_with_query(ws_url, **query, **({"resume": "1"} if allow_reconnect else {})), timeout)
+        except _Refused as e:
+            if e.status in (401, 403):
+                raise AuthError(f"robot endpoint {ws_url} refused {user_id}/{robot_id}: {e.reason}") from None
+            raise Unavailable(f"robot endpoint {ws_url} refused the connection (HTTP {e.status}): {e.reason}") from None
+        except Unavailable as e:
+            raise Unavailable(f"cannot connect to the robot endpoint {ws_url}: {e.message}") from None
+        log.info("connected", user=user_id, robot=robot_id, url=ws_url, resume=allow_reconnect)
+        return cls(ws, user_id, robot_id, ws_url, expiry, reconnect)
 
     @property
     def closed(self) -> bool:
@@ -319,13 +378,11 @@ class Connection:
         return self.close_reason or "closed"
 
     async def close(self) -> None:
-        """Close the websocket; pending service calls fail with :class:`Unavailable`."""
+        """Close the websocket (which ends the session: the cloud does not keep it for a resume);
+        pending service calls fail with :class:`Unavailable`."""
         if self.close_reason is None:
             self.close_reason = "closed by the client"
-        try:
-            await self.ws.close()
-        except Exception:   # closing a broken socket never raises out of close()
-            pass
+        await _close_quietly(self.ws)
         try:
             await asyncio.wait_for(asyncio.shield(self._reader), CLOSE_TIMEOUT)
         except (asyncio.TimeoutError, asyncio.CancelledError):
@@ -340,6 +397,7 @@ class Connection:
         self.session.events_received()           # call_failed/barrier_failed: their waiters have the error
         self._changed.set()
         await self.tasks.cancel_all()
+        await _close_quietly(self.ws)            # a link a reconnect had just opened
 
     async def __aenter__(self) -> "Connection":
         return self
@@ -353,16 +411,35 @@ class Connection:
         ``data`` go as binary parts (JSON frame first, then one binary frame per part).
         Raises :class:`Unavailable` when the connection is closed."""
         self.session.send(type_, data)
-        await self._flush(self.session.data_to_send())
+        await self._write()
 
-    async def _flush(self, frames: list[str | bytes]) -> None:
-        """Write one message's frames, in order. Raises :class:`Unavailable` when the link closed."""
+    async def _write(self) -> None:
+        """Write what the session has to send, in order, on the current link (one writer at a time:
+        frames leave in the order the session made them). Raises :class:`Unavailable` when the link
+        closed, unless the session is kept for a resume (it then sends what the cloud did not get)."""
+        async with self._send_lock:
+            while frames := self.session.data_to_send():
+                ws = self.ws
+                try:
+                    for f in frames:
+                        await ws.send(f)
+                except ConnectionClosed as e:
+                    if self.reconnect is not None and self.session.state != "off":
+                        return
+                    raise Unavailable(f"connection to the cloud closed: {_close_text(e)}") from None
+
+    def _kick(self) -> None:
+        """Frames the reader or a timer made (AKs, a resume's resend) go out, from a task."""
+        if self.session.outbox and not self._kicked:
+            self._kicked = True
+            self.tasks.spawn(self._kicked_write(), name="write")
+
+    async def _kicked_write(self) -> None:
+        self._kicked = False
         try:
-            async with self._send_lock:
-                for f in frames:
-                    await self.ws.send(f)
-        except ConnectionClosed as e:
-            raise Unavailable(f"connection to the cloud closed: {_close_text(e)}") from None
+            await self._write()
+        except Unavailable:      # the reader sees the closed link too
+            pass
 
     async def create_container(self, tag: str, group: str | None = None, **container_data: Any) -> None:
         """CC: create container ``tag``. ``container_data`` keys: ``groupIp``, ``size``, ``cpu``
@@ -444,7 +521,7 @@ class Connection:
             return False
         token = self.session.barrier()
         try:
-            await self._flush(self.session.data_to_send())
+            await self._write()
             await self.session.pending.wait(token, timeout)
             return True
         except Timeout:
@@ -487,6 +564,21 @@ class Connection:
         """Call ``cb(reason)`` (sync or async) for every ER from the cloud (they are logged too)."""
         self._error_cbs.append(cb)
 
+    def on_disconnected(self, cb: Callable[[str], Any]) -> None:
+        """(``allow_reconnect``) Call ``cb(reason)`` when the link is lost and the session kept: the
+        connection reconnects and resumes; sends and calls wait meanwhile."""
+        self._link_cbs["disconnected"].append(cb)
+
+    def on_reconnected(self, cb: Callable[[str], Any]) -> None:
+        """(``allow_reconnect``) Call ``cb(ws_url)`` when a new link is open (the resume follows)."""
+        self._link_cbs["reconnected"].append(cb)
+
+    def on_resumed(self, cb: Callable[[dict], Any]) -> None:
+        """(``allow_reconnect``) Call ``cb(data)`` when the session is resumed: ``data`` is the cloud's
+        ``ST {"topic": "session", "status": "resumed", "ack", "dropped", ...}`` (``dropped``: messages to
+        the robot the cloud's buffer lost)."""
+        self._link_cbs["resumed"].append(cb)
+
     async def wait_interfaces_up(self, itags: Iterable[str], timeout: float = WAIT_TIMEOUT) -> None:
         """Wait until the last ST ``iu`` status of every iTag in ``itags`` is true.
 
@@ -512,27 +604,77 @@ class Connection:
                 raise Unavailable(f"interfaces still down after {timeout:g} s: {', '.join(down)}{hint}") from None
 
     # -- receiving ---------------------------------------------------------------------------
-    async def _read_loop(self) -> None:
+    async def _read_loop(self, ws: ClientConnection) -> None:
+        reason = "connection lost"
         try:
-            async for frame in self.ws:
+            async for frame in ws:
                 if isinstance(frame, str):
                     self.session.receive_text(frame, time.monotonic())
                 else:
                     self.session.receive_binary(frame, time.monotonic())
                 self._dispatch()
-            self.close_reason = self.close_reason or _close_text(self.ws)
+            reason = _close_text(ws)
         except ConnectionClosed as e:
-            self.close_reason = self.close_reason or _close_text(e)
+            reason = _close_text(e)
         except Exception as e:   # the reader never dies silently
-            self.close_reason = self.close_reason or f"reader failed: {type(e).__name__}: {e}"
+            reason = f"reader failed: {type(e).__name__}: {e}"
             log.exception("client reader failed", robot=self.robot_id)
         finally:
-            if self.close_reason != "closed by the client":
-                log.info("connection closed", robot=self.robot_id, reason=self.close_reason)
+            if ws is self.ws and not self._closed.is_set() and not self._resuming(ws, reason):
+                self.close_reason = self.close_reason or reason
+                if self.close_reason != "closed by the client":
+                    log.info("connection closed", robot=self.robot_id, reason=self.close_reason)
+                await self._finish()
+
+    def _resuming(self, ws: ClientConnection, reason: str) -> bool:
+        """The link is lost: keep the session and start reconnecting, when it can be resumed."""
+        rcvd = ws.protocol.close_rcvd
+        if self.reconnect is None or self.close_reason is not None or (rcvd is not None and rcvd.code in FINAL_CLOSE):
+            return False
+        if not self.session.detach(reason):
+            return False
+        self._dispatch()
+        log.info("link to the cloud lost; resuming", robot=self.robot_id, reason=reason)
+        for cb in self._link_cbs["disconnected"]:
+            self._run_cb(cb, reason)
+        self.tasks.spawn(self._reconnect(), name="reconnect")
+        return True
+
+    async def _reconnect(self) -> None:
+        """Dial the robot endpoint with the resume query until it takes it (then the new link's reader
+        waits for the cloud's ST resumed), the grace has passed, or it refuses: then the connection closes."""
+        r = self.reconnect
+        backoff = Backoff(r.time_wait, cap=max(r.time_wait, r.max_wait))
+        deadline = time.monotonic() + (self.session.grace or DEFAULT_GRACE)
+        attempts = 0
+        while True:
+            attempts += 1
+            url = _with_query(self.ws_url, userID=self.user_id, robotID=self.robot_id, **self.session.resume_query())
+            try:
+                ws = await _dial(url, r.timeout)
+                break
+            except _Refused as e:           # 401: the session expired (or the token is wrong); 400: bad ack
+                self.close_reason = f"the cloud refused to resume the session ({e})"
+            except Unavailable as e:
+                delay = backoff.next()
+                if (r.max_attempts is None or attempts < r.max_attempts) and time.monotonic() + delay < deadline:
+                    await asyncio.sleep(delay)      # the backoff, a timer
+                    continue
+                self.close_reason = f"could not resume the session ({attempts} attempt(s)): {e.message}"
+            log.info("connection closed", robot=self.robot_id, reason=self.close_reason)
             await self._finish()
+            return
+        self.ws = ws
+        self.session.attach()
+        self._reader = self.tasks.spawn(self._read_loop(ws), name="reader")
+        log.info("reconnected; resuming", robot=self.robot_id, url=self.ws_url, attempts=attempts)
+        for cb in self._link_cbs["reconnected"]:
+            self._run_cb(cb, self.ws_url)
 
     async def _expire_loop(self) -> None:
         period = max(EXPIRY_CHECK_MIN, min(self.session.assembler.expiry / 4, EXPIRY_CHECK_MAX))
+        if self.session.incoming is not None:
+            period = min(period, self.session.incoming.ack_delay * ACK_TICK_FRACTION)
         while True:
             await asyncio.sleep(period)   # a timer, not a synchronisation
             self.session.tick(time.monotonic())
@@ -561,6 +703,12 @@ class Connection:
                 self._on_error(f["reason"])
             elif ev.name == "dropped":
                 log.warning("dropped a message from the cloud", reason=f["reason"])
+            elif ev.name == "session" and f["data"].get("status") == "resumed":
+                self.resumes += 1
+                log.info("session resumed", robot=self.robot_id, dropped=f["data"].get("dropped"))
+                for cb in self._link_cbs["resumed"]:
+                    self._run_cb(cb, f["data"])
+        self._kick()
 
     def _on_message(self, f: dict) -> None:
         handler = self._handlers.get(f["iTag"])
@@ -584,6 +732,26 @@ class Connection:
 
 async def _awaited(aw: Awaitable) -> Any:
     return await aw
+
+
+async def _dial(url: str, timeout: float) -> ClientConnection:
+    """Open a websocket to ``url`` within ``timeout`` s. Raises :class:`_Refused` (the endpoint answered
+    the handshake with an HTTP error) or :class:`Unavailable` (unreachable, or the handshake failed)."""
+    try:
+        return await ws_connect(url, open_timeout=timeout, max_size=MAX_FRAME, proxy=None, compression=None,
+                                user_agent_header="rce-client")
+    except InvalidStatus as e:
+        status = e.response.status_code
+        raise _Refused(status, _reason(e.response.body or b"", e.response.reason_phrase or str(status))) from None
+    except (InvalidHandshake, InvalidURI, OSError, asyncio.TimeoutError) as e:
+        raise Unavailable(str(e) or type(e).__name__) from None
+
+
+async def _close_quietly(ws: ClientConnection) -> None:
+    try:
+        await ws.close()
+    except Exception:   # closing a broken socket never raises out of close()
+        pass
 
 
 def _close_text(src: Any) -> str:

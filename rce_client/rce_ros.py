@@ -2,7 +2,7 @@
 
 ::
 
-    rce-ros configs/debug.config [--bus PATH] [--timeout S] [--keep] [--url MASTER_URL]
+    rce-ros configs/debug.config [--bus PATH] [--timeout S] [--keep] [--url MASTER_URL] [--no-resume]
 
 1. Loads the robot config (:func:`rce.config.load_config`, JSON or YAML). A bad config is
    refused before anything is sent: exit code 2 and the ConfigError (file, key path, reason).
@@ -22,11 +22,16 @@
    - ``ServiceProviderConverter/Forwarder``: a local service ``addr`` whose calls go to the cloud;
    - ``ServiceClientConverter/Forwarder``: the cloud's calls run against the local service ``addr``.
 
+5. Asks for session resume (docs/INTERNALS.md "Session resume"; ``--no-resume``: not): when the link
+   to the cloud drops, the local bus stays up and local programs never notice: their messages to
+   the cloud are kept and sent after the resume, their calls to the cloud wait, and what the cloud
+   sent meanwhile is published once the session is resumed. rce-ros prints the drop and the resume.
+
 Every ER from the cloud is printed with its reason. SIGINT/SIGTERM tear down: the interfaces
 and containers this run created are removed (unless ``--keep``), the websocket is closed,
 the socket removed; exit code 0. (With ``--keep`` nothing is removed by rce-ros, but today's
-master still destroys the containers a robot created when that robot disconnects.) Exit code 1: login refused, interfaces not up in time,
-or the connection lost.
+master still destroys the containers a robot created when that robot disconnects.) Exit code 1:
+login refused, interfaces not up in time, or the connection lost (and not resumed).
 """
 from __future__ import annotations
 
@@ -145,13 +150,15 @@ class RobotBridge:
     ``out(line)`` prints status lines (stdout); ``err(line)`` prints errors (stderr).
     ``bus_path`` None serves no socket: an in-process robot (the fleet simulator runs one
     bridge per simulated robot) publishes and subscribes on ``self.bus`` directly; ``run()``
-    in a task, ``ready`` tells when the interfaces are up, ``stop.set()`` tears down."""
+    in a task, ``ready`` tells when the interfaces are up, ``stop.set()`` tears down.
+    ``resume``: ask for session resume and ride out lost links (:class:`Connection` ``allow_reconnect``)."""
 
     def __init__(self, config: RobotConfig, source: str, bus_path: str | None, *, timeout: float = 30.0,
                  keep: bool = False, url: str | None = None, registry: MessageRegistry | None = None,
-                 out: Callable[[str], None] | None = None, err: Callable[[str], None] | None = None):
+                 out: Callable[[str], None] | None = None, err: Callable[[str], None] | None = None,
+                 resume: bool = True):
         self.cfg, self.source, self.bus_path = config, source, bus_path
-        self.timeout, self.keep = timeout, keep
+        self.timeout, self.keep, self.resume = timeout, keep, resume
         self.url = url or config.url
         self.registry = registry or default_registry()
         self.out = out or (lambda s: print(s, flush=True))
@@ -267,10 +274,15 @@ class RobotBridge:
     async def _connect_and_setup(self) -> None:
         cfg = self.cfg
         self.out(f"rce-ros: logging in at {self.url} as {cfg.userID}/{cfg.robotID}")
-        self.conn = await self._until_stop(Connection.connect(self.url, cfg.userID, cfg.password, cfg.robotID))
+        self.conn = await self._until_stop(Connection.connect(self.url, cfg.userID, cfg.password, cfg.robotID,
+                                                              allow_reconnect=self.resume))
         conn = self.conn
         conn.on_error(lambda reason: self.err(f"rce-ros: error from the cloud: {reason}"))
         conn.on_status(self._on_status)
+        conn.on_disconnected(lambda reason: self.err(f"rce-ros: link to the cloud lost ({reason}); resuming the "
+                                                     f"session (the local bus stays up)"))
+        conn.on_resumed(lambda st: self.out(f"rce-ros: session resumed ({st.get('dropped', 0)} message(s) from "
+                                            f"the cloud lost)"))
         self.out(f"rce-ros: connected to {conn.ws_url}")
         self._bridge()
 
@@ -425,6 +437,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--keep", action="store_true", help="do not remove interfaces and containers on exit (note: "
                    "the master still destroys a robot's containers when the robot disconnects)")
     p.add_argument("--url", metavar="MASTER_URL", help="master login URL (overrides the config's url)")
+    p.add_argument("--no-resume", dest="resume", action="store_false",
+                   help="do not ask for session resume: a lost link ends the run (exit code 1)")
     return p
 
 
@@ -440,7 +454,8 @@ def main(argv: list[str] | None = None) -> None:
     bus_path = args.bus or default_bus_path(cfg.robotID)
 
     async def amain() -> int:
-        bridge = RobotBridge(cfg, args.config, bus_path, timeout=args.timeout, keep=args.keep, url=args.url)
+        bridge = RobotBridge(cfg, args.config, bus_path, timeout=args.timeout, keep=args.keep, url=args.url,
+                             resume=args.resume)
         loop = asyncio.get_running_loop()
         for sig in (signal.SIGINT, signal.SIGTERM):
             loop.add_signal_handler(sig, bridge.stop.set)

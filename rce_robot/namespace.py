@@ -1,23 +1,32 @@
-"""A robot namespace: the websocket shell of one connected robot's session.
+"""A robot namespace: the websocket shell of one robot's session.
 
 The rules live in :class:`rce.protocol.session.RobotSession` (frames, binary parts,
-validation, ordering, the bounded outbox, error accounting); this shell moves frames between
-the websocket and the session and does what the session's events ask: a request goes to
-the master (one at a time), a DM to its interface, a service call runs in a task. Every
+validation, ordering, the bounded outbox, error accounting, resume); this shell moves frames
+between a websocket and the session and does what the session's events ask: a request goes
+to the master (one at a time), a DM to its interface, a service call runs in a task. Every
 task is kept (:class:`rce.tasks.Tasks`).
+
+A session may outlive its link (docs/INTERNALS.md "Session resume"): :meth:`RobotNamespace.serve`
+serves one link. When the link of a robot that opted in is lost, the namespace keeps its
+interfaces, connections, requests and calls, detached, for ``grace`` s; what the cloud sends
+the robot meanwhile is kept by the session. A resume serves the next link. The session ends
+(``on_gone``: the endpoint forgets it and tells the master) when the grace passes, when the
+robot closes its link itself, when a robot that did not opt in loses its link, or on
+:meth:`RobotNamespace.close`.
 """
 from __future__ import annotations
 
 import asyncio
 import time
+from collections.abc import Awaitable, Callable
 from typing import Any
 
 from websockets.exceptions import ConnectionClosed
 
-from rce.errors import RCEError
+from rce.errors import ProtocolError, RCEError
 from rce.log import get_logger
 from rce.protocol.session import Event, RobotSession
-from rce.rpc import RpcPeer
+from rce.masterlink import MasterLink
 from rce.tasks import Tasks
 from rce_robot.interfaces import RobotInterface
 
@@ -28,19 +37,42 @@ log = get_logger("rce.robot")
 REQUEST_TIMEOUT = 120.0
 # s between two expiry checks at most (half the expiry when that is shorter)
 EXPIRY_CHECK = 5.0
+# s between two ticks of a resumable session at most, as a fraction of its ack delay: its AKs go out on time
+ACK_TICK_FRACTION = 0.5
 CLOSE_POLICY = 1008       # websocket close code when the cloud ends a session (policy violation)
 CLOSE_REASON_MAX = 120    # chars of a close reason (a close frame holds 123 bytes)
+CLEAN_CLOSE = (1000, 1001)  # close codes of a robot that ends its session itself (normal, going away)
 
 
 class RobotNamespace:
-    """Session of robot ``robot`` of user ``user`` on websocket ``ws``; ``master``: the control
-    link its requests go through. Implements :class:`rce_robot.interfaces.RobotLink`."""
+    """Session of robot ``robot`` of user ``user``; ``master``: the control link its requests go
+    through; ``grace``: s a resumable session stays detached after its link is lost;
+    ``on_gone(namespace)``: called once when the session has ended (interfaces stopped).
+    Implements :class:`rce_robot.interfaces.RobotLink`."""
 
-    def __init__(self, ws: Any, user: str, robot: str, master: RpcPeer, session: RobotSession):
-        self.ws, self.user, self.robot, self.master, self.session = ws, user, robot, master, session
+    def __init__(self, user: str, robot: str, master: MasterLink, session: RobotSession, *,
+                 on_gone: Callable[["RobotNamespace"], Awaitable[None]], grace: float | None = None):
+        self.user, self.robot, self.master, self.session = user, robot, master, session
+        self.grace = session.grace if grace is None else grace
         self.interfaces: dict[str, RobotInterface] = {}
-        self.tasks = Tasks(f"robot {user}/{robot}")
+        self.tasks = Tasks(f"robot {user}/{robot}")        # the session's: requests, calls, the grace timer
+        self.ws: Any = None                                 # the link being served; None while detached
+        self.ended = False
+        self.detached_since: float | None = None            # monotonic s
+        self._on_gone = on_gone
+        self._gone = False
+        self._grace_timer: asyncio.Task | None = None
         self._wake = asyncio.Event()
+
+    @property
+    def resumable(self) -> bool:
+        """Did the robot opt in to resume (its session outlives a lost link)?"""
+        return self.session.outgoing is not None
+
+    @property
+    def detached(self) -> bool:
+        """Is the session kept without a link, waiting for a resume?"""
+        return self.ws is None and not self.ended and self.detached_since is not None
 
     # -- the interface table -------------------------------------------------------------------------
     def add_interface(self, iface: RobotInterface) -> None:
@@ -69,21 +101,41 @@ class RobotNamespace:
         self.session.send_error(reason)
         self._pump()
 
-    async def _writer(self) -> None:
-        while True:
-            await self._wake.wait()
-            self._wake.clear()
-            while frames := self.session.data_to_send(1):     # one message at a time: the outbox stays the bound
-                for f in frames:
-                    await self.ws.send(f)
-
-    # -- from the robot --------------------------------------------------------------------------------
-    async def run(self) -> None:
-        """Serve the session until the websocket closes."""
-        self.tasks.spawn(self._writer(), name="writer")
-        self.tasks.spawn(self._expire(), name="expire")
+    async def _writer(self, ws: Any) -> None:
         try:
-            async for frame in self.ws:
+            while True:
+                await self._wake.wait()
+                self._wake.clear()
+                # one message at a time, and only while this link is the session's: the outbox stays the bound
+                while self.ws is ws and (frames := self.session.data_to_send(1)):
+                    for f in frames:
+                        await ws.send(f)
+        except ConnectionClosed:      # the reader sees it too; what was taken is kept for a resume
+            pass
+
+    # -- a link ----------------------------------------------------------------------------------------
+    async def serve(self, ws: Any, ack: int | None = None) -> None:
+        """Serve the session over websocket ``ws`` until it closes; ``ack``: a resume whose robot took
+        every message up to ``ack`` (:meth:`RobotSession.attach`; a link still held is closed). When
+        the link is lost the session is detached (resumable) or ends."""
+        if ack is not None:
+            try:
+                self.session.attach(ack)
+            except ProtocolError as e:
+                await ws.close(CLOSE_POLICY, e.message[:CLOSE_REASON_MAX])
+                return
+        old, self.ws, self.detached_since = self.ws, ws, None
+        if self._grace_timer is not None:
+            self._grace_timer.cancel()
+            self._grace_timer = None
+        if old is not None:
+            self.tasks.spawn(old.close(CLOSE_POLICY, "replaced by a resumed link"), name="close-old-link")
+        link = Tasks(f"robot {self.user}/{self.robot} link")
+        link.spawn(self._writer(ws), name="writer")
+        link.spawn(self._ticker(), name="ticker")
+        self._pump()
+        try:
+            async for frame in ws:
                 if isinstance(frame, str):
                     self.session.receive_text(frame, time.monotonic())
                 else:
@@ -92,17 +144,39 @@ class RobotNamespace:
         except ConnectionClosed:
             pass
         finally:
-            await self.tasks.cancel_all()
-            for iface in list(self.interfaces.values()):
-                await iface.stop()
-            self.interfaces.clear()
+            await link.cancel_all()
+        if self.ws is not ws:           # a resume took the session over
+            return
+        self.ws = None
+        if self.ended or not self.resumable or _closed_by_robot(ws):
+            await self._end()
+            return
+        self.session.detach()
+        self.detached_since = time.monotonic()
+        log.info("robot link lost; session kept", user=self.user, robot=self.robot, grace=self.grace,
+                 code=ws.close_code)
+        self._grace_timer = self.tasks.spawn(self._expire(), name="grace")
+
+    async def _expire(self) -> None:
+        await asyncio.sleep(self.grace)      # a timer: the grace period
+        log.info("robot did not resume within the grace period", user=self.user, robot=self.robot, grace=self.grace)
+        await self._end()
+
+    async def _ticker(self) -> None:
+        period = min(EXPIRY_CHECK, self.session.assembler.expiry / 2)
+        if self.session.incoming is not None:
+            period = min(period, self.session.incoming.ack_delay * ACK_TICK_FRACTION)
+        while True:
+            await asyncio.sleep(period)   # a timer
+            self.session.tick(time.monotonic())
+            self._pump()
 
     def _pump(self) -> None:
         """Do what the session's events ask; wake the writer when frames wait."""
         while events := self.session.events_received():
             for ev in events:
                 self._on_event(ev)
-        if self.session.outbox:
+        if self.session.outbox and self.ws is not None:
             self._wake.set()
 
     def _on_event(self, ev: Event) -> None:
@@ -145,16 +219,35 @@ class RobotNamespace:
             self.session.answer_call(data, resp)
         self._pump()
 
-    async def _expire(self) -> None:
-        while True:
-            await asyncio.sleep(min(EXPIRY_CHECK, self.session.assembler.expiry / 2))   # a timer
-            self.session.tick(time.monotonic())
-            self._pump()
-
+    # -- the end ---------------------------------------------------------------------------------------
     async def close(self, reason: str) -> None:
-        """End the session: the robot sees a close with ``reason``."""
-        await self.ws.close(CLOSE_POLICY, reason[:CLOSE_REASON_MAX])
+        """End the session: the robot sees a close with ``reason`` (code 1008: do not resume); a
+        detached session ends at once."""
+        self.ended = True
+        if self.ws is not None:
+            await self.ws.close(CLOSE_POLICY, reason[:CLOSE_REASON_MAX])      # serve() ends it
+        else:
+            await self._end()
+
+    async def _end(self) -> None:
+        """Stop the session's tasks and interfaces, then ``on_gone`` (once)."""
+        if self._gone:
+            return
+        self._gone = self.ended = True
+        self.detached_since = None
+        await self.tasks.cancel_all()
+        for iface in list(self.interfaces.values()):
+            await iface.stop()
+        self.interfaces.clear()
+        await self._on_gone(self)
 
     def stats(self) -> dict:
         """This robot's counters (:meth:`RobotSession.stats`) with its user and robot ID."""
-        return {"user": self.user, "robot": self.robot, **self.session.stats()}
+        return {"user": self.user, "robot": self.robot, "detached": self.detached, **self.session.stats()}
+
+
+def _closed_by_robot(ws: Any) -> bool:
+    """Did the robot end its session itself: its close frame came first, with 1000 or 1001?"""
+    proto = getattr(ws, "protocol", None)
+    rcvd = getattr(proto, "close_rcvd", None)
+    return rcvd is not None and bool(getattr(proto, "close_rcvd_then_sent", False)) and rcvd.code in CLEAN_CLOSE

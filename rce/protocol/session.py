@@ -12,6 +12,12 @@ shells that move frames and run what the events ask for.
   :class:`~rce.pending.PendingCalls` table keyed by msgID or token), the interface status
   table, ER attribution. Its rules are those of ``tests/vectors/README.md``, which the
   browser client (``rce.js``) follows too; ``tests/vectors/session.json`` checks both.
+
+Either side may opt in to session resume (``resume=True``; docs/INTERNALS.md "Session
+resume"): messages are numbered and kept until acked (:mod:`rce.protocol.resume`), a lost link
+detaches the session (:meth:`RobotSession.detach`, :meth:`ClientSession.detach`) and a new one
+resumes it (:meth:`RobotSession.attach`, :meth:`ClientSession.attach`). Without it nothing
+changes: no ``seq``, no ``AK``, no ``ST session``.
 """
 from __future__ import annotations
 
@@ -24,6 +30,9 @@ from typing import Any
 from rce.errors import ProtocolError, RequestError, Unavailable
 from rce.pending import PendingCalls
 from rce.protocol.frames import (CX, DEFAULT_EXPIRY, DEFAULT_MAX_PENDING_BYTES, DM, ER, ST, Assembler, encode)
+from rce.protocol.resume import (ACK_DELAY, ACK_EVERY, AK, DEFAULT_GRACE, DEFAULT_RESUME_BUFFER, DEFAULT_RESUME_BYTES,
+                                 SESSION_TOPIC, Frame, Incoming, Outgoing, ack_frame, is_session_status, new_token,
+                                 read_ack, read_seq)
 from rce.protocol.schema import split_interface_type, validate
 
 DEFAULT_QUEUE_SIZE = 1000                   # messages per robot in each bounded queue (like a ROS queue_size)
@@ -44,7 +53,9 @@ class Event:
 
     ClientSession: ``status {data}``, ``interface {iTag, up}``, ``error {reason}``, ``message {iTag, type,
     msgID, msg}``, ``response {msgID, msg}``, ``call_failed {msgID, reason}``, ``barrier {token}``,
-    ``barrier_failed {token, reason}``, ``dropped {reason}`` (tests/vectors/README.md)."""
+    ``barrier_failed {token, reason}``, ``dropped {reason}``; with resume: ``session {data}`` (an ST
+    session: started or resumed), ``detached {session, ack}`` (the link is lost, the session kept: resume
+    with this query) (tests/vectors/README.md)."""
 
     name: str
     fields: dict[str, Any] = field(default_factory=dict)
@@ -56,9 +67,14 @@ class _Session:
 
     max_message: int | None = None      # bytes (text: chars) of the largest frame taken; None: any
 
-    def __init__(self, expiry: float, max_pending_bytes: int):
+    def __init__(self, expiry: float, max_pending_bytes: int, resume: bool, resume_buffer: int, resume_bytes: int,
+                 ack_every: int, ack_delay: float):
         self.assembler = Assembler(expiry=expiry, max_pending_bytes=max_pending_bytes)
         self._events: list[Event] = []
+        self._now = 0.0                                            # s, the last time given
+        # with resume: what this side sent, numbered and kept until acked; what it took from the peer
+        self.outgoing = Outgoing(resume_buffer, resume_bytes) if resume else None
+        self.incoming = Incoming(ack_every, ack_delay) if resume else None
 
     def _emit(self, name: str, **fields: Any) -> None:
         self._events.append(Event(name, fields))
@@ -77,11 +93,16 @@ class _Session:
         self._receive(data, now)
 
     def tick(self, now: float) -> None:
-        """Time is ``now`` (s): incomplete messages and orphan parts past their expiry are bad input."""
+        """Time is ``now`` (s): incomplete messages and orphan parts past their expiry are bad input;
+        with resume on a live link, an AK that is due goes out."""
+        self._now = now
         for reason in self.assembler.expire(now):
             self._bad_input(reason)
+        if self.incoming is not None and self._linked():
+            self._ack_if_due()
 
     def _receive(self, frame: str | bytes, now: float) -> None:
+        self._now = now
         if self.max_message is not None and len(frame) > self.max_message:
             kind = "text" if isinstance(frame, str) else "binary"
             self._bad_input(f"{kind} frame of {len(frame)} bytes exceeds the limit of {self.max_message} bytes; "
@@ -102,12 +123,62 @@ class _Session:
     def _bad_input(self, reason: str) -> None:
         raise NotImplementedError
 
+    # -- resume (both sides) ------------------------------------------------------------------------
+    def _linked(self) -> bool:
+        """Is the session on a live link (with resume: AKs can go out)?"""
+        raise NotImplementedError
+
+    def _send_ack(self, n: int) -> None:
+        raise NotImplementedError
+
+    def _take_numbered(self, msg: dict) -> bool:
+        """Resume's rules for a complete message from the peer: an AK acks what this side kept; a
+        numbered message is taken once (a resent duplicate is dropped). True: the application's."""
+        if msg.get("type") == AK:
+            try:
+                self.outgoing.ack(read_ack(msg.get("data")))
+            except ProtocolError as e:
+                self._bad_input(e.message)
+            return False
+        try:
+            seq = read_seq(msg)
+        except ProtocolError as e:
+            self._bad_input(e.message)
+            return False
+        if not self.incoming.take(seq, self._now):
+            return False
+        self._ack_if_due()
+        return True
+
+    def _ack_if_due(self) -> None:
+        n = self.incoming.ack_due(self._now)
+        if n is not None:
+            self._send_ack(n)
+
+    def _number(self, msg: dict, ids: list[str] | None = None) -> list[Frame]:
+        """Number ``msg`` (``seq`` in its envelope), encode it and keep its frames until acked."""
+        seq = self.outgoing.last + 1
+        text, parts = encode({"type": msg["type"], "seq": seq, "data": msg["data"]}, ids)
+        self.outgoing.number()
+        frames: list[Frame] = [text, *parts]
+        self.outgoing.keep(seq, frames)
+        return frames
+
 
 # -- the cloud side -------------------------------------------------------------------------------
 @dataclass
 class _Held:
     data: dict
     after: int          # the DM waits until this many requests are done
+
+
+@dataclass
+class _Out:
+    """A message waiting to go to the robot."""
+    msg: dict | None                    # None: a kept message resent as it was (``frames``)
+    data: bool = False                  # droppable topic data
+    link: bool = False                  # link-level (ST session, AK): not numbered, not kept
+    frames: list[Frame] | None = None   # a resend: the frames as first numbered
 
 
 class RobotSession(_Session):
@@ -119,15 +190,26 @@ class RobotSession(_Session):
     messages are dropped, counted, and (inbound ones) refused with an ER; ``expiry``: s
     an incomplete message waits for its binary parts.
 
-    Every bad input gets an ER naming what was wrong; the session goes on."""
+    Every bad input gets an ER naming what was wrong; the session goes on.
+
+    ``resume``: the robot opted in (docs/INTERNALS.md "Session resume"): the session opens with
+    ``ST {"topic": "session", "status": "started", "session": token, "grace": grace}`` (``token``:
+    default a fresh :func:`~rce.protocol.resume.new_token`; ``grace``: s the endpoint keeps it
+    detached), numbers what it sends and keeps it until acked (``resume_buffer`` messages,
+    ``resume_bytes`` bytes; past them the oldest is forgotten, counted), takes each numbered
+    message once and acks every ``ack_every`` messages or ``ack_delay`` s."""
 
     def __init__(self, robot: str, *, max_message: int = DEFAULT_MAX_MESSAGE, queue_size: int = DEFAULT_QUEUE_SIZE,
-                 expiry: float = DEFAULT_EXPIRY, max_pending_bytes: int = DEFAULT_MAX_PENDING_BYTES):
-        super().__init__(expiry, max_pending_bytes)
+                 expiry: float = DEFAULT_EXPIRY, max_pending_bytes: int = DEFAULT_MAX_PENDING_BYTES,
+                 resume: bool = False, token: str | None = None, grace: float = DEFAULT_GRACE,
+                 resume_buffer: int = DEFAULT_RESUME_BUFFER, resume_bytes: int = DEFAULT_RESUME_BYTES,
+                 ack_every: int = ACK_EVERY, ack_delay: float = ACK_DELAY):
+        super().__init__(expiry, max_pending_bytes, resume, resume_buffer, resume_bytes, ack_every, ack_delay)
         self.robot, self.max_message, self.queue_size = robot, max_message, queue_size
         self.interfaces: dict[str, tuple[str, str, str]] = {}     # iTag -> (kind, side, cls)
-        self._out: deque[tuple[dict, bool]] = deque()             # (message, droppable data)
+        self._out: deque[_Out] = deque()
         self.out_data = 0                                         # data DMs in _out
+        self._out_control = 0                                     # STs, ERs, answers in _out
         self._requests: deque[tuple[str, dict]] = deque()
         self._in_flight: str | None = None                        # type of the request the master handles
         self._received = self._done = 0                           # requests taken / answered
@@ -135,12 +217,21 @@ class RobotSession(_Session):
         self.calls = 0                                            # service calls in flight
         self.msgs_in = self.msgs_out = self.dropped = self.dropped_in = self.errors = 0
         self._overrun = False
+        self.token = (token or new_token()) if resume else None
+        self.grace = grace
+        self.attached = True                                      # on a live link (always, without resume)
+        self.resumes = self.resent = self.resume_lost = 0
+        if resume:
+            self._out.append(_Out({"type": ST, "data": {"topic": SESSION_TOPIC, "status": "started",
+                                                        "session": self.token, "grace": grace}}, link=True))
 
     # -- frames in --------------------------------------------------------------------------------
     def _bad_input(self, reason: str) -> None:
         self.send_error(reason)
 
     def _on_message(self, msg: dict) -> None:
+        if self.incoming is not None and not self._take_numbered(msg):
+            return
         self.msgs_in += 1
         try:
             t, data = validate(msg)
@@ -250,16 +341,68 @@ class RobotSession(_Session):
         self._queue({"type": ER, "data": reason}, False)
 
     def _queue(self, msg: dict, data: bool) -> bool:
+        if not self.attached:                   # detached: numbered and kept, it goes out after a resume
+            self._number(msg)
+            return True
         if data:
             if self.out_data >= self.queue_size:
                 self.dropped += 1
                 return False
             self.out_data += 1
-        elif len(self._out) - self.out_data >= CONTROL_BACKLOG * self.queue_size and not self._overrun:
-            self._overrun = True
-            self._emit("close", reason=f"robot {self.robot!r} does not read: {len(self._out)} messages wait for it")
-        self._out.append((msg, data))
+        else:
+            if self._out_control >= CONTROL_BACKLOG * self.queue_size and not self._overrun:
+                self._overrun = True
+                self._emit("close", reason=f"robot {self.robot!r} does not read: {len(self._out)} messages wait "
+                                           f"for it")
+            self._out_control += 1
+        self._out.append(_Out(msg, data))
         return True
+
+    # -- resume -------------------------------------------------------------------------------------
+    def _linked(self) -> bool:
+        return self.attached
+
+    def _send_ack(self, n: int) -> None:
+        self._out.append(_Out({"type": AK, "data": {"seq": n}}, link=True))
+
+    def detach(self) -> None:
+        """(resume) The robot's link is lost: what waits for it is numbered and kept, and so is what
+        comes until :meth:`attach`; link-level messages are gone with the link."""
+        if self.outgoing is None:
+            raise ProtocolError("detach: the robot did not opt in to resume")
+        self.attached = False
+        for o in self._out:
+            if o.msg is not None and not o.link:
+                self._number(o.msg)
+        self._out.clear()
+        self.out_data = self._out_control = 0
+
+    def can_resume(self, ack: int) -> bool:
+        """Can a resume whose robot took every message up to ``ack`` be served?"""
+        return self.outgoing is not None and 0 <= ack <= self.outgoing.last
+
+    def attach(self, ack: int) -> None:
+        """(resume) A new link resumes the session (from a detached session, or taking over a link the
+        endpoint still holds); the robot took every message up to ``ack``. Queues ``ST {"topic":
+        "session", "status": "resumed", "session", "grace", "ack", "dropped"}`` (``ack``: the last robot
+        message taken; ``dropped``: messages to the robot the buffer lost), then the kept messages after
+        ``ack``, as first numbered. Incomplete messages of the old link are dropped: the robot resends
+        them whole. Raises :class:`ProtocolError` when :meth:`can_resume` is false."""
+        if not self.can_resume(ack):
+            raise ProtocolError(f"resume: ack {ack} is not a message sent to robot {self.robot!r} "
+                                f"(the last is {self.outgoing.last if self.outgoing else 0})")
+        if self.attached:
+            self.detach()
+        frames, lost = self.outgoing.resend_after(ack)
+        self.assembler = Assembler(expiry=self.assembler.expiry, max_pending_bytes=self.assembler.max_pending_bytes)
+        self.attached = True
+        self.incoming.reported()
+        self.resumes += 1
+        self.resume_lost += lost
+        self._out.append(_Out({"type": ST, "data": {"topic": SESSION_TOPIC, "status": "resumed", "session": self.token,
+                                                    "grace": self.grace, "ack": self.incoming.last,
+                                                    "dropped": lost}}, link=True))
+        self._out.extend(_Out(None, frames=f) for f in frames)
 
     @property
     def outbox(self) -> int:
@@ -268,27 +411,42 @@ class RobotSession(_Session):
 
     def data_to_send(self, max_messages: int | None = None) -> list[str | bytes]:
         """Frames of up to ``max_messages`` waiting messages (all by default), each message's JSON
-        text frame followed by its binary parts; they count as sent."""
+        text frame followed by its binary parts; they count as sent (with resume: numbered and kept
+        until acked)."""
         frames: list[str | bytes] = []
         n = len(self._out) if max_messages is None else min(max_messages, len(self._out))
         for _ in range(n):
-            msg, data = self._out.popleft()
-            if data:
+            o = self._out.popleft()
+            if o.frames is not None:
+                frames.extend(o.frames)
+                self.resent += 1
+                continue
+            if o.data:
                 self.out_data -= 1
-            text, parts = encode(msg)
-            frames.append(text)
-            frames.extend(parts)
-            self.msgs_out += 1
+            elif not o.link:
+                self._out_control -= 1
+            if o.link or self.outgoing is None:
+                text, parts = encode(o.msg)
+                frames.append(text)
+                frames.extend(parts)
+            else:
+                frames.extend(self._number(o.msg))
+            self.msgs_out += not o.link
         return frames
 
     def stats(self) -> dict:
         """Counters: messages in and out, drops out (data DMs, queue full) and in (refused for a full
-        queue), ERs sent, messages and parts waiting for binary parts, queue depths."""
+        queue), ERs sent, messages and parts waiting for binary parts, queue depths; resume: resumes,
+        messages resent, lost at a resume (``resume_lost``), kept until acked (``kept``, ``kept_bytes``),
+        forgotten past the bound (``resume_forgotten``), duplicates from the robot dropped."""
+        out, inc = self.outgoing, self.incoming
         return {"interfaces": len(self.interfaces), "msgs_in": self.msgs_in, "msgs_out": self.msgs_out,
                 "dropped": self.dropped, "dropped_in": self.dropped_in, "errors": self.errors,
                 "pending_binary": self.assembler.pending, "outbox": len(self._out),
                 "requests_waiting": len(self._requests) + (self._in_flight is not None), "held": len(self._held),
-                "calls": self.calls}
+                "calls": self.calls, "resumes": self.resumes, "resent": self.resent, "resume_lost": self.resume_lost,
+                "kept": len(out) if out else 0, "kept_bytes": out.bytes if out else 0,
+                "resume_forgotten": out.forgotten if out else 0, "duplicates": inc.duplicates if inc else 0}
 
 
 def robot_interface_type(itype: str) -> tuple[str, str]:
@@ -332,14 +490,27 @@ class ClientSession(_Session):
     needs a running asyncio loop (the table's futures); nothing else here does.
 
     ``expiry``: s an incomplete message waits for its binary parts. :attr:`interfaces`: iTag ->
-    last ``iu`` status; :attr:`dropped`: malformed frames, expired parts, unexpected messages."""
+    last ``iu`` status; :attr:`dropped`: malformed frames, expired parts, unexpected messages.
 
-    def __init__(self, *, expiry: float = DEFAULT_EXPIRY, max_pending_bytes: int = DEFAULT_MAX_PENDING_BYTES):
-        super().__init__(expiry, max_pending_bytes)
+    ``resume``: ask for session resume (the shell adds ``resume=1`` to the connect query; docs/INTERNALS.md
+    "Session resume"): messages are numbered from the first and kept until acked (``resume_buffer``
+    messages, ``resume_bytes`` bytes); the first message from the cloud decides: ``ST session started``
+    turns resume on (:attr:`state` ``live``, :attr:`token`, :attr:`grace`), anything else turns it off
+    (a cloud that does not offer it: the 2013 protocol from then on). Numbered messages from the cloud
+    are taken once and acked every ``ack_every`` messages or ``ack_delay`` s."""
+
+    def __init__(self, *, expiry: float = DEFAULT_EXPIRY, max_pending_bytes: int = DEFAULT_MAX_PENDING_BYTES,
+                 resume: bool = False, resume_buffer: int = DEFAULT_RESUME_BUFFER,
+                 resume_bytes: int = DEFAULT_RESUME_BYTES, ack_every: int = ACK_EVERY, ack_delay: float = ACK_DELAY):
+        super().__init__(expiry, max_pending_bytes, resume, resume_buffer, resume_bytes, ack_every, ack_delay)
         self.pending = PendingCalls("the cloud")
         self.interfaces: dict[str, bool] = {}
         self.dropped = 0
         self._frames: list[str | bytes] = []
+        # resume: off | asked -> live <-> detached -> resuming -> live
+        self.state = "asked" if resume else "off"
+        self.token: str | None = None
+        self.grace: float | None = None
 
     # -- frames out ---------------------------------------------------------------------------------
     def data_to_send(self) -> list[str | bytes]:
@@ -347,14 +518,24 @@ class ClientSession(_Session):
         frames, self._frames = self._frames, []
         return frames
 
+    @property
+    def outbox(self) -> int:
+        """Frames waiting to be taken by :meth:`data_to_send`."""
+        return len(self._frames)
+
     def send(self, type_: str, data: Any, ids: list[str] | None = None) -> None:
         """Send ``{"type": type_, "data": data}``; ``bytes`` values become binary parts (with the
-        given ``ids``, default fresh ones). Raises the table's error once the link closed."""
+        given ``ids``, default fresh ones). With resume it is numbered and kept until acked; while
+        detached or resuming it waits for the resume. Raises the table's error once the link closed."""
         if self.pending.closed is not None:
             raise type(self.pending.closed)(self.pending.closed.message)
-        text, parts = encode({"type": type_, "data": data}, ids)
-        self._frames.append(text)
-        self._frames.extend(parts)
+        if self.outgoing is None:
+            text, parts = encode({"type": type_, "data": data}, ids)
+            frames: list[Frame] = [text, *parts]
+        else:
+            frames = self._number({"type": type_, "data": data}, ids)
+        if self.state not in ("detached", "resuming"):
+            self._frames.extend(frames)
 
     def call(self, itag: str, type_: str, msg: Any, msg_id: str | None = None, ids: list[str] | None = None) -> str:
         """Start a service call through robot-side interface ``itag`` of service class ``type_``:
@@ -380,6 +561,8 @@ class ClientSession(_Session):
         self._emit("dropped", reason=reason)
 
     def _on_message(self, m: dict) -> None:
+        if self.state != "off" and not self._resume_rules(m):
+            return
         t, data = m.get("type"), m.get("data")
         if t == DM and isinstance(data, dict):
             self._on_dm(data)
@@ -393,9 +576,76 @@ class ClientSession(_Session):
         else:
             self._bad_input(f"unexpected message from the cloud: type {t!r}")
 
+    # -- resume ------------------------------------------------------------------------------------
+    def _linked(self) -> bool:
+        return self.state == "live"
+
+    def _send_ack(self, n: int) -> None:
+        self._frames.append(ack_frame(n))
+
+    def _resume_rules(self, m: dict) -> bool:
+        """The session's own messages: True when ``m`` is the application's."""
+        data = m.get("data")
+        if self.state == "asked":                       # the cloud's first message decides
+            if is_session_status(m) and data.get("status") == "started" and isinstance(data.get("session"), str):
+                self.state, self.token, self.grace = "live", data["session"], data.get("grace")
+                self._emit("session", data=data)
+                return False
+            self.state = "off"                          # the cloud does not offer resume
+            self.outgoing = self.incoming = None
+            return True
+        if is_session_status(m):
+            if self.state == "resuming" and data.get("status") == "resumed":
+                self._resumed(data)
+            self._emit("session", data=data)
+            return False
+        return self._take_numbered(m)
+
+    def _resumed(self, data: dict) -> None:
+        """The cloud's ST resumed: resend what it did not take, then the link is live."""
+        try:
+            frames, lost = self.outgoing.resend_after(read_ack({"seq": data.get("ack")}))
+        except ProtocolError as e:                      # a cloud that does not say: resend all that is kept
+            self._bad_input(f"ST session resumed: {e.message}")
+            frames, lost = self.outgoing.resend_after(self.outgoing.acked)
+        self.state = "live"
+        for f in frames:
+            self._frames.extend(f)
+        if lost:
+            self._bad_input(f"{lost} message(s) to the cloud were lost: the resume buffer "
+                            f"({self.outgoing.max_messages} messages) forgot them before the cloud acked them")
+
+    def detach(self, reason: str) -> bool:
+        """The link is lost. A live resumable session is kept for a resume (:meth:`attach`): pending calls
+        and barriers wait, sends are kept; event ``detached {session, ack}`` (the resume query) and True.
+        Otherwise it is :meth:`close` (``reason``) and False."""
+        if self.state not in ("live", "resuming"):
+            self.close(reason)
+            return False
+        self.state = "detached"
+        self._frames.clear()                            # AKs; numbered messages are kept
+        self.assembler = Assembler(expiry=self.assembler.expiry, max_pending_bytes=self.assembler.max_pending_bytes)
+        self._emit("detached", session=self.token, ack=self.incoming.last)
+        return True
+
+    def attach(self) -> None:
+        """A new link is open with the resume query (:meth:`resume_query`); nothing new goes out until
+        the cloud's ``ST session resumed``. Raises :class:`ProtocolError` unless detached."""
+        if self.state != "detached":
+            raise ProtocolError(f"attach: the session is {self.state}, not detached")
+        self.state = "resuming"
+        self.incoming.reported()
+
+    def resume_query(self) -> dict[str, str]:
+        """The query values of a resume: ``{"session": token, "ack": last taken}``."""
+        return {"session": self.token or "", "ack": str(self.incoming.last if self.incoming else 0)}
+
     def close(self, reason: str) -> None:
         """The link closed: every pending call and barrier fails, in the order they were started,
         and later calls, barriers and sends raise :class:`Unavailable`."""
+        self.state = "off"
+        if self.outgoing is not None:
+            self.outgoing.clear()
         error = f"connection to the cloud closed: {reason}"
         for key, w in self.pending.items():
             if not w.done:

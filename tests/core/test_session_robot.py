@@ -148,7 +148,8 @@ def test_endpoint_metrics_sum_live_and_ended_sessions():
     live.send_dm("x", "t", "", {}, data=True)
     ended.receive_text("[]", 0)
     plane = SimpleNamespace(msgs_in=0, msgs_out=0, bytes_in=0, bytes_out=0, dropped=0)
-    ep = SimpleNamespace(namespaces={("u", "a"): SimpleNamespace(session=live, interfaces={})}, plane=plane)
+    ep = SimpleNamespace(namespaces={("u", "a"): SimpleNamespace(session=live, interfaces={})}, plane=plane,
+                         master=None)
     m = Metrics(ep)
     m.session_ended(ended)
     text = generate_latest(m.registry).decode()

@@ -95,7 +95,7 @@ def feed(session: ClientSession | RobotSession, step: dict, now: float) -> float
 @pytest.mark.asyncio
 @pytest.mark.parametrize("vector", VECTORS["client"], ids=[v["name"] for v in VECTORS["client"]])
 async def test_client_vector(vector):
-    s = ClientSession(expiry=vector.get("options", {}).get("expiry", DEFAULT_EXPIRY))
+    s = ClientSession(**{"expiry": DEFAULT_EXPIRY, **vector.get("options", {})})
     waiters = []          # the shell's side of pending calls and barriers: someone always waits
 
     async def wait(key):
@@ -117,6 +117,10 @@ async def test_client_vector(vector):
                 waiters.append(asyncio.ensure_future(wait(s.barrier(step["barrier"]["token"]))))
             elif "close" in step:
                 s.close(step["close"]["reason"])
+            elif "detach" in step:
+                s.detach(step["detach"]["reason"])
+            elif "attach" in step:
+                s.attach()
             check(vector, i, step, outputs(s.data_to_send(), s.events_received()))
             await asyncio.sleep(0)          # let waiters take what was settled
     finally:
@@ -147,6 +151,10 @@ def feed_robot(s: RobotSession, step: dict) -> None:
         s.answer_call(step["answer_call"]["data"], decode(step["answer_call"]["msg"]))
     elif "fail_call" in step:
         s.fail_call(step["fail_call"]["data"], step["fail_call"]["reason"])
+    elif "detach" in step:
+        s.detach()
+    elif "attach" in step:
+        s.attach(step["attach"]["ack"])
 
 
 @pytest.mark.parametrize("vector", VECTORS["robot"], ids=[v["name"] for v in VECTORS["robot"]])

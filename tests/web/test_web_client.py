@@ -2,8 +2,9 @@
 the page is served by rce-master itself (``--static /ui=WEB``, same origin), logs in, creates a
 container with the Test package's stringEcho.py and gets echoes back through converters (topic and
 service) and forwarders (binary parts); a bad request comes back as the ER; a wrong password is
-shown as an error. Without an engine (the web directory on a local server): the SHA-256 fallback for
-non-secure contexts matches crypto.subtle, and the session's binary parts with random ids."""
+shown as an error; with ``reconnect`` the page's Client resumes a link a TCP proxy cut, with its session
+token. Without an engine (the web directory on a local server): the SHA-256 fallback for non-secure
+contexts matches crypto.subtle, and the session's binary parts with random ids."""
 from __future__ import annotations
 
 import pytest
@@ -101,3 +102,89 @@ def test_session_binary_parts_with_random_ids(web_root, page):
     assert out["sentKeys"] == ["list*", "msg*"] and out["nframes"] == 3 and out["frameLen"] == 35
     assert out["ids"] == out["framedIds"] and len(set(out["ids"])) == 2
     assert all(len(i) == 32 and int(i, 16) >= 0 for i in out["ids"])
+
+
+class ThreadedProxy:
+    """tests/tcpproxy.py's Proxy on an event loop of its own thread (the browser tests are synchronous)."""
+
+    def __init__(self, target: int):
+        import asyncio
+        import threading
+
+        from tcpproxy import Proxy
+        self.loop = asyncio.new_event_loop()
+        self.thread = threading.Thread(target=self.loop.run_forever, name="proxy", daemon=True)
+        self.thread.start()
+        self.proxy = self.run(Proxy(target).start())
+
+    def run(self, coro):
+        import asyncio
+        return asyncio.run_coroutine_threadsafe(coro, self.loop).result(10)
+
+    def call(self, fn) -> None:
+        self.loop.call_soon_threadsafe(fn)
+
+    def stop(self) -> None:
+        self.run(self.proxy.stop())
+        self.loop.call_soon_threadsafe(self.loop.stop)
+        self.thread.join(10)
+
+
+SETUP_RESUME_JS = """async ({url, rid}) => {
+    const m = await import('./rce.js');
+    const c = new m.Client({userID: 'testUser', robotID: rid, password: 'testUser', endpoint: url, reconnect: true});
+    const t = window.resumeTest = {got: [], events: [], c};
+    c.on('disconnected', () => t.events.push('disconnected'));
+    c.on('reconnected', () => t.events.push('reconnected'));
+    c.on('resumed', (st) => t.events.push(`resumed ${st.dropped}`));
+    await c.connect();
+    const I = (e, i, type, cls, addr) => ({endpointTag: e, interfaceTag: i, interfaceType: type, className: cls,
+                                           ...(addr ? {addr} : {})});
+    await c.createContainer('webResumeC');
+    await c.configure({addNodes: [{containerTag: 'webResumeC', nodeTag: 'echo', pkg: 'Test', exe: 'stringEcho.py'}]});
+    const S = 'std_msgs/String';
+    await c.configure({addInterfaces: [I('webResumeC', 'req', 'PublisherInterface', S, '/stringEchoReq'),
+        I('webResumeC', 'resp', 'SubscriberInterface', S, '/stringEchoResp'),
+        I(rid, 'req', 'SubscriberConverter', S), I(rid, 'resp', 'PublisherConverter', S)]});
+    c.subscribe('resp', (msg) => t.got.push(msg.data));
+    await c.connectInterfaces([['webResumeC/req', `${rid}/req`], ['webResumeC/resp', `${rid}/resp`]]);
+    await c.waitUp(['req', 'resp']);
+    for (let i = 0; i < 100 && !t.got.length; i++) {      // the node subscribes a moment after the interfaces are up
+        c.publish('req', 'std_msgs/String', {data: 'warm'});
+        await new Promise((r) => setTimeout(r, 200));
+    }
+    return t.got.length > 0;
+}"""
+
+
+def test_the_page_resumes_a_lost_link_with_its_token(ui_engine, web_root, page, tmp_path):
+    """The page's Client (reconnect) rides out a 3 s cut of its link (a TCP proxy): what it sent meanwhile
+    and what the cloud sent meanwhile arrive once each; the resume carries the session token, not the password."""
+    import time
+    px = ThreadedProxy(ui_engine.robot_ready[0]["ws_port"])
+    try:
+        page.goto(web_root)
+        assert page.evaluate(SETUP_RESUME_JS, {"url": px.proxy.url, "rid": "webResumeBot"})
+        page.evaluate("() => { window.resumeTest.got.length = 0; }")
+        px.call(px.proxy.cut)
+        page.wait_for_function("window.resumeTest.events.includes('disconnected')", timeout=10_000)
+        page.evaluate("""() => { for (let i = 0; i < 5; i++)
+                                   window.resumeTest.c.publish('req', 'std_msgs/String', {data: `page${i}`}); }""")
+        for i in range(3):          # the cloud's own messages during the gap: into the container, echoed to the page
+            ui_engine.admin("/api/containers/testUser/webResumeC/publish",
+                            {"topic": "/stringEchoReq", "type": "std_msgs/String", "msg": {"data": f"cloud{i}"}})
+        time.sleep(3.0)             # the cut's duration
+        px.call(px.proxy.restore)
+        page.wait_for_function("window.resumeTest.got.length >= 8", timeout=15_000)
+        st = page.evaluate("({got: window.resumeTest.got, events: window.resumeTest.events})")
+        page.screenshot(path=str(tmp_path / "resumed.png"))
+        assert sorted(st["got"]) == sorted([f"page{i}" for i in range(5)] + [f"cloud{i}" for i in range(3)])
+        assert [g for g in st["got"] if g.startswith("page")] == [f"page{i}" for i in range(5)]
+        assert st["events"] == ["disconnected", "reconnected", "resumed 0"]
+        resume = px.proxy.requests[-1].decode()
+        assert "session=" in resume and "password" not in resume and "resume=1" not in resume
+        assert "password=" in px.proxy.requests[0].decode() and "resume=1" in px.proxy.requests[0].decode()
+        assert page.evaluate("window.resumeTest.c._password") is None
+    finally:
+        page.evaluate("() => window.resumeTest && window.resumeTest.c.close()")
+        px.stop()

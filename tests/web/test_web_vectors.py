@@ -14,7 +14,7 @@ from pathlib import Path
 import pytest
 
 VECTORS = Path(__file__).resolve().parents[1] / "vectors" / "session.json"
-STEP_KINDS = ("recv", "send", "call", "barrier", "tick", "close")
+STEP_KINDS = ("recv", "send", "call", "barrier", "tick", "close", "detach", "attach")
 
 # Runs one vector in the page: returns one entry per step, {"out": [OUT, ...]} with frames and bytes
 # in the vectors' JSON form (text frames parsed, binary frames and bytes as hex), or {"raised": text}.
@@ -54,6 +54,8 @@ RUN_VECTOR_JS = """async ({vector, stepKinds}) => {
             } else if (kind === 'barrier') out = s.barrier(step.barrier.token);
             else if (kind === 'tick') out = s.tick(step.tick.now);
             else if (kind === 'close') out = s.close(step.close.reason);
+            else if (kind === 'detach') out = s.detach(step.detach.reason);
+            else if (kind === 'attach') out = s.attach();
             results.push({out: out.map((o) => !o.frame ? plain(o)
                 : {frame: 'text' in o.frame ? {text: JSON.parse(o.frame.text)} : {binary: toHex(o.frame.binary)}})});
         }

@@ -160,7 +160,9 @@ async function onLogin(ev) {
   $("password").value = "";
   const container = $("container").value.trim() || cfg.container;
   const robotID = `${cfg.robotPrefix}-${newId().slice(0, 6)}`;
-  const c = new Client({ master: $("master").value.trim(), userID: $("user").value.trim(), robotID, password });
+  // reconnect: a lost link is resumed with the session token the client keeps (the password is gone)
+  const c = new Client({ master: $("master").value.trim(), userID: $("user").value.trim(), robotID, password,
+                         reconnect: true });
   view.phase = "connecting";
   setConn("connecting", "wait");
   try {
@@ -173,6 +175,14 @@ async function onLogin(ev) {
     view.container = container;
     c.on("close", onClosed);
     c.on("notice", (t) => log("info", t));
+    c.on("disconnected", (why) => {
+      setConn("link lost; resuming", "wait");
+      log("error", `link to the cloud lost (${why}); resuming`);
+    });
+    c.on("resumed", (st) => {
+      setConn(`${c.userID} / ${c.robotID}`, "on");
+      log("info", `session resumed${st.dropped ? ` (${st.dropped} message(s) from the cloud lost)` : ""}`);
+    });
     c.on("status", onStatus);
     setConn(`connected as ${$("user").value.trim()} / ${robotID}`, "wait");
     log("info", `logged in at ${$("master").value.trim()}; robot endpoint ${c.wsUrl}`);

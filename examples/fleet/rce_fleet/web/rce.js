@@ -28,12 +28,26 @@
 // they fail, and interfaces report ST {topic: "iu", status: true} once connected. `request()`
 // follows each request with a probe the cloud must refuse (see barrier()), so it resolves when the
 // request was handled and rejects with the ERs it caused; `waitUp()` waits for the interfaces.
+//
+// Session resume (docs/INTERNALS.md "Session resume"), opt-in: `new Client({..., reconnect: true})`
+// asks for it; when the link drops, the client dials the robot endpoint again with backoff and the
+// session token the cloud gave (never the password, which is not kept), and resumes: what the page
+// sent meanwhile goes out then, calls wait, and what the cloud sent meanwhile arrives. Events
+// "disconnected" (reason), "reconnected" (url) and "resumed" (the cloud's ST data, with `dropped`).
 
 export const CLIENT_VERSION = "20130902";
 /** s an incomplete message or an orphan binary part waits (rce.protocol.DEFAULT_EXPIRY). */
 export const DEFAULT_EXPIRY = 60;
 /** bytes of binary parts held while they wait for their message (rce.protocol.Assembler). */
 export const MAX_PENDING_BYTES = 256 * 1024 * 1024;
+/** messages kept until the cloud acks them, to resend after a resume (rce.protocol.resume). */
+export const DEFAULT_RESUME_BUFFER = 1000;
+/** bytes of frames kept until the cloud acks them (rce.protocol.resume). */
+export const DEFAULT_RESUME_BYTES = 64 * 1024 * 1024;
+/** messages taken from the cloud before an AK goes out at once (rce.protocol.resume.ACK_EVERY). */
+export const ACK_EVERY = 16;
+/** s after the first message not yet acked before an AK goes out (rce.protocol.resume.ACK_DELAY). */
+export const ACK_DELAY = 0.2;
 const ID_LEN = 32;                       // chars of a binary part id (32 hex)
 const HEX_ID = /^[0-9a-fA-F]{32}$/;
 const enc = new TextEncoder();
@@ -304,6 +318,91 @@ class Assembler {
 }
 
 // ---------------------------------------------------------------------------------------------
+// Session resume, sans I/O (as rce.protocol.resume): numbers, acks, the bounded buffer
+// ---------------------------------------------------------------------------------------------
+const isSessionStatus = (m) => m.type === "ST" && isObject(m.data) && m.data.topic === "session";
+const frameSize = (f) => (typeof f === "string" ? f.length : f.byteLength);
+const toOutput = (f) => ({ frame: typeof f === "string" ? { text: f } : { binary: f } });
+
+/** The `seq` of a message's envelope, or null; RCEError "protocol" for one that is not a positive integer. */
+function readSeq(m) {
+  if (!("seq" in m)) return null;
+  if (!Number.isInteger(m.seq) || m.seq < 1) {
+    throw new RCEError("protocol", `message.seq must be a positive integer, got ${JSON.stringify(m.seq)}`);
+  }
+  return m.seq;
+}
+
+/** The n of an AK's data {seq: n}; RCEError "protocol" otherwise. */
+function readAck(data) {
+  const seq = isObject(data) ? data.seq : undefined;
+  if (!Number.isInteger(seq) || seq < 0) {
+    throw new RCEError("protocol", `AK.data.seq must be a non-negative integer, got ${JSON.stringify(data ?? null)}`);
+  }
+  return seq;
+}
+
+/** The numbered messages the page sent, kept until the cloud acks them (at most maxMessages, maxBytes). */
+class Outgoing {
+  constructor(maxMessages, maxBytes) {
+    Object.assign(this, { maxMessages, maxBytes, last: 0, acked: 0, forgotten: 0, bytes: 0 });
+    this.kept = [];                  // {seq, frames, size}, oldest first
+  }
+
+  keep(seq, frames) {
+    const size = frames.reduce((n, f) => n + frameSize(f), 0);
+    this.kept.push({ seq, frames, size });
+    this.bytes += size;
+    while (this.kept.length > this.maxMessages || (this.bytes > this.maxBytes && this.kept.length > 1)) {
+      this.bytes -= this.kept.shift().size;
+      this.forgotten++;
+    }
+  }
+
+  ack(n) {
+    if (n > this.last) {
+      throw new RCEError("protocol", `AK: seq ${n} was never sent (the last message sent is ${this.last})`);
+    }
+    while (this.kept.length && this.kept[0].seq <= n) this.bytes -= this.kept.shift().size;
+    this.acked = Math.max(this.acked, n);
+  }
+
+  /** A resume: the cloud took every message up to n. {messages: [frames, ...] after n, lost}. */
+  resendAfter(n) {
+    this.ack(n);
+    const first = this.kept.length ? this.kept[0].seq : this.last + 1;
+    return { messages: this.kept.map((k) => k.frames), lost: Math.max(0, first - 1 - this.acked) };
+  }
+
+  clear() { this.kept = []; this.bytes = 0; }
+}
+
+/** Numbered messages taken from the cloud: each once; an AK after ackEvery of them or ackDelay s. */
+class Incoming {
+  constructor(ackEvery, ackDelay) {
+    Object.assign(this, { ackEvery, ackDelay, last: 0, acked: 0, duplicates: 0, gaps: 0, unacked: 0, since: null });
+  }
+
+  take(seq, now) {
+    if (seq === null) seq = this.last + 1;
+    if (seq <= this.last) { this.duplicates++; return false; }
+    this.gaps += seq - this.last - 1;
+    this.last = seq;
+    this.unacked++;
+    if (this.since === null) this.since = now;
+    return true;
+  }
+
+  ackDue(now) {
+    if (!this.unacked || (this.unacked < this.ackEvery && now - this.since < this.ackDelay)) return null;
+    this.reported();
+    return this.last;
+  }
+
+  reported() { this.acked = this.last; this.unacked = 0; this.since = null; }
+}
+
+// ---------------------------------------------------------------------------------------------
 // The session, sans I/O (tests/vectors/README.md)
 // ---------------------------------------------------------------------------------------------
 /**
@@ -318,14 +417,26 @@ class Assembler {
  * taken at the last time seen.
  *
  * options: expiry (s an incomplete message waits for its binary parts), maxPendingBytes (bytes
- * of binary parts held while waiting), newId (the source of binary part ids; a test fixes them).
+ * of binary parts held while waiting), newId (the source of binary part ids; a test fixes them);
+ * resume (ask for session resume: messages are numbered from the first and kept until acked, at most
+ * resumeBuffer messages and resumeBytes bytes; the cloud's first message decides: ST session started
+ * turns it on, anything else off; numbered messages from the cloud are taken once and acked every
+ * ackEvery messages or ackDelay s). With resume the outputs also hold events session {data} and
+ * detached {session, ack}; see detach(), attach(), resumeQuery().
  * Misuse (a msgID or token already pending, sending after close) throws RCEError "usage"/"closed".
  */
 export class ClientSession {
-  constructor({ expiry = DEFAULT_EXPIRY, maxPendingBytes = MAX_PENDING_BYTES, newId: ids = newId, ...rest } = {}) {
+  constructor({ expiry = DEFAULT_EXPIRY, maxPendingBytes = MAX_PENDING_BYTES, newId: ids = newId, resume = false,
+                resumeBuffer = DEFAULT_RESUME_BUFFER, resumeBytes = DEFAULT_RESUME_BYTES, ackEvery = ACK_EVERY,
+                ackDelay = ACK_DELAY, ...rest } = {}) {
     const unknown = Object.keys(rest);
     if (unknown.length) throw new RCEError("usage", `ClientSession: unknown option(s) ${unknown.join(", ")}`);
     this.assembler = new Assembler(expiry, maxPendingBytes);
+    this.state = resume ? "asked" : "off";          // off | asked -> live <-> detached -> resuming -> live
+    this.token = null;                              // the session token the cloud gave
+    this.grace = null;                              // s the cloud keeps the session detached
+    this.outgoing = resume ? new Outgoing(resumeBuffer, resumeBytes) : null;
+    this.incoming = resume ? new Incoming(ackEvery, ackDelay) : null;
     this.newId = ids;
     this.interfaces = new Map();      // iTag -> bool: its last ST iu
     this.calls = new Map();           // msgID -> {iTag, seq}: calls waiting for their response
@@ -355,11 +466,23 @@ export class ClientSession {
     return this._take(() => this.assembler.binary(data instanceof Uint8Array ? data : new Uint8Array(data), now));
   }
 
-  /** Send `{type, data}`; bytes values become binary parts. */
+  /** Send `{type, data}`; bytes values become binary parts. With resume: numbered and kept; nothing goes
+   * out while detached or resuming (it goes after the resume). */
   send(type, data) {
     if (this.closed) throw new RCEError("closed", "the session is closed");
-    const [text, frames] = encodeMessage({ type, data }, this.newId);
-    return [{ frame: { text } }, ...frames.map((binary) => ({ frame: { binary } }))];
+    let frames;
+    if (this.outgoing) {
+      const seq = this.outgoing.last + 1;
+      const [text, parts] = encodeMessage({ type, seq, data }, this.newId);
+      this.outgoing.last = seq;
+      frames = [text, ...parts];
+      this.outgoing.keep(seq, frames);
+    } else {
+      const [text, parts] = encodeMessage({ type, data }, this.newId);
+      frames = [text, ...parts];
+    }
+    if (this.state === "detached" || this.state === "resuming") return [];
+    return frames.map(toOutput);
   }
 
   /** Start a service call: DM {iTag, type, msgID, msg}; settled by `response` or `call_failed`. */
@@ -390,16 +513,43 @@ export class ClientSession {
     this.barriers.delete(msgIDOrToken);
   }
 
-  /** Time passes: drop incomplete messages and orphan parts older than `expiry`. */
+  /** Time passes: drop incomplete messages and orphan parts older than `expiry`; an AK that is due goes out. */
   tick(now) {
     this.now = now;
-    return this.assembler.expire(now).flatMap((reason) => this._drop(reason));
+    const out = this.assembler.expire(now).flatMap((reason) => this._drop(reason));
+    return this.state === "live" ? [...out, ...this._ackIfDue()] : out;
+  }
+
+  /**
+   * The link is lost. A live resumable session is kept: calls and barriers wait, sends are kept;
+   * outputs [detached {session, ack}] (the resume query). Otherwise it is close(reason).
+   */
+  detach(reason) {
+    if (this.state !== "live" && this.state !== "resuming") return this.close(reason);
+    this.state = "detached";
+    this.assembler = new Assembler(this.assembler.expiry, this.assembler.maxPendingBytes);  // resent whole
+    return [{ event: "detached", session: this.token, ack: this.incoming.last }];
+  }
+
+  /** A new link is open with resumeQuery(); nothing new goes out until the cloud's ST session resumed. */
+  attach() {
+    if (this.state !== "detached") throw new RCEError("usage", `attach: the session is ${this.state}, not detached`);
+    this.state = "resuming";
+    this.incoming.reported();
+    return [];
+  }
+
+  /** The query values of a resume: {session: token, ack: the last cloud message taken}. */
+  resumeQuery() {
+    return { session: this.token || "", ack: String(this.incoming ? this.incoming.last : 0) };
   }
 
   /** The link closed: every pending call and barrier fails, in the order they were started. */
   close(reason) {
     if (this.closed) return [];
     this.closed = true;
+    this.state = "off";
+    if (this.outgoing) this.outgoing.clear();
     const why = `connection closed: ${reason}`;
     const pending = [...[...this.calls].map(([msgID, c]) => [c.seq, { event: "call_failed", msgID, reason: why }]),
                      ...[...this.barriers].map(([token, seq]) => [seq, { event: "barrier_failed", token,
@@ -426,7 +576,79 @@ export class ClientSession {
     return done.flatMap((m) => this._dispatch(m));
   }
 
-  _dispatch({ type, data }) {
+  _ackIfDue() {
+    const n = this.incoming.ackDue(this.now);
+    return n === null ? [] : [{ frame: { text: JSON.stringify({ type: "AK", data: { seq: n } }) } }];
+  }
+
+  /** The session's own messages (resume): outputs when it took `m`, null when `m` is the application's. */
+  _resumeRules(m) {
+    const data = m.data;
+    if (this.state === "asked") {                    // the cloud's first message decides
+      if (isSessionStatus(m) && data.status === "started" && typeof data.session === "string") {
+        this.state = "live";
+        this.token = data.session;
+        this.grace = data.grace ?? null;
+        return [{ event: "session", data }];
+      }
+      this.state = "off";                            // the cloud does not offer resume
+      this.outgoing = this.incoming = null;
+      return null;
+    }
+    if (isSessionStatus(m)) {
+      const out = this.state === "resuming" && data.status === "resumed" ? this._resumed(data) : [];
+      return [...out, { event: "session", data }];
+    }
+    if (m.type === "AK") {
+      try {
+        this.outgoing.ack(readAck(data));
+      } catch (e) {
+        if (e instanceof RCEError && e.kind === "protocol") return this._drop(e.message);
+        throw e;
+      }
+      return [];
+    }
+    let seq;
+    try {
+      seq = readSeq(m);
+    } catch (e) {
+      if (e instanceof RCEError && e.kind === "protocol") return this._drop(e.message);
+      throw e;
+    }
+    if (!this.incoming.take(seq, this.now)) return [];
+    return null;
+  }
+
+  /** The cloud's ST session resumed: resend what it did not take, then the link is live. */
+  _resumed(data) {
+    const out = [];
+    let r;
+    try {
+      r = this.outgoing.resendAfter(readAck({ seq: data.ack }));
+    } catch (e) {
+      if (!(e instanceof RCEError && e.kind === "protocol")) throw e;
+      out.push(...this._drop(`ST session resumed: ${e.message}`));
+      r = this.outgoing.resendAfter(this.outgoing.acked);
+    }
+    this.state = "live";
+    for (const frames of r.messages) out.push(...frames.map(toOutput));
+    if (r.lost) {
+      out.push(...this._drop(`${r.lost} message(s) to the cloud were lost: the resume buffer ` +
+                             `(${this.outgoing.maxMessages} messages) forgot them before the cloud acked them`));
+    }
+    return out;
+  }
+
+  _dispatch(m) {
+    if (this.state !== "off") {
+      const own = this._resumeRules(m);
+      if (own !== null) return own;
+      if (this.incoming) return [...this._dispatchApp(m), ...this._ackIfDue()];
+    }
+    return this._dispatchApp(m);
+  }
+
+  _dispatchApp({ type, data }) {
     if (type === "ST") return this._status(data);
     if (type === "ER") return this._error(typeof data === "string" ? data : JSON.stringify(data ?? null));
     if (type !== "DM") return this._drop(`unexpected message type ${JSON.stringify(type ?? null)}, not DM, ST or ER`);
@@ -478,30 +700,52 @@ export const CALL_TIMEOUT_MS = 30000;
 export const WAIT_UP_TIMEOUT_MS = 30000;
 /** ms between two passes that expire incomplete messages (a period, not a deadline). */
 const EXPIRE_PERIOD_MS = 5000;
+/** ms before the second attempt to reconnect; it doubles after each failure ... */
+export const RECONNECT_WAIT_MS = 50;
+/** ms ... up to this (each wait shortened by up to half at random, so that pages spread out). */
+export const RECONNECT_WAIT_MAX_MS = 1000;
+/** s a page keeps trying to resume when the cloud did not say its grace (rce.protocol.resume.DEFAULT_GRACE). */
+const DEFAULT_GRACE = 30;
+const FINAL_CLOSE = [1000, 1008];                   // close codes by which the cloud ends a session
 const clock = () => performance.now() / 1000;      // s, monotonic
 
 export class Client {
   /**
    * options: master (login URL, e.g. "http://127.0.0.1:9000/"), userID, robotID, password (clear
-   * text, hashed here, never stored), version, expiry (s, binary parts).
+   * text, hashed here, never stored), version, expiry (s, binary parts), endpoint (the websocket URL
+   * of a known robot endpoint: no login at the master); reconnect (ask for session
+   * resume and ride out lost links), maxReconnectAttempts (dials per gap; null: until the session's
+   * grace has passed), reconnectWaitMs, maxReconnectWaitMs (the backoff), resumeBuffer (messages kept
+   * until the cloud acks them).
    *
    * Events (on()): "status" (data of every ST), "interface" (iTag, up), "error" (the text of an
    * ER that no call or barrier took), "message" (dm: {iTag, type, msgID, msg}), "notice" (text:
-   * what the session dropped, a version note), "close" ({code, reason}).
+   * what the session dropped, a version note), "close" ({code, reason}); with reconnect:
+   * "disconnected" (reason), "reconnected" (url), "resumed" (the cloud's ST session data: dropped, ...).
+   * A browser does not see why a handshake was refused: a resume the cloud refuses (the grace has
+   * passed) looks like an unreachable endpoint, and the page tries until the grace has passed.
    */
-  constructor({ master, userID, robotID, password, version = CLIENT_VERSION, expiry = DEFAULT_EXPIRY }) {
+  constructor({ master, userID, robotID, password, version = CLIENT_VERSION, expiry = DEFAULT_EXPIRY, endpoint = null,
+                reconnect = false, maxReconnectAttempts = null, reconnectWaitMs = RECONNECT_WAIT_MS,
+                maxReconnectWaitMs = RECONNECT_WAIT_MAX_MS, resumeBuffer = DEFAULT_RESUME_BUFFER }) {
     this.master = master;
+    this.endpoint = endpoint;
     this.userID = userID;
     this.robotID = robotID;
     this._password = password;
     this.version = version;
     this.ws = null;
     this.wsUrl = null;
-    this.session = new ClientSession({ expiry });
+    this.reconnect = reconnect ? { maxAttempts: maxReconnectAttempts, waitMs: reconnectWaitMs,
+                                   maxWaitMs: Math.max(reconnectWaitMs, maxReconnectWaitMs) } : null;
+    this.resumes = 0;
+    this._gap = null;                     // while resuming: {attempts, failures, deadline, timer}
+    this.session = new ClientSession({ expiry, resume: reconnect, resumeBuffer });
     this.handlers = new Map();            // event -> Set(fn)
     this.subscribers = new Map();         // iTag -> Set(fn)
     this._waiting = new Map();            // msgID or barrier token -> {resolve, reject}
     this.closed = false;
+    this._closing = false;                // close() was called: the link's end is not a loss
     this._expiryTimer = null;
   }
 
@@ -519,50 +763,108 @@ export class Client {
 
   /** Log in at the master and open the robot endpoint's websocket. Rejects with an RCEError. */
   async connect() {
-    const info = await login(this.master, this.userID, this.version);
+    const info = this.endpoint ? { url: this.endpoint } : await login(this.master, this.userID, this.version);
     if (info.current) this._emit("notice", `the master speaks version ${info.current}, this client ${this.version}`);
     const pw = await sha256Hex(this._password);
     this._password = null;
-    const q = `userID=${encodeURIComponent(this.userID)}&robotID=${encodeURIComponent(this.robotID)}&password=${pw}`;
     this.wsUrl = info.url;
-    const url = info.url + (info.url.includes("?") ? "&" : "?") + q;
-    await new Promise((resolve, reject) => {
-      let open = false;
+    const url = this._url({ password: pw, ...(this.reconnect ? { resume: "1" } : {}) });
+    const opened = await this._open(url);
+    if (!opened) {
+      // a browser does not show the refused handshake's status (401/403/409) to the page
+      throw new RCEError("connect", `login refused by the robot endpoint ${info.url}: wrong password? ` +
+                                    `(or robot ID ${JSON.stringify(this.robotID)} already connected; ` +
+                                    `a browser does not see the reason)`);
+    }
+    const period = this.reconnect ? Math.min(EXPIRE_PERIOD_MS, ACK_DELAY * 500) : EXPIRE_PERIOD_MS;   // AKs on time
+    this._expiryTimer = setInterval(() => this._apply(this.session.tick(clock())), period);
+  }
+
+  /** The robot endpoint's URL with userID, robotID and `extra` query values. */
+  _url(extra) {
+    const q = new URLSearchParams({ userID: this.userID, robotID: this.robotID, ...extra });
+    return this.wsUrl + (this.wsUrl.includes("?") ? "&" : "?") + q.toString();
+  }
+
+  /** Open a websocket to `url`; resolves true once open (it is then this.ws), false if it closed first. */
+  _open(url) {
+    return new Promise((resolve) => {
       let ws;
       try {
         ws = new WebSocket(url);
       } catch (e) {
-        reject(new RCEError("connect", `cannot open the robot endpoint ${info.url}: ${e.message}`));
+        resolve(false);
         return;
       }
+      let open = false;
       ws.binaryType = "arraybuffer";
-      this.ws = ws;
-      ws.onopen = () => { open = true; resolve(); };
-      ws.onmessage = (ev) => this._apply(typeof ev.data === "string" ? this.session.receiveText(ev.data, clock())
-                                                                      : this.session.receiveBinary(ev.data, clock()));
-      ws.onclose = (ev) => {
-        if (!open) {
-          // a browser does not show the refused handshake's status (401/403/409) to the page
-          reject(new RCEError("connect", `login refused by the robot endpoint ${info.url}: wrong password? ` +
-                                         `(or robot ID ${JSON.stringify(this.robotID)} already connected; ` +
-                                         `a browser does not see the reason)`));
-          return;
-        }
-        this._closed(ev.code, ev.reason);
+      ws.onopen = () => { open = true; this.ws = ws; resolve(true); };
+      ws.onmessage = (ev) => {
+        if (ws !== this.ws) return;                     // an old link
+        this._apply(typeof ev.data === "string" ? this.session.receiveText(ev.data, clock())
+                                                : this.session.receiveBinary(ev.data, clock()));
       };
+      ws.onclose = (ev) => { if (!open) resolve(false); else this._linkLost(ws, ev.code, ev.reason); };
     });
-    this._expiryTimer = setInterval(() => this._apply(this.session.tick(clock())), EXPIRE_PERIOD_MS);
+  }
+
+  /** A link closed: with reconnect (and a session the cloud did not end) keep the session and resume. */
+  _linkLost(ws, code, reason) {
+    if (ws !== this.ws || this.closed) return;
+    const why = reason || `code ${code}`;
+    if (this.reconnect && !this._closing && !FINAL_CLOSE.includes(code)) {
+      const out = this.session.detach(why);
+      if (out.some((o) => o.event === "detached")) {
+        const grace = this.session.grace ?? DEFAULT_GRACE;
+        this._gap = { attempts: 0, failures: 0, deadline: clock() + grace, timer: null };
+        this._emit("disconnected", why);
+        this._redial();
+        return;
+      }
+      this._apply(out);
+    }
+    this._closed(code, reason);
+  }
+
+  /** One resume attempt with the session token; on failure the next after a backoff, until the grace. */
+  async _redial() {
+    const gap = this._gap;
+    if (!gap || this.closed) return;
+    gap.attempts++;
+    const opened = await this._open(this._url(this.session.resumeQuery()));
+    if (this.closed) {                                 // closed by the page meanwhile
+      if (opened) this.ws.close(1000, "bye");
+      return;
+    }
+    if (opened) {
+      this._gap = null;
+      this._apply(this.session.attach());
+      this._emit("reconnected", this.wsUrl);
+      return;
+    }
+    const r = this.reconnect;
+    const delay = Math.min(r.waitMs * 2 ** gap.failures++, r.maxWaitMs) * (1 - 0.5 * Math.random());
+    if (this.closed || (r.maxAttempts !== null && gap.attempts >= r.maxAttempts) ||
+        clock() + delay / 1000 > gap.deadline) {
+      this._gap = null;
+      this._closed(1006, `could not resume the session (${gap.attempts} attempt(s))`);
+      return;
+    }
+    gap.timer = setTimeout(() => this._redial(), delay);
   }
 
   _closed(code, reason) {
     if (this.closed) return;
     this.closed = true;
     clearInterval(this._expiryTimer);
+    if (this._gap) clearTimeout(this._gap.timer);
+    this._gap = null;
     this._apply(this.session.close(reason || `code ${code}`));
     this._emit("close", { code, reason });
   }
 
   close() {
+    this._closing = true;
     if (this.ws && this.ws.readyState <= 1) this.ws.close(1000, "bye");
     this._closed(1000, "closed by the page");
   }
@@ -581,6 +883,10 @@ export class Client {
         case "barrier": this._settle(o.token, null); break;
         case "barrier_failed": this._settle(o.token, new RCEError("closed", o.reason)); break;
         case "dropped": this._emit("notice", `dropped from the cloud: ${o.reason}`); break;
+        case "session":
+          if (o.data.status === "resumed") { this.resumes++; this._emit("resumed", o.data); }
+          break;
+        case "detached": break;                       // _linkLost starts the resume
         default: console.error(`rce.js: unknown session output`, o);
       }
     }
@@ -620,7 +926,8 @@ export class Client {
   }
 
   _requireOpen() {
-    if (this.closed || !this.ws || this.ws.readyState !== WebSocket.OPEN) {
+    const kept = this.session.state === "detached" || this.session.state === "resuming";   // sent after the resume
+    if (this.closed || !this.ws || (!kept && this.ws.readyState !== WebSocket.OPEN)) {
       throw new RCEError("closed", "not connected to the cloud");
     }
   }

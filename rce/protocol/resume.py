@@ -1,0 +1,176 @@
+"""Session resume, sans I/O: sequence numbers, acks and the bounded buffer of messages kept
+until the peer acks them (docs/INTERNALS.md, "Session resume"; the model is MQTT's persistent
+sessions and NATS reconnects).
+
+Both sides of an opted-in robot session use the same two pieces:
+
+- :class:`Outgoing` numbers the messages one side sends (``"seq": n`` in the JSON envelope)
+  and keeps their frames until the peer acks them, in a buffer bounded in messages and bytes
+  (past the bound the oldest is forgotten and counted); after a resume it gives back the
+  frames the peer has not got, with how many were lost.
+- :class:`Incoming` takes each numbered message once (a resent duplicate is dropped and
+  counted) and says when an ``AK`` is due: after ``ack_every`` messages, or ``ack_delay`` s
+  after the first message not yet acked (an idle link is acked too).
+
+Link-level messages are not numbered, never kept and never resent: ``ST {"topic": "session"}``
+(the cloud's answer to the opt-in and to a resume) and ``AK {"seq": n}`` (every message up
+to ``n`` was taken)."""
+from __future__ import annotations
+
+import json
+import secrets
+from collections import deque
+from typing import Any
+
+from rce.errors import ProtocolError
+
+AK = "AK"                                    # the ack message type (link-level)
+SESSION_TOPIC = "session"                    # the ST topic of the session's own statuses (link-level)
+DEFAULT_GRACE = 30.0                         # s a robot endpoint keeps a detached session for its robot
+DEFAULT_RESUME_BUFFER = 1000                 # messages kept per direction until acked (each side's bound)
+DEFAULT_RESUME_BYTES = 64 * 1024 * 1024      # bytes of frames kept per direction until acked
+ACK_EVERY = 16                               # messages taken before an AK goes out at once
+ACK_DELAY = 0.2                              # s after the first message not yet acked before an AK goes out:
+                                             # short, so that a drop finds little unacked; cheap (one small frame)
+TOKEN_BYTES = 32                             # random bytes of a session token (64 hex chars, 256 bits)
+
+Frame = str | bytes
+
+
+def new_token() -> str:
+    """A fresh session token: :data:`TOKEN_BYTES` random bytes from :mod:`secrets`, as hex."""
+    return secrets.token_hex(TOKEN_BYTES)
+
+
+def ack_frame(n: int) -> str:
+    """The text frame ``{"type": "AK", "data": {"seq": n}}``."""
+    return json.dumps({"type": AK, "data": {"seq": n}}, separators=(",", ":"))
+
+
+def read_seq(msg: dict) -> int | None:
+    """The ``seq`` of a message's envelope, or None when it has none. Raises :class:`ProtocolError`
+    for one that is not a positive integer."""
+    if "seq" not in msg:
+        return None
+    seq = msg["seq"]
+    if isinstance(seq, bool) or not isinstance(seq, int) or seq < 1:
+        raise ProtocolError(f"message.seq must be a positive integer, got {seq!r}")
+    return seq
+
+
+def read_ack(data: Any) -> int:
+    """The ``n`` of an AK's data ``{"seq": n}``. Raises :class:`ProtocolError` naming what is wrong."""
+    seq = data.get("seq") if isinstance(data, dict) else None
+    if isinstance(seq, bool) or not isinstance(seq, int) or seq < 0:
+        raise ProtocolError(f"AK.data.seq must be a non-negative integer, got {data!r}")
+    return seq
+
+
+def is_session_status(msg: dict) -> bool:
+    """Is ``msg`` an ``ST {"topic": "session", ...}`` (link-level)?"""
+    data = msg.get("data")
+    return msg.get("type") == "ST" and isinstance(data, dict) and data.get("topic") == SESSION_TOPIC
+
+
+class Outgoing:
+    """The numbered messages one side sent, kept until acked.
+
+    ``max_messages`` and ``max_bytes`` bound what is kept; past either the oldest kept message
+    is forgotten and counted in :attr:`forgotten` (it is lost only if the link drops before the
+    peer got it). :attr:`last` is the number of the last message numbered (0: none yet)."""
+
+    def __init__(self, max_messages: int = DEFAULT_RESUME_BUFFER, max_bytes: int = DEFAULT_RESUME_BYTES):
+        self.max_messages, self.max_bytes = max_messages, max_bytes
+        self.last = 0
+        self.acked = 0
+        self.forgotten = 0
+        self._kept: deque[tuple[int, list[Frame], int]] = deque()     # (seq, frames, bytes), oldest first
+        self._bytes = 0
+
+    def __len__(self) -> int:
+        return len(self._kept)
+
+    @property
+    def bytes(self) -> int:
+        """Bytes of the frames kept."""
+        return self._bytes
+
+    def number(self) -> int:
+        """The number of the next message."""
+        self.last += 1
+        return self.last
+
+    def keep(self, seq: int, frames: list[Frame]) -> None:
+        """Keep message ``seq``'s frames (its JSON text frame, then its binary parts) until acked."""
+        size = sum(len(f) for f in frames)
+        self._kept.append((seq, frames, size))
+        self._bytes += size
+        while len(self._kept) > self.max_messages or (self._bytes > self.max_bytes and len(self._kept) > 1):
+            self._bytes -= self._kept.popleft()[2]
+            self.forgotten += 1
+
+    def ack(self, n: int) -> None:
+        """The peer took every message up to ``n``: forget them. Raises :class:`ProtocolError` for
+        a number never sent."""
+        if n > self.last:
+            raise ProtocolError(f"AK: seq {n} was never sent (the last message sent is {self.last})")
+        while self._kept and self._kept[0][0] <= n:
+            self._bytes -= self._kept.popleft()[2]
+        self.acked = max(self.acked, n)
+
+    def resend_after(self, n: int) -> tuple[list[list[Frame]], int]:
+        """A resume: the peer took every message up to ``n``. Returns the kept messages after ``n``
+        (each one's frames), in order, and how many messages after ``n`` are lost (forgotten past the
+        bound). Raises :class:`ProtocolError` for a number never sent."""
+        self.ack(n)
+        first = self._kept[0][0] if self._kept else self.last + 1
+        lost = max(0, first - 1 - self.acked)            # what the peer acked before is not lost
+        return [frames for _, frames, _ in self._kept], lost
+
+    def clear(self) -> None:
+        """Keep nothing more (the peer does not resume)."""
+        self._kept.clear()
+        self._bytes = 0
+
+
+class Incoming:
+    """Numbered messages taken from the peer: each once, and an AK when due.
+
+    :attr:`last`: the number of the last message taken (what a resume reports as taken);
+    :attr:`duplicates`: resent messages dropped; :attr:`gaps`: numbers skipped (messages the
+    peer's buffer lost)."""
+
+    def __init__(self, ack_every: int = ACK_EVERY, ack_delay: float = ACK_DELAY):
+        self.ack_every, self.ack_delay = ack_every, ack_delay
+        self.last = 0
+        self.acked = 0
+        self.duplicates = 0
+        self.gaps = 0
+        self._unacked = 0                        # messages taken since the last AK
+        self._since: float | None = None         # when the first of them was taken
+
+    def take(self, seq: int | None, now: float) -> bool:
+        """Message ``seq`` (None: the next one) arrived complete at ``now`` (s). False: a duplicate."""
+        if seq is None:
+            seq = self.last + 1
+        if seq <= self.last:
+            self.duplicates += 1
+            return False
+        self.gaps += seq - self.last - 1
+        self.last = seq
+        self._unacked += 1
+        if self._since is None:
+            self._since = now
+        return True
+
+    def ack_due(self, now: float) -> int | None:
+        """The number to ack now (and count it acked), or None: ``ack_every`` messages are unacked,
+        or the oldest unacked one came ``ack_delay`` s ago."""
+        if not self._unacked or (self._unacked < self.ack_every and now - self._since < self.ack_delay):
+            return None
+        self.reported()
+        return self.last
+
+    def reported(self) -> None:
+        """The peer learnt :attr:`last` (an AK, a resume's query or ST): nothing is unacked."""
+        self.acked, self._unacked, self._since = self.last, 0, None

@@ -1,0 +1,193 @@
+"""Session resume, sans I/O (rce/protocol/resume.py and both sessions; docs/INTERNALS.md "Session
+resume"): what the shared vectors do not pin. The bounds of the kept buffer, tokens, the errors of
+misuse, and a RobotSession and a ClientSession wired together over an in-memory link that drops
+with frames in flight: every message arrives once and in order, both ways, calls survive."""
+from __future__ import annotations
+
+import asyncio
+import json
+import random
+
+import pytest
+
+from rce.errors import ProtocolError
+from rce.protocol.resume import TOKEN_BYTES, Incoming, Outgoing, ack_frame, new_token, read_ack, read_seq
+from rce.protocol.session import ClientSession, RobotSession
+
+
+def test_outgoing_bounds_messages_and_bytes_and_counts_what_it_forgets():
+    out = Outgoing(max_messages=3, max_bytes=10)
+    for _ in range(4):
+        out.keep(out.number(), ["ab"])
+    assert len(out) == 3 and out.forgotten == 1 and out.bytes == 6
+    out.keep(out.number(), ["x" * 9])                     # over the bytes: the oldest go, the newest stays
+    assert len(out) == 1 and out.forgotten == 4 and out.bytes == 9
+    out.keep(out.number(), ["y" * 20])                    # one message larger than the bound is still kept
+    assert len(out) == 1 and out.bytes == 20
+    messages, lost = out.resend_after(2)
+    assert messages == [["y" * 20]] and lost == 3          # 3, 4 and 5 were forgotten; the peer had 1 and 2
+
+
+def test_outgoing_ack_and_resend_after():
+    out = Outgoing()
+    for i in range(5):
+        out.keep(out.number(), [f"m{i + 1}"])
+    out.ack(2)
+    assert len(out) == 3 and out.acked == 2
+    assert out.resend_after(1) == ([["m3"], ["m4"], ["m5"]], 0)      # an older ack than the last: nothing lost
+    with pytest.raises(ProtocolError, match="seq 6 was never sent"):
+        out.ack(6)
+    out.clear()
+    assert len(out) == 0 and out.bytes == 0
+
+
+def test_incoming_duplicates_gaps_and_ack_schedule():
+    inc = Incoming(ack_every=3, ack_delay=1.0)
+    assert inc.take(1, 0.0) and not inc.take(1, 0.1) and inc.duplicates == 1
+    assert inc.ack_due(0.5) is None and inc.ack_due(1.0) == 1 and inc.ack_due(5.0) is None
+    assert inc.take(5, 2.0) and inc.gaps == 3 and inc.take(None, 2.0) and inc.last == 6
+    assert inc.ack_due(2.0) is None
+    assert inc.take(7, 2.0) and inc.ack_due(2.0) == 7       # three taken since the last AK
+
+
+def test_frames_and_fields():
+    assert json.loads(ack_frame(3)) == {"type": "AK", "data": {"seq": 3}}
+    assert read_seq({"type": "DM"}) is None and read_seq({"seq": 4}) == 4
+    for bad in (0, -1, "2", 1.5, True, None):
+        with pytest.raises(ProtocolError, match="seq must be a positive integer"):
+            read_seq({"seq": bad})
+    assert read_ack({"seq": 0}) == 0
+    for bad in ({"seq": -1}, {"seq": "1"}, {}, [], None, {"seq": False}):
+        with pytest.raises(ProtocolError, match="AK.data.seq"):
+            read_ack(bad)
+
+
+def test_tokens_are_long_random_hex():
+    tokens = {new_token() for _ in range(100)}
+    assert len(tokens) == 100
+    assert all(len(t) == 2 * TOKEN_BYTES and int(t, 16) >= 0 for t in tokens) and TOKEN_BYTES * 8 >= 128
+    assert RobotSession("r1", resume=True).token != RobotSession("r1", resume=True).token
+    assert RobotSession("r1").token is None
+
+
+def test_misuse_is_refused():
+    with pytest.raises(ProtocolError, match="did not opt in"):
+        RobotSession("r1").detach()
+    s = RobotSession("r1", resume=True)
+    assert not s.can_resume(1) and s.can_resume(0) and not RobotSession("r1").can_resume(0)
+    with pytest.raises(ProtocolError, match="ack 1 is not a message sent"):
+        s.attach(1)
+    c = ClientSession(resume=True)
+    with pytest.raises(ProtocolError, match="not detached"):
+        c.attach()
+    assert c.resume_query() == {"session": "", "ack": "0"}
+
+
+def test_a_resumed_session_reports_robot_messages_taken_and_buffer_losses():
+    s = RobotSession("r1", resume=True, token="t" * 64, resume_buffer=2)
+    s.add_interface("req", "SubscriberConverter", "std_msgs/String")
+    dm = {"iTag": "req", "type": "std_msgs/String", "msgID": "", "msg": {"data": "x"}}
+    for seq in (1, 2, 3):
+        s.receive_text(json.dumps({"type": "DM", "seq": seq, "data": dm}), 0)
+    s.data_to_send()
+    s.detach()
+    for _ in range(5):
+        s.send_dm("out", "std_msgs/String", "", {"data": "y"}, data=True)
+    s.attach(0)
+    st = json.loads(s.data_to_send(1)[0])
+    assert st["data"] == {"topic": "session", "status": "resumed", "session": "t" * 64, "grace": 30.0,
+                          "ack": 3, "dropped": 3}
+    assert [json.loads(f)["seq"] for f in s.data_to_send()] == [4, 5]
+    assert s.stats()["resume_lost"] == 3 and s.stats()["resume_forgotten"] == 3
+
+
+# -- both sides over an in-memory link that drops with frames in flight --------------------------------
+class Pair:
+    """A cloud session (``RobotSession``, with an echo interface) and a robot session (``ClientSession``)
+    joined by two in-memory directions; each frame is delivered or, when the link drops, lost."""
+
+    def __init__(self, seed: int):
+        self.rng = random.Random(seed)
+        self.cloud = RobotSession("r1", resume=True, ack_every=4)
+        self.cloud.add_interface("req", "SubscriberConverter", "std_msgs/String")
+        self.cloud.add_interface("svc", "ServiceProviderConverter", "Test/StringEcho")
+        self.robot = ClientSession(resume=True, ack_every=4)
+        self.got_by_cloud: list[str] = []
+        self.got_by_robot: list[str] = []
+        self.now = 0.0
+        self.up = True
+
+    def step(self) -> None:
+        """Move every frame waiting on either side (some lost when the link drops meanwhile)."""
+        self.now += 0.05
+        self.cloud.tick(self.now)
+        self.robot.tick(self.now)
+        for _ in range(50):
+            to_robot, to_cloud = self.cloud.data_to_send(), self.robot.data_to_send()
+            if not (to_robot or to_cloud):
+                break
+            for side, f in [(self.cloud, f) for f in to_cloud] + [(self.robot, f) for f in to_robot]:
+                if self.up and self.rng.random() < 0.005:      # the link drops: the frames in flight are lost
+                    self.drop()
+                if self.up:
+                    (side.receive_text if isinstance(f, str) else side.receive_binary)(f, self.now)
+            self.events()
+
+    def events(self) -> None:
+        for ev in self.cloud.events_received():
+            if ev.name == "deliver":
+                self.got_by_cloud.append(ev.fields["data"]["msg"]["data"])
+                self.cloud.send_dm("echo", "std_msgs/String", "", ev.fields["data"]["msg"], data=True)
+            elif ev.name == "call":
+                self.cloud.answer_call(ev.fields["data"], ev.fields["data"]["msg"])
+        for ev in self.robot.events_received():
+            if ev.name == "message":
+                self.got_by_robot.append(ev.fields["msg"]["data"])
+
+    def drop(self) -> None:
+        """The link is lost: both sides detach; the next step resumes."""
+        self.up = False
+        self.cloud.detach()
+        assert self.robot.detach("code 1006")
+        self.events()
+
+    def resume(self) -> None:
+        q = self.robot.resume_query()
+        assert q["session"] == self.cloud.token
+        self.robot.attach()
+        self.cloud.attach(int(q["ack"]))
+        self.up = True
+
+
+async def run_pair(seed: int) -> int:
+    """300 messages each way and 6 calls over a link that drops (seeded); asserts exactly once, in order,
+    with nothing lost; returns the resends and duplicates seen."""
+    p = Pair(seed)
+    p.step()
+    assert p.robot.state == "live"
+    calls = []
+    for i in range(300):
+        p.robot.send("DM", {"iTag": "req", "type": "std_msgs/String", "msgID": "", "msg": {"data": f"m{i}"}})
+        if i % 50 == 0:
+            calls.append(asyncio.ensure_future(p.robot.pending.wait(
+                p.robot.call("svc", "Test/StringEcho", {"data": f"call{i}"}), 5)))
+        if not p.up and p.rng.random() < 0.3:
+            p.resume()
+        p.step()
+    while not p.up or p.robot.outbox or p.cloud.outbox:
+        if not p.up:
+            p.resume()
+        p.step()
+    sent = [f"m{i}" for i in range(300)]
+    assert p.got_by_cloud == sent
+    assert p.got_by_robot == sent
+    assert [c["data"] for c in await asyncio.gather(*calls)] == [f"call{i}" for i in range(0, 300, 50)]
+    stats = p.cloud.stats()
+    assert stats["resumes"] >= 2 and stats["resume_lost"] == 0 and p.robot.outgoing.forgotten == 0
+    return stats["resent"] + p.robot.incoming.duplicates + p.cloud.incoming.duplicates
+
+
+@pytest.mark.asyncio
+async def test_both_ways_exactly_once_in_order_across_drops():
+    resends_and_duplicates = [await run_pair(seed) for seed in range(8)]
+    assert sum(resends_and_duplicates) > 0, "drops in flight were resent and their duplicates dropped"
