@@ -55,7 +55,9 @@ def wait_file(path: Path, proc: subprocess.Popen, timeout: float = 30.0) -> dict
 
 @dataclass
 class Engine:
-    """A running engine: ``master_url`` (http://127.0.0.1:PORT/), ``admin_token``, process handles."""
+    """A running engine: ``master_url`` (http://127.0.0.1:PORT/), ``admin_token``, process handles;
+    ``masters``: the control addresses (``HOST:PORT``) task sets added from now on are given
+    (default: the first master's; several masters: add theirs)."""
     workdir: Path
     env: dict
     procs: list[subprocess.Popen] = field(default_factory=list)
@@ -64,6 +66,7 @@ class Engine:
     admin_token: str = ""
     robot_ready: list[dict] = field(default_factory=list)
     logs: list[Path] = field(default_factory=list)
+    masters: list[str] = field(default_factory=list)
 
     def admin(self, path: str, body: dict | None = None, method: str | None = None):
         """Call the master's admin API (:class:`~rce.admin_client.AdminClient`): GET ``path`` (or
@@ -85,7 +88,7 @@ class Engine:
     def add_robot_taskset(self, *extra: str) -> dict:
         n = len(self.robot_ready)
         ready = self.workdir / f"robot{n}.ready"
-        _, info = self.spawn(f"robot{n}", [*command("rce-robot"), "127.0.0.1", "--master-port", str(self.control_port),
+        _, info = self.spawn(f"robot{n}", [*command("rce-robot"), ",".join(self.masters),
                                            "--port", "0", "--data-port", "0", "--metrics-port", "0",
                                            "--ready-file", str(ready), *extra], ready)
         self.robot_ready.append(info)
@@ -95,8 +98,8 @@ class Engine:
         n = sum(1 for p in self.procs
                 if any("rce-container" in str(a) or "rce_container" in str(a) for a in p.args[:3]))
         ready = self.workdir / f"container{n}.ready"
-        p, _ = self.spawn(f"container{n}", [*command("rce-container"), "127.0.0.1", "--master-port",
-                                            str(self.control_port), "--runtime-dir", str(self.workdir / f"rt{n}"),
+        p, _ = self.spawn(f"container{n}", [*command("rce-container"), ",".join(self.masters),
+                                            "--runtime-dir", str(self.workdir / f"rt{n}"),
                                             "--ready-file", str(ready), *extra], ready)
         return p
 
@@ -137,6 +140,7 @@ def start_engine(workdir: Path | None = None, *, robot_tasksets: int = 1, contai
                                  "--ready-file", str(ready), *master_args], ready)
     e.master_url = f"http://127.0.0.1:{info['http_port']}/"
     e.control_port = info["control_port"]
+    e.masters = [f"127.0.0.1:{e.control_port}"]
     try:
         for _ in range(robot_tasksets):
             e.add_robot_taskset(*robot_args)

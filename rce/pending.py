@@ -66,10 +66,14 @@ class PendingCalls:
         fut = self._calls.get(cid)
         if fut is None:
             raise RCEError(f"no call {cid!r} to {self.name} in flight")
+        deadline = asyncio.timeout(timeout)     # not wait_for: on 3.11 it can swallow a cancellation
         try:
-            return await asyncio.wait_for(fut, timeout)
-        except asyncio.TimeoutError:
-            raise Timeout(f"{self.name} did not answer {what} within {timeout:g} s") from None
+            async with deadline:
+                return await fut
+        except TimeoutError:
+            if deadline.expired():
+                raise Timeout(f"{self.name} did not answer {what} within {timeout:g} s") from None
+            raise                               # the call itself failed with a timeout from further away
         finally:
             self.forget(cid)
 

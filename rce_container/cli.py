@@ -1,7 +1,10 @@
-"""``rce-container MASTER_IP``: the container task set of one host (see :mod:`rce_container.host`).
+"""``rce-container MASTER[,MASTER...]``: the container task set of one host (see :mod:`rce_container.host`).
 
-Exit codes: 0 after SIGINT/SIGTERM (every container destroyed), 1 when the master link
-drops or registration fails, 2 for bad arguments.
+It outlives its master: when the master goes away its containers keep running, and it dials the
+masters again with backoff and re-registers (:mod:`rce.masterlink`).
+
+Exit codes: 0 after SIGINT/SIGTERM (every container destroyed), 1 when the master refuses to
+register it, 2 for bad arguments.
 """
 from __future__ import annotations
 
@@ -17,6 +20,7 @@ from rce.process import run_loop
 from rce import framing
 from rce.errors import RCEError
 from rce.log import get_logger, setup_logging
+from rce.masterlink import MASTER_PORT, unless_stopped
 from rce_container import sandbox as sandboxes
 from rce_container.host import ContainerHost, write_ready_file
 
@@ -26,8 +30,10 @@ log = get_logger("rce.container")
 def parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(prog="rce-container", description="rce container task set: runs the "
                                 "containers (environments and their nodes) the master places on this host")
-    p.add_argument("master", metavar="MASTER_IP", help="address of the rce-master control port")
-    p.add_argument("--master-port", type=int, default=8080, help="master control port (default 8080)")
+    p.add_argument("master", metavar="MASTER",
+                   help="rce-master's control address: HOST or HOST:PORT; several masters: comma-separated")
+    p.add_argument("--master-port", type=int, default=MASTER_PORT,
+                   help=f"rce-master control port of addresses that give none (default {MASTER_PORT})")
     p.add_argument("--bind", default="127.0.0.1",
                    help="address environments' data-plane listeners bind to (default 127.0.0.1)")
     p.add_argument("--advertise-host", default=None,
@@ -66,11 +72,13 @@ async def amain(args: argparse.Namespace) -> int:
     for sig in (signal.SIGINT, signal.SIGTERM):
         loop.add_signal_handler(sig, host.stop)
     try:
-        tid = await host.start()
+        tid = await unless_stopped(host.start(), host.stopped)
     except (OSError, RCEError) as e:
-        log.error("cannot register with the master", master=f"{args.master}:{args.master_port}", reason=str(e))
+        log.error("cannot register with the master", master=args.master, reason=str(e))
         await host.close()
         return 1
+    if host.stopped.is_set():
+        return await host.run()
     if args.ready_file:
         write_ready_file(args.ready_file, tid, metrics_port=host.metrics_port, sandbox=host.sandbox_cls.kind)
     return await host.run()

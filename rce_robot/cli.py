@@ -1,4 +1,7 @@
-"""``rce-robot MASTER_IP``: the robot task set (websocket on 9010, data plane on 10030)."""
+"""``rce-robot MASTER[,MASTER...]``: the robot task set (websocket on 9010, data plane on 10030).
+
+It outlives its master: when the master goes away it keeps its robots and data-plane links,
+dials the masters again with backoff and re-registers (:mod:`rce.masterlink`)."""
 from __future__ import annotations
 
 import argparse
@@ -9,8 +12,10 @@ import socket
 from pathlib import Path
 
 from rce.log import get_logger
+from rce.masterlink import MASTER_PORT, MASTER_WAIT, parse_masters, unless_stopped
 from rce.process import run, write_ready_file
 from rce.protocol.frames import DEFAULT_EXPIRY
+from rce.protocol.resume import DEFAULT_GRACE, DEFAULT_RESUME_BUFFER
 from rce.protocol.session import DEFAULT_MAX_MESSAGE, DEFAULT_QUEUE_SIZE
 from rce_robot.endpoint import RobotEndpoint
 
@@ -19,8 +24,13 @@ log = get_logger("rce.robot")
 
 def parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(prog="rce-robot", description="RCE robot task set: robot endpoints.")
-    p.add_argument("master_ip", help="address of rce-master's control plane")
-    p.add_argument("--master-port", type=int, default=8080, help="rce-master control port (default 8080)")
+    p.add_argument("master_ip", metavar="MASTER",
+                   help="rce-master's control address: HOST or HOST:PORT; several masters: comma-separated")
+    p.add_argument("--master-port", type=int, default=MASTER_PORT,
+                   help=f"rce-master control port of addresses that give none (default {MASTER_PORT})")
+    p.add_argument("--master-wait", type=float, default=MASTER_WAIT, metavar="S",
+                   help="seconds a robot's request (CC, DC, CN, CX) waits for an absent master before it gets "
+                        f"an ER (default {MASTER_WAIT:g})")
     p.add_argument("--bind", default="127.0.0.1", help="address to listen on (default 127.0.0.1)")
     p.add_argument("--port", type=int, default=9010, help="websocket port for robots (0 = ephemeral)")
     p.add_argument("--data-port", type=int, default=10030, help="data-plane port (0 = ephemeral)")
@@ -33,23 +43,34 @@ def parser() -> argparse.ArgumentParser:
                    help="messages that may wait per robot in each queue (data to it, requests, early DMs, calls)")
     p.add_argument("--expiry", type=float, default=DEFAULT_EXPIRY,
                    help="seconds an incomplete message waits for binary parts")
+    p.add_argument("--grace", type=float, default=DEFAULT_GRACE, metavar="S",
+                   help="seconds the session of a robot that opted in to resume is kept after its link is lost, "
+                        f"before its containers are destroyed (default {DEFAULT_GRACE:g})")
+    p.add_argument("--resume-buffer", type=int, default=DEFAULT_RESUME_BUFFER, metavar="N",
+                   help="messages kept per robot until it acks them, to resend after a resume; past it the oldest "
+                        f"are dropped, counted and reported to the robot (default {DEFAULT_RESUME_BUFFER})")
     p.add_argument("--ready-file", type=Path, help="write {ws_port, data_addr, pid} here once registered")
     return p
 
 
 async def amain(args: argparse.Namespace) -> None:
+    masters = parse_masters(args.master_ip, args.master_port)
     ep = RobotEndpoint(name=args.name or f"{socket.gethostname()}-robot-{os.getpid()}",
                        advertise_host=args.advertise_host or args.bind, max_message=args.max_message,
-                       queue_size=args.queue_size, expiry=args.expiry)
-    await ep.start(args.master_ip, args.master_port, args.bind, args.port, args.data_port, args.metrics_port)
-    write_ready_file(args.ready_file, {"ws_port": ep.ws_port, "data_addr": ep.plane.addr, "pid": os.getpid(),
-                                   "metrics_port": ep.metrics_port})
+                       queue_size=args.queue_size, expiry=args.expiry, master_wait=args.master_wait,
+                       grace=args.grace, resume_buffer=args.resume_buffer)
     loop = asyncio.get_running_loop()
     for sig in (signal.SIGINT, signal.SIGTERM):
         loop.add_signal_handler(sig, ep.stopped.set)
-    await ep.stopped.wait()
-    log.info("robot endpoint stopping")
-    await ep.stop()
+    try:
+        await unless_stopped(ep.start(masters, args.bind, args.port, args.data_port, args.metrics_port), ep.stopped)
+        if not ep.stopped.is_set():
+            write_ready_file(args.ready_file, {"ws_port": ep.ws_port, "data_addr": ep.plane.addr, "pid": os.getpid(),
+                                               "metrics_port": ep.metrics_port, "tid": ep.master.tid})
+            await ep.stopped.wait()
+    finally:
+        log.info("robot endpoint stopping")
+        await ep.stop()
 
 
 def main(argv: list[str] | None = None) -> None:

@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import asyncio
 import hashlib
+import hmac
 from collections import Counter
 from http import HTTPStatus
 from urllib.parse import parse_qs, urlsplit
@@ -14,21 +15,21 @@ from prometheus_client import CONTENT_TYPE_LATEST, CollectorRegistry, Gauge, gen
 from prometheus_client.core import CounterMetricFamily
 from websockets.asyncio.server import serve
 
-from rce import rpc
 from rce.dataplane import DataPlane
 from rce.errors import AuthError, NotFound, RCEError
 from rce.log import get_logger
+from rce.masterlink import MASTER_WAIT, Address, MasterLink
 from rce.messages import default_registry
 from rce.package_path import load_package_types
 from rce.protocol.frames import DEFAULT_EXPIRY
+from rce.protocol.resume import DEFAULT_GRACE, DEFAULT_RESUME_BUFFER
 from rce.protocol.session import DEFAULT_MAX_MESSAGE, DEFAULT_QUEUE_SIZE, RobotSession, robot_interface_type
 from rce_robot.interfaces import RobotInterface
-from rce_robot.namespace import RobotNamespace
+from rce_robot.namespace import CLOSE_POLICY, RobotNamespace
 
 log = get_logger("rce.robot")
-# s of master silence before this task set gives up on it. Longer than the master's own 4 s
-# verdict on task sets: a busy master is not a lost one, and giving up tears containers down.
-MASTER_SILENCE = 15.0
+MASTER_AWAY_RETRY_AFTER = 5   # s, Retry-After of the 503 a connecting robot gets while the master is away (as the
+                              # master's own 503 while task sets are absent)
 PING_INTERVAL = 20.0     # s between websocket pings to a robot
 PING_TIMEOUT = 60.0      # s a robot may leave a ping unanswered before its link counts as lost (slow links)
 WS_MAX_QUEUE = 64        # frames the websocket reads ahead of the session
@@ -48,7 +49,11 @@ SESSION_COUNTERS = {"msgs_in": ("rce_robot_messages_in", "Messages from robots")
                     "msgs_out": ("rce_robot_messages_out", "Messages to robots"),
                     "dropped": ("rce_robot_dropped", "Messages to robots dropped (queue full)"),
                     "dropped_in": ("rce_robot_dropped_in", "Messages from robots refused (queue full)"),
-                    "errors": ("rce_robot_errors", "ER messages sent to robots")}
+                    "errors": ("rce_robot_errors", "ER messages sent to robots"),
+                    "resumes": ("rce_robot_resumes", "Robot sessions resumed on a new link"),
+                    "resent": ("rce_robot_resent", "Messages resent to robots after a resume"),
+                    "resume_lost": ("rce_robot_resume_lost", "Messages to robots lost from a full resume buffer"),
+                    "duplicates": ("rce_robot_duplicates", "Messages resent by robots and dropped as duplicates")}
 
 
 class Metrics:
@@ -68,6 +73,10 @@ class Metrics:
                 lambda k=k: getattr(ep.plane, k))
         Gauge("rce_robot_queue_depth", "Data messages waiting to go to robots", registry=r).set_function(
             lambda: sum(n.session.out_data for n in ep.namespaces.values()))
+        Gauge("rce_robot_detached", "Robot sessions kept without a link, waiting for a resume",
+              registry=r).set_function(lambda: sum(bool(getattr(n, "detached", False)) for n in ep.namespaces.values()))
+        Gauge("rce_robot_master_available", "1 while registered with a master, 0 while it is away",
+              registry=r).set_function(lambda: int(ep.master is not None and ep.master.available))
 
     def session_ended(self, session: RobotSession) -> None:
         stats = session.stats()
@@ -83,18 +92,25 @@ class Metrics:
 class RobotEndpoint:
     """One robot task set. ``max_message``: largest websocket frame taken (bytes; larger ones get
     an ER); ``queue_size``: bound of each of a robot's queues (:class:`RobotSession`); ``expiry``: s for
-    binary parts."""
+    binary parts; ``master_wait``: s a robot's request waits for an absent master before its ER
+    (:class:`~rce.masterlink.MasterLink`); ``grace``: s the session of a robot that opted in to resume
+    is kept after its link is lost; ``resume_buffer``: messages kept per robot until it acks them
+    (docs/INTERNALS.md "Session resume")."""
 
     def __init__(self, *, name: str, advertise_host: str, max_message: int = DEFAULT_MAX_MESSAGE,
-                 queue_size: int = DEFAULT_QUEUE_SIZE, expiry: float = DEFAULT_EXPIRY):
+                 queue_size: int = DEFAULT_QUEUE_SIZE, expiry: float = DEFAULT_EXPIRY,
+                 master_wait: float = MASTER_WAIT, grace: float = DEFAULT_GRACE,
+                 resume_buffer: int = DEFAULT_RESUME_BUFFER):
         self.name, self.advertise_host = name, advertise_host
         self.max_message, self.queue_size, self.expiry = max_message, queue_size, expiry
+        self.grace, self.resume_buffer = grace, resume_buffer
+        self.master_wait = master_wait
         self.registry = default_registry()
         load_package_types(self.registry)
         self.plane = DataPlane(f"robot:{name}")
         self.namespaces: dict[tuple[str, str], RobotNamespace] = {}
         self.by_iid: dict[int, RobotInterface] = {}
-        self.master: rpc.RpcPeer | None = None
+        self.master: MasterLink | None = None
         self.metrics = Metrics(self)
         self.ws_port = 0
         self.metrics_port = 0
@@ -102,8 +118,11 @@ class RobotEndpoint:
         self._http: web.AppRunner | None = None
         self.stopped = asyncio.Event()
 
-    async def start(self, master_host: str, master_port: int, bind: str, port: int, data_port: int,
+    async def start(self, masters: list[Address], bind: str, port: int, data_port: int,
                     metrics_port: int | None = None) -> None:
+        """Listen (data plane, websocket), then register with one of ``masters`` (control
+        addresses; retried with backoff until one takes this task set), then serve metrics.
+        Raises :class:`RCEError` when the master refuses this task set."""
         await self.plane.listen(bind, data_port, self.advertise_host)
         # frames up to twice the limit are read and refused with an ER; beyond that the socket closes
         self._ws_server = await serve(self._session, bind, port, process_request=self._handshake,
@@ -114,11 +133,11 @@ class RobotEndpoint:
         host = f"[{self.advertise_host}]" if ":" in self.advertise_host else self.advertise_host
         handlers = {op: getattr(self, "_op_" + op) for op in
                     ("add_interface", "remove_interface", "connect", "disconnect", "notify", "close_robot")}
-        self.master = await rpc.connect(master_host, master_port, handlers, name="master",
-                                        on_close=lambda _p: self.stopped.set())
-        self.master.keepalive(timeout=MASTER_SILENCE)
-        await self.master.call("register", kind="robot", name=self.name, host=self.advertise_host,
-                               ws_url=f"ws://{host}:{self.ws_port}/", data_addr=self.plane.addr)
+        info = {"kind": "robot", "name": self.name, "host": self.advertise_host, "ws_url": f"ws://{host}:{self.ws_port}/",
+                "data_addr": self.plane.addr}
+        self.master = MasterLink(masters, handlers, info, report=self._report, on_registered=self._obey,
+                                 master_wait=self.master_wait)
+        await self.master.start()
         if metrics_port is not None:
             app = web.Application()
             app.router.add_get("/metrics", self._metrics)
@@ -130,6 +149,12 @@ class RobotEndpoint:
         log.info("robot endpoint up", ws_port=self.ws_port, data_addr=self.plane.addr)
 
     async def stop(self) -> None:
+        if self.master and not self.master.available:
+            await self.master.close()         # sessions that end now need not wait for an absent master
+        # resumable sessions end here, detached ones too (their robots see 1008: nothing to resume); the
+        # others end as before, with the server's close (1001)
+        await asyncio.gather(*(ns.close("the robot endpoint is stopping") for ns in list(self.namespaces.values())
+                               if ns.resumable))
         if self._ws_server:
             self._ws_server.close()
             await self._ws_server.wait_closed()
@@ -144,8 +169,13 @@ class RobotEndpoint:
 
     # -- websocket -------------------------------------------------------------------------------
     async def _handshake(self, connection, request):
-        """Authenticate ``?userID=U&robotID=R&password=P`` before the websocket opens."""
+        """Authenticate ``?userID=U&robotID=R&password=P[&resume=1]`` before the websocket opens, or
+        a resume ``?userID=U&robotID=R&session=TOKEN&ack=N`` (docs/INTERNALS.md "Session resume")."""
         q = {k: v[0] for k, v in parse_qs(urlsplit(request.path).query, encoding="latin-1").items()}
+        if "session" in q:         # a resume needs no master: the session and its token are here
+            return self._resume(connection, q)
+        if (away := self._master_away(connection)) is not None:
+            return away
         missing = [k for k in ("userID", "robotID", "password") if not q.get(k)]
         if missing:
             return connection.respond(HTTPStatus.BAD_REQUEST, f"missing query parameter(s): {', '.join(missing)}\n")
@@ -156,31 +186,89 @@ class RobotEndpoint:
             return connection.respond(HTTPStatus.UNAUTHORIZED, e.message + "\n")
         except RCEError as e:
             return connection.respond(HTTPStatus.SERVICE_UNAVAILABLE, e.message + "\n")
+        old = self.namespaces.get((user, robot))
+        if old is not None and old.detached:      # a new login (no token) ends the detached session first
+            await old.close("a new login replaced this session")
         try:
             await self.master.call("robot_connected", user=user, robot=robot)
         except RCEError as e:
             return connection.respond(HTTPStatus.CONFLICT, e.message + "\n")
-        connection.rce_identity = (user, robot)
+        connection.rce_identity, connection.rce_resume = (user, robot), q.get("resume") == "1"
+        connection.rce_ack = None
+        return None
+
+    def _resume(self, connection, q: dict):
+        """A resume's handshake: the robot's session, its token (else 401, as a bad password) and an
+        ``ack`` it can serve (else 400)."""
+        user, robot, token = q.get("userID", ""), q.get("robotID", ""), q["session"]
+        ns = self.namespaces.get((user, robot))
+        if ns is None or ns.ended or not ns.session.token or \
+                not hmac.compare_digest(ns.session.token.encode(), token.encode("utf-8", "replace")):
+            return connection.respond(HTTPStatus.UNAUTHORIZED, f"no session to resume for robot {robot!r} of user "
+                                                               f"{user!r} (wrong or expired session token)\n")
+        try:
+            ack = int(q.get("ack", "0"))
+        except ValueError:
+            ack = -1
+        if not ns.session.can_resume(ack):
+            return connection.respond(HTTPStatus.BAD_REQUEST, f"ack must be the number of the last message the robot "
+                                                              f"took, 0 to {ns.session.outgoing.last}; got "
+                                                              f"{q.get('ack')!r}\n")
+        connection.rce_identity, connection.rce_resume, connection.rce_ack = (user, robot), True, ack
         return None
 
     async def _session(self, ws) -> None:
         user, robot = ws.rce_identity
-        session = RobotSession(robot, max_message=self.max_message, queue_size=self.queue_size, expiry=self.expiry)
-        ns = RobotNamespace(ws, user, robot, self.master, session)
+        if ws.rce_ack is not None:             # a resume
+            ns = self.namespaces.get((user, robot))
+            if ns is None or ns.ended:         # it ended between the handshake and now
+                await ws.close(CLOSE_POLICY, "the session to resume has ended")
+                return
+            log.info("robot resumed", user=user, robot=robot, ack=ws.rce_ack, peer=str(ws.remote_address))
+            await ns.serve(ws, ws.rce_ack)
+            return
+        session = RobotSession(robot, max_message=self.max_message, queue_size=self.queue_size, expiry=self.expiry,
+                               resume=ws.rce_resume, grace=self.grace, resume_buffer=self.resume_buffer)
+        ns = RobotNamespace(user, robot, self.master, session, on_gone=self._session_gone)
         self.namespaces[(user, robot)] = ns
-        log.info("robot connected", user=user, robot=robot, peer=str(ws.remote_address))
+        log.info("robot connected", user=user, robot=robot, peer=str(ws.remote_address), resume=ws.rce_resume)
+        await ns.serve(ws)
+
+    async def _session_gone(self, ns: RobotNamespace) -> None:
+        """A robot's session ended (:class:`RobotNamespace`): forget it and tell the master."""
+        user, robot = ns.user, ns.robot
+        if self.namespaces.get((user, robot)) is ns:
+            del self.namespaces[(user, robot)]
+        self.metrics.session_ended(ns.session)
+        for iid in [i for i, itf in self.by_iid.items() if itf.link is ns]:
+            del self.by_iid[iid]
         try:
-            await ns.run()
-        finally:
-            self.namespaces.pop((user, robot), None)
-            self.metrics.session_ended(session)
-            for iid in [i for i, itf in self.by_iid.items() if itf.link is ns]:
-                del self.by_iid[iid]
-            try:
-                await self.master.call("robot_disconnected", user=user, robot=robot)
-            except RCEError as e:
-                log.warning("could not report disconnect", robot=robot, reason=str(e))
-            log.info("robot disconnected", user=user, robot=robot)
+            await self.master.call("robot_disconnected", user=user, robot=robot)
+        except RCEError as e:
+            log.warning("could not report disconnect", robot=robot, reason=str(e))
+        log.info("robot disconnected", user=user, robot=robot)
+
+    # -- the master link ---------------------------------------------------------------------------
+    def _master_away(self, connection):
+        """While the master is away a robot cannot be authenticated: 503 with Retry-After."""
+        if self.master is not None and self.master.available:
+            return None
+        resp = connection.respond(HTTPStatus.SERVICE_UNAVAILABLE, "the master is unavailable; try again later\n")
+        resp.headers["Retry-After"] = str(MASTER_AWAY_RETRY_AFTER)
+        return resp
+
+    def _report(self) -> dict:
+        """What this task set holds, for re-registering: its robots and robot-side interfaces."""
+        return {"robots": [{"user": u, "robot": r} for u, r in self.namespaces],
+                "interfaces": sorted(self.by_iid)}
+
+    async def _obey(self, answer: dict) -> None:
+        """A register answer: remove the interfaces and close the robots the master does not have."""
+        for iid in answer.get("drop_interfaces") or []:
+            await self._op_remove_interface({"iid": iid})
+        closing = [self.namespaces.get((r["user"], r["robot"])) for r in answer.get("close_robots") or []]
+        await asyncio.gather(*(ns.close("the master does not know this session (it restarted without it); "
+                                        "connect again") for ns in closing if ns is not None))
 
     # -- master ops --------------------------------------------------------------------------------
     def _ns(self, a: dict) -> RobotNamespace:

@@ -14,6 +14,7 @@ from typing import TYPE_CHECKING, Any, Protocol
 
 from rce.errors import MessageError, ProtocolError, Unavailable
 from rce.interfaces import Interface
+from rce.message_forms import JsonForms
 from rce.messages import MessageRegistry
 from rce.pending import PendingCalls
 from rce.protocol import new_id
@@ -29,6 +30,7 @@ class RobotLink(Protocol):
     """What an interface needs of its robot's session (:class:`rce_robot.namespace.RobotNamespace`)."""
 
     robot: str
+    forms: JsonForms        # the JSON forms this robot gets back (rce.message_forms), learned from what it sends
 
     def send_dm(self, itag: str, cls: str, msg_id: Any, msg: Any, data: bool = False) -> bool:
         """Queue a DM for the robot; ``data=True``: droppable topic data (False when dropped)."""
@@ -73,15 +75,15 @@ class RobotInterface(Interface):
         """Robot message -> serialized bytes. Raises :class:`MessageError` naming the interface."""
         try:
             if self.side == "Converter":
-                return self.registry.json_to_bytes(typename, msg)
-            self.registry.deserialize(typename, bytes(msg))
+                return self.registry.json_to_bytes(typename, msg, self.link.forms)
+            self.registry.check_structure(typename, msg)     # strings are not decoded: bytes pass untouched
             return bytes(msg)
         except MessageError as e:
             raise MessageError(f"interface {self.itag!r}: {e.message}") from None
 
     def _decode(self, typename: str, payload: bytes | memoryview) -> Any:
         if self.side == "Converter":
-            return self.registry.bytes_to_json(typename, bytes(payload))
+            return self.registry.bytes_to_json(typename, bytes(payload), self.link.forms)
         return bytes(payload)
 
     # -- status ----------------------------------------------------------------------------------

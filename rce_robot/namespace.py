@@ -25,6 +25,7 @@ from websockets.exceptions import ConnectionClosed
 
 from rce.errors import ProtocolError, RCEError
 from rce.log import get_logger
+from rce.message_forms import JsonForms
 from rce.protocol.session import Event, RobotSession
 from rce.masterlink import MasterLink
 from rce.tasks import Tasks
@@ -55,6 +56,7 @@ class RobotNamespace:
         self.user, self.robot, self.master, self.session = user, robot, master, session
         self.grace = session.grace if grace is None else grace
         self.interfaces: dict[str, RobotInterface] = {}
+        self.forms = JsonForms(learn=True)   # the JSON forms the robot gets back (docs/INTERNALS.md)
         self.tasks = Tasks(f"robot {user}/{robot}")        # the session's: requests, calls, the grace timer
         self.ws: Any = None                                 # the link being served; None while detached
         self.ended = False

@@ -28,6 +28,7 @@ from dataclasses import dataclass, field
 from typing import Any
 
 from rce.errors import ProtocolError, RequestError, Unavailable
+from rce.messages import takes_binary_message
 from rce.pending import PendingCalls
 from rce.protocol.frames import (CX, DEFAULT_EXPIRY, DEFAULT_MAX_PENDING_BYTES, DM, ER, ST, Assembler, encode)
 from rce.protocol.resume import (ACK_DELAY, ACK_EVERY, AK, DEFAULT_GRACE, DEFAULT_RESUME_BUFFER, DEFAULT_RESUME_BYTES,
@@ -467,7 +468,7 @@ def _refusal(itag: str, kind: str, side: str, cls: str, data: dict) -> str | Non
         return (f"{itype} {itag!r} sends messages to the robot; it does not take messages from it "
                 f"(use a SubscriberConverter)")
     binary = isinstance(data.get("msg"), (bytes, bytearray))
-    if side == "Converter" and binary:
+    if side == "Converter" and binary and not takes_binary_message(cls):
         return f"{itype} {itag!r} takes JSON messages; use a {kind}Forwarder for serialized binary messages"
     if side == "Forwarder" and not binary:
         return f"{itype} {itag!r} takes the serialized message as binary part 'msg*'"

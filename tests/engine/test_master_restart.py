@@ -1,17 +1,19 @@
 """Issue 10, part 1: the master's state survives the master. Real processes on loopback: a robot
 builds a container with nodes, a parameter, interfaces and connections; the master is killed
 with SIGKILL and a new one started on the same SQLite file and ports has it all back. Its task
-sets are absent (login answers 503 with Retry-After) until they re-register: a robot task set
-that comes back with its robot keeps it, and the container whose host never came back is lost
-after the grace (its robot is told). New ids go on after the old ones.
+sets are absent (login answers 503 with Retry-After) until they re-register. The real rce-robot,
+held (SIGSTOP) while the test looks at the absent state, re-registers by itself once let go and
+keeps its robot, whose websocket stayed open all along; the container host, killed with the
+master, never comes back, so its container is lost after the grace and the robot is told, on
+that same websocket. New ids go on after the old ones.
 
-Today rce-robot and rce-container exit when their master dies (making them reconnect is the
-next step), so the returning robot task set here is a control-plane client speaking the
-contract of docs/INTERNALS.md ("Master state and restart")."""
+:class:`FakeRobotTaskSet`, a control-plane client speaking the contract of docs/INTERNALS.md
+("Master state and restart"), is shared with test_master_standby."""
 from __future__ import annotations
 
 import asyncio
 import json
+import os
 import signal
 import subprocess
 import time
@@ -24,10 +26,13 @@ import pytest
 
 from rce import rpc
 from rce.launch import Engine, command, start_engine
+from rce.masterlink import BACKOFF_CAP
 from wsclient import RawRobot
 
 pytestmark = pytest.mark.asyncio
-GRACE = 2.0              # s, --reconcile-grace of the restarted masters
+GRACE = 3.0              # s, --reconcile-grace of the restarted masters
+REREGISTER_BOUND = BACKOFF_CAP + 1.0   # s for a task set to re-register once it can: one backoff delay at most,
+                                       # then a dial and a register on loopback
 NOTICE_TIMEOUT = 20.0    # s to wait for a notice the master sends after the grace
 LISTS = ("users", "robots", "containers", "nodes", "parameters", "interfaces", "connections")
 ECHO = {"pkg": "Test", "exe": "stringEcho.py"}
@@ -44,13 +49,33 @@ def engine(tmp_path: Path):
     e.stop()
 
 
-def start_master(e: Engine, name: str) -> subprocess.Popen:
-    """Start another rce-master on the engine's ports and state file; returns it once listening."""
+def start_master(e: Engine, name: str, grace: float | None = GRACE) -> subprocess.Popen:
+    """Start another rce-master on the engine's ports and state file, with ``--reconcile-grace
+    grace`` (None: the default); returns it once listening."""
     ready = e.workdir / f"{name}.ready"
     argv = [*command("rce-master"), "--dev", "--port", str(urlsplit(e.master_url).port), "--control-port",
-            str(e.control_port), "--ready-file", str(ready), "--state", str(e.state_path),
-            "--reconcile-grace", str(GRACE)]
-    return e.spawn(name, argv, ready)[0]
+            str(e.control_port), "--ready-file", str(ready), "--state", str(e.state_path)]
+    return e.spawn(name, argv + (["--reconcile-grace", str(grace)] if grace is not None else []), ready)[0]
+
+
+def proc(e: Engine, name: str, nth: int = 0) -> subprocess.Popen:
+    """The ``nth`` process of the engine running ``name`` (rce-robot, rce-container)."""
+    return [p for p in e.procs if name in str(p.args[0])][nth]
+
+
+async def registered(e: Engine, tids: dict[int, bool], timeout: float) -> float:
+    """Poll the admin API until each task set of ``tids`` (tid -> absent?) is as given; the
+    seconds it took. A master that is still starting counts as not yet."""
+    t0 = time.monotonic()
+    while True:
+        try:
+            ts = {t["tid"]: t["absent"] for t in e.admin("/api/state")["tasksets"]}
+        except OSError:
+            ts = {}
+        if all(ts.get(tid) == absent for tid, absent in tids.items()):
+            return time.monotonic() - t0
+        assert time.monotonic() - t0 < timeout, f"task sets not as {tids} within {timeout} s: {ts}"
+        await asyncio.sleep(0.02)
 
 
 def http_error(url: str, token: str | None = None) -> urllib.error.HTTPError:
@@ -61,32 +86,36 @@ def http_error(url: str, token: str | None = None) -> urllib.error.HTTPError:
     return ei.value
 
 
-async def build(e: Engine) -> dict:
-    """A user alice whose robot r1 has container c1 with a node, a parameter, container- and
-    robot-side interfaces and two connections; returns the admin state."""
-    e.admin("/api/users", {"name": "alice", "password": "pw"})
-    async with RawRobot(e.master_url, "r1", user="alice", password="pw") as r:
-        await r.send("CC", {"containerTag": "c1", "containerData": {"group": "g1", "memory": 256}})
-        await r.cn(addNodes=[{"containerTag": "c1", "nodeTag": "echo", **ECHO}],
-                   setParam=[{"containerTag": "c1", "name": "/speed", "value": {"max": 0.5}}],
-                   addInterfaces=[
-                       {"endpointTag": "c1", "interfaceTag": "req", "interfaceType": "PublisherInterface",
-                        "className": "std_msgs/String", "addr": "/stringEchoReq"},
-                       {"endpointTag": "c1", "interfaceTag": "resp", "interfaceType": "SubscriberInterface",
-                        "className": "std_msgs/String", "addr": "/stringEchoResp"},
-                       {"endpointTag": "r1", "interfaceTag": "req", "interfaceType": "SubscriberConverter",
-                        "className": "std_msgs/String"},
-                       {"endpointTag": "r1", "interfaceTag": "resp", "interfaceType": "PublisherConverter",
-                        "className": "std_msgs/String"}])
-        await r.send("CX", {"connect": [{"tagA": "c1/req", "tagB": "r1/req"}, {"tagA": "c1/resp", "tagB": "r1/resp"}]})
-        await r.wait_up("req", "resp")
-        state = e.admin("/api/state")
-        # the master dies under the robot's feet: kill -9, then its task sets exit (today)
-        e.procs[0].send_signal(signal.SIGKILL)
-        assert e.procs[0].wait(10) == -signal.SIGKILL
-        for p in e.procs[1:]:
-            p.wait(30)
-    return state
+async def build(e: Engine, r: RawRobot) -> dict:
+    """Robot r1 of alice (connected as ``r``) gets container c1 with a node, a parameter,
+    container- and robot-side interfaces and two connections; returns the admin state."""
+    await r.send("CC", {"containerTag": "c1", "containerData": {"group": "g1", "memory": 256}})
+    await r.cn(addNodes=[{"containerTag": "c1", "nodeTag": "echo", **ECHO}],
+               setParam=[{"containerTag": "c1", "name": "/speed", "value": {"max": 0.5}}],
+               addInterfaces=[
+                   {"endpointTag": "c1", "interfaceTag": "req", "interfaceType": "PublisherInterface",
+                    "className": "std_msgs/String", "addr": "/stringEchoReq"},
+                   {"endpointTag": "c1", "interfaceTag": "resp", "interfaceType": "SubscriberInterface",
+                    "className": "std_msgs/String", "addr": "/stringEchoResp"},
+                   {"endpointTag": "r1", "interfaceTag": "req", "interfaceType": "SubscriberConverter",
+                    "className": "std_msgs/String"},
+                   {"endpointTag": "r1", "interfaceTag": "resp", "interfaceType": "PublisherConverter",
+                    "className": "std_msgs/String"}])
+    await r.send("CX", {"connect": [{"tagA": "c1/req", "tagB": "r1/req"}, {"tagA": "c1/resp", "tagB": "r1/resp"}]})
+    await r.wait_up("req", "resp")
+    return e.admin("/api/state")
+
+
+async def frames_until(r: RawRobot, pred, timeout: float = NOTICE_TIMEOUT) -> list[dict]:
+    """Every JSON frame the robot gets up to the first for which ``pred(frame)`` holds (included)."""
+    out = []
+    loop = asyncio.get_running_loop()
+    deadline = loop.time() + timeout
+    while not out or not pred(out[-1]):
+        m = await r.recv(max(0.01, deadline - loop.time()))
+        if isinstance(m, dict):
+            out.append(m)
+    return out
 
 
 class FakeRobotTaskSet:
@@ -122,10 +151,51 @@ class FakeRobotTaskSet:
 
 
 async def test_state_survives_kill_9_and_is_reconciled(engine):
-    before = await build(engine)
-    old_tids = {t["kind"]: t["tid"] for t in before["tasksets"]}
-    restarted_at = time.monotonic()
-    master2 = start_master(engine, "master2")
+    robot_ts, host = proc(engine, "rce-robot"), proc(engine, "rce-container")
+    engine.admin("/api/users", {"name": "alice", "password": "pw"})
+    async with RawRobot(engine.master_url, "r1", user="alice", password="pw") as r:
+        before = await build(engine, r)
+        old_tids = {t["kind"]: t["tid"] for t in before["tasksets"]}
+        os.kill(robot_ts.pid, signal.SIGSTOP)       # held: it re-registers only once the test has seen it absent
+        try:
+            for p in (engine.procs[0], host):        # the master dies, and the container host never comes back
+                p.send_signal(signal.SIGKILL)
+                assert p.wait(10) == -signal.SIGKILL
+            restarted_at = time.monotonic()
+            master2 = start_master(engine, "master2")
+            the_restored_state_is_absent(engine, before, master2)
+        finally:
+            os.kill(robot_ts.pid, signal.SIGCONT)
+        took = await registered(engine, {old_tids["robot"]: False}, REREGISTER_BOUND + 5)
+        assert took < REREGISTER_BOUND
+        with urllib.request.urlopen(f"{engine.master_url}?userID=alice&version=20130902", timeout=10) as resp:
+            assert json.loads(resp.read())["url"].endswith(f":{engine.robot_ready[0]['ws_port']}/")
+        # the robot, still connected: the ends of the lost container's connections go down, then it is lost
+        frames = await frames_until(r, lambda m: m["type"] == "ER" and "container 'c1' was lost" in m["data"])
+        lost_after = time.monotonic() - restarted_at
+        sts = [(m["data"].get("topic"), m["data"].get("iTag") or m["data"].get("cTag"), m["data"]["status"])
+               for m in frames if m["type"] == "ST"]
+        assert sts[-1] == ("container", "c1", "lost") and sorted(sts[:-1]) == [("iu", "req", False),
+                                                                               ("iu", "resp", False)]
+        assert f"within {GRACE:g} s" in frames[-1]["data"] and GRACE <= lost_after < GRACE + 10
+        s = engine.admin("/api/state")
+        assert [(c["ctag"], c["state"]) for c in s["containers"]] == [("c1", "lost")]
+        assert {"r1/req", "r1/resp"} <= {i["tag"] for i in s["interfaces"]}
+        assert s["robots"] == before["robots"]
+        assert [(t["tid"], t["absent"]) for t in s["tasksets"]] == [(old_tids["robot"], False)]
+        await r.send("DC", {"containerTag": "c1"})              # the robot can always destroy a lost container
+        await r.send("DC", {"containerTag": "noSuchC"})         # a marker: once its ER is back, DC is done
+        await r.expect("ER", pred=lambda d: "noSuchC" in d)
+        s = engine.admin("/api/state")
+        assert s["containers"] == [] and s["connections"] == []
+        assert [i["tag"] for i in s["interfaces"]] == ["r1/req", "r1/resp"]
+        await new_ids_go_on(engine, r, before)
+        await graceful_restart_keeps_the_state(engine, master2, robot_ts)
+
+
+def the_restored_state_is_absent(engine: Engine, before: dict, master2: subprocess.Popen) -> None:
+    """The restarted master has the whole state back, with every task set absent: login says when
+    to ask again, and so do admin routes that need a host; a second master on the file refuses."""
     after = engine.admin("/api/state")
     for name in LISTS:
         assert after[name] == before[name], name
@@ -133,72 +203,53 @@ async def test_state_survives_kill_9_and_is_reconciled(engine):
     assert all(t["absent"] for t in after["tasksets"])
     with urllib.request.urlopen(f"{engine.master_url}metrics", timeout=10) as resp:
         assert "rce_master_tasksets_absent 2.0" in resp.read().decode()
-    # the robot task set is absent: login says when to ask again, and so do admin routes that need a host
     err = http_error(f"{engine.master_url}?userID=alice&version=20130902")
     assert (err.code, err.headers["Retry-After"]) == (503, "5") and "rce-robot" in err.read().decode()
     err = http_error(f"{engine.master_url}api/containers/alice/c1/bus", engine.admin_token)
     assert (err.code, err.headers["Retry-After"]) == (503, "5") and "re-registered" in err.read().decode()
-    # a second master on the same file refuses to start
     other = subprocess.run([*command("rce-master"), "--port", "0", "--control-port", "0", "--state",
                             str(engine.state_path)], capture_output=True, text=True, timeout=60, env=engine.env)
     assert other.returncode == 1 and f"pid {master2.pid}" in other.stderr and "in use" in other.stderr
 
-    # the robot task set comes back with its robot and interfaces; the container host never does
-    robot_ts = FakeRobotTaskSet()
-    r1_iids = [i["iid"] for i in before["interfaces"] if i["tag"].startswith("r1/")]
-    answer = await robot_ts.register(engine.control_port, tid=old_tids["robot"], interfaces=r1_iids,
-                                     robots=[{"user": "alice", "robot": "r1"}])
-    try:
-        assert answer == {"tid": old_tids["robot"], "resumed": True, "drop_containers": [], "drop_nodes": [],
-                          "drop_interfaces": [], "close_robots": []}
-        with urllib.request.urlopen(f"{engine.master_url}?userID=alice&version=20130902", timeout=10) as resp:
-            assert json.loads(resp.read()) == {"url": "ws://127.0.0.1:9/"}
-        st = await robot_ts.expect("notify", lambda a: a["type"] == "ST")
-        lost_after = time.monotonic() - restarted_at
-        er = await robot_ts.expect("notify", lambda a: a["type"] == "ER")
-        assert st == {"user": "alice", "robot": "r1", "type": "ST",
-                      "data": {"topic": "container", "cTag": "c1", "status": "lost"}}
-        assert "container 'c1' was lost" in er["data"] and f"within {GRACE:g} s" in er["data"]
-        assert GRACE <= lost_after < GRACE + 10
-        # the robot-side ends of the lost container's connections were told first
-        assert sorted(a["iid"] for op, a in robot_ts.seen if op == "disconnect") == sorted(r1_iids)
-        s = engine.admin("/api/state")
-        assert [(c["ctag"], c["state"]) for c in s["containers"]] == [("c1", "lost")]
-        assert [i["tag"] for i in s["interfaces"]] == ["r1/req", "r1/resp"] and s["connections"] == []
-        assert s["robots"] == [{**r, "endpoint": "re-back"} for r in before["robots"]]     # its new name
-        assert [(t["tid"], t["absent"]) for t in s["tasksets"]] == [(old_tids["robot"], False)]
-        await new_ids_go_on(engine, robot_ts, before)
-        await graceful_restart_keeps_the_state(engine, master2)
-    finally:
-        await robot_ts.peer.close()
 
-
-async def new_ids_go_on(engine: Engine, robot_ts: FakeRobotTaskSet, before: dict) -> None:
+async def new_ids_go_on(engine: Engine, r: RawRobot, before: dict) -> None:
     """A new host, container and interface get ids after every old one."""
-    await asyncio.to_thread(engine.add_container_host)          # the returning robot task set keeps answering
+    await asyncio.to_thread(engine.add_container_host)
     s = engine.admin("/api/state")
     assert max(t["tid"] for t in s["tasksets"]) > max(t["tid"] for t in before["tasksets"])
-    await robot_ts.peer.call("robot_request", user="alice", robot="r1", type="CC", data={"containerTag": "c2"},
-                             timeout=60)
-    await robot_ts.peer.call("robot_request", user="alice", robot="r1", type="CN", data={"addInterfaces": [
-        {"endpointTag": "c2", "interfaceTag": "i", "interfaceType": "PublisherInterface",
-         "className": "std_msgs/String", "addr": "/x"}]})
+    await r.send("CC", {"containerTag": "c2"})
+    await r.cn(addInterfaces=[{"endpointTag": "c2", "interfaceTag": "i", "interfaceType": "PublisherInterface",
+                               "className": "std_msgs/String", "addr": "/x"}])
+    await r.send("DC", {"containerTag": "noSuchC2"})         # a marker: once its ER is back, CC and CN are done
+    await r.expect("ER", pred=lambda d: "noSuchC2" in d)
     s = engine.admin("/api/state")
     c2 = next(c for c in s["containers"] if c["ctag"] == "c2")
     assert c2["state"] == "running" and c2["cid"] > max(c["cid"] for c in before["containers"])
     assert next(i for i in s["interfaces"] if i["tag"] == "c2/i")["iid"] > max(i["iid"] for i in before["interfaces"])
 
 
-async def graceful_restart_keeps_the_state(engine: Engine, master: subprocess.Popen) -> None:
-    """A master stopped with SIGTERM leaves its task sets in the store (absent next time), not dropped."""
+async def graceful_restart_keeps_the_state(engine: Engine, master: subprocess.Popen,
+                                           robot_ts: subprocess.Popen) -> None:
+    """A master stopped with SIGTERM leaves its task sets in the store (absent next time), not
+    dropped. The host comes back and keeps its container; the robot task set does not."""
+    host2 = proc(engine, "rce-container", 1)
     before = engine.admin("/api/state")
-    master.send_signal(signal.SIGTERM)
-    assert master.wait(30) == 0
-    start_master(engine, "master3")
-    after = engine.admin("/api/state")
-    for name in LISTS:
-        assert after[name] == before[name], name
-    assert [(t["tid"], t["absent"]) for t in after["tasksets"]] == [(t["tid"], True) for t in before["tasksets"]]
+    for p in (robot_ts, host2):
+        os.kill(p.pid, signal.SIGSTOP)
+    try:
+        master.send_signal(signal.SIGTERM)
+        assert master.wait(30) == 0
+        start_master(engine, "master3")
+        after = engine.admin("/api/state")
+        for name in LISTS:
+            assert after[name] == before[name], name
+        assert [(t["tid"], t["absent"]) for t in after["tasksets"]] == [(t["tid"], True) for t in before["tasksets"]]
+    finally:
+        robot_ts.send_signal(signal.SIGKILL)                     # the robot's websocket goes with it
+        os.kill(host2.pid, signal.SIGCONT)
+    host_tid = next(t["tid"] for t in before["tasksets"] if t["kind"] == "container")
+    await registered(engine, {host_tid: False}, REREGISTER_BOUND + 5)
+    assert any(c["ctag"] == "c2" and c["state"] == "running" for c in engine.admin("/api/state")["containers"])
     await robot_returns_through_a_new_endpoint(engine)
 
 
