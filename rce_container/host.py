@@ -1,7 +1,10 @@
 """The container task set: registers with the master and runs its containers' environments.
 
 Links (docs/INTERNALS.md): this process dials the master's control port and registers
-``{kind: "container", name, host, sandbox, capacity}``; it listens on a Unix control socket
+``{kind: "container", name, host, sandbox, capacity}``. When the master goes away, everything
+here keeps running; the link dials again and re-registers with its ``tid`` and a report of its
+containers and their nodes (:class:`rce.masterlink.MasterLink`; node statuses meanwhile wait in
+its bounded backlog). It listens on a Unix control socket
 (``RUNTIME/host.sock``) that its environment processes dial. The master never talks to an
 environment: every container op arrives here, names its ``cid``, and is relayed to the
 environment that serves the container's group. ``node_status`` notifications travel the other
@@ -9,7 +12,10 @@ way (environment -> here -> master).
 
 Groups: containers of one user created with the same ``group`` share one environment (one
 bus); a container without a group gets an environment of its own. An environment is spawned
-on the group's first ``create_container`` and stopped with its last container.
+on the group's first ``create_container`` and stopped with its last container. An environment
+that dies takes its containers with it: each is reported to the master (``container_lost``),
+which creates it again, under a new cid, on this host if it can (docs/INTERNALS.md, "Container
+failover").
 """
 from __future__ import annotations
 
@@ -36,6 +42,7 @@ from rce import framing, rpc
 from rce.errors import NotFound, RCEError, RequestError, Timeout, Unavailable
 from rce.link import STREAM_LIMIT
 from rce.log import get_logger
+from rce.masterlink import MASTER_PORT, MasterLink, parse_masters
 from rce.pending import PendingCalls
 from rce.tasks import Tasks
 from rce_container import metrics
@@ -44,9 +51,6 @@ from rce_container.environment import BUS_CALL_TIMEOUT, MAX_SOCKET_PATH, contain
 from rce_container.usage import measure
 
 log = get_logger("rce.container")
-# s of master silence before this task set gives up on it. Longer than the master's own 4 s
-# verdict on task sets: a busy master is not a lost one, and giving up tears containers down.
-MASTER_SILENCE = 15.0
 ENV_TIMEOUT = 30.0         # s a new environment has to say hello (start Python, load packages, listen)
 RELAY_TIMEOUT = 30.0       # s an op relayed to an environment waits for its answer
 REPLY_MARGIN = 10.0        # s on top of an op's own time limit (a bus_call's timeout, the grace period of
@@ -89,7 +93,8 @@ class EnvHandle:
 
 @dataclass(eq=False)
 class ContainerRecord:
-    """A container this task set hosts: ids, its environment and its known nodes (nTag -> pid)."""
+    """A container this task set hosts: ids, its environment and its known nodes (nTag -> pid,
+    and nTag -> last status reported: ``starting``, ``started``, ``exited``, ``respawning``)."""
     cid: int
     user: str
     ctag: str
@@ -97,12 +102,14 @@ class ContainerRecord:
     env: EnvHandle
     result: dict
     nodes: dict[str, int | None] = field(default_factory=dict)
+    statuses: dict[str, str] = field(default_factory=dict)
 
 
 class ContainerHost:
     """The container task set (``rce-container``).
 
-    ``master``/``master_port``: the master's control address; ``name``: this task set's name;
+    ``master``: the master's control address, or several (``HOST[:PORT][,HOST[:PORT]...]``, see
+    :func:`rce.masterlink.parse_masters`; ``master_port`` where none is given); ``name``: this task set's name;
     ``bind``: where environments' data planes listen; ``advertise_host``: the address peers
     reach them by; ``runtime_dir``: sockets and per-container dirs (created if missing;
     removed on exit only if ``own_runtime_dir``); ``sandbox``: sandbox kind or ``"auto"``;
@@ -112,13 +119,13 @@ class ContainerHost:
     Prometheus ``/metrics`` on ``bind`` at this port (0: an ephemeral one, read back from
     ``self.metrics_port``; None: no metrics server)."""
 
-    def __init__(self, master: str, master_port: int = 8080, *, name: str | None = None,
+    def __init__(self, master: str | list[str], master_port: int = MASTER_PORT, *, name: str | None = None,
                  bind: str = "127.0.0.1", advertise_host: str | None = None, runtime_dir: str | Path,
                  own_runtime_dir: bool = False, sandbox: str = "auto",
                  max_frame: int = framing.DEFAULT_MAX_FRAME, env_timeout: float = ENV_TIMEOUT,
                  grace: float = sandboxes.DEFAULT_GRACE,
                  warm: int = 1, metrics_port: int | None = None):
-        self.master_addr = (master, master_port)
+        self.masters = parse_masters(master, master_port)
         self.name = name or socket.gethostname()
         self.bind, self.advertise_host = bind, advertise_host or bind
         self.runtime_dir = Path(runtime_dir)
@@ -133,8 +140,7 @@ class ContainerHost:
         self._spare_tasks: list[asyncio.Task] = []
         self.socket_dir = socket_dir_for(self.runtime_dir)
         self.control_path = str(self.socket_dir / CONTROL_SOCKET)
-        self.master: rpc.RpcPeer | None = None
-        self.tid: Any = None
+        self.master: MasterLink | None = None
         self.containers: dict[int, ContainerRecord] = {}
         self.groups: dict[tuple, EnvHandle] = {}
         self.envs: set[EnvHandle] = set()
@@ -147,11 +153,16 @@ class ContainerHost:
         self.tasks = Tasks("container task set")
         self._closing = False
 
+    @property
+    def tid(self) -> Any:
+        """This task set's id at the master (None before the first registration)."""
+        return self.master.tid if self.master else None
+
     # -- lifecycle -----------------------------------------------------------------------------
     async def start(self) -> Any:
-        """Listen for environments, dial the master and register; returns the ``tid``.
-
-        Raises :class:`OSError` if the master is unreachable, :class:`RCEError` if it refuses."""
+        """Listen for environments, dial the master and register (retried with backoff until a
+        master takes this task set); returns the ``tid``. Raises :class:`RCEError` if the master
+        refuses this task set."""
         self.runtime_dir.mkdir(parents=True, exist_ok=True, mode=0o700)
         self.socket_dir.mkdir(parents=True, exist_ok=True, mode=0o700)
         if os.path.exists(self.control_path):
@@ -165,24 +176,15 @@ class ContainerHost:
         handlers = {op: self._relay_handler(op) for op in RELAYED_OPS}
         handlers.update(create_container=self.op_create_container, destroy_container=self.op_destroy_container,
                         stats=self.op_stats)
-        self.master = await rpc.connect(*self.master_addr, handlers, name="master",
-                                        on_close=self._master_lost, max_frame=self.max_frame)
-        self.master.keepalive(timeout=MASTER_SILENCE)
-        res = await self.master.call(
-            "register", kind="container", name=self.name, host=self.advertise_host,
-            sandbox=self.sandbox_cls.kind,
-            capacity={"cpu": os.cpu_count() or 1, "memory": psutil.virtual_memory().total // 2**20})
-        self.tid = (res or {}).get("tid")
-        log.info("registered with the master", master=f"{self.master_addr[0]}:{self.master_addr[1]}",
-                 tid=self.tid, name=self.name, sandbox=self.sandbox_cls.kind, runtime_dir=str(self.runtime_dir))
+        info = {"kind": "container", "name": self.name, "host": self.advertise_host, "sandbox": self.sandbox_cls.kind,
+                "capacity": {"cpu": os.cpu_count() or 1, "memory": psutil.virtual_memory().total // 2**20}}
+        self.master = MasterLink(self.masters, handlers, info, report=self._report, on_registered=self._obey,
+                                 max_frame=self.max_frame)
+        await self.master.start()
+        log.info("container task set up", tid=self.tid, name=self.name, sandbox=self.sandbox_cls.kind,
+                 runtime_dir=str(self.runtime_dir))
         self._refill_spares()
         return self.tid
-
-    def _master_lost(self, _peer: rpc.RpcPeer) -> None:
-        if not self._closing:
-            log.error("control link to the master lost; destroying every container and exiting")
-            self.exit_code = 1
-            self.stopped.set()
 
     def stop(self, code: int = 0) -> None:
         """Ask :meth:`run` to shut down with exit ``code``."""
@@ -219,7 +221,7 @@ class ContainerHost:
         log.info("container task set stopped", name=self.name)
 
     async def run(self) -> int:
-        """Serve until :meth:`stop` or the master link drops, then :meth:`close`; exit code."""
+        """Serve until :meth:`stop`, then :meth:`close`; the exit code."""
         await self.stopped.wait()
         await self.close()
         return self.exit_code
@@ -318,8 +320,16 @@ class ContainerHost:
             if env in self.spares:
                 self.spares.remove(env)
             return
-        log.error("environment exited unexpectedly", env=env.env_id, code=env.exit_code,
-                  containers=sorted(env.cids))
+        await self._env_died(env)
+
+    async def _env_died(self, env: EnvHandle) -> None:
+        """An environment serving containers died: their nodes are killed and reported exited,
+        their sandboxes cleaned up, and each container is reported to the master as
+        ``container_lost {cid, reason}``: it destroys the dead one here and re-creates it under a
+        new cid (docs/INTERNALS.md, "Container failover"). Until then an op on it is refused
+        (:class:`Unavailable`); the group's next container gets a new environment."""
+        why = exit_reason(env.exit_code)
+        log.error("environment exited unexpectedly", env=env.env_id, reason=why, containers=sorted(env.cids))
         if env.peer:
             await env.peer.close()
         for cid in sorted(env.cids):
@@ -332,6 +342,8 @@ class ContainerHost:
                 self._to_master("node_status", cid=cid, ntag=ntag, status="exited",
                                 reason=f"environment exited with code {env.exit_code}")
                 c.nodes[ntag] = None
+                c.statuses[ntag] = "exited"
+            self._to_master("container_lost", cid=cid, reason=f"its environment {why}")
             await asyncio.to_thread(self.sandbox_cls.cleanup_container, self.scope, cid)
 
     async def _stop_env(self, env: EnvHandle) -> None:
@@ -380,8 +392,9 @@ class ContainerHost:
 
     # -- master ops ----------------------------------------------------------------------------
     def _to_master(self, op: str, **args: Any) -> None:
+        """A notification the master must get: while it is away it waits in the link's backlog."""
         if self.master:
-            self.master.notify(op, **args)
+            self.master.notify(op, keep=True, **args)
 
     def _on_node_status(self, a: dict) -> None:
         c = self.containers.get(a.get("cid"))
@@ -389,9 +402,35 @@ class ContainerHost:
             ntag, status = a.get("ntag"), a.get("status")
             if status == "started":
                 c.nodes[ntag] = a.get("pid")
-            elif status in ("exited", "respawning"):
+            elif status in ("exited", "respawning") and ntag in c.nodes:     # not a node removed meanwhile
                 c.nodes[ntag] = None
+            if ntag in c.nodes and isinstance(status, str) and status:
+                c.statuses[ntag] = status
         self._to_master("node_status", **a)
+
+    def _report(self) -> dict:
+        """What this host holds, for re-registering: every container whose environment runs,
+        with its data address, sandbox, and nodes with their last status."""
+        return {"containers": [
+            {"cid": c.cid, "data_addr": c.result["data_addr"], "sandbox": c.result["sandbox"],
+             "nodes": [{"ntag": ntag, "status": c.statuses.get(ntag, "starting")} for ntag in sorted(c.nodes)]}
+            for c in self.containers.values() if c.env.alive]}
+
+    async def _obey(self, answer: dict) -> None:
+        """A register answer: destroy the containers and remove the nodes the master does not have."""
+        for cid in answer.get("drop_containers") or []:
+            log.warning("the master does not have this container: destroying it", cid=cid)
+            try:
+                await self.op_destroy_container({"cid": cid})
+            except RCEError as e:
+                log.warning("could not destroy a container the master dropped", cid=cid, reason=e.message)
+        remove_node = self._relay_handler("remove_node")
+        for n in answer.get("drop_nodes") or []:
+            log.warning("the master does not have this node: removing it", cid=n.get("cid"), ntag=n.get("ntag"))
+            try:
+                await remove_node({"cid": n.get("cid"), "ntag": n.get("ntag")})
+            except RCEError as e:
+                log.warning("could not remove a node the master dropped", reason=e.message, **n)
 
     def _record(self, a: dict) -> ContainerRecord:
         c = self.containers.get(a.get("cid"))
@@ -490,8 +529,10 @@ class ContainerHost:
             result = await c.env.peer.request(op, a, timeout)
             if op == "add_node":
                 c.nodes.setdefault(a.get("ntag"), (result or {}).get("pid"))
+                c.statuses.setdefault(a.get("ntag"), "starting")
             elif op == "remove_node":
                 c.nodes.pop(a.get("ntag"), None)
+                c.statuses.pop(a.get("ntag"), None)
             return result
         relay.__doc__ = f"Relay ``{op}`` to the environment of the op's ``cid``."
         return relay
@@ -534,6 +575,16 @@ class ContainerHost:
     async def _metrics(self, request: web.Request) -> web.Response:
         registry = metrics.snapshot_registry(await self.op_stats({}))
         return web.Response(body=generate_latest(registry), headers={"Content-Type": CONTENT_TYPE_LATEST})
+
+
+def exit_reason(code: int | None) -> str:
+    """How a process ended, from its return code (negative: the signal that killed it)."""
+    if code is not None and code < 0:
+        try:
+            return f"was killed by {signal.Signals(-code).name}"
+        except ValueError:
+            return f"was killed by signal {-code}"
+    return f"exited with code {code}"
 
 
 def _kill_group(pgid: int) -> None:

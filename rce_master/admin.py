@@ -14,7 +14,7 @@ errors with a one-line reason (:mod:`rce_master.server`).
 | ``POST /api/containers/{user}/{ctag}/call`` ``{service, request, timeout}`` | call a service on its bus |
 | ``POST /api/containers/{user}/{ctag}/sample`` ``{topic, count, timeout}`` | up to count messages |
 | ``GET /api/containers/{user}/{ctag}/stats`` | the container's counters from its host |
-| ``POST /api/containers/{user}/{ctag}/resize`` ``{cpu?, memory?, size?, bandwidth?}`` | new limits |
+| ``POST /api/containers/{user}/{ctag}/resize`` ``{cpu?, memory?, pids?, size?, bandwidth?}`` | new limits |
 | ``GET /api/containers/{user}/{ctag}/logs/{ntag}`` | a node's kept stdout/stderr |
 | ``GET /api/leader`` | ``{leading, leader, self}``: whether this master leads, the leader's and its own addresses |
 

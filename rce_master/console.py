@@ -6,7 +6,7 @@
     rce-console user add NAME [--password-stdin]      # prompts twice when not reading stdin
     rce-console user del NAME
     rce-console logs USER CTAG NTAG                   # a node's kept stdout/stderr
-    rce-console container resize USER CTAG [--cpu CORES] [--memory MIB] [--size N]
+    rce-console container resize USER CTAG [--cpu CORES] [--memory MIB] [--pids N] [--size N]
     rce-console top [--interval S] [--once]           # per-container CPU, memory, processes, traffic
     rce-console users add NAME --file users.json      # offline: add a hashed record to a --users file
     rce-console leader                                # which master leads (several masters on etcd)
@@ -159,7 +159,8 @@ def parser() -> argparse.ArgumentParser:
     c.add_argument("ctag")
     c.add_argument("--cpu", type=float, help="cores (may be fractional)")
     c.add_argument("--memory", type=float, help="MiB")
-    c.add_argument("--size", type=float)
+    c.add_argument("--pids", type=int, help="the most tasks (processes and threads), pids.max")
+    c.add_argument("--size", type=float, help="size class in slots (the original RCE's; recorded only)")
     t = sub.add_parser("top", help="per-container resource use, refreshing")
     t.add_argument("--interval", type=float, default=2.0, help="seconds between refreshes")
     t.add_argument("--once", action="store_true", help="print one table and exit")
@@ -201,9 +202,9 @@ def run(args: argparse.Namespace, out: Console) -> None:
             for line in logs.get(stream, []):
                 print(f"{stream}: {line}")
     elif args.cmd == "container":
-        limits = {k: getattr(args, k) for k in ("cpu", "memory", "size") if getattr(args, k) is not None}
+        limits = {k: getattr(args, k) for k in ("cpu", "memory", "pids", "size") if getattr(args, k) is not None}
         if not limits:
-            raise RequestError("give at least one of --cpu, --memory, --size")
+            raise RequestError("give at least one of --cpu, --memory, --pids, --size")
         res = client.request("POST", f"/api/containers/{args.user}/{args.ctag}/resize", limits)
         out.print(f"container {args.ctag!r} resized: {json.dumps(res)}")
     elif args.cmd == "top":

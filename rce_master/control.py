@@ -12,7 +12,7 @@ from typing import Any
 from rce.errors import RCEError, Unavailable
 from rce.log import get_logger
 from rce.rpc import CALL_TIMEOUT, RpcPeer
-from rce_master.model import Container, InterfaceRec, NodeRec, Robot
+from rce_master.model import LIMIT_KEYS, Container, InterfaceRec, NodeRec
 from rce_master.reconcile import Reconciled
 from rce_master.state import MasterState, Pairs, TaskSetAbsent
 
@@ -65,6 +65,36 @@ class Control:
             raise Unavailable(f"the robot endpoint of {rec.tag} is gone")
         return await peer.request(op, args, CALL_TIMEOUT)
 
+    # -- what a container is made of (a CC and CN, and its re-creation after a loss) --------------------
+    async def create_container(self, c: Container) -> dict:
+        """``create_container`` on ``c``'s host with its group and limits (``c.data``, as last
+        resized); the host's ``{data_addr, sandbox, startup_ms}``."""
+        return await self.host_request(c, "create_container", {
+            "user": c.user, "ctag": c.ctag, "group": c.group, "limits": {k: c.data.get(k) for k in LIMIT_KEYS}},
+            CREATE_TIMEOUT)
+
+    async def start_node(self, c: Container, ntag: str, spec: dict) -> Any:
+        """``add_node`` on ``c``'s host: node ``ntag`` of addNodes entry ``spec``."""
+        return await self.host_call(c, "add_node", ntag=ntag, pkg=spec["pkg"], exe=spec["exe"],
+                                    args=spec.get("args", ""), name=spec.get("name"),
+                                    namespace=spec.get("namespace"), respawn=spec.get("respawn"))
+
+    async def install_interface(self, rec: InterfaceRec) -> Any:
+        """``add_interface`` on the endpoint of ``rec``: its robot task set (robot side) or its
+        container's host (container side)."""
+        if rec.robot_side:
+            return await self.endpoint_call(rec, "add_interface", user=rec.user, robot=rec.etag, iid=rec.iid,
+                                            itag=rec.itag, itype=rec.itype, cls=rec.cls)
+        return await self.endpoint_call(rec, "add_interface", iid=rec.iid, tag=rec.tag, itype=rec.itype,
+                                        cls=rec.cls, addr=rec.addr)
+
+    async def destroy_on(self, tid: int, cid: int) -> None:
+        """Destroy container ``cid`` on host ``tid`` whatever the state says (undoing a re-creation
+        the state no longer wants), quietly."""
+        peer = self.peers.get(tid)
+        if peer is not None:
+            await self.quiet(peer.request("destroy_container", {"cid": cid}, CALL_TIMEOUT))
+
     @staticmethod
     async def quiet(call: Awaitable[Any]) -> None:
         """Await ``call``, logging a refusal instead of raising it (teardown and undo)."""
@@ -116,9 +146,9 @@ class Control:
     # -- teardowns --------------------------------------------------------------------------------------
     async def destroy(self, c: Container, pairs: Pairs) -> None:
         """After :meth:`MasterState.remove_container`: disconnect its interfaces' peers and
-        destroy it on its host (unless lost)."""
+        destroy it on its host (unless lost or being re-created: :mod:`rce_master.failover` undoes that)."""
         await self.tell_disconnects(pairs)
-        if c.state != "lost" and c.tid in self.peers:
+        if not c.down and c.tid in self.peers:      # a recovering one is undone by its re-creation
             try:
                 await self.host_call(c, "destroy_container")
             except RCEError as e:
@@ -133,20 +163,17 @@ class Control:
             if self.state.containers.get((c.user, c.ctag)) is c:
                 await self.destroy(*self.state.remove_container(c.user, c.ctag))
 
-    async def taskset_lost(self, lost: list[Container], robots: list[Robot], why: str = "its host went away") -> None:
-        """After :meth:`MasterState.drop_taskset`: its robots are gone, its containers lost."""
-        for r in robots:
-            await self.robot_gone(r.user, r.robot)
-        await self.containers_lost(lost, why)
-
-    async def containers_lost(self, lost: list[Container], why: str) -> None:
-        """Containers just marked lost: forget their interfaces (telling the peers), and tell each
-        owner ``ST {topic: container, cTag, status: lost}`` and an ER saying ``why``."""
-        for c in lost:
-            await self.tell_disconnects(self.state.forget_lost_container(c))
-            self.tell_lost(c, why)
+    async def cut(self, c: Container) -> None:
+        """Container ``c`` was just lost: the far end of each of its interfaces' connections gets
+        ``disconnect`` (a robot-side end then says ``iu false``), quietly. The records stay: its
+        re-creation connects them again."""
+        for rec in self.state.interfaces_of(c.user, c.ctag, robot_side=False):
+            for me, peer in self.state.connections_of(rec.iid):
+                if peer.robot_side or peer.location != c.cid:
+                    await self.quiet(self.endpoint_call(peer, "disconnect", iid=peer.iid, peer_iid=me.iid))
 
     def tell_lost(self, c: Container, why: str) -> None:
+        """Tell ``c``'s owner ``ST {topic: container, cTag, status: lost}`` and an ER saying ``why``."""
         self.notify_robot(c.user, c.owner, "ST", {"topic": "container", "cTag": c.ctag, "status": "lost"})
         self.notify_robot(c.user, c.owner, "ER", f"container {c.ctag!r} was lost: {why}")
 
@@ -154,16 +181,15 @@ class Control:
         """After :func:`rce_master.reconcile.register`: tell the peers of forgotten interfaces and
         of moved containers, the robots of lost containers and nodes (again, for lost containers
         of the robots it kept: their endpoint was absent when they were lost), and forget the
-        robots it did not report."""
+        robots it did not report. Its lost containers are the failover's (:mod:`rce_master.failover`)."""
         await self.tell_disconnects(out.pairs)
         for c in out.readdressed:
             await self.readdress(c)
         for c, ntag in out.nodes_lost:
             self.notify_robot(c.user, c.owner, "ST", {"topic": "node", "cTag": c.ctag, "nTag": ntag, "status": "lost"})
-        await self.containers_lost(out.lost, "its host re-registered without it after the master restarted")
         kept = {(r.user, r.robot) for r in out.kept}
         for c in self.state.containers.values():
-            if c.state == "lost" and (c.user, c.owner) in kept:
+            if c.down and (c.user, c.owner) in kept:
                 self.tell_lost(c, "its host went away")
         for r in out.gone:
             await self.robot_gone(r.user, r.robot)

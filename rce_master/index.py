@@ -75,7 +75,7 @@ class StateIndex:
         ts = self._upsert(self.tasksets, tid, TaskSet, new)
         if ts is not None and known is None:              # (re)created: count what runs on it
             ts.robots = sum(r.tid == tid for r in self.robots.values())
-            on_it = [c for c in self.containers.values() if c.tid == tid]
+            on_it = [c for c in self.containers.values() if c.tid == tid and c.state != "lost"]
             ts.containers = len(on_it)
             ts.cpu_load = sum(c.load()[0] for c in on_it)
             ts.mem_load = sum(c.load()[1] for c in on_it)
@@ -88,7 +88,8 @@ class StateIndex:
 
     def _apply_container(self, key: Key, old: dict | None, new: dict | None) -> None:
         for rec, sign in ((old, -1), (new, 1)):
-            host = self.tasksets.get(rec["tid"]) if rec is not None else None
+            # a host carries what runs (or starts) on it; a lost container weighs on none
+            host = self.tasksets.get(rec["tid"]) if rec is not None and rec.get("state") != "lost" else None
             if host is not None:
                 data = rec["data"]
                 host.containers += sign
@@ -155,16 +156,25 @@ class StateIndex:
 
     # -- queries --------------------------------------------------------------------------------------
     def container(self, user: str, ctag: str) -> Container:
-        """The user's container ``ctag``. Raises :class:`NotFound`, or :class:`Unavailable` if lost."""
+        """The user's container ``ctag``. Raises :class:`NotFound`, or :class:`Unavailable` while it
+        is lost or being re-created (:func:`lost_reason`)."""
         c = self.containers.get((user, ctag))
         if c is None:
             raise NotFound(f"container {ctag!r} does not exist")
-        if c.state == "lost":
-            raise Unavailable(f"container {ctag!r} was lost with its host")
+        if c.down:
+            raise Unavailable(f"{lost_reason(c)}; try again once it runs (ST status running), or DC it")
         return c
 
     def container_by_cid(self, cid: int) -> Container | None:
         return self._by_cid.get(cid)
+
+    def nodes_of(self, c: Container) -> list[NodeRec]:
+        """The nodes of container ``c``, by nTag."""
+        return sorted((n for k, n in self.nodes.items() if k[:2] == (c.user, c.ctag)), key=lambda n: n.ntag)
+
+    def params_of(self, c: Container) -> list[tuple[str, Any]]:
+        """The parameters set in container ``c``: ``(name, value)`` by name."""
+        return sorted((k[2], v) for k, v in self.params.items() if k[:2] == (c.user, c.ctag))
 
     def robot(self, user: str, robot: str) -> Robot | None:
         """The connected robot ``robot`` of ``user``, or None."""
@@ -239,3 +249,8 @@ class StateIndex:
         }
 
 
+def lost_reason(c: Container) -> str:
+    """What became of lost (or recovering) container ``c``, for the refusals that name it."""
+    if c.state == "recovering":
+        return f"container {c.ctag!r} was lost with its host and is being re-created on another host"
+    return f"container {c.ctag!r} was lost with its host and waits for a container host to be re-created on"

@@ -17,7 +17,10 @@ from typing import Any
 from rce_master.store import Key
 
 SCRYPT = {"n": 2**14, "r": 8, "p": 1}     # RFC 7914 cost: ~50 ms of CPU per check, by design
-LIMIT_KEYS = ("cpu", "memory", "size", "bandwidth")   # container limits (docs/INTERNALS.md)
+LIMIT_KEYS = ("cpu", "memory", "pids", "size", "bandwidth")   # container limits and sizes (docs/INTERNALS.md)
+# container states with no container behind them: lost with its host (or environment), and being re-created
+# on a host (docs/INTERNALS.md, "Container failover")
+LOST_STATES = ("lost", "recovering")
 
 
 def password_digest(password: str) -> str:
@@ -87,7 +90,7 @@ class TaskSet(_Record):
     lost: bool = False
     # derived from the robots and containers on it (kept up to date by MasterState, not stored)
     robots: int = 0
-    cpu_load: float = 0.0     # sum of cpu requested by its containers (cores)
+    cpu_load: float = 0.0     # sum of cpu requested by its containers (cores), lost ones left out
     mem_load: float = 0.0     # MiB requested
     containers: int = 0
     DERIVED = ("robots", "cpu_load", "mem_load", "containers")
@@ -112,7 +115,12 @@ class Robot(_Record):
 
 @dataclass
 class Container(_Record):
-    """A container of ``user`` created by robot ``owner`` on container host ``tid``."""
+    """A container of ``user`` created by robot ``owner`` on container host ``tid``.
+
+    ``state``: ``starting`` (its CC runs), ``running``, ``lost`` (its host or environment went
+    away; ``tid`` still names that host) or ``recovering`` (being re-created on host ``tid``
+    under a new ``cid``, see :mod:`rce_master.failover`). ``data_addr`` stays the last address
+    it ran at while it is lost or recovering ("" only before it first ran)."""
     cid: int
     user: str
     ctag: str
@@ -120,13 +128,18 @@ class Container(_Record):
     tid: int                  # container host
     group: str | None
     data: dict                # containerData, with the limits as last resized
-    state: str = "starting"   # starting | running | lost
+    state: str = "starting"   # starting | running | lost | recovering
     data_addr: str = ""
     sandbox: str = ""
 
     @property
     def store_key(self) -> Key:
         return ("container", self.user, self.ctag)
+
+    @property
+    def down(self) -> bool:
+        """Lost, or being re-created: no container serves it now."""
+        return self.state in LOST_STATES
 
     def load(self) -> tuple[float, float]:
         """(cpu cores, memory MiB) it asked of its host."""

@@ -144,7 +144,8 @@ def _robots(state: MasterState, out: Reconciled, report: Report) -> None:
 
 def _containers(state: MasterState, out: Reconciled, report: Report) -> None:
     """Keep the reported containers the master has (not lost, not on another registered host);
-    mark lost its containers the host did not report; drop the rest."""
+    mark lost its containers the host did not report (the failover re-creates them); drop the rest
+    (one that is lost or being re-created is re-created under a new cid: the copy reported goes)."""
     tid = out.taskset.tid
     nodes: dict[int, list[NodeRec]] = {}
     for n in state.nodes.values():
@@ -154,7 +155,7 @@ def _containers(state: MasterState, out: Reconciled, report: Report) -> None:
     for cid, rep in sorted(report.containers.items()):
         c = state.container_by_cid(cid)
         host = state.tasksets.get(c.tid) if c is not None else None
-        if c is None or c.state == "lost" or (c.tid != tid and host is not None and not host.lost):
+        if c is None or c.down or (c.tid != tid and host is not None and not host.lost):
             out.drop_containers.append(cid)
             continue
         if c.data_addr and c.data_addr != rep.data_addr:

@@ -20,8 +20,8 @@ from typing import Any
 
 from rce.errors import RCEError, RequestError, Timeout
 from rce.log import get_logger
-from rce_master.control import CREATE_TIMEOUT, Control
-from rce_master.model import LIMIT_KEYS, limits_of
+from rce_master.control import Control
+from rce_master.model import limits_of
 from rce_master.state import MasterState
 
 log = get_logger("rce.master")
@@ -78,10 +78,7 @@ class CreateContainer(Step):
         return req.state.add_container(req.user, req.robot, item["containerTag"], item.get("containerData"))[0]
 
     async def tell(self, req, item, c):
-        data = item.get("containerData") or {}
-        return await req.control.host_request(c, "create_container", {
-            "user": req.user, "ctag": c.ctag, "group": c.group, "limits": {k: data.get(k) for k in LIMIT_KEYS}},
-            CREATE_TIMEOUT)
+        return await req.control.create_container(c)
 
     def confirm(self, req, item, c, answer):
         req.state.container_ready(c, answer["data_addr"], answer.get("sandbox", ""))
@@ -97,10 +94,10 @@ class CreateContainer(Step):
 
 
 class DestroyContainer(Step):
-    """DC ``{containerTag}``: forget it with everything in it, disconnect its peers, destroy it."""
+    """DC ``{containerTag}``: forget it with everything in it, disconnect its peers, destroy it.
+    A lost container (or one being re-created) is forgotten at once, and its tag is free again."""
 
     def reserve(self, req, item):
-        req.state.container(req.user, item["containerTag"])          # a lost container is refused
         return req.state.remove_container(req.user, item["containerTag"])
 
     async def tell(self, req, item, held):
@@ -116,9 +113,7 @@ class AddNode(Step):
 
     async def tell(self, req, spec, held):
         c, n = held
-        await req.control.host_call(c, "add_node", ntag=n.ntag, pkg=spec["pkg"], exe=spec["exe"],
-                                    args=spec.get("args", ""), name=spec.get("name"),
-                                    namespace=spec.get("namespace"), respawn=spec.get("respawn"))
+        await req.control.start_node(c, n.ntag, spec)
 
     def confirm(self, req, spec, held, answer):
         req.state.node_running(held[1])
@@ -170,12 +165,7 @@ class AddInterface(Step):
         return req.state.add_interface(req.user, req.robot, spec)
 
     async def tell(self, req, spec, rec):
-        if rec.robot_side:
-            await req.control.endpoint_call(rec, "add_interface", user=req.user, robot=rec.etag, iid=rec.iid,
-                                            itag=rec.itag, itype=rec.itype, cls=rec.cls)
-        else:
-            await req.control.endpoint_call(rec, "add_interface", iid=rec.iid, tag=rec.tag, itype=rec.itype,
-                                            cls=rec.cls, addr=rec.addr)
+        await req.control.install_interface(rec)
 
     async def undo(self, req, rec, told):
         await req.control.tell_disconnects(req.state.interface_refused(rec))

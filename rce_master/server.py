@@ -11,7 +11,8 @@ No data flows through the master, and the shell changes no state itself: it asks
 On a store a previous master left, the state comes back with every task set absent; each one
 that re-registers is reconciled (:mod:`rce_master.reconcile`), and those still absent after the
 reconciliation grace are dropped as if their link had closed (docs/INTERNALS.md, "Master state
-and restart").
+and restart"). A container lost with its host or environment is re-created elsewhere
+(:mod:`rce_master.failover`, docs/INTERNALS.md, "Container failover").
 
 Several masters on etcd (docs/INTERNALS.md, "Several masters"): a master that stands by (its
 ``office`` does not lead, :mod:`rce_master.office`) serves login and admin reads from the state it
@@ -36,6 +37,7 @@ from rce.tasks import Tasks
 from rce_master import reconcile
 from rce_master.admin import AdminApi
 from rce_master.control import Control
+from rce_master.failover import Failover
 from rce_master.model import TaskSet
 from rce_master.office import RETRY_AFTER_NO_LEADER, Alone, Office, require_leader
 from rce_master.requests import Request, handle
@@ -56,7 +58,7 @@ RETRY_AFTER = 5                                    # s, Retry-After of a 503 for
 class Metrics:
     """Prometheus metrics of the master."""
 
-    def __init__(self, state: MasterState, office: Office):
+    def __init__(self, state: MasterState, office: Office, failover: Failover):
         self.registry = CollectorRegistry()
         r = self.registry
         self.logins = Counter("rce_master_logins", "Robot logins over HTTP", ["result"], registry=r)
@@ -74,6 +76,12 @@ class Metrics:
               registry=r).set_function(lambda: sum(t.lost for t in state.tasksets.values()))
         Gauge("rce_master_leader", "1 while this master leads (always, alone; one of several on etcd)",
               registry=r).set_function(lambda: int(office.leading))
+        Gauge("rce_master_containers_down", "Containers lost with their host or environment, or being re-created",
+              registry=r).set_function(lambda: sum(c.down for c in state.containers.values()))
+        Gauge("rce_master_containers_recovered", "Lost containers re-created since the master started",
+              registry=r).set_function(lambda: failover.recovered)
+        Gauge("rce_master_containers_given_up", "Lost containers the master gave up re-creating since it started",
+              registry=r).set_function(lambda: failover.gave_up)
         Gauge("rce_master_store_pending", "Changes of the state not yet written to the store (etcd)",
               registry=r).set_function(lambda: getattr(state.store, "pending", 0))
 
@@ -96,8 +104,9 @@ class Master:
         self.users = UsersFile(users_file) if users_file else None
         self.admin = AdminApi(self.state, self.control, admin_token, self.users, self.office)
         self.robot_locks: dict[tuple[str, str], asyncio.Lock] = defaultdict(asyncio.Lock)
-        self.metrics = Metrics(self.state, self.office)
         self.tasks = Tasks("rce-master")
+        self.failover = Failover(self.state, self.control, self.tasks)
+        self.metrics = Metrics(self.state, self.office, self.failover)
         self._control: asyncio.AbstractServer | None = None
         self._runner: web.AppRunner | None = None
         self.http_port = self.control_port = 0
@@ -122,6 +131,7 @@ class Master:
         task sets absent until they re-register, dropped after the reconciliation grace)."""
         self._office_duties()
         log.info("master leads", restored_tasksets=len(self.restored), containers=len(self.state.containers))
+        self.failover.resume()
         if self.restored:
             self.tasks.spawn(self._end_grace(), name="reconcile-grace")
 
@@ -138,6 +148,8 @@ class Master:
         log.info("master up", http_port=self.http_port, control_port=self.control_port, bind=bind,
                  leading=self.office.leading, restored_tasksets=len(self.restored),
                  containers=len(self.state.containers))
+        if self.office.leading:
+            self.failover.resume()
         if self.office.leading and self.restored:
             self.tasks.spawn(self._end_grace(), name="reconcile-grace")
 
@@ -151,7 +163,7 @@ class Master:
             lost, robots = self.state.drop_taskset(ts.tid)
             log.warning("task set did not come back", tid=ts.tid, name=ts.name, containers=len(lost),
                         robots=len(robots))
-            await self.control.taskset_lost(lost, robots, why)
+            await self.failover.taskset_lost(lost, robots, why)
 
     async def stop(self) -> None:
         """Close every link and server. The task sets stay in the store as they were (a master
@@ -190,13 +202,21 @@ class Master:
                 "robot_disconnected": lambda x, t=ts.tid: self._robot_disconnected(t, x),
                 "robot_request": self._robot_request})
         else:
-            peer.handlers.update({"node_status": self._node_status})
+            peer.handlers.update({"node_status": self._node_status,
+                                  "container_lost": lambda x, t=ts.tid: self._container_lost(t, x)})
         log.info("task set registered", tid=ts.tid, kind=ts.kind, name=ts.name, host=ts.host, resumed=out.resumed,
                  lost=len(out.lost), dropped=len(out.drop_containers) + len(out.drop_interfaces),
                  robots_gone=len(out.gone))
-        self.tasks.spawn(self.control.reconciled(out), name=f"taskset-{ts.tid}-reconciled")
+        self.tasks.spawn(self._reconciled(out), name=f"taskset-{ts.tid}-reconciled")
         await self.state.store.flush()
         return out.answer()
+
+    async def _reconciled(self, out: reconcile.Reconciled) -> None:
+        """Tell others what a ``register`` changed; a new container host may take lost containers."""
+        await self.control.reconciled(out)
+        await self.failover.lost(out.lost, "its host re-registered without it after the master restarted")
+        if out.taskset.kind == "container":
+            self.failover.host_registered()
 
     def _peer_closed(self, peer: RpcPeer) -> None:
         tid = peer.info.get("tid")
@@ -205,7 +225,7 @@ class Master:
         self.control.peers.pop(tid, None)
         lost, robots = self.state.drop_taskset(tid)
         log.warning("task set gone", tid=tid, name=peer.name, containers=len(lost), robots=len(robots))
-        self.tasks.spawn(self.control.taskset_lost(lost, robots), name=f"taskset-{tid}-lost")
+        self.tasks.spawn(self.failover.taskset_lost(lost, robots), name=f"taskset-{tid}-lost")
 
     # -- robot endpoint ops --------------------------------------------------------------------
     async def _auth(self, a: dict) -> dict:
@@ -250,6 +270,15 @@ class Master:
                 raise
         self.metrics.requests.labels(t, "ok").inc()
         return {}
+
+    async def _container_lost(self, tid: int, a: dict) -> None:
+        """``container_lost {cid, reason}`` from host ``tid``: the container's environment died."""
+        if not isinstance(a.get("cid"), int):
+            raise RequestError(f"container_lost needs an integer 'cid', got {a.get('cid')!r}")
+        reason = str(a.get("reason") or "its environment exited")
+        log.warning("container lost with its environment", tid=tid, cid=a["cid"], reason=reason)
+        await self.failover.environment_lost(tid, a["cid"], reason)
+        await self.state.store.flush()
 
     async def _node_status(self, a: dict) -> None:
         detail = {k: a[k] for k in ("code", "signal", "reason") if a.get(k) is not None}

@@ -25,14 +25,14 @@ from __future__ import annotations
 import functools
 import json
 import time
-from collections.abc import Iterator
+from collections.abc import Collection, Iterator
 from contextlib import contextmanager
 from typing import Any
 
 from rce.errors import AuthError, NotFound, RequestError, Unavailable
 from rce.interfaces import PAIRS
 from rce.protocol import split_interface_type
-from rce_master.index import StateIndex
+from rce_master.index import StateIndex, lost_reason
 from rce_master.model import (ConnectionRec, Container, InterfaceRec, NodeRec, Robot, TaskSet, User,
                               param_key)
 from rce_master.store import Key, MemoryStore, Store, encode
@@ -196,8 +196,9 @@ class MasterState(StateIndex):
 
     @_atomic
     def drop_taskset(self, tid: int) -> tuple[list[Container], list[Robot]]:
-        """Remove a task set that went away. Returns its containers (now ``lost``: the shell then
-        calls :meth:`forget_lost_container`) and its robots (the shell disconnects them)."""
+        """Remove a task set that went away. Returns its containers (now ``lost``: the shell tells
+        their robots and re-creates them, :mod:`rce_master.failover`) and its robots (the shell
+        disconnects them)."""
         ts = self.tasksets.get(tid)
         if ts is None:
             return [], []
@@ -215,14 +216,16 @@ class MasterState(StateIndex):
             raise TaskSetAbsent("no robot endpoint is available; start rce-robot")
         return min(cands, key=lambda t: (t.robots, t.tid))
 
-    def pick_container_host(self, data: dict) -> TaskSet:
+    def pick_container_host(self, data: dict, exclude: Collection[int] = (), prefer: int | None = None) -> TaskSet:
         """The container host with the lowest load after adding this container's cpu/memory
-        request (relative to its capacity). Raises :class:`Unavailable` if none fits."""
+        request (relative to its capacity), leaving out the tids in ``exclude``; host ``prefer``
+        whenever it fits (an environment that died is re-created on its own host). Raises
+        :class:`Unavailable` if none fits."""
         cpu = float(data.get("cpu") or 0)
         mem = float(data.get("memory") or 0)
         best, best_key = None, None
         for t in self.tasksets.values():
-            if t.kind != "container" or t.lost:
+            if t.kind != "container" or t.lost or t.tid in exclude:
                 continue
             cap = t.info.get("capacity") or {}
             cap_cpu, cap_mem = float(cap.get("cpu") or 0), float(cap.get("memory") or 0)
@@ -230,7 +233,7 @@ class MasterState(StateIndex):
                 continue
             load = max((t.cpu_load + cpu) / cap_cpu if cap_cpu else 0.0,
                        (t.mem_load + mem) / cap_mem if cap_mem else 0.0)
-            key = (load, t.containers, t.tid)
+            key = (t.tid != prefer, load, t.containers, t.tid)
             if best_key is None or key < best_key:
                 best, best_key = t, key
         if best is None:
@@ -267,7 +270,10 @@ class MasterState(StateIndex):
     @_atomic
     def add_container(self, user: str, owner: str, ctag: str, data: dict | None) -> tuple[Container, TaskSet]:
         """Reserve a new container (state ``starting``) on the chosen host; returns it and the host."""
-        if (user, ctag) in self.containers:
+        old = self.containers.get((user, ctag))
+        if old is not None and old.down:
+            raise RequestError(f"{lost_reason(old)}; DC it first to create it afresh")
+        if old is not None:
             raise RequestError(f"container {ctag!r} already exists")
         if (user, ctag) in self.robots:
             raise RequestError(f"container tag {ctag!r} is already used as a robot ID")
@@ -279,16 +285,45 @@ class MasterState(StateIndex):
 
     @_atomic
     def container_ready(self, c: Container, data_addr: str, sandbox: str) -> None:
-        """The host created ``c``. Raises :class:`Unavailable` when it was removed or lost meanwhile."""
+        """The host created (or re-created) ``c``: ``running``. Raises :class:`Unavailable` when it
+        was removed or lost meanwhile."""
         if not _current(self.containers, (c.user, c.ctag), c) or c.state == "lost":
             raise Unavailable(f"container {c.ctag!r} was removed or lost while it was created")
         self._put(c, state="running", data_addr=data_addr, sandbox=sandbox)
 
     @_atomic
     def container_lost(self, c: Container) -> None:
-        """``c`` is gone with its host (or its host re-registered without it): ``lost``, until
-        :meth:`forget_lost_container` and its robot's DC."""
+        """``c`` is gone with its host or environment (or its host re-registered without it):
+        ``lost``. Its nodes, parameters, interfaces and connections stay, for its re-creation
+        (:meth:`container_recovering`) or until its robot destroys it (DC) or leaves."""
         self._put(c, state="lost")
+
+    @_atomic
+    def container_recovering(self, c: Container, tid: int) -> None:
+        """Re-create lost container ``c`` on host ``tid``: it gets a new ``cid`` (a copy its old
+        host may still hold keeps the old one, and is dropped when that host re-registers), its
+        container-side interfaces move with it, its nodes are ``starting`` again. Raises
+        :class:`RequestError` unless ``c`` is the user's current, lost container."""
+        if not _current(self.containers, (c.user, c.ctag), c) or c.state != "lost":
+            raise RequestError(f"container {c.ctag!r} is not lost: it is {c.state} (or gone)")
+        old = c.cid
+        self._put(c, cid=self._next_id("cid"), tid=tid, state="recovering")
+        for rec in self.interfaces_of(c.user, c.ctag, robot_side=False):
+            if rec.location == old:
+                self._put(rec, location=c.cid)
+        for n in self.nodes_of(c):
+            self._put(n, status="starting", detail={})
+
+    @_atomic
+    def interrupted_recoveries(self) -> list[Container]:
+        """On taking office on a store a previous master left: a container it was re-creating is
+        ``lost`` again (that work died with it). Returns every lost container that ever ran,
+        by cid: the ones to re-create once hosts register."""
+        for c in self.containers.values():
+            if c.state == "recovering":
+                self._put(c, state="lost")
+        return sorted((c for c in self.containers.values() if c.state == "lost" and c.data_addr),
+                      key=lambda c: c.cid)
 
     @_atomic
     def container_found(self, c: Container, tid: int, data_addr: str, sandbox: str) -> None:
@@ -312,21 +347,13 @@ class MasterState(StateIndex):
         return c, self._forget_container(c)
 
     def _forget_container(self, c: Container) -> Pairs:
-        for n in [n for k, n in self.nodes.items() if k[:2] == (c.user, c.ctag)]:
+        for n in self.nodes_of(c):
             self._delete(n)
         for k in [k for k in self.params if k[:2] == (c.user, c.ctag)]:
             self._write(param_key(*k), None)
         pairs = self.forget_interfaces(self.interfaces_of(c.user, c.ctag))
         self._delete(c)
         return pairs
-
-    @_atomic
-    def forget_lost_container(self, c: Container) -> Pairs:
-        """Forget the interfaces (and connections) of a lost container; it stays, ``lost``, until
-        its robot destroys it or leaves. Returns the connections removed."""
-        if not _current(self.containers, (c.user, c.ctag), c) or c.state != "lost":
-            return []
-        return self.forget_interfaces(self.interfaces_of(c.user, c.ctag))
 
     @_atomic
     def resize(self, user: str, ctag: str, limits: dict) -> Container:

@@ -9,6 +9,7 @@ import pytest
 
 from rce.errors import NotFound, RequestError, Timeout, Unavailable
 from rce_master.control import Control
+from rce_master.model import LIMIT_KEYS
 from rce_master.requests import CN_STEPS, CX_STEPS, REQUESTS, Request, handle
 from rce_master.state import MasterState
 
@@ -81,8 +82,7 @@ async def test_create_container(world):
     c = state.container(U, "c1")
     assert (c.state, c.data_addr, c.sandbox, c.group) == ("running", "unix:/c1", "unconfined", "g")
     assert host_link.sent == [("create_container", {"cid": c.cid, "user": U, "ctag": "c1", "group": "g",
-                                                    "limits": {"cpu": 1, "memory": None, "size": None,
-                                                               "bandwidth": None}})]
+                                                    "limits": {**dict.fromkeys(LIMIT_KEYS), "cpu": 1}})]
     assert notes(robot_link) == [("ST", {"topic": "container", "cTag": "c1", "status": "running",
                                          "sandbox": "unconfined"})]
 
@@ -252,15 +252,36 @@ async def test_robot_gone_destroys_what_it_owns(interfaces):
     assert host_link.ops()[-2:] == ["disconnect", "destroy_container"]
 
 
-async def test_host_lost(interfaces):
+async def test_a_lost_container_can_always_be_destroyed_and_its_tag_created_again(interfaces):
+    """Its host went away: DC forgets it at once (with its interfaces and connections, no call to
+    the gone host), CC of the tag is refused with a clear answer until then, and works after."""
     state, control, robot_link, host_link = interfaces
     await handle(req(interfaces), "CX", {"connect": [{"tagA": "c1/b", "tagB": "r1/a"}]})
     del control.peers[HOST_TID]
-    lost, robots = state.drop_taskset(HOST_TID)
-    await control.taskset_lost(lost, robots)
-    assert state.containers[(U, "c1")].state == "lost" and list(state.interfaces) == [(U, "r1", "a")]
-    assert robot_link.sent[-3][0] == "disconnect"
-    assert notes(robot_link)[-2:] == [("ST", {"topic": "container", "cTag": "c1", "status": "lost"}),
-                                      ("ER", "container 'c1' was lost: its host went away")]
-    with pytest.raises(Unavailable, match="lost"):
-        await handle(req(interfaces), "DC", {"containerTag": "c1"})
+    lost, _ = state.drop_taskset(HOST_TID)
+    assert [c.ctag for c in lost] == ["c1"] and state.containers[(U, "c1")].state == "lost"
+    assert len(state.connections) == 1                        # kept: its re-creation connects it again
+    with pytest.raises(RequestError, match="lost with its host and waits for a container host"):
+        await handle(req(interfaces), "CN", {"addNodes": [node("n")]})
+    with pytest.raises(RequestError, match="c1.*lost with its host.*DC it first to create it afresh"):
+        await handle(req(interfaces), "CC", {"containerTag": "c1"})
+    robot_link.sent.clear()
+    await handle(req(interfaces), "DC", {"containerTag": "c1"})
+    assert state.containers == {} and state.connections == set() and list(state.interfaces) == [(U, "r1", "a")]
+    assert robot_link.sent == [("disconnect", {"iid": 1, "peer_iid": 2})]
+    assert host_link.ops() == ["connect"]                      # nothing more went to the gone host
+    state.register_taskset("container", "ch2", "hostC", {})
+    control.peers[3] = host_link
+    await handle(req(interfaces), "CC", {"containerTag": "c1"})
+    assert state.container(U, "c1").state == "running"
+
+
+async def test_cc_of_a_tag_being_re_created_gets_a_clear_answer(running):
+    state, _, _, _ = running
+    c = state.container(U, "c1")
+    state.container_lost(c)
+    state.container_recovering(c, HOST_TID)
+    with pytest.raises(RequestError, match="being re-created on another host; DC it first"):
+        await handle(req(running), "CC", {"containerTag": "c1"})
+    with pytest.raises(RequestError, match="being re-created.*once it runs \\(ST status running\\), or DC it"):
+        await handle(req(running), "CN", {"setParam": [{"containerTag": "c1", "name": "p", "value": 1}]})

@@ -9,6 +9,7 @@ import pytest
 from rce.errors import AuthError, NotFound, RCEError, RequestError, Unavailable
 from rce_master.model import User, password_digest
 from rce_master.state import MasterState
+from rce_master.store import MemoryStore
 
 U, V = "alice", "bob"
 
@@ -212,6 +213,18 @@ def test_pick_container_host_skips_hosts_without_room_and_lost_hosts():
     with pytest.raises(Unavailable):
         s.pick_container_host({"memory": 600})
     assert s.pick_container_host({"memory": 100}) is h2
+
+
+def test_pick_container_host_excluding_and_preferring():
+    s = MasterState()
+    h1 = s.register_taskset("container", "h1", "h", {})
+    h2 = s.register_taskset("container", "h2", "h", {})
+    s.add_container(U, "r", "c1", {})                               # h1 now holds one
+    assert s.pick_container_host({}) is h2
+    assert s.pick_container_host({}, prefer=h1.tid) is h1           # its own host, though busier
+    assert s.pick_container_host({}, exclude={h2.tid}, prefer=h2.tid) is h1
+    with pytest.raises(Unavailable):
+        s.pick_container_host({}, exclude={h1.tid, h2.tid})
 
 
 def test_pick_container_host_memory_capacity_is_checked_against_current_load():
@@ -620,6 +633,49 @@ def test_drop_taskset_marks_containers_lost(wired):
     c, _ = wired.remove_container(U, "c2")
     assert c is c2
     assert wired.drop_taskset(2) == ([], [])
+
+
+def test_a_lost_container_keeps_what_it_had_and_is_re_created_under_a_new_cid(wired):
+    c1 = wired.container(U, "c1")
+    pub = iface(wired, U, "r1", "c1", "p", "PublisherInterface", addr="/x")
+    sub = iface(wired, U, "r1", "r1", "s", "SubscriberConverter")
+    wired.connect(U, "c1/p", "r1/s")
+    wired.set_param(U, "c1", "k", 7)
+    n, = [wired.add_node(U, {"containerTag": "c1", "nodeTag": "n", "pkg": "Test", "exe": "e"})[1]]
+    wired.node_running(n)
+    with pytest.raises(RequestError, match="not lost"):
+        wired.container_recovering(c1, 2)
+    lost, _ = wired.drop_taskset(2)
+    assert c1 in lost and c1.state == "lost" and c1.data_addr            # its last address stays
+    assert wired.connections_of(pub.iid) == [(pub, sub)] and wired.params_of(c1) == [("k", 7)]
+    h = wired.register_taskset("container", "ch2", "hostC", {})
+    old_cid = c1.cid
+    wired.container_recovering(c1, h.tid)
+    assert (c1.state, c1.tid) == ("recovering", h.tid) and c1.cid > old_cid
+    assert wired.container_by_cid(old_cid) is None and wired.container_by_cid(c1.cid) is c1
+    assert pub.location == c1.cid and sub.location == 1 and n.status == "starting"
+    assert h.containers == 1 and wired.nodes_of(c1) == [n]
+    assert wired.store.get(("interface", U, "c1", "p"))["location"] == c1.cid
+    with pytest.raises(Unavailable, match="being re-created"):
+        wired.container(U, "c1")
+    wired.container_ready(c1, "tcp://new:1", "unconfined")
+    assert wired.container(U, "c1") is c1 and c1.data_addr == "tcp://new:1"
+    assert_view_is_the_store(wired)
+
+
+def test_interrupted_recoveries_are_lost_again(wired):
+    c1, c2 = wired.container(U, "c1"), wired.container(U, "c2")
+    never_ran, _ = wired.add_container(U, "r1", "c3", None)
+    wired.drop_taskset(2)
+    h = wired.register_taskset("container", "ch2", "hostC", {})
+    wired.container_recovering(c1, h.tid)
+    assert wired.interrupted_recoveries() == [c2, c1]               # by cid: c1's is new
+    assert c1.state == "lost" and never_ran.state == "lost"
+    assert wired.store.get(("container", U, "c1"))["state"] == "lost"
+
+
+def assert_view_is_the_store(s: MasterState) -> None:
+    assert MasterState(MemoryStore(s.store.items())).snapshot() == s.snapshot()
 
 
 def test_drop_robot_taskset_returns_its_robots(wired):
