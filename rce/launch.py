@@ -6,6 +6,7 @@ process's ``--ready-file``, never from sleeping.
 
     e = start_engine(workdir)            # master --dev (testUser/testUser), 1 robot task set, 1 container host
     e.master_url                          # http://127.0.0.1:PORT/
+    e.kill_master(); e.restart_master()   # kill -9, then the same master again on its ports (and --state file)
     e.stop()
 """
 from __future__ import annotations
@@ -67,6 +68,37 @@ class Engine:
     robot_ready: list[dict] = field(default_factory=list)
     logs: list[Path] = field(default_factory=list)
     masters: list[str] = field(default_factory=list)
+    master: subprocess.Popen | None = None      # the running rce-master (None after kill_master)
+    master_args: tuple = ()                     # its extra arguments, given again by restart_master
+    restarts: int = 0
+
+    def _start_master(self, http_port: int, control_port: int, timeout: float = 30.0) -> dict:
+        name = f"master{self.restarts}" if self.restarts else "master"
+        ready = self.workdir / f"{name}.ready"
+        self.master, info = self.spawn(name, [*command("rce-master"), "--dev", "--port", str(http_port),
+                                              "--control-port", str(control_port), "--ready-file", str(ready),
+                                              *self.master_args], ready, timeout)
+        return info
+
+    def kill_master(self) -> None:
+        """kill -9 the master and reap it. It leaves ``procs``, so :meth:`alive` does not count it."""
+        p, self.master = self.master, None
+        if p is not None:
+            p.send_signal(signal.SIGKILL)
+            p.wait()
+            self.procs.remove(p)
+
+    def restart_master(self, timeout: float = 30.0) -> None:
+        """Start the master again, with the same arguments (``--state`` file, ...) on the same ports;
+        returns once it is ready (its ready file) within ``timeout`` s; raises TimeoutError, or
+        RuntimeError when it exits first (e.g. its ports are taken)."""
+        self.restarts += 1
+        self._start_master(self.http_port, self.control_port, timeout)
+
+    @property
+    def http_port(self) -> int:
+        """The master's HTTP (login, admin API) port."""
+        return int(self.master_url.rsplit(":", 1)[1].strip("/"))
 
     def admin(self, path: str, body: dict | None = None, method: str | None = None):
         """Call the master's admin API (:class:`~rce.admin_client.AdminClient`): GET ``path`` (or
@@ -134,10 +166,8 @@ def start_engine(workdir: Path | None = None, *, robot_tasksets: int = 1, contai
     workdir.mkdir(parents=True, exist_ok=True)
     penv = dict(os.environ, RCE_ADMIN_TOKEN=admin_token, RCE_LOG_JSON="1",
                 XDG_CONFIG_HOME=str(workdir / "config"), XDG_STATE_HOME=str(workdir / "state"), **(env or {}))
-    e = Engine(workdir, penv, admin_token=admin_token)
-    ready = workdir / "master.ready"
-    _, info = e.spawn("master", [*command("rce-master"), "--dev", "--port", "0", "--control-port", "0",
-                                 "--ready-file", str(ready), *master_args], ready)
+    e = Engine(workdir, penv, admin_token=admin_token, master_args=tuple(master_args))
+    info = e._start_master(0, 0)
     e.master_url = f"http://127.0.0.1:{info['http_port']}/"
     e.control_port = info["control_port"]
     e.masters = [f"127.0.0.1:{e.control_port}"]

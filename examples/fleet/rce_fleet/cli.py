@@ -4,7 +4,8 @@
 
     rce-fleet demo [--map YAML] [--robots N] [--grid RxC | --cell M] [--seed S] [--speedup K]
                    [--goal RobotN=CELL]... [--start RobotN=CELL]... [--block CELL@S]...
-                   [--obstacle CELL@S]... [--timeout S] [--plot PNG] [--report JSON] [--bag FILE.bag]
+                   [--obstacle CELL@S]... [--fault master@T[+S] | link:RobotN@T[+S]]...
+                   [--timeout S] [--plot PNG] [--report JSON] [--bag FILE.bag]
                    [--headless] [--web-port P]
     rce-fleet serve [same options, no mission]      # until Ctrl-C
     rce-fleet configs [--out DIR] [--robots N] [--url URL]   # write robot1.config ...
@@ -93,6 +94,10 @@ def build_parser() -> argparse.ArgumentParser:
                    help="block CELL S sim seconds after the goals were sent (repeatable)")
     d.add_argument("--obstacle", action="append", default=[], metavar="CELL@S",
                    help="drop a box in CELL at S sim seconds, unannounced: the robots' lidars must find it")
+    d.add_argument("--fault", action="append", default=[], metavar="SPEC",
+                   help="inject a fault T sim seconds after the goals were sent (repeatable): master@T[+S] kills "
+                   "rce-master (kill -9) and restarts it on its state file after S wall seconds (default 2); "
+                   "link:RobotN@T[+S] cuts RobotN's websocket for S wall seconds (default 5)")
     s = sub.add_parser("serve", help="the same system without a mission, until Ctrl-C")
     _run_args(s, False)
     c = sub.add_parser("configs", help="write the robots' configs (robot1.config ...)")
@@ -124,7 +129,7 @@ def main(argv: list[str] | None = None) -> None:
         print(f"{g.rows}x{g.cols} cells of {g.cell_w_m:.3f} x {g.cell_h_m:.3f} m, {len(g.free_cells())} free")
         print(g.ascii())
         return
-    from .demo import EXIT_USAGE, Options, UsageError, parse_cell_at, parse_robot_cell, run
+    from .demo import EXIT_USAGE, Options, UsageError, parse_cell_at, parse_faults, parse_robot_cell, run
     mission = args.cmd == "demo"
     try:
         opts = Options(map=args.map, robots=args.robots, grid=args.grid, cell=args.cell, seed=args.seed,
@@ -133,6 +138,7 @@ def main(argv: list[str] | None = None) -> None:
                        starts=parse_robot_cell(args.start, "start"),
                        blocks=parse_cell_at(getattr(args, "block", []), "block"),
                        obstacles=parse_cell_at(getattr(args, "obstacle", []), "obstacle"),
+                       faults=parse_faults(getattr(args, "fault", [])),
                        plot=args.plot, report=args.report, bag=args.bag, workdir=args.workdir, keep=args.keep,
                        lidar_blocking=not args.no_lidar_blocking, mission=mission, live=args.live,
                        web_port=args.web_port)

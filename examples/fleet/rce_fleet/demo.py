@@ -14,8 +14,14 @@
    report (``--report``); a ROS 1 bag of the fleet topics (``--bag``: every robot's
    ``amcl_pose``, ``goalNodesList`` and ``cancelGoal`` and ``/fleet/state``, recorded from the
    fleet container through forwarders of the client ``fleetRecorder``, :mod:`rce_client.bag`,
-   from when the robots are ready until the end). Exit 0 when every robot has reached its goal;
-   otherwise non-zero with the reason (1 failure or timeout, 2 bad arguments, 3 an unreachable goal).
+   from when the robots are ready until the end); faults (``--fault master@T``: kill -9 rce-master
+   and restart it on its ``--state`` file; ``--fault link:RobotN@T+S``: cut a robot's link for S s;
+   :mod:`rce_fleet.faults`), which the mission rides out: the demo's clients resume their sessions.
+   Exit 0 when every robot has reached its goal (and every fault was recovered from); otherwise
+   non-zero with the reason (1 failure or timeout, 2 bad arguments, 3 an unreachable goal).
+
+The master keeps its state in ``engine/master.sqlite3`` of the work directory (``--state``), so a
+master that is killed comes back with it.
 
 ``serve`` runs the same system without a mission until Ctrl-C (or ``--timeout``).
 """
@@ -45,6 +51,7 @@ from rce_client.bag import BagRecorder, record_container
 from rce_client.connection import Connection
 
 from .configs import FLEET_CTAG, PASSWORD, USER, robot_config
+from .faults import Fault, FaultInjector, parse_fault
 from .geometry import GridGeometry, components
 from .grid import make_grid
 from .lab_map import write_lab_map
@@ -99,6 +106,7 @@ class Options:
     mission: bool = True
     live: bool | None = None        # None: when stdout is a terminal
     web_port: int = 8000            # the operator's web page (rce_fleet.webui); taken if free, else any
+    faults: list[Fault] = field(default_factory=list)   # ``--fault`` (rce_fleet.faults)
 
 
 def parse_robot_cell(items: list[str], what: str) -> dict[str, int]:
@@ -129,6 +137,14 @@ def parse_cell_at(items: list[str], what: str) -> list[tuple[int, float]]:
         if out[-1][1] < 0:
             raise UsageError(f"--{what} {it!r}: seconds must be >= 0")
     return out
+
+
+def parse_faults(items: list[str]) -> list[Fault]:
+    """``["master@5", "link:Robot1@5+5"]`` -> faults (:func:`rce_fleet.faults.parse_fault`); raises UsageError."""
+    try:
+        return [parse_fault(it) for it in items or []]
+    except ValueError as e:
+        raise UsageError(str(e)) from None
 
 
 def choose_cells(geo: GridGeometry, robots: list[str], seed: int, starts: dict[str, int],
@@ -199,6 +215,7 @@ class Run:
         self.bag: BagRecorder | None = None
         self.recorder: Connection | None = None
         self.grid_note = ""
+        self.faults: FaultInjector | None = None
         self._stuck_since: float | None = None
         self._stop = asyncio.Event()
         self.tasks = Tasks("fleet-demo")           # operator requests sent from sim timers
@@ -231,7 +248,7 @@ class Run:
         except ValueError as e:
             raise UsageError(f"--grid/--cell: {e}") from None
         self.geo = GridGeometry.from_cellgrid(grid)
-        for r in list(o.goals) + list(o.starts):
+        for r in list(o.goals) + list(o.starts) + [f.robot for f in o.faults if f.robot]:
             if r not in self.robots:
                 raise UsageError(f"unknown robot {r!r}: the robots are Robot1..Robot{o.robots}")
         for r, c in o.goals.items():
@@ -282,9 +299,12 @@ class Run:
 
     async def _run(self) -> tuple[int, str]:
         o = self.o
+        state = self.workdir / "engine" / "master.sqlite3"
         self.engine = await asyncio.to_thread(start_engine, self.workdir / "engine",
+                                              master_args=("--state", str(state)),
                                               admin_token=f"fleet-{random.getrandbits(64):016x}")
         log.info("engine up", master=self.engine.master_url, workdir=str(self.workdir))
+        self.faults = FaultInjector(o.faults, self.engine, self.tasks, USER, self._mission_t)
         args = "" if o.lidar_blocking else "--no-lidar-blocking"
         self.manager = FleetManager(self.engine.master_url, self.geo, self.robots, planner_args=args,
                                     on_state=self._on_state)
@@ -295,17 +315,7 @@ class Run:
         for r in self.robots:
             self.sim.spawn(r, self.starts[r])
         self.sim.start()
-        cfgs = {r: robot_config(int(r[5:]), self.engine.master_url) for r in self.robots}
-        (self.workdir / "configs").mkdir(exist_ok=True)
-        for r, cfg in cfgs.items():
-            (self.workdir / "configs" / f"robot{r[5:]}.config").write_text(json.dumps(cfg, indent=2))
-        # connect the robots a few at a time (each sets up its node and interfaces)
-        sem = asyncio.Semaphore(CONNECTING_AT_ONCE)
-
-        async def connect(r: str) -> None:
-            async with sem:
-                await self.sim.connect(r, cfgs[r], self.engine.master_url, timeout=SETUP_TIMEOUT_S)
-        await self._bounded(asyncio.gather(*(connect(r) for r in self.robots)), "robots connecting")
+        await self._connect_robots()
         log.info("robots connected", robots=len(self.robots),
                  t_wall=round(time.monotonic() - (self.deadline - o.timeout), 1))
 
@@ -330,10 +340,28 @@ class Run:
             self.sim.at(self.t_mission + at, lambda c=c, at=at: self._do_block(c, at))
         for c, at in o.obstacles:
             self.sim.at(self.t_mission + at, lambda c=c, at=at: self._do_obstacle(c, at))
+        self.faults.schedule(self.sim.at, self.t_mission)
         for r in self.robots:
             await self.manager.set_goal(r, self.goals[r])
         log.info("mission started", goals=self.goals, starts=self.starts, t_sim=round(self.t_mission, 2))
         return await self._watch(mission=True)
+
+    async def _connect_robots(self) -> None:
+        """Write the robots' configs and connect them, a few at a time (each sets up its node and
+        interfaces); a robot whose link a fault cuts logs in through its proxy's login relay."""
+        cfgs = {r: robot_config(int(r[5:]), self.engine.master_url) for r in self.robots}
+        (self.workdir / "configs").mkdir(exist_ok=True)
+        for r, cfg in cfgs.items():
+            (self.workdir / "configs" / f"robot{r[5:]}.config").write_text(json.dumps(cfg, indent=2))
+        logins = await self.faults.start_links()
+        sem = asyncio.Semaphore(CONNECTING_AT_ONCE)
+
+        async def connect(r: str) -> None:
+            async with sem:
+                await self.sim.connect(r, cfgs[r], logins.get(r, self.engine.master_url), timeout=SETUP_TIMEOUT_S)
+            if r in logins:
+                self.faults.watch(r, self.sim.bots[r].bridge.conn)
+        await self._bounded(asyncio.gather(*(connect(r) for r in self.robots)), "robots connecting")
 
     async def _bounded(self, aw, what: str):
         left = self.deadline - time.monotonic()
@@ -344,6 +372,8 @@ class Run:
 
     def _on_state(self, st: dict) -> None:
         self.state = st
+        if self.faults is not None:
+            self.faults.on_state()
         for rec in self.block_log:      # the planner's time for the re-plan the block caused
             if "replan_ms" not in rec and rec["cell"] in st.get("blocked", []):
                 rec["replan_ms"] = round(st.get("last_plan_ms", 0.0), 3)
@@ -390,7 +420,7 @@ class Run:
                     self.reached[r] = self.sim.time
                     self.events.append(f"{r} reached cell {self.goals[r]} at t={self.sim.time - self.t_mission:.1f}s")
                     log.info("goal reached", robot=r, goal=self.goals[r], t=round(self.sim.time - self.t_mission, 2))
-        if len(self.reached) == len(self.robots):
+        if len(self.reached) == len(self.robots) and not self.faults.busy:
             return EXIT_OK, "every robot reached its goal"
         # no plan for anybody still on the way (the planner retries every second): give up after a while
         left = [r for r in self.robots if r not in self.reached]
@@ -405,6 +435,8 @@ class Run:
         return None
 
     def _engine_problem(self) -> str | None:
+        if self.faults is not None and self.faults.error:
+            return self.faults.error
         dead = self.engine.alive() if self.engine else []
         if dead:
             return f"engine process exited: {', '.join(dead)}"
@@ -578,6 +610,7 @@ class Run:
                         "last_plan_ms": fs.get("last_plan_ms", 0.0)},
             "errors": fs.get("errors", []),
             "bag": {"path": str(self.bag.path), "messages": dict(self.bag.counts)} if self.bag else None,
+            "faults": self.faults.report() if self.faults else [],
             "per_robot": per,
             "workdir": str(self.workdir),
         }
@@ -593,7 +626,8 @@ class Run:
     async def _start_bag(self, reg) -> None:
         self.bag = BagRecorder(self.o.bag, reg)
         self.bag.open()
-        self.recorder = await Connection.connect(self.engine.master_url, USER, PASSWORD, RECORDER_ID)
+        self.recorder = await Connection.connect(self.engine.master_url, USER, PASSWORD, RECORDER_ID,
+                                                 allow_reconnect=True)
         await record_container(self.recorder, FLEET_CTAG, self.fleet_topics(), self.bag, timeout=SETUP_TIMEOUT_S)
         self.events.append(f"recording the fleet topics to {self.o.bag}")
         log.info("recording", bag=self.o.bag, topics=len(self.fleet_topics()))
@@ -630,6 +664,8 @@ class Run:
                 await self.sim.stop(timeout=SIM_STOP_TIMEOUT_S)
             if self.manager is not None:
                 await asyncio.wait_for(self.manager.close(), TEARDOWN_TIMEOUT_S)
+            if self.faults is not None:
+                await asyncio.wait_for(self.faults.close(), TEARDOWN_TIMEOUT_S)
         except (asyncio.TimeoutError, RCEError, OSError) as e:
             log.warning("teardown incomplete", reason=str(e))
         finally:

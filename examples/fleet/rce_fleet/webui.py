@@ -87,7 +87,8 @@ class MissionRunner:
     async def start(self, timeout: float = SETUP_TIMEOUT_S) -> None:
         """Log in as ``fleetMission`` and connect the mission topics; returns when they are up
         (within ``timeout`` s). Raises :class:`RCEError` with the cloud's reason."""
-        c = self.conn = await Connection.connect(self.master_url, self.user, self.password, self.robot_id)
+        c = self.conn = await Connection.connect(self.master_url, self.user, self.password, self.robot_id,
+                                                 allow_reconnect=True)
         c.on_error(lambda r: log.warning("mission: error from the cloud", reason=r))
         links = [("missionCmd", "SubscriberInterface", "PublisherConverter", "std_msgs/String", MISSION_TOPIC),
                  ("missionState", "SubscriberInterface", "PublisherConverter", "fleet/FleetState", "/fleet/state"),
