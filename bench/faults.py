@@ -19,7 +19,7 @@ rce faults (``--faults``), each on a fresh engine (``rce.launch``, real processe
   them, from a second robot) works again (its robot-side interface comes up);
 - ``leader``: two masters on a real etcd (``tests/etcd_server.py``), kill -9 of the leader; also
   when the standby leads, when login works on it and when a new request works;
-- ``link``: the robot's websocket runs through a TCP proxy on loopback (``TcpProxy``), which
+- ``link``: the robot's websocket runs through a TCP proxy on loopback (``rce.tcpproxy``), which
   resets every connection (RST both ways, as a wireless drop) and refuses new ones for ``cut`` s;
 - ``robot``: two robot endpoints, kill -9 of the robot's; the robot reconnects (above), logging
   in again to reach the other one;
@@ -70,8 +70,6 @@ import math
 import os
 import shlex
 import signal
-import socket
-import struct
 import subprocess
 import sys
 import tempfile
@@ -91,6 +89,7 @@ from etcd_server import EtcdServer
 from rce.errors import RCEError, Unavailable
 from rce.launch import Engine, command, start_engine
 from rce.tasks import Tasks
+from rce.tcpproxy import TcpProxy
 from rce_client.connection import Connection, login
 
 FAULTS = ("master", "leader", "link", "robot", "host", "environment")
@@ -121,7 +120,6 @@ PROBE_WAIT = 10.0        # s one new-request probe waits for its interface to co
 PROBE_RETRY = 0.5        # s between a failed probe and the next
 POLL = 0.05              # s between polls (an echo, a leader, a login, a process exit)
 HTTP_TIMEOUT = 2.0       # s, one polling HTTP request (login, /api/leader, rosmaster)
-CONNECT_TIMEOUT = 5.0    # s, the proxy's connection to its target
 CLOSE_TIMEOUT = 10.0     # s a robot's connection may take to close at the end (a dead link: the client's own bound)
 NODE_EXIT = 5.0          # s a ROS 1 node has to exit after EXIT before it is killed
 
@@ -219,92 +217,6 @@ class ProcWatch:
                     self.log.event(f"{name} exited ({p.returncode})")
             self.reaper.snapshot()
             await asyncio.sleep(POLL)
-
-
-# -- a TCP proxy whose links can be cut ------------------------------------------------------------
-
-def reset(writer: asyncio.StreamWriter) -> None:
-    """Close a connection with RST (SO_LINGER 0), as a dropped link looks to its ends."""
-    sock = writer.get_extra_info("socket")
-    if sock is not None:
-        with contextlib.suppress(OSError):
-            sock.setsockopt(socket.SOL_SOCKET, socket.SO_LINGER, struct.pack("ii", 1, 0))
-    writer.transport.abort()
-
-
-async def pump(src: asyncio.StreamReader, dst: asyncio.StreamWriter) -> None:
-    """Copy ``src`` to ``dst`` until EOF or an error; passes an EOF on (half close)."""
-    try:
-        while data := await src.read(65536):
-            if dst.is_closing():
-                return
-            dst.write(data)
-            await dst.drain()
-        if not dst.is_closing() and dst.can_write_eof():
-            dst.write_eof()
-    except (OSError, ConnectionError):
-        pass
-
-
-class TcpProxy:
-    """A TCP proxy on 127.0.0.1 (``port`` once started) to ``target`` ``(host, port)``.
-
-    :meth:`cut` resets every connection through it, both ways, and resets every new one for
-    ``seconds`` (a refused connection, as a link that is down). Counts ``accepted``, ``resets``
-    and ``refused`` connections."""
-
-    def __init__(self, target: tuple[str, int]):
-        self.target = target
-        self.port = 0
-        self.cut_until = 0.0
-        self.accepted = self.resets = self.refused = 0
-        self._pairs: set[tuple[asyncio.StreamWriter, asyncio.StreamWriter]] = set()
-        self._server: asyncio.Server | None = None
-
-    async def start(self) -> "TcpProxy":
-        self._server = await asyncio.start_server(self._serve, "127.0.0.1", 0)
-        self.port = self._server.sockets[0].getsockname()[1]
-        return self
-
-    async def _serve(self, reader: asyncio.StreamReader, writer: asyncio.StreamWriter) -> None:
-        if time.monotonic() < self.cut_until:
-            self.refused += 1
-            reset(writer)
-            return
-        try:
-            up_r, up_w = await asyncio.wait_for(asyncio.open_connection(*self.target), CONNECT_TIMEOUT)
-        except (OSError, asyncio.TimeoutError):
-            reset(writer)
-            return
-        pair = (writer, up_w)
-        self._pairs.add(pair)
-        self.accepted += 1
-        try:
-            await asyncio.gather(pump(reader, up_w), pump(up_r, writer))
-        finally:
-            self._pairs.discard(pair)
-            for w in pair:
-                w.close()
-
-    def cut(self, seconds: float) -> None:
-        """Reset every connection now, and every new one for ``seconds``."""
-        self.cut_until = time.monotonic() + seconds
-        for pair in list(self._pairs):
-            for w in pair:
-                reset(w)
-            self.resets += 1
-        self._pairs.clear()
-
-    async def close(self) -> None:
-        if self._server is None:
-            return
-        self._server.close()
-        self.cut(0)
-        with contextlib.suppress(asyncio.TimeoutError):
-            await asyncio.wait_for(self._server.wait_closed(), CONNECT_TIMEOUT)
-
-    def stats(self) -> dict:
-        return {"accepted": self.accepted, "reset": self.resets, "refused": self.refused}
 
 
 # -- what a robot sent and got back ----------------------------------------------------------------
@@ -752,8 +664,8 @@ class Rig:
 
     async def start_proxy(self) -> None:
         ws_port = self.engine.robot_ready[0]["ws_port"]
-        self.proxy = await TcpProxy(("127.0.0.1", ws_port)).start()
-        self.ws_url = f"ws://127.0.0.1:{self.proxy.port}/"
+        self.proxy = await TcpProxy(ws_port).start()
+        self.ws_url = self.proxy.url
 
     def procs(self) -> dict[str, subprocess.Popen]:
         """The engine's processes by the name of their log (master, robot0, container0, ...)."""
@@ -853,7 +765,7 @@ async def arm_leader(rig: Rig, robot: EchoRobot) -> tuple[str, Fire]:
 
 async def arm_link(rig: Rig, robot: EchoRobot) -> tuple[str, Fire]:
     def fire(t0: float) -> dict[str, Awaitable]:
-        rig.proxy.cut(rig.ctx.t.cut)
+        rig.proxy.cut(refuse_s=rig.ctx.t.cut)
         return {}
     return f"cut for {rig.ctx.t.cut:g} s: the robot's link through the proxy 127.0.0.1:{rig.proxy.port}", fire
 
@@ -1150,7 +1062,7 @@ async def run_ros1(ctx: Ctx, fault: str) -> dict:
         ctx.status(f"{fault} (ROS 1): rosmaster, the robot and the echo node")
         await rig.start_master()
         if fault == "link":
-            proxy = await TcpProxy(("127.0.0.1", tcpros)).start()
+            proxy = await TcpProxy(tcpros).start()
         robot = await ros1_robot(rig, log, tasks, proxy, tcpros)
         if fault == "master":
             ctx.status(f"{fault} (ROS 1): a new subscriber before the fault")
@@ -1163,7 +1075,7 @@ async def run_ros1(ctx: Ctx, fault: str) -> dict:
             log.event(f"fault: rosmaster (pid {rig.procs['rosmaster'].pid})", t0)
             measures["master_restarted_s"] = tasks.spawn(restart_rosmaster(rig, t0), name="restart")
         else:
-            proxy.cut(ctx.t.cut)
+            proxy.cut(refuse_s=ctx.t.cut)
             log.event(f"fault: cut for {ctx.t.cut:g} s: the link robot -> echo node through the proxy "
                       f"127.0.0.1:{proxy.port}", t0)
         extra.update(await observe(ctx, log, t0, measures, f"{fault} (ROS 1)"))

@@ -1,6 +1,6 @@
 """rce_client.Connection with ``allow_reconnect`` (session resume, docs/INTERNALS.md) against a
 stand-in endpoint that runs the real cloud-side rules (tests/client/resumecloud.py), through a TCP
-proxy that drops the link (tests/tcpproxy.py): the callbacks, sends and calls across the gap, a
+proxy that drops the link (rce/tcpproxy.py): the callbacks, sends and calls across the gap, a
 refused resume, a gap that outlasts the attempts, a session the cloud ends, and rce-ros keeping
 its local bus up through the gap."""
 from __future__ import annotations
@@ -14,9 +14,9 @@ import pytest
 import rce.node
 from rce.config import parse_config
 from rce.errors import Unavailable
+from rce.tcpproxy import TcpProxy
 from rce_client.connection import Connection
 from rce_client.rce_ros import RobotBridge
-from tcpproxy import Proxy
 
 from .fakecloud import login_server, ws_url_answer
 from .resumecloud import ResumeCloud
@@ -28,9 +28,9 @@ STR = "std_msgs/String"
 @pytest.fixture
 async def link():
     cloud = await ResumeCloud(echo={"req": "resp"}).start()
-    proxy = await Proxy(cloud.port).start()
+    proxy = await TcpProxy(cloud.port).start()
     yield cloud, proxy
-    await proxy.stop()
+    await proxy.close()
     await cloud.stop()
 
 
@@ -42,7 +42,7 @@ async def until(pred, timeout: float = 5.0) -> None:
         await asyncio.sleep(0.01)
 
 
-async def connected(proxy: Proxy, **kw) -> Connection:
+async def connected(proxy: TcpProxy, **kw) -> Connection:
     conn = await Connection.open(proxy.url, "u", "p", "r1", allow_reconnect=True, **kw)
     await conn.configure({"addInterfaces": [
         {"endpointTag": "r1", "interfaceTag": t, "interfaceType": k, "className": c}

@@ -105,17 +105,17 @@ def test_session_binary_parts_with_random_ids(web_root, page):
 
 
 class ThreadedProxy:
-    """tests/tcpproxy.py's Proxy on an event loop of its own thread (the browser tests are synchronous)."""
+    """rce.tcpproxy's TcpProxy on an event loop of its own thread (the browser tests are synchronous)."""
 
     def __init__(self, target: int):
         import asyncio
         import threading
 
-        from tcpproxy import Proxy
+        from rce.tcpproxy import TcpProxy
         self.loop = asyncio.new_event_loop()
         self.thread = threading.Thread(target=self.loop.run_forever, name="proxy", daemon=True)
         self.thread.start()
-        self.proxy = self.run(Proxy(target).start())
+        self.proxy = self.run(TcpProxy(target).start())
 
     def run(self, coro):
         import asyncio
@@ -125,7 +125,7 @@ class ThreadedProxy:
         self.loop.call_soon_threadsafe(fn)
 
     def stop(self) -> None:
-        self.run(self.proxy.stop())
+        self.run(self.proxy.close())
         self.loop.call_soon_threadsafe(self.loop.stop)
         self.thread.join(10)
 

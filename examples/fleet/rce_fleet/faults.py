@@ -9,7 +9,8 @@ real time, not simulated):
   the same ports and ``--state`` file (:meth:`rce.launch.Engine.restart_master`). Served again:
   every task set has re-registered and login answers 200.
 * ``link:ROBOT@T[+S]``: cut ROBOT's websocket for S s (default :data:`LINK_CUT_S`) at the loopback
-  proxy the demo runs between that robot's bridge and rce-robot (:mod:`rce_fleet.linkproxy`).
+  proxy the demo runs between that robot's bridge and rce-robot (:mod:`rce.tcpproxy`, its login
+  through :mod:`rce_fleet.linkproxy`).
   Served again: the robot's session is resumed (``ST session resumed``).
 
 Each fault's record (the report's ``faults``), times in wall s unless named ``_sim_``:
@@ -31,9 +32,10 @@ from rce.errors import RCEError
 from rce.launch import Engine
 from rce.log import get_logger
 from rce.tasks import Tasks
+from rce.tcpproxy import TcpProxy
 from rce_client.connection import Connection, login
 
-from .linkproxy import LinkProxy, LoginRelay
+from .linkproxy import LoginRelay
 
 log = get_logger("fleet.faults")
 
@@ -87,7 +89,7 @@ class FaultInjector:
                  mission_t: Callable[[], float]):
         self.faults, self.engine, self.tasks, self.user = faults, engine, tasks, user
         self.mission_t = mission_t
-        self.proxies: dict[str, LinkProxy] = {}
+        self.proxies: dict[str, TcpProxy] = {}
         self.relays: dict[str, LoginRelay] = {}
         self.error: str | None = None            # why a fault was not recovered from: the run fails
         self._resumed: dict[str, asyncio.Event] = {}
@@ -106,7 +108,7 @@ class FaultInjector:
         ws_port = self.engine.robot_ready[0]["ws_port"]
         for f in self.faults:
             if f.kind == "link" and f.robot not in self.proxies:
-                self.proxies[f.robot] = proxy = await LinkProxy(ws_port).start()
+                self.proxies[f.robot] = proxy = await TcpProxy(ws_port).start()
                 self.relays[f.robot] = await LoginRelay(self.engine.master_url, proxy.url).start()
                 self._resumed[f.robot] = asyncio.Event()
         return {r: relay.url for r, relay in self.relays.items()}
@@ -199,4 +201,4 @@ class FaultInjector:
         for relay in self.relays.values():
             await relay.stop()
         for proxy in self.proxies.values():
-            await proxy.stop()
+            await proxy.close()
