@@ -1,5 +1,5 @@
 """Issue 10, part 4: robot session resume (docs/INTERNALS.md "Session resume"), with real
-processes on loopback. The robot's link runs through a TCP proxy the test owns (tests/tcpproxy.py):
+processes on loopback. The robot's link runs through a TCP proxy the test owns (rce/tcpproxy.py):
 ``cut()`` drops every connection (RST both ways) and refuses new ones until ``restore()``.
 
 - A robot (rce_client, ``allow_reconnect``) echoes numbered messages at 10 Hz through a converter
@@ -26,9 +26,9 @@ from websockets.asyncio.client import connect
 from websockets.exceptions import InvalidStatus
 
 from rce.launch import start_engine
+from rce.tcpproxy import TcpProxy
 from echo import echo_interfaces
 from rce_client.connection import RECONNECT_WAIT_MAX, Connection
-from tcpproxy import Proxy
 from wsclient import RawRobot
 
 pytestmark = pytest.mark.asyncio
@@ -126,7 +126,7 @@ def containers(engine) -> dict[str, tuple[int, str]]:
 
 
 async def test_link_cut_for_5s_resumes_with_nothing_lost(engine):
-    proxy = await Proxy(engine.robot_ready[0]["ws_port"]).start()
+    proxy = await TcpProxy(engine.robot_ready[0]["ws_port"]).start()
     echoes, resumed, lost_links, reconnected = Echoes(), [], [], []
     conn = await Connection.open(proxy.url, "testUser", "testUser", "resumeBot", allow_reconnect=True)
     conn.on_disconnected(lost_links.append)
@@ -186,12 +186,12 @@ async def test_link_cut_for_5s_resumes_with_nothing_lost(engine):
             assert "resumeC" not in containers(engine)
     finally:
         await conn.close()
-        await proxy.stop()
+        await proxy.close()
 
 
 async def test_gap_longer_than_the_grace_ends_the_session(tmp_path):
     engine = start_engine(tmp_path / "engine", robot_args=("--grace", str(GRACE_SHORT)))
-    proxy = await Proxy(engine.robot_ready[0]["ws_port"]).start()
+    proxy = await TcpProxy(engine.robot_ready[0]["ws_port"]).start()
     echoes = Echoes()
     conn = await Connection.open(proxy.url, "testUser", "testUser", "graceBot", allow_reconnect=True)
     try:
@@ -214,7 +214,7 @@ async def test_gap_longer_than_the_grace_ends_the_session(tmp_path):
         print(f"\ngrace {GRACE_SHORT:g} s: containers destroyed {gone_after:.2f} s after the drop; client: {reason}")
     finally:
         await conn.close()
-        await proxy.stop()
+        await proxy.close()
         engine.stop()
 
 
@@ -239,7 +239,7 @@ class ProxiedRobot(RawRobot):
 
 
 async def test_a_2013_client_sees_todays_protocol(engine):
-    proxy = await Proxy(engine.robot_ready[0]["ws_port"]).start()
+    proxy = await TcpProxy(engine.robot_ready[0]["ws_port"]).start()
     try:
         async with ProxiedRobot(proxy.url, "oldBot") as r:
             await r.send("CC", {"containerTag": "oldC"})
@@ -261,4 +261,4 @@ async def test_a_2013_client_sees_todays_protocol(engine):
         async with ProxiedRobot(proxy.url, "oldBot") as r:  # and it logs in again at once (no 409)
             await r.probe()
     finally:
-        await proxy.stop()
+        await proxy.close()
