@@ -45,7 +45,11 @@ endpoint again with backoff and resumes the session with its token. Messages sen
 are kept and sent after the resume, calls and barriers in flight stay pending, and what the
 cloud sent meanwhile arrives; :meth:`Connection.on_disconnected`, :meth:`Connection.on_reconnected`
 and :meth:`Connection.on_resumed` tell the application. The connection closes (as today) when
-the cloud refuses the resume (the grace passed) or it could not reconnect in time::
+the cloud refuses the resume (the grace passed) or it could not reconnect in time. A connection
+made by a login whose robot endpoint died (its dials refused ``endpoint_gone_after`` times in a
+row) logs in again and moves to the endpoint the master names, in a fresh session, where the cloud
+re-creates its interfaces and connections; what was in flight is lost and counted
+(:meth:`Connection.on_moved`, docs/INTERNALS.md "Moving to another endpoint")::
 
     conn = await Connection.connect(master, "testUser", "testUser", "testRobot", allow_reconnect=True)
     conn.on_resumed(lambda st: print("resumed; lost", st["dropped"]))
@@ -86,6 +90,9 @@ ERRORS_KEPT = 100                # ERs kept in Connection.errors
 RECONNECT_WAIT = 0.05            # s before the second attempt to reconnect; it doubles after each failure ...
 RECONNECT_WAIT_MAX = 1.0         # s ... up to this: a robot endpoint that is reachable again is found within 1 s
 ACK_TICK_FRACTION = 0.5          # with resume, ticks come at least every ack delay x this: AKs go out on time
+ENDPOINT_GONE_AFTER = 5         # dials refused in a row (connection refused or reset: nothing listens) after which
+                                # the robot endpoint counts as dead and the robot logs in again to move to another
+                                # one: about 0.75 s of backoff (0.05 + 0.1 + 0.2 + 0.4 s), jitter aside
 FINAL_CLOSE = (1000, 1008)       # close codes by which the cloud ends a session: nothing to resume
 
 Message = dict | bytes            # JSON-form message (Converter) or serialized bytes (Forwarder)
@@ -264,13 +271,15 @@ class Reconnect:
     gives, has passed since the drop); ``time_wait``: s before the second dial, doubling after each
     failure up to ``max_wait`` s (with jitter, :class:`rce.masterlink.Backoff`); ``resume_buffer``:
     messages kept until the cloud acks them (past it the oldest are lost and counted);
-    ``timeout``: s for each dial's handshake."""
+    ``timeout``: s for each dial's handshake; ``gone_after``: dials refused in a row after which the
+    endpoint counts as dead, and a connection made by a login moves to the endpoint the master names."""
 
     max_attempts: int | None = None
     time_wait: float = RECONNECT_WAIT
     max_wait: float = RECONNECT_WAIT_MAX
     resume_buffer: int = DEFAULT_RESUME_BUFFER
     timeout: float = CONNECT_TIMEOUT
+    gone_after: int = ENDPOINT_GONE_AFTER
 
 
 class _Refused(Exception):
@@ -281,6 +290,10 @@ class _Refused(Exception):
         self.status, self.reason = status, reason
 
 
+class _Unreachable(Unavailable):
+    """Nothing listens at the robot endpoint's address (connection refused or reset)."""
+
+
 class Connection:
     """One robot's connection to the cloud: the websocket shell of a
     :class:`~rce.protocol.session.ClientSession` (which holds the rules). Create with :meth:`connect`.
@@ -289,7 +302,10 @@ class Connection:
     status (bool); ``errors``: every ER string received (most recent last, the last
     :data:`ERRORS_KEPT`); ``dropped``: DMs with no handler, malformed frames and expired binary parts;
     ``reconnect``: the :class:`Reconnect` settings, None without ``allow_reconnect``; ``resumes``:
-    sessions resumed; ``connected``: False while a lost link is being replaced."""
+    sessions resumed; ``connected``: False while a lost link is being replaced; ``moves``: fresh sessions
+    opened on another endpoint after the first one died; ``moved_lost``: messages to the cloud lost
+    with a dead endpoint (in flight or sent during the gap); ``relogin``: (master URL, password,
+    version) of a connection made by a login, which lets it move."""
 
     def __init__(self, ws: ClientConnection, user_id: str, robot_id: str, ws_url: str,
                  expiry: float = protocol.DEFAULT_EXPIRY, reconnect: Reconnect | None = None):
@@ -297,14 +313,16 @@ class Connection:
         self.reconnect = reconnect
         self.session = ClientSession(expiry=expiry, resume=reconnect is not None,
                                      resume_buffer=reconnect.resume_buffer if reconnect else DEFAULT_RESUME_BUFFER)
-        self.resumes = 0
+        self.resumes = self.moves = self.moved_lost = 0
+        self.relogin: tuple[str, str, str] | None = None
         self.errors: list[str] = []
         self.unhandled = 0                          # DMs for an iTag with no handler
         self.close_reason: str | None = None
         self._handlers: dict[str, Subscriber | ServiceProvider] = {}
         self._status_cbs: list[StatusCallback] = []
         self._error_cbs: list[ErrorCallback] = []
-        self._link_cbs: dict[str, list[Callable[[Any], Any]]] = {"disconnected": [], "reconnected": [], "resumed": []}
+        self._link_cbs: dict[str, list[Callable[[Any], Any]]] = {"disconnected": [], "reconnected": [], "resumed": [],
+                                                                 "moved": []}
         self._changed = asyncio.Event()
         self._barrier_ok = True
         self._send_lock = asyncio.Lock()
@@ -341,21 +359,25 @@ class Connection:
         (``expiry``, ``allow_reconnect``, ...). Raises :class:`AuthError` (bad credentials: HTTP or
         handshake 401/403, with the cloud's reason) or :class:`Unavailable`."""
         ws_url = await login(master_url, user_id, version, timeout)
-        return await cls.open(ws_url, user_id, password, robot_id, timeout=timeout, **options)
+        conn = await cls.open(ws_url, user_id, password, robot_id, timeout=timeout, **options)
+        conn.relogin = (master_url, password, version)
+        return conn
 
     @classmethod
     async def open(cls, ws_url: str, user_id: str, password: str, robot_id: str, *,
                    timeout: float = CONNECT_TIMEOUT, expiry: float = protocol.DEFAULT_EXPIRY,
                    allow_reconnect: bool = False, max_reconnect_attempts: int | None = None,
                    reconnect_time_wait: float = RECONNECT_WAIT, max_reconnect_wait: float = RECONNECT_WAIT_MAX,
-                   resume_buffer: int = DEFAULT_RESUME_BUFFER) -> "Connection":
+                   resume_buffer: int = DEFAULT_RESUME_BUFFER,
+                   endpoint_gone_after: int = ENDPOINT_GONE_AFTER) -> "Connection":
         """Open the websocket at a known robot endpoint ``ws_url`` (skips the login).
 
         ``expiry``: s an incomplete message waits for its binary parts. ``allow_reconnect``: ask for
-        session resume and reconnect after a lost link (:class:`Reconnect` gives the other settings).
+        session resume and reconnect after a lost link (:class:`Reconnect` gives the other settings;
+        ``endpoint_gone_after`` is its ``gone_after``).
         Raises :class:`AuthError` or :class:`Unavailable` as :meth:`connect`."""
         reconnect = Reconnect(max_reconnect_attempts, reconnect_time_wait, max_reconnect_wait, resume_buffer,
-                              timeout) if allow_reconnect else None
+                              timeout, endpoint_gone_after) if allow_reconnect else None
         query = {"userID": user_id, "robotID": robot_id, "password": hash_password(password)}
         try:
             ws = await _dial(_with_query(ws_url, **query, **({"resume": "1"} if allow_reconnect else {})), timeout)
@@ -579,6 +601,13 @@ class Connection:
         the robot the cloud's buffer lost)."""
         self._link_cbs["resumed"].append(cb)
 
+    def on_moved(self, cb: Callable[[dict], Any]) -> None:
+        """(``allow_reconnect``, made by a login) Call ``cb({"ws_url", "lost"})`` when the robot endpoint
+        died and a fresh session is open on the one the master named (``ws_url``): the cloud re-creates the
+        robot's interfaces and connections there (``iu true``); ``lost``: messages to the cloud that
+        were in flight or sent during the gap, lost with the dead endpoint. Calls in flight failed."""
+        self._link_cbs["moved"].append(cb)
+
     async def wait_interfaces_up(self, itags: Iterable[str], timeout: float = WAIT_TIMEOUT) -> None:
         """Wait until the last ST ``iu`` status of every iTag in ``itags`` is true.
 
@@ -642,20 +671,28 @@ class Connection:
 
     async def _reconnect(self) -> None:
         """Dial the robot endpoint with the resume query until it takes it (then the new link's reader
-        waits for the cloud's ST resumed), the grace has passed, or it refuses: then the connection closes."""
+        waits for the cloud's ST resumed), the grace has passed, or it refuses: then the connection closes.
+        A connection made by a login whose endpoint refused ``gone_after`` dials in a row moves
+        (:meth:`_move`) to the endpoint the master names."""
         r = self.reconnect
         backoff = Backoff(r.time_wait, cap=max(r.time_wait, r.max_wait))
         deadline = time.monotonic() + (self.session.grace or DEFAULT_GRACE)
-        attempts = 0
+        attempts = refused = 0
         while True:
             attempts += 1
             url = _with_query(self.ws_url, userID=self.user_id, robotID=self.robot_id, **self.session.resume_query())
             try:
+                if self.relogin is not None and refused >= r.gone_after:
+                    await self._move()
+                    return
                 ws = await _dial(url, r.timeout)
                 break
-            except _Refused as e:           # 401: the session expired (or the token is wrong); 400: bad ack
+            except (_Refused, AuthError) as e:  # 401: the session expired (or the token is wrong); 400: bad ack
                 self.close_reason = f"the cloud refused to resume the session ({e})"
             except Unavailable as e:
+                # once the endpoint counts as dead, a failed move (the master is away, or has not seen it die yet)
+                # is tried again after the backoff
+                refused = refused + 1 if isinstance(e, _Unreachable) or refused >= r.gone_after else 0
                 delay = backoff.next()
                 if (r.max_attempts is None or attempts < r.max_attempts) and time.monotonic() + delay < deadline:
                     await asyncio.sleep(delay)      # the backoff, a timer
@@ -670,6 +707,38 @@ class Connection:
         log.info("reconnected; resuming", robot=self.robot_id, url=self.ws_url, attempts=attempts)
         for cb in self._link_cbs["reconnected"]:
             self._run_cb(cb, self.ws_url)
+
+    async def _move(self) -> None:
+        """The robot endpoint is dead: log in at the master again and open a fresh session (``resume=1``)
+        at the endpoint it names, where the cloud re-creates the robot's interfaces and connections
+        (docs/INTERNALS.md "Session resume", "Moving to another endpoint"). What the old session kept
+        is lost (counted in :attr:`moved_lost`), its calls and barriers fail. Raises :class:`Unavailable`
+        (the master is unreachable or still names the dead endpoint; try again) or :class:`AuthError`."""
+        master_url, password, version = self.relogin
+        timeout = self.reconnect.timeout
+        ws_url = await login(master_url, self.user_id, version, timeout)
+        if ws_url == self.ws_url:
+            raise Unavailable(f"the master still names the dead robot endpoint {ws_url}")
+        query = {"userID": self.user_id, "robotID": self.robot_id, "password": hash_password(password), "resume": "1"}
+        try:
+            ws = await _dial(_with_query(ws_url, **query), timeout)
+        except _Refused as e:
+            if e.status in (401, 403):
+                raise AuthError(f"robot endpoint {ws_url} refused {self.user_id}/{self.robot_id}: {e.reason}") from None
+            raise Unavailable(f"robot endpoint {ws_url} refused the connection (HTTP {e.status}): {e.reason}") from None
+        old = self.session
+        lost = len(old.outgoing) if old.outgoing is not None else 0
+        old.close(f"the robot endpoint {self.ws_url} died; the session moved to {ws_url}")
+        self._dispatch()                             # calls and barriers in flight fail
+        self.session = ClientSession(expiry=old.assembler.expiry, resume=True,
+                                     resume_buffer=self.reconnect.resume_buffer)
+        self.ws, self.ws_url = ws, ws_url
+        self.moves += 1
+        self.moved_lost += lost
+        self._reader = self.tasks.spawn(self._read_loop(ws), name="reader")
+        log.warning("robot endpoint died; moved to another", robot=self.robot_id, url=ws_url, lost=lost)
+        for cb in self._link_cbs["moved"]:
+            self._run_cb(cb, {"ws_url": ws_url, "lost": lost})
 
     async def _expire_loop(self) -> None:
         period = max(EXPIRY_CHECK_MIN, min(self.session.assembler.expiry / 4, EXPIRY_CHECK_MAX))
@@ -743,6 +812,8 @@ async def _dial(url: str, timeout: float) -> ClientConnection:
     except InvalidStatus as e:
         status = e.response.status_code
         raise _Refused(status, _reason(e.response.body or b"", e.response.reason_phrase or str(status))) from None
+    except (ConnectionRefusedError, ConnectionResetError) as e:
+        raise _Unreachable(str(e) or type(e).__name__) from None
     except (InvalidHandshake, InvalidURI, OSError, asyncio.TimeoutError) as e:
         raise Unavailable(str(e) or type(e).__name__) from None
 

@@ -163,6 +163,21 @@ class Control:
             if self.state.containers.get((c.user, c.ctag)) is c:
                 await self.destroy(*self.state.remove_container(c.user, c.ctag))
 
+    async def robot_moved(self, recs: list[InterfaceRec]) -> None:
+        """After :meth:`MasterState.robot_moved`: install the robot's interfaces ``recs`` on its new
+        endpoint (``add_interface``, same iids), then ``connect`` both ends of each of their
+        connections with the new data address (the robot then sees ``iu true``). One that fails is
+        logged, and its peers told ``disconnect``; the others go on."""
+        for rec in recs:
+            try:
+                await self.install_interface(rec)
+            except RCEError as e:
+                log.warning("could not move an interface", tag=rec.tag, reason=str(e))
+                await self.tell_disconnects(self.state.connections_of(rec.iid))
+                continue
+            for me, peer in self.state.connections_of(rec.iid):
+                await self.quiet(self.tell_connect(me, peer))
+
     async def cut(self, c: Container) -> None:
         """Container ``c`` was just lost: the far end of each of its interfaces' connections gets
         ``disconnect`` (a robot-side end then says ``iu false``), quietly. The records stay: its

@@ -11,8 +11,10 @@ No data flows through the master, and the shell changes no state itself: it asks
 On a store a previous master left, the state comes back with every task set absent; each one
 that re-registers is reconciled (:mod:`rce_master.reconcile`), and those still absent after the
 reconciliation grace are dropped as if their link had closed (docs/INTERNALS.md, "Master state
-and restart"). A container lost with its host or environment is re-created elsewhere
-(:mod:`rce_master.failover`, docs/INTERNALS.md, "Container failover").
+and restart"). A robot task set whose link closes is absent in the same way, for the same grace, and
+its robots may move to another endpoint meanwhile (docs/INTERNALS.md, "Moving to another endpoint").
+A container lost with its host or environment is re-created elsewhere (:mod:`rce_master.failover`,
+docs/INTERNALS.md, "Container failover").
 
 Several masters on etcd (docs/INTERNALS.md, "Several masters"): a master that stands by (its
 ``office`` does not lead, :mod:`rce_master.office`) serves login and admin reads from the state it
@@ -153,17 +155,20 @@ class Master:
         if self.office.leading and self.restored:
             self.tasks.spawn(self._end_grace(), name="reconcile-grace")
 
-    async def _end_grace(self) -> None:
-        """After the reconciliation grace, drop the task sets that did not come back (a timer)."""
+    async def _end_grace(self, tid: int | None = None) -> None:
+        """After the reconciliation grace, drop the task sets that did not come back (a timer): every
+        absent one after a restart (``tid`` None), else robot task set ``tid`` that lost its link."""
         await asyncio.sleep(self.reconcile_grace)
-        why = f"its host did not re-register within {self.reconcile_grace:g} s after the master restarted"
+        why = (f"its host did not re-register within {self.reconcile_grace:g} s after the master restarted"
+               if tid is None else f"its robot endpoint did not come back within {self.reconcile_grace:g} s")
         for ts in self.state.absent_tasksets():
-            if not ts.lost:           # it came back while the ones before it were being dropped
+            if not ts.lost or tid not in (None, ts.tid):  # it came back while the ones before it were being dropped
                 continue
             lost, robots = self.state.drop_taskset(ts.tid)
             log.warning("task set did not come back", tid=ts.tid, name=ts.name, containers=len(lost),
                         robots=len(robots))
             await self.failover.taskset_lost(lost, robots, why)
+        await self.state.store.flush()
 
     async def stop(self) -> None:
         """Close every link and server. The task sets stay in the store as they were (a master
@@ -223,6 +228,15 @@ class Master:
         if tid is None or self._stopping:
             return
         self.control.peers.pop(tid, None)
+        ts = self.state.tasksets.get(tid)
+        if ts is not None and ts.kind == "robot":
+            # its robots may come back through another endpoint and take their sessions over: absent
+            # until it re-registers, dropped after the grace (docs/INTERNALS.md "Session resume")
+            self.state.taskset_absent(tid)
+            log.warning("robot task set absent", tid=tid, name=peer.name, grace=self.reconcile_grace,
+                        robots=sum(r.tid == tid for r in self.state.robots.values()))
+            self.tasks.spawn(self._end_grace(tid), name=f"taskset-{tid}-grace")
+            return
         lost, robots = self.state.drop_taskset(tid)
         log.warning("task set gone", tid=tid, name=peer.name, containers=len(lost), robots=len(robots))
         self.tasks.spawn(self.failover.taskset_lost(lost, robots), name=f"taskset-{tid}-lost")
@@ -239,13 +253,24 @@ class Master:
         old = self.state.robot(user, robot)
         host = self.state.tasksets.get(old.tid) if old is not None else None
         if old is not None and old.tid != tid and host is not None and host.lost:
-            # its session on an endpoint that has not come back since the master restarted is over
-            async with self.robot_locks[(user, robot)]:
-                await self.control.robot_gone(user, robot)
+            # its old endpoint is absent (it died, or has not come back since the master restarted): the
+            # robot takes its namespace over here, once its session is open on this endpoint
+            recs = self.state.robot_moved(user, robot, tid)
+            await self.state.store.flush()
+            log.info("robot moved", user=user, robot=robot, old_tid=old.tid, tid=tid, interfaces=len(recs))
+            self.tasks.spawn(self._robot_moved(user, robot, recs), name=f"robot-{user}/{robot}-moved")
+            return {}
         self.state.robot_connect(user, robot, tid)
         await self.state.store.flush()
         log.info("robot connected", user=user, robot=robot)
         return {}
+
+    async def _robot_moved(self, user: str, robot: str, recs: list) -> None:
+        """Install a moved robot's interfaces on its new endpoint and connect them again, before its
+        next request (its requests run one at a time, :meth:`_robot_request`)."""
+        async with self.robot_locks[(user, robot)]:
+            await self.control.robot_moved(recs)
+            await self.state.store.flush()
 
     async def _robot_disconnected(self, tid: int, a: dict) -> dict:
         r = self.state.robot(a["user"], a["robot"])

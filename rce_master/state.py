@@ -189,6 +189,16 @@ class MasterState(StateIndex):
                 self._put(ts, lost=True)
         return sorted(self.tasksets.values(), key=lambda t: t.tid)
 
+    @_atomic
+    def taskset_absent(self, tid: int) -> TaskSet | None:
+        """Robot task set ``tid`` lost its link (its rce-robot died, or the link broke): it is absent,
+        as after a master restart, until it re-registers or the grace ends; its robots stay, with
+        their containers (docs/INTERNALS.md "Session resume", "Moving to another endpoint")."""
+        ts = self.tasksets.get(tid)
+        if ts is not None and not ts.lost:
+            self._put(ts, lost=True)
+        return ts
+
     def absent_tasksets(self) -> list[TaskSet]:
         """The task sets still absent, container hosts first (their containers are lost before
         the robots of absent robot task sets leave), then by tid."""
@@ -253,6 +263,21 @@ class MasterState(StateIndex):
         r = Robot(user, robot, tid, time.time())
         self._write(r.store_key, r.to_record())
         return self.robots[(user, robot)]
+
+    @_atomic
+    def robot_moved(self, user: str, robot: str, tid: int) -> list[InterfaceRec]:
+        """Robot ``user/robot``, stored on an absent robot task set, connected through task set
+        ``tid``: it is on ``tid`` now, with its robot-side interfaces (same iids; their connections
+        stay). Returns those interfaces (the shell installs them there and re-connects them).
+        Raises :class:`NotFound` when the robot is not stored."""
+        r = self.robots.get((user, robot))
+        if r is None:
+            raise NotFound(f"robot {robot!r} of user {user!r} is not connected")
+        recs = self.interfaces_of(user, robot, robot_side=True)
+        self._put(r, tid=tid)
+        for rec in recs:
+            self._put(rec, location=tid)
+        return [self.interfaces[(rec.user, rec.etag, rec.itag)] for rec in recs]
 
     @_atomic
     def robot_disconnect(self, user: str, robot: str) -> tuple[Pairs, list[Container]]:

@@ -33,6 +33,8 @@ MASTER_AWAY_RETRY_AFTER = 5   # s, Retry-After of the 503 a connecting robot get
 PING_INTERVAL = 20.0     # s between websocket pings to a robot
 PING_TIMEOUT = 60.0      # s a robot may leave a ping unanswered before its link counts as lost (slow links)
 WS_MAX_QUEUE = 64        # frames the websocket reads ahead of the session
+SESSION_OPEN_WAIT = 5.0  # s a master op for a robot whose login was accepted waits for its websocket to open (a robot
+                         # that moved here: the master installs its interfaces right after robot_connected)
 
 
 def normalise_password(p: str) -> str:
@@ -110,6 +112,7 @@ class RobotEndpoint:
         self.plane = DataPlane(f"robot:{name}")
         self.namespaces: dict[tuple[str, str], RobotNamespace] = {}
         self.by_iid: dict[int, RobotInterface] = {}
+        self.opening: dict[tuple[str, str], asyncio.Event] = {}     # logins accepted, websocket not open yet
         self.master: MasterLink | None = None
         self.metrics = Metrics(self)
         self.ws_port = 0
@@ -195,6 +198,7 @@ class RobotEndpoint:
             return connection.respond(HTTPStatus.CONFLICT, e.message + "\n")
         connection.rce_identity, connection.rce_resume = (user, robot), q.get("resume") == "1"
         connection.rce_ack = None
+        self.opening.setdefault((user, robot), asyncio.Event())
         return None
 
     def _resume(self, connection, q: dict):
@@ -231,6 +235,8 @@ class RobotEndpoint:
                                resume=ws.rce_resume, grace=self.grace, resume_buffer=self.resume_buffer)
         ns = RobotNamespace(user, robot, self.master, session, on_gone=self._session_gone)
         self.namespaces[(user, robot)] = ns
+        if (opened := self.opening.pop((user, robot), None)) is not None:
+            opened.set()
         log.info("robot connected", user=user, robot=robot, peer=str(ws.remote_address), resume=ws.rce_resume)
         await ns.serve(ws)
 
@@ -284,6 +290,12 @@ class RobotEndpoint:
         return iface
 
     async def _op_add_interface(self, a: dict) -> dict:
+        opening = self.opening.get((a["user"], a["robot"]))
+        if opening is not None and (a["user"], a["robot"]) not in self.namespaces:
+            try:
+                await asyncio.wait_for(opening.wait(), SESSION_OPEN_WAIT)
+            except asyncio.TimeoutError:        # its websocket never opened: the login was abandoned
+                self.opening.pop((a["user"], a["robot"]), None)
         ns = self._ns(a)
         kind, side = robot_interface_type(a["itype"])
         iface = RobotInterface(ns, self.plane, self.registry, a["iid"], a["itag"], kind, side, a["cls"])

@@ -254,12 +254,16 @@ async def graceful_restart_keeps_the_state(engine: Engine, master: subprocess.Po
 
 
 async def robot_returns_through_a_new_endpoint(engine: Engine) -> None:
-    """A robot the master has on an absent endpoint connects through a new one: its old session is
-    over (forgotten as on a disconnect: the containers it owned go), the new one is recorded."""
+    """A robot the master has on an absent endpoint connects through a new one: it takes its namespace
+    over there (docs/INTERNALS.md "Moving to another endpoint"): the containers it owns, their nodes and
+    parameters and its interfaces stay, and the robot is recorded on the new endpoint."""
+    before = engine.admin("/api/state")
     info = engine.add_robot_taskset()
     async with RawRobot(engine.master_url, "r1", user="alice", password="pw") as r:
         await r.probe()
         s = engine.admin("/api/state")
         new = next(t for t in s["tasksets"] if t.get("ws_url", "").endswith(f":{info['ws_port']}/"))
         assert [(x["robot"], x["endpoint"]) for x in s["robots"]] == [("r1", new["name"])]
-        assert s["containers"] == [] and s["interfaces"] == [] and s["nodes"] == [] and s["parameters"] == []
+        for name in ("containers", "interfaces", "nodes", "parameters", "connections"):
+            assert s[name] == before[name], name
+        assert [c["ctag"] for c in s["containers"]] == ["c2"]
