@@ -122,7 +122,7 @@ class AdminApi:
             if "ntag" in request.match_info:
                 args["ntag"] = request.match_info["ntag"]
             timeout = float(args.get("timeout") or BUS_TIMEOUT) + BUS_TIMEOUT_MARGIN
-            return web.json_response(await self.control.host_request(c, op, args, timeout))
+            return web.json_response(await self.control.host_request(c, op, args, timeout, wait=False))
         return handler
 
     async def _resize(self, request: web.Request) -> web.Response:

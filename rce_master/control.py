@@ -6,6 +6,7 @@ operations.
 """
 from __future__ import annotations
 
+import asyncio
 from collections.abc import Awaitable
 from typing import Any
 
@@ -19,6 +20,10 @@ from rce_master.state import MasterState, Pairs, TaskSetAbsent
 log = get_logger("rce.master")
 
 CREATE_TIMEOUT = 60.0     # s, create_container: it returns once the environment is up (sandbox, bus, ready)
+# s a call to an absent container host (the master restarted or a standby took over, and the host
+# has not re-registered yet) waits for it before it is refused: hosts redial within rce.masterlink's
+# 2 s backoff cap, so a robot's request right after a takeover waits instead of failing
+ABSENT_WAIT = 10.0
 
 
 class Control:
@@ -32,19 +37,52 @@ class Control:
     def __init__(self, state: MasterState):
         self.state = state
         self.peers: dict[int, RpcPeer] = {}
+        self._back: dict[int, asyncio.Event] = {}      # tid -> set when that absent task set is back
 
     # -- calls ----------------------------------------------------------------------------------------
-    async def host_request(self, c: Container, op: str, args: dict, timeout: float = CALL_TIMEOUT) -> Any:
-        """Send ``op`` with ``args`` (plus ``cid``) to the host of container ``c``; its answer."""
+    async def host_request(self, c: Container, op: str, args: dict, timeout: float = CALL_TIMEOUT,
+                           wait: bool = True) -> Any:
+        """Send ``op`` with ``args`` (plus ``cid``) to the host of container ``c``; its answer. An
+        absent host is waited for (``wait``, robot requests: up to :data:`ABSENT_WAIT`), or refused
+        at once (the admin API: its HTTP 503 says when to ask again)."""
         peer = self.peers.get(c.tid)
         if peer is None:
-            self._check_absent(c.tid, f"the host of container {c.ctag!r}")
-            raise Unavailable(f"the host of container {c.ctag!r} is gone")
+            what = f"the host of container {c.ctag!r}"
+            if not wait:
+                self._check_absent(c.tid, what)
+                raise Unavailable(f"{what} is gone")
+            peer = await self._host_back(c.tid, what)
         return await peer.request(op, {"cid": c.cid, **args}, timeout)
 
-    def _check_absent(self, tid: int, what: str) -> None:
+    def attach(self, tid: int, peer: RpcPeer) -> None:
+        """Task set ``tid`` (re-)registered on link ``peer``: calls waiting for it go on."""
+        self.peers[tid] = peer
+        back = self._back.pop(tid, None)
+        if back is not None:
+            back.set()
+
+    async def _host_back(self, tid: int, what: str) -> RpcPeer:
+        """The link of container host ``tid`` once it is back, waiting up to :data:`ABSENT_WAIT`
+        when it is absent. Raises :class:`TaskSetAbsent` (still absent) or :class:`Unavailable` (gone)."""
+        self._check_absent(tid, what, wait=False)
+        back = self._back.setdefault(tid, asyncio.Event())
+        try:
+            async with asyncio.timeout(ABSENT_WAIT):
+                await back.wait()
+        except TimeoutError:
+            self._check_absent(tid, f"{what} (waited {ABSENT_WAIT:g} s)")
+        peer = self.peers.get(tid)
+        if peer is None:
+            raise Unavailable(f"{what} is gone")
+        return peer
+
+    def _check_absent(self, tid: int, what: str, wait: bool = True) -> None:
+        """Raise :class:`TaskSetAbsent` when task set ``tid`` is absent (``wait``: refuse it;
+        else: let the caller wait for it), :class:`Unavailable` when it is gone altogether."""
         ts = self.state.tasksets.get(tid)
-        if ts is not None and ts.lost:
+        if ts is None or not (ts.lost or wait):
+            raise Unavailable(f"{what} is gone")
+        if ts.lost and wait:
             raise TaskSetAbsent(f"{what} has not re-registered since the master restarted; try again later")
 
     async def host_call(self, c: Container, op: str, **args: Any) -> Any:

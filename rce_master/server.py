@@ -199,7 +199,7 @@ class Master:
         ts = out.taskset
         peer.info["tid"] = ts.tid
         peer.name = f"{ts.kind}:{ts.name}"
-        self.control.peers[ts.tid] = peer
+        self.control.attach(ts.tid, peer)
         peer.keepalive()      # silent for rce.rpc.KEEPALIVE_TIMEOUT (4 s): lost, its containers marked lost
         if ts.kind == "robot":
             peer.handlers.update({

@@ -26,7 +26,7 @@ from websockets.exceptions import InvalidStatus
 
 from rce.launch import start_engine
 from rce.masterlink import BACKOFF_CAP
-from test_master_restart import ECHO, registered, start_master
+from test_master_restart import ECHO, proc, registered, start_master
 from wsclient import RawRobot, login
 
 pytestmark = pytest.mark.asyncio
@@ -39,6 +39,7 @@ REREGISTER_BOUND = BACKOFF_CAP + 1.0   # s from the restarted master's ready fil
 MAX_GAP = 1.0             # s, the longest the echo through the first container may pause (10 Hz: 0.1 s apart;
                           # a stop would last AWAY s; a loaded machine may delay a few)
 SETTLE = 10.0             # s for the last echoes to come back
+HELD_BACK = 1.0           # s the container host is kept from re-registering (SIGSTOP) while a request waits for it
 
 
 @pytest.fixture
@@ -202,3 +203,42 @@ async def test_nothing_stops_while_the_master_is_away(engine):
     assert len(during) >= AWAY * RATE * 0.8 and gap < MAX_GAP
     states = {c["ctag"]: c["state"] for c in engine.admin("/api/state")["containers"]}
     assert states == {"awayC1": "running", "awayC2": "running"}
+
+
+async def test_a_request_waits_for_a_host_that_has_not_re_registered_yet(engine):
+    """After a restart (or a standby's takeover) the robot task set may re-register before the
+    container host: a robot's request that needs the host waits for it (up to
+    ``rce_master.control.ABSENT_WAIT``) instead of being refused. The host is held back with
+    SIGSTOP, so the order is certain."""
+    async with RawRobot(engine.master_url, "waitBot") as raw:
+        robot = Robot(raw)
+        reader = asyncio.ensure_future(robot.read())
+        await echo_container(robot, "waitC", "1")
+        tids = {t["kind"]: t["tid"] for t in engine.admin("/api/state")["tasksets"]}
+        host = proc(engine, "rce-container")
+        engine.procs[0].send_signal(signal.SIGKILL)
+        assert engine.procs[0].wait(10) == -signal.SIGKILL
+        host.send_signal(signal.SIGSTOP)
+        try:
+            await asyncio.to_thread(start_master, engine, "master2", None)
+            await registered(engine, {tids["robot"]: False, tids["container"]: True}, REREGISTER_BOUND + 5)
+            sent = time.monotonic()
+            await raw.cn(setParam=[{"containerTag": "waitC", "name": "late", "value": 7}])
+            await asyncio.sleep(HELD_BACK)                           # the fault: the host stays away a while
+        finally:
+            host.send_signal(signal.SIGCONT)
+        deadline = time.monotonic() + REREGISTER_BOUND + 5
+        params: dict = {}
+        while "late" not in params:
+            assert time.monotonic() < deadline, "the CN was not done once the host was back"
+            params = {p["name"]: p["value"] for p in engine.admin("/api/parameters") if p["ctag"] == "waitC"}
+            await asyncio.sleep(0.02)
+        done = time.monotonic() - sent
+        reader.cancel()
+    errors = []
+    while not robot.frames.empty():
+        d = robot.frames.get_nowait()
+        if isinstance(d, dict) and d.get("type") == "ER":
+            errors.append(d["data"])
+    print(f"CN sent while the host was absent; done {done:.2f} s later (the host was held back {HELD_BACK:g} s)")
+    assert params["late"] == 7 and errors == [] and HELD_BACK <= done < HELD_BACK + REREGISTER_BOUND + 1
