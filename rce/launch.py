@@ -122,7 +122,7 @@ class Engine:
         ready = self.workdir / f"robot{n}.ready"
         _, info = self.spawn(f"robot{n}", [*command("rce-robot"), ",".join(self.masters),
                                            "--port", "0", "--data-port", "0", "--metrics-port", "0",
-                                           "--ready-file", str(ready), *extra], ready)
+                                           "--rosbridge-port", "0", "--ready-file", str(ready), *extra], ready)
         self.robot_ready.append(info)
         return info
 

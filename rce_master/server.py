@@ -205,7 +205,7 @@ class Master:
             peer.handlers.update({
                 "auth": self._auth, "robot_connected": lambda x, t=ts.tid: self._robot_connected(t, x),
                 "robot_disconnected": lambda x, t=ts.tid: self._robot_disconnected(t, x),
-                "robot_request": self._robot_request})
+                "robot_request": self._robot_request, "container_bus": self._container_bus})
         else:
             peer.handlers.update({"node_status": self._node_status,
                                   "container_lost": lambda x, t=ts.tid: self._container_lost(t, x)})
@@ -282,6 +282,12 @@ class Master:
         await self.state.store.flush()
         log.info("robot disconnected", user=a["user"], robot=a["robot"])
         return {}
+
+    async def _container_bus(self, a: dict) -> dict:
+        """``container_bus {user, ctag}`` (a rosbridge session, :mod:`rce_robot.rosbridge`): the bus of
+        the user's container ``ctag`` as its host describes it. Raises NotFound unless the user has it."""
+        c = self.state.container(a["user"], a["ctag"])
+        return await self.control.host_request(c, "describe", {}, wait=False)
 
     async def _robot_request(self, a: dict) -> dict:
         """``robot_request {user, robot, type, data}``: one robot's requests run one at a time, in order."""

@@ -1,4 +1,5 @@
-"""``rce-robot MASTER[,MASTER...]``: the robot task set (websocket on 9010, data plane on 10030).
+"""``rce-robot MASTER[,MASTER...]``: the robot task set (websocket on 9010, rosbridge v2 on 9090, data
+plane on 10030).
 
 It outlives its master: when the master goes away it keeps its robots and data-plane links,
 dials the masters again with backoff and re-registers (:mod:`rce.masterlink`)."""
@@ -18,6 +19,7 @@ from rce.protocol.frames import DEFAULT_EXPIRY
 from rce.protocol.resume import DEFAULT_GRACE, DEFAULT_RESUME_BUFFER
 from rce.protocol.session import DEFAULT_MAX_MESSAGE, DEFAULT_QUEUE_SIZE
 from rce_robot.endpoint import RobotEndpoint
+from rce_robot.rosbridge import ROSBRIDGE_PORT
 
 log = get_logger("rce.robot")
 
@@ -34,6 +36,9 @@ def parser() -> argparse.ArgumentParser:
     p.add_argument("--bind", default="127.0.0.1", help="address to listen on (default 127.0.0.1)")
     p.add_argument("--port", type=int, default=9010, help="websocket port for robots (0 = ephemeral)")
     p.add_argument("--data-port", type=int, default=10030, help="data-plane port (0 = ephemeral)")
+    p.add_argument("--rosbridge-port", type=int, default=ROSBRIDGE_PORT,
+                   help=f"websocket port for rosbridge v2 clients (roslibpy, roslibjs; 0 = ephemeral, "
+                        f"-1 = off; default {ROSBRIDGE_PORT})")
     p.add_argument("--metrics-port", type=int, default=None, help="serve Prometheus /metrics on this port")
     p.add_argument("--advertise-host", default=None, help="address robots and environments reach this host by")
     p.add_argument("--name", default=None, help="task set name (default: hostname:port)")
@@ -63,10 +68,13 @@ async def amain(args: argparse.Namespace) -> None:
     for sig in (signal.SIGINT, signal.SIGTERM):
         loop.add_signal_handler(sig, ep.stopped.set)
     try:
-        await unless_stopped(ep.start(masters, args.bind, args.port, args.data_port, args.metrics_port), ep.stopped)
+        await unless_stopped(ep.start(masters, args.bind, args.port, args.data_port, args.metrics_port,
+                                      None if args.rosbridge_port < 0 else args.rosbridge_port), ep.stopped)
         if not ep.stopped.is_set():
             write_ready_file(args.ready_file, {"ws_port": ep.ws_port, "data_addr": ep.plane.addr, "pid": os.getpid(),
-                                               "metrics_port": ep.metrics_port, "tid": ep.master.tid})
+                                               "metrics_port": ep.metrics_port,
+                                               "rosbridge_port": ep.rosbridge.port if ep.rosbridge else None,
+                                               "tid": ep.master.tid})
             await ep.stopped.wait()
     finally:
         log.info("robot endpoint stopping")

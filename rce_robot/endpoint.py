@@ -26,6 +26,7 @@ from rce.protocol.resume import DEFAULT_GRACE, DEFAULT_RESUME_BUFFER
 from rce.protocol.session import DEFAULT_MAX_MESSAGE, DEFAULT_QUEUE_SIZE, RobotSession, robot_interface_type
 from rce_robot.interfaces import RobotInterface
 from rce_robot.namespace import CLOSE_POLICY, RobotNamespace
+from rce_robot.rosbridge import RosbridgeServer
 
 log = get_logger("rce.robot")
 MASTER_AWAY_RETRY_AFTER = 5   # s, Retry-After of the 503 a connecting robot gets while the master is away (as the
@@ -119,12 +120,14 @@ class RobotEndpoint:
         self.metrics_port = 0
         self._ws_server = None
         self._http: web.AppRunner | None = None
+        self.rosbridge: RosbridgeServer | None = None
         self.stopped = asyncio.Event()
 
     async def start(self, masters: list[Address], bind: str, port: int, data_port: int,
-                    metrics_port: int | None = None) -> None:
+                    metrics_port: int | None = None, rosbridge_port: int | None = None) -> None:
         """Listen (data plane, websocket), then register with one of ``masters`` (control
-        addresses; retried with backoff until one takes this task set), then serve metrics.
+        addresses; retried with backoff until one takes this task set), then serve metrics and
+        rosbridge v2 clients (:mod:`rce_robot.rosbridge`; ``rosbridge_port`` None: not served).
         Raises :class:`RCEError` when the master refuses this task set."""
         await self.plane.listen(bind, data_port, self.advertise_host)
         # frames up to twice the limit are read and refused with an ER; beyond that the socket closes
@@ -141,6 +144,9 @@ class RobotEndpoint:
         self.master = MasterLink(masters, handlers, info, report=self._report, on_registered=self._obey,
                                  master_wait=self.master_wait)
         await self.master.start()
+        if rosbridge_port is not None:
+            self.rosbridge = RosbridgeServer(self.master, self.by_iid)
+            await self.rosbridge.start(bind, rosbridge_port)
         if metrics_port is not None:
             app = web.Application()
             app.router.add_get("/metrics", self._metrics)
@@ -158,6 +164,8 @@ class RobotEndpoint:
         # others end as before, with the server's close (1001)
         await asyncio.gather(*(ns.close("the robot endpoint is stopping") for ns in list(self.namespaces.values())
                                if ns.resumable))
+        if self.rosbridge:
+            await self.rosbridge.stop()
         if self._ws_server:
             self._ws_server.close()
             await self._ws_server.wait_closed()
@@ -279,6 +287,8 @@ class RobotEndpoint:
     # -- master ops --------------------------------------------------------------------------------
     def _ns(self, a: dict) -> RobotNamespace:
         ns = self.namespaces.get((a["user"], a["robot"]))
+        if ns is None and self.rosbridge is not None:            # a rosbridge client's session
+            ns = self.rosbridge.sessions.get((a["user"], a["robot"]))
         if ns is None:
             raise NotFound(f"robot {a['robot']!r} is not connected to this endpoint")
         return ns

@@ -1,0 +1,129 @@
+"""The rosbridge v2 endpoint of a robot task set (``rce-robot --rosbridge-port``, 9090 by
+default; DESIGN section 2): a websocket server that speaks RobotWebTools' rosbridge protocol,
+so that unmodified roslibpy and roslibjs reach a container's graph.
+
+A client connects to ``ws://HOST:PORT/?userID=U&robotID=R&password=SHA256HEX&container=CTAG``.
+Before the websocket opens the master checks the password (``auth``, as for an RCE robot), that
+user ``U`` has container ``CTAG`` (``container_bus``) and takes ``R`` as a connected robot
+(``robot_connected``); refusals are HTTP 400/401/404/409/503 with a one-line reason. Each client
+is then one :class:`~rce_robot.rosbridge_session.RosbridgeSession`, a robot namespace whose
+interfaces the master creates and removes on the session's behalf.
+"""
+from __future__ import annotations
+
+import asyncio
+import json
+from http import HTTPStatus
+from typing import Any
+from urllib.parse import parse_qs, urlsplit
+
+from websockets.asyncio.server import serve
+from websockets.exceptions import ConnectionClosed
+
+from rce.errors import AuthError, NotFound, RCEError
+from rce.log import get_logger
+from rce.masterlink import MasterLink
+from rce.tasks import Tasks
+from rce_robot.interfaces import RobotInterface
+from rce_robot.rosbridge_session import RosbridgeSession
+
+log = get_logger("rce.rosbridge")
+
+ROSBRIDGE_PORT = 9090       # rosbridge_suite's default port (DESIGN section 2)
+PING_INTERVAL = 20.0        # s between websocket pings to a client
+PING_TIMEOUT = 60.0         # s a client may leave a ping unanswered before its link counts as lost
+WS_MAX_QUEUE = 64           # messages the websocket reads ahead of the session
+MAX_MESSAGE = 16 * 1024 * 1024   # bytes of the largest websocket message taken from a client
+QUERY = ("userID", "robotID", "password", "container")
+
+
+class RosbridgeServer:
+    """The rosbridge websocket server on ``master`` (the task set's control link); ``by_iid``: the
+    endpoint's table of robot-side interfaces (a session's are forgotten there when it ends).
+    :attr:`sessions` maps (user, robot) to the live sessions: the master's ``add_interface``
+    for such a robot makes its converter in that session."""
+
+    def __init__(self, master: MasterLink, by_iid: dict[int, RobotInterface]):
+        self.master, self.by_iid = master, by_iid
+        self.sessions: dict[tuple[str, str], RosbridgeSession] = {}
+        self.port = 0
+        self._server: Any = None
+
+    async def start(self, bind: str, port: int) -> None:
+        """Listen on ``bind``:``port`` (0: an ephemeral port, then in :attr:`port`)."""
+        self._server = await serve(self._serve, bind, port, process_request=self._handshake, max_size=MAX_MESSAGE,
+                                   compression=None, ping_interval=PING_INTERVAL, ping_timeout=PING_TIMEOUT,
+                                   max_queue=WS_MAX_QUEUE)
+        self.port = self._server.sockets[0].getsockname()[1]
+        log.info("rosbridge endpoint up", port=self.port)
+
+    async def stop(self) -> None:
+        """Close the server; each session ends (its interfaces removed, its robot disconnected)."""
+        if self._server is not None:
+            self._server.close()
+            await self._server.wait_closed()
+
+    async def _handshake(self, connection, request):
+        """Authenticate the query (module docstring) before the websocket opens."""
+        q = {k: v[0] for k, v in parse_qs(urlsplit(request.path).query).items()}
+        missing = [k for k in QUERY if not q.get(k)]
+        if missing:
+            return connection.respond(HTTPStatus.BAD_REQUEST, f"missing query parameter(s): {', '.join(missing)}\n")
+        password = q["password"].lower()
+        if len(password) != 64 or any(c not in "0123456789abcdef" for c in password):
+            return connection.respond(HTTPStatus.BAD_REQUEST, "password must be the hex SHA-256 digest (64 digits)\n")
+        if not self.master.available:
+            return connection.respond(HTTPStatus.SERVICE_UNAVAILABLE, "the master is unavailable; try again later\n")
+        user, robot, ctag = q["userID"], q["robotID"], q["container"]
+        steps = ((HTTPStatus.UNAUTHORIZED, "auth", {"user": user, "robot": robot, "password": password}),
+                 (HTTPStatus.NOT_FOUND, "container_bus", {"user": user, "ctag": ctag}),
+                 (HTTPStatus.CONFLICT, "robot_connected", {"user": user, "robot": robot}))
+        for status, op, args in steps:
+            try:
+                await self.master.call(op, **args)
+            except (AuthError, NotFound) as e:
+                return connection.respond(status, e.message + "\n")
+            except RCEError as e:
+                code = status if op == "robot_connected" else HTTPStatus.SERVICE_UNAVAILABLE
+                return connection.respond(code, e.message + "\n")
+        connection.rce_rosbridge = (user, robot, ctag)
+        return None
+
+    async def _serve(self, ws) -> None:
+        user, robot, ctag = ws.rce_rosbridge
+        session = RosbridgeSession(user, robot, ctag, self.master)
+        self.sessions[(user, robot)] = session
+        log.info("rosbridge client connected", user=user, robot=robot, container=ctag, peer=str(ws.remote_address))
+        writer = Tasks(f"rosbridge writer {user}/{robot}")
+        writer.spawn(_write(ws, session.outbox), name="writer")
+        try:
+            async for text in ws:
+                await session.handle(text)
+        except ConnectionClosed:
+            pass
+        finally:
+            await writer.cancel_all()
+            await self._end(session)
+
+    async def _end(self, session: RosbridgeSession) -> None:
+        """A client left: remove its interfaces, forget them here, tell the master the robot is gone."""
+        await session.close()
+        if self.sessions.get((session.user, session.robot)) is session:
+            del self.sessions[(session.user, session.robot)]
+        for iid in [i for i, itf in self.by_iid.items() if itf.link is session]:
+            await self.by_iid.pop(iid).stop()
+        try:
+            await self.master.call("robot_disconnected", user=session.user, robot=session.robot)
+        except RCEError as e:
+            log.warning("could not report a rosbridge disconnect", robot=session.robot, reason=e.message)
+        log.info("rosbridge client disconnected", user=session.user, robot=session.robot, dropped=session.dropped,
+                 errors=session.errors)
+
+
+async def _write(ws, outbox: asyncio.Queue) -> None:
+    """Send what the session queued, in order, until the link closes."""
+    try:
+        while True:
+            await ws.send(json.dumps(await outbox.get()))
+    except ConnectionClosed:
+        pass
