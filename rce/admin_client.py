@@ -33,7 +33,7 @@ from typing import Any
 
 import aiohttp
 
-from rce.errors import AuthError, NotFound, RCEError, RequestError, Timeout, Unavailable
+from rce.errors import AuthError, NotFound, RCEError, RequestError, Timeout, Unavailable, http_reason
 
 TIMEOUT = 30.0        # s, an admin API request, on top of the op's own timeout (a bus call's, a sample's)
 TOKEN_ENV = "RCE_ADMIN_TOKEN"
@@ -66,8 +66,7 @@ def find_token(token: str | None = None, path: Path | None = None) -> str:
 
 def refusal(method: str, path: str, status: int, body: bytes | str) -> RCEError:
     """The error for HTTP ``status`` with ``body`` (the master's reason) answering ``method path``."""
-    text = body.decode(errors="replace") if isinstance(body, (bytes, bytearray)) else str(body)
-    reason = next((ln.strip() for ln in text.splitlines() if ln.strip()), f"HTTP {status}")[:MAX_REASON]
+    reason = http_reason(body, f"HTTP {status}", MAX_REASON)
     cls = (AuthError if status in (401, 403) else NotFound if status == 404 else Timeout if status == 504
            else Unavailable if status >= 500 else RequestError)
     err = cls(f"{method} {path}: HTTP {status}: {reason}")

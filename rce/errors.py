@@ -6,6 +6,8 @@ was wrong (``code``) and read *where* (``message``).
 """
 from __future__ import annotations
 
+import json
+
 
 class RCEError(Exception):
     """Base error: ``code`` is a short machine-readable token, ``message`` a one-line reason."""
@@ -103,3 +105,29 @@ class Timeout(RCEError, TimeoutError):
 
 _BY_CODE = {c.code: c for c in (RCEError, ProtocolError, MessageError, ConfigError, RequestError,
                                 AuthError, NotFound, Unavailable, NotLeader, Timeout)}
+
+
+def http_reason(body: bytes | str, fallback: str = "", limit: int | None = None) -> str:
+    """The one-line reason in an HTTP error body (the master's, a robot endpoint's, etcd's): plain
+    text (its first non-empty line), or a JSON object's ``reason``/``message``/``error`` (a string,
+    or an object with a ``message``/``reason``). ``fallback`` when there is none; at most ``limit``
+    characters when given."""
+    text = body.decode(errors="replace") if isinstance(body, (bytes, bytearray)) else str(body)
+    text = text.strip()
+    try:
+        obj = json.loads(text)
+    except ValueError:
+        obj = None
+    reason = ""
+    if isinstance(obj, dict):
+        for k in ("reason", "message", "error"):
+            v = obj.get(k)
+            if isinstance(v, dict):
+                v = v.get("message") or v.get("reason")
+            if isinstance(v, str) and v:
+                reason = v
+                break
+    if not reason:
+        reason = text.splitlines()[0].strip() if text else ""
+    reason = reason or fallback
+    return reason[:limit] if limit is not None else reason

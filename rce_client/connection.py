@@ -70,7 +70,7 @@ from websockets.asyncio.client import ClientConnection, connect as ws_connect
 from websockets.exceptions import ConnectionClosed, InvalidHandshake, InvalidStatus, InvalidURI
 
 from rce import protocol
-from rce.errors import AuthError, RCEError, Timeout, Unavailable
+from rce.errors import AuthError, RCEError, Timeout, Unavailable, http_reason
 from rce.log import get_logger
 from rce.masterlink import Backoff
 from rce.protocol.resume import DEFAULT_GRACE, DEFAULT_RESUME_BUFFER
@@ -105,25 +105,6 @@ def hash_password(password: str) -> str:
     return hashlib.sha256(password.encode()).hexdigest()
 
 
-def _reason(body: bytes | str, fallback: str) -> str:
-    """One-line reason from an HTTP error body: plain text, or JSON ``error``/``message``/``reason``."""
-    text = body.decode(errors="replace") if isinstance(body, (bytes, bytearray)) else str(body)
-    text = text.strip()
-    try:
-        obj = json.loads(text)
-    except ValueError:
-        obj = None
-    if isinstance(obj, dict):
-        for k in ("reason", "message", "error"):
-            v = obj.get(k)
-            if isinstance(v, dict):
-                v = v.get("message") or v.get("reason")
-            if isinstance(v, str) and v:
-                return v
-    line = text.splitlines()[0].strip() if text else ""
-    return line or fallback
-
-
 def _with_query(url: str, **params: str) -> str:
     parts = urlsplit(url)
     query = dict(parse_qsl(parts.query))
@@ -145,10 +126,11 @@ async def login(master_url: str, user_id: str, version: str = CLIENT_VERSION,
             async with http.get(url) as resp:
                 body = await resp.read()
                 if resp.status in (401, 403):
-                    raise AuthError(f"login refused by {master_url}: {_reason(body, resp.reason or 'unauthorized')}")
+                    reason = http_reason(body, resp.reason or "unauthorized")
+                    raise AuthError(f"login refused by {master_url}: {reason}")
                 if resp.status >= 400:
                     raise Unavailable(f"login at {master_url} failed (HTTP {resp.status}): "
-                                      f"{_reason(body, resp.reason or 'error')}")
+                                      f"{http_reason(body, resp.reason or 'error')}")
     except (aiohttp.ClientError, asyncio.TimeoutError, OSError) as e:
         raise Unavailable(f"cannot reach the master at {master_url}: {e or type(e).__name__}") from None
     try:
@@ -811,7 +793,7 @@ async def _dial(url: str, timeout: float) -> ClientConnection:
                                 user_agent_header="rce-client")
     except InvalidStatus as e:
         status = e.response.status_code
-        raise _Refused(status, _reason(e.response.body or b"", e.response.reason_phrase or str(status))) from None
+        raise _Refused(status, http_reason(e.response.body or b"", e.response.reason_phrase or str(status))) from None
     except (ConnectionRefusedError, ConnectionResetError) as e:
         raise _Unreachable(str(e) or type(e).__name__) from None
     except (InvalidHandshake, InvalidURI, OSError, asyncio.TimeoutError) as e:

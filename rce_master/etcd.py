@@ -29,7 +29,7 @@ from urllib.parse import parse_qs, urlsplit
 
 import aiohttp
 
-from rce.errors import ConfigError, RCEError, Unavailable
+from rce.errors import ConfigError, RCEError, Unavailable, http_reason
 
 SCHEME = "etcd"
 DEFAULT_PREFIX = "/rce/"
@@ -37,6 +37,7 @@ DEFAULT_MAX_TXN_OPS = 128           # etcd's default --max-txn-ops: operations i
 MAX_REQUEST_BYTES = 1536 * 1024     # bytes, etcd's default --max-request-bytes (1.5 MiB): one request's size
 REQUEST_TIMEOUT = 2.0               # s, one unary request (range, txn, lease): etcd answers in ms; an endpoint
 #                                     that takes longer is treated as unreachable and the next one is tried
+ETCD_REASON = 300                   # chars of an etcd error body kept in our error
 MAX_WATCH_MESSAGE = 64 * 1024 * 1024   # bytes, one watch answer (a line of JSON): a longer one breaks the watch
 
 
@@ -153,11 +154,12 @@ class EtcdClient:
                 why.append(f"{endpoint}: {type(e).__name__} {e}".strip())
                 continue
             if status >= 500:
-                why.append(f"{endpoint}: HTTP {status} {_reason(data)}")
+                why.append(f"{endpoint}: HTTP {status} {http_reason(data, limit=ETCD_REASON)}")
                 continue
             self._current = self.endpoints.index(endpoint)
             if status >= 400:
-                raise EtcdRefused(f"etcd {endpoint} refused {path}: HTTP {status}: {_reason(data)}")
+                reason = http_reason(data, limit=ETCD_REASON)
+                raise EtcdRefused(f"etcd {endpoint} refused {path}: HTTP {status}: {reason}")
             return json.loads(data or b"{}")
         raise EtcdUnavailable(f"etcd {path}: no endpoint answered ({'; '.join(why)})")
 
@@ -216,11 +218,13 @@ class EtcdClient:
             async with self._http().post(endpoint + "/v3/watch", json={"create_request": create},
                                          timeout=aiohttp.ClientTimeout(total=None, connect=self.timeout)) as r:
                 if r.status != 200:
-                    raise EtcdUnavailable(f"etcd {endpoint} watch: HTTP {r.status} {_reason(await r.read())}")
+                    reason = http_reason(await r.read(), limit=ETCD_REASON)
+                    raise EtcdUnavailable(f"etcd {endpoint} watch: HTTP {r.status} {reason}")
                 async for message in _lines(r.content, idle):
                     result = message.get("result")
                     if result is None:
-                        raise EtcdUnavailable(f"etcd {endpoint} watch: {_reason(json.dumps(message).encode())}")
+                        reason = http_reason(json.dumps(message), limit=ETCD_REASON)
+                        raise EtcdUnavailable(f"etcd {endpoint} watch: {reason}")
                     if result.get("compact_revision") and result["compact_revision"] != "0":
                         raise Compacted(f"etcd {endpoint}: revision {start_revision} is compacted "
                                         f"(oldest kept {result['compact_revision']})")
@@ -267,11 +271,3 @@ def kv(x: dict) -> dict:
 def event(x: dict) -> dict:
     """A watch event: ``{"type": "PUT"|"DELETE", "kv": kv}``."""
     return {"type": x.get("type", "PUT"), "kv": kv(x.get("kv") or {})}
-
-
-def _reason(data: bytes) -> str:
-    try:
-        d = json.loads(data)
-        return str(d.get("message") or d.get("error") or d)[:300]
-    except (ValueError, AttributeError):
-        return data.decode(errors="replace").strip()[:300]
