@@ -3,6 +3,7 @@ PY ?= python3
 VENV := .venv
 BIN := $(VENV)/bin
 STAMP := $(VENV)/.installed
+ROSLIBJS := tests/web/roslibjs/node_modules/.installed
 
 .PHONY: setup test demo bench system-deps clean
 
@@ -13,10 +14,15 @@ $(STAMP): pyproject.toml
 	touch $(STAMP)
 
 ## setup: create .venv, install rce with its test extras and the Debian packages tests need (when root)
-setup: $(STAMP) system-deps
+setup: $(STAMP) system-deps $(ROSLIBJS)
 
 system-deps:
 	@bash .ci/system-deps
+
+# Unmodified roslibjs (npm roslib, pinned by package-lock.json) for the rosbridge browser test.
+$(ROSLIBJS): tests/web/roslibjs/package.json tests/web/roslibjs/package-lock.json
+	npm ci --prefix tests/web/roslibjs --no-audit --no-fund --silent
+	touch $(ROSLIBJS)
 
 ## test: the whole suite
 test: setup
