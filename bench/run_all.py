@@ -1,5 +1,5 @@
 """Run every benchmark script, one after the other (``make bench``): rtt, fleet_load,
-paper_experiments, planner, container_start, faults. A script that does not exist (yet) is skipped with a message.
+paper_experiments, planner, container_start, faults, login_attack. A script that does not exist (yet) is skipped with a message.
 Each writes its own results to ``bench/results/``; this prints a summary and exits non-zero
 if any script failed.
 
@@ -16,7 +16,7 @@ import time
 from pathlib import Path
 
 BENCH = Path(__file__).resolve().parent
-SCRIPTS = ("rtt", "fleet_load", "paper_experiments", "planner", "container_start", "faults")
+SCRIPTS = ("rtt", "fleet_load", "paper_experiments", "planner", "container_start", "faults", "login_attack")
 
 
 def main(argv=None) -> int:

@@ -25,6 +25,7 @@ from __future__ import annotations
 
 import json
 import os
+import ssl
 import urllib.error
 import urllib.request
 from collections.abc import Iterator, Sequence
@@ -33,6 +34,7 @@ from typing import Any
 
 import aiohttp
 
+from rce import tls
 from rce.errors import AuthError, NotFound, RCEError, RequestError, Timeout, Unavailable, http_reason
 
 TIMEOUT = 30.0        # s, an admin API request, on top of the op's own timeout (a bus call's, a sample's)
@@ -137,8 +139,12 @@ class AdminClient:
     ``timeout`` (s) bounds each request, plus the ``op_timeout`` a request passes for an op that
     waits on its own (a service call, a sample). :attr:`base` is the master that answered last."""
 
-    def __init__(self, base: str | Sequence[str], token: str, timeout: float = TIMEOUT):
+    def __init__(self, base: str | Sequence[str], token: str, timeout: float = TIMEOUT,
+                 ssl_context: ssl.SSLContext | None = None):
         self.bases = master_urls(base)
+        if ssl_context is None and any(b.lower().startswith("https:") for b in self.bases):
+            ssl_context = tls.client_context()      # https:// masters: $RCE_CA_FILE, else the system's CAs
+        self.ssl_context = ssl_context
         self.base = self.bases[0]
         self.token = token
         self.timeout = timeout
@@ -146,9 +152,11 @@ class AdminClient:
 
     @classmethod
     def from_options(cls, base: str | Sequence[str], token: str | None = None,
-                     token_path: Path | None = None) -> "AdminClient":
-        """A client with the token :func:`find_token` finds. Raises :class:`AuthError` when there is none."""
-        return cls(base, find_token(token, token_path))
+                     token_path: Path | None = None, ca_file: Path | None = None) -> "AdminClient":
+        """A client with the token :func:`find_token` finds, trusting ``ca_file`` for an https://
+        master (:func:`rce.tls.client_context`). Raises :class:`AuthError` when there is no token,
+        :class:`ConfigError` when the CA file cannot be read."""
+        return cls(base, find_token(token, token_path), ssl_context=tls.client_context(ca_file) if ca_file else None)
 
     def _headers(self) -> dict[str, str]:
         return {"Authorization": f"Bearer {self.token}", "Content-Type": "application/json"}
@@ -161,7 +169,7 @@ class AdminClient:
         for base in tries:
             req = urllib.request.Request(base + path.lstrip("/"), data=data, method=method, headers=self._headers())
             try:
-                with urllib.request.urlopen(req, timeout=tries.timeout) as r:
+                with urllib.request.urlopen(req, timeout=tries.timeout, context=self.ssl_context) as r:
                     answer = r.read()
             except urllib.error.HTTPError as e:
                 tries.refused(e.code, e.headers, e.read())
@@ -181,7 +189,8 @@ class AdminClient:
         for base in tries:
             try:
                 async with self._session.request(method, base + path.lstrip("/"), json=body,
-                                                 timeout=aiohttp.ClientTimeout(total=tries.timeout)) as r:
+                                                 timeout=aiohttp.ClientTimeout(total=tries.timeout),
+                                                 ssl=self.ssl_context or True) as r:
                     status, headers, data = r.status, r.headers, await r.read()
             except (aiohttp.ClientError, OSError) as e:           # OSError: TimeoutError too
                 tries.unreachable(base, e)

@@ -5,8 +5,23 @@ Every endpoint process (an rce-robot task set, an environment) runs one
 :class:`DataPlane`: a TCP listener for incoming links, and one outgoing link per
 peer address, opened on first use. Frames are DATA frames of
 :mod:`rce.framing` addressed by interface id (``dst``), so one link carries every
-connection between the two processes. Each process sends only on the links it
-dialled and receives on the links it accepted: no dial races.
+connection between the two processes. Topic messages and service requests go on the
+links a process dialled; a service's reply goes back on the link its request came in on.
+
+Only peers the master introduced send (:mod:`rce.cluster_auth`, "Data-plane credentials"):
+
+- the acceptor of a link first sends ``{"nonce": hex}``; the dialler holds its frames until
+  then;
+- before its first frame from interface ``src`` to interface ``dst`` the dialler sends a grant
+  ``{"grant": [src, dst], "proof": hex}`` made from the credential the master handed it with
+  ``connect`` (:meth:`DataPlane.allow`); the acceptor checks it with its own data key, and a
+  wrong one closes the link (counted in ``unauthenticated``, logged);
+- a topic message or service request whose ``(src, dst)`` was not granted on its link, or whose
+  ``src`` is not connected to interface ``dst`` (not among its ``peers``), is dropped and counted
+  in ``refused`` (the first of each link is logged); a reply is taken only on a link this
+  plane dialled, for a call in flight;
+- a link that has no valid grant within :data:`GRANT_TIMEOUT`, or beyond :data:`MAX_ACCEPTED`
+  links, is closed (counted in ``unauthenticated``).
 
 What receives frames registers here by id as a :class:`Receiver` (the interfaces of
 :mod:`rce.interfaces`). Outgoing links are bounded (``max_buffer`` bytes waiting in the
@@ -17,20 +32,27 @@ from __future__ import annotations
 
 import asyncio
 import collections
+import secrets
 from typing import Protocol
 
-from rce import framing
-from rce.errors import RCEError, Unavailable
-from rce.link import DEFAULT_MAX_BUFFER, STREAM_LIMIT, FramedLink, Responder, nodelay, settle_reply
+from rce import cluster_auth, framing
+from rce.errors import ProtocolError, RCEError, Unavailable
+from rce.link import DEFAULT_MAX_BUFFER, STREAM_LIMIT, FramedLink, LinkFull, Responder, nodelay, settle_reply
 from rce.log import get_logger
 from rce.pending import PendingCalls
 
 log = get_logger("rce.dataplane")
 
+GRANT_TIMEOUT = 10.0     # s an accepted link may stay without a valid grant (a peer dials on first use and grants
+                         # at once; one that does not is no peer): then it is closed and counted unauthenticated
+MAX_ACCEPTED = 1024      # accepted links at once (one per peer process is the norm); more are closed at once
+
+Pair = tuple[int, int]        # (src interface id, dst interface id): one direction of one connection
+
 
 class Receiver(Protocol):
     """What the data plane delivers to (an interface): ``iid`` its id, ``peers`` the connected
-    interface ids -> their data addresses (a service reply goes back to the caller's)."""
+    interface ids -> their data addresses (only those may send to it)."""
 
     iid: int
     peers: dict[int, str]
@@ -43,12 +65,15 @@ class Receiver(Protocol):
 
 
 class _Dialled:
-    """The outgoing link to one peer address; frames wait in a bounded backlog while it connects."""
+    """The outgoing link to one peer address. Frames wait in a bounded backlog until the link is
+    up and the acceptor's nonce has arrived; each ``(src, dst)`` is granted once per link."""
 
     def __init__(self, plane: "DataPlane", addr: str):
         self.plane, self.addr = plane, addr
         self.link: FramedLink | None = None
-        self.backlog: collections.deque[bytes] = collections.deque()
+        self.nonce: bytes | None = None
+        self.granted: set[Pair] = set()
+        self.backlog: collections.deque[tuple[Pair, bytes]] = collections.deque()
         self.backlog_bytes = 0
         plane.tasks.spawn(self._connect(), name=f"dial {addr}")
 
@@ -59,32 +84,61 @@ class _Dialled:
         except (OSError, ValueError) as e:
             log.warning("data link failed", peer=self.addr, reason=str(e))
             self._gone()
-            self.plane.dropped += len(self.backlog)
             return
         nodelay(writer)
-        self.link = FramedLink(reader, writer, name=f"data link to {self.addr}", on_frame=self._unexpected,
+        self.link = FramedLink(reader, writer, name=f"data link to {self.addr}", on_frame=self._on_frame,
                                on_close=lambda _link: self._gone(), max_frame=self.plane.max_frame,
                                max_buffer=self.plane.max_buffer).start()
-        for chunk in self.backlog:
-            self.link.offer(chunk)
-        self.backlog.clear()
-        self.backlog_bytes = 0
 
     def _gone(self) -> None:
         if self.plane._dialled.get(self.addr) is self:
             del self.plane._dialled[self.addr]
+        self.plane.dropped += len(self.backlog)
+        self.backlog.clear()
 
-    def _unexpected(self, _frame: framing.DataFrame | dict) -> None:
-        self.plane.dropped += 1          # the peer never sends on the link we dialled
+    def _on_frame(self, f: framing.DataFrame | dict) -> None:
+        if isinstance(f, dict):
+            if self.nonce is None and "nonce" in f:
+                self._ready(_nonce(f["nonce"]))
+                return
+            raise ProtocolError(f"data link to {self.addr}: unexpected control frame {str(f)[:120]}")
+        if f.op in (framing.SRV_RESP, framing.SRV_ERR) and settle_reply(self.plane.calls, f):
+            return
+        self.plane.dropped += 1          # a late reply, or something the acceptor should not send
 
-    def offer(self, head: bytes, payload: bytes | memoryview) -> bool:
-        if self.link is not None:
-            return self.link.offer(head, payload)
+    def _ready(self, nonce: bytes) -> None:
+        self.nonce = nonce
+        backlog, self.backlog, self.backlog_bytes = self.backlog, collections.deque(), 0
+        for pair, chunk in backlog:
+            if not self._offer(pair, chunk):
+                self.plane.dropped += 1
+
+    def offer(self, pair: Pair, head: bytes, payload: bytes | memoryview) -> bool:
+        if self.nonce is not None:
+            return self._offer(pair, head, payload)
         n = len(head) + len(payload)
         if self.backlog_bytes + n > self.plane.max_buffer:
             return False
-        self.backlog.append(head + payload)
+        self.backlog.append((pair, head + payload))
         self.backlog_bytes += n
+        return True
+
+    def _offer(self, pair: Pair, head: bytes, payload: bytes | memoryview = b"") -> bool:
+        if self.link is None or (pair not in self.granted and not self._grant(pair)):
+            return False
+        return self.link.offer(head, payload)
+
+    def _grant(self, pair: Pair) -> bool:
+        token = self.plane.credentials.get(pair)
+        if token is None:
+            log.debug("no credential for a connection; frame dropped", peer=self.addr, src=pair[0], dst=pair[1])
+            return False
+        proof = cluster_auth.grant_proof(token, self.nonce, *pair).hex()
+        try:
+            self.link.send(framing.encode_control({"grant": list(pair), "proof": proof}))
+        except (LinkFull, Unavailable):
+            return False
+        self.granted.add(pair)
         return True
 
     def close(self) -> None:
@@ -92,25 +146,76 @@ class _Dialled:
             self.link.close()
 
 
+def _nonce(text: object) -> bytes:
+    try:
+        nonce = bytes.fromhex(text) if isinstance(text, str) else b""
+    except ValueError:
+        nonce = b""
+    if len(nonce) != cluster_auth.NONCE_BYTES:
+        raise ProtocolError(f"a data link's nonce is {2 * cluster_auth.NONCE_BYTES} hex digits")
+    return nonce
+
+
+class _Accepted:
+    """An incoming link: the nonce it was opened with and the ``(src, dst)`` granted on it."""
+
+    def __init__(self, plane: "DataPlane", reader: asyncio.StreamReader, writer: asyncio.StreamWriter):
+        self.plane = plane
+        self.nonce = secrets.token_bytes(cluster_auth.NONCE_BYTES)
+        self.granted: set[Pair] = set()
+        self.warned = False
+        self.link = FramedLink(reader, writer, name=f"data link from {writer.get_extra_info('peername')}",
+                               on_frame=self._on_frame, on_close=lambda _l: plane._accepted.discard(self),
+                               max_frame=plane.max_frame, max_buffer=plane.max_buffer)
+
+    def _on_frame(self, f: framing.DataFrame | dict) -> None:
+        if isinstance(f, framing.DataFrame):
+            self.plane._dispatch(self, f)
+            return
+        try:
+            self.granted.add(cluster_auth.check_grant(self.plane.data_key, self.nonce, f))
+        except (cluster_auth.AuthFailed, ProtocolError) as e:
+            self.plane.unauthenticated += 1
+            log.warning("unauthenticated data link closed", plane=self.plane.name, peer=self.link.peername,
+                        reason=e.message)
+            self.link.close(e.message)
+
+    def refuse(self, f: framing.DataFrame, why: str) -> None:
+        """Drop a frame whose sender is not connected to its interface (counted; the first logged)."""
+        self.plane.refused += 1
+        if not self.warned:
+            self.warned = True
+            log.warning("data frame refused (further ones on this link are only counted)", plane=self.plane.name,
+                        peer=self.link.peername, src=f.src, dst=f.dst, reason=why)
+
+
 class DataPlane:
     """One process's data-plane endpoint. ``name`` names it in logs; ``max_buffer``: bytes that
-    may wait per outgoing link; ``max_frame``: largest frame accepted, bytes. ``interfaces``
-    maps interface ids to their :class:`Receiver`."""
+    may wait per outgoing link; ``max_frame``: largest frame accepted, bytes; ``data_key``: this
+    endpoint's data key (:meth:`rce.cluster_auth.ClusterKey.data_key` of its address; until it is
+    set, every grant is refused); ``grant_timeout``: s an accepted link may go without a valid
+    grant. ``interfaces`` maps interface ids to their :class:`Receiver`;
+    ``credentials`` maps ``(src, dst)`` to the credential that lets local interface ``src`` send
+    to ``dst`` (:meth:`allow`)."""
 
     def __init__(self, name: str, *, max_buffer: int = DEFAULT_MAX_BUFFER,
-                 max_frame: int = framing.DEFAULT_MAX_FRAME):
-        self.name = name
+                 max_frame: int = framing.DEFAULT_MAX_FRAME, data_key: bytes | None = None,
+                 grant_timeout: float = GRANT_TIMEOUT):
+        self.name, self.grant_timeout = name, grant_timeout
         self.max_buffer, self.max_frame = max_buffer, max_frame
+        self.data_key = data_key
         self.interfaces: dict[int, Receiver] = {}
+        self.credentials: dict[Pair, bytes] = {}
         self.addr = ""
         self.calls = PendingCalls(f"data plane {name}")
         self.responder = Responder(f"data plane {name}")
         self.tasks = self.responder.tasks
         self._dialled: dict[str, _Dialled] = {}
-        self._accepted: set[FramedLink] = set()
+        self._accepted: set[_Accepted] = set()
         self._server: asyncio.AbstractServer | None = None
         # counters (metrics and status)
         self.msgs_in = self.msgs_out = self.bytes_in = self.bytes_out = self.dropped = 0
+        self.refused = self.unauthenticated = 0
 
     async def listen(self, bind: str = "127.0.0.1", port: int = 0, advertise_host: str | None = None) -> str:
         """Start the listener; returns and stores the advertised address ``host:port``."""
@@ -126,18 +231,32 @@ class DataPlane:
             self._server.close()
         for d in list(self._dialled.values()):
             d.close()
-        for link in list(self._accepted):
-            link.close()
+        for a in list(self._accepted):
+            a.link.close()
         self.calls.fail_all(Unavailable(f"data plane {self.name} closed"))
         await self.tasks.cancel_all()
 
+    # -- credentials ------------------------------------------------------------------------------
+    def allow(self, src: int, dst: int, token: bytes) -> None:
+        """Local interface ``src`` may send to interface ``dst``, with the master's credential."""
+        self.credentials[(src, dst)] = token
+
+    def forbid(self, src: int, dst: int | None = None) -> None:
+        """Forget the credential of ``src -> dst`` (``dst`` None: of every connection of ``src``); the
+        links it was granted on no longer carry it."""
+        for pair in [p for p in self.credentials if p[0] == src and dst in (None, p[1])]:
+            del self.credentials[pair]
+            for d in self._dialled.values():
+                d.granted.discard(pair)
+
     # -- sending -------------------------------------------------------------------------------
     def send(self, addr: str, op: int, dst: int, src: int, call_id: int, payload: bytes | memoryview) -> bool:
-        """Send one DATA frame to interface ``dst`` at ``addr``; False (and counted) if dropped."""
+        """Send one DATA frame from local interface ``src`` to interface ``dst`` at ``addr``; False
+        (and counted) if dropped: no credential for ``src -> dst``, or the link is saturated."""
         d = self._dialled.get(addr)
         if d is None:
             d = self._dialled[addr] = _Dialled(self, addr)
-        if d.offer(framing.encode_data_header(op, dst, src, call_id, len(payload)), payload):
+        if d.offer((src, dst), framing.encode_data_header(op, dst, src, call_id, len(payload)), payload):
             self.msgs_out += 1
             self.bytes_out += len(payload)
             return True
@@ -148,73 +267,81 @@ class DataPlane:
         """Send a service request to interface ``dst`` at ``addr`` and await the response bytes.
 
         Raises :class:`Unavailable` when the request is dropped (the link to the provider is
-        saturated or gone), :class:`~rce.errors.Timeout` after ``timeout`` s,
+        saturated or gone, or no credential), :class:`~rce.errors.Timeout` after ``timeout`` s,
         :class:`~rce.errors.RequestError` with the provider's reason on a failed call."""
         def send(cid: int) -> None:
             if not self.send(addr, framing.SRV_REQ, dst, src, cid, payload):
-                raise Unavailable("service request dropped: the link to the provider is saturated")
+                raise Unavailable("service request dropped: the link to the provider is saturated or unauthorised")
         return await self.calls.call(send, timeout, what=f"the service call to interface {dst}")
 
     # -- receiving -----------------------------------------------------------------------------
     async def _accept(self, reader: asyncio.StreamReader, writer: asyncio.StreamWriter) -> None:
         nodelay(writer)
-        link = FramedLink(reader, writer, name=f"data link from {writer.get_extra_info('peername')}",
-                          on_frame=self._dispatch, on_close=self._accepted.discard, max_frame=self.max_frame,
-                          max_buffer=self.max_buffer)
-        self._accepted.add(link)
-        link.start()
+        if len(self._accepted) >= MAX_ACCEPTED:
+            self.unauthenticated += 1
+            log.warning("data link refused: too many links", plane=self.name, links=len(self._accepted),
+                        peer=str(writer.get_extra_info("peername")))
+            writer.close()
+            return
+        a = _Accepted(self, reader, writer)
+        self._accepted.add(a)
+        a.link.send(framing.encode_control({"nonce": a.nonce.hex()}))
+        a.link.start()
+        self.tasks.spawn(self._grant_timer(a), name="grant timer")
 
-    def _dispatch(self, f: framing.DataFrame | dict) -> None:
-        if not isinstance(f, framing.DataFrame):
-            self.dropped += 1             # no control frames on data links
+    async def _grant_timer(self, a: _Accepted) -> None:
+        await asyncio.sleep(self.grant_timeout)          # a timer: the link must have a grant by now
+        if not a.granted and not a.link.closed.is_set():
+            self.unauthenticated += 1
+            log.warning("data link closed: no grant", plane=self.name, peer=a.link.peername,
+                        waited_s=self.grant_timeout)
+            a.link.close("no grant")
+
+    def _dispatch(self, link: _Accepted, f: framing.DataFrame) -> None:
+        if f.op not in (framing.MSG, framing.SRV_REQ):
+            self.dropped += 1             # replies travel on the links we dialled
+            return
+        if (f.src, f.dst) not in link.granted:
+            link.refuse(f, "no grant for this connection on this link")
+            return
+        iface = self.interfaces.get(f.dst)
+        if iface is not None and f.src not in iface.peers:
+            link.refuse(f, "the sender is not connected to this interface")
             return
         self.msgs_in += 1
         self.bytes_in += len(f.payload)
-        if f.op == framing.MSG:
-            iface = self.interfaces.get(f.dst)
-            if iface is None:
-                self.dropped += 1
-                return
+        if f.op == framing.SRV_REQ:
+            self._serve(link, f, iface)
+        elif iface is None:
+            self.dropped += 1
+        else:
             try:
                 iface.on_message(f.payload)
             except RCEError as e:         # e.g. a message for an interface that takes none
                 self.dropped += 1
                 log.debug("message refused", plane=self.name, iid=f.dst, reason=e.message)
-        elif f.op == framing.SRV_REQ:
-            self._serve(f)
-        elif f.op in (framing.SRV_RESP, framing.SRV_ERR):
-            settle_reply(self.calls, f)
-        else:
-            self.dropped += 1
 
-    def _serve(self, f: framing.DataFrame) -> None:
-        iface = self.interfaces.get(f.dst)
-        addr = iface.peers.get(f.src) if iface is not None else self._reply_addr(f.src)
-        if addr is None:                  # nowhere to answer: the caller times out
-            self.dropped += 1
-            return
+    def _serve(self, link: _Accepted, f: framing.DataFrame, iface: Receiver | None) -> None:
+        """Run a service request and send its reply back on the link it came in on."""
         src, iid, call_id, payload = f.src, f.dst, f.call_id, bytes(f.payload)
 
-        def reply(resp: bytes) -> None:
-            self.send(addr, framing.SRV_RESP, src, iid, call_id, resp)
+        def answer(op: int, body: bytes) -> None:
+            if not link.link.offer(framing.encode_data_header(op, src, iid, call_id, len(body)), body):
+                self.dropped += 1          # the caller times out
 
         def refuse(e: RCEError) -> None:
-            self.send(addr, framing.SRV_ERR, src, iid, call_id, e.message.encode())
+            answer(framing.SRV_ERR, e.message.encode())
         if iface is None:
             self.dropped += 1
             refuse(Unavailable(f"interface {iid} is gone"))
             return
-        self.responder.serve(lambda: iface.serve(payload), reply, refuse, f"service call to interface {iid}")
-
-    def _reply_addr(self, src: int) -> str | None:
-        """Where interface ``src`` lives, known from any local interface connected to it."""
-        for iface in self.interfaces.values():
-            addr = iface.peers.get(src)
-            if addr:
-                return addr
-        return None
+        self.responder.serve(lambda: iface.serve(payload), lambda resp: answer(framing.SRV_RESP, resp), refuse,
+                             f"service call to interface {iid}")
 
     def stats(self) -> dict:
-        """``{msgs_in, msgs_out, bytes_in, bytes_out, dropped, links}`` (``links``: outgoing)."""
+        """``{msgs_in, msgs_out, bytes_in, bytes_out, dropped, refused, unauthenticated, links}``:
+        ``refused`` frames from senders not connected to their interface, ``unauthenticated``
+        links closed for a wrong credential, ``links`` outgoing."""
         return {"msgs_in": self.msgs_in, "msgs_out": self.msgs_out, "bytes_in": self.bytes_in,
-                "bytes_out": self.bytes_out, "dropped": self.dropped, "links": len(self._dialled)}
+                "bytes_out": self.bytes_out, "dropped": self.dropped, "refused": self.refused,
+                "unauthenticated": self.unauthenticated, "links": len(self._dialled)}

@@ -30,6 +30,8 @@ class RCEError(Exception):
         err = _BY_CODE.get(d.get("code", ""), RCEError)(str(d.get("message", "")), code=d.get("code"))
         if isinstance(err, NotLeader) and isinstance(d.get("leader"), dict):
             err.leader = d["leader"]
+        if isinstance(err, Throttled) and isinstance(d.get("retry_after"), (int, float)):
+            err.retry_after = d["retry_after"]
         return err
 
     def __str__(self) -> str:
@@ -94,6 +96,21 @@ class NotLeader(Unavailable):
         return {**super().to_dict(), "leader": self.leader}
 
 
+class Throttled(Unavailable):
+    """Refused for now, to be tried again after ``retry_after`` s: too many failed logins for a user
+    or from an address, or too many logins waiting for a password check (docs/SECURITY.md, "Login").
+    HTTP 429 with ``Retry-After``; the control plane carries ``retry_after`` as a field."""
+
+    code = "throttled"
+
+    def __init__(self, message: str, *, code: str | None = None, retry_after: float = 1.0):
+        super().__init__(message, code=code)
+        self.retry_after = retry_after
+
+    def to_dict(self) -> dict:
+        return {**super().to_dict(), "retry_after": self.retry_after}
+
+
 class Timeout(RCEError, TimeoutError):
     """A call that got no answer in time (a control request, a service call, a robot's reply).
 
@@ -104,7 +121,7 @@ class Timeout(RCEError, TimeoutError):
 
 
 _BY_CODE = {c.code: c for c in (RCEError, ProtocolError, MessageError, ConfigError, RequestError,
-                                AuthError, NotFound, Unavailable, NotLeader, Timeout)}
+                                AuthError, NotFound, Unavailable, NotLeader, Throttled, Timeout)}
 
 
 def http_reason(body: bytes | str, fallback: str = "", limit: int | None = None) -> str:

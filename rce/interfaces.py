@@ -48,16 +48,20 @@ class Interface:
     async def stop(self) -> None:
         """Detach from the data plane and the local side."""
         self.plane.interfaces.pop(self.iid, None)
+        self.plane.forbid(self.iid)
         self.peers.clear()
 
-    def connect(self, peer_iid: int, addr: str) -> None:
-        """Add a connection to interface ``peer_iid`` reachable at data address ``addr``."""
+    def connect(self, peer_iid: int, addr: str, token: bytes) -> None:
+        """Add a connection to interface ``peer_iid`` reachable at data address ``addr``;
+        ``token``: the master's credential for sending to it (:mod:`rce.cluster_auth`)."""
         self.peers[peer_iid] = addr
+        self.plane.allow(self.iid, peer_iid, token)
         self.on_peers_changed()
 
     def disconnect(self, peer_iid: int) -> None:
         """Drop the connection to interface ``peer_iid`` (no error if absent)."""
         self.peers.pop(peer_iid, None)
+        self.plane.forbid(self.iid, peer_iid)
         self.on_peers_changed()
 
     def on_peers_changed(self) -> None:

@@ -8,6 +8,8 @@ process's ``--ready-file``, never from sleeping.
     e.master_url                          # http://127.0.0.1:PORT/
     e.kill_master(); e.restart_master()   # kill -9, then the same master again on its ports (and --state file)
     e.stop()
+
+    e = start_engine(workdir, tls=True)   # https:// and wss:// with a throw-away CA: e.ca_file, e.master_url https://
 """
 from __future__ import annotations
 
@@ -21,7 +23,10 @@ import tempfile
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
+from typing import Any
 
+from rce import tls as _tls
+from rce.cluster_auth import KEY_ENV, ClusterKey
 from rce.admin_client import AdminClient
 
 __all__ = ["BIN", "Engine", "start_engine", "wait_file", "command"]
@@ -58,7 +63,9 @@ def wait_file(path: Path, proc: subprocess.Popen, timeout: float = 30.0) -> dict
 class Engine:
     """A running engine: ``master_url`` (http://127.0.0.1:PORT/), ``admin_token``, process handles;
     ``masters``: the control addresses (``HOST:PORT``) task sets added from now on are given
-    (default: the first master's; several masters: add theirs)."""
+    (default: the first master's; several masters: add theirs); ``ca_file``: with TLS, the CA that
+    signed the engine's certificate (:func:`rce.tls.make_dev_certificates`), else None;
+    ``tls_args``: the ``--tls-cert``/``--tls-key`` arguments every robot task set is given."""
     workdir: Path
     env: dict
     procs: list[subprocess.Popen] = field(default_factory=list)
@@ -71,6 +78,15 @@ class Engine:
     master: subprocess.Popen | None = None      # the running rce-master (None after kill_master)
     master_args: tuple = ()                     # its extra arguments, given again by restart_master
     restarts: int = 0
+    ca_file: Path | None = None
+    tls_args: tuple = ()
+    cluster_key_file: Path | None = None        # the engine's cluster key (every process gets it: RCE_CLUSTER_KEY_FILE)
+    _admin_ssl: Any = field(default=None, repr=False)   # admin()'s TLS context, made on first use
+
+    @property
+    def cluster_key(self) -> ClusterKey:
+        """The engine's cluster key, for a test that opens internal links itself."""
+        return ClusterKey.load(self.cluster_key_file)
 
     def _start_master(self, http_port: int, control_port: int, timeout: float = 30.0) -> dict:
         name = f"master{self.restarts}" if self.restarts else "master"
@@ -104,7 +120,9 @@ class Engine:
         """Call the master's admin API (:class:`~rce.admin_client.AdminClient`): GET ``path`` (or
         POST ``body``); returns the JSON answer. A refusal raises the :class:`~rce.errors.RCEError`
         subclass for its HTTP status with the master's reason (:mod:`rce.admin_client`)."""
-        client = AdminClient(self.master_url, self.admin_token)
+        if self._admin_ssl is None:       # made once: loading the CAs costs ~30 ms a call, which tests feel
+            self._admin_ssl = _tls.client_context(self.ca_file)
+        client = AdminClient(self.master_url, self.admin_token, ssl_context=self._admin_ssl)
         return client.request(method or ("POST" if body is not None else "GET"), path, body)
 
     def spawn(self, name: str, argv: list[str], ready: Path | None = None,
@@ -122,7 +140,8 @@ class Engine:
         ready = self.workdir / f"robot{n}.ready"
         _, info = self.spawn(f"robot{n}", [*command("rce-robot"), ",".join(self.masters),
                                            "--port", "0", "--data-port", "0", "--metrics-port", "0",
-                                           "--rosbridge-port", "0", "--ready-file", str(ready), *extra], ready)
+                                           "--rosbridge-port", "0", "--ready-file", str(ready), *self.tls_args,
+                                           *extra], ready)
         self.robot_ready.append(info)
         return info
 
@@ -156,19 +175,30 @@ class Engine:
 
 def start_engine(workdir: Path | None = None, *, robot_tasksets: int = 1, container_hosts: int = 1,
                  master_args: tuple = (), robot_args: tuple = (), container_args: tuple = (),
-                 admin_token: str = "test-admin-token", env: dict | None = None) -> Engine:
+                 admin_token: str = "test-admin-token", env: dict | None = None, tls: bool = False) -> Engine:
     """Start master (``--dev``), robot task set(s) and container host(s); returns the :class:`Engine`.
 
     ``env`` is added to the processes' environment (``os.environ`` plus the admin token,
-    JSON logs, and a private ``XDG_CONFIG_HOME`` and ``XDG_STATE_HOME``: the master's state
-    file is the engine's own)."""
+    JSON logs, the engine's cluster key (``workdir/cluster-key``, in ``RCE_CLUSTER_KEY_FILE``), and a
+    private ``XDG_CONFIG_HOME`` and ``XDG_STATE_HOME``: the master's state
+    file is the engine's own). ``tls``: the master serves https:// and the robot task sets wss://,
+    with a certificate for 127.0.0.1 made for this engine (in ``workdir/tls``; its CA in ``ca_file``)."""
     workdir = Path(workdir or tempfile.mkdtemp(prefix="rce-engine-"))
     workdir.mkdir(parents=True, exist_ok=True)
-    penv = dict(os.environ, RCE_ADMIN_TOKEN=admin_token, RCE_LOG_JSON="1",
+    key_file = workdir / "cluster-key"
+    if not key_file.exists():
+        fd = os.open(key_file, os.O_WRONLY | os.O_CREAT | os.O_EXCL, 0o600)
+        with os.fdopen(fd, "w") as f:
+            f.write(ClusterKey.generate().secret.hex() + "\n")
+    penv = dict(os.environ, RCE_ADMIN_TOKEN=admin_token, RCE_LOG_JSON="1", **{KEY_ENV: str(key_file)},
                 XDG_CONFIG_HOME=str(workdir / "config"), XDG_STATE_HOME=str(workdir / "state"), **(env or {}))
-    e = Engine(workdir, penv, admin_token=admin_token, master_args=tuple(master_args))
+    e = Engine(workdir, penv, admin_token=admin_token, master_args=tuple(master_args), cluster_key_file=key_file)
+    if tls:
+        certs = _tls.make_dev_certificates(workdir / "tls")
+        e.ca_file, e.tls_args = certs.ca, ("--tls-cert", str(certs.cert), "--tls-key", str(certs.key))
+        e.master_args += e.tls_args
     info = e._start_master(0, 0)
-    e.master_url = f"http://127.0.0.1:{info['http_port']}/"
+    e.master_url = f"{'https' if tls else 'http'}://127.0.0.1:{info['http_port']}/"
     e.control_port = info["control_port"]
     e.masters = [f"127.0.0.1:{e.control_port}"]
     try:

@@ -5,7 +5,9 @@ A :class:`MasterLink` dials one of a list of masters and registers. When the lin
 master died, restarted, or was replaced by a standby) the task set keeps running: the link
 dials again with exponential backoff and jitter (:class:`Backoff`), with no limit on
 attempts, and re-registers with the ``tid`` of its first registration and a report of what it
-holds. A master that stands by refuses ``register`` naming the leader
+holds. Every link opens with the cluster handshake (:mod:`rce.cluster_auth`): the master
+proves it holds the cluster key before anything is said, and so does the task set. A master that
+stands by refuses ``register`` naming the leader
 (:class:`~rce.errors.NotLeader`): the link goes there at once.
 
 While the master is away:
@@ -30,6 +32,7 @@ from collections.abc import Awaitable, Callable
 from typing import Any, TypeVar
 
 from rce import framing, rpc
+from rce.cluster_auth import AuthFailed, ClusterKey, initiate
 from rce.errors import ConfigError, NotLeader, RCEError, RequestError, Unavailable
 from rce.link import STREAM_LIMIT, nodelay
 from rce.log import get_logger
@@ -145,12 +148,17 @@ class MasterLink:
     ``dial(addr)`` opens the streams of one attempt and ``sleep(s)`` waits out a backoff delay
     (defaults: TCP and :func:`asyncio.sleep`; tests replace them).
 
+    ``cluster_key``: the :class:`~rce.cluster_auth.ClusterKey` both ends prove they hold on every
+    new link, before ``register``; a master that refuses it at the first registration is a
+    mistake (:class:`~rce.cluster_auth.AuthFailed` from :meth:`start`), later it is logged and
+    dialled again.
+
     ``tid``, ``address`` (where it registered last), ``attempts`` (dials), ``registrations``,
     ``dropped`` (kept notifications dropped), ``lost_at`` (loop time the master went away; None
     while it is here)."""
 
     def __init__(self, masters: list[Address], handlers: dict[str, rpc.Handler], info: dict, *,
-                 report: Callable[[], dict] = dict,
+                 cluster_key: ClusterKey, report: Callable[[], dict] = dict,
                  on_registered: Callable[[dict], Awaitable[None]] | None = None,
                  name: str = "master", master_wait: float = MASTER_WAIT, silence: float = MASTER_SILENCE,
                  connect_timeout: float = CONNECT_TIMEOUT, register_timeout: float = REGISTER_TIMEOUT,
@@ -162,6 +170,7 @@ class MasterLink:
             raise ConfigError("no master address given")
         self.masters = list(masters)
         self.handlers, self.info, self.report, self.on_registered = handlers, info, report, on_registered
+        self.cluster_key = cluster_key
         self.name, self.master_wait, self.silence = name, master_wait, silence
         self.connect_timeout, self.register_timeout = connect_timeout, register_timeout
         self.backoff = backoff or Backoff()
@@ -186,7 +195,8 @@ class MasterLink:
     async def start(self) -> dict:
         """Dial and register (retrying with backoff for as long as it takes), then keep the link
         up in the background; returns the first register answer. Raises the master's
-        :class:`RequestError` when it refuses this task set outright, and :class:`Unavailable`
+        :class:`RequestError` when it refuses this task set outright, :class:`AuthFailed` when
+        the cluster keys differ, and :class:`Unavailable`
         when :meth:`close` is called first."""
         self._first = asyncio.get_running_loop().create_future()
         self._tasks.spawn(self._run(), name="dial")
@@ -251,7 +261,7 @@ class MasterLink:
         while not self._closed:
             try:
                 peer, answer = await self._register_somewhere()
-            except RequestError as e:          # refused at the first registration: a mistake, not an outage
+            except (RequestError, AuthFailed) as e:   # refused at the first registration: a mistake, not an outage
                 if not self._first.done():
                     self._first.set_exception(e)
                 return
@@ -335,11 +345,11 @@ class MasterLink:
                 except ConfigError as bad:
                     log.warning("a standby named a leader that is no address", leader=leader, reason=bad.message)
                     return None
-            except RequestError as e:
+            except (RequestError, AuthFailed) as e:     # refused (or the cluster keys differ): a mistake at first
                 if self.tid is None:
                     raise
-                log.warning("the master refused to take this task set back; trying again", master=show(addr),
-                            reason=e.message)
+                log.error("the master refused to take this task set back; trying again", master=show(addr),
+                          reason=e.message)
                 return None
             except (OSError, TimeoutError, RCEError) as e:
                 log.debug("master not reachable", master=show(addr), reason=str(e))
@@ -353,6 +363,11 @@ class MasterLink:
         self.attempts += 1
         async with asyncio.timeout(self.connect_timeout):    # not wait_for: it may swallow a cancel (3.11)
             reader, writer = await self.dial(addr)
+        try:
+            await initiate(reader, writer, self.cluster_key)
+        except BaseException:
+            writer.close()
+            raise
         peer = rpc.RpcPeer(reader, writer, self.handlers, name=self.name, max_frame=self.max_frame,
                            on_close=self._closed_link).start()
         args = dict(self.info)

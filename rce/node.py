@@ -149,8 +149,9 @@ class ServiceProxy:
 class Node:
     """A node connected to a bus. Create with :func:`init_node`."""
 
-    def __init__(self, name: str, namespace: str, bus_path: str, registry: MessageRegistry):
-        self.name, self.namespace, self.bus_path = name, namespace, bus_path
+    def __init__(self, name: str, namespace: str, bus_path: str, registry: MessageRegistry,
+                 bus_token: str | None = None):
+        self.name, self.namespace, self.bus_path, self.bus_token = name, namespace, bus_path, bus_token
         self.registry = registry
         self.full_name = join(namespace, name)
         self._peer: rpc.RpcPeer | None = None
@@ -166,7 +167,7 @@ class Node:
         self._peer = await rpc.connect_unix(self.bus_path, name=f"node {self.full_name}", on_data=self._on_data,
                                             on_close=lambda _p: self._shutdown.set())
         await self._peer.call("hello", name=self.full_name, pid=os.getpid(),
-                              container=os.environ.get("RCE_CONTAINER"))
+                              container=os.environ.get("RCE_CONTAINER"), token=self.bus_token)
 
     def resolve(self, name: str) -> str:
         """Resolve a graph name for this node (global, relative or ``~private``)."""
@@ -300,7 +301,9 @@ async def init_node(name: str | None = None, *, namespace: str | None = None, bu
     """Connect a new node to its bus and return it.
 
     ``name``/``namespace`` default to ``__name:=``/``__ns:=`` remappings, then ``RCE_NODE_NAME``/
-    ``RCE_NAMESPACE``; ``bus`` to ``RCE_BUS``. Raises :class:`Unavailable` if no bus is reachable."""
+    ``RCE_NAMESPACE``; ``bus`` to ``RCE_BUS``; the bus token (a container's bus admits only
+    its own nodes) is ``RCE_BUS_TOKEN``. Raises :class:`Unavailable` if no bus is reachable,
+    :class:`~rce.errors.AuthError` if the bus refuses the token."""
     remaps = _argv_remaps(sys.argv[1:] if argv is None else argv)
     name = remaps.get("__name") or os.environ.get("RCE_NODE_NAME") or name or "node"
     namespace = remaps.get("__ns") or os.environ.get("RCE_NAMESPACE") or namespace or "/"
@@ -309,7 +312,7 @@ async def init_node(name: str | None = None, *, namespace: str | None = None, bu
         raise Unavailable("no bus: set RCE_BUS to the bus socket (rce-ros prints it) or pass bus=")
     reg = registry or default_registry()
     load_package_types(reg)
-    node = Node(name, join("/", namespace), bus, reg)
+    node = Node(name, join("/", namespace), bus, reg, os.environ.get("RCE_BUS_TOKEN"))
     try:
         await node._connect()
     except OSError as e:

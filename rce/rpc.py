@@ -3,7 +3,9 @@
 Wire (CONTROL frames): request ``{"id": n, "op": str, "args": {...}}``; reply
 ``{"re": n, "ok": true, "result": ...}`` or ``{"re": n, "ok": false, "error":
 {"code", "message"}}``; notification ``{"op": str, "args": {...}}`` (no id).
-DATA frames on the same link go to ``on_data``.
+DATA frames on the same link go to ``on_data``. A TCP control link opens with the cluster
+handshake (:mod:`rce.cluster_auth`: :func:`connect` here, :class:`~rce.cluster_auth.Gate` at the
+master) before the first of these frames.
 
 Each incoming request runs in its own task (:class:`rce.link.Responder`), so a slow handler
 never stalls the link; handlers that need ordering serialise themselves (the master keeps
@@ -15,7 +17,7 @@ from __future__ import annotations
 import asyncio
 from typing import Any, Awaitable, Callable
 
-from rce import framing
+from rce import cluster_auth, framing
 from rce.errors import ProtocolError, RCEError, Unavailable
 from rce.link import STREAM_LIMIT, FramedLink, LinkFull, Responder, nodelay
 from rce.log import get_logger
@@ -214,10 +216,18 @@ async def _pong(args: dict) -> None:
     return None
 
 
-async def connect(host: str, port: int, handlers: dict[str, Handler] | None = None, **kw) -> RpcPeer:
-    """Open a TCP control link to ``host:port`` and start it."""
+async def connect(host: str, port: int, handlers: dict[str, Handler] | None = None, *,
+                  cluster_key: cluster_auth.ClusterKey, **kw) -> RpcPeer:
+    """Open a TCP control link to ``host:port``, prove both ends hold ``cluster_key``
+    (:func:`rce.cluster_auth.initiate`: raises :class:`~rce.cluster_auth.AuthFailed`,
+    :class:`ProtocolError`, :class:`~rce.errors.Timeout`, :class:`OSError`) and start it."""
     reader, writer = await asyncio.open_connection(host, port, limit=STREAM_LIMIT)
     nodelay(writer)
+    try:
+        await cluster_auth.initiate(reader, writer, cluster_key)
+    except BaseException:
+        writer.close()
+        raise
     return RpcPeer(reader, writer, handlers, **kw).start()
 
 

@@ -59,6 +59,7 @@ from __future__ import annotations
 import asyncio
 import hashlib
 import inspect
+import ssl
 import json
 import time
 from dataclasses import dataclass
@@ -69,7 +70,7 @@ import aiohttp
 from websockets.asyncio.client import ClientConnection, connect as ws_connect
 from websockets.exceptions import ConnectionClosed, InvalidHandshake, InvalidStatus, InvalidURI
 
-from rce import protocol
+from rce import protocol, tls
 from rce.errors import AuthError, RCEError, Timeout, Unavailable, http_reason
 from rce.log import get_logger
 from rce.masterlink import Backoff
@@ -113,17 +114,19 @@ def _with_query(url: str, **params: str) -> str:
 
 
 async def login(master_url: str, user_id: str, version: str = CLIENT_VERSION,
-                timeout: float = CONNECT_TIMEOUT) -> str:
+                timeout: float = CONNECT_TIMEOUT, ssl_context: ssl.SSLContext | None = None) -> str:
     """Ask the master for this user's robot endpoint; returns its websocket URL.
 
     ``GET master_url?userID=U&version=V`` -> ``{"url": ws_url, "current"?: V'}`` (``current``
-    only when this client is outdated: logged as a warning). Raises :class:`AuthError`
-    (HTTP 401/403) or :class:`Unavailable` (any other HTTP error, an unreachable master,
-    a malformed answer) with the master's one-line reason."""
+    only when this client is outdated: logged as a warning). An ``https://`` master is verified
+    with ``ssl_context`` (default :func:`rce.tls.client_context`: ``$RCE_CA_FILE``, else the
+    system's CAs). Raises :class:`AuthError` (HTTP 401/403) or :class:`Unavailable` (any other
+    HTTP error, an unreachable or untrusted master, a malformed answer) with the master's
+    one-line reason."""
     url = _with_query(master_url, userID=user_id, version=version)
     try:
         async with aiohttp.ClientSession(timeout=aiohttp.ClientTimeout(total=timeout)) as http:
-            async with http.get(url) as resp:
+            async with http.get(url, ssl=ssl_context or tls.client_context()) as resp:
                 body = await resp.read()
                 if resp.status in (401, 403):
                     reason = http_reason(body, resp.reason or "unauthorized")
@@ -132,7 +135,8 @@ async def login(master_url: str, user_id: str, version: str = CLIENT_VERSION,
                     raise Unavailable(f"login at {master_url} failed (HTTP {resp.status}): "
                                       f"{http_reason(body, resp.reason or 'error')}")
     except (aiohttp.ClientError, asyncio.TimeoutError, OSError) as e:
-        raise Unavailable(f"cannot reach the master at {master_url}: {e or type(e).__name__}") from None
+        raise Unavailable(f"cannot reach the master at {master_url}: "
+                          f"{tls.tls_failure(e, master_url) or e or type(e).__name__}") from None
     try:
         answer = json.loads(body)
         ws_url = answer["url"]
@@ -297,6 +301,7 @@ class Connection:
                                      resume_buffer=reconnect.resume_buffer if reconnect else DEFAULT_RESUME_BUFFER)
         self.resumes = self.moves = self.moved_lost = 0
         self.relogin: tuple[str, str, str] | None = None
+        self.ssl_context: ssl.SSLContext | None = None     # verifies a wss:// endpoint (open's ssl_context)
         self.errors: list[str] = []
         self.unhandled = 0                          # DMs for an iTag with no handler
         self.close_reason: str | None = None
@@ -340,7 +345,7 @@ class Connection:
         ``timeout``: s for each of login and handshake; ``options``: those of :meth:`open`
         (``expiry``, ``allow_reconnect``, ...). Raises :class:`AuthError` (bad credentials: HTTP or
         handshake 401/403, with the cloud's reason) or :class:`Unavailable`."""
-        ws_url = await login(master_url, user_id, version, timeout)
+        ws_url = await login(master_url, user_id, version, timeout, options.get("ssl_context"))
         conn = await cls.open(ws_url, user_id, password, robot_id, timeout=timeout, **options)
         conn.relogin = (master_url, password, version)
         return conn
@@ -351,8 +356,12 @@ class Connection:
                    allow_reconnect: bool = False, max_reconnect_attempts: int | None = None,
                    reconnect_time_wait: float = RECONNECT_WAIT, max_reconnect_wait: float = RECONNECT_WAIT_MAX,
                    resume_buffer: int = DEFAULT_RESUME_BUFFER,
-                   endpoint_gone_after: int = ENDPOINT_GONE_AFTER) -> "Connection":
+                   endpoint_gone_after: int = ENDPOINT_GONE_AFTER,
+                   ssl_context: ssl.SSLContext | None = None) -> "Connection":
         """Open the websocket at a known robot endpoint ``ws_url`` (skips the login).
+
+        ``ssl_context`` verifies a ``wss://`` endpoint (and an ``https://`` master on a login; default
+        :func:`rce.tls.client_context`: ``$RCE_CA_FILE``, else the system's CAs).
 
         ``expiry``: s an incomplete message waits for its binary parts. ``allow_reconnect``: ask for
         session resume and reconnect after a lost link (:class:`Reconnect` gives the other settings;
@@ -361,8 +370,10 @@ class Connection:
         reconnect = Reconnect(max_reconnect_attempts, reconnect_time_wait, max_reconnect_wait, resume_buffer,
                               timeout, endpoint_gone_after) if allow_reconnect else None
         query = {"userID": user_id, "robotID": robot_id, "password": hash_password(password)}
+        ssl_context = ssl_context or tls.client_context()
         try:
-            ws = await _dial(_with_query(ws_url, **query, **({"resume": "1"} if allow_reconnect else {})), timeout)
+            ws = await _dial(_with_query(ws_url, **query, **({"resume": "1"} if allow_reconnect else {})), timeout,
+                             ssl_context)
         except _Refused as e:
             if e.status in (401, 403):
                 raise AuthError(f"robot endpoint {ws_url} refused {user_id}/{robot_id}: {e.reason}") from None
@@ -370,7 +381,9 @@ class Connection:
         except Unavailable as e:
             raise Unavailable(f"cannot connect to the robot endpoint {ws_url}: {e.message}") from None
         log.info("connected", user=user_id, robot=robot_id, url=ws_url, resume=allow_reconnect)
-        return cls(ws, user_id, robot_id, ws_url, expiry, reconnect)
+        conn = cls(ws, user_id, robot_id, ws_url, expiry, reconnect)
+        conn.ssl_context = ssl_context
+        return conn
 
     @property
     def closed(self) -> bool:
@@ -667,7 +680,7 @@ class Connection:
                 if self.relogin is not None and refused >= r.gone_after:
                     await self._move()
                     return
-                ws = await _dial(url, r.timeout)
+                ws = await _dial(url, r.timeout, self.ssl_context)
                 break
             except (_Refused, AuthError) as e:  # 401: the session expired (or the token is wrong); 400: bad ack
                 self.close_reason = f"the cloud refused to resume the session ({e})"
@@ -698,12 +711,12 @@ class Connection:
         (the master is unreachable or still names the dead endpoint; try again) or :class:`AuthError`."""
         master_url, password, version = self.relogin
         timeout = self.reconnect.timeout
-        ws_url = await login(master_url, self.user_id, version, timeout)
+        ws_url = await login(master_url, self.user_id, version, timeout, self.ssl_context)
         if ws_url == self.ws_url:
             raise Unavailable(f"the master still names the dead robot endpoint {ws_url}")
         query = {"userID": self.user_id, "robotID": self.robot_id, "password": hash_password(password), "resume": "1"}
         try:
-            ws = await _dial(_with_query(ws_url, **query), timeout)
+            ws = await _dial(_with_query(ws_url, **query), timeout, self.ssl_context)
         except _Refused as e:
             if e.status in (401, 403):
                 raise AuthError(f"robot endpoint {ws_url} refused {self.user_id}/{self.robot_id}: {e.reason}") from None
@@ -785,19 +798,20 @@ async def _awaited(aw: Awaitable) -> Any:
     return await aw
 
 
-async def _dial(url: str, timeout: float) -> ClientConnection:
-    """Open a websocket to ``url`` within ``timeout`` s. Raises :class:`_Refused` (the endpoint answered
-    the handshake with an HTTP error) or :class:`Unavailable` (unreachable, or the handshake failed)."""
+async def _dial(url: str, timeout: float, ssl_context: ssl.SSLContext | None = None) -> ClientConnection:
+    """Open a websocket to ``url`` within ``timeout`` s (``wss://``: verified with ``ssl_context``). Raises
+    :class:`_Refused` (the endpoint answered the handshake with an HTTP error) or :class:`Unavailable`
+    (unreachable, an untrusted certificate, or the handshake failed)."""
     try:
         return await ws_connect(url, open_timeout=timeout, max_size=MAX_FRAME, proxy=None, compression=None,
-                                user_agent_header="rce-client")
+                                user_agent_header="rce-client", ssl=tls.for_url(url, ssl_context))
     except InvalidStatus as e:
         status = e.response.status_code
         raise _Refused(status, http_reason(e.response.body or b"", e.response.reason_phrase or str(status))) from None
     except (ConnectionRefusedError, ConnectionResetError) as e:
         raise _Unreachable(str(e) or type(e).__name__) from None
     except (InvalidHandshake, InvalidURI, OSError, asyncio.TimeoutError) as e:
-        raise Unavailable(str(e) or type(e).__name__) from None
+        raise Unavailable(tls.tls_failure(e, url.split("?", 1)[0]) or str(e) or type(e).__name__) from None
 
 
 async def _close_quietly(ws: ClientConnection) -> None:

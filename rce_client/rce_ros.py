@@ -2,7 +2,7 @@
 
 ::
 
-    rce-ros configs/debug.config [--bus PATH] [--timeout S] [--keep] [--url MASTER_URL] [--no-resume]
+    rce-ros configs/debug.config [--bus PATH | --ros] [--timeout S] [--keep] [--url MASTER_URL] [--no-resume]
 
 1. Loads the robot config (:func:`rce.config.load_config`, JSON or YAML). A bad config is
    refused before anything is sent: exit code 2 and the ConfigError (file, key path, reason).
@@ -21,6 +21,9 @@
    - ``PublisherConverter/Forwarder``: DMs from the cloud are published on the local topic;
    - ``ServiceProviderConverter/Forwarder``: a local service ``addr`` whose calls go to the cloud;
    - ``ServiceClientConverter/Forwarder``: the cloud's calls run against the local service ``addr``.
+
+   With ``--ros`` there is no local bus: the interfaces are bridged to the ROS 1 master named by
+   ``ROS_MASTER_URI``, each at its ``addr`` (:mod:`rce_client.ros1_bridge`).
 
 5. Asks for session resume (docs/INTERNALS.md "Session resume"; ``--no-resume``: not): when the link
    to the cloud drops, the local bus stays up and local programs never notice: their messages to
@@ -45,6 +48,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Awaitable, Callable
 
+from rce import tls
 from rce.process import run_loop
 from rce.bus.core import Bus, Subscription
 from rce.bus.server import BusServer
@@ -102,7 +106,11 @@ def classify(spec: InterfaceSpec, registry: MessageRegistry, where: str) -> _Kin
 
 
 class _ToCloud:
-    """Local topic -> SubscriberConverter/Forwarder: a bounded queue and a sender task."""
+    """Robot-side topic -> SubscriberConverter/Forwarder: a bounded queue and a sender task.
+
+    The robot-side graph calls :meth:`deliver` (in the loop) with each serialized message.
+    ``dropped``: messages not sent (queue full, interface down, or refused); ``bad``: of those,
+    the ones that did not convert or were refused (logged with the reason)."""
 
     def __init__(self, bridge: "RobotBridge", kind: _Kind):
         self.bridge, self.kind = bridge, kind
@@ -110,11 +118,12 @@ class _ToCloud:
         self.pub = bridge.conn.publisher(self.itag, kind.spec.iCls)
         self.queue: asyncio.Queue[bytes] = asyncio.Queue(maxsize=QUEUE_SIZE)
         self.dropped = 0
+        self.bad = 0
         self._warned = False
-        self.sub: Subscription = bridge.bus.subscribe(kind.addr, kind.bus_type, self.deliver, OWNER, QUEUE_SIZE)
         self.task = asyncio.create_task(self._pump())
 
     def deliver(self, payload: bytes) -> bool:
+        """Queue ``payload`` for the cloud; False (and counted) when it is dropped."""
         if not self.bridge.conn.interfaces.get(self.itag):
             self.dropped += 1
             if not self._warned:
@@ -137,11 +146,73 @@ class _ToCloud:
                 await self.pub.publish(msg)
             except RCEError as e:
                 self.dropped += 1
+                self.bad += 1
                 log.warning("message not sent to the cloud", itag=self.itag, reason=e.message)
 
     def close(self) -> None:
         self.task.cancel()
-        self.bridge.bus.unsubscribe(self.sub)
+
+
+class LocalBusGraph:
+    """The robot-side graph of ``rce-ros``: the robot's local bus (:class:`rce.bus.core.Bus`), served
+    on the Unix socket ``bridge.bus_path`` (None: in-process, no socket).
+
+    Every robot-side graph (this one, :class:`rce_client.ros1_bridge.Ros1Graph`) offers the same
+    calls, all made in the loop: :meth:`start`, :meth:`close`, :meth:`subscribe`, :meth:`advertise`,
+    :meth:`advertise_service`, :meth:`call_service`. ``k`` is a :class:`_Kind`."""
+
+    def __init__(self, bridge: "RobotBridge"):
+        self.bridge, self.bus, self.path = bridge, bridge.bus, bridge.bus_path
+        self.server = BusServer(self.bus)
+        self._undo: list[Callable[[], None]] = []
+
+    async def start(self) -> None:
+        """Serve the bus socket. Raises :class:`Unavailable` when another rce-ros serves it."""
+        self.bus.nodes[OWNER] = {"pid": os.getpid(), "container": None}
+        if self.path is None:       # in-process: the owner uses ``bridge.bus`` directly
+            return
+        path = Path(self.path)
+        if path.exists():
+            if _socket_alive(str(path)):
+                raise Unavailable(f"another rce-ros already serves a bus at {path} (pass --bus for another path)")
+        if not path.parent.exists():
+            path.parent.mkdir(parents=True, mode=0o700, exist_ok=True)
+        await self.server.listen(path)
+        out = self.bridge.out
+        out(f"rce-ros: local bus of robot {self.bridge.cfg.robotID} at {path}")
+        out(f"  export RCE_BUS={path}")
+
+    async def close(self) -> None:
+        """Take back what was attached and stop serving the socket (removed)."""
+        for f in self._undo:
+            f()
+        if self.path is None:
+            return
+        await self.server.close()
+        try:
+            os.unlink(self.path)
+        except OSError:
+            pass
+
+    def subscribe(self, k: _Kind, deliver: Callable[[bytes], bool]) -> None:
+        """Hand every message on the local topic ``k.addr`` to ``deliver``."""
+        sub: Subscription = self.bus.subscribe(k.addr, k.bus_type, deliver, OWNER, QUEUE_SIZE)
+        self._undo.append(lambda: self.bus.unsubscribe(sub))
+
+    def advertise(self, k: _Kind) -> Callable[[bytes], None]:
+        """Advertise the local topic ``k.addr``; returns its publish function (serialized bytes)."""
+        topic = self.bus.advertise(k.addr, k.bus_type, OWNER)
+        self._undo.append(lambda: self.bus.unadvertise(k.addr, OWNER))
+        return lambda payload: self.bus.publish(topic, payload)
+
+    def advertise_service(self, k: _Kind, handler: Callable[[bytes], Awaitable[bytes]]) -> None:
+        """Serve the local service ``k.addr`` with ``handler`` (request bytes -> response bytes)."""
+        self.bus.advertise_service(k.addr, k.bus_type, handler, OWNER)
+        self._undo.append(lambda: self.bus.unadvertise_service(k.addr, OWNER))
+
+    async def call_service(self, k: _Kind, payload: bytes) -> bytes:
+        """Call the local service ``k.addr``; raises the bus's :class:`RCEError` on failure."""
+        return await self.bus.call_service(k.addr, payload, k.bus_type)
 
 
 class RobotBridge:
@@ -151,12 +222,14 @@ class RobotBridge:
     ``bus_path`` None serves no socket: an in-process robot (the fleet simulator runs one
     bridge per simulated robot) publishes and subscribes on ``self.bus`` directly; ``run()``
     in a task, ``ready`` tells when the interfaces are up, ``stop.set()`` tears down.
-    ``resume``: ask for session resume and ride out lost links (:class:`Connection` ``allow_reconnect``)."""
+    ``resume``: ask for session resume and ride out lost links (:class:`Connection` ``allow_reconnect``).
+    ``graph(bridge)`` makes the robot-side graph the interfaces are bridged to (default
+    :class:`LocalBusGraph`; ``rce-ros --ros``: :class:`rce_client.ros1_bridge.Ros1Graph`)."""
 
     def __init__(self, config: RobotConfig, source: str, bus_path: str | None, *, timeout: float = 30.0,
                  keep: bool = False, url: str | None = None, registry: MessageRegistry | None = None,
                  out: Callable[[str], None] | None = None, err: Callable[[str], None] | None = None,
-                 resume: bool = True):
+                 resume: bool = True, graph: Callable[["RobotBridge"], Any] | None = None):
         self.cfg, self.source, self.bus_path = config, source, bus_path
         self.timeout, self.keep, self.resume = timeout, keep, resume
         self.url = url or config.url
@@ -164,13 +237,13 @@ class RobotBridge:
         self.out = out or (lambda s: print(s, flush=True))
         self.err = err or (lambda s: print(s, file=sys.stderr, flush=True))
         self.bus = Bus(f"robot {config.robotID}")
-        self.server = BusServer(self.bus)
+        self.graph = (graph or LocalBusGraph)(self)
         self.conn: Connection | None = None
         self.stop = asyncio.Event()
         self.ready = asyncio.Event()            # set once every robot-side interface is up
         self.created: list[str] = []            # containers this run created
         self._to_cloud: list[_ToCloud] = []
-        self._cleanup: list[Callable[[], None]] = []
+        self.not_published: dict[str, int] = {}   # iTag -> messages from the cloud that did not convert
         robot = config.robotID
         self.robot_side = [i for i in config.interfaces if i.eTag == robot]
         self.kinds: list[_Kind] = []
@@ -223,7 +296,7 @@ class RobotBridge:
         """Run until stopped; returns the exit code (0 clean stop, 1 failure)."""
         load_package_types(self.registry)
         self._check_local_types()     # ConfigError before anything is sent
-        await self._start_bus()
+        await self.graph.start()
         try:
             try:
                 await self._connect_and_setup()
@@ -241,35 +314,18 @@ class RobotBridge:
                     await self._teardown()
                 return 1
         finally:
-            await self._stop_bus()
+            for c in self._to_cloud:
+                c.close()
+            self._report_drops()
+            await self.graph.close()
 
-    async def _start_bus(self) -> None:
-        if self.bus_path is None:       # in-process: the owner uses ``self.bus`` directly
-            self.bus.nodes[OWNER] = {"pid": os.getpid(), "container": None}
-            return
-        path = Path(self.bus_path)
-        if path.exists():
-            if _socket_alive(str(path)):
-                raise Unavailable(f"another rce-ros already serves a bus at {path} (pass --bus for another path)")
-        if not path.parent.exists():
-            path.parent.mkdir(parents=True, mode=0o700, exist_ok=True)
-        await self.server.listen(path)
-        self.bus.nodes[OWNER] = {"pid": os.getpid(), "container": None}
-        self.out(f"rce-ros: local bus of robot {self.cfg.robotID} at {path}")
-        self.out(f"  export RCE_BUS={path}")
-
-    async def _stop_bus(self) -> None:
+    def _report_drops(self) -> None:
+        """Print the messages this run dropped, per interface (nothing when none were)."""
         for c in self._to_cloud:
-            c.close()
-        for f in self._cleanup:
-            f()
-        if self.bus_path is None:
-            return
-        await self.server.close()
-        try:
-            os.unlink(self.bus_path)
-        except OSError:
-            pass
+            if c.dropped:
+                self.out(f"rce-ros: {c.itag}: {c.dropped} message(s) not sent to the cloud ({c.bad} refused)")
+        for itag, n in self.not_published.items():
+            self.out(f"rce-ros: {itag}: {n} message(s) from the cloud not published (did not convert)")
 
     async def _connect_and_setup(self) -> None:
         cfg = self.cfg
@@ -312,39 +368,42 @@ class RobotBridge:
 
     # -- bridges -----------------------------------------------------------------------------
     def _bridge(self) -> None:
-        """Attach every robot-side interface to the local bus (messages flow once it is up)."""
+        """Attach every robot-side interface to the robot-side graph (messages flow once it is up)."""
+        graph = self.graph
         for k in self.kinds:
             try:
                 if k.prefix == "Subscriber":
-                    self._to_cloud.append(_ToCloud(self, k))
+                    to_cloud = _ToCloud(self, k)
+                    self._to_cloud.append(to_cloud)
+                    graph.subscribe(k, to_cloud.deliver)
                 elif k.prefix == "Publisher":
-                    self._from_cloud(k)
+                    self._from_cloud(k, graph.advertise(k))
                 elif k.prefix == "ServiceProvider":
-                    self._local_service(k)
+                    graph.advertise_service(k, self._cloud_service(k))
                 else:
-                    self._cloud_calls(k)
+                    self._cloud_calls(k, lambda payload, k=k: graph.call_service(k, payload))
             except RCEError as e:
                 raise ConfigError(f"{self.source}: interface {k.spec.iTag} at {k.addr}: {e.message}") from None
             log.info("bridged", itag=k.spec.iTag, itype=k.spec.iType, addr=k.addr)
 
-    def _from_cloud(self, k: _Kind) -> None:
-        """PublisherConverter/Forwarder: DMs from the cloud published on the local topic."""
-        topic = self.bus.advertise(k.addr, k.bus_type, OWNER)
-        self._cleanup.append(lambda: self.bus.unadvertise(k.addr, OWNER))
+    def _from_cloud(self, k: _Kind, publish: Callable[[bytes], Any]) -> None:
+        """PublisherConverter/Forwarder: DMs from the cloud published (serialized) with ``publish``."""
         reg = self.registry
 
         def on_msg(msg: Message) -> None:
             try:
                 payload = bytes(msg) if isinstance(msg, (bytes, bytearray)) else reg.json_to_bytes(k.types[0], msg)
             except (RCEError, IndexError) as e:
+                self.not_published[k.spec.iTag] = self.not_published.get(k.spec.iTag, 0) + 1
                 log.warning("message from the cloud not published", itag=k.spec.iTag, topic=k.addr,
                             reason=getattr(e, "message", repr(e)))
                 return
-            self.bus.publish(topic, payload)
+            publish(payload)
         self.conn.subscriber(k.spec.iTag, k.spec.iCls, on_msg)
 
-    def _local_service(self, k: _Kind) -> None:
-        """ServiceProviderConverter/Forwarder: a local service whose calls go to the cloud."""
+    def _cloud_service(self, k: _Kind) -> Callable[[bytes], Awaitable[bytes]]:
+        """ServiceProviderConverter/Forwarder: the handler of the robot-side service ``k.addr``, whose
+        calls (request bytes -> response bytes) go to the cloud. Raises :class:`RCEError`."""
         client = self.conn.service(k.spec.iTag, k.spec.iCls)
         reg, itag = self.registry, k.spec.iTag
 
@@ -362,11 +421,11 @@ class RobotBridge:
             if isinstance(resp, (bytes, bytearray)):
                 return bytes(resp)
             return reg.json_to_bytes(k.types[1], resp)
-        self.bus.advertise_service(k.addr, k.bus_type, handler, OWNER)
-        self._cleanup.append(lambda: self.bus.unadvertise_service(k.addr, OWNER))
+        return handler
 
-    def _cloud_calls(self, k: _Kind) -> None:
-        """ServiceClientConverter/Forwarder: the cloud's calls run against the local service."""
+    def _cloud_calls(self, k: _Kind, call_local: Callable[[bytes], Awaitable[bytes]]) -> None:
+        """ServiceClientConverter/Forwarder: the cloud's calls run against the robot-side service
+        with ``call_local`` (request bytes -> response bytes)."""
         reg = self.registry
 
         async def handler(req: Message) -> Message:
@@ -376,7 +435,7 @@ class RobotBridge:
                 payload = reg.json_to_bytes(k.types[0], req)
             else:
                 raise MessageError(f"service {k.addr}: JSON request for unknown class {k.spec.iCls}")
-            resp = await self.bus.call_service(k.addr, payload, k.bus_type)
+            resp = await call_local(payload)
             return resp if k.forwarder else reg.bytes_to_json(k.types[1], resp)
         self.conn.service_provider(k.spec.iTag, k.spec.iCls, handler)
 
@@ -432,6 +491,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("config", help="robot config (JSON like the seed's robot1.config, or YAML)")
     p.add_argument("--bus", metavar="PATH", help="local bus socket (default $XDG_RUNTIME_DIR/rce/<robotID>.sock "
                    "or /tmp/rce-<uid>/<robotID>.sock)")
+    p.add_argument("--ros", action="store_true", help="bridge the robot-side interfaces to the ROS 1 master named "
+                   "by ROS_MASTER_URI (Debian's ros-comm) instead of a local bus")
     p.add_argument("--timeout", type=float, default=30.0, metavar="S",
                    help="seconds to wait for the robot-side interfaces to come up (default 30)")
     p.add_argument("--keep", action="store_true", help="do not remove interfaces and containers on exit (note: "
@@ -439,6 +500,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--url", metavar="MASTER_URL", help="master login URL (overrides the config's url)")
     p.add_argument("--no-resume", dest="resume", action="store_false",
                    help="do not ask for session resume: a lost link ends the run (exit code 1)")
+    tls.add_client_arguments(p)
     return p
 
 
@@ -451,11 +513,19 @@ def main(argv: list[str] | None = None) -> None:
     except ConfigError as e:
         print(f"rce-ros: {e.message}", file=sys.stderr)
         sys.exit(2)
-    bus_path = args.bus or default_bus_path(cfg.robotID)
+    if args.ros and args.bus:
+        build_parser().error("--bus and --ros exclude each other: with --ros the interfaces are on the ROS 1 graph")
+    bus_path = None if args.ros else args.bus or default_bus_path(cfg.robotID)
+    if args.ca_file:           # the https:// login and the wss:// endpoint trust it (rce.tls.client_context)
+        os.environ[tls.CA_FILE_ENV] = str(args.ca_file)
 
     async def amain() -> int:
+        graph = None
+        if args.ros:
+            from rce_client.ros1_bridge import Ros1Graph
+            graph = Ros1Graph
         bridge = RobotBridge(cfg, args.config, bus_path, timeout=args.timeout, keep=args.keep, url=args.url,
-                             resume=args.resume)
+                             resume=args.resume, graph=graph)
         loop = asyncio.get_running_loop()
         for sig in (signal.SIGINT, signal.SIGTERM):
             loop.add_signal_handler(sig, bridge.stop.set)

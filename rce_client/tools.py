@@ -48,6 +48,7 @@ from typing import Any, Callable
 
 import yaml
 
+from rce import tls
 from rce.admin_client import AdminClient
 from rce.errors import MessageError, NotFound, RCEError, RequestError, Unavailable
 from rce.log import setup_logging
@@ -210,7 +211,7 @@ def pick_backend(args: argparse.Namespace) -> LocalBus | AdminBus:
         missing = [o for o, v in (("--master", args.master), ("--user", args.user)) if not v]
         if missing:
             raise Unavailable(f"--container needs {' and '.join(missing)}")
-        return AdminBus(AdminClient.from_options(args.master, args.admin_token, args.admin_token_file),
+        return AdminBus(AdminClient.from_options(args.master, args.admin_token, args.admin_token_file, args.ca_file),
                         args.user, args.container)
     path = args.bus or os.environ.get("RCE_BUS")
     if not path:
@@ -258,6 +259,8 @@ def _common(p: argparse.ArgumentParser, suppress: bool) -> None:
                    "~/.config/rce/admin-token)", **d)
     g.add_argument("--admin-token-file", metavar="PATH", type=Path, help="the master's admin token file "
                    "(default ~/.config/rce/admin-token)", **d)
+    g.add_argument("--ca-file", metavar="FILE", type=Path, help="CA certificate(s) of an https:// master "
+                   f"(default ${tls.CA_FILE_ENV}, else the system's CAs)", **d)
 
 
 def _parser(prog: str, desc: str) -> tuple[argparse.ArgumentParser, Any, Callable]:

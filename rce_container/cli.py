@@ -17,7 +17,7 @@ import sys
 import tempfile
 
 from rce.process import run_loop
-from rce import framing
+from rce import cluster_auth, framing
 from rce.errors import RCEError
 from rce.log import get_logger, setup_logging
 from rce.masterlink import MASTER_PORT, unless_stopped
@@ -44,6 +44,7 @@ def parser() -> argparse.ArgumentParser:
                         "removed on exit)")
     p.add_argument("--ready-file", default=None, metavar="PATH",
                    help='write {"tid": ..., "pid": ...} as JSON here once registered with the master')
+    p.add_argument("--cluster-key-file", type=str, default=None, metavar="PATH", help=cluster_auth.KEY_FLAG_HELP)
     p.add_argument("--max-frame", type=int, default=framing.DEFAULT_MAX_FRAME,
                    help=f"largest frame accepted on any link, bytes (default {framing.DEFAULT_MAX_FRAME})")
     p.add_argument("--sandbox", default="auto", choices=["auto", *sorted(sandboxes.REGISTRY)],
@@ -61,10 +62,12 @@ def parser() -> argparse.ArgumentParser:
 
 
 async def amain(args: argparse.Namespace) -> int:
+    cluster_key = cluster_auth.ClusterKey.load(args.cluster_key_file)     # before anything is made: exit 2 if none
     own = args.runtime_dir is None
     runtime_dir = args.runtime_dir or tempfile.mkdtemp(
         prefix="rce-container-", dir=os.environ.get("XDG_RUNTIME_DIR") or None)
     host = ContainerHost(args.master, args.master_port, name=args.name or socket.gethostname(), bind=args.bind,
+                         cluster_key=cluster_key,
                          advertise_host=args.advertise_host, runtime_dir=runtime_dir, own_runtime_dir=own,
                          sandbox=args.sandbox, max_frame=args.max_frame, grace=args.grace, warm=args.warm,
                          metrics_port=args.metrics_port)

@@ -12,7 +12,8 @@ Run by the container task set as ``python -m rce_container.environment --control
 
 It dials its task set's control socket, says ``hello {env_id, pid, data_addr}``, then serves
 the ops the task set relays (docs/INTERNALS.md, "Master -> container task set") plus
-``add_container``, ``remove_container``, ``shutdown``, ``stats`` and ``logs``. It sends
+``data_key`` (its data-plane key, :mod:`rce.cluster_auth`), ``add_container``, ``remove_container``,
+``shutdown``, ``stats`` and ``logs``. It sends
 ``node_status`` notifications up the same link and exits (killing its nodes) when the link
 closes or on SIGTERM/SIGINT.
 """
@@ -21,6 +22,7 @@ from __future__ import annotations
 import argparse
 import asyncio
 import os
+import secrets
 import shutil
 import signal
 import sys
@@ -32,6 +34,7 @@ from rce.process import run_loop
 from rce import framing, rpc
 from rce.bus.core import Bus
 from rce.bus.server import BusServer
+from rce.cluster_auth import token_of
 from rce.dataplane import DataPlane
 from rce.errors import MessageError, NotFound, RCEError, RequestError
 from rce.log import get_logger, setup_logging
@@ -41,6 +44,7 @@ from rce.package_path import load_package_types
 from rce_container import sandbox as sandboxes
 from rce_container.interfaces import BusInterface, make_interface
 from rce_container.launcher import LOG_LINES, Launcher
+from rce_container.ros1_graph import Ros1Graph
 from rce_container.usage import CpuRate, measure
 
 log = get_logger("rce.container.env")
@@ -51,6 +55,7 @@ MAX_SAMPLE_TIMEOUT = 300  # s, the longest a bus_sample may wait
 BUS_CALL_TIMEOUT = 10.0   # s a bus_call waits for the service when the request gives no timeout
 BUS_SAMPLE_TIMEOUT = 5.0  # s a bus_sample waits for messages when the request gives no timeout
 MAX_SOCKET_PATH = 107     # bytes, sun_path minus the NUL
+BUS_TOKEN_BYTES = 32      # random bytes of a container's bus token (64 hex chars, 256 bits)
 
 
 def container_paths(runtime_dir: Path, socket_dir: Path, cid: int) -> tuple[Path, Path]:
@@ -66,10 +71,12 @@ class Container:
         self.limits = limits
         self.workdir, socket = container_paths(env.runtime_dir, env.socket_dir, cid)
         self.socket = str(socket)
-        self.server = BusServer(env.bus)
+        token = secrets.token_hex(BUS_TOKEN_BYTES)     # only this container's nodes get it (RCE_BUS_TOKEN)
+        self.server = BusServer(env.bus, token=token)
         self.sandbox = env.sandbox_cls(cid, ctag, limits, self.workdir, grace=env.grace, bus_socket=self.socket,
                                        scope=env.scope)
-        self.launcher = Launcher(self.sandbox, self.socket, ctag, self._status)
+        self.launcher = Launcher(self.sandbox, self.socket, ctag, self._status, bus_token=token)
+        self.ros1 = Ros1Graph(self.launcher, cid, env.bus)     # rosmaster and relay, while it has ROS 1 nodes
         self.interfaces: dict[int, BusInterface] = {}
 
     def _status(self, ntag: str, status: str, **fields: Any) -> None:
@@ -82,11 +89,14 @@ class Container:
         self.workdir.mkdir(parents=True, exist_ok=True)
         Path(self.socket).parent.mkdir(parents=True, exist_ok=True)
         await self.sandbox.setup()          # before the socket exists: its directory is bind-mounted
+        if self.sandbox.node_uid is not None:     # the socket is the node uid's, and only it may connect
+            self.server.owner, self.server.uids = self.sandbox.node_uid, frozenset({self.sandbox.node_uid})
         await self.server.listen(self.socket)
 
     async def close(self) -> None:
         """Kill the nodes, drop the interfaces, close the socket, remove the workdir."""
         await self.launcher.close()
+        await self.ros1.close()
         await self.sandbox.close()
         for iface in list(self.interfaces.values()):
             await self.env.drop_interface(iface)
@@ -288,12 +298,21 @@ class Environment:
 
     # -- nodes ---------------------------------------------------------------------------------
     async def op_add_node(self, a: dict) -> dict:
-        """``{cid, ntag, pkg, exe, args, name, namespace, respawn}`` -> ``{ntag, pid}``."""
-        return await self._container(a).launcher.add(a)
+        """``{cid, ntag, pkg, exe, args, name, namespace, respawn}`` -> ``{ntag, pid}``. A node of a
+        ROS 1 package first gets its container's ROS 1 graph (:mod:`rce_container.ros1_graph`)."""
+        c = self._container(a)
+        kind = await c.ros1.prepare(a)
+        try:
+            return await c.launcher.add(a, kind)
+        finally:
+            if kind is not None and a.get("ntag") not in c.launcher.nodes:
+                await c.ros1.node_gone(a["ntag"])
 
     async def op_remove_node(self, a: dict) -> dict:
         """``{cid, ntag}``: stop the node (SIGTERM, then SIGKILL after the grace period)."""
-        await self._container(a).launcher.remove(a["ntag"])
+        c = self._container(a)
+        await c.launcher.remove(a["ntag"])
+        await c.ros1.node_gone(a["ntag"])
         return {}
 
     async def op_logs(self, a: dict) -> dict:
@@ -305,13 +324,25 @@ class Environment:
         """``{cid, name, value}``: set a parameter (global name) on the group's bus."""
         self._container(a)
         self.bus.set_param(resolve(a["name"], "/"), a.get("value"))
+        await self._sync_ros1()
         return {}
 
     async def op_delete_param(self, a: dict) -> dict:
         """``{cid, name}``: delete a parameter (and its subtree). NotFound if not set."""
         self._container(a)
         self.bus.delete_param(resolve(a["name"], "/"))
+        await self._sync_ros1()
         return {}
+
+    async def _sync_ros1(self) -> None:
+        """Copy the bus's parameters into the ROS 1 graphs of the group's containers now."""
+        await asyncio.gather(*(c.ros1.sync() for c in self.containers.values()))
+
+    async def op_get_param(self, a: dict) -> dict:
+        """``{cid, name}`` -> ``{value}``: a parameter's value (a subtree as an object), for a
+        rosbridge client's ``/rosapi/get_param``. NotFound if not set."""
+        self._container(a)
+        return {"value": self.bus.get_param(resolve(a["name"], "/"))}
 
     # -- interfaces ----------------------------------------------------------------------------
     async def op_add_interface(self, a: dict) -> dict:
@@ -344,9 +375,19 @@ class Environment:
         await self.drop_interface(self._interface(a))
         return {}
 
+    async def op_data_key(self, a: dict) -> dict:
+        """``{key}`` (hex; from the task set, once, right after ``hello``): this environment's data
+        key, derived from the cluster key and its data address (:mod:`rce.cluster_auth`); peers'
+        grants are checked with it."""
+        if self.plane.data_key is not None:
+            raise RequestError("this environment has its data key already")
+        self.plane.data_key = bytes.fromhex(str(a.get("key")))
+        return {}
+
     async def op_connect(self, a: dict) -> dict:
-        """``{cid, iid, peer_iid, peer_addr}``: connect an interface to a peer interface."""
-        self._interface(a).connect(int(a["peer_iid"]), a["peer_addr"])
+        """``{cid, iid, peer_iid, peer_addr, token}``: connect an interface to a peer interface
+        (``token``: the master's credential for sending to it)."""
+        self._interface(a).connect(int(a["peer_iid"]), a["peer_addr"], token_of(a))
         return {}
 
     async def op_disconnect(self, a: dict) -> dict:
@@ -433,12 +474,15 @@ class Environment:
              msgs_in, msgs_out, bytes_in, bytes_out,          # over the container's interfaces
              dropped: {interfaces, bus},                       # refused by peer links / bus subscriptions
              interfaces: [{iid, tag, kind, cls, addr, peers, msgs_in, msgs_out, bytes_in, bytes_out, dropped}],
-             sandbox_info: {kind, limits, init_pid?, namespaces?, cgroup?: {version, dirs, files}},
+             sandbox_info: {kind, limits, init_pid?, namespaces?, uid?, cgroup?: {version, dirs, files}},
              environment: {env_id, pid, rss_mib, cpu_percent, containers, data_addr,
-                           bus: {topics, services, nodes, messages, bytes, dropped},
-                           dataplane: {msgs_in, msgs_out, bytes_in, bytes_out, dropped, links}}}
+                           bus: {topics, services, refused, nodes, messages, bytes, dropped},
+                                 # refused: connections to the group's bus sockets turned away
+                           dataplane: {msgs_in, msgs_out, bytes_in, bytes_out, dropped, links}},
+             ros1?: {master_uri, running, nodes, pids, relay}}  # while it has ROS 1 nodes (Ros1Graph.info)
         """
         c = self._container(a)
+        await c.ros1.sync()
         topics = self.bus.topics.values()
         env_mem = measure([os.getpid()])
         return {**c.stats(), "sandbox_info": c.sandbox.info(), "environment": {
@@ -447,9 +491,10 @@ class Environment:
             "env_id": self.env_id, "pid": os.getpid(), "containers": len(self.containers),
             "data_addr": self.plane.addr,
             "bus": {"topics": len(self.bus.topics), "services": len(self.bus.services),
+                    "refused": sum(c.server.refused for c in self.containers.values()),
                     "nodes": len(self.bus.nodes), "messages": sum(t.messages for t in topics),
                     "bytes": sum(t.bytes for t in topics), "dropped": sum(t.dropped for t in topics)},
-            "dataplane": self.plane.stats()}}
+            "dataplane": self.plane.stats()}, **({"ros1": c.ros1.info()} if c.ros1.ntags else {})}
 
 
 async def run(args: argparse.Namespace) -> int:

@@ -39,6 +39,7 @@ from aiohttp import web
 from prometheus_client import CONTENT_TYPE_LATEST, generate_latest
 
 from rce import framing, rpc
+from rce.cluster_auth import ClusterKey, peer_pid
 from rce.errors import NotFound, RCEError, RequestError, Timeout, Unavailable
 from rce.link import STREAM_LIMIT
 from rce.log import get_logger
@@ -58,7 +59,7 @@ REPLY_MARGIN = 10.0        # s on top of an op's own time limit (a bus_call's ti
 EXIT_MARGIN = 5.0          # s on top of the grace period for an environment to exit before it is killed
 
 CONTROL_SOCKET = "host.sock"
-RELAYED_OPS = ("add_node", "remove_node", "set_param", "delete_param", "add_interface", "remove_interface",
+RELAYED_OPS = ("add_node", "remove_node", "set_param", "delete_param", "get_param", "add_interface", "remove_interface",
                "connect", "disconnect", "describe", "bus_publish", "bus_call", "bus_sample", "logs",
                "resize_container")
 
@@ -117,15 +118,17 @@ class ContainerHost:
     and SIGKILL for nodes; ``warm``: idle environments kept started, so that a new group's
     ``create_container`` does not wait for a Python process to start; ``metrics_port``: serve
     Prometheus ``/metrics`` on ``bind`` at this port (0: an ephemeral one, read back from
-    ``self.metrics_port``; None: no metrics server)."""
+    ``self.metrics_port``; None: no metrics server); ``cluster_key``: proved to the master on every
+    link (:mod:`rce.cluster_auth`); each environment gets only its own data key derived from it."""
 
     def __init__(self, master: str | list[str], master_port: int = MASTER_PORT, *, name: str | None = None,
                  bind: str = "127.0.0.1", advertise_host: str | None = None, runtime_dir: str | Path,
                  own_runtime_dir: bool = False, sandbox: str = "auto",
                  max_frame: int = framing.DEFAULT_MAX_FRAME, env_timeout: float = ENV_TIMEOUT,
                  grace: float = sandboxes.DEFAULT_GRACE,
-                 warm: int = 1, metrics_port: int | None = None):
+                 warm: int = 1, metrics_port: int | None = None, cluster_key: ClusterKey):
         self.masters = parse_masters(master, master_port)
+        self.cluster_key = cluster_key
         self.name = name or socket.gethostname()
         self.bind, self.advertise_host = bind, advertise_host or bind
         self.runtime_dir = Path(runtime_dir)
@@ -179,7 +182,7 @@ class ContainerHost:
         info = {"kind": "container", "name": self.name, "host": self.advertise_host, "sandbox": self.sandbox_cls.kind,
                 "capacity": {"cpu": os.cpu_count() or 1, "memory": psutil.virtual_memory().total // 2**20}}
         self.master = MasterLink(self.masters, handlers, info, report=self._report, on_registered=self._obey,
-                                 max_frame=self.max_frame)
+                                 max_frame=self.max_frame, cluster_key=self.cluster_key)
         await self.master.start()
         log.info("container task set up", tid=self.tid, name=self.name, sandbox=self.sandbox_cls.kind,
                  runtime_dir=str(self.runtime_dir))
@@ -295,11 +298,25 @@ class ContainerHost:
         env.peer.name = f"environment {env.env_id}"
         env.peer.on_close = lambda _p, e=env: self._env_link_closed(e)
         env.data_addr = info.get("data_addr", "")
+        await self._give_data_key(env)
         self.envs.add(env)
         self.tasks.spawn(self._watch_env(env), name=f"environment {env.env_id}")
         log.info("environment started", env=env.env_id, pid=env.proc.pid, data_addr=env.data_addr,
                  ms=round((time.monotonic() - env.started) * 1000, 1))
         return env
+
+    async def _give_data_key(self, env: EnvHandle) -> None:
+        """Hand the environment that said hello its data key (:mod:`rce.cluster_auth`), once the
+        kernel confirms the hello came from the process this task set started. Raises
+        :class:`Unavailable` (the environment is killed) otherwise."""
+        pid = peer_pid(env.peer.link.writer)
+        try:
+            if pid != env.proc.pid:
+                raise Unavailable(f"environment {env.env_id}'s hello came from pid {pid}, not {env.proc.pid}")
+            await env.peer.call("data_key", key=self.cluster_key.data_key(env.data_addr).hex())
+        except RCEError:
+            await self._kill_env_proc(env)
+            raise
 
     async def _exit_before_hello(self, env: EnvHandle) -> None:
         code = await env.proc.wait()

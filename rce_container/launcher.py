@@ -8,9 +8,13 @@ namespace, respawn}``.
   runs with this interpreter, anything else is executed directly.
 - ``args`` is a list of strings, or a string split like a shell (:mod:`shlex`) after the RCE
   alpha / roslaunch directives ``$(find PKG)`` (package directory), ``$(env VAR)`` (must be
-  set) and ``$(optenv VAR [default])`` are expanded.
-- ``name`` (default: the nTag) and ``namespace`` reach :mod:`rce.node` as ``RCE_NODE_NAME``
-  and ``RCE_NAMESPACE``; ``RCE_BUS`` is the container's bus socket, ``RCE_CONTAINER`` its cTag.
+  set) and ``$(optenv VAR [default])`` are expanded. ``VAR`` is read from the node's own
+  environment and must be one of :data:`rce_container.node_env.ENV_DIRECTIVE_ALLOWED` (never
+  a host variable; ``$(optenv)`` of another name gives its default).
+- The node's environment is :func:`rce_container.node_env.node_env` (minimal; nothing of the
+  host's). ``name`` (default: the nTag) and ``namespace`` reach :mod:`rce.node` as
+  ``RCE_NODE_NAME`` and ``RCE_NAMESPACE``; ``RCE_BUS`` is the container's bus socket,
+  ``RCE_BUS_TOKEN`` its bus token, ``RCE_CONTAINER`` its cTag.
 - ``respawn``: ``true`` or ``{"delay": s, "limit": n}`` (roslaunch's respawn/respawn_delay;
   ``limit`` counts restarts, absent = unlimited).
 
@@ -36,6 +40,7 @@ from rce.log import get_logger
 from rce.naming import join, validate_name
 from rce.package_path import find_executable, find_package
 from rce.tasks import Tasks
+from rce_container.node_env import ENV_DIRECTIVE_ALLOWED, directive_env, node_env
 from rce_container.sandbox import Sandbox
 
 log = get_logger("rce.container.launcher")
@@ -50,15 +55,24 @@ StatusCallback = Callable[..., None]   # on_status(ntag, status, **fields)
 _DIRECTIVE = re.compile(r"\$\((\w+)((?:\s+[^()\s]+)*)\s*\)")
 
 
-def expand_directives(text: str, env: dict[str, str] | None = None) -> str:
-    """Expand ``$(find PKG)``, ``$(env VAR)`` and ``$(optenv VAR [default])`` in ``text``.
+def expand_directives(text: str, env: dict[str, str] | None = None,
+                      allowed: frozenset[str] | None = None) -> str:
+    """Expand ``$(find PKG)``, ``$(env VAR)`` and ``$(optenv VAR [default])`` in ``text``;
+    ``VAR`` is read from ``env`` and, when ``allowed`` is given, must be one of its names
+    (``$(optenv VAR default)`` of another name is its default, as for an unset variable).
 
     Raises :class:`NotFound` for an unknown package, :class:`RequestError` for an unset
-    ``$(env VAR)``, an unknown directive or a wrong number of arguments."""
+    ``$(env VAR)``, a ``VAR`` not in ``allowed``, an unknown directive or a wrong number of
+    arguments."""
     env = os.environ if env is None else env
 
     def sub(m: re.Match) -> str:
         kind, args = m.group(1), m.group(2).split()
+        if kind == "optenv" and args and allowed is not None and args[0] not in allowed:
+            return " ".join(args[1:])          # a variable it may not read is, to it, not set
+        if kind == "env" and len(args) == 1 and allowed is not None and args[0] not in allowed:
+            raise RequestError(f"{m.group(0)}: node args may not read {args[0]!r}; $(env X) and $(optenv X) "
+                               f"read only the node's own variables {', '.join(sorted(allowed))}")
         if kind == "find" and len(args) == 1:
             return str(find_package(args[0], env))
         if kind == "env" and len(args) == 1:
@@ -72,10 +86,12 @@ def expand_directives(text: str, env: dict[str, str] | None = None) -> str:
     return _DIRECTIVE.sub(sub, text)
 
 
-def build_args(args: str | list | None, env: dict[str, str] | None = None) -> list[str]:
+def build_args(args: str | list | None, env: dict[str, str] | None = None,
+               allowed: frozenset[str] | None = None) -> list[str]:
     """Node arguments as a list: a string is split like a shell, directives expanded in each
     word (so an expanded path with spaces stays one argument; a word that is only a directive
     expanding to nothing is dropped, as roslaunch does); a list is taken item by item.
+    ``env``/``allowed``: as in :func:`expand_directives`.
 
     Raises :class:`RequestError` for unbalanced quotes or a non-string item."""
     if args is None or args == "":
@@ -83,7 +99,7 @@ def build_args(args: str | list | None, env: dict[str, str] | None = None) -> li
     if isinstance(args, list):
         if not all(isinstance(a, (str, int, float)) for a in args):
             raise RequestError(f"node args must be a string or a list of strings, got {args!r}")
-        return [expand_directives(str(a), env) for a in args]
+        return [expand_directives(str(a), env, allowed) for a in args]
     if not isinstance(args, str):
         raise RequestError(f"node args must be a string or a list of strings, got {args!r}")
     # Protect directives (which contain spaces) from the shell split, then expand per word.
@@ -100,7 +116,7 @@ def build_args(args: str | list | None, env: dict[str, str] | None = None) -> li
     restore = re.compile("\x00(\\d+)\x00")
     out = []
     for w in words:
-        value = expand_directives(restore.sub(lambda m: found[int(m.group(1))], w), env)
+        value = expand_directives(restore.sub(lambda m: found[int(m.group(1))], w), env, allowed)
         if value or not restore.fullmatch(w):    # a lone directive that expands to "" is no argument
             out.append(value)
     return out
@@ -176,16 +192,17 @@ class Launcher:
     """Starts, watches and stops the nodes of one container.
 
     ``sandbox``: where processes run; ``bus_path``: the container's bus socket; ``ctag``: the
-    container tag (``RCE_CONTAINER``); ``on_status(ntag, status, **fields)``: status reports."""
+    container tag (``RCE_CONTAINER``); ``on_status(ntag, status, **fields)``: status reports;
+    ``bus_token``: the container's bus token (``RCE_BUS_TOKEN``)."""
 
-    def __init__(self, sandbox: Sandbox, bus_path: str, ctag: str, on_status: StatusCallback):
-        self.sandbox, self.bus_path, self.ctag = sandbox, bus_path, ctag
+    def __init__(self, sandbox: Sandbox, bus_path: str, ctag: str, on_status: StatusCallback, bus_token: str = ""):
+        self.sandbox, self.bus_path, self.ctag, self.bus_token = sandbox, bus_path, ctag, bus_token
         self.on_status = on_status
         self.nodes: dict[str, NodeProcess] = {}
         self.starts = 0   # processes started, respawns included
         self.tasks = Tasks(f"launcher of {ctag}")
 
-    def _prepare(self, spec: dict) -> NodeProcess:
+    def _prepare(self, spec: dict, kind: dict | None = None) -> NodeProcess:
         ntag = spec.get("ntag")
         if not isinstance(ntag, str) or not ntag:
             raise RequestError("add_node needs a non-empty 'ntag'")
@@ -201,20 +218,19 @@ class Launcher:
         if name.startswith(("/", "~")) or "/" in name.strip("/"):
             raise RequestError(f"node name {name!r} must be a base name (use 'namespace' to place it)")
         enabled, delay, limit = parse_respawn(spec.get("respawn"))
-        env = dict(os.environ)
-        for k in ("RCE_BUS", "RCE_NODE_NAME", "RCE_NAMESPACE", "RCE_CONTAINER"):
-            env.pop(k, None)
-        args = build_args(spec.get("args"), env)
-        env.update(RCE_BUS=self.bus_path, RCE_CONTAINER=self.ctag, RCE_NODE_NAME=name,
-                   RCE_NAMESPACE=join("/", namespace), PYTHONUNBUFFERED="1")
+        env = node_env(bus=self.bus_path, token=self.bus_token, ctag=self.ctag, name=name,
+                       namespace=join("/", namespace), home=self.sandbox.workdir, extra=(kind or {}).get("env"))
+        args = build_args(spec.get("args"), directive_env(env), ENV_DIRECTIVE_ALLOWED) + (kind or {}).get("args", [])
         python = path.suffix == ".py" or _python_shebang(path)
         argv = ([sys.executable, str(path)] if python else [str(path)]) + args
         if not python and not os.access(path, os.X_OK):
             raise RequestError(f"node {ntag!r}: {path} is not executable (and not a .py script)")
         return NodeProcess(ntag, argv, env, enabled, delay, limit, spec=dict(spec))
 
-    async def add(self, spec: dict) -> dict:
+    async def add(self, spec: dict, kind: dict | None = None) -> dict:
         """Launch the node of ``spec``; returns ``{ntag, pid}`` once the process is started.
+        ``kind``: ``{env: {...}, args: [...]}`` a node kind adds to the node's environment and
+        arguments (ROS 1 nodes: :meth:`rce_container.ros1_graph.Ros1Graph.prepare`).
 
         Idempotent for a repeated identical spec. Raises :class:`NotFound` naming ``pkg`` and
         ``exe`` when the executable is unknown, :class:`RequestError` for a duplicate nTag with
@@ -225,7 +241,7 @@ class Launcher:
             if {k: v for k, v in old.spec.items() if k != "cid"} == {k: v for k, v in spec.items() if k != "cid"}:
                 return {"ntag": ntag, "pid": old.pid}
             raise RequestError(f"node {ntag!r} already exists in container {self.ctag!r}")
-        node = self._prepare(spec)
+        node = self._prepare(spec, kind)
         self.nodes[ntag] = node
         try:
             await self._start(node)

@@ -1,14 +1,18 @@
 """The init (PID 1) of a namespaced container; stdlib only, run as
 ``unshare --pid --fork --mount --ipc --uts --net --mount-proc --kill-child python -I -S nsinit.py SPEC``.
 
-``SPEC`` is JSON: ``{"hostname": str, "masks": [[dir, [keep, ...]], ...]}``. In its new mount
-namespace (private propagation, /proc already remounted by unshare) it
+``SPEC`` is JSON: ``{"hostname": str, "masks": [[dir, [keep, ...], tmpfs_opts], ...],
+"writable": [path, ...]}`` (:func:`rce_container.mounts.plan`). In its new mount namespace
+(private propagation, /proc already remounted by unshare) it
 
-1. hides each mask ``dir`` under an empty tmpfs, except the ``keep`` directories below it,
-   which are bind-mounted back (the container's own workdir and bus socket directory stay
-   reachable; other containers' sockets and the host's control socket do not);
-2. makes ``/sys`` (cgroupfs included) and ``/proc/sys`` read-only, so a node cannot leave
-   its cgroup, raise its limits or change kernel settings;
+1. hides each mask ``dir`` (that exists) under an empty tmpfs mounted with ``tmpfs_opts``,
+   except the ``keep`` directories below it, which are bind-mounted back (the container's own
+   workdir and bus socket directory stay reachable, and what nodes need to start; other
+   containers' sockets, the host's control socket, its /tmp and /root do not);
+2. remounts every mount read-only except the ``writable`` ones (the container's own
+   directory and its private scratch tmpfs); ``/proc/sys`` is bound onto itself first, so
+   it is read-only too: a node cannot leave its cgroup, raise its limits, change kernel
+   settings, or write the host's files;
 3. brings ``lo`` up in the new (otherwise empty) network namespace and sets the hostname;
 
 then prints ``ready`` on stdout and reaps orphans until stdin closes (its environment went
@@ -46,10 +50,13 @@ def mount(src, target, fstype, flags, data=None):
         raise OSError(e, f"mount {target}: {os.strerror(e)}")
 
 
-def mask(directory, keep):
-    """Empty tmpfs over ``directory``; each ``keep`` (below it) bind-mounted back."""
+def mask(directory, keep, opts="mode=0755,size=64k"):
+    """Empty tmpfs (``opts``) over ``directory``, if it exists; each ``keep`` (below it)
+    bind-mounted back."""
+    if not os.path.isdir(directory):
+        return
     fds = {k: os.open(k, os.O_PATH | os.O_DIRECTORY) for k in keep}
-    mount("tmpfs", directory, "tmpfs", MS_NOSUID | MS_NODEV, "mode=0755,size=64k")
+    mount("tmpfs", directory, "tmpfs", MS_NOSUID | MS_NODEV, opts)
     for k, fd in fds.items():
         target = os.path.join(directory, os.path.relpath(k, directory))
         os.makedirs(target, exist_ok=True)
@@ -57,22 +64,31 @@ def mask(directory, keep):
         os.close(fd)
 
 
-def readonly(prefixes):
-    """Remount every mount at or below one of ``prefixes`` read-only (this namespace only)."""
+def readonly(keep_writable):
+    """Remount every mount read-only (this namespace only) except those at ``keep_writable``.
+    A mount hidden under a mask (its path now names something else, or nothing) may fail:
+    it cannot be reached anyway."""
     with open("/proc/self/mountinfo") as f:
         lines = f.read().splitlines()
     for line in lines:
         fields = line.split()
         point = fields[4].replace("\\040", " ")
-        if not any(point == p or point.startswith(p.rstrip("/") + "/") for p in prefixes):
+        if point in keep_writable:
             continue
         flags = MS_REMOUNT | MS_BIND | MS_RDONLY
         for opt in fields[5].split(","):
             flags |= FLAG_OPTS.get(opt, 0)
         try:
             mount(None, point, None, flags)
-        except OSError as e:
-            print(f"warning: {e}", file=sys.stderr, flush=True)
+        except OSError:
+            pass
+
+
+def check_readonly(paths):
+    """Raise OSError if one of ``paths`` is still writable (the read-only view failed)."""
+    for p in paths:
+        if os.statvfs(p).f_flag & os.ST_RDONLY == 0:
+            raise OSError(f"{p} is still writable after remounting it read-only")
 
 
 def lo_up():
@@ -86,10 +102,11 @@ def lo_up():
 
 
 def setup(spec):
-    for directory, keep in spec.get("masks", []):
-        mask(directory, keep)
+    for directory, keep, *opts in spec.get("masks", []):
+        mask(directory, keep, *opts)
     mount("/proc/sys", "/proc/sys", None, MS_BIND)
-    readonly(["/sys", "/proc/sys"])
+    readonly(set(spec.get("writable", [])))
+    check_readonly(["/", "/sys", "/proc/sys"])
     lo_up()
     if spec.get("hostname"):
         socket.sethostname(spec["hostname"])

@@ -8,11 +8,13 @@ strongest one the host can run:
   ``nsenter``, ``setsid``, ``setpriv``): the container gets an init process in new PID,
   mount, IPC, UTS and network namespaces and its own cgroup with the requested limits
   (:mod:`rce_container.cgroups`); every node is entered into those namespaces and that
-  cgroup. A node sees only its container's processes, only ``lo`` (no route to the host or
-  anything else), and of the task set's runtime directories only its own container's
-  workdir and bus socket; ``/sys`` and ``/proc/sys`` are read-only and the node runs with a
-  reduced capability bounding set (no ``CAP_SYS_ADMIN``, ``CAP_NET_ADMIN``, ``CAP_SYS_PTRACE``...),
-  so it cannot undo any of that.
+  cgroup. A node runs as the container's own unprivileged uid (:mod:`rce_container.node_uid`)
+  with no capabilities at all (empty bounding, permitted, effective, inheritable and ambient
+  sets, ``no_new_privs``), so it cannot undo any of this. It sees only its container's
+  processes, only ``lo`` (no route to the host or anything else), a private ``/tmp`` and
+  ``/dev/shm``, of the task set's runtime directories only its own container's workdir and
+  bus socket, and a read-only rest of the filesystem (:mod:`rce_container.mounts`): its
+  workdir is the only host directory it can write.
 - :class:`ProcessGroupSandbox` (``unconfined``): each node in its own session/process group;
   teardown signals the whole group. It isolates nothing and enforces no limit.
 
@@ -25,6 +27,7 @@ the registry below picks it up.
 from __future__ import annotations
 
 import asyncio
+import functools
 import json
 import os
 import re
@@ -39,7 +42,7 @@ from typing import ClassVar
 from rce.errors import ConfigError, RCEError
 from rce.log import get_logger
 from rce.tasks import Tasks
-from rce_container import cgroups, usage
+from rce_container import cgroups, mounts, node_uid, usage
 
 log = get_logger("rce.container.sandbox")
 
@@ -87,6 +90,7 @@ class Sandbox:
         self.grace = grace
         self.procs: set[asyncio.subprocess.Process] = set()
         self.started = time.monotonic()
+        self.node_uid: int | None = None     # the uid the nodes run as, when the sandbox sets one
 
     @classmethod
     def available(cls) -> bool:
@@ -199,11 +203,12 @@ class ProcessGroupSandbox(Sandbox):
             self.procs.discard(proc)
 
 
-#: Capabilities a namespaced node keeps (Docker's default set without ``mknod``); everything
-#: else, notably sys_admin (mount, setns), net_admin, sys_ptrace, sys_module, is dropped from
-#: the bounding set before the node's program runs.
-NODE_CAPS = ("chown", "dac_override", "fowner", "fsetid", "kill", "setgid", "setuid", "setpcap",
-             "net_bind_service", "net_raw", "sys_chroot", "audit_write", "setfcap")
+#: setpriv(1) options that make a node an unprivileged process: no capability in any set
+#: (``--reuid``/``--regid`` to a non-root uid clear the permitted and effective sets), no
+#: supplementary groups, and no way back through a setuid binary (``no_new_privs``).
+DROP_PRIVILEGES = ("--clear-groups", "--inh-caps=-all", "--ambient-caps=-all", "--bounding-set=-all",
+                   "--no-new-privs")
+WORKDIR_MODE = 0o700         # a container's own directory: its node uid only
 NSINIT = Path(__file__).with_name("nsinit.py")
 TOOLS = ("unshare", "nsenter", "setsid", "setpriv")
 #: sh prologue: write our pid into each cgroup.procs file given before "--", then exec the rest.
@@ -270,6 +275,7 @@ class NamespaceSandbox(Sandbox):
         self._leaders: dict[asyncio.subprocess.Process, int] = {}
         self._tasks = Tasks(f"sandbox of {self.ctag}")
         self._ooms = 0
+        self._uid: node_uid.NodeUid | None = None
 
     @classmethod
     def available(cls) -> bool:
@@ -340,30 +346,35 @@ class NamespaceSandbox(Sandbox):
             return argv
         return ["/bin/sh", "-c", JOIN_CGROUPS, "sh", *self.cg.procs_files, "--", *argv]
 
-    def _masks(self) -> list:
-        """[[dir, [keep...]]]: the runtime and socket directories, showing only this container's."""
-        out: dict[str, list[str]] = {}
-        for keep in (self.workdir, self.bus_socket.parent):
-            out.setdefault(str(keep.parent), [])
-            if str(keep) not in out[str(keep.parent)]:
-                out[str(keep.parent)].append(str(keep))
-        return [[d, k] for d, k in out.items()]
+    def _own_dirs(self) -> None:
+        """Lease the container's node uid and give it the workdir and bus socket directory."""
+        self._uid = node_uid.lease(self.cid)
+        self.node_uid = self._uid.uid
+        for d in dict.fromkeys((self.workdir, self.bus_socket.parent)):
+            os.chown(d, self.node_uid, self.node_uid)
+            os.chmod(d, WORKDIR_MODE)
 
     async def setup(self) -> None:
-        """Create and limit the cgroup, start the init in its new namespaces.
+        """Lease the node uid, create and limit the cgroup, start the init in its new namespaces.
 
         Raises :class:`RCEError` naming what failed (a refused limit, an init that did not start)."""
+        try:
+            self._own_dirs()
+        except BaseException:
+            self._release_uid()
+            raise
         if self.cg is not None:
             await asyncio.to_thread(self.cg.create)
             try:
                 in_force = self.cg.apply({k: self.limits.get(k) for k in cgroups.LIMITS})
             except RCEError:
                 await asyncio.to_thread(self.cg.remove)
+                self._release_uid()
                 raise
             self._ooms = self.cg.oom_kills()
             log.debug("cgroup ready", cid=self.cid, limits=in_force, dirs=[str(d) for d in self.cg.unique_dirs])
         hostname = re.sub(r"[^A-Za-z0-9-]", "-", self.ctag)[:63].strip("-") or f"c{self.cid}"
-        spec = json.dumps({"hostname": hostname, "masks": self._masks()})
+        spec = json.dumps({"hostname": hostname, **mounts.plan(self.workdir, self.bus_socket.parent, _readable())})
         argv = ["unshare", "--pid", "--fork", "--mount", "--ipc", "--uts", "--net", "--mount-proc",
                 "--kill-child", sys.executable, "-I", "-S", str(NSINIT), spec]
         try:
@@ -393,16 +404,22 @@ class NamespaceSandbox(Sandbox):
             await self._stop_init()
             if self.cg is not None:
                 await asyncio.to_thread(self.cg.remove)
+            self._release_uid()
             raise
-        log.debug("container namespaces ready", cid=self.cid, init=self.init_pid)
+        log.debug("container namespaces ready", cid=self.cid, init=self.init_pid, uid=self.node_uid)
+
+    def _release_uid(self) -> None:
+        if self._uid is not None:
+            self._uid.release()
+            self._uid = None
 
     # -- nodes ---------------------------------------------------------------------------------
     async def spawn(self, argv, env, cwd=None):
         if self.init_pid is None:
             raise OSError(f"the namespaces of container {self.ctag!r} are not set up")
         inner = ["nsenter", "-t", str(self.init_pid), "-p", "-m", "-i", "-u", "-n", f"--wd={cwd or self.workdir}",
-                 "--", "setsid", "setpriv", "--bounding-set=-all," + ",".join("+" + c for c in NODE_CAPS),
-                 "--", *argv]
+                 "--", "setsid", "setpriv", f"--reuid={self.node_uid}", f"--regid={self.node_uid}",
+                 *DROP_PRIVILEGES, "--", *argv]
         proc = await asyncio.create_subprocess_exec(
             *self._joined(inner), env=env, cwd="/", stdin=asyncio.subprocess.DEVNULL,
             stdout=asyncio.subprocess.PIPE, stderr=asyncio.subprocess.PIPE, start_new_session=True)
@@ -464,6 +481,7 @@ class NamespaceSandbox(Sandbox):
             left = await asyncio.to_thread(self.cg.remove)
             if left:
                 log.warning("cgroup directories left behind", cid=self.cid, dirs=[str(d) for d in left])
+        self._release_uid()        # every process of the container is gone: the uid is free again
 
     async def resize(self, limits: dict) -> dict:
         """Write the new limits into the cgroup (running nodes keep running). Raises
@@ -497,11 +515,17 @@ class NamespaceSandbox(Sandbox):
 
     def info(self) -> dict:
         out = super().info()
-        out.update(init_pid=self.init_pid, namespaces=self.ns)
+        out.update(init_pid=self.init_pid, namespaces=self.ns, uid=self.node_uid)
         if self.cg is not None:
             out["cgroup"] = {"version": self.cg.layout.version, "dirs": [str(d) for d in self.cg.unique_dirs],
                              "files": self.cg.files()}
         return out
+
+
+@functools.cache
+def _readable() -> list[str]:
+    """:func:`mounts.runtime_paths` of this process (computed once: they do not change)."""
+    return mounts.runtime_paths()
 
 
 def _signal_group(pgid: int, sig: int) -> None:

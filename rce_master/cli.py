@@ -15,9 +15,11 @@ from pathlib import Path
 from rce.errors import ConfigError
 from rce.process import run, write_ready_file
 from rce.log import get_logger
-from rce_master import leadership, token
+from rce import cluster_auth, tls
+from rce_master import leadership, login_guard, token
 from rce_master.reconcile import RECONCILE_GRACE
 from rce_master.server import Master
+from rce_master.state import DEFAULT_MAX_CONTAINERS, DEFAULT_MAX_INTERFACES, DEFAULT_MAX_NODES, Quotas
 from rce_master.sqlite_store import SqliteStore
 from rce_master.store import MemoryStore, Store
 
@@ -60,19 +62,42 @@ def parser() -> argparse.ArgumentParser:
     p.add_argument("--reconcile-grace", type=float, default=RECONCILE_GRACE, metavar="S",
                    help=f"s task sets found in the state may take to re-register before their containers are "
                         f"lost and their robots gone (default {RECONCILE_GRACE:g})")
+    for kind, default in (("containers", DEFAULT_MAX_CONTAINERS), ("nodes", DEFAULT_MAX_NODES),
+                          ("interfaces", DEFAULT_MAX_INTERFACES)):
+        p.add_argument(f"--max-{kind}", type=int, default=default, metavar="N",
+                       help=f"{kind} one user may have at once; past it a request gets an ER naming the quota "
+                            f"(default {default}; 0 = no limit)")
     p.add_argument("--admin-token-file", type=Path, default=None,
                    help="admin API token file (default ~/.config/rce/admin-token, or under $XDG_CONFIG_HOME; "
                         "RCE_ADMIN_TOKEN overrides)")
     p.add_argument("--static", action="append", default=[], metavar="PREFIX=DIR",
                    help="serve DIR under URL PREFIX (e.g. the operator's web page)")
     p.add_argument("--ready-file", type=Path, help="write {http_port, control_port, pid} here once listening")
+    p.add_argument("--cluster-key-file", type=Path, default=None, metavar="PATH", help=cluster_auth.KEY_FLAG_HELP)
+    tls.add_server_arguments(p, "serve HTTPS (login, admin API, web page, /metrics)")
+    g = p.add_argument_group("login throttling (docs/SECURITY.md)")
+    g.add_argument("--login-failures-per-user", type=int, default=login_guard.FAILURES_PER_USER, metavar="N",
+                   help="failed logins of one user from one address before it backs off with HTTP 429 "
+                        f"(default {login_guard.FAILURES_PER_USER})")
+    g.add_argument("--login-failures-per-address", type=int, default=login_guard.FAILURES_PER_ADDRESS, metavar="N",
+                   help="failed logins from one address (any user names) before it backs off "
+                        f"(default {login_guard.FAILURES_PER_ADDRESS})")
+    g.add_argument("--login-backoff-max", type=float, default=login_guard.BACKOFF_MAX, metavar="S",
+                   help="longest back-off, s; it starts at 1 s and doubles with each further failure "
+                        f"(default {login_guard.BACKOFF_MAX:g})")
     return p
+
 
 
 async def amain(args: argparse.Namespace) -> None:
     admin_token = token.load_or_create(args.admin_token_file)
+    guard = login_guard.LoginGuard(per_user=args.login_failures_per_user, per_address=args.login_failures_per_address,
+                                   backoff_max=args.login_backoff_max)
+    cluster_key = cluster_auth.ClusterKey.load_or_create(args.cluster_key_file)
     make = functools.partial(Master, users_file=args.users, admin_token=admin_token, dev=args.dev,
-                             reconcile_grace=args.reconcile_grace)
+                             cluster_key=cluster_key,
+                             reconcile_grace=args.reconcile_grace, login_guard=guard,
+                             quotas=Quotas(args.max_containers, args.max_nodes, args.max_interfaces))
     stop = stop_event()
     if args.store:
         if args.state:
@@ -105,18 +130,21 @@ async def start(args: argparse.Namespace, master: Master) -> dict:
     for s in args.static:
         prefix, _, d = s.partition("=")
         static[prefix] = Path(d)
-    await master.start(args.bind, args.port, args.control_port, static)
+    ssl_context = tls.server_context_from(args)
+    await master.start(args.bind, args.port, args.control_port, static, ssl_context)
     host = args.advertise or (socket.getfqdn() if args.bind in ("0.0.0.0", "::", "") else args.bind)
     host = f"[{host}]" if ":" in host else host
-    return {"control": f"{host}:{master.control_port}", "http": f"http://{host}:{master.http_port}/",
+    scheme = "https" if ssl_context else "http"
+    return {"control": f"{host}:{master.control_port}", "http": f"{scheme}://{host}:{master.http_port}/",
             "name": socket.gethostname(), "pid": os.getpid()}
 
 
 def ready(args: argparse.Namespace, master: Master) -> None:
-    """Write the ready file: ``{http_port, control_port, pid, leading}`` (several masters: once this
+    """Write the ready file: ``{http_port, control_port, pid, leading, tls}`` (several masters: once this
     one leads or knows it stands by)."""
     write_ready_file(args.ready_file, {"http_port": master.http_port, "control_port": master.control_port,
-                                       "pid": os.getpid(), "leading": master.office.leading})
+                                       "pid": os.getpid(), "leading": master.office.leading,
+                                       "tls": args.tls_cert is not None})
 
 
 def main(argv: list[str] | None = None) -> None:

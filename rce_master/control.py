@@ -10,6 +10,7 @@ import asyncio
 from collections.abc import Awaitable
 from typing import Any
 
+from rce.cluster_auth import ClusterKey
 from rce.errors import RCEError, Unavailable
 from rce.log import get_logger
 from rce.rpc import CALL_TIMEOUT, RpcPeer
@@ -32,10 +33,14 @@ class Control:
     A call raises the far end's :class:`RCEError`, :class:`Unavailable` when the link is gone, or
     :class:`rce.errors.Timeout` when the far end did not answer in time (it may still do what
     was asked: the request handlers undo that too, see :mod:`rce_master.requests`), and
-    :class:`TaskSetAbsent` when that task set has not re-registered since the master restarted."""
+    :class:`TaskSetAbsent` when that task set has not re-registered since the master restarted.
 
-    def __init__(self, state: MasterState):
+    ``cluster_key``: what the credential handed with each ``connect`` derives from
+    (:meth:`ClusterKey.connection_token`; default: a fresh key, for tests without task sets)."""
+
+    def __init__(self, state: MasterState, cluster_key: ClusterKey | None = None):
         self.state = state
+        self.key = cluster_key or ClusterKey.generate()
         self.peers: dict[int, RpcPeer] = {}
         self._back: dict[int, asyncio.Event] = {}      # tid -> set when that absent task set is back
 
@@ -142,11 +147,21 @@ class Control:
             log.debug("ignored on teardown", reason=str(e))
 
     # -- what both ends and the robot are told --------------------------------------------------------
+    def connect_args(self, me: InterfaceRec, peer_iid: int, peer_addr: str) -> dict:
+        """The ``connect`` telling ``me`` its peer ``peer_iid`` at ``peer_addr``, with the credential
+        that lets it send there (:mod:`rce.cluster_auth`, "Data-plane credentials")."""
+        return {"iid": me.iid, "peer_iid": peer_iid, "peer_addr": peer_addr,
+                "token": self.key.connection_token(me.iid, peer_iid, peer_addr)}
+
     async def tell_connect(self, a: InterfaceRec, b: InterfaceRec) -> None:
-        """Tell both ends of a new connection the other's iid and data address."""
+        """Tell both ends of a new connection the other's iid, data address and credential; the
+        end that receives first (a Publisher*, a ServiceClient*) is told first, so that it knows its
+        peer (and takes its frames) before the other end sends."""
+        if b.kind in ("Publisher", "ServiceClient"):
+            a, b = b, a
         addr_a, addr_b = self.state.data_addr(a), self.state.data_addr(b)
-        await self.endpoint_call(a, "connect", iid=a.iid, peer_iid=b.iid, peer_addr=addr_b)
-        await self.endpoint_call(b, "connect", iid=b.iid, peer_iid=a.iid, peer_addr=addr_a)
+        await self.endpoint_call(a, "connect", **self.connect_args(a, b.iid, addr_b))
+        await self.endpoint_call(b, "connect", **self.connect_args(b, a.iid, addr_a))
 
     async def tell_disconnect(self, a: InterfaceRec, b: InterfaceRec) -> None:
         """Tell both ends a connection is gone (quietly: either may be gone too)."""
@@ -162,8 +177,7 @@ class Control:
         (a ``connect`` for a connection that exists replaces the peer's address)."""
         for rec in self.state.interfaces_of(c.user, c.ctag):
             for me, peer in self.state.connections_of(rec.iid):
-                await self.quiet(self.endpoint_call(peer, "connect", iid=peer.iid, peer_iid=me.iid,
-                                                    peer_addr=c.data_addr))
+                await self.quiet(self.endpoint_call(peer, "connect", **self.connect_args(peer, me.iid, c.data_addr)))
 
     def notify_robot(self, user: str, robot: str, type_: str, data: Any) -> None:
         """Send the robot an ST or ER (``notify``) through its endpoint, if it is connected."""

@@ -25,6 +25,8 @@ Every answer that follows a change waits until the store has it (:meth:`Store.fl
 from __future__ import annotations
 
 import asyncio
+import math
+import ssl
 from collections import defaultdict
 from pathlib import Path
 
@@ -32,18 +34,20 @@ from aiohttp import web
 from prometheus_client import CollectorRegistry, Counter, Gauge, generate_latest, CONTENT_TYPE_LATEST
 
 from rce.admin_client import LEADER_HEADER
-from rce.errors import AuthError, NotFound, NotLeader, RCEError, RequestError, Timeout, Unavailable
+from rce.cluster_auth import ClusterKey, Gate
+from rce.errors import AuthError, NotFound, NotLeader, RCEError, RequestError, Throttled, Timeout, Unavailable
 from rce.log import get_logger
-from rce.rpc import RpcPeer, nodelay
+from rce.rpc import RpcPeer
 from rce.tasks import Tasks
 from rce_master import reconcile
 from rce_master.admin import AdminApi
 from rce_master.control import Control
 from rce_master.failover import Failover
+from rce_master.login_guard import LoginGuard, PasswordCheck
 from rce_master.model import TaskSet
 from rce_master.office import RETRY_AFTER_NO_LEADER, Alone, Office, require_leader
 from rce_master.requests import Request, handle
-from rce_master.state import MasterState, TaskSetAbsent
+from rce_master.state import MasterState, Quotas, TaskSetAbsent
 from rce_master.store import Store
 from rce_master.users import UsersFile
 
@@ -52,7 +56,7 @@ log = get_logger("rce.master")
 CLIENT_VERSION = "20130902"                        # the RCE alpha client's version string
 SUPPORTED_VERSIONS = {"20130902", "20130210"}
 MAX_HTTP_BODY = 16 * 1024 * 1024                   # bytes, an admin API request body
-HTTP_STATUS = ((AuthError, 401), (NotFound, 404), (Timeout, 504), (Unavailable, 503), (RCEError, 400))
+HTTP_STATUS = ((AuthError, 401), (NotFound, 404), (Timeout, 504), (Throttled, 429), (Unavailable, 503), (RCEError, 400))
 RETRY_AFTER = 5                                    # s, Retry-After of a 503 for an absent task set (login, admin
 #                                                    API): about a reconnecting task set's backoff
 
@@ -66,6 +70,8 @@ class Metrics:
         self.logins = Counter("rce_master_logins", "Robot logins over HTTP", ["result"], registry=r)
         self.requests = Counter("rce_master_requests", "Robot requests (CC, DC, CN, CX)", ["type", "result"],
                                 registry=r)
+        self.control_refused = Counter("rce_master_control_refused", "Control-plane connections refused: no proof "
+                                       "of the cluster key (rce.cluster_auth.Gate)", ["reason"], registry=r)
         for name, help_, table in [
             ("rce_master_robots", "Connected robots", state.robots),
             ("rce_master_containers", "Containers", state.containers),
@@ -92,23 +98,32 @@ class Master:
     """The running master. ``users_file``: JSON file of hashed user records (read and kept up to
     date); ``store``: where the state is kept (default: in memory); ``reconcile_grace`` (s): how
     long task sets found in the store may take to re-register; ``office``: whether it leads
-    (default: alone, it always does; on etcd its election)."""
+    (default: alone, it always does; on etcd its election); ``cluster_key``: what every task set
+    must prove it holds before its link is served (:mod:`rce.cluster_auth`), and what the data-plane
+    credentials handed out with ``connect`` derive from; ``quotas``: per-user bounds on containers, nodes
+    and interfaces (default :class:`~rce_master.state.Quotas`); ``login_guard``: the back-off of failed
+    logins (default :class:`~rce_master.login_guard.LoginGuard`'s defaults)."""
 
     def __init__(self, *, users_file: Path | None = None, admin_token: str, dev: bool = False,
                  store: Store | None = None, reconcile_grace: float = reconcile.RECONCILE_GRACE,
-                 office: Office | None = None):
+                 office: Office | None = None, login_guard: LoginGuard | None = None,
+                 cluster_key: ClusterKey, quotas: Quotas | None = None):
         self.office = office if office is not None else Alone()
-        self.state = MasterState(store)
+        self.state = MasterState(store, quotas)
         self.reconcile_grace = reconcile_grace
         self.dev = dev
         self.restored: list[TaskSet] = []          # the task sets a previous master knew
-        self.control = Control(self.state)
+        self.control = Control(self.state, cluster_key)
+        self.gate = Gate(cluster_key, "rce-master control",
+                         on_refused=lambda reason: self.metrics.control_refused.labels(reason).inc())
         self.users = UsersFile(users_file) if users_file else None
         self.admin = AdminApi(self.state, self.control, admin_token, self.users, self.office)
         self.robot_locks: dict[tuple[str, str], asyncio.Lock] = defaultdict(asyncio.Lock)
         self.tasks = Tasks("rce-master")
         self.failover = Failover(self.state, self.control, self.tasks)
         self.metrics = Metrics(self.state, self.office, self.failover)
+        self.passwords = PasswordCheck(login_guard)     # the auth op's throttling and scrypt pool (login_guard.py)
+        self.metrics.registry.register(self.passwords)
         self._control: asyncio.AbstractServer | None = None
         self._runner: web.AppRunner | None = None
         self.http_port = self.control_port = 0
@@ -139,12 +154,14 @@ class Master:
 
     # -- lifecycle -----------------------------------------------------------------------------
     async def start(self, bind: str, http_port: int, control_port: int,
-                    static_dirs: dict[str, Path] | None = None) -> None:
+                    static_dirs: dict[str, Path] | None = None, ssl_context: ssl.SSLContext | None = None) -> None:
+        """Listen: the control plane on ``control_port``, HTTP on ``http_port`` (HTTPS with
+        ``ssl_context``, :func:`rce.tls.server_context`; 0: ephemeral ports, then in the attributes)."""
         self._control = await asyncio.start_server(self._accept, bind, control_port, limit=2**20)
         self.control_port = self._control.sockets[0].getsockname()[1]
         self._runner = web.AppRunner(self._app(static_dirs or {}), access_log=None)
         await self._runner.setup()
-        site = web.TCPSite(self._runner, bind, http_port)
+        site = web.TCPSite(self._runner, bind, http_port, ssl_context=ssl_context)
         await site.start()
         self.http_port = site._server.sockets[0].getsockname()[1]
         log.info("master up", http_port=self.http_port, control_port=self.control_port, bind=bind,
@@ -182,10 +199,12 @@ class Master:
         await self.tasks.cancel_all()
         if self._runner:
             await self._runner.cleanup()
+        self.passwords.close()
 
     # -- control plane -------------------------------------------------------------------------
     async def _accept(self, reader: asyncio.StreamReader, writer: asyncio.StreamWriter) -> None:
-        nodelay(writer)
+        if not await self.gate.admit(reader, writer):       # refused, logged and counted
+            return
         peer = RpcPeer(reader, writer, name="taskset", on_close=self._peer_closed)
         peer.handlers["register"] = lambda a, p=peer: self._register(p, a)
         peer.start()
@@ -205,7 +224,8 @@ class Master:
             peer.handlers.update({
                 "auth": self._auth, "robot_connected": lambda x, t=ts.tid: self._robot_connected(t, x),
                 "robot_disconnected": lambda x, t=ts.tid: self._robot_disconnected(t, x),
-                "robot_request": self._robot_request, "container_bus": self._container_bus})
+                "robot_request": self._robot_request, "container_bus": self._container_bus,
+                "container_param": self._container_param})
         else:
             peer.handlers.update({"node_status": self._node_status,
                                   "container_lost": lambda x, t=ts.tid: self._container_lost(t, x)})
@@ -243,9 +263,10 @@ class Master:
 
     # -- robot endpoint ops --------------------------------------------------------------------
     async def _auth(self, a: dict) -> dict:
-        # scrypt costs ~50 ms of CPU by design: run it off the event loop so logins never stall
-        # the control plane (keepalives, other robots' requests)
-        await asyncio.to_thread(self.state.authenticate, a.get("user", ""), a.get("password", ""))
+        """``auth {user, password, addr}`` (``addr``: the address the robot or rosbridge client logs in
+        from): raises AuthError, or Throttled (429) while the user or address backs off (login_guard.py)."""
+        await self.passwords.authenticate(self.state.users, str(a.get("user", "")), a.get("password", ""),
+                                          str(a.get("addr") or ""))
         return {}
 
     async def _robot_connected(self, tid: int, a: dict) -> dict:
@@ -288,6 +309,13 @@ class Master:
         the user's container ``ctag`` as its host describes it. Raises NotFound unless the user has it."""
         c = self.state.container(a["user"], a["ctag"])
         return await self.control.host_request(c, "describe", {}, wait=False)
+
+    async def _container_param(self, a: dict) -> dict:
+        """``container_param {user, ctag, name}`` (a rosbridge client's ``/rosapi/get_param``):
+        ``{value}`` of parameter ``name`` on the bus of the user's container ``ctag``. Raises
+        NotFound unless the user has the container and the parameter is set."""
+        c = self.state.container(a["user"], a["ctag"])
+        return await self.control.host_request(c, "get_param", {"name": str(a.get("name") or "")}, wait=False)
 
     async def _robot_request(self, a: dict) -> dict:
         """``robot_request {user, robot, type, data}``: one robot's requests run one at a time, in order."""
@@ -338,6 +366,8 @@ class Master:
             resp = web.Response(status=status, text=e.message + "\n")
             if isinstance(e, TaskSetAbsent):
                 resp.headers["Retry-After"] = str(RETRY_AFTER)
+            elif isinstance(e, Throttled):
+                resp.headers["Retry-After"] = str(math.ceil(e.retry_after))
             elif isinstance(e, NotLeader):
                 resp.headers[LEADER_HEADER] = (e.leader or {}).get("http") or ""
                 if not e.leader:
@@ -351,7 +381,9 @@ class Master:
         return resp
 
     async def _login(self, request: web.Request) -> web.Response:
-        """``GET /?userID=U&version=V`` -> ``{"url": ws_url, "current"?: V'}`` (DESIGN section 3.1)."""
+        """``GET /?userID=U&version=V`` -> ``{"url": ws_url, "current"?: V'}`` (DESIGN section 3.1). The
+        same answer whether user ``U`` exists or not (the password is checked at the robot endpoint, and
+        fails there the same way for both): user names cannot be enumerated here."""
         q = request.query
         user, version = q.get("userID"), q.get("version")
         if not user:
@@ -360,9 +392,6 @@ class Master:
         if not version:
             self.metrics.logins.labels("bad_request").inc()
             raise RequestError("missing query parameter 'version'")
-        if user not in self.state.users:
-            self.metrics.logins.labels("unknown_user").inc()
-            raise AuthError(f"unknown user {user!r}")
         if version not in SUPPORTED_VERSIONS and version > CLIENT_VERSION:
             self.metrics.logins.labels("bad_version").inc()
             raise RequestError(f"client version {version!r} is not supported (this master speaks {CLIENT_VERSION})")

@@ -25,8 +25,9 @@ from __future__ import annotations
 import functools
 import json
 import time
-from collections.abc import Collection, Iterator
+from collections.abc import Collection, Iterable, Iterator
 from contextlib import contextmanager
+from dataclasses import dataclass
 from typing import Any
 
 from rce.errors import AuthError, NotFound, RequestError, Unavailable
@@ -38,6 +39,34 @@ from rce_master.model import (ConnectionRec, Container, InterfaceRec, NodeRec, R
 from rce_master.store import Key, MemoryStore, Store, encode
 
 Pairs = list[tuple[InterfaceRec, InterfaceRec]]     # connections removed: the shell disconnects both ends
+
+# Per-user quotas (issue 11 part 4): what one user may hold at once, so that one user's robots cannot
+# exhaust the hosts and the master for the others; rce-master --max-containers/--max-nodes/--max-interfaces.
+DEFAULT_MAX_CONTAINERS = 256      # containers per user (a fleet of hundreds of robots, one container each)
+DEFAULT_MAX_NODES = 2048          # nodes per user, all containers together
+DEFAULT_MAX_INTERFACES = 8192     # interfaces per user, robot-side and container-side together
+
+
+@dataclass(frozen=True)
+class Quotas:
+    """Per-user bounds on records: ``containers``, ``nodes`` and ``interfaces`` a user may hold at
+    once (0: no bound). A request past one is refused with :class:`QuotaExceeded`."""
+
+    containers: int = DEFAULT_MAX_CONTAINERS
+    nodes: int = DEFAULT_MAX_NODES
+    interfaces: int = DEFAULT_MAX_INTERFACES
+
+    def check(self, user: str, kind: str, keys: Iterable[tuple]) -> None:
+        """Raise :class:`QuotaExceeded` when ``user`` already holds its quota of ``kind`` (``containers``,
+        ``nodes``, ``interfaces``); ``keys``: the keys of that table (user first)."""
+        limit = getattr(self, kind)
+        if limit and sum(1 for k in keys if k[0] == user) >= limit:
+            raise QuotaExceeded(f"quota exceeded: user {user!r} already has {limit} {kind}, the most one user "
+                                f"may have (rce-master --max-{kind})")
+
+
+class QuotaExceeded(RequestError):
+    """A request would take a user past one of its :class:`Quotas`."""
 
 
 class TaskSetAbsent(Unavailable):
@@ -57,10 +86,12 @@ def _atomic(op):
 
 class MasterState(StateIndex):
     """All master state on ``store`` (default: a new :class:`MemoryStore`); a store that holds
-    records is loaded, so the state a previous master left comes back."""
+    records is loaded, so the state a previous master left comes back. ``quotas``: per-user bounds
+    (default :class:`Quotas`)."""
 
-    def __init__(self, store: Store | None = None) -> None:
+    def __init__(self, store: Store | None = None, quotas: Quotas | None = None) -> None:
         super().__init__()
+        self.quotas = quotas if quotas is not None else Quotas()
         self.store = store if store is not None else MemoryStore()
         self._batch: list[tuple[Key, dict | None, dict | None]] | None = None
         self._latest: dict[Key, dict | None] = {}
@@ -302,6 +333,7 @@ class MasterState(StateIndex):
             raise RequestError(f"container {ctag!r} already exists")
         if (user, ctag) in self.robots:
             raise RequestError(f"container tag {ctag!r} is already used as a robot ID")
+        self.quotas.check(user, "containers", self.containers)
         data = dict(data or {})
         host = self.pick_container_host(data)
         c = Container(self._next_id("cid"), user, ctag, owner, host.tid, data.get("group") or None, data)
@@ -395,6 +427,7 @@ class MasterState(StateIndex):
         key = (user, c.ctag, spec["nodeTag"])
         if key in self.nodes:
             raise RequestError(f"node {spec['nodeTag']!r} already exists in container {c.ctag!r}")
+        self.quotas.check(user, "nodes", self.nodes)
         n = NodeRec(user, c.ctag, spec["nodeTag"], dict(spec))
         self._write(n.store_key, n.to_record())
         return c, self.nodes[key]
@@ -470,6 +503,7 @@ class MasterState(StateIndex):
             location = r.tid
         if (user, etag, itag) in self.interfaces:
             raise RequestError(f"interface {etag}/{itag} already exists")
+        self.quotas.check(user, "interfaces", self.interfaces)
         rec = InterfaceRec(self._next_id("iid"), user, etag, itag, f"{kind}{side}", kind, side,
                            spec["className"].strip("/"), spec.get("addr"), location)
         self._write(rec.store_key, rec.to_record())

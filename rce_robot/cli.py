@@ -12,10 +12,12 @@ import signal
 import socket
 from pathlib import Path
 
+from rce import cluster_auth, tls
 from rce.log import get_logger
 from rce.masterlink import MASTER_PORT, MASTER_WAIT, parse_masters, unless_stopped
 from rce.process import run, write_ready_file
 from rce.protocol.frames import DEFAULT_EXPIRY
+from rce.protocol.limits import DEFAULT_MAX_PENDING_TOTAL
 from rce.protocol.resume import DEFAULT_GRACE, DEFAULT_RESUME_BUFFER
 from rce.protocol.session import DEFAULT_MAX_MESSAGE, DEFAULT_QUEUE_SIZE
 from rce_robot.endpoint import RobotEndpoint
@@ -54,16 +56,23 @@ def parser() -> argparse.ArgumentParser:
     p.add_argument("--resume-buffer", type=int, default=DEFAULT_RESUME_BUFFER, metavar="N",
                    help="messages kept per robot until it acks them, to resend after a resume; past it the oldest "
                         f"are dropped, counted and reported to the robot (default {DEFAULT_RESUME_BUFFER})")
+    p.add_argument("--max-pending-binary", type=int, default=DEFAULT_MAX_PENDING_TOTAL, metavar="BYTES",
+                   help="bytes of binary parts waiting for their message, all robots together; past it a part "
+                        f"gets an ER (default {DEFAULT_MAX_PENDING_TOTAL}; each robot also has its own cap)")
     p.add_argument("--ready-file", type=Path, help="write {ws_port, data_addr, pid} here once registered")
+    p.add_argument("--cluster-key-file", type=Path, default=None, metavar="PATH", help=cluster_auth.KEY_FLAG_HELP)
+    tls.add_server_arguments(p, "serve wss:// to robots and rosbridge clients (and https:// /metrics)")
     return p
 
 
 async def amain(args: argparse.Namespace) -> None:
     masters = parse_masters(args.master_ip, args.master_port)
     ep = RobotEndpoint(name=args.name or f"{socket.gethostname()}-robot-{os.getpid()}",
+                       cluster_key=cluster_auth.ClusterKey.load(args.cluster_key_file),
                        advertise_host=args.advertise_host or args.bind, max_message=args.max_message,
                        queue_size=args.queue_size, expiry=args.expiry, master_wait=args.master_wait,
-                       grace=args.grace, resume_buffer=args.resume_buffer)
+                       grace=args.grace, resume_buffer=args.resume_buffer,
+                       max_pending_total=args.max_pending_binary, ssl_context=tls.server_context_from(args))
     loop = asyncio.get_running_loop()
     for sig in (signal.SIGINT, signal.SIGTERM):
         loop.add_signal_handler(sig, ep.stopped.set)

@@ -6,6 +6,7 @@ from __future__ import annotations
 import asyncio
 import hashlib
 import hmac
+import ssl
 from collections import Counter
 from http import HTTPStatus
 from urllib.parse import parse_qs, urlsplit
@@ -15,18 +16,24 @@ from prometheus_client import CONTENT_TYPE_LATEST, CollectorRegistry, Gauge, gen
 from prometheus_client.core import CounterMetricFamily
 from websockets.asyncio.server import serve
 
+from rce.cluster_auth import ClusterKey, token_of
 from rce.dataplane import DataPlane
-from rce.errors import AuthError, NotFound, RCEError
+from rce.errors import AuthError, NotFound, RCEError, Throttled
 from rce.log import get_logger
 from rce.masterlink import MASTER_WAIT, Address, MasterLink
 from rce.messages import default_registry
 from rce.package_path import load_package_types
 from rce.protocol.frames import DEFAULT_EXPIRY
+from rce.protocol.limits import DEFAULT_MAX_PENDING_TOTAL, PartBudget
 from rce.protocol.resume import DEFAULT_GRACE, DEFAULT_RESUME_BUFFER
 from rce.protocol.session import DEFAULT_MAX_MESSAGE, DEFAULT_QUEUE_SIZE, RobotSession, robot_interface_type
+from rce_robot.front_door import peer_address, throttled
 from rce_robot.interfaces import RobotInterface
 from rce_robot.namespace import CLOSE_POLICY, RobotNamespace
+from rce_robot.parse_pool import ParsePool
+from rce_robot.rosbridge import SESSION_COUNTERS as ROSBRIDGE_COUNTERS
 from rce_robot.rosbridge import RosbridgeServer
+from rce_robot.rosbridge_session import RosbridgeSession
 
 log = get_logger("rce.robot")
 MASTER_AWAY_RETRY_AFTER = 5   # s, Retry-After of the 503 a connecting robot gets while the master is away (as the
@@ -53,6 +60,8 @@ SESSION_COUNTERS = {"msgs_in": ("rce_robot_messages_in", "Messages from robots")
                     "dropped": ("rce_robot_dropped", "Messages to robots dropped (queue full)"),
                     "dropped_in": ("rce_robot_dropped_in", "Messages from robots refused (queue full)"),
                     "errors": ("rce_robot_errors", "ER messages sent to robots"),
+                    "errors_dropped": ("rce_robot_errors_dropped", "ER messages to robots dropped (rate limit, "
+                                                                   "or unread)"),
                     "resumes": ("rce_robot_resumes", "Robot sessions resumed on a new link"),
                     "resent": ("rce_robot_resent", "Messages resent to robots after a resume"),
                     "resume_lost": ("rce_robot_resume_lost", "Messages to robots lost from a full resume buffer"),
@@ -71,15 +80,23 @@ class Metrics:
         Gauge("rce_robot_connections", "Connected robots", registry=r).set_function(lambda: len(ep.namespaces))
         Gauge("rce_robot_interfaces", "Robot-side interfaces", registry=r).set_function(
             lambda: sum(len(n.interfaces) for n in ep.namespaces.values()))
-        for k in ("msgs_in", "msgs_out", "bytes_in", "bytes_out", "dropped"):
+        for k in ("msgs_in", "msgs_out", "bytes_in", "bytes_out", "dropped", "refused", "unauthenticated"):
             Gauge(f"rce_robot_dataplane_{k}", f"Data plane {k}", registry=r).set_function(
                 lambda k=k: getattr(ep.plane, k))
         Gauge("rce_robot_queue_depth", "Data messages waiting to go to robots", registry=r).set_function(
             lambda: sum(n.session.out_data for n in ep.namespaces.values()))
         Gauge("rce_robot_detached", "Robot sessions kept without a link, waiting for a resume",
               registry=r).set_function(lambda: sum(bool(getattr(n, "detached", False)) for n in ep.namespaces.values()))
+        Gauge("rce_robot_pending_binary_bytes", "Bytes of binary parts waiting for their message, all robots",
+              registry=r).set_function(lambda: ep.budget.held)
+        Gauge("rce_robot_pending_binary_refused", "Binary parts refused for the endpoint's pending-bytes cap",
+              registry=r).set_function(lambda: ep.budget.refused)
+        Gauge("rce_robot_big_frames_parsed", "Big text frames parsed in a worker process",
+              registry=r).set_function(lambda: ep.parser.parsed)
         Gauge("rce_robot_master_available", "1 while registered with a master, 0 while it is away",
               registry=r).set_function(lambda: int(ep.master is not None and ep.master.available))
+        Gauge("rce_robot_rosbridge_sessions", "Connected rosbridge v2 clients", registry=r).set_function(
+            lambda: len(ep.rosbridge.sessions) if ep.rosbridge is not None else 0)
 
     def session_ended(self, session: RobotSession) -> None:
         stats = session.stats()
@@ -90,6 +107,11 @@ class Metrics:
         live = [n.session.stats() for n in self.ep.namespaces.values()]
         for key, (name, doc) in SESSION_COUNTERS.items():
             yield CounterMetricFamily(name, doc, value=self.ended[key] + sum(s[key] for s in live))
+        rosbridge = self.ep.rosbridge.stats() if self.ep.rosbridge is not None else {}
+        for key, (name, doc) in ROSBRIDGE_COUNTERS.items():
+            yield CounterMetricFamily(name, doc, value=rosbridge.get(key, 0))
+        yield CounterMetricFamily("rce_robot_rosbridge_sessions_accepted", "rosbridge v2 clients accepted",
+                                  value=rosbridge.get("sessions_total", 0))
 
 
 class RobotEndpoint:
@@ -98,15 +120,25 @@ class RobotEndpoint:
     binary parts; ``master_wait``: s a robot's request waits for an absent master before its ER
     (:class:`~rce.masterlink.MasterLink`); ``grace``: s the session of a robot that opted in to resume
     is kept after its link is lost; ``resume_buffer``: messages kept per robot until it acks them
-    (docs/INTERNALS.md "Session resume")."""
+    (docs/INTERNALS.md "Session resume"); ``max_pending_total``: bytes of binary parts waiting for their
+    message, all robots together (:class:`~rce.protocol.limits.PartBudget`); ``ssl_context``: serve wss://
+    (and https:// metrics) with it (:func:`rce.tls.server_context`), and tell the master so: the URL it registers is ``wss://``;
+    ``cluster_key``: proved to the master on every link (:mod:`rce.cluster_auth`), and the source of
+    this endpoint's data key."""
 
     def __init__(self, *, name: str, advertise_host: str, max_message: int = DEFAULT_MAX_MESSAGE,
                  queue_size: int = DEFAULT_QUEUE_SIZE, expiry: float = DEFAULT_EXPIRY,
                  master_wait: float = MASTER_WAIT, grace: float = DEFAULT_GRACE,
-                 resume_buffer: int = DEFAULT_RESUME_BUFFER):
+                 resume_buffer: int = DEFAULT_RESUME_BUFFER, max_pending_total: int = DEFAULT_MAX_PENDING_TOTAL,
+                 ssl_context: ssl.SSLContext | None = None,
+                 cluster_key: ClusterKey):
         self.name, self.advertise_host = name, advertise_host
+        self.ssl_context = ssl_context
+        self.cluster_key = cluster_key
         self.max_message, self.queue_size, self.expiry = max_message, queue_size, expiry
         self.grace, self.resume_buffer = grace, resume_buffer
+        self.budget = PartBudget(max_pending_total)      # binary parts waiting, all robots (issue 11)
+        self.parser = ParsePool()                        # big text frames are parsed off the loop
         self.master_wait = master_wait
         self.registry = default_registry()
         load_package_types(self.registry)
@@ -130,29 +162,31 @@ class RobotEndpoint:
         rosbridge v2 clients (:mod:`rce_robot.rosbridge`; ``rosbridge_port`` None: not served).
         Raises :class:`RCEError` when the master refuses this task set."""
         await self.plane.listen(bind, data_port, self.advertise_host)
+        self.plane.data_key = self.cluster_key.data_key(self.plane.addr)
         # frames up to twice the limit are read and refused with an ER; beyond that the socket closes
         self._ws_server = await serve(self._session, bind, port, process_request=self._handshake,
                                       max_size=2 * self.max_message + 1024, compression=None,
                                       ping_interval=PING_INTERVAL, ping_timeout=PING_TIMEOUT,
-                                      max_queue=WS_MAX_QUEUE)
+                                      max_queue=WS_MAX_QUEUE, ssl=self.ssl_context)
         self.ws_port = self._ws_server.sockets[0].getsockname()[1]
         host = f"[{self.advertise_host}]" if ":" in self.advertise_host else self.advertise_host
         handlers = {op: getattr(self, "_op_" + op) for op in
                     ("add_interface", "remove_interface", "connect", "disconnect", "notify", "close_robot")}
-        info = {"kind": "robot", "name": self.name, "host": self.advertise_host, "ws_url": f"ws://{host}:{self.ws_port}/",
+        scheme = "wss" if self.ssl_context else "ws"
+        info = {"kind": "robot", "name": self.name, "host": self.advertise_host, "ws_url": f"{scheme}://{host}:{self.ws_port}/",
                 "data_addr": self.plane.addr}
         self.master = MasterLink(masters, handlers, info, report=self._report, on_registered=self._obey,
-                                 master_wait=self.master_wait)
+                                 master_wait=self.master_wait, cluster_key=self.cluster_key)
         await self.master.start()
         if rosbridge_port is not None:
             self.rosbridge = RosbridgeServer(self.master, self.by_iid)
-            await self.rosbridge.start(bind, rosbridge_port)
+            await self.rosbridge.start(bind, rosbridge_port, self.ssl_context)
         if metrics_port is not None:
             app = web.Application()
             app.router.add_get("/metrics", self._metrics)
             self._http = web.AppRunner(app, access_log=None)
             await self._http.setup()
-            site = web.TCPSite(self._http, bind, metrics_port)
+            site = web.TCPSite(self._http, bind, metrics_port, ssl_context=self.ssl_context)
             await site.start()
             self.metrics_port = site._server.sockets[0].getsockname()[1]
         log.info("robot endpoint up", ws_port=self.ws_port, data_addr=self.plane.addr)
@@ -172,6 +206,7 @@ class RobotEndpoint:
         if self.master:
             await self.master.close()
         await self.plane.close()
+        self.parser.close()
         if self._http:
             await self._http.cleanup()
 
@@ -192,9 +227,12 @@ class RobotEndpoint:
             return connection.respond(HTTPStatus.BAD_REQUEST, f"missing query parameter(s): {', '.join(missing)}\n")
         user, robot = q["userID"], q["robotID"]
         try:
-            await self.master.call("auth", user=user, robot=robot, password=normalise_password(q["password"]))
+            await self.master.call("auth", user=user, robot=robot, password=normalise_password(q["password"]),
+                                   addr=peer_address(connection))
         except AuthError as e:
             return connection.respond(HTTPStatus.UNAUTHORIZED, e.message + "\n")
+        except Throttled as e:
+            return throttled(connection, e)
         except RCEError as e:
             return connection.respond(HTTPStatus.SERVICE_UNAVAILABLE, e.message + "\n")
         old = self.namespaces.get((user, robot))
@@ -240,8 +278,9 @@ class RobotEndpoint:
             await ns.serve(ws, ws.rce_ack)
             return
         session = RobotSession(robot, max_message=self.max_message, queue_size=self.queue_size, expiry=self.expiry,
-                               resume=ws.rce_resume, grace=self.grace, resume_buffer=self.resume_buffer)
-        ns = RobotNamespace(user, robot, self.master, session, on_gone=self._session_gone)
+                               resume=ws.rce_resume, grace=self.grace, resume_buffer=self.resume_buffer,
+                               budget=self.budget)
+        ns = RobotNamespace(user, robot, self.master, session, on_gone=self._session_gone, parser=self.parser)
         self.namespaces[(user, robot)] = ns
         if (opened := self.opening.pop((user, robot), None)) is not None:
             opened.set()
@@ -272,23 +311,31 @@ class RobotEndpoint:
         return resp
 
     def _report(self) -> dict:
-        """What this task set holds, for re-registering: its robots and robot-side interfaces."""
-        return {"robots": [{"user": u, "robot": r} for u, r in self.namespaces],
+        """What this task set holds, for re-registering: its robots (rosbridge clients too, marked with
+        their ``rosbridge`` container) and robot-side interfaces."""
+        bridged = [{"user": u, "robot": r, "rosbridge": s.ctag}
+                   for (u, r), s in (self.rosbridge.sessions.items() if self.rosbridge is not None else ())]
+        return {"robots": [{"user": u, "robot": r} for u, r in self.namespaces] + bridged,
                 "interfaces": sorted(self.by_iid)}
 
     async def _obey(self, answer: dict) -> None:
         """A register answer: remove the interfaces and close the robots the master does not have."""
         for iid in answer.get("drop_interfaces") or []:
             await self._op_remove_interface({"iid": iid})
-        closing = [self.namespaces.get((r["user"], r["robot"])) for r in answer.get("close_robots") or []]
+        closing = [self._find(r) for r in answer.get("close_robots") or []]
         await asyncio.gather(*(ns.close("the master does not know this session (it restarted without it); "
                                         "connect again") for ns in closing if ns is not None))
 
     # -- master ops --------------------------------------------------------------------------------
-    def _ns(self, a: dict) -> RobotNamespace:
+    def _find(self, a: dict) -> RobotNamespace | RosbridgeSession | None:
+        """Robot ``a["robot"]`` of ``a["user"]``: an RCE robot's namespace or a rosbridge client's session."""
         ns = self.namespaces.get((a["user"], a["robot"]))
-        if ns is None and self.rosbridge is not None:            # a rosbridge client's session
-            ns = self.rosbridge.sessions.get((a["user"], a["robot"]))
+        if ns is None and self.rosbridge is not None:
+            return self.rosbridge.sessions.get((a["user"], a["robot"]))
+        return ns
+
+    def _ns(self, a: dict) -> RobotNamespace | RosbridgeSession:
+        ns = self._find(a)
         if ns is None:
             raise NotFound(f"robot {a['robot']!r} is not connected to this endpoint")
         return ns
@@ -323,7 +370,7 @@ class RobotEndpoint:
         return {}
 
     async def _op_connect(self, a: dict) -> dict:
-        self._iface(a["iid"]).connect(a["peer_iid"], a["peer_addr"])
+        self._iface(a["iid"]).connect(a["peer_iid"], a["peer_addr"], token_of(a))
         return {}
 
     async def _op_disconnect(self, a: dict) -> dict:
@@ -333,7 +380,7 @@ class RobotEndpoint:
         return {}
 
     async def _op_notify(self, a: dict) -> None:
-        ns = self.namespaces.get((a["user"], a["robot"]))
+        ns = self._find(a)
         if ns is None:
             return
         if a["type"] == "ER":

@@ -12,7 +12,7 @@ from __future__ import annotations
 
 from typing import TYPE_CHECKING, Any, Protocol
 
-from rce.errors import MessageError, ProtocolError, Unavailable
+from rce.errors import MessageError, ProtocolError, RequestError, Unavailable
 from rce.interfaces import Interface
 from rce.message_forms import JsonForms
 from rce.messages import MessageRegistry
@@ -115,6 +115,13 @@ class RobotInterface(Interface):
         except MessageError as e:
             self._robot_calls.fail(msg_id, e)
             raise
+
+    def fail_robot_call(self, msg_id: Any, reason: str) -> None:
+        """(ServiceClient*) The robot refuses the call from the cloud ``msg_id`` (a rosbridge
+        ``service_response`` with ``result: false``): the caller's call fails with
+        :class:`RequestError` ``reason``. Raises :class:`ProtocolError` for an unknown msgID."""
+        if not self._robot_calls.fail(str(msg_id or ""), RequestError(f"the robot refused the call: {reason}")):
+            raise ProtocolError(f"interface {self.itag!r}: refusal with unknown msgID {msg_id!r}")
 
     async def call_from_robot(self, data: dict) -> Any:
         """(ServiceProvider*) The robot calls the connected service: forward the request; returns

@@ -26,10 +26,12 @@ from websockets.exceptions import ConnectionClosed
 from rce.errors import ProtocolError, RCEError
 from rce.log import get_logger
 from rce.message_forms import JsonForms
+from rce.protocol.limits import LOG_BURST, LOG_RATE, TokenBucket, truncate
 from rce.protocol.session import Event, RobotSession
 from rce.masterlink import MasterLink
 from rce.tasks import Tasks
 from rce_robot.interfaces import RobotInterface
+from rce_robot.parse_pool import ParsePool
 
 log = get_logger("rce.robot")
 
@@ -48,12 +50,19 @@ CLEAN_CLOSE = (1000, 1001)  # close codes of a robot that ends its session itsel
 class RobotNamespace:
     """Session of robot ``robot`` of user ``user``; ``master``: the control link its requests go
     through; ``grace``: s a resumable session stays detached after its link is lost;
-    ``on_gone(namespace)``: called once when the session has ended (interfaces stopped).
+    ``on_gone(namespace)``: called once when the session has ended (interfaces stopped);
+    ``parser``: the endpoint's pool that parses big text frames off the loop (None: all on it).
+    Its log lines about the robot's errors are cut short and come at most :data:`LOG_RATE` per s
+    (:data:`LOG_BURST` at once; the next line counts those left out).
     Implements :class:`rce_robot.interfaces.RobotLink`."""
 
     def __init__(self, user: str, robot: str, master: MasterLink, session: RobotSession, *,
-                 on_gone: Callable[["RobotNamespace"], Awaitable[None]], grace: float | None = None):
+                 on_gone: Callable[["RobotNamespace"], Awaitable[None]], grace: float | None = None,
+                 parser: ParsePool | None = None):
         self.user, self.robot, self.master, self.session = user, robot, master, session
+        self.parser = parser
+        self._log_bucket = TokenBucket(LOG_RATE, LOG_BURST)
+        self.log_suppressed = 0                             # ER log lines left out (rate limit)
         self.grace = session.grace if grace is None else grace
         self.interfaces: dict[str, RobotInterface] = {}
         self.forms = JsonForms(learn=True)   # the JSON forms the robot gets back (docs/INTERNALS.md)
@@ -99,9 +108,18 @@ class RobotNamespace:
         self._pump()
 
     def send_error(self, reason: str) -> None:
-        log.info("ER to robot", user=self.user, robot=self.robot, reason=reason)
-        self.session.send_error(reason)
+        """Queue an ER (:meth:`RobotSession.send_error`: cut short, rate-limited) and log it (rate-limited)."""
+        if self.session.send_error(reason):
+            self._log_error(reason)
         self._pump()
+
+    def _log_error(self, reason: str) -> None:
+        if not self._log_bucket.take(time.monotonic()):
+            self.log_suppressed += 1
+            return
+        extra = {"left_out": self.log_suppressed} if self.log_suppressed else {}
+        self.log_suppressed = 0
+        log.info("ER to robot", user=self.user, robot=self.robot, reason=truncate(reason), **extra)
 
     async def _writer(self, ws: Any) -> None:
         try:
@@ -138,10 +156,7 @@ class RobotNamespace:
         self._pump()
         try:
             async for frame in ws:
-                if isinstance(frame, str):
-                    self.session.receive_text(frame, time.monotonic())
-                else:
-                    self.session.receive_binary(frame, time.monotonic())
+                await self._receive(frame)
                 self._pump()
         except ConnectionClosed:
             pass
@@ -158,6 +173,18 @@ class RobotNamespace:
         log.info("robot link lost; session kept", user=self.user, robot=self.robot, grace=self.grace,
                  code=ws.close_code)
         self._grace_timer = self.tasks.spawn(self._expire(), name="grace")
+
+    async def _receive(self, frame: str | bytes) -> None:
+        """One frame into the session; a big text frame is parsed in the pool first (this robot's next
+        frames wait for it, other robots' do not)."""
+        if isinstance(frame, str):
+            if self.parser is not None and self.parser.takes(frame) and not self.session.too_big(frame):
+                self.session.receive_parsed(await self.parser.parse(frame), time.monotonic())
+                await asyncio.sleep(0)    # other robots' frames between its parse and its conversion
+            else:
+                self.session.receive_text(frame, time.monotonic())
+        else:
+            self.session.receive_binary(frame, time.monotonic())
 
     async def _expire(self) -> None:
         await asyncio.sleep(self.grace)      # a timer: the grace period
@@ -238,6 +265,7 @@ class RobotNamespace:
         self._gone = self.ended = True
         self.detached_since = None
         await self.tasks.cancel_all()
+        self.session.end()
         for iface in list(self.interfaces.values()):
             await iface.stop()
         self.interfaces.clear()

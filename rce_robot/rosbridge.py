@@ -12,7 +12,8 @@ interfaces the master creates and removes on the session's behalf.
 from __future__ import annotations
 
 import asyncio
-import json
+import ssl
+from collections import Counter
 from http import HTTPStatus
 from typing import Any
 from urllib.parse import parse_qs, urlsplit
@@ -20,10 +21,11 @@ from urllib.parse import parse_qs, urlsplit
 from websockets.asyncio.server import serve
 from websockets.exceptions import ConnectionClosed
 
-from rce.errors import AuthError, NotFound, RCEError
+from rce.errors import AuthError, NotFound, RCEError, Throttled
 from rce.log import get_logger
 from rce.masterlink import MasterLink
 from rce.tasks import Tasks
+from rce_robot.front_door import peer_address, throttled
 from rce_robot.interfaces import RobotInterface
 from rce_robot.rosbridge_session import RosbridgeSession
 
@@ -35,6 +37,16 @@ PING_TIMEOUT = 60.0         # s a client may leave a ping unanswered before its 
 WS_MAX_QUEUE = 64           # messages the websocket reads ahead of the session
 MAX_MESSAGE = 16 * 1024 * 1024   # bytes of the largest websocket message taken from a client
 QUERY = ("userID", "robotID", "password", "container")
+# RosbridgeSession.stats() key -> (Prometheus counter, help), summed over the sessions, live and ended
+SESSION_COUNTERS = {"ops_in": ("rce_robot_rosbridge_ops_in", "Ops taken from rosbridge clients"),
+                    "errors": ("rce_robot_rosbridge_status_errors", "status errors sent to rosbridge clients"),
+                    "msgs_out": ("rce_robot_rosbridge_messages_out", "Messages queued for rosbridge clients"),
+                    "dropped": ("rce_robot_rosbridge_dropped",
+                                "Messages to rosbridge clients dropped (outbox or throttle queue full)"),
+                    "fragments_out": ("rce_robot_rosbridge_fragments_out", "fragment ops sent to rosbridge clients"),
+                    "fragments_in": ("rce_robot_rosbridge_fragments_in", "fragment ops taken from rosbridge clients"),
+                    "fragments_dropped": ("rce_robot_rosbridge_fragments_dropped",
+                                          "Client fragments dropped (bounds, expiry, inconsistent)")}
 
 
 class RosbridgeServer:
@@ -46,14 +58,26 @@ class RosbridgeServer:
     def __init__(self, master: MasterLink, by_iid: dict[int, RobotInterface]):
         self.master, self.by_iid = master, by_iid
         self.sessions: dict[tuple[str, str], RosbridgeSession] = {}
+        self.ended: Counter[str] = Counter()          # the counters of ended sessions
+        self.sessions_total = 0
         self.port = 0
         self._server: Any = None
 
-    async def start(self, bind: str, port: int) -> None:
-        """Listen on ``bind``:``port`` (0: an ephemeral port, then in :attr:`port`)."""
+    def stats(self) -> dict[str, int]:
+        """:data:`SESSION_COUNTERS` summed over live and ended sessions, plus ``sessions`` (live)
+        and ``sessions_total`` (accepted since start)."""
+        total = Counter(self.ended)
+        for session in self.sessions.values():
+            total.update(session.stats())
+        return {**{k: total[k] for k in SESSION_COUNTERS}, "sessions": len(self.sessions),
+                "sessions_total": self.sessions_total}
+
+    async def start(self, bind: str, port: int, ssl_context: ssl.SSLContext | None = None) -> None:
+        """Listen on ``bind``:``port`` (0: an ephemeral port, then in :attr:`port`); wss:// with
+        ``ssl_context`` (:func:`rce.tls.server_context`)."""
         self._server = await serve(self._serve, bind, port, process_request=self._handshake, max_size=MAX_MESSAGE,
                                    compression=None, ping_interval=PING_INTERVAL, ping_timeout=PING_TIMEOUT,
-                                   max_queue=WS_MAX_QUEUE)
+                                   max_queue=WS_MAX_QUEUE, ssl=ssl_context)
         self.port = self._server.sockets[0].getsockname()[1]
         log.info("rosbridge endpoint up", port=self.port)
 
@@ -75,7 +99,8 @@ class RosbridgeServer:
         if not self.master.available:
             return connection.respond(HTTPStatus.SERVICE_UNAVAILABLE, "the master is unavailable; try again later\n")
         user, robot, ctag = q["userID"], q["robotID"], q["container"]
-        steps = ((HTTPStatus.UNAUTHORIZED, "auth", {"user": user, "robot": robot, "password": password}),
+        steps = ((HTTPStatus.UNAUTHORIZED, "auth", {"user": user, "robot": robot, "password": password,
+                                                    "addr": peer_address(connection)}),
                  (HTTPStatus.NOT_FOUND, "container_bus", {"user": user, "ctag": ctag}),
                  (HTTPStatus.CONFLICT, "robot_connected", {"user": user, "robot": robot}))
         for status, op, args in steps:
@@ -83,6 +108,8 @@ class RosbridgeServer:
                 await self.master.call(op, **args)
             except (AuthError, NotFound) as e:
                 return connection.respond(status, e.message + "\n")
+            except Throttled as e:
+                return throttled(connection, e)
             except RCEError as e:
                 code = status if op == "robot_connected" else HTTPStatus.SERVICE_UNAVAILABLE
                 return connection.respond(code, e.message + "\n")
@@ -92,10 +119,12 @@ class RosbridgeServer:
     async def _serve(self, ws) -> None:
         user, robot, ctag = ws.rce_rosbridge
         session = RosbridgeSession(user, robot, ctag, self.master)
+        session.ws = ws
         self.sessions[(user, robot)] = session
+        self.sessions_total += 1
         log.info("rosbridge client connected", user=user, robot=robot, container=ctag, peer=str(ws.remote_address))
         writer = Tasks(f"rosbridge writer {user}/{robot}")
-        writer.spawn(_write(ws, session.outbox), name="writer")
+        writer.spawn(_write(ws, session.outbox.queue), name="writer")
         try:
             async for text in ws:
                 await session.handle(text)
@@ -110,20 +139,21 @@ class RosbridgeServer:
         await session.close()
         if self.sessions.get((session.user, session.robot)) is session:
             del self.sessions[(session.user, session.robot)]
+        self.ended.update(session.stats())
         for iid in [i for i, itf in self.by_iid.items() if itf.link is session]:
             await self.by_iid.pop(iid).stop()
         try:
             await self.master.call("robot_disconnected", user=session.user, robot=session.robot)
         except RCEError as e:
             log.warning("could not report a rosbridge disconnect", robot=session.robot, reason=e.message)
-        log.info("rosbridge client disconnected", user=session.user, robot=session.robot, dropped=session.dropped,
-                 errors=session.errors)
+        log.info("rosbridge client disconnected", user=session.user, robot=session.robot, **session.stats())
 
 
 async def _write(ws, outbox: asyncio.Queue) -> None:
     """Send what the session queued, in order, until the link closes."""
     try:
         while True:
-            await ws.send(json.dumps(await outbox.get()))
+            for frame in await outbox.get():        # one message: its frames (text, or binary CBOR)
+                await ws.send(frame)
     except ConnectionClosed:
         pass

@@ -10,6 +10,12 @@ robot-side converter in this session, connected to it. The converters are ordina
 :class:`~rce_robot.interfaces.RobotLink` and turns what they send into rosbridge ``publish``
 ops (and calls from the container into ``call_service`` ops). docs/INTERNALS.md "rosbridge v2" has the table of ops.
 
+What a subscription sends may be compressed (``png``, ``cbor``, ``cbor-raw``:
+:mod:`rce_robot.rosbridge_compression`) and, as a subscription or a ``call_service`` asks with
+``fragment_size``, split into ``fragment`` ops; the client's own ``fragment`` ops are reassembled
+within bounds (:mod:`rce_robot.rosbridge_fragments`). The rosapi services are answered here too
+(:mod:`rce_robot.rosbridge_rosapi`), parameters through the master.
+
 Bad input (not JSON, an unknown op, a missing field, a message that does not fit its type, a
 refused request) gets a ``status`` op with ``level: error`` naming what was wrong; the session
 goes on.
@@ -24,20 +30,25 @@ from dataclasses import dataclass, field
 from collections.abc import Awaitable
 from typing import Any
 
-from rce.errors import MessageError, ProtocolError, RCEError, Timeout
+from rce.errors import ProtocolError, RCEError, Timeout
 from rce.log import get_logger
 from rce.masterlink import MasterLink
 from rce.message_forms import JsonForms
+from rce.protocol.schema import validate
 from rce.tasks import Tasks
 from rce_robot.interfaces import RobotInterface
-from rce_robot.namespace import REQUEST_TIMEOUT
+from rce_robot.namespace import CLOSE_POLICY, REQUEST_TIMEOUT
+from rce_robot.rosbridge_compression import COMPRESSIONS, cbor_publish, cbor_raw_publish, png_op
+from rce_robot.rosbridge_fragments import Defragmenter
+from rce_robot.rosbridge_outbox import Outbox
 from rce_robot.rosbridge_rosapi import ROSAPI, rosapi_answer
 
 log = get_logger("rce.rosbridge")
 
-OUTBOX_SIZE = 256          # messages waiting for the client's websocket; past it a message is dropped (counted)
 INTERFACE_UP_WAIT = 10.0   # s a new topic or service waits for its interfaces to connect before the op goes on
 DESCRIBE_TIMEOUT = 15.0    # s a look-up of the container's graph (types, rosapi) waits for the master
+MAX_CLOSE_REASON = 120     # bytes of a close reason (a websocket close frame carries at most 123)
+MIN_FRAGMENT_SIZE = 64     # characters: the least fragment_size taken (smaller ones would send one op per few bytes)
 # role -> (container interface type, robot-side interface type); the role letter starts the robot-side tag
 ROLES = {"p": ("PublisherInterface", "SubscriberConverter"),      # the client advertises and publishes
          "s": ("SubscriberInterface", "PublisherConverter"),      # the client subscribes
@@ -60,15 +71,29 @@ class Bridge:
 class Subscription:
     """A client's ``subscribe`` ``sid`` to a topic: ``throttle_rate`` (ms) is the least time
     between two messages sent; messages arriving sooner wait in a queue of ``queue_length``
-    (at least 1; the oldest is dropped and counted when it is full), as rosbridge does."""
+    (at least 1; the oldest is dropped and counted when it is full), as rosbridge does. Each
+    message goes with ``compression`` (:data:`~rce_robot.rosbridge_compression.COMPRESSIONS`),
+    in fragments of ``fragment_size`` characters (None: whole)."""
 
-    def __init__(self, sid: str, throttle_rate: float, queue_length: int):
-        self.sid = sid
+    def __init__(self, sid: str, throttle_rate: float, queue_length: int, fragment_size: int | None = None,
+                 compression: str = "none"):
+        self.sid, self.fragment_size, self.compression = sid, fragment_size, compression
         self.throttle = max(0.0, throttle_rate) / 1000.0          # s
         self.pending: deque[Any] = deque(maxlen=max(1, queue_length))
         self.last = float("-inf")                                  # monotonic s of the last message sent
         self.timer: asyncio.TimerHandle | None = None
         self.dropped = 0
+
+
+def _fragment_size(op: dict) -> int | None:
+    """An op's ``fragment_size`` (characters; None when absent). ProtocolError below :data:`MIN_FRAGMENT_SIZE`."""
+    size = op.get("fragment_size")
+    if size is None:
+        return None
+    if not isinstance(size, int) or isinstance(size, bool) or size < MIN_FRAGMENT_SIZE:
+        raise ProtocolError(f"op {op.get('op')!r}: fragment_size must be an integer >= {MIN_FRAGMENT_SIZE} "
+                            f"(characters), got {size!r}")
+    return size
 
 
 def _field(op: dict, name: str, kind: type = str) -> Any:
@@ -81,8 +106,9 @@ def _field(op: dict, name: str, kind: type = str) -> Any:
 class RosbridgeSession:
     """The session of a rosbridge client as robot ``robot`` of ``user`` on container ``ctag``;
     ``master``: the control link its requests go through. What it sends the client goes to
-    :attr:`outbox` (bounded: :data:`OUTBOX_SIZE`; drops counted in :attr:`dropped`).
-    Implements :class:`rce_robot.interfaces.RobotLink`."""
+    :attr:`outbox` (bounded, drops counted: :class:`~rce_robot.rosbridge_outbox.Outbox`); the
+    client's ``fragment`` ops are reassembled by :attr:`defrag` (bounded). Implements
+    :class:`rce_robot.interfaces.RobotLink` and :class:`rce_robot.rosbridge_rosapi.Graph`."""
 
     def __init__(self, user: str, robot: str, ctag: str, master: MasterLink):
         self.user, self.robot, self.ctag, self.master = user, robot, ctag, master
@@ -91,23 +117,32 @@ class RosbridgeSession:
         self.bridges: dict[tuple[str, str], Bridge] = {}          # (role, name) -> its interfaces
         self.by_itag: dict[str, Bridge] = {}
         self.subs: dict[str, dict[str, Subscription]] = {}         # topic -> subscription id -> subscription
-        self.outbox: asyncio.Queue[dict] = asyncio.Queue(OUTBOX_SIZE)
+        self.outbox = Outbox()
+        self.defrag = Defragmenter()
         self.tasks = Tasks(f"rosbridge {user}/{robot}")
         self.ops = {"advertise": self._advertise, "unadvertise": self._unadvertise, "publish": self._publish,
                     "subscribe": self._subscribe, "unsubscribe": self._unsubscribe,
                     "call_service": self._call_service, "advertise_service": self._advertise_service,
                     "unadvertise_service": self._unadvertise_service, "service_response": self._service_response}
-        self.dropped = self.errors = self._n = 0
+        self.ops_in = self.errors = self.queue_dropped = self._n = 0
+        self.ws: Any = None                 # the client's websocket (set by the server)
+
+    @property
+    def dropped(self) -> int:
+        """Messages to the client dropped: a full outbox, a full throttle queue."""
+        return self.outbox.dropped + self.queue_dropped
+
+    def stats(self) -> dict[str, int]:
+        """The session's counters (``rce_robot.rosbridge.SESSION_COUNTERS`` names them)."""
+        return {"ops_in": self.ops_in, "errors": self.errors, "msgs_out": self.outbox.sent, "dropped": self.dropped,
+                "fragments_out": self.outbox.fragments, "fragments_in": self.defrag.fragments,
+                "fragments_dropped": self.defrag.dropped}
 
     # -- to the client ---------------------------------------------------------------------------------
-    def send(self, msg: dict) -> bool:
-        """Queue ``msg`` for the client; False (counted in :attr:`dropped`) when the outbox is full."""
-        try:
-            self.outbox.put_nowait(msg)
-        except asyncio.QueueFull:
-            self.dropped += 1
-            return False
-        return True
+    def send(self, msg: dict, fragment_size: int | None = None) -> bool:
+        """Queue ``msg`` for the client (in fragments of ``fragment_size`` characters when longer);
+        False (counted) when the outbox is full."""
+        return self.outbox.op(msg, fragment_size)
 
     def status(self, level: str, text: str, op_id: Any = None) -> None:
         """A rosbridge ``status`` op (``level``: error, warning, info)."""
@@ -135,10 +170,10 @@ class RosbridgeSession:
         if bridge is not None and bridge.role == "v":
             return self.send({"op": "call_service", "id": msg_id, "service": bridge.name, "args": msg})
         if bridge is None or bridge.role != "s":
-            self.dropped += 1
+            self.queue_dropped += 1
             return False
         for sub in list(self.subs.get(bridge.name, {}).values()):
-            self._deliver(bridge.name, sub, msg)
+            self._deliver(bridge, sub, msg)
         return True
 
     def send_status(self, data: dict) -> None:
@@ -150,47 +185,79 @@ class RosbridgeSession:
         self.status("error", reason)
 
     # -- subscriptions -----------------------------------------------------------------------------------
-    def _deliver(self, topic: str, sub: Subscription, msg: Any) -> None:
+    def _deliver(self, bridge: Bridge, sub: Subscription, msg: Any) -> None:
         now = time.monotonic()
         if not sub.pending and now - sub.last >= sub.throttle:
             sub.last = now
-            self.send({"op": "publish", "topic": topic, "msg": msg})
+            self._publish_to(bridge, sub, msg)
             return
         if len(sub.pending) == sub.pending.maxlen:
             sub.dropped += 1
-            self.dropped += 1
+            self.queue_dropped += 1
         sub.pending.append(msg)
         if sub.timer is None:
             sub.timer = asyncio.get_running_loop().call_later(max(0.0, sub.last + sub.throttle - now),
-                                                              self._flush, topic, sub)
+                                                              self._flush, bridge, sub)
 
-    def _flush(self, topic: str, sub: Subscription) -> None:
+    def _flush(self, bridge: Bridge, sub: Subscription) -> None:
         sub.timer = None
-        if sub.pending and self.subs.get(topic, {}).get(sub.sid) is sub:     # not unsubscribed or replaced
+        if sub.pending and self.subs.get(bridge.name, {}).get(sub.sid) is sub:     # not unsubscribed or replaced
             sub.last = time.monotonic()
-            self.send({"op": "publish", "topic": topic, "msg": sub.pending.popleft()})
+            self._publish_to(bridge, sub, sub.pending.popleft())
             if sub.pending:
-                sub.timer = asyncio.get_running_loop().call_later(sub.throttle, self._flush, topic, sub)
+                sub.timer = asyncio.get_running_loop().call_later(sub.throttle, self._flush, bridge, sub)
+
+    def _publish_to(self, bridge: Bridge, sub: Subscription, msg: Any) -> None:
+        """One ``publish`` op for ``sub``, compressed and fragmented as it asked."""
+        op = {"op": "publish", "topic": bridge.name, "msg": msg}
+        if sub.compression in ("cbor", "cbor-raw"):
+            iface = self.interfaces.get(bridge.itag)
+            if iface is None:
+                self.queue_dropped += 1
+                return
+            if sub.compression == "cbor":
+                self.outbox.put([cbor_publish(iface.registry, iface.msg_t, bridge.name, msg)])
+            else:
+                self.outbox.put([cbor_raw_publish(iface.registry, iface.msg_t, bridge.name, msg, time.time())])
+            return
+        self.send(png_op(json.dumps(op)) if sub.compression == "png" else op, sub.fragment_size)
 
     # -- from the client ---------------------------------------------------------------------------------
     async def handle(self, text: str | bytes) -> None:
         """Take one websocket message from the client; bad input gets a ``status`` error."""
         op: Any = None
         try:
-            if isinstance(text, bytes):
-                raise ProtocolError("binary messages are not taken (no cbor or png compression); send JSON text")
-            try:
-                op = json.loads(text)
-            except ValueError as e:
-                raise ProtocolError(f"message is not JSON: {e}") from None
-            if not isinstance(op, dict):
-                raise ProtocolError(f"message must be a JSON object, got {type(op).__name__}")
+            for mid in self.defrag.expire():
+                self.status("warning", f"fragmented message {mid!r} expired before its last fragment came")
+            op = self._parse(text)
+            if op.get("op") == "fragment":
+                whole = self.defrag.add(op)
+                if whole is None:
+                    return
+                op = self._parse(whole)
+                if op.get("op") == "fragment":
+                    raise ProtocolError("a reassembled message must not be a fragment itself")
+            self.ops_in += 1
             handler = self.ops.get(op.get("op"))
             if handler is None:
-                raise ProtocolError(f"unknown op {op.get('op')!r}; this endpoint takes {', '.join(self.ops)}")
+                raise ProtocolError(f"unknown op {op.get('op')!r}; this endpoint takes {', '.join(self.ops)}, "
+                                    "fragment")
             await handler(op)
         except RCEError as e:
             self.status("error", e.message, op.get("id") if isinstance(op, dict) else None)
+
+    @staticmethod
+    def _parse(text: str | bytes) -> dict:
+        if isinstance(text, bytes):
+            raise ProtocolError("binary messages are not taken (rosbridge takes JSON text from clients; cbor "
+                                "is only sent); send JSON text")
+        try:
+            op = json.loads(text)
+        except ValueError as e:
+            raise ProtocolError(f"message is not JSON: {e}") from None
+        if not isinstance(op, dict):
+            raise ProtocolError(f"message must be a JSON object, got {type(op).__name__}")
+        return op
 
     async def _advertise(self, op: dict) -> None:
         await self._bridge("p", _field(op, "topic"), _field(op, "type"))
@@ -217,18 +284,19 @@ class RosbridgeSession:
 
     async def _subscribe(self, op: dict) -> None:
         topic = _field(op, "topic")
-        cls = op.get("type") or await self._type_of("topics", topic)
-        compression = op.get("compression")
-        if compression not in (None, "none"):
-            self.status("warning", f"subscribe {topic!r}: compression {compression!r} is not supported; "
-                                   "messages go as JSON", op.get("id"))
+        compression = op.get("compression") or "none"
+        if compression not in COMPRESSIONS:
+            raise ProtocolError(f"subscribe {topic!r}: compression must be one of {', '.join(COMPRESSIONS)}, "
+                                f"got {compression!r}")
         throttle, queue = op.get("throttle_rate") or 0, op.get("queue_length") or 0
         if not isinstance(throttle, (int, float)) or not isinstance(queue, int) or throttle < 0 or queue < 0:
             raise ProtocolError(f"subscribe {topic!r}: throttle_rate (ms) and queue_length must be numbers >= 0, "
                                 f"got {throttle!r}, {queue!r}")
+        size = _fragment_size(op)
+        cls = op.get("type") or await self._type_of("topics", topic)
         await self._bridge("s", topic, str(cls))
         sid = str(op.get("id") or f"subscribe:{topic}")
-        self.subs.setdefault(topic, {})[sid] = Subscription(sid, float(throttle), queue)
+        self.subs.setdefault(topic, {})[sid] = Subscription(sid, float(throttle), queue, size, compression)
 
     async def _unsubscribe(self, op: dict) -> None:
         topic = _field(op, "topic")
@@ -246,11 +314,13 @@ class RosbridgeSession:
         args = op.get("args") or {}
         if not isinstance(args, (dict, list)):
             raise ProtocolError(f"call_service {service!r}: args must be an object, got {args!r}")
+        size = _fragment_size(op)
         if service in ROSAPI:
-            self.tasks.spawn(self._reply(service, op.get("id"), self._rosapi(service, args)), name=service)
+            self.tasks.spawn(self._reply(service, op.get("id"), rosapi_answer(service, args, self), size),
+                             name=service)
             return
         bridge = await self._bridge("c", service, op.get("type") or await self._type_of("services", service))
-        self.tasks.spawn(self._reply(service, op.get("id"), self._call(bridge, args)), name=f"call {service}")
+        self.tasks.spawn(self._reply(service, op.get("id"), self._call(bridge, args), size), name=f"call {service}")
 
     async def _advertise_service(self, op: dict) -> None:
         await self._bridge("v", _field(op, "service"), _field(op, "type"))
@@ -260,23 +330,18 @@ class RosbridgeSession:
 
     async def _service_response(self, op: dict) -> None:
         """The client's answer to a call from the container (``id`` as it was sent). ``result:
-        false`` fails the call: the caller gets the refusal of ``values`` as its error."""
+        false`` fails the call: the caller gets ``values`` (text, or its JSON) as the reason."""
         iface = self._iface(self._advertised("v", "service", op))
         if op.get("result", True) is not False:
             iface.from_robot({"msgID": op.get("id"), "msg": op.get("values")})
             return
-        try:                       # a refusal: no response fits its class, so the call fails with that error
-            iface.from_robot({"msgID": op.get("id"), "msg": None})
-        except MessageError:
-            pass
+        values = op.get("values")
+        iface.fail_robot_call(op.get("id"), values if isinstance(values, str) else json.dumps(values))
 
     async def _call(self, bridge: Bridge, args: Any) -> Any:
         return await self._iface(bridge).call_from_robot({"msg": args})
 
-    async def _rosapi(self, service: str, args: Any) -> dict:
-        return rosapi_answer(service, args, await self.describe())
-
-    async def _reply(self, service: str, op_id: Any, values: Awaitable[Any]) -> None:
+    async def _reply(self, service: str, op_id: Any, values: Awaitable[Any], fragment_size: int | None) -> None:
         """A ``service_response``: ``values`` awaited (``result: true``), or its error's text (false)."""
         reply: dict = {"op": "service_response", "service": service}
         if op_id is not None:
@@ -285,12 +350,26 @@ class RosbridgeSession:
             reply.update(values=await values, result=True)
         except RCEError as e:
             reply.update(values=e.message, result=False)
-        self.send(reply)
+        self.send(reply, fragment_size)
 
     # -- the graph through the master --------------------------------------------------------------------
     async def describe(self) -> dict:
         """The container's bus (:meth:`rce.bus.core.Bus.describe`), through the master."""
         return await self.master.call("container_bus", timeout=DESCRIBE_TIMEOUT, user=self.user, ctag=self.ctag)
+
+    async def get_param(self, name: str) -> Any:
+        """Parameter ``name`` (global) of the container's bus, through the master; NotFound if not set."""
+        answer = await self.master.call("container_param", timeout=DESCRIBE_TIMEOUT, user=self.user, ctag=self.ctag,
+                                        name=name)
+        return answer.get("value")
+
+    async def set_param(self, name: str, value: Any) -> None:
+        """Set parameter ``name`` (global) to ``value`` (JSON), as the robot's CN ``setParam``."""
+        await self._request("CN", {"setParam": [{"containerTag": self.ctag, "name": name, "value": value}]})
+
+    async def delete_param(self, name: str) -> None:
+        """Delete parameter ``name``, as the robot's CN ``deleteParam`` (NotFound unless the master has it)."""
+        await self._request("CN", {"deleteParam": [{"containerTag": self.ctag, "name": name}]})
 
     async def _type_of(self, kind: str, name: str) -> str:
         """The type of topic or service ``name`` on the container's bus (``kind``: topics, services)."""
@@ -300,6 +379,9 @@ class RosbridgeSession:
         raise ProtocolError(f"{kind[:-1]} {name!r} is not on container {self.ctag!r}'s graph; give its type")
 
     async def _request(self, type_: str, data: dict) -> None:
+        """Send a CN/CX built from the client's ops to the master, through the same schema check a
+        robot's own requests meet (:func:`rce.protocol.schema.validate`: names, types, tags)."""
+        validate({"type": type_, "data": data})
         await self.master.call("robot_request", timeout=REQUEST_TIMEOUT, user=self.user, robot=self.robot,
                                type=type_, data=data)
 
@@ -346,9 +428,14 @@ class RosbridgeSession:
             {"endpointTag": self.ctag, "interfaceTag": bridge.ctag_itag},
             {"endpointTag": self.robot, "interfaceTag": bridge.itag}]})
 
-    async def close(self) -> None:
+    async def close(self, reason: str | None = None) -> None:
         """End the session: its calls stop, its interfaces are removed through the master (quietly:
-        the master may be away; the robot's disconnect forgets the robot-side ones anyway)."""
+        the master may be away; the robot's disconnect forgets the robot-side ones anyway). With
+        ``reason`` (the master closes the robot) the websocket closes with it (1008), and the
+        server's end of the session does the rest."""
+        if reason is not None and self.ws is not None:
+            await self.ws.close(CLOSE_POLICY, reason.encode()[:MAX_CLOSE_REASON].decode(errors="ignore"))
+            return
         await self.tasks.cancel_all()
         for subs in self.subs.values():
             for sub in subs.values():

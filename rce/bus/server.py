@@ -15,17 +15,30 @@ Link protocol (internal framing, :mod:`rce.framing`): CONTROL requests
 A node's subscriptions are bounded by the bytes waiting in its socket
 (``max_buffer``); messages beyond it are dropped and counted. Service calls either way
 use the link layer's :class:`~rce.pending.PendingCalls` and :class:`~rce.link.Responder`.
+
+Who may join (a container's bus: ``token`` and ``uids`` given): the socket file is mode
+0660 and owned (user and group) by the container's node uid (``owner``); a connecting process whose uid
+(``SO_PEERCRED``, unix(7)) is not in ``uids`` is cut off at once; every other op waits for a
+``hello {name, pid, container, token}`` whose token equals the container's bus token
+(``RCE_BUS_TOKEN`` in each node's environment, compared in constant time). Until then no op
+but ``hello`` is served and DATA frames are ignored; a wrong or missing token gets an
+:class:`~rce.errors.AuthError` and the link is closed. Each refusal is logged and counted
+(:attr:`BusServer.refused`).
 """
 from __future__ import annotations
 
 import asyncio
+import hmac
 import itertools
 import os
+import socket
+import struct
+from collections.abc import Collection
 from pathlib import Path
 
 from rce import framing
 from rce.bus.core import Bus, Subscription, Topic
-from rce.errors import NotFound, RCEError, RequestError
+from rce.errors import AuthError, NotFound, RCEError, RequestError
 from rce.link import STREAM_LIMIT, Responder, settle_reply
 from rce.log import get_logger
 from rce.pending import PendingCalls
@@ -35,6 +48,9 @@ log = get_logger("rce.bus")
 
 DEFAULT_MAX_BUFFER = 16 * 1024 * 1024   # bytes that may wait unread per node connection
 CLOSE_TIMEOUT = 2.0                     # s :meth:`BusServer.close` waits for its listeners to close
+REFUSED_LINGER = 0.1                    # s a refused node's link stays open so that it reads why
+SOCKET_MODE = 0o660                     # a bus socket: its owner and group (a container's: its node uid) only
+_UCRED = struct.Struct("3i")            # struct ucred {pid, uid, gid} of SO_PEERCRED
 
 
 class _Session:
@@ -53,9 +69,15 @@ class _Session:
         self.ids = itertools.count(1)
         # what this node published (in) and was delivered (out), for per-node statistics
         self.msgs_in = self.bytes_in = self.msgs_out = self.bytes_out = 0
-        peer.handlers.update({op[3:]: getattr(self, op) for op in dir(self) if op.startswith("op_")})
-        peer.on_data = self.on_data
         peer.on_close = lambda _p: self.close()
+        if server.token is None:
+            self._admit()
+        else:                              # nothing but hello until the token is shown
+            peer.handlers["hello"] = self.op_hello
+
+    def _admit(self) -> None:
+        self.peer.handlers.update({op[3:]: getattr(self, op) for op in dir(self) if op.startswith("op_")})
+        self.peer.on_data = self.on_data
 
     def stats(self) -> dict:
         """``{node, msgs_in, bytes_in, msgs_out, bytes_out, dropped}``: in = published by the
@@ -65,6 +87,18 @@ class _Session:
 
     # -- control ops ---------------------------------------------------------------------------
     async def op_hello(self, a: dict) -> dict:
+        """``{name, pid, container, token}`` -> ``{bus}``. Raises :class:`AuthError` (and
+        closes the link) when the bus has a token and ``token`` is not it."""
+        token = self.server.token
+        if token is not None and self.node is None:
+            given = a.get("token")
+            if not isinstance(given, str) or not hmac.compare_digest(given.encode(), token.encode()):
+                self.server.refuse(f"hello of {a.get('name')!r} (pid {a.get('pid')!r}) with "
+                                   + ("no" if given is None else "a wrong") + " bus token")
+                self.peer.tasks.spawn(self._drop(), name="drop a refused node")
+                raise AuthError(f"bus {self.bus.name}: wrong or missing bus token (RCE_BUS_TOKEN); "
+                                "only the container's own nodes may join its bus")
+            self._admit()
         self.node = a.get("name") or self.owner
         self.owner = self.calls.name = self.node
         self.bus.nodes[self.node] = {"pid": a.get("pid"), "container": a.get("container")}
@@ -179,6 +213,10 @@ class _Session:
             send(framing.encode_data(framing.SRV_ERR, 0, 0, call_id, e.message.encode()))
         self.responder.serve(call, reply, refuse, f"call to {name or handle}")
 
+    async def _drop(self) -> None:
+        await asyncio.sleep(REFUSED_LINGER)
+        await self.peer.close()
+
     def close(self) -> None:
         for t in self.pubs.values():
             self.bus.unadvertise(t.name, self.owner)
@@ -195,11 +233,20 @@ class _Session:
 
 
 class BusServer:
-    """Serves ``bus`` on Unix socket(s). ``max_buffer``: bytes that may wait per node connection."""
+    """Serves ``bus`` on Unix socket(s). ``max_buffer``: bytes that may wait per node connection.
 
-    def __init__(self, bus: Bus, max_buffer: int = DEFAULT_MAX_BUFFER):
+    ``token``: the bus token a node must give in ``hello`` (None: no check, e.g. a robot's
+    local bus under ``rce-ros``, whose socket only its user can reach); ``uids``: the uids a
+    connecting process may have (None: any); ``owner``: uid that owns the socket file
+    (default: this process's). ``refused`` counts the connections turned away."""
+
+    def __init__(self, bus: Bus, max_buffer: int = DEFAULT_MAX_BUFFER, *, token: str | None = None,
+                 uids: Collection[int] | None = None, owner: int | None = None):
         self.bus = bus
         self.max_buffer = max_buffer
+        self.token, self.owner = token, owner
+        self.uids = None if uids is None else frozenset(uids)
+        self.refused = 0
         self.sessions: set[_Session] = set()
         self._servers: list[asyncio.AbstractServer] = []
         self._ids = itertools.count(1)
@@ -209,17 +256,32 @@ class BusServer:
         for cb in self.bus.on_change:
             cb()
 
+    def refuse(self, why: str) -> None:
+        """Count and log a connection turned away."""
+        self.refused += 1
+        log.warning("bus connection refused", bus=self.bus.name, reason=why, refused=self.refused)
+
     async def listen(self, path: str | Path) -> None:
-        """Listen on Unix socket ``path`` (replacing a stale socket file); mode 0660."""
+        """Listen on Unix socket ``path`` (replacing a stale socket file); mode
+        :data:`SOCKET_MODE`, owned by ``owner``."""
         path = str(path)
         Path(path).parent.mkdir(parents=True, exist_ok=True)
         if os.path.exists(path):
             os.unlink(path)
         srv = await asyncio.start_unix_server(self._accept, path, limit=STREAM_LIMIT)
-        os.chmod(path, 0o666)
+        os.chmod(path, SOCKET_MODE)
+        if self.owner is not None and self.owner != os.geteuid():
+            os.chown(path, self.owner, self.owner)       # group too: 0660 reaches no one else
         self._servers.append(srv)
 
     async def _accept(self, reader: asyncio.StreamReader, writer: asyncio.StreamWriter) -> None:
+        if self.uids is not None:
+            sock = writer.get_extra_info("socket")
+            pid, uid, _gid = _UCRED.unpack(sock.getsockopt(socket.SOL_SOCKET, socket.SO_PEERCRED, _UCRED.size))
+            if uid not in self.uids:
+                self.refuse(f"a process of uid {uid} (pid {pid}) is not a node of this container")
+                writer.close()
+                return
         peer = RpcPeer(reader, writer, name=f"{self.bus.name}-node", max_buffer=self.max_buffer)
         self.sessions.add(_Session(self, peer, next(self._ids)))
         peer.start()

@@ -5,6 +5,8 @@
   whose component models the robot config shares;
 - :mod:`rce.protocol.session`: the rules of a robot session, cloud side
   (:class:`RobotSession`) and robot side (:class:`ClientSession`), frames in, events out.
+- :mod:`rce.protocol.limits`: the bounds a session keeps under hostile input (JSON depth, ER
+  text and rate, the endpoint's budget of pending binary parts).
 """
 from rce.protocol.frames import (CC, CN, CX, DC, DEFAULT_EXPIRY, DM, ER, ID_LEN, ST, Assembler, encode,
                                  is_part_id, new_id)

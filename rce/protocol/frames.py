@@ -15,11 +15,13 @@ from __future__ import annotations
 import json
 import re
 import uuid
+from collections import deque
 from collections.abc import Iterable, Iterator
 from dataclasses import dataclass, field
 from typing import Any
 
 from rce.errors import ProtocolError
+from rce.protocol.limits import MAX_JSON_DEPTH, PartBudget, json_too_deep, short_repr, truncate
 
 CC, DC, CN, CX, DM, ST, ER = "CC", "DC", "CN", "CX", "DM", "ST", "ER"
 ID_LEN = 32                       # chars of a binary part id (hex), the first bytes of its binary frame
@@ -27,6 +29,9 @@ _HEX_ID = re.compile(r"[0-9a-fA-F]{32}")
 DEFAULT_EXPIRY = 60.0             # s an incomplete message or an orphan part waits (DESIGN section 3.4)
 DEFAULT_MAX_PENDING_BYTES = 256 * 1024 * 1024   # bytes of binary parts held while waiting for their message
 DEFAULT_MAX_PENDING_MESSAGES = 1000             # messages held while waiting for their binary parts
+DEFAULT_MAX_PENDING_PARTS = 1000                # binary parts held while waiting for their message (each costs
+                                                # its bookkeeping however small: 20,000 cost 32 MB)
+QUEUE_SLACK = 1024                              # stale expiry-queue entries tolerated before it is compacted
 
 
 def is_part_id(ref: Any) -> bool:
@@ -42,7 +47,8 @@ def _binary_refs(obj: Any, out: list[str]) -> None:
             if isinstance(k, str) and k.endswith("*"):
                 for ref in (v if isinstance(v, list) else [v]):
                     if not is_part_id(ref):
-                        raise ProtocolError(f"binary reference under key '{k}' must be a 32-hex-char id, got {ref!r}")
+                        raise ProtocolError(f"binary reference under key {short_repr(k)} must be a 32-hex-char id, "
+                                            f"got {short_repr(ref)}")
                     out.append(ref)
             else:
                 _binary_refs(v, out)
@@ -66,6 +72,36 @@ def _resolve(obj: Any, parts: dict[str, bytes]) -> Any:
     return obj
 
 
+def parse_text(text: str | bytes) -> dict:
+    """Parse one JSON text frame into its message object (a dict). Nesting deeper than
+    :data:`~rce.protocol.limits.MAX_JSON_DEPTH` is refused before parsing. Raises
+    :class:`ProtocolError` for malformed or too deeply nested JSON, or a message that is not an object."""
+    try:
+        if isinstance(text, (bytes, bytearray)):
+            text = bytes(text).decode("utf-8")
+        if json_too_deep(text):
+            raise ProtocolError(f"JSON nested deeper than the limit of {MAX_JSON_DEPTH} levels; dropped")
+        msg = json.loads(text)
+    except (ValueError, UnicodeDecodeError, RecursionError) as e:
+        raise ProtocolError(f"malformed JSON: {truncate(str(e), 200)}") from None
+    if not isinstance(msg, dict):
+        raise ProtocolError(f"message must be a JSON object, got {type(msg).__name__}")
+    return msg
+
+
+def parse_frame(text: str | bytes) -> tuple[dict, list[str]]:
+    """Parse one JSON text frame (:func:`parse_text`) and find the binary part ids its ``*`` keys
+    reference, depth first (a frame without ``*"`` holds no such key: no walk). A pure function: the
+    robot endpoint runs it in a worker process for big frames. Raises :class:`ProtocolError` as
+    :func:`parse_text`, and for a reference that is not a 32-hex-char id."""
+    msg = parse_text(text)
+    refs: list[str] = []
+    star = (b"*", b'*"') if isinstance(text, (bytes, bytearray)) else ("*", '*"')
+    if star[0] in text and star[1] in text:            # the one-char search is a memchr: fast
+        _binary_refs(msg, refs)
+    return msg, refs
+
+
 @dataclass
 class _Pending:
     msg: dict
@@ -80,41 +116,51 @@ class Assembler:
 
     ``feed_text`` and ``feed_binary`` return the messages completed by that frame
     (binary values resolved to ``bytes``, keys without ``*``). ``expire(now)`` drops
-    what waited longer than ``expiry`` seconds and returns one reason per drop.
-    ``max_pending_bytes`` bounds the binary parts held while waiting, ``max_pending_messages``
-    the messages held while waiting for their parts (beyond either: :class:`ProtocolError`)."""
+    what waited longer than ``expiry`` seconds and returns one reason per drop, in O(dropped):
+    messages and parts wait in one queue in arrival order (``now`` never goes back).
+    Bounds (beyond each: :class:`ProtocolError`, the frame is dropped): ``max_pending_bytes`` of
+    binary parts held while waiting, ``max_pending_parts`` parts, ``max_pending_messages`` messages
+    waiting for their parts, and ``budget``, the bytes held by every session of the endpoint."""
 
     expiry: float = DEFAULT_EXPIRY
     max_pending_bytes: int = DEFAULT_MAX_PENDING_BYTES
     max_pending_messages: int = DEFAULT_MAX_PENDING_MESSAGES
-    _pending: list[_Pending] = field(default_factory=list)
+    max_pending_parts: int = DEFAULT_MAX_PENDING_PARTS
+    budget: PartBudget | None = None
+    _pending: dict[int, _Pending] = field(default_factory=dict)     # key -> message, in arrival order
+    _users: dict[str, dict[int, None]] = field(default_factory=dict)  # part id -> keys of messages naming it
     _parts: dict[str, tuple[bytes, float]] = field(default_factory=dict)
+    _queue: deque = field(default_factory=deque)    # (since, key or part id), arrival order; stale entries skipped
     _bytes: int = 0
+    _key: int = 0
     dropped: int = 0
 
     def feed_text(self, text: str | bytes, now: float) -> list[dict]:
-        """Parse one text frame. Raises :class:`ProtocolError` for malformed JSON or bad ids."""
-        try:
-            msg = json.loads(text)
-        except (ValueError, UnicodeDecodeError) as e:
-            raise ProtocolError(f"malformed JSON: {e}") from None
-        if not isinstance(msg, dict):
-            raise ProtocolError(f"message must be a JSON object, got {type(msg).__name__}")
-        refs: list[str] = []
-        _binary_refs(msg, refs)
+        """Parse one text frame (:func:`parse_frame`) and take its message (:meth:`feed_parsed`)."""
+        msg, refs = parse_frame(text)
+        return self.feed_parsed(msg, refs, now)
+
+    def feed_parsed(self, msg: dict, refs: list[str], now: float) -> list[dict]:
+        """Take one message and its binary part ids as :func:`parse_frame` gives them. Raises
+        :class:`ProtocolError` when too many messages wait for their parts."""
         if not refs:
             return [msg]
         missing = {r for r in refs if r not in self._parts}
         if not missing:
-            return [self._complete(msg, refs)]
+            return [self._complete(None, msg, refs)]
         if len(self._pending) >= self.max_pending_messages:
             raise ProtocolError(f"{len(self._pending)} messages already wait for their binary parts "
                                 f"(the limit); dropped")
-        self._pending.append(_Pending(msg, refs, missing, now))
+        self._key += 1
+        self._pending[self._key] = _Pending(msg, refs, missing, now)
+        for r in refs:
+            self._users.setdefault(r, {})[self._key] = None
+        self._enqueue(now, self._key)
         return []
 
     def feed_binary(self, data: bytes, now: float) -> list[dict]:
-        """Take one binary frame ``id || bytes``. Raises :class:`ProtocolError` for a bad id."""
+        """Take one binary frame ``id || bytes``. Raises :class:`ProtocolError` for a bad id or a
+        part past a bound."""
         if len(data) < ID_LEN:
             raise ProtocolError(f"binary frame of {len(data)} bytes is shorter than its {ID_LEN}-char id")
         try:
@@ -125,51 +171,125 @@ class Assembler:
             raise ProtocolError("binary frame does not start with a 32-hex-char id")
         payload = bytes(data[ID_LEN:])
         old = self._parts.get(ref)
+        if old is None and len(self._parts) >= self.max_pending_parts:
+            raise ProtocolError(f"{len(self._parts)} binary parts already wait for their message (the limit); "
+                                f"part {ref} dropped")
         held = self._bytes - (len(old[0]) if old else 0)   # the same part sent again replaces the first copy
         if held + len(payload) > self.max_pending_bytes:
             raise ProtocolError(f"binary parts waiting for their message exceed {self.max_pending_bytes} bytes")
+        if self.budget is not None and not self.budget.take(len(payload)):
+            raise ProtocolError(f"binary parts waiting for their message on this endpoint exceed "
+                                f"{self.budget.max_bytes} bytes; part {ref} dropped")
+        if old is not None:
+            self._release(len(old[0]))
         self._parts[ref] = (payload, now)
         self._bytes = held + len(payload)
+        self._enqueue(now, ref)
         # the first message waiting for this id takes it (an id reused by a client is consumed once per message)
-        p = next((p for p in self._pending if ref in p.missing), None)
-        if p is not None:
+        key = next((k for k in self._users.get(ref, ()) if ref in self._pending[k].missing), None)
+        if key is not None:
+            p = self._pending[key]
             p.missing.discard(ref)
             if not p.missing:
-                self._pending.remove(p)
-                return [self._complete(p.msg, p.refs)]
+                return [self._complete(key, p.msg, p.refs)]
         return []
 
-    def _complete(self, msg: dict, refs: list[str]) -> dict:
+    def _enqueue(self, now: float, item: int | str) -> None:
+        self._queue.append((now, item))
+        if len(self._queue) > 2 * (len(self._pending) + len(self._parts)) + QUEUE_SLACK:   # drop stale entries
+            self._queue = deque(e for e in self._queue if self._live(e))
+
+    def _live(self, entry: tuple[float, int | str]) -> bool:
+        since, item = entry
+        if isinstance(item, int):
+            return item in self._pending
+        part = self._parts.get(item)
+        return part is not None and part[1] == since
+
+    def _release(self, n: int) -> None:
+        if self.budget is not None:
+            self.budget.give(n)
+
+    def _forget(self, key: int) -> _Pending:
+        p = self._pending.pop(key)
+        for r in set(p.refs):
+            users = self._users[r]
+            users.pop(key, None)
+            if not users:
+                del self._users[r]
+        return p
+
+    def _drop_part(self, ref: str) -> None:
+        n = len(self._parts.pop(ref)[0])
+        self._bytes -= n
+        self._release(n)
+
+    def _complete(self, key: int | None, msg: dict, refs: list[str]) -> dict:
+        if key is not None:
+            self._forget(key)
         parts = {r: self._parts[r][0] for r in refs}
         for r in set(refs):
-            self._bytes -= len(self._parts.pop(r)[0])
-        for p in self._pending:   # messages that reuse a consumed id wait for it again
-            p.missing.update(r for r in p.refs if r in parts)
+            self._drop_part(r)
+            for k in self._users.get(r, ()):     # messages that reuse a consumed id wait for it again
+                self._pending[k].missing.add(r)
         return _resolve(msg, parts)
 
     def expire(self, now: float) -> list[str]:
         """Drop incomplete messages and orphan parts older than ``expiry``; return reasons."""
         reasons = []
-        for p in list(self._pending):
-            if now - p.since > self.expiry:
-                self._pending.remove(p)
+        while self._queue and now - self._queue[0][0] > self.expiry:
+            entry = self._queue.popleft()
+            if not self._live(entry):
+                continue
+            item = entry[1]
+            if isinstance(item, int):
+                p = self._forget(item)
                 self.dropped += 1
                 data = p.msg.get("data") if isinstance(p.msg.get("data"), dict) else {}
-                reasons.append(f"message {p.msg.get('type')} for interface {data.get('iTag')!r} expired after "
-                               f"{self.expiry:g} s waiting for {len(p.missing)} binary part(s)")
-        waiting = {r for p in self._pending for r in p.refs}
-        for ref, (payload, since) in list(self._parts.items()):
-            if now - since > self.expiry and ref not in waiting:
-                del self._parts[ref]
-                self._bytes -= len(payload)
-                self.dropped += 1
-                reasons.append(f"binary part {ref} expired after {self.expiry:g} s with no message referring to it")
+                reasons.append(f"message {truncate(str(p.msg.get('type')), 40)} for interface "
+                               f"{short_repr(data.get('iTag'))} expired after {self.expiry:g} s waiting "
+                               f"for {len(p.missing)} binary part(s)")
+                # its parts that waited past their own expiry only for it go too
+                reasons.extend(self._expire_part(r, now) for r in set(p.refs) if self._orphan(r, now))
+            elif self._orphan(item, now):
+                reasons.append(self._expire_part(item, now))
         return reasons
+
+    def _orphan(self, ref: str, now: float) -> bool:
+        part = self._parts.get(ref)
+        return part is not None and ref not in self._users and now - part[1] > self.expiry
+
+    def _expire_part(self, ref: str, now: float) -> str:
+        self._drop_part(ref)
+        self.dropped += 1
+        return f"binary part {ref} expired after {self.expiry:g} s with no message referring to it"
+
+    def clear(self) -> None:
+        """Forget every waiting message and part (the session ended, or its link was replaced);
+        their bytes go back to the budget."""
+        self._release(self._bytes)
+        self._pending.clear()
+        self._users.clear()
+        self._parts.clear()
+        self._queue.clear()
+        self._bytes = 0
+
+    def fresh(self) -> "Assembler":
+        """An empty assembler with the same bounds and budget; this one is cleared (:meth:`clear`)."""
+        self.clear()
+        return Assembler(expiry=self.expiry, max_pending_bytes=self.max_pending_bytes,
+                         max_pending_messages=self.max_pending_messages, max_pending_parts=self.max_pending_parts,
+                         budget=self.budget)
 
     @property
     def pending(self) -> int:
         """Messages waiting for binary parts, plus parts waiting for their message."""
         return len(self._pending) + len(self._parts)
+
+    @property
+    def pending_bytes(self) -> int:
+        """Bytes of binary parts waiting for their message."""
+        return self._bytes
 
 
 def new_id() -> str:

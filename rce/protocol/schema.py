@@ -21,6 +21,7 @@ from pydantic_core import PydanticCustomError
 
 from rce.errors import ProtocolError
 from rce.protocol.frames import CC, CN, CX, DC, DM
+from rce.protocol.limits import MAX_ER_TEXT, short_repr, truncate
 
 ROBOT_TO_CLOUD = (CC, DC, CN, CX, DM)
 INTERFACE_PREFIXES = ("ServiceClient", "ServiceProvider", "Publisher", "Subscriber")
@@ -45,7 +46,7 @@ def split_interface_type(itype: str) -> tuple[str, str]:
 
 # -- the rules, each with its error text ---------------------------------------------------------
 def _refuse(text: str, value: Any) -> PydanticCustomError:
-    return PydanticCustomError("rce", "{text}, got {value}", {"text": text, "value": repr(value)})
+    return PydanticCustomError("rce", "{text}, got {value}", {"text": text, "value": short_repr(value)})
 
 
 def _rule(check, text: str):
@@ -79,7 +80,7 @@ def _interface_ref(v: Any) -> str:
     if not isinstance(v, str) or not v:
         raise _refuse("must be a non-empty string", v)
     if v.count("/") != 1 or v.startswith("/") or v.endswith("/"):
-        raise PydanticCustomError("rce", "{value} must be 'endpointTag/interfaceTag'", {"value": repr(v)})
+        raise PydanticCustomError("rce", "{value} must be 'endpointTag/interfaceTag'", {"value": short_repr(v)})
     return v
 
 
@@ -194,7 +195,7 @@ class _Closed(Component):
             unknown = [k for k in data if k not in known]
             if unknown:
                 raise PydanticCustomError("rce", "unknown key {key} (expected {known})",
-                                          {"key": repr(unknown[0]), "known": ", ".join(known)})
+                                          {"key": short_repr(unknown[0]), "known": ", ".join(known)})
         return data
 
 
@@ -292,7 +293,7 @@ def _describe(err: dict, msg: Any) -> str:
     if kind == "union_tag_not_found":
         return "message: missing key 'type'"
     if kind == "union_tag_invalid":
-        return f"message: unknown type {msg.get('type')!r} (expected one of {', '.join(ROBOT_TO_CLOUD)})"
+        return f"message: unknown type {short_repr(msg.get('type'))} (expected one of {', '.join(ROBOT_TO_CLOUD)})"
     where = key_path(loc) or "message"
     if kind == "missing" and loc and isinstance(loc[-1], str):
         return f"{key_path(loc[:-1])}: missing key '{loc[-1]}'"
@@ -300,7 +301,7 @@ def _describe(err: dict, msg: Any) -> str:
         return f"{where}: must be a JSON object, got {type(value).__name__}"
     if kind == "list_type":
         return f"{where}: must be a list, got {type(value).__name__}"
-    return f"{where}: {err['msg']}"
+    return f"{where}: {truncate(err['msg'], MAX_ER_TEXT // 2)}"
 
 
 def validate(msg: Any) -> tuple[str, dict]:

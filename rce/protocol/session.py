@@ -30,7 +30,9 @@ from typing import Any
 from rce.errors import ProtocolError, RequestError, Unavailable
 from rce.messages import takes_binary_message
 from rce.pending import PendingCalls
-from rce.protocol.frames import (CX, DEFAULT_EXPIRY, DEFAULT_MAX_PENDING_BYTES, DM, ER, ST, Assembler, encode)
+from rce.protocol.frames import (CX, DEFAULT_EXPIRY, DEFAULT_MAX_PENDING_BYTES, DEFAULT_MAX_PENDING_PARTS, DM, ER,
+                                 ST, Assembler, encode)
+from rce.protocol.limits import ER_BURST, ER_RATE, PartBudget, TokenBucket, truncate
 from rce.protocol.resume import (ACK_DELAY, ACK_EVERY, AK, DEFAULT_GRACE, DEFAULT_RESUME_BUFFER, DEFAULT_RESUME_BYTES,
                                  SESSION_TOPIC, Frame, Incoming, Outgoing, ack_frame, is_session_status, new_token,
                                  read_ack, read_seq)
@@ -38,8 +40,8 @@ from rce.protocol.schema import split_interface_type, validate
 
 DEFAULT_QUEUE_SIZE = 1000                   # messages per robot in each bounded queue (like a ROS queue_size)
 DEFAULT_MAX_MESSAGE = 32 * 1024 * 1024      # bytes (chars for text) of the largest frame a robot endpoint takes
-CONTROL_BACKLOG = 10                        # x queue_size: STs and ERs waiting before a robot that does not
-                                            # read is closed (they are never dropped)
+CONTROL_BACKLOG = 10                        # x queue_size: STs and answers waiting before a robot that does not
+                                            # read is closed (they are never dropped; ERs are, past queue_size)
 BARRIER_PREFIX = "rcesync"                  # barrier tokens: interfaces named so cannot exist
 
 
@@ -69,8 +71,10 @@ class _Session:
     max_message: int | None = None      # bytes (text: chars) of the largest frame taken; None: any
 
     def __init__(self, expiry: float, max_pending_bytes: int, resume: bool, resume_buffer: int, resume_bytes: int,
-                 ack_every: int, ack_delay: float):
-        self.assembler = Assembler(expiry=expiry, max_pending_bytes=max_pending_bytes)
+                 ack_every: int, ack_delay: float, max_pending_parts: int = DEFAULT_MAX_PENDING_PARTS,
+                 budget: PartBudget | None = None):
+        self.assembler = Assembler(expiry=expiry, max_pending_bytes=max_pending_bytes,
+                                   max_pending_parts=max_pending_parts, budget=budget)
         self._events: list[Event] = []
         self._now = 0.0                                            # s, the last time given
         # with resume: what this side sent, numbered and kept until acked; what it took from the peer
@@ -93,6 +97,20 @@ class _Session:
         """A binary frame ``id || bytes`` from the peer, at time ``now`` (s)."""
         self._receive(data, now)
 
+    def receive_parsed(self, parsed: tuple[dict, list[str]] | ProtocolError, now: float) -> None:
+        """A text frame from the peer that the shell parsed itself with :func:`~rce.protocol.frames.parse_frame`
+        (a big one, in a worker process), at time ``now`` (s): its message and binary part ids, or the error
+        that parsing raised."""
+        self._now = now
+        if isinstance(parsed, ProtocolError):
+            self._bad_input(parsed.message)
+            return
+        self._take(lambda: self.assembler.feed_parsed(*parsed, now))
+
+    def too_big(self, frame: str | bytes) -> bool:
+        """Is ``frame`` longer than :attr:`max_message` (it is refused, whoever parses it)?"""
+        return self.max_message is not None and len(frame) > self.max_message
+
     def tick(self, now: float) -> None:
         """Time is ``now`` (s): incomplete messages and orphan parts past their expiry are bad input;
         with resume on a live link, an AK that is due goes out."""
@@ -104,14 +122,18 @@ class _Session:
 
     def _receive(self, frame: str | bytes, now: float) -> None:
         self._now = now
-        if self.max_message is not None and len(frame) > self.max_message:
+        if self.too_big(frame):
             kind = "text" if isinstance(frame, str) else "binary"
             self._bad_input(f"{kind} frame of {len(frame)} bytes exceeds the limit of {self.max_message} bytes; "
                             f"dropped")
             return
+        self._take(lambda: self.assembler.feed_text(frame, now) if isinstance(frame, str)
+                   else self.assembler.feed_binary(frame, now))
+
+    def _take(self, feed) -> None:
+        """Feed the assembler (``feed()``); its complete messages go on, its refusal is bad input."""
         try:
-            done = (self.assembler.feed_text(frame, now) if isinstance(frame, str)
-                    else self.assembler.feed_binary(frame, now))
+            done = feed()
         except ProtocolError as e:
             self._bad_input(e.message)
             return
@@ -191,7 +213,13 @@ class RobotSession(_Session):
     messages are dropped, counted, and (inbound ones) refused with an ER; ``expiry``: s
     an incomplete message waits for its binary parts.
 
-    Every bad input gets an ER naming what was wrong; the session goes on.
+    Every bad input gets an ER naming what was wrong; the session goes on. ERs are cut to
+    :data:`~rce.protocol.limits.MAX_ER_TEXT` bytes; those for bad input (everything but the answers
+    to the robot's requests and calls) come at most ``er_rate`` per s, ``er_burst`` at once (a token
+    bucket); past it, or while ``queue_size`` ERs wait unread, they are dropped and counted
+    (``errors_dropped``) and the next ER that goes out (or, at a tick, an ER of its own) says how many.
+    ``max_pending_parts``: binary parts waiting for their message; ``budget``: the endpoint's
+    :class:`~rce.protocol.limits.PartBudget`, shared by its sessions (:meth:`close` gives back).
 
     ``resume``: the robot opted in (docs/INTERNALS.md "Session resume"): the session opens with
     ``ST {"topic": "session", "status": "started", "session": token, "grace": grace}`` (``token``:
@@ -202,15 +230,22 @@ class RobotSession(_Session):
 
     def __init__(self, robot: str, *, max_message: int = DEFAULT_MAX_MESSAGE, queue_size: int = DEFAULT_QUEUE_SIZE,
                  expiry: float = DEFAULT_EXPIRY, max_pending_bytes: int = DEFAULT_MAX_PENDING_BYTES,
+                 max_pending_parts: int = DEFAULT_MAX_PENDING_PARTS, budget: PartBudget | None = None,
                  resume: bool = False, token: str | None = None, grace: float = DEFAULT_GRACE,
                  resume_buffer: int = DEFAULT_RESUME_BUFFER, resume_bytes: int = DEFAULT_RESUME_BYTES,
-                 ack_every: int = ACK_EVERY, ack_delay: float = ACK_DELAY):
-        super().__init__(expiry, max_pending_bytes, resume, resume_buffer, resume_bytes, ack_every, ack_delay)
+                 ack_every: int = ACK_EVERY, ack_delay: float = ACK_DELAY, er_rate: float = ER_RATE,
+                 er_burst: int = ER_BURST):
+        super().__init__(expiry, max_pending_bytes, resume, resume_buffer, resume_bytes, ack_every, ack_delay,
+                         max_pending_parts, budget)
         self.robot, self.max_message, self.queue_size = robot, max_message, queue_size
+        self._er_bucket = TokenBucket(er_rate, er_burst)
+        self._out_errors = 0                                      # ERs in _out
+        self.errors_dropped = 0                                   # ERs dropped (rate, or unread)
+        self._errors_untold = 0                                   # ... not yet told to the robot
         self.interfaces: dict[str, tuple[str, str, str]] = {}     # iTag -> (kind, side, cls)
         self._out: deque[_Out] = deque()
         self.out_data = 0                                         # data DMs in _out
-        self._out_control = 0                                     # STs, ERs, answers in _out
+        self._out_control = 0                                     # STs and answers in _out
         self._requests: deque[tuple[str, dict]] = deque()
         self._in_flight: str | None = None                        # type of the request the master handles
         self._received = self._done = 0                           # requests taken / answered
@@ -262,7 +297,7 @@ class RobotSession(_Session):
         if self._in_flight is None:
             raise ProtocolError("request_done with no request in flight")
         if error is not None:
-            self.send_error(f"{self._in_flight}: {error}")
+            self.send_error(f"{self._in_flight}: {error}", answer=True)
         self._in_flight = None
         self._done += 1
         while self._held and self._held[0].after <= self._done:
@@ -313,7 +348,7 @@ class RobotSession(_Session):
         """The service of a ``call`` event (its ``data``: ``call``) failed: an ER naming the call's
         msgID and interface."""
         self.calls -= 1
-        self.send_error(f"service call {call.get('msgID')!r} on {call['iTag']!r} failed: {reason}")
+        self.send_error(f"service call {call.get('msgID')!r} on {call['iTag']!r} failed: {reason}", answer=True)
 
     # -- the interface table ------------------------------------------------------------------------
     def add_interface(self, itag: str, itype: str, cls: str) -> None:
@@ -336,10 +371,45 @@ class RobotSession(_Session):
         """Queue ``ST data`` for the robot (never dropped)."""
         self._queue({"type": ST, "data": data}, False)
 
-    def send_error(self, reason: str) -> None:
-        """Queue ``ER reason`` for the robot (never dropped) and count it."""
+    def send_error(self, reason: str, answer: bool = False) -> bool:
+        """Queue ``ER reason`` for the robot, cut to :data:`~rce.protocol.limits.MAX_ER_TEXT` bytes, and count
+        it. ``answer``: it answers a request or call of the robot (not rate-limited). Returns False when it
+        was dropped (rate limit, or ``queue_size`` ERs unread; counted in ``errors_dropped``)."""
+        if not answer and not self._er_bucket.take(self._now):
+            return self._drop_error()
+        if self.attached and self._out_errors >= self.queue_size:
+            return self._drop_error()
+        self._queue_error(truncate(reason) + self._dropped_note())
+        return True
+
+    def _drop_error(self) -> bool:
+        self.errors_dropped += 1
+        self._errors_untold += 1
+        return False
+
+    def _dropped_note(self) -> str:
+        """What an ER adds when ERs were dropped since the last one went out ("" when none were)."""
+        if not self._errors_untold:
+            return ""
+        n, self._errors_untold = self._errors_untold, 0
+        return (f" ({n} error message(s) to robot {self.robot!r} before this one were dropped: more than "
+                f"{self._er_bucket.rate:g} per s, {self._er_bucket.burst} at once, or {self.queue_size} unread)")
+
+    def tick(self, now: float) -> None:
+        """As :meth:`_Session.tick`; then, when ERs were dropped and the robot reads again, an ER
+        saying how many."""
+        super().tick(now)
+        if (self._errors_untold and self.attached and self._out_errors < self.queue_size
+                and self._er_bucket.take(now)):
+            self._queue_error(self._dropped_note().strip(" ()"))
+
+    def end(self) -> None:
+        """The session ended: what waited for binary parts is forgotten (its bytes go back to the budget)."""
+        self.assembler.clear()
+
+    def _queue_error(self, text: str) -> None:
         self.errors += 1
-        self._queue({"type": ER, "data": reason}, False)
+        self._queue({"type": ER, "data": text}, False)
 
     def _queue(self, msg: dict, data: bool) -> bool:
         if not self.attached:                   # detached: numbered and kept, it goes out after a resume
@@ -350,6 +420,8 @@ class RobotSession(_Session):
                 self.dropped += 1
                 return False
             self.out_data += 1
+        elif msg["type"] == ER:
+            self._out_errors += 1
         else:
             if self._out_control >= CONTROL_BACKLOG * self.queue_size and not self._overrun:
                 self._overrun = True
@@ -376,7 +448,7 @@ class RobotSession(_Session):
             if o.msg is not None and not o.link:
                 self._number(o.msg)
         self._out.clear()
-        self.out_data = self._out_control = 0
+        self.out_data = self._out_control = self._out_errors = 0
 
     def can_resume(self, ack: int) -> bool:
         """Can a resume whose robot took every message up to ``ack`` be served?"""
@@ -395,7 +467,7 @@ class RobotSession(_Session):
         if self.attached:
             self.detach()
         frames, lost = self.outgoing.resend_after(ack)
-        self.assembler = Assembler(expiry=self.assembler.expiry, max_pending_bytes=self.assembler.max_pending_bytes)
+        self.assembler = self.assembler.fresh()
         self.attached = True
         self.incoming.reported()
         self.resumes += 1
@@ -424,6 +496,8 @@ class RobotSession(_Session):
                 continue
             if o.data:
                 self.out_data -= 1
+            elif o.msg["type"] == ER:
+                self._out_errors -= 1
             elif not o.link:
                 self._out_control -= 1
             if o.link or self.outgoing is None:
@@ -437,13 +511,15 @@ class RobotSession(_Session):
 
     def stats(self) -> dict:
         """Counters: messages in and out, drops out (data DMs, queue full) and in (refused for a full
-        queue), ERs sent, messages and parts waiting for binary parts, queue depths; resume: resumes,
-        messages resent, lost at a resume (``resume_lost``), kept until acked (``kept``, ``kept_bytes``),
-        forgotten past the bound (``resume_forgotten``), duplicates from the robot dropped."""
+        queue), ERs sent and dropped, messages and parts waiting for binary parts and their bytes, queue
+        depths; resume: resumes, messages resent, lost at a resume (``resume_lost``), kept until acked
+        (``kept``, ``kept_bytes``), forgotten past the bound (``resume_forgotten``), duplicates from the
+        robot dropped."""
         out, inc = self.outgoing, self.incoming
         return {"interfaces": len(self.interfaces), "msgs_in": self.msgs_in, "msgs_out": self.msgs_out,
                 "dropped": self.dropped, "dropped_in": self.dropped_in, "errors": self.errors,
-                "pending_binary": self.assembler.pending, "outbox": len(self._out),
+                "errors_dropped": self.errors_dropped, "pending_binary": self.assembler.pending,
+                "pending_binary_bytes": self.assembler.pending_bytes, "outbox": len(self._out),
                 "requests_waiting": len(self._requests) + (self._in_flight is not None), "held": len(self._held),
                 "calls": self.calls, "resumes": self.resumes, "resent": self.resent, "resume_lost": self.resume_lost,
                 "kept": len(out) if out else 0, "kept_bytes": out.bytes if out else 0,
@@ -625,7 +701,7 @@ class ClientSession(_Session):
             return False
         self.state = "detached"
         self._frames.clear()                            # AKs; numbered messages are kept
-        self.assembler = Assembler(expiry=self.assembler.expiry, max_pending_bytes=self.assembler.max_pending_bytes)
+        self.assembler = self.assembler.fresh()
         self._emit("detached", session=self.token, ack=self.incoming.last)
         return True
 

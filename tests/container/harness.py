@@ -18,6 +18,7 @@ from typing import Any, Callable
 
 import psutil
 
+from rce.cluster_auth import KEY_ENV, ClusterKey, respond
 from rce.dataplane import DataPlane
 from rce.interfaces import Interface
 from rce.rpc import RpcPeer
@@ -107,9 +108,13 @@ def make_helper_package(root: Path) -> Path:
 
 class FakeMaster:
     """Plays rce-master's control port: records ``register`` (answering ``answer``) and
-    ``node_status`` and lets the test call ops on the registered task set."""
+    ``node_status`` and lets the test call ops on the registered task set. Like rce-master it
+    holds a cluster key (``key``, in the file ``key_file`` once started) and serves only links
+    that prove it."""
 
     def __init__(self) -> None:
+        self.key = ClusterKey.generate()
+        self.key_file: Path | None = None
         self.server: asyncio.AbstractServer | None = None
         self.port = 0
         self.peer: RpcPeer | None = None
@@ -122,8 +127,17 @@ class FakeMaster:
     async def start(self) -> None:
         self.server = await asyncio.start_server(self._accept, "127.0.0.1", 0)
         self.port = self.server.sockets[0].getsockname()[1]
+        fd, name = tempfile.mkstemp(prefix="rce-cluster-key-")     # mode 0600
+        with os.fdopen(fd, "w") as f:
+            f.write(self.key.secret.hex())
+        self.key_file = Path(name)
+
+    def token(self, iid: int, peer_iid: int, peer_addr: str) -> str:
+        """The credential rce-master hands ``iid`` with ``connect`` (hex)."""
+        return self.key.connection_token(iid, peer_iid, peer_addr)
 
     async def _accept(self, reader, writer) -> None:
+        await respond(reader, writer, self.key)
         peer = RpcPeer(reader, writer, name="task set")
 
         async def register(a: dict) -> dict:
@@ -172,6 +186,8 @@ class FakeMaster:
             await self.peer.close()
         if self.server:
             self.server.close()
+        if self.key_file:
+            self.key_file.unlink(missing_ok=True)
 
 
 def topic(d: dict, name: str) -> dict:
@@ -191,7 +207,7 @@ class ContainerProcess:
         self.runtime_dir = Path(tempfile.mkdtemp(prefix="rcec-"))
         self.ready_file = workdir / "container.ready"
         self.log_path = workdir / "container.log"
-        self.env = {**os.environ, "RCE_LOG_JSON": "0", **(extra_env or {})}
+        self.env = {**os.environ, "RCE_LOG_JSON": "0", KEY_ENV: str(master.key_file), **(extra_env or {})}
         self.proc: asyncio.subprocess.Process | None = None
 
     async def start(self) -> None:

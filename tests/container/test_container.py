@@ -115,14 +115,16 @@ async def test_register_echo_and_service_over_the_data_plane(rig, registry):
 
     plane = DataPlane("robot")
     await plane.listen("127.0.0.1", 0)
+    plane.data_key = master.key.data_key(plane.addr)
     try:
         to_cloud = RobotInterface(plane, 101, "r1/req", "Subscriber", "std_msgs/String")
         from_cloud = RobotInterface(plane, 102, "r1/resp", "Publisher", "std_msgs/String")
         svc = RobotInterface(plane, 103, "r1/srv", "ServiceProvider", "Test/StringEcho")
         for iface, peer in ((to_cloud, 1), (from_cloud, 2), (svc, 3)):
             await iface.start()
-            iface.connect(peer, res["data_addr"])
-            await master.call("connect", cid=1, iid=peer, peer_iid=iface.iid, peer_addr=plane.addr)
+            iface.connect(peer, res["data_addr"], bytes.fromhex(master.token(iface.iid, peer, res["data_addr"])))
+            await master.call("connect", cid=1, iid=peer, peer_iid=iface.iid, peer_addr=plane.addr,
+                              token=master.token(peer, iface.iid, plane.addr))
 
         for text in ("hello", "wörld " * 100):
             to_cloud.send_message(registry.json_to_bytes(STRING, {"data": text}))
@@ -279,11 +281,15 @@ async def test_exit_codes_respawn_args_and_logs(rig):
     master, cp = rig
     await create(master, 4, "nodes")
     pkg_dir = cp.env["RCE_PACKAGE_PATH"] + "/CTest"
-    await add_node(master, 4, "once", pkg="CTest", exe="exiter.py", args="3 $(find CTest)/x '$(env RCE_TEST_VAR)'")
+    # $(env X) reads the node's own environment, never a host variable (issue 11)
+    with pytest.raises(RequestError, match="RCE_TEST_VAR"):
+        await add_node(master, 4, "leak", pkg="CTest", exe="exiter.py", args="$(env RCE_TEST_VAR)")
+    await add_node(master, 4, "once", pkg="CTest", exe="exiter.py",
+                   args="3 $(find CTest)/x '$(env RCE_CONTAINER) $(optenv ROS_IP v a l)'")
     st = await master.wait_status(lambda s: s["ntag"] == "once" and s["status"] == "exited")
     assert st["code"] == 3 and "signal" not in st and st["cid"] == 4
     logs = await master.call("logs", cid=4, ntag="once")
-    assert logs["stdout"] == [f"argv=3|{pkg_dir}/x|v a l"] and logs["stderr"] == ["bye"]
+    assert logs["stdout"] == [f"argv=3|{pkg_dir}/x|nodes v a l"] and logs["stderr"] == ["bye"]
 
     await add_node(master, 4, "shell", pkg="CTest", exe="run.sh", args=["a b", "$(optenv NOPE dflt)"])
     await master.wait_status(lambda s: s["ntag"] == "shell" and s["status"] == "exited")

@@ -1,5 +1,6 @@
 """rce.dataplane: endpoint <-> endpoint links, on in-memory streams (``asyncio.open_connection``
-is replaced by a dial into another in-process plane; no sockets)."""
+is replaced by a dial into another in-process plane; no sockets). Each plane has its data key, and
+a sender the credential the master would hand it (:mod:`rce.cluster_auth`)."""
 from __future__ import annotations
 
 import asyncio
@@ -7,11 +8,19 @@ import asyncio
 import pytest
 from memlink import pipe
 
+from rce import cluster_auth, dataplane, framing
+from rce.cluster_auth import ClusterKey
 from rce.dataplane import DataPlane
 from rce.errors import NotFound, RequestError, Timeout, Unavailable
 from rce.framing import MSG
 
 STEP = 5.0   # s, the longest any single wait may take
+KEY = ClusterKey.generate()
+
+
+def allow(sender: DataPlane, src: int, dst: int, dst_addr: str) -> None:
+    """What the master's ``connect`` gives the sender: the credential of ``src -> dst``."""
+    sender.allow(src, dst, bytes.fromhex(KEY.connection_token(src, dst, dst_addr)))
 
 
 class MemNet:
@@ -23,7 +32,7 @@ class MemNet:
         self.gate.set()
 
     def plane(self, addr: str, **kw) -> DataPlane:
-        p = DataPlane(addr, **kw)
+        p = DataPlane(addr, data_key=KEY.data_key(addr), **kw)
         p.addr = addr
         self.planes[addr] = p
         return p
@@ -72,6 +81,7 @@ async def net(monkeypatch):
 async def test_message_and_counters(net):
     a, b = net.plane("a:1"), net.plane("b:2")
     dst = b.interfaces[20] = Iface(20, {10: "a:1"})
+    allow(a, 10, 20, "b:2")
     assert a.send("b:2", MSG, 20, 10, 0, memoryview(b"hello"))
     assert await asyncio.wait_for(dst.inbox.get(), STEP) == b"hello"
     assert (a.msgs_out, a.bytes_out, b.msgs_in, b.bytes_in) == (1, 5, 1, 5)
@@ -88,6 +98,7 @@ async def test_service_call_result_refusal_and_crash(net):
             raise KeyError("bug")
         return p.upper()
     b.interfaces[20] = Iface(20, {10: "a:1"}, echo)
+    allow(a, 10, 20, "b:2")
     assert await a.call("b:2", 20, 10, b"hi", STEP) == b"HI"
     with pytest.raises(RequestError, match="^no such service$"):
         await a.call("b:2", 20, 10, b"missing", STEP)
@@ -99,22 +110,26 @@ async def test_service_call_result_refusal_and_crash(net):
 async def test_call_timeout(net):
     a, b = net.plane("a:1"), net.plane("b:2")
     b.interfaces[20] = Iface(20, {10: "a:1"}, stuck)
+    allow(a, 10, 20, "b:2")
     with pytest.raises(Timeout, match="did not answer the service call to interface 20 within 0.05 s"):
         await a.call("b:2", 20, 10, b"x", 0.05)
     await b.close()
 
 
 async def test_call_to_a_gone_interface(net):
-    a, b = net.plane("a:1"), net.plane("b:2")
-    b.interfaces[21] = Iface(21, {10: "a:1"})          # knows where the caller lives; 20 is gone
+    a = net.plane("a:1")
+    net.plane("b:2")
+    allow(a, 10, 20, "b:2")                             # 20 was connected, and is gone
     with pytest.raises(RequestError, match="interface 20 is gone"):
         await a.call("b:2", 20, 10, b"x", STEP)
 
 
 async def test_a_refused_message_is_counted_and_the_link_lives_on(net):
     a, b = net.plane("a:1"), net.plane("b:2")
-    b.interfaces[20] = Iface(20, {}, takes_messages=False)
-    ok = b.interfaces[21] = Iface(21, {})
+    b.interfaces[20] = Iface(20, {10: "a:1"}, takes_messages=False)
+    ok = b.interfaces[21] = Iface(21, {10: "a:1"})
+    for dst in (20, 99, 21):
+        allow(a, 10, dst, "b:2")
     a.send("b:2", MSG, 20, 10, 0, b"refused")
     a.send("b:2", MSG, 99, 10, 0, b"nobody")
     a.send("b:2", MSG, 21, 10, 0, b"after")
@@ -133,7 +148,8 @@ async def test_unreachable_peer_drops_and_counts(net):
 
 async def test_backlog_while_connecting_is_bounded(net):
     a, b = net.plane("a:1", max_buffer=100), net.plane("b:2")
-    dst = b.interfaces[20] = Iface(20, {})
+    dst = b.interfaces[20] = Iface(20, {10: "a:1"})
+    allow(a, 10, 20, "b:2")
     net.gate.clear()
     assert a.send("b:2", MSG, 20, 10, 0, b"x" * 40)     # 33 header + 40 bytes
     assert not a.send("b:2", MSG, 20, 10, 0, b"y" * 40)  # would pass 100 bytes: dropped
@@ -145,6 +161,7 @@ async def test_backlog_while_connecting_is_bounded(net):
 async def test_close_fails_calls_in_flight(net):
     a, b = net.plane("a:1"), net.plane("b:2")
     b.interfaces[20] = Iface(20, {10: "a:1"}, stuck)
+    allow(a, 10, 20, "b:2")
     call = asyncio.ensure_future(a.call("b:2", 20, 10, b"x", STEP))
     while b.responder.in_flight == 0:                   # until b serves it
         await asyncio.sleep(0)
@@ -153,3 +170,84 @@ async def test_close_fails_calls_in_flight(net):
         await call
     await b.close()
     assert b.responder.in_flight == 0
+
+
+# -- only peers the master introduced send (rce.cluster_auth, "Data-plane credentials") ---------------------------
+async def raw_link(net: MemNet, addr: str) -> tuple[asyncio.StreamReader, object, bytes]:
+    """An attacker's link to the plane at ``addr``: (reader, writer, the nonce it was sent)."""
+    host, port = addr.split(":")
+    reader, writer = await net.open_connection(host, int(port))
+    first = framing.FrameDecoder().feed(await asyncio.wait_for(reader.read(4096), STEP))
+    return reader, writer, bytes.fromhex(first[0]["nonce"])
+
+
+async def until(cond, what: str) -> None:
+    for _ in range(1000):
+        if cond():
+            return
+        await asyncio.sleep(0)
+    raise AssertionError(f"never: {what}")
+
+
+async def test_a_frame_without_a_grant_is_refused_and_counted_and_peers_go_on(net):
+    a, b = net.plane("a:1"), net.plane("b:2")
+    dst = b.interfaces[20] = Iface(20, {10: "a:1"})
+    _, writer, _ = await raw_link(net, "b:2")
+    writer.transport.write(framing.encode_data(MSG, 20, 10, 0, b"INJECTED"))   # 10 is connected, not this link
+    await until(lambda: b.refused == 1, "the injected frame refused")
+    allow(a, 10, 20, "b:2")
+    a.send("b:2", MSG, 20, 10, 0, b"real")
+    assert await asyncio.wait_for(dst.inbox.get(), STEP) == b"real"
+    assert dst.inbox.empty() and b.msgs_in == 1
+    assert b.stats()["refused"] == 1
+
+
+async def test_a_wrong_grant_closes_the_link_and_is_counted(net):
+    b = net.plane("b:2")
+    b.interfaces[20] = Iface(20, {10: "a:1"})
+    for token in (b"\0" * 32, bytes.fromhex(KEY.connection_token(10, 20, "c:3"))):   # guessed; another endpoint's
+        reader, writer, nonce = await raw_link(net, "b:2")
+        proof = cluster_auth.grant_proof(token, nonce, 10, 20).hex()
+        writer.transport.write(framing.encode_control({"grant": [10, 20], "proof": proof}))
+        assert await asyncio.wait_for(reader.read(), STEP) == b""            # closed on us
+    replayed_nonce = nonce
+    reader, writer, nonce = await raw_link(net, "b:2")                        # a proof made for another link's nonce
+    good = bytes.fromhex(KEY.connection_token(10, 20, "b:2"))
+    assert nonce != replayed_nonce
+    proof = cluster_auth.grant_proof(good, replayed_nonce, 10, 20).hex()
+    writer.transport.write(framing.encode_control({"grant": [10, 20], "proof": proof}))
+    assert await asyncio.wait_for(reader.read(), STEP) == b""
+    assert b.stats()["unauthenticated"] == 3 and b.msgs_in == 0
+
+
+async def test_a_granted_sender_is_held_to_its_connections(net):
+    a, b = net.plane("a:1"), net.plane("b:2")
+    connected = b.interfaces[20] = Iface(20, {10: "a:1"})
+    other = b.interfaces[21] = Iface(21, {11: "a:1"})
+    allow(a, 10, 20, "b:2")
+    a.send("b:2", MSG, 20, 10, 0, b"one")
+    assert await asyncio.wait_for(connected.inbox.get(), STEP) == b"one"
+    assert not a.send("b:2", MSG, 21, 10, 0, b"no credential")               # 10 -> 21 was never connected
+    assert a.dropped == 1
+    connected.peers.clear()                                                    # b's end was told: disconnect
+    a.send("b:2", MSG, 20, 10, 0, b"after the disconnect")
+    await until(lambda: b.refused == 1, "the frame after the disconnect refused")
+    a.forbid(10)                                                               # a's end was told too: it stops
+    assert not a.send("b:2", MSG, 20, 10, 0, b"x")
+    allow(a, 11, 21, "b:2")
+    a.send("b:2", MSG, 21, 11, 0, b"two")                                      # other connections go on
+    assert await asyncio.wait_for(other.inbox.get(), STEP) == b"two"
+    assert connected.inbox.empty()
+
+
+async def test_a_link_that_grants_nothing_is_closed_and_links_are_bounded(net, monkeypatch):
+    b = net.plane("b:2", grant_timeout=0.05)
+    reader, _, _ = await raw_link(net, "b:2")                 # says nothing after the nonce
+    assert await asyncio.wait_for(reader.read(), STEP) == b""
+    assert b.unauthenticated == 1
+    monkeypatch.setattr(dataplane, "MAX_ACCEPTED", 1)
+    b.grant_timeout = STEP
+    await raw_link(net, "b:2")
+    reader, _ = await net.open_connection("b", 2)              # one too many: closed before its nonce
+    assert await asyncio.wait_for(reader.read(), STEP) == b""
+    assert b.unauthenticated == 2

@@ -111,11 +111,14 @@ async def test_host_lost_container_re_created_on_the_other_host_with_everything(
                            "cls": "std_msgs/String", "addr": "/stringEchoResp"}),
         ("add_node", {"cid": new_cid, "ntag": "echo", "pkg": "Test", "exe": "stringEcho.py", "args": "",
                       "name": None, "namespace": None, "respawn": None}),
-        ("connect", {"cid": new_cid, "iid": 1, "peer_iid": 3, "peer_addr": ROBOT_ADDR}),
-        ("connect", {"cid": new_cid, "iid": 2, "peer_iid": 4, "peer_addr": ROBOT_ADDR})]
-    # the robot-side ends get the new data address (iu true), then ST running
+        ("connect", {"cid": new_cid, "iid": 1, "peer_iid": 3, "peer_addr": ROBOT_ADDR,
+                     "token": cloud.control.key.connection_token(1, 3, ROBOT_ADDR)}),
+        ("connect", {"cid": new_cid, "iid": 2, "peer_iid": 4, "peer_addr": ROBOT_ADDR,
+                     "token": cloud.control.key.connection_token(2, 4, ROBOT_ADDR)})]
+    # the robot-side ends get the new data address (iu true) and their credentials for it, then ST running
     assert [a for op, a in cloud.robot.sent if op == "connect"] == [
-        {"iid": 3, "peer_iid": 1, "peer_addr": c.data_addr}, {"iid": 4, "peer_iid": 2, "peer_addr": c.data_addr}]
+        {"iid": me, "peer_iid": peer, "peer_addr": c.data_addr,
+         "token": cloud.control.key.connection_token(me, peer, c.data_addr)} for me, peer in ((3, 1), (4, 2))]
     assert notes(cloud.robot)[-1] == ("ST", {"topic": "container", "cTag": "c1", "status": "running",
                                              "sandbox": "unconfined"})
     assert len(cloud.state.connections) == 2 and cloud.state.nodes[(U, "c1", "echo")].status == "running"

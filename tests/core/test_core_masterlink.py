@@ -1,6 +1,7 @@
 """rce.masterlink: a task set's control link that outlives its master. The backoff and the
 address list are pure; the link runs against masters played on in-memory links (no sockets),
-its backoff delays recorded instead of slept, and once over real loopback TCP."""
+its backoff delays recorded instead of slept, and once over real loopback TCP. Every link,
+re-registrations included, opens with the cluster handshake (:mod:`rce.cluster_auth`)."""
 from __future__ import annotations
 
 import asyncio
@@ -9,6 +10,7 @@ import time
 import pytest
 from memlink import pipe
 
+from rce.cluster_auth import AuthFailed, ClusterKey, respond
 from rce.errors import ConfigError, NotLeader, RequestError, Unavailable
 from rce.masterlink import Backoff, MasterLink, parse_masters, unless_stopped
 from rce.rpc import RpcPeer
@@ -16,6 +18,7 @@ from rce.rpc import RpcPeer
 STEP = 5.0          # s, the longest any single wait may take
 A, B, C = ("10.0.0.1", 8080), ("10.0.0.2", 8080), ("10.0.0.9", 7000)
 INFO = {"kind": "container", "name": "h1", "host": "10.0.0.5"}
+KEY = ClusterKey.generate()
 
 
 # -- the backoff and the address list ------------------------------------------------------------------
@@ -61,8 +64,10 @@ class FakeMaster:
     """One master: takes dials while ``up``; answers ``register`` (``refusals`` first, one per
     register), records what arrives in ``events`` and serves ``echo``."""
 
-    def __init__(self, tid: int = 7):
-        self.tid, self.up = tid, True
+    def __init__(self, tid: int = 7, key: ClusterKey = KEY):
+        self.tid, self.up, self.key = tid, True, key
+        self.handshakes = 0                            # links that proved the key
+        self.serving: set[asyncio.Future] = set()      # handshakes under way
         self.refusals: list[Exception] = []
         self.events: list[tuple[str, dict]] = []       # ("register", args) and ("note", args), in order
         self.registers: asyncio.Queue = asyncio.Queue()
@@ -70,10 +75,20 @@ class FakeMaster:
 
     def accept(self):
         (ra, wa), (rb, wb) = pipe()
-        peer = RpcPeer(rb, wb, {"register": self._register, "note": self._note, "echo": self._echo},
+        self.serving.add(t := asyncio.ensure_future(self._serve(rb, wb)))
+        t.add_done_callback(self.serving.discard)
+        return ra, wa
+
+    async def _serve(self, reader, writer) -> None:
+        try:
+            await respond(reader, writer, self.key)
+        except AuthFailed:
+            writer.close()
+            return
+        self.handshakes += 1
+        peer = RpcPeer(reader, writer, {"register": self._register, "note": self._note, "echo": self._echo},
                        name="task set").start()
         self.peers.append(peer)
-        return ra, wa
 
     async def _register(self, args: dict) -> dict:
         if self.refusals:
@@ -127,7 +142,7 @@ class Net:
 
 def link(net: Net, masters=(A,), **kw) -> MasterLink:
     kw.setdefault("backoff", Backoff(rng=lambda: 0.0))
-    return MasterLink(list(masters), {}, INFO, dial=net.dial, sleep=net.sleep, **kw)
+    return MasterLink(list(masters), {}, INFO, dial=net.dial, sleep=net.sleep, cluster_key=KEY, **kw)
 
 
 async def started(**kw) -> tuple[FakeMaster, Net, MasterLink]:
@@ -165,6 +180,25 @@ async def test_registers_then_re_registers_with_its_tid_and_report_on_every_reco
         await until(lambda: ml.available, "available again")
     assert ml.registrations == 4 and [a["resumed"] for a in answers] == [False, True, True, True]
     assert net.delays == []                    # a link that drops is dialled again at once
+    await ml.close()
+
+
+async def test_a_master_without_the_cluster_key_is_a_mistake_at_first_and_an_outage_later():
+    impostor = FakeMaster(key=ClusterKey.generate())
+    with pytest.raises(AuthFailed, match="cluster keys differ"):
+        await link(Net(a=impostor)).start()
+    assert impostor.events == [] and impostor.handshakes == 0
+    m, net, ml = await started()
+    assert m.handshakes == 1
+    m.kill()
+    net.masters[A] = impostor                 # someone else answers at the master's address meanwhile
+
+    def back(n: int) -> None:                 # the real master is back after 3 failed rounds
+        if n == 3:
+            m.up, net.masters[A] = True, m
+    net.on_sleep = back
+    assert await m.next_register() == {**INFO, "tid": 7}        # re-registered with the real master only
+    assert m.handshakes == 2 and impostor.events == [] and ml.attempts >= 1 + 3
     await ml.close()
 
 
@@ -364,11 +398,12 @@ async def test_over_tcp_the_link_finds_a_master_restarted_on_the_same_port():
         async def register(args):
             registers.put_nowait(args)
             return {"tid": 5}
+        await respond(reader, writer, KEY)
         peers.append(RpcPeer(reader, writer, {"register": register}, name="task set").start())
 
     server = await asyncio.start_server(accept, "127.0.0.1", 0)
     port = server.sockets[0].getsockname()[1]
-    ml = MasterLink(parse_masters(f"127.0.0.1:{port}"), {}, INFO, report=lambda: {"containers": []},
+    ml = MasterLink(parse_masters(f"127.0.0.1:{port}"), {}, INFO, report=lambda: {"containers": []}, cluster_key=KEY,
                     backoff=Backoff(initial=0.01, cap=0.1))
     await ml.start()
     assert await asyncio.wait_for(registers.get(), STEP) == INFO

@@ -11,6 +11,7 @@ import pytest
 
 from rce.errors import ProtocolError, RequestError
 from rce.protocol.frames import ID_LEN, Assembler
+from rce.protocol.limits import PartBudget
 from rce.protocol.session import CONTROL_BACKLOG, Event, RobotSession, robot_interface_type
 
 TESTS = Path(__file__).resolve().parents[1]
@@ -76,12 +77,13 @@ def test_data_to_send_one_message_at_a_time_keeps_parts_with_their_message():
 
 
 def test_a_robot_that_does_not_read_is_closed_once_and_loses_nothing():
+    # STs are never dropped (ERs are: tests/core/test_session_limits.py)
     s = RobotSession("r1", queue_size=2)
     for i in range(CONTROL_BACKLOG * 2 + 5):
-        s.send_error(f"e{i}")
+        s.send_status({"topic": "node", "status": f"s{i}"})
     closes = [e for e in s.events_received() if e.name == "close"]
     assert len(closes) == 1 and "'r1' does not read" in closes[0].fields["reason"]
-    assert [f["data"] for f in frames_of(s)] == [f"e{i}" for i in range(CONTROL_BACKLOG * 2 + 5)]
+    assert [f["data"]["status"] for f in frames_of(s)] == [f"s{i}" for i in range(CONTROL_BACKLOG * 2 + 5)]
 
 
 def test_request_done_without_a_request_is_a_bug():
@@ -147,9 +149,13 @@ def test_endpoint_metrics_sum_live_and_ended_sessions():
     live.receive_text("nope", 0)
     live.send_dm("x", "t", "", {}, data=True)
     ended.receive_text("[]", 0)
-    plane = SimpleNamespace(msgs_in=0, msgs_out=0, bytes_in=0, bytes_out=0, dropped=0)
+    class Plane:                # every data-plane counter 0
+        def __getattr__(self, name):
+            return 0
+    plane = Plane()
     ep = SimpleNamespace(namespaces={("u", "a"): SimpleNamespace(session=live, interfaces={})}, plane=plane,
-                         master=None)
+                         master=None, rosbridge=None,
+                         budget=PartBudget(), parser=SimpleNamespace(parsed=0))
     m = Metrics(ep)
     m.session_ended(ended)
     text = generate_latest(m.registry).decode()

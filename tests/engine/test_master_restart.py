@@ -120,9 +120,11 @@ async def frames_until(r: RawRobot, pred, timeout: float = NOTICE_TIMEOUT) -> li
 
 class FakeRobotTaskSet:
     """A robot task set that comes back (the contract's robot side): it re-registers with its tid,
-    robots and interfaces, and records every op the master sends it."""
+    robots and interfaces, and records every op the master sends it. It proves ``cluster_key``
+    (the engine's) to the master, as rce-robot does."""
 
-    def __init__(self) -> None:
+    def __init__(self, cluster_key) -> None:
+        self.cluster_key = cluster_key
         self.ops: asyncio.Queue = asyncio.Queue()
         self.seen: list[tuple[str, dict]] = []        # every op received, in order
         self.peer: rpc.RpcPeer | None = None
@@ -130,7 +132,8 @@ class FakeRobotTaskSet:
     async def register(self, control_port: int, **report) -> dict:
         handlers = {op: self._recorder(op) for op in
                     ("notify", "connect", "disconnect", "add_interface", "remove_interface", "close_robot")}
-        self.peer = await rpc.connect("127.0.0.1", control_port, handlers, name="returning robot task set")
+        self.peer = await rpc.connect("127.0.0.1", control_port, handlers, name="returning robot task set",
+                                      cluster_key=self.cluster_key)
         self.peer.keepalive()
         return await self.peer.call("register", kind="robot", name="re-back", host="127.0.0.1",
                                     ws_url="ws://127.0.0.1:9/", data_addr="tcp://127.0.0.1:9", **report)

@@ -112,7 +112,7 @@ async def test_the_standby_follows_the_leader_and_takes_over_within_5_s(engine, 
     ws_url = login(a_url)["url"]
     assert login(b_url) == {"url": ws_url}                           # login works on any master
     # the standby sends a task set to the leader, and admin changes too
-    peer = await rpc.connect("127.0.0.1", b_control, name="task set at the standby")
+    peer = await rpc.connect("127.0.0.1", b_control, name="task set at the standby", cluster_key=engine.cluster_key)
     with pytest.raises(NotLeader, match=f"the leader is at control 127.0.0.1:{engine.control_port}") as ei:
         await peer.call("register", kind="robot", name="x", host="127.0.0.1")
     assert ei.value.leader == {"control": f"127.0.0.1:{engine.control_port}", "http": a_url}
@@ -154,7 +154,7 @@ async def the_new_leader_serves(engine: Engine, b_url: str, b_control: int, befo
     assert (err.code, err.headers["Retry-After"]) == (503, "5")
     old_tid = next(t["tid"] for t in before["tasksets"] if t["kind"] == "robot")
     r1_iids = [i["iid"] for i in before["interfaces"] if i["tag"].startswith("r1/")]
-    robot_ts = FakeRobotTaskSet()
+    robot_ts = FakeRobotTaskSet(engine.cluster_key)
     answer = await robot_ts.register(b_control, tid=old_tid, interfaces=r1_iids,
                                      robots=[{"user": "alice", "robot": "r1"}])
     try:

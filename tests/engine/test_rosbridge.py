@@ -8,19 +8,32 @@ running: it cannot restart); its blocking steps run in a worker thread with a na
 from __future__ import annotations
 
 import asyncio
+import base64
 import hashlib
+import io
 import json
+import math
 import queue
 import time
+import urllib.request
 from functools import partial
 from typing import Any
 
+import cbor2
+import numpy as np
 import pytest
 import roslibpy
+from PIL import Image
 from websockets.asyncio.client import connect
 from websockets.exceptions import InvalidStatus
 
-from rce.errors import RCEError
+from rce.errors import ProtocolError, RCEError
+from rce.messages import default_registry
+from rce_robot.endpoint import RobotEndpoint
+from rce_robot.rosbridge import RosbridgeServer
+from rce_robot.rosbridge_compression import cbor_publish, cbor_raw_publish, png_op
+from rce_robot.rosbridge_fragments import Defragmenter
+from rce_robot.rosbridge_outbox import Outbox
 from rce_robot.rosbridge_session import Bridge, RosbridgeSession, Subscription
 from wsclient import RawRobot
 
@@ -80,8 +93,15 @@ def _roslibpy_session(url: str) -> dict:
                 echo = received.get(timeout=RETRY_EVERY)
             except queue.Empty:
                 continue
+        ros.set_param("/rbPy/gain", {"p": 1.5, "axes": [1, 2]})
+        ros.set_param("rbPy/name", "robot \u00e9")          # relative: resolved under /, as rosapi does
+        params = {"tree": ros.get_param("/rbPy/gain"), "leaf": ros.get_param("/rbPy/gain/p"),
+                  "text": ros.get_param("/rbPy/name"), "missing": ros.get_param("/rbPy/nothing"),
+                  "names": ros.get_params()}
+        ros.delete_param("/rbPy/name")
+        params["exists"] = (ros.get_params(), ros.get_param("/rbPy/name"))
         return {"answer": dict(answer), "echo": echo, "topics": ros.get_topics(),
-                "type": ros.get_service_type("/stringEchoService")}
+                "type": ros.get_service_type("/stringEchoService"), "params": params}
     finally:
         ros.close()
 
@@ -95,6 +115,10 @@ async def test_roslibpy_service_echo_and_topics(eng):
     assert got["echo"] == {"data": "hello"}
     assert {"/stringEchoReq", "/stringEchoResp"} <= set(got["topics"])
     assert got["type"] == "Test/StringEcho"
+    names, after = got["params"].pop("names"), got["params"].pop("exists")
+    assert got["params"] == {"tree": {"p": 1.5, "axes": [1, 2]}, "leaf": 1.5, "text": "robot \u00e9", "missing": None}
+    assert {"/rbPy/gain/p", "/rbPy/gain/axes", "/rbPy/name"} <= set(names)
+    assert "/rbPy/name" not in after[0] and "/rbPy/gain/p" in after[0] and after[1] is None     # deleted
 
 
 async def _session_gone(eng, ctag: str) -> None:
@@ -151,7 +175,10 @@ async def test_malformed_ops_get_status_and_session_goes_on(eng):
                               (json.dumps({"op": "fly"}), "unknown op 'fly'"),
                               (json.dumps({"op": "publish", "topic": "/x", "msg": {}, "id": "p1"}), "not advertised"),
                               (json.dumps({"op": "subscribe", "topic": "/nowhere", "id": "s1"}), "'/nowhere'"),
-                              (json.dumps({"op": "advertise", "topic": "/x", "type": "No/Such"}), "No/Such")):
+                              (json.dumps({"op": "advertise", "topic": "/x", "type": "No/Such"}), "No/Such"),
+                              (json.dumps({"op": "fragment", "id": "f", "data": "{", "num": 0, "total": 0}), "'total'"),
+                              (json.dumps({"op": "subscribe", "topic": "/t", "type": "std_msgs/String",
+                                           "compression": "zip"}), "compression must be")):
                 await ws.send(bad)
                 status = await _next(ws, "status")
                 assert status["level"] == "error" and says in status["msg"], (bad, status)
@@ -165,6 +192,10 @@ async def test_malformed_ops_get_status_and_session_goes_on(eng):
             reply = json.loads(await asyncio.wait_for(ws.recv(), STEP_WAIT))      # no status came before it
             assert reply["op"] == "service_response", reply
             assert reply["id"] == "t1" and reply["result"] is True and "topics" in reply["values"]
+            await ws.send(json.dumps({"op": "call_service", "service": "/rosapi/set_param", "id": "sp",
+                                      "args": {"name": "/p", "value": "not json"}}))
+            reply = await _next(ws, "service_response")            # a failed call, as rosapi's exception
+            assert reply["id"] == "sp" and reply["result"] is False and "JSON text" in reply["values"], reply
             await ws.send(json.dumps({"op": "publish", "topic": "/stringEchoReq", "msg": {"data": "x"}}))
             assert "not advertised" in (await _next(ws, "status"))["msg"]
             await ws.send(json.dumps({"op": "subscribe", "topic": "/stringEchoResp", "type": "std_msgs/String"}))
@@ -180,8 +211,8 @@ async def test_malformed_ops_get_status_and_session_goes_on(eng):
             request = await _next(ws, "call_service")
             assert request["service"] == "/rbRawSvc" and request["args"] == {"data": "x"}
             await ws.send(json.dumps({"op": "service_response", "service": "/rbRawSvc", "id": request["id"],
-                                      "values": "refused", "result": False}))
-            with pytest.raises(RCEError):
+                                      "values": "no paper in tray 2", "result": False}))
+            with pytest.raises(RCEError, match="refused the call: no paper in tray 2"):
                 await asyncio.wait_for(call, STEP_WAIT)
             await ws.send(json.dumps({"op": "unadvertise_service", "service": "/rbRawSvc"}))
             await ws.send(json.dumps({"op": "call_service", "service": "/rosapi/services", "id": "t4"}))
@@ -199,13 +230,13 @@ async def test_throttle_and_queue_length():
     session.subs["/t"] = {"sub": Subscription("sub", 1000, 2)}
     for i in range(5):
         assert session.send_dm("s1", "std_msgs/String", "", {"data": str(i)}, data=True)
-    assert session.outbox.get_nowait() == {"op": "publish", "topic": "/t", "msg": {"data": "0"}}
+    assert _ops(session) == [{"op": "publish", "topic": "/t", "msg": {"data": "0"}}]
     sub = session.subs["/t"]["sub"]
     assert list(sub.pending) == [{"data": "3"}, {"data": "4"}] and sub.dropped == 2 and session.dropped == 2
     assert session.outbox.empty() and sub.timer is not None
     sub.timer.cancel()
-    session._flush("/t", sub)              # the timer's work: the oldest waiting one goes, the next waits
-    assert session.outbox.get_nowait()["msg"] == {"data": "3"} and list(sub.pending) == [{"data": "4"}]
+    session._flush(bridge, sub)              # the timer's work: the oldest waiting one goes, the next waits
+    assert _ops(session)[0]["msg"] == {"data": "3"} and list(sub.pending) == [{"data": "4"}]
     assert sub.timer is not None
     sub.timer.cancel()
 
@@ -220,3 +251,157 @@ async def test_handshake_refusals(eng):
                 async with connect(url):
                     pass
             assert e.value.response.status_code == code
+
+
+def _ops(session: RosbridgeSession) -> list[dict]:
+    """The ops of the oldest message the session queued (its frames, JSON text)."""
+    return [json.loads(f) for f in session.outbox.get_nowait()]
+
+
+async def test_fragments_split_and_reassemble():
+    """Sans-I/O: an op longer than fragment_size goes as fragment ops whose data joins back to it;
+    the client's fragments are reassembled in any order, within the bounds (ids, characters,
+    expiry), and what is thrown away is counted."""
+    outbox = Outbox()
+    op = {"op": "publish", "topic": "/t", "msg": {"data": "x" * 300}}
+    assert outbox.op(op, fragment_size=100) and outbox.fragments == 4
+    frags = [json.loads(f) for f in outbox.get_nowait()]
+    assert [(f["op"], f["num"], f["total"]) for f in frags] == [("fragment", i, 4) for i in range(4)]
+    assert len({f["id"] for f in frags}) == 1 and json.loads("".join(f["data"] for f in frags)) == op
+    assert outbox.op(op, fragment_size=1000) and json.loads(outbox.get_nowait()[0]) == op    # short enough: whole
+
+    now = [0.0]
+    d = Defragmenter(max_messages=2, max_chars=1000, expiry=5.0, clock=lambda: now[0])
+    assert d.add(frags[2]) is None and d.add(frags[0]) is None and d.add(frags[3]) is None
+    assert json.loads(d.add(frags[1])) == op and d.messages == 1 and d.held == 0
+    d.add({"op": "fragment", "id": "a", "data": "x", "num": 0, "total": 2})
+    d.add({"op": "fragment", "id": "b", "data": "x", "num": 0, "total": 2})
+    with pytest.raises(ProtocolError, match="already being reassembled"):
+        d.add({"op": "fragment", "id": "c", "data": "x", "num": 0, "total": 2})
+    with pytest.raises(ProtocolError, match="'total' changed"):
+        d.add({"op": "fragment", "id": "b", "data": "x", "num": 1, "total": 3})
+    with pytest.raises(ProtocolError, match="exceed 1000 characters"):
+        d.add({"op": "fragment", "id": "a", "data": "x" * 1000, "num": 1, "total": 2})
+    assert d.dropped == 5 and not d.pending and d.held == 0        # c; b and its fragment; a and its fragment
+    d.add({"op": "fragment", "id": "e", "data": "x", "num": 0, "total": 2})
+    now[0] = 6.0
+    assert d.expire() == ["e"] and d.dropped == 6 and d.held == 0
+
+
+async def test_png_and_cbor_forms():
+    """Sans-I/O: png packs the op's JSON into the RGB pixels of a PNG as rosbridge's
+    pngcompression (width floor(sqrt(n/3)), '\\n' padding); cbor carries uint8[] as a byte string
+    and float32[] as an RFC 8746 little-endian typed array (tag 85), as rosbridge's cbor_conversion;
+    cbor-raw carries the ROS 1 bytes and the receive time."""
+    text = json.dumps({"op": "publish", "topic": "/t", "msg": {"data": "h\u00e9llo " * 20}})
+    image = Image.open(io.BytesIO(base64.b64decode(png_op(text)["data"])))
+    assert image.mode == "RGB" and image.size[0] == math.floor(math.sqrt(len(text) / 3))
+    assert image.tobytes().decode("ascii").rstrip("\n") == text
+    registry = default_registry()
+    image_msg = {"header": {"seq": 1, "stamp": {"secs": 2, "nsecs": 3}, "frame_id": "f"}, "height": 1, "width": 3,
+                 "encoding": "mono8", "is_bigendian": 0, "step": 3, "data": base64.b64encode(b"\0\1\2").decode()}
+    got = cbor2.loads(cbor_publish(registry, "sensor_msgs/msg/Image", "/im", image_msg))
+    assert got == {"op": "publish", "topic": "/im", "msg": {**image_msg, "data": b"\0\1\2"}}
+    got = cbor2.loads(cbor_publish(registry, "std_msgs/msg/Float32MultiArray", "/f",
+                                   {"layout": {"dim": [], "data_offset": 0}, "data": [1.5, None]}))
+    tagged = got["msg"]["data"]
+    assert tagged.tag == 85 and np.frombuffer(tagged.value, "<f4")[0] == 1.5 and np.isnan(
+        np.frombuffer(tagged.value, "<f4")[1])
+    raw = cbor2.loads(cbor_raw_publish(registry, "std_msgs/msg/String", "/s", {"data": "hi"}, 12.25))
+    assert raw == {"op": "publish", "topic": "/s", "msg": {"secs": 12, "nsecs": 250_000_000,
+                                                           "bytes": b"\x02\x00\x00\x00hi"}}   # ROS 1 bytes
+
+
+async def _frames_until(ws, want: set[str], publish) -> dict[str, Any]:
+    """Publish (``publish()``) until each of ``want`` (fragmented, png, cbor) has come back once;
+    the fragments of one message are joined."""
+    got: dict[str, Any] = {}
+    parts: dict[int, str] = {}
+    deadline = time.monotonic() + GRAPH_WAIT
+    while set(got) < want:
+        assert time.monotonic() < deadline, f"only {sorted(got)} of {sorted(want)} came back"
+        await publish()
+        try:
+            frame = await asyncio.wait_for(ws.recv(), RETRY_EVERY)
+        except asyncio.TimeoutError:
+            continue
+        if isinstance(frame, bytes):
+            got["cbor"] = cbor2.loads(frame)
+            continue
+        op = json.loads(frame)
+        if op["op"] == "png":
+            png = Image.open(io.BytesIO(base64.b64decode(op["data"]))).tobytes().decode("ascii")
+            got["png"] = json.loads(png)          # trailing '\n' padding is JSON whitespace
+        elif op["op"] == "fragment":
+            parts[op["num"]] = op["data"]
+            if len(parts) == op["total"]:
+                got["fragmented"] = json.loads("".join(parts[i] for i in range(op["total"])))
+                parts.clear()
+    return got
+
+
+async def test_fragments_png_cbor_on_the_wire(eng):
+    """A raw client subscribes to the echo's answer three times (fragment_size, png, cbor) and
+    publishes its request in fragments, out of order; each form comes back as rosbridge sends it.
+    A call_service with fragment_size gets its answer in fragments. The metrics count it all."""
+    text = "long " * 60
+    async with RawRobot(eng.master_url, "rbOwner5") as r:
+        await _echo_container(r, "rbC5")
+        async with connect(_url(eng, "rbWire", "rbC5")) as ws:
+            for sid, extra in (("frag", {"fragment_size": 100}), ("png", {"compression": "png"}),
+                               ("cbor", {"compression": "cbor"})):
+                await ws.send(json.dumps({"op": "subscribe", "topic": "/stringEchoResp", "type": "std_msgs/String",
+                                          "id": sid, **extra}))
+            await ws.send(json.dumps({"op": "advertise", "topic": "/stringEchoReq", "type": "std_msgs/String"}))
+            request = json.dumps({"op": "publish", "topic": "/stringEchoReq", "msg": {"data": text}})
+            pieces = [request[i:i + 90] for i in range(0, len(request), 90)]
+            n = iter(range(1_000_000))
+
+            async def publish():
+                mid = f"req{next(n)}"
+                for i in reversed(range(len(pieces))):
+                    await ws.send(json.dumps({"op": "fragment", "id": mid, "data": pieces[i], "num": i,
+                                              "total": len(pieces)}))
+            got = await _frames_until(ws, {"fragmented", "png", "cbor"}, publish)
+            echo = {"op": "publish", "topic": "/stringEchoResp", "msg": {"data": text}}
+            assert got == {"fragmented": echo, "png": echo, "cbor": echo}
+            for sid in ("frag", "png", "cbor"):
+                await ws.send(json.dumps({"op": "unsubscribe", "topic": "/stringEchoResp", "id": sid}))
+            await ws.send(json.dumps({"op": "call_service", "service": "/rosapi/get_param_names", "id": "long" * 40,
+                                      "fragment_size": 64}))
+            frag = await _next(ws, "fragment")
+            assert frag["id"] == "long" * 40 and frag["num"] == 0 and frag["total"] > 1
+            metrics = await asyncio.to_thread(_metrics, eng)
+        await _session_gone(eng, "rbC5")
+    assert metrics["rce_robot_rosbridge_fragments_in_total"] >= len(pieces)
+    assert metrics["rce_robot_rosbridge_fragments_out_total"] >= 4
+    assert metrics["rce_robot_rosbridge_sessions_accepted_total"] >= 1 and metrics["rce_robot_rosbridge_sessions"] >= 1
+    assert metrics["rce_robot_rosbridge_ops_in_total"] >= 6
+
+
+def _metrics(eng) -> dict[str, float]:
+    """The robot task set's Prometheus metrics (name -> value; unlabelled samples)."""
+    port = eng.robot_ready[0]["metrics_port"]
+    with urllib.request.urlopen(f"http://127.0.0.1:{port}/metrics", timeout=STEP_WAIT) as resp:
+        text = resp.read().decode()
+    return {name: float(value) for name, value in
+            (line.split() for line in text.splitlines() if line and not line.startswith("#") and "{" not in line)}
+
+
+async def test_sessions_reported_and_closed_by_the_master():
+    """Sans-I/O: a rosbridge session is a robot in the task set's register report, and a robot the
+    master does not have closes its websocket (1008, the reason)."""
+    ep = object.__new__(RobotEndpoint)             # only the tables _report and _obey read
+    ep.namespaces, ep.by_iid = {}, {}
+    ep.rosbridge = RosbridgeServer(master=None, by_iid=ep.by_iid)
+    session = RosbridgeSession("u", "r", "c", master=None)
+    closed: list[tuple[int, str]] = []
+
+    class _Ws:
+        async def close(self, code: int, reason: str) -> None:
+            closed.append((code, reason))
+    session.ws = _Ws()
+    ep.rosbridge.sessions[("u", "r")] = session
+    assert {"user": "u", "robot": "r", "rosbridge": "c"} in ep._report()["robots"]
+    await ep._obey({"close_robots": [{"user": "u", "robot": "r"}]})
+    assert len(closed) == 1 and closed[0][0] == 1008 and "the master does not know" in closed[0][1]

@@ -1,0 +1,117 @@
+"""Bounds of a robot session under hostile input (issue 11 part 4), sans I/O: the JSON depth
+limit, the ER text cap, the per-session ER token bucket and the endpoint-wide budget of binary
+parts waiting for their message. docs/SECURITY.md "Limits" lists them with their defaults.
+
+- :func:`json_too_deep`: a bracket-depth scan that skips strings (C-speed regular expressions),
+  run before ``json.loads`` so that a deep frame costs neither a RecursionError nor a deep walk.
+- :func:`short_repr`: a value quoted in an error, cut short before it is formatted.
+- :func:`truncate`: the first :data:`MAX_ER_TEXT` bytes of a text (UTF-8), with a marker.
+- :class:`TokenBucket`: ``rate`` tokens per s up to ``burst`` (the classic token bucket, as
+  in RFC 2697's committed-burst bucket, one colour).
+- :class:`PartBudget`: bytes of binary parts held by all the sessions of one robot endpoint.
+"""
+from __future__ import annotations
+
+import re
+import reprlib
+from dataclasses import dataclass
+from itertools import accumulate
+
+MAX_JSON_DEPTH = 64             # nesting of JSON arrays and objects in a frame; ROS messages nest a few levels,
+                                # and Python's json and the walks after it recurse (a 1000-deep frame raised)
+MAX_ER_TEXT = 512               # bytes (UTF-8) of an ER's text: an ER names what was wrong, it never echoes a value
+TRUNCATED = " ... [{n} more bytes]"   # the marker after a truncated text
+SHORT_REPR = 80                 # chars of a value an error message quotes (a tag, a type, a bad value)
+ER_RATE = 20.0                  # ERs per s a session sends a robot for its bad input, on average ...
+ER_BURST = 50                   # ... and at most this many at once (token bucket); the rest are dropped and counted
+LOG_RATE = 2.0                  # log lines per s a session writes about its robot's bad input, on average ...
+LOG_BURST = 10                  # ... and at most this many at once; the rest are counted in the next line
+DEFAULT_MAX_PENDING_TOTAL = 512 * 1024 * 1024   # bytes of binary parts waiting for their message, all the robots
+                                                # of one endpoint together (each also has its own cap)
+
+_STRING = re.compile(r'"[^"\\]*(?:\\.[^"\\]*)*"')     # a JSON string (RFC 8259 section 7), unrolled
+_NOT_BRACKET = re.compile(r"[^\[\]{}]+")
+_STEP = {"[": 1, "{": 1, "]": -1, "}": -1}
+
+
+def json_too_deep(text: str, limit: int = MAX_JSON_DEPTH) -> bool:
+    """True when JSON ``text`` nests arrays and objects deeper than ``limit``. Linear in the length
+    of ``text`` and cheap when it holds few brackets; malformed text is left to the parser."""
+    if text.count("[") + text.count("{") <= limit:
+        return False
+    brackets = _NOT_BRACKET.sub("", _STRING.sub("", text))
+    return max(accumulate(map(_STEP.__getitem__, brackets)), default=0) > limit
+
+
+def truncate(text: str, limit: int = MAX_ER_TEXT) -> str:
+    """``text`` cut to ``limit`` bytes of UTF-8 (never inside a character), with a marker saying
+    how many bytes were cut; shorter texts unchanged."""
+    if len(text) <= limit // 4:                     # at most 4 bytes a character: surely short enough
+        return text
+    raw = text.encode("utf-8", "replace")
+    if len(raw) <= limit:
+        return text
+    return raw[:limit].decode("utf-8", "ignore") + TRUNCATED.format(n=len(raw) - limit)
+
+
+@dataclass
+class TokenBucket:
+    """``rate`` tokens per s, at most ``burst`` held; starts full. :meth:`take` at time ``now`` (s,
+    monotonic) spends one token, or says there is none."""
+
+    rate: float
+    burst: int
+    tokens: float = -1.0
+    last: float | None = None
+
+    def take(self, now: float) -> bool:
+        """Spend a token at ``now`` (s); False when the bucket is empty."""
+        if self.last is None:
+            self.tokens = float(self.burst)
+        else:
+            self.tokens = min(float(self.burst), self.tokens + max(0.0, now - self.last) * self.rate)
+        self.last = now
+        if self.tokens < 1.0:
+            return False
+        self.tokens -= 1.0
+        return True
+
+
+@dataclass
+class PartBudget:
+    """Bytes of binary parts waiting for their message, summed over every session of one endpoint:
+    at most ``max_bytes``. :attr:`held` now; :attr:`refused`: parts refused for the budget."""
+
+    max_bytes: int = DEFAULT_MAX_PENDING_TOTAL
+    held: int = 0
+    refused: int = 0
+
+    def take(self, n: int) -> bool:
+        """Hold ``n`` more bytes; False (and counted) when that would pass the budget."""
+        if self.held + n > self.max_bytes:
+            self.refused += 1
+            return False
+        self.held += n
+        return True
+
+    def give(self, n: int) -> None:
+        """``n`` held bytes are released (consumed, expired, replaced, or their session ended)."""
+        self.held -= n
+
+
+def _short_repr() -> reprlib.Repr:
+    r = reprlib.Repr()
+    r.maxstring, r.maxother, r.maxlevel = SHORT_REPR, SHORT_REPR, 3
+    r.maxlist = r.maxdict = r.maxtuple = r.maxset = 6
+    return r
+
+
+_REPR = _short_repr()
+
+
+def short_repr(value: object) -> str:
+    """``repr(value)`` cut short (strings and other values to about :data:`SHORT_REPR` chars, at most 6
+    items of a container, 3 levels; at most twice :data:`SHORT_REPR` chars in all): what an error
+    message quotes of a value, at a bounded cost."""
+    r = _REPR.repr(value)
+    return r if len(r) <= 2 * SHORT_REPR else r[:2 * SHORT_REPR] + "..."
