@@ -1,5 +1,6 @@
 """Run every benchmark script, one after the other (``make bench``): rtt, fleet_load,
-paper_experiments, planner, container_start, faults, login_attack. A script that does not exist (yet) is skipped with a message.
+paper_experiments, planner, container_start, faults, login_attack. A script that does not exist
+(yet) is skipped with a message.
 Each writes its own results to ``bench/results/``; this prints a summary and exits non-zero
 if any script failed.
 
