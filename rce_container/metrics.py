@@ -17,6 +17,10 @@ Metrics (labels in brackets):
 - ``rce_container_messages_{in,out}_total``, ``rce_container_bytes_{in,out}_total``
   [user, ctag]: traffic over the container's interfaces
 - ``rce_container_dropped_total`` [user, ctag, where (interfaces, bus)]: messages dropped
+- ``rce_container_refused_total`` [user, ctag, where]: what the container's environment (shared
+  by its group) turned away: ``bus`` connections without the container's uid or bus token,
+  ``dataplane`` frames from senders not connected to their interface, ``dataplane_link`` data
+  links closed for a wrong credential (docs/SECURITY.md)
 - ``rce_node_cpu_percent``, ``rce_node_rss_bytes``, ``rce_node_processes``,
   ``rce_node_running`` [user, ctag, node]: per node
 - ``rce_node_messages_{in,out}_total``, ``rce_node_bytes_{in,out}_total``,
@@ -68,6 +72,8 @@ class _Snapshot:
             "bout": CounterMetricFamily("rce_container_bytes_out", "Bytes out of the container's interfaces",
                                         labels=C_LABELS),
             "drop": CounterMetricFamily("rce_container_dropped", "Messages dropped", labels=[*C_LABELS, "where"]),
+            "refused": CounterMetricFamily("rce_container_refused", "Bus connections, data frames and data links "
+                                           "the container's environment turned away", labels=[*C_LABELS, "where"]),
             "ncpu": g("rce_node_cpu_percent", "CPU use of the node's processes, percent of one core", labels=N_LABELS),
             "nrss": g("rce_node_rss_bytes", "Resident memory of the node's processes", labels=N_LABELS),
             "nprocs": g("rce_node_processes", "Processes of the node", labels=N_LABELS),
@@ -101,6 +107,12 @@ class _Snapshot:
             fam["bout"].add_metric(lab, c.get("bytes_out", 0))
             for where, n in (c.get("dropped") or {}).items():
                 fam["drop"].add_metric([*lab, where], n)
+            env = c.get("environment") or {}
+            plane = env.get("dataplane") or {}
+            for where, n in (("bus", (env.get("bus") or {}).get("refused")), ("dataplane", plane.get("refused")),
+                             ("dataplane_link", plane.get("unauthenticated"))):
+                if n is not None:
+                    fam["refused"].add_metric([*lab, where], n)
             for ntag, n in (c.get("per_node") or {}).items():
                 nl = [*lab, ntag]
                 fam["ncpu"].add_metric(nl, n.get("cpu_percent", 0.0))
