@@ -53,79 +53,84 @@ class _Snapshot:
             env.add_metric([str(k)], mib * 2**20)
         yield env
 
-        fam = {
-            "cpu": g("rce_container_cpu_percent", "CPU use of the container's processes, percent of one core",
-                     labels=C_LABELS),
-            "rss": g("rce_container_rss_bytes", "Resident memory of the container's processes", labels=C_LABELS),
-            "procs": g("rce_container_processes", "Processes in the container", labels=C_LABELS),
-            "lcpu": g("rce_container_cpu_limit_cores", "CPU limit in force, cores", labels=C_LABELS),
-            "lmem": g("rce_container_memory_limit_bytes", "Memory limit in force", labels=C_LABELS),
-            "ltasks": g("rce_container_tasks_limit", "Task (pids) limit in force", labels=C_LABELS),
-            "oom": CounterMetricFamily("rce_container_oom_kills", "Processes killed for exceeding the memory limit",
-                                       labels=C_LABELS),
-            "min": CounterMetricFamily("rce_container_messages_in", "Messages into the container's interfaces",
-                                       labels=C_LABELS),
-            "mout": CounterMetricFamily("rce_container_messages_out", "Messages out of the container's interfaces",
-                                        labels=C_LABELS),
-            "bin": CounterMetricFamily("rce_container_bytes_in", "Bytes into the container's interfaces",
-                                       labels=C_LABELS),
-            "bout": CounterMetricFamily("rce_container_bytes_out", "Bytes out of the container's interfaces",
-                                        labels=C_LABELS),
-            "drop": CounterMetricFamily("rce_container_dropped", "Messages dropped", labels=[*C_LABELS, "where"]),
-            "refused": CounterMetricFamily("rce_container_refused", "Bus connections, data frames and data links "
-                                           "the container's environment turned away", labels=[*C_LABELS, "where"]),
-            "ncpu": g("rce_node_cpu_percent", "CPU use of the node's processes, percent of one core", labels=N_LABELS),
-            "nrss": g("rce_node_rss_bytes", "Resident memory of the node's processes", labels=N_LABELS),
-            "nprocs": g("rce_node_processes", "Processes of the node", labels=N_LABELS),
-            "nrun": g("rce_node_running", "1 while the node runs", labels=N_LABELS),
-            "nrest": CounterMetricFamily("rce_node_restarts", "Respawns of the node", labels=N_LABELS),
-            "nmin": CounterMetricFamily("rce_node_messages_in", "Messages the node published", labels=N_LABELS),
-            "nmout": CounterMetricFamily("rce_node_messages_out", "Messages delivered to the node", labels=N_LABELS),
-            "nbin": CounterMetricFamily("rce_node_bytes_in", "Bytes the node published", labels=N_LABELS),
-            "nbout": CounterMetricFamily("rce_node_bytes_out", "Bytes delivered to the node", labels=N_LABELS),
-            "ndrop": CounterMetricFamily("rce_node_dropped", "Messages the node's subscriptions dropped",
-                                         labels=N_LABELS),
-        }
+        fam = _families()
         for c in s.get("containers", []):
-            if "error" in c:
-                continue
-            lab = [c.get("user", ""), c.get("ctag", "")]
-            fam["cpu"].add_metric(lab, c.get("cpu_percent", 0.0))
-            fam["rss"].add_metric(lab, c.get("rss_mib", 0.0) * 2**20)
-            fam["procs"].add_metric(lab, c.get("processes", 0))
-            limits = c.get("limits") or {}
-            if limits.get("cpu"):
-                fam["lcpu"].add_metric(lab, limits["cpu"])
-            if limits.get("memory"):
-                fam["lmem"].add_metric(lab, limits["memory"] * 2**20)
-            if limits.get("pids"):
-                fam["ltasks"].add_metric(lab, limits["pids"])
-            fam["oom"].add_metric(lab, (c.get("memory") or {}).get("oom_kills", 0))
-            fam["min"].add_metric(lab, c.get("msgs_in", 0))
-            fam["mout"].add_metric(lab, c.get("msgs_out", 0))
-            fam["bin"].add_metric(lab, c.get("bytes_in", 0))
-            fam["bout"].add_metric(lab, c.get("bytes_out", 0))
-            for where, n in (c.get("dropped") or {}).items():
-                fam["drop"].add_metric([*lab, where], n)
-            env = c.get("environment") or {}
-            plane = env.get("dataplane") or {}
-            for where, n in (("bus", (env.get("bus") or {}).get("refused")), ("dataplane", plane.get("refused")),
-                             ("dataplane_link", plane.get("unauthenticated"))):
-                if n is not None:
-                    fam["refused"].add_metric([*lab, where], n)
-            for ntag, n in (c.get("per_node") or {}).items():
-                nl = [*lab, ntag]
-                fam["ncpu"].add_metric(nl, n.get("cpu_percent", 0.0))
-                fam["nrss"].add_metric(nl, n.get("rss_mib", 0.0) * 2**20)
-                fam["nprocs"].add_metric(nl, n.get("processes", 0))
-                fam["nrun"].add_metric(nl, 1 if n.get("running") else 0)
-                fam["nrest"].add_metric(nl, n.get("restarts", 0))
-                fam["nmin"].add_metric(nl, n.get("msgs_in", 0))
-                fam["nmout"].add_metric(nl, n.get("msgs_out", 0))
-                fam["nbin"].add_metric(nl, n.get("bytes_in", 0))
-                fam["nbout"].add_metric(nl, n.get("bytes_out", 0))
-                fam["ndrop"].add_metric(nl, n.get("dropped", 0))
+            if "error" not in c:
+                _add_container(fam, c)
         yield from fam.values()
+
+
+def _families() -> dict:
+    """One empty metric family per key (the module doc lists them)."""
+    g = GaugeMetricFamily
+    return {
+        "cpu": g("rce_container_cpu_percent", "CPU use of the container's processes, percent of one core",
+                 labels=C_LABELS),
+        "rss": g("rce_container_rss_bytes", "Resident memory of the container's processes", labels=C_LABELS),
+        "procs": g("rce_container_processes", "Processes in the container", labels=C_LABELS),
+        "lcpu": g("rce_container_cpu_limit_cores", "CPU limit in force, cores", labels=C_LABELS),
+        "lmem": g("rce_container_memory_limit_bytes", "Memory limit in force", labels=C_LABELS),
+        "ltasks": g("rce_container_tasks_limit", "Task (pids) limit in force", labels=C_LABELS),
+        "oom": CounterMetricFamily("rce_container_oom_kills", "Processes killed for exceeding the memory limit",
+                                   labels=C_LABELS),
+        "min": CounterMetricFamily("rce_container_messages_in", "Messages into the container's interfaces",
+                                   labels=C_LABELS),
+        "mout": CounterMetricFamily("rce_container_messages_out", "Messages out of the container's interfaces",
+                                    labels=C_LABELS),
+        "bin": CounterMetricFamily("rce_container_bytes_in", "Bytes into the container's interfaces",
+                                   labels=C_LABELS),
+        "bout": CounterMetricFamily("rce_container_bytes_out", "Bytes out of the container's interfaces",
+                                    labels=C_LABELS),
+        "drop": CounterMetricFamily("rce_container_dropped", "Messages dropped", labels=[*C_LABELS, "where"]),
+        "refused": CounterMetricFamily("rce_container_refused", "Bus connections, data frames and data links "
+                                       "the container's environment turned away", labels=[*C_LABELS, "where"]),
+        "ncpu": g("rce_node_cpu_percent", "CPU use of the node's processes, percent of one core", labels=N_LABELS),
+        "nrss": g("rce_node_rss_bytes", "Resident memory of the node's processes", labels=N_LABELS),
+        "nprocs": g("rce_node_processes", "Processes of the node", labels=N_LABELS),
+        "nrun": g("rce_node_running", "1 while the node runs", labels=N_LABELS),
+        "nrest": CounterMetricFamily("rce_node_restarts", "Respawns of the node", labels=N_LABELS),
+        "nmin": CounterMetricFamily("rce_node_messages_in", "Messages the node published", labels=N_LABELS),
+        "nmout": CounterMetricFamily("rce_node_messages_out", "Messages delivered to the node", labels=N_LABELS),
+        "nbin": CounterMetricFamily("rce_node_bytes_in", "Bytes the node published", labels=N_LABELS),
+        "nbout": CounterMetricFamily("rce_node_bytes_out", "Bytes delivered to the node", labels=N_LABELS),
+        "ndrop": CounterMetricFamily("rce_node_dropped", "Messages the node's subscriptions dropped",
+                                     labels=N_LABELS),
+    }
+
+
+def _add_container(fam: dict, c: dict) -> None:
+    """Add one container's stats (and its nodes') to the families of :func:`_families`."""
+    lab = [c.get("user", ""), c.get("ctag", "")]
+    fam["cpu"].add_metric(lab, c.get("cpu_percent", 0.0))
+    fam["rss"].add_metric(lab, c.get("rss_mib", 0.0) * 2**20)
+    fam["procs"].add_metric(lab, c.get("processes", 0))
+    limits = c.get("limits") or {}
+    if limits.get("cpu"):
+        fam["lcpu"].add_metric(lab, limits["cpu"])
+    if limits.get("memory"):
+        fam["lmem"].add_metric(lab, limits["memory"] * 2**20)
+    if limits.get("pids"):
+        fam["ltasks"].add_metric(lab, limits["pids"])
+    fam["oom"].add_metric(lab, (c.get("memory") or {}).get("oom_kills", 0))
+    for key, stat in (("min", "msgs_in"), ("mout", "msgs_out"), ("bin", "bytes_in"), ("bout", "bytes_out")):
+        fam[key].add_metric(lab, c.get(stat, 0))
+    for where, n in (c.get("dropped") or {}).items():
+        fam["drop"].add_metric([*lab, where], n)
+    env = c.get("environment") or {}
+    plane = env.get("dataplane") or {}
+    for where, n in (("bus", (env.get("bus") or {}).get("refused")), ("dataplane", plane.get("refused")),
+                     ("dataplane_link", plane.get("unauthenticated"))):
+        if n is not None:
+            fam["refused"].add_metric([*lab, where], n)
+    for ntag, n in (c.get("per_node") or {}).items():
+        nl = [*lab, ntag]
+        fam["ncpu"].add_metric(nl, n.get("cpu_percent", 0.0))
+        fam["nrss"].add_metric(nl, n.get("rss_mib", 0.0) * 2**20)
+        fam["nprocs"].add_metric(nl, n.get("processes", 0))
+        fam["nrun"].add_metric(nl, 1 if n.get("running") else 0)
+        for key, stat in (("nrest", "restarts"), ("nmin", "msgs_in"), ("nmout", "msgs_out"), ("nbin", "bytes_in"),
+                          ("nbout", "bytes_out"), ("ndrop", "dropped")):
+            fam[key].add_metric(nl, n.get(stat, 0))
 
 
 def snapshot_registry(stats: dict) -> CollectorRegistry:
