@@ -212,6 +212,12 @@ def run_anchor(script: str, python: str, reps: int, env: dict | None = None, tim
     e = dict(os.environ, REPS=str(reps), **(env or {}))
     r = subprocess.run([python, str(ANCHORS / script)], env=e, capture_output=True, text=True, timeout=timeout,
                        cwd=tempfile.gettempdir())
+    return peer_result(r, script)
+
+
+def peer_result(r: subprocess.CompletedProcess, script: str) -> dict:
+    """The last JSON line ``{"peer", "rtt_ms": {size: ms}, ...}`` a peer script printed, sizes as
+    integers, NaN where it gave none. Raises RuntimeError (with its stderr's end) when there is none."""
     for line in reversed(r.stdout.splitlines()):
         if line.startswith("{"):
             d = json.loads(line)

@@ -8,8 +8,10 @@ Start time: from the robot sending CC (then CN addNodes, back to back) to
 
 median (and p10/p90/min/max) over ``--reps`` containers created one after the other, each
 destroyed (DC) before the next, after one unmeasured warm-up. The container host keeps one
-warm spare environment (its default); each repetition waits until the spare is back, so every
-CC finds the host in the same state.
+warm spare environment (its default); each repetition waits until the previous container's
+environment process has exited (a DC's teardown would otherwise still hold the robot's next
+request) and the spare is back, so every CC finds the host in the same state. ``forked``:
+how many of the nodes the container's zygote forked (the rest were exec'd).
 
 Sandbox alone: in this process, a sandbox's setup (cgroup, namespaces, init ready), one
 spawn of ``/bin/true`` to its exit, and close -- what the sandbox itself costs, without the
@@ -17,7 +19,8 @@ engine and the nodes' Python start.
 
 Memory: with the container and its nodes running, resident (RSS) and unique (USS) memory of
 the environment process, of the sandbox's own processes (``unshare`` + the container's init +
-one waiting ``nsenter`` per node; nothing for ``unconfined``) and of the nodes.
+one waiting ``nsenter`` per exec'd node; nothing for ``unconfined``), of the container's
+zygote (:mod:`rce_container.zygote`) and of the nodes.
 
 Usage::
 
@@ -44,6 +47,8 @@ from common import RESULTS, engine, median, percentile, write_json  # noqa: E402
 from wsclient import RawRobot  # noqa: E402
 
 PLUMBING = ("unshare", "nsenter", "sh")
+ZYGOTE = "rce_container.zygote"     # in the zygote's command line
+SETTLE_TIMEOUT = 30.0               # s for a destroyed container's environment to exit
 
 
 def spares(metrics_port: int) -> int:
@@ -83,24 +88,37 @@ def memory_footprint(eng, ctag: str) -> dict:
     else:
         pids = [p for n in s["per_node"].values() if n["pid"]
                 for p in [n["pid"], *(c.pid for c in psutil.Process(n["pid"]).children(recursive=True))]]
-    plumbing, nodes = [], []
+    if s["per_node"] and "cgroup" not in info:      # unconfined: the zygote is the nodes' parent
+        pids += list({psutil.Process(p).ppid() for p in pids} - set(pids) - {env_pid})
+    plumbing, zygote, nodes = [], [], []
     for p in pids:
         try:
             proc = psutil.Process(p)
             name, cmd = proc.name(), " ".join(proc.cmdline())
         except psutil.NoSuchProcess:
             continue
-        (plumbing if name in PLUMBING or "nsinit.py" in cmd else nodes).append(p)
+        (zygote if ZYGOTE in cmd else plumbing if name in PLUMBING or "nsinit.py" in cmd else nodes).append(p)
     env_rss, env_uss = mem([env_pid])
     sb_rss, sb_uss = mem(plumbing)
+    zy_rss, zy_uss = mem(zygote)
     node_rss, node_uss = mem(nodes)
     return {"environment_rss_mib": env_rss, "environment_uss_mib": env_uss,
             "sandbox_processes": len(plumbing), "sandbox_rss_mib": sb_rss, "sandbox_uss_mib": sb_uss,
+            "zygote_rss_mib": zy_rss, "zygote_uss_mib": zy_uss,
             "node_processes": len(nodes), "nodes_rss_mib": node_rss, "nodes_uss_mib": node_uss,
-            "overhead_rss_mib": env_rss + sb_rss, "overhead_uss_mib": env_uss + sb_uss}
+            "overhead_rss_mib": env_rss + sb_rss + zy_rss, "overhead_uss_mib": env_uss + sb_uss + zy_uss}
 
 
-async def one(eng, r: RawRobot, ctag: str, nodes: int) -> tuple[float, float]:
+async def wait_gone(pid: int, timeout: float = SETTLE_TIMEOUT) -> None:
+    """Wait until process ``pid`` has exited (polled)."""
+    deadline = time.monotonic() + timeout
+    while psutil.pid_exists(pid) and psutil.Process(pid).status() != psutil.STATUS_ZOMBIE:
+        if time.monotonic() > deadline:
+            raise TimeoutError(f"environment {pid} did not exit")
+        await asyncio.sleep(0.01)
+
+
+async def one(eng, r: RawRobot, ctag: str, nodes: int) -> tuple[float, float, dict]:
     names = [f"/n{k}/echo" for k in range(nodes)]
     t0 = time.perf_counter()
     await r.send("CC", {"containerTag": ctag})
@@ -122,36 +140,40 @@ async def one(eng, r: RawRobot, ctag: str, nodes: int) -> tuple[float, float]:
             raise TimeoutError(f"nodes of {ctag} never registered: {bus['nodes']}")
         await asyncio.sleep(0.005)
     t_ready = time.perf_counter()
-    return (t_started - t0) * 1000, (t_ready - t0) * 1000
+    stats = await asyncio.to_thread(eng.admin, f"/api/containers/testUser/{ctag}/stats")
+    return (t_started - t0) * 1000, (t_ready - t0) * 1000, stats
 
 
 async def run_mode(mode: str, reps: int, nodes: int) -> dict:
     with engine(container_args=("--sandbox", mode, "--metrics-port", "0")) as eng:
         metrics_port = json.loads((eng.workdir / "container0.ready").read_text())["metrics_port"]
-        started_ms, ready_ms, footprint = [], [], None
+        started_ms, ready_ms, forked, footprint = [], [], [], None
         async with RawRobot(eng.master_url, "benchBot") as r:
             for i in range(reps + 1):
                 await wait_spare(metrics_port)
                 ctag = f"start{i}"
-                s, rd = await one(eng, r, ctag, nodes)
+                s, rd, stats = await one(eng, r, ctag, nodes)
                 if i == 0:
                     footprint = await asyncio.to_thread(memory_footprint, eng, ctag)   # nodes are up
                 else:
                     started_ms.append(s)
                     ready_ms.append(rd)
+                    forked.append(stats["nodes"].get("forked", 0))
                 print(f"  {mode:<11} rep {i:>2}{' (warm-up)' if i == 0 else ''}: started {s:7.1f} ms, "
-                      f"ready {rd:7.1f} ms", flush=True)
+                      f"ready {rd:7.1f} ms, forked {stats['nodes'].get('forked', 0)}/{nodes}", flush=True)
                 await r.send("DC", {"containerTag": ctag})
                 deadline = time.monotonic() + 30
                 while await asyncio.to_thread(eng.admin, "/api/containers"):
                     if time.monotonic() > deadline:
                         raise TimeoutError(f"{ctag} was not destroyed")
                     await asyncio.sleep(0.01)
+                await wait_gone(stats["environment"]["pid"])
 
     def summary(xs):
         return {"median": median(xs), "p10": percentile(xs, 10), "p90": percentile(xs, 90), "min": min(xs),
                 "max": max(xs), "samples": [round(x, 2) for x in xs]}
-    return {"started_ms": summary(started_ms), "ready_ms": summary(ready_ms), "memory": footprint}
+    return {"started_ms": summary(started_ms), "ready_ms": summary(ready_ms), "forked": sum(forked),
+            "nodes_started": len(forked) * nodes, "memory": footprint}
 
 
 async def sandbox_micro(mode: str, reps: int) -> dict:
@@ -215,13 +237,14 @@ def main(argv=None) -> int:
     load = os.getloadavg()
     print(f"\ncontainer start, CC -> all nodes running ({a.nodes} stringEcho nodes, median of {a.reps}; "
           f"load average {load[0]:.1f} on {os.cpu_count()} CPUs)")
-    print(f"{'sandbox':<12}{'started ms':>12}{'ready ms':>10}{'p10':>8}{'p90':>8}"
-          f"{'env RSS':>10}{'sandbox RSS':>13}{'overhead RSS':>14}{'overhead USS':>14}")
+    print(f"{'sandbox':<12}{'started ms':>12}{'ready ms':>10}{'p10':>8}{'p90':>8}{'forked':>9}"
+          f"{'env RSS':>10}{'sandbox RSS':>13}{'zygote RSS':>12}{'overhead RSS':>14}{'overhead USS':>14}")
     for mode, r in results.items():
         m = r["memory"]
         print(f"{mode:<12}{r['started_ms']['median']:>12.1f}{r['ready_ms']['median']:>10.1f}"
-              f"{r['ready_ms']['p10']:>8.1f}{r['ready_ms']['p90']:>8.1f}{m['environment_rss_mib']:>9.1f}M"
-              f"{m['sandbox_rss_mib']:>12.1f}M{m['overhead_rss_mib']:>13.1f}M{m['overhead_uss_mib']:>13.1f}M")
+              f"{r['ready_ms']['p10']:>8.1f}{r['ready_ms']['p90']:>8.1f}{r['forked']:>5}/{r['nodes_started']:<3}"
+              f"{m['environment_rss_mib']:>9.1f}M{m['sandbox_rss_mib']:>12.1f}M{m.get('zygote_rss_mib', 0):>11.1f}M"
+              f"{m['overhead_rss_mib']:>13.1f}M{m['overhead_uss_mib']:>13.1f}M")
     print(f"\nsandbox alone (in-process, median of {a.reps})")
     print(f"{'sandbox':<12}{'setup ms':>10}{'setup p90':>11}{'spawn /bin/true ms':>20}{'close ms':>10}")
     for mode, r in results.items():

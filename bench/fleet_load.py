@@ -2,7 +2,9 @@
 
 What runs (a fresh engine per N, processes on loopback, :mod:`common`'s ``engine``):
 
-- rce-master ``--dev`` (user testUser), one rce-robot task set, one rce-container host;
+- rce-master ``--dev`` (user testUser; ``--max-interfaces`` raised to what N robots need),
+  ``--robot-tasksets`` rce-robot task sets (default one per core: the master places each robot on
+  the least loaded), one rce-container host;
 - the fleet manager (:class:`rce_fleet.manager.FleetManager`, robotID ``fleetManager``, in
   this orchestrating process): the fleet container ``cTag_01`` with the real
   ``fleet/global_planner`` node (``--no-lidar-blocking``), the ``/fleet/grid`` and
@@ -12,7 +14,9 @@ What runs (a fresh engine per N, processes on loopback, :mod:`common`'s ``engine
   subscribed to every ``/RobotN/amcl_pose`` (the planner's own subscription topic), which
   publishes each pose back unchanged on ``/RobotN/amcl_pose_echo``;
 - N robots ``Robot1..RobotN`` (distinct robot IDs, the same user), each its own websocket
-  and login, spread over ``--clients`` worker processes (asyncio, the raw wire protocol).
+  and login, spread over ``--clients`` worker processes (default 1; uvloop, the raw wire protocol;
+  one timer per worker drives all its robots and each pose goes out in one corked write,
+  :mod:`rce_robot.ws_cork`, so the clients stay cheap on the cores they share with the engine).
 
 Each robot wires, through its own CN/CX requests, what a fleet robot wires
 (``rce_fleet.configs.robot_config``): its pose ``/amcl_pose`` -> robot-side
@@ -53,7 +57,10 @@ Measured, over a window of ``--duration`` s after warm-up:
 - CPU % (of one core; the machine has ``os.cpu_count()``) of each process over the window
   (psutil CPU times): master, robot task set, container host, environment, planner node,
   echo node, client workers, this orchestrator; peak RSS (psutil, sampled every 0.5 s for
-  the whole N, setup included).
+  the whole N, setup included); ``cpu_share``: cores of the engine, the load clients, the
+  orchestrator and foreign load; ``cpu_us_per_pose``; per robot task set its CPU and robots.
+- memory: rce-robot's RSS and USS (all task sets) before the robots connect and at the end of the
+  window, and the growth per connected robot (``robot_memory``, KiB per robot).
 - bytes on the wire per robot per second, counted at the websocket by the clients: every
   frame's payload plus its websocket header (2..14 bytes, the client's 4-byte mask
   included), up (robot -> cloud) and down; TCP/IP headers not included.
@@ -72,7 +79,7 @@ Results: a table on stdout, ``--json`` (bench/results/fleet_load.json),
 Usage::
 
     .venv/bin/python bench/fleet_load.py [--robots 10,100,300,1000] [--duration 10] [--rate 10]
-        [--converter] [--clients 2] [--setup-concurrency 16] [--drain 3] [--max-p99 100]
+        [--converter] [--clients 1] [--robot-tasksets K] [--setup-concurrency 16] [--drain 3] [--max-p99 100]
         [--no-stop] [--profile S] [--wait-quiet S] [--raw DIR] [--json PATH] [--plot PATH]
 
 ``--profile S``: after each window, with the load still on, record the two hottest processes
@@ -103,6 +110,8 @@ import urllib.request
 from collections import defaultdict
 from pathlib import Path
 
+from rce_robot import ws_cork
+
 from common import (BENCH, PASSWORD, RESULTS, USER, ForeignLoad, console, engine, fmt_ms, median, percentile,
                     pyplot, set_nice, wait_quiet, write_json)
 
@@ -115,10 +124,15 @@ ECHO_SUFFIX = "_echo"
 Y_MS_SCALE = 1e-6          # m of position.y per ms of the send time (mod Y_MS_MOD)
 Y_MS_MOD = 100_000         # ms
 DEFAULT_ROBOTS = "10,100,300,1000"
+MAX_DEFAULT_TASKSETS = 4   # robot task sets by default: one per core, up to this many
+DEFAULT_TASKSETS = max(1, min(os.cpu_count() or 1, MAX_DEFAULT_TASKSETS))
+DEFAULT_CLIENTS = 1        # client worker processes: one event loop drives all the robots (they share the cores)
 PACKAGES = BENCH / "packages"
 # the planner's outputs a lightweight robot takes directly: (topic under /RobotN/, class)
 DOWN = [("goalNodesList", "std_msgs/Int32MultiArray"), ("cancelGoal", "std_msgs/Bool"),
         ("clearance", "fleet/Clearance")]
+INTERFACES_PER_ROBOT = 2 * (2 + len(DOWN))   # both ends of the pose, echo and DOWN links (robot_wiring)
+INTERFACE_HEADROOM = 1000  # interfaces the fleet manager and its container take, with room to spare
 
 
 # == the robots' plan (shared by the orchestrator and the workers) ==============================
@@ -172,6 +186,12 @@ def robot_wiring(n: int, side: str) -> tuple[list[dict], list[dict], dict]:
     return adds, conns, roles
 
 
+def interface_quota(n: int) -> int:
+    """The master's per-user interface quota (``--max-interfaces``) a run of ``n`` robots needs: all
+    its robots are one user's (testUser), so the default quota (8192) would stop it at ~800."""
+    return INTERFACES_PER_ROBOT * n + INTERFACE_HEADROOM
+
+
 def path_cells(msg) -> list[int]:
     """The cells of a ``std_msgs/Int32MultiArray`` path: JSON form, or a binary part
     (32-byte id + ROS 1 serialization: dims (label, size, stride), data_offset, int32[])."""
@@ -218,6 +238,8 @@ class Bot:
         self._upd = asyncio.Event()
         self.tasks: list[asyncio.Task] = []
         self.buf = bytearray(w.template) if w.side == "Forwarder" else None
+        self.pose_itag = self.roles["pose"]
+        self.stopped = False
 
     # -- setup ---------------------------------------------------------------------------------
     async def setup(self, master_url: str, timeout: float) -> None:
@@ -301,7 +323,9 @@ class Bot:
             if self.first_echo is None:
                 self.first_echo = time.time()
             stamp = secs * 1_000_000_000 + nsecs
-            if w.win_start_ns <= stamp <= w.win_end_ns:
+            # a window pose sent before this worker took the window command (a starved worker) is in
+            # neither count
+            if w.win_start_ns <= stamp <= w.win_end_ns and self.win_first is not None and seq >= self.win_first:
                 if seq in self.got:
                     self.dups += 1
                     return
@@ -316,51 +340,41 @@ class Bot:
                 self.down[role] += 1
 
     # -- sending -------------------------------------------------------------------------------
-    async def publish_loop(self, t_start: float, period: float) -> None:
-        """Publish every ``period`` s from ``t_start`` (wall), on a fixed grid; a late tick is
-        sent at once and the missed ones are skipped (never a burst)."""
+    def publish(self, late: float) -> None:
+        """Send the next pose now, ``late`` s after its tick: its frames in one corked write
+        (:mod:`rce_robot.ws_cork`), nothing awaited. A link that does not take it now (buffer above
+        its high-water mark) skips the tick (counted in ``skipped``); a closed one stops this robot."""
         w = self.w
-        k = 0
-        mono0 = time.monotonic() + (t_start - time.time())
-        ws = self.ws
-        fwd = w.side == "Forwarder"
-        itag = self.roles["pose"]
-        while True:
-            due = mono0 + k * period
-            delay = due - time.monotonic()
-            if delay > 0:
-                await asyncio.sleep(delay)
+        if self.ws is None or self.stopped:
+            return
+        if not ws_cork.writable(self.ws):
+            if ws_cork.paused(self.ws):
+                w.skipped += 1
             else:
-                k += int(-delay // period)       # skip missed ticks
-            k += 1
-            t_ns = time.time_ns()
-            late = time.monotonic() - due
-            seq = self.seq
-            self.seq += 1
-            y = self.y0 + ((t_ns // 1_000_000) % Y_MS_MOD) * Y_MS_SCALE
-            secs, nsecs = divmod(t_ns, 1_000_000_000)
-            if fwd:
-                ref = f"{self.n:08x}{seq:024x}"
-                text = w.text_tpl % (itag, ref)
-                buf = self.buf
-                buf[0:32] = ref.encode()
-                struct.pack_into("<III", buf, 32, seq, secs, nsecs)
-                struct.pack_into("<dd", buf, 32 + w.pos_off, self.x, y)
-                frames = (text, bytes(buf))
-            else:
-                frames = (w.text_tpl % (itag, seq, secs, nsecs, self.x, y),)
-            try:
-                for f in frames:
-                    await ws.send(f)
-                    if w.counting:
-                        w.bytes_up += len(f) + ws_header(len(f), True)
-            except Exception:       # the connection is gone: this robot stops (its window poses count)
-                return
-            if w.win_start_ns <= t_ns <= w.win_end_ns:
-                if self.win_first is None:
-                    self.win_first = seq
-                self.win_last = seq
-                w.send_late.append(late * 1e3)
+                self.stopped = True       # the connection is gone (its window poses count)
+            return
+        t_ns = time.time_ns()
+        seq = self.seq
+        self.seq += 1
+        y = self.y0 + ((t_ns // 1_000_000) % Y_MS_MOD) * Y_MS_SCALE
+        secs, nsecs = divmod(t_ns, 1_000_000_000)
+        if w.side == "Forwarder":
+            ref = f"{self.n:08x}{seq:024x}"
+            buf = self.buf
+            buf[0:32] = ref.encode()
+            struct.pack_into("<III", buf, 32, seq, secs, nsecs)
+            struct.pack_into("<dd", buf, 32 + w.pos_off, self.x, y)
+            frames = (w.text_tpl % (self.pose_itag, ref), bytes(buf))
+        else:
+            frames = (w.text_tpl % (self.pose_itag, seq, secs, nsecs, self.x, y),)
+        n = ws_cork.write(self.ws, frames)
+        if w.counting:
+            w.bytes_up += n
+        if w.win_start_ns <= t_ns <= w.win_end_ns:
+            if self.win_first is None:
+                self.win_first = seq
+            self.win_last = seq
+            w.send_late.append(late * 1e3)
 
 
 class Worker:
@@ -377,6 +391,8 @@ class Worker:
         self.send_late: list[float] = []
         self.bytes_up = self.bytes_down = 0
         self.errors = 0
+        self.skipped = 0                   # pose ticks skipped: the robot's link did not take them (buffer full)
+        self.ticker: asyncio.Task | None = None
         self.raw: list | None = None       # (robot, seq, stamp s, latency ms) with --raw
         self.counting = False
         self.win_start_ns = self.win_end_ns = -1
@@ -418,8 +434,7 @@ class Worker:
             if op == "setup":
                 await self.setup(cmd["timeout"])
             elif op == "publish":
-                for b in self.bots:
-                    b.tasks.append(asyncio.create_task(b.publish_loop(cmd["t_start"] + b.phase, 1.0 / self.rate)))
+                self.ticker = asyncio.create_task(self.publish_all(cmd["t_start"], 1.0 / self.rate))
                 self.reply(ok=True)
             elif op == "status":
                 self.reply(echoed=sum(1 for b in self.bots if b.first_echo is not None),
@@ -430,6 +445,29 @@ class Worker:
             elif op == "exit":
                 self.reply(ok=True)
                 return
+
+    async def publish_all(self, t_start: float, period: float) -> None:
+        """One timer for all this worker's robots: robot ``b`` publishes at ``t_start + b.phase + k *
+        period`` (wall s), in phase order. When the loop falls more than a period behind, the missed
+        rounds are skipped for every robot (never a burst); a late tick is sent at once."""
+        bots = sorted(self.bots, key=lambda b: b.phase)
+        if not bots:
+            return
+        mono0 = time.monotonic() + (t_start - time.time())
+        k = 0
+        while True:
+            base = mono0 + k * period
+            behind = time.monotonic() - (base + period)
+            if behind > 0:                      # a whole round late: skip the missed rounds
+                k += 1 + int(behind // period)
+                continue
+            for b in bots:
+                due = base + b.phase
+                delay = due - time.monotonic()
+                if delay > 0:
+                    await asyncio.sleep(delay)
+                b.publish(time.monotonic() - due)
+            k += 1
 
     async def setup(self, timeout: float) -> None:
         sem = asyncio.Semaphore(self.concurrency)
@@ -460,6 +498,7 @@ class Worker:
         self.win_start_ns, self.win_end_ns = int(start * 1e9), int(end * 1e9)
         await asyncio.sleep(max(0.0, start - time.time()))
         self.bytes_up = self.bytes_down = 0
+        self.skipped = 0
         self.counting = True
         await asyncio.sleep(max(0.0, end - time.time()))
         self.counting = False
@@ -476,7 +515,7 @@ class Worker:
             per_robot[b.rid] = {"sent": sent, "received": len(b.got), "lost": sent - len(b.got), "dups": b.dups,
                                 "down": dict(b.down)}
         self.reply(lat=self.lat, raw=self.raw, send_late=self.send_late, bytes_up=up, bytes_down=down, robots=per_robot,
-                   errors=self.errors)
+                   errors=self.errors, skipped=self.skipped)
 
 
 def worker_main(conn, master_url, robots, side, rate, concurrency) -> None:
@@ -504,8 +543,24 @@ class Procs:
         self._stop = threading.Event()
         self._thread: threading.Thread | None = None
 
-    def label(self, p, root_label: str) -> str:
-        if root_label != "container host" or p.pid == self.eng.procs[2].pid:
+    def roots(self) -> list[tuple[int, str]]:
+        """(pid, label) of the engine's processes, the client workers and this process. Every robot task
+        set is ``robot`` (``--robot-tasksets``; :meth:`robot_pids` tells them apart)."""
+        kinds = (("rce-master", "master"), ("rce-robot", "robot"), ("rce-container", "container host"))
+        out = []
+        for p in self.eng.procs:
+            args = " ".join(str(a) for a in p.args[:3])
+            lab = next((lab for k, lab in kinds if k in args or k.replace("-", "_") in args), None)
+            if lab is not None:
+                out.append((p.pid, lab))
+        return out + [(os.getpid(), "orchestrator")] + [(w.pid, "clients") for w in self.workers if w.pid]
+
+    def robot_pids(self) -> list[int]:
+        """The robot task sets' pids, in the order they were started."""
+        return [pid for pid, lab in self.roots() if lab == "robot"]
+
+    def label(self, p, root_label: str, root_pid: int) -> str:
+        if root_label != "container host" or p.pid == root_pid:
             return root_label
         try:
             cmd = " ".join(p.cmdline())
@@ -522,19 +577,49 @@ class Procs:
     def snapshot(self) -> dict:
         """{pid: (label, process)} of everything alive now."""
         import psutil
-        roots = [(self.eng.procs[0].pid, "master"), (self.eng.procs[1].pid, "robot"),
-                 (self.eng.procs[2].pid, "container host"), (os.getpid(), "orchestrator")]
-        roots += [(w.pid, "clients") for w in self.workers if w.pid]
         out = {}
-        for pid, lab in roots:
+        for pid, lab in self.roots():
             try:
                 root = psutil.Process(pid)
                 kids = root.children(recursive=True) if lab != "orchestrator" else []
             except psutil.Error:
                 continue
             for p in [root] + kids:
-                out.setdefault(p.pid, (self.label(p, lab), p))
+                out.setdefault(p.pid, (self.label(p, lab, pid), p))
+        for p in self.orphan_nodes(out):
+            out.setdefault(p.pid, (self.label(p, "container host", -1), p))
         return out
+
+    def orphan_nodes(self, known: dict) -> list:
+        """The container's node processes that are not below the container host: a zygote's forks
+        (:mod:`rce_container.zygote`) leave its process tree (the sandbox's PID-namespace fork). Found by
+        their working directory, under this engine's work directory (the container's runtime dir)."""
+        import psutil
+        root = str(self.eng.workdir)
+        out = []
+        for p in psutil.process_iter():
+            if p.pid in known:
+                continue
+            try:
+                if p.cwd().startswith(root):
+                    out.append(p)
+            except psutil.Error:
+                continue
+        return out
+
+    def robot_memory(self) -> dict:
+        """RSS and USS (MiB; psutil ``memory_full_info``: USS is the memory that would be freed if
+        the process exited) of each robot task set, and their sums."""
+        import psutil
+        per = []
+        for pid in self.robot_pids():
+            try:
+                m = psutil.Process(pid).memory_full_info()
+            except psutil.Error:
+                continue
+            per.append({"pid": pid, "rss_mib": round(m.rss / 2**20, 2), "uss_mib": round(m.uss / 2**20, 2)})
+        return {"rss_mib": round(sum(x["rss_mib"] for x in per), 2),
+                "uss_mib": round(sum(x["uss_mib"] for x in per), 2), "tasksets": per}
 
     def sample(self) -> None:
         sums: dict[str, float] = defaultdict(float)
@@ -619,16 +704,56 @@ def engine_drops(eng) -> dict:
             out[f"node_{ntag}"] = nd.get("dropped", 0)
     except Exception as e:       # noqa: BLE001  (reported, not fatal)
         out["container_error"] = str(e)
-    port = (eng.robot_ready[0] if eng.robot_ready else {}).get("metrics_port")
-    if port:
+    for info in eng.robot_ready:          # every robot task set: the sums
         try:
-            with urllib.request.urlopen(f"http://127.0.0.1:{port}/metrics", timeout=30) as r:
-                for line in r.read().decode().splitlines():
-                    name, _, val = line.partition(" ")
-                    if name in ("rce_robot_dropped_total", "rce_robot_dataplane_dropped"):
-                        out[name.replace("rce_robot_", "robot_").replace("_total", "")] = int(float(val))
+            for name, val in robot_metrics(info).items():
+                if name in ("rce_robot_dropped_total", "rce_robot_dataplane_dropped"):
+                    key = name.replace("rce_robot_", "robot_").replace("_total", "")
+                    out[key] = out.get(key, 0) + int(val)
         except Exception as e:   # noqa: BLE001
             out["robot_error"] = str(e)
+    return out
+
+
+def robot_memory_report(before: dict, at_load: dict, n: int) -> dict:
+    """rce-robot's memory (all its task sets) before the robots connect and at full load (MiB), and
+    per connected robot (KiB): the growth over ``n`` robots (RSS and USS), and the whole RSS over them."""
+    per = lambda k: round((at_load[k] - before[k]) * 1024 / n, 1)  # noqa: E731
+    return {"before": before, "at_load": at_load, "rss_per_robot_kib": per("rss_mib"),
+            "uss_per_robot_kib": per("uss_mib"), "rss_total_per_robot_kib": round(at_load["rss_mib"] * 1024 / n, 1)}
+
+
+def taskset_report(eng, procs: Procs, cpu_by_pid: dict) -> list[dict]:
+    """Per robot task set: its pid, CPU % of one core over the window, and the robots connected to
+    it (its ``rce_robot_connections`` gauge): shows whether the master's placement spreads them."""
+    out = []
+    for pid, info in zip(procs.robot_pids(), eng.robot_ready, strict=False):
+        try:
+            robots = int(robot_metrics(info).get("rce_robot_connections", -1))
+        except OSError:
+            robots = None
+        out.append({"pid": pid, "cpu_pct": round(cpu_by_pid.get(pid, ("", float("nan")))[1], 1), "robots": robots})
+    return out
+
+
+def cpu_share(cpu: dict, load: dict) -> dict:
+    """Cores (1.0 = one core) over the window: the engine's own (master, robot task sets, the fleet
+    container's processes), the load clients (the simulated robots), this orchestrator (the fleet
+    manager), everything else on the machine (``other``), and the machine's total."""
+    core = lambda *ks: round(sum(cpu.get(k, 0.0) for k in ks) / 100, 2)  # noqa: E731
+    return {"engine": core("master", "robot", "container (all)"), "load_clients": core("clients"),
+            "orchestrator": core("orchestrator"), "other": load.get("other_cores"), "machine": core("machine")}
+
+
+def robot_metrics(info: dict) -> dict[str, float]:
+    """The Prometheus samples (name -> value, unlabelled ones) of the robot task set whose ready
+    info is ``info`` (its ``metrics_port``). Raises OSError when it does not answer."""
+    out = {}
+    with urllib.request.urlopen(f"http://127.0.0.1:{info['metrics_port']}/metrics", timeout=30) as r:
+        for line in r.read().decode().splitlines():
+            name, _, val = line.partition(" ")
+            if not name.startswith("#") and val:
+                out[name] = float(val)
     return out
 
 
@@ -832,6 +957,7 @@ class Run:
         self.log(f"fleet container, planner and echo node up in {setup['fleet_container_s']} s")
 
         # robots: login, websocket, CN, CX, interfaces up
+        mem0 = await asyncio.to_thread(procs.robot_memory)
         t = time.monotonic()
         self.start_workers(eng.master_url)
         reps = await self.ask_all({"op": "setup", "timeout": 120 + n * 0.2}, timeout=600 + n * 2)
@@ -921,6 +1047,9 @@ class Run:
         res["cpu_pct"] = cpu.stop()
         self.counting_ages = False
         res["machine_load"] = fl.stop()
+        res["robot_memory"] = robot_memory_report(mem0, await asyncio.to_thread(procs.robot_memory), n)
+        res["robot_tasksets"] = await asyncio.to_thread(taskset_report, eng, procs, cpu.by_pid)
+        res["cpu_share"] = cpu_share(res["cpu_pct"], res["machine_load"])
         loop = asyncio.get_running_loop()
         reps = await asyncio.gather(*(loop.run_in_executor(None, c.recv) for c in self.pipes))
         check_engine(eng, "the measured window")
@@ -958,6 +1087,11 @@ class Run:
             "down_msgs_per_robot_s": {role: sum(v["down"].get(role, 0) for v in robots.values()) / a.duration / n
                                       for role in [t for t, _ in DOWN]},
             "client_errors": sum(r["errors"] for r in reps),
+            "client_skipped": sum(r.get("skipped", 0) for r in reps),
+            # CPU per pose round trip (everything the run's messages cost, paths and states included): less
+            # sensitive to a busy machine than latency
+            "cpu_us_per_pose": {k: round(v * 1e4 * a.duration / sent, 1) if sent else None
+                                for k, v in res["cpu_pct"].items()},
         })
         res["bytes_per_robot_s"]["total"] = res["bytes_per_robot_s"]["up"] + res["bytes_per_robot_s"]["down"]
         res["cpu_by_process"] = [{"pid": pid, "label": lab, "pct": round(p, 1)}
@@ -984,7 +1118,8 @@ class Run:
         workdir = Path(tempfile.mkdtemp(prefix=f"rce-fleetload-{self.n}-"))
         procs = None
         try:
-            with engine(workdir, env={"RCE_PACKAGE_PATH": str(PACKAGES)}) as eng:
+            with engine(workdir, env={"RCE_PACKAGE_PATH": str(PACKAGES)}, robot_tasksets=a.robot_tasksets,
+                        master_args=("--max-interfaces", str(interface_quota(self.n)))) as eng:
                 self.res["setup"]["engine_s"] = round(time.monotonic() - t0, 2)
                 self.workers = []
                 procs = Procs(eng, self.workers).start()
@@ -1048,7 +1183,11 @@ def parse_args(argv=None):
     p.add_argument("--duration", type=float, default=10.0, help="measured window per N, s (default 10)")
     p.add_argument("--rate", type=float, default=10.0, help="pose rate per robot, Hz (default 10)")
     p.add_argument("--converter", action="store_true", help="robot-side Converters (JSON) instead of Forwarders")
-    p.add_argument("--clients", type=int, default=2, help="client worker processes (default 2)")
+    p.add_argument("--clients", type=int, default=DEFAULT_CLIENTS,
+                   help=f"client worker processes (default {DEFAULT_CLIENTS})")
+    p.add_argument("--robot-tasksets", type=int, default=DEFAULT_TASKSETS,
+                   help=f"robot task sets (rce-robot processes) the engine runs; the master places each robot on "
+                        f"the least loaded (default: one per core, at most {MAX_DEFAULT_TASKSETS}: {DEFAULT_TASKSETS})")
     p.add_argument("--setup-concurrency", type=int, default=16, help="robots setting up at once (default 16)")
     p.add_argument("--warmup", type=float, default=2.0, help="minimum warm-up, s (default 2)")
     p.add_argument("--warmup-timeout", type=float, default=60.0, help="warm-up limit, s (+0.05 s per robot)")
@@ -1081,6 +1220,7 @@ def main(argv=None) -> int:
         con.print(f"[red]--robots: expected a comma-separated list of positive integers, got {args.robots!r}")
         return 2
     res = {"robots": sizes, "mode": "converter" if args.converter else "forwarder", "rate_hz": args.rate,
+           "robot_tasksets": args.robot_tasksets,
            "duration_s": args.duration, "drain_s": args.drain, "max_p99_ms": args.max_p99, "clients": args.clients,
            "cpu_count": os.cpu_count(), "runs": [], "stopped_at": None, "stop_reason": None,
            "definitions": {
@@ -1092,7 +1232,14 @@ def main(argv=None) -> int:
                                    "robot the planner had processed (encoded in position.y)",
                "bytes_per_robot_s": "websocket frames (payload + header) counted by the clients in the window",
                "cpu_pct": "user+system CPU of each process over the window, % of one core",
-               "peak_rss_mib": "psutil RSS sampled every 0.5 s over the whole N (setup included), summed per label"}}
+               "peak_rss_mib": "psutil RSS sampled every 0.5 s over the whole N (setup included), summed per label",
+               "robot_memory": "rce-robot's RSS and USS (psutil memory_full_info, all robot task sets) before the "
+                               "robots connect and at the end of the window; per robot: (at load - before) / N, KiB",
+               "cpu_share": "cores over the window: the engine's own processes, the load clients (simulated "
+                            "robots), the orchestrator, foreign load (machine busy minus ours), the machine",
+               "robot_tasksets": "per rce-robot process: CPU % of one core over the window, robots connected",
+               "cpu_us_per_pose": "CPU s of each label over the window / poses sent in it, in us (all the "
+                                  "window's traffic: echoes, paths, clearances, fleet states)"}}
     set_nice(args.nice, log=con.print)
     res["nice"] = args.nice
     for n in sizes:
@@ -1161,6 +1308,16 @@ def print_table(con, res: dict) -> None:
                    "-" if other is None else f"{other:.2f} cores")
     con.print(t2)
     for r in res["runs"]:
+        m, sh = r.get("robot_memory"), r.get("cpu_share")
+        if m:
+            ts = r.get("robot_tasksets") or []
+            con.print(f"N={r['robots']}: rce-robot RSS {m['before']['rss_mib']:.0f} MiB before the robots, "
+                      f"{m['at_load']['rss_mib']:.0f} MiB at load: {m['rss_per_robot_kib']:.0f} KiB RSS "
+                      f"({m['uss_per_robot_kib']:.0f} KiB USS) per robot; task sets: robots "
+                      f"{[t['robots'] for t in ts]}, CPU {[t['cpu_pct'] for t in ts]} %")
+        if sh:
+            con.print(f"N={r['robots']}: cores: engine {sh['engine']}, load clients {sh['load_clients']}, "
+                      f"orchestrator {sh['orchestrator']}, other {sh['other']}, machine {sh['machine']}")
         for n in r.get("notes", []):
             con.print(f"[yellow]N={r['robots']}: {n}")
         if r.get("client_saturated"):
@@ -1176,7 +1333,7 @@ def print_table(con, res: dict) -> None:
 
 def plot(res: dict, path: Path) -> None:
     plt = pyplot()
-    runs = [r for r in res["runs"] if r.get("latency_ms")]
+    runs = [r for r in res["runs"] if r.get("latency_ms") and math.isfinite(r["latency_ms"]["p50"])]
     fig, (ax1, ax2) = plt.subplots(1, 2, figsize=(12, 5))
     if runs:
         xs = [r["robots"] for r in runs]
@@ -1194,7 +1351,8 @@ def plot(res: dict, path: Path) -> None:
         ax.set_xlabel("robots (N)")
         ax.grid(True, which="both", alpha=0.3)
         ax.legend(fontsize=8)
-    ax1.set_yscale("log")
+    if runs:                      # a log axis needs a positive value
+        ax1.set_yscale("log")
     ax1.set_ylabel("ms")
     ax1.set_title(f"pose -> fleet container echo -> robot ({res['mode']})")
     ax2.set_ylabel("CPU % of one core")

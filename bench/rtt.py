@@ -29,11 +29,19 @@ timed from just before the first frame is sent to the reply parsed
 (JSON decoded; for forwarders the JSON frame and its binary part both received), the
 outgoing frames built beforehand, as the ws anchor does.
 
+Sparse messages (``--gap S``): every timed round trip (rce, ROS 1 and the floor alike) comes
+after S s of silence of the whole system, as a goal or a cancelGoal does, so each process on the
+path has gone idle and must wake up. The ROS 1 peer is then ``bench/ros1_peer.py`` (the
+anchor's topology and message, plus the gap; the anchor itself has none), and the floor is
+the ws anchor's echo run in this process with the same gap. ``--gap 0`` measures with these
+two peers back to back (they agree with the anchors). The results go to ``rtt_gap<S>.json`` /
+``.png`` unless ``--json`` / ``--plot`` say otherwise.
+
 Usage::
 
     .venv/bin/python bench/rtt.py [--sizes 3,1623,...] [--reps N] [--no-ros1] [--no-ws]
         [--paths converter,forwarder,c2c] [--rounds K] [--nice N] [--wait-quiet S]
-        [--json PATH] [--plot PATH]
+        [--gap S] [--json PATH] [--plot PATH]
 
 ``REPS`` (environment, default 20) sets the repetitions per size like the anchors (a quarter,
 at least 3, for sizes >= 1 MB); ``--reps`` overrides it.
@@ -46,15 +54,16 @@ import asyncio
 import json
 import math
 import os
+import subprocess
 import sys
 import tempfile
 import time
 import uuid
 from pathlib import Path
 
-from common import (ForeignLoad, RawRobot, RESULTS, SYS_PY, VENV_PY, anchor_sizes, console, engine,
-                    ensure_ros1, fmt_ms, fmt_ratio, fmt_size, free_port, geomean, median, percentile, progress,
-                    pyplot, ratio, run_anchor, set_nice, wait_quiet, write_json)
+from common import (BENCH, ForeignLoad, RawRobot, RESULTS, SYS_PY, VENV_PY, anchor_sizes, console, engine,
+                    ensure_ros1, fmt_ms, fmt_ratio, fmt_size, free_port, geomean, median, peer_result, percentile,
+                    progress, pyplot, ratio, run_anchor, set_nice, wait_quiet, write_json)
 
 PATHS = ("converter", "forwarder", "c2c")
 STRING = "std_msgs/String"
@@ -176,8 +185,10 @@ class Path_:
         raise RuntimeError(f"{self.kind}: no echo after {tries} tries ({tries * wait:.0f} s)")
 
 
-async def measure_rce(master_url: str, paths: list[str], sizes: list[int], reps: int, prog) -> dict:
-    """{path: {size: [ms, ...]}} for the rce paths, on one engine, one robot connection per path."""
+async def measure_rce(master_url: str, paths: list[str], sizes: list[int], reps: int, prog,
+                      gap: float = 0.0) -> dict:
+    """{path: {size: [ms, ...]}} for the rce paths, on one engine, one robot connection per path;
+    each timed round trip after ``gap`` s of silence (none if 0)."""
     out: dict = {}
     robots = []
     try:
@@ -208,6 +219,8 @@ async def measure_rce(master_url: str, paths: list[str], sizes: list[int], reps:
                 samples = out[kind][size] = []
                 for _ in range(reps_for(size, reps)):
                     frames = p.prepare(size)
+                    if gap > 0:
+                        await asyncio.sleep(gap)
                     ms = await p.roundtrip(frames, size, timeout)
                     if not math.isfinite(ms):
                         await p.drain()
@@ -222,6 +235,51 @@ async def measure_rce(master_url: str, paths: list[str], sizes: list[int], reps:
             except Exception:
                 pass
     return out
+
+
+# -- peers with a gap ---------------------------------------------------------------------------
+
+async def ws_floor(sizes: list[int], reps: int, gap: float) -> dict:
+    """shared/anchors/ws_rtt.py's raw websockets echo of the JSON DM (server and client in this
+    process, as there), each timed round trip after ``gap`` s of silence, one unmeasured round
+    trip per size first. Returns ``{"peer", "gap_s", "rtt_ms": {size: median ms}}``."""
+    import websockets
+
+    async def echo(ws):
+        async for m in ws:
+            await ws.send(m)
+    out = {}
+    async with websockets.serve(echo, "127.0.0.1", 0, max_size=None, compression=None) as srv:
+        port = srv.sockets[0].getsockname()[1]
+        async with websockets.connect(f"ws://127.0.0.1:{port}", max_size=None, compression=None) as ws:
+            for size in sizes:
+                msg = json.dumps({"type": "DM", "data": {"iTag": "x", "type": STRING, "msgID": "",
+                                                         "msg": {"data": "a" * size}}})
+                await ws.send(msg)
+                await ws.recv()
+                samples = []
+                for _ in range(reps_for(size, reps)):
+                    if gap > 0:
+                        await asyncio.sleep(gap)
+                    t0 = time.perf_counter()
+                    await ws.send(msg)
+                    json.loads(await ws.recv())
+                    samples.append((time.perf_counter() - t0) * 1000)
+                out[size] = median(samples)
+    return {"peer": "raw-websockets-json", "gap_s": gap, "rtt_ms": out}
+
+
+ROS1_PEER_TIMEOUT_S = 3600      # s: bound on one bench/ros1_peer.py run (17 sizes x 20 reps x 1 s gap ~ 6 min)
+
+
+def ros1_peer(sizes: list[int], reps: int, gap: float) -> dict:
+    """bench/ros1_peer.py (rospy, the anchor's topology) with ``gap`` s of silence before each
+    round trip; returns its ``{"peer", "gap_s", "rtt_ms": {size: ms}}`` (NaN where none)."""
+    env = dict(os.environ, ROS1_PORT=str(free_port()), ROS_HOME=tempfile.mkdtemp(prefix="ros1peer-"))
+    r = subprocess.run([SYS_PY, str(BENCH / "ros1_peer.py"), "--gap", str(gap), "--reps", str(reps),
+                        "--sizes", ",".join(map(str, sizes))], env=env, capture_output=True, text=True,
+                       timeout=ROS1_PEER_TIMEOUT_S, cwd=tempfile.gettempdir())
+    return peer_result(r, "ros1_peer.py")
 
 
 # -- main ------------------------------------------------------------------------------------------
@@ -242,15 +300,25 @@ def parse_args(argv=None):
                    help="run the bench and all it starts at niceness N (e.g. -10 as root on a shared machine)")
     p.add_argument("--wait-quiet", type=float, default=0.0, metavar="S",
                    help="first wait up to S s for other processes to use < 0.3 cores (shared machines)")
-    p.add_argument("--json", type=Path, default=RESULTS / "rtt.json",
-                   help="JSON results (default bench/results/rtt.json)")
-    p.add_argument("--plot", type=Path, default=RESULTS / "rtt.png", help="PNG plot (default bench/results/rtt.png)")
-    return p.parse_args(argv)
+    p.add_argument("--gap", type=float, default=None, metavar="S",
+                   help="S s of silence before every timed round trip (sparse messages); peers: "
+                        "bench/ros1_peer.py and the ws floor in this process, with the same gap")
+    p.add_argument("--json", type=Path, default=None,
+                   help="JSON results (default bench/results/rtt.json, rtt_gap<S>.json with --gap)")
+    p.add_argument("--plot", type=Path, default=None,
+                   help="PNG plot (default bench/results/rtt.png, rtt_gap<S>.png with --gap)")
+    a = p.parse_args(argv)
+    stem = "rtt" if a.gap is None else f"rtt_gap{a.gap:g}"
+    a.json = a.json or RESULTS / f"{stem}.json"
+    a.plot = a.plot or RESULTS / f"{stem}.png"
+    return a
 
 
 def run_round(con, args, sizes: list[int], paths: list[str], ros1_ok: bool) -> dict:
     """One complete measurement: the peers first (no engine running yet), then the rce paths on a
     fresh engine. Returns {"peers": {name: anchor result}, "samples": {path: {size: [ms]}}, "load": ...}."""
+    if args.gap is not None:
+        return run_gap_round(con, args, sizes, paths, ros1_ok)
     peers, load = {}, {}
     if not args.no_ws:
         with con.status("raw websockets floor (shared/anchors/ws_rtt.py) ..."):
@@ -269,6 +337,29 @@ def run_round(con, args, sizes: list[int], paths: list[str], ros1_ok: bool) -> d
     with engine() as eng, progress(con) as prog:
         fl = ForeignLoad().start()
         samples = asyncio.run(measure_rce(eng.master_url, paths, sizes, args.reps, prog))
+        load["rce"] = fl.stop()
+    return {"peers": peers, "samples": samples, "load": load}
+
+
+def run_gap_round(con, args, sizes: list[int], paths: list[str], ros1_ok: bool) -> dict:
+    """:func:`run_round` with ``args.gap`` s of silence before every timed round trip, for the
+    peers (bench/ros1_peer.py, :func:`ws_floor`) and the rce paths alike."""
+    peers, load, gap = {}, {}, args.gap
+    if not args.no_ws:
+        with con.status(f"raw websockets floor, gap {gap:g} s ..."):
+            fl = ForeignLoad().start()
+            peers["ws_floor"] = asyncio.run(ws_floor(sizes, args.reps, gap))
+            load["ws_floor"] = fl.stop()
+        con.print(f"ws floor done ({peers['ws_floor']['peer']}, gap {gap:g} s)")
+    if ros1_ok:
+        with con.status(f"ROS 1 (bench/ros1_peer.py), gap {gap:g} s ..."):
+            fl = ForeignLoad().start()
+            peers["ros1"] = ros1_peer(sizes, args.reps, gap)
+            load["ros1"] = fl.stop()
+        con.print(f"ROS 1 done ({peers['ros1']['peer']}, gap {gap:g} s)")
+    with engine() as eng, progress(con) as prog:
+        fl = ForeignLoad().start()
+        samples = asyncio.run(measure_rce(eng.master_url, paths, sizes, args.reps, prog, gap))
         load["rce"] = fl.stop()
     return {"peers": peers, "samples": samples, "load": load}
 
@@ -307,8 +398,8 @@ def main(argv=None) -> int:
         notes.append(f"other work on the machine while measuring (cores busy with processes not of this bench): "
                      f"{busy}; absolute times and ratios are perturbed")
 
-    res = {"sizes": sizes, "reps": args.reps, "reps_by_size": [reps_for(s, args.reps) for s in sizes],
-           "rounds": args.rounds,
+    res = {"sizes": sizes, "reps": args.reps, "gap_s": args.gap,
+           "reps_by_size": [reps_for(s, args.reps) for s in sizes], "rounds": args.rounds,
            "paths": {"rce_converter": "robot -> SubscriberConverter (JSON) -> Test/stringEcho -> PublisherConverter "
                                      "-> robot",
                      "rce_forwarder": "robot -> SubscriberForwarder (msg* binary) -> Test/stringEcho -> "
@@ -317,6 +408,9 @@ def main(argv=None) -> int:
                                 "stringEcho -> forwarder -> robot",
                      "ros1_ms": "shared/anchors/ros1_rtt.py (rospy, single master, TCPROS; medians only)",
                      "ws_floor_ms": "shared/anchors/ws_rtt.py (raw websockets + JSON DM echo; medians only)"}}
+    if args.gap is not None:
+        res["paths"]["ros1_ms"] = f"bench/ros1_peer.py --gap {args.gap:g} (the ROS 1 anchor's topology and message)"
+        res["paths"]["ws_floor_ms"] = f"ws_rtt.py's echo in the bench process, gap {args.gap:g} s"
     best = (lambda xs: min((x for x in xs if math.isfinite(x)), default=float("nan")))  # noqa: E731
     per_round: dict = {}
     for kind in PATHS:
@@ -368,6 +462,7 @@ def main(argv=None) -> int:
 def print_table(con, res: dict) -> None:
     from rich.table import Table
     t = Table(title="round trip, ms (median / p90 for rce; medians for peers)"
+                    + ("" if res.get("gap_s") is None else f"; {res['gap_s']:g} s silence before each")
                     + (f"; each value the lowest of {res['rounds']} rounds" if res.get("rounds", 1) > 1 else ""))
     for c in ("size", "conv", "conv p90", "fwd", "fwd p90", "c2c", "c2c p90", "ros1", "ws",
               "conv/ros1", "fwd/ros1", "c2c/ros1", "conv/ws", "fwd/ws"):
@@ -398,7 +493,8 @@ def plot(res: dict, path: Path) -> None:
     plt = pyplot()
     fig, ax = plt.subplots(figsize=(8, 5.5))
     series = [("rce_converter", "rce converter (JSON)", "o-"), ("rce_forwarder", "rce forwarder (binary)", "s-"),
-              ("rce_c2c", "rce container->container (fwd)", "^-"), ("ros1", "ROS 1 rospy (anchor)", "x--"),
+              ("rce_c2c", "rce container->container (fwd)", "^-"),
+              ("ros1", "ROS 1 rospy (" + ("anchor)" if res.get("gap_s") is None else "bench/ros1_peer.py)"), "x--"),
               ("ws_floor", "raw websockets + JSON (floor)", "+:")]
     for key, label, style in series:
         ys = res.get(f"{key}_ms")
@@ -417,7 +513,9 @@ def plot(res: dict, path: Path) -> None:
     ax.set_yscale("log")
     ax.set_xlabel("payload size, bytes")
     ax.set_ylabel("round trip, ms (median; faint: rce p90)")
-    ax.set_title("RTT robot -> container echo -> robot, loopback")
+    gap = res.get("gap_s")
+    ax.set_title("RTT robot -> container echo -> robot, loopback"
+                 + ("" if gap is None else f", {gap:g} s of silence before each"))
     ax.grid(True, which="both", alpha=0.3)
     ax.legend()
     path.parent.mkdir(parents=True, exist_ok=True)

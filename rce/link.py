@@ -2,8 +2,9 @@
 with its stream, written once.
 
 - :class:`FramedLink` owns one stream (TCP or Unix socket) carrying :mod:`rce.framing`
-  frames: one read loop on :class:`~rce.framing.FrameDecoder`, bounded writes with an
-  explicit policy for a full link, one idempotent close.
+  frames: its transport receives straight into a :class:`~rce.framing.FrameDecoder`'s buffers
+  (a buffered protocol: a large frame lands in a buffer of its own and is handed on without a
+  copy), bounded writes with an explicit policy for a full link, one idempotent close.
 - :class:`Responder` runs the handler of each incoming request (a control op, a data-plane
   ``SRV_REQ``, a bus service call) in a kept task and sends back its result or its error.
 - :func:`settle_reply` completes a pending service call (:class:`~rce.pending.PendingCalls`)
@@ -26,7 +27,7 @@ from __future__ import annotations
 
 import asyncio
 import socket
-from collections.abc import Awaitable, Callable
+from collections.abc import Awaitable, Callable, Iterator
 from typing import Any
 
 from rce import framing
@@ -37,7 +38,6 @@ from rce.tasks import Tasks
 
 log = get_logger("rce.link")
 
-READ_CHUNK = 256 * 1024              # bytes asked of the stream per read; every whole frame in them is handled at once
 STREAM_LIMIT = 1024 * 1024           # bytes a stream reader buffers before it stops reading its socket (asyncio limit)
 DEFAULT_MAX_BUFFER = 64 * 1024 * 1024   # bytes that may wait in a link's transport (see the module doc)
 MAX_IN_FLIGHT = 1024                 # requests one Responder runs at once; more are refused (Unavailable)
@@ -79,8 +79,7 @@ class FramedLink:
         self.close_reason = ""
         self.last_rx = asyncio.get_running_loop().time()
         self.dropped = self.refused = 0
-        self._tasks = Tasks(f"link {name}")
-        self._reader: asyncio.Task | None = None
+        self._receiver: _Receiver | None = None
 
     @property
     def peername(self) -> str:
@@ -89,35 +88,46 @@ class FramedLink:
         return f"{p[0]}:{p[1]}" if isinstance(p, tuple) else str(p)
 
     def start(self) -> "FramedLink":
-        """Start the read loop (a kept task); returns self."""
-        if self._reader is None and not self.closed.is_set():
-            self._reader = self._tasks.spawn(self._read_loop(), name="read")
+        """Start reading (returns self; frames come from the next loop iteration on): the link
+        takes its transport over with a :class:`_Receiver`, so the stream's bytes go straight
+        into the decoder's buffers; what the stream reader had already taken goes first."""
+        if self._receiver is None and not self.closed.is_set():
+            self._receiver = _Receiver(self, self.transport.get_protocol())
+            asyncio.get_running_loop().call_soon(self._take_over)
         return self
 
+    def _take_over(self) -> None:
+        if self.closed.is_set():
+            return
+        self.transport.set_protocol(self._receiver)
+        early = self.reader._buffer       # bytes the stream reader took before: they come first
+        if early:
+            self._received(self.decoder.frames(bytes(early)))
+            early.clear()
+        if self.closed.is_set():
+            return
+        if self.reader.at_eof() or self.reader.exception() is not None or self.transport.is_closing():
+            self._finish("closed by the peer")      # the connection ended before
+        else:
+            self.transport.resume_reading()     # the reader may have paused it (its buffer was full)
+
     # -- reading ---------------------------------------------------------------------------------
-    async def _read_loop(self) -> None:
-        loop = asyncio.get_running_loop()
-        reason = "closed by the peer"
+    def _received(self, frames: Iterator[Frame]) -> None:
+        """Hand every frame of ``frames`` to ``on_frame``; a bad frame or a failing handler ends the link."""
+        if self.closed.is_set():
+            return
+        self.last_rx = asyncio.get_running_loop().time()
         try:
-            while not self.closed.is_set():
-                data = await self.reader.read(READ_CHUNK)
-                if not data:
-                    break
-                self.last_rx = loop.time()
-                for frame in self.decoder.frames(data):
-                    self.on_frame(frame)
-                    if self.closed.is_set():      # on_frame closed the link
-                        return
+            for frame in frames:
+                self.on_frame(frame)
+                if self.closed.is_set():      # on_frame closed the link
+                    return
         except ProtocolError as e:
             log.warning("closing link on bad frame", link=self.name, reason=e.message)
-            reason = f"bad frame: {e.message}"
-        except OSError as e:
-            reason = f"connection lost: {e}"
+            self._finish(f"bad frame: {e.message}")
         except Exception as e:
             log.error("link failed", link=self.name, exc_info=e)
-            reason = f"internal error: {type(e).__name__}: {e}"
-        finally:
-            self._finish(reason)
+            self._finish(f"internal error: {type(e).__name__}: {e}")
 
     # -- writing ---------------------------------------------------------------------------------
     def _room(self, n: int, bound: int) -> bool:
@@ -160,16 +170,13 @@ class FramedLink:
 
     # -- closing ---------------------------------------------------------------------------------
     def close(self, reason: str = "closed") -> None:
-        """Close the stream now (idempotent); ``on_close`` runs once. The read loop ends soon
-        after (:meth:`wait_closed`)."""
-        if self._reader is not None and self._reader is not asyncio.current_task():
-            self._reader.cancel()
+        """Close the stream now (idempotent); ``on_close`` runs once and no frame is handled after."""
         self._finish(reason)
 
     async def wait_closed(self) -> None:
-        """Wait until the read loop has ended."""
-        if self._reader is not None:
-            await asyncio.wait([self._reader])
+        """Wait until the link has ended (a link never started: returns at once)."""
+        if self._receiver is not None:
+            await self.closed.wait()
 
     def _finish(self, reason: str) -> None:
         if self.closed.is_set():
@@ -185,6 +192,37 @@ class FramedLink:
                 self.on_close(self)
             except Exception as e:
                 log.error("on_close handler failed", link=self.name, exc_info=e)
+
+
+class _Receiver(asyncio.BufferedProtocol):
+    """A started :class:`FramedLink`'s protocol (asyncio ``BufferedProtocol``): the transport
+    receives into :meth:`rce.framing.FrameDecoder.get_buffer`, a large frame straight into its
+    own buffer. Flow control and the end of the connection are passed on to the stream's
+    protocol ``stream`` as well, so the link's ``StreamWriter`` (``drain``, ``wait_closed``)
+    works as before."""
+
+    def __init__(self, link: FramedLink, stream: asyncio.BaseProtocol):
+        self.link, self.stream = link, stream
+
+    def get_buffer(self, sizehint: int) -> memoryview:
+        return self.link.decoder.get_buffer()
+
+    def buffer_updated(self, nbytes: int) -> None:
+        self.link._received(self.link.decoder.buffer_updated(nbytes))
+
+    def eof_received(self) -> bool:
+        self.link._finish("closed by the peer")
+        return False
+
+    def connection_lost(self, exc: Exception | None) -> None:
+        self.link._finish("closed by the peer" if exc is None else f"connection lost: {exc}")
+        self.stream.connection_lost(exc)
+
+    def pause_writing(self) -> None:
+        self.stream.pause_writing()
+
+    def resume_writing(self) -> None:
+        self.stream.resume_writing()
 
 
 # -- serve and reply -------------------------------------------------------------------------------

@@ -31,6 +31,7 @@ import itertools
 import os
 import signal
 import sys
+import weakref
 from typing import Any, Awaitable, Callable
 
 from rce import framing, rpc
@@ -38,13 +39,40 @@ from rce.errors import MessageError, NotFound, RCEError, Unavailable
 from rce.link import Responder, settle_reply
 from rce.messages import MessageRegistry, default_registry, wire_name
 from rce.naming import join, resolve
-from rce.package_path import load_package_types
+from rce.package_path import load_package_types, search_path
 from rce.pending import PendingCalls
 from rce.process import run_loop
 from rce.tasks import Tasks
 
 _NO = object()
+#: registry -> :func:`definitions_key` of the package types loaded into it (a node forked by a
+#: container's zygote inherits the zygote's registry and need not parse the same files again).
+_LOADED: weakref.WeakKeyDictionary = weakref.WeakKeyDictionary()
 SERVICE_TIMEOUT = 30.0   # s a service call waits for its response unless the caller says otherwise
+
+
+def definitions_key(env: dict | None = None) -> tuple:
+    """What :func:`rce.package_path.load_package_types` would read: ``(path, size, mtime_ns)``
+    of every ``msg``/``srv`` definition file of the packages on the path (``env``: default
+    :data:`os.environ`), in its order. Equal keys mean the same definitions."""
+    out = []
+    for d in search_path(env):
+        for p in [d] + (sorted(x for x in d.iterdir() if x.is_dir()) if d.is_dir() else []):
+            for sub in ("msg", "srv"):
+                if (p / sub).is_dir():
+                    for f in sorted((p / sub).iterdir()):
+                        st = f.stat()
+                        out.append((str(f), st.st_size, st.st_mtime_ns))
+    return tuple(out)
+
+
+def load_types(registry: MessageRegistry) -> None:
+    """Register the packages' ``.msg``/``.srv`` types into ``registry`` unless exactly these
+    definitions are in it already. Raises :class:`MessageError` naming a bad file."""
+    key = definitions_key()
+    if _LOADED.get(registry) != key:
+        load_package_types(registry)
+        _LOADED[registry] = key
 
 
 def _argv_remaps(argv: list[str]) -> dict[str, str]:
@@ -311,7 +339,7 @@ async def init_node(name: str | None = None, *, namespace: str | None = None, bu
     if not bus:
         raise Unavailable("no bus: set RCE_BUS to the bus socket (rce-ros prints it) or pass bus=")
     reg = registry or default_registry()
-    load_package_types(reg)
+    load_types(reg)
     node = Node(name, join("/", namespace), bus, reg, os.environ.get("RCE_BUS_TOKEN"))
     try:
         await node._connect()

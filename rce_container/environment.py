@@ -46,6 +46,7 @@ from rce_container.interfaces import BusInterface, make_interface
 from rce_container.launcher import LOG_LINES, Launcher
 from rce_container.ros1_graph import Ros1Graph
 from rce_container.usage import CpuRate, measure
+from rce_container.zygote_client import ZygoteTemplate
 
 log = get_logger("rce.container.env")
 
@@ -75,7 +76,8 @@ class Container:
         self.server = BusServer(env.bus, token=token)
         self.sandbox = env.sandbox_cls(cid, ctag, limits, self.workdir, grace=env.grace, bus_socket=self.socket,
                                        scope=env.scope)
-        self.launcher = Launcher(self.sandbox, self.socket, ctag, self._status, bus_token=token)
+        self.launcher = Launcher(self.sandbox, self.socket, ctag, self._status, bus_token=token,
+                                 template=env.template)
         self.ros1 = Ros1Graph(self.launcher, cid, env.bus)     # rosmaster and relay, while it has ROS 1 nodes
         self.interfaces: dict[int, BusInterface] = {}
 
@@ -92,6 +94,7 @@ class Container:
         if self.sandbox.node_uid is not None:     # the socket is the node uid's, and only it may connect
             self.server.owner, self.server.uids = self.sandbox.node_uid, frozenset({self.sandbox.node_uid})
         await self.server.listen(self.socket)
+        self.launcher.warm_up()             # the zygote imports the node runtime while the nodes are asked for
 
     async def close(self) -> None:
         """Kill the nodes, drop the interfaces, close the socket, remove the workdir."""
@@ -157,7 +160,8 @@ class Container:
             "cid": self.cid, "user": self.user, "ctag": self.ctag, "group": self.group,
             "sandbox": self.sandbox.status, "limits": dict(self.sandbox.limits), **use,
             "nodes": {"count": len(nodes), "running": sum(n["running"] for n in nodes),
-                      "starts": self.launcher.starts, "restarts": sum(n["restarts"] for n in nodes)},
+                      "starts": self.launcher.starts, "forked": self.launcher.forks,
+                      "restarts": sum(n["restarts"] for n in nodes)},
             "per_node": per_node,
             "msgs_in": sum(i["msgs_in"] for i in ifs), "msgs_out": sum(i["msgs_out"] for i in ifs),
             "bytes_in": sum(i["bytes_in"] for i in ifs), "bytes_out": sum(i["bytes_out"] for i in ifs),
@@ -197,6 +201,7 @@ class Environment:
         self.done = asyncio.Event()
         self.t0 = time.monotonic()
         self._closed = False
+        self.template = ZygoteTemplate.for_nodes(self.runtime_dir)   # containers' zygotes fork from it
 
     # -- lifecycle -----------------------------------------------------------------------------
     async def start(self, control_path: str) -> None:
@@ -206,6 +211,8 @@ class Environment:
         except MessageError as e:   # one broken package must not take every container down
             log.warning("cannot load the message types of a package", reason=e.message)
         await self.plane.listen(self.bind, 0, self.advertise_host)
+        self.template.start_soon()
+        await self.template.wait_started()      # a spare environment is warm once its template is
         handlers = {op[3:]: getattr(self, op) for op in dir(self) if op.startswith("op_")}
         self.peer = await rpc.connect_unix(control_path, handlers, name="container task set",
                                            on_close=lambda _p: self.done.set(), max_frame=self.max_frame)
@@ -219,6 +226,7 @@ class Environment:
             return
         self._closed = True
         await self._close_containers()
+        await self.template.close()
         await self.plane.close()
         if self.peer:
             await self.peer.close()
@@ -447,7 +455,7 @@ class Environment:
 
         def deliver(payload: bytes) -> bool:
             if len(got) < count:
-                got.append(payload)
+                got.append(bytes(payload))
                 if len(got) >= count:
                     full.set()
             return True
@@ -468,7 +476,7 @@ class Environment:
              cpu_percent, rss_mib, processes,                  # every process of the container
              memory?: {usage_mib, limit_mib, oom_kills, failcnt},   # its memory cgroup, when it has one
              cpu?: {periods, throttled, throttled_s},          # CPU-limit enforcement periods, how many hit it
-             nodes: {count, running, starts, restarts},
+             nodes: {count, running, starts, forked (of the starts, by the zygote), restarts},
              per_node: {ntag: {ntag, name, pid, running, restarts, last_exit, cpu_percent, rss_mib,
                                processes, connected, msgs_in, msgs_out, bytes_in, bytes_out, dropped}},
              msgs_in, msgs_out, bytes_in, bytes_out,          # over the container's interfaces

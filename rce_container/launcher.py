@@ -21,6 +21,12 @@ namespace, respawn}``.
 Statuses are reported through ``on_status(ntag, status, **fields)`` with status ``started``
 (``pid``), ``respawning`` (``code``/``signal`` of the exit, ``restarts``) or ``exited``
 (``code``/``signal``, ``reason``).
+
+Python nodes (not ROS 1 ones) are forked by the container's warm launcher
+(:mod:`rce_container.zygote`, started with :meth:`Launcher.warm_up` when the container is
+created) instead of starting a new interpreter each: same sandbox, environment, cwd and argv,
+without the ~150-250 ms of interpreter start and imports. When it cannot (not started, failed,
+the node's interpreter settings differ, a request too large), the node is exec'd as before.
 """
 from __future__ import annotations
 
@@ -42,6 +48,7 @@ from rce.package_path import find_executable, find_package
 from rce.tasks import Tasks
 from rce_container.node_env import ENV_DIRECTIVE_ALLOWED, directive_env, node_env
 from rce_container.sandbox import Sandbox
+from rce_container.zygote_client import ZygoteChild, ZygoteClient, ZygoteTemplate
 
 log = get_logger("rce.container.launcher")
 
@@ -159,10 +166,11 @@ class NodeProcess:
     ntag: str
     argv: list[str]
     env: dict[str, str]
+    forkable: bool                       # a Python node the zygote may fork (not a ROS 1 or other program)
     respawn: bool
     delay: float
     limit: int | None
-    proc: asyncio.subprocess.Process | None = None
+    proc: asyncio.subprocess.Process | ZygoteChild | None = None
     restarts: int = 0
     stopping: bool = False
     stdout: collections.deque = field(default_factory=lambda: collections.deque(maxlen=LOG_LINES))
@@ -193,14 +201,55 @@ class Launcher:
 
     ``sandbox``: where processes run; ``bus_path``: the container's bus socket; ``ctag``: the
     container tag (``RCE_CONTAINER``); ``on_status(ntag, status, **fields)``: status reports;
-    ``bus_token``: the container's bus token (``RCE_BUS_TOKEN``)."""
+    ``bus_token``: the container's bus token (``RCE_BUS_TOKEN``); ``zygote``: fork Python nodes
+    from a warm launcher in the sandbox (False: exec every node); ``template``: the environment's
+    warm template the zygote is forked from (None: the zygote is spawned like a node)."""
 
-    def __init__(self, sandbox: Sandbox, bus_path: str, ctag: str, on_status: StatusCallback, bus_token: str = ""):
+    def __init__(self, sandbox: Sandbox, bus_path: str, ctag: str, on_status: StatusCallback, bus_token: str = "",
+                 zygote: bool = True, template: ZygoteTemplate | None = None):
         self.sandbox, self.bus_path, self.ctag, self.bus_token = sandbox, bus_path, ctag, bus_token
         self.on_status = on_status
         self.nodes: dict[str, NodeProcess] = {}
         self.starts = 0   # processes started, respawns included
+        self.forks = 0    # of which forked by the zygote
         self.tasks = Tasks(f"launcher of {ctag}")
+        self.use_zygote, self.template = zygote, template
+        self.zygote: ZygoteClient | None = None
+        self._zygote_start: asyncio.Task | None = None
+
+    def warm_up(self) -> None:
+        """Start the zygote in the background (once the sandbox is set up), so the first
+        nodes find it ready."""
+        if self.use_zygote and self._zygote_start is None:
+            self._zygote_start = self.tasks.spawn(self._start_zygote(), name=f"zygote of {self.ctag}")
+
+    async def _start_zygote(self) -> None:
+        env = node_env(bus=self.bus_path, token=self.bus_token, ctag=self.ctag, name="zygote", namespace="/",
+                       home=self.sandbox.workdir)
+        self.zygote = ZygoteClient(self.sandbox, env, self.ctag)
+        try:
+            await self.zygote.start(self.template)
+        except (OSError, RuntimeError) as e:
+            log.warning("no zygote: nodes are exec'd", container=self.ctag, reason=str(e),
+                        output=list(self.zygote.output)[-5:])
+            zygote, self.zygote = self.zygote, None
+            await zygote.close()
+
+    async def _fork(self, node: NodeProcess) -> ZygoteChild | None:
+        """``node`` forked by the zygote, or None (then it is exec'd)."""
+        if not (node.forkable and self.use_zygote):
+            return None
+        self.warm_up()
+        await asyncio.shield(self._zygote_start)
+        if self.zygote is None or not self.zygote.fits(node.env):
+            return None
+        return await self.zygote.spawn(node.argv, node.env, str(self.sandbox.workdir))
+
+    async def _kill(self, proc: asyncio.subprocess.Process | ZygoteChild) -> None:
+        if isinstance(proc, ZygoteChild):
+            await self.zygote.kill(proc, self.sandbox.grace)
+        else:
+            await self.sandbox.kill(proc)
 
     def _prepare(self, spec: dict, kind: dict | None = None) -> NodeProcess:
         ntag = spec.get("ntag")
@@ -225,7 +274,7 @@ class Launcher:
         argv = ([sys.executable, str(path)] if python else [str(path)]) + args
         if not python and not os.access(path, os.X_OK):
             raise RequestError(f"node {ntag!r}: {path} is not executable (and not a .py script)")
-        return NodeProcess(ntag, argv, env, enabled, delay, limit, spec=dict(spec))
+        return NodeProcess(ntag, argv, env, python and kind is None, enabled, delay, limit, spec=dict(spec))
 
     async def add(self, spec: dict, kind: dict | None = None) -> dict:
         """Launch the node of ``spec``; returns ``{ntag, pid}`` once the process is started.
@@ -253,10 +302,11 @@ class Launcher:
 
     async def _start(self, node: NodeProcess) -> None:
         try:
-            node.proc = await self.sandbox.spawn(node.argv, node.env)
+            node.proc = await self._fork(node) or await self.sandbox.spawn(node.argv, node.env)
         except OSError as e:
             raise RCEError(f"node {node.ntag!r}: cannot start {node.argv[0]}: {e.strerror or e}") from None
         self.starts += 1
+        self.forks += isinstance(node.proc, ZygoteChild)
         node.started = time.monotonic()
         log.info("node started", container=self.ctag, ntag=node.ntag, pid=node.proc.pid)
         self.on_status(node.ntag, "started", pid=node.proc.pid)
@@ -267,14 +317,16 @@ class Launcher:
             readers = [self.tasks.spawn(_pump(proc.stdout, node.stdout), name=f"stdout of {node.ntag}"),
                        self.tasks.spawn(_pump(proc.stderr, node.stderr), name=f"stderr of {node.ntag}")]
             code = await proc.wait()
-            await self.sandbox.kill(proc)    # the node's own children go with it
+            await self._kill(proc)    # the node's own children go with it
             _, hung = await asyncio.wait(readers, timeout=PIPE_DRAIN_TIMEOUT)   # pipes inherited by escaped processes
             for t in hung:
                 t.cancel()
+            if isinstance(proc, ZygoteChild):
+                proc.close_pipes()
             if node.stopping:
                 return
             fields: dict[str, Any] = {"signal": -code} if code < 0 else {"code": code}
-            why = self.sandbox.exit_reason(proc, code)      # e.g. the kernel's OOM killer
+            why = self.sandbox.exit_reason(proc, code) or getattr(proc, "error", None)   # OOM killer, uncaught
             if why:
                 fields["reason"] = why
             node.last_exit = dict(fields)
@@ -298,7 +350,7 @@ class Launcher:
                 self.on_status(node.ntag, "exited", reason=e.message, **fields)
                 return
             if node.stopping:                # removed while starting
-                await self.sandbox.kill(node.proc)
+                await self._kill(node.proc)
                 return
 
     async def remove(self, ntag: str, reason: str | None = "removed") -> None:
@@ -312,7 +364,7 @@ class Launcher:
         node.stop_event.set()
         was_running = node.pid is not None
         if node.proc is not None:
-            await self.sandbox.kill(node.proc)
+            await self._kill(node.proc)
         if node.task:
             await node.task
         if reason is not None and was_running:
@@ -322,6 +374,11 @@ class Launcher:
     async def close(self) -> None:
         """Stop every node without status reports (the container is going away)."""
         await asyncio.gather(*(self.remove(t, None) for t in list(self.nodes)), return_exceptions=True)
+        if self._zygote_start is not None:
+            self._zygote_start.cancel()
+            await asyncio.gather(self._zygote_start, return_exceptions=True)
+        if self.zygote is not None:
+            await self.zygote.close()
         await self.sandbox.kill_all()
         await self.tasks.cancel_all()
 

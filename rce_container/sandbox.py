@@ -134,10 +134,11 @@ class Sandbox:
                 self.limits[k] = v
         return dict(self.limits)
 
-    async def spawn(self, argv: list[str], env: dict[str, str], cwd: str | Path | None = None
-                    ) -> asyncio.subprocess.Process:
+    async def spawn(self, argv: list[str], env: dict[str, str], cwd: str | Path | None = None,
+                    pass_fds: tuple[int, ...] = ()) -> asyncio.subprocess.Process:
         """Start ``argv`` with environment ``env`` in ``cwd`` (default: the workdir), stdout and
-        stderr piped. Raises :class:`OSError` if it cannot be started."""
+        stderr piped; ``pass_fds``: descriptors it inherits (e.g. the zygote's control socket).
+        Raises :class:`OSError` if it cannot be started."""
         raise NotImplementedError
 
     async def kill(self, proc: asyncio.subprocess.Process) -> None:
@@ -151,6 +152,12 @@ class Sandbox:
     async def close(self) -> None:
         """Kill everything and release the sandbox's resources."""
         await self.kill_all()
+
+    def enter_spec(self) -> dict:
+        """How a running process joins this sandbox in-process (:mod:`rce_container.sandbox_enter`,
+        for the container's zygote): ``{cwd, init_pid?, uid?, procs_files?}``. Here: its own
+        session in the workdir."""
+        return {"cwd": str(self.workdir)}
 
     # -- observation ---------------------------------------------------------------------------
     def node_pids(self, proc: asyncio.subprocess.Process) -> list[int]:
@@ -181,10 +188,10 @@ class ProcessGroupSandbox(Sandbox):
     kind = "unconfined"
     priority = 0
 
-    async def spawn(self, argv, env, cwd=None):
+    async def spawn(self, argv, env, cwd=None, pass_fds=()):
         proc = await asyncio.create_subprocess_exec(
             *argv, env=env, cwd=str(cwd or self.workdir), stdin=asyncio.subprocess.DEVNULL,
-            stdout=asyncio.subprocess.PIPE, stderr=asyncio.subprocess.PIPE, start_new_session=True)
+            stdout=asyncio.subprocess.PIPE, stderr=asyncio.subprocess.PIPE, start_new_session=True, pass_fds=pass_fds)
         self.procs.add(proc)
         return proc
 
@@ -255,8 +262,11 @@ class NamespaceSandbox(Sandbox):
     :mod:`rce_container.nsinit`, itself in the cgroup). A node runs as
     ``sh`` (joins the cgroup) -> ``nsenter -t INIT -p -m -i -u -n`` (enters the namespaces,
     forks and waits, passing the exit status on) -> ``setsid`` (the node leads its own process
-    group) -> ``setpriv --bounding-set`` (drops capabilities) -> the node's program. The
+    group) -> ``setpriv --bounding-set`` (drops capabilities) -> ``env --chdir`` (the workdir, as
+    the container sees it) -> the node's program. The
     process the launcher watches is the ``nsenter``; signals go to the node's process group.
+    Python nodes are usually forked by the container's zygote instead, which enters the same
+    way in-process (:meth:`enter_spec`, :mod:`rce_container.sandbox_enter`).
     When the init exits (teardown, or its environment dies: its stdin closes) the kernel kills
     every process left in the PID namespace; the cgroup is then emptied and removed.
     """
@@ -414,15 +424,17 @@ class NamespaceSandbox(Sandbox):
             self._uid = None
 
     # -- nodes ---------------------------------------------------------------------------------
-    async def spawn(self, argv, env, cwd=None):
+    async def spawn(self, argv, env, cwd=None, pass_fds=()):
         if self.init_pid is None:
             raise OSError(f"the namespaces of container {self.ctag!r} are not set up")
-        inner = ["nsenter", "-t", str(self.init_pid), "-p", "-m", "-i", "-u", "-n", f"--wd={cwd or self.workdir}",
+        # the working directory is entered last, in the container's mount namespace (nsenter's
+        # --wd would open it in the host's, where ".." leads out of the container's view)
+        inner = ["nsenter", "-t", str(self.init_pid), "-p", "-m", "-i", "-u", "-n",
                  "--", "setsid", "setpriv", f"--reuid={self.node_uid}", f"--regid={self.node_uid}",
-                 *DROP_PRIVILEGES, "--", *argv]
+                 *DROP_PRIVILEGES, "--", "env", f"--chdir={cwd or self.workdir}", "--", *argv]
         proc = await asyncio.create_subprocess_exec(
             *self._joined(inner), env=env, cwd="/", stdin=asyncio.subprocess.DEVNULL,
-            stdout=asyncio.subprocess.PIPE, stderr=asyncio.subprocess.PIPE, start_new_session=True)
+            stdout=asyncio.subprocess.PIPE, stderr=asyncio.subprocess.PIPE, start_new_session=True, pass_fds=pass_fds)
         self.procs.add(proc)
         self._tasks.spawn(self._find_leader(proc), name=f"leader of {proc.pid}")
         return proc
@@ -490,6 +502,14 @@ class NamespaceSandbox(Sandbox):
             await asyncio.to_thread(self.cg.apply, {k: v for k, v in limits.items()
                                                     if k in cgroups.LIMITS and v is not None})
         return await super().resize(limits)
+
+    def enter_spec(self) -> dict:
+        """The cgroup, the init's namespaces and the node uid: what ``spawn``'s sh/nsenter/setsid/
+        setpriv chain applies. Raises :class:`OSError` before :meth:`setup`."""
+        if self.init_pid is None:
+            raise OSError(f"the namespaces of container {self.ctag!r} are not set up")
+        return {"cwd": str(self.workdir), "init_pid": self.init_pid, "uid": self.node_uid,
+                "procs_files": [str(f) for f in self.cg.procs_files] if self.cg is not None else []}
 
     # -- observation ---------------------------------------------------------------------------
     def node_pids(self, proc):

@@ -77,14 +77,16 @@ class RobotInterface(Interface):
             if self.side == "Converter":
                 return self.registry.json_to_bytes(typename, msg, self.link.forms)
             self.registry.check_structure(typename, msg)     # strings are not decoded: bytes pass untouched
-            return bytes(msg)
+            return msg                                       # the robot's bytes as they came: no copy
         except MessageError as e:
             raise MessageError(f"interface {self.itag!r}: {e.message}") from None
 
     def _decode(self, typename: str, payload: bytes | memoryview) -> Any:
+        """Serialized bytes -> the robot's form: JSON (converters), or the bytes themselves as a
+        binary part (forwarders; a view of the received frame, which nobody writes again: no copy)."""
         if self.side == "Converter":
             return self.registry.bytes_to_json(typename, bytes(payload), self.link.forms)
-        return bytes(payload)
+        return payload
 
     # -- status ----------------------------------------------------------------------------------
     def on_peers_changed(self) -> None:

@@ -31,6 +31,7 @@ from rce.protocol.session import Event, RobotSession
 from rce.masterlink import MasterLink
 from rce.tasks import Tasks
 from rce_robot.interfaces import RobotInterface
+from rce_robot import ws_cork
 from rce_robot.parse_pool import ParsePool
 
 log = get_logger("rce.robot")
@@ -121,17 +122,34 @@ class RobotNamespace:
         self.log_suppressed = 0
         log.info("ER to robot", user=self.user, robot=self.robot, reason=truncate(reason), **extra)
 
+    def _flush(self) -> None:
+        """Write what waits to the link now, one message at a time, each in one corked write
+        (:mod:`rce_robot.ws_cork`), while the link takes it; when it does not (its buffer is full,
+        it is closing, or it is no websockets connection) the writer task goes on."""
+        ws = self.ws
+        while self.session.outbox and ws_cork.writable(ws):
+            ws_cork.write(ws, self.session.data_to_send(1))
+        if self.session.outbox:
+            self._wake.set()
+
     async def _writer(self, ws: Any) -> None:
+        """What :meth:`_flush` cannot write now: after the link drains, or through ``ws.send`` (which
+        raises ConnectionClosed on a closed link)."""
         try:
             while True:
                 await self._wake.wait()
                 self._wake.clear()
                 # one message at a time, and only while this link is the session's: the outbox stays the bound
-                while self.ws is ws and (frames := self.session.data_to_send(1)):
-                    for f in frames:
-                        await ws.send(f)
-        except ConnectionClosed:      # the reader sees it too; what was taken is kept for a resume
-            pass
+                while self.ws is ws and self.session.outbox:
+                    if ws_cork.writable(ws):
+                        ws_cork.write(ws, self.session.data_to_send(1))
+                    elif ws_cork.paused(ws):
+                        await ws.drain()
+                    else:
+                        for f in self.session.data_to_send(1):
+                            await ws.send(f)
+        except (ConnectionClosed, OSError):   # the link is lost (drain raises the transport's error): the reader
+            pass                              # sees it too; what was taken is kept for a resume
 
     # -- a link ----------------------------------------------------------------------------------------
     async def serve(self, ws: Any, ack: int | None = None) -> None:
@@ -156,7 +174,8 @@ class RobotNamespace:
         self._pump()
         try:
             async for frame in ws:
-                await self._receive(frame)
+                if self._receive(frame):       # a big text frame: parsed in the pool first
+                    await self._receive_big(frame)
                 self._pump()
         except ConnectionClosed:
             pass
@@ -174,17 +193,22 @@ class RobotNamespace:
                  code=ws.close_code)
         self._grace_timer = self.tasks.spawn(self._expire(), name="grace")
 
-    async def _receive(self, frame: str | bytes) -> None:
-        """One frame into the session; a big text frame is parsed in the pool first (this robot's next
-        frames wait for it, other robots' do not)."""
+    def _receive(self, frame: str | bytes) -> bool:
+        """One frame into the session, inline; True (and nothing done) for a big text frame, which
+        :meth:`_receive_big` takes."""
         if isinstance(frame, str):
             if self.parser is not None and self.parser.takes(frame) and not self.session.too_big(frame):
-                self.session.receive_parsed(await self.parser.parse(frame), time.monotonic())
-                await asyncio.sleep(0)    # other robots' frames between its parse and its conversion
-            else:
-                self.session.receive_text(frame, time.monotonic())
+                return True
+            self.session.receive_text(frame, time.monotonic())
         else:
             self.session.receive_binary(frame, time.monotonic())
+        return False
+
+    async def _receive_big(self, frame: str) -> None:
+        """A big text frame, parsed in the pool first (this robot's next frames wait for it, other
+        robots' do not)."""
+        self.session.receive_parsed(await self.parser.parse(frame), time.monotonic())
+        await asyncio.sleep(0)    # other robots' frames between its parse and its conversion
 
     async def _expire(self) -> None:
         await asyncio.sleep(self.grace)      # a timer: the grace period
@@ -206,7 +230,7 @@ class RobotNamespace:
             for ev in events:
                 self._on_event(ev)
         if self.session.outbox and self.ws is not None:
-            self._wake.set()
+            self._flush()
 
     def _on_event(self, ev: Event) -> None:
         f = ev.fields

@@ -19,7 +19,7 @@ from typing import Any, Awaitable, Callable
 from rce.errors import MessageError, NotFound, RequestError, Timeout
 from rce.naming import validate_name
 
-Deliver = Callable[[bytes], bool]                 # returns False when the message was dropped
+Deliver = Callable[[bytes | memoryview], bool]    # returns False when the message was dropped; a view stays valid
 ServiceHandler = Callable[[bytes], Awaitable[bytes]]
 SERVICE_TIMEOUT = 30.0   # s a service call waits for its provider unless the caller says otherwise
 
@@ -118,8 +118,9 @@ class Bus:
         if not t.publishers and not t.subscriptions and self.topics.get(t.name) is t:
             del self.topics[t.name]
 
-    def publish(self, topic: Topic, payload: bytes) -> int:
-        """Deliver ``payload`` to every subscriber of ``topic``; returns how many took it."""
+    def publish(self, topic: Topic, payload: bytes | memoryview) -> int:
+        """Deliver ``payload`` (a serialized message; a view must stay valid: subscribers may keep
+        it) to every subscriber of ``topic``; returns how many took it."""
         topic.messages += 1
         topic.bytes += len(payload)
         n = 0

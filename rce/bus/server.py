@@ -190,7 +190,7 @@ class _Session:
             if t is not None:
                 self.msgs_in += 1
                 self.bytes_in += len(f.payload)
-                self.bus.publish(t, bytes(f.payload))
+                self.bus.publish(t, f.payload)      # a view nobody writes again (rce.framing): no copy
         elif f.op in (framing.SRV_RESP, framing.SRV_ERR):
             settle_reply(self.calls, f)
         elif f.op == framing.SRV_REQ:

@@ -297,12 +297,30 @@ def new_id() -> str:
     return uuid.uuid4().hex
 
 
+# json.dumps(obj, separators=(",", ":")), without building an encoder per call (json.dumps does, given any option)
+_compact_json = json.JSONEncoder(separators=(",", ":")).encode
+
+
+_BINARY = (bytes, bytearray, memoryview)   # the values that become binary parts
+
+
 def encode(msg: dict, ids: Iterable[str] | None = None) -> tuple[str, list[bytes]]:
     """Encode an outgoing message: every ``bytes`` value under key ``k`` becomes ``k*: id``
     and a binary frame ``id || bytes``; a list of ``bytes`` becomes ``k*: [ids]``. Parts are
     numbered depth first, keys in insertion order; ``ids`` gives their ids in that order
     (default: fresh :func:`new_id` ones). Returns ``(json_text, binary_frames)``, frames in
-    the same order. Raises :class:`ProtocolError` when ``ids`` runs out or holds a bad id."""
+    the same order. Raises :class:`ProtocolError` when ``ids`` runs out or holds a bad id.
+
+    A message without binary values (most: every converter's) is one ``json.dumps``; the C
+    encoder refuses the first bytes-like value it meets, and only then the message is walked. A
+    forwarder's DM (``data.msg`` bytes-like) is walked at once: a refused encode and its
+    exception cost more than the walk of so small a message."""
+    data = msg.get("data")
+    if not (isinstance(data, dict) and isinstance(data.get("msg"), _BINARY)):
+        try:
+            return _compact_json(msg), []
+        except TypeError:
+            pass
     frames: list[bytes] = []
     given: Iterator[str] | None = iter(ids) if ids is not None else None
 
@@ -310,16 +328,16 @@ def encode(msg: dict, ids: Iterable[str] | None = None) -> tuple[str, list[bytes
         ref = new_id() if given is None else next(given, None)
         if not is_part_id(ref):
             raise ProtocolError(f"binary part {len(frames)}: needs a 32-hex-char id, got {ref!r}")
-        frames.append(ref.encode() + bytes(v))
+        frames.append(b"".join((ref.encode(), v)))      # one copy, whatever kind of buffer ``v`` is
         return ref
 
     def walk(obj: Any) -> Any:
         if isinstance(obj, dict):
             out = {}
             for k, v in obj.items():
-                if isinstance(v, (bytes, bytearray, memoryview)):
+                if isinstance(v, _BINARY):
                     out[k + "*"] = part(v)
-                elif isinstance(v, list) and v and all(isinstance(x, (bytes, bytearray, memoryview)) for x in v):
+                elif isinstance(v, list) and v and all(isinstance(x, _BINARY) for x in v):
                     out[k + "*"] = [part(x) for x in v]
                 else:
                     out[k] = walk(v)
@@ -328,4 +346,4 @@ def encode(msg: dict, ids: Iterable[str] | None = None) -> tuple[str, list[bytes
             return [walk(v) for v in obj]
         return obj
 
-    return json.dumps(walk(msg), separators=(",", ":")), frames
+    return _compact_json(walk(msg)), frames

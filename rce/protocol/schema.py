@@ -304,10 +304,29 @@ def _describe(err: dict, msg: Any) -> str:
     return f"{where}: {truncate(err['msg'], MAX_ER_TEXT // 2)}"
 
 
+def _valid_dm(msg: Any) -> bool:
+    """Does ``msg`` pass :class:`DMMessage` as it stands? The same rules as the model (iTag and
+    type non-empty strings, msgID absent, null, a string or an integer, ``msg`` or ``msg*``
+    present, other keys ignored), checked by hand: a DM is the one request that comes at data
+    rates, and the model costs ~10x this. False sends it to the model, which names the problem."""
+    if type(msg) is not dict or msg.get("type") != DM:
+        return False
+    data = msg.get("data")
+    if type(data) is not dict:
+        return False
+    itag, cls, msg_id = data.get("iTag"), data.get("type"), data.get("msgID")
+    return (type(itag) is str and itag != "" and type(cls) is str and cls != ""
+            and (msg_id is None or type(msg_id) in (str, int))
+            and ("msg" in data or "msg*" in data))
+
+
 def validate(msg: Any) -> tuple[str, dict]:
     """Check a complete robot -> cloud message; return ``(type, data)`` with ``data`` as sent.
+    A well-formed DM takes the hand check :func:`_valid_dm`; everything else the pydantic model.
 
     Raises :class:`ProtocolError` naming the type and key path of the first problem."""
+    if _valid_dm(msg):
+        return DM, msg["data"]
     try:
         _REQUEST.validate_python(msg)
     except ValidationError as e:

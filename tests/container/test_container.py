@@ -140,7 +140,7 @@ async def test_register_echo_and_service_over_the_data_plane(rig, registry):
         assert by_iid[1]["msgs_in"] == 2 and by_iid[2]["msgs_out"] == 2 and by_iid[3]["msgs_in"] == 1
         assert by_iid[1]["bytes_in"] == by_iid[2]["bytes_out"] > 600
         assert stats["msgs_in"] == 3 and stats["dropped"] == {"interfaces": 0, "bus": 0}
-        assert stats["nodes"] == {"count": 1, "running": 1, "starts": 1, "restarts": 0}
+        assert stats["nodes"] == {"count": 1, "running": 1, "starts": 1, "forked": 1, "restarts": 0}
         assert stats["environment"]["dataplane"]["msgs_in"] == 3
         host_stats = await master.call("stats")
         assert host_stats["tid"] == 7 and [c["cid"] for c in host_stats["containers"]] == [1]

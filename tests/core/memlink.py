@@ -1,26 +1,80 @@
-"""In-memory streams for link-layer tests: what one end writes, the other end's
-:class:`asyncio.StreamReader` receives; no sockets. ``waiting`` plays the bytes a real
-transport would hold unsent (set it to test write bounds)."""
+"""In-memory streams for link-layer tests: what one end writes, the other end receives, through
+its protocol as from a real transport (the end's :class:`asyncio.StreamReader` until a link takes
+the transport over with its own protocol, e.g. a buffered one); no sockets. ``waiting`` plays the
+bytes a real transport would hold unsent (set it to test write bounds); ``recv_size`` the most
+bytes one receive hands over (a frame arrives in several reads, as from a socket)."""
 from __future__ import annotations
 
 import asyncio
 
+RECV_SIZE = 64 * 1024     # bytes one simulated receive hands over at most
+
+
+class _ReaderProtocol:
+    """An end's protocol before a link takes it over: bytes go to its StreamReader."""
+
+    def __init__(self, reader: asyncio.StreamReader):
+        self.reader = reader
+
+    def data_received(self, data: bytes) -> None:
+        self.reader.feed_data(data)
+
+    def eof_received(self) -> None:
+        self.reader.feed_eof()
+
+    def connection_lost(self, exc: Exception | None) -> None:
+        if not self.reader.at_eof():
+            self.reader.feed_eof()
+
+    def pause_writing(self) -> None:
+        pass
+
+    def resume_writing(self) -> None:
+        pass
+
 
 class MemTransport:
-    """The write half of one end: ``write`` feeds the other end's reader (or records, unpaired)."""
+    """One end's transport: ``write`` delivers to the other end's protocol (or records, unpaired)."""
 
-    def __init__(self, peer: asyncio.StreamReader | None = None):
-        self.peer = peer
+    def __init__(self, reader: asyncio.StreamReader | None = None):
+        self.protocol = _ReaderProtocol(reader or asyncio.StreamReader())
+        self.other: MemTransport | None = None
         self.written = bytearray()
         self.waiting = 0
         self.closing = False
+        self.recv_size = RECV_SIZE
 
     def write(self, data) -> None:
         assert not self.closing, "write after close"
-        if self.peer is not None:
-            self.peer.feed_data(bytes(data))
+        if self.other is not None:
+            self.other._deliver(bytes(data))
         else:
             self.written += data
+
+    def _deliver(self, data: bytes) -> None:
+        if self.closing:
+            return
+        p = self.protocol
+        for pos in range(0, len(data), self.recv_size):
+            piece = memoryview(data)[pos:pos + self.recv_size]
+            if not isinstance(p, asyncio.BufferedProtocol):
+                p.data_received(bytes(piece))
+                continue
+            while piece:
+                buf = p.get_buffer(len(piece))
+                k = min(len(buf), len(piece))
+                buf[:k] = piece[:k]
+                piece = piece[k:]
+                p.buffer_updated(k)
+
+    def get_protocol(self):
+        return self.protocol
+
+    def set_protocol(self, protocol) -> None:
+        self.protocol = protocol
+
+    def resume_reading(self) -> None:
+        pass
 
     def get_write_buffer_size(self) -> int:
         return self.waiting
@@ -31,8 +85,9 @@ class MemTransport:
     def close(self) -> None:
         if not self.closing:
             self.closing = True
-            if self.peer is not None:
-                self.peer.feed_eof()
+            if self.other is not None and not self.other.closing:
+                self.other.protocol.eof_received()
+            self.protocol.connection_lost(None)
 
 
 class MemWriter:
@@ -55,7 +110,9 @@ class MemWriter:
 def pipe() -> tuple[tuple[asyncio.StreamReader, MemWriter], tuple[asyncio.StreamReader, MemWriter]]:
     """Two connected ends, each ``(reader, writer)``."""
     ra, rb = asyncio.StreamReader(), asyncio.StreamReader()
-    return (ra, MemWriter(MemTransport(rb), "b")), (rb, MemWriter(MemTransport(ra), "a"))
+    ta, tb = MemTransport(ra), MemTransport(rb)
+    ta.other, tb.other = tb, ta
+    return (ra, MemWriter(ta, "b")), (rb, MemWriter(tb, "a"))
 
 
 def lone(data: bytes = b"", eof: bool = False) -> tuple[asyncio.StreamReader, MemWriter]:
@@ -65,4 +122,4 @@ def lone(data: bytes = b"", eof: bool = False) -> tuple[asyncio.StreamReader, Me
         r.feed_data(data)
     if eof:
         r.feed_eof()
-    return r, MemWriter(MemTransport())
+    return r, MemWriter(MemTransport(r))

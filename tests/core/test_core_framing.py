@@ -153,3 +153,69 @@ def test_decoder_payload_is_a_view_of_the_chunk():
     chunk = encode_data(MSG, 1, 2, 3, b"abc")
     (df,) = FrameDecoder().feed(chunk)
     assert isinstance(df.payload, memoryview) and df.payload.obj is chunk
+
+
+# -- the buffered-protocol way in (rce.link's transport receives straight into the decoder) ----------
+
+def _receive(d: FrameDecoder, stream: bytes, read: int) -> list:
+    """Feed ``stream`` as a transport would: into :meth:`get_buffer`, at most ``read`` bytes a time."""
+    out, pos = [], 0
+    while pos < len(stream):
+        buf = d.get_buffer()
+        k = min(len(buf), read, len(stream) - pos)
+        buf[:k] = stream[pos:pos + k]
+        pos += k
+        out += d.buffer_updated(k)
+    return out
+
+
+@pytest.mark.parametrize("read", [1, 7, 4096, 300_000, 10**7])
+def test_buffered_frames_split_across_reads(read):
+    big = bytes(range(256)) * 2000                               # 512000 bytes: larger than a chunk
+    stream = (encode_control({"a": 1}) + encode_data(MSG, 1, 2, 3, big) + encode_data(MSG, 4, 5, 6, b"s")
+              + encode_data(SRV_RESP, 7, 8, 9, big[:1000]) + encode_control({"b": 2}))
+    out = _receive(FrameDecoder(chunk=4096), stream, read)
+    assert out[0] == {"a": 1} and out[4] == {"b": 2}
+    assert [(f.op, f.dst, f.src, f.call_id) for f in out[1:4]] == [(MSG, 1, 2, 3), (MSG, 4, 5, 6), (SRV_RESP, 7, 8, 9)]
+    assert bytes(out[1].payload) == big and bytes(out[2].payload) == b"s" and bytes(out[3].payload) == big[:1000]
+
+
+def test_buffered_large_payload_is_a_view_of_its_own_buffer_and_is_not_reused_while_held():
+    """A large frame's payload is a view (no copy) of a buffer bigger than itself; its buffer is
+    reused for a later frame only once nobody holds a view of it."""
+    d = FrameDecoder(chunk=1024)
+    first, second = b"1" * 5000, b"2" * 3000
+    (f1,) = _receive(d, encode_data(MSG, 1, 1, 1, first), 10**6)
+    assert isinstance(f1.payload, memoryview) and len(f1.payload.obj) >= 5000 + 29
+    (f2,) = _receive(d, encode_data(MSG, 2, 2, 2, second), 10**6)
+    assert bytes(f1.payload) == first and bytes(f2.payload) == second      # held: not overwritten
+    assert f2.payload.obj is not f1.payload.obj
+    earlier = {id(f1.payload.obj), id(f2.payload.obj)}
+    del f1, f2
+    (f3,) = _receive(d, encode_data(MSG, 3, 3, 3, second), 10**6)
+    assert bytes(f3.payload) == second and id(f3.payload.obj) in earlier   # let go of: reused, no fresh pages
+
+
+def test_buffered_small_frames_outlive_the_next_read():
+    """Small frames are copied out of the receive buffer once: the next read does not change them."""
+    d = FrameDecoder(chunk=64)
+    (f1,) = _receive(d, encode_data(MSG, 1, 1, 1, b"abc"), 64)
+    _receive(d, encode_data(MSG, 1, 1, 1, b"xyz"), 64)
+    assert bytes(f1.payload) == b"abc"
+
+
+def test_buffered_oversized_frame_refused_from_its_header_before_any_buffer():
+    d = FrameDecoder(max_frame=100, chunk=64)
+    good = _receive(d, encode_control({"x": 1}), 64)
+    with pytest.raises(ProtocolError, match="exceeds the limit of 100 bytes"):
+        _receive(d, struct.pack("!IB", 10**6, DATA), 64)
+    assert good == [{"x": 1}] and d._big is None and not d._spares
+
+
+def test_buffered_and_chunk_feeding_mix():
+    """A frame begun through :meth:`feed` is finished through the buffer, and the other way."""
+    payload = b"p" * 3000
+    stream = encode_data(MSG, 1, 2, 3, payload) * 2
+    d = FrameDecoder(chunk=1024)
+    out = d.feed(stream[:100]) + _receive(d, stream[100:4000], 333) + d.feed(stream[4000:])
+    assert [bytes(f.payload) for f in out] == [payload, payload]

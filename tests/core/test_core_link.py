@@ -223,3 +223,22 @@ async def test_a_pair_of_links_talks_both_ways():
     a.close()
     await closed(b)                                   # EOF reaches the other end
     assert b.close_reason == "closed by the peer"
+
+
+async def test_bytes_before_start_come_first_then_a_large_frame_arrives_whole_without_a_copy():
+    """What the stream reader took before start() is decoded first; the link then receives through
+    its buffered protocol: a frame larger than the decoder's chunk, split over many reads, arrives
+    whole, its payload a view of the buffer it was received into (handed on: no copy)."""
+    (ra, wa), (rb, wb) = pipe()
+    got = asyncio.Queue()
+    b = FramedLink(rb, wb, name="b", on_frame=got.put_nowait)
+    wa.transport.write(encode_control({"early": 1}))          # before b starts: into b's stream reader
+    b.start()
+    assert await asyncio.wait_for(got.get(), STEP) == {"early": 1}
+    big = bytes(range(256)) * 8192                                # 2 MiB, 32 reads of 64 KiB
+    wa.transport.write(framing.encode_data_header(MSG, 1, 2, 3, len(big)) + big + encode_control({"after": 1}))
+    f = await asyncio.wait_for(got.get(), STEP)
+    assert bytes(f.payload) == big and (f.dst, f.src, f.call_id) == (1, 2, 3)
+    assert isinstance(f.payload, memoryview) and not isinstance(f.payload.obj, bytes)   # the receive buffer itself
+    assert await asyncio.wait_for(got.get(), STEP) == {"after": 1}
+    b.close()

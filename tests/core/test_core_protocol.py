@@ -5,10 +5,14 @@ from __future__ import annotations
 import json
 
 import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
+from pydantic import ValidationError
 
 from rce.errors import ProtocolError
 from rce.protocol import (DEFAULT_EXPIRY, ID_LEN, Assembler, encode, new_id, split_interface_type,
                           validate)
+from rce.protocol import schema
 
 ID1, ID2, ID3 = "0" * 31 + "1", "a" * 31 + "2", "F" * 31 + "3"
 
@@ -207,6 +211,48 @@ def test_validate_dm_good(data):
 ])
 def test_validate_dm_errors(data, parts):
     raises(parts, validate, {"type": "DM", "data": data})
+
+
+_DM_VALUES = st.one_of(st.none(), st.booleans(), st.integers(), st.floats(allow_nan=False),
+                       st.sampled_from(["", "i"]), st.lists(st.integers(), max_size=2),
+                       st.dictionaries(st.sampled_from(["data"]), st.text(max_size=2)))
+_DM_DATA = st.dictionaries(st.sampled_from(["iTag", "type", "msgID", "msg", "msg*", "other"]), _DM_VALUES)
+
+
+@settings(max_examples=400, deadline=None)
+@given(data=_DM_DATA, envelope=st.sampled_from(["DM", "CC", None]))
+def test_dm_hand_check_agrees_with_the_model(data, envelope):
+    """validate's hand check of a DM (schema._valid_dm) passes exactly what the pydantic model passes:
+    the same (type, data), or the model's error text."""
+    msg = {"type": envelope, "data": data}
+    try:
+        schema._REQUEST.validate_python(msg)
+    except ValidationError:
+        assert not schema._valid_dm(msg)
+        with pytest.raises(ProtocolError):
+            validate(msg)
+        return
+    if envelope == "DM":
+        assert schema._valid_dm(msg) and validate(msg) == ("DM", data)
+
+
+_PLAIN = st.none() | st.booleans() | st.integers() | st.text(max_size=3)
+_KEYS = st.text(alphabet="abc", max_size=2)       # no '*': a key of its own ending in '*' would name a part
+
+
+@settings(max_examples=300, deadline=None)
+@given(st.recursive(_PLAIN, lambda kids: st.lists(kids, max_size=3) | st.dictionaries(
+    _KEYS, kids | st.binary(max_size=3) | st.lists(st.binary(max_size=2), min_size=1, max_size=2), max_size=3),
+    max_leaves=8))
+def test_encode_plain_and_binary_messages_alike(data):
+    """encode's one-dumps path (no bytes anywhere) and its walk (some bytes) give the same message back
+    through the assembler, parts numbered in the given order."""
+    ids = [f"{i:032x}" for i in range(30)]
+    text, frames = encode({"type": "DM", "data": data}, ids=ids)
+    a = Assembler()
+    out = a.feed_text(text, now=0) + [m for f in frames for m in a.feed_binary(f, now=0)]
+    assert out == [{"type": "DM", "data": data}]
+    assert [f[:ID_LEN].decode() for f in frames] == ids[:len(frames)]
 
 
 # -- interface types ----------------------------------------------------------------------------

@@ -88,6 +88,20 @@ async def test_forwarder_binary_parts_both_orders(eng):
         dm = await r.expect("DM", pred=lambda d: d["iTag"] == "srv")
         part = await r.recv()
         assert dm["msgID"] == "f1" and part[32:] == req
+        # large messages back to back: every internal link receives each into a buffer of its own and
+        # hands it on without a copy (rce.framing); none may be overwritten while the next one arrives
+        bigs = [bytes(TS.serialize_ros1(TS.types["std_msgs/msg/String"](data=c * 3_000_000), "std_msgs/msg/String"))
+                for c in "xyz"]
+        for i, big in enumerate(bigs):
+            ref = f"{0xb16 + i:032x}"
+            await r.send("DM", {"iTag": "req", "type": "std_msgs/String", "msgID": "", "msg*": ref})
+            await r.ws.send(ref.encode() + big)
+        echoed = []
+        while len(echoed) < len(bigs):
+            m = await r.recv()
+            if isinstance(m, bytes) and len(m) == 32 + len(bigs[0]):     # not a late echo of the small ones
+                echoed.append(m[32:])
+        assert echoed == bigs
 
 
 async def test_parameters_reach_nodes(eng):
