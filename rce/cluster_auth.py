@@ -50,6 +50,7 @@ from rce import framing
 from rce.errors import ConfigError, ProtocolError, RCEError, RequestError, Timeout
 from rce.link import nodelay
 from rce.log import get_logger
+from rce.process import create_private_file
 
 log = get_logger("rce.cluster_auth")
 
@@ -140,19 +141,8 @@ class ClusterKey:
         same key, so a missing one is an error. Creation is atomic (a complete file appears, or
         the one another process created first is read)."""
         p = key_path(path)
-        if p == default_key_path() and not p.exists():
-            p.parent.mkdir(parents=True, exist_ok=True, mode=0o700)
-            tmp = p.with_name(f".{p.name}.{os.getpid()}.tmp")
-            fd = os.open(tmp, os.O_WRONLY | os.O_CREAT | os.O_TRUNC, 0o600)
-            with os.fdopen(fd, "w") as f:
-                f.write(secrets.token_bytes(KEY_BYTES).hex() + "\n")
-            try:
-                os.link(tmp, p)             # fails if another process made it first: theirs is read
-                log.info("created a cluster key; task sets on other machines need a copy of it", path=str(p))
-            except FileExistsError:
-                pass
-            finally:
-                os.unlink(tmp)
+        if p == default_key_path() and not p.exists() and create_private_file(p, cls.generate().secret.hex() + "\n"):
+            log.info("created a cluster key; task sets on other machines need a copy of it", path=str(p))
         return cls.load(p)
 
     def mac(self, *parts: bytes) -> bytes:

@@ -28,6 +28,7 @@ from typing import Any
 from rce import tls as _tls
 from rce.cluster_auth import KEY_ENV, ClusterKey
 from rce.admin_client import AdminClient
+from rce.process import create_private_file
 
 __all__ = ["BIN", "Engine", "start_engine", "wait_file", "command"]
 
@@ -186,10 +187,7 @@ def start_engine(workdir: Path | None = None, *, robot_tasksets: int = 1, contai
     workdir = Path(workdir or tempfile.mkdtemp(prefix="rce-engine-"))
     workdir.mkdir(parents=True, exist_ok=True)
     key_file = workdir / "cluster-key"
-    if not key_file.exists():
-        fd = os.open(key_file, os.O_WRONLY | os.O_CREAT | os.O_EXCL, 0o600)
-        with os.fdopen(fd, "w") as f:
-            f.write(ClusterKey.generate().secret.hex() + "\n")
+    create_private_file(key_file, ClusterKey.generate().secret.hex() + "\n")
     penv = dict(os.environ, RCE_ADMIN_TOKEN=admin_token, RCE_LOG_JSON="1", **{KEY_ENV: str(key_file)},
                 XDG_CONFIG_HOME=str(workdir / "config"), XDG_STATE_HOME=str(workdir / "state"), **(env or {}))
     e = Engine(workdir, penv, admin_token=admin_token, master_args=tuple(master_args), cluster_key_file=key_file)

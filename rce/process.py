@@ -1,8 +1,10 @@
-"""What every rce process entry point shares: the ready file and the run/exit wrapper."""
+"""What every rce process entry point shares: the ready file, private (secret) files, and the run/exit
+wrapper."""
 from __future__ import annotations
 
 import asyncio
 import json
+import os
 import sys
 from pathlib import Path
 from typing import Any, Awaitable, Callable
@@ -18,6 +20,24 @@ def write_ready_file(path: Path | None, data: dict) -> None:
     tmp = path.with_suffix(".tmp")
     tmp.write_text(json.dumps(data))
     tmp.replace(path)
+
+
+def create_private_file(path: Path, text: str) -> bool:
+    """Create ``path`` holding ``text``, mode 0600 (its directory created 0700 if missing), unless
+    it exists. Atomic: a complete file appears, or another process's, created first, is kept.
+    Returns whether this call created it. For secrets: the admin token, the cluster key."""
+    path.parent.mkdir(parents=True, exist_ok=True, mode=0o700)
+    tmp = path.with_name(f".{path.name}.{os.getpid()}.tmp")
+    fd = os.open(tmp, os.O_WRONLY | os.O_CREAT | os.O_TRUNC, 0o600)
+    with os.fdopen(fd, "w") as f:
+        f.write(text)
+    try:
+        os.link(tmp, path)          # fails if the file exists: theirs is kept
+        return True
+    except FileExistsError:
+        return False
+    finally:
+        os.unlink(tmp)
 
 
 def run_loop(coro: Awaitable[Any]) -> Any:

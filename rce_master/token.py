@@ -6,6 +6,7 @@ import secrets
 from pathlib import Path
 
 from rce.admin_client import TOKEN_ENV, token_file
+from rce.process import create_private_file
 
 
 def load_or_create(path: Path | None) -> str:
@@ -15,11 +16,6 @@ def load_or_create(path: Path | None) -> str:
     if env:
         return env
     path = path or token_file()
-    if path.exists():
-        return path.read_text().strip()
-    path.parent.mkdir(parents=True, exist_ok=True)
-    token = secrets.token_urlsafe(24)
-    fd = os.open(path, os.O_WRONLY | os.O_CREAT | os.O_TRUNC, 0o600)
-    with os.fdopen(fd, "w") as f:
-        f.write(token + "\n")
-    return token
+    if not path.exists():
+        create_private_file(path, secrets.token_urlsafe(24) + "\n")
+    return path.read_text().strip()

@@ -27,7 +27,7 @@ from rce.protocol.frames import DEFAULT_EXPIRY
 from rce.protocol.limits import DEFAULT_MAX_PENDING_TOTAL, PartBudget
 from rce.protocol.resume import DEFAULT_GRACE, DEFAULT_RESUME_BUFFER
 from rce.protocol.session import DEFAULT_MAX_MESSAGE, DEFAULT_QUEUE_SIZE, RobotSession, robot_interface_type
-from rce_robot.front_door import peer_address, throttled
+from rce_robot.front_door import master_away, peer_address, throttled
 from rce_robot.interfaces import RobotInterface
 from rce_robot.namespace import CLOSE_POLICY, RobotNamespace
 from rce_robot.parse_pool import ParsePool
@@ -36,8 +36,6 @@ from rce_robot.rosbridge import RosbridgeServer
 from rce_robot.rosbridge_session import RosbridgeSession
 
 log = get_logger("rce.robot")
-MASTER_AWAY_RETRY_AFTER = 5   # s, Retry-After of the 503 a connecting robot gets while the master is away (as the
-                              # master's own 503 while task sets are absent)
 PING_INTERVAL = 20.0     # s between websocket pings to a robot
 PING_TIMEOUT = 60.0      # s a robot may leave a ping unanswered before its link counts as lost (slow links)
 WS_MAX_QUEUE = 64        # frames the websocket reads ahead of the session
@@ -220,7 +218,7 @@ class RobotEndpoint:
         q = {k: v[0] for k, v in parse_qs(urlsplit(request.path).query, encoding="latin-1").items()}
         if "session" in q:         # a resume needs no master: the session and its token are here
             return self._resume(connection, q)
-        if (away := self._master_away(connection)) is not None:
+        if (away := master_away(connection, self.master)) is not None:
             return away
         missing = [k for k in ("userID", "robotID", "password") if not q.get(k)]
         if missing:
@@ -302,14 +300,6 @@ class RobotEndpoint:
         log.info("robot disconnected", user=user, robot=robot)
 
     # -- the master link ---------------------------------------------------------------------------
-    def _master_away(self, connection):
-        """While the master is away a robot cannot be authenticated: 503 with Retry-After."""
-        if self.master is not None and self.master.available:
-            return None
-        resp = connection.respond(HTTPStatus.SERVICE_UNAVAILABLE, "the master is unavailable; try again later\n")
-        resp.headers["Retry-After"] = str(MASTER_AWAY_RETRY_AFTER)
-        return resp
-
     def _report(self) -> dict:
         """What this task set holds, for re-registering: its robots (rosbridge clients too, marked with
         their ``rosbridge`` container) and robot-side interfaces."""

@@ -25,7 +25,7 @@ from rce.errors import AuthError, NotFound, RCEError, Throttled
 from rce.log import get_logger
 from rce.masterlink import MasterLink
 from rce.tasks import Tasks
-from rce_robot.front_door import peer_address, throttled
+from rce_robot.front_door import master_away, peer_address, throttled
 from rce_robot.interfaces import RobotInterface
 from rce_robot.rosbridge_session import RosbridgeSession
 
@@ -96,8 +96,8 @@ class RosbridgeServer:
         password = q["password"].lower()
         if len(password) != 64 or any(c not in "0123456789abcdef" for c in password):
             return connection.respond(HTTPStatus.BAD_REQUEST, "password must be the hex SHA-256 digest (64 digits)\n")
-        if not self.master.available:
-            return connection.respond(HTTPStatus.SERVICE_UNAVAILABLE, "the master is unavailable; try again later\n")
+        if (away := master_away(connection, self.master)) is not None:
+            return away
         user, robot, ctag = q["userID"], q["robotID"], q["container"]
         steps = ((HTTPStatus.UNAUTHORIZED, "auth", {"user": user, "robot": robot, "password": password,
                                                     "addr": peer_address(connection)}),
