@@ -192,6 +192,11 @@ def grant_proof(token: bytes, nonce: bytes, src: int, dst: int) -> bytes:
     return _mac(token, b"grant", nonce, f"{src}>{dst}".encode())
 
 
+def grant_frame(token: bytes, nonce: bytes, src: int, dst: int) -> dict:
+    """The grant control frame ``{"grant": [src, dst], "proof": hex}`` for :func:`grant_proof`."""
+    return {"grant": [src, dst], "proof": grant_proof(token, nonce, src, dst).hex()}
+
+
 def check_grant(data_key: bytes | None, nonce: bytes, msg: dict) -> tuple[int, int]:
     """(acceptor) The ``(src, dst)`` a grant frame ``{"grant": [src, dst], "proof": hex}`` proves,
     under this endpoint's ``data_key`` and the link's ``nonce``. Raises :class:`AuthFailed`

@@ -23,6 +23,13 @@ Only peers the master introduced send (:mod:`rce.cluster_auth`, "Data-plane cred
 - a link that has no valid grant within :data:`GRANT_TIMEOUT`, or beyond :data:`MAX_ACCEPTED`
   links, is closed (counted in ``unauthenticated``).
 
+Direct links (a node's shortcut past its environment, :mod:`rce_container.direct_routes`): a
+dialler that was granted ``(x, dst)`` on a link speaks for interface ``x`` and may *claim* it,
+``{"claim": x}``: from then on this plane sends what its interfaces send to ``x`` on that
+accepted link, instead of dialling ``x``'s own address; ``{"release": x}`` ends the claim and is
+answered ``{"released": x}`` (every frame for ``x`` sent before it has gone ahead). A claim
+without such a grant closes the link (``unauthenticated``); claims end with their link.
+
 What receives frames registers here by id as a :class:`Receiver` (the interfaces of
 :mod:`rce.interfaces`). Outgoing links are bounded (``max_buffer`` bytes waiting in the
 socket, or in the backlog while the link connects); a message that would pass the bound
@@ -99,7 +106,7 @@ class _Dialled:
     def _on_frame(self, f: framing.DataFrame | dict) -> None:
         if isinstance(f, dict):
             if self.nonce is None and "nonce" in f:
-                self._ready(_nonce(f["nonce"]))
+                self._ready(parse_nonce(f["nonce"]))
                 return
             raise ProtocolError(f"data link to {self.addr}: unexpected control frame {str(f)[:120]}")
         if f.op in (framing.SRV_RESP, framing.SRV_ERR) and settle_reply(self.plane.calls, f):
@@ -133,9 +140,8 @@ class _Dialled:
         if token is None:
             log.debug("no credential for a connection; frame dropped", peer=self.addr, src=pair[0], dst=pair[1])
             return False
-        proof = cluster_auth.grant_proof(token, self.nonce, *pair).hex()
         try:
-            self.link.send(framing.encode_control({"grant": list(pair), "proof": proof}))
+            self.link.send(framing.encode_control(cluster_auth.grant_frame(token, self.nonce, *pair)))
         except (LinkFull, Unavailable):
             return False
         self.granted.add(pair)
@@ -146,7 +152,8 @@ class _Dialled:
             self.link.close()
 
 
-def _nonce(text: object) -> bytes:
+def parse_nonce(text: object) -> bytes:
+    """The nonce of an acceptor's ``{"nonce": hex}`` frame. Raises :class:`ProtocolError`."""
     try:
         nonce = bytes.fromhex(text) if isinstance(text, str) else b""
     except ValueError:
@@ -163,22 +170,54 @@ class _Accepted:
         self.plane = plane
         self.nonce = secrets.token_bytes(cluster_auth.NONCE_BYTES)
         self.granted: set[Pair] = set()
+        self.claims: set[int] = set()
         self.warned = False
         self.link = FramedLink(reader, writer, name=f"data link from {writer.get_extra_info('peername')}",
-                               on_frame=self._on_frame, on_close=lambda _l: plane._accepted.discard(self),
+                               on_frame=self._on_frame, on_close=self._closed,
                                max_frame=plane.max_frame, max_buffer=plane.max_buffer)
+
+    def _closed(self, _link: FramedLink) -> None:
+        self.plane._accepted.discard(self)
+        for iid in self.claims:
+            if self.plane._claims.get(iid) is self:
+                del self.plane._claims[iid]
+        self.claims.clear()
 
     def _on_frame(self, f: framing.DataFrame | dict) -> None:
         if isinstance(f, framing.DataFrame):
             self.plane._dispatch(self, f)
             return
         try:
-            self.granted.add(cluster_auth.check_grant(self.plane.data_key, self.nonce, f))
+            if "claim" in f:
+                self._claim(f["claim"])
+            elif "release" in f:
+                self._release(f["release"])
+            else:
+                self.granted.add(cluster_auth.check_grant(self.plane.data_key, self.nonce, f))
         except (cluster_auth.AuthFailed, ProtocolError) as e:
             self.plane.unauthenticated += 1
             log.warning("unauthenticated data link closed", plane=self.plane.name, peer=self.link.peername,
                         reason=e.message)
             self.link.close(e.message)
+
+    def _claim(self, iid: object) -> None:
+        """The dialler speaks for interface ``iid`` (it was granted a connection from it)."""
+        if not isinstance(iid, int) or not any(src == iid for src, _dst in self.granted):
+            raise ProtocolError(f"claim of interface {str(iid)[:40]} without a grant from it on this link")
+        old = self.plane._claims.get(iid)
+        if old is not None and old is not self:
+            old.claims.discard(iid)
+        self.plane._claims[iid] = self
+        self.claims.add(iid)
+
+    def _release(self, iid: object) -> None:
+        if isinstance(iid, int) and self.plane._claims.get(iid) is self:
+            del self.plane._claims[iid]
+        self.claims.discard(iid)
+        try:
+            self.link.send(framing.encode_control({"released": iid}))
+        except (LinkFull, Unavailable):
+            pass                          # the link is saturated or closing: its end is its answer
 
     def refuse(self, f: framing.DataFrame, why: str) -> None:
         """Drop a frame whose sender is not connected to its interface (counted; the first logged)."""
@@ -212,6 +251,7 @@ class DataPlane:
         self.tasks = self.responder.tasks
         self._dialled: dict[str, _Dialled] = {}
         self._accepted: set[_Accepted] = set()
+        self._claims: dict[int, _Accepted] = {}      # interface id -> the accepted link that claimed it
         self._server: asyncio.AbstractServer | None = None
         # counters (metrics and status)
         self.msgs_in = self.msgs_out = self.bytes_in = self.bytes_out = self.dropped = 0
@@ -252,7 +292,17 @@ class DataPlane:
     # -- sending -------------------------------------------------------------------------------
     def send(self, addr: str, op: int, dst: int, src: int, call_id: int, payload: bytes | memoryview) -> bool:
         """Send one DATA frame from local interface ``src`` to interface ``dst`` at ``addr``; False
-        (and counted) if dropped: no credential for ``src -> dst``, or the link is saturated."""
+        (and counted) if dropped: no credential for ``src -> dst``, or the link is saturated.
+        An interface claimed on an accepted link (module doc) gets it there instead of at ``addr``."""
+        claim = self._claims.get(dst)
+        if claim is not None:
+            if (src, dst) in self.credentials and claim.link.offer(
+                    framing.encode_data_header(op, dst, src, call_id, len(payload)), payload):
+                self.msgs_out += 1
+                self.bytes_out += len(payload)
+                return True
+            self.dropped += 1
+            return False
         d = self._dialled.get(addr)
         if d is None:
             d = self._dialled[addr] = _Dialled(self, addr)
@@ -339,9 +389,11 @@ class DataPlane:
                              f"service call to interface {iid}")
 
     def stats(self) -> dict:
-        """``{msgs_in, msgs_out, bytes_in, bytes_out, dropped, refused, unauthenticated, links}``:
+        """``{msgs_in, msgs_out, bytes_in, bytes_out, dropped, refused, unauthenticated, links, claims}``:
         ``refused`` frames from senders not connected to their interface, ``unauthenticated``
-        links closed for a wrong credential, ``links`` outgoing."""
+        links closed for a wrong credential, ``links`` outgoing, ``claims`` interfaces reached on
+        direct links (module doc)."""
         return {"msgs_in": self.msgs_in, "msgs_out": self.msgs_out, "bytes_in": self.bytes_in,
                 "bytes_out": self.bytes_out, "dropped": self.dropped, "refused": self.refused,
-                "unauthenticated": self.unauthenticated, "links": len(self._dialled)}
+                "unauthenticated": self.unauthenticated, "links": len(self._dialled),
+                "claims": len(self._claims)}

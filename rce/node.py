@@ -39,6 +39,7 @@ from rce.errors import MessageError, NotFound, RCEError, Unavailable
 from rce.link import Responder, settle_reply
 from rce.messages import MessageRegistry, default_registry, wire_name
 from rce.naming import join, resolve
+from rce.node_links import DirectLinks
 from rce.package_path import load_package_types, search_path
 from rce.pending import PendingCalls
 from rce.process import run_loop
@@ -98,23 +99,30 @@ class Publisher:
         drain (backpressure: nothing is lost). Raises :class:`MessageError` if it does not fit
         the topic's class."""
         payload = self.node._encode(self.typename, msg)
-        self.node._peer.send_raw(self._head(payload), payload)
+        direct = self.node._direct
+        src = direct.publish(self.handle, payload) if direct is not None else 0
+        if src >= 0:
+            self.node._peer.send_raw(self._head(payload, src), payload)
         self.published += 1
         await self.node._peer.link.drain()
+        if direct is not None:
+            await direct.drain(self.handle)
 
     def publish_nowait(self, msg: Any) -> bool:
         """Publish without waiting for the socket to drain (for callbacks). A message that would
         pass the link's bound (the bus is not reading) is dropped, counted in ``dropped``, and
         False returned."""
         payload = self.node._encode(self.typename, msg)
-        if not self.node._peer.link.offer(self._head(payload), payload):
+        src = self.node._direct.publish(self.handle, payload) if self.node._direct is not None else 0
+        if src >= 0 and not self.node._peer.link.offer(self._head(payload, src), payload):
             self.dropped += 1
             return False
         self.published += 1
         return True
 
-    def _head(self, payload: bytes) -> bytes:
-        return framing.encode_data_header(framing.MSG, self.handle, 0, 0, len(payload))
+    def _head(self, payload: bytes, src: int = 0) -> bytes:
+        """``src``: 0, or the direct route's version (:mod:`rce.node_links`)."""
+        return framing.encode_data_header(framing.MSG, self.handle, src, 0, len(payload))
 
     async def unregister(self) -> None:
         await self.node._peer.call("unadvertise", handle=self.handle)
@@ -183,6 +191,7 @@ class Node:
         self.registry = registry
         self.full_name = join(namespace, name)
         self._peer: rpc.RpcPeer | None = None
+        self._direct: DirectLinks | None = None      # direct links, when the bus offers them
         self._subs: dict[int, Subscriber] = {}
         self._services: dict[int, tuple[Callable, str, str]] = {}
         self._calls = PendingCalls(f"the bus (node {self.full_name})")
@@ -194,8 +203,18 @@ class Node:
     async def _connect(self) -> None:
         self._peer = await rpc.connect_unix(self.bus_path, name=f"node {self.full_name}", on_data=self._on_data,
                                             on_close=lambda _p: self._shutdown.set())
-        await self._peer.call("hello", name=self.full_name, pid=os.getpid(),
-                              container=os.environ.get("RCE_CONTAINER"), token=self.bus_token)
+        r = await self._peer.call("hello", name=self.full_name, pid=os.getpid(),
+                                  container=os.environ.get("RCE_CONTAINER"), token=self.bus_token, direct=True)
+        key = r.get("fd_key") if isinstance(r, dict) else None
+        if isinstance(key, str):             # the environment offers direct links (rce.node_links)
+            direct = DirectLinks(self)
+            self._peer.handlers.update(direct.handlers())
+            try:
+                await direct.open_channel(self.bus_path, key)
+            except OSError as e:
+                print(f"[{self.full_name}] no direct links (all traffic by the bus): {e}", file=sys.stderr)
+                return
+            self._direct = direct
 
     def resolve(self, name: str) -> str:
         """Resolve a graph name for this node (global, relative or ``~private``)."""
@@ -320,6 +339,8 @@ class Node:
         """Disconnect from the bus; subscriber callbacks and service handlers stop."""
         self._shutdown.set()
         await self.tasks.cancel_all()
+        if self._direct is not None:
+            self._direct.close()
         if self._peer:
             await self._peer.close()
 

@@ -42,6 +42,7 @@ from rce.messages import MessageRegistry, default_registry, wire_name
 from rce.naming import resolve
 from rce.package_path import load_package_types
 from rce_container import sandbox as sandboxes
+from rce_container.direct_routes import DirectRoutes
 from rce_container.interfaces import BusInterface, make_interface
 from rce_container.launcher import LOG_LINES, Launcher
 from rce_container.ros1_graph import Ros1Graph
@@ -73,7 +74,9 @@ class Container:
         self.workdir, socket = container_paths(env.runtime_dir, env.socket_dir, cid)
         self.socket = str(socket)
         token = secrets.token_hex(BUS_TOKEN_BYTES)     # only this container's nodes get it (RCE_BUS_TOKEN)
-        self.server = BusServer(env.bus, token=token)
+        self.server = BusServer(env.bus, token=token, direct=env.direct is not None)
+        if env.direct is not None:
+            self.server.on_direct_closed.append(env.direct.link_closed)
         self.sandbox = env.sandbox_cls(cid, ctag, limits, self.workdir, grace=env.grace, bus_socket=self.socket,
                                        scope=env.scope)
         self.launcher = Launcher(self.sandbox, self.socket, ctag, self._status, bus_token=token,
@@ -177,13 +180,14 @@ class Environment:
     ``env_id``: the task set's id for it; ``runtime_dir``: where container dirs and sockets go;
     ``bind``/``advertise_host``: data-plane listener and the address peers dial; ``sandbox``:
     sandbox kind (:func:`rce_container.sandbox.select`); ``grace``: s between SIGTERM and
-    SIGKILL when nodes are stopped."""
+    SIGKILL when nodes are stopped; ``direct``: give nodes direct links
+    (:mod:`rce_container.direct_routes`; off: ``RCE_DIRECT_LINKS=0``)."""
 
     def __init__(self, env_id: int, runtime_dir: str | Path, *, socket_dir: str | Path | None = None,
                  bind: str = "127.0.0.1",
                  advertise_host: str | None = None, sandbox: str = "auto",
                  max_frame: int = framing.DEFAULT_MAX_FRAME, grace: float = sandboxes.DEFAULT_GRACE,
-                 registry: MessageRegistry | None = None, scope: str | None = None):
+                 registry: MessageRegistry | None = None, scope: str | None = None, direct: bool = True):
         self.env_id = env_id
         self.runtime_dir = Path(runtime_dir)
         self.socket_dir = Path(socket_dir or runtime_dir)
@@ -197,6 +201,7 @@ class Environment:
         self.plane = DataPlane(f"env{env_id}", max_frame=max_frame)
         self.containers: dict[int, Container] = {}
         self.interfaces: dict[int, BusInterface] = {}
+        self.direct = DirectRoutes(self) if direct else None
         self.peer: rpc.RpcPeer | None = None
         self.done = asyncio.Event()
         self.t0 = time.monotonic()
@@ -211,6 +216,8 @@ class Environment:
         except MessageError as e:   # one broken package must not take every container down
             log.warning("cannot load the message types of a package", reason=e.message)
         await self.plane.listen(self.bind, 0, self.advertise_host)
+        if self.direct is not None:
+            self.direct.start()
         self.template.start_soon()
         await self.template.wait_started()      # a spare environment is warm once its template is
         handlers = {op[3:]: getattr(self, op) for op in dir(self) if op.startswith("op_")}
@@ -226,6 +233,8 @@ class Environment:
             return
         self._closed = True
         await self._close_containers()
+        if self.direct is not None:
+            await self.direct.close()
         await self.template.close()
         await self.plane.close()
         if self.peer:
@@ -242,12 +251,17 @@ class Environment:
             raise NotFound(f"container {a.get('cid')!r} is not in this environment")
         return c
 
+    def _touch(self) -> None:
+        if self.direct is not None:
+            self.direct.touch()
+
     async def drop_interface(self, iface: BusInterface) -> None:
         self.interfaces.pop(iface.iid, None)
         c = self.containers.get(iface.cid)
         if c:
             c.interfaces.pop(iface.iid, None)
         await iface.stop()
+        self._touch()
 
     # -- containers ----------------------------------------------------------------------------
     async def op_add_container(self, a: dict) -> dict:
@@ -367,6 +381,7 @@ class Environment:
             raise RequestError(f"interface id {iid} is already in use by {old.tag!r}")
         await iface.start()
         self.interfaces[iid] = c.interfaces[iid] = iface
+        self._touch()
         log.info("interface added", cid=c.cid, iid=iid, tag=iface.tag, kind=iface.kind, cls=iface.cls,
                  addr=iface.addr)
         return {"iid": iid, "addr": iface.addr}
@@ -396,11 +411,13 @@ class Environment:
         """``{cid, iid, peer_iid, peer_addr, token}``: connect an interface to a peer interface
         (``token``: the master's credential for sending to it)."""
         self._interface(a).connect(int(a["peer_iid"]), a["peer_addr"], token_of(a))
+        self._touch()
         return {}
 
     async def op_disconnect(self, a: dict) -> dict:
         """``{cid, iid, peer_iid}``: drop one connection (no error if absent)."""
         self._interface(a).disconnect(int(a["peer_iid"]))
+        self._touch()
         return {}
 
     # -- bus tools -----------------------------------------------------------------------------
@@ -491,6 +508,8 @@ class Environment:
         """
         c = self._container(a)
         await c.ros1.sync()
+        if self.direct is not None:
+            await self.direct.collect()
         topics = self.bus.topics.values()
         env_mem = measure([os.getpid()])
         return {**c.stats(), "sandbox_info": c.sandbox.info(), "environment": {
@@ -502,14 +521,16 @@ class Environment:
                     "refused": sum(c.server.refused for c in self.containers.values()),
                     "nodes": len(self.bus.nodes), "messages": sum(t.messages for t in topics),
                     "bytes": sum(t.bytes for t in topics), "dropped": sum(t.dropped for t in topics)},
-            "dataplane": self.plane.stats()}, **({"ros1": c.ros1.info()} if c.ros1.ntags else {})}
+            "dataplane": self.plane.stats(),
+            "direct": self.direct.stats() if self.direct is not None else {"enabled": False}},
+            **({"ros1": c.ros1.info()} if c.ros1.ntags else {})}
 
 
 async def run(args: argparse.Namespace) -> int:
     """Start the environment, serve until the link closes or a signal; returns the exit code."""
     env = Environment(args.env_id, args.runtime_dir, socket_dir=args.socket_dir, bind=args.bind,
                       advertise_host=args.advertise_host, sandbox=args.sandbox, max_frame=args.max_frame,
-                      grace=args.grace, scope=args.scope)
+                      grace=args.grace, scope=args.scope, direct=os.environ.get("RCE_DIRECT_LINKS", "1") != "0")
     loop = asyncio.get_running_loop()
     for sig in (signal.SIGINT, signal.SIGTERM):
         loop.add_signal_handler(sig, env.done.set)

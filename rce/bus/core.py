@@ -13,6 +13,7 @@ from __future__ import annotations
 
 import asyncio
 import itertools
+from collections.abc import Collection
 from dataclasses import dataclass, field
 from typing import Any, Awaitable, Callable
 
@@ -71,6 +72,7 @@ class Bus:
         self.params: dict[str, Any] = {}
         self.nodes: dict[str, dict] = {}          # node name -> info (pid, ...)
         self.on_change: list[Callable[[], None]] = []
+        self.on_graph: list[Callable[[], None]] = []   # a topic's publishers or subscriptions changed
         self._ids = itertools.count(1)
         self._service_added: asyncio.Event | None = None
 
@@ -90,6 +92,7 @@ class Bus:
         Raises :class:`MessageError` if the topic exists with another type."""
         t = self._topic(name, type_)
         t.publishers[owner] = t.publishers.get(owner, 0) + 1
+        self._graph_changed()
         return t
 
     def unadvertise(self, name: str, owner: str) -> None:
@@ -100,12 +103,14 @@ class Bus:
             if t.publishers[owner] <= 0:
                 del t.publishers[owner]
             self._gc(t)
+            self._graph_changed()
 
     def subscribe(self, name: str, type_: str, deliver: Deliver, owner: str, queue_size: int = 100) -> Subscription:
         """Subscribe ``deliver`` to ``name``. Raises :class:`MessageError` on a type mismatch."""
         t = self._topic(name, type_)
         sub = Subscription(t, deliver, owner, max(1, int(queue_size)))
         t.subscriptions.append(sub)
+        self._graph_changed()
         return sub
 
     def unsubscribe(self, sub: Subscription) -> None:
@@ -113,18 +118,26 @@ class Bus:
         if sub in sub.topic.subscriptions:
             sub.topic.subscriptions.remove(sub)
             self._gc(sub.topic)
+            self._graph_changed()
+
+    def _graph_changed(self) -> None:
+        for cb in self.on_graph:
+            cb()
 
     def _gc(self, t: Topic) -> None:
         if not t.publishers and not t.subscriptions and self.topics.get(t.name) is t:
             del self.topics[t.name]
 
-    def publish(self, topic: Topic, payload: bytes | memoryview) -> int:
+    def publish(self, topic: Topic, payload: bytes | memoryview, skip: Collection[Subscription] = ()) -> int:
         """Deliver ``payload`` (a serialized message; a view must stay valid: subscribers may keep
-        it) to every subscriber of ``topic``; returns how many took it."""
+        it) to every subscriber of ``topic`` but those in ``skip`` (its publisher reached them
+        directly); returns how many took it."""
         topic.messages += 1
         topic.bytes += len(payload)
         n = 0
         for sub in topic.subscriptions:
+            if skip and sub in skip:
+                continue
             if sub.deliver(payload):
                 sub.received += 1
                 n += 1

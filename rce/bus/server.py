@@ -24,6 +24,13 @@ Who may join (a container's bus: ``token`` and ``uids`` given): the socket file 
 but ``hello`` is served and DATA frames are ignored; a wrong or missing token gets an
 :class:`~rce.errors.AuthError` and the link is closed. Each refusal is logged and counted
 (:attr:`BusServer.refused`).
+
+Direct links (a server with ``direct=True``, a container's; :mod:`rce_container.direct_routes`):
+a node that says ``direct: true`` in its hello gets an ``fd_key`` (128 random bits) and opens a
+second connection whose only frame is the notification ``fd_channel {key}``. On that channel
+the environment passes the node connected data-plane sockets (``SCM_RIGHTS``, unix(7)), each
+with its 8-byte link id. A MSG frame whose ``src`` is not 0 names the route version its node
+published it under: the subscriptions that version reached directly are skipped here.
 """
 from __future__ import annotations
 
@@ -31,6 +38,7 @@ import asyncio
 import hmac
 import itertools
 import os
+import secrets
 import socket
 import struct
 from collections.abc import Collection
@@ -67,6 +75,10 @@ class _Session:
         self.calls = PendingCalls(f"node {self.owner}")
         self.responder = Responder(f"bus {self.bus.name} for {self.owner}", peer.tasks)
         self.ids = itertools.count(1)
+        self.direct = False                # the node takes direct links (hello ``direct``)
+        self.fd_sock: socket.socket | None = None          # its fd channel, once it has opened it
+        self.channel: RpcPeer | None = None
+        self.routes: dict[int, dict[int, frozenset[Subscription]]] = {}   # handle -> version -> reached
         # what this node published (in) and was delivered (out), for per-node statistics
         self.msgs_in = self.bytes_in = self.msgs_out = self.bytes_out = 0
         peer.on_close = lambda _p: self.close()
@@ -74,6 +86,7 @@ class _Session:
             self._admit()
         else:                              # nothing but hello until the token is shown
             peer.handlers["hello"] = self.op_hello
+        peer.handlers["fd_channel"] = self.op_fd_channel
 
     def _admit(self) -> None:
         self.peer.handlers.update({op[3:]: getattr(self, op) for op in dir(self) if op.startswith("op_")})
@@ -102,8 +115,28 @@ class _Session:
         self.node = a.get("name") or self.owner
         self.owner = self.calls.name = self.node
         self.bus.nodes[self.node] = {"pid": a.get("pid"), "container": a.get("container")}
+        reply = {"bus": self.bus.name}
+        if self.server.direct and a.get("direct") is True and not self.direct:
+            self.direct = True
+            reply["fd_key"] = key = secrets.token_hex(16)
+            self.server.fd_keys[key] = self
         self.server.changed()
-        return {"bus": self.bus.name}
+        return reply
+
+    async def op_fd_channel(self, a: dict) -> None:
+        """``{key}`` (a notification, the only frame of a node's second connection): this
+        connection is the fd channel of the session whose hello got ``fd_key`` = ``key``."""
+        owner = self.server.fd_keys.pop(a.get("key"), None) if isinstance(a.get("key"), str) else None
+        if owner is None or owner.fd_sock is not None or self.node is not None:
+            self.server.refuse("an fd channel with an unknown key")
+            self.peer.tasks.spawn(self._drop(), name="drop a refused fd channel")
+            return
+        self.server.sessions.discard(self)          # a channel, not a node
+        self.peer.handlers.clear()
+        sock = self.peer.link.writer.get_extra_info("socket")
+        owner.fd_sock = socket.socket(fileno=os.dup(sock.fileno()))
+        owner.channel = self.peer
+        self.server.changed()
 
     async def op_advertise(self, a: dict) -> int:
         t = self.bus.advertise(a["topic"], a["type"], self.owner)
@@ -171,6 +204,11 @@ class _Session:
         self.resolved[h] = s.name
         return {"handle": h, "type": s.type}
 
+    async def op_direct_closed(self, a: dict) -> None:
+        """``{link}`` (a notification): the node's direct link ``link`` ended."""
+        for cb in self.server.on_direct_closed:
+            cb(self, int(a["link"]))
+
     async def op_get_param(self, a: dict):
         return self.bus.get_param(a["name"])
 
@@ -190,7 +228,10 @@ class _Session:
             if t is not None:
                 self.msgs_in += 1
                 self.bytes_in += len(f.payload)
-                self.bus.publish(t, f.payload)      # a view nobody writes again (rce.framing): no copy
+                skip = ()
+                if f.src:                            # published under a direct route: skip what it reached
+                    skip = self.routes.get(f.dst, {}).get(f.src, ())
+                self.bus.publish(t, f.payload, skip)      # a view nobody writes again (rce.framing): no copy
         elif f.op in (framing.SRV_RESP, framing.SRV_ERR):
             settle_reply(self.calls, f)
         elif f.op == framing.SRV_REQ:
@@ -225,6 +266,12 @@ class _Session:
         for name in self.services.values():
             self.bus.unadvertise_service(name, self.owner)
         self.calls.fail_all(RequestError(f"node {self.owner!r} left while serving a call"))
+        self.routes.clear()
+        if self.fd_sock is not None:
+            self.fd_sock.close()
+            self.fd_sock = None
+            self.channel.link.close("its node left")
+        self.server.fd_keys = {k: s for k, s in self.server.fd_keys.items() if s is not self}
         if self.node:
             self.bus.nodes.pop(self.node, None)
         self.pubs, self.subs, self.services = {}, {}, {}
@@ -238,11 +285,15 @@ class BusServer:
     ``token``: the bus token a node must give in ``hello`` (None: no check, e.g. a robot's
     local bus under ``rce-ros``, whose socket only its user can reach); ``uids``: the uids a
     connecting process may have (None: any); ``owner``: uid that owns the socket file
-    (default: this process's). ``refused`` counts the connections turned away."""
+    (default: this process's); ``direct``: offer nodes direct links (module doc). ``refused``
+    counts the connections turned away."""
 
     def __init__(self, bus: Bus, max_buffer: int = DEFAULT_MAX_BUFFER, *, token: str | None = None,
-                 uids: Collection[int] | None = None, owner: int | None = None):
+                 uids: Collection[int] | None = None, owner: int | None = None, direct: bool = False):
         self.bus = bus
+        self.direct = direct
+        self.fd_keys: dict[str, _Session] = {}
+        self.on_direct_closed: list = []     # cb(session, link id): a node's direct link ended
         self.max_buffer = max_buffer
         self.token, self.owner = token, owner
         self.uids = None if uids is None else frozenset(uids)

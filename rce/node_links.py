@@ -1,0 +1,277 @@
+"""A node's direct links: data-plane links its environment opened for it, so that its topic
+messages go straight to the robot endpoint (or another environment) and back, past the
+environment process, as TCPROS goes from publisher to subscriber past the ROS master.
+
+The environment decides every route (:mod:`rce_container.direct_routes`); this module only
+follows its orders, which come as requests on the node's bus link:
+
+- ``direct_link {link}``: the socket of link ``link`` was passed on the fd channel (its
+  handshake done: the far plane's nonce read). The node wraps it in a
+  :class:`~rce.link.FramedLink`.
+- ``direct_publish {handle, version, targets: [[link, dst, src]], local, grants}``: from now on
+  publisher ``handle`` sends each message as ``MSG dst src`` on each target's link, and to the
+  bus as well only when ``local`` (other subscribers are there), marked with ``version`` so the
+  bus skips what this route reached. No targets: back to the bus alone.
+- ``direct_subscribe {link, iid, peers, handles, grants}``: claim interface ``iid`` on ``link``
+  (:mod:`rce.dataplane`, "Direct links"): its messages from ``peers`` arrive here and go to
+  subscriber ``handles``. ``direct_unsubscribe {link, iid}`` releases the claim.
+- ``direct_counts {}`` -> ``{iid: [messages, bytes, dropped]}`` per interface this node stood
+  in for (the environment adds them to the interfaces' counters).
+
+``grants`` are the data-plane grant frames (:mod:`rce.cluster_auth`) the environment computed
+for the link's nonce; the node sends them before the first frame that needs them. When a link
+ends, every route and claim on it ends with it (messages go by the bus again) and the node
+notifies ``direct_closed {link}``.
+
+The fd channel (:mod:`rce.bus.server`): a second connection to the bus socket on which the
+environment sends ``SCM_RIGHTS`` (unix(7)) messages of an 8-byte link id and one socket.
+"""
+from __future__ import annotations
+
+import asyncio
+import socket
+import struct
+from collections import deque
+from typing import TYPE_CHECKING
+
+from rce import framing
+from rce.errors import ProtocolError, Timeout, Unavailable
+from rce.link import STREAM_LIMIT, FramedLink, LinkFull
+from rce.log import get_logger
+
+if TYPE_CHECKING:
+    from rce.node import Node
+
+log = get_logger("rce.node.direct")
+
+LINK_ID = struct.Struct("!Q")     # the id that goes with each socket on the fd channel
+FD_WAIT = 10.0                    # s ``direct_link`` waits for its socket on the fd channel
+MAX_FDS = 16                      # sockets taken per read of the fd channel
+MAX_BUFFER = 16 * 1024 * 1024     # bytes that may wait unread per direct link (then messages drop, counted)
+
+
+class _Route:
+    """A publisher's direct route: ``targets`` ``(link, dst, src, counts)``; ``local``: the bus
+    has other subscribers too; ``version``: marks its bus frames."""
+
+    __slots__ = ("version", "targets", "local")
+
+    def __init__(self, version: int, targets: list, local: bool):
+        self.version, self.targets, self.local = version, targets, local
+
+
+class DirectLinks:
+    """The direct links of one node (module doc). ``node``: the :class:`rce.node.Node`."""
+
+    def __init__(self, node: "Node"):
+        self.node = node
+        self.links: dict[int, FramedLink] = {}
+        self.routes: dict[int, _Route] = {}                  # publisher handle -> its route
+        # (link, interface id) -> (its peers, the subscriber handles it feeds)
+        self.claims: dict[tuple[int, int], tuple[frozenset[int], tuple[int, ...]]] = {}
+        self.counts: dict[int, list[int]] = {}               # interface id -> [messages, bytes, dropped]
+        self._channel: socket.socket | None = None
+        self._ids: deque[int] = deque()
+        self._fds: deque[int] = deque()
+        self._buf = b""
+        self._arrived: dict[int, int] = {}                   # link id -> socket fd not yet taken
+        self._waiting: dict[int, asyncio.Future] = {}
+
+    def handlers(self) -> dict:
+        """The bus-link request handlers (op -> coroutine function)."""
+        return {"direct_link": self.op_direct_link, "direct_publish": self.op_direct_publish,
+                "direct_subscribe": self.op_direct_subscribe, "direct_unsubscribe": self.op_direct_unsubscribe,
+                "direct_counts": self.op_direct_counts}
+
+    # -- the fd channel --------------------------------------------------------------------------
+    async def open_channel(self, path: str, key: str) -> None:
+        """Open the fd channel to the bus socket ``path`` and name it with ``key`` (the hello's
+        ``fd_key``). Raises :class:`OSError` if the socket cannot be reached."""
+        loop = asyncio.get_running_loop()
+        sock = socket.socket(socket.AF_UNIX, socket.SOCK_STREAM)
+        sock.setblocking(False)
+        try:
+            await loop.sock_connect(sock, path)
+            await loop.sock_sendall(sock, framing.encode_control({"op": "fd_channel", "args": {"key": key}}))
+        except BaseException:
+            sock.close()
+            raise
+        self._channel = sock
+        loop.add_reader(sock.fileno(), self._readable)
+
+    def _readable(self) -> None:
+        try:
+            data, fds, _flags, _addr = socket.recv_fds(self._channel, 4096, MAX_FDS)
+        except (BlockingIOError, InterruptedError):
+            return
+        except OSError:
+            data, fds = b"", []
+        self._fds.extend(fds)
+        if not data:
+            self._close_channel()
+            return
+        self._buf += data
+        while len(self._buf) >= LINK_ID.size:
+            self._ids.append(LINK_ID.unpack_from(self._buf)[0])
+            self._buf = self._buf[LINK_ID.size:]
+        while self._ids and self._fds:
+            lid, fd = self._ids.popleft(), self._fds.popleft()
+            fut = self._waiting.pop(lid, None)
+            if fut is not None and not fut.done():
+                fut.set_result(fd)
+            else:
+                self._arrived[lid] = fd
+
+    def _close_channel(self) -> None:
+        if self._channel is not None:
+            try:
+                asyncio.get_running_loop().remove_reader(self._channel.fileno())
+            except (RuntimeError, ValueError):
+                pass
+            self._channel.close()
+            self._channel = None
+        for fd in list(self._fds) + list(self._arrived.values()):
+            socket.close(fd)
+        self._fds.clear()
+        self._arrived.clear()
+
+    # -- ops ------------------------------------------------------------------------------------
+    async def op_direct_link(self, a: dict) -> dict:
+        """``{link, name?}``: take the socket of link ``link`` from the fd channel."""
+        lid = int(a["link"])
+        fd = self._arrived.pop(lid, None)
+        if fd is None:
+            fut = self._waiting[lid] = asyncio.get_running_loop().create_future()
+            try:
+                fd = await asyncio.wait_for(fut, FD_WAIT)
+            except asyncio.TimeoutError:
+                raise Timeout(f"the socket of direct link {lid} did not arrive in {FD_WAIT:g} s") from None
+            finally:
+                self._waiting.pop(lid, None)
+        sock = socket.socket(fileno=fd)
+        try:
+            reader, writer = await asyncio.open_connection(sock=sock, limit=STREAM_LIMIT)
+        except BaseException:
+            sock.close()
+            raise
+        old = self.links.pop(lid, None)
+        if old is not None:
+            old.close("replaced")
+        self.links[lid] = FramedLink(reader, writer, name=f"direct link {lid} to {a.get('name', '?')}",
+                                     on_frame=lambda f: self._on_frame(lid, f),
+                                     on_close=lambda _l: self._link_closed(lid),
+                                     max_frame=framing.DEFAULT_MAX_FRAME, max_buffer=MAX_BUFFER).start()
+        return {}
+
+    def _link(self, a: dict) -> FramedLink:
+        link = self.links.get(int(a["link"]))
+        if link is None or link.closed.is_set():
+            raise Unavailable(f"direct link {a['link']} is not open")
+        return link
+
+    def _grant(self, a: dict) -> None:
+        for lid, frame in a.get("grants") or ():
+            self._link({"link": lid}).send(framing.encode_control(frame))
+
+    async def op_direct_publish(self, a: dict) -> dict:
+        """``{handle, version, targets, local, grants}`` (module doc)."""
+        handle = int(a["handle"])
+        self._grant(a)
+        targets = [(self._link({"link": lid}), int(dst), int(src), self.counts.setdefault(int(src), [0, 0, 0]))
+                   for lid, dst, src in a.get("targets") or ()]
+        if targets:
+            self.routes[handle] = _Route(int(a["version"]), targets, bool(a.get("local")))
+        else:
+            self.routes.pop(handle, None)
+        return {}
+
+    async def op_direct_subscribe(self, a: dict) -> dict:
+        """``{link, iid, peers, handles, grants}``: claim interface ``iid`` on ``link``."""
+        link, iid = self._link(a), int(a["iid"])
+        self._grant(a)
+        self.claims[(int(a["link"]), iid)] = (frozenset(int(p) for p in a["peers"]),
+                                               tuple(int(h) for h in a["handles"]))
+        self.counts.setdefault(iid, [0, 0, 0])
+        link.send(framing.encode_control({"claim": iid}))
+        return {}
+
+    async def op_direct_unsubscribe(self, a: dict) -> dict:
+        """``{link, iid}``: release the claim (its entry goes when the far end says ``released``)."""
+        key = (int(a["link"]), int(a["iid"]))
+        link = self.links.get(key[0])
+        if key in self.claims and link is not None and not link.closed.is_set():
+            try:
+                link.send(framing.encode_control({"release": key[1]}))
+                return {}
+            except (LinkFull, Unavailable):
+                link.close("saturated while releasing a claim")
+        self.claims.pop(key, None)
+        return {}
+
+    async def op_direct_counts(self, a: dict) -> dict:
+        """``{}`` -> ``{iid: [messages, bytes, dropped]}`` since the node started."""
+        return {str(iid): c for iid, c in self.counts.items()}
+
+    # -- data -----------------------------------------------------------------------------------
+    def publish(self, handle: int, payload: bytes) -> int:
+        """Send ``payload`` of publisher ``handle`` on its direct route. Returns the ``src`` its
+        bus frame carries: 0 (no route: all by the bus), the route's version (the bus has other
+        subscribers), or -1 (no bus frame needed)."""
+        r = self.routes.get(handle)
+        if r is None:
+            return 0
+        n = len(payload)
+        for link, dst, src, c in r.targets:
+            if link.offer(framing.encode_data_header(framing.MSG, dst, src, 0, n), payload):
+                c[0] += 1
+                c[1] += n
+            else:
+                c[2] += 1
+        return r.version if r.local else -1
+
+    async def drain(self, handle: int) -> None:
+        """Wait for publisher ``handle``'s direct links to drain (backpressure)."""
+        r = self.routes.get(handle)
+        for link, *_ in (r.targets if r else ()):
+            await link.drain()
+
+    def _on_frame(self, lid: int, f: framing.DataFrame | dict) -> None:
+        if isinstance(f, dict):
+            if "released" in f:
+                self.claims.pop((lid, f["released"]), None)
+                return
+            raise ProtocolError(f"direct link {lid}: unexpected control frame {str(f)[:120]}")
+        claim = self.claims.get((lid, f.dst)) if f.op == framing.MSG else None
+        if claim is None or f.src not in claim[0]:
+            self.counts.setdefault(f.dst, [0, 0, 0])[2] += 1     # not for a claim of this link: dropped
+            return
+        payload = bytes(f.payload)
+        subs = self.node._subs
+        for h in claim[1]:
+            sub = subs.get(h)
+            if sub is not None:
+                sub._push(payload)
+        c = self.counts[f.dst]
+        c[0] += 1
+        c[1] += len(payload)
+
+    def _link_closed(self, lid: int) -> None:
+        if self.links.get(lid) is None:
+            return
+        del self.links[lid]
+        for h in [h for h, r in self.routes.items() if any(t[0].closed.is_set() for t in r.targets)]:
+            del self.routes[h]
+        for key in [k for k in self.claims if k[0] == lid]:
+            del self.claims[key]
+        peer = self.node._peer
+        if peer is not None:
+            peer.notify("direct_closed", link=lid)
+
+    def close(self) -> None:
+        """Close every direct link and the fd channel."""
+        for link in list(self.links.values()):
+            link.close("the node closes")
+        self.links.clear()
+        self.routes.clear()
+        self.claims.clear()
+        self._close_channel()

@@ -1,0 +1,318 @@
+"""An environment's direct routes: which topic traffic of its nodes goes straight between the
+node and the far data plane (a robot endpoint, another environment), past this process.
+
+The environment stays the directory, as the ROS master is for TCPROS: it knows the bus graph,
+the interfaces and their connections, and the credentials; the node only carries the bytes
+(:mod:`rce.node_links`). A message that takes a direct route crosses two event loops fewer.
+
+Rules, recomputed whenever the bus graph, an interface or a connection changes:
+
+- **Node -> peers.** For a container-side ``SubscriberInterface`` S on topic T, connected to
+  peer interfaces R at data addresses A: every node that publishes T (and takes direct links)
+  sends each message straight to each R, from S, on its direct link to A. It still sends the
+  message to the bus, marked with the route's version so that the bus skips S, only while T
+  has other subscribers.
+- **Peers -> node.** For a container-side ``PublisherInterface`` X on topic T: while every
+  subscription of T belongs to one node, that node claims X on its direct link to each of X's
+  peers' addresses (:mod:`rce.dataplane`, "Direct links"); the peers' planes then send X's
+  messages there. Any other subscriber (another node, an interface, ``bus_sample``, a
+  recording) ends the claim, and the messages come through the bus again.
+- Services, and nodes that do not take direct links (ROS 1 nodes' relay, older runtimes), go
+  through the bus as before.
+
+A direct link is a TCP connection this environment dials to the far plane (reading its nonce),
+then passes to the node on the node's fd channel (:mod:`rce.bus.server`): a sandboxed node has
+no network of its own, but a socket it is given works. The grants each route needs are
+computed here, from this environment's credentials and the link's nonce, and sent by the node.
+A link that ends (its node or its far end died) ends its routes; the node notifies
+``direct_closed`` and the routes are recomputed, redialling after :data:`RETRY`.
+
+Counters: each node counts what it sent and received for each interface; :meth:`collect`
+(run before ``stats``) adds them into the interfaces' and the node's counters.
+"""
+from __future__ import annotations
+
+import asyncio
+import itertools
+import socket
+import time
+from typing import TYPE_CHECKING
+
+from rce import cluster_auth, framing
+from rce.bus.core import Subscription
+from rce.dataplane import parse_nonce
+from rce.errors import ProtocolError, RCEError
+from rce.log import get_logger
+from rce.node_links import LINK_ID
+from rce.tasks import Tasks
+from rce_container.interfaces import PublisherInterface, SubscriberInterface
+
+if TYPE_CHECKING:
+    from rce.bus.server import _Session
+    from rce_container.environment import Environment
+
+log = get_logger("rce.container.direct")
+
+DIAL_TIMEOUT = 5.0     # s to connect to a far plane and read its nonce
+RETRY = 2.0            # s before a far plane that could not be dialled is tried again
+CALL_TIMEOUT = 5.0     # s a node has to apply a route
+COUNTS_TIMEOUT = 1.0   # s a node has to report its counters to :meth:`DirectRoutes.collect`
+
+
+class _NodeLink:
+    """A direct link of one node: its id, far address, the far plane's nonce, pairs granted."""
+
+    __slots__ = ("lid", "addr", "nonce", "granted")
+
+    def __init__(self, lid: int, addr: str, nonce: bytes):
+        self.lid, self.addr, self.nonce = lid, addr, nonce
+        self.granted: set[tuple[int, int]] = set()
+
+
+class _NodeState:
+    """What the routes of one node session are: its links by far address, the route key of
+    each publisher handle, the claims ``(addr, iid) -> (peers, handles)``, counters seen."""
+
+    def __init__(self) -> None:
+        self.links: dict[str, _NodeLink] = {}
+        self.pubs: dict[int, tuple] = {}
+        self.claims: dict[tuple[str, int], tuple[tuple[int, ...], tuple[int, ...]]] = {}
+        self.failed: dict[str, float] = {}
+        self.seen: dict[int, tuple[int, int, int]] = {}
+
+
+class DirectRoutes:
+    """Keeps the direct routes of ``env``'s nodes (module doc). Start with :meth:`start`."""
+
+    def __init__(self, env: "Environment"):
+        self.env = env
+        self.states: dict[_Session, _NodeState] = {}
+        self.tasks = Tasks("direct routes")
+        self._dirty = asyncio.Event()
+        self._links = itertools.count(1)
+        self._versions = itertools.count(1)
+        env.bus.on_graph.append(self.touch)
+        env.bus.on_change.append(self.touch)
+        # counters (environment stats)
+        self.links_opened = self.dial_failures = self.route_failures = 0
+
+    def start(self) -> None:
+        self.tasks.spawn(self._run(), name="direct routes")
+
+    async def close(self) -> None:
+        await self.tasks.cancel_all()
+
+    def touch(self) -> None:
+        """Something the routes depend on changed: recompute them soon."""
+        self._dirty.set()
+
+    def link_closed(self, session: _Session, lid: int) -> None:
+        """``direct_closed {link}`` from ``session``'s node: forget the link, recompute."""
+        st = self.states.get(session)
+        if st is not None:
+            for addr, nl in list(st.links.items()):
+                if nl.lid == lid:
+                    del st.links[addr]
+                    st.pubs = {h: k for h, k in st.pubs.items() if addr not in k[2]}
+                    st.claims = {k: v for k, v in st.claims.items() if k[0] != addr}
+        self.touch()
+
+    def stats(self) -> dict:
+        """``{enabled, nodes, links, routes, claims, links_opened, dial_failures, route_failures}``."""
+        return {"enabled": True, "nodes": len(self.states), "links": sum(len(s.links) for s in self.states.values()),
+                "routes": sum(len(s.pubs) for s in self.states.values()),
+                "claims": sum(len(s.claims) for s in self.states.values()),
+                "links_opened": self.links_opened, "dial_failures": self.dial_failures,
+                "route_failures": self.route_failures}
+
+    async def _run(self) -> None:
+        while True:
+            await self._dirty.wait()
+            self._dirty.clear()
+            try:
+                await self.reconcile()
+            except Exception as e:            # a bug here must not end direct routing for good
+                log.error("direct routes: reconcile failed", exc_info=e)
+
+    # -- the routes ------------------------------------------------------------------------------
+    def _sessions(self) -> list[_Session]:
+        return [s for c in list(self.env.containers.values()) for s in c.server.sessions
+                if s.direct and s.fd_sock is not None and not s.peer.closed.is_set()]
+
+    async def reconcile(self) -> None:
+        """Bring every node's routes and claims to what the rules (module doc) say now."""
+        sessions = self._sessions()
+        for s in [s for s in self.states if s not in sessions]:
+            del self.states[s]
+        served_by: dict[Subscription, SubscriberInterface] = {}
+        publishers: list[PublisherInterface] = []
+        for iface in list(self.env.interfaces.values()):
+            if isinstance(iface, SubscriberInterface) and iface.sub is not None and iface.peers:
+                served_by[iface.sub] = iface
+            elif isinstance(iface, PublisherInterface) and iface.topic is not None and iface.peers:
+                publishers.append(iface)
+        for s in sessions:
+            st = self.states.setdefault(s, _NodeState())
+            try:
+                for h, topic in list(s.pubs.items()):
+                    await self._publisher(s, st, h, [sub for sub in topic.subscriptions if sub in served_by],
+                                          len(topic.subscriptions), served_by)
+                for h in [h for h in st.pubs if h not in s.pubs]:
+                    del st.pubs[h]
+                await self._claims(s, st, publishers)
+            except RCEError as e:             # the node left, or is too slow: the next change retries
+                self.route_failures += 1
+                log.debug("direct routes: a node did not take its routes", node=s.node, reason=e.message)
+
+    async def _publisher(self, s: _Session, st: _NodeState, h: int, served: list[Subscription], n_subs: int,
+                         served_by: dict[Subscription, SubscriberInterface]) -> None:
+        targets = sorted((addr, peer, served_by[sub].iid) for sub in served
+                         for peer, addr in served_by[sub].peers.items()
+                         if (served_by[sub].iid, peer) in self.env.plane.credentials)
+        local = len(served) < n_subs
+        key = (tuple(targets), local, frozenset(a for a, _, _ in targets))
+        if st.pubs.get(h, ((), True, frozenset())) == key:
+            return
+        links = {addr: await self._link(s, st, addr) for addr in key[2]}
+        if not all(links.values()):
+            targets, key = [], ((), True, frozenset())      # a far plane is unreachable: all by the bus
+        if not targets:
+            await s.peer.call("direct_publish", timeout=CALL_TIMEOUT, handle=h, version=0, targets=[],
+                              local=True, grants=[])
+            s.routes.pop(h, None)
+            st.pubs[h] = key
+            return
+        grants = self._grants([(links[addr], src, dst) for addr, dst, src in targets])
+        version = next(self._versions)
+        s.routes.setdefault(h, {})[version] = frozenset(sub for sub in served if served_by[sub].iid in
+                                                         {src for _, _, src in targets})
+        await s.peer.call("direct_publish", timeout=CALL_TIMEOUT, handle=h, version=version, local=local,
+                          targets=[[links[addr].lid, dst, src] for addr, dst, src in targets], grants=grants)
+        s.routes[h] = {version: s.routes[h][version]}     # frames of older versions have all arrived
+        st.pubs[h] = key
+
+    async def _claims(self, s: _Session, st: _NodeState, publishers: list[PublisherInterface]) -> None:
+        wanted: dict[tuple[str, int], tuple[tuple[int, ...], tuple[int, ...]]] = {}
+        for x in publishers:
+            subs = x.topic.subscriptions
+            mine = tuple(sorted(h for h, sub in s.subs.items() if sub.topic is x.topic))
+            if not subs or len(mine) != len(subs):
+                continue
+            by_addr: dict[str, list[int]] = {}
+            for peer, addr in x.peers.items():
+                if (x.iid, peer) in self.env.plane.credentials:
+                    by_addr.setdefault(addr, []).append(peer)
+            for addr, peers in by_addr.items():
+                wanted[(addr, x.iid)] = (tuple(sorted(peers)), mine)
+        for key in [k for k in st.claims if k not in wanted]:
+            nl = st.links.get(key[0])
+            del st.claims[key]
+            if nl is not None:
+                await s.peer.call("direct_unsubscribe", timeout=CALL_TIMEOUT, link=nl.lid, iid=key[1])
+        for (addr, iid), (peers, handles) in wanted.items():
+            if st.claims.get((addr, iid)) == (peers, handles):
+                continue
+            nl = await self._link(s, st, addr)
+            if nl is None:
+                continue
+            grants = self._grants([(nl, iid, peer) for peer in peers])
+            await s.peer.call("direct_subscribe", timeout=CALL_TIMEOUT, link=nl.lid, iid=iid, peers=list(peers),
+                              handles=list(handles), grants=grants)
+            st.claims[(addr, iid)] = (peers, handles)
+
+    def _grants(self, pairs: list[tuple[_NodeLink, int, int]]) -> list:
+        """``[[link id, grant frame]]`` for each ``(link, src, dst)`` not yet granted on its link."""
+        out = []
+        for nl, src, dst in pairs:
+            token = self.env.plane.credentials.get((src, dst))
+            if token is not None and (src, dst) not in nl.granted:
+                out.append([nl.lid, cluster_auth.grant_frame(token, nl.nonce, src, dst)])
+                nl.granted.add((src, dst))
+        return out
+
+    # -- links -----------------------------------------------------------------------------------
+    async def _link(self, s: _Session, st: _NodeState, addr: str) -> _NodeLink | None:
+        """``s``'s node's direct link to ``addr``, dialled and handed over if it has none; None
+        if ``addr`` cannot be reached now (retried after :data:`RETRY`)."""
+        nl = st.links.get(addr)
+        if nl is not None:
+            return nl
+        if st.failed.get(addr, 0.0) > time.monotonic():
+            return None
+        try:
+            sock, nonce = await dial(addr)
+        except (OSError, ProtocolError, asyncio.TimeoutError) as e:
+            self.dial_failures += 1
+            st.failed[addr] = time.monotonic() + RETRY
+            asyncio.get_running_loop().call_later(RETRY, self.touch)
+            log.warning("direct link: cannot dial a far plane; its traffic goes by the bus", addr=addr,
+                        reason=str(e) or type(e).__name__)
+            return None
+        lid = next(self._links)
+        try:
+            socket.send_fds(s.fd_sock, [LINK_ID.pack(lid)], [sock.fileno()])
+        except OSError as e:
+            raise ProtocolError(f"cannot pass a direct link to node {s.node!r}: {e}") from None
+        finally:
+            sock.close()                  # the node holds its own copy now
+        await s.peer.call("direct_link", timeout=CALL_TIMEOUT, link=lid, name=addr)
+        nl = st.links[addr] = _NodeLink(lid, addr, nonce)
+        self.links_opened += 1
+        return nl
+
+    # -- counters --------------------------------------------------------------------------------
+    async def collect(self) -> None:
+        """Add what each node sent and received on its direct routes since the last collect to
+        the interfaces' counters (``msgs/bytes in/out``, ``dropped``) and the node's."""
+        for s, st in list(self.states.items()):
+            if not st.links:
+                continue
+            try:
+                counts = await s.peer.call("direct_counts", timeout=COUNTS_TIMEOUT)
+            except RCEError:
+                continue
+            for key, value in (counts or {}).items():
+                iid, (m, b, d) = int(key), value
+                pm, pb, pd = st.seen.get(iid, (0, 0, 0))
+                st.seen[iid] = (m, b, d)
+                iface = self.env.interfaces.get(iid)
+                if isinstance(iface, SubscriberInterface):       # the node published, straight to peers
+                    iface.msgs_out += m - pm
+                    iface.bytes_out += b - pb
+                    s.msgs_in += m - pm
+                    s.bytes_in += b - pb
+                elif isinstance(iface, PublisherInterface):      # peers sent, straight to the node
+                    iface.msgs_in += m - pm
+                    iface.bytes_in += b - pb
+                    s.msgs_out += m - pm
+                    s.bytes_out += b - pb
+                if iface is not None:
+                    iface.dropped += d - pd
+
+
+async def dial(addr: str) -> tuple[socket.socket, bytes]:
+    """Connect to the data plane at ``addr`` (``host:port``, ``[v6]:port``) and read its nonce;
+    returns the non-blocking socket (TCP_NODELAY) and the nonce. Raises :class:`OSError`,
+    :class:`ProtocolError` or :class:`asyncio.TimeoutError` after :data:`DIAL_TIMEOUT` s."""
+    loop = asyncio.get_running_loop()
+    host, _, port = addr.rpartition(":")
+    infos = await loop.getaddrinfo(host.strip("[]"), int(port), type=socket.SOCK_STREAM)
+    family, kind, proto, _name, sockaddr = infos[0]
+    sock = socket.socket(family, kind, proto)
+    sock.setblocking(False)
+    try:
+        async with asyncio.timeout(DIAL_TIMEOUT):
+            await loop.sock_connect(sock, sockaddr)
+            sock.setsockopt(socket.IPPROTO_TCP, socket.TCP_NODELAY, 1)
+            decoder = framing.FrameDecoder(max_frame=4096)
+            while True:
+                data = await loop.sock_recv(sock, 4096)
+                if not data:
+                    raise ConnectionError(f"{addr} closed the link before its nonce")
+                for f in decoder.feed(data):
+                    if isinstance(f, dict) and "nonce" in f:
+                        return sock, parse_nonce(f["nonce"])
+                    raise ProtocolError(f"{addr} sent something other than its nonce")
+    except BaseException:
+        sock.close()
+        raise

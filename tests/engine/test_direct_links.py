@@ -1,0 +1,160 @@
+"""Issue 12: direct links. A node's topic traffic goes straight between the node and the robot
+endpoint, past its environment (rce_container/direct_routes.py, rce/node_links.py), and back
+through the environment whenever the bus has other subscribers or a link dies.
+
+Real processes on loopback (namespaced sandbox when root), the raw wire protocol."""
+from __future__ import annotations
+
+import asyncio
+import os
+import signal
+import time
+
+import pytest
+
+from test_dataflow import _echo_container
+from wsclient import RawRobot
+
+pytestmark = pytest.mark.asyncio
+WAIT = 30.0      # s, the most a step that normally takes well under a second may take
+
+
+@pytest.fixture(scope="module")
+def eng(shared_engine):
+    return shared_engine
+
+
+def stats(eng, ctag: str) -> dict:
+    return eng.admin(f"/api/containers/testUser/{ctag}/stats")
+
+
+async def until(what, pred, timeout: float = WAIT):
+    """Poll ``what()`` (off the loop) until ``pred(value)``; the last value on timeout fails."""
+    deadline = time.monotonic() + timeout
+    while True:
+        v = await asyncio.to_thread(what)
+        if pred(v):
+            return v
+        assert time.monotonic() < deadline, v
+        await asyncio.sleep(0.05)
+
+
+async def echo(r: RawRobot, text: str, timeout: float = 0.5) -> dict | None:
+    await r.send("DM", {"iTag": "req", "type": "std_msgs/String", "msgID": "", "msg": {"data": text}})
+    try:
+        return await r.expect("DM", timeout=timeout, pred=lambda d: d["iTag"] == "resp" and d["msg"]["data"] == text)
+    except TimeoutError:
+        return None
+
+
+async def first_echo(r: RawRobot, prefix: str) -> None:
+    deadline = time.monotonic() + WAIT
+    i = 0
+    while await echo(r, f"{prefix}{i}") is None:
+        assert time.monotonic() < deadline, "no echo"
+        i += 1
+
+
+def direct(s: dict) -> dict:
+    return s["environment"]["direct"]
+
+
+async def test_converter_echo_goes_past_the_environment(eng):
+    async with RawRobot(eng.master_url, "directR") as r:
+        await _echo_container(r, "directC", "Converter")
+        await first_echo(r, "warm")
+        # the node claims 'req' (it is /stringEchoReq's only subscriber) and routes /stringEchoResp
+        s = await until(lambda: stats(eng, "directC"), lambda s: direct(s)["claims"] >= 1 and direct(s)["routes"] >= 1)
+        assert direct(s)["links"] >= 1 and direct(s)["enabled"] is True
+        before = s["environment"]["dataplane"]
+        ifs = {i["tag"].rsplit("/", 1)[-1]: i for i in s["interfaces"]}
+        n = 50
+        for i in range(n):
+            assert await echo(r, f"m{i}", timeout=5.0) is not None
+        s = stats(eng, "directC")
+        after = s["environment"]["dataplane"]
+        # not one of the 2 x 50 messages crossed the environment's data plane ...
+        assert after["msgs_in"] - before["msgs_in"] < 5 and after["msgs_out"] - before["msgs_out"] < 5
+        # ... yet the interfaces' counters (reported by the node) show them
+        now = {i["tag"].rsplit("/", 1)[-1]: i for i in s["interfaces"]}
+        assert now["req"]["msgs_in"] - ifs["req"]["msgs_in"] >= n
+        assert now["resp"]["msgs_out"] - ifs["resp"]["msgs_out"] >= n
+        assert now["resp"]["bytes_out"] > ifs["resp"]["bytes_out"]
+        # a service call still goes through the bus
+        await r.send("DM", {"iTag": "srv", "type": "Test/StringEcho", "msgID": "c1", "msg": {"data": "svc"}})
+        dm = await r.expect("DM", pred=lambda d: d["iTag"] == "srv")
+        assert dm["msg"] == {"data": "svc"}
+
+
+async def test_another_subscriber_ends_the_claim_and_sees_every_message(eng):
+    """A bus_sample on /stringEchoReq is a second subscriber: the claim ends, the sample gets the
+    robot's messages, and the node still echoes them; afterwards the claim comes back."""
+    async with RawRobot(eng.master_url, "directS") as r:
+        await _echo_container(r, "directSC", "Converter")
+        await first_echo(r, "warm")
+        await until(lambda: stats(eng, "directSC"), lambda s: direct(s)["claims"] >= 1)
+        sample = asyncio.create_task(asyncio.to_thread(
+            eng.admin, "/api/containers/testUser/directSC/sample",
+            {"topic": "/stringEchoReq", "count": 3, "timeout": WAIT}))
+        await until(lambda: stats(eng, "directSC"), lambda s: direct(s)["claims"] == 0)
+        got = []
+        while not sample.done():
+            got.append(await echo(r, f"s{len(got)}", timeout=2.0))
+            assert len(got) < 200
+        msgs = await sample
+        assert len(msgs) == 3 and all(m["data"].startswith("s") for m in msgs)
+        assert any(got), "the node stopped echoing while the sample watched"
+        await until(lambda: stats(eng, "directSC"), lambda s: direct(s)["claims"] >= 1)
+        assert await echo(r, "after", timeout=5.0) is not None
+
+
+async def test_kill_9_of_a_node_with_direct_links(eng):
+    """The node dies with its direct links: the robot endpoint's claim ends with the link, the
+    respawned node gets new routes, and echoes resume."""
+    async with RawRobot(eng.master_url, "directK") as r:
+        rid, ctag = r.robot, "directKC"
+        await r.send("CC", {"containerTag": ctag})
+        await r.cn(addNodes=[{"containerTag": ctag, "nodeTag": "echo", "pkg": "Test", "exe": "stringEcho.py",
+                              "respawn": True}],
+                   addInterfaces=[
+                       {"endpointTag": ctag, "interfaceTag": "req", "interfaceType": "PublisherInterface",
+                        "className": "std_msgs/String", "addr": "/stringEchoReq"},
+                       {"endpointTag": ctag, "interfaceTag": "resp", "interfaceType": "SubscriberInterface",
+                        "className": "std_msgs/String", "addr": "/stringEchoResp"},
+                       {"endpointTag": rid, "interfaceTag": "req", "interfaceType": "SubscriberConverter",
+                        "className": "std_msgs/String"},
+                       {"endpointTag": rid, "interfaceTag": "resp", "interfaceType": "PublisherConverter",
+                        "className": "std_msgs/String"}])
+        await r.send("CX", {"connect": [{"tagA": f"{ctag}/{t}", "tagB": f"{rid}/{t}"} for t in ("req", "resp")]})
+        await r.wait_up("req", "resp")
+        await first_echo(r, "warm")
+        s = await until(lambda: stats(eng, ctag), lambda s: direct(s)["claims"] >= 1 and direct(s)["routes"] >= 1)
+        pid = s["per_node"]["echo"]["pid"]
+        opened = direct(s)["links_opened"]
+        os.kill(pid, signal.SIGKILL)
+        s = await until(lambda: stats(eng, ctag),
+                        lambda s: s["per_node"]["echo"]["pid"] not in (None, pid) and direct(s)["claims"] >= 1
+                        and direct(s)["routes"] >= 1)
+        assert direct(s)["links_opened"] > opened
+        await first_echo(r, "again")
+        for i in range(20):
+            assert await echo(r, f"k{i}", timeout=5.0) is not None
+
+
+async def test_bus_path_when_direct_links_are_off(tmp_path):
+    """RCE_DIRECT_LINKS=0: the same echo, every message through the environment."""
+    from rce.launch import start_engine
+    e = await asyncio.to_thread(start_engine, tmp_path / "engine", env={"RCE_DIRECT_LINKS": "0"})
+    try:
+        async with RawRobot(e.master_url, "offR") as r:
+            await _echo_container(r, "offC", "Converter")
+            await first_echo(r, "warm")
+            before = (await asyncio.to_thread(stats, e, "offC"))["environment"]
+            for i in range(20):
+                assert await echo(r, f"o{i}", timeout=5.0) is not None
+            after = (await asyncio.to_thread(stats, e, "offC"))["environment"]
+            assert after["direct"] == {"enabled": False}
+            assert after["dataplane"]["msgs_in"] - before["dataplane"]["msgs_in"] >= 20
+            assert after["dataplane"]["msgs_out"] - before["dataplane"]["msgs_out"] >= 20
+    finally:
+        await asyncio.to_thread(e.stop)
