@@ -144,26 +144,26 @@ class Path_:
         t0 = time.perf_counter()
         for f in frames:
             await ws.send(f)
-        deadline = loop.time() + timeout
         dm, parts = None, {}
         try:
-            while True:
-                m = await asyncio.wait_for(ws.recv(), max(0.001, deadline - loop.time()))
-                if isinstance(m, str):
-                    d = json.loads(m)
-                    if d.get("type") != "DM" or d["data"].get("iTag") != self.resp:
-                        continue
-                    if not self.binary:
-                        if len(d["data"]["msg"]["data"]) == size:
+            async with asyncio.timeout_at(loop.time() + timeout):    # no task per recv, as wait_for makes
+                while True:
+                    m = await ws.recv()
+                    if isinstance(m, str):
+                        d = json.loads(m)
+                        if d.get("type") != "DM" or d["data"].get("iTag") != self.resp:
+                            continue
+                        if not self.binary:
+                            if len(d["data"]["msg"]["data"]) == size:
+                                return (time.perf_counter() - t0) * 1000
+                            continue       # a late echo of an earlier message
+                        dm = d["data"]
+                    else:
+                        parts[m[:32].decode()] = m
+                    if dm is not None and dm.get("msg*") in parts:
+                        if len(parts[dm["msg*"]]) == 32 + 4 + size:
                             return (time.perf_counter() - t0) * 1000
-                        continue       # a late echo of an earlier message
-                    dm = d["data"]
-                else:
-                    parts[m[:32].decode()] = m
-                if dm is not None and dm.get("msg*") in parts:
-                    if len(parts[dm["msg*"]]) == 32 + 4 + size:
-                        return (time.perf_counter() - t0) * 1000
-                    dm, parts = None, {}
+                        dm, parts = None, {}
         except (TimeoutError, asyncio.TimeoutError):
             return float("nan")
 

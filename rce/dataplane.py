@@ -23,10 +23,14 @@ Only peers the master introduced send (:mod:`rce.cluster_auth`, "Data-plane cred
 - a link that has no valid grant within :data:`GRANT_TIMEOUT`, or beyond :data:`MAX_ACCEPTED`
   links, is closed (counted in ``unauthenticated``).
 
-Direct links (a node's shortcut past its environment, :mod:`rce_container.direct_routes`): a
+Direct links (nodes' shortcut past their environment, :mod:`rce_container.direct_routes`): a
 dialler that was granted ``(x, dst)`` on a link speaks for interface ``x`` and may *claim* it,
-``{"claim": x}``: from then on this plane sends what its interfaces send to ``x`` on that
-accepted link, instead of dialling ``x``'s own address; ``{"release": x}`` ends the claim and is
+``{"claim": x, "gen": g, "size": n}``: generation ``g`` of ``x``'s claim set has ``n`` members
+(the nodes that subscribe to what ``x`` publishes). While all ``n`` of the newest generation
+have claimed, this plane sends what its interfaces send to ``x`` on each of their accepted links
+(one copy each) instead of to ``x``'s own address; while the set is incomplete (being built, or
+a member released or gone), everything goes to ``x``'s address as before, so no member misses
+a message and none gets one twice. ``{"release": x}`` takes this link out of the set and is
 answered ``{"released": x}`` (every frame for ``x`` sent before it has gone ahead). A claim
 without such a grant closes the link (``unauthenticated``); claims end with their link.
 
@@ -52,6 +56,7 @@ log = get_logger("rce.dataplane")
 
 GRANT_TIMEOUT = 10.0     # s an accepted link may stay without a valid grant (a peer dials on first use and grants
                          # at once; one that does not is no peer): then it is closed and counted unauthenticated
+MAX_CLAIMERS = 64        # members of one interface's claim set (nodes subscribed to what it publishes)
 MAX_ACCEPTED = 1024      # accepted links at once (one per peer process is the norm); more are closed at once
 
 Pair = tuple[int, int]        # (src interface id, dst interface id): one direction of one connection
@@ -163,6 +168,17 @@ def parse_nonce(text: object) -> bytes:
     return nonce
 
 
+class _ClaimSet:
+    """Generation ``gen`` of an interface's claim set: ``size`` members expected, ``links`` the
+    accepted links that have claimed so far (module doc)."""
+
+    __slots__ = ("gen", "size", "links")
+
+    def __init__(self, gen: int, size: int):
+        self.gen, self.size = gen, size
+        self.links: list[_Accepted] = []
+
+
 class _Accepted:
     """An incoming link: the nonce it was opened with and the ``(src, dst)`` granted on it."""
 
@@ -179,8 +195,7 @@ class _Accepted:
     def _closed(self, _link: FramedLink) -> None:
         self.plane._accepted.discard(self)
         for iid in self.claims:
-            if self.plane._claims.get(iid) is self:
-                del self.plane._claims[iid]
+            self.plane._unclaim(iid, self)
         self.claims.clear()
 
     def _on_frame(self, f: framing.DataFrame | dict) -> None:
@@ -189,7 +204,7 @@ class _Accepted:
             return
         try:
             if "claim" in f:
-                self._claim(f["claim"])
+                self._claim(f)
             elif "release" in f:
                 self._release(f["release"])
             else:
@@ -200,19 +215,29 @@ class _Accepted:
                         reason=e.message)
             self.link.close(e.message)
 
-    def _claim(self, iid: object) -> None:
-        """The dialler speaks for interface ``iid`` (it was granted a connection from it)."""
-        if not isinstance(iid, int) or not any(src == iid for src, _dst in self.granted):
-            raise ProtocolError(f"claim of interface {str(iid)[:40]} without a grant from it on this link")
-        old = self.plane._claims.get(iid)
-        if old is not None and old is not self:
-            old.claims.discard(iid)
-        self.plane._claims[iid] = self
+    def _claim(self, f: dict) -> None:
+        """The dialler speaks for interface ``f["claim"]`` (it was granted a connection from it)
+        as one of generation ``gen``'s ``size`` members (module doc)."""
+        iid, gen, size = f.get("claim"), f.get("gen", 0), f.get("size", 1)
+        if not (type(iid) is int and type(gen) is int and type(size) is int and 1 <= size <= MAX_CLAIMERS):
+            raise ProtocolError(f"a claim is {{claim: iid, gen: int, size: 1..{MAX_CLAIMERS}}}, not {str(f)[:80]}")
+        if not any(src == iid for src, _dst in self.granted):
+            raise ProtocolError(f"claim of interface {iid} without a grant from it on this link")
+        cs = self.plane._claims.get(iid)
+        if cs is None or gen > cs.gen:
+            if cs is not None:
+                for a in cs.links:
+                    a.claims.discard(iid)
+            cs = self.plane._claims[iid] = _ClaimSet(gen, size)
+        elif gen < cs.gen:
+            return                        # a stale generation: the environment has moved on
+        if self not in cs.links:
+            cs.links.append(self)
         self.claims.add(iid)
 
     def _release(self, iid: object) -> None:
-        if isinstance(iid, int) and self.plane._claims.get(iid) is self:
-            del self.plane._claims[iid]
+        if isinstance(iid, int):
+            self.plane._unclaim(iid, self)
         self.claims.discard(iid)
         try:
             self.link.send(framing.encode_control({"released": iid}))
@@ -251,7 +276,7 @@ class DataPlane:
         self.tasks = self.responder.tasks
         self._dialled: dict[str, _Dialled] = {}
         self._accepted: set[_Accepted] = set()
-        self._claims: dict[int, _Accepted] = {}      # interface id -> the accepted link that claimed it
+        self._claims: dict[int, _ClaimSet] = {}      # interface id -> the links that claimed it
         self._server: asyncio.AbstractServer | None = None
         # counters (metrics and status)
         self.msgs_in = self.msgs_out = self.bytes_in = self.bytes_out = self.dropped = 0
@@ -276,6 +301,14 @@ class DataPlane:
         self.calls.fail_all(Unavailable(f"data plane {self.name} closed"))
         await self.tasks.cancel_all()
 
+    def _unclaim(self, iid: int, a: _Accepted) -> None:
+        """Take accepted link ``a`` out of ``iid``'s claim set (which is then incomplete)."""
+        cs = self._claims.get(iid)
+        if cs is not None and a in cs.links:
+            cs.links.remove(a)
+            if not cs.links:
+                del self._claims[iid]
+
     # -- credentials ------------------------------------------------------------------------------
     def allow(self, src: int, dst: int, token: bytes) -> None:
         """Local interface ``src`` may send to interface ``dst``, with the master's credential."""
@@ -294,15 +327,20 @@ class DataPlane:
         """Send one DATA frame from local interface ``src`` to interface ``dst`` at ``addr``; False
         (and counted) if dropped: no credential for ``src -> dst``, or the link is saturated.
         An interface claimed on an accepted link (module doc) gets it there instead of at ``addr``."""
-        claim = self._claims.get(dst)
-        if claim is not None:
-            if (src, dst) in self.credentials and claim.link.offer(
-                    framing.encode_data_header(op, dst, src, call_id, len(payload)), payload):
-                self.msgs_out += 1
-                self.bytes_out += len(payload)
-                return True
-            self.dropped += 1
-            return False
+        cs = self._claims.get(dst)
+        if cs is not None and len(cs.links) == cs.size:
+            if (src, dst) not in self.credentials:
+                self.dropped += 1
+                return False
+            head, sent = framing.encode_data_header(op, dst, src, call_id, len(payload)), 0
+            for a in cs.links:
+                if a.link.offer(head, payload):
+                    sent += 1
+                else:
+                    self.dropped += 1
+            self.msgs_out += sent
+            self.bytes_out += len(payload) * sent
+            return sent > 0
         d = self._dialled.get(addr)
         if d is None:
             d = self._dialled[addr] = _Dialled(self, addr)
@@ -396,4 +434,4 @@ class DataPlane:
         return {"msgs_in": self.msgs_in, "msgs_out": self.msgs_out, "bytes_in": self.bytes_in,
                 "bytes_out": self.bytes_out, "dropped": self.dropped, "refused": self.refused,
                 "unauthenticated": self.unauthenticated, "links": len(self._dialled),
-                "claims": len(self._claims)}
+                "claims": sum(len(c.links) == c.size for c in self._claims.values())}

@@ -12,8 +12,9 @@ follows its orders, which come as requests on the node's bus link:
   publisher ``handle`` sends each message as ``MSG dst src`` on each target's link, and to the
   bus as well only when ``local`` (other subscribers are there), marked with ``version`` so the
   bus skips what this route reached. No targets: back to the bus alone.
-- ``direct_subscribe {link, iid, peers, handles, grants}``: claim interface ``iid`` on ``link``
-  (:mod:`rce.dataplane`, "Direct links"): its messages from ``peers`` arrive here and go to
+- ``direct_subscribe {link, iid, peers, handles, gen, size, grants}``: claim interface ``iid`` on
+  ``link`` as one of the ``size`` members of claim generation ``gen`` (:mod:`rce.dataplane`,
+  "Direct links"): once all have claimed, its messages from ``peers`` arrive here and go to
   subscriber ``handles``. ``direct_unsubscribe {link, iid}`` releases the claim.
 - ``direct_counts {}`` -> ``{iid: [messages, bytes, dropped]}`` per interface this node stood
   in for (the environment adds them to the interfaces' counters).
@@ -186,13 +187,13 @@ class DirectLinks:
         return {}
 
     async def op_direct_subscribe(self, a: dict) -> dict:
-        """``{link, iid, peers, handles, grants}``: claim interface ``iid`` on ``link``."""
+        """``{link, iid, peers, handles, gen, size, grants}``: claim interface ``iid`` on ``link``."""
         link, iid = self._link(a), int(a["iid"])
         self._grant(a)
         self.claims[(int(a["link"]), iid)] = (frozenset(int(p) for p in a["peers"]),
                                                tuple(int(h) for h in a["handles"]))
         self.counts.setdefault(iid, [0, 0, 0])
-        link.send(framing.encode_control({"claim": iid}))
+        link.send(framing.encode_control({"claim": iid, "gen": int(a.get("gen", 0)), "size": int(a.get("size", 1))}))
         return {}
 
     async def op_direct_unsubscribe(self, a: dict) -> dict:

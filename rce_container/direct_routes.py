@@ -12,11 +12,13 @@ Rules, recomputed whenever the bus graph, an interface or a connection changes:
   sends each message straight to each R, from S, on its direct link to A. It still sends the
   message to the bus, marked with the route's version so that the bus skips S, only while T
   has other subscribers.
-- **Peers -> node.** For a container-side ``PublisherInterface`` X on topic T: while every
-  subscription of T belongs to one node, that node claims X on its direct link to each of X's
-  peers' addresses (:mod:`rce.dataplane`, "Direct links"); the peers' planes then send X's
-  messages there. Any other subscriber (another node, an interface, ``bus_sample``, a
-  recording) ends the claim, and the messages come through the bus again.
+- **Peers -> nodes.** For a container-side ``PublisherInterface`` X on topic T: while every
+  subscription of T belongs to nodes that take direct links, each of those nodes claims X on
+  its direct link to each of X's peers' addresses, as one member of a numbered claim set
+  (:mod:`rce.dataplane`, "Direct links"); once the set is complete, the peers' planes send
+  X's messages to each member. Any other subscriber (an interface, ``bus_sample``, a
+  recording, a ROS 1 node) ends the claims, and the messages come through the bus again; a
+  change of members starts a new set, and until it is complete the bus carries them.
 - Services, and nodes that do not take direct links (ROS 1 nodes' relay, older runtimes), go
   through the bus as before.
 
@@ -71,12 +73,12 @@ class _NodeLink:
 
 class _NodeState:
     """What the routes of one node session are: its links by far address, the route key of
-    each publisher handle, the claims ``(addr, iid) -> (peers, handles)``, counters seen."""
+    each publisher handle, the claims ``(addr, iid) -> (peers, handles, gen, size)``, counters seen."""
 
     def __init__(self) -> None:
         self.links: dict[str, _NodeLink] = {}
         self.pubs: dict[int, tuple] = {}
-        self.claims: dict[tuple[str, int], tuple[tuple[int, ...], tuple[int, ...]]] = {}
+        self.claims: dict[tuple[str, int], tuple] = {}      # (addr, iid) -> (peers, handles, gen, size)
         self.failed: dict[str, float] = {}
         self.seen: dict[int, tuple[int, int, int]] = {}
 
@@ -91,6 +93,7 @@ class DirectRoutes:
         self._dirty = asyncio.Event()
         self._links = itertools.count(1)
         self._versions = itertools.count(1)
+        self._gens: dict[int, tuple[int, tuple]] = {}     # PublisherInterface id -> (claim generation, its shape)
         env.bus.on_graph.append(self.touch)
         env.bus.on_change.append(self.touch)
         # counters (environment stats)
@@ -151,6 +154,7 @@ class DirectRoutes:
                 served_by[iface.sub] = iface
             elif isinstance(iface, PublisherInterface) and iface.topic is not None and iface.peers:
                 publishers.append(iface)
+        claims = self._wanted_claims(sessions, publishers)
         for s in sessions:
             st = self.states.setdefault(s, _NodeState())
             try:
@@ -159,10 +163,38 @@ class DirectRoutes:
                                           len(topic.subscriptions), served_by)
                 for h in [h for h in st.pubs if h not in s.pubs]:
                     del st.pubs[h]
-                await self._claims(s, st, publishers)
+                await self._claims(s, st, claims.get(s, {}))
             except RCEError as e:             # the node left, or is too slow: the next change retries
                 self.route_failures += 1
                 log.debug("direct routes: a node did not take its routes", node=s.node, reason=e.message)
+
+    def _wanted_claims(self, sessions: list[_Session], publishers: list[PublisherInterface]) -> dict:
+        """``{session: {(addr, iid): (peers, handles, gen, size)}}``: the claims the rules want now.
+        A claim set keeps its generation while its members, their handles and the peers stay."""
+        node_subs = {sub: s for s in sessions for sub in s.subs.values()}
+        out: dict[_Session, dict] = {}
+        for x in publishers:
+            subs = x.topic.subscriptions
+            if not subs or not all(sub in node_subs for sub in subs):
+                continue
+            members: dict[_Session, tuple[int, ...]] = {}
+            for s in {node_subs[sub] for sub in subs}:
+                members[s] = tuple(sorted(h for h, sub in s.subs.items() if sub.topic is x.topic))
+            by_addr: dict[str, list[int]] = {}
+            for peer, addr in x.peers.items():
+                if (x.iid, peer) in self.env.plane.credentials:
+                    by_addr.setdefault(addr, []).append(peer)
+            shape = (frozenset((id(s), h) for s, h in members.items()),
+                     tuple(sorted((a, tuple(sorted(p))) for a, p in by_addr.items())))
+            gen = self._gens.get(x.iid)
+            if gen is None or gen[1] != shape:
+                gen = self._gens[x.iid] = (next(self._versions), shape)
+            for s, handles in members.items():
+                for addr, peers in by_addr.items():
+                    out.setdefault(s, {})[(addr, x.iid)] = (tuple(sorted(peers)), handles, gen[0], len(members))
+        live = {x.iid for x in publishers}
+        self._gens = {k: v for k, v in self._gens.items() if k in live}
+        return out
 
     async def _publisher(self, s: _Session, st: _NodeState, h: int, served: list[Subscription], n_subs: int,
                          served_by: dict[Subscription, SubscriberInterface]) -> None:
@@ -191,34 +223,23 @@ class DirectRoutes:
         s.routes[h] = {version: s.routes[h][version]}     # frames of older versions have all arrived
         st.pubs[h] = key
 
-    async def _claims(self, s: _Session, st: _NodeState, publishers: list[PublisherInterface]) -> None:
-        wanted: dict[tuple[str, int], tuple[tuple[int, ...], tuple[int, ...]]] = {}
-        for x in publishers:
-            subs = x.topic.subscriptions
-            mine = tuple(sorted(h for h, sub in s.subs.items() if sub.topic is x.topic))
-            if not subs or len(mine) != len(subs):
-                continue
-            by_addr: dict[str, list[int]] = {}
-            for peer, addr in x.peers.items():
-                if (x.iid, peer) in self.env.plane.credentials:
-                    by_addr.setdefault(addr, []).append(peer)
-            for addr, peers in by_addr.items():
-                wanted[(addr, x.iid)] = (tuple(sorted(peers)), mine)
+    async def _claims(self, s: _Session, st: _NodeState, wanted: dict) -> None:
         for key in [k for k in st.claims if k not in wanted]:
             nl = st.links.get(key[0])
             del st.claims[key]
             if nl is not None:
                 await s.peer.call("direct_unsubscribe", timeout=CALL_TIMEOUT, link=nl.lid, iid=key[1])
-        for (addr, iid), (peers, handles) in wanted.items():
-            if st.claims.get((addr, iid)) == (peers, handles):
+        for (addr, iid), claim in wanted.items():
+            if st.claims.get((addr, iid)) == claim:
                 continue
             nl = await self._link(s, st, addr)
             if nl is None:
                 continue
+            peers, handles, gen, size = claim
             grants = self._grants([(nl, iid, peer) for peer in peers])
             await s.peer.call("direct_subscribe", timeout=CALL_TIMEOUT, link=nl.lid, iid=iid, peers=list(peers),
-                              handles=list(handles), grants=grants)
-            st.claims[(addr, iid)] = (peers, handles)
+                              handles=list(handles), gen=gen, size=size, grants=grants)
+            st.claims[(addr, iid)] = claim
 
     def _grants(self, pairs: list[tuple[_NodeLink, int, int]]) -> list:
         """``[[link id, grant frame]]`` for each ``(link, src, dst)`` not yet granted on its link."""
@@ -250,6 +271,8 @@ class DirectRoutes:
             return None
         lid = next(self._links)
         try:
+            if s.fd_sock is None:
+                raise OSError("its fd channel is closed")
             socket.send_fds(s.fd_sock, [LINK_ID.pack(lid)], [sock.fileno()])
         except OSError as e:
             raise ProtocolError(f"cannot pass a direct link to node {s.node!r}: {e}") from None

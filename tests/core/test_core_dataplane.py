@@ -251,3 +251,67 @@ async def test_a_link_that_grants_nothing_is_closed_and_links_are_bounded(net, m
     reader, _ = await net.open_connection("b", 2)              # one too many: closed before its nonce
     assert await asyncio.wait_for(reader.read(), STEP) == b""
     assert b.unauthenticated == 2
+
+
+async def node_link(net: MemNet, addr: str, src: int, dst: int) -> tuple[asyncio.StreamReader, object]:
+    """A node's direct link to the plane at ``addr``, granted ``src -> dst`` with the credential
+    its environment holds (:mod:`rce_container.direct_routes`)."""
+    reader, writer, nonce = await raw_link(net, addr)
+    token = bytes.fromhex(KEY.connection_token(src, dst, addr))
+    writer.transport.write(framing.encode_control(cluster_auth.grant_frame(token, nonce, src, dst)))
+    return reader, writer
+
+
+async def next_frame(reader: asyncio.StreamReader, decoder: framing.FrameDecoder):
+    while True:
+        frames = decoder.feed(await asyncio.wait_for(reader.read(4096), STEP))
+        if frames:
+            assert len(frames) == 1
+            return frames[0]
+
+
+async def test_a_complete_claim_set_gets_each_message_once_and_an_incomplete_one_none(net):
+    """Direct links: interface 30 (in an environment at e:2) is claimed by two nodes' links to
+    the robot's plane r:1. Until both have claimed, and again once one releases, the messages
+    go to e:2; while the set is complete, one copy goes to each member and none to e:2."""
+    r, e = net.plane("r:1"), net.plane("e:2")
+    env_side = e.interfaces[30] = Iface(30, {10: "r:1"})
+    allow(r, 10, 30, "e:2")
+    (ra, wa), (rb, wb) = await node_link(net, "r:1", 30, 10), await node_link(net, "r:1", 30, 10)
+    da, db = framing.FrameDecoder(), framing.FrameDecoder()
+    wa.transport.write(framing.encode_control({"claim": 30, "gen": 1, "size": 2}))
+    await until(lambda: 30 in r._claims and len(r._claims[30].links) == 1, "the first claim")
+    assert r.send("e:2", MSG, 30, 10, 0, b"one")                     # incomplete: by the environment
+    assert await asyncio.wait_for(env_side.inbox.get(), STEP) == b"one"
+    wb.transport.write(framing.encode_control({"claim": 30, "gen": 1, "size": 2}))
+    await until(lambda: r.stats()["claims"] == 1, "the set complete")
+    assert r.send("e:2", MSG, 30, 10, 0, b"two")
+    for reader, dec in ((ra, da), (rb, db)):
+        f = await next_frame(reader, dec)
+        assert (f.op, f.dst, f.src, bytes(f.payload)) == (MSG, 30, 10, b"two")
+    assert env_side.inbox.empty()
+    wa.transport.write(framing.encode_control({"claim": 30, "gen": 0, "size": 1}))     # stale: ignored
+    wa.transport.write(framing.encode_control({"release": 30}))
+    assert await next_frame(ra, da) == {"released": 30}
+    assert r.send("e:2", MSG, 30, 10, 0, b"three")                   # a member left: by the environment
+    assert await asyncio.wait_for(env_side.inbox.get(), STEP) == b"three"
+    wb.transport.write(framing.encode_control({"claim": 30, "gen": 2, "size": 1}))     # a new generation
+    await until(lambda: r._claims[30].gen == 2 and r.stats()["claims"] == 1, "generation 2")
+    assert r.send("e:2", MSG, 30, 10, 0, b"four")
+    assert bytes((await next_frame(rb, db)).payload) == b"four"
+    wb.transport.close()                                              # the node dies: its claims go
+    await until(lambda: 30 not in r._claims, "the claim gone with its link")
+    assert r.send("e:2", MSG, 30, 10, 0, b"five")
+    assert await asyncio.wait_for(env_side.inbox.get(), STEP) == b"five"
+    assert env_side.inbox.empty()
+
+
+async def test_a_claim_without_a_grant_closes_the_link(net):
+    r = net.plane("r:1")
+    reader, writer = await node_link(net, "r:1", 31, 10)             # granted 31 -> 10, claims 30
+    writer.transport.write(framing.encode_control({"claim": 30, "gen": 1, "size": 1}))
+    assert await asyncio.wait_for(reader.read(), STEP) == b""
+    reader, writer, _ = await raw_link(net, "r:1")                   # no grant at all
+    writer.transport.write(framing.encode_control({"claim": 30, "gen": 1, "size": 1}))
+    assert await asyncio.wait_for(reader.read(), STEP) == b""
+    assert r.stats()["unauthenticated"] == 2 and not r._claims

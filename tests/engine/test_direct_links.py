@@ -9,6 +9,7 @@ import asyncio
 import os
 import signal
 import time
+from pathlib import Path
 
 import pytest
 
@@ -158,3 +159,62 @@ async def test_bus_path_when_direct_links_are_off(tmp_path):
             assert after["dataplane"]["msgs_out"] - before["dataplane"]["msgs_out"] >= 20
     finally:
         await asyncio.to_thread(e.stop)
+
+
+async def test_two_subscriber_nodes_share_a_claim_and_a_survivor_misses_nothing(tmp_path):
+    """Two echo nodes (bench/packages' benchecho) subscribe /pose: both claim it (one claim set
+    of 2), each gets every message once (two echoes per request), none through the
+    environment. kill -9 of one: the set is incomplete, so the robot endpoint sends by the
+    environment again and the survivor echoes every message; then its set of 1 goes direct."""
+    from rce.launch import start_engine
+    packages = Path(__file__).resolve().parents[2] / "bench" / "packages"
+    eng = await asyncio.to_thread(start_engine, tmp_path / "engine", env={"RCE_PACKAGE_PATH": str(packages)})
+    try:
+        await _two_echo_nodes(eng)
+    finally:
+        await asyncio.to_thread(eng.stop)
+
+
+async def _two_echo_nodes(eng) -> None:
+    async with RawRobot(eng.master_url, "direct2") as r:
+        rid, ctag = r.robot, "direct2C"
+        await r.send("CC", {"containerTag": ctag})
+        await r.cn(addNodes=[{"containerTag": ctag, "nodeTag": n, "pkg": "benchecho", "exe": "echo.py", "name": n,
+                              "args": "--type std_msgs/String --back --report 60 /pose"} for n in ("echoA", "echoB")],
+                   addInterfaces=[
+                       {"endpointTag": ctag, "interfaceTag": "req", "interfaceType": "PublisherInterface",
+                        "className": "std_msgs/String", "addr": "/pose"},
+                       {"endpointTag": ctag, "interfaceTag": "resp", "interfaceType": "SubscriberInterface",
+                        "className": "std_msgs/String", "addr": "/pose_echo"},
+                       {"endpointTag": rid, "interfaceTag": "req", "interfaceType": "SubscriberConverter",
+                        "className": "std_msgs/String"},
+                       {"endpointTag": rid, "interfaceTag": "resp", "interfaceType": "PublisherConverter",
+                        "className": "std_msgs/String"}])
+        await r.send("CX", {"connect": [{"tagA": f"{ctag}/{t}", "tagB": f"{rid}/{t}"} for t in ("req", "resp")]})
+        await r.wait_up("req", "resp")
+        s = await until(lambda: stats(eng, ctag),
+                        lambda s: all(s["per_node"][n]["connected"] for n in ("echoA", "echoB")))
+        await first_echo(r, "warm")
+        s = await until(lambda: stats(eng, ctag), lambda s: direct(s)["claims"] == 2 and direct(s)["routes"] == 2)
+        await asyncio.sleep(0.3)
+        while True:                      # what is still coming from the warm-up
+            try:
+                await r.expect("DM", timeout=0.3)
+            except TimeoutError:
+                break
+        before = s["environment"]["dataplane"]
+        n = 20
+        for i in range(n):
+            await r.send("DM", {"iTag": "req", "type": "std_msgs/String", "msgID": "", "msg": {"data": f"t{i}"}})
+        got = [(await r.expect("DM", timeout=5.0, pred=lambda d: d["iTag"] == "resp"))["msg"]["data"]
+               for _ in range(2 * n)]
+        assert sorted(got) == sorted([f"t{i}" for i in range(n)] * 2)
+        after = stats(eng, ctag)["environment"]["dataplane"]
+        assert after["msgs_in"] - before["msgs_in"] < 5 and after["msgs_out"] - before["msgs_out"] < 5
+
+        os.kill(s["per_node"]["echoA"]["pid"], signal.SIGKILL)
+        for i in range(n):               # at once: the survivor echoes every one
+            assert await echo(r, f"k{i}", timeout=5.0) is not None
+        await until(lambda: stats(eng, ctag), lambda s: direct(s)["claims"] == 1 and direct(s)["routes"] == 1)
+        for i in range(n):
+            assert await echo(r, f"d{i}", timeout=5.0) is not None
