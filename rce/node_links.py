@@ -33,15 +33,12 @@ import asyncio
 import socket
 import struct
 from collections import deque
-from typing import TYPE_CHECKING
+from typing import Any
 
 from rce import framing
 from rce.errors import ProtocolError, Timeout, Unavailable
 from rce.link import STREAM_LIMIT, FramedLink, LinkFull
 from rce.log import get_logger
-
-if TYPE_CHECKING:
-    from rce.node import Node
 
 log = get_logger("rce.node.direct")
 
@@ -62,9 +59,10 @@ class _Route:
 
 
 class DirectLinks:
-    """The direct links of one node (module doc). ``node``: the :class:`rce.node.Node`."""
+    """The direct links of one node (module doc). ``node``: the :class:`rce.node.Node` (its
+    subscribers ``_subs`` get what arrives, its bus link ``_peer`` hears ``direct_closed``)."""
 
-    def __init__(self, node: "Node"):
+    def __init__(self, node: Any):
         self.node = node
         self.links: dict[int, FramedLink] = {}
         self.routes: dict[int, _Route] = {}                  # publisher handle -> its route

@@ -38,7 +38,7 @@ import asyncio
 import itertools
 import socket
 import time
-from typing import TYPE_CHECKING
+from typing import TYPE_CHECKING, Any
 
 from rce import cluster_auth, framing
 from rce.bus.core import Subscription
@@ -51,7 +51,6 @@ from rce_container.interfaces import PublisherInterface, SubscriberInterface
 
 if TYPE_CHECKING:
     from rce.bus.server import _Session
-    from rce_container.environment import Environment
 
 log = get_logger("rce.container.direct")
 
@@ -84,9 +83,11 @@ class _NodeState:
 
 
 class DirectRoutes:
-    """Keeps the direct routes of ``env``'s nodes (module doc). Start with :meth:`start`."""
+    """Keeps the direct routes of ``env``'s nodes (module doc). Start with :meth:`start`.
+    ``env``: the :class:`rce_container.environment.Environment` (its ``bus``, ``plane``,
+    ``containers`` and ``interfaces`` are read, never changed)."""
 
-    def __init__(self, env: "Environment"):
+    def __init__(self, env: Any):
         self.env = env
         self.states: dict[_Session, _NodeState] = {}
         self.tasks = Tasks("direct routes")

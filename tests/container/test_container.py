@@ -141,7 +141,9 @@ async def test_register_echo_and_service_over_the_data_plane(rig, registry):
         assert by_iid[1]["bytes_in"] == by_iid[2]["bytes_out"] > 600
         assert stats["msgs_in"] == 3 and stats["dropped"] == {"interfaces": 0, "bus": 0}
         assert stats["nodes"] == {"count": 1, "running": 1, "starts": 1, "forked": 1, "restarts": 0}
-        assert stats["environment"]["dataplane"]["msgs_in"] == 3
+        # the service call crosses the environment's data plane; a topic message takes the node's
+        # direct link once its route is up (rce_container/direct_routes.py), the interfaces count both
+        assert 1 <= stats["environment"]["dataplane"]["msgs_in"] <= 3
         host_stats = await master.call("stats")
         assert host_stats["tid"] == 7 and [c["cid"] for c in host_stats["containers"]] == [1]
 
