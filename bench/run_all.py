@@ -1,5 +1,6 @@
-"""Run every benchmark script, one after the other (``make bench``): rtt, fleet_load,
-paper_experiments, planner, container_start, faults, login_attack. A script that does not exist
+"""Run every benchmark script, one after the other (``make bench``): rtt, rtt_gap (``rtt.py
+--gap 1.0`` at 3 B and 1.6 kB: sparse messages), fleet_load, paper_experiments, planner,
+container_start, faults, login_attack. A script that does not exist
 (yet) is skipped with a message.
 Each writes its own results to ``bench/results/``; this prints a summary and exits non-zero
 if any script failed.
@@ -17,7 +18,9 @@ import time
 from pathlib import Path
 
 BENCH = Path(__file__).resolve().parent
-SCRIPTS = ("rtt", "fleet_load", "paper_experiments", "planner", "container_start", "faults", "login_attack")
+SCRIPTS = ("rtt", "rtt_gap", "fleet_load", "paper_experiments", "planner", "container_start", "faults", "login_attack")
+# a name that is not a script's: (script, its arguments)
+VARIANTS = {"rtt_gap": ("rtt", ["--gap", "1.0", "--sizes", "3,1623"])}
 
 
 def main(argv=None) -> int:
@@ -33,7 +36,8 @@ def main(argv=None) -> int:
         return 2
     summary = []
     for name in only or SCRIPTS:
-        path = BENCH / f"{name}.py"
+        script, args = VARIANTS.get(name, (name, []))
+        path = BENCH / f"{script}.py"
         if name in skip:
             summary.append((name, "skipped (--skip)", 0.0))
             continue
@@ -41,9 +45,9 @@ def main(argv=None) -> int:
             print(f"== {name}: bench/{name}.py does not exist yet, skipped", flush=True)
             summary.append((name, "missing, skipped", 0.0))
             continue
-        print(f"== {name}: {sys.executable} bench/{name}.py", flush=True)
+        print(f"== {name}: {sys.executable} bench/{script}.py {' '.join(args)}".rstrip(), flush=True)
         t0 = time.monotonic()
-        rc = subprocess.run([sys.executable, str(path)], cwd=BENCH.parent).returncode
+        rc = subprocess.run([sys.executable, str(path), *args], cwd=BENCH.parent).returncode
         summary.append((name, "ok" if rc == 0 else f"FAILED (exit {rc})", time.monotonic() - t0))
     print("\n== bench summary")
     for name, status, secs in summary:

@@ -17,7 +17,9 @@ from __future__ import annotations
 from collections.abc import Iterable
 from typing import Any
 
-from websockets.protocol import State
+from websockets.protocol import Side, State
+
+RAW_MIN = 64 * 1024     # bytes: a binary frame this large is framed here, not copied into websockets' frame
 
 
 def corkable(ws: Any) -> bool:
@@ -39,13 +41,31 @@ def paused(ws: Any) -> bool:
 def write(ws: Any, frames: Iterable[str | bytes]) -> int:
     """Frame ``frames`` (str: a text frame, bytes: a binary frame) and write them to ``ws``'s
     transport in one ``writelines``; returns the bytes written. Call only while
-    :func:`writable`; the transport buffers what the socket does not take at once."""
+    :func:`writable`; the transport buffers what the socket does not take at once. On a
+    server's connection without extensions a binary frame of :data:`RAW_MIN` bytes or more gets
+    its header here (:func:`binary_header`) and goes out uncopied."""
     proto = ws.protocol
+    raw = proto.side is Side.SERVER and not proto.extensions     # unmasked, uncompressed: framing is a header
+    out: list = []
     for f in frames:
         if isinstance(f, str):
             proto.send_text(f.encode())
+        elif raw and len(f) >= RAW_MIN:
+            out.extend(proto.data_to_send())
+            out.append(binary_header(len(f)))
+            out.append(f)                     # not copied into a frame buffer
         else:
             proto.send_binary(f)
-    out = proto.data_to_send()
+    out.extend(proto.data_to_send())
     ws.transport.writelines(out)
     return sum(map(len, out))
+
+
+def binary_header(n: int) -> bytes:
+    """The header of an unmasked, unfragmented binary frame of ``n`` payload bytes (RFC 6455
+    section 5.2: FIN and opcode 0x2, then the 7-bit, 16-bit or 64-bit payload length)."""
+    if n < 126:
+        return bytes((0x82, n))
+    if n < 1 << 16:
+        return bytes((0x82, 126)) + n.to_bytes(2, "big")
+    return bytes((0x82, 127)) + n.to_bytes(8, "big")

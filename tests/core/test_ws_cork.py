@@ -93,3 +93,13 @@ async def test_a_closed_link_is_not_writable():
         await until(lambda: not ws_cork.writable(ws), "the server side to see the close")
         assert not ws_cork.paused(ws)
         assert not ws_cork.corkable(object()) and not ws_cork.writable(object())
+
+
+def test_binary_header_is_what_websockets_writes():
+    """A large frame framed by ws_cork reads back, through websockets' own client parser, as
+    the frame websockets would have written."""
+    from websockets.frames import Frame, Opcode
+    from rce_robot.ws_cork import binary_header
+    for n in (0, 125, 126, 65535, 65536, 1_128_837):
+        data = bytes(range(256)) * (n // 256) + bytes(n % 256)
+        assert binary_header(n) + data == Frame(Opcode.BINARY, data).serialize(mask=False)
