@@ -33,6 +33,13 @@ def writable(ws: Any) -> bool:
     return corkable(ws) and not ws.paused and ws.protocol.state is State.OPEN
 
 
+def backlog(ws: Any) -> int:
+    """Frames ``ws`` has received that its reader has not taken yet (0 for anything that is not a
+    websockets asyncio connection)."""
+    frames = getattr(getattr(ws, "recv_messages", None), "frames", None)
+    return len(frames) if frames is not None else 0
+
+
 def paused(ws: Any) -> bool:
     """Is the open connection ``ws`` waiting for its transport to drain (``await ws.drain()``)?"""
     return corkable(ws) and ws.paused and ws.protocol.state is State.OPEN

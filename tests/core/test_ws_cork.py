@@ -103,3 +103,26 @@ def test_binary_header_is_what_websockets_writes():
     for n in (0, 125, 126, 65535, 65536, 1_128_837):
         data = bytes(range(256)) * (n // 256) + bytes(n % 256)
         assert binary_header(n) + data == Frame(Opcode.BINARY, data).serialize(mask=False)
+
+
+async def test_backlog_counts_frames_received_and_not_yet_read():
+    got = asyncio.Event()
+    seen: list[int] = []
+
+    async def handler(ws) -> None:
+        await got.wait()                        # the client's frames arrive while nobody reads
+        await until(lambda: ws_cork.backlog(ws) == 3, "three frames waiting")
+        for _ in range(3):
+            await ws.recv()
+            seen.append(ws_cork.backlog(ws))
+    server = await serve(handler, "127.0.0.1", 0, compression=None)
+    try:
+        async with connect(f"ws://127.0.0.1:{server.sockets[0].getsockname()[1]}/", compression=None) as client:
+            for m in ("a", "b", "c"):
+                await client.send(m)
+            got.set()
+            await until(lambda: len(seen) == 3, "the frames read")
+        assert seen == [2, 1, 0] and ws_cork.backlog(object()) == 0
+    finally:
+        server.close()
+        await server.wait_closed()
