@@ -56,6 +56,22 @@ async def first_echo(r: RawRobot, prefix: str) -> None:
         i += 1
 
 
+async def topic_echo(r: RawRobot, ctag: str, nodes: list[dict], req: str, resp: str) -> None:
+    """Container ``ctag`` with ``nodes`` (addNodes entries), a PublisherInterface ``req`` and a
+    SubscriberInterface ``resp`` wired to the robot's converters ``req`` and ``resp``."""
+    rid = r.robot
+    await r.send("CC", {"containerTag": ctag})
+    await r.cn(addNodes=[{"containerTag": ctag, **n} for n in nodes],
+               addInterfaces=[{"endpointTag": ep, "interfaceTag": tag, "interfaceType": kind,
+                               "className": "std_msgs/String", **({"addr": addr} if addr else {})}
+                              for ep, tag, kind, addr in ((ctag, "req", "PublisherInterface", req),
+                                                          (ctag, "resp", "SubscriberInterface", resp),
+                                                          (rid, "req", "SubscriberConverter", None),
+                                                          (rid, "resp", "PublisherConverter", None))])
+    await r.send("CX", {"connect": [{"tagA": f"{ctag}/{t}", "tagB": f"{rid}/{t}"} for t in ("req", "resp")]})
+    await r.wait_up("req", "resp")
+
+
 def direct(s: dict) -> dict:
     return s["environment"]["direct"]
 
@@ -113,21 +129,9 @@ async def test_kill_9_of_a_node_with_direct_links(eng):
     """The node dies with its direct links: the robot endpoint's claim ends with the link, the
     respawned node gets new routes, and echoes resume."""
     async with RawRobot(eng.master_url, "directK") as r:
-        rid, ctag = r.robot, "directKC"
-        await r.send("CC", {"containerTag": ctag})
-        await r.cn(addNodes=[{"containerTag": ctag, "nodeTag": "echo", "pkg": "Test", "exe": "stringEcho.py",
-                              "respawn": True}],
-                   addInterfaces=[
-                       {"endpointTag": ctag, "interfaceTag": "req", "interfaceType": "PublisherInterface",
-                        "className": "std_msgs/String", "addr": "/stringEchoReq"},
-                       {"endpointTag": ctag, "interfaceTag": "resp", "interfaceType": "SubscriberInterface",
-                        "className": "std_msgs/String", "addr": "/stringEchoResp"},
-                       {"endpointTag": rid, "interfaceTag": "req", "interfaceType": "SubscriberConverter",
-                        "className": "std_msgs/String"},
-                       {"endpointTag": rid, "interfaceTag": "resp", "interfaceType": "PublisherConverter",
-                        "className": "std_msgs/String"}])
-        await r.send("CX", {"connect": [{"tagA": f"{ctag}/{t}", "tagB": f"{rid}/{t}"} for t in ("req", "resp")]})
-        await r.wait_up("req", "resp")
+        ctag = "directKC"
+        await topic_echo(r, ctag, [{"nodeTag": "echo", "pkg": "Test", "exe": "stringEcho.py", "respawn": True}],
+                         "/stringEchoReq", "/stringEchoResp")
         await first_echo(r, "warm")
         s = await until(lambda: stats(eng, ctag), lambda s: direct(s)["claims"] >= 1 and direct(s)["routes"] >= 1)
         pid = s["per_node"]["echo"]["pid"]
@@ -177,21 +181,10 @@ async def test_two_subscriber_nodes_share_a_claim_and_a_survivor_misses_nothing(
 
 async def _two_echo_nodes(eng) -> None:
     async with RawRobot(eng.master_url, "direct2") as r:
-        rid, ctag = r.robot, "direct2C"
-        await r.send("CC", {"containerTag": ctag})
-        await r.cn(addNodes=[{"containerTag": ctag, "nodeTag": n, "pkg": "benchecho", "exe": "echo.py", "name": n,
-                              "args": "--type std_msgs/String --back --report 60 /pose"} for n in ("echoA", "echoB")],
-                   addInterfaces=[
-                       {"endpointTag": ctag, "interfaceTag": "req", "interfaceType": "PublisherInterface",
-                        "className": "std_msgs/String", "addr": "/pose"},
-                       {"endpointTag": ctag, "interfaceTag": "resp", "interfaceType": "SubscriberInterface",
-                        "className": "std_msgs/String", "addr": "/pose_echo"},
-                       {"endpointTag": rid, "interfaceTag": "req", "interfaceType": "SubscriberConverter",
-                        "className": "std_msgs/String"},
-                       {"endpointTag": rid, "interfaceTag": "resp", "interfaceType": "PublisherConverter",
-                        "className": "std_msgs/String"}])
-        await r.send("CX", {"connect": [{"tagA": f"{ctag}/{t}", "tagB": f"{rid}/{t}"} for t in ("req", "resp")]})
-        await r.wait_up("req", "resp")
+        ctag = "direct2C"
+        await topic_echo(r, ctag, [{"nodeTag": n, "pkg": "benchecho", "exe": "echo.py", "name": n,
+                                    "args": "--type std_msgs/String --back --report 60 /pose"}
+                                   for n in ("echoA", "echoB")], "/pose", "/pose_echo")
         s = await until(lambda: stats(eng, ctag),
                         lambda s: all(s["per_node"][n]["connected"] for n in ("echoA", "echoB")))
         await first_echo(r, "warm")
