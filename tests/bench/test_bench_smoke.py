@@ -53,3 +53,15 @@ def test_paper_experiments_smoke(tmp_path):
             assert r["net"]["rx_bytes"] >= r["msg_bytes"] * r["sent"] > 0, r
     assert runs[("exp1", "rce-forwarder")]["robots"] == 5 and runs[("exp2", "rce-forwarder")]["robots"] == 1
     assert png.stat().st_size > 10_000
+
+
+@pytest.mark.timeout(120)
+def test_rtt_cpu_smoke(tmp_path):
+    """Both settings run; with direct links the environment spends (next to) nothing per round
+    trip, through it, it does."""
+    out = tmp_path / "rtt_cpu.json"
+    run("rtt_cpu.py", "--n", "600", "--json", str(out), timeout=110)
+    d = json.loads(out.read_text())
+    off, on = d["runs"]["direct_off"], d["runs"]["direct_on"]
+    assert positive([off["median_ms"], on["median_ms"], on["us_per_rt"]["robot"], off["us_per_rt"]["environment"]])
+    assert on["us_per_rt"]["environment"] < off["us_per_rt"]["environment"] / 3

@@ -1,0 +1,102 @@
+"""CPU per round trip, per process: where a converter (or forwarder) round trip spends its CPU.
+
+Runs the engine (:mod:`common`'s ``engine``) with one container of ``Test/stringEcho.py`` and
+the robot-side interfaces of :mod:`rtt` (``setup_echo``), then ``--n`` back-to-back round trips
+of ``--size`` bytes, and reads each process's CPU time (psutil, user + system) before and after:
+rce-robot, the environment, the echo node, the master, the container host and this process (the
+robot's client). ``--direct both`` runs it twice, with direct links off (``RCE_DIRECT_LINKS=0``:
+every message through the environment) and on, so the two lines compare in one run.
+
+Usage::
+
+    .venv/bin/python bench/rtt_cpu.py [--n 3000] [--size 3] [--kind converter|forwarder]
+        [--direct both|on|off] [--json PATH]
+
+Results: a table (us of CPU per round trip per process, and the median round trip) and
+``bench/results/rtt_cpu.json``.
+"""
+from __future__ import annotations
+
+import argparse
+import asyncio
+import time
+from pathlib import Path
+
+import psutil
+
+from common import RESULTS, RawRobot, console, engine, median, write_json
+from rtt import Path_, setup_echo
+
+ROLES = (("robot", ("rce-robot",)), ("environment", ("rce_container.environment",)), ("node", ("stringEcho",)),
+         ("master", ("rce-master",)), ("container host", ("rce-container",)))
+
+
+def processes() -> dict[str, list[psutil.Process]]:
+    """The engine's processes by role (first match of a command-line marker), and this client."""
+    out: dict[str, list[psutil.Process]] = {role: [] for role, _ in ROLES}
+    for p in psutil.process_iter(["cmdline"]):
+        cmd = " ".join(p.info["cmdline"] or [])
+        for role, marks in ROLES:
+            if any(m in cmd for m in marks):
+                out[role].append(p)
+                break
+    out["client"] = [psutil.Process()]
+    return out
+
+
+def cpu_seconds(procs: dict[str, list[psutil.Process]]) -> dict[str, float]:
+    out = {}
+    for role, ps in procs.items():
+        total = 0.0
+        for p in ps:
+            try:
+                t = p.cpu_times()
+                total += t.user + t.system
+            except psutil.Error:
+                pass
+        out[role] = total
+    return out
+
+
+async def measure(master_url: str, kind: str, n: int, size: int) -> dict:
+    """``{median_ms, us_per_rt: {role: us}}`` over ``n`` round trips of ``size`` bytes."""
+    async with RawRobot(master_url, "cpuR") as r:
+        req, resp = await setup_echo(r, "cpuC", "Converter" if kind == "converter" else "Forwarder")
+        path = Path_(r, kind, req, resp)
+        await path.warm_up()
+        frames = path.prepare(size)
+        for _ in range(200):                    # the node's routes are up and every process is hot
+            await path.roundtrip(frames, size, 2.0)
+        procs = processes()
+        c0 = cpu_seconds(procs)
+        samples = [await path.roundtrip(frames, size, 2.0) for _ in range(n)]
+        c1 = cpu_seconds(procs)
+    return {"median_ms": round(median(samples), 4),
+            "us_per_rt": {k: round((c1[k] - c0[k]) / n * 1e6, 1) for k in c0}}
+
+
+def main(argv=None) -> int:
+    p = argparse.ArgumentParser(description="CPU per round trip, per process (see the module doc).")
+    p.add_argument("--n", type=int, default=3000, help="round trips per setting (default 3000)")
+    p.add_argument("--size", type=int, default=3, help="payload bytes (default 3)")
+    p.add_argument("--kind", choices=("converter", "forwarder"), default="converter")
+    p.add_argument("--direct", choices=("both", "on", "off"), default="both")
+    p.add_argument("--json", default=str(RESULTS / "rtt_cpu.json"))
+    a = p.parse_args(argv)
+    con = console()
+    settings = {"both": ("off", "on"), "on": ("on",), "off": ("off",)}[a.direct]
+    res = {"kind": a.kind, "size": a.size, "n": a.n, "runs": {}}
+    for s in settings:
+        t0 = time.monotonic()
+        with engine(env={"RCE_DIRECT_LINKS": "1" if s == "on" else "0"}) as eng:
+            res["runs"][f"direct_{s}"] = r = asyncio.run(measure(eng.master_url, a.kind, a.n, a.size))
+        con.print(f"direct links {s:3s}: median {r['median_ms']:.3f} ms; CPU us per round trip: "
+                  + ", ".join(f"{k} {v:.0f}" for k, v in r["us_per_rt"].items())
+                  + f"  ({time.monotonic() - t0:.0f} s)")
+    write_json(Path(a.json), res)
+    con.print(f"results: {a.json}")
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
