@@ -31,11 +31,29 @@ ROLES = (("robot", ("rce-robot",)), ("environment", ("rce_container.environment"
          ("master", ("rce-master",)), ("container host", ("rce-container",)))
 
 
-def processes() -> dict[str, list[psutil.Process]]:
-    """The engine's processes by role (first match of a command-line marker), and this client."""
+def processes(roots: list[int], workdir: str) -> dict[str, list[psutil.Process]]:
+    """The engine's processes by role (the first command-line marker that matches), and this
+    client: ``roots`` (the pids it started) and their descendants, and the nodes, whose zygote is
+    no one's child (found by their working directory, a container's, under ``workdir``)."""
     out: dict[str, list[psutil.Process]] = {role: [] for role, _ in ROLES}
-    for p in psutil.process_iter(["cmdline"]):
-        cmd = " ".join(p.info["cmdline"] or [])
+    tree = []
+    for pid in roots:
+        try:
+            root = psutil.Process(pid)
+            tree += [root, *root.children(recursive=True)]
+        except psutil.Error:
+            pass
+    for p in psutil.process_iter():
+        try:
+            if p not in tree and p.cwd().startswith(workdir):
+                tree.append(p)
+        except psutil.Error:
+            pass
+    for p in tree:
+        try:
+            cmd = " ".join(p.cmdline())
+        except psutil.Error:
+            continue
         for role, marks in ROLES:
             if any(m in cmd for m in marks):
                 out[role].append(p)
@@ -58,7 +76,7 @@ def cpu_seconds(procs: dict[str, list[psutil.Process]]) -> dict[str, float]:
     return out
 
 
-async def measure(master_url: str, kind: str, n: int, size: int) -> dict:
+async def measure(master_url: str, roots: list[int], workdir: str, kind: str, n: int, size: int) -> dict:
     """``{median_ms, us_per_rt: {role: us}}`` over ``n`` round trips of ``size`` bytes."""
     async with RawRobot(master_url, "cpuR") as r:
         req, resp = await setup_echo(r, "cpuC", "Converter" if kind == "converter" else "Forwarder")
@@ -67,7 +85,7 @@ async def measure(master_url: str, kind: str, n: int, size: int) -> dict:
         frames = path.prepare(size)
         for _ in range(200):                    # the node's routes are up and every process is hot
             await path.roundtrip(frames, size, 2.0)
-        procs = processes()
+        procs = processes(roots, workdir)
         c0 = cpu_seconds(procs)
         samples = [await path.roundtrip(frames, size, 2.0) for _ in range(n)]
         c1 = cpu_seconds(procs)
@@ -89,7 +107,8 @@ def main(argv=None) -> int:
     for s in settings:
         t0 = time.monotonic()
         with engine(env={"RCE_DIRECT_LINKS": "1" if s == "on" else "0"}) as eng:
-            res["runs"][f"direct_{s}"] = r = asyncio.run(measure(eng.master_url, a.kind, a.n, a.size))
+            res["runs"][f"direct_{s}"] = r = asyncio.run(measure(eng.master_url, [q.pid for q in eng.procs],
+                                                                         str(eng.workdir), a.kind, a.n, a.size))
         con.print(f"direct links {s:3s}: median {r['median_ms']:.3f} ms; CPU us per round trip: "
                   + ", ".join(f"{k} {v:.0f}" for k, v in r["us_per_rt"].items())
                   + f"  ({time.monotonic() - t0:.0f} s)")
