@@ -99,26 +99,31 @@ class Publisher:
         drain (backpressure: nothing is lost). Raises :class:`MessageError` if it does not fit
         the topic's class."""
         payload = self.node._encode(self.typename, msg)
-        direct = self.node._direct
-        src = direct.publish(self.handle, payload) if direct is not None else 0
+        src = self._direct(payload)
         if src >= 0:
             self.node._peer.send_raw(self._head(payload, src), payload)
         self.published += 1
         await self.node._peer.link.drain()
-        if direct is not None:
-            await direct.drain(self.handle)
+        if self.node._direct is not None:
+            await self.node._direct.drain(self.handle)
 
     def publish_nowait(self, msg: Any) -> bool:
         """Publish without waiting for the socket to drain (for callbacks). A message that would
         pass the link's bound (the bus is not reading) is dropped, counted in ``dropped``, and
         False returned."""
         payload = self.node._encode(self.typename, msg)
-        src = self.node._direct.publish(self.handle, payload) if self.node._direct is not None else 0
+        src = self._direct(payload)
         if src >= 0 and not self.node._peer.link.offer(self._head(payload, src), payload):
             self.dropped += 1
             return False
         self.published += 1
         return True
+
+    def _direct(self, payload: bytes) -> int:
+        """Send ``payload`` on this publisher's direct route, if it has one; the ``src`` of its bus
+        frame, or -1 for none (:meth:`rce.node_links.DirectLinks.publish`)."""
+        direct = self.node._direct
+        return direct.publish(self.handle, payload) if direct is not None else 0
 
     def _head(self, payload: bytes, src: int = 0) -> bytes:
         """``src``: 0, or the direct route's version (:mod:`rce.node_links`)."""

@@ -38,9 +38,6 @@ from typing import Any
 from rce import framing
 from rce.errors import ProtocolError, Timeout, Unavailable
 from rce.link import STREAM_LIMIT, FramedLink, LinkFull
-from rce.log import get_logger
-
-log = get_logger("rce.node.direct")
 
 LINK_ID = struct.Struct("!Q")     # the id that goes with each socket on the fd channel
 FD_WAIT = 10.0                    # s ``direct_link`` waits for its socket on the fd channel
@@ -162,21 +159,21 @@ class DirectLinks:
                                      max_frame=framing.DEFAULT_MAX_FRAME, max_buffer=MAX_BUFFER).start()
         return {}
 
-    def _link(self, a: dict) -> FramedLink:
-        link = self.links.get(int(a["link"]))
+    def _link(self, lid: object) -> FramedLink:
+        link = self.links.get(int(lid))
         if link is None or link.closed.is_set():
-            raise Unavailable(f"direct link {a['link']} is not open")
+            raise Unavailable(f"direct link {lid} is not open")
         return link
 
     def _grant(self, a: dict) -> None:
         for lid, frame in a.get("grants") or ():
-            self._link({"link": lid}).send(framing.encode_control(frame))
+            self._link(lid).send(framing.encode_control(frame))
 
     async def op_direct_publish(self, a: dict) -> dict:
         """``{handle, version, targets, local, grants}`` (module doc)."""
         handle = int(a["handle"])
         self._grant(a)
-        targets = [(self._link({"link": lid}), int(dst), int(src), self.counts.setdefault(int(src), [0, 0, 0]))
+        targets = [(self._link(lid), int(dst), int(src), self.counts.setdefault(int(src), [0, 0, 0]))
                    for lid, dst, src in a.get("targets") or ()]
         if targets:
             self.routes[handle] = _Route(int(a["version"]), targets, bool(a.get("local")))
@@ -186,7 +183,7 @@ class DirectLinks:
 
     async def op_direct_subscribe(self, a: dict) -> dict:
         """``{link, iid, peers, handles, gen, size, grants}``: claim interface ``iid`` on ``link``."""
-        link, iid = self._link(a), int(a["iid"])
+        link, iid = self._link(a["link"]), int(a["iid"])
         self._grant(a)
         self.claims[(int(a["link"]), iid)] = (frozenset(int(p) for p in a["peers"]),
                                                tuple(int(h) for h in a["handles"]))

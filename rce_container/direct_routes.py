@@ -47,7 +47,7 @@ from rce.errors import ProtocolError, RCEError
 from rce.log import get_logger
 from rce.node_links import LINK_ID
 from rce.tasks import Tasks
-from rce_container.interfaces import PublisherInterface, SubscriberInterface
+from rce_container.interfaces import BusInterface, PublisherInterface, SubscriberInterface
 
 if TYPE_CHECKING:
     from rce.bus.server import _Session
@@ -160,8 +160,7 @@ class DirectRoutes:
             st = self.states.setdefault(s, _NodeState())
             try:
                 for h, topic in list(s.pubs.items()):
-                    await self._publisher(s, st, h, [sub for sub in topic.subscriptions if sub in served_by],
-                                          len(topic.subscriptions), served_by)
+                    await self._publisher(s, st, h, topic.subscriptions, served_by)
                 for h in [h for h in st.pubs if h not in s.pubs]:
                     del st.pubs[h]
                 await self._claims(s, st, claims.get(s, {}))
@@ -181,28 +180,32 @@ class DirectRoutes:
             members: dict[_Session, tuple[int, ...]] = {}
             for s in {node_subs[sub] for sub in subs}:
                 members[s] = tuple(sorted(h for h, sub in s.subs.items() if sub.topic is x.topic))
-            by_addr: dict[str, list[int]] = {}
-            for peer, addr in x.peers.items():
-                if (x.iid, peer) in self.env.plane.credentials:
-                    by_addr.setdefault(addr, []).append(peer)
-            shape = (frozenset((id(s), h) for s, h in members.items()),
-                     tuple(sorted((a, tuple(sorted(p))) for a, p in by_addr.items())))
+            by_addr: dict[str, tuple[int, ...]] = {}
+            for peer, addr in self._sendable(x):
+                by_addr[addr] = (*by_addr.get(addr, ()), peer)
+            shape = (frozenset((id(s), h) for s, h in members.items()), tuple(sorted(by_addr.items())))
             gen = self._gens.get(x.iid)
             if gen is None or gen[1] != shape:
                 gen = self._gens[x.iid] = (next(self._versions), shape)
             for s, handles in members.items():
                 for addr, peers in by_addr.items():
-                    out.setdefault(s, {})[(addr, x.iid)] = (tuple(sorted(peers)), handles, gen[0], len(members))
+                    out.setdefault(s, {})[(addr, x.iid)] = (peers, handles, gen[0], len(members))
         live = {x.iid for x in publishers}
         self._gens = {k: v for k, v in self._gens.items() if k in live}
         return out
 
-    async def _publisher(self, s: _Session, st: _NodeState, h: int, served: list[Subscription], n_subs: int,
+    def _sendable(self, iface: BusInterface) -> list[tuple[int, str]]:
+        """``[(peer, addr)]``, sorted: the peers of ``iface`` this environment holds a credential
+        for (the grants a direct link needs are made from it)."""
+        return sorted((peer, addr) for peer, addr in iface.peers.items()
+                      if (iface.iid, peer) in self.env.plane.credentials)
+
+    async def _publisher(self, s: _Session, st: _NodeState, h: int, subs: list[Subscription],
                          served_by: dict[Subscription, SubscriberInterface]) -> None:
+        served = [sub for sub in subs if sub in served_by]
         targets = sorted((addr, peer, served_by[sub].iid) for sub in served
-                         for peer, addr in served_by[sub].peers.items()
-                         if (served_by[sub].iid, peer) in self.env.plane.credentials)
-        local = len(served) < n_subs
+                         for peer, addr in self._sendable(served_by[sub]))
+        local = len(served) < len(subs)
         key = (tuple(targets), local, frozenset(a for a, _, _ in targets))
         if st.pubs.get(h, ((), True, frozenset())) == key:
             return
@@ -217,8 +220,8 @@ class DirectRoutes:
             return
         grants = self._grants([(links[addr], src, dst) for addr, dst, src in targets])
         version = next(self._versions)
-        s.routes.setdefault(h, {})[version] = frozenset(sub for sub in served if served_by[sub].iid in
-                                                         {src for _, _, src in targets})
+        reached = {src for _, _, src in targets}
+        s.routes.setdefault(h, {})[version] = frozenset(sub for sub in served if served_by[sub].iid in reached)
         await s.peer.call("direct_publish", timeout=CALL_TIMEOUT, handle=h, version=version, local=local,
                           targets=[[links[addr].lid, dst, src] for addr, dst, src in targets], grants=grants)
         s.routes[h] = {version: s.routes[h][version]}     # frames of older versions have all arrived

@@ -261,7 +261,6 @@ class Environment:
         if c:
             c.interfaces.pop(iface.iid, None)
         await iface.stop()
-        self._touch()
 
     # -- containers ----------------------------------------------------------------------------
     async def op_add_container(self, a: dict) -> dict:
@@ -381,7 +380,6 @@ class Environment:
             raise RequestError(f"interface id {iid} is already in use by {old.tag!r}")
         await iface.start()
         self.interfaces[iid] = c.interfaces[iid] = iface
-        self._touch()
         log.info("interface added", cid=c.cid, iid=iid, tag=iface.tag, kind=iface.kind, cls=iface.cls,
                  addr=iface.addr)
         return {"iid": iid, "addr": iface.addr}

@@ -76,6 +76,7 @@ class _Session:
         self.responder = Responder(f"bus {self.bus.name} for {self.owner}", peer.tasks)
         self.ids = itertools.count(1)
         self.direct = False                # the node takes direct links (hello ``direct``)
+        self.fd_key: str | None = None                     # names its fd channel until it is opened
         self.fd_sock: socket.socket | None = None          # its fd channel, once it has opened it
         self.channel: RpcPeer | None = None
         self.routes: dict[int, dict[int, frozenset[Subscription]]] = {}   # handle -> version -> reached
@@ -118,8 +119,8 @@ class _Session:
         reply = {"bus": self.bus.name}
         if self.server.direct and a.get("direct") is True and not self.direct:
             self.direct = True
-            reply["fd_key"] = key = secrets.token_hex(16)
-            self.server.fd_keys[key] = self
+            reply["fd_key"] = self.fd_key = secrets.token_hex(16)
+            self.server.fd_keys[self.fd_key] = self
         self.server.changed()
         return reply
 
@@ -271,7 +272,8 @@ class _Session:
             self.fd_sock.close()
             self.fd_sock = None
             self.channel.link.close("its node left")
-        self.server.fd_keys = {k: s for k, s in self.server.fd_keys.items() if s is not self}
+        if self.fd_key is not None:
+            self.server.fd_keys.pop(self.fd_key, None)
         if self.node:
             self.bus.nodes.pop(self.node, None)
         self.pubs, self.subs, self.services = {}, {}, {}
