@@ -374,8 +374,7 @@ class MessageRegistry:
                 return lambda v: bytes(np.asarray(v, dtype=np.uint8))
             return lambda v: base64.b64encode(bytes(np.asarray(v, dtype=np.uint8))).decode()
         if sub_nt == Nodetype.BASE and sub_arg[0] in _NP_DTYPES:
-            conv = _base_decoder(sub_arg[0])
-            return lambda v: [conv(x) for x in np.asarray(v).tolist()]
+            return _numeric_array_decoder(sub_arg[0] in _FLOATS)
         item = self._field_decoder((sub_nt, sub_arg), key)
         return lambda v: [item(x) for x in v]
 
@@ -479,7 +478,11 @@ def _base_encoder(t: str, owner: str) -> Encoder:
                 return float("nan")
             if isinstance(v, bool) or not isinstance(v, (int, float)):
                 raise MessageError(f"{owner}: field '{path}' must be a number, got {type(v).__name__}")
-            return float(v)
+            try:
+                return float(v)
+            except OverflowError:       # an integer past a double's range
+                raise MessageError(f"{owner}: field '{path}' must be a number a {t} holds, got an integer "
+                                   f"of {v.bit_length()} bits") from None
         return enc_float
     lo, hi = _INT_RANGES[t]
 
@@ -501,6 +504,7 @@ def _numeric_array_encoder(t: str, fixed: int | None, owner: str) -> Encoder:
     dtype = _NP_DTYPES[t]
     is_bytes = t in ("uint8", "char", "byte")
     item = _base_encoder(t, owner)
+    whole = _whole_array(t, dtype)
 
     def enc(v: Any, path: str, forms: JsonForms) -> np.ndarray:
         if v is _MISSING:
@@ -515,7 +519,9 @@ def _numeric_array_encoder(t: str, fixed: int | None, owner: str) -> Encoder:
                 raise MessageError(f"{owner}: field '{path}' is not valid base64") from None
             forms.saw("byte_arrays", "base64")
         elif isinstance(v, list):
-            arr = np.array([item(x, f"{path}[{i}]", forms) for i, x in enumerate(v)], dtype=dtype)
+            arr = whole(v)
+            if arr is None:     # something to refuse (or null: NaN): item by item, for the error's field path
+                arr = np.array([item(x, f"{path}[{i}]", forms) for i, x in enumerate(v)], dtype=dtype)
         else:
             what = " or base64 string (or a binary part)" if is_bytes else ""
             raise MessageError(f"{owner}: field '{path}' must be a list{what}, got {type(v).__name__}")
@@ -523,6 +529,40 @@ def _numeric_array_encoder(t: str, fixed: int | None, owner: str) -> Encoder:
             raise MessageError(f"{owner}: field '{path}' must have {fixed} items, got {len(arr)}")
         return arr
     return enc
+
+
+def _whole_array(t: str, dtype: Any) -> Callable[[list], np.ndarray | None]:
+    """The fast path of a JSON list -> numeric array of ROS type ``t``: the whole list at C speed
+    when every item is what the item encoder (:func:`_base_encoder`) takes as it is (numbers, not
+    bools, for floats; in-range integers for integers; bools for bools); ``None`` otherwise (the
+    caller then goes item by item, which refuses what does not fit, naming the item)."""
+    kinds = {float, int} if t in _FLOATS else {bool} if t == "bool" else {int}
+    lo, hi = _INT_RANGES[t] if kinds == {int} else (None, None)
+
+    def whole(v: list) -> np.ndarray | None:
+        if not v or not set(map(type, v)) <= kinds:
+            return None
+        if lo is not None and not lo <= min(v) <= max(v) <= hi:
+            return None
+        try:
+            return np.array(v, dtype=dtype)
+        except (OverflowError, ValueError):     # an integer too large for a float: item by item says so
+            return None
+    return whole
+
+
+def _numeric_array_decoder(floats: bool) -> Decoder:
+    """Numeric array (numpy, as rosbags gives it) -> JSON list of Python numbers; non-finite
+    floats become ``null`` (as :func:`_base_decoder`, as rosbridge sends them)."""
+    if not floats:
+        return lambda v: np.asarray(v).tolist()
+
+    def dec(v: Any) -> list:
+        out = np.asarray(v).tolist()
+        if all(map(math.isfinite, out)):
+            return out
+        return [x if math.isfinite(x) else None for x in out]
+    return dec
 
 
 _DEFAULT: MessageRegistry | None = None

@@ -233,6 +233,9 @@ PWCS = "geometry_msgs/PoseWithCovarianceStamped"
     (PWCS, {"pose": {"covariance": [0.0] * 37}}, ["field 'pose.covariance'", "36 items", "37"]),
     (PWCS, {"pose": {"covariance": [0.0] * 35 + ["x"]}}, ["field 'pose.covariance[35]'", "number"]),
     (PWCS, {"pose": {"covariance": "0"}}, ["field 'pose.covariance'", "list"]),
+    (PWCS, {"pose": {"covariance": [0.0] * 35 + [True]}}, ["field 'pose.covariance[35]'", "number"]),
+    (PWCS, {"pose": {"covariance": [0.0] * 35 + [10**400]}}, ["field 'pose.covariance[35]'", "1329 bits"]),
+    (PWCS, {"pose": {"pose": {"position": {"x": -10**400}}}}, ["field 'pose.pose.position.x'", "float64"]),
     ("sensor_msgs/Image", {"data": "not base64!"}, ["field 'data'", "base64"]),
     ("sensor_msgs/Image", {"data": [1, 256]}, ["field 'data[1]'", "out of range for uint8"]),
     ("sensor_msgs/Image", {"data": 5}, ["field 'data'", "list or base64 string"]),
@@ -240,6 +243,9 @@ PWCS = "geometry_msgs/PoseWithCovarianceStamped"
     ("sensor_msgs/LaserScan", {"ranges": [1.0, "x"]}, ["field 'ranges[1]'", "number"]),
     ("sensor_msgs/LaserScan", {"ranges": {"a": 1}}, ["field 'ranges'", "list"]),
     ("std_msgs/Int32MultiArray", {"data": [1, 2**31]}, ["field 'data[1]'", "out of range for int32"]),
+    ("std_msgs/Int32MultiArray", {"data": [-2**31 - 1, 0]}, ["field 'data[0]'", "out of range for int32"]),
+    ("std_msgs/Int32MultiArray", {"data": [1, 2.5]}, ["field 'data[1]'", "integer"]),
+    ("std_msgs/Int32MultiArray", {"data": [1, False]}, ["field 'data[1]'", "integer"]),
     ("std_msgs/Int32MultiArray", {"layout": {"dim": [{}, {"size": -1}]}},
      ["field 'layout.dim[1].size'", "out of range"]),
     ("std_msgs/Int32MultiArray", {"layout": {"dim": [{"lable": "x"}]}}, ["unknown field 'layout.dim[0].lable'"]),
@@ -436,3 +442,27 @@ def test_non_finite_floats_are_null_in_json():
     assert out["ranges"] == [1.0, None]
     _json.loads(_json.dumps(out, allow_nan=False))     # strictly valid JSON
     assert _math.isnan(reg.from_json(t, {"ranges": [None]}).ranges[0])
+
+
+@pytest.mark.parametrize("cls, field, values, expect", [
+    (PWCS, "pose.covariance", [0, 1.5, -2, 1e300] + [0.25] * 32, [0.0, 1.5, -2.0, 1e300] + [0.25] * 32),
+    (PWCS, "pose.covariance", [None] + [1] * 35, [None] + [1.0] * 35),          # null reads back as NaN: null
+    ("std_msgs/Int32MultiArray", "data", [-2**31, 0, 2**31 - 1], [-2**31, 0, 2**31 - 1]),
+    ("std_msgs/Int32MultiArray", "data", [3.0, 4], [3, 4]),                      # an integral float is an integer
+    ("std_msgs/Float32MultiArray", "data", [0.5, 2, 1e39], [0.5, 2.0, None]),   # past float32: inf, out as null
+])
+@pytest.mark.filterwarnings("ignore:overflow encountered in cast:RuntimeWarning")   # numpy's, for the inf above
+def test_numeric_arrays_whole_or_item_by_item_agree(reg, cls, field, values, expect):
+    """A list of numbers takes the whole-array path or the item-by-item one (a null, an integral
+    float): the same values come back either way, as Python numbers of the field's kind."""
+    obj: dict = {}
+    node = obj
+    *outer, last = field.split(".")
+    for name in outer:
+        node = node.setdefault(name, {})
+    node[last] = values
+    back = reg.bytes_to_json(reg.msg_type(cls), reg.json_to_bytes(reg.msg_type(cls), obj))
+    for name in field.split("."):
+        back = back[name]
+    assert back == expect
+    assert all(type(x) is type(y) for x, y in zip(back, expect))

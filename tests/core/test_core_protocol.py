@@ -3,6 +3,7 @@ names, frames and binary parts."""
 from __future__ import annotations
 
 import json
+import math
 
 import pytest
 from hypothesis import given, settings
@@ -13,6 +14,7 @@ from rce.errors import ProtocolError
 from rce.protocol import (DEFAULT_EXPIRY, ID_LEN, Assembler, encode, new_id, split_interface_type,
                           validate)
 from rce.protocol import schema
+from rce.protocol.frames import parse_text
 
 ID1, ID2, ID3 = "0" * 31 + "1", "a" * 31 + "2", "F" * 31 + "3"
 
@@ -490,6 +492,31 @@ def test_new_id_is_32_hex_and_fresh():
 def test_encode_without_bytes_is_plain_json():
     text, frames = encode({"type": "ER", "data": "reason"})
     assert json.loads(text) == {"type": "ER", "data": "reason"} and frames == []
+
+
+@pytest.mark.parametrize("text, value", [
+    ('{"type":"DM","data":{"msg":{"x":NaN,"y":-Infinity}}}', [math.nan, -math.inf]),   # Python's json writes these
+    ('{"type":"DM","data":{"msg":{"x":18446744073709551615,"y":-9223372036854775808}}}', [2**64 - 1, -2**63]),
+])
+def test_parse_takes_what_pythons_json_writes(text, value):
+    """The fast parser refuses NaN tokens (the stdlib's takes them); uint64 and int64 stay exact."""
+    msg = parse_text(text)["data"]["msg"]
+    got = [msg["x"], msg["y"]]
+    assert [str(v) for v in got] == [str(v) for v in value]
+
+
+def test_parse_error_names_line_and_column():
+    with pytest.raises(ProtocolError) as e:
+        parse_text('{"type": "DM",\n "data": }')
+    assert "malformed JSON" in e.value.message and "line 2 column" in e.value.message
+
+
+@pytest.mark.parametrize("data", ["caf\u00e9 \u6e2f", "lone \ud800 surrogate", 2**70, {"nested": [1.5, None, True]}])
+def test_encode_what_json_reads_back(data):
+    """Non-ASCII text, a lone surrogate (which only the stdlib encodes), a big integer: all come out
+    as JSON that reads back to the same value."""
+    text, frames = encode({"type": "DM", "data": {"iTag": "t", "msg": {"data": data}}})
+    assert frames == [] and json.loads(text)["data"]["msg"]["data"] == data
 
 
 def test_encode_round_trip_through_assembler():
