@@ -51,6 +51,9 @@ class MemTransport:
         else:
             self.written += data
 
+    def writelines(self, chunks) -> None:
+        self.write(b"".join(chunks))
+
     def _deliver(self, data: bytes) -> None:
         if self.closing:
             return
