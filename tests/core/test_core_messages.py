@@ -465,4 +465,4 @@ def test_numeric_arrays_whole_or_item_by_item_agree(reg, cls, field, values, exp
     for name in field.split("."):
         back = back[name]
     assert back == expect
-    assert all(type(x) is type(y) for x, y in zip(back, expect))
+    assert all(type(x) is type(y) for x, y in zip(back, expect, strict=True))
