@@ -10,15 +10,7 @@ with its stream, written once.
 - :func:`settle_reply` completes a pending service call (:class:`~rce.pending.PendingCalls`)
   from its ``SRV_RESP``/``SRV_ERR`` frame.
 
-Writes are corked for one loop iteration: the frames written while the loop runs its ready
-callbacks (under load, many robots' messages to one node) wait in the link and go out together,
-in one ``writelines`` (one ``writev`` on uvloop), from a callback the first of them scheduled
-(``loop.call_soon``; nats.py's pending buffer and flusher do the same). A lone frame waits only
-for the rest of the callback that wrote it. Order is kept: every frame, whatever its kind, takes
-the same way out.
-
-Write policy (``max_buffer``: bytes that may wait in the transport, the peer not reading, the
-frames corked in the link counted too):
+Write policy (``max_buffer``: bytes that may wait in the transport, the peer not reading):
 
 - :meth:`FramedLink.offer` is for frames that may be lost (topic messages, service replies
   whose caller times out): past the bound the frame is dropped, counted in ``dropped``, and
@@ -48,6 +40,7 @@ log = get_logger("rce.link")
 
 STREAM_LIMIT = 1024 * 1024           # bytes a stream reader buffers before it stops reading its socket (asyncio limit)
 DEFAULT_MAX_BUFFER = 64 * 1024 * 1024   # bytes that may wait in a link's transport (see the module doc)
+JOIN_MAX = 64 * 1024                 # bytes: a payload up to this is joined to its frame header (one write)
 MAX_IN_FLIGHT = 1024                 # requests one Responder runs at once; more are refused (Unavailable)
 
 Frame = dict | framing.DataFrame
@@ -88,9 +81,6 @@ class FramedLink:
         self.last_rx = asyncio.get_running_loop().time()
         self.dropped = self.refused = 0
         self._receiver: _Receiver | None = None
-        self._loop = asyncio.get_running_loop()
-        self._corked: list[bytes | memoryview] = []     # frames written this loop iteration (module doc)
-        self._corked_bytes = 0
 
     @property
     def peername(self) -> str:
@@ -142,23 +132,8 @@ class FramedLink:
 
     # -- writing ---------------------------------------------------------------------------------
     def _room(self, n: int, bound: int) -> bool:
-        waiting = self.transport.get_write_buffer_size() + self._corked_bytes
+        waiting = self.transport.get_write_buffer_size()
         return not waiting or waiting + n <= bound
-
-    def _write(self, frame: bytes, payload: bytes | memoryview) -> None:
-        """Cork one frame (header ``frame``, then ``payload``, uncopied) until :meth:`_flush`."""
-        if not self._corked:
-            self._loop.call_soon(self._flush)
-        self._corked.append(frame)
-        if payload:
-            self._corked.append(payload)
-        self._corked_bytes += len(frame) + len(payload)
-
-    def _flush(self) -> None:
-        """Write the corked frames to the transport, in one ``writelines``."""
-        out, self._corked, self._corked_bytes = self._corked, [], 0
-        if out and not self.transport.is_closing():
-            self.transport.writelines(out)
 
     def offer(self, frame: bytes, payload: bytes | memoryview = b"") -> bool:
         """Write ``frame`` (then ``payload``, unjoined: no copy) if the link is open and within
@@ -167,7 +142,7 @@ class FramedLink:
         if self.closed.is_set() or t.is_closing() or not self._room(len(frame) + len(payload), self.max_buffer):
             self.dropped += 1
             return False
-        self._write(frame, payload)
+        _write(t, frame, payload)
         return True
 
     def send(self, frame: bytes, payload: bytes | memoryview = b"") -> None:
@@ -178,9 +153,9 @@ class FramedLink:
             raise Unavailable(f"the link to {self.name} is closed")
         if not self._room(len(frame) + len(payload), self.hard_buffer):
             self.refused += 1
-            raise LinkFull(f"the link to {self.name} is saturated: {t.get_write_buffer_size() + self._corked_bytes} "
-                           f"bytes wait unread (bound {self.hard_buffer} bytes)")
-        self._write(frame, payload)
+            raise LinkFull(f"the link to {self.name} is saturated: {t.get_write_buffer_size()} bytes wait "
+                           f"unread (bound {self.hard_buffer} bytes)")
+        _write(t, frame, payload)
 
     async def drain(self) -> None:
         """Wait until the transport's buffer is below its low-water mark (backpressure)."""
@@ -205,7 +180,6 @@ class FramedLink:
             return
         self.close_reason = reason
         self.closed.set()
-        self._flush()                   # what was written before the close goes first (a last reply, an error)
         try:
             self.writer.close()
         except (RuntimeError, OSError):     # the loop is closing
@@ -215,6 +189,19 @@ class FramedLink:
                 self.on_close(self)
             except Exception as e:
                 log.error("on_close handler failed", link=self.name, exc_info=e)
+
+
+def _write(t: asyncio.WriteTransport, frame: bytes, payload: bytes | memoryview) -> None:
+    """One frame, in one system call: a small payload is joined to its header (a copy of at
+    most :data:`JOIN_MAX` bytes costs less than a second ``write``); a large one follows it
+    unjoined, uncopied."""
+    if not payload:
+        t.write(frame)
+    elif len(payload) <= JOIN_MAX:
+        t.write(frame + payload)
+    else:
+        t.write(frame)
+        t.write(payload)
 
 
 class _Receiver(asyncio.BufferedProtocol):

@@ -51,9 +51,6 @@ class MemTransport:
         else:
             self.written += data
 
-    def writelines(self, chunks) -> None:
-        self.write(b"".join(chunks))
-
     def _deliver(self, data: bytes) -> None:
         if self.closing:
             return

@@ -112,38 +112,10 @@ async def test_last_rx_moves_with_received_bytes():
 
 
 # -- writing ------------------------------------------------------------------------------------------
-async def next_pass() -> None:
-    """Let the loop run the callbacks scheduled so far (a link's flush among them)."""
-    await asyncio.sleep(0)
-
-
 async def test_offer_writes_header_and_payload_within_the_bound():
     link, _, _ = link_on(*lone(), max_buffer=100)
     assert link.offer(b"head", memoryview(b"payload"))
-    await next_pass()
     assert bytes(link.writer.transport.written) == b"headpayload"
-
-
-async def test_frames_of_one_loop_pass_go_out_together_in_order():
-    link, _, _ = link_on(*lone(), max_buffer=100)
-    t = link.writer.transport
-    calls = []
-    t.writelines = lambda chunks: (calls.append(len(chunks)), t.write(b"".join(chunks)))
-    assert link.offer(b"1", b"a") and link.offer(b"2")
-    link.send(b"3", b"c")
-    assert t.written == b""                              # corked until the loop's next pass
-    assert link._room(95, 100) and not link._room(96, 100)    # the 5 corked bytes count against the bound
-    await next_pass()
-    assert bytes(t.written) == b"1a23c" and calls == [5]
-
-
-async def test_close_writes_what_was_corked_first():
-    link, _, closes = link_on(*lone())
-    link.send(b"last words")
-    link.close("done")
-    assert bytes(link.writer.transport.written) == b"last words" and closes == [link]
-    await next_pass()                                    # the flush scheduled by the send finds nothing left
-    assert bytes(link.writer.transport.written) == b"last words"
 
 
 async def test_offer_drops_and_counts_past_the_bound():
@@ -152,7 +124,6 @@ async def test_offer_drops_and_counts_past_the_bound():
     t.waiting = 90
     assert not link.offer(b"h" * 5, b"p" * 10)        # 90 + 15 > 100
     assert link.offer(b"h" * 5, b"p" * 5)             # 90 + 10 = 100
-    await next_pass()
     assert link.dropped == 1 and len(t.written) == 10
 
 
@@ -167,7 +138,6 @@ async def test_send_may_pass_the_offer_bound_up_to_the_hard_bound():
     t.waiting = 150
     assert not link.offer(b"x")
     link.send(b"c" * 50)                               # 200 = 2 x max_buffer: still goes
-    await next_pass()
     t.waiting = 195
     with pytest.raises(LinkFull) as ei:
         link.send(b"c" * 6)
