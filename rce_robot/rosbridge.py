@@ -26,6 +26,7 @@ from rce.log import get_logger
 from rce.masterlink import MasterLink
 from rce.tasks import Tasks
 from rce_robot.front_door import master_away, peer_address, throttled
+from rce_robot import ws_cork
 from rce_robot.interfaces import RobotInterface
 from rce_robot.rosbridge_session import RosbridgeSession
 
@@ -128,6 +129,8 @@ class RosbridgeServer:
         try:
             async for text in ws:
                 await session.handle(text)
+                if ws_cork.backlog(ws):        # more of this client's ops wait: the other clients', the
+                    await asyncio.sleep(0)     # keepalives and the data plane's go first (fair under load)
         except ConnectionClosed:
             pass
         finally:

@@ -6,8 +6,8 @@ frame). A message goes whole or not at all: when the queue is full it is dropped
 from __future__ import annotations
 
 import asyncio
-import json
 
+from rce.protocol import jsontext
 from rce_robot.rosbridge_fragments import fragment
 
 OUTBOX_SIZE = 256          # messages waiting for the client's websocket; past it a message is dropped (counted)
@@ -36,7 +36,7 @@ class Outbox:
     def op(self, op: dict, fragment_size: int | None = None) -> bool:
         """Queue ``op`` as JSON text; in ``fragment`` ops of at most ``fragment_size`` characters of
         it when it is longer (their ``id``: the op's ``id``, else one made up for it). False: dropped."""
-        text = json.dumps(op)
+        text = jsontext.dumps(op)
         if fragment_size is None or len(text) <= fragment_size:
             return self.put([text])
         self._n += 1

@@ -34,6 +34,7 @@ from rce.errors import ProtocolError, RCEError, Timeout
 from rce.log import get_logger
 from rce.masterlink import MasterLink
 from rce.message_forms import JsonForms
+from rce.protocol import jsontext
 from rce.protocol.schema import validate
 from rce.tasks import Tasks
 from rce_robot.interfaces import RobotInterface
@@ -220,7 +221,7 @@ class RosbridgeSession:
             else:
                 self.outbox.put([cbor_raw_publish(iface.registry, iface.msg_t, bridge.name, msg, time.time())])
             return
-        self.send(png_op(json.dumps(op)) if sub.compression == "png" else op, sub.fragment_size)
+        self.send(png_op(jsontext.dumps(op)) if sub.compression == "png" else op, sub.fragment_size)
 
     # -- from the client ---------------------------------------------------------------------------------
     async def handle(self, text: str | bytes) -> None:
@@ -252,8 +253,8 @@ class RosbridgeSession:
             raise ProtocolError("binary messages are not taken (rosbridge takes JSON text from clients; cbor "
                                 "is only sent); send JSON text")
         try:
-            op = json.loads(text)
-        except ValueError as e:
+            op = jsontext.loads(text)
+        except (ValueError, RecursionError) as e:
             raise ProtocolError(f"message is not JSON: {e}") from None
         if not isinstance(op, dict):
             raise ProtocolError(f"message must be a JSON object, got {type(op).__name__}")

@@ -12,7 +12,6 @@ by :mod:`rce.protocol.schema`.
 """
 from __future__ import annotations
 
-import json
 import re
 import uuid
 from collections import deque
@@ -23,6 +22,7 @@ from typing import Any
 import orjson
 
 from rce.errors import ProtocolError
+from rce.protocol import jsontext
 from rce.protocol.limits import MAX_JSON_DEPTH, PartBudget, json_too_deep, short_repr, truncate
 
 CC, DC, CN, CX, DM, ST, ER = "CC", "DC", "CN", "CX", "DM", "ST", "ER"
@@ -83,26 +83,12 @@ def parse_text(text: str | bytes) -> dict:
             text = bytes(text).decode("utf-8")
         if json_too_deep(text):
             raise ProtocolError(f"JSON nested deeper than the limit of {MAX_JSON_DEPTH} levels; dropped")
-        msg = _loads(text)
+        msg = jsontext.loads(text)
     except (ValueError, UnicodeDecodeError, RecursionError) as e:
         raise ProtocolError(f"malformed JSON: {truncate(str(e), 200)}") from None
     if not isinstance(msg, dict):
         raise ProtocolError(f"message must be a JSON object, got {type(msg).__name__}")
     return msg
-
-
-def _loads(text: str) -> Any:
-    """Parse JSON ``text`` with orjson (RFC 8259, strict; about 7x the stdlib's speed on a pose's
-    numbers); what it refuses goes to the stdlib's ``json.loads``, so the frames a robot may send
-    stay what they were (the ``NaN``/``Infinity`` tokens Python's json writes) and a malformed
-    frame's error names its line and column. Integers are exact from -2**63 to 2**64 - 1 (every
-    ROS integer type); orjson reads one past that as a float, which no ROS integer field takes
-    either. Raises ``ValueError`` (json's ``JSONDecodeError``) and ``RecursionError`` as
-    ``json.loads``."""
-    try:
-        return orjson.loads(text)
-    except orjson.JSONDecodeError:
-        return json.loads(text)
 
 
 def parse_frame(text: str | bytes) -> tuple[dict, list[str]]:
@@ -313,22 +299,6 @@ def new_id() -> str:
     return uuid.uuid4().hex
 
 
-# json.dumps(obj, separators=(",", ":")), without building an encoder per call (json.dumps does, given any option)
-_compact_json = json.JSONEncoder(separators=(",", ":")).encode
-
-
-def _dumps(obj: Any) -> str:
-    """Compact JSON of ``obj`` (no spaces, non-ASCII as UTF-8) by orjson, about 10x the stdlib's
-    speed on a pose; what orjson refuses (a string with lone surrogates, an integer past 64 bits,
-    a key that is not a string) the stdlib encodes. Non-finite floats become ``null`` (converters
-    send them so already, as rosbridge does). Raises ``TypeError`` for what neither can encode
-    (``bytes`` among them: :func:`encode` makes those binary parts)."""
-    try:
-        return orjson.dumps(obj).decode()
-    except TypeError:
-        return _compact_json(obj)
-
-
 _BINARY = (bytes, bytearray, memoryview)   # the values that become binary parts
 
 
@@ -347,7 +317,7 @@ def encode(msg: dict, ids: Iterable[str] | None = None) -> tuple[str, list[bytes
     if not (isinstance(data, dict) and isinstance(data.get("msg"), _BINARY)):
         try:
             return orjson.dumps(msg).decode(), []
-        except TypeError:       # a bytes-like value (or what only the stdlib encodes: _dumps after the walk)
+        except TypeError:       # a bytes-like value (or what only the stdlib encodes: dumps after the walk)
             pass
     frames: list[bytes] = []
     given: Iterator[str] | None = iter(ids) if ids is not None else None
@@ -374,4 +344,4 @@ def encode(msg: dict, ids: Iterable[str] | None = None) -> tuple[str, list[bytes
             return [walk(v) for v in obj]
         return obj
 
-    return _dumps(walk(msg)), frames
+    return jsontext.dumps(walk(msg)), frames

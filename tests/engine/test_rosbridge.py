@@ -181,7 +181,7 @@ async def test_malformed_ops_get_status_and_session_goes_on(eng):
     async with RawRobot(eng.master_url, "rbOwner2") as r:
         await _echo_container(r, "rbC2")
         async with connect(_url(eng, "rbRaw", "rbC2")) as ws:
-            for bad, says in (("not json", "not JSON"), (json.dumps([1]), "JSON object"),
+            for bad, says in (("not json", "not JSON"), (json.dumps([1]), "JSON object"), ("[" * 100_000, "not JSON"),
                               (json.dumps({"op": "fly"}), "unknown op 'fly'"),
                               (json.dumps({"op": "publish", "topic": "/x", "msg": {}, "id": "p1"}), "not advertised"),
                               (json.dumps({"op": "subscribe", "topic": "/nowhere", "id": "s1"}), "'/nowhere'"),
