@@ -48,6 +48,7 @@ _INT_RANGES = {
     "int32": (-2**31, 2**31 - 1), "uint32": (0, 2**32 - 1), "int64": (-2**63, 2**63 - 1), "uint64": (0, 2**64 - 1),
 }
 _FLOATS = {"float32", "float64"}
+_EXACT_FLOAT_INT = 2 ** 53      # the largest magnitude up to which every integer is a float exactly (IEEE 754 double)
 _NP_DTYPES = {"bool": np.bool_, "byte": np.uint8, "char": np.uint8, "int8": np.int8, "uint8": np.uint8,
               "int16": np.int16, "uint16": np.uint16, "int32": np.int32, "uint32": np.uint32,
               "int64": np.int64, "uint64": np.uint64, "float32": np.float32, "float64": np.float64}
@@ -490,9 +491,9 @@ def _base_encoder(t: str, owner: str) -> Encoder:
         if v is _MISSING:
             return 0
         if isinstance(v, bool) or not isinstance(v, int):
-            if isinstance(v, float) and v.is_integer():
+            if isinstance(v, float) and v.is_integer() and abs(v) <= _EXACT_FLOAT_INT:
                 v = int(v)
-            else:
+            else:       # past 2**53 a float is no exact integer (an integer past 64 bits is read as one)
                 raise MessageError(f"{owner}: field '{path}' must be an integer ({t}), got {v!r}")
         if not lo <= v <= hi:
             raise MessageError(f"{owner}: field '{path}' value {v} is out of range for {t}")

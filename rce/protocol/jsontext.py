@@ -7,7 +7,8 @@ refused now and nothing the engine could write before fails:
 - :func:`loads` takes the ``NaN``/``Infinity`` tokens Python's ``json`` writes, and a malformed
   text's error names its line and column (the stdlib's ``JSONDecodeError``). Integers are exact
   from -2**63 to 2**64 - 1 (every ROS integer type); orjson reads one past that as a float, which
-  no ROS integer field takes either.
+  no ROS integer field takes (:mod:`rce.messages` takes a float for an integer only when it is
+  integral and at most 2**53, where floats are exact).
 - :func:`dumps` writes compact JSON (no spaces), non-ASCII text as UTF-8 rather than ``\\u``
   escapes; a string with a lone surrogate, an integer past 64 bits or a key that is not a string
   goes through the stdlib. Non-finite floats become ``null`` (converters write them so already, as

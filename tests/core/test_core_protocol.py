@@ -10,7 +10,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 from pydantic import ValidationError
 
-from rce.errors import ProtocolError
+from rce.errors import MessageError, ProtocolError
 from rce.protocol import (DEFAULT_EXPIRY, ID_LEN, Assembler, encode, new_id, split_interface_type,
                           validate)
 from rce.protocol import schema
@@ -238,7 +238,7 @@ def test_dm_hand_check_agrees_with_the_model(data, envelope):
         assert schema._valid_dm(msg) and validate(msg) == ("DM", data)
 
 
-_PLAIN = st.none() | st.booleans() | st.integers() | st.text(max_size=3)
+_PLAIN = st.none() | st.booleans() | st.integers(-2**63, 2**64 - 1) | st.text(max_size=3)   # exact (jsontext)
 _KEYS = st.text(alphabet="abc", max_size=2)       # no '*': a key of its own ending in '*' would name a part
 
 
@@ -503,6 +503,15 @@ def test_parse_takes_what_pythons_json_writes(text, value):
     msg = parse_text(text)["data"]["msg"]
     got = [msg["x"], msg["y"]]
     assert [str(v) for v in got] == [str(v) for v in value]
+
+
+def test_an_integer_past_64_bits_reads_as_a_float_which_no_integer_field_takes():
+    from rce.messages import default_registry
+    reg = default_registry()
+    msg = parse_text('{"type":"DM","data":{"msg":{"data":-9223372036854775809}}}')["data"]["msg"]
+    assert isinstance(msg["data"], float)
+    with pytest.raises(MessageError, match="field 'data'.*integer"):
+        reg.json_to_bytes(reg.msg_type("std_msgs/Int64"), msg)
 
 
 def test_parse_error_names_line_and_column():
