@@ -12,6 +12,11 @@ Usage::
     .venv/bin/python bench/rtt_cpu.py [--n 3000] [--size 3] [--kind converter|forwarder]
         [--direct both|on|off] [--json PATH]
 
+With direct links on, the round trips start once the node's direct routes are up (the
+environment's ``direct`` stats). ``environment_plane_msgs`` in the JSON counts the messages the
+environment's data plane carried during the round trips: two per round trip through it, none
+direct.
+
 Results: a table (us of CPU per round trip per process, and the median round trip) and
 ``bench/results/rtt_cpu.json``.
 """
@@ -24,7 +29,7 @@ from pathlib import Path
 
 import psutil
 
-from common import RESULTS, RawRobot, console, engine, median, write_json
+from common import RESULTS, Engine, RawRobot, console, engine, median, write_json
 from rtt import Path_, setup_echo
 
 ROLES = (("robot", ("rce-robot",)), ("environment", ("rce_container.environment",)), ("node", ("stringEcho",)),
@@ -76,21 +81,54 @@ def cpu_seconds(procs: dict[str, list[psutil.Process]]) -> dict[str, float]:
     return out
 
 
-async def measure(master_url: str, roots: list[int], workdir: str, kind: str, n: int, size: int) -> dict:
-    """``{median_ms, us_per_rt: {role: us}}`` over ``n`` round trips of ``size`` bytes."""
-    async with RawRobot(master_url, "cpuR") as r:
+ROUTES_WAIT = 60.0      # s the node's direct routes may take to come up (a fresh clone compiles its modules first)
+
+
+async def environment_stats(eng: Engine, ctag: str) -> dict:
+    """Container ``ctag``'s environment counters (``stats``' ``environment``: its data plane, its direct routes)."""
+    return (await asyncio.to_thread(eng.admin, f"/api/containers/testUser/{ctag}/stats"))["environment"]
+
+
+def plane_msgs(env: dict) -> int:
+    """Messages the environment's data plane has taken in and sent out."""
+    return env["dataplane"]["msgs_in"] + env["dataplane"]["msgs_out"]
+
+
+async def direct_routes(eng: Engine, ctag: str) -> dict:
+    """Wait until container ``ctag``'s node has its direct links (``environment.direct``: a claim
+    of the robot's interface and a publisher route); returns those stats. Raises RuntimeError
+    after :data:`ROUTES_WAIT` s."""
+    deadline = time.monotonic() + ROUTES_WAIT
+    while True:
+        d = (await environment_stats(eng, ctag))["direct"]
+        if d.get("claims", 0) >= 1 and d.get("routes", 0) >= 1:
+            return d
+        if time.monotonic() > deadline:
+            raise RuntimeError(f"no direct routes after {ROUTES_WAIT:g} s: {d}")
+        await asyncio.sleep(0.1)
+
+
+async def measure(eng: Engine, direct: bool, kind: str, n: int, size: int) -> dict:
+    """``{median_ms, us_per_rt: {role: us}}`` over ``n`` round trips of ``size`` bytes, on engine
+    ``eng`` (``direct``: wait for the node's direct links first)."""
+    async with RawRobot(eng.master_url, "cpuR") as r:
         req, resp = await setup_echo(r, "cpuC", "Converter" if kind == "converter" else "Forwarder")
         path = Path_(r, kind, req, resp)
         await path.warm_up()
+        if direct:
+            await direct_routes(eng, "cpuC")
         frames = path.prepare(size)
-        for _ in range(200):                    # the node's routes are up and every process is hot
+        for _ in range(200):                    # every process is hot
             await path.roundtrip(frames, size, 2.0)
-        procs = processes(roots, workdir)
+        procs = processes([q.pid for q in eng.procs], str(eng.workdir))
+        m0 = plane_msgs(await environment_stats(eng, "cpuC"))
         c0 = cpu_seconds(procs)
         samples = [await path.roundtrip(frames, size, 2.0) for _ in range(n)]
         c1 = cpu_seconds(procs)
+        m1 = plane_msgs(await environment_stats(eng, "cpuC"))
     return {"median_ms": round(median(samples), 4),
-            "us_per_rt": {k: round((c1[k] - c0[k]) / n * 1e6, 1) for k in c0}}
+            "us_per_rt": {k: round((c1[k] - c0[k]) / n * 1e6, 1) for k in c0},
+            "environment_plane_msgs": m1 - m0}
 
 
 def main(argv=None) -> int:
@@ -107,8 +145,7 @@ def main(argv=None) -> int:
     for s in settings:
         t0 = time.monotonic()
         with engine(env={"RCE_DIRECT_LINKS": "1" if s == "on" else "0"}) as eng:
-            res["runs"][f"direct_{s}"] = r = asyncio.run(measure(eng.master_url, [q.pid for q in eng.procs],
-                                                                         str(eng.workdir), a.kind, a.n, a.size))
+            res["runs"][f"direct_{s}"] = r = asyncio.run(measure(eng, s == "on", a.kind, a.n, a.size))
         con.print(f"direct links {s:3s}: median {r['median_ms']:.3f} ms; CPU us per round trip: "
                   + ", ".join(f"{k} {v:.0f}" for k, v in r["us_per_rt"].items())
                   + f"  ({time.monotonic() - t0:.0f} s)")
