@@ -79,8 +79,8 @@ Results: a table on stdout, ``--json`` (bench/results/fleet_load.json),
 Usage::
 
     .venv/bin/python bench/fleet_load.py [--robots 10,100,300,1000] [--duration 10] [--rate 10]
-        [--converter] [--clients 1] [--robot-tasksets K] [--setup-concurrency 16] [--drain 3] [--max-p99 100]
-        [--no-stop] [--profile S] [--wait-quiet S] [--raw DIR] [--json PATH] [--plot PATH]
+        [--converter] [--container-cpu CORES] [--clients 1] [--robot-tasksets K] [--setup-concurrency 16]
+        [--drain 3] [--max-p99 100] [--no-stop] [--profile S] [--wait-quiet S] [--raw DIR] [--json PATH] [--plot PATH]
 
 ``--profile S``: after each window, with the load still on, record the two hottest processes
 for S s each with py-spy (when installed: ``pip install py-spy``; not a project dependency) and
@@ -942,7 +942,7 @@ class Run:
         setup = res["setup"]
         t = time.monotonic()
         mgr = FleetManager(eng.master_url, self.geo, self.robots, planner_args="--no-lidar-blocking",
-                           on_state=self.on_state)
+                           on_state=self.on_state, container_cpu=a.container_cpu)
         self.mgr = mgr
         await mgr.start(timeout=120 + n * 0.05)
         # the pose echo, in the fleet container, on the planner's own input topics
@@ -1183,6 +1183,9 @@ def parse_args(argv=None):
     p.add_argument("--duration", type=float, default=10.0, help="measured window per N, s (default 10)")
     p.add_argument("--rate", type=float, default=10.0, help="pose rate per robot, Hz (default 10)")
     p.add_argument("--converter", action="store_true", help="robot-side Converters (JSON) instead of Forwarders")
+    p.add_argument("--container-cpu", type=float, default=None, metavar="CORES",
+                   help="cores the fleet container asks for (containerData cpu: its quota and its CPU weight under "
+                        "contention; default none: the weight of one process)")
     p.add_argument("--clients", type=int, default=DEFAULT_CLIENTS,
                    help=f"client worker processes (default {DEFAULT_CLIENTS})")
     p.add_argument("--robot-tasksets", type=int, default=DEFAULT_TASKSETS,
@@ -1220,7 +1223,7 @@ def main(argv=None) -> int:
         con.print(f"[red]--robots: expected a comma-separated list of positive integers, got {args.robots!r}")
         return 2
     res = {"robots": sizes, "mode": "converter" if args.converter else "forwarder", "rate_hz": args.rate,
-           "robot_tasksets": args.robot_tasksets,
+           "robot_tasksets": args.robot_tasksets, "container_cpu": args.container_cpu,
            "duration_s": args.duration, "drain_s": args.drain, "max_p99_ms": args.max_p99, "clients": args.clients,
            "cpu_count": os.cpu_count(), "runs": [], "stopped_at": None, "stop_reason": None,
            "definitions": {

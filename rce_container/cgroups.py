@@ -15,7 +15,11 @@ Layout (``scope`` is ``rce/<host name>-<host pid>``, one per container task set)
 Limits (what ``containerData`` asks; 0 or absent = no limit):
 
 - ``cpu`` cores (fractional): v1 ``cpu.cfs_quota_us`` = cores x ``cpu.cfs_period_us``
-  (100 ms); v2 ``cpu.max`` = ``"QUOTA 100000"``.
+  (100 ms); v2 ``cpu.max`` = ``"QUOTA 100000"``. The cores are also the container's CPU weight
+  under contention (as a Kubernetes CPU request): v1 ``cpu.shares`` = cores x 1024, v2
+  ``cpu.weight`` = cores x 100, at least one process's weight (1024, 100), which is what a
+  container without ``cpu`` weighs. The master already reserves those cores on the host when it
+  places the container; the weight lets the container use them when every core is busy.
 - ``memory`` MiB: v1 ``memory.limit_in_bytes`` and ``memory.memsw.limit_in_bytes`` (no
   swapping past it); v2 ``memory.max``, ``memory.swap.max 0``.
 - ``pids`` tasks (processes and threads): ``pids.max`` (v1 and v2).
@@ -246,20 +250,30 @@ class CgroupSet:
                 d.mkdir(parents=True, exist_ok=True)
         self.rebalance()
 
+    def _weight_file(self) -> tuple[int, int, str]:
+        """(one process's CPU weight, the kernel's largest, the weight file's name) of this layout."""
+        return (100, 10000, "cpu.weight") if self.layout.version == 2 else (1024, 262144, "cpu.shares")
+
     def rebalance(self) -> None:
         """Give the two directories above the containers (``<scope>`` and ``rce``) the CPU
-        weight of what they hold: each container weighs what one process does (v1 shares
-        1024, v2 weight 100), so under contention a container is not squeezed into the single
-        share of a parent that all containers (of every task set on the machine) would
-        otherwise divide among themselves."""
+        weight of what they hold: the sum of their containers' weights (a container weighs one
+        process, v1 shares 1024, v2 weight 100, or its ``cpu`` cores' worth, module doc), so under
+        contention a container is not squeezed into the single share of a parent that all
+        containers (of every task set on the machine) would otherwise divide among themselves."""
         d = self._dir("cpu")
         if d is None:
             return
-        one, cap, name = (100, 10000, "cpu.weight") if self.layout.version == 2 else (1024, 262144, "cpu.shares")
+        one, cap, name = self._weight_file()
         scope, top = d.parent, d.parent.parent
         try:
-            n = sum(1 for c in scope.iterdir() if c.is_dir())
-            _write(scope / name, str(min(cap, one * max(1, n))))
+            n = 0
+            for c in scope.iterdir():
+                if c.is_dir():
+                    try:
+                        n += int(_read(c / name))
+                    except (OSError, ValueError):
+                        n += one
+            _write(scope / name, str(min(cap, max(one, n))))
             total = 0
             for sc in top.iterdir():
                 if sc.is_dir():
@@ -288,6 +302,9 @@ class CgroupSet:
                 self._set(d / "cpu.cfs_period_us", str(CFS_PERIOD_US))
                 self._set(d / "cpu.cfs_quota_us",
                           "-1" if cores is None else str(max(MIN_QUOTA_US, int(round(cores * CFS_PERIOD_US)))))
+            one, cap, name = self._weight_file()
+            self._set(d / name, str(min(cap, int(round(one * max(1.0, cores or 0.0))))))
+            self.rebalance()
         if "memory" in given and self._dir("memory"):
             d = self._dir("memory")
             mib = want["memory"]
@@ -391,9 +408,9 @@ class CgroupSet:
 
     def files(self) -> dict[str, str]:
         """The limit files as the kernel reports them (for status and tests)."""
-        names = (["cpu.max", "memory.max", "memory.swap.max", "pids.max"] if self.layout.version == 2 else
-                 ["cpu.cfs_quota_us", "cpu.cfs_period_us", "memory.limit_in_bytes",
-                  "memory.memsw.limit_in_bytes", "pids.max"])
+        names = (["cpu.max", "cpu.weight", "memory.max", "memory.swap.max", "pids.max"] if self.layout.version == 2
+                 else ["cpu.cfs_quota_us", "cpu.cfs_period_us", "cpu.shares", "memory.limit_in_bytes",
+                       "memory.memsw.limit_in_bytes", "pids.max"])
         out = {}
         for n in names:
             d = self._dir(n.split(".")[0])

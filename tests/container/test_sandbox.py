@@ -220,6 +220,7 @@ async def test_limits_resize_usage_and_metrics(ns_rig):
     assert r["limits"] == {"cpu": 1.5, "memory": 300, "pids": 100, "size": 1}
     files = (await master.call("stats", cid=4))["sandbox_info"]["cgroup"]["files"]
     assert files.get("cpu.cfs_quota_us", files.get("cpu.max", "").split(" ")[0]) == "150000"
+    assert files.get("cpu.shares", files.get("cpu.weight")) in ("1536", "150")   # 1.5 cores weigh 1.5 processes
     assert files.get("memory.limit_in_bytes", files.get("memory.max")) == str(300 << 20)
     assert files["pids.max"] == "100"
     assert await master.call("bus_call", cid=4, service="/stringEchoService", request={"data": "still here"},
@@ -238,6 +239,8 @@ async def test_limits_resize_usage_and_metrics(ns_rig):
     # 0 lifts a limit
     r = await master.call("resize_container", cid=4, limits={"cpu": 0})
     assert "cpu" not in r["limits"]
+    files = (await master.call("stats", cid=4))["sandbox_info"]["cgroup"]["files"]
+    assert files.get("cpu.shares", files.get("cpu.weight")) in ("1024", "100")   # back to one process's weight
 
     # Prometheus on the host, labelled by container and node
     port = cp.ready_info()["metrics_port"]

@@ -145,25 +145,31 @@ def test_cgroup_limits_v1_and_v2_files(tmp_path):
         (cg.dirs["memory"] / f).write_text("9223372036854771712")
     assert cg.apply({"cpu": 0.5, "memory": 64, "pids": 32, "size": 1, "bandwidth": 10}) == \
         {"cpu": 0.5, "memory": 64.0, "pids": 32}
-    assert cg.files() == {"cpu.cfs_quota_us": "50000", "cpu.cfs_period_us": "100000",
+    assert cg.files() == {"cpu.cfs_quota_us": "50000", "cpu.cfs_period_us": "100000", "cpu.shares": "1024",
                           "memory.limit_in_bytes": str(64 << 20), "memory.memsw.limit_in_bytes": str(64 << 20),
-                          "pids.max": "32"}
+                          "pids.max": "32"}      # half a core weighs what one process does: no less
     assert cg.procs_files[2] == str(tmp_path / "memory/rce/h/c5/cgroup.procs")
     cg.apply({"cpu": 1.5})                      # only what is given changes
     assert cg.files()["cpu.cfs_quota_us"] == "150000" and cg.files()["pids.max"] == "32"
+    assert cg.files()["cpu.shares"] == "1536"   # 1.5 cores weigh 1.5 processes
     cg.apply({"size": 4})                       # the original RCE's size class: no limit, nothing written
     assert cg.files()["pids.max"] == "32"
     cg.apply({"cpu": 0, "memory": 0, "pids": 0})  # 0 = no limit
     assert cg.files()["cpu.cfs_quota_us"] == "-1" and cg.files()["memory.limit_in_bytes"] == "-1"
+    assert cg.files()["cpu.shares"] == "1024"
     assert cg.files()["pids.max"] == "max"
     with pytest.raises(RequestError, match="memory"):
         cg.apply({"memory": -1})
     with pytest.raises(RequestError, match="limit 'pids' must be at least 1 task"):
         cg.apply({"pids": 0.5})
-    # CPU weights above the containers: each container weighs one process, the parents their sum
+    # CPU weights above the containers: each container weighs one process or its cores, the parents their sum
     cgroups.CgroupSet(_fake_v1(tmp_path), "c6").create()
     assert (tmp_path / "cpu/rce/h/cpu.shares").read_text() == "2048"
     assert (tmp_path / "cpu/rce/cpu.shares").read_text() == "2048"
+    cg.apply({"cpu": 3})
+    assert cg.files()["cpu.shares"] == "3072"
+    assert (tmp_path / "cpu/rce/h/cpu.shares").read_text() == "4096"      # 3 cores + one process
+    assert (tmp_path / "cpu/rce/cpu.shares").read_text() == "4096"
 
     root = tmp_path / "v2"
     root.mkdir()
@@ -174,8 +180,9 @@ def test_cgroup_limits_v1_and_v2_files(tmp_path):
     assert (root / "cgroup.subtree_control").read_text() == "+cpu +memory +pids"
     (v2.dirs[""] / "memory.swap.max").write_text("max")
     v2.apply({"cpu": 2, "memory": 128, "pids": 10, "size": 1})
-    assert v2.files() == {"cpu.max": "200000 100000", "memory.max": str(128 << 20), "memory.swap.max": "0",
-                          "pids.max": "10"}
+    assert v2.files() == {"cpu.max": "200000 100000", "cpu.weight": "200", "memory.max": str(128 << 20),
+                          "memory.swap.max": "0", "pids.max": "10"}
+    assert (root / "rce/h/cpu.weight").read_text() == "200"
     assert v2.procs_files == [str(root / "rce/h/c1/cgroup.procs")]
 
 

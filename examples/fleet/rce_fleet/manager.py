@@ -50,14 +50,19 @@ _IFACES = [  # container iTag, container type, manager iTag, manager type, class
 class FleetManager:
     """Create the fleet's cloud side and talk to its global planner.
 
-    ``on_state(state_dict)`` receives every ``/fleet/state``; ``latest`` keeps the last one."""
+    ``on_state(state_dict)`` receives every ``/fleet/state``; ``latest`` keeps the last one.
+    ``container_cpu``: cores the fleet container asks for (its ``containerData`` ``cpu``: the
+    cores the master reserves for it, its CPU quota and its weight when every core is busy;
+    None: no request, the weight of one process)."""
 
     def __init__(self, master_url: str, geometry: GridGeometry, robots: list[str], *, user: str = USER,
                  password: str = PASSWORD, robot_id: str = MANAGER_ID, ctag: str = FLEET_CTAG,
-                 planner_args: str = "", on_state: Callable[[dict], None] | None = None):
+                 planner_args: str = "", on_state: Callable[[dict], None] | None = None,
+                 container_cpu: float | None = None):
         self.master_url, self.geo, self.robots = master_url, geometry, list(robots)
         self.user, self.password, self.robot_id, self.ctag = user, password, robot_id, ctag
         self.planner_args = planner_args
+        self.container_cpu = container_cpu
         self.on_state = on_state
         self.conn: Connection | None = None
         self.latest: dict | None = None
@@ -75,7 +80,7 @@ class FleetManager:
                                                     allow_reconnect=True)
         conn.on_error(self._on_error)
         conn.on_status(self._on_status)
-        await conn.create_container(self.ctag)
+        await conn.create_container(self.ctag, cpu=self.container_cpu)
         await conn.configure({"setParam": [
             {"containerTag": self.ctag, "name": GRID_PARAM, "value": self.geo.to_param()},
             {"containerTag": self.ctag, "name": ROBOTS_PARAM, "value": self.robots}]})
