@@ -203,6 +203,19 @@ def limits_of(limits: dict) -> dict:
     return out
 
 
+def _children_weight(parent: Path, name: str, unread: int) -> int:
+    """The sum of the CPU weights (file ``name``) of ``parent``'s child directories; one whose
+    file cannot be read counts ``unread``. Raises OSError when ``parent`` cannot be listed."""
+    total = 0
+    for child in parent.iterdir():
+        if child.is_dir():
+            try:
+                total += int(_read(child / name))
+            except (OSError, ValueError):
+                total += unread
+    return total
+
+
 class CgroupSet:
     """The cgroup(s) of one container: one directory per v1 controller, or one v2 directory.
 
@@ -266,22 +279,8 @@ class CgroupSet:
         one, cap, name = self._weight_file()
         scope, top = d.parent, d.parent.parent
         try:
-            n = 0
-            for c in scope.iterdir():
-                if c.is_dir():
-                    try:
-                        n += int(_read(c / name))
-                    except (OSError, ValueError):
-                        n += one
-            _write(scope / name, str(min(cap, max(one, n))))
-            total = 0
-            for sc in top.iterdir():
-                if sc.is_dir():
-                    try:
-                        total += int(_read(sc / name))
-                    except (OSError, ValueError):
-                        pass
-            _write(top / name, str(min(cap, max(one, total))))
+            _write(scope / name, str(min(cap, max(one, _children_weight(scope, name, one)))))
+            _write(top / name, str(min(cap, max(one, _children_weight(top, name, 0)))))
         except OSError as e:
             log.debug("cannot rebalance CPU weights", dir=str(scope), reason=e.strerror)
 
