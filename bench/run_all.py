@@ -43,7 +43,7 @@ def main(argv=None) -> int:
             summary.append((name, "skipped (--skip)", 0.0))
             continue
         if not path.exists():
-            print(f"== {name}: bench/{name}.py does not exist yet, skipped", flush=True)
+            print(f"== {name}: bench/{script}.py does not exist yet, skipped", flush=True)
             summary.append((name, "missing, skipped", 0.0))
             continue
         print(f"== {name}: {sys.executable} bench/{script}.py {' '.join(args)}".rstrip(), flush=True)

@@ -177,8 +177,7 @@ class RobotNamespace:
                 if self._receive(frame):       # a big text frame: parsed in the pool first
                     await self._receive_big(frame)
                 self._pump()
-                if ws_cork.backlog(ws):        # more of this robot's frames wait: the other robots', the
-                    await asyncio.sleep(0)     # keepalives and the data plane's go first (fair under load)
+                await ws_cork.take_turn(ws)
         except ConnectionClosed:
             pass
         finally:

@@ -129,8 +129,7 @@ class RosbridgeServer:
         try:
             async for text in ws:
                 await session.handle(text)
-                if ws_cork.backlog(ws):        # more of this client's ops wait: the other clients', the
-                    await asyncio.sleep(0)     # keepalives and the data plane's go first (fair under load)
+                await ws_cork.take_turn(ws)
         except ConnectionClosed:
             pass
         finally:
