@@ -37,7 +37,9 @@ without such a grant closes the link (``unauthenticated``); claims end with thei
 What receives frames registers here by id as a :class:`Receiver` (the interfaces of
 :mod:`rce.interfaces`). Outgoing links are bounded (``max_buffer`` bytes waiting in the
 socket, or in the backlog while the link connects); a message that would pass the bound
-is dropped and counted (:meth:`rce.link.FramedLink.offer`).
+is dropped and counted (:meth:`rce.link.FramedLink.offer`), and so is one that waited longer
+than :data:`rce.link.DEFAULT_MAX_DELAY` for a peer that does not keep up (oldest first:
+the peer gets the newest messages).
 """
 from __future__ import annotations
 
@@ -85,7 +87,7 @@ class _Dialled:
         self.link: FramedLink | None = None
         self.nonce: bytes | None = None
         self.granted: set[Pair] = set()
-        self.backlog: collections.deque[tuple[Pair, bytes]] = collections.deque()
+        self.backlog: collections.deque[tuple[Pair, bytes, int]] = collections.deque()   # (pair, frame, payload bytes)
         self.backlog_bytes = 0
         plane.tasks.spawn(self._connect(), name=f"dial {addr}")
 
@@ -97,10 +99,10 @@ class _Dialled:
             log.warning("data link failed", peer=self.addr, reason=str(e))
             self._gone()
             return
-        nodelay(writer)
+        nodelay(writer, data=True)
         self.link = FramedLink(reader, writer, name=f"data link to {self.addr}", on_frame=self._on_frame,
                                on_close=lambda _link: self._gone(), max_frame=self.plane.max_frame,
-                               max_buffer=self.plane.max_buffer).start()
+                               max_buffer=self.plane.max_buffer, on_drop=self.plane._lost).start()
 
     def _gone(self) -> None:
         if self.plane._dialled.get(self.addr) is self:
@@ -121,24 +123,25 @@ class _Dialled:
     def _ready(self, nonce: bytes) -> None:
         self.nonce = nonce
         backlog, self.backlog, self.backlog_bytes = self.backlog, collections.deque(), 0
-        for pair, chunk in backlog:
-            if not self._offer(pair, chunk):
+        for pair, chunk, n in backlog:
+            if not self._offer(pair, chunk, b"", n):
                 self.plane.dropped += 1
 
     def offer(self, pair: Pair, head: bytes, payload: bytes | memoryview) -> bool:
         if self.nonce is not None:
-            return self._offer(pair, head, payload)
+            return self._offer(pair, head, payload, len(payload))
         n = len(head) + len(payload)
         if self.backlog_bytes + n > self.plane.max_buffer:
             return False
-        self.backlog.append((pair, head + payload))
+        self.backlog.append((pair, head + payload, len(payload)))
         self.backlog_bytes += n
         return True
 
-    def _offer(self, pair: Pair, head: bytes, payload: bytes | memoryview = b"") -> bool:
+    def _offer(self, pair: Pair, head: bytes, payload: bytes | memoryview, n: int) -> bool:
+        """``n``: the payload's bytes (counted in the plane's ``bytes_out``)."""
         if self.link is None or (pair not in self.granted and not self._grant(pair)):
             return False
-        return self.link.offer(head, payload)
+        return self.link.offer(head, payload, n)
 
     def _grant(self, pair: Pair) -> bool:
         token = self.plane.credentials.get(pair)
@@ -190,7 +193,7 @@ class _Accepted:
         self.warned = False
         self.link = FramedLink(reader, writer, name=f"data link from {writer.get_extra_info('peername')}",
                                on_frame=self._on_frame, on_close=self._closed,
-                               max_frame=plane.max_frame, max_buffer=plane.max_buffer)
+                               max_frame=plane.max_frame, max_buffer=plane.max_buffer, on_drop=plane._lost)
 
     def _closed(self, _link: FramedLink) -> None:
         self.plane._accepted.discard(self)
@@ -333,8 +336,9 @@ class DataPlane:
                 self.dropped += 1
                 return False
             head, sent = framing.encode_data_header(op, dst, src, call_id, len(payload)), 0
+            n = len(payload)
             for a in cs.links:
-                if a.link.offer(head, payload):
+                if a.link.offer(head, payload, n):
                     sent += 1
                 else:
                     self.dropped += 1
@@ -364,7 +368,7 @@ class DataPlane:
 
     # -- receiving -----------------------------------------------------------------------------
     async def _accept(self, reader: asyncio.StreamReader, writer: asyncio.StreamWriter) -> None:
-        nodelay(writer)
+        nodelay(writer, data=True)
         if len(self._accepted) >= MAX_ACCEPTED:
             self.unauthenticated += 1
             log.warning("data link refused: too many links", plane=self.name, links=len(self._accepted),
@@ -414,7 +418,7 @@ class DataPlane:
         src, iid, call_id, payload = f.src, f.dst, f.call_id, bytes(f.payload)
 
         def answer(op: int, body: bytes) -> None:
-            if not link.link.offer(framing.encode_data_header(op, src, iid, call_id, len(body)), body):
+            if not link.link.offer(framing.encode_data_header(op, src, iid, call_id, len(body)), body, None):
                 self.dropped += 1          # the caller times out
 
         def refuse(e: RCEError) -> None:
@@ -426,9 +430,18 @@ class DataPlane:
         self.responder.serve(lambda: iface.serve(payload), lambda resp: answer(framing.SRV_RESP, resp), refuse,
                              f"service call to interface {iid}")
 
+    def _lost(self, n: int | None) -> None:
+        """A frame a link took was dropped from its queue (the peer is not keeping up,
+        :mod:`rce.link`): ``n`` the payload bytes of a message counted as sent, None for a reply."""
+        self.dropped += 1
+        if n is not None:
+            self.msgs_out -= 1
+            self.bytes_out -= n
+
     def stats(self) -> dict:
         """``{msgs_in, msgs_out, bytes_in, bytes_out, dropped, refused, unauthenticated, links, claims}``:
-        ``refused`` frames from senders not connected to their interface, ``unauthenticated``
+        ``dropped`` includes what waited past a link's ``max_delay`` for a peer that did not keep up
+        (:mod:`rce.link`); ``refused`` frames from senders not connected to their interface, ``unauthenticated``
         links closed for a wrong credential, ``links`` outgoing, ``claims`` interfaces reached on
         direct links (module doc)."""
         return {"msgs_in": self.msgs_in, "msgs_out": self.msgs_out, "bytes_in": self.bytes_in,

@@ -22,10 +22,23 @@ Write policy (``max_buffer``: bytes that may wait in the transport, the peer not
   caller; :mod:`rce.rpc` cuts a link whose peer no longer reads even those).
 
 A frame always goes onto an idle link, whatever its size (``max_frame`` bounds frames).
+
+Under pressure, oldest first (the latest message is the one a robot needs): while the transport
+holds more than its high-water mark (asyncio's flow control: the peer is not keeping up), frames
+wait in the link's own queue, and leave it for the transport, in order, as the transport drains.
+There an offered frame is dropped when it has waited longer than ``max_delay`` (counted in
+``expired``), or when a newer frame needs its room under ``max_buffer``, as a ROS subscriber's
+``queue_size`` drops its oldest message. So a reader that cannot keep up gets the newest
+messages, at most ``max_delay`` late in this process, instead of an ever older backlog. A frame
+that must not be lost (:meth:`FramedLink.send`) waits in the same queue, so the order of frames
+never changes, and is never dropped: it takes the room of the oldest offered frames first.
+``on_drop(tag)`` hears of each offered frame dropped after :meth:`FramedLink.offer` took it
+(its ``tag``), so the sender's counters stay right.
 """
 from __future__ import annotations
 
 import asyncio
+import collections
 import socket
 from collections.abc import Awaitable, Callable, Iterator
 from typing import Any
@@ -42,6 +55,9 @@ STREAM_LIMIT = 1024 * 1024           # bytes a stream reader buffers before it s
 DEFAULT_MAX_BUFFER = 64 * 1024 * 1024   # bytes that may wait in a link's transport (see the module doc)
 JOIN_MAX = 64 * 1024                 # bytes: a payload up to this is joined to its frame header (one write)
 MAX_IN_FLIGHT = 1024                 # requests one Responder runs at once; more are refused (Unavailable)
+DEFAULT_MAX_DELAY = 1.0              # s an offered frame may wait in a link's queue for a slow peer (module doc)
+HIGH_WATER = 64 * 1024               # bytes: a transport's high-water mark when it cannot tell its own
+NOTSENT_LOWAT = 1024 * 1024           # bytes a data link's socket keeps unsent in the kernel (data_socket)
 
 Frame = dict | framing.DataFrame
 
@@ -56,19 +72,24 @@ class FramedLink:
     for CONTROL, a :class:`~rce.framing.DataFrame` whose payload is a view of the received
     bytes for DATA); ``on_close(link)`` runs once when the link ends; ``max_frame``: largest
     frame accepted, bytes; ``max_buffer`` and ``hard_buffer``: write bounds of :meth:`offer`
-    and :meth:`send`, bytes (module doc).
+    and :meth:`send`, bytes, counting what waits in the transport and in the link's queue;
+    ``max_delay``: s an offered frame may wait in the link's queue (None: no age bound);
+    ``on_drop(tag)``: called for each offered frame dropped after it was taken (module doc).
 
     The link ends on EOF, a socket error, a bad frame (logged, :class:`ProtocolError` from
     the decoder or from ``on_frame``), any other exception from ``on_frame`` (logged with its
     traceback), or :meth:`close`. ``last_rx`` is the loop time of the last bytes received
-    (for keepalives); ``dropped`` counts frames :meth:`offer` refused, ``refused`` the
-    :class:`LinkFull` raised by :meth:`send`."""
+    (for keepalives); ``dropped`` counts the offered frames lost (refused by :meth:`offer`, or
+    dropped from the queue), ``expired`` those of them that waited longer than ``max_delay``,
+    ``refused`` the :class:`LinkFull` raised by :meth:`send`; ``held``: frames waiting in the
+    link's queue."""
 
     def __init__(self, reader: asyncio.StreamReader, writer: asyncio.StreamWriter, *, name: str = "peer",
                  on_frame: Callable[[Frame], Any],
                  on_close: Callable[["FramedLink"], Any] | None = None,
                  max_frame: int = framing.DEFAULT_MAX_FRAME, max_buffer: int = DEFAULT_MAX_BUFFER,
-                 hard_buffer: int | None = None):
+                 hard_buffer: int | None = None, max_delay: float | None = DEFAULT_MAX_DELAY,
+                 on_drop: Callable[[Any], Any] | None = None):
         self.reader, self.writer, self.transport = reader, writer, writer.transport
         self.name = name
         self.on_frame = on_frame
@@ -79,8 +100,14 @@ class FramedLink:
         self.closed = asyncio.Event()
         self.close_reason = ""
         self.last_rx = asyncio.get_running_loop().time()
-        self.dropped = self.refused = 0
+        self.max_delay, self.on_drop = max_delay, on_drop
+        self.dropped = self.refused = self.expired = 0
         self._receiver: _Receiver | None = None
+        limits = getattr(self.transport, "get_write_buffer_limits", None)
+        self._high = limits()[1] if limits is not None else HIGH_WATER
+        # frames waiting for the transport to drain: (loop time taken, frame, payload, tag, droppable)
+        self._queue: collections.deque[tuple[float, bytes, bytes | memoryview, Any, bool]] = collections.deque()
+        self._queued_bytes = 0
 
     @property
     def peername(self) -> str:
@@ -131,31 +158,106 @@ class FramedLink:
             self._finish(f"internal error: {type(e).__name__}: {e}")
 
     # -- writing ---------------------------------------------------------------------------------
-    def _room(self, n: int, bound: int) -> bool:
-        waiting = self.transport.get_write_buffer_size()
-        return not waiting or waiting + n <= bound
+    @property
+    def held(self) -> int:
+        """Frames waiting in the link's queue for the transport to drain."""
+        return len(self._queue)
 
-    def offer(self, frame: bytes, payload: bytes | memoryview = b"") -> bool:
+    def offer(self, frame: bytes, payload: bytes | memoryview = b"", tag: Any = None) -> bool:
         """Write ``frame`` (then ``payload``, unjoined: no copy) if the link is open and within
-        its bound; otherwise drop it, count it in ``dropped`` and return False."""
+        its bound, or queue it while the peer is not keeping up (module doc); otherwise drop
+        it, count it in ``dropped`` and return False. ``tag`` goes to ``on_drop`` if the frame
+        is dropped later."""
         t = self.transport
-        if self.closed.is_set() or t.is_closing() or not self._room(len(frame) + len(payload), self.max_buffer):
+        n = len(frame) + len(payload)
+        if self.closed.is_set() or t.is_closing():
             self.dropped += 1
             return False
-        _write(t, frame, payload)
-        return True
+        waiting = t.get_write_buffer_size()
+        if self._queue or waiting > self._high:
+            if self._enqueue(frame, payload, n, tag, True, self.max_buffer):
+                return True
+        elif not waiting or waiting + n <= self.max_buffer:
+            _write(t, frame, payload)
+            return True
+        self.dropped += 1
+        return False
 
     def send(self, frame: bytes, payload: bytes | memoryview = b"") -> None:
-        """Write a frame that must not be lost. Raises :class:`Unavailable` on a closed link and
+        """Write a frame that must not be lost (queued behind earlier frames while the peer is not
+        keeping up, never dropped). Raises :class:`Unavailable` on a closed link and
         :class:`LinkFull` (counted in ``refused``) past ``hard_buffer``."""
         t = self.transport
         if self.closed.is_set() or t.is_closing():
             raise Unavailable(f"the link to {self.name} is closed")
-        if not self._room(len(frame) + len(payload), self.hard_buffer):
-            self.refused += 1
-            raise LinkFull(f"the link to {self.name} is saturated: {t.get_write_buffer_size()} bytes wait "
-                           f"unread (bound {self.hard_buffer} bytes)")
-        _write(t, frame, payload)
+        n = len(frame) + len(payload)
+        waiting = t.get_write_buffer_size()
+        if self._queue:
+            if self._enqueue(frame, payload, n, None, False, self.hard_buffer):
+                return
+        elif not waiting or waiting + n <= self.hard_buffer:
+            _write(t, frame, payload)
+            return
+        self.refused += 1
+        raise LinkFull(f"the link to {self.name} is saturated: {waiting + self._queued_bytes} bytes wait "
+                       f"unread (bound {self.hard_buffer} bytes)")
+
+    def _enqueue(self, frame: bytes, payload: bytes | memoryview, n: int, tag: Any, droppable: bool,
+                 bound: int) -> bool:
+        """Queue one frame behind the others, making room by dropping the oldest offered frames
+        (and those past ``max_delay``); False if there is no room for it even so."""
+        self._flush()                     # the transport may have drained below its mark already
+        t, q = self.transport, self._queue
+        if not q and t.get_write_buffer_size() <= self._high:
+            _write(t, frame, payload)
+            return True
+        now = asyncio.get_running_loop().time()
+        if self.max_delay is not None:
+            while q and q[0][4] and now - q[0][0] > self.max_delay:
+                self._drop(q.popleft(), expired=True)
+        room = bound - t.get_write_buffer_size()
+        if self._queued_bytes + n > room:
+            if self._queued_bytes - self._droppable_bytes() + n > room:
+                return False
+            i = 0
+            while self._queued_bytes + n > room:
+                if q[i][4]:
+                    self._drop(q[i], expired=False)
+                    del q[i]
+                else:
+                    i += 1
+        q.append((now, frame, payload, tag, droppable))
+        self._queued_bytes += n
+        return True
+
+    def _droppable_bytes(self) -> int:
+        return sum(len(f) + len(p) for _t, f, p, _tag, d in self._queue if d)
+
+    def _drop(self, entry: tuple, expired: bool) -> None:
+        """An offered frame leaves the queue unsent (the caller takes it out of the deque)."""
+        self._queued_bytes -= len(entry[1]) + len(entry[2])
+        self.dropped += 1
+        self.expired += expired
+        if self.on_drop is not None:
+            try:
+                self.on_drop(entry[3])
+            except Exception as e:
+                log.error("on_drop handler failed", link=self.name, exc_info=e)
+
+    def _flush(self) -> None:
+        """Move queued frames to the transport, in order, while it is below its high-water mark;
+        offered frames past ``max_delay`` are dropped on the way."""
+        t, q = self.transport, self._queue
+        if not q or self.closed.is_set() or t.is_closing():
+            return
+        now = asyncio.get_running_loop().time()
+        while q and t.get_write_buffer_size() <= self._high:
+            entry = q.popleft()
+            if entry[4] and self.max_delay is not None and now - entry[0] > self.max_delay:
+                self._drop(entry, expired=True)
+                continue
+            self._queued_bytes -= len(entry[1]) + len(entry[2])
+            _write(t, entry[1], entry[2])
 
     async def drain(self) -> None:
         """Wait until the transport's buffer is below its low-water mark (backpressure)."""
@@ -180,6 +282,11 @@ class FramedLink:
             return
         self.close_reason = reason
         self.closed.set()
+        while self._queue:                # what waited for a peer that is gone
+            entry = self._queue.popleft()
+            if entry[4]:
+                self._drop(entry, expired=False)
+        self._queued_bytes = 0
         try:
             self.writer.close()
         except (RuntimeError, OSError):     # the loop is closing
@@ -233,6 +340,7 @@ class _Receiver(asyncio.BufferedProtocol):
 
     def resume_writing(self) -> None:
         self.stream.resume_writing()
+        self.link._flush()              # may pause the stream again: after its resume, never before
 
 
 # -- serve and reply -------------------------------------------------------------------------------
@@ -286,8 +394,26 @@ def settle_reply(calls: PendingCalls, f: framing.DataFrame) -> bool:
     return calls.fail(f.call_id, RequestError(bytes(f.payload).decode(errors="replace")))
 
 
-def nodelay(writer: asyncio.StreamWriter) -> None:
-    """Turn Nagle's algorithm off on a TCP stream (small frames go at once); no-op otherwise."""
+def nodelay(writer: asyncio.StreamWriter, *, data: bool = False) -> None:
+    """Turn Nagle's algorithm off on a TCP stream (small frames go at once); no-op otherwise.
+    ``data``: a data link's, whose kernel send queue also keeps at most :data:`NOTSENT_LOWAT`
+    bytes not yet sent (:func:`data_socket`)."""
     sock = writer.get_extra_info("socket")
-    if sock is not None and sock.family in (socket.AF_INET, socket.AF_INET6):
+    if sock is not None:
+        (data_socket if data else _nodelay)(sock)
+
+
+def _nodelay(sock: socket.socket) -> None:
+    if sock.family in (socket.AF_INET, socket.AF_INET6):
         sock.setsockopt(socket.IPPROTO_TCP, socket.TCP_NODELAY, 1)
+
+
+def data_socket(sock: socket.socket) -> None:
+    """A data link's TCP socket: no Nagle, and at most :data:`NOTSENT_LOWAT` bytes waiting unsent
+    in the kernel (``TCP_NOTSENT_LOWAT``, tcp(7)). Without that bound Linux keeps megabytes
+    (``tcp_wmem``) for a peer that is not reading, out of the link's reach: with it the rest
+    waits in the link's queue, where the oldest messages give way to the newest (module doc).
+    No-op for other sockets."""
+    _nodelay(sock)
+    if sock.family in (socket.AF_INET, socket.AF_INET6) and hasattr(socket, "TCP_NOTSENT_LOWAT"):
+        sock.setsockopt(socket.IPPROTO_TCP, socket.TCP_NOTSENT_LOWAT, NOTSENT_LOWAT)

@@ -113,11 +113,16 @@ class Publisher:
         False returned."""
         payload = self.node._encode(self.typename, msg)
         src = self._direct(payload)
-        if src >= 0 and not self.node._peer.link.offer(self._head(payload, src), payload):
+        if src >= 0 and not self.node._peer.link.offer(self._head(payload, src), payload, self):
             self.dropped += 1
             return False
         self.published += 1
         return True
+
+    def _lost(self) -> None:
+        """A message the bus link took was dropped from its queue (the bus is not keeping up)."""
+        self.published -= 1
+        self.dropped += 1
 
     def _direct(self, payload: bytes) -> int:
         """Send ``payload`` on this publisher's direct route, if it has one; the ``src`` of its bus
@@ -208,6 +213,7 @@ class Node:
     async def _connect(self) -> None:
         self._peer = await rpc.connect_unix(self.bus_path, name=f"node {self.full_name}", on_data=self._on_data,
                                             on_close=lambda _p: self._shutdown.set())
+        self._peer.link.on_drop = Publisher._lost        # publish_nowait's tag: its Publisher
         r = await self._peer.call("hello", name=self.full_name, pid=os.getpid(),
                                   container=os.environ.get("RCE_CONTAINER"), token=self.bus_token, direct=True)
         key = r.get("fd_key") if isinstance(r, dict) else None

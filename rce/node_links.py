@@ -45,6 +45,14 @@ MAX_FDS = 16                      # sockets taken per read of the fd channel
 MAX_BUFFER = 16 * 1024 * 1024     # bytes that may wait unread per direct link (then messages drop, counted)
 
 
+def _lost(tag: tuple[list[int], int]) -> None:
+    """A message a direct link took was dropped from its queue: its interface's counts say so."""
+    c, n = tag
+    c[0] -= 1
+    c[1] -= n
+    c[2] += 1
+
+
 class _Route:
     """A publisher's direct route: ``targets`` ``(link, dst, src, counts)``; ``local``: the bus
     has other subscribers too; ``version``: marks its bus frames."""
@@ -156,7 +164,8 @@ class DirectLinks:
         self.links[lid] = FramedLink(reader, writer, name=f"direct link {lid} to {a.get('name', '?')}",
                                      on_frame=lambda f: self._on_frame(lid, f),
                                      on_close=lambda _l: self._link_closed(lid),
-                                     max_frame=framing.DEFAULT_MAX_FRAME, max_buffer=MAX_BUFFER).start()
+                                     max_frame=framing.DEFAULT_MAX_FRAME, max_buffer=MAX_BUFFER,
+                                     on_drop=_lost).start()
         return {}
 
     def _link(self, lid: object) -> FramedLink:
@@ -218,7 +227,7 @@ class DirectLinks:
             return 0
         n = len(payload)
         for link, dst, src, c in r.targets:
-            if link.offer(framing.encode_data_header(framing.MSG, dst, src, 0, n), payload):
+            if link.offer(framing.encode_data_header(framing.MSG, dst, src, 0, n), payload, (c, n)):
                 c[0] += 1
                 c[1] += n
             else:

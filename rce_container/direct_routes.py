@@ -44,6 +44,7 @@ from rce import cluster_auth, framing
 from rce.bus.core import Subscription
 from rce.dataplane import parse_nonce
 from rce.errors import ProtocolError, RCEError
+from rce.link import data_socket
 from rce.log import get_logger
 from rce.node_links import LINK_ID
 from rce.tasks import Tasks
@@ -319,7 +320,7 @@ class DirectRoutes:
 
 async def dial(addr: str) -> tuple[socket.socket, bytes]:
     """Connect to the data plane at ``addr`` (``host:port``, ``[v6]:port``) and read its nonce;
-    returns the non-blocking socket (TCP_NODELAY) and the nonce. Raises :class:`OSError`,
+    returns the non-blocking socket (:func:`rce.link.data_socket`) and the nonce. Raises :class:`OSError`,
     :class:`ProtocolError` or :class:`asyncio.TimeoutError` after :data:`DIAL_TIMEOUT` s."""
     loop = asyncio.get_running_loop()
     host, _, port = addr.rpartition(":")
@@ -330,7 +331,7 @@ async def dial(addr: str) -> tuple[socket.socket, bytes]:
     try:
         async with asyncio.timeout(DIAL_TIMEOUT):
             await loop.sock_connect(sock, sockaddr)
-            sock.setsockopt(socket.IPPROTO_TCP, socket.TCP_NODELAY, 1)
+            data_socket(sock)
             decoder = framing.FrameDecoder(max_frame=4096)
             while True:
                 data = await loop.sock_recv(sock, 4096)

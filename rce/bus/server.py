@@ -13,7 +13,8 @@ Link protocol (internal framing, :mod:`rce.framing`): CONTROL requests
   ``SRV_RESP``/``SRV_ERR call_id=c``.
 
 A node's subscriptions are bounded by the bytes waiting in its socket
-(``max_buffer``); messages beyond it are dropped and counted. Service calls either way
+(``max_buffer``) and by the age of what waits for a node that is not keeping up
+(:mod:`rce.link`, oldest first); messages beyond it are dropped and counted. Service calls either way
 use the link layer's :class:`~rce.pending.PendingCalls` and :class:`~rce.link.Responder`.
 
 Who may join (a container's bus: ``token`` and ``uids`` given): the socket file is mode
@@ -83,11 +84,21 @@ class _Session:
         # what this node published (in) and was delivered (out), for per-node statistics
         self.msgs_in = self.bytes_in = self.msgs_out = self.bytes_out = 0
         peer.on_close = lambda _p: self.close()
+        peer.link.on_drop = self._lost
         if server.token is None:
             self._admit()
         else:                              # nothing but hello until the token is shown
             peer.handlers["hello"] = self.op_hello
         peer.handlers["fd_channel"] = self.op_fd_channel
+
+    def _lost(self, tag: tuple[int, int]) -> None:
+        """A delivery the link took was dropped from its queue (the node is not keeping up)."""
+        handle, n = tag
+        sub = self.subs.get(handle)
+        if sub is not None:
+            sub.dropped += 1
+        self.msgs_out -= 1
+        self.bytes_out -= n
 
     def _admit(self) -> None:
         self.peer.handlers.update({op[3:]: getattr(self, op) for op in dir(self) if op.startswith("op_")})
@@ -165,10 +176,11 @@ class _Session:
         offer = self.peer.link.offer
 
         def deliver(payload: bytes, _h=h) -> bool:
-            if not offer(framing.encode_data_header(framing.MSG, _h, 0, 0, len(payload)), payload):
+            n = len(payload)
+            if not offer(framing.encode_data_header(framing.MSG, _h, 0, 0, n), payload, (_h, n)):
                 return False
             self.msgs_out += 1
-            self.bytes_out += len(payload)
+            self.bytes_out += n
             return True
         self.subs[h] = self.bus.subscribe(a["topic"], a["type"], deliver, self.owner, a.get("queue_size", 100))
         self.server.changed()

@@ -65,3 +65,18 @@ def test_rtt_cpu_smoke(tmp_path):
     off, on = d["runs"]["direct_off"], d["runs"]["direct_on"]
     assert positive([off["median_ms"], on["median_ms"], on["us_per_rt"]["robot"], off["us_per_rt"]["environment"]])
     assert off["environment_plane_msgs"] >= 2 * 600 and on["environment_plane_msgs"] < 60
+
+
+@pytest.mark.timeout(120)
+def test_stall_smoke(tmp_path):
+    """A stream into a node that is stopped, then continued: the node really stopped (echoes came
+    back late, counted), and the robot gets live echoes again before the run ends."""
+    out, png = tmp_path / "stall.json", tmp_path / "stall.png"
+    run("stall.py", "--size", "300000", "--warmup", "0.5", "--stall", "1.5", "--after", "1.5", "--drain", "1",
+        "--no-ros1", "--json", str(out), "--plot", str(png), timeout=110)
+    r = json.loads(out.read_text())["systems"]["rce"]
+    assert r["sent"] > 60 and r["echoed"] + r["lost"] == r["sent"]
+    assert r["stall_s"] >= 1.5 and r["max_age_s"] >= 0.75           # the node held echoes back while stopped
+    assert r["fresh_after_s"] < 1.5                                  # then live data again
+    assert r["series"][-1][1] < 0.5 and png.stat().st_size > 10_000
+

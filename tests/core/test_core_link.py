@@ -153,6 +153,90 @@ async def test_writes_on_a_closed_link():
         link.send(b"x")
 
 
+# -- under pressure: the link's queue (module doc) ----------------------------------------------------
+HIGH = 64 * 1024          # the in-memory transport's high-water mark (rce.link.HIGH_WATER)
+
+
+def pressed(**kw) -> tuple[FramedLink, list]:
+    """A started link whose transport is past its high-water mark (the peer is not reading);
+    ``drops`` records the tags ``on_drop`` hears of."""
+    drops = []
+    link, _, _ = link_on(*lone(), on_drop=drops.append, **kw)
+    link.start()
+    link.writer.transport.waiting = HIGH + 1
+    return link, drops
+
+
+async def drained(link: FramedLink) -> None:
+    """The peer read everything: the transport's buffer is empty and it says so."""
+    await asyncio.sleep(0)                           # start() takes the transport over on the next pass
+    link.writer.transport.waiting = 0
+    link.writer.transport.protocol.resume_writing()
+
+
+async def test_under_pressure_frames_wait_in_order_and_go_out_when_the_peer_reads():
+    link, drops = pressed()
+    assert link.offer(b"m1") and link.offer(b"m2", b"+p")
+    link.send(b"c3")                                 # a frame that must not be lost keeps its place
+    assert link.offer(b"m4")
+    assert link.held == 4 and bytes(link.writer.transport.written) == b""
+    await drained(link)
+    assert bytes(link.writer.transport.written) == b"m1m2+pc3m4"
+    assert link.held == 0 and link.dropped == 0 and drops == []
+    assert link.offer(b"m5") and bytes(link.writer.transport.written).endswith(b"m5")   # straight through again
+
+
+async def test_offered_frames_past_max_delay_are_dropped_oldest_first_and_counted(monkeypatch):
+    loop = asyncio.get_running_loop()
+    now = [1000.0]
+    monkeypatch.setattr(loop, "time", lambda: now[0])
+    link, drops = pressed(max_delay=0.5)
+    link.offer(b"old1", b"", "t1")
+    link.send(b"ctl")
+    link.offer(b"old2", b"", "t2")
+    now[0] += 0.4
+    link.offer(b"new1", b"", "t3")
+    now[0] += 0.2                                    # old1, old2: 0.6 s; new1: 0.2 s
+    link.offer(b"new2", b"", "t4")                   # the head of the queue (old1) expires here
+    assert drops == ["t1"] and link.expired == 1
+    await drained(link)
+    assert bytes(link.writer.transport.written) == b"ctlnew1new2"     # the control frame is never dropped
+    assert drops == ["t1", "t2"] and (link.dropped, link.expired) == (2, 2)
+
+
+async def test_a_full_queue_drops_its_oldest_offered_frame_for_a_newer_one():
+    link, drops = pressed(max_buffer=HIGH + 1 + 10)      # room for 10 bytes beyond the transport's
+    assert link.offer(b"aaaa", b"", "a") and link.offer(b"bbbb", b"", "b")
+    link.send(b"cc")                                     # 10 bytes queued
+    assert link.offer(b"dddd", b"", "d")                 # "a" makes room
+    assert drops == ["a"] and link.dropped == 1 and link.expired == 0
+    assert not link.offer(b"e" * 11, b"", "e")           # larger than the room: refused, nothing else lost
+    assert drops == ["a"] and link.dropped == 2
+    await drained(link)
+    assert bytes(link.writer.transport.written) == b"bbbbccdddd"
+
+
+async def test_a_frame_that_must_not_be_lost_takes_the_room_of_offered_ones():
+    link, drops = pressed(max_buffer=HIGH + 1 + 8, hard_buffer=HIGH + 1 + 8)
+    link.offer(b"aaaa", b"", "a")
+    link.offer(b"bbbb", b"", "b")
+    link.send(b"cccccc")                                 # 6 bytes: "a" and "b" both make way
+    assert drops == ["a", "b"]
+    with pytest.raises(LinkFull):
+        link.send(b"x" * 3)                              # only must-not-lose frames left: refused
+    assert link.refused == 1
+    await drained(link)
+    assert bytes(link.writer.transport.written) == b"cccccc"
+
+
+async def test_what_waits_is_dropped_and_counted_when_the_link_closes():
+    link, drops = pressed()
+    link.offer(b"m1", b"", 1)
+    link.send(b"c2")
+    link.close()
+    assert drops == [1] and link.held == 0 and link.dropped == 1
+
+
 # -- serve and reply ----------------------------------------------------------------------------------
 async def serve(responder: Responder, handler) -> tuple[str, object]:
     done = asyncio.get_running_loop().create_future()
