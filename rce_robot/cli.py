@@ -19,7 +19,7 @@ from rce.process import run, write_ready_file
 from rce.protocol.frames import DEFAULT_EXPIRY
 from rce.protocol.limits import DEFAULT_MAX_PENDING_TOTAL
 from rce.protocol.resume import DEFAULT_GRACE, DEFAULT_RESUME_BUFFER
-from rce.protocol.session import DEFAULT_MAX_MESSAGE, DEFAULT_QUEUE_SIZE
+from rce.protocol.session import DEFAULT_MAX_LAG, DEFAULT_MAX_MESSAGE, DEFAULT_QUEUE_SIZE
 from rce_robot.endpoint import RobotEndpoint
 from rce_robot.rosbridge import ROSBRIDGE_PORT
 
@@ -50,6 +50,9 @@ def parser() -> argparse.ArgumentParser:
                    help="messages that may wait per robot in each queue (data to it, requests, early DMs, calls)")
     p.add_argument("--expiry", type=float, default=DEFAULT_EXPIRY,
                    help="seconds an incomplete message waits for binary parts")
+    p.add_argument("--max-lag", type=float, default=DEFAULT_MAX_LAG, metavar="S",
+                   help="seconds the endpoint may stay behind a robot's frames before it sheds that robot's topic "
+                        f"messages, oldest first, until it has caught up (0 = never; default {DEFAULT_MAX_LAG:g})")
     p.add_argument("--grace", type=float, default=DEFAULT_GRACE, metavar="S",
                    help="seconds the session of a robot that opted in to resume is kept after its link is lost, "
                         f"before its containers are destroyed (default {DEFAULT_GRACE:g})")
@@ -72,7 +75,8 @@ async def amain(args: argparse.Namespace) -> None:
                        advertise_host=args.advertise_host or args.bind, max_message=args.max_message,
                        queue_size=args.queue_size, expiry=args.expiry, master_wait=args.master_wait,
                        grace=args.grace, resume_buffer=args.resume_buffer,
-                       max_pending_total=args.max_pending_binary, ssl_context=tls.server_context_from(args))
+                       max_pending_total=args.max_pending_binary, ssl_context=tls.server_context_from(args),
+                       max_lag=args.max_lag or None)
     loop = asyncio.get_running_loop()
     for sig in (signal.SIGINT, signal.SIGTERM):
         loop.add_signal_handler(sig, ep.stopped.set)

@@ -26,7 +26,8 @@ from rce.package_path import load_package_types
 from rce.protocol.frames import DEFAULT_EXPIRY
 from rce.protocol.limits import DEFAULT_MAX_PENDING_TOTAL, PartBudget
 from rce.protocol.resume import DEFAULT_GRACE, DEFAULT_RESUME_BUFFER
-from rce.protocol.session import DEFAULT_MAX_MESSAGE, DEFAULT_QUEUE_SIZE, RobotSession, robot_interface_type
+from rce.protocol.session import (DEFAULT_MAX_LAG, DEFAULT_MAX_MESSAGE, DEFAULT_QUEUE_SIZE, RobotSession,
+                                  robot_interface_type)
 from rce_robot.front_door import master_away, peer_address, throttled
 from rce_robot.interfaces import RobotInterface
 from rce_robot.namespace import CLOSE_POLICY, RobotNamespace
@@ -57,6 +58,8 @@ SESSION_COUNTERS = {"msgs_in": ("rce_robot_messages_in", "Messages from robots")
                     "msgs_out": ("rce_robot_messages_out", "Messages to robots"),
                     "dropped": ("rce_robot_dropped", "Messages to robots dropped (queue full)"),
                     "dropped_in": ("rce_robot_dropped_in", "Messages from robots refused (queue full)"),
+                    "shed": ("rce_robot_shed", "Topic messages from robots dropped while the endpoint lagged "
+                                               "behind them (max_lag)"),
                     "errors": ("rce_robot_errors", "ER messages sent to robots"),
                     "errors_dropped": ("rce_robot_errors_dropped", "ER messages to robots dropped (rate limit, "
                                                                    "or unread)"),
@@ -122,19 +125,20 @@ class RobotEndpoint:
     message, all robots together (:class:`~rce.protocol.limits.PartBudget`); ``ssl_context``: serve wss://
     (and https:// metrics) with it (:func:`rce.tls.server_context`), and tell the master so: the URL it registers is ``wss://``;
     ``cluster_key``: proved to the master on every link (:mod:`rce.cluster_auth`), and the source of
-    this endpoint's data key."""
+    this endpoint's data key; ``max_lag``: s the endpoint may stay behind a robot's frames before it
+    sheds that robot's topic messages (:class:`RobotSession`; None: never)."""
 
     def __init__(self, *, name: str, advertise_host: str, max_message: int = DEFAULT_MAX_MESSAGE,
                  queue_size: int = DEFAULT_QUEUE_SIZE, expiry: float = DEFAULT_EXPIRY,
                  master_wait: float = MASTER_WAIT, grace: float = DEFAULT_GRACE,
                  resume_buffer: int = DEFAULT_RESUME_BUFFER, max_pending_total: int = DEFAULT_MAX_PENDING_TOTAL,
-                 ssl_context: ssl.SSLContext | None = None,
+                 ssl_context: ssl.SSLContext | None = None, max_lag: float | None = DEFAULT_MAX_LAG,
                  cluster_key: ClusterKey):
         self.name, self.advertise_host = name, advertise_host
         self.ssl_context = ssl_context
         self.cluster_key = cluster_key
         self.max_message, self.queue_size, self.expiry = max_message, queue_size, expiry
-        self.grace, self.resume_buffer = grace, resume_buffer
+        self.grace, self.resume_buffer, self.max_lag = grace, resume_buffer, max_lag
         self.budget = PartBudget(max_pending_total)      # binary parts waiting, all robots (issue 11)
         self.parser = ParsePool()                        # big text frames are parsed off the loop
         self.master_wait = master_wait
@@ -277,7 +281,7 @@ class RobotEndpoint:
             return
         session = RobotSession(robot, max_message=self.max_message, queue_size=self.queue_size, expiry=self.expiry,
                                resume=ws.rce_resume, grace=self.grace, resume_buffer=self.resume_buffer,
-                               budget=self.budget)
+                               budget=self.budget, max_lag=self.max_lag)
         ns = RobotNamespace(user, robot, self.master, session, on_gone=self._session_gone, parser=self.parser)
         self.namespaces[(user, robot)] = ns
         if (opened := self.opening.pop((user, robot), None)) is not None:

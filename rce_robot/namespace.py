@@ -48,6 +48,8 @@ CLOSE_REASON_MAX = 120    # chars of a close reason (a close frame holds 123 byt
 CLEAN_CLOSE = (1000, 1001)  # close codes of a robot that ends its session itself (normal, going away)
 
 
+_LAG_LOG = TokenBucket(LOG_RATE, LOG_BURST)     # "lags behind" warnings of all this endpoint's robots
+
 class RobotNamespace:
     """Session of robot ``robot`` of user ``user``; ``master``: the control link its requests go
     through; ``grace``: s a resumable session stays detached after its link is lost;
@@ -174,6 +176,7 @@ class RobotNamespace:
         self._pump()
         try:
             async for frame in ws:
+                self.session.backlog(ws_cork.backlog(ws), time.monotonic())
                 if self._receive(frame):       # a big text frame: parsed in the pool first
                     await self._receive_big(frame)
                 self._pump()
@@ -247,6 +250,12 @@ class RobotNamespace:
                 self.send_error(e.message)
         elif ev.name == "call":
             self.tasks.spawn(self._call(f["iTag"], f["data"]), name="call")
+        elif ev.name == "lagging":
+            if _LAG_LOG.take(time.monotonic()):     # one endpoint, many robots: a few lines a second at most
+                log.warning("the endpoint lags behind the robot: its topic messages are shed until it catches up",
+                            user=self.user, robot=self.robot, behind_s=f["behind_s"])
+        elif ev.name == "caught_up":
+            log.debug("the endpoint caught up with the robot", user=self.user, robot=self.robot, shed=f["shed"])
         elif ev.name == "close":
             log.warning("closing a robot that does not read", user=self.user, robot=self.robot, reason=f["reason"])
             self.tasks.spawn(self.close(f["reason"]), name="close")

@@ -39,6 +39,8 @@ from rce.protocol.resume import (ACK_DELAY, ACK_EVERY, AK, DEFAULT_GRACE, DEFAUL
 from rce.protocol.schema import split_interface_type, validate
 
 DEFAULT_QUEUE_SIZE = 1000                   # messages per robot in each bounded queue (like a ROS queue_size)
+DEFAULT_MAX_LAG = 1.0                       # s the endpoint may stay behind a robot's frames before it sheds
+                                            # that robot's topic messages (RobotSession.backlog)
 DEFAULT_MAX_MESSAGE = 32 * 1024 * 1024      # bytes (chars for text) of the largest frame a robot endpoint takes
 CONTROL_BACKLOG = 10                        # x queue_size: STs and answers waiting before a robot that does not
                                             # read is closed (they are never dropped; ERs are, past queue_size)
@@ -52,7 +54,10 @@ class Event:
     RobotSession: ``request {type, data}`` (send it to the master, then :meth:`RobotSession.request_done`),
     ``deliver {iTag, data}`` (a DM for that interface), ``call {iTag, data}`` (a service call through a
     ServiceProvider interface: answer with :meth:`RobotSession.answer_call` or
-    :meth:`RobotSession.fail_call`), ``close {reason}`` (the robot does not read: close its link).
+    :meth:`RobotSession.fail_call`), ``close {reason}`` (the robot does not read: close its link),
+    ``lagging {behind_s}`` (the endpoint has been behind the robot's frames for ``behind_s`` s and
+    sheds its topic messages from now on), ``caught_up {shed}`` (it is no longer: ``shed`` messages
+    were dropped meanwhile).
 
     ClientSession: ``status {data}``, ``interface {iTag, up}``, ``error {reason}``, ``message {iTag, type,
     msgID, msg}``, ``response {msgID, msg}``, ``call_failed {msgID, reason}``, ``barrier {token}``,
@@ -226,7 +231,15 @@ class RobotSession(_Session):
     default a fresh :func:`~rce.protocol.resume.new_token`; ``grace``: s the endpoint keeps it
     detached), numbers what it sends and keeps it until acked (``resume_buffer`` messages,
     ``resume_bytes`` bytes; past them the oldest is forgotten, counted), takes each numbered
-    message once and acks every ``ack_every`` messages or ``ack_delay`` s."""
+    message once and acks every ``ack_every`` messages or ``ack_delay`` s.
+
+    ``max_lag``: s the endpoint may stay behind this robot (received frames waiting for the
+    session, as the shell tells with :meth:`backlog`) before it sheds the robot's topic messages:
+    while it has been behind for longer, a DM for a topic interface is dropped and counted
+    (``shed``) instead of delivered, until the shell has caught up. So an overloaded endpoint
+    hands the cloud the robot's newest messages, not ever older ones, as a ROS subscriber's
+    ``queue_size`` drops the oldest. Requests, service calls and answers are never shed.
+    None: never shed."""
 
     def __init__(self, robot: str, *, max_message: int = DEFAULT_MAX_MESSAGE, queue_size: int = DEFAULT_QUEUE_SIZE,
                  expiry: float = DEFAULT_EXPIRY, max_pending_bytes: int = DEFAULT_MAX_PENDING_BYTES,
@@ -234,10 +247,14 @@ class RobotSession(_Session):
                  resume: bool = False, token: str | None = None, grace: float = DEFAULT_GRACE,
                  resume_buffer: int = DEFAULT_RESUME_BUFFER, resume_bytes: int = DEFAULT_RESUME_BYTES,
                  ack_every: int = ACK_EVERY, ack_delay: float = ACK_DELAY, er_rate: float = ER_RATE,
-                 er_burst: int = ER_BURST):
+                 er_burst: int = ER_BURST, max_lag: float | None = DEFAULT_MAX_LAG):
         super().__init__(expiry, max_pending_bytes, resume, resume_buffer, resume_bytes, ack_every, ack_delay,
                          max_pending_parts, budget)
         self.robot, self.max_message, self.queue_size = robot, max_message, queue_size
+        self.max_lag = max_lag
+        self._behind_since: float | None = None                   # s: since when frames have waited unbroken
+        self.shed = 0                                             # topic DMs dropped for the lag
+        self._episode = 0                                         # ... since the shell was last caught up
         self._er_bucket = TokenBucket(er_rate, er_burst)
         self._out_errors = 0                                      # ERs in _out
         self.errors_dropped = 0                                   # ERs dropped (rate, or unread)
@@ -284,6 +301,21 @@ class RobotSession(_Session):
             self._requests.append((t, data))
             self._next_request()
 
+    def backlog(self, frames: int, now: float) -> None:
+        """The shell has ``frames`` more frames of this robot received and not yet given to the
+        session, at time ``now`` (s); call it before each frame it gives (``max_lag`` above)."""
+        if not frames:
+            self._behind_since = None
+            if self._episode:
+                self._emit("caught_up", shed=self._episode)
+                self._episode = 0
+        elif self._behind_since is None:
+            self._behind_since = now
+
+    def _lagging(self) -> bool:
+        since = self._behind_since
+        return since is not None and self.max_lag is not None and self._now - since > self.max_lag
+
     # -- requests, one at a time and in order -------------------------------------------------------
     def _next_request(self) -> None:
         if self._in_flight is None and self._requests:
@@ -329,6 +361,12 @@ class RobotSession(_Session):
         if refusal:
             self.send_error(refusal)
         elif kind != "ServiceProvider":
+            if self._lagging():
+                if not self._episode:
+                    self._emit("lagging", behind_s=round(self._now - self._behind_since, 3))
+                self.shed += 1
+                self._episode += 1
+                return
             self._emit("deliver", iTag=itag, data=data)
         elif self.calls >= self.queue_size:
             self.dropped_in += 1
@@ -512,12 +550,13 @@ class RobotSession(_Session):
     def stats(self) -> dict:
         """Counters: messages in and out, drops out (data DMs, queue full) and in (refused for a full
         queue), ERs sent and dropped, messages and parts waiting for binary parts and their bytes, queue
-        depths; resume: resumes, messages resent, lost at a resume (``resume_lost``), kept until acked
+        depths; ``shed``: topic DMs from the robot dropped while the endpoint lagged (``max_lag``);
+        resume: resumes, messages resent, lost at a resume (``resume_lost``), kept until acked
         (``kept``, ``kept_bytes``), forgotten past the bound (``resume_forgotten``), duplicates from the
         robot dropped."""
         out, inc = self.outgoing, self.incoming
         return {"interfaces": len(self.interfaces), "msgs_in": self.msgs_in, "msgs_out": self.msgs_out,
-                "dropped": self.dropped, "dropped_in": self.dropped_in, "errors": self.errors,
+                "dropped": self.dropped, "dropped_in": self.dropped_in, "shed": self.shed, "errors": self.errors,
                 "errors_dropped": self.errors_dropped, "pending_binary": self.assembler.pending,
                 "pending_binary_bytes": self.assembler.pending_bytes, "outbox": len(self._out),
                 "requests_waiting": len(self._requests) + (self._in_flight is not None), "held": len(self._held),

@@ -111,6 +111,30 @@ def test_removed_interface_takes_no_more_dms():
     assert s.events_received() == [] and ers(s) == ["DM: no interface 'req' on robot 'r1'"]
 
 
+def test_an_endpoint_behind_the_robot_longer_than_max_lag_sheds_topic_messages_only():
+    s = RobotSession("r1", max_lag=1.0)
+    s.add_interface("req", "SubscriberConverter", "std_msgs/String")
+    s.add_interface("srv", "ServiceProviderConverter", "Test/StringEcho")
+
+    def dm(itag: str, data: str, msg_id: str = "") -> str:
+        cls = "Test/StringEcho" if itag == "srv" else "std_msgs/String"
+        return json.dumps({"type": "DM", "data": {"iTag": itag, "type": cls, "msgID": msg_id, "msg": {"data": data}}})
+
+    def take(frame: str, waiting: int, now: float) -> list[str]:
+        s.backlog(waiting, now)
+        s.receive_text(frame, now)
+        return [e.name for e in s.events_received()]
+    assert take(dm("req", "a"), 5, 10.0) == ["deliver"]          # behind since 10.0
+    assert take(dm("req", "b"), 4, 10.9) == ["deliver"]          # 0.9 s: a burst, not a lag
+    assert take(dm("req", "c"), 3, 11.2) == ["lagging"]          # 1.2 s behind: shed, said once
+    assert take(dm("req", "d"), 2, 11.3) == []
+    assert take(dm("srv", "e", "call-1"), 1, 11.4) == ["call"]   # a service call is never shed
+    assert take(dm("req", "f"), 0, 11.5) == ["caught_up", "deliver"]    # caught up: the newest goes
+    assert take(dm("req", "g"), 1, 20.0) == ["deliver"]          # a new lag starts from its own beginning
+    assert s.stats()["shed"] == 2 and s.stats()["dropped_in"] == 0 and ers(s) == []
+    assert RobotSession("r2", max_lag=None)._lagging() is False
+
+
 def test_a_dm_with_a_legacy_service_type_routes_as_service_client():
     s = RobotSession("r1")
     s.add_interface("prov", "ServiceConverter", "Test/StringEcho")

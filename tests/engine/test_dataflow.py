@@ -3,10 +3,15 @@ and forwarders (binary parts), container <-> container, parameters, statuses, te
 Real processes on loopback, the raw wire protocol."""
 from __future__ import annotations
 
+import asyncio
+import contextlib
+import json
+import urllib.request
 
 import pytest
 from rosbags.typesys import Stores, get_typestore
 
+from rce_robot import ws_cork
 from wsclient import RawRobot
 
 pytestmark = pytest.mark.asyncio
@@ -102,6 +107,55 @@ async def test_forwarder_binary_parts_both_orders(eng):
             if isinstance(m, bytes) and len(m) == 32 + len(bigs[0]):     # not a late echo of the small ones
                 echoed.append(m[32:])
         assert echoed == bigs
+
+
+def _metric(port: int, name: str) -> float:
+    with urllib.request.urlopen(f"http://127.0.0.1:{port}/metrics", timeout=10) as resp:
+        line = next(x for x in resp.read().decode().splitlines() if x.startswith(name + " "))
+    return float(line.split()[1])
+
+
+async def test_an_endpoint_behind_a_flooding_robot_sheds_the_oldest_and_delivers_the_newest(eng):
+    """Real overload: a robot writes 30,000 topic DMs as fast as its socket takes them, far faster
+    than its endpoint converts and relays them. Once the endpoint has been behind the robot for
+    ``max_lag`` (1 s) it sheds the robot's topic messages, counted, until it has caught up: the
+    echoes keep their order, the newest message gets through, and nothing is counted twice."""
+    n = 30_000
+    async with RawRobot(eng.master_url, "flood") as r:
+        await _echo_container(r, "floodC", "Converter")
+        echoed: list[int] = []
+        newest, some = asyncio.Event(), asyncio.Event()
+
+        async def read() -> None:
+            async for m in r.ws:
+                d = json.loads(m) if isinstance(m, str) else {}
+                if d.get("type") == "DM" and d["data"]["iTag"] == "resp" and d["data"]["msg"]["data"].isdigit():
+                    echoed.append(int(d["data"]["msg"]["data"]))
+                    some.set()
+                    if echoed[-1] == n - 1:
+                        newest.set()
+        reader = asyncio.create_task(read())
+        try:
+            for _ in range(50):                # the node may subscribe a moment after the interfaces are up
+                await r.send("DM", {"iTag": "req", "type": "std_msgs/String", "msgID": "", "msg": {"data": "0"}})
+                with contextlib.suppress(TimeoutError):
+                    await asyncio.wait_for(some.wait(), 0.5)
+                    break
+            assert echoed, "no echo"
+            shed0 = _metric(eng.robot_ready[0]["metrics_port"], "rce_robot_shed_total")
+            echoed.clear()
+            frames = [json.dumps({"type": "DM", "data": {"iTag": "req", "type": "std_msgs/String", "msgID": "",
+                                                         "msg": {"data": str(i)}}}) for i in range(n)]
+            for i in range(0, n, 500):         # 500 frames per write: the robot outruns its endpoint
+                while not ws_cork.writable(r.ws):
+                    await r.ws.drain()
+                ws_cork.write(r.ws, frames[i:i + 500])
+            await asyncio.wait_for(newest.wait(), 120)
+        finally:
+            reader.cancel()
+    shed = _metric(eng.robot_ready[0]["metrics_port"], "rce_robot_shed_total") - shed0
+    assert echoed == sorted(set(echoed)) and echoed[-1] == n - 1
+    assert shed > 0 and len(echoed) + shed <= n
 
 
 async def test_parameters_reach_nodes(eng):
