@@ -32,7 +32,9 @@ Load: every robot publishes ``geometry_msgs/PoseWithCovarianceStamped`` at ``--r
 (10), phases spread evenly, standing in its own grid cell (an all-free grid, 1 m cells,
 2 cells per robot). After warm-up every robot gets a goal (the neighbouring cell) through
 ``/fleet/goal``: the planner then sends each robot its path, a clearance, and repeats them
-(paths every 2 s, clearances every 0.5 s) for the whole run.
+(paths every 2 s, clearances every 0.5 s) for the whole run. A topic may drop messages under
+overload (an endpoint that lags sheds them, docs/INTERNALS.md "A peer that does not keep up"),
+so the manager sends the goal of each robot that has no path yet again every 5 s.
 
 Measured, over a window of ``--duration`` s after warm-up:
 
@@ -133,6 +135,7 @@ DOWN = [("goalNodesList", "std_msgs/Int32MultiArray"), ("cancelGoal", "std_msgs/
         ("clearance", "fleet/Clearance")]
 INTERFACES_PER_ROBOT = 2 * (2 + len(DOWN))   # both ends of the pose, echo and DOWN links (robot_wiring)
 INTERFACE_HEADROOM = 1000  # interfaces the fleet manager and its container take, with room to spare
+GOAL_RESEND = 5.0          # s: goals of robots that have no path yet are sent again this often
 
 
 # == the robots' plan (shared by the orchestrator and the workers) ==============================
@@ -693,7 +696,8 @@ class CpuWindow:
 
 def engine_drops(eng) -> dict:
     """Drop counters of the engine: the fleet container (bus subscriptions, interfaces, its data
-    plane, per node) and the robot task set (per-robot queues, its data plane)."""
+    plane, per node) and the robot task sets (per-robot queues both ways, topic messages shed while
+    an endpoint lagged behind its robots, their data planes)."""
     out = {}
     try:
         st = eng.admin(f"api/containers/{USER}/{CTAG}/stats")
@@ -707,7 +711,8 @@ def engine_drops(eng) -> dict:
     for info in eng.robot_ready:          # every robot task set: the sums
         try:
             for name, val in robot_metrics(info).items():
-                if name in ("rce_robot_dropped_total", "rce_robot_dataplane_dropped"):
+                if name in ("rce_robot_dropped_total", "rce_robot_dropped_in_total", "rce_robot_shed_total",
+                            "rce_robot_dataplane_dropped"):
                     key = name.replace("rce_robot_", "robot_").replace("_total", "")
                     out[key] = out.get(key, 0) + int(val)
         except Exception as e:   # noqa: BLE001
@@ -1008,7 +1013,7 @@ class Run:
                 res["notes"].append(f"fleet manager could not send goals: {e.message}")
         await send_goals(self.robots)
         deadline = time.monotonic() + 60 + n * 0.05
-        resent = False
+        resent, last_sent = 0, time.monotonic()
         while True:
             await asyncio.sleep(0.5)
             st = await self.ask_all({"op": "status"}, timeout=60)
@@ -1016,9 +1021,10 @@ class Run:
             check_engine(eng, "goals")
             if len(pathed) == n or mgr.conn.closed:
                 break
-            if not resent and time.monotonic() - t > 15:
-                resent = True
+            if time.monotonic() - last_sent > GOAL_RESEND:     # topics may drop under overload: a goal is
+                resent += 1                                    # idempotent, so the manager sends it again
                 await send_goals([r for r in self.robots if r not in pathed])
+                last_sent = time.monotonic()
             if time.monotonic() > deadline:
                 errs = (self.mgr.latest or {}).get("errors", [])[-3:]
                 res["notes"].append(f"goals: only {len(pathed)}/{n} robots got their path within "

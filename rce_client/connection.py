@@ -302,6 +302,7 @@ class Connection:
         self.resumes = self.moves = self.moved_lost = 0
         self.relogin: tuple[str, str, str] | None = None
         self.ssl_context: ssl.SSLContext | None = None     # verifies a wss:// endpoint (open's ssl_context)
+        self.max_lag: float | None = None                 # s: the maxLag it asked for (open), also after a move
         self.errors: list[str] = []
         self.unhandled = 0                          # DMs for an iTag with no handler
         self.close_reason: str | None = None
@@ -357,7 +358,7 @@ class Connection:
                    reconnect_time_wait: float = RECONNECT_WAIT, max_reconnect_wait: float = RECONNECT_WAIT_MAX,
                    resume_buffer: int = DEFAULT_RESUME_BUFFER,
                    endpoint_gone_after: int = ENDPOINT_GONE_AFTER,
-                   ssl_context: ssl.SSLContext | None = None) -> "Connection":
+                   ssl_context: ssl.SSLContext | None = None, max_lag: float | None = None) -> "Connection":
         """Open the websocket at a known robot endpoint ``ws_url`` (skips the login).
 
         ``ssl_context`` verifies a ``wss://`` endpoint (and an ``https://`` master on a login; default
@@ -365,11 +366,15 @@ class Connection:
 
         ``expiry``: s an incomplete message waits for its binary parts. ``allow_reconnect``: ask for
         session resume and reconnect after a lost link (:class:`Reconnect` gives the other settings;
-        ``endpoint_gone_after`` is its ``gone_after``).
+        ``endpoint_gone_after`` is its ``gone_after``). ``max_lag``: s the endpoint may lag behind
+        this connection before it sheds its topic messages (``maxLag``, docs/INTERNALS.md "A peer that
+        does not keep up"); 0 for never, as an operator sending commands on topics wants; None: the
+        endpoint's default.
         Raises :class:`AuthError` or :class:`Unavailable` as :meth:`connect`."""
         reconnect = Reconnect(max_reconnect_attempts, reconnect_time_wait, max_reconnect_wait, resume_buffer,
                               timeout, endpoint_gone_after) if allow_reconnect else None
-        query = {"userID": user_id, "robotID": robot_id, "password": hash_password(password)}
+        query = {"userID": user_id, "robotID": robot_id, "password": hash_password(password),
+                 **({"maxLag": f"{max_lag:g}"} if max_lag is not None else {})}
         ssl_context = ssl_context or tls.client_context()
         try:
             ws = await _dial(_with_query(ws_url, **query, **({"resume": "1"} if allow_reconnect else {})), timeout,
@@ -382,7 +387,7 @@ class Connection:
             raise Unavailable(f"cannot connect to the robot endpoint {ws_url}: {e.message}") from None
         log.info("connected", user=user_id, robot=robot_id, url=ws_url, resume=allow_reconnect)
         conn = cls(ws, user_id, robot_id, ws_url, expiry, reconnect)
-        conn.ssl_context = ssl_context
+        conn.ssl_context, conn.max_lag = ssl_context, max_lag
         return conn
 
     @property
@@ -714,7 +719,8 @@ class Connection:
         ws_url = await login(master_url, self.user_id, version, timeout, self.ssl_context)
         if ws_url == self.ws_url:
             raise Unavailable(f"the master still names the dead robot endpoint {ws_url}")
-        query = {"userID": self.user_id, "robotID": self.robot_id, "password": hash_password(password), "resume": "1"}
+        query = {"userID": self.user_id, "robotID": self.robot_id, "password": hash_password(password), "resume": "1",
+                 **({"maxLag": f"{self.max_lag:g}"} if self.max_lag is not None else {})}
         try:
             ws = await _dial(_with_query(ws_url, **query), timeout, self.ssl_context)
         except _Refused as e:

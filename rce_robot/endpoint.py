@@ -115,6 +115,17 @@ class Metrics:
                                   value=rosbridge.get("sessions_total", 0))
 
 
+def parse_max_lag(text: str) -> float | None:
+    """A ``maxLag`` query value: s >= 0, 0 for never (None). Raises :class:`ValueError` naming it."""
+    try:
+        v = float(text)
+    except ValueError:
+        v = float("nan")
+    if not v >= 0 or v == float("inf"):
+        raise ValueError(f"maxLag must be a number of seconds >= 0 (0: never shed); got {text[:40]!r}")
+    return v or None
+
+
 class RobotEndpoint:
     """One robot task set. ``max_message``: largest websocket frame taken (bytes; larger ones get
     an ER); ``queue_size``: bound of each of a robot's queues (:class:`RobotSession`); ``expiry``: s for
@@ -217,8 +228,10 @@ class RobotEndpoint:
 
     # -- websocket -------------------------------------------------------------------------------
     async def _handshake(self, connection, request):
-        """Authenticate ``?userID=U&robotID=R&password=P[&resume=1]`` before the websocket opens, or
-        a resume ``?userID=U&robotID=R&session=TOKEN&ack=N`` (docs/INTERNALS.md "Session resume")."""
+        """Authenticate ``?userID=U&robotID=R&password=P[&resume=1][&maxLag=S]`` before the websocket
+        opens, or a resume ``?userID=U&robotID=R&session=TOKEN&ack=N`` (docs/INTERNALS.md "Session
+        resume"). ``maxLag``: this connection's ``max_lag`` (s, 0: never shed; :class:`RobotSession`),
+        instead of the endpoint's; a value that is not a number of seconds >= 0 is a 400."""
         q = {k: v[0] for k, v in parse_qs(urlsplit(request.path).query, encoding="latin-1").items()}
         if "session" in q:         # a resume needs no master: the session and its token are here
             return self._resume(connection, q)
@@ -227,6 +240,10 @@ class RobotEndpoint:
         missing = [k for k in ("userID", "robotID", "password") if not q.get(k)]
         if missing:
             return connection.respond(HTTPStatus.BAD_REQUEST, f"missing query parameter(s): {', '.join(missing)}\n")
+        try:
+            max_lag = self.max_lag if "maxLag" not in q else parse_max_lag(q["maxLag"])
+        except ValueError as e:
+            return connection.respond(HTTPStatus.BAD_REQUEST, f"{e}\n")
         user, robot = q["userID"], q["robotID"]
         try:
             await self.master.call("auth", user=user, robot=robot, password=normalise_password(q["password"]),
@@ -245,7 +262,7 @@ class RobotEndpoint:
         except RCEError as e:
             return connection.respond(HTTPStatus.CONFLICT, e.message + "\n")
         connection.rce_identity, connection.rce_resume = (user, robot), q.get("resume") == "1"
-        connection.rce_ack = None
+        connection.rce_ack, connection.rce_max_lag = None, max_lag
         self.opening.setdefault((user, robot), asyncio.Event())
         return None
 
@@ -281,7 +298,7 @@ class RobotEndpoint:
             return
         session = RobotSession(robot, max_message=self.max_message, queue_size=self.queue_size, expiry=self.expiry,
                                resume=ws.rce_resume, grace=self.grace, resume_buffer=self.resume_buffer,
-                               budget=self.budget, max_lag=self.max_lag)
+                               budget=self.budget, max_lag=ws.rce_max_lag)
         ns = RobotNamespace(user, robot, self.master, session, on_gone=self._session_gone, parser=self.parser)
         self.namespaces[(user, robot)] = ns
         if (opened := self.opening.pop((user, robot), None)) is not None:

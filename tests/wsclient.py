@@ -18,14 +18,16 @@ def login(master_url: str, user: str = "testUser", version: str = "20130902") ->
 class RawRobot:
     """``async with RawRobot(url, robot) as r``: send dicts/bytes, receive parsed messages."""
 
-    def __init__(self, master_url: str, robot: str, user: str = "testUser", password: str = "testUser"):
-        self.master_url, self.robot, self.user, self.password = master_url, robot, user, password
+    def __init__(self, master_url: str, robot: str, user: str = "testUser", password: str = "testUser",
+                 query: str = ""):
+        """``query``: more of the websocket URL's query (``&maxLag=0``)."""
+        self.master_url, self.robot, self.user, self.password, self.query = master_url, robot, user, password, query
         self.ws = None
 
     async def __aenter__(self) -> "RawRobot":
         url = login(self.master_url, self.user)["url"]
         pw = hashlib.sha256(self.password.encode()).hexdigest()
-        self.ws = await connect(f"{url}?userID={self.user}&robotID={self.robot}&password={pw}",
+        self.ws = await connect(f"{url}?userID={self.user}&robotID={self.robot}&password={pw}{self.query}",
                                 max_size=None, compression=None)
         return self
 

@@ -10,6 +10,7 @@ import urllib.request
 
 import pytest
 from rosbags.typesys import Stores, get_typestore
+from websockets.exceptions import InvalidStatus
 
 from rce_robot import ws_cork
 from wsclient import RawRobot
@@ -115,14 +116,16 @@ def _metric(port: int, name: str) -> float:
     return float(line.split()[1])
 
 
-async def test_an_endpoint_behind_a_flooding_robot_sheds_the_oldest_and_delivers_the_newest(eng):
+@pytest.mark.parametrize("max_lag", ["", "0"])
+async def test_an_endpoint_behind_a_flooding_robot_sheds_the_oldest_and_delivers_the_newest(eng, max_lag):
     """Real overload: a robot writes 30,000 topic DMs as fast as its socket takes them, far faster
     than its endpoint converts and relays them. Once the endpoint has been behind the robot for
     ``max_lag`` (1 s) it sheds the robot's topic messages, counted, until it has caught up: the
-    echoes keep their order, the newest message gets through, and nothing is counted twice."""
-    n = 30_000
-    async with RawRobot(eng.master_url, "flood") as r:
-        await _echo_container(r, "floodC", "Converter")
+    echoes keep their order, the newest message gets through, and nothing is counted twice. A
+    connection that asked ``maxLag=0`` (an operator's commands) is never shed (10,000 DMs)."""
+    n = 10_000 if max_lag else 30_000
+    async with RawRobot(eng.master_url, f"flood{max_lag}", query=f"&maxLag={max_lag}" if max_lag else "") as r:
+        await _echo_container(r, f"flood{max_lag}C", "Converter")
         echoed: list[int] = []
         newest, some = asyncio.Event(), asyncio.Event()
 
@@ -155,7 +158,18 @@ async def test_an_endpoint_behind_a_flooding_robot_sheds_the_oldest_and_delivers
             reader.cancel()
     shed = _metric(eng.robot_ready[0]["metrics_port"], "rce_robot_shed_total") - shed0
     assert echoed == sorted(set(echoed)) and echoed[-1] == n - 1
-    assert shed > 0 and len(echoed) + shed <= n
+    if max_lag:
+        assert shed == 0
+    else:
+        assert shed > 0 and len(echoed) + shed <= n
+
+
+async def test_a_max_lag_that_is_not_seconds_is_refused_at_the_handshake(eng):
+    for bad in ("-1", "soon", "inf"):
+        with pytest.raises(InvalidStatus) as ei:
+            async with RawRobot(eng.master_url, "badLag", query=f"&maxLag={bad}"):
+                pass
+        assert ei.value.response.status_code == 400 and b"maxLag" in ei.value.response.body
 
 
 async def test_parameters_reach_nodes(eng):

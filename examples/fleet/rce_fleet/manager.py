@@ -72,12 +72,13 @@ class FleetManager:
         self._state_event = asyncio.Event()
 
     async def start(self, timeout: float = SETUP_TIMEOUT_S) -> None:
-        """Log in (with session resume: the connection rides out a lost link, ``allow_reconnect``),
-        create the container, the planner and the operator interfaces; returns when the interfaces
-        are up (within ``timeout`` s). Raises :class:`RCEError` with the cloud's
+        """Log in (with session resume: the connection rides out a lost link, ``allow_reconnect``;
+        ``max_lag=0``: goals and blocks are commands, which the robot endpoint never sheds even when it
+        lags behind), create the container, the planner and the operator interfaces; returns when the
+        interfaces are up (within ``timeout`` s). Raises :class:`RCEError` with the cloud's
         reason."""
         conn = self.conn = await Connection.connect(self.master_url, self.user, self.password, self.robot_id,
-                                                    allow_reconnect=True)
+                                                    allow_reconnect=True, max_lag=0)
         conn.on_error(self._on_error)
         conn.on_status(self._on_status)
         await conn.create_container(self.ctag, cpu=self.container_cpu)
