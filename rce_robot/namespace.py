@@ -176,7 +176,7 @@ class RobotNamespace:
         self._pump()
         try:
             async for frame in ws:
-                self.session.backlog(ws_cork.backlog(ws), time.monotonic())
+                self.session.backlog(ws_cork.behind(ws), time.monotonic())
                 if self._receive(frame):       # a big text frame: parsed in the pool first
                     await self._receive_big(frame)
                 self._pump()

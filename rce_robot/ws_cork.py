@@ -15,12 +15,17 @@ connection (a test double, another library) is never :func:`writable`: the calle
 from __future__ import annotations
 
 import asyncio
+import fcntl
+import struct
+import termios
 from collections.abc import Iterable
 from typing import Any
 
 from websockets.protocol import Side, State
 
 RAW_MIN = 64 * 1024     # bytes: a binary frame this large is framed here, not copied into websockets' frame
+_INT = struct.Struct("i")
+_ZERO = bytes(_INT.size)
 
 
 def corkable(ws: Any) -> bool:
@@ -39,6 +44,25 @@ def backlog(ws: Any) -> int:
     websockets asyncio connection)."""
     frames = getattr(getattr(ws, "recv_messages", None), "frames", None)
     return len(frames) if frames is not None else 0
+
+
+def unread(ws: Any) -> int:
+    """Bytes of ``ws``'s that the kernel has received and nobody has read yet (``FIONREAD`` on its
+    socket, tcp(7)): what waits behind the frames :func:`backlog` counts. 0 for anything that is
+    not a websockets asyncio connection on a socket."""
+    sock = ws.transport.get_extra_info("socket") if corkable(ws) else None
+    if sock is None:
+        return 0
+    try:
+        return _INT.unpack(fcntl.ioctl(sock.fileno(), termios.FIONREAD, _ZERO))[0]
+    except (OSError, ValueError):        # closed meanwhile
+        return 0
+
+
+def behind(ws: Any) -> int:
+    """Frames (:func:`backlog`), else bytes (:func:`unread`), of ``ws``'s waiting to be taken: 0
+    when the reader has taken everything the peer sent so far."""
+    return backlog(ws) or unread(ws)
 
 
 async def take_turn(ws: Any) -> None:

@@ -302,8 +302,9 @@ class RobotSession(_Session):
             self._next_request()
 
     def backlog(self, frames: int, now: float) -> None:
-        """The shell has ``frames`` more frames of this robot received and not yet given to the
-        session, at time ``now`` (s); call it before each frame it gives (``max_lag`` above)."""
+        """The shell has ``frames`` more frames (or bytes) of this robot received and not yet given
+        to the session, at time ``now`` (s): 0 when it has caught up with all the robot sent so far,
+        in its own buffers and the kernel's. Call it before each frame it gives (``max_lag`` above)."""
         if not frames:
             self._behind_since = None
             if self._episode:

@@ -126,3 +126,27 @@ async def test_backlog_counts_frames_received_and_not_yet_read():
     finally:
         server.close()
         await server.wait_closed()
+
+
+async def test_behind_counts_what_the_kernel_holds_too_until_everything_is_read():
+    """A client writes 2000 frames at once. While the server has taken only some, the rest wait in
+    websockets' queue or in the kernel (``unread``: FIONREAD); once it has taken the last one,
+    nothing is behind."""
+    n, firsts, last = 2000, [], []
+
+    async def handler(ws) -> None:
+        await ws.recv()
+        firsts.append((ws_cork.behind(ws), ws_cork.unread(ws)))
+        for _ in range(n - 1):
+            await ws.recv()
+        last.append((ws_cork.behind(ws), ws_cork.unread(ws)))
+    server = await serve(handler, "127.0.0.1", 0, compression=None, max_queue=4)
+    try:
+        async with connect(f"ws://127.0.0.1:{server.sockets[0].getsockname()[1]}/", compression=None) as client:
+            ws_cork.write(client, ["x" * 1000] * n)
+            await until(lambda: last, "the last frame read")
+        assert firsts[0][0] > 0 and last == [(0, 0)]
+        assert ws_cork.unread(object()) == 0 and ws_cork.behind(object()) == 0
+    finally:
+        server.close()
+        await server.wait_closed()
