@@ -22,6 +22,7 @@ changes: no ``seq``, no ``AK``, no ``ST session``.
 from __future__ import annotations
 
 import json
+import math
 import uuid
 from collections import deque
 from dataclasses import dataclass, field
@@ -236,10 +237,11 @@ class RobotSession(_Session):
     ``max_lag``: s the endpoint may stay behind this robot (received frames waiting for the
     session, as the shell tells with :meth:`backlog`) before it sheds the robot's topic messages:
     while it has been behind for longer, a DM for a topic interface is dropped and counted
-    (``shed``) instead of delivered, until the shell has caught up. So an overloaded endpoint
-    hands the cloud the robot's newest messages, not ever older ones, as a ROS subscriber's
-    ``queue_size`` drops the oldest. Requests, service calls and answers are never shed.
-    None: never shed."""
+    (``shed``) instead of delivered, until the shell has caught up, unless that interface has
+    delivered nothing for ``max_lag`` s (so a stream still reaches the cloud at least that often
+    while the endpoint stays behind). So an overloaded endpoint hands the cloud the robot's
+    newest messages, not ever older ones, as a ROS subscriber's ``queue_size`` drops the oldest.
+    Requests, service calls and answers are never shed. None: never shed."""
 
     def __init__(self, robot: str, *, max_message: int = DEFAULT_MAX_MESSAGE, queue_size: int = DEFAULT_QUEUE_SIZE,
                  expiry: float = DEFAULT_EXPIRY, max_pending_bytes: int = DEFAULT_MAX_PENDING_BYTES,
@@ -255,6 +257,7 @@ class RobotSession(_Session):
         self._behind_since: float | None = None                   # s: since when frames have waited unbroken
         self.shed = 0                                             # topic DMs dropped for the lag
         self._episode = 0                                         # ... since the shell was last caught up
+        self._delivered_at: dict[str, float] = {}                 # iTag -> s: its last DM delivered
         self._er_bucket = TokenBucket(er_rate, er_burst)
         self._out_errors = 0                                      # ERs in _out
         self.errors_dropped = 0                                   # ERs dropped (rate, or unread)
@@ -362,12 +365,13 @@ class RobotSession(_Session):
         if refusal:
             self.send_error(refusal)
         elif kind != "ServiceProvider":
-            if self._lagging():
+            if self._lagging() and self._now - self._delivered_at.get(itag, -math.inf) <= self.max_lag:
                 if not self._episode:
                     self._emit("lagging", behind_s=round(self._now - self._behind_since, 3))
                 self.shed += 1
                 self._episode += 1
                 return
+            self._delivered_at[itag] = self._now
             self._emit("deliver", iTag=itag, data=data)
         elif self.calls >= self.queue_size:
             self.dropped_in += 1
