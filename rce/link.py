@@ -52,7 +52,7 @@ from rce.tasks import Tasks
 log = get_logger("rce.link")
 
 STREAM_LIMIT = 1024 * 1024           # bytes a stream reader buffers before it stops reading its socket (asyncio limit)
-DEFAULT_MAX_BUFFER = 64 * 1024 * 1024   # bytes that may wait in a link's transport (see the module doc)
+DEFAULT_MAX_BUFFER = 64 * 1024 * 1024   # bytes that may wait in a link's transport and queue (see the module doc)
 JOIN_MAX = 64 * 1024                 # bytes: a payload up to this is joined to its frame header (one write)
 MAX_IN_FLIGHT = 1024                 # requests one Responder runs at once; more are refused (Unavailable)
 DEFAULT_MAX_DELAY = 1.0              # s an offered frame may wait in a link's queue for a slow peer (module doc)
