@@ -192,7 +192,7 @@ class RobotEndpoint:
                                  master_wait=self.master_wait, cluster_key=self.cluster_key)
         await self.master.start()
         if rosbridge_port is not None:
-            self.rosbridge = RosbridgeServer(self.master, self.by_iid)
+            self.rosbridge = RosbridgeServer(self.master, self.by_iid, self.max_lag)
             await self.rosbridge.start(bind, rosbridge_port, self.ssl_context)
         if metrics_port is not None:
             app = web.Application()

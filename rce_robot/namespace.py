@@ -48,7 +48,7 @@ CLOSE_REASON_MAX = 120    # chars of a close reason (a close frame holds 123 byt
 CLEAN_CLOSE = (1000, 1001)  # close codes of a robot that ends its session itself (normal, going away)
 
 
-_LAG_LOG = TokenBucket(LOG_RATE, LOG_BURST)     # "lags behind" warnings of all this endpoint's robots
+LAG_LOG = TokenBucket(LOG_RATE, LOG_BURST)     # "lags behind" warnings of all this endpoint's robots
 
 class RobotNamespace:
     """Session of robot ``robot`` of user ``user``; ``master``: the control link its requests go
@@ -251,7 +251,7 @@ class RobotNamespace:
         elif ev.name == "call":
             self.tasks.spawn(self._call(f["iTag"], f["data"]), name="call")
         elif ev.name == "lagging":
-            if _LAG_LOG.take(time.monotonic()):     # one endpoint, many robots: a few lines a second at most
+            if LAG_LOG.take(time.monotonic()):     # one endpoint, many robots: a few lines a second at most
                 log.warning("the endpoint lags behind the robot: its topic messages are shed until it catches up",
                             user=self.user, robot=self.robot, behind_s=f["behind_s"])
         elif ev.name == "caught_up":

@@ -13,6 +13,7 @@ from __future__ import annotations
 
 import asyncio
 import ssl
+import time
 from collections import Counter
 from http import HTTPStatus
 from typing import Any
@@ -24,6 +25,7 @@ from websockets.exceptions import ConnectionClosed
 from rce.errors import AuthError, NotFound, RCEError, Throttled
 from rce.log import get_logger
 from rce.masterlink import MasterLink
+from rce.protocol.limits import DEFAULT_MAX_LAG
 from rce.tasks import Tasks
 from rce_robot.front_door import master_away, peer_address, throttled
 from rce_robot import ws_cork
@@ -47,17 +49,20 @@ SESSION_COUNTERS = {"ops_in": ("rce_robot_rosbridge_ops_in", "Ops taken from ros
                     "fragments_out": ("rce_robot_rosbridge_fragments_out", "fragment ops sent to rosbridge clients"),
                     "fragments_in": ("rce_robot_rosbridge_fragments_in", "fragment ops taken from rosbridge clients"),
                     "fragments_dropped": ("rce_robot_rosbridge_fragments_dropped",
-                                          "Client fragments dropped (bounds, expiry, inconsistent)")}
+                                          "Client fragments dropped (bounds, expiry, inconsistent)"),
+                    "shed": ("rce_robot_rosbridge_shed", "publish ops of rosbridge clients dropped while the endpoint "
+                                                         "lagged behind them (max_lag)")}
 
 
 class RosbridgeServer:
     """The rosbridge websocket server on ``master`` (the task set's control link); ``by_iid``: the
     endpoint's table of robot-side interfaces (a session's are forgotten there when it ends).
     :attr:`sessions` maps (user, robot) to the live sessions: the master's ``add_interface``
-    for such a robot makes its converter in that session."""
+    for such a robot makes its converter in that session. ``max_lag``: s the endpoint may stay
+    behind a client before it sheds the client's publish ops (:class:`RosbridgeSession`)."""
 
-    def __init__(self, master: MasterLink, by_iid: dict[int, RobotInterface]):
-        self.master, self.by_iid = master, by_iid
+    def __init__(self, master: MasterLink, by_iid: dict[int, RobotInterface], max_lag: float | None = DEFAULT_MAX_LAG):
+        self.master, self.by_iid, self.max_lag = master, by_iid, max_lag
         self.sessions: dict[tuple[str, str], RosbridgeSession] = {}
         self.ended: Counter[str] = Counter()          # the counters of ended sessions
         self.sessions_total = 0
@@ -119,7 +124,7 @@ class RosbridgeServer:
 
     async def _serve(self, ws) -> None:
         user, robot, ctag = ws.rce_rosbridge
-        session = RosbridgeSession(user, robot, ctag, self.master)
+        session = RosbridgeSession(user, robot, ctag, self.master, self.max_lag)
         session.ws = ws
         self.sessions[(user, robot)] = session
         self.sessions_total += 1
@@ -128,6 +133,7 @@ class RosbridgeServer:
         writer.spawn(_write(ws, session.outbox.queue), name="writer")
         try:
             async for text in ws:
+                session.backlog(ws_cork.behind(ws), time.monotonic())
                 await session.handle(text)
                 await ws_cork.take_turn(ws)
         except ConnectionClosed:

@@ -35,10 +35,11 @@ from rce.log import get_logger
 from rce.masterlink import MasterLink
 from rce.message_forms import JsonForms
 from rce.protocol import jsontext
+from rce.protocol.limits import DEFAULT_MAX_LAG, LagGate
 from rce.protocol.schema import validate
 from rce.tasks import Tasks
 from rce_robot.interfaces import RobotInterface
-from rce_robot.namespace import CLOSE_POLICY, REQUEST_TIMEOUT
+from rce_robot.namespace import CLOSE_POLICY, LAG_LOG, REQUEST_TIMEOUT
 from rce_robot.rosbridge_compression import COMPRESSIONS, cbor_publish, cbor_raw_publish, png_op
 from rce_robot.rosbridge_fragments import Defragmenter
 from rce_robot.rosbridge_outbox import Outbox
@@ -108,11 +109,15 @@ class RosbridgeSession:
     """The session of a rosbridge client as robot ``robot`` of ``user`` on container ``ctag``;
     ``master``: the control link its requests go through. What it sends the client goes to
     :attr:`outbox` (bounded, drops counted: :class:`~rce_robot.rosbridge_outbox.Outbox`); the
-    client's ``fragment`` ops are reassembled by :attr:`defrag` (bounded). Implements
+    client's ``fragment`` ops are reassembled by :attr:`defrag` (bounded). While the endpoint has
+    been behind the client for longer than ``max_lag`` s (:meth:`backlog`), its ``publish`` ops are
+    shed as a robot's topic DMs are (:class:`~rce.protocol.limits.LagGate`). Implements
     :class:`rce_robot.interfaces.RobotLink` and :class:`rce_robot.rosbridge_rosapi.Graph`."""
 
-    def __init__(self, user: str, robot: str, ctag: str, master: MasterLink):
+    def __init__(self, user: str, robot: str, ctag: str, master: MasterLink, max_lag: float | None = DEFAULT_MAX_LAG):
         self.user, self.robot, self.ctag, self.master = user, robot, ctag, master
+        self.lag = LagGate(max_lag)         # sheds the client's publish ops while the endpoint lags (backlog)
+        self._now = 0.0                     # monotonic s of the op being handled (backlog)
         self.forms = JsonForms()            # rosbridge's ROS 1 JSON: time and duration as {secs, nsecs}
         self.interfaces: dict[str, RobotInterface] = {}
         self.bridges: dict[tuple[str, str], Bridge] = {}          # (role, name) -> its interfaces
@@ -136,6 +141,7 @@ class RosbridgeSession:
     def stats(self) -> dict[str, int]:
         """The session's counters (``rce_robot.rosbridge.SESSION_COUNTERS`` names them)."""
         return {"ops_in": self.ops_in, "errors": self.errors, "msgs_out": self.outbox.sent, "dropped": self.dropped,
+                "shed": self.lag.shed,
                 "fragments_out": self.outbox.fragments, "fragments_in": self.defrag.fragments,
                 "fragments_dropped": self.defrag.dropped}
 
@@ -224,6 +230,14 @@ class RosbridgeSession:
         self.send(png_op(jsontext.dumps(op)) if sub.compression == "png" else op, sub.fragment_size)
 
     # -- from the client ---------------------------------------------------------------------------------
+    def backlog(self, waiting: int, now: float) -> None:
+        """Before each message the server takes: ``waiting`` more of the client's (frames, else
+        bytes) are behind it, at ``now`` (monotonic s)."""
+        self._now = now
+        shed = self.lag.backlog(waiting, now)
+        if shed:
+            log.debug("the endpoint caught up with the rosbridge client", user=self.user, robot=self.robot, shed=shed)
+
     async def handle(self, text: str | bytes) -> None:
         """Take one websocket message from the client; bad input gets a ``status`` error."""
         op: Any = None
@@ -281,7 +295,15 @@ class RosbridgeSession:
         await self._drop(self._advertised("p", "topic", op))
 
     async def _publish(self, op: dict) -> None:
-        self._iface(self._advertised("p", "topic", op)).from_robot({"msg": _field(op, "msg", dict)})
+        iface = self._iface(self._advertised("p", "topic", op))
+        msg = _field(op, "msg", dict)
+        if not self.lag.admit(op["topic"], self._now):
+            if self.lag.episode == 1 and LAG_LOG.take(self._now):
+                log.warning("the endpoint lags behind the rosbridge client: its publish ops are shed until it "
+                            "catches up", user=self.user, robot=self.robot,
+                            behind_s=round(self.lag.behind(self._now), 3))
+            return
+        iface.from_robot({"msg": msg})
 
     async def _subscribe(self, op: dict) -> None:
         topic = _field(op, "topic")

@@ -9,9 +9,12 @@ parts waiting for their message. docs/SECURITY.md "Limits" lists them with their
 - :class:`TokenBucket`: ``rate`` tokens per s up to ``burst`` (the classic token bucket, as
   in RFC 2697's committed-burst bucket, one colour).
 - :class:`PartBudget`: bytes of binary parts held by all the sessions of one robot endpoint.
+- :class:`LagGate`: sheds a client's topic messages while the endpoint has been behind it for
+  longer than ``max_lag`` (docs/INTERNALS.md "A peer that does not keep up").
 """
 from __future__ import annotations
 
+import math
 import re
 import reprlib
 from dataclasses import dataclass
@@ -28,6 +31,8 @@ LOG_RATE = 2.0                  # log lines per s a session writes about its rob
 LOG_BURST = 10                  # ... and at most this many at once; the rest are counted in the next line
 DEFAULT_MAX_PENDING_TOTAL = 512 * 1024 * 1024   # bytes of binary parts waiting for their message, all the robots
                                                 # of one endpoint together (each also has its own cap)
+DEFAULT_MAX_LAG = 1.0           # s an endpoint may stay behind a client's frames before it sheds the client's topic
+                                # messages (LagGate)
 
 _STRING = re.compile(r'"[^"\\]*(?:\\.[^"\\]*)*"')     # a JSON string (RFC 8259 section 7), unrolled
 _NOT_BRACKET = re.compile(r"[^\[\]{}]+")
@@ -115,3 +120,54 @@ def short_repr(value: object) -> str:
     message quotes of a value, at a bounded cost."""
     r = _REPR.repr(value)
     return r if len(r) <= 2 * SHORT_REPR else r[:2 * SHORT_REPR] + "..."
+
+
+class LagGate:
+    """Which of a client's topic messages an endpoint that lags behind the client takes.
+
+    The shell tells :meth:`backlog` before each frame it takes how much more of the client's it
+    has received and not yet taken (frames in its library's queue, else bytes in the kernel's).
+    Once something has waited without a break for longer than ``max_lag`` s, :meth:`admit` says
+    no to a topic message, unless its topic (``key``) has had nothing admitted for ``max_lag`` s
+    (so a stream still gets through at least that often), until the shell has caught up. So an
+    overloaded endpoint passes on the client's newest messages, not ever older ones, as a ROS
+    subscriber's ``queue_size`` drops the oldest. ``max_lag`` None: admit everything.
+
+    ``shed``: messages refused; ``episode``: of them, since the shell last caught up."""
+
+    def __init__(self, max_lag: float | None = DEFAULT_MAX_LAG):
+        self.max_lag = max_lag
+        self.shed = self.episode = 0
+        self._since: float | None = None                 # s: since when frames have waited unbroken
+        self._admitted: dict[object, float] = {}         # key -> s: its last message admitted
+
+    def backlog(self, waiting: int, now: float) -> int:
+        """``waiting`` frames (or bytes) of the client's are still behind the one taken at ``now``
+        (s). Returns how many messages were shed if this ends a lag (the shell caught up), else 0."""
+        if waiting:
+            if self._since is None:
+                self._since = now
+            return 0
+        self._since = None
+        ended, self.episode = self.episode, 0
+        return ended
+
+    def behind(self, now: float) -> float:
+        """s the shell has been behind the client at ``now`` (0 when it is not)."""
+        return 0.0 if self._since is None else now - self._since
+
+    def admit(self, key: object, now: float) -> bool:
+        """May topic ``key``'s message go on at ``now`` (s)? A refusal is counted."""
+        lag = self.max_lag
+        if lag is not None and self._since is not None and now - self._since > lag \
+                and now - self._admitted.get(key, -math.inf) <= lag:
+            self.shed += 1
+            self.episode += 1
+            return False
+        self._admitted[key] = now
+        return True
+
+    def forget(self, key: object) -> None:
+        """Topic ``key`` is gone (its interface removed)."""
+        self._admitted.pop(key, None)
+

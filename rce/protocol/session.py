@@ -22,7 +22,6 @@ changes: no ``seq``, no ``AK``, no ``ST session``.
 from __future__ import annotations
 
 import json
-import math
 import uuid
 from collections import deque
 from dataclasses import dataclass, field
@@ -33,15 +32,13 @@ from rce.messages import takes_binary_message
 from rce.pending import PendingCalls
 from rce.protocol.frames import (CX, DEFAULT_EXPIRY, DEFAULT_MAX_PENDING_BYTES, DEFAULT_MAX_PENDING_PARTS, DM, ER,
                                  ST, Assembler, encode)
-from rce.protocol.limits import ER_BURST, ER_RATE, PartBudget, TokenBucket, truncate
+from rce.protocol.limits import DEFAULT_MAX_LAG, ER_BURST, ER_RATE, LagGate, PartBudget, TokenBucket, truncate
 from rce.protocol.resume import (ACK_DELAY, ACK_EVERY, AK, DEFAULT_GRACE, DEFAULT_RESUME_BUFFER, DEFAULT_RESUME_BYTES,
                                  SESSION_TOPIC, Frame, Incoming, Outgoing, ack_frame, is_session_status, new_token,
                                  read_ack, read_seq)
 from rce.protocol.schema import split_interface_type, validate
 
 DEFAULT_QUEUE_SIZE = 1000                   # messages per robot in each bounded queue (like a ROS queue_size)
-DEFAULT_MAX_LAG = 1.0                       # s the endpoint may stay behind a robot's frames before it sheds
-                                            # that robot's topic messages (RobotSession.backlog)
 DEFAULT_MAX_MESSAGE = 32 * 1024 * 1024      # bytes (chars for text) of the largest frame a robot endpoint takes
 CONTROL_BACKLOG = 10                        # x queue_size: STs and answers waiting before a robot that does not
                                             # read is closed (they are never dropped; ERs are, past queue_size)
@@ -253,11 +250,7 @@ class RobotSession(_Session):
         super().__init__(expiry, max_pending_bytes, resume, resume_buffer, resume_bytes, ack_every, ack_delay,
                          max_pending_parts, budget)
         self.robot, self.max_message, self.queue_size = robot, max_message, queue_size
-        self.max_lag = max_lag
-        self._behind_since: float | None = None                   # s: since when frames have waited unbroken
-        self.shed = 0                                             # topic DMs dropped for the lag
-        self._episode = 0                                         # ... since the shell was last caught up
-        self._delivered_at: dict[str, float] = {}                 # iTag -> s: its last DM delivered
+        self.lag = LagGate(max_lag)                               # sheds topic DMs while the shell lags
         self._er_bucket = TokenBucket(er_rate, er_burst)
         self._out_errors = 0                                      # ERs in _out
         self.errors_dropped = 0                                   # ERs dropped (rate, or unread)
@@ -307,18 +300,11 @@ class RobotSession(_Session):
     def backlog(self, frames: int, now: float) -> None:
         """The shell has ``frames`` more frames (or bytes) of this robot received and not yet given
         to the session, at time ``now`` (s): 0 when it has caught up with all the robot sent so far,
-        in its own buffers and the kernel's. Call it before each frame it gives (``max_lag`` above)."""
-        if not frames:
-            self._behind_since = None
-            if self._episode:
-                self._emit("caught_up", shed=self._episode)
-                self._episode = 0
-        elif self._behind_since is None:
-            self._behind_since = now
-
-    def _lagging(self) -> bool:
-        since = self._behind_since
-        return since is not None and self.max_lag is not None and self._now - since > self.max_lag
+        in its own buffers and the kernel's. Call it before each frame it gives (``max_lag`` above;
+        :class:`~rce.protocol.limits.LagGate`)."""
+        shed = self.lag.backlog(frames, now)
+        if shed:
+            self._emit("caught_up", shed=shed)
 
     # -- requests, one at a time and in order -------------------------------------------------------
     def _next_request(self) -> None:
@@ -365,13 +351,10 @@ class RobotSession(_Session):
         if refusal:
             self.send_error(refusal)
         elif kind != "ServiceProvider":
-            if self._lagging() and self._now - self._delivered_at.get(itag, -math.inf) <= self.max_lag:
-                if not self._episode:
-                    self._emit("lagging", behind_s=round(self._now - self._behind_since, 3))
-                self.shed += 1
-                self._episode += 1
+            if not self.lag.admit(itag, self._now):
+                if self.lag.episode == 1:
+                    self._emit("lagging", behind_s=round(self.lag.behind(self._now), 3))
                 return
-            self._delivered_at[itag] = self._now
             self._emit("deliver", iTag=itag, data=data)
         elif self.calls >= self.queue_size:
             self.dropped_in += 1
@@ -403,6 +386,7 @@ class RobotSession(_Session):
     def remove_interface(self, itag: str) -> None:
         """Robot-side interface ``itag`` is gone."""
         self.interfaces.pop(itag, None)
+        self.lag.forget(itag)
 
     # -- frames out ---------------------------------------------------------------------------------
     def send_dm(self, itag: str, cls: str, msg_id: Any, msg: Any, data: bool = False) -> bool:
@@ -561,7 +545,7 @@ class RobotSession(_Session):
         robot dropped."""
         out, inc = self.outgoing, self.incoming
         return {"interfaces": len(self.interfaces), "msgs_in": self.msgs_in, "msgs_out": self.msgs_out,
-                "dropped": self.dropped, "dropped_in": self.dropped_in, "shed": self.shed, "errors": self.errors,
+                "dropped": self.dropped, "dropped_in": self.dropped_in, "shed": self.lag.shed, "errors": self.errors,
                 "errors_dropped": self.errors_dropped, "pending_binary": self.assembler.pending,
                 "pending_binary_bytes": self.assembler.pending_bytes, "outbox": len(self._out),
                 "requests_waiting": len(self._requests) + (self._in_flight is not None), "held": len(self._held),

@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import asyncio
 import base64
+import contextlib
 import hashlib
 import io
 import json
@@ -29,6 +30,7 @@ from websockets.exceptions import InvalidStatus
 
 from rce.errors import ProtocolError, RCEError
 from rce.messages import default_registry
+from rce_robot import ws_cork
 from rce_robot.endpoint import RobotEndpoint
 from rce_robot.rosbridge import RosbridgeServer
 from rce_robot.rosbridge_compression import cbor_publish, cbor_raw_publish, png_op
@@ -415,3 +417,50 @@ async def test_sessions_reported_and_closed_by_the_master():
     assert {"user": "u", "robot": "r", "rosbridge": "c"} in ep._report()["robots"]
     await ep._obey({"close_robots": [{"user": "u", "robot": "r"}]})
     assert len(closed) == 1 and closed[0][0] == 1008 and "the master does not know" in closed[0][1]
+
+
+async def test_an_endpoint_behind_a_flooding_client_sheds_its_publish_ops(eng):
+    """Real overload, as tests/engine/test_dataflow.py's robot: a rosbridge client writes 30,000
+    ``publish`` ops as fast as its socket takes them. Once the endpoint has been behind it for
+    ``max_lag`` (1 s) it sheds them, counted (``rce_robot_rosbridge_shed_total``), until it has
+    caught up: the echoes keep their order and the newest one arrives."""
+    n = 30_000
+    async with RawRobot(eng.master_url, "rbFloodOwner") as r:
+        await _echo_container(r, "rbFloodC")
+        async with connect(_url(eng, "rbFlood", "rbFloodC")) as ws:
+            await ws.send(json.dumps({"op": "advertise", "topic": "/stringEchoReq", "type": "std_msgs/String"}))
+            await ws.send(json.dumps({"op": "subscribe", "topic": "/stringEchoResp", "type": "std_msgs/String",
+                                      "queue_length": 0}))
+            echoed: list[int] = []
+            some, newest = asyncio.Event(), asyncio.Event()
+
+            async def read() -> None:
+                async for m in ws:
+                    op = json.loads(m)
+                    if op.get("op") == "publish" and op["msg"]["data"].isdigit():
+                        echoed.append(int(op["msg"]["data"]))
+                        some.set()
+                        if echoed[-1] == n - 1:
+                            newest.set()
+            reader = asyncio.create_task(read())
+            try:
+                deadline = time.monotonic() + GRAPH_WAIT
+                while not some.is_set():       # the echo node may subscribe a moment after the bridge is up
+                    assert time.monotonic() < deadline, "no echo"
+                    await ws.send(json.dumps({"op": "publish", "topic": "/stringEchoReq", "msg": {"data": "0"}}))
+                    with contextlib.suppress(TimeoutError):
+                        await asyncio.wait_for(some.wait(), RETRY_EVERY)
+                shed0 = _metrics(eng)["rce_robot_rosbridge_shed_total"]
+                echoed.clear()
+                frames = [json.dumps({"op": "publish", "topic": "/stringEchoReq", "msg": {"data": str(i)}})
+                          for i in range(n)]
+                for i in range(0, n, 500):      # 500 ops per write: the client outruns its endpoint
+                    while not ws_cork.writable(ws):
+                        await ws.drain()
+                    ws_cork.write(ws, frames[i:i + 500])
+                await asyncio.wait_for(newest.wait(), SESSION_WAIT)
+            finally:
+                reader.cancel()
+    shed = _metrics(eng)["rce_robot_rosbridge_shed_total"] - shed0
+    assert echoed == sorted(set(echoed)) and echoed[-1] == n - 1
+    assert shed > 0 and len(echoed) + shed <= n
