@@ -24,7 +24,7 @@ from rce.masterlink import MASTER_WAIT, Address, MasterLink
 from rce.messages import default_registry
 from rce.package_path import load_package_types
 from rce.protocol.frames import DEFAULT_EXPIRY
-from rce.protocol.limits import DEFAULT_MAX_PENDING_TOTAL, PartBudget
+from rce.protocol.limits import DEFAULT_MAX_PENDING_TOTAL, PartBudget, parse_max_lag
 from rce.protocol.resume import DEFAULT_GRACE, DEFAULT_RESUME_BUFFER
 from rce.protocol.session import (DEFAULT_MAX_LAG, DEFAULT_MAX_MESSAGE, DEFAULT_QUEUE_SIZE, RobotSession,
                                   robot_interface_type)
@@ -113,17 +113,6 @@ class Metrics:
             yield CounterMetricFamily(name, doc, value=rosbridge.get(key, 0))
         yield CounterMetricFamily("rce_robot_rosbridge_sessions_accepted", "rosbridge v2 clients accepted",
                                   value=rosbridge.get("sessions_total", 0))
-
-
-def parse_max_lag(text: str) -> float | None:
-    """A ``maxLag`` query value: s >= 0, 0 for never (None). Raises :class:`ValueError` naming it."""
-    try:
-        v = float(text)
-    except ValueError:
-        v = float("nan")
-    if not v >= 0 or v == float("inf"):
-        raise ValueError(f"maxLag must be a number of seconds >= 0 (0: never shed); got {text[:40]!r}")
-    return v or None
 
 
 class RobotEndpoint:

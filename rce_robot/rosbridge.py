@@ -5,7 +5,9 @@ so that unmodified roslibpy and roslibjs reach a container's graph.
 A client connects to ``ws://HOST:PORT/?userID=U&robotID=R&password=SHA256HEX&container=CTAG``.
 Before the websocket opens the master checks the password (``auth``, as for an RCE robot), that
 user ``U`` has container ``CTAG`` (``container_bus``) and takes ``R`` as a connected robot
-(``robot_connected``); refusals are HTTP 400/401/404/409/503 with a one-line reason. Each client
+(``robot_connected``); refusals are HTTP 400/401/404/409/503 with a one-line reason. An optional
+``&maxLag=S`` sets the client's own lag bound (s; 0: its publish ops are never shed), as for an
+RCE robot (docs/INTERNALS.md "A peer that does not keep up"). Each client
 is then one :class:`~rce_robot.rosbridge_session.RosbridgeSession`, a robot namespace whose
 interfaces the master creates and removes on the session's behalf.
 """
@@ -25,7 +27,7 @@ from websockets.exceptions import ConnectionClosed
 from rce.errors import AuthError, NotFound, RCEError, Throttled
 from rce.log import get_logger
 from rce.masterlink import MasterLink
-from rce.protocol.limits import DEFAULT_MAX_LAG
+from rce.protocol.limits import DEFAULT_MAX_LAG, parse_max_lag
 from rce.tasks import Tasks
 from rce_robot.front_door import master_away, peer_address, throttled
 from rce_robot import ws_cork
@@ -102,6 +104,10 @@ class RosbridgeServer:
         password = q["password"].lower()
         if len(password) != 64 or any(c not in "0123456789abcdef" for c in password):
             return connection.respond(HTTPStatus.BAD_REQUEST, "password must be the hex SHA-256 digest (64 digits)\n")
+        try:
+            max_lag = self.max_lag if "maxLag" not in q else parse_max_lag(q["maxLag"])
+        except ValueError as e:
+            return connection.respond(HTTPStatus.BAD_REQUEST, f"{e}\n")
         if (away := master_away(connection, self.master)) is not None:
             return away
         user, robot, ctag = q["userID"], q["robotID"], q["container"]
@@ -119,12 +125,12 @@ class RosbridgeServer:
             except RCEError as e:
                 code = status if op == "robot_connected" else HTTPStatus.SERVICE_UNAVAILABLE
                 return connection.respond(code, e.message + "\n")
-        connection.rce_rosbridge = (user, robot, ctag)
+        connection.rce_rosbridge, connection.rce_max_lag = (user, robot, ctag), max_lag
         return None
 
     async def _serve(self, ws) -> None:
         user, robot, ctag = ws.rce_rosbridge
-        session = RosbridgeSession(user, robot, ctag, self.master, self.max_lag)
+        session = RosbridgeSession(user, robot, ctag, self.master, ws.rce_max_lag)
         session.ws = ws
         self.sessions[(user, robot)] = session
         self.sessions_total += 1

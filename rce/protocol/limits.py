@@ -171,3 +171,13 @@ class LagGate:
         """Topic ``key`` is gone (its interface removed)."""
         self._admitted.pop(key, None)
 
+
+def parse_max_lag(text: str) -> float | None:
+    """A ``maxLag`` query value: s >= 0, 0 for never (None). Raises :class:`ValueError` naming it."""
+    try:
+        v = float(text)
+    except ValueError:
+        v = float("nan")
+    if not v >= 0 or v == float("inf"):
+        raise ValueError(f"maxLag must be a number of seconds >= 0 (0: never shed); got {text[:40]!r}")
+    return v or None

@@ -258,11 +258,15 @@ async def test_handshake_refusals(eng):
         await _echo_container(r, "rbC3")
         for url, code in ((_url(eng, "rbBad", "rbC3", password="wrong"), 401),
                           (_url(eng, "rbBad", "noSuchContainer"), 404),
-                          (_url(eng, "rbBad", "rbC3").split("&container")[0], 400)):
+                          (_url(eng, "rbBad", "rbC3").split("&container")[0], 400),
+                          (_url(eng, "rbBad", "rbC3") + "&maxLag=-1", 400)):
             with pytest.raises(InvalidStatus) as e:
                 async with connect(url):
                     pass
             assert e.value.response.status_code == code
+        async with connect(_url(eng, "rbNoLag", "rbC3") + "&maxLag=0") as ws:     # its publish ops never shed
+            await ws.send(json.dumps({"op": "call_service", "service": "/rosapi/topics", "id": "t"}))
+            assert (await _next(ws, "service_response"))["id"] == "t"
 
 
 def _ops(session: RosbridgeSession) -> list[dict]:
