@@ -111,7 +111,8 @@ class RosbridgeSession:
     :attr:`outbox` (bounded, drops counted: :class:`~rce_robot.rosbridge_outbox.Outbox`); the
     client's ``fragment`` ops are reassembled by :attr:`defrag` (bounded). While the endpoint has
     been behind the client for longer than ``max_lag`` s (:meth:`backlog`), its ``publish`` ops are
-    shed as a robot's topic DMs are (:class:`~rce.protocol.limits.LagGate`). Implements
+    shed as a robot's topic DMs are (:class:`~rce.protocol.limits.LagGate`), and the client is told
+    with a ``status`` op (warning when shedding starts, info when it ends). Implements
     :class:`rce_robot.interfaces.RobotLink` and :class:`rce_robot.rosbridge_rosapi.Graph`."""
 
     def __init__(self, user: str, robot: str, ctag: str, master: MasterLink, max_lag: float | None = DEFAULT_MAX_LAG):
@@ -237,6 +238,7 @@ class RosbridgeSession:
         shed = self.lag.backlog(waiting, now)
         if shed:
             log.debug("the endpoint caught up with the rosbridge client", user=self.user, robot=self.robot, shed=shed)
+            self.status("info", f"the endpoint caught up with this client; {shed} publish ops were shed meanwhile")
 
     async def handle(self, text: str | bytes) -> None:
         """Take one websocket message from the client; bad input gets a ``status`` error."""
@@ -298,10 +300,13 @@ class RosbridgeSession:
         iface = self._iface(self._advertised("p", "topic", op))
         msg = _field(op, "msg", dict)
         if not self.lag.admit(op["topic"], self._now):
-            if self.lag.episode == 1 and LAG_LOG.take(self._now):
-                log.warning("the endpoint lags behind the rosbridge client: its publish ops are shed until it "
-                            "catches up", user=self.user, robot=self.robot,
-                            behind_s=round(self.lag.behind(self._now), 3))
+            if self.lag.episode == 1:
+                behind = round(self.lag.behind(self._now), 3)
+                self.status("warning", f"the endpoint has been {behind:g} s behind this client (more than max_lag, "
+                                       f"{self.lag.max_lag:g} s): its publish ops are shed until it catches up")
+                if LAG_LOG.take(self._now):
+                    log.warning("the endpoint lags behind the rosbridge client: its publish ops are shed until it "
+                                "catches up", user=self.user, robot=self.robot, behind_s=behind)
             return
         iface.from_robot({"msg": msg})
 

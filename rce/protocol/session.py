@@ -42,6 +42,7 @@ DEFAULT_QUEUE_SIZE = 1000                   # messages per robot in each bounded
 DEFAULT_MAX_MESSAGE = 32 * 1024 * 1024      # bytes (chars for text) of the largest frame a robot endpoint takes
 CONTROL_BACKLOG = 10                        # x queue_size: STs and answers waiting before a robot that does not
                                             # read is closed (they are never dropped; ERs are, past queue_size)
+LAG_TOPIC = "lag"                           # ST topic: the endpoint sheds the robot's topic messages, or caught up
 BARRIER_PREFIX = "rcesync"                  # barrier tokens: interfaces named so cannot exist
 
 
@@ -238,7 +239,9 @@ class RobotSession(_Session):
     delivered nothing for ``max_lag`` s (so a stream still reaches the cloud at least that often
     while the endpoint stays behind). So an overloaded endpoint hands the cloud the robot's
     newest messages, not ever older ones, as a ROS subscriber's ``queue_size`` drops the oldest.
-    Requests, service calls and answers are never shed. None: never shed."""
+    Requests, service calls and answers are never shed. None: never shed. The robot is told:
+    ``ST {"topic": "lag", "status": "shedding", "behind_s", "max_lag_s"}`` when shedding starts,
+    ``ST {"topic": "lag", "status": "caught_up", "shed": n}`` when it ends."""
 
     def __init__(self, robot: str, *, max_message: int = DEFAULT_MAX_MESSAGE, queue_size: int = DEFAULT_QUEUE_SIZE,
                  expiry: float = DEFAULT_EXPIRY, max_pending_bytes: int = DEFAULT_MAX_PENDING_BYTES,
@@ -305,6 +308,7 @@ class RobotSession(_Session):
         shed = self.lag.backlog(frames, now)
         if shed:
             self._emit("caught_up", shed=shed)
+            self.send_status({"topic": LAG_TOPIC, "status": "caught_up", "shed": shed})
 
     # -- requests, one at a time and in order -------------------------------------------------------
     def _next_request(self) -> None:
@@ -353,7 +357,10 @@ class RobotSession(_Session):
         elif kind != "ServiceProvider":
             if not self.lag.admit(itag, self._now):
                 if self.lag.episode == 1:
-                    self._emit("lagging", behind_s=round(self.lag.behind(self._now), 3))
+                    behind = round(self.lag.behind(self._now), 3)
+                    self._emit("lagging", behind_s=behind)
+                    self.send_status({"topic": LAG_TOPIC, "status": "shedding", "behind_s": behind,
+                                      "max_lag_s": self.lag.max_lag})
                 return
             self._emit("deliver", iTag=itag, data=data)
         elif self.calls >= self.queue_size:

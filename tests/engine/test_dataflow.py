@@ -127,11 +127,14 @@ async def test_an_endpoint_behind_a_flooding_robot_sheds_the_oldest_and_delivers
     async with RawRobot(eng.master_url, f"flood{max_lag}", query=f"&maxLag={max_lag}" if max_lag else "") as r:
         await _echo_container(r, f"flood{max_lag}C", "Converter")
         echoed: list[int] = []
+        told: list[dict] = []
         newest, some = asyncio.Event(), asyncio.Event()
 
         async def read() -> None:
             async for m in r.ws:
                 d = json.loads(m) if isinstance(m, str) else {}
+                if d.get("type") == "ST" and d["data"].get("topic") == "lag":
+                    told.append(d["data"])
                 if d.get("type") == "DM" and d["data"]["iTag"] == "resp" and d["data"]["msg"]["data"].isdigit():
                     echoed.append(int(d["data"]["msg"]["data"]))
                     some.set()
@@ -159,9 +162,10 @@ async def test_an_endpoint_behind_a_flooding_robot_sheds_the_oldest_and_delivers
     shed = _metric(eng.robot_ready[0]["metrics_port"], "rce_robot_shed_total") - shed0
     assert echoed == sorted(set(echoed)) and echoed[-1] == n - 1
     if max_lag:
-        assert shed == 0
+        assert shed == 0 and told == []
     else:
         assert shed > 0 and len(echoed) + shed <= n
+        assert told[0]["status"] == "shedding" and told[0]["behind_s"] >= 1.0 and told[-1]["status"] == "caught_up"
 
 
 async def test_a_max_lag_that_is_not_seconds_is_refused_at_the_handshake(eng):

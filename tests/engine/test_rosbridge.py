@@ -436,11 +436,14 @@ async def test_an_endpoint_behind_a_flooding_client_sheds_its_publish_ops(eng):
             await ws.send(json.dumps({"op": "subscribe", "topic": "/stringEchoResp", "type": "std_msgs/String",
                                       "queue_length": 0}))
             echoed: list[int] = []
+            told: list[dict] = []
             some, newest = asyncio.Event(), asyncio.Event()
 
             async def read() -> None:
                 async for m in ws:
                     op = json.loads(m)
+                    if op.get("op") == "status":
+                        told.append(op)
                     if op.get("op") == "publish" and op["msg"]["data"].isdigit():
                         echoed.append(int(op["msg"]["data"]))
                         some.set()
@@ -468,3 +471,4 @@ async def test_an_endpoint_behind_a_flooding_client_sheds_its_publish_ops(eng):
     shed = _metrics(eng)["rce_robot_rosbridge_shed_total"] - shed0
     assert echoed == sorted(set(echoed)) and echoed[-1] == n - 1
     assert shed > 0 and len(echoed) + shed <= n
+    assert any(t["level"] == "warning" and "shed" in t["msg"] for t in told), told    # the client was told
