@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import json
 import math
+import os
 
 import pytest
 from hypothesis import given, settings
@@ -11,7 +12,7 @@ from hypothesis import strategies as st
 from pydantic import ValidationError
 
 from rce.errors import MessageError, ProtocolError
-from rce.protocol import (DEFAULT_EXPIRY, ID_LEN, Assembler, encode, new_id, split_interface_type,
+from rce.protocol import (DEFAULT_EXPIRY, ID_LEN, Assembler, encode, is_part_id, new_id, split_interface_type,
                           validate)
 from rce.protocol import schema
 from rce.protocol.frames import parse_text
@@ -486,7 +487,22 @@ def test_assembler_resent_part_is_counted_once():
 # -- encode -------------------------------------------------------------------------------------
 def test_new_id_is_32_hex_and_fresh():
     ids = {new_id() for _ in range(50)}
-    assert len(ids) == 50 and all(len(i) == 32 and int(i, 16) >= 0 for i in ids)
+    assert len(ids) == 50 and all(is_part_id(i) for i in ids)
+
+
+def test_a_forked_child_makes_other_ids_than_its_parent():
+    r, w = os.pipe()
+    pid = os.fork()
+    if pid == 0:                       # the child: its next ids, then out
+        os.write(w, " ".join(new_id() for _ in range(3)).encode())
+        os._exit(0)
+    os.close(w)
+    child = os.read(r, 4096).decode().split()
+    os.close(r)
+    os.waitpid(pid, 0)
+    parent = [new_id() for _ in range(3)]
+    assert len(child) == 3 and all(is_part_id(i) for i in child)
+    assert child[0][:16] != parent[0][:16] and not set(child) & set(parent)
 
 
 def test_encode_without_bytes_is_plain_json():
