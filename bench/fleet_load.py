@@ -111,11 +111,13 @@ import time
 import urllib.request
 from collections import defaultdict
 from pathlib import Path
+from typing import Callable
 
 from rce_robot import ws_cork
 
-from common import (BENCH, PASSWORD, RESULTS, USER, ForeignLoad, console, engine, fmt_ms, median, percentile,
-                    pyplot, set_nice, wait_quiet, write_json)
+from common import (BENCH, PASSWORD, RESULTS, USER, ForeignLoad, console, engine, fmt_ms, free_port, median,
+                    percentile, pyplot, set_nice, wait_quiet, write_json)
+from fleet_floor import floor_main
 
 if importlib.util.find_spec("rce_fleet") is None:    # a checkout without the project installed
     sys.path.insert(0, str(BENCH.parent / "examples" / "fleet"))
@@ -961,42 +963,11 @@ class Run:
         setup["fleet_container_s"] = round(time.monotonic() - t, 2)
         self.log(f"fleet container, planner and echo node up in {setup['fleet_container_s']} s")
 
-        # robots: login, websocket, CN, CX, interfaces up
         mem0 = await asyncio.to_thread(procs.robot_memory)
-        t = time.monotonic()
-        self.start_workers(eng.master_url)
-        reps = await self.ask_all({"op": "setup", "timeout": 120 + n * 0.2}, timeout=600 + n * 2)
-        failed = sum(r["failed"] for r in reps)
-        per_robot = [s for r in reps for s in r["setup_s"] if s == s]
-        setup["robots_s"] = round(time.monotonic() - t, 2)
-        setup["per_robot_p50_s"] = round(median(per_robot), 3)
-        setup["per_robot_p99_s"] = round(percentile(per_robot, 99), 3)
-        setup["robots_failed"] = failed
-        if failed:
-            first = [f for r in reps for f in r["failures"]][:3]
-            raise RuntimeError(f"{failed} of {n} robots failed to set up: {first}")
-        self.log(f"{n} robots connected and wired in {setup['robots_s']} s "
-                 f"(per robot p50 {setup['per_robot_p50_s']} s, p99 {setup['per_robot_p99_s']} s)")
+        await self._setup_robots(eng.master_url)
 
         # warm-up: every pose echoed, every robot seen by the planner
-        t = time.monotonic()
-        await self.ask_all({"op": "publish", "t_start": time.time() + 0.3}, timeout=60)
-        deadline = time.monotonic() + a.warmup_timeout + n * 0.05
-        while True:
-            await asyncio.sleep(0.5)
-            st = await self.ask_all({"op": "status"}, timeout=60)
-            echoed = sum(s["echoed"] for s in st)
-            check_engine(eng, "warm-up")
-            if echoed == n and len(self.planner_seen) == n and time.monotonic() - t >= a.warmup:
-                break
-            if time.monotonic() > deadline:     # overloaded: measure anyway, and say so
-                errs = [e for s in st for e in s["last_errors"]]
-                res["notes"].append(f"warm-up incomplete after {time.monotonic() - t:.0f} s: {echoed}/{n} robots "
-                                    f"echoed, planner saw {len(self.planner_seen)}/{n}"
-                                    + (f"; errors: {errs}" if errs else ""))
-                break
-        setup["warmup_s"] = round(time.monotonic() - t, 2)
-        check_engine(eng, "warm-up")
+        await self._warmup(lambda: check_engine(eng, "warm-up"), planner=True)
 
         # goals: the neighbouring cell, through /fleet/goal, paced for the planner's goal queue
         t = time.monotonic()
@@ -1039,9 +1010,77 @@ class Run:
 
         check_engine(eng, "goals")
         # the window
+        drops0 = await asyncio.to_thread(engine_drops, eng)
+        cpu = await self._window(procs)
+        res["robot_memory"] = robot_memory_report(mem0, await asyncio.to_thread(procs.robot_memory), n)
+        res["robot_tasksets"] = await asyncio.to_thread(taskset_report, eng, procs, cpu.by_pid)
+        reps = await self._replies()
+        check_engine(eng, "the measured window")
+        drops1 = await asyncio.to_thread(engine_drops, eng)
+        res["engine_drops"] = diff_drops(drops0, drops1)
+        for k in ("container_error", "robot_error"):
+            if k in drops1:
+                res["notes"].append(f"engine counters: {drops1[k]}")
+        self._summarize(reps, cpu)
+        if a.profile > 0:
+            prof = {}
+            for x in res["cpu_by_process"][:2]:
+                self.log(f"py-spy: recording {x['label']} (pid {x['pid']}, {x['pct']} % CPU) for {a.profile:g} s")
+                prof[x["label"]] = {"pid": x["pid"], "cpu_pct": x["pct"], **await asyncio.to_thread(
+                    pyspy_top, x["pid"], a.profile, Path(tempfile.mkdtemp(prefix="fleetload-spy-")) / "raw.txt")}
+            res["profile"] = prof
+
+    async def _setup_robots(self, url: str) -> None:
+        """Start the client workers on the login ``url`` and set every robot up (login, websocket,
+        CN, CX, interfaces up); raises when one fails."""
+        n, setup = self.n, self.res["setup"]
+        t = time.monotonic()
+        self.start_workers(url)
+        reps = await self.ask_all({"op": "setup", "timeout": 120 + n * 0.2}, timeout=600 + n * 2)
+        failed = sum(r["failed"] for r in reps)
+        per_robot = [s for r in reps for s in r["setup_s"] if s == s]
+        setup["robots_s"] = round(time.monotonic() - t, 2)
+        setup["per_robot_p50_s"] = round(median(per_robot), 3)
+        setup["per_robot_p99_s"] = round(percentile(per_robot, 99), 3)
+        setup["robots_failed"] = failed
+        if failed:
+            first = [f for r in reps for f in r["failures"]][:3]
+            raise RuntimeError(f"{failed} of {n} robots failed to set up: {first}")
+        self.log(f"{n} robots connected and wired in {setup['robots_s']} s "
+                 f"(per robot p50 {setup['per_robot_p50_s']} s, p99 {setup['per_robot_p99_s']} s)")
+
+    async def _warmup(self, check: Callable[[], None], planner: bool) -> None:
+        """Start the poses and wait until every robot's pose has been echoed (and, with ``planner``,
+        seen by the planner), at least ``--warmup`` s; past ``--warmup-timeout`` go on and say so.
+        ``check()`` raises when the server side died."""
+        a, res, n = self.args, self.res, self.n
+        t = time.monotonic()
+        await self.ask_all({"op": "publish", "t_start": time.time() + 0.3}, timeout=60)
+        deadline = time.monotonic() + a.warmup_timeout + n * 0.05
+        while True:
+            await asyncio.sleep(0.5)
+            st = await self.ask_all({"op": "status"}, timeout=60)
+            echoed = sum(s["echoed"] for s in st)
+            check()
+            seen = len(self.planner_seen) if planner else n
+            if echoed == n and seen == n and time.monotonic() - t >= a.warmup:
+                break
+            if time.monotonic() > deadline:     # overloaded: measure anyway, and say so
+                errs = [e for s in st for e in s["last_errors"]]
+                res["notes"].append(f"warm-up incomplete after {time.monotonic() - t:.0f} s: {echoed}/{n} robots "
+                                    f"echoed" + (f", planner saw {seen}/{n}" if planner else "")
+                                    + (f"; errors: {errs}" if errs else ""))
+                break
+        res["setup"]["warmup_s"] = round(time.monotonic() - t, 2)
+        check()
+
+    async def _window(self, procs) -> "CpuWindow":
+        """The measured window: the workers count from ``now + 0.5 s`` for ``--duration`` s; the
+        processes' CPU (``procs``: :class:`Procs` or :class:`FloorProcs`) and the machine's load
+        over it go into the results. Returns the stopped :class:`CpuWindow`."""
+        a, res = self.args, self.res
         start = time.time() + 0.5
         end = start + a.duration
-        drops0 = await asyncio.to_thread(engine_drops, eng)
         for c in self.pipes:
             c.send({"op": "window", "start": start, "end": end, "drain": a.drain, "raw": a.raw is not None})
         await asyncio.sleep(max(0.0, start - time.time()))
@@ -1053,18 +1092,17 @@ class Run:
         res["cpu_pct"] = cpu.stop()
         self.counting_ages = False
         res["machine_load"] = fl.stop()
-        res["robot_memory"] = robot_memory_report(mem0, await asyncio.to_thread(procs.robot_memory), n)
-        res["robot_tasksets"] = await asyncio.to_thread(taskset_report, eng, procs, cpu.by_pid)
         res["cpu_share"] = cpu_share(res["cpu_pct"], res["machine_load"])
-        loop = asyncio.get_running_loop()
-        reps = await asyncio.gather(*(loop.run_in_executor(None, c.recv) for c in self.pipes))
-        check_engine(eng, "the measured window")
-        drops1 = await asyncio.to_thread(engine_drops, eng)
-        res["engine_drops"] = diff_drops(drops0, drops1)
-        for k in ("container_error", "robot_error"):
-            if k in drops1:
-                res["notes"].append(f"engine counters: {drops1[k]}")
+        return cpu
 
+    async def _replies(self) -> list[dict]:
+        """The workers' window reports (they come ``--drain`` s after the window at most)."""
+        loop = asyncio.get_running_loop()
+        return list(await asyncio.gather(*(loop.run_in_executor(None, c.recv) for c in self.pipes)))
+
+    def _summarize(self, reps: list[dict], cpu: "CpuWindow") -> None:
+        """Latency, losses, rates, bytes and CPU per pose of the window from the workers' reports."""
+        a, res, n = self.args, self.res, self.n
         lat = [x for r in reps for x in r["lat"]]
         if a.raw is not None:
             a.raw.mkdir(parents=True, exist_ok=True)
@@ -1110,13 +1148,6 @@ class Run:
             res["notes"].append(f"the clients sent {res['send_rate_hz']:.2f} Hz per robot, not {a.rate:g} Hz "
                                 f"(send lateness p99 {fmt_ms(res['send_late_ms']['p99'])} ms): "
                                 "they did not get the CPU")
-        if a.profile > 0:
-            prof = {}
-            for x in res["cpu_by_process"][:2]:
-                self.log(f"py-spy: recording {x['label']} (pid {x['pid']}, {x['pct']} % CPU) for {a.profile:g} s")
-                prof[x["label"]] = {"pid": x["pid"], "cpu_pct": x["pct"], **await asyncio.to_thread(
-                    pyspy_top, x["pid"], a.profile, Path(tempfile.mkdtemp(prefix="fleetload-spy-")) / "raw.txt")}
-            res["profile"] = prof
 
     def run(self) -> dict:
         a = self.args
@@ -1164,7 +1195,85 @@ class Run:
         return self.res
 
 
+class FloorProcs:
+    """The floor run's processes for :class:`CpuWindow`: the floor servers (``floor``), the client
+    workers (``clients``) and this process (``orchestrator``)."""
+
+    def __init__(self, servers: list, workers: list):
+        self.servers, self.workers = servers, workers
+
+    def snapshot(self) -> dict:
+        import psutil
+        out = {}
+        pids = [(p.pid, "floor") for p in self.servers] + [(p.pid, "clients") for p in self.workers]
+        for pid, lab in pids + [(os.getpid(), "orchestrator")]:
+            try:
+                out[pid] = (lab, psutil.Process(pid))
+            except psutil.Error:
+                pass
+        return out
+
+
+class FloorRun(Run):
+    """One N on the transport floor (:mod:`fleet_floor`): the same robots, setup, warm-up and window
+    as :class:`Run`, served by ``--robot-tasksets`` floor processes that only echo each pose back
+    over the robot's own websocket; no engine, no planner, no goals."""
+
+    def run(self) -> dict:
+        a = self.args
+        t0 = time.monotonic()
+        ctx = mp.get_context("spawn")
+        port = free_port()
+        servers, ready = [], []
+        self.workers = []
+        try:
+            for _ in range(max(1, a.robot_tasksets)):
+                r, w = ctx.Pipe(duplex=False)
+                proc = ctx.Process(target=floor_main, args=(port, self.side, w), daemon=True)
+                proc.start()
+                servers.append(proc)
+                ready.append(r)
+            for r in ready:
+                if not r.poll(60):
+                    raise RuntimeError("a floor process did not start within 60 s")
+                r.recv()
+            self.res["setup"]["engine_s"] = round(time.monotonic() - t0, 2)
+            from rce.process import run_loop
+            run_loop(self._measure_floor(f"http://127.0.0.1:{port}/", FloorProcs(servers, self.workers), servers))
+        except Exception as e:      # noqa: BLE001  (the floor's result says why it has none)
+            self.res["error"] = f"{type(e).__name__}: {e}"
+        finally:
+            self.stop_workers()
+            for proc in servers:
+                proc.terminate()
+                proc.join(5)
+        self.res["run_s"] = round(time.monotonic() - t0, 2)
+        return self.res
+
+    async def _measure_floor(self, url: str, procs: FloorProcs, servers: list) -> None:
+        def check() -> None:
+            dead = [p.pid for p in servers if not p.is_alive()]
+            if dead:
+                raise RuntimeError(f"floor processes {dead} exited")
+        await self._setup_robots(url)
+        await self._warmup(check, planner=False)
+        cpu = await self._window(procs)
+        reps = await self._replies()
+        check()
+        self._summarize(reps, cpu)
+
+
 # == main =======================================================================================
+
+def floor_line(f: dict) -> str:
+    """One line of a floor run's result."""
+    if f.get("error"):
+        return f"failed: {f['error']}"
+    L, sh = f["latency_ms"], f["cpu_share"]
+    return (f"p50 {fmt_ms(L['p50'])} ms, p99 {fmt_ms(L['p99'])} ms, lost {f['lost']}/{f['sent']}, clients sent "
+            f"{f['send_rate_hz']:.2f} Hz; cores: floor {round(f['cpu_pct'].get('floor', 0) / 100, 2)}, "
+            f"clients {sh['load_clients']}, other {sh['other']}")
+
 
 def verdict(r: dict, max_p99: float) -> str | None:
     """Why the run stops at this N (None: go on)."""
@@ -1204,6 +1313,8 @@ def parse_args(argv=None):
     p.add_argument("--max-p99", type=float, default=100.0, help="stop when p99 passes this, ms (default 100)")
     p.add_argument("--no-stop", action="store_true",
                    help="run every N even after one failed the limits (the first failure is still reported)")
+    p.add_argument("--no-floor", action="store_true",
+                   help="do not measure the transport floor (bench/fleet_floor.py) before each N")
     p.add_argument("--profile", type=float, default=0.0, metavar="S",
                    help="after each window, py-spy the two hottest processes for S s (default off)")
     p.add_argument("--nice", type=int, default=None, metavar="N",
@@ -1240,6 +1351,9 @@ def main(argv=None) -> int:
                "planner_view_age": "at each /fleet/state received: now - send time of the newest pose of that "
                                    "robot the planner had processed (encoded in position.y)",
                "bytes_per_robot_s": "websocket frames (payload + header) counted by the clients in the window",
+               "floor": "the same robots, setup and window against bench/fleet_floor.py, as many processes as "
+                        "robot task sets, which echo each pose straight back over the robot's websocket (no "
+                        "engine): what this machine's cores carry at N robots with one websocket hop each way",
                "cpu_pct": "user+system CPU of each process over the window, % of one core",
                "peak_rss_mib": "psutil RSS sampled every 0.5 s over the whole N (setup included), summed per label",
                "robot_memory": "rce-robot's RSS and USS (psutil memory_full_info, all robot task sets) before the "
@@ -1254,7 +1368,12 @@ def main(argv=None) -> int:
     for n in sizes:
         con.rule(f"N = {n} robots ({res['mode']})")
         wait_quiet(args.wait_quiet, log=con.print)
+        floor = None if args.no_floor else FloorRun(n, args, con).run()
+        if floor is not None:
+            con.print(f"N={n}: transport floor: {floor_line(floor)}")
         r = Run(n, args, con).run()
+        if floor is not None:
+            r["floor"] = floor
         res["runs"].append(r)
         why = verdict(r, args.max_p99)
         if r.get("latency_ms"):
@@ -1286,12 +1405,14 @@ def print_table(con, res: dict) -> None:
     t = Table(title=f"fleet load: {res['mode']}s, poses at {res['rate_hz']:g} Hz per robot, "
                     f"{res['duration_s']:g} s window per N (latency = pose -> fleet container echo -> robot)")
     for c in ("N", "p50 ms", "p99 ms", "max ms", "lost", "engine drops", "planner view p50/p99 ms",
-              "B/robot/s up/down", "setup s (robots)", "goal->path ms"):
+              "B/robot/s up/down", "setup s (robots)", "goal->path ms", "floor p50/p99 ms"):
         t.add_column(c, justify="right")
     for r in res["runs"]:
+        fl = (r.get("floor") or {}).get("latency_ms")
+        floor = f"{fmt_ms(fl['p50'])} / {fmt_ms(fl['p99'])}" if fl else "-"
         if not r.get("latency_ms"):
             t.add_row(str(r["robots"]), *["-"] * 7, f"{r['setup'].get('robots_s', '-')}",
-                      "-", style="red")
+                      "-", floor, style="red")
             continue
         L, s = r["latency_ms"], r["setup"]
         drops = sum(v for v in r.get("engine_drops", {}).values())
@@ -1300,7 +1421,7 @@ def print_table(con, res: dict) -> None:
         t.add_row(str(r["robots"]), fmt_ms(L["p50"]), fmt_ms(L["p99"]), fmt_ms(L["max"]),
                   f"{r['lost']}/{r['sent']}", str(drops), f"{fmt_ms(pv['p50'])} / {fmt_ms(pv['p99'])}",
                   f"{f0(b['up'])} / {f0(b['down'])}",
-                  f"{s.get('total_s', '-')} ({s.get('robots_s', '-')})", fmt_ms(r["goal_to_path_ms"]["p50"]),
+                  f"{s.get('total_s', '-')} ({s.get('robots_s', '-')})", fmt_ms(r["goal_to_path_ms"]["p50"]), floor,
                   style=None if verdict(r, res["max_p99_ms"]) is None else "red")
     con.print(t)
     labels = ("master", "robot", "container host", "environment", "planner", "echo node", "clients", "orchestrator")
@@ -1349,6 +1470,10 @@ def plot(res: dict, path: Path) -> None:
         ax1.plot(xs, [r["latency_ms"]["p50"] for r in runs], "o-", label="p50")
         ax1.plot(xs, [r["latency_ms"]["p99"] for r in runs], "s-", label="p99")
         ax1.plot(xs, [r["planner_view_age_ms"]["p99"] for r in runs], "^:", label="planner view age p99", alpha=0.6)
+        fl = [(r["robots"], r["floor"]["latency_ms"]["p99"]) for r in runs if (r.get("floor") or {}).get("latency_ms")]
+        if fl:
+            ax1.plot([x for x, _ in fl], [y for _, y in fl], "x--", color="grey",
+                     label="transport floor p99 (fleet_floor.py)")
         ax1.axhline(res["max_p99_ms"], color="red", ls="--", lw=0.8, label=f"{res['max_p99_ms']:g} ms limit")
         for lab, style in (("master", "o-"), ("robot", "s-"), ("container (all)", "^-"), ("environment", "v--"),
                            ("planner", "x--"), ("echo node", "+--"), ("clients", "d:"), ("machine", "k-")):

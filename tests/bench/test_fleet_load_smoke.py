@@ -1,6 +1,7 @@
 """Smoke test of bench/fleet_load.py: 5 robots for 2 s against the real engine (fleet container
-with the global planner and the pose echo), JSON of the documented shape, positive latencies and
-nothing lost at that tiny load, and the PNG."""
+with the global planner and the pose echo) and against the transport floor (bench/fleet_floor.py,
+real processes on loopback), JSON of the documented shape, positive latencies and nothing lost at
+that tiny load, and the PNG."""
 from __future__ import annotations
 
 import json
@@ -19,12 +20,12 @@ def finite_pos(x) -> bool:
     return isinstance(x, (int, float)) and math.isfinite(x) and x > 0
 
 
-@pytest.mark.timeout(60)
+@pytest.mark.timeout(100)
 def test_fleet_load_smoke(tmp_path):
     out, png = tmp_path / "fleet_load.json", tmp_path / "fleet_load.png"
     r = subprocess.run([sys.executable, str(ROOT / "bench" / "fleet_load.py"), "--robots", "5", "--duration", "2",
                         "--json", str(out), "--plot", str(png)], cwd=ROOT, capture_output=True, text=True,
-                       timeout=55, env=dict(os.environ, COLUMNS="160"))
+                       timeout=95, env=dict(os.environ, COLUMNS="160"))
     assert r.returncode == 0, f"exit {r.returncode}\n{r.stdout[-3000:]}\n{r.stderr[-3000:]}"
     d = json.loads(out.read_text())
     assert d["robots"] == [5] and d["mode"] == "forwarder" and d["rate_hz"] == 10
@@ -56,4 +57,13 @@ def test_fleet_load_smoke(tmp_path):
     for k in ("engine_s", "fleet_container_s", "robots_s", "warmup_s", "goals_s", "total_s"):
         assert finite_pos(s[k]), (k, s)
     assert s["robots_failed"] == 0
+    # the transport floor: the same robots and window, every pose echoed straight back, by floor processes
+    floor = run["floor"]
+    assert "error" not in floor, floor.get("error")
+    assert "floor" in d["definitions"] and floor["robots"] == 5
+    flat = floor["latency_ms"]
+    assert all(finite_pos(flat[k]) for k in ("p50", "p99")) and flat["p50"] <= flat["p99"]
+    assert floor["sent"] >= 60 and floor["lost"] == 0 and floor["received"] == floor["sent"] == flat["samples"]
+    assert floor["cpu_pct"]["floor"] > 0 and floor["cpu_pct"]["clients"] > 0
+    assert floor["bytes_per_robot_s"]["up"] > 10 * 300
     assert png.stat().st_size > 10_000
