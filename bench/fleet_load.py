@@ -66,6 +66,12 @@ Measured, over a window of ``--duration`` s after warm-up:
 - bytes on the wire per robot per second, counted at the websocket by the clients: every
   frame's payload plus its websocket header (2..14 bytes, the client's 4-byte mask
   included), up (robot -> cloud) and down; TCP/IP headers not included.
+- the transport floor (``floor``, before each N; ``--no-floor`` skips it): the same robots,
+  setup, warm-up and window against :mod:`fleet_floor`, as many processes as robot task sets
+  that only echo each pose straight back over the robot's own websocket (websockets on uvloop,
+  as rce-robot). Its latency, losses and CPU are what this machine carries at N robots with one
+  websocket hop each way and nothing else: the engine's path has the same two hops, plus the
+  container and the planner. A target the floor misses, the engine cannot meet here.
 - setup (not part of the latency): engine start, fleet container + planner, echo node,
   robots (login, websocket with the master's scrypt check, CN 10 interfaces, CX 5
   connections, all interfaces up; ``--setup-concurrency`` robots at a time), warm-up (every
@@ -82,7 +88,8 @@ Usage::
 
     .venv/bin/python bench/fleet_load.py [--robots 10,100,300,1000] [--duration 10] [--rate 10]
         [--converter] [--container-cpu CORES] [--clients 1] [--robot-tasksets K] [--setup-concurrency 16]
-        [--drain 3] [--max-p99 100] [--no-stop] [--profile S] [--wait-quiet S] [--raw DIR] [--json PATH] [--plot PATH]
+        [--drain 3] [--max-p99 100] [--no-stop] [--no-floor] [--profile S] [--wait-quiet S] [--raw DIR]
+        [--json PATH] [--plot PATH]
 
 ``--profile S``: after each window, with the load still on, record the two hottest processes
 for S s each with py-spy (when installed: ``pip install py-spy``; not a project dependency) and

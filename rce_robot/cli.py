@@ -26,6 +26,17 @@ from rce_robot.rosbridge import ROSBRIDGE_PORT
 log = get_logger("rce.robot")
 
 
+
+def _at_least_one(text: str) -> int:
+    """An argparse type: an integer >= 1."""
+    try:
+        n = int(text)
+    except ValueError:
+        n = 0
+    if n < 1:
+        raise argparse.ArgumentTypeError(f"must be an integer >= 1, got {text!r}")
+    return n
+
 def parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(prog="rce-robot", description="RCE robot task set: robot endpoints.")
     p.add_argument("master_ip", metavar="MASTER",
@@ -46,8 +57,9 @@ def parser() -> argparse.ArgumentParser:
     p.add_argument("--name", default=None, help="task set name (default: hostname:port)")
     p.add_argument("--max-message", type=int, default=DEFAULT_MAX_MESSAGE,
                    help="largest websocket frame taken, bytes (larger: ER)")
-    p.add_argument("--queue-size", type=int, default=DEFAULT_QUEUE_SIZE,
-                   help="messages that may wait per robot in each queue (data to it, requests, early DMs, calls)")
+    p.add_argument("--queue-size", type=_at_least_one, default=DEFAULT_QUEUE_SIZE,
+                   help="messages that may wait per robot in each queue (data to it, requests, early DMs, calls; "
+                        f">= 1; default {DEFAULT_QUEUE_SIZE}); past it topic data to the robot drops its oldest")
     p.add_argument("--expiry", type=float, default=DEFAULT_EXPIRY,
                    help="seconds an incomplete message waits for binary parts")
     p.add_argument("--max-lag", type=float, default=DEFAULT_MAX_LAG, metavar="S",

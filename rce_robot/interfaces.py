@@ -33,7 +33,8 @@ class RobotLink(Protocol):
     forms: JsonForms        # the JSON forms this robot gets back (rce.message_forms), learned from what it sends
 
     def send_dm(self, itag: str, cls: str, msg_id: Any, msg: Any, data: bool = False) -> bool:
-        """Queue a DM for the robot; ``data=True``: droppable topic data (False when dropped)."""
+        """Queue a DM for the robot; ``data=True``: droppable topic data (the oldest waiting go first;
+        False when this one was dropped)."""
 
     def send_status(self, data: dict) -> None:
         """Queue an ST for the robot."""

@@ -101,8 +101,9 @@ class RobotNamespace:
 
     # -- to the robot (RobotLink) ----------------------------------------------------------------------
     def send_dm(self, itag: str, cls: str, msg_id: Any, msg: Any, data: bool = False) -> bool:
-        """Queue a DM to the robot; ``data=True`` marks droppable topic data (False: dropped)."""
-        ok = self.session.send_dm(itag, cls, msg_id, msg, data)
+        """Queue a DM to the robot; ``data=True`` marks droppable topic data (the newest are kept:
+        :meth:`RobotSession.send_dm`)."""
+        ok = self.session.send_dm(itag, cls, msg_id, msg, data, time.monotonic())
         self._pump()
         return ok
 
@@ -128,9 +129,10 @@ class RobotNamespace:
         """Write what waits to the link now, one message at a time, each in one corked write
         (:mod:`rce_robot.ws_cork`), while the link takes it; when it does not (its buffer is full,
         it is closing, or it is no websockets connection) the writer task goes on."""
-        ws = self.ws
+        ws, now = self.ws, time.monotonic()
         while self.session.outbox and ws_cork.writable(ws):
-            ws_cork.write(ws, self.session.data_to_send(1))
+            if frames := self.session.data_to_send(1, now):      # (topic data too old for the robot: none)
+                ws_cork.write(ws, frames)
         if self.session.outbox:
             self._wake.set()
 
@@ -144,11 +146,12 @@ class RobotNamespace:
                 # one message at a time, and only while this link is the session's: the outbox stays the bound
                 while self.ws is ws and self.session.outbox:
                     if ws_cork.writable(ws):
-                        ws_cork.write(ws, self.session.data_to_send(1))
+                        if frames := self.session.data_to_send(1, time.monotonic()):
+                            ws_cork.write(ws, frames)
                     elif ws_cork.paused(ws):
                         await ws.drain()
                     else:
-                        for f in self.session.data_to_send(1):
+                        for f in self.session.data_to_send(1, time.monotonic()):
                             await ws.send(f)
         except (ConnectionClosed, OSError):   # the link is lost (drain raises the transport's error): the reader
             pass                              # sees it too; what was taken is kept for a resume

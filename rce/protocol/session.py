@@ -206,6 +206,9 @@ class _Out:
     data: bool = False                  # droppable topic data
     link: bool = False                  # link-level (ST session, AK): not numbered, not kept
     frames: list[Frame] | None = None   # a resend: the frames as first numbered
+    since: float = 0.0                  # s: when it was queued (a data DM's age counts from it)
+    itag: str = ""                      # a data DM's interface
+    gone: bool = False                  # a data DM given up while it waited: nothing goes out for it
 
 
 class RobotSession(_Session):
@@ -241,7 +244,16 @@ class RobotSession(_Session):
     newest messages, not ever older ones, as a ROS subscriber's ``queue_size`` drops the oldest.
     Requests, service calls and answers are never shed. None: never shed. The robot is told:
     ``ST {"topic": "lag", "status": "shedding", "behind_s", "max_lag_s"}`` when shedding starts,
-    ``ST {"topic": "lag", "status": "caught_up", "shed": n}`` when it ends."""
+    ``ST {"topic": "lag", "status": "caught_up", "shed": n}`` when it ends.
+
+    The other way, to a robot that does not keep up (a slow link, a robot that reads slowly),
+    each interface's topic data keeps its newest messages too, as a ROS publisher's queue does:
+    past ``queue_size`` waiting data DMs, the oldest of the interface with the most waiting is
+    dropped for the new one; and a data DM that has waited longer than ``max_lag`` when its turn
+    comes (:meth:`data_to_send` with ``now``) is dropped if a newer one of its interface waits
+    behind it. Both are counted in ``dropped`` (the second also in ``expired``). So the newest
+    message of every interface goes out, however late: a sparse topic is never lost for its age.
+    With ``max_lag`` None only the bound applies."""
 
     def __init__(self, robot: str, *, max_message: int = DEFAULT_MAX_MESSAGE, queue_size: int = DEFAULT_QUEUE_SIZE,
                  expiry: float = DEFAULT_EXPIRY, max_pending_bytes: int = DEFAULT_MAX_PENDING_BYTES,
@@ -252,6 +264,8 @@ class RobotSession(_Session):
                  er_burst: int = ER_BURST, max_lag: float | None = DEFAULT_MAX_LAG):
         super().__init__(expiry, max_pending_bytes, resume, resume_buffer, resume_bytes, ack_every, ack_delay,
                          max_pending_parts, budget)
+        if queue_size < 1:
+            raise ValueError(f"queue_size must be >= 1, got {queue_size}")
         self.robot, self.max_message, self.queue_size = robot, max_message, queue_size
         self.lag = LagGate(max_lag)                               # sheds topic DMs while the shell lags
         self._er_bucket = TokenBucket(er_rate, er_burst)
@@ -260,7 +274,10 @@ class RobotSession(_Session):
         self._errors_untold = 0                                   # ... not yet told to the robot
         self.interfaces: dict[str, tuple[str, str, str]] = {}     # iTag -> (kind, side, cls)
         self._out: deque[_Out] = deque()
-        self.out_data = 0                                         # data DMs in _out
+        self._data: dict[str, deque[_Out]] = {}                   # iTag -> its data DMs waiting in _out, oldest first
+        self._gone = 0                                            # data DMs in _out given up
+        self.out_data = 0                                         # data DMs waiting in _out
+        self.expired = 0                                          # data DMs dropped for their age (max_lag)
         self._out_control = 0                                     # STs and answers in _out
         self._requests: deque[tuple[str, dict]] = deque()
         self._in_flight: str | None = None                        # type of the request the master handles
@@ -396,10 +413,13 @@ class RobotSession(_Session):
         self.lag.forget(itag)
 
     # -- frames out ---------------------------------------------------------------------------------
-    def send_dm(self, itag: str, cls: str, msg_id: Any, msg: Any, data: bool = False) -> bool:
-        """Queue ``DM {iTag, type, msgID, msg}`` for the robot. ``data=True`` marks topic data, dropped
-        (and counted) when ``queue_size`` data DMs already wait; returns False then."""
-        return self._queue({"type": DM, "data": {"iTag": itag, "type": cls, "msgID": msg_id, "msg": msg}}, data)
+    def send_dm(self, itag: str, cls: str, msg_id: Any, msg: Any, data: bool = False,
+                now: float | None = None) -> bool:
+        """Queue ``DM {iTag, type, msgID, msg}`` for the robot at time ``now`` (s; default the last
+        time given). ``data=True`` marks topic data: when ``queue_size`` data DMs already wait, the
+        oldest of them is dropped (counted in ``dropped``) to make room. Returns True."""
+        return self._queue({"type": DM, "data": {"iTag": itag, "type": cls, "msgID": msg_id, "msg": msg}}, data,
+                           now)
 
     def send_status(self, data: dict) -> None:
         """Queue ``ST data`` for the robot (never dropped)."""
@@ -445,16 +465,20 @@ class RobotSession(_Session):
         self.errors += 1
         self._queue({"type": ER, "data": text}, False)
 
-    def _queue(self, msg: dict, data: bool) -> bool:
+    def _queue(self, msg: dict, data: bool, now: float | None = None) -> bool:
         if not self.attached:                   # detached: numbered and kept, it goes out after a resume
             self._number(msg)
             return True
         if data:
-            if self.out_data >= self.queue_size:
-                self.dropped += 1
-                return False
+            if self.out_data >= self.queue_size:          # newest first, as a ROS queue_size: the oldest goes
+                itag = max(self._data, key=lambda k: len(self._data[k]))        # ... of the busiest interface
+                self._give_up(self._data_taken(itag))
+            o = _Out(msg, True, since=self._now if now is None else now, itag=msg["data"]["iTag"])
             self.out_data += 1
-        elif msg["type"] == ER:
+            self._data.setdefault(o.itag, deque()).append(o)
+            self._out.append(o)
+            return True
+        if msg["type"] == ER:
             self._out_errors += 1
         else:
             if self._out_control >= CONTROL_BACKLOG * self.queue_size and not self._overrun:
@@ -464,6 +488,21 @@ class RobotSession(_Session):
             self._out_control += 1
         self._out.append(_Out(msg, data))
         return True
+
+    def _data_taken(self, itag: str) -> _Out:
+        """The oldest waiting data DM of ``itag``, taken off its interface's queue."""
+        q = self._data[itag]
+        o = q.popleft()
+        if not q:
+            del self._data[itag]
+        return o
+
+    def _give_up(self, o: _Out) -> None:
+        """Data DM ``o``, waiting in ``_out``, is dropped (counted): it stays there, gone."""
+        o.gone, o.msg = True, None
+        self.out_data -= 1
+        self._gone += 1
+        self.dropped += 1
 
     # -- resume -------------------------------------------------------------------------------------
     def _linked(self) -> bool:
@@ -482,7 +521,8 @@ class RobotSession(_Session):
             if o.msg is not None and not o.link:
                 self._number(o.msg)
         self._out.clear()
-        self.out_data = self._out_control = self._out_errors = 0
+        self._data.clear()
+        self.out_data = self._out_control = self._out_errors = self._gone = 0
 
     def can_resume(self, ack: int) -> bool:
         """Can a resume whose robot took every message up to ``ack`` be served?"""
@@ -514,22 +554,35 @@ class RobotSession(_Session):
     @property
     def outbox(self) -> int:
         """Messages waiting to be sent."""
-        return len(self._out)
+        return len(self._out) - self._gone
 
-    def data_to_send(self, max_messages: int | None = None) -> list[str | bytes]:
+    def data_to_send(self, max_messages: int | None = None, now: float | None = None) -> list[str | bytes]:
         """Frames of up to ``max_messages`` waiting messages (all by default), each message's JSON
         text frame followed by its binary parts; they count as sent (with resume: numbered and kept
-        until acked)."""
+        until acked). ``now`` (s): a data DM that has waited longer than ``max_lag`` while a newer one
+        of its interface waits is dropped instead (counted in ``dropped`` and ``expired``); None: none
+        is."""
         frames: list[str | bytes] = []
-        n = len(self._out) if max_messages is None else min(max_messages, len(self._out))
-        for _ in range(n):
+        taken = 0
+        stale = None if now is None or self.lag.max_lag is None else now - self.lag.max_lag
+        while self._out and (max_messages is None or taken < max_messages):
             o = self._out.popleft()
+            if o.gone:
+                self._gone -= 1
+                continue
             if o.frames is not None:
                 frames.extend(o.frames)
                 self.resent += 1
+                taken += 1
                 continue
             if o.data:
+                self._data_taken(o.itag)            # o: its interface's oldest data DM still waiting
                 self.out_data -= 1
+                if stale is not None and o.since < stale and o.itag in self._data:     # a newer one waits
+                    o.msg = None
+                    self.dropped += 1
+                    self.expired += 1
+                    continue
             elif o.msg["type"] == ER:
                 self._out_errors -= 1
             elif not o.link:
@@ -541,12 +594,14 @@ class RobotSession(_Session):
             else:
                 frames.extend(self._number(o.msg))
             self.msgs_out += not o.link
+            taken += 1
         return frames
 
     def stats(self) -> dict:
-        """Counters: messages in and out, drops out (data DMs, queue full) and in (refused for a full
-        queue), ERs sent and dropped, messages and parts waiting for binary parts and their bytes, queue
-        depths; ``shed``: topic DMs from the robot dropped while the endpoint lagged (``max_lag``);
+        """Counters: messages in and out, drops out (data DMs: the oldest past the queue bound, or older
+        than ``max_lag``, those also in ``expired``) and in (refused for a full queue), ERs sent and
+        dropped, messages and parts waiting for binary parts and their bytes, queue depths; ``shed``:
+        topic DMs from the robot dropped while the endpoint lagged (``max_lag``);
         resume: resumes, messages resent, lost at a resume (``resume_lost``), kept until acked
         (``kept``, ``kept_bytes``), forgotten past the bound (``resume_forgotten``), duplicates from the
         robot dropped."""
@@ -554,7 +609,8 @@ class RobotSession(_Session):
         return {"interfaces": len(self.interfaces), "msgs_in": self.msgs_in, "msgs_out": self.msgs_out,
                 "dropped": self.dropped, "dropped_in": self.dropped_in, "shed": self.lag.shed, "errors": self.errors,
                 "errors_dropped": self.errors_dropped, "pending_binary": self.assembler.pending,
-                "pending_binary_bytes": self.assembler.pending_bytes, "outbox": len(self._out),
+                "pending_binary_bytes": self.assembler.pending_bytes, "outbox": self.outbox,
+                "expired": self.expired,
                 "requests_waiting": len(self._requests) + (self._in_flight is not None), "held": len(self._held),
                 "calls": self.calls, "resumes": self.resumes, "resent": self.resent, "resume_lost": self.resume_lost,
                 "kept": len(out) if out else 0, "kept_bytes": out.bytes if out else 0,

@@ -195,3 +195,50 @@ def test_endpoint_metrics_sum_live_and_ended_sessions():
     text = generate_latest(m.registry).decode()
     assert "rce_robot_errors_total 2.0" in text and "rce_robot_queue_depth 1.0" in text
     assert "rce_robot_dropped_total 0.0" in text and "rce_robot_connections 1.0" in text
+
+
+# -- to a robot that does not keep up: each interface's newest ------------------------------------
+def dm_out(s: RobotSession, now: float | None = None, n: int | None = None) -> list:
+    """(iTag, msg) of the DMs (and ("ST", status) of the STs) that go out now."""
+    out = []
+    for f in s.data_to_send(n, now):
+        d = json.loads(f)
+        out.append((d["data"]["iTag"], d["data"]["msg"]) if d["type"] == "DM" else ("ST", d["data"]["status"]))
+    return out
+
+
+def test_past_the_bound_the_busiest_interface_drops_its_oldest():
+    s = RobotSession("r1", queue_size=3)
+    for i in range(3):
+        s.send_dm("scan", "t", "", i, data=True)
+    s.send_status({"topic": "node", "status": "up"})           # never dropped, kept in its place
+    s.send_dm("map", "t", "", "m0", data=True)                  # full: scan, the busiest, loses 0
+    s.send_dm("scan", "t", "", 3, data=True)                    # full: scan (1, 2) loses 1
+    assert s.dropped == 2 and s.out_data == 3 and s.outbox == 4
+    assert dm_out(s) == [("scan", 2), ("ST", "up"), ("map", "m0"), ("scan", 3)]
+    assert s.outbox == 0 and s.out_data == 0 and s.stats()["msgs_out"] == 4
+
+
+def test_a_message_older_than_max_lag_goes_only_when_nothing_newer_of_its_interface_waits():
+    s = RobotSession("r1", max_lag=1.0)
+    s.send_dm("pose", "t", "", "p0", data=True, now=0.0)
+    s.send_dm("map", "t", "", "m0", data=True, now=0.0)         # a sparse topic: its only message
+    s.send_dm("pose", "t", "", "p1", data=True, now=0.5)
+    s.send_dm("pose", "t", "", "p2", data=True, now=1.4)
+    assert dm_out(s, now=2.0, n=1) == [("map", "m0")]          # p0 (2 s old, p1 behind it) is dropped first
+    assert dm_out(s, now=2.0) == [("pose", "p2")]              # p1 (1.5 s, p2 behind it) too; p2 0.6 s
+    assert s.dropped == s.expired == 2 and s.stats()["expired"] == 2 and s.outbox == 0
+    s.send_dm("pose", "t", "", "p3", data=True, now=3.0)
+    assert dm_out(s, now=60.0) == [("pose", "p3")]             # the newest goes out however late
+
+
+def test_without_max_lag_age_drops_nothing():
+    s = RobotSession("r1", max_lag=None)
+    s.send_dm("pose", "t", "", "p0", data=True, now=0.0)
+    s.send_dm("pose", "t", "", "p1", data=True, now=0.1)
+    assert dm_out(s, now=100.0) == [("pose", "p0"), ("pose", "p1")] and s.dropped == 0
+
+
+def test_queue_size_below_one_is_refused():
+    with pytest.raises(ValueError, match="queue_size must be >= 1"):
+        RobotSession("r1", queue_size=0)

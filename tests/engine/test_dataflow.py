@@ -168,6 +168,46 @@ async def test_an_endpoint_behind_a_flooding_robot_sheds_the_oldest_and_delivers
         assert told[0]["status"] == "shedding" and told[0]["behind_s"] >= 1.0 and told[-1]["status"] == "caught_up"
 
 
+async def test_a_robot_that_stops_reading_gets_the_newest_when_it_reads_again(eng):
+    """Real stall of the robot's side: it stops reading its websocket (the client library stops
+    reading the socket once 16 frames wait, the kernel's buffers fill, then the endpoint's) while
+    2,000 echoes of 8 kB come for it. They wait at the endpoint; once the robot reads again, those
+    that waited longer than max_lag (1 s) with a newer one of their topic behind them are dropped,
+    counted in rce_robot_dropped_total, and the rest come in order, the newest last."""
+    n, pad = 2000, "x" * 8000
+    port = eng.robot_ready[0]["metrics_port"]
+    async with RawRobot(eng.master_url, "stalled") as r:
+        await _echo_container(r, "stalledC", "Converter")
+        for _ in range(50):                    # the node may subscribe a moment after the interfaces are up
+            await r.send("DM", {"iTag": "req", "type": "std_msgs/String", "msgID": "", "msg": {"data": "-1 "}})
+            with contextlib.suppress(TimeoutError):
+                await r.expect("DM", 0.5, lambda d: d["iTag"] == "resp")
+                break
+        dropped0, shed0 = _metric(port, "rce_robot_dropped_total"), _metric(port, "rce_robot_shed_total")
+        frames = [json.dumps({"type": "DM", "data": {"iTag": "req", "type": "std_msgs/String", "msgID": "",
+                                                     "msg": {"data": f"{i} {pad}"}}}) for i in range(n)]
+        for i in range(0, n, 100):             # nothing is read meanwhile
+            while not ws_cork.writable(r.ws):
+                await r.ws.drain()
+            ws_cork.write(r.ws, frames[i:i + 100])
+        loop = asyncio.get_running_loop()
+        deadline = loop.time() + 60
+        while _metric(port, "rce_robot_queue_depth") < 100:      # echoes wait at the endpoint
+            assert loop.time() < deadline, "no echoes waited for the stalled robot"
+            await asyncio.sleep(0.1)
+        await asyncio.sleep(1.2)               # they grow older than max_lag (a real wait: what is tested is age)
+        echoed: list[int] = []
+        while not echoed or echoed[-1] != n - 1:
+            d = await r.expect("DM", 60, lambda d: d["iTag"] == "resp")
+            i = int(d["msg"]["data"].split(" ", 1)[0])
+            if i >= 0:
+                echoed.append(i)
+    dropped = _metric(port, "rce_robot_dropped_total") - dropped0
+    shed = _metric(port, "rce_robot_shed_total") - shed0
+    assert echoed == sorted(set(echoed)) and echoed[-1] == n - 1
+    assert dropped > 0 and len(echoed) + dropped + shed <= n, (len(echoed), dropped, shed)
+
+
 async def test_a_max_lag_that_is_not_seconds_is_refused_at_the_handshake(eng):
     for bad in ("-1", "soon", "inf"):
         with pytest.raises(InvalidStatus) as ei:
