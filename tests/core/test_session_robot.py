@@ -219,6 +219,15 @@ def test_past_the_bound_the_busiest_interface_drops_its_oldest():
     assert s.outbox == 0 and s.out_data == 0 and s.stats()["msgs_out"] == 4
 
 
+def test_a_robot_that_never_reads_costs_a_bounded_outbox():
+    s = RobotSession("r1", queue_size=10)
+    for i in range(10_000):
+        s.send_dm("scan", "t", "", i, data=True)
+    assert s.dropped == 9_990 and s.outbox == 10
+    assert len(s._out) <= 2 * 10 + 1               # the dropped ones' places are reclaimed
+    assert [m for _, m in dm_out(s)] == list(range(9_990, 10_000))
+
+
 def test_a_message_older_than_max_lag_goes_only_when_nothing_newer_of_its_interface_waits():
     s = RobotSession("r1", max_lag=1.0)
     s.send_dm("pose", "t", "", "p0", data=True, now=0.0)
