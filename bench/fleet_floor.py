@@ -26,8 +26,6 @@ from urllib.parse import parse_qs, urlsplit
 
 from rce_robot import ws_cork
 
-LOGIN_PATH = "/"
-
 
 def echo_tags(n: int, side: str) -> tuple[str, str]:
     """Robot ``n``'s robot-side pose and echo iTags (:func:`fleet_load.robot_wiring`)."""
@@ -65,11 +63,10 @@ async def serve_floor(sock: socket.socket, side: str, ready=None) -> None:
                     ws_cork.write(ws, (frame,))
                 elif pose_key in frame:
                     ws_cork.write(ws, (frame.replace(pose_key, echo_key, 1),))
-                elif '"type": "CN"' in frame or '"type":"CN"' in frame:
-                    adds = json.loads(frame)["data"].get("addInterfaces", [])
+                elif (m := json.loads(frame)).get("type") == "CN":      # set-up only: parsed
                     ws_cork.write(ws, [json.dumps({"type": "ST", "data": {"topic": "iu", "iTag": a["interfaceTag"],
                                                                           "status": True}})
-                                       for a in adds if a.get("endpointTag") == rid])
+                                       for a in m["data"].get("addInterfaces", []) if a.get("endpointTag") == rid])
         except ConnectionClosed:       # the robot went away (the run is over)
             pass
 

@@ -131,8 +131,7 @@ class RobotNamespace:
         it is closing, or it is no websockets connection) the writer task goes on."""
         ws, now = self.ws, time.monotonic()
         while self.session.outbox and ws_cork.writable(ws):
-            if frames := self.session.data_to_send(1, now):      # (topic data too old for the robot: none)
-                ws_cork.write(ws, frames)
+            ws_cork.write(ws, self.session.data_to_send(1, now))
         if self.session.outbox:
             self._wake.set()
 
@@ -146,8 +145,7 @@ class RobotNamespace:
                 # one message at a time, and only while this link is the session's: the outbox stays the bound
                 while self.ws is ws and self.session.outbox:
                     if ws_cork.writable(ws):
-                        if frames := self.session.data_to_send(1, time.monotonic()):
-                            ws_cork.write(ws, frames)
+                        ws_cork.write(ws, self.session.data_to_send(1, time.monotonic()))
                     elif ws_cork.paused(ws):
                         await ws.drain()
                     else:

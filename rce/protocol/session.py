@@ -584,7 +584,6 @@ class RobotSession(_Session):
                 self._data_taken(o.itag)            # o: its interface's oldest data DM still waiting
                 self.out_data -= 1
                 if stale is not None and o.since < stale and o.itag in self._data:     # a newer one waits
-                    o.msg = None
                     self.dropped += 1
                     self.expired += 1
                     continue
