@@ -181,15 +181,18 @@ def start_engine(workdir: Path | None = None, *, robot_tasksets: int = 1, contai
 
     ``env`` is added to the processes' environment (``os.environ`` plus the admin token,
     JSON logs, the engine's cluster key (``workdir/cluster-key``, in ``RCE_CLUSTER_KEY_FILE``), and a
-    private ``XDG_CONFIG_HOME`` and ``XDG_STATE_HOME``: the master's state
-    file is the engine's own). ``tls``: the master serves https:// and the robot task sets wss://,
-    with a certificate for 127.0.0.1 made for this engine (in ``workdir/tls``; its CA in ``ca_file``)."""
+    private ``XDG_CONFIG_HOME`` and ``XDG_STATE_HOME``); the master's state file is the engine's own,
+    ``workdir/master.sqlite3``, unless ``master_args`` name a ``--state`` or ``--store``. ``tls``: the
+    master serves https:// and the robot task sets wss://, with a certificate for 127.0.0.1 made for
+    this engine (in ``workdir/tls``; its CA in ``ca_file``)."""
     workdir = Path(workdir or tempfile.mkdtemp(prefix="rce-engine-"))
     workdir.mkdir(parents=True, exist_ok=True)
     key_file = workdir / "cluster-key"
     create_private_file(key_file, ClusterKey.generate().secret.hex() + "\n")
     penv = dict(os.environ, RCE_ADMIN_TOKEN=admin_token, RCE_LOG_JSON="1", **{KEY_ENV: str(key_file)},
                 XDG_CONFIG_HOME=str(workdir / "config"), XDG_STATE_HOME=str(workdir / "state"), **(env or {}))
+    if "--state" not in master_args and "--store" not in master_args:    # restart_master comes back to it
+        master_args = ("--state", str(workdir / "master.sqlite3"), *master_args)
     e = Engine(workdir, penv, admin_token=admin_token, master_args=tuple(master_args), cluster_key_file=key_file)
     if tls:
         certs = _tls.make_dev_certificates(workdir / "tls")

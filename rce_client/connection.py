@@ -373,7 +373,7 @@ class Connection:
         Raises :class:`AuthError` or :class:`Unavailable` as :meth:`connect`."""
         reconnect = Reconnect(max_reconnect_attempts, reconnect_time_wait, max_reconnect_wait, resume_buffer,
                               timeout, endpoint_gone_after) if allow_reconnect else None
-        query = {"userID": user_id, "robotID": robot_id, "password": hash_password(password),
+        query = {"userID": user_id, "robotID": robot_id, "password": hash_password(password), "refusal": "http",
                  **({"maxLag": f"{max_lag:g}"} if max_lag is not None else {})}
         ssl_context = ssl_context or tls.client_context()
         try:
@@ -720,6 +720,7 @@ class Connection:
         if ws_url == self.ws_url:
             raise Unavailable(f"the master still names the dead robot endpoint {ws_url}")
         query = {"userID": self.user_id, "robotID": self.robot_id, "password": hash_password(password), "resume": "1",
+                 "refusal": "http",
                  **({"maxLag": f"{self.max_lag:g}"} if self.max_lag is not None else {})}
         try:
             ws = await _dial(_with_query(ws_url, **query), timeout, self.ssl_context)

@@ -1,5 +1,6 @@
 """``rce-master``: the master task set (login on 9000, control plane on 8080), its state in a
-SQLite file (``--state``, default :func:`default_state_path`), in memory (``--state :memory:``),
+SQLite file (``--state``, default :func:`default_state_path`; with ``--dev`` one per port,
+:func:`dev_state_path`), in memory (``--state :memory:``),
 or in etcd shared with other masters (``--store etcd://HOST:PORT[,HOST:PORT...][/PREFIX/]``: one
 leads, the others stand by; :mod:`rce_master.leadership`)."""
 from __future__ import annotations
@@ -34,6 +35,24 @@ def default_state_path() -> Path:
     return Path(base) / "rce" / "master.sqlite3"
 
 
+def dev_state_path(port: int) -> Path | None:
+    """The state file of ``rce-master --dev`` on HTTP port ``port``, beside the default one:
+    ``dev-master-PORT.sqlite3``, so a development master never reads or writes the user's default
+    state, nor another port's. None (state in memory) for an ephemeral port (``--port 0``)."""
+    return default_state_path().with_name(f"dev-master-{port}.sqlite3") if port else None
+
+
+def state_of(args: argparse.Namespace) -> str:
+    """The ``--state`` a master runs on: the one given, else :func:`dev_state_path` with ``--dev``,
+    else :func:`default_state_path`."""
+    if args.state:
+        return args.state
+    if args.dev:
+        path = dev_state_path(args.port)
+        return str(path) if path else MEMORY
+    return str(default_state_path())
+
+
 def open_store(state: str | None) -> Store:
     """The store for ``--state``: :data:`MEMORY` gives a :class:`MemoryStore`, a path (default
     :func:`default_state_path`) a :class:`SqliteStore`. Raises :class:`ConfigError` when the file
@@ -52,7 +71,8 @@ def parser() -> argparse.ArgumentParser:
     p.add_argument("--users", type=Path, help="JSON file of hashed user records, kept up to date")
     p.add_argument("--state", default=None, metavar="PATH",
                    help="SQLite file of the master's state, restored on start (default $XDG_STATE_HOME/rce/"
-                        f"master.sqlite3, else ~/.local/state/rce/master.sqlite3); {MEMORY} keeps it in memory")
+                        "master.sqlite3, else ~/.local/state/rce/master.sqlite3; with --dev dev-master-PORT.sqlite3 "
+                        f"there, in memory with --port 0); {MEMORY} keeps it in memory")
     p.add_argument("--store", default=None, metavar="etcd://HOST:PORT[,HOST:PORT...][/PREFIX/]",
                    help="keep the state in etcd, shared with other masters: one leads, the others stand by "
                         "(key prefix default /rce/; instead of --state)")
@@ -105,7 +125,7 @@ async def amain(args: argparse.Namespace) -> None:
         await leadership.run(args.store, lambda store, office: make(store=store, office=office),
                              functools.partial(start, args), functools.partial(ready, args), stop)
         return
-    with open_store(args.state) as store:
+    with open_store(state_of(args)) as store:
         master = make(store=store)
         await start(args, master)
         ready(args, master)

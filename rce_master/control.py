@@ -164,9 +164,19 @@ class Control:
         await self.endpoint_call(b, "connect", **self.connect_args(b, a.iid, addr_a))
 
     async def tell_disconnect(self, a: InterfaceRec, b: InterfaceRec) -> None:
-        """Tell both ends a connection is gone (quietly: either may be gone too)."""
-        await self.quiet(self.endpoint_call(a, "disconnect", iid=a.iid, peer_iid=b.iid))
-        await self.quiet(self.endpoint_call(b, "disconnect", iid=b.iid, peer_iid=a.iid))
+        """Tell both ends a connection is gone (quietly: either may be gone too). An end whose task
+        set is absent is not waited for: when it re-registers, the master's records (which no
+        longer have the connection) are what it reconciles with."""
+        for me, peer in ((a, b), (b, a)):
+            if self._attached(me):
+                await self.quiet(self.endpoint_call(me, "disconnect", iid=me.iid, peer_iid=peer.iid))
+
+    def _attached(self, rec: InterfaceRec) -> bool:
+        """The task set holding interface ``rec`` has a link to this master now."""
+        if rec.robot_side:
+            return rec.location in self.peers
+        c = self.state.container_by_cid(rec.location)
+        return c is not None and c.tid in self.peers
 
     async def tell_disconnects(self, pairs: Pairs) -> None:
         for a, b in pairs:

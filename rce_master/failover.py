@@ -86,6 +86,9 @@ class Failover:
         for c in containers:
             if not self._current(c):
                 continue
+            if self._orphan(c):
+                await self._forget(c, why)
+                continue
             await self.control.cut(c)
             again = bool(c.data_addr)
             self.control.tell_lost(c, why + ("; it is being re-created" if again else ""))
@@ -93,7 +96,8 @@ class Failover:
                 self._start(c, prefer)
 
     async def taskset_lost(self, lost: list[Container], robots: list[Robot], why: str = "its host went away") -> None:
-        """After :meth:`MasterState.drop_taskset`: its robots are gone, its containers lost."""
+        """After :meth:`MasterState.drop_taskset`: its robots are gone (with the containers they
+        own), then its containers still here are lost."""
         for r in robots:
             await self.control.robot_gone(r.user, r.robot)
         await self.lost(lost, why)
@@ -120,9 +124,20 @@ class Failover:
         self._hosts = asyncio.Event()
 
     def resume(self) -> None:
-        """On taking office: re-create the lost containers the store holds (their hosts register later)."""
+        """On taking office: re-create the lost containers the store holds (their hosts register
+        later), those whose robot is still stored (a robot of an absent endpoint may come back)."""
         for c in self.state.interrupted_recoveries():
-            self._start(c, None)
+            if not self._orphan(c):
+                self._start(c, None)
+
+    def _orphan(self, c: Container) -> bool:
+        """``c``'s robot is gone: a container belongs to its robot's session, so it is not re-created."""
+        return (c.user, c.owner) not in self.state.robots
+
+    async def _forget(self, c: Container, why: str) -> None:
+        """Forget lost container ``c`` of a robot that is gone, with its interfaces' connections."""
+        log.info("lost container forgotten", user=c.user, ctag=c.ctag, reason=why + "; its robot is gone")
+        await self.control.destroy(*self.state.remove_container(c.user, c.ctag))
 
     # -- re-creation ---------------------------------------------------------------------------------------
     def _start(self, c: Container, prefer: int | None) -> None:
@@ -144,6 +159,9 @@ class Failover:
         c = rec.c
         deadline = time.monotonic() + self.wait
         while self._current(c) and c.state == "lost":
+            if self._orphan(c):                               # its robot left while it waited for a host
+                await self._forget(c, "not re-created")
+                return
             if rec.attempts >= self.attempts:
                 self._give_up(c, f"{rec.attempts} re-creations failed")
                 return

@@ -44,7 +44,7 @@ from rce_master.admin import AdminApi
 from rce_master.control import Control
 from rce_master.failover import Failover
 from rce_master.login_guard import LoginGuard, PasswordCheck
-from rce_master.model import TaskSet
+from rce_master.model import Robot, TaskSet
 from rce_master.office import RETRY_AFTER_NO_LEADER, Alone, Office, require_leader
 from rce_master.requests import Request, handle
 from rce_master.state import MasterState, Quotas, TaskSetAbsent
@@ -113,6 +113,7 @@ class Master:
         self.reconcile_grace = reconcile_grace
         self.dev = dev
         self.restored: list[TaskSet] = []          # the task sets a previous master knew
+        self.restored_absent: set[int] = set()     # ... the tids of those not back since this master leads
         self.control = Control(self.state, cluster_key)
         self.gate = Gate(cluster_key, "rce-master control",
                          on_refused=lambda reason: self.metrics.control_refused.labels(reason).inc())
@@ -135,6 +136,7 @@ class Master:
         """What a master does as it starts to lead on its store: the task sets there are absent
         until they re-register; the users file is loaded; ``--dev`` provisions testUser."""
         self.restored = self.state.mark_tasksets_absent()
+        self.restored_absent = {ts.tid for ts in self.restored}
         if self.users:
             self.users.load(self.state)
         if self.dev and "testUser" not in self.state.users:
@@ -178,13 +180,19 @@ class Master:
         await asyncio.sleep(self.reconcile_grace)
         why = (f"its host did not re-register within {self.reconcile_grace:g} s after the master restarted"
                if tid is None else f"its robot endpoint did not come back within {self.reconcile_grace:g} s")
+        lost, robots = [], []
         for ts in self.state.absent_tasksets():
-            if not ts.lost or tid not in (None, ts.tid):  # it came back while the ones before it were being dropped
+            if tid not in (None, ts.tid):
                 continue
-            lost, robots = self.state.drop_taskset(ts.tid)
-            log.warning("task set did not come back", tid=ts.tid, name=ts.name, containers=len(lost),
-                        robots=len(robots))
-            await self.failover.taskset_lost(lost, robots, why)
+            got, gone = self.state.drop_taskset(ts.tid)
+            self.restored_absent.discard(ts.tid)
+            log.warning("task set did not come back", tid=ts.tid, name=ts.name, containers=len(got),
+                        robots=len(gone))
+            lost += got
+            robots += gone
+        # every robot that left goes first, with its containers: only the lost containers of robots
+        # still here are re-created (Failover.lost forgets those whose robot is gone)
+        await self.failover.taskset_lost(lost, robots, why)
         await self.state.store.flush()
 
     async def stop(self) -> None:
@@ -216,6 +224,7 @@ class Master:
         out = reconcile.register(self.state, a.get("kind", ""), a.get("name") or peer.peername,
                                  a.get("host") or "127.0.0.1", a)
         ts = out.taskset
+        self.restored_absent.discard(ts.tid)
         peer.info["tid"] = ts.tid
         peer.name = f"{ts.kind}:{ts.name}"
         self.control.attach(ts.tid, peer)
@@ -273,7 +282,16 @@ class Master:
         user, robot = a["user"], a["robot"]
         old = self.state.robot(user, robot)
         host = self.state.tasksets.get(old.tid) if old is not None else None
-        if old is not None and old.tid != tid and host is not None and host.lost:
+        if old is not None and old.tid in self.restored_absent and not self._namespace_up(old):
+            # its endpoint has not come back since the master restarted, nor have the hosts of what its
+            # namespace uses (a full stop, or every process killed): that session is over, and so are
+            # its containers; this login opens a new one
+            log.info("robot's previous session ended", user=user, robot=robot, old_tid=old.tid,
+                     reason="neither its robot endpoint nor its containers' hosts came back since the master "
+                            "restarted")
+            async with self.robot_locks[(user, robot)]:
+                await self.control.robot_gone(user, robot)
+        elif old is not None and old.tid != tid and host is not None and host.lost:
             # its old endpoint is absent (it died, or has not come back since the master restarted): the
             # robot takes its namespace over here, once its session is open on this endpoint
             recs = self.state.robot_moved(user, robot, tid)
@@ -285,6 +303,18 @@ class Master:
         await self.state.store.flush()
         log.info("robot connected", user=user, robot=robot)
         return {}
+
+    def _namespace_up(self, r: Robot) -> bool:
+        """Every container robot ``r`` owns, and every container its interfaces are connected to, runs
+        on a host registered now: a namespace worth taking over on a new endpoint."""
+        peers = self.control.peers
+        used = [c for c in self.state.containers.values() if c.user == r.user and c.owner == r.robot]
+        for rec in self.state.interfaces_of(r.user, r.robot, robot_side=True):
+            for _, peer in self.state.connections_of(rec.iid):
+                c = None if peer.robot_side else self.state.container_by_cid(peer.location)
+                if c is not None:
+                    used.append(c)
+        return all(c.state == "running" and c.tid in peers for c in used)
 
     async def _robot_moved(self, user: str, robot: str, recs: list) -> None:
         """Install a moved robot's interfaces on its new endpoint and connect them again, before its

@@ -23,12 +23,12 @@ from rce.log import get_logger
 from rce.masterlink import MASTER_WAIT, Address, MasterLink
 from rce.messages import default_registry
 from rce.package_path import load_package_types
-from rce.protocol.frames import DEFAULT_EXPIRY
+from rce.protocol.frames import DEFAULT_EXPIRY, ER, encode
 from rce.protocol.limits import DEFAULT_MAX_PENDING_TOTAL, PartBudget, parse_max_lag
 from rce.protocol.resume import DEFAULT_GRACE, DEFAULT_RESUME_BUFFER
 from rce.protocol.session import (DEFAULT_MAX_LAG, DEFAULT_MAX_MESSAGE, DEFAULT_QUEUE_SIZE, RobotSession,
                                   robot_interface_type)
-from rce_robot.front_door import master_away, peer_address, throttled
+from rce_robot.front_door import master_away, peer_address, refuse_in_band, throttled
 from rce_robot.interfaces import RobotInterface
 from rce_robot.namespace import CLOSE_POLICY, RobotNamespace
 from rce_robot.parse_pool import ParsePool
@@ -237,10 +237,13 @@ class RobotEndpoint:
         try:
             await self.master.call("auth", user=user, robot=robot, password=normalise_password(q["password"]),
                                    addr=peer_address(connection))
-        except AuthError as e:
+        except (AuthError, Throttled) as e:
+            if refuse_in_band(q):           # a 2013 client: one ER, then close (_session)
+                connection.rce_refused = e.message
+                return None
+            if isinstance(e, Throttled):
+                return throttled(connection, e)
             return connection.respond(HTTPStatus.UNAUTHORIZED, e.message + "\n")
-        except Throttled as e:
-            return throttled(connection, e)
         except RCEError as e:
             return connection.respond(HTTPStatus.SERVICE_UNAVAILABLE, e.message + "\n")
         old = self.namespaces.get((user, robot))
@@ -276,6 +279,9 @@ class RobotEndpoint:
         return None
 
     async def _session(self, ws) -> None:
+        if (refused := getattr(ws, "rce_refused", None)) is not None:
+            await self._refuse(ws, refused)
+            return
         user, robot = ws.rce_identity
         if ws.rce_ack is not None:             # a resume
             ns = self.namespaces.get((user, robot))
@@ -294,6 +300,15 @@ class RobotEndpoint:
             opened.set()
         log.info("robot connected", user=user, robot=robot, peer=str(ws.remote_address), resume=ws.rce_resume)
         await ns.serve(ws)
+
+    @staticmethod
+    async def _refuse(ws, reason: str) -> None:
+        """A 2013 client's refused login (:func:`~rce_robot.front_door.refuse_in_band`): the one ER
+        it shows, naming the failure, then close 1008 (policy violation)."""
+        log.info("login refused in band", peer=str(ws.remote_address), reason=reason)
+        text, _ = encode({"type": ER, "data": f"login refused: {reason}"})
+        await ws.send(text)
+        await ws.close(CLOSE_POLICY, "login refused")
 
     async def _session_gone(self, ns: RobotNamespace) -> None:
         """A robot's session ended (:class:`RobotNamespace`): forget it and tell the master."""

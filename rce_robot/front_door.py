@@ -1,6 +1,7 @@
 """What the robot endpoint's and rosbridge's websocket handshakes share about the front door
-(docs/SECURITY.md): the address a login comes from, and the answers to a throttled login and to
-one that cannot be checked while the master is away."""
+(docs/SECURITY.md): the address a login comes from, the answers to a throttled login and to
+one that cannot be checked while the master is away, and how a refused login reaches a client of
+2013, which never surfaces an HTTP status."""
 from __future__ import annotations
 
 import math
@@ -10,6 +11,20 @@ from rce.errors import Throttled
 
 MASTER_AWAY_RETRY_AFTER = 5   # s, Retry-After of the 503 a connecting robot gets while the master is away (as the
                               # master's own 503 while task sets are absent)
+
+
+# the query keys of the 2013 client's websocket URL (RCE alpha, autobahn_rce 0.6): a handshake with
+# only these is that client's, which shows an ER frame but never an HTTP status (its connect waits
+# 20 s for a timeout). Any other key (resume, maxLag, refusal, ...) is a newer client's.
+QUERY_2013 = frozenset({"userID", "robotID", "password"})
+REFUSAL_KEY = "refusal"      # refusal=http: a client that reads HTTP statuses, whatever else it sends
+
+
+def refuse_in_band(query: dict) -> bool:
+    """A refused login of this handshake's client is answered in band: the upgrade is accepted,
+    one ER frame names the failure, and the websocket closes (1008). True for a client of 2013
+    (only :data:`QUERY_2013` keys), unless it asks ``refusal=http``; newer clients get HTTP statuses."""
+    return set(query) <= QUERY_2013 and query.get(REFUSAL_KEY) != "http"
 
 
 def peer_address(connection) -> str:

@@ -10,7 +10,7 @@ import urllib.request
 
 import pytest
 from websockets.asyncio.client import connect
-from websockets.exceptions import InvalidStatus
+from websockets.exceptions import ConnectionClosed, InvalidStatus
 
 from wsclient import RawRobot, login
 
@@ -148,12 +148,26 @@ async def test_bad_credentials_at_login(eng):
 async def test_bad_credentials_at_websocket(eng):
     url = login(eng.master_url)["url"]
     wrong = hashlib.sha256(b"wrong").hexdigest()
-    with pytest.raises(InvalidStatus) as ei:
-        async with connect(f"{url}?userID=testUser&robotID=badpw&password={wrong}"):
+    with pytest.raises(InvalidStatus) as ei:          # a newer client: the HTTP status
+        async with connect(f"{url}?userID=testUser&robotID=badpw&password={wrong}&refusal=http"):
             pass
     assert ei.value.response.status_code == 401
     assert b"invalid user ID or password" in ei.value.response.body
-    with pytest.raises(InvalidStatus) as ei:
+
+
+@pytest.mark.parametrize("user", ["testUser", "nobody"])
+async def test_a_2013_client_that_only_reads_frames_learns_its_login_failed(eng, user):
+    """The 2013 client (autobahn_rce 0.6) never surfaces an HTTP status: it is shown one ER naming
+    the failure, the same for an unknown user and a wrong password, and the websocket closes (1008)."""
+    url = login(eng.master_url, user=user)["url"]
+    wrong = hashlib.sha256(b"wrong").hexdigest()
+    async with connect(f"{url}?userID={user}&robotID=badpw&password={wrong}") as ws:
+        frame = json.loads(await asyncio.wait_for(ws.recv(), 10))
+        with pytest.raises(ConnectionClosed):
+            await asyncio.wait_for(ws.recv(), 10)
+    assert frame == {"type": "ER", "data": f"login refused: invalid user ID or password for user {user!r}"}
+    assert ws.close_code == 1008
+    with pytest.raises(InvalidStatus) as ei:          # a request that is not a login at all: 400
         async with connect(f"{url}?userID=testUser&robotID=badpw"):
             pass
     assert ei.value.response.status_code == 400 and b"password" in ei.value.response.body

@@ -154,12 +154,12 @@ def _http_login(eng, user: str) -> tuple[int, bytes]:
 
 
 async def _ws_login(eng, user: str, password: str, robot: str, addr: str) -> tuple[int, str, dict]:
-    """A robot's websocket login from source address ``addr``: (status, body, headers); 101 when it
-    opened (then closed again)."""
+    """A newer client's websocket login (``refusal=http``: refusals as HTTP statuses) from source
+    address ``addr``: (status, body, headers); 101 when it opened (then closed again)."""
     url = json.loads(_http_login(eng, user)[1])["url"]
     digest = hashlib.sha256(password.encode()).hexdigest()
     try:
-        ws = await connect(f"{url}?userID={user}&robotID={robot}&password={digest}", local_addr=(addr, 0),
+        ws = await connect(f"{url}?userID={user}&robotID={robot}&password={digest}&refusal=http", local_addr=(addr, 0),
                            open_timeout=HANDSHAKE_TIMEOUT)
     except InvalidStatus as e:
         r = e.response
