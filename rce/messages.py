@@ -41,6 +41,9 @@ from rce.errors import MessageError
 from rce.message_forms import (RCE_FORMS, JsonForms, duration_to_seconds, image_from_bytes, image_to_bytes,
                                iso_to_time, seconds_to_duration, time_to_iso)
 from rce.message_structure import Short, Walker, compile_walker
+from rce import ros_strings
+
+ros_strings.install()       # ROS strings carry any bytes, as in rospy (rce.ros_strings)
 
 _INT_RANGES = {
     "bool": None, "byte": (0, 255), "char": (0, 255),

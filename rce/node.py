@@ -146,6 +146,7 @@ class Subscriber:
         self.queue: asyncio.Queue = asyncio.Queue(maxsize=max(1, queue_size))
         self.dropped = 0
         self.received = 0
+        self.undecodable = 0       # messages that did not deserialize as typename (counted, logged, reported)
         self.handle = 0
         self._task = node.tasks.spawn(self._consume(), name=f"subscriber {topic}")
 
@@ -162,6 +163,11 @@ class Subscriber:
             self.received += 1
             try:
                 msg = reg.deserialize(self.typename, payload)
+            except MessageError as e:
+                self.undecodable += 1
+                self.node.undecodable(f"subscriber {self.topic}", e)
+                continue
+            try:
                 r = self.callback(msg)
                 if inspect.isawaitable(r):
                     await r
@@ -227,6 +233,14 @@ class Node:
                 return
             self._direct = direct
 
+    def undecodable(self, where: str, e: MessageError) -> None:
+        """A message for ``where`` (a subscriber's topic, a service) did not deserialize: logged on
+        stderr (the node's log) and reported to the bus, which counts it in the node's statistics
+        (``undecodable``: the container's stats, ``rce_node_undecodable_total``)."""
+        print(f"[{self.full_name}] {where}: message dropped, it does not deserialize: {e.message}", file=sys.stderr)
+        if self._peer is not None and not self._peer.closed.is_set():
+            self._peer.notify("undecodable", where=where, error=e.message[:200])
+
     def resolve(self, name: str) -> str:
         """Resolve a graph name for this node (global, relative or ``~private``)."""
         return resolve(name, self.namespace, self.name)
@@ -265,7 +279,12 @@ class Node:
         if handle not in self._services:
             raise NotFound(f"node {self.full_name} provides no service with handle {handle}")
         handler, req_t, resp_t = self._services[handle]
-        resp = handler(self.registry.deserialize(req_t, payload))
+        try:
+            req = self.registry.deserialize(req_t, payload)
+        except MessageError as e:
+            self.undecodable(f"service handle {handle}", e)
+            raise
+        resp = handler(req)
         if inspect.isawaitable(resp):
             resp = await resp
         return self._encode(resp_t, resp)

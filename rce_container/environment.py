@@ -124,7 +124,8 @@ class Container:
                 total[k] += m[k]
             pid = n.pid
             sess = sessions.get(n.full_name)
-            bus = sess.stats() if sess else {"msgs_in": 0, "bytes_in": 0, "msgs_out": 0, "bytes_out": 0, "dropped": 0}
+            bus = sess.stats() if sess else {"msgs_in": 0, "bytes_in": 0, "msgs_out": 0, "bytes_out": 0, "dropped": 0,
+                                             "undecodable": 0}
             info = n.info()
             info.pop("argv")
             per_node[n.ntag] = {
@@ -133,7 +134,7 @@ class Container:
                 if pid else 0.0,
                 "rss_mib": round(m["rss_bytes"] / 2**20, 2), "processes": m["processes"],
                 "connected": sess is not None, **{k: bus[k] for k in ("msgs_in", "msgs_out", "bytes_in", "bytes_out",
-                                                                     "dropped")}}
+                                                                     "dropped", "undecodable")}}
         box = self.sandbox.usage()
         if "pids" in box:
             m = measure(box["pids"])

@@ -24,7 +24,8 @@ Metrics (labels in brackets):
 - ``rce_node_cpu_percent``, ``rce_node_rss_bytes``, ``rce_node_processes``,
   ``rce_node_running`` [user, ctag, node]: per node
 - ``rce_node_messages_{in,out}_total``, ``rce_node_bytes_{in,out}_total``,
-  ``rce_node_dropped_total`` [user, ctag, node]: the node's bus traffic (in = published by it)
+  ``rce_node_dropped_total``, ``rce_node_undecodable_total`` [user, ctag, node]: the node's bus
+  traffic (in = published by it; undecodable: delivered, but it could not deserialize them)
 - ``rce_node_restarts_total`` [user, ctag, node]: respawns
 """
 from __future__ import annotations
@@ -95,6 +96,8 @@ def _families() -> dict:
         "nbout": CounterMetricFamily("rce_node_bytes_out", "Bytes delivered to the node", labels=N_LABELS),
         "ndrop": CounterMetricFamily("rce_node_dropped", "Messages the node's subscriptions dropped",
                                      labels=N_LABELS),
+        "nundec": CounterMetricFamily("rce_node_undecodable", "Messages delivered to the node that it could not "
+                                      "deserialize", labels=N_LABELS),
     }
 
 
@@ -129,7 +132,7 @@ def _add_container(fam: dict, c: dict) -> None:
         fam["nprocs"].add_metric(nl, n.get("processes", 0))
         fam["nrun"].add_metric(nl, 1 if n.get("running") else 0)
         for key, stat in (("nrest", "restarts"), ("nmin", "msgs_in"), ("nmout", "msgs_out"), ("nbin", "bytes_in"),
-                          ("nbout", "bytes_out"), ("ndrop", "dropped")):
+                          ("nbout", "bytes_out"), ("ndrop", "dropped"), ("nundec", "undecodable")):
             fam[key].add_metric(nl, n.get(stat, 0))
 
 

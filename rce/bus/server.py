@@ -83,6 +83,7 @@ class _Session:
         self.routes: dict[int, dict[int, frozenset[Subscription]]] = {}   # handle -> version -> reached
         # what this node published (in) and was delivered (out), for per-node statistics
         self.msgs_in = self.bytes_in = self.msgs_out = self.bytes_out = 0
+        self.undecodable = 0           # messages the node reported it could not deserialize
         peer.on_close = lambda _p: self.close()
         peer.link.on_drop = self._lost
         if server.token is None:
@@ -105,10 +106,18 @@ class _Session:
         self.peer.on_data = self.on_data
 
     def stats(self) -> dict:
-        """``{node, msgs_in, bytes_in, msgs_out, bytes_out, dropped}``: in = published by the
-        node, out = delivered to it, dropped = messages its subscriptions could not take."""
+        """``{node, msgs_in, bytes_in, msgs_out, bytes_out, dropped, undecodable}``: in = published
+        by the node, out = delivered to it, dropped = messages its subscriptions could not take,
+        undecodable = messages delivered to it that it could not deserialize (its own report)."""
         return {"node": self.node, "msgs_in": self.msgs_in, "bytes_in": self.bytes_in, "msgs_out": self.msgs_out,
-                "bytes_out": self.bytes_out, "dropped": sum(s.dropped for s in self.subs.values())}
+                "bytes_out": self.bytes_out, "dropped": sum(s.dropped for s in self.subs.values()),
+                "undecodable": self.undecodable}
+
+    async def op_undecodable(self, a: dict) -> None:
+        """``{where, error}``: the node could not deserialize a message delivered to it (counted)."""
+        self.undecodable += 1
+        log.warning("node could not deserialize a message", node=self.node, where=str(a.get("where"))[:100],
+                    error=str(a.get("error"))[:200])
 
     # -- control ops ---------------------------------------------------------------------------
     async def op_hello(self, a: dict) -> dict:

@@ -99,3 +99,38 @@ async def test_call_timeout_and_a_provider_leaving_mid_call(bus):
     await provider.close()
     with pytest.raises(RequestError, match="node '/provider' left while serving a call"):
         await asyncio.wait_for(call, STEP)
+
+
+async def test_a_string_that_is_not_utf8_reaches_a_node_and_goes_back_unchanged(bus):
+    """ROS strings are bytes (rce.ros_strings): the node gets them as surrogate escapes and its
+    publish serializes them back to the very same bytes, as a rospy node passes them through."""
+    b, server, node = bus
+    talker, echo, listener = await node("talker"), await node("echo"), await node("listener")
+    raw = b"not utf-8: \x00\xff\xfe"
+    got = asyncio.Queue()
+    back = await echo.publisher("resp", "std_msgs/String")
+    await echo.subscriber("req", "std_msgs/String", back.publish_nowait)
+    await listener.subscriber("resp", "std_msgs/String", lambda m: got.put_nowait(m))
+    pub = await talker.publisher("req", "std_msgs/String")
+    await pub.publish({"data": raw.decode("utf-8", "surrogateescape")})
+    msg = await asyncio.wait_for(got.get(), STEP)
+    assert listener.registry.serialize("std_msgs/msg/String", msg) == len(raw).to_bytes(4, "little") + raw
+
+
+async def test_a_message_a_node_cannot_deserialize_is_counted_and_the_next_one_arrives(bus):
+    b, server, node = bus
+    talker, listener = await node("talker"), await node("listener")
+    got = asyncio.Queue()
+    sub = await listener.subscriber("chatter", "std_msgs/Int32", lambda m: got.put_nowait(m.data))
+    pub = await talker.publisher("chatter", "std_msgs/Int32")
+    good = talker._encode
+    talker._encode = lambda typename, msg: b"\x07"          # 1 byte: an int32 needs 4
+    await pub.publish({"data": 0})
+    talker._encode = good
+    await pub.publish({"data": 42})
+    assert await asyncio.wait_for(got.get(), STEP) == 42
+    assert sub.undecodable == 1 and sub.received == 2
+    session = next(s for s in server.sessions if s.node == "/listener")
+    async with asyncio.timeout(STEP):           # the node's report travels on its link after the message
+        while session.stats()["undecodable"] != 1:
+            await asyncio.sleep(0.01)

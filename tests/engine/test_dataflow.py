@@ -110,6 +110,32 @@ async def test_forwarder_binary_parts_both_orders(eng):
         assert echoed == bigs
 
 
+async def test_a_string_that_is_not_utf8_goes_through_a_python_node_and_back_unchanged(eng):
+    """ROS strings are bytes: a forwarder carries them to the Test package's stringEcho.py, which
+    decodes them as rospy does (no error) and publishes and answers them back byte for byte."""
+    raw = b"not utf-8: \x00\xff\xfe"
+    payload = len(raw).to_bytes(4, "little") + raw
+    async with RawRobot(eng.master_url, "bytes") as r:
+        await _echo_container(r, "bytesC", "Forwarder")
+        got = None
+        for i in range(50):          # the node may subscribe a moment after the interfaces are up
+            ref = f"{0xb7e5 + i:032x}"
+            await r.send("DM", {"iTag": "req", "type": "std_msgs/String", "msgID": "", "msg*": ref})
+            await r.ws.send(ref.encode() + payload)
+            try:
+                await r.expect("DM", timeout=0.5, pred=lambda d: d["iTag"] == "resp")
+            except TimeoutError:
+                continue
+            got = (await r.recv())[32:]
+            break
+        assert got == payload
+        await r.send("DM", {"iTag": "srv", "type": "Test/StringEcho", "msgID": "b1", "msg*": "e" * 32})
+        await r.ws.send(b"e" * 32 + payload)
+        dm = await r.expect("DM", pred=lambda d: d["iTag"] == "srv")
+        part = await r.recv()
+        assert dm["msgID"] == "b1" and part[32:] == payload
+
+
 def _metric(port: int, name: str) -> float:
     with urllib.request.urlopen(f"http://127.0.0.1:{port}/metrics", timeout=10) as resp:
         line = next(x for x in resp.read().decode().splitlines() if x.startswith(name + " "))
