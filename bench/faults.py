@@ -1,4 +1,4 @@
-"""Faults benchmark (issue 10, part 7): what survives what, how fast the robot is served again,
+"""Faults benchmark: what survives what, how fast the robot is served again,
 and how many messages are lost, for rce and, in the same run, ROS 1.
 
 A robot echoes a ``std_msgs/String`` at 10 Hz through a converter to the Test package's
@@ -33,7 +33,7 @@ passed), or cannot reconnect at all (an rce_client without ``allow_reconnect``),
 reconnects as an application would: it logs in again (or reopens the proxy's URL) with backoff
 and, its session being gone, re-creates its container, node, interfaces and connections (each
 request alone; "already exists" ERs are fine). The bench never re-creates a container that the
-engine reports lost: that is the engine's job (issue 10 part 5).
+engine reports lost: that is the engine's job (containers outlive their host).
 
 ROS 1 (Debian's ros-comm, rospy; ``--no-ros1`` skips it), where ROS 1 has the fault: the robot
 is a rospy node publishing ``/faultReq`` at 10 Hz, ``bench/ros1/echo.py`` echoes it on
@@ -109,7 +109,7 @@ FIELDS = ("fault", "system", "description", "survived", "served_again_s", "lost"
 STRING = "std_msgs/String"
 ROBOT, CTAG, PROBE_ROBOT = "faultBot", "faultC", "faultProbe"
 ROS1_TOPIC = "/faultReq"
-RATE_HZ = 10.0           # messages per second the robot echoes (issue 10's measurements)
+RATE_HZ = 10.0           # messages per second the robot echoes (the rate of the fault tests)
 
 SEND_TIMEOUT = 2.0       # s one publish may take before its message counts as not sent (a dead link may block)
 BACKOFF_FIRST = 0.1      # s, the bench's first delay between reconnect attempts ...
@@ -707,7 +707,7 @@ def setup_leader(rig: Rig) -> None:
     _, info = e.spawn("standby", [*command("rce-master"), "--dev", "--port", "0", "--control-port", "0",
                                   "--store", rig.etcd.url, "--ready-file", str(ready)], ready)
     rig.standby_url = f"http://127.0.0.1:{info['http_port']}/"
-    if hasattr(e, "masters"):          # task sets that take a list of masters (issue 10 part 3)
+    if hasattr(e, "masters"):          # task sets that take a list of masters (standby masters)
         e.masters.append(f"127.0.0.1:{info['control_port']}")
     e.add_robot_taskset()
     e.add_container_host()

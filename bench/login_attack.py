@@ -1,5 +1,5 @@
-"""Real-login latency during a password attack (issue 11, "Login": the probe found 300 wrong passwords
-going through at 32/s, and real logins ten times slower meanwhile).
+"""Real-login latency during a password attack: an attacker's wrong passwords must be
+slowed down without slowing the real user's logins (docs/SECURITY.md "Login").
 
 A *real login* is what a robot does: ``GET /?userID&version`` at the master, then the websocket
 handshake at the robot endpoint with the right password (the master's scrypt check), then close;

@@ -1,4 +1,5 @@
-"""Big text frames are parsed off the event loop, in a worker process (issue 11 part 4).
+"""Big text frames are parsed off the event loop, in a worker process, so that a hostile
+robot's huge frame cannot stall every other session.
 
 ``json.loads`` holds the GIL for the whole parse (a 30 MiB frame of numbers: about 0.25 s, one of
 small objects: seconds), so a thread would not free the loop: a big frame that holds many values

@@ -1,4 +1,4 @@
-"""``rce-ros CONFIG --ros`` against a real ROS 1 graph (issue 13, part 2).
+"""``rce-ros CONFIG --ros`` against a real ROS 1 graph.
 
 A real ``rosmaster --core`` on loopback (an ephemeral port), the real engine (``engine``
 fixture), ``rce-ros --ros`` as a real process, and Debian's ``rostopic`` and a plain rospy

@@ -283,7 +283,7 @@ async def test_exit_codes_respawn_args_and_logs(rig):
     master, cp = rig
     await create(master, 4, "nodes")
     pkg_dir = cp.env["RCE_PACKAGE_PATH"] + "/CTest"
-    # $(env X) reads the node's own environment, never a host variable (issue 11)
+    # $(env X) reads the node's own environment, never a host variable (no leak of the host's secrets)
     with pytest.raises(RequestError, match="RCE_TEST_VAR"):
         await add_node(master, 4, "leak", pkg="CTest", exe="exiter.py", args="$(env RCE_TEST_VAR)")
     await add_node(master, 4, "once", pkg="CTest", exe="exiter.py",

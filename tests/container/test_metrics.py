@@ -16,7 +16,7 @@ def _sample(text: str, name: str, **labels) -> float:
 
 
 def test_refusals_of_the_environment_are_exported_per_container():
-    """What the environment turned away (bus connections, data frames, data links: issue 11) shows
+    """What the environment turned away (bus connections, data frames, data links) shows
     in /metrics, not only in the admin API's stats."""
     stats = {"containers": [{"user": "alice", "ctag": "c1", "dropped": {"interfaces": 2, "bus": 0},
                              "environment": {"bus": {"refused": 3},

@@ -1,4 +1,4 @@
-"""Issue 13 part 3: ROS 1 nodes in containers.
+"""ROS 1 nodes in containers.
 
 A plain rospy node (``tests/ros1_packages/rce_ros1_test``, written for ROS 1 only) runs in a
 container of a real engine, wired to a robot through the client protocol (CN, CX, converters):

@@ -29,7 +29,7 @@ from etcd_server import EtcdServer  # noqa: E402
 from test_core_store import assert_same, busy_state  # noqa: E402
 
 U = "alice"
-TAKEOVER_BOUND = 5.0     # s, issue 10: a standby leads within 5 s of the leader's death
+TAKEOVER_BOUND = 5.0     # s, the promise: a standby leads within 5 s of the leader's death
 WAIT = 10.0              # s, the most a test waits for something that happens in well under a second
 
 

@@ -1,4 +1,4 @@
-"""Issue 11 part 4, sans I/O: the bounds a robot session keeps under hostile input (the JSON depth
+"""Sans I/O: the bounds a robot session keeps under hostile input (the JSON depth
 limit, ER truncation, the ER token bucket and outbox bound, binary parts capped per session and per
 endpoint with expiry in O(expired)) and the master's per-user quotas. The engine tests of the same
 attacks are in tests/security/test_hostile_input.py."""
@@ -13,6 +13,7 @@ from rce.errors import ProtocolError
 from rce.protocol.frames import Assembler, parse_frame
 from rce.protocol.limits import (ER_BURST, MAX_ER_TEXT, MAX_JSON_DEPTH, PartBudget, TokenBucket, json_too_deep,
                                  short_repr, truncate)
+from rce.protocol.events import RequestReady
 from rce.protocol.session import RobotSession
 from rce_master.state import MasterState, QuotaExceeded, Quotas
 
@@ -40,7 +41,7 @@ def test_a_frame_nested_1000_deep_is_an_er_and_the_session_goes_on():
     s.receive_text("{" * 100_000, 0)                           # unbalanced too: no RecursionError either
     assert ers(s) == [f"JSON nested deeper than the limit of {MAX_JSON_DEPTH} levels; dropped"] * 2
     s.receive_text('{"type": "CC", "data": {"containerTag": "c"}}', 0)
-    assert [e.name for e in s.events_received()] == ["request"]
+    assert [type(e) for e in s.events_received()] == [RequestReady]
 
 
 def test_parse_frame_finds_refs_only_where_a_star_key_can_be():

@@ -1,4 +1,4 @@
-"""The shape of the code base (issue 9's "done when"): no import circle among the project's
+"""The shape of the code base: no import circle among the project's
 modules, no function over 80 lines in the engine packages, and engine tests import nothing
 from ``examples/``. Read from the source with :mod:`ast`; nothing is imported or run."""
 from __future__ import annotations

@@ -1,4 +1,4 @@
-"""Issue 2, part 9: every kind of bad input gets an ER (or HTTP error) naming what was wrong,
+"""Every kind of bad input gets an ER (or HTTP error) naming what was wrong,
 and that session and every other session keep working. Real processes, real websockets."""
 from __future__ import annotations
 

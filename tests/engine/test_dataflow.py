@@ -1,4 +1,4 @@
-"""Issue 2: topics and services between robots and containers through converters (JSON)
+"""Topics and services between robots and containers through converters (JSON)
 and forwarders (binary parts), container <-> container, parameters, statuses, teardown.
 Real processes on loopback, the raw wire protocol."""
 from __future__ import annotations

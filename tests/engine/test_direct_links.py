@@ -1,4 +1,4 @@
-"""Issue 12: direct links. A node's topic traffic goes straight between the node and the robot
+"""Direct links: a node's topic traffic goes straight between the node and the robot
 endpoint, past its environment (rce_container/direct_routes.py, rce/node_links.py), and back
 through the environment whenever the bus has other subscribers or a link dies.
 

@@ -1,4 +1,4 @@
-"""Issue 10, part 6: kill -9 of rce-robot, with the robot moving to another robot endpoint
+"""Kill -9 of rce-robot, with the robot moving to another robot endpoint
 (docs/INTERNALS.md "Session resume", "Moving to another endpoint"), with real processes on loopback.
 
 An engine with two robot task sets. A robot (rce_client, logged in with ``allow_reconnect``) echoes

@@ -1,4 +1,4 @@
-"""Issue 10, part 5: containers outlive their host. Real processes on loopback: a master, a robot
+"""Containers outlive their host. Real processes on loopback: a master, a robot
 task set and two container hosts; a robot echoes ``std_msgs/String`` at 10 Hz through converters
 to the Test package's ``stringEcho.py`` in its container.
 
@@ -33,8 +33,8 @@ from wsclient import RawRobot
 
 pytestmark = pytest.mark.asyncio
 
-RATE = 10.0             # Hz, the robot's echo requests (issue 10's measurements)
-RECREATE_BOUND = 10.0   # s, issue 10: running again within 10 s of the loss being seen
+RATE = 10.0             # Hz, the robot's echo requests (the rate of the faults bench)
+RECREATE_BOUND = 10.0   # s, the promise: running again within 10 s of the loss being seen
 SILENCE_BOUND = 6.0     # s, the keepalive verdict on a silent host: rce.rpc.KEEPALIVE_TIMEOUT (4 s), checked every
                         # KEEPALIVE_INTERVAL (1 s), plus scheduling on a busy machine
 WAIT = 30.0             # s, the most a test waits for a step that normally takes well under that

@@ -1,4 +1,4 @@
-"""Issue 3, part 7: a container host that dies or goes silent is marked lost within 5 s, the
+"""A container host that dies or goes silent is marked lost within 5 s, the
 owning robot is told (ST and ER), and the host, back, registers cleanly: as a new task set
 (the master dropped the old one), destroying the containers the master lost."""
 from __future__ import annotations
@@ -58,9 +58,9 @@ async def test_silent_host_is_lost_within_5s_and_a_new_host_registers(engine):
 
 
 async def test_a_lost_tag_can_be_destroyed_and_created_again_and_a_new_host_takes_the_rest(engine):
-    """Issue 10, part 5, with no other host: after kill -9 of the only container host, DC of a lost
-    container forgets it at once and CC of its tag is refused with a clear answer until then; a
-    lost container not destroyed waits, and is re-created when a host registers."""
+    """Containers outlive their host, even with no other host: after kill -9 of the only container
+    host, DC of a lost container forgets it at once and CC of its tag is refused with a clear answer
+    until then; a lost container not destroyed waits, and is re-created when a host registers."""
     host = next(p for p in engine.procs if "rce-container" in p.args[0])
     async with RawRobot(engine.master_url, "tagBot") as r:
         for ctag in ("goneC", "waitC"):

@@ -1,4 +1,4 @@
-"""Issue 10, part 2: while the master is away, nothing stops. Real processes on loopback: a robot
+"""While the master is away, nothing stops. Real processes on loopback: a robot
 echoes numbered messages at 10 Hz through a converter to the Test package's stringEcho.py;
 rce-master is killed with SIGKILL and, AWAY s later, started again on the same state file and
 ports.

@@ -1,4 +1,4 @@
-"""Issue 10, part 1: the master's state survives the master. Real processes on loopback: a robot
+"""The master's state survives the master. Real processes on loopback: a robot
 builds a container with nodes, a parameter, interfaces and connections; the master is killed
 with SIGKILL and a new one started on the same SQLite file and ports has it all back. Its task
 sets are absent (login answers 503 with Retry-After) until they re-register. The real rce-robot,

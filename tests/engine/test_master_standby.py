@@ -1,4 +1,4 @@
-"""Issue 10, part 3: several masters on etcd. Real processes on loopback: a real etcd
+"""Several masters on etcd. Real processes on loopback: a real etcd
 (tests/etcd_server.py), two ``rce-master --store etcd://...`` (the first leads, the second stands
 by), a robot task set and a container host registered with the leader.
 
@@ -44,10 +44,10 @@ from wsclient import RawRobot, login
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 from etcd_server import EtcdServer  # noqa: E402
 
-TAKEOVER_BOUND = 5.0     # s, issue 10: a standby leads within 5 s of the leader's kill -9
+TAKEOVER_BOUND = 5.0     # s, the promise: a standby leads within 5 s of the leader's kill -9
 WAIT = 20.0              # s, the most a test waits for what takes well under a second
 LOGIN = "?userID=alice&version=20130902"
-AFTER_KILL = 2.5         # s the stream is watched after the kill (issue 10: the 2-3 s after it)
+AFTER_KILL = 2.5         # s the stream is watched after the kill (the 2-3 s after it: the takeover)
 REREGISTER_BOUND = BACKOFF_CAP + 1.0   # s from the standby leading to both task sets registered with it: the
                          # links back off to at most BACKOFF_CAP between rounds, then one dial and one register on
                          # loopback (a round tries the dead leader, refused at once, and the standby)

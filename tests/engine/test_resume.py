@@ -1,4 +1,4 @@
-"""Issue 10, part 4: robot session resume (docs/INTERNALS.md "Session resume"), with real
+"""Robot session resume (docs/INTERNALS.md "Session resume"), with real
 processes on loopback. The robot's link runs through a TCP proxy the test owns (rce/tcpproxy.py):
 ``cut()`` drops every connection (RST both ways) and refuses new ones until ``restore()``.
 

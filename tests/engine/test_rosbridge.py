@@ -1,4 +1,4 @@
-"""Issue 13 part 1: the rosbridge v2 endpoint, driven by unmodified roslibpy (PyPI) against a real
+"""The rosbridge v2 endpoint, driven by unmodified roslibpy (PyPI) against a real
 engine: the Test package's stringEcho in a container a robot creates; roslibpy calls the echo
 service, subscribes and publishes (the echo comes back), and lists topics and services (rosapi).
 A raw websocket client sends malformed ops: each gets a status error and the session goes on.

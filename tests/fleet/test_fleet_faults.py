@@ -1,4 +1,4 @@
-"""The fleet survives (issue 10, part 8): ``rce-fleet demo --fault`` as a subprocess on the small
+"""The fleet survives faults: ``rce-fleet demo --fault`` as a subprocess on the small
 default map with 3 robots, and the mission still ends with every robot at its goal (exit 0).
 
 * ``--fault master@3``: rce-master is killed (kill -9) 3 sim s into the mission and started again

@@ -1,5 +1,5 @@
-"""Issue 11, "containers that contain": the container probes, each replayed against real
-container hosts and real nodes, and now failing.
+"""Containers that contain: each probe of one user's node against another user's container or the
+host, replayed against real container hosts and real nodes, and failing.
 
 - Two namespaced container hosts on one machine (each playing a different user): B's node
   looks for A's runtime directory, bus socket and the master's token file, and tries to join

@@ -1,4 +1,4 @@
-"""Issue 11 part 6: a fuzzing test. An attacker robot of one user throws a few thousand frames
+"""A fuzzing test: an attacker robot of one user throws a few thousand frames
 made by hypothesis at a real rce-robot endpoint (text and binary, valid-ish requests and garbage,
 deep nesting, huge numbers, lone surrogates, binary parts and references to them, and at the end
 a text frame that is not UTF-8), while two victim robots of another user echo through their

@@ -1,4 +1,4 @@
-"""Issue 11 part 4, one engine test per attack of the issue: each now fails, and a victim robot's
+"""Hostile input, one engine test per attack: each fails, and a victim robot's
 traffic goes on undisturbed. Real processes on loopback, the raw wire protocol. The rules
 themselves are tested sans I/O in tests/core/test_session_limits.py.
 

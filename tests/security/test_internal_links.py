@@ -1,5 +1,5 @@
-"""Issue 11, part 1: authenticated internal links. The probes that succeeded against the engine
-before, run again with real processes; the attacker is a raw TCP client in the test.
+"""Authenticated internal links: each probe of an unauthenticated internal link, run with real
+processes; the attacker is a raw TCP client in the test.
 
 - Control plane: a task set that cannot prove the cluster key registers nothing, declares no
   robot connected and destroys no container; the master refuses, logs and counts it, and login

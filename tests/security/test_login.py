@@ -1,4 +1,4 @@
-"""Login hardening (issue 11 part 5, docs/SECURITY.md "Login"): the rules of
+"""Login hardening (docs/SECURITY.md "Login"): the rules of
 :mod:`rce_master.login_guard` without sockets, then against a real engine: user names cannot be
 enumerated (login and handshake answer the same), failures back off per user (from one address)
 and per address with 429 + Retry-After while the real user from another address still logs in,

@@ -1,4 +1,4 @@
-"""TLS at the front door (issue 11 part 2, docs/SECURITY.md): an engine started with ``--tls-cert``/
+"""TLS at the front door (docs/SECURITY.md): an engine started with ``--tls-cert``/
 ``--tls-key`` (a CA and a 127.0.0.1 certificate made at test time, :func:`rce.tls.make_dev_certificates`)
 serves login, /metrics and the web page over https and robots and rosbridge clients over wss; login
 hands out wss:// URLs; rce_client echoes through a container over wss with the CA file; a plain-text

@@ -1,4 +1,4 @@
-"""Issue 13 part 1: unmodified roslibjs (npm ``roslib`` 1.4, ``build/roslib.min.js``) in Debian's
+"""Unmodified roslibjs (npm ``roslib`` 1.4, ``build/roslib.min.js``) in Debian's
 chromium (Playwright) against the rosbridge v2 endpoint of a real engine, on the Test package's
 stringEcho in a container an RCE robot owns. The page connects with the full URL
 ``ws://127.0.0.1:PORT/?userID=..&robotID=..&password=..&container=..`` and does what a web app

@@ -1,6 +1,6 @@
 """Faults injected into a running mission: ``rce-fleet demo --fault SPEC`` (repeatable), to show
-that the fleet survives them (issue 10, part 8; what survives what: docs/INTERNALS.md "Outliving
-the master" and "Session resume").
+that the fleet survives them (what survives what: docs/INTERNALS.md "Outliving the master" and
+"Session resume").
 
 SPEC, with T in sim s after the goals were sent (as ``--block``) and S in wall s (the outage is
 real time, not simulated):
