@@ -453,7 +453,7 @@ def _base_decoder(t: str) -> Decoder:
     if t == "bool":
         return bool
     if t == "string":
-        return str
+        return ros_strings.to_text
     return int
 
 

@@ -6,7 +6,9 @@ ROS 1 serializer rce uses, decodes and encodes strings as strict UTF-8, so a mes
 ``b'\\xff'`` would not deserialize in a node at all. :func:`install` makes every ROS 1
 (de)serializer rosbags generates from then on use ``surrogateescape`` (PEP 383): bytes that are
 not UTF-8 become lone surrogates in the Python string and are encoded back to the very same
-bytes, so a node that echoes a string echoes its bytes unchanged.
+bytes, so a node that echoes a string echoes its bytes unchanged. JSON cannot carry such bytes:
+a converter gives the robot the string with U+FFFD in their place (:func:`to_text`), as genpy's
+``rosmsg`` handler does for rospy.
 
 It works on the code rosbags generates (``rosbags.serde.ros1``: ``.decode()``/``.encode()`` of
 string fields, compiled by ``compile_lines``); tests/core/test_core_node_bus.py checks it, so a
@@ -18,7 +20,7 @@ import threading
 
 import rosbags.serde.ros1 as _ros1
 
-__all__ = ["ERRORS", "install"]
+__all__ = ["ERRORS", "install", "to_text"]
 
 ERRORS = "surrogateescape"
 _DECODE, _ENCODE = ".decode()", ".encode()"
@@ -43,3 +45,15 @@ def install() -> None:
 
         compile_bytes_in_strings.rce_bytes_in_strings = True
         _ros1.compile_lines = compile_bytes_in_strings
+
+
+def to_text(value: str) -> str:
+    """``value`` as text JSON can carry: the bytes that were not UTF-8 (surrogate escapes) become
+    U+FFFD REPLACEMENT CHARACTER. ASCII and valid text are returned as they are."""
+    if value.isascii():
+        return value
+    try:
+        value.encode("utf-8")
+    except UnicodeEncodeError:
+        return value.encode("utf-8", ERRORS).decode("utf-8", "replace")
+    return value

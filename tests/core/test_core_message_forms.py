@@ -257,10 +257,12 @@ def test_uint8_arrays_as_binary_parts_both_ways(reg):
 
 
 # -- forwarders: the structure, not the strings ------------------------------------------------------------
-def test_a_string_that_is_not_utf8_passes_a_forwarder(reg):
+def test_a_string_that_is_not_utf8_passes_a_forwarder_and_a_node_and_converts_with_replacements(reg):
     payload = b"\x04\x00\x00\x00\xff\xfe\x00\x80"
-    reg.check_structure("std_msgs/msg/String", payload)                 # passes untouched
-    assert "do not deserialize" in msg_error(reg.deserialize, "std_msgs/msg/String", payload)   # what converting did
+    reg.check_structure("std_msgs/msg/String", payload)                 # a forwarder: passes untouched
+    msg = reg.deserialize("std_msgs/msg/String", payload)               # a node: the same bytes come back
+    assert reg.serialize("std_msgs/msg/String", msg) == payload
+    assert reg.bytes_to_json("std_msgs/msg/String", payload) == {"data": "\ufffd\ufffd\x00\ufffd"}   # a converter
 
 
 @pytest.mark.parametrize("cls, obj, cut, parts", [
