@@ -17,8 +17,8 @@ The plan (:func:`plan`):
 - Every mount is then remounted read-only except the container's own directory and its
   scratch tmpfs (``writable``).
 
-Docker and bubblewrap build the same view (``--tmpfs /tmp``, ``--ro-bind``); see the
-README, "Containers: isolation, limits, fallbacks", for why rce does it in its own init.
+Docker and bubblewrap build the same view (``--tmpfs /tmp``, ``--ro-bind``); see
+docs/containers.md, "Isolation", for why rce does it in its own init.
 """
 from __future__ import annotations
 
