@@ -75,6 +75,9 @@ from rce.errors import AuthError, RCEError, Timeout, Unavailable, http_reason
 from rce.log import get_logger
 from rce.masterlink import Backoff
 from rce.protocol.resume import DEFAULT_GRACE, DEFAULT_RESUME_BUFFER
+from rce.protocol.events import (BarrierFailed, BarrierPassed, CallFailed, Detached, Dropped, ErrorReceived,
+                                 InterfaceChanged, MessageReceived, ResponseReceived, SessionStatus, StatusReceived,
+                                 unhandled)
 from rce.protocol.session import ClientSession
 from rce.tasks import Tasks
 
@@ -232,10 +235,10 @@ class ServiceProvider:
         if self.conn._handlers.get(self.itag) is self:
             del self.conn._handlers[self.itag]
 
-    async def _on_dm(self, data: dict) -> None:
-        msg_id = data.get("msgID")
+    async def _on_dm(self, call: MessageReceived) -> None:
+        msg_id = call.msg_id
         try:
-            resp = self.handler(data.get("msg"))
+            resp = self.handler(call.msg)
             if inspect.isawaitable(resp):
                 resp = await resp
         except Exception as e:
@@ -244,7 +247,7 @@ class ServiceProvider:
             log.warning("service call from the cloud failed", itag=self.itag, msg_id=msg_id, reason=reason)
             return
         self.served += 1
-        out = {"iTag": self.itag, "type": data.get("type") or self.srv_cls, "msg": resp}
+        out = {"iTag": self.itag, "type": call.type or self.srv_cls, "msg": resp}
         if msg_id is not None:
             out["msgID"] = msg_id
         await self.conn.send(protocol.DM, out)
@@ -762,35 +765,40 @@ class Connection:
     def _dispatch(self) -> None:
         """Do what the session's events say: callbacks, handlers, errors."""
         for ev in self.session.events_received():
-            f = ev.fields
-            if ev.name == "message":
-                self._on_message(f)
-            elif ev.name == "status":
-                for cb in self._status_cbs:
-                    self._run_cb(cb, f["data"])
-            elif ev.name == "interface":
-                self._changed.set()
-            elif ev.name in ("error", "call_failed"):      # an ER that failed a call is an error too
-                self._on_error(f["reason"])
-            elif ev.name == "dropped":
-                log.warning("dropped a message from the cloud", reason=f["reason"])
-            elif ev.name == "session" and f["data"].get("status") == "resumed":
-                self.resumes += 1
-                log.info("session resumed", robot=self.robot_id, dropped=f["data"].get("dropped"))
-                for cb in self._link_cbs["resumed"]:
-                    self._run_cb(cb, f["data"])
+            match ev:
+                case MessageReceived():
+                    self._on_message(ev)
+                case StatusReceived(data=data):
+                    for cb in self._status_cbs:
+                        self._run_cb(cb, data)
+                case InterfaceChanged():
+                    self._changed.set()
+                case ErrorReceived(reason=reason) | CallFailed(reason=reason):   # an ER that failed a call too
+                    self._on_error(reason)
+                case Dropped(reason=reason):
+                    log.warning("dropped a message from the cloud", reason=reason)
+                case SessionStatus(data=data):
+                    if data.get("status") == "resumed":
+                        self.resumes += 1
+                        log.info("session resumed", robot=self.robot_id, dropped=data.get("dropped"))
+                        for cb in self._link_cbs["resumed"]:
+                            self._run_cb(cb, data)
+                case ResponseReceived() | BarrierPassed() | BarrierFailed() | Detached():
+                    pass                                # their waiters have them (the session's pending table)
+                case _:
+                    unhandled(ev)
         self._kick()
 
-    def _on_message(self, f: dict) -> None:
-        handler = self._handlers.get(f["iTag"])
+    def _on_message(self, ev: MessageReceived) -> None:
+        handler = self._handlers.get(ev.itag)
         if handler is None:
             self.unhandled += 1
-            log.warning("data message for an interface with no handler", itag=f["iTag"], msg_id=f["msgID"])
+            log.warning("data message for an interface with no handler", itag=ev.itag, msg_id=ev.msg_id)
         elif isinstance(handler, ServiceProvider):
-            self.tasks.spawn(handler._on_dm(f), name="serve")      # calls are served concurrently
+            self.tasks.spawn(handler._on_dm(ev), name="serve")     # calls are served concurrently
         else:
             handler.received += 1                                   # messages are delivered in order
-            self._run_cb(handler.callback, f["msg"])
+            self._run_cb(handler.callback, ev.msg)
 
     def _on_error(self, reason: str) -> None:
         self.errors.append(reason)

@@ -27,7 +27,9 @@ from rce.errors import ProtocolError, RCEError
 from rce.log import get_logger
 from rce.message_forms import JsonForms
 from rce.protocol.limits import LOG_BURST, LOG_RATE, TokenBucket, truncate
-from rce.protocol.session import Event, RobotSession
+from rce.protocol.events import (CaughtUp, CloseLink, Deliver, Lagging, RequestReady, RobotEvent, ServiceCall,
+                                 unhandled)
+from rce.protocol.session import RobotSession
 from rce.masterlink import MasterLink
 from rce.tasks import Tasks
 from rce_robot.interfaces import RobotInterface
@@ -237,29 +239,31 @@ class RobotNamespace:
         if self.session.outbox and self.ws is not None:
             self._flush()
 
-    def _on_event(self, ev: Event) -> None:
-        f = ev.fields
-        if ev.name == "request":
-            self.tasks.spawn(self._request(f["type"], f["data"]), name="request")
-        elif ev.name == "deliver":
-            iface = self.interfaces.get(f["iTag"])
-            try:
-                if iface is None:
-                    raise RCEError(f"DM: no interface {f['iTag']!r} on robot {self.robot!r}")
-                iface.from_robot(f["data"])
-            except RCEError as e:
-                self.send_error(e.message)
-        elif ev.name == "call":
-            self.tasks.spawn(self._call(f["iTag"], f["data"]), name="call")
-        elif ev.name == "lagging":
-            if LAG_LOG.take(time.monotonic()):     # one endpoint, many robots: a few lines a second at most
-                log.warning("the endpoint lags behind the robot: its topic messages are shed until it catches up",
-                            user=self.user, robot=self.robot, behind_s=f["behind_s"])
-        elif ev.name == "caught_up":
-            log.debug("the endpoint caught up with the robot", user=self.user, robot=self.robot, shed=f["shed"])
-        elif ev.name == "close":
-            log.warning("closing a robot that does not read", user=self.user, robot=self.robot, reason=f["reason"])
-            self.tasks.spawn(self.close(f["reason"]), name="close")
+    def _on_event(self, ev: RobotEvent) -> None:
+        match ev:
+            case RequestReady(type=type_, data=data):
+                self.tasks.spawn(self._request(type_, data), name="request")
+            case Deliver(itag=itag, data=data):
+                iface = self.interfaces.get(itag)
+                try:
+                    if iface is None:
+                        raise RCEError(f"DM: no interface {itag!r} on robot {self.robot!r}")
+                    iface.from_robot(data)
+                except RCEError as e:
+                    self.send_error(e.message)
+            case ServiceCall(itag=itag, data=data):
+                self.tasks.spawn(self._call(itag, data), name="call")
+            case Lagging(behind_s=behind_s):
+                if LAG_LOG.take(time.monotonic()):     # one endpoint, many robots: a few lines a second at most
+                    log.warning("the endpoint lags behind the robot: its topic messages are shed until it catches "
+                                "up", user=self.user, robot=self.robot, behind_s=behind_s)
+            case CaughtUp(shed=shed):
+                log.debug("the endpoint caught up with the robot", user=self.user, robot=self.robot, shed=shed)
+            case CloseLink(reason=reason):
+                log.warning("closing a robot that does not read", user=self.user, robot=self.robot, reason=reason)
+                self.tasks.spawn(self.close(reason), name="close")
+            case _:
+                unhandled(ev)
 
     async def _request(self, type_: str, data: dict) -> None:
         try:

@@ -1,4 +1,4 @@
-"""Bounds of a robot session under hostile input (issue 11 part 4), sans I/O: the JSON depth
+"""Bounds of a robot session under hostile input, sans I/O: the JSON depth
 limit, the ER text cap, the per-session ER token bucket and the endpoint-wide budget of binary
 parts waiting for their message. docs/SECURITY.md "Limits" lists them with their defaults.
 

@@ -1,7 +1,7 @@
 """The rules of a robot session, sans I/O, in the manner of the ``websockets`` library's
 ``Protocol``: frames in (:meth:`receive_text`, :meth:`receive_binary`), time in
-(:meth:`tick`), and out come the frames to send (:meth:`data_to_send`) and :class:`Event`\\ s
-for the application (:meth:`events_received`). No sockets and no tasks: the robot endpoint
+(:meth:`tick`), and out come the frames to send (:meth:`data_to_send`) and typed events
+for the application (:meth:`events_received`; :mod:`rce.protocol.events`). No sockets and no tasks: the robot endpoint
 (:mod:`rce_robot.namespace`) and the client library (:mod:`rce_client.connection`) are
 shells that move frames and run what the events ask for.
 
@@ -24,12 +24,15 @@ from __future__ import annotations
 import json
 import uuid
 from collections import deque
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from typing import Any
 
 from rce.errors import ProtocolError, RequestError, Unavailable
 from rce.messages import takes_binary_message
 from rce.pending import PendingCalls
+from rce.protocol.events import (BarrierFailed, BarrierPassed, CallFailed, CaughtUp, CloseLink, Deliver, Detached,
+                                 Dropped, ErrorReceived, Event, InterfaceChanged, Lagging, MessageReceived,
+                                 RequestReady, ResponseReceived, ServiceCall, SessionStatus, StatusReceived)
 from rce.protocol.frames import (CX, DEFAULT_EXPIRY, DEFAULT_MAX_PENDING_BYTES, DEFAULT_MAX_PENDING_PARTS, DM, ER,
                                  ST, Assembler, encode)
 from rce.protocol.limits import DEFAULT_MAX_LAG, ER_BURST, ER_RATE, LagGate, PartBudget, TokenBucket, truncate
@@ -44,28 +47,6 @@ CONTROL_BACKLOG = 10                        # x queue_size: STs and answers wait
                                             # read is closed (they are never dropped; ERs are, past queue_size)
 LAG_TOPIC = "lag"                           # ST topic: the endpoint sheds the robot's topic messages, or caught up
 BARRIER_PREFIX = "rcesync"                  # barrier tokens: interfaces named so cannot exist
-
-
-@dataclass(frozen=True)
-class Event:
-    """What the application must do or learn: ``name`` and its ``fields`` (wire key names).
-
-    RobotSession: ``request {type, data}`` (send it to the master, then :meth:`RobotSession.request_done`),
-    ``deliver {iTag, data}`` (a DM for that interface), ``call {iTag, data}`` (a service call through a
-    ServiceProvider interface: answer with :meth:`RobotSession.answer_call` or
-    :meth:`RobotSession.fail_call`), ``close {reason}`` (the robot does not read: close its link),
-    ``lagging {behind_s}`` (the endpoint has been behind the robot's frames for ``behind_s`` s and
-    sheds its topic messages from now on), ``caught_up {shed}`` (it is no longer: ``shed`` messages
-    were dropped meanwhile).
-
-    ClientSession: ``status {data}``, ``interface {iTag, up}``, ``error {reason}``, ``message {iTag, type,
-    msgID, msg}``, ``response {msgID, msg}``, ``call_failed {msgID, reason}``, ``barrier {token}``,
-    ``barrier_failed {token, reason}``, ``dropped {reason}``; with resume: ``session {data}`` (an ST
-    session: started or resumed), ``detached {session, ack}`` (the link is lost, the session kept: resume
-    with this query) (tests/vectors/README.md)."""
-
-    name: str
-    fields: dict[str, Any] = field(default_factory=dict)
 
 
 class _Session:
@@ -85,8 +66,8 @@ class _Session:
         self.outgoing = Outgoing(resume_buffer, resume_bytes) if resume else None
         self.incoming = Incoming(ack_every, ack_delay) if resume else None
 
-    def _emit(self, name: str, **fields: Any) -> None:
-        self._events.append(Event(name, fields))
+    def _emit(self, event: Event) -> None:
+        self._events.append(event)
 
     def events_received(self) -> list[Event]:
         """The events produced since the last call, in order."""
@@ -324,7 +305,7 @@ class RobotSession(_Session):
         :class:`~rce.protocol.limits.LagGate`)."""
         shed = self.lag.backlog(frames, now)
         if shed:
-            self._emit("caught_up", shed=shed)
+            self._emit(CaughtUp(shed))
             self.send_status({"topic": LAG_TOPIC, "status": "caught_up", "shed": shed})
 
     # -- requests, one at a time and in order -------------------------------------------------------
@@ -332,7 +313,7 @@ class RobotSession(_Session):
         if self._in_flight is None and self._requests:
             t, data = self._requests.popleft()
             self._in_flight = t
-            self._emit("request", type=t, data=data)
+            self._emit(RequestReady(t, data))
 
     def request_done(self, error: str | None = None) -> None:
         """The master answered the request of the last ``request`` event; ``error``: its refusal.
@@ -375,17 +356,17 @@ class RobotSession(_Session):
             if not self.lag.admit(itag, self._now):
                 if self.lag.episode == 1:
                     behind = round(self.lag.behind(self._now), 3)
-                    self._emit("lagging", behind_s=behind)
+                    self._emit(Lagging(behind))
                     self.send_status({"topic": LAG_TOPIC, "status": "shedding", "behind_s": behind,
                                       "max_lag_s": self.lag.max_lag})
                 return
-            self._emit("deliver", iTag=itag, data=data)
+            self._emit(Deliver(itag, data))
         elif self.calls >= self.queue_size:
             self.dropped_in += 1
             self.send_error(f"service call {data.get('msgID')!r} on {itag!r} refused: {self.calls} calls in flight")
         else:
             self.calls += 1
-            self._emit("call", iTag=itag, data=data)
+            self._emit(ServiceCall(itag, data))
 
     def answer_call(self, call: dict, msg: Any) -> None:
         """The service of a ``call`` event (its ``data``: ``call``) answered ``msg``: the response goes to
@@ -483,8 +464,7 @@ class RobotSession(_Session):
         else:
             if self._out_control >= CONTROL_BACKLOG * self.queue_size and not self._overrun:
                 self._overrun = True
-                self._emit("close", reason=f"robot {self.robot!r} does not read: {len(self._out)} messages wait "
-                                           f"for it")
+                self._emit(CloseLink(f"robot {self.robot!r} does not read: {len(self._out)} messages wait for it"))
             self._out_control += 1
         self._out.append(_Out(msg, data))
         return True
@@ -730,7 +710,7 @@ class ClientSession(_Session):
     # -- frames in ----------------------------------------------------------------------------------
     def _bad_input(self, reason: str) -> None:
         self.dropped += 1
-        self._emit("dropped", reason=reason)
+        self._emit(Dropped(reason))
 
     def _on_message(self, m: dict) -> None:
         if self.state != "off" and not self._resume_rules(m):
@@ -741,8 +721,8 @@ class ClientSession(_Session):
         elif t == ST and isinstance(data, dict):
             if data.get("topic") == "iu" and isinstance(data.get("iTag"), str):
                 self.interfaces[data["iTag"]] = up = bool(data.get("status"))
-                self._emit("interface", iTag=data["iTag"], up=up)
-            self._emit("status", data=data)
+                self._emit(InterfaceChanged(data["iTag"], up))
+            self._emit(StatusReceived(data))
         elif t == ER:
             self._on_er(data if isinstance(data, str) else json.dumps(data, separators=(",", ":"), ensure_ascii=False))
         else:
@@ -761,7 +741,7 @@ class ClientSession(_Session):
         if self.state == "asked":                       # the cloud's first message decides
             if is_session_status(m) and data.get("status") == "started" and isinstance(data.get("session"), str):
                 self.state, self.token, self.grace = "live", data["session"], data.get("grace")
-                self._emit("session", data=data)
+                self._emit(SessionStatus(data))
                 return False
             self.state = "off"                          # the cloud does not offer resume
             self.outgoing = self.incoming = None
@@ -769,7 +749,7 @@ class ClientSession(_Session):
         if is_session_status(m):
             if self.state == "resuming" and data.get("status") == "resumed":
                 self._resumed(data)
-            self._emit("session", data=data)
+            self._emit(SessionStatus(data))
             return False
         return self._take_numbered(m)
 
@@ -797,7 +777,7 @@ class ClientSession(_Session):
         self.state = "detached"
         self._frames.clear()                            # AKs; numbered messages are kept
         self.assembler = self.assembler.fresh()
-        self._emit("detached", session=self.token, ack=self.incoming.last)
+        self._emit(Detached(self.token, self.incoming.last))
         return True
 
     def attach(self) -> None:
@@ -822,8 +802,7 @@ class ClientSession(_Session):
         for key, w in self.pending.items():
             if not w.done:
                 self._finish(key, w, Unavailable(error))
-                self._emit("call_failed" if w.kind == "call" else "barrier_failed",
-                           **{"msgID" if w.kind == "call" else "token": key, "reason": error})
+                self._emit(CallFailed(key, error) if w.kind == "call" else BarrierFailed(key, error))
         self.pending.fail_all(Unavailable(error))
 
     def _finish(self, key: str, w: _Waiting, error: Exception | None = None, result: Any = None) -> None:
@@ -843,15 +822,15 @@ class ClientSession(_Session):
             w = self.pending.info(key)
             if w is not None and w.kind == "call" and not w.done and w.itag == itag:
                 self._finish(key, w, result=data.get("msg"))
-                self._emit("response", msgID=key, msg=data.get("msg"))
+                self._emit(ResponseReceived(key, data.get("msg")))
                 return
-        self._emit("message", iTag=itag, type=data.get("type"), msgID=msg_id, msg=data.get("msg"))
+        self._emit(MessageReceived(itag, data.get("type"), msg_id, data.get("msg")))
 
     def _on_er(self, reason: str) -> None:
         for token, w in self._waiting("barrier"):
             if token in reason:
                 self._finish(token, w)
-                self._emit("barrier", token=token)
+                self._emit(BarrierPassed(token))
                 return
         calls = self._waiting("call")
         named = [(k, w) for k, w in calls if k in reason]
@@ -861,9 +840,9 @@ class ClientSession(_Session):
         if named:
             key, w = named[0]
             self._finish(key, w, RequestError(reason))
-            self._emit("call_failed", msgID=key, reason=reason)
+            self._emit(CallFailed(key, reason))
             return
-        self._emit("error", reason=reason)
+        self._emit(ErrorReceived(reason))
 
 
 def _names(reason: str, itag: str | None) -> bool:

@@ -20,6 +20,7 @@ from urllib.parse import parse_qsl, urlsplit
 from websockets.asyncio.server import serve
 from websockets.exceptions import ConnectionClosed
 
+from rce.protocol.events import Deliver, RequestReady, ServiceCall
 from rce.protocol.session import RobotSession
 
 
@@ -87,19 +88,19 @@ class ResumeCloud:
     def _events(self) -> None:
         s = self.session
         for ev in s.events_received():
-            f = ev.fields
-            if ev.name == "request":
-                self._request(f["type"], f["data"])
-            elif ev.name == "deliver":
-                self.taken.append(f["data"])
-                if f["iTag"] in self.echo:
-                    s.send_dm(self.echo[f["iTag"]], f["data"]["type"], "", f["data"]["msg"], data=True)
-            elif ev.name == "call":
-                self.taken.append(f["data"])
-                if self.hold_calls:
-                    self.held.append(f["data"])
-                else:
-                    s.answer_call(f["data"], f["data"]["msg"])
+            match ev:
+                case RequestReady(type=type_, data=data):
+                    self._request(type_, data)
+                case Deliver(itag=itag, data=data):
+                    self.taken.append(data)
+                    if itag in self.echo:
+                        s.send_dm(self.echo[itag], data["type"], "", data["msg"], data=True)
+                case ServiceCall(data=data):
+                    self.taken.append(data)
+                    if self.hold_calls:
+                        self.held.append(data)
+                    else:
+                        s.answer_call(data, data["msg"])
 
     def _request(self, t: str, data: dict) -> None:
         s = self.session

@@ -32,7 +32,7 @@ async def conn(cloud):
 
 
 async def test_handshake_query_has_hex_sha256_password(cloud, conn):
-    assert cloud.query == {"userID": "testUser", "robotID": "testRobot",
+    assert cloud.query == {"userID": "testUser", "robotID": "testRobot", "refusal": "http",
                            "password": hashlib.sha256(b"testUser").hexdigest()}
     assert hash_password("testUser") == cloud.query["password"] and len(cloud.query["password"]) == 64
 

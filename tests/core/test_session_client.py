@@ -9,6 +9,7 @@ import json
 import pytest
 
 from rce.errors import ProtocolError, RequestError, Timeout, Unavailable
+from rce.protocol.events import CallFailed, ErrorReceived, MessageReceived, ResponseReceived
 from rce.protocol.session import BARRIER_PREFIX, ClientSession
 
 pytestmark = pytest.mark.asyncio
@@ -33,7 +34,7 @@ async def test_waiters_get_the_response_the_er_and_the_close():
     with pytest.raises(Unavailable, match="connection to the cloud closed: code 1006"):
         await waiters[2]
     assert len(s.pending) == 0
-    assert [e.name for e in s.events_received()] == ["response", "call_failed", "call_failed"]
+    assert [type(e) for e in s.events_received()] == [ResponseReceived, CallFailed, CallFailed]
 
 
 async def test_a_closed_session_refuses_calls_barriers_and_sends():
@@ -77,7 +78,7 @@ async def test_the_waiter_times_out_with_timeout():
         await s.pending.wait(key, 0.01)
     # a late response is then an ordinary message
     s.receive_text(dm(iTag="slow", type="t", msgID=key, msg={}), 0)
-    assert [e.name for e in s.events_received()] == ["message"]
+    assert [type(e) for e in s.events_received()] == [MessageReceived]
 
 
 async def test_a_response_before_anyone_waits_is_kept_for_the_waiter():
@@ -85,5 +86,5 @@ async def test_a_response_before_anyone_waits_is_kept_for_the_waiter():
     key = s.call("echo", "t", {})
     s.receive_text(dm(iTag="echo", type="t", msgID=key, msg={"ok": 1}), 0)
     s.receive_text(json.dumps({"type": "ER", "data": f"late ER naming {key}"}), 0)    # not the call's any more
-    assert [e.name for e in s.events_received()] == ["response", "error"]
+    assert [type(e) for e in s.events_received()] == [ResponseReceived, ErrorReceived]
     assert await s.pending.wait(key, 1) == {"ok": 1}

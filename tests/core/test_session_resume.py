@@ -12,6 +12,7 @@ import pytest
 
 from rce.errors import ProtocolError
 from rce.protocol.resume import TOKEN_BYTES, Incoming, Outgoing, ack_frame, new_token, read_ack, read_seq
+from rce.protocol.events import Deliver, MessageReceived, ServiceCall
 from rce.protocol.session import ClientSession, RobotSession
 
 
@@ -135,14 +136,15 @@ class Pair:
 
     def events(self) -> None:
         for ev in self.cloud.events_received():
-            if ev.name == "deliver":
-                self.got_by_cloud.append(ev.fields["data"]["msg"]["data"])
-                self.cloud.send_dm("echo", "std_msgs/String", "", ev.fields["data"]["msg"], data=True)
-            elif ev.name == "call":
-                self.cloud.answer_call(ev.fields["data"], ev.fields["data"]["msg"])
+            match ev:
+                case Deliver(data=data):
+                    self.got_by_cloud.append(data["msg"]["data"])
+                    self.cloud.send_dm("echo", "std_msgs/String", "", data["msg"], data=True)
+                case ServiceCall(data=data):
+                    self.cloud.answer_call(data, data["msg"])
         for ev in self.robot.events_received():
-            if ev.name == "message":
-                self.got_by_robot.append(ev.fields["msg"]["data"])
+            if isinstance(ev, MessageReceived):
+                self.got_by_robot.append(ev.msg["data"])
 
     def drop(self) -> None:
         """The link is lost: both sides detach; the next step resumes."""

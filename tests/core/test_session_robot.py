@@ -12,7 +12,8 @@ import pytest
 from rce.errors import ProtocolError, RequestError
 from rce.protocol.frames import ID_LEN, Assembler
 from rce.protocol.limits import PartBudget
-from rce.protocol.session import CONTROL_BACKLOG, Event, RobotSession, robot_interface_type
+from rce.protocol.events import CaughtUp, CloseLink, Deliver, Lagging, ServiceCall
+from rce.protocol.session import CONTROL_BACKLOG, RobotSession, robot_interface_type
 
 TESTS = Path(__file__).resolve().parents[1]
 VECTORS = {v["name"]: v for v in json.loads((TESTS / "vectors" / "session.json").read_text())["robot"]}
@@ -32,6 +33,7 @@ BAD_INPUT = {
     "test_binary_part_errors": ["bad_binary_parts"],
     "test_bad_credentials_at_login": "the master's HTTP login: no session yet",
     "test_bad_credentials_at_websocket": "the websocket handshake: no session yet",
+    "test_a_2013_client_that_only_reads_frames_learns_its_login_failed": "the websocket handshake: no session yet",
     "test_duplicate_robot_id_refused": "the websocket handshake: no session yet",
 }
 
@@ -81,8 +83,8 @@ def test_a_robot_that_does_not_read_is_closed_once_and_loses_nothing():
     s = RobotSession("r1", queue_size=2)
     for i in range(CONTROL_BACKLOG * 2 + 5):
         s.send_status({"topic": "node", "status": f"s{i}"})
-    closes = [e for e in s.events_received() if e.name == "close"]
-    assert len(closes) == 1 and "'r1' does not read" in closes[0].fields["reason"]
+    closes = [e for e in s.events_received() if isinstance(e, CloseLink)]
+    assert len(closes) == 1 and "'r1' does not read" in closes[0].reason
     assert [f["data"]["status"] for f in frames_of(s)] == [f"s{i}" for i in range(CONTROL_BACKLOG * 2 + 5)]
 
 
@@ -105,7 +107,7 @@ def test_removed_interface_takes_no_more_dms():
     s.add_interface("req", "SubscriberConverter", "std_msgs/String")
     dm = {"type": "DM", "data": {"iTag": "req", "type": "std_msgs/String", "msgID": "", "msg": {"data": "x"}}}
     s.receive_text(json.dumps(dm), 0)
-    assert s.events_received() == [Event("deliver", {"iTag": "req", "data": dm["data"]})]
+    assert s.events_received() == [Deliver("req", dm["data"])]
     s.remove_interface("req")
     s.receive_text(json.dumps(dm), 0)
     assert s.events_received() == [] and ers(s) == ["DM: no interface 'req' on robot 'r1'"]
@@ -120,19 +122,19 @@ def test_an_endpoint_behind_the_robot_longer_than_max_lag_sheds_topic_messages_o
         cls = "Test/StringEcho" if itag == "srv" else "std_msgs/String"
         return json.dumps({"type": "DM", "data": {"iTag": itag, "type": cls, "msgID": msg_id, "msg": {"data": data}}})
 
-    def take(frame: str, waiting: int, now: float) -> list[str]:
+    def take(frame: str, waiting: int, now: float) -> list[type]:
         s.backlog(waiting, now)
         s.receive_text(frame, now)
-        return [e.name for e in s.events_received()]
-    assert take(dm("req", "a"), 5, 10.0) == ["deliver"]          # behind since 10.0
-    assert take(dm("req", "b"), 4, 10.9) == ["deliver"]          # 0.9 s: a burst, not a lag
-    assert take(dm("req", "c"), 3, 11.2) == ["lagging"]          # 1.2 s behind: shed, said once
+        return [type(e) for e in s.events_received()]
+    assert take(dm("req", "a"), 5, 10.0) == [Deliver]          # behind since 10.0
+    assert take(dm("req", "b"), 4, 10.9) == [Deliver]          # 0.9 s: a burst, not a lag
+    assert take(dm("req", "c"), 3, 11.2) == [Lagging]          # 1.2 s behind: shed, said once
     assert take(dm("req", "d"), 2, 11.3) == []
-    assert take(dm("srv", "e", "call-1"), 1, 11.4) == ["call"]   # a service call is never shed
-    assert take(dm("req", "f"), 3, 12.0) == ["deliver"]          # still behind, but 1.1 s since "b": one goes
+    assert take(dm("srv", "e", "call-1"), 1, 11.4) == [ServiceCall]   # a service call is never shed
+    assert take(dm("req", "f"), 3, 12.0) == [Deliver]          # still behind, but 1.1 s since "b": one goes
     assert take(dm("req", "g"), 2, 12.1) == []
-    assert take(dm("req", "h"), 0, 12.2) == ["caught_up", "deliver"]    # caught up: the newest goes
-    assert take(dm("req", "i"), 1, 20.0) == ["deliver"]          # a new lag starts from its own beginning
+    assert take(dm("req", "h"), 0, 12.2) == [CaughtUp, Deliver]    # caught up: the newest goes
+    assert take(dm("req", "i"), 1, 20.0) == [Deliver]          # a new lag starts from its own beginning
     assert s.stats()["shed"] == 3 and s.stats()["dropped_in"] == 0
     assert frames_of(s) == [{"type": "ST", "data": {"topic": "lag", "status": "shedding", "behind_s": 1.2,
                                                     "max_lag_s": 1.0}},
@@ -142,7 +144,7 @@ def test_an_endpoint_behind_the_robot_longer_than_max_lag_sheds_topic_messages_o
     for t in (10.0, 12.0, 12.1):
         never.backlog(5, t)
         never.receive_text(dm("req", "x"), t)
-    assert [e.name for e in never.events_received()] == ["deliver"] * 3 and never.stats()["shed"] == 0
+    assert [type(e) for e in never.events_received()] == [Deliver] * 3 and never.stats()["shed"] == 0
 
 
 def test_a_dm_with_a_legacy_service_type_routes_as_service_client():
@@ -150,7 +152,7 @@ def test_a_dm_with_a_legacy_service_type_routes_as_service_client():
     s.add_interface("prov", "ServiceConverter", "Test/StringEcho")
     dm = {"iTag": "prov", "type": "Test/StringEcho", "msgID": "c0", "msg": {"data": "reply"}}
     s.receive_text(json.dumps({"type": "DM", "data": dm}), 0)
-    assert s.events_received() == [Event("deliver", {"iTag": "prov", "data": dm})]
+    assert s.events_received() == [Deliver("prov", dm)]
 
 
 def test_one_robots_bad_input_leaves_another_session_alone():
@@ -162,7 +164,7 @@ def test_one_robots_bad_input_leaves_another_session_alone():
     good = json.dumps({"type": "DM", "data": {"iTag": "req", "type": "std_msgs/String", "msg": {"data": "x"}}})
     b.receive_text(good, 0)
     assert len(ers(a)) == 2 and a.stats()["errors"] == 2
-    assert frames_of(b) == [] and [e.name for e in b.events_received()] == ["deliver"]
+    assert frames_of(b) == [] and [type(e) for e in b.events_received()] == [Deliver]
     assert b.stats()["errors"] == 0
 
 

@@ -12,7 +12,8 @@ from typing import Any
 import pytest
 
 from rce.protocol.frames import DEFAULT_EXPIRY
-from rce.protocol.session import ClientSession, Event, RobotSession
+from rce.protocol.events import Event, as_record
+from rce.protocol.session import ClientSession, RobotSession
 
 VECTORS = json.loads((Path(__file__).resolve().parents[1] / "vectors" / "session.json").read_text())
 
@@ -61,7 +62,7 @@ def matches(expected: Any, actual: Any) -> bool:
 def outputs(frames: list[str | bytes], events: list[Event]) -> list[dict]:
     out: list[dict] = [{"frame": {"text": json.loads(f)}} if isinstance(f, str) else {"frame": {"binary": f.hex()}}
                        for f in frames]
-    return out + [{"event": e.name, **e.fields} for e in events]
+    return out + [as_record(e) for e in events]
 
 
 def check(vector: dict, i: int, step: dict, got: list[dict], stats: dict | None = None) -> None:
