@@ -157,7 +157,7 @@ class LocalBusGraph:
     """The robot-side graph of ``rce-ros``: the robot's local bus (:class:`rce.bus.core.Bus`), served
     on the Unix socket ``bridge.bus_path`` (None: in-process, no socket).
 
-    Every robot-side graph (this one, :class:`rce_client.ros1_bridge.Ros1Graph`) offers the same
+    Every robot-side graph (this one, :class:`rce_client.ros1_bridge.RospyGraph`) offers the same
     calls, all made in the loop: :meth:`start`, :meth:`close`, :meth:`subscribe`, :meth:`advertise`,
     :meth:`advertise_service`, :meth:`call_service`. ``k`` is a :class:`_Kind`."""
 
@@ -224,7 +224,7 @@ class RobotBridge:
     in a task, ``ready`` tells when the interfaces are up, ``stop.set()`` tears down.
     ``resume``: ask for session resume and ride out lost links (:class:`Connection` ``allow_reconnect``).
     ``graph(bridge)`` makes the robot-side graph the interfaces are bridged to (default
-    :class:`LocalBusGraph`; ``rce-ros --ros``: :class:`rce_client.ros1_bridge.Ros1Graph`)."""
+    :class:`LocalBusGraph`; ``rce-ros --ros``: :class:`rce_client.ros1_bridge.RospyGraph`)."""
 
     def __init__(self, config: RobotConfig, source: str, bus_path: str | None, *, timeout: float = 30.0,
                  keep: bool = False, url: str | None = None, registry: MessageRegistry | None = None,
@@ -522,8 +522,8 @@ def main(argv: list[str] | None = None) -> None:
     async def amain() -> int:
         graph = None
         if args.ros:
-            from rce_client.ros1_bridge import Ros1Graph
-            graph = Ros1Graph
+            from rce_client.ros1_bridge import RospyGraph
+            graph = RospyGraph
         bridge = RobotBridge(cfg, args.config, bus_path, timeout=args.timeout, keep=args.keep, url=args.url,
                              resume=args.resume, graph=graph)
         loop = asyncio.get_running_loop()

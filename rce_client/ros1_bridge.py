@@ -1,6 +1,6 @@
 """``rce-ros CONFIG --ros``: the robot-side interfaces bridged to a real ROS 1 graph.
 
-:class:`Ros1Graph` is the robot-side graph of :class:`rce_client.rce_ros.RobotBridge` when
+:class:`RospyGraph` is the robot-side graph of :class:`rce_client.rce_ros.RobotBridge` when
 ``--ros`` is given (instead of the local bus): one rospy node (``rospy.init_node("rce_ros",
 anonymous=True, disable_signals=True)``) on the ROS 1 master named by ``ROS_MASTER_URI``
 (Debian's ros-comm, found by :func:`rce.ros1.import_rospy`). Each robot-side interface is bridged
@@ -102,7 +102,7 @@ class Handoff:
         self.deliver(payload)
 
 
-class Ros1Graph:
+class RospyGraph:
     """The robot-side graph of ``rce-ros --ros`` (same calls as :class:`rce_client.rce_ros.LocalBusGraph`).
 
     :meth:`start` raises :class:`ConfigError` (rospy missing, ``ROS_MASTER_URI`` unset, a class with

@@ -53,7 +53,7 @@ def is_ros1_package(pkg_dir: Path) -> bool:
 
 
 @dataclass
-class Graph:
+class GraphView:
     """One side's view: ``publishers``/``subscribers``: topic -> set of node names,
     ``types``: topic -> ``pkg/Name``, ``services``: service -> provider node name,
     ``service_types``: service -> ``pkg/Name`` (where known)."""
@@ -64,9 +64,9 @@ class Graph:
     service_types: dict[str, str] = field(default_factory=dict)
 
 
-def bus_graph(describe: dict) -> Graph:
-    """A :class:`Graph` from the bus's ``describe`` (:meth:`rce.bus.core.Bus.describe`)."""
-    g = Graph()
+def bus_graph(describe: dict) -> GraphView:
+    """A :class:`GraphView` from the bus's ``describe`` (:meth:`rce.bus.core.Bus.describe`)."""
+    g = GraphView()
     for t in describe.get("topics", []):
         g.publishers[t["name"]] = set(t["publishers"])
         g.subscribers[t["name"]] = set(t["subscribers"])
@@ -77,12 +77,12 @@ def bus_graph(describe: dict) -> Graph:
     return g
 
 
-def ros1_graph(system_state: list, topic_types: list) -> Graph:
-    """A :class:`Graph` from rosmaster's ``getSystemState`` (``[publishers, subscribers,
+def ros1_graph(system_state: list, topic_types: list) -> GraphView:
+    """A :class:`GraphView` from rosmaster's ``getSystemState`` (``[publishers, subscribers,
     services]``, each ``[[name, [node...]]...]``) and ``getTopicTypes`` (``[[name, type]...]``),
     ROS Master API (wiki.ros.org/ROS/Master_API)."""
     pubs, subs, srvs = system_state
-    g = Graph(publishers={n: set(ns) for n, ns in pubs}, subscribers={n: set(ns) for n, ns in subs},
+    g = GraphView(publishers={n: set(ns) for n, ns in pubs}, subscribers={n: set(ns) for n, ns in subs},
               types={n: t for n, t in topic_types})
     g.services = {n: sorted(ns)[0] for n, ns in srvs if ns}
     return g
@@ -104,7 +104,7 @@ def _others(names: set[str] | None, me: str) -> bool:
     return bool(names and names - {me})
 
 
-def plan(bus: Graph, ros: Graph, me: str) -> Plan:
+def plan(bus: GraphView, ros: GraphView, me: str) -> Plan:
     """The bridges the relay named ``me`` (on both graphs) should have now (module doc)."""
     p = Plan()
     for topic in set(bus.publishers) | set(ros.publishers):

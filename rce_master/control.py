@@ -14,7 +14,7 @@ from rce.cluster_auth import ClusterKey
 from rce.errors import RCEError, Unavailable
 from rce.log import get_logger
 from rce.rpc import CALL_TIMEOUT, RpcPeer
-from rce_master.model import LIMIT_KEYS, Container, InterfaceRec, NodeRec
+from rce_master.model import LIMIT_KEYS, ContainerRec, InterfaceRec, NodeRec
 from rce_master.reconcile import Reconciled
 from rce_master.state import MasterState, Pairs, TaskSetAbsent
 
@@ -45,7 +45,7 @@ class Control:
         self._back: dict[int, asyncio.Event] = {}      # tid -> set when that absent task set is back
 
     # -- calls ----------------------------------------------------------------------------------------
-    async def host_request(self, c: Container, op: str, args: dict, timeout: float = CALL_TIMEOUT,
+    async def host_request(self, c: ContainerRec, op: str, args: dict, timeout: float = CALL_TIMEOUT,
                            wait: bool = True) -> Any:
         """Send ``op`` with ``args`` (plus ``cid``) to the host of container ``c``; its answer. An
         absent host is waited for (``wait``, robot requests: up to :data:`ABSENT_WAIT`), or refused
@@ -90,7 +90,7 @@ class Control:
         if ts.lost and wait:
             raise TaskSetAbsent(f"{what} has not re-registered since the master restarted; try again later")
 
-    async def host_call(self, c: Container, op: str, **args: Any) -> Any:
+    async def host_call(self, c: ContainerRec, op: str, **args: Any) -> Any:
         """:meth:`host_request` with the op's arguments as keywords (timeout: ``rce.rpc.CALL_TIMEOUT``)."""
         return await self.host_request(c, op, args)
 
@@ -109,14 +109,14 @@ class Control:
         return await peer.request(op, args, CALL_TIMEOUT)
 
     # -- what a container is made of (a CC and CN, and its re-creation after a loss) --------------------
-    async def create_container(self, c: Container) -> dict:
+    async def create_container(self, c: ContainerRec) -> dict:
         """``create_container`` on ``c``'s host with its group and limits (``c.data``, as last
         resized); the host's ``{data_addr, sandbox, startup_ms}``."""
         return await self.host_request(c, "create_container", {
             "user": c.user, "ctag": c.ctag, "group": c.group, "limits": {k: c.data.get(k) for k in LIMIT_KEYS}},
             CREATE_TIMEOUT)
 
-    async def start_node(self, c: Container, ntag: str, spec: dict) -> Any:
+    async def start_node(self, c: ContainerRec, ntag: str, spec: dict) -> Any:
         """``add_node`` on ``c``'s host: node ``ntag`` of addNodes entry ``spec``."""
         return await self.host_call(c, "add_node", ntag=ntag, pkg=spec["pkg"], exe=spec["exe"],
                                     args=spec.get("args", ""), name=spec.get("name"),
@@ -182,7 +182,7 @@ class Control:
         for a, b in pairs:
             await self.tell_disconnect(a, b)
 
-    async def readdress(self, c: Container) -> None:
+    async def readdress(self, c: ContainerRec) -> None:
         """Container ``c`` has a new data address: tell the peers of its interfaces' connections
         (a ``connect`` for a connection that exists replaces the peer's address)."""
         for rec in self.state.interfaces_of(c.user, c.ctag):
@@ -196,7 +196,7 @@ class Control:
         if peer:
             peer.notify("notify", user=user, robot=robot, type=type_, data=data)
 
-    def tell_node_status(self, c: Container, n: NodeRec, status: str, detail: dict) -> None:
+    def tell_node_status(self, c: ContainerRec, n: NodeRec, status: str, detail: dict) -> None:
         """ST ``node`` to the container's owner; an ER too when the node exited with an error."""
         self.notify_robot(c.user, c.owner, "ST", {"topic": "node", "cTag": c.ctag, "nTag": n.ntag,
                                                   "status": status, **detail})
@@ -206,7 +206,7 @@ class Control:
                               + (f": {detail['reason']}" if detail.get("reason") else ""))
 
     # -- teardowns --------------------------------------------------------------------------------------
-    async def destroy(self, c: Container, pairs: Pairs) -> None:
+    async def destroy(self, c: ContainerRec, pairs: Pairs) -> None:
         """After :meth:`MasterState.remove_container`: disconnect its interfaces' peers and
         destroy it on its host (unless lost or being re-created: :mod:`rce_master.failover` undoes that)."""
         await self.tell_disconnects(pairs)
@@ -240,7 +240,7 @@ class Control:
             for me, peer in self.state.connections_of(rec.iid):
                 await self.quiet(self.tell_connect(me, peer))
 
-    async def cut(self, c: Container) -> None:
+    async def cut(self, c: ContainerRec) -> None:
         """Container ``c`` was just lost: the far end of each of its interfaces' connections gets
         ``disconnect`` (a robot-side end then says ``iu false``), quietly. The records stay: its
         re-creation connects them again."""
@@ -249,7 +249,7 @@ class Control:
                 if peer.robot_side or peer.location != c.cid:
                     await self.quiet(self.endpoint_call(peer, "disconnect", iid=peer.iid, peer_iid=me.iid))
 
-    def tell_lost(self, c: Container, why: str) -> None:
+    def tell_lost(self, c: ContainerRec, why: str) -> None:
         """Tell ``c``'s owner ``ST {topic: container, cTag, status: lost}`` and an ER saying ``why``."""
         self.notify_robot(c.user, c.owner, "ST", {"topic": "container", "cTag": c.ctag, "status": "lost"})
         self.notify_robot(c.user, c.owner, "ER", f"container {c.ctag!r} was lost: {why}")

@@ -38,7 +38,7 @@ from rce.errors import RCEError, Unavailable
 from rce.log import get_logger
 from rce.tasks import Tasks
 from rce_master.control import Control
-from rce_master.model import Container, InterfaceRec, Robot
+from rce_master.model import ContainerRec, InterfaceRec, Robot
 from rce_master.state import MasterState
 
 log = get_logger("rce.master")
@@ -57,7 +57,7 @@ class _Superseded(Exception):
 class Recovery:
     """The failover of one container: its attempts, the hosts that failed it (tids), the host it
     prefers (its own, when only its environment died), when it last came back (monotonic s)."""
-    c: Container
+    c: ContainerRec
     prefer: int | None = None
     attempts: int = 0
     failed: set[int] = field(default_factory=set)
@@ -79,7 +79,7 @@ class Failover:
         self._hosts = asyncio.Event()                             # set (and replaced) when a container host registers
 
     # -- what the master sees ---------------------------------------------------------------------------
-    async def lost(self, containers: list[Container], why: str, prefer: int | None = None) -> None:
+    async def lost(self, containers: list[ContainerRec], why: str, prefer: int | None = None) -> None:
         """Containers just marked lost (``why`` says how): cut their connections, tell their
         owners, re-create them (preferring host ``prefer``). One that never ran (its CC was under
         way) is not re-created: its CC fails and undoes it."""
@@ -95,7 +95,8 @@ class Failover:
             if again:
                 self._start(c, prefer)
 
-    async def taskset_lost(self, lost: list[Container], robots: list[Robot], why: str = "its host went away") -> None:
+    async def taskset_lost(self, lost: list[ContainerRec], robots: list[Robot],
+                           why: str = "its host went away") -> None:
         """After :meth:`MasterState.drop_taskset`: its robots are gone (with the containers they
         own), then its containers still here are lost."""
         for r in robots:
@@ -130,17 +131,17 @@ class Failover:
             if not self._orphan(c):
                 self._start(c, None)
 
-    def _orphan(self, c: Container) -> bool:
+    def _orphan(self, c: ContainerRec) -> bool:
         """``c``'s robot is gone: a container belongs to its robot's session, so it is not re-created."""
         return (c.user, c.owner) not in self.state.robots
 
-    async def _forget(self, c: Container, why: str) -> None:
+    async def _forget(self, c: ContainerRec, why: str) -> None:
         """Forget lost container ``c`` of a robot that is gone, with its interfaces' connections."""
         log.info("lost container forgotten", user=c.user, ctag=c.ctag, reason=why + "; its robot is gone")
         await self.control.destroy(*self.state.remove_container(c.user, c.ctag))
 
     # -- re-creation ---------------------------------------------------------------------------------------
-    def _start(self, c: Container, prefer: int | None) -> None:
+    def _start(self, c: ContainerRec, prefer: int | None) -> None:
         for key, rec in list(self.recoveries.items()):       # bound: drop what no longer matters
             done = rec.task is None or rec.task.done()
             if done and (not self._current(rec.c) or rec.recovered_at is None
@@ -178,7 +179,7 @@ class Failover:
                 return
             rec.failed.add(host.tid)
 
-    async def _attempt(self, c: Container, tid: int) -> bool:
+    async def _attempt(self, c: ContainerRec, tid: int) -> bool:
         """One re-creation of ``c`` on host ``tid``; True when it runs there. Undone when it fails."""
         t0 = time.monotonic()
         self.state.container_recovering(c, tid)
@@ -198,7 +199,7 @@ class Failover:
                  ms=round((time.monotonic() - t0) * 1000, 1))
         return True
 
-    async def _rebuild(self, c: Container, cid: int) -> None:
+    async def _rebuild(self, c: ContainerRec, cid: int) -> None:
         """Create ``c`` (now ``cid``) on its new host with its parameters, container-side
         interfaces and nodes; then it runs, its connections are made again, its owner is told."""
         answer = await self.control.create_container(c)
@@ -220,7 +221,7 @@ class Failover:
             self.control.notify_robot(c.user, c.owner, "ST", {"topic": "container", "cTag": c.ctag,
                                                               "status": "running", "sandbox": c.sandbox})
 
-    def _live_connections(self, c: Container) -> list[tuple[InterfaceRec, InterfaceRec]]:
+    def _live_connections(self, c: ContainerRec) -> list[tuple[InterfaceRec, InterfaceRec]]:
         """The connections of ``c``'s interfaces whose other end is up: a robot-side end whose
         endpoint is registered, or a container-side end whose container runs. Two containers
         re-created together: whichever runs second connects them (this is read with no await
@@ -252,15 +253,15 @@ class Failover:
             return False
         return True
 
-    def _give_up(self, c: Container, why: str) -> None:
+    def _give_up(self, c: ContainerRec, why: str) -> None:
         self.gave_up += 1
         log.warning("container stays lost", user=c.user, ctag=c.ctag, reason=why)
         self.control.notify_robot(c.user, c.owner, "ER", f"container {c.ctag!r} could not be re-created: {why}; "
                                                          "it stays lost (DC it to give it up)")
 
-    def _current(self, c: Container) -> bool:
+    def _current(self, c: ContainerRec) -> bool:
         return self.state.containers.get((c.user, c.ctag)) is c
 
-    def _check(self, c: Container, cid: int) -> None:
+    def _check(self, c: ContainerRec, cid: int) -> None:
         if not self._current(c) or c.cid != cid or c.state != "recovering":
             raise _Superseded(c.ctag)

@@ -14,7 +14,7 @@ import dataclasses
 from typing import Any, Callable
 
 from rce.errors import NotFound, Unavailable
-from rce_master.model import ConnectionRec, Container, InterfaceRec, NodeRec, Robot, TaskSet, User
+from rce_master.model import ConnectionRec, ContainerRec, InterfaceRec, NodeRec, Robot, TaskSet, User
 from rce_master.store import Key, Store
 
 
@@ -29,14 +29,14 @@ class StateIndex:
         self.users: dict[str, User] = {}
         self.tasksets: dict[int, TaskSet] = {}
         self.robots: dict[tuple[str, str], Robot] = {}
-        self.containers: dict[tuple[str, str], Container] = {}
+        self.containers: dict[tuple[str, str], ContainerRec] = {}
         self.nodes: dict[tuple[str, str, str], NodeRec] = {}
         self.params: dict[tuple[str, str, str], Any] = {}
         self.interfaces: dict[tuple[str, str, str], InterfaceRec] = {}
         self.connections: set[ConnectionRec] = set()
         self.counters: dict[str, int] = {}                   # next id: "tid", "cid", "iid"
         # indexes: a robot leaving with many interfaces costs O(its connections)
-        self._by_cid: dict[int, Container] = {}
+        self._by_cid: dict[int, ContainerRec] = {}
         self._by_iid: dict[int, InterfaceRec] = {}
         self._links: dict[int, set[ConnectionRec]] = {}      # iid -> its connections
         # objects removed by the current batch: a rollback puts the same objects back
@@ -97,7 +97,7 @@ class StateIndex:
                 host.mem_load += sign * float(data.get("memory") or 0)
         if old is not None:
             self._by_cid.pop(old["cid"], None)
-        c = self._upsert(self.containers, key[1:], Container, new)
+        c = self._upsert(self.containers, key[1:], ContainerRec, new)
         if c is not None:
             self._by_cid[c.cid] = c
 
@@ -155,7 +155,7 @@ class StateIndex:
         return obj
 
     # -- queries --------------------------------------------------------------------------------------
-    def container(self, user: str, ctag: str) -> Container:
+    def container(self, user: str, ctag: str) -> ContainerRec:
         """The user's container ``ctag``. Raises :class:`NotFound`, or :class:`Unavailable` while it
         is lost or being re-created (:func:`lost_reason`)."""
         c = self.containers.get((user, ctag))
@@ -165,14 +165,14 @@ class StateIndex:
             raise Unavailable(f"{lost_reason(c)}; try again once it runs (ST status running), or DC it")
         return c
 
-    def container_by_cid(self, cid: int) -> Container | None:
+    def container_by_cid(self, cid: int) -> ContainerRec | None:
         return self._by_cid.get(cid)
 
-    def nodes_of(self, c: Container) -> list[NodeRec]:
+    def nodes_of(self, c: ContainerRec) -> list[NodeRec]:
         """The nodes of container ``c``, by nTag."""
         return sorted((n for k, n in self.nodes.items() if k[:2] == (c.user, c.ctag)), key=lambda n: n.ntag)
 
-    def params_of(self, c: Container) -> list[tuple[str, Any]]:
+    def params_of(self, c: ContainerRec) -> list[tuple[str, Any]]:
         """The parameters set in container ``c``: ``(name, value)`` by name."""
         return sorted((k[2], v) for k, v in self.params.items() if k[:2] == (c.user, c.ctag))
 
@@ -249,7 +249,7 @@ class StateIndex:
         }
 
 
-def lost_reason(c: Container) -> str:
+def lost_reason(c: ContainerRec) -> str:
     """What became of lost (or recovering) container ``c``, for the refusals that name it."""
     if c.state == "recovering":
         return f"container {c.ctag!r} was lost with its host and is being re-created on another host"

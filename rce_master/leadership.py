@@ -29,7 +29,7 @@ from rce_master.server import Master
 log = get_logger("rce.master")
 
 
-class Office:
+class ElectedOffice:
     """The :class:`~rce_master.office.Office` of a master on etcd: it leads once it is elected
     and has taken office (in between, requests are still refused), and while its lease lasts."""
 
@@ -51,7 +51,7 @@ class Office:
         return self.election.me
 
 
-async def run(url: str, make_master: Callable[[EtcdStore, Office], Master],
+async def run(url: str, make_master: Callable[[EtcdStore, ElectedOffice], Master],
               start: Callable[[Master], Awaitable[dict]], ready: Callable[[Master], None],
               stop: asyncio.Event) -> None:
     """Run one master on the etcd cluster of ``url`` (:func:`rce_master.etcd.parse_url`) until
@@ -67,7 +67,7 @@ async def run(url: str, make_master: Callable[[EtcdStore, Office], Master],
         store = EtcdStore(client, cfg.prefix, max_txn_ops=cfg.max_txn_ops)
         await store.load()
         election = Election(client, cfg.prefix)
-        office = Office(election)
+        office = ElectedOffice(election)
         master = make_master(store, office)
         election.me = await start(master)
         store.follow(master.state.followed)
@@ -100,7 +100,7 @@ async def _first(tasks: Tasks, *events: asyncio.Event) -> int:
     return next(i for i, e in enumerate(events) if e.is_set())
 
 
-async def _lead(master: Master, store: EtcdStore, office: Office) -> None:
+async def _lead(master: Master, store: EtcdStore, office: ElectedOffice) -> None:
     """Campaign; once elected, read the state again, write from now on, and take office."""
     fence = await office.election.campaign()
     try:

@@ -114,7 +114,7 @@ class Robot(_Record):
 
 
 @dataclass
-class Container(_Record):
+class ContainerRec(_Record):
     """A container of ``user`` created by robot ``owner`` on container host ``tid``.
 
     ``state``: ``starting`` (its CC runs), ``running``, ``lost`` (its host or environment went
@@ -144,6 +144,9 @@ class Container(_Record):
     def load(self) -> tuple[float, float]:
         """(cpu cores, memory MiB) it asked of its host."""
         return float(self.data.get("cpu") or 0), float(self.data.get("memory") or 0)
+
+
+Container = ContainerRec      # the record's former name, until rce_master/state.py imports ContainerRec
 
 
 @dataclass

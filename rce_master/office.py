@@ -1,5 +1,5 @@
 """Whether this master leads (docs/INTERNALS.md, "Several masters"). A master alone (its state in
-memory or a SQLite file) always leads; masters on etcd elect one (:class:`rce_master.leadership.Office`),
+memory or a SQLite file) always leads; masters on etcd elect one (:class:`rce_master.leadership.ElectedOffice`),
 and the others stand by: they serve login and admin reads and refuse the rest with
 :class:`~rce.errors.NotLeader`, which names the leader (over HTTP: 503 with the leader's URL in
 the header :data:`rce.admin_client.LEADER_HEADER`).

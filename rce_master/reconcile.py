@@ -22,7 +22,7 @@ from dataclasses import dataclass, field
 from typing import Any
 
 from rce.errors import RequestError
-from rce_master.model import Container, NodeRec, Robot, TaskSet
+from rce_master.model import ContainerRec, NodeRec, Robot, TaskSet
 from rce_master.state import MasterState, Pairs
 
 # s after a master starts on a store: task sets still absent then are dropped (their containers lost, their
@@ -82,9 +82,9 @@ class Reconciled:
     drop_nodes: list[dict] = field(default_factory=list)           # {cid, ntag}
     drop_interfaces: list[int] = field(default_factory=list)
     close_robots: list[dict] = field(default_factory=list)         # {user, robot}
-    lost: list[Container] = field(default_factory=list)            # now lost: tell their robots
-    nodes_lost: list[tuple[Container, str]] = field(default_factory=list)
-    readdressed: list[Container] = field(default_factory=list)     # new data_addr: tell their peers
+    lost: list[ContainerRec] = field(default_factory=list)            # now lost: tell their robots
+    nodes_lost: list[tuple[ContainerRec, str]] = field(default_factory=list)
+    readdressed: list[ContainerRec] = field(default_factory=list)     # new data_addr: tell their peers
     pairs: Pairs = field(default_factory=list)                     # connections of forgotten interfaces
     kept: list[Robot] = field(default_factory=list)                # robots it reported that the master kept
     gone: list[Robot] = field(default_factory=list)                # robots it did not report: forget them
@@ -169,7 +169,7 @@ def _containers(state: MasterState, out: Reconciled, report: Report) -> None:
         out.lost.append(c)
 
 
-def _nodes(state: MasterState, out: Reconciled, c: Container, stored: list[NodeRec], reported: dict) -> None:
+def _nodes(state: MasterState, out: Reconciled, c: ContainerRec, stored: list[NodeRec], reported: dict) -> None:
     by_ntag = {n.ntag: n for n in stored}
     for ntag, status in sorted(reported.items()):
         n = by_ntag.get(ntag)

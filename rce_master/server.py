@@ -61,7 +61,7 @@ RETRY_AFTER = 5                                    # s, Retry-After of a 503 for
 #                                                    API): about a reconnecting task set's backoff
 
 
-class Metrics:
+class MasterMetrics:
     """Prometheus metrics of the master."""
 
     def __init__(self, state: MasterState, office: Office, failover: Failover):
@@ -122,7 +122,7 @@ class Master:
         self.robot_locks: dict[tuple[str, str], asyncio.Lock] = defaultdict(asyncio.Lock)
         self.tasks = Tasks("rce-master")
         self.failover = Failover(self.state, self.control, self.tasks)
-        self.metrics = Metrics(self.state, self.office, self.failover)
+        self.metrics = MasterMetrics(self.state, self.office, self.failover)
         self.passwords = PasswordCheck(login_guard)     # the auth op's throttling and scrypt pool (login_guard.py)
         self.metrics.registry.register(self.passwords)
         self._control: asyncio.AbstractServer | None = None

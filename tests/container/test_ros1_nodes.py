@@ -26,7 +26,7 @@ from rce.messages import default_registry
 from rce.package_path import load_package_types
 from rce_container.launcher import Launcher
 from rce_container.ros1_graph import Ros1Graph
-from rce_container.ros1_plan import (Graph, bus_graph, flatten_params, is_ros1_package, param_changes, plan,
+from rce_container.ros1_plan import (GraphView, bus_graph, flatten_params, is_ros1_package, param_changes, plan,
                                      relay_name, ros1_graph)
 from rce_container.sandbox import ProcessGroupSandbox
 from wsclient import RawRobot
@@ -84,16 +84,16 @@ def test_plan_bridges_a_topic_where_one_side_publishes_and_the_other_reads():
 
 def test_plan_never_bridges_the_relays_own_output_or_a_type_conflict():
     # the relay's own publications and subscriptions do not count: nothing to bridge
-    bus = Graph(publishers={"/a": {ME}}, subscribers={"/b": {ME}}, types={"/a": "x/A", "/b": "x/B"},
+    bus = GraphView(publishers={"/a": {ME}}, subscribers={"/b": {ME}}, types={"/a": "x/A", "/b": "x/B"},
                 services={"/s": ME}, service_types={"/s": "x/S"})
     ros = _ros(pubs=[("/b", [ME])], subs=[("/a", [ME])], types=[("/a", "x/A"), ("/b", "x/B")], srvs=[("/s", [ME])])
     p = plan(bus, ros, ME)
     assert (p.to_ros, p.to_bus, p.services_to_bus, p.services_to_ros) == ({}, {}, set(), {})
     # a service provided on both sides by others stays where it is
-    p = plan(Graph(services={"/s": "/n"}, service_types={"/s": "x/S"}), _ros(srvs=[("/s", ["/m"])]), ME)
+    p = plan(GraphView(services={"/s": "/n"}, service_types={"/s": "x/S"}), _ros(srvs=[("/s", ["/m"])]), ME)
     assert not p.services_to_bus and not p.services_to_ros
     # the two graphs disagree on a topic's type: left alone, and said why
-    bus = Graph(publishers={"/c": {"interface:c"}}, types={"/c": "std_msgs/String"})
+    bus = GraphView(publishers={"/c": {"interface:c"}}, types={"/c": "std_msgs/String"})
     p = plan(bus, _ros(subs=[("/c", ["/n"])], types=[("/c", "std_msgs/Int32")]), ME)
     assert p.to_ros == {} and "std_msgs/Int32" in p.conflicts["/c"]
 
