@@ -36,7 +36,7 @@ def parser() -> argparse.ArgumentParser:
                    help=f"rce-master control port of addresses that give none (default {MASTER_PORT})")
     p.add_argument("--bind", default="127.0.0.1",
                    help="address environments' data-plane listeners bind to (default 127.0.0.1)")
-    p.add_argument("--advertise-host", default=None,
+    p.add_argument("--advertise-host", default=None, metavar="HOST",
                    help="address other hosts reach this host's environments by (default: --bind)")
     p.add_argument("--name", default=None, help="task set name (default: the hostname)")
     p.add_argument("--runtime-dir", default=None,

@@ -11,6 +11,7 @@ import functools
 import os
 import signal
 import socket
+import sys
 from pathlib import Path
 
 from rce.errors import ConfigError
@@ -62,6 +63,19 @@ def open_store(state: str | None) -> Store:
     return SqliteStore(Path(state) if state else default_state_path())
 
 
+class _OldSpelling(argparse.Action):
+    """A flag's former name, kept so that existing command lines work: stores its value as the
+    flag ``new`` does and says on stderr which name to use."""
+
+    def __init__(self, *args, new: str, **kwargs):
+        super().__init__(*args, **kwargs)
+        self.new = new
+
+    def __call__(self, parser, namespace, values, option_string=None):
+        print(f"{parser.prog}: {option_string} is deprecated; use {self.new}", file=sys.stderr)
+        setattr(namespace, self.dest, values)
+
+
 def parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(prog="rce-master", description="RCE master: robot login, admin API, control plane.")
     p.add_argument("--dev", action="store_true", help="provision user testUser/testUser (development only)")
@@ -76,9 +90,11 @@ def parser() -> argparse.ArgumentParser:
     p.add_argument("--store", default=None, metavar="etcd://HOST:PORT[,HOST:PORT...][/PREFIX/]",
                    help="keep the state in etcd, shared with other masters: one leads, the others stand by "
                         "(key prefix default /rce/; instead of --state)")
-    p.add_argument("--advertise", default=None, metavar="HOST",
+    p.add_argument("--advertise-host", default=None, metavar="HOST",
                    help="host name other masters and task sets reach this one at (default: --bind, or this "
                         "machine's name when --bind is a wildcard); with --store")
+    p.add_argument("--advertise", dest="advertise_host", action=_OldSpelling, new="--advertise-host",
+                   help=argparse.SUPPRESS)
     p.add_argument("--reconcile-grace", type=float, default=RECONCILE_GRACE, metavar="S",
                    help=f"s task sets found in the state may take to re-register before their containers are "
                         f"lost and their robots gone (default {RECONCILE_GRACE:g})")
@@ -152,7 +168,7 @@ async def start(args: argparse.Namespace, master: Master) -> dict:
         static[prefix] = Path(d)
     ssl_context = tls.server_context_from(args)
     await master.start(args.bind, args.port, args.control_port, static, ssl_context)
-    host = args.advertise or (socket.getfqdn() if args.bind in ("0.0.0.0", "::", "") else args.bind)
+    host = args.advertise_host or (socket.getfqdn() if args.bind in ("0.0.0.0", "::", "") else args.bind)
     host = f"[{host}]" if ":" in host else host
     scheme = "https" if ssl_context else "http"
     return {"control": f"{host}:{master.control_port}", "http": f"{scheme}://{host}:{master.http_port}/",

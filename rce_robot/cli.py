@@ -53,7 +53,8 @@ def parser() -> argparse.ArgumentParser:
                    help=f"websocket port for rosbridge v2 clients (roslibpy, roslibjs; 0 = ephemeral, "
                         f"-1 = off; default {ROSBRIDGE_PORT})")
     p.add_argument("--metrics-port", type=int, default=None, help="serve Prometheus /metrics on this port")
-    p.add_argument("--advertise-host", default=None, help="address robots and environments reach this host by")
+    p.add_argument("--advertise-host", default=None, metavar="HOST",
+                   help="address robots and environments reach this host by (default: --bind)")
     p.add_argument("--name", default=None, help="task set name (default: hostname:port)")
     p.add_argument("--max-message", type=int, default=DEFAULT_MAX_MESSAGE,
                    help="largest websocket frame taken, bytes (larger: ER)")
