@@ -1,0 +1,67 @@
+"""The grid a lifelong fleet runs on: free cells, the four headings and the move table.
+
+Cells are integers ``row * cols + col`` (the League of Robot Runners' "locations" and
+:mod:`rce_fleet.grid`'s cell numbers alike). Headings follow the start-kit
+(MAPF-Competition/Start-Kit, ``ActionModel.cpp``): 0 east, 1 south, 2 west, 3 north; a
+clockwise turn (``R``) adds 1, a counter-clockwise turn (``C``) subtracts 1, modulo 4.
+"""
+from __future__ import annotations
+
+import numpy as np
+
+__all__ = ["EAST", "HEADING_NAMES", "NORTH", "SOUTH", "WEST", "LifelongGrid"]
+
+EAST, SOUTH, WEST, NORTH = 0, 1, 2, 3
+HEADING_NAMES = "ESWN"
+
+
+class LifelongGrid:
+    """Free cells of a ``rows x cols`` grid and the table of 4-neighbour moves.
+
+    free: (rows, cols) bool array. ``nbr`` is an int32 array (rows * cols, 4): ``nbr[c, h]``
+    is the cell one step from ``c`` towards heading ``h``, or -1 when that is off the map
+    or not free. Raises ValueError when ``free`` is not 2-D or has no free cell.
+    """
+
+    def __init__(self, free: np.ndarray):
+        free = np.asarray(free, dtype=bool)
+        if free.ndim != 2:
+            raise ValueError(f"free must be a (rows, cols) array, got shape {free.shape}")
+        if not free.any():
+            raise ValueError("the map has no free cell")
+        self.rows, self.cols = int(free.shape[0]), int(free.shape[1])
+        self.free = free
+        self.flat = np.ascontiguousarray(free.ravel())
+        n = self.rows * self.cols
+        r, c = np.divmod(np.arange(n), self.cols)
+        nbr = np.full((n, 4), -1, dtype=np.int32)
+        steps = ((0, 1), (1, 0), (0, -1), (-1, 0))          # E, S, W, N as (drow, dcol)
+        for h, (dr, dc) in enumerate(steps):
+            rr, cc = r + dr, c + dc
+            ok = (rr >= 0) & (rr < self.rows) & (cc >= 0) & (cc < self.cols)
+            tgt = np.where(ok, rr * self.cols + cc, 0)
+            ok &= self.flat[tgt] & self.flat
+            nbr[ok, h] = tgt[ok]
+        self.nbr = nbr
+
+    @property
+    def n_cells(self) -> int:
+        """rows * cols (free or not)."""
+        return self.rows * self.cols
+
+    def is_free(self, cell: int) -> bool:
+        """Whether ``cell`` is on the map and free."""
+        return 0 <= cell < self.n_cells and bool(self.flat[cell])
+
+    def free_cells(self) -> np.ndarray:
+        """The free cells, ascending (int64 array)."""
+        return np.flatnonzero(self.flat)
+
+    def rc(self, cell: int) -> tuple[int, int]:
+        """(row, col) of ``cell``."""
+        return divmod(int(cell), self.cols)
+
+    @classmethod
+    def from_graph(cls, graph) -> LifelongGrid:
+        """The grid of a :class:`rce_fleet.planning.GridGraph` (its ``free`` array)."""
+        return cls(graph.free)

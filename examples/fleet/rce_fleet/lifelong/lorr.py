@@ -1,0 +1,176 @@
+"""League of Robot Runners 2024 problem files (MAPF-Competition/Start-Kit v2.1.2,
+``Input_Output_Format.md``): the problem JSON, the MovingAI octile map (``.``, ``E`` and
+``S`` free; Sturtevant 2012), the agents file and the tasks file.
+
+Problem JSON keys: ``mapFile``, ``agentFile``, ``taskFile`` (paths relative to the JSON),
+``teamSize``, ``numTasksReveal``; optional ``version``. Agents file: comment lines start with
+``#``, then the number of agents, then one start location a line. Tasks file: comments, the
+number of tasks, then one task a line as comma-separated locations (its errands in order).
+Locations are ``row * width + column``.
+
+Every error is a :class:`ProblemError` naming the file and, where there is one, the line.
+"""
+from __future__ import annotations
+
+import json
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from .grid import LifelongGrid
+
+__all__ = ["LorrProblem", "ProblemError", "load_lorr_map", "load_problem"]
+
+
+class ProblemError(ValueError):
+    """A missing or malformed problem file: ``path`` and ``line`` (1-based, or None) say where."""
+
+    def __init__(self, path: str | Path, message: str, line: int | None = None):
+        self.path, self.line = str(path), line
+        where = f"{path}:{line}" if line is not None else f"{path}"
+        super().__init__(f"{where}: {message}")
+
+
+@dataclass
+class LorrProblem:
+    """One LoRR problem: the grid, the agents' start cells and the task file's errands.
+
+    starts: (teamSize,) int64 cells. tasks: list of tuples of cells (one tuple per line of the
+    task file, errands in order). ``reveal`` is ``int(numTasksReveal * teamSize)``, the number
+    of open tasks the simulator keeps revealed.
+    """
+
+    path: Path
+    grid: LifelongGrid
+    starts: np.ndarray
+    tasks: list[tuple[int, ...]]
+    team_size: int
+    num_tasks_reveal: float
+    version: str = "2024 LoRR"
+
+    @property
+    def reveal(self) -> int:
+        """How many tasks are open at any time: ``int(numTasksReveal * teamSize)``."""
+        return int(self.num_tasks_reveal * self.team_size)
+
+
+def _read(path: Path) -> list[str]:
+    try:
+        return path.read_text().split("\n")
+    except FileNotFoundError:
+        raise ProblemError(path, "no such file") from None
+    except (OSError, UnicodeDecodeError) as exc:
+        raise ProblemError(path, f"cannot read: {exc}") from None
+
+
+def load_lorr_map(path: str | Path) -> LifelongGrid:
+    """A :class:`LifelongGrid` from a MovingAI ``type octile`` map; ``.``, ``E`` and ``S`` are
+    free, every other character blocked. Raises ProblemError naming the file and line."""
+    path = Path(path)
+    lines = _read(path)
+    hdr: dict[str, str] = {}
+    i = 0
+    while i < len(lines) and lines[i].strip() != "map":
+        parts = lines[i].split()
+        if len(parts) == 2:
+            hdr[parts[0]] = parts[1]
+        elif parts:
+            raise ProblemError(path, f"expected 'key value' or 'map', got {lines[i]!r}", i + 1)
+        i += 1
+    try:
+        rows, cols = int(hdr["height"]), int(hdr["width"])
+    except KeyError as exc:
+        raise ProblemError(path, f"header has no {exc.args[0]!r} line", 1) from None
+    except ValueError:
+        raise ProblemError(path, "height and width must be integers", 1) from None
+    if i >= len(lines):
+        raise ProblemError(path, "no 'map' line", len(lines))
+    body = lines[i + 1: i + 1 + rows]
+    free = np.zeros((rows, cols), dtype=bool)
+    for r in range(rows):
+        ln = body[r].rstrip("\r") if r < len(body) else ""
+        if len(ln) < cols:
+            raise ProblemError(path, f"map row {r} has {len(ln)} cells, expected {cols}", i + 2 + r)
+        free[r] = np.isin(np.frombuffer(ln[:cols].encode(), dtype=np.uint8), np.frombuffer(b".ES", dtype=np.uint8))
+    try:
+        return LifelongGrid(free)
+    except ValueError as exc:
+        raise ProblemError(path, str(exc)) from None
+
+
+def _numbered(path: Path) -> list[tuple[int, str]]:
+    """(1-based line number, text) of the non-empty, non-comment lines."""
+    return [(k + 1, ln.strip()) for k, ln in enumerate(_read(path)) if ln.strip() and not ln.lstrip().startswith("#")]
+
+
+def _cell(path: Path, line: int, text: str, grid: LifelongGrid) -> int:
+    try:
+        cell = int(text)
+    except ValueError:
+        raise ProblemError(path, f"expected a location (integer), got {text!r}", line) from None
+    if not grid.is_free(cell):
+        r, c = divmod(cell, grid.cols) if cell >= 0 else (-1, -1)
+        raise ProblemError(path, f"location {cell} (row {r}, col {c}) is not a free cell of the map", line)
+    return cell
+
+
+def _count(path: Path, lines: list[tuple[int, str]]) -> int:
+    if not lines:
+        raise ProblemError(path, "empty file: expected the count on the first line")
+    ln, text = lines[0]
+    try:
+        n = int(text)
+    except ValueError:
+        raise ProblemError(path, f"expected the count, got {text!r}", ln) from None
+    if n < 0 or len(lines) - 1 < n:
+        raise ProblemError(path, f"count {n} but {len(lines) - 1} entries follow", ln)
+    return n
+
+
+def load_problem(path: str | Path) -> LorrProblem:
+    """Read a LoRR 2024 problem JSON and the map, agents and tasks files it names.
+
+    Raises ProblemError (a ValueError) naming the file and line of the first problem: a
+    missing file, bad JSON, a missing key, a location that is not a free cell, fewer agents
+    than ``teamSize``, or no task.
+    """
+    path = Path(path)
+    text = "\n".join(_read(path))
+    try:
+        spec = json.loads(text)
+    except json.JSONDecodeError as exc:
+        raise ProblemError(path, f"not JSON: {exc.msg}", exc.lineno) from None
+    if not isinstance(spec, dict):
+        raise ProblemError(path, "expected a JSON object", 1)
+    for key in ("mapFile", "agentFile", "taskFile", "teamSize"):
+        if key not in spec:
+            raise ProblemError(path, f"missing key {key!r}")
+    try:
+        team = int(spec["teamSize"])
+        reveal = float(spec.get("numTasksReveal", 1.0))
+    except (TypeError, ValueError):
+        raise ProblemError(path, "teamSize must be an integer and numTasksReveal a number") from None
+    if team < 1:
+        raise ProblemError(path, f"teamSize must be >= 1, got {team}")
+    base = path.parent
+    grid = load_lorr_map(base / spec["mapFile"])
+    apath = base / spec["agentFile"]
+    alines = _numbered(apath)
+    n = _count(apath, alines)
+    if n < team:
+        raise ProblemError(apath, f"{n} agents but teamSize is {team}", alines[0][0])
+    starts = np.array([_cell(apath, ln, t, grid) for ln, t in alines[1:1 + team]], dtype=np.int64)
+    tpath = base / spec["taskFile"]
+    tlines = _numbered(tpath)
+    m = _count(tpath, tlines)
+    if m < 1:
+        raise ProblemError(tpath, "no task", tlines[0][0])
+    tasks = []
+    for ln, t in tlines[1:1 + m]:
+        errands = tuple(_cell(tpath, ln, x.strip(), grid) for x in t.split(",") if x.strip())
+        if not errands:
+            raise ProblemError(tpath, "a task needs at least one errand", ln)
+        tasks.append(errands)
+    return LorrProblem(path=path, grid=grid, starts=starts, tasks=tasks, team_size=team,
+                       num_tasks_reveal=reveal, version=str(spec.get("version", "2024 LoRR")))

@@ -1,0 +1,231 @@
+"""Task allocation for a lifelong fleet: who does which open task next.
+
+Both schedulers estimate a robot's *finish time* for a task as the breadth-first distance
+from the robot to the task's first errand plus the task's own length (first errand through
+the last), along the planner's distance maps (:class:`~.distances.DistanceCache`), minus a
+bonus for priority. A task may be given to another robot until its robot reaches the first
+errand (the League of Robot Runners' rule), never after.
+
+- :class:`GreedyScheduler`: an auction on finish time, as Open-RMF's dispatcher bids
+  (open-rmf/rmf_task, ``TaskPlanner``; minimal finish time wins): each free robot in turn
+  takes the open task it would finish first, and may outbid the robot holding an unopened
+  task when it would finish that task sooner by ``margin`` steps; the outbid robot bids
+  again in the same round.
+- :class:`BatchScheduler`: a batch assignment re-solved as robots free up and tasks arrive:
+  every robot without an opened task against every unopened task, minimum total finish time
+  by the Hungarian method (Kuhn 1955; ``scipy.optimize.linear_sum_assignment``, the LAPJV
+  variant of Crouse 2016), with a small bonus for keeping the current assignment.
+
+Distances to a task's first errand come from its cached map; a task whose map is not yet
+computed (the budget ran out this step) is estimated by the Manhattan distance.
+"""
+from __future__ import annotations
+
+import time
+
+import numpy as np
+from scipy.optimize import linear_sum_assignment
+
+from .distances import DistanceCache
+from .tasks import Task
+
+__all__ = ["BatchScheduler", "GreedyScheduler", "Scheduler", "make_scheduler"]
+
+PRIORITY_STEPS = 100.0      # one unit of task priority is worth this many steps of finish time
+
+
+class Scheduler:
+    """Base: keeps the per-task estimates (first-errand map, length) and the cost vectors.
+
+    ``schedule(pos, assignment, tasks, t, deadline)`` returns the proposed (n,) task id per
+    robot (-1 none); it never moves an opened task, and stops computing new distance maps at
+    ``deadline`` (a ``time.perf_counter()`` value).
+    """
+
+    name = "base"
+
+    def __init__(self, cache: DistanceCache):
+        self.cache = cache
+        self.cols = cache.grid.cols
+
+    # -- estimates ----------------------------------------------------------------------
+    def _prepare(self, tasks: list[Task], deadline: float) -> None:
+        """Compute first-errand maps and lengths of new tasks while time remains."""
+        for tk in tasks:
+            if tk.length >= 0:
+                continue
+            if time.perf_counter() > deadline:
+                return
+            e = tk.errands
+            s = self.cache.slot(e[0])
+            length = int(self.cache.table[s, e[1]]) if len(e) > 1 else 0
+            for a, b in zip(e[1:], e[2:], strict=False):
+                length += self.cache.dist(a, b)
+            tk.length = length
+
+    def _estimates(self, tasks: list[Task]) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """(slot, first errand, length) arrays; slot -1 and the Manhattan length where no map yet."""
+        e0 = np.fromiter((tk.errands[0] for tk in tasks), dtype=np.int64, count=len(tasks))
+        slots = np.fromiter((self.cache._slots.get(int(c), -1) if tk.length >= 0 else -1
+                             for c, tk in zip(e0.tolist(), tasks, strict=True)), dtype=np.int64, count=len(tasks))
+        length = np.empty(len(tasks))
+        for i, tk in enumerate(tasks):
+            if tk.length >= 0 and slots[i] >= 0:
+                length[i] = tk.length
+            else:
+                length[i] = sum(self._manhattan(a, b) for a, b in zip(tk.errands, tk.errands[1:], strict=False))
+        bonus = np.fromiter((tk.priority * PRIORITY_STEPS for tk in tasks), dtype=float, count=len(tasks))
+        return slots, e0, length - bonus
+
+    def _manhattan(self, a: int, b: int) -> int:
+        ra, ca = divmod(a, self.cols)
+        rb, cb = divmod(b, self.cols)
+        return abs(ra - rb) + abs(ca - cb)
+
+    def _travel(self, slots: np.ndarray, e0: np.ndarray, cells: np.ndarray) -> np.ndarray:
+        """(len(cells), len(slots)) steps from each cell to each task's first errand."""
+        table = self.cache.table
+        have = slots >= 0
+        out = np.empty((len(cells), len(slots)))
+        if have.any():
+            out[:, have] = table[slots[have][None, :], cells[:, None]]
+        if (~have).any():
+            r0, c0 = np.divmod(e0[~have], self.cols)
+            rr, cc = np.divmod(cells, self.cols)
+            out[:, ~have] = np.abs(rr[:, None] - r0[None, :]) + np.abs(cc[:, None] - c0[None, :])
+        return out
+
+    def _travel_pairs(self, slots: np.ndarray, e0: np.ndarray, cells: np.ndarray) -> np.ndarray:
+        """(k,) steps from cells[i] to the first errand of task i."""
+        out = np.empty(len(slots))
+        have = slots >= 0
+        out[have] = self.cache.table[slots[have], cells[have]]
+        r0, c0 = np.divmod(e0[~have], self.cols)
+        rr, cc = np.divmod(cells[~have], self.cols)
+        out[~have] = np.abs(rr - r0) + np.abs(cc - c0)
+        return out
+
+    def schedule(self, pos: np.ndarray, assignment: np.ndarray, tasks: dict[int, Task], t: int,
+                 deadline: float) -> np.ndarray:
+        raise NotImplementedError
+
+
+def _windows(tasks: list[Task], t: int) -> tuple[np.ndarray, np.ndarray]:
+    """(steps until each task may start, steps until its deadline (inf: none)) at step ``t``."""
+    early = np.fromiter((tk.earliest_start - t for tk in tasks), dtype=float, count=len(tasks))
+    late = np.fromiter((np.inf if tk.deadline is None else tk.deadline - t for tk in tasks), dtype=float,
+                       count=len(tasks))
+    return early, late
+
+
+def _finish(travel: np.ndarray, length: np.ndarray, early: np.ndarray, late: np.ndarray) -> np.ndarray:
+    """Finish-time estimates with time windows: start no earlier than earliest_start; a task
+    that would miss its deadline costs infinity."""
+    fin = np.maximum(travel, early) + length
+    return np.where(fin > late, np.inf, fin)
+
+
+class GreedyScheduler(Scheduler):
+    """Auction on finish time with outbidding of unopened tasks (module docstring).
+
+    margin: steps by which a bid must beat the holder's to take its task; max_rounds bounds
+    the chain of outbid robots per step.
+    """
+
+    name = "greedy"
+
+    def __init__(self, cache: DistanceCache, margin: float = 2.0, reassign: bool = True):
+        super().__init__(cache)
+        self.margin, self.reassign = margin, reassign
+
+    def schedule(self, pos, assignment, tasks, t, deadline):
+        prop = assignment.copy()
+        free = [int(a) for a in np.flatnonzero(assignment < 0)]
+        if not free:
+            return prop
+        cand = [tk for tk in tasks.values() if not tk.opened]
+        if not cand:
+            return prop
+        self._prepare(cand, deadline)
+        slots, e0, length = self._estimates(cand)
+        holder = np.fromiter((tk.agent for tk in cand), dtype=np.int64, count=len(cand))
+        early, late = _windows(cand, t)
+        holder_bid = np.full(len(cand), np.inf)
+        held = np.flatnonzero(holder >= 0)
+        if len(held):
+            tr = self._travel_pairs(slots[held], e0[held], pos[holder[held]])
+            holder_bid[held] = _finish(tr, length[held], early[held], late[held])
+        rows = {r: i for i, r in enumerate(free)}
+        bids = _finish(self._travel(slots, e0, pos[np.array(free, dtype=np.int64)]), length, early[None, :],
+                       late[None, :])
+        queue = list(free)
+        budget = len(free) + len(cand)
+        k = 0
+        while k < len(queue) and budget > 0:
+            if (k & 31) == 31 and time.perf_counter() > deadline:
+                break
+            budget -= 1
+            r = queue[k]
+            k += 1
+            i = rows.get(r)
+            bid = bids[i] if i is not None else _finish(self._travel(slots, e0, pos[r:r + 1])[0], length, early, late)
+            ok = holder < 0
+            if self.reassign:
+                ok |= bid < holder_bid - self.margin
+            j = int(np.argmin(np.where(ok, bid, np.inf)))
+            if not ok[j] or not np.isfinite(bid[j]):
+                continue
+            old = int(holder[j])
+            if old >= 0:
+                prop[old] = -1
+                queue.append(old)
+            holder[j], holder_bid[j] = r, bid[j]
+            prop[r] = cand[j].id
+        return prop
+
+
+class BatchScheduler(Scheduler):
+    """Batch assignment (module docstring): robots without an opened task against unopened
+    tasks, re-solved at each step where a robot is free. keep_bonus: steps of finish time a
+    robot's current task is favoured by (hysteresis)."""
+
+    name = "batch"
+
+    def __init__(self, cache: DistanceCache, keep_bonus: float = 2.0):
+        super().__init__(cache)
+        self.keep_bonus = keep_bonus
+
+    def schedule(self, pos, assignment, tasks, t, deadline):
+        prop = assignment.copy()
+        if not (assignment < 0).any():
+            return prop
+        cand = [tk for tk in tasks.values() if not tk.opened]
+        if not cand:
+            return prop
+        opened = {tk.agent for tk in tasks.values() if tk.opened}
+        robots = np.array([a for a in range(len(pos)) if a not in opened], dtype=np.int64)
+        self._prepare(cand, deadline)
+        slots, e0, length = self._estimates(cand)
+        early, late = _windows(cand, t)
+        cost = _finish(self._travel(slots, e0, pos[robots]), length, early[None, :], late[None, :])
+        col = {tk.id: j for j, tk in enumerate(cand)}
+        for i, a in enumerate(robots.tolist()):
+            j = col.get(int(assignment[a]))
+            if j is not None:
+                cost[i, j] -= self.keep_bonus
+        cost[~np.isfinite(cost)] = 1e9
+        rows, cols = linear_sum_assignment(cost)
+        prop[robots] = -1
+        for i, j in zip(rows.tolist(), cols.tolist(), strict=True):
+            if cost[i, j] < 1e9:
+                prop[robots[i]] = cand[j].id
+        return prop
+
+
+def make_scheduler(name: str, cache: DistanceCache) -> Scheduler:
+    """``"greedy"`` or ``"batch"``; raises ValueError otherwise."""
+    if name == "greedy":
+        return GreedyScheduler(cache)
+    if name == "batch":
+        return BatchScheduler(cache)
+    raise ValueError(f"unknown scheduler {name!r} (greedy, batch)")
