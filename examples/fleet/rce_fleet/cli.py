@@ -10,6 +10,8 @@
     rce-fleet serve [same options, no mission]      # until Ctrl-C
     rce-fleet configs [--out DIR] [--robots N] [--url URL]   # write robot1.config ...
     rce-fleet grid [--map YAML] [--grid RxC | --cell M]     # print the grid's cell numbers
+    rce-fleet lifelong PROBLEM.json --steps N [--plan-time-limit MS] [--output OUT.json] [--seed S]
+                   [--scheduler greedy|batch]    # a League of Robot Runners 2024 problem under its rules
 """
 from __future__ import annotations
 
@@ -83,7 +85,7 @@ def _run_args(p: argparse.ArgumentParser, mission: bool) -> None:
 
 
 def build_parser() -> argparse.ArgumentParser:
-    """The ``rce-fleet`` argument parser (sub-commands demo, serve, configs, grid)."""
+    """The ``rce-fleet`` argument parser (sub-commands demo, serve, configs, grid, lifelong)."""
     p = argparse.ArgumentParser(prog="rce-fleet", description="The warehouse fleet on rce: demo, serve, configs.")
     sub = p.add_subparsers(dest="cmd", required=True)
     d = sub.add_parser("demo", help="run a mission to the end (exit 0 when every robot reached its goal)")
@@ -106,13 +108,56 @@ def build_parser() -> argparse.ArgumentParser:
     c.add_argument("--url", default="http://127.0.0.1:9000/", help="master login URL written into them")
     g = sub.add_parser("grid", help="print the grid's cell numbers (## = not free)")
     _map_args(g)
+    lf = sub.add_parser("lifelong", help="run a League of Robot Runners 2024 problem under its rules "
+                        "(lifelong tasks, MAPF_T actions, a time limit per step) and write the start-kit's output JSON")
+    lf.add_argument("problem", metavar="PROBLEM.json", help="the problem JSON (mapFile, agentFile, taskFile, ...)")
+    lf.add_argument("--steps", type=int, required=True, metavar="N", help="time steps to simulate")
+    lf.add_argument("--plan-time-limit", type=_positive, default=1000.0, metavar="MS",
+                    help="scheduler + planner wall time per step; an overrun is an all-wait step (default 1000)")
+    lf.add_argument("--output", metavar="OUT.json", help="write the start-kit's output JSON here (PlanViz reads it)")
+    lf.add_argument("--seed", type=int, default=0, help="tie-breaks of the planner (default 0)")
+    lf.add_argument("--scheduler", choices=("greedy", "batch"), default="greedy",
+                    help="task allocation: auction on finish time (default) or batch assignment")
+    lf.add_argument("--no-progress", action="store_true", help="no progress bar")
     return p
+
+
+def _lifelong(args: argparse.Namespace) -> int:
+    """``rce-fleet lifelong``: 0 ok, 2 a missing or malformed problem, 1 invalid or late steps."""
+    import contextlib
+    import json
+
+    from .lifelong import ProblemError, load_problem
+    from .lifelong.runner import rich_progress, run_lifelong
+    if args.steps < 1:
+        print("rce-fleet lifelong: --steps must be >= 1", file=sys.stderr)
+        return 2
+    try:
+        problem = load_problem(args.problem)
+    except ProblemError as e:
+        print(f"rce-fleet lifelong: {e}", file=sys.stderr)
+        return 2
+    bar = contextlib.nullcontext(None) if args.no_progress else rich_progress(args.steps, problem.path.stem)
+    with bar as cb:
+        res = run_lifelong(problem, args.steps, plan_time_limit_ms=args.plan_time_limit, seed=args.seed,
+                           scheduler=args.scheduler, progress=cb)
+    s = res.summary()
+    print(f"{problem.path.name}: {s['tasks_finished']} tasks finished in {s['steps']} steps by {problem.team_size} "
+          f"robots; planner ms p50 {s['plan_ms_p50']:.1f} p99 {s['plan_ms_p99']:.1f} max {s['plan_ms_max']:.1f}; "
+          f"timeouts {s['timeouts']}, invalid steps {s['invalid_steps']}, schedule errors {s['schedule_errors']}")
+    if args.output:
+        with open(args.output, "w") as f:
+            json.dump(res.sim.output(problem.version), f)
+        print(f"wrote {args.output}")
+    return 1 if s["timeouts"] or s["invalid_steps"] else 0
 
 
 def main(argv: list[str] | None = None) -> None:
     """Run ``rce-fleet``; exits with the demo's code (0 ok, 1 failure or timeout, 2 bad
     flags, 3 an unreachable goal)."""
     args = build_parser().parse_args(argv)
+    if args.cmd == "lifelong":
+        sys.exit(_lifelong(args))
     if args.cmd == "configs":
         from .configs import write_configs
         for path in write_configs(args.out, args.robots, args.url):
