@@ -23,6 +23,7 @@ from collections import deque
 from typing import Any
 
 from rce.errors import ProtocolError
+from rce.protocol.frames import encode
 
 AK = "AK"                                    # the ack message type (link-level)
 SESSION_TOPIC = "session"                    # the ST topic of the session's own statuses (link-level)
@@ -99,6 +100,17 @@ class Outgoing:
         """The number of the next message."""
         self.last += 1
         return self.last
+
+    def numbered(self, msg: dict, ids: list[str] | None = None) -> list[Frame]:
+        """Number ``msg`` (``{"type", "data"}``; ``seq`` goes in its envelope), encode it (``bytes``
+        values become binary parts with ``ids``, :func:`~rce.protocol.frames.encode`) and keep its
+        frames until acked; returns them."""
+        seq = self.last + 1
+        text, parts = encode({"type": msg["type"], "seq": seq, "data": msg["data"]}, ids)
+        self.number()
+        frames: list[Frame] = [text, *parts]
+        self.keep(seq, frames)
+        return frames
 
     def keep(self, seq: int, frames: list[Frame]) -> None:
         """Keep message ``seq``'s frames (its JSON text frame, then its binary parts) until acked."""

@@ -23,7 +23,6 @@ from __future__ import annotations
 
 import json
 import uuid
-from collections import deque
 from dataclasses import dataclass
 from typing import Any
 
@@ -35,7 +34,9 @@ from rce.protocol.events import (BarrierFailed, BarrierPassed, CallFailed, Caugh
                                  RequestReady, ResponseReceived, ServiceCall, SessionStatus, StatusReceived)
 from rce.protocol.frames import (CX, DEFAULT_EXPIRY, DEFAULT_MAX_PENDING_BYTES, DEFAULT_MAX_PENDING_PARTS, DM, ER,
                                  ST, Assembler, encode)
-from rce.protocol.limits import DEFAULT_MAX_LAG, ER_BURST, ER_RATE, LagGate, PartBudget, TokenBucket, truncate
+from rce.protocol.holdback import HoldBack
+from rce.protocol.limits import DEFAULT_MAX_LAG, ER_BURST, ER_RATE, LagGate, PartBudget
+from rce.protocol.robot_outbox import RobotOutbox, dm
 from rce.protocol.resume import (ACK_DELAY, ACK_EVERY, AK, DEFAULT_GRACE, DEFAULT_RESUME_BUFFER, DEFAULT_RESUME_BYTES,
                                  SESSION_TOPIC, Frame, Incoming, Outgoing, ack_frame, is_session_status, new_token,
                                  read_ack, read_seq)
@@ -43,13 +44,11 @@ from rce.protocol.schema import split_interface_type, validate
 
 DEFAULT_QUEUE_SIZE = 1000                   # messages per robot in each bounded queue (like a ROS queue_size)
 DEFAULT_MAX_MESSAGE = 32 * 1024 * 1024      # bytes (chars for text) of the largest frame a robot endpoint takes
-CONTROL_BACKLOG = 10                        # x queue_size: STs and answers waiting before a robot that does not
-                                            # read is closed (they are never dropped; ERs are, past queue_size)
 LAG_TOPIC = "lag"                           # ST topic: the endpoint sheds the robot's topic messages, or caught up
 BARRIER_PREFIX = "rcesync"                  # barrier tokens: interfaces named so cannot exist
 
 
-class _Session:
+class _SessionCore:
     """What both sides share: binary parts and expiry, events. A subclass takes complete messages
     (``_on_message``) and says what becomes of bad input (``_bad_input``: an ER, or a drop)."""
 
@@ -163,36 +162,9 @@ class _Session:
         if n is not None:
             self._send_ack(n)
 
-    def _number(self, msg: dict, ids: list[str] | None = None) -> list[Frame]:
-        """Number ``msg`` (``seq`` in its envelope), encode it and keep its frames until acked."""
-        seq = self.outgoing.last + 1
-        text, parts = encode({"type": msg["type"], "seq": seq, "data": msg["data"]}, ids)
-        self.outgoing.number()
-        frames: list[Frame] = [text, *parts]
-        self.outgoing.keep(seq, frames)
-        return frames
-
 
 # -- the cloud side -------------------------------------------------------------------------------
-@dataclass
-class _Held:
-    data: dict
-    after: int          # the DM waits until this many requests are done
-
-
-@dataclass
-class _Out:
-    """A message waiting to go to the robot."""
-    msg: dict | None                    # None: a kept message resent as it was (``frames``)
-    data: bool = False                  # droppable topic data
-    link: bool = False                  # link-level (ST session, AK): not numbered, not kept
-    frames: list[Frame] | None = None   # a resend: the frames as first numbered
-    since: float = 0.0                  # s: when it was queued (a data DM's age counts from it)
-    itag: str = ""                      # a data DM's interface
-    gone: bool = False                  # a data DM given up while it waited: nothing goes out for it
-
-
-class RobotSession(_Session):
+class RobotSession(_SessionCore):
     """The cloud side of robot ``robot``'s session.
 
     ``max_message``: largest frame taken (bytes; text: chars), larger ones get an ER;
@@ -201,13 +173,11 @@ class RobotSession(_Session):
     messages are dropped, counted, and (inbound ones) refused with an ER; ``expiry``: s
     an incomplete message waits for its binary parts.
 
-    Every bad input gets an ER naming what was wrong; the session goes on. ERs are cut to
-    :data:`~rce.protocol.limits.MAX_ER_TEXT` bytes; those for bad input (everything but the answers
-    to the robot's requests and calls) come at most ``er_rate`` per s, ``er_burst`` at once (a token
-    bucket); past it, or while ``queue_size`` ERs wait unread, they are dropped and counted
-    (``errors_dropped``) and the next ER that goes out (or, at a tick, an ER of its own) says how many.
-    ``max_pending_parts``: binary parts waiting for their message; ``budget``: the endpoint's
-    :class:`~rce.protocol.limits.PartBudget`, shared by its sessions (:meth:`close` gives back).
+    Every bad input gets an ER naming what was wrong; the session goes on. ERs are cut short and
+    those for bad input rate-limited (``er_rate`` per s, ``er_burst`` at once), dropped and counted past
+    it (:class:`~rce.protocol.error_limits.ErrorLimits`). ``max_pending_parts``: binary parts waiting for
+    their message; ``budget``: the endpoint's :class:`~rce.protocol.limits.PartBudget`, shared by its
+    sessions (:meth:`end` gives back).
 
     ``resume``: the robot opted in (docs/INTERNALS.md "Session resume"): the session opens with
     ``ST {"topic": "session", "status": "started", "session": token, "grace": grace}`` (``token``:
@@ -227,14 +197,14 @@ class RobotSession(_Session):
     ``ST {"topic": "lag", "status": "shedding", "behind_s", "max_lag_s"}`` when shedding starts,
     ``ST {"topic": "lag", "status": "caught_up", "shed": n}`` when it ends.
 
-    The other way, to a robot that does not keep up (a slow link, a robot that reads slowly),
-    each interface's topic data keeps its newest messages too, as a ROS publisher's queue does:
-    past ``queue_size`` waiting data DMs, the oldest of the interface with the most waiting is
-    dropped for the new one; and a data DM that has waited longer than ``max_lag`` when its turn
-    comes (:meth:`data_to_send` with ``now``) is dropped if a newer one of its interface waits
-    behind it. Both are counted in ``dropped`` (the second also in ``expired``). So the newest
-    message of every interface goes out, however late: a sparse topic is never lost for its age.
-    With ``max_lag`` None only the bound applies."""
+    The other way, to a robot that does not keep up, each interface's topic data keeps its newest
+    messages, as a ROS publisher's queue does (:class:`~rce.protocol.outbox.Outbox`; ``max_lag`` ages
+    them too); drops are counted in ``dropped`` (for their age also in ``expired``).
+
+    The jobs live in their modules and this class composes them: requests and the DMs held back for
+    them (:class:`~rce.protocol.holdback.HoldBack`), what goes to the robot (outbox, ERs, resume's
+    numbering: :class:`~rce.protocol.robot_outbox.RobotOutbox`), lag shedding
+    (:class:`~rce.protocol.limits.LagGate`), resume (:mod:`rce.protocol.resume`)."""
 
     def __init__(self, robot: str, *, max_message: int = DEFAULT_MAX_MESSAGE, queue_size: int = DEFAULT_QUEUE_SIZE,
                  expiry: float = DEFAULT_EXPIRY, max_pending_bytes: int = DEFAULT_MAX_PENDING_BYTES,
@@ -245,35 +215,41 @@ class RobotSession(_Session):
                  er_burst: int = ER_BURST, max_lag: float | None = DEFAULT_MAX_LAG):
         super().__init__(expiry, max_pending_bytes, resume, resume_buffer, resume_bytes, ack_every, ack_delay,
                          max_pending_parts, budget)
-        if queue_size < 1:
-            raise ValueError(f"queue_size must be >= 1, got {queue_size}")
+        # what waits for the robot (ValueError for a queue_size < 1)
+        self.out = RobotOutbox(robot, queue_size, max_lag, er_rate, er_burst, self.outgoing,
+                               lambda reason: self._emit(CloseLink(reason)))
         self.robot, self.max_message, self.queue_size = robot, max_message, queue_size
         self.lag = LagGate(max_lag)                               # sheds topic DMs while the shell lags
-        self._er_bucket = TokenBucket(er_rate, er_burst)
-        self._out_errors = 0                                      # ERs in _out
-        self.errors_dropped = 0                                   # ERs dropped (rate, or unread)
-        self._errors_untold = 0                                   # ... not yet told to the robot
+        self.requests = HoldBack(queue_size)                      # requests to the master, DMs held for them
         self.interfaces: dict[str, tuple[str, str, str]] = {}     # iTag -> (kind, side, cls)
-        self._out: deque[_Out] = deque()
-        self._data: dict[str, deque[_Out]] = {}                   # iTag -> its data DMs waiting in _out, oldest first
-        self._gone = 0                                            # data DMs in _out given up
-        self.out_data = 0                                         # data DMs waiting in _out
-        self.expired = 0                                          # data DMs dropped for their age (max_lag)
-        self._out_control = 0                                     # STs and answers in _out
-        self._requests: deque[tuple[str, dict]] = deque()
-        self._in_flight: str | None = None                        # type of the request the master handles
-        self._received = self._done = 0                           # requests taken / answered
-        self._held: deque[_Held] = deque()
         self.calls = 0                                            # service calls in flight
-        self.msgs_in = self.msgs_out = self.dropped = self.dropped_in = self.errors = 0
-        self._overrun = False
+        self.msgs_in = self.dropped_in = 0
         self.token = (token or new_token()) if resume else None
         self.grace = grace
-        self.attached = True                                      # on a live link (always, without resume)
-        self.resumes = self.resent = self.resume_lost = 0
+        self.resumes = self.resume_lost = 0
         if resume:
-            self._out.append(_Out({"type": ST, "data": {"topic": SESSION_TOPIC, "status": "started",
-                                                        "session": self.token, "grace": grace}}, link=True))
+            self.out.link_message(ST, {"topic": SESSION_TOPIC, "status": "started", "session": self.token,
+                                       "grace": grace})
+
+    @property
+    def attached(self) -> bool:
+        """Is the robot on a live link (always, without resume)?"""
+        return self.out.attached
+
+    @property
+    def dropped(self) -> int:
+        """Data DMs to the robot dropped (the queue bound, or their age; :class:`~rce.protocol.outbox.Outbox`)."""
+        return self.out.queue.dropped
+
+    @property
+    def expired(self) -> int:
+        """Data DMs to the robot dropped for their age (``max_lag``)."""
+        return self.out.queue.expired
+
+    @property
+    def out_data(self) -> int:
+        """Data DMs waiting to go to the robot."""
+        return self.out.queue.data
 
     # -- frames in --------------------------------------------------------------------------------
     def _bad_input(self, reason: str) -> None:
@@ -290,12 +266,11 @@ class RobotSession(_Session):
             return
         if t == DM:
             self._on_dm(data)
-        elif len(self._requests) >= self.queue_size:
+        elif self.requests.full:
             self.dropped_in += 1
-            self.send_error(f"{t}: refused: {len(self._requests)} requests already wait for the master")
+            self.send_error(f"{t}: refused: {len(self.requests.requests)} requests already wait for the master")
         else:
-            self._received += 1
-            self._requests.append((t, data))
+            self.requests.add(t, data)
             self._next_request()
 
     def backlog(self, frames: int, now: float) -> None:
@@ -310,37 +285,29 @@ class RobotSession(_Session):
 
     # -- requests, one at a time and in order -------------------------------------------------------
     def _next_request(self) -> None:
-        if self._in_flight is None and self._requests:
-            t, data = self._requests.popleft()
-            self._in_flight = t
-            self._emit(RequestReady(t, data))
+        nxt = self.requests.next()
+        if nxt is not None:
+            self._emit(RequestReady(*nxt))
 
     def request_done(self, error: str | None = None) -> None:
-        """The master answered the request of the last ``request`` event; ``error``: its refusal.
-        DMs that waited for it are routed, then the next request goes out."""
-        if self._in_flight is None:
-            raise ProtocolError("request_done with no request in flight")
+        """The master answered the request of the last :class:`~rce.protocol.events.RequestReady`;
+        ``error``: its refusal. DMs that waited for it are routed, then the next request goes out.
+        Raises :class:`ProtocolError` when no request is in flight."""
+        type_, released = self.requests.done()
         if error is not None:
-            self.send_error(f"{self._in_flight}: {error}", answer=True)
-        self._in_flight = None
-        self._done += 1
-        while self._held and self._held[0].after <= self._done:
-            self._route(self._held.popleft().data)
+            self.send_error(f"{type_}: {error}", answer=True)
+        for data in released:
+            self._route(data)
         self._next_request()
 
     # -- DMs ----------------------------------------------------------------------------------------
     def _on_dm(self, data: dict) -> None:
-        # A DM for an interface that an earlier request may create waits for that request; once
-        # one waits, every later DM waits behind it, so the robot's order is kept.
-        if self._held or (data["iTag"] not in self.interfaces and self._done < self._received):
-            if len(self._held) >= self.queue_size:
-                self.dropped_in += 1
-                self.send_error(f"DM for interface {data['iTag']!r} dropped: {len(self._held)} messages already "
-                                f"wait for earlier requests")
-                return
-            self._held.append(_Held(data, self._received))
-            return
-        self._route(data)
+        if not self.requests.must_hold(data["iTag"] in self.interfaces):
+            self._route(data)
+        elif not self.requests.hold(data):
+            self.dropped_in += 1
+            self.send_error(f"DM for interface {data['iTag']!r} dropped: {self.requests.held} messages already "
+                            f"wait for earlier requests")
 
     def _route(self, data: dict) -> None:
         itag = data["iTag"]
@@ -369,15 +336,15 @@ class RobotSession(_Session):
             self._emit(ServiceCall(itag, data))
 
     def answer_call(self, call: dict, msg: Any) -> None:
-        """The service of a ``call`` event (its ``data``: ``call``) answered ``msg``: the response goes to
-        the robot with the call's msgID (never dropped)."""
+        """The service of a :class:`~rce.protocol.events.ServiceCall` (its ``data``: ``call``) answered
+        ``msg``: the response goes to the robot with the call's msgID (never dropped)."""
         self.calls -= 1
         itag = call["iTag"]
         self.send_dm(itag, self.interfaces.get(itag, ("", "", call["type"]))[2], call.get("msgID") or "", msg)
 
     def fail_call(self, call: dict, reason: str) -> None:
-        """The service of a ``call`` event (its ``data``: ``call``) failed: an ER naming the call's
-        msgID and interface."""
+        """The service of a :class:`~rce.protocol.events.ServiceCall` (its ``data``: ``call``) failed: an
+        ER naming the call's msgID and interface."""
         self.calls -= 1
         self.send_error(f"service call {call.get('msgID')!r} on {call['iTag']!r} failed: {reason}", answer=True)
 
@@ -398,116 +365,56 @@ class RobotSession(_Session):
                 now: float | None = None) -> bool:
         """Queue ``DM {iTag, type, msgID, msg}`` for the robot at time ``now`` (s; default the last
         time given). ``data=True`` marks topic data: when ``queue_size`` data DMs already wait, the
-        oldest of them is dropped (counted in ``dropped``) to make room. Returns True."""
-        return self._queue({"type": DM, "data": {"iTag": itag, "type": cls, "msgID": msg_id, "msg": msg}}, data,
-                           now)
+        oldest of the busiest interface is dropped (:class:`~rce.protocol.outbox.Outbox`). Returns True."""
+        self.out.dm(dm(itag, cls, msg_id, msg), data, self._now if now is None else now)
+        return True
 
     def send_status(self, data: dict) -> None:
         """Queue ``ST data`` for the robot (never dropped)."""
-        self._queue({"type": ST, "data": data}, False)
+        self.out.control({"type": ST, "data": data})
 
     def send_error(self, reason: str, answer: bool = False) -> bool:
-        """Queue ``ER reason`` for the robot, cut to :data:`~rce.protocol.limits.MAX_ER_TEXT` bytes, and count
-        it. ``answer``: it answers a request or call of the robot (not rate-limited). Returns False when it
-        was dropped (rate limit, or ``queue_size`` ERs unread; counted in ``errors_dropped``)."""
-        if not answer and not self._er_bucket.take(self._now):
-            return self._drop_error()
-        if self.attached and self._out_errors >= self.queue_size:
-            return self._drop_error()
-        self._queue_error(truncate(reason) + self._dropped_note())
-        return True
-
-    def _drop_error(self) -> bool:
-        self.errors_dropped += 1
-        self._errors_untold += 1
-        return False
-
-    def _dropped_note(self) -> str:
-        """What an ER adds when ERs were dropped since the last one went out ("" when none were)."""
-        if not self._errors_untold:
-            return ""
-        n, self._errors_untold = self._errors_untold, 0
-        return (f" ({n} error message(s) to robot {self.robot!r} before this one were dropped: more than "
-                f"{self._er_bucket.rate:g} per s, {self._er_bucket.burst} at once, or {self.queue_size} unread)")
+        """Queue ``ER reason`` for the robot (:class:`~rce.protocol.error_limits.ErrorLimits`: cut short,
+        counted). ``answer``: it answers a request or call of the robot (not rate-limited). Returns False
+        when it was dropped (rate limit, or ``queue_size`` ERs unread; counted in ``errors_dropped``)."""
+        return self.out.error(reason, answer, self._now)
 
     def tick(self, now: float) -> None:
-        """As :meth:`_Session.tick`; then, when ERs were dropped and the robot reads again, an ER
+        """As :meth:`_SessionCore.tick`; then, when ERs were dropped and the robot reads again, an ER
         saying how many."""
         super().tick(now)
-        if (self._errors_untold and self.attached and self._out_errors < self.queue_size
-                and self._er_bucket.take(now)):
-            self._queue_error(self._dropped_note().strip(" ()"))
+        self.out.tick(now)
 
     def end(self) -> None:
         """The session ended: what waited for binary parts is forgotten (its bytes go back to the budget)."""
         self.assembler.clear()
 
-    def _queue_error(self, text: str) -> None:
-        self.errors += 1
-        self._queue({"type": ER, "data": text}, False)
+    @property
+    def outbox(self) -> int:
+        """Messages waiting to be sent."""
+        return len(self.out)
 
-    def _queue(self, msg: dict, data: bool, now: float | None = None) -> bool:
-        if not self.attached:                   # detached: numbered and kept, it goes out after a resume
-            self._number(msg)
-            return True
-        if data:
-            if self.out_data >= self.queue_size:          # newest first, as a ROS queue_size: the oldest goes
-                itag = max(self._data, key=lambda k: len(self._data[k]))        # ... of the busiest interface
-                self._give_up(self._data_taken(itag))
-            o = _Out(msg, True, since=self._now if now is None else now, itag=msg["data"]["iTag"])
-            self.out_data += 1
-            self._data.setdefault(o.itag, deque()).append(o)
-            self._out.append(o)
-            return True
-        if msg["type"] == ER:
-            self._out_errors += 1
-        else:
-            if self._out_control >= CONTROL_BACKLOG * self.queue_size and not self._overrun:
-                self._overrun = True
-                self._emit(CloseLink(f"robot {self.robot!r} does not read: {len(self._out)} messages wait for it"))
-            self._out_control += 1
-        self._out.append(_Out(msg, data))
-        return True
-
-    def _data_taken(self, itag: str) -> _Out:
-        """The oldest waiting data DM of ``itag``, taken off its interface's queue."""
-        q = self._data[itag]
-        o = q.popleft()
-        if not q:
-            del self._data[itag]
-        return o
-
-    def _give_up(self, o: _Out) -> None:
-        """Data DM ``o``, waiting in ``_out``, is dropped (counted): it stays there, gone, until
-        ``queue_size`` such wait; then ``_out`` is rebuilt without them (a robot that never reads
-        costs at most twice the bound, in amortized O(1) per message)."""
-        o.gone, o.msg = True, None
-        self.out_data -= 1
-        self._gone += 1
-        self.dropped += 1
-        if self._gone > self.queue_size:
-            self._out = deque(x for x in self._out if not x.gone)
-            self._gone = 0
+    def data_to_send(self, max_messages: int | None = None, now: float | None = None) -> list[str | bytes]:
+        """Frames of up to ``max_messages`` waiting messages (all by default), each message's JSON
+        text frame followed by its binary parts; they count as sent (with resume: numbered and kept
+        until acked). ``now`` (s): a data DM that has waited longer than ``max_lag`` while a newer one
+        of its interface waits is dropped instead (counted in ``dropped`` and ``expired``); None: none
+        is."""
+        return self.out.data_to_send(max_messages, now)
 
     # -- resume -------------------------------------------------------------------------------------
     def _linked(self) -> bool:
         return self.attached
 
     def _send_ack(self, n: int) -> None:
-        self._out.append(_Out({"type": AK, "data": {"seq": n}}, link=True))
+        self.out.ack(n)
 
     def detach(self) -> None:
         """(resume) The robot's link is lost: what waits for it is numbered and kept, and so is what
         comes until :meth:`attach`; link-level messages are gone with the link."""
         if self.outgoing is None:
             raise ProtocolError("detach: the robot did not opt in to resume")
-        self.attached = False
-        for o in self._out:
-            if o.msg is not None and not o.link:
-                self._number(o.msg)
-        self._out.clear()
-        self._data.clear()
-        self.out_data = self._out_control = self._out_errors = self._gone = 0
+        self.out.detach()
 
     def can_resume(self, ack: int) -> bool:
         """Can a resume whose robot took every message up to ``ack`` be served?"""
@@ -527,59 +434,11 @@ class RobotSession(_Session):
             self.detach()
         frames, lost = self.outgoing.resend_after(ack)
         self.assembler = self.assembler.fresh()
-        self.attached = True
         self.incoming.reported()
         self.resumes += 1
         self.resume_lost += lost
-        self._out.append(_Out({"type": ST, "data": {"topic": SESSION_TOPIC, "status": "resumed", "session": self.token,
-                                                    "grace": self.grace, "ack": self.incoming.last,
-                                                    "dropped": lost}}, link=True))
-        self._out.extend(_Out(None, frames=f) for f in frames)
-
-    @property
-    def outbox(self) -> int:
-        """Messages waiting to be sent."""
-        return len(self._out) - self._gone
-
-    def data_to_send(self, max_messages: int | None = None, now: float | None = None) -> list[str | bytes]:
-        """Frames of up to ``max_messages`` waiting messages (all by default), each message's JSON
-        text frame followed by its binary parts; they count as sent (with resume: numbered and kept
-        until acked). ``now`` (s): a data DM that has waited longer than ``max_lag`` while a newer one
-        of its interface waits is dropped instead (counted in ``dropped`` and ``expired``); None: none
-        is."""
-        frames: list[str | bytes] = []
-        taken = 0
-        stale = None if now is None or self.lag.max_lag is None else now - self.lag.max_lag
-        while self._out and (max_messages is None or taken < max_messages):
-            o = self._out.popleft()
-            if o.gone:
-                self._gone -= 1
-                continue
-            if o.frames is not None:
-                frames.extend(o.frames)
-                self.resent += 1
-                taken += 1
-                continue
-            if o.data:
-                self._data_taken(o.itag)            # o: its interface's oldest data DM still waiting
-                self.out_data -= 1
-                if stale is not None and o.since < stale and o.itag in self._data:     # a newer one waits
-                    self.dropped += 1
-                    self.expired += 1
-                    continue
-            elif o.msg["type"] == ER:
-                self._out_errors -= 1
-            elif not o.link:
-                self._out_control -= 1
-            if o.link or self.outgoing is None:
-                text, parts = encode(o.msg)
-                frames.append(text)
-                frames.extend(parts)
-            else:
-                frames.extend(self._number(o.msg))
-            self.msgs_out += not o.link
-            taken += 1
-        return frames
+        self.out.resume({"topic": SESSION_TOPIC, "status": "resumed", "session": self.token, "grace": self.grace,
+                         "ack": self.incoming.last, "dropped": lost}, frames)
 
     def stats(self) -> dict:
         """Counters: messages in and out, drops out (data DMs: the oldest past the queue bound, or older
@@ -590,14 +449,13 @@ class RobotSession(_Session):
         (``kept``, ``kept_bytes``), forgotten past the bound (``resume_forgotten``), duplicates from the
         robot dropped."""
         out, inc = self.outgoing, self.incoming
-        return {"interfaces": len(self.interfaces), "msgs_in": self.msgs_in, "msgs_out": self.msgs_out,
-                "dropped": self.dropped, "dropped_in": self.dropped_in, "shed": self.lag.shed, "errors": self.errors,
-                "errors_dropped": self.errors_dropped, "pending_binary": self.assembler.pending,
-                "pending_binary_bytes": self.assembler.pending_bytes, "outbox": self.outbox,
-                "expired": self.expired,
-                "requests_waiting": len(self._requests) + (self._in_flight is not None), "held": len(self._held),
-                "calls": self.calls, "resumes": self.resumes, "resent": self.resent, "resume_lost": self.resume_lost,
-                "kept": len(out) if out else 0, "kept_bytes": out.bytes if out else 0,
+        return {"interfaces": len(self.interfaces), "msgs_in": self.msgs_in, "msgs_out": self.out.msgs_out,
+                "dropped": self.dropped, "dropped_in": self.dropped_in, "shed": self.lag.shed,
+                "errors": self.out.er.sent, "errors_dropped": self.out.er.dropped,
+                "pending_binary": self.assembler.pending, "pending_binary_bytes": self.assembler.pending_bytes,
+                "outbox": self.outbox, "expired": self.expired, "requests_waiting": self.requests.waiting,
+                "held": self.requests.held, "calls": self.calls, "resumes": self.resumes, "resent": self.out.resent,
+                "resume_lost": self.resume_lost, "kept": len(out) if out else 0, "kept_bytes": out.bytes if out else 0,
                 "resume_forgotten": out.forgotten if out else 0, "duplicates": inc.duplicates if inc else 0}
 
 
@@ -634,7 +492,7 @@ class _Waiting:
     done: bool = False
 
 
-class ClientSession(_Session):
+class ClientSession(_SessionCore):
     """The robot side of a session: what the cloud sends becomes events; calls and barriers wait in
     :attr:`pending` (a :class:`PendingCalls` keyed by msgID or token: the shell awaits
     ``pending.wait(key, timeout)``; a call's result is the response's ``msg``, a failure
@@ -685,7 +543,7 @@ class ClientSession(_Session):
             text, parts = encode({"type": type_, "data": data}, ids)
             frames: list[Frame] = [text, *parts]
         else:
-            frames = self._number({"type": type_, "data": data}, ids)
+            frames = self.outgoing.numbered({"type": type_, "data": data}, ids)
         if self.state not in ("detached", "resuming"):
             self._frames.extend(frames)
 

@@ -13,7 +13,8 @@ from rce.errors import ProtocolError, RequestError
 from rce.protocol.frames import ID_LEN, Assembler
 from rce.protocol.limits import PartBudget
 from rce.protocol.events import CaughtUp, CloseLink, Deliver, Lagging, ServiceCall
-from rce.protocol.session import CONTROL_BACKLOG, RobotSession, robot_interface_type
+from rce.protocol.robot_outbox import CONTROL_BACKLOG
+from rce.protocol.session import RobotSession, robot_interface_type
 
 TESTS = Path(__file__).resolve().parents[1]
 VECTORS = {v["name"]: v for v in json.loads((TESTS / "vectors" / "session.json").read_text())["robot"]}
@@ -226,7 +227,7 @@ def test_a_robot_that_never_reads_costs_a_bounded_outbox():
     for i in range(10_000):
         s.send_dm("scan", "t", "", i, data=True)
     assert s.dropped == 9_990 and s.outbox == 10
-    assert len(s._out) <= 2 * 10 + 1               # the dropped ones' places are reclaimed
+    assert s.out.queue.places <= 2 * 10 + 1               # the dropped ones' places are reclaimed
     assert [m for _, m in dm_out(s)] == list(range(9_990, 10_000))
 
 

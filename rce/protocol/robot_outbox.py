@@ -1,0 +1,156 @@
+"""What the cloud sends one robot, sans I/O: the messages of a
+:class:`~rce.protocol.session.RobotSession` on their way out, in order.
+
+- Topic data (data DMs) follows the one outbox policy (:class:`~rce.protocol.outbox.Outbox`: each
+  interface keeps its newest).
+- STs and answers are never dropped; a robot that lets ``CONTROL_BACKLOG`` x ``queue_size`` of them
+  wait is closed (``on_overrun``, once).
+- ERs are cut short, rate-limited and bounded while unread (:class:`~rce.protocol.error_limits.ErrorLimits`).
+- With resume (``outgoing``, :mod:`rce.protocol.resume`): messages are numbered as they go out; while
+  the robot is detached they are numbered and kept at once, to go out after a resume.
+"""
+from __future__ import annotations
+
+from collections.abc import Callable
+from dataclasses import dataclass
+from typing import Any
+
+from rce.protocol.error_limits import ErrorLimits
+from rce.protocol.frames import DM, ER, ST, encode
+from rce.protocol.outbox import Outbox
+from rce.protocol.resume import AK, Frame, Outgoing
+
+CONTROL_BACKLOG = 10        # x queue_size: STs and answers waiting before a robot that does not
+                            # read is closed (they are never dropped; ERs are, past queue_size)
+
+
+@dataclass(slots=True)
+class _Out:
+    """A message waiting to go to the robot."""
+    msg: dict | None                    # None: a kept message resent as it was (``frames``)
+    data: bool = False                  # droppable topic data
+    link: bool = False                  # link-level (ST session, AK): not numbered, not kept
+    frames: list[Frame] | None = None   # a resend: the frames as first numbered
+
+
+class RobotOutbox:
+    """The messages to robot ``robot``. ``queue_size`` and ``max_lag`` bound topic data
+    (:class:`~rce.protocol.outbox.Outbox`) and unread ERs; ``er_rate``/``er_burst``: the ER token
+    bucket; ``outgoing``: resume's numbering (None without resume); ``on_overrun(reason)``: the robot
+    does not read (once). Counters: :attr:`msgs_out` (messages sent, link-level ones not counted),
+    :attr:`resent` (kept messages resent after a resume)."""
+
+    def __init__(self, robot: str, queue_size: int, max_lag: float | None, er_rate: float, er_burst: int,
+                 outgoing: Outgoing | None, on_overrun: Callable[[str], None]):
+        self.robot, self.queue_size, self.outgoing = robot, queue_size, outgoing
+        self.queue: Outbox[_Out] = Outbox(queue_size, max_lag)
+        self.er = ErrorLimits(robot, queue_size, er_rate, er_burst)
+        self.attached = True                # on a live link (always, without resume)
+        self.msgs_out = self.resent = 0
+        self._control = 0                   # STs and answers waiting
+        self._overrun = False
+        self._on_overrun = on_overrun
+
+    def __len__(self) -> int:
+        """Messages waiting to be sent."""
+        return len(self.queue)
+
+    # -- in ---------------------------------------------------------------------------------------
+    def dm(self, msg: dict, data: bool, now: float) -> None:
+        """Queue DM ``msg``; ``data``: droppable topic data of its interface, queued at ``now`` (s)."""
+        if self.attached and data:
+            self.queue.put_data(msg["data"]["iTag"], _Out(msg, data=True), now)
+        else:
+            self.control(msg)
+
+    def control(self, msg: dict) -> None:
+        """Queue an ST or a DM answer: never dropped."""
+        if not self.attached:
+            self.outgoing.numbered(msg)
+            return
+        if self._control >= CONTROL_BACKLOG * self.queue_size and not self._overrun:
+            self._overrun = True
+            self._on_overrun(f"robot {self.robot!r} does not read: {self.queue.places} messages wait for it")
+        self._control += 1
+        self.queue.put(_Out(msg))
+
+    def error(self, reason: str, answer: bool, now: float) -> bool:
+        """Queue ER ``reason`` at ``now`` (s) as :class:`~rce.protocol.error_limits.ErrorLimits` admits it
+        (``answer``: it answers a request or call, not rate-limited). False: dropped (counted)."""
+        if not self.er.admit(answer, now, self.attached):
+            return False
+        self._error(self.er.text(reason))
+        return True
+
+    def tick(self, now: float) -> None:
+        """When ERs were dropped and the robot reads again: an ER saying how many."""
+        note = self.er.due(now, self.attached)
+        if note is not None:
+            self._error(note)
+
+    def _error(self, text: str) -> None:
+        msg = {"type": ER, "data": text}
+        if not self.attached:
+            self.outgoing.numbered(msg)
+            return
+        self.er.waiting += 1
+        self.queue.put(_Out(msg))
+
+    def link_message(self, type_: str, data: dict) -> None:
+        """Queue a link-level message (``ST session``, ``AK``): not numbered, not kept."""
+        self.queue.put(_Out({"type": type_, "data": data}, link=True))
+
+    def ack(self, n: int) -> None:
+        """Queue ``AK {"seq": n}``."""
+        self.link_message(AK, {"seq": n})
+
+    # -- resume ------------------------------------------------------------------------------------
+    def detach(self) -> None:
+        """The link is lost: what waits is numbered and kept (link-level messages are gone), and so is
+        what comes until :meth:`resume`."""
+        self.attached = False
+        for o in self.queue.drain():
+            if o.msg is not None and not o.link:
+                self.outgoing.numbered(o.msg)
+        self._control = self.er.waiting = 0
+
+    def resume(self, status: dict, frames: list[list[Frame]]) -> None:
+        """A new link: ``ST status`` (session resumed), then the kept messages ``frames`` as first numbered."""
+        self.attached = True
+        self.link_message(ST, status)
+        for f in frames:
+            self.queue.put(_Out(None, frames=f))
+
+    # -- out ---------------------------------------------------------------------------------------
+    def data_to_send(self, max_messages: int | None = None, now: float | None = None) -> list[str | bytes]:
+        """Frames of up to ``max_messages`` waiting messages (all by default), each message's JSON text
+        frame followed by its binary parts; they count as sent (with resume: numbered and kept until
+        acked). ``now`` (s): stale data DMs are dropped instead (:meth:`Outbox.take`)."""
+        frames: list[str | bytes] = []
+        taken = 0
+        while max_messages is None or taken < max_messages:
+            o = self.queue.take(now)
+            if o is None:
+                break
+            taken += 1
+            if o.frames is not None:
+                frames.extend(o.frames)
+                self.resent += 1
+                continue
+            if o.msg["type"] == ER:
+                self.er.waiting -= 1
+            elif not o.link and not o.data:
+                self._control -= 1
+            if o.link or self.outgoing is None:
+                text, parts = encode(o.msg)
+                frames.append(text)
+                frames.extend(parts)
+            else:
+                frames.extend(self.outgoing.numbered(o.msg))
+            self.msgs_out += not o.link
+        return frames
+
+
+def dm(itag: str, cls: str, msg_id: Any, msg: Any) -> dict:
+    """The message ``DM {iTag, type, msgID, msg}``."""
+    return {"type": DM, "data": {"iTag": itag, "type": cls, "msgID": msg_id, "msg": msg}}
