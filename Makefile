@@ -24,10 +24,11 @@ $(ROSLIBJS): tests/web/roslibjs/package.json tests/web/roslibjs/package-lock.jso
 	npm ci --prefix tests/web/roslibjs --no-audit --no-fund --silent
 	touch $(ROSLIBJS)
 
-## test: the whole suite
+## test: the whole suite, in parallel (tests share no ports, files or state; a test file runs in one worker)
+TEST_WORKERS ?= 2
 test: setup
 	$(BIN)/ruff check .
-	$(BIN)/python -m pytest -q -p no:cacheprovider $(PYTEST_ARGS)
+	$(BIN)/python -m pytest -q -p no:cacheprovider -n $(TEST_WORKERS) --dist loadfile $(PYTEST_ARGS)
 
 ## demo: run the fleet demo (3 robots on the project's own map)
 demo: setup
