@@ -40,6 +40,7 @@ from rce.errors import MessageError, NotFound, RCEError, RequestError
 from rce.log import get_logger, setup_logging
 from rce.messages import MessageRegistry, default_registry, wire_name
 from rce.naming import resolve
+from rce.op_table import OpTable
 from rce.package_path import load_package_types
 from rce_container import sandbox as sandboxes
 from rce_container.direct_routes import DirectRoutes
@@ -58,6 +59,9 @@ BUS_CALL_TIMEOUT = 10.0   # s a bus_call waits for the service when the request 
 BUS_SAMPLE_TIMEOUT = 5.0  # s a bus_sample waits for messages when the request gives no timeout
 MAX_SOCKET_PATH = 107     # bytes, sun_path minus the NUL
 BUS_TOKEN_BYTES = 32      # random bytes of a container's bus token (64 hex chars, 256 bits)
+
+#: The ops the task set sends an environment (the module doc): those it relays from the master, and its own.
+ENV_OPS = OpTable("container task set -> environment")
 
 
 def container_paths(runtime_dir: Path, socket_dir: Path, cid: int) -> tuple[Path, Path]:
@@ -221,8 +225,7 @@ class Environment:
             self.direct.start()
         self.template.start_soon()
         await self.template.wait_started()      # a spare environment is warm once its template is
-        handlers = {op[3:]: getattr(self, op) for op in dir(self) if op.startswith("op_")}
-        self.peer = await rpc.connect_unix(control_path, handlers, name="container task set",
+        self.peer = await rpc.connect_unix(control_path, ENV_OPS.handlers(self), name="container task set",
                                            on_close=lambda _p: self.done.set(), max_frame=self.max_frame)
         await self.peer.call("hello", env_id=self.env_id, pid=os.getpid(), data_addr=self.plane.addr)
         log.info("environment ready", env=self.env_id, data_addr=self.plane.addr,
@@ -264,6 +267,7 @@ class Environment:
         await iface.stop()
 
     # -- containers ----------------------------------------------------------------------------
+    @ENV_OPS.op("add_container")
     async def op_add_container(self, a: dict) -> dict:
         """``{cid, ctag, user, group, limits}`` -> ``{data_addr, sandbox, socket}``."""
         cid = a["cid"]
@@ -281,6 +285,7 @@ class Environment:
             log.info("container added", env=self.env_id, cid=cid, ctag=c.ctag, socket=c.socket)
         return {"data_addr": self.plane.addr, "sandbox": c.sandbox.status, "socket": c.socket}
 
+    @ENV_OPS.op("remove_container")
     async def op_remove_container(self, a: dict) -> dict:
         """``{cid}``: kill the container's nodes, drop its interfaces and socket."""
         c = self._container(a)
@@ -289,6 +294,7 @@ class Environment:
         log.info("container removed", env=self.env_id, cid=c.cid, ctag=c.ctag)
         return {}
 
+    @ENV_OPS.op("shutdown")
     async def op_shutdown(self, a: dict) -> dict:
         """Destroy every container; the task set closes the link afterwards."""
         await self._close_containers()
@@ -303,6 +309,7 @@ class Environment:
             if isinstance(r, Exception):
                 log.error("container did not close cleanly", env=self.env_id, cid=c.cid, exc_info=r)
 
+    @ENV_OPS.op("resize_container")
     async def op_resize_container(self, a: dict) -> dict:
         """``{cid, limits: {cpu, memory, size, bandwidth}}`` -> ``{sandbox, limits, cgroup?}``:
         new limits for the container's sandbox, written into its cgroup while its nodes keep
@@ -319,6 +326,7 @@ class Environment:
                 **({"cgroup": info["cgroup"]["files"]} if "cgroup" in info else {})}
 
     # -- nodes ---------------------------------------------------------------------------------
+    @ENV_OPS.op("add_node")
     async def op_add_node(self, a: dict) -> dict:
         """``{cid, ntag, pkg, exe, args, name, namespace, respawn}`` -> ``{ntag, pid}``. A node of a
         ROS 1 package first gets its container's ROS 1 graph (:mod:`rce_container.ros1_graph`)."""
@@ -330,6 +338,7 @@ class Environment:
             if kind is not None and a.get("ntag") not in c.launcher.nodes:
                 await c.ros1.node_gone(a["ntag"])
 
+    @ENV_OPS.op("remove_node")
     async def op_remove_node(self, a: dict) -> dict:
         """``{cid, ntag}``: stop the node (SIGTERM, then SIGKILL after the grace period)."""
         c = self._container(a)
@@ -337,11 +346,13 @@ class Environment:
         await c.ros1.node_gone(a["ntag"])
         return {}
 
+    @ENV_OPS.op("logs")
     async def op_logs(self, a: dict) -> dict:
         """``{cid, ntag, lines?}`` -> ``{stdout: [line...], stderr: [line...]}`` (last lines)."""
         return self._container(a).launcher.logs(a["ntag"], a.get("lines", LOG_LINES))
 
     # -- parameters ----------------------------------------------------------------------------
+    @ENV_OPS.op("set_param")
     async def op_set_param(self, a: dict) -> dict:
         """``{cid, name, value}``: set a parameter (global name) on the group's bus."""
         self._container(a)
@@ -349,6 +360,7 @@ class Environment:
         await self._sync_ros1()
         return {}
 
+    @ENV_OPS.op("delete_param")
     async def op_delete_param(self, a: dict) -> dict:
         """``{cid, name}``: delete a parameter (and its subtree). NotFound if not set."""
         self._container(a)
@@ -360,6 +372,7 @@ class Environment:
         """Copy the bus's parameters into the ROS 1 graphs of the group's containers now."""
         await asyncio.gather(*(c.ros1.sync() for c in self.containers.values()))
 
+    @ENV_OPS.op("get_param")
     async def op_get_param(self, a: dict) -> dict:
         """``{cid, name}`` -> ``{value}``: a parameter's value (a subtree as an object), for a
         rosbridge client's ``/rosapi/get_param``. NotFound if not set."""
@@ -367,6 +380,7 @@ class Environment:
         return {"value": self.bus.get_param(resolve(a["name"], "/"))}
 
     # -- interfaces ----------------------------------------------------------------------------
+    @ENV_OPS.op("add_interface")
     async def op_add_interface(self, a: dict) -> dict:
         """``{cid, iid, tag, itype, cls, addr?}`` -> ``{iid, addr}``: create and start a
         container-side interface. Idempotent for the same spec; MessageError for an unknown class."""
@@ -392,11 +406,13 @@ class Environment:
             raise NotFound(f"interface {a.get('iid')!r} does not exist in container {c.ctag!r}")
         return iface
 
+    @ENV_OPS.op("remove_interface")
     async def op_remove_interface(self, a: dict) -> dict:
         """``{cid, iid}``: stop and drop an interface (its connections go with it)."""
         await self.drop_interface(self._interface(a))
         return {}
 
+    @ENV_OPS.op("data_key")
     async def op_data_key(self, a: dict) -> dict:
         """``{key}`` (hex; from the task set, once, right after ``hello``): this environment's data
         key, derived from the cluster key and its data address (:mod:`rce.cluster_auth`); peers'
@@ -406,6 +422,7 @@ class Environment:
         self.plane.data_key = bytes.fromhex(str(a.get("key")))
         return {}
 
+    @ENV_OPS.op("connect")
     async def op_connect(self, a: dict) -> dict:
         """``{cid, iid, peer_iid, peer_addr, token}``: connect an interface to a peer interface
         (``token``: the master's credential for sending to it)."""
@@ -413,6 +430,7 @@ class Environment:
         self._touch()
         return {}
 
+    @ENV_OPS.op("disconnect")
     async def op_disconnect(self, a: dict) -> dict:
         """``{cid, iid, peer_iid}``: drop one connection (no error if absent)."""
         self._interface(a).disconnect(int(a["peer_iid"]))
@@ -420,12 +438,14 @@ class Environment:
         return {}
 
     # -- bus tools -----------------------------------------------------------------------------
+    @ENV_OPS.op("describe")
     async def op_describe(self, a: dict) -> dict:
         """``{cid}`` -> :meth:`Bus.describe` of the group's bus, plus ``launched``: the
         container's nodes as the launcher sees them (``ntag, pid, running, restarts, argv``)."""
         c = self._container(a)
         return {**self.bus.describe(), "launched": [n.info() for n in c.launcher.nodes.values()]}
 
+    @ENV_OPS.op("bus_publish")
     async def op_bus_publish(self, a: dict) -> dict:
         """``{cid, topic, type, msg}`` -> ``{delivered}``: publish a JSON message once."""
         self._container(a)
@@ -439,6 +459,7 @@ class Environment:
         finally:
             self.bus.unadvertise(topic, owner)
 
+    @ENV_OPS.op("bus_call")
     async def op_bus_call(self, a: dict) -> Any:
         """``{cid, service, request, timeout}`` -> the JSON response. NotFound for an absent
         service, Timeout after ``timeout`` s (default :data:`BUS_CALL_TIMEOUT`), the provider's
@@ -453,6 +474,7 @@ class Environment:
         resp = await self.bus.call_service(name, payload, None, float(a.get("timeout") or BUS_CALL_TIMEOUT))
         return self.registry.bytes_to_json(resp_t, resp)
 
+    @ENV_OPS.op("bus_sample")
     async def op_bus_sample(self, a: dict) -> list:
         """``{cid, topic, count, timeout, type?}`` -> up to ``count`` JSON messages received on
         ``topic`` within ``timeout`` s. The type comes from the topic (or ``type``); NotFound
@@ -485,6 +507,7 @@ class Environment:
         return [self.registry.bytes_to_json(typename, p) for p in got]
 
     # -- status --------------------------------------------------------------------------------
+    @ENV_OPS.op("stats")
     async def op_stats(self, a: dict) -> dict:
         """``{cid}`` -> counters of the container and of its group::
 

@@ -44,6 +44,7 @@ from rce.errors import NotFound, RCEError, RequestError, Timeout, Unavailable
 from rce.link import STREAM_LIMIT
 from rce.log import get_logger
 from rce.masterlink import MASTER_PORT, MasterLink, parse_masters
+from rce.op_table import OpTable
 from rce.pending import PendingCalls
 from rce.tasks import Tasks
 from rce_container import metrics
@@ -59,9 +60,10 @@ REPLY_MARGIN = 10.0        # s on top of an op's own time limit (a bus_call's ti
 EXIT_MARGIN = 5.0          # s on top of the grace period for an environment to exit before it is killed
 
 CONTROL_SOCKET = "host.sock"
-RELAYED_OPS = ("add_node", "remove_node", "set_param", "delete_param", "get_param", "add_interface", "remove_interface",
-               "connect", "disconnect", "describe", "bus_publish", "bus_call", "bus_sample", "logs",
-               "resize_container")
+
+#: The ops the master sends a container task set: its own, and those relayed, unchanged, to the
+#: environment that serves the op's ``cid`` (each of them an op of ``rce_container.environment.ENV_OPS``).
+HOST_OPS = OpTable("master -> container task set")
 
 
 def socket_dir_for(runtime_dir: Path) -> Path:
@@ -176,13 +178,10 @@ class ContainerHost:
         log.info("sandbox", kind=self.sandbox_cls.kind, uses=how, scope=self.scope)
         if self.metrics_port is not None:
             await self._start_metrics()
-        handlers = {op: self._relay_handler(op) for op in RELAYED_OPS}
-        handlers.update(create_container=self.op_create_container, destroy_container=self.op_destroy_container,
-                        stats=self.op_stats)
         info = {"kind": "container", "name": self.name, "host": self.advertise_host, "sandbox": self.sandbox_cls.kind,
                 "capacity": {"cpu": os.cpu_count() or 1, "memory": psutil.virtual_memory().total // 2**20}}
-        self.master = MasterLink(self.masters, handlers, info, report=self._report, on_registered=self._obey,
-                                 max_frame=self.max_frame, cluster_key=self.cluster_key)
+        self.master = MasterLink(self.masters, HOST_OPS.handlers(self), info, report=self._report,
+                                 on_registered=self._obey, max_frame=self.max_frame, cluster_key=self.cluster_key)
         await self.master.start()
         log.info("container task set up", tid=self.tid, name=self.name, sandbox=self.sandbox_cls.kind,
                  runtime_dir=str(self.runtime_dir))
@@ -441,11 +440,10 @@ class ContainerHost:
                 await self.op_destroy_container({"cid": cid})
             except RCEError as e:
                 log.warning("could not destroy a container the master dropped", cid=cid, reason=e.message)
-        remove_node = self._relay_handler("remove_node")
         for n in answer.get("drop_nodes") or []:
             log.warning("the master does not have this node: removing it", cid=n.get("cid"), ntag=n.get("ntag"))
             try:
-                await remove_node({"cid": n.get("cid"), "ntag": n.get("ntag")})
+                await self.relay("remove_node", {"cid": n.get("cid"), "ntag": n.get("ntag")})
             except RCEError as e:
                 log.warning("could not remove a node the master dropped", reason=e.message, **n)
 
@@ -458,6 +456,7 @@ class ContainerHost:
                               + (f" (exit code {c.env.exit_code})" if c.env.exit_code is not None else ""))
         return c
 
+    @HOST_OPS.op("create_container")
     async def op_create_container(self, a: dict) -> dict:
         """``{cid, user, ctag, group, limits}`` -> ``{data_addr, sandbox, startup_ms}`` once the
         environment serves the container. Idempotent for a repeated cid with the same tag.
@@ -507,6 +506,7 @@ class ContainerHost:
                  data_addr=result["data_addr"], startup_ms=result["startup_ms"])
         return result
 
+    @HOST_OPS.op("destroy_container")
     async def op_destroy_container(self, a: dict) -> dict:
         """``{cid}``: kill every node of the container, drop its interfaces and socket; stop its
         environment if it was the group's last container. Raises :class:`NotFound`."""
@@ -535,25 +535,29 @@ class ContainerHost:
         log.info("container destroyed", cid=c.cid, ctag=c.ctag)
         return {}
 
-    def _relay_handler(self, op: str):
-        async def relay(a: dict) -> Any:
-            c = self._record(a)
-            timeout = RELAY_TIMEOUT
-            if op in ("bus_call", "bus_sample"):
-                timeout = float(a.get("timeout") or BUS_CALL_TIMEOUT) + REPLY_MARGIN
-            elif op == "remove_node":
-                timeout = self.grace + REPLY_MARGIN
-            result = await c.env.peer.request(op, a, timeout)
-            if op == "add_node":
-                c.nodes.setdefault(a.get("ntag"), (result or {}).get("pid"))
-                c.statuses.setdefault(a.get("ntag"), "starting")
-            elif op == "remove_node":
-                c.nodes.pop(a.get("ntag"), None)
-                c.statuses.pop(a.get("ntag"), None)
-            return result
-        relay.__doc__ = f"Relay ``{op}`` to the environment of the op's ``cid``."
-        return relay
+    @HOST_OPS.relay("add_node", "remove_node", "set_param", "delete_param", "get_param", "add_interface",
+                    "remove_interface", "connect", "disconnect", "describe", "bus_publish", "bus_call", "bus_sample",
+                    "logs", "resize_container")
+    async def relay(self, op: str, a: dict) -> Any:
+        """Relay ``op`` (one of :data:`HOST_OPS`' relayed ops) to the environment of the op's
+        ``cid``; its answer. Raises :class:`NotFound` for an unknown cid, :class:`Unavailable`
+        when its environment is gone, and what the environment raises."""
+        c = self._record(a)
+        timeout = RELAY_TIMEOUT
+        if op in ("bus_call", "bus_sample"):
+            timeout = float(a.get("timeout") or BUS_CALL_TIMEOUT) + REPLY_MARGIN
+        elif op == "remove_node":
+            timeout = self.grace + REPLY_MARGIN
+        result = await c.env.peer.request(op, a, timeout)
+        if op == "add_node":
+            c.nodes.setdefault(a.get("ntag"), (result or {}).get("pid"))
+            c.statuses.setdefault(a.get("ntag"), "starting")
+        elif op == "remove_node":
+            c.nodes.pop(a.get("ntag"), None)
+            c.statuses.pop(a.get("ntag"), None)
+        return result
 
+    @HOST_OPS.op("stats")
     async def op_stats(self, a: dict) -> dict:
         """``{cid}`` -> the container's counters (see ``Environment.op_stats``); without a cid,
         ``{name, tid, sandbox, environments, containers: [per-container stats...]}``."""
@@ -592,6 +596,7 @@ class ContainerHost:
     async def _metrics(self, request: web.Request) -> web.Response:
         registry = metrics.snapshot_registry(await self.op_stats({}))
         return web.Response(body=generate_latest(registry), headers={"Content-Type": CONTENT_TYPE_LATEST})
+
 
 
 def exit_reason(code: int | None) -> str:

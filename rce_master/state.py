@@ -40,7 +40,7 @@ from rce_master.store import Key, MemoryStore, Store, encode
 
 Pairs = list[tuple[InterfaceRec, InterfaceRec]]     # connections removed: the shell disconnects both ends
 
-# Per-user quotas (issue 11 part 4): what one user may hold at once, so that one user's robots cannot
+# Per-user quotas: what one user may hold at once, so that one user's robots cannot
 # exhaust the hosts and the master for the others; rce-master --max-containers/--max-nodes/--max-interfaces.
 DEFAULT_MAX_CONTAINERS = 256      # containers per user (a fleet of hundreds of robots, one container each)
 DEFAULT_MAX_NODES = 2048          # nodes per user, all containers together

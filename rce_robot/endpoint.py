@@ -22,6 +22,7 @@ from rce.errors import AuthError, NotFound, RCEError, Throttled
 from rce.log import get_logger
 from rce.masterlink import MASTER_WAIT, Address, MasterLink
 from rce.messages import default_registry
+from rce.op_table import OpTable
 from rce.package_path import load_package_types
 from rce.protocol.frames import DEFAULT_EXPIRY, ER, encode
 from rce.protocol.limits import DEFAULT_MAX_PENDING_TOTAL, PartBudget, parse_max_lag
@@ -42,6 +43,9 @@ PING_TIMEOUT = 60.0      # s a robot may leave a ping unanswered before its link
 WS_MAX_QUEUE = 64        # frames the websocket reads ahead of the session
 SESSION_OPEN_WAIT = 5.0  # s a master op for a robot whose login was accepted waits for its websocket to open (a robot
                          # that moved here: the master installs its interfaces right after robot_connected)
+
+#: The ops the master sends a robot task set.
+ROBOT_OPS = OpTable("master -> robot task set")
 
 
 def normalise_password(p: str) -> str:
@@ -139,7 +143,7 @@ class RobotEndpoint:
         self.cluster_key = cluster_key
         self.max_message, self.queue_size, self.expiry = max_message, queue_size, expiry
         self.grace, self.resume_buffer, self.max_lag = grace, resume_buffer, max_lag
-        self.budget = PartBudget(max_pending_total)      # binary parts waiting, all robots (issue 11)
+        self.budget = PartBudget(max_pending_total)      # binary parts waiting, all robots together
         self.parser = ParsePool()                        # big text frames are parsed off the loop
         self.master_wait = master_wait
         self.registry = default_registry()
@@ -172,12 +176,10 @@ class RobotEndpoint:
                                       max_queue=WS_MAX_QUEUE, ssl=self.ssl_context)
         self.ws_port = self._ws_server.sockets[0].getsockname()[1]
         host = f"[{self.advertise_host}]" if ":" in self.advertise_host else self.advertise_host
-        handlers = {op: getattr(self, "_op_" + op) for op in
-                    ("add_interface", "remove_interface", "connect", "disconnect", "notify", "close_robot")}
         scheme = "wss" if self.ssl_context else "ws"
         info = {"kind": "robot", "name": self.name, "host": self.advertise_host, "ws_url": f"{scheme}://{host}:{self.ws_port}/",
                 "data_addr": self.plane.addr}
-        self.master = MasterLink(masters, handlers, info, report=self._report, on_registered=self._obey,
+        self.master = MasterLink(masters, ROBOT_OPS.handlers(self), info, report=self._report, on_registered=self._obey,
                                  master_wait=self.master_wait, cluster_key=self.cluster_key)
         await self.master.start()
         if rosbridge_port is not None:
@@ -361,6 +363,7 @@ class RobotEndpoint:
             raise NotFound(f"no robot-side interface with id {iid}")
         return iface
 
+    @ROBOT_OPS.op("add_interface")
     async def _op_add_interface(self, a: dict) -> dict:
         opening = self.opening.get((a["user"], a["robot"]))
         if opening is not None and (a["user"], a["robot"]) not in self.namespaces:
@@ -376,6 +379,7 @@ class RobotEndpoint:
         self.by_iid[iface.iid] = iface
         return {}
 
+    @ROBOT_OPS.op("remove_interface")
     async def _op_remove_interface(self, a: dict) -> dict:
         iface = self.by_iid.pop(a["iid"], None)
         if iface:
@@ -384,16 +388,19 @@ class RobotEndpoint:
             iface.on_peers_changed()
         return {}
 
+    @ROBOT_OPS.op("connect")
     async def _op_connect(self, a: dict) -> dict:
         self._iface(a["iid"]).connect(a["peer_iid"], a["peer_addr"], token_of(a))
         return {}
 
+    @ROBOT_OPS.op("disconnect")
     async def _op_disconnect(self, a: dict) -> dict:
         iface = self.by_iid.get(a["iid"])
         if iface:
             iface.disconnect(a["peer_iid"])
         return {}
 
+    @ROBOT_OPS.op("notify")
     async def _op_notify(self, a: dict) -> None:
         ns = self._find(a)
         if ns is None:
@@ -403,6 +410,7 @@ class RobotEndpoint:
         else:
             ns.send_status(a["data"])
 
+    @ROBOT_OPS.op("close_robot")
     async def _op_close_robot(self, a: dict) -> dict:
         await self._ns(a).close(a.get("reason", "closed by the master"))
         return {}

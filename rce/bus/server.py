@@ -1,9 +1,10 @@
 """The bus server: node processes reach a :class:`~rce.bus.core.Bus` over a Unix socket.
 
-Link protocol (internal framing, :mod:`rce.framing`): CONTROL requests
+Link protocol (internal framing, :mod:`rce.framing`): CONTROL requests (:data:`BUS_OPS`)
 ``hello``, ``advertise``, ``unadvertise``, ``subscribe``, ``unsubscribe``,
 ``advertise_service``, ``unadvertise_service``, ``resolve_service``,
-``get_param``, ``set_param``, ``delete_param``, ``describe``; DATA frames:
+``get_param``, ``set_param``, ``delete_param``, ``describe``, and the notifications
+``undecodable``, ``direct_closed`` and ``fd_channel``; DATA frames:
 
 - node -> bus ``MSG dst=publisher handle`` publishes;
 - bus -> node ``MSG dst=subscription handle`` delivers;
@@ -50,6 +51,7 @@ from rce.bus.core import Bus, Subscription, Topic
 from rce.errors import AuthError, NotFound, RCEError, RequestError
 from rce.link import STREAM_LIMIT, Responder, settle_reply
 from rce.log import get_logger
+from rce.op_table import OpTable
 from rce.pending import PendingCalls
 from rce.rpc import RpcPeer
 
@@ -61,8 +63,11 @@ REFUSED_LINGER = 0.1                    # s a refused node's link stays open so 
 SOCKET_MODE = 0o660                     # a bus socket: its owner and group (a container's: its node uid) only
 _UCRED = struct.Struct("3i")            # struct ucred {pid, uid, gid} of SO_PEERCRED
 
+#: The ops a node sends its bus (the module doc); ``hello`` and ``fd_channel`` are served before the token is shown.
+BUS_OPS = OpTable("node -> bus")
 
-class _Session:
+
+class NodeSession:
     """One connected node."""
 
     def __init__(self, server: "BusServer", peer: RpcPeer, sid: int):
@@ -88,9 +93,8 @@ class _Session:
         peer.link.on_drop = self._lost
         if server.token is None:
             self._admit()
-        else:                              # nothing but hello until the token is shown
-            peer.handlers["hello"] = self.op_hello
-        peer.handlers["fd_channel"] = self.op_fd_channel
+        else:                              # nothing but hello (and an fd channel) until the token is shown
+            peer.handlers.update(BUS_OPS.handlers(self, unauthenticated=True))
 
     def _lost(self, tag: tuple[int, int]) -> None:
         """A delivery the link took was dropped from its queue (the node is not keeping up)."""
@@ -102,7 +106,7 @@ class _Session:
         self.bytes_out -= n
 
     def _admit(self) -> None:
-        self.peer.handlers.update({op[3:]: getattr(self, op) for op in dir(self) if op.startswith("op_")})
+        self.peer.handlers.update(BUS_OPS.handlers(self))
         self.peer.on_data = self.on_data
 
     def stats(self) -> dict:
@@ -113,6 +117,7 @@ class _Session:
                 "bytes_out": self.bytes_out, "dropped": sum(s.dropped for s in self.subs.values()),
                 "undecodable": self.undecodable}
 
+    @BUS_OPS.op("undecodable")
     async def op_undecodable(self, a: dict) -> None:
         """``{where, error}``: the node could not deserialize a message delivered to it (counted)."""
         self.undecodable += 1
@@ -120,6 +125,7 @@ class _Session:
                     error=str(a.get("error"))[:200])
 
     # -- control ops ---------------------------------------------------------------------------
+    @BUS_OPS.op("hello", unauthenticated=True)
     async def op_hello(self, a: dict) -> dict:
         """``{name, pid, container, token}`` -> ``{bus}``. Raises :class:`AuthError` (and
         closes the link) when the bus has a token and ``token`` is not it."""
@@ -144,6 +150,7 @@ class _Session:
         self.server.changed()
         return reply
 
+    @BUS_OPS.op("fd_channel", unauthenticated=True)
     async def op_fd_channel(self, a: dict) -> None:
         """``{key}`` (a notification, the only frame of a node's second connection): this
         connection is the fd channel of the session whose hello got ``fd_key`` = ``key``."""
@@ -159,6 +166,7 @@ class _Session:
         owner.channel = self.peer
         self.server.changed()
 
+    @BUS_OPS.op("advertise")
     async def op_advertise(self, a: dict) -> int:
         t = self.bus.advertise(a["topic"], a["type"], self.owner)
         h = next(self.ids)
@@ -166,6 +174,7 @@ class _Session:
         self.server.changed()
         return h
 
+    @BUS_OPS.op("unadvertise")
     async def op_unadvertise(self, a: dict) -> None:
         t = self.pubs.pop(a["handle"], None)
         if t:
@@ -180,6 +189,7 @@ class _Session:
             raise RequestError(f"bad or duplicate handle {h!r}")
         return h
 
+    @BUS_OPS.op("subscribe")
     async def op_subscribe(self, a: dict) -> int:
         h = self._handle(a)
         offer = self.peer.link.offer
@@ -195,11 +205,13 @@ class _Session:
         self.server.changed()
         return h
 
+    @BUS_OPS.op("unsubscribe")
     async def op_unsubscribe(self, a: dict) -> None:
         sub = self.subs.pop(a["handle"], None)
         if sub:
             self.bus.unsubscribe(sub)
 
+    @BUS_OPS.op("advertise_service")
     async def op_advertise_service(self, a: dict) -> int:
         h = self._handle(a)
 
@@ -213,11 +225,13 @@ class _Session:
         self.server.changed()
         return h
 
+    @BUS_OPS.op("unadvertise_service")
     async def op_unadvertise_service(self, a: dict) -> None:
         name = self.services.pop(a["handle"], None)
         if name:
             self.bus.unadvertise_service(name, self.owner)
 
+    @BUS_OPS.op("resolve_service")
     async def op_resolve_service(self, a: dict) -> dict:
         s = self.bus.services.get(a["service"])
         if s is None:
@@ -226,20 +240,25 @@ class _Session:
         self.resolved[h] = s.name
         return {"handle": h, "type": s.type}
 
+    @BUS_OPS.op("direct_closed")
     async def op_direct_closed(self, a: dict) -> None:
         """``{link}`` (a notification): the node's direct link ``link`` ended."""
         for cb in self.server.on_direct_closed:
             cb(self, int(a["link"]))
 
+    @BUS_OPS.op("get_param")
     async def op_get_param(self, a: dict):
         return self.bus.get_param(a["name"])
 
+    @BUS_OPS.op("set_param")
     async def op_set_param(self, a: dict) -> None:
         self.bus.set_param(a["name"], a.get("value"))
 
+    @BUS_OPS.op("delete_param")
     async def op_delete_param(self, a: dict) -> None:
         self.bus.delete_param(a["name"])
 
+    @BUS_OPS.op("describe")
     async def op_describe(self, a: dict) -> dict:
         return self.bus.describe()
 
@@ -315,13 +334,13 @@ class BusServer:
                  uids: Collection[int] | None = None, owner: int | None = None, direct: bool = False):
         self.bus = bus
         self.direct = direct
-        self.fd_keys: dict[str, _Session] = {}
+        self.fd_keys: dict[str, NodeSession] = {}
         self.on_direct_closed: list = []     # cb(session, link id): a node's direct link ended
         self.max_buffer = max_buffer
         self.token, self.owner = token, owner
         self.uids = None if uids is None else frozenset(uids)
         self.refused = 0
-        self.sessions: set[_Session] = set()
+        self.sessions: set[NodeSession] = set()
         self._servers: list[asyncio.AbstractServer] = []
         self._ids = itertools.count(1)
 
@@ -357,7 +376,7 @@ class BusServer:
                 writer.close()
                 return
         peer = RpcPeer(reader, writer, name=f"{self.bus.name}-node", max_buffer=self.max_buffer)
-        self.sessions.add(_Session(self, peer, next(self._ids)))
+        self.sessions.add(NodeSession(self, peer, next(self._ids)))
         peer.start()
 
     async def close(self) -> None:
