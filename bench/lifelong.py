@@ -1,0 +1,174 @@
+"""Benchmark the lifelong fleet (rce_fleet.lifelong) on the League of Robot Runners 2024
+problems in ``../shared/data/lorr/``, under the start-kit's rules, at each problem's
+official number of steps and 1000 ms per step.
+
+Prints a table: tasks finished, the start-kit default entry's and the best known (from
+``lorr/RESULTS.md``) with the ratios, tasks per step, planner ms per step (p50/p99/max),
+timeouts and invalid steps. Writes JSON and a PNG of tasks finished over time against the
+two published numbers.
+
+Usage::
+
+    .venv/bin/python bench/lifelong.py [--quick] [--only NAME ...] [--steps N]
+        [--plan-time-limit MS] [--scheduler greedy|batch|both] [--seed S]
+        [--data ../shared/data] [--json PATH] [--plot PATH] [--outputs DIR]
+
+``--quick`` runs a small cut (two problems, 100 steps) for the test suite; published
+numbers are then scaled by steps and marked as such. Results go to ``bench/results/``
+(lifelong.json, lifelong.png; lifelong_quick.* with --quick).
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import re
+import sys
+import time
+from pathlib import Path
+
+ROOT = Path(__file__).resolve().parents[1]
+DEFAULT_DATA = (ROOT / ".." / "shared" / "data").resolve()
+RESULTS = ROOT / "bench" / "results"
+QUICK = {"random_32_32_20_100": 60, "paris_1_256_250": 30}
+
+
+def published(results_md: Path) -> dict[str, dict]:
+    """Rows of RESULTS.md's table: name -> {robots, steps, best, best_team, default}."""
+    out = {}
+    row = re.compile(r"^\|\s*([\w.]+)/(\w+)\.json\s*\|\s*([\d,]+)\s*\|\s*([\d,]+)\s*\|\s*([\d,]+)\s*\(([^)]*)\)\s*\|"
+                     r"\s*([\d,]+)\s*\|")
+    for ln in results_md.read_text().splitlines():
+        m = row.match(ln.strip())
+        if m:
+            num = [int(m.group(k).replace(",", "")) for k in (3, 4, 5, 7)]
+            out[m.group(2)] = {"domain": m.group(1), "robots": num[0], "steps": num[1], "best": num[2],
+                               "best_team": m.group(6), "default": num[3]}
+    return out
+
+
+def run_one(path: Path, steps: int, limit_ms: float, scheduler: str, seed: int, pub: dict | None,
+            outputs: Path | None) -> dict:
+    """Run one problem; returns its row (with the finished-over-time curve)."""
+    from rce_fleet.lifelong import load_problem
+    from rce_fleet.lifelong.runner import rich_progress, run_lifelong
+
+    prob = load_problem(path)
+    with rich_progress(steps, f"{path.stem} ({scheduler})") as cb:
+        res = run_lifelong(prob, steps, plan_time_limit_ms=limit_ms, seed=seed, scheduler=scheduler, progress=cb,
+                           record=outputs is not None)
+    s = res.summary()
+    row = {"problem": path.stem, "robots": prob.team_size, "steps": steps, "scheduler": scheduler, **s,
+           "tasks_per_step": s["tasks_finished"] / steps, "curve": res.finished.tolist()}
+    if pub:
+        scale = steps / pub["steps"]
+        row.update(official_steps=pub["steps"], scaled=scale != 1.0, default=pub["default"] * scale,
+                   best=pub["best"] * scale, best_team=pub["best_team"])
+        row["vs_default"] = s["tasks_finished"] / row["default"]
+        row["vs_best"] = s["tasks_finished"] / row["best"]
+    if outputs is not None:
+        outputs.mkdir(parents=True, exist_ok=True)
+        out = outputs / f"{path.stem}.{scheduler}.json"
+        out.write_text(json.dumps(res.sim.output(prob.version)))
+        row["output"] = str(out)
+    return row
+
+
+def print_table(rows: list[dict]) -> None:
+    """The rows as a rich table."""
+    from rich.console import Console
+    from rich.table import Table
+
+    t = Table(title="Lifelong fleet on the LoRR 2024 problems (start-kit rules, MAPF_T)")
+    for col in ("problem", "robots", "steps", "sched", "tasks", "default", "x default", "best known", "x best",
+                "tasks/step", "ms p50", "ms p99", "ms max", "timeouts", "invalid"):
+        t.add_column(col, justify="right", no_wrap=col == "problem")
+    for r in rows:
+        mark = "*" if r.get("scaled") else ""
+        t.add_row(r["problem"], str(r["robots"]), str(r["steps"]), r["scheduler"], str(r["tasks_finished"]),
+                  f"{r['default']:.0f}{mark}" if "default" in r else "-",
+                  f"{r['vs_default']:.2f}" if "vs_default" in r else "-",
+                  f"{r['best']:.0f}{mark}" if "best" in r else "-",
+                  f"{r['vs_best']:.2f}" if "vs_best" in r else "-",
+                  f"{r['tasks_per_step']:.2f}", f"{r['plan_ms_p50']:.1f}", f"{r['plan_ms_p99']:.1f}",
+                  f"{r['plan_ms_max']:.1f}", str(r["timeouts"]), str(r["invalid_steps"]))
+    con = Console(width=max(Console().width, 170))
+    con.print(t)
+    if any(r.get("scaled") for r in rows):
+        con.print("* published number scaled by steps / official steps (a shorter run than the official one)")
+
+
+def plot(rows: list[dict], path: Path) -> None:
+    """PNG: tasks finished over time per problem, with the published numbers as lines."""
+    import matplotlib
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    names = sorted({r["problem"] for r in rows}, key=lambda n: [r["robots"] for r in rows if r["problem"] == n][0])
+    fig, axes = plt.subplots(1, len(names), figsize=(4.2 * len(names), 3.8), squeeze=False)
+    for ax, name in zip(axes[0], names, strict=True):
+        mine = [r for r in rows if r["problem"] == name]
+        for r in mine:
+            ax.plot(range(1, len(r["curve"]) + 1), r["curve"], label=f"rce ({r['scheduler']})")
+        r = mine[0]
+        if "default" in r:
+            steps = r["steps"]
+            ax.plot([0, steps], [0, r["default"]], "--", color="grey", label="default entry (pro rata)")
+            ax.plot([0, steps], [0, r["best"]], ":", color="black", label=f"best known ({r['best_team']})")
+            ax.scatter([steps, steps], [r["default"], r["best"]], color=["grey", "black"], zorder=3, s=12)
+        ax.set_title(f"{name} ({r['robots']} robots)", fontsize=9)
+        ax.set_xlabel("step")
+        ax.set_ylabel("tasks finished")
+        ax.legend(fontsize=7)
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+
+
+def main(argv: list[str] | None = None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    ap.add_argument("--data", type=Path, default=DEFAULT_DATA, help="the shared data directory")
+    ap.add_argument("--quick", action="store_true", help="a small cut for the test suite (2 problems, short runs)")
+    ap.add_argument("--only", nargs="+", metavar="NAME", help="problems by name (e.g. random_32_32_20_100)")
+    ap.add_argument("--steps", type=int, help="steps for every problem (default: the official number)")
+    ap.add_argument("--plan-time-limit", type=float, default=1000.0, metavar="MS")
+    ap.add_argument("--scheduler", choices=("greedy", "batch", "both"), default="greedy")
+    ap.add_argument("--seed", type=int, default=0)
+    ap.add_argument("--json", type=Path)
+    ap.add_argument("--plot", type=Path)
+    ap.add_argument("--outputs", type=Path, help="also write each run's start-kit output JSON into DIR")
+    args = ap.parse_args(argv)
+
+    lorr = args.data / "lorr"
+    if not (lorr / "RESULTS.md").is_file():
+        print(f"LoRR problems not found under {lorr}", file=sys.stderr)
+        return 2
+    pub = published(lorr / "RESULTS.md")
+    problems = sorted(lorr.glob("*.domain/*.json"), key=lambda p: pub.get(p.stem, {}).get("robots", 0))
+    if args.quick:
+        problems = [p for p in problems if p.stem in QUICK]
+    if args.only:
+        problems = [p for p in problems if p.stem in args.only]
+    scheds = ("greedy", "batch") if args.scheduler == "both" else (args.scheduler,)
+    stem = "lifelong_quick" if args.quick else "lifelong"
+    json_path = args.json or RESULTS / f"{stem}.json"
+    plot_path = args.plot or RESULTS / f"{stem}.png"
+    rows = []
+    t0 = time.perf_counter()
+    for p in problems:
+        info = pub.get(p.stem)
+        steps = args.steps or (QUICK[p.stem] if args.quick else (info["steps"] if info else 1000))
+        for sch in scheds:
+            rows.append(run_one(p, steps, args.plan_time_limit, sch, args.seed, info, args.outputs))
+    print_table(rows)
+    json_path.parent.mkdir(parents=True, exist_ok=True)
+    plot_path.parent.mkdir(parents=True, exist_ok=True)
+    json_path.write_text(json.dumps({"plan_time_limit_ms": args.plan_time_limit, "wall_s": time.perf_counter() - t0,
+                                     "runs": rows}, indent=1))
+    print(f"wrote {json_path}")
+    plot(rows, plot_path)
+    print(f"wrote {plot_path}")
+    return 1 if any(r["timeouts"] or r["invalid_steps"] for r in rows) else 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,58 @@
+"""``rce-fleet lifelong`` and ``bench/lifelong.py --quick``: a short run end to end, its
+output replayed under the rules, and a malformed problem named with file and line."""
+from __future__ import annotations
+
+import json
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+from rce_fleet.cli import main
+from rce_fleet.lifelong import load_problem, replay
+
+ROOT = Path(__file__).resolve().parents[2]
+DATA = ROOT / ".." / "shared" / "data"
+RANDOM = DATA / "lorr" / "random.domain" / "random_32_32_20_100.json"
+
+
+def test_lifelong_cli_writes_an_output_that_replays_with_its_task_count(tmp_path, capsys):
+    out = tmp_path / "out.json"
+    with pytest.raises(SystemExit) as e:
+        main(["lifelong", str(RANDOM), "--steps", "40", "--output", str(out), "--seed", "3", "--no-progress"])
+    assert e.value.code == 0
+    text = capsys.readouterr().out
+    assert "tasks finished in 40 steps by 100 robots" in text and "timeouts 0" in text
+    d = json.loads(out.read_text())
+    assert d["actionModel"] == "MAPF_T" and d["teamSize"] == 100 and d["makespan"] == 40
+    assert d["numTaskFinished"] > 0 and len(d["plannerTimes"]) == 40
+    p = load_problem(RANDOM)
+    again = replay(p.grid, p.tasks, p.reveal, d)
+    assert again.finished == d["numTaskFinished"] and again.invalid_steps == 0
+
+
+def test_lifelong_cli_names_a_malformed_problem_file_and_line(tmp_path, capsys):
+    bad = tmp_path / "p.json"
+    bad.write_text('{\n  "mapFile": "x.map",\n  "teamSize": 2,,\n}')
+    with pytest.raises(SystemExit) as e:
+        main(["lifelong", str(bad), "--steps", "5"])
+    assert e.value.code == 2
+    assert f"{bad}:3: not JSON" in capsys.readouterr().err
+    with pytest.raises(SystemExit) as e:
+        main(["lifelong", str(tmp_path / "none.json"), "--steps", "5"])
+    assert e.value.code == 2 and "none.json: no such file" in capsys.readouterr().err
+
+
+def test_bench_lifelong_quick(tmp_path):
+    js, png = tmp_path / "l.json", tmp_path / "l.png"
+    r = subprocess.run([sys.executable, str(ROOT / "bench" / "lifelong.py"), "--quick", "--json", str(js),
+                        "--plot", str(png)], capture_output=True, text=True, timeout=120)
+    assert r.returncode == 0, r.stderr[-2000:]
+    runs = json.loads(js.read_text())["runs"]
+    assert {x["problem"] for x in runs} == {"random_32_32_20_100", "paris_1_256_250"}
+    for x in runs:
+        assert x["invalid_steps"] == 0 and x["timeouts"] == 0 and x["tasks_finished"] > 0
+        assert len(x["curve"]) == x["steps"] and x["default"] > 0 and x["best"] > 0
+    assert png.stat().st_size > 10_000
+    assert "x default" in r.stdout

@@ -1,0 +1,215 @@
+"""rce_fleet.lifelong: problem files, tasks, distance maps, schedulers and the PIBT planner
+(conflict-free steps for both action models, corridor swaps, one-shot PIBT)."""
+from __future__ import annotations
+
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from rce_fleet.lifelong import (MAPF, MAPF_T, BatchScheduler, DistanceCache, GreedyScheduler, LifelongGrid,
+                                PIBTPlanner, ProblemError, Simulator, TaskError, TaskPool, TaskState, check_actions,
+                                load_problem, solve_one_shot)
+from rce_fleet.lifelong.kernels import UNREACHABLE, heading_cost
+
+DATA = Path(__file__).resolve().parents[2] / ".." / "shared" / "data"
+RANDOM = DATA / "lorr" / "random.domain" / "random_32_32_20_100.json"
+
+
+def grid(rows: list[str]) -> LifelongGrid:
+    return LifelongGrid(np.array([[ch == "." for ch in r] for r in rows]))
+
+
+# -- problem files ---------------------------------------------------------------------------
+def test_load_the_lorr_random_problem():
+    p = load_problem(RANDOM)
+    assert (p.grid.rows, p.grid.cols, p.team_size, p.reveal) == (32, 32, 100, 150)
+    assert len(p.tasks) == 100000 and p.tasks[0] == (627, 871)
+    assert all(p.grid.is_free(int(c)) for c in p.starts)
+
+
+def write_problem(tmp_path: Path, agents: str, tasks: str = "1\n3,4\n", mapf: str = "m.map") -> Path:
+    (tmp_path / "m.map").write_text("type octile\nheight 2\nwidth 3\nmap\n..@\n.E.\n")
+    (tmp_path / "a.agents").write_text(agents)
+    (tmp_path / "t.tasks").write_text(tasks)
+    prob = tmp_path / "p.json"
+    prob.write_text(f'{{"mapFile": "{mapf}", "agentFile": "a.agents", "taskFile": "t.tasks", "teamSize": 2,'
+                    f' "numTasksReveal": 1.5}}')
+    return prob
+
+
+def test_problem_errors_name_the_file_and_line(tmp_path):
+    good = load_problem(write_problem(tmp_path, "# c\n2\n0\n4\n"))
+    assert good.grid.free.tolist() == [[True, True, False], [True, True, True]] and good.reveal == 3
+    with pytest.raises(ProblemError, match=r"a\.agents:4: location 2 .* not a free cell"):
+        load_problem(write_problem(tmp_path, "# c\n2\n0\n2\n"))
+    with pytest.raises(ProblemError, match=r"a\.agents:1: count 3 but 2 entries"):
+        load_problem(write_problem(tmp_path, "3\n0\n4\n"))
+    with pytest.raises(ProblemError, match=r"t\.tasks:2: expected a location"):
+        load_problem(write_problem(tmp_path, "2\n0\n4\n", "1\n3,x\n"))
+    with pytest.raises(ProblemError, match=r"nope\.map: no such file"):
+        load_problem(write_problem(tmp_path, "2\n0\n4\n", mapf="nope.map"))
+    bad = tmp_path / "bad.json"
+    bad.write_text('{"mapFile": "m.map",\n "teamSize": }')
+    with pytest.raises(ProblemError, match=r"bad\.json:2: not JSON"):
+        load_problem(bad)
+    with pytest.raises(ProblemError, match=r"missing\.json: no such file"):
+        load_problem(tmp_path / "missing.json")
+
+
+# -- tasks -------------------------------------------------------------------------------------
+def test_task_states_and_forbidden_transitions():
+    pool = TaskPool()
+    t = pool.add([3, 4], priority=1.0)
+    assert t.state is TaskState.QUEUED and not t.opened
+    pool.assign(t.id, 0)
+    assert t.state is TaskState.ASSIGNED
+    pool.assign(t.id, 1)                      # unopened: reassigned freely
+    assert t.agent == 1
+    assert not pool.reach(t.id, 5)
+    assert t.state is TaskState.ACTIVE and t.opened
+    with pytest.raises(TaskError, match="opened by agent 1"):
+        pool.assign(t.id, 0)
+    with pytest.raises(TaskError, match="active"):
+        pool.cancel(t.id)
+    assert pool.reach(t.id, 9) and t.state is TaskState.DONE and pool.finished == 1 and len(pool) == 0
+    late = pool.add([1], deadline=3)
+    assert pool.expire(4) == [late] and late.state is TaskState.FAILED
+    with pytest.raises(TaskError):
+        pool.add([])
+
+
+# -- distances -----------------------------------------------------------------------------------
+def test_distance_maps_are_bfs_and_the_cache_is_bounded():
+    g = grid(["....", ".@@.", "...."])
+    cache = DistanceCache(g, max_bytes=0, min_rows=2)
+    assert cache.capacity == 2
+    s = cache.slot(0)
+    assert cache.table[s].reshape(3, 4).tolist() == [[0, 1, 2, 3], [1, UNREACHABLE, UNREACHABLE, 4],
+                                                     [2, 3, 4, 5]]
+    cache.slot(3)
+    cache.pinned = {0}
+    cache.slot(11)                            # evicts 3, the least recent unpinned
+    assert 0 in cache and 11 in cache and 3 not in cache and len(cache) == 2
+    assert cache.dist(0, 11) == 5 and cache.dist(3, 8) == 5   # the second by a search that stops early
+    cache.pinned = {0, 11}
+    with pytest.raises(RuntimeError, match="pinned"):
+        cache.slot(4)
+
+
+def test_heading_cost_adds_the_turns_to_face_a_shorter_way():
+    g = grid(["...."])
+    cache = DistanceCache(g)
+    s = cache.slot(3)
+    assert heading_cost(g.nbr, cache.table, s, 0, 0) == 3      # facing east: 3 moves
+    assert heading_cost(g.nbr, cache.table, s, 0, 1) == 4      # facing south: one turn first
+    assert heading_cost(g.nbr, cache.table, s, 0, 2) == 5      # facing west: two turns
+    assert heading_cost(g.nbr, cache.table, s, 3, 2) == 0
+
+
+# -- schedulers ------------------------------------------------------------------------------------
+def open_tasks(errands: list[tuple[int, ...]]) -> TaskPool:
+    pool = TaskPool()
+    for e in errands:
+        pool.add(e)
+    return pool
+
+
+@pytest.mark.parametrize("cls", [GreedyScheduler, BatchScheduler])
+def test_schedulers_give_each_free_robot_the_task_it_finishes_first(cls):
+    g = grid(["." * 10])
+    pool = open_tasks([(9, 8), (1, 2), (5, 6)])
+    sched = cls(DistanceCache(g))
+    prop = sched.schedule(np.array([0, 4]), np.array([-1, -1]), pool.open, 0, time.perf_counter() + 1)
+    assert prop.tolist() == [1, 2]            # robot 0 -> task at 1, robot 4 -> task at 5
+
+
+@pytest.mark.parametrize("cls", [GreedyScheduler, BatchScheduler])
+def test_schedulers_move_unopened_tasks_never_opened_ones(cls):
+    g = grid(["." * 12])
+    pool = open_tasks([(2, 3), (11, 10)])
+    pool.assign(0, 0)                         # robot 0 at cell 11 holds the task at cell 2
+    sched = cls(DistanceCache(g))
+    pos = np.array([11, 1])                   # robot 1 frees up next to cell 2
+    prop = sched.schedule(pos, np.array([0, -1]), pool.open, 0, time.perf_counter() + 1)
+    assert prop.tolist() == [1, 0], "the nearer robot takes the unopened task; the other gets the one by it"
+    pool.reach(0, 1)                          # now opened by robot 0
+    prop = sched.schedule(pos, np.array([0, -1]), pool.open, 0, time.perf_counter() + 1)
+    assert prop[0] == 0 and prop[1] == 1
+
+
+def test_scheduler_respects_time_windows_and_priority():
+    g = grid(["." * 10])
+    pool = TaskPool()
+    pool.add([1], deadline=0)                 # cannot be reached in time
+    pool.add([8])
+    pool.add([5], priority=1.0)               # far but urgent
+    sched = GreedyScheduler(DistanceCache(g))
+    prop = sched.schedule(np.array([0]), np.array([-1]), pool.open, 0, time.perf_counter() + 1)
+    assert prop.tolist() == [2]
+
+
+# -- planner ----------------------------------------------------------------------------------------
+def run_steps(g, starts, goals, model, steps, seed=0):
+    cache = DistanceCache(g)
+    pl = PIBTPlanner(g, cache, model=model, seed=seed)
+    pos = np.asarray(starts, dtype=np.int64)
+    head = np.zeros(len(pos), dtype=np.int64)
+    goals = np.asarray(goals, dtype=np.int64)
+    for _ in range(steps):
+        act = pl.plan(pos, head, goals, time.perf_counter() + 1)
+        new_pos, new_head, errs = check_actions(g, pos, head, act, model)
+        assert errs == []
+        pos, head = new_pos, new_head
+    return pos
+
+
+@pytest.mark.parametrize("model", [MAPF_T, MAPF])
+def test_planner_steps_are_conflict_free_and_reach_goals(model):
+    rng = np.random.default_rng(1)
+    free = np.ones((12, 12), dtype=bool)
+    free[rng.random((12, 12)) < 0.15] = False
+    g = LifelongGrid(free)
+    cells = rng.choice(g.free_cells(), 60, replace=False)
+    pos = run_steps(g, cells[:30], cells[30:], model, 120)
+    assert (pos == cells[30:]).mean() > 0.8
+
+
+def test_planner_passes_two_robots_in_a_corridor_with_one_bay():
+    g = grid([".....", "@@.@@"])             # a corridor with one side bay below cell 2
+    for model in (MAPF, MAPF_T):
+        pos = run_steps(g, [0, 4], [4, 0], model, 30)
+        assert pos.tolist() == [4, 0], model
+
+
+def test_planner_defers_a_robot_whose_map_misses_the_deadline():
+    g = grid(["....."])
+    pl = PIBTPlanner(g, DistanceCache(g), model=MAPF)
+    act = pl.plan(np.array([0]), np.array([0]), np.array([4]), time.perf_counter() - 1)
+    assert act.tolist() == [4] and pl.stats["deferred"] == 1
+
+
+def test_one_shot_pibt_on_the_movingai_warehouse():
+    from rce_fleet.planning import load_movingai_map, load_movingai_scen
+    gg = load_movingai_map(DATA / "mapf" / "warehouse-10-20-10-2-1.map")
+    sc = load_movingai_scen(DATA / "mapf" / "warehouse-10-20-10-2-1-random-1.scen", gg)[:50]
+    g = LifelongGrid.from_graph(gg)
+    res = solve_one_shot(g, np.array([s for s, _ in sc]), np.array([t for _, t in sc]), time_limit_s=10)
+    assert res["solved"]
+    paths = res["paths"]
+    for k in range(1, len(paths)):
+        moved = paths[k] != paths[k - 1]
+        assert all(paths[k][a] in g.nbr[paths[k - 1][a]] for a in np.flatnonzero(moved))
+        assert len(set(paths[k].tolist())) == len(sc)
+    lb = sum(int(DistanceCache(g).from_source(t)[s]) for s, t in sc)
+    assert lb <= res["sum_of_costs"] <= 1.5 * lb
+
+
+def test_lifelong_run_on_the_random_problem_finishes_tasks_without_errors():
+    from rce_fleet.lifelong.runner import run_lifelong
+    res = run_lifelong(load_problem(RANDOM), 60, record=False)
+    s = res.summary()
+    assert s["invalid_steps"] == 0 and s["schedule_errors"] == 0
+    assert s["tasks_finished"] > 60
+    assert isinstance(res.sim, Simulator)
