@@ -15,6 +15,10 @@ topic                          type                                 meaning
 ``/RobotN/progress``           fleet/MoveProgress                   its move_client's progress (in)
 ``/fleet/goal``                fleet/RobotGoal                      operator goal (in)
 ``/fleet/block``               fleet/CellBlock                      operator block/unblock (in)
+``/fleet/task``                fleet/Task                           operator task (in)
+``/fleet/task_cancel``         fleet/TaskCancel                     operator cancel (in)
+``/RobotN/battery``            sensor_msgs/BatteryState             robot battery (in)
+``/fleet/tasks``               fleet/TaskList                       tasks, answers, robots' work (out)
 ``/RobotN/goalNodesList``      std_msgs/Int32MultiArray             the cell path (out)
 ``/RobotN/cancelGoal``         std_msgs/Bool                        True: drop the old path (out)
 ``/RobotN/clearance``          fleet/Clearance                      how far it may drive (out)
@@ -28,6 +32,11 @@ into that cell. When the planner re-plans and a robot's remaining cells are unch
 keeps its plan id (clearance indices keep counting in the list it already has); a robot
 whose cells change gets a new plan id and list. Only robots whose paths crossed a newly
 blocked cell get ``cancelGoal`` (True), before their new path, as the paper describes.
+
+Tasks. The operators' tasks (:class:`rce_fleet.tasks_api.TaskBook`) are dispatched at every
+tick by :class:`rce_fleet.dispatcher.Dispatcher` (the lifelong allocator, batteries, parking),
+whose goals the FleetPlanner drives like operator goals. Fleet time is the robots' clock: the
+newest ``amcl_pose`` stamp.
 """
 from __future__ import annotations
 
@@ -39,9 +48,14 @@ from typing import Any, Callable
 
 import numpy as np
 
-from .geometry import GridGeometry
+from .battery import BatteryParams
+from .dispatcher import Dispatcher, RobotView
+from .geometry import GridGeometry, components
+from .lifelong import LifelongGrid
 from .node_common import Out
+from .places import Places
 from .planning import FleetPlanner, GridGraph, PlannerError, compress, compressed_index
+from .tasks_api import TaskBook
 from .tracking import CellTracker, ObstacleFilter
 
 __all__ = ["GlobalPlannerCore"]
@@ -51,6 +65,8 @@ CLEARANCE_REPEAT_S = 0.5   # clearances are repeated this often (lost or reorder
 PATH_REPEAT_S = 2.0        # paths are repeated this often (a move_client that starts late gets one)
 RETRY_S = 1.0              # robots parked for want of a collision-free path are retried this often
 SLOW_REPLAN_S = 0.05       # a re-plan that takes longer than this is logged
+TASKS_REPEAT_S = 0.5       # /fleet/tasks is published this often (wall s), and after every change
+ROBOT_SPEED_MS = 0.15      # m/s a robot makes good along cells (turns and stops included): the task clock's step
 
 
 @dataclass
@@ -70,11 +86,14 @@ class _Robot:
 
 class GlobalPlannerCore:
     """See the module docstring. ``robots``: robot IDs served; ``clock``: monotonic seconds
-    (for repeats and obstacle confirmation); planner keyword arguments go to FleetPlanner."""
+    (for repeats and obstacle confirmation); ``places``: named places for tasks (None: none);
+    ``battery``: the robots' battery parameters (None: not planned for); ``park_idle``: idle
+    robots drive to parking places; planner keyword arguments go to FleetPlanner."""
 
     def __init__(self, geometry: GridGeometry, robots: list[str] = (), *, clock: Callable[[], float] = time.monotonic,
                  lidar_blocking: bool = True, obstacle_filter: ObstacleFilter | None = None,
-                 log: Callable[..., None] | None = None, **planner_kw: Any):
+                 log: Callable[..., None] | None = None, places: Places | None = None,
+                 battery: BatteryParams | None = None, park_idle: bool = False, **planner_kw: Any):
         self.geo = geometry
         free = np.array(geometry.free, dtype=bool).reshape(geometry.rows, geometry.cols)
         self.graph = GridGraph(free, [geometry.neighbours(c) for c in range(geometry.n_cells)])
@@ -94,6 +113,15 @@ class GlobalPlannerCore:
         self._last_clear_repeat = -math.inf
         self._last_path_repeat = -math.inf
         self._last_retry = -math.inf
+        self.stamp = 0.0                    # fleet time: the newest pose stamp, s
+        self.places = places or Places([], geometry)
+        self.part = {c: i for i, p in enumerate(components(geometry)) for c in p}
+        self.book = TaskBook(self.places, self._usable, step_s=geometry.cell_size_m / ROBOT_SPEED_MS)
+        self.dispatcher = Dispatcher(self.book, LifelongGrid(free), chargers=self.places.cells("charger"),
+                                     parking=self.places.cells("parking"), battery=battery,
+                                     cell_m=geometry.cell_size_m, park_idle=park_idle)
+        self._tasks_seq = 0
+        self._last_tasks = -math.inf
         for r in robots:
             self.add_robot(r)
 
@@ -103,6 +131,7 @@ class GlobalPlannerCore:
         if robot in self.robots:
             return False
         self.robots[robot] = _Robot(robot, CellTracker(self.geo))
+        self.dispatcher.add_robot(robot)
         return True
 
     def _error(self, text: str, **fields) -> None:
@@ -112,11 +141,12 @@ class GlobalPlannerCore:
         self.log("error", text=text, **fields)
 
     # -- inputs -----------------------------------------------------------------------------
-    def on_pose(self, robot: str, x: float, y: float, yaw: float) -> list[Out]:
-        """A pose estimate (``/RobotN/amcl_pose``)."""
+    def on_pose(self, robot: str, x: float, y: float, yaw: float, stamp: float = 0.0) -> list[Out]:
+        """A pose estimate (``/RobotN/amcl_pose``; ``stamp``: its header stamp, s, the fleet clock)."""
         rec = self.robots.get(robot)
         if rec is None:
             return []
+        self.stamp = max(self.stamp, float(stamp))
         rec.pose = (float(x), float(y), float(yaw))
         before = rec.tracker.cell
         cell = rec.tracker.update(x, y)
@@ -137,8 +167,9 @@ class GlobalPlannerCore:
         """An operator goal (``/fleet/goal``); ``cell`` -1 drops the goal."""
         return self.on_goals({robot: cell})
 
-    def on_goals(self, goals: dict[str, int]) -> list[Out]:
-        """Several goals at once (planned together: one re-plan)."""
+    def on_goals(self, goals: dict[str, int], operator: bool = True) -> list[Out]:
+        """Several goals at once (planned together: one re-plan). ``operator``: they come from an
+        operator (``/fleet/goal``), so the robots leave the dispatcher's hands until they arrive."""
         ok: dict[str, int] = {}
         out: list[Out] = []
         for robot, cell in goals.items():
@@ -148,6 +179,8 @@ class GlobalPlannerCore:
                             robot=robot)
                 continue
             cell = int(cell)
+            if operator:
+                self.dispatcher.on_operator_goal(robot, cell, self.stamp)
             if cell < 0:
                 if robot in self.fp.positions:
                     self.fp.clear_goal(robot)
@@ -192,6 +225,7 @@ class GlobalPlannerCore:
             if cell in self.fp.blocked:
                 return []
             t0 = time.perf_counter()
+            self.dispatcher.on_block(cell, source, self.stamp)
             hit = self.fp.block(cell, source)
             self.log("cell blocked", cell=cell, source=source, cancelled=sorted(hit),
                      replan_ms=round((time.perf_counter() - t0) * 1e3, 2))
@@ -222,11 +256,67 @@ class GlobalPlannerCore:
         if rec is not None:
             rec.progress = progress
 
+    # -- tasks ------------------------------------------------------------------------------------
+    def _usable(self, cell: int) -> str | None:
+        """Why an errand cannot use ``cell`` now (None: it can)."""
+        if cell in self.fp.blocked:
+            return f"is blocked (by {self.fp.blocked[cell]})"
+        parts = {self.part.get(c) for c in self.fp.positions.values()}
+        if parts and self.part.get(cell) not in parts:
+            return "cannot be reached from any robot (walled off)"
+        return None
+
+    def on_task(self, msg: dict) -> list[Out]:
+        """A ``fleet/Task`` (``/fleet/task``): queued or refused; the answer goes out at once."""
+        a = self.book.request_add(msg, self.stamp)
+        self.log("task" if a["ok"] else "task refused", **{k: v for k, v in a.items() if v != ""})
+        return [self.tasks_msg()]
+
+    def on_task_cancel(self, msg: dict) -> list[Out]:
+        """A ``fleet/TaskCancel`` (``/fleet/task_cancel``); the robot drops the task at the next tick."""
+        a = self.book.request_cancel(msg, self.stamp)
+        self.log("task cancel" if a["ok"] else "task cancel refused", **{k: v for k, v in a.items() if v != ""})
+        return [self.tasks_msg()] + self.dispatch()
+
+    def on_battery(self, robot: str, fraction: float) -> None:
+        """A ``sensor_msgs/BatteryState`` percentage (0..1) of ``robot``."""
+        self.dispatcher.on_battery(robot, fraction)
+
+    def robot_view(self, r: str) -> RobotView:
+        """What the dispatcher needs of robot ``r`` (cell, goal, arrived, permanently stuck)."""
+        fp, rec = self.fp, self.robots[r]
+        cell, goal = fp.positions.get(r), fp.goals.get(r)
+        p = rec.progress
+        arrived = (goal is not None and cell == goal and p.get("state") == "arrived"
+                   and int(p.get("goal", goal)) == goal)
+        stuck = fp.unreachable.get(r, "") if r in fp.unreachable and self._permanent(r) else ""
+        return RobotView(cell, goal, arrived, stuck)
+
+    def dispatch(self) -> list[Out]:
+        """Run the dispatcher (tasks, batteries, parking) and plan the goals it changes."""
+        goals = self.dispatcher.update(self.stamp, {r: self.robot_view(r) for r in self.robots})
+        if not goals:
+            return []
+        for r, g in goals.items():
+            self.log("dispatch", robot=r, goal=g, activity=self.dispatcher.robots[r].activity,
+                     task=getattr(self.dispatcher.robots[r].task, "id", ""))
+        return self.on_goals(goals, operator=False)
+
+    def tasks_msg(self) -> Out:
+        """The ``/fleet/tasks`` message (``fleet/TaskList``)."""
+        self._tasks_seq += 1
+        self._last_tasks = self.clock()
+        return Out("/fleet/tasks", "fleet/TaskList",
+                   self.book.message(self._tasks_seq, self.stamp, self.dispatcher.robot_messages(self.stamp)))
+
     def tick(self) -> list[Out]:
-        """Periodic work: retry robots parked for want of a collision-free path, repeat paths
-        and clearances (so a lost or late message never stalls a robot)."""
+        """Periodic work: dispatch tasks, retry robots parked for want of a collision-free path,
+        repeat paths and clearances (so a lost or late message never stalls a robot), publish
+        the tasks."""
         now = self.clock()
-        out: list[Out] = []
+        out: list[Out] = self.dispatch()
+        if self.book.changed or now - self._last_tasks >= TASKS_REPEAT_S:
+            out.append(self.tasks_msg())
         if now - self._last_retry >= RETRY_S:
             self._last_retry = now
             retry = {r: self.fp.goals[r] for r in self.fp.unreachable
@@ -243,16 +333,16 @@ class GlobalPlannerCore:
         return out
 
     # -- outputs ------------------------------------------------------------------------------
-    def _path_msg(self, r: str) -> Out:
-        rec = self.robots[r]
-        return Out(f"/{r}/goalNodesList", "std_msgs/Int32MultiArray",
+    def _path_msg(self, robot: str) -> Out:
+        rec = self.robots[robot]
+        return Out(f"/{robot}/goalNodesList", "std_msgs/Int32MultiArray",
                    {"layout": {"dim": [{"label": f"plan {rec.plan}", "size": len(rec.cells), "stride": len(rec.cells)}],
                                "data_offset": 0},
                     "data": list(rec.cells)})
 
-    def _clear_msg(self, r: str) -> Out:
-        rec = self.robots[r]
-        return Out(f"/{r}/clearance", "fleet/Clearance", {"plan": rec.plan, "index": rec.cleared})
+    def _clear_msg(self, robot: str) -> Out:
+        rec = self.robots[robot]
+        return Out(f"/{robot}/clearance", "fleet/Clearance", {"plan": rec.plan, "index": rec.cleared})
 
     def _sync(self, cancelled: set[str] = frozenset()) -> list[Out]:
         """Publish what the planner's last re-plan changed: cancels, paths, clearances."""
@@ -303,35 +393,35 @@ class GlobalPlannerCore:
         return out
 
     # -- state ------------------------------------------------------------------------------
-    def _permanent(self, r: str) -> bool:
-        """True when ``r``'s goal cannot be reached until the map or the blocked cells change."""
+    def _permanent(self, robot: str) -> bool:
+        """True when ``robot``'s goal cannot be reached until the map or the blocked cells change."""
         fp = self.fp
-        g = fp.goals.get(r)
+        g = fp.goals.get(robot)
         if g is None:
             return False
         if not self.graph.is_free(g) or g in fp.blocked:
             return True
-        pos = fp.positions.get(r)
+        pos = fp.positions.get(robot)
         return pos is not None and pos != g and fp.distance(pos, g) == math.inf
 
-    def robot_state(self, r: str) -> dict:
-        """Robot ``r``'s entry of the fleet state (``fleet/RobotState``, JSON form)."""
-        fp, rec = self.fp, self.robots[r]
-        cell = fp.positions.get(r, rec.tracker.cell if rec.tracker.cell is not None else -1)
-        goal = fp.goals.get(r)
+    def robot_state(self, robot: str) -> dict:
+        """``robot``'s entry of the fleet state (``fleet/RobotState``, JSON form)."""
+        fp, rec = self.fp, self.robots[robot]
+        cell = fp.positions.get(robot, rec.tracker.cell if rec.tracker.cell is not None else -1)
+        goal = fp.goals.get(robot)
         if goal is None:
             goal = rec.pending_goal
         path = rec.cells[rec.base:] if rec.plan else []
-        if r in fp.positions and rec.plan:
+        if robot in fp.positions and rec.plan:
             # index of the robot's current cell in the remaining path
-            cur = compressed_index(fp.paths[r], fp.progress(r)) if r in fp.paths else 0
+            cur = compressed_index(fp.paths[robot], fp.progress(robot)) if robot in fp.paths else 0
             path = rec.cells[rec.base + cur:]
             cleared = max(rec.cleared - rec.base - cur, 0)
         else:
             cleared = 0
-        if r not in fp.positions:
+        if robot not in fp.positions:
             state = "unknown"
-        elif r in fp.unreachable:
+        elif robot in fp.unreachable:
             state = "unreachable"
         elif goal is None:
             state = "idle"
@@ -343,11 +433,11 @@ class GlobalPlannerCore:
             state = "waiting"
         x, y, yaw = rec.pose if rec.pose is not None else (math.nan, math.nan, math.nan)
         p = rec.progress
-        return {"robot": r, "cell": int(cell), "goal": -1 if goal is None else int(goal),
+        return {"robot": robot, "cell": int(cell), "goal": -1 if goal is None else int(goal),
                 "x": x, "y": y, "yaw": yaw, "path": [int(c) for c in path], "plan": rec.plan,
-                "cleared": int(cleared), "replans": int(fp.replans.get(r, 0)), "cancels": rec.cancels,
-                "state": state, "error": fp.unreachable.get(r, ""),
-                "error_permanent": state == "unreachable" and self._permanent(r),
+                "cleared": int(cleared), "replans": int(fp.replans.get(robot, 0)), "cancels": rec.cancels,
+                "state": state, "error": fp.unreachable.get(robot, ""),
+                "error_permanent": state == "unreachable" and self._permanent(robot),
                 "client_state": str(p.get("state", "")), "distance_left": float(p.get("distance_left", 0.0))}
 
     def state(self, stamp: float | None = None) -> dict:

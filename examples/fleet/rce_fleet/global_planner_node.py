@@ -1,9 +1,11 @@
 """The ``fleet/global_planner`` container node: I/O shell around
 :class:`rce_fleet.global_planner_core.GlobalPlannerCore` (topics: see that module).
 
-Arguments: ``[--robots Robot1,Robot2,...] [--rate HZ] [--no-lidar-blocking] [--batch S]``.
-Robot IDs come from ``--robots`` or the ``/fleet/robots`` parameter (re-read every 2 s,
-so robots can join); the grid from ``/fleet/grid`` (:mod:`rce_fleet.geometry`).
+Arguments: ``[--robots Robot1,Robot2,...] [--rate HZ] [--no-lidar-blocking] [--batch S]
+[--park-idle]``. Robot IDs come from ``--robots`` or the ``/fleet/robots`` parameter (re-read
+every 2 s, so robots can join); the grid from ``/fleet/grid`` (:mod:`rce_fleet.geometry`); the
+named places from ``/fleet/places`` (:mod:`rce_fleet.places`) and the robots' battery
+parameters from ``/fleet/battery`` (:mod:`rce_fleet.battery`), when set.
 Goals arriving within one planning cycle (``--batch``, default 0.05 s) are planned
 together; a blocked cell is re-planned at once.
 """
@@ -16,9 +18,11 @@ import time
 from rce.log import get_logger, setup_logging
 from rce.node import node_argv
 
+from .battery import BATTERY_PARAM, BatteryParams
 from .geometry import ROBOTS_PARAM, yaw_from_quaternion
 from .node_common import Publishers, load_geometry
 from .global_planner_core import GlobalPlannerCore
+from .places import PLACES_PARAM, Places
 
 log = get_logger("fleet.global_planner")
 
@@ -32,6 +36,7 @@ def parse_args(argv: list[str]) -> argparse.Namespace:
     p.add_argument("--rate", type=float, default=5.0, help="fleet state rate, Hz (default 5)")
     p.add_argument("--batch", type=float, default=0.05, help="planning cycle for goals, s (default 0.05)")
     p.add_argument("--no-lidar-blocking", action="store_true", help="ignore /RobotN/obstacles")
+    p.add_argument("--park-idle", action="store_true", help="idle robots drive to the parking places")
     return p.parse_args(argv)
 
 
@@ -44,9 +49,13 @@ async def main(node) -> None:
     def logf(msg: str, **kw) -> None:
         (log.warning if msg in ("error", "unreachable") else log.info)(msg, **kw)
 
-    core = GlobalPlannerCore(geo, clock=time.monotonic, lidar_blocking=not args.no_lidar_blocking, log=logf)
+    places = Places.from_param(await node.get_param(PLACES_PARAM, None), geo)
+    battery = BatteryParams.from_param(await node.get_param(BATTERY_PARAM, None))
+    core = GlobalPlannerCore(geo, clock=time.monotonic, lidar_blocking=not args.no_lidar_blocking, log=logf,
+                             places=places, battery=battery, park_idle=args.park_idle)
     pubs = Publishers(node)
     await pubs.add("/fleet/state", "fleet/FleetState", queue_size=5)
+    await pubs.add("/fleet/tasks", "fleet/TaskList", queue_size=5)
     lock = asyncio.Lock()
     pending_goals: dict[str, int] = {}
     loop = asyncio.get_running_loop()
@@ -59,38 +68,52 @@ async def main(node) -> None:
         pending_goals.clear()
         pubs.send(core.on_goals(goals))
 
-    def on_goal(m) -> None:
+    def on_goal(msg) -> None:
         nonlocal flush_handle
-        pending_goals[str(m.robot)] = int(m.cell)
+        pending_goals[str(msg.robot)] = int(msg.cell)
         if flush_handle is None:
             flush_handle = loop.call_later(args.batch, flush_goals)
 
-    def on_block(m) -> None:
-        pubs.send(core.on_block(int(m.cell), bool(m.blocked), str(m.source)))
+    def on_block(msg) -> None:
+        pubs.send(core.on_block(int(msg.cell), bool(msg.blocked), str(msg.source)))
 
-    async def add_robot(r: str) -> None:
+    def on_task(msg) -> None:
+        pubs.send(core.on_task({"request": msg.request, "id": msg.id, "errands": list(msg.errands),
+                                "priority": msg.priority, "earliest_start_s": msg.earliest_start_s,
+                                "deadline_s": msg.deadline_s, "source": msg.source}))
+
+    def on_task_cancel(msg) -> None:
+        pubs.send(core.on_task_cancel({"request": msg.request, "id": msg.id, "source": msg.source}))
+
+    async def add_robot(robot: str) -> None:
         async with lock:
-            if r in core.robots:
+            if robot in core.robots:
                 return
             for topic, typ in (("goalNodesList", "std_msgs/Int32MultiArray"), ("cancelGoal", "std_msgs/Bool"),
                                ("clearance", "fleet/Clearance")):
-                await pubs.add(f"/{r}/{topic}", typ, queue_size=20)
+                await pubs.add(f"/{robot}/{topic}", typ, queue_size=20)
 
-            def on_pose(m, r=r) -> None:
-                p = m.pose.pose
-                pubs.send(core.on_pose(r, p.position.x, p.position.y, yaw_from_quaternion(p.orientation)))
+            def on_pose(msg, robot=robot) -> None:
+                p, st = msg.pose.pose, msg.header.stamp
+                pubs.send(core.on_pose(robot, p.position.x, p.position.y, yaw_from_quaternion(p.orientation),
+                                       st.sec + st.nanosec * 1e-9))
 
-            def on_obstacles(m, r=r) -> None:
-                pubs.send(core.on_obstacles(r, [(p.position.x, p.position.y) for p in m.poses]))
+            def on_obstacles(msg, robot=robot) -> None:
+                pubs.send(core.on_obstacles(robot, [(p.position.x, p.position.y) for p in msg.poses]))
 
-            def on_progress(m, r=r) -> None:
-                core.on_progress(r, {"state": m.state, "distance_left": m.distance_left})
+            def on_progress(msg, robot=robot) -> None:
+                core.on_progress(robot, {"state": msg.state, "distance_left": msg.distance_left, "goal": msg.goal})
 
-            await node.subscriber(f"/{r}/amcl_pose", "geometry_msgs/PoseWithCovarianceStamped", on_pose, queue_size=20)
-            await node.subscriber(f"/{r}/obstacles", "geometry_msgs/PoseArray", on_obstacles, queue_size=5)
-            await node.subscriber(f"/{r}/progress", "fleet/MoveProgress", on_progress, queue_size=5)
-            core.add_robot(r)
-            log.info("serving robot", robot=r)
+            def on_battery(msg, robot=robot) -> None:
+                core.on_battery(robot, float(msg.percentage))
+
+            await node.subscriber(f"/{robot}/amcl_pose", "geometry_msgs/PoseWithCovarianceStamped", on_pose,
+                                  queue_size=20)
+            await node.subscriber(f"/{robot}/obstacles", "geometry_msgs/PoseArray", on_obstacles, queue_size=5)
+            await node.subscriber(f"/{robot}/battery", "sensor_msgs/BatteryState", on_battery, queue_size=2)
+            await node.subscriber(f"/{robot}/progress", "fleet/MoveProgress", on_progress, queue_size=5)
+            core.add_robot(robot)
+            log.info("serving robot", robot=robot)
 
     async def refresh_robots() -> None:
         robots = [r for r in args.robots.split(",") if r]
@@ -102,6 +125,8 @@ async def main(node) -> None:
     await refresh_robots()
     await node.subscriber("/fleet/goal", "fleet/RobotGoal", on_goal, queue_size=100)
     await node.subscriber("/fleet/block", "fleet/CellBlock", on_block, queue_size=100)
+    await node.subscriber("/fleet/task", "fleet/Task", on_task, queue_size=1000)
+    await node.subscriber("/fleet/task_cancel", "fleet/TaskCancel", on_task_cancel, queue_size=100)
     log.info("global planner up", rows=geo.rows, cols=geo.cols, cell_w=round(geo.cell_w_m, 3),
              cell_h=round(geo.cell_h_m, 3), free=len(geo.free_cells()), robots=sorted(core.robots))
 
