@@ -4,12 +4,17 @@
    first K agents of ``...-random-1.scen`` for K = 10, 50, 100, 200: planning
    time, conflicts (must be 0), sum of costs (arrival steps), makespan, the
    lower bound (sum of individual shortest paths) and the ratio.
-2. One re-plan after blocking a cell on the ``warehouse.yaml`` cell grid with
+2. The same instance one-shot with 400 and 1000 agents (``--lacam-agents``) by LaCAM with
+   PIBT as configuration generator (rce_fleet.lifelong.lacam), under a time limit
+   (``--time-limit``, default 5 s): time, agents at their goals, conflicts, sum of costs
+   against the lower bound; the FleetPlanner rows beside it for the sizes both run.
+3. One re-plan after blocking a cell on the ``warehouse.yaml`` cell grid with
    10 robots.
 
 Usage::
 
     .venv/bin/python bench/planner.py [--agents 10 50 100 200] [--repeat 3]
+        [--lacam-agents 10 50 100 200 400 1000] [--time-limit 5]
         [--data ../shared/data] [--json PATH] [--plot PATH]
 
 Results go to ``bench/results/`` by default (planner.json, planner.png).
@@ -65,6 +70,35 @@ def run_mapf(graph: GridGraph, scen: list[tuple[int, int]], k: int, repeat: int)
     return out
 
 
+def run_lacam(graph: GridGraph, scen: list[tuple[int, int]], k: int, time_limit_s: float) -> dict:
+    """The first ``k`` agents one-shot by LaCAM (rce_fleet.lifelong.lacam) within ``time_limit_s``."""
+    import numpy as np
+
+    from rce_fleet.lifelong import DistanceCache, LifelongGrid
+    from rce_fleet.lifelong.lacam import solve_lacam
+
+    grid = LifelongGrid.from_graph(graph)
+    starts = np.array([s for s, _ in scen[:k]], dtype=np.int64)
+    goals = np.array([g for _, g in scen[:k]], dtype=np.int64)
+    solve_lacam(grid, starts[:1], goals[:1])                     # compile outside the clock
+    cache = DistanceCache(grid, max_bytes=2 * grid.n_cells * (k + 16))
+    t0, c0 = time.perf_counter(), time.process_time()
+    res = solve_lacam(grid, starts, goals, time_limit_s=time_limit_s, cache=cache)
+    wall, cpu = time.perf_counter() - t0, time.process_time() - c0
+    paths = res["paths"]
+    vertex = sum(k - len(set(row.tolist())) for row in paths)
+    swaps = 0
+    for a, b in zip(paths[:-1], paths[1:], strict=True):
+        owner = {int(c): i for i, c in enumerate(a)}
+        swaps += sum(1 for i in range(k) if b[i] != a[i] and owner.get(int(b[i]), -1) >= 0
+                     and b[owner[int(b[i])]] == a[i])
+    lb = int(sum(int(cache.table[cache.slot(int(g)), s]) for s, g in zip(starts, goals, strict=True)))
+    return {"agents": k, "planner": "LaCAM (PIBT)", "time_s": wall, "cpu_s": cpu, "time_limit_s": time_limit_s,
+            "conflicts": vertex + swaps, "reached": int((paths[-1] == goals).sum()), "solved": res["solved"],
+            "sum_of_costs": res["sum_of_costs"], "makespan": res["makespan"], "lower_bound": lb,
+            "ratio": res["sum_of_costs"] / lb if lb else 1.0, "nodes": res["nodes"]}
+
+
 def run_block_replan(map_yaml: Path, cell_m: float, robots: int, seed: int = 1) -> dict:
     """10 robots on the warehouse.yaml grid; block a cell in the middle of robot 0's path; time the re-plan."""
     m = load_map(map_yaml)
@@ -97,6 +131,21 @@ def run_block_replan(map_yaml: Path, cell_m: float, robots: int, seed: int = 1) 
         "changed": sorted(res.changed), "full_replan": res.full, "replan_s": t_block,
         "conflicts": len(check_conflicts(fp.paths)), "unreachable": len(fp.unreachable),
     }
+
+
+def print_lacam(rows: list[dict]) -> None:
+    """The LaCAM rows as a table."""
+    from rich.console import Console
+    from rich.table import Table
+    t = Table(title="LaCAM (PIBT configuration generator) on MovingAI warehouse-10-20-10-2-1 (random-1.scen)")
+    for col in ("agents", "time (s)", "limit (s)", "conflicts", "reached", "sum of costs", "lower bound", "ratio",
+                "makespan", "nodes"):
+        t.add_column(col, justify="right")
+    for r in rows:
+        t.add_row(str(r["agents"]), f"{r['time_s']:.3f}", f"{r['time_limit_s']:.0f}", str(r["conflicts"]),
+                  f"{r['reached']}/{r['agents']}", str(r["sum_of_costs"]), str(r["lower_bound"]), f"{r['ratio']:.3f}",
+                  str(r["makespan"]), str(r["nodes"]))
+    Console(width=max(Console().width, 110)).print(t)
 
 
 def print_tables(rows: list[dict], block: dict | None) -> None:
@@ -132,7 +181,7 @@ def print_tables(rows: list[dict], block: dict | None) -> None:
         con.print(b)
 
 
-def plot(rows: list[dict], path: Path) -> None:
+def plot(rows: list[dict], path: Path, lacam: list[dict] | None = None) -> None:
     """PNG at ``path``: planning time and sum of costs / lower bound against the number of agents."""
     import matplotlib
     matplotlib.use("Agg")
@@ -140,17 +189,22 @@ def plot(rows: list[dict], path: Path) -> None:
 
     ks = [r["agents"] for r in rows]
     fig, (ax1, ax2) = plt.subplots(1, 2, figsize=(10, 4))
-    ax1.plot(ks, [r["time_s"] for r in rows], "o-")
+    ax1.plot(ks, [r["time_s"] for r in rows], "o-", label="FleetPlanner (SIPP + ADG)")
+    if lacam:
+        ax1.plot([r["agents"] for r in lacam], [r["time_s"] for r in lacam], "s-", label="LaCAM (PIBT)")
+        ax2.plot([r["agents"] for r in lacam], [r["ratio"] for r in lacam], "s-", label="LaCAM (PIBT)")
+        ax1.set_xscale("log")
+        ax1.set_yscale("log")
     ax1.axhline(1.0, color="grey", ls="--", lw=0.8, label="1 s target (100 agents)")
     ax1.set_xlabel("agents")
     ax1.set_ylabel("planning time (s)")
     ax1.set_title("time to plan")
     ax1.legend()
-    ax2.plot(ks, [r["ratio"] for r in rows], "o-")
+    ax2.plot(ks, [r["ratio"] for r in rows], "o-", label="FleetPlanner (SIPP + ADG)")
     ax2.axhline(1.2, color="grey", ls="--", lw=0.8, label="1.2 x lower bound")
     ax2.set_xlabel("agents")
     ax2.set_ylabel("sum of costs / lower bound")
-    ax2.set_ylim(0.95, max(1.25, max(r["ratio"] for r in rows) + 0.05))
+    ax2.set_ylim(0.95, max(1.25, max(r["ratio"] for r in rows + (lacam or [])) + 0.05))
     ax2.set_title("solution quality")
     ax2.legend()
     fig.suptitle("FleetPlanner, MovingAI warehouse-10-20-10-2-1")
@@ -164,6 +218,9 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--data", type=Path, default=DEFAULT_DATA, help="the shared data directory")
     ap.add_argument("--agents", type=int, nargs="+", default=[10, 50, 100, 200])
     ap.add_argument("--repeat", type=int, default=3, help="runs per K (median time reported)")
+    ap.add_argument("--lacam-agents", type=int, nargs="*", default=[10, 50, 100, 200, 400, 1000],
+                    help="agent counts for the one-shot LaCAM rows (none: skip)")
+    ap.add_argument("--time-limit", type=float, default=5.0, help="LaCAM's time limit per instance (s)")
     ap.add_argument("--cell-m", type=float, default=1.0, help="cell size for the warehouse.yaml grid")
     ap.add_argument("--json", type=Path, default=RESULTS / "planner.json")
     ap.add_argument("--plot", type=Path, default=RESULTS / "planner.png")
@@ -178,20 +235,23 @@ def main(argv: list[str] | None = None) -> int:
     graph = load_movingai_map(map_file)
     scen = load_movingai_scen(scen_file, graph)
     rows = [run_mapf(graph, scen, k, args.repeat) for k in args.agents]
+    lacam = [run_lacam(graph, scen, k, args.time_limit) for k in args.lacam_agents]
     wh = args.data / "maps" / "warehouse.yaml"
     block = run_block_replan(wh, args.cell_m, 10) if wh.is_file() else None
     print_tables(rows, block)
+    if lacam:
+        print_lacam(lacam)
 
     for p in (args.json, args.plot):
         if p is not None:
             p.parent.mkdir(parents=True, exist_ok=True)
     if args.json:
-        args.json.write_text(json.dumps({"mapf": rows, "block_replan": block}, indent=2))
+        args.json.write_text(json.dumps({"mapf": rows, "lacam": lacam, "block_replan": block}, indent=2))
         print(f"wrote {args.json}")
     if args.plot:
-        plot(rows, args.plot)
+        plot(rows, args.plot, lacam)
         print(f"wrote {args.plot}")
-    bad = [r for r in rows if r["conflicts"]]
+    bad = [r for r in rows + lacam if r["conflicts"]]
     return 1 if bad or (block and block["conflicts"]) else 0
 
 

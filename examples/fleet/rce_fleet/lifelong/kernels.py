@@ -78,7 +78,7 @@ def bfs_pair(nbr, src, dst, seen, queue, dist):
 
 
 @njit(cache=True)
-def _candidates(a, u, h, nbr, dist, slot, occ_now, turns_model, turn_w, rnd, cand, ncand):
+def _candidates(a, u, h, nbr, dist, slot, occ_now, turns_model, turn_w, rnd, cand, ncand, pos, goal, park_w):
     """Sort the next cells of agent ``a`` (stay and its free neighbours) by estimated cost."""
     s = slot[a]
     cost = np.empty(5)
@@ -96,8 +96,11 @@ def _candidates(a, u, h, nbr, dist, slot, occ_now, turns_model, turn_w, rnd, can
             if t == 3:
                 t = 1
             c += turn_w * t
-        if occ_now[v] >= 0:
+        o = occ_now[v]
+        if o >= 0:
             c += 0.25
+            if goal[o] == pos[o]:
+                c += park_w
         c += rnd[a, d] * 0.01
         j = k
         while j > 0 and cost[j - 1] > c:
@@ -195,7 +198,8 @@ def _swap_agent(a, nbr, pos, dist, slot, occ_now, nxt, goal, cand):
 
 
 @njit(cache=True)
-def pibt_step(nbr, pos, head, dist, slot, goal, order, turns_model, turn_w, rnd, nxt, use_swap, claim):
+def pibt_step(nbr, pos, head, dist, slot, goal, order, turns_model, turn_w, rnd, nxt, use_swap, claim, fixed,
+              park_w):
     """One step of PIBT, priority inheritance with backtracking (Okumura, Machida, Defago
     & Tamura, "Priority inheritance with backtracking for iterative multi-agent path
     finding", AIJ 2022), iterative with an explicit stack, with the swap technique of
@@ -208,7 +212,9 @@ def pibt_step(nbr, pos, head, dist, slot, goal, order, turns_model, turn_w, rnd,
     float in [0, 1) for tie-breaks; turns_model adds ``turn_w`` per quarter turn to a
     neighbour's cost. claim (n,): a neighbour cell an agent turns towards since an earlier
     step (-1 none); while it does not face it, the agent stays and holds both cells (the
-    commitment of the start-kit's 2024 default planner). Writes each agent's next cell into
+    commitment of the start-kit's 2024 default planner). fixed (n,): next cells imposed on
+    agents (-1 free; LaCAM's constraints). park_w: extra cost of a cell whose agent stands
+    on its goal (one-shot: pushing parked agents costs them the way back). Writes each agent's next cell into
     ``nxt`` (n,): distinct cells, no two agents swap. Returns the number of agents that
     could not move where they wanted first.
     """
@@ -219,9 +225,15 @@ def pibt_step(nbr, pos, head, dist, slot, goal, order, turns_model, turn_w, rnd,
     for i in range(n):
         occ_now[pos[i]] = i
         nxt[i] = -1
+    for i in range(n):
+        if fixed[i] >= 0:
+            nxt[i] = fixed[i]
+            occ_next[fixed[i]] = i
     if turns_model:
         for i in range(n):
             c = claim[i]
+            if nxt[i] != -1:
+                continue
             if c < 0:
                 continue
             if nbr[pos[i], head[i]] != c:        # still turning: stays, holds both cells
@@ -256,7 +268,8 @@ def pibt_step(nbr, pos, head, dist, slot, goal, order, turns_model, turn_w, rnd,
             a = stack[sp - 1]
             if fresh:
                 fresh = False
-                _candidates(a, pos[a], head[a], nbr, dist, slot, occ_now, turns_model, turn_w, rnd, cand, ncand)
+                _candidates(a, pos[a], head[a], nbr, dist, slot, occ_now, turns_model, turn_w, rnd, cand, ncand, pos,
+                            goal, park_w)
                 ci[a] = 0
                 swp[a] = -1
                 if use_swap:
@@ -530,7 +543,7 @@ def warm_up() -> None:
     goal = np.array([8, -1], dtype=np.int64)
     claim = np.full(2, -1, dtype=np.int64)
     pibt_step(g.nbr, pos, head, dist, slot, goal, np.arange(2, dtype=np.int64), True, 1.0, np.zeros((2, 5)), nxt,
-              True, claim)
+              True, claim, np.full(2, -1, dtype=np.int64), 0.0)
     mapf_t_actions(g.nbr, pos, head, nxt, dist, slot, np.empty(2, dtype=np.int64), claim)
     pibt_step_t(g.nbr, pos, head, dist, slot, np.arange(2, dtype=np.int64), np.zeros((2, 5)), nxt,
                 np.empty(2, dtype=np.int64))

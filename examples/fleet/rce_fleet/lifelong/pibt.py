@@ -112,7 +112,8 @@ class PIBTPlanner:
         cache = self.cache
         turns = self.model == MAPF_T
         pibt_step(self.grid.nbr, pos, head if turns else np.full(n, -1, dtype=np.int64), cache.table, slot, goals,
-                  order, turns, self.turn_w, rnd, nxt, self.swap, self.claim)
+                  order, turns, self.turn_w, rnd, nxt, self.swap, self.claim, np.full(n, -1, dtype=np.int64),
+                  0.0)
         if turns:
             old = self.claim.copy()
             self.stats["cancelled"] += mapf_t_actions(self.grid.nbr, pos, head, nxt, cache.table, slot, act,
@@ -153,6 +154,7 @@ def solve_one_shot(grid: LifelongGrid, starts: np.ndarray, goals: np.ndarray, ti
     traj = [pos.copy()]
     nxt = np.empty(n, dtype=np.int64)
     claim = np.full(n, -1, dtype=np.int64)
+    free = np.full(n, -1, dtype=np.int64)
     solved = bool((pos == goals).all())
     while not solved and len(traj) <= max_steps and time.perf_counter() - t0 < time_limit_s:
         at = pos == goals
@@ -160,7 +162,7 @@ def solve_one_shot(grid: LifelongGrid, starts: np.ndarray, goals: np.ndarray, ti
         prio = elapsed + tie
         order = np.argsort(-prio, kind="stable").astype(np.int64)
         pibt_step(grid.nbr, pos, head, cache.table, slot, goals, order, False, 0.0, rng.random((n, 5)), nxt, True,
-                  claim)
+                  claim, free, 0.0)
         pos = nxt.copy()
         traj.append(pos)
         solved = bool((pos == goals).all())

@@ -1,0 +1,132 @@
+"""One-shot MAPF by LaCAM: a depth-first search over configurations whose successors PIBT
+generates under constraints (Okumura, "LaCAM: search-based algorithm for quick multi-agent
+pathfinding", AAAI-23). Complete: when PIBT would repeat a configuration, the low-level
+constraint tree of the current node imposes next cells on agents one by one until a new
+successor appears, so corridor livelocks that stop plain PIBT are left.
+
+4-neighbour moves; distances are the per-goal breadth-first maps of
+:class:`~.distances.DistanceCache`; the successor generator is the compiled
+:func:`~.kernels.pibt_step` (with LaCAM*'s swap technique).
+"""
+from __future__ import annotations
+
+import time
+from collections import deque
+
+import numpy as np
+
+from .distances import DistanceCache
+from .grid import LifelongGrid
+from .kernels import UNREACHABLE, pibt_step
+
+__all__ = ["solve_lacam"]
+
+
+class _Constraint:
+    """A low-level node: agent ``who`` must go to ``where``, on top of ``parent``'s constraints."""
+
+    __slots__ = ("depth", "parent", "where", "who")
+
+    def __init__(self, parent, who: int, where: int):
+        self.parent, self.who, self.where = parent, who, where
+        self.depth = 0 if parent is None else parent.depth + 1
+
+
+class _Node:
+    """A high-level node: a configuration, its parent, the agents' priorities and order, and
+    the queue of low-level constraints still to try."""
+
+    __slots__ = ("config", "order", "parent", "prio", "tree")
+
+    def __init__(self, config: np.ndarray, parent, prio: np.ndarray):
+        self.config, self.parent, self.prio = config, parent, prio
+        self.order = np.argsort(-prio, kind="stable").astype(np.int64)
+        self.tree: deque = deque([_Constraint(None, -1, -1)])
+
+
+def solve_lacam(grid: LifelongGrid, starts: np.ndarray, goals: np.ndarray, time_limit_s: float = 5.0, seed: int = 0,
+                cache: DistanceCache | None = None, park_w: float = 0.0) -> dict:
+    """Solve one-shot MAPF (every agent from its start to its goal, 4-neighbour moves).
+
+    starts, goals: (n,) cells. Returns a dict as :func:`~.pibt.solve_one_shot`: ``paths``
+    ((T+1, n) cells, the last row the goals when ``solved``), ``solved``, ``sum_of_costs``
+    (each agent's last arrival, summed), ``makespan``, ``time_s``, plus ``nodes`` (high-level
+    nodes generated). Stops unsolved at ``time_limit_s`` wall seconds. Raises ValueError for
+    a goal that cannot be reached from its start or two agents on one start or goal.
+    """
+    t0 = time.perf_counter()
+    starts = np.asarray(starts, dtype=np.int64)
+    goals = np.asarray(goals, dtype=np.int64)
+    n = starts.shape[0]
+    if len(set(starts.tolist())) != n or len(set(goals.tolist())) != n:
+        raise ValueError("two agents share a start or a goal cell")
+    cache = cache or DistanceCache(grid, max_bytes=max(2 * grid.n_cells * (n + 16), 64 * 2 ** 20))
+    slot = np.array([cache.slot(int(g)) for g in goals], dtype=np.int64)
+    d0 = cache.table[slot, starts]
+    if (d0 == UNREACHABLE).any():
+        bad = int(np.flatnonzero(d0 == UNREACHABLE)[0])
+        raise ValueError(f"agent {bad}: goal {int(goals[bad])} cannot be reached from {int(starts[bad])}")
+    rng = np.random.default_rng(seed)
+    nbr, table = grid.nbr, cache.table
+    head = np.full(n, -1, dtype=np.int64)
+    no_claim = np.full(n, -1, dtype=np.int64)
+    owner = np.full(grid.n_cells, -1, dtype=np.int64)
+    ids = np.arange(n)
+    root = _Node(starts.copy(), None, d0.astype(float) / max(1, int(d0.max())))
+    explored = {starts.tobytes(): root}
+    stack = [root]
+    goal_key = goals.tobytes()
+    found = None
+    nxt = np.empty(n, dtype=np.int64)
+    while stack and time.perf_counter() - t0 < time_limit_s:
+        node = stack[-1]
+        if node.config.tobytes() == goal_key:
+            found = node
+            break
+        if not node.tree:
+            stack.pop()
+            continue
+        con = node.tree.popleft()
+        if con.depth < n:
+            i = int(node.order[con.depth])
+            u = int(node.config[i])
+            cands = [u] + [int(v) for v in nbr[u] if v >= 0]
+            rng.shuffle(cands)
+            for v in cands:
+                node.tree.append(_Constraint(con, i, v))
+        fixed = np.full(n, -1, dtype=np.int64)
+        c = con
+        while c is not None and c.who >= 0:
+            fixed[c.who] = c.where
+            c = c.parent
+        pibt_step(nbr, node.config, head, table, slot, goals, node.order, False, 0.0, rng.random((n, 5)), nxt, True,
+                  no_claim, fixed, park_w)
+        # constraints PIBT could not honour show up as vertex or swap conflicts
+        if np.unique(nxt).shape[0] != n:
+            continue
+        owner[node.config] = ids
+        b = owner[nxt]
+        swap = (b >= 0) & (b != ids) & (nxt[np.maximum(b, 0)] == node.config)
+        owner[node.config] = -1
+        if swap.any():
+            continue
+        key = nxt.tobytes()
+        if key in explored:
+            continue
+        at = nxt == goals
+        prio = np.where(at, node.prio - np.floor(node.prio), node.prio + 1)
+        new = _Node(nxt.copy(), node, prio)
+        explored[key] = new
+        stack.append(new)
+    configs = []
+    end = found or max(explored.values(), key=lambda nd: int((nd.config == goals).sum()))
+    while end is not None:
+        configs.append(end.config)
+        end = end.parent
+    paths = np.stack(configs[::-1])
+    off = paths != goals[None, :]
+    last_off = np.where(off.any(axis=0), paths.shape[0] - 1 - np.argmax(off[::-1], axis=0), -1)
+    arrival = last_off + 1
+    return {"paths": paths, "solved": found is not None, "sum_of_costs": int(arrival.sum()),
+            "makespan": int(arrival.max()) if n else 0, "time_s": time.perf_counter() - t0,
+            "nodes": len(explored)}
