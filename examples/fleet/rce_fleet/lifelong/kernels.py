@@ -15,7 +15,7 @@ import numpy as np
 from numba import njit
 
 __all__ = ["ACT_C", "ACT_F", "ACT_R", "ACT_W", "MOVE_WAIT", "UNREACHABLE", "bfs_fill", "bfs_pair",
-           "heading_cost", "mapf_t_actions", "pibt_step", "pibt_step_t",
+           "heading_cost", "mapf_t_actions", "pibt_step", "pibt_step_t", "progress_score",
            "warm_up"]
 
 UNREACHABLE = 65535
@@ -527,6 +527,27 @@ def pibt_step_t(nbr, pos, head, dist, slot, order, rnd, nxt, act):
     return failed
 
 
+@njit(cache=True)
+def progress_score(nbr, dist, slot, pos, head, act):
+    """How much closer the agents get by ``act`` (MAPF_T codes), in heading-aware steps
+    (:func:`heading_cost` before minus after, summed over agents with a goal)."""
+    total = 0.0
+    for a in range(pos.shape[0]):
+        s = slot[a]
+        if s < 0:
+            continue
+        u, h = pos[a], head[a]
+        v, hh = u, h
+        if act[a] == ACT_F:
+            v = nbr[u, h]
+        elif act[a] == ACT_R:
+            hh = (h + 1) & 3
+        elif act[a] == ACT_C:
+            hh = (h + 3) & 3
+        total += heading_cost(nbr, dist, s, u, h) - heading_cost(nbr, dist, s, v, hh)
+    return total
+
+
 def warm_up() -> None:
     """Compile (or load from numba's cache) every kernel on a 3 x 3 grid, so that no timed
     step pays for compilation."""
@@ -547,3 +568,4 @@ def warm_up() -> None:
     mapf_t_actions(g.nbr, pos, head, nxt, dist, slot, np.empty(2, dtype=np.int64), claim)
     pibt_step_t(g.nbr, pos, head, dist, slot, np.arange(2, dtype=np.int64), np.zeros((2, 5)), nxt,
                 np.empty(2, dtype=np.int64))
+    progress_score(g.nbr, dist, slot, pos, head, np.zeros(2, dtype=np.int64))

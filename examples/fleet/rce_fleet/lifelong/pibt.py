@@ -23,7 +23,7 @@ import numpy as np
 
 from .distances import DistanceCache
 from .grid import LifelongGrid
-from .kernels import MOVE_WAIT, mapf_t_actions, pibt_step, pibt_step_t
+from .kernels import MOVE_WAIT, mapf_t_actions, pibt_step, pibt_step_t, progress_score
 from .simulator import MAPF_T
 
 __all__ = ["PIBTPlanner", "solve_one_shot"]
@@ -39,15 +39,16 @@ class PIBTPlanner:
 
     def __init__(self, grid: LifelongGrid, cache: DistanceCache, model: str = MAPF_T, turn_w: float = 0.5,
                  seed: int = 0, swap: bool = True, state_space: bool = False, claim_steps: int = 1,
-                 stuck_steps: int = 20, noise: float = 100.0):
+                 stuck_steps: int = 20, noise: float = 100.0, samples: int = 1, sample_frac: float = 0.5):
         self.grid, self.cache, self.model, self.turn_w, self.swap = grid, cache, model, float(turn_w), swap
         self.state_space, self.claim_steps = state_space, claim_steps
         self.stuck_steps, self.noise = stuck_steps, noise
+        self.samples, self.sample_frac = samples, sample_frac
         self.rng = np.random.default_rng(seed)
         self._goal_prev: np.ndarray | None = None
         self.elapsed: np.ndarray | None = None
         self.tie: np.ndarray | None = None
-        self.stats = {"pibt_ms": 0.0, "maps_ms": 0.0, "maps": 0, "deferred": 0, "cancelled": 0}
+        self.stats = {"pibt_ms": 0.0, "maps_ms": 0.0, "maps": 0, "deferred": 0, "cancelled": 0, "samples": 0}
 
     def plan(self, pos: np.ndarray, head: np.ndarray, goals: np.ndarray, deadline: float) -> np.ndarray:
         """Actions for one step. pos, head, goals: (n,) int64 (goal -1: none). ``deadline``
@@ -97,6 +98,25 @@ class PIBTPlanner:
         act = np.empty(n, dtype=np.int64)
         if turns and self.state_space:
             pibt_step_t(self.grid.nbr, pos, head, cache.table, slot, order, rnd, nxt, act)
+        elif turns and self.samples > 1:
+            # sample PIBT steps with other tie-breaks while time remains; keep the one that
+            # brings the robots closest (heading-aware); the first is always complete
+            claim0, age0 = self.claim.copy(), self.claim_age.copy()
+            best, best_claim, best_age, best_score = None, None, None, -np.inf
+            stop = time.perf_counter() + self.sample_frac * max(0.0, deadline - time.perf_counter())
+            for k in range(self.samples):
+                if k and time.perf_counter() > stop:
+                    break
+                self.claim, self.claim_age = claim0.copy(), age0.copy()
+                r = rnd if k == 0 else self.rng.random((n, 5))
+                if k and self.noise > 0:
+                    r[self.stuck > self.stuck_steps] *= self.noise
+                self._convert(pos, head, goals, slot, order, r, nxt, act)
+                score = progress_score(self.grid.nbr, cache.table, slot, pos, head, act)
+                if score > best_score:
+                    best, best_claim, best_age, best_score = act.copy(), self.claim.copy(), self.claim_age, score
+            self.stats["samples"] += k + 1
+            act, self.claim, self.claim_age = best, best_claim, best_age
         else:
             self._convert(pos, head, goals, slot, order, rnd, nxt, act)
         t2 = time.perf_counter()

@@ -43,6 +43,7 @@ class Scheduler:
     """
 
     name = "base"
+    map_share = 0.5          # share of the scheduler's time for new first-errand maps
 
     def __init__(self, cache: DistanceCache):
         self.cache = cache
@@ -134,9 +135,9 @@ class GreedyScheduler(Scheduler):
 
     name = "greedy"
 
-    def __init__(self, cache: DistanceCache, margin: float = 2.0, reassign: bool = True):
+    def __init__(self, cache: DistanceCache, margin: float = 2.0, reassign: bool = True, chunk: int = 64):
         super().__init__(cache)
-        self.margin, self.reassign = margin, reassign
+        self.margin, self.reassign, self.chunk = margin, reassign, chunk
 
     def schedule(self, pos, assignment, tasks, t, deadline):
         prop = assignment.copy()
@@ -146,7 +147,8 @@ class GreedyScheduler(Scheduler):
         cand = [tk for tk in tasks.values() if not tk.opened]
         if not cand:
             return prop
-        self._prepare(cand, deadline)
+        t0 = time.perf_counter()
+        self._prepare(cand, t0 + self.map_share * max(0.0, deadline - t0))
         slots, e0, length = self._estimates(cand)
         holder = np.fromiter((tk.agent for tk in cand), dtype=np.int64, count=len(cand))
         early, late = _windows(cand, t)
@@ -155,20 +157,22 @@ class GreedyScheduler(Scheduler):
         if len(held):
             tr = self._travel_pairs(slots[held], e0[held], pos[holder[held]])
             holder_bid[held] = _finish(tr, length[held], early[held], late[held])
-        rows = {r: i for i, r in enumerate(free)}
-        bids = _finish(self._travel(slots, e0, pos[np.array(free, dtype=np.int64)]), length, early[None, :],
-                       late[None, :])
         queue = list(free)
+        rows: dict[int, np.ndarray] = {}
         budget = len(free) + len(cand)
         k = 0
         while k < len(queue) and budget > 0:
-            if (k & 31) == 31 and time.perf_counter() > deadline:
-                break
-            budget -= 1
             r = queue[k]
+            if r not in rows:                  # bids of the next chunk of robots, while time remains
+                if rows and time.perf_counter() > deadline:
+                    break
+                chunk = [x for x in queue[k:k + self.chunk] if x not in rows]
+                bids = _finish(self._travel(slots, e0, pos[np.array(chunk, dtype=np.int64)]), length,
+                               early[None, :], late[None, :])
+                rows.update(zip(chunk, bids, strict=True))
+            budget -= 1
             k += 1
-            i = rows.get(r)
-            bid = bids[i] if i is not None else _finish(self._travel(slots, e0, pos[r:r + 1])[0], length, early, late)
+            bid = rows[r]
             ok = holder < 0
             if self.reassign:
                 ok |= bid < holder_bid - self.margin
