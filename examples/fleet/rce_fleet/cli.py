@@ -6,8 +6,11 @@
                    [--goal RobotN=CELL]... [--start RobotN=CELL]... [--block CELL@S]...
                    [--obstacle CELL@S]... [--fault master@T[+S] | link:RobotN@T[+S]]...
                    [--timeout S] [--plot PNG] [--report JSON] [--bag FILE.bag]
-                   [--headless] [--web-port P]
+                   [--headless] [--web-port P] [--places YAML] [--battery KEY=V,...]
+    rce-fleet demo --lifelong --duration S --robots N --task-rate R/min [--places YAML] [--report JSON]
     rce-fleet serve [same options, no mission]      # until Ctrl-C
+    rce-fleet task add ERRAND... [--priority P] [--start-in S] [--deadline-in S] [--id ID] [--master URL]
+    rce-fleet task list [--json] | task get ID | task cancel ID     # the operators' task API
     rce-fleet configs [--out DIR] [--robots N] [--url URL]   # write robot1.config ...
     rce-fleet grid [--map YAML] [--grid RxC | --cell M]     # print the grid's cell numbers
     rce-fleet lifelong PROBLEM.json --steps N [--plan-time-limit MS] [--output OUT.json] [--seed S]
@@ -47,6 +50,11 @@ def _positive(text: str) -> float:
     return v
 
 
+def _rate(text: str) -> float:
+    """``6``, ``6/min`` -> 6.0 (tasks per simulated minute, > 0)."""
+    return _positive(text[:-4] if text.endswith("/min") else text)
+
+
 def _map_args(p: argparse.ArgumentParser) -> None:
     p.add_argument("--map", metavar="YAML", help="ROS map_server map (default: the project's lab map, generated)")
     g = p.add_mutually_exclusive_group()
@@ -78,6 +86,10 @@ def _run_args(p: argparse.ArgumentParser, mission: bool) -> None:
     p.add_argument("--report", metavar="JSON", help="write a JSON report of the run")
     p.add_argument("--bag", metavar="FILE.bag", help="record the fleet topics (poses, paths, cancelGoal, fleet state) "
                    "into a ROS 1 bag")
+    p.add_argument("--places", metavar="YAML", help="named places (pick-up, drop-off, charger, parking) of the "
+                   "map's grid (default: generated for the map, written to places.yaml in the work dir)")
+    p.add_argument("--battery", metavar="KEY=VALUE,...", help="simulated batteries: capacity_wh, drain_wh_per_m, "
+                   "idle_w, charge_w, threshold, recharge (an empty value: the defaults; --lifelong has them)")
     p.add_argument("--live", dest="live", action="store_true", default=None,
                    help="live table even without a terminal")
     p.add_argument("--no-live", dest="live", action="store_false",
@@ -100,12 +112,20 @@ def build_parser() -> argparse.ArgumentParser:
                    help="inject a fault T sim seconds after the goals were sent (repeatable): master@T[+S] kills "
                    "rce-master (kill -9) and restarts it on its state file after S wall seconds (default 2); "
                    "link:RobotN@T[+S] cuts RobotN's websocket for S wall seconds (default 5)")
+    d.add_argument("--lifelong", action="store_true",
+                   help="instead of one mission: generated pick-up -> drop-off tasks for --duration sim s")
+    d.add_argument("--duration", type=_positive, default=600.0, metavar="S",
+                   help="simulated seconds of a --lifelong run (default 600)")
+    d.add_argument("--task-rate", type=_rate, default=6.0, metavar="R/min",
+                   help="tasks per simulated minute of a --lifelong run (default 6)")
     s = sub.add_parser("serve", help="the same system without a mission, until Ctrl-C")
     _run_args(s, False)
     c = sub.add_parser("configs", help="write the robots' configs (robot1.config ...)")
     c.add_argument("--out", default="configs", metavar="DIR", help="directory (default configs)")
     c.add_argument("--robots", type=int, default=10, metavar="N", help="how many (default 10)")
     c.add_argument("--url", default="http://127.0.0.1:9000/", help="master login URL written into them")
+    from .task_cli import add_task_parser
+    add_task_parser(sub)
     g = sub.add_parser("grid", help="print the grid's cell numbers (## = not free)")
     _map_args(g)
     lf = sub.add_parser("lifelong", help="run a League of Robot Runners 2024 problem under its rules "
@@ -158,6 +178,9 @@ def main(argv: list[str] | None = None) -> None:
     args = build_parser().parse_args(argv)
     if args.cmd == "lifelong":
         sys.exit(_lifelong(args))
+    if args.cmd == "task":
+        from .task_cli import run_task
+        sys.exit(run_task(args))
     if args.cmd == "configs":
         from .configs import write_configs
         for path in write_configs(args.out, args.robots, args.url):
@@ -174,8 +197,10 @@ def main(argv: list[str] | None = None) -> None:
         print(f"{g.rows}x{g.cols} cells of {g.cell_w_m:.3f} x {g.cell_h_m:.3f} m, {len(g.free_cells())} free")
         print(g.ascii())
         return
-    from .demo import EXIT_USAGE, Options, UsageError, parse_cell_at, parse_faults, parse_robot_cell, run
-    mission = args.cmd == "demo"
+    from .demo import (EXIT_USAGE, Options, UsageError, parse_battery, parse_cell_at, parse_faults,
+                       parse_robot_cell, run)
+    lifelong = bool(getattr(args, "lifelong", False))
+    mission = args.cmd == "demo" and not lifelong
     try:
         opts = Options(map=args.map, robots=args.robots, grid=args.grid, cell=args.cell, seed=args.seed,
                        speedup=args.speedup, headless=args.headless, timeout=args.timeout,
@@ -186,7 +211,9 @@ def main(argv: list[str] | None = None) -> None:
                        faults=parse_faults(getattr(args, "fault", [])),
                        plot=args.plot, report=args.report, bag=args.bag, workdir=args.workdir, keep=args.keep,
                        lidar_blocking=not args.no_lidar_blocking, mission=mission, live=args.live,
-                       web_port=args.web_port)
+                       web_port=args.web_port, places=args.places, lifelong=lifelong,
+                       duration=getattr(args, "duration", 600.0), task_rate=getattr(args, "task_rate", 6.0),
+                       battery=parse_battery(args.battery, lifelong))
     except UsageError as e:
         print(f"rce-fleet: {e}", file=sys.stderr)
         sys.exit(EXIT_USAGE)

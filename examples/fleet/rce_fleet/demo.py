@@ -24,6 +24,15 @@ The master keeps its state in ``engine/master.sqlite3`` of the work directory (`
 master that is killed comes back with it.
 
 ``serve`` runs the same system without a mission until Ctrl-C (or ``--timeout``).
+
+Tasks. The fleet takes operators' tasks in every mode (:mod:`rce_fleet.tasks_api`): named
+places come from ``--places FILE`` or are generated for the map and written to
+``places.yaml`` in the work directory (:mod:`rce_fleet.places`). ``demo --lifelong`` runs the
+fleet on a generated task stream (``--task-rate R`` per simulated minute, pick-up then
+drop-off) for ``--duration S`` simulated seconds, with batteries (``--battery``) and idle
+robots parking, and writes the report's ``tasks`` section and per-robot utilisation, distance,
+lowest battery level and charges (:mod:`rce_fleet.operations`); it exits 0 when the duration
+was reached and no robot ran flat.
 """
 from __future__ import annotations
 
@@ -50,6 +59,7 @@ from rce.tasks import Tasks
 from rce_client.bag import BagRecorder, record_container
 from rce_client.connection import Connection
 
+from .battery import BatteryParams, battery_links
 from .configs import FLEET_CTAG, PASSWORD, USER, robot_config
 from .faults import Fault, FaultInjector, parse_fault
 from .geometry import GridGeometry, components
@@ -57,6 +67,8 @@ from .grid import make_grid
 from .lab_map import write_lab_map
 from .manager import FleetManager
 from .maps import MapError, load_map
+from .operations import TaskStream, goal_motion_delays, robot_section, tasks_section
+from .places import PlaceError, Places, generate_places
 from .simhost import SimHost
 
 log = get_logger("fleet.demo")
@@ -107,6 +119,32 @@ class Options:
     live: bool | None = None        # None: when stdout is a terminal
     web_port: int = 8000            # the operator's web page (rce_fleet.webui); taken if free, else any
     faults: list[Fault] = field(default_factory=list)   # ``--fault`` (rce_fleet.faults)
+    places: str | None = None       # ``--places`` YAML (None: generated for the map)
+    lifelong: bool = False          # ``demo --lifelong``: a generated task stream for ``duration`` sim s
+    duration: float = 600.0         # sim s of a lifelong run
+    task_rate: float = 6.0          # tasks per sim minute of a lifelong run
+    battery: BatteryParams | None = None   # simulated batteries (``--battery``; a lifelong run has them)
+
+
+def parse_battery(spec: str | None, lifelong: bool) -> BatteryParams | None:
+    """``--battery KEY=VALUE,...`` (keys of :class:`rce_fleet.battery.BatteryParams`; empty:
+    the defaults) -> params; None without the flag unless ``lifelong``. Raises UsageError."""
+    if spec is None:
+        return BatteryParams() if lifelong else None
+    kw = {}
+    for item in filter(None, (x.strip() for x in spec.split(","))):
+        k, sep, v = item.partition("=")
+        if not sep or k not in BatteryParams.__dataclass_fields__:
+            raise UsageError(f"--battery {item!r}: expected KEY=VALUE with KEY one of "
+                             f"{', '.join(BatteryParams.__dataclass_fields__)}")
+        try:
+            kw[k] = float(v)
+        except ValueError:
+            raise UsageError(f"--battery {item!r}: {v!r} is not a number") from None
+    try:
+        return BatteryParams(**kw)
+    except ValueError as e:
+        raise UsageError(f"--battery: {e}") from None
 
 
 def parse_robot_cell(items: list[str], what: str) -> dict[str, int]:
@@ -189,10 +227,10 @@ def _blocked_by(state: dict) -> dict[int, str]:
     return dict(zip(state.get("blocked", []), state.get("blocked_by", []), strict=False))
 
 
-def _fmt_state(s: str) -> str:
+def _fmt_state(state: str) -> str:
     colours = {"arrived": "green", "moving": "cyan", "waiting": "yellow", "unreachable": "red", "unknown": "dim"}
-    c = colours.get(s)
-    return f"[{c}]{s}[/{c}]" if c else s
+    c = colours.get(state)
+    return f"[{c}]{state}[/{c}]" if c else state
 
 
 class Run:
@@ -219,6 +257,9 @@ class Run:
         self._stuck_since: float | None = None
         self._stop = asyncio.Event()
         self.tasks = Tasks("fleet-demo")           # operator requests sent from sim timers
+        self.task_list: dict | None = None         # the newest /fleet/tasks
+        self.generated = 0                         # tasks the lifelong stream sent
+        self.refused: list[str] = []               # why the fleet refused generated tasks
 
     # -- set-up ---------------------------------------------------------------------------------
     def prepare(self) -> None:
@@ -258,6 +299,20 @@ class Run:
             if not self.geo.valid(c):
                 raise UsageError(f"cell {c} is outside the {self.geo.rows}x{self.geo.cols} grid")
         self.starts, self.goals = choose_cells(self.geo, self.robots, o.seed, o.starts, o.goals, o.mission)
+        try:
+            self.places = Places.load(o.places, self.geo) if o.places else generate_places(self.geo, o.robots)
+        except PlaceError as e:
+            raise UsageError(f"--places: {e}") from None
+        if not o.places:
+            self.places.dump(self.workdir / "places.yaml", f"places generated for {Path(self.map_path).name}, "
+                             f"grid {self.geo.rows}x{self.geo.cols} (rce-fleet --places)")
+        if o.lifelong:
+            if not o.duration > 0:
+                raise UsageError("--duration must be > 0")
+            try:
+                self.stream = TaskStream(self.places, o.task_rate, o.seed).times_and_errands(o.duration)
+            except ValueError as e:
+                raise UsageError(f"--task-rate/--places: {e}") from None
         if self.grid_note:
             log.info(self.grid_note)
             self.events.append(self.grid_note)
@@ -305,13 +360,18 @@ class Run:
                                               admin_token=f"fleet-{random.getrandbits(64):016x}")
         log.info("engine up", master=self.engine.master_url, workdir=str(self.workdir))
         self.faults = FaultInjector(o.faults, self.engine, self.tasks, USER, self._mission_t)
-        args = "" if o.lidar_blocking else "--no-lidar-blocking"
+        print(f"rce-fleet: master {self.engine.master_url}  (rce-fleet task list --master {self.engine.master_url})",
+              flush=True)
+        args = " ".join(a for a, on in (("--no-lidar-blocking", not o.lidar_blocking), ("--park-idle", o.lifelong))
+                        if on)
         self.manager = FleetManager(self.engine.master_url, self.geo, self.robots, planner_args=args,
-                                    on_state=self._on_state)
+                                    on_state=self._on_state, places=self.places, battery=o.battery,
+                                    on_tasks=self._on_tasks)
         await self._bounded(self.manager.start(timeout=SETUP_TIMEOUT_S), "fleet manager setup")
         reg = default_registry()
         load_package_types(reg)
-        self.sim = SimHost(self.occ, self.geo, reg, seed=o.seed, speedup=o.speedup)
+        self.sim = SimHost(self.occ, self.geo, reg, seed=o.seed, speedup=o.speedup, battery=o.battery,
+                           chargers=self.places.cells("charger"))
         for r in self.robots:
             self.sim.spawn(r, self.starts[r])
         self.sim.start()
@@ -329,6 +389,8 @@ class Run:
             await self._start_web()
         if o.bag:
             await self._bounded(self._start_bag(reg), "bag recorder setup")
+        if o.lifelong:
+            return await self._lifelong()
         if not o.mission:
             log.info("serving", robots=len(self.robots), note="Ctrl-C to stop")
             await self._watch(mission=False)
@@ -337,30 +399,60 @@ class Run:
         self.t_mission = self.sim.time
         self.wall_mission = time.monotonic()
         for c, at in o.blocks:
-            self.sim.at(self.t_mission + at, lambda c=c, at=at: self._do_block(c, at))
+            self.sim.at(self.t_mission + at, lambda cell=c, at=at: self._do_block(cell, at))
         for c, at in o.obstacles:
-            self.sim.at(self.t_mission + at, lambda c=c, at=at: self._do_obstacle(c, at))
+            self.sim.at(self.t_mission + at, lambda cell=c, at=at: self._do_obstacle(cell, at))
         self.faults.schedule(self.sim.at, self.t_mission)
         for r in self.robots:
             await self.manager.set_goal(r, self.goals[r])
         log.info("mission started", goals=self.goals, starts=self.starts, t_sim=round(self.t_mission, 2))
         return await self._watch(mission=True)
 
+    async def _lifelong(self) -> tuple[int, str]:
+        """The generated task stream for ``--duration`` sim s (module docstring)."""
+        self.t_mission = self.sim.time
+        self.wall_mission = time.monotonic()
+        for at, errands in self.stream:
+            self.sim.at(self.t_mission + at, lambda e=errands: self.tasks.spawn(self._add_task(e), name="task"))
+        log.info("lifelong run started", tasks=len(self.stream), duration=self.o.duration, rate=self.o.task_rate)
+        code, reason = await self._watch(mission=False)
+        flat = [r for r, b in self.sim.bots.items() if b.battery is not None and b.battery.flat]
+        if code == EXIT_OK and flat:
+            return EXIT_FAIL, f"battery ran flat: {', '.join(flat)}"
+        return code, reason
+
+    async def _add_task(self, errands: list[str]) -> None:
+        self.generated += 1
+        try:
+            await self.manager.tasks.add(errands, timeout=SETUP_TIMEOUT_S)
+        except RCEError as e:
+            self.refused.append(e.message)
+            log.warning("generated task refused", errands=errands, reason=e.message)
+
+    def _on_tasks(self, task_list: dict) -> None:
+        self.task_list = task_list
+
     async def _connect_robots(self) -> None:
         """Write the robots' configs and connect them, a few at a time (each sets up its node and
         interfaces); a robot whose link a fault cuts logs in through its proxy's login relay."""
         cfgs = {r: robot_config(int(r[5:]), self.engine.master_url) for r in self.robots}
+        if self.o.battery is not None:
+            for r, cfg in cfgs.items():
+                ifaces, links = battery_links(int(r[5:]), FLEET_CTAG)
+                cfg["interfaces"] += ifaces
+                cfg["connections"] += links
         (self.workdir / "configs").mkdir(exist_ok=True)
         for r, cfg in cfgs.items():
             (self.workdir / "configs" / f"robot{r[5:]}.config").write_text(json.dumps(cfg, indent=2))
         logins = await self.faults.start_links()
         sem = asyncio.Semaphore(CONNECTING_AT_ONCE)
 
-        async def connect(r: str) -> None:
+        async def connect(robot: str) -> None:
             async with sem:
-                await self.sim.connect(r, cfgs[r], logins.get(r, self.engine.master_url), timeout=SETUP_TIMEOUT_S)
-            if r in logins:
-                self.faults.watch(r, self.sim.bots[r].bridge.conn)
+                await self.sim.connect(robot, cfgs[robot], logins.get(robot, self.engine.master_url),
+                                       timeout=SETUP_TIMEOUT_S)
+            if robot in logins:
+                self.faults.watch(robot, self.sim.bots[robot].bridge.conn)
         await self._bounded(asyncio.gather(*(connect(r) for r in self.robots)), "robots connecting")
 
     async def _bounded(self, aw, what: str):
@@ -481,7 +573,12 @@ class Run:
                 if end is not None:
                     show()
                     return end
+            if self.o.lifelong and self.t_mission is not None and self._mission_t() >= self.o.duration:
+                return EXIT_OK, f"{self.o.duration:g} s simulated"
             if time.monotonic() > self.deadline:
+                if self.o.lifelong:
+                    return EXIT_FAIL, (f"timeout after {self.o.timeout:g} s wall at {self._mission_t():.0f} of "
+                                       f"{self.o.duration:g} s simulated")
                 if not mission:
                     return EXIT_OK, "timeout reached (serve)"
                 missing = [r for r in self.robots if r not in self.reached]
@@ -612,8 +709,28 @@ class Run:
             "bag": {"path": str(self.bag.path), "messages": dict(self.bag.counts)} if self.bag else None,
             "faults": self.faults.report() if self.faults else [],
             "per_robot": per,
+            **self._lifelong_report(per),
             "workdir": str(self.workdir),
         }
+
+    def _lifelong_report(self, per: dict) -> dict:
+        """The ``tasks`` section and the task stream's numbers of a lifelong run; adds each robot's
+        work (utilisation, distance_m, battery_min_pct, charges) to ``per``."""
+        if not self.o.lifelong or self.t_mission is None:
+            return {}
+        for r, work in robot_section(self.task_list, self.sim).items():
+            per.setdefault(r, {}).update(work)
+        t = self._mission_t()
+        delays = goal_motion_delays(self.task_list, self.sim)
+        ds = sorted(delays)
+        return {"tasks": tasks_section(self.task_list, t, self.generated),
+                "lifelong": {"duration_s": round(t, 2), "task_rate_per_min": self.o.task_rate,
+                             "generated": self.generated, "refused": self.refused[:20],
+                             "real_time_factor": round(t / max(time.monotonic() - self.wall_mission, 1e-9), 3),
+                             "goal_to_motion_s": {"n": len(ds), "p50": ds[len(ds) // 2] if ds else None,
+                                                  "p99": ds[min(len(ds) - 1, int(0.99 * len(ds)))] if ds else None},
+                             "battery": self.o.battery.to_param() if self.o.battery else None,
+                             "places": str(self.o.places or self.workdir / "places.yaml")}}
 
     # -- the --bag recorder ------------------------------------------------------------------------
     def fleet_topics(self) -> list[tuple[str, str]]:
@@ -647,7 +764,7 @@ class Run:
     async def _start_web(self) -> None:
         from .webui import WebUI
         self.web = WebUI(self.engine.master_url, self.occ, self.geo, self.robots, ctag=FLEET_CTAG, user=USER,
-                         password=PASSWORD, port=self.o.web_port)
+                         password=PASSWORD, port=self.o.web_port, tasks=self.manager.tasks, places=self.places)
         url = await self._bounded(self.web.start(), "web page setup")
         self.events.append(f"operator page: {url}")
         print(f"rce-fleet: operator page: {url}  (log in as {USER}; rce-master --dev password {PASSWORD})",

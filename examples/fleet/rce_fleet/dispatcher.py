@@ -17,7 +17,10 @@ Each call of :meth:`Dispatcher.update` (the global planner's tick, ~5 Hz) at fle
    the robots that are free or hold an unopened task. A robot never takes a task whose
    energy (to the first errand, through the last, and on to the nearest charger, plus a 5 %
    reserve) is more than its battery holds: it goes to charge instead;
-5. idle robots drive to the nearest free parking place (``park_idle``), out of the aisles.
+5. idle robots drive to the nearest free parking place (``park_idle``, or once they have
+   done a task), out of the aisles and off the stations;
+6. a goal cell another robot heads to is not sent yet (the planner refuses two robots one
+   goal): the robot holds where it is until that one has a new goal.
 
 A robot that an operator sends somewhere (``/fleet/goal``) is the operator's until it
 arrives or its goal is dropped: it takes no task, and an unopened task it held goes back to
@@ -71,6 +74,7 @@ class _Work:
     since: float | None = None
     charges: int = 0
     tasks_done: int = 0
+    worked: bool = False           # it has had a task (then it parks when idle)
 
 
 class Dispatcher:
@@ -269,7 +273,7 @@ class Dispatcher:
                 self._send_to_charger(w, view, now)
                 continue
             book.assign(rec, name, i, now)
-            w.task, w.activity, w.target = rec, TASK, None
+            w.task, w.activity, w.target, w.worked = rec, TASK, None, True
 
     def _affordable(self, w: _Work, cell: int, rec: TaskRecord) -> bool:
         """Whether ``w`` can do ``rec`` from ``cell`` and still reach a charger with the reserve."""
@@ -288,11 +292,13 @@ class Dispatcher:
 
     def _goals(self, view: dict[str, RobotView]) -> dict[str, int]:
         out: dict[str, int] = {}
+        held = {n: w.sent for n, w in self.robots.items() if w.sent is not None}
+        held.update({n: v.goal for n, v in view.items() if v.goal is not None and n not in held})
         for name, w in self.robots.items():
             v = view.get(name)
             if v is None or v.cell is None or w.activity in (OPERATOR, UNKNOWN):
                 continue
-            if w.activity == IDLE and self.park_idle and self.parking and v.cell not in self.parking:
+            if w.activity == IDLE and (self.park_idle or w.worked) and self.parking and v.cell not in self.parking:
                 c = self._nearest_free(v.cell, self.parking, view, w)
                 if c is not None:
                     w.activity, w.target = PARKING, c
@@ -302,11 +308,17 @@ class Dispatcher:
                 want = w.target
             else:
                 want = None
+            if want is not None and want != w.sent and any(n != name and g == want for n, g in held.items()):
+                want = None                 # another robot heads there: hold (stand) until it is free
             if want != w.sent:
                 if want is None and w.sent is None:
                     continue
                 out[name] = -1 if want is None else int(want)
                 w.sent = want
+                if want is None:
+                    held.pop(name, None)
+                else:
+                    held[name] = want
         return out
 
     # -- views ------------------------------------------------------------------------------------------

@@ -18,6 +18,12 @@ An RCE client like any robot (login, websocket, CC/CN/CX requests, the client li
    =========================  ==========================  ========================
 
 The manager's interfaces are Converters (JSON), as a browser's would be.
+
+It also sets ``/fleet/places`` (:mod:`rce_fleet.places`) and ``/fleet/battery``
+(:mod:`rce_fleet.battery`) when given, and attaches a :class:`rce_fleet.tasks_client.TaskChannel`
+(``tasks``): the operators' task API that ``rce-fleet serve``'s HTTP API and the demo's task
+generator use. ``task_stats`` keeps what a warehouse manager watches (tasks done per minute,
+queue length, utilisation), for the page's plots and the Prometheus metrics.
 """
 from __future__ import annotations
 
@@ -29,7 +35,10 @@ from rce.log import get_logger
 from rce_client.connection import Connection
 
 from .configs import FLEET_CTAG, PASSWORD, USER
+from .battery import BATTERY_PARAM, BatteryParams
 from .geometry import GRID_PARAM, ROBOTS_PARAM, GridGeometry
+from .places import PLACES_PARAM, Places
+from .tasks_client import TaskChannel
 
 log = get_logger("fleet.manager")
 
@@ -58,12 +67,15 @@ class FleetManager:
     def __init__(self, master_url: str, geometry: GridGeometry, robots: list[str], *, user: str = USER,
                  password: str = PASSWORD, robot_id: str = MANAGER_ID, ctag: str = FLEET_CTAG,
                  planner_args: str = "", on_state: Callable[[dict], None] | None = None,
-                 container_cpu: float | None = None):
+                 container_cpu: float | None = None, places: Places | None = None,
+                 battery: BatteryParams | None = None, on_tasks: Callable[[dict], None] | None = None):
         self.master_url, self.geo, self.robots = master_url, geometry, list(robots)
         self.user, self.password, self.robot_id, self.ctag = user, password, robot_id, ctag
         self.planner_args = planner_args
         self.container_cpu = container_cpu
         self.on_state = on_state
+        self.places, self.battery, self.on_tasks = places, battery, on_tasks
+        self.tasks: TaskChannel | None = None
         self.conn: Connection | None = None
         self.latest: dict | None = None
         self.states = 0
@@ -82,11 +94,13 @@ class FleetManager:
         conn.on_error(self._on_error)
         conn.on_status(self._on_status)
         await conn.create_container(self.ctag, cpu=self.container_cpu)
-        await conn.configure({"setParam": [
-            {"containerTag": self.ctag, "name": GRID_PARAM, "value": self.geo.to_param()},
-            {"containerTag": self.ctag, "name": ROBOTS_PARAM, "value": self.robots}]})
-        await conn.configure({"addNodes": [{"containerTag": self.ctag, "nodeTag": "global_planner", "pkg": "fleet",
-                                            "exe": "global_planner", "args": self.planner_args}]})
+        await conn.set_param(self.ctag, GRID_PARAM, self.geo.to_param())
+        await conn.set_param(self.ctag, ROBOTS_PARAM, self.robots)
+        if self.places is not None:
+            await conn.set_param(self.ctag, PLACES_PARAM, self.places.to_param())
+        if self.battery is not None:
+            await conn.set_param(self.ctag, BATTERY_PARAM, self.battery.to_param())
+        await conn.add_node(self.ctag, "global_planner", "fleet", "global_planner", args=self.planner_args)
         adds, links = [], []
         for c_tag, c_type, m_tag, m_type, cls, topic in _IFACES:
             adds.append({"endpointTag": self.ctag, "interfaceTag": c_tag, "interfaceType": c_type,
@@ -104,6 +118,8 @@ class FleetManager:
         if len(self.errors) > n:
             raise Unavailable(f"fleet manager setup refused: {self.errors[n]}")
         await conn.wait_interfaces_up([m for _, _, m, _, _, _ in _IFACES], timeout)
+        self.tasks = TaskChannel(conn, self.robot_id, self.ctag, source="manager", on_tasks=self.on_tasks)
+        await self.tasks.attach(timeout)
         log.info("fleet container up", ctag=self.ctag, robots=len(self.robots))
 
     def _on_error(self, reason: str) -> None:

@@ -9,6 +9,10 @@ Each robot, on its own local bus, like a TurtleBot running ``amcl`` and ``move_b
   lidar hits the static map does not explain, within 2 m, 1 Hz, only when there are
   some), and ``/odom`` (nav_msgs/Odometry, 10 Hz) and ``/scan`` (sensor_msgs/LaserScan,
   5 Hz) when something on its bus subscribes to them;
+* publishes ``/battery`` (sensor_msgs/BatteryState, 1 Hz sim time) when the host simulates
+  batteries (``battery``: :class:`rce_fleet.battery.BatteryParams`): it drains by the metres
+  driven and the seconds passed, and charges while the robot stands still in a charger cell
+  (``chargers``); a flat battery stops the robot;
 * drives to the goals it gets on ``/move_base_simple/goal`` (geometry_msgs/PoseStamped)
   with its own local planner (:class:`rce_fleet.sim.LocalNavigator`: DWA with obstacle
   avoidance) and stops on ``/move_base/cancel`` (actionlib_msgs/GoalID).
@@ -40,6 +44,7 @@ from rce.messages import MessageRegistry
 from rce.tasks import Tasks
 from rce_client.rce_ros import RobotBridge
 
+from .battery import BATTERY_TOPIC, T_BATTERY, Battery, BatteryParams
 from .geometry import GridGeometry, quaternion_from_yaw
 from .sim import LocalNavigator, ObstacleDetector, SimWorld
 
@@ -64,10 +69,12 @@ MAX_LAG_S = 0.5
 #: lidar points per ``/obstacles`` message; further points are dropped (counted in
 #: ``SimHost.obstacle_points_dropped``).
 MAX_OBSTACLE_POINTS = 120
+#: m/s above which a robot counts as moving (its motion starts are kept for goal -> motion delays)
+MOVING_M = 0.02
 
 
-def _stamp(t: float) -> dict:
-    return {"secs": int(t), "nsecs": int(round((t % 1.0) * 1e9)) % 1_000_000_000}
+def _stamp(sim_time: float) -> dict:
+    return {"secs": int(sim_time), "nsecs": int(round((sim_time % 1.0) * 1e9)) % 1_000_000_000}
 
 
 @dataclass
@@ -87,6 +94,11 @@ class SimBot:
     trace: list[tuple[float, float, float]] = field(default_factory=list)   # (t, x, y)
     distance: float = 0.0
     last_goal: tuple[float, float] | None = None
+    battery: Battery | None = None
+    last_xy: tuple[float, float] | None = None
+    moving: bool = False
+    motion_starts: list[float] = field(default_factory=list)         # sim times it began to move from standing
+    motion_stops: list[float] = field(default_factory=list)          # sim times it came to a stand
 
 
 class SimHost:
@@ -96,7 +108,8 @@ class SimHost:
     def __init__(self, occ_map, geometry: GridGeometry, registry: MessageRegistry, *, seed: int = 0,
                  speedup: float = 1.0, dt: float = 0.1, scan_every: int = 2, pose_every: int = 2,
                  obstacles_every: int = 10, box_margin: float = 0.1, obstacle_range: float = 2.0,
-                 publish_obstacles: bool = True):
+                 publish_obstacles: bool = True, battery: BatteryParams | None = None,
+                 chargers: list[int] = (), battery_every: int = 10):
         if speedup <= 0:
             raise ValueError("speedup must be > 0")
         self.map, self.geo, self.registry = occ_map, geometry, registry
@@ -107,6 +120,7 @@ class SimHost:
         self.scan_every, self.pose_every, self.obstacles_every = scan_every, pose_every, obstacles_every
         self.box_margin, self.obstacle_range = box_margin, obstacle_range
         self.publish_obstacles = publish_obstacles
+        self.battery, self.chargers, self.battery_every = battery, set(chargers), battery_every
         self.bots: dict[str, SimBot] = {}
         self.ticks = 0
         self.min_pair = math.inf
@@ -135,6 +149,9 @@ class SimHost:
         yaw = float(self.rng.uniform(-math.pi, math.pi)) if yaw is None else yaw
         robot = self.world.add_robot(rid, x, y, yaw)
         bot = SimBot(rid, robot, LocalNavigator(obstacle_detector=self.detector), cell)
+        if self.battery is not None:
+            bot.battery = Battery(self.battery)
+        bot.last_xy = (x, y)
         bot.cells.append((self.time, cell))
         bot.trace.append((self.time, x, y))
         self.bots[rid] = bot
@@ -158,7 +175,8 @@ class SimHost:
         bus = bridge.bus
         bot.topics = {name: bus.advertise(topic, typ, OWNER) for name, topic, typ in
                       (("pose", "/amcl_pose", T_POSE), ("obstacles", "/obstacles", T_OBST),
-                       ("odom", "/odom", T_ODOM), ("scan", "/scan", T_SCAN))}
+                       ("odom", "/odom", T_ODOM), ("scan", "/scan", T_SCAN),
+                       ("battery", BATTERY_TOPIC, T_BATTERY))}
         reg = self.registry
         goal_t, cancel_t = reg.msg_type(T_GOAL), reg.msg_type(T_CANCEL)
 
@@ -222,9 +240,9 @@ class SimHost:
                 log.info("box placed", cell=c, t=round(self.time, 2))
 
     # -- time ------------------------------------------------------------------------------------
-    def at(self, t: float, callback: Callable[[], None]) -> None:
-        """Run ``callback()`` in the sim loop once sim time reaches ``t`` s."""
-        heapq.heappush(self._timers, (t, next(self._timer_ids), callback))
+    def at(self, sim_time: float, callback: Callable[[], None]) -> None:
+        """Run ``callback()`` in the sim loop once sim time reaches ``sim_time`` s."""
+        heapq.heappush(self._timers, (sim_time, next(self._timer_ids), callback))
 
     def start(self) -> None:
         """Start the sim loop (a task on the running event loop)."""
@@ -264,6 +282,8 @@ class SimHost:
                 scan = r.scan()
                 bot.last_scan = (scan, pose, k)
             v, w = bot.nav.update(pose, dt, scan)
+            if bot.battery is not None and bot.battery.flat:
+                v, w = 0.0, 0.0                       # a flat battery: it cannot move
             r.cmd_vel(v, w)
         # physics, with the ground-truth distance check every substep
         sub = self.world.substep
@@ -286,6 +306,15 @@ class SimHost:
             c = self.geo.cell_of(x, y)
             if c is not None and c != bot.cells[-1][1]:
                 bot.cells.append((t, c))
+            lx, ly = bot.last_xy
+            moved = math.hypot(x - lx, y - ly)
+            bot.last_xy = (x, y)
+            now_moving = moved > MOVING_M * dt
+            if now_moving != bot.moving:
+                (bot.motion_starts if now_moving else bot.motion_stops).append(t)
+            bot.moving = now_moving
+            if bot.battery is not None:
+                bot.battery.step(dt, moved, c in self.chargers)
         if self.pending_boxes:
             self._place_boxes()
         self._publish(k)
@@ -310,14 +339,14 @@ class SimHost:
         return pair
 
     # -- publishing --------------------------------------------------------------------------------
-    def _publish(self, k: int) -> None:
+    def _publish(self, tick: int) -> None:
         reg = self.registry
         t = self.time
         for bot in self.bots.values():
             if bot.bridge is None or not bot.bridge.ready.is_set():
                 continue
             bus, tp = bot.bridge.bus, bot.topics
-            if k % self.pose_every == 0:
+            if tick % self.pose_every == 0:
                 x, y, yaw, cov = bot.robot.localisation()
                 msg = {"header": {"stamp": _stamp(t), "frame_id": "map"},
                        "pose": {"pose": {"position": {"x": x, "y": y, "z": 0.0},
@@ -330,14 +359,16 @@ class SimHost:
                        "pose": {"pose": {"position": {"x": ox, "y": oy}, "orientation": quaternion_from_yaw(oyaw)}},
                        "twist": {"twist": {"linear": {"x": v}, "angular": {"z": w}}}}
                 bus.publish(tp["odom"], reg.json_to_bytes(reg.msg_type(T_ODOM), msg))
-            if bot.last_scan is not None and bot.last_scan[2] == k and tp["scan"].subscriptions:
+            if bot.last_scan is not None and bot.last_scan[2] == tick and tp["scan"].subscriptions:
                 p = bot.robot.lidar.params
                 msg = {"header": {"stamp": _stamp(t), "frame_id": "base_scan"}, "angle_min": p.angle_min,
                        "angle_max": p.angle_max, "angle_increment": p.angle_increment, "scan_time": 1.0 / p.rate_hz,
                        "range_min": p.range_min, "range_max": p.range_max,
                        "ranges": [float(v) for v in bot.last_scan[0]]}
                 bus.publish(tp["scan"], reg.json_to_bytes(reg.msg_type(T_SCAN), msg))
-            if self.publish_obstacles and k % self.obstacles_every == 0 and bot.last_scan is not None:
+            if bot.battery is not None and tick % self.battery_every == 0:
+                bus.publish(tp["battery"], reg.json_to_bytes(reg.msg_type(T_BATTERY), bot.battery.message(_stamp(t))))
+            if self.publish_obstacles and tick % self.obstacles_every == 0 and bot.last_scan is not None:
                 scan, pose, _ = bot.last_scan
                 pts = [(px, py) for px, py in self.detector.detect(scan, pose)
                        if math.hypot(px - pose[0], py - pose[1]) <= self.obstacle_range]
@@ -365,12 +396,12 @@ class SimHost:
         await self.tasks.cancel_all()
 
     # -- ground truth --------------------------------------------------------------------------------
-    def entries_after(self, cell: int, t: float) -> list[tuple[str, float]]:
-        """(robot, time) of every entry of a robot's centre into ``cell`` at or after sim time ``t``."""
+    def entries_after(self, cell: int, sim_time: float) -> list[tuple[str, float]]:
+        """(robot, time) of every entry of a robot's centre into ``cell`` at or after sim time ``sim_time``."""
         out = []
         for rid, bot in self.bots.items():
             for tc, c in bot.cells:
-                if c == cell and tc >= t:
+                if c == cell and tc >= sim_time:
                     out.append((rid, tc))
         return out
 

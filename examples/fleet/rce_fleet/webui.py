@@ -5,7 +5,10 @@ HTTP port, next to two generated files:
 
 * ``map.png``: the map image (browsers do not show PGM), drawn by the page under the grid;
 * ``config.json``: where the page logs in (the master's URL), the fleet container's tag, the
-  user to prefill (never a password) and the mission topic.
+  user to prefill (never a password), the mission topic and the named places (for the task form).
+
+Given the fleet manager's :class:`~rce_fleet.tasks_client.TaskChannel` (``tasks``), it also
+serves the JSON task API and ``/metrics`` (:mod:`rce_fleet.http_api`).
 
 The page is served from another origin than the master's: its login ``GET /?userID=..`` is a
 cross-origin request, allowed by the master's ``Access-Control-Allow-Origin: *``, and its
@@ -89,7 +92,7 @@ class MissionRunner:
         (within ``timeout`` s). Raises :class:`RCEError` with the cloud's reason."""
         c = self.conn = await Connection.connect(self.master_url, self.user, self.password, self.robot_id,
                                                  allow_reconnect=True)
-        c.on_error(lambda r: log.warning("mission: error from the cloud", reason=r))
+        c.on_error(lambda reason: log.warning("mission: error from the cloud", reason=reason))
         links = [("missionCmd", "SubscriberInterface", "PublisherConverter", "std_msgs/String", MISSION_TOPIC),
                  ("missionState", "SubscriberInterface", "PublisherConverter", "fleet/FleetState", "/fleet/state"),
                  ("missionGoal", "PublisherInterface", "SubscriberConverter", "fleet/RobotGoal", "/fleet/goal")]
@@ -176,16 +179,19 @@ class MissionRunner:
 
 
 class WebUI:
-    """Serve the operator's page for a running fleet; ``await start()`` returns the page's URL."""
+    """Serve the operator's page for a running fleet; ``await start()`` returns the page's URL.
+    ``tasks``: the fleet manager's TaskChannel (the HTTP API and /metrics; None: none);
+    ``places``: the fleet's :class:`~rce_fleet.places.Places` (the page's task form)."""
 
     def __init__(self, master_url: str, occ, geo: GridGeometry, robots: list[str], *, ctag: str, user: str,
                  password: str, bind: str = "127.0.0.1", port: int = DEFAULT_PORT, mission: bool = True,
-                 title: str = "rce fleet"):
+                 title: str = "rce fleet", tasks=None, places=None):
         self.master_url, self.occ, self.geo, self.robots = master_url, occ, geo, list(robots)
         self.ctag, self.user, self.password = ctag, user, password
         self.bind, self.port, self.title = bind, port, title
         self.mission = MissionRunner(master_url, geo, robots, user=user, password=password, ctag=ctag) \
             if mission else None
+        self.tasks, self.places = tasks, places
         self.url = ""
         self._runner: web.AppRunner | None = None
 
@@ -193,7 +199,8 @@ class WebUI:
         """The page's ``config.json`` (no password in it)."""
         return {"master": self.master_url, "user": self.user, "container": self.ctag, "map": "map.png",
                 "missionTopic": MISSION_TOPIC if self.mission else None, "title": self.title,
-                "robots": self.robots}
+                "robots": self.robots, "tasks": self.tasks is not None,
+                "places": self.places.to_param() if self.places is not None else []}
 
     async def start(self) -> str:
         """Start the mission runner and the HTTP server (on ``port``, or any free port when it
@@ -215,6 +222,9 @@ class WebUI:
         app.router.add_get("/", index)
         app.router.add_get("/config.json", config)
         app.router.add_get("/map.png", mapimg)
+        if self.tasks is not None:
+            from .http_api import add_routes
+            add_routes(app, self.tasks)
         app.router.add_static("/", WEB_DIR, show_index=False)
         if self.mission is not None:
             await self.mission.start()
