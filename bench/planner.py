@@ -99,6 +99,70 @@ def run_lacam(graph: GridGraph, scen: list[tuple[int, int]], k: int, time_limit_
             "ratio": res["sum_of_costs"] / lb if lb else 1.0, "nodes": res["nodes"]}
 
 
+def run_live_sizes(map_yaml: Path | None, cell_m: float, sizes: list[int], seeds: int,
+                   time_limit_s: float) -> list[dict]:
+    """The live fleet's sizes: FleetPlanner against LaCAM on the same random missions (starts and
+    goals in the largest free component) of the lab grid (or ``map_yaml``'s); medians over seeds."""
+    import numpy as np
+
+    from rce_fleet.lab_map import lab_map
+    from rce_fleet.lifelong import LifelongGrid
+    from rce_fleet.lifelong.lacam import solve_lacam
+
+    grid = make_grid(load_map(map_yaml), cell_m=cell_m) if map_yaml else make_grid(lab_map())
+    graph = GridGraph.from_cellgrid(grid)
+    lg = LifelongGrid.from_graph(graph)
+    best = sorted(components(grid)[0])
+    solve_lacam(lg, np.array(best[:1]), np.array(best[1:2]))          # compile outside the clock
+    out = []
+    for k in sizes:
+        if 2 * k > len(best):
+            continue
+        rec: dict[str, list] = {"fp_s": [], "fp_soc": [], "fp_reached": [], "lc_s": [], "lc_soc": [], "lc_reached": [],
+                                "lb": []}
+        for seed in range(seeds):
+            cells = random.Random(seed).sample(best, 2 * k)
+            starts, goals = cells[:k], cells[k:]
+            fp = FleetPlanner(graph)
+            for i, s in enumerate(starts):
+                fp.set_position(f"Robot{i + 1}", s)
+            t0 = time.perf_counter()
+            res = fp.set_goals({f"Robot{i + 1}": g for i, g in enumerate(goals)})
+            rec["fp_s"].append(time.perf_counter() - t0)
+            rec["fp_soc"].append(sum(len(p) - 1 for p in res.paths.values()))
+            rec["fp_reached"].append(sum(1 for i, g in enumerate(goals) if res.paths[f"Robot{i + 1}"][-1] == g))
+            t0 = time.perf_counter()
+            lc = solve_lacam(lg, np.array(starts), np.array(goals), time_limit_s=time_limit_s)
+            rec["lc_s"].append(time.perf_counter() - t0)
+            rec["lc_soc"].append(lc["sum_of_costs"])
+            rec["lc_reached"].append(int((lc["paths"][-1] == np.array(goals)).sum()))
+            rec["lb"].append(sum(int(fp.distance(s, g)) for s, g in zip(starts, goals, strict=True)))
+        lb = sum(rec["lb"])
+        out.append({"map": map_yaml.name if map_yaml else "lab (generated)", "grid": f"{grid.rows}x{grid.cols}",
+                    "robots": k, "seeds": seeds,
+                    "fleetplanner_ms": statistics.median(rec["fp_s"]) * 1e3,
+                    "lacam_ms": statistics.median(rec["lc_s"]) * 1e3,
+                    "fleetplanner_ratio": sum(rec["fp_soc"]) / lb, "lacam_ratio": sum(rec["lc_soc"]) / lb,
+                    "fleetplanner_reached": sum(rec["fp_reached"]), "lacam_reached": sum(rec["lc_reached"]),
+                    "missions": k * seeds})
+    return out
+
+
+def print_live(rows: list[dict]) -> None:
+    """The live-size comparison as a table."""
+    from rich.console import Console
+    from rich.table import Table
+    t = Table(title="Live fleet sizes: FleetPlanner (SIPP + ADG) against LaCAM (PIBT), same missions")
+    for col in ("map", "grid", "robots", "seeds", "FP ms", "LaCAM ms", "FP cost/LB", "LaCAM cost/LB", "FP reached",
+                "LaCAM reached"):
+        t.add_column(col, justify="right")
+    for r in rows:
+        t.add_row(r["map"], r["grid"], str(r["robots"]), str(r["seeds"]), f"{r['fleetplanner_ms']:.1f}",
+                  f"{r['lacam_ms']:.1f}", f"{r['fleetplanner_ratio']:.3f}", f"{r['lacam_ratio']:.3f}",
+                  f"{r['fleetplanner_reached']}/{r['missions']}", f"{r['lacam_reached']}/{r['missions']}")
+    Console(width=max(Console().width, 120)).print(t)
+
+
 def run_block_replan(map_yaml: Path, cell_m: float, robots: int, seed: int = 1) -> dict:
     """10 robots on the warehouse.yaml grid; block a cell in the middle of robot 0's path; time the re-plan."""
     m = load_map(map_yaml)
@@ -221,6 +285,8 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--lacam-agents", type=int, nargs="*", default=[10, 50, 100, 200, 400, 1000],
                     help="agent counts for the one-shot LaCAM rows (none: skip)")
     ap.add_argument("--time-limit", type=float, default=5.0, help="LaCAM's time limit per instance (s)")
+    ap.add_argument("--live-sizes", type=int, nargs="*", default=[3, 10, 20],
+                    help="robots for the live-size comparison on the lab grid and warehouse.yaml (none: skip)")
     ap.add_argument("--cell-m", type=float, default=1.0, help="cell size for the warehouse.yaml grid")
     ap.add_argument("--json", type=Path, default=RESULTS / "planner.json")
     ap.add_argument("--plot", type=Path, default=RESULTS / "planner.png")
@@ -238,15 +304,23 @@ def main(argv: list[str] | None = None) -> int:
     lacam = [run_lacam(graph, scen, k, args.time_limit) for k in args.lacam_agents]
     wh = args.data / "maps" / "warehouse.yaml"
     block = run_block_replan(wh, args.cell_m, 10) if wh.is_file() else None
+    live = []
+    if args.live_sizes:
+        live = run_live_sizes(None, args.cell_m, args.live_sizes, 5, args.time_limit)
+        if wh.is_file():
+            live += run_live_sizes(wh, args.cell_m, args.live_sizes, 5, args.time_limit)
     print_tables(rows, block)
     if lacam:
         print_lacam(lacam)
+    if live:
+        print_live(live)
 
     for p in (args.json, args.plot):
         if p is not None:
             p.parent.mkdir(parents=True, exist_ok=True)
     if args.json:
-        args.json.write_text(json.dumps({"mapf": rows, "lacam": lacam, "block_replan": block}, indent=2))
+        args.json.write_text(json.dumps({"mapf": rows, "lacam": lacam, "live_sizes": live, "block_replan": block},
+                                        indent=2))
         print(f"wrote {args.json}")
     if args.plot:
         plot(rows, args.plot, lacam)

@@ -63,5 +63,12 @@ class LifelongGrid:
 
     @classmethod
     def from_graph(cls, graph) -> LifelongGrid:
-        """The grid of a :class:`rce_fleet.planning.GridGraph` (its ``free`` array)."""
-        return cls(graph.free)
+        """The grid of a :class:`rce_fleet.planning.GridGraph`: its free cells, and only the
+        moves its neighbour lists allow (a cell grid may forbid some between free cells)."""
+        g = cls(graph.free)
+        for c in np.flatnonzero(g.flat):
+            allowed = set(graph.nbrs[int(c)])
+            for h in range(4):
+                if g.nbr[c, h] >= 0 and int(g.nbr[c, h]) not in allowed:
+                    g.nbr[c, h] = -1
+        return g

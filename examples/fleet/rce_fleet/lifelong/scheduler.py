@@ -195,9 +195,11 @@ class BatchScheduler(Scheduler):
 
     name = "batch"
 
-    def __init__(self, cache: DistanceCache, keep_bonus: float = 2.0):
+    def __init__(self, cache: DistanceCache, keep_bonus: float = 2.0, max_cells: int = 1_000_000):
         super().__init__(cache)
-        self.keep_bonus = keep_bonus
+        self.keep_bonus, self.max_cells = keep_bonus, max_cells
+        self._greedy = GreedyScheduler(cache)
+        self.fallbacks = 0
 
     def schedule(self, pos, assignment, tasks, t, deadline):
         prop = assignment.copy()
@@ -208,6 +210,9 @@ class BatchScheduler(Scheduler):
             return prop
         opened = {tk.agent for tk in tasks.values() if tk.opened}
         robots = np.array([a for a in range(len(pos)) if a not in opened], dtype=np.int64)
+        if len(robots) * len(cand) > self.max_cells:        # too big for one step: bid greedily
+            self.fallbacks += 1
+            return self._greedy.schedule(pos, assignment, tasks, t, deadline)
         self._prepare(cand, deadline)
         slots, e0, length = self._estimates(cand)
         early, late = _windows(cand, t)
