@@ -18,8 +18,10 @@ CHROMIUM_ARGS = ["--no-sandbox", "--disable-gpu", "--disable-background-networki
                  "--no-first-run", "--disable-component-update", "--disable-sync"]
 
 
-@pytest.fixture(scope="session")
+@pytest.fixture(scope="module")
 def browser():
+    """Chromium for one test module. Not per session: Playwright's sync API runs an event loop in
+    the thread while it is open, and a parallel worker runs other modules' asyncio tests after."""
     if not shutil.which(CHROMIUM) and not Path(CHROMIUM).exists():
         pytest.fail(f"no chromium at {CHROMIUM}: `make setup` installs Debian's chromium when run as root "
                     "(apt-get install chromium)")
