@@ -768,7 +768,9 @@ export class Client {
     const pw = await sha256Hex(this._password);
     this._password = null;
     this.wsUrl = info.url;
-    const url = this._url({ password: pw, ...(this.reconnect ? { resume: "1" } : {}) });
+    // refusal=http: a refused login closes the handshake (the 2013 form, an ER on an open socket, is for clients
+    // that send nothing but userID, robotID and password)
+    const url = this._url({ password: pw, refusal: "http", ...(this.reconnect ? { resume: "1" } : {}) });
     const opened = await this._open(url);
     if (!opened) {
       // a browser does not show the refused handshake's status (401/403/409) to the page
