@@ -2,7 +2,8 @@
 
 - :class:`BatteryParams`: capacity (Wh), drain per metre driven (Wh/m) and per second
   (W, always, idle or not), charging power at a charger (W), the level below which a robot
-  is sent to charge (default 20 %) and the level it charges to (default 90 %). The fleet
+  is sent to charge (default 20 %), the level it charges to (default 90 %) and the level a
+  simulated battery starts at (default full). The fleet
   manager sets them as the ``/fleet/battery`` parameter; the global planner's dispatcher
   uses them to estimate what a task costs.
 - :class:`Battery`: one simulated battery; :meth:`Battery.step` drains and charges it by
@@ -37,6 +38,7 @@ class BatteryParams:
     threshold: float = 0.20
     recharge: float = 0.90
     voltage: float = 24.0
+    initial: float = 1.0
 
     def __post_init__(self):
         if not self.capacity_wh > 0:
@@ -45,6 +47,8 @@ class BatteryParams:
             raise ValueError("battery drain and charging power must be >= 0")
         if not 0 < self.threshold < self.recharge <= 1:
             raise ValueError(f"battery levels need 0 < threshold ({self.threshold}) < recharge ({self.recharge}) <= 1")
+        if not 0 < self.initial <= 1:
+            raise ValueError(f"a battery's initial level must be in (0, 1], got {self.initial}")
 
     def to_param(self) -> dict:
         """JSON form (the ``/fleet/battery`` parameter)."""
@@ -69,7 +73,7 @@ class Battery:
     the lowest it has been; ``charges`` charging sessions begun; ``flat`` whether it ever hit 0."""
 
     params: BatteryParams
-    wh: float = -1.0
+    wh: float = -1.0                 # -1: the params' initial level
     min_wh: float = field(default=-1.0)
     charges: int = 0
     charging: bool = False
@@ -77,7 +81,7 @@ class Battery:
 
     def __post_init__(self):
         if self.wh < 0:
-            self.wh = self.params.capacity_wh
+            self.wh = self.params.initial * self.params.capacity_wh
         self.wh = min(self.wh, self.params.capacity_wh)
         self.min_wh = self.wh
 
