@@ -79,7 +79,7 @@ async def login(master_url: str, user_id: str, version: str = CLIENT_VERSION,
     return ws_url
 
 
-class Refused(Exception):
+class HandshakeRefused(Exception):
     """A websocket handshake refused with an HTTP status (and the endpoint's reason)."""
 
     def __init__(self, status: int, reason: str):
@@ -104,7 +104,7 @@ async def open_robot_link(ws_url: str, user_id: str, password: str, robot_id: st
              **({"resume": "1"} if resume else {}), **({"maxLag": f"{max_lag:g}"} if max_lag is not None else {})}
     try:
         return await dial(with_query(ws_url, **query), timeout, ssl_context)
-    except Refused as e:
+    except HandshakeRefused as e:
         if e.status in (401, 403):
             raise AuthError(f"robot endpoint {ws_url} refused {user_id}/{robot_id}: {e.reason}") from None
         raise Unavailable(f"robot endpoint {ws_url} refused the connection (HTTP {e.status}): {e.reason}") from None
@@ -114,14 +114,15 @@ async def open_robot_link(ws_url: str, user_id: str, password: str, robot_id: st
 
 async def dial(url: str, timeout: float, ssl_context: ssl.SSLContext | None = None) -> ClientConnection:
     """Open a websocket to ``url`` within ``timeout`` s (``wss://``: verified with ``ssl_context``). Raises
-    :class:`Refused` (the endpoint answered the handshake with an HTTP error) or :class:`Unavailable`
+    :class:`HandshakeRefused` (the endpoint answered the handshake with an HTTP error) or :class:`Unavailable`
     (unreachable, an untrusted certificate, or the handshake failed)."""
     try:
         return await ws_connect(url, open_timeout=timeout, max_size=MAX_FRAME, proxy=None, compression=None,
                                 user_agent_header="rce-client", ssl=tls.for_url(url, ssl_context))
     except InvalidStatus as e:
         status = e.response.status_code
-        raise Refused(status, http_reason(e.response.body or b"", e.response.reason_phrase or str(status))) from None
+        reason = http_reason(e.response.body or b"", e.response.reason_phrase or str(status))
+        raise HandshakeRefused(status, reason) from None
     except (ConnectionRefusedError, ConnectionResetError) as e:
         raise Unreachable(str(e) or type(e).__name__) from None
     except (InvalidHandshake, InvalidURI, OSError, asyncio.TimeoutError) as e:

@@ -17,16 +17,14 @@ binary part and a received binary part arrives as ``bytes``.
 from __future__ import annotations
 
 import inspect
-from typing import TYPE_CHECKING, Any, Callable
+from typing import Any, Callable, Protocol
 
 from rce import protocol
 from rce.errors import RCEError, Timeout
 from rce.log import get_logger
 from rce.protocol.events import MessageReceived
+from rce.protocol.session import ClientSession
 from rce.tasks import Tasks
-
-if TYPE_CHECKING:
-    from rce_client.connection import Connection
 
 log = get_logger("rce.client")
 
@@ -35,10 +33,23 @@ DEFAULT_CALL_TIMEOUT = 30.0      # s a service call waits for the cloud's respon
 Message = dict | bytes            # JSON-form message (Converter) or serialized bytes (Forwarder)
 
 
+class ConnectionLike(Protocol):
+    """What an endpoint uses of its :class:`~rce_client.connection.Connection`."""
+
+    session: ClientSession
+    _handlers: dict[str, Any]
+
+    async def send(self, type_: str, data: Any) -> None:
+        """Send one message (:meth:`rce_client.verbs.Verbs.send`)."""
+
+    async def _write(self) -> None:
+        """Write what the session has to send."""
+
+
 class Publisher:
     """Sends messages to a robot-side ``SubscriberConverter``/``SubscriberForwarder``."""
 
-    def __init__(self, conn: "Connection", itag: str, cls: str):
+    def __init__(self, conn: ConnectionLike, itag: str, cls: str):
         self.conn, self.itag, self.cls = conn, itag, cls
         self.sent = 0
 
@@ -53,7 +64,7 @@ class Subscriber:
     """Receives messages from a robot-side ``PublisherConverter``/``PublisherForwarder``:
     ``callback(msg)`` (sync or async) gets a dict (Converter) or bytes (Forwarder)."""
 
-    def __init__(self, conn: "Connection", itag: str, cls: str, callback: Callable[[Message], Any]):
+    def __init__(self, conn: ConnectionLike, itag: str, cls: str, callback: Callable[[Message], Any]):
         self.conn, self.itag, self.cls, self.callback = conn, itag, cls, callback
         self.received = 0
 
@@ -66,7 +77,7 @@ class Subscriber:
 class ServiceClient:
     """Calls the cloud through a robot-side ``ServiceProviderConverter``/``ServiceProviderForwarder``."""
 
-    def __init__(self, conn: "Connection", itag: str, srv_cls: str):
+    def __init__(self, conn: ConnectionLike, itag: str, srv_cls: str):
         self.conn, self.itag, self.srv_cls = conn, itag, srv_cls
         self.calls = 0
 
@@ -95,7 +106,7 @@ class ServiceProvider:
     (dict or bytes), sent back as a DM with the request's msgID. A handler that raises
     gets no reply (the cloud's caller times out); the failure is logged and counted."""
 
-    def __init__(self, conn: "Connection", itag: str, srv_cls: str, handler: Callable[[Message], Any]):
+    def __init__(self, conn: ConnectionLike, itag: str, srv_cls: str, handler: Callable[[Message], Any]):
         self.conn, self.itag, self.srv_cls, self.handler = conn, itag, srv_cls, handler
         self.served = self.failed = 0
 

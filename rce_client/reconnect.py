@@ -21,7 +21,7 @@ from rce.masterlink import Backoff
 from rce.protocol.resume import DEFAULT_GRACE, DEFAULT_RESUME_BUFFER
 from rce.protocol.session import ClientSession
 from rce.tasks import Tasks
-from rce_client.dial import CONNECT_TIMEOUT, Refused, Unreachable, dial, login, open_robot_link, with_query
+from rce_client.dial import CONNECT_TIMEOUT, HandshakeRefused, Unreachable, dial, login, open_robot_link, with_query
 
 log = get_logger("rce.client")
 
@@ -125,7 +125,7 @@ class Reconnecting:
                     return
                 ws = await dial(url, r.timeout, self.ssl_context)
                 break
-            except (Refused, AuthError) as e:  # 401: the session expired (or the token is wrong); 400: bad ack
+            except (HandshakeRefused, AuthError) as e:  # 401: the session expired (or the token is wrong); 400: bad ack
                 self.close_reason = f"the cloud refused to resume the session ({e})"
             except Unavailable as e:
                 # once the endpoint counts as dead, a failed move (the master is away, or has not seen it die yet)
