@@ -13,7 +13,6 @@ interfaces the master creates and removes on the session's behalf.
 """
 from __future__ import annotations
 
-import asyncio
 import ssl
 import time
 from collections import Counter
@@ -32,6 +31,7 @@ from rce.tasks import Tasks
 from rce_robot.front_door import master_away, peer_address, throttled
 from rce_robot import ws_cork
 from rce_robot.interfaces import RobotInterface
+from rce_robot.rosbridge_outbox import RosbridgeOutbox
 from rce_robot.rosbridge_session import RosbridgeSession
 
 log = get_logger("rce.rosbridge")
@@ -136,7 +136,7 @@ class RosbridgeServer:
         self.sessions_total += 1
         log.info("rosbridge client connected", user=user, robot=robot, container=ctag, peer=str(ws.remote_address))
         writer = Tasks(f"rosbridge writer {user}/{robot}")
-        writer.spawn(_write(ws, session.outbox.queue), name="writer")
+        writer.spawn(_write(ws, session.outbox), name="writer")
         try:
             async for text in ws:
                 session.backlog(ws_cork.behind(ws), time.monotonic())
@@ -163,7 +163,7 @@ class RosbridgeServer:
         log.info("rosbridge client disconnected", user=session.user, robot=session.robot, **session.stats())
 
 
-async def _write(ws, outbox: asyncio.Queue) -> None:
+async def _write(ws, outbox: RosbridgeOutbox) -> None:
     """Send what the session queued, in order, until the link closes."""
     try:
         while True:

@@ -1,54 +1,87 @@
-"""What one rosbridge session sends its client: a bounded queue of messages, each the list of
-websocket frames it goes as (one JSON text; ``fragment`` ops when it is longer than the
-``fragment_size`` the client asked for, :mod:`rce_robot.rosbridge_fragments`; one binary CBOR
-frame). A message goes whole or not at all: when the queue is full it is dropped and counted.
+"""What one rosbridge session sends its client: messages, each the list of websocket frames it goes
+as (one JSON text; ``fragment`` ops when it is longer than the ``fragment_size`` the client asked for,
+:mod:`rce_robot.rosbridge_fragments`; one binary CBOR frame). A message goes whole or not at all.
+
+The policy is the RCE session's, in the same code (:class:`rce.protocol.outbox.Outbox`,
+docs/INTERNALS.md "A peer that does not keep up"): a subscription's ``publish`` ops are topic data
+that keep each subscription's newest (past the bound, the oldest of the busiest subscription is
+dropped, counted; one older than ``max_lag`` with a newer one behind it is dropped when its turn
+comes); other ops (statuses, service calls and responses) are never dropped, and a client that lets
+``CONTROL_BACKLOG`` x the bound of them wait does not read (:attr:`RosbridgeOutbox.overrun`).
 """
 from __future__ import annotations
 
 import asyncio
+import time
+from typing import Any
 
 from rce.protocol import jsontext
+from rce.protocol.outbox import Outbox
+from rce.protocol.robot_outbox import CONTROL_BACKLOG
 from rce_robot.rosbridge_fragments import fragment
 
-OUTBOX_SIZE = 256          # messages waiting for the client's websocket; past it a message is dropped (counted)
+OUTBOX_SIZE = 256          # publish ops waiting for the client's websocket; past it the busiest subscription's
+                           # oldest is dropped (counted)
 Frame = str | bytes        # a text (JSON) or binary (CBOR) websocket message
 
 
-class Outbox:
-    """The frames for one client's websocket (``queue``: lists of :data:`Frame`, at most
-    ``size`` messages). Counters: :attr:`sent` (messages queued), :attr:`dropped` (messages
-    thrown away: queue full), :attr:`fragments` (``fragment`` ops queued)."""
+class RosbridgeOutbox:
+    """The frames for one client's websocket (:attr:`queue`: an :class:`~rce.protocol.outbox.Outbox` of
+    lists of :data:`Frame`, ``size`` data messages at most). Counters: :attr:`sent` (messages queued),
+    :attr:`dropped` (publish ops dropped, for the bound or their age), :attr:`fragments` (``fragment``
+    ops queued); :attr:`overrun`: why the client counts as not reading, once it does (else None)."""
 
-    def __init__(self, size: int = OUTBOX_SIZE):
-        self.queue: asyncio.Queue[list[Frame]] = asyncio.Queue(size)
-        self.sent = self.dropped = self.fragments = self._n = 0
+    def __init__(self, size: int = OUTBOX_SIZE, max_lag: float | None = None):
+        self.queue: Outbox[list[Frame]] = Outbox(size, max_lag)
+        self.sent = self.fragments = self._n = 0
+        self.overrun: str | None = None
+        self._ready = asyncio.Event()
 
-    def put(self, frames: list[Frame]) -> bool:
-        """Queue one message's frames; False (counted in :attr:`dropped`) when the queue is full."""
-        try:
-            self.queue.put_nowait(frames)
-        except asyncio.QueueFull:
-            self.dropped += 1
-            return False
+    @property
+    def dropped(self) -> int:
+        """Publish ops dropped (:class:`~rce.protocol.outbox.Outbox`)."""
+        return self.queue.dropped
+
+    def put(self, frames: list[Frame], key: Any = None) -> bool:
+        """Queue one message's frames: topic data of ``key`` (a subscription), else an op never dropped.
+        Returns True."""
+        if key is None:
+            self.queue.put(frames)
+            if self.queue.control > CONTROL_BACKLOG * self.queue.queue_size and self.overrun is None:
+                self.overrun = f"the rosbridge client does not read: {len(self.queue)} messages wait for it"
+        else:
+            self.queue.put_data(key, frames, time.monotonic())
         self.sent += 1
+        self._ready.set()
         return True
 
-    def op(self, op: dict, fragment_size: int | None = None) -> bool:
-        """Queue ``op`` as JSON text; in ``fragment`` ops of at most ``fragment_size`` characters of
-        it when it is longer (their ``id``: the op's ``id``, else one made up for it). False: dropped."""
+    def op(self, op: dict, fragment_size: int | None = None, key: Any = None) -> bool:
+        """Queue ``op`` as JSON text (``key``: as :meth:`put`); in ``fragment`` ops of at most
+        ``fragment_size`` characters of it when it is longer (their ``id``: the op's ``id``, else one
+        made up for it). Returns True."""
         text = jsontext.dumps(op)
         if fragment_size is None or len(text) <= fragment_size:
-            return self.put([text])
+            return self.put([text], key)
         self._n += 1
         frames: list[Frame] = list(fragment(text, fragment_size, str(op.get("id") or f"{op.get('op')}:{self._n}")))
-        if self.put(frames):
-            self.fragments += len(frames)
-            return True
-        return False
+        self.fragments += len(frames)
+        return self.put(frames, key)
 
     def get_nowait(self) -> list[Frame]:
-        """The oldest queued message's frames (asyncio.QueueEmpty when none)."""
-        return self.queue.get_nowait()
+        """The next message's frames (asyncio.QueueEmpty when none waits)."""
+        frames = self.queue.take(time.monotonic())
+        if frames is None:
+            raise asyncio.QueueEmpty
+        return frames
+
+    async def get(self) -> list[Frame]:
+        """The next message's frames, once one waits."""
+        while True:
+            try:
+                return self.get_nowait()
+            except asyncio.QueueEmpty:
+                self._ready.clear()
+                await self._ready.wait()
 
     def empty(self) -> bool:
-        return self.queue.empty()
+        return len(self.queue) == 0

@@ -42,7 +42,7 @@ from rce_robot.interfaces import RobotInterface
 from rce_robot.namespace import CLOSE_POLICY, LAG_LOG, REQUEST_TIMEOUT
 from rce_robot.rosbridge_compression import COMPRESSIONS, cbor_publish, cbor_raw_publish, png_op
 from rce_robot.rosbridge_fragments import Defragmenter
-from rce_robot.rosbridge_outbox import Outbox
+from rce_robot.rosbridge_outbox import RosbridgeOutbox
 from rce_robot.rosbridge_rosapi import ROSAPI, rosapi_answer
 
 log = get_logger("rce.rosbridge")
@@ -108,7 +108,8 @@ def _field(op: dict, name: str, kind: type = str) -> Any:
 class RosbridgeSession:
     """The session of a rosbridge client as robot ``robot`` of ``user`` on container ``ctag``;
     ``master``: the control link its requests go through. What it sends the client goes to
-    :attr:`outbox` (bounded, drops counted: :class:`~rce_robot.rosbridge_outbox.Outbox`); the
+    :attr:`outbox` (the RCE session's policy: each subscription keeps its newest, drops counted;
+    :class:`~rce_robot.rosbridge_outbox.RosbridgeOutbox`); the
     client's ``fragment`` ops are reassembled by :attr:`defrag` (bounded). While the endpoint has
     been behind the client for longer than ``max_lag`` s (:meth:`backlog`), its ``publish`` ops are
     shed as a robot's topic DMs are (:class:`~rce.protocol.limits.LagGate`), and the client is told
@@ -124,7 +125,7 @@ class RosbridgeSession:
         self.bridges: dict[tuple[str, str], Bridge] = {}          # (role, name) -> its interfaces
         self.by_itag: dict[str, Bridge] = {}
         self.subs: dict[str, dict[str, Subscription]] = {}         # topic -> subscription id -> subscription
-        self.outbox = Outbox()
+        self.outbox = RosbridgeOutbox(max_lag=max_lag)
         self.defrag = Defragmenter()
         self.tasks = Tasks(f"rosbridge {user}/{robot}")
         self.ops = {"advertise": self._advertise, "unadvertise": self._unadvertise, "publish": self._publish,
@@ -132,11 +133,13 @@ class RosbridgeSession:
                     "call_service": self._call_service, "advertise_service": self._advertise_service,
                     "unadvertise_service": self._unadvertise_service, "service_response": self._service_response}
         self.ops_in = self.errors = self.queue_dropped = self._n = 0
+        self.closing: asyncio.Task | None = None     # closing a client that does not read
         self.ws: Any = None                 # the client's websocket (set by the server)
 
     @property
     def dropped(self) -> int:
-        """Messages to the client dropped: a full outbox, a full throttle queue."""
+        """Messages to the client dropped: by the outbox (a subscription's oldest past the bound, or
+        older than ``max_lag``), a full throttle queue."""
         return self.outbox.dropped + self.queue_dropped
 
     def stats(self) -> dict[str, int]:
@@ -147,10 +150,18 @@ class RosbridgeSession:
                 "fragments_dropped": self.defrag.dropped}
 
     # -- to the client ---------------------------------------------------------------------------------
-    def send(self, msg: dict, fragment_size: int | None = None) -> bool:
+    def send(self, msg: dict, fragment_size: int | None = None, key: Any = None) -> bool:
         """Queue ``msg`` for the client (in fragments of ``fragment_size`` characters when longer);
-        False (counted) when the outbox is full."""
-        return self.outbox.op(msg, fragment_size)
+        ``key``: the subscription whose topic data it is (its newest are kept), None for an op never
+        dropped. A client that lets too many ops wait does not read: it is closed (1008). Returns True."""
+        return self._queued(self.outbox.op(msg, fragment_size, key))
+
+    def _queued(self, ok: bool) -> bool:
+        if self.outbox.overrun is not None and self.closing is None:
+            log.warning("closing a rosbridge client that does not read", user=self.user, robot=self.robot,
+                        reason=self.outbox.overrun)
+            self.closing = self.tasks.spawn(self.close(self.outbox.overrun), name="close")
+        return ok
 
     def status(self, level: str, text: str, op_id: Any = None) -> None:
         """A rosbridge ``status`` op (``level``: error, warning, info)."""
@@ -218,17 +229,18 @@ class RosbridgeSession:
     def _publish_to(self, bridge: Bridge, sub: Subscription, msg: Any) -> None:
         """One ``publish`` op for ``sub``, compressed and fragmented as it asked."""
         op = {"op": "publish", "topic": bridge.name, "msg": msg}
+        key = (bridge.name, sub.sid)                # topic data: each subscription keeps its newest
         if sub.compression in ("cbor", "cbor-raw"):
             iface = self.interfaces.get(bridge.itag)
             if iface is None:
                 self.queue_dropped += 1
                 return
             if sub.compression == "cbor":
-                self.outbox.put([cbor_publish(iface.registry, iface.msg_t, bridge.name, msg)])
+                self.outbox.put([cbor_publish(iface.registry, iface.msg_t, bridge.name, msg)], key)
             else:
-                self.outbox.put([cbor_raw_publish(iface.registry, iface.msg_t, bridge.name, msg, time.time())])
+                self.outbox.put([cbor_raw_publish(iface.registry, iface.msg_t, bridge.name, msg, time.time())], key)
             return
-        self.send(png_op(jsontext.dumps(op)) if sub.compression == "png" else op, sub.fragment_size)
+        self.send(png_op(jsontext.dumps(op)) if sub.compression == "png" else op, sub.fragment_size, key)
 
     # -- from the client ---------------------------------------------------------------------------------
     def backlog(self, waiting: int, now: float) -> None:

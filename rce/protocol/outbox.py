@@ -37,7 +37,7 @@ class Outbox(Generic[T]):
     its key waits behind it (None: no age limit).
 
     Counters: :attr:`dropped` (data items dropped, for the bound or their age), :attr:`expired` (of
-    those, for their age), :attr:`data` (data items waiting)."""
+    those, for their age), :attr:`data` (data items waiting), :attr:`control` (control items waiting)."""
 
     def __init__(self, queue_size: int, max_lag: float | None = None):
         if queue_size < 1:
@@ -46,7 +46,7 @@ class Outbox(Generic[T]):
         self._entries: deque[_Queued] = deque()
         self._by_key: dict[Any, deque[_Queued]] = {}    # key -> its data items waiting, oldest first
         self._gone = 0                                  # entries given up, still in _entries
-        self.data = 0
+        self.data = self.control = 0
         self.dropped = self.expired = 0
 
     def __len__(self) -> int:
@@ -60,6 +60,7 @@ class Outbox(Generic[T]):
 
     def put(self, item: T) -> None:
         """Queue control item ``item`` (never dropped here)."""
+        self.control += 1
         self._entries.append(_Queued(item))
 
     def put_data(self, key: Any, item: T, now: float) -> None:
@@ -89,6 +90,8 @@ class Outbox(Generic[T]):
                     self.dropped += 1
                     self.expired += 1
                     continue
+            else:
+                self.control -= 1
             return e.item
         return None
 
@@ -97,7 +100,7 @@ class Outbox(Generic[T]):
         items = [e.item for e in self._entries if not e.gone]
         self._entries.clear()
         self._by_key.clear()
-        self._gone = self.data = 0
+        self._gone = self.data = self.control = 0
         return items
 
     def _oldest_of(self, key: Any) -> _Queued:

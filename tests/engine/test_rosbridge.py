@@ -30,12 +30,13 @@ from websockets.exceptions import InvalidStatus
 
 from rce.errors import ProtocolError, RCEError
 from rce.messages import default_registry
+from rce.protocol.robot_outbox import CONTROL_BACKLOG
 from rce_robot import ws_cork
 from rce_robot.endpoint import RobotEndpoint
 from rce_robot.rosbridge import RosbridgeServer
 from rce_robot.rosbridge_compression import cbor_publish, cbor_raw_publish, png_op
 from rce_robot.rosbridge_fragments import Defragmenter
-from rce_robot.rosbridge_outbox import Outbox
+from rce_robot.rosbridge_outbox import RosbridgeOutbox
 from rce_robot.rosbridge_session import Bridge, RosbridgeSession, Subscription
 from wsclient import RawRobot
 
@@ -269,6 +270,51 @@ async def test_handshake_refusals(eng):
             assert (await _next(ws, "service_response"))["id"] == "t"
 
 
+async def test_a_client_that_does_not_keep_up_gets_each_subscriptions_newest():
+    """Sans-I/O: the rosbridge outbox follows the RCE session's policy, in the same code
+    (rce.protocol.outbox): past its bound the busiest subscription drops its oldest publish op (the
+    outbox used to drop the newest message), the newest of every subscription goes out, and other
+    ops are never dropped."""
+    session = RosbridgeSession("u", "r", "c", master=None, max_lag=None)
+    session.outbox = RosbridgeOutbox(size=4)
+    session.by_itag = {"s1": Bridge("s", "/fast", "std_msgs/String", "s1", "rosbridge.r.s1"),
+                       "s2": Bridge("s", "/slow", "std_msgs/String", "s2", "rosbridge.r.s2")}
+    session.subs = {"/fast": {"a": Subscription("a", 0, 1)}, "/slow": {"b": Subscription("b", 0, 1)}}
+    assert session.send_dm("s2", "std_msgs/String", "", {"data": "s0"}, data=True)
+    for i in range(6):
+        assert session.send_dm("s1", "std_msgs/String", "", {"data": f"f{i}"}, data=True)
+    session.status("error", "an op that was refused")
+    out = []
+    while not session.outbox.empty():
+        out += _ops(session)
+    assert [(op["op"], op["msg"]["data"] if op["op"] == "publish" else op["msg"]) for op in out] == [
+        ("publish", "s0"), ("publish", "f3"), ("publish", "f4"), ("publish", "f5"),
+        ("status", "an op that was refused")]
+    assert session.dropped == 3 and session.stats()["dropped"] == 3 and session.stats()["msgs_out"] == 8
+
+
+async def test_a_client_that_does_not_read_is_closed_once_and_loses_no_op():
+    """Ops that are not topic data are never dropped; a client that lets CONTROL_BACKLOG x the bound
+    of them wait is closed (1008) once, as a robot that does not read."""
+    class ClosingLink:
+        def __init__(self) -> None:
+            self.closes: list[tuple[int, str]] = []
+
+        async def close(self, code: int, reason: str) -> None:
+            self.closes.append((code, reason))
+
+    session = RosbridgeSession("u", "r", "c", master=None)
+    session.outbox, session.ws = RosbridgeOutbox(size=1), ClosingLink()
+    for i in range(CONTROL_BACKLOG + 5):
+        session.status("warning", f"w{i}")
+    await session.closing
+    assert session.ws.closes == [(1008, "the rosbridge client does not read: 11 messages wait for it")]
+    out = []
+    while not session.outbox.empty():
+        out += _ops(session)
+    assert [op["msg"] for op in out] == [f"w{i}" for i in range(CONTROL_BACKLOG + 5)] and session.dropped == 0
+
+
 def _ops(session: RosbridgeSession) -> list[dict]:
     """The ops of the oldest message the session queued (its frames, JSON text)."""
     return [json.loads(f) for f in session.outbox.get_nowait()]
@@ -278,7 +324,7 @@ async def test_fragments_split_and_reassemble():
     """Sans-I/O: an op longer than fragment_size goes as fragment ops whose data joins back to it;
     the client's fragments are reassembled in any order, within the bounds (ids, characters,
     expiry), and what is thrown away is counted."""
-    outbox = Outbox()
+    outbox = RosbridgeOutbox()
     op = {"op": "publish", "topic": "/t", "msg": {"data": "x" * 300}}
     assert outbox.op(op, fragment_size=100) and outbox.fragments == 4
     frags = [json.loads(f) for f in outbox.get_nowait()]
