@@ -213,3 +213,28 @@ def test_lifelong_run_on_the_random_problem_finishes_tasks_without_errors():
     assert s["invalid_steps"] == 0 and s["schedule_errors"] == 0
     assert s["tasks_finished"] > 60
     assert isinstance(res.sim, Simulator)
+
+
+def assert_solution(g: LifelongGrid, paths: np.ndarray, starts, goals) -> None:
+    assert paths[0].tolist() == list(starts) and paths[-1].tolist() == list(goals)
+    for a, b in zip(paths[:-1], paths[1:], strict=True):
+        assert len(set(b.tolist())) == len(b), "vertex conflict"
+        for i in range(len(a)):
+            assert b[i] == a[i] or b[i] in g.nbr[a[i]], "not a move"
+            j = np.flatnonzero(a == b[i])
+            assert not (len(j) and j[0] != i and b[j[0]] == a[i]), "swap conflict"
+
+
+def test_lacam_solves_what_needs_a_detour_and_lns_never_makes_it_worse():
+    from rce_fleet.lifelong.lacam import solve_lacam
+    from rce_fleet.lifelong.refine import refine_lns
+    g = grid(["......", "@@.@@@", "@@.@@@"])  # two robots swap ends; the only passing place is the dead end
+    starts, goals = [0, 5, 1], [5, 0, 14]
+    res = solve_lacam(g, np.array(starts), np.array(goals), time_limit_s=10)
+    assert res["solved"]
+    assert_solution(g, res["paths"], starts, goals)
+    ref = refine_lns(g, res["paths"], np.array(goals), 0.5)
+    assert ref["sum_of_costs"] <= res["sum_of_costs"]
+    assert_solution(g, ref["paths"], starts, goals)
+    with pytest.raises(ValueError, match="share"):
+        solve_lacam(g, np.array([0, 0]), np.array([1, 2]))
