@@ -4,7 +4,8 @@
 //   receives /fleet/state   (fleet/FleetState, container SubscriberInterface -> our PublisherConverter)
 //   sends    /fleet/goal    (fleet/RobotGoal,  our SubscriberConverter -> container PublisherInterface)
 //   sends    /fleet/block   (fleet/CellBlock)
-//   sends    /fleet/mission (std_msgs/String "start" | "stop"), when the fleet has that topic.
+//   sends    /fleet/mission (std_msgs/String "start" | "stop"), when the fleet has that topic;
+//   sends    /fleet/task, /fleet/task_cancel and receives /fleet/tasks: the task panel (tasks.js).
 // Drawing is one canvas redrawn by requestAnimationFrame (the map, grid and cell numbers are
 // pre-rendered into an offscreen layer); fleet states only update the model. The robot status
 // table is refreshed at most 4 times a second and only where a value changed.
@@ -12,6 +13,7 @@
 // Everything a test needs is in window.fleetView (see `view` below).
 
 import { Client, RCEError, newId } from "./rce.js";
+import { TaskPanel } from "./tasks.js";
 
 const $ = (id) => document.getElementById(id);
 const PALETTE = ["#1f77b4", "#ff7f0e", "#2ca02c", "#d62728", "#9467bd", "#8c564b", "#e377c2", "#17becf",
@@ -78,6 +80,7 @@ let lastErrors = [];
 let staticLayer = null, staticKey = "";
 let drawn = {};                  // name -> {x, y, yaw} smoothed for drawing
 let hoverCell = -1;
+let taskPanel = null;            // the task form, queue, robots' work and plots (tasks.js)
 let needTable = true, lastTable = 0;
 let rateWindow = [];
 
@@ -214,8 +217,10 @@ async function onLogin(ev) {
 async function setupInterfaces(c, ctag, rid) {
   const s = rid.replace(/[^A-Za-z0-9_-]/g, "_");
   tags = {
-    state: "state", goal: "goal", block: "block", mission: "mission",
+    state: "state", goal: "goal", block: "block", mission: "mission", task: "task", cancel: "taskCancel",
+    tasks: "tasks",
     cstate: `${s}_state`, cgoal: `${s}_goal`, cblock: `${s}_block`, cmission: `${s}_mission`,
+    ctask: `${s}_task`, ccancel: `${s}_taskCancel`, ctasks: `${s}_tasks`,
   };
   const I = (e, t, type, cls, addr) => ({ endpointTag: e, interfaceTag: t, interfaceType: type, className: cls,
                                            ...(addr ? { addr } : {}) });
@@ -226,10 +231,17 @@ async function setupInterfaces(c, ctag, rid) {
     I(rid, tags.state, "PublisherConverter", "fleet/FleetState"),
     I(rid, tags.goal, "SubscriberConverter", "fleet/RobotGoal"),
     I(rid, tags.block, "SubscriberConverter", "fleet/CellBlock"),
+    I(ctag, tags.ctask, "PublisherInterface", "fleet/Task", "/fleet/task"),
+    I(ctag, tags.ccancel, "PublisherInterface", "fleet/TaskCancel", "/fleet/task_cancel"),
+    I(ctag, tags.ctasks, "SubscriberInterface", "fleet/TaskList", "/fleet/tasks"),
+    I(rid, tags.task, "SubscriberConverter", "fleet/Task"),
+    I(rid, tags.cancel, "SubscriberConverter", "fleet/TaskCancel"),
+    I(rid, tags.tasks, "PublisherConverter", "fleet/TaskList"),
   ];
   const pairs = [[`${ctag}/${tags.cstate}`, `${rid}/${tags.state}`], [`${ctag}/${tags.cgoal}`, `${rid}/${tags.goal}`],
-                 [`${ctag}/${tags.cblock}`, `${rid}/${tags.block}`]];
-  const up = [tags.state, tags.goal, tags.block];
+                 [`${ctag}/${tags.cblock}`, `${rid}/${tags.block}`], [`${ctag}/${tags.ctask}`, `${rid}/${tags.task}`],
+                 [`${ctag}/${tags.ccancel}`, `${rid}/${tags.cancel}`], [`${ctag}/${tags.ctasks}`, `${rid}/${tags.tasks}`]];
+  const up = [tags.state, tags.goal, tags.block, tags.task, tags.cancel, tags.tasks];
   if (cfg.missionTopic) {
     ifaces.push(I(ctag, tags.cmission, "PublisherInterface", "std_msgs/String", cfg.missionTopic),
                 I(rid, tags.mission, "SubscriberConverter", "std_msgs/String"));
@@ -237,6 +249,12 @@ async function setupInterfaces(c, ctag, rid) {
     up.push(tags.mission);
   }
   c.subscribe(tags.state, onFleetState);
+  taskPanel = taskPanel || new TaskPanel({
+    view, $, log, settle, places: cfg.places || [],
+    send: (kind, msg) => publish(kind === "task" ? tags.task : tags.cancel,
+                                 kind === "task" ? "fleet/Task" : "fleet/TaskCancel", msg),
+  });
+  c.subscribe(tags.tasks, (msg) => taskPanel.onList(msg));
   const step = (t) => { $("login-error").textContent = ""; log("info", t); };
   step(`adding interfaces to container ${ctag}`);
   try {
@@ -256,7 +274,7 @@ async function setupInterfaces(c, ctag, rid) {
 async function cleanup(c) {
   // container-side interfaces outlive our session (the master removes only robot-side ones): remove them
   if (!tags || !view.container) return;
-  const rm = ["cstate", "cgoal", "cblock", "cmission"].filter((k) => k !== "cmission" || cfg.missionTopic)
+  const rm = ["cstate", "cgoal", "cblock", "cmission", "ctask", "ccancel", "ctasks"].filter((k) => k !== "cmission" || cfg.missionTopic)
     .map((k) => ({ endpointTag: view.container, interfaceTag: tags[k] }));
   try { c.send("CN", { removeInterfaces: rm }); } catch (e) { /* closing anyway */ }
 }
@@ -300,7 +318,7 @@ async function onLogout() {
   $("logout").disabled = true;
   if (tags && view.container) {
     // remove our container interfaces and wait until the cloud has (bounded), then leave
-    const rm = ["cstate", "cgoal", "cblock", "cmission"].filter((k) => k !== "cmission" || cfg.missionTopic)
+    const rm = ["cstate", "cgoal", "cblock", "cmission", "ctask", "ccancel", "ctasks"].filter((k) => k !== "cmission" || cfg.missionTopic)
       .map((k) => ({ endpointTag: view.container, interfaceTag: tags[k] }));
     try {
       await Promise.race([c.request("CN", { removeInterfaces: rm }), new Promise((r) => setTimeout(r, 3000))]);
@@ -836,6 +854,7 @@ canvas.addEventListener("click", (ev) => {
   if (!view.connected || !view.grid) return;
   const robot = robotAtClient(ev.clientX, ev.clientY);
   const cell = cellAtClient(ev.clientX, ev.clientY);
+  if (taskPanel && taskPanel.pick(cell)) return;     // picking a task's errands: the click is a cell
   if (robot && robot !== view.selected) { select(robot); return; }
   if (cell < 0) return;
   if (view.selected) sendGoal(view.selected, cell);
