@@ -105,12 +105,12 @@ class _Tries:
     def answered(self, base: str) -> None:
         self.client.base = base
 
-    def unreachable(self, base: str, e: BaseException) -> None:
+    def unreachable(self, base: str, error: BaseException) -> None:
         """``base`` could not be reached; raises :class:`Timeout` when it did not answer in time."""
-        if isinstance(e, TimeoutError) or isinstance(getattr(e, "reason", None), TimeoutError):
+        if isinstance(error, TimeoutError) or isinstance(getattr(error, "reason", None), TimeoutError):
             raise Timeout(f"the master at {base} did not answer {self.method} {self.path} within "
                           f"{self.timeout:g} s") from None
-        why = getattr(e, "reason", None) or e or type(e).__name__
+        why = getattr(error, "reason", None) or error or type(error).__name__
         self.failures.append(Unavailable(f"cannot reach the master at {base}: {why}"))
 
     def refused(self, status: int, headers: Any, body: bytes) -> None:

@@ -110,13 +110,13 @@ class _Dialled:
         self.plane.dropped += len(self.backlog)
         self.backlog.clear()
 
-    def _on_frame(self, f: framing.DataFrame | dict) -> None:
-        if isinstance(f, dict):
-            if self.nonce is None and "nonce" in f:
-                self._ready(parse_nonce(f["nonce"]))
+    def _on_frame(self, frame: framing.DataFrame | dict) -> None:
+        if isinstance(frame, dict):
+            if self.nonce is None and "nonce" in frame:
+                self._ready(parse_nonce(frame["nonce"]))
                 return
-            raise ProtocolError(f"data link to {self.addr}: unexpected control frame {str(f)[:120]}")
-        if f.op in (framing.SRV_RESP, framing.SRV_ERR) and settle_reply(self.plane.calls, f):
+            raise ProtocolError(f"data link to {self.addr}: unexpected control frame {str(frame)[:120]}")
+        if frame.op in (framing.SRV_RESP, framing.SRV_ERR) and settle_reply(self.plane.calls, frame):
             return
         self.plane.dropped += 1          # a late reply, or something the acceptor should not send
 
@@ -137,11 +137,11 @@ class _Dialled:
         self.backlog_bytes += n
         return True
 
-    def _offer(self, pair: Pair, head: bytes, payload: bytes | memoryview, n: int) -> bool:
-        """``n``: the payload's bytes (counted in the plane's ``bytes_out``)."""
+    def _offer(self, pair: Pair, head: bytes, payload: bytes | memoryview, nbytes: int) -> bool:
+        """``nbytes``: the payload's bytes (counted in the plane's ``bytes_out``)."""
         if self.link is None or (pair not in self.granted and not self._grant(pair)):
             return False
-        return self.link.offer(head, payload, n)
+        return self.link.offer(head, payload, nbytes)
 
     def _grant(self, pair: Pair) -> bool:
         token = self.plane.credentials.get(pair)
@@ -201,29 +201,29 @@ class _Accepted:
             self.plane._unclaim(iid, self)
         self.claims.clear()
 
-    def _on_frame(self, f: framing.DataFrame | dict) -> None:
-        if isinstance(f, framing.DataFrame):
-            self.plane._dispatch(self, f)
+    def _on_frame(self, frame: framing.DataFrame | dict) -> None:
+        if isinstance(frame, framing.DataFrame):
+            self.plane._dispatch(self, frame)
             return
         try:
-            if "claim" in f:
-                self._claim(f)
-            elif "release" in f:
-                self._release(f["release"])
+            if "claim" in frame:
+                self._claim(frame)
+            elif "release" in frame:
+                self._release(frame["release"])
             else:
-                self.granted.add(cluster_auth.check_grant(self.plane.data_key, self.nonce, f))
+                self.granted.add(cluster_auth.check_grant(self.plane.data_key, self.nonce, frame))
         except (cluster_auth.AuthFailed, ProtocolError) as e:
             self.plane.unauthenticated += 1
             log.warning("unauthenticated data link closed", plane=self.plane.name, peer=self.link.peername,
                         reason=e.message)
             self.link.close(e.message)
 
-    def _claim(self, f: dict) -> None:
+    def _claim(self, frame: dict) -> None:
         """The dialler speaks for interface ``f["claim"]`` (it was granted a connection from it)
         as one of generation ``gen``'s ``size`` members (module doc)."""
-        iid, gen, size = f.get("claim"), f.get("gen", 0), f.get("size", 1)
+        iid, gen, size = frame.get("claim"), frame.get("gen", 0), frame.get("size", 1)
         if not (type(iid) is int and type(gen) is int and type(size) is int and 1 <= size <= MAX_CLAIMERS):
-            raise ProtocolError(f"a claim is {{claim: iid, gen: int, size: 1..{MAX_CLAIMERS}}}, not {str(f)[:80]}")
+            raise ProtocolError(f"a claim is {{claim: iid, gen: int, size: 1..{MAX_CLAIMERS}}}, not {str(frame)[:80]}")
         if not any(src == iid for src, _dst in self.granted):
             raise ProtocolError(f"claim of interface {iid} without a grant from it on this link")
         cs = self.plane._claims.get(iid)
@@ -247,13 +247,13 @@ class _Accepted:
         except (LinkFull, Unavailable):
             pass                          # the link is saturated or closing: its end is its answer
 
-    def refuse(self, f: framing.DataFrame, why: str) -> None:
+    def refuse(self, frame: framing.DataFrame, why: str) -> None:
         """Drop a frame whose sender is not connected to its interface (counted; the first logged)."""
         self.plane.refused += 1
         if not self.warned:
             self.warned = True
             log.warning("data frame refused (further ones on this link are only counted)", plane=self.plane.name,
-                        peer=self.link.peername, src=f.src, dst=f.dst, reason=why)
+                        peer=self.link.peername, src=frame.src, dst=frame.dst, reason=why)
 
 
 class DataPlane:
@@ -304,11 +304,11 @@ class DataPlane:
         self.calls.fail_all(Unavailable(f"data plane {self.name} closed"))
         await self.tasks.cancel_all()
 
-    def _unclaim(self, iid: int, a: _Accepted) -> None:
-        """Take accepted link ``a`` out of ``iid``'s claim set (which is then incomplete)."""
+    def _unclaim(self, iid: int, link: _Accepted) -> None:
+        """Take the accepted ``link`` out of ``iid``'s claim set (which is then incomplete)."""
         cs = self._claims.get(iid)
-        if cs is not None and a in cs.links:
-            cs.links.remove(a)
+        if cs is not None and link in cs.links:
+            cs.links.remove(link)
             if not cs.links:
                 del self._claims[iid]
 
@@ -381,48 +381,48 @@ class DataPlane:
         a.link.start()
         self.tasks.spawn(self._grant_timer(a), name="grant timer")
 
-    async def _grant_timer(self, a: _Accepted) -> None:
+    async def _grant_timer(self, link: _Accepted) -> None:
         await asyncio.sleep(self.grant_timeout)          # a timer: the link must have a grant by now
-        if not a.granted and not a.link.closed.is_set():
+        if not link.granted and not link.link.closed.is_set():
             self.unauthenticated += 1
-            log.warning("data link closed: no grant", plane=self.name, peer=a.link.peername,
+            log.warning("data link closed: no grant", plane=self.name, peer=link.link.peername,
                         waited_s=self.grant_timeout)
-            a.link.close("no grant")
+            link.link.close("no grant")
 
-    def _dispatch(self, link: _Accepted, f: framing.DataFrame) -> None:
-        if f.op not in (framing.MSG, framing.SRV_REQ):
+    def _dispatch(self, link: _Accepted, frame: framing.DataFrame) -> None:
+        if frame.op not in (framing.MSG, framing.SRV_REQ):
             self.dropped += 1             # replies travel on the links we dialled
             return
-        if (f.src, f.dst) not in link.granted:
-            link.refuse(f, "no grant for this connection on this link")
+        if (frame.src, frame.dst) not in link.granted:
+            link.refuse(frame, "no grant for this connection on this link")
             return
-        iface = self.interfaces.get(f.dst)
-        if iface is not None and f.src not in iface.peers:
-            link.refuse(f, "the sender is not connected to this interface")
+        iface = self.interfaces.get(frame.dst)
+        if iface is not None and frame.src not in iface.peers:
+            link.refuse(frame, "the sender is not connected to this interface")
             return
         self.msgs_in += 1
-        self.bytes_in += len(f.payload)
-        if f.op == framing.SRV_REQ:
-            self._serve(link, f, iface)
+        self.bytes_in += len(frame.payload)
+        if frame.op == framing.SRV_REQ:
+            self._serve(link, frame, iface)
         elif iface is None:
             self.dropped += 1
         else:
             try:
-                iface.on_message(f.payload)
+                iface.on_message(frame.payload)
             except RCEError as e:         # e.g. a message for an interface that takes none
                 self.dropped += 1
-                log.debug("message refused", plane=self.name, iid=f.dst, reason=e.message)
+                log.debug("message refused", plane=self.name, iid=frame.dst, reason=e.message)
 
-    def _serve(self, link: _Accepted, f: framing.DataFrame, iface: Receiver | None) -> None:
+    def _serve(self, link: _Accepted, frame: framing.DataFrame, iface: Receiver | None) -> None:
         """Run a service request and send its reply back on the link it came in on."""
-        src, iid, call_id, payload = f.src, f.dst, f.call_id, bytes(f.payload)
+        src, iid, call_id, payload = frame.src, frame.dst, frame.call_id, bytes(frame.payload)
 
         def answer(op: int, body: bytes) -> None:
             if not link.link.offer(framing.encode_data_header(op, src, iid, call_id, len(body)), body, None):
                 self.dropped += 1          # the caller times out
 
-        def refuse(e: RCEError) -> None:
-            answer(framing.SRV_ERR, e.message.encode())
+        def refuse(error: RCEError) -> None:
+            answer(framing.SRV_ERR, error.message.encode())
         if iface is None:
             self.dropped += 1
             refuse(Unavailable(f"interface {iid} is gone"))
@@ -430,13 +430,13 @@ class DataPlane:
         self.responder.serve(lambda: iface.serve(payload), lambda resp: answer(framing.SRV_RESP, resp), refuse,
                              f"service call to interface {iid}")
 
-    def _lost(self, n: int | None) -> None:
+    def _lost(self, nbytes: int | None) -> None:
         """A frame a link took was dropped from its queue (the peer is not keeping up,
-        :mod:`rce.link`): ``n`` the payload bytes of a message counted as sent, None for a reply."""
+        :mod:`rce.link`): ``nbytes`` the payload bytes of a message counted as sent, None for a reply."""
         self.dropped += 1
-        if n is not None:
+        if nbytes is not None:
             self.msgs_out -= 1
-            self.bytes_out -= n
+            self.bytes_out -= nbytes
 
     def stats(self) -> dict:
         """``{msgs_in, msgs_out, bytes_in, bytes_out, dropped, refused, unauthenticated, links, claims}``:

@@ -25,13 +25,13 @@ class RCEError(Exception):
         return {"code": self.code, "message": self.message}
 
     @classmethod
-    def from_dict(cls, d: dict) -> "RCEError":
+    def from_dict(cls, record: dict) -> "RCEError":
         """Rebuild an error received over the control plane (inverse of :meth:`to_dict`)."""
-        err = _BY_CODE.get(d.get("code", ""), RCEError)(str(d.get("message", "")), code=d.get("code"))
-        if isinstance(err, NotLeader) and isinstance(d.get("leader"), dict):
-            err.leader = d["leader"]
-        if isinstance(err, Throttled) and isinstance(d.get("retry_after"), (int, float)):
-            err.retry_after = d["retry_after"]
+        err = _BY_CODE.get(record.get("code", ""), RCEError)(str(record.get("message", "")), code=record.get("code"))
+        if isinstance(err, NotLeader) and isinstance(record.get("leader"), dict):
+            err.leader = record["leader"]
+        if isinstance(err, Throttled) and isinstance(record.get("retry_after"), (int, float)):
+            err.retry_after = record["retry_after"]
         return err
 
     def __str__(self) -> str:

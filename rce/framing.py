@@ -83,11 +83,11 @@ def decode_body(kind: int, body: bytes | memoryview) -> dict | DataFrame:
     raise ProtocolError(f"unknown frame kind {kind}")
 
 
-def _check_length(n: int, max_frame: int) -> None:
-    if n < 1:
+def _check_length(length: int, max_frame: int) -> None:
+    if length < 1:
         raise ProtocolError("frame length 0 leaves no room for its kind byte")
-    if n - 1 > max_frame:
-        raise ProtocolError(f"frame of {n - 1} bytes exceeds the limit of {max_frame} bytes")
+    if length - 1 > max_frame:
+        raise ProtocolError(f"frame of {length - 1} bytes exceeds the limit of {max_frame} bytes")
 
 
 def _scan(buf: bytes | bytearray | memoryview, pos: int, end: int, max_frame: int) -> tuple[int, ProtocolError | None]:
@@ -171,16 +171,16 @@ class FrameDecoder:
             return self._big[self._have:]
         return memoryview(self._buf)[self._end:]
 
-    def buffer_updated(self, n: int) -> Iterator[dict | DataFrame]:
-        """``n`` bytes were written at the start of the last :meth:`get_buffer`; yield the frames
+    def buffer_updated(self, nbytes: int) -> Iterator[dict | DataFrame]:
+        """``nbytes`` bytes were written at the start of the last :meth:`get_buffer`; yield the frames
         they complete, in order."""
         if self._big is not None:
-            self._have += n
+            self._have += nbytes
             if self._have == len(self._big):
                 view, self._big = self._big, None
                 yield decode_body(view[4], view[_HEAD.size:])
             return
-        self._end += n
+        self._end += nbytes
         stop, error = _scan(self._buf, 0, self._end, self.max_frame)
         whole = bytes(memoryview(self._buf)[:stop]) if stop else b""   # the one copy of small frames
         rest = self._end - stop

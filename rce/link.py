@@ -202,7 +202,7 @@ class FramedLink:
         raise LinkFull(f"the link to {self.name} is saturated: {waiting + self._queued_bytes} bytes wait "
                        f"unread (bound {self.hard_buffer} bytes)")
 
-    def _enqueue(self, frame: bytes, payload: bytes | memoryview, n: int, tag: Any, droppable: bool,
+    def _enqueue(self, frame: bytes, payload: bytes | memoryview, nbytes: int, tag: Any, droppable: bool,
                  bound: int) -> bool:
         """Queue one frame behind the others, making room by dropping the oldest offered frames
         (and those past ``max_delay``); False if there is no room for it even so."""
@@ -216,18 +216,18 @@ class FramedLink:
             while q and q[0][4] and now - q[0][0] > self.max_delay:
                 self._drop(q.popleft(), expired=True)
         room = bound - t.get_write_buffer_size()
-        if self._queued_bytes + n > room:
-            if self._queued_bytes - self._droppable_bytes() + n > room:
+        if self._queued_bytes + nbytes > room:
+            if self._queued_bytes - self._droppable_bytes() + nbytes > room:
                 return False
             i = 0
-            while self._queued_bytes + n > room:
+            while self._queued_bytes + nbytes > room:
                 if q[i][4]:
                     self._drop(q[i], expired=False)
                     del q[i]
                 else:
                     i += 1
         q.append((now, frame, payload, tag, droppable))
-        self._queued_bytes += n
+        self._queued_bytes += nbytes
         return True
 
     def _droppable_bytes(self) -> int:
@@ -298,17 +298,17 @@ class FramedLink:
                 log.error("on_close handler failed", link=self.name, exc_info=e)
 
 
-def _write(t: asyncio.WriteTransport, frame: bytes, payload: bytes | memoryview) -> None:
+def _write(transport: asyncio.WriteTransport, frame: bytes, payload: bytes | memoryview) -> None:
     """One frame, in one system call: a small payload is joined to its header (a copy of at
     most :data:`JOIN_MAX` bytes costs less than a second ``write``); a large one follows it
     unjoined, uncopied."""
     if not payload:
-        t.write(frame)
+        transport.write(frame)
     elif len(payload) <= JOIN_MAX:
-        t.write(frame + payload)
+        transport.write(frame + payload)
     else:
-        t.write(frame)
-        t.write(payload)
+        transport.write(frame)
+        transport.write(payload)
 
 
 class _Receiver(asyncio.BufferedProtocol):
@@ -385,13 +385,13 @@ class Responder:
         reply(result)
 
 
-def settle_reply(calls: PendingCalls, f: framing.DataFrame) -> bool:
+def settle_reply(calls: PendingCalls, frame: framing.DataFrame) -> bool:
     """Complete call ``f.call_id`` of ``calls`` from a ``SRV_RESP`` (result: the response bytes)
     or ``SRV_ERR`` frame (error: :class:`RequestError` with the remote reason). False when no
     such call waits (late, or unknown)."""
-    if f.op == framing.SRV_RESP:
-        return calls.settle(f.call_id, bytes(f.payload))
-    return calls.fail(f.call_id, RequestError(bytes(f.payload).decode(errors="replace")))
+    if frame.op == framing.SRV_RESP:
+        return calls.settle(frame.call_id, bytes(frame.payload))
+    return calls.fail(frame.call_id, RequestError(bytes(frame.payload).decode(errors="replace")))
 
 
 def nodelay(writer: asyncio.StreamWriter, *, data: bool = False) -> None:

@@ -326,8 +326,8 @@ class MessageRegistry:
             return _base_encoder(arg[0], owner)
         if nt == Nodetype.NAME:
             sub_name = arg
-            def enc_name(v: Any, path: str, forms: JsonForms, _n=sub_name) -> Any:
-                return self._encoder(_n)(v, path, forms)
+            def enc_name(value: Any, path: str, forms: JsonForms, _n=sub_name) -> Any:
+                return self._encoder(_n)(value, path, forms)
             return enc_name
         (sub_nt, sub_arg), length = arg
         fixed = length if nt == Nodetype.ARRAY else None
@@ -335,16 +335,16 @@ class MessageRegistry:
             return _numeric_array_encoder(sub_arg[0], fixed, owner)
         item = self._field_encoder((sub_nt, sub_arg), owner)
 
-        def enc_list(v: Any, path: str, forms: JsonForms) -> list:
-            if v is _MISSING:
-                v = []
-            if not isinstance(v, list):
-                raise MessageError(f"{owner}: field '{path}' must be a list, got {type(v).__name__}")
-            if fixed is not None and len(v) != fixed:
-                if v:
-                    raise MessageError(f"{owner}: field '{path}' must have {fixed} items, got {len(v)}")
-                v = [_MISSING] * fixed
-            return [item(x, f"{path}[{i}]", forms) for i, x in enumerate(v)]
+        def enc_list(value: Any, path: str, forms: JsonForms) -> list:
+            if value is _MISSING:
+                value = []
+            if not isinstance(value, list):
+                raise MessageError(f"{owner}: field '{path}' must be a list, got {type(value).__name__}")
+            if fixed is not None and len(value) != fixed:
+                if value:
+                    raise MessageError(f"{owner}: field '{path}' must have {fixed} items, got {len(value)}")
+                value = [_MISSING] * fixed
+            return [item(x, f"{path}[{i}]", forms) for i, x in enumerate(value)]
         return enc_list
 
     def _compile_decoder(self, typename: str, key: FormsKey) -> Decoder:
@@ -354,16 +354,16 @@ class MessageRegistry:
         if typename == _DURATION:
             return _time_decoder(duration_form)
         if typename == IMAGE and image_form != "json":
-            def encode_image(m: Any) -> bytes:
+            def encode_image(msg: Any) -> bytes:
                 try:
-                    return image_to_bytes(m, image_form)
+                    return image_to_bytes(msg, image_form)
                 except ValueError as e:
                     raise MessageError(f"sensor_msgs/Image: {e}") from None
             return encode_image
         fields = [(fname, self._field_decoder(ftype, key)) for fname, ftype in self.store.fielddefs[typename][1]]
 
-        def decode(m: Any) -> dict:
-            return {fname: fdec(getattr(m, fname)) for fname, fdec in fields}
+        def decode(msg: Any) -> dict:
+            return {fname: fdec(getattr(msg, fname)) for fname, fdec in fields}
         return decode
 
     def _field_decoder(self, ftype: tuple, key: FormsKey) -> Decoder:
@@ -371,16 +371,16 @@ class MessageRegistry:
         if nt == Nodetype.BASE:
             return _base_decoder(arg[0])
         if nt == Nodetype.NAME:
-            return lambda v, _n=arg: self._decoder(_n, key)(v)
+            return lambda value, _n=arg: self._decoder(_n, key)(value)
         (sub_nt, sub_arg), _ = arg
         if sub_nt == Nodetype.BASE and sub_arg[0] in ("uint8", "char", "byte"):
             if key[3] == "binary":
-                return lambda v: bytes(np.asarray(v, dtype=np.uint8))
-            return lambda v: base64.b64encode(bytes(np.asarray(v, dtype=np.uint8))).decode()
+                return lambda value: bytes(np.asarray(value, dtype=np.uint8))
+            return lambda value: base64.b64encode(bytes(np.asarray(value, dtype=np.uint8))).decode()
         if sub_nt == Nodetype.BASE and sub_arg[0] in _NP_DTYPES:
             return _numeric_array_decoder(sub_arg[0] in _FLOATS)
         item = self._field_decoder((sub_nt, sub_arg), key)
-        return lambda v: [item(x) for x in v]
+        return lambda value: [item(x) for x in value]
 
 
 class _Missing:
@@ -405,151 +405,151 @@ def _time_encoder(duration: bool, cls: Any) -> Encoder:
     sec_enc, ns_enc = _base_encoder("int32", owner), _base_encoder("uint32", owner)
     other = "seconds (a number)" if duration else "an ISO 8601 string"
 
-    def encode(v: Any, path: str, forms: JsonForms) -> Any:
-        if v is _MISSING:
+    def encode(value: Any, path: str, forms: JsonForms) -> Any:
+        if value is _MISSING:
             return cls(sec=0, nanosec=0)
-        if isinstance(v, dict):
-            extra = set(v) - _TIME_KEYS
+        if isinstance(value, dict):
+            extra = set(value) - _TIME_KEYS
             if extra:
                 raise MessageError(f"{owner}: unknown field '{_join(path, sorted(extra)[0])}'")
-            sk = "sec" if "sec" in v and "secs" not in v else "secs"
-            nk = "nanosec" if "nanosec" in v and "nsecs" not in v else "nsecs"
-            if v:
+            sk = "sec" if "sec" in value and "secs" not in value else "secs"
+            nk = "nanosec" if "nanosec" in value and "nsecs" not in value else "nsecs"
+            if value:
                 forms.saw("time", "sec" if sk == "sec" and nk == "nanosec" else "secs")
-            return cls(sec=sec_enc(v.get(sk, _MISSING), _join(path, sk), forms),
-                       nanosec=ns_enc(v.get(nk, _MISSING), _join(path, nk), forms))
+            return cls(sec=sec_enc(value.get(sk, _MISSING), _join(path, sk), forms),
+                       nanosec=ns_enc(value.get(nk, _MISSING), _join(path, nk), forms))
         try:
-            if duration and not isinstance(v, (dict, list)):
-                sec, ns = seconds_to_duration(v)
+            if duration and not isinstance(value, (dict, list)):
+                sec, ns = seconds_to_duration(value)
                 sec_enc(sec, path, forms)
                 forms.saw("time", "float")
                 return cls(sec=sec, nanosec=ns)
-            if not duration and isinstance(v, str):
-                sec, ns = iso_to_time(v)
+            if not duration and isinstance(value, str):
+                sec, ns = iso_to_time(value)
                 sec_enc(sec, path, forms)
                 forms.saw("time", "iso")
                 return cls(sec=sec, nanosec=ns)
         except ValueError as e:
             raise MessageError(f"{owner}: field '{path or '.'}': {e}") from None
         raise MessageError(f"{owner}: field '{path or '.'}' must be an object {{secs, nsecs}} or {other}, "
-                           f"got {type(v).__name__}")
+                           f"got {type(value).__name__}")
     return encode
 
 
 def _time_decoder(form: str) -> Decoder:
     if form == "sec":
-        return lambda m: {"sec": int(m.sec), "nanosec": int(m.nanosec)}
+        return lambda msg: {"sec": int(msg.sec), "nanosec": int(msg.nanosec)}
     if form == "iso":
-        return lambda m: time_to_iso(m.sec, m.nanosec)
+        return lambda msg: time_to_iso(msg.sec, msg.nanosec)
     if form == "float":
-        return lambda m: duration_to_seconds(m.sec, m.nanosec)
-    return lambda m: {"secs": int(m.sec), "nsecs": int(m.nanosec)}
+        return lambda msg: duration_to_seconds(msg.sec, msg.nanosec)
+    return lambda msg: {"secs": int(msg.sec), "nsecs": int(msg.nanosec)}
 
 
-def _base_decoder(t: str) -> Decoder:
-    if t in _FLOATS:
+def _base_decoder(base_type: str) -> Decoder:
+    if base_type in _FLOATS:
         # JSON has no NaN or Infinity: non-finite values go out as null, as rosbridge sends them
-        return lambda v: float(v) if math.isfinite(v) else None
-    if t == "bool":
+        return lambda value: float(value) if math.isfinite(value) else None
+    if base_type == "bool":
         return bool
-    if t == "string":
+    if base_type == "string":
         return ros_strings.to_text
     return int
 
 
-def _base_encoder(t: str, owner: str) -> Encoder:
-    if t == "string":
-        def enc_str(v: Any, path: str, forms: JsonForms) -> str:
-            if v is _MISSING:
+def _base_encoder(base_type: str, owner: str) -> Encoder:
+    if base_type == "string":
+        def enc_str(value: Any, path: str, forms: JsonForms) -> str:
+            if value is _MISSING:
                 return ""
-            if not isinstance(v, str):
-                raise MessageError(f"{owner}: field '{path}' must be a string, got {type(v).__name__}")
-            return v
+            if not isinstance(value, str):
+                raise MessageError(f"{owner}: field '{path}' must be a string, got {type(value).__name__}")
+            return value
         return enc_str
-    if t == "bool":
-        def enc_bool(v: Any, path: str, forms: JsonForms) -> bool:
-            if v is _MISSING:
+    if base_type == "bool":
+        def enc_bool(value: Any, path: str, forms: JsonForms) -> bool:
+            if value is _MISSING:
                 return False
-            if not isinstance(v, bool):
-                raise MessageError(f"{owner}: field '{path}' must be true or false, got {v!r}")
-            return v
+            if not isinstance(value, bool):
+                raise MessageError(f"{owner}: field '{path}' must be true or false, got {value!r}")
+            return value
         return enc_bool
-    if t in _FLOATS:
-        def enc_float(v: Any, path: str, forms: JsonForms) -> float:
-            if v is _MISSING:
+    if base_type in _FLOATS:
+        def enc_float(value: Any, path: str, forms: JsonForms) -> float:
+            if value is _MISSING:
                 return 0.0
-            if v is None:
+            if value is None:
                 return float("nan")
-            if isinstance(v, bool) or not isinstance(v, (int, float)):
-                raise MessageError(f"{owner}: field '{path}' must be a number, got {type(v).__name__}")
+            if isinstance(value, bool) or not isinstance(value, (int, float)):
+                raise MessageError(f"{owner}: field '{path}' must be a number, got {type(value).__name__}")
             try:
-                return float(v)
+                return float(value)
             except OverflowError:       # an integer past a double's range
-                raise MessageError(f"{owner}: field '{path}' must be a number a {t} holds, got an integer "
-                                   f"of {v.bit_length()} bits") from None
+                raise MessageError(f"{owner}: field '{path}' must be a number a {base_type} holds, got an integer "
+                                   f"of {value.bit_length()} bits") from None
         return enc_float
-    lo, hi = _INT_RANGES[t]
+    lo, hi = _INT_RANGES[base_type]
 
-    def enc_int(v: Any, path: str, forms: JsonForms) -> int:
-        if v is _MISSING:
+    def enc_int(value: Any, path: str, forms: JsonForms) -> int:
+        if value is _MISSING:
             return 0
-        if isinstance(v, bool) or not isinstance(v, int):
-            if isinstance(v, float) and v.is_integer() and abs(v) <= _EXACT_FLOAT_INT:
-                v = int(v)
+        if isinstance(value, bool) or not isinstance(value, int):
+            if isinstance(value, float) and value.is_integer() and abs(value) <= _EXACT_FLOAT_INT:
+                value = int(value)
             else:       # past 2**53 a float is no exact integer (an integer past 64 bits is read as one)
-                raise MessageError(f"{owner}: field '{path}' must be an integer ({t}), got {v!r}")
-        if not lo <= v <= hi:
-            raise MessageError(f"{owner}: field '{path}' value {v} is out of range for {t}")
-        return v
+                raise MessageError(f"{owner}: field '{path}' must be an integer ({base_type}), got {value!r}")
+        if not lo <= value <= hi:
+            raise MessageError(f"{owner}: field '{path}' value {value} is out of range for {base_type}")
+        return value
     return enc_int
 
 
-def _numeric_array_encoder(t: str, fixed: int | None, owner: str) -> Encoder:
-    dtype = _NP_DTYPES[t]
-    is_bytes = t in ("uint8", "char", "byte")
-    item = _base_encoder(t, owner)
-    whole = _whole_array(t, dtype)
+def _numeric_array_encoder(base_type: str, fixed: int | None, owner: str) -> Encoder:
+    dtype = _NP_DTYPES[base_type]
+    is_bytes = base_type in ("uint8", "char", "byte")
+    item = _base_encoder(base_type, owner)
+    whole = _whole_array(base_type, dtype)
 
-    def enc(v: Any, path: str, forms: JsonForms) -> np.ndarray:
-        if v is _MISSING:
+    def enc(value: Any, path: str, forms: JsonForms) -> np.ndarray:
+        if value is _MISSING:
             return np.zeros(fixed or 0, dtype=dtype)
-        if is_bytes and isinstance(v, _BINARY):
-            arr = np.frombuffer(bytes(v), dtype=np.uint8).copy()
+        if is_bytes and isinstance(value, _BINARY):
+            arr = np.frombuffer(bytes(value), dtype=np.uint8).copy()
             forms.saw("byte_arrays", "binary")
-        elif is_bytes and isinstance(v, str):
+        elif is_bytes and isinstance(value, str):
             try:
-                arr = np.frombuffer(base64.b64decode(v, validate=True), dtype=np.uint8)
+                arr = np.frombuffer(base64.b64decode(value, validate=True), dtype=np.uint8)
             except ValueError:
                 raise MessageError(f"{owner}: field '{path}' is not valid base64") from None
             forms.saw("byte_arrays", "base64")
-        elif isinstance(v, list):
-            arr = whole(v)
+        elif isinstance(value, list):
+            arr = whole(value)
             if arr is None:     # something to refuse (or null: NaN): item by item, for the error's field path
-                arr = np.array([item(x, f"{path}[{i}]", forms) for i, x in enumerate(v)], dtype=dtype)
+                arr = np.array([item(x, f"{path}[{i}]", forms) for i, x in enumerate(value)], dtype=dtype)
         else:
             what = " or base64 string (or a binary part)" if is_bytes else ""
-            raise MessageError(f"{owner}: field '{path}' must be a list{what}, got {type(v).__name__}")
+            raise MessageError(f"{owner}: field '{path}' must be a list{what}, got {type(value).__name__}")
         if fixed is not None and len(arr) != fixed:
             raise MessageError(f"{owner}: field '{path}' must have {fixed} items, got {len(arr)}")
         return arr
     return enc
 
 
-def _whole_array(t: str, dtype: Any) -> Callable[[list], np.ndarray | None]:
-    """The fast path of a JSON list -> numeric array of ROS type ``t``: the whole list at C speed
+def _whole_array(base_type: str, dtype: Any) -> Callable[[list], np.ndarray | None]:
+    """The fast path of a JSON list -> numeric array of ROS type ``base_type``: the whole list at C speed
     when every item is what the item encoder (:func:`_base_encoder`) takes as it is (numbers, not
     bools, for floats; in-range integers for integers; bools for bools); ``None`` otherwise (the
     caller then goes item by item, which refuses what does not fit, naming the item)."""
-    kinds = {float, int} if t in _FLOATS else {bool} if t == "bool" else {int}
-    lo, hi = _INT_RANGES[t] if kinds == {int} else (None, None)
+    kinds = {float, int} if base_type in _FLOATS else {bool} if base_type == "bool" else {int}
+    lo, hi = _INT_RANGES[base_type] if kinds == {int} else (None, None)
 
-    def whole(v: list) -> np.ndarray | None:
-        if not v or not set(map(type, v)) <= kinds:
+    def whole(value: list) -> np.ndarray | None:
+        if not value or not set(map(type, value)) <= kinds:
             return None
-        if lo is not None and not lo <= min(v) <= max(v) <= hi:
+        if lo is not None and not lo <= min(value) <= max(value) <= hi:
             return None
         try:
-            return np.array(v, dtype=dtype)
+            return np.array(value, dtype=dtype)
         except (OverflowError, ValueError):     # an integer too large for a float: item by item says so
             return None
     return whole
@@ -559,10 +559,10 @@ def _numeric_array_decoder(floats: bool) -> Decoder:
     """Numeric array (numpy, as rosbags gives it) -> JSON list of Python numbers; non-finite
     floats become ``null`` (as :func:`_base_decoder`, as rosbridge sends them)."""
     if not floats:
-        return lambda v: np.asarray(v).tolist()
+        return lambda value: np.asarray(value).tolist()
 
-    def dec(v: Any) -> list:
-        out = np.asarray(v).tolist()
+    def dec(value: Any) -> list:
+        out = np.asarray(value).tolist()
         if all(map(math.isfinite, out)):
             return out
         return [x if math.isfinite(x) else None for x in out]

@@ -233,13 +233,13 @@ class Node:
                 return
             self._direct = direct
 
-    def undecodable(self, where: str, e: MessageError) -> None:
+    def undecodable(self, where: str, error: MessageError) -> None:
         """A message for ``where`` (a subscriber's topic, a service) did not deserialize: logged on
         stderr (the node's log) and reported to the bus, which counts it in the node's statistics
         (``undecodable``: the container's stats, ``rce_node_undecodable_total``)."""
-        print(f"[{self.full_name}] {where}: message dropped, it does not deserialize: {e.message}", file=sys.stderr)
+        print(f"[{self.full_name}] {where}: message dropped, it does not deserialize: {error.message}", file=sys.stderr)
         if self._peer is not None and not self._peer.closed.is_set():
-            self._peer.notify("undecodable", where=where, error=e.message[:200])
+            self._peer.notify("undecodable", where=where, error=error.message[:200])
 
     def resolve(self, name: str) -> str:
         """Resolve a graph name for this node (global, relative or ``~private``)."""
@@ -260,19 +260,19 @@ class Node:
         return await self._calls.call(lambda cid: self._send(framing.SRV_REQ, handle, payload, cid), timeout,
                                       what="the service call")
 
-    def _on_data(self, f: framing.DataFrame) -> None:
-        if f.op == framing.MSG:
-            sub = self._subs.get(f.dst)
+    def _on_data(self, frame: framing.DataFrame) -> None:
+        if frame.op == framing.MSG:
+            sub = self._subs.get(frame.dst)
             if sub:
-                sub._push(bytes(f.payload))
-        elif f.op in (framing.SRV_RESP, framing.SRV_ERR):
-            settle_reply(self._calls, f)
-        elif f.op == framing.SRV_REQ:
-            call_id, handle, payload = f.call_id, f.dst, bytes(f.payload)
+                sub._push(bytes(frame.payload))
+        elif frame.op in (framing.SRV_RESP, framing.SRV_ERR):
+            settle_reply(self._calls, frame)
+        elif frame.op == framing.SRV_REQ:
+            call_id, handle, payload = frame.call_id, frame.dst, bytes(frame.payload)
             self._responder.serve(
                 lambda: self._serve(handle, payload),
                 lambda resp: self._send(framing.SRV_RESP, 0, resp, call_id),
-                lambda e: self._send(framing.SRV_ERR, 0, e.message.encode(), call_id), f"service call {handle}")
+                lambda error: self._send(framing.SRV_ERR, 0, error.message.encode(), call_id), f"service call {handle}")
 
     async def _serve(self, handle: int, payload: bytes) -> bytes:
         """Run the handler of service ``handle`` on a serialized request; the serialized response."""

@@ -5,7 +5,7 @@ environment process, as TCPROS goes from publisher to subscriber past the ROS ma
 The environment decides every route (:mod:`rce_container.direct_routes`); this module only
 follows its orders, which come as requests on the node's bus link:
 
-- ``direct_link {link}``: the socket of link ``link`` was passed on the fd channel (its
+- ``direct_link {link}``: the socket of ``link`` was passed on the fd channel (its
   handshake done: the far plane's nonce read). The node wraps it in a
   :class:`~rce.link.FramedLink`.
 - ``direct_publish {handle, version, targets: [[link, dst, src]], local, grants}``: from now on
@@ -140,9 +140,9 @@ class DirectLinks:
         self._arrived.clear()
 
     # -- ops ------------------------------------------------------------------------------------
-    async def op_direct_link(self, a: dict) -> dict:
-        """``{link, name?}``: take the socket of link ``link`` from the fd channel."""
-        lid = int(a["link"])
+    async def op_direct_link(self, args: dict) -> dict:
+        """``{link, name?}``: take the socket of ``link`` from the fd channel."""
+        lid = int(args["link"])
         fd = self._arrived.pop(lid, None)
         if fd is None:
             fut = self._waiting[lid] = asyncio.get_running_loop().create_future()
@@ -161,8 +161,8 @@ class DirectLinks:
         old = self.links.pop(lid, None)
         if old is not None:
             old.close("replaced")
-        self.links[lid] = FramedLink(reader, writer, name=f"direct link {lid} to {a.get('name', '?')}",
-                                     on_frame=lambda f: self._on_frame(lid, f),
+        self.links[lid] = FramedLink(reader, writer, name=f"direct link {lid} to {args.get('name', '?')}",
+                                     on_frame=lambda frame: self._on_frame(lid, frame),
                                      on_close=lambda _l: self._link_closed(lid),
                                      max_frame=framing.DEFAULT_MAX_FRAME, max_buffer=MAX_BUFFER,
                                      on_drop=_lost).start()
@@ -174,35 +174,36 @@ class DirectLinks:
             raise Unavailable(f"direct link {lid} is not open")
         return link
 
-    def _grant(self, a: dict) -> None:
-        for lid, frame in a.get("grants") or ():
+    def _grant(self, args: dict) -> None:
+        for lid, frame in args.get("grants") or ():
             self._link(lid).send(framing.encode_control(frame))
 
-    async def op_direct_publish(self, a: dict) -> dict:
+    async def op_direct_publish(self, args: dict) -> dict:
         """``{handle, version, targets, local, grants}`` (module doc)."""
-        handle = int(a["handle"])
-        self._grant(a)
+        handle = int(args["handle"])
+        self._grant(args)
         targets = [(self._link(lid), int(dst), int(src), self.counts.setdefault(int(src), [0, 0, 0]))
-                   for lid, dst, src in a.get("targets") or ()]
+                   for lid, dst, src in args.get("targets") or ()]
         if targets:
-            self.routes[handle] = _Route(int(a["version"]), targets, bool(a.get("local")))
+            self.routes[handle] = _Route(int(args["version"]), targets, bool(args.get("local")))
         else:
             self.routes.pop(handle, None)
         return {}
 
-    async def op_direct_subscribe(self, a: dict) -> dict:
+    async def op_direct_subscribe(self, args: dict) -> dict:
         """``{link, iid, peers, handles, gen, size, grants}``: claim interface ``iid`` on ``link``."""
-        link, iid = self._link(a["link"]), int(a["iid"])
-        self._grant(a)
-        self.claims[(int(a["link"]), iid)] = (frozenset(int(p) for p in a["peers"]),
-                                               tuple(int(h) for h in a["handles"]))
+        link, iid = self._link(args["link"]), int(args["iid"])
+        self._grant(args)
+        self.claims[(int(args["link"]), iid)] = (frozenset(int(p) for p in args["peers"]),
+                                               tuple(int(h) for h in args["handles"]))
         self.counts.setdefault(iid, [0, 0, 0])
-        link.send(framing.encode_control({"claim": iid, "gen": int(a.get("gen", 0)), "size": int(a.get("size", 1))}))
+        link.send(framing.encode_control({"claim": iid, "gen": int(args.get("gen", 0)),
+                                          "size": int(args.get("size", 1))}))
         return {}
 
-    async def op_direct_unsubscribe(self, a: dict) -> dict:
+    async def op_direct_unsubscribe(self, args: dict) -> dict:
         """``{link, iid}``: release the claim (its entry goes when the far end says ``released``)."""
-        key = (int(a["link"]), int(a["iid"]))
+        key = (int(args["link"]), int(args["iid"]))
         link = self.links.get(key[0])
         if key in self.claims and link is not None and not link.closed.is_set():
             try:
@@ -213,7 +214,7 @@ class DirectLinks:
         self.claims.pop(key, None)
         return {}
 
-    async def op_direct_counts(self, a: dict) -> dict:
+    async def op_direct_counts(self, args: dict) -> dict:
         """``{}`` -> ``{iid: [messages, bytes, dropped]}`` since the node started."""
         return {str(iid): c for iid, c in self.counts.items()}
 
@@ -240,23 +241,23 @@ class DirectLinks:
         for link, *_ in (r.targets if r else ()):
             await link.drain()
 
-    def _on_frame(self, lid: int, f: framing.DataFrame | dict) -> None:
-        if isinstance(f, dict):
-            if "released" in f:
-                self.claims.pop((lid, f["released"]), None)
+    def _on_frame(self, lid: int, frame: framing.DataFrame | dict) -> None:
+        if isinstance(frame, dict):
+            if "released" in frame:
+                self.claims.pop((lid, frame["released"]), None)
                 return
-            raise ProtocolError(f"direct link {lid}: unexpected control frame {str(f)[:120]}")
-        claim = self.claims.get((lid, f.dst)) if f.op == framing.MSG else None
-        if claim is None or f.src not in claim[0]:
-            self.counts.setdefault(f.dst, [0, 0, 0])[2] += 1     # not for a claim of this link: dropped
+            raise ProtocolError(f"direct link {lid}: unexpected control frame {str(frame)[:120]}")
+        claim = self.claims.get((lid, frame.dst)) if frame.op == framing.MSG else None
+        if claim is None or frame.src not in claim[0]:
+            self.counts.setdefault(frame.dst, [0, 0, 0])[2] += 1     # not for a claim of this link: dropped
             return
-        payload = bytes(f.payload)
+        payload = bytes(frame.payload)
         subs = self.node._subs
         for h in claim[1]:
             sub = subs.get(h)
             if sub is not None:
                 sub._push(payload)
-        c = self.counts[f.dst]
+        c = self.counts[frame.dst]
         c[0] += 1
         c[1] += len(payload)
 

@@ -60,12 +60,12 @@ def ros1_name(cls: str) -> str:
     return "/".join(parts)
 
 
-def _of_class(c: Any) -> Ros1Message:
-    return Ros1Message(c._type, c._md5sum, c._full_text)
+def _of_class(cls: Any) -> Ros1Message:
+    return Ros1Message(cls._type, cls._md5sum, cls._full_text)
 
 
-def _of_service_class(c: Any) -> Ros1Service:
-    return Ros1Service(c._type, c._md5sum, _of_class(c._request_class), _of_class(c._response_class))
+def _of_service_class(cls: Any) -> Ros1Service:
+    return Ros1Service(cls._type, cls._md5sum, _of_class(cls._request_class), _of_class(cls._response_class))
 
 
 def _registry_message(registry: MessageRegistry, store_type: str, name: str) -> Ros1Message:

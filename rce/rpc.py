@@ -188,7 +188,7 @@ class RpcPeer:
             self.responder.serve(lambda: handler(args), _ignore, self._notification_refused(op), f"notification {op}")
         else:
             self.responder.serve(lambda: handler(args), lambda result: self._reply(rid, True, result=result),
-                                 lambda e: self._reply(rid, False, error=e.to_dict()), f"request {op}")
+                                 lambda error: self._reply(rid, False, error=error.to_dict()), f"request {op}")
 
     def _settle(self, msg: dict) -> None:
         rid = msg["re"]
@@ -200,8 +200,8 @@ class RpcPeer:
             self.calls.fail(rid, RCEError.from_dict(msg.get("error") or {}))
 
     def _notification_refused(self, op: str) -> Callable[[RCEError], None]:
-        def refused(e: RCEError) -> None:
-            log.warning("notification refused", peer=self.name, op=op, reason=e.message)
+        def refused(error: RCEError) -> None:
+            log.warning("notification refused", peer=self.name, op=op, reason=error.message)
         return refused
 
     def _reply(self, rid: Any, ok: bool, **kw) -> None:

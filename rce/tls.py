@@ -52,12 +52,12 @@ def server_context(cert_file: str | Path, key_file: str | Path) -> ssl.SSLContex
     return ctx
 
 
-def add_server_arguments(p: argparse.ArgumentParser, what: str) -> None:
+def add_server_arguments(parser: argparse.ArgumentParser, what: str) -> None:
     """Add ``--tls-cert FILE --tls-key FILE`` (both or neither) to a server's parser; ``what``: what
     it then serves over TLS (for the help)."""
-    p.add_argument("--tls-cert", type=Path, default=None, metavar="FILE",
+    parser.add_argument("--tls-cert", type=Path, default=None, metavar="FILE",
                    help=f"PEM certificate (chain): {what}; with --tls-key")
-    p.add_argument("--tls-key", type=Path, default=None, metavar="FILE", help="PEM private key of --tls-cert")
+    parser.add_argument("--tls-key", type=Path, default=None, metavar="FILE", help="PEM private key of --tls-cert")
 
 
 def server_context_from(args: argparse.Namespace) -> ssl.SSLContext | None:
@@ -68,9 +68,9 @@ def server_context_from(args: argparse.Namespace) -> ssl.SSLContext | None:
     return server_context(args.tls_cert, args.tls_key) if args.tls_cert else None
 
 
-def add_client_arguments(p: argparse.ArgumentParser) -> None:
+def add_client_arguments(parser: argparse.ArgumentParser) -> None:
     """Add ``--ca-file FILE`` to a client's parser (:func:`client_context`)."""
-    p.add_argument("--ca-file", type=Path, default=None, metavar="FILE",
+    parser.add_argument("--ca-file", type=Path, default=None, metavar="FILE",
                    help=f"PEM CA certificate(s) that signed the cloud's TLS certificate, for https:// and wss:// "
                         f"(default ${CA_FILE_ENV}, else the system's CAs)")
 
@@ -97,10 +97,10 @@ def for_url(url: str, ctx: ssl.SSLContext | None) -> ssl.SSLContext | None:
     return ctx if url.lower().startswith(("https:", "wss:")) else None
 
 
-def tls_failure(e: BaseException, where: str) -> str | None:
-    """A clear one-line reason when ``e`` is a TLS failure talking to ``where`` (a URL), else None:
+def tls_failure(error: BaseException, where: str) -> str | None:
+    """A clear one-line reason when ``error`` is a TLS failure talking to ``where`` (a URL), else None:
     an untrusted certificate names the fix (``--ca-file`` / ``$RCE_CA_FILE``)."""
-    cause = getattr(e, "certificate_error", None) or e
+    cause = getattr(error, "certificate_error", None) or error
     while cause is not None and not isinstance(cause, ssl.SSLError):
         cause = cause.__cause__ or cause.__context__ or getattr(cause, "os_error", None)
     if cause is None:

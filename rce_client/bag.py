@@ -121,7 +121,7 @@ async def record_container(conn: "Connection", ctag: str, topics: list[tuple[str
                   "className": cls, "addr": topic},
                  {"endpointTag": rid, "interfaceTag": r_tag, "interfaceType": "PublisherForwarder", "className": cls}]
         links.append({"tagA": f"{ctag}/{c_tag}", "tagB": f"{rid}/{r_tag}"})
-        conn.subscriber(r_tag, cls, lambda msg, t=topic, c=cls: bag.write(t, c, msg))
+        conn.subscriber(r_tag, cls, lambda msg, bag_topic=topic, bag_cls=cls: bag.write(bag_topic, bag_cls, msg))
         tags.append(r_tag)
     await conn.configure({"addInterfaces": adds})
     await conn.send("CX", {"connect": links})

@@ -159,7 +159,7 @@ class LocalBusGraph:
 
     Every robot-side graph (this one, :class:`rce_client.ros1_bridge.RospyGraph`) offers the same
     calls, all made in the loop: :meth:`start`, :meth:`close`, :meth:`subscribe`, :meth:`advertise`,
-    :meth:`advertise_service`, :meth:`call_service`. ``k`` is a :class:`_Kind`."""
+    :meth:`advertise_service`, :meth:`call_service`. ``kind`` is a :class:`_Kind`."""
 
     def __init__(self, bridge: "RobotBridge"):
         self.bridge, self.bus, self.path = bridge, bridge.bus, bridge.bus_path
@@ -194,25 +194,25 @@ class LocalBusGraph:
         except OSError:
             pass
 
-    def subscribe(self, k: _Kind, deliver: Callable[[bytes], bool]) -> None:
+    def subscribe(self, kind: _Kind, deliver: Callable[[bytes], bool]) -> None:
         """Hand every message on the local topic ``k.addr`` to ``deliver``."""
-        sub: Subscription = self.bus.subscribe(k.addr, k.bus_type, deliver, OWNER, QUEUE_SIZE)
+        sub: Subscription = self.bus.subscribe(kind.addr, kind.bus_type, deliver, OWNER, QUEUE_SIZE)
         self._undo.append(lambda: self.bus.unsubscribe(sub))
 
-    def advertise(self, k: _Kind) -> Callable[[bytes], None]:
+    def advertise(self, kind: _Kind) -> Callable[[bytes], None]:
         """Advertise the local topic ``k.addr``; returns its publish function (serialized bytes)."""
-        topic = self.bus.advertise(k.addr, k.bus_type, OWNER)
-        self._undo.append(lambda: self.bus.unadvertise(k.addr, OWNER))
+        topic = self.bus.advertise(kind.addr, kind.bus_type, OWNER)
+        self._undo.append(lambda: self.bus.unadvertise(kind.addr, OWNER))
         return lambda payload: self.bus.publish(topic, payload)
 
-    def advertise_service(self, k: _Kind, handler: Callable[[bytes], Awaitable[bytes]]) -> None:
+    def advertise_service(self, kind: _Kind, handler: Callable[[bytes], Awaitable[bytes]]) -> None:
         """Serve the local service ``k.addr`` with ``handler`` (request bytes -> response bytes)."""
-        self.bus.advertise_service(k.addr, k.bus_type, handler, OWNER)
-        self._undo.append(lambda: self.bus.unadvertise_service(k.addr, OWNER))
+        self.bus.advertise_service(kind.addr, kind.bus_type, handler, OWNER)
+        self._undo.append(lambda: self.bus.unadvertise_service(kind.addr, OWNER))
 
-    async def call_service(self, k: _Kind, payload: bytes) -> bytes:
+    async def call_service(self, kind: _Kind, payload: bytes) -> bytes:
         """Call the local service ``k.addr``; raises the bus's :class:`RCEError` on failure."""
-        return await self.bus.call_service(k.addr, payload, k.bus_type)
+        return await self.bus.call_service(kind.addr, payload, kind.bus_type)
 
 
 class RobotBridge:
@@ -234,8 +234,8 @@ class RobotBridge:
         self.timeout, self.keep, self.resume = timeout, keep, resume
         self.url = url or config.url
         self.registry = registry or default_registry()
-        self.out = out or (lambda s: print(s, flush=True))
-        self.err = err or (lambda s: print(s, file=sys.stderr, flush=True))
+        self.out = out or (lambda text: print(text, flush=True))
+        self.err = err or (lambda text: print(text, file=sys.stderr, flush=True))
         self.bus = Bus(f"robot {config.robotID}")
         self.graph = (graph or LocalBusGraph)(self)
         self.conn: Connection | None = None
@@ -381,49 +381,50 @@ class RobotBridge:
                 elif k.prefix == "ServiceProvider":
                     graph.advertise_service(k, self._cloud_service(k))
                 else:
-                    self._cloud_calls(k, lambda payload, k=k: graph.call_service(k, payload))
+                    self._cloud_calls(k, lambda payload, kind=k: graph.call_service(kind, payload))
             except RCEError as e:
                 raise ConfigError(f"{self.source}: interface {k.spec.iTag} at {k.addr}: {e.message}") from None
             log.info("bridged", itag=k.spec.iTag, itype=k.spec.iType, addr=k.addr)
 
-    def _from_cloud(self, k: _Kind, publish: Callable[[bytes], Any]) -> None:
+    def _from_cloud(self, kind: _Kind, publish: Callable[[bytes], Any]) -> None:
         """PublisherConverter/Forwarder: DMs from the cloud published (serialized) with ``publish``."""
         reg = self.registry
 
         def on_msg(msg: Message) -> None:
             try:
-                payload = bytes(msg) if isinstance(msg, (bytes, bytearray)) else reg.json_to_bytes(k.types[0], msg)
+                payload = bytes(msg) if isinstance(msg, (bytes, bytearray)) else reg.json_to_bytes(kind.types[0], msg)
             except (RCEError, IndexError) as e:
-                self.not_published[k.spec.iTag] = self.not_published.get(k.spec.iTag, 0) + 1
-                log.warning("message from the cloud not published", itag=k.spec.iTag, topic=k.addr,
+                self.not_published[kind.spec.iTag] = self.not_published.get(kind.spec.iTag, 0) + 1
+                log.warning("message from the cloud not published", itag=kind.spec.iTag, topic=kind.addr,
                             reason=getattr(e, "message", repr(e)))
                 return
             publish(payload)
-        self.conn.subscriber(k.spec.iTag, k.spec.iCls, on_msg)
+        self.conn.subscriber(kind.spec.iTag, kind.spec.iCls, on_msg)
 
-    def _cloud_service(self, k: _Kind) -> Callable[[bytes], Awaitable[bytes]]:
+    def _cloud_service(self, kind: _Kind) -> Callable[[bytes], Awaitable[bytes]]:
         """ServiceProviderConverter/Forwarder: the handler of the robot-side service ``k.addr``, whose
         calls (request bytes -> response bytes) go to the cloud. Raises :class:`RCEError`."""
-        client = self.conn.service(k.spec.iTag, k.spec.iCls)
-        reg, itag = self.registry, k.spec.iTag
+        client = self.conn.service(kind.spec.iTag, kind.spec.iCls)
+        reg, itag = self.registry, kind.spec.iTag
 
         async def handler(payload: bytes) -> bytes:
             if not self.conn.interfaces.get(itag):
-                raise Unavailable(f"service {k.addr}: interface {itag} is not connected to the cloud")
-            if k.forwarder:
+                raise Unavailable(f"service {kind.addr}: interface {itag} is not connected to the cloud")
+            if kind.forwarder:
                 resp = await client.call(payload, timeout=None)
                 if isinstance(resp, (bytes, bytearray)):
                     return bytes(resp)
-                if not k.types:
-                    raise MessageError(f"service {k.addr}: the cloud answered JSON for unknown class {k.spec.iCls}")
-                return reg.json_to_bytes(k.types[1], resp)
-            resp = await client.call(reg.bytes_to_json(k.types[0], payload), timeout=None)
+                if not kind.types:
+                    raise MessageError(f"service {kind.addr}: the cloud answered JSON for unknown class "
+                                       f"{kind.spec.iCls}")
+                return reg.json_to_bytes(kind.types[1], resp)
+            resp = await client.call(reg.bytes_to_json(kind.types[0], payload), timeout=None)
             if isinstance(resp, (bytes, bytearray)):
                 return bytes(resp)
-            return reg.json_to_bytes(k.types[1], resp)
+            return reg.json_to_bytes(kind.types[1], resp)
         return handler
 
-    def _cloud_calls(self, k: _Kind, call_local: Callable[[bytes], Awaitable[bytes]]) -> None:
+    def _cloud_calls(self, kind: _Kind, call_local: Callable[[bytes], Awaitable[bytes]]) -> None:
         """ServiceClientConverter/Forwarder: the cloud's calls run against the robot-side service
         with ``call_local`` (request bytes -> response bytes)."""
         reg = self.registry
@@ -431,13 +432,13 @@ class RobotBridge:
         async def handler(req: Message) -> Message:
             if isinstance(req, (bytes, bytearray)):
                 payload = bytes(req)
-            elif k.types:
-                payload = reg.json_to_bytes(k.types[0], req)
+            elif kind.types:
+                payload = reg.json_to_bytes(kind.types[0], req)
             else:
-                raise MessageError(f"service {k.addr}: JSON request for unknown class {k.spec.iCls}")
+                raise MessageError(f"service {kind.addr}: JSON request for unknown class {kind.spec.iCls}")
             resp = await call_local(payload)
-            return resp if k.forwarder else reg.bytes_to_json(k.types[1], resp)
-        self.conn.service_provider(k.spec.iTag, k.spec.iCls, handler)
+            return resp if kind.forwarder else reg.bytes_to_json(kind.types[1], resp)
+        self.conn.service_provider(kind.spec.iTag, kind.spec.iCls, handler)
 
     def _on_status(self, st: dict) -> None:
         if st.get("topic") == "iu":

@@ -133,12 +133,12 @@ class RospyGraph:
         self._started = True
         self.bridge.out(f"rce-ros: ROS 1 node {self.rospy.get_name()} on the master at {uri}")
 
-    def _resolve(self, k: Any) -> type:
-        reg, where = self.bridge.registry, f"{self.bridge.source}: interface {k.spec.iTag} ({k.spec.iCls})"
+    def _resolve(self, kind: Any) -> type:
+        reg, where = self.bridge.registry, f"{self.bridge.source}: interface {kind.spec.iTag} ({kind.spec.iCls})"
         try:
-            if k.prefix in ("ServiceClient", "ServiceProvider"):
-                return raw_service_class(service_identity(k.spec.iCls, reg))
-            return raw_message_class(message_identity(k.spec.iCls, reg))
+            if kind.prefix in ("ServiceClient", "ServiceProvider"):
+                return raw_service_class(service_identity(kind.spec.iCls, reg))
+            return raw_message_class(message_identity(kind.spec.iCls, reg))
         except ConfigError as e:
             raise ConfigError(f"{where}: {e.message}") from None
 
@@ -181,23 +181,23 @@ class RospyGraph:
                             f"{c.dropped} dropped, {c.bad} failed")
 
     # -- topics ------------------------------------------------------------------------------
-    def subscribe(self, k: Any, deliver: Callable[[bytes], bool]) -> None:
+    def subscribe(self, kind: Any, deliver: Callable[[bytes], bool]) -> None:
         """ROS 1 topic ``k.addr`` -> ``deliver`` (in the loop), the serialized bytes untouched. What this
         node itself publishes on ``k.addr`` (a Publisher interface at the same ``addr``) is not sent
         back to the cloud (rospy delivers a node's own messages to its subscribers)."""
-        handoff, me = Handoff(self.loop, deliver, self.counts[k.spec.iTag]), self.rospy.get_name()
+        handoff, me = Handoff(self.loop, deliver, self.counts[kind.spec.iTag]), self.rospy.get_name()
 
         def on_ros(msg: Any) -> None:
             header = getattr(msg, "_connection_header", None) or {}
             if header.get("callerid") != me:
                 handoff.offer(msg._buff)
-        sub = self.rospy.Subscriber(k.addr, self.classes[k.spec.iTag], on_ros, queue_size=QUEUE_SIZE)
+        sub = self.rospy.Subscriber(kind.addr, self.classes[kind.spec.iTag], on_ros, queue_size=QUEUE_SIZE)
         self._handles.append(sub.unregister)
 
-    def advertise(self, k: Any) -> Callable[[bytes], None]:
+    def advertise(self, kind: Any) -> Callable[[bytes], None]:
         """Advertise ROS 1 topic ``k.addr``; returns its publish function (serialized bytes)."""
-        cls, counts = self.classes[k.spec.iTag], self.counts[k.spec.iTag]
-        pub = self.rospy.Publisher(k.addr, cls, queue_size=QUEUE_SIZE)
+        cls, counts = self.classes[kind.spec.iTag], self.counts[kind.spec.iTag]
+        pub = self.rospy.Publisher(kind.addr, cls, queue_size=QUEUE_SIZE)
         self._handles.append(pub.unregister)
 
         def publish(payload: bytes) -> None:
@@ -206,14 +206,14 @@ class RospyGraph:
                 counts.add(to_ros=1)
             except self.rospy.ROSException as e:       # shut down, or unregistered
                 counts.add(dropped=1)
-                log.warning("message not published to ROS 1", itag=k.spec.iTag, topic=k.addr, reason=str(e))
+                log.warning("message not published to ROS 1", itag=kind.spec.iTag, topic=kind.addr, reason=str(e))
         return publish
 
     # -- services ----------------------------------------------------------------------------
-    def advertise_service(self, k: Any, handler: Callable[[bytes], Awaitable[bytes]]) -> None:
+    def advertise_service(self, kind: Any, handler: Callable[[bytes], Awaitable[bytes]]) -> None:
         """Serve ROS 1 service ``k.addr``: each call (in a rospy thread) runs ``handler`` in the loop
         and waits up to ``SERVICE_CALL_TIMEOUT`` s; a failure is the caller's ServiceException."""
-        cls, counts, rospy = self.classes[k.spec.iTag], self.counts[k.spec.iTag], self.rospy
+        cls, counts, rospy = self.classes[kind.spec.iTag], self.counts[kind.spec.iTag], self.rospy
 
         def serve(req: Any) -> Any:
             counts.add(from_ros=1)
@@ -228,31 +228,31 @@ class RospyGraph:
             except Exception as e:        # the loop is closing, or a fault in a conversion: the call fails alone
                 reason = f"{type(e).__name__}: {e}"
             counts.add(bad=1)
-            log.warning("ROS 1 service call failed", itag=k.spec.iTag, service=k.addr, reason=reason)
+            log.warning("ROS 1 service call failed", itag=kind.spec.iTag, service=kind.addr, reason=reason)
             raise rospy.ServiceException(f"rce: {reason}")
-        self._handles.append(rospy.Service(k.addr, cls, serve).shutdown)
+        self._handles.append(rospy.Service(kind.addr, cls, serve).shutdown)
 
-    async def call_service(self, k: Any, payload: bytes) -> bytes:
+    async def call_service(self, kind: Any, payload: bytes) -> bytes:
         """Call ROS 1 service ``k.addr`` with the serialized request; returns the serialized response.
         Raises :class:`RequestError` (the service's failure, or it is not there), :class:`Unavailable`
         (``CALLS_IN_FLIGHT`` calls already running, or no answer within ``SERVICE_CALL_TIMEOUT`` s)."""
-        itag = k.spec.iTag
+        itag = kind.spec.iTag
         cls, counts = self.classes[itag], self.counts[itag]
         if self._calls.get(itag, 0) >= CALLS_IN_FLIGHT:
             counts.add(dropped=1)
-            raise Unavailable(f"ROS 1 service {k.addr}: {CALLS_IN_FLIGHT} calls already in flight")
+            raise Unavailable(f"ROS 1 service {kind.addr}: {CALLS_IN_FLIGHT} calls already in flight")
         self._calls[itag] = self._calls.get(itag, 0) + 1
         counts.add(to_ros=1)
-        proxy = self.rospy.ServiceProxy(k.addr, cls)
+        proxy = self.rospy.ServiceProxy(kind.addr, cls)
         try:
             resp = await asyncio.wait_for(asyncio.to_thread(proxy.call, cls._request_class.wrap(payload)),
                                           SERVICE_CALL_TIMEOUT)
         except asyncio.TimeoutError:
             counts.add(bad=1)
-            raise Unavailable(f"ROS 1 service {k.addr}: no answer within {SERVICE_CALL_TIMEOUT} s") from None
+            raise Unavailable(f"ROS 1 service {kind.addr}: no answer within {SERVICE_CALL_TIMEOUT} s") from None
         except (self.rospy.ServiceException, self.rospy.ROSException) as e:
             counts.add(bad=1)
-            raise RequestError(f"ROS 1 service {k.addr}: {e}") from None
+            raise RequestError(f"ROS 1 service {kind.addr}: {e}") from None
         finally:
             self._calls[itag] -= 1
         counts.add(from_ros=1)

@@ -73,9 +73,9 @@ class _Dumper(yaml.SafeDumper):
     pass
 
 
-def _str_repr(dumper: yaml.SafeDumper, s: str):
-    style = "|" if "\n" in s else None
-    return dumper.represent_scalar("tag:yaml.org,2002:str", s, style=style)
+def _str_repr(dumper: yaml.SafeDumper, text: str):
+    style = "|" if "\n" in text else None
+    return dumper.represent_scalar("tag:yaml.org,2002:str", text, style=style)
 
 
 _Dumper.add_representer(str, _str_repr)
@@ -141,13 +141,14 @@ class LocalBus:
     async def subscribe(self, topic: str, type_: str, cb: Callable[[dict], Any], queue_size: int = 1000) -> None:
         reg = self.node.registry
         store = reg.msg_type(type_)
-        await self.node.subscriber(topic, type_, lambda m: cb(reg.to_json(store, m)), queue_size=queue_size)
+        await self.node.subscriber(topic, type_, lambda msg: cb(reg.to_json(store, msg)), queue_size=queue_size)
 
     async def subscribe_raw(self, topic: str, type_: str, cb: Callable[[bytes], Any], queue_size: int) -> Any:
         """Subscribe ``cb(serialized bytes)``; returns the subscriber (its ``dropped`` counts overflow)."""
         reg = self.node.registry
         store = reg.msg_type(type_)
-        return await self.node.subscriber(topic, type_, lambda m: cb(reg.serialize(store, m)), queue_size=queue_size)
+        return await self.node.subscriber(topic, type_, lambda msg: cb(reg.serialize(store, msg)),
+                                          queue_size=queue_size)
 
     async def call(self, service: str, type_: str, request: dict, timeout: float) -> dict:
         reg = self.node.registry
@@ -248,9 +249,9 @@ async def _topic_type(backend, topic: str, explicit: str | None, wait: bool, err
 
 
 # -- commands ---------------------------------------------------------------------------------
-def _common(p: argparse.ArgumentParser, suppress: bool) -> None:
+def _common(parser: argparse.ArgumentParser, suppress: bool) -> None:
     d = {"default": argparse.SUPPRESS} if suppress else {"default": None}
-    g = p.add_argument_group("bus")
+    g = parser.add_argument_group("bus")
     g.add_argument("--bus", metavar="PATH", help="local bus socket (default $RCE_BUS)", **d)
     g.add_argument("--container", metavar="CTAG", help="a container's bus, through the master's admin API", **d)
     g.add_argument("--master", metavar="URL", help="master URL for --container (http://HOST:9000/)", **d)
@@ -321,12 +322,12 @@ def service_parser() -> argparse.ArgumentParser:
     return p
 
 
-def _out(s: str) -> None:
-    print(s, flush=True)
+def _out(text: str) -> None:
+    print(text, flush=True)
 
 
-def _err(s: str) -> None:
-    print(s, file=sys.stderr, flush=True)
+def _err(text: str) -> None:
+    print(text, file=sys.stderr, flush=True)
 
 
 async def topic_cmd(args: argparse.Namespace, backend) -> int:
@@ -389,7 +390,8 @@ async def _record(args, backend) -> int:
             typename = backend.registry.msg_type(cls)
             _err(f"recording {topic} [{cls}]")
             if not isinstance(backend, AdminBus):
-                subs.append(await backend.subscribe_raw(topic, cls, lambda p: got(topic, cls, p), RECORD_QUEUE))
+                subs.append(await backend.subscribe_raw(topic, cls, lambda payload: got(topic, cls, payload),
+                                                        RECORD_QUEUE))
                 return
             while not stop.is_set():
                 for m in await backend.sample(topic, 1, RECORD_SAMPLE_TIMEOUT, cls):

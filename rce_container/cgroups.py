@@ -82,8 +82,8 @@ def parse_mountinfo(text: str) -> list[Mount]:
     return out
 
 
-def _unescape(s: str) -> str:
-    return s.replace("\\040", " ").replace("\\011", "\t").replace("\\012", "\n").replace("\\134", "\\")
+def _unescape(text: str) -> str:
+    return text.replace("\\040", " ").replace("\\011", "\t").replace("\\012", "\n").replace("\\134", "\\")
 
 
 def parse_proc_cgroup(text: str) -> dict[str, str]:
@@ -433,30 +433,30 @@ class CgroupSet:
         return left
 
 
-def _enable_v2(d: Path) -> None:
+def _enable_v2(directory: Path) -> None:
     try:
-        have = set(_read(d / "cgroup.subtree_control").split())
-        ctrls = set(_read(d / "cgroup.controllers").split())
+        have = set(_read(directory / "cgroup.subtree_control").split())
+        ctrls = set(_read(directory / "cgroup.controllers").split())
     except OSError:
         return
     add = [c for c in V2_CONTROLLERS if c in ctrls and c not in have]
     if add:
         try:
-            _write(d / "cgroup.subtree_control", " ".join("+" + c for c in add))
+            _write(directory / "cgroup.subtree_control", " ".join("+" + c for c in add))
         except OSError as e:
-            log.warning("cannot enable cgroup controllers", dir=str(d), controllers=add, reason=e.strerror)
+            log.warning("cannot enable cgroup controllers", dir=str(directory), controllers=add, reason=e.strerror)
 
 
-def _tree(d: Path) -> list[Path]:
-    """``d`` and every cgroup below it, deepest first; [] when ``d`` is gone (another cleanup,
+def _tree(directory: Path) -> list[Path]:
+    """``directory`` and every cgroup below it, deepest first; [] when ``directory`` is gone (another cleanup,
     e.g. of a crashed environment, may be removing the same tree)."""
     try:
-        subs = [p for p in d.rglob("*") if p.is_dir()] if d.is_dir() else None
+        subs = [p for p in directory.rglob("*") if p.is_dir()] if directory.is_dir() else None
     except OSError:
         subs = None
     if subs is None:
         return []
-    return [*sorted(subs, key=lambda p: len(p.parts), reverse=True), d]
+    return [*sorted(subs, key=lambda path: len(path.parts), reverse=True), directory]
 
 
 def tree_pids(dirs: list[Path]) -> set[int]:

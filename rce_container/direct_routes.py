@@ -51,7 +51,7 @@ from rce.tasks import Tasks
 from rce_container.interfaces import BusInterface, PublisherInterface, SubscriberInterface
 
 if TYPE_CHECKING:
-    from rce.bus.server import _Session
+    from rce.bus.server import NodeSession
 
 log = get_logger("rce.container.direct")
 
@@ -90,7 +90,7 @@ class DirectRoutes:
 
     def __init__(self, env: Any):
         self.env = env
-        self.states: dict[_Session, _NodeState] = {}
+        self.states: dict[NodeSession, _NodeState] = {}
         self.tasks = Tasks("direct routes")
         self._dirty = asyncio.Event()
         self._links = itertools.count(1)
@@ -111,7 +111,7 @@ class DirectRoutes:
         """Something the routes depend on changed: recompute them soon."""
         self._dirty.set()
 
-    def link_closed(self, session: _Session, lid: int) -> None:
+    def link_closed(self, session: NodeSession, lid: int) -> None:
         """``direct_closed {link}`` from ``session``'s node: forget the link, recompute."""
         st = self.states.get(session)
         if st is not None:
@@ -140,7 +140,7 @@ class DirectRoutes:
                 log.error("direct routes: reconcile failed", exc_info=e)
 
     # -- the routes ------------------------------------------------------------------------------
-    def _sessions(self) -> list[_Session]:
+    def _sessions(self) -> list[NodeSession]:
         return [s for c in list(self.env.containers.values()) for s in c.server.sessions
                 if s.direct and s.fd_sock is not None and not s.peer.closed.is_set()]
 
@@ -169,16 +169,16 @@ class DirectRoutes:
                 self.route_failures += 1
                 log.debug("direct routes: a node did not take its routes", node=s.node, reason=e.message)
 
-    def _wanted_claims(self, sessions: list[_Session], publishers: list[PublisherInterface]) -> dict:
+    def _wanted_claims(self, sessions: list[NodeSession], publishers: list[PublisherInterface]) -> dict:
         """``{session: {(addr, iid): (peers, handles, gen, size)}}``: the claims the rules want now.
         A claim set keeps its generation while its members, their handles and the peers stay."""
         node_subs = {sub: s for s in sessions for sub in s.subs.values()}
-        out: dict[_Session, dict] = {}
+        out: dict[NodeSession, dict] = {}
         for x in publishers:
             subs = x.topic.subscriptions
             if not subs or not all(sub in node_subs for sub in subs):
                 continue
-            members: dict[_Session, tuple[int, ...]] = {}
+            members: dict[NodeSession, tuple[int, ...]] = {}
             for s in {node_subs[sub] for sub in subs}:
                 members[s] = tuple(sorted(h for h, sub in s.subs.items() if sub.topic is x.topic))
             by_addr: dict[str, tuple[int, ...]] = {}
@@ -201,48 +201,50 @@ class DirectRoutes:
         return sorted((peer, addr) for peer, addr in iface.peers.items()
                       if (iface.iid, peer) in self.env.plane.credentials)
 
-    async def _publisher(self, s: _Session, st: _NodeState, h: int, subs: list[Subscription],
+    async def _publisher(self, session: NodeSession, st: _NodeState, handle: int, subs: list[Subscription],
                          served_by: dict[Subscription, SubscriberInterface]) -> None:
         served = [sub for sub in subs if sub in served_by]
         targets = sorted((addr, peer, served_by[sub].iid) for sub in served
                          for peer, addr in self._sendable(served_by[sub]))
         local = len(served) < len(subs)
         key = (tuple(targets), local, frozenset(a for a, _, _ in targets))
-        if st.pubs.get(h, ((), True, frozenset())) == key:
+        if st.pubs.get(handle, ((), True, frozenset())) == key:
             return
-        links = {addr: await self._link(s, st, addr) for addr in key[2]}
+        links = {addr: await self._link(session, st, addr) for addr in key[2]}
         if not all(links.values()):
             targets, key = [], ((), True, frozenset())      # a far plane is unreachable: all by the bus
         if not targets:
-            await s.peer.call("direct_publish", timeout=CALL_TIMEOUT, handle=h, version=0, targets=[],
+            await session.peer.call("direct_publish", timeout=CALL_TIMEOUT, handle=handle, version=0, targets=[],
                               local=True, grants=[])
-            s.routes.pop(h, None)
-            st.pubs[h] = key
+            session.routes.pop(handle, None)
+            st.pubs[handle] = key
             return
         grants = self._grants([(links[addr], src, dst) for addr, dst, src in targets])
         version = next(self._versions)
         reached = {src for _, _, src in targets}
-        s.routes.setdefault(h, {})[version] = frozenset(sub for sub in served if served_by[sub].iid in reached)
-        await s.peer.call("direct_publish", timeout=CALL_TIMEOUT, handle=h, version=version, local=local,
+        session.routes.setdefault(handle, {})[version] = frozenset(sub for sub in served
+                                                                   if served_by[sub].iid in reached)
+        await session.peer.call("direct_publish", timeout=CALL_TIMEOUT, handle=handle, version=version, local=local,
                           targets=[[links[addr].lid, dst, src] for addr, dst, src in targets], grants=grants)
-        s.routes[h] = {version: s.routes[h][version]}     # frames of older versions have all arrived
-        st.pubs[h] = key
+        # frames of older versions have all arrived
+        session.routes[handle] = {version: session.routes[handle][version]}
+        st.pubs[handle] = key
 
-    async def _claims(self, s: _Session, st: _NodeState, wanted: dict) -> None:
+    async def _claims(self, session: NodeSession, st: _NodeState, wanted: dict) -> None:
         for key in [k for k in st.claims if k not in wanted]:
             nl = st.links.get(key[0])
             del st.claims[key]
             if nl is not None:
-                await s.peer.call("direct_unsubscribe", timeout=CALL_TIMEOUT, link=nl.lid, iid=key[1])
+                await session.peer.call("direct_unsubscribe", timeout=CALL_TIMEOUT, link=nl.lid, iid=key[1])
         for (addr, iid), claim in wanted.items():
             if st.claims.get((addr, iid)) == claim:
                 continue
-            nl = await self._link(s, st, addr)
+            nl = await self._link(session, st, addr)
             if nl is None:
                 continue
             peers, handles, gen, size = claim
             grants = self._grants([(nl, iid, peer) for peer in peers])
-            await s.peer.call("direct_subscribe", timeout=CALL_TIMEOUT, link=nl.lid, iid=iid, peers=list(peers),
+            await session.peer.call("direct_subscribe", timeout=CALL_TIMEOUT, link=nl.lid, iid=iid, peers=list(peers),
                               handles=list(handles), gen=gen, size=size, grants=grants)
             st.claims[(addr, iid)] = claim
 
@@ -257,8 +259,8 @@ class DirectRoutes:
         return out
 
     # -- links -----------------------------------------------------------------------------------
-    async def _link(self, s: _Session, st: _NodeState, addr: str) -> _NodeLink | None:
-        """``s``'s node's direct link to ``addr``, dialled and handed over if it has none; None
+    async def _link(self, session: NodeSession, st: _NodeState, addr: str) -> _NodeLink | None:
+        """``session``'s node's direct link to ``addr``, dialled and handed over if it has none; None
         if ``addr`` cannot be reached now (retried after :data:`RETRY`)."""
         nl = st.links.get(addr)
         if nl is not None:
@@ -276,14 +278,14 @@ class DirectRoutes:
             return None
         lid = next(self._links)
         try:
-            if s.fd_sock is None:
+            if session.fd_sock is None:
                 raise OSError("its fd channel is closed")
-            socket.send_fds(s.fd_sock, [LINK_ID.pack(lid)], [sock.fileno()])
+            socket.send_fds(session.fd_sock, [LINK_ID.pack(lid)], [sock.fileno()])
         except OSError as e:
-            raise ProtocolError(f"cannot pass a direct link to node {s.node!r}: {e}") from None
+            raise ProtocolError(f"cannot pass a direct link to node {session.node!r}: {e}") from None
         finally:
             sock.close()                  # the node holds its own copy now
-        await s.peer.call("direct_link", timeout=CALL_TIMEOUT, link=lid, name=addr)
+        await session.peer.call("direct_link", timeout=CALL_TIMEOUT, link=lid, name=addr)
         nl = st.links[addr] = _NodeLink(lid, addr, nonce)
         self.links_opened += 1
         return nl

@@ -73,12 +73,12 @@ def expand_directives(text: str, env: dict[str, str] | None = None,
     arguments."""
     env = os.environ if env is None else env
 
-    def sub(m: re.Match) -> str:
-        kind, args = m.group(1), m.group(2).split()
+    def sub(match: re.Match) -> str:
+        kind, args = match.group(1), match.group(2).split()
         if kind == "optenv" and args and allowed is not None and args[0] not in allowed:
             return " ".join(args[1:])          # a variable it may not read is, to it, not set
         if kind == "env" and len(args) == 1 and allowed is not None and args[0] not in allowed:
-            raise RequestError(f"{m.group(0)}: node args may not read {args[0]!r}; $(env X) and $(optenv X) "
+            raise RequestError(f"{match.group(0)}: node args may not read {args[0]!r}; $(env X) and $(optenv X) "
                                f"read only the node's own variables {', '.join(sorted(allowed))}")
         if kind == "find" and len(args) == 1:
             return str(find_package(args[0], env))
@@ -88,7 +88,7 @@ def expand_directives(text: str, env: dict[str, str] | None = None,
             return env[args[0]]
         if kind == "optenv" and len(args) >= 1:
             return env.get(args[0], " ".join(args[1:]))
-        raise RequestError(f"unsupported substitution {m.group(0)!r}: expected $(find PKG), "
+        raise RequestError(f"unsupported substitution {match.group(0)!r}: expected $(find PKG), "
                            "$(env VAR) or $(optenv VAR [default])")
     return _DIRECTIVE.sub(sub, text)
 
@@ -112,8 +112,8 @@ def build_args(args: str | list | None, env: dict[str, str] | None = None,
     # Protect directives (which contain spaces) from the shell split, then expand per word.
     found: list[str] = []
 
-    def hide(m: re.Match) -> str:
-        found.append(m.group(0))
+    def hide(match: re.Match) -> str:
+        found.append(match.group(0))
         return f"\x00{len(found) - 1}\x00"
     hidden = _DIRECTIVE.sub(hide, args)
     try:
@@ -123,7 +123,7 @@ def build_args(args: str | list | None, env: dict[str, str] | None = None,
     restore = re.compile("\x00(\\d+)\x00")
     out = []
     for w in words:
-        value = expand_directives(restore.sub(lambda m: found[int(m.group(1))], w), env, allowed)
+        value = expand_directives(restore.sub(lambda match: found[int(match.group(1))], w), env, allowed)
         if value or not restore.fullmatch(w):    # a lone directive that expands to "" is no argument
             out.append(value)
     return out

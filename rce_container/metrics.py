@@ -101,31 +101,31 @@ def _families() -> dict:
     }
 
 
-def _add_container(fam: dict, c: dict) -> None:
+def _add_container(fam: dict, container: dict) -> None:
     """Add one container's stats (and its nodes') to the families of :func:`_families`."""
-    lab = [c.get("user", ""), c.get("ctag", "")]
-    fam["cpu"].add_metric(lab, c.get("cpu_percent", 0.0))
-    fam["rss"].add_metric(lab, c.get("rss_mib", 0.0) * 2**20)
-    fam["procs"].add_metric(lab, c.get("processes", 0))
-    limits = c.get("limits") or {}
+    lab = [container.get("user", ""), container.get("ctag", "")]
+    fam["cpu"].add_metric(lab, container.get("cpu_percent", 0.0))
+    fam["rss"].add_metric(lab, container.get("rss_mib", 0.0) * 2**20)
+    fam["procs"].add_metric(lab, container.get("processes", 0))
+    limits = container.get("limits") or {}
     if limits.get("cpu"):
         fam["lcpu"].add_metric(lab, limits["cpu"])
     if limits.get("memory"):
         fam["lmem"].add_metric(lab, limits["memory"] * 2**20)
     if limits.get("pids"):
         fam["ltasks"].add_metric(lab, limits["pids"])
-    fam["oom"].add_metric(lab, (c.get("memory") or {}).get("oom_kills", 0))
+    fam["oom"].add_metric(lab, (container.get("memory") or {}).get("oom_kills", 0))
     for key, stat in (("min", "msgs_in"), ("mout", "msgs_out"), ("bin", "bytes_in"), ("bout", "bytes_out")):
-        fam[key].add_metric(lab, c.get(stat, 0))
-    for where, n in (c.get("dropped") or {}).items():
+        fam[key].add_metric(lab, container.get(stat, 0))
+    for where, n in (container.get("dropped") or {}).items():
         fam["drop"].add_metric([*lab, where], n)
-    env = c.get("environment") or {}
+    env = container.get("environment") or {}
     plane = env.get("dataplane") or {}
     for where, n in (("bus", (env.get("bus") or {}).get("refused")), ("dataplane", plane.get("refused")),
                      ("dataplane_link", plane.get("unauthenticated"))):
         if n is not None:
             fam["refused"].add_metric([*lab, where], n)
-    for ntag, n in (c.get("per_node") or {}).items():
+    for ntag, n in (container.get("per_node") or {}).items():
         nl = [*lab, ntag]
         fam["ncpu"].add_metric(nl, n.get("cpu_percent", 0.0))
         fam["nrss"].add_metric(nl, n.get("rss_mib", 0.0) * 2**20)

@@ -64,7 +64,7 @@ def _inside(path: str, parent: str) -> bool:
 
 def closed_ancestor(path: str, mode_of: Callable[[str], int] | None = None) -> str | None:
     """The highest proper ancestor of ``path`` that other users cannot enter (no ``o+x``), or None."""
-    mode_of = mode_of or (lambda p: os.stat(p).st_mode)
+    mode_of = mode_of or (lambda path: os.stat(path).st_mode)
     parts = Path(path).parts
     for i in range(1, len(parts) - 1):
         d = str(Path(*parts[:i + 1]))
@@ -94,7 +94,7 @@ def plan(workdir: str | Path, socket_dir: str | Path, readable: list[str],
             opts.setdefault(closed, SKELETON_OPTS)
     keeps = [workdir, socket_dir, *readable]
     masks: dict[str, list[str]] = {}
-    for d in sorted(opts, key=lambda d: (len(Path(d).parts), d)):
+    for d in sorted(opts, key=lambda target: (len(Path(target).parts), target)):
         outer = next((m for m in masks if _inside(d, m)), None)
         if outer is not None and not any(k == d or _inside(d, k) for k in masks[outer]):
             continue                          # already hidden by the outer mask

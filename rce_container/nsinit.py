@@ -40,8 +40,8 @@ _libc = ctypes.CDLL(None, use_errno=True)
 _libc.mount.argtypes = [ctypes.c_char_p, ctypes.c_char_p, ctypes.c_char_p, ctypes.c_ulong, ctypes.c_char_p]
 
 
-def _enc(s):
-    return s.encode() if s is not None else None
+def _enc(text):
+    return text.encode() if text is not None else None
 
 
 def mount(src, target, fstype, flags, data=None):

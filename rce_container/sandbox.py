@@ -36,6 +36,7 @@ import signal
 import subprocess
 import sys
 import time
+from operator import attrgetter
 from pathlib import Path
 from typing import ClassVar
 
@@ -561,7 +562,7 @@ def select(kind: str = "auto", check: bool = True) -> type[Sandbox]:
     unavailable kind."""
     if kind == "auto":
         usable = [c for c in REGISTRY.values() if c.available()]
-        return max(usable, key=lambda c: c.priority)
+        return max(usable, key=attrgetter("priority"))
     cls = REGISTRY.get(kind)
     if cls is None:
         raise ConfigError(f"unknown sandbox {kind!r}: expected auto or one of {', '.join(sorted(REGISTRY))}")

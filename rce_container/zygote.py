@@ -101,13 +101,13 @@ def _send(sock: socket.socket, msg: dict) -> None:
     sock.send(json.dumps(msg).encode())
 
 
-def _exit_code(e: SystemExit) -> int:
+def _exit_code(stop: SystemExit) -> int:
     """What the interpreter would exit with for ``sys.exit(e.code)``."""
-    if e.code is None:
+    if stop.code is None:
         return 0
-    if isinstance(e.code, int):
-        return e.code & 0xFF
-    print(e.code, file=sys.stderr)
+    if isinstance(stop.code, int):
+        return stop.code & 0xFF
+    print(stop.code, file=sys.stderr)
     return 1
 
 

@@ -265,8 +265,8 @@ class ZygoteClient:
         loop = asyncio.get_running_loop()
         for fd in (out_r, err_r):
             reader = asyncio.StreamReader(limit=STREAM_LIMIT)
-            transport, _ = await loop.connect_read_pipe(lambda r=reader: asyncio.StreamReaderProtocol(r),
-                                                        os.fdopen(fd, "rb", 0))
+            transport, _ = await loop.connect_read_pipe(
+                lambda pipe_reader=reader: asyncio.StreamReaderProtocol(pipe_reader), os.fdopen(fd, "rb", 0))
             streams.append(reader)
             transports.append(transport)
         child = ZygoteChild(msg["host_pid"], *streams, transports)

@@ -49,14 +49,14 @@ COLUMNS = {
 }
 
 
-def _cell(v: Any) -> str:
-    if v is None:
+def _cell(value: Any) -> str:
+    if value is None:
         return ""
-    if isinstance(v, float) and v > 1e9:   # timestamps
-        return time.strftime("%H:%M:%S", time.localtime(v))
-    if isinstance(v, (dict, list)):
-        return json.dumps(v, separators=(",", ":"))
-    return str(v)
+    if isinstance(value, float) and value > 1e9:   # timestamps
+        return time.strftime("%H:%M:%S", time.localtime(value))
+    if isinstance(value, (dict, list)):
+        return json.dumps(value, separators=(",", ":"))
+    return str(value)
 
 
 def table(title: str, rows: list[dict], columns: list[str]) -> Table:
@@ -107,10 +107,10 @@ def top_table(client: AdminClient) -> Table:
     return table("containers", top_rows(client), TOP_COLUMNS)
 
 
-def _flatten_stats(s: dict) -> dict:
+def _flatten_stats(stats: dict) -> dict:
     out = {}
     for k in ("cpu_percent", "rss_mib", "processes", "msgs_in", "msgs_out", "bytes_in", "bytes_out", "dropped"):
-        v = s.get(k)
+        v = stats.get(k)
         if isinstance(v, dict):           # dropped: {interfaces, bus}
             v = sum(x for x in v.values() if isinstance(x, (int, float)))
         if isinstance(v, float):

@@ -45,19 +45,19 @@ class Control:
         self._back: dict[int, asyncio.Event] = {}      # tid -> set when that absent task set is back
 
     # -- calls ----------------------------------------------------------------------------------------
-    async def host_request(self, c: ContainerRec, op: str, args: dict, timeout: float = CALL_TIMEOUT,
+    async def host_request(self, container: ContainerRec, op: str, args: dict, timeout: float = CALL_TIMEOUT,
                            wait: bool = True) -> Any:
-        """Send ``op`` with ``args`` (plus ``cid``) to the host of container ``c``; its answer. An
+        """Send ``op`` with ``args`` (plus ``cid``) to the host of ``container``; its answer. An
         absent host is waited for (``wait``, robot requests: up to :data:`ABSENT_WAIT`), or refused
         at once (the admin API: its HTTP 503 says when to ask again)."""
-        peer = self.peers.get(c.tid)
+        peer = self.peers.get(container.tid)
         if peer is None:
-            what = f"the host of container {c.ctag!r}"
+            what = f"the host of container {container.ctag!r}"
             if not wait:
-                self._check_absent(c.tid, what)
+                self._check_absent(container.tid, what)
                 raise Unavailable(f"{what} is gone")
-            peer = await self._host_back(c.tid, what)
-        return await peer.request(op, {"cid": c.cid, **args}, timeout)
+            peer = await self._host_back(container.tid, what)
+        return await peer.request(op, {"cid": container.cid, **args}, timeout)
 
     def attach(self, tid: int, peer: RpcPeer) -> None:
         """Task set ``tid`` (re-)registered on link ``peer``: calls waiting for it go on."""
@@ -90,9 +90,9 @@ class Control:
         if ts.lost and wait:
             raise TaskSetAbsent(f"{what} has not re-registered since the master restarted; try again later")
 
-    async def host_call(self, c: ContainerRec, op: str, **args: Any) -> Any:
+    async def host_call(self, container: ContainerRec, op: str, **args: Any) -> Any:
         """:meth:`host_request` with the op's arguments as keywords (timeout: ``rce.rpc.CALL_TIMEOUT``)."""
-        return await self.host_request(c, op, args)
+        return await self.host_request(container, op, args)
 
     async def endpoint_call(self, rec: InterfaceRec, op: str, **args: Any) -> Any:
         """Send ``op`` to the endpoint holding interface ``rec``: its robot task set (robot side)
@@ -109,16 +109,17 @@ class Control:
         return await peer.request(op, args, CALL_TIMEOUT)
 
     # -- what a container is made of (a CC and CN, and its re-creation after a loss) --------------------
-    async def create_container(self, c: ContainerRec) -> dict:
-        """``create_container`` on ``c``'s host with its group and limits (``c.data``, as last
+    async def create_container(self, container: ContainerRec) -> dict:
+        """``create_container`` on ``container``'s host with its group and limits (``container.data``, as last
         resized); the host's ``{data_addr, sandbox, startup_ms}``."""
-        return await self.host_request(c, "create_container", {
-            "user": c.user, "ctag": c.ctag, "group": c.group, "limits": {k: c.data.get(k) for k in LIMIT_KEYS}},
+        return await self.host_request(container, "create_container", {
+            "user": container.user, "ctag": container.ctag, "group": container.group,
+            "limits": {k: container.data.get(k) for k in LIMIT_KEYS}},
             CREATE_TIMEOUT)
 
-    async def start_node(self, c: ContainerRec, ntag: str, spec: dict) -> Any:
-        """``add_node`` on ``c``'s host: node ``ntag`` of addNodes entry ``spec``."""
-        return await self.host_call(c, "add_node", ntag=ntag, pkg=spec["pkg"], exe=spec["exe"],
+    async def start_node(self, container: ContainerRec, ntag: str, spec: dict) -> Any:
+        """``add_node`` on ``container``'s host: node ``ntag`` of addNodes entry ``spec``."""
+        return await self.host_call(container, "add_node", ntag=ntag, pkg=spec["pkg"], exe=spec["exe"],
                                     args=spec.get("args", ""), name=spec.get("name"),
                                     namespace=spec.get("namespace"), respawn=spec.get("respawn"))
 
@@ -153,21 +154,21 @@ class Control:
         return {"iid": me.iid, "peer_iid": peer_iid, "peer_addr": peer_addr,
                 "token": self.key.connection_token(me.iid, peer_iid, peer_addr)}
 
-    async def tell_connect(self, a: InterfaceRec, b: InterfaceRec) -> None:
+    async def tell_connect(self, end_a: InterfaceRec, end_b: InterfaceRec) -> None:
         """Tell both ends of a new connection the other's iid, data address and credential; the
         end that receives first (a Publisher*, a ServiceClient*) is told first, so that it knows its
         peer (and takes its frames) before the other end sends."""
-        if b.kind in ("Publisher", "ServiceClient"):
-            a, b = b, a
-        addr_a, addr_b = self.state.data_addr(a), self.state.data_addr(b)
-        await self.endpoint_call(a, "connect", **self.connect_args(a, b.iid, addr_b))
-        await self.endpoint_call(b, "connect", **self.connect_args(b, a.iid, addr_a))
+        if end_b.kind in ("Publisher", "ServiceClient"):
+            end_a, end_b = end_b, end_a
+        addr_a, addr_b = self.state.data_addr(end_a), self.state.data_addr(end_b)
+        await self.endpoint_call(end_a, "connect", **self.connect_args(end_a, end_b.iid, addr_b))
+        await self.endpoint_call(end_b, "connect", **self.connect_args(end_b, end_a.iid, addr_a))
 
-    async def tell_disconnect(self, a: InterfaceRec, b: InterfaceRec) -> None:
+    async def tell_disconnect(self, end_a: InterfaceRec, end_b: InterfaceRec) -> None:
         """Tell both ends a connection is gone (quietly: either may be gone too). An end whose task
         set is absent is not waited for: when it re-registers, the master's records (which no
         longer have the connection) are what it reconciles with."""
-        for me, peer in ((a, b), (b, a)):
+        for me, peer in ((end_a, end_b), (end_b, end_a)):
             if self._attached(me):
                 await self.quiet(self.endpoint_call(me, "disconnect", iid=me.iid, peer_iid=peer.iid))
 
@@ -182,12 +183,13 @@ class Control:
         for a, b in pairs:
             await self.tell_disconnect(a, b)
 
-    async def readdress(self, c: ContainerRec) -> None:
-        """Container ``c`` has a new data address: tell the peers of its interfaces' connections
+    async def readdress(self, container: ContainerRec) -> None:
+        """``container`` has a new data address: tell the peers of its interfaces' connections
         (a ``connect`` for a connection that exists replaces the peer's address)."""
-        for rec in self.state.interfaces_of(c.user, c.ctag):
+        for rec in self.state.interfaces_of(container.user, container.ctag):
             for me, peer in self.state.connections_of(rec.iid):
-                await self.quiet(self.endpoint_call(peer, "connect", **self.connect_args(peer, me.iid, c.data_addr)))
+                await self.quiet(self.endpoint_call(peer, "connect",
+                                                    **self.connect_args(peer, me.iid, container.data_addr)))
 
     def notify_robot(self, user: str, robot: str, type_: str, data: Any) -> None:
         """Send the robot an ST or ER (``notify``) through its endpoint, if it is connected."""
@@ -196,26 +198,27 @@ class Control:
         if peer:
             peer.notify("notify", user=user, robot=robot, type=type_, data=data)
 
-    def tell_node_status(self, c: ContainerRec, n: NodeRec, status: str, detail: dict) -> None:
+    def tell_node_status(self, container: ContainerRec, node: NodeRec, status: str, detail: dict) -> None:
         """ST ``node`` to the container's owner; an ER too when the node exited with an error."""
-        self.notify_robot(c.user, c.owner, "ST", {"topic": "node", "cTag": c.ctag, "nTag": n.ntag,
-                                                  "status": status, **detail})
+        self.notify_robot(container.user, container.owner, "ST",
+                          {"topic": "node", "cTag": container.ctag, "nTag": node.ntag, "status": status, **detail})
         if status in ("exited", "failed") and (detail.get("code") or detail.get("signal")):
             how = f"code {detail['code']}" if detail.get("code") is not None else f"signal {detail.get('signal')}"
-            self.notify_robot(c.user, c.owner, "ER", f"node {n.ntag!r} in container {c.ctag!r} exited with {how}"
+            self.notify_robot(container.user, container.owner, "ER",
+                              f"node {node.ntag!r} in container {container.ctag!r} exited with {how}"
                               + (f": {detail['reason']}" if detail.get("reason") else ""))
 
     # -- teardowns --------------------------------------------------------------------------------------
-    async def destroy(self, c: ContainerRec, pairs: Pairs) -> None:
+    async def destroy(self, container: ContainerRec, pairs: Pairs) -> None:
         """After :meth:`MasterState.remove_container`: disconnect its interfaces' peers and
         destroy it on its host (unless lost or being re-created: :mod:`rce_master.failover` undoes that)."""
         await self.tell_disconnects(pairs)
-        if not c.down and c.tid in self.peers:      # a recovering one is undone by its re-creation
+        if not container.down and container.tid in self.peers:      # a recovering one is undone by its re-creation
             try:
-                await self.host_call(c, "destroy_container")
+                await self.host_call(container, "destroy_container")
             except RCEError as e:
-                log.warning("destroy failed", ctag=c.ctag, reason=str(e))
-        log.info("container destroyed", user=c.user, ctag=c.ctag, cid=c.cid)
+                log.warning("destroy failed", ctag=container.ctag, reason=str(e))
+        log.info("container destroyed", user=container.user, ctag=container.ctag, cid=container.cid)
 
     async def robot_gone(self, user: str, robot: str) -> None:
         """A robot left: forget it with its interfaces and destroy the containers it owns."""
@@ -240,19 +243,20 @@ class Control:
             for me, peer in self.state.connections_of(rec.iid):
                 await self.quiet(self.tell_connect(me, peer))
 
-    async def cut(self, c: ContainerRec) -> None:
-        """Container ``c`` was just lost: the far end of each of its interfaces' connections gets
+    async def cut(self, container: ContainerRec) -> None:
+        """``container`` was just lost: the far end of each of its interfaces' connections gets
         ``disconnect`` (a robot-side end then says ``iu false``), quietly. The records stay: its
         re-creation connects them again."""
-        for rec in self.state.interfaces_of(c.user, c.ctag, robot_side=False):
+        for rec in self.state.interfaces_of(container.user, container.ctag, robot_side=False):
             for me, peer in self.state.connections_of(rec.iid):
-                if peer.robot_side or peer.location != c.cid:
+                if peer.robot_side or peer.location != container.cid:
                     await self.quiet(self.endpoint_call(peer, "disconnect", iid=peer.iid, peer_iid=me.iid))
 
-    def tell_lost(self, c: ContainerRec, why: str) -> None:
-        """Tell ``c``'s owner ``ST {topic: container, cTag, status: lost}`` and an ER saying ``why``."""
-        self.notify_robot(c.user, c.owner, "ST", {"topic": "container", "cTag": c.ctag, "status": "lost"})
-        self.notify_robot(c.user, c.owner, "ER", f"container {c.ctag!r} was lost: {why}")
+    def tell_lost(self, container: ContainerRec, why: str) -> None:
+        """Tell ``container``'s owner ``ST {topic: container, cTag, status: lost}`` and an ER saying ``why``."""
+        self.notify_robot(container.user, container.owner, "ST",
+                          {"topic": "container", "cTag": container.ctag, "status": "lost"})
+        self.notify_robot(container.user, container.owner, "ER", f"container {container.ctag!r} was lost: {why}")
 
     async def reconciled(self, out: Reconciled) -> None:
         """After :func:`rce_master.reconcile.register`: tell the peers of forgotten interfaces and

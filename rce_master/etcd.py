@@ -261,13 +261,13 @@ def revision(answer: dict) -> int:
     return int((answer.get("header") or {}).get("revision", 0))
 
 
-def kv(x: dict) -> dict:
+def kv(kv: dict) -> dict:
     """A gateway KeyValue with its key and value decoded and its numbers as ints."""
-    return {"key": unb64(x.get("key")), "value": unb64(x.get("value")),
-            "create_revision": int(x.get("create_revision", 0)), "mod_revision": int(x.get("mod_revision", 0)),
-            "lease": int(x.get("lease", 0))}
+    return {"key": unb64(kv.get("key")), "value": unb64(kv.get("value")),
+            "create_revision": int(kv.get("create_revision", 0)), "mod_revision": int(kv.get("mod_revision", 0)),
+            "lease": int(kv.get("lease", 0))}
 
 
-def event(x: dict) -> dict:
+def event(event: dict) -> dict:
     """A watch event: ``{"type": "PUT"|"DELETE", "kv": kv}``."""
-    return {"type": x.get("type", "PUT"), "kv": kv(x.get("kv") or {})}
+    return {"type": event.get("type", "PUT"), "kv": kv(event.get("kv") or {})}

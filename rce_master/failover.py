@@ -131,29 +131,30 @@ class Failover:
             if not self._orphan(c):
                 self._start(c, None)
 
-    def _orphan(self, c: ContainerRec) -> bool:
-        """``c``'s robot is gone: a container belongs to its robot's session, so it is not re-created."""
-        return (c.user, c.owner) not in self.state.robots
+    def _orphan(self, container: ContainerRec) -> bool:
+        """``container``'s robot is gone: a container belongs to its robot's session, so it is not re-created."""
+        return (container.user, container.owner) not in self.state.robots
 
-    async def _forget(self, c: ContainerRec, why: str) -> None:
-        """Forget lost container ``c`` of a robot that is gone, with its interfaces' connections."""
-        log.info("lost container forgotten", user=c.user, ctag=c.ctag, reason=why + "; its robot is gone")
-        await self.control.destroy(*self.state.remove_container(c.user, c.ctag))
+    async def _forget(self, container: ContainerRec, why: str) -> None:
+        """Forget the lost ``container`` of a robot that is gone, with its interfaces' connections."""
+        log.info("lost container forgotten", user=container.user, ctag=container.ctag,
+                 reason=why + "; its robot is gone")
+        await self.control.destroy(*self.state.remove_container(container.user, container.ctag))
 
     # -- re-creation ---------------------------------------------------------------------------------------
-    def _start(self, c: ContainerRec, prefer: int | None) -> None:
+    def _start(self, container: ContainerRec, prefer: int | None) -> None:
         for key, rec in list(self.recoveries.items()):       # bound: drop what no longer matters
             done = rec.task is None or rec.task.done()
             if done and (not self._current(rec.c) or rec.recovered_at is None
                          or time.monotonic() - rec.recovered_at >= self.stable):
                 del self.recoveries[key]
-        rec = self.recoveries.get((c.user, c.ctag))
-        if rec is None or rec.c is not c:
-            rec = self.recoveries[(c.user, c.ctag)] = Recovery(c)
+        rec = self.recoveries.get((container.user, container.ctag))
+        if rec is None or rec.c is not container:
+            rec = self.recoveries[(container.user, container.ctag)] = Recovery(container)
         elif rec.task is not None and not rec.task.done():
             return                                            # its task sees the loss and tries again
         rec.prefer = prefer
-        rec.task = self.tasks.spawn(self._recover(rec), name=f"recover {c.user}/{c.ctag}")
+        rec.task = self.tasks.spawn(self._recover(rec), name=f"recover {container.user}/{container.ctag}")
 
     async def _recover(self, rec: Recovery) -> None:
         """Re-create ``rec.c`` until it runs, is destroyed, or the bounds say stop."""
@@ -179,55 +180,56 @@ class Failover:
                 return
             rec.failed.add(host.tid)
 
-    async def _attempt(self, c: ContainerRec, tid: int) -> bool:
-        """One re-creation of ``c`` on host ``tid``; True when it runs there. Undone when it fails."""
+    async def _attempt(self, container: ContainerRec, tid: int) -> bool:
+        """One re-creation of ``container`` on host ``tid``; True when it runs there. Undone when it fails."""
         t0 = time.monotonic()
-        self.state.container_recovering(c, tid)
-        cid = c.cid
+        self.state.container_recovering(container, tid)
+        cid = container.cid
         try:
-            await self._rebuild(c, cid)
+            await self._rebuild(container, cid)
         except (RCEError, _Superseded) as e:
             await self.control.destroy_on(tid, cid)
-            if self._current(c) and c.cid == cid and c.state == "recovering":
-                self.state.container_lost(c)
+            if self._current(container) and container.cid == cid and container.state == "recovering":
+                self.state.container_lost(container)
             if isinstance(e, RCEError):
-                log.warning("container re-creation failed", user=c.user, ctag=c.ctag, cid=cid, tid=tid,
+                log.warning("container re-creation failed", user=container.user, ctag=container.ctag, cid=cid, tid=tid,
                             reason=e.message)
             return False
         self.recovered += 1
-        log.info("container re-created", user=c.user, ctag=c.ctag, cid=cid, tid=tid,
+        log.info("container re-created", user=container.user, ctag=container.ctag, cid=cid, tid=tid,
                  ms=round((time.monotonic() - t0) * 1000, 1))
         return True
 
-    async def _rebuild(self, c: ContainerRec, cid: int) -> None:
-        """Create ``c`` (now ``cid``) on its new host with its parameters, container-side
+    async def _rebuild(self, container: ContainerRec, cid: int) -> None:
+        """Create ``container`` (now ``cid``) on its new host with its parameters, container-side
         interfaces and nodes; then it runs, its connections are made again, its owner is told."""
-        answer = await self.control.create_container(c)
-        for name, value in self.state.params_of(c):
-            self._check(c, cid)
-            await self.control.host_call(c, "set_param", name=name, value=value)
-        for rec in self.state.interfaces_of(c.user, c.ctag, robot_side=False):
-            self._check(c, cid)
+        answer = await self.control.create_container(container)
+        for name, value in self.state.params_of(container):
+            self._check(container, cid)
+            await self.control.host_call(container, "set_param", name=name, value=value)
+        for rec in self.state.interfaces_of(container.user, container.ctag, robot_side=False):
+            self._check(container, cid)
             await self.control.install_interface(rec)
-        for n in self.state.nodes_of(c):
-            self._check(c, cid)
-            await self.control.start_node(c, n.ntag, n.spec)
+        for n in self.state.nodes_of(container):
+            self._check(container, cid)
+            await self.control.start_node(container, n.ntag, n.spec)
             self.state.node_running(n)
-        self._check(c, cid)
-        self.state.container_ready(c, answer["data_addr"], answer.get("sandbox", ""))
-        for a, b in self._live_connections(c):          # read right after it runs: see _live_connections
+        self._check(container, cid)
+        self.state.container_ready(container, answer["data_addr"], answer.get("sandbox", ""))
+        for a, b in self._live_connections(container):          # read right after it runs: see _live_connections
             await self.control.quiet(self.control.tell_connect(a, b))
-        if self._current(c) and c.cid == cid and c.state == "running":
-            self.control.notify_robot(c.user, c.owner, "ST", {"topic": "container", "cTag": c.ctag,
-                                                              "status": "running", "sandbox": c.sandbox})
+        if self._current(container) and container.cid == cid and container.state == "running":
+            self.control.notify_robot(container.user, container.owner, "ST",
+                                      {"topic": "container", "cTag": container.ctag, "status": "running",
+                                       "sandbox": container.sandbox})
 
-    def _live_connections(self, c: ContainerRec) -> list[tuple[InterfaceRec, InterfaceRec]]:
-        """The connections of ``c``'s interfaces whose other end is up: a robot-side end whose
+    def _live_connections(self, container: ContainerRec) -> list[tuple[InterfaceRec, InterfaceRec]]:
+        """The connections of ``container``'s interfaces whose other end is up: a robot-side end whose
         endpoint is registered, or a container-side end whose container runs. Two containers
         re-created together: whichever runs second connects them (this is read with no await
-        between marking ``c`` running and reading the other's state)."""
+        between marking ``container`` running and reading the other's state)."""
         out, seen = [], set()
-        for rec in self.state.interfaces_of(c.user, c.ctag, robot_side=False):
+        for rec in self.state.interfaces_of(container.user, container.ctag, robot_side=False):
             for me, peer in self.state.connections_of(rec.iid):
                 pair = (min(me.iid, peer.iid), max(me.iid, peer.iid))
                 if pair in seen:
@@ -253,15 +255,16 @@ class Failover:
             return False
         return True
 
-    def _give_up(self, c: ContainerRec, why: str) -> None:
+    def _give_up(self, container: ContainerRec, why: str) -> None:
         self.gave_up += 1
-        log.warning("container stays lost", user=c.user, ctag=c.ctag, reason=why)
-        self.control.notify_robot(c.user, c.owner, "ER", f"container {c.ctag!r} could not be re-created: {why}; "
-                                                         "it stays lost (DC it to give it up)")
+        log.warning("container stays lost", user=container.user, ctag=container.ctag, reason=why)
+        self.control.notify_robot(container.user, container.owner, "ER",
+                                  f"container {container.ctag!r} could not be re-created: {why}; "
+                                  "it stays lost (DC it to give it up)")
 
-    def _current(self, c: ContainerRec) -> bool:
-        return self.state.containers.get((c.user, c.ctag)) is c
+    def _current(self, container: ContainerRec) -> bool:
+        return self.state.containers.get((container.user, container.ctag)) is container
 
-    def _check(self, c: ContainerRec, cid: int) -> None:
-        if not self._current(c) or c.cid != cid or c.state != "recovering":
-            raise _Superseded(c.ctag)
+    def _check(self, container: ContainerRec, cid: int) -> None:
+        if not self._current(container) or container.cid != cid or container.state != "recovering":
+            raise _Superseded(container.ctag)

@@ -11,6 +11,7 @@ back: whoever holds one sees the change.
 from __future__ import annotations
 
 import dataclasses
+from operator import attrgetter
 from typing import Any, Callable
 
 from rce.errors import NotFound, Unavailable
@@ -132,23 +133,23 @@ class StateIndex:
             self._links.setdefault(conn.a, set()).add(conn)
             self._links.setdefault(conn.b, set()).add(conn)
 
-    def _upsert(self, table: dict, k: Any, cls: type, new: dict | None) -> Any:
+    def _upsert(self, table: dict, key: Any, cls: type, new: dict | None) -> Any:
         """Put record ``new`` (None: remove) into ``table[k]`` as a ``cls``; an object already there
         (or removed earlier in this batch) is updated in place, its derived fields kept. Returns
         the object, or None when removed."""
         if new is None:
-            obj = table.pop(k, None)
+            obj = table.pop(key, None)
             if obj is not None:
-                self._removed[(id(table), k)] = obj
+                self._removed[(id(table), key)] = obj
             return None
         fresh = cls.from_record(new)
-        obj = table.get(k)
+        obj = table.get(key)
         if obj is None:
-            obj = self._removed.pop((id(table), k), None)
+            obj = self._removed.pop((id(table), key), None)
             if obj is None:
-                table[k] = fresh
+                table[key] = fresh
                 return fresh
-            table[k] = obj
+            table[key] = obj
         for f in dataclasses.fields(cls):
             if f.name not in cls.DERIVED:
                 setattr(obj, f.name, getattr(fresh, f.name))
@@ -168,16 +169,17 @@ class StateIndex:
     def container_by_cid(self, cid: int) -> ContainerRec | None:
         return self._by_cid.get(cid)
 
-    def nodes_of(self, c: ContainerRec) -> list[NodeRec]:
-        """The nodes of container ``c``, by nTag."""
-        return sorted((n for k, n in self.nodes.items() if k[:2] == (c.user, c.ctag)), key=lambda n: n.ntag)
+    def nodes_of(self, container: ContainerRec) -> list[NodeRec]:
+        """The nodes of ``container``, by nTag."""
+        return sorted((n for k, n in self.nodes.items() if k[:2] == (container.user, container.ctag)),
+                      key=attrgetter("ntag"))
 
-    def params_of(self, c: ContainerRec) -> list[tuple[str, Any]]:
-        """The parameters set in container ``c``: ``(name, value)`` by name."""
-        return sorted((k[2], v) for k, v in self.params.items() if k[:2] == (c.user, c.ctag))
+    def params_of(self, container: ContainerRec) -> list[tuple[str, Any]]:
+        """The parameters set in ``container``: ``(name, value)`` by name."""
+        return sorted((k[2], v) for k, v in self.params.items() if k[:2] == (container.user, container.ctag))
 
     def robot(self, user: str, robot: str) -> Robot | None:
-        """The connected robot ``robot`` of ``user``, or None."""
+        """The connected ``robot`` of ``user``, or None."""
         return self.robots.get((user, robot))
 
     def interface(self, user: str, tag: str) -> InterfaceRec:
@@ -228,29 +230,29 @@ class StateIndex:
                           "robots": t.robots, "containers": t.containers, "cpu_load": t.cpu_load,
                           "mem_load": t.mem_load,
                           **{k: v for k, v in t.info.items() if k in ("ws_url", "data_addr", "sandbox", "capacity")}}
-                         for t in sorted(ts.values(), key=lambda t: t.tid)],
+                         for t in sorted(ts.values(), key=attrgetter("tid"))],
             "robots": [{"user": r.user, "robot": r.robot, "endpoint": ts[r.tid].name if r.tid in ts else "?",
-                        "since": r.since} for r in sorted(self.robots.values(), key=lambda r: (r.user, r.robot))],
+                        "since": r.since} for r in sorted(self.robots.values(), key=attrgetter("user", "robot"))],
             "containers": [{"user": c.user, "ctag": c.ctag, "owner": c.owner, "cid": c.cid,
                             "host": ts[c.tid].name if c.tid in ts else "(lost)", "group": c.group, "state": c.state,
                             "sandbox": c.sandbox, "data": c.data}
-                           for c in sorted(self.containers.values(), key=lambda c: c.cid)],
+                           for c in sorted(self.containers.values(), key=attrgetter("cid"))],
             "nodes": [{"user": n.user, "ctag": n.ctag, "ntag": n.ntag, "pkg": n.spec.get("pkg"),
                        "exe": n.spec.get("exe"), "status": n.status, **n.detail}
-                      for n in sorted(self.nodes.values(), key=lambda n: (n.user, n.ctag, n.ntag))],
+                      for n in sorted(self.nodes.values(), key=attrgetter("user", "ctag", "ntag"))],
             "parameters": [{"user": u, "ctag": c, "name": n, "value": v}
                            for (u, c, n), v in sorted(self.params.items())],
             "interfaces": [{"user": i.user, "tag": i.tag, "type": i.itype, "class": i.cls, "addr": i.addr,
                             "iid": i.iid, "connections": self.connection_count(i.iid)}
-                           for i in sorted(self.interfaces.values(), key=lambda i: i.iid)],
+                           for i in sorted(self.interfaces.values(), key=attrgetter("iid"))],
             "connections": [{"user": c.user, "tagA": by_iid[c.a].tag, "tagB": by_iid[c.b].tag}
-                            for c in sorted(self.connections, key=lambda c: (c.a, c.b))
+                            for c in sorted(self.connections, key=attrgetter("a", "b"))
                             if c.a in by_iid and c.b in by_iid],
         }
 
 
-def lost_reason(c: ContainerRec) -> str:
-    """What became of lost (or recovering) container ``c``, for the refusals that name it."""
-    if c.state == "recovering":
-        return f"container {c.ctag!r} was lost with its host and is being re-created on another host"
-    return f"container {c.ctag!r} was lost with its host and waits for a container host to be re-created on"
+def lost_reason(container: ContainerRec) -> str:
+    """What became of lost (or recovering) ``container``, for the refusals that name it."""
+    if container.state == "recovering":
+        return f"container {container.ctag!r} was lost with its host and is being re-created on another host"
+    return f"container {container.ctag!r} was lost with its host and waits for a container host to be re-created on"

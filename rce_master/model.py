@@ -41,8 +41,8 @@ class _Record:
         return {f.name: getattr(self, f.name) for f in dataclasses.fields(self) if f.name not in self.DERIVED}
 
     @classmethod
-    def from_record(cls, r: dict):
-        return cls(**{f.name: r[f.name] for f in dataclasses.fields(cls) if f.name not in cls.DERIVED})
+    def from_record(cls, record: dict):
+        return cls(**{f.name: record[f.name] for f in dataclasses.fields(cls) if f.name not in cls.DERIVED})
 
 
 @dataclass
@@ -71,9 +71,9 @@ class User:
         return {"name": self.name, "salt": self.salt.hex(), "scrypt": self.key.hex()}
 
     @classmethod
-    def from_record(cls, r: dict) -> "User":
+    def from_record(cls, record: dict) -> "User":
         """Raises KeyError/ValueError/TypeError for a malformed record."""
-        return cls(r["name"], bytes.fromhex(r["salt"]), bytes.fromhex(r["scrypt"]))
+        return cls(record["name"], bytes.fromhex(record["salt"]), bytes.fromhex(record["scrypt"]))
 
 
 @dataclass

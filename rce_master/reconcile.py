@@ -169,22 +169,22 @@ def _containers(state: MasterState, out: Reconciled, report: Report) -> None:
         out.lost.append(c)
 
 
-def _nodes(state: MasterState, out: Reconciled, c: ContainerRec, stored: list[NodeRec], reported: dict) -> None:
+def _nodes(state: MasterState, out: Reconciled, container: ContainerRec, stored: list[NodeRec], reported: dict) -> None:
     by_ntag = {n.ntag: n for n in stored}
     for ntag, status in sorted(reported.items()):
         n = by_ntag.get(ntag)
         if n is None:
-            out.drop_nodes.append({"cid": c.cid, "ntag": ntag})
+            out.drop_nodes.append({"cid": container.cid, "ntag": ntag})
         elif n.status != status:
-            state.node_status(c.cid, ntag, status, {})
+            state.node_status(container.cid, ntag, status, {})
     for ntag in sorted(set(by_ntag) - set(reported)):
-        state.remove_node(c.user, c.ctag, ntag)
-        out.nodes_lost.append((c, ntag))
+        state.remove_node(container.user, container.ctag, ntag)
+        out.nodes_lost.append((container, ntag))
 
 
 # -- checks of the report's fields ---------------------------------------------------------------------------
-def _list(d: dict, key: str, where: str = "") -> list:
-    v = d.get(key)
+def _list(record: dict, key: str, where: str = "") -> list:
+    v = record.get(key)
     if v is None:
         return []
     if not isinstance(v, list):
@@ -192,20 +192,20 @@ def _list(d: dict, key: str, where: str = "") -> list:
     return v
 
 
-def _dict(v: Any, where: str) -> dict:
-    if not isinstance(v, dict):
-        raise RequestError(f"register: {where} must be an object, got {type(v).__name__}")
-    return v
+def _dict(value: Any, where: str) -> dict:
+    if not isinstance(value, dict):
+        raise RequestError(f"register: {where} must be an object, got {type(value).__name__}")
+    return value
 
 
-def _str(d: Any, key: str, where: str) -> str:
-    v = _dict(d, where).get(key)
+def _str(record: Any, key: str, where: str) -> str:
+    v = _dict(record, where).get(key)
     if not isinstance(v, str) or not v:
         raise RequestError(f"register: {where}.{key} must be a non-empty string, got {v!r}")
     return v
 
 
-def _check_int(v: Any, where: str) -> int:
-    if not isinstance(v, int) or isinstance(v, bool) or v < 1:
-        raise RequestError(f"register: {where} must be a positive integer, got {v!r}")
-    return v
+def _check_int(value: Any, where: str) -> int:
+    if not isinstance(value, int) or isinstance(value, bool) or value < 1:
+        raise RequestError(f"register: {where} must be a positive integer, got {value!r}")
+    return value

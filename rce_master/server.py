@@ -214,15 +214,15 @@ class Master:
         if not await self.gate.admit(reader, writer):       # refused, logged and counted
             return
         peer = RpcPeer(reader, writer, name="taskset", on_close=self._peer_closed)
-        peer.handlers["register"] = lambda a, p=peer: self._register(p, a)
+        peer.handlers["register"] = lambda args, peer=peer: self._register(peer, args)
         peer.start()
 
-    async def _register(self, peer: RpcPeer, a: dict) -> dict:
+    async def _register(self, peer: RpcPeer, args: dict) -> dict:
         require_leader(self.office, "register")
         if "tid" in peer.info:
             raise RequestError("this task set is already registered")
-        out = reconcile.register(self.state, a.get("kind", ""), a.get("name") or peer.peername,
-                                 a.get("host") or "127.0.0.1", a)
+        out = reconcile.register(self.state, args.get("kind", ""), args.get("name") or peer.peername,
+                                 args.get("host") or "127.0.0.1", args)
         ts = out.taskset
         self.restored_absent.discard(ts.tid)
         peer.info["tid"] = ts.tid
@@ -231,13 +231,13 @@ class Master:
         peer.keepalive()      # silent for rce.rpc.KEEPALIVE_TIMEOUT (4 s): lost, its containers marked lost
         if ts.kind == "robot":
             peer.handlers.update({
-                "auth": self._auth, "robot_connected": lambda x, t=ts.tid: self._robot_connected(t, x),
-                "robot_disconnected": lambda x, t=ts.tid: self._robot_disconnected(t, x),
+                "auth": self._auth, "robot_connected": lambda args, tid=ts.tid: self._robot_connected(tid, args),
+                "robot_disconnected": lambda args, tid=ts.tid: self._robot_disconnected(tid, args),
                 "robot_request": self._robot_request, "container_bus": self._container_bus,
                 "container_param": self._container_param})
         else:
             peer.handlers.update({"node_status": self._node_status,
-                                  "container_lost": lambda x, t=ts.tid: self._container_lost(t, x)})
+                                  "container_lost": lambda args, tid=ts.tid: self._container_lost(tid, args)})
         log.info("task set registered", tid=ts.tid, kind=ts.kind, name=ts.name, host=ts.host, resumed=out.resumed,
                  lost=len(out.lost), dropped=len(out.drop_containers) + len(out.drop_interfaces),
                  robots_gone=len(out.gone))
@@ -271,15 +271,15 @@ class Master:
         self.tasks.spawn(self.failover.taskset_lost(lost, robots), name=f"taskset-{tid}-lost")
 
     # -- robot endpoint ops --------------------------------------------------------------------
-    async def _auth(self, a: dict) -> dict:
+    async def _auth(self, args: dict) -> dict:
         """``auth {user, password, addr}`` (``addr``: the address the robot or rosbridge client logs in
         from): raises AuthError, or Throttled (429) while the user or address backs off (login_guard.py)."""
-        await self.passwords.authenticate(self.state.users, str(a.get("user", "")), a.get("password", ""),
-                                          str(a.get("addr") or ""))
+        await self.passwords.authenticate(self.state.users, str(args.get("user", "")), args.get("password", ""),
+                                          str(args.get("addr") or ""))
         return {}
 
-    async def _robot_connected(self, tid: int, a: dict) -> dict:
-        user, robot = a["user"], a["robot"]
+    async def _robot_connected(self, tid: int, args: dict) -> dict:
+        user, robot = args["user"], args["robot"]
         old = self.state.robot(user, robot)
         host = self.state.tasksets.get(old.tid) if old is not None else None
         if old is not None and old.tid in self.restored_absent and not self._namespace_up(old):
@@ -304,12 +304,12 @@ class Master:
         log.info("robot connected", user=user, robot=robot)
         return {}
 
-    def _namespace_up(self, r: Robot) -> bool:
-        """Every container robot ``r`` owns, and every container its interfaces are connected to, runs
+    def _namespace_up(self, robot: Robot) -> bool:
+        """Every container ``robot`` owns, and every container its interfaces are connected to, runs
         on a host registered now: a namespace worth taking over on a new endpoint."""
         peers = self.control.peers
-        used = [c for c in self.state.containers.values() if c.user == r.user and c.owner == r.robot]
-        for rec in self.state.interfaces_of(r.user, r.robot, robot_side=True):
+        used = [c for c in self.state.containers.values() if c.user == robot.user and c.owner == robot.robot]
+        for rec in self.state.interfaces_of(robot.user, robot.robot, robot_side=True):
             for _, peer in self.state.connections_of(rec.iid):
                 c = None if peer.robot_side else self.state.container_by_cid(peer.location)
                 if c is not None:
@@ -323,36 +323,36 @@ class Master:
             await self.control.robot_moved(recs)
             await self.state.store.flush()
 
-    async def _robot_disconnected(self, tid: int, a: dict) -> dict:
-        r = self.state.robot(a["user"], a["robot"])
+    async def _robot_disconnected(self, tid: int, args: dict) -> dict:
+        r = self.state.robot(args["user"], args["robot"])
         if r is None or r.tid != tid:          # not (or no longer) on this endpoint: nothing to forget
             return {}
-        async with self.robot_locks[(a["user"], a["robot"])]:
-            await self.control.robot_gone(a["user"], a["robot"])
-        self.robot_locks.pop((a["user"], a["robot"]), None)
+        async with self.robot_locks[(args["user"], args["robot"])]:
+            await self.control.robot_gone(args["user"], args["robot"])
+        self.robot_locks.pop((args["user"], args["robot"]), None)
         await self.state.store.flush()
-        log.info("robot disconnected", user=a["user"], robot=a["robot"])
+        log.info("robot disconnected", user=args["user"], robot=args["robot"])
         return {}
 
-    async def _container_bus(self, a: dict) -> dict:
+    async def _container_bus(self, args: dict) -> dict:
         """``container_bus {user, ctag}`` (a rosbridge session, :mod:`rce_robot.rosbridge`): the bus of
         the user's container ``ctag`` as its host describes it. Raises NotFound unless the user has it."""
-        c = self.state.container(a["user"], a["ctag"])
+        c = self.state.container(args["user"], args["ctag"])
         return await self.control.host_request(c, "describe", {}, wait=False)
 
-    async def _container_param(self, a: dict) -> dict:
+    async def _container_param(self, args: dict) -> dict:
         """``container_param {user, ctag, name}`` (a rosbridge client's ``/rosapi/get_param``):
         ``{value}`` of parameter ``name`` on the bus of the user's container ``ctag``. Raises
         NotFound unless the user has the container and the parameter is set."""
-        c = self.state.container(a["user"], a["ctag"])
-        return await self.control.host_request(c, "get_param", {"name": str(a.get("name") or "")}, wait=False)
+        c = self.state.container(args["user"], args["ctag"])
+        return await self.control.host_request(c, "get_param", {"name": str(args.get("name") or "")}, wait=False)
 
-    async def _robot_request(self, a: dict) -> dict:
+    async def _robot_request(self, args: dict) -> dict:
         """``robot_request {user, robot, type, data}``: one robot's requests run one at a time, in order."""
-        user, robot, t = a["user"], a["robot"], a["type"]
+        user, robot, t = args["user"], args["robot"], args["type"]
         async with self.robot_locks[(user, robot)]:
             try:
-                await handle(Request(user, robot, self.state, self.control), t, a.get("data") or {})
+                await handle(Request(user, robot, self.state, self.control), t, args.get("data") or {})
                 await self.state.store.flush()
             except RCEError:
                 self.metrics.requests.labels(t, "error").inc()
@@ -360,21 +360,21 @@ class Master:
         self.metrics.requests.labels(t, "ok").inc()
         return {}
 
-    async def _container_lost(self, tid: int, a: dict) -> None:
+    async def _container_lost(self, tid: int, args: dict) -> None:
         """``container_lost {cid, reason}`` from host ``tid``: the container's environment died."""
-        if not isinstance(a.get("cid"), int):
-            raise RequestError(f"container_lost needs an integer 'cid', got {a.get('cid')!r}")
-        reason = str(a.get("reason") or "its environment exited")
-        log.warning("container lost with its environment", tid=tid, cid=a["cid"], reason=reason)
-        await self.failover.environment_lost(tid, a["cid"], reason)
+        if not isinstance(args.get("cid"), int):
+            raise RequestError(f"container_lost needs an integer 'cid', got {args.get('cid')!r}")
+        reason = str(args.get("reason") or "its environment exited")
+        log.warning("container lost with its environment", tid=tid, cid=args["cid"], reason=reason)
+        await self.failover.environment_lost(tid, args["cid"], reason)
         await self.state.store.flush()
 
-    async def _node_status(self, a: dict) -> None:
-        detail = {k: a[k] for k in ("code", "signal", "reason") if a.get(k) is not None}
-        n = self.state.node_status(a["cid"], a["ntag"], a["status"], detail)
-        c = self.state.container_by_cid(a["cid"])
+    async def _node_status(self, args: dict) -> None:
+        detail = {k: args[k] for k in ("code", "signal", "reason") if args.get(k) is not None}
+        n = self.state.node_status(args["cid"], args["ntag"], args["status"], detail)
+        c = self.state.container_by_cid(args["cid"])
         if n and c:
-            self.control.tell_node_status(c, n, a["status"], detail)
+            self.control.tell_node_status(c, n, args["status"], detail)
 
     # -- HTTP ------------------------------------------------------------------------------------
     def _app(self, static_dirs: dict[str, Path]) -> web.Application:

@@ -34,11 +34,11 @@ def peer_address(connection) -> str:
     return str(addr[0]) if addr else ""
 
 
-def throttled(connection, e: Throttled):
+def throttled(connection, refusal: Throttled):
     """The handshake's answer to a login the master throttles: HTTP 429 (RFC 6585) with
     ``Retry-After`` (s) and the master's one-line reason."""
-    resp = connection.respond(HTTPStatus.TOO_MANY_REQUESTS, e.message + "\n")
-    resp.headers["Retry-After"] = str(math.ceil(e.retry_after))
+    resp = connection.respond(HTTPStatus.TOO_MANY_REQUESTS, refusal.message + "\n")
+    resp.headers["Retry-After"] = str(math.ceil(refusal.retry_after))
     return resp
 
 

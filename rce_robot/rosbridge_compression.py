@@ -68,24 +68,24 @@ def _values(registry: MessageRegistry, typename: str, msg: Any) -> Any:
             if name in msg}
 
 
-def _field(registry: MessageRegistry, ftype: tuple, v: Any) -> Any:
+def _field(registry: MessageRegistry, ftype: tuple, value: Any) -> Any:
     nt, arg = ftype
     if nt == Nodetype.BASE:
-        return v
+        return value
     if nt == Nodetype.NAME:
-        return _values(registry, arg, v)
+        return _values(registry, arg, value)
     (sub_nt, sub_arg), _ = arg
     if sub_nt == Nodetype.NAME:
-        return [_values(registry, sub_arg, x) for x in v]
+        return [_values(registry, sub_arg, x) for x in value]
     item = sub_arg[0]
-    if item in BYTE_STREAMS and isinstance(v, str):           # rosbridge's JSON form: base64
-        return base64.b64decode(v)
-    if item in TYPED_ARRAY_TAGS and isinstance(v, list):
+    if item in BYTE_STREAMS and isinstance(value, str):           # rosbridge's JSON form: base64
+        return base64.b64decode(value)
+    if item in TYPED_ARRAY_TAGS and isinstance(value, list):
         tag, dtype = TYPED_ARRAY_TAGS[item]
         floats = dtype[-2] == "f"
-        data = [math.nan if x is None and floats else x for x in v]     # JSON null is a non-finite float
+        data = [math.nan if x is None and floats else x for x in value]     # JSON null is a non-finite float
         return cbor2.CBORTag(tag, np.asarray(data, dtype=dtype).tobytes())
-    if item == "byte" and isinstance(v, str):
-        return cbor2.CBORTag(72, base64.b64decode(v))
-    return v
+    if item == "byte" and isinstance(value, str):
+        return cbor2.CBORTag(72, base64.b64decode(value))
+    return value
 

@@ -110,5 +110,5 @@ class Defragmenter:
         return "".join(p.parts[i] for i in range(total))
 
 
-def _count(v: object) -> bool:
-    return isinstance(v, int) and not isinstance(v, bool) and v >= 0
+def _count(value: object) -> bool:
+    return isinstance(value, int) and not isinstance(value, bool) and value >= 0

@@ -49,29 +49,29 @@ def _json_arg(args: dict, key: str) -> Any:
                             f"got {text!r}") from None
 
 
-async def _topics(g: Graph, args: dict) -> dict:
-    entries = (await g.describe()).get("topics", [])
+async def _topics(graph: Graph, args: dict) -> dict:
+    entries = (await graph.describe()).get("topics", [])
     return {"topics": [t["name"] for t in entries], "types": [t.get("type", "") for t in entries]}
 
 
-async def _services(g: Graph, args: dict) -> dict:
-    return {"services": [s["name"] for s in (await g.describe()).get("services", [])]}
+async def _services(graph: Graph, args: dict) -> dict:
+    return {"services": [s["name"] for s in (await graph.describe()).get("services", [])]}
 
 
 def _type_of(kind: str, key: str):
-    async def answer(g: Graph, args: dict) -> dict:
+    async def answer(graph: Graph, args: dict) -> dict:
         name = args.get(key)
-        for entry in (await g.describe()).get(kind, []):
+        for entry in (await graph.describe()).get(kind, []):
             if entry.get("name") == name:
                 return {"type": entry.get("type", "")}
         return {"type": ""}            # rosapi answers an empty type for a name it does not know
     return answer
 
 
-async def _get_param(g: Graph, args: dict) -> dict:
+async def _get_param(graph: Graph, args: dict) -> dict:
     name, default = _name(args), args.get("default") or ""
     try:
-        value = await g.get_param(name)
+        value = await graph.get_param(name)
     except NotFound:
         try:
             value = json.loads(default) if default else None
@@ -80,23 +80,23 @@ async def _get_param(g: Graph, args: dict) -> dict:
     return {"value": json.dumps(value)}
 
 
-async def _set_param(g: Graph, args: dict) -> dict:
-    await g.set_param(_name(args), _json_arg(args, "value"))
+async def _set_param(graph: Graph, args: dict) -> dict:
+    await graph.set_param(_name(args), _json_arg(args, "value"))
     return {}
 
 
-async def _param_names(g: Graph, args: dict) -> dict:
-    return {"names": list((await g.describe()).get("params", []))}
+async def _param_names(graph: Graph, args: dict) -> dict:
+    return {"names": list((await graph.describe()).get("params", []))}
 
 
-async def _has_param(g: Graph, args: dict) -> dict:
+async def _has_param(graph: Graph, args: dict) -> dict:
     name = _name(args).rstrip("/")
-    names = (await g.describe()).get("params", [])
+    names = (await graph.describe()).get("params", [])
     return {"exists": any(n == name or n.startswith(name + "/") for n in names)}
 
 
-async def _delete_param(g: Graph, args: dict) -> dict:
-    await g.delete_param(_name(args))
+async def _delete_param(graph: Graph, args: dict) -> dict:
+    await graph.delete_param(_name(args))
     return {}
 
 

@@ -101,11 +101,11 @@ def write(ws: Any, frames: Iterable[str | bytes]) -> int:
     return sum(map(len, out))
 
 
-def binary_header(n: int) -> bytes:
-    """The header of an unmasked, unfragmented binary frame of ``n`` payload bytes (RFC 6455
+def binary_header(nbytes: int) -> bytes:
+    """The header of an unmasked, unfragmented binary frame of ``nbytes`` payload bytes (RFC 6455
     section 5.2: FIN and opcode 0x2, then the 7-bit, 16-bit or 64-bit payload length)."""
-    if n < 126:
-        return bytes((0x82, n))
-    if n < 1 << 16:
-        return bytes((0x82, 126)) + n.to_bytes(2, "big")
-    return bytes((0x82, 127)) + n.to_bytes(8, "big")
+    if nbytes < 126:
+        return bytes((0x82, nbytes))
+    if nbytes < 1 << 16:
+        return bytes((0x82, 126)) + nbytes.to_bytes(2, "big")
+    return bytes((0x82, 127)) + nbytes.to_bytes(8, "big")

@@ -15,6 +15,7 @@ import asyncio
 import itertools
 from collections.abc import Collection
 from dataclasses import dataclass, field
+from operator import attrgetter
 from typing import Any, Awaitable, Callable
 
 from rce.errors import MessageError, NotFound, RequestError, Timeout
@@ -124,9 +125,9 @@ class Bus:
         for cb in self.on_graph:
             cb()
 
-    def _gc(self, t: Topic) -> None:
-        if not t.publishers and not t.subscriptions and self.topics.get(t.name) is t:
-            del self.topics[t.name]
+    def _gc(self, topic: Topic) -> None:
+        if not topic.publishers and not topic.subscriptions and self.topics.get(topic.name) is topic:
+            del self.topics[topic.name]
 
     def publish(self, topic: Topic, payload: bytes | memoryview, skip: Collection[Subscription] = ()) -> int:
         """Deliver ``payload`` (a serialized message; a view must stay valid: subscribers may keep
@@ -257,9 +258,9 @@ class Bus:
             "topics": [{"name": t.name, "type": t.type, "publishers": sorted(t.publishers),
                         "subscribers": sorted({s.owner for s in t.subscriptions}),
                         "messages": t.messages, "bytes": t.bytes, "dropped": t.dropped}
-                       for t in sorted(self.topics.values(), key=lambda t: t.name)],
+                       for t in sorted(self.topics.values(), key=attrgetter("name"))],
             "services": [{"name": s.name, "type": s.type, "provider": s.owner, "calls": s.calls,
-                          "errors": s.errors} for s in sorted(self.services.values(), key=lambda s: s.name)],
+                          "errors": s.errors} for s in sorted(self.services.values(), key=attrgetter("name"))],
             "params": sorted(self.params),
             "nodes": [{"name": n, **info} for n, info in sorted(self.nodes.items())],
         }

@@ -49,20 +49,20 @@ _LINKS = [
 ]
 
 
-def robot_config(n: int, url: str = DEFAULT_URL, user: str = USER, password: str = PASSWORD,
+def robot_config(index: int, url: str = DEFAULT_URL, user: str = USER, password: str = PASSWORD,
                  ctag: str = FLEET_CTAG) -> dict:
     """The config of robot ``Robot<n>`` (a dict in the seed's JSON format)."""
-    rid = f"Robot{n}"
+    rid = f"Robot{index}"
     interfaces, connections = [], []
     for c_tag, c_type, r_tag, r_type, cls, c_addr, r_addr in _LINKS:
-        c_tag, r_tag, c_addr = c_tag.format(n=n), r_tag.format(n=n), c_addr.format(n=n)
+        c_tag, r_tag, c_addr = c_tag.format(n=index), r_tag.format(n=index), c_addr.format(n=index)
         interfaces.append({"eTag": ctag, "iTag": c_tag, "iType": c_type, "iCls": cls, "addr": c_addr})
         interfaces.append({"eTag": rid, "iTag": r_tag, "iType": r_type, "iCls": cls, "addr": r_addr})
         connections.append({"tagA": f"{ctag}/{c_tag}", "tagB": f"{rid}/{r_tag}"})
     return {
         "url": url, "userID": user, "password": password, "robotID": rid,
         "containers": [],
-        "nodes": [{"cTag": ctag, "nTag": f"move_client_node_{n}", "pkg": "fleet", "exe": "move_client",
+        "nodes": [{"cTag": ctag, "nTag": f"move_client_node_{index}", "pkg": "fleet", "exe": "move_client",
                    "args": f"--robot {rid}", "namespace": rid}],
         "parameters": [],
         "interfaces": interfaces,

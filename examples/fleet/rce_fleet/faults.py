@@ -126,7 +126,7 @@ class FaultInjector:
         self._wall_mission = time.monotonic()
         for f in self.faults:
             f.record = {"fault": f.name, "at_s": f.at, "duration_s": f.duration, "injected": False}
-            at(t_mission + f.at, lambda f=f: self.tasks.spawn(self._inject(f), name=f"fault-{f.name}"))
+            at(t_mission + f.at, lambda fault=f: self.tasks.spawn(self._inject(fault), name=f"fault-{fault.name}"))
 
     def on_state(self) -> None:
         """A ``/fleet/state`` arrived at the fleet manager (the gaps of the faults in progress)."""
@@ -137,34 +137,34 @@ class FaultInjector:
                                                          now - self._last_state), 3)
         self._last_state = now
 
-    async def _inject(self, f: Fault) -> None:
-        rec = f.record
+    async def _inject(self, fault: Fault) -> None:
+        rec = fault.record
         t0 = time.monotonic()
         rec.update(injected=True, injected_sim_s=round(self.mission_t(), 2),
                    injected_wall_s=round(t0 - self._wall_mission, 2), recovered=False)
         self._open.append(rec)
-        log.warning("fault injected", fault=f.name, duration_s=f.duration, t=rec["injected_sim_s"])
+        log.warning("fault injected", fault=fault.name, duration_s=fault.duration, t=rec["injected_sim_s"])
         try:
-            async with asyncio.timeout(f.duration + RECOVERY_TIMEOUT_S):
-                t_back, t_served = await (self._master(f) if f.kind == "master" else self._link(f))
+            async with asyncio.timeout(fault.duration + RECOVERY_TIMEOUT_S):
+                t_back, t_served = await (self._master(fault) if fault.kind == "master" else self._link(fault))
             rec.update(recovered=True, served_again_after_s=round(t_served - t_back, 3),
                        recovered_after_s=round(t_served - t0, 3))
             log.info("fault recovered", **rec)
         except TimeoutError:
-            self.error = f"fault {f.name}: the fleet was not served again within {RECOVERY_TIMEOUT_S:g} s"
+            self.error = f"fault {fault.name}: the fleet was not served again within {RECOVERY_TIMEOUT_S:g} s"
         except (RuntimeError, OSError) as e:
-            self.error = f"fault {f.name}: {e}"
+            self.error = f"fault {fault.name}: {e}"
         finally:
             self._open.remove(rec)
 
-    async def _master(self, f: Fault) -> tuple[float, float]:
+    async def _master(self, fault: Fault) -> tuple[float, float]:
         """kill -9, wait, restart; returns (restarted master ready, served again), monotonic s."""
         await asyncio.to_thread(self.engine.kill_master)
-        await asyncio.sleep(f.duration)         # the outage itself (its length), not a synchronisation
+        await asyncio.sleep(fault.duration)         # the outage itself (its length), not a synchronisation
         t_start = time.monotonic()
         await asyncio.to_thread(self.engine.restart_master)
         t_ready = time.monotonic()
-        f.record["restart_s"] = round(t_ready - t_start, 3)
+        fault.record["restart_s"] = round(t_ready - t_start, 3)
         while not await self._master_serves():
             await asyncio.sleep(POLL_S)        # polling another process's state
         return t_ready, time.monotonic()
@@ -178,17 +178,17 @@ class FaultInjector:
             return False
         return bool(tasksets) and not any(t.get("absent") for t in tasksets)
 
-    async def _link(self, f: Fault) -> tuple[float, float]:
+    async def _link(self, fault: Fault) -> tuple[float, float]:
         """Cut, wait, restore; returns (link back, session resumed), monotonic s."""
-        resumed = self._resumed[f.robot]
+        resumed = self._resumed[fault.robot]
         resumed.clear()
-        self.proxies[f.robot].cut()
-        await asyncio.sleep(f.duration)         # the cut itself (its length), not a synchronisation
-        self.proxies[f.robot].restore()
+        self.proxies[fault.robot].cut()
+        await asyncio.sleep(fault.duration)         # the cut itself (its length), not a synchronisation
+        self.proxies[fault.robot].restore()
         t_back = time.monotonic()
         await resumed.wait()
-        t_served, st = self._resume_st[f.robot]
-        f.record["dropped"] = st.get("dropped", 0)
+        t_served, st = self._resume_st[fault.robot]
+        fault.record["dropped"] = st.get("dropped", 0)
         return t_back, t_served
 
     def report(self) -> list[dict]:

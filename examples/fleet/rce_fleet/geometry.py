@@ -31,12 +31,12 @@ def quaternion_from_yaw(yaw: float) -> dict:
     return {"x": 0.0, "y": 0.0, "z": math.sin(yaw / 2.0), "w": math.cos(yaw / 2.0)}
 
 
-def yaw_from_quaternion(q: Any) -> float:
+def yaw_from_quaternion(quaternion: Any) -> float:
     """Yaw (rad) of a quaternion given as an object with x, y, z, w attributes or a dict."""
-    if isinstance(q, dict):
-        x, y, z, w = (float(q.get(k, 0.0)) for k in ("x", "y", "z", "w"))
+    if isinstance(quaternion, dict):
+        x, y, z, w = (float(quaternion.get(k, 0.0)) for k in ("x", "y", "z", "w"))
     else:
-        x, y, z, w = float(q.x), float(q.y), float(q.z), float(q.w)
+        x, y, z, w = float(quaternion.x), float(quaternion.y), float(quaternion.z), float(quaternion.w)
     return math.atan2(2.0 * (w * z + x * y), 1.0 - 2.0 * (y * y + z * z))
 
 
@@ -121,30 +121,30 @@ class GridGeometry:
 
     def to_param(self) -> dict:
         """JSON-ready dict for the ``/fleet/grid`` parameter (bit strings for the masks)."""
-        bits = lambda v: "".join("1" if b else "0" for b in v)  # noqa: E731
+        bits = lambda values: "".join("1" if b else "0" for b in values)  # noqa: E731
         return {"rows": self.rows, "cols": self.cols, "cell_w_m": self.cell_w_m, "cell_h_m": self.cell_h_m,
                 "resolution": self.resolution, "origin": list(self.origin), "map_height_px": self.map_height_px,
                 "row0_px": self.row0_px, "col0_px": self.col0_px, "free": bits(self.free),
                 "east": bits(self.east), "south": bits(self.south)}
 
     @classmethod
-    def from_param(cls, p: dict) -> "GridGeometry":
+    def from_param(cls, param: dict) -> "GridGeometry":
         """Inverse of :meth:`to_param`. Raises ValueError naming the bad key."""
         try:
-            rows, cols = int(p["rows"]), int(p["cols"])
+            rows, cols = int(param["rows"]), int(param["cols"])
             n = rows * cols
             masks = {}
             for k in ("free", "east", "south"):
-                s = str(p[k])
+                s = str(param[k])
                 if len(s) != n or set(s) - {"0", "1"}:
                     raise ValueError(f"'{k}' must be {n} characters 0/1")
                 masks[k] = tuple(ch == "1" for ch in s)
-            origin = tuple(float(v) for v in p["origin"])
+            origin = tuple(float(v) for v in param["origin"])
             if len(origin) != 3:
                 raise ValueError("'origin' must be [x, y, yaw]")
-            return cls(rows=rows, cols=cols, cell_w_m=float(p["cell_w_m"]), cell_h_m=float(p["cell_h_m"]),
-                       resolution=float(p["resolution"]), origin=origin, map_height_px=int(p["map_height_px"]),
-                       row0_px=float(p["row0_px"]), col0_px=float(p["col0_px"]), **masks)
+            return cls(rows=rows, cols=cols, cell_w_m=float(param["cell_w_m"]), cell_h_m=float(param["cell_h_m"]),
+                       resolution=float(param["resolution"]), origin=origin, map_height_px=int(param["map_height_px"]),
+                       row0_px=float(param["row0_px"]), col0_px=float(param["col0_px"]), **masks)
         except KeyError as e:
             raise ValueError(f"grid parameter: missing key {e.args[0]!r}") from None
         except (TypeError, ValueError) as e:

@@ -95,11 +95,11 @@ class CellGrid:
             raise IndexError(f"cell {cell} outside the {self.rows}x{self.cols} grid")
         return divmod(int(cell), self.cols)
 
-    def cell(self, r: int, c: int) -> int:
+    def cell(self, row: int, col: int) -> int:
         """(row, col) -> cell number. Raises IndexError outside the grid."""
-        if not (0 <= r < self.rows and 0 <= c < self.cols):
-            raise IndexError(f"(row {r}, col {c}) outside the {self.rows}x{self.cols} grid")
-        return int(r) * self.cols + int(c)
+        if not (0 <= row < self.rows and 0 <= col < self.cols):
+            raise IndexError(f"(row {row}, col {col}) outside the {self.rows}x{self.cols} grid")
+        return int(row) * self.cols + int(col)
 
     def is_free(self, cell: int) -> bool:
         """True when ``cell`` is a free cell."""
@@ -137,10 +137,10 @@ class CellGrid:
                                          self.col0_px + (c + 0.5) * self.cell_w_px)
 
     # -- connectivity -----------------------------------------------------
-    def connected(self, a: int, b: int) -> bool:
-        """True when a robot can drive between adjacent free cells ``a`` and ``b``."""
-        ra, ca = self.rc(a)
-        rb, cb = self.rc(b)
+    def connected(self, cell_a: int, cell_b: int) -> bool:
+        """True when a robot can drive between adjacent free cells ``cell_a`` and ``cell_b``."""
+        ra, ca = self.rc(cell_a)
+        rb, cb = self.rc(cell_b)
         if abs(ra - rb) + abs(ca - cb) != 1 or not (self.free[ra, ca] and self.free[rb, cb]):
             return False
         if ra == rb:
@@ -197,14 +197,14 @@ class _Cut:
     cell_w_px: float
 
 
-def _cut(m: OccupancyMap, rows_cols: tuple[int, int] | None, cell_m: float | None, crop: bool) -> _Cut:
+def _cut(occupancy: OccupancyMap, rows_cols: tuple[int, int] | None, cell_m: float | None, crop: bool) -> _Cut:
     """The grid's placement for :func:`make_grid`'s ``rows_cols``/``cell_m``/``crop``; raises ValueError."""
-    r0, c0, r1, c1 = m.known_bounds() if crop else (0, 0, m.height, m.width)
+    r0, c0, r1, c1 = occupancy.known_bounds() if crop else (0, 0, occupancy.height, occupancy.width)
     area_h, area_w = r1 - r0, c1 - c0
     if cell_m is not None:
         if not cell_m > 0:
             raise ValueError(f"cell_m must be > 0, got {cell_m!r}")
-        cell_h_px = cell_w_px = cell_m / m.resolution
+        cell_h_px = cell_w_px = cell_m / occupancy.resolution
         rows = max(1, math.ceil(area_h / cell_h_px - 1e-9))
         cols = max(1, math.ceil(area_w / cell_w_px - 1e-9))
     else:
@@ -216,18 +216,18 @@ def _cut(m: OccupancyMap, rows_cols: tuple[int, int] | None, cell_m: float | Non
     return _Cut(r0, c0, rows, cols, cell_h_px, cell_w_px)
 
 
-def _free_fractions(m: OccupancyMap, free_px: np.ndarray, g: _Cut) -> np.ndarray:
+def _free_fractions(occupancy: OccupancyMap, free_px: np.ndarray, cut: _Cut) -> np.ndarray:
     """(rows, cols) free share of each cell's area: every pixel belongs to the cell holding
     its centre; area outside the image is not free."""
-    rows, cols = g.rows, g.cols
-    span_r = np.arange(math.floor(g.r0), math.ceil(g.r0 + rows * g.cell_h_px))
-    span_c = np.arange(math.floor(g.c0), math.ceil(g.c0 + cols * g.cell_w_px))
-    ri = np.floor((span_r + 0.5 - g.r0) / g.cell_h_px).astype(np.int64)
-    ci = np.floor((span_c + 0.5 - g.c0) / g.cell_w_px).astype(np.int64)
+    rows, cols = cut.rows, cut.cols
+    span_r = np.arange(math.floor(cut.r0), math.ceil(cut.r0 + rows * cut.cell_h_px))
+    span_c = np.arange(math.floor(cut.c0), math.ceil(cut.c0 + cols * cut.cell_w_px))
+    ri = np.floor((span_r + 0.5 - cut.r0) / cut.cell_h_px).astype(np.int64)
+    ci = np.floor((span_c + 0.5 - cut.c0) / cut.cell_w_px).astype(np.int64)
     keep_r, keep_c = (ri >= 0) & (ri < rows), (ci >= 0) & (ci < cols)
     span_r, ri, span_c, ci = span_r[keep_r], ri[keep_r], span_c[keep_c], ci[keep_c]
-    in_r = (span_r >= 0) & (span_r < m.height)
-    in_c = (span_c >= 0) & (span_c < m.width)
+    in_r = (span_r >= 0) & (span_r < occupancy.height)
+    in_c = (span_c >= 0) & (span_c < occupancy.width)
     sub = np.zeros((span_r.size, span_c.size), dtype=bool)
     sub[np.ix_(in_r, in_c)] = free_px[np.ix_(span_r[in_r], span_c[in_c])]
     ids = (ri[:, None] * cols + ci[None, :]).ravel()
@@ -255,11 +255,11 @@ def _segment_min(clear_m: np.ndarray, rf0: np.ndarray, cf0: np.ndarray, rf1: np.
     return _clearance_at(clear_m, rf, cf).min(axis=-1)
 
 
-def make_grid(m: OccupancyMap, rows_cols: tuple[int, int] | None = None, cell_m: float | None = None,
+def make_grid(occupancy: OccupancyMap, rows_cols: tuple[int, int] | None = None, cell_m: float | None = None,
               free_fraction: float = 0.8, robot_radius: float = ROBOT_RADIUS,
               unknown_is_occupied: bool = True, *, margin: float = ROBOT_MARGIN,
               crop: bool = True) -> CellGrid:
-    """Cut ``m`` into a grid of cells and decide which are free.
+    """Cut ``occupancy`` into a grid of cells and decide which are free.
 
     Args:
         m: the map.
@@ -284,18 +284,18 @@ def make_grid(m: OccupancyMap, rows_cols: tuple[int, int] | None = None, cell_m:
         raise ValueError(f"free_fraction must be in (0, 1], got {free_fraction!r}")
     if robot_radius < 0 or margin < 0:
         raise ValueError("robot_radius and margin must be >= 0")
-    res = m.resolution
-    g = _cut(m, rows_cols, cell_m, crop)
+    res = occupancy.resolution
+    g = _cut(occupancy, rows_cols, cell_m, crop)
     rows, cols, cell_h_px, cell_w_px = g.rows, g.cols, g.cell_h_px, g.cell_w_px
     need = robot_radius + margin
     if min(cell_h_px, cell_w_px) * res < 2 * need - 1e-9:
         raise ValueError(f"cells of {cell_w_px * res:.3f} x {cell_h_px * res:.3f} m are smaller than the "
                          f"robot footprint (2 x {need:.3f} m); use fewer rows/cols or a larger cell_m")
 
-    free_px = m.free_mask(unknown_is_occupied)
+    free_px = occupancy.free_mask(unknown_is_occupied)
     clear_m = _clearance_px(~free_px, pad_blocked=unknown_is_occupied) * res
     # 1. free fraction; 2. clearance at cell centres (points outside the image have none)
-    frac = _free_fractions(m, free_px, g)
+    frac = _free_fractions(occupancy, free_px, g)
     cr = g.r0 + (np.arange(rows) + 0.5) * cell_h_px
     cc = g.c0 + (np.arange(cols) + 0.5) * cell_w_px
     centre_clear = _clearance_at(clear_m, np.repeat(cr[:, None], cols, 1), np.repeat(cc[None, :], rows, 0))
@@ -305,5 +305,5 @@ def make_grid(m: OccupancyMap, rows_cols: tuple[int, int] | None = None, cell_m:
     open_east = _segment_min(clear_m, R[:, :-1], C[:, :-1], R[:, 1:], C[:, 1:], cell_w_px) >= need
     open_south = _segment_min(clear_m, R[:-1, :], C[:-1, :], R[1:, :], C[1:, :], cell_h_px) >= need
     return CellGrid(rows=rows, cols=cols, cell_w_m=cell_w_px * res, cell_h_m=cell_h_px * res,
-                    free=free, map=m, row0_px=float(g.r0), col0_px=float(g.c0), free_fraction=frac,
+                    free=free, map=occupancy, row0_px=float(g.r0), col0_px=float(g.c0), free_fraction=frac,
                     clearance=centre_clear, open_east=open_east, open_south=open_south)

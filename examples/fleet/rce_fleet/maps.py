@@ -303,8 +303,8 @@ def load_map(yaml_path: str | Path) -> OccupancyMap:
     return OccupancyMap(occupancy=out, resolution=p["resolution"], origin=p["origin"], image=image_path)
 
 
-def save_map(m: OccupancyMap, yaml_path: str | Path, image_name: str | None = None) -> Path:
-    """Write ``m`` as a trinary map_server map (PGM + YAML), as ``map_saver`` does.
+def save_map(occupancy: OccupancyMap, yaml_path: str | Path, image_name: str | None = None) -> Path:
+    """Write ``occupancy`` as a trinary map_server map (PGM + YAML), as ``map_saver`` does.
 
     Free -> 254, occupied (>= OCCUPIED_MIN) -> 0, unknown -> 205; thresholds
     0.65 / 0.196. Returns the YAML path. Loading it back gives the same
@@ -312,7 +312,7 @@ def save_map(m: OccupancyMap, yaml_path: str | Path, image_name: str | None = No
     """
     yaml_path = Path(yaml_path)
     image_name = image_name or yaml_path.with_suffix(".pgm").name
-    occ = m.occupancy
+    occ = occupancy.occupancy
     img = np.full(occ.shape, 205, dtype=np.uint8)
     img[(occ >= 0) & (occ < OCCUPIED_MIN)] = 254
     img[occ >= OCCUPIED_MIN] = 0
@@ -320,8 +320,8 @@ def save_map(m: OccupancyMap, yaml_path: str | Path, image_name: str | None = No
     meta = {
         "image": image_name,
         "mode": "trinary",
-        "resolution": m.resolution,
-        "origin": [float(v) for v in m.origin],
+        "resolution": occupancy.resolution,
+        "origin": [float(v) for v in occupancy.origin],
         "negate": 0,
         "occupied_thresh": 0.65,
         "free_thresh": 0.196,

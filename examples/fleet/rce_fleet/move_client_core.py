@@ -140,10 +140,10 @@ class MoveClientCore:
     def _cancel(self) -> Out:
         return Out(self.cancel_topic, "actionlib_msgs/GoalID", {"id": ""})
 
-    def _goal(self, k: int) -> Out:
-        x, y = self.geo.center(self.cells[k])
-        if k > 0:
-            px, py = self.geo.center(self.cells[k - 1])
+    def _goal(self, index: int) -> Out:
+        x, y = self.geo.center(self.cells[index])
+        if index > 0:
+            px, py = self.geo.center(self.cells[index - 1])
             yaw = math.atan2(y - py, x - px)
         else:
             yaw = self.pose[2] if self.pose else 0.0
@@ -152,17 +152,17 @@ class MoveClientCore:
                    {"header": {"stamp": {"secs": int(secs), "nsecs": int((secs % 1) * 1e9)}, "frame_id": "map"},
                     "pose": {"position": {"x": x, "y": y, "z": 0.0}, "orientation": quaternion_from_yaw(yaw)}})
 
-    def _straight(self, k: int) -> bool:
+    def _straight(self, index: int) -> bool:
         """True when cells k-1, k, k+1 lie in one row or one column."""
-        if k < 1 or k + 1 >= len(self.cells):
+        if index < 1 or index + 1 >= len(self.cells):
             return False
-        (r0, c0), (r1, c1), (r2, c2) = (self.geo.rc(self.cells[j]) for j in (k - 1, k, k + 1))
+        (r0, c0), (r1, c1), (r2, c2) = (self.geo.rc(self.cells[j]) for j in (index - 1, index, index + 1))
         return (r0 == r1 == r2) or (c0 == c1 == c2)
 
-    def _dist_to(self, k: int) -> float:
+    def _dist_to(self, index: int) -> float:
         if self.pose is None:
             return math.inf
-        x, y = self.geo.center(self.cells[k])
+        x, y = self.geo.center(self.cells[index])
         return math.hypot(x - self.pose[0], y - self.pose[1])
 
     def _advance(self) -> list[Out]:

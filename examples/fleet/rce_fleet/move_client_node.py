@@ -60,21 +60,21 @@ async def main(node) -> None:
         pubs.send(outs)
         report()
 
-    def on_path(m) -> None:
-        label = m.layout.dim[0].label if len(m.layout.dim) else ""
-        handle(core.on_path(plan_id_of(label), [int(c) for c in m.data]))
+    def on_path(msg) -> None:
+        label = msg.layout.dim[0].label if len(msg.layout.dim) else ""
+        handle(core.on_path(plan_id_of(label), [int(c) for c in msg.data]))
 
-    def on_clearance(m) -> None:
-        handle(core.on_clearance(int(m.plan), int(m.index)))
+    def on_clearance(msg) -> None:
+        handle(core.on_clearance(int(msg.plan), int(msg.index)))
 
-    def on_cancel(m) -> None:
-        if m.data:
+    def on_cancel(msg) -> None:
+        if msg.data:
             log.info("cancelGoal", robot=robot, plan=core.plan)
-        handle(core.on_cancel(bool(m.data)))
+        handle(core.on_cancel(bool(msg.data)))
 
-    def on_pose(m) -> None:
-        p = m.pose.pose
-        st = m.header.stamp
+    def on_pose(msg) -> None:
+        p = msg.pose.pose
+        st = msg.header.stamp
         handle(core.on_pose(p.position.x, p.position.y, yaw_from_quaternion(p.orientation),
                             st.sec + st.nanosec * 1e-9))
 

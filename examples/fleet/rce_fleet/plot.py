@@ -63,7 +63,7 @@ def plot_run(path: str | Path, occ_map, geo: GridGeometry, traces: dict[str, lis
         ax.plot([gx0, gx1], [y, y], color="tab:blue", lw=lw, alpha=0.5)
     cmap = plt.get_cmap("tab10" if len(traces) <= 10 else "tab20")
     ms = 7 if span < 15 else 5
-    for i, rid in enumerate(sorted(traces, key=lambda s: (len(s), s))):
+    for i, rid in enumerate(sorted(traces, key=lambda robot_id: (len(robot_id), robot_id))):
         col = cmap(i % cmap.N)
         pts = np.asarray(traces[rid], dtype=float).reshape(-1, 2)
         ok = "" if reached is None else (" (reached)" if reached.get(rid) else " (NOT reached)")

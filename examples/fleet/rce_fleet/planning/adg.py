@@ -51,9 +51,9 @@ class ActionDependencyGraph:
         self.progress: dict[str, int] = {r: 0 for r in self.visits}
         self._cleared: dict[str, int] = {r: 0 for r in self.visits}
 
-    def allowed(self, robot: str, k: int) -> bool:
-        """True when ``robot`` may enter the cell of its visit ``k`` now."""
-        p = self.pred[robot][k]
+    def allowed(self, robot: str, visit: int) -> bool:
+        """True when ``robot`` may enter the cell of its ``visit`` now."""
+        p = self.pred[robot][visit]
         return p is None or self.progress[p[0]] > p[1]
 
     def cleared_visit(self, robot: str) -> int:

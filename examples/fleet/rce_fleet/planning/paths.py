@@ -26,10 +26,10 @@ def compress(path: Iterable[int]) -> list[int]:
     return out
 
 
-def compressed_index(path: Sequence[int], k: int) -> int:
-    """Index in ``compress(path)`` of the cell at step ``k`` of ``path``."""
+def compressed_index(path: Sequence[int], step: int) -> int:
+    """Index in ``compress(path)`` of the cell at ``step`` of ``path``."""
     n = 0
-    for i in range(1, min(k, len(path) - 1) + 1):
+    for i in range(1, min(step, len(path) - 1) + 1):
         if path[i] != path[i - 1]:
             n += 1
     return n
@@ -94,7 +94,7 @@ def check_conflicts(paths: Mapping[str, Sequence[int]], ignore_start: bool = Fal
 
 
 
-def _rotations(items: list[tuple[str, list[int]]], prev: dict[int, str], t: int) -> list[Conflict]:
+def _rotations(items: list[tuple[str, list[int]]], prev: dict[int, str], step: int) -> list[Conflict]:
     """Cycles of >= 3 robots each moving into the cell the next one leaves, between t-1 and t.
 
     A plan may not contain them: executed with :class:`.adg.ActionDependencyGraph`
@@ -103,9 +103,9 @@ def _rotations(items: list[tuple[str, list[int]]], prev: dict[int, str], t: int)
     nxt: dict[str, str] = {}
     move: dict[str, tuple[int, int]] = {}
     for r, p in items:
-        if t < len(p) and p[t] != p[t - 1]:
-            o = prev.get(p[t])
-            move[r] = (p[t - 1], p[t])
+        if step < len(p) and p[step] != p[step - 1]:
+            o = prev.get(p[step])
+            move[r] = (p[step - 1], p[step])
             if o is not None and o != r:
                 nxt[r] = o
     out, done = [], set()
@@ -119,7 +119,7 @@ def _rotations(items: list[tuple[str, list[int]]], prev: dict[int, str], t: int)
         if x in seen and x in move:
             cyc = seen[seen.index(x):]
             if len(cyc) >= 3:
-                out.append(Conflict("cycle", tuple(cyc), tuple(move[c][0] for c in cyc), t - 1))
+                out.append(Conflict("cycle", tuple(cyc), tuple(move[c][0] for c in cyc), step - 1))
         done.update(seen)
     return out
 

@@ -152,7 +152,8 @@ class _Round:
         for r in self.fixed:
             if f.goals.get(r) is not None and r not in f.unreachable:
                 goal_owner[f.goals[r]] = r
-        wanting = sorted((r for r in self.todo if f.goals.get(r) is not None), key=lambda r: f.goal_seq.get(r, 0))
+        wanting = sorted((r for r in self.todo if f.goals.get(r) is not None),
+                         key=lambda robot: f.goal_seq.get(robot, 0))
         f.distances.fill((f.goals[r] for r in wanting), f.blocked)
         for r in wanting:
             g = f.goals[r]
@@ -199,7 +200,7 @@ class _Round:
         """Plan ``movers`` in priority order, bumping a robot that fails to the front and
         restarting. Returns (their paths, the robots parked because they still failed)."""
         prefix = {r: self._prefix(r) for r in movers}
-        order = sorted(movers, key=lambda r: (self.f.distance(self.starts[r], self.f.goals[r]), r))
+        order = sorted(movers, key=lambda robot: (self.f.distance(self.starts[robot], self.f.goals[robot]), robot))
         failed_parked: list[str] = []
         attempts = 0
         while True:

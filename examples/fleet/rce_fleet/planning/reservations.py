@@ -39,29 +39,29 @@ class Reservations:
         r.paths, r.parks = dict(self.paths), dict(self.parks)
         return r
 
-    def cell_of(self, owner: int, t: int) -> int | None:
-        """Where ``owner`` is at step ``t`` (None when not known: an unplanned robot past its start)."""
+    def cell_of(self, owner: int, step: int) -> int | None:
+        """Where ``owner`` is at ``step`` (None when not known: an unplanned robot past its start)."""
         p = self.paths.get(owner)
         if p is None:
             return None
-        if t < len(p):
-            return p[t]
+        if step < len(p):
+            return p[step]
         return p[-1] if self.parks.get(owner) else None
 
-    def closes_rotation(self, u: int, v: int, t: int) -> bool:
+    def closes_rotation(self, from_cell: int, to_cell: int, step: int) -> bool:
         """True when moving u -> v between t and t + 1 closes a cycle of robots each
         entering the cell the next one leaves (a swap is the 2-cycle)."""
         n, vertex = self.n, self.vertex
-        o = vertex.get(t * n + v)
+        o = vertex.get(step * n + to_cell)
         for _ in range(len(self.paths) + 1):
             if o is None:
                 return False
-            x = self.cell_of(o, t + 1)
+            x = self.cell_of(o, step + 1)
             if x is None:
                 return False
-            if x == u:
+            if x == from_cell:
                 return True
-            o = vertex.get(t * n + x)
+            o = vertex.get(step * n + x)
         return False
 
     def reserve(self, path: Sequence[int], owner: int, park: bool = True, t0: int = 0) -> None:

@@ -48,18 +48,18 @@ def _path(info: dict[int, tuple[int, int, float, int]], skey: int) -> list[int]:
     return path
 
 
-def _successors(res: Reservations, nbrs_u: Sequence[int], h: Sequence[float], u: int, a: int,
-                e: float) -> list[tuple[int, int, float, int, float]]:
-    """The states a robot in ``u`` (arrived at step ``a``, safe there until ``e``) can move
+def _successors(res: Reservations, nbrs_u: Sequence[int], heuristic: Sequence[float], cell: int, arrival: int,
+                safe_until: float) -> list[tuple[int, int, float, int, float]]:
+    """The states a robot in ``cell`` (arrived at step ``arrival``, safe there until ``safe_until``) can move
     to: ``(state key, arrival step, interval end, cell, h of the cell)`` for every safe interval
     of every neighbour it can reach, arriving as early as it can without swapping cells with
     whoever is in the neighbour or closing a rotation."""
     N, vertex, occ, parked = res.n, res.vertex, res.occ, res.parked
     bisect_right = bisect.bisect_right
-    lo, hi = a + 1, e + 1                    # earliest and latest arrival at a neighbour
+    lo, hi = arrival + 1, safe_until + 1                    # earliest and latest arrival at a neighbour
     out = []
     for v in nbrs_u:
-        hv = h[v]
+        hv = heuristic[v]
         if hv == INF:
             continue
         vts = occ.get(v)
@@ -82,7 +82,7 @@ def _successors(res: Reservations, nbrs_u: Sequence[int], h: Sequence[float], u:
                     o = vertex.get((t_arr - 1) * N + v)
                     if o is None:
                         break
-                    if vertex.get(t_arr * N + u) != o and not res.closes_rotation(u, v, t_arr - 1):
+                    if vertex.get(t_arr * N + cell) != o and not res.closes_rotation(cell, v, t_arr - 1):
                         break
                     t_arr += 1
                 if t_arr <= last_ok:
@@ -94,7 +94,7 @@ def _successors(res: Reservations, nbrs_u: Sequence[int], h: Sequence[float], u:
     return out
 
 
-def safe_interval_astar(nbrs: Sequence[Sequence[int]], start: int, goal: int, h: Sequence[float],
+def safe_interval_astar(nbrs: Sequence[Sequence[int]], start: int, goal: int, heuristic: Sequence[float],
                         res: Reservations, max_expansions: int, t0: int = 0,
                         weight: float = 1.0) -> list[int] | None:
     """Space-time A* over safe intervals (SIPP, Phillips & Likhachev 2011, ICRA).
@@ -117,14 +117,14 @@ def safe_interval_astar(nbrs: Sequence[Sequence[int]], start: int, goal: int, h:
     Returns cells for steps ``t0 .. arrival`` (``path[0] == start``), or None.
     """
     N = res.n
-    if h[start] == INF or goal in res.parked:
+    if heuristic[start] == INF or goal in res.parked:
         return None
     G1 = res.last(goal) + 1
     w = weight
     s_key = t0 * N + start
     best = {s_key: t0}
     info = {s_key: (start, t0, _start_interval_end(res, start, t0), -1)}   # state -> (cell, arrival, end, parent)
-    h0 = h[start]
+    h0 = heuristic[start]
     open_ = [(t0 + w * (h0 if h0 > G1 - t0 else G1 - t0), h0, -t0, s_key)]
     closed: set[int] = set()
     push, pop = heapq.heappush, heapq.heappop
@@ -140,7 +140,7 @@ def safe_interval_astar(nbrs: Sequence[Sequence[int]], start: int, goal: int, h:
         expansions += 1
         if expansions > max_expansions:
             return None
-        for key, t_arr, e_int, v, hv in _successors(res, nbrs[u], h, u, a, e):
+        for key, t_arr, e_int, v, hv in _successors(res, nbrs[u], heuristic, u, a, e):
             if key not in closed and t_arr < best.get(key, INF):
                 best[key] = t_arr
                 info[key] = (v, t_arr, e_int, skey)

@@ -30,9 +30,9 @@ class LocalisationParams:
     bound_sigmas: float = 3.0
 
 
-def wrap_angle(a: float) -> float:
+def wrap_angle(angle: float) -> float:
     """Wrap an angle to [-pi, pi), rad."""
-    return (a + math.pi) % (2.0 * math.pi) - math.pi
+    return (angle + math.pi) % (2.0 * math.pi) - math.pi
 
 
 class LocalisationModel:
@@ -48,9 +48,9 @@ class LocalisationModel:
         # Start from the stationary distribution (like amcl after convergence).
         self.error = self._clip(self.rng.normal(0.0, 1.0, 3) * self._sigma)
 
-    def _clip(self, e: np.ndarray) -> np.ndarray:
+    def _clip(self, error: np.ndarray) -> np.ndarray:
         b = self.params.bound_sigmas * self._sigma
-        return np.clip(e, -b, b)
+        return np.clip(error, -b, b)
 
     def step(self, dt: float) -> None:
         """Advance the error process by ``dt`` seconds (exact OU discretisation)."""

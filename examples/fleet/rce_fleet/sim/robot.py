@@ -83,14 +83,14 @@ class SimRobot:
         self._prev = (float(x), float(y), float(yaw))
 
     # -- actuation -----------------------------------------------------------
-    def cmd_vel(self, v: float, w: float) -> None:
-        """Command linear ``v`` m/s and angular ``w`` rad/s (clipped to the
+    def cmd_vel(self, linear: float, angular: float) -> None:
+        """Command ``linear`` m/s and ``angular`` rad/s (clipped to the
         limits; reached under the acceleration limits), like ``cmd_vel``
         (``geometry_msgs/Twist``)."""
         p = self.params
-        v = 0.0 if not math.isfinite(v) else max(-p.max_linear, min(p.max_linear, float(v)))
-        w = 0.0 if not math.isfinite(w) else max(-p.max_angular, min(p.max_angular, float(w)))
-        self._cmd = (v, w)
+        linear = 0.0 if not math.isfinite(linear) else max(-p.max_linear, min(p.max_linear, float(linear)))
+        angular = 0.0 if not math.isfinite(angular) else max(-p.max_angular, min(p.max_angular, float(angular)))
+        self._cmd = (linear, angular)
 
     @property
     def command(self) -> tuple[float, float]:

@@ -108,15 +108,15 @@ class SimWorld:
         robot = self.robots.pop(robot_id)
         self.space.remove(robot.body, robot.shape)
 
-    def add_box(self, box_id: str, x: float, y: float, w: float, h: float) -> None:
-        """Place a static axis-aligned box obstacle centred at (x, y), ``w`` m
-        wide (along x) and ``h`` m tall (along y); replaces a box of the same
+    def add_box(self, box_id: str, x: float, y: float, width: float, height: float) -> None:
+        """Place a static axis-aligned box obstacle centred at (x, y), ``width`` m
+        wide (along x) and ``height`` m tall (along y); replaces a box of the same
         id.  A box dropped onto a robot pushes the robot out of it."""
         if box_id in self.boxes:
             self.remove_box(box_id)
         shape = pymunk.Poly.create_box_bb(
             self.space.static_body,
-            pymunk.BB(x - w / 2.0, y - h / 2.0, x + w / 2.0, y + h / 2.0))
+            pymunk.BB(x - width / 2.0, y - height / 2.0, x + width / 2.0, y + height / 2.0))
         shape.friction = 0.0
         shape.elasticity = 0.0
         shape.box_id = box_id  # type: ignore[attr-defined]
