@@ -24,14 +24,8 @@ import socket
 from http import HTTPStatus
 from urllib.parse import parse_qs, urlsplit
 
+from fleet_wiring import echo_tags
 from rce_robot import ws_cork
-
-
-def echo_tags(n: int, side: str) -> tuple[str, str]:
-    """Robot ``n``'s robot-side pose and echo iTags (:func:`fleet_load.robot_wiring`)."""
-    from fleet_load import robot_wiring
-    roles = robot_wiring(n, side)[2]
-    return roles["pose"], roles["echo"]
 
 
 async def serve_floor(sock: socket.socket, side: str, ready=None) -> None:

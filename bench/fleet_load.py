@@ -102,7 +102,6 @@ from __future__ import annotations
 
 import argparse
 import asyncio
-import importlib.util
 import json
 import math
 import multiprocessing as mp
@@ -125,13 +124,8 @@ from rce_robot import ws_cork
 from common import (BENCH, PASSWORD, RESULTS, USER, ForeignLoad, console, engine, fmt_ms, free_port, median,
                     percentile, pyplot, set_nice, wait_quiet, write_json)
 from fleet_floor import floor_main
+from fleet_wiring import CTAG, DOWN, ECHO_SUFFIX, POSE, robot_wiring
 
-if importlib.util.find_spec("rce_fleet") is None:    # a checkout without the project installed
-    sys.path.insert(0, str(BENCH.parent / "examples" / "fleet"))
-
-POSE = "geometry_msgs/PoseWithCovarianceStamped"
-CTAG = "cTag_01"
-ECHO_SUFFIX = "_echo"
 Y_MS_SCALE = 1e-6          # m of position.y per ms of the send time (mod Y_MS_MOD)
 Y_MS_MOD = 100_000         # ms
 DEFAULT_ROBOTS = "10,100,300,1000"
@@ -139,9 +133,6 @@ MAX_DEFAULT_TASKSETS = 4   # robot task sets by default: one per core, up to thi
 DEFAULT_TASKSETS = max(1, min(os.cpu_count() or 1, MAX_DEFAULT_TASKSETS))
 DEFAULT_CLIENTS = 1        # client worker processes: one event loop drives all the robots (they share the cores)
 PACKAGES = BENCH / "packages"
-# the planner's outputs a lightweight robot takes directly: (topic under /RobotN/, class)
-DOWN = [("goalNodesList", "std_msgs/Int32MultiArray"), ("cancelGoal", "std_msgs/Bool"),
-        ("clearance", "fleet/Clearance")]
 INTERFACES_PER_ROBOT = 2 * (2 + len(DOWN))   # both ends of the pose, echo and DOWN links (robot_wiring)
 INTERFACE_HEADROOM = 1000  # interfaces the fleet manager and its container take, with room to spare
 GOAL_RESEND = 5.0          # s: goals of robots that have no path yet are sent again this often
@@ -167,35 +158,6 @@ def placements(n: int, cols: int) -> list[tuple[int, int]]:
     """(start cell, goal cell) of robot i (0-based): starts in even columns, goal to the east."""
     half = cols // 2
     return [((i // half) * cols + 2 * (i % half), (i // half) * cols + 2 * (i % half) + 1) for i in range(n)]
-
-
-def robot_wiring(n: int, side: str) -> tuple[list[dict], list[dict], dict]:
-    """CN addInterfaces and CX connect items of robot ``n``, and its robot-side iTags by role.
-
-    The pose link is the fleet robot's own (rce_fleet.configs.robot_config); the others take
-    the planner's outputs and the echo the same way (container SubscriberInterface -> robot
-    Publisher<side>)."""
-    from rce_fleet.configs import robot_config
-    rid = f"Robot{n}"
-    cfg = robot_config(n)
-    pose = [i for i in cfg["interfaces"] if i["iCls"] == POSE]
-    links = []
-    c_pose = next(i for i in pose if i["eTag"] == CTAG)
-    r_pose = next(i for i in pose if i["eTag"] == rid)
-    links.append((c_pose["iTag"], c_pose["iType"], r_pose["iTag"], r_pose["iType"].replace("Forwarder", side),
-                  POSE, c_pose["addr"]))
-    for topic, cls in [("amcl_pose" + ECHO_SUFFIX, POSE)] + DOWN:
-        base = "poseEcho" if topic.startswith("amcl_pose") else topic
-        links.append((f"{base}Sender_{n}", "SubscriberInterface", f"{base}Receiver_{n}", f"Publisher{side}",
-                      cls, f"/{rid}/{topic}"))
-    adds, conns = [], []
-    for c_tag, c_type, r_tag, r_type, cls, addr in links:
-        adds.append({"endpointTag": CTAG, "interfaceTag": c_tag, "interfaceType": c_type, "className": cls,
-                     "addr": addr})
-        adds.append({"endpointTag": rid, "interfaceTag": r_tag, "interfaceType": r_type, "className": cls})
-        conns.append({"tagA": f"{CTAG}/{c_tag}", "tagB": f"{rid}/{r_tag}"})
-    roles = {"pose": links[0][2], "echo": links[1][2], **{t: links[2 + k][2] for k, (t, _) in enumerate(DOWN)}}
-    return adds, conns, roles
 
 
 def interface_quota(n: int) -> int:

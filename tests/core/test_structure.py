@@ -1,6 +1,6 @@
-"""The shape of the code base: no import circle among the project's
-modules, no function over 80 lines in the engine packages, and engine tests import nothing
-from ``examples/``. Read from the source with :mod:`ast`; nothing is imported or run."""
+"""The shape of the code base: no import circle among the project's modules or the bench scripts,
+no function over 80 lines in the engine packages, and engine tests import nothing from
+``examples/``. Read from the source with :mod:`ast`; nothing is imported or run."""
 from __future__ import annotations
 
 import ast
@@ -95,6 +95,14 @@ def test_no_import_circle():
     # a package's __init__ importing its own submodules is not a circle through the package
     for m in graph:
         graph[m] = {n for n in graph[m] if not m.startswith(n + ".") or mods[n].name != "__init__.py"}
+    assert _cycle(graph) is None, f"import circle: {' -> '.join(_cycle(graph))}"
+
+
+def test_no_import_circle_among_the_bench_scripts():
+    """The scripts in ``bench/`` import each other by module name (their directory is on ``sys.path``):
+    what two need lives in a third (``common``, ``fleet_wiring``), never in each other."""
+    mods = {f.stem: f for f in (ROOT / "bench").glob("*.py")}
+    graph = {m: _imports(p, m, set(mods)) for m, p in mods.items()}
     assert _cycle(graph) is None, f"import circle: {' -> '.join(_cycle(graph))}"
 
 
