@@ -66,7 +66,7 @@ def test_ticket_finder_finds_references_in_code_only(tmp_path: Path):
     (tmp_path / "a.py").write_text(f'"""{ticket}: direct links."""\n')
     (tmp_path / "b.js").write_text(f"// fine\n// see {ticket.lower()}\n")
     (tmp_path / "run").write_text(f"#!/bin/bash\n# {ticket}\n")
-    (tmp_path / "Makefile").write_text("# tissue 5 is not a ticket\n")
+    (tmp_path / "Makefile").write_text("# t" + ticket.lower() + " is a word, not a ticket\n")
     (tmp_path / "notes.md").write_text(f"{ticket} may be told in prose\n")
     (tmp_path / "docs").mkdir()
     (tmp_path / "docs" / "x.html").write_text(ticket)
