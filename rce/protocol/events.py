@@ -4,9 +4,9 @@
 ``isinstance``), ending in :func:`unhandled` for a type it does not know, so a misspelt event
 cannot exist.
 
-- :data:`RobotEvent`: what :class:`~rce.protocol.session.RobotSession` (the cloud side) asks of the
+- :data:`RobotEvent`: what :class:`~rce.protocol.robot_session.RobotSession` (the cloud side) asks of the
   robot endpoint (:mod:`rce_robot.namespace`).
-- :data:`ClientEvent`: what :class:`~rce.protocol.session.ClientSession` (the robot side) tells the
+- :data:`ClientEvent`: what :class:`~rce.protocol.client_session.ClientSession` (the robot side) tells the
   client library (:mod:`rce_client.connection`).
 
 The session test vectors (``tests/vectors/README.md``) and the browser's ``rce.js`` write events as

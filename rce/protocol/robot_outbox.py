@@ -1,5 +1,5 @@
 """What the cloud sends one robot, sans I/O: the messages of a
-:class:`~rce.protocol.session.RobotSession` on their way out, in order.
+:class:`~rce.protocol.robot_session.RobotSession` on their way out, in order.
 
 - Topic data (data DMs) follows the one outbox policy (:class:`~rce.protocol.outbox.Outbox`: each
   interface keeps its newest).

@@ -1,0 +1,342 @@
+"""The cloud side of a robot session, sans I/O (:mod:`rce.protocol.session`): one connected robot's
+frames in, requests to the master one at a time and in order, the DM ordering rule, lag shedding,
+what goes to the robot, and resume. The robot endpoint (:mod:`rce_robot.namespace`) is its shell."""
+from __future__ import annotations
+
+from typing import Any
+
+from rce.errors import ProtocolError, RequestError
+from rce.messages import takes_binary_message
+from rce.protocol.events import CaughtUp, CloseLink, Deliver, Lagging, RequestReady, ServiceCall
+from rce.protocol.frames import DEFAULT_EXPIRY, DEFAULT_MAX_PENDING_BYTES, DEFAULT_MAX_PENDING_PARTS, DM, ST
+from rce.protocol.holdback import HoldBack
+from rce.protocol.limits import DEFAULT_MAX_LAG, ER_BURST, ER_RATE, LagGate, PartBudget
+from rce.protocol.robot_outbox import RobotOutbox, dm
+from rce.protocol.resume import (ACK_DELAY, ACK_EVERY, DEFAULT_GRACE, DEFAULT_RESUME_BUFFER, DEFAULT_RESUME_BYTES,
+                                 SESSION_TOPIC, new_token)
+from rce.protocol.schema import split_interface_type, validate
+from rce.protocol.session_core import SessionCore
+
+DEFAULT_QUEUE_SIZE = 1000                   # messages per robot in each bounded queue (like a ROS queue_size)
+DEFAULT_MAX_MESSAGE = 32 * 1024 * 1024      # bytes (chars for text) of the largest frame a robot endpoint takes
+LAG_TOPIC = "lag"                           # ST topic: the endpoint sheds the robot's topic messages, or caught up
+
+
+class RobotSession(SessionCore):
+    """The cloud side of robot ``robot``'s session.
+
+    ``max_message``: largest frame taken (bytes; text: chars), larger ones get an ER;
+    ``queue_size``: bound of each queue (data DMs waiting to go out, requests waiting for
+    the master, DMs waiting for earlier requests, service calls in flight), beyond which
+    messages are dropped, counted, and (inbound ones) refused with an ER; ``expiry``: s
+    an incomplete message waits for its binary parts.
+
+    Every bad input gets an ER naming what was wrong; the session goes on. ERs are cut short and
+    those for bad input rate-limited (``er_rate`` per s, ``er_burst`` at once), dropped and counted past
+    it (:class:`~rce.protocol.error_limits.ErrorLimits`). ``max_pending_parts``: binary parts waiting for
+    their message; ``budget``: the endpoint's :class:`~rce.protocol.limits.PartBudget`, shared by its
+    sessions (:meth:`end` gives back).
+
+    ``resume``: the robot opted in (docs/INTERNALS.md "Session resume"): the session opens with
+    ``ST {"topic": "session", "status": "started", "session": token, "grace": grace}`` (``token``:
+    default a fresh :func:`~rce.protocol.resume.new_token`; ``grace``: s the endpoint keeps it
+    detached), numbers what it sends and keeps it until acked (``resume_buffer`` messages,
+    ``resume_bytes`` bytes; past them the oldest is forgotten, counted), takes each numbered
+    message once and acks every ``ack_every`` messages or ``ack_delay`` s.
+
+    ``max_lag``: s the endpoint may stay behind this robot (received frames waiting for the
+    session, as the shell tells with :meth:`backlog`) before it sheds the robot's topic messages:
+    while it has been behind for longer, a DM for a topic interface is dropped and counted
+    (``shed``) instead of delivered, until the shell has caught up, unless that interface has
+    delivered nothing for ``max_lag`` s (so a stream still reaches the cloud at least that often
+    while the endpoint stays behind). So an overloaded endpoint hands the cloud the robot's
+    newest messages, not ever older ones, as a ROS subscriber's ``queue_size`` drops the oldest.
+    Requests, service calls and answers are never shed. None: never shed. The robot is told:
+    ``ST {"topic": "lag", "status": "shedding", "behind_s", "max_lag_s"}`` when shedding starts,
+    ``ST {"topic": "lag", "status": "caught_up", "shed": n}`` when it ends.
+
+    The other way, to a robot that does not keep up, each interface's topic data keeps its newest
+    messages, as a ROS publisher's queue does (:class:`~rce.protocol.outbox.Outbox`; ``max_lag`` ages
+    them too); drops are counted in ``dropped`` (for their age also in ``expired``).
+
+    The jobs live in their modules and this class composes them: requests and the DMs held back for
+    them (:class:`~rce.protocol.holdback.HoldBack`), what goes to the robot (outbox, ERs, resume's
+    numbering: :class:`~rce.protocol.robot_outbox.RobotOutbox`), lag shedding
+    (:class:`~rce.protocol.limits.LagGate`), resume (:mod:`rce.protocol.resume`)."""
+
+    def __init__(self, robot: str, *, max_message: int = DEFAULT_MAX_MESSAGE, queue_size: int = DEFAULT_QUEUE_SIZE,
+                 expiry: float = DEFAULT_EXPIRY, max_pending_bytes: int = DEFAULT_MAX_PENDING_BYTES,
+                 max_pending_parts: int = DEFAULT_MAX_PENDING_PARTS, budget: PartBudget | None = None,
+                 resume: bool = False, token: str | None = None, grace: float = DEFAULT_GRACE,
+                 resume_buffer: int = DEFAULT_RESUME_BUFFER, resume_bytes: int = DEFAULT_RESUME_BYTES,
+                 ack_every: int = ACK_EVERY, ack_delay: float = ACK_DELAY, er_rate: float = ER_RATE,
+                 er_burst: int = ER_BURST, max_lag: float | None = DEFAULT_MAX_LAG):
+        super().__init__(expiry, max_pending_bytes, resume, resume_buffer, resume_bytes, ack_every, ack_delay,
+                         max_pending_parts, budget)
+        # what waits for the robot (ValueError for a queue_size < 1)
+        self.out = RobotOutbox(robot, queue_size, max_lag, er_rate, er_burst, self.outgoing,
+                               lambda reason: self._emit(CloseLink(reason)))
+        self.robot, self.max_message, self.queue_size = robot, max_message, queue_size
+        self.lag = LagGate(max_lag)                               # sheds topic DMs while the shell lags
+        self.requests = HoldBack(queue_size)                      # requests to the master, DMs held for them
+        self.interfaces: dict[str, tuple[str, str, str]] = {}     # iTag -> (kind, side, cls)
+        self.calls = 0                                            # service calls in flight
+        self.msgs_in = self.dropped_in = 0
+        self.token = (token or new_token()) if resume else None
+        self.grace = grace
+        self.resumes = self.resume_lost = 0
+        if resume:
+            self.out.link_message(ST, {"topic": SESSION_TOPIC, "status": "started", "session": self.token,
+                                       "grace": grace})
+
+    @property
+    def attached(self) -> bool:
+        """Is the robot on a live link (always, without resume)?"""
+        return self.out.attached
+
+    @property
+    def dropped(self) -> int:
+        """Data DMs to the robot dropped (the queue bound, or their age; :class:`~rce.protocol.outbox.Outbox`)."""
+        return self.out.queue.dropped
+
+    @property
+    def expired(self) -> int:
+        """Data DMs to the robot dropped for their age (``max_lag``)."""
+        return self.out.queue.expired
+
+    @property
+    def out_data(self) -> int:
+        """Data DMs waiting to go to the robot."""
+        return self.out.queue.data
+
+    # -- frames in --------------------------------------------------------------------------------
+    def _bad_input(self, reason: str) -> None:
+        self.send_error(reason)
+
+    def _on_message(self, msg: dict) -> None:
+        if self.incoming is not None and not self._take_numbered(msg):
+            return
+        self.msgs_in += 1
+        try:
+            t, data = validate(msg)
+        except ProtocolError as e:
+            self.send_error(e.message)
+            return
+        if t == DM:
+            self._on_dm(data)
+        elif self.requests.full:
+            self.dropped_in += 1
+            self.send_error(f"{t}: refused: {len(self.requests.requests)} requests already wait for the master")
+        else:
+            self.requests.add(t, data)
+            self._next_request()
+
+    def backlog(self, frames: int, now: float) -> None:
+        """The shell has ``frames`` more frames (or bytes) of this robot received and not yet given
+        to the session, at time ``now`` (s): 0 when it has caught up with all the robot sent so far,
+        in its own buffers and the kernel's. Call it before each frame it gives (``max_lag`` above;
+        :class:`~rce.protocol.limits.LagGate`)."""
+        shed = self.lag.backlog(frames, now)
+        if shed:
+            self._emit(CaughtUp(shed))
+            self.send_status({"topic": LAG_TOPIC, "status": "caught_up", "shed": shed})
+
+    # -- requests, one at a time and in order -------------------------------------------------------
+    def _next_request(self) -> None:
+        nxt = self.requests.next()
+        if nxt is not None:
+            self._emit(RequestReady(*nxt))
+
+    def request_done(self, error: str | None = None) -> None:
+        """The master answered the request of the last :class:`~rce.protocol.events.RequestReady`;
+        ``error``: its refusal. DMs that waited for it are routed, then the next request goes out.
+        Raises :class:`ProtocolError` when no request is in flight."""
+        type_, released = self.requests.done()
+        if error is not None:
+            self.send_error(f"{type_}: {error}", answer=True)
+        for data in released:
+            self._route(data)
+        self._next_request()
+
+    # -- DMs ----------------------------------------------------------------------------------------
+    def _on_dm(self, data: dict) -> None:
+        if not self.requests.must_hold(data["iTag"] in self.interfaces):
+            self._route(data)
+        elif not self.requests.hold(data):
+            self.dropped_in += 1
+            self.send_error(f"DM for interface {data['iTag']!r} dropped: {self.requests.held} messages already "
+                            f"wait for earlier requests")
+
+    def _route(self, data: dict) -> None:
+        itag = data["iTag"]
+        itf = self.interfaces.get(itag)
+        if itf is None:
+            self.send_error(f"DM: no interface {itag!r} on robot {self.robot!r}")
+            return
+        kind, side, cls = itf
+        refusal = _refusal(itag, kind, side, cls, data)
+        if refusal:
+            self.send_error(refusal)
+        elif kind != "ServiceProvider":
+            if not self.lag.admit(itag, self._now):
+                if self.lag.episode == 1:
+                    behind = round(self.lag.behind(self._now), 3)
+                    self._emit(Lagging(behind))
+                    self.send_status({"topic": LAG_TOPIC, "status": "shedding", "behind_s": behind,
+                                      "max_lag_s": self.lag.max_lag})
+                return
+            self._emit(Deliver(itag, data))
+        elif self.calls >= self.queue_size:
+            self.dropped_in += 1
+            self.send_error(f"service call {data.get('msgID')!r} on {itag!r} refused: {self.calls} calls in flight")
+        else:
+            self.calls += 1
+            self._emit(ServiceCall(itag, data))
+
+    def answer_call(self, call: dict, msg: Any) -> None:
+        """The service of a :class:`~rce.protocol.events.ServiceCall` (its ``data``: ``call``) answered
+        ``msg``: the response goes to the robot with the call's msgID (never dropped)."""
+        self.calls -= 1
+        itag = call["iTag"]
+        self.send_dm(itag, self.interfaces.get(itag, ("", "", call["type"]))[2], call.get("msgID") or "", msg)
+
+    def fail_call(self, call: dict, reason: str) -> None:
+        """The service of a :class:`~rce.protocol.events.ServiceCall` (its ``data``: ``call``) failed: an
+        ER naming the call's msgID and interface."""
+        self.calls -= 1
+        self.send_error(f"service call {call.get('msgID')!r} on {call['iTag']!r} failed: {reason}", answer=True)
+
+    # -- the interface table ------------------------------------------------------------------------
+    def add_interface(self, itag: str, itype: str, cls: str) -> None:
+        """A robot-side interface ``itag`` of type ``itype`` and class ``cls`` now exists.
+        Raises as :func:`robot_interface_type`."""
+        kind, side = robot_interface_type(itype)
+        self.interfaces[itag] = (kind, side, cls)
+
+    def remove_interface(self, itag: str) -> None:
+        """Robot-side interface ``itag`` is gone."""
+        self.interfaces.pop(itag, None)
+        self.lag.forget(itag)
+
+    # -- frames out ---------------------------------------------------------------------------------
+    def send_dm(self, itag: str, cls: str, msg_id: Any, msg: Any, data: bool = False,
+                now: float | None = None) -> bool:
+        """Queue ``DM {iTag, type, msgID, msg}`` for the robot at time ``now`` (s; default the last
+        time given). ``data=True`` marks topic data: when ``queue_size`` data DMs already wait, the
+        oldest of the busiest interface is dropped (:class:`~rce.protocol.outbox.Outbox`). Returns True."""
+        self.out.dm(dm(itag, cls, msg_id, msg), data, self._now if now is None else now)
+        return True
+
+    def send_status(self, data: dict) -> None:
+        """Queue ``ST data`` for the robot (never dropped)."""
+        self.out.control({"type": ST, "data": data})
+
+    def send_error(self, reason: str, answer: bool = False) -> bool:
+        """Queue ``ER reason`` for the robot (:class:`~rce.protocol.error_limits.ErrorLimits`: cut short,
+        counted). ``answer``: it answers a request or call of the robot (not rate-limited). Returns False
+        when it was dropped (rate limit, or ``queue_size`` ERs unread; counted in ``errors_dropped``)."""
+        return self.out.error(reason, answer, self._now)
+
+    def tick(self, now: float) -> None:
+        """As :meth:`SessionCore.tick`; then, when ERs were dropped and the robot reads again, an ER
+        saying how many."""
+        super().tick(now)
+        self.out.tick(now)
+
+    def end(self) -> None:
+        """The session ended: what waited for binary parts is forgotten (its bytes go back to the budget)."""
+        self.assembler.clear()
+
+    @property
+    def outbox(self) -> int:
+        """Messages waiting to be sent."""
+        return len(self.out)
+
+    def data_to_send(self, max_messages: int | None = None, now: float | None = None) -> list[str | bytes]:
+        """Frames of up to ``max_messages`` waiting messages (all by default), each message's JSON
+        text frame followed by its binary parts; they count as sent (with resume: numbered and kept
+        until acked). ``now`` (s): a data DM that has waited longer than ``max_lag`` while a newer one
+        of its interface waits is dropped instead (counted in ``dropped`` and ``expired``); None: none
+        is."""
+        return self.out.data_to_send(max_messages, now)
+
+    # -- resume -------------------------------------------------------------------------------------
+    def _linked(self) -> bool:
+        return self.attached
+
+    def _send_ack(self, n: int) -> None:
+        self.out.ack(n)
+
+    def detach(self) -> None:
+        """(resume) The robot's link is lost: what waits for it is numbered and kept, and so is what
+        comes until :meth:`attach`; link-level messages are gone with the link."""
+        if self.outgoing is None:
+            raise ProtocolError("detach: the robot did not opt in to resume")
+        self.out.detach()
+
+    def can_resume(self, ack: int) -> bool:
+        """Can a resume whose robot took every message up to ``ack`` be served?"""
+        return self.outgoing is not None and 0 <= ack <= self.outgoing.last
+
+    def attach(self, ack: int) -> None:
+        """(resume) A new link resumes the session (from a detached session, or taking over a link the
+        endpoint still holds); the robot took every message up to ``ack``. Queues ``ST {"topic":
+        "session", "status": "resumed", "session", "grace", "ack", "dropped"}`` (``ack``: the last robot
+        message taken; ``dropped``: messages to the robot the buffer lost), then the kept messages after
+        ``ack``, as first numbered. Incomplete messages of the old link are dropped: the robot resends
+        them whole. Raises :class:`ProtocolError` when :meth:`can_resume` is false."""
+        if not self.can_resume(ack):
+            raise ProtocolError(f"resume: ack {ack} is not a message sent to robot {self.robot!r} "
+                                f"(the last is {self.outgoing.last if self.outgoing else 0})")
+        if self.attached:
+            self.detach()
+        frames, lost = self.outgoing.resend_after(ack)
+        self.assembler = self.assembler.fresh()
+        self.incoming.reported()
+        self.resumes += 1
+        self.resume_lost += lost
+        self.out.resume({"topic": SESSION_TOPIC, "status": "resumed", "session": self.token, "grace": self.grace,
+                         "ack": self.incoming.last, "dropped": lost}, frames)
+
+    def stats(self) -> dict:
+        """Counters: messages in and out, drops out (data DMs: the oldest past the queue bound, or older
+        than ``max_lag``, those also in ``expired``) and in (refused for a full queue), ERs sent and
+        dropped, messages and parts waiting for binary parts and their bytes, queue depths; ``shed``:
+        topic DMs from the robot dropped while the endpoint lagged (``max_lag``);
+        resume: resumes, messages resent, lost at a resume (``resume_lost``), kept until acked
+        (``kept``, ``kept_bytes``), forgotten past the bound (``resume_forgotten``), duplicates from the
+        robot dropped."""
+        out, inc = self.outgoing, self.incoming
+        return {"interfaces": len(self.interfaces), "msgs_in": self.msgs_in, "msgs_out": self.out.msgs_out,
+                "dropped": self.dropped, "dropped_in": self.dropped_in, "shed": self.lag.shed,
+                "errors": self.out.er.sent, "errors_dropped": self.out.er.dropped,
+                "pending_binary": self.assembler.pending, "pending_binary_bytes": self.assembler.pending_bytes,
+                "outbox": self.outbox, "expired": self.expired, "requests_waiting": self.requests.waiting,
+                "held": self.requests.held, "calls": self.calls, "resumes": self.resumes, "resent": self.out.resent,
+                "resume_lost": self.resume_lost, "kept": len(out) if out else 0, "kept_bytes": out.bytes if out else 0,
+                "resume_forgotten": out.forgotten if out else 0, "duplicates": inc.duplicates if inc else 0}
+
+
+def robot_interface_type(itype: str) -> tuple[str, str]:
+    """``(kind, side)`` of a robot-side interface type (a Converter or Forwarder). Raises
+    :class:`ProtocolError` for an unknown type, :class:`RequestError` for a container-side one."""
+    kind, side = split_interface_type(itype)
+    if side == "Interface":
+        raise RequestError(f"{itype} is a container interface, not a robot-side one")
+    return kind, side
+
+
+def _refusal(itag: str, kind: str, side: str, cls: str, data: dict) -> str | None:
+    """Why interface ``itag`` cannot take this DM, or None."""
+    if str(data["type"]).strip("/") != cls:
+        return f"DM: interface {itag!r} carries {cls!r}, not {data['type']!r}"
+    itype = kind + side
+    if kind == "Publisher":
+        return (f"{itype} {itag!r} sends messages to the robot; it does not take messages from it "
+                f"(use a SubscriberConverter)")
+    binary = isinstance(data.get("msg"), (bytes, bytearray))
+    if side == "Converter" and binary and not takes_binary_message(cls):
+        return f"{itype} {itag!r} takes JSON messages; use a {kind}Forwarder for serialized binary messages"
+    if side == "Forwarder" and not binary:
+        return f"{itype} {itag!r} takes the serialized message as binary part 'msg*'"
+    return None
