@@ -16,7 +16,7 @@ from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_valida
 
 from rce.errors import ConfigError
 from rce.protocol import schema
-from rce.protocol.schema import key_path, split_interface_type
+from rce.protocol.schema import key_path
 
 # A config file uses the schema's field names (the short keys) and refuses keys it does not know.
 _FILE = ConfigDict(extra="forbid", validate_by_name=True, validate_by_alias=False, loc_by_alias=False)
@@ -26,7 +26,7 @@ class _Model(BaseModel):
     model_config = _FILE
 
 
-class ContainerSpec(schema.Container):
+class ContainerSpec(schema.ContainerComponent):
     """A container to create: tag and optional placement and limits (cpu in cores, memory in MiB)."""
     model_config = _FILE
 
@@ -38,7 +38,7 @@ class ContainerSpec(schema.Container):
         return d
 
 
-class NodeSpec(schema.Node):
+class NodeSpec(schema.NodeComponent):
     """A node to launch in a container (RCE addNodes component)."""
     model_config = _FILE
 
@@ -47,12 +47,12 @@ class NodeSpec(schema.Node):
         return {k: v for k, v in self.model_dump(by_alias=True).items() if v not in (None, "")}
 
 
-class ParameterSpec(schema.Parameter):
+class ParameterSpec(schema.ParameterComponent):
     """A container parameter (any JSON value)."""
     model_config = _FILE
 
 
-class InterfaceSpec(schema.Interface):
+class InterfaceSpec(schema.InterfaceComponent):
     """An interface on an endpoint (a container tag, or the robot's own robotID)."""
     model_config = _FILE
 
@@ -61,7 +61,7 @@ class InterfaceSpec(schema.Interface):
         return {k: v for k, v in self.model_dump(by_alias=True).items() if v not in (None, "")}
 
 
-class ConnectionSpec(schema.Connection):
+class ConnectionSpec(schema.ConnectionComponent):
     """A connection between two interfaces, each ``endpointTag/interfaceTag``."""
     model_config = _FILE
 
@@ -82,8 +82,7 @@ class RobotConfig(_Model):
     def _cross_checks(self) -> "RobotConfig":
         seen = set()
         for i, itf in enumerate(self.interfaces):
-            _, suffix = split_interface_type(itf.iType)
-            robot_side = suffix in ("Converter", "Forwarder")
+            robot_side = itf.iType.robot_side
             if robot_side and itf.eTag != self.robotID:
                 raise _KeyError(f"interfaces[{i}].eTag",
                                 f"a {itf.iType} lives on the robot, so eTag must be the robotID {self.robotID!r}, "

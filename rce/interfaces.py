@@ -21,8 +21,6 @@ from rce import framing
 from rce.dataplane import DataPlane
 from rce.errors import RequestError, Unavailable
 
-PAIRS = {"Publisher": "Subscriber", "Subscriber": "Publisher",
-         "ServiceClient": "ServiceProvider", "ServiceProvider": "ServiceClient"}
 SERVICE_CALL_TIMEOUT = 30.0   # s a service call forwarded to a peer interface waits for its response
 
 

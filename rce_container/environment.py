@@ -69,7 +69,7 @@ def container_paths(runtime_dir: Path, socket_dir: Path, cid: int) -> tuple[Path
     return Path(runtime_dir) / f"c{cid}", Path(socket_dir) / f"c{cid}" / SOCKET_NAME
 
 
-class Container:
+class GroupContainer:
     """One container of the group: its bus socket and server, sandbox, launcher, interfaces."""
 
     def __init__(self, env: "Environment", cid: int, ctag: str, user: str, group: str | None, limits: dict):
@@ -204,7 +204,7 @@ class Environment:
         self.registry = registry or default_registry()
         self.bus = Bus(f"env{env_id}")
         self.plane = DataPlane(f"env{env_id}", max_frame=max_frame)
-        self.containers: dict[int, Container] = {}
+        self.containers: dict[int, GroupContainer] = {}
         self.interfaces: dict[int, BusInterface] = {}
         self.direct = DirectRoutes(self) if direct else None
         self.peer: rpc.RpcPeer | None = None
@@ -249,7 +249,7 @@ class Environment:
         if self.peer:
             self.peer.notify("node_status", cid=cid, ntag=ntag, status=status, **fields)
 
-    def _container(self, a: dict) -> Container:
+    def _container(self, a: dict) -> GroupContainer:
         c = self.containers.get(a.get("cid"))
         if c is None:
             raise NotFound(f"container {a.get('cid')!r} is not in this environment")
@@ -273,7 +273,7 @@ class Environment:
         cid = a["cid"]
         c = self.containers.get(cid)
         if c is None:
-            c = Container(self, cid, a.get("ctag") or f"c{cid}", a.get("user", ""), a.get("group"),
+            c = GroupContainer(self, cid, a.get("ctag") or f"c{cid}", a.get("user", ""), a.get("group"),
                           a.get("limits") or {})
             self.containers[cid] = c
             try:

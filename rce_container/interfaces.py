@@ -17,11 +17,11 @@ from __future__ import annotations
 from rce.bus.core import SERVICE_TIMEOUT, Bus, Subscription, Topic
 from rce.dataplane import DataPlane
 from rce.errors import MessageError, RequestError
+from rce.interface_type import InterfaceType, Kind
 from rce.interfaces import Interface
 from rce.messages import MessageRegistry, default_registry, store_name, wire_name
 from rce.naming import resolve
 from rce.package_path import load_package_types
-from rce.protocol import split_interface_type
 
 DEFAULT_QUEUE = 100   # messages, bound of a SubscriberInterface's bus subscription
 SERVICE_WAIT = 10.0   # s a call from a peer waits for its service to be provided (its node may be starting)
@@ -61,7 +61,7 @@ class BusInterface(Interface):
 class PublisherInterface(BusInterface):
     """Publishes on topic ``addr`` every message a connected peer sends."""
 
-    kind = "Publisher"
+    kind = Kind.PUBLISHER
     topic: Topic | None = None
 
     async def start(self) -> None:
@@ -82,7 +82,7 @@ class SubscriberInterface(BusInterface):
     """Subscribes to topic ``addr`` (bounded by ``queue_size``) and sends each message to
     every connected peer; a message a saturated peer link refuses is dropped and counted."""
 
-    kind = "Subscriber"
+    kind = Kind.SUBSCRIBER
     sub: Subscription | None = None
     queue_size = DEFAULT_QUEUE
 
@@ -104,7 +104,7 @@ class SubscriberInterface(BusInterface):
 class ServiceClientInterface(BusInterface):
     """Executes calls from its peer against service ``addr`` on the bus."""
 
-    kind = "ServiceClient"
+    kind = Kind.SERVICE_CLIENT
     call_timeout = SERVICE_TIMEOUT
     service_wait = SERVICE_WAIT
 
@@ -120,7 +120,7 @@ class ServiceClientInterface(BusInterface):
 class ServiceProviderInterface(BusInterface):
     """Provides service ``addr`` on the bus; every call goes to the connected peer."""
 
-    kind = "ServiceProvider"
+    kind = Kind.SERVICE_PROVIDER
 
     async def start(self) -> None:
         self.bus.advertise_service(self.addr, self.cls, self._call, self.owner)
@@ -138,28 +138,25 @@ class ServiceProviderInterface(BusInterface):
         return resp
 
 
-KINDS: dict[str, type[BusInterface]] = {c.kind: c for c in (PublisherInterface, SubscriberInterface,
-                                                            ServiceClientInterface, ServiceProviderInterface)}
+KINDS: dict[Kind, type[BusInterface]] = {c.kind: c for c in (PublisherInterface, SubscriberInterface,
+                                                             ServiceClientInterface, ServiceProviderInterface)}
 
 
-def interface_kind(itype: str) -> str:
-    """``"PublisherInterface"`` (or a legacy name like ``"ServiceInterface"``) -> ``"Publisher"``.
+def interface_kind(itype: str | InterfaceType) -> Kind:
+    """``"PublisherInterface"`` (or a legacy name like ``"ServiceInterface"``) -> ``Kind.PUBLISHER``.
 
     Raises :class:`RequestError` for a robot-side type (Converter/Forwarder) and
     :class:`~rce.errors.ProtocolError` for an unknown one."""
-    prefix, suffix = split_interface_type(itype)
-    if suffix != "Interface":
-        raise RequestError(f"{itype!r} is a robot-side interface type; containers take *Interface types")
-    return prefix
+    return InterfaceType.parse(itype, robot_side=False).kind
 
 
-def check_class(kind: str, cls: str, registry: MessageRegistry | None = None) -> str:
+def check_class(kind: Kind, cls: str, registry: MessageRegistry | None = None) -> str:
     """Validate the class of a ``kind`` interface and return its wire name.
 
     Message kinds need a message class, service kinds a service class; package types are
     (re)loaded once before refusing. Raises :class:`MessageError` naming the class."""
     reg = registry or default_registry()
-    service = kind.startswith("Service")
+    service = Kind(kind).service
 
     def lookup() -> str:
         if service:
@@ -180,7 +177,7 @@ def check_class(kind: str, cls: str, registry: MessageRegistry | None = None) ->
         raise MessageError(f"unknown {what} class {cls!r} for a {kind}Interface") from None
 
 
-def make_interface(plane: DataPlane, bus: Bus, cid: int, iid: int, tag: str, itype: str, cls: str,
+def make_interface(plane: DataPlane, bus: Bus, cid: int, iid: int, tag: str, itype: str | InterfaceType, cls: str,
                    addr: str | None = None, registry: MessageRegistry | None = None) -> BusInterface:
     """Build (not start) the container-side interface for an ``add_interface`` op.
 

@@ -31,6 +31,7 @@ import hmac
 from aiohttp import web
 
 from rce.errors import AuthError, RequestError
+from rce.protocol import schema
 from rce_master.control import Control
 from rce_master.office import Alone, Office, require_leader
 from rce_master.requests import Request, ResizeContainer
@@ -128,6 +129,7 @@ class AdminApi:
     async def _resize(self, request: web.Request) -> web.Response:
         args = await self._body(request)
         req = Request(request.match_info["user"], "", self.state, self.control)
-        answer = await ResizeContainer().run(req, {**args, "containerTag": request.match_info["ctag"]})
+        spec = schema.component(schema.ContainerComponent, {**args, "cTag": request.match_info["ctag"]}, "resize")
+        answer = await ResizeContainer().run(req, spec)
         await self.state.store.flush()
         return web.json_response(answer)

@@ -3,11 +3,13 @@
 (``rosbridge_library/capabilities/``, listed in ``rosbridge_protocol.py``): adding a request
 type, or a CN/CX component, touches one class and one table entry.
 
-A request reaches a handler already validated against the protocol schema by the robot
-endpoint; the handler's body only asks :class:`~rce_master.state.MasterState` (which enforces
-the rules) and tells the task sets (:class:`~rce_master.control.Control`). Each component is a
-:class:`Step`: ``reserve`` (the state change), ``tell`` (the I/O), ``confirm`` (the state change
-once told) and ``undo`` (when telling failed). A step whose far end timed out may still have
+A request arrives as its type and data as the robot sent them; :func:`handle` parses the data
+into its model (:func:`rce.protocol.schema.parse`, the schema the robot endpoint validated it
+with), and each handler reads the model's attributes. The handler's body only asks
+:class:`~rce_master.state.MasterState` (which enforces the rules) and tells the task sets
+(:class:`~rce_master.control.Control`). Each component is a :class:`Step`: ``reserve`` (the state
+change), ``tell`` (the I/O), ``confirm`` (the state change once told) and ``undo`` (when telling
+failed). A step whose far end timed out may still have
 been done there, so its undo takes it back on the far end too.
 
 CN and CX are lists of components (:class:`Lists`): each item is handled on its own, in the
@@ -20,6 +22,7 @@ from typing import Any
 
 from rce.errors import RCEError, RequestError, Timeout
 from rce.log import get_logger
+from rce.protocol import schema
 from rce_master.control import Control
 from rce_master.model import limits_of
 from rce_master.state import MasterState
@@ -37,24 +40,25 @@ class Request:
 
 
 class Step:
-    """One component of a request; ``key`` names its list in the request data."""
+    """One component of a request (``item``: its model, :mod:`rce.protocol.schema`); ``key`` names
+    its list in the request data."""
     key = ""
 
-    def reserve(self, req: Request, item: dict) -> Any:
+    def reserve(self, req: Request, item: Any) -> Any:
         """Change the state (validating); returns what :meth:`tell` and :meth:`undo` need."""
         return None
 
-    async def tell(self, req: Request, item: dict, held: Any) -> Any:
+    async def tell(self, req: Request, item: Any, held: Any) -> Any:
         """Tell the task sets; returns their answer."""
         return None
 
-    def confirm(self, req: Request, item: dict, held: Any, answer: Any) -> None:
+    def confirm(self, req: Request, item: Any, held: Any, answer: Any) -> None:
         """Change the state once the task sets have done it."""
 
     async def undo(self, req: Request, held: Any, told: bool) -> None:
         """Take back :meth:`reserve` (and, when ``told``, what the far end did or may have done)."""
 
-    async def run(self, req: Request, item: dict) -> Any:
+    async def run(self, req: Request, item: Any) -> Any:
         """Reserve, tell, confirm; undo when telling or confirming fails. Returns the answer."""
         held = self.reserve(req, item)
         try:
@@ -71,11 +75,12 @@ class Step:
 
 
 # -- CC, DC ----------------------------------------------------------------------------------------------
-class CreateContainer(Step):
+class CreateContainerStep(Step):
     """CC ``{containerTag, containerData?}``: place it on a host, create it there, ST ``running``."""
 
-    def reserve(self, req, item):
-        return req.state.add_container(req.user, req.robot, item["containerTag"], item.get("containerData"))[0]
+    def reserve(self, req, item: schema.CCData):
+        data = item.containerData.model_dump(exclude_unset=True) if item.containerData is not None else None
+        return req.state.add_container(req.user, req.robot, item.cTag, data)[0]
 
     async def tell(self, req, item, c):
         return await req.control.create_container(c)
@@ -93,12 +98,12 @@ class CreateContainer(Step):
             await req.control.quiet(req.control.host_call(c, "destroy_container"))
 
 
-class DestroyContainer(Step):
+class DestroyContainerStep(Step):
     """DC ``{containerTag}``: forget it with everything in it, disconnect its peers, destroy it.
     A lost container (or one being re-created) is forgotten at once, and its tag is free again."""
 
-    def reserve(self, req, item):
-        return req.state.remove_container(req.user, item["containerTag"])
+    def reserve(self, req, item: schema.DCData):
+        return req.state.remove_container(req.user, item.cTag)
 
     async def tell(self, req, item, held):
         await req.control.destroy(*held)
@@ -108,12 +113,12 @@ class DestroyContainer(Step):
 class AddNode(Step):
     key = "addNodes"
 
-    def reserve(self, req, spec):
+    def reserve(self, req, spec: schema.NodeComponent):
         return req.state.add_node(req.user, spec)
 
     async def tell(self, req, spec, held):
         c, n = held
-        await req.control.start_node(c, n.ntag, spec)
+        await req.control.start_node(c, n.ntag, n.spec)
 
     def confirm(self, req, spec, held, answer):
         req.state.node_running(held[1])
@@ -128,40 +133,40 @@ class AddNode(Step):
 class RemoveNode(Step):
     key = "removeNodes"
 
-    def reserve(self, req, spec):
-        return req.state.remove_node(req.user, spec["containerTag"], spec["nodeTag"])
+    def reserve(self, req, spec: schema.NodeRef):
+        return req.state.remove_node(req.user, spec.cTag, spec.nTag)
 
     async def tell(self, req, spec, c):
-        await req.control.host_call(c, "remove_node", ntag=spec["nodeTag"])
+        await req.control.host_call(c, "remove_node", ntag=spec.nTag)
 
 
 class SetParam(Step):
     key = "setParam"
 
-    def reserve(self, req, spec):
-        return req.state.container(req.user, spec["containerTag"])
+    def reserve(self, req, spec: schema.ParameterComponent):
+        return req.state.container(req.user, spec.cTag)
 
     async def tell(self, req, spec, c):
-        await req.control.host_call(c, "set_param", name=spec["name"], value=spec["value"])
+        await req.control.host_call(c, "set_param", name=spec.name, value=spec.value)
 
     def confirm(self, req, spec, c, answer):
-        req.state.set_param(req.user, c.ctag, spec["name"], spec["value"])
+        req.state.set_param(req.user, c.ctag, spec.name, spec.value)
 
 
 class DeleteParam(Step):
     key = "deleteParam"
 
-    def reserve(self, req, spec):
-        return req.state.delete_param(req.user, spec["containerTag"], spec["name"])
+    def reserve(self, req, spec: schema.ParameterRef):
+        return req.state.delete_param(req.user, spec.cTag, spec.name)
 
     async def tell(self, req, spec, c):
-        await req.control.host_call(c, "delete_param", name=spec["name"])
+        await req.control.host_call(c, "delete_param", name=spec.name)
 
 
 class AddInterface(Step):
     key = "addInterfaces"
 
-    def reserve(self, req, spec):
+    def reserve(self, req, spec: schema.InterfaceComponent):
         return req.state.add_interface(req.user, req.robot, spec)
 
     async def tell(self, req, spec, rec):
@@ -176,8 +181,8 @@ class AddInterface(Step):
 class RemoveInterface(Step):
     key = "removeInterfaces"
 
-    def reserve(self, req, spec):
-        return req.state.remove_interface(req.user, spec["endpointTag"], spec["interfaceTag"])
+    def reserve(self, req, spec: schema.InterfaceRefs):
+        return req.state.remove_interface(req.user, spec.eTag, spec.iTag)
 
     async def tell(self, req, spec, held):
         rec, pairs = held
@@ -191,22 +196,22 @@ class ResizeContainer(Step):
     """CN ``resizeContainer`` (and the admin API's resize): new limits; the nodes keep running."""
     key = "resizeContainer"
 
-    def reserve(self, req, spec):
-        return req.state.container(req.user, spec["containerTag"])
+    def reserve(self, req, spec: schema.ContainerComponent):
+        return req.state.container(req.user, spec.cTag)
 
     async def tell(self, req, spec, c):
-        return await req.control.host_call(c, "resize_container", limits=limits_of(spec))
+        return await req.control.host_call(c, "resize_container", limits=limits_of(spec.model_dump()))
 
     def confirm(self, req, spec, c, answer):
-        req.state.resize(req.user, c.ctag, limits_of(spec))
+        req.state.resize(req.user, c.ctag, limits_of(spec.model_dump()))
 
 
 # -- CX ----------------------------------------------------------------------------------------------------
-class Connect(Step):
+class ConnectStep(Step):
     key = "connect"
 
-    def reserve(self, req, item):
-        return req.state.connect(req.user, item["tagA"], item["tagB"])
+    def reserve(self, req, item: schema.ConnectionComponent):
+        return req.state.connect(req.user, item.tagA, item.tagB)
 
     async def tell(self, req, item, held):
         await req.control.tell_connect(*held)
@@ -216,11 +221,11 @@ class Connect(Step):
         await req.control.tell_disconnect(*held)          # one end may have connected already
 
 
-class Disconnect(Step):
+class DisconnectStep(Step):
     key = "disconnect"
 
-    def reserve(self, req, item):
-        return req.state.disconnect(req.user, item["tagA"], item["tagB"])
+    def reserve(self, req, item: schema.ConnectionComponent):
+        return req.state.disconnect(req.user, item.tagA, item.tagB)
 
     async def tell(self, req, item, held):
         await req.control.tell_disconnect(*held)
@@ -233,11 +238,11 @@ class Lists:
     def __init__(self, *steps: Step):
         self.steps = {s.key: s for s in steps}
 
-    async def run(self, req: Request, data: dict) -> None:
+    async def run(self, req: Request, data: schema.CNData | schema.CXData) -> None:
         """Raises one :class:`RequestError` naming every refused item (the others are done)."""
         errors: list[str] = []
         for key, step in self.steps.items():
-            for item in data.get(key) or []:
+            for item in getattr(data, key):
                 try:
                     await step.run(req, item)
                 except RCEError as e:
@@ -248,13 +253,16 @@ class Lists:
 
 CN_STEPS = Lists(AddNode(), RemoveNode(), SetParam(), DeleteParam(), AddInterface(), RemoveInterface(),
                  ResizeContainer())
-CX_STEPS = Lists(Connect(), Disconnect())
-REQUESTS: dict[str, Step | Lists] = {"CC": CreateContainer(), "DC": DestroyContainer(), "CN": CN_STEPS, "CX": CX_STEPS}
+CX_STEPS = Lists(ConnectStep(), DisconnectStep())
+REQUESTS: dict[str, Step | Lists] = {"CC": CreateContainerStep(), "DC": DestroyContainerStep(), "CN": CN_STEPS,
+                                     "CX": CX_STEPS}
 
 
 async def handle(req: Request, type_: str, data: dict) -> None:
-    """Handle robot request ``type_`` (CC, DC, CN, CX) with its ``data``. Raises :class:`RCEError`."""
+    """Handle robot request ``type_`` (CC, DC, CN, CX) with its ``data`` as the robot sent it.
+    Raises :class:`RCEError` (:class:`~rce.errors.ProtocolError` for data the schema refuses)."""
     handler = REQUESTS.get(type_)
     if handler is None:
         raise RequestError(f"unknown request type {type_!r}")
-    await handler.run(req, data)
+    _, model = schema.parse({"type": type_, "data": data})
+    await handler.run(req, model)

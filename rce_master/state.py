@@ -31,8 +31,8 @@ from dataclasses import dataclass
 from typing import Any
 
 from rce.errors import AuthError, NotFound, RequestError, Unavailable
-from rce.interfaces import PAIRS
-from rce.protocol import split_interface_type
+from rce.interface_type import Kind
+from rce.protocol import schema
 from rce_master.index import StateIndex, lost_reason
 from rce_master.model import (ConnectionRec, Container, InterfaceRec, NodeRec, Robot, TaskSet, User,
                               param_key)
@@ -421,14 +421,15 @@ class MasterState(StateIndex):
 
     # -- nodes and parameters ----------------------------------------------------------------------------
     @_atomic
-    def add_node(self, user: str, spec: dict) -> tuple[Container, NodeRec]:
-        """Reserve node ``spec`` (an addNodes entry; status ``starting``). Raises :class:`RequestError`."""
-        c = self.container(user, spec["containerTag"])
-        key = (user, c.ctag, spec["nodeTag"])
+    def add_node(self, user: str, spec: schema.NodeComponent) -> tuple[Container, NodeRec]:
+        """Reserve node ``spec`` (an addNodes entry; status ``starting``); its record keeps the entry
+        as the wire has it. Raises :class:`RequestError`."""
+        c = self.container(user, spec.cTag)
+        key = (user, c.ctag, spec.nTag)
         if key in self.nodes:
-            raise RequestError(f"node {spec['nodeTag']!r} already exists in container {c.ctag!r}")
+            raise RequestError(f"node {spec.nTag!r} already exists in container {c.ctag!r}")
         self.quotas.check(user, "nodes", self.nodes)
-        n = NodeRec(user, c.ctag, spec["nodeTag"], dict(spec))
+        n = NodeRec(user, c.ctag, spec.nTag, spec.wire())
         self._write(n.store_key, n.to_record())
         return c, self.nodes[key]
 
@@ -481,17 +482,15 @@ class MasterState(StateIndex):
 
     # -- interfaces and connections ----------------------------------------------------------------------
     @_atomic
-    def add_interface(self, user: str, robot: str, spec: dict) -> InterfaceRec:
+    def add_interface(self, user: str, robot: str, spec: schema.InterfaceComponent) -> InterfaceRec:
         """Add interface ``spec`` (an addInterfaces entry) for the robot ``robot`` of ``user`` asking.
 
         Robot-side kinds (Converter/Forwarder) must name the asking robot as endpoint; container
         kinds (Interface) a container of the user. Raises :class:`RequestError`/:class:`NotFound`."""
-        etag, itag = spec["endpointTag"], spec["interfaceTag"]
-        itype = spec["interfaceType"]
-        kind, side = split_interface_type(itype)
+        etag, itag, itype = spec.eTag, spec.iTag, spec.iType
         if "/" in itag:
             raise RequestError(f"interface tag {itag!r} must not contain '/'")
-        if side == "Interface":
+        if not itype.robot_side:
             location = self.container(user, etag).cid
         else:
             if etag != robot:
@@ -504,8 +503,8 @@ class MasterState(StateIndex):
         if (user, etag, itag) in self.interfaces:
             raise RequestError(f"interface {etag}/{itag} already exists")
         self.quotas.check(user, "interfaces", self.interfaces)
-        rec = InterfaceRec(self._next_id("iid"), user, etag, itag, f"{kind}{side}", kind, side,
-                           spec["className"].strip("/"), spec.get("addr"), location)
+        rec = InterfaceRec(self._next_id("iid"), user, etag, itag, itype.value, itype.kind.value, itype.side.value,
+                           spec.iCls.strip("/"), spec.addr, location)
         self._write(rec.store_key, rec.to_record())
         return self.interfaces[(user, etag, itag)]
 
@@ -543,9 +542,9 @@ class MasterState(StateIndex):
         """Connect two interfaces. Raises :class:`RequestError` if they cannot be paired
         (kinds, classes, same endpoint side rules) or are already connected."""
         a, b = self.interface(user, tag_a), self.interface(user, tag_b)
-        if PAIRS[a.kind] != b.kind:
+        if Kind(a.kind).peer != b.kind:
             raise RequestError(f"cannot connect {a.tag} ({a.itype}) with {b.tag} ({b.itype}): a {a.kind} pairs "
-                               f"only with a {PAIRS[a.kind]}")
+                               f"only with a {Kind(a.kind).peer}")
         if a.cls != b.cls:
             raise RequestError(f"cannot connect {a.tag} ({a.cls}) with {b.tag} ({b.cls}): classes differ")
         if a.robot_side and b.robot_side:

@@ -19,6 +19,7 @@ from websockets.asyncio.server import serve
 from rce.cluster_auth import ClusterKey, token_of
 from rce.dataplane import DataPlane
 from rce.errors import AuthError, NotFound, RCEError, Throttled
+from rce.interface_type import InterfaceType
 from rce.log import get_logger
 from rce.masterlink import MASTER_WAIT, Address, MasterLink
 from rce.messages import default_registry
@@ -27,8 +28,7 @@ from rce.package_path import load_package_types
 from rce.protocol.frames import DEFAULT_EXPIRY, ER, encode
 from rce.protocol.limits import DEFAULT_MAX_PENDING_TOTAL, PartBudget, parse_max_lag
 from rce.protocol.resume import DEFAULT_GRACE, DEFAULT_RESUME_BUFFER
-from rce.protocol.session import (DEFAULT_MAX_LAG, DEFAULT_MAX_MESSAGE, DEFAULT_QUEUE_SIZE, RobotSession,
-                                  robot_interface_type)
+from rce.protocol.session import DEFAULT_MAX_LAG, DEFAULT_MAX_MESSAGE, DEFAULT_QUEUE_SIZE, RobotSession
 from rce_robot.front_door import master_away, peer_address, refuse_in_band, throttled
 from rce_robot.interfaces import RobotInterface
 from rce_robot.namespace import CLOSE_POLICY, RobotNamespace
@@ -372,8 +372,8 @@ class RobotEndpoint:
             except asyncio.TimeoutError:        # its websocket never opened: the login was abandoned
                 self.opening.pop((a["user"], a["robot"]), None)
         ns = self._ns(a)
-        kind, side = robot_interface_type(a["itype"])
-        iface = RobotInterface(ns, self.plane, self.registry, a["iid"], a["itag"], kind, side, a["cls"])
+        itype = InterfaceType.parse(a["itype"], robot_side=True)
+        iface = RobotInterface(ns, self.plane, self.registry, a["iid"], a["itag"], itype, a["cls"])
         await iface.start()
         ns.add_interface(iface)
         self.by_iid[iface.iid] = iface

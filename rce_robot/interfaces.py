@@ -13,6 +13,7 @@ from __future__ import annotations
 from typing import TYPE_CHECKING, Any, Protocol
 
 from rce.errors import MessageError, ProtocolError, RequestError, Unavailable
+from rce.interface_type import InterfaceType, Kind, Side
 from rce.interfaces import Interface
 from rce.message_forms import JsonForms
 from rce.messages import MessageRegistry
@@ -44,8 +45,8 @@ class RobotLink(Protocol):
 
 
 class RobotInterface(Interface):
-    """A converter (``side == "Converter"``) or forwarder (``"Forwarder"``) of kind
-    Publisher, Subscriber, ServiceClient or ServiceProvider, for class ``cls``, in the
+    """A converter or forwarder (``itype``, a robot-side :class:`InterfaceType`: its kind is
+    Publisher, Subscriber, ServiceClient or ServiceProvider), for class ``cls``, in the
     session ``link`` of its robot. ``robot_call_timeout``: s a call from the cloud waits
     for the robot's reply (ServiceClient kinds).
 
@@ -53,12 +54,13 @@ class RobotInterface(Interface):
     service kinds, service) class."""
 
     def __init__(self, link: RobotLink, plane: "DataPlane", registry: MessageRegistry,
-                 iid: int, itag: str, kind: str, side: str, cls: str, *,
+                 iid: int, itag: str, itype: InterfaceType, cls: str, *,
                  robot_call_timeout: float = ROBOT_CALL_TIMEOUT):
-        super().__init__(plane, iid, f"{link.robot}/{itag}", kind, cls)
-        self.link, self.registry, self.itag, self.side = link, registry, itag, side
+        super().__init__(plane, iid, f"{link.robot}/{itag}", itype.kind, cls)
+        self.link, self.registry, self.itag, self.itype = link, registry, itag, itype
+        self.side = itype.side
         self.robot_call_timeout = robot_call_timeout
-        if kind in ("ServiceClient", "ServiceProvider"):
+        if itype.kind.service:
             self.req_t, self.resp_t = registry.srv_types(cls)
             self.msg_t = ""
         else:
@@ -67,15 +69,11 @@ class RobotInterface(Interface):
         self._up = False
         self._robot_calls = PendingCalls(f"robot {link.robot!r}")     # msgID -> a call from the cloud
 
-    @property
-    def itype(self) -> str:
-        return self.kind + self.side
-
     # -- encoding (the only place converters and forwarders differ) ------------------------------
     def _encode(self, typename: str, msg: Any) -> bytes:
         """Robot message -> serialized bytes. Raises :class:`MessageError` naming the interface."""
         try:
-            if self.side == "Converter":
+            if self.side is Side.CONVERTER:
                 return self.registry.json_to_bytes(typename, msg, self.link.forms)
             self.registry.check_structure(typename, msg)     # strings are not decoded: bytes pass untouched
             return msg                                       # the robot's bytes as they came: no copy
@@ -85,7 +83,7 @@ class RobotInterface(Interface):
     def _decode(self, typename: str, payload: bytes | memoryview) -> Any:
         """Serialized bytes -> the robot's form: JSON (converters), or the bytes themselves as a
         binary part (forwarders; a view of the received frame, which nobody writes again: no copy)."""
-        if self.side == "Converter":
+        if self.side is Side.CONVERTER:
             return self.registry.bytes_to_json(typename, bytes(payload), self.link.forms)
         return payload
 
@@ -102,7 +100,7 @@ class RobotInterface(Interface):
         robot's reply to a call from the cloud), inline: nothing here waits. Service calls the
         robot makes go through :meth:`call_from_robot`. Raises :class:`RCEError` to answer ER."""
         msg = data.get("msg")
-        if self.kind == "Subscriber":
+        if self.kind is Kind.SUBSCRIBER:
             payload = self._encode(self.msg_t, msg)
             self.msgs_in += 1
             if not self.peers:
@@ -135,7 +133,7 @@ class RobotInterface(Interface):
 
     # -- cloud -> robot ----------------------------------------------------------------------------
     def on_message(self, payload: memoryview) -> None:
-        if self.kind != "Publisher":
+        if self.kind is not Kind.PUBLISHER:
             self.dropped += 1
             return
         self.msgs_in += 1
@@ -148,7 +146,7 @@ class RobotInterface(Interface):
     async def serve(self, payload: bytes) -> bytes:
         """A container calls the robot's service: DM request to the robot, wait for its reply.
         Raises :class:`rce.errors.Timeout` after ``robot_call_timeout`` s."""
-        if self.kind != "ServiceClient":
+        if self.kind is not Kind.SERVICE_CLIENT:
             return await super().serve(payload)
         request = self._decode(self.req_t, payload)
         return await self._robot_calls.call(

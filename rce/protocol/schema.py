@@ -2,46 +2,42 @@
 component kind), CX and DM, as pydantic models.
 
 Each rule is written once, as a field type with its own error text (:data:`Tag`,
-:data:`Limit`, :data:`InterfaceType`, :data:`InterfaceRef`...), and shared: the robot
+:data:`Limit`, :data:`IType`, :data:`InterfaceRef`...), and shared: the robot
 config (:mod:`rce.config`) builds its models on the component models here, under its short
 keys (``cTag``, ``nTag``, ``eTag``, ``iTag``, ``iType``, ``iCls``; the field names) where the
 wire uses the long ones (``containerTag``, ``nodeTag``...; the aliases).
 
-:func:`validate` checks a complete message and raises :class:`ProtocolError` naming the
-type and the key path of the first problem, e.g. ``CN.data.addNodes[0]: missing key 'pkg'``.
-Wire components take keys they do not know (the RCE alpha client may send more); the CN and
-CX objects do not.
+:func:`parse` checks a complete message and returns its data as a model (:class:`CCData`,
+:class:`DCData`, :class:`CNData`, :class:`CXData`, :class:`DataMessage`), which travels on past
+validation: the master's request handlers read its attributes, an interface type is an
+:class:`~rce.interface_type.InterfaceType` parsed once. :func:`validate` checks the same way and
+returns the data as sent, for a shell that passes the request on (the robot session forwards it to
+the master). Both raise :class:`ProtocolError` naming the type and the key path of the first
+problem, e.g. ``CN.data.addNodes[0]: missing key 'pkg'``. Wire components take keys they do not
+know (the RCE alpha client may send more); the CN and CX objects do not.
 """
 from __future__ import annotations
 
-from typing import Annotated, Any, Literal, Union
+from typing import Annotated, Any, Literal, TypeVar, Union
 
 from pydantic import BaseModel, ConfigDict, Field, PlainValidator, TypeAdapter, ValidationError, model_validator
 from pydantic_core import PydanticCustomError
 
 from rce.errors import ProtocolError
+from rce.interface_type import InterfaceType
 from rce.protocol.frames import CC, CN, CX, DC, DM
 from rce.protocol.limits import MAX_ER_TEXT, short_repr, truncate
 
 ROBOT_TO_CLOUD = (CC, DC, CN, CX, DM)
-INTERFACE_PREFIXES = ("ServiceClient", "ServiceProvider", "Publisher", "Subscriber")
-INTERFACE_SUFFIXES = ("Interface", "Converter", "Forwarder")
-# Names the RCE alpha client used for the service-client kinds.
-LEGACY_INTERFACE_NAMES = {"ServiceInterface": "ServiceClientInterface",
-                          "ServiceConverter": "ServiceClientConverter",
-                          "ServiceForwarder": "ServiceClientForwarder"}
 
 
-def split_interface_type(itype: str) -> tuple[str, str]:
-    """``"PublisherConverter"`` -> ``("Publisher", "Converter")``; legacy names are mapped.
+def split_interface_type(itype: str | InterfaceType) -> tuple[str, str]:
+    """``"PublisherConverter"`` -> ``("Publisher", "Converter")``; legacy names are mapped: the
+    (kind, side) of :meth:`InterfaceType.parse`, for callers that still take the pair.
 
     Raises :class:`ProtocolError` for an unknown interface type."""
-    itype = LEGACY_INTERFACE_NAMES.get(itype, itype)
-    for p in INTERFACE_PREFIXES:
-        if itype.startswith(p) and itype[len(p):] in INTERFACE_SUFFIXES:
-            return p, itype[len(p):]
-    raise ProtocolError(f"unknown interface type {itype!r}: expected one of "
-                        f"{{{', '.join(INTERFACE_PREFIXES)}}} x {{{', '.join(INTERFACE_SUFFIXES)}}}")
+    t = InterfaceType.parse(itype)
+    return t.kind.value, t.side.value
 
 
 # -- the rules, each with its error text ---------------------------------------------------------
@@ -66,14 +62,13 @@ def _is_number(v: Any) -> bool:
     return isinstance(v, (int, float)) and not isinstance(v, bool)
 
 
-def _interface_type(v: Any) -> str:
+def _interface_type(v: Any) -> InterfaceType:
     if not isinstance(v, str):
         raise _refuse("must be a string", v)
     try:
-        split_interface_type(v)
+        return InterfaceType.parse(v)
     except ProtocolError as e:
         raise PydanticCustomError("rce", "{text}", {"text": e.message}) from None
-    return v
 
 
 def _interface_ref(v: Any) -> str:
@@ -86,6 +81,8 @@ def _interface_ref(v: Any) -> str:
 
 #: A tag or name: a non-empty string.
 Tag = Annotated[str, _rule(lambda v: _is_str(v) and v != "", "must be a non-empty string")]
+#: A container tag, ``containerTag`` on the wire (``cTag`` in a robot config).
+CTag = Annotated[Tag, Field(alias="containerTag")]
 #: An optional string (a node's name or namespace, a group, an address).
 Text = Annotated[str, _rule(_is_str, "must be a string")]
 #: A resource amount: cpu in cores, memory in MiB, pids in tasks (limits); size (the original RCE's
@@ -101,8 +98,9 @@ MsgID = Annotated[Union[str, int], _rule(lambda v: _is_str(v) or (isinstance(v, 
                                           "must be a string or an integer")]
 Features = Annotated[list[str], _rule(lambda v: isinstance(v, list) and all(map(_is_str, v)),
                                       "must be a list of strings")]
-#: An interface type (prefix x suffix, DESIGN section 3.5; RCE alpha names accepted).
-InterfaceType = Annotated[str, PlainValidator(_interface_type)]
+#: An interface type (prefix x suffix, DESIGN section 3.5; RCE alpha names accepted), parsed into its
+#: :class:`~rce.interface_type.InterfaceType` (a ``str``: its canonical name on the wire).
+IType = Annotated[InterfaceType, PlainValidator(_interface_type)]
 #: An interface named ``endpointTag/interfaceTag``.
 InterfaceRef = Annotated[str, PlainValidator(_interface_ref)]
 
@@ -111,6 +109,11 @@ InterfaceRef = Annotated[str, PlainValidator(_interface_ref)]
 class Component(BaseModel):
     """A wire object: keys by alias, unknown keys ignored, error paths by alias."""
     model_config = ConfigDict(extra="ignore", validate_by_alias=True, validate_by_name=False)
+
+    def wire(self) -> dict:
+        """This object as the wire has it: the long keys, only those that were given (a record of
+        the master keeps a node's addNodes entry so)."""
+        return self.model_dump(by_alias=True, exclude_unset=True)
 
 
 class ContainerData(Component):
@@ -127,14 +130,14 @@ class ContainerData(Component):
     specialFeatures: Features | None = None
 
 
-class Container(ContainerData):
+class ContainerComponent(ContainerData):
     """A container tag with its placement and limits, flat (CN ``resizeContainer``, config ``containers``)."""
-    cTag: Tag = Field(alias="containerTag")
+    cTag: CTag
 
 
-class Node(Component):
+class NodeComponent(Component):
     """A node to launch in a container (CN ``addNodes``)."""
-    cTag: Tag = Field(alias="containerTag")
+    cTag: CTag
     nTag: Tag = Field(alias="nodeTag")
     pkg: Tag
     exe: Tag
@@ -144,23 +147,23 @@ class Node(Component):
     respawn: Respawn | None = None
 
 
-class Parameter(Component):
+class ParameterComponent(Component):
     """A container parameter and its JSON value (CN ``setParam``; ``value`` may be null, not absent)."""
-    cTag: Tag = Field(alias="containerTag")
+    cTag: CTag
     name: Tag
     value: Any
 
 
-class Interface(Component):
+class InterfaceComponent(Component):
     """An interface on an endpoint: a container tag, or the robot's own robotID (CN ``addInterfaces``)."""
     eTag: Tag = Field(alias="endpointTag")
     iTag: Tag = Field(alias="interfaceTag")
-    iType: InterfaceType = Field(alias="interfaceType")
+    iType: IType = Field(alias="interfaceType")
     iCls: Tag = Field(alias="className")
     addr: Text | None = None
 
 
-class Connection(Component):
+class ConnectionComponent(Component):
     """A connection between two interfaces (CX ``connect``/``disconnect``)."""
     tagA: InterfaceRef
     tagB: InterfaceRef
@@ -168,13 +171,13 @@ class Connection(Component):
 
 class NodeRef(Component):
     """CN ``removeNodes``."""
-    cTag: Tag = Field(alias="containerTag")
+    cTag: CTag
     nTag: Tag = Field(alias="nodeTag")
 
 
 class ParameterRef(Component):
     """CN ``deleteParam``."""
-    cTag: Tag = Field(alias="containerTag")
+    cTag: CTag
     name: Tag
 
 
@@ -200,32 +203,32 @@ class _Closed(Component):
 
 
 # -- requests ------------------------------------------------------------------------------------
-class CreateContainer(Component):
-    """CC data."""
-    cTag: Tag = Field(alias="containerTag")
+class CCData(Component):
+    """CC data: create container ``cTag``."""
+    cTag: CTag
     containerData: ContainerData | None = None
 
 
-class DestroyContainer(Component):
-    """DC data."""
-    cTag: Tag = Field(alias="containerTag")
+class DCData(Component):
+    """DC data: destroy container ``cTag``."""
+    cTag: CTag
 
 
-class Configure(_Closed):
+class CNData(_Closed):
     """CN data: any of its keys, each a list of components."""
-    addNodes: list[Node] = []
+    addNodes: list[NodeComponent] = []
     removeNodes: list[NodeRef] = []
-    setParam: list[Parameter] = []
+    setParam: list[ParameterComponent] = []
     deleteParam: list[ParameterRef] = []
-    addInterfaces: list[Interface] = []
+    addInterfaces: list[InterfaceComponent] = []
     removeInterfaces: list[InterfaceRefs] = []
-    resizeContainer: list[Container] = []
+    resizeContainer: list[ContainerComponent] = []
 
 
-class Connect(_Closed):
-    """CX data."""
-    connect: list[Connection] = []
-    disconnect: list[Connection] = []
+class CXData(_Closed):
+    """CX data: connections to make and to remove."""
+    connect: list[ConnectionComponent] = []
+    disconnect: list[ConnectionComponent] = []
 
 
 class DataMessage(Component):
@@ -250,22 +253,22 @@ class _Message(BaseModel):
 
 class CCMessage(_Message):
     type: Literal["CC"]
-    data: CreateContainer
+    data: CCData
 
 
 class DCMessage(_Message):
     type: Literal["DC"]
-    data: DestroyContainer
+    data: DCData
 
 
 class CNMessage(_Message):
     type: Literal["CN"]
-    data: Configure
+    data: CNData
 
 
 class CXMessage(_Message):
     type: Literal["CX"]
-    data: Connect
+    data: CXData
 
 
 class DMMessage(_Message):
@@ -274,6 +277,8 @@ class DMMessage(_Message):
 
 
 Request = Annotated[Union[CCMessage, DCMessage, CNMessage, CXMessage, DMMessage], Field(discriminator="type")]
+#: The data of a robot -> cloud message, as its model.
+RequestData = Union[CCData, DCData, CNData, CXData, DataMessage]
 _REQUEST = TypeAdapter(Request)
 
 
@@ -320,15 +325,39 @@ def _valid_dm(msg: Any) -> bool:
             and ("msg" in data or "msg*" in data))
 
 
-def validate(msg: Any) -> tuple[str, dict]:
-    """Check a complete robot -> cloud message; return ``(type, data)`` with ``data`` as sent.
-    A well-formed DM takes the hand check :func:`_valid_dm`; everything else the pydantic model.
+def parse(msg: Any) -> tuple[str, RequestData]:
+    """Check a complete robot -> cloud message; return ``(type, data)`` with ``data`` its model
+    (:data:`RequestData`).
 
     Raises :class:`ProtocolError` naming the type and key path of the first problem."""
-    if _valid_dm(msg):
-        return DM, msg["data"]
     try:
-        _REQUEST.validate_python(msg)
+        m = _REQUEST.validate_python(msg)
     except ValidationError as e:
         raise ProtocolError(_describe(e.errors(include_url=False)[0], msg)) from None
+    return m.type, m.data
+
+
+def validate(msg: Any) -> tuple[str, dict]:
+    """Check a complete robot -> cloud message as :func:`parse` does; return ``(type, data)``
+    with ``data`` as sent, for a shell that passes it on. A well-formed DM takes the hand check
+    :func:`_valid_dm` (a DM comes at data rates); everything else the model.
+
+    Raises :class:`ProtocolError` naming the type and key path of the first problem."""
+    if not _valid_dm(msg):
+        parse(msg)
     return msg["type"], msg["data"]
+
+
+C = TypeVar("C", bound=Component)
+
+
+def component(model: type[C], fields: dict, where: str) -> C:
+    """Component ``model`` from ``fields`` keyed by field name (the short keys: ``cTag``,
+    ``cpu``...), validated as on the wire: the admin API builds its requests so.
+
+    Raises :class:`ProtocolError` naming ``where`` and the key path of the first problem."""
+    try:
+        return model.model_validate(fields, by_alias=False, by_name=True)
+    except ValidationError as e:
+        err = e.errors(include_url=False)[0]
+        raise ProtocolError(_describe({**err, "loc": (where, *err["loc"])}, fields)) from None

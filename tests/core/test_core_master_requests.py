@@ -7,7 +7,7 @@ from typing import Any
 
 import pytest
 
-from rce.errors import NotFound, RequestError, Timeout, Unavailable
+from rce.errors import NotFound, ProtocolError, RequestError, Timeout, Unavailable
 from rce_master.control import Control
 from rce_master.model import LIMIT_KEYS
 from rce_master.requests import CN_STEPS, CX_STEPS, REQUESTS, Request, handle
@@ -73,6 +73,19 @@ def test_the_tables():
 async def test_unknown_request_type(world):
     with pytest.raises(RequestError, match="unknown request type 'XX'"):
         await handle(req(world), "XX", {})
+
+
+async def test_the_data_is_parsed_into_its_model_before_any_step(world):
+    """The master reads a request through its schema model: data the schema refuses changes nothing
+    and tells no task set, even in a list whose other items are good."""
+    state, _, robot_link, host_link = world
+    good = {"containerTag": "c1", "nodeTag": "n", "pkg": "Test", "exe": "e"}
+    with pytest.raises(ProtocolError, match=r"CN.data.addNodes\[1\]: missing key 'pkg'"):
+        await handle(req(world), "CN", {"addNodes": [good, {"containerTag": "c1", "nodeTag": "m", "exe": "e"}]})
+    with pytest.raises(ProtocolError, match="unknown interface type 'PublisherThing'"):
+        await handle(req(world), "CN", {"addInterfaces": [{"endpointTag": "r1", "interfaceTag": "i",
+                                                           "interfaceType": "PublisherThing", "className": "a/B"}]})
+    assert state.nodes == {} and state.interfaces == {} and host_link.sent == robot_link.sent == []
 
 
 # -- CC / DC ---------------------------------------------------------------------------------------------

@@ -9,6 +9,7 @@ from pathlib import Path
 import pytest
 
 from rce.errors import RequestError, Unavailable
+from rce.protocol.schema import InterfaceComponent
 from rce_master.reconcile import register
 from rce_master.sqlite_store import SqliteStore
 from rce_master.state import MasterState, TaskSetAbsent
@@ -44,8 +45,9 @@ def test_state_on_a_reopened_sqlite_file_equals_the_original_and_ids_go_on(tmp_p
         # new ids never reuse old ones: counters go on, also for ids whose records are gone
         assert again.register_taskset("robot", "x", "h", {}).tid == counters["tid"]
         assert again.add_container(U, "r1", "new", None)[0].cid == counters["cid"]
-        assert again.add_interface(U, "r1", {"endpointTag": "r1", "interfaceTag": "new", "className": "a/B",
-                                             "interfaceType": "PublisherConverter"}).iid == counters["iid"]
+        assert again.add_interface(U, "r1", InterfaceComponent.model_validate({
+            "endpointTag": "r1", "interfaceTag": "new", "className": "a/B",
+            "interfaceType": "PublisherConverter"})).iid == counters["iid"]
     with SqliteStore(path) as store:                  # and those changes were stored too
         assert MasterState(store).snapshot()["containers"][-1]["ctag"] == "new"
 

@@ -7,6 +7,7 @@ import json
 import pytest
 
 from rce.errors import AuthError, NotFound, RCEError, RequestError, Unavailable
+from rce.protocol.schema import parse
 from rce_master.model import User, password_digest
 from rce_master.state import MasterState
 from rce_master.store import MemoryStore
@@ -34,7 +35,13 @@ def iface(ms: MasterState, user: str, robot: str, etag: str, itag: str, itype: s
     spec = {"endpointTag": etag, "interfaceTag": itag, "interfaceType": itype, "className": cls}
     if addr:
         spec["addr"] = addr
-    return ms.add_interface(user, robot, spec)
+    return ms.add_interface(user, robot, component("addInterfaces", spec))
+
+
+def component(key: str, spec: dict):
+    """The model of CN component ``spec`` of list ``key``, as the master's request handlers get it
+    (the schema refuses what is not a valid component, e.g. an unknown interface type)."""
+    return getattr(parse({"type": "CN", "data": {key: [spec]}})[1], key)[0]
 
 
 # -- users --------------------------------------------------------------------------------------
@@ -313,7 +320,7 @@ def test_remove_container_drops_its_nodes_and_params_only(ms):
     running(ms, U, "c2")
     running(ms, V, "c1")
     for user, ctag in ((U, "c1"), (U, "c2"), (V, "c1")):
-        ms.add_node(user, {"containerTag": ctag, "nodeTag": "n", "pkg": "Test", "exe": "e"})
+        ms.add_node(user, component("addNodes", {"containerTag": ctag, "nodeTag": "n", "pkg": "Test", "exe": "e"}))
         ms.set_param(user, ctag, "p", 1)
     i1 = iface(ms, U, "r1", "c1", "pub", "PublisherInterface")
     iface(ms, U, "r1", "c2", "pub", "PublisherInterface")
@@ -329,12 +336,12 @@ def test_remove_container_drops_its_nodes_and_params_only(ms):
 def test_nodes_and_params(ms):
     c = running(ms, U, "c1")
     spec = {"containerTag": "c1", "nodeTag": "n1", "pkg": "Test", "exe": "stringEcho.py"}
-    c2, n = ms.add_node(U, spec)
+    c2, n = ms.add_node(U, component("addNodes", spec))
     assert c2 is c and n.status == "starting" and n.spec == spec and n.spec is not spec
     with pytest.raises(RequestError, match="already exists"):
-        ms.add_node(U, spec)
+        ms.add_node(U, component("addNodes", spec))
     with pytest.raises(NotFound):
-        ms.add_node(U, {**spec, "containerTag": "nope"})
+        ms.add_node(U, component("addNodes", {**spec, "containerTag": "nope"}))
     assert ms.node_status(c.cid, "n1", "running", {"pid": 5}) is n and n.status == "running"
     assert ms.node_status(c.cid, "other", "running", {}) is None
     assert ms.node_status(999, "n1", "running", {}) is None
@@ -641,7 +648,8 @@ def test_a_lost_container_keeps_what_it_had_and_is_re_created_under_a_new_cid(wi
     sub = iface(wired, U, "r1", "r1", "s", "SubscriberConverter")
     wired.connect(U, "c1/p", "r1/s")
     wired.set_param(U, "c1", "k", 7)
-    n, = [wired.add_node(U, {"containerTag": "c1", "nodeTag": "n", "pkg": "Test", "exe": "e"})[1]]
+    n, = [wired.add_node(U, component("addNodes", {"containerTag": "c1", "nodeTag": "n", "pkg": "Test",
+                                                   "exe": "e"}))[1]]
     wired.node_running(n)
     with pytest.raises(RequestError, match="not lost"):
         wired.container_recovering(c1, 2)
@@ -702,7 +710,8 @@ def test_data_addr(wired):
 # -- snapshot -----------------------------------------------------------------------------------
 def test_snapshot_shape(wired):
     wired.users[U] = User.create(U, "pw")
-    wired.add_node(U, {"containerTag": "c1", "nodeTag": "n1", "pkg": "Test", "exe": "stringEcho.py"})
+    wired.add_node(U, component("addNodes", {"containerTag": "c1", "nodeTag": "n1", "pkg": "Test",
+                                             "exe": "stringEcho.py"}))
     wired.node_status(wired.container(U, "c1").cid, "n1", "exited", {"code": 1})
     wired.set_param(U, "c1", "p", {"a": 1})
     iface(wired, U, "r1", "c1", "pub", "PublisherInterface", addr="/chatter")

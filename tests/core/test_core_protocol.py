@@ -11,7 +11,8 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 from pydantic import ValidationError
 
-from rce.errors import MessageError, ProtocolError
+from rce.errors import MessageError, ProtocolError, RequestError
+from rce.interface_type import InterfaceType, Kind, Side
 from rce.protocol import (DEFAULT_EXPIRY, ID_LEN, Assembler, encode, is_part_id, new_id, split_interface_type,
                           validate)
 from rce.protocol import schema
@@ -279,6 +280,57 @@ def test_split_interface_type_legacy_names(legacy, expected):
 def test_split_interface_type_unknown(bad):
     e = raises(["unknown interface type", repr(bad)], split_interface_type, bad)
     assert "Publisher" in e.message and "Converter" in e.message   # lists what is allowed
+
+
+def test_interface_type_is_parsed_once_into_kind_and_side():
+    assert len(InterfaceType) == len(Kind) * len(Side) == 12
+    t = InterfaceType.parse("ServiceConverter")                          # an RCE alpha name
+    assert t is InterfaceType.SERVICE_CLIENT_CONVERTER and (t.kind, t.side) == (Kind.SERVICE_CLIENT, Side.CONVERTER)
+    assert t.robot_side and t.kind.service and not InterfaceType.parse("PublisherInterface").robot_side
+    assert InterfaceType.parse(t) is t                                   # parsing a member is a no-op
+    assert [(k.peer, k.peer.peer) for k in (Kind.PUBLISHER, Kind.SERVICE_CLIENT)] == [
+        (Kind.SUBSCRIBER, Kind.PUBLISHER), (Kind.SERVICE_PROVIDER, Kind.SERVICE_CLIENT)]
+    # a member is its canonical wire name: it goes back on the wire and into records as that string
+    assert t == "ServiceClientConverter" and json.dumps({"t": t}) == '{"t": "ServiceClientConverter"}' \
+        and f"{t}" == "ServiceClientConverter"
+    with pytest.raises(RequestError, match="PublisherInterface is a container interface, not a robot-side one"):
+        InterfaceType.parse("PublisherInterface", robot_side=True)
+    with pytest.raises(RequestError, match="'SubscriberForwarder' is a robot-side interface type"):
+        InterfaceType.parse("SubscriberForwarder", robot_side=False)
+    for bad in (None, 3, ["PublisherInterface"], "publisherInterface"):
+        raises(["unknown interface type", repr(bad)], InterfaceType.parse, bad)
+
+
+def test_parse_returns_the_models_validate_the_data_as_sent():
+    """parse() hands the request on as its model (what the master's handlers read), with the
+    interface type parsed; validate() checks the same way and returns the data as sent."""
+    itf = {"endpointTag": "r", "interfaceTag": "i", "interfaceType": "ServiceConverter", "className": "a/B", "x": 1}
+    node = {"containerTag": "c", "nodeTag": "n", "pkg": "Test", "exe": "e", "args": ["-v"]}
+    msg = {"type": "CN", "data": {"addInterfaces": [itf], "addNodes": [node]}}
+    t, cn = schema.parse(msg)
+    assert t == "CN" and isinstance(cn, schema.CNData) and cn.removeNodes == []
+    assert (cn.addNodes[0].cTag, cn.addNodes[0].nTag, cn.addNodes[0].args) == ("c", "n", ["-v"])
+    assert cn.addInterfaces[0].iType is InterfaceType.SERVICE_CLIENT_CONVERTER
+    assert cn.addNodes[0].wire() == node                                  # the wire's keys, only those given
+    assert cn.addInterfaces[0].wire() == {**{k: v for k, v in itf.items() if k != "x"},
+                                          "interfaceType": "ServiceClientConverter"}
+    assert validate(msg) == ("CN", msg["data"])
+    assert schema.parse({"type": "CC", "data": {"containerTag": "c1"}})[1].cTag == "c1"
+    assert schema.parse({"type": "DC", "data": {"containerTag": "c1"}})[1] == schema.DCData.model_validate(
+        {"containerTag": "c1"})
+    cx = schema.parse({"type": "CX", "data": {"connect": [{"tagA": "c/i", "tagB": "r/i"}]}})[1]
+    assert (cx.connect[0].tagA, cx.disconnect) == ("c/i", [])
+    assert schema.parse({"type": "DM", "data": {"iTag": "i", "type": "t", "msg": {}}})[1].iTag == "i"
+    raises(["CN.data.addNodes[0]", "missing key 'pkg'"], schema.parse,
+           {"type": "CN", "data": {"addNodes": [{"containerTag": "c", "nodeTag": "n", "exe": "e"}]}})
+
+
+def test_a_component_built_by_field_name_is_validated_as_on_the_wire():
+    c = schema.component(schema.ContainerComponent, {"cTag": "c1", "cpu": 1.5, "containerTag": "other"}, "resize")
+    assert (c.cTag, c.cpu, c.memory) == ("c1", 1.5, None)                  # a wire key is not a field name
+    raises(["resize.cpu: must be a number greater than or equal to 0, got -1"], schema.component,
+           schema.ContainerComponent, {"cTag": "c1", "cpu": -1}, "resize")
+    raises(["resize: missing key 'cTag'"], schema.component, schema.ContainerComponent, {"cpu": 1}, "resize")
 
 
 # -- Assembler ----------------------------------------------------------------------------------
@@ -634,8 +686,9 @@ def test_wire_uses_the_long_keys_only():
 def test_the_config_builds_on_the_schema_components():
     from rce.config import ConnectionSpec, ContainerSpec, InterfaceSpec, NodeSpec, ParameterSpec, parse_config
     from rce.protocol import schema
-    for spec, wire in ((ContainerSpec, schema.Container), (NodeSpec, schema.Node), (ParameterSpec, schema.Parameter),
-                       (InterfaceSpec, schema.Interface), (ConnectionSpec, schema.Connection)):
+    for spec, wire in ((ContainerSpec, schema.ContainerComponent), (NodeSpec, schema.NodeComponent),
+                       (ParameterSpec, schema.ParameterComponent), (InterfaceSpec, schema.InterfaceComponent),
+                       (ConnectionSpec, schema.ConnectionComponent)):
         assert issubclass(spec, wire)
     cfg = parse_config({"url": "http://m/", "userID": "u", "password": "p", "robotID": "r",
                         "containers": [{"cTag": "c", "cpu": 1, "group": "g"}],

@@ -9,6 +9,7 @@ import math
 import pytest
 
 from rce.errors import RequestError
+from rce.protocol.schema import InterfaceComponent, NodeComponent
 from rce_master.model import password_digest
 from rce_master.state import MasterState
 from rce_master.store import MemoryStore
@@ -72,9 +73,10 @@ def busy_state() -> MasterState:
         s.container_ready(c, f"unix:/{user}-{ctag}", "unconfined")
     s.add_container(U, "r1", "starting", None)
     s.resize(U, "c2", {"cpu": 2.0, "memory": 128})
-    c, n = s.add_node(U, {"containerTag": "c1", "nodeTag": "n1", "pkg": "Test", "exe": "stringEcho.py"})
+    c, n = s.add_node(U, NodeComponent.model_validate({"containerTag": "c1", "nodeTag": "n1", "pkg": "Test",
+                                                   "exe": "stringEcho.py"}))
     s.node_running(n)
-    s.add_node(U, {"containerTag": "c1", "nodeTag": "n2", "pkg": "Test", "exe": "x"})
+    s.add_node(U, NodeComponent.model_validate({"containerTag": "c1", "nodeTag": "n2", "pkg": "Test", "exe": "x"}))
     s.node_status(c.cid, "n2", "exited", {"code": 1, "reason": "boom"})
     s.set_param(U, "c1", "/speed", 0.5)
     s.set_param(V, "c1", "cfg", {"a": [1, None, "x"]})
@@ -82,8 +84,8 @@ def busy_state() -> MasterState:
                                            (U, "r1", "r1", "sub", "SubscriberConverter"),
                                            (U, "r1", "c2", "sub", "SubscriberInterface"),
                                            (V, "r1", "c1", "srv", "ServiceClientInterface")):
-        s.add_interface(user, robot, {"endpointTag": etag, "interfaceTag": itag, "interfaceType": itype,
-                                      "className": "std_msgs/String"})
+        s.add_interface(user, robot, InterfaceComponent.model_validate({"endpointTag": etag, "interfaceTag": itag,
+                                                               "interfaceType": itype, "className": "std_msgs/String"}))
     s.connect(U, "c1/pub", "r1/sub")
     s.connect(U, "c1/pub", "c2/sub")
     assert s.drop_taskset(3) == ([], [])           # nothing on it: only the task set goes
@@ -159,8 +161,9 @@ def test_a_failed_commit_leaves_state_and_store_as_they_were():
     s.robot_connect(U, "r1", 1)
     c, _ = s.add_container(U, "r1", "c1", {"cpu": 1})
     s.container_ready(c, "unix:/x", "")
-    s.add_interface(U, "r1", {"endpointTag": "c1", "interfaceTag": "i", "interfaceType": "PublisherInterface",
-                              "className": "std_msgs/String"})
+    s.add_interface(U, "r1", InterfaceComponent.model_validate({"endpointTag": "c1", "interfaceTag": "i",
+                                                       "interfaceType": "PublisherInterface",
+                                                       "className": "std_msgs/String"}))
     before = dataclasses.replace(s.tasksets[1]), s.snapshot(), dict(store.items())
     store.fail = True
     for op in (lambda: s.add_container(U, "r1", "c2", {"cpu": 2}),

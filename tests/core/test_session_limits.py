@@ -14,6 +14,7 @@ from rce.protocol.frames import Assembler, parse_frame
 from rce.protocol.limits import (ER_BURST, MAX_ER_TEXT, MAX_JSON_DEPTH, PartBudget, TokenBucket, json_too_deep,
                                  short_repr, truncate)
 from rce.protocol.events import RequestReady
+from rce.protocol.schema import InterfaceComponent, NodeComponent
 from rce.protocol.session import RobotSession
 from rce_master.state import MasterState, QuotaExceeded, Quotas
 
@@ -160,13 +161,14 @@ def test_per_user_quotas_refuse_with_a_clear_error_and_leave_other_users_alone()
     with pytest.raises(QuotaExceeded, match=r"user 'alice' already has 2 containers.*--max-containers"):
         ms.add_container("alice", "r1", "c3", None)
     ms.add_container("bob", "r2", "c1", None)                  # another user's quota is its own
-    ms.add_node("alice", {"containerTag": "c1", "nodeTag": "n1", "pkg": "Test", "exe": "e"})
+    node = {"nodeTag": "n1", "pkg": "Test", "exe": "e"}
+    ms.add_node("alice", NodeComponent.model_validate({**node, "containerTag": "c1"}))
     with pytest.raises(QuotaExceeded, match="1 nodes"):
-        ms.add_node("alice", {"containerTag": "c2", "nodeTag": "n2", "pkg": "Test", "exe": "e"})
+        ms.add_node("alice", NodeComponent.model_validate({**node, "containerTag": "c2", "nodeTag": "n2"}))
     spec = {"endpointTag": "c1", "interfaceType": "PublisherInterface", "className": "std_msgs/String"}
-    ms.add_interface("alice", "r1", {**spec, "interfaceTag": "i1"})
+    ms.add_interface("alice", "r1", InterfaceComponent.model_validate({**spec, "interfaceTag": "i1"}))
     with pytest.raises(QuotaExceeded, match="1 interfaces"):
-        ms.add_interface("alice", "r1", {**spec, "interfaceTag": "i2"})
+        ms.add_interface("alice", "r1", InterfaceComponent.model_validate({**spec, "interfaceTag": "i2"}))
     ms.remove_container("alice", "c2")                         # freed: room again
     ms.add_container("alice", "r1", "c4", None)
     assert Quotas(containers=0).check("alice", "containers", [("alice", i) for i in range(10**4)]) is None
