@@ -15,7 +15,7 @@ import numpy as np
 from numba import njit
 
 __all__ = ["ACT_C", "ACT_F", "ACT_R", "ACT_W", "MOVE_WAIT", "UNREACHABLE", "bfs_fill", "bfs_pair",
-           "heading_cost", "mapf_t_actions", "pibt_step", "pibt_step_t", "progress_score",
+           "heading_cost", "mapf_t_actions", "heading_costs", "pibt_step", "pibt_step_t", "progress_score",
            "warm_up"]
 
 UNREACHABLE = 65535
@@ -548,6 +548,13 @@ def progress_score(nbr, dist, slot, pos, head, act):
     return total
 
 
+@njit(cache=True)
+def heading_costs(nbr, dist, slot, pos, head, out):
+    """:func:`heading_cost` of every agent with a goal (0 for the others) into ``out`` (n,)."""
+    for a in range(pos.shape[0]):
+        out[a] = heading_cost(nbr, dist, slot[a], pos[a], head[a]) if slot[a] >= 0 else 0.0
+
+
 def warm_up() -> None:
     """Compile (or load from numba's cache) every kernel on a 3 x 3 grid, so that no timed
     step pays for compilation."""
@@ -569,3 +576,4 @@ def warm_up() -> None:
     pibt_step_t(g.nbr, pos, head, dist, slot, np.arange(2, dtype=np.int64), np.zeros((2, 5)), nxt,
                 np.empty(2, dtype=np.int64))
     progress_score(g.nbr, dist, slot, pos, head, np.zeros(2, dtype=np.int64))
+    heading_costs(g.nbr, dist, slot, pos, head, np.empty(2))

@@ -23,7 +23,7 @@ import numpy as np
 
 from .distances import DistanceCache
 from .grid import LifelongGrid
-from .kernels import MOVE_WAIT, mapf_t_actions, pibt_step, pibt_step_t, progress_score
+from .kernels import MOVE_WAIT, heading_costs, mapf_t_actions, pibt_step, pibt_step_t
 from .simulator import MAPF_T
 
 __all__ = ["PIBTPlanner", "solve_one_shot"]
@@ -39,11 +39,12 @@ class PIBTPlanner:
 
     def __init__(self, grid: LifelongGrid, cache: DistanceCache, model: str = MAPF_T, turn_w: float = 0.5,
                  seed: int = 0, swap: bool = True, state_space: bool = False, claim_steps: int = 1,
-                 stuck_steps: int = 20, noise: float = 100.0, samples: int = 1, sample_frac: float = 0.5):
+                 stuck_steps: int = 20, noise: float = 100.0, samples: int = 16, sample_frac: float = 0.5,
+                 window: int = 20):
         self.grid, self.cache, self.model, self.turn_w, self.swap = grid, cache, model, float(turn_w), swap
         self.state_space, self.claim_steps = state_space, claim_steps
         self.stuck_steps, self.noise = stuck_steps, noise
-        self.samples, self.sample_frac = samples, sample_frac
+        self.samples, self.sample_frac, self.window = samples, sample_frac, window
         self.rng = np.random.default_rng(seed)
         self._goal_prev: np.ndarray | None = None
         self.elapsed: np.ndarray | None = None
@@ -99,24 +100,7 @@ class PIBTPlanner:
         if turns and self.state_space:
             pibt_step_t(self.grid.nbr, pos, head, cache.table, slot, order, rnd, nxt, act)
         elif turns and self.samples > 1:
-            # sample PIBT steps with other tie-breaks while time remains; keep the one that
-            # brings the robots closest (heading-aware); the first is always complete
-            claim0, age0 = self.claim.copy(), self.claim_age.copy()
-            best, best_claim, best_age, best_score = None, None, None, -np.inf
-            stop = time.perf_counter() + self.sample_frac * max(0.0, deadline - time.perf_counter())
-            for k in range(self.samples):
-                if k and time.perf_counter() > stop:
-                    break
-                self.claim, self.claim_age = claim0.copy(), age0.copy()
-                r = rnd if k == 0 else self.rng.random((n, 5))
-                if k and self.noise > 0:
-                    r[self.stuck > self.stuck_steps] *= self.noise
-                self._convert(pos, head, goals, slot, order, r, nxt, act)
-                score = progress_score(self.grid.nbr, cache.table, slot, pos, head, act)
-                if score > best_score:
-                    best, best_claim, best_age, best_score = act.copy(), self.claim.copy(), self.claim_age, score
-            self.stats["samples"] += k + 1
-            act, self.claim, self.claim_age = best, best_claim, best_age
+            act = self._rollouts(pos, head, goals, slot, order, rnd, deadline)
         else:
             self._convert(pos, head, goals, slot, order, rnd, nxt, act)
         t2 = time.perf_counter()
@@ -125,6 +109,67 @@ class PIBTPlanner:
         self.stats["maps"] += cache.computed - computed0
         self.stats["deferred"] += deferred
         return act
+
+    def _rollouts(self, pos, head, goals, slot, order, rnd, deadline) -> np.ndarray:
+        """Windowed lookahead: the plain PIBT step first (always complete), then, while time
+        remains, rollouts of ``window`` PIBT steps from other tie-breaks of the first step;
+        keep the first step of the rollout that brings the robots closest (heading-aware, a
+        reached goal counts 0). Skipped when ``samples`` rollouts cannot fit before half the
+        time left to ``deadline``."""
+        from .simulator import _apply
+        n = pos.shape[0]
+        table = self.cache.table
+        nbr = self.grid.nbr
+        claim0, age0 = self.claim.copy(), self.claim_age.copy()
+        nxt = np.empty(n, dtype=np.int64)
+        act = np.empty(n, dtype=np.int64)
+        t_a = time.perf_counter()
+        self._convert(pos, head, goals, slot, order, rnd, nxt, act)
+        plain = (act.copy(), self.claim.copy(), self.claim_age.copy())
+        t_step = time.perf_counter() - t_a
+        stop = t_a + self.sample_frac * max(0.0, deadline - t_a)
+        if 2 * self.window * t_step * 1.5 > stop - time.perf_counter():
+            return plain[0]                   # no time for two rollouts: the plain step
+        d0 = np.empty(n)
+        d1 = np.empty(n)
+        heading_costs(nbr, table, slot, pos, head, d0)
+        best, best_state, best_score = plain[0], plain[1:], -np.inf
+        k = 0
+        for k in range(self.samples):
+            if time.perf_counter() > stop:
+                break
+            p, h, g, sl = pos, head, goals.copy(), slot.copy()
+            first = plain
+            complete = True
+            for step in range(self.window):
+                if step == 0 and k == 0:
+                    self.claim, self.claim_age = plain[1].copy(), plain[2].copy()
+                    act[:] = plain[0]
+                else:
+                    if step == 0:
+                        self.claim, self.claim_age = claim0.copy(), age0.copy()
+                    elif time.perf_counter() > stop:
+                        complete = False
+                        break
+                    r = self.rng.random((n, 5))
+                    if step == 0 and self.noise > 0:
+                        r[self.stuck > self.stuck_steps] *= self.noise
+                    self._convert(p, h, g, sl, order, r, nxt, act)
+                    if step == 0:
+                        first = (act.copy(), self.claim.copy(), self.claim_age.copy())
+                p, h = _apply(self.grid, p, h, act, MAPF_T)
+                done = (g >= 0) & (p == g)
+                g[done] = -1
+                sl[done] = -1
+            if not complete:
+                break
+            heading_costs(nbr, table, sl, p, h, d1)
+            score = float((d0 - d1)[slot >= 0].sum())
+            if score > best_score:
+                best, best_state, best_score = first[0], first[1:], score
+        self.stats["samples"] += k
+        self.claim, self.claim_age = best_state[0].copy(), best_state[1].copy()
+        return best
 
     def _convert(self, pos, head, goals, slot, order, rnd, nxt, act) -> None:
         """PIBT on cells, then MAPF_T actions with the move check (or 4-neighbour moves)."""
