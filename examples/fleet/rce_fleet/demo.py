@@ -302,8 +302,11 @@ class Run:
         try:
             self.places = Places.load(o.places, self.geo) if o.places else generate_places(self.geo, o.robots)
         except PlaceError as e:
-            raise UsageError(f"--places: {e}") from None
-        if not o.places:
+            if o.places or o.lifelong:
+                raise UsageError(f"--places: {e}") from None
+            self.places = Places([], self.geo)      # a grid too small for places: tasks name cells
+            log.info("no places generated", reason=str(e))
+        if not o.places and len(self.places):
             self.places.dump(self.workdir / "places.yaml", f"places generated for {Path(self.map_path).name}, "
                              f"grid {self.geo.rows}x{self.geo.cols} (rce-fleet --places)")
         if o.lifelong:

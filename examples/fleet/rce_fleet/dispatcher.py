@@ -221,7 +221,7 @@ class Dispatcher:
         for c in cells:
             if c in taken:
                 continue
-            d = self.cache.dist(cell, c) if c != cell else 0
+            d = self._dist(cell, c)
             if d < bd:
                 best, bd = c, d
         return best
@@ -275,14 +275,18 @@ class Dispatcher:
             book.assign(rec, name, i, now)
             w.task, w.activity, w.target, w.worked = rec, TASK, None, True
 
+    def _dist(self, src: int, goal: int) -> int:
+        """Steps from ``src`` to ``goal`` along the goal's cached distance map (UNREACHABLE if none)."""
+        return 0 if src == goal else int(self.cache.table[self.cache.slot(goal), src])
+
     def _affordable(self, w: _Work, cell: int, rec: TaskRecord) -> bool:
         """Whether ``w`` can do ``rec`` from ``cell`` and still reach a charger with the reserve."""
         b = self.battery
         if b is None or w.battery < 0 or not self.chargers:
             return True
         route = [cell, *rec.task.errands[rec.task.next_errand:]]
-        steps = sum(self.cache.dist(a, c) for a, c in zip(route, route[1:], strict=False) if a != c)
-        back = min(self.cache.dist(route[-1], c) if c != route[-1] else 0 for c in self.chargers)
+        steps = sum(self._dist(a, c) for a, c in zip(route, route[1:], strict=False))
+        back = min(self._dist(route[-1], c) for c in self.chargers)
         steps += back
         if steps >= UNREACHABLE:
             return False

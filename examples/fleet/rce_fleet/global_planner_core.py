@@ -309,14 +309,18 @@ class GlobalPlannerCore:
         return Out("/fleet/tasks", "fleet/TaskList",
                    self.book.message(self._tasks_seq, self.stamp, self.dispatcher.robot_messages(self.stamp)))
 
+    def tasks_due(self) -> list[Out]:
+        """``/fleet/tasks`` when something changed or ``TASKS_REPEAT_S`` passed (the node calls it
+        with :meth:`tick`)."""
+        if self.book.changed or self.clock() - self._last_tasks >= TASKS_REPEAT_S:
+            return [self.tasks_msg()]
+        return []
+
     def tick(self) -> list[Out]:
         """Periodic work: dispatch tasks, retry robots parked for want of a collision-free path,
-        repeat paths and clearances (so a lost or late message never stalls a robot), publish
-        the tasks."""
+        repeat paths and clearances (so a lost or late message never stalls a robot)."""
         now = self.clock()
         out: list[Out] = self.dispatch()
-        if self.book.changed or now - self._last_tasks >= TASKS_REPEAT_S:
-            out.append(self.tasks_msg())
         if now - self._last_retry >= RETRY_S:
             self._last_retry = now
             retry = {r: self.fp.goals[r] for r in self.fp.unreachable

@@ -134,6 +134,7 @@ async def main(node) -> None:
     last_refresh = loop.time()
     while not node.is_shutdown:
         pubs.send(core.tick())
+        pubs.send(core.tasks_due())
         pubs.pubs["/fleet/state"].publish_nowait(core.state())
         if loop.time() - last_refresh > ROBOTS_REFRESH_S:
             last_refresh = loop.time()
