@@ -20,7 +20,9 @@ Each call of :meth:`Dispatcher.update` (the global planner's tick, ~5 Hz) at fle
 5. idle robots drive to the nearest free parking place (``park_idle``, or once they have
    done a task), out of the aisles and off the stations;
 6. a goal cell another robot heads to is not sent yet (the planner refuses two robots one
-   goal): the robot holds where it is until that one has a new goal.
+   goal): the robot keeps its goal (it waits where it is) until that one has a new goal;
+   and a task whose first errand another robot heads to or stands on is not offered yet,
+   so robots queue for a station instead of blocking each other on it.
 
 A robot that an operator sends somewhere (``/fleet/goal``) is the operator's until it
 arrives or its goal is dropped: it takes no task, and an unopened task it held goes back to
@@ -229,8 +231,12 @@ class Dispatcher:
     def _allocate(self, view: dict[str, RobotView], now: float) -> None:
         book = self.book
         step = now / book.step_s
+        busy = {w.sent for w in self.robots.values() if w.sent is not None}
+        busy |= {view[n].cell for n, w in self.robots.items()           # robots that stand there on business
+                 if n in view and view[n].cell is not None and w.activity not in (IDLE, PARKING, UNKNOWN)}
         offer = {r.task.id: r.task for r in book.open_records()
-                 if r.task.opened or r.task.earliest_start <= step + START_HORIZON_STEPS}
+                 if r.task.opened or r.state is not TaskState.QUEUED
+                 or (r.task.earliest_start <= step + START_HORIZON_STEPS and r.task.errands[0] not in busy)}
         if not any(not t.opened for t in offer.values()):
             return
         n = len(self.names)
@@ -313,7 +319,7 @@ class Dispatcher:
             else:
                 want = None
             if want is not None and want != w.sent and any(n != name and g == want for n, g in held.items()):
-                want = None                 # another robot heads there: hold (stand) until it is free
+                continue                    # another robot heads there: keep the old goal until it is free
             if want != w.sent:
                 if want is None and w.sent is None:
                     continue

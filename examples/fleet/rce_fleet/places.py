@@ -160,39 +160,58 @@ class Places:
 def generate_places(geo: GridGeometry, robots: int, stations: int | None = None) -> Places:
     """Places for a map without a file, in the largest connected part of the grid: pick-up
     stations in the left third, drop-off stations in the right third (``stations`` each;
-    default 2-6 by size), ``ceil(robots / 3)`` chargers spread over the top rows, and
-    parking on dead ends and edge cells (degree <= 2) that are none of those, as many as
-    there are robots where the grid has them. Raises PlaceError when the grid is too small."""
-    comp = sorted(components(geo)[0]) if components(geo) else []
-    n_st = stations or max(2, min(6, len(comp) // 40))
+    default one per four robots, at least 2 and up to 6, and at most one per 40 cells), ``ceil(robots / 3)`` chargers spread over the top rows, and
+    parking on dead ends and cells along walls, towards the map's edges, as many as there
+    are robots where the grid has them. A robot may stand on any place for long, so no place
+    cuts the free cells apart: every place leaves the rest of the part connected and keeps a
+    free neighbour. Raises PlaceError when the grid is too small."""
+    parts = components(geo)
+    comp = sorted(parts[0]) if parts else []
+    n_st = stations or max(2, min(max(6, robots // 4), len(comp) // 40))
     n_ch = max(1, math.ceil(robots / 3))
     if len(comp) < 2 * n_st + n_ch + 2:
         raise PlaceError(f"the grid's largest connected part has {len(comp)} cells: too few for places")
     inside = set(comp)
-    deg = {c: sum(1 for n in geo.neighbours(c) if n in inside) for c in comp}
+    nbrs = {c: [n for n in geo.neighbours(c) if n in inside] for c in comp}
+    deg = {c: len(v) for c, v in nbrs.items()}
     cols = [geo.rc(c)[1] for c in comp]
     lo, hi = min(cols), max(cols)
     span = max(1, hi - lo)
     taken: set[int] = set()
 
+    def safe(c: int) -> bool:
+        """Whether a robot standing on ``c`` (and on every place so far) leaves the rest connected."""
+        gone = taken | {c}
+        if not any(n not in gone for n in nbrs[c]):
+            return False
+        start = next(x for x in comp if x not in gone)
+        seen, todo = {start}, [start]
+        while todo:
+            for n in nbrs[todo.pop()]:
+                if n not in gone and n not in seen:
+                    seen.add(n)
+                    todo.append(n)
+        return len(seen) == len(comp) - len(gone)
+
+    def dist(a: int, b: int) -> int:
+        (ra, ca), (rb, cb) = geo.rc(a), geo.rc(b)
+        return abs(ra - rb) + abs(ca - cb)
+
     def spread(cands: list[int], k: int) -> list[int]:
-        """k cells of ``cands`` far apart (farthest-point sampling from the first)."""
+        """Up to k safe cells of ``cands`` far apart (farthest-point sampling from the first)."""
+        pick: list[int] = []
         cands = [c for c in cands if c not in taken]
-        if not cands:
-            return []
-        pick = [cands[0]]
-        while len(pick) < k and len(pick) < len(cands):
-            best = max((c for c in cands if c not in pick),
-                       key=lambda c: min(abs(geo.rc(c)[0] - geo.rc(p)[0]) + abs(geo.rc(c)[1] - geo.rc(p)[1])
-                                         for p in pick))
-            pick.append(best)
-        taken.update(pick)
+        while len(pick) < k and cands:
+            best = cands[0] if not pick else max(cands, key=lambda c: min(dist(c, p) for p in pick))
+            cands.remove(best)
+            if safe(best):
+                pick.append(best)
+                taken.add(best)
         return pick
 
     top = sorted(comp, key=lambda c: (geo.rc(c)[0], geo.rc(c)[1]))
     places = [Place(f"charger{i + 1}", "charger", c) for i, c in enumerate(spread(top[:max(n_ch * 6, 12)], n_ch))]
-    # stations below the chargers' rows, on cells robots pass through (degree >= 2), so one
-    # waiting there does not wall off a dead end
+    # stations below the chargers' rows
     low = max(geo.rc(p.cell)[0] for p in places) + 2
     if sum(1 for c in comp if geo.rc(c)[0] >= low) < 4 * n_st:
         low = 0
@@ -200,9 +219,20 @@ def generate_places(geo: GridGeometry, robots: int, stations: int | None = None)
     right = [c for c in comp if hi - geo.rc(c)[1] <= span / 3 and deg[c] >= 2 and geo.rc(c)[0] >= low]
     places += [Place(f"pick{i + 1}", "pickup", c) for i, c in enumerate(spread(left, n_st))]
     places += [Place(f"drop{i + 1}", "dropoff", c) for i, c in enumerate(spread(right, n_st))]
+    # parking: dead ends first, then cells along walls (degree 3), then corridors, far from
+    # the middle and from the stations
     mid_r = sum(geo.rc(c)[0] for c in comp) / len(comp)
     mid_c = sum(geo.rc(c)[1] for c in comp) / len(comp)
-    edge = sorted((c for c in comp if deg[c] <= 2 and c not in taken),
-                  key=lambda c: (deg[c], -abs(geo.rc(c)[0] - mid_r) - abs(geo.rc(c)[1] - mid_c)))
-    places += [Place(f"park{i + 1}", "parking", c) for i, c in enumerate(edge[:robots])]
+    stations = [p.cell for p in places]
+    order = sorted((c for c in comp if c not in taken and deg[c] < 4),
+                   key=lambda c: ({1: 0, 3: 1, 2: 2}.get(deg[c], 3), min(dist(c, x) for x in stations) < 3,
+                                  -abs(geo.rc(c)[0] - mid_r) - abs(geo.rc(c)[1] - mid_c)))
+    parking = []
+    for c in order:
+        if len(parking) >= robots:
+            break
+        if all(dist(c, x) > 1 for x in parking) and safe(c):
+            parking.append(c)
+            taken.add(c)
+    places += [Place(f"park{i + 1}", "parking", c) for i, c in enumerate(parking)]
     return Places(places, geo)
