@@ -15,7 +15,7 @@ import numpy as np
 from numba import njit
 
 __all__ = ["ACT_C", "ACT_F", "ACT_R", "ACT_W", "MOVE_WAIT", "UNREACHABLE", "bfs_fill", "bfs_pair",
-           "heading_cost", "mapf_t_actions", "heading_costs", "pibt_step", "pibt_step_t", "progress_score",
+           "heading_cost", "mapf_t_actions", "heading_costs", "pibt_step",
            "warm_up"]
 
 UNREACHABLE = 65535
@@ -413,142 +413,6 @@ def heading_cost(nbr, dist, s, c, h):
 
 
 @njit(cache=True)
-def _candidates_t(a, u, h, nbr, dist, slot, occ_now, rnd, ccell, cact, ncand):
-    """Sort agent ``a``'s MAPF_T actions (F, R, C, W) by the heading-aware cost after them."""
-    s = slot[a]
-    cost = np.empty(4)
-    k = 0
-    for act in range(4):
-        if act == ACT_F:
-            v = nbr[u, h]
-            if v < 0:
-                continue
-            hh = h
-        else:
-            v = u
-            hh = (h + 1) & 3 if act == ACT_R else ((h + 3) & 3 if act == ACT_C else h)
-        if s >= 0:
-            c = 1.0 + heading_cost(nbr, dist, s, v, hh)
-        else:
-            c = 0.0 if act == ACT_W else 1.0
-        if act == ACT_F and occ_now[v] >= 0:
-            c += 0.25
-        c += rnd[a, act] * 0.01
-        j = k
-        while j > 0 and cost[j - 1] > c:
-            cost[j] = cost[j - 1]
-            ccell[a, j] = ccell[a, j - 1]
-            cact[a, j] = cact[a, j - 1]
-            j -= 1
-        cost[j] = c
-        ccell[a, j] = v
-        cact[a, j] = act
-        k += 1
-    ncand[a] = k
-
-
-@njit(cache=True)
-def pibt_step_t(nbr, pos, head, dist, slot, order, rnd, nxt, act):
-    """One step of PIBT (Okumura et al., AIJ 2022) in the MAPF_T state space (cell,
-    heading), as the PIBT inside the League of Robot Runners 2023 winner's windowed planner
-    (Jiang et al., "Scaling lifelong multi-agent path finding to more realistic settings",
-    SoCS 2024): an agent's options are forward, turn clockwise, turn counter-clockwise and
-    wait, costed by :func:`heading_cost`; only forward leaves the cell, so an agent pushed out
-    of its cell can only go forward.
-
-    Shapes as :func:`pibt_step`; writes next cells into ``nxt`` and MAPF_T action codes into
-    ``act``. The result has no vertex and no swap conflict. Returns the number of agents that
-    did not get their first choice.
-    """
-    n = pos.shape[0]
-    ncell = nbr.shape[0]
-    occ_now = np.full(ncell, -1, np.int64)
-    occ_next = np.full(ncell, -1, np.int64)
-    for i in range(n):
-        occ_now[pos[i]] = i
-        nxt[i] = -1
-    ccell = np.empty((n, 4), np.int64)
-    cact = np.empty((n, 4), np.int64)
-    ncand = np.zeros(n, np.int64)
-    ci = np.zeros(n, np.int64)
-    stack = np.empty(n + 1, np.int64)
-    failed = 0
-    for r in range(n):
-        root = order[r]
-        if nxt[root] != -1:
-            continue
-        stack[0] = root
-        sp = 1
-        fresh = True
-        result = -1
-        while sp > 0:
-            a = stack[sp - 1]
-            if fresh:
-                fresh = False
-                _candidates_t(a, pos[a], head[a], nbr, dist, slot, occ_now, rnd, ccell, cact, ncand)
-                ci[a] = 0
-            if result == 0:
-                ci[a] += 1
-                result = -1
-            if result == -1:
-                pushed = False
-                while ci[a] < ncand[a]:
-                    v = ccell[a, ci[a]]
-                    if occ_next[v] != -1:
-                        ci[a] += 1
-                        continue
-                    k = occ_now[v]
-                    if k != -1 and k != a and nxt[k] == pos[a]:
-                        ci[a] += 1
-                        continue
-                    nxt[a] = v
-                    act[a] = cact[a, ci[a]]
-                    occ_next[v] = a
-                    if k != -1 and k != a and nxt[k] == -1:
-                        stack[sp] = k
-                        sp += 1
-                        fresh = True
-                        pushed = True
-                    break
-                if pushed:
-                    continue
-                if ci[a] >= ncand[a]:
-                    nxt[a] = pos[a]
-                    act[a] = ACT_W
-                    occ_next[pos[a]] = a
-                    failed += 1
-                    result = 0
-                    sp -= 1
-                    continue
-            if ci[a] > 0:
-                failed += 1
-            result = 1
-            sp -= 1
-    return failed
-
-
-@njit(cache=True)
-def progress_score(nbr, dist, slot, pos, head, act):
-    """How much closer the agents get by ``act`` (MAPF_T codes), in heading-aware steps
-    (:func:`heading_cost` before minus after, summed over agents with a goal)."""
-    total = 0.0
-    for a in range(pos.shape[0]):
-        s = slot[a]
-        if s < 0:
-            continue
-        u, h = pos[a], head[a]
-        v, hh = u, h
-        if act[a] == ACT_F:
-            v = nbr[u, h]
-        elif act[a] == ACT_R:
-            hh = (h + 1) & 3
-        elif act[a] == ACT_C:
-            hh = (h + 3) & 3
-        total += heading_cost(nbr, dist, s, u, h) - heading_cost(nbr, dist, s, v, hh)
-    return total
-
-
-@njit(cache=True)
 def heading_costs(nbr, dist, slot, pos, head, out):
     """:func:`heading_cost` of every agent with a goal (0 for the others) into ``out`` (n,)."""
     for a in range(pos.shape[0]):
@@ -573,7 +437,4 @@ def warm_up() -> None:
     pibt_step(g.nbr, pos, head, dist, slot, goal, np.arange(2, dtype=np.int64), True, 1.0, np.zeros((2, 5)), nxt,
               True, claim, np.full(2, -1, dtype=np.int64), 0.0)
     mapf_t_actions(g.nbr, pos, head, nxt, dist, slot, np.empty(2, dtype=np.int64), claim)
-    pibt_step_t(g.nbr, pos, head, dist, slot, np.arange(2, dtype=np.int64), np.zeros((2, 5)), nxt,
-                np.empty(2, dtype=np.int64))
-    progress_score(g.nbr, dist, slot, pos, head, np.zeros(2, dtype=np.int64))
     heading_costs(g.nbr, dist, slot, pos, head, np.empty(2))

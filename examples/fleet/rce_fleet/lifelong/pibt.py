@@ -6,7 +6,11 @@ cells, costed by the breadth-first distance to each robot's next errand
 for MAPF_T it turns the next cells into forward/turn/wait actions and cancels moves into
 cells that stay occupied (the move check of the League of Robot Runners 2024 default
 entry, after Chen et al., AAAI-24). Priorities grow with the steps since a robot's goal
-last changed (PIBT's rule), ties broken at random.
+last changed (PIBT's rule), ties broken at random. Two agents pass each other in a corridor
+by LaCAM*'s swap technique (Okumura, IJCAI-23); a robot turning towards a cell holds it for
+a step (commitment); a robot stuck for ``stuck_steps`` gets noisy costs; when time allows,
+rollouts of ``window`` PIBT steps choose among tie-breaks of the first step (windowed
+lookahead in the spirit of the LoRR 2023 winner's windowed planning, Jiang et al., SoCS 2024).
 
 Time budget: distance maps for new goals are the only unbounded work; when the step's
 deadline is near, a robot whose goal map is not yet computed waits (costs it one step,
@@ -23,7 +27,7 @@ import numpy as np
 
 from .distances import DistanceCache
 from .grid import LifelongGrid
-from .kernels import MOVE_WAIT, heading_costs, mapf_t_actions, pibt_step, pibt_step_t
+from .kernels import MOVE_WAIT, heading_costs, mapf_t_actions, pibt_step
 from .simulator import MAPF_T
 
 __all__ = ["PIBTPlanner", "solve_one_shot"]
@@ -33,16 +37,21 @@ class PIBTPlanner:
     """PIBT with turn costs for a lifelong fleet (module docstring).
 
     grid: the map; cache: goal distance maps; model: ``"MAPF_T"`` or ``"MAPF"``; turn_w:
-    cost of a quarter turn (steps); seed: tie-breaks. ``plan(pos, head, goals, deadline)``
-    returns (n,) action codes (:mod:`.kernels`).
+    cost of a quarter turn (steps); seed: tie-breaks; swap: LaCAM*'s corridor swap;
+    claim_steps: steps a robot keeps holding the cell it turns towards; stuck_steps and
+    noise: a robot without progress for that many steps gets tie-breaks scaled by ``noise``
+    (a random walk out of a jam); samples, window, sample_frac: the lookahead (rollouts of
+    ``window`` steps from ``samples`` tie-breaks, within ``sample_frac`` of the time left;
+    samples=1 turns it off). ``plan(pos, head, goals, deadline)`` returns (n,) action codes
+    (:mod:`.kernels`). Measured worth of each: ``docs/lifelong.md``.
     """
 
     def __init__(self, grid: LifelongGrid, cache: DistanceCache, model: str = MAPF_T, turn_w: float = 0.5,
-                 seed: int = 0, swap: bool = True, state_space: bool = False, claim_steps: int = 1,
+                 seed: int = 0, swap: bool = True, claim_steps: int = 1,
                  stuck_steps: int = 20, noise: float = 100.0, samples: int = 16, sample_frac: float = 0.5,
                  window: int = 20):
         self.grid, self.cache, self.model, self.turn_w, self.swap = grid, cache, model, float(turn_w), swap
-        self.state_space, self.claim_steps = state_space, claim_steps
+        self.claim_steps = claim_steps
         self.stuck_steps, self.noise = stuck_steps, noise
         self.samples, self.sample_frac, self.window = samples, sample_frac, window
         self.rng = np.random.default_rng(seed)
@@ -97,9 +106,7 @@ class PIBTPlanner:
         nxt = np.empty(n, dtype=np.int64)
         turns = self.model == MAPF_T
         act = np.empty(n, dtype=np.int64)
-        if turns and self.state_space:
-            pibt_step_t(self.grid.nbr, pos, head, cache.table, slot, order, rnd, nxt, act)
-        elif turns and self.samples > 1:
+        if turns and self.samples > 1:
             act = self._rollouts(pos, head, goals, slot, order, rnd, deadline)
         else:
             self._convert(pos, head, goals, slot, order, rnd, nxt, act)
