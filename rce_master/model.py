@@ -146,7 +146,6 @@ class ContainerRec(_Record):
         return float(self.data.get("cpu") or 0), float(self.data.get("memory") or 0)
 
 
-Container = ContainerRec      # the record's former name, until rce_master/state.py imports ContainerRec
 
 
 @dataclass

@@ -34,7 +34,7 @@ from rce.errors import AuthError, NotFound, RequestError, Unavailable
 from rce.interface_type import Kind
 from rce.protocol import schema
 from rce_master.index import StateIndex, lost_reason
-from rce_master.model import (ConnectionRec, Container, InterfaceRec, NodeRec, Robot, TaskSet, User,
+from rce_master.model import (ConnectionRec, ContainerRec, InterfaceRec, NodeRec, Robot, TaskSet, User,
                               param_key)
 from rce_master.store import Key, MemoryStore, Store, encode
 
@@ -236,7 +236,7 @@ class MasterState(StateIndex):
         return sorted((t for t in self.tasksets.values() if t.lost), key=lambda t: (t.kind != "container", t.tid))
 
     @_atomic
-    def drop_taskset(self, tid: int) -> tuple[list[Container], list[Robot]]:
+    def drop_taskset(self, tid: int) -> tuple[list[ContainerRec], list[Robot]]:
         """Remove a task set that went away. Returns its containers (now ``lost``: the shell tells
         their robots and re-creates them, :mod:`rce_master.failover`) and its robots (the shell
         disconnects them)."""
@@ -311,7 +311,7 @@ class MasterState(StateIndex):
         return [self.interfaces[(rec.user, rec.etag, rec.itag)] for rec in recs]
 
     @_atomic
-    def robot_disconnect(self, user: str, robot: str) -> tuple[Pairs, list[Container]]:
+    def robot_disconnect(self, user: str, robot: str) -> tuple[Pairs, list[ContainerRec]]:
         """Forget a robot with its interfaces (and their connections). Returns the connections
         removed and the containers it owns (the shell destroys them)."""
         r = self.robots.get((user, robot))
@@ -324,7 +324,7 @@ class MasterState(StateIndex):
 
     # -- containers --------------------------------------------------------------------------------------
     @_atomic
-    def add_container(self, user: str, owner: str, ctag: str, data: dict | None) -> tuple[Container, TaskSet]:
+    def add_container(self, user: str, owner: str, ctag: str, data: dict | None) -> tuple[ContainerRec, TaskSet]:
         """Reserve a new container (state ``starting``) on the chosen host; returns it and the host."""
         old = self.containers.get((user, ctag))
         if old is not None and old.down:
@@ -336,12 +336,12 @@ class MasterState(StateIndex):
         self.quotas.check(user, "containers", self.containers)
         data = dict(data or {})
         host = self.pick_container_host(data)
-        c = Container(self._next_id("cid"), user, ctag, owner, host.tid, data.get("group") or None, data)
+        c = ContainerRec(self._next_id("cid"), user, ctag, owner, host.tid, data.get("group") or None, data)
         self._write(c.store_key, c.to_record())
         return self.containers[(user, ctag)], host
 
     @_atomic
-    def container_ready(self, c: Container, data_addr: str, sandbox: str) -> None:
+    def container_ready(self, c: ContainerRec, data_addr: str, sandbox: str) -> None:
         """The host created (or re-created) ``c``: ``running``. Raises :class:`Unavailable` when it
         was removed or lost meanwhile."""
         if not _current(self.containers, (c.user, c.ctag), c) or c.state == "lost":
@@ -349,14 +349,14 @@ class MasterState(StateIndex):
         self._put(c, state="running", data_addr=data_addr, sandbox=sandbox)
 
     @_atomic
-    def container_lost(self, c: Container) -> None:
+    def container_lost(self, c: ContainerRec) -> None:
         """``c`` is gone with its host or environment (or its host re-registered without it):
         ``lost``. Its nodes, parameters, interfaces and connections stay, for its re-creation
         (:meth:`container_recovering`) or until its robot destroys it (DC) or leaves."""
         self._put(c, state="lost")
 
     @_atomic
-    def container_recovering(self, c: Container, tid: int) -> None:
+    def container_recovering(self, c: ContainerRec, tid: int) -> None:
         """Re-create lost container ``c`` on host ``tid``: it gets a new ``cid`` (a copy its old
         host may still hold keeps the old one, and is dropped when that host re-registers), its
         container-side interfaces move with it, its nodes are ``starting`` again. Raises
@@ -372,7 +372,7 @@ class MasterState(StateIndex):
             self._put(n, status="starting", detail={})
 
     @_atomic
-    def interrupted_recoveries(self) -> list[Container]:
+    def interrupted_recoveries(self) -> list[ContainerRec]:
         """On taking office on a store a previous master left: a container it was re-creating is
         ``lost`` again (that work died with it). Returns every lost container that ever ran,
         by cid: the ones to re-create once hosts register."""
@@ -383,19 +383,19 @@ class MasterState(StateIndex):
                       key=lambda c: c.cid)
 
     @_atomic
-    def container_found(self, c: Container, tid: int, data_addr: str, sandbox: str) -> None:
+    def container_found(self, c: ContainerRec, tid: int, data_addr: str, sandbox: str) -> None:
         """Host ``tid`` reported ``c`` running when it re-registered: ``running`` there, at ``data_addr``."""
         self._put(c, tid=tid, data_addr=data_addr, sandbox=sandbox, state="running")
 
     @_atomic
-    def container_failed(self, c: Container) -> Pairs:
+    def container_failed(self, c: ContainerRec) -> Pairs:
         """Undo a container its host did not create (nothing when it is already gone)."""
         if not _current(self.containers, (c.user, c.ctag), c):
             return []
         return self._forget_container(c)
 
     @_atomic
-    def remove_container(self, user: str, ctag: str) -> tuple[Container, Pairs]:
+    def remove_container(self, user: str, ctag: str) -> tuple[ContainerRec, Pairs]:
         """Forget a container with its nodes, parameters and interfaces; returns the container
         and the connections removed (the shell disconnects their peers). Raises :class:`NotFound`."""
         c = self.containers.get((user, ctag))
@@ -403,7 +403,7 @@ class MasterState(StateIndex):
             raise NotFound(f"container {ctag!r} does not exist")
         return c, self._forget_container(c)
 
-    def _forget_container(self, c: Container) -> Pairs:
+    def _forget_container(self, c: ContainerRec) -> Pairs:
         for n in self.nodes_of(c):
             self._delete(n)
         for k in [k for k in self.params if k[:2] == (c.user, c.ctag)]:
@@ -413,7 +413,7 @@ class MasterState(StateIndex):
         return pairs
 
     @_atomic
-    def resize(self, user: str, ctag: str, limits: dict) -> Container:
+    def resize(self, user: str, ctag: str, limits: dict) -> ContainerRec:
         """Record new limits of a container its host applied (host load follows)."""
         c = self.container(user, ctag)
         self._put(c, data={**c.data, **limits})
@@ -421,7 +421,7 @@ class MasterState(StateIndex):
 
     # -- nodes and parameters ----------------------------------------------------------------------------
     @_atomic
-    def add_node(self, user: str, spec: schema.NodeComponent) -> tuple[Container, NodeRec]:
+    def add_node(self, user: str, spec: schema.NodeComponent) -> tuple[ContainerRec, NodeRec]:
         """Reserve node ``spec`` (an addNodes entry; status ``starting``); its record keeps the entry
         as the wire has it. Raises :class:`RequestError`."""
         c = self.container(user, spec.cTag)
@@ -446,7 +446,7 @@ class MasterState(StateIndex):
             self._delete(n)
 
     @_atomic
-    def remove_node(self, user: str, ctag: str, ntag: str) -> Container:
+    def remove_node(self, user: str, ctag: str, ntag: str) -> ContainerRec:
         """Forget a node; returns its container. Raises :class:`NotFound`."""
         c = self.container(user, ctag)
         n = self.nodes.get((user, ctag, ntag))
@@ -465,14 +465,14 @@ class MasterState(StateIndex):
         return n
 
     @_atomic
-    def set_param(self, user: str, ctag: str, name: str, value: Any) -> Container:
+    def set_param(self, user: str, ctag: str, name: str, value: Any) -> ContainerRec:
         """Record a parameter the container's bus has set. Raises :class:`NotFound`/:class:`RequestError`."""
         c = self.container(user, ctag)
         self._write(param_key(user, ctag, name), {"user": user, "ctag": ctag, "name": name, "value": value})
         return c
 
     @_atomic
-    def delete_param(self, user: str, ctag: str, name: str) -> Container:
+    def delete_param(self, user: str, ctag: str, name: str) -> ContainerRec:
         """Forget a parameter; returns its container. Raises :class:`NotFound`."""
         c = self.container(user, ctag)
         if (user, ctag, name) not in self.params:

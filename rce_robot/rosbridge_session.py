@@ -70,7 +70,7 @@ class Bridge:
     up: asyncio.Event = field(default_factory=asyncio.Event)
 
 
-class Subscription:
+class RosbridgeSubscription:
     """A client's ``subscribe`` ``sid`` to a topic: ``throttle_rate`` (ms) is the least time
     between two messages sent; messages arriving sooner wait in a queue of ``queue_length``
     (at least 1; the oldest is dropped and counted when it is full), as rosbridge does. Each
@@ -124,7 +124,7 @@ class RosbridgeSession:
         self.interfaces: dict[str, RobotInterface] = {}
         self.bridges: dict[tuple[str, str], Bridge] = {}          # (role, name) -> its interfaces
         self.by_itag: dict[str, Bridge] = {}
-        self.subs: dict[str, dict[str, Subscription]] = {}         # topic -> subscription id -> subscription
+        self.subs: dict[str, dict[str, RosbridgeSubscription]] = {}         # topic -> subscription id -> subscription
         self.outbox = RosbridgeOutbox(max_lag=max_lag)
         self.defrag = Defragmenter()
         self.tasks = Tasks(f"rosbridge {user}/{robot}")
@@ -204,7 +204,7 @@ class RosbridgeSession:
         self.status("error", reason)
 
     # -- subscriptions -----------------------------------------------------------------------------------
-    def _deliver(self, bridge: Bridge, sub: Subscription, msg: Any) -> None:
+    def _deliver(self, bridge: Bridge, sub: RosbridgeSubscription, msg: Any) -> None:
         now = time.monotonic()
         if not sub.pending and now - sub.last >= sub.throttle:
             sub.last = now
@@ -218,7 +218,7 @@ class RosbridgeSession:
             sub.timer = asyncio.get_running_loop().call_later(max(0.0, sub.last + sub.throttle - now),
                                                               self._flush, bridge, sub)
 
-    def _flush(self, bridge: Bridge, sub: Subscription) -> None:
+    def _flush(self, bridge: Bridge, sub: RosbridgeSubscription) -> None:
         sub.timer = None
         if sub.pending and self.subs.get(bridge.name, {}).get(sub.sid) is sub:     # not unsubscribed or replaced
             sub.last = time.monotonic()
@@ -226,7 +226,7 @@ class RosbridgeSession:
             if sub.pending:
                 sub.timer = asyncio.get_running_loop().call_later(sub.throttle, self._flush, bridge, sub)
 
-    def _publish_to(self, bridge: Bridge, sub: Subscription, msg: Any) -> None:
+    def _publish_to(self, bridge: Bridge, sub: RosbridgeSubscription, msg: Any) -> None:
         """One ``publish`` op for ``sub``, compressed and fragmented as it asked."""
         op = {"op": "publish", "topic": bridge.name, "msg": msg}
         key = (bridge.name, sub.sid)                # topic data: each subscription keeps its newest
@@ -336,7 +336,7 @@ class RosbridgeSession:
         cls = op.get("type") or await self._type_of("topics", topic)
         await self._bridge("s", topic, str(cls))
         sid = str(op.get("id") or f"subscribe:{topic}")
-        self.subs.setdefault(topic, {})[sid] = Subscription(sid, float(throttle), queue, size, compression)
+        self.subs.setdefault(topic, {})[sid] = RosbridgeSubscription(sid, float(throttle), queue, size, compression)
 
     async def _unsubscribe(self, op: dict) -> None:
         topic = _field(op, "topic")

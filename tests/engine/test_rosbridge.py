@@ -37,7 +37,7 @@ from rce_robot.rosbridge import RosbridgeServer
 from rce_robot.rosbridge_compression import cbor_publish, cbor_raw_publish, png_op
 from rce_robot.rosbridge_fragments import Defragmenter
 from rce_robot.rosbridge_outbox import RosbridgeOutbox
-from rce_robot.rosbridge_session import Bridge, RosbridgeSession, Subscription
+from rce_robot.rosbridge_session import Bridge, RosbridgeSession, RosbridgeSubscription
 from wsclient import RawRobot
 
 pytestmark = pytest.mark.asyncio
@@ -240,7 +240,7 @@ async def test_throttle_and_queue_length():
     session = RosbridgeSession("u", "r", "c", master=None)
     bridge = Bridge("s", "/t", "std_msgs/String", "s1", "rosbridge.r.s1")
     session.by_itag["s1"] = bridge
-    session.subs["/t"] = {"sub": Subscription("sub", 1000, 2)}
+    session.subs["/t"] = {"sub": RosbridgeSubscription("sub", 1000, 2)}
     for i in range(5):
         assert session.send_dm("s1", "std_msgs/String", "", {"data": str(i)}, data=True)
     assert _ops(session) == [{"op": "publish", "topic": "/t", "msg": {"data": "0"}}]
@@ -279,7 +279,7 @@ async def test_a_client_that_does_not_keep_up_gets_each_subscriptions_newest():
     session.outbox = RosbridgeOutbox(size=4)
     session.by_itag = {"s1": Bridge("s", "/fast", "std_msgs/String", "s1", "rosbridge.r.s1"),
                        "s2": Bridge("s", "/slow", "std_msgs/String", "s2", "rosbridge.r.s2")}
-    session.subs = {"/fast": {"a": Subscription("a", 0, 1)}, "/slow": {"b": Subscription("b", 0, 1)}}
+    session.subs = {"/fast": {"a": RosbridgeSubscription("a", 0, 1)}, "/slow": {"b": RosbridgeSubscription("b", 0, 1)}}
     assert session.send_dm("s2", "std_msgs/String", "", {"data": "s0"}, data=True)
     for i in range(6):
         assert session.send_dm("s1", "std_msgs/String", "", {"data": f"f{i}"}, data=True)
