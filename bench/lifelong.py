@@ -10,7 +10,7 @@ two published numbers.
 Usage::
 
     .venv/bin/python bench/lifelong.py [--quick] [--only NAME ...] [--steps N]
-        [--plan-time-limit MS] [--scheduler greedy|batch|both] [--seed S]
+        [--plan-time-limit MS] [--scheduler batch|greedy|both] [--seed S]
         [--data ../shared/data] [--json PATH] [--plot PATH] [--outputs DIR]
 
 ``--quick`` runs a small cut (two problems, 100 steps) for the test suite; published
@@ -131,7 +131,7 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--only", nargs="+", metavar="NAME", help="problems by name (e.g. random_32_32_20_100)")
     ap.add_argument("--steps", type=int, help="steps for every problem (default: the official number)")
     ap.add_argument("--plan-time-limit", type=float, default=1000.0, metavar="MS")
-    ap.add_argument("--scheduler", choices=("greedy", "batch", "both"), default="greedy")
+    ap.add_argument("--scheduler", choices=("batch", "greedy", "both"), default="batch")
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--json", type=Path)
     ap.add_argument("--plot", type=Path)

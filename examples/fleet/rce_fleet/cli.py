@@ -14,7 +14,7 @@
     rce-fleet configs [--out DIR] [--robots N] [--url URL]   # write robot1.config ...
     rce-fleet grid [--map YAML] [--grid RxC | --cell M]     # print the grid's cell numbers
     rce-fleet lifelong PROBLEM.json --steps N [--plan-time-limit MS] [--output OUT.json] [--seed S]
-                   [--scheduler greedy|batch]    # a League of Robot Runners 2024 problem under its rules
+                   [--scheduler batch|greedy]    # a League of Robot Runners 2024 problem under its rules
 """
 from __future__ import annotations
 
@@ -136,8 +136,9 @@ def build_parser() -> argparse.ArgumentParser:
                     help="scheduler + planner wall time per step; an overrun is an all-wait step (default 1000)")
     lf.add_argument("--output", metavar="OUT.json", help="write the start-kit's output JSON here (PlanViz reads it)")
     lf.add_argument("--seed", type=int, default=0, help="tie-breaks of the planner (default 0)")
-    lf.add_argument("--scheduler", choices=("greedy", "batch"), default="greedy",
-                    help="task allocation: auction on finish time (default) or batch assignment")
+    lf.add_argument("--scheduler", choices=("batch", "greedy"), default="batch",
+                    help="task allocation: batch assignment on finish times (default; bids greedily when the "
+                    "matrix is too big for a step) or an auction on finish time")
     lf.add_argument("--no-progress", action="store_true", help="no progress bar")
     return p
 

@@ -6,7 +6,8 @@ the last), along the planner's distance maps (:class:`~.distances.DistanceCache`
 bonus for priority. A task may be given to another robot until its robot reaches the first
 errand (the League of Robot Runners' rule), never after.
 
-- :class:`GreedyScheduler`: an auction on finish time, as Open-RMF's dispatcher bids
+- :class:`BatchScheduler` (the default; measured better, ``docs/lifelong.md``) and
+  :class:`GreedyScheduler`: an auction on finish time, as Open-RMF's dispatcher bids
   (open-rmf/rmf_task, ``TaskPlanner``; minimal finish time wins): each free robot in turn
   takes the open task it would finish first, and may outbid the robot holding an unopened
   task when it would finish that task sooner by ``margin`` steps; the outbid robot bids
