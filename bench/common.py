@@ -31,7 +31,7 @@ ROS1_DEBS = ("python3-rospy", "python3-rosmaster", "python3-std-msgs", "python3-
 ROS1_MODULES = ("rospy", "rosmaster", "std_msgs.msg", "sensor_msgs.msg")
 
 sys.path.insert(0, str(ROOT / "tests"))           # wsclient.py
-from rce.launch import Engine, start_engine  # noqa: E402
+from rce.tools.launch import Engine, start_engine  # noqa: E402
 from wsclient import RawRobot, login  # noqa: E402,F401  (re-exported)
 
 USER, PASSWORD = "testUser", "testUser"            # the master's --dev user
@@ -138,7 +138,7 @@ def pyplot():
 
 @contextlib.contextmanager
 def engine(workdir: Path | None = None, env: dict | None = None, **kw) -> Iterator[Engine]:
-    """The real engine as processes (:mod:`rce.launch`). ``env`` is added to ``os.environ`` while it
+    """The real engine as processes (:mod:`rce.tools.launch`). ``env`` is added to ``os.environ`` while it
     starts (start_engine passes os.environ on to every process it spawns)."""
     saved = {k: os.environ.get(k) for k in (env or {})}
     os.environ.update(env or {})

@@ -12,14 +12,14 @@ the message's sequence number. The bench injects one fault and measures:
   sending whose echo never came back, exact by sequence number. A message the robot could not
   send because it had no link counts as lost (``not_sent``).
 
-rce faults (``--faults``), each on a fresh engine (``rce.launch``, real processes on loopback):
+rce faults (``--faults``), each on a fresh engine (``rce.tools.launch``, real processes on loopback):
 
 - ``master``: kill -9 of rce-master, restarted after ``restart`` s on the same ``--state`` file;
   also when login works again and when a new request (a CN adding interfaces and a CX connecting
   them, from a second robot) works again (its robot-side interface comes up);
 - ``leader``: two masters on a real etcd (``tests/etcd_server.py``), kill -9 of the leader; also
   when the standby leads, when login works on it and when a new request works;
-- ``link``: the robot's websocket runs through a TCP proxy on loopback (``rce.tcpproxy``), which
+- ``link``: the robot's websocket runs through a TCP proxy on loopback (``rce.transport.tcpproxy``), which
   resets every connection (RST both ways, as a wireless drop) and refuses new ones for ``cut`` s;
 - ``robot``: two robot endpoints, kill -9 of the robot's; the robot reconnects (above), logging
   in again to reach the other one;
@@ -86,10 +86,10 @@ from urllib.parse import urlsplit
 from common import (BENCH, PASSWORD, RESULTS, ROOT, SYS_PY, USER, ForeignLoad, console, ensure_ros1, free_port,
                     git_head, proc_tree, progress, pyplot, write_json)
 from etcd_server import EtcdServer
-from rce.errors import RCEError, Unavailable
-from rce.launch import Engine, command, start_engine
-from rce.tasks import Tasks
-from rce.tcpproxy import TcpProxy
+from rce.plumbing.errors import RCEError, Unavailable
+from rce.tools.launch import Engine, command, start_engine
+from rce.plumbing.tasks import Tasks
+from rce.transport.tcpproxy import TcpProxy
 from rce_client.connection import Connection, login
 
 FAULTS = ("master", "leader", "link", "robot", "host", "environment")
@@ -641,7 +641,7 @@ def failed(ctx: Ctx, res: dict, e: Exception) -> None:
 # -- rce: the engine of one fault ----------------------------------------------------------------------
 
 class Rig:
-    """The processes of one rce fault: an engine (:mod:`rce.launch`) and what the fault adds (a
+    """The processes of one rce fault: an engine (:mod:`rce.tools.launch`) and what the fault adds (a
     standby master on etcd, a proxy). ``masters``: the login URLs; ``ws_url``: the robot's websocket
     URL when it must not log in (the proxy's)."""
 

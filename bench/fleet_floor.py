@@ -83,7 +83,7 @@ def floor_socket(host: str = "127.0.0.1", port: int = 0) -> socket.socket:
 
 def floor_main(port: int, side: str, conn) -> None:
     """Entry point of one floor process: serve on ``port`` (shared), say ``ready`` on ``conn``."""
-    from rce.process import run_loop
+    from rce.plumbing.process import run_loop
     sock = floor_socket(port=port)
     try:
         run_loop(serve_floor(sock, side, ready=lambda: conn.send("ready")))

@@ -494,7 +494,7 @@ class Worker:
 
 def worker_main(conn, master_url, robots, side, rate, concurrency) -> None:
     """Entry point of a client worker process."""
-    from rce.process import run_loop     # uvloop when installed, as the engine's processes
+    from rce.plumbing.process import run_loop     # uvloop when installed, as the engine's processes
     w = Worker(conn, master_url, robots, side, rate, concurrency)
     try:
         run_loop(w.main())
@@ -912,7 +912,7 @@ class Run:
                     pass
 
     async def _measure(self, eng, procs: Procs) -> None:
-        from rce.errors import RCEError
+        from rce.plumbing.errors import RCEError
         from rce_fleet.manager import FleetManager
         a, res, n = self.args, self.res, self.n
         setup = res["setup"]
@@ -1130,7 +1130,7 @@ class Run:
                 self.workers = []
                 procs = Procs(eng, self.workers).start()
                 try:
-                    from rce.process import run_loop
+                    from rce.plumbing.process import run_loop
                     run_loop(self.measure(eng, procs))
                 except Exception as e:      # noqa: BLE001  (the run stops here, with the reason)
                     self.res["error"] = f"{type(e).__name__}: {e}"
@@ -1207,7 +1207,7 @@ class FloorRun(Run):
                     raise RuntimeError("a floor process did not start within 60 s")
                 r.recv()
             self.res["setup"]["engine_s"] = round(time.monotonic() - t0, 2)
-            from rce.process import run_loop
+            from rce.plumbing.process import run_loop
             run_loop(self._measure_floor(f"http://127.0.0.1:{port}/", FloorProcs(servers, self.workers), servers))
         except Exception as e:      # noqa: BLE001  (the floor's result says why it has none)
             self.res["error"] = f"{type(e).__name__}: {e}"

@@ -57,7 +57,7 @@ import time
 import uuid
 from pathlib import Path
 
-from rce.errors import RCEError
+from rce.plumbing.errors import RCEError
 
 from common import (BENCH, CpuMeter, ForeignLoad, NetLab, RawRobot, RESULTS, SYS_PY, USER, VENV_PY, WsRobot, console,
                     engine, ensure_ros1, fmt_ratio, free_port, login, median, percentile, proc_tree, pyplot,

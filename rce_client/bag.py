@@ -21,7 +21,7 @@ import time
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
-from rce.errors import MessageError, RequestError
+from rce.plumbing.errors import MessageError, RequestError
 from rce.messages import MessageRegistry, default_registry
 
 if TYPE_CHECKING:
@@ -111,7 +111,7 @@ async def record_container(conn: "Connection", ctag: str, topics: list[tuple[str
     a container ``SubscriberInterface`` on the topic connected to a ``PublisherForwarder`` of the
     robot ``conn`` is connected as, whose messages (serialized bytes) go into the bag as they
     arrive. Returns the robot-side iTags once their interfaces are up. Raises
-    :class:`rce.errors.RCEError` with the cloud's reason, or :class:`rce.errors.Unavailable`
+    :class:`rce.plumbing.errors.RCEError` with the cloud's reason, or :class:`rce.plumbing.errors.Unavailable`
     after ``timeout`` s."""
     rid = conn.robot_id
     adds, links, tags = [], [], []

@@ -55,15 +55,17 @@ from typing import Any, Awaitable, Callable, Iterable
 from websockets.asyncio.client import ClientConnection
 from websockets.exceptions import ConnectionClosed
 
-from rce import protocol, tls
-from rce.errors import Unavailable
-from rce.log import get_logger
+from rce import protocol
+
+from rce.transport import tls
+from rce.plumbing.errors import Unavailable
+from rce.plumbing.log import get_logger
 from rce.protocol.events import (BarrierFailed, BarrierPassed, CallFailed, Detached, Dropped, ErrorReceived,
                                  InterfaceChanged, MessageReceived, ResponseReceived, SessionStatus, StatusReceived,
                                  unhandled)
 from rce.protocol.resume import DEFAULT_RESUME_BUFFER
 from rce.protocol.session import ClientSession
-from rce.tasks import Tasks
+from rce.plumbing.tasks import Tasks
 from rce_client.dial import (CLIENT_VERSION, CONNECT_TIMEOUT, close_quietly, close_text, hash_password, login,
                              open_robot_link)
 from rce_client.handles import (DEFAULT_CALL_TIMEOUT, Handles, Message, Publisher, ServiceClient, ServiceProvider,
@@ -180,7 +182,7 @@ class Connection(Verbs, Handles, Reconnecting):
         - ``endpoint_gone_after``: dials refused in a row after which the endpoint counts as dead and
           the connection logs in again to move.
         - ``ssl_context``: verifies an ``https://`` master and a ``wss://`` endpoint (default
-          :func:`rce.tls.client_context`: ``$RCE_CA_FILE``, else the system's CAs).
+          :func:`rce.transport.tls.client_context`: ``$RCE_CA_FILE``, else the system's CAs).
         - ``max_lag``: s the endpoint may lag behind this connection before it sheds its topic messages
           (``maxLag``, docs/INTERNALS.md "A peer that does not keep up"); 0 for never; None: the
           endpoint's default.

@@ -1,6 +1,6 @@
 """Dialling the cloud: the login at the master, the websocket handshake with a robot endpoint, and
-the one mapping of a refused handshake to an error (401/403: :class:`~rce.errors.AuthError`, any other
-status: :class:`~rce.errors.Unavailable`), for the first dial and for a move to another endpoint alike
+the one mapping of a refused handshake to an error (401/403: :class:`~rce.plumbing.errors.AuthError`, any other
+status: :class:`~rce.plumbing.errors.Unavailable`), for the first dial and for a move to another endpoint alike
 (:mod:`rce_client.connection`, :mod:`rce_client.reconnect`).
 
 Login is ``GET master_url?userID=U&version=V`` (JSON ``{"url": ws_url, "current"?}``), then a websocket
@@ -19,9 +19,9 @@ import aiohttp
 from websockets.asyncio.client import ClientConnection, connect as ws_connect
 from websockets.exceptions import InvalidHandshake, InvalidStatus, InvalidURI
 
-from rce import tls
-from rce.errors import AuthError, Unavailable, http_reason
-from rce.log import get_logger
+from rce.transport import tls
+from rce.plumbing.errors import AuthError, Unavailable, http_reason
+from rce.plumbing.log import get_logger
 
 log = get_logger("rce.client")
 
@@ -49,7 +49,7 @@ async def login(master_url: str, user_id: str, version: str = CLIENT_VERSION,
 
     ``GET master_url?userID=U&version=V`` -> ``{"url": ws_url, "current"?: V'}`` (``current``
     only when this client is outdated: logged as a warning). An ``https://`` master is verified
-    with ``ssl_context`` (default :func:`rce.tls.client_context`: ``$RCE_CA_FILE``, else the
+    with ``ssl_context`` (default :func:`rce.transport.tls.client_context`: ``$RCE_CA_FILE``, else the
     system's CAs). Raises :class:`AuthError` (HTTP 401/403) or :class:`Unavailable` (any other
     HTTP error, an unreachable or untrusted master, a malformed answer) with the master's
     one-line reason."""

@@ -20,11 +20,11 @@ import inspect
 from typing import Any, Callable, Protocol
 
 from rce import protocol
-from rce.errors import RCEError, Timeout
-from rce.log import get_logger
+from rce.plumbing.errors import RCEError, Timeout
+from rce.plumbing.log import get_logger
 from rce.protocol.events import MessageReceived
 from rce.protocol.session import ClientSession
-from rce.tasks import Tasks
+from rce.plumbing.tasks import Tasks
 
 log = get_logger("rce.client")
 
@@ -85,7 +85,7 @@ class ServiceClient:
         """Send ``DM {iTag, type, msgID, msg: request}`` with a fresh msgID and return the ``msg``
         of the response DM with the same msgID (dict for a Converter, bytes for a Forwarder).
 
-        Raises :class:`rce.errors.Timeout` (a :class:`TimeoutError`) after ``timeout`` s (None: no
+        Raises :class:`rce.plumbing.errors.Timeout` (a :class:`TimeoutError`) after ``timeout`` s (None: no
         limit), :class:`Unavailable` when the connection closes, :class:`RequestError` when the
         cloud answers the call with an ER naming it."""
         session = self.conn.session

@@ -4,7 +4,7 @@
 
     rce-ros configs/debug.config [--bus PATH | --ros] [--timeout S] [--keep] [--url MASTER_URL] [--no-resume]
 
-1. Loads the robot config (:func:`rce.config.load_config`, JSON or YAML). A bad config is
+1. Loads the robot config (:func:`rce.protocol.config.load_config`, JSON or YAML). A bad config is
    refused before anything is sent: exit code 2 and the ConfigError (file, key path, reason).
 2. Runs the robot's LOCAL BUS (:class:`rce.bus.core.Bus` served by
    :class:`rce.bus.server.BusServer`, the same implementation as a container's) on a Unix
@@ -48,16 +48,16 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Awaitable, Callable
 
-from rce import tls
-from rce.process import run_loop
+from rce.transport import tls
+from rce.plumbing.process import run_loop
 from rce.bus.core import Bus, Subscription
 from rce.bus.server import BusServer
-from rce.config import InterfaceSpec, RobotConfig, load_config
-from rce.errors import ConfigError, MessageError, RCEError, Unavailable
-from rce.log import get_logger, setup_logging
+from rce.protocol.config import InterfaceSpec, RobotConfig, load_config
+from rce.plumbing.errors import ConfigError, MessageError, RCEError, Unavailable
+from rce.plumbing.log import get_logger, setup_logging
 from rce.messages import MessageRegistry, default_registry, wire_name
-from rce.naming import validate_name
-from rce.package_path import load_package_types
+from rce.node.naming import validate_name
+from rce.node.package_path import load_package_types
 from rce.protocol import split_interface_type
 from rce_client.connection import Connection, Message
 from rce_client.paths import default_bus_path
@@ -517,7 +517,7 @@ def main(argv: list[str] | None = None) -> None:
     if args.ros and args.bus:
         build_parser().error("--bus and --ros exclude each other: with --ros the interfaces are on the ROS 1 graph")
     bus_path = None if args.ros else args.bus or default_bus_path(cfg.robotID)
-    if args.ca_file:           # the https:// login and the wss:// endpoint trust it (rce.tls.client_context)
+    if args.ca_file:           # the https:// login and the wss:// endpoint trust it (rce.transport.tls.client_context)
         os.environ[tls.CA_FILE_ENV] = str(args.ca_file)
 
     async def amain() -> int:

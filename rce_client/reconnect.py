@@ -15,12 +15,12 @@ from typing import Any, Callable
 
 from websockets.asyncio.client import ClientConnection
 
-from rce.errors import AuthError, Unavailable
-from rce.log import get_logger
-from rce.masterlink import Backoff
+from rce.plumbing.errors import AuthError, Unavailable
+from rce.plumbing.log import get_logger
+from rce.transport.masterlink import Backoff
 from rce.protocol.resume import DEFAULT_GRACE, DEFAULT_RESUME_BUFFER
 from rce.protocol.session import ClientSession
-from rce.tasks import Tasks
+from rce.plumbing.tasks import Tasks
 from rce_client.dial import CONNECT_TIMEOUT, HandshakeRefused, Unreachable, dial, login, open_robot_link, with_query
 
 log = get_logger("rce.client")
@@ -39,7 +39,7 @@ class Reconnect:
     """How a connection with ``allow_reconnect`` reconnects and resumes (the knobs of nats.py's
     ``connect``): ``max_attempts`` dials per gap (None: until the session's grace, which the cloud
     gives, has passed since the drop); ``time_wait``: s before the second dial, doubling after each
-    failure up to ``max_wait`` s (with jitter, :class:`rce.masterlink.Backoff`); ``resume_buffer``:
+    failure up to ``max_wait`` s (with jitter, :class:`rce.transport.masterlink.Backoff`); ``resume_buffer``:
     messages kept until the cloud acks them (past it the oldest are lost and counted);
     ``timeout``: s for each dial's handshake; ``gone_after``: dials refused in a row after which the
     endpoint counts as dead, and a connection made by a login moves to the endpoint the master names."""

@@ -3,7 +3,7 @@
 :class:`RospyGraph` is the robot-side graph of :class:`rce_client.rce_ros.RobotBridge` when
 ``--ros`` is given (instead of the local bus): one rospy node (``rospy.init_node("rce_ros",
 anonymous=True, disable_signals=True)``) on the ROS 1 master named by ``ROS_MASTER_URI``
-(Debian's ros-comm, found by :func:`rce.ros1.import_rospy`). Each robot-side interface is bridged
+(Debian's ros-comm, found by :func:`rce.node.ros1.import_rospy`). Each robot-side interface is bridged
 at its ``addr`` (default ``/<iTag>``), which is a ROS 1 graph name:
 
 - ``SubscriberConverter/Forwarder``: a ``rospy.Subscriber`` on topic ``addr``;
@@ -12,7 +12,7 @@ at its ``addr`` (default ``/<iTag>``), which is a ROS 1 graph name:
 - ``ServiceClientConverter/Forwarder``: the cloud's calls go to the ROS 1 service ``addr``
   (``rospy.ServiceProxy``).
 
-The rospy classes are :mod:`rce.ros1_types` raw classes (``rospy.AnyMsg`` with the real
+The rospy classes are :mod:`rce.messages.ros1_types` raw classes (``rospy.AnyMsg`` with the real
 type name, MD5 sum and definition): rospy moves the serialized bytes untouched. A Forwarder hands
 them to the cloud as they are; a Converter converts them with rce's message registry (the same
 codec and JSON forms as everywhere in rce). rospy calls back in its own threads: messages go to the
@@ -31,10 +31,10 @@ import threading
 from dataclasses import dataclass
 from typing import Any, Awaitable, Callable
 
-from rce.errors import ConfigError, RCEError, RequestError, Unavailable
-from rce.log import get_logger
-from rce.ros1 import import_rospy
-from rce.ros1_types import (message_identity, raw_message_class, raw_service_class, service_identity)
+from rce.plumbing.errors import ConfigError, RCEError, RequestError, Unavailable
+from rce.plumbing.log import get_logger
+from rce.node.ros1 import import_rospy
+from rce.messages.ros1_types import (message_identity, raw_message_class, raw_service_class, service_identity)
 
 log = get_logger("rce.ros.ros1")
 

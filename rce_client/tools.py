@@ -16,7 +16,7 @@ Which bus (options go before or after the command):
 
 - a local bus (the robot's, run by ``rce-ros``): ``--bus PATH``, else ``$RCE_BUS``, else the
   only socket in ``$XDG_RUNTIME_DIR/rce`` (``/tmp/rce-<uid>``);
-- a container's bus through the master's admin API (:mod:`rce.admin_client`):
+- a container's bus through the master's admin API (:mod:`rce.tools.admin_client`):
   ``--container CTAG --master URL --user U`` with a token from ``--admin-token``,
   ``$RCE_ADMIN_TOKEN``, ``--admin-token-file`` or ``~/.config/rce/admin-token``
   (``$XDG_CONFIG_HOME/rce/admin-token``).
@@ -48,15 +48,15 @@ from typing import Any, Callable
 
 import yaml
 
-from rce import tls
-from rce.admin_client import AdminClient
-from rce.errors import MessageError, NotFound, RCEError, RequestError, Unavailable
-from rce.log import setup_logging
+from rce.transport import tls
+from rce.tools.admin_client import AdminClient
+from rce.plumbing.errors import MessageError, NotFound, RCEError, RequestError, Unavailable
+from rce.plumbing.log import setup_logging
 from rce.messages import MessageRegistry, default_registry
-from rce.naming import resolve
-from rce.package_path import load_package_types
-from rce.process import run_loop
-from rce.tasks import Tasks
+from rce.node.naming import resolve
+from rce.node.package_path import load_package_types
+from rce.plumbing.process import run_loop
+from rce.plumbing.tasks import Tasks
 from rce_client.bag import BagRecorder
 from rce_client.paths import bus_dir, running_buses
 
@@ -160,7 +160,7 @@ class LocalBus:
 
 class AdminBus:
     """A container's bus through the master's admin API (``/api/containers/{user}/{ctag}/...``:
-    ``bus``, ``publish``, ``call``, ``sample``); errors as :mod:`rce.admin_client` raises them."""
+    ``bus``, ``publish``, ``call``, ``sample``); errors as :mod:`rce.tools.admin_client` raises them."""
 
     def __init__(self, client: AdminClient, user: str, ctag: str):
         self.client, self.user, self.ctag = client, user, ctag

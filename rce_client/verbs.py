@@ -12,10 +12,10 @@ from websockets.asyncio.client import ClientConnection
 from websockets.exceptions import ConnectionClosed
 
 from rce import protocol
-from rce.errors import Timeout, Unavailable
-from rce.log import get_logger
+from rce.plumbing.errors import Timeout, Unavailable
+from rce.plumbing.log import get_logger
 from rce.protocol.session import ClientSession
-from rce.tasks import Tasks
+from rce.plumbing.tasks import Tasks
 from rce_client.dial import close_text
 
 log = get_logger("rce.client")

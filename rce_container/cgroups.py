@@ -39,8 +39,8 @@ import time
 from dataclasses import dataclass, field
 from pathlib import Path
 
-from rce.errors import RCEError, RequestError
-from rce.log import get_logger
+from rce.plumbing.errors import RCEError, RequestError
+from rce.plumbing.log import get_logger
 
 log = get_logger("rce.container.cgroups")
 

@@ -1,7 +1,7 @@
 """``rce-container MASTER[,MASTER...]``: the container task set of one host (see :mod:`rce_container.host`).
 
 It outlives its master: when the master goes away its containers keep running, and it dials the
-masters again with backoff and re-registers (:mod:`rce.masterlink`).
+masters again with backoff and re-registers (:mod:`rce.transport.masterlink`).
 
 Exit codes: 0 after SIGINT/SIGTERM (every container destroyed), 1 when the master refuses to
 register it, 2 for bad arguments.
@@ -16,11 +16,12 @@ import socket
 import sys
 import tempfile
 
-from rce.process import run_loop
-from rce import cluster_auth, framing
-from rce.errors import RCEError
-from rce.log import get_logger, setup_logging
-from rce.masterlink import MASTER_PORT, unless_stopped
+from rce.plumbing.process import run_loop
+from rce.transport import cluster_auth
+from rce.transport import framing
+from rce.plumbing.errors import RCEError
+from rce.plumbing.log import get_logger, setup_logging
+from rce.transport.masterlink import MASTER_PORT, unless_stopped
 from rce_container import sandbox as sandboxes
 from rce_container.host import ContainerHost, write_ready_file
 

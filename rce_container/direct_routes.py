@@ -3,7 +3,7 @@ node and the far data plane (a robot endpoint, another environment), past this p
 
 The environment stays the directory, as the ROS master is for TCPROS: it knows the bus graph,
 the interfaces and their connections, and the credentials; the node only carries the bytes
-(:mod:`rce.node_links`). A message that takes a direct route crosses two event loops fewer.
+(:mod:`rce.node.links`). A message that takes a direct route crosses two event loops fewer.
 
 Rules, recomputed whenever the bus graph, an interface or a connection changes:
 
@@ -15,7 +15,7 @@ Rules, recomputed whenever the bus graph, an interface or a connection changes:
 - **Peers -> nodes.** For a container-side ``PublisherInterface`` X on topic T: while every
   subscription of T belongs to nodes that take direct links, each of those nodes claims X on
   its direct link to each of X's peers' addresses, as one member of a numbered claim set
-  (:mod:`rce.dataplane`, "Direct links"); once the set is complete, the peers' planes send
+  (:mod:`rce.transport.dataplane`, "Direct links"); once the set is complete, the peers' planes send
   X's messages to each member. Any other subscriber (an interface, ``bus_sample``, a
   recording, a ROS 1 node) ends the claims, and the messages come through the bus again; a
   change of members starts a new set, and until it is complete the bus carries them.
@@ -40,14 +40,16 @@ import socket
 import time
 from typing import TYPE_CHECKING, Any
 
-from rce import cluster_auth, framing
+from rce.transport import cluster_auth
+
+from rce.transport import framing
 from rce.bus.core import Subscription
-from rce.dataplane import parse_nonce
-from rce.errors import ProtocolError, RCEError
-from rce.link import data_socket
-from rce.log import get_logger
-from rce.node_links import LINK_ID
-from rce.tasks import Tasks
+from rce.transport.dataplane import parse_nonce
+from rce.plumbing.errors import ProtocolError, RCEError
+from rce.transport.link import data_socket
+from rce.plumbing.log import get_logger
+from rce.node.links import LINK_ID
+from rce.plumbing.tasks import Tasks
 from rce_container.interfaces import BusInterface, PublisherInterface, SubscriberInterface
 
 if TYPE_CHECKING:
@@ -322,7 +324,7 @@ class DirectRoutes:
 
 async def dial(addr: str) -> tuple[socket.socket, bytes]:
     """Connect to the data plane at ``addr`` (``host:port``, ``[v6]:port``) and read its nonce;
-    returns the non-blocking socket (:func:`rce.link.data_socket`) and the nonce. Raises :class:`OSError`,
+    returns the non-blocking socket (:func:`rce.transport.link.data_socket`) and the nonce. Raises :class:`OSError`,
     :class:`ProtocolError` or :class:`asyncio.TimeoutError` after :data:`DIAL_TIMEOUT` s."""
     loop = asyncio.get_running_loop()
     host, _, port = addr.rpartition(":")

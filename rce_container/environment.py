@@ -6,13 +6,13 @@ Run by the container task set as ``python -m rce_container.environment --control
 - one :class:`~rce.bus.core.Bus` shared by the group's containers, served to each container
   on its own Unix socket (``RUNTIME/c<cid>/bus.sock``, one :class:`~rce.bus.server.BusServer`
   per container, all on the same bus) — a container's nodes get only their own socket;
-- one :class:`~rce.dataplane.DataPlane` (its address is the group's ``data_addr``);
+- one :class:`~rce.transport.dataplane.DataPlane` (its address is the group's ``data_addr``);
 - per container: a sandbox, a node :class:`~rce_container.launcher.Launcher` and its
   container-side interfaces.
 
 It dials its task set's control socket, says ``hello {env_id, pid, data_addr}``, then serves
 the ops the task set relays (docs/INTERNALS.md, "Master -> container task set") plus
-``data_key`` (its data-plane key, :mod:`rce.cluster_auth`), ``add_container``, ``remove_container``,
+``data_key`` (its data-plane key, :mod:`rce.transport.cluster_auth`), ``add_container``, ``remove_container``,
 ``shutdown``, ``stats`` and ``logs``. It sends
 ``node_status`` notifications up the same link and exits (killing its nodes) when the link
 closes or on SIGTERM/SIGINT.
@@ -30,18 +30,19 @@ import time
 from pathlib import Path
 from typing import Any
 
-from rce.process import run_loop
-from rce import framing, rpc
+from rce.plumbing.process import run_loop
+from rce.transport import framing
+from rce.transport import rpc
 from rce.bus.core import Bus
 from rce.bus.server import BusServer
-from rce.cluster_auth import token_of
-from rce.dataplane import DataPlane
-from rce.errors import MessageError, NotFound, RCEError, RequestError
-from rce.log import get_logger, setup_logging
+from rce.transport.cluster_auth import token_of
+from rce.transport.dataplane import DataPlane
+from rce.plumbing.errors import MessageError, NotFound, RCEError, RequestError
+from rce.plumbing.log import get_logger, setup_logging
 from rce.messages import MessageRegistry, default_registry, wire_name
-from rce.naming import resolve
-from rce.op_table import OpTable
-from rce.package_path import load_package_types
+from rce.node.naming import resolve
+from rce.transport.op_table import OpTable
+from rce.node.package_path import load_package_types
 from rce_container import sandbox as sandboxes
 from rce_container.direct_routes import DirectRoutes
 from rce_container.interfaces import BusInterface, make_interface
@@ -415,7 +416,7 @@ class Environment:
     @ENV_OPS.op("data_key")
     async def op_data_key(self, a: dict) -> dict:
         """``{key}`` (hex; from the task set, once, right after ``hello``): this environment's data
-        key, derived from the cluster key and its data address (:mod:`rce.cluster_auth`); peers'
+        key, derived from the cluster key and its data address (:mod:`rce.transport.cluster_auth`); peers'
         grants are checked with it."""
         if self.plane.data_key is not None:
             raise RequestError("this environment has its data key already")

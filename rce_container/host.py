@@ -3,7 +3,7 @@
 Links (docs/INTERNALS.md): this process dials the master's control port and registers
 ``{kind: "container", name, host, sandbox, capacity}``. When the master goes away, everything
 here keeps running; the link dials again and re-registers with its ``tid`` and a report of its
-containers and their nodes (:class:`rce.masterlink.MasterLink`; node statuses meanwhile wait in
+containers and their nodes (:class:`rce.transport.masterlink.MasterLink`; node statuses meanwhile wait in
 its bounded backlog). It listens on a Unix control socket
 (``RUNTIME/host.sock``) that its environment processes dial. The master never talks to an
 environment: every container op arrives here, names its ``cid``, and is relayed to the
@@ -38,15 +38,17 @@ import psutil
 from aiohttp import web
 from prometheus_client import CONTENT_TYPE_LATEST, generate_latest
 
-from rce import framing, rpc
-from rce.cluster_auth import ClusterKey, peer_pid
-from rce.errors import NotFound, RCEError, RequestError, Timeout, Unavailable
-from rce.link import STREAM_LIMIT
-from rce.log import get_logger
-from rce.masterlink import MASTER_PORT, MasterLink, parse_masters
-from rce.op_table import OpTable
-from rce.pending import PendingCalls
-from rce.tasks import Tasks
+from rce.transport import framing
+
+from rce.transport import rpc
+from rce.transport.cluster_auth import ClusterKey, peer_pid
+from rce.plumbing.errors import NotFound, RCEError, RequestError, Timeout, Unavailable
+from rce.transport.link import STREAM_LIMIT
+from rce.plumbing.log import get_logger
+from rce.transport.masterlink import MASTER_PORT, MasterLink, parse_masters
+from rce.transport.op_table import OpTable
+from rce.plumbing.pending import PendingCalls
+from rce.plumbing.tasks import Tasks
 from rce_container import metrics
 from rce_container import sandbox as sandboxes
 from rce_container.environment import BUS_CALL_TIMEOUT, MAX_SOCKET_PATH, container_paths
@@ -112,7 +114,8 @@ class ContainerHost:
     """The container task set (``rce-container``).
 
     ``master``: the master's control address, or several (``HOST[:PORT][,HOST[:PORT]...]``, see
-    :func:`rce.masterlink.parse_masters`; ``master_port`` where none is given); ``name``: this task set's name;
+    :func:`rce.transport.masterlink.parse_masters`; ``master_port`` where none is given); ``name``: this task
+    set's name;
     ``bind``: where environments' data planes listen; ``advertise_host``: the address peers
     reach them by; ``runtime_dir``: sockets and per-container dirs (created if missing;
     removed on exit only if ``own_runtime_dir``); ``sandbox``: sandbox kind or ``"auto"``;
@@ -121,7 +124,7 @@ class ContainerHost:
     ``create_container`` does not wait for a Python process to start; ``metrics_port``: serve
     Prometheus ``/metrics`` on ``bind`` at this port (0: an ephemeral one, read back from
     ``self.metrics_port``; None: no metrics server); ``cluster_key``: proved to the master on every
-    link (:mod:`rce.cluster_auth`); each environment gets only its own data key derived from it."""
+    link (:mod:`rce.transport.cluster_auth`); each environment gets only its own data key derived from it."""
 
     def __init__(self, master: str | list[str], master_port: int = MASTER_PORT, *, name: str | None = None,
                  bind: str = "127.0.0.1", advertise_host: str | None = None, runtime_dir: str | Path,
@@ -305,7 +308,7 @@ class ContainerHost:
         return env
 
     async def _give_data_key(self, env: EnvHandle) -> None:
-        """Hand the environment that said hello its data key (:mod:`rce.cluster_auth`), once the
+        """Hand the environment that said hello its data key (:mod:`rce.transport.cluster_auth`), once the
         kernel confirms the hello came from the process this task set started. Raises
         :class:`Unavailable` (the environment is killed) otherwise."""
         pid = peer_pid(env.peer.link.writer)

@@ -1,6 +1,6 @@
 """Container-side interfaces: the ends of connections that live on a container's bus.
 
-Each is a :class:`rce.interfaces.Interface` (data-plane half) whose local side is the
+Each is a :class:`rce.protocol.interfaces.Interface` (data-plane half) whose local side is the
 environment's :class:`~rce.bus.core.Bus`, named on the side where it acts:
 
 - :class:`PublisherInterface` publishes into the container what its peers send;
@@ -15,13 +15,13 @@ Payloads stay ROS 1 serialized bytes end to end. Bus owners are ``interface:<tag
 from __future__ import annotations
 
 from rce.bus.core import SERVICE_TIMEOUT, Bus, Subscription, Topic
-from rce.dataplane import DataPlane
-from rce.errors import MessageError, RequestError
-from rce.interface_type import InterfaceType, Kind
-from rce.interfaces import Interface
+from rce.transport.dataplane import DataPlane
+from rce.plumbing.errors import MessageError, RequestError
+from rce.protocol.interface_type import InterfaceType, Kind
+from rce.protocol.interfaces import Interface
 from rce.messages import MessageRegistry, default_registry, store_name, wire_name
-from rce.naming import resolve
-from rce.package_path import load_package_types
+from rce.node.naming import resolve
+from rce.node.package_path import load_package_types
 
 DEFAULT_QUEUE = 100   # messages, bound of a SubscriberInterface's bus subscription
 SERVICE_WAIT = 10.0   # s a call from a peer waits for its service to be provided (its node may be starting)
@@ -75,7 +75,7 @@ class PublisherInterface(BusInterface):
     def on_message(self, payload: memoryview) -> None:
         self.msgs_in += 1
         self.bytes_in += len(payload)
-        self.bus.publish(self.topic, payload)     # a view nobody writes again (rce.framing): no copy
+        self.bus.publish(self.topic, payload)     # a view nobody writes again (rce.transport.framing): no copy
 
 
 class SubscriberInterface(BusInterface):
@@ -146,7 +146,7 @@ def interface_kind(itype: str | InterfaceType) -> Kind:
     """``"PublisherInterface"`` (or a legacy name like ``"ServiceInterface"``) -> ``Kind.PUBLISHER``.
 
     Raises :class:`RequestError` for a robot-side type (Converter/Forwarder) and
-    :class:`~rce.errors.ProtocolError` for an unknown one."""
+    :class:`~rce.plumbing.errors.ProtocolError` for an unknown one."""
     return InterfaceType.parse(itype, robot_side=False).kind
 
 
@@ -183,7 +183,7 @@ def make_interface(plane: DataPlane, bus: Bus, cid: int, iid: int, tag: str, ity
 
     ``addr`` defaults to ``/`` + the last part of ``tag`` (the interface tag). Raises
     :class:`MessageError` for an unknown class, :class:`RequestError` for a bad name or a
-    robot-side type, :class:`~rce.errors.ProtocolError` for an unknown type."""
+    robot-side type, :class:`~rce.plumbing.errors.ProtocolError` for an unknown type."""
     kind = interface_kind(itype)
     wire = check_class(kind, cls, registry)
     if not isinstance(tag, str) or not tag:

@@ -4,7 +4,7 @@ sandbox, keeps their output, watches their exits and respawns them on request.
 A node spec is the ``add_node`` op (docs/INTERNALS.md): ``{ntag, pkg, exe, args, name,
 namespace, respawn}``.
 
-- ``pkg``/``exe`` are found with :func:`rce.package_path.find_executable`; a ``.py`` executable
+- ``pkg``/``exe`` are found with :func:`rce.node.package_path.find_executable`; a ``.py`` executable
   runs with this interpreter, anything else is executed directly.
 - ``args`` is a list of strings, or a string split like a shell (:mod:`shlex`) after the RCE
   alpha / roslaunch directives ``$(find PKG)`` (package directory), ``$(env VAR)`` (must be
@@ -41,11 +41,11 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Callable
 
-from rce.errors import NotFound, RCEError, RequestError
-from rce.log import get_logger
-from rce.naming import join, validate_name
-from rce.package_path import find_executable, find_package
-from rce.tasks import Tasks
+from rce.plumbing.errors import NotFound, RCEError, RequestError
+from rce.plumbing.log import get_logger
+from rce.node.naming import join, validate_name
+from rce.node.package_path import find_executable, find_package
+from rce.plumbing.tasks import Tasks
 from rce_container.node_env import ENV_DIRECTIVE_ALLOWED, directive_env, node_env
 from rce_container.sandbox import Sandbox
 from rce_container.zygote_client import ZygoteChild, ZygoteClient, ZygoteTemplate

@@ -14,7 +14,7 @@ import fcntl
 import os
 from pathlib import Path
 
-from rce.errors import RCEError
+from rce.plumbing.errors import RCEError
 
 NODE_UID_BASE = 1_500_000_000   # first node uid (and gid): far above any account (Debian: < 60000)
 NODE_UID_COUNT = 1 << 20        # uids in the range: containers that can live at once on one machine

@@ -19,7 +19,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
-from rce.errors import RequestError
+from rce.plumbing.errors import RequestError
 
 #: Dependencies that make a catkin package a ROS 1 package (its nodes talk to a rosmaster).
 ROS1_CLIENT_LIBS = ("rospy", "roscpp")

@@ -4,13 +4,13 @@ Started by :class:`rce_container.ros1_graph.Ros1Graph` in the container's sandbo
 node, next to the container's own rosmaster (``ROS_MASTER_URI``). It is a node of both graphs,
 named :func:`~rce_container.ros1_plan.relay_name` on each, and moves serialized ROS 1 bytes
 between them untouched (``rospy.AnyMsg`` and the raw classes of
-:mod:`rce.ros1_types`; the bus never decodes either):
+:mod:`rce.messages.ros1_types`; the bus never decodes either):
 
 - every :data:`POLL_INTERVAL` s, and whenever its ``sync`` service is called, it reads both
   graphs (rosmaster's ``getSystemState``/``getTopicTypes``, the bus's ``describe``) and makes the
   bridges :func:`rce_container.ros1_plan.plan` asks for: topics bus -> ROS 1 and ROS 1 -> bus,
   services ROS 1 -> bus (type and MD5 sum probed from the service, as ``rosservice`` does) and
-  bus -> ROS 1 (type and MD5 sum from :func:`rce.ros1_types.service_identity`);
+  bus -> ROS 1 (type and MD5 sum from :func:`rce.messages.ros1_types.service_identity`);
 - it copies the bus's parameters to rosmaster (``rospy.get_param`` in a ROS 1 node sees the
   parameters a robot sets with CN ``setParam``);
 - its bus service ``<relay name>/sync`` (request and response are bytes: empty, then the JSON
@@ -36,14 +36,14 @@ import warnings
 from collections import deque
 from typing import Any
 
-from rce.errors import ConfigError, RCEError, Unavailable
-from rce.log import get_logger, setup_logging
+from rce.plumbing.errors import ConfigError, RCEError, Unavailable
+from rce.plumbing.log import get_logger, setup_logging
 from rce.messages import default_registry
 from rce.node import Node, Publisher
-from rce.package_path import load_package_types
-from rce.process import run_loop
-from rce.ros1 import import_rospy
-from rce.ros1_types import (Ros1Message, Ros1Service, message_identity, raw_message_class,
+from rce.node.package_path import load_package_types
+from rce.plumbing.process import run_loop
+from rce.node.ros1 import import_rospy
+from rce.messages.ros1_types import (Ros1Message, Ros1Service, message_identity, raw_message_class,
                                    raw_service_class, service_identity)
 from rce_container.ros1_plan import bus_graph, flatten_params, param_changes, plan, relay_name, ros1_graph
 

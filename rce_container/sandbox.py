@@ -40,9 +40,9 @@ from operator import attrgetter
 from pathlib import Path
 from typing import ClassVar
 
-from rce.errors import ConfigError, RCEError
-from rce.log import get_logger
-from rce.tasks import Tasks
+from rce.plumbing.errors import ConfigError, RCEError
+from rce.plumbing.log import get_logger
+from rce.plumbing.tasks import Tasks
 from rce_container import cgroups, mounts, node_uid, usage
 
 log = get_logger("rce.container.sandbox")

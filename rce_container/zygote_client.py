@@ -27,8 +27,8 @@ import sys
 from pathlib import Path
 from typing import Any
 
-from rce.log import get_logger
-from rce.tasks import Tasks
+from rce.plumbing.log import get_logger
+from rce.plumbing.tasks import Tasks
 from rce_container.node_env import node_env
 from rce_container.sandbox import Sandbox
 from rce_container.zygote import CMDLINE_ROOM, MAX_MESSAGE, STARTUP_VARS

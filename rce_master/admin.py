@@ -1,5 +1,5 @@
 """The master's JSON admin API (what rce-console, rce-topic --container and the launcher use,
-through :mod:`rce.admin_client`).
+through :mod:`rce.tools.admin_client`).
 
 All routes need ``Authorization: Bearer TOKEN`` (the master's admin token). Refusals are HTTP
 errors with a one-line reason (:mod:`rce_master.server`).
@@ -30,7 +30,7 @@ import hmac
 
 from aiohttp import web
 
-from rce.errors import AuthError, RequestError
+from rce.plumbing.errors import AuthError, RequestError
 from rce.protocol import schema
 from rce_master.control import Control
 from rce_master.office import Alone, Office, require_leader

@@ -14,10 +14,11 @@ import socket
 import sys
 from pathlib import Path
 
-from rce.errors import ConfigError
-from rce.process import run, write_ready_file
-from rce.log import get_logger
-from rce import cluster_auth, tls
+from rce.plumbing.errors import ConfigError
+from rce.plumbing.process import run, write_ready_file
+from rce.plumbing.log import get_logger
+from rce.transport import cluster_auth
+from rce.transport import tls
 from rce_master import leadership, login_guard, token
 from rce_master.reconcile import RECONCILE_GRACE
 from rce_master.server import Master

@@ -12,10 +12,10 @@
     rce-console leader                                # which master leads (several masters on etcd)
 
 With several masters (``--master`` repeated, or URLs separated by commas) a request goes to one
-that answers, and a change to the leader (:mod:`rce.admin_client`).
+that answers, and a change to the leader (:mod:`rce.tools.admin_client`).
 
 The admin token comes from ``--admin-token``, ``RCE_ADMIN_TOKEN``, ``--admin-token-file`` or the
-token file the master created (``~/.config/rce/admin-token``); see :mod:`rce.admin_client`.
+token file the master created (``~/.config/rce/admin-token``); see :mod:`rce.tools.admin_client`.
 """
 from __future__ import annotations
 
@@ -31,8 +31,8 @@ from rich.console import Console
 from rich.live import Live
 from rich.table import Table
 
-from rce.admin_client import AdminClient
-from rce.errors import RCEError, RequestError
+from rce.tools.admin_client import AdminClient
+from rce.plumbing.errors import RCEError, RequestError
 from rce_master.state import MasterState
 from rce_master.users import UsersFile
 

@@ -10,10 +10,10 @@ import asyncio
 from collections.abc import Awaitable
 from typing import Any
 
-from rce.cluster_auth import ClusterKey
-from rce.errors import RCEError, Unavailable
-from rce.log import get_logger
-from rce.rpc import CALL_TIMEOUT, RpcPeer
+from rce.transport.cluster_auth import ClusterKey
+from rce.plumbing.errors import RCEError, Unavailable
+from rce.plumbing.log import get_logger
+from rce.transport.rpc import CALL_TIMEOUT, RpcPeer
 from rce_master.model import LIMIT_KEYS, ContainerRec, InterfaceRec, NodeRec
 from rce_master.reconcile import Reconciled
 from rce_master.state import MasterState, Pairs, TaskSetAbsent
@@ -22,7 +22,7 @@ log = get_logger("rce.master")
 
 CREATE_TIMEOUT = 60.0     # s, create_container: it returns once the environment is up (sandbox, bus, ready)
 # s a call to an absent container host (the master restarted or a standby took over, and the host
-# has not re-registered yet) waits for it before it is refused: hosts redial within rce.masterlink's
+# has not re-registered yet) waits for it before it is refused: hosts redial within rce.transport.masterlink's
 # 2 s backoff cap, so a robot's request right after a takeover waits instead of failing
 ABSENT_WAIT = 10.0
 
@@ -31,7 +31,7 @@ class Control:
     """The registered task sets' links (``peers``: tid -> :class:`RpcPeer`) and what is said on them.
 
     A call raises the far end's :class:`RCEError`, :class:`Unavailable` when the link is gone, or
-    :class:`rce.errors.Timeout` when the far end did not answer in time (it may still do what
+    :class:`rce.plumbing.errors.Timeout` when the far end did not answer in time (it may still do what
     was asked: the request handlers undo that too, see :mod:`rce_master.requests`), and
     :class:`TaskSetAbsent` when that task set has not re-registered since the master restarted.
 
@@ -91,7 +91,7 @@ class Control:
             raise TaskSetAbsent(f"{what} has not re-registered since the master restarted; try again later")
 
     async def host_call(self, container: ContainerRec, op: str, **args: Any) -> Any:
-        """:meth:`host_request` with the op's arguments as keywords (timeout: ``rce.rpc.CALL_TIMEOUT``)."""
+        """:meth:`host_request` with the op's arguments as keywords (timeout: ``rce.transport.rpc.CALL_TIMEOUT``)."""
         return await self.host_request(container, op, args)
 
     async def endpoint_call(self, rec: InterfaceRec, op: str, **args: Any) -> Any:
@@ -150,7 +150,7 @@ class Control:
     # -- what both ends and the robot are told --------------------------------------------------------
     def connect_args(self, me: InterfaceRec, peer_iid: int, peer_addr: str) -> dict:
         """The ``connect`` telling ``me`` its peer ``peer_iid`` at ``peer_addr``, with the credential
-        that lets it send there (:mod:`rce.cluster_auth`, "Data-plane credentials")."""
+        that lets it send there (:mod:`rce.transport.cluster_auth`, "Data-plane credentials")."""
         return {"iid": me.iid, "peer_iid": peer_iid, "peer_addr": peer_addr,
                 "token": self.key.connection_token(me.iid, peer_iid, peer_addr)}
 

@@ -24,9 +24,9 @@ import asyncio
 import json
 import time
 
-from rce.errors import RCEError
-from rce.log import get_logger
-from rce.tasks import Tasks
+from rce.plumbing.errors import RCEError
+from rce.plumbing.log import get_logger
+from rce.plumbing.tasks import Tasks
 from rce_master.etcd import Compacted, EtcdClient, EtcdRefused, EtcdUnavailable, b64, kv, revision
 from rce_master.etcd_store import LEADER, RETRY_MAX, RETRY_MIN
 

@@ -29,7 +29,7 @@ from urllib.parse import parse_qs, urlsplit
 
 import aiohttp
 
-from rce.errors import ConfigError, RCEError, Unavailable, http_reason
+from rce.plumbing.errors import ConfigError, RCEError, Unavailable, http_reason
 
 SCHEME = "etcd"
 DEFAULT_PREFIX = "/rce/"

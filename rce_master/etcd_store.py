@@ -46,9 +46,9 @@ import json
 from collections import deque
 from collections.abc import Callable
 
-from rce.errors import ConfigError, NotLeader, RCEError, RequestError, Unavailable
-from rce.log import get_logger
-from rce.tasks import Tasks
+from rce.plumbing.errors import ConfigError, NotLeader, RCEError, RequestError, Unavailable
+from rce.plumbing.log import get_logger
+from rce.plumbing.tasks import Tasks
 from rce_master.etcd import (DEFAULT_MAX_TXN_OPS, DEFAULT_PREFIX, MAX_REQUEST_BYTES, Compacted, EtcdClient,
                              EtcdRefused, EtcdUnavailable, b64, range_end, revision)
 from rce_master.store import Key, MemoryStore, stage

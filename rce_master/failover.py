@@ -5,7 +5,7 @@ host when its host went away, on its own host when only its environment died.
 The master sees a container lost in three ways:
 
 - its host's control link closes (kill -9 of rce-container: at once), or falls silent (SIGSTOP,
-  a partition: the keepalive closes it after ``rce.rpc.KEEPALIVE_TIMEOUT``, 4 s);
+  a partition: the keepalive closes it after ``rce.transport.rpc.KEEPALIVE_TIMEOUT``, 4 s);
 - its environment dies: the host reports ``container_lost {cid, reason}``;
 - its host re-registers without it (after the master restarted).
 
@@ -34,9 +34,9 @@ import asyncio
 import time
 from dataclasses import dataclass, field
 
-from rce.errors import RCEError, Unavailable
-from rce.log import get_logger
-from rce.tasks import Tasks
+from rce.plumbing.errors import RCEError, Unavailable
+from rce.plumbing.log import get_logger
+from rce.plumbing.tasks import Tasks
 from rce_master.control import Control
 from rce_master.model import ContainerRec, InterfaceRec, Robot
 from rce_master.state import MasterState

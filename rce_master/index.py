@@ -14,7 +14,7 @@ import dataclasses
 from operator import attrgetter
 from typing import Any, Callable
 
-from rce.errors import NotFound, Unavailable
+from rce.plumbing.errors import NotFound, Unavailable
 from rce_master.model import ConnectionRec, ContainerRec, InterfaceRec, NodeRec, Robot, TaskSet, User
 from rce_master.store import Key, Store
 

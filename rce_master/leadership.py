@@ -3,7 +3,7 @@
 
 1. Read the state from etcd (:meth:`EtcdStore.load`) and stand by: serve login and admin reads
    from it while following the leader's writes (:meth:`EtcdStore.follow`); refuse ``register``
-   and admin writes with :class:`~rce.errors.NotLeader`, naming the leader.
+   and admin writes with :class:`~rce.plumbing.errors.NotLeader`, naming the leader.
 2. Campaign (:meth:`Election.campaign`). Once elected: read the state again and write from then
    on, fenced (:meth:`EtcdStore.lead`), and take office (:meth:`Master.take_office`): the task
    sets in the state are absent until they re-register here, as after a restart.
@@ -18,9 +18,9 @@ from __future__ import annotations
 import asyncio
 from collections.abc import Awaitable, Callable
 
-from rce.errors import NotLeader, RCEError, Unavailable
-from rce.log import get_logger
-from rce.tasks import Tasks
+from rce.plumbing.errors import NotLeader, RCEError, Unavailable
+from rce.plumbing.log import get_logger
+from rce.plumbing.tasks import Tasks
 from rce_master.election import Election
 from rce_master.etcd import EtcdClient, parse_url
 from rce_master.etcd_store import EtcdStore

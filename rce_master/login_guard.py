@@ -3,7 +3,7 @@ endpoints' and rosbridge's handshakes (the ``auth`` op).
 
 - :class:`LoginGuard` (sans-I/O): failed logins are counted per user name *from one address* and per
   address (any user names); past the free failures each further one doubles a back-off, during which
-  attempts are refused with :class:`~rce.errors.Throttled` (HTTP 429 with ``Retry-After``) before any
+  attempts are refused with :class:`~rce.plumbing.errors.Throttled` (HTTP 429 with ``Retry-After``) before any
   password is checked. An attempt counts as failed as it starts (so that many at once cannot slip
   through) and is taken back when it succeeds; a success forgets the user's failures from that
   address. At most a few checks per address run at once; the next ones from that address *wait*
@@ -32,7 +32,7 @@ from dataclasses import dataclass
 
 from prometheus_client.core import CounterMetricFamily, GaugeMetricFamily
 
-from rce.errors import AuthError, Throttled
+from rce.plumbing.errors import AuthError, Throttled
 from rce_master.model import User
 from rce_master.scrypt_pool import NORMAL, URGENT, PriorityPool
 from rce_master.users import verify

@@ -1,14 +1,14 @@
 """Whether this master leads (docs/INTERNALS.md, "Several masters"). A master alone (its state in
 memory or a SQLite file) always leads; masters on etcd elect one (:class:`rce_master.leadership.ElectedOffice`),
 and the others stand by: they serve login and admin reads and refuse the rest with
-:class:`~rce.errors.NotLeader`, which names the leader (over HTTP: 503 with the leader's URL in
-the header :data:`rce.admin_client.LEADER_HEADER`).
+:class:`~rce.plumbing.errors.NotLeader`, which names the leader (over HTTP: 503 with the leader's URL in
+the header :data:`rce.tools.admin_client.LEADER_HEADER`).
 """
 from __future__ import annotations
 
 from typing import Protocol
 
-from rce.errors import NotLeader
+from rce.plumbing.errors import NotLeader
 
 RETRY_AFTER_NO_LEADER = 2      # s, Retry-After of a standby's refusal while no leader is elected (about a lease TTL)
 

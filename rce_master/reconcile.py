@@ -21,7 +21,7 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 from typing import Any
 
-from rce.errors import RequestError
+from rce.plumbing.errors import RequestError
 from rce_master.model import ContainerRec, NodeRec, Robot, TaskSet
 from rce_master.state import MasterState, Pairs
 

@@ -20,8 +20,8 @@ from __future__ import annotations
 from dataclasses import dataclass
 from typing import Any
 
-from rce.errors import RCEError, RequestError, Timeout
-from rce.log import get_logger
+from rce.plumbing.errors import RCEError, RequestError, Timeout
+from rce.plumbing.log import get_logger
 from rce.protocol import schema
 from rce_master.control import Control
 from rce_master.model import limits_of
@@ -260,7 +260,7 @@ REQUESTS: dict[str, Step | Lists] = {"CC": CreateContainerStep(), "DC": DestroyC
 
 async def handle(req: Request, type_: str, data: dict) -> None:
     """Handle robot request ``type_`` (CC, DC, CN, CX) with its ``data`` as the robot sent it.
-    Raises :class:`RCEError` (:class:`~rce.errors.ProtocolError` for data the schema refuses)."""
+    Raises :class:`RCEError` (:class:`~rce.plumbing.errors.ProtocolError` for data the schema refuses)."""
     handler = REQUESTS.get(type_)
     if handler is None:
         raise RequestError(f"unknown request type {type_!r}")

@@ -18,7 +18,7 @@ docs/INTERNALS.md, "Container failover").
 
 Several masters on etcd (docs/INTERNALS.md, "Several masters"): a master that stands by (its
 ``office`` does not lead, :mod:`rce_master.office`) serves login and admin reads from the state it
-follows, and refuses ``register`` and admin writes with :class:`~rce.errors.NotLeader` naming the
+follows, and refuses ``register`` and admin writes with :class:`~rce.plumbing.errors.NotLeader` naming the
 leader; once elected, :meth:`Master.take_office` makes it the master that restarted on the state.
 Every answer that follows a change waits until the store has it (:meth:`Store.flush`).
 """
@@ -33,12 +33,12 @@ from pathlib import Path
 from aiohttp import web
 from prometheus_client import CollectorRegistry, Counter, Gauge, generate_latest, CONTENT_TYPE_LATEST
 
-from rce.admin_client import LEADER_HEADER
-from rce.cluster_auth import ClusterKey, Gate
-from rce.errors import AuthError, NotFound, NotLeader, RCEError, RequestError, Throttled, Timeout, Unavailable
-from rce.log import get_logger
-from rce.rpc import RpcPeer
-from rce.tasks import Tasks
+from rce.tools.admin_client import LEADER_HEADER
+from rce.transport.cluster_auth import ClusterKey, Gate
+from rce.plumbing.errors import AuthError, NotFound, NotLeader, RCEError, RequestError, Throttled, Timeout, Unavailable
+from rce.plumbing.log import get_logger
+from rce.transport.rpc import RpcPeer
+from rce.plumbing.tasks import Tasks
 from rce_master import reconcile
 from rce_master.admin import AdminApi
 from rce_master.control import Control
@@ -71,7 +71,7 @@ class MasterMetrics:
         self.requests = Counter("rce_master_requests", "Robot requests (CC, DC, CN, CX)", ["type", "result"],
                                 registry=r)
         self.control_refused = Counter("rce_master_control_refused", "Control-plane connections refused: no proof "
-                                       "of the cluster key (rce.cluster_auth.Gate)", ["reason"], registry=r)
+                                       "of the cluster key (rce.transport.cluster_auth.Gate)", ["reason"], registry=r)
         for name, help_, table in [
             ("rce_master_robots", "Connected robots", state.robots),
             ("rce_master_containers", "Containers", state.containers),
@@ -99,7 +99,7 @@ class Master:
     date); ``store``: where the state is kept (default: in memory); ``reconcile_grace`` (s): how
     long task sets found in the store may take to re-register; ``office``: whether it leads
     (default: alone, it always does; on etcd its election); ``cluster_key``: what every task set
-    must prove it holds before its link is served (:mod:`rce.cluster_auth`), and what the data-plane
+    must prove it holds before its link is served (:mod:`rce.transport.cluster_auth`), and what the data-plane
     credentials handed out with ``connect`` derive from; ``quotas``: per-user bounds on containers, nodes
     and interfaces (default :class:`~rce_master.state.Quotas`); ``login_guard``: the back-off of failed
     logins (default :class:`~rce_master.login_guard.LoginGuard`'s defaults)."""
@@ -158,7 +158,7 @@ class Master:
     async def start(self, bind: str, http_port: int, control_port: int,
                     static_dirs: dict[str, Path] | None = None, ssl_context: ssl.SSLContext | None = None) -> None:
         """Listen: the control plane on ``control_port``, HTTP on ``http_port`` (HTTPS with
-        ``ssl_context``, :func:`rce.tls.server_context`; 0: ephemeral ports, then in the attributes)."""
+        ``ssl_context``, :func:`rce.transport.tls.server_context`; 0: ephemeral ports, then in the attributes)."""
         self._control = await asyncio.start_server(self._accept, bind, control_port, limit=2**20)
         self.control_port = self._control.sockets[0].getsockname()[1]
         self._runner = web.AppRunner(self._app(static_dirs or {}), access_log=None)
@@ -228,7 +228,7 @@ class Master:
         peer.info["tid"] = ts.tid
         peer.name = f"{ts.kind}:{ts.name}"
         self.control.attach(ts.tid, peer)
-        peer.keepalive()      # silent for rce.rpc.KEEPALIVE_TIMEOUT (4 s): lost, its containers marked lost
+        peer.keepalive()      # silent for rce.transport.rpc.KEEPALIVE_TIMEOUT (4 s): lost, its containers marked lost
         if ts.kind == "robot":
             peer.handlers.update({
                 "auth": self._auth, "robot_connected": lambda args, tid=ts.tid: self._robot_connected(tid, args),

@@ -33,7 +33,7 @@ import threading
 from collections.abc import Iterable, Iterator
 from pathlib import Path
 
-from rce.errors import ConfigError, Unavailable
+from rce.plumbing.errors import ConfigError, Unavailable
 from rce_master.store import Change, Key, Store, encode
 
 LAYOUT = 1                 # PRAGMA user_version of the layout this module writes

@@ -30,8 +30,8 @@ from contextlib import contextmanager
 from dataclasses import dataclass
 from typing import Any
 
-from rce.errors import AuthError, NotFound, RequestError, Unavailable
-from rce.interface_type import Kind
+from rce.plumbing.errors import AuthError, NotFound, RequestError, Unavailable
+from rce.protocol.interface_type import Kind
 from rce.protocol import schema
 from rce_master.index import StateIndex, lost_reason
 from rce_master.model import (ConnectionRec, ContainerRec, InterfaceRec, NodeRec, Robot, TaskSet, User,

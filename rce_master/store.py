@@ -22,7 +22,7 @@ import json
 from abc import ABC, abstractmethod
 from collections.abc import Iterable, Iterator
 
-from rce.errors import RequestError
+from rce.plumbing.errors import RequestError
 
 Key = tuple[str, ...]
 Change = tuple[Key, "dict | None"]        # (key, record), or (key, None) to delete
@@ -45,7 +45,7 @@ class Store(ABC):
         Raises :class:`RequestError` for a record that is not JSON."""
 
     async def flush(self) -> None:  # noqa: B027 (a store whose commits are durable at once has nothing to wait for)
-        """Return once every batch committed so far is durable. Raises :class:`~rce.errors.Unavailable`
+        """Return once every batch committed so far is durable. Raises :class:`~rce.plumbing.errors.Unavailable`
         when one never will be (the store failed). Nothing to wait for in memory or SQLite."""
 
     def close(self) -> None:  # noqa: B027 (a store that holds nothing needs no close)

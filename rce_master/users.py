@@ -8,7 +8,7 @@ import json
 import os
 from pathlib import Path
 
-from rce.errors import RequestError
+from rce.plumbing.errors import RequestError
 from rce_master.model import User, password_digest
 from rce_master.state import MasterState
 

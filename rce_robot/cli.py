@@ -2,7 +2,7 @@
 plane on 10030).
 
 It outlives its master: when the master goes away it keeps its robots and data-plane links,
-dials the masters again with backoff and re-registers (:mod:`rce.masterlink`)."""
+dials the masters again with backoff and re-registers (:mod:`rce.transport.masterlink`)."""
 from __future__ import annotations
 
 import argparse
@@ -12,10 +12,12 @@ import signal
 import socket
 from pathlib import Path
 
-from rce import cluster_auth, tls
-from rce.log import get_logger
-from rce.masterlink import MASTER_PORT, MASTER_WAIT, parse_masters, unless_stopped
-from rce.process import run, write_ready_file
+from rce.transport import cluster_auth
+
+from rce.transport import tls
+from rce.plumbing.log import get_logger
+from rce.transport.masterlink import MASTER_PORT, MASTER_WAIT, parse_masters, unless_stopped
+from rce.plumbing.process import run, write_ready_file
 from rce.protocol.frames import DEFAULT_EXPIRY
 from rce.protocol.limits import DEFAULT_MAX_PENDING_TOTAL
 from rce.protocol.resume import DEFAULT_GRACE, DEFAULT_RESUME_BUFFER

@@ -16,15 +16,15 @@ from prometheus_client import CONTENT_TYPE_LATEST, CollectorRegistry, Gauge, gen
 from prometheus_client.core import CounterMetricFamily
 from websockets.asyncio.server import serve
 
-from rce.cluster_auth import ClusterKey, token_of
-from rce.dataplane import DataPlane
-from rce.errors import AuthError, NotFound, RCEError, Throttled
-from rce.interface_type import InterfaceType
-from rce.log import get_logger
-from rce.masterlink import MASTER_WAIT, Address, MasterLink
+from rce.transport.cluster_auth import ClusterKey, token_of
+from rce.transport.dataplane import DataPlane
+from rce.plumbing.errors import AuthError, NotFound, RCEError, Throttled
+from rce.protocol.interface_type import InterfaceType
+from rce.plumbing.log import get_logger
+from rce.transport.masterlink import MASTER_WAIT, Address, MasterLink
 from rce.messages import default_registry
-from rce.op_table import OpTable
-from rce.package_path import load_package_types
+from rce.transport.op_table import OpTable
+from rce.node.package_path import load_package_types
 from rce.protocol.frames import DEFAULT_EXPIRY, ER, encode
 from rce.protocol.limits import DEFAULT_MAX_PENDING_TOTAL, PartBudget, parse_max_lag
 from rce.protocol.resume import DEFAULT_GRACE, DEFAULT_RESUME_BUFFER
@@ -123,12 +123,13 @@ class RobotEndpoint:
     """One robot task set. ``max_message``: largest websocket frame taken (bytes; larger ones get
     an ER); ``queue_size``: bound of each of a robot's queues (:class:`RobotSession`); ``expiry``: s for
     binary parts; ``master_wait``: s a robot's request waits for an absent master before its ER
-    (:class:`~rce.masterlink.MasterLink`); ``grace``: s the session of a robot that opted in to resume
+    (:class:`~rce.transport.masterlink.MasterLink`); ``grace``: s the session of a robot that opted in to resume
     is kept after its link is lost; ``resume_buffer``: messages kept per robot until it acks them
     (docs/INTERNALS.md "Session resume"); ``max_pending_total``: bytes of binary parts waiting for their
     message, all robots together (:class:`~rce.protocol.limits.PartBudget`); ``ssl_context``: serve wss://
-    (and https:// metrics) with it (:func:`rce.tls.server_context`), and tell the master so: the URL it registers is ``wss://``;
-    ``cluster_key``: proved to the master on every link (:mod:`rce.cluster_auth`), and the source of
+    (and https:// metrics) with it (:func:`rce.transport.tls.server_context`), and tell the master so: the URL it
+    registers is ``wss://``;
+    ``cluster_key``: proved to the master on every link (:mod:`rce.transport.cluster_auth`), and the source of
     this endpoint's data key; ``max_lag``: s the endpoint may stay behind a robot's frames before it
     sheds that robot's topic messages (:class:`RobotSession`; None: never)."""
 

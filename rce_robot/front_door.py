@@ -7,7 +7,7 @@ from __future__ import annotations
 import math
 from http import HTTPStatus
 
-from rce.errors import Throttled
+from rce.plumbing.errors import Throttled
 
 MASTER_AWAY_RETRY_AFTER = 5   # s, Retry-After of the 503 a connecting robot gets while the master is away (as the
                               # master's own 503 while task sets are absent)
@@ -43,7 +43,7 @@ def throttled(connection, refusal: Throttled):
 
 
 def master_away(connection, master):
-    """While the master (``master``: the task set's :class:`~rce.masterlink.MasterLink`) is away a
+    """While the master (``master``: the task set's :class:`~rce.transport.masterlink.MasterLink`) is away a
     login cannot be checked: HTTP 503 with ``Retry-After``; None while it is there."""
     if master is not None and master.available:
         return None

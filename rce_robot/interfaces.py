@@ -12,16 +12,16 @@ from __future__ import annotations
 
 from typing import TYPE_CHECKING, Any, Protocol
 
-from rce.errors import MessageError, ProtocolError, RequestError, Unavailable
-from rce.interface_type import InterfaceType, Kind, Side
-from rce.interfaces import Interface
-from rce.message_forms import JsonForms
+from rce.plumbing.errors import MessageError, ProtocolError, RequestError, Unavailable
+from rce.protocol.interface_type import InterfaceType, Kind, Side
+from rce.protocol.interfaces import Interface
+from rce.messages.forms import JsonForms
 from rce.messages import MessageRegistry
-from rce.pending import PendingCalls
+from rce.plumbing.pending import PendingCalls
 from rce.protocol import new_id
 
 if TYPE_CHECKING:
-    from rce.dataplane import DataPlane
+    from rce.transport.dataplane import DataPlane
 
 # s a container's call to the robot's service waits for the robot's reply
 ROBOT_CALL_TIMEOUT = 30.0
@@ -31,7 +31,7 @@ class RobotLink(Protocol):
     """What an interface needs of its robot's session (:class:`rce_robot.namespace.RobotNamespace`)."""
 
     robot: str
-    forms: JsonForms        # the JSON forms this robot gets back (rce.message_forms), learned from what it sends
+    forms: JsonForms        # the JSON forms this robot gets back (rce.messages.forms), learned from what it sends
 
     def send_dm(self, itag: str, cls: str, msg_id: Any, msg: Any, data: bool = False) -> bool:
         """Queue a DM for the robot; ``data=True``: droppable topic data (the oldest waiting go first;
@@ -145,7 +145,7 @@ class RobotInterface(Interface):
 
     async def serve(self, payload: bytes) -> bytes:
         """A container calls the robot's service: DM request to the robot, wait for its reply.
-        Raises :class:`rce.errors.Timeout` after ``robot_call_timeout`` s."""
+        Raises :class:`rce.plumbing.errors.Timeout` after ``robot_call_timeout`` s."""
         if self.kind is not Kind.SERVICE_CLIENT:
             return await super().serve(payload)
         request = self._decode(self.req_t, payload)

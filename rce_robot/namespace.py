@@ -4,7 +4,7 @@ The rules live in :class:`rce.protocol.session.RobotSession` (frames, binary par
 validation, ordering, the bounded outbox, error accounting, resume); this shell moves frames
 between a websocket and the session and does what the session's events ask: a request goes
 to the master (one at a time), a DM to its interface, a service call runs in a task. Every
-task is kept (:class:`rce.tasks.Tasks`).
+task is kept (:class:`rce.plumbing.tasks.Tasks`).
 
 A session may outlive its link (docs/INTERNALS.md "Session resume"): :meth:`RobotNamespace.serve`
 serves one link. When the link of a robot that opted in is lost, the namespace keeps its
@@ -23,15 +23,15 @@ from typing import Any
 
 from websockets.exceptions import ConnectionClosed
 
-from rce.errors import ProtocolError, RCEError
-from rce.log import get_logger
-from rce.message_forms import JsonForms
+from rce.plumbing.errors import ProtocolError, RCEError
+from rce.plumbing.log import get_logger
+from rce.messages.forms import JsonForms
 from rce.protocol.limits import LOG_BURST, LOG_RATE, TokenBucket, truncate
 from rce.protocol.events import (CaughtUp, CloseLink, Deliver, Lagging, RequestReady, RobotEvent, ServiceCall,
                                  unhandled)
 from rce.protocol.session import RobotSession
-from rce.masterlink import MasterLink
-from rce.tasks import Tasks
+from rce.transport.masterlink import MasterLink
+from rce.plumbing.tasks import Tasks
 from rce_robot.interfaces import RobotInterface
 from rce_robot import ws_cork
 from rce_robot.parse_pool import ParsePool

@@ -20,8 +20,8 @@ import multiprocessing
 from concurrent.futures import ProcessPoolExecutor
 from concurrent.futures.process import BrokenProcessPool
 
-from rce.errors import ProtocolError
-from rce.log import get_logger
+from rce.plumbing.errors import ProtocolError
+from rce.plumbing.log import get_logger
 from rce.protocol.frames import parse_frame
 
 log = get_logger("rce.robot")

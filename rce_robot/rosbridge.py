@@ -23,11 +23,11 @@ from urllib.parse import parse_qs, urlsplit
 from websockets.asyncio.server import serve
 from websockets.exceptions import ConnectionClosed
 
-from rce.errors import AuthError, NotFound, RCEError, Throttled
-from rce.log import get_logger
-from rce.masterlink import MasterLink
+from rce.plumbing.errors import AuthError, NotFound, RCEError, Throttled
+from rce.plumbing.log import get_logger
+from rce.transport.masterlink import MasterLink
 from rce.protocol.limits import DEFAULT_MAX_LAG, parse_max_lag
-from rce.tasks import Tasks
+from rce.plumbing.tasks import Tasks
 from rce_robot.front_door import master_away, peer_address, throttled
 from rce_robot import ws_cork
 from rce_robot.interfaces import RobotInterface
@@ -82,7 +82,7 @@ class RosbridgeServer:
 
     async def start(self, bind: str, port: int, ssl_context: ssl.SSLContext | None = None) -> None:
         """Listen on ``bind``:``port`` (0: an ephemeral port, then in :attr:`port`); wss:// with
-        ``ssl_context`` (:func:`rce.tls.server_context`)."""
+        ``ssl_context`` (:func:`rce.transport.tls.server_context`)."""
         self._server = await serve(self._serve, bind, port, process_request=self._handshake, max_size=MAX_MESSAGE,
                                    compression=None, ping_interval=PING_INTERVAL, ping_timeout=PING_TIMEOUT,
                                    max_queue=WS_MAX_QUEUE, ssl=ssl_context)

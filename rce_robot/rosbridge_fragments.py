@@ -11,7 +11,7 @@ import time
 from collections.abc import Callable
 from dataclasses import dataclass, field
 
-from rce.errors import ProtocolError
+from rce.plumbing.errors import ProtocolError
 
 FRAGMENT_EXPIRY = 60.0        # s a partly received message waits for its missing fragments (rosbridge's
                               # fragment_timeout is 600 s; a client sends its fragments back to back)

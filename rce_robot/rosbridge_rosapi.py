@@ -11,8 +11,8 @@ from __future__ import annotations
 import json
 from typing import Any, Protocol
 
-from rce.errors import NotFound, ProtocolError
-from rce.naming import resolve
+from rce.plumbing.errors import NotFound, ProtocolError
+from rce.node.naming import resolve
 
 
 class Graph(Protocol):

@@ -30,14 +30,14 @@ from dataclasses import dataclass, field
 from collections.abc import Awaitable
 from typing import Any
 
-from rce.errors import ProtocolError, RCEError, Timeout
-from rce.log import get_logger
-from rce.masterlink import MasterLink
-from rce.message_forms import JsonForms
+from rce.plumbing.errors import ProtocolError, RCEError, Timeout
+from rce.plumbing.log import get_logger
+from rce.transport.masterlink import MasterLink
+from rce.messages.forms import JsonForms
 from rce.protocol import jsontext
 from rce.protocol.limits import DEFAULT_MAX_LAG, LagGate
 from rce.protocol.schema import validate
-from rce.tasks import Tasks
+from rce.plumbing.tasks import Tasks
 from rce_robot.interfaces import RobotInterface
 from rce_robot.namespace import CLOSE_POLICY, LAG_LOG, REQUEST_TIMEOUT
 from rce_robot.rosbridge_compression import COMPRESSIONS, cbor_publish, cbor_raw_publish, png_op

@@ -18,8 +18,8 @@ from dataclasses import dataclass, field
 from operator import attrgetter
 from typing import Any, Awaitable, Callable
 
-from rce.errors import MessageError, NotFound, RequestError, Timeout
-from rce.naming import validate_name
+from rce.plumbing.errors import MessageError, NotFound, RequestError, Timeout
+from rce.node.naming import validate_name
 
 Deliver = Callable[[bytes | memoryview], bool]    # returns False when the message was dropped; a view stays valid
 ServiceHandler = Callable[[bytes], Awaitable[bytes]]

@@ -1,6 +1,6 @@
 """The bus server: node processes reach a :class:`~rce.bus.core.Bus` over a Unix socket.
 
-Link protocol (internal framing, :mod:`rce.framing`): CONTROL requests (:data:`BUS_OPS`)
+Link protocol (internal framing, :mod:`rce.transport.framing`): CONTROL requests (:data:`BUS_OPS`)
 ``hello``, ``advertise``, ``unadvertise``, ``subscribe``, ``unsubscribe``,
 ``advertise_service``, ``unadvertise_service``, ``resolve_service``,
 ``get_param``, ``set_param``, ``delete_param``, ``describe``, and the notifications
@@ -15,8 +15,8 @@ Link protocol (internal framing, :mod:`rce.framing`): CONTROL requests (:data:`B
 
 A node's subscriptions are bounded by the bytes waiting in its socket
 (``max_buffer``) and by the age of what waits for a node that is not keeping up
-(:mod:`rce.link`, oldest first); messages beyond it are dropped and counted. Service calls either way
-use the link layer's :class:`~rce.pending.PendingCalls` and :class:`~rce.link.Responder`.
+(:mod:`rce.transport.link`, oldest first); messages beyond it are dropped and counted. Service calls either way
+use the link layer's :class:`~rce.plumbing.pending.PendingCalls` and :class:`~rce.transport.link.Responder`.
 
 Who may join (a container's bus: ``token`` and ``uids`` given): the socket file is mode
 0660 and owned (user and group) by the container's node uid (``owner``); a connecting process whose uid
@@ -24,7 +24,7 @@ Who may join (a container's bus: ``token`` and ``uids`` given): the socket file 
 ``hello {name, pid, container, token}`` whose token equals the container's bus token
 (``RCE_BUS_TOKEN`` in each node's environment, compared in constant time). Until then no op
 but ``hello`` is served and DATA frames are ignored; a wrong or missing token gets an
-:class:`~rce.errors.AuthError` and the link is closed. Each refusal is logged and counted
+:class:`~rce.plumbing.errors.AuthError` and the link is closed. Each refusal is logged and counted
 (:attr:`BusServer.refused`).
 
 Direct links (a server with ``direct=True``, a container's; :mod:`rce_container.direct_routes`):
@@ -46,14 +46,14 @@ import struct
 from collections.abc import Collection
 from pathlib import Path
 
-from rce import framing
+from rce.transport import framing
 from rce.bus.core import Bus, Subscription, Topic
-from rce.errors import AuthError, NotFound, RCEError, RequestError
-from rce.link import STREAM_LIMIT, Responder, settle_reply
-from rce.log import get_logger
-from rce.op_table import OpTable
-from rce.pending import PendingCalls
-from rce.rpc import RpcPeer
+from rce.plumbing.errors import AuthError, NotFound, RCEError, RequestError
+from rce.transport.link import STREAM_LIMIT, Responder, settle_reply
+from rce.plumbing.log import get_logger
+from rce.transport.op_table import OpTable
+from rce.plumbing.pending import PendingCalls
+from rce.transport.rpc import RpcPeer
 
 log = get_logger("rce.bus")
 
@@ -272,7 +272,7 @@ class NodeSession:
                 skip = ()
                 if f.src:                            # published under a direct route: skip what it reached
                     skip = self.routes.get(f.dst, {}).get(f.src, ())
-                self.bus.publish(t, f.payload, skip)      # a view nobody writes again (rce.framing): no copy
+                self.bus.publish(t, f.payload, skip)      # a view nobody writes again (rce.transport.framing): no copy
         elif f.op in (framing.SRV_RESP, framing.SRV_ERR):
             settle_reply(self.calls, f)
         elif f.op == framing.SRV_REQ:

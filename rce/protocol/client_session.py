@@ -9,8 +9,8 @@ import uuid
 from dataclasses import dataclass
 from typing import Any
 
-from rce.errors import ProtocolError, RequestError, Unavailable
-from rce.pending import PendingCalls
+from rce.plumbing.errors import ProtocolError, RequestError, Unavailable
+from rce.plumbing.pending import PendingCalls
 from rce.protocol.events import (BarrierFailed, BarrierPassed, CallFailed, Detached,
                                  Dropped, ErrorReceived, InterfaceChanged, MessageReceived,
                                  ResponseReceived, SessionStatus, StatusReceived)

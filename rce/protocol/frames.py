@@ -22,7 +22,7 @@ from typing import Any
 
 import orjson
 
-from rce.errors import ProtocolError
+from rce.plumbing.errors import ProtocolError
 from rce.protocol import jsontext
 from rce.protocol.limits import MAX_JSON_DEPTH, PartBudget, json_too_deep, short_repr, truncate
 

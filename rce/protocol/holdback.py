@@ -8,7 +8,7 @@ from __future__ import annotations
 from collections import deque
 from dataclasses import dataclass
 
-from rce.errors import ProtocolError
+from rce.plumbing.errors import ProtocolError
 
 
 @dataclass(slots=True)

@@ -22,7 +22,7 @@ import secrets
 from collections import deque
 from typing import Any
 
-from rce.errors import ProtocolError
+from rce.plumbing.errors import ProtocolError
 from rce.protocol.frames import encode
 
 AK = "AK"                                    # the ack message type (link-level)

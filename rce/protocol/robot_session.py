@@ -5,7 +5,7 @@ from __future__ import annotations
 
 from typing import Any
 
-from rce.errors import ProtocolError, RequestError
+from rce.plumbing.errors import ProtocolError, RequestError
 from rce.messages import takes_binary_message
 from rce.protocol.events import CaughtUp, CloseLink, Deliver, Lagging, RequestReady, ServiceCall
 from rce.protocol.frames import DEFAULT_EXPIRY, DEFAULT_MAX_PENDING_BYTES, DEFAULT_MAX_PENDING_PARTS, DM, ST

@@ -3,14 +3,14 @@ component kind), CX and DM, as pydantic models.
 
 Each rule is written once, as a field type with its own error text (:data:`Tag`,
 :data:`Limit`, :data:`IType`, :data:`InterfaceRef`...), and shared: the robot
-config (:mod:`rce.config`) builds its models on the component models here, under its short
+config (:mod:`rce.protocol.config`) builds its models on the component models here, under its short
 keys (``cTag``, ``nTag``, ``eTag``, ``iTag``, ``iType``, ``iCls``; the field names) where the
 wire uses the long ones (``containerTag``, ``nodeTag``...; the aliases).
 
 :func:`parse` checks a complete message and returns its data as a model (:class:`CCData`,
 :class:`DCData`, :class:`CNData`, :class:`CXData`, :class:`DataMessage`), which travels on past
 validation: the master's request handlers read its attributes, an interface type is an
-:class:`~rce.interface_type.InterfaceType` parsed once. :func:`validate` checks the same way and
+:class:`~rce.protocol.interface_type.InterfaceType` parsed once. :func:`validate` checks the same way and
 returns the data as sent, for a shell that passes the request on (the robot session forwards it to
 the master). Both raise :class:`ProtocolError` naming the type and the key path of the first
 problem, e.g. ``CN.data.addNodes[0]: missing key 'pkg'``. Wire components take keys they do not
@@ -23,8 +23,8 @@ from typing import Annotated, Any, Literal, TypeVar, Union
 from pydantic import BaseModel, ConfigDict, Field, PlainValidator, TypeAdapter, ValidationError, model_validator
 from pydantic_core import PydanticCustomError
 
-from rce.errors import ProtocolError
-from rce.interface_type import InterfaceType
+from rce.plumbing.errors import ProtocolError
+from rce.protocol.interface_type import InterfaceType
 from rce.protocol.frames import CC, CN, CX, DC, DM
 from rce.protocol.limits import MAX_ER_TEXT, short_repr, truncate
 
@@ -99,7 +99,7 @@ MsgID = Annotated[Union[str, int], _rule(lambda v: _is_str(v) or (isinstance(v, 
 Features = Annotated[list[str], _rule(lambda v: isinstance(v, list) and all(map(_is_str, v)),
                                       "must be a list of strings")]
 #: An interface type (prefix x suffix, DESIGN section 3.5; RCE alpha names accepted), parsed into its
-#: :class:`~rce.interface_type.InterfaceType` (a ``str``: its canonical name on the wire).
+#: :class:`~rce.protocol.interface_type.InterfaceType` (a ``str``: its canonical name on the wire).
 IType = Annotated[InterfaceType, PlainValidator(_interface_type)]
 #: An interface named ``endpointTag/interfaceTag``.
 InterfaceRef = Annotated[str, PlainValidator(_interface_ref)]

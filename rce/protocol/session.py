@@ -10,7 +10,7 @@ shells that move frames and run what the events ask for. Both share
   robot: binary parts and expiry, the one schema (:func:`rce.protocol.schema.validate`), requests
   to the master one at a time and in order, the DM ordering rule, the bounded outbox, error accounting.
 - :class:`ClientSession` (:mod:`rce.protocol.client_session`) is the robot side: pending calls and
-  barriers (one :class:`~rce.pending.PendingCalls` table keyed by msgID or token), the interface
+  barriers (one :class:`~rce.plumbing.pending.PendingCalls` table keyed by msgID or token), the interface
   status table, ER attribution. Its rules are those of ``tests/vectors/README.md``, which the
   browser client (``rce.js``) follows too; ``tests/vectors/session.json`` checks both.
 

@@ -4,7 +4,7 @@
 from __future__ import annotations
 
 
-from rce.errors import ProtocolError
+from rce.plumbing.errors import ProtocolError
 from rce.protocol.events import Event
 from rce.protocol.frames import DEFAULT_MAX_PENDING_PARTS, Assembler
 from rce.protocol.limits import PartBudget

@@ -10,7 +10,7 @@ import tempfile
 import pytest
 
 import rce.node
-from rce.config import parse_config
+from rce.protocol.config import parse_config
 from rce.messages import default_registry
 from rce_client.rce_ros import RobotBridge
 

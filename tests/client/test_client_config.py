@@ -8,8 +8,8 @@ from pathlib import Path
 import pytest
 import yaml
 
-from rce.config import load_config
-from rce.errors import ConfigError
+from rce.protocol.config import load_config
+from rce.plumbing.errors import ConfigError
 from rce_client import rce_ros
 
 CONFIGS = Path(__file__).resolve().parents[2] / "configs"

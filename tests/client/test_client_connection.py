@@ -8,7 +8,7 @@ import hashlib
 
 import pytest
 
-from rce.errors import AuthError, RequestError, Timeout, Unavailable
+from rce.plumbing.errors import AuthError, RequestError, Timeout, Unavailable
 from rce_client.connection import Connection, hash_password
 
 from .fakecloud import FakeEndpoint

@@ -6,7 +6,7 @@ import logging
 import pytest
 from aiohttp import web
 
-from rce.errors import AuthError, Unavailable
+from rce.plumbing.errors import AuthError, Unavailable
 from rce_client.connection import CLIENT_VERSION, Connection, login
 
 from .fakecloud import FakeEndpoint, login_server, ws_url_answer

@@ -1,6 +1,6 @@
 """rce_client.Connection with ``allow_reconnect`` (session resume, docs/INTERNALS.md) against a
 stand-in endpoint that runs the real cloud-side rules (tests/client/resumecloud.py), through a TCP
-proxy that drops the link (rce/tcpproxy.py): the callbacks, sends and calls across the gap, a
+proxy that drops the link (rce/transport/tcpproxy.py): the callbacks, sends and calls across the gap, a
 refused resume, a gap that outlasts the attempts, a session the cloud ends, and rce-ros keeping
 its local bus up through the gap."""
 from __future__ import annotations
@@ -12,9 +12,9 @@ import tempfile
 import pytest
 
 import rce.node
-from rce.config import parse_config
-from rce.errors import Unavailable
-from rce.tcpproxy import TcpProxy
+from rce.protocol.config import parse_config
+from rce.plumbing.errors import Unavailable
+from rce.transport.tcpproxy import TcpProxy
 from rce_client.connection import Connection
 from rce_client.rce_ros import RobotBridge
 

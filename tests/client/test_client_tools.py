@@ -11,11 +11,11 @@ from pathlib import Path
 import pytest
 from aiohttp import web
 
-from rce.admin_client import AdminClient, find_token, refusal
+from rce.tools.admin_client import AdminClient, find_token, refusal
 from rce.bus.core import Bus
 from rce.bus.server import BusServer
-from rce.errors import AuthError, MessageError, NotFound, RequestError, Timeout, Unavailable
-from rce.package_path import BUILTIN_DIR
+from rce.plumbing.errors import AuthError, MessageError, NotFound, RequestError, Timeout, Unavailable
+from rce.node.package_path import BUILTIN_DIR
 from rce_client import tools
 
 BIN = Path(sys.executable).parent
@@ -236,7 +236,7 @@ async def test_admin_api_path(admin, capsys, monkeypatch):
         await run("topic", opts + ["--admin-token", "s3cret", "hz", "/stringEchoResp"], capsys)
 
 
-# -- the one admin-API client (rce.admin_client) ----------------------------------------------------
+# -- the one admin-API client (rce.tools.admin_client) ----------------------------------------------------
 def test_admin_token_is_found_in_order(monkeypatch, tmp_path):
     monkeypatch.setenv("XDG_CONFIG_HOME", str(tmp_path))
     monkeypatch.delenv("RCE_ADMIN_TOKEN", raising=False)

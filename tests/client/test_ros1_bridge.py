@@ -25,12 +25,12 @@ from pathlib import Path
 
 import pytest
 
-from rce.errors import ConfigError
+from rce.plumbing.errors import ConfigError
 from rce.messages import MessageRegistry, default_registry
-from rce.package_path import load_package_types
-from rce.ros1 import import_rospy
+from rce.node.package_path import load_package_types
+from rce.node.ros1 import import_rospy
 from rce_client.ros1_bridge import Counts, Handoff
-from rce.ros1_types import (DEFINITION_SEPARATOR, message_identity, raw_message_class, raw_service_class,
+from rce.messages.ros1_types import (DEFINITION_SEPARATOR, message_identity, raw_message_class, raw_service_class,
                                    service_identity)
 
 from .test_e2e_debug import BIN, Proc, tool

@@ -12,7 +12,7 @@ import pytest
 import yaml
 from rosbags.rosbag1 import Reader
 
-from rce.errors import MessageError, RequestError
+from rce.plumbing.errors import MessageError, RequestError
 from rce.messages import default_registry
 from rce_client.bag import BagRecorder
 

@@ -18,10 +18,10 @@ from typing import Any, Callable
 
 import psutil
 
-from rce.cluster_auth import KEY_ENV, ClusterKey, respond
-from rce.dataplane import DataPlane
-from rce.interfaces import Interface
-from rce.rpc import RpcPeer
+from rce.transport.cluster_auth import KEY_ENV, ClusterKey, respond
+from rce.transport.dataplane import DataPlane
+from rce.protocol.interfaces import Interface
+from rce.transport.rpc import RpcPeer
 
 BIN = Path(sys.executable).parent
 STEP = 15.0   # s, the longest any single wait may take

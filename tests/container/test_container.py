@@ -11,10 +11,10 @@ import signal
 import psutil
 import pytest
 
-from rce.dataplane import DataPlane
-from rce.errors import MessageError, NotFound, ProtocolError, RequestError, Unavailable
+from rce.transport.dataplane import DataPlane
+from rce.plumbing.errors import MessageError, NotFound, ProtocolError, RequestError, Unavailable
 from rce.messages import default_registry
-from rce.package_path import load_package_types
+from rce.node.package_path import load_package_types
 from rce_container import sandbox as sandboxes
 
 from .harness import (STEP, ContainerProcess, FakeMaster, RobotInterface, gone, has_service, kill_leftovers,

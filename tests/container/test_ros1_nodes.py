@@ -20,10 +20,10 @@ import pytest
 
 from rce.bus.core import Bus
 from rce.bus.server import BusServer
-from rce.errors import RequestError
-from rce.launch import start_engine
+from rce.plumbing.errors import RequestError
+from rce.tools.launch import start_engine
 from rce.messages import default_registry
-from rce.package_path import load_package_types
+from rce.node.package_path import load_package_types
 from rce_container.launcher import Launcher
 from rce_container.ros1_graph import Ros1Graph
 from rce_container.ros1_plan import (GraphView, bus_graph, flatten_params, is_ros1_package, param_changes, plan,

@@ -20,7 +20,7 @@ from pathlib import Path
 import psutil
 import pytest
 
-from rce.errors import RCEError
+from rce.plumbing.errors import RCEError
 from rce_container import cgroups
 
 from .harness import (STEP, ContainerProcess, FakeMaster, has_service, kill_leftovers, make_helper_package, topic,

@@ -8,8 +8,8 @@ from pathlib import Path
 
 import pytest
 
-from rce.errors import ConfigError, MessageError, NotFound, ProtocolError, RequestError
-from rce.package_path import BUILTIN_DIR
+from rce.plumbing.errors import ConfigError, MessageError, NotFound, ProtocolError, RequestError
+from rce.node.package_path import BUILTIN_DIR
 from rce_container import cgroups, sandbox
 from rce_container.host import MAX_SOCKET_PATH, socket_dir_for
 from rce_container.interfaces import check_class, interface_kind

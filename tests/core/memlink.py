@@ -91,7 +91,7 @@ class MemTransport:
 
 
 class MemWriter:
-    """Stands in for :class:`asyncio.StreamWriter` (what :class:`rce.link.FramedLink` uses of it)."""
+    """Stands in for :class:`asyncio.StreamWriter` (what :class:`rce.transport.link.FramedLink` uses of it)."""
 
     def __init__(self, transport: MemTransport, peername: str = "mem"):
         self.transport = transport

@@ -6,7 +6,7 @@ import asyncio
 import pytest
 
 from rce.bus.core import Bus
-from rce.errors import MessageError, NotFound, RequestError, Timeout
+from rce.plumbing.errors import MessageError, NotFound, RequestError, Timeout
 
 
 @pytest.fixture

@@ -1,4 +1,4 @@
-"""rce.cluster_auth: the cluster key file, the control-link handshake (sans I/O, then on
+"""rce.transport.cluster_auth: the cluster key file, the control-link handshake (sans I/O, then on
 in-memory streams) and the data-plane credentials. No sockets."""
 from __future__ import annotations
 
@@ -8,9 +8,11 @@ import stat
 import pytest
 from memlink import pipe
 
-from rce import cluster_auth, framing
-from rce.cluster_auth import AuthFailed, ClusterKey, Gate, Handshake
-from rce.errors import ConfigError, ProtocolError, RequestError
+from rce.transport import cluster_auth
+
+from rce.transport import framing
+from rce.transport.cluster_auth import AuthFailed, ClusterKey, Gate, Handshake
+from rce.plumbing.errors import ConfigError, ProtocolError, RequestError
 
 STEP = 5.0          # s, the longest any single wait may take
 KEY, OTHER = ClusterKey.generate(), ClusterKey.generate()

@@ -1,6 +1,6 @@
-"""rce.dataplane: endpoint <-> endpoint links, on in-memory streams (``asyncio.open_connection``
+"""rce.transport.dataplane: endpoint <-> endpoint links, on in-memory streams (``asyncio.open_connection``
 is replaced by a dial into another in-process plane; no sockets). Each plane has its data key, and
-a sender the credential the master would hand it (:mod:`rce.cluster_auth`)."""
+a sender the credential the master would hand it (:mod:`rce.transport.cluster_auth`)."""
 from __future__ import annotations
 
 import asyncio
@@ -8,11 +8,15 @@ import asyncio
 import pytest
 from memlink import pipe
 
-from rce import cluster_auth, dataplane, framing
-from rce.cluster_auth import ClusterKey
-from rce.dataplane import DataPlane
-from rce.errors import NotFound, RequestError, Timeout, Unavailable
-from rce.framing import MSG
+from rce.transport import cluster_auth
+
+from rce.transport import dataplane
+
+from rce.transport import framing
+from rce.transport.cluster_auth import ClusterKey
+from rce.transport.dataplane import DataPlane
+from rce.plumbing.errors import NotFound, RequestError, Timeout, Unavailable
+from rce.transport.framing import MSG
 
 STEP = 5.0   # s, the longest any single wait may take
 KEY = ClusterKey.generate()
@@ -172,7 +176,7 @@ async def test_close_fails_calls_in_flight(net):
     assert b.responder.in_flight == 0
 
 
-# -- only peers the master introduced send (rce.cluster_auth, "Data-plane credentials") ---------------------------
+# -- only peers the master introduced send (rce.transport.cluster_auth, "Data-plane credentials") --------------
 async def raw_link(net: MemNet, addr: str) -> tuple[asyncio.StreamReader, object, bytes]:
     """An attacker's link to the plane at ``addr``: (reader, writer, the nonce it was sent)."""
     host, port = addr.split(":")

@@ -7,8 +7,8 @@ import asyncio
 
 import pytest
 
-from rce.errors import Unavailable
-from rce.tasks import Tasks
+from rce.plumbing.errors import Unavailable
+from rce.plumbing.tasks import Tasks
 from rce_master.control import Control
 from rce_master.failover import Failover
 from rce_master.model import LIMIT_KEYS

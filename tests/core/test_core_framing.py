@@ -1,4 +1,4 @@
-"""rce.framing: the one framing of internal links, decoded sans I/O."""
+"""rce.transport.framing: the one framing of internal links, decoded sans I/O."""
 from __future__ import annotations
 
 import json
@@ -6,9 +6,9 @@ import struct
 
 import pytest
 
-from rce import framing
-from rce.errors import ProtocolError
-from rce.framing import (CONTROL, DATA, MSG, SRV_ERR, SRV_REQ, SRV_RESP, DataFrame, FrameDecoder, decode_body,
+from rce.transport import framing
+from rce.plumbing.errors import ProtocolError
+from rce.transport.framing import (CONTROL, DATA, MSG, SRV_ERR, SRV_REQ, SRV_RESP, DataFrame, FrameDecoder, decode_body,
                          encode_control, encode_data, encode_data_header)
 
 
@@ -155,7 +155,7 @@ def test_decoder_payload_is_a_view_of_the_chunk():
     assert isinstance(df.payload, memoryview) and df.payload.obj is chunk
 
 
-# -- the buffered-protocol way in (rce.link's transport receives straight into the decoder) ----------
+# -- the buffered-protocol way in (rce.transport.link's transport receives straight into the decoder) ----------
 
 def _receive(d: FrameDecoder, stream: bytes, read: int) -> list:
     """Feed ``stream`` as a transport would: into :meth:`get_buffer`, at most ``read`` bytes a time."""

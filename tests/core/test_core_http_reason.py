@@ -1,6 +1,6 @@
-"""rce.errors.http_reason: the one reader of an HTTP error body's reason (client login, the
+"""rce.plumbing.errors.http_reason: the one reader of an HTTP error body's reason (client login, the
 admin-API client, the etcd client)."""
-from rce.errors import http_reason
+from rce.plumbing.errors import http_reason
 
 
 def test_plain_text_gives_its_first_non_empty_line():

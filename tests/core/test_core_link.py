@@ -1,4 +1,4 @@
-"""rce.link: the framed link, serve-and-reply and settle, on in-memory streams (no sockets)."""
+"""rce.transport.link: the framed link, serve-and-reply and settle, on in-memory streams (no sockets)."""
 from __future__ import annotations
 
 import asyncio
@@ -8,11 +8,11 @@ import struct
 import pytest
 from memlink import lone, pipe
 
-from rce import framing
-from rce.errors import NotFound, RequestError, Unavailable
-from rce.framing import CONTROL, MSG, SRV_ERR, SRV_RESP, DataFrame, encode_control, encode_data
-from rce.link import FramedLink, LinkFull, Responder, settle_reply
-from rce.pending import PendingCalls
+from rce.transport import framing
+from rce.plumbing.errors import NotFound, RequestError, Unavailable
+from rce.transport.framing import CONTROL, MSG, SRV_ERR, SRV_RESP, DataFrame, encode_control, encode_data
+from rce.transport.link import FramedLink, LinkFull, Responder, settle_reply
+from rce.plumbing.pending import PendingCalls
 
 STEP = 5.0   # s, the longest any single wait may take
 
@@ -44,7 +44,7 @@ async def test_frames_in_order_then_eof_closes_once():
 async def test_bad_frame_is_logged_and_closes_after_the_good_ones(caplog):
     bad = struct.pack("!IB", 1, 9)
     link, frames, closes = link_on(*lone(encode_control({"first": True}) + bad + encode_control({"never": 1})))
-    with caplog.at_level(logging.WARNING, logger="rce.link"):
+    with caplog.at_level(logging.WARNING, logger="rce.transport.link"):
         link.start()
         await closed(link)
     assert frames == [{"first": True}]
@@ -63,7 +63,7 @@ async def test_a_failing_handler_is_logged_with_its_traceback_and_closes(caplog)
     def boom(frame):
         raise ZeroDivisionError("handler bug")
     link, _, closes = link_on(*lone(encode_control({})), on_frame=boom)
-    with caplog.at_level(logging.ERROR, logger="rce.link"):
+    with caplog.at_level(logging.ERROR, logger="rce.transport.link"):
         link.start()
         await closed(link)
     assert closes == [link] and "ZeroDivisionError" in link.close_reason
@@ -154,7 +154,7 @@ async def test_writes_on_a_closed_link():
 
 
 # -- under pressure: the link's queue (module doc) ----------------------------------------------------
-HIGH = 64 * 1024          # the in-memory transport's high-water mark (rce.link.HIGH_WATER)
+HIGH = 64 * 1024          # the in-memory transport's high-water mark (rce.transport.link.HIGH_WATER)
 
 
 def pressed(**kw) -> tuple[FramedLink, list]:
@@ -261,7 +261,7 @@ async def test_responder_refuses_with_the_rce_error_as_raised():
 async def test_responder_turns_a_crash_into_an_internal_error_and_logs_it(caplog):
     async def handler():
         raise KeyError("k")
-    with caplog.at_level(logging.ERROR, logger="rce.link"):
+    with caplog.at_level(logging.ERROR, logger="rce.transport.link"):
         how, e = await serve(Responder("t"), handler)
     assert how == "refuse" and e.message == "internal error: KeyError: 'k'"
     assert any(r.exc_info and r.exc_info[0] is KeyError for r in caplog.records)

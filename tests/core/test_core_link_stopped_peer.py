@@ -1,4 +1,4 @@
-"""rce.link under a real fault: the peer process is frozen (SIGSTOP) while messages keep coming.
+"""rce.transport.link under a real fault: the peer process is frozen (SIGSTOP) while messages keep coming.
 
 A reader process takes a TCP link on loopback and prints what arrives; the test offers a
 message every millisecond (the rate of a fast sensor topic) and stops the reader with SIGSTOP.
@@ -13,8 +13,8 @@ import os
 import signal
 import sys
 
-from rce import framing
-from rce.link import FramedLink
+from rce.transport import framing
+from rce.transport.link import FramedLink
 
 STEP = 10.0             # s, the longest any single wait may take
 PAYLOAD = 16 * 1024     # bytes per message: the kernel's buffers fill within a few hundred
@@ -22,8 +22,8 @@ MAX_DELAY = 0.2         # s a message may wait in the link's queue
 
 READER = r"""
 import asyncio, sys
-from rce import framing
-from rce.link import FramedLink
+from rce.transport import framing
+from rce.transport.link import FramedLink
 
 async def main(port):
     reader, writer = await asyncio.open_connection("127.0.0.1", port)

@@ -7,7 +7,7 @@ from typing import Any
 
 import pytest
 
-from rce.errors import NotFound, ProtocolError, RequestError, Timeout, Unavailable
+from rce.plumbing.errors import NotFound, ProtocolError, RequestError, Timeout, Unavailable
 from rce_master.control import Control
 from rce_master.model import LIMIT_KEYS
 from rce_master.requests import CN_STEPS, CX_STEPS, REQUESTS, Request, handle

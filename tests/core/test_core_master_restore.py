@@ -8,7 +8,7 @@ from pathlib import Path
 
 import pytest
 
-from rce.errors import RequestError, Unavailable
+from rce.plumbing.errors import RequestError, Unavailable
 from rce.protocol.schema import InterfaceComponent
 from rce_master.reconcile import register
 from rce_master.sqlite_store import SqliteStore

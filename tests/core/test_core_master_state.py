@@ -6,7 +6,7 @@ import json
 
 import pytest
 
-from rce.errors import AuthError, NotFound, RCEError, RequestError, Unavailable
+from rce.plumbing.errors import AuthError, NotFound, RCEError, RequestError, Unavailable
 from rce.protocol.schema import parse
 from rce_master.model import User, password_digest
 from rce_master.state import MasterState

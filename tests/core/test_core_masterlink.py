@@ -1,7 +1,7 @@
-"""rce.masterlink: a task set's control link that outlives its master. The backoff and the
+"""rce.transport.masterlink: a task set's control link that outlives its master. The backoff and the
 address list are pure; the link runs against masters played on in-memory links (no sockets),
 its backoff delays recorded instead of slept, and once over real loopback TCP. Every link,
-re-registrations included, opens with the cluster handshake (:mod:`rce.cluster_auth`)."""
+re-registrations included, opens with the cluster handshake (:mod:`rce.transport.cluster_auth`)."""
 from __future__ import annotations
 
 import asyncio
@@ -10,10 +10,10 @@ import time
 import pytest
 from memlink import pipe
 
-from rce.cluster_auth import AuthFailed, ClusterKey, respond
-from rce.errors import ConfigError, NotLeader, RequestError, Unavailable
-from rce.masterlink import Backoff, MasterLink, parse_masters, unless_stopped
-from rce.rpc import RpcPeer
+from rce.transport.cluster_auth import AuthFailed, ClusterKey, respond
+from rce.plumbing.errors import ConfigError, NotLeader, RequestError, Unavailable
+from rce.transport.masterlink import Backoff, MasterLink, parse_masters, unless_stopped
+from rce.transport.rpc import RpcPeer
 
 STEP = 5.0          # s, the longest any single wait may take
 A, B, C = ("10.0.0.1", 8080), ("10.0.0.2", 8080), ("10.0.0.9", 7000)

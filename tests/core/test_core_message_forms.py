@@ -1,4 +1,4 @@
-"""The original RCE's message forms, both ways (rce.message_forms, rce.messages, rce.message_structure):
+"""The original RCE's message forms, both ways (rce.messages.forms, rce.messages, rce.messages.structure):
 time as ISO 8601 and duration as float seconds, images as PNG/JPEG binary parts, uint8[] as binary
 parts, each client answered in the form it used; forwarded bytes checked without decoding; and
 containerData's ``size`` (a size class) apart from ``pids`` (the task limit)."""
@@ -11,9 +11,9 @@ import numpy as np
 import pytest
 from PIL import Image
 
-from rce import message_forms
-from rce.errors import MessageError
-from rce.message_forms import RCE_FORMS, JsonForms, image_to_bytes, iso_to_time, time_to_iso
+from rce.messages import forms as message_forms
+from rce.plumbing.errors import MessageError
+from rce.messages.forms import RCE_FORMS, JsonForms, image_to_bytes, iso_to_time, time_to_iso
 from rce.messages import MessageRegistry, takes_binary_message
 from rce.protocol import Assembler, encode, validate
 

@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 from rosbags.typesys import Stores, get_typestore
 
-from rce.errors import MessageError
+from rce.plumbing.errors import MessageError
 from rce.messages import MessageRegistry, default_registry, store_name, wire_name
 
 

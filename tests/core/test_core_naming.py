@@ -1,10 +1,10 @@
-"""rce.naming: ROS graph names."""
+"""rce.node.naming: ROS graph names."""
 from __future__ import annotations
 
 import pytest
 
-from rce.errors import RequestError
-from rce.naming import join, resolve, validate_name
+from rce.plumbing.errors import RequestError
+from rce.node.naming import join, resolve, validate_name
 
 
 @pytest.mark.parametrize("name, ns, node, expected", [

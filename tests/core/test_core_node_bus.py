@@ -10,7 +10,7 @@ from memlink import pipe
 import rce.node
 from rce.bus.core import Bus
 from rce.bus.server import BusServer
-from rce.errors import NotFound, RequestError, Timeout
+from rce.plumbing.errors import NotFound, RequestError, Timeout
 
 STEP = 5.0   # s, the longest any single wait may take
 ECHO = "Test/StringEcho"
@@ -102,7 +102,7 @@ async def test_call_timeout_and_a_provider_leaving_mid_call(bus):
 
 
 async def test_a_string_that_is_not_utf8_reaches_a_node_and_goes_back_unchanged(bus):
-    """ROS strings are bytes (rce.ros_strings): the node gets them as surrogate escapes and its
+    """ROS strings are bytes (rce.messages.ros_strings): the node gets them as surrogate escapes and its
     publish serializes them back to the very same bytes, as a rospy node passes them through."""
     b, server, node = bus
     talker, echo, listener = await node("talker"), await node("echo"), await node("listener")

@@ -1,4 +1,4 @@
-"""rce.pending.PendingCalls and rce.tasks.Tasks, sans I/O: the one pending-call table and the
+"""rce.plumbing.pending.PendingCalls and rce.plumbing.tasks.Tasks, sans I/O: the one pending-call table and the
 kept tasks every part of the engine uses."""
 from __future__ import annotations
 
@@ -7,9 +7,9 @@ import logging
 
 import pytest
 
-from rce.errors import RCEError, Timeout, Unavailable
-from rce.pending import PendingCalls
-from rce.tasks import Tasks
+from rce.plumbing.errors import RCEError, Timeout, Unavailable
+from rce.plumbing.pending import PendingCalls
+from rce.plumbing.tasks import Tasks
 
 
 async def test_settle_wakes_the_waiter_and_forgets_the_call():
@@ -96,7 +96,7 @@ async def test_tasks_are_kept_and_failures_logged(caplog):
 
     async def forever():
         await asyncio.Event().wait()
-    with caplog.at_level(logging.WARNING, logger="rce.tasks"):
+    with caplog.at_level(logging.WARNING, logger="rce.plumbing.tasks"):
         t1, t2, t3 = tasks.spawn(boom(), "boom"), tasks.spawn(refuse(), "refuse"), tasks.spawn(forever(), "wait")
         assert len(tasks) == 3
         await asyncio.gather(t1, t2, return_exceptions=True)

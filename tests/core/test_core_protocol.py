@@ -11,8 +11,8 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 from pydantic import ValidationError
 
-from rce.errors import MessageError, ProtocolError, RequestError
-from rce.interface_type import InterfaceType, Kind, Side
+from rce.plumbing.errors import MessageError, ProtocolError, RequestError
+from rce.protocol.interface_type import InterfaceType, Kind, Side
 from rce.protocol import (DEFAULT_EXPIRY, ID_LEN, Assembler, encode, is_part_id, new_id, split_interface_type,
                           validate)
 from rce.protocol import schema
@@ -684,7 +684,7 @@ def test_wire_uses_the_long_keys_only():
 
 
 def test_the_config_builds_on_the_schema_components():
-    from rce.config import ConnectionSpec, ContainerSpec, InterfaceSpec, NodeSpec, ParameterSpec, parse_config
+    from rce.protocol.config import ConnectionSpec, ContainerSpec, InterfaceSpec, NodeSpec, ParameterSpec, parse_config
     from rce.protocol import schema
     for spec, wire in ((ContainerSpec, schema.ContainerComponent), (NodeSpec, schema.NodeComponent),
                        (ParameterSpec, schema.ParameterComponent), (InterfaceSpec, schema.InterfaceComponent),
@@ -708,8 +708,8 @@ def test_the_config_builds_on_the_schema_components():
 
 
 def test_the_same_rule_words_its_error_the_same_on_the_wire_and_in_a_config():
-    from rce.config import parse_config
-    from rce.errors import ConfigError
+    from rce.protocol.config import parse_config
+    from rce.plumbing.errors import ConfigError
     base = {"url": "http://m/", "userID": "u", "password": "p", "robotID": "r"}
     with pytest.raises(ConfigError) as ei:
         parse_config({**base, "nodes": [{"cTag": "c", "nTag": "n", "pkg": "Test", "exe": "e", "respawn": "yes"}]}, "f")

@@ -1,4 +1,4 @@
-"""rce.rpc: the control-plane peer over an in-memory pair of streams (no sockets)."""
+"""rce.transport.rpc: the control-plane peer over an in-memory pair of streams (no sockets)."""
 from __future__ import annotations
 
 import asyncio
@@ -7,9 +7,9 @@ import logging
 import pytest
 from memlink import pipe
 
-from rce.errors import NotFound, ProtocolError, RCEError, Timeout, Unavailable
-from rce.framing import MSG, encode_control, encode_data
-from rce.rpc import RpcPeer
+from rce.plumbing.errors import NotFound, ProtocolError, RCEError, Timeout, Unavailable
+from rce.transport.framing import MSG, encode_control, encode_data
+from rce.transport.rpc import RpcPeer
 
 STEP = 5.0   # s, the longest any single wait may take
 
@@ -100,7 +100,7 @@ async def test_notifications_run_their_handler_and_refusals_are_logged(caplog):
     async def bad(a):
         raise NotFound("unknown container")
     a, _ = await pair(None, {"status": status, "bad": bad})
-    with caplog.at_level(logging.WARNING, logger="rce.rpc"):
+    with caplog.at_level(logging.WARNING, logger="rce.transport.rpc"):
         a.notify("bad")
         a.notify("status", cid=3)
         assert await asyncio.wait_for(got.get(), STEP) == {"cid": 3}

@@ -8,7 +8,7 @@ import math
 
 import pytest
 
-from rce.errors import RequestError
+from rce.plumbing.errors import RequestError
 from rce.protocol.schema import InterfaceComponent, NodeComponent
 from rce_master.model import password_digest
 from rce_master.state import MasterState

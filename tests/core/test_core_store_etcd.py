@@ -18,7 +18,7 @@ from pathlib import Path
 
 import pytest
 
-from rce.errors import ConfigError, NotLeader, RequestError, Unavailable
+from rce.plumbing.errors import ConfigError, NotLeader, RequestError, Unavailable
 from rce_master.election import LEASE_TTL, Election
 from rce_master.etcd import EtcdClient, parse_url, range_end
 from rce_master.etcd_store import EtcdStore

@@ -14,7 +14,7 @@ from pathlib import Path
 
 import pytest
 
-from rce.errors import ConfigError, RequestError, Unavailable
+from rce.plumbing.errors import ConfigError, RequestError, Unavailable
 from rce_master.sqlite_store import LAYOUT, SqliteStore
 from rce_master.store import MemoryStore
 

@@ -1,4 +1,4 @@
-"""rce.tcpproxy.TcpProxy against real loopback sockets: forwarding both ways, half close, cut
+"""rce.transport.tcpproxy.TcpProxy against real loopback sockets: forwarding both ways, half close, cut
 (RST both ways) and refusal, restore, the connection cap, an unreachable target, close."""
 from __future__ import annotations
 
@@ -7,7 +7,7 @@ import socket
 
 import pytest
 
-from rce.tcpproxy import TcpProxy
+from rce.transport.tcpproxy import TcpProxy
 
 WAIT = 5.0      # s, the longest any step of these tests may take on loopback (a hang fails, not blocks)
 

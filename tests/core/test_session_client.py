@@ -8,7 +8,7 @@ import json
 
 import pytest
 
-from rce.errors import ProtocolError, RequestError, Timeout, Unavailable
+from rce.plumbing.errors import ProtocolError, RequestError, Timeout, Unavailable
 from rce.protocol.events import CallFailed, ErrorReceived, MessageReceived, ResponseReceived
 from rce.protocol.session import BARRIER_PREFIX, ClientSession
 

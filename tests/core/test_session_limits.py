@@ -9,7 +9,7 @@ import time
 
 import pytest
 
-from rce.errors import ProtocolError
+from rce.plumbing.errors import ProtocolError
 from rce.protocol.frames import Assembler, parse_frame
 from rce.protocol.limits import (ER_BURST, MAX_ER_TEXT, MAX_JSON_DEPTH, PartBudget, TokenBucket, json_too_deep,
                                  short_repr, truncate)

@@ -10,7 +10,7 @@ import random
 
 import pytest
 
-from rce.errors import ProtocolError
+from rce.plumbing.errors import ProtocolError
 from rce.protocol.resume import TOKEN_BYTES, Incoming, Outgoing, ack_frame, new_token, read_ack, read_seq
 from rce.protocol.events import Deliver, MessageReceived, ServiceCall
 from rce.protocol.session import ClientSession, RobotSession

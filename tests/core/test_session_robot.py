@@ -9,7 +9,7 @@ from pathlib import Path
 
 import pytest
 
-from rce.errors import ProtocolError, RequestError
+from rce.plumbing.errors import ProtocolError, RequestError
 from rce.protocol.frames import ID_LEN, Assembler
 from rce.protocol.limits import PartBudget
 from rce.protocol.events import CaughtUp, CloseLink, Deliver, Lagging, ServiceCall

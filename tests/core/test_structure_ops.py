@@ -1,4 +1,4 @@
-"""The control-plane ops are served from one explicit table per op set (:mod:`rce.op_table`):
+"""The control-plane ops are served from one explicit table per op set (:mod:`rce.transport.op_table`):
 every handler method (``op_*``, ``_op_*``) of a serving class is registered in its table, every
 table entry names a real method, every op the container task set relays is one its environments
 serve, and no handler is found by reflection (``dir()`` scans, ``getattr(self, "_op_" + op)``).
@@ -12,7 +12,7 @@ from pathlib import Path
 import pytest
 
 from rce.bus import server as bus_server
-from rce.op_table import OpTable
+from rce.transport.op_table import OpTable
 from rce_container import environment, host
 from rce_robot import endpoint
 

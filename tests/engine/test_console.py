@@ -70,7 +70,7 @@ def test_users_file_is_hashed_and_loaded(tmp_path):
     assert p.returncode == 0, p.stderr
     text = f.read_text()
     assert "hunter22" not in text and "scrypt" in text and (f.stat().st_mode & 0o777) == 0o600
-    from rce.launch import start_engine
+    from rce.tools.launch import start_engine
     e = start_engine(tmp_path / "eng", robot_tasksets=1, container_hosts=0, master_args=("--users", str(f)))
     try:
         assert login(e.master_url, "bob")["url"].startswith("ws://")

@@ -95,7 +95,7 @@ async def test_forwarder_binary_parts_both_orders(eng):
         part = await r.recv()
         assert dm["msgID"] == "f1" and part[32:] == req
         # large messages back to back: every internal link receives each into a buffer of its own and
-        # hands it on without a copy (rce.framing); none may be overwritten while the next one arrives
+        # hands it on without a copy (rce.transport.framing); none may be overwritten while the next one arrives
         bigs = [bytes(TS.serialize_ros1(TS.types["std_msgs/msg/String"](data=c * 3_000_000), "std_msgs/msg/String"))
                 for c in "xyz"]
         for i, big in enumerate(bigs):

@@ -1,5 +1,5 @@
 """Direct links: a node's topic traffic goes straight between the node and the robot
-endpoint, past its environment (rce_container/direct_routes.py, rce/node_links.py), and back
+endpoint, past its environment (rce_container/direct_routes.py, rce/node/links.py), and back
 through the environment whenever the bus has other subscribers or a link dies.
 
 Real processes on loopback (namespaced sandbox when root), the raw wire protocol."""
@@ -148,7 +148,7 @@ async def test_kill_9_of_a_node_with_direct_links(eng):
 
 async def test_bus_path_when_direct_links_are_off(tmp_path):
     """RCE_DIRECT_LINKS=0: the same echo, every message through the environment."""
-    from rce.launch import start_engine
+    from rce.tools.launch import start_engine
     e = await asyncio.to_thread(start_engine, tmp_path / "engine", env={"RCE_DIRECT_LINKS": "0"})
     try:
         async with RawRobot(e.master_url, "offR") as r:
@@ -170,7 +170,7 @@ async def test_two_subscriber_nodes_share_a_claim_and_a_survivor_misses_nothing(
     of 2), each gets every message once (two echoes per request), none through the
     environment. kill -9 of one: the set is incomplete, so the robot endpoint sends by the
     environment again and the survivor echoes every message; then its set of 1 goes direct."""
-    from rce.launch import start_engine
+    from rce.tools.launch import start_engine
     packages = Path(__file__).resolve().parents[2] / "bench" / "packages"
     eng = await asyncio.to_thread(start_engine, tmp_path / "engine", env={"RCE_PACKAGE_PATH": str(packages)})
     try:

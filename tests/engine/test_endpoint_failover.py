@@ -17,7 +17,7 @@ from urllib.parse import urlsplit
 
 import pytest
 
-from rce.launch import start_engine
+from rce.tools.launch import start_engine
 from rce_client.connection import Connection
 from test_resume import RATE, SETTLE, Echoes, containers, echo_setup, robot_stream
 

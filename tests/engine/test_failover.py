@@ -27,7 +27,7 @@ from typing import Any
 import psutil
 import pytest
 
-from rce.launch import Engine, start_engine
+from rce.tools.launch import Engine, start_engine
 from test_dataflow import _echo_container
 from wsclient import RawRobot
 
@@ -35,8 +35,8 @@ pytestmark = pytest.mark.asyncio
 
 RATE = 10.0             # Hz, the robot's echo requests (the rate of the faults bench)
 RECREATE_BOUND = 10.0   # s, the promise: running again within 10 s of the loss being seen
-SILENCE_BOUND = 6.0     # s, the keepalive verdict on a silent host: rce.rpc.KEEPALIVE_TIMEOUT (4 s), checked every
-                        # KEEPALIVE_INTERVAL (1 s), plus scheduling on a busy machine
+SILENCE_BOUND = 6.0     # s, the keepalive verdict on a silent host: rce.transport.rpc.KEEPALIVE_TIMEOUT (4 s),
+                        # checked every KEEPALIVE_INTERVAL (1 s), plus scheduling on a busy machine
 WAIT = 30.0             # s, the most a test waits for a step that normally takes well under that
 STEADY = 10             # echoes before the fault: the node is subscribed, messages flow
 IN_FLIGHT = 0.5         # s before the fault: a message sent then may still be lost with the host

@@ -24,8 +24,8 @@ import pytest
 from websockets.asyncio.client import connect
 from websockets.exceptions import InvalidStatus
 
-from rce.launch import start_engine
-from rce.masterlink import BACKOFF_CAP
+from rce.tools.launch import start_engine
+from rce.transport.masterlink import BACKOFF_CAP
 from test_master_restart import ECHO, proc, registered, start_master
 from wsclient import RawRobot, login
 

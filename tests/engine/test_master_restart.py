@@ -24,9 +24,9 @@ from urllib.parse import urlsplit
 
 import pytest
 
-from rce import rpc
-from rce.launch import Engine, command, start_engine
-from rce.masterlink import BACKOFF_CAP
+from rce.transport import rpc
+from rce.tools.launch import Engine, command, start_engine
+from rce.transport.masterlink import BACKOFF_CAP
 from wsclient import RawRobot
 
 pytestmark = pytest.mark.asyncio

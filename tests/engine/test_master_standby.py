@@ -32,11 +32,11 @@ from pathlib import Path
 
 import pytest
 
-from rce import rpc
-from rce.admin_client import LEADER_HEADER, AdminClient
-from rce.errors import NotLeader
-from rce.launch import Engine, command, start_engine
-from rce.masterlink import BACKOFF_CAP
+from rce.transport import rpc
+from rce.tools.admin_client import LEADER_HEADER, AdminClient
+from rce.plumbing.errors import NotLeader
+from rce.tools.launch import Engine, command, start_engine
+from rce.transport.masterlink import BACKOFF_CAP
 from test_master_away import RATE, Robot, echo_container, echoing
 from test_master_restart import ECHO, LISTS, FakeRobotTaskSet, http_error
 from wsclient import RawRobot, login

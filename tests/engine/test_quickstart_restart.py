@@ -16,7 +16,7 @@ from pathlib import Path
 
 import pytest
 
-from rce.launch import command, wait_file
+from rce.tools.launch import command, wait_file
 from wsclient import RawRobot
 
 ROOT = Path(__file__).resolve().parents[2]

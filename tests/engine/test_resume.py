@@ -1,5 +1,5 @@
 """Robot session resume (docs/INTERNALS.md "Session resume"), with real
-processes on loopback. The robot's link runs through a TCP proxy the test owns (rce/tcpproxy.py):
+processes on loopback. The robot's link runs through a TCP proxy the test owns (rce/transport/tcpproxy.py):
 ``cut()`` drops every connection (RST both ways) and refuses new ones until ``restore()``.
 
 - A robot (rce_client, ``allow_reconnect``) echoes numbered messages at 10 Hz through a converter
@@ -25,8 +25,8 @@ import pytest
 from websockets.asyncio.client import connect
 from websockets.exceptions import InvalidStatus
 
-from rce.launch import start_engine
-from rce.tcpproxy import TcpProxy
+from rce.tools.launch import start_engine
+from rce.transport.tcpproxy import TcpProxy
 from echo import echo_interfaces
 from rce_client.connection import RECONNECT_WAIT_MAX, Connection
 from wsclient import RawRobot

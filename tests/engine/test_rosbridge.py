@@ -28,7 +28,7 @@ from PIL import Image
 from websockets.asyncio.client import connect
 from websockets.exceptions import InvalidStatus
 
-from rce.errors import ProtocolError, RCEError
+from rce.plumbing.errors import ProtocolError, RCEError
 from rce.messages import default_registry
 from rce.protocol.robot_outbox import CONTROL_BACKLOG
 from rce_robot import ws_cork

@@ -15,7 +15,7 @@ import psutil
 import pytest
 
 from container.harness import make_helper_package
-from rce.launch import start_engine
+from rce.tools.launch import start_engine
 from wsclient import RawRobot
 
 pytestmark = [pytest.mark.asyncio, pytest.mark.timeout(120)]

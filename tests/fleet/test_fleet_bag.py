@@ -10,7 +10,7 @@ import yaml
 from rosbags.rosbag1 import Reader
 
 from rce.messages import MessageRegistry
-from rce.package_path import load_package_types
+from rce.node.package_path import load_package_types
 
 from .test_fleet_e2e import TB3, TB3_MISSION, _explain, run_demo
 

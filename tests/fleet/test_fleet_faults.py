@@ -15,7 +15,7 @@ from __future__ import annotations
 import json
 import subprocess
 
-from rce.masterlink import BACKOFF_CAP
+from rce.transport.masterlink import BACKOFF_CAP
 from rce_client.connection import RECONNECT_WAIT_MAX
 
 from .test_fleet_e2e import RCE_FLEET, _explain, run_demo

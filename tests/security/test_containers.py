@@ -31,8 +31,8 @@ import pytest
 
 from rce.bus.core import Bus
 from rce.bus.server import BusServer
-from rce.errors import AuthError, RequestError
-from rce.rpc import connect_unix
+from rce.plumbing.errors import AuthError, RequestError
+from rce.transport.rpc import connect_unix
 from rce_container import mounts
 from rce_container.node_env import ENV_DIRECTIVE_ALLOWED, RUNTIME_ROOT, node_env
 from tests.container.harness import STEP, ContainerProcess, FakeMaster, has_service, make_helper_package
@@ -101,7 +101,7 @@ def look(victim_runtime, victim_socket, token_file, engine_file):
     }
 
 async def join(path, token):
-    from rce.rpc import connect_unix
+    from rce.transport.rpc import connect_unix
     out = {}
     try:
         peer = await connect_unix(path, name="attacker")

@@ -20,7 +20,7 @@ from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 from websockets.exceptions import ConnectionClosed
 
-from rce.launch import start_engine
+from rce.tools.launch import start_engine
 from security.hostile import Echoer, echo_ready, rss, still_served
 from wsclient import RawRobot
 

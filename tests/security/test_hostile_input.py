@@ -13,7 +13,7 @@ import urllib.request
 
 import pytest
 
-from rce.launch import start_engine
+from rce.tools.launch import start_engine
 from rce.protocol.frames import DEFAULT_MAX_PENDING_PARTS
 from rce.protocol.limits import ER_BURST, ER_RATE, MAX_ER_TEXT, MAX_JSON_DEPTH
 from security.hostile import Echoer, PeakRss, echo_ready, rss, still_served

@@ -19,9 +19,13 @@ import urllib.request
 
 import pytest
 
-from rce import cluster_auth, framing, rpc
-from rce.cluster_auth import AuthFailed, ClusterKey
-from rce.launch import start_engine
+from rce.transport import cluster_auth
+
+from rce.transport import framing
+
+from rce.transport import rpc
+from rce.transport.cluster_auth import AuthFailed, ClusterKey
+from rce.tools.launch import start_engine
 from wsclient import RawRobot, login
 
 STEP = 20.0          # s, the longest any single wait may take

@@ -16,8 +16,8 @@ import pytest
 from websockets.asyncio.client import connect
 from websockets.exceptions import InvalidStatus
 
-from rce.errors import AuthError, Throttled
-from rce.launch import start_engine
+from rce.plumbing.errors import AuthError, Throttled
+from rce.tools.launch import start_engine
 from rce_master import users as users_mod
 from rce_master.login_guard import FailureTable, LoginGuard, PasswordCheck
 from rce_master.model import User, password_digest

@@ -1,5 +1,5 @@
 """TLS at the front door (docs/SECURITY.md): an engine started with ``--tls-cert``/
-``--tls-key`` (a CA and a 127.0.0.1 certificate made at test time, :func:`rce.tls.make_dev_certificates`)
+``--tls-key`` (a CA and a 127.0.0.1 certificate made at test time, :func:`rce.transport.tls.make_dev_certificates`)
 serves login, /metrics and the web page over https and robots and rosbridge clients over wss; login
 hands out wss:// URLs; rce_client echoes through a container over wss with the CA file; a plain-text
 client cannot talk to the TLS ports; a client that trusts another CA fails with a clear error; the
@@ -19,9 +19,9 @@ import pytest
 from websockets.asyncio.client import connect
 from websockets.exceptions import InvalidStatus
 
-from rce import tls
-from rce.errors import ConfigError, Unavailable
-from rce.launch import start_engine
+from rce.transport import tls
+from rce.plumbing.errors import ConfigError, Unavailable
+from rce.tools.launch import start_engine
 from rce_client.connection import Connection, login
 
 WEB_DIR = Path(__file__).resolve().parents[2] / "examples" / "fleet" / "rce_fleet" / "web"
@@ -56,7 +56,7 @@ def test_login_over_https_hands_out_wss_urls(tls_engine):
     assert status == 200 and url == f"wss://127.0.0.1:{tls_engine.robot_ready[0]['ws_port']}/"
     status, metrics = _get(tls_engine.master_url + "metrics", tls_engine.ca_file)
     assert status == 200 and b"rce_master_auth" in metrics
-    assert tls_engine.admin("/api/robots") == []               # the admin API (rce.admin_client) over https
+    assert tls_engine.admin("/api/robots") == []               # the admin API (rce.tools.admin_client) over https
 
 
 async def test_rce_client_echo_over_wss_with_the_ca_file(tls_engine, monkeypatch):

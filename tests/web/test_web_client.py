@@ -10,7 +10,7 @@ from __future__ import annotations
 import pytest
 
 from conftest import WEB_DIR
-from rce.launch import start_engine
+from rce.tools.launch import start_engine
 
 
 @pytest.fixture(scope="module")
@@ -107,13 +107,13 @@ def test_session_binary_parts_with_random_ids(web_root, page):
 
 
 class ThreadedProxy:
-    """rce.tcpproxy's TcpProxy on an event loop of its own thread (the browser tests are synchronous)."""
+    """rce.transport.tcpproxy's TcpProxy on an event loop of its own thread (the browser tests are synchronous)."""
 
     def __init__(self, target: int):
         import asyncio
         import threading
 
-        from rce.tcpproxy import TcpProxy
+        from rce.transport.tcpproxy import TcpProxy
         self.loop = asyncio.new_event_loop()
         self.thread = threading.Thread(target=self.loop.run_forever, name="proxy", daemon=True)
         self.thread.start()

@@ -6,7 +6,7 @@ from __future__ import annotations
 import pytest
 
 from conftest import WEB_DIR
-from rce.launch import start_engine
+from rce.tools.launch import start_engine
 
 
 @pytest.fixture(scope="module")

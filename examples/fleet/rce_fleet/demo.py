@@ -1,6 +1,6 @@
 """``rce-fleet demo`` / ``rce-fleet serve``: the whole fleet system on one machine.
 
-1. The engine as processes on 127.0.0.1 with ephemeral ports (:mod:`rce.launch`):
+1. The engine as processes on 127.0.0.1 with ephemeral ports (:mod:`rce.tools.launch`):
    rce-master ``--dev``, rce-robot, rce-container.
 2. The fleet manager (:mod:`rce_fleet.manager`, robotID ``fleetManager``): the fleet
    container ``cTag_01``, the grid parameter and the ``global_planner`` node.
@@ -49,13 +49,13 @@ from collections import deque
 from dataclasses import dataclass, field
 from pathlib import Path
 
-from rce.errors import RCEError
-from rce.launch import Engine, start_engine
-from rce.log import get_logger, setup_logging
+from rce.plumbing.errors import RCEError
+from rce.tools.launch import Engine, start_engine
+from rce.plumbing.log import get_logger, setup_logging
 from rce.messages import default_registry
-from rce.package_path import load_package_types
-from rce.process import run_loop
-from rce.tasks import Tasks
+from rce.node.package_path import load_package_types
+from rce.plumbing.process import run_loop
+from rce.plumbing.tasks import Tasks
 from rce_client.bag import BagRecorder, record_container
 from rce_client.connection import Connection
 

@@ -6,10 +6,10 @@ SPEC, with T in sim s after the goals were sent (as ``--block``) and S in wall s
 real time, not simulated):
 
 * ``master@T[+S]``: kill -9 rce-master, wait S s (default :data:`MASTER_DOWN_S`), start it again on
-  the same ports and ``--state`` file (:meth:`rce.launch.Engine.restart_master`). Served again:
+  the same ports and ``--state`` file (:meth:`rce.tools.launch.Engine.restart_master`). Served again:
   every task set has re-registered and login answers 200.
 * ``link:ROBOT@T[+S]``: cut ROBOT's websocket for S s (default :data:`LINK_CUT_S`) at the loopback
-  proxy the demo runs between that robot's bridge and rce-robot (:mod:`rce.tcpproxy`, its login
+  proxy the demo runs between that robot's bridge and rce-robot (:mod:`rce.transport.tcpproxy`, its login
   through :mod:`rce_fleet.linkproxy`).
   Served again: the robot's session is resumed (``ST session resumed``).
 
@@ -28,11 +28,11 @@ import time
 from dataclasses import dataclass, field
 from typing import Callable
 
-from rce.errors import RCEError
-from rce.launch import Engine
-from rce.log import get_logger
-from rce.tasks import Tasks
-from rce.tcpproxy import TcpProxy
+from rce.plumbing.errors import RCEError
+from rce.tools.launch import Engine
+from rce.plumbing.log import get_logger
+from rce.plumbing.tasks import Tasks
+from rce.transport.tcpproxy import TcpProxy
 from rce_client.connection import Connection, login
 
 from .linkproxy import LoginRelay

@@ -15,7 +15,7 @@ import argparse
 import asyncio
 import time
 
-from rce.log import get_logger, setup_logging
+from rce.plumbing.log import get_logger, setup_logging
 from rce.node import node_argv
 
 from .battery import BATTERY_PARAM, BatteryParams

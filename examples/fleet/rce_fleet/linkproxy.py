@@ -1,4 +1,4 @@
-"""A robot's login for a link through a loopback proxy the demo runs (:class:`rce.tcpproxy.TcpProxy`),
+"""A robot's login for a link through a loopback proxy the demo runs (:class:`rce.transport.tcpproxy.TcpProxy`),
 so ``rce-fleet demo --fault link:RobotN@T`` can cut it (:mod:`rce_fleet.faults`).
 
 :class:`LoginRelay`: the robot's login URL. It passes ``GET /?userID=..&version=..`` on to the

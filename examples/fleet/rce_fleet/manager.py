@@ -30,8 +30,8 @@ from __future__ import annotations
 import asyncio
 from typing import Callable
 
-from rce.errors import RCEError, Unavailable
-from rce.log import get_logger
+from rce.plumbing.errors import RCEError, Unavailable
+from rce.plumbing.log import get_logger
 from rce_client.connection import Connection
 
 from .configs import FLEET_CTAG, PASSWORD, USER

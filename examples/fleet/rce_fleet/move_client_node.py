@@ -11,7 +11,7 @@ from __future__ import annotations
 import argparse
 import asyncio
 
-from rce.log import get_logger, setup_logging
+from rce.plumbing.log import get_logger, setup_logging
 from rce.node import node_argv
 
 from .geometry import yaw_from_quaternion

@@ -5,7 +5,7 @@ from __future__ import annotations
 import asyncio
 from typing import Any, Iterable, NamedTuple
 
-from rce.errors import Unavailable
+from rce.plumbing.errors import Unavailable
 
 from .geometry import GRID_PARAM, GridGeometry
 

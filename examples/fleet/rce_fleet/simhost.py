@@ -38,10 +38,10 @@ from typing import Callable
 
 import numpy as np
 
-from rce.config import parse_config
-from rce.log import get_logger
+from rce.protocol.config import parse_config
+from rce.plumbing.log import get_logger
 from rce.messages import MessageRegistry
-from rce.tasks import Tasks
+from rce.plumbing.tasks import Tasks
 from rce_client.rce_ros import RobotBridge
 
 from .battery import BATTERY_TOPIC, T_BATTERY, Battery, BatteryParams

@@ -64,7 +64,7 @@ def _line(t: dict) -> str:
 
 
 async def _run(args) -> int:
-    from rce.errors import RCEError
+    from rce.plumbing.errors import RCEError
     from rce_client.connection import Connection
 
     from .tasks_client import TaskChannel, TaskRefused
@@ -117,7 +117,7 @@ async def _run(args) -> int:
 
 def run_task(args) -> int:
     """Run ``rce-fleet task ...`` (module docstring); returns the exit code."""
-    from rce.log import setup_logging
+    from rce.plumbing.log import setup_logging
     setup_logging()
     import logging
     logging.getLogger("rce.client").setLevel(logging.WARNING)

@@ -25,7 +25,7 @@ import os
 import re
 from typing import Callable
 
-from rce.errors import RCEError, Unavailable
+from rce.plumbing.errors import RCEError, Unavailable
 
 __all__ = ["ANSWER_TIMEOUT_S", "TaskChannel", "TaskRefused"]
 

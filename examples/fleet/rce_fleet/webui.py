@@ -31,8 +31,8 @@ from pathlib import Path
 
 from aiohttp import web
 
-from rce.errors import RCEError, Unavailable
-from rce.log import get_logger
+from rce.plumbing.errors import RCEError, Unavailable
+from rce.plumbing.log import get_logger
 from rce_client.connection import Connection
 
 from .geometry import GridGeometry, components

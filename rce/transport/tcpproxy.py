@@ -32,7 +32,7 @@ import struct
 import time
 from typing import Callable
 
-from rce.log import get_logger
+from rce.plumbing.log import get_logger
 
 log = get_logger("rce.tcpproxy")
 

@@ -20,7 +20,7 @@ be neither replayed on another link nor reflected back), compared with
 
 ``key_id`` (a 32-bit HMAC of a fixed label, which reveals nothing of the key) lets both ends
 say "the keys differ" instead of a bare refusal. :class:`Handshake` is the sans-I/O state of one
-side; :func:`initiate` and :class:`Gate` run it on a stream (frames of :mod:`rce.framing`, read
+side; :func:`initiate` and :class:`Gate` run it on a stream (frames of :mod:`rce.transport.framing`, read
 exactly, so nothing of what follows the handshake is consumed).
 
 **Data-plane credentials.** Each data-plane endpoint (a robot task set, an environment) has a
@@ -46,11 +46,11 @@ from collections import Counter
 from collections.abc import Callable
 from pathlib import Path
 
-from rce import framing
-from rce.errors import ConfigError, ProtocolError, RCEError, RequestError, Timeout
-from rce.link import nodelay
-from rce.log import get_logger
-from rce.process import create_private_file
+from rce.transport import framing
+from rce.plumbing.errors import ConfigError, ProtocolError, RCEError, RequestError, Timeout
+from rce.transport.link import nodelay
+from rce.plumbing.log import get_logger
+from rce.plumbing.process import create_private_file
 
 log = get_logger("rce.cluster_auth")
 
@@ -175,7 +175,7 @@ def connection_token(data_key: bytes, src: int, dst: int) -> bytes:
 
 def token_of(args: dict) -> bytes:
     """The credential of a ``connect`` op's arguments (``token``: hex). Raises
-    :class:`~rce.errors.RequestError` naming what is wrong."""
+    :class:`~rce.plumbing.errors.RequestError` naming what is wrong."""
     try:
         token = bytes.fromhex(args.get("token") or "")
     except (TypeError, ValueError):
@@ -324,7 +324,7 @@ async def initiate(reader: asyncio.StreamReader, writer: asyncio.StreamWriter, k
                    purpose: str = CONTROL, timeout: float = HANDSHAKE_TIMEOUT) -> None:
     """Run the initiator's side on a fresh stream. Raises :class:`AuthFailed` (the peer refused
     us, or proved nothing), :class:`ProtocolError` (it speaks something else; e.g. an older
-    master), :class:`~rce.errors.Timeout` after ``timeout`` s, or an :class:`OSError`
+    master), :class:`~rce.plumbing.errors.Timeout` after ``timeout`` s, or an :class:`OSError`
     (including EOF: :class:`asyncio.IncompleteReadError`)."""
     hs = Handshake(key, "initiator", purpose)
     try:
@@ -343,7 +343,7 @@ async def initiate(reader: asyncio.StreamReader, writer: asyncio.StreamWriter, k
 async def respond(reader: asyncio.StreamReader, writer: asyncio.StreamWriter, key: ClusterKey,
                   purpose: str = CONTROL, timeout: float = HANDSHAKE_TIMEOUT) -> None:
     """Run the responder's side; a failure is told to the peer (``refused``) before it is raised
-    (:class:`AuthFailed`, :class:`ProtocolError`, :class:`~rce.errors.Timeout`, :class:`OSError`)."""
+    (:class:`AuthFailed`, :class:`ProtocolError`, :class:`~rce.plumbing.errors.Timeout`, :class:`OSError`)."""
     hs = Handshake(key, "responder", purpose)
     try:
         async with asyncio.timeout(timeout):

@@ -25,7 +25,7 @@ from collections.abc import Callable, Iterator
 from dataclasses import dataclass
 from typing import Any
 
-from rce.rpc import Handler
+from rce.transport.rpc import Handler
 
 
 @dataclass(frozen=True)
@@ -82,7 +82,7 @@ class OpTable:
         return [op.name for op in self if op.relayed]
 
     def handlers(self, obj: Any, *, unauthenticated: bool = False) -> dict[str, Handler]:
-        """Op name -> handler bound to ``obj``, for :attr:`rce.rpc.RpcPeer.handlers`: every op, or
+        """Op name -> handler bound to ``obj``, for :attr:`rce.transport.rpc.RpcPeer.handlers`: every op, or
         with ``unauthenticated`` only those served before the peer is admitted."""
         out: dict[str, Handler] = {}
         for op in self:

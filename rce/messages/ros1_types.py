@@ -25,9 +25,9 @@ from __future__ import annotations
 from dataclasses import dataclass
 from typing import Any, Callable
 
-from rce.errors import ConfigError, MessageError
+from rce.plumbing.errors import ConfigError, MessageError
 from rce.messages import MessageRegistry
-from rce.ros1 import import_rospy
+from rce.node.ros1 import import_rospy
 
 #: The separator between the parts of a full message definition (genmsg ``compute_full_text``).
 DEFINITION_SEPARATOR = "\n" + "=" * 80 + "\n"

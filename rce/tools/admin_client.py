@@ -1,5 +1,5 @@
 """The one client of the master's admin API (routes: :mod:`rce_master.admin`), for rce-console,
-rce-topic/rce-service ``--container``, the engine launcher (:mod:`rce.launch`) and the benchmarks.
+rce-topic/rce-service ``--container``, the engine launcher (:mod:`rce.tools.launch`) and the benchmarks.
 
 JSON in and out, ``Authorization: Bearer TOKEN``. Blocking (:meth:`AdminClient.request`, for
 command lines and test or bench harnesses) or asyncio (:meth:`AdminClient.arequest`, for rce-topic,
@@ -34,8 +34,8 @@ from typing import Any
 
 import aiohttp
 
-from rce import tls
-from rce.errors import AuthError, NotFound, RCEError, RequestError, Timeout, Unavailable, http_reason
+from rce.transport import tls
+from rce.plumbing.errors import AuthError, NotFound, RCEError, RequestError, Timeout, Unavailable, http_reason
 
 TIMEOUT = 30.0        # s, an admin API request, on top of the op's own timeout (a bus call's, a sample's)
 TOKEN_ENV = "RCE_ADMIN_TOKEN"
@@ -154,7 +154,7 @@ class AdminClient:
     def from_options(cls, base: str | Sequence[str], token: str | None = None,
                      token_path: Path | None = None, ca_file: Path | None = None) -> "AdminClient":
         """A client with the token :func:`find_token` finds, trusting ``ca_file`` for an https://
-        master (:func:`rce.tls.client_context`). Raises :class:`AuthError` when there is no token,
+        master (:func:`rce.transport.tls.client_context`). Raises :class:`AuthError` when there is no token,
         :class:`ConfigError` when the CA file cannot be read."""
         return cls(base, find_token(token, token_path), ssl_context=tls.client_context(ca_file) if ca_file else None)
 

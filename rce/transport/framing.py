@@ -15,7 +15,7 @@ import sys
 from collections.abc import Iterator
 from dataclasses import dataclass
 
-from rce.errors import ProtocolError
+from rce.plumbing.errors import ProtocolError
 
 CONTROL = 1
 DATA = 2

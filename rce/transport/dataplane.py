@@ -4,11 +4,11 @@ environment <-> environment); the master carries no data.
 Every endpoint process (an rce-robot task set, an environment) runs one
 :class:`DataPlane`: a TCP listener for incoming links, and one outgoing link per
 peer address, opened on first use. Frames are DATA frames of
-:mod:`rce.framing` addressed by interface id (``dst``), so one link carries every
+:mod:`rce.transport.framing` addressed by interface id (``dst``), so one link carries every
 connection between the two processes. Topic messages and service requests go on the
 links a process dialled; a service's reply goes back on the link its request came in on.
 
-Only peers the master introduced send (:mod:`rce.cluster_auth`, "Data-plane credentials"):
+Only peers the master introduced send (:mod:`rce.transport.cluster_auth`, "Data-plane credentials"):
 
 - the acceptor of a link first sends ``{"nonce": hex}``; the dialler holds its frames until
   then;
@@ -35,10 +35,10 @@ answered ``{"released": x}`` (every frame for ``x`` sent before it has gone ahea
 without such a grant closes the link (``unauthenticated``); claims end with their link.
 
 What receives frames registers here by id as a :class:`Receiver` (the interfaces of
-:mod:`rce.interfaces`). Outgoing links are bounded (``max_buffer`` bytes waiting in the
+:mod:`rce.protocol.interfaces`). Outgoing links are bounded (``max_buffer`` bytes waiting in the
 socket, or in the backlog while the link connects); a message that would pass the bound
-is dropped and counted (:meth:`rce.link.FramedLink.offer`), and so is one that waited longer
-than :data:`rce.link.DEFAULT_MAX_DELAY` for a peer that does not keep up (oldest first:
+is dropped and counted (:meth:`rce.transport.link.FramedLink.offer`), and so is one that waited longer
+than :data:`rce.transport.link.DEFAULT_MAX_DELAY` for a peer that does not keep up (oldest first:
 the peer gets the newest messages).
 """
 from __future__ import annotations
@@ -48,11 +48,13 @@ import collections
 import secrets
 from typing import Protocol
 
-from rce import cluster_auth, framing
-from rce.errors import ProtocolError, RCEError, Unavailable
-from rce.link import DEFAULT_MAX_BUFFER, STREAM_LIMIT, FramedLink, LinkFull, Responder, nodelay, settle_reply
-from rce.log import get_logger
-from rce.pending import PendingCalls
+from rce.transport import cluster_auth
+
+from rce.transport import framing
+from rce.plumbing.errors import ProtocolError, RCEError, Unavailable
+from rce.transport.link import DEFAULT_MAX_BUFFER, STREAM_LIMIT, FramedLink, LinkFull, Responder, nodelay, settle_reply
+from rce.plumbing.log import get_logger
+from rce.plumbing.pending import PendingCalls
 
 log = get_logger("rce.dataplane")
 
@@ -259,7 +261,7 @@ class _Accepted:
 class DataPlane:
     """One process's data-plane endpoint. ``name`` names it in logs; ``max_buffer``: bytes that
     may wait per outgoing link; ``max_frame``: largest frame accepted, bytes; ``data_key``: this
-    endpoint's data key (:meth:`rce.cluster_auth.ClusterKey.data_key` of its address; until it is
+    endpoint's data key (:meth:`rce.transport.cluster_auth.ClusterKey.data_key` of its address; until it is
     set, every grant is refused); ``grant_timeout``: s an accepted link may go without a valid
     grant. ``interfaces`` maps interface ids to their :class:`Receiver`;
     ``credentials`` maps ``(src, dst)`` to the credential that lets local interface ``src`` send
@@ -359,8 +361,8 @@ class DataPlane:
         """Send a service request to interface ``dst`` at ``addr`` and await the response bytes.
 
         Raises :class:`Unavailable` when the request is dropped (the link to the provider is
-        saturated or gone, or no credential), :class:`~rce.errors.Timeout` after ``timeout`` s,
-        :class:`~rce.errors.RequestError` with the provider's reason on a failed call."""
+        saturated or gone, or no credential), :class:`~rce.plumbing.errors.Timeout` after ``timeout`` s,
+        :class:`~rce.plumbing.errors.RequestError` with the provider's reason on a failed call."""
         def send(cid: int) -> None:
             if not self.send(addr, framing.SRV_REQ, dst, src, cid, payload):
                 raise Unavailable("service request dropped: the link to the provider is saturated or unauthorised")
@@ -432,7 +434,7 @@ class DataPlane:
 
     def _lost(self, nbytes: int | None) -> None:
         """A frame a link took was dropped from its queue (the peer is not keeping up,
-        :mod:`rce.link`): ``nbytes`` the payload bytes of a message counted as sent, None for a reply."""
+        :mod:`rce.transport.link`): ``nbytes`` the payload bytes of a message counted as sent, None for a reply."""
         self.dropped += 1
         if nbytes is not None:
             self.msgs_out -= 1
@@ -441,7 +443,8 @@ class DataPlane:
     def stats(self) -> dict:
         """``{msgs_in, msgs_out, bytes_in, bytes_out, dropped, refused, unauthenticated, links, claims}``:
         ``dropped`` includes what waited past a link's ``max_delay`` for a peer that did not keep up
-        (:mod:`rce.link`); ``refused`` frames from senders not connected to their interface, ``unauthenticated``
+        (:mod:`rce.transport.link`); ``refused`` frames from senders not connected to their interface,
+        ``unauthenticated``
         links closed for a wrong credential, ``links`` outgoing, ``claims`` interfaces reached on
         direct links (module doc)."""
         return {"msgs_in": self.msgs_in, "msgs_out": self.msgs_out, "bytes_in": self.bytes_in,

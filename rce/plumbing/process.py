@@ -9,8 +9,8 @@ import sys
 from pathlib import Path
 from typing import Any, Awaitable, Callable
 
-from rce.errors import RCEError
-from rce.log import setup_logging
+from rce.plumbing.errors import RCEError
+from rce.plumbing.log import setup_logging
 
 
 def write_ready_file(path: Path | None, data: dict) -> None:

@@ -10,11 +10,11 @@ from __future__ import annotations
 
 from enum import StrEnum
 
-from rce.errors import ProtocolError, RequestError
+from rce.plumbing.errors import ProtocolError, RequestError
 
 
 class Kind(StrEnum):
-    """What an interface does, named on the side where it acts (:mod:`rce.interfaces`)."""
+    """What an interface does, named on the side where it acts (:mod:`rce.protocol.interfaces`)."""
     SERVICE_CLIENT = "ServiceClient"
     SERVICE_PROVIDER = "ServiceProvider"
     PUBLISHER = "Publisher"

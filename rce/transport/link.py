@@ -1,13 +1,13 @@
 """The link layer: what every internal link (control plane, data plane, node <-> bus) does
 with its stream, written once.
 
-- :class:`FramedLink` owns one stream (TCP or Unix socket) carrying :mod:`rce.framing`
-  frames: its transport receives straight into a :class:`~rce.framing.FrameDecoder`'s buffers
+- :class:`FramedLink` owns one stream (TCP or Unix socket) carrying :mod:`rce.transport.framing`
+  frames: its transport receives straight into a :class:`~rce.transport.framing.FrameDecoder`'s buffers
   (a buffered protocol: a large frame lands in a buffer of its own and is handed on without a
   copy), bounded writes with an explicit policy for a full link, one idempotent close.
 - :class:`Responder` runs the handler of each incoming request (a control op, a data-plane
   ``SRV_REQ``, a bus service call) in a kept task and sends back its result or its error.
-- :func:`settle_reply` completes a pending service call (:class:`~rce.pending.PendingCalls`)
+- :func:`settle_reply` completes a pending service call (:class:`~rce.plumbing.pending.PendingCalls`)
   from its ``SRV_RESP``/``SRV_ERR`` frame.
 
 Write policy (``max_buffer``: bytes that may wait in the transport, the peer not reading):
@@ -19,7 +19,7 @@ Write policy (``max_buffer``: bytes that may wait in the transport, the peer not
   requests and replies): they may pass ``max_buffer`` (so they still get through a link
   that offered messages keep full) up to ``hard_buffer`` (default twice ``max_buffer``);
   past that it raises :class:`LinkFull` and the caller decides (a request fails to its
-  caller; :mod:`rce.rpc` cuts a link whose peer no longer reads even those).
+  caller; :mod:`rce.transport.rpc` cuts a link whose peer no longer reads even those).
 
 A frame always goes onto an idle link, whatever its size (``max_frame`` bounds frames).
 
@@ -43,11 +43,11 @@ import socket
 from collections.abc import Awaitable, Callable, Iterator
 from typing import Any
 
-from rce import framing
-from rce.errors import ProtocolError, RCEError, RequestError, Unavailable
-from rce.log import get_logger
-from rce.pending import PendingCalls
-from rce.tasks import Tasks
+from rce.transport import framing
+from rce.plumbing.errors import ProtocolError, RCEError, RequestError, Unavailable
+from rce.plumbing.log import get_logger
+from rce.plumbing.pending import PendingCalls
+from rce.plumbing.tasks import Tasks
 
 log = get_logger("rce.link")
 
@@ -69,7 +69,7 @@ class LinkFull(Unavailable):
 class FramedLink:
     """One framed stream. ``reader``/``writer``: the asyncio stream pair; ``name`` names the
     peer in logs and errors; ``on_frame(frame)`` gets every frame received, in order (a dict
-    for CONTROL, a :class:`~rce.framing.DataFrame` whose payload is a view of the received
+    for CONTROL, a :class:`~rce.transport.framing.DataFrame` whose payload is a view of the received
     bytes for DATA); ``on_close(link)`` runs once when the link ends; ``max_frame``: largest
     frame accepted, bytes; ``max_buffer`` and ``hard_buffer``: write bounds of :meth:`offer`
     and :meth:`send`, bytes, counting what waits in the transport and in the link's queue;
@@ -313,7 +313,7 @@ def _write(transport: asyncio.WriteTransport, frame: bytes, payload: bytes | mem
 
 class _Receiver(asyncio.BufferedProtocol):
     """A started :class:`FramedLink`'s protocol (asyncio ``BufferedProtocol``): the transport
-    receives into :meth:`rce.framing.FrameDecoder.get_buffer`, a large frame straight into its
+    receives into :meth:`rce.transport.framing.FrameDecoder.get_buffer`, a large frame straight into its
     own buffer. Flow control and the end of the connection are passed on to the stream's
     protocol ``stream`` as well, so the link's ``StreamWriter`` (``drain``, ``wait_closed``)
     works as before."""

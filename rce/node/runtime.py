@@ -17,7 +17,7 @@ A node connects to its bus (a container's environment, or the robot's local bus
 under ``rce-ros``) through the Unix socket named by ``RCE_BUS`` (or ``bus=``).
 Its name and namespace come from the arguments, ``RCE_NODE_NAME`` /
 ``RCE_NAMESPACE``, or ROS-style ``__name:=`` / ``__ns:=`` command-line
-remappings. Names resolve as in ROS (:mod:`rce.naming`).
+remappings. Names resolve as in ROS (:mod:`rce.node.naming`).
 
 Messages handed to callbacks are rosbags typestore instances (attribute access
 like rospy messages); ``publish`` and service handlers accept an instance or a
@@ -34,16 +34,18 @@ import sys
 import weakref
 from typing import Any, Awaitable, Callable
 
-from rce import framing, rpc
-from rce.errors import MessageError, NotFound, RCEError, Unavailable
-from rce.link import Responder, settle_reply
+from rce.transport import framing
+
+from rce.transport import rpc
+from rce.plumbing.errors import MessageError, NotFound, RCEError, Unavailable
+from rce.transport.link import Responder, settle_reply
 from rce.messages import MessageRegistry, default_registry, wire_name
-from rce.naming import join, resolve
-from rce.node_links import DirectLinks
-from rce.package_path import load_package_types, search_path
-from rce.pending import PendingCalls
-from rce.process import run_loop
-from rce.tasks import Tasks
+from rce.node.naming import join, resolve
+from rce.node.links import DirectLinks
+from rce.node.package_path import load_package_types, search_path
+from rce.plumbing.pending import PendingCalls
+from rce.plumbing.process import run_loop
+from rce.plumbing.tasks import Tasks
 
 _NO = object()
 #: registry -> :func:`definitions_key` of the package types loaded into it (a node forked by a
@@ -53,7 +55,7 @@ SERVICE_TIMEOUT = 30.0   # s a service call waits for its response unless the ca
 
 
 def definitions_key(env: dict | None = None) -> tuple:
-    """What :func:`rce.package_path.load_package_types` would read: ``(path, size, mtime_ns)``
+    """What :func:`rce.node.package_path.load_package_types` would read: ``(path, size, mtime_ns)``
     of every ``msg``/``srv`` definition file of the packages on the path (``env``: default
     :data:`os.environ`), in its order. Equal keys mean the same definitions."""
     out = []
@@ -126,12 +128,12 @@ class Publisher:
 
     def _direct(self, payload: bytes) -> int:
         """Send ``payload`` on this publisher's direct route, if it has one; the ``src`` of its bus
-        frame, or -1 for none (:meth:`rce.node_links.DirectLinks.publish`)."""
+        frame, or -1 for none (:meth:`rce.node.links.DirectLinks.publish`)."""
         direct = self.node._direct
         return direct.publish(self.handle, payload) if direct is not None else 0
 
     def _head(self, payload: bytes, src: int = 0) -> bytes:
-        """``src``: 0, or the direct route's version (:mod:`rce.node_links`)."""
+        """``src``: 0, or the direct route's version (:mod:`rce.node.links`)."""
         return framing.encode_data_header(framing.MSG, self.handle, src, 0, len(payload))
 
     async def unregister(self) -> None:
@@ -189,7 +191,7 @@ class ServiceProxy:
     async def __call__(self, request: Any = None, timeout: float | None = SERVICE_TIMEOUT) -> Any:
         """Call with ``request`` (instance or dict; None = empty request). Raises the provider's
         :class:`RCEError`, :class:`NotFound` when the service is absent, and
-        :class:`~rce.errors.Timeout` after ``timeout`` s."""
+        :class:`~rce.plumbing.errors.Timeout` after ``timeout`` s."""
         payload = self.node._encode(self.req_type, {} if request is None else request)
         if self.handle is None:
             r = await self.node._peer.call("resolve_service", service=self.name)
@@ -223,7 +225,7 @@ class Node:
         r = await self._peer.call("hello", name=self.full_name, pid=os.getpid(),
                                   container=os.environ.get("RCE_CONTAINER"), token=self.bus_token, direct=True)
         key = r.get("fd_key") if isinstance(r, dict) else None
-        if isinstance(key, str):             # the environment offers direct links (rce.node_links)
+        if isinstance(key, str):             # the environment offers direct links (rce.node.links)
             direct = DirectLinks(self)
             self._peer.handlers.update(direct.handlers())
             try:
@@ -253,7 +255,7 @@ class Node:
         return self.registry.serialize(typename, msg)
 
     def _send(self, op: int, dst: int, payload: bytes, call_id: int = 0) -> None:
-        """A service request or reply: must not be lost (:meth:`rce.rpc.RpcPeer.send_raw`)."""
+        """A service request or reply: must not be lost (:meth:`rce.transport.rpc.RpcPeer.send_raw`)."""
         self._peer.send_raw(framing.encode_data_header(op, dst, 0, call_id, len(payload)), payload)
 
     async def _call(self, handle: int, payload: bytes, timeout: float | None) -> bytes:
@@ -382,7 +384,7 @@ async def init_node(name: str | None = None, *, namespace: str | None = None, bu
     ``name``/``namespace`` default to ``__name:=``/``__ns:=`` remappings, then ``RCE_NODE_NAME``/
     ``RCE_NAMESPACE``; ``bus`` to ``RCE_BUS``; the bus token (a container's bus admits only
     its own nodes) is ``RCE_BUS_TOKEN``. Raises :class:`Unavailable` if no bus is reachable,
-    :class:`~rce.errors.AuthError` if the bus refuses the token."""
+    :class:`~rce.plumbing.errors.AuthError` if the bus refuses the token."""
     remaps = _argv_remaps(sys.argv[1:] if argv is None else argv)
     name = remaps.get("__name") or os.environ.get("RCE_NODE_NAME") or name or "node"
     namespace = remaps.get("__ns") or os.environ.get("RCE_NAMESPACE") or namespace or "/"

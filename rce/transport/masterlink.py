@@ -5,15 +5,15 @@ A :class:`MasterLink` dials one of a list of masters and registers. When the lin
 master died, restarted, or was replaced by a standby) the task set keeps running: the link
 dials again with exponential backoff and jitter (:class:`Backoff`), with no limit on
 attempts, and re-registers with the ``tid`` of its first registration and a report of what it
-holds. Every link opens with the cluster handshake (:mod:`rce.cluster_auth`): the master
+holds. Every link opens with the cluster handshake (:mod:`rce.transport.cluster_auth`): the master
 proves it holds the cluster key before anything is said, and so does the task set. A master that
 stands by refuses ``register`` naming the leader
-(:class:`~rce.errors.NotLeader`): the link goes there at once.
+(:class:`~rce.plumbing.errors.NotLeader`): the link goes there at once.
 
 While the master is away:
 
 - :meth:`MasterLink.call` waits for it, up to ``master_wait`` s, then raises
-  :class:`~rce.errors.Unavailable` ("the master is unavailable (waited 30 s)");
+  :class:`~rce.plumbing.errors.Unavailable` ("the master is unavailable (waited 30 s)");
 - :meth:`MasterLink.notify` with ``keep=True`` puts the notification in a bounded backlog
   (the oldest go first when it is full, counted in ``dropped``), sent in order right after
   the next registration; other notifications are dropped;
@@ -31,12 +31,14 @@ from collections import deque
 from collections.abc import Awaitable, Callable
 from typing import Any, TypeVar
 
-from rce import framing, rpc
-from rce.cluster_auth import AuthFailed, ClusterKey, initiate
-from rce.errors import ConfigError, NotLeader, RCEError, RequestError, Unavailable
-from rce.link import STREAM_LIMIT, nodelay
-from rce.log import get_logger
-from rce.tasks import Tasks
+from rce.transport import framing
+
+from rce.transport import rpc
+from rce.transport.cluster_auth import AuthFailed, ClusterKey, initiate
+from rce.plumbing.errors import ConfigError, NotLeader, RCEError, RequestError, Unavailable
+from rce.transport.link import STREAM_LIMIT, nodelay
+from rce.plumbing.log import get_logger
+from rce.plumbing.tasks import Tasks
 
 log = get_logger("rce.masterlink")
 T = TypeVar("T")
@@ -148,9 +150,9 @@ class MasterLink:
     ``dial(addr)`` opens the streams of one attempt and ``sleep(s)`` waits out a backoff delay
     (defaults: TCP and :func:`asyncio.sleep`; tests replace them).
 
-    ``cluster_key``: the :class:`~rce.cluster_auth.ClusterKey` both ends prove they hold on every
+    ``cluster_key``: the :class:`~rce.transport.cluster_auth.ClusterKey` both ends prove they hold on every
     new link, before ``register``; a master that refuses it at the first registration is a
-    mistake (:class:`~rce.cluster_auth.AuthFailed` from :meth:`start`), later it is logged and
+    mistake (:class:`~rce.transport.cluster_auth.AuthFailed` from :meth:`start`), later it is logged and
     dialled again.
 
     ``tid``, ``address`` (where it registered last), ``attempts`` (dials), ``registrations``,
@@ -216,7 +218,7 @@ class MasterLink:
     async def call(self, op: str, timeout: float | None = rpc.CALL_TIMEOUT, **args: Any) -> Any:
         """Send request ``op`` once the master is here (waiting up to ``master_wait`` s) and await
         its result. Raises :class:`Unavailable` when the master stays away or goes away before it
-        answers, the master's :class:`RCEError`, or :class:`~rce.errors.Timeout` after ``timeout`` s."""
+        answers, the master's :class:`RCEError`, or :class:`~rce.plumbing.errors.Timeout` after ``timeout`` s."""
         return await self.request(op, args, timeout)
 
     async def request(self, op: str, args: dict, timeout: float | None = rpc.CALL_TIMEOUT) -> Any:

@@ -14,7 +14,7 @@ import os
 import sys
 from types import ModuleType
 
-from rce.errors import ConfigError
+from rce.plumbing.errors import ConfigError
 
 #: Where Debian's python3-* ROS 1 packages live; ``RCE_ROS1_PYTHONPATH`` (os.pathsep-separated)
 #: overrides it, for a ROS install elsewhere.

@@ -16,10 +16,10 @@ import os
 from importlib import metadata
 from pathlib import Path
 
-from rce.errors import NotFound, RequestError
+from rce.plumbing.errors import NotFound, RequestError
 from rce.messages import MessageRegistry
 
-BUILTIN_DIR = Path(__file__).parent / "packages"
+BUILTIN_DIR = Path(__file__).parents[1] / "packages"
 
 
 def search_path(env: dict | None = None) -> list[Path]:

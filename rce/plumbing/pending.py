@@ -1,7 +1,7 @@
 """The one table of calls waiting for a reply: a fresh id per call, its future, its timeout,
 settle and fail-all.
 
-Every request/response exchange in rce uses it: control-plane requests (:mod:`rce.rpc`),
+Every request/response exchange in rce uses it: control-plane requests (:mod:`rce.transport.rpc`),
 service calls on the data plane and the container bus, a robot's replies to calls from
 the cloud, and the client library's service calls and barriers. Sans I/O: it never
 sends anything; the caller sends the request between :meth:`PendingCalls.open` and
@@ -23,7 +23,7 @@ import itertools
 from collections.abc import Callable, Hashable, Iterator
 from typing import Any
 
-from rce.errors import RCEError, Timeout, Unavailable
+from rce.plumbing.errors import RCEError, Timeout, Unavailable
 
 
 class PendingCalls:

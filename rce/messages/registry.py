@@ -14,7 +14,7 @@ JSON form (converters, ``rce-topic pub``): a message is an object with one key
 per field; missing fields take their ROS default (0, "", empty); non-finite floats (NaN,
 +-inf, e.g. lidar ranges) are ``null`` on output and ``null`` reads back as NaN (the rosbridge
 v2 convention). ``time``/``duration``, ``sensor_msgs/Image`` and ``uint8[]``/``char[]``
-arrays have several forms (:mod:`rce.message_forms`): every form is accepted on input
+arrays have several forms (:mod:`rce.messages.forms`): every form is accepted on input
 (time ``{"secs", "nsecs"}``, ``{"sec", "nanosec"}`` or ISO 8601; duration those or float
 seconds; an image an object or a PNG/JPEG binary part, i.e. a ``bytes`` value; a byte array
 base64, a list of ints or ``bytes``), and the output takes the forms a :class:`JsonForms`
@@ -23,7 +23,7 @@ own :class:`JsonForms` to :meth:`MessageRegistry.json_to_bytes` and
 :meth:`MessageRegistry.bytes_to_json` and so gets back the forms it used.
 
 Forwarders do not convert: :meth:`MessageRegistry.check_structure` checks that serialized
-bytes fit their class without decoding them (:mod:`rce.message_structure`).
+bytes fit their class without decoding them (:mod:`rce.messages.structure`).
 """
 from __future__ import annotations
 
@@ -37,13 +37,13 @@ import numpy as np
 from rosbags.typesys import Stores, get_types_from_msg, get_typestore
 from rosbags.typesys.base import Nodetype
 
-from rce.errors import MessageError
-from rce.message_forms import (RCE_FORMS, JsonForms, duration_to_seconds, image_from_bytes, image_to_bytes,
+from rce.plumbing.errors import MessageError
+from rce.messages.forms import (RCE_FORMS, JsonForms, duration_to_seconds, image_from_bytes, image_to_bytes,
                                iso_to_time, seconds_to_duration, time_to_iso)
-from rce.message_structure import Short, Walker, compile_walker
-from rce import ros_strings
+from rce.messages.structure import Short, Walker, compile_walker
+from rce.messages import ros_strings
 
-ros_strings.install()       # ROS strings carry any bytes, as in rospy (rce.ros_strings)
+ros_strings.install()       # ROS strings carry any bytes, as in rospy (rce.messages.ros_strings)
 
 _INT_RANGES = {
     "bool": None, "byte": (0, 255), "char": (0, 255),
@@ -228,7 +228,7 @@ class MessageRegistry:
 
     def check_structure(self, typename: str, payload: bytes | memoryview) -> None:
         """Check that ROS 1 serialized ``payload`` fits store type ``typename`` without decoding it
-        (what a forwarder does: strings are not decoded, numbers not read; :mod:`rce.message_structure`).
+        (what a forwarder does: strings are not decoded, numbers not read; :mod:`rce.messages.structure`).
         Raises :class:`MessageError` naming the class, the field and the offset where it does not fit."""
         walk = self._walkers.get(typename)
         if walk is None:
@@ -395,7 +395,7 @@ def _join(path: str, name: str) -> str:
     return f"{path}.{name}" if path else name
 
 
-# -- time and duration: every form in, the client's form out (rce.message_forms) ---------------------------
+# -- time and duration: every form in, the client's form out (rce.messages.forms) ---------------------------
 _TIME_KEYS = {"secs", "nsecs", "sec", "nanosec"}
 
 

@@ -25,10 +25,10 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
-from rce import tls as _tls
-from rce.cluster_auth import KEY_ENV, ClusterKey
-from rce.admin_client import AdminClient
-from rce.process import create_private_file
+from rce.transport import tls as _tls
+from rce.transport.cluster_auth import KEY_ENV, ClusterKey
+from rce.tools.admin_client import AdminClient
+from rce.plumbing.process import create_private_file
 
 __all__ = ["BIN", "Engine", "start_engine", "wait_file", "command"]
 
@@ -65,7 +65,7 @@ class Engine:
     """A running engine: ``master_url`` (http://127.0.0.1:PORT/), ``admin_token``, process handles;
     ``masters``: the control addresses (``HOST:PORT``) task sets added from now on are given
     (default: the first master's; several masters: add theirs); ``ca_file``: with TLS, the CA that
-    signed the engine's certificate (:func:`rce.tls.make_dev_certificates`), else None;
+    signed the engine's certificate (:func:`rce.transport.tls.make_dev_certificates`), else None;
     ``tls_args``: the ``--tls-cert``/``--tls-key`` arguments every robot task set is given."""
     workdir: Path
     env: dict
@@ -118,9 +118,9 @@ class Engine:
         return int(self.master_url.rsplit(":", 1)[1].strip("/"))
 
     def admin(self, path: str, body: dict | None = None, method: str | None = None):
-        """Call the master's admin API (:class:`~rce.admin_client.AdminClient`): GET ``path`` (or
-        POST ``body``); returns the JSON answer. A refusal raises the :class:`~rce.errors.RCEError`
-        subclass for its HTTP status with the master's reason (:mod:`rce.admin_client`)."""
+        """Call the master's admin API (:class:`~rce.tools.admin_client.AdminClient`): GET ``path`` (or
+        POST ``body``); returns the JSON answer. A refusal raises the :class:`~rce.plumbing.errors.RCEError`
+        subclass for its HTTP status with the master's reason (:mod:`rce.tools.admin_client`)."""
         if self._admin_ssl is None:       # made once: loading the CAs costs ~30 ms a call, which tests feel
             self._admin_ssl = _tls.client_context(self.ca_file)
         client = AdminClient(self.master_url, self.admin_token, ssl_context=self._admin_ssl)

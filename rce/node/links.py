@@ -7,19 +7,19 @@ follows its orders, which come as requests on the node's bus link:
 
 - ``direct_link {link}``: the socket of ``link`` was passed on the fd channel (its
   handshake done: the far plane's nonce read). The node wraps it in a
-  :class:`~rce.link.FramedLink`.
+  :class:`~rce.transport.link.FramedLink`.
 - ``direct_publish {handle, version, targets: [[link, dst, src]], local, grants}``: from now on
   publisher ``handle`` sends each message as ``MSG dst src`` on each target's link, and to the
   bus as well only when ``local`` (other subscribers are there), marked with ``version`` so the
   bus skips what this route reached. No targets: back to the bus alone.
 - ``direct_subscribe {link, iid, peers, handles, gen, size, grants}``: claim interface ``iid`` on
-  ``link`` as one of the ``size`` members of claim generation ``gen`` (:mod:`rce.dataplane`,
+  ``link`` as one of the ``size`` members of claim generation ``gen`` (:mod:`rce.transport.dataplane`,
   "Direct links"): once all have claimed, its messages from ``peers`` arrive here and go to
   subscriber ``handles``. ``direct_unsubscribe {link, iid}`` releases the claim.
 - ``direct_counts {}`` -> ``{iid: [messages, bytes, dropped]}`` per interface this node stood
   in for (the environment adds them to the interfaces' counters).
 
-``grants`` are the data-plane grant frames (:mod:`rce.cluster_auth`) the environment computed
+``grants`` are the data-plane grant frames (:mod:`rce.transport.cluster_auth`) the environment computed
 for the link's nonce; the node sends them before the first frame that needs them. When a link
 ends, every route and claim on it ends with it (messages go by the bus again) and the node
 notifies ``direct_closed {link}``.
@@ -35,9 +35,9 @@ import struct
 from collections import deque
 from typing import Any
 
-from rce import framing
-from rce.errors import ProtocolError, Timeout, Unavailable
-from rce.link import STREAM_LIMIT, FramedLink, LinkFull
+from rce.transport import framing
+from rce.plumbing.errors import ProtocolError, Timeout, Unavailable
+from rce.transport.link import STREAM_LIMIT, FramedLink, LinkFull
 
 LINK_ID = struct.Struct("!Q")     # the id that goes with each socket on the fd channel
 FD_WAIT = 10.0                    # s ``direct_link`` waits for its socket on the fd channel

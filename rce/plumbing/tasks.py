@@ -15,8 +15,8 @@ import asyncio
 from collections.abc import Coroutine
 from typing import Any
 
-from rce.errors import RCEError
-from rce.log import get_logger
+from rce.plumbing.errors import RCEError
+from rce.plumbing.log import get_logger
 
 log = get_logger("rce.tasks")
 

@@ -11,15 +11,15 @@ where it acts:
 - ``ServiceClient*`` executes calls it receives against its local side.
 
 This module holds the data-plane half every endpoint shares (an interface is a
-:class:`rce.dataplane.Receiver` of its endpoint's data plane); robot endpoints
+:class:`rce.transport.dataplane.Receiver` of its endpoint's data plane); robot endpoints
 (converters, forwarders) and environments (bus interfaces) subclass it for
 their local side.
 """
 from __future__ import annotations
 
-from rce import framing
-from rce.dataplane import DataPlane
-from rce.errors import RequestError, Unavailable
+from rce.transport import framing
+from rce.transport.dataplane import DataPlane
+from rce.plumbing.errors import RequestError, Unavailable
 
 SERVICE_CALL_TIMEOUT = 30.0   # s a service call forwarded to a peer interface waits for its response
 
@@ -51,7 +51,7 @@ class Interface:
 
     def connect(self, peer_iid: int, addr: str, token: bytes) -> None:
         """Add a connection to interface ``peer_iid`` reachable at data address ``addr``;
-        ``token``: the master's credential for sending to it (:mod:`rce.cluster_auth`)."""
+        ``token``: the master's credential for sending to it (:mod:`rce.transport.cluster_auth`)."""
         self.peers[peer_iid] = addr
         self.plane.allow(self.iid, peer_iid, token)
         self.on_peers_changed()
@@ -81,7 +81,7 @@ class Interface:
         """(ServiceProvider*) Forward a serialized request to the connected ServiceClient.
 
         Raises :class:`Unavailable` with no connection (or a saturated link),
-        :class:`~rce.errors.Timeout` after ``call_timeout`` s, :class:`RequestError` with the
+        :class:`~rce.plumbing.errors.Timeout` after ``call_timeout`` s, :class:`RequestError` with the
         remote reason when the call fails there."""
         if not self.peers:
             raise Unavailable(f"service interface {self.tag} is not connected")

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import re
 
-from rce.errors import RequestError
+from rce.plumbing.errors import RequestError
 
 _VALID = re.compile(r"^[~/]?([A-Za-z_][A-Za-z0-9_]*)?(/[A-Za-z_][A-Za-z0-9_]*)*/?$")
 

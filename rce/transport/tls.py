@@ -24,7 +24,7 @@ import ssl
 from dataclasses import dataclass
 from pathlib import Path
 
-from rce.errors import ConfigError
+from rce.plumbing.errors import ConfigError
 
 __all__ = ["CA_FILE_ENV", "DevCertificates", "add_client_arguments", "add_server_arguments", "client_context",
            "for_url", "make_dev_certificates", "server_context", "server_context_from", "spki_sha256", "tls_failure"]

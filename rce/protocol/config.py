@@ -14,7 +14,7 @@ from typing import Any
 import yaml
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_validator
 
-from rce.errors import ConfigError
+from rce.plumbing.errors import ConfigError
 from rce.protocol import schema
 from rce.protocol.schema import key_path
 

@@ -4,10 +4,10 @@ Wire (CONTROL frames): request ``{"id": n, "op": str, "args": {...}}``; reply
 ``{"re": n, "ok": true, "result": ...}`` or ``{"re": n, "ok": false, "error":
 {"code", "message"}}``; notification ``{"op": str, "args": {...}}`` (no id).
 DATA frames on the same link go to ``on_data``. A TCP control link opens with the cluster
-handshake (:mod:`rce.cluster_auth`: :func:`connect` here, :class:`~rce.cluster_auth.Gate` at the
+handshake (:mod:`rce.transport.cluster_auth`: :func:`connect` here, :class:`~rce.transport.cluster_auth.Gate` at the
 master) before the first of these frames.
 
-Each incoming request runs in its own task (:class:`rce.link.Responder`), so a slow handler
+Each incoming request runs in its own task (:class:`rce.transport.link.Responder`), so a slow handler
 never stalls the link; handlers that need ordering serialise themselves (the master keeps
 one queue per robot). Control frames are never dropped: a peer that leaves more than the
 link's hard bound unread is cut off (the link closes and every call on it fails).
@@ -17,12 +17,14 @@ from __future__ import annotations
 import asyncio
 from typing import Any, Awaitable, Callable
 
-from rce import cluster_auth, framing
-from rce.errors import ProtocolError, RCEError, Unavailable
-from rce.link import STREAM_LIMIT, FramedLink, LinkFull, Responder, nodelay
-from rce.log import get_logger
-from rce.pending import PendingCalls
-from rce.tasks import Tasks
+from rce.transport import cluster_auth
+
+from rce.transport import framing
+from rce.plumbing.errors import ProtocolError, RCEError, Unavailable
+from rce.transport.link import STREAM_LIMIT, FramedLink, LinkFull, Responder, nodelay
+from rce.plumbing.log import get_logger
+from rce.plumbing.pending import PendingCalls
+from rce.plumbing.tasks import Tasks
 
 Handler = Callable[[dict], Awaitable[Any]]
 log = get_logger("rce.rpc")
@@ -42,7 +44,7 @@ class RpcPeer:
     ``handlers`` maps op names to ``async def handler(args) -> result``; a handler raises
     :class:`RCEError` to refuse. ``on_data(frame)`` receives DATA frames; ``on_close(peer)``
     runs once when the link ends; ``max_frame``, ``max_buffer``: bytes, as for the
-    :class:`~rce.link.FramedLink` (``link``); ``info`` is a free slot for whoever owns the
+    :class:`~rce.transport.link.FramedLink` (``link``); ``info`` is a free slot for whoever owns the
     peer (e.g. registration data)."""
 
     def __init__(self, reader: asyncio.StreamReader, writer: asyncio.StreamWriter,
@@ -107,7 +109,7 @@ class RpcPeer:
     async def call(self, op: str, timeout: float | None = CALL_TIMEOUT, **args) -> Any:
         """Send request ``op`` and await its result. Raises the peer's :class:`RCEError`,
         :class:`Unavailable` when the link is or becomes closed (or saturated), and
-        :class:`~rce.errors.Timeout` when ``timeout`` (s) passes."""
+        :class:`~rce.plumbing.errors.Timeout` when ``timeout`` (s) passes."""
         return await self.request(op, args, timeout)
 
     async def request(self, op: str, args: dict, timeout: float | None = CALL_TIMEOUT) -> Any:
@@ -219,8 +221,8 @@ async def _pong(args: dict) -> None:
 async def connect(host: str, port: int, handlers: dict[str, Handler] | None = None, *,
                   cluster_key: cluster_auth.ClusterKey, **kw) -> RpcPeer:
     """Open a TCP control link to ``host:port``, prove both ends hold ``cluster_key``
-    (:func:`rce.cluster_auth.initiate`: raises :class:`~rce.cluster_auth.AuthFailed`,
-    :class:`ProtocolError`, :class:`~rce.errors.Timeout`, :class:`OSError`) and start it."""
+    (:func:`rce.transport.cluster_auth.initiate`: raises :class:`~rce.transport.cluster_auth.AuthFailed`,
+    :class:`ProtocolError`, :class:`~rce.plumbing.errors.Timeout`, :class:`OSError`) and start it."""
     reader, writer = await asyncio.open_connection(host, port, limit=STREAM_LIMIT)
     nodelay(writer)
     try:
