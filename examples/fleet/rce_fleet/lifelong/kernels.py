@@ -1,8 +1,9 @@
 """Compiled hot loops of the lifelong planner (numba, ``cache=True``): breadth-first
 distance maps, one PIBT step, and the MAPF_T conversion with its move check.
 
-Why compiled: a PIBT step touches every robot and its four neighbours; at 2,000 robots a
-pure-Python step costs ~100 ms, the compiled one well under 5 ms (``docs/lifelong.md``).
+Why compiled (measured on sortation_large_2000, 2,000 robots, 70,000 cells): one PIBT step
+costs 27 ms in pure Python and 0.9 ms compiled; one breadth-first map 150 ms and 3.5 ms.
+The lookahead runs many PIBT steps per time step, and every new goal needs a map.
 Call :func:`warm_up` once before the first timed step: it compiles (or loads from the
 on-disk cache) every kernel on a tiny grid, so compile time never counts against a step.
 
