@@ -161,7 +161,8 @@ def generate_places(geo: GridGeometry, robots: int, stations: int | None = None)
     """Places for a map without a file, in the largest connected part of the grid: pick-up
     stations in the left third, drop-off stations in the right third (``stations`` each;
     default one per four robots, at least 2 and up to 6, and at most one per 40 cells),
-    ``ceil(robots / 3)`` chargers spread over the top rows, and parking on dead ends and cells along walls, towards the map's edges, as many as there
+    ``ceil(robots / 3)`` chargers spread over the top rows, and parking on dead ends
+    and cells along walls, towards the map's edges, as many as there
     are robots where the grid has them. A robot may stand on any place for long, so no place
     cuts the free cells apart: every place leaves the rest of the part connected and keeps a
     free neighbour. Raises PlaceError when the grid is too small."""
