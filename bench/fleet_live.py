@@ -11,9 +11,12 @@ clients, generated pick-up -> drop-off tasks at ``--rate-per-robot`` x N per sim
 - ``real_time_factor``: simulated s per wall s the run held (asked: ``--speedup``);
 - ``goal_to_motion_p99_s``: p99 of the sim s from a task's assignment to its robot's first
   motion (robots standing when they got it);
-- ``engine_cpu_pct``: CPU of the engine's processes (rce-master, rce-robot, rce-container and
-  the container's node processes: every descendant of the demo process), % of one core over
-  the run, with the demo process itself (the simulator and the robots' bridges) beside it;
+- ``engine_cpu_pct``: CPU of the engine's processes that descend from the demo process
+  (rce-master, rce-robot, rce-container and what of the container's node processes is
+  visible from outside its sandbox), % of one core over the run, with the demo process
+  itself (the simulator and the robots' bridges) beside it, and ``machine_cpu_pct``: the
+  whole machine's busy CPU over the run (% of one core; the container's nodes, the global
+  planner and every move_client, are in it);
 - ``offline``: the same allocator (:class:`rce_fleet.lifelong.GreedyScheduler`) and planner
   (:class:`rce_fleet.lifelong.PIBTPlanner`, 4-neighbour moves) on the cell graph without
   physics, one step per cell at the dispatcher's nominal speed, from the same starts with the
@@ -137,8 +140,13 @@ class TreeCpu:
             except (psutil.Error, IndexError):
                 pass
 
+    @staticmethod
+    def _busy() -> float:
+        t = psutil.cpu_times()
+        return sum(t) - t.idle - getattr(t, "iowait", 0.0)
+
     def start(self) -> TreeCpu:
-        self.w0 = time.monotonic()
+        self.w0, self.b0 = time.monotonic(), self._busy()
         self.thread.start()
         return self
 
@@ -146,11 +154,13 @@ class TreeCpu:
         self._stop.set()
         self.thread.join()
         wall = time.monotonic() - self.w0
+        machine = self._busy() - self.b0
         by: dict[str, float] = {}
         for name, s in self.cpu.values():
             by[name] = by.get(name, 0.0) + s
         demo = by.pop("demo", 0.0)
         return {"engine_cpu_pct": round(100 * sum(by.values()) / wall, 1), "demo_cpu_pct": round(100 * demo / wall, 1),
+                "machine_cpu_pct": round(100 * machine / wall, 1),
                 "by_process_pct": {k: round(100 * v / wall, 1) for k, v in sorted(by.items(), key=lambda kv: -kv[1])},
                 "wall_s": round(wall, 1)}
 
@@ -225,7 +235,8 @@ def main(argv: list[str] | None = None) -> int:
         print(f"{n:4d} robots: {live['tasks_per_hour']} tasks/h (offline {off['per_hour']}, live share "
               f"{live['live_share']}), real-time factor {live['real_time_factor']} (asked {a.speedup:g}), goal->motion "
               f"p99 {live['goal_to_motion_p99_s']} s, engine CPU {live['engine_cpu_pct']} % (demo "
-              f"{live['demo_cpu_pct']} %), exit {live['exit_code']}: {live['reason']}", flush=True)
+              f"{live['demo_cpu_pct']} %, machine {live['machine_cpu_pct']} %), exit {live['exit_code']}: "
+              f"{live['reason']}", flush=True)
     if a.out:
         Path(a.out).write_text(json.dumps(results, indent=1))
     bad = [n for n, r in results["runs"].items() if r["exit_code"] != 0 or not math.isfinite(r["engine_cpu_pct"])]
