@@ -30,7 +30,8 @@ from rce.transport.masterlink import BACKOFF_CAP
 from wsclient import RawRobot
 
 pytestmark = pytest.mark.asyncio
-GRACE = 3.0              # s, --reconcile-grace of the restarted masters
+GRACE = 8.0              # s, --reconcile-grace of the restarted masters: long enough for a new rce-robot to start
+                         # and a robot to log in through it on a loaded machine (robot_returns_through_a_new_endpoint)
 REREGISTER_BOUND = BACKOFF_CAP + 1.0   # s for a task set to re-register once it can: one backoff delay at most,
                                        # then a dial and a register on loopback
 NOTICE_TIMEOUT = 20.0    # s to wait for a notice the master sends after the grace
