@@ -72,6 +72,8 @@ Measured, over a window of ``--duration`` s after warm-up:
   as rce-robot). Its latency, losses and CPU are what this machine carries at N robots with one
   websocket hop each way and nothing else: the engine's path has the same two hops, plus the
   container and the planner. A target the floor misses, the engine cannot meet here.
+  ``engine_over_floor``: the engine's CPU per pose (master, robot task sets, the fleet container's
+  processes) over the floor servers' at the same N, the two measured in the same run.
 - setup (not part of the latency): engine start, fleet container + planner, echo node,
   robots (login, websocket with the master's scrypt check, CN 10 interfaces, CX 5
   connections, all interfaces up; ``--setup-concurrency`` robots at a time), warm-up (every
@@ -1234,6 +1236,17 @@ class FloorRun(Run):
 
 # == main =======================================================================================
 
+def engine_over_floor(r: dict, floor: dict) -> float | None:
+    """The engine's CPU per pose over the transport floor's at the same N: (master + robot task sets +
+    the fleet container's processes) / the floor servers, each in CPU us per pose sent in its own
+    window. None when either run has no such number (it failed, or sent nothing)."""
+    e, f = r.get("cpu_us_per_pose") or {}, floor.get("cpu_us_per_pose") or {}
+    parts = [e.get(k) for k in ("master", "robot", "container (all)")]
+    if any(x is None for x in parts) or not f.get("floor"):
+        return None
+    return round(sum(parts) / f["floor"], 2)
+
+
 def floor_line(f: dict) -> str:
     """One line of a floor run's result."""
     if f.get("error"):
@@ -1331,7 +1344,11 @@ def main(argv=None) -> int:
                             "robots), the orchestrator, foreign load (machine busy minus ours), the machine",
                "robot_tasksets": "per rce-robot process: CPU % of one core over the window, robots connected",
                "cpu_us_per_pose": "CPU s of each label over the window / poses sent in it, in us (all the "
-                                  "window's traffic: echoes, paths, clearances, fleet states)"}}
+                                  "window's traffic: echoes, paths, clearances, fleet states)",
+               "engine_over_floor": "the engine's CPU per pose (master + robot task sets + container (all), "
+                                    "cpu_us_per_pose) over the floor servers' at the same N, measured in the same "
+                                    "run: 1.0 would be an engine that costs no more than one websocket hop each "
+                                    "way"}}
     set_nice(args.nice, log=con.print)
     res["nice"] = args.nice
     for n in sizes:
@@ -1343,8 +1360,15 @@ def main(argv=None) -> int:
         r = Run(n, args, con).run()
         if floor is not None:
             r["floor"] = floor
+            r["engine_over_floor"] = engine_over_floor(r, floor)
         res["runs"].append(r)
         why = verdict(r, args.max_p99)
+        if r.get("engine_over_floor") is not None:
+            us = r["cpu_us_per_pose"]
+            con.print(f"N={n}: CPU per pose: engine {us['master'] + us['robot'] + us['container (all)']:.0f} us "
+                      f"(rce-robot {us['robot']:.0f}, planner {us.get('planner', 0):.0f}, echo node "
+                      f"{us.get('echo node', 0):.0f}, environment {us.get('environment', 0):.0f}), floor "
+                      f"{floor['cpu_us_per_pose']['floor']:.0f} us: engine_over_floor {r['engine_over_floor']:.2f}")
         if r.get("latency_ms"):
             con.print(f"N={n}: p50 {fmt_ms(r['latency_ms']['p50'])} ms, p99 {fmt_ms(r['latency_ms']['p99'])} ms, "
                       f"lost {r['lost']}/{r['sent']}, CPU {r['cpu_pct']}")
@@ -1374,14 +1398,15 @@ def print_table(con, res: dict) -> None:
     t = Table(title=f"fleet load: {res['mode']}s, poses at {res['rate_hz']:g} Hz per robot, "
                     f"{res['duration_s']:g} s window per N (latency = pose -> fleet container echo -> robot)")
     for c in ("N", "p50 ms", "p99 ms", "max ms", "lost", "engine drops", "planner view p50/p99 ms",
-              "B/robot/s up/down", "setup s (robots)", "goal->path ms", "floor p50/p99 ms"):
+              "B/robot/s up/down", "setup s (robots)", "goal->path ms", "floor p50/p99 ms",
+              "engine/floor CPU per pose"):
         t.add_column(c, justify="right")
     for r in res["runs"]:
         fl = (r.get("floor") or {}).get("latency_ms")
         floor = f"{fmt_ms(fl['p50'])} / {fmt_ms(fl['p99'])}" if fl else "-"
         if not r.get("latency_ms"):
             t.add_row(str(r["robots"]), *["-"] * 7, f"{r['setup'].get('robots_s', '-')}",
-                      "-", floor, style="red")
+                      "-", floor, "-", style="red")
             continue
         L, s = r["latency_ms"], r["setup"]
         drops = sum(v for v in r.get("engine_drops", {}).values())
@@ -1391,6 +1416,7 @@ def print_table(con, res: dict) -> None:
                   f"{r['lost']}/{r['sent']}", str(drops), f"{fmt_ms(pv['p50'])} / {fmt_ms(pv['p99'])}",
                   f"{f0(b['up'])} / {f0(b['down'])}",
                   f"{s.get('total_s', '-')} ({s.get('robots_s', '-')})", fmt_ms(r["goal_to_path_ms"]["p50"]), floor,
+                  "-" if r.get("engine_over_floor") is None else f"{r['engine_over_floor']:.2f}",
                   style=None if verdict(r, res["max_p99_ms"]) is None else "red")
     con.print(t)
     labels = ("master", "robot", "container host", "environment", "planner", "echo node", "clients", "orchestrator")

@@ -66,4 +66,9 @@ def test_fleet_load_smoke(tmp_path):
     assert floor["sent"] >= 60 and floor["lost"] == 0 and floor["received"] == floor["sent"] == flat["samples"]
     assert floor["cpu_pct"]["floor"] > 0 and floor["cpu_pct"]["clients"] > 0
     assert floor["bytes_per_robot_s"]["up"] > 10 * 300
+    # the engine's CPU per pose over the floor's, both measured here
+    assert "engine_over_floor" in d["definitions"] and finite_pos(run["engine_over_floor"])
+    us = run["cpu_us_per_pose"]
+    assert run["engine_over_floor"] == pytest.approx(
+        (us["master"] + us["robot"] + us["container (all)"]) / floor["cpu_us_per_pose"]["floor"], rel=0.02)
     assert png.stat().st_size > 10_000
