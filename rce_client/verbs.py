@@ -110,14 +110,18 @@ class Verbs:
         """CN deleteParam: delete parameter ``name`` of container ``ctag``."""
         await self.configure({"deleteParam": [{"containerTag": ctag, "name": name}]})
 
-    async def add_interface(self, etag: str, itag: str, itype: str, cls: str, addr: str | None = None) -> None:
+    async def add_interface(self, etag: str, itag: str, itype: str, cls: str, addr: str | None = None,
+                            lane: str | None = None) -> None:
         """CN addInterfaces: interface ``itag`` of type ``itype`` (e.g. ``PublisherInterface``,
         ``SubscriberConverter``) and message/service class ``cls`` on endpoint ``etag`` (a
         container tag, or this robot's ID for robot-side interfaces); ``addr`` is the topic or
-        service name on that endpoint's bus."""
+        service name on that endpoint's bus; ``lane``: ``control``, ``state`` or ``bulk``
+        (:mod:`rce.protocol.lanes`; None: from ``cls``)."""
         itf = {"endpointTag": etag, "interfaceTag": itag, "interfaceType": itype, "className": cls}
         if addr:
             itf["addr"] = addr
+        if lane is not None:
+            itf["lane"] = lane
         await self.configure({"addInterfaces": [itf]})
 
     async def remove_interface(self, etag: str, itag: str) -> None:

@@ -128,7 +128,7 @@ class Control:
         container's host (container side)."""
         if rec.robot_side:
             return await self.endpoint_call(rec, "add_interface", user=rec.user, robot=rec.etag, iid=rec.iid,
-                                            itag=rec.itag, itype=rec.itype, cls=rec.cls)
+                                            itag=rec.itag, itype=rec.itype, cls=rec.cls, lane=rec.lane)
         return await self.endpoint_call(rec, "add_interface", iid=rec.iid, tag=rec.tag, itype=rec.itype,
                                         cls=rec.cls, addr=rec.addr)
 

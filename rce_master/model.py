@@ -33,7 +33,8 @@ def _scrypt(digest_hex: str, salt: bytes) -> bytes:
 
 
 class _Record:
-    """JSON form of a record dataclass: its fields, less those in ``DERIVED`` (recomputed on load)."""
+    """JSON form of a record dataclass: its fields, less those in ``DERIVED`` (recomputed on load); a
+    field with a default may be absent from a record (one written before the field existed)."""
 
     DERIVED: tuple[str, ...] = ()
 
@@ -42,7 +43,8 @@ class _Record:
 
     @classmethod
     def from_record(cls, record: dict):
-        return cls(**{f.name: record[f.name] for f in dataclasses.fields(cls) if f.name not in cls.DERIVED})
+        return cls(**{f.name: record[f.name] for f in dataclasses.fields(cls) if f.name not in cls.DERIVED
+                      and (f.name in record or f.default is dataclasses.MISSING)})
 
 
 @dataclass
@@ -177,6 +179,7 @@ class InterfaceRec(_Record):
     cls: str
     addr: str | None
     location: int
+    lane: str | None = None   # control | state | bulk as the robot set it; None: from cls (rce.protocol.lanes)
 
     @property
     def tag(self) -> str:

@@ -504,7 +504,7 @@ class MasterState(StateIndex):
             raise RequestError(f"interface {etag}/{itag} already exists")
         self.quotas.check(user, "interfaces", self.interfaces)
         rec = InterfaceRec(self._next_id("iid"), user, etag, itag, itype.value, itype.kind.value, itype.side.value,
-                           spec.iCls.strip("/"), spec.addr, location)
+                           spec.iCls.strip("/"), spec.addr, location, spec.lane.value if spec.lane else None)
         self._write(rec.store_key, rec.to_record())
         return self.interfaces[(user, etag, itag)]
 

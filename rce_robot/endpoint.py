@@ -20,6 +20,7 @@ from rce.transport.cluster_auth import ClusterKey, token_of
 from rce.transport.dataplane import DataPlane
 from rce.plumbing.errors import AuthError, NotFound, RCEError, Throttled
 from rce.protocol.interface_type import InterfaceType
+from rce.protocol.lanes import parse_lane
 from rce.plumbing.log import get_logger
 from rce.transport.masterlink import MASTER_WAIT, Address, MasterLink
 from rce.messages import default_registry
@@ -374,7 +375,8 @@ class RobotEndpoint:
                 self.opening.pop((a["user"], a["robot"]), None)
         ns = self._ns(a)
         itype = InterfaceType.parse(a["itype"], robot_side=True)
-        iface = RobotInterface(ns, self.plane, self.registry, a["iid"], a["itag"], itype, a["cls"])
+        lane = None if a.get("lane") is None else parse_lane(a["lane"], f"interface {a['itag']!r}")
+        iface = RobotInterface(ns, self.plane, self.registry, a["iid"], a["itag"], itype, a["cls"], lane=lane)
         await iface.start()
         ns.add_interface(iface)
         self.by_iid[iface.iid] = iface

@@ -15,6 +15,7 @@ from typing import TYPE_CHECKING, Any, Protocol
 from rce.plumbing.errors import MessageError, ProtocolError, RequestError, Unavailable
 from rce.protocol.interface_type import InterfaceType, Kind, Side
 from rce.protocol.interfaces import Interface
+from rce.protocol.lanes import Lane
 from rce.messages.forms import JsonForms
 from rce.messages import MessageRegistry
 from rce.plumbing.pending import PendingCalls
@@ -48,16 +49,17 @@ class RobotInterface(Interface):
     """A converter or forwarder (``itype``, a robot-side :class:`InterfaceType`: its kind is
     Publisher, Subscriber, ServiceClient or ServiceProvider), for class ``cls``, in the
     session ``link`` of its robot. ``robot_call_timeout``: s a call from the cloud waits
-    for the robot's reply (ServiceClient kinds).
+    for the robot's reply (ServiceClient kinds). ``lane``: the lane the robot set for it
+    (:mod:`rce.protocol.lanes`; None: from ``cls``).
 
     Raises :class:`MessageError` at creation if ``cls`` is not a known message (or, for the
     service kinds, service) class."""
 
     def __init__(self, link: RobotLink, plane: "DataPlane", registry: MessageRegistry,
                  iid: int, itag: str, itype: InterfaceType, cls: str, *,
-                 robot_call_timeout: float = ROBOT_CALL_TIMEOUT):
+                 robot_call_timeout: float = ROBOT_CALL_TIMEOUT, lane: Lane | None = None):
         super().__init__(plane, iid, f"{link.robot}/{itag}", itype.kind, cls)
-        self.link, self.registry, self.itag, self.itype = link, registry, itag, itype
+        self.link, self.registry, self.itag, self.itype, self.lane = link, registry, itag, itype, lane
         self.side = itype.side
         self.robot_call_timeout = robot_call_timeout
         if itype.kind.service:

@@ -93,7 +93,7 @@ class RobotNamespace:
     # -- the interface table -------------------------------------------------------------------------
     def add_interface(self, iface: RobotInterface) -> None:
         """Robot-side interface ``iface`` now exists (the master's ``add_interface``)."""
-        self.session.add_interface(iface.itag, iface.itype, iface.cls)
+        self.session.add_interface(iface.itag, iface.itype, iface.cls, iface.lane)
         self.interfaces[iface.itag] = iface
 
     def remove_interface(self, iface: RobotInterface) -> None:

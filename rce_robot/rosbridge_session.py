@@ -35,6 +35,7 @@ from rce.plumbing.log import get_logger
 from rce.transport.masterlink import MasterLink
 from rce.messages.forms import JsonForms
 from rce.protocol import jsontext
+from rce.protocol.lanes import Lane, parse_lane
 from rce.protocol.limits import DEFAULT_MAX_LAG, LagGate
 from rce.protocol.schema import validate
 from rce.plumbing.tasks import Tasks
@@ -103,6 +104,13 @@ def _field(op: dict, name: str, kind: type = str) -> Any:
     if not isinstance(v, kind) or (kind is str and not v):
         raise ProtocolError(f"op {op.get('op')!r}: field {name!r} must be a non-empty {kind.__name__}, got {v!r}")
     return v
+
+
+def _lane(op: dict) -> Lane | None:
+    """The op's ``lane`` field (an rce extension: ``control``, ``state`` or ``bulk``), None when absent.
+    Raises :class:`ProtocolError` naming the op for another value."""
+    v = op.get("lane")
+    return None if v is None else parse_lane(v, f"op {op.get('op')!r}: field 'lane'")
 
 
 class RosbridgeSession:
@@ -289,7 +297,7 @@ class RosbridgeSession:
         return op
 
     async def _advertise(self, op: dict) -> None:
-        await self._bridge("p", _field(op, "topic"), _field(op, "type"))
+        await self._bridge("p", _field(op, "topic"), _field(op, "type"), _lane(op))
 
     def _advertised(self, role: str, key: str, op: dict) -> Bridge:
         """The bridge the client advertised (``role`` p or v) under ``op[key]``; else ProtocolError."""
@@ -334,7 +342,7 @@ class RosbridgeSession:
                                 f"got {throttle!r}, {queue!r}")
         size = _fragment_size(op)
         cls = op.get("type") or await self._type_of("topics", topic)
-        await self._bridge("s", topic, str(cls))
+        await self._bridge("s", topic, str(cls), _lane(op))
         sid = str(op.get("id") or f"subscribe:{topic}")
         self.subs.setdefault(topic, {})[sid] = RosbridgeSubscription(sid, float(throttle), queue, size, compression)
 
@@ -359,11 +367,11 @@ class RosbridgeSession:
             self.tasks.spawn(self._reply(service, op.get("id"), rosapi_answer(service, args, self), size),
                              name=service)
             return
-        bridge = await self._bridge("c", service, op.get("type") or await self._type_of("services", service))
+        bridge = await self._bridge("c", service, op.get("type") or await self._type_of("services", service), _lane(op))
         self.tasks.spawn(self._reply(service, op.get("id"), self._call(bridge, args), size), name=f"call {service}")
 
     async def _advertise_service(self, op: dict) -> None:
-        await self._bridge("v", _field(op, "service"), _field(op, "type"))
+        await self._bridge("v", _field(op, "service"), _field(op, "type"), _lane(op))
 
     async def _unadvertise_service(self, op: dict) -> None:
         await self._drop(self._advertised("v", "service", op))
@@ -425,9 +433,11 @@ class RosbridgeSession:
         await self.master.call("robot_request", timeout=REQUEST_TIMEOUT, user=self.user, robot=self.robot,
                                type=type_, data=data)
 
-    async def _bridge(self, role: str, name: str, cls: str) -> Bridge:
+    async def _bridge(self, role: str, name: str, cls: str, lane: Lane | None = None) -> Bridge:
         """The interfaces of ``name`` in ``role`` (:data:`ROLES`), created and connected through the
-        master on first use; waits up to :data:`INTERFACE_UP_WAIT` s for them to connect."""
+        master on first use (``lane``: the robot-side interface's, :mod:`rce.protocol.lanes`; None: from
+        ``cls``; the first op on a name sets it); waits up to :data:`INTERFACE_UP_WAIT` s for them to
+        connect."""
         bridge = self.bridges.get((role, name))
         if bridge is not None:
             if bridge.cls != cls.strip("/"):
@@ -443,7 +453,7 @@ class RosbridgeSession:
                 {"endpointTag": self.ctag, "interfaceTag": bridge.ctag_itag, "interfaceType": container_type,
                  "className": bridge.cls, "addr": name},
                 {"endpointTag": self.robot, "interfaceTag": itag, "interfaceType": robot_type,
-                 "className": bridge.cls}]})
+                 "className": bridge.cls, **({"lane": lane.value} if lane else {})}]})
         except RCEError:
             del self.by_itag[itag]
             raise

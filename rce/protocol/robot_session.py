@@ -10,6 +10,7 @@ from rce.messages import takes_binary_message
 from rce.protocol.events import CaughtUp, CloseLink, Deliver, Lagging, RequestReady, ServiceCall
 from rce.protocol.frames import DEFAULT_EXPIRY, DEFAULT_MAX_PENDING_BYTES, DEFAULT_MAX_PENDING_PARTS, DM, ST
 from rce.protocol.holdback import HoldBack
+from rce.protocol.lanes import Lane, interface_lane, message_lane
 from rce.protocol.limits import DEFAULT_MAX_LAG, ER_BURST, ER_RATE, LagGate, PartBudget
 from rce.protocol.robot_outbox import RobotOutbox, dm
 from rce.protocol.resume import (ACK_DELAY, ACK_EVERY, DEFAULT_GRACE, DEFAULT_RESUME_BUFFER, DEFAULT_RESUME_BYTES,
@@ -80,6 +81,7 @@ class RobotSession(SessionCore):
         self.lag = LagGate(max_lag)                               # sheds topic DMs while the shell lags
         self.requests = HoldBack(queue_size)                      # requests to the master, DMs held for them
         self.interfaces: dict[str, tuple[str, str, str]] = {}     # iTag -> (kind, side, cls)
+        self.lanes: dict[str, tuple[Lane, bool]] = {}             # iTag -> (its lane, set by the robot)
         self.calls = 0                                            # service calls in flight
         self.msgs_in = self.dropped_in = 0
         self.token = (token or new_token()) if resume else None
@@ -207,16 +209,27 @@ class RobotSession(SessionCore):
         self.send_error(f"service call {call.get('msgID')!r} on {call['iTag']!r} failed: {reason}", answer=True)
 
     # -- the interface table ------------------------------------------------------------------------
-    def add_interface(self, itag: str, itype: str, cls: str) -> None:
-        """A robot-side interface ``itag`` of type ``itype`` and class ``cls`` now exists.
+    def add_interface(self, itag: str, itype: str, cls: str, lane: Lane | None = None) -> None:
+        """A robot-side interface ``itag`` of type ``itype`` and class ``cls`` now exists; ``lane``: the
+        lane the robot set for it (None: from ``cls``, :func:`~rce.protocol.lanes.default_lane`).
         Raises as :func:`robot_interface_type`."""
         kind, side = robot_interface_type(itype)
         self.interfaces[itag] = (kind, side, cls)
+        self.lanes[itag] = (interface_lane(cls, kind.startswith("Service"), lane), lane is not None)
 
     def remove_interface(self, itag: str) -> None:
         """Robot-side interface ``itag`` is gone."""
         self.interfaces.pop(itag, None)
+        self.lanes.pop(itag, None)
         self.lag.forget(itag)
+
+    def lane_of(self, itag: str, msg: Any = None) -> Lane:
+        """The lane a topic DM of interface ``itag`` with message ``msg`` takes
+        (:func:`~rce.protocol.lanes.message_lane`: a serialized message, bytes, larger than
+        :data:`~rce.protocol.lanes.BULK_SIZE` goes bulk unless the robot set the lane); an unknown
+        interface's: state."""
+        lane, explicit = self.lanes.get(itag, (Lane.STATE, False))
+        return message_lane(lane, explicit, len(msg) if isinstance(msg, (bytes, bytearray, memoryview)) else 0)
 
     # -- frames out ---------------------------------------------------------------------------------
     def send_dm(self, itag: str, cls: str, msg_id: Any, msg: Any, data: bool = False,

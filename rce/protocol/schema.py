@@ -25,6 +25,7 @@ from pydantic_core import PydanticCustomError
 
 from rce.plumbing.errors import ProtocolError
 from rce.protocol.interface_type import InterfaceType
+from rce.protocol.lanes import Lane, parse_lane
 from rce.protocol.frames import CC, CN, CX, DC, DM
 from rce.protocol.limits import MAX_ER_TEXT, short_repr, truncate
 
@@ -71,6 +72,13 @@ def _interface_type(v: Any) -> InterfaceType:
         raise PydanticCustomError("rce", "{text}", {"text": e.message}) from None
 
 
+def _lane(v: Any) -> Lane:
+    try:
+        return parse_lane(v, "")
+    except ProtocolError as e:
+        raise PydanticCustomError("rce", "{text}", {"text": e.message}) from None
+
+
 def _interface_ref(v: Any) -> str:
     if not isinstance(v, str) or not v:
         raise _refuse("must be a non-empty string", v)
@@ -101,6 +109,8 @@ Features = Annotated[list[str], _rule(lambda v: isinstance(v, list) and all(map(
 #: An interface type (prefix x suffix, DESIGN section 3.5; RCE alpha names accepted), parsed into its
 #: :class:`~rce.protocol.interface_type.InterfaceType` (a ``str``: its canonical name on the wire).
 IType = Annotated[InterfaceType, PlainValidator(_interface_type)]
+#: A lane (:mod:`rce.protocol.lanes`): ``"control"``, ``"state"`` or ``"bulk"``.
+LaneName = Annotated[Lane, PlainValidator(_lane)]
 #: An interface named ``endpointTag/interfaceTag``.
 InterfaceRef = Annotated[str, PlainValidator(_interface_ref)]
 
@@ -161,6 +171,7 @@ class InterfaceComponent(Component):
     iType: IType = Field(alias="interfaceType")
     iCls: Tag = Field(alias="className")
     addr: Text | None = None
+    lane: LaneName | None = None      # absent: from the class (rce.protocol.lanes.default_lane)
 
 
 class ConnectionComponent(Component):

@@ -72,6 +72,9 @@ def _mutate(path: str, value):
     ("nodes.1.bogus", 1, "nodes[1].bogus", "unknown key"),
     ("containers.0.cpu", -1, "containers[0].cpu", "greater than or equal to 0"),
     ("parameters", {"int": 1}, "parameters", "valid list"),
+    ("interfaces.4.lane", "fast", "interfaces[4].lane", "unknown lane 'fast': expected one of 'control', 'state', "
+                                                         "'bulk'"),
+    ("interfaces.4.lane", 1, "interfaces[4].lane", "unknown lane 1"),
 ])
 def test_bad_configs_name_file_key_path_and_reason(tmp_path, path, value, where, reason):
     p = write(tmp_path, _mutate(path, value))
@@ -80,6 +83,13 @@ def test_bad_configs_name_file_key_path_and_reason(tmp_path, path, value, where,
     msg = ei.value.message
     assert msg.startswith(f"{p}: {where}: "), msg
     assert reason in msg, msg
+
+
+def test_a_lane_per_interface_goes_on_the_wire_and_configs_without_it_keep_working(tmp_path):
+    assert all(i.lane is None and "lane" not in i.component() for i in load_config(CONFIGS / "debug.config").interfaces)
+    cfg = _mutate("interfaces.4.lane", "Control")
+    itf = load_config(write(tmp_path, cfg)).interfaces[4]
+    assert itf.lane == "control" and itf.component()["lane"] == "control"
 
 
 def test_duplicates(tmp_path):

@@ -191,12 +191,14 @@ async def test_malformed_ops_get_status_and_session_goes_on(eng):
                               (json.dumps({"op": "advertise", "topic": "/x", "type": "No/Such"}), "No/Such"),
                               (json.dumps({"op": "fragment", "id": "f", "data": "{", "num": 0, "total": 0}), "'total'"),
                               (json.dumps({"op": "subscribe", "topic": "/t", "type": "std_msgs/String",
-                                           "compression": "zip"}), "compression must be")):
+                                           "compression": "zip"}), "compression must be"),
+                              (json.dumps({"op": "subscribe", "topic": "/t", "type": "std_msgs/String",
+                                           "lane": "fast"}), "field 'lane': unknown lane 'fast'")):
                 await ws.send(bad)
                 status = await _next(ws, "status")
                 assert status["level"] == "error" and says in status["msg"], (bad, status)
             for ok in ({"op": "subscribe", "topic": "/stringEchoResp", "type": "std_msgs/String", "id": "s2",
-                        "throttle_rate": 100, "queue_length": 2},
+                        "throttle_rate": 100, "queue_length": 2, "lane": "bulk"},
                        {"op": "unsubscribe", "topic": "/stringEchoResp", "id": "s2"},
                        {"op": "advertise", "topic": "/stringEchoReq", "type": "std_msgs/String", "id": "a1"},
                        {"op": "unadvertise", "topic": "/stringEchoReq", "id": "a1"}):

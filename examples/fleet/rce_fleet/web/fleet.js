@@ -222,20 +222,21 @@ async function setupInterfaces(c, ctag, rid) {
     cstate: `${s}_state`, cgoal: `${s}_goal`, cblock: `${s}_block`, cmission: `${s}_mission`,
     ctask: `${s}_task`, ccancel: `${s}_taskCancel`, ctasks: `${s}_tasks`,
   };
-  const I = (e, t, type, cls, addr) => ({ endpointTag: e, interfaceTag: t, interfaceType: type, className: cls,
-                                           ...(addr ? { addr } : {}) });
+  // lane (control, state, bulk; docs/lanes.md): omitted, it comes from the class
+  const I = (e, t, type, cls, addr, lane) => ({ endpointTag: e, interfaceTag: t, interfaceType: type, className: cls,
+                                                 ...(addr ? { addr } : {}), ...(lane ? { lane } : {}) });
   const ifaces = [
     I(ctag, tags.cstate, "SubscriberInterface", "fleet/FleetState", "/fleet/state"),
     I(ctag, tags.cgoal, "PublisherInterface", "fleet/RobotGoal", "/fleet/goal"),
     I(ctag, tags.cblock, "PublisherInterface", "fleet/CellBlock", "/fleet/block"),
     I(rid, tags.state, "PublisherConverter", "fleet/FleetState"),
-    I(rid, tags.goal, "SubscriberConverter", "fleet/RobotGoal"),
-    I(rid, tags.block, "SubscriberConverter", "fleet/CellBlock"),
+    I(rid, tags.goal, "SubscriberConverter", "fleet/RobotGoal", null, "control"),
+    I(rid, tags.block, "SubscriberConverter", "fleet/CellBlock", null, "control"),
     I(ctag, tags.ctask, "PublisherInterface", "fleet/Task", "/fleet/task"),
     I(ctag, tags.ccancel, "PublisherInterface", "fleet/TaskCancel", "/fleet/task_cancel"),
     I(ctag, tags.ctasks, "SubscriberInterface", "fleet/TaskList", "/fleet/tasks"),
-    I(rid, tags.task, "SubscriberConverter", "fleet/Task"),
-    I(rid, tags.cancel, "SubscriberConverter", "fleet/TaskCancel"),
+    I(rid, tags.task, "SubscriberConverter", "fleet/Task", null, "control"),
+    I(rid, tags.cancel, "SubscriberConverter", "fleet/TaskCancel", null, "control"),
     I(rid, tags.tasks, "PublisherConverter", "fleet/TaskList"),
   ];
   const pairs = [[`${ctag}/${tags.cstate}`, `${rid}/${tags.state}`], [`${ctag}/${tags.cgoal}`, `${rid}/${tags.goal}`],
