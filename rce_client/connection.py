@@ -72,6 +72,7 @@ from rce_client.handles import (DEFAULT_CALL_TIMEOUT, Handles, Message, Publishe
                                 Subscriber)
 from rce_client.reconnect import (ENDPOINT_GONE_AFTER, LINK_EVENTS, RECONNECT_WAIT, RECONNECT_WAIT_MAX, Reconnect,
                                   Reconnecting)
+from rce_client.routes import Routes
 from rce_client.verbs import WAIT_TIMEOUT, Verbs
 
 __all__ = ["CLIENT_VERSION", "CONNECT_TIMEOUT", "DEFAULT_CALL_TIMEOUT", "RECONNECT_WAIT", "RECONNECT_WAIT_MAX",
@@ -127,6 +128,7 @@ class Connection(Verbs, Handles, Reconnecting):
         self.relogin: tuple[str, str, str] | None = None
         self.ssl_context: ssl.SSLContext | None = None     # verifies a wss:// endpoint (open's ssl_context)
         self.max_lag: float | None = None                 # s: the maxLag it asked for (open), also after a move
+        self.routes: Routes | None = None                 # a follower's paths: direct, else a relay (open)
         self.errors: list[str] = []
         self.unhandled = 0                          # DMs for an iTag with no handler
         self.close_reason: str | None = None
@@ -166,7 +168,7 @@ class Connection(Verbs, Handles, Reconnecting):
                             max_reconnect_attempts: int | None = None, reconnect_time_wait: float = RECONNECT_WAIT,
                             max_reconnect_wait: float = RECONNECT_WAIT_MAX, resume_buffer: int = DEFAULT_RESUME_BUFFER,
                             endpoint_gone_after: int = ENDPOINT_GONE_AFTER, ssl_context: ssl.SSLContext | None = None,
-                            max_lag: float | None = None) -> "Connection":
+                            max_lag: float | None = None, routes: Routes | None = None) -> "Connection":
         """Log in at the master and open the robot's websocket.
 
         - ``master_url``: ``http://HOST:9000/`` (or ``https://``); ``password`` in clear (hashed here).
@@ -186,15 +188,19 @@ class Connection(Verbs, Handles, Reconnecting):
         - ``max_lag``: s the endpoint may lag behind this connection before it sheds its topic messages
           (``maxLag``, docs/INTERNALS.md "A peer that does not keep up"); 0 for never; None: the
           endpoint's default.
+        - ``routes``: a follower's paths to the cloud (:class:`~rce_client.routes.Routes`): its own path
+          first, else the first relay that answers, for the login and every dial; with
+          ``allow_reconnect`` it moves between relays and the direct path by session resume
+          (docs/relays.md).
 
         Raises :class:`AuthError` (bad credentials: HTTP or handshake 401/403, with the cloud's reason)
         or :class:`Unavailable`."""
-        ws_url = await login(master_url, user_id, version, timeout, ssl_context)
+        ws_url = await login(master_url, user_id, version, timeout, ssl_context, routes)
         conn = await cls.open(ws_url, user_id, password, robot_id, timeout=timeout, expiry=expiry,
                               allow_reconnect=allow_reconnect, max_reconnect_attempts=max_reconnect_attempts,
                               reconnect_time_wait=reconnect_time_wait, max_reconnect_wait=max_reconnect_wait,
                               resume_buffer=resume_buffer, endpoint_gone_after=endpoint_gone_after,
-                              ssl_context=ssl_context, max_lag=max_lag)
+                              ssl_context=ssl_context, max_lag=max_lag, routes=routes)
         conn.relogin = (master_url, password, version)
         return conn
 
@@ -205,17 +211,19 @@ class Connection(Verbs, Handles, Reconnecting):
                    reconnect_time_wait: float = RECONNECT_WAIT, max_reconnect_wait: float = RECONNECT_WAIT_MAX,
                    resume_buffer: int = DEFAULT_RESUME_BUFFER,
                    endpoint_gone_after: int = ENDPOINT_GONE_AFTER,
-                   ssl_context: ssl.SSLContext | None = None, max_lag: float | None = None) -> "Connection":
+                   ssl_context: ssl.SSLContext | None = None, max_lag: float | None = None,
+                   routes: Routes | None = None) -> "Connection":
         """Open the websocket at a known robot endpoint ``ws_url`` (skips the login); the keywords are
         :meth:`login_connect`'s. Raises :class:`AuthError` or :class:`Unavailable` as :meth:`login_connect`."""
         reconnect = Reconnect(max_reconnect_attempts, reconnect_time_wait, max_reconnect_wait, resume_buffer,
                               timeout, endpoint_gone_after) if allow_reconnect else None
         ssl_context = ssl_context or tls.client_context()
         ws = await open_robot_link(ws_url, user_id, password, robot_id, timeout=timeout, ssl_context=ssl_context,
-                                   resume=allow_reconnect, max_lag=max_lag)
-        log.info("connected", user=user_id, robot=robot_id, url=ws_url, resume=allow_reconnect)
+                                   resume=allow_reconnect, max_lag=max_lag, routes=routes)
+        log.info("connected", user=user_id, robot=robot_id, url=ws_url, resume=allow_reconnect,
+                 via=routes.relay if routes else None)
         conn = cls(ws, user_id, robot_id, ws_url, expiry, reconnect)
-        conn.ssl_context, conn.max_lag = ssl_context, max_lag
+        conn.ssl_context, conn.max_lag, conn.routes = ssl_context, max_lag, routes
         return conn
 
     @property
@@ -247,6 +255,8 @@ class Connection(Verbs, Handles, Reconnecting):
         self.session.events_received()           # call_failed/barrier_failed: their waiters have the error
         self._changed.set()
         await self.tasks.cancel_all()
+        if self.routes is not None:
+            await self.routes.close()
         await close_quietly(self.ws)            # a link a reconnect had just opened
 
     async def __aenter__(self) -> "Connection":

@@ -12,7 +12,7 @@ import asyncio
 import hashlib
 import json
 import ssl
-from typing import Any
+from typing import TYPE_CHECKING, Any
 from urllib.parse import parse_qsl, urlencode, urlsplit, urlunsplit
 
 import aiohttp
@@ -22,6 +22,9 @@ from websockets.exceptions import InvalidHandshake, InvalidStatus, InvalidURI
 from rce.transport import tls
 from rce.plumbing.errors import AuthError, Unavailable, http_reason
 from rce.plumbing.log import get_logger
+
+if TYPE_CHECKING:
+    from rce_client.routes import Routes
 
 log = get_logger("rce.client")
 
@@ -44,7 +47,8 @@ def with_query(url: str, **params: str) -> str:
 
 
 async def login(master_url: str, user_id: str, version: str = CLIENT_VERSION,
-                timeout: float = CONNECT_TIMEOUT, ssl_context: ssl.SSLContext | None = None) -> str:
+                timeout: float = CONNECT_TIMEOUT, ssl_context: ssl.SSLContext | None = None,
+                routes: Routes | None = None) -> str:
     """Ask the master for this user's robot endpoint; returns its websocket URL.
 
     ``GET master_url?userID=U&version=V`` -> ``{"url": ws_url, "current"?: V'}`` (``current``
@@ -52,18 +56,19 @@ async def login(master_url: str, user_id: str, version: str = CLIENT_VERSION,
     with ``ssl_context`` (default :func:`rce.transport.tls.client_context`: ``$RCE_CA_FILE``, else the
     system's CAs). Raises :class:`AuthError` (HTTP 401/403) or :class:`Unavailable` (any other
     HTTP error, an unreachable or untrusted master, a malformed answer) with the master's
-    one-line reason."""
+    one-line reason. ``routes``: a follower's paths (direct, else a relay; :mod:`rce_client.routes`)."""
     url = with_query(master_url, userID=user_id, version=version)
     try:
-        async with aiohttp.ClientSession(timeout=aiohttp.ClientTimeout(total=timeout)) as http:
-            async with http.get(url, ssl=ssl_context or tls.client_context()) as resp:
-                body = await resp.read()
-                if resp.status in (401, 403):
-                    reason = http_reason(body, resp.reason or "unauthorized")
-                    raise AuthError(f"login refused by {master_url}: {reason}")
-                if resp.status >= 400:
-                    raise Unavailable(f"login at {master_url} failed (HTTP {resp.status}): "
-                                      f"{http_reason(body, resp.reason or 'error')}")
+        if routes is not None:
+            status, phrase, body = await routes.get(url, ssl_context, timeout)
+        else:
+            async with aiohttp.ClientSession(timeout=aiohttp.ClientTimeout(total=timeout)) as http:
+                async with http.get(url, ssl=ssl_context or tls.client_context()) as resp:
+                    status, phrase, body = resp.status, resp.reason, await resp.read()
+        if status in (401, 403):
+            raise AuthError(f"login refused by {master_url}: {http_reason(body, phrase or 'unauthorized')}")
+        if status >= 400:
+            raise Unavailable(f"login at {master_url} failed (HTTP {status}): {http_reason(body, phrase or 'error')}")
     except (aiohttp.ClientError, asyncio.TimeoutError, OSError) as e:
         raise Unavailable(f"cannot reach the master at {master_url}: "
                           f"{tls.tls_failure(e, master_url) or e or type(e).__name__}") from None
@@ -93,17 +98,17 @@ class Unreachable(Unavailable):
 
 async def open_robot_link(ws_url: str, user_id: str, password: str, robot_id: str, *, timeout: float,
                           ssl_context: ssl.SSLContext | None, resume: bool = False,
-                          max_lag: float | None = None) -> ClientConnection:
+                          max_lag: float | None = None, routes: Routes | None = None) -> ClientConnection:
     """Open robot ``robot_id``'s websocket at robot endpoint ``ws_url`` as ``user_id`` (``password`` in
     clear, hashed here), within ``timeout`` s; ``resume``: ask for session resume; ``max_lag``: the
-    ``maxLag`` asked for (None: the endpoint's default). Newer clients ask for HTTP refusals
-    (``refusal=http``). Raises :class:`AuthError` (the handshake refused with 401/403, with the
+    ``maxLag`` asked for (None: the endpoint's default); ``routes``: a follower's paths. Newer clients ask
+    for HTTP refusals (``refusal=http``). Raises :class:`AuthError` (the handshake refused with 401/403, with the
     endpoint's reason), :class:`Unreachable` (nothing listens) or :class:`Unavailable` (another
     refusal, or the endpoint could not be reached)."""
     query = {"userID": user_id, "robotID": robot_id, "password": hash_password(password), "refusal": "http",
              **({"resume": "1"} if resume else {}), **({"maxLag": f"{max_lag:g}"} if max_lag is not None else {})}
     try:
-        return await dial(with_query(ws_url, **query), timeout, ssl_context)
+        return await dial(with_query(ws_url, **query), timeout, ssl_context, routes)
     except HandshakeRefused as e:
         if e.status in (401, 403):
             raise AuthError(f"robot endpoint {ws_url} refused {user_id}/{robot_id}: {e.reason}") from None
@@ -112,13 +117,22 @@ async def open_robot_link(ws_url: str, user_id: str, password: str, robot_id: st
         raise type(e)(f"cannot connect to the robot endpoint {ws_url}: {e.message}") from None
 
 
-async def dial(url: str, timeout: float, ssl_context: ssl.SSLContext | None = None) -> ClientConnection:
-    """Open a websocket to ``url`` within ``timeout`` s (``wss://``: verified with ``ssl_context``). Raises
+async def dial(url: str, timeout: float, ssl_context: ssl.SSLContext | None = None,
+               routes: Routes | None = None) -> ClientConnection:
+    """Open a websocket to ``url`` within ``timeout`` s (``wss://``: verified with ``ssl_context``; ``routes``:
+    a follower's paths, direct else through a relay, :mod:`rce_client.routes`). Raises
     :class:`HandshakeRefused` (the endpoint answered the handshake with an HTTP error) or :class:`Unavailable`
     (unreachable, an untrusted certificate, or the handshake failed)."""
+    path = None
     try:
-        return await ws_connect(url, open_timeout=timeout, max_size=MAX_FRAME, proxy=None, compression=None,
-                                user_agent_header="rce-client", ssl=tls.for_url(url, ssl_context))
+        if routes is not None:
+            path, url = await routes.dial_socket(url)
+        ws = await ws_connect(url, open_timeout=timeout, max_size=MAX_FRAME, proxy=None, compression=None,
+                              user_agent_header="rce-client", ssl=tls.for_url(url, ssl_context),
+                              **({"sock": path.sock} if path else {}))
+        if path is not None:
+            routes.opened(ws, path)
+        return ws
     except InvalidStatus as e:
         status = e.response.status_code
         reason = http_reason(e.response.body or b"", e.response.reason_phrase or str(status))

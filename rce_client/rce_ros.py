@@ -3,6 +3,7 @@
 ::
 
     rce-ros configs/debug.config [--bus PATH | --ros] [--timeout S] [--keep] [--url MASTER_URL] [--no-resume]
+                                 [--relay-port PORT [--relay-max N] [--relay-rate BYTES_S]] [--relays HOST:PORT,...]
 
 1. Loads the robot config (:func:`rce.protocol.config.load_config`, JSON or YAML). A bad config is
    refused before anything is sent: exit code 2 and the ConfigError (file, key path, reason).
@@ -29,6 +30,11 @@
    to the cloud drops, the local bus stays up and local programs never notice: their messages to
    the cloud are kept and sent after the resume, their calls to the cloud wait, and what the cloud
    sent meanwhile is published once the session is resumed. rce-ros prints the drop and the resume.
+
+6. Relays (docs/relays.md): with ``--relay-port PORT`` this robot relays for nearby robots out of
+   coverage (:class:`rce_client.relay.Relay`: at most ``--relay-max`` at once, its own traffic first);
+   with ``--relays HOST:PORT,...`` it is a follower: it logs in and dials its endpoint directly when
+   it can, else through the first relay that answers, and moves between them by session resume.
 
 Every ER from the cloud is printed with its reason. SIGINT/SIGTERM tear down: the interfaces
 and containers this run created are removed (unless ``--keep``), the websocket is closed,
@@ -61,6 +67,8 @@ from rce.node.package_path import load_package_types
 from rce.protocol import split_interface_type
 from rce_client.connection import Connection, Message
 from rce_client.paths import default_bus_path
+from rce_client.relay import DEFAULT_MAX_FOLLOWERS, DEFAULT_RATE, Relay
+from rce_client.routes import Routes, parse_relays
 
 log = get_logger("rce.ros")
 OWNER = "/rce_ros"
@@ -224,12 +232,17 @@ class RobotBridge:
     in a task, ``ready`` tells when the interfaces are up, ``stop.set()`` tears down.
     ``resume``: ask for session resume and ride out lost links (:class:`Connection` ``allow_reconnect``).
     ``graph(bridge)`` makes the robot-side graph the interfaces are bridged to (default
-    :class:`LocalBusGraph`; ``rce-ros --ros``: :class:`rce_client.ros1_bridge.RospyGraph`)."""
+    :class:`LocalBusGraph`; ``rce-ros --ros``: :class:`rce_client.ros1_bridge.RospyGraph`).
+    ``relays``: [(host, port)] of relays to reach the cloud through when the direct path fails;
+    ``relay_port``: relay for nearby robots on this port (None: not; 0: any free port), at most
+    ``relay_max`` at once, relayed traffic paced to ``relay_rate`` bytes/s (docs/relays.md)."""
 
     def __init__(self, config: RobotConfig, source: str, bus_path: str | None, *, timeout: float = 30.0,
                  keep: bool = False, url: str | None = None, registry: MessageRegistry | None = None,
                  out: Callable[[str], None] | None = None, err: Callable[[str], None] | None = None,
-                 resume: bool = True, graph: Callable[["RobotBridge"], Any] | None = None):
+                 resume: bool = True, graph: Callable[["RobotBridge"], Any] | None = None,
+                 relays: list[tuple[str, int]] | None = None, relay_port: int | None = None,
+                 relay_max: int = DEFAULT_MAX_FOLLOWERS, relay_rate: float = DEFAULT_RATE):
         self.cfg, self.source, self.bus_path = config, source, bus_path
         self.timeout, self.keep, self.resume = timeout, keep, resume
         self.url = url or config.url
@@ -239,6 +252,9 @@ class RobotBridge:
         self.bus = Bus(f"robot {config.robotID}")
         self.graph = (graph or LocalBusGraph)(self)
         self.conn: Connection | None = None
+        self.routes = Routes(relays) if relays else None
+        self.relay_port, self.relay_max, self.relay_rate = relay_port, relay_max, relay_rate
+        self.relay: Relay | None = None
         self.stop = asyncio.Event()
         self.ready = asyncio.Event()            # set once every robot-side interface is up
         self.created: list[str] = []            # containers this run created
@@ -314,6 +330,8 @@ class RobotBridge:
                     await self._teardown()
                 return 1
         finally:
+            if self.relay is not None:
+                await self.relay.close()
             for c in self._to_cloud:
                 c.close()
             self._report_drops()
@@ -331,7 +349,7 @@ class RobotBridge:
         cfg = self.cfg
         self.out(f"rce-ros: logging in at {self.url} as {cfg.userID}/{cfg.robotID}")
         self.conn = await self._until_stop(Connection.connect(self.url, cfg.userID, cfg.password, cfg.robotID,
-                                                              allow_reconnect=self.resume))
+                                                              allow_reconnect=self.resume, routes=self.routes))
         conn = self.conn
         conn.on_error(lambda reason: self.err(f"rce-ros: error from the cloud: {reason}"))
         conn.on_status(self._on_status)
@@ -339,7 +357,12 @@ class RobotBridge:
                                                      f"session (the local bus stays up)"))
         conn.on_resumed(lambda st: self.out(f"rce-ros: session resumed ({st.get('dropped', 0)} message(s) from "
                                             f"the cloud lost)"))
-        self.out(f"rce-ros: connected to {conn.ws_url}")
+        via = f" through relay {self.routes.relay}" if self.routes and self.routes.relay else ""
+        self.out(f"rce-ros: connected to {conn.ws_url}{via}")
+        if self.relay_port is not None:
+            self.relay = await Relay.for_connection(conn, self.relay_port, max_followers=self.relay_max,
+                                                    rate=self.relay_rate)
+            self.out(f"rce-ros: relaying for nearby robots on port {self.relay.port} (at most {self.relay_max})")
         self._bridge()
 
         for c in cfg.containers:
@@ -501,6 +524,14 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--url", metavar="MASTER_URL", help="master login URL (overrides the config's url)")
     p.add_argument("--no-resume", dest="resume", action="store_false",
                    help="do not ask for session resume: a lost link ends the run (exit code 1)")
+    p.add_argument("--relay-port", type=int, metavar="PORT", help="relay for nearby robots out of coverage on "
+                   "this TCP port (0: any free port; docs/relays.md)")
+    p.add_argument("--relay-max", type=int, default=DEFAULT_MAX_FOLLOWERS, metavar="N",
+                   help=f"robots relayed at once; the others are refused with 503 (default {DEFAULT_MAX_FOLLOWERS})")
+    p.add_argument("--relay-rate", type=float, default=DEFAULT_RATE, metavar="BYTES_S",
+                   help=f"relayed bytes/s in all, past which they are paced (0: no pacing; default {DEFAULT_RATE})")
+    p.add_argument("--relays", metavar="HOST:PORT[,HOST:PORT...]",
+                   help="relays to reach the cloud through when this robot's own path fails, in order of preference")
     tls.add_client_arguments(p)
     return p
 
@@ -517,6 +548,12 @@ def main(argv: list[str] | None = None) -> None:
     if args.ros and args.bus:
         build_parser().error("--bus and --ros exclude each other: with --ros the interfaces are on the ROS 1 graph")
     bus_path = None if args.ros else args.bus or default_bus_path(cfg.robotID)
+    try:
+        relays = parse_relays(args.relays) if args.relays else None
+    except ValueError as e:
+        build_parser().error(str(e))
+    if args.relay_max < 1:
+        build_parser().error(f"--relay-max must be at least 1, got {args.relay_max}")
     if args.ca_file:           # the https:// login and the wss:// endpoint trust it (rce.transport.tls.client_context)
         os.environ[tls.CA_FILE_ENV] = str(args.ca_file)
 
@@ -526,7 +563,8 @@ def main(argv: list[str] | None = None) -> None:
             from rce_client.ros1_bridge import RospyGraph
             graph = RospyGraph
         bridge = RobotBridge(cfg, args.config, bus_path, timeout=args.timeout, keep=args.keep, url=args.url,
-                             resume=args.resume, graph=graph)
+                             resume=args.resume, graph=graph, relays=relays, relay_port=args.relay_port,
+                             relay_max=args.relay_max, relay_rate=args.relay_rate)
         loop = asyncio.get_running_loop()
         for sig in (signal.SIGINT, signal.SIGTERM):
             loop.add_signal_handler(sig, bridge.stop.set)

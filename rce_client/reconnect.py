@@ -21,6 +21,7 @@ from rce.transport.masterlink import Backoff
 from rce.protocol.resume import DEFAULT_GRACE, DEFAULT_RESUME_BUFFER
 from rce.protocol.session import ClientSession
 from rce.plumbing.tasks import Tasks
+from rce_client.routes import Routes
 from rce_client.dial import CONNECT_TIMEOUT, HandshakeRefused, Unreachable, dial, login, open_robot_link, with_query
 
 log = get_logger("rce.client")
@@ -63,6 +64,7 @@ class Reconnecting:
     user_id: str
     robot_id: str
     ssl_context: ssl.SSLContext | None
+    routes: Routes | None
     max_lag: float | None
     close_reason: str | None
     moves: int
@@ -123,7 +125,7 @@ class Reconnecting:
                 if self.relogin is not None and refused >= r.gone_after:
                     await self._move()
                     return
-                ws = await dial(url, r.timeout, self.ssl_context)
+                ws = await dial(url, r.timeout, self.ssl_context, self.routes)
                 break
             except (HandshakeRefused, AuthError) as e:  # 401: the session expired (or the token is wrong); 400: bad ack
                 self.close_reason = f"the cloud refused to resume the session ({e})"
@@ -154,11 +156,12 @@ class Reconnecting:
         (the master is unreachable or still names the dead endpoint; try again) or :class:`AuthError`."""
         master_url, password, version = self.relogin
         timeout = self.reconnect.timeout
-        ws_url = await login(master_url, self.user_id, version, timeout, self.ssl_context)
+        ws_url = await login(master_url, self.user_id, version, timeout, self.ssl_context, self.routes)
         if ws_url == self.ws_url:
             raise Unavailable(f"the master still names the dead robot endpoint {ws_url}")
         ws = await open_robot_link(ws_url, self.user_id, password, self.robot_id, timeout=timeout,
-                                   ssl_context=self.ssl_context, resume=True, max_lag=self.max_lag)
+                                   ssl_context=self.ssl_context, resume=True, max_lag=self.max_lag,
+                                   routes=self.routes)
         old = self.session
         lost = len(old.outgoing) if old.outgoing is not None else 0
         old.close(f"the robot endpoint {self.ws_url} died; the session moved to {ws_url}")

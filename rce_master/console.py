@@ -39,7 +39,7 @@ from rce_master.users import UsersFile
 DEFAULT_MASTER = "http://127.0.0.1:9000/"
 COLUMNS = {
     "users": ["name"],
-    "robots": ["user", "robot", "endpoint", "since"],
+    "robots": ["user", "robot", "endpoint", "since", "relay", "relay_since"],
     "containers": ["user", "ctag", "owner", "host", "group", "state", "sandbox", "data"],
     "nodes": ["user", "ctag", "ntag", "pkg", "exe", "status", "code", "signal"],
     "parameters": ["user", "ctag", "name", "value"],

@@ -232,7 +232,8 @@ class StateIndex:
                           **{k: v for k, v in t.info.items() if k in ("ws_url", "data_addr", "sandbox", "capacity")}}
                          for t in sorted(ts.values(), key=attrgetter("tid"))],
             "robots": [{"user": r.user, "robot": r.robot, "endpoint": ts[r.tid].name if r.tid in ts else "?",
-                        "since": r.since} for r in sorted(self.robots.values(), key=attrgetter("user", "robot"))],
+                        "since": r.since, "relay": r.relay, "relay_since": r.relay_since or None}
+                       for r in sorted(self.robots.values(), key=attrgetter("user", "robot"))],
             "containers": [{"user": c.user, "ctag": c.ctag, "owner": c.owner, "cid": c.cid,
                             "host": ts[c.tid].name if c.tid in ts else "(lost)", "group": c.group, "state": c.state,
                             "sandbox": c.sandbox, "data": c.data}

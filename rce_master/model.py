@@ -104,11 +104,15 @@ class TaskSet(_Record):
 
 @dataclass
 class Robot(_Record):
-    """A connected robot: on robot task set ``tid`` since ``since`` (Unix time, s)."""
+    """A connected robot: on robot task set ``tid`` since ``since`` (Unix time, s); ``relay``: the robot
+    (of the same user) its link to the cloud goes through, "" for its own path, since ``relay_since``
+    (Unix time, s; docs/relays.md)."""
     user: str
     robot: str
     tid: int
     since: float
+    relay: str = ""
+    relay_since: float = 0.0
 
     @property
     def store_key(self) -> Key:

@@ -90,6 +90,10 @@ class MasterMetrics:
               registry=r).set_function(lambda: failover.recovered)
         Gauge("rce_master_containers_given_up", "Lost containers the master gave up re-creating since it started",
               registry=r).set_function(lambda: failover.gave_up)
+        Gauge("rce_master_robots_relayed", "Connected robots whose link to the cloud goes through another robot",
+              registry=r).set_function(lambda: sum(bool(b.relay) for b in state.robots.values()))
+        Gauge("rce_master_robots_relaying", "Robots that carry the link of at least one other robot",
+              registry=r).set_function(lambda: len({(b.user, b.relay) for b in state.robots.values() if b.relay}))
         Gauge("rce_master_store_pending", "Changes of the state not yet written to the store (etcd)",
               registry=r).set_function(lambda: getattr(state.store, "pending", 0))
 
@@ -233,6 +237,7 @@ class Master:
             peer.handlers.update({
                 "auth": self._auth, "robot_connected": lambda args, tid=ts.tid: self._robot_connected(tid, args),
                 "robot_disconnected": lambda args, tid=ts.tid: self._robot_disconnected(tid, args),
+                "robot_relay": lambda args, tid=ts.tid: self._robot_relay(tid, args),
                 "robot_request": self._robot_request, "container_bus": self._container_bus,
                 "container_param": self._container_param})
         else:
@@ -302,6 +307,15 @@ class Master:
         self.state.robot_connect(user, robot, tid)
         await self.state.store.flush()
         log.info("robot connected", user=user, robot=robot)
+        return {}
+
+    async def _robot_relay(self, tid: int, args: dict) -> dict:
+        """``robot_relay {user, robot, relay}``: the robot's link to the cloud goes through robot ``relay``
+        ("" for its own path) from now on (docs/relays.md)."""
+        r = self.state.robot_relay(args["user"], args["robot"], tid, str(args.get("relay") or ""))
+        if r is not None:
+            await self.state.store.flush()
+            log.info("robot's path to the cloud", user=r.user, robot=r.robot, relay=r.relay or "(direct)")
         return {}
 
     def _namespace_up(self, robot: Robot) -> bool:
@@ -381,6 +395,7 @@ class Master:
         app = web.Application(middlewares=[self._errors_mw], client_max_size=MAX_HTTP_BODY)
         app.router.add_get("/", self._login)
         app.router.add_get("/metrics", self._metrics)
+        app.router.add_get("/endpoints", self._endpoints)
         self.admin.add_routes(app)
         for prefix, d in static_dirs.items():
             app.router.add_static(prefix, d, show_index=False)
@@ -431,6 +446,12 @@ class Master:
             body["current"] = CLIENT_VERSION
         self.metrics.logins.labels("ok").inc()
         return web.json_response(body)
+
+    async def _endpoints(self, request: web.Request) -> web.Response:
+        """``GET /endpoints`` -> ``{"endpoints": [ws_url, ...]}``: the robot endpoints registered now, those
+        a login may name; a relay tunnels to these and the master only (docs/relays.md)."""
+        return web.json_response({"endpoints": sorted(t.info["ws_url"] for t in self.state.tasksets.values()
+                                                      if t.kind == "robot" and not t.lost and "ws_url" in t.info)})
 
     async def _metrics(self, request: web.Request) -> web.Response:
         return web.Response(body=generate_latest(self.metrics.registry),

@@ -296,6 +296,17 @@ class MasterState(StateIndex):
         return self.robots[(user, robot)]
 
     @_atomic
+    def robot_relay(self, user: str, robot: str, tid: int, relay: str) -> Robot | None:
+        """Robot ``user/robot`` on task set ``tid`` reaches the cloud through robot ``relay`` ("" for its
+        own path) from now on. Returns it, or None when it is not (or no longer) on ``tid``."""
+        r = self.robots.get((user, robot))
+        if r is None or r.tid != tid:
+            return None
+        if r.relay != relay:
+            self._put(r, relay=relay, relay_since=time.time())
+        return self.robots[(user, robot)]
+
+    @_atomic
     def robot_moved(self, user: str, robot: str, tid: int) -> list[InterfaceRec]:
         """Robot ``user/robot``, stored on an absent robot task set, connected through task set
         ``tid``: it is on ``tid`` now, with its robot-side interfaces (same iids; their connections

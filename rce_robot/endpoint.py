@@ -30,7 +30,7 @@ from rce.protocol.frames import DEFAULT_EXPIRY, ER, encode
 from rce.protocol.limits import DEFAULT_MAX_PENDING_TOTAL, PartBudget, parse_max_lag
 from rce.protocol.resume import DEFAULT_GRACE, DEFAULT_RESUME_BUFFER
 from rce.protocol.session import DEFAULT_MAX_LAG, DEFAULT_MAX_MESSAGE, DEFAULT_QUEUE_SIZE, RobotSession
-from rce_robot.front_door import master_away, peer_address, refuse_in_band, throttled
+from rce_robot.front_door import master_away, peer_address, refuse_in_band, relay_name, throttled
 from rce_robot.interfaces import RobotInterface
 from rce_robot.namespace import CLOSE_POLICY, RobotNamespace
 from rce_robot.parse_pool import ParsePool
@@ -162,6 +162,7 @@ class RobotEndpoint:
         self._http: web.AppRunner | None = None
         self.rosbridge: RosbridgeServer | None = None
         self.stopped = asyncio.Event()
+        self.relays: dict[tuple[str, str], str] = {}      # (user, robot) -> the relay its link goes through now
 
     async def start(self, masters: list[Address], bind: str, port: int, data_port: int,
                     metrics_port: int | None = None, rosbridge_port: int | None = None) -> None:
@@ -258,7 +259,7 @@ class RobotEndpoint:
         except RCEError as e:
             return connection.respond(HTTPStatus.CONFLICT, e.message + "\n")
         connection.rce_identity, connection.rce_resume = (user, robot), q.get("resume") == "1"
-        connection.rce_ack, connection.rce_max_lag = None, max_lag
+        connection.rce_ack, connection.rce_max_lag, connection.rce_relay = None, max_lag, relay_name(q)
         self.opening.setdefault((user, robot), asyncio.Event())
         return None
 
@@ -280,6 +281,7 @@ class RobotEndpoint:
                                                               f"took, 0 to {ns.session.outgoing.last}; got "
                                                               f"{q.get('ack')!r}\n")
         connection.rce_identity, connection.rce_resume, connection.rce_ack = (user, robot), True, ack
+        connection.rce_relay = relay_name(q)
         return None
 
     async def _session(self, ws) -> None:
@@ -292,7 +294,9 @@ class RobotEndpoint:
             if ns is None or ns.ended:         # it ended between the handshake and now
                 await ws.close(CLOSE_POLICY, "the session to resume has ended")
                 return
-            log.info("robot resumed", user=user, robot=robot, ack=ws.rce_ack, peer=str(ws.remote_address))
+            log.info("robot resumed", user=user, robot=robot, ack=ws.rce_ack, peer=str(ws.remote_address),
+                     relay=ws.rce_relay or None)
+            self._relayed(ns, ws.rce_relay)
             await ns.serve(ws, ws.rce_ack)
             return
         session = RobotSession(robot, max_message=self.max_message, queue_size=self.queue_size, expiry=self.expiry,
@@ -302,8 +306,24 @@ class RobotEndpoint:
         self.namespaces[(user, robot)] = ns
         if (opened := self.opening.pop((user, robot), None)) is not None:
             opened.set()
-        log.info("robot connected", user=user, robot=robot, peer=str(ws.remote_address), resume=ws.rce_resume)
+        log.info("robot connected", user=user, robot=robot, peer=str(ws.remote_address), resume=ws.rce_resume,
+                 relay=ws.rce_relay or None)
+        self._relayed(ns, ws.rce_relay)
         await ns.serve(ws)
+
+    def _relayed(self, ns: RobotNamespace, relay: str) -> None:
+        """Tell the master when robot ``ns``'s link goes through another relay (or its own path) than
+        before (docs/relays.md): ``robot_relay``."""
+        if self.relays.get((ns.user, ns.robot), "") == relay:
+            return
+        self.relays[(ns.user, ns.robot)] = relay
+
+        async def report() -> None:
+            try:
+                await self.master.call("robot_relay", user=ns.user, robot=ns.robot, relay=relay)
+            except RCEError as e:
+                log.warning("could not report the robot's relay", robot=ns.robot, relay=relay, reason=str(e))
+        ns.tasks.spawn(report(), name="robot-relay")
 
     @staticmethod
     async def _refuse(ws, reason: str) -> None:
@@ -319,6 +339,7 @@ class RobotEndpoint:
         user, robot = ns.user, ns.robot
         if self.namespaces.get((user, robot)) is ns:
             del self.namespaces[(user, robot)]
+            self.relays.pop((user, robot), None)
         self.metrics.session_ended(ns.session)
         for iid in [i for i, itf in self.by_iid.items() if itf.link is ns]:
             del self.by_iid[iid]

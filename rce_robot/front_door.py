@@ -50,3 +50,13 @@ def master_away(connection, master):
     resp = connection.respond(HTTPStatus.SERVICE_UNAVAILABLE, "the master is unavailable; try again later\n")
     resp.headers["Retry-After"] = str(MASTER_AWAY_RETRY_AFTER)
     return resp
+
+
+MAX_RELAY_NAME = 64     # characters of a relay's name kept from a handshake's query
+
+
+def relay_name(query: dict) -> str:
+    """The relay a follower's link goes through (``relay=NAME`` in its login or resume query; "" for its
+    own path, docs/relays.md): at most :data:`MAX_RELAY_NAME` printable characters, told to the master
+    as the follower said it (it is what the follower saw, not a credential)."""
+    return "".join(c for c in str(query.get("relay", "")) if c.isprintable())[:MAX_RELAY_NAME]
