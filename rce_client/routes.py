@@ -59,7 +59,8 @@ class Path:
 
 
 class Routes:
-    """A follower's paths to the cloud: direct first, then ``relays`` [(host, port)] in order.
+    """A follower's paths to the cloud: direct first, then ``relays`` [(host, port)] in order (the relay
+    whose link was just lost last, so that a relay that vanished costs no dial timeout).
 
     :attr:`relay`: the name of the relay the current link goes through (None: direct); :attr:`switches`:
     links opened on another path than the one before."""
@@ -72,6 +73,7 @@ class Routes:
         self.switches = 0
         self.tasks = Tasks("rce-client routes")
         self._opened = False
+        self._suspect: tuple[str, int] | None = None     # the relay whose link was lost last: tried last
 
     async def socket_to(self, addr: tuple[str, int]) -> Path:
         """A socket to ``addr``: direct if it answers within :attr:`direct_timeout` s, else through the
@@ -83,7 +85,8 @@ class Routes:
         except (OSError, TimeoutError) as e:
             why = [f"direct: {e or type(e).__name__}"]
             refused = isinstance(e, (ConnectionRefusedError, ConnectionResetError))
-        for relay in self.relays:
+        order = sorted(self.relays, key=lambda r: r == self._suspect)    # stable: the lost relay goes last
+        for relay in order:
             try:
                 sock, name = await open_tunnel(relay, addr, self.relay_timeout)
                 return Path(sock, addr, name, relay)
@@ -107,32 +110,34 @@ class Routes:
         if path.relay != self.relay:
             log.info("link to the cloud", via=path.relay or "direct",
                      relay=join_hostport(*path.relay_addr) if path.relay_addr else None)
-        self.relay = path.relay
+        self.relay, self._suspect = path.relay, None
         if path.relay is not None:
-            self.tasks.spawn(self._watch(ws, path.target), name="relay-watch")
+            self.tasks.spawn(self._watch(ws, path), name="relay-watch")
 
-    async def _watch(self, ws: ClientConnection, direct: tuple[str, int]) -> None:
-        """While ``ws`` is relayed: ping it (drop it when a pong is late) and probe the ``direct`` path
-        (drop it when that answers: the dial that follows takes the direct path)."""
+    async def _watch(self, ws: ClientConnection, path: Path) -> None:
+        """While ``ws`` is relayed on ``path``: ping it (drop it when a pong is late) and probe the direct
+        path (drop it when that answers: the dial that follows takes the direct path)."""
         probe_at = asyncio.get_running_loop().time() + self.probe_every
         while ws.transport is not None and not ws.transport.is_closing():
             try:
                 pong = await ws.ping()
                 await asyncio.wait_for(pong, RELAY_PING_TIMEOUT)
             except asyncio.TimeoutError:
-                log.info("relay link lost (pong late)", via=self.relay, timeout=RELAY_PING_TIMEOUT)
+                log.info("relay link lost (pong late)", via=path.relay, timeout=RELAY_PING_TIMEOUT)
+                self._suspect = path.relay_addr
                 ws.transport.abort()
                 return
             except Exception:               # the link closed under the ping: its reader resumes
+                self._suspect = path.relay_addr
                 return
             if asyncio.get_running_loop().time() >= probe_at:
                 probe_at = asyncio.get_running_loop().time() + self.probe_every
                 try:
-                    (await tcp_connect(direct, self.direct_timeout)).close()
+                    (await tcp_connect(path.target, self.direct_timeout)).close()
                 except (OSError, TimeoutError):
                     pass
                 else:
-                    log.info("direct path to the cloud is back; leaving the relay", via=self.relay)
+                    log.info("direct path to the cloud is back; leaving the relay", via=path.relay)
                     ws.transport.abort()
                     return
             await asyncio.sleep(RELAY_PING_INTERVAL)      # the ping period, a timer

@@ -176,7 +176,8 @@ class Engine:
 
 def start_engine(workdir: Path | None = None, *, robot_tasksets: int = 1, container_hosts: int = 1,
                  master_args: tuple = (), robot_args: tuple = (), container_args: tuple = (),
-                 admin_token: str = "test-admin-token", env: dict | None = None, tls: bool = False) -> Engine:
+                 admin_token: str = "test-admin-token", env: dict | None = None, tls: bool = False,
+                 tls_hosts: tuple[str, ...] = ("127.0.0.1", "localhost")) -> Engine:
     """Start master (``--dev``), robot task set(s) and container host(s); returns the :class:`Engine`.
 
     ``env`` is added to the processes' environment (``os.environ`` plus the admin token,
@@ -184,7 +185,7 @@ def start_engine(workdir: Path | None = None, *, robot_tasksets: int = 1, contai
     private ``XDG_CONFIG_HOME`` and ``XDG_STATE_HOME``); the master's state file is the engine's own,
     ``workdir/master.sqlite3``, unless ``master_args`` name a ``--state`` or ``--store``. ``tls``: the
     master serves https:// and the robot task sets wss://, with a certificate for 127.0.0.1 made for
-    this engine (in ``workdir/tls``; its CA in ``ca_file``)."""
+    this engine (in ``workdir/tls``; its CA in ``ca_file``), or for ``tls_hosts``."""
     workdir = Path(workdir or tempfile.mkdtemp(prefix="rce-engine-"))
     workdir.mkdir(parents=True, exist_ok=True)
     key_file = workdir / "cluster-key"
@@ -195,7 +196,7 @@ def start_engine(workdir: Path | None = None, *, robot_tasksets: int = 1, contai
         master_args = ("--state", str(workdir / "master.sqlite3"), *master_args)
     e = Engine(workdir, penv, admin_token=admin_token, master_args=tuple(master_args), cluster_key_file=key_file)
     if tls:
-        certs = _tls.make_dev_certificates(workdir / "tls")
+        certs = _tls.make_dev_certificates(workdir / "tls", tls_hosts)
         e.ca_file, e.tls_args = certs.ca, ("--tls-cert", str(certs.cert), "--tls-key", str(certs.key))
         e.master_args += e.tls_args
     info = e._start_master(0, 0)

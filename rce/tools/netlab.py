@@ -1,0 +1,147 @@
+"""Network namespaces and veth links that a test or benchmark makes for itself (as root) and deletes
+on exit, also after a failure, and reaps when a killed run left them (docs/testing.md)::
+
+    with NetLab("rly") as lab:
+        f = lab.namespace("f")                        # a namespace with its loopback up
+        up = lab.link(None, "l1", 1)                   # root <-> l1: 10.201.1.1/30 <-> 10.201.1.2/30
+        lab.route("l1", "default", up.a_ip)
+        subprocess.Popen(lab.wrap("l1", ["rce-ros", ...]))
+        lab.set_up(up, False, side="b")                # l1's end down: packets into it are lost silently
+
+Addresses are ``10.SUBNET.N.1`` (side a) and ``10.SUBNET.N.2`` (side b) for link number N.
+"""
+from __future__ import annotations
+
+import os
+import re
+import subprocess
+from dataclasses import dataclass
+
+SUBNET = 201          # the second octet of every address a NetLab gives
+
+
+@dataclass(frozen=True)
+class Link:
+    """A veth pair between namespace ``a`` (None: the root namespace) and ``b``: devices and addresses."""
+    a: str | None
+    b: str
+    a_dev: str
+    b_dev: str
+    a_ip: str
+    b_ip: str
+
+
+class NetLab:
+    """Namespaces named ``PREFIX<pid>-<name>`` and the veth links between them; needs root (``ip``)."""
+
+    def __init__(self, prefix: str):
+        self.prefix = f"{prefix}{os.getpid()}"
+        self.namespaces: list[str] = []
+        self.links: list[Link] = []
+
+    def __enter__(self) -> "NetLab":
+        self._reap_stale()
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.close()
+
+    def close(self) -> None:
+        """Delete every namespace made (their veth ends go with them, and so do the pairs)."""
+        for ns in self.namespaces:
+            subprocess.run(["ip", "netns", "del", ns], capture_output=True)
+        self.namespaces.clear()
+
+    def _reap_stale(self) -> None:
+        """Delete namespaces of this prefix left by a run that was killed (its pid is gone)."""
+        base = re.escape(self.prefix.rstrip("0123456789"))
+        r = subprocess.run(["ip", "netns", "list"], capture_output=True, text=True)
+        for line in r.stdout.splitlines():
+            m = re.match(rf"({base}(\d+)-\S+)", line)
+            if m and not os.path.exists(f"/proc/{m.group(2)}"):
+                subprocess.run(["ip", "netns", "del", m.group(1)], capture_output=True)
+
+    @staticmethod
+    def ip(*args: str) -> None:
+        """Run ``ip ARGS``; raises :class:`subprocess.CalledProcessError` with its stderr."""
+        subprocess.run(["ip", *args], check=True, capture_output=True, text=True)
+
+    def namespace(self, name: str) -> str:
+        """Make namespace ``name`` (loopback up); returns its full name."""
+        ns = f"{self.prefix}-{name}"
+        self.ip("netns", "add", ns)
+        self.namespaces.append(ns)
+        self.ip("-n", ns, "link", "set", "lo", "up")
+        return ns
+
+    def full(self, name: str | None) -> str | None:
+        """The full name of namespace ``name`` (None: the root namespace)."""
+        return None if name is None else f"{self.prefix}-{name}"
+
+    def link(self, a: str | None, b: str, n: int) -> Link:
+        """A veth pair between namespaces ``a`` (None: root) and ``b`` (short names, made already) with
+        addresses ``10.SUBNET.n.1/30`` and ``.2/30``, both ends up."""
+        a_dev, b_dev = f"v{os.getpid() % 100000}a{n}", f"v{os.getpid() % 100000}b{n}"
+        fa, fb = self.full(a), self.full(b)
+        self.ip("link", "add", a_dev, "type", "veth", "peer", "name", b_dev)
+        self.ip("link", "set", b_dev, "netns", fb)
+        if fa is not None:
+            self.ip("link", "set", a_dev, "netns", fa)
+        link = Link(fa, fb, a_dev, b_dev, f"10.{SUBNET}.{n}.1", f"10.{SUBNET}.{n}.2")
+        for ns, dev, addr in ((fa, a_dev, link.a_ip), (fb, b_dev, link.b_ip)):
+            self.ip(*self._in(ns), "addr", "add", f"{addr}/30", "dev", dev)
+            self.ip(*self._in(ns), "link", "set", dev, "up")
+        self.links.append(link)
+        return link
+
+    @staticmethod
+    def _in(ns: str | None) -> tuple[str, ...]:
+        return ("-n", ns) if ns else ()
+
+    def route(self, ns: str, dst: str, via: str) -> None:
+        """In namespace ``ns`` (short name) route ``dst`` (``default`` or a prefix) via ``via``."""
+        self.ip("-n", self.full(ns), "route", "replace", dst, "via", via)
+
+    def set_up(self, link: Link, up: bool, side: str = "b") -> None:
+        """Bring ``link``'s end on ``side`` ("a" or "b") up or down (down: the other end loses its carrier,
+        and what it sends is lost without an error)."""
+        ns, dev = (link.a, link.a_dev) if side == "a" else (link.b, link.b_dev)
+        self.ip(*self._in(ns), "link", "set", dev, "up" if up else "down")
+
+    def wrap(self, ns: str, argv: list[str]) -> list[str]:
+        """``argv`` run in namespace ``ns`` (short name)."""
+        return ["ip", "netns", "exec", self.full(ns), *argv]
+
+
+@dataclass(frozen=True)
+class RelayTopology:
+    """The relay lab (docs/relays.md): the cloud in the root namespace at :attr:`cloud_ip`; leaders ``l1``
+    and ``l2`` with uplinks to it; follower ``f`` with links only to ``l1`` and ``l2``, and a direct
+    link to the cloud that is down until :meth:`direct` brings it up."""
+    lab: NetLab
+    up1: Link           # root <-> l1
+    up2: Link           # root <-> l2
+    f_l1: Link          # l1 (a) <-> f (b)
+    f_l2: Link          # l2 (a) <-> f (b)
+    f_cloud: Link       # root (a) <-> f (b)
+
+    @property
+    def cloud_ip(self) -> str:
+        return self.up1.a_ip
+
+    @classmethod
+    def make(cls, lab: NetLab) -> "RelayTopology":
+        for name in ("l1", "l2", "f"):
+            lab.namespace(name)
+        t = cls(lab, lab.link(None, "l1", 1), lab.link(None, "l2", 2), lab.link("l1", "f", 3),
+                lab.link("l2", "f", 4), lab.link(None, "f", 5))
+        lab.route("l1", "default", t.up1.a_ip)
+        lab.route("l2", "default", t.up2.a_ip)
+        lab.set_up(t.f_cloud, False)
+        return t
+
+    def direct(self, up: bool) -> None:
+        """Bring ``f``'s direct link to the cloud up (with its route to the cloud) or down."""
+        self.lab.set_up(self.f_cloud, up)
+        if up:
+            self.lab.ip("-n", self.f_cloud.b, "route", "replace", f"{self.cloud_ip}/32", "via", self.f_cloud.a_ip)
