@@ -16,6 +16,7 @@ to F's local bus (a Unix socket: shared across network namespaces).
 from __future__ import annotations
 
 import asyncio
+import hashlib
 import json
 import sys
 from pathlib import Path
@@ -25,6 +26,7 @@ import pytest
 import rce.node
 from rce.tools.launch import start_engine
 from rce.tools.netlab import NetLab, RelayTopology
+from rce_client.tunnel import answer, parse_request
 
 pytestmark = pytest.mark.asyncio
 
@@ -277,3 +279,96 @@ async def test_follower_switches_relays_with_nothing_lost(topo, cloud, tmp_path)
         await node.close()
         for r in (f, l1, l2):
             await r.stop()
+
+
+class SpyRelay:
+    """A relay that records every byte it carries (what a relay could see), owned by the test."""
+
+    def __init__(self):
+        self.tunnels: list[tuple[tuple[str, int], bytearray, bytearray]] = []   # (target, up, down)
+
+    async def start(self, host: str) -> int:
+        self.server = await asyncio.start_server(self._serve, host, 0)
+        return self.server.sockets[0].getsockname()[1]
+
+    async def _serve(self, reader, writer) -> None:
+        target = parse_request(await reader.readuntil(b"\r\n\r\n"))
+        up_r, up_w = await asyncio.open_connection(*target)
+        rec = (target, bytearray(), bytearray())
+        self.tunnels.append(rec)
+        writer.write(answer(200, name="spy"))
+
+        async def pipe(src, dst, into: bytearray) -> None:
+            while data := await src.read(65536):
+                into += data
+                dst.write(data)
+                await dst.drain()
+            dst.close()
+        await asyncio.gather(pipe(reader, up_w, rec[1]), pipe(up_r, writer, rec[2]), return_exceptions=True)
+
+    async def close(self) -> None:
+        self.server.close()
+
+
+@pytest.fixture
+def tls_cloud(topo, tmp_path):
+    e = start_engine(tmp_path / "engine", master_args=("--bind", "0.0.0.0"), tls=True,
+                     tls_hosts=(topo.cloud_ip, "127.0.0.1"),
+                     robot_args=("--bind", "0.0.0.0", "--advertise-host", topo.cloud_ip))
+    yield e
+    e.stop()
+
+
+def session_lines(engine) -> int:
+    """Robot sessions the endpoint opened or resumed, from its log."""
+    text = (engine.workdir / "robot0.log").read_text(errors="replace")
+    return text.count('"robot connected"') + text.count('"robot resumed"')
+
+
+async def test_relay_cannot_read_or_forge_the_session(topo, tls_cloud, tmp_path):
+    cloud = tls_cloud
+    topo.lab.set_up(topo.f_cloud, True)         # F reaches the spy's address on that link, not the cloud
+    spy = SpyRelay()
+    port = await spy.start(topo.f_cloud.a_ip)
+    url = f"https://{topo.cloud_ip}:{cloud.http_port}/"
+    f = await RosRun.start(topo, "f", follower_config(url), tmp_path, "--relays", f"{topo.f_cloud.a_ip}:{port}",
+                           "--ca-file", str(cloud.ca_file))
+    node = None
+    try:
+        await f.wait_line("rce-ros: ready")
+        assert robot_row(cloud, "F")["relay"] == "spy"
+        node = await rce.node.init_node("tester", bus=str(f.bus), argv=[])
+        stream = Stream(node)
+        await stream.start()
+        await stream.wait_count(5)
+        await stream.stop()
+
+        # the relay saw TLS records only: neither the credentials, the session nor the payload
+        assert {t[0][1] for t in spy.tunnels} == {cloud.http_port, cloud.robot_ready[0]["ws_port"]}
+        secrets = [b"testUser", hashlib.sha256(b"testUser").hexdigest().encode(), b"robotID", b"session",
+                   b'"seq"', b"std_msgs", b"stringEcho"]
+        for target, up, down in spy.tunnels:
+            assert up[:2] == b"\x16\x03" and down[:2] == b"\x16\x03", "both directions start with a TLS handshake"
+            for secret in secrets:
+                assert secret not in up and secret not in down, (target, secret)
+
+        # replaying what it saw opens no session and disturbs none
+        before = session_lines(cloud)
+        for target, up, _ in [t for t in spy.tunnels if t[0][1] == cloud.robot_ready[0]["ws_port"]]:
+            reader, writer = await asyncio.open_connection(*target)
+            writer.write(bytes(up))
+            await writer.drain()
+            answer_bytes = await asyncio.wait_for(reader.read(), WAIT)     # the endpoint closes the connection
+            writer.close()
+            assert b"101 Switching" not in answer_bytes
+        assert session_lines(cloud) == before
+        stream = Stream(node)
+        await stream.start()
+        await stream.wait_count(3)              # F's own session goes on
+        await stream.stop()
+        assert robot_row(cloud, "F")["relay"] == "spy"
+    finally:
+        if node is not None:
+            await node.close()
+        await f.stop()
+        await spy.close()
