@@ -22,6 +22,7 @@ from websockets.exceptions import InvalidHandshake, InvalidStatus, InvalidURI
 from rce.transport import tls
 from rce.plumbing.errors import AuthError, Unavailable, http_reason
 from rce.plumbing.log import get_logger
+from rce_client.tunnel import Unreachable, url_addr
 
 if TYPE_CHECKING:
     from rce_client.routes import Routes
@@ -92,10 +93,6 @@ class HandshakeRefused(Exception):
         self.status, self.reason = status, reason
 
 
-class Unreachable(Unavailable):
-    """Nothing listens at the robot endpoint's address (connection refused or reset)."""
-
-
 async def open_robot_link(ws_url: str, user_id: str, password: str, robot_id: str, *, timeout: float,
                           ssl_context: ssl.SSLContext | None, resume: bool = False,
                           max_lag: float | None = None, routes: Routes | None = None) -> ClientConnection:
@@ -126,7 +123,12 @@ async def dial(url: str, timeout: float, ssl_context: ssl.SSLContext | None = No
     path = None
     try:
         if routes is not None:
-            path, url = await routes.dial_socket(url)
+            path = await routes.socket_to(url_addr(url))
+            if path.relay:
+                url = with_query(url, relay=path.relay)
+                if not url.startswith("wss:"):
+                    log.warning("the session goes through a relay unencrypted: with ws:// the relay can read it "
+                                "(use wss://, docs/relays.md)", relay=path.relay)
         ws = await ws_connect(url, open_timeout=timeout, max_size=MAX_FRAME, proxy=None, compression=None,
                               user_agent_header="rce-client", ssl=tls.for_url(url, ssl_context),
                               **({"sock": path.sock} if path else {}))

@@ -32,7 +32,7 @@
    sent meanwhile is published once the session is resumed. rce-ros prints the drop and the resume.
 
 6. Relays (docs/relays.md): with ``--relay-port PORT`` this robot relays for nearby robots out of
-   coverage (:class:`rce_client.relay.Relay`: at most ``--relay-max`` at once, its own traffic first);
+   coverage (:class:`rce_client.relay.RobotRelay`: at most ``--relay-max`` at once, its own traffic first);
    with ``--relays HOST:PORT,...`` it is a follower: it logs in and dials its endpoint directly when
    it can, else through the first relay that answers, and moves between them by session resume.
 
@@ -67,7 +67,7 @@ from rce.node.package_path import load_package_types
 from rce.protocol import split_interface_type
 from rce_client.connection import Connection, Message
 from rce_client.paths import default_bus_path
-from rce_client.relay import DEFAULT_MAX_FOLLOWERS, DEFAULT_RATE, Relay
+from rce_client.relay import DEFAULT_MAX_FOLLOWERS, DEFAULT_RATE, RobotRelay
 from rce_client.routes import Routes, parse_relays
 
 log = get_logger("rce.ros")
@@ -254,7 +254,7 @@ class RobotBridge:
         self.conn: Connection | None = None
         self.routes = Routes(relays) if relays else None
         self.relay_port, self.relay_max, self.relay_rate = relay_port, relay_max, relay_rate
-        self.relay: Relay | None = None
+        self.relay: RobotRelay | None = None
         self.stop = asyncio.Event()
         self.ready = asyncio.Event()            # set once every robot-side interface is up
         self.created: list[str] = []            # containers this run created
@@ -360,7 +360,7 @@ class RobotBridge:
         via = f" through relay {self.routes.relay}" if self.routes and self.routes.relay else ""
         self.out(f"rce-ros: connected to {conn.ws_url}{via}")
         if self.relay_port is not None:
-            self.relay = await Relay.for_connection(conn, self.relay_port, max_followers=self.relay_max,
+            self.relay = await RobotRelay.for_connection(conn, self.relay_port, max_followers=self.relay_max,
                                                     rate=self.relay_rate)
             self.out(f"rce-ros: relaying for nearby robots on port {self.relay.port} (at most {self.relay_max})")
         self._bridge()

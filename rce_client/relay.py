@@ -17,7 +17,7 @@ session are end to end, so a relay can drop the follower's traffic but not read 
 ::
 
     conn = await Connection.connect(master, "testUser", "testUser", "leader", allow_reconnect=True)
-    relay = await Relay.for_connection(conn, port=9100, max_followers=4)
+    relay = await RobotRelay.for_connection(conn, port=9100, max_followers=4)
     ...
     await relay.close()
 """
@@ -28,7 +28,6 @@ import json
 import socket
 import time
 from dataclasses import dataclass, field
-from urllib.parse import urlsplit
 
 import aiohttp
 
@@ -36,7 +35,7 @@ from rce.plumbing.log import get_logger
 from rce.plumbing.tasks import Tasks
 from rce.transport import tls
 from rce_client.tunnel import (MAX_HEAD, HeadError, answer, join_hostport, mark_relay_hop, parse_request,
-                               tcp_connect)
+                               tcp_connect, url_addr)
 
 log = get_logger("rce.relay")
 
@@ -50,13 +49,6 @@ DSCP_CS1 = 0x20                  # the IP TOS byte of DSCP CS1 (RFC 8622 lower e
 TC_PRIO_BULK = 2                 # SO_PRIORITY of bulk traffic: pfifo_fast's lowest band (linux/pkt_sched.h)
 
 
-def url_addr(url: str) -> tuple[str, int]:
-    """(host, port) a ``http(s)://`` or ``ws(s)://`` URL names (its scheme's default port if none)."""
-    parts = urlsplit(url)
-    port = parts.port or (443 if parts.scheme in ("https", "wss") else 80)
-    return parts.hostname or "", port
-
-
 def mark_low_priority(sock: socket.socket) -> None:
     """Mark a relayed socket so that the relay's own traffic goes first: DSCP CS1 and ``SO_PRIORITY``
     :data:`TC_PRIO_BULK` (set after the TOS, which also sets the priority)."""
@@ -67,7 +59,7 @@ def mark_low_priority(sock: socket.socket) -> None:
     sock.setsockopt(socket.SOL_SOCKET, socket.SO_PRIORITY, TC_PRIO_BULK)
 
 
-class TokenBucket:
+class RelayPacer:
     """Paces bytes to ``rate`` bytes/s with bursts up to ``burst`` bytes (``rate`` 0: no pacing)."""
 
     def __init__(self, rate: float, burst: float):
@@ -101,7 +93,7 @@ class RelayStats:
     by_follower: dict[str, int] = field(default_factory=dict)   # peer address -> tunnels opened
 
 
-class Relay:
+class RobotRelay:
     """An HTTP CONNECT relay named ``name`` (this robot's ID, told to followers) into the cloud of
     ``master_url``: tunnels only to the master and the robot endpoints the master names;
     ``max_followers`` tunnels at once; ``rate``: bytes/s of relayed traffic in all (0: no pacing);
@@ -113,7 +105,7 @@ class Relay:
             raise ValueError(f"relay max_followers must be at least 1, got {max_followers}")
         self.name, self.master_url, self.max_followers = name, master_url, max_followers
         self.ssl_context = ssl_context
-        self.bucket = TokenBucket(rate, max(PIPE_CHUNK, rate / 10))
+        self.bucket = RelayPacer(rate, max(PIPE_CHUNK, rate / 10))
         self.stats = RelayStats()
         self.targets: set[tuple[str, int]] = {url_addr(master_url)}
         self.port: int | None = None
@@ -122,7 +114,7 @@ class Relay:
         self.tasks = Tasks(f"relay {name}")
 
     @classmethod
-    async def for_connection(cls, conn, port: int, bind: str = "0.0.0.0", **kw) -> "Relay":
+    async def for_connection(cls, conn, port: int, bind: str = "0.0.0.0", **kw) -> "RobotRelay":
         """Relay for nearby robots into the cloud ``conn`` (a :class:`~rce_client.connection.Connection`
         made by a login) is in, on ``bind:port`` (0: any free port, see :attr:`port`); the keywords are
         the constructor's. Raises :class:`ValueError` for a connection not made by a login, :class:`OSError`

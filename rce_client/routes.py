@@ -27,9 +27,7 @@ from rce.plumbing.errors import Unavailable
 from rce.plumbing.log import get_logger
 from rce.plumbing.tasks import Tasks
 from rce.transport import tls
-from rce_client.dial import Unreachable, with_query
-from rce_client.relay import url_addr
-from rce_client.tunnel import join_hostport, open_tunnel, split_hostport, tcp_connect
+from rce_client.tunnel import Unreachable, join_hostport, open_tunnel, split_hostport, tcp_connect, url_addr
 
 log = get_logger("rce.client")
 
@@ -95,12 +93,6 @@ class Routes:
                 refused = refused or getattr(e, "status", None) == 502
         error = Unreachable if refused else Unavailable
         raise error(f"no path to {join_hostport(*addr)}: " + "; ".join(why))
-
-    async def dial_socket(self, url: str) -> tuple[Path, str]:
-        """A socket for a websocket to ``url`` and the URL to dial on it (``relay=NAME`` added when
-        relayed). Raises :class:`Unavailable`."""
-        path = await self.socket_to(url_addr(url))
-        return path, (with_query(url, relay=path.relay) if path.relay else url)
 
     def opened(self, ws: ClientConnection, path: Path) -> None:
         """A link opened on ``path``: while relayed, ping it and try the direct path; counts a switch."""

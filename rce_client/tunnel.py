@@ -14,12 +14,17 @@ from __future__ import annotations
 import asyncio
 import socket
 from http import HTTPStatus
+from urllib.parse import urlsplit
 
 from rce.plumbing.errors import Unavailable
 
 MAX_HEAD = 8192                 # bytes of a CONNECT request or answer head, CRLFCRLF included
 RELAY_HEADER = "RCE-Relay"      # the answer's header naming the relay (its robot ID)
 TCP_USER_TIMEOUT_MS = 1000      # ms data may stay unacked on the relay hop before the kernel drops the socket
+
+
+class Unreachable(Unavailable):
+    """Nothing listens at the robot endpoint's address (connection refused or reset)."""
 
 
 class HeadError(ValueError):
@@ -41,6 +46,13 @@ def split_hostport(text: str, where: str) -> tuple[str, int]:
     if not sep or not host or not port.isdigit() or not 0 < int(port) < 65536:
         raise ValueError(f"{where}: expected HOST:PORT, got {text!r}")
     return host, int(port)
+
+
+def url_addr(url: str) -> tuple[str, int]:
+    """(host, port) a ``http(s)://`` or ``ws(s)://`` URL names (its scheme's default port if none)."""
+    parts = urlsplit(url)
+    port = parts.port or (443 if parts.scheme in ("https", "wss") else 80)
+    return parts.hostname or "", port
 
 
 def join_hostport(host: str, port: int) -> str:

@@ -707,6 +707,27 @@ def test_data_addr(wired):
         wired.data_addr(r3)
 
 
+# -- relays ---------------------------------------------------------------------------------------
+def test_robot_relay_is_stored_with_its_time(wired):
+    assert wired.robot_relay(U, "r1", 1, "leader") is not None
+    r = wired.robot(U, "r1")
+    assert (r.relay, r.relay_since >= r.since) == ("leader", True)
+    since = r.relay_since
+    wired.robot_relay(U, "r1", 1, "leader")                        # the same relay: the time stays
+    assert wired.robot(U, "r1").relay_since == since
+    assert wired.robot_relay(U, "r1", 2, "other") is None           # not on that endpoint: nothing changes
+    assert wired.robot_relay(U, "nobody", 1, "leader") is None
+    wired.robot_relay(U, "r1", 1, "")                               # its own path again
+    assert wired.robot(U, "r1").relay == ""
+    assert MasterState(MemoryStore(wired.store.items())).robot(U, "r1").relay == ""
+
+
+def test_robot_record_stored_before_relays_loads():
+    from rce_master.model import Robot
+    r = Robot.from_record({"user": U, "robot": "r1", "tid": 1, "since": 5.0})
+    assert (r.relay, r.relay_since) == ("", 0.0)
+
+
 # -- snapshot -----------------------------------------------------------------------------------
 def test_snapshot_shape(wired):
     wired.users[U] = User.create(U, "pw")
@@ -726,7 +747,8 @@ def test_snapshot_shape(wired):
     assert [t["kind"] for t in snap["tasksets"]] == ["robot", "container"]
     assert snap["tasksets"][0]["ws_url"] == "ws://hostA:9010/" and snap["tasksets"][0]["robots"] == 1
     assert snap["tasksets"][1]["containers"] == 2 and snap["tasksets"][1]["sandbox"] == "process-group"
-    assert snap["robots"] == [{"user": U, "robot": "r1", "endpoint": "re1", "since": snap["robots"][0]["since"]}]
+    assert snap["robots"] == [{"user": U, "robot": "r1", "endpoint": "re1", "since": snap["robots"][0]["since"],
+                               "relay": "", "relay_since": None}]
     assert [(c["ctag"], c["host"], c["state"], c["owner"]) for c in snap["containers"]] == \
         [("c1", "ch1", "running", "r1"), ("c2", "ch1", "running", "r1")]
     assert snap["nodes"] == [{"user": U, "ctag": "c1", "ntag": "n1", "pkg": "Test", "exe": "stringEcho.py",
