@@ -1,8 +1,14 @@
 """What the cloud sends one robot, sans I/O: the messages of a
 :class:`~rce.protocol.robot_session.RobotSession` on their way out, in order.
 
-- Topic data (data DMs) follows the one outbox policy (:class:`~rce.protocol.outbox.Outbox`: each
-  interface keeps its newest).
+- Each message waits in its lane (:class:`~rce.protocol.lane_queue.LaneQueues`, docs/lanes.md): STs,
+  ERs, AKs and resends in control; DMs in their interface's lane (a service call or answer of a bulk
+  interface in state: it is never dropped, so it stays on the session's own link); they go out by
+  strict priority with a minimum share for the lower lanes.
+- Topic data (data DMs) follows the one outbox policy in its lane (:class:`~rce.protocol.outbox.Outbox`:
+  each interface keeps its newest).
+- With a bulk link (:attr:`RobotOutbox.bulk_linked`), bulk topic data goes on it, unnumbered
+  (:meth:`RobotOutbox.bulk_to_send`); everything else stays on the session's link.
 - STs and answers are never dropped; a robot that lets ``CONTROL_BACKLOG`` x ``queue_size`` of them
   wait is closed (``on_overrun``, once).
 - ERs are cut short, rate-limited and bounded while unread (:class:`~rce.protocol.error_limits.ErrorLimits`).
@@ -17,7 +23,8 @@ from typing import Any
 
 from rce.protocol.error_limits import ErrorLimits
 from rce.protocol.frames import DM, ER, ST, encode
-from rce.protocol.outbox import Outbox
+from rce.protocol.lane_queue import LaneQueues
+from rce.protocol.lanes import Lane
 from rce.protocol.resume import AK, Frame, Outgoing
 
 CONTROL_BACKLOG = 10        # x queue_size: STs and answers waiting before a robot that does not
@@ -35,7 +42,7 @@ class _Out:
 
 class RobotOutbox:
     """The messages to robot ``robot``. ``queue_size`` and ``max_lag`` bound topic data
-    (:class:`~rce.protocol.outbox.Outbox`) and unread ERs; ``er_rate``/``er_burst``: the ER token
+    (each lane's :class:`~rce.protocol.outbox.Outbox`) and unread ERs; ``er_rate``/``er_burst``: the ER token
     bucket; ``outgoing``: resume's numbering (None without resume); ``on_overrun(reason)``: the robot
     does not read (once). Counters: :attr:`msgs_out` (messages sent, link-level ones not counted),
     :attr:`resent` (kept messages resent after a resume)."""
@@ -43,7 +50,8 @@ class RobotOutbox:
     def __init__(self, robot: str, queue_size: int, max_lag: float | None, er_rate: float, er_burst: int,
                  outgoing: Outgoing | None, on_overrun: Callable[[str], None]):
         self.robot, self.queue_size, self.outgoing = robot, queue_size, outgoing
-        self.queue: Outbox[_Out] = Outbox(queue_size, max_lag)
+        self.queue: LaneQueues[_Out] = LaneQueues(queue_size, max_lag)
+        self.bulk_linked = False            # a bulk link takes the bulk lane's topic data
         self.er = ErrorLimits(robot, queue_size, er_rate, er_burst)
         self.attached = True                # on a live link (always, without resume)
         self.msgs_out = self.resent = 0
@@ -56,15 +64,16 @@ class RobotOutbox:
         return len(self.queue)
 
     # -- in ---------------------------------------------------------------------------------------
-    def dm(self, msg: dict, data: bool, now: float) -> None:
-        """Queue DM ``msg``; ``data``: droppable topic data of its interface, queued at ``now`` (s)."""
+    def dm(self, msg: dict, data: bool, now: float, lane: Lane = Lane.STATE) -> None:
+        """Queue DM ``msg`` in ``lane``; ``data``: droppable topic data of its interface, queued at ``now``
+        (s); else never dropped (in state when ``lane`` is bulk)."""
         if self.attached and data:
-            self.queue.put_data(msg["data"]["iTag"], _Out(msg, data=True), now)
+            self.queue.put_data(msg["data"]["iTag"], _Out(msg, data=True), now, lane)
         else:
-            self.control(msg)
+            self.control(msg, now, min(lane, Lane.STATE, key=lambda x: x.rank))
 
-    def control(self, msg: dict) -> None:
-        """Queue an ST or a DM answer: never dropped."""
+    def control(self, msg: dict, now: float | None = None, lane: Lane = Lane.CONTROL) -> None:
+        """Queue an ST or a DM answer (in ``lane``, at ``now`` s): never dropped."""
         if not self.attached:
             self.outgoing.numbered(msg)
             return
@@ -72,7 +81,7 @@ class RobotOutbox:
             self._overrun = True
             self._on_overrun(f"robot {self.robot!r} does not read: {self.queue.places} messages wait for it")
         self._control += 1
-        self.queue.put(_Out(msg))
+        self.queue.put(_Out(msg), now, lane)
 
     def error(self, reason: str, answer: bool, now: float) -> bool:
         """Queue ER ``reason`` at ``now`` (s) as :class:`~rce.protocol.error_limits.ErrorLimits` admits it
@@ -122,33 +131,57 @@ class RobotOutbox:
             self.queue.put(_Out(None, frames=f))
 
     # -- out ---------------------------------------------------------------------------------------
+    @property
+    def link_lanes(self) -> tuple[Lane, ...]:
+        """The lanes the session's own link carries: all of them, or control and state while a bulk link
+        takes the bulk lane."""
+        return (Lane.CONTROL, Lane.STATE) if self.bulk_linked else tuple(Lane)
+
+    def waiting(self) -> int:
+        """Messages waiting for the session's own link."""
+        return self.queue.waiting(self.link_lanes)
+
     def data_to_send(self, max_messages: int | None = None, now: float | None = None) -> list[str | bytes]:
-        """Frames of up to ``max_messages`` waiting messages (all by default), each message's JSON text
-        frame followed by its binary parts; they count as sent (with resume: numbered and kept until
-        acked). ``now`` (s): stale data DMs are dropped instead (:meth:`Outbox.take`)."""
+        """Frames of up to ``max_messages`` waiting messages for the session's link (all by default;
+        :attr:`link_lanes`, by priority), each message's JSON text frame followed by its binary parts; they
+        count as sent (with resume: numbered and kept until acked). ``now`` (s): stale data DMs are dropped
+        instead (:meth:`Outbox.take`)."""
         frames: list[str | bytes] = []
         taken = 0
         while max_messages is None or taken < max_messages:
-            o = self.queue.take(now)
-            if o is None:
+            got = self.queue.take(now, self.link_lanes)
+            if got is None:
                 break
+            lane, o = got
             taken += 1
             if o.frames is not None:
-                frames.extend(o.frames)
+                out = o.frames
                 self.resent += 1
-                continue
-            if o.msg["type"] == ER:
-                self.er.waiting -= 1
-            elif not o.link and not o.data:
-                self._control -= 1
-            if o.link or self.outgoing is None:
-                text, parts = encode(o.msg)
-                frames.append(text)
-                frames.extend(parts)
             else:
-                frames.extend(self.outgoing.numbered(o.msg))
-            self.msgs_out += not o.link
+                if o.msg["type"] == ER:
+                    self.er.waiting -= 1
+                elif not o.link and not o.data:
+                    self._control -= 1
+                if o.link or self.outgoing is None:
+                    text, parts = encode(o.msg)
+                    out = [text, *parts]
+                else:
+                    out = self.outgoing.numbered(o.msg)
+                self.msgs_out += not o.link
+            frames.extend(out)
+            self.queue.sent(lane, sum(len(f) for f in out))
         return frames
+
+    def bulk_to_send(self, now: float | None = None) -> list[str | bytes] | None:
+        """(a bulk link) The frames of the next bulk topic DM, unnumbered (the JSON text frame, then its
+        binary parts), or None when none waits. The shell reports it written with
+        ``queue.sent(Lane.BULK, n)``."""
+        got = self.queue.take(now, (Lane.BULK,))
+        if got is None:
+            return None
+        text, parts = encode(got[1].msg)
+        self.msgs_out += 1
+        return [text, *parts]
 
 
 def dm(itag: str, cls: str, msg_id: Any, msg: Any) -> dict:

@@ -8,10 +8,11 @@ from typing import Any
 from rce.plumbing.errors import ProtocolError, RequestError
 from rce.messages import takes_binary_message
 from rce.protocol.events import CaughtUp, CloseLink, Deliver, Lagging, RequestReady, ServiceCall
-from rce.protocol.frames import DEFAULT_EXPIRY, DEFAULT_MAX_PENDING_BYTES, DEFAULT_MAX_PENDING_PARTS, DM, ST
+from rce.protocol.frames import (DEFAULT_EXPIRY, DEFAULT_MAX_PENDING_BYTES, DEFAULT_MAX_PENDING_PARTS, DM, ST,
+                                 Assembler)
 from rce.protocol.holdback import HoldBack
 from rce.protocol.lanes import Lane, interface_lane, message_lane
-from rce.protocol.limits import DEFAULT_MAX_LAG, ER_BURST, ER_RATE, LagGate, PartBudget
+from rce.protocol.limits import DEFAULT_MAX_LAG, ER_BURST, ER_RATE, LagGate, PartBudget, short_repr
 from rce.protocol.robot_outbox import RobotOutbox, dm
 from rce.protocol.resume import (ACK_DELAY, ACK_EVERY, DEFAULT_GRACE, DEFAULT_RESUME_BUFFER, DEFAULT_RESUME_BYTES,
                                  SESSION_TOPIC, new_token)
@@ -87,6 +88,9 @@ class RobotSession(SessionCore):
         self.token = (token or new_token()) if resume else None
         self.grace = grace
         self.resumes = self.resume_lost = 0
+        self.bulk_assembler = Assembler(
+            expiry=expiry, max_pending_bytes=max_pending_bytes, max_pending_parts=max_pending_parts, budget=budget)
+        self.bulk_links = self.bulk_in = 0          # bulk links joined; DMs the robot sent on them
         if resume:
             self.out.link_message(ST, {"topic": SESSION_TOPIC, "status": "started", "session": self.token,
                                        "grace": grace})
@@ -237,7 +241,7 @@ class RobotSession(SessionCore):
         """Queue ``DM {iTag, type, msgID, msg}`` for the robot at time ``now`` (s; default the last
         time given). ``data=True`` marks topic data: when ``queue_size`` data DMs already wait, the
         oldest of the busiest interface is dropped (:class:`~rce.protocol.outbox.Outbox`). Returns True."""
-        self.out.dm(dm(itag, cls, msg_id, msg), data, self._now if now is None else now)
+        self.out.dm(dm(itag, cls, msg_id, msg), data, self._now if now is None else now, self.lane_of(itag, msg))
         return True
 
     def send_status(self, data: dict) -> None:
@@ -254,16 +258,70 @@ class RobotSession(SessionCore):
         """As :meth:`SessionCore.tick`; then, when ERs were dropped and the robot reads again, an ER
         saying how many."""
         super().tick(now)
+        for reason in self.bulk_assembler.expire(now):
+            self._bad_input(f"bulk link: {reason}")
         self.out.tick(now)
 
     def end(self) -> None:
         """The session ended: what waited for binary parts is forgotten (its bytes go back to the budget)."""
         self.assembler.clear()
+        self.bulk_assembler.clear()
+
+    # -- the bulk link (docs/lanes.md) --------------------------------------------------------------
+    def attach_bulk(self) -> None:
+        """A bulk link joined the session: from now on the bulk lane's topic DMs go on it
+        (:meth:`bulk_to_send`), unnumbered; the robot's DMs on it come in through :meth:`receive_bulk`."""
+        self.out.bulk_linked = True
+        self.bulk_links += 1
+        self.bulk_assembler = self.bulk_assembler.fresh()
+
+    def detach_bulk(self) -> None:
+        """The bulk link is gone: the bulk lane goes on the session's own link again; what waited for
+        binary parts on it is forgotten (the robot resends nothing there: bulk data keeps its newest)."""
+        self.out.bulk_linked = False
+        self.bulk_assembler = self.bulk_assembler.fresh()
+
+    def bulk_to_send(self, now: float | None = None) -> list[str | bytes] | None:
+        """(a bulk link) The frames of the next bulk topic DM (:meth:`RobotOutbox.bulk_to_send`), or None."""
+        return self.out.bulk_to_send(now) if self.out.bulk_linked else None
+
+    def receive_bulk(self, frame: str | bytes, now: float) -> None:
+        """A frame from the robot's bulk link at ``now`` (s): it carries DMs only, unnumbered, with their
+        own binary parts; anything else gets an ER."""
+        self._now = now
+        if self.too_big(frame):
+            self._bad_input(f"bulk link: frame of {len(frame)} bytes exceeds the limit of {self.max_message} bytes")
+            return
+        try:
+            done = (self.bulk_assembler.feed_text(frame, now) if isinstance(frame, str)
+                    else self.bulk_assembler.feed_binary(frame, now))
+        except ProtocolError as e:
+            self._bad_input(f"bulk link: {e.message}")
+            return
+        for msg in done:
+            if msg.get("type") != DM or "seq" in msg:
+                self.send_error(f"bulk link: carries unnumbered DMs only, got a {short_repr(msg.get('type'))}"
+                                f"{' with seq' if 'seq' in msg else ''}; send it on the session's link")
+                continue
+            self.msgs_in += 1
+            try:
+                _, data = validate(msg)
+            except ProtocolError as e:
+                self.send_error(e.message)
+                continue
+            self.bulk_in += 1
+            self._on_dm(data)
 
     @property
     def outbox(self) -> int:
-        """Messages waiting to be sent."""
-        return len(self.out)
+        """Messages waiting for the session's own link (with a bulk link, the bulk lane's topic data is
+        not: :attr:`bulk_outbox`)."""
+        return self.out.waiting()
+
+    @property
+    def bulk_outbox(self) -> int:
+        """Bulk topic DMs waiting for the bulk link (0 without one)."""
+        return self.out.queue.waiting((Lane.BULK,)) if self.out.bulk_linked else 0
 
     def data_to_send(self, max_messages: int | None = None, now: float | None = None) -> list[str | bytes]:
         """Frames of up to ``max_messages`` waiting messages (all by default), each message's JSON
@@ -318,7 +376,8 @@ class RobotSession(SessionCore):
         topic DMs from the robot dropped while the endpoint lagged (``max_lag``);
         resume: resumes, messages resent, lost at a resume (``resume_lost``), kept until acked
         (``kept``, ``kept_bytes``), forgotten past the bound (``resume_forgotten``), duplicates from the
-        robot dropped."""
+        robot dropped; ``bulk_links`` joined, ``bulk_in`` DMs the robot sent on them; ``lanes``: per lane
+        (:meth:`LaneQueues.lane_stats`: messages taken and sent whole, bytes, drops, waiting, queue delay)."""
         out, inc = self.outgoing, self.incoming
         return {"interfaces": len(self.interfaces), "msgs_in": self.msgs_in, "msgs_out": self.out.msgs_out,
                 "dropped": self.dropped, "dropped_in": self.dropped_in, "shed": self.lag.shed,
@@ -327,7 +386,8 @@ class RobotSession(SessionCore):
                 "outbox": self.outbox, "expired": self.expired, "requests_waiting": self.requests.waiting,
                 "held": self.requests.held, "calls": self.calls, "resumes": self.resumes, "resent": self.out.resent,
                 "resume_lost": self.resume_lost, "kept": len(out) if out else 0, "kept_bytes": out.bytes if out else 0,
-                "resume_forgotten": out.forgotten if out else 0, "duplicates": inc.duplicates if inc else 0}
+                "resume_forgotten": out.forgotten if out else 0, "duplicates": inc.duplicates if inc else 0,
+                "bulk_links": self.bulk_links, "bulk_in": self.bulk_in, "lanes": self.out.queue.lane_stats()}
 
 
 def robot_interface_type(itype: str) -> tuple[str, str]:

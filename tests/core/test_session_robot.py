@@ -72,10 +72,10 @@ def test_data_to_send_one_message_at_a_time_keeps_parts_with_their_message():
     s = RobotSession("r1")
     s.send_dm("a", "t", "", b"1", data=True)
     s.send_status({"topic": "iu", "iTag": "a", "status": True})
-    first = s.data_to_send(1)
-    assert len(first) == 2 and isinstance(first[0], str) and isinstance(first[1], bytes)
-    assert s.outbox == 1 and s.out_data == 0
-    assert json.loads(s.data_to_send(1)[0])["type"] == "ST"
+    assert json.loads(s.data_to_send(1)[0])["type"] == "ST"         # control before the state lane's data
+    assert s.outbox == 1 and s.out_data == 1
+    second = s.data_to_send(1)
+    assert len(second) == 2 and isinstance(second[0], str) and isinstance(second[1], bytes)
     assert s.data_to_send(1) == [] and s.stats()["msgs_out"] == 2
 
 
@@ -214,11 +214,11 @@ def test_past_the_bound_the_busiest_interface_drops_its_oldest():
     s = RobotSession("r1", queue_size=3)
     for i in range(3):
         s.send_dm("scan", "t", "", i, data=True)
-    s.send_status({"topic": "node", "status": "up"})           # never dropped, kept in its place
+    s.send_status({"topic": "node", "status": "up"})           # never dropped; control goes first
     s.send_dm("map", "t", "", "m0", data=True)                  # full: scan, the busiest, loses 0
     s.send_dm("scan", "t", "", 3, data=True)                    # full: scan (1, 2) loses 1
     assert s.dropped == 2 and s.out_data == 3 and s.outbox == 4
-    assert dm_out(s) == [("scan", 2), ("ST", "up"), ("map", "m0"), ("scan", 3)]
+    assert dm_out(s) == [("ST", "up"), ("scan", 2), ("map", "m0"), ("scan", 3)]
     assert s.outbox == 0 and s.out_data == 0 and s.stats()["msgs_out"] == 4
 
 

@@ -1,0 +1,151 @@
+"""What waits to go to a peer, by lane, sans I/O (docs/lanes.md "Scheduling").
+
+:class:`LaneQueues` holds one :class:`~rce.protocol.outbox.Outbox` per :class:`~rce.protocol.lanes.Lane`
+(the one outbox policy in each: control items are never dropped, data items keep each key's newest) and
+takes the next item by strict priority, control before state before bulk, with a minimum share for the
+lower lanes: a lane that has waited while ``starve_after`` items of higher lanes went out gets the next
+turn, so it never starves (one in ``starve_after + 1`` items at least; Fast DDS's
+priority-with-reservation flow controller and Zenoh's priority queues do the same job).
+
+It also keeps each lane's counters (:class:`LaneStats`): messages and bytes sent, drops, and the queue
+delay (the time from put to take, s), which the endpoint shows per lane in Prometheus and the
+session's stats.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from typing import Any, Generic, TypeVar
+
+from rce.protocol.lanes import Lane
+from rce.protocol.outbox import Outbox
+
+T = TypeVar("T")
+
+STARVE_AFTER = 7            # items of higher lanes before a waiting lower lane's turn: bulk gets >= 1/8 of the turns
+DELAY_BOUNDS = (0.001, 0.005, 0.01, 0.05, 0.1, 0.5, 1.0, 5.0)     # s: queue-delay histogram buckets (upper bounds)
+
+
+@dataclass
+class LaneStats:
+    """One lane's counters: ``taken`` messages that left the queue, ``sent`` of them written whole
+    (goodput in whole messages, as the owner reports with :meth:`LaneQueues.sent`), ``bytes`` of
+    those, ``delay_sum``/``delay_max`` s of queue delay (put to take) and ``delay_buckets`` (counts per
+    :data:`DELAY_BOUNDS` upper bound, the last for larger ones). Drops are the lane's
+    :class:`~rce.protocol.outbox.Outbox`'s."""
+    taken: int = 0
+    sent: int = 0
+    bytes: int = 0
+    delay_sum: float = 0.0
+    delay_max: float = 0.0
+    delay_buckets: list[int] = field(default_factory=lambda: [0] * (len(DELAY_BOUNDS) + 1))
+
+    def took(self, delay: float) -> None:
+        """An item left after waiting ``delay`` s."""
+        self.taken += 1
+        self.delay_sum += delay
+        self.delay_max = max(self.delay_max, delay)
+        i = next((i for i, b in enumerate(DELAY_BOUNDS) if delay <= b), len(DELAY_BOUNDS))
+        self.delay_buckets[i] += 1
+
+
+@dataclass(slots=True)
+class _Entry:
+    item: Any
+    since: float | None          # s when put; None: not timed (its queue delay counts as 0)
+
+
+class LaneQueues(Generic[T]):
+    """Items of type ``T`` for a peer, one :class:`~rce.protocol.outbox.Outbox` per lane (each bounded
+    by ``queue_size`` data items, ``max_lag`` s; see there), taken by strict priority with the
+    ``starve_after`` rule (module docstring)."""
+
+    def __init__(self, queue_size: int, max_lag: float | None = None, starve_after: int = STARVE_AFTER):
+        if starve_after < 1:
+            raise ValueError(f"starve_after must be >= 1, got {starve_after}")
+        self.queue_size, self.starve_after = queue_size, starve_after
+        self.lanes: dict[Lane, Outbox[_Entry]] = {lane: Outbox(queue_size, max_lag) for lane in Lane}
+        self.stats: dict[Lane, LaneStats] = {lane: LaneStats() for lane in Lane}
+        self._passed = {lane: 0 for lane in Lane}     # items of higher lanes taken while this one waited
+
+    def __len__(self) -> int:
+        return sum(len(q) for q in self.lanes.values())
+
+    def waiting(self, lanes: tuple[Lane, ...] = tuple(Lane)) -> int:
+        """Items waiting in ``lanes``."""
+        return sum(len(self.lanes[lane]) for lane in lanes)
+
+    @property
+    def places(self) -> int:
+        """Places held (:attr:`Outbox.places`), all lanes."""
+        return sum(q.places for q in self.lanes.values())
+
+    @property
+    def data(self) -> int:
+        """Data items waiting, all lanes."""
+        return sum(q.data for q in self.lanes.values())
+
+    @property
+    def control(self) -> int:
+        """Control items (never dropped) waiting, all lanes."""
+        return sum(q.control for q in self.lanes.values())
+
+    @property
+    def dropped(self) -> int:
+        """Data items dropped, all lanes."""
+        return sum(q.dropped for q in self.lanes.values())
+
+    @property
+    def expired(self) -> int:
+        """Data items dropped for their age, all lanes."""
+        return sum(q.expired for q in self.lanes.values())
+
+    def put(self, item: T, now: float | None = None, lane: Lane = Lane.CONTROL) -> None:
+        """Queue ``item`` in ``lane`` at ``now`` (s; None: not timed), never to be dropped here."""
+        self.lanes[lane].put(_Entry(item, now))
+
+    def put_data(self, key: Any, item: T, now: float, lane: Lane = Lane.STATE) -> None:
+        """Queue data item ``item`` of ``key`` in ``lane`` at ``now`` (s): the lane's outbox keeps each
+        key's newest (:meth:`Outbox.put_data`)."""
+        self.lanes[lane].put_data(key, _Entry(item, now), now)
+
+    def take(self, now: float | None = None, lanes: tuple[Lane, ...] = tuple(Lane)) -> tuple[Lane, T] | None:
+        """The next item of ``lanes`` and its lane (None when none waits): the first lane in priority
+        order that waits, unless a lower one has waited through ``starve_after`` turns. ``now`` (s):
+        as :meth:`Outbox.take` (stale data dropped); also the end of the item's queue delay."""
+        order = sorted(lanes, key=lambda lane: lane.rank)
+        waiting = [lane for lane in order if len(self.lanes[lane])]
+        if not waiting:
+            return None
+        starved = [lane for lane in waiting[1:] if self._passed[lane] >= self.starve_after]
+        lane = starved[-1] if starved else waiting[0]
+        entry = self.lanes[lane].take(now)
+        if entry is None:              # everything left in it was stale
+            return self.take(now, lanes)
+        for other in order:
+            self._passed[other] = self._passed[other] + 1 if other in waiting and other.rank > lane.rank else 0
+        timed = now is not None and entry.since is not None
+        self.stats[lane].took(max(0.0, now - entry.since) if timed else 0.0)
+        return lane, entry.item
+
+    def sent(self, lane: Lane, n: int) -> None:
+        """A message of ``lane`` went out whole, ``n`` bytes (the owner knows once it is written)."""
+        st = self.stats[lane]
+        st.sent += 1
+        st.bytes += n
+
+    def drain(self) -> list[T]:
+        """Every item waiting, control lane first, taken off the queues (nothing counted)."""
+        items = [e.item for lane in sorted(Lane, key=lambda lane: lane.rank) for e in self.lanes[lane].drain()]
+        self._passed = {lane: 0 for lane in Lane}
+        return items
+
+    def lane_stats(self) -> dict[str, dict]:
+        """Per lane: ``taken``, ``sent`` (whole messages), ``bytes``, ``dropped``, ``waiting``,
+        ``delay_avg_s``, ``delay_max_s`` (the session's stats)."""
+        out = {}
+        for lane, s in self.stats.items():
+            q = self.lanes[lane]
+            out[lane.value] = {"taken": s.taken, "sent": s.sent, "bytes": s.bytes, "dropped": q.dropped,
+                               "waiting": len(q), "delay_avg_s": round(s.delay_sum / s.taken, 6) if s.taken else 0.0,
+                               "delay_max_s": round(s.delay_max, 6)}
+        return out
