@@ -72,6 +72,7 @@ from rce_client.handles import (DEFAULT_CALL_TIMEOUT, Handles, Message, Publishe
                                 Subscriber)
 from rce_client.reconnect import (ENDPOINT_GONE_AFTER, LINK_EVENTS, RECONNECT_WAIT, RECONNECT_WAIT_MAX, Reconnect,
                                   Reconnecting)
+from rce_client.lanes import BulkLane
 from rce_client.routes import Routes
 from rce_client.verbs import WAIT_TIMEOUT, Verbs
 
@@ -141,6 +142,8 @@ class Connection(Verbs, Handles, Reconnecting):
         self._send_lock = asyncio.Lock()
         self._closed = asyncio.Event()
         self._kicked = False                        # a writer task is due to send what the session produced
+        self._session_evt = asyncio.Event()         # the session's state changed (started, resumed, moved, closed)
+        self.bulk: BulkLane | None = None           # the bulk link, with lanes (rce_client.lanes)
         self.tasks = Tasks(f"rce-client {robot_id}")
         self._reader = self.tasks.spawn(self._read_loop(ws), name="reader")
         self.tasks.spawn(self._expire_loop(), name="expire")
@@ -168,7 +171,8 @@ class Connection(Verbs, Handles, Reconnecting):
                             max_reconnect_attempts: int | None = None, reconnect_time_wait: float = RECONNECT_WAIT,
                             max_reconnect_wait: float = RECONNECT_WAIT_MAX, resume_buffer: int = DEFAULT_RESUME_BUFFER,
                             endpoint_gone_after: int = ENDPOINT_GONE_AFTER, ssl_context: ssl.SSLContext | None = None,
-                            max_lag: float | None = None, routes: Routes | None = None) -> "Connection":
+                            max_lag: float | None = None, routes: Routes | None = None, lanes: bool = False,
+                            bulk_rate: float | None = None) -> "Connection":
         """Log in at the master and open the robot's websocket.
 
         - ``master_url``: ``http://HOST:9000/`` (or ``https://``); ``password`` in clear (hashed here).
@@ -192,15 +196,20 @@ class Connection(Verbs, Handles, Reconnecting):
           first, else the first relay that answers, for the login and every dial; with
           ``allow_reconnect`` it moves between relays and the direct path by session resume
           (docs/relays.md).
+        - ``lanes``: open a bulk link beside the session's link (docs/lanes.md, :mod:`rce_client.lanes`):
+          the session's link becomes the control lane; needs ``allow_reconnect`` (the session's token) and
+          a direct path (not through a relay).
+        - ``bulk_rate``: bytes/s the bulk link is paced to (set it a little below the uplink; None: not paced).
 
         Raises :class:`AuthError` (bad credentials: HTTP or handshake 401/403, with the cloud's reason)
-        or :class:`Unavailable`."""
+        or :class:`Unavailable`; ValueError for ``lanes`` without ``allow_reconnect``."""
         ws_url = await login(master_url, user_id, version, timeout, ssl_context, routes)
         conn = await cls.open(ws_url, user_id, password, robot_id, timeout=timeout, expiry=expiry,
                               allow_reconnect=allow_reconnect, max_reconnect_attempts=max_reconnect_attempts,
                               reconnect_time_wait=reconnect_time_wait, max_reconnect_wait=max_reconnect_wait,
                               resume_buffer=resume_buffer, endpoint_gone_after=endpoint_gone_after,
-                              ssl_context=ssl_context, max_lag=max_lag, routes=routes)
+                              ssl_context=ssl_context, max_lag=max_lag, routes=routes, lanes=lanes,
+                              bulk_rate=bulk_rate)
         conn.relogin = (master_url, password, version)
         return conn
 
@@ -212,9 +221,12 @@ class Connection(Verbs, Handles, Reconnecting):
                    resume_buffer: int = DEFAULT_RESUME_BUFFER,
                    endpoint_gone_after: int = ENDPOINT_GONE_AFTER,
                    ssl_context: ssl.SSLContext | None = None, max_lag: float | None = None,
-                   routes: Routes | None = None) -> "Connection":
+                   routes: Routes | None = None, lanes: bool = False,
+                   bulk_rate: float | None = None) -> "Connection":
         """Open the websocket at a known robot endpoint ``ws_url`` (skips the login); the keywords are
         :meth:`login_connect`'s. Raises :class:`AuthError` or :class:`Unavailable` as :meth:`login_connect`."""
+        if lanes and not allow_reconnect:
+            raise ValueError("lanes need allow_reconnect: the bulk link joins the session with its token")
         reconnect = Reconnect(max_reconnect_attempts, reconnect_time_wait, max_reconnect_wait, resume_buffer,
                               timeout, endpoint_gone_after) if allow_reconnect else None
         ssl_context = ssl_context or tls.client_context()
@@ -224,6 +236,8 @@ class Connection(Verbs, Handles, Reconnecting):
                  via=routes.relay if routes else None)
         conn = cls(ws, user_id, robot_id, ws_url, expiry, reconnect)
         conn.ssl_context, conn.max_lag, conn.routes = ssl_context, max_lag, routes
+        if lanes:
+            conn.bulk = BulkLane(conn, bulk_rate)
         return conn
 
     @property
@@ -240,6 +254,8 @@ class Connection(Verbs, Handles, Reconnecting):
         pending service calls fail with :class:`Unavailable`."""
         if self.close_reason is None:
             self.close_reason = "closed by the client"
+        if self.bulk is not None:
+            await self.bulk.close()
         await close_quietly(self.ws)
         try:
             await asyncio.wait_for(asyncio.shield(self._reader), CLOSE_TIMEOUT)
@@ -251,6 +267,9 @@ class Connection(Verbs, Handles, Reconnecting):
         if self._closed.is_set():
             return
         self._closed.set()
+        self._session_evt.set()
+        if self.bulk is not None:
+            await self.bulk.tasks.cancel_all()
         self.session.close(self.close_reason or "closed")
         self.session.events_received()           # call_failed/barrier_failed: their waiters have the error
         self._changed.set()
@@ -360,6 +379,7 @@ class Connection(Verbs, Handles, Reconnecting):
                 case Dropped(reason=reason):
                     log.warning("dropped a message from the cloud", reason=reason)
                 case SessionStatus(data=data):
+                    self._session_evt.set()
                     if data.get("status") == "resumed":
                         self.resumes += 1
                         log.info("session resumed", robot=self.robot_id, dropped=data.get("dropped"))
@@ -370,6 +390,11 @@ class Connection(Verbs, Handles, Reconnecting):
                 case _:
                     unhandled(ev)
         self._kick()
+
+    async def _session_changed(self) -> None:
+        """Wait until the session's state changes (it starts, resumes, moves or closes)."""
+        self._session_evt.clear()
+        await self._session_evt.wait()
 
     def _on_error(self, reason: str) -> None:
         self.errors.append(reason)

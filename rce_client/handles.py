@@ -23,6 +23,7 @@ from rce import protocol
 from rce.plumbing.errors import RCEError, Timeout
 from rce.plumbing.log import get_logger
 from rce.protocol.events import MessageReceived
+from rce.protocol.lanes import Lane, interface_lane, message_lane
 from rce.protocol.session import ClientSession
 from rce.plumbing.tasks import Tasks
 
@@ -37,6 +38,7 @@ class ConnectionLike(Protocol):
     """What an endpoint uses of its :class:`~rce_client.connection.Connection`."""
 
     session: ClientSession
+    bulk: Any                  # rce_client.lanes.BulkLane | None
     _handlers: dict[str, Any]
 
     async def send(self, type_: str, data: Any) -> None:
@@ -47,16 +49,25 @@ class ConnectionLike(Protocol):
 
 
 class Publisher:
-    """Sends messages to a robot-side ``SubscriberConverter``/``SubscriberForwarder``."""
+    """Sends messages to a robot-side ``SubscriberConverter``/``SubscriberForwarder``; ``lane``: the lane the
+    interface was given (docs/lanes.md; None: from ``cls``)."""
 
-    def __init__(self, conn: ConnectionLike, itag: str, cls: str):
+    def __init__(self, conn: ConnectionLike, itag: str, cls: str, lane: str | Lane | None = None):
         self.conn, self.itag, self.cls = conn, itag, cls
+        self.lane, self.lane_set = interface_lane(cls, False, lane), lane is not None
         self.sent = 0
 
     async def publish(self, msg: Message) -> None:
         """Send one message: a JSON-form dict (Converter) or ROS 1 serialized bytes
-        (Forwarder; sent as binary part ``msg*``). Raises :class:`Unavailable` when closed."""
-        await self.conn.send(protocol.DM, {"iTag": self.itag, "type": self.cls, "msg": msg})
+        (Forwarder; sent as binary part ``msg*``). A bulk message goes on the connection's bulk link while it
+        is up (queued: each interface keeps its newest), else on the session's link. Raises
+        :class:`Unavailable` when closed."""
+        bulk = self.conn.bulk
+        size = len(msg) if isinstance(msg, (bytes, bytearray, memoryview)) else 0
+        if bulk is not None and bulk.up and message_lane(self.lane, self.lane_set, size) is Lane.BULK:
+            bulk.put(self.itag, self.cls, msg)
+        else:
+            await self.conn.send(protocol.DM, {"iTag": self.itag, "type": self.cls, "msg": msg})
         self.sent += 1
 
 
@@ -141,9 +152,10 @@ class Handles:
     tasks: Tasks
     _run_cb: Callable[[Callable, Any], None]
 
-    def publisher(self, itag: str, cls: str) -> Publisher:
-        """Bind to robot-side ``SubscriberConverter``/``Forwarder`` ``itag`` of message class ``cls``."""
-        return Publisher(self, itag, cls)
+    def publisher(self, itag: str, cls: str, lane: str | Lane | None = None) -> Publisher:
+        """Bind to robot-side ``SubscriberConverter``/``Forwarder`` ``itag`` of message class ``cls``; ``lane``:
+        as the interface was given (None: from ``cls``). Raises ProtocolError for an unknown lane."""
+        return Publisher(self, itag, cls, lane)
 
     def subscriber(self, itag: str, cls: str, callback: Callable[[Message], Any]) -> Subscriber:
         """Receive the DMs of robot-side ``PublisherConverter``/``Forwarder`` ``itag``; one

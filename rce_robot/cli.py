@@ -20,6 +20,7 @@ from rce.transport.masterlink import MASTER_PORT, MASTER_WAIT, parse_masters, un
 from rce.plumbing.process import run, write_ready_file
 from rce.protocol.frames import DEFAULT_EXPIRY
 from rce.protocol.limits import DEFAULT_MAX_PENDING_TOTAL
+from rce.protocol.pacer import parse_rate
 from rce.protocol.resume import DEFAULT_GRACE, DEFAULT_RESUME_BUFFER
 from rce.protocol.session import DEFAULT_MAX_LAG, DEFAULT_MAX_MESSAGE, DEFAULT_QUEUE_SIZE
 from rce_robot.endpoint import RobotEndpoint
@@ -38,6 +39,14 @@ def _at_least_one(text: str) -> int:
     if n < 1:
         raise argparse.ArgumentTypeError(f"must be an integer >= 1, got {text!r}")
     return n
+
+def _rate(text: str) -> float:
+    """An argparse type: a rate (:func:`rce.protocol.pacer.parse_rate`), in bytes/s."""
+    try:
+        return parse_rate(text)
+    except ValueError as e:
+        raise argparse.ArgumentTypeError(str(e)) from None
+
 
 def parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(prog="rce-robot", description="RCE robot task set: robot endpoints.")
@@ -77,6 +86,12 @@ def parser() -> argparse.ArgumentParser:
     p.add_argument("--max-pending-binary", type=int, default=DEFAULT_MAX_PENDING_TOTAL, metavar="BYTES",
                    help="bytes of binary parts waiting for their message, all robots together; past it a part "
                         f"gets an ER (default {DEFAULT_MAX_PENDING_TOTAL}; each robot also has its own cap)")
+    p.add_argument("--bulk-rate", type=_rate, default=None, metavar="RATE",
+                   help="pace each robot's bulk link (images, clouds, scans, maps to the robot) to RATE: bytes/s, or "
+                        "with a unit (1.25MB, 10Mbit); set it a little below the robots' downlink (default: not "
+                        "paced; docs/lanes.md)")
+    p.add_argument("--mptcp", action="store_true",
+                   help="accept robots over Multipath TCP where the kernel offers it (net.mptcp.enabled), else TCP")
     p.add_argument("--ready-file", type=Path, help="write {ws_port, data_addr, pid} here once registered")
     p.add_argument("--cluster-key-file", type=Path, default=None, metavar="PATH", help=cluster_auth.KEY_FLAG_HELP)
     tls.add_server_arguments(p, "serve wss:// to robots and rosbridge clients (and https:// /metrics)")
@@ -91,7 +106,7 @@ async def amain(args: argparse.Namespace) -> None:
                        queue_size=args.queue_size, expiry=args.expiry, master_wait=args.master_wait,
                        grace=args.grace, resume_buffer=args.resume_buffer,
                        max_pending_total=args.max_pending_binary, ssl_context=tls.server_context_from(args),
-                       max_lag=args.max_lag or None)
+                       max_lag=args.max_lag or None, bulk_rate=args.bulk_rate, mptcp=args.mptcp)
     loop = asyncio.get_running_loop()
     for sig in (signal.SIGINT, signal.SIGTERM):
         loop.add_signal_handler(sig, ep.stopped.set)

@@ -6,6 +6,7 @@ from __future__ import annotations
 import asyncio
 import hashlib
 import hmac
+import socket
 import ssl
 from collections import Counter
 from http import HTTPStatus
@@ -13,14 +14,17 @@ from urllib.parse import parse_qs, urlsplit
 
 from aiohttp import web
 from prometheus_client import CONTENT_TYPE_LATEST, CollectorRegistry, Gauge, generate_latest
-from prometheus_client.core import CounterMetricFamily
+from prometheus_client.core import CounterMetricFamily, HistogramMetricFamily
 from websockets.asyncio.server import serve
 
 from rce.transport.cluster_auth import ClusterKey, token_of
 from rce.transport.dataplane import DataPlane
 from rce.plumbing.errors import AuthError, NotFound, RCEError, Throttled
 from rce.protocol.interface_type import InterfaceType
-from rce.protocol.lanes import parse_lane
+from rce.protocol.lanes import Lane, parse_lane
+from rce.protocol.lane_queue import DELAY_BOUNDS
+from rce.protocol.pacer import Pacer
+from rce.transport.lane_socket import mptcp_socket
 from rce.plumbing.log import get_logger
 from rce.transport.masterlink import MASTER_WAIT, Address, MasterLink
 from rce.messages import default_registry
@@ -81,6 +85,7 @@ class Metrics:
     def __init__(self, ep: "RobotEndpoint"):
         self.ep = ep
         self.ended: Counter[str] = Counter()
+        self.ended_lanes: dict[Lane, Counter] = {lane: Counter() for lane in Lane}     # per lane, ended sessions
         self.registry = r = CollectorRegistry()
         r.register(self)
         Gauge("rce_robot_connections", "Connected robots", registry=r).set_function(lambda: len(ep.namespaces))
@@ -107,6 +112,8 @@ class Metrics:
     def session_ended(self, session: RobotSession) -> None:
         stats = session.stats()
         self.ended.update({k: stats[k] for k in SESSION_COUNTERS})
+        for lane, counts in _lane_counts(session).items():
+            self.ended_lanes[lane].update(counts)
 
     def collect(self):
         """(prometheus_client collector) The session counters."""
@@ -118,6 +125,46 @@ class Metrics:
             yield CounterMetricFamily(name, doc, value=rosbridge.get(key, 0))
         yield CounterMetricFamily("rce_robot_rosbridge_sessions_accepted", "rosbridge v2 clients accepted",
                                   value=rosbridge.get("sessions_total", 0))
+        yield from self._lanes()
+
+    def _lanes(self):
+        """Per lane (label ``lane``): messages sent whole and their bytes (goodput), drops, and the queue
+        delay as a histogram (docs/lanes.md "Metrics")."""
+        totals = {lane: Counter(c) for lane, c in self.ended_lanes.items()}
+        for ns in self.ep.namespaces.values():
+            for lane, counts in _lane_counts(ns.session).items():
+                totals[lane].update(counts)
+        families = {k: CounterMetricFamily(f"rce_robot_lane_{k}", doc, labels=["lane"])
+                    for k, doc in LANE_COUNTERS.items()}
+        delay = HistogramMetricFamily("rce_robot_lane_queue_delay_seconds", "Time messages to robots waited in "
+                                      "their lane's queue", labels=["lane"])
+        for lane, c in totals.items():
+            for k, fam in families.items():
+                fam.add_metric([lane.value], c[k])
+            cum, buckets = 0, []
+            for i, bound in enumerate((*DELAY_BOUNDS, float("inf"))):
+                cum += c[f"b{i}"]
+                buckets.append((str(bound) if bound != float("inf") else "+Inf", cum))
+            delay.add_metric([lane.value], buckets, c["delay_sum"])
+        yield from families.values()
+        yield delay
+
+
+LANE_COUNTERS = {"messages_sent": "Messages to robots sent whole, per lane (goodput in messages)",
+                 "bytes_sent": "Bytes of messages to robots sent whole, per lane",
+                 "dropped": "Topic messages to robots dropped, per lane (each interface keeps its newest)"}
+
+
+def _lane_counts(session: RobotSession) -> dict[Lane, Counter]:
+    """A session's per-lane counters for :class:`Metrics` (queue-delay buckets as ``b0``..)."""
+    q = session.out.queue
+    out = {}
+    for lane, st in q.stats.items():
+        c = Counter({"messages_sent": st.sent, "bytes_sent": st.bytes, "dropped": q.lanes[lane].dropped,
+                     "delay_sum": st.delay_sum})
+        c.update({f"b{i}": n for i, n in enumerate(st.delay_buckets)})
+        out[lane] = c
+    return out
 
 
 class RobotEndpoint:
@@ -132,19 +179,23 @@ class RobotEndpoint:
     registers is ``wss://``;
     ``cluster_key``: proved to the master on every link (:mod:`rce.transport.cluster_auth`), and the source of
     this endpoint's data key; ``max_lag``: s the endpoint may stay behind a robot's frames before it
-    sheds that robot's topic messages (:class:`RobotSession`; None: never)."""
+    sheds that robot's topic messages (:class:`RobotSession`; None: never); ``bulk_rate``: bytes/s each
+    robot's bulk link is paced to (docs/lanes.md; None: not paced); ``mptcp``: listen on an MPTCP socket
+    where the kernel offers it (:func:`rce.transport.lane_socket.mptcp_socket`)."""
 
     def __init__(self, *, name: str, advertise_host: str, max_message: int = DEFAULT_MAX_MESSAGE,
                  queue_size: int = DEFAULT_QUEUE_SIZE, expiry: float = DEFAULT_EXPIRY,
                  master_wait: float = MASTER_WAIT, grace: float = DEFAULT_GRACE,
                  resume_buffer: int = DEFAULT_RESUME_BUFFER, max_pending_total: int = DEFAULT_MAX_PENDING_TOTAL,
                  ssl_context: ssl.SSLContext | None = None, max_lag: float | None = DEFAULT_MAX_LAG,
-                 cluster_key: ClusterKey):
+                 cluster_key: ClusterKey, bulk_rate: float | None = None, mptcp: bool = False):
         self.name, self.advertise_host = name, advertise_host
         self.ssl_context = ssl_context
         self.cluster_key = cluster_key
         self.max_message, self.queue_size, self.expiry = max_message, queue_size, expiry
         self.grace, self.resume_buffer, self.max_lag = grace, resume_buffer, max_lag
+        self.bulk_rate, self.mptcp = bulk_rate, mptcp
+        self.listening_mptcp = False            # the websocket server's socket is MPTCP
         self.budget = PartBudget(max_pending_total)      # binary parts waiting, all robots together
         self.parser = ParsePool()                        # big text frames are parsed off the loop
         self.master_wait = master_wait
@@ -173,7 +224,9 @@ class RobotEndpoint:
         await self.plane.listen(bind, data_port, self.advertise_host)
         self.plane.data_key = self.cluster_key.data_key(self.plane.addr)
         # frames up to twice the limit are read and refused with an ER; beyond that the socket closes
-        self._ws_server = await serve(self._session, bind, port, process_request=self._handshake,
+        sock = self._listen_socket(bind, port) if self.mptcp else None
+        self._ws_server = await serve(self._session, None if sock else bind, None if sock else port, sock=sock,
+                                      process_request=self._handshake,
                                       max_size=2 * self.max_message + 1024, compression=None,
                                       ping_interval=PING_INTERVAL, ping_timeout=PING_TIMEOUT,
                                       max_queue=WS_MAX_QUEUE, ssl=self.ssl_context)
@@ -197,6 +250,15 @@ class RobotEndpoint:
             await site.start()
             self.metrics_port = site._server.sockets[0].getsockname()[1]
         log.info("robot endpoint up", ws_port=self.ws_port, data_addr=self.plane.addr)
+
+    def _listen_socket(self, bind: str, port: int) -> socket.socket:
+        """(``mptcp``) The websocket server's listening socket: MPTCP where the kernel offers it, else TCP."""
+        family = socket.AF_INET6 if ":" in bind else socket.AF_INET
+        sock, self.listening_mptcp = mptcp_socket(family)
+        sock.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
+        sock.bind((bind, port))
+        sock.setblocking(False)
+        return sock
 
     async def stop(self) -> None:
         if self.master and not self.master.available:
@@ -227,7 +289,8 @@ class RobotEndpoint:
         resume"). ``maxLag``: this connection's ``max_lag`` (s, 0: never shed; :class:`RobotSession`),
         instead of the endpoint's; a value that is not a number of seconds >= 0 is a 400."""
         q = {k: v[0] for k, v in parse_qs(urlsplit(request.path).query, encoding="latin-1").items()}
-        if "session" in q:         # a resume needs no master: the session and its token are here
+        connection.rce_lane = None
+        if "session" in q:         # a resume (or a bulk link joining) needs no master: the session and token are here
             return self._resume(connection, q)
         if (away := master_away(connection, self.master)) is not None:
             return away
@@ -265,13 +328,21 @@ class RobotEndpoint:
 
     def _resume(self, connection, q: dict):
         """A resume's handshake: the robot's session, its token (else 401, as a bad password) and an
-        ``ack`` it can serve (else 400)."""
+        ``ack`` it can serve (else 400). With ``lane=bulk``, a bulk link joining the session instead (no
+        ``ack``: nothing on it is numbered; docs/lanes.md); another lane is a 400."""
         user, robot, token = q.get("userID", ""), q.get("robotID", ""), q["session"]
         ns = self.namespaces.get((user, robot))
         if ns is None or ns.ended or not ns.session.token or \
                 not hmac.compare_digest(ns.session.token.encode(), token.encode("utf-8", "replace")):
             return connection.respond(HTTPStatus.UNAUTHORIZED, f"no session to resume for robot {robot!r} of user "
                                                                f"{user!r} (wrong or expired session token)\n")
+        if "lane" in q:
+            if q["lane"] != Lane.BULK:
+                return connection.respond(HTTPStatus.BAD_REQUEST, f"lane must be 'bulk' (the session's own link is "
+                                                                  f"its control lane), got {q['lane']!r}\n")
+            connection.rce_identity, connection.rce_resume, connection.rce_ack = (user, robot), True, None
+            connection.rce_lane = Lane.BULK
+            return None
         try:
             ack = int(q.get("ack", "0"))
         except ValueError:
@@ -289,6 +360,14 @@ class RobotEndpoint:
             await self._refuse(ws, refused)
             return
         user, robot = ws.rce_identity
+        if ws.rce_lane is not None:            # a bulk link joins the session
+            ns = self.namespaces.get((user, robot))
+            if ns is None or ns.ended:
+                await ws.close(CLOSE_POLICY, "the session to join has ended")
+                return
+            log.info("bulk link joined", user=user, robot=robot, peer=str(ws.remote_address))
+            await ns.serve_bulk(ws, Pacer(self.bulk_rate) if self.bulk_rate else None)
+            return
         if ws.rce_ack is not None:             # a resume
             ns = self.namespaces.get((user, robot))
             if ns is None or ns.ended:         # it ended between the handshake and now

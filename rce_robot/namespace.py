@@ -34,6 +34,10 @@ from rce.transport.masterlink import MasterLink
 from rce.plumbing.tasks import Tasks
 from rce_robot.interfaces import RobotInterface
 from rce_robot import ws_cork
+from rce.protocol.lanes import BULK_SIZE, Lane
+from rce.protocol.pacer import Pacer
+from rce.transport import lane_socket
+from rce.transport.lane_socket import paced_fragments, socket_of
 from rce_robot.parse_pool import ParsePool
 
 log = get_logger("rce.robot")
@@ -79,6 +83,8 @@ class RobotNamespace:
         self._gone = False
         self._grace_timer: asyncio.Task | None = None
         self._wake = asyncio.Event()
+        self.bulk_ws: Any = None                            # the bulk link, while one has joined (docs/lanes.md)
+        self._bulk_wake = asyncio.Event()
 
     @property
     def resumable(self) -> bool:
@@ -168,6 +174,8 @@ class RobotNamespace:
                 await ws.close(CLOSE_POLICY, e.message[:CLOSE_REASON_MAX])
                 return
         old, self.ws, self.detached_since = self.ws, ws, None
+        if self.bulk_ws is not None:                # a bulk link is there: this one is the control lane
+            lane_socket.mark(socket_of(ws), Lane.CONTROL)
         if self._grace_timer is not None:
             self._grace_timer.cancel()
             self._grace_timer = None
@@ -232,12 +240,61 @@ class RobotNamespace:
             self._pump()
 
     def _pump(self) -> None:
-        """Do what the session's events ask; wake the writer when frames wait."""
+        """Do what the session's events ask; wake the writers when frames wait."""
         while events := self.session.events_received():
             for ev in events:
                 self._on_event(ev)
         if self.session.outbox and self.ws is not None:
             self._flush()
+        if self.session.bulk_outbox and self.bulk_ws is not None:
+            self._bulk_wake.set()
+
+    # -- the bulk link (docs/lanes.md) -------------------------------------------------------------------
+    async def serve_bulk(self, ws: Any, pacer: Pacer | None = None) -> None:
+        """Serve a bulk link that joined the session (``?session=TOKEN&lane=bulk``) until it closes: the
+        bulk lane's topic DMs go on it, unnumbered, in frames of at most
+        :data:`~rce.protocol.lanes.BULK_SIZE` bytes, paced by ``pacer`` (None: as fast as the link takes
+        them); the robot's DMs on it come in. It is marked DSCP CS1 and the session's own link becomes the
+        control lane (:func:`rce.transport.lane_socket.mark`). A bulk link already there is closed. When it
+        closes, the bulk lane goes on the session's link again."""
+        old, self.bulk_ws = self.bulk_ws, ws
+        if old is not None:
+            self.tasks.spawn(old.close(CLOSE_POLICY, "replaced by a new bulk link"), name="close-old-bulk")
+        self.session.attach_bulk()
+        lane_socket.mark(socket_of(ws), Lane.BULK)
+        if self.ws is not None:
+            lane_socket.mark(socket_of(self.ws), Lane.CONTROL)
+        link = Tasks(f"robot {self.user}/{self.robot} bulk link")
+        link.spawn(self._bulk_writer(ws, pacer), name="bulk-writer")
+        self._pump()
+        try:
+            async for frame in ws:
+                self.session.receive_bulk(frame, time.monotonic())
+                self._pump()
+        except ConnectionClosed:
+            pass
+        finally:
+            await link.cancel_all()
+        if self.bulk_ws is ws:
+            self.bulk_ws = None
+            self.session.detach_bulk()
+            log.info("bulk link closed; the bulk lane goes on the session's link", user=self.user, robot=self.robot,
+                     code=ws.close_code)
+            self._pump()
+
+    async def _bulk_writer(self, ws: Any, pacer: Pacer | None) -> None:
+        """Write the bulk lane's DMs to ``ws``, one whole message at a time, each frame in fragments of
+        at most :data:`BULK_SIZE` paced by ``pacer``."""
+        try:
+            while True:
+                await self._bulk_wake.wait()
+                self._bulk_wake.clear()
+                while self.bulk_ws is ws and (frames := self.session.bulk_to_send(time.monotonic())) is not None:
+                    for f in frames:
+                        await ws.send(paced_fragments(f, pacer) if pacer is not None or len(f) > BULK_SIZE else f)
+                    self.session.out.queue.sent(Lane.BULK, sum(len(f) for f in frames))
+        except (ConnectionClosed, OSError):   # the reader sees it too; bulk data keeps its newest, nothing is resent
+            pass
 
     def _on_event(self, ev: RobotEvent) -> None:
         match ev:
@@ -304,6 +361,9 @@ class RobotNamespace:
         self._gone = self.ended = True
         self.detached_since = None
         await self.tasks.cancel_all()
+        bulk, self.bulk_ws = self.bulk_ws, None
+        if bulk is not None:
+            await bulk.close(CLOSE_POLICY, "the session ended")
         self.session.end()
         for iface in list(self.interfaces.values()):
             await iface.stop()

@@ -59,6 +59,7 @@ class ClientSession(SessionCore):
         self.state = "asked" if resume else "off"
         self.token: str | None = None
         self.grace: float | None = None
+        self.bulk_in = 0                                   # DMs taken on the bulk link
 
     # -- frames out ---------------------------------------------------------------------------------
     def data_to_send(self) -> list[str | bytes]:
@@ -123,6 +124,32 @@ class ClientSession(SessionCore):
             self._on_er(data if isinstance(data, str) else json.dumps(data, separators=(",", ":"), ensure_ascii=False))
         else:
             self._bad_input(f"unexpected message from the cloud: type {t!r}")
+
+    def receive_bulk(self, frame: str | bytes, now: float) -> None:
+        """A frame from the bulk link at ``now`` (s): unnumbered DMs with their own binary parts
+        (docs/lanes.md); anything else is dropped and counted."""
+        try:
+            done = (self.bulk_assembler.feed_text(frame, now) if isinstance(frame, str)
+                    else self.bulk_assembler.feed_binary(frame, now))
+        except ProtocolError as e:
+            self._bad_input(f"bulk link: {e.message}")
+            return
+        for m in done:
+            data = m.get("data")
+            if m.get("type") != DM or "seq" in m or not isinstance(data, dict):
+                self._bad_input(f"bulk link: unexpected message from the cloud: type {m.get('type')!r}")
+                continue
+            self.bulk_in += 1
+            self._on_dm(data)
+
+    def bulk_frames(self, itag: str, type_: str, msg: Any) -> list[Frame]:
+        """The frames of topic ``DM {iTag, type, msg}`` for the bulk link: unnumbered, never kept (bulk
+        data keeps its newest; what a dropped bulk link loses is gone). Raises the table's error once the
+        link closed."""
+        if self.pending.closed is not None:
+            raise type(self.pending.closed)(self.pending.closed.message)
+        text, parts = encode({"type": DM, "data": {"iTag": itag, "type": type_, "msg": msg}})
+        return [text, *parts]
 
     # -- resume ------------------------------------------------------------------------------------
     def _linked(self) -> bool:

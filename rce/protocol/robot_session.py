@@ -8,8 +8,7 @@ from typing import Any
 from rce.plumbing.errors import ProtocolError, RequestError
 from rce.messages import takes_binary_message
 from rce.protocol.events import CaughtUp, CloseLink, Deliver, Lagging, RequestReady, ServiceCall
-from rce.protocol.frames import (DEFAULT_EXPIRY, DEFAULT_MAX_PENDING_BYTES, DEFAULT_MAX_PENDING_PARTS, DM, ST,
-                                 Assembler)
+from rce.protocol.frames import DEFAULT_EXPIRY, DEFAULT_MAX_PENDING_BYTES, DEFAULT_MAX_PENDING_PARTS, DM, ST
 from rce.protocol.holdback import HoldBack
 from rce.protocol.lanes import Lane, interface_lane, message_lane
 from rce.protocol.limits import DEFAULT_MAX_LAG, ER_BURST, ER_RATE, LagGate, PartBudget, short_repr
@@ -88,8 +87,6 @@ class RobotSession(SessionCore):
         self.token = (token or new_token()) if resume else None
         self.grace = grace
         self.resumes = self.resume_lost = 0
-        self.bulk_assembler = Assembler(
-            expiry=expiry, max_pending_bytes=max_pending_bytes, max_pending_parts=max_pending_parts, budget=budget)
         self.bulk_links = self.bulk_in = 0          # bulk links joined; DMs the robot sent on them
         if resume:
             self.out.link_message(ST, {"topic": SESSION_TOPIC, "status": "started", "session": self.token,
@@ -258,8 +255,6 @@ class RobotSession(SessionCore):
         """As :meth:`SessionCore.tick`; then, when ERs were dropped and the robot reads again, an ER
         saying how many."""
         super().tick(now)
-        for reason in self.bulk_assembler.expire(now):
-            self._bad_input(f"bulk link: {reason}")
         self.out.tick(now)
 
     def end(self) -> None:

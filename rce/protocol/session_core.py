@@ -22,6 +22,9 @@ class SessionCore:
                  budget: PartBudget | None = None):
         self.assembler = Assembler(expiry=expiry, max_pending_bytes=max_pending_bytes,
                                    max_pending_parts=max_pending_parts, budget=budget)
+        # a bulk link's binary parts (docs/lanes.md): its messages are whole on it, never split across links
+        self.bulk_assembler = Assembler(expiry=expiry, max_pending_bytes=max_pending_bytes,
+                                        max_pending_parts=max_pending_parts, budget=budget)
         self._events: list[Event] = []
         self._now = 0.0                                            # s, the last time given
         # with resume: what this side sent, numbered and kept until acked; what it took from the peer
@@ -64,6 +67,8 @@ class SessionCore:
         self._now = now
         for reason in self.assembler.expire(now):
             self._bad_input(reason)
+        for reason in self.bulk_assembler.expire(now):
+            self._bad_input(f"bulk link: {reason}")
         if self.incoming is not None and self._linked():
             self._ack_if_due()
 

@@ -1,0 +1,160 @@
+"""A client connection's bulk link (docs/lanes.md): a second websocket to the same robot endpoint that
+joins the session with its token (``?userID=U&robotID=R&session=TOKEN&lane=bulk``) and carries the bulk
+lane's topic data both ways, while the session's own link becomes the control lane.
+
+- Marks: the bulk link DSCP CS1, the session's link DSCP EF with ``TCP_NODELAY`` and a small
+  ``TCP_NOTSENT_LOWAT`` (:func:`rce.transport.lane_socket.mark`).
+- Out: each bulk interface keeps its newest message waiting (:class:`~rce.protocol.outbox.Outbox`, as
+  a ROS publisher's queue); a writer sends one whole message at a time, in frames of at most 16 KiB
+  paced below ``rate`` bytes/s (:class:`~rce.protocol.pacer.Pacer`; None: not paced). Drops are counted.
+- In: the cloud's bulk DMs go to the same handlers as those on the session's link.
+- A bulk link that drops is dialled again with backoff while the session lives; meanwhile bulk data
+  goes on the session's link, as without lanes. A cloud that refuses the join (an endpoint without
+  lanes: 400) leaves the connection on one link.
+"""
+from __future__ import annotations
+
+import asyncio
+import time
+from typing import TYPE_CHECKING, Any
+
+from websockets.exceptions import ConnectionClosed
+
+from rce.plumbing.errors import Unavailable
+from rce.plumbing.log import get_logger
+from rce.plumbing.tasks import Tasks
+from rce.protocol.frames import DM
+from rce.protocol.lanes import Lane
+from rce.protocol.outbox import Outbox
+from rce.protocol.pacer import Pacer
+from rce.transport import lane_socket
+from rce.transport.lane_socket import paced_fragments, socket_of
+from rce.transport.masterlink import Backoff
+from rce_client.dial import HandshakeRefused, dial, with_query
+
+if TYPE_CHECKING:
+    from rce_client.connection import Connection
+
+log = get_logger("rce.client")
+
+BULK_QUEUE = 64            # bulk messages waiting for the bulk link; past it the busiest interface drops its oldest
+REDIAL_WAIT, REDIAL_WAIT_MAX = 0.05, 1.0      # s between dials of a dropped bulk link, doubling up to the max
+
+
+class BulkLane:
+    """The bulk link of ``conn``; ``rate``: bytes/s its writer is paced to (None: not paced). Counters:
+    :attr:`sent` (messages written whole), :attr:`bytes`, :attr:`dropped` (the newest-per-interface
+    bound), :attr:`joins` (links joined), :attr:`received` (DMs taken on it)."""
+
+    def __init__(self, conn: Connection, rate: float | None = None):
+        self.conn, self.rate = conn, rate
+        self.pacer = Pacer(rate) if rate else None
+        self.queue: Outbox[tuple[str, str, Any]] = Outbox(BULK_QUEUE)     # (iTag, type, msg)
+        self.ws: Any = None
+        self.sent = self.bytes = self.joins = 0
+        self.refused: str | None = None          # why the cloud refused the join (then the connection has one link)
+        self._wake = asyncio.Event()
+        self._joined = asyncio.Condition()       # notified when a bulk link joins
+        self.tasks = Tasks(f"rce-client {conn.robot_id} bulk lane")
+        self.tasks.spawn(self._run(), name="bulk-link")
+
+    @property
+    def up(self) -> bool:
+        """Is a bulk link joined now?"""
+        return self.ws is not None
+
+    @property
+    def dropped(self) -> int:
+        return self.queue.dropped
+
+    @property
+    def received(self) -> int:
+        return self.conn.session.bulk_in
+
+    async def wait_up(self, timeout: float, joins: int = 1) -> None:
+        """Wait until a bulk link is up and ``joins`` have been joined in all. Raises :class:`Unavailable`
+        after ``timeout`` s (with the cloud's refusal, if it refused)."""
+        try:
+            async with self._joined:
+                await asyncio.wait_for(self._joined.wait_for(lambda: self.up and self.joins >= joins), timeout)
+        except asyncio.TimeoutError:
+            raise Unavailable(f"no bulk link after {timeout:g} s" + (f": {self.refused}" if self.refused else "")) \
+                from None
+
+    def put(self, itag: str, type_: str, msg: Any) -> None:
+        """Queue topic DM ``{iTag, type, msg}`` for the bulk link (each interface keeps its newest)."""
+        self.queue.put_data(itag, (itag, type_, msg), time.monotonic())
+        self._wake.set()
+
+    async def close(self) -> None:
+        await self.tasks.cancel_all()
+        if self.ws is not None:
+            await self.ws.close()
+
+    # -- the link --------------------------------------------------------------------------------
+    async def _run(self) -> None:
+        """Join, serve until the link drops, dial again with backoff while the session lives."""
+        backoff = Backoff(REDIAL_WAIT, cap=REDIAL_WAIT_MAX)
+        conn = self.conn
+        while not conn.closed:
+            session = conn.session
+            if session.state != "live" or not session.token:
+                await conn._session_changed()
+                continue
+            url = with_query(conn.ws_url, userID=conn.user_id, robotID=conn.robot_id, session=session.token,
+                             lane=Lane.BULK.value)
+            try:
+                ws = await dial(url, conn.reconnect.timeout if conn.reconnect else 10.0, conn.ssl_context)
+            except HandshakeRefused as e:
+                if e.status == 400:              # an endpoint without lanes: one link it is
+                    self.refused = f"the robot endpoint refused a bulk link: {e.reason}"
+                    log.info("bulk lane refused; one link", robot=conn.robot_id, reason=e.reason)
+                    return
+                await asyncio.sleep(backoff.next())     # 401: the session is being resumed or moved; a timer
+                continue
+            except Unavailable:
+                await asyncio.sleep(backoff.next())     # a timer
+                continue
+            backoff.failures = 0
+            await self._serve(ws)
+
+    async def _serve(self, ws: Any) -> None:
+        conn = self.conn
+        lane_socket.mark(socket_of(ws), Lane.BULK)
+        lane_socket.mark(socket_of(conn.ws), Lane.CONTROL)
+        self.ws = ws
+        self.joins += 1
+        async with self._joined:
+            self._joined.notify_all()
+        log.info("bulk link joined", robot=conn.robot_id, url=conn.ws_url)
+        writer = self.tasks.spawn(self._writer(ws), name="bulk-writer")
+        try:
+            async for frame in ws:
+                conn.session.receive_bulk(frame, time.monotonic())
+                conn._dispatch()
+        except ConnectionClosed:
+            pass
+        finally:
+            writer.cancel()
+            self.ws = None
+        log.info("bulk link closed; bulk data goes on the session's link until it is back", robot=conn.robot_id)
+        for itag, type_, msg in self.queue.drain():      # what waited goes on the session's link
+            try:
+                await conn.send(DM, {"iTag": itag, "type": type_, "msg": msg})
+            except Unavailable:
+                return
+
+    async def _writer(self, ws: Any) -> None:
+        try:
+            while True:
+                await self._wake.wait()
+                self._wake.clear()
+                while (item := self.queue.take(time.monotonic())) is not None:
+                    frames = self.conn.session.bulk_frames(*item)
+                    for f in frames:
+                        await ws.send(paced_fragments(f, self.pacer))
+                    self.sent += 1
+                    self.bytes += sum(len(f) for f in frames)
+        except (ConnectionClosed, OSError):      # the reader sees it too
+            pass
+
