@@ -128,13 +128,7 @@ class ClientSession(SessionCore):
     def receive_bulk(self, frame: str | bytes, now: float) -> None:
         """A frame from the bulk link at ``now`` (s): unnumbered DMs with their own binary parts
         (docs/lanes.md); anything else is dropped and counted."""
-        try:
-            done = (self.bulk_assembler.feed_text(frame, now) if isinstance(frame, str)
-                    else self.bulk_assembler.feed_binary(frame, now))
-        except ProtocolError as e:
-            self._bad_input(f"bulk link: {e.message}")
-            return
-        for m in done:
+        for m in self._bulk_messages(frame, now):
             data = m.get("data")
             if m.get("type") != DM or "seq" in m or not isinstance(data, dict):
                 self._bad_input(f"bulk link: unexpected message from the cloud: type {m.get('type')!r}")

@@ -283,17 +283,7 @@ class RobotSession(SessionCore):
     def receive_bulk(self, frame: str | bytes, now: float) -> None:
         """A frame from the robot's bulk link at ``now`` (s): it carries DMs only, unnumbered, with their
         own binary parts; anything else gets an ER."""
-        self._now = now
-        if self.too_big(frame):
-            self._bad_input(f"bulk link: frame of {len(frame)} bytes exceeds the limit of {self.max_message} bytes")
-            return
-        try:
-            done = (self.bulk_assembler.feed_text(frame, now) if isinstance(frame, str)
-                    else self.bulk_assembler.feed_binary(frame, now))
-        except ProtocolError as e:
-            self._bad_input(f"bulk link: {e.message}")
-            return
-        for msg in done:
+        for msg in self._bulk_messages(frame, now):
             if msg.get("type") != DM or "seq" in msg:
                 self.send_error(f"bulk link: carries unnumbered DMs only, got a {short_repr(msg.get('type'))}"
                                 f"{' with seq' if 'seq' in msg else ''}; send it on the session's link")

@@ -82,6 +82,20 @@ class SessionCore:
         self._take(lambda: self.assembler.feed_text(frame, now) if isinstance(frame, str)
                    else self.assembler.feed_binary(frame, now))
 
+    def _bulk_messages(self, frame: str | bytes, now: float) -> list[dict]:
+        """A frame from the bulk link (docs/lanes.md) at ``now`` (s), through its own assembler: the messages
+        it completes; a frame too big or refused is bad input (``bulk link: ...``)."""
+        self._now = now
+        if self.too_big(frame):
+            self._bad_input(f"bulk link: frame of {len(frame)} bytes exceeds the limit of {self.max_message} bytes")
+            return []
+        try:
+            return (self.bulk_assembler.feed_text(frame, now) if isinstance(frame, str)
+                    else self.bulk_assembler.feed_binary(frame, now))
+        except ProtocolError as e:
+            self._bad_input(f"bulk link: {e.message}")
+            return []
+
     def _take(self, feed) -> None:
         """Feed the assembler (``feed()``); its complete messages go on, its refusal is bad input."""
         try:
