@@ -130,6 +130,7 @@ class Connection(Verbs, Handles, Reconnecting):
         self.ssl_context: ssl.SSLContext | None = None     # verifies a wss:// endpoint (open's ssl_context)
         self.max_lag: float | None = None                 # s: the maxLag it asked for (open), also after a move
         self.routes: Routes | None = None                 # a follower's paths: direct, else a relay (open)
+        self.mptcp = False                                # every dial over Multipath TCP where offered (open)
         self.errors: list[str] = []
         self.unhandled = 0                          # DMs for an iTag with no handler
         self.close_reason: str | None = None
@@ -172,7 +173,7 @@ class Connection(Verbs, Handles, Reconnecting):
                             max_reconnect_wait: float = RECONNECT_WAIT_MAX, resume_buffer: int = DEFAULT_RESUME_BUFFER,
                             endpoint_gone_after: int = ENDPOINT_GONE_AFTER, ssl_context: ssl.SSLContext | None = None,
                             max_lag: float | None = None, routes: Routes | None = None, lanes: bool = False,
-                            bulk_rate: float | None = None) -> "Connection":
+                            bulk_rate: float | None = None, mptcp: bool = False) -> "Connection":
         """Log in at the master and open the robot's websocket.
 
         - ``master_url``: ``http://HOST:9000/`` (or ``https://``); ``password`` in clear (hashed here).
@@ -200,6 +201,7 @@ class Connection(Verbs, Handles, Reconnecting):
           the session's link becomes the control lane; needs ``allow_reconnect`` (the session's token) and
           a direct path (not through a relay).
         - ``bulk_rate``: bytes/s the bulk link is paced to (set it a little below the uplink; None: not paced).
+        - ``mptcp``: connect over Multipath TCP where the kernel offers it, else TCP (every link, every dial).
 
         Raises :class:`AuthError` (bad credentials: HTTP or handshake 401/403, with the cloud's reason)
         or :class:`Unavailable`; ValueError for ``lanes`` without ``allow_reconnect``."""
@@ -209,7 +211,7 @@ class Connection(Verbs, Handles, Reconnecting):
                               reconnect_time_wait=reconnect_time_wait, max_reconnect_wait=max_reconnect_wait,
                               resume_buffer=resume_buffer, endpoint_gone_after=endpoint_gone_after,
                               ssl_context=ssl_context, max_lag=max_lag, routes=routes, lanes=lanes,
-                              bulk_rate=bulk_rate)
+                              bulk_rate=bulk_rate, mptcp=mptcp)
         conn.relogin = (master_url, password, version)
         return conn
 
@@ -222,7 +224,7 @@ class Connection(Verbs, Handles, Reconnecting):
                    endpoint_gone_after: int = ENDPOINT_GONE_AFTER,
                    ssl_context: ssl.SSLContext | None = None, max_lag: float | None = None,
                    routes: Routes | None = None, lanes: bool = False,
-                   bulk_rate: float | None = None) -> "Connection":
+                   bulk_rate: float | None = None, mptcp: bool = False) -> "Connection":
         """Open the websocket at a known robot endpoint ``ws_url`` (skips the login); the keywords are
         :meth:`login_connect`'s. Raises :class:`AuthError` or :class:`Unavailable` as :meth:`login_connect`."""
         if lanes and not allow_reconnect:
@@ -231,11 +233,11 @@ class Connection(Verbs, Handles, Reconnecting):
                               timeout, endpoint_gone_after) if allow_reconnect else None
         ssl_context = ssl_context or tls.client_context()
         ws = await open_robot_link(ws_url, user_id, password, robot_id, timeout=timeout, ssl_context=ssl_context,
-                                   resume=allow_reconnect, max_lag=max_lag, routes=routes)
+                                   resume=allow_reconnect, max_lag=max_lag, routes=routes, mptcp=mptcp)
         log.info("connected", user=user_id, robot=robot_id, url=ws_url, resume=allow_reconnect,
                  via=routes.relay if routes else None)
         conn = cls(ws, user_id, robot_id, ws_url, expiry, reconnect)
-        conn.ssl_context, conn.max_lag, conn.routes = ssl_context, max_lag, routes
+        conn.ssl_context, conn.max_lag, conn.routes, conn.mptcp = ssl_context, max_lag, routes, mptcp
         if lanes:
             conn.bulk = BulkLane(conn, bulk_rate)
         return conn

@@ -20,6 +20,7 @@ from websockets.asyncio.client import ClientConnection, connect as ws_connect
 from websockets.exceptions import InvalidHandshake, InvalidStatus, InvalidURI
 
 from rce.transport import tls
+from rce.transport.lane_socket import mptcp_connect
 from rce.plumbing.errors import AuthError, Unavailable, http_reason
 from rce.plumbing.log import get_logger
 from rce_client.tunnel import Unreachable, url_addr
@@ -95,17 +96,19 @@ class HandshakeRefused(Exception):
 
 async def open_robot_link(ws_url: str, user_id: str, password: str, robot_id: str, *, timeout: float,
                           ssl_context: ssl.SSLContext | None, resume: bool = False,
-                          max_lag: float | None = None, routes: Routes | None = None) -> ClientConnection:
+                          max_lag: float | None = None, routes: Routes | None = None,
+                          mptcp: bool = False) -> ClientConnection:
     """Open robot ``robot_id``'s websocket at robot endpoint ``ws_url`` as ``user_id`` (``password`` in
     clear, hashed here), within ``timeout`` s; ``resume``: ask for session resume; ``max_lag``: the
-    ``maxLag`` asked for (None: the endpoint's default); ``routes``: a follower's paths. Newer clients ask
+    ``maxLag`` asked for (None: the endpoint's default); ``routes``: a follower's paths; ``mptcp``: as
+    :func:`dial`. Newer clients ask
     for HTTP refusals (``refusal=http``). Raises :class:`AuthError` (the handshake refused with 401/403, with the
     endpoint's reason), :class:`Unreachable` (nothing listens) or :class:`Unavailable` (another
     refusal, or the endpoint could not be reached)."""
     query = {"userID": user_id, "robotID": robot_id, "password": hash_password(password), "refusal": "http",
              **({"resume": "1"} if resume else {}), **({"maxLag": f"{max_lag:g}"} if max_lag is not None else {})}
     try:
-        return await dial(with_query(ws_url, **query), timeout, ssl_context, routes)
+        return await dial(with_query(ws_url, **query), timeout, ssl_context, routes, mptcp)
     except HandshakeRefused as e:
         if e.status in (401, 403):
             raise AuthError(f"robot endpoint {ws_url} refused {user_id}/{robot_id}: {e.reason}") from None
@@ -115,9 +118,10 @@ async def open_robot_link(ws_url: str, user_id: str, password: str, robot_id: st
 
 
 async def dial(url: str, timeout: float, ssl_context: ssl.SSLContext | None = None,
-               routes: Routes | None = None) -> ClientConnection:
+               routes: Routes | None = None, mptcp: bool = False) -> ClientConnection:
     """Open a websocket to ``url`` within ``timeout`` s (``wss://``: verified with ``ssl_context``; ``routes``:
-    a follower's paths, direct else through a relay, :mod:`rce_client.routes`). Raises
+    a follower's paths, direct else through a relay, :mod:`rce_client.routes`; ``mptcp``: without ``routes``,
+    over Multipath TCP where the kernel offers it, :func:`rce.transport.lane_socket.mptcp_connect`). Raises
     :class:`HandshakeRefused` (the endpoint answered the handshake with an HTTP error) or :class:`Unavailable`
     (unreachable, an untrusted certificate, or the handshake failed)."""
     path = None
@@ -129,9 +133,10 @@ async def dial(url: str, timeout: float, ssl_context: ssl.SSLContext | None = No
                 if not url.startswith("wss:"):
                     log.warning("the session goes through a relay unencrypted: with ws:// the relay can read it "
                                 "(use wss://, docs/relays.md)", relay=path.relay)
+        sock = path.sock if path else await asyncio.wait_for(mptcp_connect(url), timeout) if mptcp else None
         ws = await ws_connect(url, open_timeout=timeout, max_size=MAX_FRAME, proxy=None, compression=None,
                               user_agent_header="rce-client", ssl=tls.for_url(url, ssl_context),
-                              **({"sock": path.sock} if path else {}))
+                              **({"sock": sock} if sock is not None else {}))
         if path is not None:
             routes.opened(ws, path)
         return ws

@@ -16,7 +16,7 @@ from __future__ import annotations
 
 import asyncio
 import time
-from typing import TYPE_CHECKING, Any
+from typing import Any, Protocol
 
 from websockets.exceptions import ConnectionClosed
 
@@ -27,13 +27,11 @@ from rce.protocol.frames import DM
 from rce.protocol.lanes import Lane
 from rce.protocol.outbox import Outbox
 from rce.protocol.pacer import Pacer
+from rce.protocol.session import ClientSession
 from rce.transport import lane_socket
 from rce.transport.lane_socket import paced_fragments, socket_of
 from rce.transport.masterlink import Backoff
 from rce_client.dial import HandshakeRefused, dial, with_query
-
-if TYPE_CHECKING:
-    from rce_client.connection import Connection
 
 log = get_logger("rce.client")
 
@@ -41,12 +39,38 @@ BULK_QUEUE = 64            # bulk messages waiting for the bulk link; past it th
 REDIAL_WAIT, REDIAL_WAIT_MAX = 0.05, 1.0      # s between dials of a dropped bulk link, doubling up to the max
 
 
+class LaneOwner(Protocol):
+    """What the bulk lane uses of its :class:`rce_client.connection.Connection`."""
+
+    session: ClientSession
+    ws: Any
+    ws_url: str
+    user_id: str
+    robot_id: str
+    reconnect: Any
+    ssl_context: Any
+    mptcp: bool
+
+    @property
+    def closed(self) -> bool:
+        """Has the connection ended?"""
+
+    async def _session_changed(self) -> None:
+        """Wait until the session's state changes."""
+
+    def _dispatch(self) -> None:
+        """Do what the session's events say."""
+
+    async def send(self, type_: str, data: Any) -> None:
+        """Send one message on the session's link."""
+
+
 class BulkLane:
     """The bulk link of ``conn``; ``rate``: bytes/s its writer is paced to (None: not paced). Counters:
     :attr:`sent` (messages written whole), :attr:`bytes`, :attr:`dropped` (the newest-per-interface
     bound), :attr:`joins` (links joined), :attr:`received` (DMs taken on it)."""
 
-    def __init__(self, conn: Connection, rate: float | None = None):
+    def __init__(self, conn: LaneOwner, rate: float | None = None):
         self.conn, self.rate = conn, rate
         self.pacer = Pacer(rate) if rate else None
         self.queue: Outbox[tuple[str, str, Any]] = Outbox(BULK_QUEUE)     # (iTag, type, msg)
@@ -104,7 +128,7 @@ class BulkLane:
             url = with_query(conn.ws_url, userID=conn.user_id, robotID=conn.robot_id, session=session.token,
                              lane=Lane.BULK.value)
             try:
-                ws = await dial(url, conn.reconnect.timeout if conn.reconnect else 10.0, conn.ssl_context)
+                ws = await dial(url, conn.reconnect.timeout if conn.reconnect else 10.0, conn.ssl_context, conn.mptcp)
             except HandshakeRefused as e:
                 if e.status == 400:              # an endpoint without lanes: one link it is
                     self.refused = f"the robot endpoint refused a bulk link: {e.reason}"

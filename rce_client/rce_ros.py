@@ -65,6 +65,7 @@ from rce.messages import MessageRegistry, default_registry, wire_name
 from rce.node.naming import validate_name
 from rce.node.package_path import load_package_types
 from rce.protocol import split_interface_type
+from rce.protocol.pacer import rate_arg
 from rce_client.connection import Connection, Message
 from rce_client.paths import default_bus_path
 from rce_client.relay import DEFAULT_MAX_FOLLOWERS, DEFAULT_RATE, RobotRelay
@@ -123,7 +124,7 @@ class _ToCloud:
     def __init__(self, bridge: "RobotBridge", kind: _Kind):
         self.bridge, self.kind = bridge, kind
         self.itag = kind.spec.iTag
-        self.pub = bridge.conn.publisher(self.itag, kind.spec.iCls)
+        self.pub = bridge.conn.publisher(self.itag, kind.spec.iCls, kind.spec.lane)
         self.queue: asyncio.Queue[bytes] = asyncio.Queue(maxsize=QUEUE_SIZE)
         self.dropped = 0
         self.bad = 0
@@ -231,6 +232,8 @@ class RobotBridge:
     bridge per simulated robot) publishes and subscribes on ``self.bus`` directly; ``run()``
     in a task, ``ready`` tells when the interfaces are up, ``stop.set()`` tears down.
     ``resume``: ask for session resume and ride out lost links (:class:`Connection` ``allow_reconnect``).
+    ``lanes``, ``bulk_rate``, ``mptcp``: a bulk link beside the session's (paced to ``bulk_rate`` bytes/s),
+    Multipath TCP (:class:`Connection`; docs/lanes.md).
     ``graph(bridge)`` makes the robot-side graph the interfaces are bridged to (default
     :class:`LocalBusGraph`; ``rce-ros --ros``: :class:`rce_client.ros1_bridge.RospyGraph`).
     ``relays``: [(host, port)] of relays to reach the cloud through when the direct path fails;
@@ -242,9 +245,11 @@ class RobotBridge:
                  out: Callable[[str], None] | None = None, err: Callable[[str], None] | None = None,
                  resume: bool = True, graph: Callable[["RobotBridge"], Any] | None = None,
                  relays: list[tuple[str, int]] | None = None, relay_port: int | None = None,
-                 relay_max: int = DEFAULT_MAX_FOLLOWERS, relay_rate: float = DEFAULT_RATE):
+                 relay_max: int = DEFAULT_MAX_FOLLOWERS, relay_rate: float = DEFAULT_RATE, lanes: bool = False,
+                 bulk_rate: float | None = None, mptcp: bool = False):
         self.cfg, self.source, self.bus_path = config, source, bus_path
         self.timeout, self.keep, self.resume = timeout, keep, resume
+        self.lanes, self.bulk_rate, self.mptcp = lanes, bulk_rate, mptcp
         self.url = url or config.url
         self.registry = registry or default_registry()
         self.out = out or (lambda text: print(text, flush=True))
@@ -349,7 +354,9 @@ class RobotBridge:
         cfg = self.cfg
         self.out(f"rce-ros: logging in at {self.url} as {cfg.userID}/{cfg.robotID}")
         self.conn = await self._until_stop(Connection.connect(self.url, cfg.userID, cfg.password, cfg.robotID,
-                                                              allow_reconnect=self.resume, routes=self.routes))
+                                                              allow_reconnect=self.resume, routes=self.routes,
+                                                              lanes=self.lanes, bulk_rate=self.bulk_rate,
+                                                              mptcp=self.mptcp))
         conn = self.conn
         conn.on_error(lambda reason: self.err(f"rce-ros: error from the cloud: {reason}"))
         conn.on_status(self._on_status)
@@ -532,8 +539,17 @@ def build_parser() -> argparse.ArgumentParser:
                    help=f"relayed bytes/s in all, past which they are paced (0: no pacing; default {DEFAULT_RATE})")
     p.add_argument("--relays", metavar="HOST:PORT[,HOST:PORT...]",
                    help="relays to reach the cloud through when this robot's own path fails, in order of preference")
+    p.add_argument("--lanes", action="store_true",
+                   help="open a bulk link beside the session's link: images, clouds, scans and maps go on it, paced, "
+                        "and commands never wait behind them (docs/lanes.md; needs resume)")
+    p.add_argument("--uplink-rate", type=rate_arg, default=None, metavar="RATE",
+                   help="with --lanes, pace the bulk link to RATE: bytes/s, or with a unit (1.25MB, 10Mbit); set it a "
+                        "little below the robot's uplink (default: not paced)")
+    p.add_argument("--mptcp", action="store_true",
+                   help="connect over Multipath TCP where the kernel offers it (net.mptcp.enabled), else TCP")
     tls.add_client_arguments(p)
     return p
+
 
 
 def main(argv: list[str] | None = None) -> None:
@@ -545,6 +561,8 @@ def main(argv: list[str] | None = None) -> None:
     except ConfigError as e:
         print(f"rce-ros: {e.message}", file=sys.stderr)
         sys.exit(2)
+    if args.lanes and not args.resume:
+        build_parser().error("--lanes needs resume: the bulk link joins the session with its token (drop --no-resume)")
     if args.ros and args.bus:
         build_parser().error("--bus and --ros exclude each other: with --ros the interfaces are on the ROS 1 graph")
     bus_path = None if args.ros else args.bus or default_bus_path(cfg.robotID)
@@ -564,7 +582,8 @@ def main(argv: list[str] | None = None) -> None:
             graph = RospyGraph
         bridge = RobotBridge(cfg, args.config, bus_path, timeout=args.timeout, keep=args.keep, url=args.url,
                              resume=args.resume, graph=graph, relays=relays, relay_port=args.relay_port,
-                             relay_max=args.relay_max, relay_rate=args.relay_rate)
+                             relay_max=args.relay_max, relay_rate=args.relay_rate, lanes=args.lanes,
+                             bulk_rate=args.uplink_rate, mptcp=args.mptcp)
         loop = asyncio.get_running_loop()
         for sig in (signal.SIGINT, signal.SIGTERM):
             loop.add_signal_handler(sig, bridge.stop.set)

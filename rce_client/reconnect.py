@@ -66,6 +66,7 @@ class Reconnecting:
     ssl_context: ssl.SSLContext | None
     routes: Routes | None
     max_lag: float | None
+    mptcp: bool
     close_reason: str | None
     moves: int
     moved_lost: int
@@ -125,7 +126,7 @@ class Reconnecting:
                 if self.relogin is not None and refused >= r.gone_after:
                     await self._move()
                     return
-                ws = await dial(url, r.timeout, self.ssl_context, self.routes)
+                ws = await dial(url, r.timeout, self.ssl_context, self.routes, self.mptcp)
                 break
             except (HandshakeRefused, AuthError) as e:  # 401: the session expired (or the token is wrong); 400: bad ack
                 self.close_reason = f"the cloud refused to resume the session ({e})"
@@ -161,7 +162,7 @@ class Reconnecting:
             raise Unavailable(f"the master still names the dead robot endpoint {ws_url}")
         ws = await open_robot_link(ws_url, self.user_id, password, self.robot_id, timeout=timeout,
                                    ssl_context=self.ssl_context, resume=True, max_lag=self.max_lag,
-                                   routes=self.routes)
+                                   routes=self.routes, mptcp=self.mptcp)
         old = self.session
         lost = len(old.outgoing) if old.outgoing is not None else 0
         old.close(f"the robot endpoint {self.ws_url} died; the session moved to {ws_url}")

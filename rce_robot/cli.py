@@ -20,7 +20,7 @@ from rce.transport.masterlink import MASTER_PORT, MASTER_WAIT, parse_masters, un
 from rce.plumbing.process import run, write_ready_file
 from rce.protocol.frames import DEFAULT_EXPIRY
 from rce.protocol.limits import DEFAULT_MAX_PENDING_TOTAL
-from rce.protocol.pacer import parse_rate
+from rce.protocol.pacer import rate_arg
 from rce.protocol.resume import DEFAULT_GRACE, DEFAULT_RESUME_BUFFER
 from rce.protocol.session import DEFAULT_MAX_LAG, DEFAULT_MAX_MESSAGE, DEFAULT_QUEUE_SIZE
 from rce_robot.endpoint import RobotEndpoint
@@ -39,13 +39,6 @@ def _at_least_one(text: str) -> int:
     if n < 1:
         raise argparse.ArgumentTypeError(f"must be an integer >= 1, got {text!r}")
     return n
-
-def _rate(text: str) -> float:
-    """An argparse type: a rate (:func:`rce.protocol.pacer.parse_rate`), in bytes/s."""
-    try:
-        return parse_rate(text)
-    except ValueError as e:
-        raise argparse.ArgumentTypeError(str(e)) from None
 
 
 def parser() -> argparse.ArgumentParser:
@@ -86,7 +79,7 @@ def parser() -> argparse.ArgumentParser:
     p.add_argument("--max-pending-binary", type=int, default=DEFAULT_MAX_PENDING_TOTAL, metavar="BYTES",
                    help="bytes of binary parts waiting for their message, all robots together; past it a part "
                         f"gets an ER (default {DEFAULT_MAX_PENDING_TOTAL}; each robot also has its own cap)")
-    p.add_argument("--bulk-rate", type=_rate, default=None, metavar="RATE",
+    p.add_argument("--bulk-rate", type=rate_arg, default=None, metavar="RATE",
                    help="pace each robot's bulk link (images, clouds, scans, maps to the robot) to RATE: bytes/s, or "
                         "with a unit (1.25MB, 10Mbit); set it a little below the robots' downlink (default: not "
                         "paced; docs/lanes.md)")

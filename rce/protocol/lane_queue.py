@@ -49,7 +49,7 @@ class LaneStats:
 
 
 @dataclass(slots=True)
-class _Entry:
+class _LaneItem:
     item: Any
     since: float | None          # s when put; None: not timed (its queue delay counts as 0)
 
@@ -63,7 +63,7 @@ class LaneQueues(Generic[T]):
         if starve_after < 1:
             raise ValueError(f"starve_after must be >= 1, got {starve_after}")
         self.queue_size, self.starve_after = queue_size, starve_after
-        self.lanes: dict[Lane, Outbox[_Entry]] = {lane: Outbox(queue_size, max_lag) for lane in Lane}
+        self.lanes: dict[Lane, Outbox[_LaneItem]] = {lane: Outbox(queue_size, max_lag) for lane in Lane}
         self.stats: dict[Lane, LaneStats] = {lane: LaneStats() for lane in Lane}
         self._passed = {lane: 0 for lane in Lane}     # items of higher lanes taken while this one waited
 
@@ -101,12 +101,12 @@ class LaneQueues(Generic[T]):
 
     def put(self, item: T, now: float | None = None, lane: Lane = Lane.CONTROL) -> None:
         """Queue ``item`` in ``lane`` at ``now`` (s; None: not timed), never to be dropped here."""
-        self.lanes[lane].put(_Entry(item, now))
+        self.lanes[lane].put(_LaneItem(item, now))
 
     def put_data(self, key: Any, item: T, now: float, lane: Lane = Lane.STATE) -> None:
         """Queue data item ``item`` of ``key`` in ``lane`` at ``now`` (s): the lane's outbox keeps each
         key's newest (:meth:`Outbox.put_data`)."""
-        self.lanes[lane].put_data(key, _Entry(item, now), now)
+        self.lanes[lane].put_data(key, _LaneItem(item, now), now)
 
     def take(self, now: float | None = None, lanes: tuple[Lane, ...] = tuple(Lane)) -> tuple[Lane, T] | None:
         """The next item of ``lanes`` and its lane (None when none waits): the first lane in priority

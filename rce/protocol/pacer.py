@@ -13,6 +13,7 @@ the link's rate keeps that queue short, whatever the bottleneck does.
 """
 from __future__ import annotations
 
+import argparse
 import re
 from collections.abc import Iterator
 
@@ -36,6 +37,14 @@ def parse_rate(text: str) -> float:
     if rate <= 0:
         raise ValueError(f"rate {text!r} must be > 0")
     return rate
+
+
+def rate_arg(text: str) -> float:
+    """An argparse type: :func:`parse_rate`, its refusal as argparse's error (``--bulk-rate``, ``--uplink-rate``)."""
+    try:
+        return parse_rate(text)
+    except ValueError as e:
+        raise argparse.ArgumentTypeError(str(e)) from None
 
 
 class Pacer:

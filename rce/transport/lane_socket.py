@@ -8,7 +8,7 @@
   unmarked: it carries every lane.
 - :func:`paced_fragments`: one websocket message's fragments of at most
   :data:`~rce.protocol.lanes.BULK_SIZE`, each let out when the :class:`~rce.protocol.pacer.Pacer` says.
-- :func:`mptcp_socket`: a TCP socket that is MPTCP (RFC 8684) where the kernel offers it
+- :func:`mptcp_socket`, :func:`mptcp_connect`: a TCP socket that is MPTCP (RFC 8684) where the kernel offers it
   (``IPPROTO_MPTCP``, ``net.mptcp.enabled``), plain TCP where it does not.
 """
 from __future__ import annotations
@@ -18,6 +18,7 @@ import socket
 import time
 from collections.abc import AsyncIterator
 from typing import Any
+from urllib.parse import urlsplit
 
 from rce.plumbing.log import get_logger
 from rce.protocol.lanes import BULK_SIZE, Lane
@@ -88,6 +89,23 @@ def mptcp_socket(family: int = socket.AF_INET) -> tuple[socket.socket, bool]:
     except OSError as e:           # no MPTCP in this kernel, or net.mptcp.enabled = 0
         log.info("MPTCP not offered by the kernel; using TCP", reason=str(e))
         return socket.socket(family, socket.SOCK_STREAM), False
+
+
+async def mptcp_connect(url: str) -> socket.socket:
+    """A stream socket connected to the host and port of ``url`` (``ws://``: 80, ``wss://``: 443 by default):
+    MPTCP where the kernel offers it, else TCP (:func:`mptcp_socket`). Raises OSError as a connect does."""
+    parts = urlsplit(url)
+    port = parts.port or (443 if parts.scheme in ("wss", "https") else 80)
+    loop = asyncio.get_running_loop()
+    family, _, _, _, addr = (await loop.getaddrinfo(parts.hostname, port, type=socket.SOCK_STREAM))[0]
+    sock, _ = mptcp_socket(family)
+    sock.setblocking(False)
+    try:
+        await loop.sock_connect(sock, addr)
+    except BaseException:
+        sock.close()
+        raise
+    return sock
 
 
 def is_mptcp(sock: socket.socket) -> bool:
