@@ -10,7 +10,8 @@ lane's topic data both ways, while the session's own link becomes the control la
 - In: the cloud's bulk DMs go to the same handlers as those on the session's link.
 - A bulk link that drops is dialled again with backoff while the session lives; meanwhile bulk data
   goes on the session's link, as without lanes. A cloud that refuses the join (an endpoint without
-  lanes: 400) leaves the connection on one link.
+  lanes: 400) leaves the connection on one link, and so does a path through a relay (docs/relays.md)
+  until the session is back on its direct path.
 """
 from __future__ import annotations
 
@@ -50,6 +51,7 @@ class LaneOwner(Protocol):
     reconnect: Any
     ssl_context: Any
     mptcp: bool
+    routes: Any               # rce_client.routes.Routes | None
 
     @property
     def closed(self) -> bool:
@@ -122,13 +124,15 @@ class BulkLane:
         conn = self.conn
         while not conn.closed:
             session = conn.session
-            if session.state != "live" or not session.token:
+            relayed = conn.routes is not None and conn.routes.relay is not None
+            if session.state != "live" or not session.token or relayed:     # a relay carries one link only
                 await conn._session_changed()
                 continue
             url = with_query(conn.ws_url, userID=conn.user_id, robotID=conn.robot_id, session=session.token,
                              lane=Lane.BULK.value)
             try:
-                ws = await dial(url, conn.reconnect.timeout if conn.reconnect else 10.0, conn.ssl_context, conn.mptcp)
+                ws = await dial(url, conn.reconnect.timeout if conn.reconnect else 10.0, conn.ssl_context,
+                                mptcp=conn.mptcp)
             except HandshakeRefused as e:
                 if e.status == 400:              # an endpoint without lanes: one link it is
                     self.refused = f"the robot endpoint refused a bulk link: {e.reason}"
