@@ -19,7 +19,6 @@ import asyncio
 import hashlib
 import json
 import sys
-from pathlib import Path
 
 import pytest
 
@@ -27,12 +26,12 @@ import rce.node
 from rce.tools.launch import start_engine
 from rce.tools.netlab import NetLab, RelayTopology
 from rce_client.tunnel import answer, parse_request
+from nsrobot import WAIT, RosRun
 
 pytestmark = pytest.mark.asyncio
 
 RELAY_PORT = 9100
 RATE = 10.0                  # Hz of the numbered stream
-WAIT = 60.0                  # s any one step may take on a loaded machine before the test fails
 
 
 @pytest.fixture
@@ -73,52 +72,6 @@ def follower_config(url: str) -> dict:
             "connections": [{"tagA": "cF/req", "tagB": "F/req"}, {"tagA": "cF/resp", "tagB": "F/resp"}]}
 
 
-class RosRun:
-    """An rce-ros process in a namespace, with the lines it printed."""
-
-    def __init__(self, proc: asyncio.subprocess.Process, bus: Path):
-        self.proc, self.bus = proc, bus
-        self.lines: list[str] = []
-        self._new = asyncio.Event()
-        self._readers = [asyncio.ensure_future(self._read(s)) for s in (proc.stdout, proc.stderr)]
-
-    @classmethod
-    async def start(cls, topo: RelayTopology, ns: str, cfg: dict, tmp: Path, *args: str) -> "RosRun":
-        path = tmp / f"{cfg['robotID']}.config"
-        path.write_text(json.dumps(cfg))
-        bus = tmp / f"{cfg['robotID']}.sock"
-        argv = topo.lab.wrap(ns, [sys.executable, "-m", "rce_client.rce_ros", str(path), "--bus", str(bus), *args])
-        proc = await asyncio.create_subprocess_exec(*argv, stdout=asyncio.subprocess.PIPE,
-                                                    stderr=asyncio.subprocess.PIPE)
-        return cls(proc, bus)
-
-    async def _read(self, stream: asyncio.StreamReader) -> None:
-        while line := await stream.readline():
-            self.lines.append(line.decode(errors="replace").rstrip())
-            self._new.set()
-
-    async def wait_line(self, text: str, after: int = 0) -> str:
-        """The first line from index ``after`` on that contains ``text``."""
-        async with asyncio.timeout(WAIT):
-            while True:
-                for line in self.lines[after:]:
-                    if text in line:
-                        return line
-                assert self.proc.returncode is None, "\n".join(self.lines[-40:])
-                self._new.clear()
-                await self._new.wait()
-
-    async def stop(self) -> None:
-        if self.proc.returncode is None:
-            self.proc.terminate()
-            try:
-                await asyncio.wait_for(self.proc.wait(), 15)
-            except asyncio.TimeoutError:
-                self.proc.kill()
-                await self.proc.wait()
-        await asyncio.gather(*self._readers, return_exceptions=True)
-
-
 async def wait_until(check, what: str) -> None:
     """Poll ``check()`` (a state the test cannot be told of: the master's view) until true."""
     async with asyncio.timeout(WAIT):
@@ -155,12 +108,12 @@ async def tunnel_statuses(topo: RelayTopology, targets: list[str]) -> list[list]
 
 async def start_robots(topo, cloud, tmp_path, relay_max: int = 4) -> tuple[RosRun, RosRun, RosRun]:
     url = master_url(cloud, topo)
-    l1 = await RosRun.start(topo, "l1", leader_config(url, "L1"), tmp_path, "--relay-port", str(RELAY_PORT),
+    l1 = await RosRun.start(topo.lab, "l1", leader_config(url, "L1"), tmp_path, "--relay-port", str(RELAY_PORT),
                             "--relay-max", str(relay_max))
-    l2 = await RosRun.start(topo, "l2", leader_config(url, "L2"), tmp_path, "--relay-port", str(RELAY_PORT))
+    l2 = await RosRun.start(topo.lab, "l2", leader_config(url, "L2"), tmp_path, "--relay-port", str(RELAY_PORT))
     for leader in (l1, l2):
         await leader.wait_line("relaying for nearby robots")
-    f = await RosRun.start(topo, "f", follower_config(url), tmp_path, "--relays",
+    f = await RosRun.start(topo.lab, "f", follower_config(url), tmp_path, "--relays",
                            f"{topo.f_l1.a_ip}:{RELAY_PORT},{topo.f_l2.a_ip}:{RELAY_PORT}")
     await f.wait_line("rce-ros: ready")
     return l1, l2, f
@@ -331,7 +284,7 @@ async def test_relay_cannot_read_or_forge_the_session(topo, tls_cloud, tmp_path)
     spy = SpyRelay()
     port = await spy.start(topo.f_cloud.a_ip)
     url = f"https://{topo.cloud_ip}:{cloud.http_port}/"
-    f = await RosRun.start(topo, "f", follower_config(url), tmp_path, "--relays", f"{topo.f_cloud.a_ip}:{port}",
+    f = await RosRun.start(topo.lab, "f", follower_config(url), tmp_path, "--relays", f"{topo.f_cloud.a_ip}:{port}",
                            "--ca-file", str(cloud.ca_file))
     node = None
     try:
