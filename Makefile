@@ -25,7 +25,7 @@ $(ROSLIBJS): tests/web/roslibjs/package.json tests/web/roslibjs/package-lock.jso
 	touch $(ROSLIBJS)
 
 ## test: the whole suite, in parallel (tests share no ports, files or state; a test file runs in one worker)
-TEST_WORKERS ?= 2
+TEST_WORKERS ?= 3
 test: setup
 	$(BIN)/ruff check .
 	$(BIN)/python -m pytest -q -p no:cacheprovider -n $(TEST_WORKERS) --dist loadfile $(PYTEST_ARGS)

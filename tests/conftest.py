@@ -43,3 +43,12 @@ def pytest_sessionstart(session):
     if not SHARED_DATA.is_dir():
         raise pytest.UsageError(f"{SHARED_DATA} is missing: the tests read the real maps and MAPF data from "
                                 "../shared/data beside the project (see the project's shared folder)")
+
+
+@pytest.hookimpl(optionalhook=True)
+def pytest_xdist_make_scheduler(config, log):
+    """``--dist loadfile`` hands out the longest files first and splits some per test (tests/xdist_order.py)."""
+    if config.getvalue("dist") == "loadfile":
+        from xdist_order import LongFirstFileScheduling
+        return LongFirstFileScheduling(config, log)
+    return None

@@ -75,11 +75,14 @@ async def test_bad_frames_with_big_values_to_a_robot_that_does_not_read_cost_bou
     print(f"\nER flood: {len(ers)} ERs for 150 bad 1 MiB frames in {took:.1f} s; rce-robot peak RSS "
           f"+{grown / MiB:.0f} MiB, log +{(log.stat().st_size - log_before) / 1024:.0f} KiB")
     # a burst, then the bucket's rate, and the ERs saying how many were dropped
-    assert len(ers) <= ER_BURST + ER_RATE * took + 5 < 150, (len(ers), took)
-    assert max(len(e.encode()) for e in ers) <= MAX_ER_TEXT + 40 and any("were dropped" in e for e in ers)
+    allowed = ER_BURST + ER_RATE * took + 5
+    assert len(ers) <= allowed, (len(ers), took)
+    assert max(len(e.encode()) for e in ers) <= MAX_ER_TEXT + 40
+    if allowed < 150:                           # the flood outran the bucket (a loaded machine sends slower)
+        assert any("were dropped" in e for e in ers), ers[-3:]
     assert grown < 100 * MiB, f"rce-robot grew {grown / MiB:.0f} MiB"
     assert log.stat().st_size - log_before < 1 * MiB
-    assert metrics(eng)["rce_robot_errors_dropped_total"] >= 150 - len(ers) > 0     # each bad frame: an ER, or counted
+    assert metrics(eng)["rce_robot_errors_dropped_total"] >= 150 - len(ers)     # each bad frame: an ER, or counted
 
 
 async def test_pending_binary_parts_are_capped_in_number_and_in_bytes_and_expire_cheaply(eng):
