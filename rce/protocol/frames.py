@@ -334,6 +334,8 @@ def encode(msg: dict, ids: Iterable[str] | None = None) -> tuple[str, list[bytes
             return orjson.dumps(msg).decode(), []
         except TypeError:       # a bytes-like value (or what only the stdlib encodes: dumps after the walk)
             pass
+    elif ids is None and (flat := _flat_dm(msg, data)) is not None:
+        return flat
     frames: list[bytes] = []
     given: Iterator[str] | None = iter(ids) if ids is not None else None
 
@@ -359,3 +361,25 @@ def encode(msg: dict, ids: Iterable[str] | None = None) -> tuple[str, list[bytes
         return [walk(v) if isinstance(v, _CONTAINERS) else v for v in obj]
 
     return jsontext.dumps(walk(msg)), frames
+
+
+_NESTED = (dict, list, bytes, bytearray, memoryview)
+
+
+def _flat_dm(msg: dict, data: dict) -> tuple[str, list[bytes]] | None:
+    """:func:`encode` of a forwarder's DM whose one binary value is ``data.msg`` and whose other
+    values are scalars (``iTag``, ``type``, ``msgID``, resume's ``seq``): the same text and part as
+    the walk, without it. None when a value is nested: the walk then takes the message."""
+    out: dict = {}
+    for k, v in data.items():
+        if k == "msg":
+            out["msg*"] = ref = new_id()
+        elif isinstance(v, _NESTED):
+            return None
+        else:
+            out[k] = v
+    for v in msg.values():
+        if v is not data and isinstance(v, _NESTED):
+            return None
+    text = jsontext.dumps({k: (out if v is data else v) for k, v in msg.items()})
+    return text, [b"".join((ref.encode(), data["msg"]))]

@@ -34,6 +34,14 @@ that must not be lost (:meth:`FramedLink.send`) waits in the same queue, so the 
 never changes, and is never dropped: it takes the room of the oldest offered frames first.
 ``on_drop(tag)`` hears of each offered frame dropped after :meth:`FramedLink.offer` took it
 (its ``tag``), so the sender's counters stay right.
+
+Writes are corked per loop pass: the first frame of a pass goes to the transport at once (a lone
+message waits for nothing), the next ones of the same pass wait in the link's cork and go out
+together in one ``writelines`` (one system call) when the pass ends, or as soon as
+:data:`CORK_MAX` bytes wait. A busy link (many robots' messages to one node, a node's replies to
+them) so pays one write for a pass's frames instead of one each; what waits in the cork counts
+towards the write bounds. A payload larger than :data:`JOIN_MAX` is never corked (it may be a view
+of a receive buffer): what the cork holds goes first, then it.
 """
 from __future__ import annotations
 
@@ -58,6 +66,7 @@ MAX_IN_FLIGHT = 1024                 # requests one Responder runs at once; more
 DEFAULT_MAX_DELAY = 1.0              # s an offered frame may wait in a link's queue for a slow peer (module doc)
 HIGH_WATER = 64 * 1024               # bytes: a transport's high-water mark when it cannot tell its own
 NOTSENT_LOWAT = 1024 * 1024           # bytes a data link's socket keeps unsent in the kernel (data_socket)
+CORK_MAX = 256 * 1024                # bytes a link's cork holds within one loop pass before they go out (module doc)
 
 Frame = dict | framing.DataFrame
 
@@ -108,6 +117,9 @@ class FramedLink:
         # frames waiting for the transport to drain: (loop time taken, frame, payload, tag, droppable)
         self._queue: collections.deque[tuple[float, bytes, bytes | memoryview, Any, bool]] = collections.deque()
         self._queued_bytes = 0
+        self._cork: list[bytes] = []        # frames written in this loop pass after its first (module doc)
+        self._cork_bytes = 0
+        self._pass_open = False             # a frame went out in this loop pass: the next ones are corked
 
     @property
     def peername(self) -> str:
@@ -173,12 +185,12 @@ class FramedLink:
         if self.closed.is_set() or t.is_closing():
             self.dropped += 1
             return False
-        waiting = t.get_write_buffer_size()
+        waiting = self.waiting
         if self._queue or waiting > self._high:
             if self._enqueue(frame, payload, n, tag, True, self.max_buffer):
                 return True
         elif not waiting or waiting + n <= self.max_buffer:
-            _write(t, frame, payload)
+            self._write(frame, payload)
             return True
         self.dropped += 1
         return False
@@ -191,12 +203,12 @@ class FramedLink:
         if self.closed.is_set() or t.is_closing():
             raise Unavailable(f"the link to {self.name} is closed")
         n = len(frame) + len(payload)
-        waiting = t.get_write_buffer_size()
+        waiting = self.waiting
         if self._queue:
             if self._enqueue(frame, payload, n, None, False, self.hard_buffer):
                 return
         elif not waiting or waiting + n <= self.hard_buffer:
-            _write(t, frame, payload)
+            self._write(frame, payload)
             return
         self.refused += 1
         raise LinkFull(f"the link to {self.name} is saturated: {waiting + self._queued_bytes} bytes wait "
@@ -207,15 +219,15 @@ class FramedLink:
         """Queue one frame behind the others, making room by dropping the oldest offered frames
         (and those past ``max_delay``); False if there is no room for it even so."""
         self._flush()                     # the transport may have drained below its mark already
-        t, q = self.transport, self._queue
-        if not q and t.get_write_buffer_size() <= self._high:
-            _write(t, frame, payload)
+        q = self._queue
+        if not q and self.waiting <= self._high:
+            self._write(frame, payload)
             return True
         now = asyncio.get_running_loop().time()
         if self.max_delay is not None:
             while q and q[0][4] and now - q[0][0] > self.max_delay:
                 self._drop(q.popleft(), expired=True)
-        room = bound - t.get_write_buffer_size()
+        room = bound - self.waiting
         if self._queued_bytes + nbytes > room:
             if self._queued_bytes - self._droppable_bytes() + nbytes > room:
                 return False
@@ -245,19 +257,71 @@ class FramedLink:
                 log.error("on_drop handler failed", link=self.name, exc_info=e)
 
     def _flush(self) -> None:
-        """Move queued frames to the transport, in order, while it is below its high-water mark;
-        offered frames past ``max_delay`` are dropped on the way."""
+        """Move queued frames to the transport, in order, in one ``writelines``, while it is below its
+        high-water mark; offered frames past ``max_delay`` are dropped on the way."""
         t, q = self.transport, self._queue
         if not q or self.closed.is_set() or t.is_closing():
             return
         now = asyncio.get_running_loop().time()
+        self.uncork()                     # what the cork holds was written before the queue's frames
+        # until the queue is empty or the transport is above its mark (then its resume_writing calls
+        # again): a batch the socket takes at once leaves the transport below it, with no such call
         while q and t.get_write_buffer_size() <= self._high:
-            entry = q.popleft()
-            if entry[4] and self.max_delay is not None and now - entry[0] > self.max_delay:
-                self._drop(entry, expired=True)
-                continue
-            self._queued_bytes -= len(entry[1]) + len(entry[2])
-            _write(t, entry[1], entry[2])
+            batch: list[bytes | memoryview] = []
+            size = t.get_write_buffer_size()
+            while q and size <= self._high:
+                entry = q.popleft()
+                if entry[4] and self.max_delay is not None and now - entry[0] > self.max_delay:
+                    self._drop(entry, expired=True)
+                    continue
+                n = len(entry[1]) + len(entry[2])
+                self._queued_bytes -= n
+                size += n
+                batch.append(entry[1])
+                if entry[2]:
+                    batch.append(entry[2])
+            if batch:
+                t.writelines(batch)       # one system call for what the link held
+
+    @property
+    def waiting(self) -> int:
+        """Bytes written and not yet taken by the socket: in the transport's buffer and in the cork."""
+        return self.transport.get_write_buffer_size() + self._cork_bytes
+
+    def _write(self, frame: bytes, payload: bytes | memoryview) -> None:
+        """One frame: to the transport at once when it is the loop pass's first, else into the cork
+        (module doc). A small payload is joined to its header (a copy of at most :data:`JOIN_MAX`
+        bytes costs less than a second ``write``); a large one follows it unjoined, uncopied, after
+        what the cork holds."""
+        if len(payload) > JOIN_MAX:
+            self.uncork()
+            self.transport.write(frame)
+            self.transport.write(payload)
+            return
+        data = frame + payload if payload else frame
+        if not self._pass_open:
+            self._pass_open = True
+            asyncio.get_running_loop().call_soon(self._end_pass)
+            self.transport.write(data)
+            return
+        self._cork.append(data)
+        self._cork_bytes += len(data)
+        if self._cork_bytes >= CORK_MAX:
+            self.uncork()
+
+    def uncork(self) -> None:
+        """Write what the cork holds now, in one ``writelines`` (it is done at the end of each loop
+        pass by itself)."""
+        if self._cork:
+            cork, self._cork, self._cork_bytes = self._cork, [], 0
+            if not self.transport.is_closing():
+                self.transport.writelines(cork)
+
+    def _end_pass(self) -> None:
+        self._pass_open = False
+        self.uncork()
+        if self._queue:                   # frames queued behind the cork's: they follow while there is room
+            self._flush()
 
     async def drain(self) -> None:
         """Wait until the transport's buffer is below its low-water mark (backpressure)."""
@@ -282,6 +346,7 @@ class FramedLink:
             return
         self.close_reason = reason
         self.closed.set()
+        self.uncork()                     # written before the close: the transport sends them first
         while self._queue:                # what waited for a peer that is gone
             entry = self._queue.popleft()
             if entry[4]:
@@ -296,19 +361,6 @@ class FramedLink:
                 self.on_close(self)
             except Exception as e:
                 log.error("on_close handler failed", link=self.name, exc_info=e)
-
-
-def _write(transport: asyncio.WriteTransport, frame: bytes, payload: bytes | memoryview) -> None:
-    """One frame, in one system call: a small payload is joined to its header (a copy of at
-    most :data:`JOIN_MAX` bytes costs less than a second ``write``); a large one follows it
-    unjoined, uncopied."""
-    if not payload:
-        transport.write(frame)
-    elif len(payload) <= JOIN_MAX:
-        transport.write(frame + payload)
-    else:
-        transport.write(frame)
-        transport.write(payload)
 
 
 class _Receiver(asyncio.BufferedProtocol):

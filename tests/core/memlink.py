@@ -40,16 +40,21 @@ class MemTransport:
         self.protocol = _ReaderProtocol(reader or asyncio.StreamReader())
         self.other: MemTransport | None = None
         self.written = bytearray()
+        self.writes = 0           # write and writelines calls (each is one system call on a real transport)
         self.waiting = 0
         self.closing = False
         self.recv_size = RECV_SIZE
 
     def write(self, data) -> None:
         assert not self.closing, "write after close"
+        self.writes += 1
         if self.other is not None:
             self.other._deliver(bytes(data))
         else:
             self.written += data
+
+    def writelines(self, chunks) -> None:
+        self.write(b"".join(chunks))      # one call, as a real transport's writelines
 
     def _deliver(self, data: bytes) -> None:
         if self.closing:

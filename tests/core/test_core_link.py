@@ -145,6 +145,38 @@ async def test_send_may_pass_the_offer_bound_up_to_the_hard_bound():
     assert (link.dropped, link.refused) == (1, 1) and bytes(t.written) == b"c" * 50
 
 
+async def pass_ends() -> None:
+    """The loop pass in which the test wrote has ended: a callback scheduled now runs after the link's."""
+    done = asyncio.get_running_loop().create_future()
+    asyncio.get_running_loop().call_soon(done.set_result, None)
+    await done
+
+
+async def test_a_pass_s_first_frame_goes_at_once_and_the_rest_together_when_the_pass_ends():
+    link, _, _ = link_on(*lone(), max_buffer=100)
+    t = link.writer.transport
+    assert link.offer(b"m1", b"+p")
+    assert bytes(t.written) == b"m1+p" and t.writes == 1          # a lone message waits for nothing
+    assert link.offer(b"m2")
+    link.send(b"c3")
+    assert link.offer(b"m4", b"+q")
+    assert bytes(t.written) == b"m1+p" and link.waiting == 8     # corked: they count towards the bounds
+    await pass_ends()
+    assert bytes(t.written) == b"m1+pm2c3m4+q" and t.writes == 2   # one write for the rest of the pass
+    assert link.offer(b"m5") and bytes(t.written).endswith(b"m5") and t.writes == 3    # a new pass
+
+
+async def test_corked_frames_count_towards_the_bound_and_go_before_a_close():
+    link, _, _ = link_on(*lone(), max_buffer=100)
+    t = link.writer.transport
+    assert link.offer(b"x")
+    assert link.offer(b"h" * 50, b"p" * 40)          # corked: 90 bytes wait
+    assert not link.offer(b"h" * 5, b"p" * 10)        # 90 + 15 > 100
+    assert link.dropped == 1
+    link.close()
+    assert bytes(t.written) == b"x" + b"h" * 50 + b"p" * 40
+
+
 async def test_writes_on_a_closed_link():
     link, _, _ = link_on(*lone())
     link.close()
