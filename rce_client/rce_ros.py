@@ -337,6 +337,7 @@ class RobotBridge:
         finally:
             if self.relay is not None:
                 await self.relay.close()
+                self.out(f"rce-ros: relayed {self.relay.stats.summary()}")
             for c in self._to_cloud:
                 c.close()
             self._report_drops()

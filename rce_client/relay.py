@@ -92,6 +92,14 @@ class RelayStats:
     paced_s: float = 0.0
     by_follower: dict[str, int] = field(default_factory=dict)   # peer address -> tunnels opened
 
+    def summary(self) -> str:
+        """One line: what the relay carried and refused."""
+        return (f"{self.tunnels} tunnel(s) for {len(self.by_follower)} follower address(es), "
+                f"{self.bytes_up} bytes to the cloud, {self.bytes_down} bytes to followers, "
+                f"paced {self.paced_s:.1f} s; "
+                f"refused {self.refused_full} (full), {self.refused_target} (outside the cloud), "
+                f"{self.refused_bad} (not CONNECT), {self.failed} (cloud unreachable)")
+
 
 class RobotRelay:
     """An HTTP CONNECT relay named ``name`` (this robot's ID, told to followers) into the cloud of

@@ -32,6 +32,7 @@ from pathlib import Path
 
 from aiohttp import web
 from prometheus_client import CollectorRegistry, Counter, Gauge, generate_latest, CONTENT_TYPE_LATEST
+from prometheus_client.core import GaugeMetricFamily
 
 from rce.tools.admin_client import LEADER_HEADER
 from rce.transport.cluster_auth import ClusterKey, Gate
@@ -59,6 +60,22 @@ MAX_HTTP_BODY = 16 * 1024 * 1024                   # bytes, an admin API request
 HTTP_STATUS = ((AuthError, 401), (NotFound, 404), (Timeout, 504), (Throttled, 429), (Unavailable, 503), (RCEError, 400))
 RETRY_AFTER = 5                                    # s, Retry-After of a 503 for an absent task set (login, admin
 #                                                    API): about a reconnecting task set's backoff
+
+
+class _RelayCollector:
+    """``rce_master_robot_relay{user, robot, relay}``: 1 for each robot whose link to the cloud goes through
+    robot ``relay`` now (docs/relays.md), the topology as Prometheus sees it."""
+
+    def __init__(self, state: MasterState):
+        self.state = state
+
+    def collect(self):
+        g = GaugeMetricFamily("rce_master_robot_relay", "1 for each robot whose link to the cloud goes through "
+                              "robot `relay`", labels=["user", "robot", "relay"])
+        for b in self.state.robots.values():
+            if b.relay:
+                g.add_metric([b.user, b.robot, b.relay], 1.0)
+        yield g
 
 
 class MasterMetrics:
@@ -94,6 +111,7 @@ class MasterMetrics:
               registry=r).set_function(lambda: sum(bool(b.relay) for b in state.robots.values()))
         Gauge("rce_master_robots_relaying", "Robots that carry the link of at least one other robot",
               registry=r).set_function(lambda: len({(b.user, b.relay) for b in state.robots.values() if b.relay}))
+        r.register(_RelayCollector(state))
         Gauge("rce_master_store_pending", "Changes of the state not yet written to the store (etcd)",
               registry=r).set_function(lambda: getattr(state.store, "pending", 0))
 

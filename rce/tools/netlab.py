@@ -8,7 +8,9 @@ on exit, also after a failure, and reaps when a killed run left them (docs/testi
         subprocess.Popen(lab.wrap("l1", ["rce-ros", ...]))
         lab.set_up(up, False, side="b")                # l1's end down: packets into it are lost silently
 
-Addresses are ``10.SUBNET.N.1`` (side a) and ``10.SUBNET.N.2`` (side b) for link number N.
+Addresses are ``10.S.N.1`` (side a) and ``10.S.N.2`` (side b) for link number N, with S the first of
+:data:`SUBNETS` that no address of the root namespace uses (so that labs of runs at the same time do not
+clash).
 """
 from __future__ import annotations
 
@@ -17,7 +19,7 @@ import re
 import subprocess
 from dataclasses import dataclass
 
-SUBNET = 201          # the second octet of every address a NetLab gives
+SUBNETS = range(201, 250)   # second octets a NetLab may give its addresses
 
 
 @dataclass(frozen=True)
@@ -38,28 +40,42 @@ class NetLab:
         self.prefix = f"{prefix}{os.getpid()}"
         self.namespaces: list[str] = []
         self.links: list[Link] = []
+        self.subnet = SUBNETS[0]
 
     def __enter__(self) -> "NetLab":
         self._reap_stale()
+        used = subprocess.run(["ip", "-br", "addr"], capture_output=True, text=True).stdout
+        self.subnet = next((s for s in SUBNETS if f" 10.{s}." not in used), SUBNETS[-1])
         return self
 
     def __exit__(self, *exc) -> None:
         self.close()
 
     def close(self) -> None:
-        """Delete every namespace made (their veth ends go with them, and so do the pairs)."""
+        """Delete every link's root end and every namespace made (the kernel may tear a namespace's devices
+        down later, so the root ends are deleted here rather than left to it)."""
+        for link in self.links:
+            if link.a is None:
+                subprocess.run(["ip", "link", "del", link.a_dev], capture_output=True)
+        self.links.clear()
         for ns in self.namespaces:
             subprocess.run(["ip", "netns", "del", ns], capture_output=True)
         self.namespaces.clear()
 
     def _reap_stale(self) -> None:
-        """Delete namespaces of this prefix left by a run that was killed (its pid is gone)."""
+        """Delete namespaces of this prefix, and root ends of links, left by a run that was killed (its pid
+        is gone)."""
         base = re.escape(self.prefix.rstrip("0123456789"))
         r = subprocess.run(["ip", "netns", "list"], capture_output=True, text=True)
         for line in r.stdout.splitlines():
             m = re.match(rf"({base}(\d+)-\S+)", line)
             if m and not os.path.exists(f"/proc/{m.group(2)}"):
                 subprocess.run(["ip", "netns", "del", m.group(1)], capture_output=True)
+        r = subprocess.run(["ip", "-br", "link"], capture_output=True, text=True)
+        for line in r.stdout.splitlines():
+            m = re.match(r"(v(\d+)a\d+)@", line)
+            if m and not os.path.exists(f"/proc/{m.group(2)}"):
+                subprocess.run(["ip", "link", "del", m.group(1)], capture_output=True)
 
     @staticmethod
     def ip(*args: str) -> None:
@@ -80,14 +96,14 @@ class NetLab:
 
     def link(self, a: str | None, b: str, n: int) -> Link:
         """A veth pair between namespaces ``a`` (None: root) and ``b`` (short names, made already) with
-        addresses ``10.SUBNET.n.1/30`` and ``.2/30``, both ends up."""
-        a_dev, b_dev = f"v{os.getpid() % 100000}a{n}", f"v{os.getpid() % 100000}b{n}"
+        addresses ``10.S.n.1/30`` and ``.2/30`` (S: :attr:`subnet`), both ends up."""
+        a_dev, b_dev = f"v{os.getpid()}a{n}", f"v{os.getpid()}b{n}"
         fa, fb = self.full(a), self.full(b)
         self.ip("link", "add", a_dev, "type", "veth", "peer", "name", b_dev)
         self.ip("link", "set", b_dev, "netns", fb)
         if fa is not None:
             self.ip("link", "set", a_dev, "netns", fa)
-        link = Link(fa, fb, a_dev, b_dev, f"10.{SUBNET}.{n}.1", f"10.{SUBNET}.{n}.2")
+        link = Link(fa, fb, a_dev, b_dev, f"10.{self.subnet}.{n}.1", f"10.{self.subnet}.{n}.2")
         for ns, dev, addr in ((fa, a_dev, link.a_ip), (fb, b_dev, link.b_ip)):
             self.ip(*self._in(ns), "addr", "add", f"{addr}/30", "dev", dev)
             self.ip(*self._in(ns), "link", "set", dev, "up")

@@ -142,11 +142,12 @@ async def test_follower_reaches_the_cloud_through_a_relay(topo, cloud, tmp_path)
         assert robot_row(cloud, "L1")["relay"] == ""
         metrics = await asyncio.to_thread(_get, cloud.master_url + "metrics")
         assert "rce_master_robots_relayed 1.0" in metrics and "rce_master_robots_relaying 1.0" in metrics
+        assert 'rce_master_robot_relay{relay="L1",robot="F",user="testUser"} 1.0' in metrics
 
         # L1 carries F already (--relay-max 1) and never tunnels outside the cloud
         statuses = await tunnel_statuses(topo, [f"{topo.cloud_ip}:{cloud.robot_ready[0]['ws_port']}",
                                                 f"{topo.up1.b_ip}:22",
-                                                "10.201.4.1:9100"])
+                                                f"{topo.f_l2.a_ip}:{RELAY_PORT}"])
         assert [s[0] for s in statuses] == [503, 403, 403], statuses
         assert "full" in statuses[0][1] and "only relays to the cloud" in statuses[1][1]
     finally:
@@ -170,7 +171,7 @@ class Stream:
         self.new = asyncio.Event()
 
     async def start(self) -> None:
-        await self.node.subscriber("/resp", "std_msgs/String", self._on)
+        await self.node.subscriber("/resp", "std_msgs/String", self._on, queue_size=10000)
         self.pub = await self.node.publisher("/req", "std_msgs/String")
         self.task = asyncio.ensure_future(self._run())
 
