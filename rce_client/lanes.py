@@ -4,8 +4,9 @@ lane's topic data both ways, while the session's own link becomes the control la
 
 - Marks: the bulk link DSCP CS1, the session's link DSCP EF with ``TCP_NODELAY`` and a small
   ``TCP_NOTSENT_LOWAT`` (:func:`rce.transport.lane_socket.mark`).
-- Out: each bulk interface keeps its newest message waiting (:class:`~rce.protocol.outbox.Outbox`, as
-  a ROS publisher's queue); a writer sends one whole message at a time, in frames of at most 16 KiB
+- Out: each bulk interface keeps its newest messages waiting (:class:`~rce.protocol.outbox.Outbox`, as
+  a ROS publisher's queue: :data:`BULK_QUEUE` in all, none older than :data:`BULK_MAX_LAG` s while a newer
+  one waits); a writer sends one whole message at a time, in frames of at most 16 KiB
   paced below ``rate`` bytes/s (:class:`~rce.protocol.pacer.Pacer`; None: not paced). Drops are counted.
 - In: the cloud's bulk DMs go to the same handlers as those on the session's link.
 - A bulk link that drops is dialled again with backoff while the session lives; meanwhile bulk data
@@ -36,7 +37,8 @@ from rce_client.dial import HandshakeRefused, dial, with_query
 
 log = get_logger("rce.client")
 
-BULK_QUEUE = 64            # bulk messages waiting for the bulk link; past it the busiest interface drops its oldest
+BULK_QUEUE = 8             # bulk messages waiting for the bulk link; past it the busiest interface drops its oldest
+BULK_MAX_LAG = 0.5         # s a bulk message may wait while a newer one of its interface waits behind it
 REDIAL_WAIT, REDIAL_WAIT_MAX = 0.05, 1.0      # s between dials of a dropped bulk link, doubling up to the max
 
 
@@ -75,7 +77,7 @@ class BulkLane:
     def __init__(self, conn: LaneOwner, rate: float | None = None):
         self.conn, self.rate = conn, rate
         self.pacer = Pacer(rate) if rate else None
-        self.queue: Outbox[tuple[str, str, Any]] = Outbox(BULK_QUEUE)     # (iTag, type, msg)
+        self.queue: Outbox[tuple[str, str, Any]] = Outbox(BULK_QUEUE, BULK_MAX_LAG)     # (iTag, type, msg)
         self.ws: Any = None
         self.sent = self.bytes = self.joins = 0
         self.refused: str | None = None          # why the cloud refused the join (then the connection has one link)

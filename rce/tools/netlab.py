@@ -124,9 +124,52 @@ class NetLab:
         ns, dev = (link.a, link.a_dev) if side == "a" else (link.b, link.b_dev)
         self.ip(*self._in(ns), "link", "set", dev, "up" if up else "down")
 
+    def shape(self, link: Link, side: str, rate: str = "10mbit", dscp: bool = False) -> None:
+        """Shape what ``link``'s end on ``side`` ("a" or "b") sends to ``rate`` (tc units, e.g. ``10mbit``)
+        with HTB (RFC-less, Linux's hierarchical token bucket), a 1000-packet FIFO under each class:
+
+        - ``dscp=False``: one class, one FIFO: DSCP marks are ignored;
+        - ``dscp=True``: a class per mark by u32 ``tos`` filters: 1:10 EF (0xB8) assured 30 % of ``rate``,
+          1:20 the rest (best effort) 50 %, 1:30 CS1 (0x20) 20 %, each borrowing up to ``rate``, EF first.
+
+        Replaces what shaping the end had. Classes: :meth:`class_bytes`."""
+        ns, dev = (link.a, link.a_dev) if side == "a" else (link.b, link.b_dev)
+        tc = [*(("ip", "netns", "exec", ns) if ns else ()), "tc"]
+        subprocess.run([*tc, "qdisc", "del", "dev", dev, "root"], capture_output=True)
+
+        def run(*args: str) -> None:
+            subprocess.run([*tc, *args], check=True, capture_output=True, text=True)
+        bits = _tc_bits(rate)
+        run("qdisc", "add", "dev", dev, "root", "handle", "1:", "htb", "default", "20")
+        run("class", "add", "dev", dev, "parent", "1:", "classid", "1:1", "htb", "rate", rate, "ceil", rate)
+        classes = ((10, 0.3, 0), (20, 0.5, 1), (30, 0.2, 2)) if dscp else ((20, 1.0, 0),)
+        for cid, share, prio in classes:
+            run("class", "add", "dev", dev, "parent", "1:1", "classid", f"1:{cid}", "htb", "rate",
+                f"{int(bits * share)}bit", "ceil", rate, "prio", str(prio))
+            run("qdisc", "add", "dev", dev, "parent", f"1:{cid}", "pfifo", "limit", "1000")
+        if dscp:
+            for tos, cid in (("0xb8", 10), ("0x20", 30)):
+                run("filter", "add", "dev", dev, "parent", "1:", "protocol", "ip", "prio", "1", "u32", "match",
+                    "ip", "tos", tos, "0xfc", "flowid", f"1:{cid}")
+
+    def class_bytes(self, link: Link, side: str) -> dict[str, int]:
+        """Bytes each HTB class of ``link``'s end on ``side`` sent (:meth:`shape`): ``{"1:10": n, ...}``."""
+        ns, dev = (link.a, link.a_dev) if side == "a" else (link.b, link.b_dev)
+        out = subprocess.run([*(("ip", "netns", "exec", ns) if ns else ()), "tc", "-s", "class", "show", "dev", dev],
+                             capture_output=True, text=True, check=True).stdout
+        return {m.group(1): int(m.group(2)) for m in re.finditer(r"class htb (\S+) .*?\n\s*Sent (\d+) bytes", out)}
+
     def wrap(self, ns: str, argv: list[str]) -> list[str]:
         """``argv`` run in namespace ``ns`` (short name)."""
         return ["ip", "netns", "exec", self.full(ns), *argv]
+
+
+def _tc_bits(rate: str) -> int:
+    """Bits/s of a tc rate (``10mbit``, ``500kbit``, ``1gbit``, ``8000bit``)."""
+    m = re.fullmatch(r"(\d+(?:\.\d+)?)([kmg]?)bit", rate.lower())
+    if m is None:
+        raise ValueError(f"rate {rate!r}: expected a tc rate in bits, e.g. 10mbit")
+    return int(float(m.group(1)) * {"": 1, "k": 1e3, "m": 1e6, "g": 1e9}[m.group(2)])
 
 
 @dataclass(frozen=True)
