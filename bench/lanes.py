@@ -21,7 +21,8 @@ its age) and a ``std_msgs/String`` cancel at 10 Hz through a converter, echoed b
   node in R (``bench/ros1/lanes_peer.py``), when ROS 1 is installed.
 
 It reports the cancel's p50/p99/max idle and under the camera and how many were lost, the camera's
-goodput (frames acked x frame size / s, and as a share of the link) and frame age; JSON and a PNG in
+goodput (frames acked x frame size / s, the phase's first second left out, and as a share of the link)
+and frame age; JSON and a PNG in
 ``bench/results/``. Usage::
 
     sudo .venv/bin/python bench/lanes.py [--idle 8] [--camera 15] [--setups dscp,fifo]
@@ -45,6 +46,7 @@ sys.path.insert(0, str(BENCH))
 LINK = 10_000_000 / 8           # bytes/s: the link's rate, both ways
 CANCEL_HZ = 10.0
 DRAIN = 5.0                     # s after a phase for late echoes before a cancel counts as lost
+WARMUP = 1.0                    # s at the start of a phase the camera's goodput leaves out (its first frames)
 SYS_PY = "/usr/bin/python3"
 
 
@@ -89,14 +91,18 @@ class Probe:
         a = json.loads(data)
         self.acks.append((a["seq"], a["age"], time.monotonic()))
 
-    def result(self, seconds: float, frame: int) -> dict:
+    def result(self, seconds: float, frame: int, end: float) -> dict:
+        """The phase's numbers; the camera's are steady state: frames acked in the phase's last
+        ``seconds - WARMUP`` s before ``end`` (monotonic s)."""
         ms = sorted(v * 1000 for v in self.rtt.values())
-        ages = sorted(a * 1000 for _, a, _ in self.acks)
+        seconds = max(seconds - WARMUP, 1e-9)
+        acks = [(seq, age) for seq, age, t in self.acks if end - seconds <= t <= end]
+        ages = sorted(age * 1000 for _, age in acks)
         return {"phase": self.phase, "cancels": len(self.sent), "lost": len(self.sent) - len(self.rtt),
                 "p50_ms": _pct(ms, 50), "p99_ms": _pct(ms, 99), "max_ms": ms[-1] if ms else None,
-                "frames_sent": self.frames, "frames_acked": len(self.acks),
-                "goodput_Bps": round(len(self.acks) * frame / seconds), "goodput_share": round(
-                    len(self.acks) * frame / seconds / LINK, 3),
+                "frames_sent": self.frames, "frames_acked": len(acks),
+                "goodput_Bps": round(len(acks) * frame / seconds), "goodput_share": round(
+                    len(acks) * frame / seconds / LINK, 3),
                 "frame_age_p50_ms": _pct(ages, 50), "frame_age_p99_ms": _pct(ages, 99)}
 
 
@@ -106,9 +112,10 @@ def _pct(xs: list[float], q: float) -> float | None:
     return round(xs[min(len(xs) - 1, int(round(q / 100 * (len(xs) - 1))))], 3)
 
 
-async def run_phase(probe: Probe, seconds: float, cancel, camera, frame: bytearray | None, fps: float) -> None:
+async def run_phase(probe: Probe, seconds: float, cancel, camera, frame: bytearray | None, fps: float) -> float:
     """The cancel at 10 Hz (``await cancel(text)``) and, with ``frame``, the camera at ``fps``
-    (``await camera(bytes)``) for ``seconds``; then :data:`DRAIN` s for late echoes."""
+    (``await camera(bytes)``) for ``seconds``; then :data:`DRAIN` s for late echoes. Returns when the
+    phase ended (monotonic s)."""
     end = time.monotonic() + seconds
 
     async def cancels() -> None:
@@ -129,9 +136,11 @@ async def run_phase(probe: Probe, seconds: float, cancel, camera, frame: bytearr
             await asyncio.sleep(max(0.0, t0 + n / fps - time.monotonic()))           # the camera's rate
 
     await asyncio.gather(cancels(), *([frames()] if frame is not None else []))
+    ended = time.monotonic()
     deadline = time.monotonic() + DRAIN
     while len(probe.rtt) < len(probe.sent) and time.monotonic() < deadline:
         await asyncio.sleep(0.05)            # waiting out late echoes, bounded
+    return ended
 
 
 async def robot_rce(a: argparse.Namespace) -> dict:
@@ -182,8 +191,9 @@ async def phases(a: argparse.Namespace, cancel, camera, first: Probe) -> dict:
     for name, with_camera, seconds in (("idle", False, a.idle), ("camera", True, a.camera)):
         probe = Probe(name)
         first.echo, first.ack = probe.echo, probe.ack          # the handlers feed the current phase
-        await run_phase(probe, seconds, cancel, camera, frame if with_camera else None, a.camera_rate / a.frame)
-        res[name] = probe.result(seconds, a.frame)
+        ended = await run_phase(probe, seconds, cancel, camera, frame if with_camera else None,
+                                a.camera_rate / a.frame)
+        res[name] = probe.result(seconds, a.frame, ended)
     return res
 
 

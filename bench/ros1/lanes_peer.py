@@ -18,6 +18,7 @@ import time
 
 CANCEL_HZ = 10.0
 DRAIN = 5.0                 # s after a phase for late echoes
+WARMUP = 1.0                # s at the start of a phase the camera's goodput leaves out
 LINK = 10_000_000 / 8       # bytes/s
 
 
@@ -57,7 +58,7 @@ def robot(a):
 
     def on_ack(m):
         with lock:
-            state["acks"].append(json.loads(m.data))
+            state["acks"].append((json.loads(m.data), time.monotonic()))
     rospy.Subscriber("/resp", String, on_echo, tcp_nodelay=True)
     rospy.Subscriber("/camera_ack", String, on_ack, tcp_nodelay=True)
     req = rospy.Publisher("/req", String, queue_size=100, tcp_nodelay=True)
@@ -99,18 +100,21 @@ def robot(a):
             time.sleep(max(0.0, t_send + 1 / CANCEL_HZ - time.monotonic()))
         if t:
             t.join()
+        ended = time.monotonic()
         drain = time.monotonic() + DRAIN
         while len(state["rtt"]) < len(state["sent"]) and time.monotonic() < drain:
             time.sleep(0.05)
         with lock:
             ms = sorted(v * 1000 for v in state["rtt"].values())
-            ages = sorted(x["age"] * 1000 for x in state["acks"])
-            acked = len(state["acks"])
+            window = max(seconds - WARMUP, 1e-9)       # steady state: the phase's first second left out
+            acks = [x for x, t_ack in state["acks"] if ended - window <= t_ack <= ended]
+            ages = sorted(x["age"] * 1000 for x in acks)
+            acked = len(acks)
             out[phase] = {"phase": phase, "cancels": len(state["sent"]), "lost": len(state["sent"]) - len(ms),
                           "p50_ms": pct(ms, 50), "p99_ms": pct(ms, 99), "max_ms": ms[-1] if ms else None,
                           "frames_sent": frames[0], "frames_acked": acked,
-                          "goodput_Bps": round(acked * a.frame / seconds),
-                          "goodput_share": round(acked * a.frame / seconds / LINK, 3),
+                          "goodput_Bps": round(acked * a.frame / window),
+                          "goodput_share": round(acked * a.frame / window / LINK, 3),
                           "frame_age_p50_ms": pct(ages, 50), "frame_age_p99_ms": pct(ages, 99)}
     print(json.dumps(out), flush=True)
     rospy.signal_shutdown("done")
