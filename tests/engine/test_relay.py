@@ -18,8 +18,6 @@ from __future__ import annotations
 import asyncio
 import hashlib
 import json
-import re
-import subprocess
 import sys
 
 import pytest
@@ -86,27 +84,6 @@ def robot_row(engine, robot: str) -> dict | None:
     return next((r for r in engine.admin("/api/robots") if r["robot"] == robot), None)
 
 
-def classify_cs1(topo: RelayTopology, ns: str, dev: str) -> None:
-    """On ``dev`` of namespace ``ns``: an HTB whose class 1:20 takes packets marked DSCP CS1 (TOS 0x20)
-    and 1:10 the others (u32 on the TOS byte), so their bytes are counted apart."""
-    tc = ["ip", "netns", "exec", topo.lab.full(ns), "tc"]
-    for args in (["qdisc", "add", "dev", dev, "root", "handle", "1:", "htb", "default", "10"],
-                 ["class", "add", "dev", dev, "parent", "1:", "classid", "1:10", "htb", "rate", "1gbit"],
-                 ["class", "add", "dev", dev, "parent", "1:", "classid", "1:20", "htb", "rate", "1gbit"],
-                 ["filter", "add", "dev", dev, "parent", "1:", "protocol", "ip", "u32", "match", "ip", "tos",
-                  "0x20", "0xfc", "flowid", "1:20"]):
-        subprocess.run([*tc, *args], check=True, capture_output=True)
-
-
-def class_bytes(topo: RelayTopology, ns: str, dev: str, classid: str) -> int:
-    """Bytes sent through HTB class ``classid`` of ``dev`` in namespace ``ns``."""
-    out = subprocess.run(["ip", "netns", "exec", topo.lab.full(ns), "tc", "-s", "class", "show", "dev", dev],
-                         check=True, capture_output=True, text=True).stdout     # (tc -j prints no classes here)
-    m = re.search(rf"class htb {classid} .*?\n\s*Sent (\d+) bytes", out)
-    assert m, out
-    return int(m.group(1))
-
-
 async def tunnel_statuses(topo: RelayTopology, targets: list[str]) -> list[list]:
     """From F's namespace, open a CONNECT tunnel through L1 to each ``host:port``: [status, reason] each."""
     script = ("import asyncio, json, sys\n"
@@ -147,7 +124,7 @@ async def test_follower_reaches_the_cloud_through_a_relay(topo, cloud, tmp_path)
     node = None
     try:
         assert "through relay L1" in await f.wait_line("rce-ros: connected to")
-        classify_cs1(topo, "l1", topo.up1.b_dev)
+        topo.lab.shape(topo.up1, "b", rate="1gbit", dscp=True)       # a class per DSCP mark on L1's uplink
         node = await rce.node.init_node("tester", bus=str(f.bus), argv=[])
         got: asyncio.Queue = asyncio.Queue()
         await node.subscriber("/resp", "std_msgs/String", lambda m: got.put_nowait(m.data))
@@ -161,8 +138,8 @@ async def test_follower_reaches_the_cloud_through_a_relay(topo, cloud, tmp_path)
                 except asyncio.TimeoutError:
                     continue
 
-        # what L1 relays leaves on its uplink marked CS1 (lower effort), behind L1's own traffic
-        assert class_bytes(topo, "l1", topo.up1.b_dev, "1:20") > 0
+        # what L1 relays leaves on its uplink marked CS1 (lower effort), in the class behind L1's own traffic
+        assert topo.lab.class_bytes(topo.up1, "b")["1:30"] > 0      # CS1's class
 
         row = robot_row(cloud, "F")
         assert row["relay"] == "L1" and row["relay_since"] >= row["since"]
