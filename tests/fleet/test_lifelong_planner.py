@@ -238,3 +238,53 @@ def test_lacam_solves_what_needs_a_detour_and_lns_never_makes_it_worse():
     assert_solution(g, ref["paths"], starts, goals)
     with pytest.raises(ValueError, match="share"):
         solve_lacam(g, np.array([0, 0]), np.array([1, 2]))
+
+
+def test_space_time_astar_waits_for_the_goal_and_never_enters_a_parked_one():
+    from rce_fleet.lifelong.spacetime import Reservations
+    g = grid([".....", "@@.@@"])                 # a corridor with one bay below its middle
+    cache = DistanceCache(g)
+    # agent 0 crosses the corridor through cell 2; agent 1 starts in the bay and must go to 2
+    starts, goals = np.array([0, 7]), np.array([4, 2])
+    hrow = np.array([cache.slot(int(x)) for x in goals])
+    res = Reservations(2, g.n_cells, 12, 4)
+    assert res.plan(g.nbr, cache.table, hrow, starts, goals, [0, 1], 10_000) == 2
+    p0, p1 = res.paths[0, : res.lengths[0]], res.paths[1, : res.lengths[1]]
+    assert p0.tolist() == [0, 1, 2, 3, 4]        # the first agent goes straight
+    assert res.lengths[1] - 1 >= 3               # the second waits until cell 2 is clear
+    T = max(len(p0), len(p1)) + 1
+    paths = np.array([[p[min(t, len(p) - 1)] for p in (p0, p1)] for t in range(T)])
+    assert_solution(g, paths, starts, goals)
+    # a goal parked on for good cannot be entered: agent 1 (start 4) cannot pass agent 0 parked on 2
+    res = Reservations(2, g.n_cells, 12, 4)
+    starts, goals = np.array([0, 4]), np.array([2, 0])
+    hrow = np.array([cache.slot(int(x)) for x in goals])
+    assert res.plan(g.nbr, cache.table, hrow, starts, goals, [0, 1], 10_000) == 1
+
+
+def test_lns_removes_detours_and_keeps_a_crowded_solution_valid():
+    from rce_fleet.lifelong.lacam import solve_lacam
+    from rce_fleet.lifelong.refine import refine_lns
+    g = grid(["......", "......", "......"])
+    # agent 0 detours through the bottom row for nothing; agent 1 stays on its goal
+    wander = [0, 6, 12, 13, 14, 15, 9, 3]
+    paths = np.array([[c, 16] for c in wander])
+    ref = refine_lns(g, paths, np.array([3, 16]), 5.0)
+    assert ref["sum_of_costs"] == 3 and ref["paths"][:, 0].tolist() == [0, 1, 2, 3]
+    assert_solution(g, ref["paths"], [0, 16], [3, 16])
+    # a crowded random instance: LaCAM's solution, then LNS; valid, all at goals, never worse
+    rng = np.random.default_rng(3)
+    free = rng.random((12, 12)) > 0.2
+    g = LifelongGrid(free)
+    cells = np.flatnonzero(g.flat)
+    big = [c for c in cells if DistanceCache(g).from_source(int(cells[0]))[c] < UNREACHABLE]
+    pick = rng.choice(big, 60, replace=False)
+    starts, goals = pick[:30], pick[30:]
+    res = solve_lacam(g, starts, goals, time_limit_s=30)
+    assert res["solved"]
+    ref = refine_lns(g, res["paths"], goals, 0.5, seed=1)
+    assert_solution(g, ref["paths"], starts.tolist(), goals.tolist())
+    arrival = [int(np.flatnonzero(ref["paths"][:, a] != goals[a]).max(initial=-1)) + 1 for a in range(30)]
+    assert ref["sum_of_costs"] == sum(arrival) <= res["sum_of_costs"]
+    with pytest.raises(ValueError, match="last row"):
+        refine_lns(g, res["paths"][:1], goals, 0.1)
