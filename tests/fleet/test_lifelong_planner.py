@@ -11,7 +11,7 @@ import pytest
 from rce_fleet.lifelong import (MAPF, MAPF_T, BatchScheduler, DistanceCache, GreedyScheduler, LifelongGrid,
                                 PIBTPlanner, ProblemError, Simulator, TaskError, TaskPool, TaskState, check_actions,
                                 load_problem, solve_one_shot)
-from rce_fleet.lifelong.kernels import UNREACHABLE, heading_cost
+from rce_fleet.lifelong.kernels import UNREACHABLE, heading_cost, warm_up
 
 DATA = Path(__file__).resolve().parents[2] / ".." / "shared" / "data"
 RANDOM = DATA / "lorr" / "random.domain" / "random_32_32_20_100.json"
@@ -230,6 +230,7 @@ def test_lacam_solves_what_needs_a_detour_and_lns_never_makes_it_worse():
     from rce_fleet.lifelong.refine import refine_lns
     g = grid(["......", "@@.@@@", "@@.@@@"])  # two robots swap ends; the only passing place is the dead end
     starts, goals = [0, 5, 1], [5, 0, 14]
+    warm_up()                                  # compile before the solver's clock starts
     res = solve_lacam(g, np.array(starts), np.array(goals), time_limit_s=10)
     assert res["solved"]
     assert_solution(g, res["paths"], starts, goals)
@@ -241,13 +242,13 @@ def test_lacam_solves_what_needs_a_detour_and_lns_never_makes_it_worse():
 
 
 def test_space_time_astar_waits_for_the_goal_and_never_enters_a_parked_one():
-    from rce_fleet.lifelong.spacetime import Reservations
+    from rce_fleet.lifelong.spacetime import SpaceTimeTable
     g = grid([".....", "@@.@@"])                 # a corridor with one bay below its middle
     cache = DistanceCache(g)
     # agent 0 crosses the corridor through cell 2; agent 1 starts in the bay and must go to 2
     starts, goals = np.array([0, 7]), np.array([4, 2])
     hrow = np.array([cache.slot(int(x)) for x in goals])
-    res = Reservations(2, g.n_cells, 12, 4)
+    res = SpaceTimeTable(2, g.n_cells, 12, 4)
     assert res.plan(g.nbr, cache.table, hrow, starts, goals, [0, 1], 10_000) == 2
     p0, p1 = res.paths[0, : res.lengths[0]], res.paths[1, : res.lengths[1]]
     assert p0.tolist() == [0, 1, 2, 3, 4]        # the first agent goes straight
@@ -256,7 +257,7 @@ def test_space_time_astar_waits_for_the_goal_and_never_enters_a_parked_one():
     paths = np.array([[p[min(t, len(p) - 1)] for p in (p0, p1)] for t in range(T)])
     assert_solution(g, paths, starts, goals)
     # a goal parked on for good cannot be entered: agent 1 (start 4) cannot pass agent 0 parked on 2
-    res = Reservations(2, g.n_cells, 12, 4)
+    res = SpaceTimeTable(2, g.n_cells, 12, 4)
     starts, goals = np.array([0, 4]), np.array([2, 0])
     hrow = np.array([cache.slot(int(x)) for x in goals])
     assert res.plan(g.nbr, cache.table, hrow, starts, goals, [0, 1], 10_000) == 1
@@ -265,6 +266,7 @@ def test_space_time_astar_waits_for_the_goal_and_never_enters_a_parked_one():
 def test_lns_removes_detours_and_keeps_a_crowded_solution_valid():
     from rce_fleet.lifelong.lacam import solve_lacam
     from rce_fleet.lifelong.refine import refine_lns
+    warm_up()
     g = grid(["......", "......", "......"])
     # agent 0 detours through the bottom row for nothing; agent 1 stays on its goal
     wander = [0, 6, 12, 13, 14, 15, 9, 3]

@@ -23,7 +23,7 @@ import numpy as np
 
 from .distances import DistanceCache
 from .grid import LifelongGrid
-from .spacetime import Reservations, place_agents, remove_agents
+from .spacetime import SpaceTimeTable, place_agents, remove_agents
 from .spacetime import warm_up as _warm_spacetime
 
 __all__ = ["refine_lns", "warm_up"]
@@ -59,7 +59,7 @@ def refine_lns(grid: LifelongGrid, paths: np.ndarray, goals: np.ndarray, time_li
     table = cache.table
     lb = table[hrows, paths[0]].astype(np.int64)
     arrival = _arrivals(paths, goals)
-    res = Reservations(n, ncell, H, int(lb.max()) + 1)
+    res = SpaceTimeTable(n, ncell, H, int(lb.max()) + 1)
     res.paths[:, : paths.shape[0]] = paths.T
     res.lengths[:] = arrival + 1
     everyone = np.arange(n, dtype=np.int64)

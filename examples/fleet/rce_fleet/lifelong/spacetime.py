@@ -23,7 +23,7 @@ from __future__ import annotations
 import numpy as np
 from numba import njit
 
-__all__ = ["Reservations", "plan_agents", "warm_up"]
+__all__ = ["SpaceTimeTable", "plan_agents", "warm_up"]
 
 
 @njit(cache=True)
@@ -175,7 +175,7 @@ def place_agents(occ, paths, lengths, goals, agents):
         _place(occ, a, paths[a], lengths[a], goals[a])
 
 
-class Reservations:
+class SpaceTimeTable:
     """The scratch of :func:`plan_agents` for ``n`` agents on ``n_cells`` cells up to step
     ``horizon``: ``occ`` (H, cells) int32, ``paths`` (n, H) int64, ``lengths`` (n,) and the
     search arrays (about 16 bytes per (step, cell) plus 8 per (agent, step)); ``max_h`` the
@@ -206,7 +206,7 @@ def warm_up() -> None:
     from .grid import LifelongGrid
     g = LifelongGrid(np.ones((2, 2), dtype=bool))
     table = np.array([[2, 1, 1, 0], [0, 1, 1, 2]], dtype=np.uint16)
-    r = Reservations(2, 4, 6, 2)
+    r = SpaceTimeTable(2, 4, 6, 2)
     starts = np.array([0, 3], dtype=np.int64)
     goals = np.array([3, 0], dtype=np.int64)
     r.plan(g.nbr, table, np.array([0, 1], dtype=np.int64), starts, goals, [0, 1], 100)
