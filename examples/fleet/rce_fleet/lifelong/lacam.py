@@ -103,7 +103,10 @@ def solve_lacam(grid: LifelongGrid, starts: np.ndarray, goals: np.ndarray, time_
         pibt_step(nbr, node.config, head, table, slot, goals, node.order, False, 0.0, rng.random((n, 5)), nxt, True,
                   no_claim, fixed, park_w)
         # constraints PIBT could not honour show up as vertex or swap conflicts
-        if np.unique(nxt).shape[0] != n:
+        owner[nxt] = ids                       # two agents on one cell: one of them is overwritten
+        vertex = (owner[nxt] != ids).any()
+        owner[nxt] = -1
+        if vertex:
             continue
         owner[node.config] = ids
         b = owner[nxt]
