@@ -364,8 +364,8 @@ class RobotBridge:
         conn.on_disconnected(lambda reason: self.err(f"rce-ros: link to the cloud lost ({reason}); resuming the "
                                                      f"session (the local bus stays up)"))
         conn.on_resumed(lambda st: self.out(f"rce-ros: session resumed ({st.get('dropped', 0)} message(s) from "
-                                            f"the cloud lost)"))
-        via = f" through relay {self.routes.relay}" if self.routes and self.routes.relay else ""
+                                            f"the cloud lost){self._via()}"))
+        via = self._via()
         self.out(f"rce-ros: connected to {conn.ws_url}{via}")
         if self.relay_port is not None:
             self.relay = await RobotRelay.for_connection(conn, self.relay_port, max_followers=self.relay_max,
@@ -396,6 +396,13 @@ class RobotBridge:
         await self._until_stop(conn.wait_interfaces_up(itags, self.timeout))
         self.ready.set()
         self.out(f"rce-ros: ready ({len(itags)} interface(s) up; Ctrl-C to stop)")
+
+    def _via(self) -> str:
+        """`` through relay NAME`` while a follower's link goes through a relay, `` on its own path`` while
+        it does not, "" for a robot without relays."""
+        if self.routes is None:
+            return ""
+        return f" through relay {self.routes.relay}" if self.routes.relay else " on its own path"
 
     # -- bridges -----------------------------------------------------------------------------
     def _bridge(self) -> None:
