@@ -20,7 +20,9 @@ Each call of :meth:`Dispatcher.update` (the global planner's tick, ~5 Hz) at fle
 5. idle robots drive to the nearest free parking place (``park_idle``, or once they have
    done a task), out of the aisles and off the stations;
 6. a goal cell another robot heads to is not sent yet (the planner refuses two robots one
-   goal): the robot keeps its goal (it waits where it is) until that one has a new goal;
+   goal): the robot waits on the free cell nearest to it (within ``WAIT_RADIUS`` steps; no
+   place, no other robot's goal or cell), not where it stands (often the station it just
+   served, which the next robot needs), until that one has a new goal;
    and a task whose first errand another robot heads to or stands on is not offered yet,
    so robots queue for a station instead of blocking each other on it.
 
@@ -31,6 +33,7 @@ the queue.
 from __future__ import annotations
 
 import time
+from collections.abc import Iterable
 from dataclasses import dataclass
 
 import numpy as np
@@ -45,6 +48,7 @@ BUSY = 2 ** 62              # allocator's task id for a robot busy with no task 
 RESERVE = 0.05              # share of the capacity a task must leave besides the way to a charger
 SCHEDULE_BUDGET_S = 0.02    # wall s the allocator may spend per call on new distance maps
 UNREACHABLE = 65535
+WAIT_RADIUS = 3            # steps from a taken station within which a robot waits for it
 START_HORIZON_STEPS = 20    # tasks whose earliest start is further ahead than this are not offered yet
 
 IDLE, PARKING, TASK, TO_CHARGER, CHARGING, OPERATOR, UNKNOWN = (
@@ -87,12 +91,15 @@ class Dispatcher:
     parking."""
 
     def __init__(self, book: TaskBook, grid: LifelongGrid, *, chargers: list[int] = (), parking: list[int] = (),
-                 battery: BatteryParams | None = None, cell_m: float = 1.0, park_idle: bool = False):
+                 battery: BatteryParams | None = None, cell_m: float = 1.0, park_idle: bool = False,
+                 places: Iterable[int] = ()):
         self.book, self.grid = book, grid
         self.chargers, self.parking = list(chargers), list(parking)
         self.battery, self.cell_m, self.park_idle = battery, float(cell_m), park_idle
         self.cache = DistanceCache(grid, max_bytes=64 * 2 ** 20)
         self.sched = GreedyScheduler(self.cache)
+        self.places = set(places)
+        self._near: dict[int, list[int]] = {}
         self.robots: dict[str, _Work] = {}
         self.names: list[str] = []
         self.last_now: float | None = None
@@ -319,7 +326,11 @@ class Dispatcher:
             else:
                 want = None
             if want is not None and want != w.sent and any(n != name and g == want for n, g in held.items()):
-                continue                    # another robot heads there: keep the old goal until it is free
+                # another robot heads there: wait beside it (off the other places) until it is free
+                spot = self._waiting_spot(want, v.cell, name, held, view)
+                if spot is None or spot == w.sent:
+                    continue
+                want = spot
             if want != w.sent:
                 if want is None and w.sent is None:
                     continue
@@ -330,6 +341,29 @@ class Dispatcher:
                 else:
                     held[name] = want
         return out
+
+    def _waiting_spot(self, cell: int, here: int, me: str, held: dict[str, int],
+                      view: dict[str, RobotView]) -> int | None:
+        """The free cell nearest to ``cell`` (within ``WAIT_RADIUS`` steps) that is no place, no
+        other robot's goal and where no other robot stands; ``here`` (where ``me`` stands) wins
+        ties. None when there is none."""
+        taken = {g for n, g in held.items() if n != me} | self.places
+        taken |= {v.cell for n, v in view.items() if n != me and v.cell is not None}
+        row = self.cache.table[self.cache.slot(cell)]
+        best, bd = None, (WAIT_RADIUS + 1, 1)
+        for c in self.near(cell):
+            d = (int(row[c]), c != here)
+            if c not in taken and d < bd:
+                best, bd = c, d
+        return best
+
+    def near(self, cell: int) -> list[int]:
+        """Cells within ``WAIT_RADIUS`` steps of ``cell`` (itself excluded), cached."""
+        got = self._near.get(cell)
+        if got is None:
+            row = self.cache.table[self.cache.slot(cell)]
+            got = self._near[cell] = [int(c) for c in np.flatnonzero((row > 0) & (row <= WAIT_RADIUS))]
+        return got
 
     # -- views ------------------------------------------------------------------------------------------
     def robot_messages(self, now: float) -> list[dict]:

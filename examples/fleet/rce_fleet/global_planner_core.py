@@ -119,7 +119,7 @@ class GlobalPlannerCore:
         self.book = TaskBook(self.places, self._usable, step_s=geometry.cell_size_m / ROBOT_SPEED_MS)
         self.dispatcher = Dispatcher(self.book, LifelongGrid(free), chargers=self.places.cells("charger"),
                                      parking=self.places.cells("parking"), battery=battery,
-                                     cell_m=geometry.cell_size_m, park_idle=park_idle)
+                                     cell_m=geometry.cell_size_m, park_idle=park_idle, places=self.places.by_cell)
         self._tasks_seq = 0
         self._last_tasks = -math.inf
         for r in robots:

@@ -23,7 +23,7 @@ from __future__ import annotations
 import math
 import re
 from collections import deque
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from typing import Callable
 
 from .lifelong import Task, TaskPool, TaskState
@@ -49,9 +49,10 @@ class Refused(Exception):
 
 @dataclass
 class TaskRecord:
-    """One task of the book: the pool's :class:`~rce_fleet.lifelong.Task` plus what operators
-    see (errands as given, source, fleet-time stamps of each state, robot, reason). Times are
-    fleet seconds, 0 when not (yet) reached; ``earliest_start``/``deadline`` 0: none."""
+    """One task of the book: what operators gave (string id, errands as given, source, time
+    window in fleet s, 0: none) beside the pool's :class:`~rce_fleet.lifelong.Task`, which
+    owns its state: ``state``, ``robot``, ``reason``, ``history`` and the fleet time (s) it
+    was ``assigned``, became ``active`` and ``finished`` (0 when not (yet) reached)."""
 
     id: str
     task: Task
@@ -60,21 +61,43 @@ class TaskRecord:
     created: float
     earliest_start: float = 0.0
     deadline: float = 0.0
-    assigned: float = 0.0
-    active: float = 0.0
-    finished: float = 0.0
-    robot: str = ""
-    reason: str = ""
-    state: TaskState = TaskState.QUEUED
-    history: list = field(default_factory=list)     # [(fleet time, state, robot)]
 
     @property
     def cells(self) -> tuple[int, ...]:
         return self.task.errands
 
     @property
+    def state(self) -> TaskState:
+        return self.task.state
+
+    @property
     def open(self) -> bool:
-        return self.state in (TaskState.QUEUED, TaskState.ASSIGNED, TaskState.ACTIVE)
+        return self.task.open
+
+    @property
+    def robot(self) -> str:
+        return self.task.robot
+
+    @property
+    def reason(self) -> str:
+        return self.task.reason
+
+    @property
+    def history(self) -> list[tuple[float, str, str]]:
+        """[(fleet time, state, robot)] per transition."""
+        return [(at, st, robot) for at, st, _, robot in self.task.history]
+
+    @property
+    def assigned(self) -> float:
+        return self.task.times.get(TaskState.ASSIGNED.value, 0.0)
+
+    @property
+    def active(self) -> float:
+        return self.task.times.get(TaskState.ACTIVE.value, 0.0) if self.task.opened else 0.0
+
+    @property
+    def finished(self) -> float:
+        return 0.0 if self.open else self.task.times[self.state.value]
 
     def message(self) -> dict:
         """The ``fleet/TaskStatus`` (JSON form)."""
@@ -97,7 +120,7 @@ class TaskBook:
         if not step_s > 0:
             raise ValueError("step_s must be > 0")
         self.places, self.usable, self.step_s = places, usable, float(step_s)
-        self.pool = TaskPool()
+        self.pool = TaskPool(keep_closed=KEEP_CLOSED)
         self.records: dict[str, TaskRecord] = {}          # open ones and the newest closed ones
         self.by_pool: dict[int, TaskRecord] = {}          # pool id -> record, open tasks
         self.closed: deque[str] = deque()                 # ids of closed records kept, oldest first
@@ -181,63 +204,44 @@ class TaskBook:
                     break
         k = self.step_s
         task = self.pool.add(cells, priority=prio, earliest_start=math.ceil((now + es) / k) if es else 0,
-                             deadline=math.floor((now + dl) / k) if dl else None, release=int(now / k))
+                             deadline=math.floor((now + dl) / k) if dl else None, release=int(now / k), at=now)
         rec = TaskRecord(tid, task, errands, str(req.get("source") or ""), now,
                          earliest_start=now + es if es else 0.0, deadline=now + dl if dl else 0.0)
-        rec.history.append((now, TaskState.QUEUED.value, ""))
         self.records[tid] = self.by_pool[task.id] = rec
         self._ids.add(tid)
         return rec
 
-    # -- transitions (the dispatcher calls these) ------------------------------------------------
+    # -- transitions (the dispatcher calls these; the pool keeps the states) ------------------------
     def assign(self, rec: TaskRecord, robot: str, agent: int, now: float) -> None:
         """Give ``rec`` to ``robot`` (pool agent index ``agent``)."""
-        self.pool.assign(rec.task.id, agent)
-        if rec.robot != robot or rec.state is TaskState.QUEUED:
-            rec.robot, rec.assigned = robot, now
-            rec.state = rec.task.state
-            rec.history.append((now, rec.state.value, robot))
-            self.changed = True
+        before = (rec.task.agent, rec.state)
+        self.pool.assign(rec.task.id, agent, robot, at=now)
+        self.changed |= (rec.task.agent, rec.state) != before
 
     def unassign(self, rec: TaskRecord, now: float) -> None:
         """Put an unopened task back in the queue."""
-        self.pool.unassign(rec.task.id)
-        rec.robot, rec.state = "", TaskState.QUEUED
-        rec.history.append((now, "queued", ""))
+        self.pool.unassign(rec.task.id, at=now)
         self.changed = True
 
     def reach(self, rec: TaskRecord, now: float) -> bool:
         """Its robot stands on the next errand: advance; True when the task is done."""
-        first = not rec.task.opened
-        done = self.pool.reach(rec.task.id, int(now / self.step_s))
-        if first:
-            rec.active = now
-        rec.state = rec.task.state
+        done = self.pool.reach(rec.task.id, int(now / self.step_s), at=now)
         if done:
-            self._closed(rec, TaskState.DONE, "", now)
+            self._closed(rec)
             self.durations.append(now - rec.created)
-        elif first:
-            rec.history.append((now, "active", rec.robot))
         self.changed = True
         return done
 
     def close(self, rec: TaskRecord, state: TaskState, reason: str, now: float) -> None:
         """End an open task as ``failed`` or ``cancelled`` with ``reason`` (opened or not)."""
-        t = rec.task
-        if state is TaskState.CANCELLED and not t.opened:
-            self.pool.cancel(t.id)
+        if state is TaskState.CANCELLED:
+            self.pool.cancel(rec.task.id, reason, at=now, active=True)
         else:
-            # TaskPool ends an opened task only as done (and fails only by deadline step):
-            # the operator's cancel and a blocked errand end it here, through its public maps
-            t.state = state
-            self.pool.open.pop(t.id, None)
-            self.pool.closed[state] += 1
-        self._closed(rec, state, reason, now)
+            self.pool.fail(rec.task.id, reason, at=now)
+        self._closed(rec)
 
-    def _closed(self, rec: TaskRecord, state: TaskState, reason: str, now: float) -> None:
-        rec.state, rec.reason, rec.finished = state, reason, now
-        rec.history.append((now, state.value, rec.robot))
-        self.counts[state] += 1
+    def _closed(self, rec: TaskRecord) -> None:
+        self.counts[rec.state] += 1
         self.by_pool.pop(rec.task.id, None)
         self.closed.append(rec.id)
         while len(self.closed) > KEEP_CLOSED:

@@ -1,0 +1,132 @@
+"""The live fleet's control loop without physics and without the engine, sans-I/O: the global
+planner core, one move_client core per robot and unicycle robots that turn in place and drive
+at the robots' speed, in simulated time.
+
+:class:`KinematicFleet` routes the cores' messages to each other by topic, as the engine
+does, with no delay and no loss. Each robot drives to the waypoint its move_client sent: it
+turns in place at ``turn_rads`` until it faces the waypoint (within ``FACE_RAD``), then
+drives at ``speed_ms``, slowing near the waypoint as the simulated robots' local planner
+does (:class:`rce_fleet.sim.local_nav.NavParams`: ``slowdown_gain`` x distance, at least
+``min_approach_speed``). Poses go to both cores every ``dt`` (the robots' ``amcl_pose``
+rate) and the planner ticks every ``tick_s`` (its 5 Hz over the run's real-time factor).
+
+:func:`run_stream` runs a generated task stream (:class:`rce_fleet.operations.TaskStream`)
+through it: what the live system's planning and dispatch deliver when the robots move as
+planned, so a live run's losses split into control (this, against the lifelong planner's
+offline prediction) and physics and transport (the live run against this).
+"""
+from __future__ import annotations
+
+import math
+import time
+from typing import Any
+
+from .geometry import GridGeometry
+from .global_planner_core import GlobalPlannerCore
+from .move_client_core import MoveClientCore, plan_id_of
+from .node_common import Out
+from .sim.local_nav import NavParams
+
+__all__ = ["KinematicFleet", "run_stream"]
+
+FACE_RAD = 0.3             # rad: a robot drives once it faces its waypoint this closely (turns in place before)
+NAV = NavParams()
+
+
+class KinematicFleet:
+    """See the module docstring. ``starts``: robot -> cell; ``speed_ms`` m/s; ``turn_rads``
+    rad/s; ``dt``: s per step (pose rate); ``tick_s``: s between planner ticks; other keyword
+    arguments go to :class:`~rce_fleet.global_planner_core.GlobalPlannerCore`."""
+
+    def __init__(self, geo: GridGeometry, starts: dict[str, int], *, speed_ms: float = NAV.max_linear,
+                 turn_rads: float = NAV.max_angular, dt: float = 0.2, tick_s: float = 0.5, **core_kw: Any):
+        self.geo, self.speed, self.turn, self.dt, self.tick_s = geo, float(speed_ms), float(turn_rads), dt, tick_s
+        self.t = 0.0
+        self.core = GlobalPlannerCore(geo, list(starts), clock=lambda: self.t, **core_kw)
+        self.mc = {r: MoveClientCore(r, geo) for r in starts}
+        self.pose = {r: (*geo.center(c), 0.0) for r, c in starts.items()}
+        self.waypoint: dict[str, tuple[float, float] | None] = {r: None for r in starts}
+        self.distance = {r: 0.0 for r in starts}
+        self.visited = {r: [c] for r, c in starts.items()}
+        self.cancels = {r: 0 for r in starts}
+        self._next_tick = 0.0
+        for r in starts:
+            self.route(self.mc[r].on_pose(*self.pose[r], stamp=0.0))
+            self.route(self.core.on_pose(r, *self.pose[r], stamp=0.0))
+
+    def route(self, outs: list[Out]) -> None:
+        """Deliver the cores' messages (by topic) to their receivers."""
+        for o in outs:
+            robot, _, leaf = o.topic.strip("/").partition("/")
+            if leaf == "goalNodesList":
+                self.route(self.mc[robot].on_path(plan_id_of(o.msg["layout"]["dim"][0]["label"]), o.msg["data"]))
+            elif leaf == "clearance":
+                self.route(self.mc[robot].on_clearance(o.msg["plan"], o.msg["index"]))
+            elif leaf == "cancelGoal":
+                self.cancels[robot] += 1
+                self.route(self.mc[robot].on_cancel(o.msg["data"]))
+            elif leaf == "move_base_simple/goal":
+                p = o.msg["pose"]["position"]
+                self.waypoint[robot] = (p["x"], p["y"])
+            elif leaf == "move_base/cancel":
+                self.waypoint[robot] = None
+
+    def _drive(self, r: str) -> None:
+        g = self.waypoint[r]
+        if g is None:
+            return
+        x, y, yaw = self.pose[r]
+        dx, dy = g[0] - x, g[1] - y
+        dist = math.hypot(dx, dy)
+        if dist < 1e-3:
+            self.waypoint[r] = None
+            return
+        err = math.remainder(math.atan2(dy, dx) - yaw, math.tau)
+        dt = self.dt
+        if abs(err) > FACE_RAD:
+            turn = min(abs(err), self.turn * dt)
+            self.pose[r] = (x, y, yaw + math.copysign(turn, err))
+            return
+        v = min(self.speed, max(NAV.min_approach_speed, NAV.slowdown_gain * dist))
+        s = min(dist, v * dt)
+        self.pose[r] = (x + dx / dist * s, y + dy / dist * s, math.atan2(dy, dx))
+        self.distance[r] += s
+        c = self.geo.cell_of(*self.pose[r][:2])
+        if c is not None and self.visited[r][-1] != c:
+            self.visited[r].append(c)
+
+    def step(self) -> None:
+        """One ``dt``: the robots move, report their poses and progress; the planner ticks when due."""
+        self.t += self.dt
+        for r in self.mc:
+            self._drive(r)
+            self.route(self.mc[r].on_pose(*self.pose[r], stamp=self.t))
+            self.route(self.core.on_pose(r, *self.pose[r], stamp=self.t))
+            self.core.on_progress(r, self.mc[r].progress())
+        if self.t >= self._next_tick:
+            self._next_tick = self.t + self.tick_s
+            self.route(self.core.tick())
+
+
+def run_stream(geo: GridGeometry, places, starts: dict[str, int], stream: list[tuple[float, list[str]]],
+               duration_s: float, **kw: Any) -> dict:
+    """Run ``stream`` ((s, errands) pairs) for ``duration_s`` simulated s on a
+    :class:`KinematicFleet` (keyword arguments go to it; idle robots park). Returns
+    ``tasks_done``, ``per_hour``, ``mean_s`` (creation to done), ``refused``, ``distance_m``
+    (all robots), ``plan_ms`` (mean, max per re-plan) and ``wall_s``."""
+    t0 = time.perf_counter()
+    f = KinematicFleet(geo, starts, places=places, park_idle=True, **kw)
+    nxt, refused = 0, 0
+    while f.t < duration_s:
+        while nxt < len(stream) and stream[nxt][0] <= f.t:
+            f.route(f.core.on_task({"request": f"g{nxt}", "errands": list(stream[nxt][1]), "source": "stream"}))
+            refused += not f.core.book.answers[-1]["ok"]
+            nxt += 1
+        f.step()
+    st = f.core.book.stats()
+    times = f.core.plan_times or [0.0]
+    return {"tasks_done": st["done"], "per_hour": round(st["done"] * 3600.0 / duration_s, 2),
+            "mean_s": round(st["mean_s"], 2), "refused": refused, "failed": st["failed"],
+            "distance_m": round(sum(f.distance.values()), 1),
+            "plan_ms": {"mean": round(1e3 * sum(times) / len(times), 2), "max": round(1e3 * max(times), 2)},
+            "wall_s": round(time.perf_counter() - t0, 2)}
