@@ -6,6 +6,7 @@ from __future__ import annotations
 import pytest
 
 from rce_fleet.battery import Battery, BatteryParams
+from rce_fleet.kinematic import run_stream
 from rce_fleet.lifelong import TaskState
 from rce_fleet.places import Place, PlaceError, Places, generate_places
 from rce_fleet.tasks_api import TaskBook
@@ -251,3 +252,30 @@ def test_a_robot_never_takes_a_task_it_cannot_finish_and_idle_robots_park(lab): 
     f.run_until(lambda: f.task("long").state is TaskState.DONE, steps=2000)
     assert f.batteries["Robot1"].min_wh > 0
     f.run_until(lambda: f.core.fp.positions["Robot1"] in (56, 7) and w.activity == "parking", steps=200)
+
+
+def test_a_robot_whose_next_station_is_taken_waits_beside_it_not_on_the_one_it_served(lab):  # noqa: F811
+    f = TaskFleet(lab, {"Robot1": 56, "Robot2": 17}, places=lab_places(lab))
+    f.route(f.core.on_goal("Robot1", 23))      # an operator sends Robot1 to the drop-off station
+    f.add("pick1", "drop1", id="a")
+    f.run_until(lambda: f.task("a").state is TaskState.ACTIVE)
+    assert f.task("a").robot == "Robot2"
+    f.step()
+    f.step()
+    # drop1 (23) is Robot1's goal: Robot2 leaves pick1 (16) for a free cell near 23
+    spot = f.core.fp.goals["Robot2"]
+    dist = f.core.dispatcher.cache.table[f.core.dispatcher.cache.slot(23)]
+    assert spot not in (16, 23) and spot not in f.core.places.by_cell and 0 < dist[spot] <= 3, spot
+    f.run_until(lambda: f.cells()["Robot2"] == spot and f.cells()["Robot1"] == 23)
+    assert f.task("a").state is TaskState.ACTIVE
+    f.route(f.core.on_goal("Robot1", 0))       # the station frees: Robot2 drops off
+    f.run_until(lambda: f.task("a").state is TaskState.DONE)
+    assert f.task("a").robot == "Robot2" and 23 in f.visited["Robot2"]
+
+
+def test_kinematic_fleet_runs_a_task_stream_through_the_planner_and_move_clients(lab):  # noqa: F811
+    stream = [(1.0, ["pick1", "drop1"]), (2.0, ["drop1", "pick1"]), (3.0, [str(47), "pick1"])]
+    r = run_stream(lab, lab_places(lab), {"Robot1": 33, "Robot2": 38}, stream, 240.0)
+    assert r["tasks_done"] == 3 and r["failed"] == 0 and r["refused"] == 0, r
+    # the robots drove at most at their speed for the whole run
+    assert 0 < r["distance_m"] <= 2 * 0.22 * 240.0

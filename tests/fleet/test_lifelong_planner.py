@@ -80,6 +80,38 @@ def test_task_states_and_forbidden_transitions():
         pool.add([])
 
 
+def test_the_pool_owns_every_state_with_times_robot_and_reason():
+    pool = TaskPool(keep_closed=2)
+    a = pool.add([3, 4], at=10.0)
+    pool.assign(a.id, 0, "Robot1", at=11.0)
+    pool.unassign(a.id, at=12.0)               # back to the queue: no robot
+    assert a.state is TaskState.QUEUED and a.agent == -1 and a.robot == ""
+    pool.assign(a.id, 2, "Robot3", at=13.0)
+    assert not pool.reach(a.id, 14, at=14.5)
+    pool.fail(a.id, "errand cell 4 was blocked (operator)", at=15.0)
+    assert a.state is TaskState.FAILED and a.reason == "errand cell 4 was blocked (operator)" and a.robot == "Robot3"
+    assert a.times == {"queued": 12.0, "assigned": 13.0, "active": 14.5, "failed": 15.0}
+    assert [(h[1], h[3]) for h in a.history] == [("queued", ""), ("assigned", "Robot1"), ("queued", ""),
+                                                 ("assigned", "Robot3"), ("active", "Robot3"), ("failed", "Robot3")]
+    b = pool.add([5, 6], at=16.0)
+    pool.assign(b.id, 1, "Robot2", at=16.0)
+    pool.reach(b.id, 17, at=17.0)
+    with pytest.raises(TaskError, match="active"):
+        pool.cancel(b.id, "operator")          # LoRR's rule
+    pool.cancel(b.id, "cancelled by operator", at=18.0, active=True)
+    assert b.state is TaskState.CANCELLED and b.times["cancelled"] == 18.0 and b.reason == "cancelled by operator"
+    with pytest.raises(TaskError, match="not open"):
+        pool.fail(b.id, "again")
+    assert pool.closed == {TaskState.DONE: 0, TaskState.FAILED: 1, TaskState.CANCELLED: 1} and len(pool) == 0
+    assert pool.get(a.id) is a and pool.get(b.id) is b
+    c = pool.add([7], release=19)              # without at: its release step
+    pool.cancel(c.id)                          # without at: the newest time the pool was given
+    assert c.times == {"queued": 19.0, "cancelled": 19.0}
+    assert pool.get(c.id) is c and len(pool.ended) == 2   # keep_closed: the oldest is forgotten
+    with pytest.raises(TaskError, match=f"no task {a.id}"):
+        pool.get(a.id)
+
+
 # -- distances -----------------------------------------------------------------------------------
 def test_distance_maps_are_bfs_and_the_cache_is_bounded():
     g = grid(["....", ".@@.", "...."])

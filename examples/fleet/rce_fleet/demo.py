@@ -30,7 +30,8 @@ places come from ``--places FILE`` or are generated for the map and written to
 ``places.yaml`` in the work directory (:mod:`rce_fleet.places`). ``demo --lifelong`` runs the
 fleet on a generated task stream (``--task-rate R`` per simulated minute, pick-up then
 drop-off) for ``--duration S`` simulated seconds, with batteries (``--battery``) and idle
-robots parking, and writes the report's ``tasks`` section and per-robot utilisation, distance,
+robots parking (``--block``, ``--obstacle`` and faults timed from its start, as a mission's),
+and writes the report's ``tasks`` section and per-robot utilisation, distance,
 lowest battery level and charges (:mod:`rce_fleet.operations`); it exits 0 when the duration
 was reached and no robot ran flat.
 """
@@ -399,6 +400,15 @@ class Run:
             await self._watch(mission=False)
             return EXIT_OK, "stopped"
         # the mission
+        self._start_clock()
+        for r in self.robots:
+            await self.manager.set_goal(r, self.goals[r])
+        log.info("mission started", goals=self.goals, starts=self.starts, t_sim=round(self.t_mission, 2))
+        return await self._watch(mission=True)
+
+    def _start_clock(self) -> None:
+        """The mission (or lifelong run) starts now: blocks, obstacles and faults are timed from here."""
+        o = self.o
         self.t_mission = self.sim.time
         self.wall_mission = time.monotonic()
         for c, at in o.blocks:
@@ -406,15 +416,10 @@ class Run:
         for c, at in o.obstacles:
             self.sim.at(self.t_mission + at, lambda cell=c, at=at: self._do_obstacle(cell, at))
         self.faults.schedule(self.sim.at, self.t_mission)
-        for r in self.robots:
-            await self.manager.set_goal(r, self.goals[r])
-        log.info("mission started", goals=self.goals, starts=self.starts, t_sim=round(self.t_mission, 2))
-        return await self._watch(mission=True)
 
     async def _lifelong(self) -> tuple[int, str]:
         """The generated task stream for ``--duration`` sim s (module docstring)."""
-        self.t_mission = self.sim.time
-        self.wall_mission = time.monotonic()
+        self._start_clock()
         for at, errands in self.stream:
             self.sim.at(self.t_mission + at, lambda e=errands: self.tasks.spawn(self._add_task(e), name="task"))
         log.info("lifelong run started", tasks=len(self.stream), duration=self.o.duration, rate=self.o.task_rate)

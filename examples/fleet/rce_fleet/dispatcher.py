@@ -81,6 +81,7 @@ class _Work:
     charges: int = 0
     tasks_done: int = 0
     worked: bool = False           # it has had a task (then it parks when idle)
+    spot: int | None = None        # where it waits for a goal another robot holds
 
 
 class Dispatcher:
@@ -327,10 +328,13 @@ class Dispatcher:
                 want = None
             if want is not None and want != w.sent and any(n != name and g == want for n, g in held.items()):
                 # another robot heads there: wait beside it (off the other places) until it is free
-                spot = self._waiting_spot(want, v.cell, name, held, view)
+                spot = self._waiting_spot(want, v.cell, w, held, view)
+                w.spot = spot
                 if spot is None or spot == w.sent:
                     continue
                 want = spot
+            else:
+                w.spot = None
             if want != w.sent:
                 if want is None and w.sent is None:
                     continue
@@ -342,13 +346,16 @@ class Dispatcher:
                     held[name] = want
         return out
 
-    def _waiting_spot(self, cell: int, here: int, me: str, held: dict[str, int],
+    def _waiting_spot(self, cell: int, here: int, me: _Work, held: dict[str, int],
                       view: dict[str, RobotView]) -> int | None:
-        """The free cell nearest to ``cell`` (within ``WAIT_RADIUS`` steps) that is no place, no
-        other robot's goal and where no other robot stands; ``here`` (where ``me`` stands) wins
-        ties. None when there is none."""
-        taken = {g for n, g in held.items() if n != me} | self.places
-        taken |= {v.cell for n, v in view.items() if n != me and v.cell is not None}
+        """Where ``me`` waits for ``cell``: the spot it has while that stays free, else the free
+        cell nearest to ``cell`` (within ``WAIT_RADIUS`` steps) that is no place, no other
+        robot's goal and where no other robot stands; ``here`` (where ``me`` stands) wins ties.
+        None when there is none."""
+        taken = {g for n, g in held.items() if n != me.name} | self.places
+        taken |= {v.cell for n, v in view.items() if n != me.name and v.cell is not None}
+        if me.spot is not None and me.spot not in taken and me.spot in self.near(cell):
+            return me.spot
         row = self.cache.table[self.cache.slot(cell)]
         best, bd = None, (WAIT_RADIUS + 1, 1)
         for c in self.near(cell):

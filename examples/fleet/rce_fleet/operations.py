@@ -6,7 +6,8 @@ and the numbers a warehouse manager reads in its report.
   places; :meth:`TaskStream.times_and_errands` is the stream itself, so the offline
   prediction (``bench/fleet_live.py``) replays the very same tasks.
 - :func:`tasks_section`: the report's ``tasks`` section from the fleet's newest
-  ``fleet/TaskList``: done, failed, cancelled, per_hour, mean_s, p95_s, deadline_missed.
+  ``fleet/TaskList``: done, failed, cancelled, per_hour, mean_s, p95_s, deadline_missed, and
+  ``failed_reasons`` (reason -> count, over the failed tasks the list still shows).
 - :func:`robot_section`: per robot, ``utilisation`` (share of its time on a task),
   ``distance_m``, ``battery_min_pct`` and ``charges`` (simulator ground truth where there is one).
 - :func:`goal_motion_delays`: sim s from each task's assignment to its robot's first motion
@@ -58,11 +59,15 @@ def tasks_section(task_list: dict | None, duration_s: float, generated: int = 0)
     """The report's ``tasks`` section (module docstring) over ``duration_s`` simulated s."""
     tl = task_list or {}
     done = int(tl.get("done", 0))
+    reasons: dict[str, int] = {}
+    for t in tl.get("tasks", []):
+        if t.get("state") == "failed":
+            reasons[t.get("reason", "")] = reasons.get(t.get("reason", ""), 0) + 1
     return {"done": done, "failed": int(tl.get("failed", 0)), "cancelled": int(tl.get("cancelled", 0)),
             "per_hour": round(done * 3600.0 / duration_s, 2) if duration_s > 0 else 0.0,
             "mean_s": round(float(tl.get("mean_s", 0.0)), 2), "p95_s": round(float(tl.get("p95_s", 0.0)), 2),
             "deadline_missed": int(tl.get("deadline_missed", 0)), "queued": int(tl.get("queued", 0)),
-            "generated": generated}
+            "generated": generated, "failed_reasons": reasons}
 
 
 def robot_section(task_list: dict | None, sim) -> dict[str, dict]:
