@@ -47,6 +47,7 @@ class KinematicFleet:
         self.pose = {r: (*geo.center(c), 0.0) for r, c in starts.items()}
         self.waypoint: dict[str, tuple[float, float] | None] = {r: None for r in starts}
         self.distance = {r: 0.0 for r in starts}
+        self.drive_s = 0.0                    # robot-seconds spent turning or driving to a waypoint
         self.visited = {r: [c] for r, c in starts.items()}
         self.cancels = {r: 0 for r in starts}
         self._next_tick = 0.0
@@ -83,6 +84,7 @@ class KinematicFleet:
             return
         err = math.remainder(math.atan2(dy, dx) - yaw, math.tau)
         dt = self.dt
+        self.drive_s += dt
         if abs(err) > FACE_RAD:
             turn = min(abs(err), self.turn * dt)
             self.pose[r] = (x, y, yaw + math.copysign(turn, err))
@@ -94,6 +96,12 @@ class KinematicFleet:
         c = self.geo.cell_of(*self.pose[r][:2])
         if c is not None and self.visited[r][-1] != c:
             self.visited[r].append(c)
+
+    def s_per_cell(self) -> float:
+        """Seconds the robots took per cell while they drove (turns and slowing included; inf
+        before a robot changed cells)."""
+        cells = sum(len(v) - 1 for v in self.visited.values())
+        return self.drive_s / cells if cells else math.inf
 
     def step(self) -> None:
         """One ``dt``: the robots move, report their poses and progress; the planner ticks when due."""
@@ -113,7 +121,8 @@ def run_stream(geo: GridGeometry, places, starts: dict[str, int], stream: list[t
     """Run ``stream`` ((s, errands) pairs) for ``duration_s`` simulated s on a
     :class:`KinematicFleet` (keyword arguments go to it; idle robots park). Returns
     ``tasks_done``, ``per_hour``, ``mean_s`` (creation to done), ``refused``, ``distance_m``
-    (all robots), ``plan_ms`` (mean, max per re-plan) and ``wall_s``."""
+    (all robots), ``s_per_cell`` (:meth:`KinematicFleet.s_per_cell`), ``plan_ms`` (mean, max
+    per re-plan) and ``wall_s``."""
     t0 = time.perf_counter()
     f = KinematicFleet(geo, starts, places=places, park_idle=True, **kw)
     nxt, refused = 0, 0
@@ -127,6 +136,6 @@ def run_stream(geo: GridGeometry, places, starts: dict[str, int], stream: list[t
     times = f.core.plan_times or [0.0]
     return {"tasks_done": st["done"], "per_hour": round(st["done"] * 3600.0 / duration_s, 2),
             "mean_s": round(st["mean_s"], 2), "refused": refused, "failed": st["failed"],
-            "distance_m": round(sum(f.distance.values()), 1),
+            "distance_m": round(sum(f.distance.values()), 1), "s_per_cell": round(f.s_per_cell(), 3),
             "plan_ms": {"mean": round(1e3 * sum(times) / len(times), 2), "max": round(1e3 * max(times), 2)},
             "wall_s": round(time.perf_counter() - t0, 2)}
