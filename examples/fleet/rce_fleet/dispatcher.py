@@ -22,9 +22,8 @@ Each call of :meth:`Dispatcher.update` (the global planner's tick, ~5 Hz) at fle
 6. a goal cell another robot heads to is not sent yet (the planner refuses two robots one
    goal): the robot waits on the free cell nearest to it (within ``WAIT_RADIUS`` steps; no
    place, no other robot's goal or cell), not where it stands (often the station it just
-   served, which the next robot needs), until that one has a new goal;
-   and a task whose first errand another robot heads to or stands on is not offered yet,
-   so robots queue for a station instead of blocking each other on it.
+   served, which the next robot needs), until that one has a new goal. So several robots
+   may hold tasks at one station: they queue beside it, as the lifelong planner's robots do.
 
 A robot that an operator sends somewhere (``/fleet/goal``) is the operator's until it
 arrives or its goal is dropped: it takes no task, and an unopened task it held goes back to
@@ -239,12 +238,9 @@ class Dispatcher:
     def _allocate(self, view: dict[str, RobotView], now: float) -> None:
         book = self.book
         step = now / book.step_s
-        busy = {w.sent for w in self.robots.values() if w.sent is not None}
-        busy |= {view[n].cell for n, w in self.robots.items()           # robots that stand there on business
-                 if n in view and view[n].cell is not None and w.activity not in (IDLE, PARKING, UNKNOWN)}
         offer = {r.task.id: r.task for r in book.open_records()
                  if r.task.opened or r.state is not TaskState.QUEUED
-                 or (r.task.earliest_start <= step + START_HORIZON_STEPS and r.task.errands[0] not in busy)}
+                 or r.task.earliest_start <= step + START_HORIZON_STEPS}
         if not any(not t.opened for t in offer.values()):
             return
         n = len(self.names)
