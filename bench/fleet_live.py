@@ -17,11 +17,17 @@ clients, generated pick-up -> drop-off tasks at ``--rate-per-robot`` x N per sim
   itself (the simulator and the robots' bridges) beside it, and ``machine_cpu_pct``: the
   whole machine's busy CPU over the run (% of one core; the container's nodes, the global
   planner and every move_client, are in it);
+- ``control``: the live fleet's control loop without physics and engine
+  (:func:`rce_fleet.kinematic.run_stream`: the global planner core, the dispatcher, the
+  move_clients and unicycle robots at the simulated robots' speed and turn rate) on the same
+  starts and task stream: ``tasks_done`` and ``s_per_cell``, the seconds the robots take per
+  cell while they drive (turns and slowing included);
 - ``offline``: the same allocator (:class:`rce_fleet.lifelong.GreedyScheduler`) and planner
   (:class:`rce_fleet.lifelong.PIBTPlanner`, 4-neighbour moves) on the cell graph without
-  physics, one step per cell at the dispatcher's nominal speed, from the same starts with the
-  same task stream for the same simulated time: ``tasks_done``; ``live_share`` = live done /
-  offline done (the goal: >= 0.8).
+  physics, one step per ``control.s_per_cell`` (the robots' own cell rate), from the same
+  starts with the same task stream for the same simulated time: ``tasks_done``;
+  ``live_share`` = live done / offline done (the goal: >= 0.8), ``control_share`` = control
+  done / offline done (what planning and dispatch lose; the rest is physics and transport).
 
 ``--quick``: 3 robots on the lab map for 40 simulated s (a smoke test of this script).
 Prints a table; ``--out FILE`` writes the JSON.
@@ -66,13 +72,13 @@ def _geometry(map_path: str | None, robots: int):
     return geo, generate_places(geo, robots), choose_cells(geo, names, 1, {}, {}, False)[0]
 
 
-def offline_prediction(geo, places, starts: dict[str, int], stream: list, duration_s: float, seed: int = 1) -> dict:
-    """Tasks the lifelong allocator and planner finish on the cell graph (module docstring)."""
-    from rce_fleet.global_planner_core import ROBOT_SPEED_MS
+def offline_prediction(geo, places, starts: dict[str, int], stream: list, duration_s: float, step_s: float,
+                       seed: int = 1) -> dict:
+    """Tasks the lifelong allocator and planner finish on the cell graph, one step per
+    ``step_s`` seconds (module docstring)."""
     from rce_fleet.lifelong import MAPF, DistanceCache, GreedyScheduler, LifelongGrid, PIBTPlanner, TaskPool
     from rce_fleet.lifelong.simulator import check_actions
     t0 = time.perf_counter()
-    step_s = geo.cell_size_m / ROBOT_SPEED_MS
     grid = LifelongGrid(np.array(geo.free, dtype=bool).reshape(geo.rows, geo.cols))
     cache = DistanceCache(grid, max_bytes=256 * 2 ** 20)
     sched, planner = GreedyScheduler(cache), PIBTPlanner(grid, cache, model=MAPF, seed=seed)
@@ -215,6 +221,7 @@ def main(argv: list[str] | None = None) -> int:
         sizes, map_path, a.duration, a.speedup, a.rate_per_robot = [3], None, 40.0, 10.0, 2.0
     else:
         sizes, map_path = [int(x) for x in a.robots.split(",")], a.map
+    from rce_fleet.kinematic import run_stream
     from rce_fleet.operations import TaskStream
     work = Path(a.workdir or tempfile.mkdtemp(prefix="fleet-live-"))
     work.mkdir(parents=True, exist_ok=True)
@@ -224,16 +231,21 @@ def main(argv: list[str] | None = None) -> int:
         rate = a.rate_per_robot * n
         geo, places, starts = _geometry(map_path, n)
         stream = TaskStream(places, rate, 1).times_and_errands(a.duration)
-        off = offline_prediction(geo, places, starts, stream, a.duration)
+        control = run_stream(geo, places, starts, stream, a.duration)
+        off = offline_prediction(geo, places, starts, stream, a.duration, control["s_per_cell"])
+        print(f"{n:4d} robots: offline {off['tasks_done']} tasks at {off['step_s']} s per cell, control loop "
+              f"without physics {control['tasks_done']}", flush=True)
         timeout = max(300.0, 4 * a.duration / max(a.speedup, 0.1) + 30 * n)
         live = live_run(map_path, n, a.duration, rate, a.speedup, work, timeout)
         done = (live.get("tasks") or {}).get("done", 0)
-        live["offline"] = off
+        live["offline"], live["control"] = off, control
         live["live_share"] = round(done / off["tasks_done"], 3) if off["tasks_done"] else None
+        live["control_share"] = round(control["tasks_done"] / off["tasks_done"], 3) if off["tasks_done"] else None
         live["generated"] = len(stream)
         results["runs"][str(n)] = live
         print(f"{n:4d} robots: {live['tasks_per_hour']} tasks/h (offline {off['per_hour']}, live share "
-              f"{live['live_share']}), real-time factor {live['real_time_factor']} (asked {a.speedup:g}), goal->motion "
+              f"{live['live_share']}, control share {live['control_share']}), real-time factor "
+              f"{live['real_time_factor']} (asked {a.speedup:g}), goal->motion "
               f"p99 {live['goal_to_motion_p99_s']} s, engine CPU {live['engine_cpu_pct']} % (demo "
               f"{live['demo_cpu_pct']} %, machine {live['machine_cpu_pct']} %), exit {live['exit_code']}: "
               f"{live['reason']}", flush=True)
