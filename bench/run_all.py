@@ -19,7 +19,7 @@ from pathlib import Path
 
 BENCH = Path(__file__).resolve().parent
 SCRIPTS = ("rtt", "rtt_gap", "rtt_cpu", "fleet_load", "paper_experiments", "planner", "container_start", "faults",
-           "stall", "login_attack", "lanes")
+           "stall", "login_attack", "lanes", "ws_impl")
 # a name that is not a script's: (script, its arguments)
 VARIANTS = {"rtt_gap": ("rtt", ["--gap", "1.0", "--sizes", "3,1623"])}
 

@@ -68,6 +68,19 @@ def test_rtt_cpu_smoke(tmp_path):
 
 
 @pytest.mark.timeout(120)
+def test_ws_impl_smoke(tmp_path):
+    """Both websocket servers echo every frame and are measured: CPU per frame, round trips, the ratio."""
+    out, png = tmp_path / "ws_impl.json", tmp_path / "ws_impl.png"
+    run("ws_impl.py", "--n", "3000", "--rtts", "20", "--gap", "0.01", "--rounds", "1", "--json", str(out),
+        "--plot", str(png), timeout=110)
+    d = json.loads(out.read_text())
+    for impl in ("websockets", "picows"):
+        assert positive([d[impl]["server_us_per_msg"], d[impl]["rtt_ms"], d[impl]["rtt_gap_ms"]]), d[impl]
+    assert positive(list(d["picows_over_websockets"].values()))
+    assert png.stat().st_size > 5_000
+
+
+@pytest.mark.timeout(120)
 def test_stall_smoke(tmp_path):
     """A stream into a node that is stopped, then continued: the node really stopped (echoes came
     back late, counted), and the robot gets live echoes again before the run ends."""
