@@ -35,7 +35,7 @@ from rce.plumbing.log import get_logger
 from rce.transport.masterlink import MasterLink
 from rce.messages.forms import JsonForms
 from rce.protocol import jsontext
-from rce.protocol.lanes import Lane, parse_lane
+from rce.protocol.lanes import Lane, interface_lane, parse_lane
 from rce.protocol.limits import DEFAULT_MAX_LAG, LagGate
 from rce.protocol.schema import validate
 from rce.plumbing.tasks import Tasks
@@ -68,6 +68,7 @@ class Bridge:
     cls: str
     itag: str
     ctag_itag: str
+    lane: Lane = Lane.STATE           # what its topic data to the client goes in (docs/lanes.md)
     up: asyncio.Event = field(default_factory=asyncio.Event)
 
 
@@ -158,11 +159,12 @@ class RosbridgeSession:
                 "fragments_dropped": self.defrag.dropped}
 
     # -- to the client ---------------------------------------------------------------------------------
-    def send(self, msg: dict, fragment_size: int | None = None, key: Any = None) -> bool:
+    def send(self, msg: dict, fragment_size: int | None = None, key: Any = None, lane: Lane = Lane.STATE) -> bool:
         """Queue ``msg`` for the client (in fragments of ``fragment_size`` characters when longer);
-        ``key``: the subscription whose topic data it is (its newest are kept), None for an op never
-        dropped. A client that lets too many ops wait does not read: it is closed (1008). Returns True."""
-        return self._queued(self.outbox.op(msg, fragment_size, key))
+        ``key``: the subscription whose topic data it is (its newest are kept) in ``lane``, None for an op
+        never dropped (control). A client that lets too many ops wait does not read: it is closed (1008).
+        Returns True."""
+        return self._queued(self.outbox.op(msg, fragment_size, key, lane))
 
     def _queued(self, ok: bool) -> bool:
         if self.outbox.overrun is not None and self.closing is None:
@@ -244,11 +246,13 @@ class RosbridgeSession:
                 self.queue_dropped += 1
                 return
             if sub.compression == "cbor":
-                self.outbox.put([cbor_publish(iface.registry, iface.msg_t, bridge.name, msg)], key)
+                self.outbox.put([cbor_publish(iface.registry, iface.msg_t, bridge.name, msg)], key, bridge.lane)
             else:
-                self.outbox.put([cbor_raw_publish(iface.registry, iface.msg_t, bridge.name, msg, time.time())], key)
+                self.outbox.put([cbor_raw_publish(iface.registry, iface.msg_t, bridge.name, msg, time.time())], key,
+                                bridge.lane)
             return
-        self.send(png_op(jsontext.dumps(op)) if sub.compression == "png" else op, sub.fragment_size, key)
+        self.send(png_op(jsontext.dumps(op)) if sub.compression == "png" else op, sub.fragment_size, key,
+                  bridge.lane)
 
     # -- from the client ---------------------------------------------------------------------------------
     def backlog(self, waiting: int, now: float) -> None:
@@ -445,7 +449,8 @@ class RosbridgeSession:
             return bridge
         self._n += 1
         itag = f"{role}{self._n}"
-        bridge = Bridge(role, name, cls.strip("/"), itag, f"rosbridge.{self.robot}.{itag}")
+        bridge = Bridge(role, name, cls.strip("/"), itag, f"rosbridge.{self.robot}.{itag}",
+                        interface_lane(cls, role in ("c", "v"), lane))
         container_type, robot_type = ROLES[role]
         self.by_itag[itag] = bridge
         try:

@@ -14,6 +14,7 @@ from rce.protocol.lane_queue import LaneQueues
 from rce.protocol.pacer import Pacer, chunks, parse_rate
 from rce.protocol.lanes import BULK_SIZE, Lane, default_lane, interface_lane, message_lane, parse_lane
 from rce.protocol.session import RobotSession
+from rce_robot.rosbridge_outbox import RosbridgeOutbox
 
 
 @pytest.mark.parametrize("cls, service, lane", [
@@ -181,3 +182,17 @@ def test_the_robot_sends_dms_on_its_bulk_link_and_nothing_else():
     errors = [json.loads(f)["data"] for f in s.data_to_send() if isinstance(f, str) and '"ER"' in f]
     assert len(errors) == 2 and all("bulk link: carries unnumbered DMs only" in e for e in errors)
     assert s.incoming.last == 0                      # nothing on the bulk link is numbered
+
+
+def test_a_rosbridge_client_gets_control_before_state_before_bulk_on_its_one_websocket():
+    o = RosbridgeOutbox(size=4)
+    for i in range(3):
+        o.op({"op": "publish", "topic": "/cam", "msg": {"i": i}}, key=("/cam", "s1"), lane=Lane.BULK)
+    o.op({"op": "publish", "topic": "/odom", "msg": {}}, key=("/odom", "s2"), lane=Lane.STATE)
+    o.op({"op": "status", "level": "error", "msg": "bad op"})                  # never dropped: control
+    got = []
+    while not o.empty():
+        op = json.loads(o.get_nowait()[0])
+        got.append(op.get("topic", op["op"]))
+    assert got == ["status", "/odom", "/cam", "/cam", "/cam"]
+    assert o.queue.lane_stats()["bulk"]["sent"] == 3 and o.dropped == 0
