@@ -21,6 +21,8 @@ from rce.protocol.session_core import SessionCore
 DEFAULT_QUEUE_SIZE = 1000                   # messages per robot in each bounded queue (like a ROS queue_size)
 DEFAULT_MAX_MESSAGE = 32 * 1024 * 1024      # bytes (chars for text) of the largest frame a robot endpoint takes
 LAG_TOPIC = "lag"                           # ST topic: the endpoint sheds the robot's topic messages, or caught up
+LANES_TOPIC = "lanes"                       # ST topic: the per-lane counters, to a robot with a bulk link
+LANES_STATUS_EVERY = 5.0                    # s between two ST lanes
 
 
 class RobotSession(SessionCore):
@@ -88,6 +90,7 @@ class RobotSession(SessionCore):
         self.grace = grace
         self.resumes = self.resume_lost = 0
         self.bulk_links = self.bulk_in = 0          # bulk links joined; DMs the robot sent on them
+        self._lanes_status = float("-inf")          # s: when the last ST lanes went out
         if resume:
             self.out.link_message(ST, {"topic": SESSION_TOPIC, "status": "started", "session": self.token,
                                        "grace": grace})
@@ -253,9 +256,13 @@ class RobotSession(SessionCore):
 
     def tick(self, now: float) -> None:
         """As :meth:`SessionCore.tick`; then, when ERs were dropped and the robot reads again, an ER
-        saying how many."""
+        saying how many; and to a robot with a bulk link, every :data:`LANES_STATUS_EVERY` s, ``ST {"topic":
+        "lanes", "lanes": {lane: counters}}`` (:meth:`~rce.protocol.lane_queue.LaneQueues.lane_stats`)."""
         super().tick(now)
         self.out.tick(now)
+        if self.out.bulk_linked and self.attached and now - self._lanes_status >= LANES_STATUS_EVERY:
+            self._lanes_status = now
+            self.send_status({"topic": LANES_TOPIC, "lanes": self.out.queue.lane_stats()})
 
     def end(self) -> None:
         """The session ended: what waited for binary parts is forgotten (its bytes go back to the budget)."""

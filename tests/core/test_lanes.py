@@ -13,6 +13,7 @@ from rce.protocol.frames import encode
 from rce.protocol.lane_queue import LaneQueues
 from rce.protocol.pacer import Pacer, chunks, parse_rate
 from rce.protocol.lanes import BULK_SIZE, Lane, default_lane, interface_lane, message_lane, parse_lane
+from rce.protocol.robot_session import LANES_STATUS_EVERY
 from rce.protocol.session import RobotSession
 from rce_robot.rosbridge_outbox import RosbridgeOutbox
 
@@ -196,3 +197,19 @@ def test_a_rosbridge_client_gets_control_before_state_before_bulk_on_its_one_web
         got.append(op.get("topic", op["op"]))
     assert got == ["status", "/odom", "/cam", "/cam", "/cam"]
     assert o.queue.lane_stats()["bulk"]["sent"] == 3 and o.dropped == 0
+
+
+def test_a_robot_with_a_bulk_link_is_told_its_lanes_counters_every_few_seconds():
+    s = RobotSession("r")
+    s.tick(0.0)
+    assert s.data_to_send() == []                    # one link: no ST lanes (a 2013 client never gets one)
+    s.attach_bulk()
+    s.send_dm("x", "std_msgs/String", "", {"data": "stop"}, data=True, now=0.0)
+    s.data_to_send(now=0.5)
+    s.tick(1.0)
+    s.tick(2.0)                                      # not again before LANES_STATUS_EVERY s
+    st = [json.loads(f)["data"] for f in s.data_to_send()]
+    assert len(st) == 1 and st[0]["topic"] == "lanes"
+    assert st[0]["lanes"]["state"]["sent"] == 1 and st[0]["lanes"]["state"]["delay_max_s"] == 0.5
+    s.tick(1.0 + LANES_STATUS_EVERY)
+    assert json.loads(s.data_to_send()[0])["data"]["topic"] == "lanes"
