@@ -9,17 +9,19 @@ on exit, also after a failure, and reaps when a killed run left them (docs/testi
         lab.set_up(up, False, side="b")                # l1's end down: packets into it are lost silently
 
 Addresses are ``10.S.N.1`` (side a) and ``10.S.N.2`` (side b) for link number N, with S the first of
-:data:`SUBNETS` that no address of the root namespace uses (so that labs of runs at the same time do not
-clash).
+:data:`SUBNETS` that no address of the root namespace uses and no other lab holds (so that labs of runs at
+the same time do not clash).
 """
 from __future__ import annotations
 
+import fcntl
 import os
 import re
 import subprocess
 from dataclasses import dataclass
 
 SUBNETS = range(201, 250)   # second octets a NetLab may give its addresses
+LOCK_DIR = "/run/rce-netlab"   # where labs hold their subnets (flock)
 
 
 @dataclass(frozen=True)
@@ -41,12 +43,33 @@ class NetLab:
         self.namespaces: list[str] = []
         self.links: list[Link] = []
         self.subnet = SUBNETS[0]
+        self._lock: int | None = None          # the fd holding this lab's subnet (flock), closed with it
 
     def __enter__(self) -> "NetLab":
         self._reap_stale()
-        used = subprocess.run(["ip", "-br", "addr"], capture_output=True, text=True).stdout
-        self.subnet = next((s for s in SUBNETS if f" 10.{s}." not in used), SUBNETS[-1])
+        self.subnet = self._take_subnet()
         return self
+
+    def _take_subnet(self) -> int:
+        """The first of :data:`SUBNETS` that no root address uses and no other lab holds: each lab holds an
+        exclusive ``flock`` on ``LOCK_DIR/10.S.lock`` while it lives (released by the kernel if it dies), so
+        labs started at the same moment (parallel tests) never pick the same. Raises :class:`RuntimeError`
+        when every one is taken."""
+        os.makedirs(LOCK_DIR, exist_ok=True)
+        used = subprocess.run(["ip", "-br", "addr"], capture_output=True, text=True).stdout
+        for s in SUBNETS:
+            fd = os.open(os.path.join(LOCK_DIR, f"10.{s}.lock"), os.O_RDWR | os.O_CREAT, 0o600)
+            try:
+                fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+            except BlockingIOError:
+                os.close(fd)
+                continue
+            if f" 10.{s}." in used:
+                os.close(fd)
+                continue
+            self._lock = fd
+            return s
+        raise RuntimeError(f"every NetLab subnet 10.{SUBNETS[0]}-{SUBNETS[-1]}.x.x is taken")
 
     def __exit__(self, *exc) -> None:
         self.close()
@@ -61,6 +84,9 @@ class NetLab:
         for ns in self.namespaces:
             subprocess.run(["ip", "netns", "del", ns], capture_output=True)
         self.namespaces.clear()
+        if self._lock is not None:
+            os.close(self._lock)
+            self._lock = None
 
     def _reap_stale(self) -> None:
         """Delete namespaces of this prefix, and root ends of links, left by a run that was killed (its pid
