@@ -88,6 +88,9 @@ def test_operator_creates_watches_and_cancels_tasks_on_the_page(op, fleet):
     page.wait_for_function("(id) => fleetView.tasks.list.some(t => t.id == id && t.state == 'done')", arg=tid,
                            timeout=DONE_TIMEOUT_MS)
     assert page.inner_text(f"{row} .state") == "done"
+    # the plots sample every few seconds of fleet time: wait for the first sample after the task was done
+    page.wait_for_function("fleetView.tasks.history.length && fleetView.tasks.history.at(-1).done >= 1",
+                           timeout=ANSWER_TIMEOUT_MS)
     h = page.evaluate("fleetView.tasks.history")
     assert len(h) >= 2 and h[-1]["done"] >= 1 and 0 < h[-1]["util"] <= 1
     assert "done 1" in page.inner_text("#task-stats")
