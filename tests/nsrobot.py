@@ -59,3 +59,24 @@ class RosRun:
                 self.proc.kill()
                 await self.proc.wait()
         await asyncio.gather(*self._readers, return_exceptions=True)
+
+
+def echo_config(url: str, robot: str, camera: bool = False) -> dict:
+    """An rce-ros config for ``robot`` (user testUser): container ``c<robot>`` runs the Test
+    package's ``stringEcho.py``; the robot's ``/req`` goes to it and its answer comes back on
+    ``/resp`` (converters), and with ``camera`` the robot's ``/camera`` (sensor_msgs/Image) is
+    forwarded to the container's ``/camera``."""
+    c = f"c{robot}"
+    cloud = [("req", "PublisherInterface", "std_msgs/String", "/stringEchoReq"),
+             ("resp", "SubscriberInterface", "std_msgs/String", "/stringEchoResp")]
+    local = [("req", "SubscriberConverter", "std_msgs/String", "/req"),
+             ("resp", "PublisherConverter", "std_msgs/String", "/resp")]
+    if camera:
+        cloud.append(("cam", "PublisherInterface", "sensor_msgs/Image", "/camera"))
+        local.append(("cam", "SubscriberForwarder", "sensor_msgs/Image", "/camera"))
+    return {"url": url, "userID": "testUser", "password": "testUser", "robotID": robot,
+            "containers": [{"cTag": c}],
+            "nodes": [{"cTag": c, "nTag": "echo", "pkg": "Test", "exe": "stringEcho.py"}],
+            "interfaces": [{"eTag": e, "iTag": t, "iType": k, "iCls": cls, "addr": a}
+                           for e, side in ((c, cloud), (robot, local)) for t, k, cls, a in side],
+            "connections": [{"tagA": f"{c}/{t}", "tagB": f"{robot}/{t}"} for t, *_ in cloud]}

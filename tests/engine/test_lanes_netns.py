@@ -16,7 +16,7 @@ from rosbags.typesys import Stores, get_typestore
 import rce.node
 from rce.tools.launch import start_engine
 from rce.tools.netlab import NetLab
-from nsrobot import WAIT, RosRun
+from nsrobot import WAIT, RosRun, echo_config
 
 pytestmark = pytest.mark.asyncio
 CANCELS = 30                 # at 10 Hz, under the camera
@@ -43,23 +43,7 @@ def cloud(lab, tmp_path):
 
 
 def robot_config(url: str) -> dict:
-    return {"url": url, "userID": "testUser", "password": "testUser", "robotID": "L",
-            "containers": [{"cTag": "cL"}],
-            "nodes": [{"cTag": "cL", "nTag": "echo", "pkg": "Test", "exe": "stringEcho.py"}],
-            "interfaces": [
-                {"eTag": "cL", "iTag": "req", "iType": "PublisherInterface", "iCls": "std_msgs/String",
-                 "addr": "/stringEchoReq"},
-                {"eTag": "cL", "iTag": "resp", "iType": "SubscriberInterface", "iCls": "std_msgs/String",
-                 "addr": "/stringEchoResp"},
-                {"eTag": "cL", "iTag": "cam", "iType": "PublisherInterface", "iCls": "sensor_msgs/Image",
-                 "addr": "/camera"},
-                {"eTag": "L", "iTag": "req", "iType": "SubscriberConverter", "iCls": "std_msgs/String",
-                 "addr": "/req"},
-                {"eTag": "L", "iTag": "resp", "iType": "PublisherConverter", "iCls": "std_msgs/String",
-                 "addr": "/resp"},
-                {"eTag": "L", "iTag": "cam", "iType": "SubscriberForwarder", "iCls": "sensor_msgs/Image",
-                 "addr": "/camera"}],
-            "connections": [{"tagA": f"cL/{t}", "tagB": f"L/{t}"} for t in ("req", "resp", "cam")]}
+    return echo_config(url, "L", camera=True)
 
 
 def image(seq: int):

@@ -17,7 +17,7 @@ import pytest
 import rce.node
 from rce.tools.launch import start_engine
 from rce.tools.netlab import NetLab
-from nsrobot import WAIT, RosRun
+from nsrobot import WAIT, RosRun, echo_config
 
 pytestmark = pytest.mark.asyncio
 RATE = 20.0                  # Hz of the numbered stream
@@ -49,19 +49,7 @@ def cloud(lab, tmp_path):
 
 
 def robot_config(url: str) -> dict:
-    return {"url": url, "userID": "testUser", "password": "testUser", "robotID": "M",
-            "containers": [{"cTag": "cM"}],
-            "nodes": [{"cTag": "cM", "nTag": "echo", "pkg": "Test", "exe": "stringEcho.py"}],
-            "interfaces": [
-                {"eTag": "cM", "iTag": "req", "iType": "PublisherInterface", "iCls": "std_msgs/String",
-                 "addr": "/stringEchoReq"},
-                {"eTag": "cM", "iTag": "resp", "iType": "SubscriberInterface", "iCls": "std_msgs/String",
-                 "addr": "/stringEchoResp"},
-                {"eTag": "M", "iTag": "req", "iType": "SubscriberConverter", "iCls": "std_msgs/String",
-                 "addr": "/req"},
-                {"eTag": "M", "iTag": "resp", "iType": "PublisherConverter", "iCls": "std_msgs/String",
-                 "addr": "/resp"}],
-            "connections": [{"tagA": "cM/req", "tagB": "M/req"}, {"tagA": "cM/resp", "tagB": "M/resp"}]}
+    return echo_config(url, "M")
 
 
 def mptcp_sockets(lab: NetLab, port: int) -> list[str]:

@@ -26,7 +26,7 @@ import rce.node
 from rce.tools.launch import start_engine
 from rce.tools.netlab import NetLab, RelayTopology
 from rce_client.tunnel import answer, parse_request
-from nsrobot import WAIT, RosRun
+from nsrobot import WAIT, RosRun, echo_config
 
 pytestmark = pytest.mark.asyncio
 
@@ -57,19 +57,7 @@ def leader_config(url: str, robot: str) -> dict:
 
 
 def follower_config(url: str) -> dict:
-    return {"url": url, "userID": "testUser", "password": "testUser", "robotID": "F",
-            "containers": [{"cTag": "cF"}],
-            "nodes": [{"cTag": "cF", "nTag": "echo", "pkg": "Test", "exe": "stringEcho.py"}],
-            "interfaces": [
-                {"eTag": "cF", "iTag": "req", "iType": "PublisherInterface", "iCls": "std_msgs/String",
-                 "addr": "/stringEchoReq"},
-                {"eTag": "cF", "iTag": "resp", "iType": "SubscriberInterface", "iCls": "std_msgs/String",
-                 "addr": "/stringEchoResp"},
-                {"eTag": "F", "iTag": "req", "iType": "SubscriberConverter", "iCls": "std_msgs/String",
-                 "addr": "/req"},
-                {"eTag": "F", "iTag": "resp", "iType": "PublisherConverter", "iCls": "std_msgs/String",
-                 "addr": "/resp"}],
-            "connections": [{"tagA": "cF/req", "tagB": "F/req"}, {"tagA": "cF/resp", "tagB": "F/resp"}]}
+    return echo_config(url, "F")
 
 
 async def wait_until(check, what: str) -> None:
