@@ -130,6 +130,8 @@ class Engine:
               timeout: float = 30.0) -> tuple[subprocess.Popen, dict]:
         log = self.workdir / f"{name}.log"
         self.logs.append(log)
+        if ready:       # a workdir used before holds the last run's file, with its dead ports
+            ready.unlink(missing_ok=True)
         p = subprocess.Popen(argv, stdout=open(log, "wb"), stderr=subprocess.STDOUT, env=self.env,
                              start_new_session=True)
         self.procs.append(p)
