@@ -236,17 +236,19 @@ class RobotBridge:
     Multipath TCP (:class:`Connection`; docs/lanes.md).
     ``graph(bridge)`` makes the robot-side graph the interfaces are bridged to (default
     :class:`LocalBusGraph`; ``rce-ros --ros``: :class:`rce_client.ros1_bridge.RospyGraph`).
-    ``relays``: [(host, port)] of relays to reach the cloud through when the direct path fails;
-    ``relay_port``: relay for nearby robots on this port (None: not; 0: any free port), at most
-    ``relay_max`` at once, relayed traffic paced to ``relay_rate`` bytes/s (docs/relays.md)."""
+    ``relays``: [(host, port)] of relays to reach the cloud through when the direct path fails (or
+    ``routes``: the follower's :class:`~rce_client.routes.Routes` given whole, e.g. with its own dial);
+    ``relay_port``: relay for nearby robots on ``relay_bind``:this port (None: not; 0: any free port), at
+    most ``relay_max`` at once, relayed traffic paced to ``relay_rate`` bytes/s (docs/relays.md)."""
 
     def __init__(self, config: RobotConfig, source: str, bus_path: str | None, *, timeout: float = 30.0,
                  keep: bool = False, url: str | None = None, registry: MessageRegistry | None = None,
                  out: Callable[[str], None] | None = None, err: Callable[[str], None] | None = None,
                  resume: bool = True, graph: Callable[["RobotBridge"], Any] | None = None,
                  relays: list[tuple[str, int]] | None = None, relay_port: int | None = None,
-                 relay_max: int = DEFAULT_MAX_FOLLOWERS, relay_rate: float = DEFAULT_RATE, lanes: bool = False,
-                 bulk_rate: float | None = None, mptcp: bool = False):
+                 relay_max: int = DEFAULT_MAX_FOLLOWERS, relay_rate: float = DEFAULT_RATE, relay_bind: str = "0.0.0.0",
+                 routes: Routes | None = None, lanes: bool = False, bulk_rate: float | None = None,
+                 mptcp: bool = False):
         self.cfg, self.source, self.bus_path = config, source, bus_path
         self.timeout, self.keep, self.resume = timeout, keep, resume
         self.lanes, self.bulk_rate, self.mptcp = lanes, bulk_rate, mptcp
@@ -257,8 +259,9 @@ class RobotBridge:
         self.bus = Bus(f"robot {config.robotID}")
         self.graph = (graph or LocalBusGraph)(self)
         self.conn: Connection | None = None
-        self.routes = Routes(relays) if relays else None
+        self.routes = routes or (Routes(relays) if relays else None)
         self.relay_port, self.relay_max, self.relay_rate = relay_port, relay_max, relay_rate
+        self.relay_bind = relay_bind
         self.relay: RobotRelay | None = None
         self.stop = asyncio.Event()
         self.ready = asyncio.Event()            # set once every robot-side interface is up
@@ -368,8 +371,8 @@ class RobotBridge:
         via = self._via()
         self.out(f"rce-ros: connected to {conn.ws_url}{via}")
         if self.relay_port is not None:
-            self.relay = await RobotRelay.for_connection(conn, self.relay_port, max_followers=self.relay_max,
-                                                    rate=self.relay_rate)
+            self.relay = await RobotRelay.for_connection(conn, self.relay_port, bind=self.relay_bind,
+                                                         max_followers=self.relay_max, rate=self.relay_rate)
             self.out(f"rce-ros: relaying for nearby robots on port {self.relay.port} (at most {self.relay_max})")
         self._bridge()
 

@@ -19,6 +19,7 @@ import asyncio
 import socket
 import ssl
 from dataclasses import dataclass
+from typing import Awaitable, Callable
 from urllib.parse import urlsplit
 
 from websockets.asyncio.client import ClientConnection
@@ -60,12 +61,18 @@ class Routes:
     """A follower's paths to the cloud: direct first, then ``relays`` [(host, port)] in order (the relay
     whose link was just lost last, so that a relay that vanished costs no dial timeout).
 
+    ``direct_dial(addr, timeout)`` opens the robot's own path: a connected non-blocking socket, or
+    :class:`OSError`/:class:`TimeoutError` (default :func:`~rce_client.tunnel.tcp_connect`; a simulated
+    robot's dial goes through its simulated access point, ``rce_fleet.radio``).
+
     :attr:`relay`: the name of the relay the current link goes through (None: direct); :attr:`switches`:
     links opened on another path than the one before."""
 
     def __init__(self, relays: list[tuple[str, int]], *, direct_timeout: float = DIRECT_TIMEOUT,
-                 relay_timeout: float = RELAY_TIMEOUT, probe_every: float = PROBE_EVERY):
+                 relay_timeout: float = RELAY_TIMEOUT, probe_every: float = PROBE_EVERY,
+                 direct_dial: Callable[[tuple[str, int], float], Awaitable[socket.socket]] = tcp_connect):
         self.relays = list(relays)
+        self.direct_dial = direct_dial
         self.direct_timeout, self.relay_timeout, self.probe_every = direct_timeout, relay_timeout, probe_every
         self.relay: str | None = None
         self.switches = 0
@@ -79,7 +86,7 @@ class Routes:
         listened there (the direct dial refused, or a relay answered 502), else :class:`Unavailable`, naming
         why each path failed."""
         try:
-            return Path(await tcp_connect(addr, self.direct_timeout), addr, None)
+            return Path(await self.direct_dial(addr, self.direct_timeout), addr, None)
         except (OSError, TimeoutError) as e:
             why = [f"direct: {e or type(e).__name__}"]
             refused = isinstance(e, (ConnectionRefusedError, ConnectionResetError))
@@ -125,7 +132,7 @@ class Routes:
             if asyncio.get_running_loop().time() >= probe_at:
                 probe_at = asyncio.get_running_loop().time() + self.probe_every
                 try:
-                    (await tcp_connect(path.target, self.direct_timeout)).close()
+                    (await self.direct_dial(path.target, self.direct_timeout)).close()
                 except (OSError, TimeoutError):
                     pass
                 else:

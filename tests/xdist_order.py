@@ -25,6 +25,7 @@ LONG_FIRST = (
     "tests/engine/test_quickstart_restart.py",
     "tests/bench/test_bench_smoke.py",
     "tests/fleet/test_fleet_faults.py",
+    "tests/fleet/test_fleet_coverage.py",
     "tests/web/test_web_fleet.py",
     "tests/client/test_e2e_debug.py",
     "tests/security/test_fuzz.py",

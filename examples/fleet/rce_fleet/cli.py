@@ -7,6 +7,7 @@
                    [--obstacle CELL@S]... [--fault master@T[+S] | link:RobotN@T[+S]]...
                    [--timeout S] [--plot PNG] [--report JSON] [--bag FILE.bag]
                    [--headless] [--web-port P] [--places YAML] [--battery KEY=V,...]
+                   [--out-of-coverage RobotN,... [--radio-range M]]
     rce-fleet demo --lifelong --duration S --robots N --task-rate R/min [--places YAML] [--report JSON]
     rce-fleet serve [same options, no mission]      # until Ctrl-C
     rce-fleet task add ERRAND... [--priority P] [--start-in S] [--deadline-in S] [--id ID] [--master URL]
@@ -55,6 +56,14 @@ def _rate(text: str) -> float:
     return _positive(text[:-4] if text.endswith("/min") else text)
 
 
+def _robots(text: str) -> list[str]:
+    """``Robot2,Robot5`` -> ["Robot2", "Robot5"]."""
+    out = [r.strip() for r in text.split(",") if r.strip()]
+    if not out:
+        raise argparse.ArgumentTypeError(f"expected RobotN[,RobotM...], got {text!r}")
+    return out
+
+
 def _map_args(p: argparse.ArgumentParser) -> None:
     p.add_argument("--map", metavar="YAML", help="ROS map_server map (default: the project's lab map, generated)")
     g = p.add_mutually_exclusive_group()
@@ -90,6 +99,12 @@ def _run_args(p: argparse.ArgumentParser, mission: bool) -> None:
                    "map's grid (default: generated for the map, written to places.yaml in the work dir)")
     p.add_argument("--battery", metavar="KEY=VALUE,...", help="simulated batteries: capacity_wh, drain_wh_per_m, "
                    "idle_w, charge_w, threshold, recharge (an empty value: the defaults; --lifelong has them)")
+    p.add_argument("--out-of-coverage", type=_robots, default=[], metavar="RobotN,...",
+                   help="robots without coverage of their own: they reach the cloud only through relays on the "
+                   "other robots within --radio-range (docs/relays.md)")
+    p.add_argument("--radio-range", type=_positive, metavar="M",
+                   help="metres between two robots that hear each other (default: 3/4 of the map's shorter side: "
+                   "6 on the lab map, 22.5 on warehouse.yaml)")
     p.add_argument("--live", dest="live", action="store_true", default=None,
                    help="live table even without a terminal")
     p.add_argument("--no-live", dest="live", action="store_false",
@@ -214,7 +229,8 @@ def main(argv: list[str] | None = None) -> None:
                        lidar_blocking=not args.no_lidar_blocking, mission=mission, live=args.live,
                        web_port=args.web_port, places=args.places, lifelong=lifelong,
                        duration=getattr(args, "duration", 600.0), task_rate=getattr(args, "task_rate", 6.0),
-                       battery=parse_battery(args.battery, lifelong))
+                       battery=parse_battery(args.battery, lifelong), out_of_coverage=args.out_of_coverage,
+                       radio_range=args.radio_range)
     except UsageError as e:
         print(f"rce-fleet: {e}", file=sys.stderr)
         sys.exit(EXIT_USAGE)

@@ -16,7 +16,9 @@
    fleet container through forwarders of the client ``fleetRecorder``, :mod:`rce_client.bag`,
    from when the robots are ready until the end); faults (``--fault master@T``: kill -9 rce-master
    and restart it on its ``--state`` file; ``--fault link:RobotN@T+S``: cut a robot's link for S s;
-   :mod:`rce_fleet.faults`), which the mission rides out: the demo's clients resume their sessions.
+   :mod:`rce_fleet.faults`), which the mission rides out: the demo's clients resume their sessions;
+   robots out of the access point's coverage (``--out-of-coverage Robot2,Robot5``), which reach the
+   cloud only through relays on the other robots within ``--radio-range`` m (:mod:`rce_fleet.radio`).
    Exit 0 when every robot has reached its goal (and every fault was recovered from); otherwise
    non-zero with the reason (1 failure or timeout, 2 bad arguments, 3 an unreachable goal).
 
@@ -70,6 +72,7 @@ from .manager import FleetManager
 from .maps import MapError, load_map
 from .operations import TaskStream, goal_motion_delays, robot_section, tasks_section
 from .places import PlaceError, Places, generate_places
+from .radio import Radio, default_range
 from .simhost import SimHost
 
 log = get_logger("fleet.demo")
@@ -125,6 +128,8 @@ class Options:
     duration: float = 600.0         # sim s of a lifelong run
     task_rate: float = 6.0          # tasks per sim minute of a lifelong run
     battery: BatteryParams | None = None   # simulated batteries (``--battery``; a lifelong run has them)
+    out_of_coverage: list[str] = field(default_factory=list)   # robots reaching the cloud only through relays
+    radio_range: float | None = None       # m between robots that hear each other (None: rce_fleet.radio default)
 
 
 def parse_battery(spec: str | None, lifelong: bool) -> BatteryParams | None:
@@ -261,6 +266,8 @@ class Run:
         self.task_list: dict | None = None         # the newest /fleet/tasks
         self.generated = 0                         # tasks the lifelong stream sent
         self.refused: list[str] = []               # why the fleet refused generated tasks
+        self.radio: Radio | None = None            # --out-of-coverage: the radio links to the relays
+        self.master_relays: dict[str, dict] = {}   # robot -> the master's relay and relay_since, at the end
 
     # -- set-up ---------------------------------------------------------------------------------
     def prepare(self) -> None:
@@ -293,6 +300,7 @@ class Run:
         for r in list(o.goals) + list(o.starts) + [f.robot for f in o.faults if f.robot]:
             if r not in self.robots:
                 raise UsageError(f"unknown robot {r!r}: the robots are Robot1..Robot{o.robots}")
+        self._check_coverage()
         for r, c in o.goals.items():
             if not self.geo.valid(c):
                 raise UsageError(f"--goal {r}={c}: cell outside the {self.geo.rows}x{self.geo.cols} grid")
@@ -321,6 +329,25 @@ class Run:
             log.info(self.grid_note)
             self.events.append(self.grid_note)
 
+    def _check_coverage(self) -> None:
+        """Check ``--out-of-coverage`` and ``--radio-range`` (default: :func:`rce_fleet.radio.default_range`)."""
+        o = self.o
+        for r in o.out_of_coverage:
+            if r not in self.robots:
+                raise UsageError(f"--out-of-coverage: unknown robot {r!r}: the robots are Robot1..Robot{o.robots}")
+        if not o.out_of_coverage:
+            return
+        if len(set(o.out_of_coverage)) == len(self.robots):
+            raise UsageError("--out-of-coverage: at least one robot must have coverage, to relay for the others")
+        for f in o.faults:
+            if f.robot in o.out_of_coverage:
+                raise UsageError(f"--fault {f.name}: {f.robot} is out of coverage (its links are radio links "
+                                 f"to relays, which drop as the robots move)")
+        if o.radio_range is None:
+            o.radio_range = default_range(self.occ.width_m, self.occ.height_m)
+        elif not o.radio_range > 0:
+            raise UsageError("--radio-range must be > 0 m")
+
     # -- run --------------------------------------------------------------------------------------
     async def run(self) -> int:
         """Start everything, run the mission (or serve), write the outputs, tear down;
@@ -342,6 +369,8 @@ class Run:
             code, reason = EXIT_FAIL, str(e)
         self.result = (code, reason)
         self.wall_total = time.monotonic() - wall0
+        if self.radio is not None:
+            await self._ask_master_relays()
         try:
             await self._stop_bag()           # before the report, which gives its counts
         except (asyncio.TimeoutError, RCEError, OSError) as e:
@@ -454,14 +483,45 @@ class Run:
             (self.workdir / "configs" / f"robot{r[5:]}.config").write_text(json.dumps(cfg, indent=2))
         logins = await self.faults.start_links()
         sem = asyncio.Semaphore(CONNECTING_AT_ONCE)
+        followers = [r for r in self.robots if r in self.o.out_of_coverage]
+        relays = {"relay_port": 0, "relay_bind": "127.0.0.1"} if followers else {}
 
-        async def connect(robot: str) -> None:
+        async def connect(robot: str, **kw) -> None:
             async with sem:
                 await self.sim.connect(robot, cfgs[robot], logins.get(robot, self.engine.master_url),
-                                       timeout=SETUP_TIMEOUT_S)
+                                       timeout=SETUP_TIMEOUT_S, **kw)
             if robot in logins:
                 self.faults.watch(robot, self.sim.bots[robot].bridge.conn)
-        await self._bounded(asyncio.gather(*(connect(r) for r in self.robots)), "robots connecting")
+        await self._bounded(asyncio.gather(*(connect(r, **relays) for r in self.robots if r not in followers)),
+                            "robots connecting")
+        if followers:
+            await self._connect_followers(followers, connect)
+
+    async def _connect_followers(self, followers: list[str], connect) -> None:
+        """Start the radio links from ``followers`` to every other robot's relay, and connect the
+        followers through them (the relays are connected)."""
+        ports = {r: b.bridge.relay.port for r, b in self.sim.bots.items() if r not in followers}
+        self.radio = Radio(self.o.radio_range, followers, ports, self.sim.positions)
+        await self.radio.start()
+        self.sim.tick_hooks.append(self.radio.update)
+        self.events.append(f"out of coverage: {', '.join(followers)} (radio range {self.o.radio_range:g} m)")
+        log.info("out of coverage: reaching the cloud through relays", followers=followers,
+                 radio_range_m=self.o.radio_range)
+
+        async def follower(robot: str) -> None:
+            await connect(robot, routes=self.radio.routes(robot))
+            self.radio.follow(robot, self.sim.bots[robot].bridge.conn, self._mission_t)
+        await self._bounded(asyncio.gather(*(follower(r) for r in followers)), "robots out of coverage connecting")
+
+    async def _ask_master_relays(self) -> None:
+        """Keep what the master says of each follower's relay (the admin API's ``/api/robots``)."""
+        try:
+            rows = await asyncio.to_thread(self.engine.admin, "/api/robots")
+        except (RCEError, OSError) as e:
+            log.warning("could not ask the master for the robots' relays", reason=str(e))
+            return
+        self.master_relays = {r["robot"]: {"relay": r.get("relay"), "relay_since": r.get("relay_since")}
+                              for r in rows if r["robot"] in self.o.out_of_coverage}
 
     async def _bounded(self, aw, what: str):
         left = self.deadline - time.monotonic()
@@ -718,6 +778,7 @@ class Run:
             "faults": self.faults.report() if self.faults else [],
             "per_robot": per,
             **self._lifelong_report(per),
+            **({"coverage": self.radio.report() | {"master": self.master_relays}} if self.radio else {}),
             "workdir": str(self.workdir),
         }
 
@@ -787,6 +848,8 @@ class Run:
                 await asyncio.wait_for(self.web.stop(), TEARDOWN_TIMEOUT_S)
             if self.sim is not None:
                 await self.sim.stop(timeout=SIM_STOP_TIMEOUT_S)
+            if self.radio is not None:
+                await self.radio.close()
             if self.manager is not None:
                 await asyncio.wait_for(self.manager.close(), TEARDOWN_TIMEOUT_S)
             if self.faults is not None:

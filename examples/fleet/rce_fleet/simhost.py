@@ -130,6 +130,7 @@ class SimHost:
         self.wall_per_sim: list[float] = []
         self.lag_resets = 0
         self._timers: list = []
+        self.tick_hooks: list[Callable[[], None]] = []     # called after every tick (e.g. the radio links)
         self._timer_ids = itertools.count()
         self.obstacle_points_dropped = 0
         self.tasks = Tasks("fleet-sim")          # the sim loop, the bridges
@@ -157,9 +158,11 @@ class SimHost:
         self.bots[rid] = bot
         return bot
 
-    async def connect(self, rid: str, config: dict, master_url: str, timeout: float = CONNECT_TIMEOUT_S) -> None:
+    async def connect(self, rid: str, config: dict, master_url: str, timeout: float = CONNECT_TIMEOUT_S,
+                      **bridge_kw) -> None:
         """Connect robot ``rid`` to the cloud with ``config`` (its robot config dict) through an
-        in-process rce-ros bridge; returns when its interfaces are up. Raises RuntimeError
+        in-process rce-ros bridge (``bridge_kw``: more :class:`~rce_client.rce_ros.RobotBridge` keywords,
+        e.g. its relay or routes); returns when its interfaces are up. Raises RuntimeError
         with the bridge's reason when it fails."""
         bot = self.bots[rid]
         source = f"<{rid} config>"
@@ -170,7 +173,8 @@ class SimHost:
             log.warning("bridge", robot=rid, line=line)
 
         bridge = RobotBridge(parse_config(config, source), source, None, timeout=timeout, url=master_url,
-                           registry=self.registry, out=lambda line: log.debug("bridge", robot=rid, line=line), err=err)
+                             registry=self.registry, out=lambda line: log.debug("bridge", robot=rid, line=line),
+                             err=err, **bridge_kw)
         bot.bridge = bridge
         bus = bridge.bus
         bot.topics = {name: bus.advertise(topic, typ, OWNER) for name, topic, typ in
@@ -318,6 +322,8 @@ class SimHost:
         if self.pending_boxes:
             self._place_boxes()
         self._publish(k)
+        for hook in self.tick_hooks:
+            hook()
         while self._timers and self._timers[0][0] <= t + 1e-9:
             _, _, cb = heapq.heappop(self._timers)
             try:
@@ -404,6 +410,10 @@ class SimHost:
                 if c == cell and tc >= sim_time:
                     out.append((rid, tc))
         return out
+
+    def positions(self) -> dict[str, tuple[float, float]]:
+        """Every robot's true position (x, y), m."""
+        return {rid: tuple(bot.robot.pose()[:2]) for rid, bot in self.bots.items()}
 
     def effective_speedup(self) -> float:
         """Sim seconds per wall second the loop manages (ticks' own cost only)."""
