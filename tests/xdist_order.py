@@ -27,6 +27,7 @@ LONG_FIRST = (
     "tests/fleet/test_fleet_faults.py",
     "tests/fleet/test_fleet_coverage.py",
     "tests/web/test_web_fleet.py",
+    "tests/web/test_web_relays.py",
     "tests/client/test_e2e_debug.py",
     "tests/security/test_fuzz.py",
     "tests/fleet/test_battery_charging.py",

@@ -88,6 +88,7 @@ MIN_READY_WAIT_S = 1.0     # wall s the wait for every robot and move_client to 
 CONNECTING_AT_ONCE = 4     # robots connecting at the same time (each sets up its node and interfaces)
 WATCH_PERIOD_S = 0.25      # wall s between checks of the run (mission end, engine, Ctrl-C)
 PROGRESS_EVERY_S = 5.0     # wall s between plain progress lines (no live table)
+RELAYS_EVERY_S = 1.0       # wall s between asks for the followers' relays at the master (--out-of-coverage)
 TEARDOWN_TIMEOUT_S = 10.0  # wall s the web page and the fleet manager each get to close before they are left
 SIM_STOP_TIMEOUT_S = 5.0   # wall s the robots' bridges get to remove their nodes and interfaces
 RECORDER_ID = "fleetRecorder"   # robotID of the --bag recorder's connection
@@ -504,6 +505,7 @@ class Run:
         self.radio = Radio(self.o.radio_range, followers, ports, self.sim.positions)
         await self.radio.start()
         self.sim.tick_hooks.append(self.radio.update)
+        self.tasks.spawn(self._watch_relays(), name="relays")
         self.events.append(f"out of coverage: {', '.join(followers)} (radio range {self.o.radio_range:g} m)")
         log.info("out of coverage: reaching the cloud through relays", followers=followers,
                  radio_range_m=self.o.radio_range)
@@ -522,6 +524,16 @@ class Run:
             return
         self.master_relays = {r["robot"]: {"relay": r.get("relay"), "relay_since": r.get("relay_since")}
                               for r in rows if r["robot"] in self.o.out_of_coverage}
+
+    async def _watch_relays(self) -> None:
+        """Ask the master for the followers' relays every :data:`RELAYS_EVERY_S` s (the web page's lines)."""
+        while True:
+            await self._ask_master_relays()
+            await asyncio.sleep(RELAYS_EVERY_S)     # the period, a timer
+
+    def _relay_lines(self) -> dict[str, str]:
+        """Follower -> the relay its link goes through now, as the master last said."""
+        return {r: v["relay"] for r, v in self.master_relays.items() if v["relay"]}
 
     async def _bounded(self, aw, what: str):
         left = self.deadline - time.monotonic()
@@ -833,7 +845,8 @@ class Run:
     async def _start_web(self) -> None:
         from .webui import WebUI
         self.web = WebUI(self.engine.master_url, self.occ, self.geo, self.robots, ctag=FLEET_CTAG, user=USER,
-                         password=PASSWORD, port=self.o.web_port, tasks=self.manager.tasks, places=self.places)
+                         password=PASSWORD, port=self.o.web_port, tasks=self.manager.tasks, places=self.places,
+                         relays=self._relay_lines if self.radio is not None else None)
         url = await self._bounded(self.web.start(), "web page setup")
         self.events.append(f"operator page: {url}")
         print(f"rce-fleet: operator page: {url}  (log in as {USER}; rce-master --dev password {PASSWORD})",

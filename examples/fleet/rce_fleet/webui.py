@@ -5,7 +5,10 @@ HTTP port, next to two generated files:
 
 * ``map.png``: the map image (browsers do not show PGM), drawn by the page under the grid;
 * ``config.json``: where the page logs in (the master's URL), the fleet container's tag, the
-  user to prefill (never a password), the mission topic and the named places (for the task form).
+  user to prefill (never a password), the mission topic and the named places (for the task form);
+* ``relays.json`` (given ``relays``): ``{"relays": {follower: relay}}``, the robots whose link to the
+  cloud goes through another robot's relay, as the master knows it (docs/relays.md); the page draws
+  a line from each follower to its relay.
 
 Given the fleet manager's :class:`~rce_fleet.tasks_client.TaskChannel` (``tasks``), it also
 serves the JSON task API and ``/metrics`` (:mod:`rce_fleet.http_api`).
@@ -28,6 +31,7 @@ import json
 import random
 import socket
 from pathlib import Path
+from typing import Callable
 
 from aiohttp import web
 
@@ -181,17 +185,19 @@ class MissionRunner:
 class WebUI:
     """Serve the operator's page for a running fleet; ``await start()`` returns the page's URL.
     ``tasks``: the fleet manager's TaskChannel (the HTTP API and /metrics; None: none);
-    ``places``: the fleet's :class:`~rce_fleet.places.Places` (the page's task form)."""
+    ``places``: the fleet's :class:`~rce_fleet.places.Places` (the page's task form);
+    ``relays()``: follower -> relay robot now (``relays.json``; None: no relays)."""
 
     def __init__(self, master_url: str, occ, geo: GridGeometry, robots: list[str], *, ctag: str, user: str,
                  password: str, bind: str = "127.0.0.1", port: int = DEFAULT_PORT, mission: bool = True,
-                 title: str = "rce fleet", tasks=None, places=None):
+                 title: str = "rce fleet", tasks=None, places=None,
+                 relays: Callable[[], dict[str, str]] | None = None):
         self.master_url, self.occ, self.geo, self.robots = master_url, occ, geo, list(robots)
         self.ctag, self.user, self.password = ctag, user, password
         self.bind, self.port, self.title = bind, port, title
         self.mission = MissionRunner(master_url, geo, robots, user=user, password=password, ctag=ctag) \
             if mission else None
-        self.tasks, self.places = tasks, places
+        self.tasks, self.places, self.relays = tasks, places, relays
         self.url = ""
         self._runner: web.AppRunner | None = None
 
@@ -200,7 +206,8 @@ class WebUI:
         return {"master": self.master_url, "user": self.user, "container": self.ctag, "map": "map.png",
                 "missionTopic": MISSION_TOPIC if self.mission else None, "title": self.title,
                 "robots": self.robots, "tasks": self.tasks is not None,
-                "places": self.places.to_param() if self.places is not None else []}
+                "places": self.places.to_param() if self.places is not None else [],
+                "relays": self.relays is not None}
 
     async def start(self) -> str:
         """Start the mission runner and the HTTP server (on ``port``, or any free port when it
@@ -218,8 +225,13 @@ class WebUI:
         async def mapimg(_req):
             return web.Response(body=png, content_type="image/png", headers=nocache)
 
+        async def relays(_req):
+            return web.json_response({"relays": self.relays()}, headers=nocache)
+
         app = web.Application()
         app.router.add_get("/", index)
+        if self.relays is not None:
+            app.router.add_get("/relays.json", relays)
         app.router.add_get("/config.json", config)
         app.router.add_get("/map.png", mapimg)
         if self.tasks is not None:

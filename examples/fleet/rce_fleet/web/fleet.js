@@ -10,6 +10,9 @@
 // pre-rendered into an offscreen layer); fleet states only update the model. The robot status
 // table is refreshed at most 4 times a second and only where a value changed.
 //
+// Robots out of coverage: given config.json's `relays`, the page asks relays.json (follower -> relay,
+// as the master knows it) every RELAYS_EVERY ms and draws a line from each follower to its relay.
+//
 // Everything a test needs is in window.fleetView (see `view` below).
 
 import { Client, RCEError, newId } from "./rce.js";
@@ -21,6 +24,7 @@ const PALETTE = ["#1f77b4", "#ff7f0e", "#2ca02c", "#d62728", "#9467bd", "#8c564b
 const TRAIL_MAX = 1500;          // points kept per robot trail
 const ACTION_TIMEOUT = 6000;     // ms to wait for the planner to confirm an action
 const TABLE_EVERY = 250;         // ms between status table refreshes
+const RELAYS_EVERY = 1000;       // ms between asks for the followers' relays (relays.json)
 
 // ---------------------------------------------------------------------------------------------
 // configuration: URL query (master, user, container, map, mission) > config.json next to the page >
@@ -64,6 +68,8 @@ const view = window.fleetView = {
   map: { loaded: false, error: null, width: 0, height: 0 },
   listeners: [],         // fn(fleetState) called for every /fleet/state (tests record with it)
   fps: 0, drawMs: 0,     // frames per second, mean drawing time per frame (ms)
+  relays: {},            // follower -> relay robot (relays.json), while its link goes through the relay
+  relayLines: [],        // the follower -> relay lines the last frame drew: {follower, relay, from, to} (canvas px)
   // helpers for tests (client coordinates, CSS px); applyState draws a fleet state as if it came
   // from the cloud (replays, rendering tests)
   applyState: (st) => onFleetState(st),
@@ -757,6 +763,20 @@ function draw(now) {
       }
     }
   }
+  // follower -> relay: a dashed line in the relay's colour (drawn robots only)
+  const lines = [];
+  for (const [f, rl] of Object.entries(view.relays)) {
+    const df = drawn[f], dr = drawn[rl];
+    if (!df || !dr) continue;
+    const from = W2C(df.x, df.y), to = W2C(dr.x, dr.y);
+    ctx.strokeStyle = colour(rl);
+    ctx.lineWidth = lw * 1.2;
+    ctx.setLineDash([3 * T.dpr, 3 * T.dpr]);
+    ctx.beginPath(); ctx.moveTo(...from); ctx.lineTo(...to); ctx.stroke();
+    ctx.setLineDash([]);
+    lines.push({ follower: f, relay: rl, from, to });
+  }
+  view.relayLines = lines;
   // robots: smoothed towards the latest pose (10 Hz states drawn at the display's rate)
   const a = 1 - Math.exp(-dt / 0.08);
   const R = robotRadiusPx();
@@ -881,5 +901,15 @@ $("container").value = cfg.container;
 if (cfg.title) $("title").textContent = cfg.title;
 if (cfg.user) $("password").focus(); else $("user").focus();
 mapImg.src = new URL(cfg.map, location.href).href;
+if (cfg.relays) {
+  const askRelays = async () => {
+    try {
+      const r = await fetch("relays.json", { cache: "no-store" });
+      if (r.ok) view.relays = (await r.json()).relays || {};
+    } catch (e) { /* the demo is stopping: keep the last */ }
+  };
+  askRelays();
+  setInterval(askRelays, RELAYS_EVERY);
+}
 select(null);
 requestAnimationFrame(frame);
