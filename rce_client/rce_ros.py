@@ -353,6 +353,9 @@ class RobotBridge:
                 self.out(f"rce-ros: {c.itag}: {c.dropped} message(s) not sent to the cloud ({c.bad} refused)")
         for itag, n in self.not_published.items():
             self.out(f"rce-ros: {itag}: {n} message(s) from the cloud not published (did not convert)")
+        if self.conn is not None and self.conn.session.resume_lost:
+            self.out(f"rce-ros: {self.conn.session.resume_lost} message(s) to the cloud lost at resumes (the "
+                     f"resume buffer forgot them while no link was up)")
 
     async def _connect_and_setup(self) -> None:
         cfg = self.cfg
@@ -367,7 +370,8 @@ class RobotBridge:
         conn.on_disconnected(lambda reason: self.err(f"rce-ros: link to the cloud lost ({reason}); resuming the "
                                                      f"session (the local bus stays up)"))
         conn.on_resumed(lambda st: self.out(f"rce-ros: session resumed ({st.get('dropped', 0)} message(s) from "
-                                            f"the cloud lost){self._via()}"))
+                                            f"the cloud lost, {conn.session.resume_lost} to the cloud lost in "
+                                            f"all){self._via()}"))
         via = self._via()
         self.out(f"rce-ros: connected to {conn.ws_url}{via}")
         if self.relay_port is not None:

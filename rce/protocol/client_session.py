@@ -38,7 +38,9 @@ class ClientSession(SessionCore):
     needs a running asyncio loop (the table's futures); nothing else here does.
 
     ``expiry``: s an incomplete message waits for its binary parts. :attr:`interfaces`: iTag ->
-    last ``iu`` status; :attr:`dropped`: malformed frames, expired parts, unexpected messages.
+    last ``iu`` status; :attr:`dropped`: malformed frames, expired parts, unexpected messages;
+    :attr:`resume_lost`: messages to the cloud lost at resumes (the resume buffer forgot them before
+    the cloud acked them: a link down for longer than the buffer holds).
 
     ``resume``: ask for session resume (the shell adds ``resume=1`` to the connect query; docs/INTERNALS.md
     "Session resume"): messages are numbered from the first and kept until acked (``resume_buffer``
@@ -54,6 +56,7 @@ class ClientSession(SessionCore):
         self.pending = PendingCalls("the cloud")
         self.interfaces: dict[str, bool] = {}
         self.dropped = 0
+        self.resume_lost = 0
         self._frames: list[str | bytes] = []
         # resume: off | asked -> live <-> detached -> resuming -> live
         self.state = "asked" if resume else "off"
@@ -181,6 +184,7 @@ class ClientSession(SessionCore):
         for f in frames:
             self._frames.extend(f)
         if lost:
+            self.resume_lost += lost
             self._bad_input(f"{lost} message(s) to the cloud were lost: the resume buffer "
                             f"({self.outgoing.max_messages} messages) forgot them before the cloud acked them")
 

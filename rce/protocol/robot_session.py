@@ -368,7 +368,8 @@ class RobotSession(SessionCore):
         topic DMs from the robot dropped while the endpoint lagged (``max_lag``);
         resume: resumes, messages resent, lost at a resume (``resume_lost``), kept until acked
         (``kept``, ``kept_bytes``), forgotten past the bound (``resume_forgotten``), duplicates from the
-        robot dropped; ``bulk_links`` joined, ``bulk_in`` DMs the robot sent on them; ``lanes``: per lane
+        robot dropped, messages from the robot its resume buffer lost (``resume_gaps``: numbers skipped);
+        ``bulk_links`` joined, ``bulk_in`` DMs the robot sent on them; ``lanes``: per lane
         (:meth:`LaneQueues.lane_stats`: messages taken and sent whole, bytes, drops, waiting, queue delay)."""
         out, inc = self.outgoing, self.incoming
         return {"interfaces": len(self.interfaces), "msgs_in": self.msgs_in, "msgs_out": self.out.msgs_out,
@@ -379,6 +380,7 @@ class RobotSession(SessionCore):
                 "held": self.requests.held, "calls": self.calls, "resumes": self.resumes, "resent": self.out.resent,
                 "resume_lost": self.resume_lost, "kept": len(out) if out else 0, "kept_bytes": out.bytes if out else 0,
                 "resume_forgotten": out.forgotten if out else 0, "duplicates": inc.duplicates if inc else 0,
+                "resume_gaps": inc.gaps if inc else 0,
                 "bulk_links": self.bulk_links, "bulk_in": self.bulk_in, "lanes": self.out.queue.lane_stats()}
 
 

@@ -102,6 +102,40 @@ def test_a_resumed_session_reports_robot_messages_taken_and_buffer_losses():
     assert s.stats()["resume_lost"] == 3 and s.stats()["resume_forgotten"] == 3
 
 
+def test_a_link_down_longer_than_the_robots_buffer_loses_its_oldest_counted_on_both_sides():
+    """No path for a while (a follower out of every relay's range): the robot's buffer keeps its newest
+    3; the 2 it forgot are counted at the resume by the robot (``resume_lost``) and the cloud
+    (``resume_gaps``, a Prometheus counter), and the rest arrive once, in order."""
+    cloud = RobotSession("r1", resume=True, ack_every=1)
+    cloud.add_interface("req", "SubscriberConverter", "std_msgs/String")
+    robot = ClientSession(resume=True, resume_buffer=3)
+
+    def move() -> None:
+        for _ in range(4):
+            for dst, frames in ((robot, cloud.data_to_send()), (cloud, robot.data_to_send())):
+                for f in frames:
+                    (dst.receive_text if isinstance(f, str) else dst.receive_binary)(f, 0.0)
+
+    def dm(i: int) -> dict:
+        return {"iTag": "req", "type": "std_msgs/String", "msgID": "", "msg": {"data": f"m{i}"}}
+    move()
+    assert robot.state == "live"
+    robot.send("DM", dm(0))
+    move()
+    cloud.detach()
+    assert robot.detach("code 1006")
+    for i in range(1, 6):                   # 5 while no link is up; the robot keeps its newest 3
+        robot.send("DM", dm(i))
+    assert len(robot.outgoing) == 3 and robot.outgoing.forgotten >= 2
+    q = robot.resume_query()
+    robot.attach()
+    cloud.attach(int(q["ack"]))
+    move()
+    got = [ev.data["msg"]["data"] for ev in cloud.events_received() if isinstance(ev, Deliver)]
+    assert got == ["m0", "m3", "m4", "m5"]
+    assert robot.resume_lost == 2 and cloud.stats()["resume_gaps"] == 2
+
+
 # -- both sides over an in-memory link that drops with frames in flight --------------------------------
 class Pair:
     """A cloud session (``RobotSession``, with an echo interface) and a robot session (``ClientSession``)
