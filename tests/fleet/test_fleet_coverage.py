@@ -31,7 +31,7 @@ def test_a_robot_out_of_coverage_reaches_its_goal_through_relays(tmp_path):
     assert set(f["relays_used"]) == {"Robot1", "Robot3"} and f["via_now"] == "Robot3", f
     assert cov["links"]["Robot2-Robot1"]["went_out"] >= 1 and cov["links"]["Robot2-Robot1"]["reset"] >= 1
     assert f["switches"] >= 1 and f["dark"] and f["dark_now_s"] == 0.0, f
-    assert all(d["dropped"] == 0 for d in f["dark"]), f
+    assert all(d["dropped"] == 0 for d in f["dark"]) and f["lost_to_cloud"] == 0, f
     # the master saw the topology: Robot2's link goes through Robot3 at the end
     assert cov["master"]["Robot2"]["relay"] == "Robot3" and cov["master"]["Robot2"]["relay_since"] > 0
     # Robot2's traffic crossed both radio links, both ways

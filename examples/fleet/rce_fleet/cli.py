@@ -104,7 +104,7 @@ def _run_args(p: argparse.ArgumentParser, mission: bool) -> None:
                    "other robots within --radio-range (docs/relays.md)")
     p.add_argument("--radio-range", type=_positive, metavar="M",
                    help="metres between two robots that hear each other (default: 3/4 of the map's shorter side: "
-                   "6 on the lab map, 22.5 on warehouse.yaml)")
+                   "6 on the lab map, 22.6 on warehouse.yaml)")
     p.add_argument("--live", dest="live", action="store_true", default=None,
                    help="live table even without a terminal")
     p.add_argument("--no-live", dest="live", action="store_false",

@@ -268,7 +268,7 @@ class Run:
         self.generated = 0                         # tasks the lifelong stream sent
         self.refused: list[str] = []               # why the fleet refused generated tasks
         self.radio: Radio | None = None            # --out-of-coverage: the radio links to the relays
-        self.master_relays: dict[str, dict] = {}   # robot -> the master's relay and relay_since, at the end
+        self.master_relays: dict[str, dict] = {}   # follower -> the master's relay and relay_since (asked every 1 s)
 
     # -- set-up ---------------------------------------------------------------------------------
     def prepare(self) -> None:
@@ -681,9 +681,14 @@ class Run:
     def _line(self) -> str:
         st = self._robot_states()
         parts = [f"{r}:{st.get(r, {}).get('cell', '?')}->{self.goals.get(r, '-')} {st.get(r, {}).get('state', '?')}"
-                 for r in self.robots]
+                 f"{self._via(r)}" for r in self.robots]
         head = f"reached {len(self.reached)}/{len(self.robots)}  " if self.o.mission else ""
         return f"t={self._mission_t():6.1f}s  {head}" + "  ".join(parts)
+
+    def _via(self, robot: str) -> str:
+        """`` via RELAY`` (or `` dark``) for a robot out of coverage, else ""."""
+        lg = self.radio.logs.get(robot) if self.radio is not None else None
+        return "" if lg is None else (" dark" if lg.via == "dark" else f" via {lg.via}")
 
     def _table(self):
         from rich.console import Group
@@ -700,7 +705,7 @@ class Run:
             state = "reached" if r in self.reached else s.get("state", "?")
             t.add_row(r, str(s.get("cell", "?")), str(self.goals.get(r, "-")),
                       f"{s.get('distance_left', 0.0):.1f}", str(s.get("replans", 0)), str(s.get("cancels", 0)),
-                      _fmt_state(state))
+                      _fmt_state(state) + self._via(r))
         blocked = (self.state or {}).get("blocked", [])
         mp = self.sim.min_pair if self.sim else math.inf
         foot = Text(f"t={self._mission_t():.1f} s sim   blocked: {blocked or '-'}   "
@@ -860,7 +865,7 @@ class Run:
             if getattr(self, "web", None) is not None:
                 await asyncio.wait_for(self.web.stop(), TEARDOWN_TIMEOUT_S)
             if self.sim is not None:
-                await self.sim.stop(timeout=SIM_STOP_TIMEOUT_S)
+                await self.sim.stop(timeout=SIM_STOP_TIMEOUT_S, first=self.o.out_of_coverage)
             if self.radio is not None:
                 await self.radio.close()
             if self.manager is not None:

@@ -17,7 +17,7 @@ range of them in the simulation.
   network's time, not the simulation's.
 
 The default range (:func:`default_range`) is three quarters of the map's shorter side: 6 m on the
-project's 8 m x 8 m lab, 22.5 m on the 30 m x 50 m warehouse (Zigbee's or Bluetooth's indoor reach
+project's 8 m x 8 m lab, 22.6 m on the 30.2 m x 50.2 m warehouse (Zigbee's or Bluetooth's indoor reach
 among steel racks is 10 - 30 m): a follower has a relay in range most of the time and loses one when
 the fleet spreads. A follower out of every relay's range stops at its last waypoint (the cloud's next
 one cannot reach it) until a relay comes into range again; its session waits for it as long as the
@@ -64,9 +64,11 @@ class FollowerLog:
     _via: str | None = None
     _since: float | None = None
     _dark_since: float | None = None
+    _conn: object = None
 
     def attach(self, conn) -> None:
         """Follow ``conn`` (the follower's :class:`~rce_client.connection.Connection`, just connected)."""
+        self._conn = conn
         self._via, self._since = self.routes.relay, time.monotonic()
         conn.on_disconnected(self._lost)
         conn.on_resumed(self._resumed)
@@ -89,8 +91,15 @@ class FollowerLog:
                               "then_via": self._via, "dropped": st.get("dropped", 0)})
             self._dark_since = None
 
+    @property
+    def via(self) -> str:
+        """``dark`` while no path is up, else the relay its link goes through."""
+        return "dark" if self._dark_since is not None else str(self.routes.relay)
+
     def report(self) -> dict:
-        """``{relays_used: {relay: s}, via_now, switches, dark: [...], dark_max_s, dark_total_s, dark_now_s}``."""
+        """``{relays_used: {relay: s}, via_now, switches, dark: [...], dark_max_s, dark_total_s, dark_now_s,
+        lost_to_cloud}`` (``lost_to_cloud``: messages the follower's resume buffer forgot before the cloud
+        got them; the cloud's losses are each dark spell's ``dropped``)."""
         now = time.monotonic()
         used = dict(self.used_s)
         if self._since is not None and self._via is not None:
@@ -99,7 +108,8 @@ class FollowerLog:
         return {"relays_used": {r: round(s, 2) for r, s in sorted(used.items())}, "via_now": self.routes.relay,
                 "switches": self.routes.switches, "dark": self.dark,
                 "dark_max_s": max(spells, default=0.0), "dark_total_s": round(sum(spells), 3),
-                "dark_now_s": round(now - self._dark_since, 3) if self._dark_since is not None else 0.0}
+                "dark_now_s": round(now - self._dark_since, 3) if self._dark_since is not None else 0.0,
+                "lost_to_cloud": self._conn.session.resume_lost if self._conn is not None else 0}
 
 
 class Radio:

@@ -386,19 +386,21 @@ class SimHost:
                     bus.publish(tp["obstacles"], reg.json_to_bytes(reg.msg_type(T_OBST), msg))
 
     # -- teardown ----------------------------------------------------------------------------------
-    async def stop(self, timeout: float = STOP_TIMEOUT_S) -> None:
+    async def stop(self, timeout: float = STOP_TIMEOUT_S, first: list[str] = ()) -> None:
         """Stop the loop and every bridge (each removes its node and interfaces from the cloud
-        within ``timeout`` s, or is cancelled)."""
+        within ``timeout`` s, or is cancelled): the robots ``first`` (e.g. those whose link goes
+        through the others' relays) before the others."""
         self._stopping = True
         if self._task is not None:
             await asyncio.gather(self._task, return_exceptions=True)
-        tasks = []
-        for bot in self.bots.values():
-            if bot.bridge is not None and bot.task is not None and not bot.task.done():
-                bot.bridge.stop.set()
-                tasks.append(bot.task)
-        if tasks:
-            await asyncio.wait(tasks, timeout=timeout)
+        for group in ([r for r in self.bots if r in first], [r for r in self.bots if r not in first]):
+            tasks = []
+            for bot in (self.bots[r] for r in group):
+                if bot.bridge is not None and bot.task is not None and not bot.task.done():
+                    bot.bridge.stop.set()
+                    tasks.append(bot.task)
+            if tasks:
+                await asyncio.wait(tasks, timeout=timeout)
         await self.tasks.cancel_all()
 
     # -- ground truth --------------------------------------------------------------------------------
