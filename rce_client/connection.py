@@ -63,6 +63,7 @@ from rce.plumbing.log import get_logger
 from rce.protocol.events import (BarrierFailed, BarrierPassed, CallFailed, Detached, Dropped, ErrorReceived,
                                  InterfaceChanged, MessageReceived, ResponseReceived, SessionStatus, StatusReceived,
                                  unhandled)
+from rce.protocol.pacer import Pacing
 from rce.protocol.resume import DEFAULT_RESUME_BUFFER
 from rce.protocol.session import ClientSession
 from rce.plumbing.tasks import Tasks
@@ -173,7 +174,7 @@ class Connection(Verbs, Handles, Reconnecting):
                             max_reconnect_wait: float = RECONNECT_WAIT_MAX, resume_buffer: int = DEFAULT_RESUME_BUFFER,
                             endpoint_gone_after: int = ENDPOINT_GONE_AFTER, ssl_context: ssl.SSLContext | None = None,
                             max_lag: float | None = None, routes: Routes | None = None, lanes: bool = False,
-                            bulk_rate: float | None = None, mptcp: bool = False) -> "Connection":
+                            bulk_rate: Pacing | None = None, mptcp: bool = False) -> "Connection":
         """Log in at the master and open the robot's websocket.
 
         - ``master_url``: ``http://HOST:9000/`` (or ``https://``); ``password`` in clear (hashed here).
@@ -200,7 +201,8 @@ class Connection(Verbs, Handles, Reconnecting):
         - ``lanes``: open a bulk link beside the session's link (docs/lanes.md, :mod:`rce_client.lanes`):
           the session's link becomes the control lane; needs ``allow_reconnect`` (the session's token) and
           a direct path (not through a relay).
-        - ``bulk_rate``: bytes/s the bulk link is paced to (set it a little below the uplink; None: not paced).
+        - ``bulk_rate``: how the bulk link is paced (docs/lanes.md "Pacing"): bytes/s (a little below the
+          uplink), ``"auto"`` or None (under the rate estimated for the uplink's path), ``"off"`` (not paced).
         - ``mptcp``: connect over Multipath TCP where the kernel offers it, else TCP (every link, every dial).
 
         Raises :class:`AuthError` (bad credentials: HTTP or handshake 401/403, with the cloud's reason)
@@ -224,7 +226,7 @@ class Connection(Verbs, Handles, Reconnecting):
                    endpoint_gone_after: int = ENDPOINT_GONE_AFTER,
                    ssl_context: ssl.SSLContext | None = None, max_lag: float | None = None,
                    routes: Routes | None = None, lanes: bool = False,
-                   bulk_rate: float | None = None, mptcp: bool = False) -> "Connection":
+                   bulk_rate: Pacing | None = None, mptcp: bool = False) -> "Connection":
         """Open the websocket at a known robot endpoint ``ws_url`` (skips the login); the keywords are
         :meth:`login_connect`'s. Raises :class:`AuthError` or :class:`Unavailable` as :meth:`login_connect`."""
         if lanes and not allow_reconnect:

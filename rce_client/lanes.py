@@ -7,7 +7,9 @@ lane's topic data both ways, while the session's own link becomes the control la
 - Out: each bulk interface keeps its newest messages waiting (:class:`~rce.protocol.outbox.Outbox`, as
   a ROS publisher's queue: :data:`BULK_QUEUE` in all, none older than :data:`BULK_MAX_LAG` s while a newer
   one waits); a writer sends one whole message at a time, in frames of at most 16 KiB
-  paced below ``rate`` bytes/s (:class:`~rce.protocol.pacer.Pacer`; None: not paced). Drops are counted.
+  paced as ``rate`` says (:func:`~rce.protocol.pacer.new_pacer`: bytes/s; ``"auto"`` or None: under the
+  rate estimated for the uplink's path from the bulk socket, :class:`~rce.transport.lane_socket.PacedLink`;
+  ``"off"``: not paced). Drops are counted.
 - In: the cloud's bulk DMs go to the same handlers as those on the session's link.
 - A bulk link that drops is dialled again with backoff while the session lives; meanwhile bulk data
   goes on the session's link, as without lanes. A cloud that refuses the join (an endpoint without
@@ -28,10 +30,10 @@ from rce.plumbing.tasks import Tasks
 from rce.protocol.frames import DM
 from rce.protocol.lanes import Lane
 from rce.protocol.outbox import Outbox
-from rce.protocol.pacer import Pacer
+from rce.protocol.pacer import Pacing, new_pacer
 from rce.protocol.session import ClientSession
 from rce.transport import lane_socket
-from rce.transport.lane_socket import paced_fragments, socket_of
+from rce.transport.lane_socket import PacedLink, fragments, socket_of
 from rce.transport.masterlink import Backoff
 from rce_client.dial import HandshakeRefused, dial, with_query
 
@@ -40,6 +42,8 @@ log = get_logger("rce.client")
 BULK_QUEUE = 8             # bulk messages waiting for the bulk link; past it the busiest interface drops its oldest
 BULK_MAX_LAG = 0.5         # s a bulk message may wait while a newer one of its interface waits behind it
 REDIAL_WAIT, REDIAL_WAIT_MAX = 0.05, 1.0      # s between dials of a dropped bulk link, doubling up to the max
+ESTIMATE_LOG_MOVE = 0.2    # an estimated uplink rate is logged when it moved by this share since the last line
+ESTIMATE_LOG_EVERY = 1.0   # ... at most once in this many s
 
 
 class LaneOwner(Protocol):
@@ -70,17 +74,19 @@ class LaneOwner(Protocol):
 
 
 class BulkLane:
-    """The bulk link of ``conn``; ``rate``: bytes/s its writer is paced to (None: not paced). Counters:
+    """The bulk link of ``conn``; ``rate``: how its writer is paced (bytes/s, ``"auto"`` or None: the
+    path's rate estimated, ``"off"``: not paced; :func:`~rce.protocol.pacer.new_pacer`). Counters:
     :attr:`sent` (messages written whole), :attr:`bytes`, :attr:`dropped` (the newest-per-interface
-    bound), :attr:`joins` (links joined), :attr:`received` (DMs taken on it)."""
+    bound), :attr:`joins` (links joined), :attr:`received` (DMs taken on it); :meth:`pacing`."""
 
-    def __init__(self, conn: LaneOwner, rate: float | None = None):
+    def __init__(self, conn: LaneOwner, rate: Pacing | None = None):
         self.conn, self.rate = conn, rate
-        self.pacer = Pacer(rate) if rate else None
+        self.pacer = new_pacer(rate)      # one for the lane: a link joined again starts from what it learnt
         self.queue: Outbox[tuple[str, str, Any]] = Outbox(BULK_QUEUE, BULK_MAX_LAG)     # (iTag, type, msg)
         self.ws: Any = None
         self.sent = self.bytes = self.joins = 0
         self.refused: str | None = None          # why the cloud refused the join (then the connection has one link)
+        self._logged: tuple[float, float] | None = None     # (when, estimate) of the last "uplink rate estimated"
         self._wake = asyncio.Event()
         self._joined = asyncio.Condition()       # notified when a bulk link joins
         self.tasks = Tasks(f"rce-client {conn.robot_id} bulk lane")
@@ -98,6 +104,11 @@ class BulkLane:
     @property
     def received(self) -> int:
         return self.conn.session.bulk_in
+
+    def pacing(self) -> dict | None:
+        """The uplink's pacing (:meth:`~rce.protocol.pacer.Pacer.stats`: ``rate_source``, ``rate`` bytes/s,
+        and when estimated ``rate_estimate`` bytes/s, ``rate_mode``, ...); None: not paced."""
+        return self.pacer.stats() if self.pacer is not None else None
 
     async def wait_up(self, timeout: float, joins: int = 1) -> None:
         """Wait until a bulk link is up and ``joins`` have been joined in all. Raises :class:`Unavailable`
@@ -175,6 +186,7 @@ class BulkLane:
                 return
 
     async def _writer(self, ws: Any) -> None:
+        paced = PacedLink(self.pacer, socket_of(ws)) if self.pacer is not None else None
         try:
             while True:
                 await self._wake.wait()
@@ -182,9 +194,22 @@ class BulkLane:
                 while (item := self.queue.take(time.monotonic())) is not None:
                     frames = self.conn.session.bulk_frames(*item)
                     for f in frames:
-                        await ws.send(paced_fragments(f, self.pacer))
+                        await ws.send(paced.fragments(f) if paced is not None else fragments(f))
                     self.sent += 1
                     self.bytes += sum(len(f) for f in frames)
+                    self._log_estimate(time.monotonic())
         except (ConnectionClosed, OSError):      # the reader sees it too
             pass
+
+    def _log_estimate(self, now: float) -> None:
+        """Log the uplink's estimated rate when it moved by :data:`ESTIMATE_LOG_MOVE` (at most every
+        :data:`ESTIMATE_LOG_EVERY` s)."""
+        est = self.pacer.estimator if self.pacer is not None else None
+        if est is None or est.estimate is None:
+            return
+        if self._logged is not None and (now - self._logged[0] < ESTIMATE_LOG_EVERY
+                                         or abs(est.estimate - self._logged[1]) < ESTIMATE_LOG_MOVE * self._logged[1]):
+            return
+        self._logged = (now, est.estimate)
+        log.info("uplink rate estimated", robot=self.conn.robot_id, **self.pacer.stats())
 

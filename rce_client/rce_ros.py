@@ -65,7 +65,7 @@ from rce.messages import MessageRegistry, default_registry, wire_name
 from rce.node.naming import validate_name
 from rce.node.package_path import load_package_types
 from rce.protocol import split_interface_type
-from rce.protocol.pacer import rate_arg
+from rce.protocol.pacer import Pacing, rate_arg
 from rce_client.connection import Connection, Message
 from rce_client.paths import default_bus_path
 from rce_client.relay import DEFAULT_MAX_FOLLOWERS, DEFAULT_RATE, RobotRelay
@@ -232,7 +232,7 @@ class RobotBridge:
     bridge per simulated robot) publishes and subscribes on ``self.bus`` directly; ``run()``
     in a task, ``ready`` tells when the interfaces are up, ``stop.set()`` tears down.
     ``resume``: ask for session resume and ride out lost links (:class:`Connection` ``allow_reconnect``).
-    ``lanes``, ``bulk_rate``, ``mptcp``: a bulk link beside the session's (paced to ``bulk_rate`` bytes/s),
+    ``lanes``, ``bulk_rate``, ``mptcp``: a bulk link beside the session's (paced as ``bulk_rate`` says),
     Multipath TCP (:class:`Connection`; docs/lanes.md).
     ``graph(bridge)`` makes the robot-side graph the interfaces are bridged to (default
     :class:`LocalBusGraph`; ``rce-ros --ros``: :class:`rce_client.ros1_bridge.RospyGraph`).
@@ -247,7 +247,7 @@ class RobotBridge:
                  resume: bool = True, graph: Callable[["RobotBridge"], Any] | None = None,
                  relays: list[tuple[str, int]] | None = None, relay_port: int | None = None,
                  relay_max: int = DEFAULT_MAX_FOLLOWERS, relay_rate: float = DEFAULT_RATE, relay_bind: str = "0.0.0.0",
-                 routes: Routes | None = None, lanes: bool = False, bulk_rate: float | None = None,
+                 routes: Routes | None = None, lanes: bool = False, bulk_rate: Pacing | None = None,
                  mptcp: bool = False):
         self.cfg, self.source, self.bus_path = config, source, bus_path
         self.timeout, self.keep, self.resume = timeout, keep, resume
@@ -557,9 +557,10 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--lanes", action="store_true",
                    help="open a bulk link beside the session's link: images, clouds, scans and maps go on it, paced, "
                         "and commands never wait behind them (docs/lanes.md; needs resume)")
-    p.add_argument("--uplink-rate", type=rate_arg, default=None, metavar="RATE",
-                   help="with --lanes, pace the bulk link to RATE: bytes/s, or with a unit (1.25MB, 10Mbit); set it a "
-                        "little below the robot's uplink (default: not paced)")
+    p.add_argument("--uplink-rate", type=rate_arg, default="auto", metavar="RATE",
+                   help="with --lanes, pace the bulk link to RATE: bytes/s, or with a unit (1.25MB, 10Mbit), a little "
+                        "below the robot's uplink; 'auto' (the default): under the rate estimated for the uplink's "
+                        "path; 'off': not paced (docs/lanes.md)")
     p.add_argument("--mptcp", action="store_true",
                    help="connect over Multipath TCP where the kernel offers it (net.mptcp.enabled), else TCP")
     tls.add_client_arguments(p)

@@ -79,10 +79,10 @@ def parser() -> argparse.ArgumentParser:
     p.add_argument("--max-pending-binary", type=int, default=DEFAULT_MAX_PENDING_TOTAL, metavar="BYTES",
                    help="bytes of binary parts waiting for their message, all robots together; past it a part "
                         f"gets an ER (default {DEFAULT_MAX_PENDING_TOTAL}; each robot also has its own cap)")
-    p.add_argument("--bulk-rate", type=rate_arg, default=None, metavar="RATE",
+    p.add_argument("--bulk-rate", type=rate_arg, default="auto", metavar="RATE",
                    help="pace each robot's bulk link (images, clouds, scans, maps to the robot) to RATE: bytes/s, or "
-                        "with a unit (1.25MB, 10Mbit); set it a little below the robots' downlink (default: not "
-                        "paced; docs/lanes.md)")
+                        "with a unit (1.25MB, 10Mbit), a little below the robots' downlink; 'auto' (the default): "
+                        "under the rate estimated for each link's path; 'off': not paced (docs/lanes.md)")
     p.add_argument("--mptcp", action="store_true",
                    help="accept robots over Multipath TCP where the kernel offers it (net.mptcp.enabled), else TCP")
     p.add_argument("--ready-file", type=Path, help="write {ws_port, data_addr, pid} here once registered")

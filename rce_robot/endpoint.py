@@ -14,7 +14,7 @@ from urllib.parse import parse_qs, urlsplit
 
 from aiohttp import web
 from prometheus_client import CONTENT_TYPE_LATEST, CollectorRegistry, Gauge, generate_latest
-from prometheus_client.core import CounterMetricFamily, HistogramMetricFamily
+from prometheus_client.core import CounterMetricFamily, GaugeMetricFamily, HistogramMetricFamily
 from websockets.asyncio.server import serve
 
 from rce.transport.cluster_auth import ClusterKey, token_of
@@ -23,7 +23,7 @@ from rce.plumbing.errors import AuthError, NotFound, RCEError, Throttled
 from rce.protocol.interface_type import InterfaceType
 from rce.protocol.lanes import Lane, parse_lane
 from rce.protocol.lane_queue import DELAY_BOUNDS
-from rce.protocol.pacer import Pacer
+from rce.protocol.pacer import Pacing, new_pacer
 from rce.transport.lane_socket import mptcp_socket
 from rce.plumbing.log import get_logger
 from rce.transport.masterlink import MASTER_WAIT, Address, MasterLink
@@ -150,6 +150,25 @@ class Metrics:
             delay.add_metric([lane.value], buckets, c["delay_sum"])
         yield from families.values()
         yield delay
+        yield from self._pacing()
+
+    def _pacing(self):
+        """Per session with a paced bulk link (labels ``lane``, ``user``, ``robot``): the rate its bulk
+        link is paced to, and the path's rate estimated (docs/lanes.md "Pacing")."""
+        rate = GaugeMetricFamily("rce_robot_lane_pacing_rate_bytes", "Bytes/s a robot's bulk link is paced to "
+                                 "(configured or estimated)", labels=["lane", "user", "robot"])
+        estimate = GaugeMetricFamily("rce_robot_lane_rate_estimate_bytes", "Bytes/s estimated for the path of a "
+                                     "robot's bulk link (set once a queue showed it)", labels=["lane", "user", "robot"])
+        for (user, robot), ns in self.ep.namespaces.items():
+            pacer = ns.session.bulk_pacer
+            if pacer is None:
+                continue
+            labels = [Lane.BULK.value, user, robot]
+            rate.add_metric(labels, pacer.rate)
+            if pacer.estimator is not None and pacer.estimator.estimate is not None:
+                estimate.add_metric(labels, pacer.estimator.estimate)
+        yield rate
+        yield estimate
 
 
 LANE_COUNTERS = {"messages_sent": "Messages to robots sent whole, per lane (goodput in messages)",
@@ -181,8 +200,9 @@ class RobotEndpoint:
     registers is ``wss://``;
     ``cluster_key``: proved to the master on every link (:mod:`rce.transport.cluster_auth`), and the source of
     this endpoint's data key; ``max_lag``: s the endpoint may stay behind a robot's frames before it
-    sheds that robot's topic messages (:class:`RobotSession`; None: never); ``bulk_rate``: bytes/s each
-    robot's bulk link is paced to (docs/lanes.md; None: not paced); ``mptcp``: listen on an MPTCP socket
+    sheds that robot's topic messages (:class:`RobotSession`; None: never); ``bulk_rate``: how each
+    robot's bulk link is paced (docs/lanes.md "Pacing"): bytes/s, ``"auto"`` or None (the rate estimated
+    per link from its socket), ``"off"`` (not paced); ``mptcp``: listen on an MPTCP socket
     where the kernel offers it (:func:`rce.transport.lane_socket.mptcp_socket`)."""
 
     def __init__(self, *, name: str, advertise_host: str, max_message: int = DEFAULT_MAX_MESSAGE,
@@ -190,7 +210,7 @@ class RobotEndpoint:
                  master_wait: float = MASTER_WAIT, grace: float = DEFAULT_GRACE,
                  resume_buffer: int = DEFAULT_RESUME_BUFFER, max_pending_total: int = DEFAULT_MAX_PENDING_TOTAL,
                  ssl_context: ssl.SSLContext | None = None, max_lag: float | None = DEFAULT_MAX_LAG,
-                 cluster_key: ClusterKey, bulk_rate: float | None = None, mptcp: bool = False):
+                 cluster_key: ClusterKey, bulk_rate: Pacing | None = None, mptcp: bool = False):
         self.name, self.advertise_host = name, advertise_host
         self.ssl_context = ssl_context
         self.cluster_key = cluster_key
@@ -368,7 +388,7 @@ class RobotEndpoint:
                 await ws.close(CLOSE_POLICY, "the session to join has ended")
                 return
             log.info("bulk link joined", user=user, robot=robot, peer=str(ws.remote_address))
-            await ns.serve_bulk(ws, Pacer(self.bulk_rate) if self.bulk_rate else None)
+            await ns.serve_bulk(ws, new_pacer(self.bulk_rate))
             return
         if ws.rce_ack is not None:             # a resume
             ns = self.namespaces.get((user, robot))

@@ -37,7 +37,7 @@ from rce_robot import ws_cork
 from rce.protocol.lanes import BULK_SIZE, Lane
 from rce.protocol.pacer import Pacer
 from rce.transport import lane_socket
-from rce.transport.lane_socket import paced_fragments, socket_of
+from rce.transport.lane_socket import PacedLink, fragments, socket_of
 from rce_robot.parse_pool import ParsePool
 
 log = get_logger("rce.robot")
@@ -265,7 +265,8 @@ class RobotNamespace:
         if self.ws is not None:
             lane_socket.mark(socket_of(self.ws), Lane.CONTROL)
         link = Tasks(f"robot {self.user}/{self.robot} bulk link")
-        link.spawn(self._bulk_writer(ws, pacer), name="bulk-writer")
+        link.spawn(self._bulk_writer(ws, PacedLink(pacer, socket_of(ws)) if pacer is not None else None),
+                   name="bulk-writer")
         self._pump()
         try:
             async for frame in ws:
@@ -282,16 +283,19 @@ class RobotNamespace:
                      code=ws.close_code)
             self._pump()
 
-    async def _bulk_writer(self, ws: Any, pacer: Pacer | None) -> None:
+    async def _bulk_writer(self, ws: Any, paced: PacedLink | None) -> None:
         """Write the bulk lane's DMs to ``ws``, one whole message at a time, each frame in fragments of
-        at most :data:`BULK_SIZE` paced by ``pacer``."""
+        at most :data:`BULK_SIZE` paced by ``paced`` (None: as fast as the link takes them)."""
         try:
             while True:
                 await self._bulk_wake.wait()
                 self._bulk_wake.clear()
                 while self.bulk_ws is ws and (frames := self.session.bulk_to_send(time.monotonic())) is not None:
                     for f in frames:
-                        await ws.send(paced_fragments(f, pacer) if pacer is not None or len(f) > BULK_SIZE else f)
+                        if paced is not None:
+                            await ws.send(paced.fragments(f))
+                        else:
+                            await ws.send(fragments(f) if len(f) > BULK_SIZE else f)
                     self.session.out.queue.sent(Lane.BULK, sum(len(f) for f in frames))
         except (ConnectionClosed, OSError):   # the reader sees it too; bulk data keeps its newest, nothing is resent
             pass

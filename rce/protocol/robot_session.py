@@ -11,6 +11,7 @@ from rce.protocol.events import CaughtUp, CloseLink, Deliver, Lagging, RequestRe
 from rce.protocol.frames import DEFAULT_EXPIRY, DEFAULT_MAX_PENDING_BYTES, DEFAULT_MAX_PENDING_PARTS, DM, ST
 from rce.protocol.holdback import HoldBack
 from rce.protocol.lanes import Lane, interface_lane, message_lane
+from rce.protocol.pacer import Pacer
 from rce.protocol.limits import DEFAULT_MAX_LAG, ER_BURST, ER_RATE, LagGate, PartBudget, short_repr
 from rce.protocol.robot_outbox import RobotOutbox, dm
 from rce.protocol.resume import (ACK_DELAY, ACK_EVERY, DEFAULT_GRACE, DEFAULT_RESUME_BUFFER, DEFAULT_RESUME_BYTES,
@@ -90,6 +91,7 @@ class RobotSession(SessionCore):
         self.grace = grace
         self.resumes = self.resume_lost = 0
         self.bulk_links = self.bulk_in = 0          # bulk links joined; DMs the robot sent on them
+        self.bulk_pacer: Pacer | None = None        # the bulk link's, while one is there
         self._lanes_status = float("-inf")          # s: when the last ST lanes went out
         if resume:
             self.out.link_message(ST, {"topic": SESSION_TOPIC, "status": "started", "session": self.token,
@@ -262,7 +264,7 @@ class RobotSession(SessionCore):
         self.out.tick(now)
         if self.out.bulk_linked and self.attached and now - self._lanes_status >= LANES_STATUS_EVERY:
             self._lanes_status = now
-            self.send_status({"topic": LANES_TOPIC, "lanes": self.out.queue.lane_stats()})
+            self.send_status({"topic": LANES_TOPIC, "lanes": self.lane_stats()})
 
     def end(self) -> None:
         """The session ended: what waited for binary parts is forgotten (its bytes go back to the budget)."""
@@ -270,9 +272,11 @@ class RobotSession(SessionCore):
         self.bulk_assembler.clear()
 
     # -- the bulk link (docs/lanes.md) --------------------------------------------------------------
-    def attach_bulk(self) -> None:
+    def attach_bulk(self, pacer: Pacer | None = None) -> None:
         """A bulk link joined the session: from now on the bulk lane's topic DMs go on it
-        (:meth:`bulk_to_send`), unnumbered; the robot's DMs on it come in through :meth:`receive_bulk`."""
+        (:meth:`bulk_to_send`), unnumbered; the robot's DMs on it come in through :meth:`receive_bulk`.
+        ``pacer``: the link's (None: not paced); its rate is in the bulk lane's stats (:meth:`lane_stats`)."""
+        self.bulk_pacer = pacer
         self.out.bulk_linked = True
         self.bulk_links += 1
         self.bulk_assembler = self.bulk_assembler.fresh()
@@ -281,6 +285,7 @@ class RobotSession(SessionCore):
         """The bulk link is gone: the bulk lane goes on the session's own link again; what waited for
         binary parts on it is forgotten (the robot resends nothing there: bulk data keeps its newest)."""
         self.out.bulk_linked = False
+        self.bulk_pacer = None
         self.bulk_assembler = self.bulk_assembler.fresh()
 
     def bulk_to_send(self, now: float | None = None) -> list[str | bytes] | None:
@@ -381,7 +386,16 @@ class RobotSession(SessionCore):
                 "resume_lost": self.resume_lost, "kept": len(out) if out else 0, "kept_bytes": out.bytes if out else 0,
                 "resume_forgotten": out.forgotten if out else 0, "duplicates": inc.duplicates if inc else 0,
                 "resume_gaps": inc.gaps if inc else 0,
-                "bulk_links": self.bulk_links, "bulk_in": self.bulk_in, "lanes": self.out.queue.lane_stats()}
+                "bulk_links": self.bulk_links, "bulk_in": self.bulk_in, "lanes": self.lane_stats()}
+
+    def lane_stats(self) -> dict[str, dict]:
+        """Per lane, :meth:`LaneQueues.lane_stats`; the bulk lane's, while a paced bulk link is there, also
+        its pacing (:meth:`Pacer.stats`: ``rate_source``, ``rate`` bytes/s, and when estimated
+        ``rate_estimate`` bytes/s, ``rate_mode``, ``rate_backoffs``, ``rate_probes``)."""
+        stats = self.out.queue.lane_stats()
+        if self.bulk_pacer is not None:
+            stats[Lane.BULK.value].update(self.bulk_pacer.stats())
+        return stats
 
 
 def robot_interface_type(itype: str) -> tuple[str, str]:

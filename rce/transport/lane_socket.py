@@ -6,8 +6,12 @@
   written next is not stuck behind a deep socket buffer; Linux tcp(7)). The bulk link is DSCP CS1
   (``IP_TOS`` 0x20, RFC 4594's low-priority data). A link alone (a client with one websocket) is left
   unmarked: it carries every lane.
-- :func:`paced_fragments`: one websocket message's fragments of at most
-  :data:`~rce.protocol.lanes.BULK_SIZE`, each let out when the :class:`~rce.protocol.pacer.Pacer` says.
+- :class:`PacedLink`: a bulk link's :class:`~rce.protocol.pacer.Pacer` on its socket. It writes one
+  websocket message's fragments of at most :data:`~rce.protocol.lanes.BULK_SIZE`, each when the pacer says
+  (:meth:`PacedLink.fragments`); it has the kernel pace the socket's packets to the pacer's rate
+  (``SO_MAX_PACING_RATE``, Linux's TCP internal pacing), so a fragment reaches the bottleneck spread out,
+  not as a burst; and when the rate is estimated it feeds the pacer the socket's ``TCP_INFO``
+  (:func:`tcp_sample`).
 - :func:`mptcp_socket`, :func:`mptcp_connect`: a TCP socket that is MPTCP (RFC 8684) where the kernel offers it
   (``IPPROTO_MPTCP``, ``net.mptcp.enabled``), plain TCP where it does not.
 """
@@ -15,20 +19,27 @@ from __future__ import annotations
 
 import asyncio
 import socket
+import struct
 import time
-from collections.abc import AsyncIterator
+from collections.abc import AsyncIterator, Iterator
 from typing import Any
 from urllib.parse import urlsplit
 
 from rce.plumbing.log import get_logger
 from rce.protocol.lanes import BULK_SIZE, Lane
 from rce.protocol.pacer import Pacer, chunks
+from rce.protocol.rate_estimator import PathSample
 
 log = get_logger("rce.transport")
 
 TOS = {Lane.CONTROL: 0xB8, Lane.STATE: 0xB8, Lane.BULK: 0x20}     # EF, EF (state rides with control), CS1
 CONTROL_NOTSENT_LOWAT = 8 * 1024      # bytes unsent the kernel keeps on a control link before it says "writable"
 IPPROTO_MPTCP = getattr(socket, "IPPROTO_MPTCP", 262)            # Linux's protocol number (Python >= 3.10 names it)
+SO_MAX_PACING_RATE = getattr(socket, "SO_MAX_PACING_RATE", 47)   # Linux's option number
+KERNEL_PACING_ROOM = 1.1       # the kernel paces a bulk socket this much above the pacer, so it smooths, never limits
+SAMPLE_EVERY = 0.005           # s: TCP_INFO is read at most this often per bulk link
+# struct tcp_info (linux/tcp.h): byte offsets of the fields read, and the length that holds them all
+_TCPI_RTT, _TCPI_BYTES_ACKED, _TCPI_NOTSENT, _TCPI_MIN_RTT, _TCPI_LEN = 68, 120, 144, 148, 152
 
 
 def mark(sock: socket.socket | None, lane: Lane) -> bool:
@@ -63,22 +74,79 @@ def marks(sock: socket.socket) -> int:
     return sock.getsockopt(socket.IPPROTO_IP, socket.IP_TOS)
 
 
-async def paced_fragments(frame: str | bytes, pacer: Pacer | None) -> AsyncIterator[str | bytes]:
-    """``frame`` (a websocket message's payload) in fragments of at most :data:`BULK_SIZE` (characters of a
-    text frame), each yielded once ``pacer`` lets its bytes out (None: at once). For ``ws.send``, which
-    sends them as one fragmented message (RFC 6455 section 5.4)."""
-    if isinstance(frame, str):
-        parts = (frame[i:i + BULK_SIZE] for i in range(0, max(len(frame), 1), BULK_SIZE))
-    else:
-        parts = (bytes(c) for c in chunks(frame))
-    for part in parts:
-        if pacer is not None:
-            wait = pacer.delay(len(part), time.monotonic())
+def tcp_sample(sock: socket.socket, limited: bool, now: float) -> PathSample | None:
+    """``sock``'s Linux ``TCP_INFO`` at ``now`` (s, monotonic) as a :class:`PathSample` (``limited``: the
+    pacer held data back since the last one); None where the kernel gives none (not Linux, a kernel
+    before 4.6, a closed socket)."""
+    try:
+        info = sock.getsockopt(socket.IPPROTO_TCP, socket.TCP_INFO, 256)
+    except (OSError, AttributeError):
+        return None
+    if len(info) < _TCPI_LEN:
+        return None
+    (rtt,) = struct.unpack_from("I", info, _TCPI_RTT)
+    (acked,) = struct.unpack_from("Q", info, _TCPI_BYTES_ACKED)
+    notsent, min_rtt = struct.unpack_from("II", info, _TCPI_NOTSENT)
+    if min_rtt in (0, 0xFFFFFFFF):          # no round trip measured yet
+        return None
+    return PathSample(now, acked, rtt / 1e6, min_rtt / 1e6, notsent, limited)
+
+
+class PacedLink:
+    """A bulk link's ``pacer`` on its ``sock`` (None: a socket not known, e.g. a test double; then only
+    the pacer). Counters: :attr:`samples` taken; :attr:`kernel_pacing`: the kernel took
+    ``SO_MAX_PACING_RATE``."""
+
+    def __init__(self, pacer: Pacer, sock: socket.socket | None):
+        self.pacer, self.sock = pacer, sock
+        self.samples = 0
+        self._sampled = float("-inf")        # when TCP_INFO was last read
+        self._kernel_rate = 0                # the rate the kernel was last told (bytes/s)
+        self.kernel_pacing = sock is not None
+        self._pace_kernel()
+
+    def _pace_kernel(self) -> None:
+        """Have the kernel pace the socket's packets a little above the pacer's rate (once the rate moved)."""
+        rate = int(self.pacer.rate * KERNEL_PACING_ROOM)
+        if not self.kernel_pacing or abs(rate - self._kernel_rate) < 0.02 * rate:
+            return
+        try:
+            self.sock.setsockopt(socket.SOL_SOCKET, SO_MAX_PACING_RATE, min(rate, 0xFFFFFFFF))
+            self._kernel_rate = rate
+        except OSError as e:                 # e.g. an MPTCP socket: the pacer alone paces, per fragment
+            self.kernel_pacing = False
+            log.info("the kernel does not pace this bulk link's socket; the pacer alone does", reason=str(e))
+
+    def _observe(self, now: float) -> None:
+        """Feed the estimator the socket's state (at most every :data:`SAMPLE_EVERY` s)."""
+        if self.pacer.estimator is None or self.sock is None or now - self._sampled < SAMPLE_EVERY:
+            return
+        self._sampled = now
+        sample = tcp_sample(self.sock, self.pacer.limited, now)
+        if sample is not None:
+            self.samples += 1
+            self.pacer.observe(sample, now)
+            self._pace_kernel()
+
+    async def fragments(self, frame: str | bytes) -> AsyncIterator[str | bytes]:
+        """``frame`` (a websocket message's payload) in fragments of at most :data:`BULK_SIZE` (characters
+        of a text frame), each yielded once the pacer lets its bytes out. For ``ws.send``, which sends them
+        as one fragmented message (RFC 6455 section 5.4)."""
+        for part in fragments(frame):
+            self._observe(time.monotonic())
+            wait = self.pacer.delay(len(part), time.monotonic())
             if wait > 0:
-                pacer.waited(wait)
+                self.pacer.waited(wait)
                 await asyncio.sleep(wait)       # the pacer's timer
-            pacer.spend(len(part), time.monotonic())
-        yield part
+            self.pacer.spend(len(part), time.monotonic())
+            yield part
+
+
+def fragments(frame: str | bytes) -> Iterator[str | bytes]:
+    """``frame`` in fragments of at most :data:`BULK_SIZE` (characters of a text frame, bytes of a binary one)."""
+    if isinstance(frame, str):
+        return (frame[i:i + BULK_SIZE] for i in range(0, max(len(frame), 1), BULK_SIZE))
+    return (bytes(c) for c in chunks(frame))
 
 
 def mptcp_socket(family: int = socket.AF_INET) -> tuple[socket.socket, bool]:

@@ -1,0 +1,173 @@
+"""The bulk lane's path rate, estimated from the sender's TCP state, sans I/O (docs/lanes.md "Pacing").
+
+When no rate is configured, a bulk link's :class:`~rce.protocol.pacer.Pacer` follows a
+:class:`RateEstimator`: the transport reads the bulk socket's Linux ``TCP_INFO`` as it writes
+(:class:`rce.transport.lane_socket.PacedLink`) and feeds it here as :class:`PathSample`\\ s; the
+estimator says the rate to pace at (:attr:`RateEstimator.rate`) and what it believes the path's
+bottleneck rate is (:attr:`RateEstimator.estimate`).
+
+The signals are those BBR reads from the kernel (Cardwell, Cheng, Gunn, Hassas Yeganeh, Jacobson, "BBR:
+Congestion-Based Congestion Control", ACM Queue 14(5), 2016): a bottleneck drains at its rate whatever
+is sent into it, and the round-trip time grows only once a queue stands in front of it. The reaction
+to queueing delay is LEDBAT's (RFC 6817): a sender of bulk data backs off as soon as the delay it adds to
+the path passes a small target, so that the path's other traffic (here: the session's control lane,
+behind the same FIFO where a bottleneck ignores DSCP) does not wait behind it.
+
+In intervals of at least :data:`MIN_INTERVAL` s and two minimum round trips:
+
+- **Congested**: the smoothed RTT (``tcpi_rtt``) is more than the queue target above the path's
+  minimum (``tcpi_min_rtt``), or the kernel holds more than :data:`NOTSENT_LIMIT` bytes it could not
+  send (``tcpi_notsent_bytes``: the path takes less than the pacer lets in). The bottleneck was busy,
+  so the bytes acked per second over the interval (``tcpi_bytes_acked``) are its rate: that is the
+  estimate. The pacer then drains the queue at :data:`DRAIN_GAIN` x the estimate until the queue is gone.
+- **Cruise**: the pacer runs at :data:`CRUISE_GAIN` x the estimate, under the link, so the
+  bottleneck's queue stays empty.
+- **Probe**: after :data:`PROBE_EVERY` cruise intervals with data held back by the pacer, one interval at
+  :data:`PROBE_GAIN` x the estimate (BBR's probe gain): if the path takes it without a queue, the
+  estimate rises to what was acked, and while it rises by more than :data:`PROBE_ROOM` the probing goes on.
+- **Startup**: from :data:`INITIAL_RATE` the rate doubles every interval with data held back (BBR's
+  startup, gain 2) until the first congested interval gives the first estimate.
+- An interval in which the pacer held nothing back (the application sent less than the rate) teaches
+  nothing about the path: the estimate stays. Neither does one with no byte acked (a stalled path), nor
+  one longer than :data:`MAX_INTERVAL` (an idle spell).
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+from enum import Enum
+
+INITIAL_RATE = 125_000.0    # bytes/s the pacer starts at (1 Mbit/s), doubling each interval until a queue shows
+MIN_RATE = 12_500.0         # bytes/s, the lowest estimate (100 kbit/s)
+MIN_INTERVAL = 0.05         # s, the shortest interval the estimator judges (also at least 2 minimum RTTs)
+MAX_INTERVAL = 1.0          # s; a longer gap between samples is an idle spell: the interval starts again
+QUEUE_TARGET = 0.010        # s of queueing delay that counts as a queue (RFC 6817's TARGET, scaled to control)
+TARGET_PACKETS = 4          # ... at least the time of this many full packets at the rate (delayed ACKs on a slow path)
+PACKET = 1500               # bytes of a full packet
+NOTSENT_LIMIT = 64 * 1024   # bytes the kernel holds unsent past which the path, not the pacer, is the limit
+STARTUP_GAIN = 2.0
+CRUISE_GAIN = 0.9           # the pacer's rate in cruise, as a share of the estimate: under the link
+DRAIN_GAIN = 0.75
+PROBE_GAIN = 1.25
+PROBE_EVERY = 8             # cruise intervals (with data held back) between probes
+PROBE_ROOM = 1.1            # a probe that raised the estimate by this factor or more is followed by another
+MAX_DRAIN = 4               # drain intervals that still show a queue after which the estimate is taken again
+
+
+class Mode(str, Enum):
+    STARTUP = "startup"
+    CRUISE = "cruise"
+    PROBE = "probe"
+    DRAIN = "drain"
+
+
+@dataclass(frozen=True)
+class PathSample:
+    """One reading of a bulk link's TCP state (Linux ``TCP_INFO``) at ``t`` (s, monotonic):
+    ``acked``: bytes acked since the connection began (``tcpi_bytes_acked``); ``rtt``: the smoothed
+    round trip (``tcpi_rtt``, s); ``min_rtt``: the least round trip seen (``tcpi_min_rtt``, s);
+    ``notsent``: bytes written but not yet sent (``tcpi_notsent_bytes``); ``limited``: the pacer held
+    data back since the previous sample (the application had more to send than the rate)."""
+    t: float
+    acked: int
+    rtt: float
+    min_rtt: float
+    notsent: int
+    limited: bool
+
+
+class RateEstimator:
+    """A bulk link's bottleneck rate and the rate to pace at, from :class:`PathSample`\\ s (module doc).
+
+    :attr:`rate`: bytes/s to pace at (starts at ``initial``); :attr:`estimate`: the path's rate in
+    bytes/s (None until a first queue showed it); :attr:`mode`. Counters: :attr:`samples`,
+    :attr:`intervals` (judged), :attr:`backoffs` (congested intervals), :attr:`probes`. Raises
+    ValueError for an ``initial`` rate that is not > 0."""
+
+    def __init__(self, initial: float = INITIAL_RATE):
+        if initial <= 0:
+            raise ValueError(f"a rate estimator needs an initial rate > 0, got {initial!r} bytes/s")
+        self.mode = Mode.STARTUP
+        self.rate = float(initial)
+        self.estimate: float | None = None
+        self.samples = self.intervals = self.backoffs = self.probes = 0
+        self._start: PathSample | None = None     # the sample that began the current interval
+        self._limited = False                     # the pacer held data back during the current interval
+        self._cruised = 0                         # cruise intervals with data held back since the last probe
+        self._drained = 0                         # drain intervals that still showed a queue
+
+    def sample(self, s: PathSample) -> None:
+        """Take sample ``s`` (samples come in time order; one older than the last is ignored). When it
+        ends an interval, the interval is judged and :attr:`rate` may change."""
+        start = self._start
+        if start is not None and s.t < start.t:
+            return
+        self.samples += 1
+        if start is None or s.t - start.t > MAX_INTERVAL or s.acked < start.acked:
+            self._begin(s)          # the first, after an idle spell, or a new connection's counters
+            return
+        self._limited = self._limited or s.limited
+        dt = s.t - start.t
+        if dt < max(MIN_INTERVAL, 2 * s.min_rtt):
+            return
+        self._judge(delivered=(s.acked - start.acked) / dt, queue=max(0.0, s.rtt - s.min_rtt),
+                    backlog=s.notsent > NOTSENT_LIMIT, limited=self._limited)
+        self._begin(s)
+
+    def _begin(self, s: PathSample) -> None:
+        self._start, self._limited = s, s.limited
+
+    def target(self) -> float:
+        """s of queueing delay that counts as a queue at the current rate: :data:`QUEUE_TARGET`, or the
+        time of :data:`TARGET_PACKETS` full packets at :attr:`rate` if longer."""
+        return max(QUEUE_TARGET, TARGET_PACKETS * PACKET / self.rate)
+
+    def _judge(self, delivered: float, queue: float, backlog: bool, limited: bool) -> None:
+        self.intervals += 1
+        congested = queue > self.target() or backlog
+        if self.mode is Mode.DRAIN:
+            if not congested:
+                self._cruise()
+            else:
+                self._drained += 1
+                if self._drained >= MAX_DRAIN and delivered > 0:     # still a queue: the path is slower yet
+                    self._set(max(delivered, MIN_RATE), Mode.DRAIN)
+            return
+        if congested and (limited or backlog) and delivered > 0:
+            self.backoffs += 1
+            self._drained = 0
+            self._set(max(delivered, MIN_RATE), Mode.DRAIN)
+            return
+        if not limited or delivered <= 0:
+            return                     # the application sent less than the rate, or nothing was acked
+        if self.mode is Mode.STARTUP:
+            self.rate *= STARTUP_GAIN
+        elif self.mode is Mode.PROBE:
+            before = self.estimate or delivered
+            self.estimate = max(before, delivered)
+            if self.estimate >= PROBE_ROOM * before:
+                self._probe()          # the path took more: probe on from the new estimate
+            else:
+                self._cruise()
+        else:
+            self._cruised += 1
+            if self._cruised >= PROBE_EVERY:
+                self._probe()
+
+    def _set(self, estimate: float, mode: Mode) -> None:
+        self.estimate, self.mode = estimate, mode
+        self.rate = DRAIN_GAIN * estimate
+
+    def _cruise(self) -> None:
+        self.mode, self._cruised = Mode.CRUISE, 0
+        self.rate = CRUISE_GAIN * self.estimate
+
+    def _probe(self) -> None:
+        self.mode = Mode.PROBE
+        self.probes += 1
+        self.rate = PROBE_GAIN * self.estimate
+
+    def stats(self) -> dict:
+        """``rate`` and ``rate_estimate`` (bytes/s, rounded; the estimate None until known), ``rate_mode``
+        (startup, cruise, probe, drain), ``rate_backoffs``, ``rate_probes``."""
+        return {"rate": round(self.rate), "rate_estimate": None if self.estimate is None else round(self.estimate),
+                "rate_mode": self.mode.value, "rate_backoffs": self.backoffs, "rate_probes": self.probes}

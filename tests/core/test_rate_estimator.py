@@ -1,0 +1,174 @@
+"""The bulk lane's rate estimator (rce.protocol.rate_estimator) fed by a bottleneck model, the pacer
+that follows it, and TCP_INFO read from a real loopback socket (rce.transport.lane_socket)."""
+from __future__ import annotations
+
+import socket
+
+import pytest
+
+from rce.protocol.pacer import AUTO, OFF, Pacer, new_pacer, parse_pacing
+from rce.protocol.rate_estimator import (INITIAL_RATE, MAX_INTERVAL, NOTSENT_LIMIT, Mode, PathSample,
+                                         RateEstimator)
+from rce.transport.lane_socket import PacedLink, tcp_sample
+
+STEP = 0.005          # s between samples
+
+
+class Bottleneck:
+    """A FIFO bottleneck of ``rate`` bytes/s behind a path of ``base`` s round trip, fed at the pacer's
+    rate (or less, when the sender has less to send), as the kernel's pacing sends it. It gives what
+    TCP_INFO would: bytes acked, a smoothed RTT (the base plus the queue's delay, RFC 6298's 1/8 gain
+    per step), the minimum RTT."""
+
+    def __init__(self, rate: float, base: float = 0.001):
+        self.rate, self.base = rate, base
+        self.queue = 0.0          # bytes waiting at the bottleneck
+        self.acked = 0.0
+        self.srtt = base
+        self.t = 0.0
+        self.delays: list[float] = []       # s of queueing delay after each step
+
+    def step(self, est: RateEstimator, demand: float, notsent: int = 0) -> None:
+        send = min(est.rate, demand) * STEP
+        self.queue += send
+        out = min(self.queue, self.rate * STEP)
+        self.queue -= out
+        self.acked += out
+        self.t += STEP
+        self.srtt += (self.base + self.queue / self.rate - self.srtt) / 8
+        self.delays.append(self.queue / self.rate)
+        est.sample(PathSample(self.t, int(self.acked), self.srtt, self.base, notsent, limited=demand > est.rate))
+
+    def run(self, est: RateEstimator, seconds: float, demand: float) -> list[float]:
+        """``seconds`` of steps; returns the pacer's rate at each."""
+        rates = []
+        for _ in range(int(seconds / STEP)):
+            self.step(est, demand)
+            rates.append(est.rate)
+        return rates
+
+
+LINK = 1_250_000.0     # bytes/s: 10 Mbit/s
+CAMERA = 5_000_000.0   # bytes/s the application would send
+
+
+def test_the_estimate_converges_to_the_link_and_the_pacer_stays_under_it():
+    est, path = RateEstimator(), Bottleneck(LINK)
+    path.run(est, 5, CAMERA)
+    steady = path.run(est, 10, CAMERA)
+    assert 0.85 * LINK <= est.estimate <= 1.05 * LINK
+    assert 0.85 * LINK <= sum(steady) / len(steady) <= LINK        # the pacer's average rate: under the link
+    queued = sorted(path.delays[-len(steady):])
+    assert queued[len(queued) // 2] < 0.002         # the queue mostly empty
+    assert queued[-1] < 0.025                       # and short while a probe runs
+    assert est.probes > 5 and est.backoffs >= 1
+
+
+@pytest.mark.parametrize("link", [100_000.0, 12_500_000.0, 125_000_000.0])     # 0.8, 100, 1000 Mbit/s
+def test_it_converges_over_three_decades(link):
+    est, path = RateEstimator(), Bottleneck(link, base=0.02)
+    path.run(est, 15, 4 * link)
+    assert 0.8 * link <= est.estimate <= 1.05 * link
+
+
+def test_a_slower_link_is_followed_at_once():
+    est, path = RateEstimator(), Bottleneck(LINK)
+    path.run(est, 5, CAMERA)
+    path.rate = LINK / 3
+    path.run(est, 1, CAMERA)
+    assert 0.8 * LINK / 3 <= est.estimate <= 1.05 * LINK / 3
+    path.run(est, 3, CAMERA)
+    assert path.delays[-1] < 0.025                  # the queue the change made is drained
+
+
+def test_a_faster_link_is_found_by_probing():
+    est, path = RateEstimator(), Bottleneck(LINK)
+    path.run(est, 5, CAMERA)
+    path.rate = 4 * LINK
+    path.run(est, 6, 5 * LINK)
+    assert est.estimate >= 0.8 * 4 * LINK
+
+
+def test_an_application_sending_less_than_the_link_teaches_nothing_and_the_rate_stays_bounded():
+    est, path = RateEstimator(), Bottleneck(LINK)
+    path.run(est, 5, 0.2 * LINK)
+    assert est.estimate is None and est.mode is Mode.STARTUP and est.backoffs == 0
+    assert 0.2 * LINK < est.rate <= 0.8 * LINK           # doubled only while it held data back
+    path.run(est, 5, CAMERA)                             # then the camera: startup goes on
+    assert 0.85 * LINK <= est.estimate <= 1.05 * LINK
+    path.run(est, 5, 0.2 * LINK)                         # quiet again: the estimate stays
+    assert 0.85 * LINK <= est.estimate <= 1.05 * LINK
+
+
+def test_bytes_the_kernel_cannot_send_count_as_a_queue():
+    """A receiver that reads slowly: the RTT does not grow, the bytes wait in the sender's kernel."""
+    est = RateEstimator()
+    acked, t = 0, 0.0
+    for _ in range(200):
+        t += STEP
+        acked += int(200_000 * STEP)             # the path takes 200 kB/s
+        est.sample(PathSample(t, acked, 0.001, 0.001, notsent=2 * NOTSENT_LIMIT, limited=False))
+    assert est.backoffs >= 1 and est.estimate == pytest.approx(200_000, rel=0.05)
+    assert est.rate < 200_000
+
+
+def test_an_idle_spell_or_a_stalled_path_is_not_judged():
+    est = RateEstimator()
+    est.sample(PathSample(0.0, 0, 0.001, 0.001, 0, True))
+    est.sample(PathSample(MAX_INTERVAL + 1, 10_000, 0.001, 0.001, 0, True))     # an idle spell: starts again
+    assert est.intervals == 0
+    est.sample(PathSample(MAX_INTERVAL + 1.1, 10_000, 0.5, 0.001, 0, True))     # nothing acked, a queue
+    assert est.intervals == 1 and est.estimate is None and est.backoffs == 0
+    est.sample(PathSample(MAX_INTERVAL + 1.0, 20_000, 0.001, 0.001, 0, True))   # older than the last: ignored
+    assert est.samples == 3
+
+
+def test_the_pacer_follows_its_estimator_and_reports_it():
+    est = RateEstimator()
+    pacer = Pacer(est.rate, estimator=est)
+    pacer.spend(100_000, 0.0)
+    assert pacer.delay(16_384, 0.0) > 0 and pacer.limited      # held back: the application wants more
+    path = Bottleneck(LINK)
+    for _ in range(2000):
+        path.step(est, CAMERA)
+        pacer.observe(PathSample(path.t, int(path.acked), path.srtt, path.base, 0, True), path.t)
+    assert pacer.rate == est.rate and not pacer.limited
+    st = pacer.stats()
+    assert st["rate_source"] == "estimated" and st["rate_mode"] in {m.value for m in Mode}
+    assert 0.85 * LINK <= st["rate_estimate"] <= 1.05 * LINK
+    assert Pacer(1000).stats() == {"rate_source": "configured", "rate": 1000}
+
+
+def test_a_setting_names_the_pacing():
+    assert parse_pacing("auto") == AUTO and parse_pacing(" OFF ") == OFF
+    assert parse_pacing("10Mbit") == 1_250_000
+    with pytest.raises(ValueError, match="'fast'"):
+        parse_pacing("fast")
+    assert new_pacer(OFF) is None
+    assert new_pacer(None).estimator is not None and new_pacer(AUTO).rate == INITIAL_RATE
+    assert new_pacer(2e6).estimator is None and new_pacer(2e6).rate == 2e6
+    with pytest.raises(ValueError):
+        RateEstimator(0)
+
+
+def test_tcp_info_of_a_real_socket_is_read_and_the_kernel_paces_it():
+    srv = socket.create_server(("127.0.0.1", 0))
+    client = socket.create_connection(srv.getsockname())
+    peer, _ = srv.accept()
+    try:
+        first = tcp_sample(client, False, 1.0)
+        client.sendall(b"x" * 100_000)
+        got = 0
+        while got < 100_000:
+            got += len(peer.recv(1 << 20))
+        second = tcp_sample(client, True, 2.0)
+        assert first is not None and second is not None
+        assert second.acked - first.acked >= 100_000 and second.limited and second.t == 2.0
+        assert 0 < second.min_rtt <= second.rtt < 1.0
+        link = PacedLink(Pacer(1_000_000), client)
+        assert link.kernel_pacing
+        assert client.getsockopt(socket.SOL_SOCKET, 47) == 1_100_000      # SO_MAX_PACING_RATE, 10 % above
+    finally:
+        for s in (client, peer, srv):
+            s.close()
+    assert tcp_sample(client, False, 3.0) is None        # closed: no sample
