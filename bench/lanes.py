@@ -15,7 +15,9 @@ The robot (a process in R): a camera of ``--camera-rate`` bytes/s (``sensor_msgs
 its age) and a ``std_msgs/String`` cancel at 10 Hz through a converter, echoed by the Test package's
 ``stringEcho.py``. Each system runs an idle phase (the cancel only) and a camera phase (both):
 
-- ``rce-lanes``: ``rce_client`` with lanes (the bulk link paced to ``--pace`` x the link);
+- ``rce-lanes``: ``rce_client`` with lanes, the bulk link paced to ``--pace`` x the link (configured);
+- ``rce-auto``: ``rce_client`` with lanes, the bulk link paced under the rate it estimates for the path
+  (no rate configured: ``bulk_rate="auto"``, docs/lanes.md "Pacing");
 - ``rce``: ``rce_client`` on one link (lanes off: today's shape for a 2013 client);
 - ``ros1``: rospy over TCPROS (Debian ros-comm): rosmaster, the echo and the ack in the cloud, the robot
   node in R (``bench/ros1/lanes_peer.py``), when ROS 1 is installed.
@@ -26,7 +28,7 @@ and frame age; JSON and a PNG in
 ``bench/results/``. Usage::
 
     sudo .venv/bin/python bench/lanes.py [--idle 8] [--camera 15] [--setups dscp,fifo]
-                                         [--systems rce-lanes,rce,ros1]
+                                         [--systems rce-lanes,rce-auto,rce,ros1]
 """
 from __future__ import annotations
 
@@ -145,9 +147,9 @@ async def run_phase(probe: Probe, seconds: float, cancel, camera, frame: bytearr
 
 async def robot_rce(a: argparse.Namespace) -> dict:
     from rce_client.connection import Connection
-    lanes = a.system == "rce-lanes"
+    lanes = a.system in ("rce-lanes", "rce-auto")
     conn = await Connection.connect(a.master, "testUser", "testUser", f"lanes{a.tag}", allow_reconnect=True,
-                                    lanes=lanes, bulk_rate=a.pace * LINK if lanes else None)
+                                    lanes=lanes, bulk_rate=a.pace * LINK if a.system == "rce-lanes" else "auto")
     rid, c = conn.robot_id, f"lanesC{a.tag}"
     await conn.create_container(c)
     await conn.add_node(c, "echo", "Test", "stringEcho.py")
@@ -180,7 +182,8 @@ async def robot_rce(a: argparse.Namespace) -> dict:
         if probe.rtt:
             break
     out = await phases(a, cancel, cam.publish, probe)
-    out["bulk"] = {"sent": conn.bulk.sent, "dropped": conn.bulk.dropped} if lanes else None
+    out["bulk"] = {"sent": conn.bulk.sent, "dropped": conn.bulk.dropped, "pacing": conn.bulk.pacing()} if lanes \
+        else None
     await conn.close()
     return out
 
@@ -213,7 +216,7 @@ def main(argv=None) -> int:
     p.add_argument("--frame", type=int, default=500_000, help="bytes per camera frame")
     p.add_argument("--pace", type=float, default=0.88, help="the bulk link's rate as a share of the link")
     p.add_argument("--setups", default="dscp,fifo")
-    p.add_argument("--systems", default="rce-lanes,rce,ros1")
+    p.add_argument("--systems", default="rce-lanes,rce-auto,rce,ros1")
     p.add_argument("--out", type=Path, default=BENCH / "results" / "lanes.json")
     # the robot's role (run by the bench in namespace R)
     p.add_argument("--role", choices=("bench", "robot"), default="bench", help=argparse.SUPPRESS)
@@ -240,8 +243,8 @@ def bench(a: argparse.Namespace) -> int:
         if not ok:
             print(f"lanes: ROS 1 left out: {why}", flush=True)
             systems.remove("ros1")
-    results: dict = {"link_Bps": LINK, "camera_Bps": a.camera_rate, "frame": a.frame, "pace": a.pace,
-                     "cancel_hz": CANCEL_HZ, "git": git_head(), "runs": []}
+    results: dict = {"load_before": os.getloadavg(), "link_Bps": LINK, "camera_Bps": a.camera_rate,
+                     "frame": a.frame, "pace": a.pace, "cancel_hz": CANCEL_HZ, "git": git_head(), "runs": []}
     with NetLab("lnb") as lab:
         lab.namespace("r")
         link = lab.link(None, "r", 1)
@@ -273,6 +276,7 @@ def bench(a: argparse.Namespace) -> int:
                     print("   " + summary(r), flush=True)
         finally:
             e.stop()
+    results["load_after"] = os.getloadavg()
     write_json(a.out, results)
     plot(results, a.out.with_suffix(".png"), pyplot())
     print(f"lanes: {a.out} and {a.out.with_suffix('.png')}")
@@ -306,10 +310,13 @@ def ros1_run(lab, link, a: argparse.Namespace) -> dict:
 
 def summary(r: dict) -> str:
     i, c = r["idle"], r["camera"]
+    pacing = (r.get("bulk") or {}).get("pacing") or {}
+    est = f"; uplink estimated {pacing['rate_estimate'] / LINK:.0%} of the link" \
+        if pacing.get("rate_estimate") else ""
     return (f"cancel idle p50 {i['p50_ms']} p99 {i['p99_ms']} max {i['max_ms']} ms; under camera p50 "
             f"{c['p50_ms']} p99 {c['p99_ms']} max {c['max_ms']} ms, lost {i['lost'] + c['lost']}; camera "
             f"{c['goodput_Bps'] / 1e6:.2f} MB/s ({c['goodput_share']:.0%} of the link), age p50 "
-            f"{c['frame_age_p50_ms']} ms")
+            f"{c['frame_age_p50_ms']} ms{est}")
 
 
 def plot(results: dict, path: Path, plt) -> None:

@@ -31,6 +31,7 @@ from rce.protocol.frames import DM
 from rce.protocol.lanes import Lane
 from rce.protocol.outbox import Outbox
 from rce.protocol.pacer import Pacing, new_pacer
+from rce.protocol.rate_estimator import Mode
 from rce.protocol.session import ClientSession
 from rce.transport import lane_socket
 from rce.transport.lane_socket import PacedLink, fragments, socket_of
@@ -42,8 +43,8 @@ log = get_logger("rce.client")
 BULK_QUEUE = 8             # bulk messages waiting for the bulk link; past it the busiest interface drops its oldest
 BULK_MAX_LAG = 0.5         # s a bulk message may wait while a newer one of its interface waits behind it
 REDIAL_WAIT, REDIAL_WAIT_MAX = 0.05, 1.0      # s between dials of a dropped bulk link, doubling up to the max
-ESTIMATE_LOG_MOVE = 0.2    # an estimated uplink rate is logged when it moved by this share since the last line
-ESTIMATE_LOG_EVERY = 1.0   # ... at most once in this many s
+ESTIMATE_LOG_MOVE = 0.2    # an estimated uplink rate is logged when it moved by this share since the last line,
+ESTIMATE_LOG_EVERY = 1.0   # or the pacer went to or from cruising under it; at most once in this many s
 
 
 class LaneOwner(Protocol):
@@ -86,7 +87,7 @@ class BulkLane:
         self.ws: Any = None
         self.sent = self.bytes = self.joins = 0
         self.refused: str | None = None          # why the cloud refused the join (then the connection has one link)
-        self._logged: tuple[float, float] | None = None     # (when, estimate) of the last "uplink rate estimated"
+        self._logged: tuple[float, float, bool] | None = None     # (when, estimate, cruising) last logged
         self._wake = asyncio.Event()
         self._joined = asyncio.Condition()       # notified when a bulk link joins
         self.tasks = Tasks(f"rce-client {conn.robot_id} bulk lane")
@@ -202,14 +203,17 @@ class BulkLane:
             pass
 
     def _log_estimate(self, now: float) -> None:
-        """Log the uplink's estimated rate when it moved by :data:`ESTIMATE_LOG_MOVE` (at most every
-        :data:`ESTIMATE_LOG_EVERY` s)."""
+        """Log the uplink's estimated rate when it moved by :data:`ESTIMATE_LOG_MOVE`, or the pacer went
+        to or from cruising under it (at most every :data:`ESTIMATE_LOG_EVERY` s)."""
         est = self.pacer.estimator if self.pacer is not None else None
         if est is None or est.estimate is None:
             return
-        if self._logged is not None and (now - self._logged[0] < ESTIMATE_LOG_EVERY
-                                         or abs(est.estimate - self._logged[1]) < ESTIMATE_LOG_MOVE * self._logged[1]):
-            return
-        self._logged = (now, est.estimate)
+        cruising = est.mode in (Mode.CRUISE, Mode.PROBE)
+        if self._logged is not None:
+            when, logged, was_cruising = self._logged
+            if now - when < ESTIMATE_LOG_EVERY or (
+                    abs(est.estimate - logged) < ESTIMATE_LOG_MOVE * logged and cruising == was_cruising):
+                return
+        self._logged = (now, est.estimate, cruising)
         log.info("uplink rate estimated", robot=self.conn.robot_id, **self.pacer.stats())
 

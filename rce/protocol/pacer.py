@@ -87,7 +87,7 @@ class Pacer:
         self.tokens = self.burst
         self.last: float | None = None
         self.paced = 0.0                # s waited in all
-        self.limited = False            # bytes waited for the pacer since the last :meth:`observe`
+        self._observed = 0.0            # :attr:`paced` at the last :meth:`observe`
 
     def _fill(self, now: float) -> None:
         if self.last is not None:
@@ -99,10 +99,7 @@ class Pacer:
         for as many tokens as the burst holds, then goes into debt (the next bytes wait for it)."""
         self._fill(now)
         need = min(float(n), self.burst)
-        if self.tokens >= need:
-            return 0.0
-        self.limited = True
-        return (need - self.tokens) / self.rate
+        return 0.0 if self.tokens >= need else (need - self.tokens) / self.rate
 
     def spend(self, n: int, now: float) -> None:
         """``n`` bytes went out at ``now`` (s): spend them (the bucket may go below 0, a debt)."""
@@ -113,15 +110,19 @@ class Pacer:
         """The sender waited ``s`` s for the pacer (counted in :attr:`paced`)."""
         self.paced += s
 
+    def held(self) -> float:
+        """s the sender waited for this pacer since the last :meth:`observe` (:meth:`waited`)."""
+        return self.paced - self._observed
+
     def observe(self, sample: PathSample, now: float) -> None:
-        """(with an estimator) The path's state at ``now`` (s): fed to the estimator, whose rate becomes
-        this pacer's from ``now`` on; :attr:`limited` starts again."""
+        """(with an estimator) The path's state at ``now`` (s; its ``waited``: :meth:`held`): fed to the
+        estimator, whose rate becomes this pacer's from ``now`` on."""
         if self.estimator is None:
             return
         self._fill(now)
+        self._observed = self.paced
         self.estimator.sample(sample)
         self.rate = self.estimator.rate
-        self.limited = False
 
     def stats(self) -> dict:
         """``rate_source`` (configured, estimated), ``rate`` (bytes/s); with an estimator also its

@@ -15,21 +15,25 @@ behind the same FIFO where a bottleneck ignores DSCP) does not wait behind it.
 
 In intervals of at least :data:`MIN_INTERVAL` s and two minimum round trips:
 
-- **Congested**: the smoothed RTT (``tcpi_rtt``) is more than the queue target above the path's
-  minimum (``tcpi_min_rtt``), or the kernel holds more than :data:`NOTSENT_LIMIT` bytes it could not
-  send (``tcpi_notsent_bytes``: the path takes less than the pacer lets in). The bottleneck was busy,
-  so the bytes acked per second over the interval (``tcpi_bytes_acked``) are its rate: that is the
-  estimate. The pacer then drains the queue at :data:`DRAIN_GAIN` x the estimate until the queue is gone.
+- **Held back**: the pacer made the sender wait for at least :data:`HELD_SHARE` of the interval, or
+  the kernel holds more than :data:`NOTSENT_LIMIT` bytes written but not sent (``tcpi_notsent_bytes``):
+  the application has more to send than goes out. Only such intervals say something about the path;
+  in the others the estimate stays.
+- **Congested**: the path did not take what was sent: the smoothed RTT (``tcpi_rtt``) is more than the
+  queue target above the path's minimum (``tcpi_min_rtt``) while less than :data:`TAKEN_SHARE` of the
+  pacer's rate was acked (``tcpi_bytes_acked``), or it is :data:`QUEUE_HIGH` targets above whatever
+  was acked. The bottleneck was busy, so the bytes acked per second over the interval are its rate:
+  that is the estimate. The pacer then drains the queue at :data:`DRAIN_GAIN` x the estimate until it is gone (if it
+  is still there after :data:`MAX_DRAIN` intervals, the path is slower yet: the estimate is taken again).
 - **Cruise**: the pacer runs at :data:`CRUISE_GAIN` x the estimate, under the link, so the
   bottleneck's queue stays empty.
-- **Probe**: after :data:`PROBE_EVERY` cruise intervals with data held back by the pacer, one interval at
-  :data:`PROBE_GAIN` x the estimate (BBR's probe gain): if the path takes it without a queue, the
-  estimate rises to what was acked, and while it rises by more than :data:`PROBE_ROOM` the probing goes on.
-- **Startup**: from :data:`INITIAL_RATE` the rate doubles every interval with data held back (BBR's
-  startup, gain 2) until the first congested interval gives the first estimate.
-- An interval in which the pacer held nothing back (the application sent less than the rate) teaches
-  nothing about the path: the estimate stays. Neither does one with no byte acked (a stalled path), nor
-  one longer than :data:`MAX_INTERVAL` (an idle spell).
+- **Probe**: after :data:`PROBE_EVERY` cruise intervals held back, one interval at :data:`PROBE_GAIN` x
+  the estimate (BBR's probe gain): if the path takes it without a queue, the estimate rises to what was
+  acked, and while it rises by more than :data:`PROBE_ROOM` the probing goes on.
+- **Startup**: from :data:`INITIAL_RATE` the rate doubles every interval held back (BBR's startup,
+  gain 2) until the first congested interval gives the first estimate.
+- An interval with no byte acked (a stalled path) is not judged, nor one longer than
+  :data:`MAX_INTERVAL` (an idle spell).
 """
 from __future__ import annotations
 
@@ -38,12 +42,15 @@ from enum import Enum
 
 INITIAL_RATE = 125_000.0    # bytes/s the pacer starts at (1 Mbit/s), doubling each interval until a queue shows
 MIN_RATE = 12_500.0         # bytes/s, the lowest estimate (100 kbit/s)
-MIN_INTERVAL = 0.05         # s, the shortest interval the estimator judges (also at least 2 minimum RTTs)
+MIN_INTERVAL = 0.08         # s, the shortest interval the estimator judges (also at least 2 minimum RTTs)
 MAX_INTERVAL = 1.0          # s; a longer gap between samples is an idle spell: the interval starts again
 QUEUE_TARGET = 0.010        # s of queueing delay that counts as a queue (RFC 6817's TARGET, scaled to control)
 TARGET_PACKETS = 4          # ... at least the time of this many full packets at the rate (delayed ACKs on a slow path)
 PACKET = 1500               # bytes of a full packet
-NOTSENT_LIMIT = 64 * 1024   # bytes the kernel holds unsent past which the path, not the pacer, is the limit
+NOTSENT_LIMIT = 64 * 1024   # bytes the kernel holds unsent past which the sender counts as held back
+HELD_SHARE = 0.5            # share of an interval the pacer made the sender wait, for the interval to count
+TAKEN_SHARE = 0.95          # a queue with at least this share of the pacer's rate acked is noise, not the path's
+QUEUE_HIGH = 3              # queue targets past which a queue counts whatever was acked
 STARTUP_GAIN = 2.0
 CRUISE_GAIN = 0.9           # the pacer's rate in cruise, as a share of the estimate: under the link
 DRAIN_GAIN = 0.75
@@ -65,14 +72,14 @@ class PathSample:
     """One reading of a bulk link's TCP state (Linux ``TCP_INFO``) at ``t`` (s, monotonic):
     ``acked``: bytes acked since the connection began (``tcpi_bytes_acked``); ``rtt``: the smoothed
     round trip (``tcpi_rtt``, s); ``min_rtt``: the least round trip seen (``tcpi_min_rtt``, s);
-    ``notsent``: bytes written but not yet sent (``tcpi_notsent_bytes``); ``limited``: the pacer held
-    data back since the previous sample (the application had more to send than the rate)."""
+    ``notsent``: bytes written but not yet sent (``tcpi_notsent_bytes``); ``waited``: s the pacer made
+    the sender wait since the previous sample (the application had more to send than the rate)."""
     t: float
     acked: int
     rtt: float
     min_rtt: float
     notsent: int
-    limited: bool
+    waited: float
 
 
 class RateEstimator:
@@ -91,7 +98,7 @@ class RateEstimator:
         self.estimate: float | None = None
         self.samples = self.intervals = self.backoffs = self.probes = 0
         self._start: PathSample | None = None     # the sample that began the current interval
-        self._limited = False                     # the pacer held data back during the current interval
+        self._waited = 0.0                        # s the pacer held the sender back in the current interval
         self._cruised = 0                         # cruise intervals with data held back since the last probe
         self._drained = 0                         # drain intervals that still showed a queue
 
@@ -105,25 +112,26 @@ class RateEstimator:
         if start is None or s.t - start.t > MAX_INTERVAL or s.acked < start.acked:
             self._begin(s)          # the first, after an idle spell, or a new connection's counters
             return
-        self._limited = self._limited or s.limited
+        self._waited += s.waited
         dt = s.t - start.t
         if dt < max(MIN_INTERVAL, 2 * s.min_rtt):
             return
         self._judge(delivered=(s.acked - start.acked) / dt, queue=max(0.0, s.rtt - s.min_rtt),
-                    backlog=s.notsent > NOTSENT_LIMIT, limited=self._limited)
+                    held=self._waited >= HELD_SHARE * dt or s.notsent > NOTSENT_LIMIT)
         self._begin(s)
 
     def _begin(self, s: PathSample) -> None:
-        self._start, self._limited = s, s.limited
+        self._start, self._waited = s, 0.0
 
     def target(self) -> float:
         """s of queueing delay that counts as a queue at the current rate: :data:`QUEUE_TARGET`, or the
         time of :data:`TARGET_PACKETS` full packets at :attr:`rate` if longer."""
         return max(QUEUE_TARGET, TARGET_PACKETS * PACKET / self.rate)
 
-    def _judge(self, delivered: float, queue: float, backlog: bool, limited: bool) -> None:
+    def _judge(self, delivered: float, queue: float, held: bool) -> None:
         self.intervals += 1
-        congested = queue > self.target() or backlog
+        target = self.target()
+        congested = (queue > target and delivered < TAKEN_SHARE * self.rate) or queue > QUEUE_HIGH * target
         if self.mode is Mode.DRAIN:
             if not congested:
                 self._cruise()
@@ -132,12 +140,12 @@ class RateEstimator:
                 if self._drained >= MAX_DRAIN and delivered > 0:     # still a queue: the path is slower yet
                     self._set(max(delivered, MIN_RATE), Mode.DRAIN)
             return
-        if congested and (limited or backlog) and delivered > 0:
+        if congested and held and delivered > 0:
             self.backoffs += 1
             self._drained = 0
             self._set(max(delivered, MIN_RATE), Mode.DRAIN)
             return
-        if not limited or delivered <= 0:
+        if not held or delivered <= 0:
             return                     # the application sent less than the rate, or nothing was acked
         if self.mode is Mode.STARTUP:
             self.rate *= STARTUP_GAIN

@@ -185,9 +185,20 @@ class NetLab:
                              capture_output=True, text=True, check=True).stdout
         return {m.group(1): int(m.group(2)) for m in re.finditer(r"class htb (\S+) .*?\n\s*Sent (\d+) bytes", out)}
 
+    def backlog_argv(self, link: Link, side: str) -> list[str]:
+        """The command whose output :func:`qdisc_backlog` reads: ``tc -s qdisc show`` of ``link``'s end on
+        ``side`` ("a" or "b"; run it with the event loop's subprocess calls while traffic flows)."""
+        ns, dev = (link.a, link.a_dev) if side == "a" else (link.b, link.b_dev)
+        return [*(("ip", "netns", "exec", ns) if ns else ()), "tc", "-s", "qdisc", "show", "dev", dev]
+
     def wrap(self, ns: str, argv: list[str]) -> list[str]:
         """``argv`` run in namespace ``ns`` (short name)."""
         return ["ip", "netns", "exec", self.full(ns), *argv]
+
+
+def qdisc_backlog(tc_output: str) -> int:
+    """Bytes waiting in the FIFOs (``pfifo``) of ``tc -s qdisc show`` output (:meth:`NetLab.backlog_argv`)."""
+    return sum(int(m.group(1)) for m in re.finditer(r"qdisc pfifo .*?\n.*?\n\s*backlog (\d+)b", tc_output))
 
 
 def _tc_bits(rate: str) -> int:

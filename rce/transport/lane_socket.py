@@ -74,9 +74,9 @@ def marks(sock: socket.socket) -> int:
     return sock.getsockopt(socket.IPPROTO_IP, socket.IP_TOS)
 
 
-def tcp_sample(sock: socket.socket, limited: bool, now: float) -> PathSample | None:
-    """``sock``'s Linux ``TCP_INFO`` at ``now`` (s, monotonic) as a :class:`PathSample` (``limited``: the
-    pacer held data back since the last one); None where the kernel gives none (not Linux, a kernel
+def tcp_sample(sock: socket.socket, waited: float, now: float) -> PathSample | None:
+    """``sock``'s Linux ``TCP_INFO`` at ``now`` (s, monotonic) as a :class:`PathSample` (``waited``: s the
+    pacer held the sender back since the last one); None where the kernel gives none (not Linux, a kernel
     before 4.6, a closed socket)."""
     try:
         info = sock.getsockopt(socket.IPPROTO_TCP, socket.TCP_INFO, 256)
@@ -89,7 +89,7 @@ def tcp_sample(sock: socket.socket, limited: bool, now: float) -> PathSample | N
     notsent, min_rtt = struct.unpack_from("II", info, _TCPI_NOTSENT)
     if min_rtt in (0, 0xFFFFFFFF):          # no round trip measured yet
         return None
-    return PathSample(now, acked, rtt / 1e6, min_rtt / 1e6, notsent, limited)
+    return PathSample(now, acked, rtt / 1e6, min_rtt / 1e6, notsent, waited)
 
 
 class PacedLink:
@@ -122,7 +122,7 @@ class PacedLink:
         if self.pacer.estimator is None or self.sock is None or now - self._sampled < SAMPLE_EVERY:
             return
         self._sampled = now
-        sample = tcp_sample(self.sock, self.pacer.limited, now)
+        sample = tcp_sample(self.sock, self.pacer.held(), now)
         if sample is not None:
             self.samples += 1
             self.pacer.observe(sample, now)
