@@ -23,15 +23,18 @@ In intervals of at least :data:`MIN_INTERVAL` s and two minimum round trips:
   queue target above the path's minimum (``tcpi_min_rtt``) while less than :data:`TAKEN_SHARE` of the
   pacer's rate was acked (``tcpi_bytes_acked``), or it is :data:`QUEUE_HIGH` targets above whatever
   was acked. The bottleneck was busy, so the bytes acked per second over the interval are its rate:
-  that is the estimate. The pacer then drains the queue at :data:`DRAIN_GAIN` x the estimate until it is gone (if it
-  is still there after :data:`MAX_DRAIN` intervals, the path is slower yet: the estimate is taken again).
+  that is the estimate (lowered by :data:`STEP_DOWN` at most per interval, against one noisy RTT). The
+  pacer then drains the queue at :data:`DRAIN_GAIN` x the estimate until it is gone; if it is still
+  there after :data:`MAX_DRAIN` intervals, the path is slower yet: the estimate is what was acked.
 - **Cruise**: the pacer runs at :data:`CRUISE_GAIN` x the estimate, under the link, so the
   bottleneck's queue stays empty.
 - **Probe**: after :data:`PROBE_EVERY` cruise intervals held back, one interval at :data:`PROBE_GAIN` x
-  the estimate (BBR's probe gain): if the path takes it without a queue, the estimate rises to what was
-  acked, and while it rises by more than :data:`PROBE_ROOM` the probing goes on.
+  the estimate (BBR probes at 1.25 for a round trip; a FIFO shared with control holds less at 1.1): if
+  the path takes it without a queue, the estimate rises to what was acked, and while it rises by
+  :data:`PROBE_ROOM` or more the probing goes on.
 - **Startup**: from :data:`INITIAL_RATE` the rate doubles every interval held back (BBR's startup,
-  gain 2) until the first congested interval gives the first estimate.
+  gain 2) until the first sample that shows a queue (a quarter interval in, at the earliest): the
+  first estimate is what was acked in that interval or the one before, whichever is more.
 - An interval with no byte acked (a stalled path) is not judged, nor one longer than
   :data:`MAX_INTERVAL` (an idle spell).
 """
@@ -54,10 +57,11 @@ QUEUE_HIGH = 3              # queue targets past which a queue counts whatever w
 STARTUP_GAIN = 2.0
 CRUISE_GAIN = 0.9           # the pacer's rate in cruise, as a share of the estimate: under the link
 DRAIN_GAIN = 0.75
-PROBE_GAIN = 1.25
-PROBE_EVERY = 8             # cruise intervals (with data held back) between probes
-PROBE_ROOM = 1.1            # a probe that raised the estimate by this factor or more is followed by another
+PROBE_GAIN = 1.1           # BBR probes at 1.25; a FIFO bottleneck shared with control holds less at 1.1
+PROBE_EVERY = 16            # cruise intervals (held back) between probes
+PROBE_ROOM = 1.05           # a probe that raised the estimate by this factor or more is followed by another
 MAX_DRAIN = 4               # drain intervals that still show a queue after which the estimate is taken again
+STEP_DOWN = 0.9             # the most one congested interval lowers the estimate by (a queue that stays: more)
 
 
 class Mode(str, Enum):
@@ -100,6 +104,7 @@ class RateEstimator:
         self._start: PathSample | None = None     # the sample that began the current interval
         self._waited = 0.0                        # s the pacer held the sender back in the current interval
         self._cruised = 0                         # cruise intervals with data held back since the last probe
+        self._delivered = 0.0                     # bytes/s acked in the last interval held back
         self._drained = 0                         # drain intervals that still showed a queue
 
     def sample(self, s: PathSample) -> None:
@@ -114,9 +119,11 @@ class RateEstimator:
             return
         self._waited += s.waited
         dt = s.t - start.t
-        if dt < max(MIN_INTERVAL, 2 * s.min_rtt):
-            return
-        self._judge(delivered=(s.acked - start.acked) / dt, queue=max(0.0, s.rtt - s.min_rtt),
+        queue = max(0.0, s.rtt - s.min_rtt)
+        shortest = max(MIN_INTERVAL, 2 * s.min_rtt)
+        if dt < shortest and not (self.mode is Mode.STARTUP and dt >= shortest / 4 and queue > self.target()):
+            return                  # (startup ends at the first sample that shows a queue)
+        self._judge(delivered=(s.acked - start.acked) / dt, queue=queue,
                     held=self._waited >= HELD_SHARE * dt or s.notsent > NOTSENT_LIMIT)
         self._begin(s)
 
@@ -140,18 +147,22 @@ class RateEstimator:
                 if self._drained >= MAX_DRAIN and delivered > 0:     # still a queue: the path is slower yet
                     self._set(max(delivered, MIN_RATE), Mode.DRAIN)
             return
-        if congested and held and delivered > 0:
-            self.backoffs += 1
-            self._drained = 0
-            self._set(max(delivered, MIN_RATE), Mode.DRAIN)
-            return
         if not held or delivered <= 0:
             return                     # the application sent less than the rate, or nothing was acked
+        last, self._delivered = self._delivered, delivered
+        if congested:
+            self.backoffs += 1
+            self._drained = 0
+            if self.estimate is None:  # the end of startup: the pipe filled in this interval or the last
+                self._set(max(delivered, last, MIN_RATE), Mode.DRAIN)
+            else:                      # one interval moves it by STEP_DOWN at most; a queue that stays, more
+                self._set(min(self.estimate, max(delivered, STEP_DOWN * self.estimate)), Mode.DRAIN)
+            return
         if self.mode is Mode.STARTUP:
             self.rate *= STARTUP_GAIN
         elif self.mode is Mode.PROBE:
-            before = self.estimate or delivered
-            self.estimate = max(before, delivered)
+            before = self.estimate
+            self.estimate = max(before, min(delivered, PROBE_GAIN * before))
             if self.estimate >= PROBE_ROOM * before:
                 self._probe()          # the path took more: probe on from the new estimate
             else:
