@@ -256,11 +256,12 @@ class RobotNamespace:
         :data:`~rce.protocol.lanes.BULK_SIZE` bytes, paced by ``pacer`` (None: as fast as the link takes
         them); the robot's DMs on it come in. It is marked DSCP CS1 and the session's own link becomes the
         control lane (:func:`rce.transport.lane_socket.mark`). A bulk link already there is closed. When it
-        closes, the bulk lane goes on the session's link again."""
+        closes, the bulk lane goes on the session's link again. The pacer's rate (set, or estimated from the
+        socket: :class:`~rce.transport.lane_socket.PacedLink`) is in the session's lane stats."""
         old, self.bulk_ws = self.bulk_ws, ws
         if old is not None:
             self.tasks.spawn(old.close(CLOSE_POLICY, "replaced by a new bulk link"), name="close-old-bulk")
-        self.session.attach_bulk()
+        self.session.attach_bulk(pacer)
         lane_socket.mark(socket_of(ws), Lane.BULK)
         if self.ws is not None:
             lane_socket.mark(socket_of(self.ws), Lane.CONTROL)

@@ -7,6 +7,7 @@ import socket
 import pytest
 
 from rce.protocol.pacer import AUTO, OFF, Pacer, new_pacer, parse_pacing
+from rce.protocol.robot_session import RobotSession
 from rce.protocol.rate_estimator import (INITIAL_RATE, MAX_INTERVAL, NOTSENT_LIMIT, Mode, PathSample,
                                          RateEstimator)
 from rce.transport.lane_socket import PacedLink, tcp_sample
@@ -178,3 +179,15 @@ def test_tcp_info_of_a_real_socket_is_read_and_the_kernel_paces_it():
         for s in (client, peer, srv):
             s.close()
     assert tcp_sample(client, 0.0, 3.0) is None        # closed: no sample
+
+
+def test_a_sessions_lane_stats_carry_its_bulk_pacing_while_a_bulk_link_is_there():
+    s = RobotSession("r", resume=True)
+    s.attach_bulk(new_pacer(AUTO))
+    bulk = s.lane_stats()["bulk"]
+    assert bulk["rate_source"] == "estimated" and bulk["rate"] == INITIAL_RATE and bulk["rate_estimate"] is None
+    assert s.stats()["lanes"]["bulk"]["rate_mode"] == "startup"
+    s.detach_bulk()
+    assert "rate" not in s.lane_stats()["bulk"]
+    s.attach_bulk(new_pacer(2e6))
+    assert s.lane_stats()["bulk"]["rate_source"] == "configured"

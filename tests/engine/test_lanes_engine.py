@@ -74,6 +74,8 @@ async def _echo(pub, got: asyncio.Queue, msg, want) -> None:
 async def test_bulk_goes_on_its_own_link_control_on_the_sessions_and_a_cut_bulk_link_joins_again(eng):
     conn = await Connection.connect(eng.master_url, "testUser", "testUser", "lanesR", allow_reconnect=True,
                                     lanes=True, bulk_rate=50e6)
+    lanes_status: asyncio.Queue = asyncio.Queue()
+    conn.on_status(lambda st: lanes_status.put_nowait(st) if st.get("topic") == "lanes" else None)
     try:
         await conn.bulk.wait_up(STEP)
         assert marks(socket_of(conn.bulk.ws)) == 0x20 and marks(socket_of(conn.ws)) == 0xB8    # CS1, EF
@@ -90,6 +92,12 @@ async def test_bulk_goes_on_its_own_link_control_on_the_sessions_and_a_cut_bulk_
         assert _metric(text, 'rce_robot_lane_messages_sent_total{lane="bulk"}') >= 1
         assert _metric(text, 'rce_robot_lane_messages_sent_total{lane="control"}') >= 1
         assert 'rce_robot_lane_queue_delay_seconds_bucket{lane="bulk",le="0.001"}' in text
+        # the endpoint paces the robot's bulk link under the rate it estimates (no --bulk-rate: auto)
+        assert _metric(text, 'rce_robot_lane_pacing_rate_bytes{lane="bulk",robot="lanesR",user="testUser"}') > 0
+        bulk_st = (await asyncio.wait_for(lanes_status.get(), STEP))["lanes"]["bulk"]
+        assert bulk_st["rate_source"] == "estimated" and bulk_st["rate"] > 0 and bulk_st["rate_mode"] in {
+            "startup", "cruise", "probe", "drain"}
+        assert conn.bulk.pacing() == {"rate_source": "configured", "rate": 50_000_000}
 
         conn.bulk.ws.transport.abort()                # the bulk link is cut: it joins again on its own
         await conn.bulk.wait_up(STEP, joins=2)
