@@ -15,7 +15,7 @@ from __future__ import annotations
 import numpy as np
 from numba import njit
 
-__all__ = ["ACT_C", "ACT_F", "ACT_R", "ACT_W", "MOVE_WAIT", "UNREACHABLE", "bfs_fill", "bfs_pair",
+__all__ = ["ACT_C", "ACT_F", "ACT_R", "ACT_W", "MOVE_WAIT", "UNREACHABLE", "bfs_fill", "bfs_multi", "bfs_pair",
            "heading_cost", "mapf_t_actions", "heading_costs", "pibt_step",
            "warm_up"]
 
@@ -46,6 +46,31 @@ def bfs_fill(nbr, goal, out, queue):
                 queue[tail] = v
                 tail += 1
     return tail
+
+
+@njit(cache=True)
+def bfs_multi(nbr, sources):
+    """Breadth-first steps (int64, cells) from the nearest of ``sources`` to every cell; -1
+    for cells none of them reaches."""
+    out = np.full(nbr.shape[0], -1, np.int64)
+    queue = np.empty(nbr.shape[0], np.int64)
+    tail = 0
+    for s in sources:
+        if out[s] < 0:
+            out[s] = 0
+            queue[tail] = s
+            tail += 1
+    head = 0
+    while head < tail:
+        c = queue[head]
+        head += 1
+        for h in range(4):
+            v = nbr[c, h]
+            if v >= 0 and out[v] < 0:
+                out[v] = out[c] + 1
+                queue[tail] = v
+                tail += 1
+    return out
 
 
 @njit(cache=True)
@@ -428,6 +453,7 @@ def warm_up() -> None:
     dist = np.empty((1, g.n_cells), dtype=np.uint16)
     q = np.empty(g.n_cells, dtype=np.int32)
     bfs_fill(g.nbr, 8, dist[0], q)
+    bfs_multi(g.nbr, np.array([4], dtype=np.int64))
     bfs_pair(g.nbr, 0, 8, np.zeros(g.n_cells, np.uint8), q, np.empty(g.n_cells, np.int32))
     pos = np.array([0, 4], dtype=np.int64)
     head = np.zeros(2, dtype=np.int64)

@@ -1,0 +1,63 @@
+"""One-shot MAPF within a time budget: a first solution, then anytime refinement.
+
+The first solution comes from prioritized planning (:func:`~.pp.solve_pp`) within a share
+of the budget, or, when PP finds none there, from LaCAM (:func:`~.lacam.solve_lacam`,
+complete) in the time left; :func:`~.refine.refine_lns` then improves it until the budget
+is spent. ``initial="lacam"`` skips PP.
+"""
+from __future__ import annotations
+
+import time
+
+import numpy as np
+
+from .distances import DistanceCache
+from .grid import LifelongGrid
+from .lacam import solve_lacam
+from .pp import solve_pp
+from .refine import refine_lns
+
+__all__ = ["INITIAL_SOLVERS", "plan_one_shot"]
+
+INITIAL_SOLVERS = ("pp", "lacam")
+
+
+def plan_one_shot(grid: LifelongGrid, starts: np.ndarray, goals: np.ndarray, time_limit_s: float = 5.0,
+                  seed: int = 0, cache: DistanceCache | None = None, initial: str = "pp", pp_share: float = 0.3,
+                  clock=time.perf_counter) -> dict:
+    """Solve one-shot MAPF (4-neighbour moves) within ``time_limit_s`` seconds of ``clock``
+    (wall time; ``time.process_time`` for this process's CPU).
+
+    starts, goals: (n,) cells. ``initial``: "pp" (prioritized planning within ``pp_share`` of
+    the budget, LaCAM in the rest when PP fails) or "lacam". Returns the dict of
+    :func:`~.lacam.solve_lacam` (``paths`` (T+1, n), ``solved``, ``sum_of_costs``,
+    ``makespan``, ``time_s``) plus ``initial`` (the solver of the first solution, "pp" or
+    "lacam"), ``first_time_s`` and ``first_sum_of_costs`` (of the first solution),
+    ``pp_planned`` (agents PP planned; n when it solved), ``lns_iterations``. Raises
+    ValueError for an unknown ``initial``, a goal that cannot be reached, or two agents on
+    one start or goal.
+    """
+    if initial not in INITIAL_SOLVERS:
+        raise ValueError(f"initial must be one of {INITIAL_SOLVERS}, got {initial!r}")
+    t0 = clock()
+    starts = np.asarray(starts, dtype=np.int64)
+    goals = np.asarray(goals, dtype=np.int64)
+    n = starts.shape[0]
+    cache = cache or DistanceCache(grid, max_bytes=max(2 * grid.n_cells * (n + 16), 64 * 2 ** 20))
+    res, planned = None, 0
+    if initial == "pp":
+        res = solve_pp(grid, starts, goals, pp_share * time_limit_s, seed=seed, cache=cache, clock=clock)
+        planned = res["planned"]
+        used = "pp"
+    if res is None or not res["solved"]:
+        res = solve_lacam(grid, starts, goals, time_limit_s - (clock() - t0), seed=seed, cache=cache, clock=clock)
+        used = "lacam"
+    first_t, first_soc = clock() - t0, res["sum_of_costs"]
+    iterations = 0
+    left = time_limit_s - first_t
+    if res["solved"] and left > 0:
+        ref = refine_lns(grid, res["paths"], goals, left, seed=seed, cache=cache, clock=clock)
+        res = {**res, "paths": ref["paths"], "sum_of_costs": ref["sum_of_costs"], "makespan": ref["makespan"]}
+        iterations = ref["iterations"]
+    return {**res, "time_s": clock() - t0, "initial": used, "first_time_s": first_t,
+            "first_sum_of_costs": first_soc, "pp_planned": planned, "lns_iterations": iterations}
