@@ -23,7 +23,7 @@ INITIAL_SOLVERS = ("pp", "lacam")
 
 
 def plan_one_shot(grid: LifelongGrid, starts: np.ndarray, goals: np.ndarray, time_limit_s: float = 5.0,
-                  seed: int = 0, cache: DistanceCache | None = None, initial: str = "pp", pp_share: float = 0.3,
+                  seed: int = 0, cache: DistanceCache | None = None, initial: str = "pp", pp_share: float = 0.15,
                   clock=time.perf_counter) -> dict:
     """Solve one-shot MAPF (4-neighbour moves) within ``time_limit_s`` seconds of ``clock``
     (wall time; ``time.process_time`` for this process's CPU).
