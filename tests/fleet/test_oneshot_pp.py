@@ -105,7 +105,8 @@ def test_pp_restarts_with_the_failed_agent_first_and_the_fallback_is_lacam():
     res = solve_pp(g, np.array(starts), np.array(goals), time_limit_s=30, clock=time.process_time)
     assert res["solved"] and res["restarts"] == 1
     assert_valid(g, res, starts, goals)
-    out = plan_one_shot(g, np.array(starts), np.array(goals), time_limit_s=1.0, pp_share=0.0, clock=time.process_time)
+    out = plan_one_shot(g, np.array(starts), np.array(goals), time_limit_s=1.0, initial="pp", pp_share=0.0,
+                        clock=time.process_time)
     assert out["solved"] and out["initial"] == "lacam" and out["pp_planned"] == 1
     assert_valid(g, out, starts, goals)
     with pytest.raises(ValueError, match="share"):
@@ -123,7 +124,8 @@ def test_pp_solves_400_agents_on_the_movingai_warehouse_and_lns_keeps_it_valid()
     res = solve_pp(g, starts, goals, time_limit_s=60)
     assert res["solved"]
     assert_valid(g, res, starts, goals)
-    out = plan_one_shot(g, starts, goals, time_limit_s=3.0, pp_share=0.9, clock=time.process_time)
+    out = plan_one_shot(g, starts, goals, time_limit_s=3.0, initial="pp", pp_share=0.9,
+                        clock=time.process_time)
     assert out["solved"] and out["initial"] == "pp"
     assert out["sum_of_costs"] <= out["first_sum_of_costs"]
     assert_valid(g, out, starts, goals)

@@ -1,9 +1,13 @@
 """One-shot MAPF within a time budget: a first solution, then anytime refinement.
 
-The first solution comes from prioritized planning (:func:`~.pp.solve_pp`) within a share
-of the budget, or, when PP finds none there, from LaCAM (:func:`~.lacam.solve_lacam`,
-complete) in the time left; :func:`~.refine.refine_lns` then improves it until the budget
-is spent. ``initial="lacam"`` skips PP.
+The first solution comes from LaCAM (:func:`~.lacam.solve_lacam`, complete) or, with
+``initial="pp"``, from prioritized planning (:func:`~.pp.solve_pp`) within a share of the
+budget and from LaCAM in the time left when PP finds none; :func:`~.refine.refine_lns` then
+improves it until the budget is spent. LaCAM is the default: on the MovingAI
+warehouse-10-20-10-2-1 with 5 s of CPU, PP's better first solution at 400 agents (1.34 -
+1.38x the lower bound against 1.81 - 1.85x) ends within noise of LaCAM's after LNS
+(1.07 - 1.10x against 1.06 - 1.11x), and at 1000 agents PP fails and its share of the
+budget is lost to LNS (2.83 - 3.09x against 2.81 - 3.05x).
 """
 from __future__ import annotations
 
@@ -23,13 +27,13 @@ INITIAL_SOLVERS = ("pp", "lacam")
 
 
 def plan_one_shot(grid: LifelongGrid, starts: np.ndarray, goals: np.ndarray, time_limit_s: float = 5.0,
-                  seed: int = 0, cache: DistanceCache | None = None, initial: str = "pp", pp_share: float = 0.15,
+                  seed: int = 0, cache: DistanceCache | None = None, initial: str = "lacam", pp_share: float = 0.15,
                   clock=time.perf_counter) -> dict:
     """Solve one-shot MAPF (4-neighbour moves) within ``time_limit_s`` seconds of ``clock``
     (wall time; ``time.process_time`` for this process's CPU).
 
-    starts, goals: (n,) cells. ``initial``: "pp" (prioritized planning within ``pp_share`` of
-    the budget, LaCAM in the rest when PP fails) or "lacam". Returns the dict of
+    starts, goals: (n,) cells. ``initial``: "lacam", or "pp" (prioritized planning within
+    ``pp_share`` of the budget, LaCAM in the rest when PP fails). Returns the dict of
     :func:`~.lacam.solve_lacam` (``paths`` (T+1, n), ``solved``, ``sum_of_costs``,
     ``makespan``, ``time_s``) plus ``initial`` (the solver of the first solution, "pp" or
     "lacam"), ``first_time_s`` and ``first_sum_of_costs`` (of the first solution),
