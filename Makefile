@@ -5,7 +5,7 @@ BIN := $(VENV)/bin
 STAMP := $(VENV)/.installed
 ROSLIBJS := tests/web/roslibjs/node_modules/.installed
 
-.PHONY: setup test demo bench system-deps clean
+.PHONY: setup test demo bench bytecode system-deps clean
 
 $(STAMP): pyproject.toml
 	$(PY) -m venv $(VENV)
@@ -26,12 +26,17 @@ $(ROSLIBJS): tests/web/roslibjs/package.json tests/web/roslibjs/package-lock.jso
 
 ## test: the whole suite, in parallel (tests share no ports, files or state; a test file runs in one worker)
 TEST_WORKERS ?= 3
-test: setup
+test: setup bytecode
 	$(BIN)/ruff check .
-	$(BIN)/python -m pytest -q -p no:cacheprovider -n $(TEST_WORKERS) --dist loadfile $(PYTEST_ARGS)
+	env -u PYTHONDONTWRITEBYTECODE $(BIN)/python -m pytest -q -p no:cacheprovider -n $(TEST_WORKERS) --dist loadfile $(PYTEST_ARGS)
+
+## bytecode: compile the project's modules once, so that the hundreds of processes a run starts
+## load them instead of compiling them each (PYTHONDONTWRITEBYTECODE keeps Python from caching them)
+bytecode:
+	@$(BIN)/python -m compileall -q -j 0 rce rce_robot rce_master rce_container rce_client examples bench tests
 
 ## demo: run the fleet demo (3 robots on the project's own map)
-demo: setup
+demo: setup bytecode
 	$(BIN)/rce-fleet demo $(DEMO_ARGS)
 
 ## bench: all benchmarks, results in bench/results/

@@ -22,7 +22,6 @@ from typing import Any
 
 import cbor2
 import numpy as np
-from PIL import Image
 from rosbags.interfaces import Nodetype
 
 from rce.messages import MessageRegistry
@@ -38,6 +37,7 @@ TIME_TYPES = ("builtin_interfaces/msg/Time", "builtin_interfaces/msg/Duration") 
 
 def png_op(text: str) -> dict:
     """The ``png`` op carrying ``text`` (an op's JSON, ASCII) as rosbridge's ``pngcompression.encode``."""
+    from PIL import Image       # only a session that asks for png pays its import (~60 ms of CPU)
     raw = text.encode("ascii")
     width = max(1, math.floor(math.sqrt(len(raw) / 3.0)))
     height = max(1, math.ceil(len(raw) / 3.0 / width))
