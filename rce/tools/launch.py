@@ -188,7 +188,7 @@ def start_engine(workdir: Path | None = None, *, robot_tasksets: int = 1, contai
     ``workdir/master.sqlite3``, unless ``master_args`` name a ``--state`` or ``--store``. ``tls``: the
     master serves https:// and the robot task sets wss://, with a certificate for 127.0.0.1 made for
     this engine (in ``workdir/tls``; its CA in ``ca_file``), or for ``tls_hosts``."""
-    workdir = Path(workdir or tempfile.mkdtemp(prefix="rce-engine-"))
+    workdir = Path(workdir or tempfile.mkdtemp(prefix="rce-engine-")).resolve()   # processes get absolute paths
     workdir.mkdir(parents=True, exist_ok=True)
     key_file = workdir / "cluster-key"
     create_private_file(key_file, ClusterKey.generate().secret.hex() + "\n")

@@ -279,7 +279,7 @@ class Run:
             raise UsageError("--robots must be >= 1")
         if o.speedup <= 0:
             raise UsageError("--speedup must be > 0")
-        self.workdir = Path(o.workdir) if o.workdir else Path(tempfile.mkdtemp(prefix="rce-fleet-"))
+        self.workdir = Path(o.workdir).resolve() if o.workdir else Path(tempfile.mkdtemp(prefix="rce-fleet-"))
         self.workdir.mkdir(parents=True, exist_ok=True)
         map_path = o.map or str(write_lab_map(self.workdir / "map"))
         self.map_path = map_path
