@@ -105,7 +105,15 @@ class Probe:
                 "frames_sent": self.frames, "frames_acked": len(acks),
                 "goodput_Bps": round(len(acks) * frame / seconds), "goodput_share": round(
                     len(acks) * frame / seconds / LINK, 3),
-                "frame_age_p50_ms": _pct(ages, 50), "frame_age_p99_ms": _pct(ages, 99)}
+                "frame_age_p50_ms": _pct(ages, 50), "frame_age_p99_ms": _pct(ages, 99),
+                "rtt_series": self.series()}
+
+    def series(self) -> list[tuple[float, float | None]]:
+        """Each cancel's (s since the phase's first, round trip ms; None: lost), for a look at when the
+        slow ones went."""
+        t0 = min(self.sent.values(), default=0.0)
+        return [(round(t - t0, 3), round(self.rtt[n] * 1000, 2) if n in self.rtt else None)
+                for n, t in sorted(self.sent.items())]
 
 
 def _pct(xs: list[float], q: float) -> float | None:

@@ -32,9 +32,10 @@ In intervals of at least :data:`MIN_INTERVAL` s and two minimum round trips:
   the estimate (BBR probes at 1.25 for a round trip; a FIFO shared with control holds less at 1.1): if
   the path takes it without a queue, the estimate rises to what was acked, and while it rises by
   :data:`PROBE_ROOM` or more the probing goes on.
-- **Startup**: from :data:`INITIAL_RATE` the rate doubles every interval held back (BBR's startup,
-  gain 2) until the first sample that shows a queue (a quarter interval in, at the earliest): the
-  first estimate is what was acked in that interval or the one before, whichever is more.
+- **Startup**: from :data:`INITIAL_RATE` the rate doubles every :data:`STARTUP_INTERVAL` held back
+  (BBR's startup, gain 2) until the first sample that shows a queue (half an interval in, at the
+  earliest): the first estimate is what was acked in that interval or the one before, whichever is
+  more, and the queue the doubling left drains at :data:`STARTUP_DRAIN_GAIN` x the estimate.
 - An interval with no byte acked (a stalled path) is not judged, nor one longer than
   :data:`MAX_INTERVAL` (an idle spell).
 """
@@ -46,6 +47,7 @@ from enum import Enum
 INITIAL_RATE = 125_000.0    # bytes/s the pacer starts at (1 Mbit/s), doubling each interval until a queue shows
 MIN_RATE = 12_500.0         # bytes/s, the lowest estimate (100 kbit/s)
 MIN_INTERVAL = 0.08         # s, the shortest interval the estimator judges (also at least 2 minimum RTTs)
+STARTUP_INTERVAL = 0.04     # s, the same in startup: the doubling overshoots the path for one interval at most
 MAX_INTERVAL = 1.0          # s; a longer gap between samples is an idle spell: the interval starts again
 QUEUE_TARGET = 0.010        # s of queueing delay that counts as a queue (RFC 6817's TARGET, scaled to control)
 TARGET_PACKETS = 4          # ... at least the time of this many full packets at the rate (delayed ACKs on a slow path)
@@ -57,6 +59,7 @@ QUEUE_HIGH = 3              # queue targets past which a queue counts whatever w
 STARTUP_GAIN = 2.0
 CRUISE_GAIN = 0.9           # the pacer's rate in cruise, as a share of the estimate: under the link
 DRAIN_GAIN = 0.75
+STARTUP_DRAIN_GAIN = 0.5    # after startup's overshoot (BBR drains at 1/2.89 after a startup at 2.89)
 PROBE_GAIN = 1.1           # BBR probes at 1.25; a FIFO bottleneck shared with control holds less at 1.1
 PROBE_EVERY = 16            # cruise intervals (held back) between probes
 PROBE_ROOM = 1.05           # a probe that raised the estimate by this factor or more is followed by another
@@ -120,8 +123,9 @@ class RateEstimator:
         self._waited += s.waited
         dt = s.t - start.t
         queue = max(0.0, s.rtt - s.min_rtt)
-        shortest = max(MIN_INTERVAL, 2 * s.min_rtt)
-        if dt < shortest and not (self.mode is Mode.STARTUP and dt >= shortest / 4 and queue > self.target()):
+        startup = self.mode is Mode.STARTUP
+        shortest = max(STARTUP_INTERVAL if startup else MIN_INTERVAL, 2 * s.min_rtt)
+        if dt < shortest and not (startup and dt >= shortest / 2 and queue > self.target()):
             return                  # (startup ends at the first sample that shows a queue)
         self._judge(delivered=(s.acked - start.acked) / dt, queue=queue,
                     held=self._waited >= HELD_SHARE * dt or s.notsent > NOTSENT_LIMIT)
@@ -155,6 +159,7 @@ class RateEstimator:
             self._drained = 0
             if self.estimate is None:  # the end of startup: the pipe filled in this interval or the last
                 self._set(max(delivered, last, MIN_RATE), Mode.DRAIN)
+                self.rate = STARTUP_DRAIN_GAIN * self.estimate     # what the doubling put in the queue
             else:                      # one interval moves it by STEP_DOWN at most; a queue that stays, more
                 self._set(min(self.estimate, max(delivered, STEP_DOWN * self.estimate)), Mode.DRAIN)
             return
