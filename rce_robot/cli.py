@@ -24,6 +24,7 @@ from rce.protocol.pacer import rate_arg
 from rce.protocol.resume import DEFAULT_GRACE, DEFAULT_RESUME_BUFFER
 from rce.protocol.session import DEFAULT_MAX_LAG, DEFAULT_MAX_MESSAGE, DEFAULT_QUEUE_SIZE
 from rce_robot.endpoint import RobotEndpoint
+from rce_robot import ws_link
 from rce_robot.rosbridge import ROSBRIDGE_PORT
 
 log = get_logger("rce.robot")
@@ -85,6 +86,9 @@ def parser() -> argparse.ArgumentParser:
                         "under the rate estimated for each link's path; 'off': not paced (docs/lanes.md)")
     p.add_argument("--mptcp", action="store_true",
                    help="accept robots over Multipath TCP where the kernel offers it (net.mptcp.enabled), else TCP")
+    p.add_argument("--ws-impl", choices=ws_link.IMPLS, default=ws_link.DEFAULT_IMPL,
+                   help="the websocket library that serves robots and rosbridge clients (default "
+                        f"{ws_link.DEFAULT_IMPL}; docs/INTERNALS.md \"The robot endpoint's websocket\")")
     p.add_argument("--ready-file", type=Path, help="write {ws_port, data_addr, pid} here once registered")
     p.add_argument("--cluster-key-file", type=Path, default=None, metavar="PATH", help=cluster_auth.KEY_FLAG_HELP)
     tls.add_server_arguments(p, "serve wss:// to robots and rosbridge clients (and https:// /metrics)")
@@ -99,7 +103,8 @@ async def amain(args: argparse.Namespace) -> None:
                        queue_size=args.queue_size, expiry=args.expiry, master_wait=args.master_wait,
                        grace=args.grace, resume_buffer=args.resume_buffer,
                        max_pending_total=args.max_pending_binary, ssl_context=tls.server_context_from(args),
-                       max_lag=args.max_lag or None, bulk_rate=args.bulk_rate, mptcp=args.mptcp)
+                       max_lag=args.max_lag or None, bulk_rate=args.bulk_rate, mptcp=args.mptcp,
+                       ws_impl=args.ws_impl)
     loop = asyncio.get_running_loop()
     for sig in (signal.SIGINT, signal.SIGTERM):
         loop.add_signal_handler(sig, ep.stopped.set)

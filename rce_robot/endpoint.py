@@ -15,7 +15,6 @@ from urllib.parse import parse_qs, urlsplit
 from aiohttp import web
 from prometheus_client import CONTENT_TYPE_LATEST, CollectorRegistry, Gauge, generate_latest
 from prometheus_client.core import CounterMetricFamily, GaugeMetricFamily, HistogramMetricFamily
-from websockets.asyncio.server import serve
 
 from rce.transport.cluster_auth import ClusterKey, token_of
 from rce.transport.dataplane import DataPlane
@@ -41,6 +40,7 @@ from rce_robot.parse_pool import ParsePool
 from rce_robot.rosbridge import SESSION_COUNTERS as ROSBRIDGE_COUNTERS
 from rce_robot.rosbridge import RosbridgeServer
 from rce_robot.rosbridge_session import RosbridgeSession
+from rce_robot import ws_link
 
 log = get_logger("rce.robot")
 PING_INTERVAL = 20.0     # s between websocket pings to a robot
@@ -203,14 +203,19 @@ class RobotEndpoint:
     sheds that robot's topic messages (:class:`RobotSession`; None: never); ``bulk_rate``: how each
     robot's bulk link is paced (docs/lanes.md "Pacing"): bytes/s, ``"auto"`` or None (the rate estimated
     per link from its socket), ``"off"`` (not paced); ``mptcp``: listen on an MPTCP socket
-    where the kernel offers it (:func:`rce.transport.lane_socket.mptcp_socket`)."""
+    where the kernel offers it (:func:`rce.transport.lane_socket.mptcp_socket`); ``ws_impl``: the websocket
+    library that serves robots and rosbridge clients (:data:`rce_robot.ws_link.IMPLS`)."""
 
     def __init__(self, *, name: str, advertise_host: str, max_message: int = DEFAULT_MAX_MESSAGE,
                  queue_size: int = DEFAULT_QUEUE_SIZE, expiry: float = DEFAULT_EXPIRY,
                  master_wait: float = MASTER_WAIT, grace: float = DEFAULT_GRACE,
                  resume_buffer: int = DEFAULT_RESUME_BUFFER, max_pending_total: int = DEFAULT_MAX_PENDING_TOTAL,
                  ssl_context: ssl.SSLContext | None = None, max_lag: float | None = DEFAULT_MAX_LAG,
-                 cluster_key: ClusterKey, bulk_rate: Pacing | None = None, mptcp: bool = False):
+                 cluster_key: ClusterKey, bulk_rate: Pacing | None = None, mptcp: bool = False,
+                 ws_impl: str = ws_link.DEFAULT_IMPL):
+        if ws_impl not in ws_link.IMPLS:
+            raise ValueError(f"ws_impl must be one of {', '.join(ws_link.IMPLS)}; got {ws_impl!r}")
+        self.ws_impl = ws_impl
         self.name, self.advertise_host = name, advertise_host
         self.ssl_context = ssl_context
         self.cluster_key = cluster_key
@@ -247,11 +252,11 @@ class RobotEndpoint:
         self.plane.data_key = self.cluster_key.data_key(self.plane.addr)
         # frames up to twice the limit are read and refused with an ER; beyond that the socket closes
         sock = self._listen_socket(bind, port) if self.mptcp else None
-        self._ws_server = await serve(self._session, None if sock else bind, None if sock else port, sock=sock,
-                                      process_request=self._handshake,
-                                      max_size=2 * self.max_message + 1024, compression=None,
-                                      ping_interval=PING_INTERVAL, ping_timeout=PING_TIMEOUT,
-                                      max_queue=WS_MAX_QUEUE, ssl=self.ssl_context)
+        self._ws_server = await ws_link.serve(self.ws_impl, self._session, None if sock else bind,
+                                              None if sock else port, sock=sock, process_request=self._handshake,
+                                              max_size=2 * self.max_message + 1024, ping_interval=PING_INTERVAL,
+                                              ping_timeout=PING_TIMEOUT, max_queue=WS_MAX_QUEUE,
+                                              ssl_context=self.ssl_context)
         self.ws_port = self._ws_server.sockets[0].getsockname()[1]
         host = f"[{self.advertise_host}]" if ":" in self.advertise_host else self.advertise_host
         scheme = "wss" if self.ssl_context else "ws"
@@ -261,7 +266,7 @@ class RobotEndpoint:
                                  master_wait=self.master_wait, cluster_key=self.cluster_key)
         await self.master.start()
         if rosbridge_port is not None:
-            self.rosbridge = RosbridgeServer(self.master, self.by_iid, self.max_lag)
+            self.rosbridge = RosbridgeServer(self.master, self.by_iid, self.max_lag, self.ws_impl)
             await self.rosbridge.start(bind, rosbridge_port, self.ssl_context)
         if metrics_port is not None:
             app = web.Application()

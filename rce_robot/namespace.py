@@ -33,7 +33,7 @@ from rce.protocol.session import RobotSession
 from rce.transport.masterlink import MasterLink
 from rce.plumbing.tasks import Tasks
 from rce_robot.interfaces import RobotInterface
-from rce_robot import ws_cork
+from rce_robot import ws_link
 from rce.protocol.lanes import BULK_SIZE, Lane
 from rce.protocol.pacer import Pacer
 from rce.transport import lane_socket
@@ -135,11 +135,11 @@ class RobotNamespace:
 
     def _flush(self) -> None:
         """Write what waits to the link now, one message at a time, each in one corked write
-        (:mod:`rce_robot.ws_cork`), while the link takes it; when it does not (its buffer is full,
-        it is closing, or it is no websockets connection) the writer task goes on."""
+        (:func:`rce_robot.ws_link.write`), while the link takes it; when it does not (its buffer is
+        full, or it is closing) the writer task goes on."""
         ws, now = self.ws, time.monotonic()
-        while self.session.outbox and ws_cork.writable(ws):
-            ws_cork.write(ws, self.session.data_to_send(1, now))
+        while self.session.outbox and ws_link.writable(ws):
+            ws_link.write(ws, self.session.data_to_send(1, now))
         if self.session.outbox:
             self._wake.set()
 
@@ -152,9 +152,9 @@ class RobotNamespace:
                 self._wake.clear()
                 # one message at a time, and only while this link is the session's: the outbox stays the bound
                 while self.ws is ws and self.session.outbox:
-                    if ws_cork.writable(ws):
-                        ws_cork.write(ws, self.session.data_to_send(1, time.monotonic()))
-                    elif ws_cork.paused(ws):
+                    if ws_link.writable(ws):
+                        ws_link.write(ws, self.session.data_to_send(1, time.monotonic()))
+                    elif ws_link.paused(ws):
                         await ws.drain()
                     else:
                         for f in self.session.data_to_send(1, time.monotonic()):
@@ -187,11 +187,11 @@ class RobotNamespace:
         self._pump()
         try:
             async for frame in ws:
-                self.session.backlog(ws_cork.behind(ws), time.monotonic())
+                self.session.backlog(ws_link.behind(ws), time.monotonic())
                 if self._receive(frame):       # a big text frame: parsed in the pool first
                     await self._receive_big(frame)
                 self._pump()
-                await ws_cork.take_turn(ws)
+                await ws_link.take_turn(ws)
         except ConnectionClosed:
             pass
         finally:
@@ -199,7 +199,7 @@ class RobotNamespace:
         if self.ws is not ws:           # a resume took the session over
             return
         self.ws = None
-        if self.ended or not self.resumable or _closed_by_robot(ws):
+        if self.ended or not self.resumable or ws_link.closed_by_peer(ws, CLEAN_CLOSE):
             await self._end()
             return
         self.session.detach()
@@ -379,9 +379,3 @@ class RobotNamespace:
         """This robot's counters (:meth:`RobotSession.stats`) with its user and robot ID."""
         return {"user": self.user, "robot": self.robot, "detached": self.detached, **self.session.stats()}
 
-
-def _closed_by_robot(ws: Any) -> bool:
-    """Did the robot end its session itself: its close frame came first, with 1000 or 1001?"""
-    proto = getattr(ws, "protocol", None)
-    rcvd = getattr(proto, "close_rcvd", None)
-    return rcvd is not None and bool(getattr(proto, "close_rcvd_then_sent", False)) and rcvd.code in CLEAN_CLOSE

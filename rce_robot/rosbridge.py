@@ -20,7 +20,6 @@ from http import HTTPStatus
 from typing import Any
 from urllib.parse import parse_qs, urlsplit
 
-from websockets.asyncio.server import serve
 from websockets.exceptions import ConnectionClosed
 
 from rce.plumbing.errors import AuthError, NotFound, RCEError, Throttled
@@ -29,7 +28,7 @@ from rce.transport.masterlink import MasterLink
 from rce.protocol.limits import DEFAULT_MAX_LAG, parse_max_lag
 from rce.plumbing.tasks import Tasks
 from rce_robot.front_door import master_away, peer_address, throttled
-from rce_robot import ws_cork
+from rce_robot import ws_link
 from rce_robot.interfaces import RobotInterface
 from rce_robot.rosbridge_outbox import RosbridgeOutbox
 from rce_robot.rosbridge_session import RosbridgeSession
@@ -61,10 +60,12 @@ class RosbridgeServer:
     endpoint's table of robot-side interfaces (a session's are forgotten there when it ends).
     :attr:`sessions` maps (user, robot) to the live sessions: the master's ``add_interface``
     for such a robot makes its converter in that session. ``max_lag``: s the endpoint may stay
-    behind a client before it sheds the client's publish ops (:class:`RosbridgeSession`)."""
+    behind a client before it sheds the client's publish ops (:class:`RosbridgeSession`); ``ws_impl``: the
+    websocket library that serves it (:data:`rce_robot.ws_link.IMPLS`)."""
 
-    def __init__(self, master: MasterLink, by_iid: dict[int, RobotInterface], max_lag: float | None = DEFAULT_MAX_LAG):
-        self.master, self.by_iid, self.max_lag = master, by_iid, max_lag
+    def __init__(self, master: MasterLink, by_iid: dict[int, RobotInterface], max_lag: float | None = DEFAULT_MAX_LAG,
+                 ws_impl: str = ws_link.DEFAULT_IMPL):
+        self.master, self.by_iid, self.max_lag, self.ws_impl = master, by_iid, max_lag, ws_impl
         self.sessions: dict[tuple[str, str], RosbridgeSession] = {}
         self.ended: Counter[str] = Counter()          # the counters of ended sessions
         self.sessions_total = 0
@@ -83,9 +84,10 @@ class RosbridgeServer:
     async def start(self, bind: str, port: int, ssl_context: ssl.SSLContext | None = None) -> None:
         """Listen on ``bind``:``port`` (0: an ephemeral port, then in :attr:`port`); wss:// with
         ``ssl_context`` (:func:`rce.transport.tls.server_context`)."""
-        self._server = await serve(self._serve, bind, port, process_request=self._handshake, max_size=MAX_MESSAGE,
-                                   compression=None, ping_interval=PING_INTERVAL, ping_timeout=PING_TIMEOUT,
-                                   max_queue=WS_MAX_QUEUE, ssl=ssl_context)
+        self._server = await ws_link.serve(self.ws_impl, self._serve, bind, port, process_request=self._handshake,
+                                           max_size=MAX_MESSAGE, ping_interval=PING_INTERVAL,
+                                           ping_timeout=PING_TIMEOUT, max_queue=WS_MAX_QUEUE,
+                                           ssl_context=ssl_context)
         self.port = self._server.sockets[0].getsockname()[1]
         log.info("rosbridge endpoint up", port=self.port)
 
@@ -139,9 +141,9 @@ class RosbridgeServer:
         writer.spawn(_write(ws, session.outbox), name="writer")
         try:
             async for text in ws:
-                session.backlog(ws_cork.behind(ws), time.monotonic())
+                session.backlog(ws_link.behind(ws), time.monotonic())
                 await session.handle(text)
-                await ws_cork.take_turn(ws)
+                await ws_link.take_turn(ws)
         except ConnectionClosed:
             pass
         finally:

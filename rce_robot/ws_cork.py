@@ -50,7 +50,12 @@ def unread(ws: Any) -> int:
     """Bytes of ``ws``'s that the kernel has received and nobody has read yet (``FIONREAD`` on its
     socket, tcp(7)): what waits behind the frames :func:`backlog` counts. 0 for anything that is
     not a websockets asyncio connection on a socket."""
-    sock = ws.transport.get_extra_info("socket") if corkable(ws) else None
+    return fionread(ws.transport.get_extra_info("socket") if corkable(ws) else None)
+
+
+def fionread(sock: Any) -> int:
+    """Bytes the kernel has received on ``sock`` that nobody has read yet (``FIONREAD``, tcp(7)); 0 for
+    None or a closed socket."""
     if sock is None:
         return 0
     try:

@@ -79,4 +79,5 @@ def setup_logging(level: str | None = None, as_json: bool | None = None) -> None
     root.handlers[:] = [h]
     root.setLevel(level)
     logging.getLogger("websockets").setLevel(logging.WARNING)
+    logging.getLogger("picows").setLevel(logging.WARNING)
     logging.getLogger("aiohttp.access").setLevel(logging.WARNING)

@@ -56,6 +56,12 @@ class Tasks:
         else:
             log.error("task failed", owner=self.owner, task=task.get_name(), exc_info=e)
 
+    async def wait_all(self) -> None:
+        """Wait until every task has ended, those spawned meanwhile too (the current task is spared)."""
+        me = asyncio.current_task()
+        while tasks := [t for t in self._tasks if t is not me]:
+            await asyncio.gather(*tasks, return_exceptions=True)
+
     async def cancel_all(self) -> None:
         """Cancel every task and wait until they have ended (the current task is spared)."""
         me = asyncio.current_task()
