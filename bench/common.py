@@ -136,6 +136,14 @@ def pyplot():
 
 # -- engine ------------------------------------------------------------------------------------
 
+def add_ws_impl_argument(p) -> None:
+    """``--ws-impl``: the websocket library rce-robot serves robots with (``rce-robot --ws-impl``), so a run can
+    set the two side by side."""
+    from rce_robot.ws_link import DEFAULT_IMPL, IMPLS
+    p.add_argument("--ws-impl", choices=IMPLS, default=DEFAULT_IMPL,
+                   help=f"rce-robot's websocket library (default {DEFAULT_IMPL})")
+
+
 @contextlib.contextmanager
 def engine(workdir: Path | None = None, env: dict | None = None, **kw) -> Iterator[Engine]:
     """The real engine as processes (:mod:`rce.tools.launch`). ``env`` is added to ``os.environ`` while it

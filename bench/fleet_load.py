@@ -123,8 +123,8 @@ from typing import Callable
 
 from rce_robot import ws_cork
 
-from common import (BENCH, PASSWORD, RESULTS, USER, ForeignLoad, console, engine, fmt_ms, free_port, median,
-                    percentile, pyplot, set_nice, wait_quiet, write_json)
+from common import (BENCH, PASSWORD, RESULTS, USER, ForeignLoad, add_ws_impl_argument, console, engine, fmt_ms,
+                    free_port, median, percentile, pyplot, set_nice, wait_quiet, write_json)
 from fleet_floor import floor_main
 from fleet_wiring import CTAG, DOWN, ECHO_SUFFIX, POSE, robot_wiring
 
@@ -1127,7 +1127,8 @@ class Run:
         procs = None
         try:
             with engine(workdir, env={"RCE_PACKAGE_PATH": str(PACKAGES)}, robot_tasksets=a.robot_tasksets,
-                        master_args=("--max-interfaces", str(interface_quota(self.n)))) as eng:
+                        master_args=("--max-interfaces", str(interface_quota(self.n))),
+                        robot_args=("--ws-impl", a.ws_impl)) as eng:
                 self.res["setup"]["engine_s"] = round(time.monotonic() - t0, 2)
                 self.workers = []
                 procs = Procs(eng, self.workers).start()
@@ -1276,6 +1277,7 @@ def verdict(r: dict, max_p99: float) -> str | None:
 def parse_args(argv=None):
     p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0],
                                 formatter_class=argparse.RawDescriptionHelpFormatter)
+    add_ws_impl_argument(p)
     p.add_argument("--robots", default=DEFAULT_ROBOTS, help=f"fleet sizes, in order (default {DEFAULT_ROBOTS})")
     p.add_argument("--duration", type=float, default=10.0, help="measured window per N, s (default 10)")
     p.add_argument("--rate", type=float, default=10.0, help="pose rate per robot, Hz (default 10)")
@@ -1350,7 +1352,7 @@ def main(argv=None) -> int:
                                     "run: 1.0 would be an engine that costs no more than one websocket hop each "
                                     "way"}}
     set_nice(args.nice, log=con.print)
-    res["nice"] = args.nice
+    res["nice"], res["ws_impl"] = args.nice, args.ws_impl
     for n in sizes:
         con.rule(f"N = {n} robots ({res['mode']})")
         wait_quiet(args.wait_quiet, log=con.print)

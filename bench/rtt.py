@@ -61,9 +61,9 @@ import time
 import uuid
 from pathlib import Path
 
-from common import (BENCH, ForeignLoad, RawRobot, RESULTS, SYS_PY, VENV_PY, anchor_sizes, console, engine,
-                    ensure_ros1, fmt_ms, fmt_ratio, fmt_size, free_port, geomean, median, peer_result, percentile,
-                    progress, pyplot, ratio, run_anchor, set_nice, wait_quiet, write_json)
+from common import (BENCH, ForeignLoad, RawRobot, RESULTS, SYS_PY, VENV_PY, add_ws_impl_argument, anchor_sizes,
+                    console, engine, ensure_ros1, fmt_ms, fmt_ratio, fmt_size, free_port, geomean, median, peer_result,
+                    percentile, progress, pyplot, ratio, run_anchor, set_nice, wait_quiet, write_json)
 
 PATHS = ("converter", "forwarder", "c2c")
 STRING = "std_msgs/String"
@@ -287,6 +287,7 @@ def ros1_peer(sizes: list[int], reps: int, gap: float) -> dict:
 def parse_args(argv=None):
     p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0],
                                 formatter_class=argparse.RawDescriptionHelpFormatter)
+    add_ws_impl_argument(p)
     p.add_argument("--sizes", help="comma-separated subset of sizes in bytes (default: shared/anchors/sizes.py)")
     p.add_argument("--reps", type=int, default=int(os.environ.get("REPS", "20")),
                    help="repetitions per size (default: $REPS or 20; a quarter, >= 3, from 1 MB)")
@@ -334,7 +335,7 @@ def run_round(con, args, sizes: list[int], paths: list[str], ros1_ok: bool) -> d
                                             "ROS_HOME": tempfile.mkdtemp(prefix="ros1rtt-")})
             load["ros1"] = fl.stop()
         con.print(f"ROS 1 done ({peers['ros1']['peer']})")
-    with engine() as eng, progress(con) as prog:
+    with engine(robot_args=("--ws-impl", args.ws_impl)) as eng, progress(con) as prog:
         fl = ForeignLoad().start()
         samples = asyncio.run(measure_rce(eng.master_url, paths, sizes, args.reps, prog))
         load["rce"] = fl.stop()
@@ -357,7 +358,7 @@ def run_gap_round(con, args, sizes: list[int], paths: list[str], ros1_ok: bool) 
             peers["ros1"] = ros1_peer(sizes, args.reps, gap)
             load["ros1"] = fl.stop()
         con.print(f"ROS 1 done ({peers['ros1']['peer']}, gap {gap:g} s)")
-    with engine() as eng, progress(con) as prog:
+    with engine(robot_args=("--ws-impl", args.ws_impl)) as eng, progress(con) as prog:
         fl = ForeignLoad().start()
         samples = asyncio.run(measure_rce(eng.master_url, paths, sizes, args.reps, prog, gap))
         load["rce"] = fl.stop()
@@ -450,7 +451,7 @@ def main(argv=None) -> int:
         "forwarder_over_ws_large_geomean": gm("rce_forwarder_ms", "ws_floor_ms", large),
         "small": "sizes <= 1623 B", "large": "sizes >= 1 MB"}
     res["machine_load"] = load if args.rounds > 1 else load[0]
-    res["nice"] = args.nice
+    res["nice"], res["ws_impl"] = args.nice, args.ws_impl
     res["notes"] = notes
     write_json(args.json, res)
     print_table(con, res)

@@ -29,7 +29,7 @@ from pathlib import Path
 
 import psutil
 
-from common import RESULTS, Engine, RawRobot, console, engine, median, write_json
+from common import RESULTS, Engine, RawRobot, add_ws_impl_argument, console, engine, median, write_json
 from rtt import Path_, setup_echo
 
 ROLES = (("robot", ("rce-robot",)), ("environment", ("rce_container.environment",)), ("node", ("stringEcho",)),
@@ -138,13 +138,14 @@ def main(argv=None) -> int:
     p.add_argument("--kind", choices=("converter", "forwarder"), default="converter")
     p.add_argument("--direct", choices=("both", "on", "off"), default="both")
     p.add_argument("--json", default=str(RESULTS / "rtt_cpu.json"))
+    add_ws_impl_argument(p)
     a = p.parse_args(argv)
     con = console()
     settings = {"both": ("off", "on"), "on": ("on",), "off": ("off",)}[a.direct]
-    res = {"kind": a.kind, "size": a.size, "n": a.n, "runs": {}}
+    res = {"kind": a.kind, "size": a.size, "n": a.n, "ws_impl": a.ws_impl, "runs": {}}
     for s in settings:
         t0 = time.monotonic()
-        with engine(env={"RCE_DIRECT_LINKS": "1" if s == "on" else "0"}) as eng:
+        with engine(env={"RCE_DIRECT_LINKS": "1" if s == "on" else "0"}, robot_args=("--ws-impl", a.ws_impl)) as eng:
             res["runs"][f"direct_{s}"] = r = asyncio.run(measure(eng, s == "on", a.kind, a.n, a.size))
         con.print(f"direct links {s:3s}: median {r['median_ms']:.3f} ms; CPU us per round trip: "
                   + ", ".join(f"{k} {v:.0f}" for k, v in r["us_per_rt"].items())
