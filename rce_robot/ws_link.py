@@ -100,11 +100,11 @@ ProcessRequest = Callable[[Any, Any], Awaitable[Any]]
 
 
 async def serve(impl: str, handler: Handler, host: str | None, port: int | None, *, sock: socket.socket | None = None,
-                process_request: ProcessRequest, max_size: int, ping_interval: float, ping_timeout: float,
+                process_request: ProcessRequest, max_size: int | None, ping_interval: float, ping_timeout: float,
                 max_queue: int, ssl_context: ssl.SSLContext | None = None):
     """Listen on ``host``:``port`` (or ``sock``) with library ``impl`` (one of :data:`IMPLS`); each
     connection ``process_request`` lets through is served by ``handler(link)``, and closed (1000; 1011
-    when it raised) when the handler returns. ``max_size``: bytes of a message (larger: close 1009);
+    when it raised) when the handler returns. ``max_size``: bytes of a message (larger: close 1009; None: no limit);
     ``ping_interval``/``ping_timeout``: s of the keepalive (a link whose pong does not come in
     ``ping_timeout`` is dropped); ``max_queue``: frames read ahead of the handler. Returns the server
     (``sockets``, ``close()``, ``await wait_closed()``). Raises ValueError for an unknown ``impl``."""
@@ -380,10 +380,11 @@ class PicowsServer:
     with :class:`_FrontDoor` and, once ``process_request`` lets them in, are :class:`PicowsLink` s served
     by ``handler``."""
 
-    def __init__(self, handler: Handler, process_request: ProcessRequest, *, max_size: int, ping_interval: float,
+    def __init__(self, handler: Handler, process_request: ProcessRequest, *, max_size: int | None, ping_interval: float,
                  ping_timeout: float, max_queue: int):
         self.handler, self.process_request = handler, process_request
-        self.max_size, self.ping_interval, self.ping_timeout = max_size, ping_interval, ping_timeout
+        self.max_size = max_size if max_size is not None else 1 << 62           # None: no limit
+        self.ping_interval, self.ping_timeout = ping_interval, ping_timeout
         self.max_queue = max(max_queue, READ_LOW_WATER + 1)
         self.links: set[PicowsLink] = set()
         self.tasks = Tasks("websocket server")         # handshakes and handlers

@@ -28,10 +28,33 @@ def shared_engine(tmp_path_factory):
     e.stop()
 
 
+from rce_robot.ws_link import DEFAULT_IMPL, IMPLS as WS_IMPLS  # noqa: E402  rce-robot --ws-impl: both stay tested
+
+
+@pytest.fixture(scope="module", params=WS_IMPLS)
+def engine_ws_impls(request, shared_engine, tmp_path_factory):
+    """The module's engine (rce-robot on its default websocket library), then one whose rce-robot runs
+    the other (``--ws-impl``): a test that takes this runs on both."""
+    if request.param == DEFAULT_IMPL:
+        yield shared_engine
+        return
+    e = start_engine(tmp_path_factory.mktemp(f"engine-{request.param}"), robot_args=("--ws-impl", request.param))
+    yield e
+    e.stop()
+
+
+@pytest.fixture(params=WS_IMPLS)
+def engine_each_ws_impl(request, tmp_path: Path):
+    """A fresh engine per test (as :func:`engine`) whose rce-robot runs each websocket library in turn."""
+    e = start_engine(tmp_path / "engine", robot_args=("--ws-impl", request.param))
+    yield e
+    e.stop()
+
+
 def pytest_runtest_makereport(item, call):
     """Attach the engine's process logs to a failing test's report."""
     if call.when == "call" and call.excinfo is not None:
-        for name in ("engine", "shared_engine"):
+        for name in ("engine", "shared_engine", "engine_ws_impls", "engine_each_ws_impl"):
             e = item.funcargs.get(name) if hasattr(item, "funcargs") else None
             if isinstance(e, Engine):
                 item.add_report_section("call", "engine logs", e.log_text())

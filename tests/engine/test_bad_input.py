@@ -118,7 +118,8 @@ async def test_message_that_does_not_fit_its_class(eng):
     await _with_bystander(eng, "misfit", body)
 
 
-async def test_frame_over_size_limit(eng):
+async def test_frame_over_size_limit(engine_ws_impls):
+    eng = engine_ws_impls
     async def body(r):
         big = "x" * (32 * 1024 * 1024 + 10)   # the robot task set's default --max-message is 32 MiB
         await r.send("DM", {"iTag": "s", "type": "std_msgs/String", "msgID": "", "msg": {"data": big}})
@@ -145,7 +146,8 @@ async def test_bad_credentials_at_login(eng):
     assert ei.value.code == 400 and "userID" in ei.value.read().decode()
 
 
-async def test_bad_credentials_at_websocket(eng):
+async def test_bad_credentials_at_websocket(engine_ws_impls):
+    eng = engine_ws_impls
     url = login(eng.master_url)["url"]
     wrong = hashlib.sha256(b"wrong").hexdigest()
     with pytest.raises(InvalidStatus) as ei:          # a newer client: the HTTP status
@@ -156,9 +158,10 @@ async def test_bad_credentials_at_websocket(eng):
 
 
 @pytest.mark.parametrize("user", ["testUser", "nobody"])
-async def test_a_2013_client_that_only_reads_frames_learns_its_login_failed(eng, user):
+async def test_a_2013_client_that_only_reads_frames_learns_its_login_failed(engine_ws_impls, user):
     """The 2013 client (autobahn_rce 0.6) never surfaces an HTTP status: it is shown one ER naming
     the failure, the same for an unknown user and a wrong password, and the websocket closes (1008)."""
+    eng = engine_ws_impls
     url = login(eng.master_url, user=user)["url"]
     wrong = hashlib.sha256(b"wrong").hexdigest()
     async with connect(f"{url}?userID={user}&robotID=badpw&password={wrong}") as ws:
@@ -179,7 +182,8 @@ async def test_a_2013_client_that_only_reads_frames_learns_its_login_failed(eng,
         assert json.loads(await asyncio.wait_for(ws.recv(), 10))["type"] == "ER"
 
 
-async def test_duplicate_robot_id_refused(eng):
+async def test_duplicate_robot_id_refused(engine_ws_impls):
+    eng = engine_ws_impls
     async with RawRobot(eng.master_url, "dup"):
         with pytest.raises(InvalidStatus) as ei:
             async with RawRobot(eng.master_url, "dup"):

@@ -65,7 +65,8 @@ async def test_converter_topic_and_service_echo(eng):
         assert dm["msgID"] == "call-1" and dm["msg"] == {"data": "svc"}
 
 
-async def test_forwarder_binary_parts_both_orders(eng):
+async def test_forwarder_binary_parts_both_orders(engine_ws_impls):
+    eng = engine_ws_impls
     async with RawRobot(eng.master_url, "fwd") as r:
         await _echo_container(r, "fwdC", "Forwarder")
         payload = bytes(TS.serialize_ros1(TS.types["std_msgs/msg/String"](data="b" * 100_000), "std_msgs/msg/String"))
@@ -143,12 +144,13 @@ def _metric(port: int, name: str) -> float:
 
 
 @pytest.mark.parametrize("max_lag", ["", "0"])
-async def test_an_endpoint_behind_a_flooding_robot_sheds_the_oldest_and_delivers_the_newest(eng, max_lag):
+async def test_an_endpoint_behind_a_flooding_robot_sheds_the_oldest_and_delivers_the_newest(engine_ws_impls, max_lag):
     """Real overload: a robot writes 30,000 topic DMs as fast as its socket takes them, far faster
     than its endpoint converts and relays them. Once the endpoint has been behind the robot for
     ``max_lag`` (1 s) it sheds the robot's topic messages, counted, until it has caught up: the
     echoes keep their order, the newest message gets through, and nothing is counted twice. A
     connection that asked ``maxLag=0`` (an operator's commands) is never shed (10,000 DMs)."""
+    eng = engine_ws_impls
     n = 10_000 if max_lag else 30_000
     async with RawRobot(eng.master_url, f"flood{max_lag}", query=f"&maxLag={max_lag}" if max_lag else "") as r:
         await _echo_container(r, f"flood{max_lag}C", "Converter")
@@ -194,12 +196,13 @@ async def test_an_endpoint_behind_a_flooding_robot_sheds_the_oldest_and_delivers
         assert told[0]["status"] == "shedding" and told[0]["behind_s"] >= 1.0 and told[-1]["status"] == "caught_up"
 
 
-async def test_a_robot_that_stops_reading_gets_the_newest_when_it_reads_again(eng):
+async def test_a_robot_that_stops_reading_gets_the_newest_when_it_reads_again(engine_ws_impls):
     """Real stall of the robot's side: it stops reading its websocket (the client library stops
     reading the socket once 16 frames wait, the kernel's buffers fill, then the endpoint's) while
     2,000 echoes of 8 kB come for it. They wait at the endpoint; once the robot reads again, those
     that waited longer than max_lag (1 s) with a newer one of their topic behind them are dropped,
     counted in rce_robot_dropped_total, and the rest come in order, the newest last."""
+    eng = engine_ws_impls
     n, pad = 2000, "x" * 8000
     port = eng.robot_ready[0]["metrics_port"]
     async with RawRobot(eng.master_url, "stalled") as r:
@@ -234,7 +237,8 @@ async def test_a_robot_that_stops_reading_gets_the_newest_when_it_reads_again(en
     assert dropped > 0 and len(echoed) + dropped + shed <= n, (len(echoed), dropped, shed)
 
 
-async def test_a_max_lag_that_is_not_seconds_is_refused_at_the_handshake(eng):
+async def test_a_max_lag_that_is_not_seconds_is_refused_at_the_handshake(engine_ws_impls):
+    eng = engine_ws_impls
     for bad in ("-1", "soon", "inf"):
         with pytest.raises(InvalidStatus) as ei:
             async with RawRobot(eng.master_url, "badLag", query=f"&maxLag={bad}"):

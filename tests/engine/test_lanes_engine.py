@@ -71,7 +71,8 @@ async def _echo(pub, got: asyncio.Queue, msg, want) -> None:
     await asyncio.wait_for(until(), STEP)
 
 
-async def test_bulk_goes_on_its_own_link_control_on_the_sessions_and_a_cut_bulk_link_joins_again(eng):
+async def test_bulk_goes_on_its_own_link_control_on_the_sessions_and_a_cut_bulk_link_joins_again(engine_ws_impls):
+    eng = engine_ws_impls
     conn = await Connection.connect(eng.master_url, "testUser", "testUser", "lanesR", allow_reconnect=True,
                                     lanes=True, bulk_rate=50e6)
     lanes_status: asyncio.Queue = asyncio.Queue()
@@ -108,7 +109,8 @@ async def test_bulk_goes_on_its_own_link_control_on_the_sessions_and_a_cut_bulk_
         await conn.close()
 
 
-async def test_a_bulk_join_needs_the_sessions_token_and_names_the_bulk_lane(eng):
+async def test_a_bulk_join_needs_the_sessions_token_and_names_the_bulk_lane(engine_ws_impls):
+    eng = engine_ws_impls
     conn = await Connection.connect(eng.master_url, "testUser", "testUser", "lanesR2", allow_reconnect=True)
     try:
         await asyncio.wait_for(_live(conn), STEP)

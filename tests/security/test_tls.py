@@ -22,6 +22,7 @@ from websockets.exceptions import InvalidStatus
 from rce.transport import tls
 from rce.plumbing.errors import ConfigError, Unavailable
 from rce.tools.launch import start_engine
+from rce_robot.ws_link import IMPLS as WS_IMPLS
 from rce_client.connection import Connection, login
 
 WEB_DIR = Path(__file__).resolve().parents[2] / "examples" / "fleet" / "rce_fleet" / "web"
@@ -30,9 +31,11 @@ ECHO_TIMEOUT = 30.0          # s for a container, its echo node and the interfac
 PAGE_TIMEOUT_MS = 60_000     # ms the web page's echo test may take (as tests/web/test_web_client.py)
 
 
-@pytest.fixture(scope="module")
-def tls_engine(tmp_path_factory):
-    e = start_engine(tmp_path_factory.mktemp("engine"), tls=True, master_args=("--static", f"/ui={WEB_DIR}"))
+@pytest.fixture(scope="module", params=WS_IMPLS)
+def tls_engine(request, tmp_path_factory):
+    """The engine over TLS, its rce-robot on each websocket library (``--ws-impl``) in turn."""
+    e = start_engine(tmp_path_factory.mktemp("engine"), tls=True, master_args=("--static", f"/ui={WEB_DIR}"),
+                     robot_args=("--ws-impl", request.param))
     yield e
     e.stop()
 
