@@ -34,6 +34,8 @@ from dataclasses import dataclass, field
 from http import HTTPStatus
 from typing import Any
 
+from picows import WSListener, WSMsgType, WSUpgradeResponse, WSUpgradeResponseWithListener
+from picows.picows import WSAutoPingStrategy, WSProtocol
 from websockets.exceptions import ConnectionClosedError
 
 from rce.plumbing.log import get_logger
@@ -133,13 +135,6 @@ class Response:
     status: int
     body: bytes
     headers: dict[str, str] = field(default_factory=dict)
-
-
-try:
-    from picows import WSListener, WSMsgType, WSUpgradeResponse, WSUpgradeResponseWithListener
-    from picows.picows import WSAutoPingStrategy, WSProtocol
-except ImportError:          # picows offers no wheel for this platform: only websockets serves
-    WSListener = object      # type: ignore[misc,assignment]
 
 
 class PicowsLink(WSListener):
