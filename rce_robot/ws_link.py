@@ -102,7 +102,7 @@ ProcessRequest = Callable[[Any, Any], Awaitable[Any]]
 
 
 async def serve(impl: str, handler: Handler, host: str | None, port: int | None, *, sock: socket.socket | None = None,
-                process_request: ProcessRequest, max_size: int | None, ping_interval: float, ping_timeout: float,
+                process_request: ProcessRequest | None, max_size: int | None, ping_interval: float, ping_timeout: float,
                 max_queue: int, ssl_context: ssl.SSLContext | None = None):
     """Listen on ``host``:``port`` (or ``sock``) with library ``impl`` (one of :data:`IMPLS`); each
     connection ``process_request`` lets through is served by ``handler(link)``, and closed (1000; 1011
@@ -375,8 +375,8 @@ class PicowsServer:
     with :class:`_FrontDoor` and, once ``process_request`` lets them in, are :class:`PicowsLink` s served
     by ``handler``."""
 
-    def __init__(self, handler: Handler, process_request: ProcessRequest, *, max_size: int | None, ping_interval: float,
-                 ping_timeout: float, max_queue: int):
+    def __init__(self, handler: Handler, process_request: ProcessRequest | None, *, max_size: int | None,
+                 ping_interval: float, ping_timeout: float, max_queue: int):
         self.handler, self.process_request = handler, process_request
         self.max_size = max_size if max_size is not None else 1 << 62           # None: no limit
         self.ping_interval, self.ping_timeout = ping_interval, ping_timeout
@@ -486,7 +486,7 @@ class _FrontDoor(asyncio.Protocol):
                 WSUpgradeResponse.create_error_response(response.status, response.body, response.headers), None)
         proto = self.server.protocol(decide)
         self.transport.set_protocol(proto)
-        proto.connection_made(self.transport)
+        proto.connection_made(_LenientTransport(self.transport))
         data = memoryview(bytes(self.buf))
         while data:
             buf = proto.get_buffer(len(data))
@@ -500,10 +500,48 @@ class _FrontDoor(asyncio.Protocol):
         line = bytes(self.buf).split(b"\r\n", 1)[0].split(b" ")
         link = PicowsLink(self.server, self.transport)
         response = None
-        if len(line) == 3:         # else picows answers the malformed request itself
+        if len(line) == 3 and self.server.process_request is not None:   # else picows answers a malformed one
             try:
                 response = await self.server.process_request(link, Request(line[1].decode("latin-1")))
             except Exception:
                 log.exception("websocket handshake failed", peer=str(link.remote_address))
                 response = Response(HTTPStatus.INTERNAL_SERVER_ERROR, b"internal error\n")
         self._answer(response, link)
+
+
+class _LenientTransport:
+    """The transport as picows' protocol sees it: picows sets ``TCP_QUICKACK`` on every socket, which an
+    MPTCP socket refuses (EOPNOTSUPP; ``rce-robot --mptcp``); here the socket options the kernel refuses
+    are left unset. Everything else (its writes, its close) is the transport's own."""
+
+    def __init__(self, transport: asyncio.Transport):
+        self._transport = transport
+
+    def __getattr__(self, name: str) -> Any:
+        return getattr(self._transport, name)
+
+    def get_extra_info(self, name: str, default: Any = None) -> Any:
+        value = self._transport.get_extra_info(name, default)
+        return _LenientSocket(value) if name == "socket" and value is not None else value
+
+
+class _LenientSocket:
+    """(:class:`_LenientTransport`) A socket whose options the kernel refuses read as 0 and are not set."""
+
+    def __init__(self, sock: socket.socket):
+        self._sock = sock
+
+    def __getattr__(self, name: str) -> Any:
+        return getattr(self._sock, name)
+
+    def setsockopt(self, *args) -> None:
+        try:
+            self._sock.setsockopt(*args)
+        except OSError:
+            pass
+
+    def getsockopt(self, *args) -> Any:
+        try:
+            return self._sock.getsockopt(*args)
+        except OSError:
+            return 0

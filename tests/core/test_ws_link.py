@@ -16,6 +16,7 @@ from websockets.exceptions import ConnectionClosed, InvalidStatus
 
 from rce.protocol.session import RobotSession
 from rce.transport import tls
+from rce.transport.lane_socket import is_mptcp, mptcp_socket
 from rce_robot import ws_link
 from rce_robot.namespace import RobotNamespace
 
@@ -225,6 +226,31 @@ async def test_tls(impl, tmp_path):
             await c.send("over tls")
             assert await asyncio.wait_for(c.recv(), STEP) == "over tls"
             assert await asyncio.wait_for(c.recv(), STEP) == b"over tls"
+
+
+@IMPLS
+async def test_an_mptcp_listening_socket(impl):
+    """``rce-robot --mptcp``: the server listens on an MPTCP socket (which refuses some TCP options, e.g.
+    ``TCP_QUICKACK``) and an MPTCP client talks to it."""
+    sock, mptcp = mptcp_socket()
+    assert mptcp, "the kernel offers no MPTCP"
+    sock.bind(("127.0.0.1", 0))
+    sock.setblocking(False)
+    server = await ws_link.serve(impl, echo, None, None, sock=sock, process_request=None, max_size=1000,
+                                 ping_interval=20.0, ping_timeout=60.0, max_queue=16)
+    try:
+        url = f"ws://127.0.0.1:{server.sockets[0].getsockname()[1]}/"
+        client_sock, _ = mptcp_socket()
+        client_sock.settimeout(STEP)      # (asyncio's sock_connect cannot resolve with MPTCP as the protocol)
+        await asyncio.to_thread(client_sock.connect, server.sockets[0].getsockname())
+        client_sock.setblocking(False)
+        assert is_mptcp(client_sock)
+        async with connect(url, sock=client_sock, compression=None) as c:
+            await c.send("over mptcp")
+            assert await asyncio.wait_for(c.recv(), STEP) == "over mptcp"
+    finally:
+        server.close()
+        await asyncio.wait_for(server.wait_closed(), STEP)
 
 
 @IMPLS
