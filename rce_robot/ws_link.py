@@ -124,13 +124,13 @@ async def serve(impl: str, handler: Handler, host: str | None, port: int | None,
 
 
 @dataclass
-class Request:
+class UpgradeRequest:
     """An HTTP upgrade request as ``process_request`` sees it: ``path`` with its query (str)."""
     path: str
 
 
 @dataclass
-class Response:
+class Refusal:
     """A refusal from ``process_request``: HTTP ``status`` (int), ``body`` (bytes), extra ``headers``."""
     status: int
     body: bytes
@@ -355,9 +355,9 @@ class PicowsLink(WSListener):
 
     # -- the handshake's side (the same object is ``process_request``'s ``connection``)
     @staticmethod
-    def respond(status: int, text: str) -> Response:
+    def respond(status: int, text: str) -> Refusal:
         """A refusal with HTTP ``status`` and body ``text``."""
-        return Response(int(status), text.encode())
+        return Refusal(int(status), text.encode())
 
 
 def frame_header(first: int, nbytes: int) -> bytes:
@@ -468,13 +468,13 @@ class _FrontDoor(asyncio.Protocol):
             self.transport.pause_reading()
             self.server.tasks.spawn(self._decide(), name="websocket handshake")
         elif len(self.buf) > MAX_REQUEST:
-            self._answer(Response(HTTPStatus.REQUEST_HEADER_FIELDS_TOO_LARGE, b"request too large\n"))
+            self._answer(Refusal(HTTPStatus.REQUEST_HEADER_FIELDS_TOO_LARGE, b"request too large\n"))
 
     def connection_lost(self, exc) -> None:
         if self.timer is not None:
             self.timer.cancel()
 
-    def _answer(self, response: Response | None, link: PicowsLink | None = None) -> None:
+    def _answer(self, response: Refusal | None, link: PicowsLink | None = None) -> None:
         """Hand the connection to picows, which sends ``response`` (None: the upgrade, for ``link``)."""
         if self.transport.is_closing():
             return
@@ -502,10 +502,10 @@ class _FrontDoor(asyncio.Protocol):
         response = None
         if len(line) == 3 and self.server.process_request is not None:   # else picows answers a malformed one
             try:
-                response = await self.server.process_request(link, Request(line[1].decode("latin-1")))
+                response = await self.server.process_request(link, UpgradeRequest(line[1].decode("latin-1")))
             except Exception:
                 log.exception("websocket handshake failed", peer=str(link.remote_address))
-                response = Response(HTTPStatus.INTERNAL_SERVER_ERROR, b"internal error\n")
+                response = Refusal(HTTPStatus.INTERNAL_SERVER_ERROR, b"internal error\n")
         self._answer(response, link)
 
 
