@@ -107,10 +107,15 @@ def write(ws: Any, frames: Iterable[str | bytes]) -> int:
 
 
 def binary_header(nbytes: int) -> bytes:
-    """The header of an unmasked, unfragmented binary frame of ``nbytes`` payload bytes (RFC 6455
-    section 5.2: FIN and opcode 0x2, then the 7-bit, 16-bit or 64-bit payload length)."""
+    """The header of an unmasked, unfragmented binary frame of ``nbytes`` payload bytes."""
+    return frame_header(0x82, nbytes)
+
+
+def frame_header(first: int, nbytes: int) -> bytes:
+    """The header of an unmasked frame whose first byte (FIN, opcode) is ``first`` and whose payload is
+    ``nbytes`` bytes (RFC 6455 section 5.2: the 7-bit, 16-bit or 64-bit payload length)."""
     if nbytes < 126:
-        return bytes((0x82, nbytes))
+        return bytes((first, nbytes))
     if nbytes < 1 << 16:
-        return bytes((0x82, 126)) + nbytes.to_bytes(2, "big")
-    return bytes((0x82, 127)) + nbytes.to_bytes(8, "big")
+        return bytes((first, 126)) + nbytes.to_bytes(2, "big")
+    return bytes((first, 127)) + nbytes.to_bytes(8, "big")

@@ -41,6 +41,7 @@ from websockets.exceptions import ConnectionClosedError
 from rce.plumbing.log import get_logger
 from rce.plumbing.tasks import Tasks
 from rce_robot import ws_cork
+from rce_robot.ws_cork import frame_header
 
 log = get_logger("rce.robot")
 
@@ -358,16 +359,6 @@ class PicowsLink(WSListener):
     def respond(status: int, text: str) -> Refusal:
         """A refusal with HTTP ``status`` and body ``text``."""
         return Refusal(int(status), text.encode())
-
-
-def frame_header(first: int, nbytes: int) -> bytes:
-    """The header of an unmasked frame whose first byte (FIN, opcode) is ``first`` and whose payload is
-    ``nbytes`` bytes (RFC 6455 section 5.2: 7-bit, 16-bit or 64-bit payload length)."""
-    if nbytes < 126:
-        return bytes((first, nbytes))
-    if nbytes < 1 << 16:
-        return bytes((first, 126)) + nbytes.to_bytes(2, "big")
-    return bytes((first, 127)) + nbytes.to_bytes(8, "big")
 
 
 class PicowsServer:
