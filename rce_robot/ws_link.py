@@ -199,7 +199,8 @@ class PicowsLink(WSListener):
         elif t is WSMsgType.PONG:
             self.ping_sent = None
         elif t is WSMsgType.CLOSE:
-            self.close_rcvd = int(frame.get_close_code())
+            code = int(frame.get_close_code())      # picows: 0 for a close frame without a code
+            self.close_rcvd = code if code >= 1000 else NO_STATUS
             if not transport.is_close_frame_sent:        # the peer began: answer with its code, then hang up
                 self.close_rcvd_first = True
                 if self.close_rcvd == NO_STATUS:

@@ -152,6 +152,27 @@ async def test_close_codes_each_way(impl):
 
 
 @IMPLS
+async def test_a_peers_close_code_is_answered_and_kept(impl):
+    """An application's code (4000) and a close frame without a code (1005 on the link, RFC 6455
+    section 7.1.5) both come back to the peer, and neither counts as a clean end."""
+    async def handler(link):
+        async for _ in link:
+            pass
+    async with Server(impl, handler) as srv:
+        c = await connect(srv.url)
+        await c.close(4000, "done")
+        assert c.close_code == 4000
+        c = await connect(srv.url)
+        c.protocol.send_close()                    # no code
+        c.transport.writelines(c.protocol.data_to_send())
+        await asyncio.wait_for(c.wait_closed(), STEP)
+        assert c.close_code == 1005
+        await until(lambda: len(srv.ended) == 2, "both handlers to end")
+        assert [link.close_code for link in srv.ended] == [4000, 1005]
+        assert not any(ws_link.closed_by_peer(link, (1000, 1001)) for link in srv.ended)
+
+
+@IMPLS
 async def test_a_message_over_max_size_closes_1009(impl):
     async with Server(impl, echo, max_size=1000) as srv, connect(srv.url, compression=None) as c:
         await c.send("x" * 1001)
