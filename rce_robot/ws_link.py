@@ -314,26 +314,32 @@ class PicowsLink(WSListener):
         if not self.open():
             raise ConnectionClosedError(None, None)
 
-    async def send(self, message: str | bytes | AsyncIterable[str | bytes]) -> None:
-        """Send one message: a str (text), bytes (binary), or an async iterable of its fragments (all
-        str or all bytes; RFC 6455 section 5.4), each written once the transport takes it. Raises
+    async def send(self, message: str | bytes | Iterable[str | bytes] | AsyncIterable[str | bytes]) -> None:
+        """Send one message: a str (text), bytes (binary), or an iterable or async iterable of its fragments
+        (all str or all bytes; RFC 6455 section 5.4), each written once the transport takes it. Raises
         ConnectionClosed on a link that is closed or closing."""
         await self.drain()
         if isinstance(message, (str, bytes, bytearray, memoryview)):
             self.write((message if isinstance(message, str) else bytes(message),))
             return
-        opcode = None
-        async for part in message:
-            if opcode is None:
-                opcode = 0x1 if isinstance(part, str) else 0x2
-                code = opcode
-            else:
-                code = 0x0
-            data = part.encode() if isinstance(part, str) else part
-            await self.drain()
-            self.transport.writelines((frame_header(code, len(data)), data))
+        first = True
+        if hasattr(message, "__aiter__"):
+            async for part in message:
+                await self._fragment(part, first)
+                first = False
+        else:
+            for part in message:
+                await self._fragment(part, first)
+                first = False
         await self.drain()
-        self.transport.writelines((frame_header(0x80 | (0x0 if opcode else 0x1), 0),))
+        self.transport.write(frame_header(0x80 if not first else 0x81, 0))     # the final (empty) fragment
+
+    async def _fragment(self, part: str | bytes, first: bool) -> None:
+        """Write one fragment of a message (the first: its opcode; the others: continuation), FIN clear."""
+        await self.drain()
+        data = part.encode() if isinstance(part, str) else part
+        code = (0x1 if isinstance(part, str) else 0x2) if first else 0x0
+        self.transport.writelines((frame_header(code, len(data)), data))
 
     async def close(self, code: int = 1000, reason: str = "") -> None:
         """Send a close frame (``code``, ``reason``), wait up to :data:`CLOSE_TIMEOUT` for the peer's, and

@@ -113,6 +113,18 @@ async def test_fragmented_messages_both_ways(impl):
 
 
 @IMPLS
+async def test_a_message_sent_as_an_iterable_of_fragments(impl):
+    """What the bulk lane sends (``lane_socket.fragments``): a sync iterable of a message's fragments."""
+    async def handler(link):
+        async for m in link:
+            await link.send(m[i:i + 2] for i in range(0, len(m), 2))
+    async with Server(impl, handler) as srv, connect(srv.url, compression=None) as c:
+        for m in ("abcde", b"\x01\x02\x03"):
+            await c.send(m)
+            assert await asyncio.wait_for(c.recv(), STEP) == m
+
+
+@IMPLS
 async def test_a_refused_upgrade_gets_its_status_and_headers(impl):
     async with Server(impl, echo) as srv:
         with pytest.raises(InvalidStatus) as ei:
