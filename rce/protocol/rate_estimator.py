@@ -36,8 +36,8 @@ In intervals of at least :data:`MIN_INTERVAL` s and two minimum round trips:
   (BBR's startup, gain 2) until the first sample that shows a queue (half an interval in, at the
   earliest): the first estimate is what was acked in that interval or the one before, whichever is
   more, and the queue the doubling left drains at :data:`STARTUP_DRAIN_GAIN` x the estimate.
-- An interval with no byte acked (a stalled path) is not judged, nor one longer than
-  :data:`MAX_INTERVAL` (an idle spell).
+- An interval with no byte acked (a stalled path) changes nothing; one longer than
+  :data:`MAX_INTERVAL` (an idle spell) is not judged.
 """
 from __future__ import annotations
 
@@ -60,7 +60,7 @@ STARTUP_GAIN = 2.0
 CRUISE_GAIN = 0.9           # the pacer's rate in cruise, as a share of the estimate: under the link
 DRAIN_GAIN = 0.75
 STARTUP_DRAIN_GAIN = 0.5    # after startup's overshoot (BBR drains at 1/2.89 after a startup at 2.89)
-PROBE_GAIN = 1.1           # BBR probes at 1.25; a FIFO bottleneck shared with control holds less at 1.1
+PROBE_GAIN = 1.1            # BBR probes at 1.25; a FIFO bottleneck shared with control holds less at 1.1
 PROBE_EVERY = 16            # cruise intervals (held back) between probes
 PROBE_ROOM = 1.05           # a probe that raised the estimate by this factor or more is followed by another
 MAX_DRAIN = 4               # drain intervals that still show a queue after which the estimate is taken again
@@ -68,6 +68,8 @@ STEP_DOWN = 0.9             # the most one congested interval lowers the estimat
 
 
 class Mode(str, Enum):
+    """What the estimator is doing (module doc): finding the path's rate, cruising under it, probing
+    above it, or draining a queue it saw."""
     STARTUP = "startup"
     CRUISE = "cruise"
     PROBE = "probe"
