@@ -21,7 +21,6 @@ import math
 from typing import Any
 
 import cbor2
-import numpy as np
 from rosbags.interfaces import Nodetype
 
 from rce.messages import MessageRegistry
@@ -84,6 +83,7 @@ def _field(registry: MessageRegistry, ftype: tuple, value: Any) -> Any:
         tag, dtype = TYPED_ARRAY_TAGS[item]
         floats = dtype[-2] == "f"
         data = [math.nan if x is None and floats else x for x in value]     # JSON null is a non-finite float
+        import numpy as np      # loaded by the first cbor typed array, as PIL by the first png op
         return cbor2.CBORTag(tag, np.asarray(data, dtype=dtype).tobytes())
     if item == "byte" and isinstance(value, str):
         return cbor2.CBORTag(72, base64.b64decode(value))

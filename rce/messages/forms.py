@@ -40,7 +40,6 @@ from dataclasses import dataclass, field
 from datetime import datetime, timedelta
 from typing import Any
 
-import numpy as np
 
 TIME_FORMS = ("secs", "sec", "iso")
 DURATION_FORMS = ("secs", "sec", "float")
@@ -172,6 +171,7 @@ def image_from_bytes(data: bytes) -> tuple[dict, str]:
     ``encoding``, ``is_bigendian``, ``step`` in bytes, ``data`` a uint8 array) and its format
     (``png``/``jpeg``). Palette and bilevel images become rgb8/rgba8 and mono8, as the original's
     converter did. Raises :class:`ValueError` saying why the bytes are not such an image."""
+    import numpy as np
     from PIL import Image, UnidentifiedImageError
     try:
         img = Image.open(io.BytesIO(data))
@@ -205,6 +205,7 @@ def image_to_bytes(msg: Any, fmt: str) -> bytes:
     """Encode ``sensor_msgs/Image`` ``msg`` (an object with its fields) as a ``png`` or ``jpeg``
     file. Raises :class:`ValueError` for an encoding the format cannot hold or data that does
     not fit ``height``, ``width`` and ``step``."""
+    import numpy as np
     from PIL import Image
     if msg.encoding not in _ROS_TO_PIL:
         raise ValueError(f"encoding {msg.encoding!r} has no {fmt.upper()} form "

@@ -31,9 +31,8 @@ import base64
 import math
 import threading
 from pathlib import Path
-from typing import Any, Callable
+from typing import TYPE_CHECKING, Any, Callable
 
-import numpy as np
 from rosbags.typesys import Stores, get_types_from_msg, get_typestore
 from rosbags.typesys.base import Nodetype
 
@@ -42,6 +41,9 @@ from rce.messages.forms import (RCE_FORMS, JsonForms, duration_to_seconds, image
                                iso_to_time, seconds_to_duration, time_to_iso)
 from rce.messages.structure import Short, Walker, compile_walker
 from rce.messages import ros_strings
+
+if TYPE_CHECKING:
+    import numpy as np      # loaded by the first converter that needs it: a process that only routes never does
 
 ros_strings.install()       # ROS strings carry any bytes, as in rospy (rce.messages.ros_strings)
 
@@ -52,9 +54,9 @@ _INT_RANGES = {
 }
 _FLOATS = {"float32", "float64"}
 _EXACT_FLOAT_INT = 2 ** 53      # the largest magnitude up to which every integer is a float exactly (IEEE 754 double)
-_NP_DTYPES = {"bool": np.bool_, "byte": np.uint8, "char": np.uint8, "int8": np.int8, "uint8": np.uint8,
-              "int16": np.int16, "uint16": np.uint16, "int32": np.int32, "uint32": np.uint32,
-              "int64": np.int64, "uint64": np.uint64, "float32": np.float32, "float64": np.float64}
+_NP_DTYPES = {"bool": "bool", "byte": "uint8", "char": "uint8", "int8": "int8", "uint8": "uint8",   # numpy dtype names
+              "int16": "int16", "uint16": "uint16", "int32": "int32", "uint32": "uint32",
+              "int64": "int64", "uint64": "uint64", "float32": "float32", "float64": "float64"}
 _TIME, _DURATION = "builtin_interfaces/msg/Time", "builtin_interfaces/msg/Duration"
 _TIME_TYPES = {_TIME, _DURATION}
 IMAGE = "sensor_msgs/msg/Image"        # the class whose messages may travel as PNG/JPEG binary parts
@@ -374,6 +376,7 @@ class MessageRegistry:
             return lambda value, _n=arg: self._decoder(_n, key)(value)
         (sub_nt, sub_arg), _ = arg
         if sub_nt == Nodetype.BASE and sub_arg[0] in ("uint8", "char", "byte"):
+            import numpy as np
             if key[3] == "binary":
                 return lambda value: bytes(np.asarray(value, dtype=np.uint8))
             return lambda value: base64.b64encode(bytes(np.asarray(value, dtype=np.uint8))).decode()
@@ -505,6 +508,7 @@ def _base_encoder(base_type: str, owner: str) -> Encoder:
 
 
 def _numeric_array_encoder(base_type: str, fixed: int | None, owner: str) -> Encoder:
+    import numpy as np
     dtype = _NP_DTYPES[base_type]
     is_bytes = base_type in ("uint8", "char", "byte")
     item = _base_encoder(base_type, owner)
@@ -540,6 +544,7 @@ def _whole_array(base_type: str, dtype: Any) -> Callable[[list], np.ndarray | No
     when every item is what the item encoder (:func:`_base_encoder`) takes as it is (numbers, not
     bools, for floats; in-range integers for integers; bools for bools); ``None`` otherwise (the
     caller then goes item by item, which refuses what does not fit, naming the item)."""
+    import numpy as np
     kinds = {float, int} if base_type in _FLOATS else {bool} if base_type == "bool" else {int}
     lo, hi = _INT_RANGES[base_type] if kinds == {int} else (None, None)
 
@@ -558,6 +563,7 @@ def _whole_array(base_type: str, dtype: Any) -> Callable[[list], np.ndarray | No
 def _numeric_array_decoder(floats: bool) -> Decoder:
     """Numeric array (numpy, as rosbags gives it) -> JSON list of Python numbers; non-finite
     floats become ``null`` (as :func:`_base_decoder`, as rosbridge sends them)."""
+    import numpy as np
     if not floats:
         return lambda value: np.asarray(value).tolist()
 
