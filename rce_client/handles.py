@@ -41,7 +41,7 @@ class ConnectionLike(Protocol):
     bulk: Any                  # rce_client.lanes.BulkLane | None
     _handlers: dict[str, Any]
 
-    async def send(self, type_: str, data: Any) -> None:
+    async def send(self, type_: str, data: Any, newest_of: str | None = None) -> None:
         """Send one message (:meth:`rce_client.verbs.Verbs.send`)."""
 
     async def _write(self) -> None:
@@ -60,14 +60,17 @@ class Publisher:
     async def publish(self, msg: Message) -> None:
         """Send one message: a JSON-form dict (Converter) or ROS 1 serialized bytes
         (Forwarder; sent as binary part ``msg*``). A bulk message goes on the connection's bulk link while it
-        is up (queued: each interface keeps its newest), else on the session's link. Raises
-        :class:`Unavailable` when closed."""
+        is up (queued: each interface keeps its newest), else on the session's link; there, while no link is
+        up, a state or bulk message supersedes the interface's older one (a control one waits with every
+        other). Raises :class:`Unavailable` when closed."""
         bulk = self.conn.bulk
         size = len(msg) if isinstance(msg, (bytes, bytearray, memoryview)) else 0
-        if bulk is not None and bulk.up and message_lane(self.lane, self.lane_set, size) is Lane.BULK:
+        lane = message_lane(self.lane, self.lane_set, size)
+        if bulk is not None and bulk.up and lane is Lane.BULK:
             bulk.put(self.itag, self.cls, msg)
         else:
-            await self.conn.send(protocol.DM, {"iTag": self.itag, "type": self.cls, "msg": msg})
+            await self.conn.send(protocol.DM, {"iTag": self.itag, "type": self.cls, "msg": msg},
+                                 newest_of=None if lane is Lane.CONTROL else self.itag)
         self.sent += 1
 
 

@@ -70,8 +70,8 @@ class LaneOwner(Protocol):
     def _dispatch(self) -> None:
         """Do what the session's events say."""
 
-    async def send(self, type_: str, data: Any) -> None:
-        """Send one message on the session's link."""
+    async def send(self, type_: str, data: Any, newest_of: str | None = None) -> None:
+        """Send one message on the session's link (``newest_of``: its interface, when a newer one supersedes it)."""
 
 
 class BulkLane:
@@ -182,7 +182,7 @@ class BulkLane:
         log.info("bulk link closed; bulk data goes on the session's link until it is back", robot=conn.robot_id)
         for itag, type_, msg in self.queue.drain():      # what waited goes on the session's link
             try:
-                await conn.send(DM, {"iTag": itag, "type": type_, "msg": msg})
+                await conn.send(DM, {"iTag": itag, "type": type_, "msg": msg}, newest_of=itag)
             except Unavailable:
                 return
 

@@ -54,6 +54,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Awaitable, Callable
 
+from rce.protocol.lanes import Lane, interface_lane
 from rce.transport import tls
 from rce.plumbing.process import run_loop
 from rce.bus.core import Bus, Subscription
@@ -117,7 +118,9 @@ def classify(spec: InterfaceSpec, registry: MessageRegistry, where: str) -> _Kin
 class _ToCloud:
     """Robot-side topic -> SubscriberConverter/Forwarder: a bounded queue and a sender task.
 
-    The robot-side graph calls :meth:`deliver` (in the loop) with each serialized message.
+    The robot-side graph calls :meth:`deliver` (in the loop) with each serialized message. The queue
+    holds :data:`QUEUE_SIZE`; when it is full a state or bulk interface drops its oldest for the new one
+    (``superseded``: the newest goes out), a control one the new one (``dropped``).
     ``dropped``: messages not sent (queue full, interface down, or refused); ``bad``: of those,
     the ones that did not convert or were refused (logged with the reason)."""
 
@@ -126,7 +129,8 @@ class _ToCloud:
         self.itag = kind.spec.iTag
         self.pub = bridge.conn.publisher(self.itag, kind.spec.iCls, kind.spec.lane)
         self.queue: asyncio.Queue[bytes] = asyncio.Queue(maxsize=QUEUE_SIZE)
-        self.dropped = 0
+        self.newest = interface_lane(kind.spec.iCls, False, kind.spec.lane) is not Lane.CONTROL
+        self.dropped = self.superseded = 0
         self.bad = 0
         self._warned = False
         self.task = asyncio.create_task(self._pump())
@@ -139,6 +143,9 @@ class _ToCloud:
                 self._warned = True
                 log.warning("interface not connected yet: local messages dropped", itag=self.itag, topic=self.kind.addr)
             return False
+        if self.queue.full() and self.newest:
+            self.queue.get_nowait()
+            self.superseded += 1
         try:
             self.queue.put_nowait(payload)
             return True
@@ -351,11 +358,17 @@ class RobotBridge:
         for c in self._to_cloud:
             if c.dropped:
                 self.out(f"rce-ros: {c.itag}: {c.dropped} message(s) not sent to the cloud ({c.bad} refused)")
+            if c.superseded:
+                self.out(f"rce-ros: {c.itag}: {c.superseded} message(s) superseded by a newer one before they left "
+                         f"the bridge's queue")
         for itag, n in self.not_published.items():
             self.out(f"rce-ros: {itag}: {n} message(s) from the cloud not published (did not convert)")
         if self.conn is not None and self.conn.session.resume_lost:
             self.out(f"rce-ros: {self.conn.session.resume_lost} message(s) to the cloud lost at resumes (the "
                      f"resume buffer forgot them while no link was up)")
+        if self.conn is not None and self.conn.session.superseded:
+            self.out(f"rce-ros: {self.conn.session.superseded} state/bulk message(s) to the cloud superseded while "
+                     f"no link was up (only each interface's newest was sent)")
 
     async def _connect_and_setup(self) -> None:
         cfg = self.cfg
@@ -370,8 +383,9 @@ class RobotBridge:
         conn.on_disconnected(lambda reason: self.err(f"rce-ros: link to the cloud lost ({reason}); resuming the "
                                                      f"session (the local bus stays up)"))
         conn.on_resumed(lambda st: self.out(f"rce-ros: session resumed ({st.get('dropped', 0)} message(s) from "
-                                            f"the cloud lost, {conn.session.resume_lost} to the cloud lost in "
-                                            f"all){self._via()}"))
+                                            f"the cloud lost, {st.get('superseded', 0)} superseded; "
+                                            f"{conn.session.resume_lost} to the cloud lost, "
+                                            f"{conn.session.superseded} superseded in all){self._via()}"))
         via = self._via()
         self.out(f"rce-ros: connected to {conn.ws_url}{via}")
         if self.relay_port is not None:

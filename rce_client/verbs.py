@@ -35,11 +35,12 @@ class Verbs:
     _kicked: bool
 
     # -- sending -----------------------------------------------------------------------------
-    async def send(self, type_: str, data: Any) -> None:
+    async def send(self, type_: str, data: Any, newest_of: str | None = None) -> None:
         """Send one message ``{"type": type_, "data": data}``; ``bytes`` values anywhere in
-        ``data`` go as binary parts (JSON frame first, then one binary frame per part).
-        Raises :class:`Unavailable` when the connection is closed."""
-        self.session.send(type_, data)
+        ``data`` go as binary parts (JSON frame first, then one binary frame per part). ``newest_of``:
+        the interface of a state or bulk topic message, whose newer message supersedes it while no link
+        is up (:meth:`ClientSession.send`). Raises :class:`Unavailable` when the connection is closed."""
+        self.session.send(type_, data, newest_of=newest_of)
         await self._write()
 
     async def _write(self) -> None:

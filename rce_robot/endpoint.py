@@ -75,6 +75,8 @@ SESSION_COUNTERS = {"msgs_in": ("rce_robot_messages_in", "Messages from robots")
                     "resumes": ("rce_robot_resumes", "Robot sessions resumed on a new link"),
                     "resent": ("rce_robot_resent", "Messages resent to robots after a resume"),
                     "resume_lost": ("rce_robot_resume_lost", "Messages to robots lost from a full resume buffer"),
+                    "superseded": ("rce_robot_superseded", "State and bulk topic messages to detached robots "
+                                                           "dropped for a newer one of their interface"),
                     "duplicates": ("rce_robot_duplicates", "Messages resent by robots and dropped as duplicates"),
                     "resume_gaps": ("rce_robot_resume_gaps", "Messages from robots lost from their full resume "
                                                              "buffer (numbers skipped at a resume)")}

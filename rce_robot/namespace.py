@@ -187,6 +187,8 @@ class RobotNamespace:
         self._pump()
         try:
             async for frame in ws:
+                if self.ws is not ws:       # a resume took the session over: the robot resends what this link
+                    break                   # still brings (the resume's ack says what was taken)
                 self.session.backlog(ws_link.behind(ws), time.monotonic())
                 if self._receive(frame):       # a big text frame: parsed in the pool first
                     await self._receive_big(frame)

@@ -40,7 +40,8 @@ class ClientSession(SessionCore):
     ``expiry``: s an incomplete message waits for its binary parts. :attr:`interfaces`: iTag ->
     last ``iu`` status; :attr:`dropped`: malformed frames, expired parts, unexpected messages;
     :attr:`resume_lost`: messages to the cloud lost at resumes (the resume buffer forgot them before
-    the cloud acked them: a link down for longer than the buffer holds).
+    the cloud acked them: a link down for longer than the buffer holds); :attr:`superseded`: state and
+    bulk topic messages to the cloud dropped while no link was up, for a newer one of their interface.
 
     ``resume``: ask for session resume (the shell adds ``resume=1`` to the connect query; docs/INTERNALS.md
     "Session resume"): messages are numbered from the first and kept until acked (``resume_buffer``
@@ -75,17 +76,20 @@ class ClientSession(SessionCore):
         """Frames waiting to be taken by :meth:`data_to_send`."""
         return len(self._frames)
 
-    def send(self, type_: str, data: Any, ids: list[str] | None = None) -> None:
+    def send(self, type_: str, data: Any, ids: list[str] | None = None, newest_of: str | None = None) -> None:
         """Send ``{"type": type_, "data": data}``; ``bytes`` values become binary parts (with the
         given ``ids``, default fresh ones). With resume it is numbered and kept until acked; while
-        detached or resuming it waits for the resume. Raises the table's error once the link closed."""
+        detached or resuming it waits for the resume. ``newest_of``: the interface of a state or bulk
+        topic message: while no link is up, the interface's newest alone waits (the older ones are
+        dropped, counted in :attr:`superseded`); None (requests, calls, answers, control topics): every
+        one waits. Raises the table's error once the link closed."""
         if self.pending.closed is not None:
             raise type(self.pending.closed)(self.pending.closed.message)
         if self.outgoing is None:
             text, parts = encode({"type": type_, "data": data}, ids)
             frames: list[Frame] = [text, *parts]
         else:
-            frames = self.outgoing.numbered({"type": type_, "data": data}, ids)
+            frames = self.outgoing.numbered({"type": type_, "data": data}, ids, newest_of)
         if self.state not in ("detached", "resuming"):
             self._frames.extend(frames)
 
@@ -179,7 +183,7 @@ class ClientSession(SessionCore):
             frames, lost = self.outgoing.resend_after(read_ack({"seq": data.get("ack")}))
         except ProtocolError as e:                      # a cloud that does not say: resend all that is kept
             self._bad_input(f"ST session resumed: {e.message}")
-            frames, lost = self.outgoing.resend_after(self.outgoing.acked)
+            frames, lost = self.outgoing.resend_after(self.outgoing.acked, newest=False)
         self.state = "live"
         for f in frames:
             self._frames.extend(f)
@@ -197,6 +201,7 @@ class ClientSession(SessionCore):
             return False
         self.state = "detached"
         self._frames.clear()                            # AKs; numbered messages are kept
+        self.outgoing.cut()
         self.assembler = self.assembler.fresh()
         self._emit(Detached(self.token, self.incoming.last))
         return True
@@ -208,6 +213,12 @@ class ClientSession(SessionCore):
             raise ProtocolError(f"attach: the session is {self.state}, not detached")
         self.state = "resuming"
         self.incoming.reported()
+
+    @property
+    def superseded(self) -> int:
+        """State and bulk topic messages to the cloud dropped while no link was up: a newer one of the same
+        interface took their place (:meth:`send` ``newest_of``); never counted as lost."""
+        return self.outgoing.superseded if self.outgoing is not None else 0
 
     def resume_query(self) -> dict[str, str]:
         """The query values of a resume: ``{"session": token, "ack": last taken}``."""

@@ -13,7 +13,8 @@
   wait is closed (``on_overrun``, once).
 - ERs are cut short, rate-limited and bounded while unread (:class:`~rce.protocol.error_limits.ErrorLimits`).
 - With resume (``outgoing``, :mod:`rce.protocol.resume`): messages are numbered as they go out; while
-  the robot is detached they are numbered and kept at once, to go out after a resume.
+  the robot is detached they are numbered and kept at once, to go out after a resume, and a state or
+  bulk topic message supersedes its interface's older one (:meth:`~rce.protocol.resume.Outgoing.keep`).
 """
 from __future__ import annotations
 
@@ -38,6 +39,7 @@ class _Out:
     data: bool = False                  # droppable topic data
     link: bool = False                  # link-level (ST session, AK): not numbered, not kept
     frames: list[Frame] | None = None   # a resend: the frames as first numbered
+    newest_of: str | None = None        # state or bulk topic data: its interface (only its newest is resent)
 
 
 class RobotOutbox:
@@ -67,8 +69,11 @@ class RobotOutbox:
     def dm(self, msg: dict, data: bool, now: float, lane: Lane = Lane.STATE) -> None:
         """Queue DM ``msg`` in ``lane``; ``data``: droppable topic data of its interface, queued at ``now``
         (s); else never dropped (in state when ``lane`` is bulk)."""
-        if self.attached and data:
-            self.queue.put_data(msg["data"]["iTag"], _Out(msg, data=True), now, lane)
+        newest_of = msg["data"]["iTag"] if data and lane is not Lane.CONTROL else None
+        if not self.attached:
+            self.outgoing.numbered(msg, newest_of=newest_of)
+        elif data:
+            self.queue.put_data(msg["data"]["iTag"], _Out(msg, data=True, newest_of=newest_of), now, lane)
         else:
             self.control(msg, now, min(lane, Lane.STATE, key=lambda x: x.rank))
 
@@ -118,9 +123,10 @@ class RobotOutbox:
         """The link is lost: what waits is numbered and kept (link-level messages are gone), and so is
         what comes until :meth:`resume`."""
         self.attached = False
+        self.outgoing.cut()
         for o in self.queue.drain():
             if o.msg is not None and not o.link:
-                self.outgoing.numbered(o.msg)
+                self.outgoing.numbered(o.msg, newest_of=o.newest_of)
         self._control = self.er.waiting = 0
 
     def resume(self, status: dict, frames: list[list[Frame]]) -> None:
@@ -166,7 +172,7 @@ class RobotOutbox:
                     text, parts = encode(o.msg)
                     out = [text, *parts]
                 else:
-                    out = self.outgoing.numbered(o.msg)
+                    out = self.outgoing.numbered(o.msg, newest_of=o.newest_of)
                 self.msgs_out += not o.link
             frames.extend(out)
             self.queue.sent(lane, sum(len(f) for f in out))

@@ -90,6 +90,7 @@ class RobotSession(SessionCore):
         self.token = (token or new_token()) if resume else None
         self.grace = grace
         self.resumes = self.resume_lost = 0
+        self._superseded_at_detach = 0              # resume: superseded before the link was lost (for ST resumed)
         self.bulk_links = self.bulk_in = 0          # bulk links joined; DMs the robot sent on them
         self.bulk_pacer: Pacer | None = None        # the bulk link's, while one is there
         self._lanes_status = float("-inf")          # s: when the last ST lanes went out
@@ -340,6 +341,7 @@ class RobotSession(SessionCore):
         comes until :meth:`attach`; link-level messages are gone with the link."""
         if self.outgoing is None:
             raise ProtocolError("detach: the robot did not opt in to resume")
+        self._superseded_at_detach = self.outgoing.superseded
         self.out.detach()
 
     def can_resume(self, ack: int) -> bool:
@@ -349,9 +351,12 @@ class RobotSession(SessionCore):
     def attach(self, ack: int) -> None:
         """(resume) A new link resumes the session (from a detached session, or taking over a link the
         endpoint still holds); the robot took every message up to ``ack``. Queues ``ST {"topic":
-        "session", "status": "resumed", "session", "grace", "ack", "dropped"}`` (``ack``: the last robot
-        message taken; ``dropped``: messages to the robot the buffer lost), then the kept messages after
-        ``ack``, as first numbered. Incomplete messages of the old link are dropped: the robot resends
+        "session", "status": "resumed", "session", "grace", "ack", "dropped", "superseded"}`` (``ack``: the
+        last robot message taken; ``dropped``: messages to the robot the buffer lost; ``superseded``: state
+        and bulk topic messages to it dropped while it was away, for a newer one of their interface), then
+        the kept messages after ``ack`` (of each such interface only the newest), numbered on from ``ack``
+        and the lost ones (:meth:`~rce.protocol.resume.Outgoing.resend_after`).
+        Incomplete messages of the old link are dropped: the robot resends
         them whole. Raises :class:`ProtocolError` when :meth:`can_resume` is false."""
         if not self.can_resume(ack):
             raise ProtocolError(f"resume: ack {ack} is not a message sent to robot {self.robot!r} "
@@ -364,14 +369,17 @@ class RobotSession(SessionCore):
         self.resumes += 1
         self.resume_lost += lost
         self.out.resume({"topic": SESSION_TOPIC, "status": "resumed", "session": self.token, "grace": self.grace,
-                         "ack": self.incoming.last, "dropped": lost}, frames)
+                         "ack": self.incoming.last, "dropped": lost,
+                         "superseded": self.outgoing.superseded - self._superseded_at_detach}, frames)
 
     def stats(self) -> dict:
         """Counters: messages in and out, drops out (data DMs: the oldest past the queue bound, or older
         than ``max_lag``, those also in ``expired``) and in (refused for a full queue), ERs sent and
         dropped, messages and parts waiting for binary parts and their bytes, queue depths; ``shed``:
         topic DMs from the robot dropped while the endpoint lagged (``max_lag``);
-        resume: resumes, messages resent, lost at a resume (``resume_lost``), kept until acked
+        resume: resumes, messages resent, lost at a resume (``resume_lost``), state and bulk topic messages
+        to the robot dropped while it was detached for a newer one of their interface (``superseded``; not
+        lost: the robot waits for none of them), kept until acked
         (``kept``, ``kept_bytes``), forgotten past the bound (``resume_forgotten``), duplicates from the
         robot dropped, messages from the robot its resume buffer lost (``resume_gaps``: numbers skipped);
         ``bulk_links`` joined, ``bulk_in`` DMs the robot sent on them; ``lanes``: per lane
@@ -383,7 +391,8 @@ class RobotSession(SessionCore):
                 "pending_binary": self.assembler.pending, "pending_binary_bytes": self.assembler.pending_bytes,
                 "outbox": self.outbox, "expired": self.expired, "requests_waiting": self.requests.waiting,
                 "held": self.requests.held, "calls": self.calls, "resumes": self.resumes, "resent": self.out.resent,
-                "resume_lost": self.resume_lost, "kept": len(out) if out else 0, "kept_bytes": out.bytes if out else 0,
+                "resume_lost": self.resume_lost, "superseded": out.superseded if out else 0,
+                "kept": len(out) if out else 0, "kept_bytes": out.bytes if out else 0,
                 "resume_forgotten": out.forgotten if out else 0, "duplicates": inc.duplicates if inc else 0,
                 "resume_gaps": inc.gaps if inc else 0,
                 "bulk_links": self.bulk_links, "bulk_in": self.bulk_in, "lanes": self.lane_stats()}

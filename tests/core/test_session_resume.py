@@ -12,7 +12,7 @@ import pytest
 
 from rce.plumbing.errors import ProtocolError
 from rce.protocol.resume import TOKEN_BYTES, Incoming, Outgoing, ack_frame, new_token, read_ack, read_seq
-from rce.protocol.events import Deliver, MessageReceived, ServiceCall
+from rce.protocol.events import Deliver, MessageReceived, ServiceCall, SessionStatus
 from rce.protocol.session import ClientSession, RobotSession
 
 
@@ -92,12 +92,12 @@ def test_a_resumed_session_reports_robot_messages_taken_and_buffer_losses():
         s.receive_text(json.dumps({"type": "DM", "seq": seq, "data": dm}), 0)
     s.data_to_send()
     s.detach()
-    for _ in range(5):
-        s.send_dm("out", "std_msgs/String", "", {"data": "y"}, data=True)
+    for _ in range(5):                      # answers: every one is kept (and the bound forgets the oldest)
+        s.send_dm("out", "std_msgs/String", "", {"data": "y"})
     s.attach(0)
     st = json.loads(s.data_to_send(1)[0])
     assert st["data"] == {"topic": "session", "status": "resumed", "session": "t" * 64, "grace": 30.0,
-                          "ack": 3, "dropped": 3}
+                          "ack": 3, "dropped": 3, "superseded": 0}
     assert [json.loads(f)["seq"] for f in s.data_to_send()] == [4, 5]
     assert s.stats()["resume_lost"] == 3 and s.stats()["resume_forgotten"] == 3
 
@@ -146,6 +146,7 @@ class Pair:
         self.cloud = RobotSession("r1", resume=True, ack_every=4)
         self.cloud.add_interface("req", "SubscriberConverter", "std_msgs/String")
         self.cloud.add_interface("svc", "ServiceProviderConverter", "Test/StringEcho")
+        self.cloud.add_interface("echo", "PublisherConverter", "std_msgs/String")     # control: all kept
         self.robot = ClientSession(resume=True, ack_every=4)
         self.got_by_cloud: list[str] = []
         self.got_by_robot: list[str] = []
@@ -227,3 +228,130 @@ async def run_pair(seed: int) -> int:
 async def test_both_ways_exactly_once_in_order_across_drops():
     resends_and_duplicates = [await run_pair(seed) for seed in range(8)]
     assert sum(resends_and_duplicates) > 0, "drops in flight were resent and their duplicates dropped"
+
+
+# -- while no path exists: state keeps its newest, control keeps everything ---------------------------
+class Partition:
+    """A cloud and a robot session with a 10 Hz state stream and a 1 Hz control stream each way:
+    robot -> cloud ``pose`` (geometry_msgs: state) and ``cmd`` (std_msgs: control); cloud -> robot
+    ``odom`` (nav_msgs/Odometry: state) and ``goal`` (std_msgs: control). Time moves in 0.1 s steps."""
+
+    def __init__(self):
+        self.cloud = RobotSession("r1", resume=True)
+        for itag, itype, cls in (("pose", "SubscriberConverter", "geometry_msgs/PoseStamped"),
+                                 ("cmd", "SubscriberConverter", "std_msgs/String"),
+                                 ("odom", "PublisherConverter", "nav_msgs/Odometry"),
+                                 ("goal", "PublisherConverter", "std_msgs/String")):
+            self.cloud.add_interface(itag, itype, cls)
+        self.robot = ClientSession(resume=True)
+        self.step_n = 0
+        self.got_by_cloud: dict[str, list[int]] = {"pose": [], "cmd": []}
+        self.got_by_robot: dict[str, list[int]] = {"odom": [], "goal": []}
+        self.resumed: dict = {}                     # the cloud's last ST session resumed
+        self.move(True)
+
+    @property
+    def now(self) -> float:
+        return self.step_n * 0.1
+
+    def tick(self, link: bool) -> None:
+        """One period: each side sends a state, and every 10th period a command; then the frames move
+        (``link``) or are lost on the way (the link is down, noticed or not)."""
+        n = self.step_n
+        self.robot.send("DM", {"iTag": "pose", "type": "geometry_msgs/PoseStamped", "msg": {"header": {"seq": n}}},
+                        newest_of="pose")
+        self.cloud.send_dm("odom", "nav_msgs/Odometry", "", {"header": {"seq": n}}, data=True)
+        if n % 10 == 0:
+            self.robot.send("DM", {"iTag": "cmd", "type": "std_msgs/String", "msg": {"data": str(n)}})
+            self.cloud.send_dm("goal", "std_msgs/String", "", {"data": str(n)}, data=True)
+        self.step_n += 1
+        self.move(link)
+
+    def move(self, link: bool) -> None:
+        for _ in range(10):
+            self.cloud.tick(self.now)
+            self.robot.tick(self.now)
+            to_robot, to_cloud = self.cloud.data_to_send(), self.robot.data_to_send()
+            if not (to_robot or to_cloud):
+                return
+            if not link:
+                continue
+            for f in to_cloud:
+                (self.cloud.receive_text if isinstance(f, str) else self.cloud.receive_binary)(f, self.now)
+            for f in to_robot:
+                (self.robot.receive_text if isinstance(f, str) else self.robot.receive_binary)(f, self.now)
+            for ev in self.cloud.events_received():
+                if isinstance(ev, Deliver):
+                    m = ev.data["msg"]
+                    self.got_by_cloud[ev.itag].append(m["header"]["seq"] if ev.itag == "pose" else int(m["data"]))
+            for ev in self.robot.events_received():
+                if isinstance(ev, SessionStatus) and ev.data.get("status") == "resumed":
+                    self.resumed = ev.data
+                if isinstance(ev, MessageReceived):
+                    self.got_by_robot[ev.itag].append(ev.msg["header"]["seq"] if ev.itag == "odom"
+                                                      else int(ev.msg["data"]))
+
+
+def test_a_partition_resends_each_states_newest_once_and_every_command_once_in_order():
+    p = Partition()
+    for _ in range(20):                             # 2 s live
+        p.tick(True)
+    for _ in range(10):                             # the link dies; for 1 s neither side notices: lost in flight
+        p.tick(False)
+    p.cloud.detach()
+    assert p.robot.detach("code 1006")
+    for _ in range(90):                             # 9 s with no path: both keep sending
+        p.tick(False)
+    last = p.step_n - 1
+    before = {k: len(v) for k, v in p.got_by_cloud.items()} | {k: len(v) for k, v in p.got_by_robot.items()}
+    q = p.robot.resume_query()
+    p.robot.attach()
+    p.cloud.attach(int(q["ack"]))
+    p.move(True)
+    commands = list(range(0, last + 1, 10))
+    # each way: every command once, in order; of the states only the newest, once
+    assert p.got_by_cloud["cmd"] == commands and p.got_by_robot["goal"] == commands
+    assert p.got_by_cloud["pose"][before["pose"]:] == [last] and p.got_by_robot["odom"][before["odom"]:] == [last]
+    assert p.got_by_cloud["pose"][:before["pose"]] == list(range(20))
+    # the states sent after the last taken (20 .. last - 1) are superseded, counted, and none is lost
+    stats = p.cloud.stats()
+    assert p.robot.superseded == last - 20 and stats["superseded"] == last - 20
+    assert stats["resume_gaps"] == 0 and stats["resume_lost"] == 0 and stats["duplicates"] == 0
+    assert p.robot.incoming.gaps == 0 and p.robot.resume_lost == 0 and p.robot.incoming.duplicates == 0
+    assert p.resumed["superseded"] == last - 20 and p.resumed["dropped"] == 0       # the cloud's ST told the robot
+    # the session goes on, numbered on from the resent messages
+    p.tick(True)
+    assert p.got_by_cloud["pose"][-1] == last + 1 and p.got_by_robot["odom"][-1] == last + 1
+    assert p.cloud.incoming.gaps == 0 and p.robot.incoming.gaps == 0
+
+
+def test_while_no_path_exists_the_kept_buffer_holds_each_states_newest_and_the_commands():
+    p = Partition()
+    p.tick(True)
+    p.cloud.detach()
+    assert p.robot.detach("code 1006")
+    for _ in range(300):                            # 30 s dark: 300 states and 30 commands each way
+        p.tick(False)
+    # kept: the newest state and the 30 commands (the first state and command may be in flight too)
+    assert len(p.robot.outgoing) <= 33 and len(p.cloud.outgoing) <= 33
+    assert p.robot.superseded == p.cloud.stats()["superseded"] == 299
+
+
+def test_outgoing_numbers_the_resent_messages_again_after_the_ack_and_the_lost():
+    out = Outgoing(max_messages=4)
+    seqs = lambda frames: [json.loads(f[0])["seq"] for f in frames]      # noqa: E731
+    out.numbered({"type": "DM", "data": {"n": 1}}, newest_of="pose")    # 1: in flight when the link is lost
+    out.numbered({"type": "DM", "data": {"n": 2}})                      # 2: a command, in flight
+    out.cut()
+    for n in range(3, 8):                                               # 3 .. 7: states, each superseding the last
+        out.numbered({"type": "DM", "data": {"n": n}}, newest_of="pose")
+    out.numbered({"type": "DM", "data": {"n": 8}})
+    out.numbered({"type": "DM", "data": {"n": 9}})                      # the bound (4) forgets 1: lost
+    assert out.superseded == 4 and out.forgotten == 1 and len(out) == 4
+    frames, lost = out.resend_after(0)
+    assert lost == 1 and out.superseded == 4
+    assert [json.loads(f[0])["data"]["n"] for f in frames] == [2, 7, 8, 9]
+    assert seqs(frames) == [2, 3, 4, 5] and out.last == 5              # 1 is the gap of the lost one
+    assert json.loads(out.numbered({"type": "DM", "data": {}})[0])["seq"] == 6
+    out.ack(6)
+    assert len(out) == 0 and out.bytes == 0
