@@ -9,6 +9,9 @@ processes on loopback. The robot's link runs through a TCP proxy the test owns (
   gets ``ST session resumed`` with 0 dropped, and the resume takes less than RESUME_BOUND s from
   the link's return to the first message delivered. A wrong token is refused (401); the right one
   takes over a link the endpoint still holds; a new login ends a detached session.
+- With a state stream (lane ``state``) and a command stream (lane ``control``) each way, a 5 s cut
+  resends of each state interface only its newest, counted as superseded on the side that dropped the
+  others, and every command once, in order.
 - With ``rce-robot --grace 2`` a 5 s cut ends the session: the master destroys the containers
   only after the grace, and the robot's resume is refused like a bad password.
 - A 2013 client (no opt-in) sees today's protocol: no ST session, no seq; its lost link ends its
@@ -188,6 +191,113 @@ async def test_link_cut_for_5s_resumes_with_nothing_lost(engine_each_ws_impl):
     finally:
         await conn.close()
         await proxy.close()
+
+
+def echo_pair(ctag: str, rid: str, req: str, resp: str, lane: str | None) -> list[dict]:
+    """CN ``addInterfaces``: container ``ctag``'s stringEcho.py topics and robot ``rid``'s converters ``req``
+    and ``resp`` (``lane``: theirs; None: from the class, std_msgs: control)."""
+    itfs = [{"endpointTag": ctag, "interfaceTag": req, "interfaceType": "PublisherInterface",
+             "className": "std_msgs/String", "addr": "/stringEchoReq"},
+            {"endpointTag": ctag, "interfaceTag": resp, "interfaceType": "SubscriberInterface",
+             "className": "std_msgs/String", "addr": "/stringEchoResp"},
+            {"endpointTag": rid, "interfaceTag": req, "interfaceType": "SubscriberConverter",
+             "className": "std_msgs/String"},
+            {"endpointTag": rid, "interfaceTag": resp, "interfaceType": "PublisherConverter",
+             "className": "std_msgs/String"}]
+    for i in itfs[2:]:
+        if lane is not None:
+            i["lane"] = lane
+    return itfs
+
+
+async def test_a_cut_resends_each_states_newest_and_every_command_once(engine):
+    proxy = await TcpProxy(engine.robot_ready[0]["ws_port"]).start()
+    conn = await Connection.open(proxy.url, "testUser", "testUser", "newestBot", allow_reconnect=True)
+    states, commands, resumed = Echoes(), Echoes(), []
+    sent = {"r": 0, "c": 0, "k": 0, "kc": 0}
+    at_reconnect: dict[str, int] = {}
+    conn.on_reconnected(lambda _url: at_reconnect.update(sent))
+    conn.on_resumed(resumed.append)
+    try:
+        for ctag in ("stateC", "cmdC"):
+            await conn.create_container(ctag)
+            await conn.add_node(ctag, "echo", "Test", "stringEcho.py")
+        await conn.configure({"addInterfaces": echo_pair("stateC", "newestBot", "sreq", "sresp", "state")
+                              + echo_pair("cmdC", "newestBot", "creq", "cresp", None)})
+        conn.subscriber("sresp", "std_msgs/String", states)
+        conn.subscriber("cresp", "std_msgs/String", commands)
+        await conn.send("CX", {"connect": [{"tagA": f"{c}/{t}", "tagB": f"newestBot/{t}"}
+                                           for c, ts in (("stateC", ("sreq", "sresp")), ("cmdC", ("creq", "cresp")))
+                                           for t in ts]})
+        await conn.wait_interfaces_up(["sreq", "sresp", "creq", "cresp"])
+        pose = conn.publisher("sreq", "std_msgs/String", lane="state")
+        cmd = conn.publisher("creq", "std_msgs/String")
+        for pub, echoes in ((pose, states), (cmd, commands)):      # both nodes subscribed
+            while not echoes.got["warm"]:
+                await pub.publish({"data": "warm:"})
+                try:
+                    await echoes.until(lambda e=echoes: e.got["warm"], 0.2)
+                except AssertionError:
+                    pass
+        stop = asyncio.Event()
+
+        async def robot(pub, kind: str, hz: float) -> None:
+            while not stop.is_set():
+                await pub.publish({"data": f"r:{sent[kind]}"})
+                sent[kind] += 1
+                try:
+                    await asyncio.wait_for(stop.wait(), 1 / hz)          # the stream's clock
+                except asyncio.TimeoutError:
+                    pass
+
+        async def cloud(ctag: str, kind: str, hz: float) -> None:
+            while not stop.is_set():
+                await asyncio.to_thread(engine.admin, f"/api/containers/testUser/{ctag}/publish",
+                                        {"topic": "/stringEchoReq", "type": "std_msgs/String",
+                                         "msg": {"data": f"{kind[-1]}:{sent[kind]}"}})
+                sent[kind] += 1
+                try:
+                    await asyncio.wait_for(stop.wait(), 1 / hz)
+                except asyncio.TimeoutError:
+                    pass
+
+        # states at 10 Hz each way (robot: r, cloud: c); commands at 1 Hz each way (robot: r, cloud: c on cmdC)
+        streams = [asyncio.ensure_future(robot(pose, "r", RATE)), asyncio.ensure_future(cloud("stateC", "c", RATE)),
+                   asyncio.ensure_future(robot(cmd, "k", 1.0)), asyncio.ensure_future(cloud("cmdC", "kc", 1.0))]
+        await states.until(lambda: len(states.got["r"]) >= RATE and len(states.got["c"]) >= RATE, SETTLE)
+        proxy.cut()
+        before = {k: len(v) for k, v in states.got.items()}
+        await asyncio.sleep(CUT)                                    # the cut's clock
+        proxy.restore()
+        await states.until(lambda: at_reconnect and len(states.got["r"]) > before["r"]
+                           and len(states.got["c"]) > before["c"], SETTLE)
+        await asyncio.sleep(1.0)                                    # the streams run on after the resume
+        stop.set()
+        await asyncio.gather(*streams)
+        await states.until(lambda: states.got["r"][-1:] == [sent["r"] - 1] and states.got["c"][-1:] == [sent["c"] - 1],
+                           SETTLE)
+        await commands.until(lambda: len(commands.got["r"]) >= sent["k"] and len(commands.got["c"]) >= sent["kc"],
+                             SETTLE)
+    finally:
+        await conn.close()
+        await proxy.close()
+    # commands: every one once, in order, both ways
+    assert commands.got["r"] == list(range(sent["k"])) and commands.got["c"] == list(range(sent["kc"]))
+    assert sent["k"] >= CUT and sent["kc"] >= CUT
+    # states: in order, none twice; after the cut, the robot sent its newest and the cloud resent its newest
+    for kind in ("r", "c"):
+        assert states.got[kind] == sorted(set(states.got[kind])), f"{kind}: in order, once"
+    after_r, after_c = states.got["r"][before["r"]:], states.got["c"][before["c"]:]
+    # of the robot's states, only the newest at the resume went up (an echo the cloud held may come first)
+    assert [n for n in after_r if n < at_reconnect["r"] - 1][1:] == [], after_r[:5]
+    assert after_c[0] >= at_reconnect["c"] - 2, after_c[:5]         # the cloud's newest (the admin call's lag)
+    # every state missing is counted superseded: the robot's by the client, the cloud's in ST resumed
+    missing = sum(len(set(range(sent[k])) - set(states.got[k])) for k in ("r", "c"))
+    assert len(resumed) == 1 and resumed[0]["dropped"] == 0
+    assert missing == conn.session.superseded + resumed[0]["superseded"] and missing >= CUT * RATE
+    assert conn.session.resume_lost == 0
+    print(f"\nnewest after a {CUT:g} s cut: {conn.session.superseded} robot states and {resumed[0]['superseded']} "
+          f"cloud states superseded; {sent['k']} + {sent['kc']} commands once, in order")
 
 
 async def test_gap_longer_than_the_grace_ends_the_session(tmp_path):
