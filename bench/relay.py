@@ -4,14 +4,15 @@
 - the cloud (the real engine) in the root namespace; leaders L1 and L2 (``rce-ros --relay-port``) with
   uplinks to it; a follower F (``rce-ros --relays L1,L2``) with links only to L1 and L2, and a direct
   link to the cloud that is down until t = 60 s;
-- F's bus carries a 10 Hz state stream (robot -> container's stringEcho.py -> robot, converters), and the
-  cloud sends a 1 Hz command stream into the container (admin API) that reaches F the same way back;
+- F's bus carries a 10 Hz state stream (robot -> container cF's stringEcho.py -> robot, converters in
+  lane ``state``: while no path exists each side keeps only its newest), and the cloud sends a 1 Hz
+  command stream into container cK (admin API) that reaches F through converters in lane ``control``;
 - t = 20 s: the F-L1 link goes dark (L1's end down: F's packets vanish without an error);
   t = 40 s: F's link to L2 goes dark too, and both come back at t = 50 s; t = 60 s: F's direct link comes up.
 
 It reports, per event: how long F was dark (the gap in echoes, and the part of it after a path existed
 again), the age of the first state after it and how long until a state sent after the path returned
-arrived; commands and states lost or duplicated; messages dropped (counted by rce-ros and the cloud);
+arrived; commands and states lost or duplicated; messages dropped or superseded (counted by rce-ros and the cloud);
 the relays' CPU per relayed robot (the relaying leader's CPU less the idle leader's, same seconds);
 F's path as the master saw it. JSON in bench/results/relay.json and a PNG timeline.
 
@@ -44,22 +45,32 @@ HARNESS_QUEUE = 10000         # the bench's own subscriber's queue: large, so th
 ROBOT_WAIT = 90.0             # s for the robots to log in and their interfaces to come up
 
 
-def robot_config(url: str, robot: str, echo: bool = False) -> dict:
+def echo_interfaces(ctag: str, robot: str, req: str, resp: str, lane: str) -> list[dict]:
+    """Container ``ctag``'s stringEcho.py topics, and robot-side converters ``req`` (F's bus topic ``/req``)
+    and ``resp`` (F's bus ``/resp``) in ``lane``."""
+    return [{"eTag": ctag, "iTag": "req", "iType": "PublisherInterface", "iCls": "std_msgs/String",
+             "addr": "/stringEchoReq"},
+            {"eTag": ctag, "iTag": "resp", "iType": "SubscriberInterface", "iCls": "std_msgs/String",
+             "addr": "/stringEchoResp"},
+            {"eTag": robot, "iTag": req, "iType": "SubscriberConverter", "iCls": "std_msgs/String",
+             "addr": f"/{req}", "lane": lane},
+            {"eTag": robot, "iTag": resp, "iType": "PublisherConverter", "iCls": "std_msgs/String",
+             "addr": "/resp", "lane": lane}]
+
+
+def robot_config(url: str, robot: str, echo: bool = False, state_lane: str = "state") -> dict:
+    """``state_lane``: the state stream's lane (``control``: every state kept while no path exists)."""
     cfg = {"url": url, "userID": "testUser", "password": "testUser", "robotID": robot}
     if echo:
         cfg.update({
-            "containers": [{"cTag": "cF"}],
-            "nodes": [{"cTag": "cF", "nTag": "echo", "pkg": "Test", "exe": "stringEcho.py"}],
-            "interfaces": [
-                {"eTag": "cF", "iTag": "req", "iType": "PublisherInterface", "iCls": "std_msgs/String",
-                 "addr": "/stringEchoReq"},
-                {"eTag": "cF", "iTag": "resp", "iType": "SubscriberInterface", "iCls": "std_msgs/String",
-                 "addr": "/stringEchoResp"},
-                {"eTag": robot, "iTag": "req", "iType": "SubscriberConverter", "iCls": "std_msgs/String",
-                 "addr": "/req"},
-                {"eTag": robot, "iTag": "resp", "iType": "PublisherConverter", "iCls": "std_msgs/String",
-                 "addr": "/resp"}],
-            "connections": [{"tagA": "cF/req", "tagB": f"{robot}/req"}, {"tagA": "cF/resp", "tagB": f"{robot}/resp"}]})
+            "containers": [{"cTag": "cF"}, {"cTag": "cK"}],
+            "nodes": [{"cTag": c, "nTag": "echo", "pkg": "Test", "exe": "stringEcho.py"} for c in ("cF", "cK")],
+            "interfaces": (echo_interfaces("cF", robot, "req", "resp", state_lane)
+                           + echo_interfaces("cK", robot, "creq", "cresp", "control")),
+            "connections": [{"tagA": f"{c}/{t}", "tagB": f"{robot}/{r}"}
+                            for c, pairs in (("cF", (("req", "req"), ("resp", "resp"))),
+                                             ("cK", (("req", "creq"), ("resp", "cresp"))))
+                            for t, r in pairs]})
     return cfg
 
 
@@ -114,21 +125,32 @@ def gap_after(arrivals: list[tuple[float, float]], t: float, within: float = 3.0
             "newest_after_s": None if fresh is None else fresh - end}
 
 
-async def run(work: Path, out: Path) -> dict:
+def follower_superseded(log: Path) -> int:
+    """States F's session superseded while it had no path, as its last resume line printed."""
+    lines = [x for x in log.read_text(errors="replace").splitlines() if "rce-ros: session resumed" in x]
+    if not lines:
+        return 0
+    return int(lines[-1].rsplit(" superseded in all", 1)[0].rsplit(", ", 1)[1].split()[0])
+
+
+async def run(work: Path, out: Path, state_lane: str) -> dict:
     with NetLab("rlb") as lab:
         topo = RelayTopology.make(lab)
         with engine(work / "engine", master_args=("--bind", "0.0.0.0"),
                     robot_args=("--bind", "0.0.0.0", "--advertise-host", topo.cloud_ip)) as e:
-            return await measure(lab, topo, e, work)
+            r = await measure(lab, topo, e, work, state_lane)
+    r["state_lane"] = state_lane
+    r["counted_drops"]["F superseded (to the cloud)"] = follower_superseded(work / "F.log")
+    return r
 
 
-async def measure(lab: NetLab, topo: RelayTopology, e, work: Path) -> dict:
+async def measure(lab: NetLab, topo: RelayTopology, e, work: Path, state_lane: str) -> dict:
     url = f"http://{topo.cloud_ip}:{e.http_port}/"
     l1, _ = await start_robot(lab, "l1", robot_config(url, "L1"), work, "--relay-port", str(RELAY_PORT))
     l2, _ = await start_robot(lab, "l2", robot_config(url, "L2"), work, "--relay-port", str(RELAY_PORT))
     for p, name in ((l1, "L1"), (l2, "L2")):
         await wait_text(work / f"{name}.log", "relaying for nearby robots", p)
-    f, bus = await start_robot(lab, "f", robot_config(url, "F", echo=True), work, "--relays",
+    f, bus = await start_robot(lab, "f", robot_config(url, "F", echo=True, state_lane=state_lane), work, "--relays",
                                f"{topo.f_l1.a_ip}:{RELAY_PORT},{topo.f_l2.a_ip}:{RELAY_PORT}")
     procs = {"F": f, "L1": l1, "L2": l2}
     try:
@@ -158,7 +180,7 @@ async def streams(lab: NetLab, topo: RelayTopology, e, bus: Path, procs: dict) -
     async def commands() -> None:
         while True:
             n = sent["c"]
-            await asyncio.to_thread(e.admin, "/api/containers/testUser/cF/publish",
+            await asyncio.to_thread(e.admin, "/api/containers/testUser/cK/publish",
                                     {"topic": "/stringEchoReq", "type": "std_msgs/String",
                                      "msg": {"data": f"c:{n}:{time.monotonic()}"}})
             sent["c"] += 1
@@ -197,7 +219,8 @@ async def streams(lab: NetLab, topo: RelayTopology, e, bus: Path, procs: dict) -
     await asyncio.sleep(DRAIN)                           # the last echoes on their way
     await node.close()
     drops = {name: await asyncio.to_thread(endpoint_counter, e, name)
-             for name in ("rce_robot_dropped", "rce_robot_shed", "rce_robot_resume_lost", "rce_robot_duplicates")}
+             for name in ("rce_robot_dropped", "rce_robot_shed", "rce_robot_resume_lost", "rce_robot_duplicates",
+                          "rce_robot_superseded")}
     cf = await asyncio.to_thread(e.admin, "/api/containers/testUser/cF/stats")
     drops["container cF"] = {"dropped": cf["dropped"], "echo node dropped": cf["per_node"]["echo"]["dropped"]}
     drops["bench subscriber"] = sub.dropped
@@ -280,13 +303,15 @@ def plot(r: dict, png: Path) -> None:
 def main() -> None:
     p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     p.add_argument("--out", type=Path, default=RESULTS / "relay.json")
+    p.add_argument("--state-lane", choices=("state", "control"), default="state",
+                   help="the state stream's lane (control: every state is kept and replayed after a gap)")
     args = p.parse_args()
     work = Path(tempfile.mkdtemp(prefix="rce-relay-bench-"))
-    r = asyncio.run(run(work, args.out))
+    r = asyncio.run(run(work, args.out, args.state_lane))
     write_json(args.out, r)
     plot(r, args.out.with_suffix(".png"))
-    print(json.dumps({k: r[k] for k in ("events", "commands", "states", "relay_cpu_percent",
-                                        "relay_cpu_per_relayed_robot_percent", "path")}, indent=1))
+    print(json.dumps({k: r[k] for k in ("state_lane", "events", "commands", "states", "counted_drops",
+                                        "relay_cpu_percent", "relay_cpu_per_relayed_robot_percent", "path")}, indent=1))
     print(f"wrote {args.out} and {args.out.with_suffix('.png')} (robots' logs in {work})")
 
 
