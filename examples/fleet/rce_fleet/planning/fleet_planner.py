@@ -8,7 +8,8 @@ crossed it. What this adds:
 * **collision-free multi-robot plans** (:mod:`.paths`), by prioritized planning
   (:mod:`.prioritized`);
 * **re-planning**: after a block only the robots whose remaining paths cross the cell are
-  re-planned, around the others' kept remaining paths; if that fails (or the kept paths no
+  re-planned (with the robots standing on their goals, which may yield to them), around the
+  others' kept remaining paths; if that fails (or the kept paths no
   longer fit together) everybody is re-planned. A robot already cleared into its next cell
   keeps that move (it may be driving), so re-plans never pull a cell from under a moving
   robot;
@@ -295,6 +296,10 @@ class FleetPlanner:
         for r in self.positions:
             if r in self._adg.visits and r not in self._dirty:
                 self.positions[r] = self._adg.cell(r)
+        if subset:      # robots standing on their goal are planned again too: they may yield (.prioritized)
+            subset |= {r for r in self.positions if self.goals.get(r) == self.positions[r]
+                       and r not in self.unreachable and len(set(self._rebased(r) if r in self.paths
+                                                                 and r in self._adg.visits else [0, 1])) == 1}
         result = None
         if not full and len(subset) < len(self.positions):
             fixed = {r: self._rebased(r) for r in self.positions

@@ -5,7 +5,11 @@ Lozano-Perez 1987, "On multiple moving objects", Algorithmica 2; Silver 2005,
 Robots are planned one after another, each by SIPP (:mod:`.sipp`) around the reservations
 (:mod:`.reservations`) of the robots planned before it, with the true-distance heuristic
 (:mod:`.dijkstra`). Priority: shorter trips first (they park early; long trips route
-around them, instead of short trips waiting for a long one to pass their goal). A robot
+around them, instead of short trips waiting for a long one to pass their goal), and robots
+standing on their goal last: the robots planned before may drive through a standing robot's
+cell, and the standing robot's own search then steps it aside and back in time (it yields,
+planned with them) instead of being a wall; if it cannot, it is bumped to the front and
+stays put, as a parked robot would. A robot
 that cannot be planned is moved to the front of the order and the plan restarted
 (priority bumping); when restarts or the time budget run out, robots that still cannot be
 planned are parked where they are, with the reason, so nobody waits for ever on a goal
@@ -200,7 +204,8 @@ class _Round:
         """Plan ``movers`` in priority order, bumping a robot that fails to the front and
         restarting. Returns (their paths, the robots parked because they still failed)."""
         prefix = {r: self._prefix(r) for r in movers}
-        order = sorted(movers, key=lambda robot: (self.f.distance(self.starts[robot], self.f.goals[robot]), robot))
+        dist = {r: self.f.distance(self.starts[r], self.f.goals[r]) for r in movers}
+        order = sorted(movers, key=lambda robot: (dist[robot] == 0, dist[robot], robot))   # standing ones yield
         failed_parked: list[str] = []
         attempts = 0
         while True:
