@@ -243,7 +243,7 @@ def main(argv: list[str] | None = None) -> int:
         control = run_stream(geo, places, starts, stream, a.duration)
         off = offline_prediction(geo, places, starts, stream, a.duration, control["s_per_cell"])
         print(f"{n:4d} robots: offline {off['tasks_done']} tasks at {off['step_s']} s per cell, control loop "
-              f"without physics {control['tasks_done']} (share {_share(control, off)}; re-plans "
+              f"without physics {control['tasks_done']} (share {_share(control, off)}; robots sharing a cell {control['shared_cells']}; re-plans "
               f"{control['plan_ms']['mean']} ms mean, {control['plan_ms']['max']} ms max; wall {control['wall_s']} s)",
               flush=True)
         if a.control_only:

@@ -501,3 +501,33 @@ def test_turtlebot3_world_grid_three_robots_block_26():
     for p in fp.paths.values():
         for a, b in zip(p, p[1:], strict=False):
             assert a == b or grid.connected(a, b)
+
+
+def test_robot_standing_on_its_goal_yields_and_nobody_collides():
+    # a one-cell-wide corridor with a pocket below its middle cell; "still" stands on its goal in
+    # that cell, "through" must cross it: "still" steps into the pocket and back, with the plan
+    g = GridGraph.from_array(np.array([[True] * 5, [False, False, True, False, False]]))
+    for p_move in (0.3, 0.7, 1.0):
+        fp = FleetPlanner(g)
+        fp.set_position("still", 2)
+        fp.set_goal("still", 2)
+        assert fp.paths["still"] == [2]
+        fp.set_position("through", 0)
+        fp.set_goal("through", 4)
+        assert fp.unreachable == {}
+        assert 7 in fp.paths["still"] and fp.paths["still"][-1] == 2       # it yields into the pocket
+        assert_valid_paths(g, fp)
+        simulate(fp, random.Random(3), p_move=p_move)
+        assert fp.positions == {"still": 2, "through": 4}
+
+
+def test_standing_robot_without_room_to_yield_stays_a_wall():
+    # no pocket: the standing robot cannot step aside, so the crossing robot is parked with the reason
+    g = GridGraph.from_array(np.array([[True] * 5]))
+    fp = FleetPlanner(g)
+    fp.set_position("still", 2)
+    fp.set_goal("still", 2)
+    fp.set_position("through", 0)
+    fp.set_goal("through", 4)
+    assert fp.paths["still"] == [2] and "through" in fp.unreachable
+    assert_valid_paths(g, fp)

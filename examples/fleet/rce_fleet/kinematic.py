@@ -50,6 +50,7 @@ class KinematicFleet:
         self.drive_s = 0.0                    # robot-seconds spent turning or driving to a waypoint
         self.visited = {r: [c] for r, c in starts.items()}
         self.cancels = {r: 0 for r in starts}
+        self.shared_cells = 0                 # steps x cells in which two robots' centres stood (0: safe)
         self._next_tick = 0.0
         for r in starts:
             self.route(self.mc[r].on_pose(*self.pose[r], stamp=0.0))
@@ -111,6 +112,8 @@ class KinematicFleet:
             self.route(self.mc[r].on_pose(*self.pose[r], stamp=self.t))
             self.route(self.core.on_pose(r, *self.pose[r], stamp=self.t))
             self.core.on_progress(r, self.mc[r].progress())
+        cells = [self.geo.cell_of(*p[:2]) for p in self.pose.values()]
+        self.shared_cells += len(cells) - len(set(cells))
         if self.t >= self._next_tick:
             self._next_tick = self.t + self.tick_s
             self.route(self.core.tick())
@@ -122,7 +125,8 @@ def run_stream(geo: GridGeometry, places, starts: dict[str, int], stream: list[t
     :class:`KinematicFleet` (keyword arguments go to it; idle robots park). Returns
     ``tasks_done``, ``per_hour``, ``mean_s`` (creation to done), ``refused``, ``distance_m``
     (all robots), ``s_per_cell`` (:meth:`KinematicFleet.s_per_cell`), ``plan_ms`` (mean, max
-    per re-plan) and ``wall_s``."""
+    per re-plan), ``shared_cells`` (:attr:`KinematicFleet.shared_cells`: steps x cells holding two
+robots' centres, 0 when nobody collided) and ``wall_s``."""
     t0 = time.perf_counter()
     f = KinematicFleet(geo, starts, places=places, park_idle=True, **kw)
     nxt, refused = 0, 0
@@ -137,5 +141,5 @@ def run_stream(geo: GridGeometry, places, starts: dict[str, int], stream: list[t
     return {"tasks_done": st["done"], "per_hour": round(st["done"] * 3600.0 / duration_s, 2),
             "mean_s": round(st["mean_s"], 2), "refused": refused, "failed": st["failed"],
             "distance_m": round(sum(f.distance.values()), 1), "s_per_cell": round(f.s_per_cell(), 3),
-            "plan_ms": {"mean": round(1e3 * sum(times) / len(times), 2), "max": round(1e3 * max(times), 2)},
+            "shared_cells": f.shared_cells, "plan_ms": {"mean": round(1e3 * sum(times) / len(times), 2), "max": round(1e3 * max(times), 2)},
             "wall_s": round(time.perf_counter() - t0, 2)}
