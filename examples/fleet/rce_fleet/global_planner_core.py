@@ -78,6 +78,7 @@ class _Robot:
     plan: int = 0
     cells: list[int] = field(default_factory=list)   # the path last sent (goalNodesList.data)
     base: int = 0                                     # index in ``cells`` of the planner's paths[r][0]
+    at: int = 0                                       # index in ``cells`` of the robot's cell at the last sync
     cleared: int = -1                                 # last clearance index sent
     cancels: int = 0
     progress: dict = field(default_factory=dict)
@@ -375,21 +376,23 @@ class GlobalPlannerCore:
                 continue
             new = compress(path)
             if replanned or not rec.plan:
-                # unchanged cells: the new path is a tail of the list the robot has (it moved on)
+                # unchanged cells: the new path is the tail of the list the robot has from where it
+                # stands (a path may pass a cell twice, as a robot that yields and comes back does:
+                # only the robot's own place in the list counts)
                 cur, keep = 0, False
                 if rec.plan and r not in cancelled:
-                    for i in range(rec.base, len(rec.cells)):
-                        if rec.cells[i:] == new:
-                            cur, keep = i, True
-                            break
+                    i = next((i for i in range(rec.at, len(rec.cells)) if rec.cells[i] == new[0]), None)
+                    if i is not None and rec.cells[i:] == new:
+                        cur, keep = i, True
                 if keep:
                     rec.base = cur
                 else:
                     self._plan_ids += 1
-                    rec.plan, rec.cells, rec.base, rec.cleared = self._plan_ids, new, 0, -1
+                    rec.plan, rec.cells, rec.base, rec.at, rec.cleared = self._plan_ids, new, 0, 0, -1
                     out.append(self._path_msg(r))
                     self.log("path", robot=r, plan=rec.plan, cells=new, goal=fp.goals.get(r))
             k = fp.clearance(r)
+            rec.at = rec.base + compressed_index(path, fp.progress(r))
             idx = rec.base + compressed_index(path, k)
             if idx != rec.cleared:
                 rec.cleared = idx

@@ -5,10 +5,11 @@ Lozano-Perez 1987, "On multiple moving objects", Algorithmica 2; Silver 2005,
 Robots are planned one after another, each by SIPP (:mod:`.sipp`) around the reservations
 (:mod:`.reservations`) of the robots planned before it, with the true-distance heuristic
 (:mod:`.dijkstra`). Priority: shorter trips first (they park early; long trips route
-around them, instead of short trips waiting for a long one to pass their goal), and robots
-standing on their goal last: the robots planned before may drive through a standing robot's
-cell, and the standing robot's own search then steps it aside and back in time (it yields,
-planned with them) instead of being a wall; if it cannot, it is bumped to the front and
+around them, instead of short trips waiting for a long one to pass their goal). Robots
+standing on their goal come first (they stay put; the others route around them) until a
+robot cannot be planned: then they go last, so the robots planned before may drive through
+a standing robot's cell and its own search steps it aside and back in time (it yields,
+planned with them) instead of being a wall; one that cannot is bumped to the front and
 stays put, as a parked robot would. A robot
 that cannot be planned is moved to the front of the order and the plan restarted
 (priority bumping); when restarts or the time budget run out, robots that still cannot be
@@ -205,7 +206,8 @@ class _Round:
         restarting. Returns (their paths, the robots parked because they still failed)."""
         prefix = {r: self._prefix(r) for r in movers}
         dist = {r: self.f.distance(self.starts[r], self.f.goals[r]) for r in movers}
-        order = sorted(movers, key=lambda robot: (dist[robot] == 0, dist[robot], robot))   # standing ones yield
+        order = sorted(movers, key=lambda robot: (dist[robot], robot))
+        standing = [r for r in order if dist[r] == 0]
         failed_parked: list[str] = []
         attempts = 0
         while True:
@@ -216,6 +218,11 @@ class _Round:
             attempts += 1
             lim = self.limits
             out_of_budget = attempts > lim.max_restarts or time.perf_counter() - self.t_start > lim.time_budget_s
+            if standing and dist[failed] > 0 and not out_of_budget:
+                # the standing robots yield: planned last, they step aside for the others
+                order = [r for r in order if r not in standing] + standing
+                standing = []
+                continue
             order.remove(failed)
             if out_of_budget or order_front == failed:
                 failed_parked.append(failed)      # fails even with top priority (or no budget left): park it
