@@ -6,7 +6,7 @@ from __future__ import annotations
 import pytest
 
 from rce_fleet.battery import Battery, BatteryParams
-from rce_fleet.kinematic import run_stream
+from rce_fleet.kinematic import KinematicFleet, run_stream
 from rce_fleet.lifelong import TaskState
 from rce_fleet.places import Place, PlaceError, Places, generate_places
 from rce_fleet.tasks_api import TaskBook
@@ -279,3 +279,27 @@ def test_kinematic_fleet_runs_a_task_stream_through_the_planner_and_move_clients
     assert r["tasks_done"] == 3 and r["failed"] == 0 and r["refused"] == 0, r
     # the robots drove at most at their speed for the whole run
     assert 0 < r["distance_m"] <= 2 * 0.22 * 240.0
+
+
+
+def test_robots_cross_a_standing_robot_that_yields_without_sharing_a_cell(lab):  # noqa: F811
+    # row 2 of the lab as a corridor (rows 1 and 3 blocked) with a pocket at 27 below 19:
+    # Robot1 stands on its goal 19; Robot2 shuttles 16 <-> 23 through it, and Robot1 is
+    # re-planned while it yields (its plan passes 19 twice; the move_client must follow only
+    # the planner's current plan)
+    f = KinematicFleet(lab, {"Robot1": 19, "Robot2": 16})
+    for c in (8, 9, 10, 11, 12, 13, 15, 24, 25, 26, 28, 30, 31):
+        f.route(f.core.on_block(c))
+    f.route(f.core.on_goal("Robot1", 19))
+    f.route(f.core.on_goal("Robot2", 23))
+    assert 27 in f.core.fp.paths["Robot1"] and not f.core.fp.unreachable
+    crossings = 0
+    for k in range(3000):
+        f.step()
+        if f.core.fp.positions["Robot2"] == f.core.fp.goals["Robot2"]:
+            crossings += 1
+            f.route(f.core.on_goal("Robot2", 16 if f.core.fp.goals["Robot2"] == 23 else 23))
+        if k % 7 == 0:
+            f.route(f.core.on_goal("Robot1", 19))
+    assert crossings >= 4 and f.visited["Robot1"].count(27) >= 4
+    assert f.shared_cells == 0
