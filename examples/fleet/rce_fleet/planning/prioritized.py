@@ -7,7 +7,7 @@ Robots are planned one after another, each by SIPP (:mod:`.sipp`) around the res
 (:mod:`.dijkstra`). Priority: shorter trips first (they park early; long trips route
 around them, instead of short trips waiting for a long one to pass their goal). Robots
 standing on their goal come first (they stay put; the others route around them) until a
-robot cannot be planned: then they go last, so the robots planned before may drive through
+robot cannot be planned even with top priority: then they go last, so the robots planned before may drive through
 a standing robot's cell and its own search steps it aside and back in time (it yields,
 planned with them) instead of being a wall; one that cannot is bumped to the front and
 stays put, as a parked robot would. A robot
@@ -218,8 +218,8 @@ class _Round:
             attempts += 1
             lim = self.limits
             out_of_budget = attempts > lim.max_restarts or time.perf_counter() - self.t_start > lim.time_budget_s
-            if standing and dist[failed] > 0 and not out_of_budget:
-                # the standing robots yield: planned last, they step aside for the others
+            if standing and dist[failed] > 0 and order_front == failed and not out_of_budget:
+                # it fails even first: the standing robots yield (planned last, they step aside)
                 order = [r for r in order if r not in standing] + standing
                 standing = []
                 continue
