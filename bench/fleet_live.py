@@ -243,7 +243,8 @@ def main(argv: list[str] | None = None) -> int:
         control = run_stream(geo, places, starts, stream, a.duration)
         off = offline_prediction(geo, places, starts, stream, a.duration, control["s_per_cell"])
         print(f"{n:4d} robots: offline {off['tasks_done']} tasks at {off['step_s']} s per cell, control loop "
-              f"without physics {control['tasks_done']} (share {_share(control, off)}; robots sharing a cell {control['shared_cells']}; re-plans "
+              f"without physics {control['tasks_done']} (share {_share(control, off)}; robots sharing a cell "
+              f"{control['shared_cells']}; re-plans "
               f"{control['plan_ms']['mean']} ms mean, {control['plan_ms']['max']} ms max; wall {control['wall_s']} s)",
               flush=True)
         if a.control_only:
@@ -266,7 +267,8 @@ def main(argv: list[str] | None = None) -> int:
               f"{live['reason']}", flush=True)
     if a.out:
         Path(a.out).write_text(json.dumps(results, indent=1))
-    bad = [n for n, r in results["runs"].items() if "exit_code" in r and (r["exit_code"] != 0 or not math.isfinite(r["engine_cpu_pct"]))]
+    bad = [n for n, r in results["runs"].items()
+           if "exit_code" in r and (r["exit_code"] != 0 or not math.isfinite(r["engine_cpu_pct"]))]
     return 1 if bad else 0
 
 

@@ -141,5 +141,6 @@ robots' centres, 0 when nobody collided) and ``wall_s``."""
     return {"tasks_done": st["done"], "per_hour": round(st["done"] * 3600.0 / duration_s, 2),
             "mean_s": round(st["mean_s"], 2), "refused": refused, "failed": st["failed"],
             "distance_m": round(sum(f.distance.values()), 1), "s_per_cell": round(f.s_per_cell(), 3),
-            "shared_cells": f.shared_cells, "plan_ms": {"mean": round(1e3 * sum(times) / len(times), 2), "max": round(1e3 * max(times), 2)},
+            "shared_cells": f.shared_cells,
+            "plan_ms": {"mean": round(1e3 * sum(times) / len(times), 2), "max": round(1e3 * max(times), 2)},
             "wall_s": round(time.perf_counter() - t0, 2)}
