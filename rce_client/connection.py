@@ -117,7 +117,9 @@ class Connection(Verbs, Handles, Reconnecting):
     ``reconnect``: the :class:`Reconnect` settings, None without ``allow_reconnect``; ``resumes``:
     sessions resumed; ``connected``: False while a lost link is being replaced; ``moves``: fresh sessions
     opened on another endpoint after the first one died; ``moved_lost``: messages to the cloud lost
-    with a dead endpoint (in flight or sent during the gap); ``relogin``: (master URL, password,
+    with a dead endpoint (in flight or sent during the gap); ``session.superseded``: state and bulk
+    messages to the cloud dropped while no link was up for a newer one of their interface (the cloud's
+    count the other way is in each ``on_resumed`` ST's ``superseded``); ``relogin``: (master URL, password,
     version) of a connection made by a login, which lets it move."""
 
     def __init__(self, ws: ClientConnection, user_id: str, robot_id: str, ws_url: str,
@@ -386,7 +388,8 @@ class Connection(Verbs, Handles, Reconnecting):
                     self._session_evt.set()
                     if data.get("status") == "resumed":
                         self.resumes += 1
-                        log.info("session resumed", robot=self.robot_id, dropped=data.get("dropped"))
+                        log.info("session resumed", robot=self.robot_id, dropped=data.get("dropped"),
+                                 superseded=data.get("superseded", 0), superseded_to_cloud=self.session.superseded)
                         for cb in self._link_cbs["resumed"]:
                             self._run_cb(cb, data)
                 case ResponseReceived() | BarrierPassed() | BarrierFailed() | Detached():
