@@ -80,3 +80,24 @@ class DistanceCache:
             out = np.empty(self.grid.n_cells, dtype=np.uint16)
         bfs_fill(self.grid.nbr, int(src), out, self._queue)
         return out
+
+
+def one_shot_distances(grid: LifelongGrid, starts, goals, cache: DistanceCache | None = None
+                       ) -> tuple[np.ndarray, np.ndarray, DistanceCache, np.ndarray, np.ndarray]:
+    """Check a one-shot instance and look up what its solvers start from: ``starts``, ``goals``
+    ((n,) cells, as int64 arrays), the distance ``cache`` (``cache`` or a new one sized for n
+    agents), each goal's row in ``cache.table`` ((n,) int64) and each agent's start-to-goal
+    distance ((n,) cells, the table's dtype). Raises ValueError for two agents on one start or
+    goal, or a goal that cannot be reached from its start (naming the agent)."""
+    starts = np.asarray(starts, dtype=np.int64)
+    goals = np.asarray(goals, dtype=np.int64)
+    n = starts.shape[0]
+    if len(set(starts.tolist())) != n or len(set(goals.tolist())) != n:
+        raise ValueError("two agents share a start or a goal cell")
+    cache = cache or DistanceCache(grid, max_bytes=max(2 * grid.n_cells * (n + 16), 64 * 2 ** 20))
+    rows = np.array([cache.slot(int(g)) for g in goals], dtype=np.int64)
+    dist = cache.table[rows, starts]
+    if (dist == UNREACHABLE).any():
+        bad = int(np.flatnonzero(dist == UNREACHABLE)[0])
+        raise ValueError(f"agent {bad}: goal {int(goals[bad])} cannot be reached from {int(starts[bad])}")
+    return starts, goals, cache, rows, dist

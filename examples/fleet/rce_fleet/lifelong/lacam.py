@@ -15,9 +15,9 @@ from collections import deque
 
 import numpy as np
 
-from .distances import DistanceCache
+from .distances import DistanceCache, one_shot_distances
 from .grid import LifelongGrid
-from .kernels import UNREACHABLE, pibt_step
+from .kernels import pibt_step
 
 __all__ = ["solve_lacam"]
 
@@ -56,17 +56,8 @@ def solve_lacam(grid: LifelongGrid, starts: np.ndarray, goals: np.ndarray, time_
     a goal that cannot be reached from its start or two agents on one start or goal.
     """
     t0 = clock()
-    starts = np.asarray(starts, dtype=np.int64)
-    goals = np.asarray(goals, dtype=np.int64)
+    starts, goals, cache, slot, d0 = one_shot_distances(grid, starts, goals, cache)
     n = starts.shape[0]
-    if len(set(starts.tolist())) != n or len(set(goals.tolist())) != n:
-        raise ValueError("two agents share a start or a goal cell")
-    cache = cache or DistanceCache(grid, max_bytes=max(2 * grid.n_cells * (n + 16), 64 * 2 ** 20))
-    slot = np.array([cache.slot(int(g)) for g in goals], dtype=np.int64)
-    d0 = cache.table[slot, starts]
-    if (d0 == UNREACHABLE).any():
-        bad = int(np.flatnonzero(d0 == UNREACHABLE)[0])
-        raise ValueError(f"agent {bad}: goal {int(goals[bad])} cannot be reached from {int(starts[bad])}")
     rng = np.random.default_rng(seed)
     nbr, table = grid.nbr, cache.table
     head = np.full(n, -1, dtype=np.int64)

@@ -24,9 +24,9 @@ import time
 
 import numpy as np
 
-from .distances import DistanceCache
+from .distances import DistanceCache, one_shot_distances
 from .grid import LifelongGrid
-from .kernels import UNREACHABLE, bfs_multi
+from .kernels import bfs_multi
 from .spacetime import SpaceTimeTable, remove_agents
 
 __all__ = ["aisle_depth", "open_cells", "solve_pp"]
@@ -70,17 +70,8 @@ def solve_pp(grid: LifelongGrid, starts: np.ndarray, goals: np.ndarray, time_lim
     start or two agents on one start or goal.
     """
     t0 = clock()
-    starts = np.asarray(starts, dtype=np.int64)
-    goals = np.asarray(goals, dtype=np.int64)
-    n = starts.shape[0]
-    if len(set(starts.tolist())) != n or len(set(goals.tolist())) != n:
-        raise ValueError("two agents share a start or a goal cell")
-    cache = cache or DistanceCache(grid, max_bytes=max(2 * grid.n_cells * (n + 16), 64 * 2 ** 20))
-    hrow = np.array([cache.slot(int(g)) for g in goals], dtype=np.int64)
-    lb = cache.table[hrow, starts].astype(np.int64)
-    if (lb == UNREACHABLE).any():
-        bad = int(np.flatnonzero(lb == UNREACHABLE)[0])
-        raise ValueError(f"agent {bad}: goal {int(goals[bad])} cannot be reached from {int(starts[bad])}")
+    starts, goals, cache, hrow, lb = one_shot_distances(grid, starts, goals, cache)
+    n, lb = starts.shape[0], lb.astype(np.int64)
     max_h = int(lb.max()) if n else 0
     H = horizon or 2 * max_h + 64
     rng = np.random.default_rng(seed)
