@@ -106,15 +106,8 @@ def test_bytes_waiting_in_the_kernel_count_as_held_back():
     """A sender whose bytes wait in its kernel (not in the pacer) still has more to send than goes out:
     a queue on the path then gives the estimate."""
     est, path = RateEstimator(), Bottleneck(LINK)
-    for _ in range(int(5 / STEP)):
-        send = est.rate * STEP
-        path.queue += send
-        out = min(path.queue, path.rate * STEP)
-        path.queue -= out
-        path.acked += out
-        path.t += STEP
-        path.srtt += (path.base + path.queue / path.rate - path.srtt) / 8
-        est.sample(PathSample(path.t, int(path.acked), path.srtt, path.base, 2 * NOTSENT_LIMIT, waited=0.0))
+    for _ in range(int(5 / STEP)):      # it sends just what the pacer lets out: never held back by it
+        path.step(est, est.rate, notsent=2 * NOTSENT_LIMIT)
     assert est.backoffs >= 1 and 0.85 * LINK <= est.estimate <= 1.05 * LINK
 
 
