@@ -113,8 +113,7 @@ def _exit_code(stop: SystemExit) -> int:
 
 def _become_node(req: dict, out: int, err: int, sock: socket.socket, inherited: list[int]) -> None:
     """In the fresh child: the process state an exec'd node would start with (``inherited``:
-    the zygote's own descriptors, closed)."""
-    os.setsid()
+    the zygote's own descriptors, closed; the child already leads its own session)."""
     sock.close()
     for fd in inherited:
         os.close(fd)
@@ -221,6 +220,9 @@ class Zygote(_Server):
         signal.pthread_sigmask(signal.SIG_BLOCK, HANDLED_SIGNALS)
         pid = os.fork()
         if pid == 0:
+            # its own session and group before the host learns its pid: the host's SIGTERM goes
+            # to that group, and one sent before a later setsid would reach no one
+            os.setsid()
             os.close(r)
             _send(self.sock, {"op": "spawned", "id": req["id"]})     # from the node: its credentials give its pid
             _run_child(req, fds[0], fds[1], self.sock, w,

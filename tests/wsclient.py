@@ -38,8 +38,11 @@ class RawRobot:
         await self.ws.send(json.dumps({"type": type_, "data": data}))
 
     async def recv(self, timeout: float = 20.0):
-        """Next frame: a dict for JSON text, bytes for binary."""
-        m = await asyncio.wait_for(self.ws.recv(), timeout)
+        """Next frame: a dict for JSON text, bytes for binary; TimeoutError after ``timeout`` s.
+        (``asyncio.timeout``, not ``wait_for``: Python 3.11's ``wait_for`` loses a cancellation that
+        arrives as the frame does, and a reading loop cancelled that way would read on.)"""
+        async with asyncio.timeout(timeout):
+            m = await self.ws.recv()
         return json.loads(m) if isinstance(m, str) else m
 
     async def expect(self, type_: str, timeout: float = 20.0, pred=lambda d: True) -> dict:

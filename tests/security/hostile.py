@@ -3,6 +3,7 @@ a victim robot that echoes through its own container, and the robot task set's R
 from __future__ import annotations
 
 import asyncio
+import itertools
 import time
 
 import psutil
@@ -13,17 +14,20 @@ from wsclient import RawRobot
 
 async def echo_ready(r: RawRobot, ctag: str, timeout: float = 60.0) -> None:
     """Give robot ``r`` a container ``ctag`` running stringEcho.py, its ``req``/``resp`` converters
-    connected; return once an echo came back (the node subscribes a moment after the interfaces are up)."""
+    connected; return once the echo of the last probe came back (the node subscribes a moment after the
+    interfaces are up; echoes keep their order, so no earlier probe's echo is still on its way)."""
     await r.send("CC", {"containerTag": ctag})
     await r.cn(addNodes=[{"containerTag": ctag, "nodeTag": "echo", "pkg": "Test", "exe": "stringEcho.py"}],
                addInterfaces=echo_interfaces(ctag, r.robot))
     await r.send("CX", {"connect": [{"tagA": f"{ctag}/{t}", "tagB": f"{r.robot}/{t}"} for t in ("req", "resp")]})
     await r.wait_up("req", "resp", timeout=timeout)
     deadline = time.monotonic() + timeout
-    while True:
-        await r.send("DM", {"iTag": "req", "type": "std_msgs/String", "msgID": "", "msg": {"data": "ready?"}})
+    for n in itertools.count(1):
+        # numbered: an earlier probe's late echo is skipped here, never taken by an Echoer for its own
+        probe = f"ready? {n}"
+        await r.send("DM", {"iTag": "req", "type": "std_msgs/String", "msgID": "", "msg": {"data": probe}})
         try:
-            await r.expect("DM", timeout=0.5, pred=lambda d: d["iTag"] == "resp")
+            await r.expect("DM", timeout=0.5, pred=lambda d, p=probe: d["iTag"] == "resp" and d["msg"]["data"] == p)
             return
         except TimeoutError:
             if time.monotonic() > deadline:
