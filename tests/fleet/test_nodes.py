@@ -141,6 +141,19 @@ def test_obstacle_filter_needs_confirmation_and_skips_robots_and_walls(lab):
         assert f.update(obs, pts, t, {}, [], []) == []
 
 
+def test_obstacle_filter_widens_a_robots_clearance_by_the_age_of_its_pose(lab):
+    """A robot whose pose arrived late has moved on: the scan shows it up to its top speed times
+    the lag away from that pose, and it must not block the cell it is driving through."""
+    cx, cy = lab.center(27)
+    obs = (cx - 1.0, cy)
+    moved = [(cx + dx, cy) for dx in (-0.1, 0.0, 0.1)]        # where R2 is at the scan
+    last = (cx - 0.6, cy)                                      # R2's last pose, 0.6 m behind
+    for ages, want in (({"R2": 0.0}, [27]), ({"R2": 2.5}, []), ({"R2": -2.5}, [])):
+        f = ObstacleFilter(lab, min_points=3, confirm=2, window_s=5.0, robot_speed=0.22)
+        got = [f.update(obs, moved, t, {"R1": obs, "R2": last}, [], [], ages) for t in (0.0, 1.0)]
+        assert got == [[], want], ages
+
+
 def test_move_client_sends_next_waypoint_only_when_cleared(lab):
     mc = MoveClientCore("Robot1", lab)
     path = [8, 9, 10, 18]

@@ -74,6 +74,7 @@ class _Robot:
     name: str
     tracker: CellTracker
     pose: tuple[float, float, float] | None = None
+    pose_stamp: float = 0.0                           # header stamp of ``pose``, s (0: unknown)
     pending_goal: int | None = None
     plan: int = 0
     cells: list[int] = field(default_factory=list)   # the path last sent (goalNodesList.data)
@@ -149,6 +150,7 @@ class GlobalPlannerCore:
             return []
         self.stamp = max(self.stamp, float(stamp))
         rec.pose = (float(x), float(y), float(yaw))
+        rec.pose_stamp = float(stamp)
         before = rec.tracker.cell
         cell = rec.tracker.update(x, y)
         if cell is None or cell == before:
@@ -237,15 +239,18 @@ class GlobalPlannerCore:
         self.log("cell unblocked", cell=cell)
         return self._sync()
 
-    def on_obstacles(self, robot: str, points: list[tuple[float, float]]) -> list[Out]:
-        """Lidar points of ``robot`` not explained by the static map (``/RobotN/obstacles``)."""
+    def on_obstacles(self, robot: str, points: list[tuple[float, float]], stamp: float = 0.0) -> list[Out]:
+        """Lidar points of ``robot`` not explained by the static map (``/RobotN/obstacles``;
+        ``stamp``: its header stamp, s, the fleet clock; 0: unknown)."""
         rec = self.robots.get(robot)
         if rec is None or not self.lidar_blocking:
             return []
         rec.obstacles_seen += 1
         poses = {r: (v.pose[0], v.pose[1]) for r, v in self.robots.items() if v.pose is not None}
+        ages = {r: stamp - v.pose_stamp for r, v in self.robots.items()
+                if v.pose is not None and stamp > 0 and v.pose_stamp > 0}
         cells = self.obstacles.update(poses.get(robot), points, self.clock(), poses,
-                                      set(self.fp.positions.values()), self.fp.blocked)
+                                      set(self.fp.positions.values()), self.fp.blocked, ages)
         out: list[Out] = []
         for c in cells:
             out += self.on_block(c, True, f"lidar:{robot}")

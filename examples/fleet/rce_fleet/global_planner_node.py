@@ -99,7 +99,9 @@ async def main(node) -> None:
                                        st.sec + st.nanosec * 1e-9))
 
             def on_obstacles(msg, robot=robot) -> None:
-                pubs.send(core.on_obstacles(robot, [(p.position.x, p.position.y) for p in msg.poses]))
+                st = msg.header.stamp
+                pubs.send(core.on_obstacles(robot, [(p.position.x, p.position.y) for p in msg.poses],
+                                            st.sec + st.nanosec * 1e-9))
 
             def on_progress(msg, robot=robot) -> None:
                 core.on_progress(robot, {"state": msg.state, "distance_left": msg.distance_left, "goal": msg.goal})

@@ -10,6 +10,7 @@ import math
 from collections.abc import Iterable, Mapping
 
 from .geometry import GridGeometry
+from .sim.local_nav import NavParams
 
 __all__ = ["CellTracker", "ObstacleFilter"]
 
@@ -49,7 +50,9 @@ class ObstacleFilter:
 
     * farther than ``max_range`` m from the reporting robot (a small heading error moves
       far points a lot),
-    * within ``robot_clearance`` m of any robot's last pose (robots see each other),
+    * within ``robot_clearance`` m of any robot's last pose (robots see each other), plus
+      ``robot_speed`` m/s times the age of that pose at the scan (a robot seen in the scan
+      has moved on from a pose that arrived late, by at most its top speed times the lag),
     * in a cell that is not free on the static map, in a blocked cell, or within
       ``edge_margin`` m of a blocked cell (the edges of the box that blocks it),
     * in a cell a robot is in.
@@ -60,10 +63,12 @@ class ObstacleFilter:
     """
 
     def __init__(self, geometry: GridGeometry, *, min_points: int = 3, confirm: int = 2, window_s: float = 5.0,
-                 max_range: float = 2.0, robot_clearance: float = 0.3, edge_margin: float = 0.15):
+                 max_range: float = 2.0, robot_clearance: float = 0.3, edge_margin: float = 0.15,
+                 robot_speed: float = NavParams.max_linear):
         self.geo = geometry
         self.min_points, self.confirm, self.window_s = int(min_points), int(confirm), float(window_s)
         self.max_range, self.robot_clearance = float(max_range), float(robot_clearance)
+        self.robot_speed = float(robot_speed)
         self.edge_margin = float(edge_margin)
         self.sightings: dict[int, list[float]] = {}
 
@@ -75,19 +80,22 @@ class ObstacleFilter:
 
     def update(self, observer: tuple[float, float] | None, points: Iterable[tuple[float, float]], now: float,
                robot_poses: Mapping[str, tuple[float, float]], robot_cells: Iterable[int],
-               blocked: Iterable[int]) -> list[int]:
-        """Feed one report; returns the cells to block now (ascending)."""
+               blocked: Iterable[int], pose_ages: Mapping[str, float] | None = None) -> list[int]:
+        """Feed one report; returns the cells to block now (ascending). ``robot_poses``: robot ->
+        its last (x, y), m; ``pose_ages``: robot -> how much older (or newer) that pose is than
+        the scan, s (absent: 0)."""
         blocked = set(blocked)
         occupied = set(robot_cells)
-        poses = list(robot_poses.values())
-        rc2 = self.robot_clearance ** 2
+        ages = pose_ages or {}
+        poses = [(px, py, (self.robot_clearance + self.robot_speed * abs(ages.get(r, 0.0))) ** 2)
+                 for r, (px, py) in robot_poses.items()]
         counts: dict[int, int] = {}
         for x, y in points:
             if not (math.isfinite(x) and math.isfinite(y)):
                 continue
             if observer is not None and math.hypot(x - observer[0], y - observer[1]) > self.max_range:
                 continue
-            if any((x - px) ** 2 + (y - py) ** 2 < rc2 for px, py in poses):
+            if any((x - px) ** 2 + (y - py) ** 2 < rc2 for px, py, rc2 in poses):
                 continue
             c = self.geo.cell_of(x, y)
             if c is None or not self.geo.is_free(c) or c in blocked or c in occupied:
