@@ -9,8 +9,11 @@ crossed it. What this adds:
   (:mod:`.prioritized`);
 * **re-planning**: after a block only the robots whose remaining paths cross the cell are
   re-planned (with the robots standing on their goals, which may yield to them), around the
-  others' kept remaining paths; if that fails (or the kept paths no
-  longer fit together) everybody is re-planned. A robot already cleared into its next cell
+  others' kept remaining paths. Robots run ahead of or behind the plan's timing (the order
+  of execution holds, the steps drift), so kept paths, each taken from where its robot
+  stands, may no longer fit together in plan time: a few of those robots (a greedy cover
+  of the conflicts, :func:`_conflict_cover`) are re-planned too, not the whole fleet; if
+  the plan still does not fit, everybody is re-planned. A robot already cleared into its next cell
   keeps that move (it may be driving), so re-plans never pull a cell from under a moving
   robot;
 * **execution in plan order under delays** (:mod:`.adg`);
@@ -76,6 +79,27 @@ class PlanResult:
     def ok(self) -> bool:
         """True when every robot with a goal got a path to it."""
         return not self.unreachable
+
+
+def _conflict_cover(paths: dict[str, list[int]]) -> set[str]:
+    """Robots whose removal leaves ``paths`` free of conflicts (:func:`.paths.check_conflicts`,
+    starts ignored): greedily the robot in the most conflicts first (ties by name), checked
+    again until none is left. Empty when ``paths`` fit together."""
+    out: set[str] = set()
+    rest = dict(paths)
+    while True:
+        conflicts = check_conflicts(rest, ignore_start=True)
+        if not conflicts:
+            return out
+        while conflicts:
+            count: dict[str, int] = {}
+            for c in conflicts:
+                for r in c.robots:
+                    count[r] = count.get(r, 0) + 1
+            r = min(count, key=lambda robot: (-count[robot], robot))
+            out.add(r)
+            del rest[r]
+            conflicts = [c for c in conflicts if r not in c.robots]
 
 
 class FleetPlanner:
@@ -305,7 +329,11 @@ class FleetPlanner:
             fixed = {r: self._rebased(r) for r in self.positions
                      if r not in subset and r in self.paths and r in self._adg.visits and r not in self._dirty}
             subset |= set(self.positions) - set(fixed)
-            if not check_conflicts(fixed, ignore_start=True):
+            drifted = _conflict_cover(fixed)
+            subset |= drifted
+            for r in drifted:
+                del fixed[r]
+            if len(subset) < len(self.positions):
                 paths, unreachable = self._plan_round(sorted(subset), fixed, commit, t_start)
                 allp = {**fixed, **paths}
                 if not check_conflicts(allp, ignore_start=True):
