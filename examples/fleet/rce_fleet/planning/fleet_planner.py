@@ -12,10 +12,11 @@ crossed it. What this adds:
   others' kept remaining paths. Robots run ahead of or behind the plan's timing (the order
   of execution holds, the steps drift), so kept paths, each taken from where its robot
   stands, may no longer fit together in plan time: a few of those robots (a greedy cover
-  of the conflicts, :func:`_conflict_cover`) are re-planned too, not the whole fleet; if
-  the plan still does not fit, everybody is re-planned. A robot already cleared into its next cell
-  keeps that move (it may be driving), so re-plans never pull a cell from under a moving
-  robot;
+  of the conflicts, :func:`_conflict_cover`) are re-planned too, not the whole fleet, and
+  so are kept robots whose paths cross a re-planned robot that has to hold its cell (up to
+  :data:`MAX_WIDENINGS` times); if the plan still does not fit, everybody is re-planned.
+  A robot already cleared into its next cell keeps that move (it may be driving), so
+  re-plans never pull a cell from under a moving robot;
 * **execution in plan order under delays** (:mod:`.adg`);
 * **clear failure reasons**: a goal that is not a free cell, blocked, walled off, taken by
   another robot, occupied by a parked robot, or not plannable.
@@ -38,6 +39,10 @@ from .paths import check_conflicts, compress
 from .prioritized import Fleet, SearchLimits, plan_prioritized
 
 __all__ = ["PlannerError", "UnreachableGoal", "PlanResult", "FleetPlanner"]
+
+#: Times a partial re-plan may take in the kept robots whose paths its result still crosses
+#: (a robot of the re-planned set that cannot move holds its cell) before everybody is re-planned.
+MAX_WIDENINGS = 2
 
 
 class PlannerError(ValueError):
@@ -333,11 +338,21 @@ class FleetPlanner:
             subset |= drifted
             for r in drifted:
                 del fixed[r]
-            if len(subset) < len(self.positions):
+            for _ in range(MAX_WIDENINGS + 1):
+                if len(subset) >= len(self.positions):
+                    break
                 paths, unreachable = self._plan_round(sorted(subset), fixed, commit, t_start)
                 allp = {**fixed, **paths}
-                if not check_conflicts(allp, ignore_start=True):
+                hit = {r for c in check_conflicts(allp, ignore_start=True) for r in c.robots}
+                if not hit:
                     result = (allp, unreachable, False)
+                    break
+                # a robot of the subset that cannot move (no goal, or no path) holds its cell,
+                # which kept paths may cross: those robots are re-planned with the subset
+                if not hit & set(fixed):
+                    break
+                subset |= hit
+                fixed = {r: p for r, p in fixed.items() if r not in hit}
         if result is None:
             paths, unreachable = self._plan_round(sorted(self.positions), {}, commit, t_start)
             result = (paths, unreachable, True)
