@@ -273,6 +273,35 @@ def test_lacam_solves_what_needs_a_detour_and_lns_never_makes_it_worse():
         solve_lacam(g, np.array([0, 0]), np.array([1, 2]))
 
 
+def test_scatter_sends_one_of_two_head_on_agents_round_the_other_way_and_guides_lacam():
+    from rce_fleet.lifelong.lacam import solve_lacam
+    from rce_fleet.lifelong.scatter import scatter
+    g = grid([".......", ".@@@@@.", "......."])   # two corridors joined at both ends
+    cache = DistanceCache(g)
+    starts, goals = np.array([0, 6]), np.array([6, 0])   # head-on along the top corridor
+    rows = np.array([cache.slot(int(x)) for x in goals])
+    # within a margin of 3 neither may go round (10 steps against 6): both stay on top and meet
+    prefer, stats = scatter(g.nbr, cache.table, rows, starts, goals, time_limit_s=10.0, margin=3)
+    assert stats["collisions"][-1] > 0 and stats["rounds"] == 2
+    assert prefer.shape == (2, g.n_cells)
+    assert prefer[0, 0] == 1 and prefer[1, 6] == 5
+    prefer, stats = scatter(g.nbr, cache.table, rows, starts, goals, time_limit_s=10.0, margin=10)
+    assert stats["collisions"][-1] == 0
+    bottom = [prefer[0, 0] == 7, prefer[1, 6] == 13]
+    assert sorted(bottom) == [False, True]       # exactly one goes round by the bottom corridor
+    for a in range(2):                           # each preferred path leads from start to goal
+        c, steps = int(starts[a]), 0
+        while c != goals[a]:
+            nxt = int(prefer[a, c])
+            assert nxt in g.nbr[c]
+            c, steps = nxt, steps + 1
+        assert steps == (10 if bottom[a] else 6)
+    warm_up()
+    res = solve_lacam(g, starts, goals, time_limit_s=10, scatter_share=0.5)
+    assert res["solved"] and res["sum_of_costs"] == 16 and res["scatter"]["rounds"] >= 1
+    assert_solution(g, res["paths"], starts.tolist(), goals.tolist())
+
+
 def test_space_time_astar_waits_for_the_goal_and_never_enters_a_parked_one():
     from rce_fleet.lifelong.spacetime import SpaceTimeTable
     g = grid([".....", "@@.@@"])                 # a corridor with one bay below its middle
@@ -316,6 +345,9 @@ def test_lns_removes_detours_and_keeps_a_crowded_solution_valid():
     starts, goals = pick[:30], pick[30:]
     res = solve_lacam(g, starts, goals, time_limit_s=30)
     assert res["solved"]
+    guided = solve_lacam(g, starts, goals, time_limit_s=30, scatter_share=0.5)
+    assert guided["solved"] and guided["scatter"]["rounds"] >= 2
+    assert_solution(g, guided["paths"], starts.tolist(), goals.tolist())
     ref = refine_lns(g, res["paths"], goals, 0.5, seed=1)
     assert_solution(g, ref["paths"], starts.tolist(), goals.tolist())
     arrival = [int(np.flatnonzero(ref["paths"][:, a] != goals[a]).max(initial=-1)) + 1 for a in range(30)]

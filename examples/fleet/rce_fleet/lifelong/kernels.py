@@ -15,8 +15,8 @@ from __future__ import annotations
 import numpy as np
 from numba import njit
 
-__all__ = ["ACT_C", "ACT_F", "ACT_R", "ACT_W", "MOVE_WAIT", "UNREACHABLE", "bfs_fill", "bfs_multi", "bfs_pair",
-           "heading_cost", "mapf_t_actions", "heading_costs", "pibt_step",
+__all__ = ["ACT_C", "ACT_F", "ACT_R", "ACT_W", "MOVE_WAIT", "NO_PREFER", "UNREACHABLE", "bfs_fill", "bfs_multi",
+           "bfs_pair", "heading_cost", "mapf_t_actions", "heading_costs", "pibt_step",
            "warm_up"]
 
 UNREACHABLE = 65535
@@ -24,6 +24,8 @@ UNREACHABLE = 65535
 ACT_F, ACT_R, ACT_C, ACT_W = 0, 1, 2, 3
 # 4-neighbour actions: 0..3 move towards heading E, S, W, N; 4 waits
 MOVE_WAIT = 4
+# pibt_step's ``prefer`` when no agent has a preferred next cell
+NO_PREFER = np.full((0, 0), -1, dtype=np.int32)
 
 
 @njit(cache=True)
@@ -104,9 +106,11 @@ def bfs_pair(nbr, src, dst, seen, queue, dist):
 
 
 @njit(cache=True)
-def _candidates(a, u, h, nbr, dist, slot, occ_now, turns_model, turn_w, rnd, cand, ncand, pos, goal, park_w):
-    """Sort the next cells of agent ``a`` (stay and its free neighbours) by estimated cost."""
+def _candidates(a, u, h, nbr, dist, slot, occ_now, turns_model, turn_w, rnd, cand, ncand, prefer):
+    """Sort the next cells of agent ``a`` (stay and its free neighbours) by estimated cost, the
+    cell ``prefer[a, u]`` first when there is one."""
     s = slot[a]
+    pv = prefer[a, u] if prefer.shape[0] > 0 else -1
     cost = np.empty(5)
     k = 0
     cand[a, 0] = u
@@ -122,12 +126,11 @@ def _candidates(a, u, h, nbr, dist, slot, occ_now, turns_model, turn_w, rnd, can
             if t == 3:
                 t = 1
             c += turn_w * t
-        o = occ_now[v]
-        if o >= 0:
+        if occ_now[v] >= 0:
             c += 0.25
-            if goal[o] == pos[o]:
-                c += park_w
         c += rnd[a, d] * 0.01
+        if v == pv:
+            c = -1.0
         j = k
         while j > 0 and cost[j - 1] > c:
             cost[j] = cost[j - 1]
@@ -225,7 +228,7 @@ def _swap_agent(a, nbr, pos, dist, slot, occ_now, nxt, goal, cand):
 
 @njit(cache=True)
 def pibt_step(nbr, pos, head, dist, slot, goal, order, turns_model, turn_w, rnd, nxt, use_swap, claim, fixed,
-              park_w):
+              prefer):
     """One step of PIBT, priority inheritance with backtracking (Okumura, Machida, Defago
     & Tamura, "Priority inheritance with backtracking for iterative multi-agent path
     finding", AIJ 2022), iterative with an explicit stack, with the swap technique of
@@ -239,8 +242,9 @@ def pibt_step(nbr, pos, head, dist, slot, goal, order, turns_model, turn_w, rnd,
     neighbour's cost. claim (n,): a neighbour cell an agent turns towards since an earlier
     step (-1 none); while it does not face it, the agent stays and holds both cells (the
     commitment of the start-kit's 2024 default planner). fixed (n,): next cells imposed on
-    agents (-1 free; LaCAM's constraints). park_w: extra cost of a cell whose agent stands
-    on its goal (one-shot: pushing parked agents costs them the way back). Writes each agent's next cell into
+    agents (-1 free; LaCAM's constraints). prefer: (n, cells) int32, the cell each agent
+    tries first from its cell (-1 none; lacam3's scatter, :mod:`.scatter`), or (0, 0) for
+    none. Writes each agent's next cell into
     ``nxt`` (n,): distinct cells, no two agents swap. Returns the number of agents that
     could not move where they wanted first.
     """
@@ -294,8 +298,8 @@ def pibt_step(nbr, pos, head, dist, slot, goal, order, turns_model, turn_w, rnd,
             a = stack[sp - 1]
             if fresh:
                 fresh = False
-                _candidates(a, pos[a], head[a], nbr, dist, slot, occ_now, turns_model, turn_w, rnd, cand, ncand, pos,
-                            goal, park_w)
+                _candidates(a, pos[a], head[a], nbr, dist, slot, occ_now, turns_model, turn_w, rnd, cand, ncand,
+                            prefer)
                 ci[a] = 0
                 swp[a] = -1
                 if use_swap:
@@ -462,6 +466,8 @@ def warm_up() -> None:
     goal = np.array([8, -1], dtype=np.int64)
     claim = np.full(2, -1, dtype=np.int64)
     pibt_step(g.nbr, pos, head, dist, slot, goal, np.arange(2, dtype=np.int64), True, 1.0, np.zeros((2, 5)), nxt,
-              True, claim, np.full(2, -1, dtype=np.int64), 0.0)
+              True, claim, np.full(2, -1, dtype=np.int64), NO_PREFER)
     mapf_t_actions(g.nbr, pos, head, nxt, dist, slot, np.empty(2, dtype=np.int64), claim)
     heading_costs(g.nbr, dist, slot, pos, head, np.empty(2))
+    from .scatter import warm_up as warm_scatter
+    warm_scatter()

@@ -6,7 +6,8 @@ successor appears, so corridor livelocks that stop plain PIBT are left.
 
 4-neighbour moves; distances are the per-goal breadth-first maps of
 :class:`~.distances.DistanceCache`; the successor generator is the compiled
-:func:`~.kernels.pibt_step` (with LaCAM*'s swap technique).
+:func:`~.kernels.pibt_step` (with LaCAM*'s swap technique), optionally guided by lacam3's
+space utilisation (:mod:`.scatter`).
 """
 from __future__ import annotations
 
@@ -17,7 +18,8 @@ import numpy as np
 
 from .distances import DistanceCache, one_shot_distances
 from .grid import LifelongGrid
-from .kernels import pibt_step
+from .kernels import NO_PREFER, pibt_step
+from .scatter import scatter
 
 __all__ = ["solve_lacam"]
 
@@ -45,21 +47,28 @@ class _Node:
 
 
 def solve_lacam(grid: LifelongGrid, starts: np.ndarray, goals: np.ndarray, time_limit_s: float = 5.0, seed: int = 0,
-                cache: DistanceCache | None = None, park_w: float = 0.0, clock=time.perf_counter) -> dict:
+                cache: DistanceCache | None = None, scatter_share: float = 0.0, clock=time.perf_counter) -> dict:
     """Solve one-shot MAPF (every agent from its start to its goal, 4-neighbour moves).
 
-    starts, goals: (n,) cells. Returns a dict as :func:`~.pibt.solve_one_shot`: ``paths``
-    ((T+1, n) cells, the last row the goals when ``solved``), ``solved``, ``sum_of_costs``
-    (each agent's last arrival, summed), ``makespan``, ``time_s``, plus ``nodes`` (high-level
-    nodes generated). Stops unsolved at ``time_limit_s`` seconds of ``clock`` (wall time;
-    ``time.process_time`` counts this process's CPU, for benchmarks on a shared machine). Raises ValueError for
-    a goal that cannot be reached from its start or two agents on one start or goal.
+    starts, goals: (n,) cells. ``scatter_share``: the share of ``time_limit_s`` for lacam3's
+    space utilisation (:func:`~.scatter.scatter`: near-shortest paths that avoid each other,
+    whose next cells PIBT tries first; 0 turns it off). Returns a dict as
+    :func:`~.pibt.solve_one_shot`: ``paths`` ((T+1, n) cells, the last row the goals when
+    ``solved``), ``solved``, ``sum_of_costs`` (each agent's last arrival, summed),
+    ``makespan``, ``time_s``, plus ``nodes`` (high-level nodes generated) and ``scatter``
+    (:func:`~.scatter.scatter`'s stats, empty when off). Stops unsolved at ``time_limit_s``
+    seconds of ``clock`` (wall time; ``time.process_time`` counts this process's CPU, for
+    benchmarks on a shared machine). Raises ValueError for a goal that cannot be reached from
+    its start or two agents on one start or goal.
     """
     t0 = clock()
     starts, goals, cache, slot, d0 = one_shot_distances(grid, starts, goals, cache)
     n = starts.shape[0]
     rng = np.random.default_rng(seed)
     nbr, table = grid.nbr, cache.table
+    prefer, sc = NO_PREFER, {}
+    if scatter_share > 0 and n:
+        prefer, sc = scatter(nbr, table, slot, starts, goals, scatter_share * time_limit_s, seed=seed, clock=clock)
     head = np.full(n, -1, dtype=np.int64)
     no_claim = np.full(n, -1, dtype=np.int64)
     owner = np.full(grid.n_cells, -1, dtype=np.int64)
@@ -92,7 +101,7 @@ def solve_lacam(grid: LifelongGrid, starts: np.ndarray, goals: np.ndarray, time_
             fixed[c.who] = c.where
             c = c.parent
         pibt_step(nbr, node.config, head, table, slot, goals, node.order, False, 0.0, rng.random((n, 5)), nxt, True,
-                  no_claim, fixed, park_w)
+                  no_claim, fixed, prefer)
         # constraints PIBT could not honour show up as vertex or swap conflicts
         owner[nxt] = ids                       # two agents on one cell: one of them is overwritten
         vertex = (owner[nxt] != ids).any()
@@ -124,4 +133,4 @@ def solve_lacam(grid: LifelongGrid, starts: np.ndarray, goals: np.ndarray, time_
     arrival = last_off + 1
     return {"paths": paths, "solved": found is not None, "sum_of_costs": int(arrival.sum()),
             "makespan": int(arrival.max()) if n else 0, "time_s": clock() - t0,
-            "nodes": len(explored)}
+            "nodes": len(explored), "scatter": sc}

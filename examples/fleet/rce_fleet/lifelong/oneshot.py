@@ -28,12 +28,13 @@ INITIAL_SOLVERS = ("pp", "lacam")
 
 def plan_one_shot(grid: LifelongGrid, starts: np.ndarray, goals: np.ndarray, time_limit_s: float = 5.0,
                   seed: int = 0, cache: DistanceCache | None = None, initial: str = "lacam", pp_share: float = 0.15,
-                  clock=time.perf_counter) -> dict:
+                  scatter_share: float = 0.2, clock=time.perf_counter) -> dict:
     """Solve one-shot MAPF (4-neighbour moves) within ``time_limit_s`` seconds of ``clock``
     (wall time; ``time.process_time`` for this process's CPU).
 
     starts, goals: (n,) cells. ``initial``: "lacam", or "pp" (prioritized planning within
-    ``pp_share`` of the budget, LaCAM in the rest when PP fails). Returns the dict of
+    ``pp_share`` of the budget, LaCAM in the rest when PP fails); LaCAM spends up to
+    ``scatter_share`` of its time on :func:`~.scatter.scatter` paths for PIBT to prefer. Returns the dict of
     :func:`~.lacam.solve_lacam` (``paths`` (T+1, n), ``solved``, ``sum_of_costs``,
     ``makespan``, ``time_s``) plus ``initial`` (the solver of the first solution, "pp" or
     "lacam"), ``first_time_s`` and ``first_sum_of_costs`` (of the first solution),
@@ -54,7 +55,8 @@ def plan_one_shot(grid: LifelongGrid, starts: np.ndarray, goals: np.ndarray, tim
         planned = res["planned"]
         used = "pp"
     if res is None or not res["solved"]:
-        res = solve_lacam(grid, starts, goals, time_limit_s - (clock() - t0), seed=seed, cache=cache, clock=clock)
+        res = solve_lacam(grid, starts, goals, time_limit_s - (clock() - t0), seed=seed, cache=cache,
+                          scatter_share=scatter_share, clock=clock)
         used = "lacam"
     first_t, first_soc = clock() - t0, res["sum_of_costs"]
     iterations = 0

@@ -27,7 +27,7 @@ import numpy as np
 
 from .distances import DistanceCache
 from .grid import LifelongGrid
-from .kernels import MOVE_WAIT, heading_costs, mapf_t_actions, pibt_step
+from .kernels import MOVE_WAIT, NO_PREFER, heading_costs, mapf_t_actions, pibt_step
 from .simulator import MAPF_T
 
 __all__ = ["PIBTPlanner", "solve_one_shot"]
@@ -185,7 +185,7 @@ class PIBTPlanner:
         turns = self.model == MAPF_T
         pibt_step(self.grid.nbr, pos, head if turns else np.full(n, -1, dtype=np.int64), cache.table, slot, goals,
                   order, turns, self.turn_w, rnd, nxt, self.swap, self.claim, np.full(n, -1, dtype=np.int64),
-                  0.0)
+                  NO_PREFER)
         if turns:
             old = self.claim.copy()
             self.stats["cancelled"] += mapf_t_actions(self.grid.nbr, pos, head, nxt, cache.table, slot, act,
@@ -234,7 +234,7 @@ def solve_one_shot(grid: LifelongGrid, starts: np.ndarray, goals: np.ndarray, ti
         prio = elapsed + tie
         order = np.argsort(-prio, kind="stable").astype(np.int64)
         pibt_step(grid.nbr, pos, head, cache.table, slot, goals, order, False, 0.0, rng.random((n, 5)), nxt, True,
-                  claim, free, 0.0)
+                  claim, free, NO_PREFER)
         pos = nxt.copy()
         traj.append(pos)
         solved = bool((pos == goals).all())
