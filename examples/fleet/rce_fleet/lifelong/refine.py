@@ -6,11 +6,15 @@ their goals), and keep the new paths when their sum of costs is not higher.
 
 Neighbourhoods, in this order:
 
-- sweeps of single agents, most delayed first: each is re-planned alone around all the
-  others. Its old path is one of the paths the search may return, so the new arrival is never
-  later; after a first solution by PIBT, much of the cost is agents that were pushed off their
-  goals by others and came back, which a single re-plan removes once the pusher is gone. A
-  sweep is repeated (up to ``max_sweeps``) while the one before cut the delays by 1 %;
+- sweeps of single agents, every agent once, most delayed first: each is re-planned alone
+  around all the others. Its old path is one of the paths the search may return, so the new
+  arrival is never later; after a first solution by PIBT, much of the cost is agents that
+  were pushed off their goals by others and came back, which a single re-plan removes once
+  the pusher is gone. Agents without delay are re-planned too: their new path (as short, but
+  diving to the goal and waiting near it) often clears the way for others (measured at 1000
+  agents on the MovingAI warehouse: 2.5 CPU-s of LNS from one solution end at 1.852 - 1.853x
+  the lower bound against 1.868 - 1.887x with only the delayed agents). A sweep is repeated
+  (up to ``max_sweeps``) while the one before cut the delays by 1 %;
 - then, until the time is up: an agent with a delay (drawn in proportion to it) together with
   the agents that stand on its goal after it could have arrived (the usual cause of a late
   arrival), or a random handful (the random and agent-based neighbourhoods of the paper).
@@ -78,9 +82,9 @@ def refine_lns(grid: LifelongGrid, paths: np.ndarray, goals: np.ndarray, time_li
         if not queue and sweeps and delay.sum() < 0.99 * sweep_from:   # the last sweep helped
             sweeps -= 1
             sweep_from = delay.sum()
-            queue = [int(a) for a in np.argsort(-delay, kind="stable") if delay[a] > 0]
+            queue = np.argsort(-delay, kind="stable")[::-1].tolist()      # popped from the end
         if queue:
-            group = np.array([queue.pop(0)], dtype=np.int64)
+            group = np.array([queue.pop()], dtype=np.int64)
         elif rng.random() < 0.8:
             w = delay.astype(float)
             i = int(rng.choice(n, p=w / w.sum()))
