@@ -3,11 +3,11 @@
 The first solution comes from LaCAM (:func:`~.lacam.solve_lacam`, complete) or, with
 ``initial="pp"``, from prioritized planning (:func:`~.pp.solve_pp`) within a share of the
 budget and from LaCAM in the time left when PP finds none; :func:`~.refine.refine_lns` then
-improves it until the budget is spent. LaCAM is the default: on the MovingAI
-warehouse-10-20-10-2-1 with 5 s of CPU, PP's better first solution at 400 agents (1.34 -
-1.38x the lower bound against 1.81 - 1.85x) ends within noise of LaCAM's after LNS
-(1.07 - 1.10x against 1.06 - 1.11x), and at 1000 agents PP fails and its share of the
-budget is lost to LNS (2.83 - 3.09x against 2.81 - 3.05x).
+improves it until the budget is spent. LaCAM, guided by lacam3's space utilisation
+(:mod:`.scatter`), is the default: on the MovingAI warehouse-10-20-10-2-1 with 5 s of CPU
+its first solution at 400 agents is closer to the lower bound than PP's (1.18 - 1.24x against
+1.34 - 1.38x) and ends lower after LNS (1.05 - 1.07x against 1.06 - 1.10x); at 1000 agents PP
+fails and LaCAM takes over (1.77 - 1.85x after LNS). Measurements: ``docs/lifelong.md``.
 """
 from __future__ import annotations
 
