@@ -451,8 +451,9 @@ class EchoRobot(RobotLink):
                 self.log.not_sent.add(seq)
                 continue
             try:
-                await asyncio.wait_for(self.pub.publish({"data": str(seq)}), SEND_TIMEOUT)
-            except (RCEError, asyncio.TimeoutError):
+                async with asyncio.timeout(SEND_TIMEOUT):
+                    await self.pub.publish({"data": str(seq)})
+            except (RCEError, TimeoutError):
                 self.log.not_sent.add(seq)
 
     async def _supervise(self) -> None:
@@ -477,8 +478,9 @@ class EchoRobot(RobotLink):
             if not self.reconnected.is_set():
                 return
             self.reconnected.clear()
-            with contextlib.suppress(asyncio.TimeoutError):
-                await asyncio.wait_for(self.resumed.wait(), RESUME_WAIT)
+            with contextlib.suppress(TimeoutError):
+                async with asyncio.timeout(RESUME_WAIT):
+                    await self.resumed.wait()
             if not self.resumed.is_set():
                 await self.rebuild()
             self.resumed.clear()
@@ -540,8 +542,9 @@ class Prober(RobotLink):
         while not any(k >= first for k in self.up) and time.monotonic() < deadline and not c.closed \
                 and not self.refused:
             self.changed.clear()
-            with contextlib.suppress(asyncio.TimeoutError):
-                await asyncio.wait_for(self.changed.wait(), max(0.01, deadline - time.monotonic()))
+            with contextlib.suppress(TimeoutError):
+                async with asyncio.timeout(max(0.01, deadline - time.monotonic())):
+                    await self.changed.wait()
         return any(k >= first for k in self.up)
 
     async def start(self, timeout: float) -> float:

@@ -264,8 +264,9 @@ class Connection(Verbs, Handles, Reconnecting):
             await self.bulk.close()
         await close_quietly(self.ws)
         try:
-            await asyncio.wait_for(asyncio.shield(self._reader), CLOSE_TIMEOUT)
-        except (asyncio.TimeoutError, asyncio.CancelledError):
+            async with asyncio.timeout(CLOSE_TIMEOUT):
+                await asyncio.shield(self._reader)
+        except (TimeoutError, asyncio.CancelledError):
             self._reader.cancel()
         await self._finish()
 
@@ -323,9 +324,10 @@ class Connection(Verbs, Handles, Reconnecting):
             self._changed.clear()
             try:
                 if left <= 0:
-                    raise asyncio.TimeoutError
-                await asyncio.wait_for(self._changed.wait(), left)
-            except asyncio.TimeoutError:
+                    raise TimeoutError
+                async with asyncio.timeout(left):
+                    await self._changed.wait()
+            except TimeoutError:
                 hint = f"; last error from the cloud: {self.errors[-1]}" if self.errors else ""
                 raise Unavailable(f"interfaces still down after {timeout:g} s: {', '.join(down)}{hint}") from None
 

@@ -133,7 +133,13 @@ async def dial(url: str, timeout: float, ssl_context: ssl.SSLContext | None = No
                 if not url.startswith("wss:"):
                     log.warning("the session goes through a relay unencrypted: with ws:// the relay can read it "
                                 "(use wss://, docs/relays.md)", relay=path.relay)
-        sock = path.sock if path else await asyncio.wait_for(mptcp_connect(url), timeout) if mptcp else None
+        if path is not None:
+            sock = path.sock
+        elif mptcp:
+            async with asyncio.timeout(timeout):
+                sock = await mptcp_connect(url)
+        else:
+            sock = None
         ws = await ws_connect(url, open_timeout=timeout, max_size=MAX_FRAME, proxy=None, compression=None,
                               user_agent_header="rce-client", ssl=tls.for_url(url, ssl_context),
                               **({"sock": sock} if sock is not None else {}))
@@ -146,7 +152,7 @@ async def dial(url: str, timeout: float, ssl_context: ssl.SSLContext | None = No
         raise HandshakeRefused(status, reason) from None
     except (ConnectionRefusedError, ConnectionResetError) as e:
         raise Unreachable(str(e) or type(e).__name__) from None
-    except (InvalidHandshake, InvalidURI, OSError, asyncio.TimeoutError) as e:
+    except (InvalidHandshake, InvalidURI, OSError, TimeoutError) as e:
         raise Unavailable(tls.tls_failure(e, url.split("?", 1)[0]) or str(e) or type(e).__name__) from None
 
 

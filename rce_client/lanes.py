@@ -115,9 +115,9 @@ class BulkLane:
         """Wait until a bulk link is up and ``joins`` have been joined in all. Raises :class:`Unavailable`
         after ``timeout`` s (with the cloud's refusal, if it refused)."""
         try:
-            async with self._joined:
-                await asyncio.wait_for(self._joined.wait_for(lambda: self.up and self.joins >= joins), timeout)
-        except asyncio.TimeoutError:
+            async with self._joined, asyncio.timeout(timeout):
+                await self._joined.wait_for(lambda: self.up and self.joins >= joins)
+        except TimeoutError:
             raise Unavailable(f"no bulk link after {timeout:g} s" + (f": {self.refused}" if self.refused else "")) \
                 from None
 

@@ -172,9 +172,10 @@ class RobotRelay:
         carried = False
         try:
             try:
-                head = await asyncio.wait_for(reader.readuntil(b"\r\n\r\n"), HEAD_TIMEOUT)
+                async with asyncio.timeout(HEAD_TIMEOUT):
+                    head = await reader.readuntil(b"\r\n\r\n")
                 target = parse_request(head)
-            except (HeadError, asyncio.LimitOverrunError, asyncio.IncompleteReadError, asyncio.TimeoutError) as e:
+            except (HeadError, asyncio.LimitOverrunError, asyncio.IncompleteReadError, TimeoutError) as e:
                 self.stats.refused_bad += 1
                 await _refuse(writer, 400, f"relay {self.name}: {e if isinstance(e, HeadError) else 'no CONNECT head'}")
                 return
@@ -253,6 +254,7 @@ async def _refuse(writer: asyncio.StreamWriter, status: int, reason: str) -> Non
     """Answer a CONNECT with ``status`` and ``reason`` (and close, by the caller)."""
     try:
         writer.write(answer(status, reason))
-        await asyncio.wait_for(writer.drain(), HEAD_TIMEOUT)
-    except (ConnectionError, OSError, asyncio.TimeoutError):
+        async with asyncio.timeout(HEAD_TIMEOUT):
+            await writer.drain()
+    except (ConnectionError, OSError, TimeoutError):
         pass

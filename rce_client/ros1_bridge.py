@@ -164,8 +164,9 @@ class RospyGraph:
 
     async def _in_thread(self, fn: Callable, *args: Any, timeout: float, **kw: Any) -> Any:
         try:
-            return await asyncio.wait_for(asyncio.to_thread(fn, *args, **kw), timeout)
-        except asyncio.TimeoutError:
+            async with asyncio.timeout(timeout):
+                return await asyncio.to_thread(fn, *args, **kw)
+        except TimeoutError:
             raise Unavailable(f"--ros: the ROS 1 master did not answer within {timeout} s") from None
 
     async def close(self) -> None:
@@ -245,9 +246,9 @@ class RospyGraph:
         counts.add(to_ros=1)
         proxy = self.rospy.ServiceProxy(kind.addr, cls)
         try:
-            resp = await asyncio.wait_for(asyncio.to_thread(proxy.call, cls._request_class.wrap(payload)),
-                                          SERVICE_CALL_TIMEOUT)
-        except asyncio.TimeoutError:
+            async with asyncio.timeout(SERVICE_CALL_TIMEOUT):
+                resp = await asyncio.to_thread(proxy.call, cls._request_class.wrap(payload))
+        except TimeoutError:
             counts.add(bad=1)
             raise Unavailable(f"ROS 1 service {kind.addr}: no answer within {SERVICE_CALL_TIMEOUT} s") from None
         except (self.rospy.ServiceException, self.rospy.ROSException) as e:

@@ -120,8 +120,9 @@ class Routes:
         while ws.transport is not None and not ws.transport.is_closing():
             try:
                 pong = await ws.ping()
-                await asyncio.wait_for(pong, RELAY_PING_TIMEOUT)
-            except asyncio.TimeoutError:
+                async with asyncio.timeout(RELAY_PING_TIMEOUT):
+                    await pong
+            except TimeoutError:
                 log.info("relay link lost (pong late)", via=path.relay, timeout=RELAY_PING_TIMEOUT)
                 self._suspect = path.relay_addr
                 ws.transport.abort()

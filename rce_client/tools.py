@@ -404,8 +404,9 @@ async def _record(args, backend) -> int:
         tasks.spawn(feed(t), name=t)
     _err(f"recording to {args.output} (Ctrl-C to stop)")
     try:
-        await asyncio.wait_for(stop.wait(), args.duration)
-    except asyncio.TimeoutError:
+        async with asyncio.timeout(args.duration):
+            await stop.wait()
+    except TimeoutError:
         pass
     finally:
         stop.set()

@@ -500,8 +500,9 @@ class Environment:
             return True
         sub = self.bus.subscribe(topic, wire_name(typename), deliver, "admin:bus_sample", count)
         try:
-            await asyncio.wait_for(full.wait(), timeout)
-        except asyncio.TimeoutError:
+            async with asyncio.timeout(timeout):
+                await full.wait()
+        except TimeoutError:
             pass
         finally:
             self.bus.unsubscribe(sub)

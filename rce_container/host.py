@@ -403,8 +403,9 @@ class ContainerHost:
         if env.proc is None:
             return
         try:
-            await asyncio.wait_for(env.proc.wait(), self.grace + EXIT_MARGIN)
-        except asyncio.TimeoutError:
+            async with asyncio.timeout(self.grace + EXIT_MARGIN):
+                await env.proc.wait()
+        except TimeoutError:
             log.warning("environment did not exit, killing it", env=env.env_id, pid=env.proc.pid)
             _kill_group(env.proc.pid)
             await env.proc.wait()

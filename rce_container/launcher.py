@@ -340,9 +340,10 @@ class Launcher:
             log.info("node respawning", container=self.ctag, ntag=node.ntag, restarts=node.restarts, **fields)
             self.on_status(node.ntag, "respawning", restarts=node.restarts, **fields)
             try:
-                await asyncio.wait_for(node.stop_event.wait(), node.delay)
+                async with asyncio.timeout(node.delay):
+                    await node.stop_event.wait()
                 return                       # removed while waiting to respawn
-            except asyncio.TimeoutError:
+            except TimeoutError:
                 pass
             try:
                 await self._start(node)

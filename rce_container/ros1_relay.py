@@ -221,7 +221,8 @@ class Relay:
         async def handler(payload: bytes) -> bytes:
             self.counts["calls"] += 1
             try:
-                return await asyncio.wait_for(asyncio.to_thread(call, payload), SERVICE_TIMEOUT)
+                async with asyncio.timeout(SERVICE_TIMEOUT):
+                    return await asyncio.to_thread(call, payload)
             except Exception as e:
                 self.counts["call_errors"] += 1
                 raise RCEError(f"ROS 1 service {name} failed: {e}") from None
@@ -324,8 +325,9 @@ class Relay:
             except (OSError, RCEError) as e:      # rosmaster or the bus busy or going: next round
                 log.warning("sync failed", reason=str(e))
             try:
-                await asyncio.wait_for(self.stopping.wait(), POLL_INTERVAL)
-            except asyncio.TimeoutError:
+                async with asyncio.timeout(POLL_INTERVAL):
+                    await self.stopping.wait()
+            except TimeoutError:
                 pass
 
 

@@ -201,8 +201,9 @@ class ProcessGroupSandbox(Sandbox):
             if proc.returncode is None:
                 _signal_group(proc.pid, signal.SIGTERM)
                 try:
-                    await asyncio.wait_for(proc.wait(), self.grace)
-                except asyncio.TimeoutError:
+                    async with asyncio.timeout(self.grace):
+                        await proc.wait()
+                except TimeoutError:
                     log.warning("node ignored SIGTERM, killing", cid=self.cid, pid=proc.pid)
             # SIGKILL the group even when the leader is gone: its children may still be there.
             _signal_group(proc.pid, signal.SIGKILL)
@@ -393,15 +394,17 @@ class NamespaceSandbox(Sandbox):
                 *self._joined(argv), stdin=asyncio.subprocess.PIPE, stdout=asyncio.subprocess.PIPE,
                 stderr=asyncio.subprocess.PIPE, start_new_session=True, cwd="/")
             try:
-                line = await asyncio.wait_for(self.init.stdout.readline(), INIT_TIMEOUT)
-            except asyncio.TimeoutError:
+                async with asyncio.timeout(INIT_TIMEOUT):
+                    line = await self.init.stdout.readline()
+            except TimeoutError:
                 line = b"error: no answer within %d s" % INIT_TIMEOUT
             if line.strip() != b"ready":
                 err = b""
                 if self.init.returncode is not None or line.startswith(b"error"):
                     try:
-                        err = await asyncio.wait_for(self.init.stderr.read(4096), INIT_ERROR_TIMEOUT)
-                    except asyncio.TimeoutError:
+                        async with asyncio.timeout(INIT_ERROR_TIMEOUT):
+                            err = await self.init.stderr.read(4096)
+                    except TimeoutError:
                         pass
                 why = (line.decode(errors="replace").strip() or "init exited") + \
                       (f" ({err.decode(errors='replace').strip()})" if err.strip() else "")
@@ -464,8 +467,9 @@ class NamespaceSandbox(Sandbox):
                 # TERM the node's own group: nsenter waits for it and passes its exit status on
                 _signal_group(leader or proc.pid, signal.SIGTERM)
                 try:
-                    await asyncio.wait_for(proc.wait(), self.grace)
-                except asyncio.TimeoutError:
+                    async with asyncio.timeout(self.grace):
+                        await proc.wait()
+                except TimeoutError:
                     log.warning("node ignored SIGTERM, killing", cid=self.cid, pid=proc.pid)
             if leader:
                 _signal_group(leader, signal.SIGKILL)
@@ -481,8 +485,9 @@ class NamespaceSandbox(Sandbox):
         if self.init.returncode is None:
             try:
                 self.init.stdin.close()          # the init exits; the kernel kills its namespace
-                await asyncio.wait_for(self.init.wait(), INIT_EXIT_TIMEOUT)
-            except (asyncio.TimeoutError, OSError):
+                async with asyncio.timeout(INIT_EXIT_TIMEOUT):
+                    await self.init.wait()
+            except (TimeoutError, OSError):
                 _signal_group(self.init.pid, signal.SIGKILL)     # unshare --kill-child takes the init along
                 await self.init.wait()
 

@@ -149,8 +149,9 @@ class ZygoteClient:
         self.sock = ours
         asyncio.get_running_loop().add_reader(ours.fileno(), self._readable)
         try:
-            self.pid = await asyncio.wait_for(asyncio.shield(self.ready), READY_TIMEOUT)
-        except asyncio.TimeoutError:
+            async with asyncio.timeout(READY_TIMEOUT):
+                self.pid = await asyncio.shield(self.ready)
+        except TimeoutError:
             raise RuntimeError(f"the zygote did not start within {READY_TIMEOUT:g} s") from None
         log.debug("zygote ready", container=self.ctag, pid=self.pid, forked=self.proc is None)
 
@@ -251,8 +252,9 @@ class ZygoteClient:
 
     async def _answered(self, rid: int, fut: asyncio.Future, out_r: int, err_r: int) -> ZygoteChild | None:
         try:
-            msg = await asyncio.wait_for(fut, SPAWN_TIMEOUT)
-        except asyncio.TimeoutError:
+            async with asyncio.timeout(SPAWN_TIMEOUT):
+                msg = await fut
+        except TimeoutError:
             msg = {"op": "refused", "error": f"no answer within {SPAWN_TIMEOUT:g} s"}
         finally:
             self._waiting.pop(rid, None)
@@ -286,8 +288,9 @@ class ZygoteClient:
         if child.returncode is None:
             _signal_group(child.pid, signal.SIGTERM)
             try:
-                await asyncio.wait_for(child.wait(), grace)
-            except asyncio.TimeoutError:
+                async with asyncio.timeout(grace):
+                    await child.wait()
+            except TimeoutError:
                 log.warning("node ignored SIGTERM, killing", container=self.ctag, pid=child.pid)
         _signal_group(child.pid, signal.SIGKILL)     # even when it is gone: its children may still be there
         await child.wait()
@@ -340,8 +343,9 @@ class ZygoteTemplate:
         if not self._launched:
             return False
         try:
-            await asyncio.wait_for(self._started.wait(), READY_TIMEOUT)
-        except asyncio.TimeoutError:
+            async with asyncio.timeout(READY_TIMEOUT):
+                await self._started.wait()
+        except TimeoutError:
             return False
         return self.alive
 
@@ -369,9 +373,9 @@ class ZygoteTemplate:
             self._tasks.spawn(_keep(stream, self.output), name="zygote template output")
         ours.setblocking(False)
         try:
-            msg = json.loads(await asyncio.wait_for(asyncio.get_running_loop().sock_recv(ours, MAX_MESSAGE),
-                                                    READY_TIMEOUT) or b"{}")
-        except (asyncio.TimeoutError, OSError, ValueError) as e:
+            async with asyncio.timeout(READY_TIMEOUT):
+                msg = json.loads(await asyncio.get_running_loop().sock_recv(ours, MAX_MESSAGE) or b"{}")
+        except (TimeoutError, OSError, ValueError) as e:
             msg = {"error": str(e) or type(e).__name__}
         self._ready = msg.get("op") == "ready"
         if not self._ready:
@@ -400,8 +404,9 @@ class ZygoteTemplate:
             self.sock = None
         if self.proc is not None and self.proc.returncode is None:
             try:
-                await asyncio.wait_for(self.proc.wait(), TEMPLATE_EXIT_TIMEOUT)
-            except asyncio.TimeoutError:
+                async with asyncio.timeout(TEMPLATE_EXIT_TIMEOUT):
+                    await self.proc.wait()
+            except TimeoutError:
                 _signal_group(self.proc.pid, signal.SIGKILL)
                 await self.proc.wait()
         await self._tasks.cancel_all()

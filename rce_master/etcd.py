@@ -242,7 +242,8 @@ async def _lines(content: aiohttp.StreamReader, idle: float) -> AsyncIterator[di
     buf = b""
     while True:
         try:
-            chunk = await asyncio.wait_for(content.readany(), idle)
+            async with asyncio.timeout(idle):
+                chunk = await content.readany()
         except TimeoutError:
             return
         if not chunk:

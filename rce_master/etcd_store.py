@@ -309,7 +309,8 @@ class EtcdStore(MemoryStore):
         """Stop: a leader first waits up to ``timeout`` s for its last batches to reach etcd."""
         if self.fence is not None and self.failure is None and self._pending:
             try:
-                await asyncio.wait_for(self.flush(), timeout)
+                async with asyncio.timeout(timeout):
+                    await self.flush()
             except (RCEError, TimeoutError) as e:
                 log.warning("the last changes did not reach etcd", unwritten=len(self._pending), reason=str(e))
         await self.tasks.cancel_all()

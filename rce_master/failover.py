@@ -250,8 +250,9 @@ class Failover:
         if left <= 0:
             return False
         try:
-            await asyncio.wait_for(self._hosts.wait(), left)
-        except asyncio.TimeoutError:
+            async with asyncio.timeout(left):
+                await self._hosts.wait()
+        except TimeoutError:
             return False
         return True
 

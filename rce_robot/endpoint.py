@@ -499,8 +499,9 @@ class RobotEndpoint:
         opening = self.opening.get((a["user"], a["robot"]))
         if opening is not None and (a["user"], a["robot"]) not in self.namespaces:
             try:
-                await asyncio.wait_for(opening.wait(), SESSION_OPEN_WAIT)
-            except asyncio.TimeoutError:        # its websocket never opened: the login was abandoned
+                async with asyncio.timeout(SESSION_OPEN_WAIT):
+                    await opening.wait()
+            except TimeoutError:        # its websocket never opened: the login was abandoned
                 self.opening.pop((a["user"], a["robot"]), None)
         ns = self._ns(a)
         itype = InterfaceType.parse(a["itype"], robot_side=True)

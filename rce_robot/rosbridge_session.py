@@ -467,8 +467,9 @@ class RosbridgeSession:
             await self._request("CX", {"connect": [{"tagA": f"{self.ctag}/{bridge.ctag_itag}",
                                                     "tagB": f"{self.robot}/{itag}"}]})
             try:
-                await asyncio.wait_for(bridge.up.wait(), INTERFACE_UP_WAIT)
-            except asyncio.TimeoutError:
+                async with asyncio.timeout(INTERFACE_UP_WAIT):
+                    await bridge.up.wait()
+            except TimeoutError:
                 raise Timeout(f"{name!r}: its interfaces did not connect within {INTERFACE_UP_WAIT:g} s") from None
         except RCEError:
             await self._drop_quietly(bridge)     # a later op on the name starts afresh

@@ -349,8 +349,9 @@ class PicowsLink(WSListener):
         if self._closed.done():
             return
         try:
-            await asyncio.wait_for(asyncio.shield(self._closed), CLOSE_TIMEOUT)
-        except asyncio.TimeoutError:
+            async with asyncio.timeout(CLOSE_TIMEOUT):
+                await asyncio.shield(self._closed)
+        except TimeoutError:
             self.wst.disconnect(False) if self.wst is not None else self.transport.abort()
             await self._closed
 

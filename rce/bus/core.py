@@ -177,8 +177,9 @@ class Bus:
             if self._service_added is None:
                 self._service_added = asyncio.Event()
             try:
-                await asyncio.wait_for(self._service_added.wait(), left)
-            except asyncio.TimeoutError:
+                async with asyncio.timeout(left):
+                    await self._service_added.wait()
+            except TimeoutError:
                 return None
         return s
 
@@ -199,8 +200,9 @@ class Bus:
             raise MessageError(f"service {name!r} has type {s.type!r}, not {type_!r}")
         s.calls += 1
         try:
-            return await asyncio.wait_for(s.handler(payload), timeout)
-        except asyncio.TimeoutError:
+            async with asyncio.timeout(timeout):
+                return await s.handler(payload)
+        except TimeoutError:
             s.errors += 1
             raise Timeout(f"service {name!r} did not answer within {timeout:g} s") from None
         except Exception:

@@ -387,7 +387,8 @@ class BusServer:
             await sess.peer.close()
         for s in self._servers:
             try:
-                await asyncio.wait_for(s.wait_closed(), CLOSE_TIMEOUT)
-            except asyncio.TimeoutError:
+                async with asyncio.timeout(CLOSE_TIMEOUT):
+                    await s.wait_closed()
+            except TimeoutError:
                 pass
         self._servers.clear()

@@ -147,8 +147,9 @@ class DirectLinks:
         if fd is None:
             fut = self._waiting[lid] = asyncio.get_running_loop().create_future()
             try:
-                fd = await asyncio.wait_for(fut, FD_WAIT)
-            except asyncio.TimeoutError:
+                async with asyncio.timeout(FD_WAIT):
+                    fd = await fut
+            except TimeoutError:
                 raise Timeout(f"the socket of direct link {lid} did not arrive in {FD_WAIT:g} s") from None
             finally:
                 self._waiting.pop(lid, None)

@@ -163,10 +163,9 @@ class TcpProxy:
         generation = self._generation
         self._connecting += 1
         try:
-            up_r, up_w = await asyncio.wait_for(
-                asyncio.open_connection("127.0.0.1", self.target_port, limit=self._read_limit),
-                self.connect_timeout_s)
-        except (OSError, asyncio.TimeoutError) as e:
+            async with asyncio.timeout(self.connect_timeout_s):
+                up_r, up_w = await asyncio.open_connection("127.0.0.1", self.target_port, limit=self._read_limit)
+        except (OSError, TimeoutError) as e:
             self.unreachable += 1
             log.warning("proxy: target unreachable", port=self.target_port, reason=str(e) or type(e).__name__)
             return reset(writer)

@@ -90,7 +90,8 @@ class Robot:
                                        "msg": {"data": f"{name} {n}"}})
             sent.append(n)
             try:
-                await asyncio.wait_for(stop.wait(), 1 / RATE)      # the stream's clock
+                async with asyncio.timeout(1 / RATE):               # the stream's clock
+                    await stop.wait()
             except TimeoutError:
                 pass
 

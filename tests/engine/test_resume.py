@@ -104,8 +104,9 @@ async def robot_stream(conn: Connection, stop: asyncio.Event) -> int:
         await pub.publish({"data": f"r:{n}"})
         n += 1
         try:
-            await asyncio.wait_for(stop.wait(), 1 / RATE)      # the stream's clock
-        except asyncio.TimeoutError:
+            async with asyncio.timeout(1 / RATE):               # the stream's clock
+                await stop.wait()
+        except TimeoutError:
             pass
     return n
 
@@ -118,8 +119,9 @@ async def cloud_stream(engine, ctag: str, stop: asyncio.Event) -> int:
                                 {"topic": "/stringEchoReq", "type": "std_msgs/String", "msg": {"data": f"c:{n}"}})
         n += 1
         try:
-            await asyncio.wait_for(stop.wait(), 1 / RATE)
-        except asyncio.TimeoutError:
+            async with asyncio.timeout(1 / RATE):
+                await stop.wait()
+        except TimeoutError:
             pass
     return n
 
@@ -246,8 +248,9 @@ async def test_a_cut_resends_each_states_newest_and_every_command_once(engine):
                 await pub.publish({"data": f"r:{sent[kind]}"})
                 sent[kind] += 1
                 try:
-                    await asyncio.wait_for(stop.wait(), 1 / hz)          # the stream's clock
-                except asyncio.TimeoutError:
+                    async with asyncio.timeout(1 / hz):                   # the stream's clock
+                        await stop.wait()
+                except TimeoutError:
                     pass
 
         async def cloud(ctag: str, kind: str, hz: float) -> None:
@@ -257,8 +260,9 @@ async def test_a_cut_resends_each_states_newest_and_every_command_once(engine):
                                          "msg": {"data": f"{kind[-1]}:{sent[kind]}"}})
                 sent[kind] += 1
                 try:
-                    await asyncio.wait_for(stop.wait(), 1 / hz)
-                except asyncio.TimeoutError:
+                    async with asyncio.timeout(1 / hz):
+                        await stop.wait()
+                except TimeoutError:
                     pass
 
         # states at 10 Hz each way (robot: r, cloud: c); commands at 1 Hz each way (robot: r, cloud: c on cmdC)

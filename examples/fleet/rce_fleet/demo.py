@@ -538,8 +538,9 @@ class Run:
     async def _bounded(self, aw, what: str):
         left = self.deadline - time.monotonic()
         try:
-            return await asyncio.wait_for(aw, max(left, MIN_STEP_TIMEOUT_S))
-        except asyncio.TimeoutError:
+            async with asyncio.timeout(max(left, MIN_STEP_TIMEOUT_S)):
+                return await aw
+        except TimeoutError:
             raise TimeoutError(f"timeout ({self.o.timeout:g} s wall) during {what}") from None
 
     def _on_state(self, st: dict) -> None:
@@ -667,8 +668,9 @@ class Run:
                                    f"goal {self.goals[r]})" for r in missing)
                 return EXIT_FAIL, f"timeout after {self.o.timeout:g} s wall: not at their goals: {detail}"
             try:
-                await asyncio.wait_for(self._stop.wait(), WATCH_PERIOD_S)
-            except asyncio.TimeoutError:
+                async with asyncio.timeout(WATCH_PERIOD_S):
+                    await self._stop.wait()
+            except TimeoutError:
                 pass
 
     # -- display --------------------------------------------------------------------------------
@@ -840,7 +842,8 @@ class Run:
         rec, self.recorder = self.recorder, None
         try:
             if rec is not None:
-                await asyncio.wait_for(rec.close(), TEARDOWN_TIMEOUT_S)
+                async with asyncio.timeout(TEARDOWN_TIMEOUT_S):
+                    await rec.close()
         finally:
             if self.bag is not None and self.bag.is_open:
                 self.bag.close()
@@ -863,16 +866,19 @@ class Run:
             await self.tasks.cancel_all()
             await self._stop_bag()
             if getattr(self, "web", None) is not None:
-                await asyncio.wait_for(self.web.stop(), TEARDOWN_TIMEOUT_S)
+                async with asyncio.timeout(TEARDOWN_TIMEOUT_S):
+                    await self.web.stop()
             if self.sim is not None:
                 await self.sim.stop(timeout=SIM_STOP_TIMEOUT_S, first=self.o.out_of_coverage)
             if self.radio is not None:
                 await self.radio.close()
             if self.manager is not None:
-                await asyncio.wait_for(self.manager.close(), TEARDOWN_TIMEOUT_S)
+                async with asyncio.timeout(TEARDOWN_TIMEOUT_S):
+                    await self.manager.close()
             if self.faults is not None:
-                await asyncio.wait_for(self.faults.close(), TEARDOWN_TIMEOUT_S)
-        except (asyncio.TimeoutError, RCEError, OSError) as e:
+                async with asyncio.timeout(TEARDOWN_TIMEOUT_S):
+                    await self.faults.close()
+        except (TimeoutError, RCEError, OSError) as e:
             log.warning("teardown incomplete", reason=str(e))
         finally:
             t1 = time.monotonic()

@@ -153,8 +153,9 @@ class FleetManager:
                 raise Unavailable(f"fleet state condition not met within {timeout:g} s")
             self._state_event.clear()
             try:
-                await asyncio.wait_for(self._state_event.wait(), left)
-            except asyncio.TimeoutError:
+                async with asyncio.timeout(left):
+                    await self._state_event.wait()
+            except TimeoutError:
                 pass
 
     async def set_goal(self, robot: str, cell: int) -> None:

@@ -70,9 +70,9 @@ async def _run(args) -> int:
     from .tasks_client import TaskChannel, TaskRefused
     robot_id = f"taskCli-{secrets.token_hex(3)}"
     try:
-        conn = await asyncio.wait_for(Connection.connect(args.master, args.user, args.password, robot_id, max_lag=0),
-                                      args.timeout)
-    except (RCEError, OSError, asyncio.TimeoutError) as e:
+        async with asyncio.timeout(args.timeout):
+            conn = await Connection.connect(args.master, args.user, args.password, robot_id, max_lag=0)
+    except (RCEError, OSError, TimeoutError) as e:
         print(f"rce-fleet task: cannot log in at {args.master}: {getattr(e, 'message', e) or type(e).__name__}",
               file=sys.stderr)
         return EXIT_UNREACHABLE

@@ -124,8 +124,9 @@ class TaskChannel:
                 raise Unavailable(f"no fleet task list within {timeout:g} s (is the fleet's global planner up?)")
             self._event.clear()
             try:
-                await asyncio.wait_for(self._event.wait(), left)
-            except asyncio.TimeoutError:
+                async with asyncio.timeout(left):
+                    await self._event.wait()
+            except TimeoutError:
                 pass
         return self.latest
 
