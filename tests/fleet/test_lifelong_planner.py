@@ -275,6 +275,7 @@ def test_lacam_solves_what_needs_a_detour_and_lns_never_makes_it_worse():
 
 def test_scatter_sends_one_of_two_head_on_agents_round_the_other_way_and_guides_lacam():
     from rce_fleet.lifelong.lacam import solve_lacam
+    from rce_fleet.lifelong.kernels import preferred
     from rce_fleet.lifelong.scatter import scatter
     g = grid([".......", ".@@@@@.", "......."])   # two corridors joined at both ends
     cache = DistanceCache(g)
@@ -283,16 +284,16 @@ def test_scatter_sends_one_of_two_head_on_agents_round_the_other_way_and_guides_
     # within a margin of 3 neither may go round (10 steps against 6): both stay on top and meet
     prefer, stats = scatter(g.nbr, cache.table, rows, starts, goals, time_limit_s=10.0, margin=3)
     assert stats["collisions"][-1] > 0 and stats["rounds"] == 2
-    assert prefer.shape == (2, g.n_cells)
-    assert prefer[0, 0] == 1 and prefer[1, 6] == 5
+    assert preferred(prefer, 0, 0, g.n_cells) == 1 and preferred(prefer, 1, 6, g.n_cells) == 5
+    assert preferred(prefer, 0, 6, g.n_cells) == -1      # off its path: no preference
     prefer, stats = scatter(g.nbr, cache.table, rows, starts, goals, time_limit_s=10.0, margin=10)
     assert stats["collisions"][-1] == 0
-    bottom = [prefer[0, 0] == 7, prefer[1, 6] == 13]
+    bottom = [preferred(prefer, 0, 0, g.n_cells) == 7, preferred(prefer, 1, 6, g.n_cells) == 13]
     assert sorted(bottom) == [False, True]       # exactly one goes round by the bottom corridor
     for a in range(2):                           # each preferred path leads from start to goal
         c, steps = int(starts[a]), 0
         while c != goals[a]:
-            nxt = int(prefer[a, c])
+            nxt = int(preferred(prefer, a, c, g.n_cells))
             assert nxt in g.nbr[c]
             c, steps = nxt, steps + 1
         assert steps == (10 if bottom[a] else 6)
@@ -300,6 +301,22 @@ def test_scatter_sends_one_of_two_head_on_agents_round_the_other_way_and_guides_
     res = solve_lacam(g, starts, goals, time_limit_s=10, scatter_share=0.5)
     assert res["solved"] and res["sum_of_costs"] == 16 and res["scatter"]["rounds"] >= 1
     assert_solution(g, res["paths"], starts.tolist(), goals.tolist())
+
+
+def test_prefer_table_finds_every_entry_and_nothing_else():
+    from rce_fleet.lifelong.kernels import NO_PREFER, prefer_table, preferred
+    rng = np.random.default_rng(0)
+    n_cells = 70_000
+    keys = rng.choice(500 * n_cells, 3000, replace=False)
+    agents, cells = keys // n_cells, keys % n_cells
+    nxt = rng.integers(0, n_cells, 3000)
+    table = prefer_table(agents, cells, nxt, n_cells)
+    assert table.shape == (8192, 2)              # a power of two, at least twice the entries
+    assert all(preferred(table, int(a), int(c), n_cells) == int(v) for a, c, v in zip(agents, cells, nxt, strict=True))
+    taken = set(keys.tolist())
+    absent = [k for k in rng.choice(500 * n_cells, 3000, replace=False).tolist() if k not in taken]
+    assert all(preferred(table, k // n_cells, k % n_cells, n_cells) == -1 for k in absent)
+    assert preferred(NO_PREFER, 0, 0, n_cells) == -1
 
 
 def test_space_time_astar_waits_for_the_goal_and_never_enters_a_parked_one():

@@ -16,7 +16,7 @@ import numpy as np
 from numba import njit
 
 __all__ = ["ACT_C", "ACT_F", "ACT_R", "ACT_W", "MOVE_WAIT", "NO_PREFER", "UNREACHABLE", "bfs_fill", "bfs_multi",
-           "bfs_pair", "heading_cost", "mapf_t_actions", "heading_costs", "pibt_step",
+           "bfs_pair", "heading_cost", "prefer_table", "preferred", "mapf_t_actions", "heading_costs", "pibt_step",
            "warm_up"]
 
 UNREACHABLE = 65535
@@ -24,8 +24,46 @@ UNREACHABLE = 65535
 ACT_F, ACT_R, ACT_C, ACT_W = 0, 1, 2, 3
 # 4-neighbour actions: 0..3 move towards heading E, S, W, N; 4 waits
 MOVE_WAIT = 4
-# pibt_step's ``prefer`` when no agent has a preferred next cell
-NO_PREFER = np.full((0, 0), -1, dtype=np.int32)
+# pibt_step's ``prefer`` when no agent has a preferred next cell (see :func:`prefer_table`)
+NO_PREFER = np.full((0, 2), -1, dtype=np.int64)
+
+
+@njit(cache=True)
+def _prefer_slot(prefer, key):
+    """The slot of ``key`` in the open-addressing table ``prefer``, or the empty slot where it
+    would go."""
+    mask = prefer.shape[0] - 1
+    i = (key ^ (key >> 17) ^ (key >> 31)) & mask
+    while prefer[i, 0] != -1 and prefer[i, 0] != key:
+        i = (i + 1) & mask
+    return i
+
+
+@njit(cache=True)
+def prefer_table(agents, cells, nxt, n_cells):
+    """A hash table of preferred next cells for :func:`pibt_step`: agent ``agents[k]`` standing
+    on ``cells[k]`` tries ``nxt[k]`` first. (size, 2) int64, size a power of two at least twice
+    the entries (memory: 32 bytes per entry at most, whatever the map's size); rows (key, next
+    cell) with key = agent * ``n_cells`` + cell, -1 keys empty."""
+    size = 2
+    while size < 2 * agents.shape[0]:
+        size *= 2
+    out = np.full((size, 2), -1, np.int64)
+    for k in range(agents.shape[0]):
+        key = agents[k] * n_cells + cells[k]
+        i = _prefer_slot(out, key)
+        out[i, 0] = key
+        out[i, 1] = nxt[k]
+    return out
+
+
+@njit(cache=True)
+def preferred(prefer, a, u, n_cells):
+    """The next cell agent ``a`` on ``u`` tries first in ``prefer`` (:func:`prefer_table`), or -1."""
+    if prefer.shape[0] == 0:
+        return -1
+    i = _prefer_slot(prefer, a * n_cells + u)
+    return prefer[i, 1] if prefer[i, 0] >= 0 else -1
 
 
 @njit(cache=True)
@@ -107,10 +145,10 @@ def bfs_pair(nbr, src, dst, seen, queue, dist):
 
 @njit(cache=True)
 def _candidates(a, u, h, nbr, dist, slot, occ_now, turns_model, turn_w, rnd, cand, ncand, prefer):
-    """Sort the next cells of agent ``a`` (stay and its free neighbours) by estimated cost, the
-    cell ``prefer[a, u]`` first when there is one."""
+    """Sort the next cells of agent ``a`` (stay and its free neighbours) by estimated cost, its
+    preferred cell in ``prefer`` first when there is one."""
     s = slot[a]
-    pv = prefer[a, u] if prefer.shape[0] > 0 else -1
+    pv = preferred(prefer, a, u, nbr.shape[0])
     cost = np.empty(5)
     k = 0
     cand[a, 0] = u
@@ -242,9 +280,9 @@ def pibt_step(nbr, pos, head, dist, slot, goal, order, turns_model, turn_w, rnd,
     neighbour's cost. claim (n,): a neighbour cell an agent turns towards since an earlier
     step (-1 none); while it does not face it, the agent stays and holds both cells (the
     commitment of the start-kit's 2024 default planner). fixed (n,): next cells imposed on
-    agents (-1 free; LaCAM's constraints). prefer: (n, cells) int32, the cell each agent
-    tries first from its cell (-1 none; lacam3's scatter, :mod:`.scatter`), or (0, 0) for
-    none. Writes each agent's next cell into
+    agents (-1 free; LaCAM's constraints). prefer: the cells agents try first from the cell
+    they stand on (:func:`prefer_table`; lacam3's scatter, :mod:`.scatter`), or
+    :data:`NO_PREFER`. Writes each agent's next cell into
     ``nxt`` (n,): distinct cells, no two agents swap. Returns the number of agents that
     could not move where they wanted first.
     """

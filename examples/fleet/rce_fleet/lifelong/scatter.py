@@ -9,8 +9,8 @@ agents' current paths, length); step ``t`` of a path is its ``t``-th cell, and a
 stays on its goal after its last step. Collisions counted: another path on the same cell at
 the same step, a cell whose agent is already parked on it, and an exchange of cells with the
 agent that stood on the entered cell. Rounds repeat while they cut the collisions (at least
-two). The result is a table ``prefer[agent, cell]``: the next cell of the agent's path from
-``cell`` (-1 off the path); :func:`~.kernels.pibt_step` tries that cell first.
+two). The result is a table of each agent's next cell from each cell of its path
+(:func:`~.kernels.prefer_table`); :func:`~.kernels.pibt_step` tries that cell first.
 """
 from __future__ import annotations
 
@@ -18,6 +18,8 @@ import time
 
 import numpy as np
 from numba import njit
+
+from .kernels import NO_PREFER, prefer_table
 
 __all__ = ["scatter"]
 
@@ -186,14 +188,22 @@ def _round(nbr, table, rows, starts, goals, margin, order, paths, lengths, cnt, 
 
 
 @njit(cache=True)
-def _prefer(paths, lengths, ncell):
-    """(n, cells) int32: the next cell of each agent's path from each of its cells, -1 elsewhere."""
-    n = paths.shape[0]
-    out = np.full((n, ncell), -1, np.int32)
-    for a in range(n):
+def _steps(paths, lengths):
+    """Every step of every path as (agent, cell, next cell) arrays."""
+    m = 0
+    for a in range(paths.shape[0]):
+        m += max(lengths[a] - 1, 0)
+    agents = np.empty(m, np.int64)
+    cells = np.empty(m, np.int64)
+    nxt = np.empty(m, np.int64)
+    k = 0
+    for a in range(paths.shape[0]):
         for t in range(lengths[a] - 1):
-            out[a, paths[a, t]] = paths[a, t + 1]
-    return out
+            agents[k] = a
+            cells[k] = paths[a, t]
+            nxt[k] = paths[a, t + 1]
+            k += 1
+    return agents, cells, nxt
 
 
 def scatter(nbr: np.ndarray, table: np.ndarray, rows: np.ndarray, starts: np.ndarray, goals: np.ndarray,
@@ -205,8 +215,11 @@ def scatter(nbr: np.ndarray, table: np.ndarray, rows: np.ndarray, starts: np.nda
     ``table``; starts, goals: (n,) cells; margin: steps a path may be longer than the
     distance. Rounds stop when one does not cut the collisions (after two), after
     ``max_rounds`` or when ``time_limit_s`` seconds of ``clock`` are spent (a round is not
-    cut short). Returns ``prefer`` ((n, cells) int32: the next cell of each agent's path from
-    a cell, -1 off it) and stats: ``rounds``, ``collisions`` (per round), ``time_s``.
+    cut short). Returns ``prefer`` (:func:`~.kernels.prefer_table` of the next cell of each
+    agent's path from each of its cells) and stats: ``rounds``, ``collisions`` (per round),
+    ``time_s``. Memory: 12 bytes per (step, cell) for the collision tables and 8 per (agent,
+    step) for the paths, steps being the longest distance + ``margin`` + 1; the result at most
+    32 bytes per (agent, step) of the paths.
     """
     t0 = clock()
     n, ncell = starts.shape[0], nbr.shape[0]
@@ -227,8 +240,9 @@ def scatter(nbr: np.ndarray, table: np.ndarray, rows: np.ndarray, starts: np.nda
         if len(coll) >= 2 and coll[-1] >= coll[-2] or coll[-1] == 0:
             break
     if best is None:
-        return np.full((n, ncell), -1, np.int32), {"rounds": 0, "collisions": [], "time_s": clock() - t0}
-    return _prefer(best[1], best[2], ncell), {"rounds": len(coll), "collisions": coll, "time_s": clock() - t0}
+        return NO_PREFER, {"rounds": 0, "collisions": [], "time_s": clock() - t0}
+    return prefer_table(*_steps(best[1], best[2]), ncell), {"rounds": len(coll), "collisions": coll,
+                                                             "time_s": clock() - t0}
 
 
 def warm_up() -> None:
