@@ -566,3 +566,46 @@ def test_replans_after_robots_drift_from_the_plan_timing_stay_partial_and_safe()
     simulate(fp, rng, p_move=0.5, events={t: new_goal for t in (4, 8, 12, 16)})
     assert any(d for d, _, _ in seen), seen           # the timing drifted at least once ...
     assert not any(full for _, full, _ in seen), seen  # ... and no re-plan took the whole fleet
+
+
+def test_replan_past_its_bound_keeps_safe_plans_and_serves_deferred_robots_next():
+    # a bound no re-plan can meet: robots not reached keep their plans or hold their cells,
+    # execution stays collision-free (simulate checks every tick), and once the bound is
+    # back the deferred robots are planned to their new goals
+    from dataclasses import replace
+    rng = random.Random(11)
+    g = random_graph(rng, 9, 9, 0.05)
+    comp = sorted(max(components(g), key=len))
+    cells = rng.sample(comp, 30)
+    fp = FleetPlanner(g)
+    for i in range(12):
+        fp.set_position(f"r{i}", cells[i])
+    fp.set_goals({f"r{i}": cells[12 + i] for i in range(12)})
+    normal = fp.limits
+    seen = []
+
+    def tiny_bound_new_goals(fp):
+        fp.limits = replace(normal, bound_s=1e-9)
+        taken = set(fp.positions.values()) | set(fp.goals.values())
+        free = [c for c in comp if c not in taken]
+        res = fp.set_goals({f"r{i}": free[i] for i in range(4)})
+        seen.append(res)
+        assert res.deferred >= {"r0", "r1", "r2", "r3"}
+        assert check_conflicts(fp.paths, ignore_start=True) == []
+
+    def bound_back(fp):
+        fp.limits = normal
+        res = fp.serve_deferred()
+        assert res is not None and not res.deferred and not res.abandoned
+        seen.append(res)
+
+    simulate(fp, rng, p_move=0.5, events={3: tiny_bound_new_goals, 5: tiny_bound_new_goals, 9: bound_back})
+    assert fp.bounded_replans == 2 and fp.deferred_robots_total >= 8 and not fp.deferred
+    for r in fp.paths:
+        if r not in fp.unreachable:
+            assert fp.positions[r] == fp.goals[r]
+
+
+def test_replan_bound_must_be_positive():
+    with pytest.raises(ValueError, match="replan_bound_s"):
+        FleetPlanner(GridGraph.from_array(np.ones((2, 2), dtype=bool)), replan_bound_s=0)

@@ -323,10 +323,14 @@ class GlobalPlannerCore:
         return []
 
     def tick(self) -> list[Out]:
-        """Periodic work: dispatch tasks, retry robots parked for want of a collision-free path,
-        repeat paths and clearances (so a lost or late message never stalls a robot)."""
+        """Periodic work: dispatch tasks, plan the robots the last re-plan's wall-time bound
+        deferred, retry robots parked for want of a collision-free path, repeat paths and
+        clearances (so a lost or late message never stalls a robot)."""
         now = self.clock()
         out: list[Out] = self.dispatch()
+        if self.fp.last_result is not None and self.fp.last_result.deferred:
+            self.fp.serve_deferred()         # robots the last re-plan's wall-time bound left for this round
+            out += self._sync()
         if now - self._last_retry >= RETRY_S:
             self._last_retry = now
             retry = {r: self.fp.goals[r] for r in self.fp.unreachable
@@ -364,6 +368,10 @@ class GlobalPlannerCore:
             self._seen_result = res
             self.replans += 1
             self.plan_times.append(res.elapsed_s)
+            if res.deferred:
+                self.log("bounded re-plan", ms=round(res.elapsed_s * 1e3, 1), deferred=sorted(res.deferred),
+                         abandoned=res.abandoned)
+            replanned = not res.abandoned      # an abandoned re-plan changed nobody's plan
             if res.elapsed_s > SLOW_REPLAN_S:
                 self.log("slow re-plan", ms=round(res.elapsed_s * 1e3, 1), full=res.full, changed=sorted(res.changed),
                          unreachable=sorted(res.unreachable))
@@ -469,4 +477,7 @@ class GlobalPlannerCore:
                 "robots": [self.robot_state(r) for r in sorted(self.robots)],
                 "errors": list(self.errors), "replans": self.replans,
                 "last_plan_ms": times[-1] * 1e3 if times else 0.0,
-                "max_plan_ms": max(times) * 1e3 if times else 0.0}
+                "max_plan_ms": max(times) * 1e3 if times else 0.0,
+                "replan_bound_ms": self.fp.limits.bound_s * 1e3 if math.isfinite(self.fp.limits.bound_s) else 0.0,
+                "replans_bounded": self.fp.bounded_replans, "replans_abandoned": self.fp.abandoned_replans,
+                "robots_deferred": len(self.fp.deferred), "robots_deferred_total": self.fp.deferred_robots_total}

@@ -2,17 +2,20 @@
 :class:`rce_fleet.global_planner_core.GlobalPlannerCore` (topics: see that module).
 
 Arguments: ``[--robots Robot1,Robot2,...] [--rate HZ] [--no-lidar-blocking] [--batch S]
-[--park-idle]``. Robot IDs come from ``--robots`` or the ``/fleet/robots`` parameter (re-read
+[--park-idle] [--replan-bound S]``. Robot IDs come from ``--robots`` or the ``/fleet/robots`` parameter (re-read
 every 2 s, so robots can join); the grid from ``/fleet/grid`` (:mod:`rce_fleet.geometry`); the
 named places from ``/fleet/places`` (:mod:`rce_fleet.places`) and the robots' battery
 parameters from ``/fleet/battery`` (:mod:`rce_fleet.battery`), when set.
 Goals arriving within one planning cycle (``--batch``, default 0.05 s) are planned
-together; a blocked cell is re-planned at once.
+together; a blocked cell is re-planned at once. A re-plan takes at most ``--replan-bound`` s
+of wall time (default :data:`rce_fleet.planning.prioritized.REPLAN_BOUND_S`; 0: no bound):
+robots it does not reach keep their plans and are planned at the next tick.
 """
 from __future__ import annotations
 
 import argparse
 import asyncio
+import math
 import time
 
 from rce.plumbing.log import get_logger, setup_logging
@@ -23,6 +26,7 @@ from .geometry import ROBOTS_PARAM, yaw_from_quaternion
 from .node_common import Publishers, load_geometry
 from .global_planner_core import GlobalPlannerCore
 from .places import PLACES_PARAM, Places
+from .planning.prioritized import REPLAN_BOUND_S
 
 log = get_logger("fleet.global_planner")
 
@@ -37,7 +41,12 @@ def parse_args(argv: list[str]) -> argparse.Namespace:
     p.add_argument("--batch", type=float, default=0.05, help="planning cycle for goals, s (default 0.05)")
     p.add_argument("--no-lidar-blocking", action="store_true", help="ignore /RobotN/obstacles")
     p.add_argument("--park-idle", action="store_true", help="idle robots drive to the parking places")
-    return p.parse_args(argv)
+    p.add_argument("--replan-bound", type=float, default=REPLAN_BOUND_S,
+                   help=f"wall-time bound of one re-plan, s (default {REPLAN_BOUND_S}; 0: none)")
+    a = p.parse_args(argv)
+    if a.replan_bound < 0:
+        p.error(f"--replan-bound must be >= 0 s, got {a.replan_bound}")
+    return a
 
 
 async def main(node) -> None:
@@ -52,7 +61,8 @@ async def main(node) -> None:
     places = Places.from_param(await node.get_param(PLACES_PARAM, None), geo)
     battery = BatteryParams.from_param(await node.get_param(BATTERY_PARAM, None))
     core = GlobalPlannerCore(geo, clock=time.monotonic, lidar_blocking=not args.no_lidar_blocking, log=logf,
-                             places=places, battery=battery, park_idle=args.park_idle)
+                             places=places, battery=battery, park_idle=args.park_idle,
+                             replan_bound_s=args.replan_bound or math.inf)
     pubs = Publishers(node)
     await pubs.add("/fleet/state", "fleet/FleetState", queue_size=5)
     await pubs.add("/fleet/tasks", "fleet/TaskList", queue_size=5)

@@ -26,9 +26,10 @@ Sans-I/O: plain classes, no sockets, no asyncio. Units: cells are integers
 """
 from __future__ import annotations
 
+import math
 import time
 from collections.abc import Mapping
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 
@@ -36,7 +37,7 @@ from .adg import ActionDependencyGraph
 from .dijkstra import DistanceTable
 from .graph import GridGraph
 from .paths import check_conflicts, compress
-from .prioritized import Fleet, SearchLimits, plan_prioritized
+from .prioritized import Fleet, ReplanAbandoned, SearchLimits, plan_prioritized
 
 __all__ = ["PlannerError", "UnreachableGoal", "PlanResult", "FleetPlanner"]
 
@@ -70,6 +71,9 @@ class PlanResult:
     full: True when all robots were re-planned (False: only some, others kept).
     elapsed_s: planning time in seconds.
     clearance: robot -> path index it may move up to now.
+    deferred: robots the re-plan did not reach within its wall-time bound (they keep their
+        current plan or hold their cell; the next re-plan serves them first).
+    abandoned: True when the bounded re-plan changed nothing (every robot kept its plan).
     """
 
     paths: dict[str, list[int]]
@@ -79,6 +83,8 @@ class PlanResult:
     full: bool = True
     elapsed_s: float = 0.0
     clearance: dict[str, int] = field(default_factory=dict)
+    deferred: set[str] = field(default_factory=set)
+    abandoned: bool = False
 
     @property
     def ok(self) -> bool:
@@ -123,7 +129,11 @@ class FleetPlanner:
     robot -> cell or None; ``paths`` robot -> list of cells (space-time: one
     cell per step, waits repeat a cell; index 0 = the robot's cell at the last
     re-plan); ``blocked`` cell -> source; ``unreachable`` robot -> reason;
-    ``replans`` robot -> number of times its path changed; ``last_result``.
+    ``replans`` robot -> number of times its path changed; ``last_result``;
+    ``deferred``: robots the last re-plan did not reach within its bound (served first by the
+    next one, :meth:`serve_deferred`); ``bounded_replans``, ``abandoned_replans``,
+    ``deferred_robots_total``: re-plans that passed the bound, those of them that kept every
+    plan, robots deferred, since the start.
 
     A robot without a goal, or whose goal cannot be reached, is parked: it
     stays in its cell and other robots plan around it.
@@ -132,15 +142,22 @@ class FleetPlanner:
         grid: a :class:`rce_fleet.grid.CellGrid` or :class:`GridGraph`.
         max_restarts, time_budget_s (s), expansion_factor, min_expansions, weight: how hard
             a (re)plan tries, see :class:`.prioritized.SearchLimits`.
+        replan_bound_s: hard wall-time bound of one re-plan, s (``math.inf``: none). A re-plan
+            after a cell is blocked, or with a robot found off its plan or new, is not bounded:
+            those robots are in no safe plan yet;
+            see :mod:`.prioritized`. Raises ValueError unless > 0.
     """
 
     def __init__(self, grid, *, max_restarts: int = SearchLimits.max_restarts,
                  time_budget_s: float = SearchLimits.time_budget_s,
                  expansion_factor: int = SearchLimits.expansion_factor,
-                 min_expansions: int = SearchLimits.min_expansions, weight: float = SearchLimits.weight):
+                 min_expansions: int = SearchLimits.min_expansions, weight: float = SearchLimits.weight,
+                 replan_bound_s: float = SearchLimits.bound_s):
         self.graph = grid if isinstance(grid, GridGraph) else GridGraph.from_cellgrid(grid)
         self.grid = grid
-        self.limits = SearchLimits(max_restarts=max_restarts, time_budget_s=time_budget_s,
+        if not replan_bound_s > 0:
+            raise ValueError(f"replan_bound_s must be > 0 s (math.inf: no bound), got {replan_bound_s!r}")
+        self.limits = SearchLimits(max_restarts=max_restarts, time_budget_s=time_budget_s, bound_s=replan_bound_s,
                                    expansion_factor=expansion_factor, min_expansions=min_expansions, weight=weight)
         self.positions: dict[str, int] = {}
         self.goals: dict[str, int | None] = {}
@@ -154,6 +171,10 @@ class FleetPlanner:
         self._adg = ActionDependencyGraph({})
         self._dirty: set[str] = set()
         self._distances = DistanceTable(self.graph)
+        self.deferred: set[str] = set()
+        self.bounded_replans = 0
+        self.abandoned_replans = 0
+        self.deferred_robots_total = 0
 
     # -- validation ---------------------------------------------------------
     def _check_cell(self, cell: int, what: str = "cell") -> int:
@@ -175,11 +196,12 @@ class FleetPlanner:
         return self._distances.distance(start, goal, self.blocked)
 
     def _plan_round(self, todo: list[str], fixed: dict[str, list[int]], commit: dict[str, int | None],
-                    t_start: float) -> tuple[dict[str, list[int]], dict[str, str]]:
+                    t_start: float, current: dict[str, list[int]], limits: SearchLimits
+                    ) -> tuple[dict[str, list[int]], dict[str, str], set[str]]:
         """Plan ``todo`` around the ``fixed`` paths (:func:`.prioritized.plan_prioritized`)."""
         fleet = Fleet(self.graph, self._distances, self.positions, self.goals, self._goal_seq, self.blocked,
                       self.unreachable)
-        return plan_prioritized(fleet, self.limits, todo, fixed, commit, t_start)
+        return plan_prioritized(fleet, limits, todo, fixed, commit, t_start, current, frozenset(self.deferred))
 
     # -- robots ---------------------------------------------------------------
     def set_position(self, robot: str, cell: int) -> None:
@@ -279,7 +301,7 @@ class FleetPlanner:
         hit = {r for r in self.paths if r not in self._dirty and cell in self._adg.future_cells(r)}
         hit |= {r for r, g in self.goals.items() if g == cell and r in self.positions and r not in self.unreachable
                 and self.positions[r] != cell}
-        result = self._replan(hit | self._dirty | set(self.unreachable))
+        result = self._replan(hit | self._dirty | set(self.unreachable), bounded=False)
         result.cancelled = set(hit)
         return set(hit)
 
@@ -315,52 +337,74 @@ class FleetPlanner:
                 return nxt
         return None
 
-    def _replan(self, subset: set[str], full: bool = False) -> PlanResult:
+    def serve_deferred(self) -> PlanResult | None:
+        """Re-plan the robots the last re-plan deferred (its wall-time bound passed before it
+        reached them), first in the order; None when there are none."""
+        if not self.deferred:
+            return None
+        return self._replan(set(self.deferred) | self._dirty | set(self.unreachable))
+
+    def _replan(self, subset: set[str], full: bool = False, bounded: bool = True) -> PlanResult:
         t_start = time.perf_counter()
-        subset = {r for r in subset if r in self.positions}
-        old = {r: compress(self._rebased(r)) if (r in self.paths and r in self._adg.visits and r not in self._dirty)
-               else None for r in self.positions}
+        # a robot off its plan (or new) is in nobody's plan: it must be planned now, as must the
+        # robots whose paths cross a newly blocked cell (``bounded`` False)
+        limits = self.limits if bounded and not self._dirty else replace(self.limits, bound_s=math.inf)
+        subset = {r for r in subset | self.deferred if r in self.positions}
+        planned = {r for r in self.positions if r in self.paths and r in self._adg.visits and r not in self._dirty}
+        old = {r: compress(self._rebased(r)) if r in planned else None for r in self.positions}
         commit = {r: self._commitment(r) for r in self.positions}
         # current cells
-        for r in self.positions:
-            if r in self._adg.visits and r not in self._dirty:
-                self.positions[r] = self._adg.cell(r)
+        for r in planned:
+            self.positions[r] = self._adg.cell(r)
         if subset:      # robots standing on their goal are planned again too: they may yield (.prioritized)
             subset |= {r for r in self.positions if self.goals.get(r) == self.positions[r]
-                       and r not in self.unreachable and len(set(self._rebased(r) if r in self.paths
-                                                                 and r in self._adg.visits else [0, 1])) == 1}
+                       and r not in self.unreachable and len(set(self._rebased(r) if r in planned else [0, 1])) == 1}
+        # what a robot the bound leaves unreached keeps: the rest of its plan, unless it enters a blocked cell
+        current = {r: p for r in planned if not set((p := self._rebased(r))[1:]) & self.blocked.keys()}
         result = None
-        if not full and len(subset) < len(self.positions):
-            fixed = {r: self._rebased(r) for r in self.positions
-                     if r not in subset and r in self.paths and r in self._adg.visits and r not in self._dirty}
-            subset |= set(self.positions) - set(fixed)
-            drifted = _conflict_cover(fixed)
-            subset |= drifted
-            for r in drifted:
-                del fixed[r]
-            for _ in range(MAX_WIDENINGS + 1):
-                if len(subset) >= len(self.positions):
-                    break
-                paths, unreachable = self._plan_round(sorted(subset), fixed, commit, t_start)
-                allp = {**fixed, **paths}
-                hit = {r for c in check_conflicts(allp, ignore_start=True) for r in c.robots}
-                if not hit:
-                    result = (allp, unreachable, False)
-                    break
-                # a robot of the subset that cannot move (no goal, or no path) holds its cell,
-                # which kept paths may cross: those robots are re-planned with the subset
-                if not hit & set(fixed):
-                    break
-                subset |= hit
-                fixed = {r: p for r, p in fixed.items() if r not in hit}
-        if result is None:
-            paths, unreachable = self._plan_round(sorted(self.positions), {}, commit, t_start)
-            result = (paths, unreachable, True)
-            subset = set(self.positions)
-        allp, unreachable, was_full = result
-        for r in subset:
+        try:
+            if not full and len(subset) < len(self.positions):
+                fixed = {r: self._rebased(r) for r in planned if r not in subset}
+                subset |= set(self.positions) - set(fixed)
+                drifted = _conflict_cover(fixed)
+                subset |= drifted
+                for r in drifted:
+                    del fixed[r]
+                for _ in range(MAX_WIDENINGS + 1):
+                    if len(subset) >= len(self.positions):
+                        break
+                    paths, unreachable, deferred = self._plan_round(sorted(subset), fixed, commit, t_start, current,
+                                                                    limits)
+                    allp = {**fixed, **paths}
+                    hit = {r for c in check_conflicts(allp, ignore_start=True) for r in c.robots}
+                    if not hit:
+                        result = (allp, unreachable, False, deferred)
+                        break
+                    if deferred:        # no time left to widen: every robot keeps its plan
+                        raise ReplanAbandoned(sorted(subset))
+                    # a robot of the subset that cannot move (no goal, or no path) holds its cell,
+                    # which kept paths may cross: those robots are re-planned with the subset
+                    if not hit & set(fixed):
+                        break
+                    subset |= hit
+                    fixed = {r: p for r, p in fixed.items() if r not in hit}
+            if result is None:
+                paths, unreachable, deferred = self._plan_round(sorted(self.positions), {}, commit, t_start, current,
+                                                                limits)
+                if deferred and check_conflicts(paths, ignore_start=True):
+                    raise ReplanAbandoned(sorted(self.positions))
+                result = (paths, unreachable, True, deferred)
+                subset = set(self.positions)
+        except ReplanAbandoned as e:
+            return self._abandon(e.robots, t_start)
+        allp, unreachable, was_full, deferred = result
+        for r in subset - deferred:
             self.unreachable.pop(r, None)
         self.unreachable.update(unreachable)
+        if deferred:
+            self.bounded_replans += 1
+            self.deferred_robots_total += len(deferred)
+        self.deferred = set(deferred)
         changed = set()
         for r, p in allp.items():
             if old.get(r) != compress(p):
@@ -374,7 +418,21 @@ class FleetPlanner:
         res = PlanResult(paths={r: list(p) for r, p in allp.items()}, changed=changed,
                          unreachable={r: self.unreachable[r] for r in self.unreachable},
                          full=was_full, elapsed_s=time.perf_counter() - t_start,
-                         clearance={r: self._adg.clearance(r) for r in allp})
+                         clearance={r: self._adg.clearance(r) for r in allp}, deferred=set(deferred))
+        self.last_result = res
+        return res
+
+    def _abandon(self, robots: list[str], t_start: float) -> PlanResult:
+        """A bounded re-plan that changes nothing: every robot keeps its plan (and the
+        execution its progress); ``robots`` are deferred to the next re-plan."""
+        self.bounded_replans += 1
+        self.abandoned_replans += 1
+        self.deferred = set(robots) & set(self.positions)
+        self.deferred_robots_total += len(self.deferred)
+        res = PlanResult(paths={r: list(p) for r, p in self.paths.items()}, changed=set(),
+                         unreachable=dict(self.unreachable), full=False, elapsed_s=time.perf_counter() - t_start,
+                         clearance={r: self._adg.clearance(r) for r in self._adg.visits}, deferred=set(self.deferred),
+                         abandoned=True)
         self.last_result = res
         return res
 

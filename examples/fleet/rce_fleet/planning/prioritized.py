@@ -18,6 +18,15 @@ that will not come.
 
 Goals that cannot be planned at all are refused first, with the reason: not a free cell,
 blocked, walled off, the goal of a robot that asked earlier, or occupied by a parked robot.
+
+A re-plan has a hard wall-time bound (:attr:`SearchLimits.bound_s`). When it passes, between
+two robots or inside one robot's search, the robots planned so far keep their new paths and
+the robots not reached keep their current plan (the rest of the path they drive) or, without
+one or when it no longer fits, hold their cell (after the move they are committed to); a
+robot planned this round that would run into a holding robot keeps its current plan or holds
+in turn. They are *deferred*: the caller plans them again in the next round. When no
+collision-free combination is left that way, the round is *abandoned*
+(:class:`ReplanAbandoned`): every robot keeps the plan it has.
 """
 from __future__ import annotations
 
@@ -30,9 +39,9 @@ from .dijkstra import DistanceTable, shortest_path
 from .graph import GridGraph
 from .paths import compress
 from .reservations import Reservations
-from .sipp import safe_interval_astar
+from .sipp import SearchDeadline, safe_interval_astar
 
-__all__ = ["SearchLimits", "Fleet", "plan_prioritized", "TIME_BUDGET_S"]
+__all__ = ["SearchLimits", "Fleet", "ReplanAbandoned", "plan_prioritized", "REPLAN_BOUND_S", "TIME_BUDGET_S"]
 
 INF = math.inf
 
@@ -41,6 +50,28 @@ INF = math.inf
 #: reason, and retried on the next re-plan.
 TIME_BUDGET_S = 2.0
 
+#: Hard wall-time bound, s, of one (re)plan (module docstring): past it the robots not reached
+#: are deferred to the next round. The planner node is single-threaded, so this bounds how long
+#: it answers nothing (robot poses, operators' goals, tasks).
+REPLAN_BOUND_S = 0.5
+
+
+class ReplanAbandoned(Exception):
+    """A bounded re-plan found no collision-free way to keep the robots it did not reach on
+    their current plans: every robot keeps the plan it has (``robots``: the ones it was to plan)."""
+
+    def __init__(self, robots: list[str]):
+        super().__init__(f"re-plan of {len(robots)} robot(s) passed its wall-time bound and was abandoned")
+        self.robots = robots
+
+
+class _Bounded(Exception):
+    """Internal: the bound passed while planning ``order[i:]`` of an attempt."""
+
+    def __init__(self, res: Reservations, got: dict[str, list[int]], unreached: list[str]):
+        super().__init__("re-plan bound passed")
+        self.res, self.got, self.unreached = res, got, unreached
+
 
 @dataclass(frozen=True)
 class SearchLimits:
@@ -48,6 +79,8 @@ class SearchLimits:
 
     max_restarts: priority-order restarts before robots that still fail are parked.
     time_budget_s: wall-clock budget, s, per (re)plan for restarts (:data:`TIME_BUDGET_S`).
+    bound_s: hard wall-time bound, s, per (re)plan (:data:`REPLAN_BOUND_S`; ``math.inf``:
+        none): past it the robots not reached are deferred (module docstring).
     expansion_factor, min_expansions: SIPP budget per robot,
         ``max(min_expansions, expansion_factor * (distance + 1))`` expansions.
     weight: weighted A* factor (1 = each robot's earliest arrival given the robots before
@@ -56,6 +89,7 @@ class SearchLimits:
 
     max_restarts: int = 20
     time_budget_s: float = TIME_BUDGET_S
+    bound_s: float = REPLAN_BOUND_S
     expansion_factor: int = 60
     min_expansions: int = 4000
     weight: float = 1.05
@@ -93,30 +127,40 @@ class Fleet:
 
 
 def plan_prioritized(fleet: Fleet, limits: SearchLimits, todo: list[str], fixed: Mapping[str, list[int]],
-                     commit: Mapping[str, int | None], t_start: float) -> tuple[dict[str, list[int]], dict[str, str]]:
+                     commit: Mapping[str, int | None], t_start: float, current: Mapping[str, list[int]] | None = None,
+                     first: frozenset[str] = frozenset()
+                     ) -> tuple[dict[str, list[int]], dict[str, str], set[str]]:
     """Plan the ``todo`` robots from their positions around the ``fixed`` robots' paths.
 
     ``commit[robot]``: a cell the robot has been cleared into and may be driving to (its
     path keeps that move when it can). ``t_start``: ``time.perf_counter()`` when the
-    re-plan began (for ``limits.time_budget_s``). Returns (path of every ``todo`` robot,
-    reason for each robot that is parked instead of moving to its goal).
+    re-plan began (for ``limits.time_budget_s`` and ``limits.bound_s``). ``current[robot]``:
+    the rest of a ``todo`` robot's current plan from its cell, kept if the bound passes
+    before it is reached. ``first``: robots deferred by the previous round, planned first.
+    Returns (path of every ``todo`` robot, reason for each robot that is parked instead of
+    moving to its goal, the robots deferred to the next round). Raises
+    :class:`ReplanAbandoned` (module docstring).
     """
-    return _Round(fleet, limits, todo, fixed, commit, t_start).run()
+    return _Round(fleet, limits, todo, fixed, commit, t_start, current, first).run()
 
 
 class _Round:
     """One call of :func:`plan_prioritized`."""
 
     def __init__(self, fleet: Fleet, limits: SearchLimits, todo: list[str], fixed: Mapping[str, list[int]],
-                 commit: Mapping[str, int | None], t_start: float):
+                 commit: Mapping[str, int | None], t_start: float, current: Mapping[str, list[int]] | None,
+                 first: frozenset[str]):
         self.f, self.limits = fleet, limits
         self.todo, self.fixed, self.commit, self.t_start = todo, fixed, commit, t_start
+        self.current, self.first = current or {}, first
+        self.deadline = t_start + limits.bound_s
+        self.deferred: set[str] = set()
         self.owner_id = {r: i for i, r in enumerate(sorted(set(todo) | set(fixed)))}
         self.starts = {r: fleet.positions[r] for r in todo}
         self.reasons: dict[str, str] = {}
         self.attempts: dict[str, int] = {}
 
-    def run(self) -> tuple[dict[str, list[int]], dict[str, str]]:
+    def run(self) -> tuple[dict[str, list[int]], dict[str, str], set[str]]:
         """Refuse the goals that cannot be planned, park those robots, plan the others."""
         wanting = self._claim_goals()
         self._refuse_parked_goals(wanting)
@@ -134,7 +178,7 @@ class _Round:
         for r in failed_parked:
             paths[r] = [self.starts[r]]
             self.reasons[r] = self._fail_reason(r, paths)
-        return paths, self.reasons
+        return paths, self.reasons, self.deferred
 
     # -- goals that cannot be planned ----------------------------------------------
     def _static_reason(self, start: int, goal: int) -> str | None:
@@ -206,13 +250,16 @@ class _Round:
         restarting. Returns (their paths, the robots parked because they still failed)."""
         prefix = {r: self._prefix(r) for r in movers}
         dist = {r: self.f.distance(self.starts[r], self.f.goals[r]) for r in movers}
-        order = sorted(movers, key=lambda robot: (dist[robot], robot))
+        order = sorted(movers, key=lambda robot: (robot not in self.first, dist[robot], robot))
         standing = [r for r in order if dist[r] == 0]
         failed_parked: list[str] = []
         attempts = 0
         while True:
             order_front = order[0] if order else None
-            got, failed = self._attempt(order, prefix, failed_parked, base)
+            try:
+                got, failed = self._attempt(order, prefix, failed_parked, base)
+            except _Bounded as b:
+                return self._fall_back(b, prefix), failed_parked
             if failed is None:
                 return got, failed_parked
             attempts += 1
@@ -240,16 +287,54 @@ class _Round:
         for r in order:                      # nobody may run into a robot's start (or committed move)
             res.reserve(prefix[r], owner_id[r], park=False)
         got: dict[str, list[int]] = {}
-        for r in order:
+        for i, r in enumerate(order):
+            if time.perf_counter() > self.deadline:
+                raise _Bounded(res, got, order[i:])
             res.release(prefix[r], owner_id[r])
-            p = self._plan_one(r, prefix[r], res)
-            if p is None and len(prefix[r]) > 1:     # cannot continue the committed move: plan from the cell
-                p = self._plan_one(r, prefix[r][:1], res)
+            try:
+                p = self._plan_one(r, prefix[r], res)
+                if p is None and len(prefix[r]) > 1:     # cannot continue the committed move: plan from the cell
+                    p = self._plan_one(r, prefix[r][:1], res)
+            except SearchDeadline:
+                res.reserve(prefix[r], owner_id[r], park=False)
+                raise _Bounded(res, got, order[i:]) from None
             if p is None:
                 return got, r
             res.reserve(p, owner_id[r])
             got[r] = p
         return got, None
+
+    def _fall_back(self, b: _Bounded, prefix: dict[str, list[int]]) -> dict[str, list[int]]:
+        """The bound passed (module docstring): the robots not reached keep their current plan
+        or hold their cell, robots planned this round in their way too; all of them are
+        deferred. Returns the paths of the robots that were being planned. Raises
+        ReplanAbandoned when a holding robot would collide with a robot that is not being planned."""
+        res, got, oid = b.res, dict(b.got), self.owner_id
+        name = {i: r for r, i in oid.items()}
+        for r in b.unreached:
+            res.release(prefix[r], oid[r])
+        queue = list(b.unreached)
+        while queue:
+            r = queue.pop(0)
+            hold = prefix[r]
+            cur = self.current.get(r)
+            for p in ([cur] if cur else []) + [hold]:
+                if not res.blockers(p, oid[r]):
+                    break
+            else:
+                p = hold
+                for o in res.blockers(hold, oid[r]):
+                    other = name[o]
+                    if other not in got:
+                        raise ReplanAbandoned(sorted(self.todo))
+                    res.release(got.pop(other), o)
+                    queue.append(other)
+                if res.blockers(hold, oid[r]):
+                    raise ReplanAbandoned(sorted(self.todo))
+            res.reserve(p, oid[r])
+            got[r] = p
+            self.deferred.add(r)
+        return got
 
     def _plan_one(self, robot: str, prefix: list[int], res: Reservations) -> list[int] | None:
         """Path for ``robot`` that starts with ``prefix`` (its cell, maybe a committed next cell), or None."""
@@ -261,7 +346,7 @@ class _Round:
             h = list(h)
             h[s] = f.distance(s, g)
         p = safe_interval_astar(f.graph.nbrs, s, g, h, res, self.limits.expansions(h[s]), t0=len(prefix) - 1,
-                                weight=self.limits.weight)
+                                weight=self.limits.weight, deadline=self.deadline)
         return None if p is None else prefix[:-1] + p
 
     def _fail_reason(self, robot: str, paths: Mapping[str, list[int]]) -> str:

@@ -88,10 +88,12 @@ class Reservations:
             self.parks[owner] = park
 
     def release(self, path: Sequence[int], owner: int, t0: int = 0) -> None:
-        """Undo :meth:`reserve` (without ``park``) of ``path`` for ``owner``."""
+        """Undo :meth:`reserve` of ``path`` for ``owner`` (its parked final cell too)."""
         n = self.n
         self.paths.pop(owner, None)
-        self.parks.pop(owner, None)
+        if self.parks.pop(owner, False) and path and self.parked.get(path[-1]) == t0 + len(path) - 1 \
+                and self.vertex.get((t0 + len(path) - 1) * n + path[-1]) == owner:
+            del self.parked[path[-1]]
         for k, c in enumerate(path):
             t = t0 + k
             if self.vertex.get(t * n + c) == owner:
@@ -100,6 +102,32 @@ class Reservations:
                 ts.pop(bisect.bisect_left(ts, t))
                 if not ts:
                     del self.occ[c]
+
+    def blockers(self, path: Sequence[int], owner: int) -> set[int]:
+        """The owners whose reservations ``path`` (from step 0, its final cell held for ever
+        after) would collide with: a (cell, step) they hold, a cell they are parked in, a swap
+        or a rotation with them; empty when ``path`` fits."""
+        n, vertex, out = self.n, self.vertex, set()
+        for t, c in enumerate(path):
+            o = vertex.get(t * n + c)
+            if o is not None and o != owner:
+                out.add(o)
+            p = self.parked.get(c)
+            if p is not None and p <= t:
+                o = vertex.get(p * n + c)
+                if o is not None and o != owner:
+                    out.add(o)
+            if t > 0 and path[t - 1] != c:
+                u = path[t - 1]
+                o = vertex.get((t - 1) * n + c)
+                if o is not None and o != owner and (vertex.get(t * n + u) == o or self.closes_rotation(u, c, t - 1)):
+                    out.add(o)
+        end, last = len(path) - 1, path[-1]
+        for t in self.occ.get(last, ())[bisect.bisect_right(self.occ.get(last, ()), end):]:
+            o = vertex.get(t * n + last)
+            if o is not None and o != owner:
+                out.add(o)
+        return out
 
     def last(self, cell: int) -> int:
         """Last reserved step of ``cell`` (-1 if none)."""

@@ -13,13 +13,19 @@ from __future__ import annotations
 import bisect
 import heapq
 import math
+import time
 from collections.abc import Sequence
 
 from .reservations import Reservations
 
-__all__ = ["safe_interval_astar"]
+__all__ = ["SearchDeadline", "safe_interval_astar"]
 
 INF = math.inf
+DEADLINE_EVERY = 64        # expansions between looks at the clock
+
+
+class SearchDeadline(Exception):
+    """A search passed its ``deadline`` (:func:`safe_interval_astar`) before it ended."""
 
 
 def _start_interval_end(res: Reservations, start: int, t0: int) -> float:
@@ -96,7 +102,7 @@ def _successors(res: Reservations, nbrs_u: Sequence[int], heuristic: Sequence[fl
 
 def safe_interval_astar(nbrs: Sequence[Sequence[int]], start: int, goal: int, heuristic: Sequence[float],
                         res: Reservations, max_expansions: int, t0: int = 0,
-                        weight: float = 1.0) -> list[int] | None:
+                        weight: float = 1.0, deadline: float = INF) -> list[int] | None:
     """Space-time A* over safe intervals (SIPP, Phillips & Likhachev 2011, ICRA).
 
     Finds a path for one robot from ``start`` at step ``t0`` to ``goal``
@@ -112,7 +118,9 @@ def safe_interval_astar(nbrs: Sequence[Sequence[int]], start: int, goal: int, he
     ``f = g + weight * max(h, G + 1 - g)`` (G: last reserved step of the goal cell),
     ties to smaller h then later g. ``weight`` 1 gives the earliest arrival; slightly
     above 1 (weighted A*) avoids expanding the large ties of 4-connected grids and
-    keeps the arrival within ``weight`` x optimal. ``max_expansions`` bounds work.
+    keeps the arrival within ``weight`` x optimal. ``max_expansions`` bounds work;
+    ``deadline`` (``time.perf_counter()`` s) bounds its wall time: past it the search raises
+    :class:`SearchDeadline`.
 
     Returns cells for steps ``t0 .. arrival`` (``path[0] == start``), or None.
     """
@@ -140,6 +148,8 @@ def safe_interval_astar(nbrs: Sequence[Sequence[int]], start: int, goal: int, he
         expansions += 1
         if expansions > max_expansions:
             return None
+        if expansions % DEADLINE_EVERY == 0 and time.perf_counter() > deadline:
+            raise SearchDeadline(f"search from cell {start} to {goal} passed its deadline")
         for key, t_arr, e_int, v, hv in _successors(res, nbrs[u], heuristic, u, a, e):
             if key not in closed and t_arr < best.get(key, INF):
                 best[key] = t_arr
