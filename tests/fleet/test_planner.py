@@ -533,6 +533,18 @@ def test_standing_robot_without_room_to_yield_stays_a_wall():
     assert_valid_paths(g, fp)
 
 
+def moving_fleet(rng: random.Random, side: int, density: float, n: int) -> tuple[FleetPlanner, list[int]]:
+    """``n`` robots r0.. on a random side x side grid, each planned to a goal; (planner, free cells)."""
+    g = random_graph(rng, side, side, density)
+    comp = sorted(max(components(g), key=len))
+    cells = rng.sample(comp, 2 * n + 2)
+    fp = FleetPlanner(g)
+    for i in range(n):
+        fp.set_position(f"r{i}", cells[i])
+    fp.set_goals({f"r{i}": cells[n + i] for i in range(n)})
+    return fp, comp
+
+
 def test_conflict_cover_takes_the_robot_in_most_conflicts():
     from rce_fleet.planning.fleet_planner import _conflict_cover
     # b crosses a and c; removing b alone clears every conflict
@@ -548,13 +560,7 @@ def test_replans_after_robots_drift_from_the_plan_timing_stay_partial_and_safe()
     # robots advance at random rates, so their kept paths (each from where it stands) drift
     # apart in plan time; a new goal re-plans those few robots, not everybody
     rng = random.Random(4)
-    g = random_graph(rng, 8, 8, 0.0)
-    comp = sorted(max(components(g), key=len))
-    cells = rng.sample(comp, 34)
-    fp = FleetPlanner(g)
-    for i in range(16):
-        fp.set_position(f"r{i}", cells[i])
-    fp.set_goals({f"r{i}": cells[16 + i] for i in range(16)})
+    fp, comp = moving_fleet(rng, 8, 0.0, 16)
     seen = []
 
     def new_goal(fp):
@@ -574,13 +580,7 @@ def test_replan_past_its_bound_keeps_safe_plans_and_serves_deferred_robots_next(
     # back the deferred robots are planned to their new goals
     from dataclasses import replace
     rng = random.Random(11)
-    g = random_graph(rng, 9, 9, 0.05)
-    comp = sorted(max(components(g), key=len))
-    cells = rng.sample(comp, 30)
-    fp = FleetPlanner(g)
-    for i in range(12):
-        fp.set_position(f"r{i}", cells[i])
-    fp.set_goals({f"r{i}": cells[12 + i] for i in range(12)})
+    fp, comp = moving_fleet(rng, 9, 0.05, 12)
     normal = fp.limits
     seen = []
 
