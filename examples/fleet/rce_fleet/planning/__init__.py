@@ -9,7 +9,7 @@ One module per job:
 - :mod:`.paths`: space-time paths and their conflicts (Stern et al. 2019).
 - :mod:`.reservations`: the reservation table (Silver 2005).
 - :mod:`.sipp`: one robot around the reservations, safe interval path planning
-  (Phillips & Likhachev 2011).
+  (Phillips & Likhachev 2011); its search compiled in :mod:`.sipp_kernel` (numba).
 - :mod:`.prioritized`: one (re)plan of many robots, prioritized planning with priority
   bumping (Erdmann & Lozano-Perez 1987; Silver 2005).
 - :mod:`.adg`: execution in plan order under delays, the action dependency graph

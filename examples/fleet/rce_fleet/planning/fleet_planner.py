@@ -37,6 +37,7 @@ from .adg import ActionDependencyGraph
 from .dijkstra import DistanceTable
 from .graph import GridGraph
 from .paths import check_conflicts, compress
+from . import sipp_kernel
 from .prioritized import Fleet, ReplanAbandoned, SearchLimits, plan_prioritized
 
 __all__ = ["PlannerError", "UnreachableGoal", "PlanResult", "FleetPlanner"]
@@ -171,6 +172,7 @@ class FleetPlanner:
         self._adg = ActionDependencyGraph({})
         self._dirty: set[str] = set()
         self._distances = DistanceTable(self.graph)
+        sipp_kernel.warm_up()      # compile or load the search now, not in the first re-plan
         self.deferred: set[str] = set()
         self.bounded_replans = 0
         self.abandoned_replans = 0

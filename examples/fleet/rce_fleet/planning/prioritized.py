@@ -19,8 +19,9 @@ that will not come.
 Goals that cannot be planned at all are refused first, with the reason: not a free cell,
 blocked, walled off, the goal of a robot that asked earlier, or occupied by a parked robot.
 
-A re-plan has a hard wall-time bound (:attr:`SearchLimits.bound_s`). When it passes, between
-two robots or inside one robot's search, the robots planned so far keep their new paths and
+A re-plan has a hard wall-time bound (:attr:`SearchLimits.bound_s`), looked at before each
+robot's search (one search is bounded by its expansions: a few ms compiled). When it has
+passed, the robots planned so far keep their new paths and
 the robots not reached keep their current plan (the rest of the path they drive) or, without
 one or when it no longer fits, hold their cell (after the move they are committed to); a
 robot planned this round that would run into a holding robot keeps its current plan or holds
@@ -39,7 +40,7 @@ from .dijkstra import DistanceTable, shortest_path
 from .graph import GridGraph
 from .paths import compress
 from .reservations import Reservations
-from .sipp import SearchDeadline, safe_interval_astar
+from .sipp import safe_interval_astar
 
 __all__ = ["SearchLimits", "Fleet", "ReplanAbandoned", "plan_prioritized", "REPLAN_BOUND_S", "TIME_BUDGET_S"]
 
@@ -66,7 +67,7 @@ class ReplanAbandoned(Exception):
 
 
 class _Bounded(Exception):
-    """Internal: the bound passed while planning ``order[i:]`` of an attempt."""
+    """Internal: the bound passed before ``unreached[0]`` of an attempt was planned."""
 
     def __init__(self, res: Reservations, got: dict[str, list[int]], unreached: list[str]):
         super().__init__("re-plan bound passed")
@@ -291,13 +292,9 @@ class _Round:
             if time.perf_counter() > self.deadline:
                 raise _Bounded(res, got, order[i:])
             res.release(prefix[r], owner_id[r])
-            try:
-                p = self._plan_one(r, prefix[r], res)
-                if p is None and len(prefix[r]) > 1:     # cannot continue the committed move: plan from the cell
-                    p = self._plan_one(r, prefix[r][:1], res)
-            except SearchDeadline:
-                res.reserve(prefix[r], owner_id[r], park=False)
-                raise _Bounded(res, got, order[i:]) from None
+            p = self._plan_one(r, prefix[r], res)
+            if p is None and len(prefix[r]) > 1:     # cannot continue the committed move: plan from the cell
+                p = self._plan_one(r, prefix[r][:1], res)
             if p is None:
                 return got, r
             res.reserve(p, owner_id[r])
@@ -346,7 +343,7 @@ class _Round:
             h = list(h)
             h[s] = f.distance(s, g)
         p = safe_interval_astar(f.graph.nbrs, s, g, h, res, self.limits.expansions(h[s]), t0=len(prefix) - 1,
-                                weight=self.limits.weight, deadline=self.deadline)
+                                weight=self.limits.weight)
         return None if p is None else prefix[:-1] + p
 
     def _fail_reason(self, robot: str, paths: Mapping[str, list[int]]) -> str:

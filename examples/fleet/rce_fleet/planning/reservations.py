@@ -8,7 +8,13 @@ from __future__ import annotations
 import bisect
 from collections.abc import Sequence
 
+import numpy as np
+
+from .sipp_kernel import NEVER
+
 __all__ = ["Reservations"]
+
+_ROWS = 256                 # steps of the dense table at first (doubled as paths grow)
 
 
 class Reservations:
@@ -19,9 +25,14 @@ class Reservations:
     ``parked[cell] = t``: the owner stays in ``cell`` from step t for ever;
     ``paths[owner]``: the owner's reserved cells from step 0 (``parks[owner]``:
     whether it stays in the last one for ever).
+
+    The same, dense, for the compiled search (:mod:`.sipp_kernel`): ``vt`` (steps, cells)
+    int32 owner or -1 (rows from ``top`` on are free), ``park`` (cells,) int64 (``NEVER``:
+    not parked), ``opath`` (owners, steps) int32, ``olen`` (owners,) int64, ``opark``
+    (owners,) int8.
     """
 
-    __slots__ = ("n", "vertex", "occ", "parked", "paths", "parks")
+    __slots__ = ("n", "vertex", "occ", "parked", "paths", "parks", "vt", "top", "park", "opath", "olen", "opark")
 
     def __init__(self, n_cells: int):
         self.n = n_cells
@@ -30,14 +41,37 @@ class Reservations:
         self.parked: dict[int, int] = {}
         self.paths: dict[int, list[int]] = {}
         self.parks: dict[int, bool] = {}
+        self.vt = np.full((_ROWS, n_cells), -1, dtype=np.int32)
+        self.top = 0
+        self.park = np.full(n_cells, NEVER, dtype=np.int64)
+        self.opath = np.zeros((0, _ROWS), dtype=np.int32)
+        self.olen = np.zeros(0, dtype=np.int64)
+        self.opark = np.zeros(0, dtype=np.int8)
 
     def copy(self) -> "Reservations":
         """An independent copy."""
-        r = Reservations(self.n)
+        r = Reservations.__new__(Reservations)
+        r.n = self.n
         r.vertex, r.parked = dict(self.vertex), dict(self.parked)
         r.occ = {c: list(ts) for c, ts in self.occ.items()}
         r.paths, r.parks = dict(self.paths), dict(self.parks)
+        r.vt, r.top, r.park = self.vt.copy(), self.top, self.park.copy()
+        r.opath, r.olen, r.opark = self.opath.copy(), self.olen.copy(), self.opark.copy()
         return r
+
+    def _room(self, steps: int, owner: int) -> None:
+        """Grow the dense arrays to hold ``steps`` steps and ``owner``."""
+        rows = self.vt.shape[0]
+        if steps > rows:
+            new = max(steps, 2 * rows)
+            self.vt = np.concatenate([self.vt, np.full((new - rows, self.n), -1, dtype=np.int32)])
+            self.opath = np.concatenate([self.opath, np.zeros((self.opath.shape[0], new - rows), dtype=np.int32)], 1)
+        if owner >= self.olen.shape[0]:
+            k = max(owner + 1, 2 * self.olen.shape[0])
+            extra = k - self.olen.shape[0]
+            self.opath = np.concatenate([self.opath, np.zeros((extra, self.vt.shape[0]), dtype=np.int32)])
+            self.olen = np.concatenate([self.olen, np.zeros(extra, dtype=np.int64)])
+            self.opark = np.concatenate([self.opark, np.zeros(extra, dtype=np.int8)])
 
     def cell_of(self, owner: int, step: int) -> int | None:
         """Where ``owner`` is at ``step`` (None when not known: an unplanned robot past its start)."""
@@ -67,6 +101,10 @@ class Reservations:
     def reserve(self, path: Sequence[int], owner: int, park: bool = True, t0: int = 0) -> None:
         """Reserve ``path[k]`` at step ``t0 + k``; with ``park`` the final cell for ever after."""
         n, vertex, occ = self.n, self.vertex, self.occ
+        end = t0 + len(path)
+        self._room(end, owner)
+        self.vt[np.arange(t0, end), np.asarray(path, dtype=np.int64)] = owner
+        self.top = max(self.top, end)
         for k, c in enumerate(path):
             t = t0 + k
             key = t * n + c
@@ -83,17 +121,27 @@ class Reservations:
                 bisect.insort(ts, t)
         if park:
             self.parked[path[-1]] = t0 + len(path) - 1
+            self.park[path[-1]] = t0 + len(path) - 1
         if t0 == 0:
             self.paths[owner] = list(path)
             self.parks[owner] = park
+            self.opath[owner, :len(path)] = path
+            self.olen[owner] = len(path)
+            self.opark[owner] = park
 
     def release(self, path: Sequence[int], owner: int, t0: int = 0) -> None:
         """Undo :meth:`reserve` of ``path`` for ``owner`` (its parked final cell too)."""
         n = self.n
-        self.paths.pop(owner, None)
+        if self.paths.pop(owner, None) is not None:
+            self.olen[owner] = 0
         if self.parks.pop(owner, False) and path and self.parked.get(path[-1]) == t0 + len(path) - 1 \
                 and self.vertex.get((t0 + len(path) - 1) * n + path[-1]) == owner:
             del self.parked[path[-1]]
+            self.park[path[-1]] = NEVER
+        if path:
+            ts, cs = np.arange(t0, t0 + len(path)), np.asarray(path, dtype=np.int64)
+            mine = self.vt[ts, cs] == owner
+            self.vt[ts[mine], cs[mine]] = -1
         for k, c in enumerate(path):
             t = t0 + k
             if self.vertex.get(t * n + c) == owner:

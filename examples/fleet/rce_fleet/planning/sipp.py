@@ -10,99 +10,63 @@ even when a robot must wait a long time.
 """
 from __future__ import annotations
 
-import bisect
-import heapq
 import math
-import time
 from collections.abc import Sequence
 
-from .reservations import Reservations
+import numpy as np
 
-__all__ = ["SearchDeadline", "safe_interval_astar"]
+from .reservations import Reservations
+from .sipp_kernel import sipp_search
+
+__all__ = ["safe_interval_astar"]
 
 INF = math.inf
-DEADLINE_EVERY = 64        # expansions between looks at the clock
+_GRAPHS_KEPT = 8            # neighbour arrays kept (one per graph searched)
 
 
-class SearchDeadline(Exception):
-    """A search passed its ``deadline`` (:func:`safe_interval_astar`) before it ended."""
+class _Scratch:
+    """The search's scratch arrays (one set, grown to the largest table searched)."""
+
+    def __init__(self):
+        self.size, self.sid = 0, 0
+        self.graphs: dict[int, tuple[Sequence[Sequence[int]], np.ndarray, np.ndarray]] = {}
+
+    def neighbours(self, nbrs: Sequence[Sequence[int]]) -> tuple[np.ndarray, np.ndarray]:
+        """``nbrs`` as (cells, 4) int64 and (cells,) counts, cached per graph."""
+        got = self.graphs.get(id(nbrs))
+        if got is None or got[0] is not nbrs:
+            if len(self.graphs) >= _GRAPHS_KEPT:
+                self.graphs.clear()
+            arr = np.full((len(nbrs), 4), -1, dtype=np.int64)
+            cnt = np.zeros(len(nbrs), dtype=np.int64)
+            for c, ns in enumerate(nbrs):
+                arr[c, :len(ns)] = ns
+                cnt[c] = len(ns)
+            got = self.graphs[id(nbrs)] = (nbrs, arr, cnt)
+        return got[1], got[2]
+
+    def arrays(self, size: int) -> tuple[np.ndarray, ...]:
+        """The scratch for ``size`` states and a fresh search id."""
+        if size > self.size:
+            self.size = max(size, 2 * self.size)
+            self.stamp = np.zeros(self.size, dtype=np.int32)
+            self.closed = np.zeros(self.size, dtype=np.int32)
+            self.rest = [np.zeros(self.size, dtype=np.int64) for _ in range(5)]
+            self.sid = 0
+        self.sid += 1
+        if self.sid >= 2 ** 31 - 2:
+            self.stamp[:] = 0
+            self.closed[:] = 0
+            self.sid = 1
+        return (self.stamp, self.sid, self.closed, *self.rest)
 
 
-def _start_interval_end(res: Reservations, start: int, t0: int) -> float:
-    """Last step of the start cell's safe interval that holds ``t0`` (the robot is there)."""
-    ts = res.occ.get(start, ())
-    k = bisect.bisect_right(ts, t0)
-    e0 = ts[k] - 1 if k < len(ts) else INF
-    p = res.parked.get(start)
-    if p is not None and p - 1 < e0:
-        e0 = p - 1
-    return t0 if e0 < t0 else e0
-
-
-def _path(info: dict[int, tuple[int, int, float, int]], skey: int) -> list[int]:
-    """The cells for every step from the start to state ``skey``, waits filled in."""
-    cells = []
-    while skey != -1:
-        c, g, _, par = info[skey]
-        cells.append((c, g))
-        skey = par
-    cells.reverse()
-    path: list[int] = []
-    for (c, g), nxt in zip(cells, cells[1:] + [None], strict=True):
-        until = nxt[1] if nxt is not None else g + 1
-        path.extend([c] * (until - g))
-    return path
-
-
-def _successors(res: Reservations, nbrs_u: Sequence[int], heuristic: Sequence[float], cell: int, arrival: int,
-                safe_until: float) -> list[tuple[int, int, float, int, float]]:
-    """The states a robot in ``cell`` (arrived at step ``arrival``, safe there until ``safe_until``) can move
-    to: ``(state key, arrival step, interval end, cell, h of the cell)`` for every safe interval
-    of every neighbour it can reach, arriving as early as it can without swapping cells with
-    whoever is in the neighbour or closing a rotation."""
-    N, vertex, occ, parked = res.n, res.vertex, res.occ, res.parked
-    bisect_right = bisect.bisect_right
-    lo, hi = arrival + 1, safe_until + 1                    # earliest and latest arrival at a neighbour
-    out = []
-    for v in nbrs_u:
-        hv = heuristic[v]
-        if hv == INF:
-            continue
-        vts = occ.get(v)
-        pv = parked.get(v, INF)
-        if vts is None:
-            k, nv, s_int = 0, 0, 0
-        else:
-            nv = len(vts)
-            k = bisect_right(vts, lo)
-            s_int = vts[k - 1] + 1 if k > 0 else 0
-        while s_int <= hi and s_int < pv:
-            e_int = vts[k] - 1 if k < nv else INF
-            if e_int > pv - 1:
-                e_int = pv - 1
-            if e_int >= s_int and e_int >= lo:
-                t_arr = lo if lo > s_int else s_int
-                last_ok = e_int if e_int < hi else hi
-                # following whoever is in v at t_arr - 1: no swap, no rotation
-                while t_arr <= last_ok:
-                    o = vertex.get((t_arr - 1) * N + v)
-                    if o is None:
-                        break
-                    if vertex.get(t_arr * N + cell) != o and not res.closes_rotation(cell, v, t_arr - 1):
-                        break
-                    t_arr += 1
-                if t_arr <= last_ok:
-                    out.append((s_int * N + v, t_arr, e_int, v, hv))
-            if k >= nv:
-                break
-            s_int = vts[k] + 1
-            k += 1
-    return out
+_SCRATCH = _Scratch()
 
 
 def safe_interval_astar(nbrs: Sequence[Sequence[int]], start: int, goal: int, heuristic: Sequence[float],
                         res: Reservations, max_expansions: int, t0: int = 0,
-                        weight: float = 1.0, deadline: float = INF) -> list[int] | None:
+                        weight: float = 1.0) -> list[int] | None:
     """Space-time A* over safe intervals (SIPP, Phillips & Likhachev 2011, ICRA).
 
     Finds a path for one robot from ``start`` at step ``t0`` to ``goal``
@@ -113,47 +77,28 @@ def safe_interval_astar(nbrs: Sequence[Sequence[int]], start: int, goal: int, he
     arriving in the goal's last, unbounded safe interval, so the robot can stay
     there for ever.
 
-    ``nbrs[cell]``: the cells a robot can move to. ``h[cell]``: exact distance to
+    ``nbrs[cell]``: the cells a robot can move to (at most 4). ``h[cell]``: exact distance to
     ``goal`` ignoring other robots (inf = unreachable: pruned). Ordering
     ``f = g + weight * max(h, G + 1 - g)`` (G: last reserved step of the goal cell),
     ties to smaller h then later g. ``weight`` 1 gives the earliest arrival; slightly
     above 1 (weighted A*) avoids expanding the large ties of 4-connected grids and
-    keeps the arrival within ``weight`` x optimal. ``max_expansions`` bounds work;
-    ``deadline`` (``time.perf_counter()`` s) bounds its wall time: past it the search raises
-    :class:`SearchDeadline`.
+    keeps the arrival within ``weight`` x optimal. ``max_expansions`` bounds work (compiled,
+    :mod:`.sipp_kernel`: about a microsecond per expansion).
 
     Returns cells for steps ``t0 .. arrival`` (``path[0] == start``), or None.
     """
-    N = res.n
-    if heuristic[start] == INF or goal in res.parked:
-        return None
-    G1 = res.last(goal) + 1
-    w = weight
-    s_key = t0 * N + start
-    best = {s_key: t0}
-    info = {s_key: (start, t0, _start_interval_end(res, start, t0), -1)}   # state -> (cell, arrival, end, parent)
-    h0 = heuristic[start]
-    open_ = [(t0 + w * (h0 if h0 > G1 - t0 else G1 - t0), h0, -t0, s_key)]
-    closed: set[int] = set()
-    push, pop = heapq.heappush, heapq.heappop
-    expansions = 0
-    while open_:
-        skey = pop(open_)[3]
-        if skey in closed:
-            continue
-        closed.add(skey)
-        u, a, e, _ = info[skey]
-        if u == goal and e == INF:
-            return _path(info, skey)
-        expansions += 1
-        if expansions > max_expansions:
-            return None
-        if expansions % DEADLINE_EVERY == 0 and time.perf_counter() > deadline:
-            raise SearchDeadline(f"search from cell {start} to {goal} passed its deadline")
-        for key, t_arr, e_int, v, hv in _successors(res, nbrs[u], heuristic, u, a, e):
-            if key not in closed and t_arr < best.get(key, INF):
-                best[key] = t_arr
-                info[key] = (v, t_arr, e_int, skey)
-                rest = G1 - t_arr
-                push(open_, (t_arr + w * (hv if hv > rest else rest), hv, -t_arr, key))
-    return None
+    nbr, nnbr = _SCRATCH.neighbours(nbrs)
+    h = np.asarray(heuristic, dtype=np.float64)
+    top = res.top
+    rows = max(top, t0 + 1) + 2
+    out_len = 4 * rows + len(nbrs)
+    while True:
+        stamp, sid, closed, best, scell, sarr, send, spar = _SCRATCH.arrays((rows + 1) * res.n)
+        out = np.empty(out_len, dtype=np.int64)
+        n = sipp_search(nbr, nnbr, h, int(start), int(goal), res.vt, top, res.park, res.opath, res.olen, res.opark,
+                        len(res.paths), int(t0), float(weight), int(max_expansions), stamp, sid, closed, best, scell,
+                        sarr, send, spar, out)
+        if n >= 0:
+            return None if n == 0 else out[:n].tolist()
+        out_len *= 2
+
