@@ -507,5 +507,3 @@ def warm_up() -> None:
               True, claim, np.full(2, -1, dtype=np.int64), NO_PREFER)
     mapf_t_actions(g.nbr, pos, head, nxt, dist, slot, np.empty(2, dtype=np.int64), claim)
     heading_costs(g.nbr, dist, slot, pos, head, np.empty(2))
-    from .scatter import warm_up as warm_scatter
-    warm_scatter()

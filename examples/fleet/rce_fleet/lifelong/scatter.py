@@ -244,9 +244,3 @@ def scatter(nbr: np.ndarray, table: np.ndarray, rows: np.ndarray, starts: np.nda
     return prefer_table(*_steps(best[1], best[2]), ncell), {"rounds": len(coll), "collisions": coll,
                                                              "time_s": clock() - t0}
 
-
-def warm_up() -> None:
-    """Compile (or load from numba's cache) the kernels on a 1 x 2 grid."""
-    nbr = np.array([[1, -1, -1, -1], [-1, -1, 0, -1]], dtype=np.int32)
-    table = np.array([[1, 0]], dtype=np.uint16)
-    scatter(nbr, table, np.zeros(1, dtype=np.int64), np.array([0], dtype=np.int64), np.array([1], dtype=np.int64))
