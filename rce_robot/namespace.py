@@ -138,8 +138,11 @@ class RobotNamespace:
         (:func:`rce_robot.ws_link.write`), while the link takes it; when it does not (its buffer is
         full, or it is closing) the writer task goes on."""
         ws, now = self.ws, time.monotonic()
-        while self.session.outbox and ws_link.writable(ws):
-            ws_link.write(ws, self.session.data_to_send(1, now))
+        while ws_link.writable(ws):
+            frames = self.session.data_to_send(1, now)
+            if not frames:          # nothing waits
+                return
+            ws_link.write(ws, frames)
         if self.session.outbox:
             self._wake.set()
 

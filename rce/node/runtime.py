@@ -32,6 +32,7 @@ import os
 import signal
 import sys
 import weakref
+from collections import deque
 from typing import Any, Awaitable, Callable
 
 from rce.transport import framing
@@ -141,43 +142,85 @@ class Publisher:
 
 
 class Subscriber:
-    """Receives messages of one topic into a bounded queue (``queue_size``, oldest dropped first)."""
+    """Receives messages of one topic into a bounded queue (``queue_size``, oldest dropped first).
+
+    The callback runs in a loop callback that takes every message waiting, in order (no task wakes per
+    message); one that returns an awaitable is awaited in a task, which then takes the rest, so
+    messages are handled one at a time, in order, whether the callback is sync or async."""
 
     def __init__(self, node: "Node", topic: str, typename: str, callback: Callable, queue_size: int):
         self.node, self.topic, self.typename, self.callback = node, topic, typename, callback
-        self.queue: asyncio.Queue = asyncio.Queue(maxsize=max(1, queue_size))
+        self.queue_size = max(1, queue_size)
+        self.queue: deque[bytes] = deque()
         self.dropped = 0
         self.received = 0
         self.undecodable = 0       # messages that did not deserialize as typename (counted, logged, reported)
         self.handle = 0
-        self._task = node.tasks.spawn(self._consume(), name=f"subscriber {topic}")
+        self._busy = False         # a drain is scheduled or a callback's awaitable is awaited
+        self._stopped = False
 
     def _push(self, payload: bytes) -> None:
-        if self.queue.full():
-            self.queue.get_nowait()
+        q = self.queue
+        if len(q) >= self.queue_size:
+            q.popleft()
             self.dropped += 1
-        self.queue.put_nowait(payload)
+        q.append(payload)
+        if not self._busy and not self._stopped:
+            self._busy = True
+            asyncio.get_running_loop().call_soon(self._drain)
 
-    async def _consume(self) -> None:
-        reg = self.node.registry
-        while True:
-            payload = await self.queue.get()
-            self.received += 1
-            try:
-                msg = reg.deserialize(self.typename, payload)
-            except MessageError as e:
-                self.undecodable += 1
-                self.node.undecodable(f"subscriber {self.topic}", e)
-                continue
-            try:
-                r = self.callback(msg)
-                if inspect.isawaitable(r):
+    def _drain(self) -> None:
+        """Take the waiting messages; an awaitable a callback returns goes on in a task."""
+        q = self.queue
+        while q and not self._stopped:
+            r = self._take(q.popleft())
+            if r is not None:
+                self.node.tasks.spawn(self._finish(r), name=f"subscriber {self.topic}")
+                return
+        self._busy = False
+
+    def _take(self, payload: bytes) -> Awaitable | None:
+        """Deserialize ``payload`` and call the callback: its awaitable result, or None."""
+        self.received += 1
+        try:
+            msg = self.node.registry.deserialize(self.typename, payload)
+        except MessageError as e:
+            self.undecodable += 1
+            self.node.undecodable(f"subscriber {self.topic}", e)
+            return None
+        try:
+            r = self.callback(msg)
+        except Exception as e:
+            self._failed(e)
+            return None
+        return r if inspect.isawaitable(r) else None
+
+    async def _finish(self, r: Awaitable) -> None:
+        q = self.queue
+        try:
+            while True:
+                try:
                     await r
-            except Exception as e:
-                print(f"[{self.node.full_name}] subscriber callback for {self.topic} failed: {e!r}", file=sys.stderr)
+                except Exception as e:
+                    self._failed(e)
+                r = None
+                while q and not self._stopped and r is None:
+                    r = self._take(q.popleft())
+                if r is None:
+                    return
+        finally:
+            self._busy = False
+
+    def _failed(self, e: Exception) -> None:
+        print(f"[{self.node.full_name}] subscriber callback for {self.topic} failed: {e!r}", file=sys.stderr)
+
+    def _stop(self) -> None:
+        """Take no more messages (those waiting are dropped uncounted: the subscription is gone)."""
+        self._stopped = True
+        self.queue.clear()
 
     async def unregister(self) -> None:
-        self._task.cancel()
+        self._stop()
         await self.node._peer.call("unsubscribe", handle=self.handle)
 
 
@@ -314,7 +357,7 @@ class Node:
                                   handle=sub.handle)
         except BaseException:
             self._subs.pop(sub.handle, None)
-            sub._task.cancel()
+            sub._stop()
             raise
         return sub
 

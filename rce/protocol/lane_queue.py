@@ -13,6 +13,7 @@ session's stats.
 """
 from __future__ import annotations
 
+from bisect import bisect_left
 from dataclasses import dataclass, field
 from typing import Any, Generic, TypeVar
 
@@ -23,6 +24,7 @@ T = TypeVar("T")
 
 STARVE_AFTER = 7            # items of higher lanes before a waiting lower lane's turn: bulk gets >= 1/8 of the turns
 DELAY_BOUNDS = (0.001, 0.005, 0.01, 0.05, 0.1, 0.5, 1.0, 5.0)     # s: queue-delay histogram buckets (upper bounds)
+ALL_LANES: tuple[Lane, ...] = tuple(sorted(Lane, key=lambda lane: lane.rank))    # every lane, in priority order
 
 
 @dataclass
@@ -43,15 +45,18 @@ class LaneStats:
         """An item left after waiting ``delay`` s."""
         self.taken += 1
         self.delay_sum += delay
-        self.delay_max = max(self.delay_max, delay)
-        i = next((i for i, b in enumerate(DELAY_BOUNDS) if delay <= b), len(DELAY_BOUNDS))
-        self.delay_buckets[i] += 1
+        if delay > self.delay_max:
+            self.delay_max = delay
+        self.delay_buckets[bisect_left(DELAY_BOUNDS, delay)] += 1     # the first bound >= delay
 
 
 @dataclass(slots=True)
 class _LaneItem:
     item: Any
     since: float | None          # s when put; None: not timed (its queue delay counts as 0)
+
+
+_IN_ORDER = {ALL_LANES, (Lane.CONTROL, Lane.STATE), (Lane.BULK,)}     # lane tuples already in priority order
 
 
 class LaneQueues(Generic[T]):
@@ -70,9 +75,12 @@ class LaneQueues(Generic[T]):
     def __len__(self) -> int:
         return sum(len(q) for q in self.lanes.values())
 
-    def waiting(self, lanes: tuple[Lane, ...] = tuple(Lane)) -> int:
+    def waiting(self, lanes: tuple[Lane, ...] = ALL_LANES) -> int:
         """Items waiting in ``lanes``."""
-        return sum(len(self.lanes[lane]) for lane in lanes)
+        n = 0
+        for lane in lanes:
+            n += len(self.lanes[lane])
+        return n
 
     @property
     def places(self) -> int:
@@ -108,21 +116,29 @@ class LaneQueues(Generic[T]):
         key's newest (:meth:`Outbox.put_data`)."""
         self.lanes[lane].put_data(key, _LaneItem(item, now), now)
 
-    def take(self, now: float | None = None, lanes: tuple[Lane, ...] = tuple(Lane)) -> tuple[Lane, T] | None:
+    def take(self, now: float | None = None, lanes: tuple[Lane, ...] = ALL_LANES) -> tuple[Lane, T] | None:
         """The next item of ``lanes`` and its lane (None when none waits): the first lane in priority
         order that waits, unless a lower one has waited through ``starve_after`` turns. ``now`` (s):
         as :meth:`Outbox.take` (stale data dropped); also the end of the item's queue delay."""
-        order = sorted(lanes, key=lambda lane: lane.rank)
-        waiting = [lane for lane in order if len(self.lanes[lane])]
-        if not waiting:
-            return None
-        starved = [lane for lane in waiting[1:] if self._passed[lane] >= self.starve_after]
-        lane = starved[-1] if starved else waiting[0]
-        entry = self.lanes[lane].take(now)
-        if entry is None:              # everything left in it was stale
-            return self.take(now, lanes)
+        order = lanes if lanes in _IN_ORDER else tuple(sorted(lanes, key=lambda lane: lane.rank))
+        passed = self._passed
+        while True:
+            waiting: list[Lane] = []
+            starved = None
+            for lane in order:
+                if len(self.lanes[lane]):
+                    if waiting and passed[lane] >= self.starve_after:
+                        starved = lane              # the lowest starved lane gets the turn
+                    waiting.append(lane)
+            if not waiting:
+                return None
+            lane = starved or waiting[0]
+            entry = self.lanes[lane].take(now)
+            if entry is not None:
+                break                               # else everything left in it was stale: look again
+        rank = lane.rank
         for other in order:
-            self._passed[other] = self._passed[other] + 1 if other in waiting and other.rank > lane.rank else 0
+            passed[other] = passed[other] + 1 if other.rank > rank and other in waiting else 0
         timed = now is not None and entry.since is not None
         self.stats[lane].took(max(0.0, now - entry.since) if timed else 0.0)
         return lane, entry.item
@@ -135,7 +151,7 @@ class LaneQueues(Generic[T]):
 
     def drain(self) -> list[T]:
         """Every item waiting, control lane first, taken off the queues (nothing counted)."""
-        items = [e.item for lane in sorted(Lane, key=lambda lane: lane.rank) for e in self.lanes[lane].drain()]
+        items = [e.item for lane in ALL_LANES for e in self.lanes[lane].drain()]
         self._passed = {lane: 0 for lane in Lane}
         return items
 

@@ -24,10 +24,11 @@ from typing import Any
 
 from rce.protocol.error_limits import ErrorLimits
 from rce.protocol.frames import DM, ER, ST, encode
-from rce.protocol.lane_queue import LaneQueues
+from rce.protocol.lane_queue import ALL_LANES, LaneQueues
 from rce.protocol.lanes import Lane
 from rce.protocol.resume import AK, Frame, Outgoing
 
+_CONTROL_STATE = (Lane.CONTROL, Lane.STATE)     # the session's link's lanes while a bulk link takes bulk
 CONTROL_BACKLOG = 10        # x queue_size: STs and answers waiting before a robot that does not
                             # read is closed (they are never dropped; ERs are, past queue_size)
 
@@ -141,7 +142,7 @@ class RobotOutbox:
     def link_lanes(self) -> tuple[Lane, ...]:
         """The lanes the session's own link carries: all of them, or control and state while a bulk link
         takes the bulk lane."""
-        return (Lane.CONTROL, Lane.STATE) if self.bulk_linked else tuple(Lane)
+        return _CONTROL_STATE if self.bulk_linked else ALL_LANES
 
     def waiting(self) -> int:
         """Messages waiting for the session's own link."""

@@ -134,3 +134,45 @@ async def test_a_message_a_node_cannot_deserialize_is_counted_and_the_next_one_a
     async with asyncio.timeout(STEP):           # the node's report travels on its link after the message
         while session.stats()["undecodable"] != 1:
             await asyncio.sleep(0.01)
+
+
+async def test_an_async_callback_takes_messages_one_at_a_time_in_order_and_a_full_queue_drops_its_oldest(bus):
+    _, _, node = bus
+    talker, listener = await node("talker"), await node("listener")
+    release, handled, running = asyncio.Event(), [], []
+
+    async def callback(m):
+        running.append(m.data)
+        assert len(running) == 1, running            # never two at once
+        if m.data == 0:
+            await release.wait()
+        handled.append(m.data)
+        running.pop()
+
+    def fails(m):
+        raise ValueError(f"bad {m.data}")
+
+    sub = await listener.subscriber("chatter", "std_msgs/Int32", callback, queue_size=2)
+    bad = await listener.subscriber("chatter", "std_msgs/Int32", fails)
+    pub = await talker.publisher("chatter", "std_msgs/Int32")
+    await pub.publish({"data": 0})
+    async with asyncio.timeout(STEP):
+        while not running:
+            await asyncio.sleep(0.01)
+    for i in range(1, 6):
+        await pub.publish({"data": i})
+    async with asyncio.timeout(STEP):        # 0 is in the callback; 1..5 came while it waited: 2 stay
+        while sub.received + len(sub.queue) + sub.dropped < 6:
+            await asyncio.sleep(0.01)
+    assert (handled, sub.received, len(sub.queue), sub.dropped) == ([], 1, 2, 3)
+    release.set()
+    async with asyncio.timeout(STEP):
+        while len(handled) < 3:
+            await asyncio.sleep(0.01)
+    assert handled == [0, 4, 5] and not sub.queue
+    await pub.publish({"data": 6})                     # the subscriber is idle again: the next one comes
+    async with asyncio.timeout(STEP):
+        while len(handled) < 4:
+            await asyncio.sleep(0.01)
+    assert handled == [0, 4, 5, 6]
+    assert bad.received == 7 and bad.dropped == 0      # a sync callback that raises takes every message
