@@ -182,6 +182,9 @@ class Assembler:
         if self.budget is not None and not self.budget.take(len(payload)):
             raise ProtocolError(f"binary parts waiting for their message on this endpoint exceed "
                                 f"{self.budget.max_bytes} bytes; part {ref} dropped")
+        if old is None and (done := self._completes(ref)) is not None:    # the usual case: not held at all
+            self._release(len(payload))
+            return [self._complete(done, self._pending[done].msg, [ref], {ref: payload})]
         if old is not None:
             self._release(len(old[0]))
         self._parts[ref] = (payload, now)
@@ -225,15 +228,27 @@ class Assembler:
         self._bytes -= n
         self._release(n)
 
-    def _complete(self, key: int | None, msg: dict, refs: list[str]) -> dict:
+    def _complete(self, key: int | None, msg: dict, refs: list[str], given: dict[str, bytes] | None = None) -> dict:
+        """Message ``msg`` (``key``: waiting, None: not) has all its parts: those held and ``given``
+        (never held) are taken."""
         if key is not None:
             self._forget(key)
-        parts = {r: self._parts[r][0] for r in refs}
-        for r in set(refs):
+        parts = {r: self._parts[r][0] for r in refs if given is None or r not in given}
+        for r in set(parts):
             self._drop_part(r)
             for k in self._users.get(r, ()):     # messages that reuse a consumed id wait for it again
                 self._pending[k].missing.add(r)
+        if given:
+            parts.update(given)
         return _resolve(msg, parts)
+
+    def _completes(self, ref: str) -> int | None:
+        """The key of the first message waiting for part ``ref`` whose one part it is, else None
+        (the part is then held as usual)."""
+        for key in self._users.get(ref, ()):
+            p = self._pending[key]
+            return key if p.refs == [ref] else None
+        return None
 
     def expire(self, now: float) -> list[str]:
         """Drop incomplete messages and orphan parts older than ``expiry``; return reasons."""
