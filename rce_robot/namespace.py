@@ -188,15 +188,21 @@ class RobotNamespace:
         link.spawn(self._writer(ws), name="writer")
         link.spawn(self._ticker(), name="ticker")
         self._pump()
+        joined = False      # the last frame's message waits for its binary parts: they come in the same turn
         try:
             async for frame in ws:
                 if self.ws is not ws:       # a resume took the session over: the robot resends what this link
                     break                   # still brings (the resume's ack says what was taken)
                 self.session.backlog(ws_link.behind(ws), time.monotonic())
+                waiting = self.session.assembler.pending
                 if self._receive(frame):       # a big text frame: parsed in the pool first
                     await self._receive_big(frame)
                 self._pump()
-                await ws_link.take_turn(ws)
+                # a message and the binary part that follows it are one turn (at most two frames, so a
+                # burst is still served among the other robots' frames)
+                joined = not joined and self.session.assembler.pending > waiting
+                if not joined:
+                    await ws_link.take_turn(ws)
         except ConnectionClosed:
             pass
         finally:
