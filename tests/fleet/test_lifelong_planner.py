@@ -365,6 +365,9 @@ def test_lns_removes_detours_and_keeps_a_crowded_solution_valid():
     guided = solve_lacam(g, starts, goals, time_limit_s=30, scatter_share=0.5)
     assert guided["solved"] and guided["scatter"]["rounds"] >= 2
     assert_solution(g, guided["paths"], starts.tolist(), goals.tolist())
+    plain = solve_lacam(g, starts, goals, time_limit_s=30, noise=0.0)      # no random walk when stuck
+    assert plain["solved"]
+    assert_solution(g, plain["paths"], starts.tolist(), goals.tolist())
     ref = refine_lns(g, res["paths"], goals, 0.5, seed=1)
     assert_solution(g, ref["paths"], starts.tolist(), goals.tolist())
     arrival = [int(np.flatnonzero(ref["paths"][:, a] != goals[a]).max(initial=-1)) + 1 for a in range(30)]

@@ -7,7 +7,12 @@ successor appears, so corridor livelocks that stop plain PIBT are left.
 4-neighbour moves; distances are the per-goal breadth-first maps of
 :class:`~.distances.DistanceCache`; the successor generator is the compiled
 :func:`~.kernels.pibt_step` (with LaCAM*'s swap technique), optionally guided by lacam3's
-space utilisation (:mod:`.scatter`).
+space utilisation (:mod:`.scatter`). Agents that stop coming closer to their goals get
+noisy tie-breaks, as in the lifelong planner: PIBT otherwise leaves a few agents waiting a few
+cells from their goals for hundreds of steps while the rest of the configuration keeps
+changing, so no configuration repeats and the search never backtracks (measured on the
+MovingAI warehouse at 1000 agents with scatter: first solutions 1.88 - 2.00x the lower bound
+and makespans 294 - 395, against 2.09 - 2.10x and 525 - 735 without).
 """
 from __future__ import annotations
 
@@ -35,24 +40,30 @@ class _Constraint:
 
 
 class _Node:
-    """A high-level node: a configuration, its parent, the agents' priorities and order, and
+    """A high-level node: a configuration, its parent, the agents' priorities and order, each
+    agent's least distance to its goal so far and the configurations since it last fell, and
     the queue of low-level constraints still to try."""
 
-    __slots__ = ("config", "order", "parent", "prio", "tree")
+    __slots__ = ("best", "config", "order", "parent", "prio", "stuck", "tree")
 
-    def __init__(self, config: np.ndarray, parent, prio: np.ndarray):
+    def __init__(self, config: np.ndarray, parent, prio: np.ndarray, best: np.ndarray, stuck: np.ndarray):
         self.config, self.parent, self.prio = config, parent, prio
+        self.best, self.stuck = best, stuck
         self.order = np.argsort(-prio, kind="stable").astype(np.int64)
         self.tree: deque = deque([_Constraint(None, -1, -1)])
 
 
 def solve_lacam(grid: LifelongGrid, starts: np.ndarray, goals: np.ndarray, time_limit_s: float = 5.0, seed: int = 0,
-                cache: DistanceCache | None = None, scatter_share: float = 0.0, clock=time.perf_counter) -> dict:
+                cache: DistanceCache | None = None, scatter_share: float = 0.0, stuck_steps: int = 20,
+                noise: float = 100.0, clock=time.perf_counter) -> dict:
     """Solve one-shot MAPF (every agent from its start to its goal, 4-neighbour moves).
 
     starts, goals: (n,) cells. ``scatter_share``: the share of ``time_limit_s`` for lacam3's
     space utilisation (:func:`~.scatter.scatter`: near-shortest paths that avoid each other,
-    whose next cells PIBT tries first; 0 turns it off). Returns a dict as
+    whose next cells PIBT tries first; 0 turns it off). An agent that has not come closer to
+    its goal for ``stuck_steps`` configurations (along the search's path) gets PIBT's
+    tie-breaks scaled by ``noise`` (the lifelong planner's random walk out of a jam; 0 turns it
+    off). Returns a dict as
     :func:`~.pibt.solve_one_shot`: ``paths`` ((T+1, n) cells, the last row the goals when
     ``solved``), ``solved``, ``sum_of_costs`` (each agent's last arrival, summed),
     ``makespan``, ``time_s``, plus ``nodes`` (high-level nodes generated) and ``scatter``
@@ -73,7 +84,8 @@ def solve_lacam(grid: LifelongGrid, starts: np.ndarray, goals: np.ndarray, time_
     no_claim = np.full(n, -1, dtype=np.int64)
     owner = np.full(grid.n_cells, -1, dtype=np.int64)
     ids = np.arange(n)
-    root = _Node(starts.copy(), None, d0.astype(float) / max(1, int(d0.max())))
+    root = _Node(starts.copy(), None, d0.astype(float) / max(1, int(d0.max())), d0.astype(np.int64),
+                 np.zeros(n, dtype=np.int64))
     explored = {starts.tobytes(): root}
     stack = [root]
     goal_key = goals.tobytes()
@@ -100,7 +112,10 @@ def solve_lacam(grid: LifelongGrid, starts: np.ndarray, goals: np.ndarray, time_
         while c is not None and c.who >= 0:
             fixed[c.who] = c.where
             c = c.parent
-        pibt_step(nbr, node.config, head, table, slot, goals, node.order, False, 0.0, rng.random((n, 5)), nxt, True,
+        rnd = rng.random((n, 5))
+        if noise > 0:
+            rnd[node.stuck > stuck_steps] *= noise
+        pibt_step(nbr, node.config, head, table, slot, goals, node.order, False, 0.0, rnd, nxt, True,
                   no_claim, fixed, prefer)
         # constraints PIBT could not honour show up as vertex or swap conflicts
         owner[nxt] = ids                       # two agents on one cell: one of them is overwritten
@@ -119,7 +134,9 @@ def solve_lacam(grid: LifelongGrid, starts: np.ndarray, goals: np.ndarray, time_
             continue
         at = nxt == goals
         prio = np.where(at, node.prio - np.floor(node.prio), node.prio + 1)
-        new = _Node(nxt.copy(), node, prio)
+        dn = table[slot, nxt].astype(np.int64)
+        better = dn < node.best
+        new = _Node(nxt.copy(), node, prio, np.minimum(node.best, dn), np.where(better | at, 0, node.stuck + 1))
         explored[key] = new
         stack.append(new)
     configs = []
