@@ -51,6 +51,7 @@ from rce.plumbing.pending import PendingCalls
 from rce.plumbing.tasks import Tasks
 from rce_container import metrics
 from rce_container import sandbox as sandboxes
+from rce_container.env_template_client import EnvTemplate, ForkedEnvironment
 from rce_container.environment import BUS_CALL_TIMEOUT, MAX_SOCKET_PATH, container_paths
 from rce_container.usage import measure
 
@@ -83,7 +84,7 @@ class EnvHandle:
     """The task set's view of one environment process."""
     env_id: int
     key: tuple | None              # the group it serves; None while it is a warm spare
-    proc: asyncio.subprocess.Process | None = None
+    proc: asyncio.subprocess.Process | ForkedEnvironment | None = None   # exec'd, or forked by the template
     peer: rpc.RpcPeer | None = None
     data_addr: str = ""
     cids: set[int] = field(default_factory=set)
@@ -145,6 +146,7 @@ class ContainerHost:
         self.max_frame, self.env_timeout, self.grace = max_frame, env_timeout, grace
         self.warm = max(0, warm)
         self.spares: list[EnvHandle] = []
+        self.env_template = EnvTemplate()      # environments fork from it (exec'd when it cannot)
         self._spare_tasks: list[asyncio.Task] = []
         self.socket_dir = socket_dir_for(self.runtime_dir)
         self.control_path = str(self.socket_dir / CONTROL_SOCKET)
@@ -177,6 +179,7 @@ class ContainerHost:
             os.unlink(self.control_path)
         self._server = await asyncio.start_unix_server(self._accept_env, self.control_path, limit=STREAM_LIMIT)
         os.chmod(self.control_path, 0o600)
+        self.env_template.start_soon()        # imports while the task set registers; spares fork from it
         how = await asyncio.to_thread(self.sandbox_cls.prepare_host, self.scope)
         log.info("sandbox", kind=self.sandbox_cls.kind, uses=how, scope=self.scope)
         if self.metrics_port is not None:
@@ -207,6 +210,7 @@ class ContainerHost:
             if isinstance(r, Exception):
                 log.error("environment did not stop cleanly", env=env.env_id, exc_info=r)
         self.containers.clear()
+        await self.env_template.close()
         await asyncio.to_thread(self.sandbox_cls.cleanup_host, self.scope)   # anything a crash left behind
         if self._http is not None:
             await self._http.cleanup()
@@ -279,14 +283,14 @@ class ContainerHost:
     async def _spawn_env(self, key: tuple | None) -> EnvHandle:
         env = EnvHandle(next(self._env_ids), key, started=time.monotonic())
         self._hellos.open(key=env.env_id)
-        argv = [sys.executable, "-m", "rce_container.environment", "--control", self.control_path,
-                "--env-id", str(env.env_id), "--runtime-dir", str(self.runtime_dir),
+        args = ["--control", self.control_path, "--env-id", str(env.env_id), "--runtime-dir", str(self.runtime_dir),
                 "--socket-dir", str(self.socket_dir), "--bind", self.bind,
                 "--advertise-host", self.advertise_host, "--sandbox", self.sandbox_cls.kind,
                 "--max-frame", str(self.max_frame), "--grace", str(self.grace), "--scope", self.scope]
         try:
-            env.proc = await asyncio.create_subprocess_exec(*argv, stdin=asyncio.subprocess.DEVNULL,
-                                                            start_new_session=True)
+            env.proc = await self.env_template.spawn(args) or await asyncio.create_subprocess_exec(
+                sys.executable, "-m", "rce_container.environment", *args, stdin=asyncio.subprocess.DEVNULL,
+                start_new_session=True)
             early_exit = self.tasks.spawn(self._exit_before_hello(env), name=f"environment {env.env_id} start")
             try:
                 env.peer, info = await self._hellos.wait(env.env_id, self.env_timeout)

@@ -49,6 +49,7 @@ import signal
 import socket
 import sys
 import traceback
+from typing import NoReturn
 
 #: Modules every Python node imports (the node runtime and the message codec, numpy included).
 PRELOAD = ("rce.node", "rce.messages", "rce.node.package_path")
@@ -97,11 +98,23 @@ def preload() -> None:
     load_types(default_registry())
 
 
-def _send(sock: socket.socket, msg: dict) -> None:
+def reset_signals() -> None:
+    """In a fresh child of a fork server: the signal dispositions an exec'd interpreter starts
+    with, and the :data:`HANDLED_SIGNALS` the server blocked around the fork unblocked (one
+    that arrived meanwhile is delivered now, to the default action)."""
+    for sig in (signal.SIGCHLD, signal.SIGTERM, signal.SIGHUP):
+        signal.signal(sig, signal.SIG_DFL)
+    signal.signal(signal.SIGINT, signal.default_int_handler)
+    signal.set_wakeup_fd(-1)
+    signal.pthread_sigmask(signal.SIG_UNBLOCK, HANDLED_SIGNALS)
+
+
+def send(sock: socket.socket, msg: dict) -> None:
+    """One JSON message, one packet."""
     sock.send(json.dumps(msg).encode())
 
 
-def _exit_code(stop: SystemExit) -> int:
+def exit_code(stop: SystemExit) -> int:
     """What the interpreter would exit with for ``sys.exit(e.code)``."""
     if stop.code is None:
         return 0
@@ -117,11 +130,7 @@ def _become_node(req: dict, out: int, err: int, sock: socket.socket, inherited: 
     sock.close()
     for fd in inherited:
         os.close(fd)
-    for sig in (signal.SIGCHLD, signal.SIGTERM, signal.SIGHUP):
-        signal.signal(sig, signal.SIG_DFL)
-    signal.signal(signal.SIGINT, signal.default_int_handler)
-    signal.set_wakeup_fd(-1)
-    signal.pthread_sigmask(signal.SIG_UNBLOCK, HANDLED_SIGNALS)     # blocked by the zygote around the fork
+    reset_signals()
     devnull = os.open(os.devnull, os.O_RDONLY)
     for fd, target in ((devnull, 0), (out, 1), (err, 2)):
         os.dup2(fd, target)
@@ -145,13 +154,19 @@ def _run_child(req: dict, out: int, err: int, sock: socket.socket, report: int, 
         runpy.run_path(sys.argv[0], run_name="__main__")
         code = 0
     except SystemExit as e:
-        code = _exit_code(e)
+        code = exit_code(e)
     except BaseException as e:         # noqa: BLE001 -- reported as the interpreter would, plus a line
         traceback.print_exc()
         try:
             os.write(report, f"uncaught {type(e).__name__}: {e}"[:MAX_ERROR].encode(errors="replace"))
         except OSError:
             pass
+    exit_child(code)
+
+
+def exit_child(code: int) -> NoReturn:
+    """End a forked child as an interpreter ends: its atexit functions, stdout and stderr
+    flushed, then exit ``code`` (``os._exit``: nothing of the server's runs)."""
     try:
         atexit._run_exitfuncs()
         sys.stdout.flush()
@@ -160,10 +175,11 @@ def _run_child(req: dict, out: int, err: int, sock: socket.socket, report: int, 
         os._exit(code)
 
 
-class _Server:
-    """The loop both servers run: ``sock`` is the link to the host; each packet (with at most
-    :attr:`FDS` descriptors) goes to :meth:`handle`, SIGCHLD to :meth:`reap`; it ends when the
-    host's end closes."""
+class ForkServer:
+    """The loop of a fork server (a container's zygote, the template, and the environments'
+    :mod:`rce_container.env_template`): ``sock`` is the link to the host; each packet (with at
+    most :attr:`FDS` descriptors) goes to :meth:`handle`, SIGCHLD to :meth:`reap`; it ends when
+    the host's end closes."""
 
     FDS = 0
 
@@ -192,11 +208,25 @@ class _Server:
     def reap(self) -> None:
         raise NotImplementedError
 
+    def reaped(self):
+        """Reap the children of ours (the keys of ``self.children``) that have exited: yields
+        ``(pid, {"code": C})`` or ``(pid, {"signal": S})`` for each; others are reaped and skipped."""
+        while self.children:
+            try:
+                pid, status = os.waitpid(-1, os.WNOHANG)
+            except ChildProcessError:
+                return
+            if pid == 0:
+                return
+            if pid in self.children:
+                yield pid, ({"signal": os.WTERMSIG(status)} if os.WIFSIGNALED(status)
+                            else {"code": os.waitstatus_to_exitcode(status)})
+
     def handle(self, data: bytes, fds: list[int]) -> None:
         raise NotImplementedError
 
 
-class Zygote(_Server):
+class Zygote(ForkServer):
     """The fork server of one container: ``sock`` its link to the host; ``children``: pid ->
     (request id, read end of the child's error pipe)."""
 
@@ -211,7 +241,7 @@ class Zygote(_Server):
                 or len(req["argv"]) < 2 or not isinstance(req.get("env"), dict):
             for fd in fds:
                 os.close(fd)
-            _send(self.sock, {"op": "refused", "id": req.get("id"), "error": "malformed spawn request"})
+            send(self.sock, {"op": "refused", "id": req.get("id"), "error": "malformed spawn request"})
             return
         r, w = os.pipe()
         sys.stdout.flush()
@@ -224,7 +254,7 @@ class Zygote(_Server):
             # to that group, and one sent before a later setsid would reach no one
             os.setsid()
             os.close(r)
-            _send(self.sock, {"op": "spawned", "id": req["id"]})     # from the node: its credentials give its pid
+            send(self.sock, {"op": "spawned", "id": req["id"]})     # from the node: its credentials give its pid
             _run_child(req, fds[0], fds[1], self.sock, w,
                        [self.wake_r, self.wake_w, *(er for _, er in self.children.values())])
         signal.pthread_sigmask(signal.SIG_UNBLOCK, HANDLED_SIGNALS)
@@ -236,21 +266,9 @@ class Zygote(_Server):
 
     def reap(self) -> None:
         """Report every child that has exited."""
-        while self.children:
-            try:
-                pid, status = os.waitpid(-1, os.WNOHANG)
-            except ChildProcessError:
-                return
-            if pid == 0:
-                return
-            if pid not in self.children:
-                continue                    # not a node of ours (cannot happen: we fork only nodes)
+        for pid, status in self.reaped():
             rid, r = self.children.pop(pid)
-            msg: dict = {"op": "exit", "id": rid}
-            if os.WIFSIGNALED(status):
-                msg["signal"] = os.WTERMSIG(status)
-            else:
-                msg["code"] = os.waitstatus_to_exitcode(status)
+            msg: dict = {"op": "exit", "id": rid, **status}
             try:
                 error = os.read(r, MAX_ERROR)
             except OSError:
@@ -258,7 +276,7 @@ class Zygote(_Server):
             os.close(r)
             if error:
                 msg["error"] = error.decode(errors="replace")
-            _send(self.sock, msg)
+            send(self.sock, msg)
 
     def serve(self) -> None:
         """Answer spawn requests and report exits until the host's end closes."""
@@ -286,7 +304,7 @@ class Zygote(_Server):
 
 def _serve_container(sock: socket.socket) -> None:
     """Say ``ready`` and serve the container's spawn requests until its end closes."""
-    _send(sock, {"op": "ready"})
+    send(sock, {"op": "ready"})
     zygote = Zygote(sock)
     try:
         zygote.serve()
@@ -312,7 +330,7 @@ def _become_zygote(req: dict, fd: int, inherited: list[int]) -> None:
                 os._exit(0)             # the zygote is reaped by the container's init
             sandbox_enter.drop(req["spec"])
         except (OSError, KeyError, TypeError) as e:
-            _send(sock, {"op": "failed", "error": f"cannot enter the container's sandbox: {e}"})
+            send(sock, {"op": "failed", "error": f"cannot enter the container's sandbox: {e}"})
             os._exit(1)
         _serve_container(sock)
         code = 0
@@ -320,7 +338,7 @@ def _become_zygote(req: dict, fd: int, inherited: list[int]) -> None:
         os._exit(code)
 
 
-class Template(_Server):
+class Template(ForkServer):
     """The environment's warm template (``--template``): one per environment process, started
     before any container, outside every sandbox (as root in the namespaced case, with a node's
     minimal environment and nothing else). For ``{"op": "container", "spec": enter_spec}`` with
@@ -363,10 +381,10 @@ def main(argv: list[str] | None = None) -> int:
     try:
         preload()
     except BaseException as e:         # noqa: BLE001 -- reported to the host, which then execs nodes
-        _send(sock, {"op": "failed", "error": f"{type(e).__name__}: {e}"})
+        send(sock, {"op": "failed", "error": f"{type(e).__name__}: {e}"})
         return 1
     if "--template" in argv[1:]:
-        _send(sock, {"op": "ready"})
+        send(sock, {"op": "ready"})
         Template(sock).serve()
     else:
         _serve_container(sock)

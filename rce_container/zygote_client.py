@@ -63,6 +63,18 @@ def sender_pid(ancillary: list[tuple[int, int, bytes]]) -> int | None:
     return None
 
 
+async def first_message(sock: socket.socket, timeout: float) -> dict:
+    """A fork server's first message on ``sock`` (made non-blocking here): ``{"op": "ready"}``,
+    ``{"op": "failed", "error": ...}``, or ``{"error": why}`` when none came within ``timeout`` s."""
+    sock.setblocking(False)
+    try:
+        async with asyncio.timeout(timeout):
+            msg = json.loads(await asyncio.get_running_loop().sock_recv(sock, MAX_MESSAGE) or b"{}")
+    except (TimeoutError, OSError, ValueError) as e:
+        msg = {"error": str(e) or type(e).__name__}
+    return msg if isinstance(msg, dict) else {"error": "not a JSON object"}
+
+
 async def _keep(stream: asyncio.StreamReader, sink: collections.deque) -> None:
     """Lines of a zygote's own stdout/stderr into the bounded ``sink`` (diagnostics)."""
     while line := await stream.readline():
@@ -371,12 +383,7 @@ class ZygoteTemplate:
         self.sock = ours
         for stream in (self.proc.stdout, self.proc.stderr):
             self._tasks.spawn(_keep(stream, self.output), name="zygote template output")
-        ours.setblocking(False)
-        try:
-            async with asyncio.timeout(READY_TIMEOUT):
-                msg = json.loads(await asyncio.get_running_loop().sock_recv(ours, MAX_MESSAGE) or b"{}")
-        except (TimeoutError, OSError, ValueError) as e:
-            msg = {"error": str(e) or type(e).__name__}
+        msg = await first_message(ours, READY_TIMEOUT)
         self._ready = msg.get("op") == "ready"
         if not self._ready:
             log.warning("no zygote template", reason=msg.get("error", "it exited"), output=list(self.output)[-5:])

@@ -124,9 +124,11 @@ class EchoRobot:
 
 def host_of(engine: Engine, ctag: str = CTAG) -> tuple[psutil.Process, psutil.Process]:
     """(the container host process, the environment process) serving ``ctag``, found through the
-    admin API's stats (the environment's pid) and the environment's parent."""
+    admin API's stats (the environment's pid) and its ancestors (the host, or the host's
+    environment template, whose parent is the host)."""
     env = psutil.Process(engine.admin(f"/api/containers/testUser/{ctag}/stats")["environment"]["pid"])
-    return env.parent(), env
+    host = next(p for p in env.parents() if any("rce-container" in a for a in p.cmdline()))
+    return host, env
 
 
 @asynccontextmanager

@@ -21,6 +21,12 @@ async def echo_ready(r: RawRobot, ctag: str, timeout: float = 60.0) -> None:
                addInterfaces=echo_interfaces(ctag, r.robot))
     await r.send("CX", {"connect": [{"tagA": f"{ctag}/{t}", "tagB": f"{r.robot}/{t}"} for t in ("req", "resp")]})
     await r.wait_up("req", "resp", timeout=timeout)
+    await echo_probe(r, timeout)
+
+
+async def echo_probe(r: RawRobot, timeout: float = 60.0) -> None:
+    """Return once an echo came back through robot ``r``'s echo container (``req``/``resp``),
+    probing every 0.5 s; TimeoutError after ``timeout`` s."""
     deadline = time.monotonic() + timeout
     for n in itertools.count(1):
         # numbered: an earlier probe's late echo is skipped here, never taken by an Echoer for its own
