@@ -48,6 +48,7 @@ sys.path.insert(0, str(BENCH))
 LINK = 10_000_000 / 8           # bytes/s: the link's rate, both ways
 CANCEL_HZ = 10.0
 DRAIN = 5.0                     # s after a phase for late echoes before a cancel counts as lost
+TRACE_EVERY = 0.02              # s between samples of the uplink's pacing (rate, estimate, queue) in the camera phase
 WARMUP = 1.0                    # s at the start of a phase the camera's goodput leaves out (its first frames)
 SYS_PY = "/usr/bin/python3"
 
@@ -189,21 +190,46 @@ async def robot_rce(a: argparse.Namespace) -> dict:
         await asyncio.sleep(0.1)
         if probe.rtt:
             break
-    out = await phases(a, cancel, cam.publish, probe)
+    trace: list[tuple] = []
+    out = await phases(a, cancel, cam.publish, probe, trace_pacing(conn, trace) if lanes else None)
+    out["pacing_trace"] = trace
     out["bulk"] = {"sent": conn.bulk.sent, "dropped": conn.bulk.dropped, "pacing": conn.bulk.pacing()} if lanes \
         else None
     await conn.close()
     return out
 
 
-async def phases(a: argparse.Namespace, cancel, camera, first: Probe) -> dict:
+async def trace_pacing(conn, trace: list[tuple]) -> None:
+    """Every :data:`TRACE_EVERY` s until cancelled, the uplink's pacing into ``trace``: (s since the
+    camera phase began, the pacer's rate, the estimate (None until known), the estimator's mode, the
+    bulk socket's smoothed RTT above its least (ms, None without a sample)), bytes/s as a share of the link."""
+    from rce.transport.lane_socket import socket_of, tcp_sample
+    t0 = time.monotonic()
+    while True:
+        pacer, sock = conn.bulk.pacer, socket_of(conn.bulk.ws) if conn.bulk.ws is not None else None
+        s = tcp_sample(sock, 0.0, 0.0) if sock is not None else None
+        est = pacer.estimator
+        trace.append((round(time.monotonic() - t0, 3), round(pacer.rate / LINK, 4),
+                      None if est is None or est.estimate is None else round(est.estimate / LINK, 4),
+                      est.mode.value if est is not None else "configured",
+                      None if s is None else round((s.rtt - s.min_rtt) * 1000, 2)))
+        await asyncio.sleep(TRACE_EVERY)
+
+
+async def phases(a: argparse.Namespace, cancel, camera, first: Probe, tracer=None) -> dict:
+    """The idle phase, then the camera phase (``tracer``, a coroutine, runs through the camera phase)."""
     frame = frame_bytes(a.frame)
     res = {}
     for name, with_camera, seconds in (("idle", False, a.idle), ("camera", True, a.camera)):
         probe = Probe(name)
         first.echo, first.ack = probe.echo, probe.ack          # the handlers feed the current phase
-        ended = await run_phase(probe, seconds, cancel, camera, frame if with_camera else None,
-                                a.camera_rate / a.frame)
+        traced = asyncio.ensure_future(tracer) if with_camera and tracer is not None else None
+        try:
+            ended = await run_phase(probe, seconds, cancel, camera, frame if with_camera else None,
+                                    a.camera_rate / a.frame)
+        finally:
+            if traced is not None:
+                traced.cancel()
         res[name] = probe.result(seconds, a.frame, ended)
     return res
 
@@ -328,8 +354,14 @@ def summary(r: dict) -> str:
 
 
 def plot(results: dict, path: Path, plt) -> None:
+    """Left: the cancel's round trips per run; right: the camera's goodput; below, for each run whose
+    rate was estimated: the estimate and the pacer's rate against time in the camera phase, with each
+    cancel's round trip."""
     runs = results["runs"]
-    fig, (ax1, ax2) = plt.subplots(1, 2, figsize=(12, 4.5))
+    traced = [r for r in runs if r["system"] == "rce-auto" and r.get("pacing_trace")]
+    fig = plt.figure(figsize=(12, 4.5 + 3.5 * bool(traced)))
+    grid = fig.add_gridspec(1 + bool(traced), max(2, len(traced)))
+    ax1, ax2 = fig.add_subplot(grid[0, : grid.ncols // 2]), fig.add_subplot(grid[0, grid.ncols // 2:])
     labels = [f"{r['system']}\n{r['setup']}" for r in runs]
     x = range(len(runs))
     for k, (phase, key) in enumerate((("idle", "p99_ms"), ("camera", "p50_ms"), ("camera", "p99_ms"))):
@@ -344,9 +376,22 @@ def plot(results: dict, path: Path, plt) -> None:
     ax2.axhline(85, color="grey", ls="--", lw=1)
     ax2.set_xticks(list(x), labels, fontsize=8)
     ax2.set_ylabel("camera goodput, % of the link")
+    for k, r in enumerate(traced):
+        ax = fig.add_subplot(grid[1, k])
+        t = [p[0] for p in r["pacing_trace"]]
+        ax.plot(t, [p[1] * 100 for p in r["pacing_trace"]], lw=0.8, label="pacer's rate")
+        ax.plot(t, [None if p[2] is None else p[2] * 100 for p in r["pacing_trace"]], lw=1.2, label="estimate")
+        ax.set_ylim(0, 200)
+        ax.set_xlabel("s into the camera phase")
+        ax.set_ylabel("% of the link")
+        ax.set_title(f"rate estimated, {r['setup']} bottleneck", fontsize=9)
+        rt = ax.twinx()
+        series = [(t_, ms) for t_, ms in r["camera"]["rtt_series"] if ms is not None]
+        rt.plot([p[0] for p in series], [p[1] for p in series], ".", ms=3, color="C3", label="cancel round trip")
+        rt.set_ylabel("cancel round trip, ms", color="C3")
+        ax.legend(fontsize=7, loc="upper right")
     fig.tight_layout()
     fig.savefig(path, dpi=110)
-
 
 if __name__ == "__main__":
     sys.exit(main())
