@@ -202,7 +202,8 @@ async def robot_rce(a: argparse.Namespace) -> dict:
 async def trace_pacing(conn, trace: list[tuple]) -> None:
     """Every :data:`TRACE_EVERY` s until cancelled, the uplink's pacing into ``trace``: (s since the
     camera phase began, the pacer's rate, the estimate (None until known), the estimator's mode, the
-    bulk socket's smoothed RTT above its least (ms, None without a sample)), bytes/s as a share of the link."""
+    bulk socket's smoothed RTT above its least (ms), its bytes acked and not sent (None without a
+    sample)), rates as a share of the link."""
     from rce.transport.lane_socket import socket_of, tcp_sample
     t0 = time.monotonic()
     while True:
@@ -212,7 +213,8 @@ async def trace_pacing(conn, trace: list[tuple]) -> None:
         trace.append((round(time.monotonic() - t0, 3), round(pacer.rate / LINK, 4),
                       None if est is None or est.estimate is None else round(est.estimate / LINK, 4),
                       est.mode.value if est is not None else "configured",
-                      None if s is None else round((s.rtt - s.min_rtt) * 1000, 2)))
+                      None if s is None else round((s.rtt - s.min_rtt) * 1000, 2),
+                      None if s is None else s.acked, None if s is None else s.notsent))
         await asyncio.sleep(TRACE_EVERY)
 
 

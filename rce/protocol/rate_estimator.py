@@ -41,6 +41,7 @@ In intervals of at least :data:`MIN_INTERVAL` s and two minimum round trips:
 """
 from __future__ import annotations
 
+from collections import deque
 from dataclasses import dataclass
 from enum import Enum
 
@@ -57,7 +58,7 @@ HELD_SHARE = 0.5            # share of an interval the pacer made the sender wai
 TAKEN_SHARE = 0.95          # a queue with at least this share of the pacer's rate acked is noise, not the path's
 QUEUE_HIGH = 3              # queue targets past which a queue counts whatever was acked
 STARTUP_GAIN = 2.0
-CRUISE_GAIN = 0.9           # the pacer's rate in cruise, as a share of the estimate: under the link
+CRUISE_GAIN = 0.93          # the pacer's rate in cruise, as a share of the estimate: under the link
 DRAIN_GAIN = 0.75
 STARTUP_DRAIN_GAIN = 0.5    # after startup's overshoot (BBR drains at 1/2.89 after a startup at 2.89)
 PROBE_GAIN = 1.1            # BBR probes at 1.25; a FIFO bottleneck shared with control holds less at 1.1
@@ -65,6 +66,7 @@ PROBE_EVERY = 16            # cruise intervals (held back) between probes
 PROBE_ROOM = 1.05           # a probe that raised the estimate by this factor or more is followed by another
 MAX_DRAIN = 4               # drain intervals that still show a queue after which the estimate is taken again
 STEP_DOWN = 0.9             # the most one congested interval lowers the estimate by (a queue that stays: more)
+RATE_WINDOW = 0.16          # s: the least span a path's rate is read over at the end of startup or a drain
 
 
 class Mode(str, Enum):
@@ -109,8 +111,8 @@ class RateEstimator:
         self._start: PathSample | None = None     # the sample that began the current interval
         self._waited = 0.0                        # s the pacer held the sender back in the current interval
         self._cruised = 0                         # cruise intervals with data held back since the last probe
-        self._delivered = 0.0                     # bytes/s acked in the last interval held back
         self._drained = 0                         # drain intervals that still showed a queue
+        self._ends: deque[PathSample] = deque(maxlen=16)     # the samples that ended the last judged intervals
 
     def sample(self, s: PathSample) -> None:
         """Take sample ``s`` (samples come in time order; one older than the last is ignored). When it
@@ -129,9 +131,20 @@ class RateEstimator:
         shortest = max(STARTUP_INTERVAL if startup else MIN_INTERVAL, 2 * s.min_rtt)
         if dt < shortest and not (startup and dt >= shortest / 2 and queue > self.target()):
             return                  # (startup ends at the first sample that shows a queue)
+        self._ends.append(start)
         self._judge(delivered=(s.acked - start.acked) / dt, queue=queue,
-                    held=self._waited >= HELD_SHARE * dt or s.notsent > NOTSENT_LIMIT)
+                    held=self._waited >= HELD_SHARE * dt or s.notsent > NOTSENT_LIMIT, now=s)
         self._begin(s)
+
+    def _windowed(self, now: PathSample) -> float:
+        """bytes/s acked up to ``now`` since the latest interval boundary at least :data:`RATE_WINDOW` s
+        before it (or the earliest kept): one interval's rate is noisy where acks come in bursts."""
+        first = self._ends[0]
+        for s in reversed(self._ends):
+            if now.t - s.t >= RATE_WINDOW:
+                first = s
+                break
+        return (now.acked - first.acked) / (now.t - first.t) if now.t > first.t else 0.0
 
     def _begin(self, s: PathSample) -> None:
         self._start, self._waited = s, 0.0
@@ -141,26 +154,27 @@ class RateEstimator:
         time of :data:`TARGET_PACKETS` full packets at :attr:`rate` if longer."""
         return max(QUEUE_TARGET, TARGET_PACKETS * PACKET / self.rate)
 
-    def _judge(self, delivered: float, queue: float, held: bool) -> None:
+    def _judge(self, delivered: float, queue: float, held: bool, now: PathSample) -> None:
         self.intervals += 1
         target = self.target()
         congested = (queue > target and delivered < TAKEN_SHARE * self.rate) or queue > QUEUE_HIGH * target
         if self.mode is Mode.DRAIN:
-            if not congested:
-                self._cruise()
+            if queue <= target:
+                self._cruise()         # the queue is gone (not merely draining: the path taking the rate)
             else:
                 self._drained += 1
-                if self._drained >= MAX_DRAIN and delivered > 0:     # still a queue: the path is slower yet
-                    self._set(max(delivered, MIN_RATE), Mode.DRAIN)
+                windowed = self._windowed(now)
+                if self._drained >= MAX_DRAIN and windowed > 0:     # still a queue: the path is slower yet
+                    self._set(max(windowed, MIN_RATE), Mode.DRAIN)
+                    self._drained = 0
             return
         if not held or delivered <= 0:
             return                     # the application sent less than the rate, or nothing was acked
-        last, self._delivered = self._delivered, delivered
         if congested:
             self.backoffs += 1
             self._drained = 0
-            if self.estimate is None:  # the end of startup: the pipe filled in this interval or the last
-                self._set(max(delivered, last, MIN_RATE), Mode.DRAIN)
+            if self.estimate is None:  # the end of startup: the pipe filled in the last intervals
+                self._set(max(self._windowed(now), MIN_RATE), Mode.DRAIN)
                 self.rate = STARTUP_DRAIN_GAIN * self.estimate     # what the doubling put in the queue
             else:                      # one interval moves it by STEP_DOWN at most; a queue that stays, more
                 self._set(min(self.estimate, max(delivered, STEP_DOWN * self.estimate)), Mode.DRAIN)
@@ -169,7 +183,8 @@ class RateEstimator:
             self.rate *= STARTUP_GAIN
         elif self.mode is Mode.PROBE:
             before = self.estimate
-            self.estimate = max(before, min(delivered, PROBE_GAIN * before))
+            if delivered >= TAKEN_SHARE * self.rate:     # the path took the probe (else: no more room, nor noise)
+                self.estimate = max(before, min(delivered, self.rate))
             if self.estimate >= PROBE_ROOM * before:
                 self._probe()          # the path took more: probe on from the new estimate
             else:
