@@ -24,18 +24,22 @@ In intervals of at least :data:`MIN_INTERVAL` s and two minimum round trips:
   pacer's rate was acked (``tcpi_bytes_acked``), or it is :data:`QUEUE_HIGH` targets above whatever
   was acked. The bottleneck was busy, so the bytes acked per second over the interval are its rate:
   that is the estimate (lowered by :data:`STEP_DOWN` at most per interval, against one noisy RTT). The
-  pacer then drains the queue at :data:`DRAIN_GAIN` x the estimate until it is gone; if it is still
-  there after :data:`MAX_DRAIN` intervals, the path is slower yet: the estimate is what was acked.
+  pacer then drains the queue at :data:`DRAIN_GAIN` x the estimate until the RTT shows it gone (the path
+  acking more than the drain's rate only says it is draining); if it is still there after
+  :data:`MAX_DRAIN` intervals, the path is slower yet: the estimate is what was acked over the last
+  :data:`RATE_WINDOW` s (on a loaded host acks come in bursts: one interval's count is noise).
 - **Cruise**: the pacer runs at :data:`CRUISE_GAIN` x the estimate, under the link, so the
   bottleneck's queue stays empty.
 - **Probe**: after :data:`PROBE_EVERY` cruise intervals held back, one interval at :data:`PROBE_GAIN` x
   the estimate (BBR probes at 1.25 for a round trip; a FIFO shared with control holds less at 1.1): if
-  the path takes it without a queue, the estimate rises to what was acked, and while it rises by
-  :data:`PROBE_ROOM` or more the probing goes on.
+  the path takes it (acks :data:`TAKEN_SHARE` of the probe's rate) without a queue, the estimate rises
+  to what was acked, and while it rises by :data:`PROBE_ROOM` or more the probing goes on. A probe the
+  path did not take leaves the estimate as it was (taking the most of noisy samples would ratchet it up).
 - **Startup**: from :data:`INITIAL_RATE` the rate doubles every :data:`STARTUP_INTERVAL` held back
   (BBR's startup, gain 2) until the first sample that shows a queue (half an interval in, at the
-  earliest): the first estimate is what was acked in that interval or the one before, whichever is
-  more, and the queue the doubling left drains at :data:`STARTUP_DRAIN_GAIN` x the estimate.
+  earliest): the first estimate is what was acked over the last :data:`RATE_WINDOW` s (low rather than
+  high: the probes find the rest), and the queue the doubling left drains at :data:`STARTUP_DRAIN_GAIN` x
+  the estimate.
 - An interval with no byte acked (a stalled path) changes nothing; one longer than
   :data:`MAX_INTERVAL` (an idle spell) is not judged.
 """

@@ -30,6 +30,12 @@ class Bottleneck:
         self.delays: list[float] = []       # s of queueing delay after each step
 
     def step(self, est: RateEstimator, demand: float, notsent: int = 0) -> None:
+        self.step_silently(est, demand)
+        est.sample(PathSample(self.t, int(self.acked), self.srtt, self.base, notsent,
+                              waited=STEP if demand > est.rate else 0.0))
+
+    def step_silently(self, est: RateEstimator, demand: float) -> None:
+        """One step of the path, the sender at the pacer's rate (or ``demand``), without a sample."""
         send = min(est.rate, demand) * STEP
         self.queue += send
         out = min(self.queue, self.rate * STEP)
@@ -38,8 +44,6 @@ class Bottleneck:
         self.t += STEP
         self.srtt += (self.base + self.queue / self.rate - self.srtt) / 8
         self.delays.append(self.queue / self.rate)
-        est.sample(PathSample(self.t, int(self.acked), self.srtt, self.base, notsent,
-                              waited=STEP if demand > est.rate else 0.0))
 
     def run(self, est: RateEstimator, seconds: float, demand: float) -> list[float]:
         """``seconds`` of steps; returns the pacer's rate at each."""
@@ -184,3 +188,43 @@ def test_a_sessions_lane_stats_carry_its_bulk_pacing_while_a_bulk_link_is_there(
     assert "rate" not in s.lane_stats()["bulk"]
     s.attach_bulk(new_pacer(2e6))
     assert s.lane_stats()["bulk"]["rate_source"] == "configured"
+
+
+class BurstyAcks(Bottleneck):
+    """The same bottleneck seen from a loaded host: TCP_INFO's bytes acked move only every ``every`` s,
+    by what was acked since (one interval's count is then 0 or a multiple of the link's rate)."""
+
+    def __init__(self, rate: float, every: float = 0.06):
+        super().__init__(rate)
+        self.every, self.shown, self.next_show = every, 0.0, every
+
+    def step(self, est: RateEstimator, demand: float, notsent: int = 0) -> None:
+        self.step_silently(est, demand)
+        if self.t >= self.next_show:
+            self.shown, self.next_show = self.acked, self.next_show + self.every
+        est.sample(PathSample(self.t, int(self.shown), self.srtt, self.base, notsent,
+                              waited=STEP if demand > est.rate else 0.0))
+
+
+def test_acks_in_bursts_neither_inflate_nor_sink_the_estimate():
+    """On a loaded host acks arrive in bursts: the estimate is read over 160 ms at the end of startup,
+    a probe raises it only when the path took the probe, so it settles at the link, not above it."""
+    est, path = RateEstimator(), BurstyAcks(LINK)
+    path.run(est, 15, CAMERA)
+    assert 0.85 * LINK <= est.estimate <= 1.02 * LINK
+    assert max(path.delays[int(5 / STEP):]) < 0.03        # in cruise the queue stays short
+
+
+def test_a_drain_lasts_while_the_round_trip_shows_a_queue():
+    """The path acking more than the drain's rate means the queue is draining, not that it is gone."""
+    est = RateEstimator()
+    est.estimate, est.mode, est.rate = LINK, Mode.DRAIN, 0.75 * LINK
+    t, acked = 0.0, 0
+    est.sample(PathSample(t, acked, 0.03, 0.001, 0, 0.0))
+    for _ in range(2):                       # a 29 ms queue, the path acking the link's rate: still draining
+        t, acked = t + 0.1, acked + int(0.1 * LINK)
+        est.sample(PathSample(t, acked, 0.03, 0.001, 0, 0.1))
+        assert est.mode is Mode.DRAIN
+    t, acked = t + 0.1, acked + int(0.1 * 0.75 * LINK)
+    est.sample(PathSample(t, acked, 0.002, 0.001, 0, 0.1))      # the queue gone: cruise
+    assert est.mode is Mode.CRUISE and est.rate == pytest.approx(0.9 * LINK)
