@@ -32,17 +32,14 @@ In intervals of at least :data:`MIN_INTERVAL` s and two minimum round trips:
   bottleneck's queue stays empty.
 - **Probe**: after :data:`PROBE_EVERY` cruise intervals held back, one interval at :data:`PROBE_GAIN` x
   the estimate (BBR probes at 1.25 for a round trip; a FIFO shared with control holds less at 1.1): if
-  the path takes it (acks :data:`TAKEN_SHARE` of the probe's rate) without a queue, the estimate rises
-  to what was acked, and while it rises by :data:`PROBE_ROOM` or more the probing goes on. A probe the
-  path did not take leaves the estimate as it was: an interval's acks are noisy (on a loaded host they
-  come in bursts), and taking the most of noisy samples would ratchet it up.
+  the path takes it without a queue, the estimate rises to what was acked, and while it rises by
+  :data:`PROBE_ROOM` or more the probing goes on.
 - **Startup**: from :data:`INITIAL_RATE` the rate doubles every interval held back (BBR's startup,
   gain 2) until the first sample that shows a queue (half an interval in, at the earliest; the smoothed
   RTT shows a queue late, so the doubling overshoots: intervals of :data:`MIN_INTERVAL`, not shorter):
-  the first estimate is what was acked over the last :data:`RATE_WINDOW` s, and the queue the doubling
-  left drains at :data:`STARTUP_DRAIN_GAIN` x the estimate. The bottleneck was busy while it drained:
-  what it acked meanwhile caps the estimate (low rather than high: the overshoot's acks come in
-  bursts), and probing starts from there, going on while the path takes each probe.
+  the first estimate is what was acked over the last :data:`RATE_WINDOW` s (not one interval: on a
+  loaded host acks come in bursts), and the queue the doubling left drains at :data:`STARTUP_DRAIN_GAIN`
+  x the estimate.
 - An interval with no byte acked (a stalled path) changes nothing; one longer than
   :data:`MAX_INTERVAL` (an idle spell) is not judged.
 """
@@ -118,7 +115,6 @@ class RateEstimator:
         self._waited = 0.0                        # s the pacer held the sender back in the current interval
         self._cruised = 0                         # cruise intervals with data held back since the last probe
         self._drained = 0                         # drain intervals that still showed a queue
-        self._drain_start: PathSample | None = None    # the sample the drain after startup began at
         self._ends: deque[PathSample] = deque(maxlen=16)     # the samples that ended the last judged intervals
 
     def sample(self, s: PathSample) -> None:
@@ -166,13 +162,8 @@ class RateEstimator:
         target = self.target()
         congested = (queue > target and delivered < TAKEN_SHARE * self.rate) or queue > QUEUE_HIGH * target
         if self.mode is Mode.DRAIN:
-            if queue <= target:        # the queue is gone (not merely draining: the path taking the rate)
-                if self._drain_start is not None:     # startup's: the path's rate is what it acked meanwhile
-                    first, self._drain_start = self._drain_start, None
-                    self.estimate = max(MIN_RATE, min(self.estimate, (now.acked - first.acked) / (now.t - first.t)))
-                    self._probe()      # probes take the estimate up to the path's rate from there
-                else:
-                    self._cruise()
+            if queue <= target:
+                self._cruise()         # the queue is gone (not merely draining: the path taking the rate)
             else:
                 self._drained += 1
                 windowed = self._windowed(now)
@@ -188,7 +179,6 @@ class RateEstimator:
             if self.estimate is None:  # the end of startup: the pipe filled in the last intervals
                 self._set(max(self._windowed(now), MIN_RATE), Mode.DRAIN)
                 self.rate = STARTUP_DRAIN_GAIN * self.estimate     # what the doubling put in the queue
-                self._drain_start = now
             else:                      # one interval moves it by STEP_DOWN at most; a queue that stays, more
                 self._set(min(self.estimate, max(delivered, STEP_DOWN * self.estimate)), Mode.DRAIN)
             return
@@ -196,8 +186,7 @@ class RateEstimator:
             self.rate *= STARTUP_GAIN
         elif self.mode is Mode.PROBE:
             before = self.estimate
-            if delivered >= TAKEN_SHARE * self.rate:     # the path took the probe (else: no more room, nor noise)
-                self.estimate = max(before, min(delivered, self.rate))
+            self.estimate = max(before, min(delivered, self.rate))
             if self.estimate >= PROBE_ROOM * before:
                 self._probe()          # the path took more: probe on from the new estimate
             else:

@@ -207,9 +207,9 @@ class BurstyAcks(Bottleneck):
 
 
 def test_acks_in_bursts_keep_the_estimate_near_the_link_and_the_queue_short():
-    """On a loaded host acks arrive in bursts (here every 60 ms): startup's estimate is capped by what
-    the path acked while its queue drained, a probe raises it only when the path took the probe, so no
-    burst sets it far above the link, and after startup the queue stays short."""
+    """On a loaded host acks arrive in bursts (here every 60 ms): startup's estimate is read over 160 ms,
+    not one interval, and a drain lasts until the round trip shows the queue gone, so no burst sets the
+    estimate far from the link, and after startup the queue stays short."""
     est, path = RateEstimator(), BurstyAcks(LINK)
     path.run(est, 15, CAMERA)
     assert 0.8 * LINK <= est.estimate <= 1.1 * LINK
@@ -230,17 +230,3 @@ def test_a_drain_lasts_while_the_round_trip_shows_a_queue():
     est.sample(PathSample(t, acked, 0.002, 0.001, 0, 0.1))      # the queue gone: cruise
     assert est.mode is Mode.CRUISE and est.rate == pytest.approx(0.9 * LINK)
 
-
-def test_startups_estimate_is_capped_by_what_the_path_acked_while_its_queue_drained():
-    """A burst of acks can make startup's first estimate twice the link; the drain after it (the
-    bottleneck busy with the queue the doubling left) acks at the link's rate: that caps the estimate,
-    and probing starts from there."""
-    est = RateEstimator()
-    est.sample(PathSample(0.0, 0, 0.001, 0.001, 0, 0.0))
-    est.sample(PathSample(0.1, int(0.1 * 2 * LINK), 0.2, 0.001, 0, 0.1))      # a queue, acks at 2x the link
-    assert est.mode is Mode.DRAIN and est.estimate == pytest.approx(2 * LINK, rel=0.01)
-    est.sample(PathSample(0.2, int(0.1 * 2 * LINK + 0.1 * LINK), 0.2, 0.001, 0, 0.1))     # draining
-    assert est.mode is Mode.DRAIN
-    est.sample(PathSample(0.3, int(0.1 * 2 * LINK + 0.2 * LINK), 0.001, 0.001, 0, 0.1))   # the queue gone
-    assert est.mode is Mode.PROBE and est.estimate == pytest.approx(LINK, rel=0.01)
-    assert est.rate == pytest.approx(1.1 * est.estimate)
