@@ -25,9 +25,11 @@ In intervals of at least :data:`MIN_INTERVAL` s and two minimum round trips:
   was acked. The bottleneck was busy, so the bytes acked per second over the interval are its rate:
   that is the estimate (lowered by :data:`STEP_DOWN` at most per interval, against one noisy RTT). The
   pacer then drains the queue at :data:`DRAIN_GAIN` x the estimate until the RTT shows it gone (the path
-  acking more than the drain's rate only says it is draining); if it is still there after
-  :data:`MAX_DRAIN` intervals, the path is slower yet: the estimate is what was acked over the last
-  :data:`RATE_WINDOW` s (on a loaded host acks come in bursts: one interval's count is noise).
+  acking more than the drain's rate only says it is draining). If the RTT still shows one after
+  :data:`MAX_DRAIN` intervals, what was acked over the last :data:`RATE_WINDOW` s (on a loaded host acks
+  come in bursts: one interval's count is noise) says why: less than the drain's rate, the path is
+  slower yet, and that is the estimate; about the drain's rate, there is no queue of ours to drain
+  (the RTT is noisy, or the queue another flow's), and the pacer cruises; more, it is still draining.
 - **Cruise**: the pacer runs at :data:`CRUISE_GAIN` x the estimate, under the link, so the
   bottleneck's queue stays empty.
 - **Probe**: after :data:`PROBE_EVERY` cruise intervals held back, one interval at :data:`PROBE_GAIN` x
@@ -167,9 +169,13 @@ class RateEstimator:
             else:
                 self._drained += 1
                 windowed = self._windowed(now)
-                if self._drained >= MAX_DRAIN and windowed > 0:     # still a queue: the path is slower yet
+                if self._drained < MAX_DRAIN or windowed <= 0:
+                    return
+                if windowed < TAKEN_SHARE * self.rate:      # still a queue: the path is slower yet
                     self._set(max(windowed, MIN_RATE), Mode.DRAIN)
                     self._drained = 0
+                elif windowed * TAKEN_SHARE <= self.rate:    # it acks what is sent, no more: no queue of ours
+                    self._cruise()     # to drain (the round trip is noisy, or another flow's queue)
             return
         if not held or delivered <= 0:
             return                     # the application sent less than the rate, or nothing was acked

@@ -230,3 +230,16 @@ def test_a_drain_lasts_while_the_round_trip_shows_a_queue():
     est.sample(PathSample(t, acked, 0.002, 0.001, 0, 0.1))      # the queue gone: cruise
     assert est.mode is Mode.CRUISE and est.rate == pytest.approx(0.9 * LINK)
 
+
+
+def test_a_round_trip_that_stays_high_while_the_path_acks_what_is_sent_ends_the_drain():
+    """A loaded receiver (or another flow's queue) keeps the round trip up though the path acks all
+    the drain sends: that is no queue of the link's, so the pacer cruises again and the estimate stays."""
+    est = RateEstimator()
+    est.estimate, est.mode, est.rate = LINK, Mode.DRAIN, 0.75 * LINK
+    t, acked = 0.0, 0
+    est.sample(PathSample(t, acked, 0.05, 0.001, 0, 0.0))
+    while est.mode is Mode.DRAIN and t < 1.0:
+        t, acked = t + 0.1, acked + int(0.1 * 0.75 * LINK)
+        est.sample(PathSample(t, acked, 0.05, 0.001, 0, 0.1))
+    assert est.mode is Mode.CRUISE and est.estimate == LINK and t == pytest.approx(0.4)
