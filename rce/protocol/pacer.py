@@ -116,13 +116,17 @@ class Pacer:
 
     def observe(self, sample: PathSample, now: float) -> None:
         """(with an estimator) The path's state at ``now`` (s; its ``waited``: :meth:`held`): fed to the
-        estimator, whose rate becomes this pacer's from ``now`` on."""
+        estimator, whose rate becomes this pacer's from ``now`` on. Bytes the kernel holds unsent
+        (``notsent``) count as let out but not yet gone: past a burst they are this pacer's debt, so no
+        more goes until the kernel has sent them (a rate that fell, after startup's overshoot, would
+        otherwise leave a backlog the kernel sends at its own, higher pace)."""
         if self.estimator is None:
             return
         self._fill(now)
         self._observed = self.paced
         self.estimator.sample(sample)
         self.rate = self.estimator.rate
+        self.tokens = min(self.tokens, self.burst - sample.notsent)
 
     def stats(self) -> dict:
         """``rate_source`` (configured, estimated), ``rate`` (bytes/s); with an estimator also its

@@ -143,6 +143,18 @@ def test_the_pacer_follows_its_estimator_and_reports_it():
     assert Pacer(1000).stats() == {"rate_source": "configured", "rate": 1000}
 
 
+def test_bytes_the_kernel_holds_unsent_are_the_pacers_debt():
+    """After startup's overshoot the kernel may hold hundreds of kB unsent; the pacer lets no more out
+    until the kernel is down to a burst, whatever the rate."""
+    est = RateEstimator()
+    pacer = Pacer(est.rate, estimator=est)
+    pacer.observe(PathSample(0.0, 0, 0.001, 0.001, 0, 0.0), 0.0)
+    assert pacer.delay(16_384, 0.0) == 0                       # nothing unsent: a full bucket
+    pacer.observe(PathSample(0.01, 1000, 0.001, 0.001, 300_000, 0.0), 0.01)
+    owed = 300_000 - pacer.burst                               # unsent beyond a burst
+    assert pacer.delay(16_384, 0.01) == pytest.approx((owed + 16_384) / pacer.rate, rel=0.02)
+
+
 def test_a_setting_names_the_pacing():
     assert parse_pacing("auto") == AUTO and parse_pacing(" OFF ") == OFF
     assert parse_pacing("10Mbit") == 1_250_000
