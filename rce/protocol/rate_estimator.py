@@ -38,7 +38,9 @@ In intervals of at least :data:`MIN_INTERVAL` s and two minimum round trips:
   :data:`PROBE_ROOM` or more the probing goes on.
 - **Startup**: from :data:`INITIAL_RATE` the rate doubles every interval held back (BBR's startup,
   gain 2) until the first sample that shows a queue (half an interval in, at the earliest; the smoothed
-  RTT shows a queue late, so the doubling overshoots: intervals of :data:`MIN_INTERVAL`, not shorter):
+  RTT shows a queue late, so the doubling overshoots: intervals of :data:`MIN_INTERVAL`, not shorter),
+  or until a doubling raised what the path acked over the last :data:`RATE_WINDOW` s by less than
+  :data:`FULL_GROWTH` (BBR's full pipe; with :data:`FULL_BYTES` acked at least, against the acks' noise):
   the first estimate is what was acked over the last :data:`RATE_WINDOW` s (not one interval: on a
   loaded host acks come in bursts), and the queue the doubling left drains at :data:`STARTUP_DRAIN_GAIN`
   x the estimate.
@@ -71,6 +73,8 @@ PROBE_EVERY = 16            # cruise intervals (held back) between probes
 PROBE_ROOM = 1.05           # a probe that raised the estimate by this factor or more is followed by another
 MAX_DRAIN = 4               # drain intervals that still show a queue after which the estimate is taken again
 STEP_DOWN = 0.9             # the most one congested interval lowers the estimate by (a queue that stays: more)
+FULL_GROWTH = 1.25          # startup ends when a doubling raised what the path acked by less (BBR's full pipe)
+FULL_BYTES = 128 * 1024     # ... over a window of at least these bytes acked (fewer: the acks' noise)
 RATE_WINDOW = 0.16          # s: the least span a path's rate is read over at the end of startup or a drain
 
 
@@ -117,6 +121,7 @@ class RateEstimator:
         self._waited = 0.0                        # s the pacer held the sender back in the current interval
         self._cruised = 0                         # cruise intervals with data held back since the last probe
         self._drained = 0                         # drain intervals that still showed a queue
+        self._ramp: float | None = None           # bytes/s acked over the window when startup last doubled
         self._ends: deque[PathSample] = deque(maxlen=16)     # the samples that ended the last judged intervals
 
     def sample(self, s: PathSample) -> None:
@@ -144,12 +149,17 @@ class RateEstimator:
     def _windowed(self, now: PathSample) -> float:
         """bytes/s acked up to ``now`` since the latest interval boundary at least :data:`RATE_WINDOW` s
         before it (or the earliest kept): one interval's rate is noisy where acks come in bursts."""
+        return self._window(now)[0]
+
+    def _window(self, now: PathSample) -> tuple[float, int]:
+        """(bytes/s, bytes) acked over :meth:`_windowed`'s window."""
         first = self._ends[0]
         for s in reversed(self._ends):
             if now.t - s.t >= RATE_WINDOW:
                 first = s
                 break
-        return (now.acked - first.acked) / (now.t - first.t) if now.t > first.t else 0.0
+        acked = now.acked - first.acked
+        return (acked / (now.t - first.t) if now.t > first.t else 0.0), acked
 
     def _begin(self, s: PathSample) -> None:
         self._start, self._waited = s, 0.0
@@ -189,6 +199,16 @@ class RateEstimator:
                 self._set(min(self.estimate, max(delivered, STEP_DOWN * self.estimate)), Mode.DRAIN)
             return
         if self.mode is Mode.STARTUP:
+            windowed, acked = self._window(now)
+            if acked < FULL_BYTES:
+                self._ramp = None      # too few bytes to tell the path's rate from the acks' noise
+            elif self._ramp is not None and windowed < FULL_GROWTH * self._ramp:
+                self.backoffs += 1     # the rate doubled and the path acked hardly more: the pipe is full
+                self._set(windowed, Mode.DRAIN)
+                self.rate = STARTUP_DRAIN_GAIN * self.estimate
+                return
+            else:
+                self._ramp = windowed
             self.rate *= STARTUP_GAIN
         elif self.mode is Mode.PROBE:
             before = self.estimate

@@ -255,3 +255,17 @@ def test_a_round_trip_that_stays_high_while_the_path_acks_what_is_sent_ends_the_
         t, acked = t + 0.1, acked + int(0.1 * 0.75 * LINK)
         est.sample(PathSample(t, acked, 0.05, 0.001, 0, 0.1))
     assert est.mode is Mode.CRUISE and est.estimate == LINK and t == pytest.approx(0.4)
+
+
+def test_startup_ends_when_a_doubling_no_longer_raises_what_the_path_acks():
+    """Where the round trip shows the queue late or not at all (the kernel holds what the path does not
+    take), startup ends at the full pipe: a doubling that raised the acked rate by less than 25 %."""
+    class Unseen(Bottleneck):
+        def step(self, est: RateEstimator, demand: float, notsent: int = 0) -> None:
+            self.step_silently(est, demand)
+            est.sample(PathSample(self.t, int(self.acked), self.base, self.base, 0, STEP))   # a flat RTT
+
+    est, path = RateEstimator(), Unseen(LINK)
+    rates = path.run(est, 2, CAMERA)
+    assert est.estimate is not None and 0.8 * LINK <= est.estimate <= 1.05 * LINK
+    assert max(rates) <= 4 * LINK                  # one or two doublings past the link, not on and on
