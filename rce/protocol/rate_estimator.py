@@ -40,9 +40,10 @@ In intervals of at least :data:`MIN_INTERVAL` s and two minimum round trips:
   gain 2) until the first sample that shows a queue (half an interval in, at the earliest; the smoothed
   RTT shows a queue late, so the doubling overshoots: intervals of :data:`MIN_INTERVAL`, not shorter),
   or until a doubling raised what the path acked over the last :data:`RATE_WINDOW` s by less than
-  :data:`FULL_GROWTH` (BBR's full pipe; with :data:`FULL_BYTES` acked at least, against the acks' noise):
-  the first estimate is what was acked over the last :data:`RATE_WINDOW` s (not one interval: on a
-  loaded host acks come in bursts), and the queue the doubling left drains at :data:`STARTUP_DRAIN_GAIN`
+  :data:`FULL_GROWTH` (BBR's full pipe; with :data:`FULL_BYTES` acked at least, against the acks' noise;
+  then the rate doubles what the path acked, not the rate, which may run ahead of it): the first
+  estimate is what was acked over the last :data:`RATE_WINDOW` s (not one interval: on a loaded host
+  acks come in bursts), and the queue the doubling left drains at :data:`STARTUP_DRAIN_GAIN`
   x the estimate.
 - An interval with no byte acked (a stalled path) changes nothing; one longer than
   :data:`MAX_INTERVAL` (an idle spell) is not judged.
@@ -210,6 +211,8 @@ class RateEstimator:
             else:
                 self._ramp = windowed
             self.rate *= STARTUP_GAIN
+            if self._ramp is not None:     # twice what the path acked, not twice what the pacer let out
+                self.rate = min(self.rate, STARTUP_GAIN * windowed)
         elif self.mode is Mode.PROBE:
             before = self.estimate
             self.estimate = max(before, min(delivered, self.rate))
