@@ -44,7 +44,8 @@ In intervals of at least :data:`MIN_INTERVAL` s and two minimum round trips:
   then the rate doubles what the path acked, not the rate, which may run ahead of it): the first
   estimate is what was acked over the last :data:`RATE_WINDOW` s (not one interval: on a loaded host
   acks come in bursts), and the queue the doubling left drains at :data:`STARTUP_DRAIN_GAIN`
-  x the estimate.
+  x the estimate; then it probes at once (as BBR's drain leads to probing), the estimate having been
+  read over a ramp.
 - An interval with no byte acked (a stalled path) changes nothing; one longer than
   :data:`MAX_INTERVAL` (an idle spell) is not judged.
 """
@@ -123,6 +124,7 @@ class RateEstimator:
         self._cruised = 0                         # cruise intervals with data held back since the last probe
         self._drained = 0                         # drain intervals that still showed a queue
         self._ramp: float | None = None           # bytes/s acked over the window when startup last doubled
+        self._first_drain = False                 # draining what startup left
         self._ends: deque[PathSample] = deque(maxlen=16)     # the samples that ended the last judged intervals
 
     def sample(self, s: PathSample) -> None:
@@ -176,7 +178,7 @@ class RateEstimator:
         congested = (queue > target and delivered < TAKEN_SHARE * self.rate) or queue > QUEUE_HIGH * target
         if self.mode is Mode.DRAIN:
             if queue <= target:
-                self._cruise()         # the queue is gone (not merely draining: the path taking the rate)
+                self._drained_out()    # the queue is gone (not merely draining: the path taking the rate)
             else:
                 self._drained += 1
                 windowed = self._windowed(now)
@@ -186,7 +188,7 @@ class RateEstimator:
                     self._set(max(windowed, MIN_RATE), Mode.DRAIN)
                     self._drained = 0
                 elif windowed * TAKEN_SHARE <= self.rate:    # it acks what is sent, no more: no queue of ours
-                    self._cruise()     # to drain (the round trip is noisy, or another flow's queue)
+                    self._drained_out()    # to drain (the round trip is noisy, or another flow's queue)
             return
         if not held or delivered <= 0:
             return                     # the application sent less than the rate, or nothing was acked
@@ -194,8 +196,7 @@ class RateEstimator:
             self.backoffs += 1
             self._drained = 0
             if self.estimate is None:  # the end of startup: the pipe filled in the last intervals
-                self._set(max(self._windowed(now), MIN_RATE), Mode.DRAIN)
-                self.rate = STARTUP_DRAIN_GAIN * self.estimate     # what the doubling put in the queue
+                self._end_startup(self._windowed(now))
             else:                      # one interval moves it by STEP_DOWN at most; a queue that stays, more
                 self._set(min(self.estimate, max(delivered, STEP_DOWN * self.estimate)), Mode.DRAIN)
             return
@@ -205,8 +206,7 @@ class RateEstimator:
                 self._ramp = None      # too few bytes to tell the path's rate from the acks' noise
             elif self._ramp is not None and windowed < FULL_GROWTH * self._ramp:
                 self.backoffs += 1     # the rate doubled and the path acked hardly more: the pipe is full
-                self._set(windowed, Mode.DRAIN)
-                self.rate = STARTUP_DRAIN_GAIN * self.estimate
+                self._end_startup(windowed)
                 return
             else:
                 self._ramp = windowed
@@ -224,6 +224,21 @@ class RateEstimator:
             self._cruised += 1
             if self._cruised >= PROBE_EVERY:
                 self._probe()
+
+    def _end_startup(self, estimate: float) -> None:
+        """Startup found the path's rate: drain the queue its doubling left, then probe from there."""
+        self._set(max(estimate, MIN_RATE), Mode.DRAIN)
+        self.rate = STARTUP_DRAIN_GAIN * self.estimate
+        self._first_drain = True
+
+    def _drained_out(self) -> None:
+        """The drain is over: after startup's, probe at once (its estimate read a ramp, and may be low);
+        after another, cruise."""
+        if self._first_drain:
+            self._first_drain = False
+            self._probe()
+        else:
+            self._cruise()
 
     def _set(self, estimate: float, mode: Mode) -> None:
         self.estimate, self.mode = estimate, mode

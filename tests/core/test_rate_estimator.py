@@ -269,3 +269,15 @@ def test_startup_ends_when_a_doubling_no_longer_raises_what_the_path_acks():
     rates = path.run(est, 2, CAMERA)
     assert est.estimate is not None and 0.8 * LINK <= est.estimate <= 1.05 * LINK
     assert max(rates) <= 4 * LINK                  # one or two doublings past the link, not on and on
+
+
+def test_startups_drain_leads_to_probing():
+    """Startup's estimate is read over a ramp and may be low: once its queue is drained the estimator
+    probes at once rather than cruising under it for 16 intervals (BBR's drain leads to probing)."""
+    est, path = RateEstimator(), Bottleneck(LINK)
+    modes: list[Mode] = []
+    for _ in range(int(2 / STEP)):
+        path.step(est, CAMERA)
+        if not modes or modes[-1] is not est.mode:
+            modes.append(est.mode)
+    assert modes[:3] == [Mode.STARTUP, Mode.DRAIN, Mode.PROBE], modes
