@@ -37,15 +37,16 @@ In intervals of at least :data:`MIN_INTERVAL` s and two minimum round trips:
   the path takes it without a queue, the estimate rises to what was acked, and while it rises by
   :data:`PROBE_ROOM` or more the probing goes on.
 - **Startup**: from :data:`INITIAL_RATE` the rate doubles every interval held back (BBR's startup,
-  gain 2) until the first sample that shows a queue (half an interval in, at the earliest; the smoothed
-  RTT shows a queue late, so the doubling overshoots: intervals of :data:`MIN_INTERVAL`, not shorter),
-  or until a doubling raised what the path acked over the last :data:`RATE_WINDOW` s by less than
-  :data:`FULL_GROWTH` (BBR's full pipe; with :data:`FULL_BYTES` acked at least, against the acks' noise;
-  then the rate doubles what the path acked, not the rate, which may run ahead of it): the first
-  estimate is what was acked over the last :data:`RATE_WINDOW` s (not one interval: on a loaded host
-  acks come in bursts), and the queue the doubling left drains at :data:`STARTUP_DRAIN_GAIN`
-  x the estimate; then it probes at once (as BBR's drain leads to probing), the estimate having been
-  read over a ramp.
+  gain 2), but to twice what the path acked over the last :data:`RATE_WINDOW` s at most (the pacer's
+  rate can run ahead of what the path takes: about x1.5 an interval while the path takes it all, twice
+  the path's rate at most once it takes no more; never down), until the first sample that shows a
+  queue (half an interval in, at the earliest; the smoothed RTT shows a queue late: intervals of
+  :data:`MIN_INTERVAL`, not shorter), or until a doubling raised what the path acked by less than
+  :data:`FULL_GROWTH` (BBR's full pipe; with :data:`FULL_BYTES` acked in the window at least, against
+  the acks' noise). The first estimate is what was acked over the last :data:`RATE_WINDOW` s (not one
+  interval: on a loaded host acks come in bursts), and the queue the doubling left drains at
+  :data:`STARTUP_DRAIN_GAIN` x the estimate; then it probes at once (as BBR's drain leads to probing),
+  the estimate having been read over a ramp.
 - An interval with no byte acked (a stalled path) changes nothing; one longer than
   :data:`MAX_INTERVAL` (an idle spell) is not judged.
 """
@@ -210,9 +211,8 @@ class RateEstimator:
                 return
             else:
                 self._ramp = windowed
-            self.rate *= STARTUP_GAIN
-            if self._ramp is not None:     # twice what the path acked, not twice what the pacer let out
-                self.rate = min(self.rate, STARTUP_GAIN * windowed)
+            # twice what the path acked, not twice what the pacer let out (never less than now)
+            self.rate = max(self.rate, min(STARTUP_GAIN * self.rate, STARTUP_GAIN * windowed))
         elif self.mode is Mode.PROBE:
             before = self.estimate
             self.estimate = max(before, min(delivered, self.rate))
