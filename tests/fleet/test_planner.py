@@ -560,9 +560,11 @@ def test_conflict_cover_takes_the_robot_in_most_conflicts():
 def test_replans_after_robots_drift_from_the_plan_timing_stay_partial_and_safe():
     # robots advance at random rates, so their kept paths (each from where it stands) drift
     # apart in plan time; a new goal re-plans those few robots, not everybody, once a full
-    # re-plan is too dear (as in a large fleet: here its time is set so)
+    # re-plan is too dear for the re-plan bound (as in a large fleet: here its time is set so)
+    from dataclasses import replace
     rng = random.Random(4)
     fp, comp = moving_fleet(rng, 8, 0.0, 16)
+    fp.limits = replace(fp.limits, bound_s=60.0)
     fp._full_s = math.inf
     seen = []
 

@@ -55,6 +55,7 @@ from .lifelong import LifelongGrid
 from .node_common import Out
 from .places import Places
 from .planning import FleetPlanner, GridGraph, PlannerError, compress, compressed_index
+from .planning.prioritized import REPLAN_BOUND_S
 from .tasks_api import TaskBook
 from .tracking import CellTracker, ObstacleFilter
 
@@ -90,7 +91,9 @@ class GlobalPlannerCore:
     """See the module docstring. ``robots``: robot IDs served; ``clock``: monotonic seconds
     (for repeats and obstacle confirmation); ``places``: named places for tasks (None: none);
     ``battery``: the robots' battery parameters (None: not planned for); ``park_idle``: idle
-    robots drive to parking places; planner keyword arguments go to FleetPlanner."""
+    robots drive to parking places; planner keyword arguments go to FleetPlanner (its re-plan
+    bound ``replan_bound_s`` defaults to :data:`~rce_fleet.planning.prioritized.REPLAN_BOUND_S`
+    here)."""
 
     def __init__(self, geometry: GridGeometry, robots: list[str] = (), *, clock: Callable[[], float] = time.monotonic,
                  lidar_blocking: bool = True, obstacle_filter: ObstacleFilter | None = None,
@@ -99,7 +102,7 @@ class GlobalPlannerCore:
         self.geo = geometry
         free = np.array(geometry.free, dtype=bool).reshape(geometry.rows, geometry.cols)
         self.graph = GridGraph(free, [geometry.neighbours(c) for c in range(geometry.n_cells)])
-        self.fp = FleetPlanner(self.graph, **planner_kw)
+        self.fp = FleetPlanner(self.graph, **{"replan_bound_s": REPLAN_BOUND_S, **planner_kw})
         self.clock = clock
         self.lidar_blocking = lidar_blocking
         self.obstacles = obstacle_filter or ObstacleFilter(geometry)

@@ -151,7 +151,8 @@ class FleetPlanner:
         grid: a :class:`rce_fleet.grid.CellGrid` or :class:`GridGraph`.
         max_restarts, time_budget_s (s), expansion_factor, min_expansions, weight: how hard
             a (re)plan tries, see :class:`.prioritized.SearchLimits`.
-        replan_bound_s: hard wall-time bound of one re-plan, s (``math.inf``: none). A re-plan
+        replan_bound_s: hard wall-time bound of one re-plan, s (default ``math.inf``: none;
+            the global planner node's is :data:`.prioritized.REPLAN_BOUND_S`). A re-plan
             after a cell is blocked, or with a robot found off its plan or new, is not bounded:
             those robots are in no safe plan yet;
             see :mod:`.prioritized`. Raises ValueError unless > 0.

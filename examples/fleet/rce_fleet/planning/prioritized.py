@@ -51,9 +51,9 @@ INF = math.inf
 #: reason, and retried on the next re-plan.
 TIME_BUDGET_S = 2.0
 
-#: Hard wall-time bound, s, of one (re)plan (module docstring): past it the robots not reached
-#: are deferred to the next round. The planner node is single-threaded, so this bounds how long
-#: it answers nothing (robot poses, operators' goals, tasks).
+#: The global planner node's hard wall-time bound, s, of one (re)plan (module docstring): past it
+#: the robots not reached are deferred to the next round. The node is single-threaded, so this
+#: bounds how long it answers nothing (robot poses, operators' goals, tasks).
 REPLAN_BOUND_S = 0.5
 
 
@@ -80,8 +80,9 @@ class SearchLimits:
 
     max_restarts: priority-order restarts before robots that still fail are parked.
     time_budget_s: wall-clock budget, s, per (re)plan for restarts (:data:`TIME_BUDGET_S`).
-    bound_s: hard wall-time bound, s, per (re)plan (:data:`REPLAN_BOUND_S`; ``math.inf``:
-        none): past it the robots not reached are deferred (module docstring).
+    bound_s: hard wall-time bound, s, per (re)plan (default none, ``math.inf``; the global
+        planner node uses :data:`REPLAN_BOUND_S`): past it the robots not reached are
+        deferred (module docstring).
     expansion_factor, min_expansions: SIPP budget per robot,
         ``max(min_expansions, expansion_factor * (distance + 1))`` expansions.
     weight: weighted A* factor (1 = each robot's earliest arrival given the robots before
@@ -90,7 +91,7 @@ class SearchLimits:
 
     max_restarts: int = 20
     time_budget_s: float = TIME_BUDGET_S
-    bound_s: float = REPLAN_BOUND_S
+    bound_s: float = INF
     expansion_factor: int = 60
     min_expansions: int = 4000
     weight: float = 1.05
