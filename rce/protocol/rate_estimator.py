@@ -40,13 +40,13 @@ In intervals of at least :data:`MIN_INTERVAL` s and two minimum round trips:
   gain 2), but to twice what the path acked over the last :data:`RATE_WINDOW` s at most (the pacer's
   rate can run ahead of what the path takes: about x1.5 an interval while the path takes it all, twice
   the path's rate at most once it takes no more; never down), until the first sample that shows a
-  queue (half an interval in, at the earliest; the smoothed RTT shows a queue late: intervals of
-  :data:`MIN_INTERVAL`, not shorter), or until a doubling raised what the path acked by less than
-  :data:`FULL_GROWTH` (BBR's full pipe; with :data:`FULL_BYTES` acked in the window at least, against
-  the acks' noise). The first estimate is what was acked over the last :data:`RATE_WINDOW` s (not one
-  interval: on a loaded host acks come in bursts), and the queue the doubling left drains at
-  :data:`STARTUP_DRAIN_GAIN` x the estimate; then it probes at once (as BBR's drain leads to probing),
-  the estimate having been read over a ramp.
+  queue of :data:`STARTUP_QUEUE_TARGET` (half an interval in, at the earliest; the smoothed RTT shows
+  the doubling's queue late: a smaller target than cruise's, intervals of :data:`MIN_INTERVAL`), or
+  until a doubling raised what the path acked by less than :data:`FULL_GROWTH` (BBR's full pipe; with
+  :data:`FULL_BYTES` acked in the window at least, against the acks' noise). The first estimate is what
+  was acked over the last :data:`RATE_WINDOW` s (not one interval: on a loaded host acks come in
+  bursts), and the queue the doubling left drains at :data:`STARTUP_DRAIN_GAIN` x the estimate; then it
+  probes at once (as BBR's drain leads to probing), the estimate having been read over a ramp.
 - An interval with no byte acked (a stalled path) changes nothing; one longer than
   :data:`MAX_INTERVAL` (an idle spell) is not judged.
 """
@@ -61,6 +61,7 @@ MIN_RATE = 12_500.0         # bytes/s, the lowest estimate (100 kbit/s)
 MIN_INTERVAL = 0.08         # s, the shortest interval the estimator judges (also at least 2 minimum RTTs)
 MAX_INTERVAL = 1.0          # s; a longer gap between samples is an idle spell: the interval starts again
 QUEUE_TARGET = 0.010        # s of queueing delay that counts as a queue (RFC 6817's TARGET, scaled to control)
+STARTUP_QUEUE_TARGET = 0.003   # s, the same in startup: the smoothed RTT shows the doubling's queue late
 TARGET_PACKETS = 4          # ... at least the time of this many full packets at the rate (delayed ACKs on a slow path)
 PACKET = 1500               # bytes of a full packet
 NOTSENT_LIMIT = 64 * 1024   # bytes the kernel holds unsent past which the sender counts as held back
@@ -169,9 +170,11 @@ class RateEstimator:
         self._start, self._waited = s, 0.0
 
     def target(self) -> float:
-        """s of queueing delay that counts as a queue at the current rate: :data:`QUEUE_TARGET`, or the
-        time of :data:`TARGET_PACKETS` full packets at :attr:`rate` if longer."""
-        return max(QUEUE_TARGET, TARGET_PACKETS * PACKET / self.rate)
+        """s of queueing delay that counts as a queue at the current rate: :data:`QUEUE_TARGET`
+        (:data:`STARTUP_QUEUE_TARGET` in startup), or the time of :data:`TARGET_PACKETS` full packets at
+        :attr:`rate` if longer."""
+        least = STARTUP_QUEUE_TARGET if self.mode is Mode.STARTUP else QUEUE_TARGET
+        return max(least, TARGET_PACKETS * PACKET / self.rate)
 
     def _judge(self, delivered: float, queue: float, held: bool, now: PathSample) -> None:
         self.intervals += 1
