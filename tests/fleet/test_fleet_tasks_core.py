@@ -303,3 +303,25 @@ def test_robots_cross_a_standing_robot_that_yields_without_sharing_a_cell(lab): 
             f.route(f.core.on_goal("Robot1", 19))
     assert crossings >= 4 and f.visited["Robot1"].count(27) >= 4
     assert f.shared_cells == 0
+
+
+def test_control_loop_stays_collision_free_while_re_plans_pass_their_bound(lab):  # noqa: F811
+    # the planner core's re-plans pass a bound no re-plan can meet while robots drive tasks:
+    # robots not reached keep their plans or hold, nobody shares a cell, the counts show it,
+    # and once the bound is back the deferred robots are served and the tasks get done
+    from dataclasses import replace
+    f = KinematicFleet(lab, {"Robot1": 33, "Robot2": 38, "Robot3": 0, "Robot4": 7}, places=lab_places(lab),
+                       park_idle=True)
+    for i, errands in enumerate([["pick1", "drop1"], ["drop1", "pick1"], ["pick1", "drop1"], ["drop1", "pick1"]]):
+        f.route(f.core.on_task({"request": f"t{i}", "errands": errands, "source": "test"}))
+    normal = f.core.fp.limits
+    for k in range(1500):
+        if k == 60:
+            f.core.fp.limits = replace(normal, bound_s=1e-9)
+        if k == 400:
+            f.core.fp.limits = normal
+        f.step()
+        assert f.shared_cells == 0, f"two robots in one cell at step {k}"
+    st = f.core.state()
+    assert st["replans_bounded"] > 0 and st["robots_deferred_total"] > 0, st
+    assert f.core.book.stats()["done"] >= 2 and not f.core.fp.deferred
