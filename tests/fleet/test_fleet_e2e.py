@@ -135,7 +135,7 @@ def _warehouse_swap() -> list[str]:
 
 def test_ten_robots_warehouse_swap_sides_without_collisions(tmp_path):
     code, rep, out = run_demo(tmp_path, "--map", str(WAREHOUSE), "--cell", "1.2", "--robots", "10", "--speedup", "3",
-                              *_warehouse_swap(), timeout=85)
+                              *_warehouse_swap())
     assert code == 0 and rep["ok"], _explain(rep, out)
     assert rep["robots"] == 10 and all(v["reached"] for v in rep["per_robot"].values())
     # ground truth, every physics step: never closer than two radii (never touching)

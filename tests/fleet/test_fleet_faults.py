@@ -29,7 +29,8 @@ SERVED_AGAIN_BOUND = BACKOFF_CAP + 3.0   # s from the restarted master's ready f
                                          # take seconds on a 2-core machine running the suite in parallel)
 RESUME_BOUND = RECONNECT_WAIT_MAX + 1.0  # s from the link's return to the session resumed: one backoff step of the
                                          # client, then a handshake on loopback
-STATE_GAP_BOUND = 1.0   # s the fleet state (5 Hz) may pause during a fault: a stop would last the whole fault
+STATE_GAP_BOUND = MASTER_DOWN   # s the fleet state (5 Hz) may pause during a fault: a stop would last the whole
+                                # fault (2 s for the master, 5 s for the link); a busy machine pauses it ~1 s
 
 
 def _fault(rep: dict, out: str) -> dict:

@@ -282,11 +282,12 @@ def test_scatter_sends_one_of_two_head_on_agents_round_the_other_way_and_guides_
     starts, goals = np.array([0, 6]), np.array([6, 0])   # head-on along the top corridor
     rows = np.array([cache.slot(int(x)) for x in goals])
     # within a margin of 3 neither may go round (10 steps against 6): both stay on top and meet
-    prefer, stats = scatter(g.nbr, cache.table, rows, starts, goals, time_limit_s=10.0, margin=3)
+    still = lambda: 0.0                                  # noqa: E731 -- a clock that never runs out: rounds, not time, end it
+    prefer, stats = scatter(g.nbr, cache.table, rows, starts, goals, margin=3, clock=still)
     assert stats["collisions"][-1] > 0 and stats["rounds"] == 2
     assert preferred(prefer, 0, 0, g.n_cells) == 1 and preferred(prefer, 1, 6, g.n_cells) == 5
     assert preferred(prefer, 0, 6, g.n_cells) == -1      # off its path: no preference
-    prefer, stats = scatter(g.nbr, cache.table, rows, starts, goals, time_limit_s=10.0, margin=10)
+    prefer, stats = scatter(g.nbr, cache.table, rows, starts, goals, margin=10, clock=still)
     assert stats["collisions"][-1] == 0
     bottom = [preferred(prefer, 0, 0, g.n_cells) == 7, preferred(prefer, 1, 6, g.n_cells) == 13]
     assert sorted(bottom) == [False, True]       # exactly one goes round by the bottom corridor
