@@ -267,7 +267,7 @@ class MasterLink:
                 if not self._first.done():
                     self._first.set_exception(e)
                 return
-            if self._closed:      # closed as the answer came (PendingCalls' wait_for may swallow a cancel, 3.11)
+            if self._closed:      # closed while the answer was on its way: close() did not stop this registration
                 await peer.close()
                 return
             self.peer, self.tid = peer, answer.get("tid", self.tid)

@@ -10,6 +10,9 @@ from pathlib import Path
 
 BIN = Path(sys.executable).parent
 RUN_TIMEOUT_S = 120       # wall s the run may take (its --timeout)
+# sim s per wall s: a stall of the machine costs the batteries SPEEDUP times its length, and these
+# batteries are small (at 12, one robot ran flat once in a full suite run: a charge came too late)
+SPEEDUP = "6"
 # a 0.05 Wh battery starting at 30 %: the 25 % threshold comes within seconds, a charge to 60 %
 # takes ~25 s at 3 W, and 0.5 W idle drain would empty a robot left alone in ~30 s
 BATTERY = "capacity_wh=0.05,drain_wh_per_m=0.0005,idle_w=0.5,charge_w=3,threshold=0.25,recharge=0.6,initial=0.3"
@@ -29,7 +32,7 @@ def test_low_batteries_lead_to_charging_and_no_robot_runs_flat(tmp_path):
     (tmp_path / "places.yaml").write_text(PLACES)
     report = tmp_path / "report.json"
     argv = [str(BIN / "rce-fleet"), "demo", "--lifelong", "--duration", "70", "--robots", "2", "--task-rate", "6/min",
-            "--speedup", "12", "--grid", "8x8", "--places", str(tmp_path / "places.yaml"), "--battery", BATTERY,
+            "--speedup", SPEEDUP, "--grid", "8x8", "--places", str(tmp_path / "places.yaml"), "--battery", BATTERY,
             "--headless", "--no-live", "--report", str(report), "--plot", "", "--workdir", str(tmp_path / "run"),
             "--timeout", str(RUN_TIMEOUT_S)]
     p = subprocess.run(argv, capture_output=True, text=True, timeout=RUN_TIMEOUT_S + 60, cwd=tmp_path)
