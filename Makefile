@@ -25,7 +25,7 @@ $(ROSLIBJS): tests/web/roslibjs/package.json tests/web/roslibjs/package-lock.jso
 	touch $(ROSLIBJS)
 
 ## test: the whole suite, in parallel (tests share no ports, files or state; a test file runs in one worker)
-TEST_WORKERS ?= 3
+TEST_WORKERS ?= 4
 test: setup bytecode
 	$(BIN)/ruff check .
 	env -u PYTHONDONTWRITEBYTECODE $(BIN)/python -m pytest -q -p no:cacheprovider -n $(TEST_WORKERS) --dist loadfile $(PYTEST_ARGS)
