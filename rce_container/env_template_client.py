@@ -1,8 +1,8 @@
 """The task set's side of the warm environment launcher (:mod:`rce_container.env_template`):
 starts the template once, asks it to fork each environment, and gives the task set each one as
-a :class:`ForkedEnvironment`, which looks like the :class:`asyncio.subprocess.Process` of an
-exec'd environment (``pid``, ``returncode``, ``wait()``), so the task set watches, stops and
-measures both the same way.
+a :class:`~rce_container.zygote_client.ForkedChild`, which looks like the
+:class:`asyncio.subprocess.Process` of an exec'd environment (``pid``, ``returncode``,
+``wait()``), so the task set watches, stops and measures both the same way.
 
 If the template cannot start, or dies, :meth:`EnvTemplate.spawn` returns None and the task set
 execs the environment; a dead template is started again in the background for the next one.
@@ -24,7 +24,7 @@ from typing import Any
 from rce.plumbing.log import get_logger
 from rce.plumbing.tasks import Tasks
 from rce_container.zygote import CMDLINE_ROOM, MAX_MESSAGE
-from rce_container.zygote_client import first_message
+from rce_container.zygote_client import ForkedChild, first_message
 
 log = get_logger("rce.container")
 
@@ -32,26 +32,6 @@ READY_TIMEOUT = 20.0         # s for the template to import the environment (slo
 SPAWN_TIMEOUT = 5.0          # s for the template to answer a spawn request (a fork); then the environment is exec'd
 EXIT_TIMEOUT = 2.0           # s for the template to exit once its socket is closed, before SIGKILL
 UNKNOWN_EXIT = 255           # the exit code reported for an environment whose template died before it
-
-
-class ForkedEnvironment:
-    """An environment forked by the template. ``pid``: its pid; ``returncode``: None while it
-    runs, then its exit code or ``-signal``."""
-
-    def __init__(self, pid: int):
-        self.pid = pid
-        self.returncode: int | None = None
-        self._done = asyncio.Event()
-
-    def exited(self, code: int) -> None:
-        if self.returncode is None:
-            self.returncode = code
-            self._done.set()
-
-    async def wait(self) -> int:
-        """Wait until it has exited; its return code."""
-        await self._done.wait()
-        return self.returncode
 
 
 class EnvTemplate:
@@ -63,7 +43,7 @@ class EnvTemplate:
         self.forks = 0                               # environments forked (for stats and tests)
         self._ready: asyncio.Future | None = None    # -> True once it said ready, False if it failed
         self._waiting: dict[int, asyncio.Future] = {}
-        self._children: dict[int, ForkedEnvironment] = {}
+        self._children: dict[int, ForkedChild] = {}
         self._next_id = 0
         self._tasks = Tasks("environment template")
 
@@ -101,7 +81,7 @@ class EnvTemplate:
         self._ready.set_result(True)
         log.debug("environment template ready", pid=self.proc.pid)
 
-    async def spawn(self, args: list[str]) -> ForkedEnvironment | None:
+    async def spawn(self, args: list[str]) -> ForkedChild | None:
         """Fork an environment with ``args`` (those of ``python -m rce_container.environment``);
         None when the template cannot (failed, dead, no answer within :data:`SPAWN_TIMEOUT`): the
         caller then execs it. A template that is still starting is waited for (at most
@@ -152,7 +132,7 @@ class EnvTemplate:
     def _dispatch(self, msg: dict[str, Any]) -> None:
         op, rid = msg.get("op"), msg.get("id")
         if op == "spawned":
-            child = self._children[rid] = ForkedEnvironment(msg["pid"])
+            child = self._children[rid] = ForkedChild(msg["pid"])
             fut = self._waiting.get(rid)
             if fut is None or fut.done():       # its caller gave up waiting: nobody would watch it
                 with contextlib.suppress(ProcessLookupError):
@@ -183,7 +163,7 @@ class EnvTemplate:
         self._tasks.spawn(self._reap(), name="environment template reaper")
 
     @staticmethod
-    def _watch_orphan(child: ForkedEnvironment) -> None:
+    def _watch_orphan(child: ForkedChild) -> None:
         try:
             fd = os.pidfd_open(child.pid)
         except OSError:                          # gone already

@@ -51,9 +51,10 @@ from rce.plumbing.pending import PendingCalls
 from rce.plumbing.tasks import Tasks
 from rce_container import metrics
 from rce_container import sandbox as sandboxes
-from rce_container.env_template_client import EnvTemplate, ForkedEnvironment
+from rce_container.env_template_client import EnvTemplate
 from rce_container.environment import BUS_CALL_TIMEOUT, MAX_SOCKET_PATH, container_paths
 from rce_container.usage import measure
+from rce_container.zygote_client import ForkedChild
 
 log = get_logger("rce.container")
 ENV_TIMEOUT = 30.0         # s a new environment has to say hello (start Python, load packages, listen)
@@ -84,7 +85,7 @@ class EnvHandle:
     """The task set's view of one environment process."""
     env_id: int
     key: tuple | None              # the group it serves; None while it is a warm spare
-    proc: asyncio.subprocess.Process | ForkedEnvironment | None = None   # exec'd, or forked by the template
+    proc: asyncio.subprocess.Process | ForkedChild | None = None   # exec'd, or forked by the template
     peer: rpc.RpcPeer | None = None
     data_addr: str = ""
     cids: set[int] = field(default_factory=set)

@@ -90,18 +90,17 @@ def _signal_group(pgid: int | None, sig: int) -> None:
         pass
 
 
-class ZygoteChild:
-    """A node forked by the zygote. ``pid``: host pid (None if it was gone before it could be
-    found); ``returncode``: None while it runs, then its exit code or ``-signal``;
-    ``error``: ``"uncaught TYPE: MESSAGE"`` when its script raised."""
+class ForkedChild:
+    """A process a fork server forked, as the caller sees it (the server reaps it and reports its
+    exit): ``pid``; ``returncode``: None while it runs, then its exit code or ``-signal``;
+    ``error``: what the server said of its end, if anything. Looks like an
+    :class:`asyncio.subprocess.Process` to whoever watches it (``pid``, ``returncode``, ``wait()``)."""
 
-    def __init__(self, pid: int | None, stdout: asyncio.StreamReader, stderr: asyncio.StreamReader,
-                 transports: list[asyncio.BaseTransport]):
-        self.pid, self.stdout, self.stderr = pid, stdout, stderr
+    def __init__(self, pid: int | None):
+        self.pid = pid
         self.returncode: int | None = None
         self.error: str | None = None
         self._done = asyncio.Event()
-        self._transports = transports
 
     def exited(self, code: int, error: str | None = None) -> None:
         if self.returncode is None:
@@ -109,9 +108,21 @@ class ZygoteChild:
             self._done.set()
 
     async def wait(self) -> int:
-        """Wait until the zygote has reaped it; its return code."""
+        """Wait until it has been reaped; its return code."""
         await self._done.wait()
         return self.returncode
+
+
+class ZygoteChild(ForkedChild):
+    """A node forked by the zygote. ``pid``: host pid (None if it was gone before it could be
+    found); ``error``: ``"uncaught TYPE: MESSAGE"`` when its script raised; ``stdout``,
+    ``stderr``: its output."""
+
+    def __init__(self, pid: int | None, stdout: asyncio.StreamReader, stderr: asyncio.StreamReader,
+                 transports: list[asyncio.BaseTransport]):
+        super().__init__(pid)
+        self.stdout, self.stderr = stdout, stderr
+        self._transports = transports
 
     def close_pipes(self) -> None:
         """Stop reading its stdout and stderr (when a process it left behind holds them open)."""

@@ -171,13 +171,20 @@ class Subscriber:
 
     def _drain(self) -> None:
         """Take the waiting messages; an awaitable a callback returns goes on in a task."""
+        r = self._take_until_awaitable()
+        if r is None:
+            self._busy = False
+        else:
+            self.node.tasks.spawn(self._finish(r), name=f"subscriber {self.topic}")
+
+    def _take_until_awaitable(self) -> Awaitable | None:
+        """Take waiting messages until a callback returns an awaitable (returned) or none is left (None)."""
         q = self.queue
         while q and not self._stopped:
             r = self._take(q.popleft())
             if r is not None:
-                self.node.tasks.spawn(self._finish(r), name=f"subscriber {self.topic}")
-                return
-        self._busy = False
+                return r
+        return None
 
     def _take(self, payload: bytes) -> Awaitable | None:
         """Deserialize ``payload`` and call the callback: its awaitable result, or None."""
@@ -195,19 +202,14 @@ class Subscriber:
             return None
         return r if inspect.isawaitable(r) else None
 
-    async def _finish(self, r: Awaitable) -> None:
-        q = self.queue
+    async def _finish(self, r: Awaitable | None) -> None:
         try:
-            while True:
+            while r is not None:
                 try:
                     await r
                 except Exception as e:
                     self._failed(e)
-                r = None
-                while q and not self._stopped and r is None:
-                    r = self._take(q.popleft())
-                if r is None:
-                    return
+                r = self._take_until_awaitable()
         finally:
             self._busy = False
 
