@@ -1,6 +1,7 @@
-"""The robot endpoint's websocket library: websockets (what rce-robot runs, with the corked writes of
-:mod:`rce_robot.ws_cork`) against picows (a Cython websocket implementation for asyncio), each as
-an echo server on uvloop in its own process, measured in the same run.
+"""The robot endpoint's websocket library: picows (a Cython websocket implementation for asyncio,
+rce-robot's default) against websockets (``rce-robot --ws-impl websockets``, with the corked writes
+of :mod:`rce_robot.ws_cork`), each as an echo server on uvloop in its own process, measured in the
+same run.
 
 Each server echoes every frame it gets straight back (text as text, binary as binary). The client
 (one process, websockets on uvloop, the same for both servers) sends what a forwarder robot sends
