@@ -250,10 +250,10 @@ class Environment:
         if self.peer:
             self.peer.notify("node_status", cid=cid, ntag=ntag, status=status, **fields)
 
-    def _container(self, a: dict) -> GroupContainer:
-        c = self.containers.get(a.get("cid"))
+    def _container(self, args: dict) -> GroupContainer:
+        c = self.containers.get(args.get("cid"))
         if c is None:
-            raise NotFound(f"container {a.get('cid')!r} is not in this environment")
+            raise NotFound(f"container {args.get('cid')!r} is not in this environment")
         return c
 
     def _touch(self) -> None:
@@ -269,13 +269,13 @@ class Environment:
 
     # -- containers ----------------------------------------------------------------------------
     @ENV_OPS.op("add_container")
-    async def op_add_container(self, a: dict) -> dict:
+    async def op_add_container(self, args: dict) -> dict:
         """``{cid, ctag, user, group, limits}`` -> ``{data_addr, sandbox, socket}``."""
-        cid = a["cid"]
+        cid = args["cid"]
         c = self.containers.get(cid)
         if c is None:
-            c = GroupContainer(self, cid, a.get("ctag") or f"c{cid}", a.get("user", ""), a.get("group"),
-                          a.get("limits") or {})
+            c = GroupContainer(self, cid, args.get("ctag") or f"c{cid}", args.get("user", ""), args.get("group"),
+                          args.get("limits") or {})
             self.containers[cid] = c
             try:
                 await c.start()
@@ -287,16 +287,16 @@ class Environment:
         return {"data_addr": self.plane.addr, "sandbox": c.sandbox.status, "socket": c.socket}
 
     @ENV_OPS.op("remove_container")
-    async def op_remove_container(self, a: dict) -> dict:
+    async def op_remove_container(self, args: dict) -> dict:
         """``{cid}``: kill the container's nodes, drop its interfaces and socket."""
-        c = self._container(a)
+        c = self._container(args)
         del self.containers[c.cid]
         await c.close()
         log.info("container removed", env=self.env_id, cid=c.cid, ctag=c.ctag)
         return {}
 
     @ENV_OPS.op("shutdown")
-    async def op_shutdown(self, a: dict) -> dict:
+    async def op_shutdown(self, args: dict) -> dict:
         """Destroy every container; the task set closes the link afterwards."""
         await self._close_containers()
         return {}
@@ -311,13 +311,13 @@ class Environment:
                 log.error("container did not close cleanly", env=self.env_id, cid=c.cid, exc_info=r)
 
     @ENV_OPS.op("resize_container")
-    async def op_resize_container(self, a: dict) -> dict:
+    async def op_resize_container(self, args: dict) -> dict:
         """``{cid, limits: {cpu, memory, size, bandwidth}}`` -> ``{sandbox, limits, cgroup?}``:
         new limits for the container's sandbox, written into its cgroup while its nodes keep
         running (recorded only by the unconfined sandbox); 0 removes a limit. ``cgroup``: the
         limit files as the kernel now reports them."""
-        c = self._container(a)
-        limits = a.get("limits") or {}
+        c = self._container(args)
+        limits = args.get("limits") or {}
         if not isinstance(limits, dict):
             raise RequestError(f"resize_container: 'limits' must be an object, got {limits!r}")
         await c.sandbox.resize(limits)
@@ -328,44 +328,44 @@ class Environment:
 
     # -- nodes ---------------------------------------------------------------------------------
     @ENV_OPS.op("add_node")
-    async def op_add_node(self, a: dict) -> dict:
+    async def op_add_node(self, args: dict) -> dict:
         """``{cid, ntag, pkg, exe, args, name, namespace, respawn}`` -> ``{ntag, pid}``. A node of a
         ROS 1 package first gets its container's ROS 1 graph (:mod:`rce_container.ros1_graph`)."""
-        c = self._container(a)
-        kind = await c.ros1.prepare(a)
+        c = self._container(args)
+        kind = await c.ros1.prepare(args)
         try:
-            return await c.launcher.add(a, kind)
+            return await c.launcher.add(args, kind)
         finally:
-            if kind is not None and a.get("ntag") not in c.launcher.nodes:
-                await c.ros1.node_gone(a["ntag"])
+            if kind is not None and args.get("ntag") not in c.launcher.nodes:
+                await c.ros1.node_gone(args["ntag"])
 
     @ENV_OPS.op("remove_node")
-    async def op_remove_node(self, a: dict) -> dict:
+    async def op_remove_node(self, args: dict) -> dict:
         """``{cid, ntag}``: stop the node (SIGTERM, then SIGKILL after the grace period)."""
-        c = self._container(a)
-        await c.launcher.remove(a["ntag"])
-        await c.ros1.node_gone(a["ntag"])
+        c = self._container(args)
+        await c.launcher.remove(args["ntag"])
+        await c.ros1.node_gone(args["ntag"])
         return {}
 
     @ENV_OPS.op("logs")
-    async def op_logs(self, a: dict) -> dict:
+    async def op_logs(self, args: dict) -> dict:
         """``{cid, ntag, lines?}`` -> ``{stdout: [line...], stderr: [line...]}`` (last lines)."""
-        return self._container(a).launcher.logs(a["ntag"], a.get("lines", LOG_LINES))
+        return self._container(args).launcher.logs(args["ntag"], args.get("lines", LOG_LINES))
 
     # -- parameters ----------------------------------------------------------------------------
     @ENV_OPS.op("set_param")
-    async def op_set_param(self, a: dict) -> dict:
+    async def op_set_param(self, args: dict) -> dict:
         """``{cid, name, value}``: set a parameter (global name) on the group's bus."""
-        self._container(a)
-        self.bus.set_param(resolve(a["name"], "/"), a.get("value"))
+        self._container(args)
+        self.bus.set_param(resolve(args["name"], "/"), args.get("value"))
         await self._sync_ros1()
         return {}
 
     @ENV_OPS.op("delete_param")
-    async def op_delete_param(self, a: dict) -> dict:
+    async def op_delete_param(self, args: dict) -> dict:
         """``{cid, name}``: delete a parameter (and its subtree). NotFound if not set."""
-        self._container(a)
-        self.bus.delete_param(resolve(a["name"], "/"))
+        self._container(args)
+        self.bus.delete_param(resolve(args["name"], "/"))
         await self._sync_ros1()
         return {}
 
@@ -374,22 +374,22 @@ class Environment:
         await asyncio.gather(*(c.ros1.sync() for c in self.containers.values()))
 
     @ENV_OPS.op("get_param")
-    async def op_get_param(self, a: dict) -> dict:
+    async def op_get_param(self, args: dict) -> dict:
         """``{cid, name}`` -> ``{value}``: a parameter's value (a subtree as an object), for a
         rosbridge client's ``/rosapi/get_param``. NotFound if not set."""
-        self._container(a)
-        return {"value": self.bus.get_param(resolve(a["name"], "/"))}
+        self._container(args)
+        return {"value": self.bus.get_param(resolve(args["name"], "/"))}
 
     # -- interfaces ----------------------------------------------------------------------------
     @ENV_OPS.op("add_interface")
-    async def op_add_interface(self, a: dict) -> dict:
+    async def op_add_interface(self, args: dict) -> dict:
         """``{cid, iid, tag, itype, cls, addr?}`` -> ``{iid, addr}``: create and start a
         container-side interface. Idempotent for the same spec; MessageError for an unknown class."""
-        c = self._container(a)
-        iid = a["iid"]
+        c = self._container(args)
+        iid = args["iid"]
         old = self.interfaces.get(iid)
-        iface = make_interface(self.plane, self.bus, c.cid, iid, a.get("tag"), a.get("itype"), a.get("cls"),
-                               a.get("addr"), self.registry)
+        iface = make_interface(self.plane, self.bus, c.cid, iid, args.get("tag"), args.get("itype"), args.get("cls"),
+                               args.get("addr"), self.registry)
         if old is not None:
             if (old.cid, old.kind, old.cls, old.addr) == (c.cid, iface.kind, iface.cls, iface.addr):
                 return {"iid": iid, "addr": old.addr}
@@ -400,59 +400,59 @@ class Environment:
                  addr=iface.addr)
         return {"iid": iid, "addr": iface.addr}
 
-    def _interface(self, a: dict) -> BusInterface:
-        c = self._container(a)
-        iface = c.interfaces.get(a.get("iid"))
+    def _interface(self, args: dict) -> BusInterface:
+        c = self._container(args)
+        iface = c.interfaces.get(args.get("iid"))
         if iface is None:
-            raise NotFound(f"interface {a.get('iid')!r} does not exist in container {c.ctag!r}")
+            raise NotFound(f"interface {args.get('iid')!r} does not exist in container {c.ctag!r}")
         return iface
 
     @ENV_OPS.op("remove_interface")
-    async def op_remove_interface(self, a: dict) -> dict:
+    async def op_remove_interface(self, args: dict) -> dict:
         """``{cid, iid}``: stop and drop an interface (its connections go with it)."""
-        await self.drop_interface(self._interface(a))
+        await self.drop_interface(self._interface(args))
         return {}
 
     @ENV_OPS.op("data_key")
-    async def op_data_key(self, a: dict) -> dict:
+    async def op_data_key(self, args: dict) -> dict:
         """``{key}`` (hex; from the task set, once, right after ``hello``): this environment's data
         key, derived from the cluster key and its data address (:mod:`rce.transport.cluster_auth`); peers'
         grants are checked with it."""
         if self.plane.data_key is not None:
             raise RequestError("this environment has its data key already")
-        self.plane.data_key = bytes.fromhex(str(a.get("key")))
+        self.plane.data_key = bytes.fromhex(str(args.get("key")))
         return {}
 
     @ENV_OPS.op("connect")
-    async def op_connect(self, a: dict) -> dict:
+    async def op_connect(self, args: dict) -> dict:
         """``{cid, iid, peer_iid, peer_addr, token}``: connect an interface to a peer interface
         (``token``: the master's credential for sending to it)."""
-        self._interface(a).connect(int(a["peer_iid"]), a["peer_addr"], token_of(a))
+        self._interface(args).connect(int(args["peer_iid"]), args["peer_addr"], token_of(args))
         self._touch()
         return {}
 
     @ENV_OPS.op("disconnect")
-    async def op_disconnect(self, a: dict) -> dict:
+    async def op_disconnect(self, args: dict) -> dict:
         """``{cid, iid, peer_iid}``: drop one connection (no error if absent)."""
-        self._interface(a).disconnect(int(a["peer_iid"]))
+        self._interface(args).disconnect(int(args["peer_iid"]))
         self._touch()
         return {}
 
     # -- bus tools -----------------------------------------------------------------------------
     @ENV_OPS.op("describe")
-    async def op_describe(self, a: dict) -> dict:
+    async def op_describe(self, args: dict) -> dict:
         """``{cid}`` -> :meth:`Bus.describe` of the group's bus, plus ``launched``: the
         container's nodes as the launcher sees them (``ntag, pid, running, restarts, argv``)."""
-        c = self._container(a)
+        c = self._container(args)
         return {**self.bus.describe(), "launched": [n.info() for n in c.launcher.nodes.values()]}
 
     @ENV_OPS.op("bus_publish")
-    async def op_bus_publish(self, a: dict) -> dict:
+    async def op_bus_publish(self, args: dict) -> dict:
         """``{cid, topic, type, msg}`` -> ``{delivered}``: publish a JSON message once."""
-        self._container(a)
-        topic = resolve(a["topic"], "/")
-        typename = self.registry.msg_type(a["type"])
-        payload = self.registry.json_to_bytes(typename, a.get("msg") or {})
+        self._container(args)
+        topic = resolve(args["topic"], "/")
+        typename = self.registry.msg_type(args["type"])
+        payload = self.registry.json_to_bytes(typename, args.get("msg") or {})
         owner = "admin:bus_publish"
         t = self.bus.advertise(topic, wire_name(typename), owner)
         try:
@@ -461,34 +461,34 @@ class Environment:
             self.bus.unadvertise(topic, owner)
 
     @ENV_OPS.op("bus_call")
-    async def op_bus_call(self, a: dict) -> Any:
+    async def op_bus_call(self, args: dict) -> Any:
         """``{cid, service, request, timeout}`` -> the JSON response. NotFound for an absent
         service, Timeout after ``timeout`` s (default :data:`BUS_CALL_TIMEOUT`), the provider's
         error otherwise."""
-        self._container(a)
-        name = resolve(a["service"], "/")
+        self._container(args)
+        name = resolve(args["service"], "/")
         s = self.bus.services.get(name)
         if s is None:
-            raise NotFound(f"service {name!r} is not provided in container {a['cid']}")
+            raise NotFound(f"service {name!r} is not provided in container {args['cid']}")
         req_t, resp_t = self.registry.srv_types(s.type)
-        payload = self.registry.json_to_bytes(req_t, a.get("request") or {})
-        resp = await self.bus.call_service(name, payload, None, float(a.get("timeout") or BUS_CALL_TIMEOUT))
+        payload = self.registry.json_to_bytes(req_t, args.get("request") or {})
+        resp = await self.bus.call_service(name, payload, None, float(args.get("timeout") or BUS_CALL_TIMEOUT))
         return self.registry.bytes_to_json(resp_t, resp)
 
     @ENV_OPS.op("bus_sample")
-    async def op_bus_sample(self, a: dict) -> list:
+    async def op_bus_sample(self, args: dict) -> list:
         """``{cid, topic, count, timeout, type?}`` -> up to ``count`` JSON messages received on
         ``topic`` within ``timeout`` s. The type comes from the topic (or ``type``); NotFound
         if neither is known."""
-        self._container(a)
-        topic = resolve(a["topic"], "/")
+        self._container(args)
+        topic = resolve(args["topic"], "/")
         t = self.bus.topics.get(topic)
-        wire = t.type if t is not None else a.get("type")
+        wire = t.type if t is not None else args.get("type")
         if not wire:
             raise NotFound(f"topic {topic!r} does not exist; give its 'type' to wait for it")
         typename = self.registry.msg_type(wire)
-        count = max(1, min(int(a.get("count") or 1), MAX_SAMPLE))
-        timeout = max(0.0, min(float(a.get("timeout") or BUS_SAMPLE_TIMEOUT), MAX_SAMPLE_TIMEOUT))
+        count = max(1, min(int(args.get("count") or 1), MAX_SAMPLE))
+        timeout = max(0.0, min(float(args.get("timeout") or BUS_SAMPLE_TIMEOUT), MAX_SAMPLE_TIMEOUT))
         got: list[bytes] = []
         full = asyncio.Event()
 
@@ -510,7 +510,7 @@ class Environment:
 
     # -- status --------------------------------------------------------------------------------
     @ENV_OPS.op("stats")
-    async def op_stats(self, a: dict) -> dict:
+    async def op_stats(self, args: dict) -> dict:
         """``{cid}`` -> counters of the container and of its group::
 
             {cid, user, ctag, group, sandbox, limits: {cpu?, memory?, size?, bandwidth?},
@@ -530,7 +530,7 @@ class Environment:
                            dataplane: {msgs_in, msgs_out, bytes_in, bytes_out, dropped, links}},
              ros1?: {master_uri, running, nodes, pids, relay}}  # while it has ROS 1 nodes (Ros1Graph.info)
         """
-        c = self._container(a)
+        c = self._container(args)
         await c.ros1.sync()
         if self.direct is not None:
             await self.direct.collect()

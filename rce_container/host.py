@@ -240,14 +240,14 @@ class ContainerHost:
     async def _accept_env(self, reader: asyncio.StreamReader, writer: asyncio.StreamWriter) -> None:
         peer = rpc.RpcPeer(reader, writer, name="environment", max_frame=self.max_frame)
 
-        async def hello(a: dict) -> dict:
-            env_id = a.get("env_id")
-            if not isinstance(env_id, int) or not self._hellos.settle(env_id, (peer, a)):
+        async def hello(args: dict) -> dict:
+            env_id = args.get("env_id")
+            if not isinstance(env_id, int) or not self._hellos.settle(env_id, (peer, args)):
                 raise RequestError(f"unexpected environment {env_id!r}")
             return {}
 
-        async def node_status(a: dict) -> None:
-            self._on_node_status(a)
+        async def node_status(args: dict) -> None:
+            self._on_node_status(args)
         peer.handlers.update(hello=hello, node_status=node_status)
         peer.start()
 
@@ -421,17 +421,17 @@ class ContainerHost:
         if self.master:
             self.master.notify(op, keep=True, **args)
 
-    def _on_node_status(self, a: dict) -> None:
-        c = self.containers.get(a.get("cid"))
+    def _on_node_status(self, args: dict) -> None:
+        c = self.containers.get(args.get("cid"))
         if c is not None:
-            ntag, status = a.get("ntag"), a.get("status")
+            ntag, status = args.get("ntag"), args.get("status")
             if status == "started":
-                c.nodes[ntag] = a.get("pid")
+                c.nodes[ntag] = args.get("pid")
             elif status in ("exited", "respawning") and ntag in c.nodes:     # not a node removed meanwhile
                 c.nodes[ntag] = None
             if ntag in c.nodes and isinstance(status, str) and status:
                 c.statuses[ntag] = status
-        self._to_master("node_status", **a)
+        self._to_master("node_status", **args)
 
     def _report(self) -> dict:
         """What this host holds, for re-registering: every container whose environment runs,
@@ -456,24 +456,24 @@ class ContainerHost:
             except RCEError as e:
                 log.warning("could not remove a node the master dropped", reason=e.message, **n)
 
-    def _record(self, a: dict) -> ContainerRecord:
-        c = self.containers.get(a.get("cid"))
+    def _record(self, args: dict) -> ContainerRecord:
+        c = self.containers.get(args.get("cid"))
         if c is None:
-            raise NotFound(f"container {a.get('cid')!r} does not exist on container host {self.name!r}")
+            raise NotFound(f"container {args.get('cid')!r} does not exist on container host {self.name!r}")
         if not c.env.alive:
             raise Unavailable(f"the environment of container {c.ctag!r} is gone"
                               + (f" (exit code {c.env.exit_code})" if c.env.exit_code is not None else ""))
         return c
 
     @HOST_OPS.op("create_container")
-    async def op_create_container(self, a: dict) -> dict:
+    async def op_create_container(self, args: dict) -> dict:
         """``{cid, user, ctag, group, limits}`` -> ``{data_addr, sandbox, startup_ms}`` once the
         environment serves the container. Idempotent for a repeated cid with the same tag.
 
         Raises :class:`RequestError` for a cid reused with another tag, :class:`Unavailable`
         if the environment exits before it is ready, :class:`Timeout` if it does not get
         ready within ``env_timeout`` s."""
-        cid, user, ctag, group = a.get("cid"), a.get("user", ""), a.get("ctag"), a.get("group") or None
+        cid, user, ctag, group = args.get("cid"), args.get("user", ""), args.get("ctag"), args.get("group") or None
         if not isinstance(cid, int) or isinstance(cid, bool):
             raise RequestError(f"create_container needs an integer 'cid', got {cid!r}")
         old = self.containers.get(cid)
@@ -502,7 +502,7 @@ class ContainerHost:
             env.cids.add(cid)
             try:
                 res = await env.peer.call("add_container", cid=cid, ctag=ctag, user=user, group=group,
-                                          limits=a.get("limits") or {}, timeout=self.env_timeout)
+                                          limits=args.get("limits") or {}, timeout=self.env_timeout)
             except BaseException:
                 env.cids.discard(cid)
                 if not env.cids:
@@ -516,12 +516,12 @@ class ContainerHost:
         return result
 
     @HOST_OPS.op("destroy_container")
-    async def op_destroy_container(self, a: dict) -> dict:
+    async def op_destroy_container(self, args: dict) -> dict:
         """``{cid}``: kill every node of the container, drop its interfaces and socket; stop its
         environment if it was the group's last container. Raises :class:`NotFound`."""
-        c = self.containers.get(a.get("cid"))
+        c = self.containers.get(args.get("cid"))
         if c is None:
-            raise NotFound(f"container {a.get('cid')!r} does not exist on container host {self.name!r}")
+            raise NotFound(f"container {args.get('cid')!r} does not exist on container host {self.name!r}")
         env = c.env
         async with self._group_locks.setdefault(env.key, asyncio.Lock()):
             del self.containers[c.cid]
@@ -547,31 +547,31 @@ class ContainerHost:
     @HOST_OPS.relay("add_node", "remove_node", "set_param", "delete_param", "get_param", "add_interface",
                     "remove_interface", "connect", "disconnect", "describe", "bus_publish", "bus_call", "bus_sample",
                     "logs", "resize_container")
-    async def relay(self, op: str, a: dict) -> Any:
+    async def relay(self, op: str, args: dict) -> Any:
         """Relay ``op`` (one of :data:`HOST_OPS`' relayed ops) to the environment of the op's
         ``cid``; its answer. Raises :class:`NotFound` for an unknown cid, :class:`Unavailable`
         when its environment is gone, and what the environment raises."""
-        c = self._record(a)
+        c = self._record(args)
         timeout = RELAY_TIMEOUT
         if op in ("bus_call", "bus_sample"):
-            timeout = float(a.get("timeout") or BUS_CALL_TIMEOUT) + REPLY_MARGIN
+            timeout = float(args.get("timeout") or BUS_CALL_TIMEOUT) + REPLY_MARGIN
         elif op == "remove_node":
             timeout = self.grace + REPLY_MARGIN
-        result = await c.env.peer.request(op, a, timeout)
+        result = await c.env.peer.request(op, args, timeout)
         if op == "add_node":
-            c.nodes.setdefault(a.get("ntag"), (result or {}).get("pid"))
-            c.statuses.setdefault(a.get("ntag"), "starting")
+            c.nodes.setdefault(args.get("ntag"), (result or {}).get("pid"))
+            c.statuses.setdefault(args.get("ntag"), "starting")
         elif op == "remove_node":
-            c.nodes.pop(a.get("ntag"), None)
-            c.statuses.pop(a.get("ntag"), None)
+            c.nodes.pop(args.get("ntag"), None)
+            c.statuses.pop(args.get("ntag"), None)
         return result
 
     @HOST_OPS.op("stats")
-    async def op_stats(self, a: dict) -> dict:
+    async def op_stats(self, args: dict) -> dict:
         """``{cid}`` -> the container's counters (see ``Environment.op_stats``); without a cid,
         ``{name, tid, sandbox, environments, containers: [per-container stats...]}``."""
-        if a.get("cid") is not None:
-            c = self._record(a)
+        if args.get("cid") is not None:
+            c = self._record(args)
             return await c.env.peer.call("stats", cid=c.cid)
         out = []
         for c in list(self.containers.values()):

@@ -82,20 +82,21 @@ class CreateContainerStep(Step):
         data = item.containerData.model_dump(exclude_unset=True) if item.containerData is not None else None
         return req.state.add_container(req.user, req.robot, item.cTag, data)[0]
 
-    async def tell(self, req, item, c):
-        return await req.control.create_container(c)
+    async def tell(self, req, item, container):
+        return await req.control.create_container(container)
 
-    def confirm(self, req, item, c, answer):
-        req.state.container_ready(c, answer["data_addr"], answer.get("sandbox", ""))
-        log.info("container created", user=req.user, ctag=c.ctag, cid=c.cid, tid=c.tid, sandbox=c.sandbox)
+    def confirm(self, req, item, container, answer):
+        req.state.container_ready(container, answer["data_addr"], answer.get("sandbox", ""))
+        log.info("container created", user=req.user, ctag=container.ctag, cid=container.cid, tid=container.tid,
+                 sandbox=container.sandbox)
         # the robot learns what isolation its container got ("namespaced", or "unconfined" on a host without root)
-        req.control.notify_robot(req.user, req.robot, "ST", {"topic": "container", "cTag": c.ctag,
-                                                             "status": "running", "sandbox": c.sandbox})
+        req.control.notify_robot(req.user, req.robot, "ST", {"topic": "container", "cTag": container.ctag,
+                                                             "status": "running", "sandbox": container.sandbox})
 
-    async def undo(self, req, c, told):
-        await req.control.tell_disconnects(req.state.container_failed(c))
+    async def undo(self, req, container, told):
+        await req.control.tell_disconnects(req.state.container_failed(container))
         if told:
-            await req.control.quiet(req.control.host_call(c, "destroy_container"))
+            await req.control.quiet(req.control.host_call(container, "destroy_container"))
 
 
 class DestroyContainerStep(Step):
@@ -136,8 +137,8 @@ class RemoveNode(Step):
     def reserve(self, req, spec: schema.NodeRef):
         return req.state.remove_node(req.user, spec.cTag, spec.nTag)
 
-    async def tell(self, req, spec, c):
-        await req.control.host_call(c, "remove_node", ntag=spec.nTag)
+    async def tell(self, req, spec, container):
+        await req.control.host_call(container, "remove_node", ntag=spec.nTag)
 
 
 class SetParam(Step):
@@ -146,11 +147,11 @@ class SetParam(Step):
     def reserve(self, req, spec: schema.ParameterComponent):
         return req.state.container(req.user, spec.cTag)
 
-    async def tell(self, req, spec, c):
-        await req.control.host_call(c, "set_param", name=spec.name, value=spec.value)
+    async def tell(self, req, spec, container):
+        await req.control.host_call(container, "set_param", name=spec.name, value=spec.value)
 
-    def confirm(self, req, spec, c, answer):
-        req.state.set_param(req.user, c.ctag, spec.name, spec.value)
+    def confirm(self, req, spec, container, answer):
+        req.state.set_param(req.user, container.ctag, spec.name, spec.value)
 
 
 class DeleteParam(Step):
@@ -159,8 +160,8 @@ class DeleteParam(Step):
     def reserve(self, req, spec: schema.ParameterRef):
         return req.state.delete_param(req.user, spec.cTag, spec.name)
 
-    async def tell(self, req, spec, c):
-        await req.control.host_call(c, "delete_param", name=spec.name)
+    async def tell(self, req, spec, container):
+        await req.control.host_call(container, "delete_param", name=spec.name)
 
 
 class AddInterface(Step):
@@ -199,11 +200,11 @@ class ResizeContainer(Step):
     def reserve(self, req, spec: schema.ContainerComponent):
         return req.state.container(req.user, spec.cTag)
 
-    async def tell(self, req, spec, c):
-        return await req.control.host_call(c, "resize_container", limits=limits_of(spec.model_dump()))
+    async def tell(self, req, spec, container):
+        return await req.control.host_call(container, "resize_container", limits=limits_of(spec.model_dump()))
 
-    def confirm(self, req, spec, c, answer):
-        req.state.resize(req.user, c.ctag, limits_of(spec.model_dump()))
+    def confirm(self, req, spec, container, answer):
+        req.state.resize(req.user, container.ctag, limits_of(spec.model_dump()))
 
 
 # -- CX ----------------------------------------------------------------------------------------------------

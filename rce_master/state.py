@@ -352,34 +352,34 @@ class MasterState(StateIndex):
         return self.containers[(user, ctag)], host
 
     @_atomic
-    def container_ready(self, c: ContainerRec, data_addr: str, sandbox: str) -> None:
+    def container_ready(self, container: ContainerRec, data_addr: str, sandbox: str) -> None:
         """The host created (or re-created) ``c``: ``running``. Raises :class:`Unavailable` when it
         was removed or lost meanwhile."""
-        if not _current(self.containers, (c.user, c.ctag), c) or c.state == "lost":
-            raise Unavailable(f"container {c.ctag!r} was removed or lost while it was created")
-        self._put(c, state="running", data_addr=data_addr, sandbox=sandbox)
+        if not _current(self.containers, (container.user, container.ctag), container) or container.state == "lost":
+            raise Unavailable(f"container {container.ctag!r} was removed or lost while it was created")
+        self._put(container, state="running", data_addr=data_addr, sandbox=sandbox)
 
     @_atomic
-    def container_lost(self, c: ContainerRec) -> None:
+    def container_lost(self, container: ContainerRec) -> None:
         """``c`` is gone with its host or environment (or its host re-registered without it):
         ``lost``. Its nodes, parameters, interfaces and connections stay, for its re-creation
         (:meth:`container_recovering`) or until its robot destroys it (DC) or leaves."""
-        self._put(c, state="lost")
+        self._put(container, state="lost")
 
     @_atomic
-    def container_recovering(self, c: ContainerRec, tid: int) -> None:
+    def container_recovering(self, container: ContainerRec, tid: int) -> None:
         """Re-create lost container ``c`` on host ``tid``: it gets a new ``cid`` (a copy its old
         host may still hold keeps the old one, and is dropped when that host re-registers), its
         container-side interfaces move with it, its nodes are ``starting`` again. Raises
         :class:`RequestError` unless ``c`` is the user's current, lost container."""
-        if not _current(self.containers, (c.user, c.ctag), c) or c.state != "lost":
-            raise RequestError(f"container {c.ctag!r} is not lost: it is {c.state} (or gone)")
-        old = c.cid
-        self._put(c, cid=self._next_id("cid"), tid=tid, state="recovering")
-        for rec in self.interfaces_of(c.user, c.ctag, robot_side=False):
+        if not _current(self.containers, (container.user, container.ctag), container) or container.state != "lost":
+            raise RequestError(f"container {container.ctag!r} is not lost: it is {container.state} (or gone)")
+        old = container.cid
+        self._put(container, cid=self._next_id("cid"), tid=tid, state="recovering")
+        for rec in self.interfaces_of(container.user, container.ctag, robot_side=False):
             if rec.location == old:
-                self._put(rec, location=c.cid)
-        for n in self.nodes_of(c):
+                self._put(rec, location=container.cid)
+        for n in self.nodes_of(container):
             self._put(n, status="starting", detail={})
 
     @_atomic
@@ -394,16 +394,16 @@ class MasterState(StateIndex):
                       key=lambda c: c.cid)
 
     @_atomic
-    def container_found(self, c: ContainerRec, tid: int, data_addr: str, sandbox: str) -> None:
+    def container_found(self, container: ContainerRec, tid: int, data_addr: str, sandbox: str) -> None:
         """Host ``tid`` reported ``c`` running when it re-registered: ``running`` there, at ``data_addr``."""
-        self._put(c, tid=tid, data_addr=data_addr, sandbox=sandbox, state="running")
+        self._put(container, tid=tid, data_addr=data_addr, sandbox=sandbox, state="running")
 
     @_atomic
-    def container_failed(self, c: ContainerRec) -> Pairs:
+    def container_failed(self, container: ContainerRec) -> Pairs:
         """Undo a container its host did not create (nothing when it is already gone)."""
-        if not _current(self.containers, (c.user, c.ctag), c):
+        if not _current(self.containers, (container.user, container.ctag), container):
             return []
-        return self._forget_container(c)
+        return self._forget_container(container)
 
     @_atomic
     def remove_container(self, user: str, ctag: str) -> tuple[ContainerRec, Pairs]:
@@ -414,13 +414,13 @@ class MasterState(StateIndex):
             raise NotFound(f"container {ctag!r} does not exist")
         return c, self._forget_container(c)
 
-    def _forget_container(self, c: ContainerRec) -> Pairs:
-        for n in self.nodes_of(c):
+    def _forget_container(self, container: ContainerRec) -> Pairs:
+        for n in self.nodes_of(container):
             self._delete(n)
-        for k in [k for k in self.params if k[:2] == (c.user, c.ctag)]:
+        for k in [k for k in self.params if k[:2] == (container.user, container.ctag)]:
             self._write(param_key(*k), None)
-        pairs = self.forget_interfaces(self.interfaces_of(c.user, c.ctag))
-        self._delete(c)
+        pairs = self.forget_interfaces(self.interfaces_of(container.user, container.ctag))
+        self._delete(container)
         return pairs
 
     @_atomic
@@ -445,16 +445,16 @@ class MasterState(StateIndex):
         return c, self.nodes[key]
 
     @_atomic
-    def node_running(self, n: NodeRec) -> None:
+    def node_running(self, node: NodeRec) -> None:
         """The host launched ``n``: ``running``, unless a status report came first."""
-        if _current(self.nodes, (n.user, n.ctag, n.ntag), n) and n.status == "starting":
-            self._put(n, status="running")
+        if _current(self.nodes, (node.user, node.ctag, node.ntag), node) and node.status == "starting":
+            self._put(node, status="running")
 
     @_atomic
-    def node_failed(self, n: NodeRec) -> None:
+    def node_failed(self, node: NodeRec) -> None:
         """Undo a node the host did not launch (nothing when it is already gone)."""
-        if _current(self.nodes, (n.user, n.ctag, n.ntag), n):
-            self._delete(n)
+        if _current(self.nodes, (node.user, node.ctag, node.ntag), node):
+            self._delete(node)
 
     @_atomic
     def remove_node(self, user: str, ctag: str, ntag: str) -> ContainerRec:

@@ -475,17 +475,17 @@ class RobotEndpoint:
                                         "connect again") for ns in closing if ns is not None))
 
     # -- master ops --------------------------------------------------------------------------------
-    def _find(self, a: dict) -> RobotNamespace | RosbridgeSession | None:
-        """Robot ``a["robot"]`` of ``a["user"]``: an RCE robot's namespace or a rosbridge client's session."""
-        ns = self.namespaces.get((a["user"], a["robot"]))
+    def _find(self, args: dict) -> RobotNamespace | RosbridgeSession | None:
+        """Robot ``args["robot"]`` of ``args["user"]``: an RCE robot's namespace or a rosbridge client's session."""
+        ns = self.namespaces.get((args["user"], args["robot"]))
         if ns is None and self.rosbridge is not None:
-            return self.rosbridge.sessions.get((a["user"], a["robot"]))
+            return self.rosbridge.sessions.get((args["user"], args["robot"]))
         return ns
 
-    def _ns(self, a: dict) -> RobotNamespace | RosbridgeSession:
-        ns = self._find(a)
+    def _ns(self, args: dict) -> RobotNamespace | RosbridgeSession:
+        ns = self._find(args)
         if ns is None:
-            raise NotFound(f"robot {a['robot']!r} is not connected to this endpoint")
+            raise NotFound(f"robot {args['robot']!r} is not connected to this endpoint")
         return ns
 
     def _iface(self, iid: int) -> RobotInterface:
@@ -495,26 +495,26 @@ class RobotEndpoint:
         return iface
 
     @ROBOT_OPS.op("add_interface")
-    async def _op_add_interface(self, a: dict) -> dict:
-        opening = self.opening.get((a["user"], a["robot"]))
-        if opening is not None and (a["user"], a["robot"]) not in self.namespaces:
+    async def _op_add_interface(self, args: dict) -> dict:
+        opening = self.opening.get((args["user"], args["robot"]))
+        if opening is not None and (args["user"], args["robot"]) not in self.namespaces:
             try:
                 async with asyncio.timeout(SESSION_OPEN_WAIT):
                     await opening.wait()
             except TimeoutError:        # its websocket never opened: the login was abandoned
-                self.opening.pop((a["user"], a["robot"]), None)
-        ns = self._ns(a)
-        itype = InterfaceType.parse(a["itype"], robot_side=True)
-        lane = None if a.get("lane") is None else parse_lane(a["lane"], f"interface {a['itag']!r}")
-        iface = RobotInterface(ns, self.plane, self.registry, a["iid"], a["itag"], itype, a["cls"], lane=lane)
+                self.opening.pop((args["user"], args["robot"]), None)
+        ns = self._ns(args)
+        itype = InterfaceType.parse(args["itype"], robot_side=True)
+        lane = None if args.get("lane") is None else parse_lane(args["lane"], f"interface {args['itag']!r}")
+        iface = RobotInterface(ns, self.plane, self.registry, args["iid"], args["itag"], itype, args["cls"], lane=lane)
         await iface.start()
         ns.add_interface(iface)
         self.by_iid[iface.iid] = iface
         return {}
 
     @ROBOT_OPS.op("remove_interface")
-    async def _op_remove_interface(self, a: dict) -> dict:
-        iface = self.by_iid.pop(a["iid"], None)
+    async def _op_remove_interface(self, args: dict) -> dict:
+        iface = self.by_iid.pop(args["iid"], None)
         if iface:
             iface.link.remove_interface(iface)
             await iface.stop()
@@ -522,28 +522,28 @@ class RobotEndpoint:
         return {}
 
     @ROBOT_OPS.op("connect")
-    async def _op_connect(self, a: dict) -> dict:
-        self._iface(a["iid"]).connect(a["peer_iid"], a["peer_addr"], token_of(a))
+    async def _op_connect(self, args: dict) -> dict:
+        self._iface(args["iid"]).connect(args["peer_iid"], args["peer_addr"], token_of(args))
         return {}
 
     @ROBOT_OPS.op("disconnect")
-    async def _op_disconnect(self, a: dict) -> dict:
-        iface = self.by_iid.get(a["iid"])
+    async def _op_disconnect(self, args: dict) -> dict:
+        iface = self.by_iid.get(args["iid"])
         if iface:
-            iface.disconnect(a["peer_iid"])
+            iface.disconnect(args["peer_iid"])
         return {}
 
     @ROBOT_OPS.op("notify")
-    async def _op_notify(self, a: dict) -> None:
-        ns = self._find(a)
+    async def _op_notify(self, args: dict) -> None:
+        ns = self._find(args)
         if ns is None:
             return
-        if a["type"] == "ER":
-            ns.send_error(str(a["data"]))
+        if args["type"] == "ER":
+            ns.send_error(str(args["data"]))
         else:
-            ns.send_status(a["data"])
+            ns.send_status(args["data"])
 
     @ROBOT_OPS.op("close_robot")
-    async def _op_close_robot(self, a: dict) -> dict:
-        await self._ns(a).close(a.get("reason", "closed by the master"))
+    async def _op_close_robot(self, args: dict) -> dict:
+        await self._ns(args).close(args.get("reason", "closed by the master"))
         return {}

@@ -118,32 +118,32 @@ class NodeSession:
                 "undecodable": self.undecodable}
 
     @BUS_OPS.op("undecodable")
-    async def op_undecodable(self, a: dict) -> None:
+    async def op_undecodable(self, args: dict) -> None:
         """``{where, error}``: the node could not deserialize a message delivered to it (counted)."""
         self.undecodable += 1
-        log.warning("node could not deserialize a message", node=self.node, where=str(a.get("where"))[:100],
-                    error=str(a.get("error"))[:200])
+        log.warning("node could not deserialize a message", node=self.node, where=str(args.get("where"))[:100],
+                    error=str(args.get("error"))[:200])
 
     # -- control ops ---------------------------------------------------------------------------
     @BUS_OPS.op("hello", unauthenticated=True)
-    async def op_hello(self, a: dict) -> dict:
+    async def op_hello(self, args: dict) -> dict:
         """``{name, pid, container, token}`` -> ``{bus}``. Raises :class:`AuthError` (and
         closes the link) when the bus has a token and ``token`` is not it."""
         token = self.server.token
         if token is not None and self.node is None:
-            given = a.get("token")
+            given = args.get("token")
             if not isinstance(given, str) or not hmac.compare_digest(given.encode(), token.encode()):
-                self.server.refuse(f"hello of {a.get('name')!r} (pid {a.get('pid')!r}) with "
+                self.server.refuse(f"hello of {args.get('name')!r} (pid {args.get('pid')!r}) with "
                                    + ("no" if given is None else "a wrong") + " bus token")
                 self.peer.tasks.spawn(self._drop(), name="drop a refused node")
                 raise AuthError(f"bus {self.bus.name}: wrong or missing bus token (RCE_BUS_TOKEN); "
                                 "only the container's own nodes may join its bus")
             self._admit()
-        self.node = a.get("name") or self.owner
+        self.node = args.get("name") or self.owner
         self.owner = self.calls.name = self.node
-        self.bus.nodes[self.node] = {"pid": a.get("pid"), "container": a.get("container")}
+        self.bus.nodes[self.node] = {"pid": args.get("pid"), "container": args.get("container")}
         reply = {"bus": self.bus.name}
-        if self.server.direct and a.get("direct") is True and not self.direct:
+        if self.server.direct and args.get("direct") is True and not self.direct:
             self.direct = True
             reply["fd_key"] = self.fd_key = secrets.token_hex(16)
             self.server.fd_keys[self.fd_key] = self
@@ -151,10 +151,10 @@ class NodeSession:
         return reply
 
     @BUS_OPS.op("fd_channel", unauthenticated=True)
-    async def op_fd_channel(self, a: dict) -> None:
+    async def op_fd_channel(self, args: dict) -> None:
         """``{key}`` (a notification, the only frame of a node's second connection): this
         connection is the fd channel of the session whose hello got ``fd_key`` = ``key``."""
-        owner = self.server.fd_keys.pop(a.get("key"), None) if isinstance(a.get("key"), str) else None
+        owner = self.server.fd_keys.pop(args.get("key"), None) if isinstance(args.get("key"), str) else None
         if owner is None or owner.fd_sock is not None or self.node is not None:
             self.server.refuse("an fd channel with an unknown key")
             self.peer.tasks.spawn(self._drop(), name="drop a refused fd channel")
@@ -167,22 +167,22 @@ class NodeSession:
         self.server.changed()
 
     @BUS_OPS.op("advertise")
-    async def op_advertise(self, a: dict) -> int:
-        t = self.bus.advertise(a["topic"], a["type"], self.owner)
+    async def op_advertise(self, args: dict) -> int:
+        t = self.bus.advertise(args["topic"], args["type"], self.owner)
         h = next(self.ids)
         self.pubs[h] = t
         self.server.changed()
         return h
 
     @BUS_OPS.op("unadvertise")
-    async def op_unadvertise(self, a: dict) -> None:
-        t = self.pubs.pop(a["handle"], None)
+    async def op_unadvertise(self, args: dict) -> None:
+        t = self.pubs.pop(args["handle"], None)
         if t:
             self.bus.unadvertise(t.name, self.owner)
 
-    def _handle(self, a: dict) -> int:
+    def _handle(self, args: dict) -> int:
         """The handle the node chose (so frames can arrive before the reply), or a fresh one."""
-        h = a.get("handle")
+        h = args.get("handle")
         if h is None:
             return next(self.ids) + (1 << 40)
         if not isinstance(h, int) or h <= 0 or h >= (1 << 40) or h in self.subs or h in self.services:
@@ -190,8 +190,8 @@ class NodeSession:
         return h
 
     @BUS_OPS.op("subscribe")
-    async def op_subscribe(self, a: dict) -> int:
-        h = self._handle(a)
+    async def op_subscribe(self, args: dict) -> int:
+        h = self._handle(args)
         offer = self.peer.link.offer
 
         def deliver(payload: bytes, _h=h) -> bool:
@@ -201,65 +201,65 @@ class NodeSession:
             self.msgs_out += 1
             self.bytes_out += n
             return True
-        self.subs[h] = self.bus.subscribe(a["topic"], a["type"], deliver, self.owner, a.get("queue_size", 100))
+        self.subs[h] = self.bus.subscribe(args["topic"], args["type"], deliver, self.owner, args.get("queue_size", 100))
         self.server.changed()
         return h
 
     @BUS_OPS.op("unsubscribe")
-    async def op_unsubscribe(self, a: dict) -> None:
-        sub = self.subs.pop(a["handle"], None)
+    async def op_unsubscribe(self, args: dict) -> None:
+        sub = self.subs.pop(args["handle"], None)
         if sub:
             self.bus.unsubscribe(sub)
 
     @BUS_OPS.op("advertise_service")
-    async def op_advertise_service(self, a: dict) -> int:
-        h = self._handle(a)
+    async def op_advertise_service(self, args: dict) -> int:
+        h = self._handle(args)
 
         async def handler(payload: bytes, _h=h) -> bytes:
             # no timeout of its own: the bus's call_service bounds the call and cancels this
             return await self.calls.call(
                 lambda cid: self.peer.send_raw(framing.encode_data_header(framing.SRV_REQ, _h, 0, cid, len(payload)),
-                                               payload), None, what=f"the call to its service {a['service']!r}")
-        self.bus.advertise_service(a["service"], a["type"], handler, self.owner)
-        self.services[h] = a["service"]
+                                               payload), None, what=f"the call to its service {args['service']!r}")
+        self.bus.advertise_service(args["service"], args["type"], handler, self.owner)
+        self.services[h] = args["service"]
         self.server.changed()
         return h
 
     @BUS_OPS.op("unadvertise_service")
-    async def op_unadvertise_service(self, a: dict) -> None:
-        name = self.services.pop(a["handle"], None)
+    async def op_unadvertise_service(self, args: dict) -> None:
+        name = self.services.pop(args["handle"], None)
         if name:
             self.bus.unadvertise_service(name, self.owner)
 
     @BUS_OPS.op("resolve_service")
-    async def op_resolve_service(self, a: dict) -> dict:
-        s = self.bus.services.get(a["service"])
+    async def op_resolve_service(self, args: dict) -> dict:
+        s = self.bus.services.get(args["service"])
         if s is None:
-            raise NotFound(f"service {a['service']!r} is not provided on {self.bus.name}")
+            raise NotFound(f"service {args['service']!r} is not provided on {self.bus.name}")
         h = next(self.ids)
         self.resolved[h] = s.name
         return {"handle": h, "type": s.type}
 
     @BUS_OPS.op("direct_closed")
-    async def op_direct_closed(self, a: dict) -> None:
+    async def op_direct_closed(self, args: dict) -> None:
         """``{link}`` (a notification): the node's direct link ``link`` ended."""
         for cb in self.server.on_direct_closed:
-            cb(self, int(a["link"]))
+            cb(self, int(args["link"]))
 
     @BUS_OPS.op("get_param")
-    async def op_get_param(self, a: dict):
-        return self.bus.get_param(a["name"])
+    async def op_get_param(self, args: dict):
+        return self.bus.get_param(args["name"])
 
     @BUS_OPS.op("set_param")
-    async def op_set_param(self, a: dict) -> None:
-        self.bus.set_param(a["name"], a.get("value"))
+    async def op_set_param(self, args: dict) -> None:
+        self.bus.set_param(args["name"], args.get("value"))
 
     @BUS_OPS.op("delete_param")
-    async def op_delete_param(self, a: dict) -> None:
-        self.bus.delete_param(a["name"])
+    async def op_delete_param(self, args: dict) -> None:
+        self.bus.delete_param(args["name"])
 
     @BUS_OPS.op("describe")
-    async def op_describe(self, a: dict) -> dict:
+    async def op_describe(self, args: dict) -> dict:
         return self.bus.describe()
 
     # -- data ----------------------------------------------------------------------------------

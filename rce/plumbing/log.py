@@ -45,20 +45,20 @@ class StructLogger:
         if self._l.isEnabledFor(level):
             self._l.log(level, msg, exc_info=exc_info, extra={"fields": fields}, stacklevel=3)
 
-    def debug(self, msg: str, **f) -> None:
-        self._log(logging.DEBUG, msg, **f)
+    def debug(self, msg: str, **fields) -> None:
+        self._log(logging.DEBUG, msg, **fields)
 
-    def info(self, msg: str, **f) -> None:
-        self._log(logging.INFO, msg, **f)
+    def info(self, msg: str, **fields) -> None:
+        self._log(logging.INFO, msg, **fields)
 
-    def warning(self, msg: str, **f) -> None:
-        self._log(logging.WARNING, msg, **f)
+    def warning(self, msg: str, **fields) -> None:
+        self._log(logging.WARNING, msg, **fields)
 
-    def error(self, msg: str, **f) -> None:
-        self._log(logging.ERROR, msg, **f)
+    def error(self, msg: str, **fields) -> None:
+        self._log(logging.ERROR, msg, **fields)
 
-    def exception(self, msg: str, **f) -> None:
-        self._log(logging.ERROR, msg, exc_info=True, **f)
+    def exception(self, msg: str, **fields) -> None:
+        self._log(logging.ERROR, msg, exc_info=True, **fields)
 
 
 def get_logger(name: str) -> StructLogger:

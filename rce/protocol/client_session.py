@@ -116,10 +116,10 @@ class ClientSession(SessionCore):
         self.dropped += 1
         self._emit(Dropped(reason))
 
-    def _on_message(self, m: dict) -> None:
-        if self.state != "off" and not self._resume_rules(m):
+    def _on_message(self, message: dict) -> None:
+        if self.state != "off" and not self._resume_rules(message):
             return
-        t, data = m.get("type"), m.get("data")
+        t, data = message.get("type"), message.get("data")
         if t == DM and isinstance(data, dict):
             self._on_dm(data)
         elif t == ST and isinstance(data, dict):
@@ -159,23 +159,23 @@ class ClientSession(SessionCore):
     def _send_ack(self, n: int) -> None:
         self._frames.append(ack_frame(n))
 
-    def _resume_rules(self, m: dict) -> bool:
+    def _resume_rules(self, message: dict) -> bool:
         """The session's own messages: True when ``m`` is the application's."""
-        data = m.get("data")
+        data = message.get("data")
         if self.state == "asked":                       # the cloud's first message decides
-            if is_session_status(m) and data.get("status") == "started" and isinstance(data.get("session"), str):
+            if is_session_status(message) and data.get("status") == "started" and isinstance(data.get("session"), str):
                 self.state, self.token, self.grace = "live", data["session"], data.get("grace")
                 self._emit(SessionStatus(data))
                 return False
             self.state = "off"                          # the cloud does not offer resume
             self.outgoing = self.incoming = None
             return True
-        if is_session_status(m):
+        if is_session_status(message):
             if self.state == "resuming" and data.get("status") == "resumed":
                 self._resumed(data)
             self._emit(SessionStatus(data))
             return False
-        return self._take_numbered(m)
+        return self._take_numbered(message)
 
     def _resumed(self, data: dict) -> None:
         """The cloud's ST resumed: resend what it did not take, then the link is live."""

@@ -48,43 +48,43 @@ def _refuse(text: str, value: Any) -> PydanticCustomError:
 
 def _rule(check, text: str):
     """A field type accepting the values ``check`` passes, refusing others with ``text``."""
-    def validate(v: Any) -> Any:
-        if not check(v):
-            raise _refuse(text, v)
-        return v
+    def validate(value: Any) -> Any:
+        if not check(value):
+            raise _refuse(text, value)
+        return value
     return PlainValidator(validate)
 
 
-def _is_str(v: Any) -> bool:
-    return isinstance(v, str)
+def _is_str(value: Any) -> bool:
+    return isinstance(value, str)
 
 
-def _is_number(v: Any) -> bool:
-    return isinstance(v, (int, float)) and not isinstance(v, bool)
+def _is_number(value: Any) -> bool:
+    return isinstance(value, (int, float)) and not isinstance(value, bool)
 
 
-def _interface_type(v: Any) -> InterfaceType:
-    if not isinstance(v, str):
-        raise _refuse("must be a string", v)
+def _interface_type(value: Any) -> InterfaceType:
+    if not isinstance(value, str):
+        raise _refuse("must be a string", value)
     try:
-        return InterfaceType.parse(v)
+        return InterfaceType.parse(value)
     except ProtocolError as e:
         raise PydanticCustomError("rce", "{text}", {"text": e.message}) from None
 
 
-def _lane(v: Any) -> Lane:
+def _lane(value: Any) -> Lane:
     try:
-        return parse_lane(v, "")
+        return parse_lane(value, "")
     except ProtocolError as e:
         raise PydanticCustomError("rce", "{text}", {"text": e.message}) from None
 
 
-def _interface_ref(v: Any) -> str:
-    if not isinstance(v, str) or not v:
-        raise _refuse("must be a non-empty string", v)
-    if v.count("/") != 1 or v.startswith("/") or v.endswith("/"):
-        raise PydanticCustomError("rce", "{value} must be 'endpointTag/interfaceTag'", {"value": short_repr(v)})
-    return v
+def _interface_ref(value: Any) -> str:
+    if not isinstance(value, str) or not value:
+        raise _refuse("must be a non-empty string", value)
+    if value.count("/") != 1 or value.startswith("/") or value.endswith("/"):
+        raise PydanticCustomError("rce", "{value} must be 'endpointTag/interfaceTag'", {"value": short_repr(value)})
+    return value
 
 
 #: A tag or name: a non-empty string.

@@ -8,7 +8,7 @@ link serves exactly what the table holds::
 
     class NodeSession:
         @BUS_OPS.op("advertise")
-        async def op_advertise(self, a: dict) -> int: ...
+        async def op_advertise(self, args: dict) -> int: ...
 
     peer.handlers.update(BUS_OPS.handlers(session))
 
