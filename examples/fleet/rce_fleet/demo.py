@@ -59,25 +59,25 @@ from rce.messages import default_registry
 from rce.node.package_path import load_package_types
 from rce.plumbing.process import run_loop
 from rce.plumbing.tasks import Tasks
-from rce_client.bag import BagRecorder, record_container
-from rce_client.connection import Connection
 
 from .battery import BatteryParams, battery_links
 from .configs import FLEET_CTAG, PASSWORD, USER, robot_config
+from .demo_output import (EXIT_FAIL, EXIT_OK, EXIT_UNREACHABLE, EXIT_USAGE, blocked_by, progress_line, table,
+                          write_outputs)
 from .faults import Fault, FaultInjector, parse_fault
+from .fleet_bag import FleetBag
 from .geometry import GridGeometry, components
 from .grid import make_grid
 from .lab_map import write_lab_map
 from .manager import FleetManager
 from .maps import MapError, load_map
-from .operations import TaskStream, goal_motion_delays, robot_section, tasks_section
+from .operations import TaskStream
 from .places import PlaceError, Places, generate_places
 from .radio import Radio, default_range
 from .simhost import SimHost
 
 log = get_logger("fleet.demo")
 
-EXIT_OK, EXIT_FAIL, EXIT_USAGE, EXIT_UNREACHABLE = 0, 1, 2, 3
 REACH_TOL = 0.25       # m between the robot's true centre and its goal cell's centre
 LARGE_CELL_M = 2.0     # without --grid/--cell: 8x8, unless its cells would be larger than this ...
 DEFAULT_LARGE_MAP_CELL_M = 1.2   # ... then square cells of this side
@@ -91,7 +91,6 @@ PROGRESS_EVERY_S = 5.0     # wall s between plain progress lines (no live table)
 RELAYS_EVERY_S = 1.0       # wall s between asks for the followers' relays at the master (--out-of-coverage)
 TEARDOWN_TIMEOUT_S = 10.0  # wall s the web page and the fleet manager each get to close before they are left
 SIM_STOP_TIMEOUT_S = 5.0   # wall s the robots' bridges get to remove their nodes and interfaces
-RECORDER_ID = "fleetRecorder"   # robotID of the --bag recorder's connection
 
 
 class UsageError(ValueError):
@@ -229,17 +228,6 @@ def choose_cells(geo: GridGeometry, robots: list[str], seed: int, starts: dict[s
     return st, gl
 
 
-def _blocked_by(state: dict) -> dict[int, str]:
-    """A fleet state's blocked cells: cell -> who blocked it."""
-    return dict(zip(state.get("blocked", []), state.get("blocked_by", []), strict=False))
-
-
-def _fmt_state(state: str) -> str:
-    colours = {"arrived": "green", "moving": "cyan", "waiting": "yellow", "unreachable": "red", "unknown": "dim"}
-    c = colours.get(state)
-    return f"[{c}]{state}[/{c}]" if c else state
-
-
 class Run:
     """One demo/serve run (see the module docstring)."""
 
@@ -257,8 +245,7 @@ class Run:
         self.obstacle_log: list[dict] = []
         self.result: tuple[int, str] | None = None
         self.events: deque[str] = deque(maxlen=6)
-        self.bag: BagRecorder | None = None
-        self.recorder: Connection | None = None
+        self.bag: FleetBag | None = None          # --bag
         self.grid_note = ""
         self.faults: FaultInjector | None = None
         self._stuck_since: float | None = None
@@ -373,11 +360,12 @@ class Run:
         if self.radio is not None:
             await self._ask_master_relays()
         try:
-            await self._stop_bag()           # before the report, which gives its counts
+            if self.bag is not None:         # before the report, which gives its counts
+                await self.bag.stop(TEARDOWN_TIMEOUT_S)
         except (asyncio.TimeoutError, RCEError, OSError) as e:
             log.warning("the bag recorder did not disconnect", reason=str(e))
         try:
-            self._outputs(code, reason)
+            write_outputs(self, code, reason)
         finally:
             await self._teardown()
         return code
@@ -393,7 +381,7 @@ class Run:
                                               master_args=("--state", str(state)),
                                               admin_token=f"fleet-{random.getrandbits(64):016x}")
         log.info("engine up", master=self.engine.master_url, workdir=str(self.workdir))
-        self.faults = FaultInjector(o.faults, self.engine, self.tasks, USER, self._mission_t)
+        self.faults = FaultInjector(o.faults, self.engine, self.tasks, USER, self.mission_t)
         print(f"rce-fleet: master {self.engine.master_url}  (rce-fleet task list --master {self.engine.master_url})",
               flush=True)
         args = " ".join(a for a, on in (("--no-lidar-blocking", not o.lidar_blocking), ("--park-idle", o.lifelong))
@@ -422,7 +410,10 @@ class Run:
         if not o.headless:
             await self._start_web()
         if o.bag:
-            await self._bounded(self._start_bag(reg), "bag recorder setup")
+            self.bag = FleetBag(o.bag, self.robots)
+            await self._bounded(self.bag.start(self.engine.master_url, reg, SETUP_TIMEOUT_S), "bag recorder setup")
+            self.events.append(f"recording the fleet topics to {o.bag}")
+            log.info("recording", bag=o.bag, topics=len(self.bag.topics()))
         if o.lifelong:
             return await self._lifelong()
         if not o.mission:
@@ -512,7 +503,7 @@ class Run:
 
         async def follower(robot: str) -> None:
             await connect(robot, routes=self.radio.routes(robot))
-            self.radio.follow(robot, self.sim.bots[robot].bridge.conn, self._mission_t)
+            self.radio.follow(robot, self.sim.bots[robot].bridge.conn, self.mission_t)
         await self._bounded(asyncio.gather(*(follower(r) for r in followers)), "robots out of coverage connecting")
 
     async def _ask_master_relays(self) -> None:
@@ -551,7 +542,7 @@ class Run:
             if "replan_ms" not in rec and rec["cell"] in st.get("blocked", []):
                 rec["replan_ms"] = round(st.get("last_plan_ms", 0.0), 3)
         if self.sim is not None:
-            self.sim.set_blocked(_blocked_by(st))
+            self.sim.set_blocked(blocked_by(st))
 
     def _do_block(self, cell: int, at: float) -> None:
         paths = {x["robot"]: x["path"] for x in (self.state or {}).get("robots", [])}
@@ -573,12 +564,12 @@ class Run:
         log.info("obstacle placed (only the lidars can tell)", cell=cell, t=at)
 
     # -- watching ------------------------------------------------------------------------------
-    def _robot_states(self) -> dict[str, dict]:
+    def robot_states(self) -> dict[str, dict]:
         return {x["robot"]: x for x in (self.state or {}).get("robots", [])}
 
     def _check(self) -> tuple[int, str] | None:
         """The mission's end, if reached: (exit code, reason)."""
-        st = self._robot_states()
+        st = self.robot_states()
         for r in self.robots:
             s = st.get(r)
             if s is None:
@@ -625,10 +616,10 @@ class Run:
         live = self.o.live if self.o.live is not None else sys.stdout.isatty()
         if live:
             from rich.live import Live
-            with Live(self._table(), refresh_per_second=4, redirect_stderr=True, redirect_stdout=True) as lv:
+            with Live(table(self), refresh_per_second=4, redirect_stderr=True, redirect_stdout=True) as lv:
                 setup_logging()         # logs go above the table
                 _quiet_libraries()
-                end = await self._loop(mission, lambda: lv.update(self._table()))
+                end = await self._loop(mission, lambda: lv.update(table(self)))
             setup_logging()
             _quiet_libraries()
             print(flush=True)
@@ -638,7 +629,7 @@ class Run:
         def plain() -> None:
             if time.monotonic() - last[0] >= PROGRESS_EVERY_S:
                 last[0] = time.monotonic()
-                print(self._line(), flush=True)
+                print(progress_line(self), flush=True)
         return await self._loop(mission, plain)
 
     async def _loop(self, mission: bool, show) -> tuple[int, str]:
@@ -654,16 +645,16 @@ class Run:
                 if end is not None:
                     show()
                     return end
-            if self.o.lifelong and self.t_mission is not None and self._mission_t() >= self.o.duration:
+            if self.o.lifelong and self.t_mission is not None and self.mission_t() >= self.o.duration:
                 return EXIT_OK, f"{self.o.duration:g} s simulated"
             if time.monotonic() > self.deadline:
                 if self.o.lifelong:
-                    return EXIT_FAIL, (f"timeout after {self.o.timeout:g} s wall at {self._mission_t():.0f} of "
+                    return EXIT_FAIL, (f"timeout after {self.o.timeout:g} s wall at {self.mission_t():.0f} of "
                                        f"{self.o.duration:g} s simulated")
                 if not mission:
                     return EXIT_OK, "timeout reached (serve)"
                 missing = [r for r in self.robots if r not in self.reached]
-                st = self._robot_states()
+                st = self.robot_states()
                 detail = "; ".join(f"{r} in cell {st.get(r, {}).get('cell')} ({st.get(r, {}).get('state')}, "
                                    f"goal {self.goals[r]})" for r in missing)
                 return EXIT_FAIL, f"timeout after {self.o.timeout:g} s wall: not at their goals: {detail}"
@@ -673,184 +664,12 @@ class Run:
             except TimeoutError:
                 pass
 
-    # -- display --------------------------------------------------------------------------------
-    def _mission_t(self) -> float:
+    # -- display ---------------------------------------------------------------------------------
+    def mission_t(self) -> float:
         """Sim seconds since the goals were sent (since the simulator started when serving)."""
         if self.sim is None:
             return 0.0
         return self.sim.time - (self.t_mission if self.t_mission is not None else 0.0)
-
-    def _line(self) -> str:
-        st = self._robot_states()
-        parts = [f"{r}:{st.get(r, {}).get('cell', '?')}->{self.goals.get(r, '-')} {st.get(r, {}).get('state', '?')}"
-                 f"{self._via(r)}" for r in self.robots]
-        head = f"reached {len(self.reached)}/{len(self.robots)}  " if self.o.mission else ""
-        return f"t={self._mission_t():6.1f}s  {head}" + "  ".join(parts)
-
-    def _via(self, robot: str) -> str:
-        """`` via RELAY`` (or `` dark``) for a robot out of coverage, else ""."""
-        lg = self.radio.logs.get(robot) if self.radio is not None else None
-        return "" if lg is None else (" dark" if lg.via == "dark" else f" via {lg.via}")
-
-    def _table(self):
-        from rich.console import Group
-        from rich.table import Table
-        from rich.text import Text
-        t = Table(title=f"rce fleet: {len(self.robots)} robots, grid {self.geo.rows}x{self.geo.cols}, "
-                        f"speedup {self.o.speedup:g}", expand=False)
-        for col, j in (("robot", "left"), ("cell", "right"), ("goal", "right"), ("left m", "right"),
-                       ("replans", "right"), ("cancels", "right"), ("state", "left")):
-            t.add_column(col, justify=j)
-        st = self._robot_states()
-        for r in self.robots:
-            s = st.get(r, {})
-            state = "reached" if r in self.reached else s.get("state", "?")
-            t.add_row(r, str(s.get("cell", "?")), str(self.goals.get(r, "-")),
-                      f"{s.get('distance_left', 0.0):.1f}", str(s.get("replans", 0)), str(s.get("cancels", 0)),
-                      _fmt_state(state) + self._via(r))
-        blocked = (self.state or {}).get("blocked", [])
-        mp = self.sim.min_pair if self.sim else math.inf
-        foot = Text(f"t={self._mission_t():.1f} s sim   blocked: {blocked or '-'}   "
-                    f"closest robots: {mp:.2f} m   re-plans: {(self.state or {}).get('replans', 0)}")
-        return Group(t, foot, *(Text(e, style="dim") for e in self.events))
-
-    # -- outputs --------------------------------------------------------------------------------
-    def _outputs(self, code: int, reason: str) -> None:
-        o = self.o
-        report = self.report(code, reason)
-        if o.plot and self.sim is not None:
-            from .plot import plot_run
-            blocked = _blocked_by(self.state or {})
-            traces = {r: [(x, y) for _, x, y in b.trace] for r, b in self.sim.bots.items()}
-            t = report.get("mission_time_s") or report.get("sim_time_s") or 0.0
-            title = (f"{Path(self.map_path).name}: {len(self.robots)} robots, grid {self.geo.rows}x{self.geo.cols}, "
-                     f"t={t:.1f} s sim\n" + ("all goals reached" if code == EXIT_OK else "FAILED: " + reason[:90]))
-            try:
-                p = plot_run(o.plot, self.occ, self.geo, traces, self.starts, self.goals if o.mission else {},
-                             blocked, title, {r: r in self.reached for r in self.robots})
-                report["plot"] = str(p.resolve())
-            except Exception as e:  # a plot never hides the result
-                report["plot_error"] = repr(e)
-        if o.report:
-            Path(o.report).parent.mkdir(parents=True, exist_ok=True)
-            Path(o.report).write_text(json.dumps(report, indent=2))
-        verdict = "OK" if code == EXIT_OK else "FAILED"
-        print(f"rce-fleet: {verdict}: {reason}", file=sys.stdout if code == EXIT_OK else sys.stderr, flush=True)
-        if report.get("mission_time_s") is not None:
-            mp = report["min_pair_distance_m"]
-            print(f"rce-fleet: mission time {report['mission_time_s']:.1f} s sim, "
-                  f"{report['mission_wall_s']:.1f} s wall; closest robots "
-                  f"{'-' if mp is None else format(mp, '.3f')} m; "
-                  f"re-plans {report['planner']['replans']} (max {report['planner']['max_plan_ms']:.1f} ms)",
-                  flush=True)
-        if report.get("plot"):
-            print(f"rce-fleet: paths plotted to {report['plot']}", flush=True)
-
-    def report(self, code: int, reason: str) -> dict:
-        """The ``--report`` JSON (per robot, blocks, obstacles, planner, simulator ground truth)."""
-        st = self._robot_states()
-        sim = self.sim
-        t0 = self.t_mission
-        per = {}
-        for r in self.robots:
-            s = st.get(r, {})
-            b = sim.bots.get(r) if sim else None
-            cells = [(round(t - (t0 or 0.0), 2), c) for t, c in b.cells] if b else []
-            per[r] = {"start": self.starts.get(r), "goal": self.goals.get(r), "reached": r in self.reached,
-                      "reached_at_s": round(self.reached[r] - t0, 2) if r in self.reached and t0 is not None else None,
-                      "state": s.get("state"), "error": s.get("error", ""),
-                      "cancel_goal": s.get("cancels", 0), "replans": s.get("replans", 0),
-                      "robot_cancels_received": b.cancels_received if b else 0,
-                      "waypoints_received": b.goals_received if b else 0,
-                      "distance_m": round(b.distance, 3) if b else 0.0,
-                      "cells": cells}
-        blocks = []
-        for rec in self.block_log:
-            entries = sim.entries_after(rec["cell"], rec["sent_t"]) if sim else []
-            blocks.append({k: v for k, v in rec.items() if k != "sent_t"} |
-                          {"entered_after": [{"robot": rr, "t_s": round(t - t0, 2)} for rr, t in entries]})
-        all_reached = self.reached and len(self.reached) == len(self.robots)
-        mission_t = (max(self.reached.values()) - t0) if all_reached else None
-        fs = self.state or {}
-        return {
-            "ok": code == EXIT_OK, "exit_code": code, "reason": reason,
-            "map": str(self.map_path), "robots": len(self.robots), "seed": self.o.seed, "speedup": self.o.speedup,
-            "grid": {"rows": self.geo.rows, "cols": self.geo.cols, "cell_w_m": self.geo.cell_w_m,
-                     "cell_h_m": self.geo.cell_h_m, "free_cells": len(self.geo.free_cells())},
-            "mission_time_s": round(mission_t, 2) if mission_t is not None else None,
-            "mission_wall_s": round(time.monotonic() - self.wall_mission, 2) if self.wall_mission else None,
-            "run_wall_s": round(getattr(self, "wall_total", 0.0), 2),
-            "sim_time_s": round(sim.time - (t0 or 0.0), 2) if sim else 0.0,
-            "sim_lag_resets": sim.lag_resets if sim else 0,
-            "sim_max_speedup": round(sim.effective_speedup(), 2) if sim else None,
-            "robot_radius_m": sim.radius if sim else None,
-            "min_pair_distance_m": round(sim.min_pair, 4) if sim and math.isfinite(sim.min_pair) else None,
-            "min_pair_at": ({"t_s": round(sim.min_pair_at[0] - (t0 or 0.0), 2), "robots": list(sim.min_pair_at[1:])}
-                            if sim and sim.min_pair_at else None),
-            "blocks": blocks,
-            "obstacles": [{k: v for k, v in o.items() if k != "sent_t"} for o in self.obstacle_log],
-            "blocked": {str(c): src for c, src in _blocked_by(fs).items()},
-            "planner": {"replans": fs.get("replans", 0), "max_plan_ms": fs.get("max_plan_ms", 0.0),
-                        "last_plan_ms": fs.get("last_plan_ms", 0.0), "replan_bound_ms": fs.get("replan_bound_ms", 0.0),
-                        "replans_bounded": fs.get("replans_bounded", 0),
-                        "replans_abandoned": fs.get("replans_abandoned", 0),
-                        "robots_deferred_total": fs.get("robots_deferred_total", 0)},
-            "errors": fs.get("errors", []),
-            "bag": {"path": str(self.bag.path), "messages": dict(self.bag.counts)} if self.bag else None,
-            "faults": self.faults.report() if self.faults else [],
-            "per_robot": per,
-            **self._lifelong_report(per),
-            **({"coverage": self.radio.report() | {"master": self.master_relays}} if self.radio else {}),
-            "workdir": str(self.workdir),
-        }
-
-    def _lifelong_report(self, per: dict) -> dict:
-        """The ``tasks`` section and the task stream's numbers of a lifelong run; adds each robot's
-        work (utilisation, distance_m, battery_min_pct, charges) to ``per``."""
-        if not self.o.lifelong or self.t_mission is None:
-            return {}
-        for r, work in robot_section(self.task_list, self.sim).items():
-            per.setdefault(r, {}).update(work)
-        t = self._mission_t()
-        delays = goal_motion_delays(self.task_list, self.sim)
-        ds = sorted(delays)
-        return {"tasks": tasks_section(self.task_list, t, self.generated),
-                "lifelong": {"duration_s": round(t, 2), "task_rate_per_min": self.o.task_rate,
-                             "generated": self.generated, "refused": self.refused[:20],
-                             "real_time_factor": round(t / max(time.monotonic() - self.wall_mission, 1e-9), 3),
-                             "goal_to_motion_s": {"n": len(ds), "p50": ds[len(ds) // 2] if ds else None,
-                                                  "p99": ds[min(len(ds) - 1, int(0.99 * len(ds)))] if ds else None},
-                             "battery": self.o.battery.to_param() if self.o.battery else None,
-                             "places": str(self.o.places or self.workdir / "places.yaml")}}
-
-    # -- the --bag recorder ------------------------------------------------------------------------
-    def fleet_topics(self) -> list[tuple[str, str]]:
-        """(topic, class) of the fleet container's topics a ``--bag`` records."""
-        per_robot = [(f"/{r}/{name}", cls) for r in self.robots for name, cls in (
-            ("amcl_pose", "geometry_msgs/PoseWithCovarianceStamped"), ("goalNodesList", "std_msgs/Int32MultiArray"),
-            ("cancelGoal", "std_msgs/Bool"))]
-        return [*per_robot, ("/fleet/state", "fleet/FleetState")]
-
-    async def _start_bag(self, reg) -> None:
-        self.bag = BagRecorder(self.o.bag, reg)
-        self.bag.open()
-        self.recorder = await Connection.connect(self.engine.master_url, USER, PASSWORD, RECORDER_ID,
-                                                 allow_reconnect=True)
-        await record_container(self.recorder, FLEET_CTAG, self.fleet_topics(), self.bag, timeout=SETUP_TIMEOUT_S)
-        self.events.append(f"recording the fleet topics to {self.o.bag}")
-        log.info("recording", bag=self.o.bag, topics=len(self.fleet_topics()))
-
-    async def _stop_bag(self) -> None:
-        """Disconnect the recorder and finish the bag (once; again is a no-op)."""
-        rec, self.recorder = self.recorder, None
-        try:
-            if rec is not None:
-                async with asyncio.timeout(TEARDOWN_TIMEOUT_S):
-                    await rec.close()
-        finally:
-            if self.bag is not None and self.bag.is_open:
-                self.bag.close()
-                print(f"rce-fleet: {self.bag.summary()}", flush=True)
 
     # -- the operator's web page (rce_fleet.webui, owned by the web page's code) ----------------
     async def _start_web(self) -> None:
@@ -867,7 +686,8 @@ class Run:
         t0 = time.monotonic()
         try:
             await self.tasks.cancel_all()
-            await self._stop_bag()
+            if self.bag is not None:
+                await self.bag.stop(TEARDOWN_TIMEOUT_S)
             if getattr(self, "web", None) is not None:
                 async with asyncio.timeout(TEARDOWN_TIMEOUT_S):
                     await self.web.stop()
