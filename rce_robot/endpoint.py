@@ -32,7 +32,8 @@ from rce.node.package_path import load_package_types
 from rce.protocol.frames import DEFAULT_EXPIRY, ER, encode
 from rce.protocol.limits import DEFAULT_MAX_PENDING_TOTAL, PartBudget, parse_max_lag
 from rce.protocol.resume import DEFAULT_GRACE, DEFAULT_RESUME_BUFFER
-from rce.protocol.session import DEFAULT_MAX_LAG, DEFAULT_MAX_MESSAGE, DEFAULT_QUEUE_SIZE, RobotSession
+from rce.protocol.session import (DEFAULT_MAX_LAG, DEFAULT_MAX_MESSAGE, DEFAULT_QUEUE_SIZE, ResumeOptions, RobotSession,
+                                  SessionLimits)
 from rce_robot.front_door import master_away, peer_address, refuse_in_band, relay_name, throttled
 from rce_robot.interfaces import RobotInterface
 from rce_robot.namespace import CLOSE_POLICY, RobotNamespace
@@ -407,9 +408,10 @@ class RobotEndpoint:
             self._relayed(ns, ws.rce_relay)
             await ns.serve(ws, ws.rce_ack)
             return
-        session = RobotSession(robot, max_message=self.max_message, queue_size=self.queue_size, expiry=self.expiry,
-                               resume=ws.rce_resume, grace=self.grace, resume_buffer=self.resume_buffer,
-                               budget=self.budget, max_lag=ws.rce_max_lag)
+        limits = SessionLimits(max_message=self.max_message, queue_size=self.queue_size, expiry=self.expiry,
+                               max_lag=ws.rce_max_lag)
+        resume = ResumeOptions(grace=self.grace, buffer=self.resume_buffer) if ws.rce_resume else None
+        session = RobotSession(robot, limits, resume, budget=self.budget)
         ns = RobotNamespace(user, robot, self.master, session, on_gone=self._session_gone, parser=self.parser)
         self.namespaces[(user, robot)] = ns
         if (opened := self.opening.pop((user, robot), None)) is not None:

@@ -3,6 +3,7 @@ frames in, requests to the master one at a time and in order, the DM ordering ru
 what goes to the robot, and resume. The robot endpoint (:mod:`rce_robot.namespace`) is its shell."""
 from __future__ import annotations
 
+from dataclasses import dataclass
 from typing import Any
 
 from rce.plumbing.errors import ProtocolError, RequestError
@@ -26,38 +27,67 @@ LANES_TOPIC = "lanes"                       # ST topic: the per-lane counters, t
 LANES_STATUS_EVERY = 5.0                    # s between two ST lanes
 
 
-class RobotSession(SessionCore):
-    """The cloud side of robot ``robot``'s session.
+@dataclass(frozen=True)
+class SessionLimits:
+    """The bounds of one robot's session (each a ValueError when out of range, where it is used).
 
-    ``max_message``: largest frame taken (bytes; text: chars), larger ones get an ER;
-    ``queue_size``: bound of each queue (data DMs waiting to go out, requests waiting for
-    the master, DMs waiting for earlier requests, service calls in flight), beyond which
-    messages are dropped, counted, and (inbound ones) refused with an ER; ``expiry``: s
-    an incomplete message waits for its binary parts.
+    ``max_message``: largest frame taken (bytes; text: chars), larger ones get an ER.
+    ``queue_size``: bound of each queue (data DMs waiting to go out, requests waiting for the master,
+    DMs waiting for earlier requests, service calls in flight), beyond which messages are dropped,
+    counted, and (inbound ones) refused with an ER; at least 1.
+    ``expiry``: s an incomplete message waits for its binary parts; ``max_pending_bytes`` and
+    ``max_pending_parts``: binary parts waiting for their message.
+    ``er_rate`` per s and ``er_burst`` at once: ERs for bad input, dropped and counted past them
+    (:class:`~rce.protocol.error_limits.ErrorLimits`).
+    ``max_lag``: s the endpoint may stay behind the robot before it sheds the robot's topic messages
+    (:class:`RobotSession`); None: never shed."""
+
+    max_message: int = DEFAULT_MAX_MESSAGE
+    queue_size: int = DEFAULT_QUEUE_SIZE
+    expiry: float = DEFAULT_EXPIRY
+    max_pending_bytes: int = DEFAULT_MAX_PENDING_BYTES
+    max_pending_parts: int = DEFAULT_MAX_PENDING_PARTS
+    er_rate: float = ER_RATE
+    er_burst: int = ER_BURST
+    max_lag: float | None = DEFAULT_MAX_LAG
+
+
+@dataclass(frozen=True)
+class ResumeOptions:
+    """A session the robot may resume (docs/INTERNALS.md "Session resume").
+
+    ``token``: the session's (None: a fresh :func:`~rce.protocol.resume.new_token`); ``grace``: s the
+    endpoint keeps it detached; ``buffer`` messages and ``bytes`` kept until acked (past them the
+    oldest is forgotten, counted); an AK every ``ack_every`` messages taken or ``ack_delay`` s."""
+
+    token: str | None = None
+    grace: float = DEFAULT_GRACE
+    buffer: int = DEFAULT_RESUME_BUFFER
+    bytes: int = DEFAULT_RESUME_BYTES
+    ack_every: int = ACK_EVERY
+    ack_delay: float = ACK_DELAY
+
+
+class RobotSession(SessionCore):
+    """The cloud side of robot ``robot``'s session, within ``limits`` (:class:`SessionLimits`).
 
     Every bad input gets an ER naming what was wrong; the session goes on. ERs are cut short and
-    those for bad input rate-limited (``er_rate`` per s, ``er_burst`` at once), dropped and counted past
-    it (:class:`~rce.protocol.error_limits.ErrorLimits`). ``max_pending_parts``: binary parts waiting for
-    their message; ``budget``: the endpoint's :class:`~rce.protocol.limits.PartBudget`, shared by its
-    sessions (:meth:`end` gives back).
+    those for bad input rate-limited. ``budget``: the endpoint's :class:`~rce.protocol.limits.PartBudget`
+    of binary parts, shared by its sessions (:meth:`end` gives back).
 
-    ``resume``: the robot opted in (docs/INTERNALS.md "Session resume"): the session opens with
-    ``ST {"topic": "session", "status": "started", "session": token, "grace": grace}`` (``token``:
-    default a fresh :func:`~rce.protocol.resume.new_token`; ``grace``: s the endpoint keeps it
-    detached), numbers what it sends and keeps it until acked (``resume_buffer`` messages,
-    ``resume_bytes`` bytes; past them the oldest is forgotten, counted), takes each numbered
-    message once and acks every ``ack_every`` messages or ``ack_delay`` s.
+    ``resume`` (:class:`ResumeOptions`): the robot opted in. The session opens with
+    ``ST {"topic": "session", "status": "started", "session": token, "grace": grace}``, numbers what
+    it sends and keeps it until acked, and takes each numbered message once.
 
-    ``max_lag``: s the endpoint may stay behind this robot (received frames waiting for the
-    session, as the shell tells with :meth:`backlog`) before it sheds the robot's topic messages:
-    while it has been behind for longer, a DM for a topic interface is dropped and counted
-    (``shed``) instead of delivered, until the shell has caught up, unless that interface has
-    delivered nothing for ``max_lag`` s (so a stream still reaches the cloud at least that often
-    while the endpoint stays behind). So an overloaded endpoint hands the cloud the robot's
-    newest messages, not ever older ones, as a ROS subscriber's ``queue_size`` drops the oldest.
-    Requests, service calls and answers are never shed. None: never shed. The robot is told:
-    ``ST {"topic": "lag", "status": "shedding", "behind_s", "max_lag_s"}`` when shedding starts,
-    ``ST {"topic": "lag", "status": "caught_up", "shed": n}`` when it ends.
+    Lag shedding: while the endpoint has been behind this robot (received frames waiting for the
+    session, as the shell tells with :meth:`backlog`) for longer than ``limits.max_lag``, a DM for a
+    topic interface is dropped and counted (``shed``) instead of delivered, until the shell has caught
+    up, unless that interface has delivered nothing for ``max_lag`` s (so a stream still reaches the
+    cloud at least that often). So an overloaded endpoint hands the cloud the robot's newest
+    messages, as a ROS subscriber's ``queue_size`` drops the oldest. Requests, service calls and
+    answers are never shed. The robot is told: ``ST {"topic": "lag", "status": "shedding", "behind_s",
+    "max_lag_s"}`` when shedding starts, ``ST {"topic": "lag", "status": "caught_up", "shed": n}`` when
+    it ends.
 
     The other way, to a robot that does not keep up, each interface's topic data keeps its newest
     messages, as a ROS publisher's queue does (:class:`~rce.protocol.outbox.Outbox`; ``max_lag`` ages
@@ -68,35 +98,31 @@ class RobotSession(SessionCore):
     numbering: :class:`~rce.protocol.robot_outbox.RobotOutbox`), lag shedding
     (:class:`~rce.protocol.limits.LagGate`), resume (:mod:`rce.protocol.resume`)."""
 
-    def __init__(self, robot: str, *, max_message: int = DEFAULT_MAX_MESSAGE, queue_size: int = DEFAULT_QUEUE_SIZE,
-                 expiry: float = DEFAULT_EXPIRY, max_pending_bytes: int = DEFAULT_MAX_PENDING_BYTES,
-                 max_pending_parts: int = DEFAULT_MAX_PENDING_PARTS, budget: PartBudget | None = None,
-                 resume: bool = False, token: str | None = None, grace: float = DEFAULT_GRACE,
-                 resume_buffer: int = DEFAULT_RESUME_BUFFER, resume_bytes: int = DEFAULT_RESUME_BYTES,
-                 ack_every: int = ACK_EVERY, ack_delay: float = ACK_DELAY, er_rate: float = ER_RATE,
-                 er_burst: int = ER_BURST, max_lag: float | None = DEFAULT_MAX_LAG):
-        super().__init__(expiry, max_pending_bytes, resume, resume_buffer, resume_bytes, ack_every, ack_delay,
-                         max_pending_parts, budget)
+    def __init__(self, robot: str, limits: SessionLimits = SessionLimits(), resume: ResumeOptions | None = None,
+                 budget: PartBudget | None = None):
+        r = resume or ResumeOptions()
+        super().__init__(limits.expiry, limits.max_pending_bytes, resume is not None, r.buffer, r.bytes,
+                         r.ack_every, r.ack_delay, limits.max_pending_parts, budget)
         # what waits for the robot (ValueError for a queue_size < 1)
-        self.out = RobotOutbox(robot, queue_size, max_lag, er_rate, er_burst, self.outgoing,
-                               lambda reason: self._emit(CloseLink(reason)))
-        self.robot, self.max_message, self.queue_size = robot, max_message, queue_size
-        self.lag = LagGate(max_lag)                               # sheds topic DMs while the shell lags
-        self.requests = HoldBack(queue_size)                      # requests to the master, DMs held for them
+        self.out = RobotOutbox(robot, limits.queue_size, limits.max_lag, limits.er_rate, limits.er_burst,
+                               self.outgoing, lambda reason: self._emit(CloseLink(reason)))
+        self.robot, self.max_message, self.queue_size = robot, limits.max_message, limits.queue_size
+        self.lag = LagGate(limits.max_lag)                        # sheds topic DMs while the shell lags
+        self.requests = HoldBack(limits.queue_size)               # requests to the master, DMs held for them
         self.interfaces: dict[str, tuple[str, str, str]] = {}     # iTag -> (kind, side, cls)
         self.lanes: dict[str, tuple[Lane, bool]] = {}             # iTag -> (its lane, set by the robot)
         self.calls = 0                                            # service calls in flight
         self.msgs_in = self.dropped_in = 0
-        self.token = (token or new_token()) if resume else None
-        self.grace = grace
+        self.token = (r.token or new_token()) if resume is not None else None
+        self.grace = r.grace
         self.resumes = self.resume_lost = 0
         self._superseded_at_detach = 0              # resume: superseded before the link was lost (for ST resumed)
         self.bulk_links = self.bulk_in = 0          # bulk links joined; DMs the robot sent on them
         self.bulk_pacer: Pacer | None = None        # the bulk link's, while one is there
         self._lanes_status = float("-inf")          # s: when the last ST lanes went out
-        if resume:
+        if resume is not None:
             self.out.link_message(ST, {"topic": SESSION_TOPIC, "status": "started", "session": self.token,
-                                       "grace": grace})
+                                       "grace": self.grace})
 
     @property
     def attached(self) -> bool:

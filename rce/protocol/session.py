@@ -25,8 +25,8 @@ from __future__ import annotations
 from rce.protocol.client_session import BARRIER_PREFIX, ClientSession
 from rce.protocol.events import Event
 from rce.protocol.limits import DEFAULT_MAX_LAG
-from rce.protocol.robot_session import (DEFAULT_MAX_MESSAGE, DEFAULT_QUEUE_SIZE, LAG_TOPIC, RobotSession,
-                                        robot_interface_type)
+from rce.protocol.robot_session import (DEFAULT_MAX_MESSAGE, DEFAULT_QUEUE_SIZE, LAG_TOPIC, ResumeOptions,
+                                        RobotSession, SessionLimits, robot_interface_type)
 
 __all__ = ["BARRIER_PREFIX", "DEFAULT_MAX_LAG", "DEFAULT_MAX_MESSAGE", "DEFAULT_QUEUE_SIZE", "LAG_TOPIC",
-           "ClientSession", "Event", "RobotSession", "robot_interface_type"]
+           "ClientSession", "Event", "ResumeOptions", "RobotSession", "SessionLimits", "robot_interface_type"]

@@ -21,7 +21,7 @@ from websockets.asyncio.server import serve
 from websockets.exceptions import ConnectionClosed
 
 from rce.protocol.events import Deliver, RequestReady, ServiceCall
-from rce.protocol.session import RobotSession
+from rce.protocol.session import ResumeOptions, RobotSession
 
 
 class ResumeCloud:
@@ -57,7 +57,8 @@ class ResumeCloud:
                 return connection.respond(HTTPStatus.UNAUTHORIZED, "no session to resume (wrong or expired token)\n")
             connection.rce_ack = int(q.get("ack", "0"))
         else:
-            self.session = RobotSession(q.get("robotID", "r1"), resume=q.get("resume") == "1")
+            resume = ResumeOptions() if q.get("resume") == "1" else None
+            self.session = RobotSession(q.get("robotID", "r1"), resume=resume)
             self.itypes = {}
             connection.rce_ack = None
         return None

@@ -14,7 +14,7 @@ from rce.protocol.lane_queue import LaneQueues
 from rce.protocol.pacer import Pacer, chunks, parse_rate
 from rce.protocol.lanes import BULK_SIZE, Lane, default_lane, interface_lane, message_lane, parse_lane
 from rce.protocol.robot_session import LANES_STATUS_EVERY
-from rce.protocol.session import RobotSession
+from rce.protocol.session import ResumeOptions, RobotSession
 from rce_robot.rosbridge_outbox import RosbridgeOutbox
 
 
@@ -148,7 +148,7 @@ def test_chunks_cut_a_message_into_frames_of_at_most_16_kib():
 
 # -- the bulk link of a robot session -----------------------------------------------------------------
 def test_a_bulk_link_takes_bulk_topic_data_unnumbered_and_control_stays_on_the_session_link():
-    s = RobotSession("r", resume=True)
+    s = RobotSession("r", resume=ResumeOptions())
     s.data_to_send()                                # ST session started
     s.add_interface("cam", "PublisherForwarder", "sensor_msgs/Image")
     s.add_interface("cancel", "PublisherConverter", "std_msgs/String")
@@ -168,7 +168,7 @@ def test_a_bulk_link_takes_bulk_topic_data_unnumbered_and_control_stays_on_the_s
 
 
 def test_the_robot_sends_dms_on_its_bulk_link_and_nothing_else():
-    s = RobotSession("r", resume=True)
+    s = RobotSession("r", resume=ResumeOptions())
     s.add_interface("cam", "SubscriberForwarder", "sensor_msgs/Image")
     s.attach_bulk()
     s.data_to_send()

@@ -7,7 +7,7 @@ import socket
 import pytest
 
 from rce.protocol.pacer import AUTO, OFF, Pacer, new_pacer, parse_pacing
-from rce.protocol.robot_session import RobotSession
+from rce.protocol.robot_session import ResumeOptions, RobotSession
 from rce.protocol.rate_estimator import (INITIAL_RATE, MAX_INTERVAL, NOTSENT_LIMIT, Mode, PathSample,
                                          RateEstimator)
 from rce.transport.lane_socket import PacedLink, tcp_sample
@@ -191,7 +191,7 @@ def test_tcp_info_of_a_real_socket_is_read_and_the_kernel_paces_it():
 
 
 def test_a_sessions_lane_stats_carry_its_bulk_pacing_while_a_bulk_link_is_there():
-    s = RobotSession("r", resume=True)
+    s = RobotSession("r", resume=ResumeOptions())
     s.attach_bulk(new_pacer(AUTO))
     bulk = s.lane_stats()["bulk"]
     assert bulk["rate_source"] == "estimated" and bulk["rate"] == INITIAL_RATE and bulk["rate_estimate"] is None

@@ -15,7 +15,7 @@ from rce.protocol.limits import (ER_BURST, MAX_ER_TEXT, MAX_JSON_DEPTH, PartBudg
                                  short_repr, truncate)
 from rce.protocol.events import RequestReady
 from rce.protocol.schema import InterfaceComponent, NodeComponent
-from rce.protocol.session import RobotSession
+from rce.protocol.session import RobotSession, SessionLimits
 from rce_master.state import MasterState, QuotaExceeded, Quotas
 
 
@@ -83,7 +83,7 @@ def test_er_bucket_refills_at_its_rate():
 
 
 def test_answers_to_requests_are_not_rate_limited():
-    s = RobotSession("r1", er_rate=0.001, er_burst=1, queue_size=100)
+    s = RobotSession("r1", SessionLimits(er_rate=0.001, er_burst=1, queue_size=100))
     for i in range(5):
         s.receive_text(json.dumps({"type": "CX", "data": {"connect": [{"tagA": f"t{i}/a", "tagB": f"t{i}/b"}]}}), 0)
         s.events_received()

@@ -13,7 +13,7 @@ import pytest
 from rce.plumbing.errors import ProtocolError
 from rce.protocol.resume import TOKEN_BYTES, Incoming, Outgoing, ack_frame, new_token, read_ack, read_seq
 from rce.protocol.events import Deliver, MessageReceived, ServiceCall, SessionStatus
-from rce.protocol.session import ClientSession, RobotSession
+from rce.protocol.session import ClientSession, ResumeOptions, RobotSession
 
 
 def test_outgoing_bounds_messages_and_bytes_and_counts_what_it_forgets():
@@ -67,14 +67,14 @@ def test_tokens_are_long_random_hex():
     tokens = {new_token() for _ in range(100)}
     assert len(tokens) == 100
     assert all(len(t) == 2 * TOKEN_BYTES and int(t, 16) >= 0 for t in tokens) and TOKEN_BYTES * 8 >= 128
-    assert RobotSession("r1", resume=True).token != RobotSession("r1", resume=True).token
+    assert RobotSession("r1", resume=ResumeOptions()).token != RobotSession("r1", resume=ResumeOptions()).token
     assert RobotSession("r1").token is None
 
 
 def test_misuse_is_refused():
     with pytest.raises(ProtocolError, match="did not opt in"):
         RobotSession("r1").detach()
-    s = RobotSession("r1", resume=True)
+    s = RobotSession("r1", resume=ResumeOptions())
     assert not s.can_resume(1) and s.can_resume(0) and not RobotSession("r1").can_resume(0)
     with pytest.raises(ProtocolError, match="ack 1 is not a message sent"):
         s.attach(1)
@@ -85,7 +85,7 @@ def test_misuse_is_refused():
 
 
 def test_a_resumed_session_reports_robot_messages_taken_and_buffer_losses():
-    s = RobotSession("r1", resume=True, token="t" * 64, resume_buffer=2)
+    s = RobotSession("r1", resume=ResumeOptions(token="t" * 64, buffer=2))
     s.add_interface("req", "SubscriberConverter", "std_msgs/String")
     dm = {"iTag": "req", "type": "std_msgs/String", "msgID": "", "msg": {"data": "x"}}
     for seq in (1, 2, 3):
@@ -106,7 +106,7 @@ def test_a_link_down_longer_than_the_robots_buffer_loses_its_oldest_counted_on_b
     """No path for a while (a follower out of every relay's range): the robot's buffer keeps its newest
     3; the 2 it forgot are counted at the resume by the robot (``resume_lost``) and the cloud
     (``resume_gaps``, a Prometheus counter), and the rest arrive once, in order."""
-    cloud = RobotSession("r1", resume=True, ack_every=1)
+    cloud = RobotSession("r1", resume=ResumeOptions(ack_every=1))
     cloud.add_interface("req", "SubscriberConverter", "std_msgs/String")
     robot = ClientSession(resume=True, resume_buffer=3)
 
@@ -143,7 +143,7 @@ class Pair:
 
     def __init__(self, seed: int):
         self.rng = random.Random(seed)
-        self.cloud = RobotSession("r1", resume=True, ack_every=4)
+        self.cloud = RobotSession("r1", resume=ResumeOptions(ack_every=4))
         self.cloud.add_interface("req", "SubscriberConverter", "std_msgs/String")
         self.cloud.add_interface("svc", "ServiceProviderConverter", "Test/StringEcho")
         self.cloud.add_interface("echo", "PublisherConverter", "std_msgs/String")     # control: all kept
@@ -237,7 +237,7 @@ class Partition:
     ``odom`` (nav_msgs/Odometry: state) and ``goal`` (std_msgs: control). Time moves in 0.1 s steps."""
 
     def __init__(self):
-        self.cloud = RobotSession("r1", resume=True)
+        self.cloud = RobotSession("r1", resume=ResumeOptions())
         for itag, itype, cls in (("pose", "SubscriberConverter", "geometry_msgs/PoseStamped"),
                                  ("cmd", "SubscriberConverter", "std_msgs/String"),
                                  ("odom", "PublisherConverter", "nav_msgs/Odometry"),

@@ -14,7 +14,7 @@ from rce.protocol.frames import ID_LEN, Assembler
 from rce.protocol.limits import PartBudget
 from rce.protocol.events import CaughtUp, CloseLink, Deliver, Lagging, ServiceCall
 from rce.protocol.robot_outbox import CONTROL_BACKLOG
-from rce.protocol.session import RobotSession, robot_interface_type
+from rce.protocol.session import RobotSession, SessionLimits, robot_interface_type
 
 TESTS = Path(__file__).resolve().parents[1]
 VECTORS = {v["name"]: v for v in json.loads((TESTS / "vectors" / "session.json").read_text())["robot"]}
@@ -81,7 +81,7 @@ def test_data_to_send_one_message_at_a_time_keeps_parts_with_their_message():
 
 def test_a_robot_that_does_not_read_is_closed_once_and_loses_nothing():
     # STs are never dropped (ERs are: tests/core/test_session_limits.py)
-    s = RobotSession("r1", queue_size=2)
+    s = RobotSession("r1", SessionLimits(queue_size=2))
     for i in range(CONTROL_BACKLOG * 2 + 5):
         s.send_status({"topic": "node", "status": f"s{i}"})
     closes = [e for e in s.events_received() if isinstance(e, CloseLink)]
@@ -115,7 +115,7 @@ def test_removed_interface_takes_no_more_dms():
 
 
 def test_an_endpoint_behind_the_robot_longer_than_max_lag_sheds_topic_messages_only():
-    s = RobotSession("r1", max_lag=1.0)
+    s = RobotSession("r1", SessionLimits(max_lag=1.0))
     s.add_interface("req", "SubscriberConverter", "std_msgs/String")
     s.add_interface("srv", "ServiceProviderConverter", "Test/StringEcho")
 
@@ -140,7 +140,7 @@ def test_an_endpoint_behind_the_robot_longer_than_max_lag_sheds_topic_messages_o
     assert frames_of(s) == [{"type": "ST", "data": {"topic": "lag", "status": "shedding", "behind_s": 1.2,
                                                     "max_lag_s": 1.0}},
                             {"type": "ST", "data": {"topic": "lag", "status": "caught_up", "shed": 3}}]  # no ER
-    never = RobotSession("r2", max_lag=None)
+    never = RobotSession("r2", SessionLimits(max_lag=None))
     never.add_interface("req", "SubscriberConverter", "std_msgs/String")
     for t in (10.0, 12.0, 12.1):
         never.backlog(5, t)
@@ -211,7 +211,7 @@ def dm_out(s: RobotSession, now: float | None = None, n: int | None = None) -> l
 
 
 def test_past_the_bound_the_busiest_interface_drops_its_oldest():
-    s = RobotSession("r1", queue_size=3)
+    s = RobotSession("r1", SessionLimits(queue_size=3))
     for i in range(3):
         s.send_dm("scan", "t", "", i, data=True)
     s.send_status({"topic": "node", "status": "up"})           # never dropped; control goes first
@@ -223,7 +223,7 @@ def test_past_the_bound_the_busiest_interface_drops_its_oldest():
 
 
 def test_a_robot_that_never_reads_costs_a_bounded_outbox():
-    s = RobotSession("r1", queue_size=10)
+    s = RobotSession("r1", SessionLimits(queue_size=10))
     for i in range(10_000):
         s.send_dm("scan", "t", "", i, data=True)
     assert s.dropped == 9_990 and s.outbox == 10
@@ -232,7 +232,7 @@ def test_a_robot_that_never_reads_costs_a_bounded_outbox():
 
 
 def test_a_message_older_than_max_lag_goes_only_when_nothing_newer_of_its_interface_waits():
-    s = RobotSession("r1", max_lag=1.0)
+    s = RobotSession("r1", SessionLimits(max_lag=1.0))
     s.send_dm("pose", "t", "", "p0", data=True, now=0.0)
     s.send_dm("map", "t", "", "m0", data=True, now=0.0)         # a sparse topic: its only message
     s.send_dm("pose", "t", "", "p1", data=True, now=0.5)
@@ -245,7 +245,7 @@ def test_a_message_older_than_max_lag_goes_only_when_nothing_newer_of_its_interf
 
 
 def test_without_max_lag_age_drops_nothing():
-    s = RobotSession("r1", max_lag=None)
+    s = RobotSession("r1", SessionLimits(max_lag=None))
     s.send_dm("pose", "t", "", "p0", data=True, now=0.0)
     s.send_dm("pose", "t", "", "p1", data=True, now=0.1)
     assert dm_out(s, now=100.0) == [("pose", "p0"), ("pose", "p1")] and s.dropped == 0
@@ -253,4 +253,4 @@ def test_without_max_lag_age_drops_nothing():
 
 def test_queue_size_below_one_is_refused():
     with pytest.raises(ValueError, match="queue_size must be >= 1"):
-        RobotSession("r1", queue_size=0)
+        RobotSession("r1", SessionLimits(queue_size=0))

@@ -13,7 +13,7 @@ import pytest
 
 from rce.protocol.frames import DEFAULT_EXPIRY
 from rce.protocol.events import Event, as_record
-from rce.protocol.session import ClientSession, RobotSession
+from rce.protocol.session import ClientSession, ResumeOptions, RobotSession, SessionLimits
 
 VECTORS = json.loads((Path(__file__).resolve().parents[1] / "vectors" / "session.json").read_text())
 
@@ -158,11 +158,25 @@ def feed_robot(s: RobotSession, step: dict) -> None:
         s.attach(step["attach"]["ack"])
 
 
+RESUME_OPTIONS = {"token": "token", "grace": "grace", "resume_buffer": "buffer", "resume_bytes": "bytes",
+                  "ack_every": "ack_every", "ack_delay": "ack_delay"}
+
+
+def session_options(opts: dict) -> dict:
+    """A vector's ``options`` (flat, as the JavaScript side reads them) as RobotSession's ``limits``
+    and ``resume``; an unknown option is a TypeError."""
+    resume = {RESUME_OPTIONS[k]: opts.pop(k) for k in list(opts) if k in RESUME_OPTIONS}
+    out = {"limits": SessionLimits(**{k: opts.pop(k) for k in list(opts) if k != "resume"})}
+    if opts.pop("resume", False):
+        out["resume"] = ResumeOptions(**resume)
+    return out
+
+
 @pytest.mark.parametrize("vector", VECTORS["robot"], ids=[v["name"] for v in VECTORS["robot"]])
 def test_robot_vector(vector):
     opts = dict(vector.get("options", {}))
     manual = opts.pop("manual_write", False)
-    s = RobotSession(opts.pop("robot", "r1"), **opts)
+    s = RobotSession(opts.pop("robot", "r1"), **session_options(opts))
     now = 0.0
     for i, step in enumerate(vector["steps"]):
         now = feed(s, step, now)

@@ -9,7 +9,7 @@ import json
 from websockets.asyncio.client import connect
 from websockets.asyncio.server import serve
 
-from rce.protocol.session import RobotSession
+from rce.protocol.session import RobotSession, SessionLimits
 from rce_robot import ws_cork
 from rce_robot.namespace import RobotNamespace
 
@@ -36,8 +36,8 @@ class Served:
     async def handler(self, ws) -> None:
         async def gone(_ns) -> None:
             return None
-        ns = RobotNamespace("u", f"r{len(self.namespaces)}", None, RobotSession("robot", queue_size=COUNT * 2),
-                            on_gone=gone)
+        session = RobotSession("robot", SessionLimits(queue_size=COUNT * 2))
+        ns = RobotNamespace("u", f"r{len(self.namespaces)}", None, session, on_gone=gone)
         self.namespaces.append(ns)
         await ns.serve(ws)
 

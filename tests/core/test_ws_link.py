@@ -14,7 +14,7 @@ import pytest
 from websockets.asyncio.client import connect
 from websockets.exceptions import ConnectionClosed, InvalidStatus
 
-from rce.protocol.session import RobotSession
+from rce.protocol.session import RobotSession, SessionLimits
 from rce.transport import tls
 from rce.transport.lane_socket import is_mptcp, mptcp_socket
 from rce_robot import ws_link
@@ -305,7 +305,7 @@ async def test_a_robot_that_does_not_read_pauses_the_link_and_gets_everything_in
     async def handler(link):
         async def gone(_ns) -> None:
             return None
-        ns = RobotNamespace("u", "r", None, RobotSession("robot", queue_size=count * 2), on_gone=gone)
+        ns = RobotNamespace("u", "r", None, RobotSession("robot", SessionLimits(queue_size=count * 2)), on_gone=gone)
         namespaces.append(ns)
         await ns.serve(link)
     async with Server(impl, handler, max_size=None) as srv, \
