@@ -14,7 +14,9 @@ side is :class:`rce_container.env_template_client.EnvTemplate`):
 
 - template -> task set, once: ``{"op": "ready"}``, or ``{"op": "failed", "error": str}`` and exit 1;
 - task set -> template: ``{"op": "spawn", "id": N, "args": [str, ...]}``: an environment with
-  those arguments;
+  those arguments; with one descriptor (SCM_RIGHTS), its zygote template's socket
+  (:meth:`rce_container.zygote_client.ZygoteTemplate.fork_template`), which the environment
+  gets as ``--zygote-template-fd N`` after those arguments;
 - template -> task set: ``{"op": "spawned", "id": N, "pid": P}`` (the child already leads its
   own session and process group), or ``{"op": "refused", "id": N, "error": str}``;
 - template -> task set: ``{"op": "exit", "id": N, "code": C}`` or ``{..., "signal": S}`` once
@@ -68,6 +70,8 @@ def _run_environment(args: list[str], led: int, inherited: list[int]) -> None:
 class EnvForkServer(ForkServer):
     """Forks environments on request; ``children``: pid -> request id."""
 
+    FDS = 1
+
     def __init__(self, sock: socket.socket):
         super().__init__(sock)
         self.children: dict[int, int] = {}
@@ -79,9 +83,20 @@ class EnvForkServer(ForkServer):
             req = None
         if not isinstance(req, dict) or req.get("op") != "spawn" or not isinstance(req.get("args"), list) \
                 or not all(isinstance(a, str) for a in req["args"]):
+            for fd in fds:
+                os.close(fd)
             send(self.sock, {"op": "refused", "id": req.get("id") if isinstance(req, dict) else None,
                              "error": "malformed spawn request"})
             return
+        args = req["args"] + [a for fd in fds for a in ("--zygote-template-fd", str(fd))]
+        try:
+            self.fork(req["id"], args)
+        finally:
+            for fd in fds:
+                os.close(fd)
+
+    def fork(self, rid: int, args: list[str]) -> None:
+        """Fork environment ``rid`` with ``args``; say ``spawned`` (or ``refused``)."""
         sys.stdout.flush()
         sys.stderr.flush()
         # the child leads its own session and group before the task set learns its pid (it
@@ -91,10 +106,10 @@ class EnvForkServer(ForkServer):
         try:
             pid = os.fork()
             if pid == 0:
-                _run_environment(req["args"], led_w, [led_r, self.sock.fileno(), self.wake_r, self.wake_w])
+                _run_environment(args, led_w, [led_r, self.sock.fileno(), self.wake_r, self.wake_w])
         except OSError as e:
             os.close(led_r)
-            send(self.sock, {"op": "refused", "id": req["id"], "error": f"fork: {e}"})
+            send(self.sock, {"op": "refused", "id": rid, "error": f"fork: {e}"})
             return
         finally:
             signal.pthread_sigmask(signal.SIG_UNBLOCK, HANDLED_SIGNALS)
@@ -103,8 +118,8 @@ class EnvForkServer(ForkServer):
             os.read(led_r, 1)          # b"" if it died first: its exit is reported as any other
         finally:
             os.close(led_r)
-        self.children[pid] = req["id"]
-        send(self.sock, {"op": "spawned", "id": req["id"], "pid": pid})
+        self.children[pid] = rid
+        send(self.sock, {"op": "spawned", "id": rid, "pid": pid})
 
     def reap(self) -> None:
         """Report every environment that has exited."""

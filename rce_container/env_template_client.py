@@ -81,8 +81,9 @@ class EnvTemplate:
         self._ready.set_result(True)
         log.debug("environment template ready", pid=self.proc.pid)
 
-    async def spawn(self, args: list[str]) -> ForkedChild | None:
-        """Fork an environment with ``args`` (those of ``python -m rce_container.environment``);
+    async def spawn(self, args: list[str], zygote_template: socket.socket | None = None) -> ForkedChild | None:
+        """Fork an environment with ``args`` (those of ``python -m rce_container.environment``)
+        and, if given, the socket of its ``zygote_template`` (it gets ``--zygote-template-fd``);
         None when the template cannot (failed, dead, no answer within :data:`SPAWN_TIMEOUT`): the
         caller then execs it. A template that is still starting is waited for (at most
         :data:`READY_TIMEOUT`); a dead one is started again for the next environment."""
@@ -102,7 +103,8 @@ class EnvTemplate:
         rid = self._next_id
         fut = self._waiting[rid] = asyncio.get_running_loop().create_future()
         try:
-            self.sock.send(json.dumps({"op": "spawn", "id": rid, "args": args}).encode())
+            socket.send_fds(self.sock, [json.dumps({"op": "spawn", "id": rid, "args": args}).encode()],
+                            [zygote_template.fileno()] if zygote_template is not None else [])
             async with asyncio.timeout(SPAWN_TIMEOUT):
                 msg = await fut
         except (OSError, TimeoutError) as e:

@@ -25,6 +25,7 @@ import os
 import secrets
 import shutil
 import signal
+import socket
 import sys
 import time
 from pathlib import Path
@@ -193,7 +194,8 @@ class Environment:
                  bind: str = "127.0.0.1",
                  advertise_host: str | None = None, sandbox: str = "auto",
                  max_frame: int = framing.DEFAULT_MAX_FRAME, grace: float = sandboxes.DEFAULT_GRACE,
-                 registry: MessageRegistry | None = None, scope: str | None = None, direct: bool = True):
+                 registry: MessageRegistry | None = None, scope: str | None = None, direct: bool = True,
+                 zygote_template: socket.socket | None = None):
         self.env_id = env_id
         self.runtime_dir = Path(runtime_dir)
         self.socket_dir = Path(socket_dir or runtime_dir)
@@ -212,7 +214,8 @@ class Environment:
         self.done = asyncio.Event()
         self.t0 = time.monotonic()
         self._closed = False
-        self.template = ZygoteTemplate.for_nodes(self.runtime_dir)   # containers' zygotes fork from it
+        # containers' zygotes fork from it (itself forked from the task set's, or exec'd)
+        self.template = ZygoteTemplate.for_nodes(self.runtime_dir, zygote_template)
 
     # -- lifecycle -----------------------------------------------------------------------------
     async def start(self, control_path: str) -> None:
@@ -527,7 +530,8 @@ class Environment:
              environment: {env_id, pid, rss_mib, cpu_percent, containers, data_addr,
                            bus: {topics, services, refused, nodes, messages, bytes, dropped},
                                  # refused: connections to the group's bus sockets turned away
-                           dataplane: {msgs_in, msgs_out, bytes_in, bytes_out, dropped, links}},
+                           dataplane: {msgs_in, msgs_out, bytes_in, bytes_out, dropped, links},
+                           zygote_template: {pid, forked, running}},   # forked: from the task set's
              ros1?: {master_uri, running, nodes, pids, relay}}  # while it has ROS 1 nodes (Ros1Graph.info)
         """
         c = self._container(args)
@@ -546,15 +550,26 @@ class Environment:
                     "nodes": len(self.bus.nodes), "messages": sum(t.messages for t in topics),
                     "bytes": sum(t.bytes for t in topics), "dropped": sum(t.dropped for t in topics)},
             "dataplane": self.plane.stats(),
-            "direct": self.direct.stats() if self.direct is not None else {"enabled": False}},
+            "direct": self.direct.stats() if self.direct is not None else {"enabled": False},
+            "zygote_template": {"pid": self.template.pid, "forked": self.template.forked,
+                                "running": self.template.alive}},
             **({"ros1": c.ros1.info()} if c.ros1.ntags else {})}
+
+
+def given_socket(fd: int | None) -> socket.socket | None:
+    """The socket on descriptor ``fd`` the task set gave (not inherited by what this process execs)."""
+    if fd is None:
+        return None
+    os.set_inheritable(fd, False)
+    return socket.socket(fileno=fd)
 
 
 async def run(args: argparse.Namespace) -> int:
     """Start the environment, serve until the link closes or a signal; returns the exit code."""
     env = Environment(args.env_id, args.runtime_dir, socket_dir=args.socket_dir, bind=args.bind,
                       advertise_host=args.advertise_host, sandbox=args.sandbox, max_frame=args.max_frame,
-                      grace=args.grace, scope=args.scope, direct=os.environ.get("RCE_DIRECT_LINKS", "1") != "0")
+                      grace=args.grace, scope=args.scope, direct=os.environ.get("RCE_DIRECT_LINKS", "1") != "0",
+                      zygote_template=given_socket(args.zygote_template_fd))
     loop = asyncio.get_running_loop()
     for sig in (signal.SIGINT, signal.SIGTERM):
         loop.add_signal_handler(sig, env.done.set)
@@ -586,6 +601,9 @@ def main(argv: list[str] | None = None) -> None:
     p.add_argument("--max-frame", type=int, default=framing.DEFAULT_MAX_FRAME)
     p.add_argument("--grace", type=float, default=sandboxes.DEFAULT_GRACE,
                    help="s between SIGTERM and SIGKILL for nodes")
+    p.add_argument("--zygote-template-fd", type=int, default=None,
+                   help="descriptor of this environment's zygote template, forked by the task set's "
+                        "(default: exec one)")
     args = p.parse_args(argv)
     setup_logging()
     sys.exit(run_loop(run(args)))

@@ -54,7 +54,7 @@ from rce_container import sandbox as sandboxes
 from rce_container.env_template_client import EnvTemplate
 from rce_container.environment import BUS_CALL_TIMEOUT, MAX_SOCKET_PATH, container_paths
 from rce_container.usage import measure
-from rce_container.zygote_client import ForkedChild
+from rce_container.zygote_client import ForkedChild, ZygoteTemplate
 
 log = get_logger("rce.container")
 ENV_TIMEOUT = 30.0         # s a new environment has to say hello (start Python, load packages, listen)
@@ -148,6 +148,8 @@ class ContainerHost:
         self.warm = max(0, warm)
         self.spares: list[EnvHandle] = []
         self.env_template = EnvTemplate()      # environments fork from it (exec'd when it cannot)
+        # environments' zygote templates fork from it (an environment execs its own when it cannot)
+        self.zygote_template = ZygoteTemplate.for_nodes(self.runtime_dir)
         self._spare_tasks: list[asyncio.Task] = []
         self.socket_dir = socket_dir_for(self.runtime_dir)
         self.control_path = str(self.socket_dir / CONTROL_SOCKET)
@@ -181,6 +183,7 @@ class ContainerHost:
         self._server = await asyncio.start_unix_server(self._accept_env, self.control_path, limit=STREAM_LIMIT)
         os.chmod(self.control_path, 0o600)
         self.env_template.start_soon()        # imports while the task set registers; spares fork from it
+        self.zygote_template.start_soon()
         how = await asyncio.to_thread(self.sandbox_cls.prepare_host, self.scope)
         log.info("sandbox", kind=self.sandbox_cls.kind, uses=how, scope=self.scope)
         if self.metrics_port is not None:
@@ -212,6 +215,7 @@ class ContainerHost:
                 log.error("environment did not stop cleanly", env=env.env_id, exc_info=r)
         self.containers.clear()
         await self.env_template.close()
+        await self.zygote_template.close()
         await asyncio.to_thread(self.sandbox_cls.cleanup_host, self.scope)   # anything a crash left behind
         if self._http is not None:
             await self._http.cleanup()
@@ -281,6 +285,22 @@ class ContainerHost:
                 return None
             await asyncio.wait([self._spare_tasks[0]])
 
+    async def _fork_zygote_template(self) -> socket.socket | None:
+        """A new environment's zygote template, forked from the task set's (the environment's end
+        of its socket); None when it is not running: the environment then execs its own, and a
+        dead one is started again for the next environment."""
+        template = self.zygote_template
+        if await template.wait_started():
+            try:
+                return template.fork_template()
+            except OSError as e:
+                log.warning("the zygote template did not fork", reason=str(e))
+        if template.lost and template is self.zygote_template and not self._closing:
+            self.zygote_template = ZygoteTemplate.for_nodes(self.runtime_dir)
+            self.zygote_template.start_soon()
+            self.tasks.spawn(template.close(), name="dead zygote template")
+        return None
+
     async def _spawn_env(self, key: tuple | None) -> EnvHandle:
         env = EnvHandle(next(self._env_ids), key, started=time.monotonic())
         self._hellos.open(key=env.env_id)
@@ -288,10 +308,13 @@ class ContainerHost:
                 "--socket-dir", str(self.socket_dir), "--bind", self.bind,
                 "--advertise-host", self.advertise_host, "--sandbox", self.sandbox_cls.kind,
                 "--max-frame", str(self.max_frame), "--grace", str(self.grace), "--scope", self.scope]
+        zygote_template = await self._fork_zygote_template()
         try:
-            env.proc = await self.env_template.spawn(args) or await asyncio.create_subprocess_exec(
-                sys.executable, "-m", "rce_container.environment", *args, stdin=asyncio.subprocess.DEVNULL,
-                start_new_session=True)
+            env.proc = await self.env_template.spawn(args, zygote_template) or await asyncio.create_subprocess_exec(
+                sys.executable, "-m", "rce_container.environment", *args,
+                *(["--zygote-template-fd", str(zygote_template.fileno())] if zygote_template else []),
+                stdin=asyncio.subprocess.DEVNULL, start_new_session=True,
+                pass_fds=[zygote_template.fileno()] if zygote_template else [])
             early_exit = self.tasks.spawn(self._exit_before_hello(env), name=f"environment {env.env_id} start")
             try:
                 env.peer, info = await self._hellos.wait(env.env_id, self.env_timeout)
@@ -302,6 +325,8 @@ class ContainerHost:
                 early_exit.cancel()
         finally:
             self._hellos.forget(env.env_id)
+            if zygote_template is not None:
+                zygote_template.close()            # the environment has its own descriptor of it
         env.peer.name = f"environment {env.env_id}"
         env.peer.on_close = lambda _p, e=env: self._env_link_closed(e)
         env.data_addr = info.get("data_addr", "")

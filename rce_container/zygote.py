@@ -9,13 +9,19 @@ forks one child per Python node, which runs the node's script with :func:`runpy.
 exec'd node gets; it only skips the interpreter start and the imports.
 
 The zygote itself comes from the environment's *template* (``--template``, :class:`Template`):
-one per environment process, started before any container with the runtime imported, outside
+one per environment process, ready before any container with the runtime imported, outside
 the sandboxes. For each container it forks a child that enters the container's sandbox
 in-process (:mod:`rce_container.sandbox_enter`: cgroup, ``setns``, a second fork for the PID
 namespace, ``setsid``, the privilege drop ``setpriv`` does, checked) and serves as that
 container's zygote; so a new container's first node waits neither for an interpreter nor
 for imports. Without a template (it failed) the zygote is spawned through the sandbox like a
 node (``python -m rce_container.zygote FD``) and imports the runtime itself.
+
+An environment's template is itself forked: the container task set starts one template
+(exec'd, with a node's minimal environment, so nothing of the host's is in its memory) and,
+for each new environment, asks it for a child that serves as that environment's template on
+a socket the environment is given (``{"op": "template"}``). Without it (it failed or died) an
+environment execs its own template.
 
 Protocol, on the ``SOCK_SEQPACKET`` socket ``FD`` (one JSON object per packet, the
 host side is :mod:`rce_container.zygote_client`):
@@ -31,6 +37,11 @@ host side is :mod:`rce_container.zygote_client`):
 - zygote -> host: ``{"op": "exit", "id": N, "code": C}`` or ``{..., "signal": S}`` when child N
   has been reaped, with ``"error": "uncaught TYPE: MESSAGE"`` when the node's script raised
   (its traceback is on its stderr).
+
+A template (``--template``) answers nothing after its ``ready``; it takes, with one descriptor
+each (SCM_RIGHTS), ``{"op": "container", "spec": enter_spec}`` (the descriptor: the new
+zygote's socket, which then says ``ready`` or ``failed`` as above) and ``{"op": "template"}``
+(the descriptor: a new template's socket, which then says ``ready``).
 
 A child leads its own session and process group (as ``setsid`` does for an exec'd node), so
 the host stops it as before: SIGTERM to its group, SIGKILL after the grace period. When the
@@ -338,15 +349,36 @@ def _become_zygote(req: dict, fd: int, inherited: list[int]) -> None:
         os._exit(code)
 
 
+def _become_template(fd: int, inherited: list[int]) -> NoReturn:
+    """In a child of a template: lead a session of its own and serve as a new template on the
+    socket ``fd`` (an environment's); never returns."""
+    code = 1
+    try:
+        signal.set_wakeup_fd(-1)
+        signal.signal(signal.SIGCHLD, signal.SIG_DFL)
+        for x in inherited:
+            os.close(x)
+        os.setsid()
+        set_cmdline([sys.executable, "-m", "rce_container.zygote", str(fd), "--template"])
+        sock = socket.socket(fileno=fd)
+        send(sock, {"op": "ready"})
+        Template(sock).serve()
+        code = 0
+    finally:
+        os._exit(code)
+
+
 class Template(ForkServer):
-    """The environment's warm template (``--template``): one per environment process, started
-    before any container, outside every sandbox (as root in the namespaced case, with a node's
-    minimal environment and nothing else). For ``{"op": "container", "spec": enter_spec}`` with
-    one descriptor (the container's end of a new zygote socket) it forks a child that enters
-    that container's sandbox, drops its privileges, and serves as its zygote on that socket
-    (:func:`_become_zygote`). It never runs node code and never sees a container's bus token
-    (nodes get their environment with each spawn request, from the host), so no container's
-    secret is in the memory the next container's zygote is copied from."""
+    """The warm template (``--template``): the container task set's, and one per environment
+    process (forked from the task set's), outside every sandbox (as root in the namespaced
+    case, with a node's minimal environment and nothing else). For ``{"op": "container",
+    "spec": enter_spec}`` with one descriptor (the container's end of a new zygote socket) it
+    forks a child that enters that container's sandbox, drops its privileges, and serves as its
+    zygote on that socket (:func:`_become_zygote`); for ``{"op": "template"}`` with one
+    descriptor, a child that serves as a template on it (:func:`_become_template`). It never
+    runs node code and never sees a container's bus token (nodes get their environment with
+    each spawn request, from the host) nor anything of the host's environment (it was exec'd
+    with a node's), so no secret is in the memory the next zygote or template is copied from."""
 
     FDS = 1
 
@@ -363,14 +395,17 @@ class Template(ForkServer):
             req = json.loads(data)
         except ValueError:
             req = None
-        if len(fds) != 1 or not isinstance(req, dict) or req.get("op") != "container":
+        if len(fds) != 1 or not isinstance(req, dict) or req.get("op") not in ("container", "template"):
             for fd in fds:
-                os.close(fd)            # the host sees its zygote socket close
+                os.close(fd)            # the host sees its zygote (or template) socket close
             return
         sys.stdout.flush()
         sys.stderr.flush()
         if os.fork() == 0:
-            _become_zygote(req, fds[0], [self.sock.fileno(), self.wake_r, self.wake_w])
+            inherited = [self.sock.fileno(), self.wake_r, self.wake_w]
+            if req["op"] == "template":
+                _become_template(fds[0], inherited)
+            _become_zygote(req, fds[0], inherited)
         os.close(fds[0])
 
 

@@ -18,6 +18,7 @@ from __future__ import annotations
 
 import asyncio
 import collections
+import contextlib
 import json
 import os
 import signal
@@ -63,16 +64,49 @@ def sender_pid(ancillary: list[tuple[int, int, bytes]]) -> int | None:
     return None
 
 
-async def first_message(sock: socket.socket, timeout: float) -> dict:
+async def first_message(sock: socket.socket, timeout: float, with_pid: bool = False) -> dict:
     """A fork server's first message on ``sock`` (made non-blocking here): ``{"op": "ready"}``,
-    ``{"op": "failed", "error": ...}``, or ``{"error": why}`` when none came within ``timeout`` s."""
+    ``{"op": "failed", "error": ...}``, or ``{"error": why}`` when none came within ``timeout`` s.
+    ``with_pid`` (``sock`` has ``SO_PASSCRED`` on): the sender's pid is added as ``"pid"``."""
     sock.setblocking(False)
+    loop = asyncio.get_running_loop()
+    pid = None
     try:
         async with asyncio.timeout(timeout):
-            msg = json.loads(await asyncio.get_running_loop().sock_recv(sock, MAX_MESSAGE) or b"{}")
+            if with_pid:
+                data, anc = await _recv_with_credentials(sock)
+                pid = sender_pid(anc)
+            else:
+                data = await loop.sock_recv(sock, MAX_MESSAGE)
+            msg = json.loads(data or b"{}")
     except (TimeoutError, OSError, ValueError) as e:
         msg = {"error": str(e) or type(e).__name__}
-    return msg if isinstance(msg, dict) else {"error": "not a JSON object"}
+    if not isinstance(msg, dict):
+        return {"error": "not a JSON object"}
+    if pid is not None:
+        msg["pid"] = pid
+    return msg
+
+
+async def _recv_with_credentials(sock: socket.socket) -> tuple[bytes, list]:
+    """One message on the non-blocking ``sock`` and its ancillary data (credentials)."""
+    while True:
+        try:
+            data, anc, _, _ = sock.recvmsg(MAX_MESSAGE, CRED_SPACE)
+            return data, anc
+        except BlockingIOError:
+            await _until_readable(sock.fileno())
+
+
+async def _until_readable(fd: int) -> None:
+    """Wait until ``fd`` is readable (a socket has data or EOF; a pidfd's process has exited)."""
+    loop = asyncio.get_running_loop()
+    readable = loop.create_future()
+    loop.add_reader(fd, lambda: readable.done() or readable.set_result(None))
+    try:
+        await readable
+    finally:
+        loop.remove_reader(fd)
 
 
 async def _keep(stream: asyncio.StreamReader, sink: collections.deque) -> None:
@@ -329,30 +363,43 @@ class ZygoteClient:
 
 
 class ZygoteTemplate:
-    """The environment's warm template (:class:`rce_container.zygote.Template`): started once
-    per environment process, before its containers, with ``env`` (a node's minimal
-    environment, no container's values); each container's zygote is forked from it, so a
-    container's first node does not wait for the node runtime's imports."""
+    """A warm template (:class:`rce_container.zygote.Template`) with ``env`` (a node's minimal
+    environment, no container's values): the container task set's, exec'd once, and one per
+    environment process, before its containers, forked from the task set's (``sock``: the
+    environment's end of its socket, :meth:`fork_template`) or, without one, exec'd by the
+    environment. Each container's zygote is forked from its environment's template, so a
+    container's first node does not wait for the node runtime's imports; and an environment's
+    template is a fork, so it does not import them either."""
 
-    def __init__(self, env: dict[str, str]):
+    def __init__(self, env: dict[str, str], sock: socket.socket | None = None):
         self.env = env
-        self.proc: asyncio.subprocess.Process | None = None
+        self.proc: asyncio.subprocess.Process | None = None   # when exec'd
+        self.pid: int | None = None
         self.sock: socket.socket | None = None
+        self.forked = False                  # a fork of the task set's template (not exec'd)
         self.output: collections.deque = collections.deque(maxlen=ZYGOTE_LOG_LINES)
+        self._given = sock
+        self._pidfd: int | None = None       # of a forked template (not our child)
         self._ready = False
         self._started = asyncio.Event()      # set once it is ready or has failed
         self._launched = False
         self._tasks = Tasks("zygote template")
 
     @classmethod
-    def for_nodes(cls, home: str | Path) -> "ZygoteTemplate":
+    def for_nodes(cls, home: str | Path, sock: socket.socket | None = None) -> "ZygoteTemplate":
         """A template with a node's environment (:func:`rce_container.node_env.node_env`) and no
-        container's values (no bus, no token); ``home``: a directory (HOME) of the environment's."""
-        return cls(node_env(bus="", token="", ctag="", name="zygote", namespace="/", home=home))
+        container's values (no bus, no token); ``home``: a directory (HOME) of the environment's
+        (or the task set's); ``sock``: see the class doc."""
+        return cls(node_env(bus="", token="", ctag="", name="zygote", namespace="/", home=home), sock)
 
     @property
     def alive(self) -> bool:
-        return self._ready and self.sock is not None and self.proc is not None and self.proc.returncode is None
+        return self._ready and self.sock is not None and (self.proc is None or self.proc.returncode is None)
+
+    @property
+    def lost(self) -> bool:
+        """It was ready once and is gone (it exited, was killed, or does not take requests)."""
+        return self._ready and not self.alive
 
     def start_soon(self) -> None:
         """Start it in the background (a failure is logged; zygotes are then spawned per container)."""
@@ -374,12 +421,37 @@ class ZygoteTemplate:
 
     async def _start(self) -> None:
         try:
-            await self._spawn()
+            if not await self._adopt():
+                await self._spawn()
+            if self._ready:
+                asyncio.get_running_loop().add_reader(self.sock.fileno(), self._readable)
         finally:
             self._started.set()
 
+    async def _adopt(self) -> bool:
+        """Take the forked template on the given socket once it says ready (its pid: the
+        message's credentials); False if there is none or it never became ready."""
+        sock, self._given = self._given, None
+        if sock is None:
+            return False
+        msg = await first_message(sock, READY_TIMEOUT, with_pid=True)
+        if msg.get("op") == "ready" and msg.get("pid"):
+            try:
+                self._pidfd = os.pidfd_open(msg["pid"])
+            except OSError:
+                pass
+            # the pidfd is its, not a later process's, if it was alive when the pidfd was opened:
+            # only it holds the other end of the socket, which would read EOF once it is gone
+            if self._pidfd is not None and not _at_eof(sock):
+                self.sock, self.pid, self._ready, self.forked = sock, msg["pid"], True, True
+                return True
+        log.warning("the forked zygote template did not start, exec'ing one", reason=msg.get("error", "it exited"))
+        sock.close()
+        self._close_pidfd()
+        return False
+
     async def _spawn(self) -> None:
-        ours, theirs = socket.socketpair(socket.AF_UNIX, socket.SOCK_SEQPACKET)
+        ours, theirs = zygote_socketpair()
         try:
             self.proc = await asyncio.create_subprocess_exec(
                 sys.executable, "-m", "rce_container.zygote", str(theirs.fileno()), "--template", " " * CMDLINE_ROOM,
@@ -391,13 +463,39 @@ class ZygoteTemplate:
             return
         finally:
             theirs.close()
-        self.sock = ours
+        self.sock, self.pid = ours, self.proc.pid
         for stream in (self.proc.stdout, self.proc.stderr):
             self._tasks.spawn(_keep(stream, self.output), name="zygote template output")
         msg = await first_message(ours, READY_TIMEOUT)
         self._ready = msg.get("op") == "ready"
         if not self._ready:
             log.warning("no zygote template", reason=msg.get("error", "it exited"), output=list(self.output)[-5:])
+
+    def _readable(self) -> None:
+        """A template says nothing after ready: its socket is readable when it is gone."""
+        try:
+            if self.sock.recv(MAX_MESSAGE):
+                return
+        except BlockingIOError:
+            return
+        except OSError:
+            pass
+        self._gone()
+
+    def _gone(self) -> None:
+        log.warning("the zygote template exited", pid=self.pid)
+        asyncio.get_running_loop().remove_reader(self.sock.fileno())
+        self.sock.close()
+        self.sock = None
+
+    def _send(self, op: dict, fd: int) -> None:
+        if self.sock is None:
+            raise OSError("the zygote template is not running")
+        try:
+            socket.send_fds(self.sock, [json.dumps(op).encode()], [fd])
+        except ConnectionError:          # it is gone (its end closed)
+            self._gone()
+            raise
 
     def fork_zygote(self, spec: dict) -> socket.socket:
         """Ask for a zygote in the sandbox ``spec`` (:meth:`rce_container.sandbox.Sandbox.enter_spec`);
@@ -407,7 +505,21 @@ class ZygoteTemplate:
         :class:`OSError` if the template does not take the request."""
         ours, theirs = zygote_socketpair()
         try:
-            socket.send_fds(self.sock, [json.dumps({"op": "container", "spec": spec}).encode()], [theirs.fileno()])
+            self._send({"op": "container", "spec": spec}, theirs.fileno())
+        except OSError:
+            ours.close()
+            raise
+        finally:
+            theirs.close()
+        return ours
+
+    def fork_template(self) -> socket.socket:
+        """Ask for a new template forked from this one (for an environment: ``ZygoteTemplate(env,
+        sock)``); the other end of its socket, on which it says ready. Raises :class:`OSError` if
+        this template does not take the request."""
+        ours, theirs = zygote_socketpair()
+        try:
+            self._send({"op": "template"}, theirs.fileno())
         except OSError:
             ours.close()
             raise
@@ -417,7 +529,11 @@ class ZygoteTemplate:
 
     async def close(self) -> None:
         """Stop the template (its socket closes; SIGKILL after :data:`TEMPLATE_EXIT_TIMEOUT`)."""
+        if self._given is not None:
+            self._given.close()
+            self._given = None
         if self.sock is not None:
+            asyncio.get_running_loop().remove_reader(self.sock.fileno())
             self.sock.close()
             self.sock = None
         if self.proc is not None and self.proc.returncode is None:
@@ -427,4 +543,34 @@ class ZygoteTemplate:
             except TimeoutError:
                 _signal_group(self.proc.pid, signal.SIGKILL)
                 await self.proc.wait()
+        if self._pidfd is not None:            # forked: its parent reaps it; wait until it has exited
+            if not await _pidfd_exited(self._pidfd, TEMPLATE_EXIT_TIMEOUT):
+                with contextlib.suppress(ProcessLookupError):
+                    signal.pidfd_send_signal(self._pidfd, signal.SIGKILL)
+            self._close_pidfd()
         await self._tasks.cancel_all()
+
+    def _close_pidfd(self) -> None:
+        if self._pidfd is not None:
+            os.close(self._pidfd)
+            self._pidfd = None
+
+
+def _at_eof(sock: socket.socket) -> bool:
+    """Whether ``sock`` (non-blocking) reads end of file now: its peer is gone."""
+    try:
+        return sock.recv(MAX_MESSAGE, socket.MSG_PEEK) == b""
+    except BlockingIOError:
+        return False
+    except OSError:
+        return True
+
+
+async def _pidfd_exited(pidfd: int, timeout: float) -> bool:
+    """Wait at most ``timeout`` s for the process of ``pidfd`` to exit; whether it did."""
+    try:
+        async with asyncio.timeout(timeout):
+            await _until_readable(pidfd)
+        return True
+    except TimeoutError:
+        return False

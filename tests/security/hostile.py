@@ -15,11 +15,11 @@ from wsclient import RawRobot
 PROBE = "ready? "       # what warm-up probes' data starts with
 
 
-async def echo_ready(r: RawRobot, ctag: str, timeout: float = 60.0) -> None:
-    """Give robot ``r`` a container ``ctag`` running stringEcho.py, its ``req``/``resp`` converters
-    connected; return once an echo came back (the node subscribes a moment after the interfaces
-    are up)."""
-    await r.send("CC", {"containerTag": ctag})
+async def echo_ready(r: RawRobot, ctag: str, timeout: float = 60.0, group: str | None = None) -> None:
+    """Give robot ``r`` a container ``ctag`` (in ``group``, if given) running stringEcho.py, its
+    ``req``/``resp`` converters connected; return once an echo came back (the node subscribes a
+    moment after the interfaces are up)."""
+    await r.send("CC", {"containerTag": ctag, **({"containerData": {"group": group}} if group else {})})
     await r.cn(addNodes=[{"containerTag": ctag, "nodeTag": "echo", "pkg": "Test", "exe": "stringEcho.py"}],
                addInterfaces=echo_interfaces(ctag, r.robot))
     await r.send("CX", {"connect": [{"tagA": f"{ctag}/{t}", "tagB": f"{r.robot}/{t}"} for t in ("req", "resp")]})
