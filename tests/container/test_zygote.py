@@ -134,10 +134,14 @@ async def box(request, tmp_path, monkeypatch):
         shutil.rmtree(run, ignore_errors=True)
 
 
-@pytest.mark.parametrize("via", ["template", "sandbox"])
+@pytest.mark.parametrize("via", ["template", "forked template", "sandbox"])
 async def test_a_forked_node_sees_what_an_execd_node_sees(box, via):
     if via == "sandbox":
         box.template = None                    # the zygote is spawned in the sandbox like a node
+    elif via == "forked template":             # as an environment's: a fork of the task set's template
+        box.template = ZygoteTemplate.for_nodes(box.template.env["HOME"], box.template.fork_template())
+        box.template.start_soon()
+        assert await box.template.wait_started() and box.template.forked
     forked, execd = box.launcher(), box.launcher(zygote=False)
     spec = {"ntag": "look", "pkg": "ZTest", "exe": "look.py", "args": "'a b' c $(env RCE_CONTAINER)",
             "name": "looker", "namespace": "ns"}
@@ -160,6 +164,8 @@ async def test_a_forked_node_sees_what_an_execd_node_sees(box, via):
     finally:
         await forked.close()
         await execd.close()
+        if via == "forked template":
+            await box.template.close()
 
 
 async def test_exit_signal_logs_respawn_crash_and_removal(box):

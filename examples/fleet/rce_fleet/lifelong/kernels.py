@@ -15,6 +15,10 @@ from __future__ import annotations
 import numpy as np
 from numba import njit
 
+from ..numba_cache import seed
+
+seed(__file__)          # numba's cache entries prepared in the tree (sandboxed nodes)
+
 __all__ = ["ACT_C", "ACT_F", "ACT_R", "ACT_W", "MOVE_WAIT", "NO_PREFER", "UNREACHABLE", "bfs_fill", "bfs_multi",
            "bfs_pair", "heading_cost", "prefer_table", "preferred", "mapf_t_actions", "heading_costs", "pibt_step",
            "warm_up"]

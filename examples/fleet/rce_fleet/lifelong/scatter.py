@@ -20,6 +20,9 @@ import numpy as np
 from numba import njit
 
 from .kernels import NO_PREFER, prefer_table
+from ..numba_cache import seed
+
+seed(__file__)          # numba's cache entries prepared in the tree (sandboxed nodes)
 
 __all__ = ["scatter"]
 

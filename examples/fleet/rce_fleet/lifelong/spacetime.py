@@ -23,6 +23,10 @@ from __future__ import annotations
 import numpy as np
 from numba import njit
 
+from ..numba_cache import seed
+
+seed(__file__)          # numba's cache entries prepared in the tree (sandboxed nodes)
+
 __all__ = ["SpaceTimeTable", "plan_agents", "warm_up"]
 
 

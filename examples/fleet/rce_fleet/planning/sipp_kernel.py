@@ -19,6 +19,10 @@ import heapq
 import numpy as np
 from numba import njit
 
+from ..numba_cache import seed
+
+seed(__file__)          # numba's cache entries prepared in the tree (sandboxed nodes)
+
 __all__ = ["NEVER", "sipp_search", "warm_up"]
 
 NEVER = np.int64(2 ** 62)          # "no step" / unbounded interval end
