@@ -156,7 +156,8 @@ class PicowsLink(WSListener):
         self.wst: Any = None                         # picows' WSTransport, once open
         self._waiter: asyncio.Future | None = None   # the reader waits for a frame
         self._drained: asyncio.Future | None = None  # a writer waits for the transport to drain
-        self._closed = asyncio.get_running_loop().create_future()
+        self._loop = asyncio.get_running_loop()      # kept: each lookup costs a getpid() on Python 3.11
+        self._closed = self._loop.create_future()
         self._reading = True
         self._partial: list | None = None            # a fragmented message's parts so far
         self._partial_text = False
@@ -266,7 +267,7 @@ class PicowsLink(WSListener):
         while not frames:
             if self._closed.done():
                 raise StopAsyncIteration
-            self._waiter = asyncio.get_running_loop().create_future()
+            self._waiter = self._loop.create_future()
             await self._waiter
         message = frames.popleft()
         if not self._reading and len(frames) <= READ_LOW_WATER and not self._closed.done():
@@ -309,7 +310,7 @@ class PicowsLink(WSListener):
         while self.paused:
             if not self.open():
                 raise ConnectionClosedError(None, None)
-            self._drained = asyncio.get_running_loop().create_future()
+            self._drained = self._loop.create_future()
             await self._drained
         if not self.open():
             raise ConnectionClosedError(None, None)

@@ -158,6 +158,7 @@ class Subscriber:
         self.handle = 0
         self._busy = False         # a drain is scheduled or a callback's awaitable is awaited
         self._stopped = False
+        self._loop = asyncio.get_running_loop()     # kept: each lookup costs a getpid() on Python 3.11
 
     def _push(self, payload: bytes) -> None:
         q = self.queue
@@ -167,7 +168,7 @@ class Subscriber:
         q.append(payload)
         if not self._busy and not self._stopped:
             self._busy = True
-            asyncio.get_running_loop().call_soon(self._drain)
+            self._loop.call_soon(self._drain)
 
     def _drain(self) -> None:
         """Take the waiting messages; an awaitable a callback returns goes on in a task."""

@@ -25,6 +25,7 @@ T = TypeVar("T")
 STARVE_AFTER = 7            # items of higher lanes before a waiting lower lane's turn: bulk gets >= 1/8 of the turns
 DELAY_BOUNDS = (0.001, 0.005, 0.01, 0.05, 0.1, 0.5, 1.0, 5.0)     # s: queue-delay histogram buckets (upper bounds)
 ALL_LANES: tuple[Lane, ...] = tuple(sorted(Lane, key=lambda lane: lane.rank))    # every lane, in priority order
+_RANK_OF = {lane: lane.rank for lane in ALL_LANES}      # ALL_LANES[rank] is the lane
 
 
 @dataclass
@@ -56,13 +57,24 @@ class _LaneItem:
     since: float | None          # s when put; None: not timed (its queue delay counts as 0)
 
 
-_IN_ORDER = {ALL_LANES, (Lane.CONTROL, Lane.STATE), (Lane.BULK,)}     # lane tuples already in priority order
+_RANKS = {lanes: tuple(lane.rank for lane in lanes) for lanes in
+          (ALL_LANES, (Lane.CONTROL, Lane.STATE), (Lane.CONTROL,), (Lane.STATE,), (Lane.BULK,))}
+
+
+def _ranks(lanes: tuple[Lane, ...]) -> tuple[int, ...]:
+    """The ranks of ``lanes``, in priority order."""
+    ranks = _RANKS.get(lanes)
+    return ranks if ranks is not None else tuple(sorted(lane.rank for lane in lanes))
 
 
 class LaneQueues(Generic[T]):
     """Items of type ``T`` for a peer, one :class:`~rce.protocol.outbox.Outbox` per lane (each bounded
     by ``queue_size`` data items, ``max_lag`` s; see there), taken by strict priority with the
-    ``starve_after`` rule (module docstring)."""
+    ``starve_after`` rule (module docstring).
+
+    It counts what waits per lane and in all as items come and go (:meth:`waiting` and an empty
+    :meth:`take` cost no walk over the lanes), and works per message on lists indexed by the lane's
+    rank; :attr:`lanes` and :attr:`stats` are the same outboxes and counters by lane, for reports."""
 
     def __init__(self, queue_size: int, max_lag: float | None = None, starve_after: int = STARVE_AFTER):
         if starve_after < 1:
@@ -70,78 +82,94 @@ class LaneQueues(Generic[T]):
         self.queue_size, self.starve_after = queue_size, starve_after
         self.lanes: dict[Lane, Outbox[_LaneItem]] = {lane: Outbox(queue_size, max_lag) for lane in Lane}
         self.stats: dict[Lane, LaneStats] = {lane: LaneStats() for lane in Lane}
-        self._passed = {lane: 0 for lane in Lane}     # items of higher lanes taken while this one waited
+        self._q = [self.lanes[lane] for lane in ALL_LANES]        # by rank
+        self._st = [self.stats[lane] for lane in ALL_LANES]
+        self._n = [0] * len(ALL_LANES)                            # items waiting, by rank
+        self._total = 0                                           # items waiting, all lanes
+        self._passed = [0] * len(ALL_LANES)     # by rank: items of higher lanes taken while this one waited
 
     def __len__(self) -> int:
-        return sum(len(q) for q in self.lanes.values())
+        return self._total
 
     def waiting(self, lanes: tuple[Lane, ...] = ALL_LANES) -> int:
         """Items waiting in ``lanes``."""
-        n = 0
-        for lane in lanes:
-            n += len(self.lanes[lane])
-        return n
+        if lanes is ALL_LANES:
+            return self._total
+        n = self._n
+        return sum(n[r] for r in _ranks(lanes))
+
+    def _count(self, rank: int) -> None:
+        """Lane ``rank``'s outbox changed: its count (and the total) again."""
+        q = self._q[rank]
+        n = q.data + q.control
+        self._total += n - self._n[rank]
+        self._n[rank] = n
 
     @property
     def places(self) -> int:
         """Places held (:attr:`Outbox.places`), all lanes."""
-        return sum(q.places for q in self.lanes.values())
+        return sum(q.places for q in self._q)
 
     @property
     def data(self) -> int:
         """Data items waiting, all lanes."""
-        return sum(q.data for q in self.lanes.values())
+        return sum(q.data for q in self._q)
 
     @property
     def control(self) -> int:
         """Control items (never dropped) waiting, all lanes."""
-        return sum(q.control for q in self.lanes.values())
+        return sum(q.control for q in self._q)
 
     @property
     def dropped(self) -> int:
         """Data items dropped, all lanes."""
-        return sum(q.dropped for q in self.lanes.values())
+        return sum(q.dropped for q in self._q)
 
     @property
     def expired(self) -> int:
         """Data items dropped for their age, all lanes."""
-        return sum(q.expired for q in self.lanes.values())
+        return sum(q.expired for q in self._q)
 
     def put(self, item: T, now: float | None = None, lane: Lane = Lane.CONTROL) -> None:
         """Queue ``item`` in ``lane`` at ``now`` (s; None: not timed), never to be dropped here."""
-        self.lanes[lane].put(_LaneItem(item, now))
+        rank = _RANK_OF[lane]
+        self._q[rank].put(_LaneItem(item, now))
+        self._n[rank] += 1
+        self._total += 1
 
     def put_data(self, key: Any, item: T, now: float, lane: Lane = Lane.STATE) -> None:
         """Queue data item ``item`` of ``key`` in ``lane`` at ``now`` (s): the lane's outbox keeps each
         key's newest (:meth:`Outbox.put_data`)."""
-        self.lanes[lane].put_data(key, _LaneItem(item, now), now)
+        rank = _RANK_OF[lane]
+        self._q[rank].put_data(key, _LaneItem(item, now), now)
+        self._count(rank)
 
     def take(self, now: float | None = None, lanes: tuple[Lane, ...] = ALL_LANES) -> tuple[Lane, T] | None:
         """The next item of ``lanes`` and its lane (None when none waits): the first lane in priority
         order that waits, unless a lower one has waited through ``starve_after`` turns. ``now`` (s):
         as :meth:`Outbox.take` (stale data dropped); also the end of the item's queue delay."""
-        order = lanes if lanes in _IN_ORDER else tuple(sorted(lanes, key=lambda lane: lane.rank))
-        passed = self._passed
+        if not self._total:
+            return None
+        order = _ranks(lanes)
+        n, passed = self._n, self._passed
         while True:
-            waiting: list[Lane] = []
-            starved = None
-            for lane in order:
-                if len(self.lanes[lane]):
-                    if waiting and passed[lane] >= self.starve_after:
-                        starved = lane              # the lowest starved lane gets the turn
-                    waiting.append(lane)
+            waiting = [r for r in order if n[r]]
             if not waiting:
                 return None
-            lane = starved or waiting[0]
-            entry = self.lanes[lane].take(now)
+            rank = waiting[0]
+            for r in reversed(waiting[1:]):          # the lowest starved lane gets the turn
+                if passed[r] >= self.starve_after:
+                    rank = r
+                    break
+            entry = self._q[rank].take(now)
+            self._count(rank)
             if entry is not None:
                 break                               # else everything left in it was stale: look again
-        rank = lane.rank
-        for other in order:
-            passed[other] = passed[other] + 1 if other.rank > rank and other in waiting else 0
+        for r in order:
+            passed[r] = passed[r] + 1 if r > rank and r in waiting else 0
         timed = now is not None and entry.since is not None
-        self.stats[lane].took(max(0.0, now - entry.since) if timed else 0.0)
-        return lane, entry.item
+        self._st[rank].took(max(0.0, now - entry.since) if timed else 0.0)
+        return ALL_LANES[rank], entry.item
 
     def sent(self, lane: Lane, n: int) -> None:
         """A message of ``lane`` went out whole, ``n`` bytes (the owner knows once it is written)."""
@@ -151,8 +179,10 @@ class LaneQueues(Generic[T]):
 
     def drain(self) -> list[T]:
         """Every item waiting, control lane first, taken off the queues (nothing counted)."""
-        items = [e.item for lane in ALL_LANES for e in self.lanes[lane].drain()]
-        self._passed = {lane: 0 for lane in Lane}
+        items = [e.item for q in self._q for e in q.drain()]
+        self._passed = [0] * len(ALL_LANES)
+        self._n = [0] * len(ALL_LANES)
+        self._total = 0
         return items
 
     def lane_stats(self) -> dict[str, dict]:

@@ -35,13 +35,14 @@ never changes, and is never dropped: it takes the room of the oldest offered fra
 ``on_drop(tag)`` hears of each offered frame dropped after :meth:`FramedLink.offer` took it
 (its ``tag``), so the sender's counters stay right.
 
-Writes are corked per loop pass: the first frame of a pass goes to the transport at once (a lone
-message waits for nothing), the next ones of the same pass wait in the link's cork and go out
-together in one ``writelines`` (one system call) when the pass ends, or as soon as
-:data:`CORK_MAX` bytes wait. A busy link (many robots' messages to one node, a node's replies to
-them) so pays one write for a pass's frames instead of one each; what waits in the cork counts
-towards the write bounds. A payload larger than :data:`JOIN_MAX` is never corked (it may be a view
-of a receive buffer): what the cork holds goes first, then it.
+Writes are corked per loop pass: the frames of one pass wait in the link's cork and go out
+together in one ``writelines`` (one system call) when the pass ends (a ``call_soon`` callback
+the pass's first frame schedules, never a timer), or as soon as :data:`CORK_MAX` bytes wait. A
+lone message waits for no timer and no other message, only for the callbacks already ready in
+that pass; a busy link (many robots' messages to one node, a node's replies to them) pays one
+write per pass instead of one per frame. What waits in the cork counts towards the write
+bounds. A payload larger than :data:`JOIN_MAX` is never corked (it may be a view of a receive
+buffer): what the cork holds goes first, then it.
 """
 from __future__ import annotations
 
@@ -117,9 +118,10 @@ class FramedLink:
         # frames waiting for the transport to drain: (loop time taken, frame, payload, tag, droppable)
         self._queue: collections.deque[tuple[float, bytes, bytes | memoryview, Any, bool]] = collections.deque()
         self._queued_bytes = 0
-        self._cork: list[bytes] = []        # frames written in this loop pass after its first (module doc)
+        self._cork: list[bytes] = []        # frames written in this loop pass (module doc)
         self._cork_bytes = 0
-        self._pass_open = False             # a frame went out in this loop pass: the next ones are corked
+        self._pass_open = False             # the cork's end of pass is scheduled
+        self._loop = asyncio.get_running_loop()
 
     @property
     def peername(self) -> str:
@@ -156,7 +158,7 @@ class FramedLink:
         """Hand every frame of ``frames`` to ``on_frame``; a bad frame or a failing handler ends the link."""
         if self.closed.is_set():
             return
-        self.last_rx = asyncio.get_running_loop().time()
+        self.last_rx = self._loop.time()
         try:
             for frame in frames:
                 self.on_frame(frame)
@@ -223,7 +225,7 @@ class FramedLink:
         if not q and self.waiting <= self._high:
             self._write(frame, payload)
             return True
-        now = asyncio.get_running_loop().time()
+        now = self._loop.time()
         if self.max_delay is not None:
             while q and q[0][4] and now - q[0][0] > self.max_delay:
                 self._drop(q.popleft(), expired=True)
@@ -262,7 +264,7 @@ class FramedLink:
         t, q = self.transport, self._queue
         if not q or self.closed.is_set() or t.is_closing():
             return
-        now = asyncio.get_running_loop().time()
+        now = self._loop.time()
         self.uncork()                     # what the cork holds was written before the queue's frames
         # until the queue is empty or the transport is above its mark (then its resume_writing calls
         # again): a batch the socket takes at once leaves the transport below it, with no such call
@@ -289,10 +291,9 @@ class FramedLink:
         return self.transport.get_write_buffer_size() + self._cork_bytes
 
     def _write(self, frame: bytes, payload: bytes | memoryview) -> None:
-        """One frame: to the transport at once when it is the loop pass's first, else into the cork
-        (module doc). A small payload is joined to its header (a copy of at most :data:`JOIN_MAX`
-        bytes costs less than a second ``write``); a large one follows it unjoined, uncopied, after
-        what the cork holds."""
+        """One frame into the cork, which goes out at the end of the loop pass (module doc). A small
+        payload is joined to its header (a copy of at most :data:`JOIN_MAX` bytes costs less than a
+        second ``write``); a large one follows it unjoined, uncopied, after what the cork holds."""
         if len(payload) > JOIN_MAX:
             self.uncork()
             self.transport.write(frame)
@@ -301,9 +302,7 @@ class FramedLink:
         data = frame + payload if payload else frame
         if not self._pass_open:
             self._pass_open = True
-            asyncio.get_running_loop().call_soon(self._end_pass)
-            self.transport.write(data)
-            return
+            self._loop.call_soon(self._end_pass)
         self._cork.append(data)
         self._cork_bytes += len(data)
         if self._cork_bytes >= CORK_MAX:

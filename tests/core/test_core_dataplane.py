@@ -151,12 +151,13 @@ async def test_unreachable_peer_drops_and_counts(net):
 
 
 async def test_backlog_while_connecting_is_bounded(net):
-    a, b = net.plane("a:1", max_buffer=100), net.plane("b:2")
+    # 200 bytes: the link's first pass holds the grant (about 100 bytes) and the frame in its cork
+    a, b = net.plane("a:1", max_buffer=200), net.plane("b:2")
     dst = b.interfaces[20] = Iface(20, {10: "a:1"})
     allow(a, 10, 20, "b:2")
     net.gate.clear()
     assert a.send("b:2", MSG, 20, 10, 0, b"x" * 40)     # 33 header + 40 bytes
-    assert not a.send("b:2", MSG, 20, 10, 0, b"y" * 40)  # would pass 100 bytes: dropped
+    assert not a.send("b:2", MSG, 20, 10, 0, b"y" * 150)  # would pass 200 bytes: dropped
     assert a.dropped == 1
     net.gate.set()
     assert await asyncio.wait_for(dst.inbox.get(), STEP) == b"x" * 40

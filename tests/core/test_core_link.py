@@ -11,7 +11,7 @@ from memlink import lone, pipe
 from rce.transport import framing
 from rce.plumbing.errors import NotFound, RequestError, Unavailable
 from rce.transport.framing import CONTROL, MSG, SRV_ERR, SRV_RESP, DataFrame, encode_control, encode_data
-from rce.transport.link import FramedLink, LinkFull, Responder, settle_reply
+from rce.transport.link import JOIN_MAX, FramedLink, LinkFull, Responder, settle_reply
 from rce.plumbing.pending import PendingCalls
 
 STEP = 5.0   # s, the longest any single wait may take
@@ -112,9 +112,17 @@ async def test_last_rx_moves_with_received_bytes():
 
 
 # -- writing ------------------------------------------------------------------------------------------
+async def pass_ends() -> None:
+    """The loop pass in which the test wrote has ended: a callback scheduled now runs after the link's."""
+    done = asyncio.get_running_loop().create_future()
+    asyncio.get_running_loop().call_soon(done.set_result, None)
+    await done
+
+
 async def test_offer_writes_header_and_payload_within_the_bound():
     link, _, _ = link_on(*lone(), max_buffer=100)
     assert link.offer(b"head", memoryview(b"payload"))
+    await pass_ends()
     assert bytes(link.writer.transport.written) == b"headpayload"
 
 
@@ -124,6 +132,7 @@ async def test_offer_drops_and_counts_past_the_bound():
     t.waiting = 90
     assert not link.offer(b"h" * 5, b"p" * 10)        # 90 + 15 > 100
     assert link.offer(b"h" * 5, b"p" * 5)             # 90 + 10 = 100
+    await pass_ends()
     assert link.dropped == 1 and len(t.written) == 10
 
 
@@ -138,32 +147,35 @@ async def test_send_may_pass_the_offer_bound_up_to_the_hard_bound():
     t.waiting = 150
     assert not link.offer(b"x")
     link.send(b"c" * 50)                               # 200 = 2 x max_buffer: still goes
-    t.waiting = 195
+    t.waiting = 145                                    # + the 50 corked
     with pytest.raises(LinkFull) as ei:
         link.send(b"c" * 6)
     assert isinstance(ei.value, Unavailable) and "saturated" in ei.value.message
+    await pass_ends()
     assert (link.dropped, link.refused) == (1, 1) and bytes(t.written) == b"c" * 50
 
 
-async def pass_ends() -> None:
-    """The loop pass in which the test wrote has ended: a callback scheduled now runs after the link's."""
-    done = asyncio.get_running_loop().create_future()
-    asyncio.get_running_loop().call_soon(done.set_result, None)
-    await done
-
-
-async def test_a_pass_s_first_frame_goes_at_once_and_the_rest_together_when_the_pass_ends():
+async def test_a_pass_s_frames_go_together_in_one_write_when_the_pass_ends():
     link, _, _ = link_on(*lone(), max_buffer=100)
     t = link.writer.transport
     assert link.offer(b"m1", b"+p")
-    assert bytes(t.written) == b"m1+p" and t.writes == 1          # a lone message waits for nothing
     assert link.offer(b"m2")
     link.send(b"c3")
     assert link.offer(b"m4", b"+q")
-    assert bytes(t.written) == b"m1+p" and link.waiting == 8     # corked: they count towards the bounds
+    assert bytes(t.written) == b"" and link.waiting == 12        # corked: they count towards the bounds
+    await pass_ends()                                            # no timer: the pass's own end
+    assert bytes(t.written) == b"m1+pm2c3m4+q" and t.writes == 1  # one write for the pass
+    assert link.offer(b"m5")                                     # a lone message: its own pass, its own write
     await pass_ends()
-    assert bytes(t.written) == b"m1+pm2c3m4+q" and t.writes == 2   # one write for the rest of the pass
-    assert link.offer(b"m5") and bytes(t.written).endswith(b"m5") and t.writes == 3    # a new pass
+    assert bytes(t.written).endswith(b"m5") and t.writes == 2
+
+
+async def test_a_large_payload_goes_after_what_the_cork_holds_uncopied():
+    link, _, _ = link_on(*lone(), max_buffer=1 << 20)
+    t = link.writer.transport
+    big = memoryview(b"b" * (JOIN_MAX + 1))
+    assert link.offer(b"m1") and link.offer(b"h2", big)
+    assert bytes(t.written) == b"m1h2" + bytes(big)              # in order, at once: the cork first
 
 
 async def test_corked_frames_count_towards_the_bound_and_go_before_a_close():
@@ -215,7 +227,9 @@ async def test_under_pressure_frames_wait_in_order_and_go_out_when_the_peer_read
     await drained(link)
     assert bytes(link.writer.transport.written) == b"m1m2+pc3m4"
     assert link.held == 0 and link.dropped == 0 and drops == []
-    assert link.offer(b"m5") and bytes(link.writer.transport.written).endswith(b"m5")   # straight through again
+    assert link.offer(b"m5") and link.held == 0                  # straight through again: corked, not queued
+    await pass_ends()
+    assert bytes(link.writer.transport.written).endswith(b"m5")
 
 
 async def test_offered_frames_past_max_delay_are_dropped_oldest_first_and_counted(monkeypatch):
