@@ -48,6 +48,7 @@ RESERVE = 0.05              # share of the capacity a task must leave besides th
 SCHEDULE_BUDGET_S = 0.02    # wall s the allocator may spend per call on new distance maps
 UNREACHABLE = 65535
 WAIT_RADIUS = 3            # steps from a taken station within which a robot waits for it
+SWAP_STEPS = 3             # steps nearer to a station by which a robot takes it from the one sent there
 START_HORIZON_STEPS = 20    # tasks whose earliest start is further ahead than this are not offered yet
 
 IDLE, PARKING, TASK, TO_CHARGER, CHARGING, OPERATOR, UNKNOWN = (
@@ -308,6 +309,7 @@ class Dispatcher:
         out: dict[str, int] = {}
         held = {n: w.sent for n, w in self.robots.items() if w.sent is not None}
         held.update({n: v.goal for n, v in view.items() if v.goal is not None and n not in held})
+        wants: dict[str, int | None] = {}
         for name, w in self.robots.items():
             v = view.get(name)
             if v is None or v.cell is None or w.activity in (OPERATOR, UNKNOWN):
@@ -317,13 +319,16 @@ class Dispatcher:
                 if c is not None:
                     w.activity, w.target = PARKING, c
             if w.activity == TASK and w.task is not None:
-                want = w.task.task.goal
+                wants[name] = w.task.task.goal
             elif w.activity in (TO_CHARGER, CHARGING, PARKING):
-                want = w.target
+                wants[name] = w.target
             else:
-                want = None
-            if want is not None and want != w.sent and any(n != name and g == want for n, g in held.items()):
-                # another robot heads there: wait beside it (off the other places) until it is free
+                wants[name] = None
+        owner = self._owners(wants, held, view)
+        for name, want in wants.items():
+            w, v = self.robots[name], view[name]
+            if want is not None and owner[want] != name:
+                # another robot heads there, or is nearer: wait beside it (off the other places) until it is free
                 spot = self._waiting_spot(want, v.cell, w, held, view)
                 w.spot = spot
                 if spot is None or spot == w.sent:
@@ -342,6 +347,31 @@ class Dispatcher:
                     held[name] = want
         return out
 
+    def _owners(self, wants: dict[str, int | None], held: dict[str, int],
+                view: dict[str, RobotView]) -> dict[int, str]:
+        """Which robot may head to each wanted cell now (the planner takes one robot per goal):
+        a robot that holds it and is not the dispatcher's (an operator's) keeps it; else the
+        robot nearest to it, where the one it was sent to keeps it unless another is
+        ``SWAP_STEPS`` steps nearer (so a robot waiting beside a station goes in before one
+        still on its way to it)."""
+        owner: dict[int, str] = {}
+        for n, g in held.items():
+            if n not in wants and g is not None:
+                owner[g] = n
+        by_cell: dict[int, list[str]] = {}
+        for n, g in wants.items():
+            if g is not None and g not in owner:
+                by_cell.setdefault(g, []).append(n)
+        for g, names in by_cell.items():
+            if len(names) == 1:
+                owner[g] = names[0]
+                continue
+            dist = {n: self._dist(view[n].cell, g) for n in names}
+            best = min(names, key=lambda n: (dist[n], self.robots[n].sent != g, n))
+            cur = next((n for n in names if self.robots[n].sent == g), None)
+            owner[g] = cur if cur is not None and dist[best] + SWAP_STEPS > dist[cur] else best
+        return owner
+
     def _waiting_spot(self, cell: int, here: int, me: _Work, held: dict[str, int],
                       view: dict[str, RobotView]) -> int | None:
         """Where ``me`` waits for ``cell``: the spot it has while that stays free, else the free
@@ -349,9 +379,11 @@ class Dispatcher:
         robot's goal and where no other robot stands; ``here`` (where ``me`` stands) wins ties.
         None when there is none."""
         taken = {g for n, g in held.items() if n != me.name} | self.places
-        taken |= {v.cell for n, v in view.items() if n != me.name and v.cell is not None}
+        # a robot without a goal stays where it stands; one passing over the spot does not take it
+        taken |= {v.cell for n, v in view.items() if n != me.name and v.cell is not None and v.goal is None}
         if me.spot is not None and me.spot not in taken and me.spot in self.near(cell):
             return me.spot
+        taken |= {v.cell for n, v in view.items() if n != me.name and v.cell is not None}
         row = self.cache.table[self.cache.slot(cell)]
         best, bd = None, (WAIT_RADIUS + 1, 1)
         for c in self.near(cell):
