@@ -21,11 +21,14 @@ clients, generated pick-up -> drop-off tasks at ``--rate-per-robot`` x N per sim
   (:func:`rce_fleet.kinematic.run_stream`: the global planner core, the dispatcher, the
   move_clients and unicycle robots at the simulated robots' speed and turn rate) on the same
   starts and task stream: ``tasks_done`` and ``s_per_cell``, the seconds the robots take per
-  cell while they drive (turns and slowing included);
+  cell while they drive (turns and slowing included), and ``time_split``: the share of the
+  robots' time by what they did (:data:`rce_fleet.kinematic.TIME_SPLIT`: no task, driving,
+  held by the dependency graph's order, waiting beside a taken station, ...);
 - ``offline``: the same allocator (:class:`rce_fleet.lifelong.GreedyScheduler`) and planner
   (:class:`rce_fleet.lifelong.PIBTPlanner`, 4-neighbour moves) on the cell graph without
   physics, one step per ``control.s_per_cell`` (the robots' own cell rate), from the same
-  starts with the same task stream for the same simulated time: ``tasks_done``;
+  starts with the same task stream for the same simulated time: ``tasks_done``,
+  ``moving_share`` and ``no_task_share`` (of the robot-steps);
   ``live_share`` = live done / offline done (the goal: >= 0.8), ``control_share`` = control
   done / offline done (what planning and dispatch lose; the rest is physics and transport).
 
@@ -90,6 +93,7 @@ def offline_prediction(geo, places, starts: dict[str, int], stream: list, durati
     head = np.zeros(len(names), dtype=np.int64)
     assignment = np.full(len(names), -1, dtype=np.int64)
     created, durations = {}, []
+    moved = no_task = 0                  # robot-steps moving, and without a task
     nxt = 0
     steps = int(duration_s / step_s)
     for k in range(steps):
@@ -108,7 +112,10 @@ def offline_prediction(geo, places, starts: dict[str, int], stream: list, durati
         assignment = prop.copy()
         goals = np.array([pool.open[int(t)].goal if t >= 0 else -1 for t in assignment], dtype=np.int64)
         act = planner.plan(pos, head, goals, deadline)
+        before = pos
         pos, head, _ = check_actions(grid, pos, head, act, MAPF)
+        moved += int((pos != before).sum())
+        no_task += int((assignment < 0).sum())
         for a in np.flatnonzero(assignment >= 0):
             tid = int(assignment[a])
             while pos[a] == pool.open[tid].goal:
@@ -116,7 +123,9 @@ def offline_prediction(geo, places, starts: dict[str, int], stream: list, durati
                     durations.append((k + 1 - created[tid]) * step_s)
                     assignment[a] = -1
                     break
+    robot_steps = max(1, steps * len(names))
     return {"tasks_done": pool.finished, "steps": steps, "step_s": round(step_s, 3),
+            "moving_share": round(moved / robot_steps, 4), "no_task_share": round(no_task / robot_steps, 4),
             "mean_s": round(float(np.mean(durations)), 2) if durations else 0.0,
             "per_hour": round(pool.finished * 3600.0 / duration_s, 2), "wall_s": round(time.perf_counter() - t0, 2)}
 
@@ -247,6 +256,9 @@ def main(argv: list[str] | None = None) -> int:
               f"{control['shared_cells']}; re-plans "
               f"{control['plan_ms']['mean']} ms mean, {control['plan_ms']['max']} ms max; wall {control['wall_s']} s)",
               flush=True)
+        split = ", ".join(f"{k} {100 * v:.1f} %" for k, v in control["time_split"].items() if v)
+        print(f"      robots' time in the control loop: {split}; offline: moving {100 * off['moving_share']:.1f} %, "
+              f"no task {100 * off['no_task_share']:.1f} %", flush=True)
         if a.control_only:
             results["runs"][str(n)] = {"offline": off, "control": control, "control_share": _share(control, off),
                                        "generated": len(stream)}

@@ -3,6 +3,7 @@ answers, and the global planner core dispatching tasks, charging and parking in 
 fleet (the planner core, one move_client core per robot, robots that jump to their waypoints)."""
 from __future__ import annotations
 
+import numpy as np
 import pytest
 
 from rce_fleet.battery import Battery, BatteryParams
@@ -325,3 +326,65 @@ def test_control_loop_stays_collision_free_while_re_plans_pass_their_bound(lab):
     st = f.core.state()
     assert st["replans_bounded"] > 0 and st["robots_deferred_total"] > 0, st
     assert f.core.book.stats()["done"] >= 2 and not f.core.fp.deferred
+
+
+def test_a_taken_station_goes_to_the_robot_nearest_to_it(lab):  # noqa: F811
+    # two robots hold tasks at pick1 (16); the one sent there first is on its way from afar
+    # when the other reaches the station's side: the nearer one goes in, the other waits beside
+    # it; a robot only a step or two nearer does not take it (no goals bouncing between robots)
+    from rce_fleet.dispatcher import Dispatcher, RobotView
+    from rce_fleet.lifelong import LifelongGrid
+    places = lab_places(lab)
+    book = TaskBook(places)
+    d = Dispatcher(book, LifelongGrid(np.array(lab.free, dtype=bool).reshape(lab.rows, lab.cols)),
+                   parking=places.cells("parking"), places=places.by_cell)
+    d.add_robot("Robot1")
+    d.add_robot("Robot2")
+
+    def view(c1: int, c2: int) -> dict[str, RobotView]:
+        goals = {n: d.robots[n].sent for n in ("Robot1", "Robot2")}
+        return {"Robot1": RobotView(c1, goals["Robot1"]), "Robot2": RobotView(c2, goals["Robot2"])}
+
+    book.request_add({"request": "a", "id": "a", "errands": ["pick1", "drop1"]}, 0.0)
+    assert d.update(0.0, view(17, 63)) == {"Robot1": 16}
+    book.request_add({"request": "b", "id": "b", "errands": ["pick1", "drop1"]}, 1.0)
+    goals = d.update(1.0, view(17, 63))
+    assert book.records["b"].robot == "Robot2" and goals["Robot2"] not in (16, *places.by_cell)
+    # Robot2 came 1 step nearer than Robot1: nothing changes
+    assert d.update(2.0, view(18, 17)) == {}
+    # Robot2 is 4 steps nearer: it goes in, Robot1 waits beside the station
+    goals = d.update(3.0, view(36, 24))
+    assert goals["Robot2"] == 16 and goals["Robot1"] not in (16, *places.by_cell), goals
+    assert d.robots["Robot1"].spot == goals["Robot1"] and d.robots["Robot2"].spot is None
+
+
+def test_a_robot_waiting_for_one_planned_before_it_that_stalls_is_re_planned_to_go_first(lab):  # noqa: F811
+    # a crossing (row 2 and column 3 of the lab, every other cell blocked): whichever robot the
+    # plan sends through the centre (19) first stalls two cells short of it; the other, waiting
+    # in front of the centre, is re-planned to go first instead of waiting for it for ever
+    plus = {c for c in range(16, 24)} | {3, 11, 19, 27, 35, 43, 51, 59}
+    f = KinematicFleet(lab, {"Robot1": 17, "Robot2": 3})
+    for c in range(lab.n_cells):
+        if lab.free[c] and c not in plus:
+            f.route(f.core.on_block(c))
+    f.route(f.core.on_goals({"Robot1": 21, "Robot2": 35}))
+    adg = f.core.fp._adg
+    first = next(r for r in ("Robot1", "Robot2")
+                 if any(adg.pred[o][k] == (r, j) for o in ("Robot1", "Robot2") if o != r
+                        for k, (c, _, _) in enumerate(adg.visits[o]) if c == 19
+                        for j, (c2, _, _) in enumerate(adg.visits[r]) if c2 == 19))
+    other = "Robot2" if first == "Robot1" else "Robot1"
+    drive = f._drive
+    f._drive = lambda r: None if r == first else drive(r)       # the first robot stalls where it stands
+    for _ in range(400):
+        f.step()
+        if f.core.fp.positions[other] == f.core.fp.goals[other]:
+            break
+    assert f.core.fp.positions[other] == f.core.fp.goals[other] and 19 in f.visited[other]
+    assert f.core.stale_replans >= 1 and f.visited[first] == [17 if first == "Robot1" else 3]
+    f._drive = drive
+    for _ in range(400):
+        f.step()
+        if f.core.fp.positions[first] == f.core.fp.goals[first]:
+            break
+    assert f.core.fp.positions[first] == f.core.fp.goals[first] and f.shared_cells == 0

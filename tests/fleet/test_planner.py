@@ -614,3 +614,27 @@ def test_replan_past_its_bound_keeps_safe_plans_and_serves_deferred_robots_next(
 def test_replan_bound_must_be_positive():
     with pytest.raises(ValueError, match="replan_bound_s"):
         FleetPlanner(GridGraph.from_array(np.ones((2, 2), dtype=bool)), replan_bound_s=0)
+
+
+def test_stale_waits_and_replan_let_a_robot_go_before_one_that_fell_behind():
+    # a crossing: the robot planned through the centre first stays where it is; the other moves
+    # up to the centre and waits for it: stale once the first is two cells short, and after
+    # re-planning it the waiting robot may enter the centre first
+    free = np.zeros((5, 5), dtype=bool)
+    free[2, :] = free[:, 2] = True
+    fp = FleetPlanner(GridGraph.from_array(free))
+    fp.set_position("A", 10)
+    fp.set_position("B", 2)
+    fp.set_goals({"A": 14, "B": 22})
+    adg = fp._adg
+    centre = {r: next(k for k, v in enumerate(adg.visits[r]) if v[0] == 12) for r in "AB"}
+    first = "A" if adg.pred["B"][centre["B"]] == ("A", centre["A"]) else "B"
+    other = "B" if first == "A" else "A"
+    before = fp.paths[other][fp.paths[other].index(12) - 1]
+    fp.advance(other, before)
+    assert 12 not in fp.cleared_cells(other)
+    assert fp.stale_waits(2) == {other} and fp.stale_waits(3) == set()
+    fp.replan({other})
+    assert 12 in fp.cleared_cells(other) and 12 not in fp.cleared_cells(first)
+    assert_valid_paths(fp.graph, fp)
+    assert fp.stale_waits(2) == set()

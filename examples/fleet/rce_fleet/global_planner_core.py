@@ -67,6 +67,8 @@ PATH_REPEAT_S = 2.0        # paths are repeated this often (a move_client that s
 RETRY_S = 1.0              # robots parked for want of a collision-free path are retried this often
 SLOW_REPLAN_S = 0.05       # a re-plan that takes longer than this is logged
 TASKS_REPEAT_S = 0.5       # /fleet/tasks is published this often (wall s), and after every change
+STALE_WAIT_S = 2.0        # fleet s a robot waits for one planned before it still far off before it is re-planned
+STALE_GAP = 2              # cells that robot is still short of the shared cell for the wait to count as stale
 ROBOT_SPEED_MS = 0.15      # m/s a robot makes good along cells (turns and stops included): the task clock's step
 
 
@@ -118,6 +120,8 @@ class GlobalPlannerCore:
         self._last_clear_repeat = -math.inf
         self._last_path_repeat = -math.inf
         self._last_retry = -math.inf
+        self._stale_since: dict[str, float] = {}   # robot -> fleet time it began a stale wait
+        self.stale_replans = 0
         self.stamp = 0.0                    # fleet time: the newest pose stamp, s
         self.places = places or Places([], geometry)
         self.part = {c: i for i, p in enumerate(components(geometry)) for c in p}
@@ -334,6 +338,7 @@ class GlobalPlannerCore:
         if self.fp.last_result is not None and self.fp.last_result.deferred:
             self.fp.serve_deferred()         # robots the last re-plan's wall-time bound left for this round
             out += self._sync()
+        out += self._replan_stale()
         if now - self._last_retry >= RETRY_S:
             self._last_retry = now
             retry = {r: self.fp.goals[r] for r in self.fp.unreachable
@@ -348,6 +353,22 @@ class GlobalPlannerCore:
             self._last_clear_repeat = now
             out += [self._clear_msg(r) for r, rec in self.robots.items() if rec.plan and rec.cleared >= 0]
         return out
+
+    def _replan_stale(self) -> list[Out]:
+        """Re-plan robots that have waited ``STALE_WAIT_S`` for a robot planned into their next
+        cell before them that is still ``STALE_GAP`` cells or more short of it (the plan's order
+        went stale: robots run ahead of or behind its timing); the re-plan lets them go first
+        where they can."""
+        stale = self.fp.stale_waits(STALE_GAP)
+        since = self._stale_since = {r: self._stale_since.get(r, self.stamp) for r in stale}
+        due = {r for r, t in since.items() if self.stamp - t >= STALE_WAIT_S}
+        if not due:
+            return []
+        for r in due:
+            since[r] = self.stamp
+        self.stale_replans += 1
+        self.fp.replan(due)
+        return self._sync()
 
     # -- outputs ------------------------------------------------------------------------------
     def _path_msg(self, robot: str) -> Out:

@@ -26,9 +26,17 @@ from .global_planner_core import GlobalPlannerCore
 from .move_client_core import MoveClientCore, plan_id_of
 from .node_common import Out
 from .sim.local_nav import NavParams
+from .dispatcher import CHARGING, IDLE, PARKING, TASK, UNKNOWN
 
 __all__ = ["KinematicFleet", "run_stream"]
 
+#: What a robot does in a step (:meth:`KinematicFleet.doing`): no task (idle, parked or on
+#: its way to parking); turning or driving (to an errand, a waiting spot or a charger); standing
+#: because the dependency graph holds it for a robot planned into its next cell before it;
+#: standing beside a station another robot is at or nearer to; standing on its task's errand
+#: (until the planner's next tick moves the task on); charging; anything else (no path:
+#: unreachable or deferred, or a path not yet driven).
+TIME_SPLIT = ("no_task", "driving", "held_by_order", "waiting_for_station", "at_errand", "charging", "no_path")
 FACE_RAD = 0.3             # rad: a robot drives once it faces its waypoint this closely (turns in place before)
 NAV = NavParams()
 
@@ -51,6 +59,7 @@ class KinematicFleet:
         self.visited = {r: [c] for r, c in starts.items()}
         self.cancels = {r: 0 for r in starts}
         self.shared_cells = 0                 # steps x cells in which two robots' centres stood (0: safe)
+        self.time_split = dict.fromkeys(TIME_SPLIT, 0.0)   # robot-s by what the robots did (:meth:`doing`)
         self._next_tick = 0.0
         for r in starts:
             self.route(self.mc[r].on_pose(*self.pose[r], stamp=0.0))
@@ -98,6 +107,23 @@ class KinematicFleet:
         if c is not None and self.visited[r][-1] != c:
             self.visited[r].append(c)
 
+    def doing(self, r: str) -> str:
+        """What robot ``r`` does now, one of :data:`TIME_SPLIT`."""
+        fp, w = self.core.fp, self.core.dispatcher.robots[r]
+        if w.activity in (IDLE, PARKING, UNKNOWN):
+            return "no_task"
+        if self.waypoint[r] is not None:
+            return "driving"
+        if fp.held(r):
+            return "held_by_order"
+        if w.activity == TASK and w.spot is not None and fp.positions.get(r) == w.spot:
+            return "waiting_for_station"
+        if w.activity == TASK and w.task is not None and fp.positions.get(r) == w.task.task.goal:
+            return "at_errand"
+        if w.activity == CHARGING:
+            return "charging"
+        return "no_path"
+
     def s_per_cell(self) -> float:
         """Seconds the robots took per cell while they drove (turns and slowing included; inf
         before a robot changed cells)."""
@@ -112,6 +138,7 @@ class KinematicFleet:
             self.route(self.mc[r].on_pose(*self.pose[r], stamp=self.t))
             self.route(self.core.on_pose(r, *self.pose[r], stamp=self.t))
             self.core.on_progress(r, self.mc[r].progress())
+            self.time_split[self.doing(r)] += self.dt
         cells = [self.geo.cell_of(*p[:2]) for p in self.pose.values()]
         self.shared_cells += len(cells) - len(set(cells))
         if self.t >= self._next_tick:
@@ -126,7 +153,8 @@ def run_stream(geo: GridGeometry, places, starts: dict[str, int], stream: list[t
     ``tasks_done``, ``per_hour``, ``mean_s`` (creation to done), ``refused``, ``distance_m``
     (all robots), ``s_per_cell`` (:meth:`KinematicFleet.s_per_cell`), ``plan_ms`` (mean, max
     per re-plan), ``shared_cells`` (:attr:`KinematicFleet.shared_cells`: steps x cells holding two
-robots' centres, 0 when nobody collided) and ``wall_s``."""
+robots' centres, 0 when nobody collided), ``time_split`` (share of the robots' time by
+    :data:`TIME_SPLIT`) and ``wall_s``."""
     t0 = time.perf_counter()
     f = KinematicFleet(geo, starts, places=places, park_idle=True, **kw)
     nxt, refused = 0, 0
@@ -142,5 +170,6 @@ robots' centres, 0 when nobody collided) and ``wall_s``."""
             "mean_s": round(st["mean_s"], 2), "refused": refused, "failed": st["failed"],
             "distance_m": round(sum(f.distance.values()), 1), "s_per_cell": round(f.s_per_cell(), 3),
             "shared_cells": f.shared_cells,
+            "time_split": {k: round(v / max(sum(f.time_split.values()), 1e-9), 4) for k, v in f.time_split.items()},
             "plan_ms": {"mean": round(1e3 * sum(times) / len(times), 2), "max": round(1e3 * max(times), 2)},
             "wall_s": round(time.perf_counter() - t0, 2)}

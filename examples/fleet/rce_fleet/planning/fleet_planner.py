@@ -349,6 +349,34 @@ class FleetPlanner:
                 return nxt
         return None
 
+    def held(self, robot: str) -> bool:
+        """True when ``robot`` has a next cell on its plan that the dependency graph does not
+        clear yet (a robot planned there before it has not left it)."""
+        adg = self._adg
+        if robot not in adg.visits or robot in self._dirty:
+            return False
+        k = adg.progress[robot]
+        return k + 1 < len(adg.visits[robot]) and adg.cleared_visit(robot) == k
+
+    def stale_waits(self, min_gap: int = 2) -> set[str]:
+        """Robots the dependency graph holds for a robot planned into their next cell before
+        them that is still at least ``min_gap`` cells (visits) short of it: the plan's order
+        there went stale as robots ran ahead of or behind its timing (:meth:`replan` them)."""
+        adg = self._adg
+        out = set()
+        for r in adg.visits:
+            if not self.held(r):
+                continue
+            p = adg.pred[r][adg.progress[r] + 1]
+            if p is not None and p[1] - adg.progress[p[0]] >= min_gap:
+                out.add(r)
+        return out
+
+    def replan(self, robots: set[str]) -> PlanResult:
+        """Re-plan ``robots`` from where they stand around the others' kept paths (drift handled
+        as for any re-plan: module docstring), under the re-plan bound. Unknown names are ignored."""
+        return self._replan({r for r in robots if r in self.positions} | self._dirty | set(self.unreachable))
+
     def serve_deferred(self) -> PlanResult | None:
         """Re-plan the robots the last re-plan deferred (its wall-time bound passed before it
         reached them), first in the order; None when there are none."""
