@@ -280,6 +280,8 @@ def test_kinematic_fleet_runs_a_task_stream_through_the_planner_and_move_clients
     assert r["tasks_done"] == 3 and r["failed"] == 0 and r["refused"] == 0, r
     # the robots drove at most at their speed for the whole run
     assert 0 < r["distance_m"] <= 2 * 0.22 * 240.0
+    # the robots' time split by what they did: every step counted once
+    assert abs(sum(r["time_split"].values()) - 1.0) < 1e-3 and r["time_split"]["driving"] > 0, r["time_split"]
 
 
 
