@@ -320,7 +320,8 @@ def test_prefer_table_finds_every_entry_and_nothing_else():
     assert preferred(NO_PREFER, 0, 0, n_cells) == -1
 
 
-def test_space_time_astar_waits_for_the_goal_and_never_enters_a_parked_one():
+@pytest.mark.parametrize("sipp", [False, True], ids=["astar", "sipp"])
+def test_space_time_search_waits_for_the_goal_and_never_enters_a_parked_one(sipp):
     from rce_fleet.lifelong.spacetime import SpaceTimeTable
     g = grid([".....", "@@.@@"])                 # a corridor with one bay below its middle
     cache = DistanceCache(g)
@@ -328,7 +329,7 @@ def test_space_time_astar_waits_for_the_goal_and_never_enters_a_parked_one():
     starts, goals = np.array([0, 7]), np.array([4, 2])
     hrow = np.array([cache.slot(int(x)) for x in goals])
     res = SpaceTimeTable(2, g.n_cells, 12, 4)
-    assert res.plan(g.nbr, cache.table, hrow, starts, goals, [0, 1], 10_000) == 2
+    assert res.plan(g.nbr, cache.table, hrow, starts, goals, [0, 1], 10_000, sipp) == 2
     p0, p1 = res.paths[0, : res.lengths[0]], res.paths[1, : res.lengths[1]]
     assert p0.tolist() == [0, 1, 2, 3, 4]        # the first agent goes straight
     assert res.lengths[1] - 1 >= 3               # the second waits until cell 2 is clear
@@ -339,7 +340,54 @@ def test_space_time_astar_waits_for_the_goal_and_never_enters_a_parked_one():
     res = SpaceTimeTable(2, g.n_cells, 12, 4)
     starts, goals = np.array([0, 4]), np.array([2, 0])
     hrow = np.array([cache.slot(int(x)) for x in goals])
-    assert res.plan(g.nbr, cache.table, hrow, starts, goals, [0, 1], 10_000) == 1
+    assert res.plan(g.nbr, cache.table, hrow, starts, goals, [0, 1], 10_000, sipp) == 1
+
+
+def test_safe_interval_search_arrives_when_the_space_time_astar_does_and_keeps_the_rules():
+    """Both searches are exact (earliest arrival around everybody else, vertex and swap
+    conflicts, goals held from the arrival on): from a crowded LaCAM solution each agent in turn
+    is taken out and re-planned by both; the arrivals agree and the safe-interval path fits the
+    reservation table step by step."""
+    from rce_fleet.lifelong.lacam import solve_lacam
+    from rce_fleet.lifelong.refine import _arrivals
+    from rce_fleet.lifelong.spacetime import SpaceTimeTable
+    warm_up()
+    rng = np.random.default_rng(5)
+    g = LifelongGrid(rng.random((14, 14)) > 0.2)
+    cache = DistanceCache(g)
+    cells = np.flatnonzero(g.flat)
+    big = [c for c in cells if cache.from_source(int(cells[0]))[c] < UNREACHABLE]
+    pick = rng.choice(big, 80, replace=False)
+    starts, goals = pick[:40].astype(np.int64), pick[40:].astype(np.int64)
+    sol = solve_lacam(g, starts, goals, time_limit_s=30)
+    assert sol["solved"]
+    paths = sol["paths"]
+    hrow = np.array([cache.slot(int(x)) for x in goals])
+    res = SpaceTimeTable(40, g.n_cells, paths.shape[0] + 32, int(cache.table[hrow, starts].max()) + 1)
+    res.paths[:, : paths.shape[0]] = paths.T
+    res.lengths[:] = _arrivals(paths, goals) + 1
+    res.place(goals, np.arange(40))
+    for a in range(40):
+        old, old_len = res.paths[a].copy(), int(res.lengths[a])
+        res.remove(goals, [a])
+        assert res.plan(g.nbr, cache.table, hrow, starts, goals, [a], 10 ** 6, False) == 1
+        by_astar = int(res.lengths[a])
+        assert by_astar <= old_len                 # the old path is one the search may return
+        res.remove(goals, [a])
+        others = res.occ.copy()
+        assert res.plan(g.nbr, cache.table, hrow, starts, goals, [a], 10 ** 6, True) == 1
+        assert res.lengths[a] == by_astar
+        p = res.paths[a, : res.lengths[a]]
+        assert p[0] == starts[a] and p[-1] == goals[a]
+        assert (others[p, np.arange(len(p))] == -1).all(), "vertex"
+        assert (others[goals[a], len(p) - 1:] == -1).all(), "a goal held by another agent later"
+        for t in range(1, len(p)):
+            assert p[t] == p[t - 1] or p[t] in g.nbr[p[t - 1]]
+            j = others[p[t], t - 1]                # whoever stood on the entered cell
+            assert j < 0 or others[p[t - 1], t] != j, "swap"
+        res.remove(goals, [a])
+        res.paths[a], res.lengths[a] = old, old_len
+        res.place(goals, [a])
 
 
 def test_lns_removes_detours_and_keeps_a_crowded_solution_valid():

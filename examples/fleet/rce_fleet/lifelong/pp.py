@@ -27,7 +27,7 @@ import numpy as np
 from .distances import DistanceCache, one_shot_distances
 from .grid import LifelongGrid
 from .kernels import bfs_multi
-from .spacetime import SpaceTimeTable, remove_agents
+from .spacetime import SpaceTimeTable
 
 __all__ = ["aisle_depth", "open_cells", "solve_pp"]
 
@@ -85,7 +85,7 @@ def solve_pp(grid: LifelongGrid, starts: np.ndarray, goals: np.ndarray, time_lim
             break
         restarts += 1                          # the agent without a path goes first; plan again
         failed = order[done]
-        remove_agents(res.occ, res.paths, res.lengths, goals, order[:done])
+        res.remove(goals, order[:done])
         order = np.concatenate(([failed], np.delete(order, done)))
         done = 0
     planned = order[:done]

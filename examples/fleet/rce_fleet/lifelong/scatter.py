@@ -19,48 +19,12 @@ import time
 import numpy as np
 from numba import njit
 
-from .kernels import NO_PREFER, prefer_table
+from .kernels import NO_PREFER, heap_pop, heap_push, prefer_table
 from ..numba_cache import seed
 
 seed(__file__)          # numba's cache entries prepared in the tree (sandboxed nodes)
 
 __all__ = ["scatter"]
-
-
-@njit(cache=True)
-def _push(hk, hv, size, key, val):
-    i = size
-    hk[i] = key
-    hv[i] = val
-    while i > 0:
-        p = (i - 1) >> 1
-        if hk[p] <= hk[i]:
-            break
-        hk[p], hk[i] = hk[i], hk[p]
-        hv[p], hv[i] = hv[i], hv[p]
-        i = p
-    return size + 1
-
-
-@njit(cache=True)
-def _pop(hk, hv, size):
-    val = hv[0]
-    size -= 1
-    hk[0] = hk[size]
-    hv[0] = hv[size]
-    i = 0
-    while True:
-        c = 2 * i + 1
-        if c >= size:
-            break
-        if c + 1 < size and hk[c + 1] < hk[c]:
-            c += 1
-        if hk[i] <= hk[c]:
-            break
-        hk[c], hk[i] = hk[i], hk[c]
-        hv[c], hv[i] = hv[i], hv[c]
-        i = c
-    return val, size
 
 
 @njit(cache=True)
@@ -111,13 +75,12 @@ def _search(a, nbr, h, start, goal, ub, paths, lengths, cnt, who, park, closed, 
     pp[0] = -1
     pg[0] = 0
     npush = 1
-    size = _push(hk, hv, 0, np.int64(h[start]) << 20, 0)
+    size = heap_push(hk, hv, 0, np.int64(h[start]) << 20, 0)
     nused = 0
     found = -1
     coll = 0
     while size > 0:
-        key = hk[0]
-        q, size = _pop(hk, hv, size)
+        key, q, size = heap_pop(hk, hv, size)
         v = pv[q]
         if closed[v]:
             continue
@@ -148,7 +111,7 @@ def _search(a, nbr, h, start, goal, ub, paths, lengths, cnt, who, park, closed, 
             pv[npush] = u
             pp[npush] = q
             pg[npush] = g + 1
-            size = _push(hk, hv, size, (c << 40) | (np.int64(g + 1 + hu) << 20) | hu, npush)
+            size = heap_push(hk, hv, size, (c << 40) | (np.int64(g + 1 + hu) << 20) | hu, npush)
             npush += 1
     for k in range(nused):
         closed[used[k]] = False
