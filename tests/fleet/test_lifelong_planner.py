@@ -388,6 +388,9 @@ def test_safe_interval_search_arrives_when_the_space_time_astar_does_and_keeps_t
         res.remove(goals, [a])
         res.paths[a], res.lengths[a] = old, old_len
         res.place(goals, [a])
+    long = SpaceTimeTable(1, 4, 2 ** 20, 2)      # a step must fit the heap key's field
+    with pytest.raises(ValueError, match="horizon below"):
+        long.plan(g.nbr, cache.table, hrow[:1], starts[:1], goals[:1], [0], 100, True)
 
 
 def test_lns_removes_detours_and_keeps_a_crowded_solution_valid():

@@ -6,8 +6,8 @@ budget and from LaCAM in the time left when PP finds none; :func:`~.refine.refin
 improves it until the budget is spent. LaCAM, guided by lacam3's space utilisation
 (:mod:`.scatter`), is the default: on the MovingAI warehouse-10-20-10-2-1 with 5 s of CPU
 its first solution at 400 agents is closer to the lower bound than PP's (1.18 - 1.23x against
-1.34 - 1.38x) and ends lower after LNS (1.05 - 1.08x against 1.06 - 1.09x); at 1000 agents PP
-fails and LaCAM takes over (1.69 - 1.78x after LNS). Measurements: ``docs/lifelong.md``.
+1.34 - 1.38x) and ends lower after LNS (1.05 - 1.06x against 1.05 - 1.07x); at 1000 agents PP
+fails and LaCAM takes over (1.63 - 1.77x after LNS). Measurements: ``docs/lifelong.md``.
 """
 from __future__ import annotations
 

@@ -326,7 +326,10 @@ class SpaceTimeTable:
 
     def plan(self, nbr, table, hrow, starts, goals, agents, max_expand: int, sipp: bool = False) -> int:
         """:func:`plan_agents` on this scratch, by space-time A* or, with ``sipp``, by safe
-        intervals; returns how many of ``agents`` were planned."""
+        intervals; returns how many of ``agents`` were planned. Raises ValueError for ``sipp``
+        with a horizon of 2 ** 20 steps or more (the heap key's field for a step)."""
+        if sipp and self.H >= 2 ** _TB:
+            raise ValueError(f"a search by safe intervals needs a horizon below {2 ** _TB} steps, got {self.H}")
         if sipp and self._sipp[0].shape[0] < self.stamp.shape[0]:
             m = self.stamp.shape[0]
             self._sipp = (np.zeros(m, np.int32), np.zeros(2 ** 21, np.int64), np.zeros(2 ** 21, np.int64))
