@@ -32,10 +32,12 @@ test: setup bytecode
 
 ## bytecode: compile the project's modules once, so that the hundreds of processes a run starts
 ## load them instead of compiling them each (PYTHONDONTWRITEBYTECODE keeps Python from caching them)
-## (and the fleet's numba kernels into the tree's cache, which sandboxed fleet nodes load from: rce_fleet/numba_cache.py)
+## (and, at the same time, the fleet's numba kernels into the tree's cache, which sandboxed fleet nodes load
+## from instead of compiling them in every container: rce_fleet/numba_cache.py)
 bytecode:
-	@$(BIN)/python -m compileall -q -j 0 rce rce_robot rce_master rce_container rce_client examples bench tests
-	@$(BIN)/python -m rce_fleet.compile_kernels
+	@$(BIN)/python -m rce_fleet.compile_kernels & kernels=$$!; \
+	$(BIN)/python -m compileall -q -j 0 rce rce_robot rce_master rce_container rce_client examples bench tests; \
+	status=$$?; wait $$kernels && exit $$status
 
 ## demo: run the fleet demo (3 robots on the project's own map)
 demo: setup bytecode
