@@ -253,7 +253,7 @@ def main(argv: list[str] | None = None) -> int:
         off = offline_prediction(geo, places, starts, stream, a.duration, control["s_per_cell"])
         print(f"{n:4d} robots: offline {off['tasks_done']} tasks at {off['step_s']} s per cell, control loop "
               f"without physics {control['tasks_done']} (share {_share(control, off)}; robots sharing a cell "
-              f"{control['shared_cells']}; re-plans "
+              f"{control['shared_cells']}; {control['replans']} re-plans, {control['stale_replans']} for stale orders, "
               f"{control['plan_ms']['mean']} ms mean, {control['plan_ms']['max']} ms max; wall {control['wall_s']} s)",
               flush=True)
         split = ", ".join(f"{k} {100 * v:.1f} %" for k, v in control["time_split"].items() if v)

@@ -68,6 +68,7 @@ RETRY_S = 1.0              # robots parked for want of a collision-free path are
 SLOW_REPLAN_S = 0.05       # a re-plan that takes longer than this is logged
 TASKS_REPEAT_S = 0.5       # /fleet/tasks is published this often (wall s), and after every change
 STALE_WAIT_S = 2.0        # fleet s a robot waits for one planned before it still far off before it is re-planned
+STALE_EVERY_S = 1.0       # fleet s between re-plans of robots held by a stale order (bounds their CPU)
 STALE_GAP = 2              # cells that robot is still short of the shared cell for the wait to count as stale
 ROBOT_SPEED_MS = 0.15      # m/s a robot makes good along cells (turns and stops included): the task clock's step
 
@@ -122,6 +123,7 @@ class GlobalPlannerCore:
         self._last_retry = -math.inf
         self._stale_since: dict[str, float] = {}   # robot -> fleet time it began a stale wait
         self.stale_replans = 0
+        self._last_stale = -math.inf
         self.stamp = 0.0                    # fleet time: the newest pose stamp, s
         self.places = places or Places([], geometry)
         self.part = {c: i for i, p in enumerate(components(geometry)) for c in p}
@@ -358,12 +360,13 @@ class GlobalPlannerCore:
         """Re-plan robots that have waited ``STALE_WAIT_S`` for a robot planned into their next
         cell before them that is still ``STALE_GAP`` cells or more short of it (the plan's order
         went stale: robots run ahead of or behind its timing); the re-plan lets them go first
-        where they can."""
+        where they can. At most one such re-plan per ``STALE_EVERY_S``."""
         stale = self.fp.stale_waits(STALE_GAP)
         since = self._stale_since = {r: self._stale_since.get(r, self.stamp) for r in stale}
         due = {r for r, t in since.items() if self.stamp - t >= STALE_WAIT_S}
-        if not due:
+        if not due or self.stamp - self._last_stale < STALE_EVERY_S:
             return []
+        self._last_stale = self.stamp
         for r in due:
             since[r] = self.stamp
         self.stale_replans += 1

@@ -152,8 +152,9 @@ def run_stream(geo: GridGeometry, places, starts: dict[str, int], stream: list[t
     :class:`KinematicFleet` (keyword arguments go to it; idle robots park). Returns
     ``tasks_done``, ``per_hour``, ``mean_s`` (creation to done), ``refused``, ``distance_m``
     (all robots), ``s_per_cell`` (:meth:`KinematicFleet.s_per_cell`), ``plan_ms`` (mean, max
-    per re-plan), ``shared_cells`` (:attr:`KinematicFleet.shared_cells`: steps x cells holding two
-robots' centres, 0 when nobody collided), ``time_split`` (share of the robots' time by
+    per re-plan), ``replans`` and ``stale_replans`` (those for robots held by a stale order),
+    ``shared_cells`` (:attr:`KinematicFleet.shared_cells`: steps x cells holding two robots'
+    centres, 0 when nobody collided), ``time_split`` (share of the robots' time by
     :data:`TIME_SPLIT`) and ``wall_s``."""
     t0 = time.perf_counter()
     f = KinematicFleet(geo, starts, places=places, park_idle=True, **kw)
@@ -172,4 +173,5 @@ robots' centres, 0 when nobody collided), ``time_split`` (share of the robots' t
             "shared_cells": f.shared_cells,
             "time_split": {k: round(v / max(sum(f.time_split.values()), 1e-9), 4) for k, v in f.time_split.items()},
             "plan_ms": {"mean": round(1e3 * sum(times) / len(times), 2), "max": round(1e3 * max(times), 2)},
+            "replans": f.core.replans, "stale_replans": f.core.stale_replans,
             "wall_s": round(time.perf_counter() - t0, 2)}
