@@ -24,6 +24,8 @@ Each call of :meth:`Dispatcher.update` (the global planner's tick, ~5 Hz) at fle
    place, no other robot's goal or cell), not where it stands (often the station it just
    served, which the next robot needs), until that one has a new goal. So several robots
    may hold tasks at one station: they queue beside it, as the lifelong planner's robots do.
+   Of the robots that want one cell, the nearest heads there (the one sent there keeps it
+   unless another is ``SWAP_STEPS`` nearer); a waiting spot stays while robots only pass it.
 
 A robot that an operator sends somewhere (``/fleet/goal``) is the operator's until it
 arrives or its goal is dropped: it takes no task, and an unopened task it held goes back to

@@ -333,8 +333,9 @@ class GlobalPlannerCore:
 
     def tick(self) -> list[Out]:
         """Periodic work: dispatch tasks, plan the robots the last re-plan's wall-time bound
-        deferred, retry robots parked for want of a collision-free path, repeat paths and
-        clearances (so a lost or late message never stalls a robot)."""
+        deferred, re-plan robots held by a stale order (:meth:`_replan_stale`), retry robots
+        parked for want of a collision-free path, repeat paths and clearances (so a lost or
+        late message never stalls a robot)."""
         now = self.clock()
         out: list[Out] = self.dispatch()
         if self.fp.last_result is not None and self.fp.last_result.deferred:

@@ -18,7 +18,9 @@ crossed it. What this adds:
   :data:`MAX_WIDENINGS` times); if the plan still does not fit, everybody is re-planned.
   A robot already cleared into its next cell keeps that move (it may be driving), so
   re-plans never pull a cell from under a moving robot;
-* **execution in plan order under delays** (:mod:`.adg`);
+* **execution in plan order under delays** (:mod:`.adg`); robots that order holds for a robot
+  still far from the shared cell (the order went stale) are found by :meth:`FleetPlanner.stale_waits`
+  and re-planned by :meth:`FleetPlanner.replan` to go first where they can;
 * **clear failure reasons**: a goal that is not a free cell, blocked, walled off, taken by
   another robot, occupied by a parked robot, or not plannable.
 
