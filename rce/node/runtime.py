@@ -146,10 +146,15 @@ class Subscriber:
 
     The callback runs in a loop callback that takes every message waiting, in order (no task wakes per
     message); one that returns an awaitable is awaited in a task, which then takes the rest, so
-    messages are handled one at a time, in order, whether the callback is sync or async."""
+    messages are handled one at a time, in order, whether the callback is sync or async.
 
-    def __init__(self, node: "Node", topic: str, typename: str, callback: Callable, queue_size: int):
+    ``decode`` (``bytes -> Any``) turns each ROS 1 serialized message into what the callback gets;
+    default: the full message (:meth:`rce.messages.MessageRegistry.deserialize`)."""
+
+    def __init__(self, node: "Node", topic: str, typename: str, callback: Callable, queue_size: int,
+                 decode: Callable[[bytes], Any] | None = None):
         self.node, self.topic, self.typename, self.callback = node, topic, typename, callback
+        self.decode = decode or (lambda payload, _r=node.registry, _t=typename: _r.deserialize(_t, payload))
         self.queue_size = max(1, queue_size)
         self.queue: deque[bytes] = deque()
         self.dropped = 0
@@ -191,7 +196,7 @@ class Subscriber:
         """Deserialize ``payload`` and call the callback: its awaitable result, or None."""
         self.received += 1
         try:
-            msg = self.node.registry.deserialize(self.typename, payload)
+            msg = self.decode(payload)
         except MessageError as e:
             self.undecodable += 1
             self.node.undecodable(f"subscriber {self.topic}", e)
@@ -347,12 +352,17 @@ class Node:
         return Publisher(self, name, t, h)
 
     async def subscriber(self, topic: str, msg_class: str, callback: Callable[[Any], Any],
-                         queue_size: int = 10) -> Subscriber:
+                         queue_size: int = 10, decode: Callable[[bytes], Any] | None = None) -> Subscriber:
         """Subscribe ``callback(msg)`` (sync or async) to ``topic``; at most ``queue_size``
-        messages wait, the oldest is dropped first (and counted in ``dropped``)."""
+        messages wait, the oldest is dropped first (and counted in ``dropped``).
+
+        ``decode``: ``bytes -> Any``, what the callback gets from each ROS 1 serialized message in
+        place of the full message (for a node that reads a few fields of a frequent message: it
+        need not build the rest); it raises :class:`MessageError` for bytes that do not fit
+        ``msg_class``, which are then counted and reported as undecodable like any other."""
         t = self.registry.msg_type(msg_class)
         name = self.resolve(topic)
-        sub = Subscriber(self, name, t, callback, queue_size)
+        sub = Subscriber(self, name, t, callback, queue_size, decode)
         sub.handle = next(self._ids)
         self._subs[sub.handle] = sub       # before the request: messages may arrive before its reply
         try:

@@ -10,7 +10,7 @@ from memlink import pipe
 import rce.node
 from rce.bus.core import Bus
 from rce.bus.server import BusServer
-from rce.plumbing.errors import NotFound, RequestError, Timeout
+from rce.plumbing.errors import MessageError, NotFound, RequestError, Timeout
 
 STEP = 5.0   # s, the longest any single wait may take
 ECHO = "Test/StringEcho"
@@ -132,6 +132,31 @@ async def test_a_message_a_node_cannot_deserialize_is_counted_and_the_next_one_a
     assert sub.undecodable == 1 and sub.received == 2
     session = next(s for s in server.sessions if s.node == "/listener")
     async with asyncio.timeout(STEP):           # the node's report travels on its link after the message
+        while session.stats()["undecodable"] != 1:
+            await asyncio.sleep(0.01)
+
+
+async def test_a_subscriber_decode_gives_the_callback_what_it_reads_and_its_refusals_count_as_undecodable(bus):
+    b, server, node = bus
+    talker, listener = await node("talker"), await node("listener")
+    got = asyncio.Queue()
+
+    def decode(payload: bytes) -> int:
+        if len(payload) != 4:
+            raise MessageError(f"{len(payload)} bytes are no int32")
+        return int.from_bytes(payload, "little", signed=True) * 10
+
+    sub = await listener.subscriber("chatter", "std_msgs/Int32", got.put_nowait, decode=decode)
+    pub = await talker.publisher("chatter", "std_msgs/Int32")
+    good = talker._encode
+    talker._encode = lambda typename, msg: b"\x07"
+    await pub.publish({"data": 0})
+    talker._encode = good
+    await pub.publish({"data": -4})
+    assert await asyncio.wait_for(got.get(), STEP) == -40
+    assert sub.undecodable == 1 and sub.received == 2
+    session = next(s for s in server.sessions if s.node == "/listener")
+    async with asyncio.timeout(STEP):
         while session.stats()["undecodable"] != 1:
             await asyncio.sleep(0.01)
 

@@ -335,3 +335,29 @@ def test_no_obstacles_reported_at_the_map_border():
         r = world.add_robot(f"r{c}", x, y - 0.2, -1.57)
         assert det.detect(r.scan(), r.pose()) == [], c
         world.remove_robot(f"r{c}")
+
+
+def test_planar_pose_reads_what_the_full_message_holds_and_refuses_what_it_refuses():
+    """The nodes' pose reader (no message built) against the registry's full deserialization: the
+    same x, y, yaw and stamp, any bytes in frame_id, and the same bytes refused."""
+    from rce.messages import default_registry
+    from rce.plumbing.errors import MessageError
+    from rce_fleet.node_common import planar_pose
+
+    reg = default_registry()
+    t = reg.msg_type("geometry_msgs/PoseWithCovarianceStamped")
+    for frame_id, yaw, sec in (("map", 0.7, 1_700_000_000), ("", -3.0, 0), ("x\udcff\udcfe", 2.5, -5)):
+        q = quaternion_from_yaw(yaw)
+        data = reg.serialize(t, reg.from_json(t, {
+            "header": {"seq": 9, "stamp": {"secs": sec, "nsecs": 123_456_789}, "frame_id": frame_id},
+            "pose": {"pose": {"position": {"x": 1.25, "y": -7.5, "z": 0.5}, "orientation": q},
+                     "covariance": [float(i) for i in range(36)]}}))
+        msg = reg.deserialize(t, data)
+        p, st = msg.pose.pose, msg.header.stamp
+        assert tuple(planar_pose(data)) == (p.position.x, p.position.y, yaw_from_quaternion(p.orientation),
+                                            st.sec + st.nanosec * 1e-9)
+        for bad in (data[:-1], data + b"\0", data[:10], b""):
+            with pytest.raises(MessageError):
+                reg.deserialize(t, bad)
+            with pytest.raises(MessageError, match="geometry_msgs/PoseWithCovarianceStamped"):
+                planar_pose(bad)

@@ -18,7 +18,8 @@ import math
 from dataclasses import dataclass
 from typing import Any
 
-__all__ = ["GridGeometry", "GRID_PARAM", "ROBOTS_PARAM", "components", "quaternion_from_yaw", "yaw_from_quaternion"]
+__all__ = ["GridGeometry", "GRID_PARAM", "ROBOTS_PARAM", "components", "quaternion_from_yaw", "quaternion_yaw",
+           "yaw_from_quaternion"]
 
 #: Container parameter holding the grid (a dict, see :meth:`GridGeometry.to_param`).
 GRID_PARAM = "/fleet/grid"
@@ -37,6 +38,11 @@ def yaw_from_quaternion(quaternion: Any) -> float:
         x, y, z, w = (float(quaternion.get(k, 0.0)) for k in ("x", "y", "z", "w"))
     else:
         x, y, z, w = float(quaternion.x), float(quaternion.y), float(quaternion.z), float(quaternion.w)
+    return quaternion_yaw(x, y, z, w)
+
+
+def quaternion_yaw(x: float, y: float, z: float, w: float) -> float:
+    """Yaw (rad) of the quaternion ``(x, y, z, w)`` (its rotation about z, ZYX Euler angles)."""
     return math.atan2(2.0 * (w * z + x * y), 1.0 - 2.0 * (y * y + z * z))
 
 

@@ -22,8 +22,8 @@ from rce.plumbing.log import get_logger, setup_logging
 from rce.node import node_argv
 
 from .battery import BATTERY_PARAM, BatteryParams
-from .geometry import ROBOTS_PARAM, yaw_from_quaternion
-from .node_common import Publishers, load_geometry
+from .geometry import ROBOTS_PARAM
+from .node_common import PlanarPose, Publishers, load_geometry, planar_pose
 from .global_planner_core import GlobalPlannerCore
 from .places import PLACES_PARAM, Places
 from .planning.prioritized import REPLAN_BOUND_S
@@ -103,10 +103,8 @@ async def main(node) -> None:
                                ("clearance", "fleet/Clearance")):
                 await pubs.add(f"/{robot}/{topic}", typ, queue_size=20)
 
-            def on_pose(msg, robot=robot) -> None:
-                p, st = msg.pose.pose, msg.header.stamp
-                pubs.send(core.on_pose(robot, p.position.x, p.position.y, yaw_from_quaternion(p.orientation),
-                                       st.sec + st.nanosec * 1e-9))
+            def on_pose(pose: PlanarPose, robot=robot) -> None:
+                pubs.send(core.on_pose(robot, *pose))
 
             def on_obstacles(msg, robot=robot) -> None:
                 st = msg.header.stamp
@@ -120,7 +118,7 @@ async def main(node) -> None:
                 core.on_battery(robot, float(msg.percentage))
 
             await node.subscriber(f"/{robot}/amcl_pose", "geometry_msgs/PoseWithCovarianceStamped", on_pose,
-                                  queue_size=20)
+                                  queue_size=20, decode=planar_pose)
             await node.subscriber(f"/{robot}/obstacles", "geometry_msgs/PoseArray", on_obstacles, queue_size=5)
             await node.subscriber(f"/{robot}/battery", "sensor_msgs/BatteryState", on_battery, queue_size=2)
             await node.subscriber(f"/{robot}/progress", "fleet/MoveProgress", on_progress, queue_size=5)

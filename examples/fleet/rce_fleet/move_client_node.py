@@ -14,9 +14,8 @@ import asyncio
 from rce.plumbing.log import get_logger, setup_logging
 from rce.node import node_argv
 
-from .geometry import yaw_from_quaternion
 from .move_client_core import MoveClientCore, plan_id_of
-from .node_common import Publishers, load_geometry
+from .node_common import PlanarPose, Publishers, load_geometry, planar_pose
 
 log = get_logger("fleet.move_client")
 
@@ -72,17 +71,15 @@ async def main(node) -> None:
             log.info("cancelGoal", robot=robot, plan=core.plan)
         handle(core.on_cancel(bool(msg.data)))
 
-    def on_pose(msg) -> None:
-        p = msg.pose.pose
-        st = msg.header.stamp
-        handle(core.on_pose(p.position.x, p.position.y, yaw_from_quaternion(p.orientation),
-                            st.sec + st.nanosec * 1e-9))
+    def on_pose(pose: PlanarPose) -> None:
+        handle(core.on_pose(*pose))
 
     # cancel first: the planner publishes cancelGoal before the new path, keep that order
     await node.subscriber(f"/{robot}/cancelGoal", "std_msgs/Bool", on_cancel, queue_size=20)
     await node.subscriber(f"/{robot}/goalNodesList", "std_msgs/Int32MultiArray", on_path, queue_size=20)
     await node.subscriber(f"/{robot}/clearance", "fleet/Clearance", on_clearance, queue_size=20)
-    await node.subscriber(f"/{robot}/amcl_pose", "geometry_msgs/PoseWithCovarianceStamped", on_pose, queue_size=5)
+    await node.subscriber(f"/{robot}/amcl_pose", "geometry_msgs/PoseWithCovarianceStamped", on_pose, queue_size=5,
+                          decode=planar_pose)
     log.info("move_client up", robot=robot)
     while not node.is_shutdown:
         report(force=True)

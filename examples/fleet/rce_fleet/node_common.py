@@ -1,15 +1,18 @@
 """What the fleet's container nodes share: the :class:`Out` items their sans-I/O cores
-return, publishing them, and waiting for the grid parameter."""
+return, publishing them, waiting for the grid parameter, and reading a robot's planar pose
+from its ``amcl_pose`` bytes."""
 from __future__ import annotations
 
 import asyncio
+import struct
 from typing import Any, Iterable, NamedTuple
 
-from rce.plumbing.errors import Unavailable
+from rce.plumbing.errors import MessageError, Unavailable
 
-from .geometry import GRID_PARAM, GridGeometry
+from .geometry import GRID_PARAM, GridGeometry, quaternion_yaw
 
-__all__ = ["Out", "wait_param", "load_geometry", "Publishers", "PARAM_TIMEOUT_S", "PARAM_POLL_S"]
+__all__ = ["Out", "PlanarPose", "planar_pose", "wait_param", "load_geometry", "Publishers", "PARAM_TIMEOUT_S",
+           "PARAM_POLL_S"]
 
 #: s a node waits for a parameter (the fleet manager sets ``/fleet/grid`` before it starts
 #: the nodes; a node started by hand may come first) before it gives up.
@@ -24,6 +27,39 @@ class Out(NamedTuple):
     topic: str
     type: str
     msg: dict
+
+
+class PlanarPose(NamedTuple):
+    """What the fleet's nodes read of a ``geometry_msgs/PoseWithCovarianceStamped``: ``x``, ``y``
+    (m), ``yaw`` (rad, :func:`rce_fleet.geometry.quaternion_yaw`) and ``stamp`` (s, the
+    header stamp)."""
+    x: float
+    y: float
+    yaw: float
+    stamp: float
+
+
+_HEAD = struct.Struct("<IiII")        # header.seq, header.stamp.sec, header.stamp.nanosec, len(frame_id)
+_POSE = struct.Struct("<7d")          # pose.pose.position x y z, pose.pose.orientation x y z w
+_POSE_REST = _POSE.size + 36 * 8      # and pose.covariance (float64[36])
+
+
+def planar_pose(data: bytes) -> PlanarPose:
+    """The :class:`PlanarPose` of a ROS 1 serialized ``geometry_msgs/PoseWithCovarianceStamped``
+    (wire format: ROS 1 serialization, little-endian, a string as a uint32 length and its bytes),
+    read without building the message (``frame_id`` and the covariance are skipped). ``data`` is
+    held to the rule of :meth:`rce.messages.MessageRegistry.deserialize`: exactly the message's
+    length (a string may hold any bytes, :mod:`rce.messages.ros_strings`), or :class:`MessageError`."""
+    try:
+        _seq, sec, nanosec, n = _HEAD.unpack_from(data)
+        if len(data) != _HEAD.size + n + _POSE_REST:
+            raise ValueError(f"the message is {len(data)} bytes, its frame_id of {n} bytes makes it "
+                             f"{_HEAD.size + n + _POSE_REST}")
+        x, y, _z, qx, qy, qz, qw = _POSE.unpack_from(data, _HEAD.size + n)
+    except (struct.error, ValueError) as e:
+        raise MessageError(f"{len(data)} bytes do not deserialize as geometry_msgs/PoseWithCovarianceStamped: "
+                           f"{e}") from None
+    return PlanarPose(x, y, quaternion_yaw(qx, qy, qz, qw), sec + nanosec * 1e-9)
 
 
 async def wait_param(node, name: str, timeout: float = PARAM_TIMEOUT_S, interval: float = PARAM_POLL_S) -> Any:
