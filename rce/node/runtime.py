@@ -206,7 +206,7 @@ class Subscriber:
         except Exception as e:
             self._failed(e)
             return None
-        return r if inspect.isawaitable(r) else None
+        return r if r is not None and inspect.isawaitable(r) else None    # most callbacks return None: no ABC check
 
     async def _finish(self, r: Awaitable | None) -> None:
         try:
