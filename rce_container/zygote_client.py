@@ -503,23 +503,19 @@ class ZygoteTemplate:
         (no bus token: every later zygote is a copy of the template's memory); the zygote keeps
         the template's environment, and each node gets its own with its spawn request. Raises
         :class:`OSError` if the template does not take the request."""
-        ours, theirs = zygote_socketpair()
-        try:
-            self._send({"op": "container", "spec": spec}, theirs.fileno())
-        except OSError:
-            ours.close()
-            raise
-        finally:
-            theirs.close()
-        return ours
+        return self._fork({"op": "container", "spec": spec})
 
     def fork_template(self) -> socket.socket:
         """Ask for a new template forked from this one (for an environment: ``ZygoteTemplate(env,
         sock)``); the other end of its socket, on which it says ready. Raises :class:`OSError` if
         this template does not take the request."""
+        return self._fork({"op": "template"})
+
+    def _fork(self, op: dict) -> socket.socket:
+        """Send ``op`` with the far end of a new socket pair; our end. Raises as :meth:`_send`."""
         ours, theirs = zygote_socketpair()
         try:
-            self._send({"op": "template"}, theirs.fileno())
+            self._send(op, theirs.fileno())
         except OSError:
             ours.close()
             raise

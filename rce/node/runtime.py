@@ -26,6 +26,7 @@ JSON-form dict (:mod:`rce.messages`).
 from __future__ import annotations
 
 import asyncio
+import functools
 import inspect
 import itertools
 import os
@@ -154,7 +155,7 @@ class Subscriber:
     def __init__(self, node: "Node", topic: str, typename: str, callback: Callable, queue_size: int,
                  decode: Callable[[bytes], Any] | None = None):
         self.node, self.topic, self.typename, self.callback = node, topic, typename, callback
-        self.decode = decode or (lambda payload, _r=node.registry, _t=typename: _r.deserialize(_t, payload))
+        self.decode = decode or functools.partial(node.registry.deserialize, typename)
         self.queue_size = max(1, queue_size)
         self.queue: deque[bytes] = deque()
         self.dropped = 0

@@ -21,12 +21,12 @@ import math
 import time
 from typing import Any
 
+from .dispatcher import CHARGING, IDLE, PARKING, TASK, UNKNOWN
 from .geometry import GridGeometry
 from .global_planner_core import GlobalPlannerCore
 from .move_client_core import MoveClientCore, plan_id_of
 from .node_common import Out
 from .sim.local_nav import NavParams
-from .dispatcher import CHARGING, IDLE, PARKING, TASK, UNKNOWN
 
 __all__ = ["KinematicFleet", "run_stream"]
 
