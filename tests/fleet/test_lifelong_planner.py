@@ -10,7 +10,7 @@ import pytest
 
 from rce_fleet.lifelong import (MAPF, MAPF_T, BatchScheduler, DistanceCache, GreedyScheduler, LifelongGrid,
                                 PIBTPlanner, ProblemError, Simulator, TaskError, TaskPool, TaskState, check_actions,
-                                load_problem, solve_one_shot)
+                                load_lorr_map, load_problem, solve_one_shot)
 from rce_fleet.lifelong.kernels import UNREACHABLE, heading_cost, warm_up
 
 DATA = Path(__file__).resolve().parents[2] / ".." / "shared" / "data"
@@ -59,6 +59,24 @@ def test_problem_errors_name_the_file_and_line(tmp_path):
 
 
 # -- tasks -------------------------------------------------------------------------------------
+def test_map_cells_are_read_as_the_start_kit_reads_them(tmp_path):
+    """``@`` and ``T`` block; ``.``, ``E``, ``S``, ``W`` and any other character are free; the header is
+    MovingAI's or a first line ``rows,cols``."""
+    octile = tmp_path / "o.map"
+    octile.write_text("type octile\nheight 2\nwidth 4\nmap\n.ESW\n@TG.\n")
+    short = tmp_path / "s.map"
+    short.write_text("2,4\n.ESW\n@TG.\n")
+    for path in (octile, short):
+        assert load_lorr_map(path).free.tolist() == [[True] * 4, [False, False, True, True]]
+    bad = tmp_path / "b.map"
+    bad.write_text("2,x\n....\n")
+    with pytest.raises(ProblemError, match=r"b\.map:1: expected 'rows,cols'"):
+        load_lorr_map(bad)
+    bad.write_text("2,4\n....\n..\n")
+    with pytest.raises(ProblemError, match=r"b\.map:3: map row 1 has 2 cells, expected 4"):
+        load_lorr_map(bad)
+
+
 def test_task_states_and_forbidden_transitions():
     pool = TaskPool()
     t = pool.add([3, 4], priority=1.0)

@@ -1,6 +1,8 @@
 """League of Robot Runners 2024 problem files (MAPF-Competition/Start-Kit v2.1.2,
-``Input_Output_Format.md``): the problem JSON, the MovingAI octile map (``.``, ``E`` and
-``S`` free; Sturtevant 2012), the agents file and the tasks file.
+``Input_Output_Format.md``): the problem JSON, the map (MovingAI octile, Sturtevant 2012, or a
+first line ``rows,cols``; as the start-kit's ``Grid::load_from_path`` reads it, ``@`` and ``T``
+are obstacles and every other character is free: ``.``, ``E`` end points, ``S`` sortation points,
+``W`` home locations), the agents file and the tasks file.
 
 Problem JSON keys: ``mapFile``, ``agentFile``, ``taskFile`` (paths relative to the JSON),
 ``teamSize``, ``numTasksReveal``; optional ``version``. Agents file: comment lines start with
@@ -64,35 +66,54 @@ def _read(path: Path) -> list[str]:
         raise ProblemError(path, f"cannot read: {exc}") from None
 
 
+OBSTACLES = b"@T"      # every other map character is free (the start-kit's Grid::load_from_path)
+
+
 def load_lorr_map(path: str | Path) -> LifelongGrid:
-    """A :class:`LifelongGrid` from a MovingAI ``type octile`` map; ``.``, ``E`` and ``S`` are
-    free, every other character blocked. Raises ProblemError naming the file and line."""
+    """A :class:`LifelongGrid` from a LoRR map: a MovingAI ``type octile`` header (``height``,
+    ``width``, then ``map``) or a first line ``rows,cols``, then one line per row; ``@`` and
+    ``T`` are blocked, every other character free (:data:`OBSTACLES`). Raises ProblemError
+    naming the file and line."""
     path = Path(path)
     lines = _read(path)
-    hdr: dict[str, str] = {}
-    i = 0
-    while i < len(lines) and lines[i].strip() != "map":
-        parts = lines[i].split()
-        if len(parts) == 2:
-            hdr[parts[0]] = parts[1]
-        elif parts:
-            raise ProblemError(path, f"expected 'key value' or 'map', got {lines[i]!r}", i + 1)
-        i += 1
-    try:
-        rows, cols = int(hdr["height"]), int(hdr["width"])
-    except KeyError as exc:
-        raise ProblemError(path, f"header has no {exc.args[0]!r} line", 1) from None
-    except ValueError:
-        raise ProblemError(path, "height and width must be integers", 1) from None
-    if i >= len(lines):
-        raise ProblemError(path, "no 'map' line", len(lines))
+    if lines and "," in lines[0] and not lines[0].lstrip().startswith("type"):
+        try:
+            rows, cols = (int(x) for x in lines[0].split(",")[:2])
+        except ValueError:
+            raise ProblemError(path, f"expected 'rows,cols', got {lines[0]!r}", 1) from None
+        i = 0                                   # the rows follow the first line
+    else:
+        hdr: dict[str, str] = {}
+        i = 0
+        while i < len(lines) and lines[i].strip() != "map":
+            parts = lines[i].split()
+            if len(parts) == 2:
+                hdr[parts[0]] = parts[1]
+            elif parts:
+                raise ProblemError(path, f"expected 'key value' or 'map', got {lines[i]!r}", i + 1)
+            i += 1
+        try:
+            rows, cols = int(hdr["height"]), int(hdr["width"])
+        except KeyError as exc:
+            raise ProblemError(path, f"header has no {exc.args[0]!r} line", 1) from None
+        except ValueError:
+            raise ProblemError(path, "height and width must be integers", 1) from None
+        if i >= len(lines):
+            raise ProblemError(path, "no 'map' line", len(lines))
+    if rows < 1 or cols < 1:
+        raise ProblemError(path, f"the map must have at least one row and column, got {rows} x {cols}", i + 1)
     body = lines[i + 1: i + 1 + rows]
     free = np.zeros((rows, cols), dtype=bool)
+    blocked = np.frombuffer(OBSTACLES, dtype=np.uint8)
     for r in range(rows):
         ln = body[r].rstrip("\r") if r < len(body) else ""
         if len(ln) < cols:
             raise ProblemError(path, f"map row {r} has {len(ln)} cells, expected {cols}", i + 2 + r)
-        free[r] = np.isin(np.frombuffer(ln[:cols].encode(), dtype=np.uint8), np.frombuffer(b".ES", dtype=np.uint8))
+        try:
+            row = np.frombuffer(ln[:cols].encode("ascii"), dtype=np.uint8)
+        except UnicodeEncodeError:
+            raise ProblemError(path, f"map row {r} has a character that is not ASCII", i + 2 + r) from None
+        free[r] = ~np.isin(row, blocked)
     try:
         return LifelongGrid(free)
     except ValueError as exc:
