@@ -68,6 +68,9 @@ def test_movingai_formats(tmp_path):
     assert load_movingai_map(tmp_path / "o.map").free.tolist() == g.free.tolist()
     (tmp_path / "s.scen").write_text("2\n0 0 2 1\n1 1\t0 1\n")
     assert load_movingai_scen(tmp_path / "s.scen", g) == [(0, 5), (4, 3)]
+    (tmp_path / "v.scen").write_text("version 1\n0\tm.map\t3\t2\t0\t0\t2\t1\t3.0\n"
+                                     "0 m.map 3 2 1 1 0 1 1.0\n")        # tab-separated, as published; spaces too
+    assert load_movingai_scen(tmp_path / "v.scen", g) == [(0, 5), (4, 3)]
     (tmp_path / "bad.map").write_text("3\n3\n0 0\n")
     with pytest.raises(ValueError, match="bad.map"):
         load_movingai_map(tmp_path / "bad.map")

@@ -60,7 +60,7 @@ def load_movingai_scen(path: str | Path, graph: GridGraph) -> list[tuple[int, in
     lines = [ln for ln in path.read_text().splitlines() if ln.strip()]
     try:
         if lines[0].startswith("version"):
-            recs = [ln.split("\t") for ln in lines[1:]]
+            recs = [ln.split("\t") if "\t" in ln else ln.split() for ln in lines[1:]]   # tabs, or spaces
             xy = [(int(r[4]), int(r[5]), int(r[6]), int(r[7])) for r in recs]
         else:
             n = int(lines[0])
