@@ -90,15 +90,16 @@ Usage::
 
     .venv/bin/python bench/fleet_load.py [--robots 10,100,300,1000] [--duration 10] [--rate 10]
         [--converter] [--container-cpu CORES] [--clients 1] [--robot-tasksets K] [--setup-concurrency 16]
-        [--drain 3] [--max-p99 100] [--no-stop] [--no-floor] [--profile S] [--wait-quiet S] [--raw DIR]
-        [--json PATH] [--plot PATH]
+        [--drain 3] [--max-p99 100] [--no-stop] [--no-floor] [--profile S] [--profile-labels L]
+        [--wait-quiet S] [--raw DIR] [--json PATH] [--plot PATH]
 
 ``--profile S``: after each window, with the load still on, record the two hottest processes
-for S s each with py-spy (when installed: ``pip install py-spy``; not a project dependency) and
-list their top functions. ``--no-stop`` runs every N even past the first failure (which is
-still the one reported). ``--raw DIR`` writes every echo as CSV. The clients, the engine and
-the nodes all share the machine's cores: a client worker near 100 % of a core, or a send rate
-below ``--rate``, is reported.
+(or those of ``--profile-labels``, e.g. ``planner,echo node``) for S s each with py-spy (when
+installed: ``pip install py-spy``; not a project dependency) and list their top functions.
+``--no-stop`` runs every N even past the first failure (which is still the one reported).
+``--raw DIR`` writes every echo as CSV. The clients, the engine and the nodes all share the
+machine's cores: a client worker near 100 % of a core, or a send rate below ``--rate``, is
+reported.
 """
 from __future__ import annotations
 
@@ -995,7 +996,10 @@ class Run:
         self._summarize(reps, cpu)
         if a.profile > 0:
             prof = {}
-            for x in res["cpu_by_process"][:2]:
+            want = [w for w in a.profile_labels.split(",") if w]
+            picked = ([x for x in res["cpu_by_process"] if x["label"] in want] if want
+                      else res["cpu_by_process"][:2])
+            for x in picked:
                 self.log(f"py-spy: recording {x['label']} (pid {x['pid']}, {x['pct']} % CPU) for {a.profile:g} s")
                 prof[x["label"]] = {"pid": x["pid"], "cpu_pct": x["pct"], **await asyncio.to_thread(
                     pyspy_top, x["pid"], a.profile, Path(tempfile.mkdtemp(prefix="fleetload-spy-")) / "raw.txt")}
@@ -1301,6 +1305,9 @@ def parse_args(argv=None):
                    help="do not measure the transport floor (bench/fleet_floor.py) before each N")
     p.add_argument("--profile", type=float, default=0.0, metavar="S",
                    help="after each window, py-spy the two hottest processes for S s (default off)")
+    p.add_argument("--profile-labels", default="", metavar="LABELS",
+                   help="with --profile: py-spy the processes of these labels instead (comma-separated, "
+                        "e.g. planner,robot; one after the other)")
     p.add_argument("--nice", type=int, default=None, metavar="N",
                    help="run the bench and all it starts at niceness N (e.g. -10 as root on a shared machine)")
     p.add_argument("--wait-quiet", type=float, default=0.0, metavar="S",

@@ -39,6 +39,7 @@ from rosbags.typesys.base import Nodetype
 from rce.plumbing.errors import MessageError
 from rce.messages.forms import (RCE_FORMS, JsonForms, duration_to_seconds, image_from_bytes, image_to_bytes,
                                iso_to_time, seconds_to_duration, time_to_iso)
+from rce.messages.compiled import Codec, compile_codec
 from rce.messages.structure import Short, Walker, compile_walker
 from rce.messages import ros_strings
 
@@ -108,6 +109,7 @@ class MessageRegistry:
         self._encoders: dict[str, Encoder] = {}
         self._decoders: dict[tuple[str, FormsKey], Decoder] = {}
         self._walkers: dict[str, Walker] = {}
+        self._codecs: dict[str, Codec | None] = {}   # store type -> its compiled codec (rce.messages.compiled)
         self._services: set[str] = set()   # wire names of registered services
 
     # -- registration -----------------------------------------------------------------------
@@ -131,6 +133,7 @@ class MessageRegistry:
         try:
             with self._lock:
                 self.store.register(types)
+                self._codecs.clear()
         except Exception as e:
             raise MessageError(f"cannot register message class {wire!r}: {e}") from e
 
@@ -214,8 +217,27 @@ class MessageRegistry:
             return False
 
     # -- serialization ----------------------------------------------------------------------
+    def codec(self, typename: str) -> Codec | None:
+        """The compiled codec of store type ``typename`` (:mod:`rce.messages.compiled`), or None for
+        a class it does not handle (rosbags' functions then do all the work)."""
+        try:
+            return self._codecs[typename]
+        except KeyError:
+            pass
+        if typename not in self.store.fielddefs:
+            return None
+        return compile_codec(self.store.fielddefs, self.store.types, typename, self.store.max_sequence_length,
+                             self._codecs)
+
     def serialize(self, typename: str, msg: Any) -> bytes:
-        """ROS 1 serialize typestore instance ``msg`` of store type ``typename``."""
+        """ROS 1 serialize typestore instance ``msg`` of store type ``typename`` (the compiled
+        codec, or rosbags' serializer for what it does not take). Raises :class:`MessageError`."""
+        codec = self.codec(typename)
+        if codec is not None:
+            try:
+                return codec.serialize(msg)
+            except Exception:       # not an input the fast path takes: rosbags' says what it makes of it
+                pass
         try:
             return bytes(self.store.serialize_ros1(msg, typename))
         except Exception as e:
@@ -223,6 +245,12 @@ class MessageRegistry:
 
     def deserialize(self, typename: str, data: bytes) -> Any:
         """Inverse of :meth:`serialize`; :class:`MessageError` if ``data`` does not fit the type."""
+        codec = self.codec(typename)
+        if codec is not None:
+            try:
+                return codec.deserialize(data)
+            except Exception:       # does not fit: rosbags' deserializer names why
+                pass
         try:
             return self.store.deserialize_ros1(data, typename)
         except Exception as e:
@@ -264,7 +292,16 @@ class MessageRegistry:
         return self._decoder(typename, (forms or RCE_FORMS).key)(msg)
 
     def json_to_bytes(self, typename: str, obj: Any, forms: JsonForms | None = None) -> bytes:
-        """JSON -> ROS 1 serialized bytes (what a converter does with a robot's message)."""
+        """JSON -> ROS 1 serialized bytes (what a converter does with a robot's message; a node that
+        publishes a dict). The same bytes and errors as :meth:`serialize` of :meth:`from_json`; a
+        message in the canonical forms is written without building the instance
+        (:mod:`rce.messages.compiled`)."""
+        codec = self.codec(typename)
+        if codec is not None and codec.serialize_json is not None:
+            try:
+                return codec.serialize_json(obj, forms or RCE_FORMS)
+            except Exception:       # another form, a missing field, bad input: the general path decides
+                pass
         return self.serialize(typename, self.from_json(typename, obj, forms))
 
     def bytes_to_json(self, typename: str, data: bytes, forms: JsonForms | None = None) -> Any:

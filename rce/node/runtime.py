@@ -301,8 +301,8 @@ class Node:
 
     def _encode(self, typename: str, msg: Any) -> bytes:
         if isinstance(msg, dict):
-            msg = self.registry.from_json(typename, msg)
-        elif getattr(msg, "__msgtype__", typename) != typename:
+            return self.registry.json_to_bytes(typename, msg)
+        if getattr(msg, "__msgtype__", typename) != typename:
             raise MessageError(f"expected a {wire_name(typename)} message, got {msg.__msgtype__}")
         return self.registry.serialize(typename, msg)
 

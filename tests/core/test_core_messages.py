@@ -14,18 +14,6 @@ from rce.plumbing.errors import MessageError
 from rce.messages import MessageRegistry, default_registry, store_name, wire_name
 
 
-@pytest.fixture(scope="module")
-def reg() -> MessageRegistry:
-    """A registry shared by the read-only tests of this module."""
-    return MessageRegistry()
-
-
-@pytest.fixture(scope="module")
-def ts():
-    """rosbags' own typestore, independent of the registry, as the reference serializer."""
-    return get_typestore(Stores.ROS1_NOETIC)
-
-
 def msg_error(fn, *args) -> str:
     with pytest.raises(MessageError) as ei:
         fn(*args)

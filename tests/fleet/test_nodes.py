@@ -6,6 +6,9 @@ from pathlib import Path
 
 import pytest
 
+from rce.messages import MessageRegistry
+from rce.messages.forms import RCE_FORMS
+from rce.node.package_path import load_package_types
 from rce_fleet.geometry import GridGeometry, quaternion_from_yaw, yaw_from_quaternion
 from rce_fleet.grid import make_grid
 from rce_fleet.lab_map import write_lab_map
@@ -263,6 +266,28 @@ def test_block_cancels_exactly_the_robots_whose_paths_crossed_it(tb3):
     st = fleet.core.state()
     assert st["blocked"] == [26] and st["blocked_by"] == ["operator"]
     assert {r["robot"]: r["cancels"] for r in st["robots"]}["Robot1"] == 1
+
+
+def test_planner_messages_are_written_as_from_json_and_rosbags_write_them(tb3):
+    """What the planner publishes (its fleet state with blocked cells, errors, a robot without a
+    pose; its paths, clearances, cancels) takes the compiled JSON path (rce.messages.compiled) and
+    gives the very bytes of the general path: from_json, then rosbags' serializer."""
+    reg = MessageRegistry()
+    load_package_types(reg)
+    fleet = VirtualFleet(tb3, {"Robot1": 30, "Robot2": 46, "Robot3": 3}, lidar_blocking=False)
+    fleet.core.add_robot("Robot4")                               # no pose yet: NaN x, y, yaw
+    fleet.route(fleet.core.on_goals({"Robot9": 3, "Robot3": 0}))  # errors; Robot3 unreachable
+    fleet.route(fleet.core.on_block(26, True, "operator"))
+    _run(fleet, {"Robot1": 17, "Robot2": 54})
+    outs = [(o.type, o.msg) for o in fleet.log] + [("fleet/FleetState", fleet.core.state())]
+    state = outs[-1][1]
+    assert state["blocked_by"] == ["operator"] and state["errors"] and len(state["robots"]) == 4
+    for wire, msg in outs:
+        t = reg.msg_type(wire)
+        ref = bytes(reg.store.serialize_ros1(reg.from_json(t, msg), t))
+        assert reg.json_to_bytes(t, msg) == ref, wire
+    t = reg.msg_type("fleet/FleetState")
+    assert reg.codec(t).serialize_json(state, RCE_FORMS) == bytes(reg.store.serialize_ros1(reg.from_json(t, state), t))
 
 
 def test_unreachable_goal_is_reported_with_a_reason(tb3):
