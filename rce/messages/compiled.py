@@ -18,6 +18,13 @@ one ``tobytes``/``struct.pack`` (writing). Three functions per class:
   present, no other key, numbers as ``int``/``float`` (``bool`` for ``bool``), strings ``str``,
   times ``{"secs", "nsecs"}``, arrays lists.
 
+And per class and client's JSON forms (:attr:`rce.messages.forms.JsonForms.key`), a
+:class:`JsonReader`: ``to_json(data) -> dict``, the JSON form of a payload read straight from its
+bytes, without building the message (what a converter sends a robot): non-finite floats ``null``,
+strings with U+FFFD for bytes that are not UTF-8 (:func:`rce.messages.ros_strings.to_text`), byte
+arrays base64 or ``bytes``, times as ``{secs, nsecs}`` or ``{sec, nanosec}`` (the other time forms
+and images as files are the general path's).
+
 The format is ROS 1 serialization (wiki.ros.org/msg, "Serialization"; rosbags' ``serde/ros1.py``
 is the reference the tests compare against byte for byte): little endian, fixed-size fields back
 to back, a ``string`` and a variable-length array prefixed with a ``uint32`` count (bytes, items),
@@ -33,7 +40,9 @@ gives the same result or the error that names the field. A class the generator d
 """
 from __future__ import annotations
 
+import base64
 import keyword
+import math
 import struct
 import sys
 from typing import Any, Callable, NamedTuple
@@ -43,7 +52,7 @@ from rosbags.typesys.base import Nodetype
 
 from rce.messages.ros_strings import ERRORS
 
-__all__ = ["Codec", "Fallback", "compile_codec"]
+__all__ = ["Codec", "Fallback", "JsonReader", "compile_codec", "compile_json_reader"]
 
 #: struct format character of each ROS 1 base type (as rosbags packs them: ``byte`` signed, ``char`` unsigned)
 _FMT = {"bool": "?", "byte": "b", "char": "B", "int8": "b", "uint8": "B", "int16": "h", "uint16": "H",
@@ -55,6 +64,9 @@ _DTYPE = {t: np.dtype({"bool": "bool", "char": "uint8"}.get(t, t)) for t in _FMT
 _RAW = {size: frozenset(np.dtype(f"{k}{size}") for k in "iuf" if k != "f" or size > 1) | (
     {np.dtype(bool)} if size == 1 else set()) for size in (1, 2, 4, 8)}
 _FLOATS = {"float32", "float64"}
+_BYTES = {"uint8", "char", "byte"}                    # arrays of these are bytes in JSON (base64 or a binary part)
+#: a time's keys in each JSON form that is an object (rce.messages.forms); the others are the general path's
+_TIME_FORM_KEYS = {"secs": ("secs", "nsecs"), "sec": ("sec", "nanosec")}
 _TIME_TYPES = {"builtin_interfaces/msg/Time", "builtin_interfaces/msg/Duration"}
 _TIME_KEYS = {"sec": "secs", "nanosec": "nsecs"}     # a time's fields -> their keys in rce's JSON form
 _PLACEHOLDER = "structure_needs_at_least_one_member"  # rosbags' field of an empty message
@@ -80,8 +92,23 @@ class Codec(NamedTuple):
     write_json: Callable
 
 
+class JsonReader(NamedTuple):
+    """The compiled JSON reader of one class in one client's forms: ``to_json(data) -> dict`` is
+    :meth:`MessageRegistry.bytes_to_json` of a payload that fits (else it raises, and the general path
+    decides); ``read(data, pos) -> (dict, pos)`` is what a class that holds this one in an array calls."""
+    to_json: Callable[[bytes | memoryview], dict]
+    read: Callable
+
+
 class _Unsupported(Exception):
     pass
+
+
+def _finite(values: list) -> list:
+    """A float array's JSON form: non-finite values ``null`` (as the general path writes them)."""
+    if all(map(math.isfinite, values)):
+        return values
+    return [x if math.isfinite(x) else None for x in values]
 
 
 def _complete(obj: dict, names: frozenset, defaults: dict) -> dict:
@@ -117,15 +144,36 @@ def compile_codec(fielddefs: dict, classes: dict, typename: str, max_sequence: i
     return codec
 
 
+def compile_json_reader(fielddefs: dict, classes: dict, typename: str, key: tuple, max_sequence: int,
+                        cache: dict[tuple, JsonReader | None]) -> JsonReader | None:
+    """The :class:`JsonReader` of store type ``typename`` in the JSON forms ``key``
+    (:attr:`rce.messages.forms.JsonForms.key`), or None when the class or the forms are not ones this
+    module handles (a time as ISO 8601 or float seconds; an image as a PNG or JPEG file). Arguments
+    as :func:`compile_codec`; ``cache`` holds readers by ``(type, key)``."""
+    if (typename, key) in cache:
+        return cache[(typename, key)]
+    reader = None
+    if sys.byteorder == "little":
+        try:
+            reader = _Generator(fielddefs, classes, max_sequence, cache, key).json_reader(typename, set())
+        except _Unsupported:
+            pass
+    cache[(typename, key)] = reader
+    return reader
+
+
 class _Generator:
     """Writes the source of one class's three functions (nested messages inlined)."""
 
-    def __init__(self, fielddefs: dict, classes: dict, max_sequence: int, cache: dict):
+    def __init__(self, fielddefs: dict, classes: dict, max_sequence: int, cache: dict, key: tuple | None = None):
+        """``key``: None to write a class's :class:`Codec`; a :attr:`JsonForms.key` to write its
+        JSON reader in those forms (``cache`` then holds readers by ``(type, key)``)."""
         self.fielddefs, self.classes, self.max_sequence, self.cache = fielddefs, classes, max_sequence, cache
+        self.key = key
         self.ns: dict[str, Any] = {"Fallback": Fallback, "frombuffer": np.frombuffer, "ndarray": np.ndarray,
                                    "U32": struct.Struct("<I").unpack_from, "P32": struct.Struct("<I").pack,
                                    "pack": struct.pack, "MAXSEQ": max_sequence, "ERR": ERRORS,
-                                   "complete": _complete}
+                                   "complete": _complete, "finite": _finite, "b64": base64.b64encode}
         self.names: dict[Any, str] = {}
         self.n = 0
 
@@ -154,40 +202,60 @@ class _Generator:
                 raise _Unsupported(fname)
         return fields
 
-    def sub(self, typename: str, stack: set) -> Codec:
-        """The codec of a class inside an array (a function of its own)."""
+    def sub(self, typename: str, stack: set) -> Codec | JsonReader:
+        """The codec (JSON reader, with :attr:`key`) of a class inside an array (a function of its own)."""
         if typename in stack:
             raise _Unsupported(typename)
-        if typename not in self.cache:
+        ck = typename if self.key is None else (typename, self.key)
+        if ck not in self.cache:
+            gen = _Generator(self.fielddefs, self.classes, self.max_sequence, self.cache, self.key)
             try:
-                self.cache[typename] = _Generator(self.fielddefs, self.classes, self.max_sequence,
-                                                  self.cache).codec(typename, stack)
+                self.cache[ck] = gen.codec(typename, stack) if self.key is None else gen.json_reader(typename, stack)
             except _Unsupported:
-                self.cache[typename] = None
-        codec = self.cache[typename]
+                self.cache[ck] = None
+        codec = self.cache[ck]
         if codec is None:
             raise _Unsupported(typename)
         return codec
 
+    def json_reader(self, typename: str, stack: set) -> JsonReader:
+        ns = self.exec(self.reader(typename, stack, "to_json"), f"{typename} to JSON {'/'.join(self.key)}")
+        return JsonReader(ns["to_json"], ns["des"])
+
+    def reader(self, typename: str, stack: set, name: str) -> list[str]:
+        """The source of ``des(buf, pos) -> (value, pos)`` and of ``name(data) -> value``, which takes
+        exactly the whole payload."""
+        stack = stack | {typename}
+        lines: list[str] = []
+        run: list[tuple[str, str]] = []
+        expr = self.des(typename, lines, run, stack)
+        self.flush_des(lines, run)
+        return ["def des(buf, pos):", *lines, f"    return {expr}, pos",
+                f"def {name}(data):",
+                "    value, pos = des(data, 0)",
+                "    if pos != len(data):",
+                "        raise Fallback('bytes left after the last field')",
+                "    return value"]
+
+    def exec(self, src: list[str], what: str) -> dict:
+        """Compile and run ``src``; its namespace."""
+        code = compile("\n".join(src), f"<rce.messages.compiled {what}>", "exec")
+        ns = dict(self.ns)
+        exec(code, ns)      # noqa: S102 - source generated from the typestore's field definitions
+        return ns
+
     def codec(self, typename: str, stack: set) -> Codec:
+        read = self.reader(typename, stack, "deserialize")
         stack = stack | {typename}
         json_ok = [True]
-        d_lines: list[str] = []
         run: list[tuple[str, str]] = []
-        expr = self.des(typename, d_lines, run, stack)
-        self.flush_des(d_lines, run)
         s_lines: list[str] = []
         self.ser(typename, "m", s_lines, run, stack)
         self.flush_ser(s_lines, run)
         j_lines: list[str] = []
         self.ser_json(typename, "d", j_lines, run, stack, json_ok)
         self.flush_ser(j_lines, run)
-        src = ["def des(buf, pos):", *d_lines, f"    return {expr}, pos",
-               "def deserialize(data):",
-               "    msg, pos = des(data, 0)",
-               "    if pos != len(data):",
-               "        raise Fallback('bytes left after the last field')",
-               "    return msg",
+        src = [*read,
                "def ser(m, out):", *s_lines, "    return out",
                "def serialize(m):",
                "    return b''.join(ser(m, []))",
@@ -198,9 +266,7 @@ class _Generator:
                *j_lines, "    return out",
                "def serialize_json(d, forms):",
                "    return b''.join(ser_json(d, [], forms))"]
-        code = compile("\n".join(src), f"<rce.messages.compiled {typename}>", "exec")
-        ns = dict(self.ns)
-        exec(code, ns)      # noqa: S102 - source generated above from the typestore's field definitions
+        ns = self.exec(src, typename)
         return Codec(ns["deserialize"], ns["serialize"], ns["serialize_json"] if json_ok[0] else None,
                      ns["des"], ns["ser"], ns["ser_json"])
 
@@ -215,19 +281,27 @@ class _Generator:
         run.clear()
 
     def des(self, typename: str, lines: list[str], run: list, stack: set) -> str:
-        """Append the reading of ``typename``'s fields; the expression that builds the message."""
+        """Append the reading of ``typename``'s fields; the expression that builds the message (the
+        JSON form's dict, with :attr:`key`)."""
+        if self.key is not None and typename == _IMAGE and self.key[2] != "json":
+            raise _Unsupported(typename)            # a PNG or JPEG file: the general path encodes it
         args = []
         for _, (nt, arg) in self.fields(typename):
             if nt == Nodetype.BASE and arg[0] in _FMT:
                 v = self.var()
                 run.append((v, _FMT[arg[0]]))
-                args.append(v)
+                # JSON has no NaN or infinity: null, as rosbridge sends them (x - x is 0 for finite x only)
+                args.append(f"({v} if {v} - {v} == 0.0 else None)" if self.key is not None and arg[0] in _FLOATS
+                            else v)
             elif nt == Nodetype.BASE and arg[0] == "string":
                 self.flush_des(lines, run)
                 v = self.var()
+                # a message keeps bytes that are not UTF-8 (surrogate escapes); JSON gets U+FFFD for them
+                # (what ros_strings.to_text makes of the escapes)
+                errors = "ERR" if self.key is None else "'replace'"
                 lines += ["    n, = U32(buf, pos)", "    pos += 4", "    e = pos + n",
                           "    if e > len(buf):", "        raise Fallback('a string passes the end')",
-                          f"    {v} = str(buf[pos:e], 'utf-8', ERR)", "    pos = e"]
+                          f"    {v} = str(buf[pos:e], 'utf-8', {errors})", "    pos = e"]
                 args.append(v)
             elif nt == Nodetype.BASE:
                 raise _Unsupported(arg[0])
@@ -238,7 +312,15 @@ class _Generator:
             else:
                 self.flush_des(lines, run)
                 args.append(self.des_array(nt, arg, lines, stack))
-        return f"{self.const(self.classes[typename], 'C')}({', '.join(args)})"
+        if self.key is None:
+            return f"{self.const(self.classes[typename], 'C')}({', '.join(args)})"
+        names = [f for f, _ in self.fields(typename)]
+        if typename in _TIME_TYPES:
+            form = self.key[0] if typename.endswith("/Time") else self.key[1]
+            if form not in _TIME_FORM_KEYS:
+                raise _Unsupported(form)            # an ISO 8601 string or float seconds: the general path
+            names = list(_TIME_FORM_KEYS[form])
+        return "{" + ", ".join(f"{k!r}: {a}" for k, a in zip(names, args, strict=True)) + "}"
 
     def des_array(self, nt: int, arg: tuple, lines: list[str], stack: set) -> str:
         (sub_nt, sub_arg), length = arg
@@ -248,15 +330,22 @@ class _Generator:
                       "        raise Fallback('too many items')"]
         else:
             lines.append(f"    n = {length}")
-        if sub_nt == Nodetype.BASE and sub_arg[0] in _FMT:
+        if sub_nt == Nodetype.BASE and sub_arg[0] in _FMT and self.key is not None and sub_arg[0] in _BYTES:
+            form = "b64({0}).decode()" if self.key[3] == "base64" else "{0}"    # base64 text or a binary part
+            lines += ["    if pos + n > len(buf):", "        raise Fallback('an array passes the end')",
+                      f"    {v} = {form.format('bytes(buf[pos:pos + n])')}", "    pos += n"]
+        elif sub_nt == Nodetype.BASE and sub_arg[0] in _FMT:
             size = struct.calcsize(_FMT[sub_arg[0]])
             dt = self.const(_DTYPE[sub_arg[0]], "DT")
             lines += [f"    {v} = frombuffer(buf, dtype={dt}, count=n, offset=pos)", f"    pos += n * {size}"]
+            if self.key is not None:
+                lines.append(f"    {v} = {'finite(' if sub_arg[0] in _FLOATS else '('}{v}.tolist())")
         elif sub_nt == Nodetype.BASE and sub_arg[0] == "string":
+            errors = "ERR" if self.key is None else "'replace'"
             lines += [f"    {v} = []", "    for _ in range(n):", "        k, = U32(buf, pos)",
                       "        e = pos + 4 + k", "        if e > len(buf):",
                       "            raise Fallback('a string passes the end')",
-                      f"        {v}.append(str(buf[pos + 4:e], 'utf-8', ERR))", "        pos = e"]
+                      f"        {v}.append(str(buf[pos + 4:e], 'utf-8', {errors}))", "        pos = e"]
         elif sub_nt == Nodetype.NAME:
             f = self.const(self.sub(sub_arg, stack).read, "D")
             lines += [f"    {v} = []", "    for _ in range(n):", f"        o, pos = {f}(buf, pos)",

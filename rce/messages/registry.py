@@ -39,7 +39,7 @@ from rosbags.typesys.base import Nodetype
 from rce.plumbing.errors import MessageError
 from rce.messages.forms import (RCE_FORMS, JsonForms, duration_to_seconds, image_from_bytes, image_to_bytes,
                                iso_to_time, seconds_to_duration, time_to_iso)
-from rce.messages.compiled import Codec, compile_codec
+from rce.messages.compiled import Codec, JsonReader, compile_codec, compile_json_reader
 from rce.messages.structure import Short, Walker, compile_walker
 from rce.messages import ros_strings
 
@@ -110,6 +110,7 @@ class MessageRegistry:
         self._decoders: dict[tuple[str, FormsKey], Decoder] = {}
         self._walkers: dict[str, Walker] = {}
         self._codecs: dict[str, Codec | None] = {}   # store type -> its compiled codec (rce.messages.compiled)
+        self._readers: dict[tuple, JsonReader | None] = {}   # (store type, forms key) -> its compiled JSON reader
         self._services: set[str] = set()   # wire names of registered services
 
     # -- registration -----------------------------------------------------------------------
@@ -134,6 +135,7 @@ class MessageRegistry:
             with self._lock:
                 self.store.register(types)
                 self._codecs.clear()
+                self._readers.clear()
         except Exception as e:
             raise MessageError(f"cannot register message class {wire!r}: {e}") from e
 
@@ -305,7 +307,20 @@ class MessageRegistry:
         return self.serialize(typename, self.from_json(typename, obj, forms))
 
     def bytes_to_json(self, typename: str, data: bytes, forms: JsonForms | None = None) -> Any:
-        """ROS 1 serialized bytes -> JSON (what a converter sends to a robot), in ``forms``."""
+        """ROS 1 serialized bytes -> JSON (what a converter sends to a robot), in ``forms``: the same
+        value and errors as :meth:`to_json` of :meth:`deserialize`, read straight from the bytes where
+        :mod:`rce.messages.compiled` has a reader for the class in these forms."""
+        key = (forms or RCE_FORMS).key
+        reader = self._readers.get((typename, key), False)
+        if reader is False:
+            reader = (compile_json_reader(self.store.fielddefs, self.store.types, typename, key,
+                                          self.store.max_sequence_length, self._readers)
+                      if typename in self.store.fielddefs else None)
+        if reader is not None:
+            try:
+                return reader.to_json(data)
+            except Exception:       # does not fit: the general path says why
+                pass
         return self.to_json(typename, self.deserialize(typename, data), forms)
 
     # -- codec compilation --------------------------------------------------------------------

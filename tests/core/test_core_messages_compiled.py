@@ -28,6 +28,9 @@ def random_json(fielddefs: dict, typename: str, rng: random.Random) -> dict:
     often: empty and non-ASCII strings, bytes that are not UTF-8, empty arrays, range limits)."""
     if typename in _TIMES:
         return {"secs": rng.randint(-2**31, 2**31 - 1), "nsecs": rng.randint(0, 999_999_999)}
+    if typename == "sensor_msgs/msg/Image":     # an image the PNG form can hold: 1 x 2 rgb8
+        return {"header": random_json(fielddefs, "std_msgs/msg/Header", rng), "height": 1, "width": 2,
+                "encoding": "rgb8", "is_bigendian": 0, "step": 6, "data": [rng.randint(0, 255) for _ in range(6)]}
     out = {}
     for fname, (nt, arg) in fielddefs[typename][1]:
         if fname == "structure_needs_at_least_one_member":
@@ -196,3 +199,35 @@ def test_registered_class_with_arrays_of_messages(ts):
     got = reg.deserialize(t, ref)
     assert same(got, reg.store.deserialize_ros1(ref, t))
     assert reg.serialize(t, got) == ref
+
+
+FORMS = [JsonForms(), JsonForms(time="sec", duration="sec", byte_arrays="binary"),
+         JsonForms(time="iso", duration="float"), JsonForms(images="png")]
+
+
+@pytest.mark.parametrize("seed", range(2))
+@pytest.mark.parametrize("forms", FORMS, ids=lambda f: "/".join(f.key))
+def test_every_class_reads_to_json_as_the_general_path(reg, ts, seed, forms):
+    rng = random.Random(seed)
+    compiled = 0
+    for t in every_class(reg):
+        obj = random_json(reg.store.fielddefs, t, rng)
+        data = bytes(ts.serialize_ros1(reg.from_json(t, obj), t))
+        assert reg.bytes_to_json(t, data, forms) == reg.to_json(t, ts.deserialize_ros1(data, t), forms), t
+        compiled += reg._readers.get((t, forms.key)) is not None
+    if forms.time in ("secs", "sec"):
+        assert compiled > 140
+
+
+def test_json_reader_edge_values(reg, ts):
+    t = "sensor_msgs/msg/LaserScan"
+    obj = {"header": {"frame_id": "\udcff laser"}, "ranges": [1.0, math.inf, -math.inf, math.nan, 0.5],
+           "intensities": [], "range_max": math.nan}
+    data = reg.json_to_bytes(t, obj)
+    got = reg.bytes_to_json(t, data)
+    assert got == reg.to_json(t, ts.deserialize_ros1(data, t))
+    assert got["ranges"] == [1.0, None, None, None, 0.5] and got["range_max"] is None
+    assert got["header"]["frame_id"] == "\ufffd laser"
+    for bad in (data[:-1], data + b"\0"):
+        with pytest.raises(MessageError, match="LaserScan"):
+            reg.bytes_to_json(t, bad)
