@@ -26,6 +26,17 @@ def grid(rows: list[str]) -> LifelongGrid:
     return LifelongGrid(np.array([[ch == "." for ch in r] for r in rows]))
 
 
+def crowded(seed: int, side: int, blocked: float, n: int) -> tuple[LifelongGrid, np.ndarray, np.ndarray]:
+    """A random ``side`` x ``side`` grid with a share ``blocked`` of obstacles, and ``n`` agents
+    with distinct starts and goals drawn from the part connected to the first free cell."""
+    rng = np.random.default_rng(seed)
+    g = LifelongGrid(rng.random((side, side)) > blocked)
+    cells = np.flatnonzero(g.flat)
+    reach = DistanceCache(g).from_source(int(cells[0]))
+    pick = rng.choice(cells[reach[cells] < UNREACHABLE], 2 * n, replace=False)
+    return g, pick[:n], pick[n:]
+
+
 def assert_valid(g: LifelongGrid, res: dict, starts, goals) -> None:
     """The solution is valid under the simulator's rules, every agent ends on its goal and
     stays there from its last arrival on, and sum of costs is those arrivals summed."""
@@ -77,13 +88,7 @@ def test_pp_fills_a_dead_end_deepest_goal_first_and_keeps_every_rule():
 
 
 def test_pp_on_a_crowded_random_grid_is_valid_and_near_the_lower_bound():
-    rng = np.random.default_rng(5)
-    g = LifelongGrid(rng.random((16, 16)) > 0.15)
-    cells = np.flatnonzero(g.flat)
-    reach = DistanceCache(g).from_source(int(cells[0]))
-    big = cells[reach[cells] < UNREACHABLE]
-    pick = rng.choice(big, 80, replace=False)
-    starts, goals = pick[:40], pick[40:]
+    g, starts, goals = crowded(5, 16, 0.15, 40)
     res = solve_pp(g, starts, goals, time_limit_s=10, seed=1)
     assert res["solved"]
     assert_valid(g, res, starts, goals)
@@ -132,3 +137,58 @@ def test_pp_solves_400_agents_on_the_movingai_warehouse_and_lns_keeps_it_valid()
     assert out["solved"] and out["initial"] == "pp"
     assert out["sum_of_costs"] <= out["first_sum_of_costs"]
     assert_valid(g, out, starts, goals)
+
+
+def test_a_replayed_change_is_applied_only_when_it_fits_and_is_not_worse():
+    """Refiner.replay: another refiner's change to agent 0 that collides here with agent 1 (on a
+    cell at one step, on its goal after it arrived, or by an exchange of cells) or that arrives
+    later is refused and the table stays as it was; one that fits and arrives no later is
+    applied."""
+    from rce_fleet.lifelong.refine import Refiner
+    warm_up()
+    g = grid(["...",
+              "...",
+              "..."])
+    # agent 1 goes down the middle column 1 -> 4 -> 7; agent 0 waits on 3 two steps, then 4, 5
+    ref = Refiner(g, np.array([[3, 1], [3, 4], [3, 7], [4, 7], [5, 7]]), np.array([5, 7]))
+    before = ref.res.occ.copy()
+
+    def change(r, cells, goal):
+        row = np.full(r.res.H, goal, dtype=np.int32)
+        row[: len(cells)] = cells
+        return (np.array([0]), row[None, :], np.array([len(cells)]))
+
+    assert ref.replay([change(ref, [3, 3, 3, 3, 4, 5], 5)]) == 0   # later than its path here
+    assert ref.replay([change(ref, [3, 4, 5], 5)]) == 0            # on 4 at step 1, with agent 1
+    assert ref.replay([change(ref, [3, 6, 7, 8, 5], 5)]) == 0      # on 7, agent 1's goal, at step 2
+    assert (ref.res.occ == before).all()
+    assert ref.replay([change(ref, [3, 3, 4, 5], 5)]) == 1         # one wait less: fits
+    assert ref.solution()["sum_of_costs"] == 3 + 2
+    assert_valid(g, ref.solution(), [3, 1], [5, 7])
+    # agent 1 goes 1 -> 5 while agent 0 leaves 5 by 6: by 1 instead, the two would exchange cells
+    g = grid(["....",
+              "...."])
+    swap = Refiner(g, np.array([[5, 1], [6, 5], [2, 5]]), np.array([2, 5]))
+    assert swap.replay([change(swap, [5, 1, 2], 2)]) == 0
+
+
+def test_lns_on_two_processes_keeps_a_crowded_solution_valid_and_replays_the_workers_changes():
+    from rce_fleet.lifelong.lacam import solve_lacam
+    from rce_fleet.lifelong.parallel import refine_parallel
+    warm_up()
+    g, starts, goals = crowded(3, 12, 0.2, 30)
+    res = solve_lacam(g, starts, goals, time_limit_s=30)
+    assert res["solved"]
+    # a clock of calls: the same number of rounds however busy the machine
+    calls = itertools.count(0.0, 1e-4)
+    out = refine_parallel(g, res["paths"], goals, 1.0, workers=2, round_s=0.02, clock=lambda: next(calls))
+    applied, changes = out["changes"]
+    assert changes > 0 and 0 < applied <= changes
+    assert out["sum_of_costs"] <= res["sum_of_costs"]
+    assert_valid(g, out, starts, goals)
+    calls = itertools.count(0.0, 1e-3)
+    shot = plan_one_shot(g, starts, goals, time_limit_s=3, workers=2, clock=lambda: next(calls))
+    assert shot["solved"] and shot["sum_of_costs"] <= shot["first_sum_of_costs"]
+    assert_valid(g, shot, starts, goals)
+    with pytest.raises(ValueError, match="workers"):
+        refine_parallel(g, res["paths"], goals, 1.0, workers=0)

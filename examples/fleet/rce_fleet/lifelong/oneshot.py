@@ -18,6 +18,7 @@ import numpy as np
 from .distances import DistanceCache
 from .grid import LifelongGrid
 from .lacam import solve_lacam
+from .parallel import refine_parallel
 from .pp import solve_pp
 from .refine import refine_lns
 
@@ -28,17 +29,21 @@ INITIAL_SOLVERS = ("pp", "lacam")
 
 def plan_one_shot(grid: LifelongGrid, starts: np.ndarray, goals: np.ndarray, time_limit_s: float = 5.0,
                   seed: int = 0, cache: DistanceCache | None = None, initial: str = "lacam", pp_share: float = 0.15,
-                  scatter_share: float = 0.2, clock=time.perf_counter) -> dict:
+                  scatter_share: float = 0.2, workers: int = 1, clock=time.perf_counter) -> dict:
     """Solve one-shot MAPF (4-neighbour moves) within ``time_limit_s`` seconds of ``clock``
     (wall time; ``time.process_time`` for this process's CPU).
 
     starts, goals: (n,) cells. ``initial``: "lacam", or "pp" (prioritized planning within
     ``pp_share`` of the budget, LaCAM in the rest when PP fails); LaCAM spends up to
-    ``scatter_share`` of its time on :func:`~.scatter.scatter` paths for PIBT to prefer. Returns the dict of
+    ``scatter_share`` of its time on :func:`~.scatter.scatter` paths for PIBT to prefer.
+    ``workers`` > 1: LNS runs on that many processes (:func:`~.parallel.refine_parallel`, forked:
+    call it from a process that may fork), each for the time left of its own ``clock``.
+    Returns the dict of
     :func:`~.lacam.solve_lacam` (``paths`` (T+1, n), ``solved``, ``sum_of_costs``,
     ``makespan``, ``time_s``) plus ``initial`` (the solver of the first solution, "pp" or
     "lacam"), ``first_time_s`` and ``first_sum_of_costs`` (of the first solution),
-    ``pp_planned`` (agents PP planned; n when it solved), ``lns_iterations``. Raises
+    ``pp_planned`` (agents PP planned; n when it solved), ``lns_iterations`` and
+    ``worker_cpu_s`` (CPU seconds of the LNS workers, 0 with one process). Raises
     ValueError for an unknown ``initial``, a goal that cannot be reached, or two agents on
     one start or goal.
     """
@@ -59,11 +64,17 @@ def plan_one_shot(grid: LifelongGrid, starts: np.ndarray, goals: np.ndarray, tim
                           scatter_share=scatter_share, clock=clock)
         used = "lacam"
     first_t, first_soc = clock() - t0, res["sum_of_costs"]
-    iterations = 0
+    iterations, worker_cpu = 0, 0.0
     left = time_limit_s - first_t
     if res["solved"] and left > 0:
-        ref = refine_lns(grid, res["paths"], goals, left, seed=seed, cache=cache, clock=clock)
+        if workers > 1:
+            ref = refine_parallel(grid, res["paths"], goals, left, workers=workers, seed=seed, cache=cache,
+                                  clock=clock)
+            worker_cpu = ref["worker_cpu_s"]
+        else:
+            ref = refine_lns(grid, res["paths"], goals, left, seed=seed, cache=cache, clock=clock)
         res = {**res, "paths": ref["paths"], "sum_of_costs": ref["sum_of_costs"], "makespan": ref["makespan"]}
         iterations = ref["iterations"]
     return {**res, "time_s": clock() - t0, "initial": used, "first_time_s": first_t,
-            "first_sum_of_costs": first_soc, "pp_planned": planned, "lns_iterations": iterations}
+            "first_sum_of_costs": first_soc, "pp_planned": planned, "lns_iterations": iterations,
+            "worker_cpu_s": worker_cpu}

@@ -33,16 +33,142 @@ import numpy as np
 
 from .distances import DistanceCache
 from .grid import LifelongGrid
-from .spacetime import SpaceTimeTable
+from .spacetime import SpaceTimeTable, fits
 from .spacetime import warm_up as _warm_spacetime
 
-__all__ = ["refine_lns", "warm_up"]
+__all__ = ["Refiner", "refine_lns", "warm_up"]
 
 
 def _arrivals(paths: np.ndarray, goals: np.ndarray) -> np.ndarray:
     """(n,) each agent's last arrival at its goal in ``paths`` ((T+1, n))."""
     off = paths != goals[None, :]
     return np.where(off.any(axis=0), paths.shape[0] - np.argmax(off[::-1], axis=0), 0).astype(np.int64)
+
+
+class Refiner:
+    """The state of anytime LNS on one conflict-free solution: the reservation table of every
+    agent's path, the sweep in progress and the random stream. :meth:`improve` re-plans
+    neighbourhoods of the agents in ``own`` only (all by default), so that several refiners on
+    copies of one solution, each owning other agents, can run side by side and
+    :meth:`replay` each other's changes (:mod:`.parallel`).
+
+    paths: (T+1, n) cells whose last row is ``goals``. Raises ValueError otherwise."""
+
+    def __init__(self, grid: LifelongGrid, paths: np.ndarray, goals: np.ndarray, seed: int = 0,
+                 cache: DistanceCache | None = None, max_group: int = 8, slack: int = 64,
+                 max_expand: int = 5_000, max_sweeps: int = 8, sipp: bool = True):
+        goals = np.asarray(goals, dtype=np.int64)
+        paths = np.asarray(paths, dtype=np.int64)
+        if paths.ndim != 2 or paths.shape[1] != goals.shape[0] or not (paths[-1] == goals).all():
+            raise ValueError("refine_lns needs a solution: (T+1, n) cells whose last row is the goals")
+        n = goals.shape[0]
+        ncell = grid.n_cells
+        cache = cache or DistanceCache(grid, max_bytes=2 * ncell * (n + 16))
+        self.goals, self.nbr, self.table = goals, grid.nbr, cache.table
+        self.hrows = np.array([cache.slot(int(g)) for g in goals], dtype=np.int64)
+        self.lb = self.table[self.hrows, paths[0]].astype(np.int64)
+        self.res = SpaceTimeTable(n, ncell, paths.shape[0] + slack, int(self.lb.max()) + 1)
+        self.res.paths[:, : paths.shape[0]] = paths.T
+        self.res.lengths[:] = _arrivals(paths, goals) + 1
+        self.res.place(goals, np.arange(n, dtype=np.int64))
+        self.starts = paths[0].copy()
+        self.max_group, self.max_expand, self.sipp = max_group, max_expand, sipp
+        self.rng = np.random.default_rng(seed)
+        self.own = np.ones(n, dtype=bool)
+        self.sweeps, self.sweep_from = max_sweeps, np.inf
+        self.queue: list[int] = []
+        self.iterations = self.accepted = 0
+        self.log: list | None = None           # accepted changes, for :meth:`replay` elsewhere
+
+    def improve(self, time_limit_s: float, clock=time.perf_counter) -> None:
+        """Re-plan neighbourhoods of owned agents for ``time_limit_s`` seconds of ``clock``
+        (wall time; ``time.process_time`` for this process's CPU), keeping each whose sum of
+        costs is not higher."""
+        t0 = clock()
+        res, goals, lb, rng, n = self.res, self.goals, self.lb, self.rng, self.goals.shape[0]
+        owned = np.flatnonzero(self.own)
+        while clock() - t0 < time_limit_s:
+            delay = np.where(self.own, res.lengths - 1 - lb, 0)
+            if delay.sum() == 0:
+                break
+            self.iterations += 1
+            if not self.queue and self.sweeps and delay.sum() < 0.99 * self.sweep_from:   # the last sweep helped
+                self.sweeps -= 1
+                self.sweep_from = delay.sum()
+                order = np.argsort(-delay[owned], kind="stable")
+                self.queue = owned[order][::-1].tolist()                  # popped from the end
+            if self.queue:
+                group = np.array([self.queue.pop()], dtype=np.int64)
+            elif rng.random() < 0.8:
+                w = delay.astype(float)
+                i = int(rng.choice(n, p=w / w.sum()))
+                col = res.occ[goals[i], lb[i]:]
+                others = np.unique(col[(col >= 0) & (col != i)]).astype(np.int64)
+                others = others[self.own[others]]
+                if len(others) > self.max_group - 1:
+                    others = rng.choice(others, self.max_group - 1, replace=False)
+                group = np.concatenate(([i], others)).astype(np.int64)
+            else:
+                group = rng.choice(owned, size=min(self.max_group, len(owned)), replace=False).astype(np.int64)
+            rng.shuffle(group)
+            old_paths = res.paths[group].copy()
+            old_len = res.lengths[group].copy()
+            res.remove(goals, group)
+            k = res.plan(self.nbr, self.table, self.hrows, self.starts, goals, group, self.max_expand, self.sipp)
+            if k == len(group) and res.lengths[group].sum() <= old_len.sum():
+                self.accepted += int(res.lengths[group].sum() < old_len.sum())
+                if self.log is not None:
+                    self.log.append((group, res.paths[group].astype(np.int32), res.lengths[group].copy()))
+                continue
+            res.remove(goals, group[:k])
+            res.paths[group] = old_paths
+            res.lengths[group] = old_len
+            res.place(goals, group)
+
+    def replay(self, log: list) -> int:
+        """Apply another refiner's accepted changes ``log`` (:attr:`log`: (agents, their paths
+        (k, H), their lengths (k,)) each, in the order they were made, each planned around that
+        refiner's paths at the time) in order, each only when all its paths fit this refiner's
+        (no vertex or swap conflict, goals free from the arrival on) and its sum of costs is
+        not higher than these agents' here. Returns how many changes were applied."""
+        res, goals = self.res, self.goals
+        applied = 0
+        for agents, paths, lengths in log:
+            if lengths.sum() > res.lengths[agents].sum():
+                continue
+            old_paths, old_len = res.paths[agents].copy(), res.lengths[agents].copy()
+            res.remove(goals, agents)
+            k = 0
+            while k < len(agents) and fits(res.occ, paths[k], lengths[k], goals[agents[k]]):
+                res.paths[agents[k]], res.lengths[agents[k]] = paths[k], lengths[k]
+                res.place(goals, agents[k: k + 1])
+                k += 1
+            if k == len(agents):
+                applied += 1
+                continue
+            res.remove(goals, agents[:k])
+            res.paths[agents], res.lengths[agents] = old_paths, old_len
+            res.place(goals, agents)
+        return applied
+
+    def sync(self, agents: np.ndarray, paths: np.ndarray, lengths: np.ndarray) -> None:
+        """Set ``agents``' paths ((k,); ``paths`` (k, H) cells by step, ``lengths`` (k,) arrival
+        + 1) to another refiner's, without a check: the caller sends a whole solution's
+        changes."""
+        res = self.res
+        res.remove(self.goals, agents)
+        res.paths[agents], res.lengths[agents] = paths, lengths
+        res.place(self.goals, agents)
+
+    def solution(self) -> dict:
+        """``paths`` ((T+1, n), conflict-free, every agent on its goal from its last arrival on),
+        ``sum_of_costs``, ``makespan``."""
+        arrival = self.res.lengths - 1
+        T = int(arrival.max())
+        out = self.res.paths[:, : T + 1].T.copy()
+        for a in np.flatnonzero(arrival < T):
+            out[arrival[a] + 1:, a] = self.goals[a]
+        return {"paths": out, "sum_of_costs": int(arrival.sum()), "makespan": T}
 
 
 def refine_lns(grid: LifelongGrid, paths: np.ndarray, goals: np.ndarray, time_limit_s: float, seed: int = 0,
@@ -58,69 +184,10 @@ def refine_lns(grid: LifelongGrid, paths: np.ndarray, goals: np.ndarray, time_li
     agent's arrival beyond the input's makespan + ``slack``). Raises ValueError when the last
     row is not ``goals``."""
     t0 = clock()
-    goals = np.asarray(goals, dtype=np.int64)
-    paths = np.asarray(paths, dtype=np.int64)
-    if paths.ndim != 2 or paths.shape[1] != goals.shape[0] or not (paths[-1] == goals).all():
-        raise ValueError("refine_lns needs a solution: (T+1, n) cells whose last row is the goals")
-    n = goals.shape[0]
-    ncell = grid.n_cells
-    H = paths.shape[0] + slack
-    cache = cache or DistanceCache(grid, max_bytes=2 * ncell * (n + 16))
-    hrows = np.array([cache.slot(int(g)) for g in goals], dtype=np.int64)
-    table = cache.table
-    lb = table[hrows, paths[0]].astype(np.int64)
-    arrival = _arrivals(paths, goals)
-    res = SpaceTimeTable(n, ncell, H, int(lb.max()) + 1)
-    res.paths[:, : paths.shape[0]] = paths.T
-    res.lengths[:] = arrival + 1
-    everyone = np.arange(n, dtype=np.int64)
-    res.place(goals, everyone)
-    starts = paths[0].copy()
-    nbr = grid.nbr
-    rng = np.random.default_rng(seed)
-    it = acc = 0
-    sweeps, sweep_from = max_sweeps, np.inf
-    queue: list[int] = []
-    while clock() - t0 < time_limit_s:
-        delay = res.lengths - 1 - lb
-        if delay.sum() == 0:
-            break
-        it += 1
-        if not queue and sweeps and delay.sum() < 0.99 * sweep_from:   # the last sweep helped
-            sweeps -= 1
-            sweep_from = delay.sum()
-            queue = np.argsort(-delay, kind="stable")[::-1].tolist()      # popped from the end
-        if queue:
-            group = np.array([queue.pop()], dtype=np.int64)
-        elif rng.random() < 0.8:
-            w = delay.astype(float)
-            i = int(rng.choice(n, p=w / w.sum()))
-            col = res.occ[goals[i], lb[i]:]
-            others = np.unique(col[(col >= 0) & (col != i)]).astype(np.int64)
-            if len(others) > max_group - 1:
-                others = rng.choice(others, max_group - 1, replace=False)
-            group = np.concatenate(([i], others)).astype(np.int64)
-        else:
-            group = rng.choice(n, size=min(max_group, n), replace=False).astype(np.int64)
-        rng.shuffle(group)
-        old_paths = res.paths[group].copy()
-        old_len = res.lengths[group].copy()
-        res.remove(goals, group)
-        k = res.plan(nbr, table, hrows, starts, goals, group, max_expand, sipp)
-        if k == len(group) and res.lengths[group].sum() <= old_len.sum():
-            acc += int(res.lengths[group].sum() < old_len.sum())
-            continue
-        res.remove(goals, group[:k])
-        res.paths[group] = old_paths
-        res.lengths[group] = old_len
-        res.place(goals, group)
-    arrival = res.lengths - 1
-    T = int(arrival.max())
-    out = res.paths[:, : T + 1].T.copy()
-    for a in np.flatnonzero(arrival < T):
-        out[arrival[a] + 1:, a] = goals[a]
-    return {"paths": out, "sum_of_costs": int(arrival.sum()), "makespan": T, "iterations": it, "accepted": acc,
-            "expanded": int(res.stats[0]), "time_s": clock() - t0}
+    ref = Refiner(grid, paths, goals, seed, cache, max_group, slack, max_expand, max_sweeps, sipp)
+    ref.improve(time_limit_s - (clock() - t0), clock)
+    return {**ref.solution(), "iterations": ref.iterations, "accepted": ref.accepted,
+            "expanded": int(ref.res.stats[0]), "time_s": clock() - t0}
 
 
 def warm_up() -> None:

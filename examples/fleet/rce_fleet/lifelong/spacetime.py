@@ -34,7 +34,7 @@ from ..numba_cache import seed
 
 seed(__file__)          # numba's cache entries prepared in the tree (sandboxed nodes)
 
-__all__ = ["SpaceTimeTable", "plan_agents", "warm_up"]
+__all__ = ["SpaceTimeTable", "fits", "plan_agents", "warm_up"]
 
 
 @njit(cache=True)
@@ -289,6 +289,24 @@ def plan_agents(nbr, table, hrow, starts, goals, agents, occ, hi, paths, lengths
 
 
 @njit(cache=True)
+def fits(occ, path, length, goal):
+    """Whether a path (``path[:length]`` cells by step, then held on ``goal`` to the horizon)
+    can join ``occ``: no cell taken at its step, no exchange of cells with an agent in it, its
+    goal free from its arrival on."""
+    for t in range(length):
+        if occ[path[t], t] >= 0:
+            return False
+        if t > 0 and path[t] != path[t - 1]:
+            j = occ[path[t], t - 1]
+            if j >= 0 and occ[path[t - 1], t] == j:
+                return False
+    for t in range(length, occ.shape[1]):
+        if occ[goal, t] >= 0:
+            return False
+    return True
+
+
+@njit(cache=True)
 def remove_agents(occ, paths, lengths, goals, agents):
     """Take ``agents``' paths (and their parked goals) out of ``occ``."""
     for a in agents:
@@ -360,5 +378,6 @@ def warm_up() -> None:
         r.remove(goals, [0, 1])
         r.plan(g.nbr, table, np.array([0, 1], dtype=np.int64), starts, goals, [0, 1], 100, sipp)
     r.remove(goals, [0])
+    fits(r.occ, r.paths[0], r.lengths[0], goals[0])
     r.place(goals, [0])
 

@@ -1,0 +1,114 @@
+"""Anytime LNS on several cores: :class:`~.refine.Refiner` copies in forked worker processes,
+each re-planning only its own agents, merged in rounds (lacam3 refines on several threads,
+Okumura AAMAS-24; here processes, as the searches hold the GIL between compiled calls).
+
+Each round every refiner improves its copy for ``round_s`` seconds of its own clock; the
+workers send their owned agents' changed paths; the main refiner merges them (a path that
+conflicts with the main's own changes is re-planned around everybody, and when that fails the
+worker's whole round is dropped) and sends the merged solution back. Agent ``a`` belongs to
+refiner ``a % workers``. The work is forked (``multiprocessing``'s "fork" start method, so the
+compiled kernels and the solution are inherited, not sent), so callers fork only from a process
+that may fork (no other threads).
+"""
+from __future__ import annotations
+
+import multiprocessing
+import os
+import time
+
+import numpy as np
+
+from .distances import DistanceCache
+from .grid import LifelongGrid
+from .refine import Refiner
+
+__all__ = ["refine_parallel"]
+
+
+def _worker(ref: Refiner, conn, clock) -> None:
+    """Serve rounds until told to stop: (seconds, the merged paths of the agents changed in the
+    last round: agents, paths, lengths) in, (this round's accepted changes, iterations) out."""
+    try:
+        while True:
+            msg = conn.recv()
+            if msg is None:
+                break
+            seconds, changed = msg
+            ref.sync(*changed)
+            ref.log = []
+            ref.improve(seconds, clock)
+            conn.send((ref.log, ref.iterations))
+    finally:
+        conn.close()
+
+
+def refine_parallel(grid: LifelongGrid, paths: np.ndarray, goals: np.ndarray, time_limit_s: float,
+                    workers: int = 2, round_s: float = 0.05, seed: int = 0, cache: DistanceCache | None = None,
+                    clock=time.perf_counter) -> dict:
+    """:func:`~.refine.refine_lns` on ``workers`` processes (this one and ``workers`` - 1
+    forked): the same arguments and result (``iterations`` summed over the processes), plus
+    ``changes`` (the workers' accepted changes replayed here, and all of them) and
+    ``worker_cpu_s`` (the workers' CPU seconds). Each process spends ``time_limit_s`` seconds of
+    its own ``clock``: with ``time.process_time`` the CPU of all of them together is up to
+    ``workers`` x ``time_limit_s``. Agents are owned by goal column: the ``n / workers`` with
+    the goals farthest west by the main process, the next by the first worker, and so on.
+    Raises ValueError when the last row of ``paths`` is not ``goals`` or ``workers`` < 1."""
+    if workers < 1:
+        raise ValueError(f"workers must be at least 1, got {workers}")
+    t0, cpu0 = clock(), _children_cpu()
+    ref = Refiner(grid, paths, goals, seed=seed, cache=cache)
+    n = ref.goals.shape[0]
+    rank = np.argsort(np.argsort(ref.goals % grid.free.shape[1], kind="stable"))
+    owner = np.minimum(rank * workers // max(n, 1), workers - 1)
+    ctx = multiprocessing.get_context("fork")
+    links, procs = [], []
+    for w in range(1, workers):
+        ref.own = owner == w
+        ref.rng = np.random.default_rng([seed, w])
+        here, there = ctx.Pipe()
+        p = ctx.Process(target=_worker, args=(ref, there, clock), daemon=True)
+        p.start()
+        there.close()
+        links.append(here)
+        procs.append(p)
+    ref.own = owner == 0
+    ref.rng = np.random.default_rng([seed, 0])
+    applied = changes = iterations = 0
+    none = np.zeros(0, dtype=np.int64)
+    changed = (none, ref.res.paths[none], ref.res.lengths[none])
+    try:
+        while True:
+            left = time_limit_s - (clock() - t0)
+            if left <= 0.01 or not links:
+                break
+            seconds = min(round_s, left)
+            for link in links:
+                link.send((seconds, changed))
+            ref.log = []
+            ref.improve(seconds, clock)
+            touched = [g for g, _, _ in ref.log]
+            replies = [link.recv() for link in links]
+            for log, _ in replies:
+                applied += ref.replay(log)
+                changes += len(log)
+                touched += [g for g, _, _ in log]
+            iterations = sum(r[1] for r in replies)
+            agents = np.unique(np.concatenate(touched)) if touched else none
+            changed = (agents, ref.res.paths[agents], ref.res.lengths[agents])
+        if not links:
+            ref.improve(time_limit_s - (clock() - t0), clock)
+    finally:
+        for link in links:
+            link.send(None)
+            link.close()
+        for p in procs:
+            p.join()
+    return {**ref.solution(), "iterations": ref.iterations + iterations, "accepted": ref.accepted,
+            "changes": (applied, changes), "expanded": int(ref.res.stats[0]), "time_s": clock() - t0,
+            "worker_cpu_s": _children_cpu() - cpu0}
+
+
+def _children_cpu() -> float:
+    """CPU seconds of this process's waited-for children."""
+    t = os.times()
+    return t.children_user + t.children_system
