@@ -33,7 +33,8 @@ def _worker(ref: Refiner, conn, clock) -> None:
             msg = conn.recv()
             if msg is None:
                 break
-            seconds, changed = msg
+            seconds, own, changed = msg
+            ref.own = own
             ref.sync(*changed)
             ref.log = []
             ref.improve(seconds, clock)
@@ -43,7 +44,7 @@ def _worker(ref: Refiner, conn, clock) -> None:
 
 
 def refine_parallel(grid: LifelongGrid, paths: np.ndarray, goals: np.ndarray, time_limit_s: float,
-                    workers: int = 2, round_s: float = 0.05, seed: int = 0, cache: DistanceCache | None = None,
+                    workers: int = 2, round_s: float = 0.02, seed: int = 0, cache: DistanceCache | None = None,
                     clock=time.perf_counter) -> dict:
     """:func:`~.refine.refine_lns` on ``workers`` processes (this one and ``workers`` - 1
     forked): the same arguments and result (``iterations`` summed over the processes), plus
@@ -59,11 +60,9 @@ def refine_parallel(grid: LifelongGrid, paths: np.ndarray, goals: np.ndarray, ti
     ref = Refiner(grid, paths, goals, seed=seed, cache=cache)
     n = ref.goals.shape[0]
     rank = np.argsort(np.argsort(ref.goals % grid.free.shape[1], kind="stable"))
-    owner = np.minimum(rank * workers // max(n, 1), workers - 1)
     ctx = multiprocessing.get_context("fork")
     links, procs = [], []
     for w in range(1, workers):
-        ref.own = owner == w
         ref.rng = np.random.default_rng([seed, w])
         here, there = ctx.Pipe()
         p = ctx.Process(target=_worker, args=(ref, there, clock), daemon=True)
@@ -71,9 +70,9 @@ def refine_parallel(grid: LifelongGrid, paths: np.ndarray, goals: np.ndarray, ti
         there.close()
         links.append(here)
         procs.append(p)
-    ref.own = owner == 0
     ref.rng = np.random.default_rng([seed, 0])
-    applied = changes = iterations = 0
+    applied = changes = iterations = rounds = 0
+    shift = max(n // (8 * workers), 1)         # the owners' borders move on by this many agents each round
     none = np.zeros(0, dtype=np.int64)
     changed = (none, ref.res.paths[none], ref.res.lengths[none])
     try:
@@ -82,8 +81,12 @@ def refine_parallel(grid: LifelongGrid, paths: np.ndarray, goals: np.ndarray, ti
             if left <= 0.01 or not links:
                 break
             seconds = min(round_s, left)
-            for link in links:
-                link.send((seconds, changed))
+            if not ref.queue:                  # between sweeps: the owners' borders move on
+                rounds += 1
+            owner = (rank + rounds * shift) % n * workers // n
+            for w, link in enumerate(links, 1):
+                link.send((seconds, owner == w, changed))
+            ref.own = owner == 0
             ref.log = []
             ref.improve(seconds, clock)
             touched = [g for g, _, _ in ref.log]

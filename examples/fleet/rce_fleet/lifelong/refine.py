@@ -91,14 +91,16 @@ class Refiner:
             delay = np.where(self.own, res.lengths - 1 - lb, 0)
             if delay.sum() == 0:
                 break
-            self.iterations += 1
             if not self.queue and self.sweeps and delay.sum() < 0.99 * self.sweep_from:   # the last sweep helped
                 self.sweeps -= 1
                 self.sweep_from = delay.sum()
                 order = np.argsort(-delay[owned], kind="stable")
                 self.queue = owned[order][::-1].tolist()                  # popped from the end
             if self.queue:
-                group = np.array([self.queue.pop()], dtype=np.int64)
+                a = self.queue.pop()
+                if not self.own[a]:
+                    continue                   # another refiner's since the sweep began
+                group = np.array([a], dtype=np.int64)
             elif rng.random() < 0.8:
                 w = delay.astype(float)
                 i = int(rng.choice(n, p=w / w.sum()))
@@ -110,6 +112,7 @@ class Refiner:
                 group = np.concatenate(([i], others)).astype(np.int64)
             else:
                 group = rng.choice(owned, size=min(self.max_group, len(owned)), replace=False).astype(np.int64)
+            self.iterations += 1
             rng.shuffle(group)
             old_paths = res.paths[group].copy()
             old_len = res.lengths[group].copy()
