@@ -160,7 +160,8 @@ def run_lacam(graph: GridGraph, scen: list[tuple[int, int]], k: int, time_limit_
             "sum_of_costs": res["sum_of_costs"], "makespan": res["makespan"], "lower_bound": lb,
             "ratio": res["sum_of_costs"] / lb if lb else 1.0,
             "first_solution_s": res["first_time_s"], "first_ratio": res["first_sum_of_costs"] / lb if lb else 1.0,
-            "lns_iterations": res["lns_iterations"], "workers": workers, "worker_cpu_s": res["worker_cpu_s"]}
+            "lns_iterations": res["lns_iterations"], "workers": workers, "worker_cpu_s": res["worker_cpu_s"],
+            "first_tries": [(s, c / lb if c is not None and lb else None) for s, c in res["first_tries"]]}
 
 
 def run_live_sizes(map_yaml: Path | None, cell_m: float, sizes: list[int], seeds: int,

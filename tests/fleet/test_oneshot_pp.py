@@ -189,6 +189,8 @@ def test_lns_on_two_processes_keeps_a_crowded_solution_valid_and_replays_the_wor
     calls = itertools.count(0.0, 1e-3)
     shot = plan_one_shot(g, starts, goals, time_limit_s=3, workers=2, clock=lambda: next(calls))
     assert shot["solved"] and shot["sum_of_costs"] <= shot["first_sum_of_costs"]
+    tries = dict(shot["first_tries"])          # LaCAM with seeds 0 and 1, one of them forked
+    assert set(tries) == {0, 1} and shot["first_sum_of_costs"] == min(tries.values())
     assert_valid(g, shot, starts, goals)
     with pytest.raises(ValueError, match="workers"):
         refine_parallel(g, res["paths"], goals, 1.0, workers=0)

@@ -20,7 +20,7 @@ import numpy as np
 from .distances import DistanceCache
 from .grid import LifelongGrid
 from .lacam import solve_lacam
-from .parallel import refine_parallel
+from .parallel import children_cpu, refine_parallel, solve_lacam_parallel
 from .pp import solve_pp
 from .refine import refine_lns
 
@@ -38,20 +38,23 @@ def plan_one_shot(grid: LifelongGrid, starts: np.ndarray, goals: np.ndarray, tim
     starts, goals: (n,) cells. ``initial``: "lacam", or "pp" (prioritized planning within
     ``pp_share`` of the budget, LaCAM in the rest when PP fails); LaCAM spends up to
     ``scatter_share`` of its time on :func:`~.scatter.scatter` paths for PIBT to prefer.
-    ``workers`` > 1: LNS runs on that many processes (:func:`~.parallel.refine_parallel`, forked:
-    call it from a process that may fork), each for the time left of its own ``clock``.
+    ``workers`` > 1: LaCAM runs once per process with seeds ``seed`` ... ``seed + workers - 1``
+    and the best first solution is kept (:func:`~.parallel.solve_lacam_parallel`), and LNS runs
+    on that many processes (:func:`~.parallel.refine_parallel`), each process within the budget
+    of its own ``clock``; they are forked: call it from a process that may fork.
     Returns the dict of
     :func:`~.lacam.solve_lacam` (``paths`` (T+1, n), ``solved``, ``sum_of_costs``,
     ``makespan``, ``time_s``) plus ``initial`` (the solver of the first solution, "pp" or
     "lacam"), ``first_time_s`` and ``first_sum_of_costs`` (of the first solution),
-    ``pp_planned`` (agents PP planned; n when it solved), ``lns_iterations`` and
-    ``worker_cpu_s`` (CPU seconds of the LNS workers, 0 with one process). Raises
+    ``pp_planned`` (agents PP planned; n when it solved), ``lns_iterations``,
+    ``first_tries`` (each LaCAM seed and its sum of costs, None when unsolved) and
+    ``worker_cpu_s`` (CPU seconds of the forked processes, 0 with one). Raises
     ValueError for an unknown ``initial``, a goal that cannot be reached, or two agents on
     one start or goal.
     """
     if initial not in INITIAL_SOLVERS:
         raise ValueError(f"initial must be one of {INITIAL_SOLVERS}, got {initial!r}")
-    t0 = clock()
+    t0, cpu0 = clock(), children_cpu()
     starts = np.asarray(starts, dtype=np.int64)
     goals = np.asarray(goals, dtype=np.int64)
     n = starts.shape[0]
@@ -62,21 +65,26 @@ def plan_one_shot(grid: LifelongGrid, starts: np.ndarray, goals: np.ndarray, tim
         planned = res["planned"]
         used = "pp"
     if res is None or not res["solved"]:
-        res = solve_lacam(grid, starts, goals, time_limit_s - (clock() - t0), seed=seed, cache=cache,
-                          scatter_share=scatter_share, clock=clock)
+        if workers > 1:
+            res = solve_lacam_parallel(grid, starts, goals, time_limit_s - (clock() - t0),
+                                       seeds=tuple(seed + k for k in range(workers)), cache=cache,
+                                       scatter_share=scatter_share, clock=clock)
+        else:
+            res = solve_lacam(grid, starts, goals, time_limit_s - (clock() - t0), seed=seed, cache=cache,
+                              scatter_share=scatter_share, clock=clock)
         used = "lacam"
     first_t, first_soc = clock() - t0, res["sum_of_costs"]
-    iterations, worker_cpu = 0, 0.0
+    iterations = 0
     left = time_limit_s - first_t
     if res["solved"] and left > 0:
         if workers > 1:
             ref = refine_parallel(grid, res["paths"], goals, left, workers=workers, seed=seed, cache=cache,
                                   clock=clock)
-            worker_cpu = ref["worker_cpu_s"]
         else:
             ref = refine_lns(grid, res["paths"], goals, left, seed=seed, cache=cache, clock=clock)
         res = {**res, "paths": ref["paths"], "sum_of_costs": ref["sum_of_costs"], "makespan": ref["makespan"]}
         iterations = ref["iterations"]
     return {**res, "time_s": clock() - t0, "initial": used, "first_time_s": first_t,
             "first_sum_of_costs": first_soc, "pp_planned": planned, "lns_iterations": iterations,
-            "worker_cpu_s": worker_cpu}
+            "first_tries": res.get("tries", [(seed, first_soc if res["solved"] else None)] if used == "lacam" else []),
+            "worker_cpu_s": children_cpu() - cpu0}

@@ -1,14 +1,16 @@
-"""Anytime LNS on several cores: :class:`~.refine.Refiner` copies in forked worker processes,
-each re-planning only its own agents, merged in rounds (lacam3 refines on several threads,
-Okumura AAMAS-24; here processes, as the searches hold the GIL between compiled calls).
+"""One-shot MAPF on several cores: LaCAM with other seeds on the other cores, the best first
+solution kept (:func:`solve_lacam_parallel`), and anytime LNS with :class:`~.refine.Refiner`
+copies in forked worker processes, each re-planning only its own agents, merged in rounds
+(:func:`refine_parallel`; lacam3 refines on several threads, Okumura AAMAS-24; here processes,
+as the searches hold the GIL between compiled calls).
 
 Each round every refiner improves its copy for ``round_s`` seconds of its own clock; the
-workers send their owned agents' changed paths; the main refiner merges them (a path that
-conflicts with the main's own changes is re-planned around everybody, and when that fails the
-worker's whole round is dropped) and sends the merged solution back. Agent ``a`` belongs to
-refiner ``a % workers``. The work is forked (``multiprocessing``'s "fork" start method, so the
-compiled kernels and the solution are inherited, not sent), so callers fork only from a process
-that may fork (no other threads).
+workers send the changes they accepted, in order; the main refiner replays each where its
+paths fit (:meth:`~.refine.Refiner.replay`) and sends back the paths of every agent changed in
+the round. Agents are owned by goal column, and between sweeps the owners' borders move on.
+The work is forked (``multiprocessing``'s "fork" start method, so the compiled kernels and
+the instance are inherited, not sent): callers fork only from a process that may fork (no
+other threads).
 """
 from __future__ import annotations
 
@@ -20,9 +22,10 @@ import numpy as np
 
 from .distances import DistanceCache
 from .grid import LifelongGrid
+from .lacam import solve_lacam
 from .refine import Refiner
 
-__all__ = ["refine_parallel"]
+__all__ = ["children_cpu", "refine_parallel", "solve_lacam_parallel"]
 
 
 def _worker(ref: Refiner, conn, clock) -> None:
@@ -56,7 +59,7 @@ def refine_parallel(grid: LifelongGrid, paths: np.ndarray, goals: np.ndarray, ti
     Raises ValueError when the last row of ``paths`` is not ``goals`` or ``workers`` < 1."""
     if workers < 1:
         raise ValueError(f"workers must be at least 1, got {workers}")
-    t0, cpu0 = clock(), _children_cpu()
+    t0, cpu0 = clock(), children_cpu()
     ref = Refiner(grid, paths, goals, seed=seed, cache=cache)
     n = ref.goals.shape[0]
     rank = np.argsort(np.argsort(ref.goals % grid.free.shape[1], kind="stable"))
@@ -108,10 +111,54 @@ def refine_parallel(grid: LifelongGrid, paths: np.ndarray, goals: np.ndarray, ti
             p.join()
     return {**ref.solution(), "iterations": ref.iterations + iterations, "accepted": ref.accepted,
             "changes": (applied, changes), "expanded": int(ref.res.stats[0]), "time_s": clock() - t0,
-            "worker_cpu_s": _children_cpu() - cpu0}
+            "worker_cpu_s": children_cpu() - cpu0}
 
 
-def _children_cpu() -> float:
+def _lacam(conn, args: tuple, kwargs: dict) -> None:
+    try:
+        conn.send(solve_lacam(*args, **kwargs))
+    finally:
+        conn.close()
+
+
+def solve_lacam_parallel(grid: LifelongGrid, starts: np.ndarray, goals: np.ndarray, time_limit_s: float = 5.0,
+                         seeds: tuple[int, ...] = (0, 1), cache: DistanceCache | None = None,
+                         scatter_share: float = 0.0, clock=time.perf_counter) -> dict:
+    """:func:`~.lacam.solve_lacam` once per seed, the first here and each other on a forked
+    process, each within ``time_limit_s`` seconds of its own ``clock``: the solved result of
+    least sum of costs (the first seed's when none solved), plus ``tries`` ((seed, sum of
+    costs or None when unsolved) per seed). Raises as :func:`~.lacam.solve_lacam`."""
+    ctx = multiprocessing.get_context("fork")
+    links, procs = [], []
+    for s in seeds[1:]:
+        here, there = ctx.Pipe()
+        p = ctx.Process(target=_lacam, args=(there, (grid, starts, goals, time_limit_s),
+                                             {"seed": s, "cache": cache, "scatter_share": scatter_share,
+                                              "clock": clock}), daemon=True)
+        p.start()
+        there.close()
+        links.append(here)
+        procs.append(p)
+    try:
+        results = [solve_lacam(grid, starts, goals, time_limit_s, seed=seeds[0], cache=cache,
+                               scatter_share=scatter_share, clock=clock)]
+        for link in links:
+            try:
+                results.append(link.recv())
+            except EOFError:                   # the child failed (it raised as this process did not)
+                results.append({"solved": False, "sum_of_costs": None})
+    finally:
+        for link in links:
+            link.close()
+        for p in procs:
+            p.join()
+    solved = [r for r in results if r["solved"]] or results[:1]
+    best = min(solved, key=lambda r: r["sum_of_costs"])
+    tries = [(s, r["sum_of_costs"] if r["solved"] else None) for s, r in zip(seeds, results, strict=True)]
+    return {**best, "tries": tries}
+
+
+def children_cpu() -> float:
     """CPU seconds of this process's waited-for children."""
     t = os.times()
     return t.children_user + t.children_system
