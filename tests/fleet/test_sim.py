@@ -9,7 +9,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from rce_fleet.maps import OccupancyMap
+from rce_fleet.maps import OccupancyMap, load_map
 from rce_fleet.sim import (
     LidarParams, LocalNavigator, ObstacleDetector, SimWorld, blocked_mask,
     merge_rectangles, scan_to_points,
@@ -418,13 +418,83 @@ def test_detected_obstacles_drop_static_walls_and_known_robots():
     assert len(all_hits) == len(scan_to_points(robot.scan(), pose, include_too_close=False))
 
 
+def _public_ranges(robot) -> np.ndarray:
+    lidar = robot.lidar
+    lidar.fast = False
+    try:
+        return lidar.true_ranges(*robot.pose(), robot.shape.filter)
+    finally:
+        lidar.fast = True
+
+
+def _same_ranges(fast: np.ndarray, slow: np.ndarray) -> bool:
+    return np.array_equal(np.isinf(fast), np.isinf(slow)) and np.allclose(fast, slow, rtol=0, atol=1e-9)
+
+
 def test_lidar_fast_path_matches_public_pymunk_api():
     world = SimWorld(room(), seed=0)
     world.add_box("b", 3.0, 3.5, 0.3, 0.6)
     robot = world.add_robot("a", 2.0, 3.0, 0.2)
     world.add_robot("other", 2.5, 2.2, 0.0)
-    lidar = robot.lidar
-    fast = lidar.true_ranges(*robot.pose(), robot.shape.filter)
-    lidar.fast = False
-    slow = lidar.true_ranges(*robot.pose(), robot.shape.filter)
-    assert np.array_equal(fast, slow)
+    fast = robot.lidar.true_ranges(*robot.pose(), robot.shape.filter)
+    assert _same_ranges(fast, _public_ranges(robot))
+    assert np.isfinite(fast).sum() > 180
+
+
+@pytest.mark.parametrize("seed", [0, 1])
+def test_lidar_caster_matches_pymunk_on_the_warehouse(seed):
+    """The compiled ray caster finds what pymunk's segment query finds, beam for beam: the
+    warehouse's 2,084 wall rectangles, boxes and 60 robots, robots standing anywhere (also inside
+    a box, or overlapping another robot: hit at 0 there, as chipmunk), after moves and box changes."""
+    world = SimWorld(load_map(MAPS / "warehouse.yaml"), seed=seed)
+    rng = np.random.default_rng(seed)
+    x0, y0, x1, y1 = world.bounds
+    robots = []
+    while len(robots) < 60:
+        x, y = rng.uniform(x0 + 0.2, x1 - 0.2), rng.uniform(y0 + 0.2, y1 - 0.2)
+        if world.is_free(x, y, R):
+            robots.append(world.add_robot(f"r{len(robots)}", x, y, rng.uniform(-math.pi, math.pi)))
+    # a robot inside a box, and a box over two robots' centres
+    bx, by = robots[0].pose()[:2]
+    world.add_box("on-r0", bx, by, 0.5, 0.5)
+    world.add_box("between", *np.mean([robots[1].pose()[:2], robots[2].pose()[:2]], axis=0), 0.3, 0.3)
+    for r in robots[3:]:
+        r.cmd_vel(0.22, rng.uniform(-1, 1))
+    seen = 0
+    for _ in range(2):
+        for r in robots:
+            fast = r.lidar.true_ranges(*r.pose(), r.shape.filter)
+            assert _same_ranges(fast, _public_ranges(r)), r.robot_id
+            seen += int(np.isfinite(fast).sum())
+        world.step(1.0)
+        world.remove_box("between")
+    assert (robots[0].lidar.true_ranges(*robots[0].pose(), robots[0].shape.filter) == 0).all()
+    assert seen > 60 * 360 // 2
+
+
+def test_arc_clearance_matches_a_kd_tree():
+    """The local planner's compiled clearance gives the distances scipy's k-d tree gives, inf
+    from the bound on, for the navigator's own arcs and hits around the robot."""
+    from scipy.spatial import cKDTree
+
+    from rce_fleet.sim.clearance import arc_clearance
+    nav = LocalNavigator()
+    rng = np.random.default_rng(0)
+    for v_cap in (0.22, 0.05):
+        _, _, _, ax, ay = nav._arcs(v_cap)
+        for n_pts in (1, 40, 300):
+            pts = rng.uniform(-1.1, 1.1, (n_pts, 2))
+            bound = 0.505
+            want, _ = cKDTree(pts).query(np.column_stack((ax.ravel(), ay.ravel())), distance_upper_bound=bound)
+            want = want.reshape(ax.shape).min(axis=1)
+            got = arc_clearance(ax, ay, pts, bound)
+            assert np.array_equal(np.isinf(got), np.isinf(want))
+            assert np.allclose(got, want, rtol=0, atol=1e-12)
+            assert np.isfinite(got).any()
+
+
+def test_normal_block_hands_out_the_generators_own_sequence():
+    from rce_fleet.sim.noise import NormalBlock
+    one = np.random.default_rng(7)
+    block = NormalBlock(np.random.default_rng(7), 3, rows=5)
+    assert [block.next() for _ in range(12)] == [tuple(one.normal(0.0, 1.0, 3).tolist()) for _ in range(12)]

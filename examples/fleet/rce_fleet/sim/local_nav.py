@@ -39,8 +39,8 @@ from dataclasses import dataclass
 from typing import Iterable
 
 import numpy as np
-from scipy.spatial import cKDTree
 
+from .clearance import arc_clearance
 from .lidar import LidarParams, scan_to_points
 from .localisation import wrap_angle
 from .obstacles import ObstacleDetector, detected_obstacles as _detected
@@ -120,6 +120,7 @@ class LocalNavigator:
         self._vs, self._ws = (a.ravel() for a in np.meshgrid(v, w, indexing="ij"))
         k = max(1, int(round(p.horizon / p.sim_dt)))
         self._t = np.arange(1, k + 1) * (p.horizon / k)
+        self._arc_cache: tuple[float, tuple[np.ndarray, ...]] | None = None
 
     # -- goals ---------------------------------------------------------------
     def set_goal(self, x: float, y: float, yaw: float | None = None) -> None:
@@ -225,24 +226,12 @@ class LocalNavigator:
 
         target, dist_t = self._subgoal(local, goal_r, dist, yaw)
         v_cap = min(p.max_linear, max(p.min_approach_speed, p.slowdown_gain * dist))
-        vs = self._vs * v_cap
-        ws = self._ws * p.max_angular
-        t = self._t
-        # Arc roll-out from the origin, shape (N, K).
-        wt = np.outer(ws, t)
-        straight = np.abs(ws) < 1e-6
-        safe_w = np.where(straight, 1.0, ws)
-        ax = np.where(straight[:, None], np.outer(vs, t),
-                      (vs / safe_w)[:, None] * np.sin(wt))
-        ay = np.where(straight[:, None], 0.0,
-                      (vs / safe_w)[:, None] * (1.0 - np.cos(wt)))
+        vs, ws, wt, ax, ay = self._arcs(v_cap)
 
         if len(local):
-            tree = cKDTree(local)
-            d_now = float(tree.query((0.0, 0.0))[0]) - p.radius
-            dists, _ = tree.query(np.column_stack((ax.ravel(), ay.ravel())),
-                                  distance_upper_bound=p.radius + p.clearance_cap + 1.0)
-            clearance = dists.reshape(ax.shape).min(axis=1) - p.radius
+            d_now = float(np.hypot(local[:, 0], local[:, 1]).min()) - p.radius
+            # clearances from clearance_cap on all score alike: look no further
+            clearance = arc_clearance(ax, ay, local, p.radius + p.clearance_cap) - p.radius
             # Admissible: keeps the margin, or (if already inside it) gets no closer.
             floor = min(p.safety_margin, d_now - 1e-3)
             ok = (clearance >= floor) | (vs == 0.0)
@@ -275,6 +264,25 @@ class LocalNavigator:
         if v < 1e-3:
             v = 0.0
         return v, w
+
+    def _arcs(self, v_cap: float) -> tuple[np.ndarray, ...]:
+        """The sampled (v, w) and their arcs rolled out from the origin, for speeds up to
+        ``v_cap`` m/s: vs, ws (N,), wt, ax, ay (N, K) (kept for the last ``v_cap``: the robots
+        drive at the full speed cap except near their goals)."""
+        if self._arc_cache is not None and self._arc_cache[0] == v_cap:
+            return self._arc_cache[1]
+        vs = self._vs * v_cap
+        ws = self._ws * self.params.max_angular
+        t = self._t
+        wt = np.outer(ws, t)
+        straight = np.abs(ws) < 1e-6
+        safe_w = np.where(straight, 1.0, ws)
+        ax = np.where(straight[:, None], np.outer(vs, t),
+                      (vs / safe_w)[:, None] * np.sin(wt))
+        ay = np.where(straight[:, None], 0.0,
+                      (vs / safe_w)[:, None] * (1.0 - np.cos(wt)))
+        self._arc_cache = (v_cap, (vs, ws, wt, ax, ay))
+        return vs, ws, wt, ax, ay
 
     def _free_distance(self, local: np.ndarray, angles: np.ndarray) -> np.ndarray:
         """Free length, m, of a straight corridor of half-width radius +

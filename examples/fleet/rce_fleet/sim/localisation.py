@@ -17,6 +17,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from .noise import NormalBlock
+
 
 @dataclass(frozen=True)
 class LocalisationParams:
@@ -37,28 +39,34 @@ def wrap_angle(angle: float) -> float:
 
 class LocalisationModel:
     """Per-robot AMCL stand-in.  Call :meth:`step` every physics step, then
-    :meth:`estimate` with the ground-truth pose."""
+    :meth:`estimate` with the ground-truth pose.  ``error``: the current
+    (x m, y m, yaw rad) error."""
 
     def __init__(self, rng: np.random.Generator,
                  params: LocalisationParams | None = None) -> None:
-        self.params = params or LocalisationParams()
+        self.params = p = params or LocalisationParams()
         self.rng = rng
-        self._sigma = np.array([self.params.sigma_xy, self.params.sigma_xy,
-                                self.params.sigma_yaw])
+        self._normals = NormalBlock(rng, 3)
+        self._sigma = (p.sigma_xy, p.sigma_xy, p.sigma_yaw)
+        self._bound = tuple(p.bound_sigmas * s for s in self._sigma)
+        self._decay: tuple[float, float, float] | None = None   # (dt, k, sqrt(1 - k^2))
         # Start from the stationary distribution (like amcl after convergence).
-        self.error = self._clip(self.rng.normal(0.0, 1.0, 3) * self._sigma)
+        self.error = self._clip(tuple(n * s for n, s in zip(self._normals.next(), self._sigma, strict=True)))
 
-    def _clip(self, error: np.ndarray) -> np.ndarray:
-        b = self.params.bound_sigmas * self._sigma
-        return np.clip(error, -b, b)
+    def _clip(self, error) -> tuple[float, float, float]:
+        return tuple(min(max(e, -b), b) for e, b in zip(error, self._bound, strict=True))
 
     def step(self, dt: float) -> None:
         """Advance the error process by ``dt`` seconds (exact OU discretisation)."""
         if dt <= 0:
             return
-        k = math.exp(-dt / self.params.tau)
-        noise = self.rng.normal(0.0, 1.0, 3) * self._sigma * math.sqrt(1.0 - k * k)
-        self.error = self._clip(self.error * k + noise)
+        if self._decay is None or self._decay[0] != dt:
+            k = math.exp(-dt / self.params.tau)
+            self._decay = (dt, k, math.sqrt(1.0 - k * k))
+        _, k, f = self._decay
+        noise = self._normals.next()
+        e = zip(self.error, noise, self._sigma, strict=True)
+        self.error = self._clip(tuple(ei * k + n * s * f for ei, n, s in e))
 
     def covariance(self) -> list[float]:
         """6x6 row-major covariance over (x, y, z, roll, pitch, yaw), 36 floats
@@ -72,5 +80,5 @@ class LocalisationModel:
     def estimate(self, x: float, y: float, yaw: float
                  ) -> tuple[float, float, float, list[float]]:
         """``(x m, y m, yaw rad, covariance)`` for the true pose (x, y, yaw)."""
-        ex, ey, eyaw = self.error.tolist()
+        ex, ey, eyaw = self.error
         return x + ex, y + ey, wrap_angle(yaw + eyaw), self.covariance()

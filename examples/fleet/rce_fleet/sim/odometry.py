@@ -21,6 +21,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from .localisation import wrap_angle
+from .noise import NormalBlock
 
 
 @dataclass(frozen=True)
@@ -45,6 +46,7 @@ class Odometry:
                  noise: OdometryNoise | None = None) -> None:
         self.noise = noise or OdometryNoise()
         self.rng = rng
+        self._normals = NormalBlock(rng, 2)
         self.x, self.y, self.yaw = float(x), float(y), float(yaw)
         self.v = 0.0
         self.w = 0.0
@@ -59,7 +61,7 @@ class Odometry:
         var_ds = n.ds_per_m * abs(ds)
         var_yaw = n.yaw_per_rad * abs(dyaw) + n.yaw_per_m * abs(ds)
         if var_ds > 0 or var_yaw > 0:
-            e0, e1 = self.rng.normal(0.0, 1.0, 2).tolist()
+            e0, e1 = self._normals.next()
             ds = ds + e0 * math.sqrt(var_ds)
             dyaw = dyaw + e1 * math.sqrt(var_yaw)
         mid = self.yaw + 0.5 * dyaw

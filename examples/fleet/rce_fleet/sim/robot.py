@@ -21,7 +21,7 @@ from dataclasses import dataclass
 import numpy as np
 import pymunk
 
-from .lidar import Lidar, LidarParams
+from .lidar import Lidar, LidarParams, RayCast
 from .localisation import LocalisationModel, LocalisationParams, wrap_angle
 from .odometry import Odometry, OdometryNoise
 
@@ -59,7 +59,8 @@ class SimRobot:
                  params: RobotParams | None = None,
                  lidar_params: LidarParams | None = None,
                  odometry_noise: OdometryNoise | None = None,
-                 localisation_params: LocalisationParams | None = None) -> None:
+                 localisation_params: LocalisationParams | None = None,
+                 ray_caster: RayCast | None = None) -> None:
         self.robot_id = robot_id
         self.params = p = params or RobotParams()
         self.space = space
@@ -75,7 +76,7 @@ class SimRobot:
         self.shape.robot_id = robot_id  # type: ignore[attr-defined]
         space.add(self.body, self.shape)
         rngs = rng.spawn(3)
-        self.lidar = Lidar(space, lidar_params, rngs[0])
+        self.lidar = Lidar(space, lidar_params, rngs[0], caster=ray_caster)
         self._odom = Odometry(x, y, yaw, rngs[1], odometry_noise)
         self._loc = LocalisationModel(rngs[2], localisation_params)
         self._cmd = (0.0, 0.0)  # target (v, w)

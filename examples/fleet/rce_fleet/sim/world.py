@@ -16,6 +16,7 @@ import pymunk
 from .lidar import LidarParams
 from .localisation import LocalisationParams
 from .odometry import OdometryNoise
+from .raycast import RayCaster
 from .robot import RobotParams, SimRobot
 from .walls import PixelRect, blocked_mask, merge_rectangles, rect_to_world
 
@@ -56,6 +57,8 @@ class SimWorld:
         self._steps = 0
         self._acc = 0.0
         self._next_group = 1
+        self._discs: tuple[int, np.ndarray, np.ndarray] | None = None   # (step, discs, groups) for the lidars
+        self._box_bbs = np.zeros((0, 4))
 
         occ = np.asarray(occupancy_map.occupancy)
         self.resolution = float(occupancy_map.resolution)
@@ -81,6 +84,7 @@ class SimWorld:
             s.friction = 0.0
             s.elasticity = 0.0
         self.space.add(*shapes)
+        self._caster = RayCaster(self.wall_rects, (h, w), self.resolution, origin)
 
     # -- contents ------------------------------------------------------------
     @property
@@ -98,15 +102,18 @@ class SimWorld:
                          rng=rng, params=self.robot_params,
                          lidar_params=self.lidar_params,
                          odometry_noise=self.odometry_noise,
-                         localisation_params=self.localisation_params)
+                         localisation_params=self.localisation_params,
+                         ray_caster=self.cast_rays)
         self._next_group += 1
         self.robots[robot_id] = robot
+        self._discs = None
         return robot
 
     def remove_robot(self, robot_id: str) -> None:
         """Take a robot out of the world (KeyError if unknown)."""
         robot = self.robots.pop(robot_id)
         self.space.remove(robot.body, robot.shape)
+        self._discs = None
 
     def add_box(self, box_id: str, x: float, y: float, width: float, height: float) -> None:
         """Place a static axis-aligned box obstacle centred at (x, y), ``width`` m
@@ -114,14 +121,15 @@ class SimWorld:
         id.  A box dropped onto a robot pushes the robot out of it."""
         if box_id in self.boxes:
             self.remove_box(box_id)
-        shape = pymunk.Poly.create_box_bb(
-            self.space.static_body,
-            pymunk.BB(x - width / 2.0, y - height / 2.0, x + width / 2.0, y + height / 2.0))
+        bb = (x - width / 2.0, y - height / 2.0, x + width / 2.0, y + height / 2.0)
+        shape = pymunk.Poly.create_box_bb(self.space.static_body, pymunk.BB(*bb))
+        shape.bb_world = bb  # type: ignore[attr-defined]
         shape.friction = 0.0
         shape.elasticity = 0.0
         shape.box_id = box_id  # type: ignore[attr-defined]
         self.space.add(shape)
         self.boxes[box_id] = shape
+        self._update_box_bbs()
 
     def remove_box(self, box_id: str) -> bool:
         """Remove a box; returns False if there was none with that id."""
@@ -129,7 +137,11 @@ class SimWorld:
         if shape is None:
             return False
         self.space.remove(shape)
+        self._update_box_bbs()
         return True
+
+    def _update_box_bbs(self) -> None:
+        self._box_bbs = np.array([s.bb_world for s in self.boxes.values()], dtype=np.float64).reshape(-1, 4)
 
     # -- time ------------------------------------------------------------------
     def step(self, dt: float) -> int:
@@ -152,6 +164,21 @@ class SimWorld:
         return n
 
     # -- observation ---------------------------------------------------------
+    def cast_rays(self, x: float, y: float, ex: np.ndarray, ey: np.ndarray, range_max: float,
+                  group: int = 0) -> np.ndarray:
+        """What ``Space.segment_query_first`` finds on each segment from (x, y) m to (ex[i], ey[i])
+        m (each ``range_max`` m long) among the walls, boxes and robots, the robot of shape filter
+        ``group`` left out (0: none): (n,) float64 ranges, m, inf where nothing is hit
+        (:mod:`.raycast`; the robots where they stood after the last step)."""
+        if self._discs is None or self._discs[0] != self._steps:
+            rs = list(self.robots.values())
+            discs = np.array([(r.body.position.x, r.body.position.y, r.shape.radius) for r in rs],
+                             dtype=np.float64).reshape(-1, 3)
+            groups = np.array([r.shape.filter.group for r in rs], dtype=np.int64)
+            self._discs = (self._steps, discs, groups)
+        _, discs, groups = self._discs
+        return self._caster.cast(x, y, ex, ey, range_max, self._box_bbs, discs, groups, group)
+
     def min_pair_distance(self) -> float:
         """Smallest centre-to-centre distance between two robots, m (inf with
         fewer than two).  Robots overlap when this is < 2 * radius."""
