@@ -54,7 +54,8 @@ class LocalisationModel:
         self.error = self._clip(tuple(n * s for n, s in zip(self._normals.next(), self._sigma, strict=True)))
 
     def _clip(self, error) -> tuple[float, float, float]:
-        return tuple(min(max(e, -b), b) for e, b in zip(error, self._bound, strict=True))
+        (e0, e1, e2), (b0, b1, b2) = error, self._bound
+        return min(max(e0, -b0), b0), min(max(e1, -b1), b1), min(max(e2, -b2), b2)
 
     def step(self, dt: float) -> None:
         """Advance the error process by ``dt`` seconds (exact OU discretisation)."""
@@ -64,9 +65,8 @@ class LocalisationModel:
             k = math.exp(-dt / self.params.tau)
             self._decay = (dt, k, math.sqrt(1.0 - k * k))
         _, k, f = self._decay
-        noise = self._normals.next()
-        e = zip(self.error, noise, self._sigma, strict=True)
-        self.error = self._clip(tuple(ei * k + n * s * f for ei, n, s in e))
+        (n0, n1, n2), (e0, e1, e2), (s0, s1, s2) = self._normals.next(), self.error, self._sigma
+        self.error = self._clip((e0 * k + n0 * s0 * f, e1 * k + n1 * s1 * f, e2 * k + n2 * s2 * f))
 
     def covariance(self) -> list[float]:
         """6x6 row-major covariance over (x, y, z, roll, pitch, yaw), 36 floats

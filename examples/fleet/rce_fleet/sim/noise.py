@@ -13,18 +13,18 @@ __all__ = ["NormalBlock"]
 
 
 class NormalBlock:
-    """Standard normal tuples of ``width`` floats from ``rng``, drawn ``rows`` at a time:
-    ``next()`` returns what ``tuple(rng.normal(0.0, 1.0, width).tolist())`` would have."""
+    """Standard normal draws from ``rng``, ``width`` at a time, drawn ``rows`` x ``width`` at
+    once: ``next()`` returns what ``rng.normal(0.0, 1.0, width).tolist()`` would have."""
 
     def __init__(self, rng: np.random.Generator, width: int, rows: int = 256) -> None:
         self.rng, self.width, self.rows = rng, int(width), int(rows)
-        self._block: list[tuple[float, ...]] = []
+        self._block: list[list[float]] = []
         self._i = 0
 
-    def next(self) -> tuple[float, ...]:
-        """The next ``width`` standard normal draws."""
+    def next(self) -> list[float]:
+        """The next ``width`` standard normal draws (a list the caller may keep)."""
         if self._i >= len(self._block):
-            self._block = [tuple(r) for r in self.rng.normal(0.0, 1.0, (self.rows, self.width)).tolist()]
+            self._block = self.rng.normal(0.0, 1.0, (self.rows, self.width)).tolist()
             self._i = 0
         self._i += 1
         return self._block[self._i - 1]

@@ -99,13 +99,14 @@ class SimRobot:
         return self._cmd
 
     def _pre_step(self, dt: float) -> None:
-        p = self.params
-        v = _approach(self._vel[0], self._cmd[0], p.max_linear_accel * dt)
-        w = _approach(self._vel[1], self._cmd[1], p.max_angular_accel * dt)
-        self._vel = (v, w)
-        self.body._rce_vel = self._vel  # type: ignore[attr-defined]
-        pos = self.body.position
-        self._prev = (pos.x, pos.y, self.body.angle)
+        # ``_prev``, the pose before the step, is the pose the last step left (only
+        # Space.step moves a body)
+        if self._vel != self._cmd:
+            p = self.params
+            v = _approach(self._vel[0], self._cmd[0], p.max_linear_accel * dt)
+            w = _approach(self._vel[1], self._cmd[1], p.max_angular_accel * dt)
+            self._vel = (v, w)
+            self.body._rce_vel = self._vel  # type: ignore[attr-defined]
 
     @staticmethod
     def _velocity_func(body: pymunk.Body, gravity, damping, dt) -> None:
@@ -118,15 +119,18 @@ class SimRobot:
         body.velocity = (v * math.cos(yaw), v * math.sin(yaw))
         body.angular_velocity = w
 
-    def _post_step(self, dt: float) -> None:
+    def _post_step(self, dt: float) -> tuple[float, float]:
+        """Odometry and localisation after a physics step; returns the position (x, y), m."""
         x0, y0, yaw0 = self._prev
-        pos = self.body.position
+        x, y = self.body.position
         yaw1 = self.body.angle
+        self._prev = (x, y, yaw1)
         dyaw = yaw1 - yaw0
         mid = yaw0 + 0.5 * dyaw
-        ds = (pos.x - x0) * math.cos(mid) + (pos.y - y0) * math.sin(mid)
+        ds = (x - x0) * math.cos(mid) + (y - y0) * math.sin(mid)
         self._odom.update(ds, dyaw, dt)
         self._loc.step(dt)
+        return x, y
 
     # -- state and sensors -------------------------------------------------
     def pose(self) -> tuple[float, float, float]:

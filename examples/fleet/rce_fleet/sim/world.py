@@ -59,6 +59,7 @@ class SimWorld:
         self._next_group = 1
         self._discs: tuple[int, np.ndarray, np.ndarray] | None = None   # (step, discs, groups) for the lidars
         self._box_bbs = np.zeros((0, 4))
+        self._xy: tuple[int, list] | None = None      # (step, the robots' positions after it)
 
         occ = np.asarray(occupancy_map.occupancy)
         self.resolution = float(occupancy_map.resolution)
@@ -106,14 +107,14 @@ class SimWorld:
                          ray_caster=self.cast_rays)
         self._next_group += 1
         self.robots[robot_id] = robot
-        self._discs = None
+        self._discs = self._xy = None
         return robot
 
     def remove_robot(self, robot_id: str) -> None:
         """Take a robot out of the world (KeyError if unknown)."""
         robot = self.robots.pop(robot_id)
         self.space.remove(robot.body, robot.shape)
-        self._discs = None
+        self._discs = self._xy = None
 
     def add_box(self, box_id: str, x: float, y: float, width: float, height: float) -> None:
         """Place a static axis-aligned box obstacle centred at (x, y), ``width`` m
@@ -158,10 +159,16 @@ class SimWorld:
             for r in robots:
                 r._pre_step(h)
             self.space.step(h)
-            for r in robots:
-                r._post_step(h)
+            xy = [r._post_step(h) for r in robots]
             self._steps += 1
+            self._xy = (self._steps, xy)
         return n
+
+    def _positions(self) -> np.ndarray:
+        """(N, 2) float64: the robots' positions, m, in ``self.robots``' order (as the last step left them)."""
+        if self._xy is None or self._xy[0] != self._steps or len(self._xy[1]) != len(self.robots):
+            self._xy = (self._steps, [tuple(r.body.position) for r in self.robots.values()])
+        return np.array(self._xy[1], dtype=np.float64).reshape(-1, 2)
 
     # -- observation ---------------------------------------------------------
     def cast_rays(self, x: float, y: float, ex: np.ndarray, ey: np.ndarray, range_max: float,
@@ -172,8 +179,7 @@ class SimWorld:
         (:mod:`.raycast`; the robots where they stood after the last step)."""
         if self._discs is None or self._discs[0] != self._steps:
             rs = list(self.robots.values())
-            discs = np.array([(r.body.position.x, r.body.position.y, r.shape.radius) for r in rs],
-                             dtype=np.float64).reshape(-1, 3)
+            discs = np.column_stack((self._positions(), [r.shape.radius for r in rs])).reshape(-1, 3)
             groups = np.array([r.shape.filter.group for r in rs], dtype=np.int64)
             self._discs = (self._steps, discs, groups)
         _, discs, groups = self._discs
@@ -184,8 +190,7 @@ class SimWorld:
         fewer than two).  Robots overlap when this is < 2 * radius."""
         if len(self.robots) < 2:
             return math.inf
-        p = np.array([(r.body.position.x, r.body.position.y)
-                      for r in self.robots.values()])
+        p = self._positions()
         d = np.hypot(p[:, None, 0] - p[None, :, 0], p[:, None, 1] - p[None, :, 1])
         d[np.diag_indices(len(p))] = np.inf
         return float(d.min())
