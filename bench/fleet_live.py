@@ -9,6 +9,8 @@ clients, generated pick-up -> drop-off tasks at ``--rate-per-robot`` x N per sim
 
 - ``tasks_per_hour``: tasks done per simulated hour (the report's ``tasks.per_hour``);
 - ``real_time_factor``: simulated s per wall s the run held (asked: ``--speedup``);
+- ``host_cpu_per_sim_s``: CPU s the demo process (the simulator and the robots' bridges) spent
+  per simulated s of the run (what the machine's other load does not change much);
 - ``goal_to_motion_p99_s``: p99 of the sim s from a task's assignment to its robot's first
   motion (robots standing when they got it);
 - ``engine_cpu_pct``: CPU of the engine's processes that descend from the demo process
@@ -207,6 +209,7 @@ def live_run(map_path: str | None, robots: int, duration: float, rate: float, sp
     per = rep.get("per_robot", {}).values()
     return {"exit_code": code, "reason": rep.get("reason"), "tasks": rep.get("tasks"),
             "tasks_per_hour": (rep.get("tasks") or {}).get("per_hour"), "real_time_factor": ll.get("real_time_factor"),
+            "host_cpu_per_sim_s": ll.get("host_cpu_per_sim_s"),
             "asked_speedup": speedup, "sim_lag_resets": rep.get("sim_lag_resets"),
             "sim_max_speedup": rep.get("sim_max_speedup"),
             "goal_to_motion_p99_s": (ll.get("goal_to_motion_s") or {}).get("p99"),
@@ -273,7 +276,8 @@ def main(argv: list[str] | None = None) -> int:
         results["runs"][str(n)] = live
         print(f"{n:4d} robots: {live['tasks_per_hour']} tasks/h (offline {off['per_hour']}, live share "
               f"{live['live_share']}, control share {live['control_share']}), real-time factor "
-              f"{live['real_time_factor']} (asked {a.speedup:g}), goal->motion "
+              f"{live['real_time_factor']} (asked {a.speedup:g}; the simulator host's CPU "
+              f"{live['host_cpu_per_sim_s']} s per sim s), goal->motion "
               f"p99 {live['goal_to_motion_p99_s']} s, engine CPU {live['engine_cpu_pct']} % (demo "
               f"{live['demo_cpu_pct']} %, machine {live['machine_cpu_pct']} %), exit {live['exit_code']}: "
               f"{live['reason']}", flush=True)

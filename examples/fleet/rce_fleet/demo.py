@@ -240,6 +240,7 @@ class Run:
         self.state: dict | None = None
         self.t_mission: float | None = None       # sim time the goals were sent
         self.wall_mission: float | None = None
+        self.cpu_mission = 0.0                    # this process's CPU s (the simulator, the bridges) then
         self.reached: dict[str, float] = {}       # robot -> sim time
         self.block_log: list[dict] = []
         self.obstacle_log: list[dict] = []
@@ -432,6 +433,7 @@ class Run:
         o = self.o
         self.t_mission = self.sim.time
         self.wall_mission = time.monotonic()
+        self.cpu_mission = time.process_time()
         for c, at in o.blocks:
             self.sim.at(self.t_mission + at, lambda cell=c, at=at: self._do_block(cell, at))
         for c, at in o.obstacles:

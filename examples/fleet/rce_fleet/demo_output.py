@@ -171,6 +171,7 @@ def lifelong_report(run, per: dict) -> dict:
             "lifelong": {"duration_s": round(t, 2), "task_rate_per_min": run.o.task_rate,
                          "generated": run.generated, "refused": run.refused[:20],
                          "real_time_factor": round(t / max(time.monotonic() - run.wall_mission, 1e-9), 3),
+                         "host_cpu_per_sim_s": round((time.process_time() - run.cpu_mission) / max(t, 1e-9), 3),
                          "goal_to_motion_s": {"n": len(ds), "p50": ds[len(ds) // 2] if ds else None,
                                               "p99": ds[min(len(ds) - 1, int(0.99 * len(ds)))] if ds else None},
                          "battery": run.o.battery.to_param() if run.o.battery else None,
