@@ -3,6 +3,7 @@ localisation stand-in, local navigation (DWA) and obstacle detection."""
 from __future__ import annotations
 
 import math
+import struct
 import time
 from pathlib import Path
 
@@ -498,3 +499,25 @@ def test_normal_block_hands_out_the_generators_own_sequence():
     one = np.random.default_rng(7)
     block = NormalBlock(np.random.default_rng(7), 3, rows=5)
     assert [block.next() for _ in range(12)] == [one.normal(0.0, 1.0, 3).tolist() for _ in range(12)]
+
+
+def test_pose_wire_packs_what_the_registry_serialises():
+    """The simulator's amcl_pose bytes are the message registry's for the same message."""
+    from rce.messages import default_registry
+    from rce_fleet.geometry import quaternion_from_yaw
+    from rce_fleet.pose_wire import PoseWire
+    reg = default_registry()
+    t = reg.msg_type("geometry_msgs/PoseWithCovarianceStamped")
+    rng = np.random.default_rng(0)
+    wire = PoseWire("map")
+    for secs, nsecs in ((0, 0), (12, 500_000_000), (2 ** 31 - 1, 999_999_999)):
+        x, y, yaw = rng.uniform(-20, 20), rng.uniform(-20, 20), rng.uniform(-math.pi, math.pi)
+        cov = rng.uniform(0, 1, 36).tolist()
+        msg = {"header": {"stamp": {"secs": secs, "nsecs": nsecs}, "frame_id": "map"},
+               "pose": {"pose": {"position": {"x": x, "y": y, "z": 0.0}, "orientation": quaternion_from_yaw(yaw)},
+                        "covariance": cov}}
+        assert wire.pack(secs, nsecs, x, y, yaw, cov) == reg.json_to_bytes(t, msg)
+    with pytest.raises(struct.error):
+        wire.pack(2 ** 31, 0, 0.0, 0.0, 0.0, [0.0] * 36)
+    with pytest.raises(struct.error):
+        wire.pack(0, 0, 0.0, 0.0, 0.0, [0.0] * 35)

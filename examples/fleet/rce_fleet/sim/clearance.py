@@ -1,5 +1,6 @@
-"""The local planner's clearance check, compiled (numba, ``cache=True``): for each sampled arc,
-its smallest distance to the lidar's hits.
+"""The local planner's arc geometry, compiled (numba, ``cache=True``): for each sampled arc,
+its smallest distance to the lidar's hits, and to the point it steers for; for each direction
+of a detour, the free length of its corridor.
 
 Why (py-spy of the live 100-robot fleet, ``bench/fleet_live.py --robots 100``): a k-d tree
 of the hits (scipy's ``cKDTree``), built and queried with the arcs' 2,520 points at every
@@ -18,7 +19,19 @@ from ..numba_cache import seed
 
 seed(__file__)          # numba's cache entries prepared in the tree (sandboxed nodes)
 
-__all__ = ["arc_clearance", "warm_up"]
+__all__ = ["arc_clearance", "closest_approach", "corridor_free", "warm_up"]
+
+
+@njit(cache=True)
+def _closest(ax, ay, tx, ty):
+    n, k = ax.shape
+    out = np.empty(n)
+    for i in range(n):
+        best = np.inf
+        for j in range(k):
+            best = min(best, math.hypot(tx - ax[i, j], ty - ay[i, j]))
+        out[i] = best
+    return out
 
 
 @njit(cache=True)
@@ -58,6 +71,38 @@ def arc_clearance(ax: np.ndarray, ay: np.ndarray, points: np.ndarray, bound: flo
                       np.ascontiguousarray(points, dtype=np.float64).reshape(-1, 2), float(bound))
 
 
+@njit(cache=True)
+def _corridors(ux, uy, pts, half):
+    out = np.empty(ux.shape[0])
+    hh = half * half
+    for i in range(ux.shape[0]):
+        best = np.inf
+        for q in range(pts.shape[0]):
+            a = ux[i] * pts[q, 0] + uy[i] * pts[q, 1]
+            b = abs(ux[i] * pts[q, 1] - uy[i] * pts[q, 0])
+            if b < half and a > 0.0:
+                best = min(best, a - math.sqrt(max(hh - b * b, 0.0)))
+        out[i] = max(best, 0.0)
+    return out
+
+
+def corridor_free(ux: np.ndarray, uy: np.ndarray, points: np.ndarray, half: float) -> np.ndarray:
+    """(A,) float64: the free length, m, of a straight corridor of half-width ``half`` m from the
+    origin along each unit direction (``ux``, ``uy``; (A,) float64) among ``points`` ((P, 2)
+    float64, m): up to where its first point's disc would enter it (inf when none does)."""
+    return _corridors(np.ascontiguousarray(ux, dtype=np.float64), np.ascontiguousarray(uy, dtype=np.float64),
+                      np.ascontiguousarray(points, dtype=np.float64).reshape(-1, 2), float(half))
+
+
+def closest_approach(ax: np.ndarray, ay: np.ndarray, tx: float, ty: float) -> np.ndarray:
+    """(N,) float64: for each arc i (points ``ax[i]``, ``ay[i]``; (N, K) float64, m), its
+    points' smallest distance, m, to the point (``tx``, ``ty``) m."""
+    return _closest(np.ascontiguousarray(ax, dtype=np.float64), np.ascontiguousarray(ay, dtype=np.float64),
+                    float(tx), float(ty))
+
+
 def warm_up() -> None:
-    """Compile (or load from numba's cache) the kernel."""
+    """Compile (or load from numba's cache) the kernels."""
     arc_clearance(np.zeros((1, 2)), np.zeros((1, 2)), np.ones((1, 2)), 1.0)
+    closest_approach(np.zeros((1, 2)), np.zeros((1, 2)), 1.0, 1.0)
+    corridor_free(np.ones(1), np.zeros(1), np.ones((1, 2)), 0.5)

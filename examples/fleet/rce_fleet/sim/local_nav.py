@@ -40,7 +40,7 @@ from typing import Iterable
 
 import numpy as np
 
-from .clearance import arc_clearance
+from .clearance import arc_clearance, closest_approach, corridor_free
 from .lidar import LidarParams, scan_to_points
 from .localisation import wrap_angle
 from .obstacles import ObstacleDetector, detected_obstacles as _detected
@@ -243,7 +243,7 @@ class LocalNavigator:
         tx, ty = target
         # Closest approach along the arc counts, so arcs that pass the target
         # are not punished for where they would be after it.
-        along = np.hypot(tx - ax, ty - ay).min(axis=1)
+        along = closest_approach(ax, ay, tx, ty)
         progress = (dist_t - along) / (p.max_linear * p.horizon)
         bearing = np.arctan2(ty - ey, tx - ex) - eth
         heading_err = np.abs(np.arctan2(np.sin(bearing), np.cos(bearing)))
@@ -291,13 +291,7 @@ class LocalNavigator:
         free = np.full(len(angles), np.inf)
         if not len(local):
             return free
-        half = p.radius + p.safety_margin
-        ux, uy = np.cos(angles)[:, None], np.sin(angles)[:, None]
-        a = ux * local[:, 0] + uy * local[:, 1]  # along, (A, P)
-        b = np.abs(ux * local[:, 1] - uy * local[:, 0])  # lateral
-        hit = (b < half) & (a > 0.0)
-        d = np.where(hit, a - np.sqrt(np.maximum(half * half - b * b, 0.0)), np.inf)
-        return np.maximum(d.min(axis=1), 0.0)
+        return corridor_free(np.cos(angles), np.sin(angles), local, p.radius + p.safety_margin)
 
     def _subgoal(self, local: np.ndarray, goal_r: tuple[float, float], dist: float,
                  yaw: float) -> tuple[tuple[float, float], float]:
