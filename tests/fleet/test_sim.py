@@ -502,7 +502,7 @@ def test_normal_block_hands_out_the_generators_own_sequence():
 
 
 def test_pose_wire_packs_what_the_registry_serialises():
-    """The simulator's amcl_pose bytes are the message registry's for the same message."""
+    """The simulator's amcl_pose and obstacles bytes are the message registry's for the same messages."""
     from rce.messages import default_registry
     from rce_fleet.geometry import quaternion_from_yaw
     from rce_fleet.pose_wire import PoseWire
@@ -516,8 +516,12 @@ def test_pose_wire_packs_what_the_registry_serialises():
         msg = {"header": {"stamp": {"secs": secs, "nsecs": nsecs}, "frame_id": "map"},
                "pose": {"pose": {"position": {"x": x, "y": y, "z": 0.0}, "orientation": quaternion_from_yaw(yaw)},
                         "covariance": cov}}
-        assert wire.pack(secs, nsecs, x, y, yaw, cov) == reg.json_to_bytes(t, msg)
+        assert wire.pack_pose(secs, nsecs, x, y, yaw, cov) == reg.json_to_bytes(t, msg)
+        pts = rng.uniform(-5, 5, (int(rng.integers(0, 121)), 2))
+        arr = {"header": {"stamp": {"secs": secs, "nsecs": nsecs}, "frame_id": "map"},
+               "poses": [{"position": {"x": px, "y": py}, "orientation": {"w": 1.0}} for px, py in pts.tolist()]}
+        assert wire.pack_points(secs, nsecs, pts) == reg.json_to_bytes(reg.msg_type("geometry_msgs/PoseArray"), arr)
     with pytest.raises(struct.error):
-        wire.pack(2 ** 31, 0, 0.0, 0.0, 0.0, [0.0] * 36)
+        wire.pack_pose(2 ** 31, 0, 0.0, 0.0, 0.0, [0.0] * 36)
     with pytest.raises(struct.error):
-        wire.pack(0, 0, 0.0, 0.0, 0.0, [0.0] * 35)
+        wire.pack_pose(0, 0, 0.0, 0.0, 0.0, [0.0] * 35)

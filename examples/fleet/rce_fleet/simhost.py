@@ -357,7 +357,7 @@ class SimHost:
             if tick % self.pose_every == 0:
                 x, y, yaw, cov = bot.robot.localisation()
                 stamp = _stamp(t)
-                bus.publish(tp["pose"], self._pose_wire.pack(stamp["secs"], stamp["nsecs"], x, y, yaw, cov))
+                bus.publish(tp["pose"], self._pose_wire.pack_pose(stamp["secs"], stamp["nsecs"], x, y, yaw, cov))
             if tp["odom"].subscriptions:
                 ox, oy, oyaw, v, w = bot.robot.odom()
                 msg = {"header": {"stamp": _stamp(t), "frame_id": "odom"}, "child_frame_id": "base_footprint",
@@ -375,14 +375,13 @@ class SimHost:
                 bus.publish(tp["battery"], reg.json_to_bytes(reg.msg_type(T_BATTERY), bot.battery.message(_stamp(t))))
             if self.publish_obstacles and tick % self.obstacles_every == 0 and bot.last_scan is not None:
                 scan, pose, _ = bot.last_scan
-                pts = [(px, py) for px, py in self.detector.detect(scan, pose)
-                       if math.hypot(px - pose[0], py - pose[1]) <= self.obstacle_range]
-                if pts:
+                pts = self.detector.detect_points(scan, pose)
+                pts = pts[np.hypot(pts[:, 0] - pose[0], pts[:, 1] - pose[1]) <= self.obstacle_range]
+                if len(pts):
                     self.obstacle_points_dropped += max(0, len(pts) - MAX_OBSTACLE_POINTS)
-                    msg = {"header": {"stamp": _stamp(t), "frame_id": "map"},
-                           "poses": [{"position": {"x": px, "y": py}, "orientation": {"w": 1.0}}
-                                     for px, py in pts[:MAX_OBSTACLE_POINTS]]}
-                    bus.publish(tp["obstacles"], reg.json_to_bytes(reg.msg_type(T_OBST), msg))
+                    stamp = _stamp(t)
+                    bus.publish(tp["obstacles"], self._pose_wire.pack_points(stamp["secs"], stamp["nsecs"],
+                                                                             pts[:MAX_OBSTACLE_POINTS]))
 
     # -- teardown ----------------------------------------------------------------------------------
     async def stop(self, timeout: float = STOP_TIMEOUT_S, first: list[str] = ()) -> None:

@@ -68,14 +68,18 @@ class ObstacleDetector:
             keep &= np.hypot(pts[:, 0] - ex, pts[:, 1] - ey) > er
         return pts[keep]
 
+    def detect_points(self, scan: np.ndarray, pose: tuple[float, float, float],
+                      exclude: Iterable[tuple[float, float, float]] = ()) -> np.ndarray:
+        """(K, 2) float64 world points, m, of the scan's hits that the map does
+        not explain.  ``pose`` is the sensor pose (x m, y m, yaw rad) at scan
+        time (use the localisation estimate); ``exclude`` discs (x, y, r) drop
+        hits on known things such as the other robots (pass r ~ radius + 0.1 m)."""
+        return self.filter(scan_to_points(scan, pose, self.lidar_params, include_too_close=False), exclude)
+
     def detect(self, scan: np.ndarray, pose: tuple[float, float, float],
                exclude: Iterable[tuple[float, float, float]] = ()) -> list[tuple[float, float]]:
-        """World (x, y) points, m, of the scan's hits that the map does not
-        explain.  ``pose`` is the sensor pose (x m, y m, yaw rad) at scan time
-        (use the localisation estimate); ``exclude`` discs (x, y, r) drop hits
-        on known things such as the other robots (pass r ~ radius + 0.1 m)."""
-        pts = scan_to_points(scan, pose, self.lidar_params, include_too_close=False)
-        return [(float(x), float(y)) for x, y in self.filter(pts, exclude)]
+        """:meth:`detect_points` as a list of (x, y) tuples."""
+        return [(float(x), float(y)) for x, y in self.detect_points(scan, pose, exclude)]
 
 
 def detected_obstacles(scan: np.ndarray, pose: tuple[float, float, float],
