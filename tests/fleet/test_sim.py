@@ -501,27 +501,19 @@ def test_normal_block_hands_out_the_generators_own_sequence():
     assert [block.next() for _ in range(12)] == [one.normal(0.0, 1.0, 3).tolist() for _ in range(12)]
 
 
-def test_pose_wire_packs_what_the_registry_serialises():
-    """The simulator's amcl_pose and obstacles bytes are the message registry's for the same messages."""
+def test_points_wire_packs_what_the_registry_serialises():
+    """The simulator's obstacles bytes are the message registry's for the same message."""
     from rce.messages import default_registry
-    from rce_fleet.geometry import quaternion_from_yaw
-    from rce_fleet.pose_wire import PoseWire
+    from rce_fleet.points_wire import PointsWire
     reg = default_registry()
-    t = reg.msg_type("geometry_msgs/PoseWithCovarianceStamped")
+    t = reg.msg_type("geometry_msgs/PoseArray")
     rng = np.random.default_rng(0)
-    wire = PoseWire("map")
+    wire = PointsWire("map")
     for secs, nsecs in ((0, 0), (12, 500_000_000), (2 ** 31 - 1, 999_999_999)):
-        x, y, yaw = rng.uniform(-20, 20), rng.uniform(-20, 20), rng.uniform(-math.pi, math.pi)
-        cov = rng.uniform(0, 1, 36).tolist()
-        msg = {"header": {"stamp": {"secs": secs, "nsecs": nsecs}, "frame_id": "map"},
-               "pose": {"pose": {"position": {"x": x, "y": y, "z": 0.0}, "orientation": quaternion_from_yaw(yaw)},
-                        "covariance": cov}}
-        assert wire.pack_pose(secs, nsecs, x, y, yaw, cov) == reg.json_to_bytes(t, msg)
-        pts = rng.uniform(-5, 5, (int(rng.integers(0, 121)), 2))
-        arr = {"header": {"stamp": {"secs": secs, "nsecs": nsecs}, "frame_id": "map"},
-               "poses": [{"position": {"x": px, "y": py}, "orientation": {"w": 1.0}} for px, py in pts.tolist()]}
-        assert wire.pack_points(secs, nsecs, pts) == reg.json_to_bytes(reg.msg_type("geometry_msgs/PoseArray"), arr)
+        for n in (0, 1, 120):
+            pts = rng.uniform(-20, 20, (n, 2))
+            msg = {"header": {"stamp": {"secs": secs, "nsecs": nsecs}, "frame_id": "map"},
+                   "poses": [{"position": {"x": x, "y": y}, "orientation": {"w": 1.0}} for x, y in pts.tolist()]}
+            assert wire.pack(secs, nsecs, pts) == reg.json_to_bytes(t, msg)
     with pytest.raises(struct.error):
-        wire.pack_pose(2 ** 31, 0, 0.0, 0.0, 0.0, [0.0] * 36)
-    with pytest.raises(struct.error):
-        wire.pack_pose(0, 0, 0.0, 0.0, 0.0, [0.0] * 35)
+        wire.pack(2 ** 31, 0, np.zeros((1, 2)))

@@ -46,7 +46,7 @@ from rce_client.rce_ros import RobotBridge
 
 from .battery import BATTERY_TOPIC, T_BATTERY, Battery, BatteryParams
 from .geometry import GridGeometry, quaternion_from_yaw
-from .pose_wire import PoseWire
+from .points_wire import PointsWire
 from .sim import LocalNavigator, ObstacleDetector, SimWorld
 
 log = get_logger("fleet.sim")
@@ -138,7 +138,7 @@ class SimHost:
         self._task: asyncio.Task | None = None
         self._stopping = False
         self.radius = self.world.robot_params.radius
-        self._pose_wire = PoseWire("map")
+        self._points_wire = PointsWire("map")
 
     @property
     def time(self) -> float:
@@ -356,8 +356,11 @@ class SimHost:
             bus, tp = bot.bridge.bus, bot.topics
             if tick % self.pose_every == 0:
                 x, y, yaw, cov = bot.robot.localisation()
-                stamp = _stamp(t)
-                bus.publish(tp["pose"], self._pose_wire.pack_pose(stamp["secs"], stamp["nsecs"], x, y, yaw, cov))
+                msg = {"header": {"stamp": _stamp(t), "frame_id": "map"},
+                       "pose": {"pose": {"position": {"x": x, "y": y, "z": 0.0},
+                                         "orientation": quaternion_from_yaw(yaw)},
+                                "covariance": cov}}
+                bus.publish(tp["pose"], reg.json_to_bytes(reg.msg_type(T_POSE), msg))
             if tp["odom"].subscriptions:
                 ox, oy, oyaw, v, w = bot.robot.odom()
                 msg = {"header": {"stamp": _stamp(t), "frame_id": "odom"}, "child_frame_id": "base_footprint",
@@ -380,8 +383,8 @@ class SimHost:
                 if len(pts):
                     self.obstacle_points_dropped += max(0, len(pts) - MAX_OBSTACLE_POINTS)
                     stamp = _stamp(t)
-                    bus.publish(tp["obstacles"], self._pose_wire.pack_points(stamp["secs"], stamp["nsecs"],
-                                                                             pts[:MAX_OBSTACLE_POINTS]))
+                    bus.publish(tp["obstacles"], self._points_wire.pack(stamp["secs"], stamp["nsecs"],
+                                                                         pts[:MAX_OBSTACLE_POINTS]))
 
     # -- teardown ----------------------------------------------------------------------------------
     async def stop(self, timeout: float = STOP_TIMEOUT_S, first: list[str] = ()) -> None:
