@@ -27,9 +27,15 @@ def _closest(ax, ay, tx, ty):
     n, k = ax.shape
     out = np.empty(n)
     for i in range(n):
-        best = np.inf
+        sq = np.inf
         for j in range(k):
-            best = min(best, math.hypot(tx - ax[i, j], ty - ay[i, j]))
+            dx, dy = tx - ax[i, j], ty - ay[i, j]
+            sq = min(sq, dx * dx + dy * dy)
+        best = np.inf                      # hypot of the points that can be nearest, as numpy's hypot
+        for j in range(k):
+            dx, dy = tx - ax[i, j], ty - ay[i, j]
+            if dx * dx + dy * dy <= sq * (1.0 + 1e-9):
+                best = min(best, math.hypot(dx, dy))
         out[i] = best
     return out
 
@@ -50,11 +56,18 @@ def _clearance(ax, ay, pts, bound):
     out = np.full(n, np.inf)
     bb = bound * bound
     for i in range(n):
-        best = bb
+        x0, x1, y0, y1 = ax[i, 0], ax[i, 0], ay[i, 0], ay[i, 0]       # the arc's box, widened by bound
         for j in range(k):
-            x, y = ax[i, j], ay[i, j]
-            for q in range(m):
-                dx, dy = pts[near[q], 0] - x, pts[near[q], 1] - y
+            x0, x1 = min(x0, ax[i, j]), max(x1, ax[i, j])
+            y0, y1 = min(y0, ay[i, j]), max(y1, ay[i, j])
+        x0, x1, y0, y1 = x0 - bound, x1 + bound, y0 - bound, y1 + bound
+        best = bb
+        for q in range(m):
+            px, py = pts[near[q], 0], pts[near[q], 1]
+            if px < x0 or px > x1 or py < y0 or py > y1:
+                continue
+            for j in range(k):
+                dx, dy = px - ax[i, j], py - ay[i, j]
                 d = dx * dx + dy * dy
                 if d < best:
                     best = d

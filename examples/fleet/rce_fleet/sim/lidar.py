@@ -17,6 +17,7 @@ values follow REP 117: ``+inf`` means no return within ``range_max``,
 
 from __future__ import annotations
 
+import functools
 import math
 from dataclasses import dataclass
 from typing import Callable
@@ -65,8 +66,15 @@ class LidarParams:
         return self.angle_min + (self.n_beams - 1) * self.angle_increment
 
     def beam_angles(self) -> np.ndarray:
-        """(n_beams,) float64 beam angles in the robot frame, rad."""
-        return self.angle_min + np.arange(self.n_beams) * self.angle_increment
+        """(n_beams,) float64 beam angles in the robot frame, rad (read-only, shared)."""
+        return _beam_angles(self)
+
+
+@functools.lru_cache(maxsize=16)
+def _beam_angles(p: LidarParams) -> np.ndarray:
+    a = p.angle_min + np.arange(p.n_beams) * p.angle_increment
+    a.flags.writeable = False
+    return a
 
 
 class Lidar:
