@@ -19,6 +19,7 @@ def test_fleet_live_quick_reports_every_number(tmp_path):
     assert run["exit_code"] == 0 and run["reason"] == "40 s simulated"
     assert run["generated"] >= 1 and run["tasks"]["generated"] == run["generated"]
     assert 0 < run["real_time_factor"] and run["engine_cpu_pct"] > 0 and run["demo_cpu_pct"] > 0
+    assert run["host_cpu_per_sim_s"] > 0
     assert run["machine_cpu_pct"] >= run["engine_cpu_pct"] + run["demo_cpu_pct"] - 5
     assert any(k.startswith("rce-") for k in run["by_process_pct"]), run["by_process_pct"]
     assert run["offline"]["steps"] >= 5 and run["ran_flat"] == 0
