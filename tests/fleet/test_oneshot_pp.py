@@ -1,9 +1,12 @@
-"""rce_fleet.lifelong.pp and .oneshot: prioritized planning for one-shot MAPF (valid paths: no
-vertex or swap conflict, one-cell moves, every agent at its goal and staying there), its
-order by aisle depth, its failure, and the LaCAM fallback of plan_one_shot."""
+"""rce_fleet.lifelong.pp, .parallel and .oneshot: prioritized planning for one-shot MAPF (valid
+paths: no vertex or swap conflict, one-cell moves, every agent at its goal and staying there),
+its order by aisle depth, its failure, and the LaCAM fallback of plan_one_shot; LaCAM and LNS
+on two processes, the replay of a worker's changes, and the loss of a forked process."""
 from __future__ import annotations
 
 import itertools
+import os
+import signal
 import time
 from pathlib import Path
 
@@ -194,3 +197,33 @@ def test_lns_on_two_processes_keeps_a_crowded_solution_valid_and_replays_the_wor
     assert_valid(g, shot, starts, goals)
     with pytest.raises(ValueError, match="workers"):
         refine_parallel(g, res["paths"], goals, 1.0, workers=0)
+
+
+def test_forked_processes_killed_cost_their_work_and_the_main_process_carries_on():
+    """kill -9 of the forked processes, from their own clock: refine_parallel counts the worker
+    lost and refines on alone; plan_one_shot keeps its own LaCAM solution when the other seed's
+    process dies (its sum of costs None). Both solutions valid and never worse than LaCAM's."""
+    from rce_fleet.lifelong.lacam import solve_lacam
+    from rce_fleet.lifelong.parallel import refine_parallel
+    warm_up()
+    g, starts, goals = crowded(3, 12, 0.2, 30)
+    res = solve_lacam(g, starts, goals, time_limit_s=30)
+    assert res["solved"]
+    parent = os.getpid()
+
+    def clock_killing():
+        calls = itertools.count(0.0, 1e-4)
+
+        def clock():
+            if os.getpid() != parent:                      # a forked process, at its first look
+                os.kill(os.getpid(), signal.SIGKILL)
+            return next(calls)
+        return clock
+
+    out = refine_parallel(g, res["paths"], goals, 1.0, workers=2, round_s=0.02, clock=clock_killing())
+    assert out["workers_lost"] == 1 and out["changes"] == (0, 0)
+    assert out["sum_of_costs"] <= res["sum_of_costs"]
+    assert_valid(g, out, starts, goals)
+    shot = plan_one_shot(g, starts, goals, time_limit_s=3, workers=2, clock=clock_killing())
+    assert shot["solved"] and dict(shot["first_tries"])[1] is None
+    assert_valid(g, shot, starts, goals)

@@ -51,12 +51,14 @@ def refine_parallel(grid: LifelongGrid, paths: np.ndarray, goals: np.ndarray, ti
                     clock=time.perf_counter) -> dict:
     """:func:`~.refine.refine_lns` on ``workers`` processes (this one and ``workers`` - 1
     forked): the same arguments and result (``iterations`` summed over the processes), plus
-    ``changes`` (the workers' accepted changes replayed here, and all of them) and
-    ``worker_cpu_s`` (the workers' CPU seconds). Each process spends ``time_limit_s`` seconds of
-    its own ``clock``: with ``time.process_time`` the CPU of all of them together is up to
-    ``workers`` x ``time_limit_s``. Agents are owned by goal column: the ``n / workers`` with
-    the goals farthest west by the main process, the next by the first worker, and so on.
-    Raises ValueError when the last row of ``paths`` is not ``goals`` or ``workers`` < 1."""
+    ``changes`` (the workers' accepted changes replayed here, and all of them),
+    ``workers_lost`` (workers that died: the changes of their last round are lost, their
+    agents go to the others) and ``worker_cpu_s`` (the workers' CPU seconds). Each process
+    spends ``time_limit_s`` seconds of its own ``clock``: with ``time.process_time`` the CPU of
+    all of them together is up to ``workers`` x ``time_limit_s``. Agents are owned by goal
+    column (each process a run of the agents in the order of their goals' columns, the runs
+    moved on between sweeps). Raises ValueError when the last row of ``paths`` is not
+    ``goals`` or ``workers`` < 1."""
     if workers < 1:
         raise ValueError(f"workers must be at least 1, got {workers}")
     t0, cpu0 = clock(), children_cpu()
@@ -64,54 +66,72 @@ def refine_parallel(grid: LifelongGrid, paths: np.ndarray, goals: np.ndarray, ti
     n = ref.goals.shape[0]
     rank = np.argsort(np.argsort(ref.goals % grid.free.shape[1], kind="stable"))
     ctx = multiprocessing.get_context("fork")
-    links, procs = [], []
+    live = []                                  # [pipe, process, its iterations] per worker
     for w in range(1, workers):
         ref.rng = np.random.default_rng([seed, w])
         here, there = ctx.Pipe()
         p = ctx.Process(target=_worker, args=(ref, there, clock), daemon=True)
         p.start()
         there.close()
-        links.append(here)
-        procs.append(p)
+        live.append([here, p, 0])
     ref.rng = np.random.default_rng([seed, 0])
-    applied = changes = iterations = rounds = 0
+    applied = changes = rounds = 0
+    gone: list[list] = []
     shift = max(n // (8 * workers), 1)         # the owners' borders move on by this many agents each round
     none = np.zeros(0, dtype=np.int64)
     changed = (none, ref.res.paths[none], ref.res.lengths[none])
     try:
         while True:
             left = time_limit_s - (clock() - t0)
-            if left <= 0.01 or not links:
+            if left <= 0.01:
+                break
+            if not live:                       # every worker lost: this process owns all
+                ref.own = np.ones(n, dtype=bool)
+                ref.improve(left, clock)
                 break
             seconds = min(round_s, left)
             if not ref.queue:                  # between sweeps: the owners' borders move on
                 rounds += 1
-            owner = (rank + rounds * shift) % n * workers // n
-            for w, link in enumerate(links, 1):
-                link.send((seconds, owner == w, changed))
+            owner = (rank + rounds * shift) % n * (1 + len(live)) // n
+            lost = []
+            for w, entry in enumerate(live, 1):
+                try:
+                    entry[0].send((seconds, owner == w, changed))
+                except OSError:
+                    lost.append(entry)
             ref.own = owner == 0
             ref.log = []
             ref.improve(seconds, clock)
             touched = [g for g, _, _ in ref.log]
-            replies = [link.recv() for link in links]
-            for log, _ in replies:
+            for entry in live:
+                if entry in lost:
+                    continue
+                try:
+                    log, entry[2] = entry[0].recv()
+                except (EOFError, OSError):    # the worker died: its round is lost, its agents go to the others
+                    lost.append(entry)
+                    continue
                 applied += ref.replay(log)
                 changes += len(log)
                 touched += [g for g, _, _ in log]
-            iterations = sum(r[1] for r in replies)
+            for entry in lost:
+                live.remove(entry)
+                gone.append(entry)
+                entry[0].close()
+                entry[1].join()
             agents = np.unique(np.concatenate(touched)) if touched else none
             changed = (agents, ref.res.paths[agents], ref.res.lengths[agents])
-        if not links:
-            ref.improve(time_limit_s - (clock() - t0), clock)
     finally:
-        for link in links:
-            link.send(None)
+        for link, p, _ in live:
+            try:
+                link.send(None)
+            except OSError:
+                pass                           # it died meanwhile
             link.close()
-        for p in procs:
             p.join()
-    return {**ref.solution(), "iterations": ref.iterations + iterations, "accepted": ref.accepted,
-            "changes": (applied, changes), "expanded": int(ref.res.stats[0]), "time_s": clock() - t0,
-            "worker_cpu_s": children_cpu() - cpu0}
+    return {**ref.solution(), "iterations": ref.iterations + sum(e[2] for e in live + gone),
+            "accepted": ref.accepted, "changes": (applied, changes), "workers_lost": len(gone),
+            "expanded": int(ref.res.stats[0]), "time_s": clock() - t0, "worker_cpu_s": children_cpu() - cpu0}
 
 
 def _lacam(conn, args: tuple, kwargs: dict) -> None:
