@@ -56,3 +56,13 @@ def test_bench_lifelong_quick(tmp_path):
         assert len(x["curve"]) == x["steps"] and x["default"] > 0 and x["best"] > 0
     assert png.stat().st_size > 10_000
     assert "x default" in r.stdout
+
+
+def test_lifelong_cli_refuses_an_unwritable_output_before_it_runs(tmp_path, capsys):
+    out = tmp_path / "no-such-dir" / "run.json"
+    with pytest.raises(SystemExit) as e:
+        main(["lifelong", str(RANDOM), "--steps", "5", "--output", str(out), "--no-progress"])
+    assert e.value.code == 2
+    cap = capsys.readouterr()
+    assert f"--output {out}: cannot write: No such file or directory" in cap.err
+    assert "tasks finished" not in cap.out

@@ -159,7 +159,8 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 def _lifelong(args: argparse.Namespace) -> int:
-    """``rce-fleet lifelong``: 0 ok, 2 a missing or malformed problem, 1 invalid or late steps."""
+    """``rce-fleet lifelong``: 0 ok, 2 a missing or malformed problem or an unwritable
+    ``--output``, 1 invalid or late steps."""
     import contextlib
     import json
 
@@ -173,18 +174,24 @@ def _lifelong(args: argparse.Namespace) -> int:
     except ProblemError as e:
         print(f"rce-fleet lifelong: {e}", file=sys.stderr)
         return 2
+    try:  # opened before the run, so a path that cannot be written costs no run
+        out = open(args.output, "w") if args.output else contextlib.nullcontext(None)
+    except OSError as e:
+        print(f"rce-fleet lifelong: --output {args.output}: cannot write: {e.strerror}", file=sys.stderr)
+        return 2
     bar = contextlib.nullcontext(None) if args.no_progress else rich_progress(args.steps, problem.path.stem)
-    with bar as cb:
-        res = run_lifelong(problem, args.steps, plan_time_limit_ms=args.plan_time_limit, seed=args.seed,
-                           scheduler=args.scheduler, progress=cb)
-    s = res.summary()
-    print(f"{problem.path.name}: {s['tasks_finished']} tasks finished in {s['steps']} steps by {problem.team_size} "
-          f"robots; planner ms p50 {s['plan_ms_p50']:.1f} p99 {s['plan_ms_p99']:.1f} max {s['plan_ms_max']:.1f}; "
-          f"timeouts {s['timeouts']}, invalid steps {s['invalid_steps']}, schedule errors {s['schedule_errors']}")
-    if args.output:
-        with open(args.output, "w") as f:
+    with out as f:
+        with bar as cb:
+            res = run_lifelong(problem, args.steps, plan_time_limit_ms=args.plan_time_limit, seed=args.seed,
+                               scheduler=args.scheduler, progress=cb)
+        s = res.summary()
+        print(f"{problem.path.name}: {s['tasks_finished']} tasks finished in {s['steps']} steps by "
+              f"{problem.team_size} robots; planner ms p50 {s['plan_ms_p50']:.1f} p99 {s['plan_ms_p99']:.1f} max "
+              f"{s['plan_ms_max']:.1f}; timeouts {s['timeouts']}, invalid steps {s['invalid_steps']}, "
+              f"schedule errors {s['schedule_errors']}")
+        if f is not None:
             json.dump(res.sim.output(problem.version), f)
-        print(f"wrote {args.output}")
+            print(f"wrote {args.output}")
     return 1 if s["timeouts"] or s["invalid_steps"] else 0
 
 
