@@ -98,20 +98,27 @@ class RosbridgeServer:
             await self._server.wait_closed()
 
     async def _handshake(self, connection, request):
-        """Authenticate the query (module docstring) before the websocket opens."""
+        """Authenticate the query (module docstring) before the websocket opens. A refusal is
+        logged with its status and reason: roslibpy and roslibjs do not show them to their user."""
         q = {k: v[0] for k, v in parse_qs(urlsplit(request.path).query).items()}
+
+        def refuse(status: int, reason: str, resp=None):
+            log.info("rosbridge client refused", status=int(status), reason=reason, user=q.get("userID"),
+                     robot=q.get("robotID"), container=q.get("container"), peer=peer_address(connection))
+            return resp if resp is not None else connection.respond(status, reason + "\n")
+
         missing = [k for k in QUERY if not q.get(k)]
         if missing:
-            return connection.respond(HTTPStatus.BAD_REQUEST, f"missing query parameter(s): {', '.join(missing)}\n")
+            return refuse(HTTPStatus.BAD_REQUEST, f"missing query parameter(s): {', '.join(missing)}")
         password = q["password"].lower()
         if len(password) != 64 or any(c not in "0123456789abcdef" for c in password):
-            return connection.respond(HTTPStatus.BAD_REQUEST, "password must be the hex SHA-256 digest (64 digits)\n")
+            return refuse(HTTPStatus.BAD_REQUEST, "password must be the hex SHA-256 digest (64 digits)")
         try:
             max_lag = self.max_lag if "maxLag" not in q else parse_max_lag(q["maxLag"])
         except ValueError as e:
-            return connection.respond(HTTPStatus.BAD_REQUEST, f"{e}\n")
+            return refuse(HTTPStatus.BAD_REQUEST, str(e))
         if (away := master_away(connection, self.master)) is not None:
-            return away
+            return refuse(HTTPStatus.SERVICE_UNAVAILABLE, "the master is unavailable", away)
         user, robot, ctag = q["userID"], q["robotID"], q["container"]
         steps = ((HTTPStatus.UNAUTHORIZED, "auth", {"user": user, "robot": robot, "password": password,
                                                     "addr": peer_address(connection)}),
@@ -121,12 +128,11 @@ class RosbridgeServer:
             try:
                 await self.master.call(op, **args)
             except (AuthError, NotFound) as e:
-                return connection.respond(status, e.message + "\n")
+                return refuse(status, e.message)
             except Throttled as e:
-                return throttled(connection, e)
+                return refuse(HTTPStatus.TOO_MANY_REQUESTS, e.message, throttled(connection, e))
             except RCEError as e:
-                code = status if op == "robot_connected" else HTTPStatus.SERVICE_UNAVAILABLE
-                return connection.respond(code, e.message + "\n")
+                return refuse(status if op == "robot_connected" else HTTPStatus.SERVICE_UNAVAILABLE, e.message)
         connection.rce_rosbridge, connection.rce_max_lag = (user, robot, ctag), max_lag
         return None
 

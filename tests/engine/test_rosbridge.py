@@ -267,6 +267,12 @@ async def test_handshake_refusals(eng):
                 async with connect(url):
                     pass
             assert e.value.response.status_code == code
+        # roslibpy and roslibjs show no HTTP reason: the endpoint's log names each refusal
+        robot_log = next(p for p in eng.logs if p.name.startswith("robot")).read_text()
+        refused = [json.loads(line) for line in robot_log.splitlines() if '"rosbridge client refused"' in line]
+        assert {(r["status"], r["robot"], r["container"]) for r in refused} >= {
+            (401, "rbBad", "rbC3"), (404, "rbBad", "noSuchContainer"), (400, "rbBad", None)}
+        assert any(r["reason"] == "container 'noSuchContainer' does not exist" for r in refused)
         async with connect(_url(eng, "rbNoLag", "rbC3") + "&maxLag=0") as ws:     # its publish ops never shed
             await ws.send(json.dumps({"op": "call_service", "service": "/rosapi/topics", "id": "t"}))
             assert (await _next(ws, "service_response"))["id"] == "t"
