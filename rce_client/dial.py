@@ -11,6 +11,7 @@ from __future__ import annotations
 import asyncio
 import hashlib
 import json
+import os
 import ssl
 from typing import TYPE_CHECKING, Any
 from urllib.parse import parse_qsl, urlencode, urlsplit, urlunsplit
@@ -48,6 +49,15 @@ def with_query(url: str, **params: str) -> str:
     return urlunsplit((parts.scheme, parts.netloc, parts.path or "/", urlencode(query), parts.fragment))
 
 
+def _socket_failure(error: BaseException) -> str:
+    """The reason of a failed connection, without aiohttp's dump of its SSL context: the
+    socket's error ("Connection refused", "Name or service not known"), else the error itself."""
+    cause = getattr(error, "os_error", None) or error
+    if isinstance(cause, ConnectionError) and cause.errno:
+        return os.strerror(cause.errno)
+    return getattr(cause, "strerror", None) or str(cause) or type(cause).__name__
+
+
 async def login(master_url: str, user_id: str, version: str = CLIENT_VERSION,
                 timeout: float = CONNECT_TIMEOUT, ssl_context: ssl.SSLContext | None = None,
                 routes: Routes | None = None) -> str:
@@ -73,7 +83,7 @@ async def login(master_url: str, user_id: str, version: str = CLIENT_VERSION,
             raise Unavailable(f"login at {master_url} failed (HTTP {status}): {http_reason(body, phrase or 'error')}")
     except (aiohttp.ClientError, asyncio.TimeoutError, OSError) as e:
         raise Unavailable(f"cannot reach the master at {master_url}: "
-                          f"{tls.tls_failure(e, master_url) or e or type(e).__name__}") from None
+                          f"{tls.tls_failure(e, master_url) or _socket_failure(e)}") from None
     try:
         answer = json.loads(body)
         ws_url = answer["url"]

@@ -65,8 +65,9 @@ async def test_login_answer_without_url(master):
 
 
 async def test_login_unreachable_master():
-    with pytest.raises(Unavailable, match="cannot reach the master at http://127.0.0.1:9/"):
+    with pytest.raises(Unavailable, match="cannot reach the master at http://127.0.0.1:9/") as e:
         await login("http://127.0.0.1:9/", "testUser", timeout=5)
+    assert str(e.value) == "cannot reach the master at http://127.0.0.1:9/: Connection refused"
 
 
 async def test_connect_logs_in_then_opens_the_websocket(master):
