@@ -240,7 +240,8 @@ class Lists:
         self.steps = {s.key: s for s in steps}
 
     async def run(self, req: Request, data: schema.CNData | schema.CXData) -> None:
-        """Raises one :class:`RequestError` naming every refused item (the others are done)."""
+        """Raises one :class:`RequestError` naming every reason an item was refused for, each once
+        (the other items are done)."""
         errors: list[str] = []
         for key, step in self.steps.items():
             for item in getattr(data, key):
@@ -249,7 +250,7 @@ class Lists:
                 except RCEError as e:
                     errors.append(e.message)
         if errors:
-            raise RequestError("; ".join(errors))
+            raise RequestError("; ".join(dict.fromkeys(errors)))
 
 
 CN_STEPS = Lists(AddNode(), RemoveNode(), SetParam(), DeleteParam(), AddInterface(), RemoveInterface(),

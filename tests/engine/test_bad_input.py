@@ -64,6 +64,10 @@ async def test_unknown_tags(eng):
         assert "container 'nope' does not exist" in await r.expect("ER")
         await r.send("CX", {"connect": [{"tagA": "nope/a", "tagB": "unknown_tags/b"}]})
         assert "interface 'nope/a' does not exist" in await r.expect("ER")
+        # several items refused for one reason: the ER gives the reason once
+        await r.cn(addInterfaces=[{"endpointTag": "nope", "interfaceTag": t, "interfaceType": "PublisherInterface",
+                                   "className": "std_msgs/String", "addr": "/" + t} for t in ("a", "b", "c")])
+        assert await r.expect("ER") == "CN: container 'nope' does not exist"
     await _with_bystander(eng, "unknown_tags", body)
 
 
