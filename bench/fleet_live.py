@@ -63,17 +63,15 @@ EXIT_GRACE_S = 120        # wall s beyond the run's timeout before it is killed
 
 def _geometry(map_path: str | None, robots: int):
     """The grid, places and starts the demo uses for ``map_path`` (None: the lab map) and ``robots``."""
-    from rce_fleet.demo import DEFAULT_LARGE_MAP_CELL_M, LARGE_CELL_M, choose_cells
+    from rce_fleet.demo import choose_cells
     from rce_fleet.geometry import GridGeometry
-    from rce_fleet.grid import make_grid
+    from rce_fleet.grid import fleet_grid
     from rce_fleet.lab_map import write_lab_map
     from rce_fleet.maps import load_map
     from rce_fleet.places import generate_places
     with tempfile.TemporaryDirectory() as d:
         occ = load_map(map_path or write_lab_map(d))
-    grid = make_grid(occ)
-    if max(grid.cell_w_m, grid.cell_h_m) > LARGE_CELL_M:
-        grid = make_grid(occ, cell_m=DEFAULT_LARGE_MAP_CELL_M)
+    grid, _ = fleet_grid(occ)
     geo = GridGeometry.from_cellgrid(grid)
     names = [f"Robot{i}" for i in range(1, robots + 1)]
     return geo, generate_places(geo, robots), choose_cells(geo, names, 1, {}, {}, False)[0]

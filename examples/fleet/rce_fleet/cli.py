@@ -195,6 +195,32 @@ def _lifelong(args: argparse.Namespace) -> int:
     return 1 if s["timeouts"] or s["invalid_steps"] else 0
 
 
+def _print_grid(args: argparse.Namespace) -> int:
+    """``rce-fleet grid``: the cell numbers of the grid demo and serve cut the map into; 0 ok,
+    2 a map that cannot be read or a grid that does not fit it."""
+    import tempfile
+
+    from .grid import fleet_grid
+    from .lab_map import write_lab_map
+    from .maps import MapError, load_map
+    try:
+        with tempfile.TemporaryDirectory() as d:
+            m = load_map(args.map or write_lab_map(d))
+    except (MapError, OSError) as e:
+        print(f"rce-fleet grid: --map: {e}", file=sys.stderr)
+        return 2
+    try:
+        g, note = fleet_grid(m, args.grid, args.cell)
+    except ValueError as e:
+        print(f"rce-fleet grid: --grid/--cell: {e}", file=sys.stderr)
+        return 2
+    if note:
+        print(note)
+    print(f"{g.rows}x{g.cols} cells of {g.cell_w_m:.3f} x {g.cell_h_m:.3f} m, {len(g.free_cells())} free")
+    print(g.ascii())
+    return 0
+
+
 def main(argv: list[str] | None = None) -> None:
     """Run ``rce-fleet``; exits with the demo's code (0 ok, 1 failure or timeout, 2 bad
     flags, 3 an unreachable goal)."""
@@ -210,16 +236,7 @@ def main(argv: list[str] | None = None) -> None:
             print(path)
         return
     if args.cmd == "grid":
-        import tempfile
-        from .grid import make_grid
-        from .lab_map import write_lab_map
-        from .maps import load_map
-        with tempfile.TemporaryDirectory() as d:
-            m = load_map(args.map or write_lab_map(d))
-        g = make_grid(m, args.grid, args.cell) if (args.grid or args.cell) else make_grid(m)
-        print(f"{g.rows}x{g.cols} cells of {g.cell_w_m:.3f} x {g.cell_h_m:.3f} m, {len(g.free_cells())} free")
-        print(g.ascii())
-        return
+        sys.exit(_print_grid(args))
     from .demo import (EXIT_USAGE, Options, UsageError, parse_battery, parse_cell_at, parse_faults,
                        parse_robot_cell, run)
     lifelong = bool(getattr(args, "lifelong", False))

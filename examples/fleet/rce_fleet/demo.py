@@ -67,7 +67,7 @@ from .demo_output import (EXIT_FAIL, EXIT_OK, EXIT_UNREACHABLE, EXIT_USAGE, bloc
 from .faults import Fault, FaultInjector, parse_fault
 from .fleet_bag import FleetBag
 from .geometry import GridGeometry, components
-from .grid import make_grid
+from .grid import fleet_grid
 from .lab_map import write_lab_map
 from .manager import FleetManager
 from .maps import MapError, load_map
@@ -79,8 +79,6 @@ from .simhost import SimHost
 log = get_logger("fleet.demo")
 
 REACH_TOL = 0.25       # m between the robot's true centre and its goal cell's centre
-LARGE_CELL_M = 2.0     # without --grid/--cell: 8x8, unless its cells would be larger than this ...
-DEFAULT_LARGE_MAP_CELL_M = 1.2   # ... then square cells of this side
 STUCK_S = 30.0         # wall s every robot still on its way may stay unplannable before the run fails
 SETUP_TIMEOUT_S = 60.0     # wall s for the fleet manager's setup, and for each robot's connection
 MIN_STEP_TIMEOUT_S = 0.1   # wall s a set-up step gets even when the run's --timeout is (nearly) used up
@@ -276,13 +274,7 @@ class Run:
         except (MapError, OSError) as e:
             raise UsageError(f"--map: {e}") from None
         try:
-            grid = make_grid(self.occ, o.grid, o.cell) if (o.grid or o.cell) else make_grid(self.occ)
-            if not (o.grid or o.cell) and max(grid.cell_w_m, grid.cell_h_m) > LARGE_CELL_M:
-                # the paper's 8x8 suits a lab; on a warehouse it gives cells of several metres
-                grid = make_grid(self.occ, cell_m=DEFAULT_LARGE_MAP_CELL_M)
-                self.grid_note = (f"grid: {grid.rows}x{grid.cols} cells of {DEFAULT_LARGE_MAP_CELL_M} m "
-                                  f"(8x8 would give cells over {LARGE_CELL_M:g} m on this map; pass --grid or "
-                                  f"--cell to choose)")
+            grid, self.grid_note = fleet_grid(self.occ, o.grid, o.cell)
         except ValueError as e:
             raise UsageError(f"--grid/--cell: {e}") from None
         self.geo = GridGeometry.from_cellgrid(grid)

@@ -37,13 +37,18 @@ from scipy import ndimage
 
 from .maps import OccupancyMap
 
-__all__ = ["CellGrid", "make_grid", "DEFAULT_ROWS_COLS", "ROBOT_RADIUS", "ROBOT_MARGIN"]
+__all__ = ["CellGrid", "make_grid", "fleet_grid", "DEFAULT_ROWS_COLS", "ROBOT_RADIUS", "ROBOT_MARGIN"]
 
 DEFAULT_ROWS_COLS = (8, 8)
 #: TurtleBot3 burger footprint radius (m).
 ROBOT_RADIUS = 0.105
 #: Extra clearance (m) on top of the robot radius: localisation error and control slack.
 ROBOT_MARGIN = 0.05
+#: Without a grid or cell size the fleet cuts a map 8x8, unless that gives cells larger than
+#: this (m) ...
+LARGE_CELL_M = 2.0
+#: ... then square cells of this side (m).
+DEFAULT_LARGE_MAP_CELL_M = 1.2
 
 
 @dataclass(frozen=True, eq=False)
@@ -307,3 +312,22 @@ def make_grid(occupancy: OccupancyMap, rows_cols: tuple[int, int] | None = None,
     return CellGrid(rows=rows, cols=cols, cell_w_m=cell_w_px * res, cell_h_m=cell_h_px * res,
                     free=free, map=occupancy, row0_px=float(g.r0), col0_px=float(g.c0), free_fraction=frac,
                     clearance=centre_clear, open_east=open_east, open_south=open_south)
+
+
+def fleet_grid(occupancy: OccupancyMap, rows_cols: tuple[int, int] | None = None,
+               cell_m: float | None = None) -> tuple[CellGrid, str]:
+    """The grid the fleet (``rce-fleet demo``, ``serve``, ``grid``) cuts ``occupancy`` into, and a
+    note saying why when it is not the one asked for ('' otherwise).
+
+    ``rows_cols`` or ``cell_m`` as :func:`make_grid`; with neither, the paper's 8x8, unless its
+    cells would be over :data:`LARGE_CELL_M` on a side (a warehouse): then square cells of
+    :data:`DEFAULT_LARGE_MAP_CELL_M`. Raises ValueError (from :func:`make_grid`) for cells
+    smaller than a robot or a grid with no free cell."""
+    if rows_cols or cell_m:
+        return make_grid(occupancy, rows_cols, cell_m), ""
+    grid = make_grid(occupancy)
+    if max(grid.cell_w_m, grid.cell_h_m) <= LARGE_CELL_M:
+        return grid, ""
+    grid = make_grid(occupancy, cell_m=DEFAULT_LARGE_MAP_CELL_M)
+    return grid, (f"grid: {grid.rows}x{grid.cols} cells of {DEFAULT_LARGE_MAP_CELL_M} m (8x8 would give cells "
+                  f"over {LARGE_CELL_M:g} m on this map; pass --grid or --cell to choose)")
