@@ -125,6 +125,7 @@ def test_http_api_creates_gets_cancels_and_says_why_not(fleet):
                              ({"errands": ["pick1", "dock9"]}, 400, "unknown place 'dock9'"),
                              ({"errands": [99]}, 400, "outside the 8x8 grid"),
                              ({"errands": ["pick1"], "deadline_s": "soon"}, 400, "must be numbers"),
+                             ({"errands": ["pick1"], "priorty": 5}, 400, "unknown field(s) 'priorty'"),
                              ({"errands": ["drop1"], "id": tid}, 409, "exists already")):
         c, err = http(fleet, "POST", "/api/tasks", body)
         assert c == want and text in err["error"], (body, c, err)

@@ -5,7 +5,8 @@ Routes (the fleet manager's :class:`~rce_fleet.tasks_client.TaskChannel` does th
 ==========================  =========================================================================
 ``POST /api/tasks``         body ``{"errands": ["pick1", "42"], "priority": 0, "earliest_start_s": 0,
                             "deadline_s": 0, "id": ""}`` -> 201 and the task; 400 (bad request), 409
-                            (the id exists) with ``{"error", "code"}``
+                            (the id exists) with ``{"error", "code"}``;
+                            a field not listed here is a 400
 ``GET /api/tasks``          the task list: ``tasks`` (open, then recently closed), ``robots`` (each
                             robot's task, activity, battery), counts and times
 ``GET /api/tasks/ID``       one task, 404 when the fleet does not know it
@@ -29,6 +30,7 @@ from .tasks_client import TaskChannel, TaskRefused
 __all__ = ["add_routes", "prometheus_text"]
 
 STATUS = {"bad_request": 400, "not_found": 404, "conflict": 409, "timeout": 504}
+FIELDS = ("errands", "priority", "earliest_start_s", "deadline_s", "id")   # of a POST's body
 
 
 def _error(status: int, code: str, text: str) -> web.Response:
@@ -45,6 +47,9 @@ def add_routes(app: web.Application, channel: TaskChannel) -> None:
             return _error(400, "bad_request", "the body must be a JSON object")
         if not isinstance(body, dict):
             return _error(400, "bad_request", "the body must be a JSON object")
+        if unknown := sorted(set(body) - set(FIELDS)):     # a misspelt "priority" is not silently 0
+            return _error(400, "bad_request", f"unknown field(s) {', '.join(map(repr, unknown))} "
+                                              f"(a task has {', '.join(FIELDS)})")
         errands = body.get("errands")
         if not isinstance(errands, list) or not all(isinstance(e, (str, int)) and not isinstance(e, bool)
                                                     for e in errands):
