@@ -1,6 +1,6 @@
 """The local planner's arc geometry, compiled (numba, ``cache=True``): for each sampled arc,
 its smallest distance to the lidar's hits, and to the point it steers for; for each direction
-of a detour, the free length of its corridor.
+of a detour, the free length of its corridor; the hits in the robot's frame.
 
 Why (py-spy of the live 100-robot fleet, ``bench/fleet_live.py --robots 100``): a k-d tree
 of the hits (scipy's ``cKDTree``), built and queried with the arcs' 2,520 points at every
@@ -19,7 +19,7 @@ from ..numba_cache import seed
 
 seed(__file__)          # numba's cache entries prepared in the tree (sandboxed nodes)
 
-__all__ = ["arc_clearance", "closest_approach", "corridor_free", "warm_up"]
+__all__ = ["arc_clearance", "closest_approach", "corridor_free", "robot_frame", "warm_up"]
 
 
 @njit(cache=True)
@@ -107,6 +107,29 @@ def corridor_free(ux: np.ndarray, uy: np.ndarray, points: np.ndarray, half: floa
                       np.ascontiguousarray(points, dtype=np.float64).reshape(-1, 2), float(half))
 
 
+@njit(cache=True)
+def _to_frame(pts, x, y, c, s, reach):
+    out = np.empty((pts.shape[0], 2))
+    m = 0
+    nearest = np.inf
+    for q in range(pts.shape[0]):
+        dx, dy = pts[q, 0] - x, pts[q, 1] - y
+        lx, ly = c * dx + s * dy, -s * dx + c * dy
+        r = math.hypot(lx, ly)
+        if r < reach:
+            out[m, 0], out[m, 1] = lx, ly
+            m += 1
+            nearest = min(nearest, r)
+    return out[:m], nearest
+
+
+def robot_frame(points: np.ndarray, x: float, y: float, yaw: float, reach: float) -> tuple[np.ndarray, float]:
+    """The world ``points`` ((P, 2) float64, m) seen from the pose (x m, y m, yaw rad), those
+    nearer than ``reach`` m: ((M, 2) float64, m; the distance, m, of the nearest, inf if none)."""
+    return _to_frame(np.ascontiguousarray(points, dtype=np.float64).reshape(-1, 2), float(x), float(y),
+                     math.cos(yaw), math.sin(yaw), float(reach))
+
+
 def closest_approach(ax: np.ndarray, ay: np.ndarray, tx: float, ty: float) -> np.ndarray:
     """(N,) float64: for each arc i (points ``ax[i]``, ``ay[i]``; (N, K) float64, m), its
     points' smallest distance, m, to the point (``tx``, ``ty``) m."""
@@ -119,3 +142,4 @@ def warm_up() -> None:
     arc_clearance(np.zeros((1, 2)), np.zeros((1, 2)), np.ones((1, 2)), 1.0)
     closest_approach(np.zeros((1, 2)), np.zeros((1, 2)), 1.0, 1.0)
     corridor_free(np.ones(1), np.zeros(1), np.ones((1, 2)), 0.5)
+    robot_frame(np.ones((1, 2)), 0.0, 0.0, 0.0, 2.0)

@@ -40,7 +40,7 @@ from typing import Iterable
 
 import numpy as np
 
-from .clearance import arc_clearance, closest_approach, corridor_free
+from .clearance import arc_clearance, closest_approach, corridor_free, robot_frame
 from .lidar import LidarParams, scan_to_points
 from .localisation import wrap_angle
 from .obstacles import ObstacleDetector, detected_obstacles as _detected
@@ -216,20 +216,14 @@ class LocalNavigator:
         goal_r = (c * dxg + s * dyg, -s * dxg + c * dyg)
         reach = max(p.max_linear * p.horizon + p.radius + p.clearance_cap,
                     p.lookahead + p.radius + p.safety_margin + 0.1)
-        pts = self._points
-        if len(pts):
-            d = pts - (x, y)
-            local = np.column_stack((c * d[:, 0] + s * d[:, 1], -s * d[:, 0] + c * d[:, 1]))
-            local = local[np.hypot(local[:, 0], local[:, 1]) < reach]
-        else:
-            local = np.zeros((0, 2))
+        local, nearest = robot_frame(self._points, x, y, yaw, reach)
 
         target, dist_t = self._subgoal(local, goal_r, dist, yaw)
         v_cap = min(p.max_linear, max(p.min_approach_speed, p.slowdown_gain * dist))
         vs, ws, wt, ax, ay = self._arcs(v_cap)
 
         if len(local):
-            d_now = float(np.hypot(local[:, 0], local[:, 1]).min()) - p.radius
+            d_now = nearest - p.radius
             # clearances from clearance_cap on all score alike: look no further
             clearance = arc_clearance(ax, ay, local, p.radius + p.clearance_cap) - p.radius
             # Admissible: keeps the margin, or (if already inside it) gets no closer.
