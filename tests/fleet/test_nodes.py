@@ -316,6 +316,25 @@ def test_lidar_points_block_a_cell_and_reroute(tb3):
     assert fleet.cancels["Robot1"] == 1
 
 
+def test_lidar_reports_wait_until_every_robot_has_a_pose(tb3):
+    """A robot the planner serves but that has no pose yet stands somewhere unknown: the points
+    the others' lidars see there are not used (counted), until it reports its pose."""
+    clock = Clock()
+    core = GlobalPlannerCore(tb3, ["Robot1", "Robot2"], clock=clock, lidar_blocking=True)
+    core.on_pose("Robot1", *tb3.center(30), 0.0)
+    cx, cy = tb3.center(28)                  # Robot2, not yet localised, stands in cell 28
+    pts = [(cx + d, cy) for d in (-0.05, 0.0, 0.05)]
+    for t in (1.0, 1.5):
+        clock.t = t
+        assert core.on_obstacles("Robot1", pts) == []
+    assert core.fp.blocked == {} and core.obstacle_reports_held == 2
+    core.on_pose("Robot2", *tb3.center(20), 0.0)     # it was elsewhere; the points are an obstacle
+    for t in (2.0, 2.5):
+        clock.t = t
+        core.on_obstacles("Robot1", pts)
+    assert core.fp.blocked == {28: "lidar:Robot1"} and core.obstacle_reports_held == 2
+
+
 def test_goal_before_first_pose_waits_for_it(tb3):
     core = GlobalPlannerCore(tb3, ["Robot1"], lidar_blocking=False)
     assert core.on_goals({"Robot1": 17}) == []

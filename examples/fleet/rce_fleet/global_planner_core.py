@@ -109,6 +109,7 @@ class GlobalPlannerCore:
         self.clock = clock
         self.lidar_blocking = lidar_blocking
         self.obstacles = obstacle_filter or ObstacleFilter(geometry)
+        self.obstacle_reports_held = 0      # lidar reports not used: a served robot had no pose yet
         self.log = log or (lambda msg, **kw: None)
         self.robots: dict[str, _Robot] = {}
         self.errors: deque[str] = deque(maxlen=MAX_ERRORS)
@@ -250,11 +251,22 @@ class GlobalPlannerCore:
 
     def on_obstacles(self, robot: str, points: list[tuple[float, float]], stamp: float = 0.0) -> list[Out]:
         """Lidar points of ``robot`` not explained by the static map (``/RobotN/obstacles``;
-        ``stamp``: its header stamp, s, the fleet clock; 0: unknown)."""
+        ``stamp``: its header stamp, s, the fleet clock; 0: unknown). Not used (counted in
+        ``obstacle_reports_held``) while a robot the planner serves has no pose yet: it stands
+        somewhere unknown, and the others' lidars would see it as an obstacle (the live fleet's
+        robots connect one after the other, so the first ones see the rest long before those
+        report a pose)."""
         rec = self.robots.get(robot)
         if rec is None or not self.lidar_blocking:
             return []
         rec.obstacles_seen += 1
+        unplaced = [r for r, v in self.robots.items() if v.pose is None]
+        if unplaced:            # a robot not yet localised stands somewhere unknown: its body reads as an obstacle
+            self.obstacle_reports_held += 1
+            if self.obstacle_reports_held == 1:
+                self.log("lidar reports not used until every robot has a pose", waiting_for=unplaced[:10],
+                         robots_without_pose=len(unplaced))
+            return []
         poses = {r: (v.pose[0], v.pose[1]) for r, v in self.robots.items() if v.pose is not None}
         ages = {r: stamp - v.pose_stamp for r, v in self.robots.items()
                 if v.pose is not None and stamp > 0 and v.pose_stamp > 0}
