@@ -82,7 +82,7 @@ def _run_args(p: argparse.ArgumentParser, mission: bool) -> None:
     p.add_argument("--start", action="append", default=[], metavar="RobotN=CELL", help="start cell of a robot")
     p.add_argument("--headless", action="store_true", help="no operator web page")
     p.add_argument("--web-port", type=int, default=8000, metavar="PORT",
-                   help="port of the operator's web page (default 8000; any free port when taken)")
+                   help="port of the operator's web page (default 8000; any free port when taken; 0 = ephemeral)")
     p.add_argument("--timeout", type=_positive, default=DEMO_TIMEOUT_S if mission else SERVE_TIMEOUT_S, metavar="S",
                    help="give up after S wall seconds" + (" (default 300)" if mission else ""))
     p.add_argument("--no-lidar-blocking", action="store_true",
