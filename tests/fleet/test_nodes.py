@@ -13,7 +13,7 @@ from rce_fleet.geometry import GridGeometry, quaternion_from_yaw, yaw_from_quate
 from rce_fleet.grid import make_grid
 from rce_fleet.lab_map import write_lab_map
 from rce_fleet.maps import load_map
-from rce_fleet.global_planner_core import GlobalPlannerCore
+from rce_fleet.global_planner_core import POSE_WAIT_S, GlobalPlannerCore
 from rce_fleet.move_client_core import MoveClientCore, plan_id_of
 from rce_fleet.planning import compress, compressed_index
 from rce_fleet.tracking import CellTracker, ObstacleFilter
@@ -333,6 +333,24 @@ def test_lidar_reports_wait_until_every_robot_has_a_pose(tb3):
         clock.t = t
         core.on_obstacles("Robot1", pts)
     assert core.fp.blocked == {28: "lidar:Robot1"} and core.obstacle_reports_held == 2
+
+
+def test_a_robot_that_never_reports_a_pose_holds_lidar_reports_only_so_long(tb3):
+    """POSE_WAIT_S without a first pose from anyone, a robot still without one is taken to be away:
+    one robot that never comes up does not turn the fleet's lidar blocking off for good."""
+    clock = Clock()
+    core = GlobalPlannerCore(tb3, ["Robot1", "Robot2", "Robot3"], clock=clock, lidar_blocking=True)
+    cx, cy = tb3.center(28)
+    pts = [(cx + d, cy) for d in (-0.05, 0.0, 0.05)]
+    clock.t = 0.6 * POSE_WAIT_S
+    core.on_pose("Robot1", *tb3.center(30), 0.0)          # the fleet still comes up: the wait starts again
+    clock.t = 1.5 * POSE_WAIT_S
+    assert core.on_obstacles("Robot1", pts) == [] and core.obstacle_reports_held == 1
+    core.on_pose("Robot2", *tb3.center(20), 0.0)
+    for dt in (0.0, 0.5):                                   # Robot3 never came up: its wait is over
+        clock.t = 1.5 * POSE_WAIT_S + POSE_WAIT_S + 1.0 + dt
+        core.on_obstacles("Robot1", pts)
+    assert core.fp.blocked == {28: "lidar:Robot1"} and core.obstacle_reports_held == 1
 
 
 def test_goal_before_first_pose_waits_for_it(tb3):

@@ -70,6 +70,7 @@ TASKS_REPEAT_S = 0.5       # /fleet/tasks is published this often (wall s), and 
 STALE_WAIT_S = 2.0        # fleet s a robot waits for one planned before it still far off before it is re-planned
 STALE_EVERY_S = 1.0       # fleet s between re-plans of robots held by a stale order (bounds their CPU)
 STALE_GAP = 2              # cells that robot is still short of the shared cell for the wait to count as stale
+POSE_WAIT_S = 60.0         # s without a robot's first pose after which the ones still without are taken to be away
 ROBOT_SPEED_MS = 0.15      # m/s a robot makes good along cells (turns and stops included): the task clock's step
 
 
@@ -110,6 +111,8 @@ class GlobalPlannerCore:
         self.lidar_blocking = lidar_blocking
         self.obstacles = obstacle_filter or ObstacleFilter(geometry)
         self.obstacle_reports_held = 0      # lidar reports not used: a served robot had no pose yet
+        self._unplaced = 0                  # robots served without a pose yet
+        self._first_pose_at = clock()       # s: when the last robot got its first pose (or the planner started)
         self.log = log or (lambda msg, **kw: None)
         self.robots: dict[str, _Robot] = {}
         self.errors: deque[str] = deque(maxlen=MAX_ERRORS)
@@ -143,6 +146,8 @@ class GlobalPlannerCore:
         if robot in self.robots:
             return False
         self.robots[robot] = _Robot(robot, CellTracker(self.geo))
+        self._unplaced += 1
+        self._first_pose_at = self.clock()      # a robot coming up: the wait for poses starts again
         self.dispatcher.add_robot(robot)
         return True
 
@@ -159,6 +164,9 @@ class GlobalPlannerCore:
         if rec is None:
             return []
         self.stamp = max(self.stamp, float(stamp))
+        if rec.pose is None:
+            self._unplaced -= 1
+            self._first_pose_at = self.clock()
         rec.pose = (float(x), float(y), float(yaw))
         rec.pose_stamp = float(stamp)
         before = rec.tracker.cell
@@ -255,17 +263,21 @@ class GlobalPlannerCore:
         ``obstacle_reports_held``) while a robot the planner serves has no pose yet: it stands
         somewhere unknown, and the others' lidars would see it as an obstacle (the live fleet's
         robots connect one after the other, so the first ones see the rest long before those
-        report a pose)."""
+        report a pose). Once :data:`POSE_WAIT_S` pass without a robot's first pose, the robots
+        still without one are taken to be away, and the reports are used again."""
         rec = self.robots.get(robot)
         if rec is None or not self.lidar_blocking:
             return []
         rec.obstacles_seen += 1
-        unplaced = [r for r, v in self.robots.items() if v.pose is None]
-        if unplaced:            # a robot not yet localised stands somewhere unknown: its body reads as an obstacle
+        if self._unplaced and self.clock() - self._first_pose_at < POSE_WAIT_S:
+            # a robot not yet localised stands somewhere unknown: its body reads as an obstacle. The fleet is
+            # still coming up while robots keep reporting their first poses; POSE_WAIT_S without one, the
+            # robots still without a pose are taken to be away, and the reports count again
             self.obstacle_reports_held += 1
             if self.obstacle_reports_held == 1:
+                unplaced = [r for r, v in self.robots.items() if v.pose is None]
                 self.log("lidar reports not used until every robot has a pose", waiting_for=unplaced[:10],
-                         robots_without_pose=len(unplaced))
+                         robots_without_pose=len(unplaced), at_most_s=POSE_WAIT_S)
             return []
         poses = {r: (v.pose[0], v.pose[1]) for r, v in self.robots.items() if v.pose is not None}
         ages = {r: stamp - v.pose_stamp for r, v in self.robots.items()
