@@ -27,19 +27,11 @@ from numba import njit
 from scipy import ndimage
 
 from ..numba_cache import seed
-from .walls import PixelRect
+from .walls import PixelRect, rasterise
 
 seed(__file__)          # numba's cache entries prepared in the tree (sandboxed nodes)
 
-__all__ = ["RayCaster", "covered", "free_run", "warm_up"]
-
-
-def covered(rects: list[PixelRect], shape: tuple[int, int]) -> np.ndarray:
-    """(H, W) bool: the pixels ``rects`` cover."""
-    out = np.zeros(shape, dtype=np.bool_)
-    for r in rects:
-        out[r.row0:r.row1, r.col0:r.col1] = True
-    return out
+__all__ = ["RayCaster", "free_run", "warm_up"]
 
 
 def free_run(wall: np.ndarray, resolution: float) -> np.ndarray:
@@ -169,7 +161,7 @@ class RayCaster:
 
     def __init__(self, rects: list[PixelRect], shape: tuple[int, int], resolution: float,
                  origin: tuple[float, ...]) -> None:
-        self.wall = covered(rects, shape)
+        self.wall = rasterise(rects, shape) > 0       # the pixels the rectangles cover
         self.run = free_run(self.wall, resolution)
         self.resolution = float(resolution)
         self.origin = (float(origin[0]), float(origin[1]))

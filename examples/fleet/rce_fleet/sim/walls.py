@@ -92,7 +92,7 @@ def merge_rectangles(mask: np.ndarray) -> list[PixelRect]:
 
 
 def rasterise(rects: list[PixelRect], shape: tuple[int, int]) -> np.ndarray:
-    """Count how many rectangles cover each pixel: (H, W) int32 (for checks)."""
+    """Count how many rectangles cover each pixel: (H, W) int32."""
     out = np.zeros(shape, dtype=np.int32)
     for r in rects:
         out[r.row0 : r.row1, r.col0 : r.col1] += 1
