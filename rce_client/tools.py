@@ -62,7 +62,7 @@ from rce_client.paths import bus_dir, running_buses
 
 POLL = 0.2          # s between describe polls while waiting for a topic to appear
 ECHO_SAMPLE_TIMEOUT = 5.0   # s, one admin API sample of ``echo --container`` (then the next one)
-SERVICE_WAIT = 10.0         # s, ``rce-service call`` waits for the service to appear (without --timeout)
+SERVICE_WAIT = 10.0         # s, ``rce-service call`` waits at most this (or --timeout) for the service to appear
 HZ_PERIOD = 1.0             # s between ``rce-topic hz`` reports (as rostopic hz)
 RECORD_QUEUE = 10000        # messages a recorded topic may have waiting on a local bus (oldest dropped, counted)
 RECORD_SAMPLE_TIMEOUT = 1.0  # s, one admin API sample of ``record --container`` (then the next: a stop is seen)
@@ -316,7 +316,8 @@ def service_parser() -> argparse.ArgumentParser:
     sp.add_argument("service")
     sp.add_argument("request", nargs="?", default="{}", metavar="YAML_REQ", help="request as YAML (default {})")
     sp.add_argument("--type", help="service class (default: from the bus)")
-    sp.add_argument("--timeout", type=float, default=30.0, metavar="S", help="seconds to wait (30)")
+    sp.add_argument("--timeout", type=float, default=30.0, metavar="S",
+                    help="seconds to wait for the response (30); for the service to appear at most 10")
     sp = add("type", "print the class of a service")
     sp.add_argument("service")
     return p
@@ -521,11 +522,17 @@ async def service_cmd(args: argparse.Namespace, backend) -> int:
     if type_ is None:
         # like `rosservice call --wait`: the node providing it may still be starting
         loop = asyncio.get_running_loop()
-        wait = args.timeout or SERVICE_WAIT
+        wait = min(args.timeout, SERVICE_WAIT) if args.timeout else SERVICE_WAIT
         deadline = loop.time() + wait
+        warned = False
         while (s := await _find(backend, "services", name)) is None:
             if loop.time() >= deadline:
-                raise NotFound(f"service {name} is not on the bus (waited {wait:g} s)")
+                names = sorted(x["name"] for x in (await backend.describe()).get("services", []))
+                raise NotFound(f"service {name} is not on the bus (waited {wait:g} s); "
+                               f"the bus has {', '.join(names) if names else 'no service'}")
+            if not warned:
+                _err(f"WARNING: service [{name}] is not on the bus yet; waiting up to {wait:g} s")
+                warned = True
             await asyncio.sleep(POLL)   # polling the bus description, a timer
         type_ = s["type"]
     resp = await backend.call(name, type_, request, args.timeout)

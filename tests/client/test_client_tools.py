@@ -144,8 +144,10 @@ async def test_failures_name_what_was_wrong(bus, capsys):
         await run("topic", ["--bus", path, "pub", "/stringEchoReq", "{data: 5}"], capsys)
     with pytest.raises(MessageError, match="unknown field 'nope'"):
         await run("service", ["--bus", path, "call", "stringEchoService", "{nope: 1}"], capsys)
-    with pytest.raises(NotFound, match="service /nothing is not on the bus"):
+    with pytest.raises(NotFound, match=r"service /nothing is not on the bus \(waited 0.5 s\); the bus has .*"
+                                       r"/stringEchoService"):
         await run("service", ["--bus", path, "call", "nothing", "{}", "--timeout", "0.5"], capsys)
+    assert "WARNING: service [/nothing] is not on the bus yet; waiting up to 0.5 s" in capsys.readouterr().err
     with pytest.raises(NotFound, match="topic /nothing is not on the bus"):
         await run("topic", ["--bus", path, "pub", "nothing", "{data: x}"], capsys)
     with pytest.raises(Unavailable, match="cannot reach the bus at /nonexistent.sock"):

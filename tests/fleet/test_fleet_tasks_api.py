@@ -150,3 +150,14 @@ def test_http_api_creates_gets_cancels_and_says_why_not(fleet):
     m = re.search(r'^rce_fleet_tasks_total\{state="done"\} (\d+)', text, re.M)
     assert m and int(m.group(1)) >= 1, text
     assert re.search(r'^rce_fleet_robot_utilisation\{robot="Robot1"\} [0-9.e-]+$', text, re.M)
+
+
+def test_cli_without_a_master_says_so_once_and_exits_3():
+    import socket
+    with socket.socket() as s:        # a loopback port nothing listens on
+        s.bind(("127.0.0.1", 0))
+        url = f"http://127.0.0.1:{s.getsockname()[1]}/"
+    p = subprocess.run([str(BIN / "rce-fleet"), "task", "list", "--master", url, "--timeout", "10"],
+                       capture_output=True, text=True, timeout=CLI_TIMEOUT_S)
+    assert p.returncode == 3, p.stderr
+    assert p.stderr.strip() == f"rce-fleet task: cannot reach the master at {url}: Connection refused", p.stderr

@@ -73,8 +73,10 @@ async def _run(args) -> int:
         async with asyncio.timeout(args.timeout):
             conn = await Connection.connect(args.master, args.user, args.password, robot_id, max_lag=0)
     except (RCEError, OSError, TimeoutError) as e:
-        print(f"rce-fleet task: cannot log in at {args.master}: {getattr(e, 'message', e) or type(e).__name__}",
-              file=sys.stderr)
+        why = str(getattr(e, "message", e) or type(e).__name__)
+        # the connection's own errors already name the master's URL
+        print(f"rce-fleet task: {why}" if args.master in why else
+              f"rce-fleet task: cannot log in at {args.master}: {why}", file=sys.stderr)
         return EXIT_UNREACHABLE
     ch = TaskChannel(conn, robot_id, args.container, source=f"cli:{args.user}")
     try:
