@@ -51,6 +51,17 @@ def _positive(text: str) -> float:
     return v
 
 
+def _seed(text: str) -> int:
+    """A random seed: an integer >= 0 (numpy's generators take no negative seed)."""
+    try:
+        v = int(text)
+        if v < 0:
+            raise ValueError
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected an integer >= 0, got {text!r}") from None
+    return v
+
+
 def _rate(text: str) -> float:
     """``6``, ``6/min`` -> 6.0 (tasks per simulated minute, > 0)."""
     return _positive(text[:-4] if text.endswith("/min") else text)
@@ -150,7 +161,7 @@ def build_parser() -> argparse.ArgumentParser:
     lf.add_argument("--plan-time-limit", type=_positive, default=1000.0, metavar="MS",
                     help="scheduler + planner wall time per step; an overrun is an all-wait step (default 1000)")
     lf.add_argument("--output", metavar="OUT.json", help="write the start-kit's output JSON here (PlanViz reads it)")
-    lf.add_argument("--seed", type=int, default=0, help="tie-breaks of the planner (default 0)")
+    lf.add_argument("--seed", type=_seed, default=0, help="tie-breaks of the planner (default 0)")
     lf.add_argument("--scheduler", choices=("batch", "greedy"), default="batch",
                     help="task allocation: batch assignment on finish times (default; bids greedily when the "
                     "matrix is too big for a step) or an auction on finish time")
@@ -174,6 +185,8 @@ def _lifelong(args: argparse.Namespace) -> int:
     except ProblemError as e:
         print(f"rce-fleet lifelong: {e}", file=sys.stderr)
         return 2
+    for w in problem.warnings:
+        print(f"rce-fleet lifelong: {w}", file=sys.stderr)
     try:  # opened before the run, so a path that cannot be written costs no run
         out = open(args.output, "w") if args.output else contextlib.nullcontext(None)
     except OSError as e:

@@ -9,6 +9,8 @@ from __future__ import annotations
 
 import numpy as np
 
+from .kernels import UNREACHABLE
+
 __all__ = ["EAST", "HEADING_NAMES", "NORTH", "SOUTH", "WEST", "LifelongGrid"]
 
 EAST, SOUTH, WEST, NORTH = 0, 1, 2, 3
@@ -20,7 +22,9 @@ class LifelongGrid:
 
     free: (rows, cols) bool array. ``nbr`` is an int32 array (rows * cols, 4): ``nbr[c, h]``
     is the cell one step from ``c`` towards heading ``h``, or -1 when that is off the map
-    or not free. Raises ValueError when ``free`` is not 2-D or has no free cell.
+    or not free. Raises ValueError when ``free`` is not 2-D or has no free cell, or when a
+    shortest path is too long for the planner's uint16 distance tables (65,535 steps or more:
+    a maze of over 65,535 cells, never an open floor).
     """
 
     def __init__(self, free: np.ndarray):
@@ -43,6 +47,33 @@ class LifelongGrid:
             ok &= self.flat[tgt] & self.flat
             nbr[ok, h] = tgt[ok]
         self.nbr = nbr
+        if int(self.flat.sum()) > UNREACHABLE:      # only then can a shortest path overflow the uint16 tables
+            longest = self.longest_path_bound()
+            if longest >= UNREACHABLE:
+                raise ValueError(f"a shortest path on this map is {longest} steps long; the planner's distance "
+                                 f"tables hold at most {UNREACHABLE - 1}")
+
+    def longest_path_bound(self) -> int:
+        """A lower bound of the longest shortest path (steps) between two free cells: the
+        double sweep (a breadth-first search from any cell, then one from the farthest cell it
+        found; exact on trees and corridors) in each connected part of over 65,535 cells, 0 if
+        there is none (no path can be longer than its part has cells)."""
+        from scipy.sparse import csr_matrix
+        from scipy.sparse.csgraph import connected_components, shortest_path
+        n = self.n_cells
+        src, dst = np.repeat(np.arange(n), 4), self.nbr.ravel()
+        ok = dst >= 0
+        g = csr_matrix((np.ones(int(ok.sum()), dtype=np.int8), (src[ok], dst[ok])), shape=(n, n))
+        _, labels = connected_components(g, directed=False)
+        longest = 0
+        for part in np.flatnonzero(np.bincount(labels[self.flat]) > UNREACHABLE):
+            v = int(np.flatnonzero((labels == part) & self.flat)[0])
+            for _ in range(2):
+                d = shortest_path(g, unweighted=True, indices=v)
+                d[~np.isfinite(d)] = -1
+                v = int(np.argmax(d))
+            longest = max(longest, int(d[v]))
+        return longest
 
     @property
     def n_cells(self) -> int:

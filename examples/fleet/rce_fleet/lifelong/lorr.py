@@ -15,10 +15,12 @@ Every error is a :class:`ProblemError` naming the file and, where there is one, 
 from __future__ import annotations
 
 import json
-from dataclasses import dataclass
+import math
+from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
+from scipy import ndimage
 
 from .grid import LifelongGrid
 
@@ -40,7 +42,8 @@ class LorrProblem:
 
     starts: (teamSize,) int64 cells. tasks: list of tuples of cells (one tuple per line of the
     task file, errands in order). ``reveal`` is ``int(numTasksReveal * teamSize)``, the number
-    of open tasks the simulator keeps revealed.
+    of open tasks the simulator keeps revealed. ``warnings``: what the loader found that does
+    not stop a run (a task no robot can finish), one line each, naming the file and line.
     """
 
     path: Path
@@ -50,6 +53,7 @@ class LorrProblem:
     team_size: int
     num_tasks_reveal: float
     version: str = "2024 LoRR"
+    warnings: list[str] = field(default_factory=list)
 
     @property
     def reveal(self) -> int:
@@ -103,10 +107,12 @@ def load_lorr_map(path: str | Path) -> LifelongGrid:
     if rows < 1 or cols < 1:
         raise ProblemError(path, f"the map must have at least one row and column, got {rows} x {cols}", i + 1)
     body = lines[i + 1: i + 1 + rows]
+    if len(body) < rows:                       # before allocating rows x cols
+        raise ProblemError(path, f"the header says {rows} rows but {len(body)} follow", len(lines))
     free = np.zeros((rows, cols), dtype=bool)
     blocked = np.frombuffer(OBSTACLES, dtype=np.uint8)
     for r in range(rows):
-        ln = body[r].rstrip("\r") if r < len(body) else ""
+        ln = body[r].rstrip("\r")
         if len(ln) < cols:
             raise ProblemError(path, f"map row {r} has {len(ln)} cells, expected {cols}", i + 2 + r)
         try:
@@ -125,6 +131,18 @@ def _numbered(path: Path) -> list[tuple[int, str]]:
     return [(k + 1, ln.strip()) for k, ln in enumerate(_read(path)) if ln.strip() and not ln.lstrip().startswith("#")]
 
 
+def _single(path: Path, line: int, text: str) -> str:
+    """The one value of a count line or an agents line. The start-kit reads the first
+    comma-separated field, so a trailing comma is accepted; a second value is refused (a
+    ``row,col`` pair would otherwise be read silently as a location)."""
+    fields = [f.strip() for f in text.split(",")]
+    while len(fields) > 1 and not fields[-1]:
+        fields.pop()
+    if len(fields) != 1:
+        raise ProblemError(path, f"expected one value, got {text!r}", line)
+    return fields[0]
+
+
 def _cell(path: Path, line: int, text: str, grid: LifelongGrid) -> int:
     try:
         cell = int(text)
@@ -141,7 +159,7 @@ def _count(path: Path, lines: list[tuple[int, str]]) -> int:
         raise ProblemError(path, "empty file: expected the count on the first line")
     ln, text = lines[0]
     try:
-        n = int(text)
+        n = int(_single(path, ln, text))
     except ValueError:
         raise ProblemError(path, f"expected the count, got {text!r}", ln) from None
     if n < 0 or len(lines) - 1 < n:
@@ -149,12 +167,57 @@ def _count(path: Path, lines: list[tuple[int, str]]) -> int:
     return n
 
 
+def _key_line(text: str, key: str) -> int | None:
+    """The 1-based line of the problem JSON where ``key`` is written (None if not found)."""
+    return next((k + 1 for k, ln in enumerate(text.split("\n")) if f'"{key}"' in ln), None)
+
+
+def _number(path: Path, text: str, spec: dict, key: str, integer: bool) -> float:
+    """``spec[key]`` as a finite JSON number (an integral one if ``integer``), else ProblemError."""
+    v = spec[key]
+    ok = not isinstance(v, bool) and isinstance(v, (int, float)) and math.isfinite(v)
+    if not ok or (integer and v != int(v)):
+        kind = "an integer" if integer else "a number"
+        raise ProblemError(path, f"{key} must be {kind}, got {v!r}", _key_line(text, key))
+    return v
+
+
+def _file(path: Path, text: str, spec: dict, key: str) -> Path:
+    """The file ``spec[key]`` names, relative to the problem JSON's directory."""
+    v = spec[key]
+    if not isinstance(v, str) or not v.strip():
+        raise ProblemError(path, f"{key} must be a file name, got {v!r}", _key_line(text, key))
+    return path.parent / v
+
+
+def _unreachable_warning(grid: LifelongGrid, starts: np.ndarray, tpath: Path,
+                         tasks: list[tuple[int, ...]], lines: list[int]) -> str | None:
+    """A warning naming the first task that no robot can finish (an errand in a part of the
+    map without robots, or errands in two parts) and how many there are; None if none."""
+    labels, parts = ndimage.label(grid.free)        # 4-connected parts of the free cells
+    if parts == 1:
+        return None
+    flat = labels.ravel()
+    manned = set(flat[starts].tolist())
+    bad = [k for k, t in enumerate(tasks) if len({int(flat[e]) for e in t}) > 1 or int(flat[t[0]]) not in manned]
+    if not bad:
+        return None
+    k = bad[0]
+    return (f"{tpath}:{lines[k]}: warning: no robot can finish task {list(tasks[k])}: the map has {parts} separate "
+            f"parts and this task's errands are not all in one part with a robot ({len(bad)} of {len(tasks)} tasks "
+            "like it); such a task stays open and holds one of the revealed tasks for good")
+
+
 def load_problem(path: str | Path) -> LorrProblem:
     """Read a LoRR 2024 problem JSON and the map, agents and tasks files it names.
 
-    Raises ProblemError (a ValueError) naming the file and line of the first problem: a
-    missing file, bad JSON, a missing key, a location that is not a free cell, fewer agents
-    than ``teamSize``, or no task.
+    The 2023 form is read too: single-errand task lines, an integer ``numTasksReveal`` and
+    ``taskAssignmentStrategy`` (ignored: the scheduler assigns, as in 2024). Raises
+    ProblemError (a ValueError) naming the file and line of the first problem: a missing
+    file, bad JSON, a missing key or one of the wrong type, a location that is not a free
+    cell, two agents on one start, fewer agents than ``teamSize``, no task, or
+    ``numTasksReveal * teamSize`` < 1. A task that no robot can reach is not an error (the
+    start-kit runs it too); it is named in ``warnings``.
     """
     path = Path(path)
     text = "\n".join(_read(path))
@@ -167,22 +230,27 @@ def load_problem(path: str | Path) -> LorrProblem:
     for key in ("mapFile", "agentFile", "taskFile", "teamSize"):
         if key not in spec:
             raise ProblemError(path, f"missing key {key!r}")
-    try:
-        team = int(spec["teamSize"])
-        reveal = float(spec.get("numTasksReveal", 1.0))
-    except (TypeError, ValueError):
-        raise ProblemError(path, "teamSize must be an integer and numTasksReveal a number") from None
+    team = int(_number(path, text, spec, "teamSize", integer=True))
     if team < 1:
-        raise ProblemError(path, f"teamSize must be >= 1, got {team}")
-    base = path.parent
-    grid = load_lorr_map(base / spec["mapFile"])
-    apath = base / spec["agentFile"]
+        raise ProblemError(path, f"teamSize must be >= 1, got {team}", _key_line(text, "teamSize"))
+    reveal = float(_number(path, text, spec, "numTasksReveal", integer=False)) if "numTasksReveal" in spec else 1.0
+    if int(reveal * team) < 1:
+        raise ProblemError(path, f"numTasksReveal {reveal} x teamSize {team} reveals no task (it must be >= 1)",
+                           _key_line(text, "numTasksReveal"))
+    mpath, apath, tpath = (_file(path, text, spec, k) for k in ("mapFile", "agentFile", "taskFile"))
+    grid = load_lorr_map(mpath)
     alines = _numbered(apath)
     n = _count(apath, alines)
     if n < team:
         raise ProblemError(apath, f"{n} agents but teamSize is {team}", alines[0][0])
-    starts = np.array([_cell(apath, ln, t, grid) for ln, t in alines[1:1 + team]], dtype=np.int64)
-    tpath = base / spec["taskFile"]
+    first: dict[int, int] = {}
+    for ln, t in alines[1:1 + team]:
+        cell = _cell(apath, ln, _single(apath, ln, t), grid)
+        if cell in first:
+            raise ProblemError(apath, f"location {cell} is also the start of the agent of line {first[cell]}: "
+                               "two robots cannot start on one cell", ln)
+        first[cell] = ln
+    starts = np.array(list(first), dtype=np.int64)
     tlines = _numbered(tpath)
     m = _count(tpath, tlines)
     if m < 1:
@@ -193,5 +261,7 @@ def load_problem(path: str | Path) -> LorrProblem:
         if not errands:
             raise ProblemError(tpath, "a task needs at least one errand", ln)
         tasks.append(errands)
+    warning = _unreachable_warning(grid, starts, tpath, tasks, [ln for ln, _ in tlines[1:1 + m]])
     return LorrProblem(path=path, grid=grid, starts=starts, tasks=tasks, team_size=team,
-                       num_tasks_reveal=reveal, version=str(spec.get("version", "2024 LoRR")))
+                       num_tasks_reveal=reveal, version=str(spec.get("version", "2024 LoRR")),
+                       warnings=[warning] if warning else [])
