@@ -22,7 +22,11 @@ Usage::
     .venv/bin/python bench/planner.py [--agents 10 50 100 200] [--repeat 3]
         [--lacam-agents 10 50 100 200 400 1000] [--time-limit 5] [--cpu-budget] [--scen-seeds 1]
         [--initial {lacam,pp}] [--workers 1]
-        [--data ../shared/data] [--json PATH] [--plot PATH]
+        [--data ../shared/data] [--map FILE.map --scen FILE.scen] [--json PATH] [--plot PATH]
+
+``--map``/``--scen`` run another MovingAI instance (maps and scenarios in either form of
+rce_fleet.planning.movingai); an instance that is not one (too few agents, a shared start or
+goal, a goal that cannot be reached) is refused naming the agent, with exit code 2.
 
 Results go to ``bench/results/`` by default (planner.json, planner.png).
 """
@@ -75,6 +79,28 @@ def run_mapf(graph: GridGraph, scen: list[tuple[int, int]], k: int, repeat: int)
     out["time_min_s"] = min(times)
     out["cpu_s"] = statistics.median(cpu)
     return out
+
+
+def check_instance(graph: GridGraph, scen: list[tuple[int, int]], k: int) -> None:
+    """Raise ValueError unless the first ``k`` agents of ``scen`` are a MAPF instance: that many
+    agents, distinct starts, distinct goals, each goal in its start's connected free cells
+    (agent i is the scenario's (i + 1)-th problem; x column, y row)."""
+    from scipy import ndimage
+    if k > len(scen):
+        raise ValueError(f"the scenario has {len(scen)} agents, --agents/--lacam-agents ask for {k}")
+    labels = ndimage.label(graph.free)[0].ravel()
+
+    def xy(c: int) -> str:
+        return f"(x {c % graph.cols}, y {c // graph.cols})"
+    for end, what in ((0, "start"), (1, "goal")):
+        first: dict[int, int] = {}
+        for i, pair in enumerate(scen[:k]):
+            if pair[end] in first:
+                raise ValueError(f"agents {first[pair[end]]} and {i} share the {what} {xy(pair[end])}")
+            first[pair[end]] = i
+    for i, (s, g) in enumerate(scen[:k]):
+        if labels[s] != labels[g]:
+            raise ValueError(f"agent {i}: the goal {xy(g)} cannot be reached from the start {xy(s)}")
 
 
 def random_scen(graph: GridGraph, k: int, seed: int) -> list[tuple[int, int]]:
@@ -262,11 +288,11 @@ def run_block_replan(map_yaml: Path, cell_m: float, robots: int, seed: int = 1) 
     }
 
 
-def print_lacam(rows: list[dict]) -> None:
-    """The LaCAM rows as a table."""
+def print_lacam(rows: list[dict], name: str = "warehouse-10-20-10-2-1") -> None:
+    """The LaCAM rows as a table (``name``: the MovingAI map's)."""
     from rich.console import Console
     from rich.table import Table
-    t = Table(title="One-shot (first solution, then LNS) on MovingAI warehouse-10-20-10-2-1")
+    t = Table(title=f"One-shot (first solution, then LNS) on MovingAI {name}")
     for col in ("scenario", "agents", "first by", "first (s)", "first ratio", "time (s)", "cpu (s)", "workers' cpu",
                 "limit (s)",
                 "conflicts", "reached", "sum of costs", "lower bound", "ratio", "makespan", "LNS iters"):
@@ -281,8 +307,8 @@ def print_lacam(rows: list[dict]) -> None:
     Console(width=max(Console().width, 130)).print(t)
 
 
-def print_tables(rows: list[dict], block: dict | None) -> None:
-    """The results as tables (rich), or one dict a line without rich."""
+def print_tables(rows: list[dict], block: dict | None, name: str = "warehouse-10-20-10-2-1 (random-1.scen)") -> None:
+    """The results as tables (rich), or one dict a line without rich (``name``: the instance's)."""
     try:
         from rich.console import Console
         from rich.table import Table
@@ -293,7 +319,7 @@ def print_tables(rows: list[dict], block: dict | None) -> None:
             print(block)
         return
     con = Console(width=max(Console().width, 110))
-    t = Table(title="FleetPlanner on MovingAI warehouse-10-20-10-2-1 (random-1.scen)")
+    t = Table(title=f"FleetPlanner on MovingAI {name}")
     for col in ("agents", "time (s)", "cpu (s)", "conflicts", "reached", "sum of costs", "lower bound", "ratio",
                 "makespan"):
         t.add_column(col, justify="right")
@@ -314,7 +340,7 @@ def print_tables(rows: list[dict], block: dict | None) -> None:
         con.print(b)
 
 
-def plot(rows: list[dict], path: Path, lacam: list[dict] | None = None) -> None:
+def plot(rows: list[dict], path: Path, lacam: list[dict] | None = None, name: str = "warehouse-10-20-10-2-1") -> None:
     """PNG at ``path``: planning time and sum of costs / lower bound against the number of agents."""
     import matplotlib
     matplotlib.use("Agg")
@@ -341,7 +367,7 @@ def plot(rows: list[dict], path: Path, lacam: list[dict] | None = None) -> None:
     ax2.set_ylim(0.95, max(1.25, max(r["ratio"] for r in rows + (lacam or [])) + 0.05))
     ax2.set_title("solution quality")
     ax2.legend()
-    fig.suptitle("FleetPlanner, MovingAI warehouse-10-20-10-2-1")
+    fig.suptitle(f"FleetPlanner, MovingAI {name}")
     fig.tight_layout()
     fig.savefig(path, dpi=120)
     plt.close(fig)
@@ -350,6 +376,8 @@ def plot(rows: list[dict], path: Path, lacam: list[dict] | None = None) -> None:
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("--data", type=Path, default=DEFAULT_DATA, help="the shared data directory")
+    ap.add_argument("--map", type=Path, help="a MovingAI map instead of warehouse-10-20-10-2-1 (with --scen)")
+    ap.add_argument("--scen", type=Path, help="the MovingAI scenario of --map; its first K agents are planned")
     ap.add_argument("--agents", type=int, nargs="+", default=[10, 50, 100, 200])
     ap.add_argument("--repeat", type=int, default=3, help="runs per K (median time reported)")
     ap.add_argument("--lacam-agents", type=int, nargs="*", default=[10, 50, 100, 200, 400, 1000],
@@ -371,15 +399,25 @@ def main(argv: list[str] | None = None) -> int:
     args = ap.parse_args(argv)
 
     mapf = args.data / "mapf"
-    map_file = mapf / "warehouse-10-20-10-2-1.map"
-    scen_file = mapf / "warehouse-10-20-10-2-1-random-1.scen"
-    if not map_file.is_file() or not scen_file.is_file():
+    if (args.map is None) != (args.scen is None):
+        print("bench/planner.py: --map and --scen go together", file=sys.stderr)
+        return 2
+    map_file = args.map or mapf / "warehouse-10-20-10-2-1.map"
+    scen_file = args.scen or mapf / "warehouse-10-20-10-2-1-random-1.scen"
+    if args.map is None and (not map_file.is_file() or not scen_file.is_file()):
         print(f"MovingAI instance not found under {mapf}", file=sys.stderr)
         return 2
-    graph = load_movingai_map(map_file)
-    scen = load_movingai_scen(scen_file, graph)
+    try:
+        graph = load_movingai_map(map_file)
+        scen = load_movingai_scen(scen_file, graph)
+        check_instance(graph, scen, max(args.agents + args.lacam_agents))
+    except ValueError as e:
+        print(f"bench/planner.py: {e}", file=sys.stderr)
+        return 2
+    label = scen_file.stem.removeprefix(map_file.stem).lstrip("-") or scen_file.stem
+    name = f"{map_file.stem} ({scen_file.name})"
     rows = [run_mapf(graph, scen, k, args.repeat) for k in args.agents]
-    lacam = [run_lacam(graph, scen, k, args.time_limit, cpu_budget=args.cpu_budget, initial=args.initial,
+    lacam = [run_lacam(graph, scen, k, args.time_limit, label, cpu_budget=args.cpu_budget, initial=args.initial,
                        workers=args.workers) for k in args.lacam_agents]
     for seed in args.scen_seeds:
         other = random_scen(graph, max(args.lacam_agents, default=0), seed)
@@ -392,9 +430,9 @@ def main(argv: list[str] | None = None) -> int:
         live = run_live_sizes(None, args.cell_m, args.live_sizes, 5, args.time_limit)
         if wh.is_file():
             live += run_live_sizes(wh, args.cell_m, args.live_sizes, 5, args.time_limit)
-    print_tables(rows, block)
+    print_tables(rows, block, name)
     if lacam:
-        print_lacam(lacam)
+        print_lacam(lacam, map_file.stem)
     if live:
         print_live(live)
 
@@ -406,7 +444,7 @@ def main(argv: list[str] | None = None) -> int:
                                         indent=2))
         print(f"wrote {args.json}")
     if args.plot:
-        plot(rows, args.plot, lacam)
+        plot(rows, args.plot, lacam, name)
         print(f"wrote {args.plot}")
     bad = [r for r in rows + lacam if r["conflicts"]]
     return 1 if bad or (block and block["conflicts"]) else 0
