@@ -14,6 +14,8 @@ import pytest
 
 from rce_fleet.cli import main
 from rce_fleet.lifelong import MAPF, MAPF_T, load_problem, replay
+from rce_fleet.lifelong.grid import MAX_STEPS
+from rce_fleet.lifelong.kernels import UNREACHABLE
 from rce_fleet.lifelong.runner import run_lifelong
 
 # 9 x 23, not square: every symbol the start-kit's maps use (@ and T block; . E S W are free)
@@ -187,5 +189,6 @@ def test_a_maze_longer_than_the_distance_tables_is_refused(tmp_path, capsys):
     assert e.value.code == 2
     assert (f"{tmp_path}/maps/m.map: a shortest path on this map is 80599 steps long; the planner's distance tables "
             "hold at most 65534") in capsys.readouterr().err
+    assert MAX_STEPS == UNREACHABLE - 1 == 65534
     np.testing.assert_equal(load_problem(write_problem(tmp_path / "open", ["." * w] * 200, agents=[0],
                                                        tasks=[(5,)])).grid.longest_path_bound(), 598)

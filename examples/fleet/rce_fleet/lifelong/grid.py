@@ -9,11 +9,12 @@ from __future__ import annotations
 
 import numpy as np
 
-from .kernels import UNREACHABLE
-
-__all__ = ["EAST", "HEADING_NAMES", "NORTH", "SOUTH", "WEST", "LifelongGrid"]
+__all__ = ["EAST", "HEADING_NAMES", "MAX_STEPS", "NORTH", "SOUTH", "WEST", "LifelongGrid"]
 
 EAST, SOUTH, WEST, NORTH = 0, 1, 2, 3
+#: The longest distance (steps) the planner's uint16 distance maps hold; their maximum, 65,535,
+#: is :data:`~.kernels.UNREACHABLE` (no path).
+MAX_STEPS = int(np.iinfo(np.uint16).max) - 1
 HEADING_NAMES = "ESWN"
 
 
@@ -47,11 +48,11 @@ class LifelongGrid:
             ok &= self.flat[tgt] & self.flat
             nbr[ok, h] = tgt[ok]
         self.nbr = nbr
-        if int(self.flat.sum()) > UNREACHABLE:      # only then can a shortest path overflow the uint16 tables
+        if int(self.flat.sum()) > MAX_STEPS + 1:    # only then can a shortest path be longer than MAX_STEPS
             longest = self.longest_path_bound()
-            if longest >= UNREACHABLE:
+            if longest > MAX_STEPS:
                 raise ValueError(f"a shortest path on this map is {longest} steps long; the planner's distance "
-                                 f"tables hold at most {UNREACHABLE - 1}")
+                                 f"tables hold at most {MAX_STEPS}")
 
     def longest_path_bound(self) -> int:
         """A lower bound of the longest shortest path (steps) between two free cells: the
@@ -66,7 +67,7 @@ class LifelongGrid:
         g = csr_matrix((np.ones(int(ok.sum()), dtype=np.int8), (src[ok], dst[ok])), shape=(n, n))
         _, labels = connected_components(g, directed=False)
         longest = 0
-        for part in np.flatnonzero(np.bincount(labels[self.flat]) > UNREACHABLE):
+        for part in np.flatnonzero(np.bincount(labels[self.flat]) > MAX_STEPS + 1):
             v = int(np.flatnonzero((labels == part) & self.flat)[0])
             for _ in range(2):
                 d = shortest_path(g, unweighted=True, indices=v)
