@@ -94,12 +94,13 @@ def test_both_action_models_run_an_unseen_map_with_one_robot_and_with_several(tm
 
 def test_the_2023_form_and_a_rows_cols_header_run(tmp_path):
     """2023: single-errand task lines, an integer numTasksReveal, taskAssignmentStrategy, no
-    version; the map's first line ``rows,cols``; a count line with the start-kit's trailing comma."""
+    version; the map's first line ``rows,cols``; a count line with the start-kit's trailing comma;
+    a JSON that starts with a UTF-8 byte-order mark (the start-kit's JSON parser skips it too)."""
     prob = write_problem(tmp_path, agents=AGENTS[:3], tasks=[(c,) for c in AGENTS[3:]] + [(cell(4, 20),)],
                          header="rows,cols", numTasksReveal=1, taskAssignmentStrategy="roundrobin")
     spec = json.loads(prob.read_text())
     del spec["version"]
-    prob.write_text(json.dumps(spec))
+    prob.write_bytes(b"\xef\xbb\xbf" + json.dumps(spec).encode())      # a byte-order mark, as Notepad writes
     agents = tmp_path / "agents" / "a.agents"
     agents.write_text(agents.read_text().replace("\n3\n", "\n3,\n"))
     out = tmp_path / "run.json"

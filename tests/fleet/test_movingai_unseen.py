@@ -67,7 +67,7 @@ def test_scenarios_with_version_lines_buckets_and_spaces_load(tmp_path):
     g = load_movingai_map(write_map(tmp_path / "room.map", ROOM))
     text = "\r\n".join(["version 1.0", scen_line(0, 1, 1, 3, 1), scen_line(0, 9, 1, 3, 6, " "),
                         scen_line(3, 12, 6, 1, 7), "", ""])
-    (tmp_path / "room.scen").write_bytes(text.encode())
+    (tmp_path / "room.scen").write_bytes(b"\xef\xbb\xbf" + text.encode())          # with a byte-order mark
     assert load_movingai_scen(tmp_path / "room.scen", g) == [(14, 16), (22, 81), (90, 92)]
 
 

@@ -62,8 +62,9 @@ class LorrProblem:
 
 
 def _read(path: Path) -> list[str]:
+    """The lines of a UTF-8 file, without the byte-order mark Windows editors write."""
     try:
-        return path.read_text().split("\n")
+        return path.read_text(encoding="utf-8-sig").split("\n")
     except FileNotFoundError:
         raise ProblemError(path, "no such file") from None
     except (OSError, UnicodeDecodeError) as exc:

@@ -29,8 +29,9 @@ def _err(path: Path, line: int | None, msg: str) -> ValueError:
 
 
 def _lines(path: Path, what: str) -> list[str]:
+    """The lines of a UTF-8 file (CRLF or LF), without the byte-order mark Windows editors write."""
     try:
-        return path.read_text().replace("\r\n", "\n").split("\n")
+        return path.read_text(encoding="utf-8-sig").replace("\r\n", "\n").split("\n")
     except FileNotFoundError:
         raise _err(path, None, f"no such {what} file") from None
     except (OSError, UnicodeDecodeError) as exc:
