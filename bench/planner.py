@@ -43,6 +43,7 @@ from pathlib import Path
 from rce_fleet.geometry import components
 from rce_fleet.grid import make_grid
 from rce_fleet.maps import load_map
+from rce_fleet.lifelong import LifelongGrid
 from rce_fleet.planning import FleetPlanner, GridGraph, check_conflicts, load_movingai_map, load_movingai_scen
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -411,6 +412,8 @@ def main(argv: list[str] | None = None) -> int:
         graph = load_movingai_map(map_file)
         scen = load_movingai_scen(scen_file, graph)
         check_instance(graph, scen, max(args.agents + args.lacam_agents))
+        if args.lacam_agents:
+            LifelongGrid.from_graph(graph)      # refuses a maze too long for the one-shot solvers' distance maps
     except ValueError as e:
         print(f"bench/planner.py: {e}", file=sys.stderr)
         return 2

@@ -122,3 +122,17 @@ def test_bench_planner_refuses_an_instance_that_is_not_one(tmp_path, scen, argv,
     r = _bench(tmp_path, scen, *argv)
     assert r.returncode == 2 and "Traceback" not in r.stderr
     assert r.stderr.strip() == f"bench/planner.py: {message}"
+
+
+def test_bench_planner_refuses_a_maze_too_long_for_the_one_shot_solvers(tmp_path):
+    """A 1-cell corridor snaking over 401 x 400 cells (80,599 steps end to end): FleetPlanner
+    could plan it, LaCAM's uint16 distance maps cannot hold it."""
+    rows = ["." * 400 if r % 2 == 0 else ("@" * 399 + "." if r % 4 == 1 else "." + "@" * 399) for r in range(401)]
+    write_map(tmp_path / "maze.map", rows)
+    (tmp_path / "maze.scen").write_text("version 1\n0\tmaze.map\t400\t401\t0\t0\t0\t400\t80599\n")
+    r = subprocess.run([sys.executable, str(ROOT / "bench" / "planner.py"), "--map", str(tmp_path / "maze.map"),
+                        "--scen", str(tmp_path / "maze.scen"), "--agents", "1", "--lacam-agents", "1",
+                        "--scen-seeds", "--live-sizes", "--json", str(tmp_path / "p.json")],
+                       capture_output=True, text=True, timeout=300)
+    assert r.returncode == 2 and r.stderr.strip() == ("bench/planner.py: a shortest path on this map is 80599 steps "
+                                                      "long; the planner's distance tables hold at most 65534")
