@@ -154,6 +154,7 @@ BAD = {
     "mapFile not a string": (_json(mapFile=5), "problem.json:2: mapFile must be a file name, got 5"),
     "teamSize not an integer": (_json(teamSize=1.5), "problem.json:5: teamSize must be an integer, got 1.5"),
     "no task revealed": (_json(numTasksReveal=0.1), "problem.json:6: numTasksReveal 0.1 x teamSize 6 reveals no task"),
+    "10^308 tasks revealed": (_json(numTasksReveal=1e308), "problem.json:6: numTasksReveal must be at most 1000"),
     "a header with more rows than the file": (
         lambda d: (d / "maps" / "m.map").write_text("type octile\nheight 100000000\nwidth 100000000\nmap\n...\n"),
         "maps/m.map:6: the header says 100000000 rows but 2 follow"),

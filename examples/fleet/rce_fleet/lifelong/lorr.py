@@ -71,6 +71,10 @@ def _read(path: Path) -> list[str]:
         raise ProblemError(path, f"cannot read: {exc}") from None
 
 
+#: The most open tasks per robot a problem may ask for (``numTasksReveal``; LoRR's use 1 - 1.5):
+#: every open task is a Python object the scheduler weighs each step, so 10^9 would hang the run.
+MAX_TASKS_REVEAL = 1000
+
 OBSTACLES = b"@T"      # every other map character is free (the start-kit's Grid::load_from_path)
 
 
@@ -216,9 +220,10 @@ def load_problem(path: str | Path) -> LorrProblem:
     ``taskAssignmentStrategy`` (ignored: the scheduler assigns, as in 2024). Raises
     ProblemError (a ValueError) naming the file and line of the first problem: a missing
     file, bad JSON, a missing key or one of the wrong type, a location that is not a free
-    cell, two agents on one start, fewer agents than ``teamSize``, no task, or
-    ``numTasksReveal * teamSize`` < 1. A task that no robot can reach is not an error (the
-    start-kit runs it too); it is named in ``warnings``.
+    cell, two agents on one start, fewer agents than ``teamSize``, no task,
+    ``numTasksReveal * teamSize`` < 1 or ``numTasksReveal`` > :data:`MAX_TASKS_REVEAL`. A task
+    that no robot can reach is not an error (the start-kit runs it too); it is named in
+    ``warnings``.
     """
     path = Path(path)
     text = "\n".join(_read(path))
@@ -235,6 +240,9 @@ def load_problem(path: str | Path) -> LorrProblem:
     if team < 1:
         raise ProblemError(path, f"teamSize must be >= 1, got {team}", _key_line(text, "teamSize"))
     reveal = float(_number(path, text, spec, "numTasksReveal", integer=False)) if "numTasksReveal" in spec else 1.0
+    if reveal > MAX_TASKS_REVEAL:
+        raise ProblemError(path, f"numTasksReveal must be at most {MAX_TASKS_REVEAL} (open tasks per robot), "
+                           f"got {reveal}", _key_line(text, "numTasksReveal"))
     if int(reveal * team) < 1:
         raise ProblemError(path, f"numTasksReveal {reveal} x teamSize {team} reveals no task (it must be >= 1)",
                            _key_line(text, "numTasksReveal"))
