@@ -172,11 +172,15 @@ def test_a_malformed_unseen_problem_is_named_with_file_and_line(tmp_path, capsys
     assert cap.err.startswith("rce-fleet lifelong: ") and f"{tmp_path}/{message}" in cap.err, cap.err
 
 
-def test_a_negative_seed_is_a_usage_error(tmp_path, capsys):
+def test_a_negative_seed_and_a_run_too_long_to_record_are_usage_errors(tmp_path, capsys):
     prob = write_problem(tmp_path, agents=AGENTS, tasks=TASKS)
     with pytest.raises(SystemExit) as e:
         main(["lifelong", str(prob), "--steps", "5", "--seed", "-5"])
     assert e.value.code == 2 and "--seed: expected an integer >= 0, got '-5'" in capsys.readouterr().err
+    with pytest.raises(SystemExit) as e:         # its per-step records would need 7 TiB
+        main(["lifelong", str(prob), "--steps", str(10 ** 12), "--no-progress"])
+    assert e.value.code == 2
+    assert "rce-fleet lifelong: --steps must be 1 - 10,000,000, got 1,000,000,000,000" in capsys.readouterr().err
 
 
 def test_a_maze_longer_than_the_distance_tables_is_refused(tmp_path, capsys):

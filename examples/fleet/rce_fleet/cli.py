@@ -26,6 +26,7 @@ __all__ = ["main", "build_parser"]
 
 DEMO_TIMEOUT_S = 300.0   # wall s a demo mission may take by default (--timeout)
 SERVE_TIMEOUT_S = 10 ** 9   # wall s ``serve`` runs by default: until Ctrl-C
+LIFELONG_MAX_STEPS = 10 ** 7   # steps a lifelong run records (LoRR's runs: 500 - 5,000; 10^7 is 116 days at 1 s a step)
 
 
 def _grid(text: str) -> tuple[int, int]:
@@ -177,8 +178,8 @@ def _lifelong(args: argparse.Namespace) -> int:
 
     from .lifelong import ProblemError, load_problem
     from .lifelong.runner import rich_progress, run_lifelong
-    if args.steps < 1:
-        print("rce-fleet lifelong: --steps must be >= 1", file=sys.stderr)
+    if not 1 <= args.steps <= LIFELONG_MAX_STEPS:
+        print(f"rce-fleet lifelong: --steps must be 1 - {LIFELONG_MAX_STEPS:,}, got {args.steps:,}", file=sys.stderr)
         return 2
     try:
         problem = load_problem(args.problem)
