@@ -111,7 +111,15 @@ class RobotNamespace:
     def send_dm(self, itag: str, cls: str, msg_id: Any, msg: Any, data: bool = False) -> bool:
         """Queue a DM to the robot; ``data=True`` marks droppable topic data (the newest are kept:
         :meth:`RobotSession.send_dm`)."""
-        ok = self.session.send_dm(itag, cls, msg_id, msg, data, time.monotonic())
+        now, ws = time.monotonic(), self.ws
+        if data and ws is not None and ws_link.writable(ws):     # nothing waits: its frames go out now
+            frames = self.session.data_now(itag, cls, msg_id, msg, now)
+            if frames is not None:
+                ws_link.write(ws, frames)
+                return True
+            ok = True                                             # queued behind what waits
+        else:
+            ok = self.session.send_dm(itag, cls, msg_id, msg, data, now)
         self._pump()
         return ok
 

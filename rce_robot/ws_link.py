@@ -51,6 +51,8 @@ CLOSE_TIMEOUT = 10.0          # s a close waits for the peer's close frame befor
 HANDSHAKE_TIMEOUT = 10.0      # s a new connection has to send its whole HTTP upgrade request
 MAX_REQUEST = 8 * 1024        # bytes of an HTTP upgrade request (line and headers)
 READ_LOW_WATER = 4            # read-ahead frames at or below which reading resumes (max_queue: pauses)
+UNREAD_FRESH = 0.005          # s: a frame taken this soon after it was read leaves nothing behind it in the kernel
+UNREAD_SMALL = 64 * 1024      # bytes: ... if it was smaller than this (one read took all there was: PicowsLink.behind)
 ABNORMAL = 1006               # close code of a link lost without a close frame (RFC 6455 section 7.4.1)
 NO_STATUS = 1005              # a close frame without a code
 
@@ -163,6 +165,8 @@ class PicowsLink(WSListener):
         self._partial_text = False
         self._partial_size = 0
         self.ping_sent: float | None = None          # monotonic s of the keepalive ping not answered yet
+        self._pushed_at = 0.0                        # monotonic s the last whole message was read
+        self._pushed_size = 0                        # ... and its bytes
 
     # -- picows' callbacks
     def on_ws_connected(self, transport) -> None:
@@ -243,6 +247,7 @@ class PicowsLink(WSListener):
     # -- reading
     def _push(self, message: str | bytes) -> None:
         self.frames.append(message)
+        self._pushed_at, self._pushed_size = time.monotonic(), len(message)
         self._wake()
         if self._reading and len(self.frames) >= self.server.max_queue:
             self._reading = False
@@ -276,8 +281,22 @@ class PicowsLink(WSListener):
         return message
 
     def behind(self) -> int:
-        """Frames (else bytes unread in the kernel: :func:`~rce_robot.ws_cork.fionread`) not taken yet."""
-        return len(self.frames) or ws_cork.fionread(self.transport.get_extra_info("socket"))
+        """Frames (else bytes unread in the kernel: :func:`~rce_robot.ws_cork.fionread`) not taken yet.
+
+        The kernel is asked only when the reader may be behind it: not when it took the last message
+        within :data:`UNREAD_FRESH` of reading it, and that message was under :data:`UNREAD_SMALL`.
+        The loop reads a socket until the kernel has no more (libuv stops at a short read; 32 reads of
+        the read buffer, 16 KiB and growing, at most), so bytes there then came after that read, at
+        most :data:`UNREAD_FRESH` ago: the endpoint is that far behind at most, which the lag rule
+        (``max_lag``, 1 s by default) counts as caught up. An endpoint that lags takes its frames later
+        than that, and a large message may have left more in the kernel: both ask it. This saves an
+        ``ioctl`` (about 1.3 us on these VMs) per message when the endpoint keeps up."""
+        n = len(self.frames)
+        if n:
+            return n
+        if self._pushed_size < UNREAD_SMALL and time.monotonic() - self._pushed_at < UNREAD_FRESH:
+            return 0
+        return ws_cork.fionread(self.transport.get_extra_info("socket"))
 
     # -- writing
     def open(self) -> bool:

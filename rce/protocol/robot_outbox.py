@@ -169,15 +169,33 @@ class RobotOutbox:
                     self.er.waiting -= 1
                 elif not o.link and not o.data:
                     self._control -= 1
-                if o.link or self.outgoing is None:
-                    text, parts = encode(o.msg)
-                    out = [text, *parts]
-                else:
-                    out = self.outgoing.numbered(o.msg, newest_of=o.newest_of)
-                self.msgs_out += not o.link
+                out = self._frames(o.msg, o.link, o.newest_of)
             frames.extend(out)
             self.queue.sent(lane, sum(len(f) for f in out))
         return frames
+
+    def data_now(self, msg: dict, now: float, lane: Lane = Lane.STATE) -> list[str | bytes] | None:
+        """The frames of data DM ``msg`` (of ``lane``, at ``now`` s) to write to the session's link at once,
+        when nothing waits for the robot: what :meth:`dm` and :meth:`data_to_send` would give, counted the
+        same (queued and taken with no delay, sent), without the queue. Otherwise (something waits, the
+        robot is detached, or a bulk link takes ``lane``) it is queued as :meth:`dm` does, and None
+        returned. Call it only when the link takes the frames now."""
+        if len(self.queue) or not self.attached or lane not in self.link_lanes:
+            self.dm(msg, True, now, lane)
+            return None
+        out = self._frames(msg, False, msg["data"]["iTag"] if lane is not Lane.CONTROL else None)
+        self.queue.through(lane, sum(len(f) for f in out))
+        return out
+
+    def _frames(self, msg: dict, link: bool, newest_of: str | None) -> list[str | bytes]:
+        """``msg`` encoded to go out now (with resume, numbered and kept, unless ``link``-level); counted."""
+        if link or self.outgoing is None:
+            text, parts = encode(msg)
+            out = [text, *parts]
+        else:
+            out = self.outgoing.numbered(msg, newest_of=newest_of)
+        self.msgs_out += not link
+        return out
 
     def bulk_to_send(self, now: float | None = None) -> list[str | bytes] | None:
         """(a bulk link) The frames of the next bulk topic DM, unnumbered (the JSON text frame, then its

@@ -273,6 +273,13 @@ class RobotSession(SessionCore):
         self.out.dm(dm(itag, cls, msg_id, msg), data, self._now if now is None else now, self.lane_of(itag, msg))
         return True
 
+    def data_now(self, itag: str, cls: str, msg_id: Any, msg: Any, now: float) -> list[str | bytes] | None:
+        """Topic data ``DM {iTag, type, msgID, msg}`` at ``now`` (s): its frames, to write to the robot's link
+        at once, when nothing waits for the robot (counted as :meth:`send_dm` with ``data=True`` and
+        :meth:`data_to_send`, without the queue); else it is queued as :meth:`send_dm` does and None
+        returned (:meth:`RobotOutbox.data_now`). Call it only when the link takes the frames now."""
+        return self.out.data_now(dm(itag, cls, msg_id, msg), now, self.lane_of(itag, msg))
+
     def send_status(self, data: dict) -> None:
         """Queue ``ST data`` for the robot (never dropped)."""
         self.out.control({"type": ST, "data": data})

@@ -14,7 +14,7 @@ from rce.protocol.frames import ID_LEN, Assembler
 from rce.protocol.limits import PartBudget
 from rce.protocol.events import CaughtUp, CloseLink, Deliver, Lagging, ServiceCall
 from rce.protocol.robot_outbox import CONTROL_BACKLOG
-from rce.protocol.session import RobotSession, SessionLimits, robot_interface_type
+from rce.protocol.session import ResumeOptions, RobotSession, SessionLimits, robot_interface_type
 
 TESTS = Path(__file__).resolve().parents[1]
 VECTORS = {v["name"]: v for v in json.loads((TESTS / "vectors" / "session.json").read_text())["robot"]}
@@ -254,3 +254,40 @@ def test_without_max_lag_age_drops_nothing():
 def test_queue_size_below_one_is_refused():
     with pytest.raises(ValueError, match="queue_size must be >= 1"):
         RobotSession("r1", SessionLimits(queue_size=0))
+
+
+def test_topic_data_goes_at_once_when_nothing_waits_exactly_as_through_the_queue():
+    """``data_now`` (the endpoint's path when the robot's link takes frames now) gives the frames
+    ``send_dm`` then ``data_to_send`` would, numbered and kept with resume, and counts the same; when
+    anything waits, the DM queues behind it instead, in order."""
+    def run(at_once: bool) -> tuple[list, dict]:
+        s = RobotSession("r1", resume=ResumeOptions(token="t" * 32))
+        s.add_interface("echo", "PublisherForwarder", "geometry_msgs/PoseStamped")
+        frames = list(s.data_to_send())                         # ST session started
+        for i in range(3):
+            if at_once:
+                out = s.data_now("echo", "geometry_msgs/PoseStamped", "", bytes([i]) * 4, now=float(i))
+                assert out is not None
+                frames += out
+            else:
+                s.send_dm("echo", "geometry_msgs/PoseStamped", "", bytes([i]) * 4, data=True, now=float(i))
+                frames += s.data_to_send(None, float(i))
+        st = s.stats()
+        return ([json.loads(f) if isinstance(f, str) else f[ID_LEN:] for f in frames],
+                {k: st[k] for k in ("msgs_out", "kept", "kept_bytes", "outbox", "dropped", "lanes")})
+    now_frames, now_stats = run(True)
+    queued_frames, queued_stats = run(False)
+    strip = [{**f, "data": {k: v for k, v in f["data"].items() if k != "msg*"}} if isinstance(f, dict) else f
+             for f in now_frames]
+    assert strip == [{**f, "data": {k: v for k, v in f["data"].items() if k != "msg*"}} if isinstance(f, dict)
+                     else f for f in queued_frames]                # part ids differ: fresh per part
+    assert [f["seq"] for f in now_frames if isinstance(f, dict) and f["type"] == "DM"] == [1, 2, 3]
+    assert now_stats == queued_stats and now_stats["lanes"]["state"]["sent"] == 3
+
+    s = RobotSession("r1")
+    s.add_interface("echo", "PublisherForwarder", "geometry_msgs/PoseStamped")
+    s.send_status({"topic": "node", "status": "up"})             # waits: the DM goes behind it
+    assert s.data_now("echo", "geometry_msgs/PoseStamped", "", b"p", now=0.0) is None
+    out = frames_of(s)
+    assert [f["type"] for f in out if isinstance(f, dict)] == ["ST", "DM"] and out[-1][ID_LEN:] == b"p"
+    assert s.outbox == 0

@@ -8,6 +8,7 @@ import asyncio
 import base64
 import json
 import os
+import time
 from http import HTTPStatus
 
 import pytest
@@ -17,7 +18,7 @@ from websockets.exceptions import ConnectionClosed, InvalidStatus
 from rce.protocol.session import RobotSession, SessionLimits
 from rce.transport import tls
 from rce.transport.lane_socket import is_mptcp, mptcp_socket
-from rce_robot import ws_link
+from rce_robot import ws_cork, ws_link
 from rce_robot.namespace import RobotNamespace
 
 pytestmark = pytest.mark.asyncio
@@ -225,6 +226,42 @@ async def test_behind_counts_what_waits_until_everything_is_read(impl):
                 await c.send("x" * 1000)
         await until(lambda: last, "the last frame read")
     assert firsts[0] > 0 and last == [0]
+
+
+async def test_picows_asks_the_kernel_only_when_the_reader_may_be_behind_it():
+    """With nothing read ahead, bytes in the kernel count (``FIONREAD``) when the last message was read
+    more than ``UNREAD_FRESH`` ago or was large; a small message taken just after it was read leaves
+    nothing behind it that the lag rule counts, and the kernel is not asked."""
+    seen: dict = {}
+    paused, go, done = asyncio.Event(), asyncio.Event(), asyncio.Event()
+
+    async def handler(link):
+        it = aiter(link)
+        await anext(it)                                   # "a": nothing read ahead now
+        link.transport.pause_reading()                    # what comes next stays in the kernel
+        paused.set()
+        sock = link.transport.get_extra_info("socket")
+        await until(lambda: ws_cork.fionread(sock) > 0, "bytes in the kernel")
+        link._pushed_at = time.monotonic()                # "a" read just now, small: not asked
+        seen["fresh"] = link.behind()
+        link._pushed_at -= 2 * ws_link.UNREAD_FRESH       # read longer ago: the kernel's bytes count
+        seen["stale"] = link.behind()
+        link._pushed_at, link._pushed_size = time.monotonic(), ws_link.UNREAD_SMALL   # large: asked
+        seen["large"] = link.behind()
+        link.transport.resume_reading()
+        assert await anext(it) == "b"
+        await until(lambda: ws_cork.fionread(sock) == 0, "the kernel read out")
+        link._pushed_at -= 2 * ws_link.UNREAD_FRESH
+        seen["caught_up"] = link.behind()
+        done.set()
+        await go.wait()
+    async with Server("picows", handler) as srv, connect(srv.url, compression=None) as c:
+        await c.send("a")
+        await asyncio.wait_for(paused.wait(), STEP)
+        await c.send("b")
+        await asyncio.wait_for(done.wait(), STEP)
+        go.set()
+    assert seen["fresh"] == 0 and seen["stale"] > 0 and seen["large"] == seen["stale"] and seen["caught_up"] == 0
 
 
 @IMPLS
