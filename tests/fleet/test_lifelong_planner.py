@@ -148,6 +148,23 @@ def test_distance_maps_are_bfs_and_the_cache_is_bounded():
         cache.slot(4)
 
 
+
+def test_cache_bound_holds_every_free_cell_when_memory_allows_else_a_share_or_an_error():
+    from rce_fleet.lifelong.distances import cache_bytes_for
+    g = grid(["....", ".@@.", "...."])                # 10 free cells, rows of 24 bytes
+    every = 10 * 24
+    assert cache_bytes_for(g, 2, available=10 ** 9) == every
+    assert DistanceCache(g, max_bytes=every).capacity == 10
+    assert DistanceCache(g, max_bytes=10 ** 9).capacity == 10   # never more rows than free cells
+    # little memory: a share of it, but at least the floor (10,000 free cells, rows of 20,000 bytes)
+    big = LifelongGrid(np.ones((100, 100), dtype=bool))
+    assert cache_bytes_for(big, 1, available=40 * 10 ** 6, share=0.25, floor=0) == 10 ** 7
+    assert cache_bytes_for(big, 1, available=40 * 10 ** 6, share=0.25, floor=2 * 10 ** 7) == 2 * 10 ** 7
+    # a team whose pinned goals cannot fit is refused up front, with the numbers
+    with pytest.raises(MemoryError, match=r"3000 robots need .* GiB"):
+        cache_bytes_for(big, 3000, available=2 ** 28, share=0.25, floor=0)
+    assert cache_bytes_for(big, 5000, available=2 ** 34) == 2 * 10_000 * 10_000
+
 def test_heading_cost_adds_the_turns_to_face_a_shorter_way():
     g = grid(["...."])
     cache = DistanceCache(g)

@@ -15,7 +15,7 @@
     rce-fleet configs [--out DIR] [--robots N] [--url URL]   # write robot1.config ...
     rce-fleet grid [--map YAML] [--grid RxC | --cell M]     # print the grid's cell numbers
     rce-fleet lifelong PROBLEM.json --steps N [--plan-time-limit MS] [--output OUT.json] [--seed S]
-                   [--scheduler batch|greedy]    # a League of Robot Runners 2024 problem under its rules
+                   [--scheduler batch|greedy] [--cache-mb MB]  # a League of Robot Runners 2024 problem under its rules
 """
 from __future__ import annotations
 
@@ -166,6 +166,9 @@ def build_parser() -> argparse.ArgumentParser:
     lf.add_argument("--scheduler", choices=("batch", "greedy"), default="batch",
                     help="task allocation: batch assignment on finish times (default; bids greedily when the "
                     "matrix is too big for a step) or an auction on finish time")
+    lf.add_argument("--cache-mb", type=_positive, metavar="MB",
+                    help="bound of the distance maps (default: a map per free cell, within a quarter of the "
+                    "available memory, at least 1024)")
     lf.add_argument("--no-progress", action="store_true", help="no progress bar")
     return p
 
@@ -193,11 +196,18 @@ def _lifelong(args: argparse.Namespace) -> int:
     except OSError as e:
         print(f"rce-fleet lifelong: --output {args.output}: cannot write: {e.strerror}", file=sys.stderr)
         return 2
+    from .lifelong.distances import cache_bytes_for
+    try:
+        cache_bytes = int(args.cache_mb * 2 ** 20) if args.cache_mb else cache_bytes_for(problem.grid,
+                                                                                        problem.team_size)
+    except MemoryError as e:
+        print(f"rce-fleet lifelong: {e}; set --cache-mb", file=sys.stderr)
+        return 2
     bar = contextlib.nullcontext(None) if args.no_progress else rich_progress(args.steps, problem.path.stem)
     with out as f:
         with bar as cb:
             res = run_lifelong(problem, args.steps, plan_time_limit_ms=args.plan_time_limit, seed=args.seed,
-                               scheduler=args.scheduler, progress=cb)
+                               scheduler=args.scheduler, cache_bytes=cache_bytes, progress=cb)
         s = res.summary()
         print(f"{problem.path.name}: {s['tasks_finished']} tasks finished in {s['steps']} steps by "
               f"{problem.team_size} robots; planner ms p50 {s['plan_ms_p50']:.1f} p99 {s['plan_ms_p99']:.1f} max "

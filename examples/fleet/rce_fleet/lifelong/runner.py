@@ -16,7 +16,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from .distances import DistanceCache
+from .distances import DistanceCache, cache_bytes_for
 from .kernels import warm_up
 from .lorr import LorrProblem
 from .pibt import PIBTPlanner
@@ -48,18 +48,23 @@ class RunResult:
 
 def run_lifelong(problem: LorrProblem, steps: int, plan_time_limit_ms: float = 1000.0, seed: int = 0,
                  scheduler: str = "batch", model: str = MAPF_T, budget_frac: float = 0.5,
-                 cache_bytes: int = 1024 * 2 ** 20, record: bool = True,
+                 cache_bytes: int | None = None, record: bool = True,
                  progress: Callable[[int, int, float], None] | None = None) -> RunResult:
     """Run ``problem`` for ``steps`` time steps under the rules (:mod:`.simulator`).
 
     plan_time_limit_ms: the per-step limit (ms) of scheduler + planner; scheduler:
     ``"batch"`` (default, the better measured) or ``"greedy"``; model: ``"MAPF_T"`` or
-    ``"MAPF"``; progress: called after each step with (step, tasks finished, planner ms).
-    Compilation happens before step 0 (:func:`~.kernels.warm_up`). Raises ValueError for a bad scheduler or model name.
+    ``"MAPF"``; cache_bytes: the bound of the distance maps (default
+    :func:`~.distances.cache_bytes_for` the team and the machine's available memory);
+    progress: called after each step with (step, tasks finished, planner ms).
+    Compilation happens before step 0 (:func:`~.kernels.warm_up`). Raises ValueError for a
+    bad scheduler or model name, MemoryError when the maps of the team do not fit.
     """
+    grid = problem.grid
+    if cache_bytes is None:
+        cache_bytes = cache_bytes_for(grid, problem.team_size)
     warm_up()
     t_start = time.perf_counter()
-    grid = problem.grid
     cache = DistanceCache(grid, max_bytes=cache_bytes)
     sched = make_scheduler(scheduler, cache)
     planner = PIBTPlanner(grid, cache, model=model, seed=seed)
@@ -87,7 +92,8 @@ def run_lifelong(problem: LorrProblem, steps: int, plan_time_limit_ms: float = 1
         if progress is not None:
             progress(k + 1, sim.finished, dt * 1e3)
     stats = {"scheduler": scheduler, "scheduler_ms_total": sched_ms, **planner.stats,
-             "distance_maps": cache.computed, "cache_rows": cache.capacity}
+             "distance_maps": cache.computed, "maps_evicted": cache.evicted, "cache_rows": cache.capacity,
+             "cache_rows_used": len(cache)}
     return RunResult(sim, plan_ms, finished, time.perf_counter() - t_start, stats)
 
 
