@@ -10,7 +10,7 @@ two published numbers.
 Usage::
 
     .venv/bin/python bench/lifelong.py [--quick] [--only NAME ...] [--steps N]
-        [--plan-time-limit MS] [--scheduler batch|greedy|both] [--seed S] [--cache-mb MB]
+        [--plan-time-limit MS] [--scheduler batch|greedy|both] [--seed S] [--cache-mb MB] [--lanes N]
         [--data ../shared/data] [--json PATH] [--plot PATH] [--outputs DIR]
 
 ``--quick`` runs a small cut (two problems, 100 steps) for the test suite; published
@@ -47,16 +47,17 @@ def published(results_md: Path) -> dict[str, dict]:
 
 
 def run_one(path: Path, steps: int, limit_ms: float, scheduler: str, seed: int, pub: dict | None,
-            outputs: Path | None, cache_mb: float | None = None) -> dict:
+            outputs: Path | None, cache_mb: float | None = None, lanes: int | None = None) -> dict:
     """Run one problem; returns its row (with the finished-over-time curve)."""
     from rce_fleet.lifelong import load_problem
-    from rce_fleet.lifelong.runner import rich_progress, run_lifelong
+    from rce_fleet.lifelong.runner import LANES, rich_progress, run_lifelong
 
     prob = load_problem(path)
     with rich_progress(steps, f"{path.stem} ({scheduler})") as cb:
         res = run_lifelong(prob, steps, plan_time_limit_ms=limit_ms, seed=seed, scheduler=scheduler, progress=cb,
                            record=outputs is not None,
-                           cache_bytes=None if cache_mb is None else int(cache_mb * 2 ** 20))
+                           cache_bytes=None if cache_mb is None else int(cache_mb * 2 ** 20),
+                           lanes=LANES if lanes is None else lanes)
     s = res.summary()
     row = {"problem": path.stem, "robots": prob.team_size, "steps": steps, "scheduler": scheduler, **s,
            "tasks_per_step": s["tasks_finished"] / steps, "curve": res.finished.tolist()}
@@ -135,6 +136,7 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--scheduler", choices=("batch", "greedy", "both"), default="batch")
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--cache-mb", type=float, help="bound of the distance maps (default: sized to the team and memory)")
+    ap.add_argument("--lanes", type=int, help="extra cost of a move against a one-way lane (0: no lanes)")
     ap.add_argument("--json", type=Path)
     ap.add_argument("--plot", type=Path)
     ap.add_argument("--outputs", type=Path, help="also write each run's start-kit output JSON into DIR")
@@ -160,7 +162,8 @@ def main(argv: list[str] | None = None) -> int:
         info = pub.get(p.stem)
         steps = args.steps or (QUICK[p.stem] if args.quick else (info["steps"] if info else 1000))
         for sch in scheds:
-            rows.append(run_one(p, steps, args.plan_time_limit, sch, args.seed, info, args.outputs, args.cache_mb))
+            rows.append(run_one(p, steps, args.plan_time_limit, sch, args.seed, info, args.outputs, args.cache_mb,
+                                args.lanes))
     print_table(rows)
     json_path.parent.mkdir(parents=True, exist_ok=True)
     plot_path.parent.mkdir(parents=True, exist_ok=True)

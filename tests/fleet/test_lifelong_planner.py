@@ -165,6 +165,34 @@ def test_cache_bound_holds_every_free_cell_when_memory_allows_else_a_share_or_an
         cache_bytes_for(big, 3000, available=2 ** 28, share=0.25, floor=0)
     assert cache_bytes_for(big, 5000, available=2 ** 34) == 2 * 10_000 * 10_000
 
+def test_weighted_maps_equal_bfs_at_unit_cost_and_lanes_send_robots_round_a_one_way_row():
+    from rce_fleet.lifelong.guidance import lane_costs
+    g = load_problem(RANDOM).grid
+    bfs = DistanceCache(g)
+    unit = DistanceCache(g, cost=np.ones(g.nbr.shape, dtype=np.uint8))
+    for goal in g.free_cells()[::97]:
+        assert (bfs.table[bfs.slot(int(goal))] == unit.table[unit.slot(int(goal))]).all()
+    w = grid([".........",
+              ".###.###.",
+              ".........",
+              ".###.###.",
+              "........."])
+    cost = lane_costs(w, against=4)
+    east, west = 0, 2
+    assert cost[2, west] == 5 and cost[2, east] == 1           # row 0 runs east
+    assert cost[20, east] == 5 and cost[20, west] == 1         # row 2 runs west
+    assert cost[38, west] == 5 and cost[0].tolist() == [1, 1, 1, 1]   # row 4 east; a crossing is free
+    lanes = DistanceCache(w, cost=cost)
+    # (0, 7) to (0, 1): 6 moves west against row 0, or 14 round by row 2, which runs west
+    plain = DistanceCache(w)
+    assert plain.table[plain.slot(1), 7] == 6
+    assert lanes.table[lanes.slot(1), 7] == 14
+    assert lanes.table[lanes.slot(7), 1] == 6                  # with the lane: straight
+    assert (lane_costs(w, against=0) == 1).all()
+    with pytest.raises(ValueError, match="cost must be"):
+        DistanceCache(w, cost=np.ones((3, 4), dtype=np.uint8))
+
+
 def test_heading_cost_adds_the_turns_to_face_a_shorter_way():
     g = grid(["...."])
     cache = DistanceCache(g)

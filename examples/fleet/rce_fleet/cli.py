@@ -15,7 +15,7 @@
     rce-fleet configs [--out DIR] [--robots N] [--url URL]   # write robot1.config ...
     rce-fleet grid [--map YAML] [--grid RxC | --cell M]     # print the grid's cell numbers
     rce-fleet lifelong PROBLEM.json --steps N [--plan-time-limit MS] [--output OUT.json] [--seed S]
-                   [--scheduler batch|greedy] [--cache-mb MB]  # a League of Robot Runners 2024 problem under its rules
+                   [--scheduler batch|greedy] [--cache-mb MB] [--lanes N]   # a LoRR 2024 problem under its rules
 """
 from __future__ import annotations
 
@@ -169,6 +169,8 @@ def build_parser() -> argparse.ArgumentParser:
     lf.add_argument("--cache-mb", type=_positive, metavar="MB",
                     help="bound of the distance maps (default: a map per free cell, within a quarter of the "
                     "available memory, at least 1024)")
+    lf.add_argument("--lanes", type=int, metavar="N", help="extra cost of a move against a one-way lane in "
+                    "one-cell-wide corridors (0: no lanes; default 4)")
     lf.add_argument("--no-progress", action="store_true", help="no progress bar")
     return p
 
@@ -207,7 +209,8 @@ def _lifelong(args: argparse.Namespace) -> int:
     with out as f:
         with bar as cb:
             res = run_lifelong(problem, args.steps, plan_time_limit_ms=args.plan_time_limit, seed=args.seed,
-                               scheduler=args.scheduler, cache_bytes=cache_bytes, progress=cb)
+                               scheduler=args.scheduler, cache_bytes=cache_bytes,
+                               **({} if args.lanes is None else {"lanes": args.lanes}), progress=cb)
         s = res.summary()
         print(f"{problem.path.name}: {s['tasks_finished']} tasks finished in {s['steps']} steps by "
               f"{problem.team_size} robots; planner ms p50 {s['plan_ms_p50']:.1f} p99 {s['plan_ms_p99']:.1f} max "

@@ -14,7 +14,7 @@ from collections import OrderedDict
 import numpy as np
 
 from .grid import LifelongGrid
-from .kernels import UNREACHABLE, bfs_fill, bfs_pair
+from .kernels import UNREACHABLE, bfs_fill, bfs_pair, dial_fill
 
 __all__ = ["DistanceCache", "cache_bytes_for"]
 
@@ -55,8 +55,16 @@ class DistanceCache:
     this step) are never evicted; raises RuntimeError if all rows are pinned.
     """
 
-    def __init__(self, grid: LifelongGrid, max_bytes: int = 768 * 2 ** 20, min_rows: int = 16):
+    def __init__(self, grid: LifelongGrid, max_bytes: int = 768 * 2 ** 20, min_rows: int = 16,
+                 cost: np.ndarray | None = None):
         self.grid = grid
+        self.cost = cost
+        if cost is not None:
+            if cost.shape != grid.nbr.shape or cost.dtype != np.uint8 or int(cost.min()) < 1:
+                raise ValueError(f"cost must be a uint8 array of shape {grid.nbr.shape} with every entry >= 1")
+            k = int(cost.max())
+            self._stacks = np.empty((k + 1, grid.n_cells), dtype=np.int32)
+            self._sizes = np.zeros(k + 1, dtype=np.int64)
         n = grid.n_cells
         self.capacity = min(int(grid.flat.sum()), max(min_rows, int(max_bytes // (2 * n))))
         self.table = np.empty((self.capacity, n), dtype=np.uint16)
@@ -91,7 +99,10 @@ class DistanceCache:
                 raise RuntimeError(f"all {self.capacity} distance maps are pinned; raise max_bytes")
             s = self._slots.pop(old)
             self.evicted += 1
-        bfs_fill(self.grid.nbr, int(goal), self.table[s], self._queue)
+        if self.cost is None:
+            bfs_fill(self.grid.nbr, int(goal), self.table[s], self._queue)
+        else:
+            dial_fill(self.grid.nbr, self.cost, int(goal), self.table[s], self._stacks, self._sizes)
         self._slots[goal] = s
         self.computed += 1
         return s

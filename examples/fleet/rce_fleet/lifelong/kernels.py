@@ -21,8 +21,8 @@ from ..numba_cache import seed
 seed(__file__)          # numba's cache entries prepared in the tree (sandboxed nodes)
 
 __all__ = ["ACT_C", "ACT_F", "ACT_R", "ACT_W", "MOVE_WAIT", "NO_PREFER", "UNREACHABLE", "bfs_fill", "bfs_multi",
-           "bfs_pair", "heading_cost", "heap_pop", "heap_push", "prefer_table", "preferred", "mapf_t_actions",
-           "heading_costs", "pibt_step", "warm_up"]
+           "bfs_pair", "dial_fill", "heading_cost", "heap_pop", "heap_push", "prefer_table", "preferred",
+           "mapf_t_actions", "heading_costs", "pibt_step", "warm_up"]
 
 UNREACHABLE = 65535
 # MAPF_T actions (start-kit order of the letters F, R, C, W)
@@ -131,6 +131,44 @@ def bfs_fill(nbr, goal, out, queue):
                 queue[tail] = v
                 tail += 1
     return tail
+
+
+@njit(cache=True)
+def dial_fill(nbr, cost, goal, out, stacks, sizes):
+    """Weighted distances from every cell to ``goal`` into ``out`` (uint16, cells): the least
+    sum of ``cost[c, h]`` (uint8 >= 1, the cost of moving from ``c`` towards heading ``h``)
+    along a path, by Dijkstra's algorithm with Dial's bucket queue (Dial, CACM 1969).
+    ``stacks`` (k + 1, cells) int32 and ``sizes`` (k + 1,) int64 are scratch, k the largest
+    cost. With every cost 1 this is :func:`bfs_fill`'s map."""
+    nb = stacks.shape[0]
+    out[:] = UNREACHABLE
+    sizes[:] = 0
+    out[goal] = 0
+    stacks[0, 0] = goal
+    sizes[0] = 1
+    left = 1
+    cur = 0
+    while left > 0:
+        b = cur % nb
+        while sizes[b] > 0:
+            sizes[b] -= 1
+            c = stacks[b, sizes[b]]
+            left -= 1
+            if out[c] != cur:
+                continue
+            for h in range(4):
+                v = nbr[c, h]
+                if v < 0:
+                    continue
+                nd = cur + cost[v, (h + 2) & 3]     # the move v -> c heads opposite to h
+                if nd < out[v]:
+                    out[v] = nd
+                    bb = nd % nb
+                    stacks[bb, sizes[bb]] = v
+                    sizes[bb] += 1
+                    left += 1
+        cur += 1
+    return cur
 
 
 @njit(cache=True)
@@ -540,6 +578,8 @@ def warm_up() -> None:
     dist = np.empty((1, g.n_cells), dtype=np.uint16)
     q = np.empty(g.n_cells, dtype=np.int32)
     bfs_fill(g.nbr, 8, dist[0], q)
+    dial_fill(g.nbr, np.ones((g.n_cells, 4), np.uint8), 8, dist[0], np.empty((2, g.n_cells), np.int32),
+              np.zeros(2, np.int64))
     bfs_multi(g.nbr, np.array([4], dtype=np.int64))
     bfs_pair(g.nbr, 0, 8, np.zeros(g.n_cells, np.uint8), q, np.empty(g.n_cells, np.int32))
     pos = np.array([0, 4], dtype=np.int64)

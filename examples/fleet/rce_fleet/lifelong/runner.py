@@ -17,13 +17,16 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from .distances import DistanceCache, cache_bytes_for
+from .guidance import lane_costs
 from .kernels import warm_up
 from .lorr import LorrProblem
 from .pibt import PIBTPlanner
 from .scheduler import make_scheduler
 from .simulator import MAPF_T, Simulator
 
-__all__ = ["RunResult", "run_lifelong"]
+__all__ = ["LANES", "RunResult", "run_lifelong"]
+
+LANES = 4        # extra cost of a move against a one-way lane (measured: docs/lifelong.md)
 
 
 @dataclass
@@ -48,14 +51,15 @@ class RunResult:
 
 def run_lifelong(problem: LorrProblem, steps: int, plan_time_limit_ms: float = 1000.0, seed: int = 0,
                  scheduler: str = "batch", model: str = MAPF_T, budget_frac: float = 0.5,
-                 cache_bytes: int | None = None, record: bool = True,
+                 cache_bytes: int | None = None, lanes: int = LANES, record: bool = True,
                  progress: Callable[[int, int, float], None] | None = None) -> RunResult:
     """Run ``problem`` for ``steps`` time steps under the rules (:mod:`.simulator`).
 
     plan_time_limit_ms: the per-step limit (ms) of scheduler + planner; scheduler:
     ``"batch"`` (default, the better measured) or ``"greedy"``; model: ``"MAPF_T"`` or
     ``"MAPF"``; cache_bytes: the bound of the distance maps (default
-    :func:`~.distances.cache_bytes_for` the team and the machine's available memory);
+    :func:`~.distances.cache_bytes_for` the team and the machine's available memory); lanes:
+    the extra cost of a move against a one-way lane (:func:`~.guidance.lane_costs`; 0: none);
     progress: called after each step with (step, tasks finished, planner ms).
     Compilation happens before step 0 (:func:`~.kernels.warm_up`). Raises ValueError for a
     bad scheduler or model name, MemoryError when the maps of the team do not fit.
@@ -65,7 +69,7 @@ def run_lifelong(problem: LorrProblem, steps: int, plan_time_limit_ms: float = 1
         cache_bytes = cache_bytes_for(grid, problem.team_size)
     warm_up()
     t_start = time.perf_counter()
-    cache = DistanceCache(grid, max_bytes=cache_bytes)
+    cache = DistanceCache(grid, max_bytes=cache_bytes, cost=lane_costs(grid, lanes) if lanes else None)
     sched = make_scheduler(scheduler, cache)
     planner = PIBTPlanner(grid, cache, model=model, seed=seed)
     sim = Simulator(grid, problem.starts, problem.tasks, problem.reveal, model=model, record=record)
@@ -91,7 +95,7 @@ def run_lifelong(problem: LorrProblem, steps: int, plan_time_limit_ms: float = 1
         finished[k] = sim.finished
         if progress is not None:
             progress(k + 1, sim.finished, dt * 1e3)
-    stats = {"scheduler": scheduler, "scheduler_ms_total": sched_ms, **planner.stats,
+    stats = {"scheduler": scheduler, "lanes": lanes, "scheduler_ms_total": sched_ms, **planner.stats,
              "distance_maps": cache.computed, "maps_evicted": cache.evicted, "cache_rows": cache.capacity,
              "cache_rows_used": len(cache)}
     return RunResult(sim, plan_ms, finished, time.perf_counter() - t_start, stats)
