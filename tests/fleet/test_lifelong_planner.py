@@ -189,6 +189,11 @@ def test_weighted_maps_equal_bfs_at_unit_cost_and_lanes_send_robots_round_a_one_
     assert lanes.table[lanes.slot(1), 7] == 14
     assert lanes.table[lanes.slot(7), 1] == 6                  # with the lane: straight
     assert (lane_costs(w, against=0) == 1).all()
+    # a corridor of 20,000 cells against its lane costs 5 x 19,999: stored as the largest cost, never wrapped
+    line = LifelongGrid(np.ones((1, 20_000), dtype=bool))
+    far = DistanceCache(line, cost=lane_costs(line, against=4))
+    row = far.table[far.slot(0)].astype(np.int64)
+    assert row[1] == 5 and row[-1] == UNREACHABLE - 1 and (np.diff(row) >= 0).all()
     with pytest.raises(ValueError, match="cost must be"):
         DistanceCache(w, cost=np.ones((3, 4), dtype=np.uint8))
 

@@ -161,6 +161,8 @@ def dial_fill(nbr, cost, goal, out, stacks, sizes):
                 if v < 0:
                     continue
                 nd = cur + cost[v, (h + 2) & 3]     # the move v -> c heads opposite to h
+                if nd > UNREACHABLE - 1:             # never wraps: a cost beyond uint16 reads as the largest
+                    nd = UNREACHABLE - 1
                 if nd < out[v]:
                     out[v] = nd
                     bb = nd % nb
