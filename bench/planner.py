@@ -22,7 +22,11 @@ Usage::
     .venv/bin/python bench/planner.py [--agents 10 50 100 200] [--repeat 3]
         [--lacam-agents 10 50 100 200 400 1000] [--time-limit 5] [--cpu-budget] [--scen-seeds 1]
         [--initial {lacam,pp}] [--workers 1]
-        [--data ../shared/data] [--map FILE.map --scen FILE.scen] [--json PATH] [--plot PATH]
+        [--data ../shared/data] [--map FILE.map --scen FILE.scen] [--lacam3 BIN] [--json PATH] [--plot PATH]
+
+``--lacam3 BIN`` runs lacam3 (Okumura AAMAS-24, C++, built from its repository;
+bench/lacam3_peer.py) on the same one-shot instances with the same time limit, as the peer
+in the same run.
 
 ``--map``/``--scen`` run another MovingAI instance (maps and scenarios in either form of
 rce_fleet.planning.movingai); an instance that is not one (too few agents, a shared start or
@@ -308,6 +312,43 @@ def print_lacam(rows: list[dict], name: str = "warehouse-10-20-10-2-1") -> None:
     Console(width=max(Console().width, 130)).print(t)
 
 
+def run_peer(binary: Path, graph: GridGraph, scen: list[tuple[int, int]], k: int, time_limit_s: float,
+             scenario: str) -> dict:
+    """lacam3 (bench/lacam3_peer.py) on the first ``k`` agents of ``scen``; its sum of costs
+    against the same lower bound as rce's rows (the sum of BFS distances)."""
+    from lacam3_peer import run_lacam3
+    d = graph.distances_to([g for _, g in scen[:k]])
+    dist = [int(d[i, s]) for i, (s, _) in enumerate(scen[:k])]
+    r = run_lacam3(binary, graph.free, scen[:k], dist, time_limit_s)
+    lb = sum(dist)
+    if r["lower_bound"] is not None and r["lower_bound"] != lb:
+        raise RuntimeError(f"lacam3's lower bound {r['lower_bound']} is not the sum of BFS distances {lb}")
+    return {"agents": k, "scenario": scenario, "time_limit_s": time_limit_s, **r, "lower_bound": lb,
+            "ratio": r["sum_of_costs"] / lb if r["solved"] else None,
+            "first_loss_ratio": r["first_sum_of_loss"] / lb if r["first_sum_of_loss"] else None}
+
+
+def print_peer(peer: list[dict], ours: list[dict]) -> None:
+    """lacam3's rows beside rce's on the same instances."""
+    from rich.console import Console
+    from rich.table import Table
+    mine = {(r["scenario"], r["agents"]): r for r in ours}
+
+    def fmt(v: float | None) -> str:
+        return "-" if v is None else f"{v:.3f}"
+    t = Table(title="lacam3 (C++, 2 cores, wall-clock limit) on the same instances, sum of costs / lower bound")
+    for col in ("scenario", "agents", "limit (s)", "lacam3 first (s)", "lacam3", "lacam3 sum of loss", "rce",
+                "rce / lacam3"):
+        t.add_column(col, justify="right")
+    for r in peer:
+        m = mine.get((r["scenario"], r["agents"]))
+        loss = r["sum_of_loss"] / r["lower_bound"] if r["sum_of_loss"] else None
+        t.add_row(r["scenario"], str(r["agents"]), f"{r['time_limit_s']:.0f}", fmt(r["first_solution_s"]),
+                  fmt(r["ratio"]) if r["solved"] else "no solution", fmt(loss), fmt(m and m["ratio"]),
+                  fmt(m["ratio"] / r["ratio"] if m and r["ratio"] else None))
+    Console(width=max(Console().width, 130)).print(t)
+
+
 def print_tables(rows: list[dict], block: dict | None, name: str = "warehouse-10-20-10-2-1 (random-1.scen)") -> None:
     """The results as tables (rich), or one dict a line without rich (``name``: the instance's)."""
     try:
@@ -395,6 +436,9 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--live-sizes", type=int, nargs="*", default=[3, 10, 20],
                     help="robots for the live-size comparison on the lab grid and warehouse.yaml (none: skip)")
     ap.add_argument("--cell-m", type=float, default=1.0, help="cell size for the warehouse.yaml grid")
+    ap.add_argument("--lacam3", type=Path, metavar="BIN",
+                    help="also run lacam3's main (built from github.com/Kei18/lacam3) on every one-shot instance, "
+                         "with the same time limit (wall, whole seconds): the peer in the same run")
     ap.add_argument("--json", type=Path, default=RESULTS / "planner.json")
     ap.add_argument("--plot", type=Path, default=RESULTS / "planner.png")
     args = ap.parse_args(argv)
@@ -402,6 +446,9 @@ def main(argv: list[str] | None = None) -> int:
     mapf = args.data / "mapf"
     if (args.map is None) != (args.scen is None):
         print("bench/planner.py: --map and --scen go together", file=sys.stderr)
+        return 2
+    if args.lacam3 is not None and not args.lacam3.is_file():
+        print(f"bench/planner.py: lacam3 binary not found: {args.lacam3}", file=sys.stderr)
         return 2
     map_file = args.map or mapf / "warehouse-10-20-10-2-1.map"
     scen_file = args.scen or mapf / "warehouse-10-20-10-2-1-random-1.scen"
@@ -422,10 +469,16 @@ def main(argv: list[str] | None = None) -> int:
     rows = [run_mapf(graph, scen, k, args.repeat) for k in args.agents]
     lacam = [run_lacam(graph, scen, k, args.time_limit, label, cpu_budget=args.cpu_budget, initial=args.initial,
                        workers=args.workers) for k in args.lacam_agents]
+    instances = [(label, scen)]
     for seed in args.scen_seeds:
         other = random_scen(graph, max(args.lacam_agents, default=0), seed)
+        instances.append((f"seed {seed}", other))
         lacam += [run_lacam(graph, other, k, args.time_limit, f"seed {seed}", args.cpu_budget, args.initial,
                             args.workers) for k in args.lacam_agents]
+    peer = []
+    if args.lacam3:
+        peer = [run_peer(args.lacam3, graph, sc, k, args.time_limit, lab)
+                for lab, sc in instances for k in args.lacam_agents]
     wh = args.data / "maps" / "warehouse.yaml"
     block = run_block_replan(wh, args.cell_m, 10) if wh.is_file() else None
     live = []
@@ -436,6 +489,8 @@ def main(argv: list[str] | None = None) -> int:
     print_tables(rows, block, name)
     if lacam:
         print_lacam(lacam, map_file.stem)
+    if peer:
+        print_peer(peer, lacam)
     if live:
         print_live(live)
 
@@ -443,7 +498,8 @@ def main(argv: list[str] | None = None) -> int:
         if p is not None:
             p.parent.mkdir(parents=True, exist_ok=True)
     if args.json:
-        args.json.write_text(json.dumps({"mapf": rows, "lacam": lacam, "live_sizes": live, "block_replan": block},
+        args.json.write_text(json.dumps({"mapf": rows, "lacam": lacam, "lacam3": peer, "live_sizes": live,
+                                         "block_replan": block},
                                         indent=2))
         print(f"wrote {args.json}")
     if args.plot:
