@@ -201,14 +201,16 @@ class RobotNamespace:
             async for frame in ws:
                 if self.ws is not ws:       # a resume took the session over: the robot resends what this link
                     break                   # still brings (the resume's ack says what was taken)
-                self.session.backlog(ws_link.behind(ws), time.monotonic())
-                waiting = self.session.assembler.pending
-                if self._receive(frame):       # a big text frame: parsed in the pool first
+                now = time.monotonic()
+                session = self.session
+                session.backlog(ws_link.behind(ws), now)
+                waiting = session.assembler.pending
+                if self._receive(frame, now):       # a big text frame: parsed in the pool first
                     await self._receive_big(frame)
                 self._pump()
                 # a message and the binary part that follows it are one turn (at most two frames, so a
                 # burst is still served among the other robots' frames)
-                joined = not joined and self.session.assembler.pending > waiting
+                joined = not joined and session.assembler.pending > waiting
                 if not joined:
                     await ws_link.take_turn(ws)
         except ConnectionClosed:
@@ -227,15 +229,15 @@ class RobotNamespace:
                  code=ws.close_code)
         self._grace_timer = self.tasks.spawn(self._expire(), name="grace")
 
-    def _receive(self, frame: str | bytes) -> bool:
-        """One frame into the session, inline; True (and nothing done) for a big text frame, which
-        :meth:`_receive_big` takes."""
+    def _receive(self, frame: str | bytes, now: float) -> bool:
+        """One frame into the session at ``now`` (s), inline; True (and nothing done) for a big text frame,
+        which :meth:`_receive_big` takes."""
         if isinstance(frame, str):
             if self.parser is not None and self.parser.takes(frame) and not self.session.too_big(frame):
                 return True
-            self.session.receive_text(frame, time.monotonic())
+            self.session.receive_text(frame, now)
         else:
-            self.session.receive_binary(frame, time.monotonic())
+            self.session.receive_binary(frame, now)
         return False
 
     async def _receive_big(self, frame: str) -> None:
@@ -263,9 +265,9 @@ class RobotNamespace:
         while events := self.session.events_received():
             for ev in events:
                 self._on_event(ev)
-        if self.session.outbox and self.ws is not None:
+        if self.ws is not None and self.session.outbox:
             self._flush()
-        if self.session.bulk_outbox and self.bulk_ws is not None:
+        if self.bulk_ws is not None and self.session.bulk_outbox:
             self._bulk_wake.set()
 
     # -- the bulk link (docs/lanes.md) -------------------------------------------------------------------

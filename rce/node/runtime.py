@@ -207,7 +207,9 @@ class Subscriber:
         except Exception as e:
             self._failed(e)
             return None
-        return r if r is not None and inspect.isawaitable(r) else None    # most callbacks return None: no ABC check
+        if r is None or r.__class__ is bool:        # most callbacks return None, or publish_nowait's bool:
+            return None                             # no ABC check
+        return r if inspect.isawaitable(r) else None
 
     async def _finish(self, r: Awaitable | None) -> None:
         try:

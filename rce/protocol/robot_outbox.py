@@ -146,7 +146,7 @@ class RobotOutbox:
 
     def waiting(self) -> int:
         """Messages waiting for the session's own link."""
-        return self.queue.waiting(self.link_lanes)
+        return self.queue.waiting(_CONTROL_STATE) if self.bulk_linked else len(self.queue)
 
     def data_to_send(self, max_messages: int | None = None, now: float | None = None) -> list[str | bytes]:
         """Frames of up to ``max_messages`` waiting messages for the session's link (all by default;
