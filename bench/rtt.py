@@ -14,7 +14,10 @@ Paths (the real engine as processes on loopback, the raw wire protocol as a robo
 
 Peers: ``ros1`` = ``shared/anchors/ros1_rtt.py`` (Debian's rospy, single master, TCPROS;
 installed with apt-get when missing and running as root), ``ws_floor`` =
-``shared/anchors/ws_rtt.py`` (raw websockets echo of the same JSON DM: the transport floor).
+``shared/anchors/ws_rtt.py`` (raw websockets echo of the same JSON DM: the transport floor),
+``relay_floor`` = ``bench/relay_floor.py`` (the same echo behind a relay process: client,
+relay and echo are three processes, as robot, rce-robot and node are; the floor of the
+topology, which wakes three processes per round trip where ROS 1 wakes two).
 The anchors report medians only; rce paths report median and p90 (and p10 in the JSON: on a
 busy machine, rce's many process hops make its median drift up with other load, while p10
 stays near the uncontended cost).
@@ -39,7 +42,7 @@ two peers back to back (they agree with the anchors). The results go to ``rtt_ga
 
 Usage::
 
-    .venv/bin/python bench/rtt.py [--sizes 3,1623,...] [--reps N] [--no-ros1] [--no-ws]
+    .venv/bin/python bench/rtt.py [--sizes 3,1623,...] [--reps N] [--no-ros1] [--no-ws] [--no-relay]
         [--paths converter,forwarder,c2c] [--rounds K] [--nice N] [--wait-quiet S]
         [--gap S] [--json PATH] [--plot PATH]
 
@@ -272,6 +275,16 @@ async def ws_floor(sizes: list[int], reps: int, gap: float) -> dict:
 ROS1_PEER_TIMEOUT_S = 3600      # s: bound on one bench/ros1_peer.py run (17 sizes x 20 reps x 1 s gap ~ 6 min)
 
 
+def relay_floor(sizes: list[int], reps: int, gap: float) -> dict:
+    """bench/relay_floor.py (client -> relay -> echo -> relay -> client, three processes: the
+    floor of any engine with a process between robot and node) with ``gap`` s of silence
+    before each round trip; returns its ``{"peer", "gap_s", "rtt_ms": {size: ms}}``."""
+    r = subprocess.run([VENV_PY, str(BENCH / "relay_floor.py"), "--gap", str(gap), "--reps", str(reps),
+                        "--sizes", ",".join(map(str, sizes))], capture_output=True, text=True,
+                       timeout=ROS1_PEER_TIMEOUT_S, cwd=tempfile.gettempdir())
+    return peer_result(r, "relay_floor.py")
+
+
 def ros1_peer(sizes: list[int], reps: int, gap: float) -> dict:
     """bench/ros1_peer.py (rospy, the anchor's topology) with ``gap`` s of silence before each
     round trip; returns its ``{"peer", "gap_s", "rtt_ms": {size: ms}}`` (NaN where none)."""
@@ -294,6 +307,7 @@ def parse_args(argv=None):
     p.add_argument("--paths", default=",".join(PATHS), help=f"rce paths to measure (default {','.join(PATHS)})")
     p.add_argument("--no-ros1", action="store_true", help="skip the ROS 1 peer (no apt-get)")
     p.add_argument("--no-ws", action="store_true", help="skip the raw websockets floor")
+    p.add_argument("--no-relay", action="store_true", help="skip the relay floor (bench/relay_floor.py)")
     p.add_argument("--rounds", type=int, default=1, metavar="K",
                    help="repeat the whole measurement (peers and rce) K times and keep, per series and size, "
                         "the best (lowest) of the K values: for a shared machine whose load comes and goes")
@@ -327,6 +341,12 @@ def run_round(con, args, sizes: list[int], paths: list[str], ros1_ok: bool) -> d
             peers["ws_floor"] = run_anchor("ws_rtt.py", VENV_PY, args.reps)
             load["ws_floor"] = fl.stop()
         con.print(f"ws floor done ({peers['ws_floor']['peer']})")
+    if not args.no_relay:
+        with con.status("relay floor (bench/relay_floor.py: client -> relay -> echo, three processes) ..."):
+            fl = ForeignLoad().start()
+            peers["relay_floor"] = relay_floor(sizes, args.reps, 0.0)
+            load["relay_floor"] = fl.stop()
+        con.print("relay floor done")
     if ros1_ok:
         with con.status("ROS 1 single master (shared/anchors/ros1_rtt.py) ..."):
             fl = ForeignLoad().start()
@@ -352,6 +372,12 @@ def run_gap_round(con, args, sizes: list[int], paths: list[str], ros1_ok: bool) 
             peers["ws_floor"] = asyncio.run(ws_floor(sizes, args.reps, gap))
             load["ws_floor"] = fl.stop()
         con.print(f"ws floor done ({peers['ws_floor']['peer']}, gap {gap:g} s)")
+    if not args.no_relay:
+        with con.status(f"relay floor (bench/relay_floor.py), gap {gap:g} s ..."):
+            fl = ForeignLoad().start()
+            peers["relay_floor"] = relay_floor(sizes, args.reps, gap)
+            load["relay_floor"] = fl.stop()
+        con.print(f"relay floor done (gap {gap:g} s)")
     if ros1_ok:
         with con.status(f"ROS 1 (bench/ros1_peer.py), gap {gap:g} s ..."):
             fl = ForeignLoad().start()
@@ -408,7 +434,9 @@ def main(argv=None) -> int:
                      "rce_c2c": "robot -> forwarder -> container A /relay -> interface link -> container B "
                                 "stringEcho -> forwarder -> robot",
                      "ros1_ms": "shared/anchors/ros1_rtt.py (rospy, single master, TCPROS; medians only)",
-                     "ws_floor_ms": "shared/anchors/ws_rtt.py (raw websockets + JSON DM echo; medians only)"}}
+                     "ws_floor_ms": "shared/anchors/ws_rtt.py (raw websockets + JSON DM echo; medians only)",
+                     "relay_floor_ms": "bench/relay_floor.py (client -> relay -> echo -> relay -> client, three "
+                                       "processes, raw websockets on uvloop; medians only)"}}
     if args.gap is not None:
         res["paths"]["ros1_ms"] = f"bench/ros1_peer.py --gap {args.gap:g} (the ROS 1 anchor's topology and message)"
         res["paths"]["ws_floor_ms"] = f"ws_rtt.py's echo in the bench process, gap {args.gap:g} s"
@@ -428,7 +456,7 @@ def main(argv=None) -> int:
                 per_round[key + stat] = per
         res[f"{key}_lost"] = [sum(sum(1 for x in rd["samples"][kind][z] if not math.isfinite(x)) for rd in rounds)
                               for z in sizes]
-    for peer, key in (("ros1", "ros1_ms"), ("ws_floor", "ws_floor_ms")):
+    for peer, key in (("ros1", "ros1_ms"), ("ws_floor", "ws_floor_ms"), ("relay_floor", "relay_floor_ms")):
         if peer not in rounds[0]["peers"]:
             res[key] = None
             continue
@@ -449,6 +477,9 @@ def main(argv=None) -> int:
         "forwarder_over_ros1_large_geomean": gm("rce_forwarder_ms", "ros1_ms", large),
         "converter_over_ws_small_geomean": gm("rce_converter_ms", "ws_floor_ms", small),
         "forwarder_over_ws_large_geomean": gm("rce_forwarder_ms", "ws_floor_ms", large),
+        "relay_floor_over_ros1_small_geomean": gm("relay_floor_ms", "ros1_ms", small),
+        "converter_over_relay_floor_small_geomean": gm("rce_converter_ms", "relay_floor_ms", small),
+        "forwarder_over_relay_floor_small_geomean": gm("rce_forwarder_ms", "relay_floor_ms", small),
         "small": "sizes <= 1623 B", "large": "sizes >= 1 MB"}
     res["machine_load"] = load if args.rounds > 1 else load[0]
     res["nice"], res["ws_impl"] = args.nice, args.ws_impl
@@ -465,27 +496,30 @@ def print_table(con, res: dict) -> None:
     t = Table(title="round trip, ms (median / p90 for rce; medians for peers)"
                     + ("" if res.get("gap_s") is None else f"; {res['gap_s']:g} s silence before each")
                     + (f"; each value the lowest of {res['rounds']} rounds" if res.get("rounds", 1) > 1 else ""))
-    for c in ("size", "conv", "conv p90", "fwd", "fwd p90", "c2c", "c2c p90", "ros1", "ws",
-              "conv/ros1", "fwd/ros1", "c2c/ros1", "conv/ws", "fwd/ws"):
+    for c in ("size", "conv", "conv p90", "fwd", "fwd p90", "c2c", "c2c p90", "ros1", "ws", "relay",
+              "conv/ros1", "fwd/ros1", "c2c/ros1", "conv/ws", "fwd/ws", "conv/relay"):
         t.add_column(c, justify="right")
     g = lambda k, i: (res.get(k) or [float("nan")] * len(res["sizes"]))[i]  # noqa: E731
     for i, z in enumerate(res["sizes"]):
         t.add_row(fmt_size(z), fmt_ms(g("rce_converter_ms", i)), fmt_ms(g("rce_converter_p90_ms", i)),
                   fmt_ms(g("rce_forwarder_ms", i)), fmt_ms(g("rce_forwarder_p90_ms", i)),
                   fmt_ms(g("rce_c2c_ms", i)), fmt_ms(g("rce_c2c_p90_ms", i)),
-                  fmt_ms(g("ros1_ms", i)), fmt_ms(g("ws_floor_ms", i)),
+                  fmt_ms(g("ros1_ms", i)), fmt_ms(g("ws_floor_ms", i)), fmt_ms(g("relay_floor_ms", i)),
                   fmt_ratio(ratio(g("rce_converter_ms", i), g("ros1_ms", i))),
                   fmt_ratio(ratio(g("rce_forwarder_ms", i), g("ros1_ms", i))),
                   fmt_ratio(ratio(g("rce_c2c_ms", i), g("ros1_ms", i))),
                   fmt_ratio(ratio(g("rce_converter_ms", i), g("ws_floor_ms", i))),
-                  fmt_ratio(ratio(g("rce_forwarder_ms", i), g("ws_floor_ms", i))))
+                  fmt_ratio(ratio(g("rce_forwarder_ms", i), g("ws_floor_ms", i))),
+                  fmt_ratio(ratio(g("rce_converter_ms", i), g("relay_floor_ms", i))))
     con.print(t)
     s = res["summary"]
     con.print("geometric mean ratios: "
               f"converter/ros1 at <= 1.6 kB = {fmt_ratio(s['converter_over_ros1_small_geomean'])}, "
               f"forwarder/ros1 at >= 1 MB = {fmt_ratio(s['forwarder_over_ros1_large_geomean'])}, "
               f"converter/ws at <= 1.6 kB = {fmt_ratio(s['converter_over_ws_small_geomean'])}, "
-              f"forwarder/ws at >= 1 MB = {fmt_ratio(s['forwarder_over_ws_large_geomean'])}")
+              f"forwarder/ws at >= 1 MB = {fmt_ratio(s['forwarder_over_ws_large_geomean'])}, "
+              f"relay floor/ros1 at <= 1.6 kB = {fmt_ratio(s['relay_floor_over_ros1_small_geomean'])}, "
+              f"converter/relay floor at <= 1.6 kB = {fmt_ratio(s['converter_over_relay_floor_small_geomean'])}")
     for n in res["notes"]:
         con.print(f"[yellow]note: {n}")
 
@@ -496,7 +530,8 @@ def plot(res: dict, path: Path) -> None:
     series = [("rce_converter", "rce converter (JSON)", "o-"), ("rce_forwarder", "rce forwarder (binary)", "s-"),
               ("rce_c2c", "rce container->container (fwd)", "^-"),
               ("ros1", "ROS 1 rospy (" + ("anchor)" if res.get("gap_s") is None else "bench/ros1_peer.py)"), "x--"),
-              ("ws_floor", "raw websockets + JSON (floor)", "+:")]
+              ("ws_floor", "raw websockets + JSON (floor)", "+:"),
+              ("relay_floor", "relay floor: client -> relay -> echo (3 processes)", "d:")]
     for key, label, style in series:
         ys = res.get(f"{key}_ms")
         if not ys:

@@ -31,11 +31,12 @@ def test_rtt_smoke(tmp_path):
     run("rtt.py", "--sizes", "3,1623", "--no-ros1", "--json", str(out), "--plot", str(png), timeout=110)
     d = json.loads(out.read_text())
     assert d["sizes"] == [3, 1623]
-    for k in ("rce_converter_ms", "rce_forwarder_ms", "rce_c2c_ms", "ws_floor_ms",
+    for k in ("rce_converter_ms", "rce_forwarder_ms", "rce_c2c_ms", "ws_floor_ms", "relay_floor_ms",
               "rce_converter_p90_ms", "rce_forwarder_p90_ms", "rce_c2c_p90_ms"):
         assert positive(d[k]) and len(d[k]) == 2, (k, d[k])
     assert "ros1_ms" in d and d["ros1_ms"] is None            # --no-ros1: the key is there, with no values
     assert d["reps"] == 2 and d["rce_converter_lost"] == [0, 0]
+    assert d["summary"]["converter_over_relay_floor_small_geomean"] > 0
     assert png.stat().st_size > 10_000
 
 
