@@ -90,7 +90,7 @@ Usage::
 
     .venv/bin/python bench/fleet_load.py [--robots 10,100,300,1000] [--duration 10] [--rate 10]
         [--converter] [--container-cpu CORES] [--clients 1] [--robot-tasksets K] [--setup-concurrency 16]
-        [--drain 3] [--max-p99 100] [--no-stop] [--no-floor] [--profile S] [--profile-labels L]
+        [--drain 3] [--max-p99 100] [--no-stop] [--no-floor] [--relay-floor] [--profile S] [--profile-labels L]
         [--wait-quiet S] [--raw DIR] [--json PATH] [--plot PATH]
 
 ``--profile S``: after each window, with the load still on, record the two hottest processes
@@ -126,7 +126,7 @@ from rce_robot import ws_cork
 
 from common import (BENCH, PASSWORD, RESULTS, USER, ForeignLoad, add_ws_impl_argument, console, engine, fmt_ms,
                     free_port, median, percentile, pyplot, set_nice, wait_quiet, write_json)
-from fleet_floor import floor_main
+from fleet_floor import echo_main, floor_main
 from fleet_wiring import CTAG, DOWN, ECHO_SUFFIX, POSE, robot_wiring
 
 Y_MS_SCALE = 1e-6          # m of position.y per ms of the send time (mod Y_MS_MOD)
@@ -1181,7 +1181,7 @@ class FloorProcs:
     def snapshot(self) -> dict:
         import psutil
         out = {}
-        pids = [(p.pid, "floor") for p in self.servers] + [(p.pid, "clients") for p in self.workers]
+        pids = [(p.pid, "floor") for p in self.servers] + [(p.pid, "clients") for p in self.workers]  # echo: floor
         for pid, lab in pids + [(os.getpid(), "orchestrator")]:
             try:
                 out[pid] = (lab, psutil.Process(pid))
@@ -1193,7 +1193,13 @@ class FloorProcs:
 class FloorRun(Run):
     """One N on the transport floor (:mod:`fleet_floor`): the same robots, setup, warm-up and window
     as :class:`Run`, served by ``--robot-tasksets`` floor processes that only echo each pose back
-    over the robot's own websocket; no engine, no planner, no goals."""
+    over the robot's own websocket; no engine, no planner, no goals. With ``relay``, the relay
+    floor: the floor processes send each pose through one echo process (the node's place) and
+    back, the engine's topology with nothing else in it; the echo's CPU counts as the floor's."""
+
+    def __init__(self, n: int, args, con, relay: bool = False):
+        super().__init__(n, args, con)
+        self.relay = relay
 
     def run(self) -> dict:
         a = self.args
@@ -1202,10 +1208,19 @@ class FloorRun(Run):
         port = free_port()
         servers, ready = [], []
         self.workers = []
+        relay_port = None
         try:
+            if self.relay:
+                r, w = ctx.Pipe(duplex=False)
+                echo = ctx.Process(target=echo_main, args=(w,), daemon=True)
+                echo.start()
+                servers.append(echo)
+                if not r.poll(60):
+                    raise RuntimeError("the relay floor's echo process did not start within 60 s")
+                relay_port = r.recv()
             for _ in range(max(1, a.robot_tasksets)):
                 r, w = ctx.Pipe(duplex=False)
-                proc = ctx.Process(target=floor_main, args=(port, self.side, w), daemon=True)
+                proc = ctx.Process(target=floor_main, args=(port, self.side, w, relay_port), daemon=True)
                 proc.start()
                 servers.append(proc)
                 ready.append(r)
@@ -1303,6 +1318,9 @@ def parse_args(argv=None):
                    help="run every N even after one failed the limits (the first failure is still reported)")
     p.add_argument("--no-floor", action="store_true",
                    help="do not measure the transport floor (bench/fleet_floor.py) before each N")
+    p.add_argument("--relay-floor", action="store_true",
+                   help="also measure the relay floor (each pose through a relay process and an echo process, "
+                        "the engine's topology with nothing else in it) before each N")
     p.add_argument("--profile", type=float, default=0.0, metavar="S",
                    help="after each window, py-spy the two hottest processes for S s (default off)")
     p.add_argument("--profile-labels", default="", metavar="LABELS",
@@ -1357,7 +1375,11 @@ def main(argv=None) -> int:
                "engine_over_floor": "the engine's CPU per pose (master + robot task sets + container (all), "
                                     "cpu_us_per_pose) over the floor servers' at the same N, measured in the same "
                                     "run: 1.0 would be an engine that costs no more than one websocket hop each "
-                                    "way"}}
+                                    "way",
+               "engine_over_relay_floor": "the same over the relay floor (--relay-floor: floor processes relaying "
+                                          "each pose through an echo process and back, the engine's topology with "
+                                          "nothing else in it); relay_floor_over_floor: the relay floor's CPU per "
+                                          "pose over the floor's"}}
     set_nice(args.nice, log=con.print)
     res["nice"], res["ws_impl"] = args.nice, args.ws_impl
     for n in sizes:
@@ -1366,10 +1388,23 @@ def main(argv=None) -> int:
         floor = None if args.no_floor else FloorRun(n, args, con).run()
         if floor is not None:
             con.print(f"N={n}: transport floor: {floor_line(floor)}")
+        relay = FloorRun(n, args, con, relay=True).run() if args.relay_floor else None
+        if relay is not None:
+            con.print(f"N={n}: relay floor: {floor_line(relay)}")
         r = Run(n, args, con).run()
         if floor is not None:
             r["floor"] = floor
             r["engine_over_floor"] = engine_over_floor(r, floor)
+        if relay is not None:
+            r["relay_floor"] = relay
+            r["engine_over_relay_floor"] = engine_over_floor(r, relay)
+            if floor is not None and relay.get("cpu_us_per_pose", {}).get("floor") and \
+                    floor.get("cpu_us_per_pose", {}).get("floor"):
+                r["relay_floor_over_floor"] = round(relay["cpu_us_per_pose"]["floor"]
+                                                    / floor["cpu_us_per_pose"]["floor"], 2)
+            con.print(f"N={n}: relay floor {relay.get('cpu_us_per_pose', {}).get('floor')} us per pose "
+                      f"({r.get('relay_floor_over_floor')}x the floor); engine_over_relay_floor "
+                      f"{r['engine_over_relay_floor']}")
         res["runs"].append(r)
         why = verdict(r, args.max_p99)
         if r.get("engine_over_floor") is not None:

@@ -1,6 +1,6 @@
 """Smoke test of bench/fleet_load.py: 5 robots for 2 s against the real engine (fleet container
-with the global planner and the pose echo) and against the transport floor (bench/fleet_floor.py,
-real processes on loopback), JSON of the documented shape, positive latencies and nothing lost at
+with the global planner and the pose echo), against the transport floor (bench/fleet_floor.py,
+real processes on loopback) and against the relay floor (the same with a relay and an echo process), JSON of the documented shape, positive latencies and nothing lost at
 that tiny load, and the PNG."""
 from __future__ import annotations
 
@@ -24,7 +24,7 @@ def finite_pos(x) -> bool:
 def test_fleet_load_smoke(tmp_path):
     out, png = tmp_path / "fleet_load.json", tmp_path / "fleet_load.png"
     r = subprocess.run([sys.executable, str(ROOT / "bench" / "fleet_load.py"), "--robots", "5", "--duration", "2",
-                        "--json", str(out), "--plot", str(png)], cwd=ROOT, capture_output=True, text=True,
+                        "--relay-floor", "--json", str(out), "--plot", str(png)], cwd=ROOT, capture_output=True, text=True,
                        timeout=95, env=dict(os.environ, COLUMNS="160"))
     assert r.returncode == 0, f"exit {r.returncode}\n{r.stdout[-3000:]}\n{r.stderr[-3000:]}"
     d = json.loads(out.read_text())
@@ -71,4 +71,12 @@ def test_fleet_load_smoke(tmp_path):
     us = run["cpu_us_per_pose"]
     assert run["engine_over_floor"] == pytest.approx(
         (us["master"] + us["robot"] + us["container (all)"]) / floor["cpu_us_per_pose"]["floor"], rel=0.02)
+    # the relay floor: the same, each pose through a relay process and an echo process and back
+    relay = run["relay_floor"]
+    assert "error" not in relay, relay.get("error")
+    assert relay["sent"] >= 60 and relay["lost"] == 0 and relay["received"] == relay["sent"]
+    assert len([p for p in relay["cpu_by_process"] if p["label"] == "floor"]) >= 2     # the relays and the echo
+    assert finite_pos(run["engine_over_relay_floor"]) and finite_pos(run["relay_floor_over_floor"])
+    assert run["engine_over_relay_floor"] == pytest.approx(
+        (us["master"] + us["robot"] + us["container (all)"]) / relay["cpu_us_per_pose"]["floor"], rel=0.02)
     assert png.stat().st_size > 10_000
