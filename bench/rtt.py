@@ -248,27 +248,13 @@ async def ws_floor(sizes: list[int], reps: int, gap: float) -> dict:
     trip per size first. Returns ``{"peer", "gap_s", "rtt_ms": {size: median ms}}``."""
     import websockets
 
+    from relay_floor import measure_ws
+
     async def echo(ws):
         async for m in ws:
             await ws.send(m)
-    out = {}
     async with websockets.serve(echo, "127.0.0.1", 0, max_size=None, compression=None) as srv:
-        port = srv.sockets[0].getsockname()[1]
-        async with websockets.connect(f"ws://127.0.0.1:{port}", max_size=None, compression=None) as ws:
-            for size in sizes:
-                msg = json.dumps({"type": "DM", "data": {"iTag": "x", "type": STRING, "msgID": "",
-                                                         "msg": {"data": "a" * size}}})
-                await ws.send(msg)
-                await ws.recv()
-                samples = []
-                for _ in range(reps_for(size, reps)):
-                    if gap > 0:
-                        await asyncio.sleep(gap)
-                    t0 = time.perf_counter()
-                    await ws.send(msg)
-                    json.loads(await ws.recv())
-                    samples.append((time.perf_counter() - t0) * 1000)
-                out[size] = median(samples)
+        out = await measure_ws(srv.sockets[0].getsockname()[1], sizes, reps, gap)
     return {"peer": "raw-websockets-json", "gap_s": gap, "rtt_ms": out}
 
 
