@@ -74,6 +74,30 @@ def _resolve(obj: dict | list, parts: dict[str, bytes]) -> dict | list:
     return out
 
 
+def _resolve_msg(msg: dict, data: dict, part: bytes) -> dict | None:
+    """:func:`_resolve` of ``msg`` whose one binary reference is ``data.msg*`` (``data`` is ``msg["data"]``)
+    and whose other values, and ``data``'s, are not dicts or lists (a forwarder's DM; so no other key is
+    a binary reference: one would be in ``refs``): copies of ``msg`` and ``data``, ``msg*`` replaced by
+    ``msg: part`` in its place. None for any other message: the walk takes it."""
+    out = {}
+    for k, v in data.items():
+        if k == "msg*":
+            out["msg"] = part
+        elif isinstance(v, _CONTAINERS):
+            return None
+        else:
+            out[k] = v
+    res = {}
+    for k, v in msg.items():
+        if v is data:
+            res[k] = out
+        elif isinstance(v, _CONTAINERS):
+            return None
+        else:
+            res[k] = v
+    return res
+
+
 def parse_text(text: str | bytes) -> dict:
     """Parse one JSON text frame into its message object (a dict). Nesting deeper than
     :data:`~rce.protocol.limits.MAX_JSON_DEPTH` is refused before parsing. Raises
@@ -98,10 +122,25 @@ def parse_frame(text: str | bytes) -> tuple[dict, list[str]]:
     :func:`parse_text`, and for a reference that is not a 32-hex-char id."""
     msg = parse_text(text)
     refs: list[str] = []
-    star = (b"*", b'*"') if isinstance(text, (bytes, bytearray)) else ("*", '*"')
+    star = (b"*", b'*"', b"\\") if isinstance(text, (bytes, bytearray)) else ("*", '*"', "\\")
     if star[0] in text and star[1] in text:            # the one-char search is a memchr: fast
-        _binary_refs(msg, refs)
+        ref = _lone_msg_part(msg, text, star)
+        if ref is not None:
+            refs.append(ref)
+        else:
+            _binary_refs(msg, refs)
     return msg, refs
+
+
+def _lone_msg_part(msg: dict, text: str | bytes, star: tuple) -> str | None:
+    """The id under ``data.msg*`` when that is the frame's one ``*`` key (a forwarder's DM): the text
+    has no escape and one ``*"``, which every key ending in ``*`` writes. None otherwise (bad id
+    included): the walk then finds the ids, or names the bad one."""
+    data = msg.get("data")
+    if data.__class__ is dict and (ref := data.get("msg*")).__class__ is str and is_part_id(ref) \
+            and star[2] not in text and text.count(star[1]) == 1:
+        return ref
+    return None
 
 
 @dataclass
@@ -240,6 +279,9 @@ class Assembler:
                 self._pending[k].missing.add(r)
         if given:
             parts.update(given)
+        if len(refs) == 1 and (data := msg.get("data")).__class__ is dict and data.get("msg*") == refs[0] \
+                and (flat := _resolve_msg(msg, data, parts[refs[0]])) is not None:
+            return flat                                         # a forwarder's DM: no walk
         return _resolve(msg, parts)
 
     def _completes(self, ref: str) -> int | None:

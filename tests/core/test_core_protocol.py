@@ -16,7 +16,7 @@ from rce.protocol.interface_type import InterfaceType, Kind, Side
 from rce.protocol import (DEFAULT_EXPIRY, ID_LEN, Assembler, encode, is_part_id, new_id, split_interface_type,
                           validate)
 from rce.protocol import schema
-from rce.protocol.frames import parse_text
+from rce.protocol.frames import _binary_refs, _resolve, parse_frame, parse_text
 
 ID1, ID2, ID3 = "0" * 31 + "1", "a" * 31 + "2", "F" * 31 + "3"
 
@@ -336,6 +336,39 @@ def test_a_component_built_by_field_name_is_validated_as_on_the_wire():
 # -- Assembler ----------------------------------------------------------------------------------
 def dm(**data) -> str:
     return json.dumps({"type": "DM", "data": {"iTag": "i", "type": "std_msgs/String", **data}})
+
+
+_STAR_KEYS = st.sampled_from(["a", "b*", "msg", "iTag", "seq", "x\u00e9", "q\"*"])
+_ODD = st.none() | st.integers(0, 9) | st.sampled_from(["v*", 'say "*"', "\\", "\u2603", ""]) | st.just([]) | \
+    st.dictionaries(_STAR_KEYS, st.just([]) | st.integers(0, 3), max_size=2)
+
+
+@settings(max_examples=300, deadline=None)
+@given(st.dictionaries(_STAR_KEYS, _ODD, max_size=3), st.dictionaries(_STAR_KEYS, _ODD, max_size=3),
+       st.booleans(), st.booleans(), st.booleans())
+def test_a_forwarders_dm_is_read_as_the_walk_reads_it(data, top, ascii_only, as_bytes, part_first):
+    """A DM whose ``data.msg*`` names a part, among any other keys and values (keys ending in ``*``
+    with empty lists, nested dicts, values ending in ``*``, escapes): the ids ``parse_frame`` finds and
+    the message the assembler completes are those of the walk (``_binary_refs``, ``_resolve``)."""
+    msg = {**top, "type": "DM", "data": {**data, "msg*": ID1}}
+    text = json.dumps(msg, ensure_ascii=ascii_only)
+    if as_bytes:
+        text = text.encode()
+    want_refs: list[str] = []
+    try:
+        _binary_refs(parse_text(text), want_refs)
+    except ProtocolError as e:                      # a key ending in '*' whose value is no id: the same error
+        with pytest.raises(ProtocolError) as got:
+            Assembler().feed_text(text, now=0)
+        assert got.value.message == e.message
+        return
+    assert parse_frame(text)[1] == want_refs
+    a = Assembler()
+    if part_first:
+        out = a.feed_binary(frame(ID1, b"p"), now=0) + a.feed_text(text, now=0)
+    else:
+        out = a.feed_text(text, now=0) + a.feed_binary(frame(ID1, b"p"), now=0)
+    assert out == ([_resolve(parse_text(text), {ID1: b"p"})] if want_refs == [ID1] else [])
 
 
 def test_assembler_plain_message_passes_through():
