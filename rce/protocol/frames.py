@@ -44,6 +44,7 @@ def is_part_id(ref: Any) -> bool:
 
 # -- binary parts ------------------------------------------------------------------------------
 _CONTAINERS = (dict, list)
+_SCALARS = frozenset((str, int, float, bool, type(None)))    # a value of one of these is not nested: no isinstance
 
 
 def _binary_refs(obj: dict | list, out: list[str]) -> None:
@@ -83,18 +84,18 @@ def _resolve_msg(msg: dict, data: dict, part: bytes) -> dict | None:
     for k, v in data.items():
         if k == "msg*":
             out["msg"] = part
-        elif isinstance(v, _CONTAINERS):
-            return None
-        else:
+        elif v.__class__ in _SCALARS or not isinstance(v, _CONTAINERS):
             out[k] = v
+        else:
+            return None
     res = {}
     for k, v in msg.items():
         if v is data:
             res[k] = out
-        elif isinstance(v, _CONTAINERS):
-            return None
-        else:
+        elif v.__class__ in _SCALARS or not isinstance(v, _CONTAINERS):
             res[k] = v
+        else:
+            return None
     return res
 
 
@@ -431,12 +432,16 @@ def _flat_dm(msg: dict, data: dict) -> tuple[str, list[bytes]] | None:
     for k, v in data.items():
         if k == "msg":
             out["msg*"] = ref = new_id()
-        elif isinstance(v, _NESTED):
-            return None
-        else:
+        elif v.__class__ in _SCALARS or not isinstance(v, _NESTED):
             out[k] = v
-    for v in msg.values():
-        if v is not data and isinstance(v, _NESTED):
+        else:
             return None
-    text = jsontext.dumps({k: (out if v is data else v) for k, v in msg.items()})
-    return text, [b"".join((ref.encode(), data["msg"]))]
+    top: dict = {}
+    for k, v in msg.items():
+        if v is data:
+            top[k] = out
+        elif v.__class__ in _SCALARS or not isinstance(v, _NESTED):
+            top[k] = v
+        else:
+            return None
+    return jsontext.dumps(top), [b"".join((ref.encode(), data["msg"]))]
