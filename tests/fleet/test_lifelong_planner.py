@@ -160,9 +160,11 @@ def test_cache_bound_holds_every_free_cell_when_memory_allows_else_a_share_or_an
     big = LifelongGrid(np.ones((100, 100), dtype=bool))
     assert cache_bytes_for(big, 1, available=40 * 10 ** 6, share=0.25, floor=0) == 10 ** 7
     assert cache_bytes_for(big, 1, available=40 * 10 ** 6, share=0.25, floor=2 * 10 ** 7) == 2 * 10 ** 7
-    # a team whose pinned goals cannot fit is refused up front, with the numbers
-    with pytest.raises(MemoryError, match=r"3000 robots need .* GiB"):
-        cache_bytes_for(big, 3000, available=2 ** 28, share=0.25, floor=0)
+    # a team whose pinned goals do not fit in the share gets their rows, if half the memory holds them
+    assert cache_bytes_for(big, 5000, available=2 ** 28, share=0.25, floor=0) == 20_000 * 5016
+    # else it is refused up front, with the numbers
+    with pytest.raises(MemoryError, match=r"7000 robots need .* GiB"):
+        cache_bytes_for(big, 7000, available=2 ** 28, share=0.25, floor=0)
     assert cache_bytes_for(big, 5000, available=2 ** 34) == 2 * 10_000 * 10_000
 
 def test_weighted_maps_equal_bfs_at_unit_cost_and_lanes_send_robots_round_a_one_way_row():

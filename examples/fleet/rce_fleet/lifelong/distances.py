@@ -28,22 +28,26 @@ def cache_bytes_for(grid: LifelongGrid, team_size: int, available: int | None = 
     Enough rows for a map of every free cell (every cell may become a goal, so a run never
     recomputes an evicted map) when ``share`` of the machine's ``available`` memory (bytes;
     default: ``psutil.virtual_memory().available``) allows; else that share, but never less
-    than ``floor`` (the old fixed bound). Raises MemoryError, naming the bytes, when the bound
-    cannot hold one map per robot plus the scheduler's (``2 * team_size + 16`` rows: the
-    goals robots head to are pinned), so a run that would fail at its first step fails now.
+    than ``floor`` (the old fixed bound). The goals robots head to are pinned, so the cache
+    needs one row per robot and some for the scheduler (``team_size + 16``): when the share
+    holds fewer, the bound is those rows if they fit in half of the available memory (maps
+    are then evicted and computed again often); else MemoryError, naming the bytes, so a
+    run that would fail at its first step fails before it starts.
     """
     if available is None:
         import psutil
         available = int(psutil.virtual_memory().available)
     row = 2 * grid.n_cells
     every = row * int(grid.flat.sum())
-    need = row * (2 * team_size + 16)
+    need = min(every, row * (team_size + 16))
     bound = min(every, max(int(share * available), min(floor, every)))
-    if bound < min(need, every):
-        raise MemoryError(f"distance maps for {team_size} robots need {need / GiB:.2f} GiB "
-                          f"({2 * team_size + 16} rows of {row} bytes); {share:.0%} of the "
-                          f"{available / GiB:.2f} GiB available is {bound / GiB:.2f} GiB")
-    return bound
+    if bound >= need:
+        return bound
+    if need <= available // 2:
+        return need
+    raise MemoryError(f"distance maps for {team_size} robots need {need / GiB:.2f} GiB "
+                      f"({team_size + 16} rows of {row} bytes); half of the {available / GiB:.2f} GiB "
+                      f"available is {available / 2 / GiB:.2f} GiB")
 
 
 class DistanceCache:
