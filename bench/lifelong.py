@@ -10,7 +10,7 @@ two published numbers.
 Usage::
 
     .venv/bin/python bench/lifelong.py [--quick] [--only NAME ...] [--steps N]
-        [--plan-time-limit MS] [--scheduler batch|greedy|both] [--seed S] [--cache-mb MB] [--lanes N]
+        [--plan-time-limit MS] [--scheduler batch|greedy|both] [--seed S] [--cache-mb MB] [--lanes N] [--crowd-w W]
         [--data ../shared/data] [--json PATH] [--plot PATH] [--outputs DIR]
 
 ``--quick`` runs a small cut (two problems, 100 steps) for the test suite; published
@@ -47,7 +47,8 @@ def published(results_md: Path) -> dict[str, dict]:
 
 
 def run_one(path: Path, steps: int, limit_ms: float, scheduler: str, seed: int, pub: dict | None,
-            outputs: Path | None, cache_mb: float | None = None, lanes: int | None = None) -> dict:
+            outputs: Path | None, cache_mb: float | None = None, lanes: int | None = None,
+            crowd_w: float | None = None) -> dict:
     """Run one problem; returns its row (with the finished-over-time curve)."""
     from rce_fleet.lifelong import load_problem
     from rce_fleet.lifelong.runner import LANES, rich_progress, run_lifelong
@@ -57,7 +58,7 @@ def run_one(path: Path, steps: int, limit_ms: float, scheduler: str, seed: int, 
         res = run_lifelong(prob, steps, plan_time_limit_ms=limit_ms, seed=seed, scheduler=scheduler, progress=cb,
                            record=outputs is not None,
                            cache_bytes=None if cache_mb is None else int(cache_mb * 2 ** 20),
-                           lanes=LANES if lanes is None else lanes)
+                           lanes=LANES if lanes is None else lanes, crowd_w=crowd_w)
     s = res.summary()
     row = {"problem": path.stem, "robots": prob.team_size, "steps": steps, "scheduler": scheduler, **s,
            "tasks_per_step": s["tasks_finished"] / steps, "curve": res.finished.tolist()}
@@ -137,6 +138,8 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--cache-mb", type=float, help="bound of the distance maps (default: sized to the team and memory)")
     ap.add_argument("--lanes", type=int, help="extra cost of a move against a one-way lane (0: no lanes)")
+    ap.add_argument("--crowd-w", type=float, help="scheduler's steps per robot crowding a task's errands "
+                    "(default: 5 for 3,000 robots or more, else 0)")
     ap.add_argument("--json", type=Path)
     ap.add_argument("--plot", type=Path)
     ap.add_argument("--outputs", type=Path, help="also write each run's start-kit output JSON into DIR")
@@ -163,7 +166,7 @@ def main(argv: list[str] | None = None) -> int:
         steps = args.steps or (QUICK[p.stem] if args.quick else (info["steps"] if info else 1000))
         for sch in scheds:
             rows.append(run_one(p, steps, args.plan_time_limit, sch, args.seed, info, args.outputs, args.cache_mb,
-                                args.lanes))
+                                args.lanes, args.crowd_w))
     print_table(rows)
     json_path.parent.mkdir(parents=True, exist_ok=True)
     plot_path.parent.mkdir(parents=True, exist_ok=True)

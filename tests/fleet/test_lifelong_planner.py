@@ -228,6 +228,25 @@ def test_schedulers_give_each_free_robot_the_task_it_finishes_first(cls):
 
 
 @pytest.mark.parametrize("cls", [GreedyScheduler, BatchScheduler])
+def test_schedulers_keep_robots_out_of_a_crowded_block_when_asked(cls):
+    g = grid(["." * 40, "." * 40])
+    # robot 0 at cell 20 (row 0); a task 3 cells west at 17, one 10 cells east at 30; eight
+    # robots (with opened tasks elsewhere) crowd the block of cells 10..19 of both rows
+    crowd = [10, 11, 12, 13, 50, 51, 52, 53]
+    pool = open_tasks([(17, 16), (30, 31)] + [(c, 0) for c in crowd])
+    for k in range(len(crowd)):
+        pool.assign(2 + k, 1 + k)
+        pool.reach(2 + k, 0)                  # opened: the schedulers leave them alone
+    pos = np.array([20, *crowd])
+    busy = np.array([-1, *range(2, 2 + len(crowd))])
+    near = cls(DistanceCache(g))
+    assert near.schedule(pos, busy, pool.open, 0, time.perf_counter() + 1)[0] == 0
+    avoid = cls(DistanceCache(g))
+    avoid.crowd_w = 2.0         # 8 robots where 2.25 are its share, at both errands of task 0: +23 steps
+    assert avoid.schedule(pos, busy, pool.open, 0, time.perf_counter() + 1)[0] == 1
+
+
+@pytest.mark.parametrize("cls", [GreedyScheduler, BatchScheduler])
 def test_schedulers_move_unopened_tasks_never_opened_ones(cls):
     g = grid(["." * 12])
     pool = open_tasks([(2, 3), (11, 10)])

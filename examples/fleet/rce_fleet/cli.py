@@ -171,6 +171,8 @@ def build_parser() -> argparse.ArgumentParser:
                     "available memory, at least 1024)")
     lf.add_argument("--lanes", type=int, metavar="N", help="extra cost of a move against a one-way lane in "
                     "one-cell-wide corridors (0: no lanes; default 4)")
+    lf.add_argument("--crowd-w", type=float, metavar="W", help="steps the scheduler adds per robot crowding a "
+                    "task's errands beyond its share (default 5 for 3,000 robots or more, else 0)")
     lf.add_argument("--no-progress", action="store_true", help="no progress bar")
     return p
 
@@ -210,7 +212,8 @@ def _lifelong(args: argparse.Namespace) -> int:
         with bar as cb:
             res = run_lifelong(problem, args.steps, plan_time_limit_ms=args.plan_time_limit, seed=args.seed,
                                scheduler=args.scheduler, cache_bytes=cache_bytes,
-                               **({} if args.lanes is None else {"lanes": args.lanes}), progress=cb)
+                               **({} if args.lanes is None else {"lanes": args.lanes}), crowd_w=args.crowd_w,
+                               progress=cb)
         s = res.summary()
         print(f"{problem.path.name}: {s['tasks_finished']} tasks finished in {s['steps']} steps by "
               f"{problem.team_size} robots; planner ms p50 {s['plan_ms_p50']:.1f} p99 {s['plan_ms_p99']:.1f} max "

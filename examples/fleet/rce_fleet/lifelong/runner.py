@@ -24,9 +24,11 @@ from .pibt import PIBTPlanner
 from .scheduler import make_scheduler
 from .simulator import MAPF_T, Simulator
 
-__all__ = ["LANES", "RunResult", "run_lifelong"]
+__all__ = ["CROWD_TEAM", "CROWD_W", "LANES", "RunResult", "run_lifelong"]
 
 LANES = 4        # extra cost of a move against a one-way lane (measured: docs/lifelong.md)
+CROWD_W = 5.0    # scheduler's steps per robot crowding a task's errands beyond its share ...
+CROWD_TEAM = 3000  # ... for teams of this size and more (measured: docs/lifelong.md)
 
 
 @dataclass
@@ -51,7 +53,8 @@ class RunResult:
 
 def run_lifelong(problem: LorrProblem, steps: int, plan_time_limit_ms: float = 1000.0, seed: int = 0,
                  scheduler: str = "batch", model: str = MAPF_T, budget_frac: float = 0.5,
-                 cache_bytes: int | None = None, lanes: int = LANES, record: bool = True,
+                 cache_bytes: int | None = None, lanes: int = LANES, crowd_w: float | None = None,
+                 record: bool = True,
                  progress: Callable[[int, int, float], None] | None = None) -> RunResult:
     """Run ``problem`` for ``steps`` time steps under the rules (:mod:`.simulator`).
 
@@ -60,6 +63,8 @@ def run_lifelong(problem: LorrProblem, steps: int, plan_time_limit_ms: float = 1
     ``"MAPF"``; cache_bytes: the bound of the distance maps (default
     :func:`~.distances.cache_bytes_for` the team and the machine's available memory); lanes:
     the extra cost of a move against a one-way lane (:func:`~.guidance.lane_costs`; 0: none);
+    crowd_w: the scheduler's cost per robot crowding a task's errands (default
+    ``CROWD_W`` for teams of ``CROWD_TEAM`` robots or more, else 0);
     progress: called after each step with (step, tasks finished, planner ms).
     Compilation happens before step 0 (:func:`~.kernels.warm_up`). Raises ValueError for a
     bad scheduler or model name, MemoryError when the maps of the team do not fit.
@@ -70,7 +75,9 @@ def run_lifelong(problem: LorrProblem, steps: int, plan_time_limit_ms: float = 1
     warm_up()
     t_start = time.perf_counter()
     cache = DistanceCache(grid, max_bytes=cache_bytes, cost=lane_costs(grid, lanes) if lanes else None)
-    sched = make_scheduler(scheduler, cache)
+    if crowd_w is None:
+        crowd_w = CROWD_W if problem.team_size >= CROWD_TEAM else 0.0
+    sched = make_scheduler(scheduler, cache, crowd_w)
     planner = PIBTPlanner(grid, cache, model=model, seed=seed)
     sim = Simulator(grid, problem.starts, problem.tasks, problem.reveal, model=model, record=record)
     limit = plan_time_limit_ms / 1e3
@@ -95,7 +102,8 @@ def run_lifelong(problem: LorrProblem, steps: int, plan_time_limit_ms: float = 1
         finished[k] = sim.finished
         if progress is not None:
             progress(k + 1, sim.finished, dt * 1e3)
-    stats = {"scheduler": scheduler, "lanes": lanes, "scheduler_ms_total": sched_ms, **planner.stats,
+    stats = {"scheduler": scheduler, "lanes": lanes, "crowd_w": crowd_w, "scheduler_ms_total": sched_ms,
+             **planner.stats,
              "distance_maps": cache.computed, "maps_evicted": cache.evicted, "cache_rows": cache.capacity,
              "cache_rows_used": len(cache)}
     return RunResult(sim, plan_ms, finished, time.perf_counter() - t_start, stats)

@@ -18,7 +18,10 @@ errand (the League of Robot Runners' rule), never after.
   variant of Crouse 2016), with a small bonus for keeping the current assignment.
 
 Distances to a task's first errand come from its cached map; a task whose map is not yet
-computed (the budget ran out this step) is estimated by the Manhattan distance.
+computed (the budget ran out this step) is estimated by the Manhattan distance. With
+``crowd_w`` > 0 a task also costs ``crowd_w`` steps per robot standing, beyond the block's
+share of the team, in the 10 x 10 block of its first and of its last errand: robots are
+sent elsewhere while an area is packed (a large team otherwise jams there).
 """
 from __future__ import annotations
 
@@ -45,6 +48,8 @@ class Scheduler:
 
     name = "base"
     map_share = 0.5          # share of the scheduler's time for new first-errand maps
+    crowd_w = 0.0            # steps added per robot in the block of a task's first and last errand
+    crowd_block = 10         # side of those blocks (cells)
 
     def __init__(self, cache: DistanceCache):
         self.cache = cache
@@ -78,6 +83,27 @@ class Scheduler:
                 length[i] = sum(self._manhattan(a, b) for a, b in zip(tk.errands, tk.errands[1:], strict=False))
         bonus = np.fromiter((tk.priority * PRIORITY_STEPS for tk in tasks), dtype=float, count=len(tasks))
         return slots, e0, length - bonus
+
+    def _crowd(self, pos: np.ndarray, tasks: list[Task]) -> np.ndarray:
+        """(len(tasks),) steps: ``crowd_w`` x the robots in the block (``crowd_block`` cells
+        square) of each task's first and last errand beyond the block's share of the team
+        (robots x the block's free cells / all free cells): a packed area costs, an evenly
+        spread team costs nothing."""
+        if not self.crowd_w:
+            return np.zeros(len(tasks))
+        b = self.crowd_block
+        grid = self.cache.grid
+        bcols = -(-self.cols // b)
+        if getattr(self, "_blk_free", None) is None:
+            free = grid.free_cells()
+            self._blk_free = np.bincount((free // self.cols) // b * bcols + (free % self.cols) // b,
+                                         minlength=(-(-grid.rows // b)) * bcols).astype(float)
+        blk = (pos // self.cols) // b * bcols + (pos % self.cols) // b
+        count = np.bincount(blk, minlength=len(self._blk_free))
+        excess = np.maximum(0.0, count - self._blk_free * (len(pos) / self._blk_free.sum()))
+        ends = np.array([(tk.errands[0], tk.errands[-1]) for tk in tasks], dtype=np.int64)
+        eb = (ends // self.cols) // b * bcols + (ends % self.cols) // b
+        return self.crowd_w * excess[eb].sum(axis=1)
 
     def _manhattan(self, a: int, b: int) -> int:
         ra, ca = divmod(a, self.cols)
@@ -151,6 +177,7 @@ class GreedyScheduler(Scheduler):
         t0 = time.perf_counter()
         self._prepare(cand, t0 + self.map_share * max(0.0, deadline - t0))
         slots, e0, length = self._estimates(cand)
+        length = length + self._crowd(pos, cand)
         holder = np.fromiter((tk.agent for tk in cand), dtype=np.int64, count=len(cand))
         early, late = _windows(cand, t)
         holder_bid = np.full(len(cand), np.inf)
@@ -216,6 +243,7 @@ class BatchScheduler(Scheduler):
             return self._greedy.schedule(pos, assignment, tasks, t, deadline)
         self._prepare(cand, deadline)
         slots, e0, length = self._estimates(cand)
+        length = length + self._crowd(pos, cand)
         early, late = _windows(cand, t)
         cost = _finish(self._travel(slots, e0, pos[robots]), length, early[None, :], late[None, :])
         col = {tk.id: j for j, tk in enumerate(cand)}
@@ -232,10 +260,15 @@ class BatchScheduler(Scheduler):
         return prop
 
 
-def make_scheduler(name: str, cache: DistanceCache) -> Scheduler:
-    """``"greedy"`` or ``"batch"``; raises ValueError otherwise."""
+def make_scheduler(name: str, cache: DistanceCache, crowd_w: float = 0.0) -> Scheduler:
+    """``"greedy"`` or ``"batch"``, with ``crowd_w`` (:meth:`Scheduler._crowd`); raises
+    ValueError otherwise."""
     if name == "greedy":
-        return GreedyScheduler(cache)
-    if name == "batch":
-        return BatchScheduler(cache)
-    raise ValueError(f"unknown scheduler {name!r} (greedy, batch)")
+        sched: Scheduler = GreedyScheduler(cache)
+    elif name == "batch":
+        sched = BatchScheduler(cache)
+        sched._greedy.crowd_w = crowd_w
+    else:
+        raise ValueError(f"unknown scheduler {name!r} (greedy, batch)")
+    sched.crowd_w = crowd_w
+    return sched
