@@ -27,9 +27,7 @@ import statistics
 import subprocess
 import sys
 import time
-from pathlib import Path
 
-sys.path.insert(0, str(Path(__file__).resolve().parents[2] / "shared" / "anchors"))
 
 
 async def _echo() -> None:
@@ -120,8 +118,8 @@ def main(argv: list[str] | None = None) -> int:
     if args.sizes:
         sizes = [int(s) for s in args.sizes.split(",")]
     else:
-        from sizes import SIZES
-        sizes = list(SIZES)
+        from common import anchor_sizes
+        sizes = anchor_sizes()
     echo, echo_port = _spawn("echo")
     try:
         relay, relay_port = _spawn("relay", str(echo_port))

@@ -1,7 +1,8 @@
 """Smoke test of bench/fleet_load.py: 5 robots for 2 s against the real engine (fleet container
 with the global planner and the pose echo), against the transport floor (bench/fleet_floor.py,
-real processes on loopback) and against the relay floor (the same with a relay and an echo process), JSON of the documented shape, positive latencies and nothing lost at
-that tiny load, and the PNG."""
+real processes on loopback) and against the relay floor (the same with a relay and an echo
+process), JSON of the documented shape, positive latencies and nothing lost at that tiny load,
+and the PNG."""
 from __future__ import annotations
 
 import json
@@ -24,8 +25,8 @@ def finite_pos(x) -> bool:
 def test_fleet_load_smoke(tmp_path):
     out, png = tmp_path / "fleet_load.json", tmp_path / "fleet_load.png"
     r = subprocess.run([sys.executable, str(ROOT / "bench" / "fleet_load.py"), "--robots", "5", "--duration", "2",
-                        "--relay-floor", "--json", str(out), "--plot", str(png)], cwd=ROOT, capture_output=True, text=True,
-                       timeout=95, env=dict(os.environ, COLUMNS="160"))
+                        "--relay-floor", "--json", str(out), "--plot", str(png)], cwd=ROOT, capture_output=True,
+                       text=True, timeout=95, env=dict(os.environ, COLUMNS="160"))
     assert r.returncode == 0, f"exit {r.returncode}\n{r.stdout[-3000:]}\n{r.stderr[-3000:]}"
     d = json.loads(out.read_text())
     assert d["robots"] == [5] and d["mode"] == "forwarder" and d["rate_hz"] == 10
