@@ -32,6 +32,21 @@ def test_lifelong_cli_writes_an_output_that_replays_with_its_task_count(tmp_path
     assert again.finished == d["numTaskFinished"] and again.invalid_steps == 0
 
 
+def test_lifelong_cli_takes_lanes_crowd_and_cache_bounds_and_refuses_a_cache_too_small(tmp_path, capsys):
+    out = tmp_path / "out.json"
+    with pytest.raises(SystemExit) as e:
+        main(["lifelong", str(RANDOM), "--steps", "20", "--output", str(out), "--lanes", "0", "--crowd-w", "5",
+              "--cache-mb", "1", "--no-progress"])          # 1 MiB: 512 of its 819 maps: some evicted
+    assert e.value.code in (0, 1)
+    d = json.loads(out.read_text())
+    p = load_problem(RANDOM)
+    assert replay(p.grid, p.tasks, p.reveal, d).finished == d["numTaskFinished"]
+    with pytest.raises(SystemExit) as e:
+        main(["lifelong", str(RANDOM), "--steps", "5", "--cache-mb", "0.01", "--no-progress"])
+    assert e.value.code == 2
+    assert "--cache-mb 0.01 holds 5 distance maps; 100 robots need 116" in capsys.readouterr().err
+
+
 def test_lifelong_cli_names_a_malformed_problem_file_and_line(tmp_path, capsys):
     bad = tmp_path / "p.json"
     bad.write_text('{\n  "mapFile": "x.map",\n  "teamSize": 2,,\n}')

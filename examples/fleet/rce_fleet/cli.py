@@ -207,6 +207,13 @@ def _lifelong(args: argparse.Namespace) -> int:
     except MemoryError as e:
         print(f"rce-fleet lifelong: {e}; set --cache-mb", file=sys.stderr)
         return 2
+    rows = cache_bytes // (2 * problem.grid.n_cells)
+    need = min(problem.team_size + 16, int(problem.grid.flat.sum()))
+    if rows < need:
+        print(f"rce-fleet lifelong: --cache-mb {args.cache_mb:g} holds {rows} distance maps; "
+              f"{problem.team_size} robots need {need} ({need * 2 * problem.grid.n_cells / 2 ** 20:.0f} MB)",
+              file=sys.stderr)
+        return 2
     bar = contextlib.nullcontext(None) if args.no_progress else rich_progress(args.steps, problem.path.stem)
     with out as f:
         with bar as cb:
