@@ -60,7 +60,6 @@ class _RelayLink(asyncio.Protocol):
         self.transport = transport
 
     def data_received(self, data: bytes) -> None:
-        from rce_robot import ws_cork
         self.buf += data
         off, n = 0, len(self.buf)
         while n - off >= LINK_HEADER.size:

@@ -80,23 +80,31 @@ def _resolve_msg(msg: dict, data: dict, part: bytes) -> dict | None:
     and whose other values, and ``data``'s, are not dicts or lists (a forwarder's DM; so no other key is
     a binary reference: one would be in ``refs``): copies of ``msg`` and ``data``, ``msg*`` replaced by
     ``msg: part`` in its place. None for any other message: the walk takes it."""
+    return _flat_swap(msg, data, "msg*", "msg", part, _CONTAINERS)
+
+
+def _flat_swap(msg: dict, data: dict, key: str, new_key: str, value, nested: tuple) -> dict | None:
+    """A copy of ``msg`` whose ``data`` (``msg``'s value that is ``data``) is copied with ``key``
+    replaced by ``new_key: value`` in its place; None when any other value of either is an
+    instance of ``nested``. The flat path of a forwarder's DM, read (:func:`_resolve_msg`) and
+    written (:func:`_flat_dm`); a scalar's class is checked by one set lookup."""
     out = {}
     for k, v in data.items():
-        if k == "msg*":
-            out["msg"] = part
-        elif v.__class__ in _SCALARS or not isinstance(v, _CONTAINERS):
+        if k == key:
+            out[new_key] = value
+        elif v.__class__ in _SCALARS or not isinstance(v, nested):
             out[k] = v
         else:
             return None
-    res = {}
+    top = {}
     for k, v in msg.items():
         if v is data:
-            res[k] = out
-        elif v.__class__ in _SCALARS or not isinstance(v, _CONTAINERS):
-            res[k] = v
+            top[k] = out
+        elif v.__class__ in _SCALARS or not isinstance(v, nested):
+            top[k] = v
         else:
             return None
-    return res
+    return top
 
 
 def parse_text(text: str | bytes) -> dict:
@@ -428,20 +436,6 @@ def _flat_dm(msg: dict, data: dict) -> tuple[str, list[bytes]] | None:
     """:func:`encode` of a forwarder's DM whose one binary value is ``data.msg`` and whose other
     values are scalars (``iTag``, ``type``, ``msgID``, resume's ``seq``): the same text and part as
     the walk, without it. None when a value is nested: the walk then takes the message."""
-    out: dict = {}
-    for k, v in data.items():
-        if k == "msg":
-            out["msg*"] = ref = new_id()
-        elif v.__class__ in _SCALARS or not isinstance(v, _NESTED):
-            out[k] = v
-        else:
-            return None
-    top: dict = {}
-    for k, v in msg.items():
-        if v is data:
-            top[k] = out
-        elif v.__class__ in _SCALARS or not isinstance(v, _NESTED):
-            top[k] = v
-        else:
-            return None
-    return jsontext.dumps(top), [b"".join((ref.encode(), data["msg"]))]
+    ref = new_id()
+    top = _flat_swap(msg, data, "msg", "msg*", ref, _NESTED)
+    return None if top is None else (jsontext.dumps(top), [b"".join((ref.encode(), data["msg"]))])
