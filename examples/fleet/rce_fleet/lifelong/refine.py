@@ -33,7 +33,7 @@ import numpy as np
 
 from .distances import DistanceCache
 from .grid import LifelongGrid
-from .spacetime import SpaceTimeTable, fits
+from .spacetime import SpaceTimeTable
 from .spacetime import warm_up as _warm_spacetime
 
 __all__ = ["Refiner", "refine_lns", "warm_up"]
@@ -114,19 +114,11 @@ class Refiner:
                 group = rng.choice(owned, size=min(self.max_group, len(owned)), replace=False).astype(np.int64)
             self.iterations += 1
             rng.shuffle(group)
-            old_paths = res.paths[group].copy()
-            old_len = res.lengths[group].copy()
-            res.remove(goals, group)
-            k = res.plan(self.nbr, self.table, self.hrows, self.starts, goals, group, self.max_expand, self.sipp)
-            if k == len(group) and res.lengths[group].sum() <= old_len.sum():
-                self.accepted += int(res.lengths[group].sum() < old_len.sum())
+            before = res.lengths[group].sum()
+            if res.replan(self.nbr, self.table, self.hrows, self.starts, goals, group, self.max_expand, self.sipp):
+                self.accepted += int(res.lengths[group].sum() < before)
                 if self.log is not None:
                     self.log.append((group, res.paths[group].astype(np.int32), res.lengths[group].copy()))
-                continue
-            res.remove(goals, group[:k])
-            res.paths[group] = old_paths
-            res.lengths[group] = old_len
-            res.place(goals, group)
 
     def replay(self, log: list) -> int:
         """Apply another refiner's accepted changes ``log`` (:attr:`log`: (agents, their paths
@@ -142,7 +134,7 @@ class Refiner:
             old_paths, old_len = res.paths[agents].copy(), res.lengths[agents].copy()
             res.remove(goals, agents)
             k = 0
-            while k < len(agents) and fits(res.occ, paths[k], lengths[k], goals[agents[k]]):
+            while k < len(agents) and res.fits(paths[k], lengths[k], goals[agents[k]]):
                 res.paths[agents[k]], res.lengths[agents[k]] = paths[k], lengths[k]
                 res.place(goals, agents[k: k + 1])
                 k += 1
