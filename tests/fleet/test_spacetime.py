@@ -3,6 +3,11 @@ re-planned and kept or rolled back in one compiled call, and the safe-interval s
 table (the searches' arrivals against each other: test_lifelong_planner.py)."""
 from __future__ import annotations
 
+import json
+import subprocess
+import sys
+from pathlib import Path
+
 import numpy as np
 import pytest
 
@@ -138,3 +143,21 @@ def test_the_safe_interval_search_gives_up_when_its_state_table_is_half_full():
     assert out[0] == 0 and out[14] == 63
     with pytest.raises(ValueError, match="2 \\*\\* 31"):
         SpaceTimeTable(1, 2 ** 20, 2 ** 11, 1)
+
+
+def test_the_lns_bench_reports_the_replan_cost_and_the_parallel_efficiency(tmp_path):
+    """``bench/lns_parallel.py`` end to end on a small instance: its numbers and plot."""
+    bench = Path(__file__).resolve().parents[2] / "bench" / "lns_parallel.py"
+    out, png = tmp_path / "lns.json", tmp_path / "lns.png"
+    p = subprocess.run([sys.executable, str(bench), "--agents", "60", "--budget", "0.2", "--seeds", "0",
+                        "--iterations", "40", "--json", str(out), "--plot", str(png)],
+                       capture_output=True, text=True, timeout=300, cwd=tmp_path)
+    assert p.returncode == 0, (p.stdout + p.stderr)[-3000:]
+    res = json.loads(out.read_text())
+    assert res["agents"] == 60 and res["first_ratio"] >= 1.0
+    assert res["replan"]["iterations"] == 40 and res["replan"]["expanded"] > 0
+    run = res["parallel"][0]
+    for key in ("one", "two", "one_double"):
+        assert 1.0 <= run[key]["ratio"] <= res["first_ratio"]
+    assert run["two"]["worker_cpu_s"] > 0
+    assert png.stat().st_size > 1000 and "efficiency" in p.stdout
