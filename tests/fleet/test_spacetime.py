@@ -12,7 +12,7 @@ import numpy as np
 import pytest
 
 from rce_fleet.lifelong import DistanceCache, LifelongGrid
-from rce_fleet.lifelong.kernels import UNREACHABLE
+from rce_fleet.lifelong.kernels import UNREACHABLE, heap_pop, heap_push
 from rce_fleet.lifelong.refine import _arrivals, warm_up
 from rce_fleet.lifelong.spacetime import SpaceTimeTable, _last_taken, _next_step, _sipp
 
@@ -66,6 +66,27 @@ def test_bit_rows_find_the_next_free_and_taken_step_as_a_scan_does():
                     for want in (True, False):
                         hit = np.flatnonzero(taken[c, t:lim] == want)
                         assert _next_step(bits, c, t, lim, want) == (t + hit[0] if len(hit) else lim)
+
+
+def test_the_heap_pops_keys_in_order_with_their_values_through_pushes_and_pops_mixed():
+    rng = np.random.default_rng(1)
+    hk, hv = np.zeros(4096, np.int64), np.zeros(4096, np.int64)
+    size, held, popped = 0, [], []
+    for _ in range(6000):
+        if size and rng.random() < 0.45:
+            key, val, size = heap_pop(hk, hv, size)
+            popped.append((key, val))
+            assert key == min(k for k, _ in held)
+            held.remove((key, val))
+        else:
+            key = int(rng.integers(0, 50))          # many equal keys
+            size = heap_push(hk, hv, size, key, len(popped) * 10_000 + size)
+            held.append((key, len(popped) * 10_000 + size - 1))
+    while size:
+        key, val, size = heap_pop(hk, hv, size)
+        popped.append((key, val))
+        held.remove((key, val))
+    assert not held and len(popped) > 3000
 
 
 def test_a_group_replan_in_one_call_is_kept_only_when_not_worse_and_rolls_back_exactly():

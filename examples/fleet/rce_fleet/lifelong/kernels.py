@@ -74,28 +74,30 @@ def preferred(prefer, a, u, n_cells):
 @njit(cache=True)
 def heap_push(hk, hv, size, key, val):
     """Push (``key``, ``val``) on the binary min-heap ``hk`` (int64 keys) / ``hv`` (values) of
-    ``size`` entries; returns the new size (the arrays must have room)."""
+    ``size`` entries; returns the new size (the arrays must have room). The parents above
+    the new entry's place move down one level each, and the entry is written once."""
     i = size
-    hk[i] = key
-    hv[i] = val
     while i > 0:
         p = (i - 1) >> 1
-        if hk[p] <= hk[i]:
+        if hk[p] <= key:
             break
-        hk[p], hk[i] = hk[i], hk[p]
-        hv[p], hv[i] = hv[i], hv[p]
+        hk[i] = hk[p]
+        hv[i] = hv[p]
         i = p
+    hk[i] = key
+    hv[i] = val
     return size + 1
 
 
 @njit(cache=True)
 def heap_pop(hk, hv, size):
-    """Pop the least key; returns (key, value, new size)."""
+    """Pop the least key; returns (key, value, new size). The last entry sinks from the root
+    into the hole left by the smaller child at each level, and is written once."""
     key = hk[0]
     val = hv[0]
     size -= 1
-    hk[0] = hk[size]
-    hv[0] = hv[size]
+    k = hk[size]
+    v = hv[size]
     i = 0
     while True:
         c = 2 * i + 1
@@ -103,11 +105,13 @@ def heap_pop(hk, hv, size):
             break
         if c + 1 < size and hk[c + 1] < hk[c]:
             c += 1
-        if hk[i] <= hk[c]:
+        if k <= hk[c]:
             break
-        hk[c], hk[i] = hk[i], hk[c]
-        hv[c], hv[i] = hv[i], hv[c]
+        hk[i] = hk[c]
+        hv[i] = hv[c]
         i = c
+    hk[i] = k
+    hv[i] = v
     return key, val, size
 
 
