@@ -21,7 +21,7 @@ Usage::
 
     .venv/bin/python bench/planner.py [--agents 10 50 100 200] [--repeat 3]
         [--lacam-agents 10 50 100 200 400 1000] [--time-limit 5] [--cpu-budget] [--scen-seeds 1]
-        [--initial {lacam,pp}] [--workers 1]
+        [--initial {lacam,pp}] [--workers 1] [--lanes 2]
         [--data ../shared/data] [--map FILE.map --scen FILE.scen] [--lacam3 BIN] [--json PATH] [--plot PATH]
 
 ``--lacam3 BIN`` runs lacam3 (Okumura AAMAS-24, C++, built from its repository;
@@ -155,12 +155,13 @@ def count_conflicts(grid, paths) -> int:
 
 def run_lacam(graph: GridGraph, scen: list[tuple[int, int]], k: int, time_limit_s: float,
               scenario: str = "random-1", cpu_budget: bool = False, initial: str = "lacam",
-              workers: int = 1) -> dict:
+              workers: int = 1, lanes: int = 2) -> dict:
     """The first ``k`` agents one-shot by rce_fleet.lifelong.oneshot.plan_one_shot (a first
     solution by ``initial``, PP with LaCAM as the fallback or LaCAM alone, then LNS) within
     0.9 x ``time_limit_s`` of wall time, or of this process's CPU time with ``cpu_budget``
     (what an idle machine would give when other work shares the cores); LNS on ``workers``
-    processes, each counting its own clock (``worker_cpu_s``: the workers' CPU)."""
+    processes, each counting its own clock (``worker_cpu_s``: the workers' CPU); ``lanes``:
+    plan_one_shot's lane-guided LaCAM tries (a move against a lane costs 1 + ``lanes``; 0 off)."""
     import numpy as np
 
     from rce_fleet.lifelong import DistanceCache, LifelongGrid
@@ -179,7 +180,7 @@ def run_lacam(graph: GridGraph, scen: list[tuple[int, int]], k: int, time_limit_
     clock = time.process_time if cpu_budget else time.perf_counter
     t0, c0 = time.perf_counter(), time.process_time()
     res = plan_one_shot(grid, starts, goals, 0.9 * time_limit_s, cache=cache, initial=initial, workers=workers,
-                        clock=clock)
+                        lanes=lanes, clock=clock)
     wall, cpu = time.perf_counter() - t0, time.process_time() - c0
     paths = res["paths"]
     conflicts = count_conflicts(grid, paths)
@@ -192,7 +193,8 @@ def run_lacam(graph: GridGraph, scen: list[tuple[int, int]], k: int, time_limit_
             "ratio": res["sum_of_costs"] / lb if lb else 1.0,
             "first_solution_s": res["first_time_s"], "first_ratio": res["first_sum_of_costs"] / lb if lb else 1.0,
             "lns_iterations": res["lns_iterations"], "workers": workers, "worker_cpu_s": res["worker_cpu_s"],
-            "first_tries": [(s, c / lb if c is not None and lb else None) for s, c in res["first_tries"]]}
+            "first_tries": [(s, c / lb if c is not None and lb else None) for s, c in res["first_tries"]],
+            "lane_tries": [(s, c / lb if c is not None and lb else None) for s, c in res["lane_tries"]]}
 
 
 def run_live_sizes(map_yaml: Path | None, cell_m: float, sizes: list[int], seeds: int,
@@ -429,6 +431,8 @@ def main(argv: list[str] | None = None) -> int:
                     help="first solution of the one-shot rows: LaCAM, or prioritized planning (LaCAM when it fails)")
     ap.add_argument("--workers", type=int, default=1,
                     help="processes for the one-shot rows' LNS (each spends the budget of its own clock)")
+    ap.add_argument("--lanes", type=int, default=2,
+                    help="one-shot rows: LaCAM first along one-way lanes, a move against a lane costing 1 + N (0: off)")
     ap.add_argument("--cpu-budget", action="store_true",
                     help="count --time-limit in this process's CPU seconds instead of wall seconds")
     ap.add_argument("--scen-seeds", type=int, nargs="*", default=[1],
@@ -468,13 +472,13 @@ def main(argv: list[str] | None = None) -> int:
     name = f"{map_file.stem} ({scen_file.name})"
     rows = [run_mapf(graph, scen, k, args.repeat) for k in args.agents]
     lacam = [run_lacam(graph, scen, k, args.time_limit, label, cpu_budget=args.cpu_budget, initial=args.initial,
-                       workers=args.workers) for k in args.lacam_agents]
+                       workers=args.workers, lanes=args.lanes) for k in args.lacam_agents]
     instances = [(label, scen)]
     for seed in args.scen_seeds:
         other = random_scen(graph, max(args.lacam_agents, default=0), seed)
         instances.append((f"seed {seed}", other))
         lacam += [run_lacam(graph, other, k, args.time_limit, f"seed {seed}", args.cpu_budget, args.initial,
-                            args.workers) for k in args.lacam_agents]
+                            args.workers, args.lanes) for k in args.lacam_agents]
     peer = []
     if args.lacam3:
         peer = [run_peer(args.lacam3, graph, sc, k, args.time_limit, lab)

@@ -118,7 +118,8 @@ def test_pp_restarts_with_the_failed_agent_first_and_the_fallback_is_lacam():
     calls = itertools.count(0.0, 1e-3)
     out = plan_one_shot(g, np.array(starts), np.array(goals), time_limit_s=1.0, initial="pp", pp_share=0.0,
                         clock=lambda: next(calls))
-    assert out["solved"] and out["initial"] == "lacam" and out["pp_planned"] == 1
+    # 2 agents on 7 cells and a corridor of 5: a crowd, so LaCAM along its lane takes over
+    assert out["solved"] and out["initial"] == "lacam lanes" and out["pp_planned"] == 1
     assert_valid(g, out, starts, goals)
     with pytest.raises(ValueError, match="share"):
         solve_pp(g, np.array([0, 0]), np.array([1, 2]))
@@ -190,7 +191,7 @@ def test_lns_on_two_processes_keeps_a_crowded_solution_valid_and_replays_the_wor
     assert out["sum_of_costs"] <= res["sum_of_costs"]
     assert_valid(g, out, starts, goals)
     calls = itertools.count(0.0, 1e-3)
-    shot = plan_one_shot(g, starts, goals, time_limit_s=3, workers=2, clock=lambda: next(calls))
+    shot = plan_one_shot(g, starts, goals, time_limit_s=3, workers=2, lanes=0, clock=lambda: next(calls))
     assert shot["solved"] and shot["sum_of_costs"] <= shot["first_sum_of_costs"]
     tries = dict(shot["first_tries"])          # LaCAM with seeds 0 and 1, one of them forked
     assert set(tries) == {0, 1} and shot["first_sum_of_costs"] == min(tries.values())
@@ -224,6 +225,51 @@ def test_forked_processes_killed_cost_their_work_and_the_main_process_carries_on
     assert out["workers_lost"] == 1 and out["changes"] == (0, 0)
     assert out["sum_of_costs"] <= res["sum_of_costs"]
     assert_valid(g, out, starts, goals)
-    shot = plan_one_shot(g, starts, goals, time_limit_s=3, workers=2, clock=clock_killing())
+    shot = plan_one_shot(g, starts, goals, time_limit_s=3, workers=2, lanes=0, clock=clock_killing())
     assert shot["solved"] and dict(shot["first_tries"])[1] is None
     assert_valid(g, shot, starts, goals)
+
+
+AISLES = ["..............",
+          ".@@@@.@@@@.@@.",
+          "..............",
+          ".@@@@.@@@@.@@.",
+          ".............."]
+
+
+def test_lacam_along_one_way_lanes_in_a_crowd_with_scatter_as_the_fallback():
+    """In a crowd on a map of one-cell corridors plan_one_shot's first solution is LaCAM along
+    one-way lanes (the best of its seeds); when no seed solves within its share, LaCAM with
+    scatter; below the density, or on a map without corridors, the lanes do not run. Every
+    solution valid, every agent at its goal."""
+    from rce_fleet.lifelong.guidance import lane_costs
+    from rce_fleet.lifelong.lacam import solve_lacam
+    warm_up()
+    g = grid(AISLES)
+    rng = np.random.default_rng(4)
+    pick = rng.choice(np.flatnonzero(g.flat), 30, replace=False)
+    starts, goals = pick[:15], pick[15:]                       # 15 agents on 50 free cells
+    cache = DistanceCache(g)                                   # empty: still the one solve_lacam fills
+    guide = DistanceCache(g, cost=lane_costs(g, against=2))
+    res = solve_lacam(g, starts, goals, time_limit_s=30, cache=cache, guide=guide)
+    assert res["solved"] and len(cache) == 15 and len(guide) == 15
+    assert_valid(g, res, starts, goals)
+    calls = itertools.count(0.0, 1e-4)
+    out = plan_one_shot(g, starts, goals, time_limit_s=3, clock=lambda: next(calls))
+    assert out["solved"] and out["initial"] == "lacam lanes" and out["first_tries"] == []
+    tries = dict(out["lane_tries"])
+    assert set(tries) == {0, 1} and out["first_sum_of_costs"] == min(c for c in tries.values() if c is not None)
+    assert out["sum_of_costs"] <= out["first_sum_of_costs"]
+    assert_valid(g, out, starts, goals)
+    # no time for the lanes: LaCAM with scatter takes over
+    fallback = plan_one_shot(g, starts, goals, time_limit_s=3, lane_share=0.0, clock=lambda: next(calls))
+    assert fallback["solved"] and fallback["initial"] == "lacam"
+    assert fallback["lane_tries"] == [(0, None), (1, None)] and len(fallback["first_tries"]) == 1
+    assert_valid(g, fallback, starts, goals)
+    few = plan_one_shot(g, starts[:5], goals[:5], time_limit_s=3, clock=lambda: next(calls))   # 0.1 per cell
+    assert few["solved"] and few["initial"] == "lacam" and few["lane_tries"] == []
+    open_floor = grid(["......"] * 6)
+    pick = rng.choice(36, 20, replace=False)
+    flat = plan_one_shot(open_floor, pick[:10], pick[10:], time_limit_s=3, clock=lambda: next(calls))
+    assert flat["solved"] and flat["initial"] == "lacam" and flat["lane_tries"] == []
+    assert_valid(open_floor, flat, pick[:10], pick[10:])

@@ -140,7 +140,8 @@ def one_shot_distances(grid: LifelongGrid, starts, goals, cache: DistanceCache |
     n = starts.shape[0]
     if len(set(starts.tolist())) != n or len(set(goals.tolist())) != n:
         raise ValueError("two agents share a start or a goal cell")
-    cache = cache or DistanceCache(grid, max_bytes=max(2 * grid.n_cells * (n + 16), 64 * 2 ** 20))
+    if cache is None:                          # an empty cache is falsy (len 0) but is the one to use
+        cache = DistanceCache(grid, max_bytes=max(2 * grid.n_cells * (n + 16), 64 * 2 ** 20))
     rows = np.array([cache.slot(int(g)) for g in goals], dtype=np.int64)
     dist = cache.table[rows, starts]
     if (dist == UNREACHABLE).any():

@@ -55,7 +55,7 @@ class _Node:
 
 def solve_lacam(grid: LifelongGrid, starts: np.ndarray, goals: np.ndarray, time_limit_s: float = 5.0, seed: int = 0,
                 cache: DistanceCache | None = None, scatter_share: float = 0.0, stuck_steps: int = 20,
-                noise: float = 100.0, clock=time.perf_counter) -> dict:
+                noise: float = 100.0, guide: DistanceCache | None = None, clock=time.perf_counter) -> dict:
     """Solve one-shot MAPF (every agent from its start to its goal, 4-neighbour moves).
 
     starts, goals: (n,) cells. ``scatter_share``: the share of ``time_limit_s`` for lacam3's
@@ -63,7 +63,10 @@ def solve_lacam(grid: LifelongGrid, starts: np.ndarray, goals: np.ndarray, time_
     whose next cells PIBT tries first; 0 turns it off). An agent that has not come closer to
     its goal for ``stuck_steps`` configurations (along the search's path) gets PIBT's
     tie-breaks scaled by ``noise`` (the lifelong planner's random walk out of a jam; 0 turns it
-    off). Returns a dict as
+    off). ``guide``: distances PIBT follows instead of ``cache``'s breadth-first ones (a
+    :class:`~.distances.DistanceCache` with move costs, e.g. :func:`~.guidance.lane_costs`'s
+    one-way lanes); progress (``stuck_steps``) is still counted in steps to the goal.
+    Returns a dict as
     :func:`~.pibt.solve_one_shot`: ``paths`` ((T+1, n) cells, the last row the goals when
     ``solved``), ``solved``, ``sum_of_costs`` (each agent's last arrival, summed),
     ``makespan``, ``time_s``, plus ``nodes`` (high-level nodes generated) and ``scatter``
@@ -77,6 +80,10 @@ def solve_lacam(grid: LifelongGrid, starts: np.ndarray, goals: np.ndarray, time_
     n = starts.shape[0]
     rng = np.random.default_rng(seed)
     nbr, table = grid.nbr, cache.table
+    step_table, step_slot = table, slot
+    if guide is not None:                      # PIBT follows the guide's rows, in the goals' order
+        step_table = guide.table[[guide.slot(int(g)) for g in goals]]
+        step_slot = np.arange(n, dtype=np.int64)
     prefer, sc = NO_PREFER, {}
     if scatter_share > 0 and n:
         prefer, sc = scatter(nbr, table, slot, starts, goals, scatter_share * time_limit_s, seed=seed, clock=clock)
@@ -115,7 +122,7 @@ def solve_lacam(grid: LifelongGrid, starts: np.ndarray, goals: np.ndarray, time_
         rnd = rng.random((n, 5))
         if noise > 0:
             rnd[node.stuck > stuck_steps] *= noise
-        pibt_step(nbr, node.config, head, table, slot, goals, node.order, False, 0.0, rnd, nxt, True,
+        pibt_step(nbr, node.config, head, step_table, step_slot, goals, node.order, False, 0.0, rnd, nxt, True,
                   no_claim, fixed, prefer)
         # constraints PIBT could not honour show up as vertex or swap conflicts
         owner[nxt] = ids                       # two agents on one cell: one of them is overwritten

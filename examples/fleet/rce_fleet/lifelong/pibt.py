@@ -213,7 +213,8 @@ def solve_one_shot(grid: LifelongGrid, starts: np.ndarray, goals: np.ndarray, ti
     starts = np.asarray(starts, dtype=np.int64)
     goals = np.asarray(goals, dtype=np.int64)
     n = starts.shape[0]
-    cache = cache or DistanceCache(grid, max_bytes=max(2 * grid.n_cells * (n + 16), 64 * 2 ** 20))
+    if cache is None:                          # an empty cache is falsy (len 0) but is the one to use
+        cache = DistanceCache(grid, max_bytes=max(2 * grid.n_cells * (n + 16), 64 * 2 ** 20))
     slot = np.array([cache.slot(int(g)) for g in goals], dtype=np.int64)
     if (cache.table[slot, starts] == 65535).any():
         bad = int(np.flatnonzero(cache.table[slot, starts] == 65535)[0])
