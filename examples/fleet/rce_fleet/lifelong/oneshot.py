@@ -14,8 +14,8 @@ lifelong planner's crisscross guidance: a move against a corridor's lane costs 1
 for a few seeds within a short time each; the best solved one goes on, and LaCAM with scatter
 only runs when none solves. Agents meeting head-on in a corridor are what congests PIBT at
 high density; along the lanes the first solution comes in about half the time and closer to
-the lower bound (measured at 1000 agents, 4.5 CPU-s per process: 1.51 - 1.54x after LNS
-against 1.65 - 1.69x in one process, 1.36 - 1.41x against 1.48 - 1.55x on two; at 700 agents
+the lower bound (measured at 1000 agents, 4.5 CPU-s per process: 1.51 - 1.55x after LNS
+against 1.65 - 1.70x in one process, 1.36 - 1.44x against 1.48 - 1.67x on two; at 700 agents
 and below the lanes' detours cost more than they save, so scatter stays). With ``workers=2``
 LNS runs on two processes (:mod:`.parallel`), and LaCAM with scatter, where it runs, with two
 seeds; each process within the budget of its own clock. Measurements: ``docs/lifelong.md``.
