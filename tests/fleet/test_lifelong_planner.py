@@ -515,3 +515,21 @@ def test_lns_removes_detours_and_keeps_a_crowded_solution_valid():
     assert ref["sum_of_costs"] == sum(arrival) <= res["sum_of_costs"]
     with pytest.raises(ValueError, match="last row"):
         refine_lns(g, res["paths"][:1], goals, 0.1)
+
+
+def test_lns_single_replans_search_past_the_group_cap_and_a_cut_search_keeps_the_old_path():
+    """A single agent's re-plan has its own cap (``single_expand``), above a group's
+    (``max_expand``): the detour is removed even when a group re-plan may expand only one
+    state; with both caps at one state every search is cut short and the old path stays."""
+    from rce_fleet.lifelong.refine import refine_lns
+    warm_up()
+    g = grid(["......", "......", "......"])
+    wander = [0, 6, 12, 13, 14, 15, 9, 3]      # agent 0 detours through the bottom row
+    paths = np.array([[c, 16] for c in wander])
+    goals = np.array([3, 16])
+    ref = refine_lns(g, paths, goals, 5.0, max_expand=1)
+    assert ref["sum_of_costs"] == 3 and ref["paths"][:, 0].tolist() == [0, 1, 2, 3]
+    cut = refine_lns(g, paths, goals, 0.2, max_expand=1, single_expand=1)
+    assert cut["sum_of_costs"] == 7 and cut["iterations"] > 0 and cut["accepted"] == 0
+    assert cut["paths"][:, 0].tolist() == wander
+    assert_solution(g, cut["paths"], [0, 16], [3, 16])

@@ -20,7 +20,15 @@ Neighbourhoods, in this order:
   diving to the goal and waiting near it) often clears the way for others (measured at 1000
   agents on the MovingAI warehouse: 2.5 CPU-s of LNS from one solution end at 1.852 - 1.853x
   the lower bound against 1.868 - 1.887x with only the delayed agents). A sweep is repeated
-  (up to ``max_sweeps``) while the one before cut the delays by 1 %;
+  (up to ``max_sweeps``) while the one before cut the delays by 1 %. A sweep's re-plans
+  search up to ``max_expand`` states; those cut short keep their old paths and are searched
+  again at the end of the sweep with up to ``single_expand`` (200,000). Such a re-plan cannot
+  fail for want of a path (the old path is one), and the long searches are those of agents
+  whose goals stay busy long after they could arrive, worth most to re-plan: at 1000 agents on
+  the MovingAI warehouse ~20 % of a sweep's searches pass 5,000 states (most under 100,000),
+  and the first sweep from a LaCAM solution (1.88x the lower bound) cuts 10,662 steps without
+  a cap against 6,890 with 5,000. Deferred to the end of the sweep, they do not hold up the
+  quick ones (docs/lifelong.md, "One-shot", for the measurements);
 - then, until the time is up: an agent with a delay (drawn in proportion to it) together with
   the agents that stand on its goal after it could have arrived (the usual cause of a late
   arrival), or a random handful (the random and agent-based neighbourhoods of the paper).
@@ -56,7 +64,7 @@ class Refiner:
 
     def __init__(self, grid: LifelongGrid, paths: np.ndarray, goals: np.ndarray, seed: int = 0,
                  cache: DistanceCache | None = None, max_group: int = 8, slack: int = 64,
-                 max_expand: int = 5_000, max_sweeps: int = 8, sipp: bool = True):
+                 max_expand: int = 5_000, max_sweeps: int = 8, sipp: bool = True, single_expand: int = 200_000):
         goals = np.asarray(goals, dtype=np.int64)
         paths = np.asarray(paths, dtype=np.int64)
         if paths.ndim != 2 or paths.shape[1] != goals.shape[0] or not (paths[-1] == goals).all():
@@ -72,11 +80,13 @@ class Refiner:
         self.res.lengths[:] = _arrivals(paths, goals) + 1
         self.res.place(goals, np.arange(n, dtype=np.int64))
         self.starts = paths[0].copy()
-        self.max_group, self.max_expand, self.sipp = max_group, max_expand, sipp
+        self.max_group, self.max_expand, self.single_expand, self.sipp = max_group, max_expand, single_expand, sipp
         self.rng = np.random.default_rng(seed)
         self.own = np.ones(n, dtype=bool)
         self.sweeps, self.sweep_from = max_sweeps, np.inf
         self.queue: list[int] = []
+        self.deferred: list[int] = []
+        self.cap = min(max_expand, single_expand)   # of the single re-plans queued
         self.iterations = self.accepted = 0
         self.log: list | None = None           # accepted changes, for :meth:`replay` elsewhere
 
@@ -91,16 +101,21 @@ class Refiner:
             delay = np.where(self.own, res.lengths - 1 - lb, 0)
             if delay.sum() == 0:
                 break
+            if not self.queue and self.deferred:                       # the cut searches, further
+                self.queue, self.deferred, self.cap = self.deferred[::-1], [], self.single_expand
             if not self.queue and self.sweeps and delay.sum() < 0.99 * self.sweep_from:   # the last sweep helped
+                self.cap = min(self.max_expand, self.single_expand)     # cut searches are deferred
                 self.sweeps -= 1
                 self.sweep_from = delay.sum()
                 order = np.argsort(-delay[owned], kind="stable")
                 self.queue = owned[order][::-1].tolist()                  # popped from the end
-            if self.queue:
+            cap, swept = self.max_expand, bool(self.queue)
+            if swept:
                 a = self.queue.pop()
                 if not self.own[a]:
                     continue                   # another refiner's since the sweep began
                 group = np.array([a], dtype=np.int64)
+                cap = self.cap
             elif rng.random() < 0.8:
                 w = delay.astype(float)
                 i = int(rng.choice(n, p=w / w.sum()))
@@ -115,10 +130,12 @@ class Refiner:
             self.iterations += 1
             rng.shuffle(group)
             before = res.lengths[group].sum()
-            if res.replan(self.nbr, self.table, self.hrows, self.starts, goals, group, self.max_expand, self.sipp):
+            if res.replan(self.nbr, self.table, self.hrows, self.starts, goals, group, cap, self.sipp):
                 self.accepted += int(res.lengths[group].sum() < before)
                 if self.log is not None:
                     self.log.append((group, res.paths[group].astype(np.int32), res.lengths[group].copy()))
+            elif swept and cap < self.single_expand:     # cut short: its old path is an answer
+                self.deferred.append(int(group[0]))
 
     def replay(self, log: list) -> int:
         """Apply another refiner's accepted changes ``log`` (:attr:`log`: (agents, their paths
@@ -168,18 +185,19 @@ class Refiner:
 
 def refine_lns(grid: LifelongGrid, paths: np.ndarray, goals: np.ndarray, time_limit_s: float, seed: int = 0,
                cache: DistanceCache | None = None, max_group: int = 8, slack: int = 64,
-               max_expand: int = 5_000, max_sweeps: int = 8, sipp: bool = True,
+               max_expand: int = 5_000, max_sweeps: int = 8, sipp: bool = True, single_expand: int = 200_000,
                clock=time.perf_counter) -> dict:
     """Improve a conflict-free solution ``paths`` ((T+1, n) cells, last row the goals) within
     ``time_limit_s`` seconds of ``clock`` (wall time; ``time.process_time`` for this process's
     CPU). ``max_expand``: states one re-plan may expand (safe intervals with ``sipp``, else
-    (step, cell) states). Returns a dict: ``paths`` ((T'+1, n), conflict-free, every agent
-    ends on its goal), ``sum_of_costs`` (last arrivals summed), ``makespan``, ``iterations``,
-    ``accepted``, ``expanded``, ``time_s``. Never worse than the input (sum of costs, and no
-    agent's arrival beyond the input's makespan + ``slack``). Raises ValueError when the last
-    row is not ``goals``."""
+    (step, cell) states); ``single_expand``: a sweep's re-plan cut short at ``max_expand``,
+    searched again at the end of the sweep. Returns a dict: ``paths`` ((T'+1, n),
+    conflict-free, every agent ends on its goal), ``sum_of_costs`` (last arrivals summed),
+    ``makespan``, ``iterations``, ``accepted``, ``expanded``, ``time_s``. Never worse than the
+    input (sum of costs, and no agent's arrival beyond the input's makespan + ``slack``).
+    Raises ValueError when the last row is not ``goals``."""
     t0 = clock()
-    ref = Refiner(grid, paths, goals, seed, cache, max_group, slack, max_expand, max_sweeps, sipp)
+    ref = Refiner(grid, paths, goals, seed, cache, max_group, slack, max_expand, max_sweeps, sipp, single_expand)
     ref.improve(time_limit_s - (clock() - t0), clock)
     return {**ref.solution(), "iterations": ref.iterations, "accepted": ref.accepted,
             "expanded": int(ref.res.stats[0]), "time_s": clock() - t0}
