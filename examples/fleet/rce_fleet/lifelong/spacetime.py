@@ -462,6 +462,11 @@ class SpaceTimeTable:
             rows = 1 << int(min(8 * max_expand, 2 * m, 2 ** 30) + 63).bit_length()
             if self._sipp[0].shape[0] < rows:
                 self._sipp = (np.zeros((rows, 4), np.int32), np.zeros(2 ** 21, np.int64), np.zeros(2 ** 21, np.int64))
+            elif self.sid >= 2 ** 31 - 2 - 2 * len(self.lengths):      # the search ids wrap within this call:
+                self._sipp[0][:, 0] = 0                                  # clear the rows past the view too
+            # a view as large as this cap asks: after one long search the table stays large, and
+            # hashing a small search over all of it costs ~10 % of an LNS run in cache misses
+            return self._astar + (self.stats, sipp, self._sipp[0][:rows]) + self._sipp[1:]
         elif self._astar[0].shape[0] < m:
             nb = (self.H + self.max_h + 2) * (self.max_h + 1)
             self._astar = (np.zeros(m, np.int32), np.empty(m, np.int32), np.empty(m, np.int32),
