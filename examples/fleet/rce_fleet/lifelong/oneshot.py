@@ -14,9 +14,10 @@ lifelong planner's crisscross guidance: a move against a corridor's lane costs 1
 for a few seeds within a short time each; the best solved one goes on, and LaCAM with scatter
 only runs when none solves. Agents meeting head-on in a corridor are what congests PIBT at
 high density; along the lanes the first solution comes in about half the time and closer to
-the lower bound (measured at 1000 agents, 4.5 CPU-s per process: 1.51 - 1.55x after LNS
-against 1.65 - 1.70x in one process, 1.36 - 1.44x against 1.48 - 1.67x on two; at 700 agents
-and below the lanes' detours cost more than they save, so scatter stays). With ``workers=2``
+the lower bound (measured at 1000 agents, 0.175 per free cell, 4.5 CPU-s per process: 1.45
+- 1.46x after LNS against 1.42 - 1.57x in one process, 1.29 - 1.33x against 1.39 - 1.48x on
+two; at 900 agents, 0.158 per free cell, the lanes lose on one process (1.37 - 1.42x against
+1.27 - 1.34x) and draw on two, and further down their detours cost more than they save). With ``workers=2``
 LNS runs on two processes (:mod:`.parallel`), and LaCAM with scatter, where it runs, with two
 seeds; each process within the budget of its own clock. Measurements: ``docs/lifelong.md``.
 """
@@ -41,7 +42,7 @@ INITIAL_SOLVERS = ("pp", "lacam")
 
 def plan_one_shot(grid: LifelongGrid, starts: np.ndarray, goals: np.ndarray, time_limit_s: float = 5.0,
                   seed: int = 0, cache: DistanceCache | None = None, initial: str = "lacam", pp_share: float = 0.15,
-                  scatter_share: float = 0.2, workers: int = 1, lanes: int = 2, lane_density: float = 0.15,
+                  scatter_share: float = 0.2, workers: int = 1, lanes: int = 2, lane_density: float = 0.17,
                   lane_tries: int = 2, lane_share: float = 0.1, clock=time.perf_counter) -> dict:
     """Solve one-shot MAPF (4-neighbour moves) within ``time_limit_s`` seconds of ``clock``
     (wall time; ``time.process_time`` for this process's CPU).
