@@ -182,3 +182,26 @@ def test_the_lns_bench_reports_the_replan_cost_and_the_parallel_efficiency(tmp_p
         assert 1.0 <= run[key]["ratio"] <= res["first_ratio"]
     assert run["two"]["worker_cpu_s"] > 0
     assert png.stat().st_size > 1000 and "efficiency" in p.stdout
+
+
+def test_the_lns_bench_on_the_clock_of_work_gives_the_same_result_in_every_run(tmp_path):
+    """``bench/lns.py --clock work``: the budget counts states expanded and iterations, not
+    CPU, so two runs of one variant and seed end at the same sum of costs, conflict-free and
+    never above the first solution."""
+    bench = Path(__file__).resolve().parents[2] / "bench" / "lns.py"
+    runs = []
+    for k in range(2):
+        out, png = tmp_path / f"lns{k}.json", tmp_path / f"lns{k}.png"
+        p = subprocess.run([sys.executable, str(bench), "--agents", "200", "--scen-seeds", "--seeds", "0",
+                            "--cpu", "0.3", "--checkpoints", "0.1", "0.3", "--clock", "work",
+                            "--json", str(out), "--plot", str(png)],
+                           capture_output=True, text=True, timeout=300, cwd=tmp_path)
+        assert p.returncode == 0, (p.stdout + p.stderr)[-3000:]
+        res = json.loads(out.read_text())
+        assert res["clock"] == "work" and png.stat().st_size > 1000
+        runs.append(res["rows"])
+    assert [r["variant"] for r in runs[0]] == ["default", "capped"]
+    for a, b in zip(*runs, strict=True):
+        assert a["conflicts"] == 0 and a["at_goal"]
+        assert 1.0 <= a["ratio"]["0.3"] <= a["ratio"]["0.1"] <= a["first_ratio"]
+        assert a["ratio"] == b["ratio"] and a["iterations"] == b["iterations"]
