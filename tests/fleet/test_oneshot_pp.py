@@ -261,6 +261,11 @@ def test_lacam_along_one_way_lanes_in_a_crowd_with_scatter_as_the_fallback():
     assert set(tries) == {0, 1} and out["first_sum_of_costs"] == min(c for c in tries.values() if c is not None)
     assert out["sum_of_costs"] <= out["first_sum_of_costs"]
     assert_valid(g, out, starts, goals)
+    # on two processes the two seeds run at once (one forked), the same searches
+    two = plan_one_shot(g, starts, goals, time_limit_s=3, workers=2, clock=lambda: next(calls))
+    assert two["solved"] and two["initial"] == "lacam lanes" and two["lane_tries"] == out["lane_tries"]
+    assert two["first_sum_of_costs"] == out["first_sum_of_costs"]
+    assert_valid(g, two, starts, goals)
     # no time for the lanes: LaCAM with scatter takes over
     fallback = plan_one_shot(g, starts, goals, time_limit_s=3, lane_share=0.0, clock=lambda: next(calls))
     assert fallback["solved"] and fallback["initial"] == "lacam"
@@ -273,3 +278,27 @@ def test_lacam_along_one_way_lanes_in_a_crowd_with_scatter_as_the_fallback():
     flat = plan_one_shot(open_floor, pick[:10], pick[10:], time_limit_s=3, clock=lambda: next(calls))
     assert flat["solved"] and flat["initial"] == "lacam" and flat["lane_tries"] == []
     assert_valid(open_floor, flat, pick[:10], pick[10:])
+
+
+def test_lacam_on_two_processes_stops_a_seed_still_searching_once_the_first_has_solved():
+    """With ``patience``, solve_lacam_parallel waits for the forked seeds at most that share of
+    the first seed's time once it has solved; a forked search that has not ended by then (here
+    one whose clock never returns) is stopped and counts as unsolved, and the first seed's
+    solution is the answer."""
+    import threading
+
+    from rce_fleet.lifelong.parallel import solve_lacam_parallel
+    warm_up()
+    g = grid(AISLES)
+    pick = np.random.default_rng(4).choice(np.flatnonzero(g.flat), 20, replace=False)
+    starts, goals = pick[:10], pick[10:]
+    parent, calls = os.getpid(), itertools.count(0.0, 1e-4)
+
+    def clock() -> float:
+        if os.getpid() != parent:
+            threading.Event().wait()           # the forked search never ends by itself
+        return next(calls)
+
+    res = solve_lacam_parallel(g, starts, goals, 3.0, seeds=(0, 1), clock=clock, patience=0.0)
+    assert res["solved"] and res["tries"] == [(0, res["sum_of_costs"]), (1, None)]
+    assert_valid(g, res, starts, goals)

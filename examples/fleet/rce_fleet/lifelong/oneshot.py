@@ -53,7 +53,8 @@ def plan_one_shot(grid: LifelongGrid, starts: np.ndarray, goals: np.ndarray, tim
     With n >= ``lane_density`` x the free cells and ``lanes`` > 0 on a map with one-cell
     corridors, LaCAM along one-way lanes (a move against a lane costing 1 + ``lanes``, no
     scatter) runs first with the seeds ``seed`` ... ``seed + lane_tries - 1``, each within
-    ``lane_share`` of the budget, and the best solved one is the first solution; LaCAM with
+    ``lane_share`` of the budget (``workers`` seeds at once), and the best solved one is the
+    first solution; LaCAM with
     scatter (as below) runs only when none solves, in the time left.
     ``workers`` > 1: LaCAM runs once per process with seeds ``seed`` ... ``seed + workers - 1``
     and the best first solution is kept (:func:`~.parallel.solve_lacam_parallel`), and LNS runs
@@ -86,7 +87,7 @@ def plan_one_shot(grid: LifelongGrid, starts: np.ndarray, goals: np.ndarray, tim
     lane_res, lane_tries_out = None, []
     if (res is None or not res["solved"]) and lanes > 0 and n >= lane_density * grid.free_cells().shape[0]:
         lane_res, lane_tries_out = _lane_lacam(grid, starts, goals, cache, lanes, lane_tries,
-                                               lane_share * time_limit_s, seed, clock)
+                                               lane_share * time_limit_s, seed, clock, workers)
         if lane_res is not None:
             res, used = lane_res, "lacam lanes"
     if res is None or not res["solved"]:
@@ -117,20 +118,37 @@ def plan_one_shot(grid: LifelongGrid, starts: np.ndarray, goals: np.ndarray, tim
 
 
 def _lane_lacam(grid: LifelongGrid, starts: np.ndarray, goals: np.ndarray, cache: DistanceCache, against: int,
-                tries: int, each_s: float, seed: int, clock) -> tuple[dict | None, list]:
+                tries: int, each_s: float, seed: int, clock, workers: int = 1) -> tuple[dict | None, list]:
     """LaCAM without scatter, PIBT following one-way lanes (:func:`~.guidance.lane_costs`,
     a move against a lane costing 1 + ``against``), with the seeds ``seed``, ``seed + 1``, ...
-    (``tries`` of them), each within ``each_s`` seconds of ``clock``. Returns the solved result
-    with the least sum of costs (None when none solved or the map has no lanes) and each
-    try's (seed, sum of costs or None)."""
+    (``tries`` of them), ``workers`` at a time (the others on forked processes,
+    :func:`~.parallel.solve_lacam_parallel`), within ``tries`` x ``each_s`` seconds of
+    ``clock`` in all, shared equally by the rounds (on one process ``each_s`` per seed; on two
+    with two seeds, both at once within twice that, the forked one stopped when it is still
+    searching half as long again as this process's seed took to solve). Returns the
+    solved result with the least sum of costs (None when none solved or the map has no lanes)
+    and each try's (seed, sum of costs or None)."""
     cost = lane_costs(grid, against=against)
     if not (cost > 1).any():
         return None, []
     guide = DistanceCache(grid, max_bytes=cache.table.nbytes, cost=cost)
     best, out = None, []
-    for k in range(tries):
-        r = solve_lacam(grid, starts, goals, each_s, seed=seed + k, cache=cache, guide=guide, clock=clock)
-        out.append((seed + k, r["sum_of_costs"] if r["solved"] else None))
-        if r["solved"] and (best is None or r["sum_of_costs"] < best["sum_of_costs"]):
+    at_once = max(min(workers, tries), 1)
+    round_s = each_s * tries / -(-tries // at_once)
+    for k in range(0, tries, at_once):
+        seeds = tuple(seed + j for j in range(k, min(k + at_once, tries)))
+        if len(seeds) > 1:
+            rs = solve_lacam_parallel(grid, starts, goals, round_s, seeds=seeds, cache=cache, clock=clock,
+                                      guide=guide, patience=0.5)
+            tries_k = rs["tries"]
+            r = rs if rs["solved"] else None
+        else:
+            r = solve_lacam(grid, starts, goals, round_s, seed=seeds[0], cache=cache, guide=guide, clock=clock)
+            tries_k = [(seeds[0], r["sum_of_costs"] if r["solved"] else None)]
+            r = r if r["solved"] else None
+        out += tries_k
+        if r is not None and (best is None or r["sum_of_costs"] < best["sum_of_costs"]):
             best = r
+    if best is not None:
+        best = {key: v for key, v in best.items() if key != "tries"}
     return best, out

@@ -143,29 +143,40 @@ def _lacam(conn, args: tuple, kwargs: dict) -> None:
 
 def solve_lacam_parallel(grid: LifelongGrid, starts: np.ndarray, goals: np.ndarray, time_limit_s: float = 5.0,
                          seeds: tuple[int, ...] = (0, 1), cache: DistanceCache | None = None,
-                         scatter_share: float = 0.0, clock=time.perf_counter) -> dict:
+                         scatter_share: float = 0.0, clock=time.perf_counter, patience: float | None = None,
+                         **kwargs) -> dict:
     """:func:`~.lacam.solve_lacam` once per seed, the first here and each other on a forked
-    process, each within ``time_limit_s`` seconds of its own ``clock``: the solved result of
-    least sum of costs (the first seed's when none solved), plus ``tries`` ((seed, sum of
-    costs or None when unsolved) per seed). Raises as :func:`~.lacam.solve_lacam`."""
+    process, each within ``time_limit_s`` seconds of its own ``clock`` (``kwargs``, e.g.
+    ``guide``, go to every run): the solved result of least sum of costs (the first seed's
+    when none solved), plus ``tries`` ((seed, sum of costs or None when unsolved) per seed).
+    With ``patience``, once the first seed has solved here the others get at most that share
+    of its time (wall) more; a process still searching then is stopped and counts as
+    unsolved. Raises as :func:`~.lacam.solve_lacam`."""
     ctx = multiprocessing.get_context("fork")
     links, procs = [], []
     for s in seeds[1:]:
         here, there = ctx.Pipe()
         p = ctx.Process(target=_lacam, args=(there, (grid, starts, goals, time_limit_s),
                                              {"seed": s, "cache": cache, "scatter_share": scatter_share,
-                                              "clock": clock}), daemon=True)
+                                              "clock": clock, **kwargs}), daemon=True)
         p.start()
         there.close()
         links.append(here)
         procs.append(p)
     try:
+        w0 = time.perf_counter()
         results = [solve_lacam(grid, starts, goals, time_limit_s, seed=seeds[0], cache=cache,
-                               scatter_share=scatter_share, clock=clock)]
-        for link in links:
+                               scatter_share=scatter_share, clock=clock, **kwargs)]
+        until = None
+        if patience is not None and results[0]["solved"]:
+            until = time.perf_counter() + patience * (time.perf_counter() - w0)
+        for link, p in zip(links, procs, strict=True):
             try:
+                if until is not None and not link.poll(max(until - time.perf_counter(), 0.0)):
+                    p.kill()                   # still searching: the first seed's solution will do
+                    raise EOFError
                 results.append(link.recv())
-            except EOFError:                   # the child failed (it raised as this process did not)
+            except EOFError:                   # the child failed (it raised as this process did not) or was stopped
                 results.append({"solved": False, "sum_of_costs": None})
     finally:
         for link in links:
