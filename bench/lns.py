@@ -43,6 +43,17 @@ from rce_fleet.planning import load_movingai_map, load_movingai_scen
 VARIANTS = {"default": {}, "capped": {"single_expand": 5_000}}
 
 
+def first_solution(grid: LifelongGrid, starts: np.ndarray, goals: np.ndarray,
+                   time_limit_s: float = 5.0) -> tuple[DistanceCache, int, dict]:
+    """The distance cache, the lower bound (sum of distances) and LaCAM's first solution (seed 0,
+    scatter as in the pipeline, within ``time_limit_s`` CPU seconds) that LNS starts from."""
+    cache = DistanceCache(grid, max_bytes=2 * grid.n_cells * (len(goals) + 16))
+    lb = sum(int(cache.table[cache.slot(int(g)), s]) for s, g in zip(starts, goals, strict=True))
+    first = solve_lacam(grid, starts, goals, time_limit_s, seed=0, cache=cache, scatter_share=0.2,
+                        clock=time.process_time)
+    return cache, lb, first
+
+
 def run_variant(grid: LifelongGrid, paths: np.ndarray, goals: np.ndarray, cache: DistanceCache, lb: int,
                 kwargs: dict, seed: int, checkpoints: list[float], clock: str = "cpu") -> dict:
     """One LNS run from ``paths``: ratio at each checkpoint (seconds of ``clock``: "cpu", this
@@ -116,10 +127,7 @@ def main(argv: list[str] | None = None) -> int:
         for name, scen in scens:
             starts = np.array([s for s, _ in scen[:k]])
             goals = np.array([g for _, g in scen[:k]])
-            cache = DistanceCache(grid, max_bytes=2 * grid.n_cells * (k + 16))
-            lb = sum(int(cache.table[cache.slot(int(g)), s]) for s, g in zip(starts, goals, strict=True))
-            first = solve_lacam(grid, starts, goals, 5.0, seed=0, cache=cache, scatter_share=0.2,
-                                clock=time.process_time)
+            cache, lb, first = first_solution(grid, starts, goals)
             if not first["solved"]:
                 print(f"{name}, {k} agents: LaCAM found no solution in 5 CPU-s", file=sys.stderr)
                 continue

@@ -22,22 +22,20 @@ from __future__ import annotations
 
 import argparse
 import itertools
-import json
 import sys
 import time
 from pathlib import Path
 
 import numpy as np
 
-from rce_fleet.lifelong import DistanceCache, LifelongGrid
+from common import RESULTS, pyplot, write_json
+from lns import first_solution
+from planner import DEFAULT_DATA
+from rce_fleet.lifelong import LifelongGrid
 from rce_fleet.lifelong.lacam import solve_lacam
 from rce_fleet.lifelong.parallel import refine_parallel
 from rce_fleet.lifelong.refine import Refiner, refine_lns, warm_up
 from rce_fleet.planning import load_movingai_map, load_movingai_scen
-
-ROOT = Path(__file__).resolve().parents[1]
-DEFAULT_DATA = (ROOT / ".." / "shared" / "data").resolve()
-RESULTS = ROOT / "bench" / "results"
 
 
 def replan_cost(grid, paths, goals, cache, iterations: int) -> dict:
@@ -73,9 +71,7 @@ def efficiency(grid, paths, goals, cache, lb: int, budget: float, seed: int) -> 
 
 
 def plot(result: dict, path: Path) -> None:
-    import matplotlib
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
+    plt = pyplot()
     runs = result["parallel"]
     fig, ax = plt.subplots(figsize=(7, 4))
     x = np.arange(len(runs))
@@ -118,10 +114,8 @@ def main(argv: list[str] | None = None) -> int:
     goals = np.array([g for _, g in scen[: args.agents]])
     solve_lacam(grid, starts[:2], goals[:2], scatter_share=0.5)
     warm_up()
-    cache = DistanceCache(grid, max_bytes=2 * grid.n_cells * (args.agents + 16))
-    lb = int(sum(int(cache.table[cache.slot(int(g)), s]) for s, g in zip(starts, goals, strict=True)))
     print(f"LaCAM first solution, {args.agents} agents ...", flush=True)
-    first = solve_lacam(grid, starts, goals, 30.0, seed=0, cache=cache, scatter_share=0.2, clock=time.process_time)
+    cache, lb, first = first_solution(grid, starts, goals, 30.0)
     if not first["solved"]:
         print("bench/lns_parallel.py: LaCAM found no first solution", file=sys.stderr)
         return 1
@@ -140,15 +134,11 @@ def main(argv: list[str] | None = None) -> int:
         eff = "-" if r["efficiency"] is None else f"{r['efficiency']:.2f}"
         print(f"{r['seed']:>4} {r['one']['ratio']:8.4f} {r['two']['ratio']:8.4f} {r['one_double']['ratio']:8.4f} "
               f"{eff:>10}")
-    for p in (args.json, args.plot):
-        if p is not None:
-            p.parent.mkdir(parents=True, exist_ok=True)
-    if args.json:
-        args.json.write_text(json.dumps(result, indent=2))
-        print(f"wrote {args.json}")
-    if args.plot:
-        plot(result, args.plot)
-        print(f"wrote {args.plot}")
+    write_json(args.json, result)
+    print(f"wrote {args.json}")
+    args.plot.parent.mkdir(parents=True, exist_ok=True)
+    plot(result, args.plot)
+    print(f"wrote {args.plot}")
     return 0
 
 

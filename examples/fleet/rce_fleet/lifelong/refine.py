@@ -71,7 +71,8 @@ class Refiner:
             raise ValueError("refine_lns needs a solution: (T+1, n) cells whose last row is the goals")
         n = goals.shape[0]
         ncell = grid.n_cells
-        cache = cache or DistanceCache(grid, max_bytes=2 * ncell * (n + 16))
+        if cache is None:                      # an empty cache is falsy (len 0) but is the one to use
+            cache = DistanceCache(grid, max_bytes=2 * ncell * (n + 16))
         self.goals, self.nbr, self.table = goals, grid.nbr, cache.table
         self.hrows = np.array([cache.slot(int(g)) for g in goals], dtype=np.int64)
         self.lb = self.table[self.hrows, paths[0]].astype(np.int64)
