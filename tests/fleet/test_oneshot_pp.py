@@ -261,10 +261,13 @@ def test_lacam_along_one_way_lanes_in_a_crowd_with_scatter_as_the_fallback():
     assert set(tries) == {0, 1} and out["first_sum_of_costs"] == min(c for c in tries.values() if c is not None)
     assert out["sum_of_costs"] <= out["first_sum_of_costs"]
     assert_valid(g, out, starts, goals)
-    # on two processes the two seeds run at once (one forked), the same searches
+    # on two processes the two seeds run at once (one forked), the same searches; the forked one
+    # may be stopped (unsolved) when it takes half as long again (wall time) as the first
     two = plan_one_shot(g, starts, goals, time_limit_s=3, workers=2, clock=lambda: next(calls))
-    assert two["solved"] and two["initial"] == "lacam lanes" and two["lane_tries"] == out["lane_tries"]
-    assert two["first_sum_of_costs"] == out["first_sum_of_costs"]
+    assert two["solved"] and two["initial"] == "lacam lanes"
+    got = dict(two["lane_tries"])
+    assert got[0] == tries[0] and got[1] in (tries[1], None)
+    assert two["first_sum_of_costs"] == min(c for c in got.values() if c is not None)
     assert_valid(g, two, starts, goals)
     # no time for the lanes: LaCAM with scatter takes over
     fallback = plan_one_shot(g, starts, goals, time_limit_s=3, lane_share=0.0, clock=lambda: next(calls))
