@@ -136,18 +136,11 @@ def _lane_lacam(grid: LifelongGrid, starts: np.ndarray, goals: np.ndarray, cache
     at_once = max(min(workers, tries), 1)
     round_s = each_s * tries / -(-tries // at_once)
     for k in range(0, tries, at_once):
-        seeds = tuple(seed + j for j in range(k, min(k + at_once, tries)))
-        if len(seeds) > 1:
-            rs = solve_lacam_parallel(grid, starts, goals, round_s, seeds=seeds, cache=cache, clock=clock,
-                                      guide=guide, patience=0.5)
-            tries_k = rs["tries"]
-            r = rs if rs["solved"] else None
-        else:
-            r = solve_lacam(grid, starts, goals, round_s, seed=seeds[0], cache=cache, guide=guide, clock=clock)
-            tries_k = [(seeds[0], r["sum_of_costs"] if r["solved"] else None)]
-            r = r if r["solved"] else None
-        out += tries_k
-        if r is not None and (best is None or r["sum_of_costs"] < best["sum_of_costs"]):
+        seeds = tuple(seed + j for j in range(k, min(k + at_once, tries)))   # one seed: no fork
+        r = solve_lacam_parallel(grid, starts, goals, round_s, seeds=seeds, cache=cache, clock=clock,
+                                 guide=guide, patience=0.5)
+        out += r["tries"]
+        if r["solved"] and (best is None or r["sum_of_costs"] < best["sum_of_costs"]):
             best = r
     if best is not None:
         best = {key: v for key, v in best.items() if key != "tries"}
