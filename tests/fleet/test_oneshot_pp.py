@@ -239,9 +239,9 @@ AISLES = ["..............",
 
 def test_lacam_along_one_way_lanes_in_a_crowd_with_scatter_as_the_fallback():
     """In a crowd on a map of one-cell corridors plan_one_shot's first solution is LaCAM along
-    one-way lanes (the best of its seeds); when no seed solves within its share, LaCAM with
-    scatter; below the density, or on a map without corridors, the lanes do not run. Every
-    solution valid, every agent at its goal."""
+    one-way lanes (restarted until a seed solves, on one process or two); when none solves
+    within its share, LaCAM with scatter; below the density, or on a map without corridors,
+    the lanes do not run. Every solution valid, every agent at its goal."""
     from rce_fleet.lifelong.guidance import lane_costs
     from rce_fleet.lifelong.lacam import solve_lacam
     warm_up()
@@ -257,22 +257,20 @@ def test_lacam_along_one_way_lanes_in_a_crowd_with_scatter_as_the_fallback():
     calls = itertools.count(0.0, 1e-4)
     out = plan_one_shot(g, starts, goals, time_limit_s=3, clock=lambda: next(calls))
     assert out["solved"] and out["initial"] == "lacam lanes" and out["first_tries"] == []
-    tries = dict(out["lane_tries"])
-    assert set(tries) == {0, 1} and out["first_sum_of_costs"] == min(c for c in tries.values() if c is not None)
+    seeds = [s for s, _ in out["lane_tries"]]
+    assert seeds == list(range(len(seeds)))                    # one process: seeds 0, 1, ... in turn
+    assert [c for _, c in out["lane_tries"][:-1]] == [None] * (len(seeds) - 1)
+    assert out["first_sum_of_costs"] == out["lane_tries"][-1][1]
     assert out["sum_of_costs"] <= out["first_sum_of_costs"]
     assert_valid(g, out, starts, goals)
-    # on two processes the two seeds run at once (one forked), the same searches; the forked one
-    # may be stopped (unsolved) when it takes half as long again (wall time) as the first
     two = plan_one_shot(g, starts, goals, time_limit_s=3, workers=2, clock=lambda: next(calls))
     assert two["solved"] and two["initial"] == "lacam lanes"
-    got = dict(two["lane_tries"])
-    assert got[0] == tries[0] and got[1] in (tries[1], None)
-    assert two["first_sum_of_costs"] == min(c for c in got.values() if c is not None)
+    assert two["first_sum_of_costs"] in [c for _, c in two["lane_tries"]]
     assert_valid(g, two, starts, goals)
     # no time for the lanes: LaCAM with scatter takes over
     fallback = plan_one_shot(g, starts, goals, time_limit_s=3, lane_share=0.0, clock=lambda: next(calls))
     assert fallback["solved"] and fallback["initial"] == "lacam"
-    assert fallback["lane_tries"] == [(0, None), (1, None)] and len(fallback["first_tries"]) == 1
+    assert fallback["lane_tries"] == [] and len(fallback["first_tries"]) == 1
     assert_valid(g, fallback, starts, goals)
     few = plan_one_shot(g, starts[:5], goals[:5], time_limit_s=3, clock=lambda: next(calls))   # 0.1 per cell
     assert few["solved"] and few["initial"] == "lacam" and few["lane_tries"] == []
@@ -283,25 +281,69 @@ def test_lacam_along_one_way_lanes_in_a_crowd_with_scatter_as_the_fallback():
     assert_valid(open_floor, flat, pick[:10], pick[10:])
 
 
-def test_lacam_on_two_processes_stops_a_seed_still_searching_once_the_first_has_solved():
-    """With ``patience``, solve_lacam_parallel waits for the forked seeds at most that share of
-    the first seed's time once it has solved; a forked search that has not ended by then (here
-    one whose clock never returns) is stopped and counts as unsolved, and the first seed's
-    solution is the answer."""
-    import threading
-
-    from rce_fleet.lifelong.parallel import solve_lacam_parallel
+def test_lacam_restarts_with_new_seeds_under_growing_node_caps_until_one_solves():
+    """race_lacam on one process: runs capped below what the instance needs end unsolved, the
+    next seed gets a cap ``growth`` times larger, and the first run that solves is the answer;
+    a cap the instance never fits under ends unsolved when the time is spent."""
+    from rce_fleet.lifelong.parallel import race_lacam
     warm_up()
     g = grid(AISLES)
-    pick = np.random.default_rng(4).choice(np.flatnonzero(g.flat), 20, replace=False)
-    starts, goals = pick[:10], pick[10:]
-    parent, calls = os.getpid(), itertools.count(0.0, 1e-4)
+    pick = np.random.default_rng(4).choice(np.flatnonzero(g.flat), 30, replace=False)
+    starts, goals = pick[:15], pick[15:]
+    calls = itertools.count(0.0, 1e-4)
+    res = race_lacam(g, starts, goals, 3.0, seed=7, cap=0.05, growth=2.0, clock=lambda: next(calls))
+    seeds = [s for s, _ in res["tries"]]
+    assert res["solved"] and len(seeds) > 1 and seeds == list(range(7, 7 + len(seeds)))
+    assert [c for _, c in res["tries"]] == [None] * (len(seeds) - 1) + [res["sum_of_costs"]]
+    assert_valid(g, res, starts, goals)
+    never = race_lacam(g, starts, goals, 0.05, cap=0.0, clock=lambda: next(calls))
+    assert not never["solved"] and never["sum_of_costs"] is None
+    assert len(never["tries"]) > 1 and all(c is None for _, c in never["tries"])
+    with pytest.raises(ValueError, match="growth"):
+        race_lacam(g, starts, goals, 1.0, growth=0.5)
+
+
+def race_clock(parent: int, loser: str):
+    """A clock of calls for race_lacam's forked processes: the first to look at it runs; the
+    others ``loser``: "block" (search forever) or "kill" (kill -9 themselves); "kill all"
+    kills every forked process."""
+    import multiprocessing
+    import threading
+    first = multiprocessing.get_context("fork").Value("i", 0)
+    calls = itertools.count(0.0, 1e-4)
 
     def clock() -> float:
-        if os.getpid() != parent:
-            threading.Event().wait()           # the forked search never ends by itself
+        me = os.getpid()
+        if me != parent:
+            with first.get_lock():
+                if first.value == 0:
+                    first.value = me
+            if loser == "kill all" or first.value != me:
+                if loser == "block":
+                    threading.Event().wait()
+                os.kill(me, signal.SIGKILL)
         return next(calls)
+    return clock
 
-    res = solve_lacam_parallel(g, starts, goals, 3.0, seeds=(0, 1), clock=clock, patience=0.0)
-    assert res["solved"] and res["tries"] == [(0, res["sum_of_costs"]), (1, None)]
+
+@pytest.mark.parametrize("loser", ["block", "kill"])
+def test_lacam_race_on_two_processes_takes_the_first_solution_and_outlives_a_process_killed(loser):
+    """race_lacam on two forked processes: the first solution is the answer and the process
+    still searching is stopped (here one whose clock never returns), or a process that dies
+    (kill -9) only loses its runs; when both die, no solution and plan_one_shot's LaCAM with
+    scatter takes over."""
+    from rce_fleet.lifelong.parallel import race_lacam
+    warm_up()
+    g = grid(AISLES)
+    pick = np.random.default_rng(4).choice(np.flatnonzero(g.flat), 30, replace=False)
+    starts, goals = pick[:15], pick[15:]
+    res = race_lacam(g, starts, goals, 3.0, workers=2, clock=race_clock(os.getpid(), loser))
+    assert res["solved"] and res["tries"][-1][1] == res["sum_of_costs"]
+    assert len({s % 2 for s, _ in res["tries"]}) == 1                # every run from the one process that ran
+    assert all(c is None for _, c in res["tries"][:-1])
     assert_valid(g, res, starts, goals)
+    none = race_lacam(g, starts, goals, 3.0, workers=2, clock=race_clock(os.getpid(), "kill all"))
+    assert not none["solved"] and none["tries"] == []
+    shot = plan_one_shot(g, starts, goals, time_limit_s=3, workers=2, clock=race_clock(os.getpid(), "kill all"))
+    assert shot["solved"] and shot["initial"] == "lacam" and shot["lane_tries"] == []
+    assert_valid(g, shot, starts, goals)

@@ -111,6 +111,11 @@ class DistanceCache:
         self.computed += 1
         return s
 
+    def slots(self, goals) -> np.ndarray:
+        """The rows of ``table`` with the distance maps of ``goals`` ((n,) cells), in their
+        order ((n,) int64; computed on a miss, so all of them must fit in the cache)."""
+        return np.array([self.slot(int(g)) for g in goals], dtype=np.int64)
+
     def dist(self, src: int, goal: int) -> int:
         """Steps from ``src`` to ``goal`` (UNREACHABLE if none), from the cached map of
         ``goal`` if there is one, else by a breadth-first search that stops at ``goal``."""
@@ -142,7 +147,7 @@ def one_shot_distances(grid: LifelongGrid, starts, goals, cache: DistanceCache |
         raise ValueError("two agents share a start or a goal cell")
     if cache is None:                          # an empty cache is falsy (len 0) but is the one to use
         cache = DistanceCache(grid, max_bytes=max(2 * grid.n_cells * (n + 16), 64 * 2 ** 20))
-    rows = np.array([cache.slot(int(g)) for g in goals], dtype=np.int64)
+    rows = cache.slots(goals)
     dist = cache.table[rows, starts]
     if (dist == UNREACHABLE).any():
         bad = int(np.flatnonzero(dist == UNREACHABLE)[0])

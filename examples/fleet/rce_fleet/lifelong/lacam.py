@@ -55,7 +55,8 @@ class _Node:
 
 def solve_lacam(grid: LifelongGrid, starts: np.ndarray, goals: np.ndarray, time_limit_s: float = 5.0, seed: int = 0,
                 cache: DistanceCache | None = None, scatter_share: float = 0.0, stuck_steps: int = 20,
-                noise: float = 100.0, guide: DistanceCache | None = None, clock=time.perf_counter) -> dict:
+                noise: float = 100.0, guide: DistanceCache | np.ndarray | None = None, max_nodes: int | None = None,
+                clock=time.perf_counter) -> dict:
     """Solve one-shot MAPF (every agent from its start to its goal, 4-neighbour moves).
 
     starts, goals: (n,) cells. ``scatter_share``: the share of ``time_limit_s`` for lacam3's
@@ -65,7 +66,10 @@ def solve_lacam(grid: LifelongGrid, starts: np.ndarray, goals: np.ndarray, time_
     tie-breaks scaled by ``noise`` (the lifelong planner's random walk out of a jam; 0 turns it
     off). ``guide``: distances PIBT follows instead of ``cache``'s breadth-first ones (a
     :class:`~.distances.DistanceCache` with move costs, e.g. :func:`~.guidance.lane_costs`'s
-    one-way lanes); progress (``stuck_steps``) is still counted in steps to the goal.
+    one-way lanes, or its rows for ``goals``, (n, cells) uint16 in their order, to share among
+    runs); progress (``stuck_steps``) is still counted in steps to the goal.
+    ``max_nodes``: stop unsolved once the search has generated more high-level nodes (a cap for
+    restarts, :func:`~.parallel.race_lacam`; None: no cap).
     Returns a dict as
     :func:`~.pibt.solve_one_shot`: ``paths`` ((T+1, n) cells, the last row the goals when
     ``solved``), ``solved``, ``sum_of_costs`` (each agent's last arrival, summed),
@@ -82,7 +86,7 @@ def solve_lacam(grid: LifelongGrid, starts: np.ndarray, goals: np.ndarray, time_
     nbr, table = grid.nbr, cache.table
     step_table, step_slot = table, slot
     if guide is not None:                      # PIBT follows the guide's rows, in the goals' order
-        step_table = guide.table[[guide.slot(int(g)) for g in goals]]
+        step_table = guide.table[guide.slots(goals)] if isinstance(guide, DistanceCache) else guide
         step_slot = np.arange(n, dtype=np.int64)
     prefer, sc = NO_PREFER, {}
     if scatter_share > 0 and n:
@@ -98,7 +102,8 @@ def solve_lacam(grid: LifelongGrid, starts: np.ndarray, goals: np.ndarray, time_
     goal_key = goals.tobytes()
     found = None
     nxt = np.empty(n, dtype=np.int64)
-    while stack and clock() - t0 < time_limit_s:
+    cap = max_nodes if max_nodes is not None else float("inf")
+    while stack and clock() - t0 < time_limit_s and len(explored) <= cap:
         node = stack[-1]
         if node.config.tobytes() == goal_key:
             found = node

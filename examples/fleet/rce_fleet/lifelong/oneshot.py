@@ -11,15 +11,15 @@ its first solution at 400 agents is closer to the lower bound than PP's (1.18 - 
 In a crowd (at least ``lane_density`` agents per free cell) on a map of one-cell corridors,
 LaCAM first runs without scatter, its PIBT following one-way lanes (:mod:`.guidance`, the
 lifelong planner's crisscross guidance: a move against a corridor's lane costs 1 + ``lanes``),
-for a few seeds within a short time each; the best solved one goes on, and LaCAM with scatter
-only runs when none solves. Agents meeting head-on in a corridor are what congests PIBT at
-high density; along the lanes the first solution comes in about half the time and closer to
-the lower bound (measured at 1000 agents, 0.175 per free cell, 4.5 CPU-s per process: 1.45
-- 1.46x after LNS against 1.42 - 1.57x in one process, 1.29 - 1.33x against 1.39 - 1.48x on
-two; at 900 agents, 0.158 per free cell, the lanes lose on one process (1.37 - 1.42x against
-1.27 - 1.34x) and draw on two, and further down their detours cost more than they save). With ``workers=2``
-LNS runs on two processes (:mod:`.parallel`), and LaCAM with scatter, where it runs, with two
-seeds; each process within the budget of its own clock. Measurements: ``docs/lifelong.md``.
+restarted with new seeds under growing node caps until one solves
+(:func:`~.parallel.race_lacam`), and LaCAM with scatter only runs when none solves within
+``lane_share`` of the budget. Agents meeting head-on in a corridor are what congests PIBT at
+high density; along the lanes the first solution comes sooner and closer to the lower bound
+(at 1000 agents, 0.175 per free cell: 1.69 - 1.93x in 0.2 - 1.3 s on two processes, against
+1.85 - 1.99x in 1.1 - 1.4 CPU-s with scatter), and below about 0.17 per free cell their
+detours cost more than they save. With ``workers=2`` LNS runs on two processes
+(:mod:`.parallel`), and LaCAM with scatter, where it runs, with two seeds; each process within
+the budget of its own clock. Measurements: ``docs/lifelong.md``.
 """
 from __future__ import annotations
 
@@ -31,7 +31,7 @@ from .distances import DistanceCache
 from .grid import LifelongGrid
 from .guidance import lane_costs
 from .lacam import solve_lacam
-from .parallel import children_cpu, refine_parallel, solve_lacam_parallel
+from .parallel import children_cpu, race_lacam, refine_parallel, solve_lacam_parallel
 from .pp import solve_pp
 from .refine import refine_lns
 
@@ -43,7 +43,7 @@ INITIAL_SOLVERS = ("pp", "lacam")
 def plan_one_shot(grid: LifelongGrid, starts: np.ndarray, goals: np.ndarray, time_limit_s: float = 5.0,
                   seed: int = 0, cache: DistanceCache | None = None, initial: str = "lacam", pp_share: float = 0.15,
                   scatter_share: float = 0.2, workers: int = 1, lanes: int = 2, lane_density: float = 0.17,
-                  lane_tries: int = 2, lane_share: float = 0.1, clock=time.perf_counter) -> dict:
+                  lane_share: float = 0.3, clock=time.perf_counter) -> dict:
     """Solve one-shot MAPF (4-neighbour moves) within ``time_limit_s`` seconds of ``clock``
     (wall time; ``time.process_time`` for this process's CPU).
 
@@ -52,10 +52,9 @@ def plan_one_shot(grid: LifelongGrid, starts: np.ndarray, goals: np.ndarray, tim
     ``scatter_share`` of its time on :func:`~.scatter.scatter` paths for PIBT to prefer.
     With n >= ``lane_density`` x the free cells and ``lanes`` > 0 on a map with one-cell
     corridors, LaCAM along one-way lanes (a move against a lane costing 1 + ``lanes``, no
-    scatter) runs first with the seeds ``seed`` ... ``seed + lane_tries - 1``, each within
-    ``lane_share`` of the budget (``workers`` seeds at once), and the best solved one is the
-    first solution; LaCAM with
-    scatter (as below) runs only when none solves, in the time left.
+    scatter) runs first, restarted with new seeds under growing node caps on ``workers``
+    processes within ``lane_share`` of the budget (:func:`~.parallel.race_lacam`), and the first
+    solution wins; LaCAM with scatter (as below) runs only when none solves, in the time left.
     ``workers`` > 1: LaCAM runs once per process with seeds ``seed`` ... ``seed + workers - 1``
     and the best first solution is kept (:func:`~.parallel.solve_lacam_parallel`), and LNS runs
     on that many processes (:func:`~.parallel.refine_parallel`), each process within the budget
@@ -86,8 +85,8 @@ def plan_one_shot(grid: LifelongGrid, starts: np.ndarray, goals: np.ndarray, tim
         used = "pp"
     lane_res, lane_tries_out = None, []
     if (res is None or not res["solved"]) and lanes > 0 and n >= lane_density * grid.free_cells().shape[0]:
-        lane_res, lane_tries_out = _lane_lacam(grid, starts, goals, cache, lanes, lane_tries,
-                                               lane_share * time_limit_s, seed, clock, workers)
+        lane_res, lane_tries_out = _lane_lacam(grid, starts, goals, cache, lanes, lane_share * time_limit_s, seed,
+                                               clock, workers)
         if lane_res is not None:
             res, used = lane_res, "lacam lanes"
     if res is None or not res["solved"]:
@@ -118,30 +117,17 @@ def plan_one_shot(grid: LifelongGrid, starts: np.ndarray, goals: np.ndarray, tim
 
 
 def _lane_lacam(grid: LifelongGrid, starts: np.ndarray, goals: np.ndarray, cache: DistanceCache, against: int,
-                tries: int, each_s: float, seed: int, clock, workers: int = 1) -> tuple[dict | None, list]:
+                time_limit_s: float, seed: int, clock, workers: int = 1) -> tuple[dict | None, list]:
     """LaCAM without scatter, PIBT following one-way lanes (:func:`~.guidance.lane_costs`,
-    a move against a lane costing 1 + ``against``), with the seeds ``seed``, ``seed + 1``, ...
-    (``tries`` of them), ``workers`` at a time (the others on forked processes,
-    :func:`~.parallel.solve_lacam_parallel`), within ``tries`` x ``each_s`` seconds of
-    ``clock`` in all, shared equally by the rounds (on one process ``each_s`` per seed; on two
-    with two seeds, both at once within twice that, the forked one stopped when it is still
-    searching half as long again as this process's seed took to solve). Returns the
-    solved result with the least sum of costs (None when none solved or the map has no lanes)
-    and each try's (seed, sum of costs or None)."""
+    a move against a lane costing 1 + ``against``), restarted with the seeds ``seed``,
+    ``seed + 1``, ... on ``workers`` processes within ``time_limit_s`` seconds of ``clock``
+    (:func:`~.parallel.race_lacam`). Returns the first solved result (None when none solved
+    or the map has no lanes) and each run's (seed, sum of costs or None)."""
     cost = lane_costs(grid, against=against)
     if not (cost > 1).any():
         return None, []
     guide = DistanceCache(grid, max_bytes=cache.table.nbytes, cost=cost)
-    best, out = None, []
-    at_once = max(min(workers, tries), 1)
-    round_s = each_s * tries / -(-tries // at_once)
-    for k in range(0, tries, at_once):
-        seeds = tuple(seed + j for j in range(k, min(k + at_once, tries)))   # one seed: no fork
-        r = solve_lacam_parallel(grid, starts, goals, round_s, seeds=seeds, cache=cache, clock=clock,
-                                 guide=guide, patience=0.5)
-        out += r["tries"]
-        if r["solved"] and (best is None or r["sum_of_costs"] < best["sum_of_costs"]):
-            best = r
-    if best is not None:
-        best = {key: v for key, v in best.items() if key != "tries"}
-    return best, out
+    r = race_lacam(grid, starts, goals, time_limit_s, seed=seed, workers=workers, cache=cache, clock=clock,
+                   guide=guide)
+    best = {key: v for key, v in r.items() if key != "tries"} if r["solved"] else None
+    return best, r["tries"]

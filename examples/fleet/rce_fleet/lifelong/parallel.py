@@ -1,5 +1,6 @@
 """One-shot MAPF on several cores: LaCAM with other seeds on the other cores, the best first
-solution kept (:func:`solve_lacam_parallel`), and anytime LNS with :class:`~.refine.Refiner`
+solution kept (:func:`solve_lacam_parallel`), or restarted on every core until the first
+solves (:func:`race_lacam`), and anytime LNS with :class:`~.refine.Refiner`
 copies in forked worker processes, each re-planning only its own agents, merged in rounds
 (:func:`refine_parallel`; lacam3 refines on several threads, Okumura AAMAS-24; here processes,
 as the searches hold the GIL between compiled calls).
@@ -14,18 +15,21 @@ other threads).
 """
 from __future__ import annotations
 
+import itertools
 import multiprocessing
 import os
 import time
+from multiprocessing.connection import wait
 
 import numpy as np
 
 from .distances import DistanceCache
 from .grid import LifelongGrid
+from .distances import one_shot_distances
 from .lacam import solve_lacam
 from .refine import Refiner
 
-__all__ = ["children_cpu", "refine_parallel", "solve_lacam_parallel"]
+__all__ = ["children_cpu", "race_lacam", "refine_parallel", "solve_lacam_parallel"]
 
 
 def _worker(ref: Refiner, conn, clock) -> None:
@@ -143,15 +147,12 @@ def _lacam(conn, args: tuple, kwargs: dict) -> None:
 
 def solve_lacam_parallel(grid: LifelongGrid, starts: np.ndarray, goals: np.ndarray, time_limit_s: float = 5.0,
                          seeds: tuple[int, ...] = (0, 1), cache: DistanceCache | None = None,
-                         scatter_share: float = 0.0, clock=time.perf_counter, patience: float | None = None,
-                         **kwargs) -> dict:
+                         scatter_share: float = 0.0, clock=time.perf_counter, **kwargs) -> dict:
     """:func:`~.lacam.solve_lacam` once per seed, the first here and each other on a forked
     process, each within ``time_limit_s`` seconds of its own ``clock`` (``kwargs``, e.g.
     ``guide``, go to every run): the solved result of least sum of costs (the first seed's
     when none solved), plus ``tries`` ((seed, sum of costs or None when unsolved) per seed).
-    With ``patience``, once the first seed has solved here the others get at most that share
-    of its time (wall) more; a process still searching then is stopped and counts as
-    unsolved. Raises as :func:`~.lacam.solve_lacam`."""
+    Raises as :func:`~.lacam.solve_lacam`."""
     ctx = multiprocessing.get_context("fork")
     links, procs = [], []
     for s in seeds[1:]:
@@ -164,19 +165,12 @@ def solve_lacam_parallel(grid: LifelongGrid, starts: np.ndarray, goals: np.ndarr
         links.append(here)
         procs.append(p)
     try:
-        w0 = time.perf_counter()
         results = [solve_lacam(grid, starts, goals, time_limit_s, seed=seeds[0], cache=cache,
                                scatter_share=scatter_share, clock=clock, **kwargs)]
-        until = None
-        if patience is not None and results[0]["solved"]:
-            until = time.perf_counter() + patience * (time.perf_counter() - w0)
-        for link, p in zip(links, procs, strict=True):
+        for link in links:
             try:
-                if until is not None and not link.poll(max(until - time.perf_counter(), 0.0)):
-                    p.kill()                   # still searching: the first seed's solution will do
-                    raise EOFError
                 results.append(link.recv())
-            except EOFError:                   # the child failed (it raised as this process did not) or was stopped
+            except EOFError:                   # the child failed (it raised as this process did not) or died
                 results.append({"solved": False, "sum_of_costs": None})
     finally:
         for link in links:
@@ -186,6 +180,104 @@ def solve_lacam_parallel(grid: LifelongGrid, starts: np.ndarray, goals: np.ndarr
     solved = [r for r in results if r["solved"]] or results[:1]
     best = min(solved, key=lambda r: r["sum_of_costs"])
     tries = [(s, r["sum_of_costs"] if r["solved"] else None) for s, r in zip(seeds, results, strict=True)]
+    return {**best, "tries": tries}
+
+
+def _restarts(grid: LifelongGrid, starts: np.ndarray, goals: np.ndarray, time_limit_s: float, runs, clock,
+              report, **kwargs) -> dict | None:
+    """:func:`~.lacam.solve_lacam` for each (seed, node cap) of ``runs`` in turn, until one
+    solves or ``time_limit_s`` seconds of ``clock`` are spent; ``report(seed, result or None)``
+    after each (None: unsolved). Returns the solved result or None."""
+    t0 = clock()
+    for s, cap in runs:
+        left = time_limit_s - (clock() - t0)
+        if left <= 0:
+            break
+        r = solve_lacam(grid, starts, goals, left, seed=s, max_nodes=cap, clock=clock, **kwargs)
+        report(s, r if r["solved"] else None)
+        if r["solved"]:
+            return r
+    return None
+
+
+def _race(conn, *args, **kwargs) -> None:
+    try:
+        _restarts(*args, report=lambda s, r: conn.send((s, r)), **kwargs)
+    finally:
+        conn.close()
+
+
+def race_lacam(grid: LifelongGrid, starts: np.ndarray, goals: np.ndarray, time_limit_s: float, seed: int = 0,
+               workers: int = 1, cache: DistanceCache | None = None, cap: float = 3.0, growth: float = 1.25,
+               clock=time.perf_counter, **kwargs) -> dict:
+    """LaCAM restarted with new seeds under growing node caps, on ``workers`` processes, the
+    first solution wins: restarts cut the heavy tail of randomised search (Gomes, Selman and
+    Kautz, AAAI-98), and a LaCAM run that solves quickly is a PIBT rollout with little
+    backtracking, whose paths are also the shortest. Measured at 1000 agents on the MovingAI
+    warehouse along one-way lanes, 12 instances x 10 seeds: the runs that solved within 3x the
+    longest start-goal distance in nodes ended at 1.69 - 1.93x the lower bound, those that
+    took 3 - 10x at 1.82 - 2.80x, and 0 - 6 of an instance's 10 seeds did not solve in 10x.
+
+    Process ``w`` (0 ... ``workers`` - 1) runs the seeds ``seed + w``, ``seed + w +
+    workers``, ...; its ``j``-th run is capped at ``cap`` x ``growth`` ** ``j`` x the longest
+    start-goal distance high-level nodes (:func:`~.lacam.solve_lacam`'s ``max_nodes``: a run
+    generates about one node per step of its makespan), so a map where solutions take longer
+    still gets them. Each process stops after ``time_limit_s`` seconds of its own ``clock``.
+    With ``workers`` > 1 every run is on a forked process (the distances are computed here
+    first, and inherited), the others are stopped once one has solved: call it from a process
+    that may fork. ``kwargs`` (e.g. ``guide``, ``noise``) go to every run.
+
+    Returns the solved result (a dict as :func:`~.lacam.solve_lacam`; ``{"solved": False,
+    "sum_of_costs": None}`` when none solved) plus ``tries``: (seed, sum of costs or None) of
+    every run that ended, in the order they ended. Raises ValueError for ``cap`` < 0 or
+    ``growth`` < 1, and as :func:`~.lacam.solve_lacam`.
+    """
+    if cap < 0 or growth < 1:
+        raise ValueError(f"race_lacam needs cap >= 0 and growth >= 1, got cap={cap}, growth={growth}")
+    starts, goals, cache, _, d0 = one_shot_distances(grid, starts, goals, cache)
+    if isinstance(kwargs.get("guide"), DistanceCache):   # the guide's rows once, for every run
+        kwargs["guide"] = kwargs["guide"].table[kwargs["guide"].slots(goals)]
+    base = cap * max(int(d0.max()) if d0.size else 1, 1)
+    tries: list[tuple[int, int | None]] = []
+    won: list[dict] = []
+
+    def record(s: int, r: dict | None) -> None:
+        tries.append((s, r["sum_of_costs"] if r is not None else None))
+        if r is not None:
+            won.append(r)
+
+    def runs(w: int):
+        return ((seed + w + j * workers, int(base * growth ** min(j, 200))) for j in itertools.count())
+
+    if workers <= 1:
+        _restarts(grid, starts, goals, time_limit_s, runs(0), clock, record, cache=cache, **kwargs)
+    else:
+        ctx = multiprocessing.get_context("fork")
+        links, procs = [], []
+        for w in range(workers):
+            here, there = ctx.Pipe(duplex=False)
+            p = ctx.Process(target=_race, args=(there, grid, starts, goals, time_limit_s, runs(w), clock),
+                            kwargs={"cache": cache, **kwargs}, daemon=True)
+            p.start()
+            there.close()
+            links.append(here)
+            procs.append(p)
+        try:
+            pending = list(links)
+            while pending and not won:
+                for link in wait(pending):
+                    try:
+                        record(*link.recv())
+                    except EOFError:           # the process ended (or died): no more runs from it
+                        pending.remove(link)
+        finally:
+            for p in procs:
+                p.kill()                       # still searching: a solution is in
+            for link in links:
+                link.close()
+            for p in procs:
+                p.join()
+    best = min(won, key=lambda r: r["sum_of_costs"]) if won else {"solved": False, "sum_of_costs": None}
     return {**best, "tries": tries}
 
 

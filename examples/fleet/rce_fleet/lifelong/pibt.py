@@ -215,7 +215,7 @@ def solve_one_shot(grid: LifelongGrid, starts: np.ndarray, goals: np.ndarray, ti
     n = starts.shape[0]
     if cache is None:                          # an empty cache is falsy (len 0) but is the one to use
         cache = DistanceCache(grid, max_bytes=max(2 * grid.n_cells * (n + 16), 64 * 2 ** 20))
-    slot = np.array([cache.slot(int(g)) for g in goals], dtype=np.int64)
+    slot = cache.slots(goals)
     if (cache.table[slot, starts] == 65535).any():
         bad = int(np.flatnonzero(cache.table[slot, starts] == 65535)[0])
         raise ValueError(f"agent {bad}: goal {int(goals[bad])} cannot be reached from {int(starts[bad])}")

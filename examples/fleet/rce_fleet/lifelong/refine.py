@@ -74,7 +74,7 @@ class Refiner:
         if cache is None:                      # an empty cache is falsy (len 0) but is the one to use
             cache = DistanceCache(grid, max_bytes=2 * ncell * (n + 16))
         self.goals, self.nbr, self.table = goals, grid.nbr, cache.table
-        self.hrows = np.array([cache.slot(int(g)) for g in goals], dtype=np.int64)
+        self.hrows = cache.slots(goals)
         self.lb = self.table[self.hrows, paths[0]].astype(np.int64)
         self.res = SpaceTimeTable(n, ncell, paths.shape[0] + slack, int(self.lb.max()) + 1)
         self.res.paths[:, : paths.shape[0]] = paths.T
