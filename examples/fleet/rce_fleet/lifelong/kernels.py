@@ -576,6 +576,55 @@ def heading_costs(nbr, dist, slot, pos, head, out):
         out[a] = heading_cost(nbr, dist, slot[a], pos[a], head[a]) if slot[a] >= 0 else 0.0
 
 
+@njit(cache=True)
+def lacam_child(config, nxt, cell_of, goals, dist, slot, prio, best, stuck):
+    """The configuration PIBT generated from a LaCAM node, checked and scored in one pass.
+
+    config, nxt (n,) int64 cells: the node's configuration and the one generated from it;
+    cell_of (cells,) int64 all -1 (scratch, left all -1); goals (n,) cells; dist (k, cells)
+    uint16 rows, slot (n,) each agent's row; prio (n,) float64 priorities, best (n,) int64
+    least distance to the goal so far, stuck (n,) int64 configurations since it last fell.
+    Returns (ok, prio, best, stuck, order) of the new node: ok False when two agents share a
+    cell or swap (a constraint PIBT could not honour; the arrays then empty); prio, as in
+    LaCAM (Okumura, AAAI-23), + 1 off the goal and its fraction at the goal; order the agents
+    by decreasing priority, stable."""
+    n = config.shape[0]
+    ok = True
+    k = 0
+    while k < n:                               # vertex conflicts
+        if cell_of[nxt[k]] >= 0:
+            ok = False
+            break
+        cell_of[nxt[k]] = k
+        k += 1
+    for i in range(k):
+        cell_of[nxt[i]] = -1
+    if ok:                                     # swap conflicts
+        for i in range(n):
+            cell_of[config[i]] = i
+        for i in range(n):
+            j = cell_of[nxt[i]]
+            if j >= 0 and j != i and nxt[j] == config[i]:
+                ok = False
+                break
+        for i in range(n):
+            cell_of[config[i]] = -1
+    if not ok:
+        e = np.empty(0, np.int64)
+        return False, np.empty(0), e, e, e
+    p = np.empty(n)
+    b = np.empty(n, np.int64)
+    st = np.empty(n, np.int64)
+    for i in range(n):
+        at = nxt[i] == goals[i]
+        p[i] = prio[i] - np.floor(prio[i]) if at else prio[i] + 1.0
+        d = np.int64(dist[slot[i], nxt[i]])
+        b[i] = min(best[i], d)
+        st[i] = 0 if (d < best[i] or at) else stuck[i] + 1
+    order = np.argsort(-p, kind="mergesort")
+    return True, p, b, st, order
+
+
 def warm_up() -> None:
     """Compile (or load from numba's cache) every kernel on a 3 x 3 grid, so that no timed
     step pays for compilation."""
@@ -598,3 +647,5 @@ def warm_up() -> None:
               True, claim, np.full(2, -1, dtype=np.int64), NO_PREFER)
     mapf_t_actions(g.nbr, pos, head, nxt, dist, slot, np.empty(2, dtype=np.int64), claim)
     heading_costs(g.nbr, dist, slot, pos, head, np.empty(2))
+    lacam_child(pos, pos[::-1].copy(), np.full(g.n_cells, -1, np.int64), goal, dist, np.zeros(2, np.int64),
+                np.zeros(2), np.zeros(2, np.int64), np.zeros(2, np.int64))

@@ -23,7 +23,7 @@ import numpy as np
 
 from .distances import DistanceCache, one_shot_distances
 from .grid import LifelongGrid
-from .kernels import NO_PREFER, pibt_step
+from .kernels import NO_PREFER, lacam_child, pibt_step
 from .scatter import scatter
 
 __all__ = ["solve_lacam"]
@@ -46,10 +46,11 @@ class _Node:
 
     __slots__ = ("best", "config", "order", "parent", "prio", "stuck", "tree")
 
-    def __init__(self, config: np.ndarray, parent, prio: np.ndarray, best: np.ndarray, stuck: np.ndarray):
+    def __init__(self, config: np.ndarray, parent, prio: np.ndarray, best: np.ndarray, stuck: np.ndarray,
+                 order: np.ndarray | None = None):
         self.config, self.parent, self.prio = config, parent, prio
         self.best, self.stuck = best, stuck
-        self.order = np.argsort(-prio, kind="stable").astype(np.int64)
+        self.order = np.argsort(-prio, kind="stable").astype(np.int64) if order is None else order
         self.tree: deque = deque([_Constraint(None, -1, -1)])
 
 
@@ -94,7 +95,6 @@ def solve_lacam(grid: LifelongGrid, starts: np.ndarray, goals: np.ndarray, time_
     head = np.full(n, -1, dtype=np.int64)
     no_claim = np.full(n, -1, dtype=np.int64)
     owner = np.full(grid.n_cells, -1, dtype=np.int64)
-    ids = np.arange(n)
     root = _Node(starts.copy(), None, d0.astype(float) / max(1, int(d0.max())), d0.astype(np.int64),
                  np.zeros(n, dtype=np.int64))
     explored = {starts.tobytes(): root}
@@ -129,26 +129,15 @@ def solve_lacam(grid: LifelongGrid, starts: np.ndarray, goals: np.ndarray, time_
             rnd[node.stuck > stuck_steps] *= noise
         pibt_step(nbr, node.config, head, step_table, step_slot, goals, node.order, False, 0.0, rnd, nxt, True,
                   no_claim, fixed, prefer)
-        # constraints PIBT could not honour show up as vertex or swap conflicts
-        owner[nxt] = ids                       # two agents on one cell: one of them is overwritten
-        vertex = (owner[nxt] != ids).any()
-        owner[nxt] = -1
-        if vertex:
-            continue
-        owner[node.config] = ids
-        b = owner[nxt]
-        swap = (b >= 0) & (b != ids) & (nxt[np.maximum(b, 0)] == node.config)
-        owner[node.config] = -1
-        if swap.any():
-            continue
         key = nxt.tobytes()
         if key in explored:
             continue
-        at = nxt == goals
-        prio = np.where(at, node.prio - np.floor(node.prio), node.prio + 1)
-        dn = table[slot, nxt].astype(np.int64)
-        better = dn < node.best
-        new = _Node(nxt.copy(), node, prio, np.minimum(node.best, dn), np.where(better | at, 0, node.stuck + 1))
+        # constraints PIBT could not honour show up as vertex or swap conflicts
+        ok, prio, best, stuck, order = lacam_child(node.config, nxt, owner, goals, table, slot, node.prio,
+                                                   node.best, node.stuck)
+        if not ok:
+            continue
+        new = _Node(nxt.copy(), node, prio, best, stuck, order)
         explored[key] = new
         stack.append(new)
     configs = []
