@@ -347,3 +347,28 @@ def test_lacam_race_on_two_processes_takes_the_first_solution_and_outlives_a_pro
     shot = plan_one_shot(g, starts, goals, time_limit_s=3, workers=2, clock=race_clock(os.getpid(), "kill all"))
     assert shot["solved"] and shot["initial"] == "lacam" and shot["lane_tries"] == []
     assert_valid(g, shot, starts, goals)
+
+
+def test_the_restarts_bench_reports_every_run_and_the_runs_within_the_cap(tmp_path):
+    """``bench/lacam_restarts.py`` end to end on a small cut: each LaCAM run along the lanes
+    (solved or not, its nodes over the longest distance, its ratio to the lower bound), the
+    runs counted within the first cap, the rest and the unsolved, and the plot."""
+    import json
+    import subprocess
+    import sys
+    bench = Path(__file__).resolve().parents[2] / "bench" / "lacam_restarts.py"
+    out, png = tmp_path / "r.json", tmp_path / "r.png"
+    p = subprocess.run([sys.executable, str(bench), "--agents", "300", "--scen-seeds", "1", "--seeds", "3",
+                        "--json", str(out), "--plot", str(png)], capture_output=True, text=True, timeout=300,
+                       cwd=tmp_path)
+    assert p.returncode == 0, (p.stdout + p.stderr)[-3000:]
+    res = json.loads(out.read_text())
+    assert [r["scenario"] for r in res["rows"]] == ["random-1", "seed 1"]
+    for row in res["rows"]:
+        assert [r["seed"] for r in row["runs"]] == [0, 1, 2]
+        assert sum(row["summary"].values()) == 3 and row["longest"] > 0
+        for r in row["runs"]:
+            assert (r["ratio"] >= 1.0 and r["nodes"] > 1.0) if r["solved"] else r["ratio"] is None
+            assert r["nodes"] <= res["max_cap"] + 1
+        assert row["summary"]["fast"] == sum(r["solved"] and r["nodes"] <= res["cap"] for r in row["runs"])
+    assert png.stat().st_size > 1000 and "solved within 3x" in p.stdout
