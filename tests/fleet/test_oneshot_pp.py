@@ -254,6 +254,12 @@ def test_lacam_along_one_way_lanes_in_a_crowd_with_scatter_as_the_fallback():
     res = solve_lacam(g, starts, goals, time_limit_s=30, cache=cache, guide=guide)
     assert res["solved"] and len(cache) == 15 and len(guide) == 15
     assert_valid(g, res, starts, goals)
+    # in the tail (here from the start: all agents) PIBT follows the shortest ways, as unguided
+    plain = solve_lacam(g, starts, goals, time_limit_s=30, cache=cache, seed=3)
+    tail = solve_lacam(g, starts, goals, time_limit_s=30, cache=cache, guide=guide, tail_share=1.0, seed=3)
+    lanes = solve_lacam(g, starts, goals, time_limit_s=30, cache=cache, guide=guide, tail_share=0.0, seed=3)
+    assert plain["paths"].shape == tail["paths"].shape and (plain["paths"] == tail["paths"]).all()
+    assert lanes["paths"].shape != plain["paths"].shape or (lanes["paths"] != plain["paths"]).any()
     calls = itertools.count(0.0, 1e-4)
     out = plan_one_shot(g, starts, goals, time_limit_s=3, clock=lambda: next(calls))
     assert out["solved"] and out["initial"] == "lacam lanes" and out["first_tries"] == []
