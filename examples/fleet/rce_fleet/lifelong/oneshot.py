@@ -15,9 +15,9 @@ restarted with new seeds under growing node caps until one solves
 (:func:`~.parallel.race_lacam`), and LaCAM with scatter only runs when none solves within
 ``lane_share`` of the budget. Agents meeting head-on in a corridor are what congests PIBT at
 high density; along the lanes the first solution comes sooner and closer to the lower bound
-(at 1000 agents, 0.175 per free cell: 1.69 - 1.93x in 0.2 - 1.3 s on two processes, against
-1.85 - 1.99x in 1.1 - 1.4 CPU-s with scatter), and below about 0.17 per free cell their
-detours cost more than they save. With ``workers=2`` LNS runs on two processes
+(at 1000 agents, 0.175 per free cell: 1.70 - 1.78x in 0.2 - 0.4 s on two processes, against
+1.85 - 1.99x in 1.1 - 1.4 CPU-s with scatter); below about 0.17 per free cell they did not
+pay (measured before PIBT took the shortest ways in the tail). With ``workers=2`` LNS runs on two processes
 (:mod:`.parallel`), and LaCAM with scatter, where it runs, with two seeds; each process within
 the budget of its own clock. Measurements: ``docs/lifelong.md``.
 """
