@@ -14,7 +14,8 @@ slower ones cost; ``race_lacam`` restarts a run that has not solved within its c
 Usage::
 
     .venv/bin/python bench/lacam_restarts.py [--agents 1000] [--scen-seeds 1 2 3 4 5 6 7 8 9 10 11]
-        [--seeds 10] [--cap 3] [--max-cap 10] [--tail-share 0.2] [--data ../shared/data] [--json PATH] [--plot PATH]
+        [--seeds 10] [--cap 3] [--max-cap 10] [--tail-share 0.2] [--lanes 2] [--data ../shared/data]
+        [--json PATH] [--plot PATH]
 
 Results go to ``bench/results/`` by default (lacam_restarts.json, lacam_restarts.png: each run's
 sum of costs over the lower bound against its nodes over the longest distance).
@@ -89,6 +90,8 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--tail-share", type=float, default=0.2,
                     help="the share of agents off their goals from which the lanes give way to the shortest ways"
                          " (0: lanes to the end)")
+    ap.add_argument("--lanes", type=int, default=2,
+                    help="a move against a lane costs 1 + LANES (plan_one_shot's lanes)")
     ap.add_argument("--json", type=Path, default=RESULTS / "lacam_restarts.json")
     ap.add_argument("--plot", type=Path, default=RESULTS / "lacam_restarts.png")
     args = ap.parse_args(argv)
@@ -103,7 +106,7 @@ def main(argv: list[str] | None = None) -> int:
     for name, scen in scens:
         pairs = np.array(scen[:args.agents])
         row = {"scenario": name, "agents": args.agents,
-               **run_instance(grid, pairs[:, 0], pairs[:, 1], args.seeds, args.max_cap, args.tail_share)}
+               **run_instance(grid, pairs[:, 0], pairs[:, 1], args.seeds, args.max_cap, args.tail_share, args.lanes)}
         rows.append(row)
         fast = [r["ratio"] for r in row["runs"] if r["solved"] and r["nodes"] <= args.cap]
         slow = [r["ratio"] for r in row["runs"] if r["solved"] and r["nodes"] > args.cap]
@@ -117,7 +120,8 @@ def main(argv: list[str] | None = None) -> int:
     con.print(f"all: {len(fast)} of {total} runs solved within {args.cap:g}x"
               + (f" ({min(fast):.2f} - {max(fast):.2f}, mean {sum(fast) / len(fast):.3f})" if fast else "")
               + f", {len(solved) - len(fast)} within {args.max_cap:g}x, {total - len(solved)} not")
-    write_json(args.json, {"rows": rows, "cap": args.cap, "max_cap": args.max_cap, "tail_share": args.tail_share})
+    write_json(args.json, {"rows": rows, "cap": args.cap, "max_cap": args.max_cap, "tail_share": args.tail_share,
+                           "lanes": args.lanes})
     plot(rows, args.plot, args.cap)
     con.print(f"wrote {args.json} and {args.plot}")
     return 0
