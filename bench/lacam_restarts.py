@@ -49,7 +49,7 @@ def run_instance(grid: LifelongGrid, starts: np.ndarray, goals: np.ndarray, seed
     _, _, _, _, d0 = one_shot_distances(grid, starts, goals, cache)
     lb, longest = int(d0.sum()), max(int(d0.max()), 1)
     guide = DistanceCache(grid, max_bytes=cache.table.nbytes, cost=lane_costs(grid, against=against))
-    rows = guide.table[guide.slots(goals)]
+    rows = guide.rows(goals)
     runs = []
     for s in range(seeds):
         c0 = time.process_time()

@@ -94,7 +94,7 @@ def solve_lacam(grid: LifelongGrid, starts: np.ndarray, goals: np.ndarray, time_
     nbr, table = grid.nbr, cache.table
     step_table, step_slot = table, slot
     if guide is not None:                      # PIBT follows the guide's rows, in the goals' order
-        step_table = guide.table[guide.slots(goals)] if isinstance(guide, DistanceCache) else guide
+        step_table = guide.rows(goals) if isinstance(guide, DistanceCache) else guide
         step_slot = np.arange(n, dtype=np.int64)
     prefer, sc = NO_PREFER, {}
     if scatter_share > 0 and n:
@@ -135,12 +135,11 @@ def solve_lacam(grid: LifelongGrid, starts: np.ndarray, goals: np.ndarray, time_
         rnd = rng.random((n, 5))
         if noise > 0:
             rnd[node.stuck > stuck_steps] *= noise
+        follow = (step_table, step_slot)
         if guide is not None and np.count_nonzero(node.config != goals) <= tail:   # the tail: shortest ways
-            pibt_step(nbr, node.config, head, table, slot, goals, node.order, False, 0.0, rnd, nxt, True,
-                      no_claim, fixed, prefer)
-        else:
-            pibt_step(nbr, node.config, head, step_table, step_slot, goals, node.order, False, 0.0, rnd, nxt, True,
-                      no_claim, fixed, prefer)
+            follow = (table, slot)
+        pibt_step(nbr, node.config, head, *follow, goals, node.order, False, 0.0, rnd, nxt, True, no_claim, fixed,
+                  prefer)
         key = nxt.tobytes()
         if key in explored:
             continue

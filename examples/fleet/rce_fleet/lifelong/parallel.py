@@ -31,7 +31,19 @@ from .refine import Refiner
 __all__ = ["children_cpu", "race_lacam", "refine_parallel", "solve_lacam_parallel"]
 
 
-def _worker(ref: Refiner, conn, clock) -> None:
+def _fork(target, *args, **kwargs) -> tuple:
+    """``target(conn, *args, **kwargs)`` started on a forked process (the instance and the
+    compiled kernels inherited, not sent), ``conn`` its end of a pipe: returns (this end, the
+    process)."""
+    ctx = multiprocessing.get_context("fork")
+    here, there = ctx.Pipe()
+    p = ctx.Process(target=target, args=(there, *args), kwargs=kwargs, daemon=True)
+    p.start()
+    there.close()
+    return here, p
+
+
+def _worker(conn, ref: Refiner, clock) -> None:
     """Serve rounds until told to stop: (seconds, the merged paths of the agents changed in the
     last round: agents, paths, lengths) in, (this round's accepted changes, iterations) out."""
     try:
@@ -68,15 +80,10 @@ def refine_parallel(grid: LifelongGrid, paths: np.ndarray, goals: np.ndarray, ti
     ref = Refiner(grid, paths, goals, seed=seed, cache=cache)
     n = ref.goals.shape[0]
     rank = np.argsort(np.argsort(ref.goals % grid.free.shape[1], kind="stable"))
-    ctx = multiprocessing.get_context("fork")
     live = []                                  # [pipe, process, its iterations] per worker
     for w in range(1, workers):
         ref.rng = np.random.default_rng([seed, w])
-        here, there = ctx.Pipe()
-        p = ctx.Process(target=_worker, args=(ref, there, clock), daemon=True)
-        p.start()
-        there.close()
-        live.append([here, p, 0])
+        live.append([*_fork(_worker, ref, clock), 0])
     ref.rng = np.random.default_rng([seed, 0])
     applied = changes = rounds = 0
     gone: list[list] = []
@@ -137,7 +144,7 @@ def refine_parallel(grid: LifelongGrid, paths: np.ndarray, goals: np.ndarray, ti
             "expanded": int(ref.res.stats[0]), "time_s": clock() - t0, "worker_cpu_s": children_cpu() - cpu0}
 
 
-def _lacam(conn, args: tuple, kwargs: dict) -> None:
+def _lacam(conn, *args, **kwargs) -> None:
     try:
         conn.send(solve_lacam(*args, **kwargs))
     finally:
@@ -146,26 +153,16 @@ def _lacam(conn, args: tuple, kwargs: dict) -> None:
 
 def solve_lacam_parallel(grid: LifelongGrid, starts: np.ndarray, goals: np.ndarray, time_limit_s: float = 5.0,
                          seeds: tuple[int, ...] = (0, 1), cache: DistanceCache | None = None,
-                         scatter_share: float = 0.0, clock=time.perf_counter, **kwargs) -> dict:
+                         scatter_share: float = 0.0, clock=time.perf_counter) -> dict:
     """:func:`~.lacam.solve_lacam` once per seed, the first here and each other on a forked
-    process, each within ``time_limit_s`` seconds of its own ``clock`` (``kwargs``, e.g.
-    ``guide``, go to every run): the solved result of least sum of costs (the first seed's
-    when none solved), plus ``tries`` ((seed, sum of costs or None when unsolved) per seed).
-    Raises as :func:`~.lacam.solve_lacam`."""
-    ctx = multiprocessing.get_context("fork")
-    links, procs = [], []
-    for s in seeds[1:]:
-        here, there = ctx.Pipe()
-        p = ctx.Process(target=_lacam, args=(there, (grid, starts, goals, time_limit_s),
-                                             {"seed": s, "cache": cache, "scatter_share": scatter_share,
-                                              "clock": clock, **kwargs}), daemon=True)
-        p.start()
-        there.close()
-        links.append(here)
-        procs.append(p)
+    process, each within ``time_limit_s`` seconds of its own ``clock``: the solved result of
+    least sum of costs (the first seed's when none solved), plus ``tries`` ((seed, sum of
+    costs or None when unsolved) per seed). Raises as :func:`~.lacam.solve_lacam`."""
+    kwargs = {"cache": cache, "scatter_share": scatter_share, "clock": clock}
+    forked = [_fork(_lacam, grid, starts, goals, time_limit_s, seed=s, **kwargs) for s in seeds[1:]]
+    links, procs = [link for link, _ in forked], [p for _, p in forked]
     try:
-        results = [solve_lacam(grid, starts, goals, time_limit_s, seed=seeds[0], cache=cache,
-                               scatter_share=scatter_share, clock=clock, **kwargs)]
+        results = [solve_lacam(grid, starts, goals, time_limit_s, seed=seeds[0], **kwargs)]
         for link in links:
             try:
                 results.append(link.recv())
@@ -238,7 +235,7 @@ def race_lacam(grid: LifelongGrid, starts: np.ndarray, goals: np.ndarray, time_l
         raise ValueError(f"race_lacam needs cap >= 0 and growth >= 1, got cap={cap}, growth={growth}")
     starts, goals, cache, _, d0 = one_shot_distances(grid, starts, goals, cache)
     if isinstance(kwargs.get("guide"), DistanceCache):   # the guide's rows once, for every run
-        kwargs["guide"] = kwargs["guide"].table[kwargs["guide"].slots(goals)]
+        kwargs["guide"] = kwargs["guide"].rows(goals)
     base = cap * max(int(d0.max()) if d0.size else 1, 1)
     tries: list[tuple[int, int | None]] = []
     won: list[dict] = []
@@ -254,16 +251,9 @@ def race_lacam(grid: LifelongGrid, starts: np.ndarray, goals: np.ndarray, time_l
     if workers <= 1:
         _restarts(grid, starts, goals, time_limit_s, runs(0), clock, record, cache=cache, **kwargs)
     else:
-        ctx = multiprocessing.get_context("fork")
-        links, procs = [], []
-        for w in range(workers):
-            here, there = ctx.Pipe(duplex=False)
-            p = ctx.Process(target=_race, args=(there, grid, starts, goals, time_limit_s, runs(w), clock),
-                            kwargs={"cache": cache, **kwargs}, daemon=True)
-            p.start()
-            there.close()
-            links.append(here)
-            procs.append(p)
+        forked = [_fork(_race, grid, starts, goals, time_limit_s, runs(w), clock, cache=cache, **kwargs)
+                  for w in range(workers)]
+        links, procs = [link for link, _ in forked], [p for _, p in forked]
         try:
             pending = list(links)
             while pending and not won:
