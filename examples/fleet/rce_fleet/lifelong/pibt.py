@@ -26,6 +26,7 @@ import time
 import numpy as np
 
 from .distances import DistanceCache
+from .flow import TrafficFlow
 from .grid import LifelongGrid
 from .kernels import MOVE_WAIT, NO_PREFER, heading_costs, mapf_t_actions, pibt_step
 from .simulator import MAPF_T
@@ -49,11 +50,14 @@ class PIBTPlanner:
     def __init__(self, grid: LifelongGrid, cache: DistanceCache, model: str = MAPF_T, turn_w: float = 0.5,
                  seed: int = 0, swap: bool = True, claim_steps: int = 1,
                  stuck_steps: int = 20, noise: float = 100.0, samples: int = 16, sample_frac: float = 0.5,
-                 window: int = 20):
+                 window: int = 20, flow: TrafficFlow | None = None, flow_frac: float = 0.5,
+                 flow_passes: int = 1):
         self.grid, self.cache, self.model, self.turn_w, self.swap = grid, cache, model, float(turn_w), swap
         self.claim_steps = claim_steps
         self.stuck_steps, self.noise = stuck_steps, noise
         self.samples, self.sample_frac, self.window = samples, sample_frac, window
+        self.flow, self.flow_frac, self.flow_passes = flow, flow_frac, flow_passes
+        self._ptable = cache.table
         self.rng = np.random.default_rng(seed)
         self._goal_prev: np.ndarray | None = None
         self.elapsed: np.ndarray | None = None
@@ -88,6 +92,13 @@ class PIBTPlanner:
                 slot[a] = cache.slot(g)
             else:
                 deferred += 1
+        pslot = slot
+        self._ptable = cache.table
+        if self.flow is not None:
+            pslot = self.flow.update(pos, goals, slot, deadline)
+            now = time.perf_counter()
+            self.flow.refine(pos, slot, now + self.flow_frac * max(0.0, deadline - now), self.flow_passes)
+            self._ptable = self.flow.table
         t1 = time.perf_counter()
         at_goal = (goals >= 0) & (pos == goals)
         self.elapsed += 1
@@ -107,9 +118,9 @@ class PIBTPlanner:
         turns = self.model == MAPF_T
         act = np.empty(n, dtype=np.int64)
         if turns and self.samples > 1:
-            act = self._rollouts(pos, head, goals, slot, order, rnd, deadline)
+            act = self._rollouts(pos, head, goals, slot, pslot, order, rnd, deadline)
         else:
-            self._convert(pos, head, goals, slot, order, rnd, nxt, act)
+            self._convert(pos, head, goals, pslot, order, rnd, nxt, act)
         t2 = time.perf_counter()
         self.stats["maps_ms"] += (t1 - t0) * 1e3
         self.stats["pibt_ms"] += (t2 - t1) * 1e3
@@ -117,7 +128,7 @@ class PIBTPlanner:
         self.stats["deferred"] += deferred
         return act
 
-    def _rollouts(self, pos, head, goals, slot, order, rnd, deadline) -> np.ndarray:
+    def _rollouts(self, pos, head, goals, slot, pslot, order, rnd, deadline) -> np.ndarray:
         """Windowed lookahead: the plain PIBT step first (always complete), then, while time
         remains, rollouts of ``window`` PIBT steps from other tie-breaks of the first step;
         keep the first step of the rollout that brings the robots closest (heading-aware, a
@@ -131,7 +142,7 @@ class PIBTPlanner:
         nxt = np.empty(n, dtype=np.int64)
         act = np.empty(n, dtype=np.int64)
         t_a = time.perf_counter()
-        self._convert(pos, head, goals, slot, order, rnd, nxt, act)
+        self._convert(pos, head, goals, pslot, order, rnd, nxt, act)
         plain = (act.copy(), self.claim.copy(), self.claim_age.copy())
         t_step = time.perf_counter() - t_a
         stop = t_a + self.sample_frac * max(0.0, deadline - t_a)
@@ -145,7 +156,7 @@ class PIBTPlanner:
         for k in range(self.samples):
             if time.perf_counter() > stop:
                 break
-            p, h, g, sl = pos, head, goals.copy(), slot.copy()
+            p, h, g, sl, pl = pos, head, goals.copy(), slot.copy(), pslot.copy()
             first = plain
             complete = True
             for step in range(self.window):
@@ -161,13 +172,14 @@ class PIBTPlanner:
                     r = self.rng.random((n, 5))
                     if step == 0 and self.noise > 0:
                         r[self.stuck > self.stuck_steps] *= self.noise
-                    self._convert(p, h, g, sl, order, r, nxt, act)
+                    self._convert(p, h, g, pl, order, r, nxt, act)
                     if step == 0:
                         first = (act.copy(), self.claim.copy(), self.claim_age.copy())
                 p, h = _apply(self.grid, p, h, act, MAPF_T)
                 done = (g >= 0) & (p == g)
                 g[done] = -1
                 sl[done] = -1
+                pl[done] = -1
             if not complete:
                 break
             heading_costs(nbr, table, sl, p, h, d1)
@@ -181,14 +193,14 @@ class PIBTPlanner:
     def _convert(self, pos, head, goals, slot, order, rnd, nxt, act) -> None:
         """PIBT on cells, then MAPF_T actions with the move check (or 4-neighbour moves)."""
         n = pos.shape[0]
-        cache = self.cache
+        table = self._ptable
         turns = self.model == MAPF_T
-        pibt_step(self.grid.nbr, pos, head if turns else np.full(n, -1, dtype=np.int64), cache.table, slot, goals,
+        pibt_step(self.grid.nbr, pos, head if turns else np.full(n, -1, dtype=np.int64), table, slot, goals,
                   order, turns, self.turn_w, rnd, nxt, self.swap, self.claim, np.full(n, -1, dtype=np.int64),
                   NO_PREFER)
         if turns:
             old = self.claim.copy()
-            self.stats["cancelled"] += mapf_t_actions(self.grid.nbr, pos, head, nxt, cache.table, slot, act,
+            self.stats["cancelled"] += mapf_t_actions(self.grid.nbr, pos, head, nxt, table, slot, act,
                                                       self.claim)
             same = (self.claim == old) & (self.claim >= 0)
             self.claim_age = np.where(same, self.claim_age + 1, 0)

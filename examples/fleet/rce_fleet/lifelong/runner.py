@@ -17,6 +17,8 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from .distances import DistanceCache, cache_bytes_for
+from .flow import TrafficFlow
+from .flow import warm_up as flow_warm_up
 from .guidance import lane_costs
 from .kernels import warm_up
 from .lorr import LorrProblem
@@ -54,7 +56,7 @@ class RunResult:
 def run_lifelong(problem: LorrProblem, steps: int, plan_time_limit_ms: float = 1000.0, seed: int = 0,
                  scheduler: str = "batch", model: str = MAPF_T, budget_frac: float = 0.5,
                  cache_bytes: int | None = None, lanes: int = LANES, crowd_w: float | None = None,
-                 record: bool = True,
+                 record: bool = True, guide: bool = True, planner_kw: dict | None = None,
                  progress: Callable[[int, int, float], None] | None = None) -> RunResult:
     """Run ``problem`` for ``steps`` time steps under the rules (:mod:`.simulator`).
 
@@ -73,12 +75,15 @@ def run_lifelong(problem: LorrProblem, steps: int, plan_time_limit_ms: float = 1
     if cache_bytes is None:
         cache_bytes = cache_bytes_for(grid, problem.team_size)
     warm_up()
+    if guide:
+        flow_warm_up()
     t_start = time.perf_counter()
     cache = DistanceCache(grid, max_bytes=cache_bytes, cost=lane_costs(grid, lanes) if lanes else None)
     if crowd_w is None:
         crowd_w = CROWD_W if problem.team_size >= CROWD_TEAM else 0.0
     sched = make_scheduler(scheduler, cache, crowd_w)
-    planner = PIBTPlanner(grid, cache, model=model, seed=seed)
+    flow = TrafficFlow(grid, cache, problem.team_size, cost=cache.cost, seed_=seed) if guide else None
+    planner = PIBTPlanner(grid, cache, model=model, seed=seed, flow=flow, **(planner_kw or {}))
     sim = Simulator(grid, problem.starts, problem.tasks, problem.reveal, model=model, record=record)
     limit = plan_time_limit_ms / 1e3
     plan_ms = np.zeros(steps)
@@ -103,7 +108,7 @@ def run_lifelong(problem: LorrProblem, steps: int, plan_time_limit_ms: float = 1
         if progress is not None:
             progress(k + 1, sim.finished, dt * 1e3)
     stats = {"scheduler": scheduler, "lanes": lanes, "crowd_w": crowd_w, "scheduler_ms_total": sched_ms,
-             **planner.stats,
+             **planner.stats, **(flow.stats if flow is not None else {}),
              "distance_maps": cache.computed, "maps_evicted": cache.evicted, "cache_rows": cache.capacity,
              "cache_rows_used": len(cache)}
     return RunResult(sim, plan_ms, finished, time.perf_counter() - t_start, stats)

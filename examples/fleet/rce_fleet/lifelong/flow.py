@@ -1,0 +1,286 @@
+"""Traffic-flow guidance for the lifelong planner: one guide path per robot, costed by the
+flow of the other robots' guide paths, and the distance rows PIBT follows along them.
+
+After Chen, Harabor, Li and Stuckey, "Traffic flow optimisation for lifelong multi-agent path
+finding" (AAAI-24), the planner of the League of Robot Runners' default entry:
+
+- Each robot's guide path is an A* path to its goal that minimises its length plus the
+  traffic it meets: for a move ``u -> v`` in direction ``d``, the contraflow
+  ``(flow[u, d] + 1) * flow[v, opposite d]`` (the guide paths already running against it) and
+  the vertex flow ``sum(flow[v, :]) // 2`` (how many guide paths cross ``v``), where
+  ``flow[c, d]`` counts the guide paths that leave ``c`` towards ``d``.
+- The path's distance row, which PIBT follows instead of the plain distance to the goal:
+  for every cell, the breadth-first steps to the nearest cell of the path plus the steps
+  left along the path from there (ties to the cell nearer the goal). On its path a robot's
+  value falls by one a step; a step off it costs one. Robots keep to their guide paths, so
+  opposing streams take different corridors instead of meeting head-on.
+- While the step's time lasts, guide paths are planned again against the others' current
+  flow (the paper's Frank-Wolfe-style refinement), those most off their path first, then those
+  planned longest ago.
+
+Arrays: ``nbr`` (cells, 4) int32 from :class:`~.grid.LifelongGrid`; ``cost`` (cells, 4) uint8,
+the length of each move (the one-way lanes of :mod:`.guidance`, else all 1); distance rows
+uint16 with :data:`~.kernels.UNREACHABLE`.
+"""
+from __future__ import annotations
+
+import time
+
+import numpy as np
+from numba import njit
+
+from ..numba_cache import seed
+from .distances import DistanceCache
+from .grid import LifelongGrid
+from .kernels import UNREACHABLE, heap_pop, heap_push
+
+seed(__file__)
+
+__all__ = ["TrafficFlow", "flow_astar", "path_fill"]
+
+_FLOW_CAP = (1 << 22) - 1      # the flow a key can hold; a path that meets more is as bad as any
+
+
+@njit(cache=True)
+def flow_astar(nbr, cost, flow, h, start, goal, g, acc, parent, stamp, label, hk, hv, path):
+    """A* from ``start`` to ``goal`` minimising length + contraflow + vertex flow (module doc).
+
+    h: (cells,) uint16 admissible distances to ``goal`` (its distance map). g, acc, parent,
+    stamp: (cells,) int32 scratch, valid where ``stamp == label`` (a new ``label`` per call
+    clears them); hk (int64) / hv (int64): heap scratch of 4 x cells; path (cells,) int32
+    receives the cells from ``start`` to ``goal``. Ties: the lower length + distance, then
+    the longer prefix. Returns the path's number of cells (0 when ``goal`` is unreachable).
+    """
+    if h[start] == UNREACHABLE:
+        return 0
+    stamp[start] = label
+    g[start] = 0
+    acc[start] = 0
+    parent[start] = -1
+    f0 = np.int64(h[start])
+    size = heap_push(hk, hv, 0, (f0 << 40) | (f0 << 20) | np.int64(0xFFFFF), np.int64(start))
+    closed = -label
+    found = False
+    while size > 0:
+        key, c, size = heap_pop(hk, hv, size)
+        if stamp[c] == closed:
+            continue
+        total = g[c] + int(h[c]) + acc[c]
+        if total != (key >> 40):
+            continue                                   # a stale entry: c was reached cheaper since
+        stamp[c] = closed
+        if c == goal:
+            found = True
+            break
+        fu = flow[c]
+        for d in range(4):
+            v = nbr[c, d]
+            if v < 0 or stamp[v] == closed or h[v] == UNREACHABLE:
+                continue
+            fv = flow[v]
+            op = (fu[d] + 1) * fv[(d + 2) & 3]
+            vert = (fv[0] + fv[1] + fv[2] + fv[3]) // 2
+            ng = g[c] + cost[c, d]
+            na = acc[c] + op + vert
+            if na > _FLOW_CAP:
+                na = _FLOW_CAP
+            if stamp[v] == label and ng + na >= g[v] + acc[v]:
+                continue
+            stamp[v] = label
+            g[v] = ng
+            acc[v] = na
+            parent[v] = c
+            f = ng + int(h[v])
+            k = (np.int64(f + na) << 40) | (np.int64(f) << 20) | np.int64(0xFFFFF - min(ng, 0xFFFFF))
+            size = heap_push(hk, hv, size, k, np.int64(v))
+    if not found:
+        return 0
+    n = 0
+    c = goal
+    while c != -1:
+        path[n] = c
+        n += 1
+        c = parent[c]
+    path[:n] = path[:n][::-1].copy()
+    return n
+
+
+@njit(cache=True)
+def path_fill(nbr, path, out, dist, togo, queue):
+    """The distance row of a guide path ``path`` (int32 cells, start to goal) into ``out``
+    (uint16, cells): steps to the nearest path cell plus the steps left along the path from
+    it, nearest-to-goal first among equally near ones (a breadth-first search seeded from the
+    goal's end). dist, togo, queue: (cells,) int32 scratch. Cells that reach no path cell stay
+    UNREACHABLE."""
+    out[:] = UNREACHABLE
+    dist[:] = -1
+    n = path.shape[0]
+    tail = 0
+    for i in range(n - 1, -1, -1):
+        c = path[i]
+        if dist[c] >= 0:
+            continue
+        dist[c] = 0
+        togo[c] = n - 1 - i
+        queue[tail] = c
+        tail += 1
+    head = 0
+    while head < tail:
+        c = queue[head]
+        head += 1
+        v0 = dist[c] + togo[c]
+        out[c] = v0 if v0 < UNREACHABLE else UNREACHABLE - 1
+        for d in range(4):
+            v = nbr[c, d]
+            if v >= 0 and dist[v] < 0:
+                dist[v] = dist[c] + 1
+                togo[v] = togo[c]
+                queue[tail] = v
+                tail += 1
+
+
+@njit(cache=True)
+def _flow_add(flow, path, n, sign):
+    """Add (sign +1) or remove (-1) the moves of ``path[:n]`` to / from ``flow``."""
+    for i in range(n - 1):
+        u = path[i]
+        v = path[i + 1]
+        dv = v - u
+        if dv == 1:
+            d = 0
+        elif dv == -1:
+            d = 2
+        elif dv > 0:
+            d = 1
+        else:
+            d = 3
+        flow[u, d] += sign
+
+
+class TrafficFlow:
+    """Guide paths for a team of ``n`` robots and their distance rows (module doc).
+
+    ``table`` ((n, cells) uint16) holds robot ``a``'s row in row ``a``: the distance row of its
+    guide path, or, until one is planned, a copy of its goal's distance map. ``update`` keeps
+    the rows current as goals change; ``refine`` plans guide paths again while time lasts.
+    cost: (cells, 4) uint8 move lengths (default all 1). Memory: ``n`` rows of 2 bytes a cell,
+    committed as rows are first written. Raises MemoryError (from numpy) if they cannot be
+    reserved.
+    """
+
+    def __init__(self, grid: LifelongGrid, cache: DistanceCache, n: int, cost: np.ndarray | None = None,
+                 seed_: int = 0):
+        self.grid, self.cache, self.n = grid, cache, int(n)
+        cells = grid.n_cells
+        self.cost = cost if cost is not None else np.ones((cells, 4), dtype=np.uint8)
+        self.flow = np.zeros((cells, 4), dtype=np.int32)
+        self.table = np.empty((self.n, cells), dtype=np.uint16)
+        self.goal = np.full(self.n, -1, dtype=np.int64)         # the goal each row is for
+        self.guided = np.zeros(self.n, dtype=bool)               # the row follows a guide path
+        self.planned_at = np.zeros(self.n, dtype=np.int64)       # the step its path was planned
+        self.paths: list[np.ndarray | None] = [None] * self.n
+        self._g = np.zeros(cells, dtype=np.int32)
+        self._acc = np.zeros(cells, dtype=np.int32)
+        self._parent = np.zeros(cells, dtype=np.int32)
+        self._stamp = np.zeros(cells, dtype=np.int32)
+        self._label = 0
+        self._hk = np.empty(4 * cells + 8, dtype=np.int64)
+        self._hv = np.empty(4 * cells + 8, dtype=np.int64)
+        self._path = np.empty(cells, dtype=np.int32)
+        self._dist = np.empty(cells, dtype=np.int32)
+        self._togo = np.empty(cells, dtype=np.int32)
+        self._queue = np.empty(cells, dtype=np.int32)
+        self.rng = np.random.default_rng(seed_)
+        self.step = 0
+        self.stats = {"guide_paths": 0, "guide_refined": 0, "guide_copied": 0, "flow_ms": 0.0}
+
+    def _drop(self, a: int) -> None:
+        p = self.paths[a]
+        if p is not None:
+            _flow_add(self.flow, p, p.shape[0], -1)
+            self.paths[a] = None
+        self.guided[a] = False
+
+    def _plan(self, a: int, start: int, goal: int, slot: int) -> bool:
+        self._label += 1
+        if self._label >= 2 ** 30:
+            self._stamp[:] = 0
+            self._label = 1
+        n = flow_astar(self.grid.nbr, self.cost, self.flow, self.cache.table[slot], start, goal, self._g, self._acc,
+                       self._parent, self._stamp, self._label, self._hk, self._hv, self._path)
+        if n == 0:
+            return False
+        p = self._path[:n].copy()
+        _flow_add(self.flow, p, n, 1)
+        self.paths[a] = p
+        path_fill(self.grid.nbr, p, self.table[a], self._dist, self._togo, self._queue)
+        self.guided[a] = True
+        self.planned_at[a] = self.step
+        self.stats["guide_paths"] += 1
+        return True
+
+    def update(self, pos: np.ndarray, goals: np.ndarray, slot: np.ndarray, deadline: float) -> np.ndarray:
+        """Rows for this step. pos, goals (n,) int64 (goal -1: none); slot (n,) int64 rows of
+        the goals' maps in the cache (-1: no map yet). Robots with a new goal get a guide path
+        while ``deadline`` (``time.perf_counter()``) is ahead, else a copy of the goal's map.
+        Returns (n,) int64: the row of each robot in :attr:`table` (-1: none)."""
+        t0 = time.perf_counter()
+        self.step += 1
+        out = np.full(self.n, -1, dtype=np.int64)
+        changed = np.flatnonzero(goals != self.goal)
+        for a in changed.tolist():
+            self._drop(a)
+            self.goal[a] = -1
+        for a in np.flatnonzero((goals >= 0) & (slot >= 0)).tolist():
+            if self.goal[a] == goals[a]:
+                out[a] = a
+                continue
+            g = int(goals[a])
+            if time.perf_counter() < deadline and self._plan(a, int(pos[a]), g, int(slot[a])):
+                pass
+            else:
+                self.table[a] = self.cache.table[slot[a]]
+                self.stats["guide_copied"] += 1
+            self.goal[a] = g
+            out[a] = a
+        self.stats["flow_ms"] += (time.perf_counter() - t0) * 1e3
+        return out
+
+    def refine(self, pos: np.ndarray, slot: np.ndarray, deadline: float, passes: int = 1) -> int:
+        """Plan guide paths again against the others' flow until ``deadline``: first the robots
+        whose row at their cell exceeds their goal distance the most (off their path, or on a
+        long way round), then those planned longest ago, ties at random; robots still following
+        a copied goal map first of all. Returns the number of paths planned."""
+        t0 = time.perf_counter()
+        have = np.flatnonzero((self.goal >= 0) & (slot >= 0))
+        if not len(have) or time.perf_counter() >= deadline:
+            return 0
+        own = self.table[have, pos[have]].astype(np.int64)
+        best = self.cache.table[slot[have], pos[have]].astype(np.int64)
+        dev = np.where(self.guided[have], own - best, 1 << 30)
+        order = np.lexsort((self.rng.random(len(have)), self.planned_at[have], -dev))
+        k = 0
+        for a in np.tile(have[order], passes).tolist():
+            if time.perf_counter() >= deadline:
+                break
+            self._drop(a)
+            if not self._plan(a, int(pos[a]), int(self.goal[a]), int(slot[a])):
+                self.table[a] = self.cache.table[slot[a]]
+            k += 1
+        self.stats["guide_refined"] += k
+        self.stats["flow_ms"] += (time.perf_counter() - t0) * 1e3
+        return k
+
+
+def warm_up() -> None:
+    """Compile (or load from numba's cache) this module's kernels on a tiny grid, so that
+    compilation never counts against a timed step."""
+    free = np.ones((2, 3), dtype=bool)
+    grid = LifelongGrid(free)
+    cache = DistanceCache(grid, max_bytes=2 * grid.n_cells * 4, min_rows=4)
+    tf = TrafficFlow(grid, cache, 2)
+    pos = np.array([0, 5], dtype=np.int64)
+    goals = np.array([5, 0], dtype=np.int64)
+    slot = cache.slots(goals)
+    tf.update(pos, goals, slot, time.perf_counter() + 60)
+    tf.refine(pos, slot, time.perf_counter() + 60)
