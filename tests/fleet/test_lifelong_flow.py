@@ -72,6 +72,9 @@ def test_path_rows_fall_along_the_path_and_rise_off_it():
     assert row[off] == row[cell(g, 1, 3)] + 1
     blocked = cell(g, 2, 3)
     assert row[blocked] == UNREACHABLE
+    tf.radius = 0
+    tf.refine(pos, cache.slots(goals), time.perf_counter() + 60)
+    assert row[off] == UNREACHABLE and [int(row[c]) for c in tf.paths[0]] == list(range(len(p) - 1, -1, -1))
 
 
 def test_flow_stays_the_sum_of_the_paths_through_goal_changes_and_refinement():
@@ -109,3 +112,17 @@ def test_past_the_deadline_a_new_goal_follows_its_distance_map():
     assert not tf.guided[0] and tf.paths[0] is None and tf.stats["guide_copied"] == 1
     assert (tf.table[0] == cache.table[slot[0]]).all()
     assert tf.refine(pos, slot, time.perf_counter() + 60) == 1 and tf.guided[0]
+
+
+def test_past_the_hard_deadline_a_new_goal_waits_for_the_next_step():
+    g = grid(TWO_WAYS)
+    cache = DistanceCache(g, max_bytes=2 * g.n_cells * 4)
+    tf = TrafficFlow(g, cache, 2)
+    pos = np.array([cell(g, 1, 0), cell(g, 3, 0)], dtype=np.int64)
+    goals = np.array([cell(g, 3, 6), -1], dtype=np.int64)
+    slot = cache.slots(goals[:1]).tolist() + [-1]
+    slot = np.array(slot, dtype=np.int64)
+    past = time.perf_counter() - 1
+    assert tf.update(pos, goals, slot, past, hard=past).tolist() == [-1, -1]
+    assert tf.stats["guide_deferred"] == 1 and tf.goal[0] == -1
+    assert tf.update(pos, goals, slot, time.perf_counter() + 60).tolist() == [0, -1] and tf.guided[0]

@@ -38,6 +38,7 @@ seed(__file__)
 
 __all__ = ["TrafficFlow", "flow_astar", "path_fill"]
 
+RADIUS = 3         # a path's row reaches this many steps off it (measured: docs/lifelong.md)
 _FLOW_CAP = (1 << 22) - 1      # the flow a key can hold; a path that meets more is as bad as any
 
 
@@ -106,14 +107,14 @@ def flow_astar(nbr, cost, flow, h, start, goal, g, acc, parent, stamp, label, hk
 
 
 @njit(cache=True)
-def path_fill(nbr, path, out, dist, togo, queue):
+def path_fill(nbr, path, out, dist, togo, queue, radius):
     """The distance row of a guide path ``path`` (int32 cells, start to goal) into ``out``
     (uint16, cells): steps to the nearest path cell plus the steps left along the path from
     it, nearest-to-goal first among equally near ones (a breadth-first search seeded from the
-    goal's end). dist, togo, queue: (cells,) int32 scratch. Cells that reach no path cell stay
-    UNREACHABLE."""
+    goal's end), for the cells within ``radius`` steps of the path; the others stay
+    UNREACHABLE (a robot pushed that far off plans a new path). dist, togo, queue: (cells,)
+    int32 scratch; ``dist`` must be -1 everywhere and is left so. Returns the cells written."""
     out[:] = UNREACHABLE
-    dist[:] = -1
     n = path.shape[0]
     tail = 0
     for i in range(n - 1, -1, -1):
@@ -130,6 +131,8 @@ def path_fill(nbr, path, out, dist, togo, queue):
         head += 1
         v0 = dist[c] + togo[c]
         out[c] = v0 if v0 < UNREACHABLE else UNREACHABLE - 1
+        if dist[c] >= radius:
+            continue
         for d in range(4):
             v = nbr[c, d]
             if v >= 0 and dist[v] < 0:
@@ -137,6 +140,9 @@ def path_fill(nbr, path, out, dist, togo, queue):
                 togo[v] = togo[c]
                 queue[tail] = v
                 tail += 1
+    for k in range(tail):
+        dist[queue[k]] = -1
+    return tail
 
 
 @njit(cache=True)
@@ -163,18 +169,19 @@ class TrafficFlow:
     ``table`` ((n, cells) uint16) holds robot ``a``'s row in row ``a``: the distance row of its
     guide path, or, until one is planned, a copy of its goal's distance map. ``update`` keeps
     the rows current as goals change; ``refine`` plans guide paths again while time lasts.
-    cost: (cells, 4) uint8 move lengths (default all 1). Memory: ``n`` rows of 2 bytes a cell,
-    committed as rows are first written. Raises MemoryError (from numpy) if they cannot be
-    reserved.
+    cost: (cells, 4) uint8 move lengths (default all 1); radius: how far off its path a
+    robot's row reaches (:func:`path_fill`). Memory: ``n`` rows of 2 bytes a cell (1.4 GB
+    for 10,000 robots on a 500 x 140 map), written once when made so that no step pays for
+    the pages. Raises MemoryError (from numpy) if they cannot be had.
     """
 
     def __init__(self, grid: LifelongGrid, cache: DistanceCache, n: int, cost: np.ndarray | None = None,
-                 seed_: int = 0):
-        self.grid, self.cache, self.n = grid, cache, int(n)
+                 seed_: int = 0, radius: int = RADIUS):
+        self.grid, self.cache, self.n, self.radius = grid, cache, int(n), int(radius)
         cells = grid.n_cells
         self.cost = cost if cost is not None else np.ones((cells, 4), dtype=np.uint8)
         self.flow = np.zeros((cells, 4), dtype=np.int32)
-        self.table = np.empty((self.n, cells), dtype=np.uint16)
+        self.table = np.full((self.n, cells), UNREACHABLE, dtype=np.uint16)     # touched now, not in a step
         self.goal = np.full(self.n, -1, dtype=np.int64)         # the goal each row is for
         self.guided = np.zeros(self.n, dtype=bool)               # the row follows a guide path
         self.planned_at = np.zeros(self.n, dtype=np.int64)       # the step its path was planned
@@ -187,12 +194,12 @@ class TrafficFlow:
         self._hk = np.empty(4 * cells + 8, dtype=np.int64)
         self._hv = np.empty(4 * cells + 8, dtype=np.int64)
         self._path = np.empty(cells, dtype=np.int32)
-        self._dist = np.empty(cells, dtype=np.int32)
+        self._dist = np.full(cells, -1, dtype=np.int32)
         self._togo = np.empty(cells, dtype=np.int32)
         self._queue = np.empty(cells, dtype=np.int32)
         self.rng = np.random.default_rng(seed_)
         self.step = 0
-        self.stats = {"guide_paths": 0, "guide_refined": 0, "guide_copied": 0, "flow_ms": 0.0}
+        self.stats = {"guide_paths": 0, "guide_refined": 0, "guide_copied": 0, "guide_deferred": 0, "flow_ms": 0.0}
 
     def _drop(self, a: int) -> None:
         p = self.paths[a]
@@ -213,22 +220,23 @@ class TrafficFlow:
         p = self._path[:n].copy()
         _flow_add(self.flow, p, n, 1)
         self.paths[a] = p
-        path_fill(self.grid.nbr, p, self.table[a], self._dist, self._togo, self._queue)
+        path_fill(self.grid.nbr, p, self.table[a], self._dist, self._togo, self._queue, self.radius)
         self.guided[a] = True
         self.planned_at[a] = self.step
         self.stats["guide_paths"] += 1
         return True
 
-    def update(self, pos: np.ndarray, goals: np.ndarray, slot: np.ndarray, deadline: float) -> np.ndarray:
+    def update(self, pos: np.ndarray, goals: np.ndarray, slot: np.ndarray, deadline: float,
+               hard: float | None = None) -> np.ndarray:
         """Rows for this step. pos, goals (n,) int64 (goal -1: none); slot (n,) int64 rows of
         the goals' maps in the cache (-1: no map yet). Robots with a new goal get a guide path
-        while ``deadline`` (``time.perf_counter()``) is ahead, else a copy of the goal's map.
-        Returns (n,) int64: the row of each robot in :attr:`table` (-1: none)."""
+        while ``deadline`` (``time.perf_counter()``) is ahead, else a copy of the goal's map
+        until ``hard`` (default: no limit), else no row this step (they wait, and are served
+        at the next). Returns (n,) int64: the row of each robot in :attr:`table` (-1: none)."""
         t0 = time.perf_counter()
         self.step += 1
         out = np.full(self.n, -1, dtype=np.int64)
-        changed = np.flatnonzero(goals != self.goal)
-        for a in changed.tolist():
+        for a in np.flatnonzero(goals != self.goal).tolist():
             self._drop(a)
             self.goal[a] = -1
         for a in np.flatnonzero((goals >= 0) & (slot >= 0)).tolist():
@@ -236,11 +244,15 @@ class TrafficFlow:
                 out[a] = a
                 continue
             g = int(goals[a])
-            if time.perf_counter() < deadline and self._plan(a, int(pos[a]), g, int(slot[a])):
+            now = time.perf_counter()
+            if now < deadline and self._plan(a, int(pos[a]), g, int(slot[a])):
                 pass
-            else:
+            elif hard is None or now < hard:
                 self.table[a] = self.cache.table[slot[a]]
                 self.stats["guide_copied"] += 1
+            else:
+                self.stats["guide_deferred"] += 1
+                continue
             self.goal[a] = g
             out[a] = a
         self.stats["flow_ms"] += (time.perf_counter() - t0) * 1e3

@@ -64,9 +64,12 @@ class PIBTPlanner:
         self.tie: np.ndarray | None = None
         self.stats = {"pibt_ms": 0.0, "maps_ms": 0.0, "maps": 0, "deferred": 0, "cancelled": 0, "samples": 0}
 
-    def plan(self, pos: np.ndarray, head: np.ndarray, goals: np.ndarray, deadline: float) -> np.ndarray:
+    def plan(self, pos: np.ndarray, head: np.ndarray, goals: np.ndarray, deadline: float,
+             hard: float | None = None) -> np.ndarray:
         """Actions for one step. pos, head, goals: (n,) int64 (goal -1: none). ``deadline``
-        is a ``time.perf_counter()`` value after which no new distance map is computed."""
+        is a ``time.perf_counter()`` value after which no new distance map or guide path is
+        computed; past ``hard`` (default: none) a robot with a new goal gets no row this step
+        and waits (:meth:`~.flow.TrafficFlow.update`)."""
         n = pos.shape[0]
         if self._goal_prev is None or self._goal_prev.shape[0] != n:
             self._goal_prev = np.full(n, -2, dtype=np.int64)
@@ -95,7 +98,7 @@ class PIBTPlanner:
         pslot = slot
         self._ptable = cache.table
         if self.flow is not None:
-            pslot = self.flow.update(pos, goals, slot, deadline)
+            pslot = self.flow.update(pos, goals, slot, deadline, hard)
             now = time.perf_counter()
             self.flow.refine(pos, slot, now + self.flow_frac * max(0.0, deadline - now), self.flow_passes)
             self._ptable = self.flow.table

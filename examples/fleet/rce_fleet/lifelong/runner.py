@@ -31,6 +31,7 @@ __all__ = ["CROWD_TEAM", "CROWD_W", "LANES", "RunResult", "run_lifelong"]
 LANES = 4        # extra cost of a move against a one-way lane (measured: docs/lifelong.md)
 CROWD_W = 5.0    # scheduler's steps per robot crowding a task's errands beyond its share ...
 CROWD_TEAM = 3000  # ... for teams of this size and more (measured: docs/lifelong.md)
+HARD_FRAC = 0.7    # past this share of the limit a robot with a new goal and no row yet waits a step
 
 
 @dataclass
@@ -57,6 +58,7 @@ def run_lifelong(problem: LorrProblem, steps: int, plan_time_limit_ms: float = 1
                  scheduler: str = "batch", model: str = MAPF_T, budget_frac: float = 0.5,
                  cache_bytes: int | None = None, lanes: int = LANES, crowd_w: float | None = None,
                  record: bool = True, guide: bool = True, planner_kw: dict | None = None,
+                 flow_kw: dict | None = None,
                  progress: Callable[[int, int, float], None] | None = None) -> RunResult:
     """Run ``problem`` for ``steps`` time steps under the rules (:mod:`.simulator`).
 
@@ -82,7 +84,9 @@ def run_lifelong(problem: LorrProblem, steps: int, plan_time_limit_ms: float = 1
     if crowd_w is None:
         crowd_w = CROWD_W if problem.team_size >= CROWD_TEAM else 0.0
     sched = make_scheduler(scheduler, cache, crowd_w)
-    flow = TrafficFlow(grid, cache, problem.team_size, cost=cache.cost, seed_=seed) if guide else None
+    flow = None
+    if guide:
+        flow = TrafficFlow(grid, cache, problem.team_size, cost=cache.cost, seed_=seed, **(flow_kw or {}))
     planner = PIBTPlanner(grid, cache, model=model, seed=seed, flow=flow, **(planner_kw or {}))
     sim = Simulator(grid, problem.starts, problem.tasks, problem.reveal, model=model, record=record)
     limit = plan_time_limit_ms / 1e3
@@ -99,7 +103,7 @@ def run_lifelong(problem: LorrProblem, steps: int, plan_time_limit_ms: float = 1
         if len(has):
             open_ = sim.pool.open
             goals[has] = [open_[int(prop[a])].goal for a in has]
-        actions = planner.plan(sim.pos, sim.head, goals, deadline)
+        actions = planner.plan(sim.pos, sim.head, goals, deadline, t0 + HARD_FRAC * limit)
         dt = time.perf_counter() - t0
         sched_ms += (t1 - t0) * 1e3
         sim.step(actions, prop, plan_time_s=dt, timed_out=dt > limit)
