@@ -43,8 +43,11 @@ _FLOW_CAP = (1 << 22) - 1      # the flow a key can hold; a path that meets more
 
 
 @njit(cache=True)
-def flow_astar(nbr, cost, flow, h, start, goal, g, acc, parent, stamp, label, hk, hv, path):
-    """A* from ``start`` to ``goal`` minimising length + contraflow + vertex flow (module doc).
+def flow_astar(nbr, cost, flow, h, start, goal, g, acc, parent, stamp, label, hk, hv, path, head, turn):
+    """A* from ``start`` to ``goal`` minimising length + contraflow + vertex flow (module doc),
+    a quarter turn costing ``turn`` steps (MAPF_T: 1; the robot starts facing ``head``, -1
+    for any; a cell's heading is the one it was first reached with, so turns are counted
+    along the path found, not minimised over every heading).
 
     h: (cells,) uint16 admissible distances to ``goal`` (its distance map). g, acc, parent,
     stamp: (cells,) int32 scratch, valid where ``stamp == label`` (a new ``label`` per call
@@ -74,6 +77,11 @@ def flow_astar(nbr, cost, flow, h, start, goal, g, acc, parent, stamp, label, hk
             found = True
             break
         fu = flow[c]
+        pc = parent[c]
+        hin = head
+        if pc >= 0:
+            dv = c - pc
+            hin = 0 if dv == 1 else (2 if dv == -1 else (1 if dv > 0 else 3))
         for d in range(4):
             v = nbr[c, d]
             if v < 0 or stamp[v] == closed or h[v] == UNREACHABLE:
@@ -82,6 +90,8 @@ def flow_astar(nbr, cost, flow, h, start, goal, g, acc, parent, stamp, label, hk
             op = (fu[d] + 1) * fv[(d + 2) & 3]
             vert = (fv[0] + fv[1] + fv[2] + fv[3]) // 2
             ng = g[c] + cost[c, d]
+            if hin >= 0 and d != hin:
+                ng += turn * (2 if ((d - hin) & 3) == 2 else 1)
             na = acc[c] + op + vert
             if na > _FLOW_CAP:
                 na = _FLOW_CAP
@@ -170,14 +180,15 @@ class TrafficFlow:
     guide path, or, until one is planned, a copy of its goal's distance map. ``update`` keeps
     the rows current as goals change; ``refine`` plans guide paths again while time lasts.
     cost: (cells, 4) uint8 move lengths (default all 1); radius: how far off its path a
-    robot's row reaches (:func:`path_fill`). Memory: ``n`` rows of 2 bytes a cell (1.4 GB
+    robot's row reaches (:func:`path_fill`); turn: the steps a quarter turn costs a guide path
+    (1 for MAPF_T, 0 for 4-neighbour moves). Memory: ``n`` rows of 2 bytes a cell (1.4 GB
     for 10,000 robots on a 500 x 140 map), written once when made so that no step pays for
     the pages. Raises MemoryError (from numpy) if they cannot be had.
     """
 
     def __init__(self, grid: LifelongGrid, cache: DistanceCache, n: int, cost: np.ndarray | None = None,
-                 seed_: int = 0, radius: int = RADIUS):
-        self.grid, self.cache, self.n, self.radius = grid, cache, int(n), int(radius)
+                 seed_: int = 0, radius: int = RADIUS, turn: int = 1):
+        self.grid, self.cache, self.n, self.radius, self.turn = grid, cache, int(n), int(radius), int(turn)
         cells = grid.n_cells
         self.cost = cost if cost is not None else np.ones((cells, 4), dtype=np.uint8)
         self.flow = np.zeros((cells, 4), dtype=np.int32)
@@ -208,13 +219,13 @@ class TrafficFlow:
             self.paths[a] = None
         self.guided[a] = False
 
-    def _plan(self, a: int, start: int, goal: int, slot: int) -> bool:
+    def _plan(self, a: int, start: int, goal: int, slot: int, head: int = -1) -> bool:
         self._label += 1
         if self._label >= 2 ** 30:
             self._stamp[:] = 0
             self._label = 1
         n = flow_astar(self.grid.nbr, self.cost, self.flow, self.cache.table[slot], start, goal, self._g, self._acc,
-                       self._parent, self._stamp, self._label, self._hk, self._hv, self._path)
+                       self._parent, self._stamp, self._label, self._hk, self._hv, self._path, head, self.turn)
         if n == 0:
             return False
         p = self._path[:n].copy()
@@ -227,12 +238,13 @@ class TrafficFlow:
         return True
 
     def update(self, pos: np.ndarray, goals: np.ndarray, slot: np.ndarray, deadline: float,
-               hard: float | None = None) -> np.ndarray:
+               hard: float | None = None, head: np.ndarray | None = None) -> np.ndarray:
         """Rows for this step. pos, goals (n,) int64 (goal -1: none); slot (n,) int64 rows of
         the goals' maps in the cache (-1: no map yet). Robots with a new goal get a guide path
         while ``deadline`` (``time.perf_counter()``) is ahead, else a copy of the goal's map
         until ``hard`` (default: no limit), else no row this step (they wait, and are served
-        at the next). Returns (n,) int64: the row of each robot in :attr:`table` (-1: none)."""
+        at the next). head: (n,) int64 headings the paths start with (default: any).
+        Returns (n,) int64: the row of each robot in :attr:`table` (-1: none)."""
         t0 = time.perf_counter()
         self.step += 1
         out = np.full(self.n, -1, dtype=np.int64)
@@ -245,7 +257,7 @@ class TrafficFlow:
                 continue
             g = int(goals[a])
             now = time.perf_counter()
-            if now < deadline and self._plan(a, int(pos[a]), g, int(slot[a])):
+            if now < deadline and self._plan(a, int(pos[a]), g, int(slot[a]), -1 if head is None else int(head[a])):
                 pass
             elif hard is None or now < hard:
                 self.table[a] = self.cache.table[slot[a]]
@@ -258,7 +270,8 @@ class TrafficFlow:
         self.stats["flow_ms"] += (time.perf_counter() - t0) * 1e3
         return out
 
-    def refine(self, pos: np.ndarray, slot: np.ndarray, deadline: float, passes: int = 1) -> int:
+    def refine(self, pos: np.ndarray, slot: np.ndarray, deadline: float, passes: int = 1,
+               head: np.ndarray | None = None) -> int:
         """Plan guide paths again against the others' flow until ``deadline``: first the robots
         whose row at their cell exceeds their goal distance the most (off their path, or on a
         long way round), then those planned longest ago, ties at random; robots still following
@@ -276,7 +289,7 @@ class TrafficFlow:
             if time.perf_counter() >= deadline:
                 break
             self._drop(a)
-            if not self._plan(a, int(pos[a]), int(self.goal[a]), int(slot[a])):
+            if not self._plan(a, int(pos[a]), int(self.goal[a]), int(slot[a]), -1 if head is None else int(head[a])):
                 self.table[a] = self.cache.table[slot[a]]
             k += 1
         self.stats["guide_refined"] += k

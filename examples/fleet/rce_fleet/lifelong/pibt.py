@@ -98,9 +98,10 @@ class PIBTPlanner:
         pslot = slot
         self._ptable = cache.table
         if self.flow is not None:
-            pslot = self.flow.update(pos, goals, slot, deadline, hard)
+            fhead = head if self.model == MAPF_T else None
+            pslot = self.flow.update(pos, goals, slot, deadline, hard, fhead)
             now = time.perf_counter()
-            self.flow.refine(pos, slot, now + self.flow_frac * max(0.0, deadline - now), self.flow_passes)
+            self.flow.refine(pos, slot, now + self.flow_frac * max(0.0, deadline - now), self.flow_passes, fhead)
             self._ptable = self.flow.table
         t1 = time.perf_counter()
         at_goal = (goals >= 0) & (pos == goals)

@@ -86,7 +86,8 @@ def run_lifelong(problem: LorrProblem, steps: int, plan_time_limit_ms: float = 1
     sched = make_scheduler(scheduler, cache, crowd_w)
     flow = None
     if guide:
-        flow = TrafficFlow(grid, cache, problem.team_size, cost=cache.cost, seed_=seed, **(flow_kw or {}))
+        kw = {"turn": int(model == MAPF_T), **(flow_kw or {})}
+        flow = TrafficFlow(grid, cache, problem.team_size, cost=cache.cost, seed_=seed, **kw)
     planner = PIBTPlanner(grid, cache, model=model, seed=seed, flow=flow, **(planner_kw or {}))
     sim = Simulator(grid, problem.starts, problem.tasks, problem.reveal, model=model, record=record)
     limit = plan_time_limit_ms / 1e3
