@@ -8,7 +8,10 @@
   lane ``state``: while no path exists each side keeps only its newest), and the cloud sends a 1 Hz
   command stream into container cK (admin API) that reaches F through converters in lane ``control``;
 - t = 20 s: the F-L1 link goes dark (L1's end down: F's packets vanish without an error);
-  t = 40 s: F's link to L2 goes dark too, and both come back at t = 50 s; t = 60 s: F's direct link comes up.
+  t = 40 s: F's link to L2 goes dark too, and both come back at t = 50 s;
+- t = 55 s: F's link to L2 goes dark for good: L1 is F's only way to the cloud; t = 62 s: L1's uplink goes
+  down (L1 answers 504: it cannot reach the cloud), and up again at t = 67 s;
+- t = 75 s: F's direct link comes up.
 
 It reports, per event: how long F was dark (the gap in echoes, and the part of it after a path existed
 again), the age of the first state after it and how long until a state sent after the path returned
@@ -37,8 +40,9 @@ from rce.tools.netlab import NetLab, RelayTopology
 
 RELAY_PORT = 9100
 STATE_HZ, COMMAND_HZ = 10.0, 1.0
-EVENTS = {"L1 vanishes": 20.0, "partition": 40.0, "links back": 50.0, "direct link": 60.0}
-END = 75.0                    # s of the run after the first echo
+EVENTS = {"L1 vanishes": 20.0, "partition": 40.0, "links back": 50.0, "L2 gone": 55.0, "L1 uplink cut": 62.0,
+          "L1 uplink back": 67.0, "direct link": 75.0}
+END = 90.0                    # s of the run after the first echo
 DRAIN = 5.0                   # s after the streams stop for the last echoes
 POLL = 0.25                   # s between looks at the master's view of F's path and the relays' CPU
 HARNESS_QUEUE = 10000         # the bench's own subscriber's queue: large, so that it drops nothing itself
@@ -207,6 +211,13 @@ async def streams(lab: NetLab, topo: RelayTopology, e, bus: Path, procs: dict) -
                 elif name == "links back":
                     lab.set_up(topo.f_l1, True, side="a")
                     lab.set_up(topo.f_l2, True, side="a")
+                elif name == "L2 gone":
+                    lab.set_up(topo.f_l2, False, side="a")
+                elif name == "L1 uplink cut":
+                    lab.set_up(topo.up1, False, side="b")
+                elif name == "L1 uplink back":
+                    lab.set_up(topo.up1, True, side="b")
+                    lab.route("l1", "default", topo.up1.a_ip)     # the link's down took its routes
                 else:
                     topo.direct(True)
         rows = await asyncio.to_thread(e.admin, "/api/robots")
@@ -247,9 +258,10 @@ def report(rec: Recorder, sent: dict, first_state: int, t0: float, path: list, c
     got = {"s": [n for _, k, n, _ in rec.got if k == "s"], "c": [n for _, k, n, _ in rec.got if k == "c"]}
     count = {k: {n: v.count(n) for n in set(v)} for k, v in got.items()}
     states = [(a - t0, s - t0) for a, k, _, s in rec.got if k == "s"]
-    events = {name: gap_after(states, at) for name, at in EVENTS.items() if name != "links back"}
-    if events["partition"]:        # the part of the partition's gap after F's links came back
-        events["partition"]["dark_after_links_back_s"] = events["partition"]["back_at_s"] - EVENTS["links back"]
+    events = {name: gap_after(states, at) for name, at in EVENTS.items() if "back" not in name}
+    for cut, back in (("partition", "links back"), ("L1 uplink cut", "L1 uplink back")):
+        if events[cut]:            # the part of the gap after the way came back
+            events[cut][f"dark_after_{back.replace(' ', '_')}_s"] = events[cut]["back_at_s"] - EVENTS[back]
     # L1 carries F until 20 s, L2 from 20 s to 40 s: the other leader, idle, is the baseline of the same seconds
     relay_cpu = {"L1 relaying (2-19 s)": cpu_between(cpu, "L1", 2, 19),
                  "L2 idle (2-19 s)": cpu_between(cpu, "L2", 2, 19),

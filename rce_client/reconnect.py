@@ -8,6 +8,7 @@ row) logs in again and moves to the endpoint the master names, in a fresh sessio
 from __future__ import annotations
 
 import asyncio
+import re
 import ssl
 import time
 from dataclasses import dataclass
@@ -119,13 +120,20 @@ class Reconnecting:
         backoff = Backoff(r.time_wait, cap=max(r.time_wait, r.max_wait))
         deadline = time.monotonic() + (self.session.grace or DEFAULT_GRACE)
         attempts = refused = 0
+        said: set[str] = set()
         while True:
             attempts += 1
             url = with_query(self.ws_url, userID=self.user_id, robotID=self.robot_id, **self.session.resume_query())
             try:
                 if self.relogin is not None and refused >= r.gone_after:
-                    await self._move()
-                    return
+                    if await self._move():
+                        return
+                    refused = 0                 # the endpoint lives (or the master has not seen it die yet)
+                    if "same endpoint" not in said:
+                        said.add("same endpoint")
+                        log.info("the master still names this robot endpoint: resuming there",
+                                 robot=self.robot_id, url=self.ws_url)
+                    continue
                 ws = await dial(url, r.timeout, self.ssl_context, self.routes, self.mptcp)
                 break
             except (HandshakeRefused, AuthError) as e:  # 401: the session expired (or the token is wrong); 400: bad ack
@@ -134,6 +142,10 @@ class Reconnecting:
                 # once the endpoint counts as dead, a failed move (the master is away, or has not seen it die yet)
                 # is tried again after the backoff
                 refused = refused + 1 if isinstance(e, Unreachable) or refused >= r.gone_after else 0
+                if (why := _reason(e.message)) not in said:
+                    said.add(why)
+                    log.info("reconnect attempt failed; retrying", robot=self.robot_id, attempt=attempts,
+                             reason=e.message)
                 delay = backoff.next()
                 if (r.max_attempts is None or attempts < r.max_attempts) and time.monotonic() + delay < deadline:
                     await asyncio.sleep(delay)      # the backoff, a timer
@@ -149,17 +161,18 @@ class Reconnecting:
         for cb in self._link_cbs["reconnected"]:
             self._run_cb(cb, self.ws_url)
 
-    async def _move(self) -> None:
-        """The robot endpoint is dead: log in at the master again and open a fresh session (``resume=1``)
-        at the endpoint it names, where the cloud re-creates the robot's interfaces and connections
-        (docs/INTERNALS.md "Session resume", "Moving to another endpoint"). What the old session kept
-        is lost (counted in :attr:`moved_lost`), its calls and barriers fail. Raises :class:`Unavailable`
-        (the master is unreachable or still names the dead endpoint; try again) or :class:`AuthError`."""
+    async def _move(self) -> bool:
+        """The robot endpoint looks dead: log in at the master again and, when it names another endpoint,
+        open a fresh session (``resume=1``) there, where the cloud re-creates the robot's interfaces and
+        connections (docs/INTERNALS.md "Session resume", "Moving to another endpoint"). What the old
+        session kept is lost (counted in :attr:`moved_lost`), its calls and barriers fail. False (nothing
+        done) when the master names the same endpoint: it lives, and the session is resumed there.
+        Raises :class:`Unavailable` (the master is unreachable; try again) or :class:`AuthError`."""
         master_url, password, version = self.relogin
         timeout = self.reconnect.timeout
         ws_url = await login(master_url, self.user_id, version, timeout, self.ssl_context, self.routes)
         if ws_url == self.ws_url:
-            raise Unavailable(f"the master still names the dead robot endpoint {ws_url}")
+            return False
         ws = await open_robot_link(ws_url, self.user_id, password, self.robot_id, timeout=timeout,
                                    ssl_context=self.ssl_context, resume=True, max_lag=self.max_lag,
                                    routes=self.routes, mptcp=self.mptcp)
@@ -176,3 +189,9 @@ class Reconnecting:
         log.warning("robot endpoint died; moved to another", robot=self.robot_id, url=ws_url, lost=lost)
         for cb in self._link_cbs["moved"]:
             self._run_cb(cb, {"ws_url": ws_url, "lost": lost})
+        return True
+
+
+def _reason(message: str) -> str:
+    """A failure's kind, for saying each once: its text without numbers (ports, counts, times)."""
+    return re.sub(r"[0-9.:]+", "#", message)

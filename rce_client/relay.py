@@ -79,7 +79,8 @@ class RelayPacer:
 class RelayStats:
     """What a relay did: ``followers`` carried now; ``tunnels`` opened in all; ``refused_full``
     (503), ``refused_target`` (403), ``refused_bad`` (400), ``failed`` (the cloud's side could not be
-    reached: 502); ``bytes_up`` (to the cloud) and ``bytes_down`` (to followers) relayed;
+    reached: 502 when nothing listens there, 504 when the uplink does not reach it); ``bytes_up`` (to
+    the cloud) and ``bytes_down`` (to followers) relayed;
     ``paced_s``: s relayed bytes waited for the pacer."""
     followers: int = 0
     tunnels: int = 0
@@ -209,8 +210,11 @@ class RobotRelay:
             sock = await tcp_connect(target, DIAL_TIMEOUT)
         except (OSError, TimeoutError) as e:
             self.stats.failed += 1
-            await _refuse(writer, 502, f"relay {self.name} cannot reach {join_hostport(*target)}: "
-                                       f"{e or type(e).__name__}")
+            # 502: the cloud's host answered and nothing listens there; 504: the relay's uplink does not
+            # reach it now (no route, timed out): a follower waits for the uplink instead of moving
+            status = 502 if isinstance(e, (ConnectionRefusedError, ConnectionResetError)) else 504
+            await _refuse(writer, status, f"relay {self.name} cannot reach {join_hostport(*target)}: "
+                                          f"{e or type(e).__name__}")
             return
         for s in (sock, writer.get_extra_info("socket")):
             raw = s if isinstance(s, socket.socket) else socket.socket(fileno=s.fileno())
