@@ -5,7 +5,7 @@ prediction for the very same task stream.
 Per robot count N, one run of the whole system (engine processes, the fleet container with
 the global planner and N move_clients, N pymunk robots with batteries as in-process rce-ros
 clients, generated pick-up -> drop-off tasks at ``--rate-per-robot`` x N per simulated minute,
-:class:`rce_fleet.operations.TaskStream`), as a subprocess; measured:
+:class:`rce_fleet.live.task_stream.TaskStream`), as a subprocess; measured:
 
 - ``tasks_per_hour``: tasks done per simulated hour (the report's ``tasks.per_hour``);
 - ``real_time_factor``: simulated s per wall s the run held (asked: ``--speedup``);
@@ -20,11 +20,11 @@ clients, generated pick-up -> drop-off tasks at ``--rate-per-robot`` x N per sim
   whole machine's busy CPU over the run (% of one core; the container's nodes, the global
   planner and every move_client, are in it);
 - ``control``: the live fleet's control loop without physics and engine
-  (:func:`rce_fleet.kinematic.run_stream`: the global planner core, the dispatcher, the
+  (:func:`rce_fleet.live.kinematic.run_stream`: the global planner core, the dispatcher, the
   move_clients and unicycle robots at the simulated robots' speed and turn rate) on the same
   starts and task stream: ``tasks_done`` and ``s_per_cell``, the seconds the robots take per
   cell while they drive (turns and slowing included), and ``time_split``: the share of the
-  robots' time by what they did (:data:`rce_fleet.kinematic.TIME_SPLIT`: no task, driving,
+  robots' time by what they did (:data:`rce_fleet.live.kinematic.TIME_SPLIT`: no task, driving,
   held by the dependency graph's order, waiting beside a taken station, ...);
 - ``offline``: the same allocator (:class:`rce_fleet.lifelong.GreedyScheduler`) and planner
   (:class:`rce_fleet.lifelong.PIBTPlanner`, 4-neighbour moves) on the cell graph without
@@ -63,12 +63,12 @@ EXIT_GRACE_S = 120        # wall s beyond the run's timeout before it is killed
 
 def _geometry(map_path: str | None, robots: int):
     """The grid, places and starts the demo uses for ``map_path`` (None: the lab map) and ``robots``."""
-    from rce_fleet.demo import choose_cells
-    from rce_fleet.geometry import GridGeometry
-    from rce_fleet.grid import fleet_grid
-    from rce_fleet.lab_map import write_lab_map
-    from rce_fleet.maps import load_map
-    from rce_fleet.places import generate_places
+    from rce_fleet.live.demo import choose_cells
+    from rce_fleet.maps.geometry import GridGeometry
+    from rce_fleet.maps.grid import fleet_grid
+    from rce_fleet.maps.lab_map import write_lab_map
+    from rce_fleet.maps.occupancy import load_map
+    from rce_fleet.operations.places import generate_places
     with tempfile.TemporaryDirectory() as d:
         occ = load_map(map_path or write_lab_map(d))
     grid, _ = fleet_grid(occ)
@@ -240,8 +240,8 @@ def main(argv: list[str] | None = None) -> int:
         sizes, map_path, a.duration, a.speedup, a.rate_per_robot = [3], None, 40.0, 10.0, 2.0
     else:
         sizes, map_path = [int(x) for x in a.robots.split(",")], a.map
-    from rce_fleet.kinematic import run_stream
-    from rce_fleet.operations import TaskStream
+    from rce_fleet.live.kinematic import run_stream
+    from rce_fleet.live.task_stream import TaskStream
     work = Path(a.workdir or tempfile.mkdtemp(prefix="fleet-live-"))
     work.mkdir(parents=True, exist_ok=True)
     results = {"duration_s": a.duration, "rate_per_robot_per_min": a.rate_per_robot, "map": map_path or "lab",

@@ -5,7 +5,7 @@ What runs (a fresh engine per N, processes on loopback, :mod:`common`'s ``engine
 - rce-master ``--dev`` (user testUser; ``--max-interfaces`` raised to what N robots need),
   ``--robot-tasksets`` rce-robot task sets (default one per core: the master places each robot on
   the least loaded), one rce-container host;
-- the fleet manager (:class:`rce_fleet.manager.FleetManager`, robotID ``fleetManager``, in
+- the fleet manager (:class:`rce_fleet.live.manager.FleetManager`, robotID ``fleetManager``, in
   this orchestrating process): the fleet container ``cTag_01`` with the real
   ``fleet/global_planner`` node (``--no-lidar-blocking``), the ``/fleet/grid`` and
   ``/fleet/robots`` parameters and the operator interfaces (its ``/fleet/state`` at 5 Hz
@@ -146,9 +146,9 @@ GOAL_RESEND = 5.0          # s: goals of robots that have no path yet are sent a
 def grid_for(n: int):
     """An all-free map with a grid of 1 m cells, two cells per robot: (GridGeometry, rows, cols)."""
     import numpy as np
-    from rce_fleet.geometry import GridGeometry
-    from rce_fleet.grid import make_grid
-    from rce_fleet.maps import FREE, OccupancyMap
+    from rce_fleet.maps.geometry import GridGeometry
+    from rce_fleet.maps.grid import make_grid
+    from rce_fleet.maps.occupancy import FREE, OccupancyMap
     rows = max(2, math.ceil(math.sqrt(n)))
     cols = 2 * rows
     occ = np.full((rows * 10, cols * 10), FREE, dtype=np.int8)
@@ -916,7 +916,7 @@ class Run:
 
     async def _measure(self, eng, procs: Procs) -> None:
         from rce.plumbing.errors import RCEError
-        from rce_fleet.manager import FleetManager
+        from rce_fleet.live.manager import FleetManager
         a, res, n = self.args, self.res, self.n
         setup = res["setup"]
         t = time.monotonic()

@@ -1,6 +1,6 @@
 """The fleet simulator's own CPU per simulated second: N pymunk robots on the warehouse map,
 each driving to random goals with its local planner, as the simulator host runs them
-(:class:`rce_fleet.simhost.SimHost`: a 10 Hz control tick, a lidar scan every second tick,
+(:class:`rce_fleet.live.simhost.SimHost`: a 10 Hz control tick, a lidar scan every second tick,
 five physics substeps a tick), without the engine or the robots' bridges.
 
 Per robot count N it reports the CPU s per simulated s, split into the lidar scans, the local
@@ -31,9 +31,9 @@ DT, SUBSTEPS, SCAN_EVERY = 0.1, 5, 2      # the simulator host's tick, physics s
 
 def run(robots: int, ticks: int, seed: int = 1) -> dict:
     """One run of ``robots`` robots for ``ticks`` control ticks; CPU s per simulated s by part."""
-    from rce_fleet.geometry import GridGeometry
-    from rce_fleet.grid import make_grid
-    from rce_fleet.maps import load_map
+    from rce_fleet.maps.geometry import GridGeometry
+    from rce_fleet.maps.grid import make_grid
+    from rce_fleet.maps.occupancy import load_map
     from rce_fleet.sim import LocalNavigator, ObstacleDetector, SimWorld
     occ = load_map(WAREHOUSE)
     world, detector = SimWorld(occ, seed=seed), ObstacleDetector(occ)

@@ -44,9 +44,9 @@ import sys
 import time
 from pathlib import Path
 
-from rce_fleet.geometry import components
-from rce_fleet.grid import make_grid
-from rce_fleet.maps import load_map
+from rce_fleet.maps.geometry import components
+from rce_fleet.maps.grid import make_grid
+from rce_fleet.maps.occupancy import load_map
 from rce_fleet.lifelong import LifelongGrid
 from rce_fleet.planning import FleetPlanner, GridGraph, check_conflicts, load_movingai_map, load_movingai_scen
 
@@ -207,7 +207,7 @@ def run_live_sizes(map_yaml: Path | None, cell_m: float, sizes: list[int], seeds
     goals in the largest free component) of the lab grid (or ``map_yaml``'s); medians over seeds."""
     import numpy as np
 
-    from rce_fleet.lab_map import lab_map
+    from rce_fleet.maps.lab_map import lab_map
     from rce_fleet.lifelong import LifelongGrid
     from rce_fleet.lifelong.lacam import solve_lacam
 

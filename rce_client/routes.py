@@ -63,7 +63,7 @@ class Routes:
 
     ``direct_dial(addr, timeout)`` opens the robot's own path: a connected non-blocking socket, or
     :class:`OSError`/:class:`TimeoutError` (default :func:`~rce_client.tunnel.tcp_connect`; a simulated
-    robot's dial goes through its simulated access point, ``rce_fleet.radio``).
+    robot's dial goes through its simulated access point, ``rce_fleet.live.radio``).
 
     :attr:`relay`: the name of the relay the current link goes through (None: direct); :attr:`switches`:
     links opened on another path than the one before."""

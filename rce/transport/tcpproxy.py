@@ -1,6 +1,6 @@
 """A TCP proxy on loopback whose links can be cut, as a wireless link that goes away: for fault
 tests (tests/engine, tests/client, tests/web), the faults benchmark (``bench/faults.py``) and the
-fleet demo's ``--fault link:RobotN@T`` (``rce_fleet.faults``).
+fleet demo's ``--fault link:RobotN@T`` (``rce_fleet.live.faults``).
 
 It listens on 127.0.0.1 (an ephemeral port) and forwards every connection to a target port on
 127.0.0.1, both ways, passing an EOF on (a half close) and a reset on as a reset.

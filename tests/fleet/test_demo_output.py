@@ -6,8 +6,8 @@ import json
 
 from rich.console import Console
 
-from rce_fleet.demo import Options, Run
-from rce_fleet.demo_output import EXIT_FAIL, progress_line, report, table, write_outputs
+from rce_fleet.live.demo import Options, Run
+from rce_fleet.live.demo_output import EXIT_FAIL, progress_line, report, table, write_outputs
 
 
 def _prepared(tmp_path, **kw) -> Run:

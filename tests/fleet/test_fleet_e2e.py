@@ -22,9 +22,9 @@ from pathlib import Path
 import pytest
 
 from rce_fleet.configs import dumps, robot_config
-from rce_fleet.geometry import GridGeometry
-from rce_fleet.grid import make_grid
-from rce_fleet.maps import load_map
+from rce_fleet.maps.geometry import GridGeometry
+from rce_fleet.maps.grid import make_grid
+from rce_fleet.maps.occupancy import load_map
 
 ROOT = Path(__file__).resolve().parents[2]
 MAPS = ROOT.parent / "shared" / "data" / "maps"

@@ -8,7 +8,7 @@ default map with 3 robots, and the mission still ends with every robot at its go
   resumes the session, with no message lost.
 
 Each asserts on the report (``--report``): the fault, when it happened and when the fleet was
-served again (docs of the fields: ``rce_fleet.faults``).
+served again (docs of the fields: ``rce_fleet.live.faults``).
 """
 from __future__ import annotations
 

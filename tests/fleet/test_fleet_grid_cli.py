@@ -8,8 +8,8 @@ from pathlib import Path
 import pytest
 
 from rce_fleet.cli import main
-from rce_fleet.grid import fleet_grid
-from rce_fleet.maps import load_map
+from rce_fleet.maps.grid import fleet_grid
+from rce_fleet.maps.occupancy import load_map
 
 ROOT = Path(__file__).resolve().parents[2]
 WAREHOUSE = ROOT / ".." / "shared" / "data" / "maps" / "warehouse.yaml"

@@ -6,11 +6,11 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from rce_fleet.battery import Battery, BatteryParams
-from rce_fleet.kinematic import KinematicFleet, run_stream
+from rce_fleet.operations.battery import Battery, BatteryParams
+from rce_fleet.live.kinematic import KinematicFleet, run_stream
 from rce_fleet.lifelong import TaskState
-from rce_fleet.places import Place, PlaceError, Places, generate_places
-from rce_fleet.tasks_api import TaskBook
+from rce_fleet.operations.places import Place, PlaceError, Places, generate_places
+from rce_fleet.operations.tasks_api import TaskBook
 
 from .test_nodes import VirtualFleet, lab  # noqa: F401  (lab: the fixture)
 
@@ -334,7 +334,7 @@ def test_a_taken_station_goes_to_the_robot_nearest_to_it(lab):  # noqa: F811
     # two robots hold tasks at pick1 (16); the one sent there first is on its way from afar
     # when the other reaches the station's side: the nearer one goes in, the other waits beside
     # it; a robot only a step or two nearer does not take it (no goals bouncing between robots)
-    from rce_fleet.dispatcher import Dispatcher, RobotView
+    from rce_fleet.operations.dispatcher import Dispatcher, RobotView
     from rce_fleet.lifelong import LifelongGrid
     places = lab_places(lab)
     book = TaskBook(places)

@@ -1,4 +1,4 @@
-"""rce_fleet.grid: cutting maps into the planner's cell grid."""
+"""rce_fleet.maps.grid: cutting maps into the planner's cell grid."""
 from __future__ import annotations
 
 from pathlib import Path
@@ -6,9 +6,9 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from rce_fleet.grid import make_grid
-from rce_fleet.lab_map import lab_map, write_lab_map
-from rce_fleet.maps import OccupancyMap, load_map
+from rce_fleet.maps.grid import make_grid
+from rce_fleet.maps.lab_map import lab_map, write_lab_map
+from rce_fleet.maps.occupancy import OccupancyMap, load_map
 
 MAPS = Path(__file__).resolve().parents[2] / ".." / "shared" / "data" / "maps"
 

@@ -1,4 +1,4 @@
-"""rce_fleet.maps: map_server YAML + image loading (trinary / scale / raw, negate, errors)."""
+"""rce_fleet.maps.occupancy: map_server YAML + image loading (trinary / scale / raw, negate, errors)."""
 from __future__ import annotations
 
 import math
@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 from PIL import Image
 
-from rce_fleet.maps import MapError, OccupancyMap, load_map, save_map
+from rce_fleet.maps.occupancy import MapError, OccupancyMap, load_map, save_map
 
 DATA = Path(__file__).resolve().parents[2] / ".." / "shared" / "data"
 MAPS = DATA / "maps"

@@ -9,14 +9,14 @@ import pytest
 from rce.messages import MessageRegistry
 from rce.messages.forms import RCE_FORMS
 from rce.node.package_path import load_package_types
-from rce_fleet.geometry import GridGeometry, quaternion_from_yaw, yaw_from_quaternion
-from rce_fleet.grid import make_grid
-from rce_fleet.lab_map import write_lab_map
-from rce_fleet.maps import load_map
-from rce_fleet.global_planner_core import POSE_WAIT_S, GlobalPlannerCore
-from rce_fleet.move_client_core import MoveClientCore, plan_id_of
+from rce_fleet.maps.geometry import GridGeometry, quaternion_from_yaw, yaw_from_quaternion
+from rce_fleet.maps.grid import make_grid
+from rce_fleet.maps.lab_map import write_lab_map
+from rce_fleet.maps.occupancy import load_map
+from rce_fleet.nodes.global_planner_core import POSE_WAIT_S, GlobalPlannerCore
+from rce_fleet.nodes.move_client_core import MoveClientCore, plan_id_of
 from rce_fleet.planning import compress, compressed_index
-from rce_fleet.tracking import CellTracker, ObstacleFilter
+from rce_fleet.nodes.tracking import CellTracker, ObstacleFilter
 
 SHARED = Path(__file__).resolve().parents[2].parent / "shared" / "data" / "maps"
 
@@ -404,7 +404,7 @@ def test_planar_pose_reads_what_the_full_message_holds_and_refuses_what_it_refus
     same x, y, yaw and stamp, any bytes in frame_id, and the same bytes refused."""
     from rce.messages import default_registry
     from rce.plumbing.errors import MessageError
-    from rce_fleet.node_common import planar_pose
+    from rce_fleet.nodes.common import planar_pose
 
     reg = default_registry()
     t = reg.msg_type("geometry_msgs/PoseWithCovarianceStamped")

@@ -9,8 +9,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from rce_fleet.grid import make_grid
-from rce_fleet.lab_map import lab_map
+from rce_fleet.maps.grid import make_grid
+from rce_fleet.maps.lab_map import lab_map
 from rce_fleet.planning import (ActionDependencyGraph, Conflict, DistanceTable, FleetPlanner, GridGraph, PlannerError,
                                 UnreachableGoal, check_conflicts, load_movingai_map, load_movingai_scen,
                                 shortest_path)
@@ -490,7 +490,7 @@ def test_remove_robot_releases_waiting_robots():
 
 
 def test_turtlebot3_world_grid_three_robots_block_26():
-    from rce_fleet.maps import load_map
+    from rce_fleet.maps.occupancy import load_map
     grid = make_grid(load_map(DATA / "maps" / "turtlebot3_world.yaml"))
     fp = FleetPlanner(grid)
     fp.set_position("Robot1", 25)

@@ -10,7 +10,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from rce_fleet.maps import OccupancyMap, load_map
+from rce_fleet.maps.occupancy import OccupancyMap, load_map
 from rce_fleet.sim import (
     LidarParams, LocalNavigator, ObstacleDetector, SimWorld, blocked_mask,
     merge_rectangles, scan_to_points,
@@ -107,7 +107,7 @@ def test_world_walls_match_map_coordinates():
 
 
 def test_real_map_turtlebot3_world_builds():
-    from rce_fleet.maps import load_map
+    from rce_fleet.maps.occupancy import load_map
 
     m = load_map(MAPS / "turtlebot3_world.yaml")
     world = SimWorld(m, seed=0)
@@ -123,7 +123,7 @@ def test_real_map_turtlebot3_world_builds():
 
 
 def test_real_map_warehouse_builds_fast():
-    from rce_fleet.maps import load_map
+    from rce_fleet.maps.occupancy import load_map
 
     m = load_map(MAPS / "warehouse.yaml")
     t0 = time.perf_counter()
@@ -504,7 +504,7 @@ def test_normal_block_hands_out_the_generators_own_sequence():
 def test_points_wire_packs_what_the_registry_serialises():
     """The simulator's obstacles bytes are the message registry's for the same message."""
     from rce.messages import default_registry
-    from rce_fleet.points_wire import PointsWire
+    from rce_fleet.live.points_wire import PointsWire
     reg = default_registry()
     t = reg.msg_type("geometry_msgs/PoseArray")
     rng = np.random.default_rng(0)

@@ -12,7 +12,7 @@ from pathlib import Path
 
 import pytest
 
-WEB_DIR = Path(__file__).resolve().parents[2] / "examples" / "fleet" / "rce_fleet" / "web"
+WEB_DIR = Path(__file__).resolve().parents[2] / "examples" / "fleet" / "rce_fleet" / "live" / "web"
 CHROMIUM = os.environ.get("RCE_CHROMIUM", "/usr/bin/chromium")
 CHROMIUM_ARGS = ["--no-sandbox", "--disable-gpu", "--disable-background-networking", "--disable-quic",
                  "--no-first-run", "--disable-component-update", "--disable-sync"]

@@ -12,8 +12,8 @@ from rce.tools.launch import start_engine
 @pytest.fixture(scope="module")
 def ui_master(tmp_path_factory):
     d = tmp_path_factory.mktemp("mapdir")
-    from rce_fleet.lab_map import lab_map
-    from rce_fleet.webui import map_png
+    from rce_fleet.maps.lab_map import lab_map
+    from rce_fleet.live.webui import map_png
     (d / "map.png").write_bytes(map_png(lab_map()))
     e = start_engine(tmp_path_factory.mktemp("engine"), robot_tasksets=0, container_hosts=0,
                      master_args=("--static", f"/ui={WEB_DIR}", "--static", f"/data={d}"))
@@ -47,9 +47,9 @@ STATE_JS = """(t, free) => {
 def test_ten_robots_at_10hz_draw_smoothly(ui_master, page, tmp_path):
     page.goto(ui_master.master_url + "ui/index.html?map=/data/map.png")
     page.wait_for_function("window.fleetView && fleetView.map.loaded", timeout=PAGE_TIMEOUT_MS)
-    from rce_fleet.geometry import GridGeometry
-    from rce_fleet.grid import make_grid
-    from rce_fleet.lab_map import lab_map
+    from rce_fleet.maps.geometry import GridGeometry
+    from rce_fleet.maps.grid import make_grid
+    from rce_fleet.maps.lab_map import lab_map
     free = GridGeometry.from_cellgrid(make_grid(lab_map())).to_param()["free"]
     page.evaluate(f"window.mkState = {STATE_JS}; window.FREE = {free!r}; "
                   "document.getElementById('controls').hidden = false")

@@ -151,7 +151,7 @@ def build_parser() -> argparse.ArgumentParser:
     c.add_argument("--out", default="configs", metavar="DIR", help="directory (default configs)")
     c.add_argument("--robots", type=int, default=10, metavar="N", help="how many (default 10)")
     c.add_argument("--url", default="http://127.0.0.1:9000/", help="master login URL written into them")
-    from .task_cli import add_task_parser
+    from .operations.task_cli import add_task_parser
     add_task_parser(sub)
     g = sub.add_parser("grid", help="print the grid's cell numbers (## = not free)")
     _map_args(g)
@@ -237,9 +237,9 @@ def _print_grid(args: argparse.Namespace) -> int:
     2 a map that cannot be read or a grid that does not fit it."""
     import tempfile
 
-    from .grid import fleet_grid
-    from .lab_map import write_lab_map
-    from .maps import MapError, load_map
+    from .maps.grid import fleet_grid
+    from .maps.lab_map import write_lab_map
+    from .maps.occupancy import MapError, load_map
     try:
         with tempfile.TemporaryDirectory() as d:
             m = load_map(args.map or write_lab_map(d))
@@ -265,7 +265,7 @@ def main(argv: list[str] | None = None) -> None:
     if args.cmd == "lifelong":
         sys.exit(_lifelong(args))
     if args.cmd == "task":
-        from .task_cli import run_task
+        from .operations.task_cli import run_task
         sys.exit(run_task(args))
     if args.cmd == "configs":
         from .configs import write_configs
@@ -274,7 +274,7 @@ def main(argv: list[str] | None = None) -> None:
         return
     if args.cmd == "grid":
         sys.exit(_print_grid(args))
-    from .demo import (EXIT_USAGE, Options, UsageError, parse_battery, parse_cell_at, parse_faults,
+    from .live.demo import (EXIT_USAGE, Options, UsageError, parse_battery, parse_cell_at, parse_faults,
                        parse_robot_cell, run)
     lifelong = bool(getattr(args, "lifelong", False))
     mission = args.cmd == "demo" and not lifelong

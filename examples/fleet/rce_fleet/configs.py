@@ -3,7 +3,7 @@
 ``robot_config(n)`` is the config of simulated robot ``RobotN``; ``configs/robot1.config``
 ... ``configs/robot10.config`` are its output (``rce-fleet configs`` rewrites them;
 ``tests/fleet/test_fleet_e2e.py`` checks they match). The fleet manager
-(:mod:`rce_fleet.manager`, robotID ``fleetManager``) creates the fleet container
+(:mod:`rce_fleet.live.manager`, robotID ``fleetManager``) creates the fleet container
 ``cTag_01`` and the global planner before the robots connect, so a robot's config adds
 only its own move_client node, interfaces and connections to that container:
 

@@ -1,7 +1,7 @@
 """The grid a lifelong fleet runs on: free cells, the four headings and the move table.
 
 Cells are integers ``row * cols + col`` (the League of Robot Runners' "locations" and
-:mod:`rce_fleet.grid`'s cell numbers alike). Headings follow the start-kit
+:mod:`rce_fleet.maps.grid`'s cell numbers alike). Headings follow the start-kit
 (MAPF-Competition/Start-Kit, ``ActionModel.cpp``): 0 east, 1 south, 2 west, 3 north; a
 clockwise turn (``R``) adds 1, a counter-clockwise turn (``C``) subtracts 1, modulo 4.
 """

@@ -12,7 +12,7 @@ operator of a live fleet at any time before it is done).
 The pool owns every state: each :class:`Task` keeps the time it entered each state
 (``times``), its history of (time, state, agent, robot) and, when it failed or was
 cancelled, the reason. Times are in the caller's unit (steps in the simulator, fleet
-seconds in :mod:`rce_fleet.tasks_api`): each transition takes ``at``, and without it the
+seconds in :mod:`rce_fleet.operations.tasks_api`): each transition takes ``at``, and without it the
 newest time the pool was given. Closed tasks stay readable (:meth:`TaskPool.get`) until
 ``keep_closed`` newer ones have closed.
 """

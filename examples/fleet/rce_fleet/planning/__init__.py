@@ -16,10 +16,10 @@ One module per job:
   (Hoenig et al. 2019).
 - :mod:`.fleet_planner`: :class:`FleetPlanner`, the state of the fleet (positions, goals,
   blocked cells, paths) and its re-planning; the global planner node's core
-  (:mod:`rce_fleet.global_planner_core`) is a thin layer around it.
+  (:mod:`rce_fleet.nodes.global_planner_core`) is a thin layer around it.
 
 Units: cells are integers ``r * cols + c`` (row 0 at the top of the map image, see
-:mod:`rce_fleet.grid`); steps are plan time steps (one cell move or one wait).
+:mod:`rce_fleet.maps.grid`); steps are plan time steps (one cell move or one wait).
 """
 from .adg import ActionDependencyGraph
 from .dijkstra import DistanceTable, shortest_path

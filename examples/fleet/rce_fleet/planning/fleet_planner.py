@@ -150,7 +150,7 @@ class FleetPlanner:
     stays in its cell and other robots plan around it.
 
     Args:
-        grid: a :class:`rce_fleet.grid.CellGrid` or :class:`GridGraph`.
+        grid: a :class:`rce_fleet.maps.grid.CellGrid` or :class:`GridGraph`.
         max_restarts, time_budget_s (s), expansion_factor, min_expansions, weight: how hard
             a (re)plan tries, see :class:`.prioritized.SearchLimits`.
         replan_bound_s: hard wall-time bound of one re-plan, s (default ``math.inf``: none;

@@ -2,7 +2,7 @@
 4-neighbour moves between them, with its distances (reverse Dijkstra, scipy ``csgraph``).
 
 Cells are integers ``r * cols + c`` (row 0 at the top of the map image, see
-:mod:`rce_fleet.grid`). The graph is undirected between free cells (a robot can drive both
+:mod:`rce_fleet.maps.grid`). The graph is undirected between free cells (a robot can drive both
 ways between two cells).
 """
 from __future__ import annotations
@@ -77,7 +77,7 @@ class GridGraph:
 
     @classmethod
     def from_cellgrid(cls, grid) -> "GridGraph":
-        """From a :class:`rce_fleet.grid.CellGrid`, using its free cells and connections."""
+        """From a :class:`rce_fleet.maps.grid.CellGrid`, using its free cells and connections."""
         n = grid.rows * grid.cols
         return cls(grid.free, [grid.neighbours(c) for c in range(n)])
 

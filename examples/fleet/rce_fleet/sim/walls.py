@@ -27,7 +27,7 @@ class PixelRect(NamedTuple):
 
 
 def blocked_mask(occupancy: np.ndarray) -> np.ndarray:
-    """Pixels a robot cannot enter: occupied (>= 50, as rce_fleet.maps) or unknown (< 0).
+    """Pixels a robot cannot enter: occupied (>= 50, as rce_fleet.maps.occupancy) or unknown (< 0).
 
     ``occupancy`` is the map's (H, W) int8 grid (0 free, 100 occupied,
     -1 unknown); returns an (H, W) bool array.

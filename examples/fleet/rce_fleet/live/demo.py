@@ -1,0 +1,725 @@
+"""``rce-fleet demo`` / ``rce-fleet serve``: the whole fleet system on one machine.
+
+1. The engine as processes on 127.0.0.1 with ephemeral ports (:mod:`rce.tools.launch`):
+   rce-master ``--dev``, rce-robot, rce-container.
+2. The fleet manager (:mod:`rce_fleet.live.manager`, robotID ``fleetManager``): the fleet
+   container ``cTag_01``, the grid parameter and the ``global_planner`` node.
+3. N simulated robots in one :class:`rce_fleet.live.simhost.SimHost`, each connected as an
+   rce-ros client with its own robot config (:func:`rce_fleet.configs.robot_config`),
+   which starts its ``move_client`` in the fleet container.
+4. The mission (``demo``): goals (``--goal RobotN=CELL`` or random free cells from
+   ``--seed``), optional cell blocks (``--block CELL@SECONDS``, sim seconds after the
+   goals were sent) and unannounced obstacles (``--obstacle CELL@SECONDS``: a box only the
+   robots' lidars can find); a live table; a PNG of the driven paths (``--plot``); a JSON
+   report (``--report``); a ROS 1 bag of the fleet topics (``--bag``: every robot's
+   ``amcl_pose``, ``goalNodesList`` and ``cancelGoal`` and ``/fleet/state``, recorded from the
+   fleet container through forwarders of the client ``fleetRecorder``, :mod:`rce_client.bag`,
+   from when the robots are ready until the end); faults (``--fault master@T``: kill -9 rce-master
+   and restart it on its ``--state`` file; ``--fault link:RobotN@T+S``: cut a robot's link for S s;
+   :mod:`rce_fleet.live.faults`), which the mission rides out: the demo's clients resume their sessions;
+   robots out of the access point's coverage (``--out-of-coverage Robot2,Robot5``), which reach the
+   cloud only through relays on the other robots within ``--radio-range`` m (:mod:`rce_fleet.live.radio`).
+   Exit 0 when every robot has reached its goal (and every fault was recovered from); otherwise
+   non-zero with the reason (1 failure or timeout, 2 bad arguments, 3 an unreachable goal).
+
+The master keeps its state in ``engine/master.sqlite3`` of the work directory (``--state``), so a
+master that is killed comes back with it.
+
+``serve`` runs the same system without a mission until Ctrl-C (or ``--timeout``).
+
+Tasks. The fleet takes operators' tasks in every mode (:mod:`rce_fleet.operations.tasks_api`): named
+places come from ``--places FILE`` or are generated for the map and written to
+``places.yaml`` in the work directory (:mod:`rce_fleet.operations.places`). ``demo --lifelong`` runs the
+fleet on a generated task stream (``--task-rate R`` per simulated minute, pick-up then
+drop-off) for ``--duration S`` simulated seconds, with batteries (``--battery``) and idle
+robots parking (``--block``, ``--obstacle`` and faults timed from its start, as a mission's),
+and writes the report's ``tasks`` section and per-robot utilisation, distance,
+lowest battery level and charges (:mod:`rce_fleet.live.task_stream`); it exits 0 when the duration
+was reached and no robot ran flat.
+"""
+from __future__ import annotations
+
+import asyncio
+import json
+import math
+import random
+import shutil
+import signal
+import sys
+import tempfile
+import time
+from collections import deque
+from dataclasses import dataclass, field
+from pathlib import Path
+
+from rce.plumbing.errors import RCEError
+from rce.tools.launch import Engine, start_engine
+from rce.plumbing.log import get_logger, setup_logging
+from rce.messages import default_registry
+from rce.node.package_path import load_package_types
+from rce.plumbing.process import run_loop
+from rce.plumbing.tasks import Tasks
+
+from ..operations.battery import BatteryParams, battery_links
+from ..configs import FLEET_CTAG, PASSWORD, USER, robot_config
+from .demo_output import (EXIT_FAIL, EXIT_OK, EXIT_UNREACHABLE, EXIT_USAGE, blocked_by, progress_line, table,
+                          write_outputs)
+from .faults import Fault, FaultInjector, parse_fault
+from .fleet_bag import FleetBag
+from ..maps.geometry import GridGeometry, components
+from ..maps.grid import fleet_grid
+from ..maps.lab_map import write_lab_map
+from .manager import FleetManager
+from ..maps.occupancy import MapError, load_map
+from .task_stream import TaskStream
+from ..operations.places import PlaceError, Places, generate_places
+from .radio import Radio, default_range
+from .simhost import SimHost
+
+log = get_logger("fleet.demo")
+
+REACH_TOL = 0.25       # m between the robot's true centre and its goal cell's centre
+STUCK_S = 30.0         # wall s every robot still on its way may stay unplannable before the run fails
+SETUP_TIMEOUT_S = 60.0     # wall s for the fleet manager's setup, and for each robot's connection
+MIN_STEP_TIMEOUT_S = 0.1   # wall s a set-up step gets even when the run's --timeout is (nearly) used up
+MIN_READY_WAIT_S = 1.0     # wall s the wait for every robot and move_client to report gets at least
+CONNECTING_AT_ONCE = 4     # robots connecting at the same time (each sets up its node and interfaces)
+WATCH_PERIOD_S = 0.25      # wall s between checks of the run (mission end, engine, Ctrl-C)
+PROGRESS_EVERY_S = 5.0     # wall s between plain progress lines (no live table)
+RELAYS_EVERY_S = 1.0       # wall s between asks for the followers' relays at the master (--out-of-coverage)
+TEARDOWN_TIMEOUT_S = 10.0  # wall s the web page and the fleet manager each get to close before they are left
+SIM_STOP_TIMEOUT_S = 5.0   # wall s the robots' bridges get to remove their nodes and interfaces
+
+
+class UsageError(ValueError):
+    """A bad flag value; the message says which and why."""
+
+
+@dataclass
+class Options:
+    """What to run: the ``rce-fleet demo``/``serve`` flags (see :mod:`rce_fleet.cli`)."""
+
+    map: str | None = None
+    robots: int = 3
+    grid: tuple[int, int] | None = None
+    cell: float | None = None
+    seed: int = 1
+    speedup: float = 3.0
+    headless: bool = False
+    timeout: float = 300.0          # wall s the run may take (``--timeout``; ``serve``: until Ctrl-C)
+    goals: dict[str, int] = field(default_factory=dict)
+    starts: dict[str, int] = field(default_factory=dict)
+    blocks: list[tuple[int, float]] = field(default_factory=list)
+    obstacles: list[tuple[int, float]] = field(default_factory=list)
+    plot: str | None = "fleet_paths.png"
+    report: str | None = None
+    bag: str | None = None          # ROS 1 bag of the fleet topics (``--bag``)
+    workdir: str | None = None
+    keep: bool = False
+    lidar_blocking: bool = True
+    mission: bool = True
+    live: bool | None = None        # None: when stdout is a terminal
+    web_port: int = 8000            # the operator's web page (rce_fleet.live.webui); taken if free, else any
+    faults: list[Fault] = field(default_factory=list)   # ``--fault`` (rce_fleet.live.faults)
+    places: str | None = None       # ``--places`` YAML (None: generated for the map)
+    lifelong: bool = False          # ``demo --lifelong``: a generated task stream for ``duration`` sim s
+    duration: float = 600.0         # sim s of a lifelong run
+    task_rate: float = 6.0          # tasks per sim minute of a lifelong run
+    battery: BatteryParams | None = None   # simulated batteries (``--battery``; a lifelong run has them)
+    out_of_coverage: list[str] = field(default_factory=list)   # robots reaching the cloud only through relays
+    radio_range: float | None = None       # m between robots that hear each other (None: rce_fleet.live.radio default)
+
+
+def parse_battery(spec: str | None, lifelong: bool) -> BatteryParams | None:
+    """``--battery KEY=VALUE,...`` (keys of :class:`rce_fleet.operations.battery.BatteryParams`; empty:
+    the defaults) -> params; None without the flag unless ``lifelong``. Raises UsageError."""
+    if spec is None:
+        return BatteryParams() if lifelong else None
+    kw = {}
+    for item in filter(None, (x.strip() for x in spec.split(","))):
+        k, sep, v = item.partition("=")
+        if not sep or k not in BatteryParams.__dataclass_fields__:
+            raise UsageError(f"--battery {item!r}: expected KEY=VALUE with KEY one of "
+                             f"{', '.join(BatteryParams.__dataclass_fields__)}")
+        try:
+            kw[k] = float(v)
+        except ValueError:
+            raise UsageError(f"--battery {item!r}: {v!r} is not a number") from None
+    try:
+        return BatteryParams(**kw)
+    except ValueError as e:
+        raise UsageError(f"--battery: {e}") from None
+
+
+def parse_robot_cell(items: list[str], what: str) -> dict[str, int]:
+    """``["Robot1=12", ...]`` -> ``{"Robot1": 12}``; raises UsageError."""
+    out = {}
+    for it in items or []:
+        rid, sep, cell = it.partition("=")
+        try:
+            if not sep or not rid:
+                raise ValueError
+            out[rid] = int(cell)
+        except ValueError:
+            raise UsageError(f"--{what} {it!r}: expected ROBOT=CELL, e.g. Robot1=42") from None
+    return out
+
+
+def parse_cell_at(items: list[str], what: str) -> list[tuple[int, float]]:
+    """``["26@5", ...]`` -> ``[(26, 5.0)]``; raises UsageError."""
+    out = []
+    for it in items or []:
+        cell, sep, t = it.partition("@")
+        try:
+            if not sep:
+                raise ValueError
+            out.append((int(cell), float(t)))
+        except ValueError:
+            raise UsageError(f"--{what} {it!r}: expected CELL@SECONDS, e.g. 26@5") from None
+        if out[-1][1] < 0:
+            raise UsageError(f"--{what} {it!r}: seconds must be >= 0")
+    return out
+
+
+def parse_faults(items: list[str]) -> list[Fault]:
+    """``["master@5", "link:Robot1@5+5"]`` -> faults (:func:`rce_fleet.live.faults.parse_fault`); raises UsageError."""
+    try:
+        return [parse_fault(it) for it in items or []]
+    except ValueError as e:
+        raise UsageError(str(e)) from None
+
+
+def choose_cells(geo: GridGeometry, robots: list[str], seed: int, starts: dict[str, int],
+                 goals: dict[str, int], mission: bool) -> tuple[dict[str, int], dict[str, int]]:
+    """Starts and goals: the given ones, the others random distinct free cells (seeded) of the
+    largest connected part of the grid. Raises UsageError for a given start that is not free."""
+    rng = random.Random(seed)
+    comps = components(geo)
+    if not comps:
+        raise UsageError("the grid has no free cell (try another --grid/--cell)")
+    pool = sorted(comps[0])
+    for r, c in starts.items():
+        if not geo.is_free(c):
+            raise UsageError(f"--start {r}={c}: cell {c} is not a free cell of the grid")
+    if len(set(starts.values())) != len(starts):
+        raise UsageError("--start: two robots in one cell")
+    need = len(robots) - len(starts)
+    free_starts = [c for c in pool if c not in starts.values()]
+    if need > len(free_starts):
+        raise UsageError(f"{len(robots)} robots do not fit in the {len(pool)} connected free cells of the grid")
+    picked = rng.sample(free_starts, need)
+    st = dict(starts)
+    for r in robots:
+        if r not in st:
+            st[r] = picked.pop()
+    gl = dict(goals)
+    if mission:
+        taken = set(gl.values())
+        for r in robots:
+            if r in gl:
+                continue
+            cands = [c for c in pool if c != st[r] and c not in taken]
+            if not cands:
+                raise UsageError("not enough free cells for distinct goals")
+            gl[r] = rng.choice(cands)
+            taken.add(gl[r])
+    return st, gl
+
+
+class Run:
+    """One demo/serve run (see the module docstring)."""
+
+    def __init__(self, opts: Options):
+        self.o = opts
+        self.robots = [f"Robot{i}" for i in range(1, opts.robots + 1)]
+        self.engine: Engine | None = None
+        self.manager: FleetManager | None = None
+        self.sim: SimHost | None = None
+        self.state: dict | None = None
+        self.t_mission: float | None = None       # sim time the goals were sent
+        self.wall_mission: float | None = None
+        self.cpu_mission = 0.0                    # this process's CPU s (the simulator, the bridges) then
+        self.reached: dict[str, float] = {}       # robot -> sim time
+        self.block_log: list[dict] = []
+        self.obstacle_log: list[dict] = []
+        self.result: tuple[int, str] | None = None
+        self.events: deque[str] = deque(maxlen=6)
+        self.bag: FleetBag | None = None          # --bag
+        self.grid_note = ""
+        self.faults: FaultInjector | None = None
+        self._stuck_since: float | None = None
+        self._stop = asyncio.Event()
+        self.tasks = Tasks("fleet-demo")           # operator requests sent from sim timers
+        self.task_list: dict | None = None         # the newest /fleet/tasks
+        self.generated = 0                         # tasks the lifelong stream sent
+        self.refused: list[str] = []               # why the fleet refused generated tasks
+        self.radio: Radio | None = None            # --out-of-coverage: the radio links to the relays
+        self.master_relays: dict[str, dict] = {}   # follower -> the master's relay and relay_since (asked every 1 s)
+
+    # -- set-up ---------------------------------------------------------------------------------
+    def prepare(self) -> None:
+        """Check the options, load the map, cut the grid, choose starts and goals; raises
+        UsageError naming the bad flag."""
+        o = self.o
+        if o.robots < 1:
+            raise UsageError("--robots must be >= 1")
+        if o.speedup <= 0:
+            raise UsageError("--speedup must be > 0")
+        self.workdir = Path(o.workdir).resolve() if o.workdir else Path(tempfile.mkdtemp(prefix="rce-fleet-"))
+        self.workdir.mkdir(parents=True, exist_ok=True)
+        map_path = o.map or str(write_lab_map(self.workdir / "map"))
+        self.map_path = map_path
+        try:
+            self.occ = load_map(map_path)
+        except (MapError, OSError) as e:
+            raise UsageError(f"--map: {e}") from None
+        try:
+            grid, self.grid_note = fleet_grid(self.occ, o.grid, o.cell)
+        except ValueError as e:
+            raise UsageError(f"--grid/--cell: {e}") from None
+        self.geo = GridGeometry.from_cellgrid(grid)
+        for r in list(o.goals) + list(o.starts) + [f.robot for f in o.faults if f.robot]:
+            if r not in self.robots:
+                raise UsageError(f"unknown robot {r!r}: the robots are Robot1..Robot{o.robots}")
+        self._check_coverage()
+        for r, c in o.goals.items():
+            if not self.geo.valid(c):
+                raise UsageError(f"--goal {r}={c}: cell outside the {self.geo.rows}x{self.geo.cols} grid")
+        for c, _ in o.blocks + o.obstacles:
+            if not self.geo.valid(c):
+                raise UsageError(f"cell {c} is outside the {self.geo.rows}x{self.geo.cols} grid")
+        self.starts, self.goals = choose_cells(self.geo, self.robots, o.seed, o.starts, o.goals, o.mission)
+        try:
+            self.places = Places.load(o.places, self.geo) if o.places else generate_places(self.geo, o.robots)
+        except PlaceError as e:
+            if o.places or o.lifelong:
+                raise UsageError(f"--places: {e}") from None
+            self.places = Places([], self.geo)      # a grid too small for places: tasks name cells
+            log.info("no places generated", reason=str(e))
+        if not o.places and len(self.places):
+            self.places.dump(self.workdir / "places.yaml", f"places generated for {Path(self.map_path).name}, "
+                             f"grid {self.geo.rows}x{self.geo.cols} (rce-fleet --places)")
+        if o.lifelong:
+            if not o.duration > 0:
+                raise UsageError("--duration must be > 0")
+            try:
+                self.stream = TaskStream(self.places, o.task_rate, o.seed).times_and_errands(o.duration)
+            except ValueError as e:
+                raise UsageError(f"--task-rate/--places: {e}") from None
+        if self.grid_note:
+            log.info(self.grid_note)
+            self.events.append(self.grid_note)
+
+    def _check_coverage(self) -> None:
+        """Check ``--out-of-coverage`` and ``--radio-range`` (default: :func:`rce_fleet.live.radio.default_range`)."""
+        o = self.o
+        for r in o.out_of_coverage:
+            if r not in self.robots:
+                raise UsageError(f"--out-of-coverage: unknown robot {r!r}: the robots are Robot1..Robot{o.robots}")
+        if not o.out_of_coverage:
+            return
+        if len(set(o.out_of_coverage)) == len(self.robots):
+            raise UsageError("--out-of-coverage: at least one robot must have coverage, to relay for the others")
+        for f in o.faults:
+            if f.robot in o.out_of_coverage:
+                raise UsageError(f"--fault {f.name}: {f.robot} is out of coverage (its links are radio links "
+                                 f"to relays, which drop as the robots move)")
+        if o.radio_range is None:
+            o.radio_range = default_range(self.occ.width_m, self.occ.height_m)
+        elif not o.radio_range > 0:
+            raise UsageError("--radio-range must be > 0 m")
+
+    # -- run --------------------------------------------------------------------------------------
+    async def run(self) -> int:
+        """Start everything, run the mission (or serve), write the outputs, tear down;
+        returns the exit code."""
+        o = self.o
+        loop = asyncio.get_running_loop()
+        for sig in (signal.SIGINT, signal.SIGTERM):
+            try:
+                loop.add_signal_handler(sig, self._interrupt)
+            except (NotImplementedError, RuntimeError):
+                pass
+        wall0 = time.monotonic()
+        self.deadline = wall0 + o.timeout
+        try:
+            code, reason = await self._run()
+        except RCEError as e:
+            code, reason = EXIT_FAIL, e.message
+        except (RuntimeError, TimeoutError, OSError) as e:
+            code, reason = EXIT_FAIL, str(e)
+        self.result = (code, reason)
+        self.wall_total = time.monotonic() - wall0
+        if self.radio is not None:
+            await self._ask_master_relays()
+        try:
+            if self.bag is not None:         # before the report, which gives its counts
+                await self.bag.stop(TEARDOWN_TIMEOUT_S)
+        except (asyncio.TimeoutError, RCEError, OSError) as e:
+            log.warning("the bag recorder did not disconnect", reason=str(e))
+        try:
+            write_outputs(self, code, reason)
+        finally:
+            await self._teardown()
+        return code
+
+    def _interrupt(self) -> None:
+        self.events.append("interrupted")
+        self._stop.set()
+
+    async def _run(self) -> tuple[int, str]:
+        o = self.o
+        state = self.workdir / "engine" / "master.sqlite3"
+        self.engine = await asyncio.to_thread(start_engine, self.workdir / "engine",
+                                              master_args=("--state", str(state)),
+                                              admin_token=f"fleet-{random.getrandbits(64):016x}")
+        log.info("engine up", master=self.engine.master_url, workdir=str(self.workdir))
+        self.faults = FaultInjector(o.faults, self.engine, self.tasks, USER, self.mission_t)
+        print(f"rce-fleet: master {self.engine.master_url}  (rce-fleet task list --master {self.engine.master_url})",
+              flush=True)
+        args = " ".join(a for a, on in (("--no-lidar-blocking", not o.lidar_blocking), ("--park-idle", o.lifelong))
+                        if on)
+        self.manager = FleetManager(self.engine.master_url, self.geo, self.robots, planner_args=args,
+                                    on_state=self._on_state, places=self.places, battery=o.battery,
+                                    on_tasks=self._on_tasks)
+        await self._bounded(self.manager.start(timeout=SETUP_TIMEOUT_S), "fleet manager setup")
+        reg = default_registry()
+        load_package_types(reg)
+        self.sim = SimHost(self.occ, self.geo, reg, seed=o.seed, speedup=o.speedup, battery=o.battery,
+                           chargers=self.places.cells("charger"))
+        for r in self.robots:
+            self.sim.spawn(r, self.starts[r])
+        self.sim.start()
+        await self._connect_robots()
+        log.info("robots connected", robots=len(self.robots),
+                 t_wall=round(time.monotonic() - (self.deadline - o.timeout), 1))
+
+        def ready(st: dict) -> bool:
+            rs = {x["robot"]: x for x in st.get("robots", [])}
+            return all(r in rs and rs[r]["cell"] >= 0 and rs[r]["client_state"] not in ("", "no_pose")
+                       for r in self.robots)
+        await self._bounded(self.manager.wait_state(ready, max(MIN_READY_WAIT_S, self.deadline - time.monotonic())),
+                            "robots and move_clients reporting")
+        if not o.headless:
+            await self._start_web()
+        if o.bag:
+            self.bag = FleetBag(o.bag, self.robots)
+            await self._bounded(self.bag.start(self.engine.master_url, reg, SETUP_TIMEOUT_S), "bag recorder setup")
+            self.events.append(f"recording the fleet topics to {o.bag}")
+            log.info("recording", bag=o.bag, topics=len(self.bag.topics()))
+        if o.lifelong:
+            return await self._lifelong()
+        if not o.mission:
+            log.info("serving", robots=len(self.robots), note="Ctrl-C to stop")
+            await self._watch(mission=False)
+            return EXIT_OK, "stopped"
+        # the mission
+        self._start_clock()
+        for r in self.robots:
+            await self.manager.set_goal(r, self.goals[r])
+        log.info("mission started", goals=self.goals, starts=self.starts, t_sim=round(self.t_mission, 2))
+        return await self._watch(mission=True)
+
+    def _start_clock(self) -> None:
+        """The mission (or lifelong run) starts now: blocks, obstacles and faults are timed from here."""
+        o = self.o
+        self.t_mission = self.sim.time
+        self.wall_mission = time.monotonic()
+        self.cpu_mission = time.process_time()
+        for c, at in o.blocks:
+            self.sim.at(self.t_mission + at, lambda cell=c, at=at: self._do_block(cell, at))
+        for c, at in o.obstacles:
+            self.sim.at(self.t_mission + at, lambda cell=c, at=at: self._do_obstacle(cell, at))
+        self.faults.schedule(self.sim.at, self.t_mission)
+
+    async def _lifelong(self) -> tuple[int, str]:
+        """The generated task stream for ``--duration`` sim s (module docstring)."""
+        self._start_clock()
+        for at, errands in self.stream:
+            self.sim.at(self.t_mission + at, lambda e=errands: self.tasks.spawn(self._add_task(e), name="task"))
+        log.info("lifelong run started", tasks=len(self.stream), duration=self.o.duration, rate=self.o.task_rate)
+        code, reason = await self._watch(mission=False)
+        flat = [r for r, b in self.sim.bots.items() if b.battery is not None and b.battery.flat]
+        if code == EXIT_OK and flat:
+            return EXIT_FAIL, f"battery ran flat: {', '.join(flat)}"
+        return code, reason
+
+    async def _add_task(self, errands: list[str]) -> None:
+        self.generated += 1
+        try:
+            await self.manager.tasks.add(errands, timeout=SETUP_TIMEOUT_S)
+        except RCEError as e:
+            self.refused.append(e.message)
+            log.warning("generated task refused", errands=errands, reason=e.message)
+
+    def _on_tasks(self, task_list: dict) -> None:
+        self.task_list = task_list
+
+    async def _connect_robots(self) -> None:
+        """Write the robots' configs and connect them, a few at a time (each sets up its node and
+        interfaces); a robot whose link a fault cuts logs in through its proxy's login relay."""
+        cfgs = {r: robot_config(int(r[5:]), self.engine.master_url) for r in self.robots}
+        if self.o.battery is not None:
+            for r, cfg in cfgs.items():
+                ifaces, links = battery_links(int(r[5:]), FLEET_CTAG)
+                cfg["interfaces"] += ifaces
+                cfg["connections"] += links
+        (self.workdir / "configs").mkdir(exist_ok=True)
+        for r, cfg in cfgs.items():
+            (self.workdir / "configs" / f"robot{r[5:]}.config").write_text(json.dumps(cfg, indent=2))
+        logins = await self.faults.start_links()
+        sem = asyncio.Semaphore(CONNECTING_AT_ONCE)
+        followers = [r for r in self.robots if r in self.o.out_of_coverage]
+        relays = {"relay_port": 0, "relay_bind": "127.0.0.1"} if followers else {}
+
+        async def connect(robot: str, **kw) -> None:
+            async with sem:
+                await self.sim.connect(robot, cfgs[robot], logins.get(robot, self.engine.master_url),
+                                       timeout=SETUP_TIMEOUT_S, **kw)
+            if robot in logins:
+                self.faults.watch(robot, self.sim.bots[robot].bridge.conn)
+        await self._bounded(asyncio.gather(*(connect(r, **relays) for r in self.robots if r not in followers)),
+                            "robots connecting")
+        if followers:
+            await self._connect_followers(followers, connect)
+
+    async def _connect_followers(self, followers: list[str], connect) -> None:
+        """Start the radio links from ``followers`` to every other robot's relay, and connect the
+        followers through them (the relays are connected)."""
+        ports = {r: b.bridge.relay.port for r, b in self.sim.bots.items() if r not in followers}
+        self.radio = Radio(self.o.radio_range, followers, ports, self.sim.positions)
+        await self.radio.start()
+        self.sim.tick_hooks.append(self.radio.update)
+        self.tasks.spawn(self._watch_relays(), name="relays")
+        self.events.append(f"out of coverage: {', '.join(followers)} (radio range {self.o.radio_range:g} m)")
+        log.info("out of coverage: reaching the cloud through relays", followers=followers,
+                 radio_range_m=self.o.radio_range)
+
+        async def follower(robot: str) -> None:
+            await connect(robot, routes=self.radio.routes(robot))
+            self.radio.follow(robot, self.sim.bots[robot].bridge.conn, self.mission_t)
+        await self._bounded(asyncio.gather(*(follower(r) for r in followers)), "robots out of coverage connecting")
+
+    async def _ask_master_relays(self) -> None:
+        """Keep what the master says of each follower's relay (the admin API's ``/api/robots``)."""
+        try:
+            rows = await asyncio.to_thread(self.engine.admin, "/api/robots")
+        except (RCEError, OSError) as e:
+            log.warning("could not ask the master for the robots' relays", reason=str(e))
+            return
+        self.master_relays = {r["robot"]: {"relay": r.get("relay"), "relay_since": r.get("relay_since")}
+                              for r in rows if r["robot"] in self.o.out_of_coverage}
+
+    async def _watch_relays(self) -> None:
+        """Ask the master for the followers' relays every :data:`RELAYS_EVERY_S` s (the web page's lines)."""
+        while True:
+            await self._ask_master_relays()
+            await asyncio.sleep(RELAYS_EVERY_S)     # the period, a timer
+
+    def _relay_lines(self) -> dict[str, str]:
+        """Follower -> the relay its link goes through now, as the master last said."""
+        return {r: v["relay"] for r, v in self.master_relays.items() if v["relay"]}
+
+    async def _bounded(self, aw, what: str):
+        left = self.deadline - time.monotonic()
+        try:
+            async with asyncio.timeout(max(left, MIN_STEP_TIMEOUT_S)):
+                return await aw
+        except TimeoutError:
+            raise TimeoutError(f"timeout ({self.o.timeout:g} s wall) during {what}") from None
+
+    def _on_state(self, st: dict) -> None:
+        self.state = st
+        if self.faults is not None:
+            self.faults.on_state()
+        for rec in self.block_log:      # the planner's time for the re-plan the block caused
+            if "replan_ms" not in rec and rec["cell"] in st.get("blocked", []):
+                rec["replan_ms"] = round(st.get("last_plan_ms", 0.0), 3)
+        if self.sim is not None:
+            self.sim.set_blocked(blocked_by(st))
+
+    def _do_block(self, cell: int, at: float) -> None:
+        paths = {x["robot"]: x["path"] for x in (self.state or {}).get("robots", [])}
+        rec = {"cell": cell, "at_s": at, "sent_sim_s": round(self.sim.time - self.t_mission, 3),
+               "sent_t": self.sim.time,
+               "paths_crossed": sorted(r for r, p in paths.items() if cell in p[1:]),
+               "robot_cells": {r: b.cells[-1][1] for r, b in self.sim.bots.items()}}
+        self.block_log.append(rec)
+        crossed = ", ".join(rec["paths_crossed"]) or "none"
+        self.events.append(f"t={at:g}s: block cell {cell} (paths crossing it: {crossed})")
+        log.info("blocking cell", cell=cell, t=at, paths_crossed=rec["paths_crossed"])
+        self.tasks.spawn(self.manager.block(cell, True, "operator"), name=f"block-{cell}")
+
+    def _do_obstacle(self, cell: int, at: float) -> None:
+        x, y, w, h = self.sim._box(cell)
+        self.sim.world.add_box(f"obstacle{cell}", x, y, w, h)
+        self.obstacle_log.append({"cell": cell, "at_s": at, "sent_t": self.sim.time})
+        self.events.append(f"t={at:g}s: unannounced obstacle in cell {cell}")
+        log.info("obstacle placed (only the lidars can tell)", cell=cell, t=at)
+
+    # -- watching ------------------------------------------------------------------------------
+    def robot_states(self) -> dict[str, dict]:
+        return {x["robot"]: x for x in (self.state or {}).get("robots", [])}
+
+    def _check(self) -> tuple[int, str] | None:
+        """The mission's end, if reached: (exit code, reason)."""
+        st = self.robot_states()
+        for r in self.robots:
+            s = st.get(r)
+            if s is None:
+                continue
+            if s["state"] == "unreachable" and s.get("error_permanent"):
+                return EXIT_UNREACHABLE, f"{r}: goal cell {self.goals[r]} unreachable: {s['error']}"
+            if r not in self.reached and s["state"] == "arrived" and s["client_state"] == "arrived" \
+                    and s["goal"] == self.goals[r]:
+                x, y, _ = self.sim.bots[r].robot.pose()
+                gx, gy = self.geo.center(self.goals[r])
+                if math.hypot(x - gx, y - gy) <= REACH_TOL:
+                    self.reached[r] = self.sim.time
+                    self.events.append(f"{r} reached cell {self.goals[r]} at t={self.sim.time - self.t_mission:.1f}s")
+                    log.info("goal reached", robot=r, goal=self.goals[r], t=round(self.sim.time - self.t_mission, 2))
+        if len(self.reached) == len(self.robots) and not self.faults.busy:
+            return EXIT_OK, "every robot reached its goal"
+        # no plan for anybody still on the way (the planner retries every second): give up after a while
+        left = [r for r in self.robots if r not in self.reached]
+        if left and all(st.get(r, {}).get("state") == "unreachable" for r in left):
+            if self._stuck_since is None:
+                self._stuck_since = time.monotonic()
+            elif time.monotonic() - self._stuck_since > STUCK_S:
+                why = "; ".join(f"{r}: {st[r]['error']}" for r in left)
+                return EXIT_UNREACHABLE, f"no collision-free plan for {len(left)} robot(s) for {STUCK_S:g} s: {why}"
+        else:
+            self._stuck_since = None
+        return None
+
+    def _engine_problem(self) -> str | None:
+        if self.faults is not None and self.faults.error:
+            return self.faults.error
+        dead = self.engine.alive() if self.engine else []
+        if dead:
+            return f"engine process exited: {', '.join(dead)}"
+        if self.sim is not None:
+            for r, b in self.sim.bots.items():
+                if b.task is not None and b.task.done():
+                    return f"{r}: its rce-ros bridge stopped"
+        if self.manager is not None and self.manager.conn is not None and self.manager.conn.closed:
+            return "the fleet manager lost its connection"
+        return None
+
+    async def _watch(self, mission: bool) -> tuple[int, str]:
+        live = self.o.live if self.o.live is not None else sys.stdout.isatty()
+        if live:
+            from rich.live import Live
+            with Live(table(self), refresh_per_second=4, redirect_stderr=True, redirect_stdout=True) as lv:
+                setup_logging()         # logs go above the table
+                _quiet_libraries()
+                end = await self._loop(mission, lambda: lv.update(table(self)))
+            setup_logging()
+            _quiet_libraries()
+            print(flush=True)
+            return end
+        last = [0.0]
+
+        def plain() -> None:
+            if time.monotonic() - last[0] >= PROGRESS_EVERY_S:
+                last[0] = time.monotonic()
+                print(progress_line(self), flush=True)
+        return await self._loop(mission, plain)
+
+    async def _loop(self, mission: bool, show) -> tuple[int, str]:
+        while True:
+            show()
+            if self._stop.is_set():
+                return (EXIT_FAIL, "interrupted") if mission else (EXIT_OK, "stopped")
+            prob = self._engine_problem()
+            if prob:
+                return EXIT_FAIL, prob
+            if mission:
+                end = self._check()
+                if end is not None:
+                    show()
+                    return end
+            if self.o.lifelong and self.t_mission is not None and self.mission_t() >= self.o.duration:
+                return EXIT_OK, f"{self.o.duration:g} s simulated"
+            if time.monotonic() > self.deadline:
+                if self.o.lifelong:
+                    return EXIT_FAIL, (f"timeout after {self.o.timeout:g} s wall at {self.mission_t():.0f} of "
+                                       f"{self.o.duration:g} s simulated")
+                if not mission:
+                    return EXIT_OK, "timeout reached (serve)"
+                missing = [r for r in self.robots if r not in self.reached]
+                st = self.robot_states()
+                detail = "; ".join(f"{r} in cell {st.get(r, {}).get('cell')} ({st.get(r, {}).get('state')}, "
+                                   f"goal {self.goals[r]})" for r in missing)
+                return EXIT_FAIL, f"timeout after {self.o.timeout:g} s wall: not at their goals: {detail}"
+            try:
+                async with asyncio.timeout(WATCH_PERIOD_S):
+                    await self._stop.wait()
+            except TimeoutError:
+                pass
+
+    # -- display ---------------------------------------------------------------------------------
+    def mission_t(self) -> float:
+        """Sim seconds since the goals were sent (since the simulator started when serving)."""
+        if self.sim is None:
+            return 0.0
+        return self.sim.time - (self.t_mission if self.t_mission is not None else 0.0)
+
+    # -- the operator's web page (rce_fleet.live.webui, owned by the web page's code) ----------------
+    async def _start_web(self) -> None:
+        from .webui import WebUI
+        self.web = WebUI(self.engine.master_url, self.occ, self.geo, self.robots, ctag=FLEET_CTAG, user=USER,
+                         password=PASSWORD, port=self.o.web_port, tasks=self.manager.tasks, places=self.places,
+                         relays=self._relay_lines if self.radio is not None else None)
+        url = await self._bounded(self.web.start(), "web page setup")
+        self.events.append(f"operator page: {url}")
+        print(f"rce-fleet: operator page: {url}  (log in as {USER}; rce-master --dev password {PASSWORD})",
+              flush=True)
+
+    async def _teardown(self) -> None:
+        t0 = time.monotonic()
+        try:
+            await self.tasks.cancel_all()
+            if self.bag is not None:
+                await self.bag.stop(TEARDOWN_TIMEOUT_S)
+            if getattr(self, "web", None) is not None:
+                async with asyncio.timeout(TEARDOWN_TIMEOUT_S):
+                    await self.web.stop()
+            if self.sim is not None:
+                await self.sim.stop(timeout=SIM_STOP_TIMEOUT_S, first=self.o.out_of_coverage)
+            if self.radio is not None:
+                await self.radio.close()
+            if self.manager is not None:
+                async with asyncio.timeout(TEARDOWN_TIMEOUT_S):
+                    await self.manager.close()
+            if self.faults is not None:
+                async with asyncio.timeout(TEARDOWN_TIMEOUT_S):
+                    await self.faults.close()
+        except (TimeoutError, RCEError, OSError) as e:
+            log.warning("teardown incomplete", reason=str(e))
+        finally:
+            t1 = time.monotonic()
+            if self.engine is not None:
+                await asyncio.to_thread(self.engine.stop)
+            if not self.o.keep and not self.o.workdir:
+                shutil.rmtree(self.workdir, ignore_errors=True)
+            log.info("stopped", clients_s=round(t1 - t0, 2), engine_s=round(time.monotonic() - t1, 2))
+
+
+def _quiet_libraries() -> None:
+    import logging
+    for name in ("rce.ros", "rce.client"):
+        logging.getLogger(name).setLevel(logging.WARNING)
+
+
+def run(opts: Options) -> int:
+    """Run the demo (or ``serve`` when ``opts.mission`` is False); returns the exit code."""
+    setup_logging()
+    _quiet_libraries()
+    r = Run(opts)
+    try:
+        r.prepare()
+    except UsageError as e:
+        print(f"rce-fleet: {e}", file=sys.stderr)
+        return EXIT_USAGE
+    return run_loop(r.run())

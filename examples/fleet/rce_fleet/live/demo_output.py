@@ -1,0 +1,178 @@
+"""What a fleet run shows and writes: the live table and progress line, the ``--report`` JSON and
+the ``--plot`` PNG of the driven paths. Each function takes the run, a :class:`rce_fleet.live.demo.Run`
+(not imported here: the run imports this module)."""
+from __future__ import annotations
+
+import json
+import math
+import sys
+import time
+from pathlib import Path
+
+from .task_stream import goal_motion_delays, robot_section, tasks_section
+
+EXIT_OK, EXIT_FAIL, EXIT_USAGE, EXIT_UNREACHABLE = 0, 1, 2, 3   # the run's exit codes
+
+
+def blocked_by(state: dict) -> dict[int, str]:
+    """A fleet state's blocked cells: cell -> who blocked it."""
+    return dict(zip(state.get("blocked", []), state.get("blocked_by", []), strict=False))
+
+
+def fmt_state(state: str) -> str:
+    """A robot state in the live table's colours (rich markup)."""
+    colours = {"arrived": "green", "moving": "cyan", "waiting": "yellow", "unreachable": "red", "unknown": "dim"}
+    c = colours.get(state)
+    return f"[{c}]{state}[/{c}]" if c else state
+
+
+def progress_line(run) -> str:
+    """One plain progress line: sim time, goals reached, each robot's cell -> goal and state."""
+    st = run.robot_states()
+    parts = [f"{r}:{st.get(r, {}).get('cell', '?')}->{run.goals.get(r, '-')} {st.get(r, {}).get('state', '?')}"
+             f"{via(run, r)}" for r in run.robots]
+    head = f"reached {len(run.reached)}/{len(run.robots)}  " if run.o.mission else ""
+    return f"t={run.mission_t():6.1f}s  {head}" + "  ".join(parts)
+
+
+def via(run, robot: str) -> str:
+    """`` via RELAY`` (or `` dark``) for a robot out of coverage, else ""."""
+    lg = run.radio.logs.get(robot) if run.radio is not None else None
+    return "" if lg is None else (" dark" if lg.via == "dark" else f" via {lg.via}")
+
+
+def table(run):
+    """The live table (a rich renderable): a row per robot, the blocked cells, the closest pair, the events."""
+    from rich.console import Group
+    from rich.table import Table
+    from rich.text import Text
+    t = Table(title=f"rce fleet: {len(run.robots)} robots, grid {run.geo.rows}x{run.geo.cols}, "
+                    f"speedup {run.o.speedup:g}", expand=False)
+    for col, j in (("robot", "left"), ("cell", "right"), ("goal", "right"), ("left m", "right"),
+                   ("replans", "right"), ("cancels", "right"), ("state", "left")):
+        t.add_column(col, justify=j)
+    st = run.robot_states()
+    for r in run.robots:
+        s = st.get(r, {})
+        state = "reached" if r in run.reached else s.get("state", "?")
+        t.add_row(r, str(s.get("cell", "?")), str(run.goals.get(r, "-")),
+                  f"{s.get('distance_left', 0.0):.1f}", str(s.get("replans", 0)), str(s.get("cancels", 0)),
+                  fmt_state(state) + via(run, r))
+    blocked = (run.state or {}).get("blocked", [])
+    mp = run.sim.min_pair if run.sim else math.inf
+    foot = Text(f"t={run.mission_t():.1f} s sim   blocked: {blocked or '-'}   "
+                f"closest robots: {mp:.2f} m   re-plans: {(run.state or {}).get('replans', 0)}")
+    return Group(t, foot, *(Text(e, style="dim") for e in run.events))
+
+
+def write_outputs(run, code: int, reason: str) -> None:
+    """Write ``--plot`` and ``--report`` and print the verdict; a failed plot is reported, never raised."""
+    o = run.o
+    rep = report(run, code, reason)
+    if o.plot and run.sim is not None:
+        from .plot import plot_run
+        blocked = blocked_by(run.state or {})
+        traces = {r: [(x, y) for _, x, y in b.trace] for r, b in run.sim.bots.items()}
+        t = rep.get("mission_time_s") or rep.get("sim_time_s") or 0.0
+        title = (f"{Path(run.map_path).name}: {len(run.robots)} robots, grid {run.geo.rows}x{run.geo.cols}, "
+                 f"t={t:.1f} s sim\n" + ("all goals reached" if code == EXIT_OK else "FAILED: " + reason[:90]))
+        try:
+            p = plot_run(o.plot, run.occ, run.geo, traces, run.starts, run.goals if o.mission else {},
+                         blocked, title, {r: r in run.reached for r in run.robots})
+            rep["plot"] = str(p.resolve())
+        except Exception as e:  # a plot never hides the result
+            rep["plot_error"] = repr(e)
+    if o.report:
+        Path(o.report).parent.mkdir(parents=True, exist_ok=True)
+        Path(o.report).write_text(json.dumps(rep, indent=2))
+    verdict = "OK" if code == EXIT_OK else "FAILED"
+    print(f"rce-fleet: {verdict}: {reason}", file=sys.stdout if code == EXIT_OK else sys.stderr, flush=True)
+    if rep.get("mission_time_s") is not None:
+        mp = rep["min_pair_distance_m"]
+        print(f"rce-fleet: mission time {rep['mission_time_s']:.1f} s sim, "
+              f"{rep['mission_wall_s']:.1f} s wall; closest robots "
+              f"{'-' if mp is None else format(mp, '.3f')} m; "
+              f"re-plans {rep['planner']['replans']} (max {rep['planner']['max_plan_ms']:.1f} ms)",
+              flush=True)
+    if rep.get("plot"):
+        print(f"rce-fleet: paths plotted to {rep['plot']}", flush=True)
+
+
+def report(run, code: int, reason: str) -> dict:
+    """The ``--report`` JSON (per robot, blocks, obstacles, planner, simulator ground truth)."""
+    st = run.robot_states()
+    sim = run.sim
+    t0 = run.t_mission
+    per = {}
+    for r in run.robots:
+        s = st.get(r, {})
+        b = sim.bots.get(r) if sim else None
+        cells = [(round(t - (t0 or 0.0), 2), c) for t, c in b.cells] if b else []
+        per[r] = {"start": run.starts.get(r), "goal": run.goals.get(r), "reached": r in run.reached,
+                  "reached_at_s": round(run.reached[r] - t0, 2) if r in run.reached and t0 is not None else None,
+                  "state": s.get("state"), "error": s.get("error", ""),
+                  "cancel_goal": s.get("cancels", 0), "replans": s.get("replans", 0),
+                  "robot_cancels_received": b.cancels_received if b else 0,
+                  "waypoints_received": b.goals_received if b else 0,
+                  "distance_m": round(b.distance, 3) if b else 0.0,
+                  "cells": cells}
+    blocks = []
+    for rec in run.block_log:
+        entries = sim.entries_after(rec["cell"], rec["sent_t"]) if sim else []
+        blocks.append({k: v for k, v in rec.items() if k != "sent_t"} |
+                      {"entered_after": [{"robot": rr, "t_s": round(t - t0, 2)} for rr, t in entries]})
+    all_reached = run.reached and len(run.reached) == len(run.robots)
+    mission_t = (max(run.reached.values()) - t0) if all_reached else None
+    fs = run.state or {}
+    return {
+        "ok": code == EXIT_OK, "exit_code": code, "reason": reason,
+        "map": str(run.map_path), "robots": len(run.robots), "seed": run.o.seed, "speedup": run.o.speedup,
+        "grid": {"rows": run.geo.rows, "cols": run.geo.cols, "cell_w_m": run.geo.cell_w_m,
+                 "cell_h_m": run.geo.cell_h_m, "free_cells": len(run.geo.free_cells())},
+        "mission_time_s": round(mission_t, 2) if mission_t is not None else None,
+        "mission_wall_s": round(time.monotonic() - run.wall_mission, 2) if run.wall_mission else None,
+        "run_wall_s": round(getattr(run, "wall_total", 0.0), 2),
+        "sim_time_s": round(sim.time - (t0 or 0.0), 2) if sim else 0.0,
+        "sim_lag_resets": sim.lag_resets if sim else 0,
+        "sim_max_speedup": round(sim.effective_speedup(), 2) if sim else None,
+        "robot_radius_m": sim.radius if sim else None,
+        "min_pair_distance_m": round(sim.min_pair, 4) if sim and math.isfinite(sim.min_pair) else None,
+        "min_pair_at": ({"t_s": round(sim.min_pair_at[0] - (t0 or 0.0), 2), "robots": list(sim.min_pair_at[1:])}
+                        if sim and sim.min_pair_at else None),
+        "blocks": blocks,
+        "obstacles": [{k: v for k, v in o.items() if k != "sent_t"} for o in run.obstacle_log],
+        "blocked": {str(c): src for c, src in blocked_by(fs).items()},
+        "planner": {"replans": fs.get("replans", 0), "max_plan_ms": fs.get("max_plan_ms", 0.0),
+                    "last_plan_ms": fs.get("last_plan_ms", 0.0), "replan_bound_ms": fs.get("replan_bound_ms", 0.0),
+                    "replans_bounded": fs.get("replans_bounded", 0),
+                    "replans_abandoned": fs.get("replans_abandoned", 0),
+                    "robots_deferred_total": fs.get("robots_deferred_total", 0)},
+        "errors": fs.get("errors", []),
+        "bag": run.bag.report() if run.bag else None,
+        "faults": run.faults.report() if run.faults else [],
+        "per_robot": per,
+        **lifelong_report(run, per),
+        **({"coverage": run.radio.report() | {"master": run.master_relays}} if run.radio else {}),
+        "workdir": str(run.workdir),
+    }
+
+
+def lifelong_report(run, per: dict) -> dict:
+    """The ``tasks`` section and the task stream's numbers of a lifelong run; adds each robot's
+    work (utilisation, distance_m, battery_min_pct, charges) to ``per``."""
+    if not run.o.lifelong or run.t_mission is None:
+        return {}
+    for r, work in robot_section(run.task_list, run.sim).items():
+        per.setdefault(r, {}).update(work)
+    t = run.mission_t()
+    delays = goal_motion_delays(run.task_list, run.sim)
+    ds = sorted(delays)
+    return {"tasks": tasks_section(run.task_list, t, run.generated),
+            "lifelong": {"duration_s": round(t, 2), "task_rate_per_min": run.o.task_rate,
+                         "generated": run.generated, "refused": run.refused[:20],
+                         "real_time_factor": round(t / max(time.monotonic() - run.wall_mission, 1e-9), 3),
+                         "host_cpu_per_sim_s": round((time.process_time() - run.cpu_mission) / max(t, 1e-9), 3),
+                         "goal_to_motion_s": {"n": len(ds), "p50": ds[len(ds) // 2] if ds else None,
+                                              "p99": ds[min(len(ds) - 1, int(0.99 * len(ds)))] if ds else None},
+                         "battery": run.o.battery.to_param() if run.o.battery else None,
+                         "places": str(run.o.places or run.workdir / "places.yaml")}}

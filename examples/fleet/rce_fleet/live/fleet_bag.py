@@ -1,0 +1,59 @@
+"""``rce-fleet demo --bag``: the fleet topics recorded into a ROS 1 bag.
+
+Every robot's ``amcl_pose``, ``goalNodesList`` and ``cancelGoal`` and ``/fleet/state``, recorded from
+the fleet container through forwarders of the client ``fleetRecorder`` (:mod:`rce_client.bag`).
+"""
+from __future__ import annotations
+
+import asyncio
+
+from rce.messages import MessageRegistry
+from rce_client.bag import BagRecorder, record_container
+from rce_client.connection import Connection
+
+from ..configs import FLEET_CTAG, PASSWORD, USER
+
+RECORDER_ID = "fleetRecorder"   # robotID of the recorder's connection
+
+
+class FleetBag:
+    """One run's bag of the fleet topics (a ROS 1 bag v2.0 at ``path``)."""
+
+    def __init__(self, path: str, robots: list[str]):
+        self.path = path
+        self.robots = robots
+        self.bag: BagRecorder | None = None
+        self.recorder: Connection | None = None
+
+    def topics(self) -> list[tuple[str, str]]:
+        """(topic, class) of the fleet container's topics recorded."""
+        per_robot = [(f"/{r}/{name}", cls) for r in self.robots for name, cls in (
+            ("amcl_pose", "geometry_msgs/PoseWithCovarianceStamped"), ("goalNodesList", "std_msgs/Int32MultiArray"),
+            ("cancelGoal", "std_msgs/Bool"))]
+        return [*per_robot, ("/fleet/state", "fleet/FleetState")]
+
+    async def start(self, master_url: str, reg: MessageRegistry, timeout: float) -> None:
+        """Open the bag and connect the recorder to the fleet container's topics.
+
+        Raises RCEError when the engine refuses the recorder or its interfaces, TimeoutError after
+        ``timeout`` s, OSError when the bag cannot be written."""
+        self.bag = BagRecorder(self.path, reg)
+        self.bag.open()
+        self.recorder = await Connection.connect(master_url, USER, PASSWORD, RECORDER_ID, allow_reconnect=True)
+        await record_container(self.recorder, FLEET_CTAG, self.topics(), self.bag, timeout=timeout)
+
+    async def stop(self, timeout: float) -> None:
+        """Disconnect the recorder (within ``timeout`` s) and finish the bag; once, again is a no-op."""
+        rec, self.recorder = self.recorder, None
+        try:
+            if rec is not None:
+                async with asyncio.timeout(timeout):
+                    await rec.close()
+        finally:
+            if self.bag is not None and self.bag.is_open:
+                self.bag.close()
+                print(f"rce-fleet: {self.bag.summary()}", flush=True)
+
+    def report(self) -> dict | None:
+        """The report's ``bag`` section: the path and the messages per topic (None before ``start``)."""
+        return {"path": str(self.bag.path), "messages": dict(self.bag.counts)} if self.bag else None
