@@ -1,6 +1,7 @@
 """The shape of the code base: no import circle among the project's modules or the bench scripts,
-no function over 80 lines in the engine packages, and engine tests import nothing from
-``examples/``. Read from the source with :mod:`ast`; nothing is imported or run."""
+no function over 80 lines in the engine packages, engine tests import nothing from ``examples/``,
+the fleet package's parts keep their layers and its sans-I/O cores import no I/O. Read from the
+source with :mod:`ast`; nothing is imported or run."""
 from __future__ import annotations
 
 import ast
@@ -151,3 +152,83 @@ def test_engine_tests_import_nothing_from_examples():
         if "examples" in text and "sys.path" in text:
             offenders.append(f"{f.relative_to(ROOT)}: puts examples/ on sys.path")
     assert not offenders, "engine tests importing the fleet example:\n" + "\n".join(offenders)
+
+
+# rce_fleet's layers (docs/layout.md): each part and the parts of rce_fleet it never imports
+LOWER = {"maps", "planning", "lifelong", "sim"}
+FLEET_NEVER = {
+    "maps": {"planning", "lifelong", "sim", "operations", "nodes", "live", "cli", "configs"},
+    **{part: {"operations", "nodes", "live", "cli"} for part in ("planning", "lifelong", "sim")},
+    "operations": {"nodes", "live", "cli"},
+    "nodes": {"live", "cli"},
+    "live": {"cli"},
+}
+# the fleet's sans-I/O cores: plain classes driven by their callers, so they import no sockets, no event
+# loop and no transport
+SANS_IO = ("rce_fleet.maps", "rce_fleet.planning", "rce_fleet.lifelong", "rce_fleet.sim",
+           "rce_fleet.nodes.global_planner_core", "rce_fleet.nodes.move_client_core", "rce_fleet.nodes.tracking",
+           "rce_fleet.operations.places", "rce_fleet.operations.battery", "rce_fleet.operations.tasks_api",
+           "rce_fleet.operations.dispatcher")
+IO_MODULES = ("socket", "ssl", "asyncio", "selectors", "http", "urllib.request", "aiohttp", "websockets",
+              "picows", "rce.transport", "rce.node", "rce.bus", "rce_client")
+
+
+def _all_imports(path: Path, module: str) -> set[str]:
+    """Every module name ``module`` (at ``path``) imports, relative imports made absolute."""
+    tree = ast.parse(path.read_text(), str(path))
+    pkg = module if path.name == "__init__.py" else module.rpartition(".")[0]
+    out: set[str] = set()
+    for sub in ast.walk(tree):
+        if isinstance(sub, ast.Import):
+            out.update(a.name for a in sub.names)
+        elif isinstance(sub, ast.ImportFrom):
+            base = sub.module or ""
+            if sub.level:
+                up = pkg.split(".")[: len(pkg.split(".")) - (sub.level - 1)]
+                base = ".".join(up + ([base] if base else []))
+            out.add(base)
+            out.update(f"{base}.{a.name}" for a in sub.names)
+    return out
+
+
+def _within(name: str, prefixes) -> str | None:
+    return next((p for p in prefixes if name == p or name.startswith(p + ".")), None)
+
+
+def _layer_offences(mods: dict[str, Path]) -> list[str]:
+    out = []
+    for m, p in sorted(mods.items()):
+        part = m.split(".")[1] if m.startswith("rce_fleet.") else None
+        never = {f"rce_fleet.{n}" for n in FLEET_NEVER.get(part, ())}
+        out += [f"{m} imports {n}" for n in sorted(_all_imports(p, m)) if _within(n, never)]
+    return out
+
+
+def _io_offences(mods: dict[str, Path]) -> list[str]:
+    return [f"{m} imports {n}" for m, p in sorted(mods.items()) if _within(m, SANS_IO)
+            for n in sorted(_all_imports(p, m)) if _within(n, IO_MODULES)]
+
+
+def test_layer_and_io_finders_find_offences(tmp_path: Path):
+    core = tmp_path / "tracking.py"
+    core.write_text("import asyncio\nfrom ..live.demo import run\n")
+    mods = {"rce_fleet.nodes.tracking": core}
+    assert _layer_offences(mods) == ["rce_fleet.nodes.tracking imports rce_fleet.live.demo",
+                                     "rce_fleet.nodes.tracking imports rce_fleet.live.demo.run"]
+    assert _io_offences(mods) == ["rce_fleet.nodes.tracking imports asyncio"]
+
+
+def test_fleet_parts_keep_their_layers():
+    """maps at the bottom; planning, lifelong and sim above it; operations; the container nodes (never
+    the demo); live; the CLI on top."""
+    mods = _modules()
+    assert {m.split(".")[1] for m in mods if m.count(".") >= 2 and m.startswith("rce_fleet.")} >= set(FLEET_NEVER)
+    offences = _layer_offences(mods)
+    assert not offences, "rce_fleet imports against its layers:\n" + "\n".join(offences)
+
+
+def test_sans_io_cores_import_no_sockets():
+    mods = _modules()
+    assert sum(1 for m in mods if _within(m, SANS_IO)) > 40
+    offences = _io_offences(mods)
+    assert not offences, "sans-I/O cores importing I/O:\n" + "\n".join(offences)
