@@ -99,7 +99,7 @@ def test_an_errand_is_done_when_its_robot_stands_on_it_and_the_task_after_the_la
     s.step(np.array([F]), np.array([0]))
     t = s.pool.open[0]
     assert t.opened and t.next_errand == 1 and s.finished == 0
-    assert s.events == [(1, 0, 0, 0)]
+    assert s.events == [(1, 0, 0, 1)]       # (timestep, robot, task, errands reached)
     s.step(np.array([F]), np.array([0]))
     assert s.finished == 1 and s.assignment.tolist() == [-1] and s.finished_at == [2]
 
@@ -156,3 +156,13 @@ def test_output_json_has_the_start_kit_fields_and_replays_with_its_count():
     assert out["numTaskFinished"] == s.finished == 2
     again = replay(G, [(1, 3), (9,), (2,)], 2, out)
     assert again.finished == out["numTaskFinished"] and again.invalid_steps == 0
+
+
+def test_schedule_entries_take_effect_at_the_next_timestep_and_a_robot_that_loses_its_task_gets_minus_one():
+    s = sim([0, 8], tasks=[(3, 11), (9,), (2,)], reveal=2)    # tasks 0 and 1 open
+    s.step(np.array([W, W]), np.array([0, 1]))               # step 0: adopted, in effect at timestep 1
+    s.step(np.array([W, W]), np.array([1, 0]))               # unopened tasks swap robots
+    s.step(np.array([W, W]), np.array([-1, 0]))              # robot 0 keeps nothing
+    assert s.output()["actualSchedule"] == ["1:0,2:1,3:-1", "1:1,2:0"]
+    again = replay(G, [(3, 11), (9,), (2,)], 2, s.output())
+    assert again.assignment.tolist() == s.assignment.tolist() == [-1, 0]

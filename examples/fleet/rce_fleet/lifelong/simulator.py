@@ -12,7 +12,10 @@ Runners 2024 start-kit's (MAPF-Competition/Start-Kit v2.1.2, ``ActionModel.cpp``
   revealed from the task file in order and cyclically (task i visits line ``i mod m``);
 - :meth:`Simulator.apply_schedule`: a task opened (first errand reached) by a robot is
   never given to another, nor may that robot drop it; an invalid proposal is refused whole
-  and counted in ``numScheduleErrors``;
+  and counted in ``numScheduleErrors``. An adopted proposal takes effect after the step's move
+  (``TaskManager::update_tasks``), so ``actualSchedule`` records it at the next timestep
+  (``t+1:task``), and records every change of a robot's task since its last entry, ``-1``
+  (none) included: a robot whose task went to another, or that finished one and got none;
 - :meth:`Simulator.check_errands`: an errand is done when its robot stands on it.
 
 :meth:`Simulator.output` writes the start-kit's output JSON; :func:`replay` re-runs one
@@ -29,7 +32,7 @@ from .grid import HEADING_NAMES, LifelongGrid
 from .kernels import ACT_C, ACT_F, ACT_R, ACT_W, MOVE_WAIT
 from .tasks import TaskPool
 
-__all__ = ["MAPF", "MAPF_T", "Simulator", "StepReport", "check_actions", "replay"]
+__all__ = ["MAPF", "MAPF_T", "Simulator", "StepReport", "check_actions", "replay", "schedule_entries"]
 
 MAPF_T = "MAPF_T"
 MAPF = "MAPF"
@@ -150,7 +153,7 @@ class Simulator:
         self.planned: list[np.ndarray] = []
         self.planner_times: list[float] = []
         self.actual_schedule: list[list[str]] = [[] for _ in range(n)]
-        self.planner_schedule: list[list[str]] = [[] for _ in range(n)]
+        self._recorded = np.full(n, -1, dtype=np.int64)     # each robot's task as its last entry says
         self.cost = np.zeros(n, dtype=np.int64)
         self.finished_at: list[int] = []
         self.reveal()
@@ -195,8 +198,9 @@ class Simulator:
 
     def apply_schedule(self, proposal: np.ndarray | None) -> bool:
         """Adopt a valid ``proposal`` (False and the errors recorded when it is refused;
-        None keeps the current schedule)."""
+        None proposes the current schedule again)."""
         if proposal is None:
+            self._record_schedule()
             return True
         proposal = np.asarray(proposal, dtype=np.int64)
         if proposal.shape != (self.n,):
@@ -214,10 +218,18 @@ class Simulator:
             tid = int(proposal[a])
             if tid >= 0:
                 self.pool.assign(tid, int(a))
-                if self.record:
-                    self.actual_schedule[a].append(f"{self.t}:{tid}")
         self.assignment = proposal.copy()
+        self._record_schedule()
         return True
+
+    def _record_schedule(self) -> None:
+        """``actualSchedule`` entries at the next timestep for every robot whose task differs from
+        its last entry, as the start-kit's ``TaskManager::set_task_assignment`` writes them."""
+        if not self.record:
+            return
+        for a in np.flatnonzero(self.assignment != self._recorded).tolist():
+            self.actual_schedule[a].append(f"{self.t + 1}:{int(self.assignment[a])}")
+        self._recorded[:] = self.assignment
 
     def check_errands(self) -> tuple[int, int]:
         """Advance every task whose robot stands on its next errand; returns (errands, tasks) done."""
@@ -229,7 +241,7 @@ class Simulator:
                 done = self.pool.reach(t.id, self.t)
                 errands += 1
                 if self.record:
-                    self.events.append((self.t, int(a), t.id, seq))
+                    self.events.append((self.t, int(a), t.id, seq + 1))     # errands reached, as the start-kit's
                 if done:
                     tasks += 1
                     self.assignment[a] = -1
@@ -318,22 +330,27 @@ def replay(grid: LifelongGrid, task_source: Sequence[Sequence[int]], reveal: int
         if len(codes) != steps:
             raise ValueError(f"agent {a}: {len(codes)} actions for makespan {steps}")
         acts[a] = codes
-    sched: dict[int, list[tuple[int, int]]] = {}
-    for a, s in enumerate(output["actualSchedule"]):
-        for item in filter(None, s.split(",")):
-            t, tid = item.split(":")
-            sched.setdefault(int(t), []).append((a, int(tid)))
+    sched = schedule_entries(output["actualSchedule"])
     for t in range(steps):
         prop = None
-        if t in sched:
+        if t + 1 in sched:                     # entries at t+1 take effect after the move of step t
             prop = sim.assignment.copy()
-            for a, tid in sched[t]:
+            for a, tid in sched[t + 1]:
                 prop[a] = tid
-            # a robot whose task went to another one (and got none) keeps no entry: drop it
-            for a, tid in sched[t]:
-                for b in np.flatnonzero(prop == tid):
-                    if b != a:
-                        prop[b] = -1
         sim.step(acts[:, t], prop)
     return sim
+
+
+def schedule_entries(actual_schedule: Sequence[str]) -> dict[int, list[tuple[int, int]]]:
+    """``actualSchedule`` (one ``"T:task,T:task,..."`` string per robot) -> {T: [(robot, task)]}.
+    Raises ValueError naming the robot and the entry that is not ``T:task``."""
+    sched: dict[int, list[tuple[int, int]]] = {}
+    for a, s in enumerate(actual_schedule):
+        for item in filter(None, s.split(",")):
+            try:
+                t, tid = (int(x) for x in item.split(":"))
+            except ValueError:
+                raise ValueError(f"actualSchedule of robot {a}: expected 'timestep:task', got {item!r}") from None
+            sched.setdefault(t, []).append((a, tid))
+    return sched
 
