@@ -1,17 +1,24 @@
-"""Benchmark the lifelong fleet (rce_fleet.lifelong) on the League of Robot Runners 2024
-problems in ``../shared/data/lorr/``, under the start-kit's rules, at each problem's
-official number of steps and 1000 ms per step.
+"""Benchmark the lifelong fleet (rce_fleet.lifelong) under the League of Robot Runners 2024 rules,
+against the league's default entry run in the same benchmark on the same problem, steps and time
+limit (the start-kit v2.1.2's ``lifelong``, built from source: ``bench/startkit_peer.py``).
 
-Prints a table: tasks finished, the start-kit default entry's and the best known (from
-``lorr/RESULTS.md``) with the ratios, tasks per step, planner ms per step (p50/p99/max),
-timeouts and invalid steps. Writes JSON and a PNG of tasks finished over time against the
-two published numbers.
+Problems: the shared ones in ``../shared/data/lorr/`` at their official number of steps (default),
+problem JSONs of your own (``--problems``), problems generated on any map as the league's Problem
+Generator makes them (``--generate MAP --robots N,...``), or the density sweep over every shared map
+(``--sweep``: random-32-32-20 at 100 - 800 robots, Paris and brc202d at 1,000 / 3,000, sortation and
+warehouse at 2,000 / 5,000 / 10,000).
+
+Prints a table: tasks finished by rce and by the peer with the ratio, the published default entry's
+and best known (``lorr/RESULTS.md``; scaled by steps on a cut, and marked), planner ms per step
+(p50/p99/max), timeouts and invalid steps. Writes JSON and a PNG of tasks finished over time.
 
 Usage::
 
-    .venv/bin/python bench/lifelong.py [--quick] [--only NAME ...] [--steps N]
-        [--plan-time-limit MS] [--scheduler batch|greedy|both] [--seed S] [--cache-mb MB] [--lanes N] [--crowd-w W]
-        [--data ../shared/data] [--json PATH] [--plot PATH] [--outputs DIR]
+    .venv/bin/python bench/lifelong.py [--quick] [--only NAME ...] [--steps N] [--problems JSON ...]
+        [--generate MAP ... --robots N,... ] [--sweep] [--seed S] [--problem-dir DIR]
+        [--peer PATH | --build-peer DIR] [--plan-time-limit MS] [--scheduler batch|greedy|both]
+        [--cache-mb MB] [--lanes N] [--crowd-w W] [--data ../shared/data] [--json PATH] [--plot PATH]
+        [--outputs DIR]
 
 ``--quick`` runs a small cut (two problems, 100 steps) for the test suite; published
 numbers are then scaled by steps and marked as such. Results go to ``bench/results/``
@@ -21,15 +28,24 @@ from __future__ import annotations
 
 import argparse
 import json
+import os
 import re
 import sys
 import time
 from pathlib import Path
 
+from common import git_head
+
 ROOT = Path(__file__).resolve().parents[1]
 DEFAULT_DATA = (ROOT / ".." / "shared" / "data").resolve()
 RESULTS = ROOT / "bench" / "results"
 QUICK = {"random_32_32_20_100": 60, "paris_1_256_250": 30}
+SWEEP = {"random.domain/maps/random-32-32-20.map": (100, 200, 400, 600, 800),
+         "city.domain/maps/Paris_1_256.map": (1000, 3000),
+         "game.domain/maps/brc202d.map": (1000, 3000),
+         "warehouse.domain/maps/sortation_large.map": (2000, 5000, 10000),
+         "warehouse.domain/maps/warehouse_large.map": (2000, 5000, 10000)}
+GENERATED_STEPS = 1000          # steps of a generated problem when --steps is not given
 
 
 def published(results_md: Path) -> dict[str, dict]:
@@ -48,8 +64,9 @@ def published(results_md: Path) -> dict[str, dict]:
 
 def run_one(path: Path, steps: int, limit_ms: float, scheduler: str, seed: int, pub: dict | None,
             outputs: Path | None, cache_mb: float | None = None, lanes: int | None = None,
-            crowd_w: float | None = None) -> dict:
-    """Run one problem; returns its row (with the finished-over-time curve)."""
+            crowd_w: float | None = None, peer: Path | None = None) -> dict:
+    """Run one problem (and the start-kit binary ``peer`` on it, when given); returns its row (with
+    the finished-over-time curve)."""
     from rce_fleet.lifelong import load_problem
     from rce_fleet.lifelong.runner import LANES, rich_progress, run_lifelong
 
@@ -68,6 +85,13 @@ def run_one(path: Path, steps: int, limit_ms: float, scheduler: str, seed: int, 
                    best=pub["best"] * scale, best_team=pub["best_team"])
         row["vs_default"] = s["tasks_finished"] / row["default"]
         row["vs_best"] = s["tasks_finished"] / row["best"]
+    if peer is not None:
+        from startkit_peer import run_peer
+        with rich_progress(steps, f"{path.stem} (start-kit default)") as pcb:
+            got = run_peer(peer, path, steps, limit_ms, progress=lambda k: pcb(k, 0, 0.0))
+        row.update({f"peer_{k}": v for k, v in got.items()})
+        if got["tasks_finished"]:
+            row["vs_peer"] = s["tasks_finished"] / got["tasks_finished"]
     if outputs is not None:
         outputs.mkdir(parents=True, exist_ok=True)
         out = outputs / f"{path.stem}.{scheduler}.json"
@@ -81,20 +105,23 @@ def print_table(rows: list[dict]) -> None:
     from rich.console import Console
     from rich.table import Table
 
-    t = Table(title="Lifelong fleet on the LoRR 2024 problems (start-kit rules, MAPF_T)")
-    for col in ("problem", "robots", "steps", "sched", "tasks", "default", "x default", "best known", "x best",
-                "tasks/step", "ms p50", "ms p99", "ms max", "timeouts", "invalid"):
+    t = Table(title="Lifelong fleet under the LoRR 2024 rules (MAPF_T), beside the start-kit's default entry")
+    for col in ("problem", "robots", "steps", "sched", "tasks", "peer", "x peer", "default", "x default",
+                "best known", "x best", "tasks/step", "ms p50", "ms p99", "ms max", "timeouts", "invalid"):
         t.add_column(col, justify="right", no_wrap=col == "problem")
     for r in rows:
         mark = "*" if r.get("scaled") else ""
+        peer = (f"{r['peer_tasks_finished']}" + (f" ({r['peer_timeouts']} t/o)" if r["peer_timeouts"] else "")
+                if "peer_tasks_finished" in r else "-")
         t.add_row(r["problem"], str(r["robots"]), str(r["steps"]), r["scheduler"], str(r["tasks_finished"]),
+                  peer, f"{r['vs_peer']:.2f}" if "vs_peer" in r else "-",
                   f"{r['default']:.0f}{mark}" if "default" in r else "-",
                   f"{r['vs_default']:.2f}" if "vs_default" in r else "-",
                   f"{r['best']:.0f}{mark}" if "best" in r else "-",
                   f"{r['vs_best']:.2f}" if "vs_best" in r else "-",
                   f"{r['tasks_per_step']:.2f}", f"{r['plan_ms_p50']:.1f}", f"{r['plan_ms_p99']:.1f}",
                   f"{r['plan_ms_max']:.1f}", str(r["timeouts"]), str(r["invalid_steps"]))
-    con = Console(width=max(Console().width, 170))
+    con = Console(width=max(Console().width, 210))
     con.print(t)
     if any(r.get("scaled") for r in rows):
         con.print("* published number scaled by steps / official steps (a shorter run than the official one)")
@@ -113,6 +140,9 @@ def plot(rows: list[dict], path: Path) -> None:
         for r in mine:
             ax.plot(range(1, len(r["curve"]) + 1), r["curve"], label=f"rce ({r['scheduler']})")
         r = mine[0]
+        if "peer_tasks_finished" in r:
+            ax.scatter([r["steps"]], [r["peer_tasks_finished"]], color="C3", marker="x", zorder=3,
+                       label="default entry, same run")
         if "default" in r:
             steps = r["steps"]
             ax.plot([0, steps], [0, r["default"]], "--", color="grey", label="default entry (pro rata)")
@@ -127,15 +157,36 @@ def plot(rows: list[dict], path: Path) -> None:
     plt.close(fig)
 
 
-def main(argv: list[str] | None = None) -> int:
+def _robots(text: str) -> list[int]:
+    try:
+        out = [int(x) for x in text.split(",") if x.strip()]
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected N,N,... robots, got {text!r}") from None
+    if not out or min(out) < 1:
+        raise argparse.ArgumentTypeError(f"expected N,N,... robots (each >= 1), got {text!r}")
+    return out
+
+
+def _parser() -> argparse.ArgumentParser:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("--data", type=Path, default=DEFAULT_DATA, help="the shared data directory")
     ap.add_argument("--quick", action="store_true", help="a small cut for the test suite (2 problems, short runs)")
     ap.add_argument("--only", nargs="+", metavar="NAME", help="problems by name (e.g. random_32_32_20_100)")
-    ap.add_argument("--steps", type=int, help="steps for every problem (default: the official number)")
+    ap.add_argument("--problems", nargs="+", type=Path, metavar="JSON", help="problem JSONs of your own")
+    ap.add_argument("--generate", nargs="+", type=Path, metavar="MAP",
+                    help="generate problems on these maps (with --robots), as the league's Problem Generator does")
+    ap.add_argument("--robots", type=_robots, metavar="N,...", help="team sizes of --generate")
+    ap.add_argument("--sweep", action="store_true", help="generate and run the density sweep on every shared map")
+    ap.add_argument("--problem-dir", type=Path, default=RESULTS / "problems", metavar="DIR",
+                    help="where generated problems are written (default bench/results/problems)")
+    ap.add_argument("--steps", type=int, help="steps for every problem (default: the official number; "
+                    f"{GENERATED_STEPS} for generated ones)")
     ap.add_argument("--plan-time-limit", type=float, default=1000.0, metavar="MS")
     ap.add_argument("--scheduler", choices=("batch", "greedy", "both"), default="batch")
-    ap.add_argument("--seed", type=int, default=0)
+    ap.add_argument("--seed", type=int, default=0, help="seed of the generated problems and of the planner")
+    ap.add_argument("--peer", type=Path, metavar="PATH", help="the start-kit's lifelong binary: run it beside rce")
+    ap.add_argument("--build-peer", type=Path, metavar="DIR",
+                    help="build the start-kit checked out at DIR (bench/startkit_peer.py) and use it as --peer")
     ap.add_argument("--cache-mb", type=float, help="bound of the distance maps (default: sized to the team and memory)")
     ap.add_argument("--lanes", type=int, help="extra cost of a move against a one-way lane (0: no lanes)")
     ap.add_argument("--crowd-w", type=float, help="scheduler's steps per robot crowding a task's errands "
@@ -143,36 +194,80 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--json", type=Path)
     ap.add_argument("--plot", type=Path)
     ap.add_argument("--outputs", type=Path, help="also write each run's start-kit output JSON into DIR")
-    args = ap.parse_args(argv)
+    return ap
 
-    lorr = args.data / "lorr"
-    if not (lorr / "RESULTS.md").is_file():
-        print(f"LoRR problems not found under {lorr}", file=sys.stderr)
-        return 2
-    pub = published(lorr / "RESULTS.md")
+
+def _problems(args, lorr: Path, pub: dict) -> list[tuple[Path, int]]:
+    """(problem JSON, steps) to run, as the arguments say."""
+    from rce_fleet.lifelong.generate import write_problem
+
+    gen: list[tuple[Path, int]] = []
+    if args.sweep:
+        gen += [(lorr / m, n) for m, teams in SWEEP.items() for n in teams]
+    if args.generate:
+        gen += [(m, n) for m in args.generate for n in args.robots]
+    if gen:
+        out = []
+        for m, n in gen:
+            path = write_problem(m, n, args.seed, args.problem_dir)
+            print(f"generated {path}", flush=True)
+            out.append((path, args.steps or GENERATED_STEPS))
+        return out + [(p, args.steps or GENERATED_STEPS) for p in args.problems or ()]
+    if args.problems:
+        return [(p, args.steps or pub.get(p.stem, {}).get("steps", GENERATED_STEPS)) for p in args.problems]
     problems = sorted(lorr.glob("*.domain/*.json"), key=lambda p: pub.get(p.stem, {}).get("robots", 0))
     if args.quick:
         problems = [p for p in problems if p.stem in QUICK]
     if args.only:
         problems = [p for p in problems if p.stem in args.only]
+    return [(p, args.steps or (QUICK[p.stem] if args.quick else pub.get(p.stem, {}).get("steps", 1000)))
+            for p in problems]
+
+
+def main(argv: list[str] | None = None) -> int:
+    ap = _parser()
+    args = ap.parse_args(argv)
+    if args.generate and not args.robots:
+        ap.error("--generate needs --robots N,...")
+    lorr = args.data / "lorr"
+    if not (lorr / "RESULTS.md").is_file():
+        print(f"LoRR problems not found under {lorr}", file=sys.stderr)
+        return 2
+    pub = published(lorr / "RESULTS.md")
+    peer = args.peer
+    if args.build_peer:
+        from startkit_peer import build_peer
+        try:
+            peer = build_peer(args.build_peer)
+        except RuntimeError as e:
+            print(f"--build-peer: {e}", file=sys.stderr)
+            return 2
+    if peer is not None and not os.access(peer, os.X_OK):
+        print(f"--peer {peer}: not an executable (build it: bench/startkit_peer.py)", file=sys.stderr)
+        return 2
+    try:
+        problems = _problems(args, lorr, pub)
+    except (OSError, ValueError) as e:
+        print(f"bench/lifelong.py: {e}", file=sys.stderr)
+        return 2
     scheds = ("greedy", "batch") if args.scheduler == "both" else (args.scheduler,)
-    stem = "lifelong_quick" if args.quick else "lifelong"
+    stem = "lifelong_quick" if args.quick else ("lifelong_sweep" if args.sweep or args.generate else "lifelong")
     json_path = args.json or RESULTS / f"{stem}.json"
     plot_path = args.plot or RESULTS / f"{stem}.png"
     rows = []
     t0 = time.perf_counter()
-    for p in problems:
+    for p, steps in problems:
         info = pub.get(p.stem)
-        steps = args.steps or (QUICK[p.stem] if args.quick else (info["steps"] if info else 1000))
         for sch in scheds:
             rows.append(run_one(p, steps, args.plan_time_limit, sch, args.seed, info, args.outputs, args.cache_mb,
-                                args.lanes, args.crowd_w))
+                                args.lanes, args.crowd_w, peer if sch == scheds[-1] else None))
+            json_path.parent.mkdir(parents=True, exist_ok=True)
+            json_path.write_text(json.dumps({"plan_time_limit_ms": args.plan_time_limit, "git": git_head(),
+                                             "date": time.strftime("%Y-%m-%d"), "peer": str(peer) if peer else None,
+                                             "wall_s": time.perf_counter() - t0, "runs": rows}, indent=1))
     print_table(rows)
-    json_path.parent.mkdir(parents=True, exist_ok=True)
-    plot_path.parent.mkdir(parents=True, exist_ok=True)
-    json_path.write_text(json.dumps({"plan_time_limit_ms": args.plan_time_limit, "wall_s": time.perf_counter() - t0,
-                                     "runs": rows}, indent=1))
     print(f"wrote {json_path}")
+    plot_path.parent.mkdir(parents=True, exist_ok=True)
     plot(rows, plot_path)
     print(f"wrote {plot_path}")
     return 1 if any(r["timeouts"] or r["invalid_steps"] for r in rows) else 0

@@ -73,6 +73,27 @@ def test_bench_lifelong_quick(tmp_path):
     assert "x default" in r.stdout
 
 
+def test_bench_lifelong_generates_problems_on_a_map_and_runs_them(tmp_path):
+    js, png = tmp_path / "g.json", tmp_path / "g.png"
+    small = ROOT / "tests" / "vectors" / "lorr_startkit" / "small-16-16.map"
+    r = subprocess.run([sys.executable, str(ROOT / "bench" / "lifelong.py"), "--generate", str(small),
+                        "--robots", "10,30", "--seed", "4", "--steps", "15", "--problem-dir", str(tmp_path / "p"),
+                        "--json", str(js), "--plot", str(png)], capture_output=True, text=True, timeout=120)
+    assert r.returncode == 0, r.stderr[-2000:]
+    runs = json.loads(js.read_text())["runs"]
+    assert [(x["problem"], x["robots"], x["steps"]) for x in runs] == [("small_16_16_10_s4", 10, 15),
+                                                                        ("small_16_16_30_s4", 30, 15)]
+    assert all(x["invalid_steps"] == 0 and x["timeouts"] == 0 for x in runs)
+    written = sorted(f.name for f in (tmp_path / "p").glob("*.json"))
+    assert written == ["small_16_16_10_s4.json", "small_16_16_30_s4.json"]
+    bad = subprocess.run([sys.executable, str(ROOT / "bench" / "lifelong.py"), "--generate", str(small)],
+                         capture_output=True, text=True, timeout=60)
+    assert bad.returncode == 2 and "--generate needs --robots" in bad.stderr
+    peer = subprocess.run([sys.executable, str(ROOT / "bench" / "lifelong.py"), "--quick", "--peer", str(small)],
+                          capture_output=True, text=True, timeout=60)
+    assert peer.returncode == 2 and "not an executable" in peer.stderr
+
+
 def test_lifelong_cli_refuses_an_unwritable_output_before_it_runs(tmp_path, capsys):
     out = tmp_path / "no-such-dir" / "run.json"
     with pytest.raises(SystemExit) as e:

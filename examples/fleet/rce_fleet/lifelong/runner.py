@@ -26,12 +26,13 @@ from .pibt import PIBTPlanner
 from .scheduler import make_scheduler
 from .simulator import MAPF_T, Simulator
 
-__all__ = ["CROWD_TEAM", "CROWD_W", "LANES", "RunResult", "run_lifelong"]
+__all__ = ["CROWD_TEAM", "CROWD_W", "GUIDE_DENSITY", "LANES", "RunResult", "run_lifelong"]
 
 LANES = 4        # extra cost of a move against a one-way lane (measured: docs/lifelong.md)
 CROWD_W = 5.0    # scheduler's steps per robot crowding a task's errands beyond its share ...
 CROWD_TEAM = 3000  # ... for teams of this size and more (measured: docs/lifelong.md)
 HARD_FRAC = 0.7    # past this share of the limit a robot with a new goal and no row yet waits a step
+GUIDE_DENSITY = 0.1  # robots per free cell from which guide paths lead (below: each robot's shortest way)
 
 
 @dataclass
@@ -57,7 +58,7 @@ class RunResult:
 def run_lifelong(problem: LorrProblem, steps: int, plan_time_limit_ms: float = 1000.0, seed: int = 0,
                  scheduler: str = "batch", model: str = MAPF_T, budget_frac: float = 0.5,
                  cache_bytes: int | None = None, lanes: int = LANES, crowd_w: float | None = None,
-                 record: bool = True, guide: bool = True, planner_kw: dict | None = None,
+                 record: bool = True, guide: bool | None = None, planner_kw: dict | None = None,
                  flow_kw: dict | None = None,
                  progress: Callable[[int, int, float], None] | None = None) -> RunResult:
     """Run ``problem`` for ``steps`` time steps under the rules (:mod:`.simulator`).
@@ -69,11 +70,16 @@ def run_lifelong(problem: LorrProblem, steps: int, plan_time_limit_ms: float = 1
     the extra cost of a move against a one-way lane (:func:`~.guidance.lane_costs`; 0: none);
     crowd_w: the scheduler's cost per robot crowding a task's errands (default
     ``CROWD_W`` for teams of ``CROWD_TEAM`` robots or more, else 0);
+    guide: robots follow traffic-flow guide paths (:class:`~.flow.TrafficFlow`); None (default): when
+    the team has at least ``GUIDE_DENSITY`` robots per free cell (on sparser teams the detours they
+    ask for cost more than the jams they avoid: docs/lifelong.md);
     progress: called after each step with (step, tasks finished, planner ms).
     Compilation happens before step 0 (:func:`~.kernels.warm_up`). Raises ValueError for a
     bad scheduler or model name, MemoryError when the maps of the team do not fit.
     """
     grid = problem.grid
+    if guide is None:
+        guide = problem.team_size >= GUIDE_DENSITY * len(grid.free_cells())
     if cache_bytes is None:
         cache_bytes = cache_bytes_for(grid, problem.team_size)
     warm_up()
@@ -112,7 +118,7 @@ def run_lifelong(problem: LorrProblem, steps: int, plan_time_limit_ms: float = 1
         finished[k] = sim.finished
         if progress is not None:
             progress(k + 1, sim.finished, dt * 1e3)
-    stats = {"scheduler": scheduler, "lanes": lanes, "crowd_w": crowd_w, "scheduler_ms_total": sched_ms,
+    stats = {"scheduler": scheduler, "lanes": lanes, "crowd_w": crowd_w, "guide": guide, "scheduler_ms_total": sched_ms,
              **planner.stats, **(flow.stats if flow is not None else {}),
              "distance_maps": cache.computed, "maps_evicted": cache.evicted, "cache_rows": cache.capacity,
              "cache_rows_used": len(cache)}

@@ -1,0 +1,111 @@
+"""The League of Robot Runners start-kit's default entry as a peer (MAPF-Competition/Start-Kit v2.1.2,
+MIT; C++): built from its source outside the repository, run on the same problem, steps and time
+limit as rce, its output JSON read back. Its code is never part of rce.
+
+Build it (``bench/lifelong.py --build-peer DIR`` runs the last three steps)::
+
+    git clone --branch v2.1.2 --depth 1 https://github.com/MAPF-Competition/Start-Kit DIR
+    apt-get install -y libboost-all-dev cmake g++          # Debian's Boost (program_options, system, log)
+    cmake -S DIR -B DIR/build -DPYTHON=false -DCMAKE_BUILD_TYPE=Release && make -C DIR/build -j2
+
+The binary is ``DIR/build/lifelong``.
+"""
+from __future__ import annotations
+
+import json
+import os
+import re
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+PEER_TAG = "v2.1.2"
+DEBIAN_PACKAGES = ("libboost-all-dev", "cmake", "g++", "make")
+STEP_LINE = re.compile(rb"\[timestep=(\d+)\] planner returns")
+
+
+def build_peer(src: Path) -> Path:
+    """Build the start-kit checked out at ``src`` (its ``CMakeLists.txt``; Debian's Boost installed
+    with apt-get when missing and running as root). Returns the ``lifelong`` binary. Raises
+    RuntimeError naming the step that failed."""
+    src = src.resolve()
+    if not (src / "CMakeLists.txt").is_file():
+        raise RuntimeError(f"{src}: no start-kit source here (git clone --branch {PEER_TAG} --depth 1 "
+                           f"https://github.com/MAPF-Competition/Start-Kit {src})")
+    if not Path("/usr/include/boost/program_options.hpp").exists():
+        if os.geteuid() != 0:
+            raise RuntimeError("Boost is missing: apt-get install " + " ".join(DEBIAN_PACKAGES))
+        _run(["apt-get", "install", "-y", "-q", *DEBIAN_PACKAGES], "apt-get install")
+    build = src / "build"
+    _run(["cmake", "-S", str(src), "-B", str(build), "-DPYTHON=false", "-DCMAKE_BUILD_TYPE=Release"], "cmake")
+    _run(["make", "-C", str(build), f"-j{os.cpu_count() or 1}", "lifelong"], "make")
+    binary = build / "lifelong"
+    if not binary.is_file():
+        raise RuntimeError(f"make finished but {binary} is missing")
+    return binary
+
+
+def _run(argv: list[str], what: str) -> None:
+    print(f"start-kit: {' '.join(argv)}", flush=True)
+    done = subprocess.run(argv, stdout=subprocess.PIPE, stderr=subprocess.STDOUT)
+    if done.returncode:
+        raise RuntimeError(f"{what} failed ({done.returncode}):\n{done.stdout.decode(errors='replace')[-3000:]}")
+
+
+def run_peer(binary: Path, problem: Path, steps: int, limit_ms: float, progress=None) -> dict:
+    """Run the start-kit on ``problem`` for ``steps`` steps at ``limit_ms`` per step (its
+    preprocessing limit is its default, 30 s). ``progress(step)`` is called as its log says steps
+    are done. Returns its output's counts and the wall time: {tasks_finished,
+    timeouts, invalid_steps, schedule_errors, wall_s}. Raises RuntimeError when it fails."""
+    with tempfile.TemporaryDirectory(prefix="rce-startkit-") as tmp:
+        out, log = Path(tmp) / "out.json", Path(tmp) / "log.txt"
+        argv = [str(binary), "-i", str(problem.resolve()), "-o", str(out), "-s", str(steps), "-t", str(int(limit_ms)),
+                "-c", "3", "-l", str(log)]
+        t0 = time.perf_counter()
+        proc = subprocess.Popen(argv, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE)
+        seen = 0
+        while proc.poll() is None:
+            try:
+                proc.wait(timeout=1.0)
+            except subprocess.TimeoutExpired:
+                pass
+            if progress is not None and log.exists():
+                seen = _last_step(log, seen)
+                progress(seen)
+        wall = time.perf_counter() - t0
+        if proc.returncode != 0 or not out.is_file():
+            err = proc.stderr.read().decode(errors="replace")[-2000:] if proc.stderr else ""
+            tail = log.read_text(errors="replace")[-2000:] if log.exists() else ""
+            raise RuntimeError(f"start-kit exited {proc.returncode} on {problem.name}:\n{err}\n{tail}")
+        d = json.loads(out.read_text())
+    return {"tasks_finished": int(d["numTaskFinished"]), "timeouts": int(d["numEntryTimeouts"]),
+            "invalid_steps": int(d["numPlannerErrors"]), "schedule_errors": int(d["numScheduleErrors"]),
+            "wall_s": wall}
+
+
+def _last_step(log: Path, seen: int) -> int:
+    """The last ``[timestep=N] planner returns`` in the tail of the start-kit's log (or ``seen``)."""
+    with log.open("rb") as f:
+        f.seek(0, os.SEEK_END)
+        f.seek(max(0, f.tell() - 65536))
+        hits = STEP_LINE.findall(f.read())
+    return max(seen, int(hits[-1]) + 1) if hits else seen
+
+
+def main() -> int:
+    """``startkit_peer.py SRC``: build the start-kit checked out at SRC; prints the binary's path."""
+    if len(sys.argv) != 2:
+        print(__doc__)
+        return 2
+    try:
+        print(build_peer(Path(sys.argv[1])))
+    except RuntimeError as e:
+        print(f"startkit_peer: {e}", file=sys.stderr)
+        return 1
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
