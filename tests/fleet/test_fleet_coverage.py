@@ -43,5 +43,5 @@ def test_bad_coverage_flags_are_refused(tmp_path):
     for flags, says in ((["--out-of-coverage", "Robot9"], "unknown robot 'Robot9'"),
                         (["--robots", "2", "--out-of-coverage", "Robot1,Robot2"], "at least one robot must have"),
                         (["--out-of-coverage", "Robot2", "--fault", "link:Robot2@3"], "Robot2 is out of coverage")):
-        p = subprocess.run([str(RCE_FLEET), "demo", *flags], capture_output=True, text=True, cwd=tmp_path)
+        p = subprocess.run([str(RCE_FLEET), "demo", "--mission", *flags], capture_output=True, text=True, cwd=tmp_path)
         assert p.returncode == 2 and says in p.stderr, (flags, p.stderr)

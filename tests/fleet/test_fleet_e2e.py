@@ -45,9 +45,11 @@ TB3_MISSION = ["--start", "Robot1=30", "--goal", "Robot1=17", "--start", "Robot2
 
 
 def run_demo(tmp_path: Path, *args: str, timeout: float = DEMO_TIMEOUT_S) -> tuple[int, dict, str]:
-    """Run ``rce-fleet demo --headless`` with a report; returns (exit code, report, output)."""
+    """Run ``rce-fleet demo --headless`` with a report (a mission unless ``--lifelong`` is given);
+    returns (exit code, report, output)."""
     report, plot = tmp_path / "report.json", tmp_path / "paths.png"
-    argv = [str(RCE_FLEET), "demo", "--headless", "--no-live", "--report", str(report), "--plot", str(plot),
+    argv = [str(RCE_FLEET), "demo", *(() if "--lifelong" in args else ("--mission",)), "--headless", "--no-live",
+            "--report", str(report), "--plot", str(plot),
             "--workdir", str(tmp_path / "run"), "--timeout", str(timeout), *args]
     t0 = time.monotonic()
     p = subprocess.run(argv, capture_output=True, text=True, timeout=timeout + EXIT_GRACE_S, cwd=tmp_path)
@@ -153,7 +155,9 @@ def test_unreachable_goal_is_reported_not_waited_on(tmp_path):
 
 
 def test_bad_flags_are_refused(tmp_path):
-    p = subprocess.run([str(RCE_FLEET), "demo", "--block", "26"], capture_output=True, text=True, cwd=tmp_path)
+    p = subprocess.run([str(RCE_FLEET), "demo", "--mission", "--block", "26"], capture_output=True, text=True,
+                       cwd=tmp_path)
     assert p.returncode == 2 and "CELL@SECONDS" in p.stderr
-    p = subprocess.run([str(RCE_FLEET), "demo", "--goal", "Robot7=3"], capture_output=True, text=True, cwd=tmp_path)
+    p = subprocess.run([str(RCE_FLEET), "demo", "--mission", "--goal", "Robot7=3"], capture_output=True, text=True,
+                       cwd=tmp_path)
     assert p.returncode == 2 and "unknown robot 'Robot7'" in p.stderr

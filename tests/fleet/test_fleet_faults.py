@@ -70,5 +70,6 @@ def test_robot_link_cut_for_5_s_mid_mission(tmp_path):
 def test_bad_fault_flags_are_refused(tmp_path):
     for flag, says in (("master", "expected master@T"), ("link:Robot1@-1", "T must be >= 0"),
                        ("reboot@3", "unknown fault 'reboot'"), ("link:Robot9@3", "unknown robot 'Robot9'")):
-        p = subprocess.run([str(RCE_FLEET), "demo", "--fault", flag], capture_output=True, text=True, cwd=tmp_path)
+        p = subprocess.run([str(RCE_FLEET), "demo", "--mission", "--fault", flag], capture_output=True, text=True,
+                           cwd=tmp_path)
         assert p.returncode == 2 and says in p.stderr, (flag, p.stderr)

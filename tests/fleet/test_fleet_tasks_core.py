@@ -143,6 +143,9 @@ def test_battery_drains_by_distance_and_time_and_charges_on_a_charger():
     assert b.wh == 0.0 and b.flat and b.min_wh == 0.0 and b.message({})["power_supply_status"] == 2
     with pytest.raises(ValueError, match="threshold"):
         BatteryParams(threshold=0.95)
+    with pytest.raises(ValueError, match="initial_spread"):
+        BatteryParams(initial=0.5, initial_spread=0.5)
+    assert BatteryParams.from_param(BatteryParams(initial=0.6, initial_spread=0.45).to_param()).initial_spread == 0.45
 
 
 # -- the task book ------------------------------------------------------------------------------------

@@ -517,3 +517,19 @@ def test_points_wire_packs_what_the_registry_serialises():
             assert wire.pack(secs, nsecs, pts) == reg.json_to_bytes(t, msg)
     with pytest.raises(struct.error):
         wire.pack(2 ** 31, 0, np.zeros((1, 2)))
+
+
+def test_simulated_batteries_start_spread_below_the_initial_level():
+    from rce.messages import default_registry
+    from rce_fleet.live.simhost import SimHost
+    from rce_fleet.maps.geometry import GridGeometry
+    from rce_fleet.maps.grid import fleet_grid
+    from rce_fleet.maps.lab_map import lab_map
+    from rce_fleet.operations.battery import BatteryParams
+    occ = lab_map()
+    geo = GridGeometry.from_cellgrid(fleet_grid(occ)[0])
+    host = SimHost(occ, geo, default_registry(), seed=3,
+                   battery=BatteryParams(capacity_wh=10.0, initial=0.6, initial_spread=0.4))
+    cells = geo.free_cells()[:6]
+    levels = [host.spawn(f"Robot{i}", int(c)).battery.fraction for i, c in enumerate(cells, 1)]
+    assert all(0.2 - 1e-9 <= x <= 0.6 + 1e-9 for x in levels) and max(levels) - min(levels) > 0.05

@@ -238,7 +238,7 @@ def test_demo_prints_and_serves_the_page(tmp_path):
     import json
     import urllib.request
     log = tmp_path / "demo.log"
-    argv = [str(BIN / "rce-fleet"), "demo", "--robots", "2", "--speedup", "5",
+    argv = [str(BIN / "rce-fleet"), "demo", "--mission", "--robots", "2", "--speedup", "5",
             "--start", "Robot1=33", "--start", "Robot2=7", "--goal", "Robot1=35", "--goal", "Robot2=5",
             "--web-port", "0", "--no-live", "--plot", str(tmp_path / "paths.png"), "--timeout", str(DEMO_TIMEOUT_S),
             "--workdir", str(tmp_path / "work")]

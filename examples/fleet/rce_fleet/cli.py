@@ -2,13 +2,14 @@
 
 ::
 
-    rce-fleet demo [--map YAML] [--robots N] [--grid RxC | --cell M] [--seed S] [--speedup K]
+    rce-fleet demo [--duration S] [--task-rate R/min] [--robots N] [--map YAML] [--places YAML]
+                   [--battery KEY=V,...] [--report JSON] [--plot PNG]   # the warehouse run by tasks
+    rce-fleet demo --mission [--map YAML] [--robots N] [--grid RxC | --cell M] [--seed S] [--speedup K]
                    [--goal RobotN=CELL]... [--start RobotN=CELL]... [--block CELL@S]...
                    [--obstacle CELL@S]... [--fault master@T[+S] | link:RobotN@T[+S]]...
                    [--timeout S] [--plot PNG] [--report JSON] [--bag FILE.bag]
                    [--headless] [--web-port P] [--places YAML] [--battery KEY=V,...]
-                   [--out-of-coverage RobotN,... [--radio-range M]]
-    rce-fleet demo --lifelong --duration S --robots N --task-rate R/min [--places YAML] [--report JSON]
+                   [--out-of-coverage RobotN,... [--radio-range M]]      # the seed paper's one mission
     rce-fleet serve [same options, no mission]      # until Ctrl-C
     rce-fleet task add ERRAND... [--priority P] [--start-in S] [--deadline-in S] [--id ID] [--master URL]
     rce-fleet task list [--json] | task get ID | task cancel ID     # the operators' task API
@@ -21,10 +22,21 @@ from __future__ import annotations
 
 import argparse
 import sys
+from pathlib import Path
 
 __all__ = ["main", "build_parser"]
 
 DEMO_TIMEOUT_S = 300.0   # wall s a demo mission may take by default (--timeout)
+DEFAULT_SPEEDUP = 3.0
+# ``rce-fleet demo`` (``make demo``): the warehouse run by tasks, about two minutes of wall time at
+# speed-up 4, batteries starting between 15 and 60 % so that some robots go to charge within it
+DEMO_MAP = Path(__file__).resolve().parents[3] / ".." / "shared" / "data" / "maps" / "warehouse.yaml"
+DEMO_ROBOTS = 12
+DEMO_DURATION_S = 420.0
+DEMO_SPEEDUP = 4.0
+DEMO_TASK_RATE = 6.0
+DEMO_BATTERY = "capacity_wh=20,initial=0.6,initial_spread=0.45,charge_w=500"
+DEMO_PLOT, DEMO_TASKS_PLOT = "fleet_paths.png", "fleet_tasks.png"   # a mission's paths; a run's tasks and activity
 SERVE_TIMEOUT_S = 10 ** 9   # wall s ``serve`` runs by default: until Ctrl-C
 LIFELONG_MAX_STEPS = 10 ** 7   # steps a lifelong run records (LoRR's runs: 500 - 5,000; 10^7 is 116 days at 1 s a step)
 
@@ -87,10 +99,12 @@ def _map_args(p: argparse.ArgumentParser) -> None:
 
 def _run_args(p: argparse.ArgumentParser, mission: bool) -> None:
     _map_args(p)
-    p.add_argument("--robots", type=int, default=3, metavar="N", help="number of simulated robots (default 3)")
+    p.add_argument("--robots", type=int, default=None, metavar="N",
+                   help=f"number of simulated robots (default {DEMO_ROBOTS} for demo on the warehouse, else 3)")
     p.add_argument("--seed", type=int, default=1, help="random starts/goals and sensor noise (default 1)")
-    p.add_argument("--speedup", type=_positive, default=3.0, metavar="K",
-                   help="simulated time runs K times faster than wall time (default 3)")
+    p.add_argument("--speedup", type=_positive, default=DEFAULT_SPEEDUP, metavar="K",
+                   help=f"simulated time runs K times faster than wall time (default {DEFAULT_SPEEDUP:g}; demo on the "
+                   f"warehouse {DEMO_SPEEDUP:g})")
     p.add_argument("--start", action="append", default=[], metavar="RobotN=CELL", help="start cell of a robot")
     p.add_argument("--headless", action="store_true", help="no operator web page")
     p.add_argument("--web-port", type=int, default=8000, metavar="PORT",
@@ -101,16 +115,18 @@ def _run_args(p: argparse.ArgumentParser, mission: bool) -> None:
                    help="the planner ignores obstacles the robots' lidars report")
     p.add_argument("--workdir", metavar="DIR", help="keep engine logs, configs and the map here (default: a temp dir)")
     p.add_argument("--keep", action="store_true", help="keep the temp dir")
-    p.add_argument("--plot", metavar="PNG", default="fleet_paths.png" if mission else None,
-                   help="PNG of the map, grid, blocked cells and driven paths" +
-                   (" (default fleet_paths.png)" if mission else ""))
+    p.add_argument("--plot", metavar="PNG", default=DEMO_PLOT if mission else None,
+                   help="PNG of the map, grid, blocked cells and driven paths (a run by tasks: tasks done over "
+                   "time and each robot's activity)" + (f" (default {DEMO_PLOT}; by tasks {DEMO_TASKS_PLOT})"
+                                                         if mission else ""))
     p.add_argument("--report", metavar="JSON", help="write a JSON report of the run")
     p.add_argument("--bag", metavar="FILE.bag", help="record the fleet topics (poses, paths, cancelGoal, fleet state) "
                    "into a ROS 1 bag")
     p.add_argument("--places", metavar="YAML", help="named places (pick-up, drop-off, charger, parking) of the "
                    "map's grid (default: generated for the map, written to places.yaml in the work dir)")
     p.add_argument("--battery", metavar="KEY=VALUE,...", help="simulated batteries: capacity_wh, drain_wh_per_m, "
-                   "idle_w, charge_w, threshold, recharge (an empty value: the defaults; --lifelong has them)")
+                   "idle_w, charge_w, threshold, recharge, initial, initial_spread (an empty value: the defaults; "
+                   f"a run by tasks has them; demo on the warehouse: {DEMO_BATTERY})")
     p.add_argument("--out-of-coverage", type=_robots, default=[], metavar="RobotN,...",
                    help="robots without coverage of their own: they reach the cloud only through relays on the "
                    "other robots within --radio-range (docs/relays.md)")
@@ -127,8 +143,12 @@ def build_parser() -> argparse.ArgumentParser:
     """The ``rce-fleet`` argument parser (sub-commands demo, serve, configs, grid, lifelong)."""
     p = argparse.ArgumentParser(prog="rce-fleet", description="The warehouse fleet on rce: demo, serve, configs.")
     sub = p.add_subparsers(dest="cmd", required=True)
-    d = sub.add_parser("demo", help="run a mission to the end (exit 0 when every robot reached its goal)")
+    d = sub.add_parser("demo", help="a warehouse run by tasks for a bounded time, with batteries and charging, "
+                       "ending with its KPIs (--mission: the seed paper's one mission instead)")
     _run_args(d, True)
+    d.add_argument("--mission", action="store_true",
+                   help="the seed paper's setup: one mission (a goal per robot; 3 robots on the lab map by default), "
+                   "exit 0 when every robot reached its goal")
     d.add_argument("--goal", action="append", default=[], metavar="RobotN=CELL",
                    help="goal cell of a robot (repeatable; the others get random free cells)")
     d.add_argument("--block", action="append", default=[], metavar="CELL@S",
@@ -140,11 +160,11 @@ def build_parser() -> argparse.ArgumentParser:
                    "rce-master (kill -9) and restarts it on its state file after S wall seconds (default 2); "
                    "link:RobotN@T[+S] cuts RobotN's websocket for S wall seconds (default 5)")
     d.add_argument("--lifelong", action="store_true",
-                   help="instead of one mission: generated pick-up -> drop-off tasks for --duration sim s")
-    d.add_argument("--duration", type=_positive, default=600.0, metavar="S",
-                   help="simulated seconds of a --lifelong run (default 600)")
-    d.add_argument("--task-rate", type=_rate, default=6.0, metavar="R/min",
-                   help="tasks per simulated minute of a --lifelong run (default 6)")
+                   help="a run by tasks (the default without --mission; kept for scripts)")
+    d.add_argument("--duration", type=_positive, default=None, metavar="S",
+                   help=f"simulated seconds of the run by tasks (default {DEMO_DURATION_S:g} on the warehouse)")
+    d.add_argument("--task-rate", type=_rate, default=None, metavar="R/min",
+                   help=f"tasks per simulated minute (default {DEMO_TASK_RATE:g} on the warehouse)")
     s = sub.add_parser("serve", help="the same system without a mission, until Ctrl-C")
     _run_args(s, False)
     c = sub.add_parser("configs", help="write the robots' configs (robot1.config ...)")
@@ -276,8 +296,25 @@ def main(argv: list[str] | None = None) -> None:
         sys.exit(_print_grid(args))
     from .live.demo import (EXIT_USAGE, Options, UsageError, parse_battery, parse_cell_at, parse_faults,
                        parse_robot_cell, run)
-    lifelong = bool(getattr(args, "lifelong", False))
-    mission = args.cmd == "demo" and not lifelong
+    mission = args.cmd == "demo" and args.mission
+    lifelong = args.cmd == "demo" and not mission
+    if lifelong and args.map is None and args.robots is None:       # the warehouse of ``make demo``
+        if DEMO_MAP.is_file():
+            args.map = str(DEMO_MAP.resolve())
+            args.robots = DEMO_ROBOTS
+            args.battery = DEMO_BATTERY if args.battery is None else args.battery
+            args.speedup = DEMO_SPEEDUP if args.speedup == DEFAULT_SPEEDUP else args.speedup
+        else:
+            print(f"rce-fleet: the warehouse map {DEMO_MAP} is not here; running on the lab map", file=sys.stderr)
+    if args.robots is None:
+        args.robots = 3
+    duration = getattr(args, "duration", None) or DEMO_DURATION_S
+    task_rate = getattr(args, "task_rate", None) or DEMO_TASK_RATE
+    if lifelong:
+        if args.timeout == DEMO_TIMEOUT_S:     # room for a machine slower than the asked speed-up
+            args.timeout = max(DEMO_TIMEOUT_S, 3 * duration / args.speedup + 120)
+        if args.plot == DEMO_PLOT:
+            args.plot = DEMO_TASKS_PLOT
     try:
         opts = Options(map=args.map, robots=args.robots, grid=args.grid, cell=args.cell, seed=args.seed,
                        speedup=args.speedup, headless=args.headless, timeout=args.timeout,
@@ -289,7 +326,7 @@ def main(argv: list[str] | None = None) -> None:
                        plot=args.plot, report=args.report, bag=args.bag, workdir=args.workdir, keep=args.keep,
                        lidar_blocking=not args.no_lidar_blocking, mission=mission, live=args.live,
                        web_port=args.web_port, places=args.places, lifelong=lifelong,
-                       duration=getattr(args, "duration", 600.0), task_rate=getattr(args, "task_rate", 6.0),
+                       duration=duration, task_rate=task_rate,
                        battery=parse_battery(args.battery, lifelong), out_of_coverage=args.out_of_coverage,
                        radio_range=args.radio_range)
     except UsageError as e:

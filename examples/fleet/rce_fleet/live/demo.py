@@ -62,8 +62,8 @@ from rce.plumbing.tasks import Tasks
 
 from ..operations.battery import BatteryParams, battery_links
 from ..configs import FLEET_CTAG, PASSWORD, USER, robot_config
-from .demo_output import (EXIT_FAIL, EXIT_OK, EXIT_UNREACHABLE, EXIT_USAGE, blocked_by, progress_line, table,
-                          write_outputs)
+from .demo_output import (EXIT_FAIL, EXIT_OK, EXIT_UNREACHABLE, EXIT_USAGE, activities, blocked_by, progress_line,
+                          table, write_outputs)
 from .faults import Fault, FaultInjector, parse_fault
 from .fleet_bag import FleetBag
 from ..maps.geometry import GridGeometry, components
@@ -85,6 +85,7 @@ MIN_STEP_TIMEOUT_S = 0.1   # wall s a set-up step gets even when the run's --tim
 MIN_READY_WAIT_S = 1.0     # wall s the wait for every robot and move_client to report gets at least
 CONNECTING_AT_ONCE = 4     # robots connecting at the same time (each sets up its node and interfaces)
 WATCH_PERIOD_S = 0.25      # wall s between checks of the run (mission end, engine, Ctrl-C)
+TIMELINE_MAX = 100_000     # samples of a run by tasks kept for its PNG (one per sim s: 27 h; the oldest go first)
 PROGRESS_EVERY_S = 5.0     # wall s between plain progress lines (no live table)
 RELAYS_EVERY_S = 1.0       # wall s between asks for the followers' relays at the master (--out-of-coverage)
 TEARDOWN_TIMEOUT_S = 10.0  # wall s the web page and the fleet manager each get to close before they are left
@@ -255,6 +256,9 @@ class Run:
         self.refused: list[str] = []               # why the fleet refused generated tasks
         self.radio: Radio | None = None            # --out-of-coverage: the radio links to the relays
         self.master_relays: dict[str, dict] = {}   # follower -> the master's relay and relay_since (asked every 1 s)
+        # a run by tasks, sampled each sim second: (sim s, tasks done, {robot: activity}); bounded
+        self.timeline: deque[tuple[float, int, dict[str, str]]] = deque(maxlen=TIMELINE_MAX)
+        self.timeline_dropped = 0                  # samples the bound dropped (the report says how many)
 
     # -- set-up ---------------------------------------------------------------------------------
     def prepare(self) -> None:
@@ -629,6 +633,8 @@ class Run:
     async def _loop(self, mission: bool, show) -> tuple[int, str]:
         while True:
             show()
+            if self.o.lifelong and self.t_mission is not None:
+                self._sample()
             if self._stop.is_set():
                 return (EXIT_FAIL, "interrupted") if mission else (EXIT_OK, "stopped")
             prob = self._engine_problem()
@@ -657,6 +663,14 @@ class Run:
                     await self._stop.wait()
             except TimeoutError:
                 pass
+
+    def _sample(self) -> None:
+        """One timeline sample per sim second of a run by tasks (tasks done, each robot's activity)."""
+        t = self.mission_t()
+        if self.timeline and t - self.timeline[-1][0] < 1.0:
+            return
+        self.timeline_dropped += len(self.timeline) == TIMELINE_MAX
+        self.timeline.append((t, int((self.task_list or {}).get("done", 0)), activities(self)))
 
     # -- display ---------------------------------------------------------------------------------
     def mission_t(self) -> float:

@@ -27,7 +27,12 @@ def fmt_state(state: str) -> str:
 
 
 def progress_line(run) -> str:
-    """One plain progress line: sim time, goals reached, each robot's cell -> goal and state."""
+    """One plain progress line: sim time, goals reached, each robot's cell -> goal and state (a run by
+    tasks: tasks done and each robot's activity)."""
+    if run.o.lifelong:
+        acts = activities(run)
+        return (f"t={run.mission_t():6.1f}s  tasks done {(run.task_list or {}).get('done', 0)}  "
+                + "  ".join(f"{r}:{acts[r]}{via(run, r)}" for r in run.robots))
     st = run.robot_states()
     parts = [f"{r}:{st.get(r, {}).get('cell', '?')}->{run.goals.get(r, '-')} {st.get(r, {}).get('state', '?')}"
              f"{via(run, r)}" for r in run.robots]
@@ -41,16 +46,70 @@ def via(run, robot: str) -> str:
     return "" if lg is None else (" dark" if lg.via == "dark" else f" via {lg.via}")
 
 
-def table(run):
-    """The live table (a rich renderable): a row per robot, the blocked cells, the closest pair, the events."""
-    from rich.console import Group
+ACTIVITIES = ("driving", "at errand", "to charger", "charging", "parking", "idle")   # as the table and PNG name them
+_ACTIVITY_COLOURS = {"driving": "cyan", "at errand": "green", "to charger": "yellow", "charging": "magenta",
+                     "parking": "blue", "idle": "dim"}
+
+
+def activities(run) -> dict[str, str]:
+    """Each robot's activity in a run by tasks (:data:`ACTIVITIES`), from the dispatcher's (task,
+    to_charger, charging, parking, idle) and, on a task, whether the robot is moving."""
+    st = run.robot_states()
+    work = {r["robot"]: r for r in (run.task_list or {}).get("robots", [])}
+    out = {}
+    for r in run.robots:
+        a = work.get(r, {}).get("activity", "idle")
+        if a in ("task", "operator"):
+            out[r] = "driving" if st.get(r, {}).get("state") == "moving" else "at errand"
+        else:
+            out[r] = {"to_charger": "to charger"}.get(a, a if a in ACTIVITIES else "idle")
+    return out
+
+
+def _robot_table(title: str, columns: tuple[tuple[str, str], ...]):
+    """An empty rich table titled ``rce fleet: TITLE`` with ``columns`` (name, justify)."""
     from rich.table import Table
-    from rich.text import Text
-    t = Table(title=f"rce fleet: {len(run.robots)} robots, grid {run.geo.rows}x{run.geo.cols}, "
-                    f"speedup {run.o.speedup:g}", expand=False)
-    for col, j in (("robot", "left"), ("cell", "right"), ("goal", "right"), ("left m", "right"),
-                   ("replans", "right"), ("cancels", "right"), ("state", "left")):
+    t = Table(title=f"rce fleet: {title}", expand=False)
+    for col, j in columns:
         t.add_column(col, justify=j)
+    return t
+
+
+def _task_table(run):
+    """The live table of a run by tasks: a row per robot (activity, task, battery, tasks done, cell) and
+    the run's counts."""
+    from rich.console import Group
+    from rich.text import Text
+    t = _robot_table(f"{len(run.robots)} robots by tasks on {Path(str(run.map_path)).name}, speedup {run.o.speedup:g}",
+                     (("robot", "left"), ("activity", "left"), ("task", "left"), ("battery %", "right"),
+                      ("tasks done", "right"), ("charges", "right"), ("cell", "right")))
+    st = run.robot_states()
+    work = {r["robot"]: r for r in (run.task_list or {}).get("robots", [])}
+    acts = activities(run)
+    for r in run.robots:
+        w = work.get(r, {})
+        a = acts[r]
+        c = _ACTIVITY_COLOURS.get(a, "dim")
+        bat = w.get("battery_pct", -1.0)
+        t.add_row(r, f"[{c}]{a}[/{c}]" + via(run, r), str(w.get("task", "") or "-"),
+                  f"{bat:.0f}" if bat >= 0 else "-", str(w.get("tasks_done", 0)), str(w.get("charges", 0)),
+                  str(st.get(r, {}).get("cell", "?")))
+    tl = run.task_list or {}
+    foot = Text(f"t={run.mission_t():.0f} of {run.o.duration:g} s sim   tasks done {tl.get('done', 0)}, "
+                f"queued {tl.get('queued', 0)}, failed {tl.get('failed', 0)}   generated {run.generated}")
+    return Group(t, foot, *(Text(e, style="dim") for e in run.events))
+
+
+def table(run):
+    """The live table (a rich renderable): a row per robot, the blocked cells, the closest pair, the events;
+    a run by tasks: :func:`_task_table`."""
+    from rich.console import Group
+    from rich.text import Text
+    if run.o.lifelong:
+        return _task_table(run)
+    t = _robot_table(f"{len(run.robots)} robots, grid {run.geo.rows}x{run.geo.cols}, speedup {run.o.speedup:g}",
+                     (("robot", "left"), ("cell", "right"), ("goal", "right"), ("left m", "right"),
+                      ("replans", "right"), ("cancels", "right"), ("state", "left")))
     st = run.robot_states()
     for r in run.robots:
         s = st.get(r, {})
@@ -69,7 +128,14 @@ def write_outputs(run, code: int, reason: str) -> None:
     """Write ``--plot`` and ``--report`` and print the verdict; a failed plot is reported, never raised."""
     o = run.o
     rep = report(run, code, reason)
-    if o.plot and run.sim is not None:
+    if o.plot and run.sim is not None and o.lifelong:
+        from .plot import plot_tasks
+        try:
+            title = f"{Path(str(run.map_path)).name}: {len(run.robots)} robots by tasks"
+            rep["plot"] = str(plot_tasks(o.plot, list(run.timeline), ACTIVITIES, title).resolve())
+        except Exception as e:  # a plot never hides the result
+            rep["plot_error"] = repr(e)
+    elif o.plot and run.sim is not None:
         from .plot import plot_run
         blocked = blocked_by(run.state or {})
         traces = {r: [(x, y) for _, x, y in b.trace] for r, b in run.sim.bots.items()}
@@ -94,8 +160,24 @@ def write_outputs(run, code: int, reason: str) -> None:
               f"{'-' if mp is None else format(mp, '.3f')} m; "
               f"re-plans {rep['planner']['replans']} (max {rep['planner']['max_plan_ms']:.1f} ms)",
               flush=True)
+    if rep.get("tasks"):
+        print(kpi_lines(rep), flush=True)
     if rep.get("plot"):
-        print(f"rce-fleet: paths plotted to {rep['plot']}", flush=True)
+        what = "tasks done and activity" if o.lifelong else "paths"
+        print(f"rce-fleet: {what} plotted to {rep['plot']}", flush=True)
+
+
+def kpi_lines(rep: dict) -> str:
+    """The KPIs of a run by tasks as console lines: tasks done and per hour, task time mean and p95,
+    utilisation, charges."""
+    t, per = rep["tasks"], rep.get("per_robot", {})
+    util = [w["utilisation"] for w in per.values() if "utilisation" in w]
+    charges = sum(int(w.get("charges", 0)) for w in per.values())
+    mean_util = 100.0 * sum(util) / len(util) if util else 0.0
+    return (f"rce-fleet: tasks done {t['done']} in {rep['lifelong']['duration_s']:.0f} s sim "
+            f"({t['per_hour']:.0f} per hour), failed {t['failed']}, queued {t['queued']}\n"
+            f"rce-fleet: task time mean {t['mean_s']:.1f} s, p95 {t['p95_s']:.1f} s; "
+            f"utilisation {mean_util:.0f} %; charges {charges}")
 
 
 def report(run, code: int, reason: str) -> dict:
@@ -175,4 +257,5 @@ def lifelong_report(run, per: dict) -> dict:
                          "goal_to_motion_s": {"n": len(ds), "p50": ds[len(ds) // 2] if ds else None,
                                               "p99": ds[min(len(ds) - 1, int(0.99 * len(ds)))] if ds else None},
                          "battery": run.o.battery.to_param() if run.o.battery else None,
+                         "timeline_samples": len(run.timeline), "timeline_dropped": run.timeline_dropped,
                          "places": str(run.o.places or run.workdir / "places.yaml")}}

@@ -1,4 +1,5 @@
-"""PNG of a fleet run: the map, the grid, blocked cells and each robot's driven path."""
+"""PNGs of a fleet run: a mission's map, grid, blocked cells and each robot's driven path
+(:func:`plot_run`); a run by tasks' tasks done over time and the robots' activity (:func:`plot_tasks`)."""
 from __future__ import annotations
 
 from pathlib import Path
@@ -7,7 +8,7 @@ import numpy as np
 
 from ..maps.geometry import GridGeometry
 
-__all__ = ["plot_run"]
+__all__ = ["plot_run", "plot_tasks"]
 
 
 def plot_run(path: str | Path, occ_map, geo: GridGeometry, traces: dict[str, list[tuple[float, float]]],
@@ -86,5 +87,40 @@ def plot_run(path: str | Path, occ_map, geo: GridGeometry, traces: dict[str, lis
         ax.legend(loc="upper left", bbox_to_anchor=(1.01, 1.0), fontsize=7, frameon=False)
     fig.tight_layout()
     fig.savefig(path)
+    plt.close(fig)
+    return path
+
+
+def plot_tasks(path: str | Path, timeline: list[tuple[float, int, dict[str, str]]], activities: tuple[str, ...],
+               title: str = "") -> Path:
+    """Write the PNG of a run by tasks to ``path`` (parent created); returns it. Top: tasks done
+    over sim time; bottom: how many robots are in each of ``activities`` (stacked).
+
+    timeline: [(sim s, tasks done, {robot: activity})], one sample per sim second. Raises
+    ValueError for an empty timeline."""
+    import matplotlib
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    if not timeline:
+        raise ValueError("no sample of the run to plot")
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    t = np.array([x[0] for x in timeline])
+    done = np.array([x[1] for x in timeline])
+    counts = np.array([[sum(1 for a in x[2].values() if a == act) for x in timeline] for act in activities])
+    fig, (ax1, ax2) = plt.subplots(2, 1, figsize=(9, 6), sharex=True, height_ratios=(1, 1.2))
+    ax1.plot(t, done, color="C2")
+    ax1.set_ylabel("tasks done")
+    ax1.set_title(title, fontsize=10)
+    ax1.grid(alpha=0.3)
+    colours = ("tab:cyan", "tab:green", "gold", "tab:purple", "tab:blue", "lightgrey")
+    ax2.stackplot(t, counts, labels=activities, colors=colours[:len(activities)])
+    ax2.set_ylabel("robots")
+    ax2.set_xlabel("simulated s")
+    ax2.legend(loc="upper left", fontsize=7, ncol=len(activities))
+    ax2.set_ylim(0, max(1, counts.sum(axis=0).max()) * 1.25)
+    fig.tight_layout()
+    fig.savefig(path, dpi=100)
     plt.close(fig)
     return path

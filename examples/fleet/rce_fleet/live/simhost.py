@@ -153,7 +153,8 @@ class SimHost:
         robot = self.world.add_robot(rid, x, y, yaw)
         bot = SimBot(rid, robot, LocalNavigator(obstacle_detector=self.detector), cell)
         if self.battery is not None:
-            bot.battery = Battery(self.battery)
+            level = self.battery.initial - self.battery.initial_spread * float(self.rng.uniform())
+            bot.battery = Battery(self.battery, wh=level * self.battery.capacity_wh)
         bot.last_xy = (x, y)
         bot.cells.append((self.time, cell))
         bot.trace.append((self.time, x, y))

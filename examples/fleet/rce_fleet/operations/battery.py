@@ -3,7 +3,8 @@
 - :class:`BatteryParams`: capacity (Wh), drain per metre driven (Wh/m) and per second
   (W, always, idle or not), charging power at a charger (W), the level below which a robot
   is sent to charge (default 20 %), the level it charges to (default 90 %) and the level a
-  simulated battery starts at (default full). The fleet
+  simulated battery starts at (default full; with ``initial_spread``, each simulated battery
+  starts somewhere between ``initial - initial_spread`` and ``initial``, as a fleet's do). The fleet
   manager sets them as the ``/fleet/battery`` parameter; the global planner's dispatcher
   uses them to estimate what a task costs.
 - :class:`Battery`: one simulated battery; :meth:`Battery.step` drains and charges it by
@@ -39,6 +40,7 @@ class BatteryParams:
     recharge: float = 0.90
     voltage: float = 24.0
     initial: float = 1.0
+    initial_spread: float = 0.0
 
     def __post_init__(self):
         if not self.capacity_wh > 0:
@@ -49,6 +51,9 @@ class BatteryParams:
             raise ValueError(f"battery levels need 0 < threshold ({self.threshold}) < recharge ({self.recharge}) <= 1")
         if not 0 < self.initial <= 1:
             raise ValueError(f"a battery's initial level must be in (0, 1], got {self.initial}")
+        if not 0 <= self.initial_spread < self.initial:
+            raise ValueError(f"initial_spread must be >= 0 and below initial ({self.initial}), "
+                             f"got {self.initial_spread}")
 
     def to_param(self) -> dict:
         """JSON form (the ``/fleet/battery`` parameter)."""
