@@ -87,11 +87,16 @@ def run_one(path: Path, steps: int, limit_ms: float, scheduler: str, seed: int, 
         row["vs_best"] = s["tasks_finished"] / row["best"]
     if peer is not None:
         from startkit_peer import run_peer
-        with rich_progress(steps, f"{path.stem} (start-kit default)") as pcb:
-            got = run_peer(peer, path, steps, limit_ms, progress=lambda k: pcb(k, 0, 0.0))
-        row.update({f"peer_{k}": v for k, v in got.items()})
-        if got["tasks_finished"]:
-            row["vs_peer"] = s["tasks_finished"] / got["tasks_finished"]
+        try:
+            with rich_progress(steps, f"{path.stem} (start-kit default)") as pcb:
+                got = run_peer(peer, path, steps, limit_ms, progress=lambda k: pcb(k, 0, 0.0))
+        except RuntimeError as e:          # the peer died (e.g. out of memory): the row says so, the run goes on
+            row["peer_error"] = str(e).splitlines()[0]
+            print(f"start-kit failed on {path.name}: {row['peer_error']}", file=sys.stderr)
+        else:
+            row.update({f"peer_{k}": v for k, v in got.items()})
+            if got["tasks_finished"]:
+                row["vs_peer"] = s["tasks_finished"] / got["tasks_finished"]
     if outputs is not None:
         outputs.mkdir(parents=True, exist_ok=True)
         out = outputs / f"{path.stem}.{scheduler}.json"
@@ -112,7 +117,7 @@ def print_table(rows: list[dict]) -> None:
     for r in rows:
         mark = "*" if r.get("scaled") else ""
         peer = (f"{r['peer_tasks_finished']}" + (f" ({r['peer_timeouts']} t/o)" if r["peer_timeouts"] else "")
-                if "peer_tasks_finished" in r else "-")
+                if "peer_tasks_finished" in r else "failed" if "peer_error" in r else "-")
         t.add_row(r["problem"], str(r["robots"]), str(r["steps"]), r["scheduler"], str(r["tasks_finished"]),
                   peer, f"{r['vs_peer']:.2f}" if "vs_peer" in r else "-",
                   f"{r['default']:.0f}{mark}" if "default" in r else "-",

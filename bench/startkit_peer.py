@@ -77,8 +77,9 @@ def run_peer(binary: Path, problem: Path, steps: int, limit_ms: float, progress=
         wall = time.perf_counter() - t0
         if proc.returncode != 0 or not out.is_file():
             err = proc.stderr.read().decode(errors="replace")[-2000:] if proc.stderr else ""
-            tail = log.read_text(errors="replace")[-2000:] if log.exists() else ""
-            raise RuntimeError(f"start-kit exited {proc.returncode} on {problem.name}:\n{err}\n{tail}")
+            tail = log.read_text(errors="replace")[-1000:] if log.exists() else ""
+            why = "killed (out of memory?)" if proc.returncode == -9 else f"exited {proc.returncode}"
+            raise RuntimeError(f"start-kit {why} on {problem.name} after {wall:.0f} s\n{err}\n{tail}")
         d = json.loads(out.read_text())
     return {"tasks_finished": int(d["numTaskFinished"]), "timeouts": int(d["numEntryTimeouts"]),
             "invalid_steps": int(d["numPlannerErrors"]), "schedule_errors": int(d["numScheduleErrors"]),
