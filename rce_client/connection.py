@@ -303,7 +303,8 @@ class Connection(Verbs, Handles, Reconnecting):
         self._status_cbs.append(cb)
 
     def on_error(self, cb: ErrorCallback) -> None:
-        """Call ``cb(reason)`` (sync or async) for every ER from the cloud (they are logged too)."""
+        """Call ``cb(reason)`` (sync or async) for every ER from the cloud. With a callback the
+        connection logs them at DEBUG only (the caller reports them), without one at WARNING."""
         self._error_cbs.append(cb)
 
     async def wait_interfaces_up(self, itags: Iterable[str], timeout: float = WAIT_TIMEOUT) -> None:
@@ -408,7 +409,10 @@ class Connection(Verbs, Handles, Reconnecting):
     def _on_error(self, reason: str) -> None:
         self.errors.append(reason)
         del self.errors[:-ERRORS_KEPT]
-        log.warning("error from the cloud", reason=reason)
+        if self._error_cbs:         # whoever asked to be told reports it: the error shows once
+            log.debug("error from the cloud", reason=reason)
+        else:
+            log.warning("error from the cloud", reason=reason)
         self._changed.set()
         for cb in self._error_cbs:
             self._run_cb(cb, reason)

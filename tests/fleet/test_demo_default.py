@@ -3,47 +3,14 @@ tasks (12 robots, batteries), the operator page's URL first, the live table (no 
 at the end the KPIs and the PNG of tasks done and activity; exit 0. Cut to 30 simulated seconds."""
 from __future__ import annotations
 
-import os
-import pty
 import re
-import select
-import subprocess
 import sys
-import time
 from pathlib import Path
+
+from ptyrun import run_on_a_terminal
 
 BIN = Path(sys.executable).parent
 RUN_TIMEOUT_S = 240
-ANSI = re.compile(r"\x1b\[[0-9;?]*[A-Za-z]|\x1b\][^\x07]*\x07")
-
-
-def run_on_a_terminal(argv: list[str], cwd: Path, timeout: float) -> tuple[int, str]:
-    """Run ``argv`` with stdin, stdout and stderr on a pseudo-terminal; (exit code, what it printed)."""
-    master, slave = pty.openpty()
-    p = subprocess.Popen(argv, stdin=slave, stdout=slave, stderr=slave, cwd=cwd, close_fds=True,
-                         env={**os.environ, "COLUMNS": "140", "LINES": "50", "TERM": "xterm-256color"})
-    os.close(slave)
-    out = bytearray()
-    end = time.monotonic() + timeout
-    try:
-        while time.monotonic() < end:
-            ready, _, _ = select.select([master], [], [], 1.0)
-            if ready:
-                try:
-                    chunk = os.read(master, 65536)
-                except OSError:             # EIO: the child closed the terminal
-                    break
-                if not chunk:
-                    break
-                out += chunk
-            elif p.poll() is not None:
-                break
-        code = p.wait(timeout=30)
-    finally:
-        if p.poll() is None:
-            p.kill()
-        os.close(master)
-    return code, ANSI.sub("", out.decode(errors="replace")).replace("\r", "")
 
 
 def test_default_demo_runs_the_warehouse_by_tasks_and_prints_its_kpis(tmp_path):
