@@ -53,6 +53,7 @@ async function loadConfig() {
 const view = window.fleetView = {
   connected: false, robotID: null, container: null, phase: "login",
   updates: 0, seq: 0, lastUpdate: 0, rate: 0,
+  numbersDrawn: null,    // whether every cell carries its number (only where cells are large enough)
   grid: null,            // {rows, cols, cell_w, cell_h, grid_x, grid_y, res, origin, free: [bool]}
   robots: {},            // name -> {x, y, yaw, cell, goal, path, state, replans, cancels, error, ...}
   order: [],             // robot names, sorted (colour index)
@@ -86,6 +87,7 @@ let lastErrors = [];
 let staticLayer = null, staticKey = "";
 let drawn = {};                  // name -> {x, y, yaw} smoothed for drawing
 let hoverCell = -1;
+const NUMBERS_MIN_PX = 30;      // CSS px of a cell's shorter side from which every cell carries its number
 let taskPanel = null;            // the task form, queue, robots' work and plots (tasks.js)
 let needTable = true, lastTable = 0;
 let rateWindow = [];
@@ -525,7 +527,7 @@ function layout() {
   if (canvas.width !== w || canvas.height !== h) { canvas.width = w; canvas.height = h; staticKey = ""; }
   const g = view.grid;
   if (!g) return;
-  const pad = 0.04;
+  const pad = 0.015;
   const wm = g.cols * g.cell_w, hm = g.rows * g.cell_h;
   const s = Math.min(w * (1 - 2 * pad) / wm, h * (1 - 2 * pad) / hm);   // device px per metre
   T = { s, sx: s * g.cell_w, sy: s * g.cell_h, ox: (w - wm * s) / 2, oy: (h - hm * s) / 2, dpr };
@@ -631,7 +633,10 @@ function buildStatic() {
   for (let i = 0; i <= g.cols; i++) { const [x, y0] = G2C(i, 0), [, y1] = G2C(i, g.rows); c.moveTo(x, y0); c.lineTo(x, y1); }
   for (let j = 0; j <= g.rows; j++) { const [x0, y] = G2C(0, j), [x1] = G2C(g.cols, j); c.moveTo(x0, y); c.lineTo(x1, y); }
   c.stroke();
-  // cell numbers (top-left of each cell)
+  // cell numbers (top-left of each cell), only where cells are large enough to carry them legibly;
+  // on a warehouse the numbers would bury the map: a cell's number shows on hover (#cell-info)
+  view.numbersDrawn = Math.min(T.sx, T.sy) >= NUMBERS_MIN_PX * T.dpr;
+  if (!view.numbersDrawn) return;
   const fs = Math.max(9 * T.dpr, Math.min(T.sx, T.sy) * 0.16);
   c.font = `${fs}px ui-monospace, monospace`;
   c.textBaseline = "top";
@@ -869,8 +874,23 @@ function renderTable() {
 // ---------------------------------------------------------------------------------------------
 // input
 // ---------------------------------------------------------------------------------------------
-canvas.addEventListener("mousemove", (ev) => { hoverCell = cellAtClient(ev.clientX, ev.clientY); });
-canvas.addEventListener("mouseleave", () => { hoverCell = -1; });
+function cellInfo(cell, x, y) {
+  // the hovered cell's number (and place, and whether robots can use it), next to the pointer
+  const box = $("cell-info");
+  if (cell < 0 || !view.grid) { box.hidden = true; return; }
+  const place = ((taskPanel && taskPanel.places) || []).find((p) => p.cell === cell);
+  box.textContent = `cell ${cell}` + (place ? ` · ${place.name} (${place.kind})` : "") +
+                    (view.grid.free[cell] ? "" : " · not free");
+  const rect = canvas.parentElement.getBoundingClientRect();
+  box.style.left = `${x - rect.left + 14}px`;
+  box.style.top = `${y - rect.top + 14}px`;
+  box.hidden = false;
+}
+canvas.addEventListener("mousemove", (ev) => {
+  hoverCell = cellAtClient(ev.clientX, ev.clientY);
+  cellInfo(hoverCell, ev.clientX, ev.clientY);
+});
+canvas.addEventListener("mouseleave", () => { hoverCell = -1; cellInfo(-1); });
 canvas.addEventListener("click", (ev) => {
   if (!view.connected || !view.grid) return;
   const robot = robotAtClient(ev.clientX, ev.clientY);
