@@ -191,6 +191,9 @@ def test_tasks_are_allocated_done_in_order_and_timed(lab):  # noqa: F811
     assert t1.robot == "Robot1" and t2.robot == "Robot2"       # each to the robot that finishes it first
     assert 0 < t1.assigned <= t1.active < t1.finished and t2.active <= t2.finished
     assert [h[1] for h in t1.history] == ["queued", "assigned", "active", "done"]
+    # each errand's time is kept and sent: the first is when it opened, the last when it was done
+    msg = t1.message()
+    assert msg["reached"] == [t1.active, t1.finished] and msg["active"] <= msg["reached"][1]
     # Robot1 went through the pick-up before the drop-off
     v = f.visited["Robot1"]
     assert 16 in v and v.index(16) < v.index(23)

@@ -88,6 +88,16 @@ def test_operator_creates_watches_and_cancels_tasks_on_the_page(op, fleet):
     page.wait_for_function("(id) => fleetView.tasks.list.some(t => t.id == id && t.state == 'done')", arg=tid,
                            timeout=DONE_TIMEOUT_MS)
     assert page.inner_text(f"{row} .state") == "done"
+    # a click on the task shows its history: created, assigned, opened, each errand, done, with times
+    assert page.is_hidden("#task-history")
+    page.click(f"{row} .id")
+    page.wait_for_selector("#task-history", state="visible")
+    hist = page.inner_text("#task-history")
+    for said in ("created by operator:", "assigned to Robot", "opened (first errand reached)",
+                 "errand 2 (drop1) reached", "done"):
+        assert said in hist, hist
+    page.click(f"{row} .id")
+    page.wait_for_selector("#task-history", state="hidden")
     # the plots sample every few seconds of fleet time: wait for the first sample after the task was done
     page.wait_for_function("fleetView.tasks.history.length && fleetView.tasks.history.at(-1).done >= 1",
                            timeout=ANSWER_TIMEOUT_MS)

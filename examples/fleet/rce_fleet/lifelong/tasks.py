@@ -69,6 +69,7 @@ class Task:
     reason: str = ""
     times: dict = field(default_factory=dict)
     history: list = field(default_factory=list)
+    reached: list = field(default_factory=list)   # the time each errand was reached, in order
 
     @property
     def open(self) -> bool:
@@ -178,6 +179,7 @@ class TaskPool:
             raise TaskError(f"task {tid} has no robot")
         at = self._at(step if at is None else at)
         t.next_errand += 1
+        t.reached.append(at)
         if t.next_errand >= len(t.errands):
             t.finish = step
             self._close(t, TaskState.DONE, "", at)

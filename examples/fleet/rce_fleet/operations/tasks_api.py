@@ -106,7 +106,7 @@ class TaskRecord:
                 "state": self.state.value, "robot": self.robot, "next_errand": t.next_errand, "reason": self.reason,
                 "source": self.source, "created": self.created, "earliest_start": self.earliest_start,
                 "deadline": self.deadline, "assigned": self.assigned, "active": self.active,
-                "finished": self.finished}
+                "finished": self.finished, "reached": list(t.reached)}
 
 
 class TaskBook:

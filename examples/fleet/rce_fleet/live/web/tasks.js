@@ -39,8 +39,11 @@ export class TaskPanel {
     $("task-form").onsubmit = (ev) => { ev.preventDefault(); this.submit(); };
     $("task-queue").addEventListener("click", (ev) => {
       const b = ev.target.closest("button[data-cancel]");
-      if (b) this.cancel(b.dataset.cancel);
+      if (b) { this.cancel(b.dataset.cancel); return; }
+      const tr = ev.target.closest("tr[data-task]");     // a click on a task shows its history (again: hides it)
+      if (tr) { this.shown = this.shown === tr.dataset.task ? null : tr.dataset.task; this.renderHistory(); }
     });
+    this.shown = null;             // the task whose history is shown
   }
 
   setPicking(on) {
@@ -170,8 +173,9 @@ export class TaskPanel {
       if (want !== !!act.firstChild) {
         act.innerHTML = want ? `<button data-cancel="${t.id}" title="cancel this task">cancel</button>` : "";
       }
-      tr.className = t.state;
+      tr.className = t.state + (t.id === this.shown ? " shown" : "");
     }
+    this.renderHistory();
     for (const [id, tr] of this.rows) if (!seen.has(id)) { tr.remove(); this.rows.delete(id); }
     const s = m.stats;
     const summary = `queued ${s.queued} · done ${s.done} · failed ${s.failed} · cancelled ${s.cancelled}` +
@@ -179,6 +183,33 @@ export class TaskPanel {
     if (this.$("task-stats").textContent !== summary) this.$("task-stats").textContent = summary;
     this.renderWork();
     if (Date.now() - this.lastPlot > PLOT_EVERY) { this.lastPlot = Date.now(); this.plots(); }
+  }
+
+  /** The shown task's history: created, assigned (to whom), opened, each errand reached, and how it
+   * ended, with fleet times (s); from its fleet/TaskStatus. */
+  renderHistory() {
+    const box = this.$("task-history");
+    const t = this.shown && this.model.list.find((x) => x.id === this.shown);
+    if (!t) { box.hidden = true; return; }
+    const at = (s) => `${(+s).toFixed(1)} s`;
+    const lines = [[t.created, `created by ${t.source || "?"}`]];
+    if (t.assigned > 0) lines.push([t.assigned, `assigned to ${t.robot || "a robot"}`]);
+    if (t.active > 0) lines.push([t.active, "opened (first errand reached)"]);
+    (t.reached || []).forEach((s, i) => {
+      if (i > 0 || !(t.active > 0)) lines.push([s, `errand ${i + 1} (${t.errands[i]}) reached`]);
+    });
+    if (!ACTIVE.has(t.state)) lines.push([t.finished, t.state + (t.reason ? `: ${t.reason}` : "")]);
+    const items = [["", `task ${t.id}: ${t.errands.join(" → ")}`], ...lines.map(([sec, what]) => [at(sec), what])];
+    const key = JSON.stringify(items);
+    box.hidden = false;
+    if (box.dataset.key === key) return;
+    box.dataset.key = key;
+    box.replaceChildren(...items.map(([when, what]) => {   // text only: ids and reasons are operators' strings
+      const li = document.createElement("li");
+      if (when) { const sp = document.createElement("span"); sp.textContent = when; li.append(sp); }
+      li.append(document.createTextNode(what));
+      return li;
+    }));
   }
 
   renderWork() {
