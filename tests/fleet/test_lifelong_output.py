@@ -98,3 +98,13 @@ def test_generated_problem_has_free_distinct_starts_and_two_to_five_errands(tmp_
     assert p.warnings == []                 # every errand reachable from every start
     starts, tasks = generate_problem(VECTORS / "small-16-16.map", 30, 5, tasks=500)
     assert np.array_equal(starts, p.starts)  # the seed makes the problem
+
+
+def test_the_run_picks_guidance_and_turn_commitment_by_density(tmp_path):
+    free = len(load_problem(PROBLEM).grid.free_cells())
+    sparse = load_problem(write_problem(VECTORS / "small-16-16.map", int(0.05 * free), 1, tmp_path, tasks=200))
+    dense = load_problem(write_problem(VECTORS / "small-16-16.map", int(0.5 * free), 1, tmp_path, tasks=200))
+    packed = load_problem(write_problem(VECTORS / "small-16-16.map", int(0.9 * free), 1, tmp_path, tasks=200))
+    got = [(r.stats["guide"], r.stats["claim_steps"], r.sim.invalid_steps)
+           for r in (run_lifelong(p, 8, record=False) for p in (sparse, dense, packed))]
+    assert got == [(False, 1, 0), (True, 1, 0), (True, 0, 0)]

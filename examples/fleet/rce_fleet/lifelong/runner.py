@@ -26,13 +26,14 @@ from .pibt import PIBTPlanner
 from .scheduler import make_scheduler
 from .simulator import MAPF_T, Simulator
 
-__all__ = ["CROWD_TEAM", "CROWD_W", "GUIDE_DENSITY", "LANES", "RunResult", "run_lifelong"]
+__all__ = ["CROWD_TEAM", "CROWD_W", "GUIDE_DENSITY", "LANES", "PACKED_DENSITY", "RunResult", "run_lifelong"]
 
 LANES = 4        # extra cost of a move against a one-way lane (measured: docs/lifelong.md)
 CROWD_W = 5.0    # scheduler's steps per robot crowding a task's errands beyond its share ...
 CROWD_TEAM = 3000  # ... for teams of this size and more (measured: docs/lifelong.md)
 HARD_FRAC = 0.7    # past this share of the limit a robot with a new goal and no row yet waits a step
 GUIDE_DENSITY = 0.1  # robots per free cell from which guide paths lead (below: each robot's shortest way)
+PACKED_DENSITY = 0.8  # robots per free cell from which a turning robot holds no second cell (claim_steps 0)
 
 
 @dataclass
@@ -72,14 +73,18 @@ def run_lifelong(problem: LorrProblem, steps: int, plan_time_limit_ms: float = 1
     ``CROWD_W`` for teams of ``CROWD_TEAM`` robots or more, else 0);
     guide: robots follow traffic-flow guide paths (:class:`~.flow.TrafficFlow`); None (default): when
     the team has at least ``GUIDE_DENSITY`` robots per free cell (on sparser teams the detours they
-    ask for cost more than the jams they avoid: docs/lifelong.md);
+    ask for cost more than the jams they avoid: docs/lifelong.md); from ``PACKED_DENSITY`` robots per
+    free cell a robot that turns towards a cell does not hold it (``claim_steps=0``; measured there);
     progress: called after each step with (step, tasks finished, planner ms).
     Compilation happens before step 0 (:func:`~.kernels.warm_up`). Raises ValueError for a
     bad scheduler or model name, MemoryError when the maps of the team do not fit.
     """
     grid = problem.grid
+    density = problem.team_size / max(1, len(grid.free_cells()))
     if guide is None:
-        guide = problem.team_size >= GUIDE_DENSITY * len(grid.free_cells())
+        guide = density >= GUIDE_DENSITY
+    if density >= PACKED_DENSITY:       # the cell a turning robot would hold is the one the others need
+        planner_kw = {"claim_steps": 0, **(planner_kw or {})}
     if cache_bytes is None:
         cache_bytes = cache_bytes_for(grid, problem.team_size)
     warm_up()
@@ -118,7 +123,8 @@ def run_lifelong(problem: LorrProblem, steps: int, plan_time_limit_ms: float = 1
         finished[k] = sim.finished
         if progress is not None:
             progress(k + 1, sim.finished, dt * 1e3)
-    stats = {"scheduler": scheduler, "lanes": lanes, "crowd_w": crowd_w, "guide": guide, "scheduler_ms_total": sched_ms,
+    stats = {"scheduler": scheduler, "lanes": lanes, "crowd_w": crowd_w, "guide": guide,
+             "claim_steps": planner.claim_steps, "scheduler_ms_total": sched_ms,
              **planner.stats, **(flow.stats if flow is not None else {}),
              "distance_maps": cache.computed, "maps_evicted": cache.evicted, "cache_rows": cache.capacity,
              "cache_rows_used": len(cache)}
