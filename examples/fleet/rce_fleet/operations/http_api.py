@@ -17,7 +17,8 @@ Routes (the fleet manager's :class:`~rce_fleet.operations.tasks_client.TaskChann
 
 A task is ``{"id", "errands", "cells", "priority", "state", "robot", "next_errand", "reason",
 "source", "created", "earliest_start", "deadline", "assigned", "active", "finished", "reached"}``
-(times in fleet seconds, 0: not reached; ``reached``: the time each errand was reached, in order). A request the fleet does not answer within 10 s is a 504.
+(times in fleet seconds, 0: not reached; ``reached``: the time each errand was reached, in order).
+A request the fleet does not answer within 10 s is a 504.
 """
 from __future__ import annotations
 
