@@ -24,6 +24,7 @@ def test_default_demo_runs_the_warehouse_by_tasks_and_prints_its_kpis(tmp_path):
     table = next(i for i, ln in enumerate(lines) if "robots by tasks on warehouse" in ln)
     assert url < table, "the page's URL comes before the live table"
     assert "Robot12" in out and re.search(r"\b(driving|at errand|idle|charging|to charger|parking)\b", out)
-    assert re.search(r"tasks done \d+ in 30 s sim \(\d+ per hour\)", out), out[-2000:]
+    kpi = re.search(r"tasks done \d+ in (\d+) s sim \(\d+ per hour\)", out)
+    assert kpi and 30 <= int(kpi.group(1)) <= 35, out[-2000:]   # the last tick may pass the cut
     assert re.search(r"task time mean [\d.]+ s, p95 [\d.]+ s; utilisation \d+ %; charges \d+", out)
     assert f"tasks done and activity plotted to {png}" in out and png.stat().st_size > 10_000
