@@ -161,6 +161,44 @@ def host_layout(scope: str) -> Layout | None:
     return detect(scope, mountinfo, proc_cgroup, v2_ctrls)
 
 
+def cpu_max_cores(text: str) -> float | None:
+    """A v2 ``cpu.max`` text (``"QUOTA PERIOD"`` or ``"max PERIOD"``) as cores (None: no limit)."""
+    parts = text.split()
+    if len(parts) != 2 or parts[0] == "max":
+        return None
+    try:
+        return int(parts[0]) / int(parts[1])
+    except (ValueError, ZeroDivisionError):
+        return None
+
+
+def host_cpus() -> float:
+    """The cores this process may use: the CPUs it may run on (affinity), capped by the v2
+    ``cpu.max`` of its own cgroup and every ancestor (a robot's computer capped at 0.3 cores
+    says 0.3)."""
+    cores = float(len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count() or 1)
+    try:
+        mounts = parse_mountinfo(Path("/proc/self/mountinfo").read_text())
+        own = parse_proc_cgroup(Path("/proc/self/cgroup").read_text()).get("")
+    except OSError:
+        return cores
+    v2 = next((m for m in mounts if m.version == 2), None)
+    if v2 is None or own is None:
+        return cores
+    d = Path(v2.path) / own.lstrip("/")
+    root = Path(v2.path)
+    while True:
+        try:
+            limit = cpu_max_cores((d / "cpu.max").read_text())
+        except OSError:
+            limit = None
+        if limit is not None:
+            cores = min(cores, limit)
+        if d == root or root not in d.parents:
+            return cores
+        d = d.parent
+
+
 def _write(path: Path, value: str) -> None:
     with open(path, "w") as f:
         f.write(value)

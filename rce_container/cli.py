@@ -17,6 +17,7 @@ import sys
 import tempfile
 
 from rce.plumbing.process import run_loop
+from rce.protocol.zones import parse_zone
 from rce.transport import cluster_auth
 from rce.transport import framing
 from rce.plumbing.errors import RCEError
@@ -56,6 +57,11 @@ def parser() -> argparse.ArgumentParser:
     p.add_argument("--grace", type=float, default=sandboxes.DEFAULT_GRACE,
                    help="seconds between SIGTERM and SIGKILL when stopping nodes "
                         f"(default {sandboxes.DEFAULT_GRACE:g})")
+    p.add_argument("--zone", default="cloud", metavar="ZONE",
+                   help="where this host stands: cloud (default), edge (near the robots, shared) or "
+                        "robot:ROBOT_ID (that robot's own computer; serves its --user alone)")
+    p.add_argument("--user", default=None, metavar="NAME",
+                   help="with --zone robot:ROBOT_ID: the user whose robot this is")
     p.add_argument("--metrics-port", type=int, default=None, metavar="PORT",
                    help="serve Prometheus /metrics on --bind at this port (0: ephemeral, written to the "
                         "ready file; default: off)")
@@ -63,6 +69,7 @@ def parser() -> argparse.ArgumentParser:
 
 
 async def amain(args: argparse.Namespace) -> int:
+    zone = parse_zone(args.zone, args.user)                                # exit 2 for a bad zone
     cluster_key = cluster_auth.ClusterKey.load(args.cluster_key_file)     # before anything is made: exit 2 if none
     own = args.runtime_dir is None
     runtime_dir = args.runtime_dir or tempfile.mkdtemp(
@@ -71,7 +78,7 @@ async def amain(args: argparse.Namespace) -> int:
                          cluster_key=cluster_key,
                          advertise_host=args.advertise_host, runtime_dir=runtime_dir, own_runtime_dir=own,
                          sandbox=args.sandbox, max_frame=args.max_frame, grace=args.grace, warm=args.warm,
-                         metrics_port=args.metrics_port)
+                         metrics_port=args.metrics_port, zone=zone)
     loop = asyncio.get_running_loop()
     for sig in (signal.SIGINT, signal.SIGTERM):
         loop.add_signal_handler(sig, host.stop)

@@ -148,7 +148,8 @@ class GroupContainer:
             total = {"cpu_seconds": cpu, "rss_bytes": m["rss_bytes"], "processes": m["processes"]}
         out = {"cpu_percent": round(rates.percent(("container", self.cid), total["cpu_seconds"],
                                                   self.sandbox.started), 1),
-               "rss_mib": round(total["rss_bytes"] / 2**20, 2), "processes": total["processes"]}
+               "rss_mib": round(total["rss_bytes"] / 2**20, 2), "processes": total["processes"],
+               "cpu_seconds": round(total["cpu_seconds"], 4)}
         if box.get("cpu"):
             out["cpu"] = {**box["cpu"], "throttled_s": round(box["cpu"]["throttled_s"], 3)}
         mem = box.get("memory") or {}
@@ -517,7 +518,7 @@ class Environment:
         """``{cid}`` -> counters of the container and of its group::
 
             {cid, user, ctag, group, sandbox, limits: {cpu?, memory?, size?, bandwidth?},
-             cpu_percent, rss_mib, processes,                  # every process of the container
+             cpu_percent, cpu_seconds, rss_mib, processes,     # every process of the container (cpu s: all time)
              memory?: {usage_mib, limit_mib, oom_kills, failcnt},   # its memory cgroup, when it has one
              cpu?: {periods, throttled, throttled_s},          # CPU-limit enforcement periods, how many hit it
              nodes: {count, running, starts, forked (of the starts, by the zygote), restarts},

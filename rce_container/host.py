@@ -48,6 +48,8 @@ from rce.plumbing.log import get_logger
 from rce.transport.masterlink import MASTER_PORT, MasterLink, parse_masters
 from rce.transport.op_table import OpTable
 from rce.plumbing.pending import PendingCalls
+from rce.protocol.zones import CLOUD, Zone
+from rce_container.cgroups import host_cpus
 from rce.plumbing.tasks import Tasks
 from rce_container import metrics
 from rce_container import sandbox as sandboxes
@@ -126,16 +128,19 @@ class ContainerHost:
     ``create_container`` does not wait for a Python process to start; ``metrics_port``: serve
     Prometheus ``/metrics`` on ``bind`` at this port (0: an ephemeral one, read back from
     ``self.metrics_port``; None: no metrics server); ``cluster_key``: proved to the master on every
-    link (:mod:`rce.transport.cluster_auth`); each environment gets only its own data key derived from it."""
+    link (:mod:`rce.transport.cluster_auth`); each environment gets only its own data key derived from it;
+    ``zone``: where this host stands (:mod:`rce.protocol.zones`), told to the master on registration."""
 
     def __init__(self, master: str | list[str], master_port: int = MASTER_PORT, *, name: str | None = None,
                  bind: str = "127.0.0.1", advertise_host: str | None = None, runtime_dir: str | Path,
                  own_runtime_dir: bool = False, sandbox: str = "auto",
                  max_frame: int = framing.DEFAULT_MAX_FRAME, env_timeout: float = ENV_TIMEOUT,
                  grace: float = sandboxes.DEFAULT_GRACE,
-                 warm: int = 1, metrics_port: int | None = None, cluster_key: ClusterKey):
+                 warm: int = 1, metrics_port: int | None = None, cluster_key: ClusterKey,
+                 zone: Zone = CLOUD):
         self.masters = parse_masters(master, master_port)
         self.cluster_key = cluster_key
+        self.zone = zone
         self.name = name or socket.gethostname()
         self.bind, self.advertise_host = bind, advertise_host or bind
         self.runtime_dir = Path(runtime_dir)
@@ -189,7 +194,8 @@ class ContainerHost:
         if self.metrics_port is not None:
             await self._start_metrics()
         info = {"kind": "container", "name": self.name, "host": self.advertise_host, "sandbox": self.sandbox_cls.kind,
-                "capacity": {"cpu": os.cpu_count() or 1, "memory": psutil.virtual_memory().total // 2**20}}
+                "capacity": {"cpu": round(host_cpus(), 3), "memory": psutil.virtual_memory().total // 2**20},
+                "zone": str(self.zone), "zone_user": self.zone.user}
         self.master = MasterLink(self.masters, HOST_OPS.handlers(self), info, report=self._report,
                                  on_registered=self._obey, max_frame=self.max_frame, cluster_key=self.cluster_key)
         await self.master.start()

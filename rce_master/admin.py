@@ -16,6 +16,9 @@ errors with a one-line reason (:mod:`rce_master.server`).
 | ``GET /api/containers/{user}/{ctag}/stats`` | the container's counters from its host |
 | ``POST /api/containers/{user}/{ctag}/resize`` ``{cpu?, memory?, pids?, size?, bandwidth?}`` | new limits |
 | ``GET /api/containers/{user}/{ctag}/logs/{ntag}`` | a node's kept stdout/stderr |
+| ``GET /api/placement`` | per container: where it runs, where the placer would put it and why |
+| ``POST /api/placement/{user}/{ctag}`` ``{pin}`` | pin it to ``cloud``, ``edge`` or ``robot``; ``auto`` unpins |
+| ``POST /api/robots/{user}/{robot}/battery`` ``{percent}`` | a robot's charge, for the placer |
 | ``GET /api/leader`` | ``{leading, leader, self}``: whether this master leads, the leader's and its own addresses |
 
 A master that stands by (several masters on etcd) answers ``GET /api/state``, the lists and
@@ -34,6 +37,7 @@ from rce.plumbing.errors import AuthError, RequestError
 from rce.protocol import schema
 from rce_master.control import Control
 from rce_master.office import Alone, Office, require_leader
+from rce_master.placement import Placement
 from rce_master.requests import Request, ResizeContainer
 from rce_master.state import MasterState
 from rce_master.users import UsersFile
@@ -50,9 +54,10 @@ class AdminApi:
     kept up to date on user changes (None: none); ``office``: whether this master leads."""
 
     def __init__(self, state: MasterState, control: Control, token: str, users: UsersFile | None = None,
-                 office: Office | None = None):
+                 office: Office | None = None, placement: Placement | None = None):
         self.state, self.control, self.token, self.users = state, control, token, users
         self.office = office if office is not None else Alone()
+        self.placement = placement
 
     def add_routes(self, app: web.Application) -> None:
         """Add the admin routes to ``app``."""
@@ -67,6 +72,10 @@ class AdminApi:
             app.router.add_route(method, f"{base}/{route}", self._host_op(op))
         app.router.add_get(base + "/logs/{ntag}", self._host_op("logs"))
         app.router.add_post(base + "/resize", self._resize)
+        if self.placement is not None:
+            app.router.add_get("/api/placement", self._advice)
+            app.router.add_post("/api/placement/{user}/{ctag}", self._pin)
+            app.router.add_post("/api/robots/{user}/{robot}/battery", self._battery)
 
     def _check(self, request: web.Request) -> None:
         auth = request.headers.get("Authorization", "")
@@ -125,6 +134,21 @@ class AdminApi:
             timeout = float(args.get("timeout") or BUS_TIMEOUT) + BUS_TIMEOUT_MARGIN
             return web.json_response(await self.control.host_request(c, op, args, timeout, wait=False))
         return handler
+
+    async def _advice(self, request: web.Request) -> web.Response:
+        self._check(request)
+        return web.json_response(self.placement.advice())
+
+    async def _pin(self, request: web.Request) -> web.Response:
+        d = await self._body(request)
+        c = self.placement.pin(request.match_info["user"], request.match_info["ctag"], d.get("pin"))
+        await self.state.store.flush()
+        return web.json_response({"user": c.user, "ctag": c.ctag, "pinned": c.data.get("pinned")})
+
+    async def _battery(self, request: web.Request) -> web.Response:
+        d = await self._body(request)
+        self.placement.robot_battery(request.match_info["user"], request.match_info["robot"], d.get("percent"))
+        return web.json_response({})
 
     async def _resize(self, request: web.Request) -> web.Response:
         args = await self._body(request)

@@ -10,6 +10,8 @@
     rce-console top [--interval S] [--once]           # per-container CPU, memory, processes, traffic
     rce-console users add NAME --file users.json      # offline: add a hashed record to a --users file
     rce-console leader                                # which master leads (several masters on etcd)
+    rce-console placement                             # per container: where it runs, where it would serve best, why
+    rce-console placement pin USER CTAG cloud|edge|robot|auto    # pin it (auto: the placer decides again)
 
 With several masters (``--master`` repeated, or URLs separated by commas) a request goes to one
 that answers, and a change to the leader (:mod:`rce.tools.admin_client`).
@@ -45,7 +47,8 @@ COLUMNS = {
     "parameters": ["user", "ctag", "name", "value"],
     "interfaces": ["user", "tag", "type", "class", "addr", "connections"],
     "connections": ["user", "tagA", "tagB"],
-    "tasksets": ["tid", "kind", "name", "host", "absent", "robots", "containers", "cpu_load", "mem_load", "sandbox"],
+    "tasksets": ["tid", "kind", "name", "host", "zone", "capacity", "absent", "robots", "containers", "cpu_load",
+                 "mem_load", "sandbox"],
 }
 
 
@@ -161,6 +164,10 @@ def parser() -> argparse.ArgumentParser:
     c.add_argument("--memory", type=float, help="MiB")
     c.add_argument("--pids", type=int, help="the most tasks (processes and threads), pids.max")
     c.add_argument("--size", type=float, help="size class in slots (the original RCE's; recorded only)")
+    pl = sub.add_parser("placement", help="where each container runs, where the placer would put it and why; "
+                                          "pin one")
+    pl.add_argument("action", nargs="?", choices=["pin"], help="pin USER CTAG ZONE")
+    pl.add_argument("pin_args", nargs="*", metavar="USER CTAG ZONE")
     t = sub.add_parser("top", help="per-container resource use, refreshing")
     t.add_argument("--interval", type=float, default=2.0, help="seconds between refreshes")
     t.add_argument("--once", action="store_true", help="print one table and exit")
@@ -207,6 +214,20 @@ def run(args: argparse.Namespace, out: Console) -> None:
             raise RequestError("give at least one of --cpu, --memory, --pids, --size")
         res = client.request("POST", f"/api/containers/{args.user}/{args.ctag}/resize", limits)
         out.print(f"container {args.ctag!r} resized: {json.dumps(res)}")
+    elif args.cmd == "placement":
+        if args.action == "pin":
+            if len(args.pin_args) != 3:
+                raise RequestError("placement pin USER CTAG ZONE (ZONE: cloud, edge, robot or auto)")
+            user, ctag, zone = args.pin_args
+            res = client.request("POST", f"/api/placement/{user}/{ctag}", {"pin": zone})
+            out.print(f"container {user}/{ctag}: " + (f"pinned to {res['pinned']}" if res.get("pinned")
+                                                      else "unpinned; the placer decides"))
+            return
+        rows = client.request("GET", "/api/placement")
+        if args.json:
+            print(json.dumps(rows, indent=1))
+        else:
+            out.print(table("placement", rows, ["user", "ctag", "runs", "best", "move", "pinned", "why"]))
     elif args.cmd == "top":
         if args.once:
             if args.json:

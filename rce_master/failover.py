@@ -168,7 +168,7 @@ class Failover:
                 self._give_up(c, f"{rec.attempts} re-creations failed")
                 return
             try:
-                host = self.state.pick_container_host(c.data, exclude=rec.failed, prefer=rec.prefer)
+                host = self.state.pick_container_host(c.data, c.user, exclude=rec.failed, prefer=rec.prefer)
             except Unavailable as e:
                 if not await self._host_registers(deadline):
                     self._give_up(c, f"no container host could take it within {self.wait:g} s ({e.message})")

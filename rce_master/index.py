@@ -229,7 +229,8 @@ class StateIndex:
             "tasksets": [{"tid": t.tid, "kind": t.kind, "name": t.name, "host": t.host, "absent": t.lost,
                           "robots": t.robots, "containers": t.containers, "cpu_load": t.cpu_load,
                           "mem_load": t.mem_load,
-                          **{k: v for k, v in t.info.items() if k in ("ws_url", "data_addr", "sandbox", "capacity")}}
+                          **{k: v for k, v in t.info.items()
+                             if k in ("ws_url", "data_addr", "sandbox", "capacity", "zone")}}
                          for t in sorted(ts.values(), key=attrgetter("tid"))],
             "robots": [{"user": r.user, "robot": r.robot, "endpoint": ts[r.tid].name if r.tid in ts else "?",
                         "since": r.since, "relay": r.relay, "relay_since": r.relay_since or None}

@@ -14,6 +14,7 @@ import os
 from dataclasses import dataclass, field
 from typing import Any
 
+from rce.protocol.zones import Zone, parse_zone
 from rce_master.store import Key
 
 SCRYPT = {"n": 2**14, "r": 8, "p": 1}     # RFC 7914 cost: ~50 ms of CPU per check, by design
@@ -96,6 +97,11 @@ class TaskSet(_Record):
     mem_load: float = 0.0     # MiB requested
     containers: int = 0
     DERIVED = ("robots", "cpu_load", "mem_load", "containers")
+
+    @property
+    def zone(self) -> Zone:
+        """Where this container host stands (:mod:`rce.protocol.zones`; ``cloud`` if it said nothing)."""
+        return parse_zone(self.info.get("zone") or "cloud", self.info.get("zone_user"))
 
     @property
     def store_key(self) -> Key:

@@ -22,6 +22,7 @@ from dataclasses import dataclass, field
 from typing import Any
 
 from rce.plumbing.errors import RequestError
+from rce.protocol.zones import parse_zone
 from rce_master.model import ContainerRec, NodeRec, Robot, TaskSet
 from rce_master.state import MasterState, Pairs
 
@@ -104,6 +105,12 @@ def register(state: MasterState, kind: str, name: str, host: str, args: dict) ->
     report, a tid of another kind, or the tid of a task set that is registered now."""
     report = Report.parse(args)
     info = {k: v for k, v in args.items() if k not in REPORT_FIELDS}
+    if kind == "container":
+        zone = parse_zone(info.get("zone") or "cloud", info.get("zone_user"))
+        info["zone"] = str(zone)
+        info.pop("zone_user", None)
+        if zone.user:
+            info["zone_user"] = zone.user
     with state.batch():
         old = state.tasksets.get(report.tid) if report.tid is not None else None
         if old is not None and old.kind != kind:

@@ -47,6 +47,7 @@ from rce_master.failover import Failover
 from rce_master.login_guard import LoginGuard, PasswordCheck
 from rce_master.model import Robot, TaskSet
 from rce_master.office import RETRY_AFTER_NO_LEADER, Alone, Office, require_leader
+from rce_master.placement import Placement
 from rce_master.requests import Request, handle
 from rce_master.state import MasterState, Quotas, TaskSetAbsent
 from rce_master.store import Store
@@ -76,6 +77,29 @@ class _RelayCollector:
             if b.relay:
                 g.add_metric([b.user, b.robot, b.relay], 1.0)
         yield g
+
+
+class _HostCollector:
+    """Per container host, labelled by ``host`` (its name) and ``zone``: ``rce_master_host_capacity_cpu``
+    (cores), ``rce_master_host_load_cpu`` (cores its containers requested) and
+    ``rce_master_host_containers``."""
+
+    def __init__(self, state: MasterState):
+        self.state = state
+
+    def collect(self):
+        fams = [GaugeMetricFamily("rce_master_host_capacity_cpu", "A container host's cores", labels=["host", "zone"]),
+                GaugeMetricFamily("rce_master_host_load_cpu", "Cores the containers on a host requested",
+                                  labels=["host", "zone"]),
+                GaugeMetricFamily("rce_master_host_containers", "Containers on a host", labels=["host", "zone"])]
+        for t in self.state.tasksets.values():
+            if t.kind != "container" or t.lost:
+                continue
+            labels = [t.name, str(t.zone)]
+            fams[0].add_metric(labels, float((t.info.get("capacity") or {}).get("cpu") or 0))
+            fams[1].add_metric(labels, t.cpu_load)
+            fams[2].add_metric(labels, t.containers)
+        yield from fams
 
 
 class MasterMetrics:
@@ -112,8 +136,12 @@ class MasterMetrics:
         Gauge("rce_master_robots_relaying", "Robots that carry the link of at least one other robot",
               registry=r).set_function(lambda: len({(b.user, b.relay) for b in state.robots.values() if b.relay}))
         r.register(_RelayCollector(state))
+        r.register(_HostCollector(state))
         Gauge("rce_master_store_pending", "Changes of the state not yet written to the store (etcd)",
               registry=r).set_function(lambda: getattr(state.store, "pending", 0))
+
+
+PLACEMENT_STATS_S = 5.0    # s the placer waits for a container's counters
 
 
 class Master:
@@ -140,7 +168,9 @@ class Master:
         self.gate = Gate(cluster_key, "rce-master control",
                          on_refused=lambda reason: self.metrics.control_refused.labels(reason).inc())
         self.users = UsersFile(users_file) if users_file else None
-        self.admin = AdminApi(self.state, self.control, admin_token, self.users, self.office)
+        self.placement = Placement(self.state, lambda c: self.control.host_request(c, "stats", {}, PLACEMENT_STATS_S,
+                                                                                   wait=False))
+        self.admin = AdminApi(self.state, self.control, admin_token, self.users, self.office, self.placement)
         self.robot_locks: dict[tuple[str, str], asyncio.Lock] = defaultdict(asyncio.Lock)
         self.tasks = Tasks("rce-master")
         self.failover = Failover(self.state, self.control, self.tasks)
@@ -191,6 +221,7 @@ class Master:
         log.info("master up", http_port=self.http_port, control_port=self.control_port, bind=bind,
                  leading=self.office.leading, restored_tasksets=len(self.restored),
                  containers=len(self.state.containers))
+        self.tasks.spawn(self.placement.run(asyncio.Event()), name="placement")
         if self.office.leading:
             self.failover.resume()
         if self.office.leading and self.restored:
@@ -256,6 +287,7 @@ class Master:
                 "auth": self._auth, "robot_connected": lambda args, tid=ts.tid: self._robot_connected(tid, args),
                 "robot_disconnected": lambda args, tid=ts.tid: self._robot_disconnected(tid, args),
                 "robot_relay": lambda args, tid=ts.tid: self._robot_relay(tid, args),
+                "robot_link": self._robot_link,
                 "robot_request": self._robot_request, "container_bus": self._container_bus,
                 "container_param": self._container_param})
         else:
@@ -400,6 +432,10 @@ class Master:
         log.warning("container lost with its environment", tid=tid, cid=args["cid"], reason=reason)
         await self.failover.environment_lost(tid, args["cid"], reason)
         await self.state.store.flush()
+
+    async def _robot_link(self, args: dict) -> None:
+        """A robot endpoint's measure of a robot's link (:mod:`rce_robot.link_report`), for the placer."""
+        self.placement.robot_link(str(args["user"]), str(args["robot"]), float(args["rtt_ms"]), float(args["rate"]))
 
     async def _node_status(self, args: dict) -> None:
         detail = {k: args[k] for k in ("code", "signal", "reason") if args.get(k) is not None}

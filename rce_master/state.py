@@ -257,30 +257,42 @@ class MasterState(StateIndex):
             raise TaskSetAbsent("no robot endpoint is available; start rce-robot")
         return min(cands, key=lambda t: (t.robots, t.tid))
 
-    def pick_container_host(self, data: dict, exclude: Collection[int] = (), prefer: int | None = None) -> TaskSet:
-        """The container host with the lowest load after adding this container's cpu/memory
-        request (relative to its capacity), leaving out the tids in ``exclude``; host ``prefer``
-        whenever it fits (an environment that died is re-created on its own host). Raises
-        :class:`Unavailable` if none fits."""
+    def pick_container_host(self, data: dict, user: str = "", exclude: Collection[int] = (),
+                            prefer: int | None = None) -> TaskSet:
+        """The container host for a container of ``user`` with containerData ``data``: among the
+        hosts its placement allows (:func:`placement_tiers`, tier by tier), the one with the lowest
+        load after adding this container's cpu/memory request (relative to its capacity), leaving
+        out the tids in ``exclude``; host ``prefer`` whenever it fits (an environment that died is
+        re-created on its own host). A ``robot:`` host takes only its user's containers that serve
+        its robot. Raises :class:`Unavailable` if none fits, naming the zones it looked in."""
         cpu = float(data.get("cpu") or 0)
         mem = float(data.get("memory") or 0)
-        best, best_key = None, None
-        for t in self.tasksets.values():
-            if t.kind != "container" or t.lost or t.tid in exclude:
-                continue
-            cap = t.info.get("capacity") or {}
-            cap_cpu, cap_mem = float(cap.get("cpu") or 0), float(cap.get("memory") or 0)
-            if cap_mem and t.mem_load + mem > cap_mem:
-                continue
-            load = max((t.cpu_load + cpu) / cap_cpu if cap_cpu else 0.0,
-                       (t.mem_load + mem) / cap_mem if cap_mem else 0.0)
-            key = (t.tid != prefer, load, t.containers, t.tid)
-            if best_key is None or key < best_key:
-                best, best_key = t, key
-        if best is None:
-            raise Unavailable("no container host can take this container "
-                              f"(cpu {cpu:g} cores, memory {mem:g} MiB); start rce-container")
-        return best
+        tiers = placement_tiers(data)
+        for kinds in tiers:
+            best, best_key = None, None
+            for t in self.tasksets.values():
+                if t.kind != "container" or t.lost or t.tid in exclude:
+                    continue
+                zone = t.zone
+                if zone.kind not in kinds or not zone.serves(user, data.get("robot")):
+                    continue
+                cap = t.info.get("capacity") or {}
+                cap_cpu, cap_mem = float(cap.get("cpu") or 0), float(cap.get("memory") or 0)
+                if cap_mem and t.mem_load + mem > cap_mem:
+                    continue
+                load = max((t.cpu_load + cpu) / cap_cpu if cap_cpu else 0.0,
+                           (t.mem_load + mem) / cap_mem if cap_mem else 0.0)
+                key = (t.tid != prefer, load, t.containers, t.tid)
+                if best_key is None or key < best_key:
+                    best, best_key = t, key
+            if best is not None:
+                return best
+        robot = data.get("robot")
+        where = "" if tiers == [("cloud", "edge")] else " in zone " + " or ".join(
+            "/".join(f"robot:{robot}" if k == "robot" else k for k in kinds) for kinds in tiers)
+        raise Unavailable(f"no container host{where} can take this container "
+                          f"(cpu {cpu:g} cores, memory {mem:g} MiB); start rce-container"
+                          + (f" --zone robot:{robot} --user {user} on the robot" if tiers == [("robot",)] else ""))
 
     # -- robots ------------------------------------------------------------------------------------------
     @_atomic
@@ -346,7 +358,7 @@ class MasterState(StateIndex):
             raise RequestError(f"container tag {ctag!r} is already used as a robot ID")
         self.quotas.check(user, "containers", self.containers)
         data = dict(data or {})
-        host = self.pick_container_host(data)
+        host = self.pick_container_host(data, user)
         c = ContainerRec(self._next_id("cid"), user, ctag, owner, host.tid, data.get("group") or None, data)
         self._write(c.store_key, c.to_record())
         return self.containers[(user, ctag)], host
@@ -422,6 +434,11 @@ class MasterState(StateIndex):
         pairs = self.forget_interfaces(self.interfaces_of(container.user, container.ctag))
         self._delete(container)
         return pairs
+
+    @_atomic
+    def set_container_data(self, container: ContainerRec, data: dict) -> None:
+        """Replace a container's containerData record (a user's placement pin)."""
+        self._put(container, data=dict(data))
 
     @_atomic
     def resize(self, user: str, ctag: str, limits: dict) -> ContainerRec:
@@ -588,6 +605,25 @@ class MasterState(StateIndex):
         conn = ConnectionRec(a.user, min(a.iid, b.iid), max(a.iid, b.iid))
         if conn in self.connections:
             self._delete(conn)
+
+
+def placement_tiers(data: dict) -> list[tuple[str, ...]]:
+    """The zone kinds a container with containerData ``data`` may be placed in, tier by tier
+    (the first tier with a host that fits wins). Without any placement key: any shared host
+    (cloud or edge) as the original engine did; ``cloud``, ``edge``, ``robot``: that zone only
+    (``pinned``, a user's pin, overrides ``placement``); ``auto`` before the placer has measured
+    anything: the cloud, then the edge, then the robot's own computer."""
+    placement = data.get("pinned") or data.get("placement")
+    if placement is None and any(k in data for k in NEED_KEYS):
+        placement = "auto"
+    if placement is None:
+        return [("cloud", "edge")]
+    if placement == "auto":
+        return [("cloud",), ("edge",), ("robot",)]
+    return [(placement,)]
+
+
+NEED_KEYS = ("deadline_ms", "robot", "consumes")
 
 
 def _check_user_name(name: Any) -> None:

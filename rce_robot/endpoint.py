@@ -41,7 +41,8 @@ from rce_robot.parse_pool import ParsePool
 from rce_robot.rosbridge import SESSION_COUNTERS as ROSBRIDGE_COUNTERS
 from rce_robot.rosbridge import RosbridgeServer
 from rce_robot.rosbridge_session import RosbridgeSession
-from rce_robot import ws_link
+from rce_robot import link_report, ws_link
+from rce_robot.link_report import LinkReports
 
 log = get_logger("rce.robot")
 PING_INTERVAL = 20.0     # s between websocket pings to a robot
@@ -244,6 +245,8 @@ class RobotEndpoint:
         self.rosbridge: RosbridgeServer | None = None
         self.stopped = asyncio.Event()
         self.relays: dict[tuple[str, str], str] = {}      # (user, robot) -> the relay its link goes through now
+        self.link_reports = LinkReports(self._tell_link)
+        self._link_task: asyncio.Task | None = None
 
     async def start(self, masters: list[Address], bind: str, port: int, data_port: int,
                     metrics_port: int | None = None, rosbridge_port: int | None = None) -> None:
@@ -279,7 +282,18 @@ class RobotEndpoint:
             site = web.TCPSite(self._http, bind, metrics_port, ssl_context=self.ssl_context)
             await site.start()
             self.metrics_port = site._server.sockets[0].getsockname()[1]
+        self._link_task = asyncio.create_task(self._watch_links(), name="robot-links")
         log.info("robot endpoint up", ws_port=self.ws_port, data_addr=self.plane.addr)
+
+    async def _watch_links(self) -> None:
+        """Tell the master each robot's measured link (:mod:`rce_robot.link_report`)."""
+        loop = asyncio.get_running_loop()
+        while True:
+            await asyncio.sleep(link_report.EVERY)
+            self.link_reports.sample(loop.time(), [(u, r, ns.ws) for (u, r), ns in self.namespaces.items()])
+
+    def _tell_link(self, user: str, robot: str, rtt_ms: float, rate: float) -> None:
+        self.master.notify("robot_link", user=user, robot=robot, rtt_ms=round(rtt_ms, 3), rate=rate)
 
     def _listen_socket(self, bind: str, port: int) -> socket.socket:
         """(``mptcp``) The websocket server's listening socket: MPTCP where the kernel offers it, else TCP."""
@@ -291,6 +305,8 @@ class RobotEndpoint:
         return sock
 
     async def stop(self) -> None:
+        if self._link_task is not None:
+            self._link_task.cancel()
         if self.master and not self.master.available:
             await self.master.close()         # sessions that end now need not wait for an absent master
         # resumable sessions end here, detached ones too (their robots see 1008: nothing to resume); the

@@ -106,6 +106,15 @@ MsgID = Annotated[Union[str, int], _rule(lambda v: _is_str(v) or (isinstance(v, 
                                           "must be a string or an integer")]
 Features = Annotated[list[str], _rule(lambda v: isinstance(v, list) and all(map(_is_str, v)),
                                       "must be a list of strings")]
+#: Where a container may run (:mod:`rce_master.placer`): ``auto`` (the placer decides), ``cloud``,
+#: ``edge`` or ``robot`` (the computer of the robot it serves).
+PLACEMENTS = ("auto", "cloud", "edge", "robot")
+Placement = Annotated[str, _rule(lambda v: v in PLACEMENTS, "must be one of 'auto', 'cloud', 'edge', 'robot'")]
+#: A time in ms, greater than 0.
+Millis = Annotated[float, _rule(lambda v: _is_number(v) and v > 0, "must be a number of ms greater than 0")]
+#: Interface tags of the robot a container serves.
+Tags = Annotated[list[str], _rule(lambda v: isinstance(v, list) and all(_is_str(t) and t for t in v),
+                                  "must be a list of non-empty strings")]
 #: An interface type (prefix x suffix, DESIGN section 3.5; RCE alpha names accepted), parsed into its
 #: :class:`~rce.protocol.interface_type.InterfaceType` (a ``str``: its canonical name on the wire).
 IType = Annotated[InterfaceType, PlainValidator(_interface_type)]
@@ -129,7 +138,14 @@ class Component(BaseModel):
 class ContainerData(Component):
     """A container's placement and limits (CC ``containerData``): ``cpu`` cores, ``memory`` MiB and
     ``pids`` tasks are limits (absent or 0: none); ``size`` is the original RCE's container size
-    class (its client always sends ``size: 1``) and ``bandwidth`` bytes/s: both recorded only."""
+    class (its client always sends ``size: 1``) and ``bandwidth`` bytes/s: both recorded only.
+
+    What it needs, for the placer (:mod:`rce_master.placer`; every key optional, a container that
+    gives none of them is placed as before, on the least loaded cloud or edge host):
+    ``placement`` (``auto``, the default once any of these is given; ``cloud``, ``edge``,
+    ``robot``), ``deadline_ms`` (the latency its results are due within, input to output),
+    ``robot`` (the robotID it serves; needed for ``robot``) and ``consumes`` (the interface tags of
+    that robot it reads, whose measured bytes a placement off the robot carries over the link)."""
     group: Text | None = None
     groupIp: Text | None = None
     size: Limit | None = None
@@ -138,6 +154,16 @@ class ContainerData(Component):
     pids: Limit | None = None
     bandwidth: Limit | None = None
     specialFeatures: Features | None = None
+    placement: Placement | None = None
+    deadline_ms: Millis | None = None
+    robot: Tag | None = None
+    consumes: Tags | None = None
+
+    @model_validator(mode="after")
+    def _robot_named(self):
+        if self.placement == "robot" and not self.robot:
+            raise PydanticCustomError("rce", "placement 'robot' needs 'robot': the robotID whose computer runs it")
+        return self
 
 
 class ContainerComponent(ContainerData):

@@ -40,6 +40,7 @@ KERNEL_PACING_ROOM = 1.1       # the kernel paces a bulk socket this much above 
 SAMPLE_EVERY = 0.005           # s: TCP_INFO is read at most this often per bulk link
 # struct tcp_info (linux/tcp.h): byte offsets of the fields read, and the length that holds them all
 _TCPI_RTT, _TCPI_BYTES_ACKED, _TCPI_NOTSENT, _TCPI_MIN_RTT, _TCPI_LEN = 68, 120, 144, 148, 152
+_TCPI_DELIVERY_RATE, _TCPI_RATE_LEN = 160, 168
 
 
 def mark(sock: socket.socket | None, lane: Lane) -> bool:
@@ -74,22 +75,40 @@ def marks(sock: socket.socket) -> int:
     return sock.getsockopt(socket.IPPROTO_IP, socket.IP_TOS)
 
 
-def tcp_sample(sock: socket.socket, waited: float, now: float) -> PathSample | None:
-    """``sock``'s Linux ``TCP_INFO`` at ``now`` (s, monotonic) as a :class:`PathSample` (``waited``: s the
-    pacer held the sender back since the last one); None where the kernel gives none (not Linux, a kernel
-    before 4.6, a closed socket)."""
+def _tcp_info(sock: socket.socket) -> bytes | None:
+    """``sock``'s Linux ``TCP_INFO``, or None where the kernel gives none (not Linux, a kernel before
+    4.6, a closed socket) or has measured no round trip yet."""
     try:
         info = sock.getsockopt(socket.IPPROTO_TCP, socket.TCP_INFO, 256)
     except (OSError, AttributeError):
         return None
-    if len(info) < _TCPI_LEN:
+    if len(info) < _TCPI_LEN or struct.unpack_from("I", info, _TCPI_MIN_RTT)[0] in (0, 0xFFFFFFFF):
+        return None
+    return info
+
+
+def tcp_sample(sock: socket.socket, waited: float, now: float) -> PathSample | None:
+    """``sock``'s Linux ``TCP_INFO`` at ``now`` (s, monotonic) as a :class:`PathSample` (``waited``: s the
+    pacer held the sender back since the last one); None where the kernel gives none (:func:`_tcp_info`)."""
+    info = _tcp_info(sock)
+    if info is None:
         return None
     (rtt,) = struct.unpack_from("I", info, _TCPI_RTT)
     (acked,) = struct.unpack_from("Q", info, _TCPI_BYTES_ACKED)
     notsent, min_rtt = struct.unpack_from("II", info, _TCPI_NOTSENT)
-    if min_rtt in (0, 0xFFFFFFFF):          # no round trip measured yet
-        return None
     return PathSample(now, acked, rtt / 1e6, min_rtt / 1e6, notsent, waited)
+
+
+def link_info(sock: socket.socket) -> tuple[float, float] | None:
+    """``sock``'s smoothed round trip (s) and last delivery rate (bytes/s, 0 if the kernel measured
+    none yet) from Linux ``TCP_INFO`` (``tcpi_rtt``, ``tcpi_delivery_rate``, Linux >= 4.9); None where
+    the kernel gives none (:func:`_tcp_info`)."""
+    info = _tcp_info(sock)
+    if info is None:
+        return None
+    (rtt,) = struct.unpack_from("I", info, _TCPI_RTT)
+    rate = struct.unpack_from("Q", info, _TCPI_DELIVERY_RATE)[0] if len(info) >= _TCPI_RATE_LEN else 0
+    return rtt / 1e6, float(rate)
 
 
 class PacedLink:

@@ -73,7 +73,7 @@ def test_register_without_tid_is_a_new_task_set_as_before():
     s = restarted(busy_state())
     out = register(s, "container", "ch9", "h", {"capacity": {"cpu": 2}})
     assert out.answer() == {"tid": 4} and not out.resumed
-    assert s.tasksets[4].info == {"capacity": {"cpu": 2}} and s.tasksets[2].lost
+    assert s.tasksets[4].info == {"capacity": {"cpu": 2}, "zone": "cloud"} and s.tasksets[2].lost
 
 
 @pytest.mark.parametrize("args, error", [

@@ -1,0 +1,199 @@
+"""The placer at work in the master: its measured inputs, its advice and a user's pin.
+
+Inputs, all measured (:mod:`rce_master.placer` is the model):
+
+- hosts: each container host's zone and cores (registered), and the cores its containers asked for;
+- links: each robot's round trip and delivery rate, as its robot endpoint's kernel measures them on
+  the robot's websocket (``robot_link``, :mod:`rce_robot.link_report`); a shared zone's option of a
+  robot's container uses that robot's link;
+- containers: every :data:`POLL` s the host's counters of each container that asked for a placement
+  (CC ``containerData``): its CPU use, and over its interfaces the messages it sends (its results)
+  and the bytes in and out; the work per result is CPU seconds over results;
+- batteries: a robot's charge (per cent) reported to ``POST /api/robots/{user}/{robot}/battery``
+  (e.g. by the fleet from ``sensor_msgs/BatteryState``); below ``battery_low`` per cent, saving the
+  robot's energy wins.
+
+Every change of the placer's word on a container is logged with its inputs (``placement``). The
+admin API's ``GET /api/placement`` gives, per container, where it runs, where the placer would put
+it and why; ``POST /api/placement/{user}/{ctag}`` ``{"pin": "cloud"|"edge"|"robot"|"auto"}`` pins it
+(``auto`` unpins), and a new or re-created container is placed in its pinned zone.
+"""
+from __future__ import annotations
+
+import asyncio
+import contextlib
+import time
+from dataclasses import dataclass
+
+from rce.plumbing.errors import RCEError, RequestError
+from rce.plumbing.log import get_logger
+from rce.protocol.schema import PLACEMENTS
+from rce_master.model import ContainerRec
+from rce_master.placer import Choice, ContainerView, HostView, LinkView, Placer
+from rce_master.state import NEED_KEYS, MasterState
+
+__all__ = ["BATTERY_LOW", "POLL", "Placement"]
+
+log = get_logger("rce.master.placement")
+
+POLL = 1.0            # s between looks at the containers' counters
+BATTERY_LOW = 20.0    # per cent
+
+
+@dataclass
+class _Use:
+    """A container's counters at ``t`` (monotonic s), and the rates derived from the last two looks."""
+    t: float
+    cpu_s: float
+    msgs_out: int
+    bytes_in: int
+    bytes_out: int
+    work_ms: float = 0.0
+    rate_hz: float = 0.0
+    in_bytes: float = 0.0
+    out_bytes: float = 0.0
+
+
+def asks_placement(data: dict) -> bool:
+    """Whether a container's containerData asks the placer anything (a placement key or a pin)."""
+    return any(k in data for k in ("placement", "pinned", *NEED_KEYS))
+
+
+class Placement:
+    """The placer's inputs and advice for the master's ``state``; ``host_stats(container)`` awaits a
+    container's counters from its host (the ``stats`` op)."""
+
+    def __init__(self, state: MasterState, host_stats, placer: Placer | None = None,
+                 battery_low: float = BATTERY_LOW):
+        self.state, self.host_stats = state, host_stats
+        self.placer = placer or Placer()
+        self.battery_low = battery_low
+        self.links: dict[tuple[str, str], LinkView] = {}
+        self.batteries: dict[tuple[str, str], float] = {}
+        self.use: dict[tuple[str, str], _Use] = {}
+        self.last_word: dict[tuple[str, str], tuple] = {}
+        self.decisions = 0
+
+    # -- inputs ------------------------------------------------------------------------------------
+    def robot_link(self, user: str, robot: str, rtt_ms: float, rate: float) -> None:
+        """A robot's measured link: round trip ``rtt_ms``, delivery rate ``rate`` bytes/s (0: not
+        measured; the link then counts by its round trip alone)."""
+        self.links[(user, robot)] = LinkView(float(rtt_ms), float(rate) if rate and rate > 0 else float("inf"))
+
+    def robot_battery(self, user: str, robot: str, percent: float) -> None:
+        """A robot's charge, per cent (0-100). Raises :class:`RequestError` for another value."""
+        if not isinstance(percent, (int, float)) or isinstance(percent, bool) or not 0 <= percent <= 100:
+            raise RequestError(f"battery of robot {robot!r}: 'percent' must be a number from 0 to 100, got {percent!r}")
+        self.batteries[(user, robot)] = float(percent)
+
+    def pin(self, user: str, ctag: str, zone: str) -> ContainerRec:
+        """Pin container ``user/ctag`` to zone kind ``zone`` (``auto``: unpin). Raises
+        :class:`RequestError` for an unknown zone, :class:`~rce.plumbing.errors.NotFound` for an
+        unknown container."""
+        if zone not in PLACEMENTS:
+            raise RequestError(f"pin: zone must be one of {', '.join(PLACEMENTS)}, got {zone!r}")
+        c = self.state.container(user, ctag)
+        if zone == "robot" and not c.data.get("robot"):
+            raise RequestError(f"pin: container {ctag!r} names no robot it serves (containerData 'robot')")
+        data = {k: v for k, v in c.data.items() if k != "pinned"}
+        if zone != "auto":
+            data["pinned"] = zone
+        self.state.set_container_data(c, data)
+        log.info("placement pinned", user=user, ctag=ctag, zone=zone)
+        return self.state.container(user, ctag)
+
+    async def poll(self) -> None:
+        """Read the counters of every running container that asks for a placement, once."""
+        for c in list(self.state.containers.values()):
+            if c.state != "running" or not asks_placement(c.data):
+                continue
+            try:
+                s = await self.host_stats(c)
+            except RCEError:
+                continue
+            self._count(c, s, time.monotonic())
+
+    def _count(self, c: ContainerRec, s: dict, now: float) -> None:
+        cpu_s = float(s.get("cpu_seconds") or 0.0)
+        new = _Use(now, cpu_s, int(s.get("msgs_out") or 0), int(s.get("bytes_in") or 0), int(s.get("bytes_out") or 0))
+        old = self.use.get((c.user, c.ctag))
+        if old is not None and now > old.t:
+            dt = now - old.t
+            new.rate_hz = max(0, new.msgs_out - old.msgs_out) / dt
+            new.in_bytes = max(0, new.bytes_in - old.bytes_in) / dt
+            new.out_bytes = max(0, new.bytes_out - old.bytes_out) / dt
+            busy = max(0.0, cpu_s - old.cpu_s) / dt                 # cores
+            new.work_ms = 1e3 * busy / new.rate_hz if new.rate_hz > 0 else old.work_ms
+        self.use[(c.user, c.ctag)] = new
+
+    # -- the placer's word --------------------------------------------------------------------------
+    def hosts(self) -> list[HostView]:
+        return [HostView(t.tid, t.name, t.zone, float((t.info.get("capacity") or {}).get("cpu") or 0), t.cpu_load)
+                for t in self.state.tasksets.values() if t.kind == "container" and not t.lost]
+
+    def word(self, c: ContainerRec, now: float | None = None) -> Choice | None:
+        """The placer's choice for ``c`` (None: it asked for no placement); logs a change."""
+        if not asks_placement(c.data):
+            return None
+        now = time.monotonic() if now is None else now
+        d = c.data
+        robot = d.get("robot")
+        u = self.use.get((c.user, c.ctag))
+        view = ContainerView(c.user, c.ctag, robot, d.get("deadline_ms"), u.work_ms if u else 0.0,
+                             u.rate_hz if u else 0.0, u.in_bytes if u else 0.0, u.out_bytes if u else 0.0,
+                             float(d.get("cpu") or 0))
+        link = self.links.get((c.user, robot)) if robot else None
+        links = {"cloud": link, "edge": link} if link is not None else ({} if robot else
+                                                                         {"cloud": LinkView(0, float("inf")),
+                                                                          "edge": LinkView(0, float("inf"))})
+        low = robot is not None and self.batteries.get((c.user, robot), 100.0) < self.battery_low
+        ch = self.placer.decide(now, view, self.hosts(), links, c.tid, low)
+        pinned = d.get("pinned") or (d.get("placement") if d.get("placement") not in (None, "auto") else None)
+        if pinned:
+            how = "user pin" if d.get("pinned") else "its placement"
+            ch = Choice(ch.target, ch.current, False, f"pinned to {pinned} ({how}); the placer would say: {ch.why}",
+                        ch.options)
+        key = (c.user, c.ctag)
+        mark = (ch.target.tid if ch.target else None, ch.move, bool(pinned))
+        if self.last_word.get(key) != mark:
+            self.last_word[key] = mark
+            self.decisions += 1
+            log.info("placement", user=c.user, ctag=c.ctag, runs=ch.current.zone if ch.current else None,
+                     best=ch.target.zone if ch.target else None, move=ch.move, why=ch.why,
+                     link_rtt_ms=link.rtt_ms if link else None, link_rate=link.rate if link else None,
+                     work_ms=round(view.work_ms, 2), rate_hz=round(view.rate_hz, 2), in_bytes=round(view.in_bytes),
+                     battery=self.batteries.get((c.user, robot)) if robot else None)
+        return ch
+
+    def advice(self) -> list[dict]:
+        """Per container: where it runs, where the placer would put it and why (``GET /api/placement``)."""
+        ts = self.state.tasksets
+        rows = []
+        for c in sorted(self.state.containers.values(), key=lambda c: (c.user, c.ctag)):
+            here = ts.get(c.tid)
+            runs = f"{str(here.zone)} ({here.name})" if here is not None else "(lost)"
+            ch = self.word(c)
+            if ch is None:
+                rows.append({"user": c.user, "ctag": c.ctag, "runs": runs, "best": "-", "move": False,
+                             "pinned": None, "why": "asks no placement: on the least loaded shared host"})
+                continue
+            best = f"{ch.target.zone} ({ch.target.host})" if ch.target else "-"
+            rows.append({"user": c.user, "ctag": c.ctag, "runs": runs, "best": best, "move": ch.move,
+                         "pinned": c.data.get("pinned"), "why": ch.why, **ch.to_json()})
+        return rows
+
+    async def run(self, stop: asyncio.Event) -> None:
+        """Poll the counters and re-decide every :data:`POLL` s until ``stop`` is set."""
+        while not stop.is_set():
+            await self.poll()
+            for c in list(self.state.containers.values()):
+                self.word(c)
+            with contextlib.suppress(TimeoutError):
+                async with asyncio.timeout(POLL):
+                    await stop.wait()
+
+    def forget(self, user: str, ctag: str) -> None:
+        """Drop what is kept of a container that is gone."""
+        self.use.pop((user, ctag), None)
+        self.last_word.pop((user, ctag), None)
+        self.placer.forget(user, ctag)

@@ -1,0 +1,113 @@
+"""The placer's model and its choices (rce_master.placer), on the inputs of the placement script:
+a node with a 100 ms deadline that reads a 10 Hz, 10 kB sensor stream from its robot and burns
+20 core-ms per result, a cloud host with free cores and a robot whose computer has 0.3 of a core."""
+from __future__ import annotations
+
+import pytest
+
+from rce.plumbing.errors import RequestError
+from rce.protocol.zones import Zone, parse_zone
+from rce_master.placer import ContainerView, EnergyModel, HostView, LinkView, Placer, choose, options
+
+CLOUD = HostView(1, "dc1", Zone("cloud"), cpu=8, load=1)
+ROBOT = HostView(2, "r1-computer", Zone("robot", "r1", "alice"), cpu=0.3)
+OTHER = HostView(3, "r2-computer", Zone("robot", "r2", "bob"), cpu=4)
+NODE = ContainerView("alice", "costmap", "r1", deadline_ms=100, work_ms=20, rate_hz=10, in_bytes=100_000,
+                     out_bytes=2_000)
+GOOD = {"cloud": LinkView(rtt_ms=5, rate=10e6)}
+BAD = {"cloud": LinkView(rtt_ms=100, rate=125_000)}       # 1 Mbit/s, 50 ms each way
+
+
+def by_zone(opts):
+    return {o.zone: o for o in opts}
+
+
+def test_the_model_on_a_good_and_a_bad_link():
+    o = by_zone(options(NODE, [CLOUD, ROBOT, OTHER], GOOD))
+    assert set(o) == {"cloud", "robot:r1"}, "another user's robot computer is never an option"
+    assert o["cloud"].compute_ms == pytest.approx(20)
+    assert o["cloud"].link_ms == pytest.approx(5 + 1e3 * 10_200 / 10e6)
+    assert o["robot:r1"].compute_ms == pytest.approx(20 / 0.3)
+    assert o["robot:r1"].link_ms == 0 and o["cloud"].meets and o["robot:r1"].meets
+    assert o["robot:r1"].robot_w == pytest.approx(EnergyModel().cpu_w * 0.2)          # 0.2 cores busy
+    assert o["cloud"].robot_w == pytest.approx(EnergyModel().radio_j_per_byte * 102_000)
+    bad = by_zone(options(NODE, [CLOUD, ROBOT], BAD))
+    assert not bad["cloud"].meets and bad["cloud"].latency_ms > 100
+
+
+def test_a_link_that_cannot_carry_the_stream_misses_whatever_its_round_trip():
+    thin = {"cloud": LinkView(rtt_ms=1, rate=50_000)}
+    assert not by_zone(options(NODE, [CLOUD], thin))["cloud"].meets
+
+
+def test_choices_most_margin_then_the_deadline_then_energy_on_a_low_battery():
+    good = options(NODE, [CLOUD, ROBOT], GOOD)
+    ch = choose(good, current_tid=ROBOT.tid, deadline_ms=100)
+    assert ch.target.tid == CLOUD.tid and ch.move and "more margin" in ch.why
+    ch = choose(options(NODE, [CLOUD, ROBOT], BAD), current_tid=CLOUD.tid, deadline_ms=100)
+    assert ch.target.tid == ROBOT.tid and ch.move and "misses its deadline" in ch.why
+    heavy_radio = ContainerView("alice", "c", "r1", 100, work_ms=2, rate_hz=10, in_bytes=2_000_000)
+    fat = {"cloud": LinkView(5, 100e6)}
+    ch = choose(options(heavy_radio, [CLOUD, ROBOT], fat), current_tid=CLOUD.tid, battery_low=True,
+                deadline_ms=100)
+    assert ch.target.tid == ROBOT.tid and ch.move and "battery low" in ch.why
+    ch = choose(options(heavy_radio, [CLOUD, ROBOT], fat), current_tid=CLOUD.tid, battery_low=False,
+                deadline_ms=100)
+    assert not ch.move and "hysteresis" in ch.why, "2 ms more margin on the robot is within the hysteresis"
+
+
+def test_no_host_meets_it_then_it_stays():
+    slow = ContainerView("alice", "c", "r1", 10, work_ms=50, rate_hz=10)
+    ch = choose(options(slow, [CLOUD, ROBOT], GOOD), current_tid=CLOUD.tid, deadline_ms=10)
+    assert not ch.move and "no host meets" in ch.why
+
+
+def test_hysteresis_in_time_settle_then_dwell():
+    p = Placer(settle_s=1.0, dwell_s=10.0)
+    ch = p.decide(0.0, NODE, [CLOUD, ROBOT], BAD, CLOUD.tid)
+    assert ch.target.tid == ROBOT.tid and not ch.move and "moves in 1.0 s" in ch.why
+    assert not p.decide(0.5, NODE, [CLOUD, ROBOT], BAD, CLOUD.tid).move
+    assert p.decide(1.0, NODE, [CLOUD, ROBOT], BAD, CLOUD.tid).move
+    p.moved(1.0, "alice", "costmap")
+    # the link comes back at once: better in the cloud again, but not twice within the dwell
+    for t in (1.5, 5.0, 10.9):
+        ch = p.decide(t, NODE, [CLOUD, ROBOT], GOOD, ROBOT.tid)
+        assert ch.target.tid == CLOUD.tid and not ch.move
+    assert p.decide(11.0, NODE, [CLOUD, ROBOT], GOOD, ROBOT.tid).move
+    # a better host that does not hold for the settle time never moves it
+    q = Placer(settle_s=1.0)
+    assert not q.decide(0.0, NODE, [CLOUD, ROBOT], BAD, CLOUD.tid).move
+    assert not q.decide(0.6, NODE, [CLOUD, ROBOT], GOOD, CLOUD.tid).move
+    assert not q.decide(1.2, NODE, [CLOUD, ROBOT], BAD, CLOUD.tid).move, "settling starts again"
+
+
+@pytest.mark.parametrize("text,user,err", [
+    ("moon", None, "must be 'cloud', 'edge' or 'robot:ROBOT_ID'"),
+    ("robot:", "alice", "give the robot's ID"),
+    ("robot:r1", None, "serves one user"),
+    ("cloud", "alice", "shared by every user"),
+    ("edge:x", None, "only a robot zone"),
+])
+def test_bad_zones_are_named(text, user, err):
+    with pytest.raises(RequestError, match=err):
+        parse_zone(text, user)
+
+
+def test_zones_serve():
+    z = parse_zone("robot:r1", "alice")
+    assert str(z) == "robot:r1" and z.serves("alice", "r1")
+    assert not z.serves("bob", "r1") and not z.serves("alice", "r2") and not z.serves("alice", None)
+    assert parse_zone("edge").serves("bob", None)
+
+
+def test_a_robot_config_states_what_its_container_needs():
+    from rce.plumbing.errors import ConfigError
+    from rce.protocol.config import parse_config
+    base = {"url": "http://m:9000/", "userID": "alice", "password": "p", "robotID": "r1"}
+    cfg = parse_config({**base, "containers": [{"cTag": "costmap", "placement": "auto", "deadline_ms": 100,
+                                                "robot": "r1", "consumes": ["scan"], "cpu": 0.5}]})
+    assert cfg.containers[0].container_data() == {"placement": "auto", "deadline_ms": 100, "robot": "r1",
+                                                  "consumes": ["scan"], "cpu": 0.5}
+    assert parse_config({**base, "containers": [{"cTag": "old"}]}).containers[0].container_data() == {}
+    with pytest.raises(ConfigError, match=r"containers\[0\]\.deadline_ms: must be a number of ms greater than 0"):
+        parse_config({**base, "containers": [{"cTag": "c", "deadline_ms": -1}]})
