@@ -17,7 +17,9 @@ errors with a one-line reason (:mod:`rce_master.server`).
 | ``POST /api/containers/{user}/{ctag}/resize`` ``{cpu?, memory?, pids?, size?, bandwidth?}`` | new limits |
 | ``GET /api/containers/{user}/{ctag}/logs/{ntag}`` | a node's kept stdout/stderr |
 | ``GET /api/placement`` | per container: where it runs, where the placer would put it and why |
-| ``POST /api/placement/{user}/{ctag}`` ``{pin}`` | pin it to ``cloud``, ``edge`` or ``robot``; ``auto`` unpins |
+| ``POST /api/placement/{user}/{ctag}`` ``{pin}`` | pin it to ``cloud``, ``edge``, ``robot`` (moved there); ``auto`` |
+| ``GET /api/placement/moves`` | the last moves: ``{t, user, ctag, from, to, make_s, switch_s, drain_s, why}`` |
+| ``POST /api/containers/{user}/{ctag}/move`` ``{host, why?}`` | move it there (host name or tid), make-before-break |
 | ``POST /api/robots/{user}/{robot}/battery`` ``{percent}`` | a robot's charge, for the placer |
 | ``GET /api/leader`` | ``{leading, leader, self}``: whether this master leads, the leader's and its own addresses |
 
@@ -75,6 +77,8 @@ class AdminApi:
         if self.placement is not None:
             app.router.add_get("/api/placement", self._advice)
             app.router.add_post("/api/placement/{user}/{ctag}", self._pin)
+            app.router.add_get("/api/placement/moves", self._moves)
+            app.router.add_post(base + "/move", self._move)
             app.router.add_post("/api/robots/{user}/{robot}/battery", self._battery)
 
     def _check(self, request: web.Request) -> None:
@@ -143,7 +147,29 @@ class AdminApi:
         d = await self._body(request)
         c = self.placement.pin(request.match_info["user"], request.match_info["ctag"], d.get("pin"))
         await self.state.store.flush()
-        return web.json_response({"user": c.user, "ctag": c.ctag, "pinned": c.data.get("pinned")})
+        moved = None
+        here = self.state.tasksets.get(c.tid)
+        if c.data.get("pinned") and c.state == "running" and (here is None or here.zone.kind != c.data["pinned"]):
+            host = self.state.pick_container_host(c.data, c.user, exclude={c.tid})
+            moved = await self.placement.move(c, host.tid, f"pinned to {c.data['pinned']}")
+            await self.state.store.flush()
+        return web.json_response({"user": c.user, "ctag": c.ctag, "pinned": c.data.get("pinned"), "moved": moved})
+
+    async def _move(self, request: web.Request) -> web.Response:
+        d = await self._body(request)
+        c = self.state.container(request.match_info["user"], request.match_info["ctag"])
+        want = d.get("host")
+        host = next((t for t in self.state.tasksets.values()
+                     if t.kind == "container" and not t.lost and want in (t.name, t.tid)), None)
+        if host is None:
+            raise RequestError(f"move: 'host' must name a container host that is up (its name or tid), got {want!r}")
+        moved = await self.placement.move(c, host.tid, str(d.get("why") or "moved by the operator"))
+        await self.state.store.flush()
+        return web.json_response(moved)
+
+    async def _moves(self, request: web.Request) -> web.Response:
+        self._check(request)
+        return web.json_response(self.placement.moves)
 
     async def _battery(self, request: web.Request) -> web.Response:
         d = await self._body(request)

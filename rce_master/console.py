@@ -7,6 +7,7 @@
     rce-console user del NAME
     rce-console logs USER CTAG NTAG                   # a node's kept stdout/stderr
     rce-console container resize USER CTAG [--cpu CORES] [--memory MIB] [--pids N] [--size N]
+    rce-console container move USER CTAG --to HOST     # make-before-break, nothing lost
     rce-console top [--interval S] [--once]           # per-container CPU, memory, processes, traffic
     rce-console users add NAME --file users.json      # offline: add a hashed record to a --users file
     rce-console leader                                # which master leads (several masters on etcd)
@@ -157,13 +158,14 @@ def parser() -> argparse.ArgumentParser:
     lg.add_argument("ctag")
     lg.add_argument("ntag")
     c = sub.add_parser("container", help="container operations")
-    c.add_argument("action", choices=["resize"])
+    c.add_argument("action", choices=["resize", "move"])
     c.add_argument("user")
     c.add_argument("ctag")
     c.add_argument("--cpu", type=float, help="cores (may be fractional)")
     c.add_argument("--memory", type=float, help="MiB")
     c.add_argument("--pids", type=int, help="the most tasks (processes and threads), pids.max")
     c.add_argument("--size", type=float, help="size class in slots (the original RCE's; recorded only)")
+    c.add_argument("--to", metavar="HOST", help="move: the container host (name or tid), make-before-break")
     pl = sub.add_parser("placement", help="where each container runs, where the placer would put it and why; "
                                           "pin one")
     pl.add_argument("action", nargs="?", choices=["pin"], help="pin USER CTAG ZONE")
@@ -208,6 +210,13 @@ def run(args: argparse.Namespace, out: Console) -> None:
         for stream in ("stdout", "stderr"):
             for line in logs.get(stream, []):
                 print(f"{stream}: {line}")
+    elif args.cmd == "container" and args.action == "move":
+        if not args.to:
+            raise RequestError("container move USER CTAG --to HOST")
+        host = int(args.to) if args.to.isdigit() else args.to
+        m = client.request("POST", f"/api/containers/{args.user}/{args.ctag}/move", {"host": host})
+        out.print(f"container {args.ctag!r} moved from {m['from']} to {m['to']}: built in {m['make_s']:.2f} s, "
+                  f"switched in {m['switch_s'] * 1e3:.1f} ms, old copy drained in {m['drain_s']:.2f} s")
     elif args.cmd == "container":
         limits = {k: getattr(args, k) for k in ("cpu", "memory", "pids", "size") if getattr(args, k) is not None}
         if not limits:

@@ -29,6 +29,7 @@ from rce.plumbing.errors import RCEError, RequestError
 from rce.plumbing.log import get_logger
 from rce.protocol.schema import PLACEMENTS
 from rce_master.model import ContainerRec
+from rce_master.mover import Mover
 from rce_master.placer import Choice, ContainerView, HostView, LinkView, Placer
 from rce_master.state import NEED_KEYS, MasterState
 
@@ -37,6 +38,7 @@ __all__ = ["BATTERY_LOW", "POLL", "Placement"]
 log = get_logger("rce.master.placement")
 
 POLL = 1.0            # s between looks at the containers' counters
+MOVES_KEPT = 100      # moves kept for GET /api/placement/moves
 BATTERY_LOW = 20.0    # per cent
 
 
@@ -64,8 +66,10 @@ class Placement:
     container's counters from its host (the ``stats`` op)."""
 
     def __init__(self, state: MasterState, host_stats, placer: Placer | None = None,
-                 battery_low: float = BATTERY_LOW):
-        self.state, self.host_stats = state, host_stats
+                 battery_low: float = BATTERY_LOW, mover: Mover | None = None):
+        self.state, self.host_stats, self.mover = state, host_stats, mover
+        self.moves: list[dict] = []               # the last MOVES_KEPT moves: {t, user, ctag, from, to, gap_s, why}
+        self._moving: dict[tuple[str, str], asyncio.Task] = {}
         self.placer = placer or Placer()
         self.battery_low = battery_low
         self.links: dict[tuple[str, str], LinkView] = {}
@@ -182,12 +186,44 @@ class Placement:
                          "pinned": c.data.get("pinned"), "why": ch.why, **ch.to_json()})
         return rows
 
+    async def move(self, c: ContainerRec, tid: int, why: str) -> dict:
+        """Move ``c`` to host ``tid`` now (:class:`~rce_master.mover.Mover`); the move's record.
+        Raises :class:`~rce_master.mover.MoveFailed` (it runs where it was) or :class:`RequestError`."""
+        if self.mover is None:
+            raise RequestError("this master moves no containers")
+        names = {t.tid: f"{t.zone} ({t.name})" for t in self.state.tasksets.values()}
+        r = await self.mover.move(c.user, c.ctag, tid, why)
+        self.placer.moved(time.monotonic(), c.user, c.ctag)
+        rec = {"t": time.time(), "user": c.user, "ctag": c.ctag, "from": names.get(r.from_tid, str(r.from_tid)),
+               "to": names.get(r.to_tid, str(r.to_tid)), "make_s": round(r.make_s, 3),
+               "switch_s": round(r.switch_s, 4), "drain_s": round(r.drain_s, 3), "why": why}
+        self.moves = [*self.moves[-(MOVES_KEPT - 1):], rec]
+        return rec
+
+    def _carry_out(self, c: ContainerRec, ch: Choice) -> None:
+        """Start the move the placer asked for, unless one of ``c`` runs."""
+        key = (c.user, c.ctag)
+        task = self._moving.get(key)
+        if self.mover is None or (task is not None and not task.done()):
+            return
+
+        async def run() -> None:
+            try:
+                await self.move(c, ch.target.tid, ch.why)
+            except RCEError as e:
+                log.warning("placer's move not made", user=c.user, ctag=c.ctag, reason=str(e))
+                self.placer.moved(time.monotonic(), c.user, c.ctag)      # no retry within the dwell
+        self._moving[key] = asyncio.get_running_loop().create_task(run(), name=f"move {c.user}/{c.ctag}")
+
     async def run(self, stop: asyncio.Event) -> None:
-        """Poll the counters and re-decide every :data:`POLL` s until ``stop`` is set."""
+        """Poll the counters, re-decide and carry out the placer's moves every :data:`POLL` s
+        until ``stop`` is set."""
         while not stop.is_set():
             await self.poll()
             for c in list(self.state.containers.values()):
-                self.word(c)
+                ch = self.word(c)
+                if ch is not None and ch.move and c.state == "running":
+                    self._carry_out(c, ch)
             with contextlib.suppress(TimeoutError):
                 async with asyncio.timeout(POLL):
                     await stop.wait()

@@ -47,6 +47,7 @@ from rce_master.failover import Failover
 from rce_master.login_guard import LoginGuard, PasswordCheck
 from rce_master.model import Robot, TaskSet
 from rce_master.office import RETRY_AFTER_NO_LEADER, Alone, Office, require_leader
+from rce_master.mover import Mover
 from rce_master.placement import Placement
 from rce_master.requests import Request, handle
 from rce_master.state import MasterState, Quotas, TaskSetAbsent
@@ -168,8 +169,9 @@ class Master:
         self.gate = Gate(cluster_key, "rce-master control",
                          on_refused=lambda reason: self.metrics.control_refused.labels(reason).inc())
         self.users = UsersFile(users_file) if users_file else None
+        self.mover = Mover(self.state, self.control)
         self.placement = Placement(self.state, lambda c: self.control.host_request(c, "stats", {}, PLACEMENT_STATS_S,
-                                                                                   wait=False))
+                                                                                   wait=False), mover=self.mover)
         self.admin = AdminApi(self.state, self.control, admin_token, self.users, self.office, self.placement)
         self.robot_locks: dict[tuple[str, str], asyncio.Lock] = defaultdict(asyncio.Lock)
         self.tasks = Tasks("rce-master")

@@ -395,6 +395,24 @@ class MasterState(StateIndex):
             self._put(n, status="starting", detail={})
 
     @_atomic
+    def reserve_cid(self) -> int:
+        """A new container id (for the copy a move makes)."""
+        return self._next_id("cid")
+
+    @_atomic
+    def container_moved(self, container: ContainerRec, tid: int, cid: int, data_addr: str, sandbox: str) -> None:
+        """Running container ``c`` runs as ``cid`` on host ``tid`` at ``data_addr`` from now on (a
+        move's switch, :mod:`rce_master.mover`): its container-side interfaces move with it. Raises
+        :class:`RequestError` unless ``c`` is the user's current, running container."""
+        if not _current(self.containers, (container.user, container.ctag), container) or container.state != "running":
+            raise RequestError(f"container {container.ctag!r} is not running: it is {container.state} (or gone)")
+        old = container.cid
+        self._put(container, cid=cid, tid=tid, data_addr=data_addr, sandbox=sandbox)
+        for rec in self.interfaces_of(container.user, container.ctag, robot_side=False):
+            if rec.location == old:
+                self._put(rec, location=cid)
+
+    @_atomic
     def interrupted_recoveries(self) -> list[ContainerRec]:
         """On taking office on a store a previous master left: a container it was re-creating is
         ``lost`` again (that work died with it). Returns every lost container that ever ran,

@@ -51,7 +51,12 @@ class Interface:
 
     def connect(self, peer_iid: int, addr: str, token: bytes) -> None:
         """Add a connection to interface ``peer_iid`` reachable at data address ``addr``;
-        ``token``: the master's credential for sending to it (:mod:`rce.transport.cluster_auth`)."""
+        ``token``: the master's credential for sending to it (:mod:`rce.transport.cluster_auth`).
+        A connection that exists already is pointed at ``addr`` in one step (its container moved,
+        :mod:`rce_master.mover`): from here on it goes there, and the old copy's claims end."""
+        old = self.peers.get(peer_iid)
+        if old is not None and old != addr:
+            self.plane.drop_claims(peer_iid)
         self.peers[peer_iid] = addr
         self.plane.allow(self.iid, peer_iid, token)
         self.on_peers_changed()

@@ -314,6 +314,14 @@ class DataPlane:
             if not cs.links:
                 del self._claims[iid]
 
+    def drop_claims(self, iid: int) -> None:
+        """End interface ``iid``'s claim set (its copy moved: the nodes that claimed it are the old
+        copy's); what is sent to ``iid`` goes to its address until a new set is complete."""
+        cs = self._claims.pop(iid, None)
+        if cs is not None:
+            for a in cs.links:
+                a.claims.discard(iid)
+
     # -- credentials ------------------------------------------------------------------------------
     def allow(self, src: int, dst: int, token: bytes) -> None:
         """Local interface ``src`` may send to interface ``dst``, with the master's credential."""

@@ -26,11 +26,12 @@ def eng(shared_engine):
 
 
 
-async def _echo_container(r: RawRobot, ctag: str, side: str) -> None:
-    """Container with stringEcho and robot-side interfaces of ``side`` (Converter/Forwarder)."""
+async def _echo_container(r: RawRobot, ctag: str, side: str, data: dict | None = None, pkg: str = "Test") -> None:
+    """Container with stringEcho (of package ``pkg``) and robot-side interfaces of ``side``
+    (Converter/Forwarder); ``data``: its containerData."""
     rid = r.robot
-    await r.send("CC", {"containerTag": ctag})
-    await r.cn(addNodes=[{"containerTag": ctag, "nodeTag": "echo", "pkg": "Test", "exe": "stringEcho.py"}],
+    await r.send("CC", {"containerTag": ctag, **({"containerData": data} if data else {})})
+    await r.cn(addNodes=[{"containerTag": ctag, "nodeTag": "echo", "pkg": pkg, "exe": "stringEcho.py"}],
                addInterfaces=[
                    {"endpointTag": ctag, "interfaceTag": "req", "interfaceType": "PublisherInterface",
                     "className": "std_msgs/String", "addr": "/stringEchoReq"},

@@ -1,0 +1,178 @@
+"""Moving a running container to another host, make-before-break (DESIGN section 9).
+
+1. **Make**: the container is created on the new host under a new ``cid`` (its old copy runs on),
+   with its parameters, its container-side interfaces (the same iids) and its nodes; the move
+   waits until its nodes are up: every topic a container-side ``PublisherInterface`` feeds has a
+   node subscribed, every service a ``ServiceClientInterface`` calls is provided (at most
+   :data:`READY_TIMEOUT` s). Its interfaces learn their peers, so its results can go out.
+2. **Switch**, in one step per connection: the master's state names the new copy, and each peer
+   end is told ``connect`` with the new data address, which replaces the old one
+   (:meth:`rce.protocol.interfaces.Interface.connect`): from that message on, the peer sends to the
+   new copy only. Nothing is sent twice: each message goes to exactly one copy.
+3. **Break**: the old copy finishes what it had already received (its messages out stay still for
+   :data:`DRAIN_QUIET` s, at most :data:`DRAIN_MAX` s) and is destroyed.
+
+A move that fails before the switch (the new host refuses, a node does not come up) destroys
+what it made there and leaves the container running where it was (:class:`MoveFailed`).
+"""
+from __future__ import annotations
+
+import asyncio
+import dataclasses
+import time
+from dataclasses import dataclass
+
+from rce.node.naming import resolve
+from rce.plumbing.errors import RCEError, RequestError, Timeout
+from rce.plumbing.log import get_logger
+from rce_master.control import Control
+from rce_master.model import ContainerRec, InterfaceRec
+from rce_master.state import MasterState
+
+__all__ = ["DRAIN_MAX", "DRAIN_QUIET", "READY_TIMEOUT", "MoveFailed", "MoveResult", "Mover"]
+
+log = get_logger("rce.master.move")
+
+READY_TIMEOUT = 20.0   # s the new copy's nodes have to come up
+READY_POLL = 0.05      # s between looks at its bus
+DRAIN_QUIET = 0.3      # s the old copy's counters must stay still before it is destroyed
+DRAIN_MAX = 5.0        # s the old copy may drain at most
+
+
+class MoveFailed(RCEError):
+    """A move that did not happen: the container runs where it was."""
+    code = "request"
+
+
+@dataclass
+class MoveResult:
+    """A move done: from host ``from_tid`` (cid ``old_cid``) to ``to_tid`` (``new_cid``); ``make_s``:
+    s to build and wire the new copy, ``switch_s``: s to point every peer at it, ``drain_s``: s the
+    old copy drained."""
+    user: str
+    ctag: str
+    from_tid: int
+    to_tid: int
+    old_cid: int
+    new_cid: int
+    make_s: float
+    switch_s: float
+    drain_s: float
+
+
+class Mover:
+    """Moves running containers between hosts (module docstring) for the master's ``state``."""
+
+    def __init__(self, state: MasterState, control: Control):
+        self.state, self.control = state, control
+        self.moving: set[tuple[str, str]] = set()
+        self.moves = self.failed = 0
+
+    async def move(self, user: str, ctag: str, tid: int, why: str = "") -> MoveResult:
+        """Move container ``user/ctag`` to container host ``tid``. Raises :class:`MoveFailed`
+        (it runs where it was), :class:`RequestError` for a container that is not running, is
+        already there or is being moved, :class:`~rce.plumbing.errors.NotFound` for none."""
+        c = self.state.container(user, ctag)
+        key = (user, ctag)
+        if c.state != "running":
+            raise RequestError(f"container {ctag!r} is {c.state}: only a running container moves")
+        if c.tid == tid:
+            raise RequestError(f"container {ctag!r} already runs on host {tid}")
+        if key in self.moving:
+            raise RequestError(f"container {ctag!r} is being moved already")
+        host = self.state.tasksets.get(tid)
+        if host is None or host.kind != "container" or host.lost:
+            raise RequestError(f"host {tid} is not a container host that is up")
+        if not host.zone.serves(user, c.data.get("robot")):
+            raise RequestError(f"host {host.name} ({host.zone}) does not serve container {ctag!r}")
+        self.moving.add(key)
+        try:
+            return await self._move(c, tid, why)
+        finally:
+            self.moving.discard(key)
+
+    async def _move(self, c: ContainerRec, tid: int, why: str) -> MoveResult:
+        t0 = time.monotonic()
+        old_tid, old_cid = c.tid, c.cid
+        new = dataclasses.replace(c, cid=self.state.reserve_cid(), tid=tid, state="starting")
+        ifaces = self.state.interfaces_of(c.user, c.ctag, robot_side=False)
+        conns = [(me, peer) for rec in ifaces for me, peer in self.state.connections_of(rec.iid)]
+        log.info("container moving", user=c.user, ctag=c.ctag, from_tid=old_tid, to_tid=tid, cid=new.cid, why=why)
+        try:
+            answer = await self.control.create_container(new)
+            for name, value in self.state.params_of(c):
+                await self.control.host_call(new, "set_param", name=name, value=value)
+            for rec in ifaces:
+                await self.control.host_call(new, "add_interface", iid=rec.iid, tag=rec.tag, itype=rec.itype,
+                                             cls=rec.cls, addr=rec.addr)
+            for n in self.state.nodes_of(c):
+                await self.control.start_node(new, n.ntag, n.spec)
+            await self._ready(new, ifaces)
+            self._still(c, old_cid)
+            for me, peer in conns:               # its results can go out: the new copy knows its peers
+                await self.control.host_call(new, "connect", **self.control.connect_args(
+                    me, peer.iid, self.state.data_addr(peer)))
+            self._still(c, old_cid)
+        except (RCEError, MoveFailed) as e:
+            self.failed += 1
+            await self.control.destroy_on(tid, new.cid)
+            log.warning("container move failed; it runs where it was", user=c.user, ctag=c.ctag, to_tid=tid,
+                        reason=str(e))
+            raise MoveFailed(f"container {c.ctag!r} not moved to host {tid}: {e}; it runs where it was") from None
+        t1 = time.monotonic()
+        addr = answer["data_addr"]
+        self.state.container_moved(c, tid, new.cid, addr, answer.get("sandbox", ""))
+        for me, peer in conns:                   # the switch: each peer sends to the new copy from now on
+            await self.control.endpoint_call(peer, "connect", **self.control.connect_args(peer, me.iid, addr))
+        t2 = time.monotonic()
+        old = dataclasses.replace(c, cid=old_cid, tid=old_tid)
+        await self._drain(old)
+        await self.control.destroy_on(old_tid, old_cid)
+        t3 = time.monotonic()
+        self.moves += 1
+        result = MoveResult(c.user, c.ctag, old_tid, tid, old_cid, new.cid, t1 - t0, t2 - t1, t3 - t2)
+        log.info("container moved", **dataclasses.asdict(result), why=why)
+        self.control.notify_robot(c.user, c.owner, "ST", {"topic": "container", "cTag": c.ctag, "status": "running",
+                                                          "sandbox": c.sandbox, "moved": True})
+        return result
+
+    def _still(self, c: ContainerRec, cid: int) -> None:
+        if self.state.containers.get((c.user, c.ctag)) is not c or c.cid != cid or c.state != "running":
+            raise MoveFailed(f"container {c.ctag!r} was removed, lost or replaced meanwhile")
+
+    async def _ready(self, new: ContainerRec, ifaces: list[InterfaceRec]) -> None:
+        """Wait until the new copy's nodes took up what its interfaces feed and call."""
+        topics = {resolve(r.addr, "/") for r in ifaces if r.kind == "Publisher"}
+        services = {resolve(r.addr, "/") for r in ifaces if r.kind == "ServiceClient"}
+        deadline = time.monotonic() + READY_TIMEOUT
+        while True:
+            bus = await self.control.host_call(new, "describe")
+            subscribed = {t["name"] for t in bus["topics"]
+                          if any(not s.startswith("interface:") for s in t["subscribers"])}
+            provided = {s["name"] for s in bus["services"] if not str(s["provider"]).startswith("interface:")}
+            exited = [n["ntag"] for n in bus.get("launched", []) if not n.get("running") and not n.get("restarts")]
+            if exited:
+                raise MoveFailed(f"node {exited[0]!r} exited on the new host before it came up")
+            if topics <= subscribed and services <= provided:
+                return
+            if time.monotonic() > deadline:
+                missing = sorted((topics - subscribed) | (services - provided))
+                raise Timeout(f"its nodes did not take up {', '.join(missing)} within {READY_TIMEOUT:g} s")
+            await asyncio.sleep(READY_POLL)
+
+    async def _drain(self, old: ContainerRec) -> None:
+        """Wait until the old copy's messages out stay still for DRAIN_QUIET s (at most DRAIN_MAX s)."""
+        end = time.monotonic() + DRAIN_MAX
+        last, still_since = None, time.monotonic()
+        while time.monotonic() < end:
+            try:
+                s = await self.control.host_call(old, "stats")
+            except RCEError:
+                return
+            now = (s.get("msgs_in"), s.get("msgs_out"))
+            t = time.monotonic()
+            if now != last:
+                last, still_since = now, t
+            elif t - still_since >= DRAIN_QUIET:
+                return
+            await asyncio.sleep(0.05)

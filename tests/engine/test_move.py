@@ -1,0 +1,155 @@
+"""Moving a running container, make-before-break, against a real engine on loopback: a master, a
+robot task set, a cloud container host and robot ``mover``'s own computer (``--zone robot:mover``).
+The robot sends numbered ``std_msgs/String`` at 20 Hz through converters to ``stringEcho.py`` in
+its container and reads the echoes.
+
+- pinned to the robot, the container moves there while the stream runs; pinned to the cloud, back:
+  every message echoed exactly once and in order, the old copy destroyed, the robot told;
+- a move that fails part way (its node's package exists only in the cloud) leaves the container
+  running where it was, the stream undisturbed.
+
+Prints each move's longest gap between echoes (``pytest -s``).
+"""
+from __future__ import annotations
+
+import asyncio
+import os
+import time
+from pathlib import Path
+
+import pytest
+
+from rce.tools.launch import start_engine
+from test_dataflow import _echo_container
+from wsclient import RawRobot
+
+pytestmark = pytest.mark.asyncio
+
+RATE = 20.0      # Hz
+WAIT = 30.0
+
+
+@pytest.fixture(scope="module")
+def eng(tmp_path_factory):
+    work = tmp_path_factory.mktemp("move")
+    pkg = work / "pkgs" / "CloudEcho"                  # a package only the cloud host has
+    pkg.mkdir(parents=True)
+    src = Path(__import__("rce").__file__).parent / "packages" / "Test" / "stringEcho.py"
+    (pkg / "stringEcho.py").write_text(src.read_text())
+    os.chmod(pkg / "stringEcho.py", 0o755)
+    e = start_engine(work / "engine", container_hosts=0)
+    plain = dict(e.env)
+    e.env["RCE_PACKAGE_PATH"] = str(pkg.parent)
+    e.add_container_host("--name", "dc1")
+    e.env = plain
+    e.add_container_host("--zone", "robot:mover", "--user", "testUser", "--name", "mover-computer")
+    yield e
+    e.stop()
+
+
+class Stream:
+    """Numbered messages at RATE and their echoes, each stamped (monotonic s)."""
+
+    def __init__(self, r: RawRobot):
+        self.r, self.sent, self.echoes, self.other = r, 0, [], []
+
+    async def run(self) -> None:
+        async with asyncio.TaskGroup() as tg:
+            tg.create_task(self._send())
+            tg.create_task(self._read())
+
+    async def _send(self) -> None:
+        while True:
+            await self.r.send("DM", {"iTag": "req", "type": "std_msgs/String", "msgID": "",
+                                     "msg": {"data": str(self.sent)}})
+            self.sent += 1
+            await asyncio.sleep(1 / RATE)
+
+    async def _read(self) -> None:
+        while True:
+            m = await self.r.recv(60)
+            if isinstance(m, dict) and m.get("type") == "DM" and m["data"]["iTag"] == "resp":
+                self.echoes.append((time.monotonic(), int(m["data"]["msg"]["data"])))
+            elif isinstance(m, dict):
+                self.other.append(m)
+
+    async def until(self, n: int) -> None:
+        end = time.monotonic() + WAIT
+        while len(self.echoes) < n:
+            assert time.monotonic() < end, f"{len(self.echoes)} echoes of {n}"
+            await asyncio.sleep(0.02)
+
+    def gap(self, t0: float, t1: float) -> float:
+        ts = [t for t, _ in self.echoes if t0 <= t <= t1]
+        return max((b - a for a, b in zip(ts, ts[1:], strict=False)), default=float("inf"))
+
+
+def host_of(eng, ctag: str) -> str:
+    return next(c["host"] for c in eng.admin("/api/containers") if c["ctag"] == ctag)
+
+
+async def test_moves_to_the_robot_and_back_lose_nothing(eng):
+    async with RawRobot(eng.master_url, "mover") as r:
+        await _echo_container(r, "echoM", "Converter", {"placement": "auto", "robot": "mover"})
+        assert host_of(eng, "echoM") == "dc1"
+        s = Stream(r)
+        task = asyncio.create_task(s.run())
+        try:
+            # the node subscribes a moment after the interfaces are up: the first echo is the start
+            await s.until(1)
+            first = s.echoes[0][1]
+            await s.until(10)
+            gaps = []
+            for zone, where in (("robot", "mover-computer"), ("cloud", "dc1")):
+                t0 = time.monotonic()
+                res = await asyncio.to_thread(eng.admin, "/api/placement/testUser/echoM", {"pin": zone})
+                t1 = time.monotonic()
+                assert res["moved"] and res["moved"]["to"].endswith(f"({where})"), res
+                assert host_of(eng, "echoM") == where
+                before = (await asyncio.to_thread(eng.admin, "/api/containers/testUser/echoM/stats"))["msgs_in"]
+                n = len(s.echoes)
+                await s.until(n + 20)
+                after = (await asyncio.to_thread(eng.admin, "/api/containers/testUser/echoM/stats"))["msgs_in"]
+                assert after - before >= 10, f"the stream goes through the copy on {where}"
+                gaps.append((zone, s.gap(t0 - 0.5, t1 + 0.5), res["moved"]))
+            sent_before_stop = s.sent
+            await s.until(sent_before_stop - first - 2)
+        finally:
+            task.cancel()
+        seqs = [q for _, q in s.echoes]
+        assert seqs == sorted(seqs), "echoes in order"
+        assert len(seqs) == len(set(seqs)), "no echo twice"
+        missing = sorted(set(range(first, seqs[-1] + 1)) - set(seqs))
+        assert not missing, f"lost across the moves: {missing}"
+        moved = [m for m in s.other if m.get("type") == "ST" and m["data"].get("moved")]
+        assert len(moved) == 2, "the robot is told of each move"
+        for zone, gap, rec in gaps:
+            print(f"move to {zone}: longest gap between echoes {gap * 1e3:.0f} ms at {RATE:g} Hz; "
+                  f"built {rec['make_s']:.2f} s, switched {rec['switch_s'] * 1e3:.1f} ms, "
+                  f"drained {rec['drain_s']:.2f} s")
+        assert [m["to"].split(" ")[0] for m in eng.admin("/api/placement/moves")][-2:] == ["robot:mover", "cloud"]
+        ts = {t["name"]: t for t in eng.admin("/api/tasksets") if t["kind"] == "container"}
+        assert ts["mover-computer"]["containers"] == 0 and ts["dc1"]["containers"] == 1
+
+
+async def test_a_move_that_fails_part_way_leaves_it_running_where_it_was(eng):
+    async with RawRobot(eng.master_url, "mover") as r:
+        await _echo_container(r, "cloudOnly", "Converter", {"placement": "auto", "robot": "mover"}, pkg="CloudEcho")
+        s = Stream(r)
+        task = asyncio.create_task(s.run())
+        try:
+            await s.until(5)
+            with pytest.raises(Exception) as err:
+                await asyncio.to_thread(eng.admin, "/api/containers/testUser/cloudOnly/move",
+                                        {"host": "mover-computer"})
+            assert "runs where it was" in str(err.value) and "CloudEcho" in str(err.value)
+            assert host_of(eng, "cloudOnly") == "dc1"
+            n = len(s.echoes)
+            await s.until(n + 20)
+        finally:
+            task.cancel()
+        seqs = [q for _, q in s.echoes]
+        assert seqs == sorted(seqs) and len(seqs) == len(set(seqs))
+        assert not sorted(set(range(seqs[0], seqs[-1] + 1)) - set(seqs)), "the stream went on undisturbed"
+        ts = {t["name"]: t for t in eng.admin("/api/tasksets") if t["kind"] == "container"}
+        assert ts["mover-computer"]["containers"] == 0
