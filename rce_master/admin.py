@@ -8,7 +8,9 @@ errors with a one-line reason (:mod:`rce_master.server`).
 |---|---|
 | ``GET /api/state`` | everything (:meth:`MasterState.snapshot`) |
 | ``GET /api/{users,robots,containers,nodes,parameters,interfaces,connections,tasksets}`` | one list |
-| ``POST /api/users`` ``{name, password}`` / ``DELETE /api/users/{name}`` | add / delete a user |
+| ``POST /api/users`` ``{name, password, role?}`` / ``DELETE /api/users/{name}`` | add / delete a user |
+| ``POST /api/users/{name}`` ``{role}`` | give a user a role (``viewer``, ``operator``, ``admin``) |
+| ``POST /api/auth`` ``{user, password, addr}`` | ``{user, role}`` if the password (hex SHA-256) is right; 401, 429 |
 | ``GET /api/containers/{user}/{ctag}/bus`` | the container's bus: topics, services, params, nodes |
 | ``POST /api/containers/{user}/{ctag}/publish`` ``{topic, type, msg}`` | publish on its bus |
 | ``POST /api/containers/{user}/{ctag}/call`` ``{service, request, timeout}`` | call a service on its bus |
@@ -22,6 +24,10 @@ errors with a one-line reason (:mod:`rce_master.server`).
 | ``POST /api/containers/{user}/{ctag}/move`` ``{host, why?}`` | move it there (host name or tid), make-before-break |
 | ``POST /api/robots/{user}/{robot}/battery`` ``{percent}`` | a robot's charge, for the placer |
 | ``GET /api/leader`` | ``{leading, leader, self}``: whether this master leads, the leader's and its own addresses |
+
+``POST /api/auth`` is the robots' password check (:mod:`rce_master.login_guard`: the same back-off per
+user and ``addr``, the address the user logs in from, and the same scrypt pool) for another front door
+that holds the admin token: the fleet's task API (docs/task-api.md).
 
 A master that stands by (several masters on etcd) answers ``GET /api/state``, the lists and
 ``/api/leader`` from the state it follows; everything else needs the leader (a change, or a call
@@ -38,6 +44,8 @@ from aiohttp import web
 from rce.plumbing.errors import AuthError, RequestError
 from rce.protocol import schema
 from rce_master.control import Control
+from rce_master.model import DEFAULT_ROLE
+from rce_master.login_guard import PasswordCheck
 from rce_master.office import Alone, Office, require_leader
 from rce_master.placement import Placement
 from rce_master.requests import Request, ResizeContainer
@@ -53,11 +61,14 @@ HOST_OPS = {"bus": ("describe", "GET"), "publish": ("bus_publish", "POST"), "cal
 
 class AdminApi:
     """The admin routes onto ``state`` and the task sets (``control``); ``users``: the users file
-    kept up to date on user changes (None: none); ``office``: whether this master leads."""
+    kept up to date on user changes (None: none); ``office``: whether this master leads; ``passwords``:
+    the master's password check behind ``POST /api/auth`` (None: its own)."""
 
     def __init__(self, state: MasterState, control: Control, token: str, users: UsersFile | None = None,
-                 office: Office | None = None, placement: Placement | None = None):
+                 office: Office | None = None, placement: Placement | None = None,
+                 passwords: PasswordCheck | None = None):
         self.state, self.control, self.token, self.users = state, control, token, users
+        self.passwords = passwords if passwords is not None else PasswordCheck()
         self.office = office if office is not None else Alone()
         self.placement = placement
 
@@ -69,6 +80,8 @@ class AdminApi:
             app.router.add_get(f"/api/{name}", self._one_list)
         app.router.add_post("/api/users", self._add_user)
         app.router.add_delete("/api/users/{name}", self._del_user)
+        app.router.add_post("/api/users/{name}", self._set_role)
+        app.router.add_post("/api/auth", self._auth)
         base = "/api/containers/{user}/{ctag}"
         for route, (op, method) in HOST_OPS.items():
             app.router.add_route(method, f"{base}/{route}", self._host_op(op))
@@ -115,11 +128,30 @@ class AdminApi:
 
     async def _add_user(self, request: web.Request) -> web.Response:
         d = await self._body(request)
-        u = self.state.add_user(str(d.get("name", "")), str(d.get("password", "")))
+        u = self.state.add_user(str(d.get("name", "")), str(d.get("password", "")), d.get("role", DEFAULT_ROLE))
         await self.state.store.flush()
         if self.users:
             self.users.save(self.state)
-        return web.json_response({"name": u.name}, status=201)
+        return web.json_response({"name": u.name, "role": u.role}, status=201)
+
+    async def _set_role(self, request: web.Request) -> web.Response:
+        d = await self._body(request)
+        u = self.state.set_user_role(request.match_info["name"], d.get("role"))
+        await self.state.store.flush()
+        if self.users:
+            self.users.save(self.state)
+        return web.json_response({"name": u.name, "role": u.role})
+
+    async def _auth(self, request: web.Request) -> web.Response:
+        self._check(request)
+        try:
+            d = await request.json()
+        except ValueError:
+            d = None
+        if not isinstance(d, dict) or not all(isinstance(d.get(k), str) for k in ("user", "password", "addr")):
+            raise RequestError("auth: the body must be {\"user\", \"password\" (hex SHA-256), \"addr\"}, all strings")
+        await self.passwords.authenticate(self.state.users, d["user"], d["password"], d["addr"])
+        return web.json_response({"user": d["user"], "role": self.state.users[d["user"]].role})
 
     async def _del_user(self, request: web.Request) -> web.Response:
         await self._body(request)

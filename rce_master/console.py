@@ -3,13 +3,14 @@
 ::
 
     rce-console [--master URL[,URL...]] robots|containers|nodes|interfaces|connections|tasksets|parameters|users
-    rce-console user add NAME [--password-stdin]      # prompts twice when not reading stdin
+    rce-console user add NAME [--password-stdin] [--role viewer|operator|admin]   # prompts twice without stdin
+    rce-console user role NAME --role viewer|operator|admin   # what the user may do on the fleet's task API
     rce-console user del NAME
     rce-console logs USER CTAG NTAG                   # a node's kept stdout/stderr
     rce-console container resize USER CTAG [--cpu CORES] [--memory MIB] [--pids N] [--size N]
     rce-console container move USER CTAG --to HOST     # make-before-break, nothing lost
     rce-console top [--interval S] [--once]           # per-container CPU, memory, processes, traffic
-    rce-console users add NAME --file users.json      # offline: add a hashed record to a --users file
+    rce-console user add NAME --file users.json       # offline: add a hashed record to a --users file
     rce-console leader                                # which master leads (several masters on etcd)
     rce-console placement                             # per container: where it runs, where it would serve best, why
     rce-console placement pin USER CTAG cloud|edge|robot|auto    # pin it (auto: the placer decides again)
@@ -36,12 +37,13 @@ from rich.table import Table
 
 from rce.tools.admin_client import AdminClient
 from rce.plumbing.errors import RCEError, RequestError
+from rce_master.model import DEFAULT_ROLE, ROLES
 from rce_master.state import MasterState
 from rce_master.users import UsersFile
 
 DEFAULT_MASTER = "http://127.0.0.1:9000/"
 COLUMNS = {
-    "users": ["name"],
+    "users": ["name", "role"],
     "robots": ["user", "robot", "endpoint", "since", "relay", "relay_since"],
     "containers": ["user", "ctag", "owner", "host", "group", "state", "sandbox", "data"],
     "nodes": ["user", "ctag", "ntag", "pkg", "exe", "status", "code", "signal"],
@@ -148,9 +150,12 @@ def parser() -> argparse.ArgumentParser:
     for name in COLUMNS:
         sub.add_parser(name, help=f"list {name}")
     sub.add_parser("leader", help="which master leads, and the one that answered")
-    u = sub.add_parser("user", help="add or delete a user")
-    u.add_argument("action", choices=["add", "del"])
+    u = sub.add_parser("user", help="add or delete a user, or give one a role")
+    u.add_argument("action", choices=["add", "del", "role"])
     u.add_argument("name")
+    u.add_argument("--role", choices=ROLES, default=None,
+                   help=f"viewer: reads the fleet's tasks, metrics and page; operator: also adds and cancels tasks; "
+                        f"admin: also revokes others' tokens (default for add: {DEFAULT_ROLE})")
     u.add_argument("--password-stdin", action="store_true", help="read the password from stdin")
     u.add_argument("--file", type=Path, help="offline: edit this --users file instead of asking the master")
     lg = sub.add_parser("logs", help="a node's kept stdout and stderr")
@@ -200,8 +205,12 @@ def run(args: argparse.Namespace, out: Console) -> None:
             out.print(table(args.cmd, rows, COLUMNS[args.cmd]))
     elif args.cmd == "user":
         if args.action == "add":
-            client.request("POST", "/api/users", {"name": args.name, "password": _read_password(args.password_stdin)})
-            out.print(f"user {args.name!r} added")
+            u = client.request("POST", "/api/users", {"name": args.name, "role": args.role or DEFAULT_ROLE,
+                                                      "password": _read_password(args.password_stdin)})
+            out.print(f"user {args.name!r} added, is {u['role']}")
+        elif args.action == "role":
+            u = client.request("POST", f"/api/users/{args.name}", {"role": _role_given(args)})
+            out.print(f"user {args.name!r} is now {u['role']}")
         else:
             client.request("DELETE", f"/api/users/{args.name}")
             out.print(f"user {args.name!r} deleted")
@@ -258,13 +267,22 @@ def _user_file(args: argparse.Namespace) -> None:
         raise RequestError(f"{args.file}: user {args.name!r} already exists")
     try:
         if args.action == "add":
-            state.add_user(args.name, _read_password(args.password_stdin))
+            state.add_user(args.name, _read_password(args.password_stdin), args.role or DEFAULT_ROLE)
+        elif args.action == "role":
+            state.set_user_role(args.name, _role_given(args))
         else:
             state.del_user(args.name)
     except RCEError as e:
         raise RequestError(f"{args.file}: {e}") from None
     users.save(state)
-    print(f"{args.file}: user {args.name!r} {'added' if args.action == 'add' else 'deleted'}")
+    done = "deleted" if args.action == "del" else f"is {state.users[args.name].role}"
+    print(f"{args.file}: user {args.name!r} {'added, ' if args.action == 'add' else ''}{done}")
+
+
+def _role_given(args: argparse.Namespace) -> str:
+    if not args.role:
+        raise RequestError(f"user role {args.name}: give --role ({', '.join(ROLES)})")
+    return args.role
 
 
 def main(argv: list[str] | None = None) -> None:

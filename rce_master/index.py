@@ -225,7 +225,7 @@ class StateIndex:
         ts = self.tasksets
         by_iid = self._by_iid
         return {
-            "users": [{"name": u} for u in sorted(self.users)],
+            "users": [{"name": n, "role": u.role} for n, u in sorted(self.users.items())],
             "tasksets": [{"tid": t.tid, "kind": t.kind, "name": t.name, "host": t.host, "absent": t.lost,
                           "robots": t.robots, "containers": t.containers, "cpu_load": t.cpu_load,
                           "mem_load": t.mem_load,

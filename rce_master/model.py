@@ -22,6 +22,10 @@ LIMIT_KEYS = ("cpu", "memory", "pids", "size", "bandwidth")   # container limits
 # container states with no container behind them: lost with its host (or environment), and being re-created
 # on a host (docs/INTERNALS.md, "Container failover")
 LOST_STATES = ("lost", "recovering")
+# what a user may do on the fleet's task API (docs/task-api.md): viewer reads tasks, metrics and the operator page;
+# operator also adds and cancels tasks; admin also revokes others' tokens. Robots' logins do not look at it.
+ROLES = ("viewer", "operator", "admin")
+DEFAULT_ROLE = "operator"   # a record without a role (written before roles existed), and `user add` without --role
 
 
 def password_digest(password: str) -> str:
@@ -50,17 +54,20 @@ class _Record:
 
 @dataclass
 class User:
-    """A user; the password is kept only as scrypt(sha256_hex(password), salt).
+    """A user; the password is kept only as scrypt(sha256_hex(password), salt); ``role``: one of
+    :data:`ROLES`.
 
-    Record (also the users file's): ``{"name", "salt": hex, "scrypt": hex}``."""
+    Record (also the users file's): ``{"name", "salt": hex, "scrypt": hex, "role"}``; a record without
+    ``role`` is :data:`DEFAULT_ROLE`'s."""
     name: str
     salt: bytes
     key: bytes
+    role: str = DEFAULT_ROLE
 
     @classmethod
-    def create(cls, name: str, password: str) -> "User":
+    def create(cls, name: str, password: str, role: str = DEFAULT_ROLE) -> "User":
         salt = os.urandom(16)
-        return cls(name, salt, _scrypt(password_digest(password), salt))
+        return cls(name, salt, _scrypt(password_digest(password), salt), check_role(role))
 
     def check(self, digest_hex: str) -> bool:
         """True if ``digest_hex`` (hex SHA-256 of the password) matches."""
@@ -71,12 +78,20 @@ class User:
         return ("user", self.name)
 
     def to_record(self) -> dict:
-        return {"name": self.name, "salt": self.salt.hex(), "scrypt": self.key.hex()}
+        return {"name": self.name, "salt": self.salt.hex(), "scrypt": self.key.hex(), "role": self.role}
 
     @classmethod
     def from_record(cls, record: dict) -> "User":
-        """Raises KeyError/ValueError/TypeError for a malformed record."""
-        return cls(record["name"], bytes.fromhex(record["salt"]), bytes.fromhex(record["scrypt"]))
+        """Raises KeyError/ValueError/TypeError for a malformed record (ValueError: an unknown role)."""
+        return cls(record["name"], bytes.fromhex(record["salt"]), bytes.fromhex(record["scrypt"]),
+                   check_role(record.get("role", DEFAULT_ROLE)))
+
+
+def check_role(role: Any) -> str:
+    """``role`` when it is one of :data:`ROLES`; else raises ValueError naming them."""
+    if role not in ROLES:
+        raise ValueError(f"unknown role {role!r} (roles: {', '.join(ROLES)})")
+    return role
 
 
 @dataclass

@@ -172,12 +172,13 @@ class Master:
         self.mover = Mover(self.state, self.control)
         self.placement = Placement(self.state, lambda c: self.control.host_request(c, "stats", {}, PLACEMENT_STATS_S,
                                                                                    wait=False), mover=self.mover)
-        self.admin = AdminApi(self.state, self.control, admin_token, self.users, self.office, self.placement)
+        self.passwords = PasswordCheck(login_guard)     # the auth op's throttling and scrypt pool (login_guard.py)
+        self.admin = AdminApi(self.state, self.control, admin_token, self.users, self.office, self.placement,
+                              self.passwords)
         self.robot_locks: dict[tuple[str, str], asyncio.Lock] = defaultdict(asyncio.Lock)
         self.tasks = Tasks("rce-master")
         self.failover = Failover(self.state, self.control, self.tasks)
         self.metrics = MasterMetrics(self.state, self.office, self.failover)
-        self.passwords = PasswordCheck(login_guard)     # the auth op's throttling and scrypt pool (login_guard.py)
         self.metrics.registry.register(self.passwords)
         self._control: asyncio.AbstractServer | None = None
         self._runner: web.AppRunner | None = None
@@ -194,7 +195,7 @@ class Master:
         if self.users:
             self.users.load(self.state)
         if self.dev and "testUser" not in self.state.users:
-            self.state.add_user("testUser", "testUser")
+            self.state.add_user("testUser", "testUser", role="admin")
             log.warning("DEV MODE: user 'testUser' with password 'testUser' is provisioned; never use --dev on a "
                         "reachable network")
 

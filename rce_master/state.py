@@ -34,8 +34,8 @@ from rce.plumbing.errors import AuthError, NotFound, RequestError, Unavailable
 from rce.protocol.interface_type import Kind
 from rce.protocol import schema
 from rce_master.index import StateIndex, lost_reason
-from rce_master.model import (ConnectionRec, ContainerRec, InterfaceRec, NodeRec, Robot, TaskSet, User,
-                              param_key)
+from rce_master.model import (DEFAULT_ROLE, ConnectionRec, ContainerRec, InterfaceRec, NodeRec, Robot, TaskSet,
+                              User, check_role, param_key)
 from rce_master.store import Key, MemoryStore, Store, encode
 
 Pairs = list[tuple[InterfaceRec, InterfaceRec]]     # connections removed: the shell disconnects both ends
@@ -149,15 +149,25 @@ class MasterState(StateIndex):
 
     # -- users -------------------------------------------------------------------------------------------
     @_atomic
-    def add_user(self, name: str, password: str) -> User:
-        """Add a user. Raises :class:`RequestError` for an illegal/duplicate name or empty password."""
+    def add_user(self, name: str, password: str, role: str = DEFAULT_ROLE) -> User:
+        """Add a user with ``role`` (:data:`~rce_master.model.ROLES`). Raises :class:`RequestError` for an
+        illegal/duplicate name, an empty password or an unknown role."""
         _check_user_name(name)
         if name in self.users:
             raise RequestError(f"user {name!r} already exists")
         if not password:
             raise RequestError("the password must not be empty")
-        u = User.create(name, password)
+        u = User.create(name, password, _role(role))
         self._write(u.store_key, u.to_record())
+        return self.users[name]
+
+    @_atomic
+    def set_user_role(self, name: str, role: str) -> User:
+        """Give user ``name`` ``role``. Raises :class:`NotFound` or :class:`RequestError` (unknown role)."""
+        if name not in self.users:
+            raise NotFound(f"no user {name!r}")
+        u = self.users[name]
+        self._write(u.store_key, {**u.to_record(), "role": _role(role)})
         return self.users[name]
 
     @_atomic
@@ -642,6 +652,13 @@ def placement_tiers(data: dict) -> list[tuple[str, ...]]:
 
 
 NEED_KEYS = ("deadline_ms", "robot", "consumes")
+
+
+def _role(role: Any) -> str:
+    try:
+        return check_role(role)
+    except ValueError as e:
+        raise RequestError(str(e)) from None
 
 
 def _check_user_name(name: Any) -> None:

@@ -84,7 +84,7 @@ def test_authenticate_non_string_password_is_an_auth_error(password):
 def test_stored_record_has_no_clear_password():
     u = User.create(U, "s3cret")
     rec = u.to_record()
-    assert set(rec) == {"name", "salt", "scrypt"}
+    assert set(rec) == {"name", "salt", "scrypt", "role"}
     text = json.dumps(rec)
     assert "s3cret" not in text and password_digest("s3cret") not in text
     assert len(bytes.fromhex(rec["salt"])) == 16 and len(bytes.fromhex(rec["scrypt"])) == 32
@@ -742,7 +742,7 @@ def test_snapshot_shape(wired):
     assert json.loads(json.dumps(snap)) == snap                 # JSON-ready
     assert set(snap) == {"users", "tasksets", "robots", "containers", "nodes", "parameters", "interfaces",
                          "connections"}
-    assert snap["users"] == [{"name": U}]
+    assert snap["users"] == [{"name": U, "role": "operator"}]
     assert "pw" not in json.dumps(snap["users"])
     assert [t["kind"] for t in snap["tasksets"]] == ["robot", "container"]
     assert snap["tasksets"][0]["ws_url"] == "ws://hostA:9010/" and snap["tasksets"][0]["robots"] == 1
@@ -766,3 +766,19 @@ def test_snapshot_shape(wired):
 def test_snapshot_of_empty_state():
     assert MasterState().snapshot() == {"users": [], "tasksets": [], "robots": [], "containers": [], "nodes": [],
                                         "parameters": [], "interfaces": [], "connections": []}
+
+
+def test_roles_default_for_old_records_and_unknown_ones_are_refused():
+    st = MasterState()
+    old = User.create("old", "pw").to_record()
+    del old["role"]                                              # a users file written before roles
+    st.load_users([old])
+    assert st.users["old"].role == "operator"
+    assert st.add_user("ann", "pw", "viewer").role == "viewer" and st.set_user_role("ann", "admin").role == "admin"
+    assert st.user_records()[0]["role"] == "admin"
+    with pytest.raises(RequestError, match=r"unknown role 'boss' \(roles: viewer, operator, admin\)"):
+        st.add_user("bob", "pw", "boss")
+    with pytest.raises(RequestError, match="user record 1: unknown role 'root'"):
+        st.load_users([{**old, "role": "root"}])
+    with pytest.raises(NotFound):
+        st.set_user_role("nobody", "viewer")

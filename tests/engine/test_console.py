@@ -63,6 +63,29 @@ def test_user_add_login_and_delete(engine, tmp_path):
     assert bad.returncode == 1 and "HTTP 401" in bad.stderr
 
 
+def test_roles_are_set_listed_and_told_by_the_password_check(engine):
+    p = console(engine, "user", "add", "vera", "--role", "viewer", "--password-stdin", stdin="v3ra\n")
+    assert "added, is viewer" in p.stdout
+    users = {u["name"]: u["role"] for u in json.loads(console(engine, "--json", "users").stdout)}
+    assert users["vera"] == "viewer" and users["testUser"] == "admin"          # --dev's user administers
+    assert "is now operator" in console(engine, "user", "role", "vera", "--role", "operator").stdout
+    from rce.plumbing.errors import AuthError, RequestError
+    from rce_master.model import password_digest
+    ok = engine.admin("/api/auth", {"user": "vera", "password": password_digest("v3ra"), "addr": "192.0.2.7"})
+    assert ok == {"user": "vera", "role": "operator"}
+    for _ in range(5):                      # the robots' login guard: five free failures per user and address
+        with pytest.raises(AuthError):
+            engine.admin("/api/auth", {"user": "vera", "password": password_digest("no"), "addr": "192.0.2.7"})
+    with pytest.raises(RequestError) as e:  # then 429: even the right password waits
+        engine.admin("/api/auth", {"user": "vera", "password": password_digest("v3ra"), "addr": "192.0.2.7"})
+    assert e.value.status == 429 and "retry after" in str(e.value)
+    assert engine.admin("/api/auth", {"user": "vera", "password": password_digest("v3ra"),
+                                      "addr": "192.0.2.8"})["role"] == "operator"   # not from another address
+    bad = console(engine, "user", "role", "vera", "--role", "boss", check=False)
+    assert bad.returncode == 2 and "invalid choice: 'boss'" in bad.stderr
+    console(engine, "user", "del", "vera")
+
+
 def test_users_file_is_hashed_and_loaded(tmp_path):
     f = tmp_path / "users.json"
     p = subprocess.run([str(BIN / "rce-console"), "user", "add", "bob", "--file", str(f), "--password-stdin"],
