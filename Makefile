@@ -4,6 +4,7 @@ VENV := .venv
 BIN := $(VENV)/bin
 STAMP := $(VENV)/.installed
 ROSLIBJS := tests/web/roslibjs/node_modules/.installed
+FOXGLOVE_JS := tests/web/foxglove/node_modules/.installed
 
 .PHONY: setup test demo bench bytecode system-deps clean
 
@@ -14,7 +15,7 @@ $(STAMP): pyproject.toml
 	touch $(STAMP)
 
 ## setup: create .venv, install rce with its test extras and the Debian packages tests need (when root)
-setup: $(STAMP) system-deps $(ROSLIBJS)
+setup: $(STAMP) system-deps $(ROSLIBJS) $(FOXGLOVE_JS)
 
 system-deps:
 	@bash .ci/system-deps
@@ -23,6 +24,12 @@ system-deps:
 $(ROSLIBJS): tests/web/roslibjs/package.json tests/web/roslibjs/package-lock.json
 	npm ci --prefix tests/web/roslibjs --no-audit --no-fund --silent
 	touch $(ROSLIBJS)
+
+# Foxglove's WebSocket protocol client and ROS 1 message libraries (npm, pinned by package-lock.json) for
+# tests/web/test_foxglove.py.
+$(FOXGLOVE_JS): tests/web/foxglove/package.json tests/web/foxglove/package-lock.json
+	npm ci --prefix tests/web/foxglove --no-audit --no-fund --silent
+	touch $(FOXGLOVE_JS)
 
 ## test: the whole suite, in parallel (tests share no ports, files or state; a test file runs in one worker)
 TEST_WORKERS ?= 4

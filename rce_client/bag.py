@@ -30,13 +30,11 @@ if TYPE_CHECKING:
 SETUP_TIMEOUT = 30.0      # s for the recording interfaces of :func:`record_container` to come up
 
 
-class BagRecorder:
-    """Writes the bag ``path``; ``registry`` knows the message classes (default: the process's).
-
-    :meth:`open` creates ``path.active``, :meth:`write` adds a message, :meth:`close` finishes
-    the file and renames it to ``path``. ``counts``: messages written per topic; ``late``:
-    messages offered after :meth:`close` (not written). Raises :class:`RequestError` naming the
-    file when it cannot be written."""
+class Recording:
+    """What every recording file shares (a bag, :class:`rce_client.mcap_recorder.McapRecorder`): ``path``,
+    the ``path.active`` it is written to until it is closed, the ``registry`` that knows the message
+    classes (default: the process's), ``counts`` (messages written per topic) and ``late`` (messages
+    offered after it was closed, not written)."""
 
     def __init__(self, path: str | Path, registry: MessageRegistry | None = None):
         self.path = Path(path)
@@ -45,7 +43,6 @@ class BagRecorder:
         self.counts: dict[str, int] = {}
         self.late = 0
         self._writer: Any = None
-        self._conns: dict[str, tuple[str, Any]] = {}     # topic -> (store type, rosbags connection)
 
     @property
     def is_open(self) -> bool:
@@ -56,6 +53,25 @@ class BagRecorder:
     def total(self) -> int:
         """Messages written, all topics."""
         return sum(self.counts.values())
+
+    def summary(self) -> str:
+        """``recorded N message(s) on K topic(s) to PATH``, with the count per topic."""
+        per = ", ".join(f"{t} {n}" for t, n in sorted(self.counts.items()))
+        return f"recorded {self.total} message(s) on {len(self.counts)} topic(s) to {self.path}" + \
+            (f" ({per})" if per else "")
+
+
+class BagRecorder(Recording):
+    """Writes the bag ``path``; ``registry`` knows the message classes (default: the process's).
+
+    :meth:`open` creates ``path.active``, :meth:`write` adds a message, :meth:`close` finishes
+    the file and renames it to ``path``. ``counts``: messages written per topic; ``late``:
+    messages offered after :meth:`close` (not written). Raises :class:`RequestError` naming the
+    file when it cannot be written."""
+
+    def __init__(self, path: str | Path, registry: MessageRegistry | None = None):
+        super().__init__(path, registry)
+        self._conns: dict[str, tuple[str, Any]] = {}     # topic -> (store type, rosbags connection)
 
     def open(self) -> None:
         """Start the bag (``path.active``; a stale one is replaced)."""
@@ -97,12 +113,6 @@ class BagRecorder:
             except (OSError, WriterError) as e:
                 raise RequestError(f"cannot finish the bag {self.path}: {e}") from None
         return self.path
-
-    def summary(self) -> str:
-        """``recorded N message(s) on K topic(s) to PATH``, with the count per topic."""
-        per = ", ".join(f"{t} {n}" for t, n in sorted(self.counts.items()))
-        return f"recorded {self.total} message(s) on {len(self.counts)} topic(s) to {self.path}" + \
-            (f" ({per})" if per else "")
 
 
 async def record_container(conn: "Connection", ctag: str, topics: list[tuple[str, str]], bag: BagRecorder, *,

@@ -11,7 +11,9 @@
                    [--headless] [--web-port P] [--places YAML] [--battery KEY=V,...]
                    [--out-of-coverage RobotN,... [--radio-range M]]      # the seed paper's one mission
     rce-fleet serve [same options, no mission]      # until Ctrl-C
-    rce-fleet task add ERRAND... [--priority P] [--start-in S] [--deadline-in S] [--id ID] [--master URL]
+                   [--web-bind ADDR] [--tls-cert PEM --tls-key PEM] [--users FILE] [--metrics-public]
+                   [--token-ttl S]                  # the page and the task API: docs/task-api.md
+    rce-fleet task add ERRAND... [--priority P] [--start-in S] [--deadline-in S] [--id ID] [--master URL | --api URL]
     rce-fleet task list [--json] | task get ID | task cancel ID     # the operators' task API
     rce-fleet configs [--out DIR] [--robots N] [--url URL]   # write robot1.config ...
     rce-fleet grid [--map YAML] [--grid RxC | --cell M]     # print the grid's cell numbers
@@ -109,6 +111,7 @@ def _run_args(p: argparse.ArgumentParser, mission: bool) -> None:
     p.add_argument("--headless", action="store_true", help="no operator web page")
     p.add_argument("--web-port", type=int, default=8000, metavar="PORT",
                    help="port of the operator's web page (default 8000; any free port when taken; 0 = ephemeral)")
+    _web_args(p)
     p.add_argument("--timeout", type=_positive, default=DEMO_TIMEOUT_S if mission else SERVE_TIMEOUT_S, metavar="S",
                    help="give up after S wall seconds" + (" (default 300)" if mission else ""))
     p.add_argument("--no-lidar-blocking", action="store_true",
@@ -122,6 +125,10 @@ def _run_args(p: argparse.ArgumentParser, mission: bool) -> None:
     p.add_argument("--report", metavar="JSON", help="write a JSON report of the run")
     p.add_argument("--bag", metavar="FILE.bag", help="record the fleet topics (poses, paths, cancelGoal, fleet state) "
                    "into a ROS 1 bag")
+    p.add_argument("--record", metavar="FILE.mcap", help="record the fleet topics into an MCAP file (ROS 1 "
+                   "encoding, one channel per topic; a FILE.bag: a ROS 1 bag); rce-fleet replay plays it back")
+    p.add_argument("--foxglove-port", type=int, metavar="PORT", help="serve the live fleet to Foxglove/Lichtblick "
+                   "over the Foxglove WebSocket protocol on PORT (0 = ephemeral; default: not served)")
     p.add_argument("--places", metavar="YAML", help="named places (pick-up, drop-off, charger, parking) of the "
                    "map's grid (default: generated for the map, written to places.yaml in the work dir)")
     p.add_argument("--battery", metavar="KEY=VALUE,...", help="simulated batteries: capacity_wh, drain_wh_per_m, "
@@ -137,6 +144,21 @@ def _run_args(p: argparse.ArgumentParser, mission: bool) -> None:
                    help="live table even without a terminal")
     p.add_argument("--no-live", dest="live", action="store_false",
                    help="plain progress lines instead of the live table")
+
+
+def _web_args(p: argparse.ArgumentParser) -> None:
+    """Where the operator's page and the task API listen and who may use them (docs/task-api.md)."""
+    from rce.transport.tls import add_server_arguments
+    p.add_argument("--web-bind", default="127.0.0.1", metavar="ADDR",
+                   help="address of the page and the task API (default 127.0.0.1; 0.0.0.0: every interface; "
+                   "give it TLS then)")
+    add_server_arguments(p, "serve the page and the task API over HTTPS (HTTP Basic needs it)")
+    p.add_argument("--users", metavar="FILE", help="the master's users file (rce-console user add NAME --role "
+                   "ROLE --file FILE): who may log in to the page and the task API (default: rce-master --dev's "
+                   "testUser, an admin)")
+    p.add_argument("--metrics-public", action="store_true", help="/metrics without a credential (default: a viewer's)")
+    p.add_argument("--token-ttl", type=_positive, default=None, metavar="S",
+                   help="s a token from POST /api/login lives (default 28800: 8 h)")
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -295,7 +317,7 @@ def main(argv: list[str] | None = None) -> None:
     if args.cmd == "grid":
         sys.exit(_print_grid(args))
     from .live.demo import (EXIT_USAGE, Options, UsageError, parse_battery, parse_cell_at, parse_faults,
-                       parse_robot_cell, run)
+                       parse_robot_cell, run, web_access)
     mission = args.cmd == "demo" and args.mission
     lifelong = args.cmd == "demo" and not mission
     if lifelong and args.map is None and args.robots is None:       # the warehouse of ``make demo``
@@ -318,12 +340,14 @@ def main(argv: list[str] | None = None) -> None:
     try:
         opts = Options(map=args.map, robots=args.robots, grid=args.grid, cell=args.cell, seed=args.seed,
                        speedup=args.speedup, headless=args.headless, timeout=args.timeout,
+                       web=web_access(args),
                        goals=parse_robot_cell(getattr(args, "goal", []), "goal"),
                        starts=parse_robot_cell(args.start, "start"),
                        blocks=parse_cell_at(getattr(args, "block", []), "block"),
                        obstacles=parse_cell_at(getattr(args, "obstacle", []), "obstacle"),
                        faults=parse_faults(getattr(args, "fault", [])),
-                       plot=args.plot, report=args.report, bag=args.bag, workdir=args.workdir, keep=args.keep,
+                       plot=args.plot, report=args.report, bag=args.bag, record=args.record,
+                       foxglove_port=args.foxglove_port, workdir=args.workdir, keep=args.keep,
                        lidar_blocking=not args.no_lidar_blocking, mission=mission, live=args.live,
                        web_port=args.web_port, places=args.places, lifelong=lifelong,
                        duration=duration, task_rate=task_rate,

@@ -11,7 +11,9 @@ the operator's web page, injected faults, simulated radios and the bag recorder.
 - :mod:`.manager`: the fleet manager, the cloud side's operator client.
 - :mod:`.webui`: the operator's web page (static files in ``web/``).
 - :mod:`.faults`, :mod:`.linkproxy`, :mod:`.radio`: faults, links through a proxy, radios.
-- :mod:`.fleet_bag`: the fleet's topics recorded into a ROS 1 bag.
+- :mod:`.fleet_bag`: the fleet's topics recorded into a ROS 1 bag or an MCAP file.
+- :mod:`.fleet_scene`, :mod:`.foxglove`: the live fleet for Foxglove and Lichtblick (map, poses, paths,
+  markers) over the Foxglove WebSocket protocol.
 
 The top layer below :mod:`rce_fleet.cli`: may import every other part of rce_fleet; nothing but the
 CLI imports it.

@@ -27,6 +27,10 @@ master that is killed comes back with it.
 
 ``serve`` runs the same system without a mission until Ctrl-C (or ``--timeout``).
 
+The operator's page and the task API listen on ``--web-bind`` (127.0.0.1), over TLS with
+``--tls-cert``/``--tls-key``, and take the master's users (``--users FILE`` adds a users file to
+``--dev``'s testUser) with their roles (:class:`WebAccess`, docs/task-api.md).
+
 Tasks. The fleet takes operators' tasks in every mode (:mod:`rce_fleet.operations.tasks_api`): named
 places come from ``--places FILE`` or are generated for the map and written to
 ``places.yaml`` in the work directory (:mod:`rce_fleet.operations.places`). ``demo --lifelong`` runs the
@@ -97,6 +101,33 @@ class UsageError(ValueError):
 
 
 @dataclass
+class WebAccess:
+    """Where the page and the task API listen and who may use them: ``bind`` (address), ``tls_cert`` and
+    ``tls_key`` (PEM files: HTTPS), ``users`` (the master's ``--users`` file), ``metrics_public``
+    (``/metrics`` without a credential), ``token_ttl`` (s a login's token lives; None: the default)."""
+
+    bind: str = "127.0.0.1"
+    tls_cert: str | None = None
+    tls_key: str | None = None
+    users: str | None = None
+    metrics_public: bool = False
+    token_ttl: float | None = None
+
+
+def web_access(args) -> WebAccess:
+    """The :class:`WebAccess` of ``rce-fleet demo``/``serve``'s flags. Raises UsageError for one of
+    ``--tls-cert``/``--tls-key`` without the other, or a ``--users`` file that is not there."""
+    if (args.tls_cert is None) != (args.tls_key is None):
+        raise UsageError("give both --tls-cert and --tls-key, or neither")
+    for flag, path in (("--tls-cert", args.tls_cert), ("--tls-key", args.tls_key), ("--users", args.users)):
+        if path is not None and not Path(path).is_file():
+            raise UsageError(f"{flag} {path}: no such file")
+    return WebAccess(args.web_bind, str(args.tls_cert) if args.tls_cert else None,
+                     str(args.tls_key) if args.tls_key else None, str(Path(args.users).resolve()) if args.users
+                     else None, args.metrics_public, args.token_ttl)
+
+
+@dataclass
 class Options:
     """What to run: the ``rce-fleet demo``/``serve`` flags (see :mod:`rce_fleet.cli`)."""
 
@@ -115,12 +146,15 @@ class Options:
     plot: str | None = "fleet_paths.png"
     report: str | None = None
     bag: str | None = None          # ROS 1 bag of the fleet topics (``--bag``)
+    record: str | None = None       # MCAP (``.mcap``) or ROS 1 bag of the fleet topics (``--record``)
+    foxglove_port: int | None = None   # the Foxglove WebSocket server (rce_fleet.live.foxglove); None: none
     workdir: str | None = None
     keep: bool = False
     lidar_blocking: bool = True
     mission: bool = True
     live: bool | None = None        # None: when stdout is a terminal
     web_port: int = 8000            # the operator's web page (rce_fleet.live.webui); taken if free, else any
+    web: WebAccess = field(default_factory=WebAccess)   # where the page and the task API listen, who may use them
     faults: list[Fault] = field(default_factory=list)   # ``--fault`` (rce_fleet.live.faults)
     places: str | None = None       # ``--places`` YAML (None: generated for the map)
     lifelong: bool = False          # ``demo --lifelong``: a generated task stream for ``duration`` sim s
@@ -246,6 +280,8 @@ class Run:
         self.result: tuple[int, str] | None = None
         self.events: deque[str] = deque(maxlen=6)
         self.bag: FleetBag | None = None          # --bag
+        self.record: FleetBag | None = None       # --record
+        self.foxglove = None                      # --foxglove-port: rce_fleet.live.foxglove.FleetFoxglove
         self.grid_note = ""
         self.faults: FaultInjector | None = None
         self._stuck_since: float | None = None
@@ -357,8 +393,9 @@ class Run:
         if self.radio is not None:
             await self._ask_master_relays()
         try:
-            if self.bag is not None:         # before the report, which gives its counts
-                await self.bag.stop(TEARDOWN_TIMEOUT_S)
+            for rec in (self.bag, self.record):     # before the report, which gives the bag's counts
+                if rec is not None:
+                    await rec.stop(TEARDOWN_TIMEOUT_S)
         except (asyncio.TimeoutError, RCEError, OSError) as e:
             log.warning("the bag recorder did not disconnect", reason=str(e))
         try:
@@ -374,8 +411,9 @@ class Run:
     async def _run(self) -> tuple[int, str]:
         o = self.o
         state = self.workdir / "engine" / "master.sqlite3"
+        users = ("--users", o.web.users) if o.web.users else ()
         self.engine = await asyncio.to_thread(start_engine, self.workdir / "engine",
-                                              master_args=("--state", str(state)),
+                                              master_args=("--state", str(state), *users),
                                               admin_token=f"fleet-{random.getrandbits(64):016x}")
         log.info("engine up", master=self.engine.master_url, workdir=str(self.workdir))
         self.faults = FaultInjector(o.faults, self.engine, self.tasks, USER, self.mission_t)
@@ -411,6 +449,12 @@ class Run:
             await self._bounded(self.bag.start(self.engine.master_url, reg, SETUP_TIMEOUT_S), "bag recorder setup")
             self.events.append(f"recording the fleet topics to {o.bag}")
             log.info("recording", bag=o.bag, topics=len(self.bag.topics()))
+        if o.record:
+            self.record = FleetBag(o.record, self.robots, recorder_id="fleetMcapRecorder")
+            await self._bounded(self.record.start(self.engine.master_url, reg, SETUP_TIMEOUT_S), "recorder setup")
+            self.events.append(f"recording the fleet topics to {o.record}")
+        if o.foxglove_port is not None:
+            await self._start_foxglove(reg)
         if o.lifelong:
             return await self._lifelong()
         if not o.mission:
@@ -681,24 +725,52 @@ class Run:
 
     # -- the operator's web page (rce_fleet.live.webui, owned by the web page's code) ----------------
     async def _start_web(self) -> None:
+        from rce.tools.admin_client import AdminClient
+        from rce.transport.tls import server_context
+
+        from ..operations.api_auth import DEFAULT_TTL_S
+        from ..operations.http_api import ApiAuth, master_password_check
         from .webui import WebUI
+        w = self.o.web
+        self.admin_client = AdminClient(self.engine.master_url, self.engine.admin_token)
+        auth = ApiAuth(master_password_check(self.admin_client), ttl_s=w.token_ttl or DEFAULT_TTL_S,
+                       metrics_public=w.metrics_public)
+        ssl_context = server_context(w.tls_cert, w.tls_key) if w.tls_cert else None
+        if ssl_context is None and w.bind not in ("127.0.0.1", "localhost", "::1"):
+            log.warning("the page and the task API listen beyond loopback without TLS: passwords and tokens "
+                        "travel in clear (give --tls-cert and --tls-key)", bind=w.bind)
         self.web = WebUI(self.engine.master_url, self.occ, self.geo, self.robots, ctag=FLEET_CTAG, user=USER,
-                         password=PASSWORD, port=self.o.web_port, tasks=self.manager.tasks, places=self.places,
-                         relays=self._relay_lines if self.radio is not None else None)
+                         password=PASSWORD, auth=auth, bind=w.bind, port=self.o.web_port, tasks=self.manager.tasks,
+                         places=self.places, relays=self._relay_lines if self.radio is not None else None,
+                         ssl_context=ssl_context)
         url = await self._bounded(self.web.start(), "web page setup")
         self.events.append(f"operator page: {url}")
         print(f"rce-fleet: operator page: {url}  (log in as {USER}; rce-master --dev password {PASSWORD})",
               flush=True)
 
+    async def _start_foxglove(self, reg) -> None:
+        from .fleet_scene import FleetScene
+        from .foxglove import FleetFoxglove
+        self.foxglove = FleetFoxglove(self.engine.master_url, FleetScene(self.geo, self.occ, self.places, reg),
+                                      self.robots, user=USER, password=PASSWORD, port=self.o.foxglove_port)
+        url = await self._bounded(self.foxglove.start(), "Foxglove server setup")
+        self.events.append(f"Foxglove: {url}")
+        print(f"rce-fleet: Foxglove WebSocket: {url}  (SHA256HEX: the hex SHA-256 of {USER}'s password)", flush=True)
+
     async def _teardown(self) -> None:
         t0 = time.monotonic()
         try:
             await self.tasks.cancel_all()
-            if self.bag is not None:
-                await self.bag.stop(TEARDOWN_TIMEOUT_S)
+            for rec in (self.bag, self.record):
+                if rec is not None:
+                    await rec.stop(TEARDOWN_TIMEOUT_S)
+            if self.foxglove is not None:
+                async with asyncio.timeout(TEARDOWN_TIMEOUT_S):
+                    await self.foxglove.close()
             if getattr(self, "web", None) is not None:
                 async with asyncio.timeout(TEARDOWN_TIMEOUT_S):
                     await self.web.stop()
+                    await self.admin_client.aclose()
             if self.sim is not None:
                 await self.sim.stop(timeout=SIM_STOP_TIMEOUT_S, first=self.o.out_of_coverage)
             if self.radio is not None:

@@ -1,7 +1,9 @@
-"""``rce-fleet demo --bag``: the fleet topics recorded into a ROS 1 bag.
+"""``rce-fleet demo --bag`` and ``--record``: the fleet topics recorded into a ROS 1 bag or an MCAP file
+(:func:`rce_client.mcap_recorder.recorder_for`, by the file's suffix).
 
 Every robot's ``amcl_pose``, ``goalNodesList`` and ``cancelGoal`` and ``/fleet/state``, recorded from
-the fleet container through forwarders of the client ``fleetRecorder`` (:mod:`rce_client.bag`).
+the fleet container through forwarders of the client ``fleetRecorder`` (:mod:`rce_client.bag`), and
+``/fleet/tasks`` in an MCAP file (what ``rce-fleet replay`` shows besides the fleet state).
 """
 from __future__ import annotations
 
@@ -10,6 +12,7 @@ import asyncio
 from rce.messages import MessageRegistry
 from rce_client.bag import BagRecorder, record_container
 from rce_client.connection import Connection
+from rce_client.mcap_recorder import McapRecorder, recorder_for
 
 from ..configs import FLEET_CTAG, PASSWORD, USER
 
@@ -17,12 +20,14 @@ RECORDER_ID = "fleetRecorder"   # robotID of the recorder's connection
 
 
 class FleetBag:
-    """One run's bag of the fleet topics (a ROS 1 bag v2.0 at ``path``)."""
+    """One run's recording of the fleet topics at ``path`` (``.bag``: a ROS 1 bag v2.0; ``.mcap``: MCAP),
+    by the client ``recorder_id``."""
 
-    def __init__(self, path: str, robots: list[str]):
+    def __init__(self, path: str, robots: list[str], recorder_id: str = RECORDER_ID):
         self.path = path
         self.robots = robots
-        self.bag: BagRecorder | None = None
+        self.recorder_id = recorder_id
+        self.bag: BagRecorder | McapRecorder | None = None
         self.recorder: Connection | None = None
 
     def topics(self) -> list[tuple[str, str]]:
@@ -30,16 +35,17 @@ class FleetBag:
         per_robot = [(f"/{r}/{name}", cls) for r in self.robots for name, cls in (
             ("amcl_pose", "geometry_msgs/PoseWithCovarianceStamped"), ("goalNodesList", "std_msgs/Int32MultiArray"),
             ("cancelGoal", "std_msgs/Bool"))]
-        return [*per_robot, ("/fleet/state", "fleet/FleetState")]
+        tasks = [("/fleet/tasks", "fleet/TaskList")] if str(self.path).lower().endswith(".mcap") else []
+        return [*per_robot, ("/fleet/state", "fleet/FleetState"), *tasks]
 
     async def start(self, master_url: str, reg: MessageRegistry, timeout: float) -> None:
         """Open the bag and connect the recorder to the fleet container's topics.
 
         Raises RCEError when the engine refuses the recorder or its interfaces, TimeoutError after
         ``timeout`` s, OSError when the bag cannot be written."""
-        self.bag = BagRecorder(self.path, reg)
+        self.bag = recorder_for(self.path, reg)
         self.bag.open()
-        self.recorder = await Connection.connect(master_url, USER, PASSWORD, RECORDER_ID, allow_reconnect=True)
+        self.recorder = await Connection.connect(master_url, USER, PASSWORD, self.recorder_id, allow_reconnect=True)
         await record_container(self.recorder, FLEET_CTAG, self.topics(), self.bag, timeout=timeout)
 
     async def stop(self, timeout: float) -> None:

@@ -1,0 +1,214 @@
+"""``rce-fleet serve --foxglove-port P``: the live fleet for Foxglove and Lichtblick, over the Foxglove
+WebSocket protocol (:mod:`rce.foxglove`).
+
+Open ``ws://HOST:P/?userID=U&password=SHA256HEX`` in Foxglove ("Open connection", "Foxglove WebSocket"):
+the login is the operator page's (the master checks ``U``'s password, given as the hex SHA-256 of it as
+every rce front door takes it, by opening a robot session with it) and ``U`` must be the fleet's user.
+
+Advertised, with their full ROS 1 definitions (encoding ``ros1``, schema encoding ``ros1msg``): the
+fleet's own ``/fleet/state`` (``fleet/FleetState``) and ``/fleet/tasks`` (``fleet/TaskList``) as the
+global planner publishes them, and what Foxglove's 3D panel draws without plugins
+(:mod:`rce_fleet.live.fleet_scene`): ``/map``, ``/fleet/places`` and ``/fleet/task_markers``, each robot's
+``/RobotN/pose`` and ``/RobotN/path``. ``/map`` and ``/fleet/places`` are latched.
+
+Clients may publish (``clientPublish``), in ``ros1`` or ``json``, on the operator's topics: ``/fleet/goal``
+(``fleet/RobotGoal``), ``/fleet/block`` (``fleet/CellBlock``), ``/fleet/task`` (``fleet/Task``) and
+``/fleet/task_cancel`` (``fleet/TaskCancel``); anything else is answered with a ``status`` error.
+
+The fleet's messages come through one RCE client, robotID ``fleetFoxglove``: container
+``SubscriberInterface`` -> ``PublisherForwarder`` for the two fleet topics, ``SubscriberForwarder`` ->
+``PublisherInterface`` for the four operator topics, so messages go as the engine carries them (ROS 1
+bytes), never re-encoded.
+"""
+from __future__ import annotations
+
+import itertools
+import time
+
+import orjson
+
+from rce.foxglove.protocol import JSON, ClientChannel, ros1_schema
+from rce.foxglove.server import FoxgloveServer
+from rce.plumbing.errors import AuthError, MessageError, RCEError, RequestError
+from rce.plumbing.log import get_logger
+from rce_client.connection import Connection
+from rce_client.dial import HandshakeRefused, close_quietly, dial, login, with_query
+
+from ..configs import FLEET_CTAG
+from .fleet_scene import GRID, MARKERS, PATH, POSE, FleetScene
+
+log = get_logger("fleet.foxglove")
+
+ROBOT_ID = "fleetFoxglove"           # robotID of the server's RCE client
+LOGIN_ID = "foxgloveLogin"           # robotID prefix of the login check's short session
+SETUP_TIMEOUT_S = 30.0               # s for the server's interfaces to come up
+LOGIN_TIMEOUT_S = 10.0               # s for one client's login check
+CLOSE_TIMEOUT_S = 5.0                # s the cloud gets to confirm the removal of the server's interfaces
+FLEET_TOPICS = (("/fleet/state", "fleet/FleetState"), ("/fleet/tasks", "fleet/TaskList"))
+OPERATOR_TOPICS = {"/fleet/goal": "fleet/RobotGoal", "/fleet/block": "fleet/CellBlock", "/fleet/task": "fleet/Task",
+                   "/fleet/task_cancel": "fleet/TaskCancel"}
+
+
+class FleetFoxglove:
+    """The fleet's Foxglove server (module docstring): ``master_url`` and ``user``/``password`` (the fleet's
+    owner, whose client it runs as), ``scene`` (:class:`~rce_fleet.live.fleet_scene.FleetScene`),
+    ``robots`` (``Robot1`` ...)."""
+
+    def __init__(self, master_url: str, scene: FleetScene, robots: list[str], *, user: str, password: str,
+                 ctag: str = FLEET_CTAG, bind: str = "127.0.0.1", port: int = 0):
+        self.master_url, self.scene, self.robots = master_url, scene, list(robots)
+        self.user, self.password, self.ctag, self.bind, self.port = user, password, ctag, bind, port
+        self.reg = scene.reg
+        self.server = FoxgloveServer("rce-fleet", authenticate=self._login, on_publish=self._publish,
+                                     metric_prefix="rce_fleet_foxglove")
+        self.conn: Connection | None = None
+        self.pubs: dict = {}
+        self.ch: dict[str, int] = {}             # topic -> channel id
+        self._state: dict | None = None
+        self._tasks: dict | None = None
+        self._logins = itertools.count(1)
+        self.url = ""
+
+    async def start(self, timeout: float = SETUP_TIMEOUT_S) -> str:
+        """Connect to the fleet container, advertise the channels and listen; returns the URL to open
+        (without the password). Raises RCEError with the cloud's reason, TimeoutError after ``timeout`` s."""
+        store = self.reg.store
+        for topic, cls in FLEET_TOPICS:
+            self._channel(topic, cls)
+        for topic, typename, latched in (("/map", GRID, True), ("/fleet/places", MARKERS, True),
+                                         ("/fleet/task_markers", MARKERS, False)):
+            self.ch[topic] = self.server.add_channel(topic, _wire(typename), ros1_schema(store, typename),
+                                                     latched=latched).id
+        for r in self.robots:
+            self._channel(f"/{r}/pose", _wire(POSE))
+            self._channel(f"/{r}/path", _wire(PATH))
+        self.server.publish(self.ch["/map"], self.scene.occupancy_grid())
+        self.server.publish(self.ch["/fleet/places"], self.scene.place_markers())
+        await self._connect(timeout)
+        await self.server.start(self.bind, self.port)
+        self.port = self.server.port
+        self.url = f"ws://{self.bind}:{self.port}/?userID={self.user}&password=SHA256HEX"
+        log.info("Foxglove server up", url=self.url)
+        return self.url
+
+    def _channel(self, topic: str, cls: str) -> None:
+        typename = self.reg.msg_type(cls)
+        self.ch[topic] = self.server.add_channel(topic, cls, ros1_schema(self.reg.store, typename)).id
+
+    async def _connect(self, timeout: float) -> None:
+        c = self.conn = await Connection.connect(self.master_url, self.user, self.password, ROBOT_ID,
+                                                 allow_reconnect=True)
+        adds, links = [], []
+        for i, (topic, cls) in enumerate(FLEET_TOPICS):
+            tag = f"{ROBOT_ID}_in{i}"
+            adds += [{"endpointTag": self.ctag, "interfaceTag": tag, "interfaceType": "SubscriberInterface",
+                      "className": cls, "addr": topic},
+                     {"endpointTag": ROBOT_ID, "interfaceTag": tag, "interfaceType": "PublisherForwarder",
+                      "className": cls}]
+            c.subscriber(tag, cls, self._on_state if topic == "/fleet/state" else self._on_tasks)
+            links.append(tag)
+        for i, (topic, cls) in enumerate(OPERATOR_TOPICS.items()):
+            tag = f"{ROBOT_ID}_out{i}"
+            adds += [{"endpointTag": self.ctag, "interfaceTag": tag, "interfaceType": "PublisherInterface",
+                      "className": cls, "addr": topic},
+                     {"endpointTag": ROBOT_ID, "interfaceTag": tag, "interfaceType": "SubscriberForwarder",
+                      "className": cls}]
+            self.pubs[topic] = c.publisher(tag, cls)
+            links.append(tag)
+        await c.configure({"addInterfaces": adds})
+        await c.send("CX", {"connect": [{"tagA": f"{self.ctag}/{t}", "tagB": f"{ROBOT_ID}/{t}"} for t in links]})
+        await c.barrier(timeout)
+        await c.wait_interfaces_up(links, timeout)
+        self._tags = links
+
+    async def close(self) -> None:
+        """Stop serving, remove the server's interfaces from the fleet container and log out."""
+        await self.server.stop()
+        if self.conn is not None and not self.conn.closed:
+            try:
+                await self.conn.configure({"removeInterfaces": [{"endpointTag": self.ctag, "interfaceTag": t}
+                                                                for t in getattr(self, "_tags", [])]})
+                await self.conn.barrier(CLOSE_TIMEOUT_S)
+            except RCEError:
+                pass
+            await self.conn.close()
+
+    # -- the fleet's messages --------------------------------------------------------------------------
+    def _on_state(self, raw: bytes) -> None:
+        now = time.time_ns()
+        self.server.publish(self.ch["/fleet/state"], raw, now)
+        try:
+            st = self._state = self.reg.bytes_to_json("fleet/msg/FleetState", raw)
+        except MessageError as e:
+            log.warning("a fleet state that does not decode", reason=e.message)
+            return
+        stamp = st["header"]["stamp"]
+        t = stamp["secs"] + stamp["nsecs"] * 1e-9
+        for r in st["robots"]:
+            pose, path = self.ch.get(f"/{r['robot']}/pose"), self.ch.get(f"/{r['robot']}/path")
+            if pose is None or r["cell"] < 0:
+                continue
+            if self.server.subscribed(pose):
+                self.server.publish(pose, self.scene.robot_pose(r, t), now)
+            if self.server.subscribed(path):
+                self.server.publish(path, self.scene.robot_path(r, t), now)
+        self._markers(t, now)
+
+    def _on_tasks(self, raw: bytes) -> None:
+        now = time.time_ns()
+        self.server.publish(self.ch["/fleet/tasks"], raw, now)
+        try:
+            self._tasks = self.reg.bytes_to_json("fleet/msg/TaskList", raw)
+        except MessageError as e:
+            log.warning("a task list that does not decode", reason=e.message)
+
+    def _markers(self, t: float, now: int) -> None:
+        cid = self.ch["/fleet/task_markers"]
+        if self.server.subscribed(cid):
+            self.server.publish(cid, self.scene.task_markers(self._state, self._tasks, t), now)
+
+    # -- clients ---------------------------------------------------------------------------------------
+    async def _login(self, query: dict[str, str]) -> str:
+        """The operator page's login for ``userID`` and ``password`` (hex SHA-256): a short robot session at
+        the user's robot endpoint. Returns the user; raises AuthError (401) or RequestError (403)."""
+        user, password = query.get("userID", ""), query.get("password", "").lower()
+        if not user or not password:
+            raise AuthError("give userID and password (the hex SHA-256 of the password) in the URL's query")
+        if len(password) != 64 or any(ch not in "0123456789abcdef" for ch in password):
+            raise AuthError("password must be the hex SHA-256 digest (64 hex digits) of the password")
+        ws_url = await login(self.master_url, user, timeout=LOGIN_TIMEOUT_S)
+        robot = f"{LOGIN_ID}{next(self._logins)}"
+        try:
+            ws = await dial(with_query(ws_url, userID=user, robotID=robot, password=password, refusal="http"),
+                            LOGIN_TIMEOUT_S)
+        except HandshakeRefused as e:
+            if e.status in (401, 403):
+                raise AuthError(f"login refused for {user}: {e.reason}") from None
+            raise RequestError(f"the robot endpoint refused the login check (HTTP {e.status}): {e.reason}") from None
+        await close_quietly(ws)
+        if user != self.user:
+            raise RequestError(f"user {user} has no fleet here (this fleet is {self.user}'s)")
+        return user
+
+    async def _publish(self, client, ch: ClientChannel, payload: bytes) -> None:
+        cls = OPERATOR_TOPICS.get(ch.topic)
+        if cls is None:
+            raise RequestError(f"not a topic this fleet takes; publish on one of {', '.join(OPERATOR_TOPICS)}")
+        if ch.schema_name not in (cls, self.reg.msg_type(cls)):
+            raise MessageError(f"the fleet takes {cls} here, not {ch.schema_name}")
+        typename = self.reg.msg_type(cls)
+        if ch.encoding == JSON:
+            try:
+                payload = self.reg.json_to_bytes(typename, orjson.loads(payload))
+            except orjson.JSONDecodeError as e:
+                raise MessageError(f"not JSON: {e}") from None
+        else:
+            self.reg.check_structure(typename, payload)
+        await self.pubs[ch.topic].publish(payload)
+        log.info("Foxglove client published", topic=ch.topic, user=str(client.principal), bytes=len(payload))
+
+
+def _wire(typename: str) -> str:
+    """``pkg/msg/Name`` -> ``pkg/Name``."""
+    return typename.replace("/msg/", "/")
+
