@@ -35,7 +35,7 @@ from rce.plumbing.process import run_loop
 from rce.transport import framing
 from rce.transport import rpc
 from rce.bus.core import Bus
-from rce.bus.server import BusServer
+from rce.bus.server import BusServer, NodeSession
 from rce.transport.cluster_auth import token_of
 from rce.transport.dataplane import DataPlane
 from rce.plumbing.errors import MessageError, NotFound, RCEError, RequestError
@@ -44,6 +44,7 @@ from rce.messages import MessageRegistry, default_registry, wire_name
 from rce.node.naming import resolve
 from rce.transport.op_table import OpTable
 from rce.node.package_path import load_package_types
+from rce.node.results import ResultStats
 from rce_container import sandbox as sandboxes
 from rce_container.direct_routes import DirectRoutes
 from rce_container.interfaces import BusInterface, make_interface
@@ -61,6 +62,8 @@ BUS_CALL_TIMEOUT = 10.0   # s a bus_call waits for the service when the request 
 BUS_SAMPLE_TIMEOUT = 5.0  # s a bus_sample waits for messages when the request gives no timeout
 MAX_SOCKET_PATH = 107     # bytes, sun_path minus the NUL
 BUS_TOKEN_BYTES = 32      # random bytes of a container's bus token (64 hex chars, 256 bits)
+RESULTS_TIMEOUT = 1.0     # s a node has to hand over its result samples
+STATE_TIMEOUT = 10.0      # s a node has to hand its state out, or take it in (rce.node.Node.handoff)
 
 #: The ops the task set sends an environment (the module doc): those it relays from the master, and its own.
 ENV_OPS = OpTable("container task set -> environment")
@@ -74,9 +77,11 @@ def container_paths(runtime_dir: Path, socket_dir: Path, cid: int) -> tuple[Path
 class GroupContainer:
     """One container of the group: its bus socket and server, sandbox, launcher, interfaces."""
 
-    def __init__(self, env: "Environment", cid: int, ctag: str, user: str, group: str | None, limits: dict):
+    def __init__(self, env: "Environment", cid: int, ctag: str, user: str, group: str | None, limits: dict,
+                 deadline_ms: float | None = None, handoff: bool = False):
         self.env, self.cid, self.ctag, self.user, self.group = env, cid, ctag, user, group
         self.limits = limits
+        self.results = ResultStats(deadline_ms)
         self.workdir, socket = container_paths(env.runtime_dir, env.socket_dir, cid)
         self.socket = str(socket)
         token = secrets.token_hex(BUS_TOKEN_BYTES)     # only this container's nodes get it (RCE_BUS_TOKEN)
@@ -87,6 +92,8 @@ class GroupContainer:
                                        scope=env.scope)
         self.launcher = Launcher(self.sandbox, self.socket, ctag, self._status, bus_token=token,
                                  template=env.template)
+        if handoff:
+            self.launcher.extra_env["RCE_STATE_IN"] = "1"
         self.ros1 = Ros1Graph(self.launcher, cid, env.bus)     # rosmaster and relay, while it has ROS 1 nodes
         self.interfaces: dict[int, BusInterface] = {}
 
@@ -160,6 +167,19 @@ class GroupContainer:
                              "oom_kills": mem.get("oom_kills", 0), "failcnt": mem.get("failcnt", 0)}
         return out, per_node
 
+    def sessions(self) -> list[NodeSession]:
+        """The node sessions of this container that have said hello."""
+        return [s for s in self.server.sessions if s.node]
+
+    async def collect_results(self) -> None:
+        """Add what each node timed since the last collect (:mod:`rce.node.results`); a node whose
+        runtime does not time results (ROS 1 nodes, older runtimes) is skipped."""
+        for s in self.sessions():
+            try:
+                self.results.add(await s.peer.call("node_results", timeout=RESULTS_TIMEOUT), time.monotonic())
+            except RCEError:
+                continue
+
     def stats(self) -> dict:
         """Per-container counters; see :meth:`Environment.op_stats`."""
         ifs = [i.stats() for i in self.interfaces.values()]
@@ -174,6 +194,7 @@ class GroupContainer:
                       "starts": self.launcher.starts, "forked": self.launcher.forks,
                       "restarts": sum(n["restarts"] for n in nodes)},
             "per_node": per_node,
+            "results": self.results.stats(time.monotonic()),
             "msgs_in": sum(i["msgs_in"] for i in ifs), "msgs_out": sum(i["msgs_out"] for i in ifs),
             "bytes_in": sum(i["bytes_in"] for i in ifs), "bytes_out": sum(i["bytes_out"] for i in ifs),
             "dropped": {"interfaces": sum(i["dropped"] for i in ifs),
@@ -278,8 +299,11 @@ class Environment:
         cid = args["cid"]
         c = self.containers.get(cid)
         if c is None:
+            deadline = args.get("deadline_ms")
             c = GroupContainer(self, cid, args.get("ctag") or f"c{cid}", args.get("user", ""), args.get("group"),
-                          args.get("limits") or {})
+                               args.get("limits") or {},
+                               float(deadline) if isinstance(deadline, (int, float)) and deadline > 0 else None,
+                               bool(args.get("handoff")))
             self.containers[cid] = c
             try:
                 await c.start()
@@ -446,9 +470,11 @@ class Environment:
     @ENV_OPS.op("describe")
     async def op_describe(self, args: dict) -> dict:
         """``{cid}`` -> :meth:`Bus.describe` of the group's bus, plus ``launched``: the
-        container's nodes as the launcher sees them (``ntag, pid, running, restarts, argv``)."""
+        container's nodes as the launcher sees them (``ntag, pid, running, restarts, argv``), and
+        ``handoff``: the names of its nodes that hand their state over when it moves."""
         c = self._container(args)
-        return {**self.bus.describe(), "launched": [n.info() for n in c.launcher.nodes.values()]}
+        return {**self.bus.describe(), "launched": [n.info() for n in c.launcher.nodes.values()],
+                "handoff": sorted(s.node for s in c.sessions() if s.handoff)}
 
     @ENV_OPS.op("bus_publish")
     async def op_bus_publish(self, args: dict) -> dict:
@@ -513,6 +539,39 @@ class Environment:
         return [self.registry.bytes_to_json(typename, p) for p in got]
 
     # -- status --------------------------------------------------------------------------------
+    @ENV_OPS.op("state_out")
+    async def op_state_out(self, args: dict) -> dict:
+        """``{cid}`` -> ``{states: {node name: base64 | None}}``: each node's state, from the nodes
+        that hand theirs over (:meth:`rce.node.Node.handoff`; None: no hook, or it failed: logged).
+        Each node hands it out once its inputs so far are handled."""
+        c = self._container(args)
+        states: dict[str, str | None] = {}
+        for s in c.sessions():
+            try:
+                r = await s.peer.call("state_out", timeout=STATE_TIMEOUT)
+            except RCEError as e:
+                log.warning("node's state not handed out", cid=c.cid, node=s.node, reason=str(e))
+                r = None
+            states[s.node] = r.get("state") if isinstance(r, dict) else None
+        return {"states": states}
+
+    @ENV_OPS.op("state_in")
+    async def op_state_in(self, args: dict) -> dict:
+        """``{cid, states: {node name: base64 | None}}``: each node of a move's new copy takes its
+        state (or starts fresh) and then the inputs it held; ``{nodes: [names that took a state]}``."""
+        c = self._container(args)
+        states = args.get("states") or {}
+        took = []
+        for s in c.sessions():
+            try:
+                r = await s.peer.call("state_in", state=states.get(s.node), timeout=STATE_TIMEOUT)
+            except RCEError as e:
+                log.warning("node did not take its state", cid=c.cid, node=s.node, reason=str(e))
+                continue
+            if isinstance(r, dict) and r.get("took"):
+                took.append(s.node)
+        return {"nodes": took}
+
     @ENV_OPS.op("stats")
     async def op_stats(self, args: dict) -> dict:
         """``{cid}`` -> counters of the container and of its group::
@@ -524,6 +583,8 @@ class Environment:
              nodes: {count, running, starts, forked (of the starts, by the zygote), restarts},
              per_node: {ntag: {ntag, name, pid, running, restarts, last_exit, cpu_percent, rss_mib,
                                processes, connected, msgs_in, msgs_out, bytes_in, bytes_out, dropped}},
+             results: {results, misses, deadline_ms, p50_ms, p99_ms, max_ms, recent_p90_ms, unseen},
+                                   # its nodes' outputs timed from the inputs that caused them (rce.node.results)
              msgs_in, msgs_out, bytes_in, bytes_out,          # over the container's interfaces
              dropped: {interfaces, bus},                       # refused by peer links / bus subscriptions
              interfaces: [{iid, tag, kind, cls, addr, peers, msgs_in, msgs_out, bytes_in, bytes_out, dropped}],
@@ -539,6 +600,7 @@ class Environment:
         await c.ros1.sync()
         if self.direct is not None:
             await self.direct.collect()
+        await c.collect_results()
         topics = self.bus.topics.values()
         env_mem = measure([os.getpid()])
         return {**c.stats(), "sandbox_info": c.sandbox.info(), "environment": {

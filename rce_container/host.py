@@ -498,8 +498,11 @@ class ContainerHost:
 
     @HOST_OPS.op("create_container")
     async def op_create_container(self, args: dict) -> dict:
-        """``{cid, user, ctag, group, limits}`` -> ``{data_addr, sandbox, startup_ms}`` once the
-        environment serves the container. Idempotent for a repeated cid with the same tag.
+        """``{cid, user, ctag, group, limits, deadline_ms?, handoff?}`` -> ``{data_addr, sandbox,
+        startup_ms}`` once the environment serves the container (``deadline_ms``: its results'
+        due time, counted in its stats; ``handoff``: it is a move's new copy, its nodes wait for
+        their state, :meth:`rce_container.environment.Environment.op_state_in`). Idempotent for a
+        repeated cid with the same tag.
 
         Raises :class:`RequestError` for a cid reused with another tag, :class:`Unavailable`
         if the environment exits before it is ready, :class:`Timeout` if it does not get
@@ -533,7 +536,8 @@ class ContainerHost:
             env.cids.add(cid)
             try:
                 res = await env.peer.call("add_container", cid=cid, ctag=ctag, user=user, group=group,
-                                          limits=args.get("limits") or {}, timeout=self.env_timeout)
+                                          limits=args.get("limits") or {}, deadline_ms=args.get("deadline_ms"),
+                                          handoff=bool(args.get("handoff")), timeout=self.env_timeout)
             except BaseException:
                 env.cids.discard(cid)
                 if not env.cids:
@@ -577,7 +581,7 @@ class ContainerHost:
 
     @HOST_OPS.relay("add_node", "remove_node", "set_param", "delete_param", "get_param", "add_interface",
                     "remove_interface", "connect", "disconnect", "describe", "bus_publish", "bus_call", "bus_sample",
-                    "logs", "resize_container")
+                    "logs", "resize_container", "state_out", "state_in")
     async def relay(self, op: str, args: dict) -> Any:
         """Relay ``op`` (one of :data:`HOST_OPS`' relayed ops) to the environment of the op's
         ``cid``; its answer. Raises :class:`NotFound` for an unknown cid, :class:`Unavailable`

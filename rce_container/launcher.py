@@ -210,6 +210,7 @@ class Launcher:
         self.sandbox, self.bus_path, self.ctag, self.bus_token = sandbox, bus_path, ctag, bus_token
         self.on_status = on_status
         self.nodes: dict[str, NodeProcess] = {}
+        self.extra_env: dict[str, str] = {}     # every node of the container gets these (after its kind's)
         self.starts = 0   # processes started, respawns included
         self.forks = 0    # of which forked by the zygote
         self.tasks = Tasks(f"launcher of {ctag}")
@@ -268,7 +269,8 @@ class Launcher:
             raise RequestError(f"node name {name!r} must be a base name (use 'namespace' to place it)")
         enabled, delay, limit = parse_respawn(spec.get("respawn"))
         env = node_env(bus=self.bus_path, token=self.bus_token, ctag=self.ctag, name=name,
-                       namespace=join("/", namespace), home=self.sandbox.workdir, extra=(kind or {}).get("env"))
+                       namespace=join("/", namespace), home=self.sandbox.workdir,
+                       extra={**((kind or {}).get("env") or {}), **self.extra_env})
         args = build_args(spec.get("args"), directive_env(env), ENV_DIRECTIVE_ALLOWED) + (kind or {}).get("args", [])
         python = path.suffix == ".py" or _python_shebang(path)
         argv = ([sys.executable, str(path)] if python else [str(path)]) + args

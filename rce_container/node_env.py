@@ -14,6 +14,8 @@ What a node gets (every key, nothing else):
   checked by :class:`rce.bus.server.BusServer` on ``hello``), ``RCE_CONTAINER`` (cTag),
   ``RCE_NODE_NAME``, ``RCE_NAMESPACE``;
 - the host's values of :data:`PASSED_THROUGH` when set (package search paths, log format);
+- ``RCE_STATE_IN=1`` for the nodes of a move's new copy: they hold their inputs until their state
+  arrives (:meth:`rce.node.Node.handoff`);
 - ``extra``: what a node kind adds on purpose (e.g. ``ROS_*`` for ROS 1 nodes): one
   function builds every node's environment, so every addition is visible here.
 """

@@ -109,12 +109,14 @@ class Control:
         return await peer.request(op, args, CALL_TIMEOUT)
 
     # -- what a container is made of (a CC and CN, and its re-creation after a loss) --------------------
-    async def create_container(self, container: ContainerRec) -> dict:
-        """``create_container`` on ``container``'s host with its group and limits (``container.data``, as last
-        resized); the host's ``{data_addr, sandbox, startup_ms}``."""
+    async def create_container(self, container: ContainerRec, handoff: bool = False) -> dict:
+        """``create_container`` on ``container``'s host with its group, limits (``container.data``, as last
+        resized) and deadline; the host's ``{data_addr, sandbox, startup_ms}``. ``handoff``: it is a
+        move's new copy, whose nodes wait for their state (:mod:`rce_master.mover`)."""
         return await self.host_request(container, "create_container", {
             "user": container.user, "ctag": container.ctag, "group": container.group,
-            "limits": {k: container.data.get(k) for k in LIMIT_KEYS}},
+            "limits": {k: container.data.get(k) for k in LIMIT_KEYS},
+            "deadline_ms": container.data.get("deadline_ms"), "handoff": handoff},
             CREATE_TIMEOUT)
 
     async def start_node(self, container: ContainerRec, ntag: str, spec: dict) -> Any:

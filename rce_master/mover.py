@@ -10,7 +10,10 @@
    (:meth:`rce.protocol.interfaces.Interface.connect`): from that message on, the peer sends to the
    new copy only. Nothing is sent twice: each message goes to exactly one copy.
 3. **Break**: the old copy finishes what it had already received (its messages out stay still for
-   :data:`DRAIN_QUIET` s, at most :data:`DRAIN_MAX` s) and is destroyed.
+   :data:`DRAIN_QUIET` s, at most :data:`DRAIN_MAX` s) and is destroyed. When its nodes hand their
+   state over (:meth:`rce.node.Node.handoff`), the new copy was made holding its inputs; the old
+   copy hands its state out once it has handled its last input, the new copy takes it, then the
+   inputs it held, in order (nothing handled twice, nothing skipped).
 
 A move that fails before the switch (the new host refuses, a node does not come up) destroys
 what it made there and leaves the container running where it was (:class:`MoveFailed`).
@@ -37,6 +40,7 @@ READY_TIMEOUT = 20.0   # s the new copy's nodes have to come up
 READY_POLL = 0.05      # s between looks at its bus
 DRAIN_QUIET = 0.3      # s the old copy's counters must stay still before it is destroyed
 DRAIN_MAX = 5.0        # s the old copy may drain at most
+HANDOFF_QUIET = 0.05   # s the same before its state is handed out (its nodes then finish what they hold)
 
 
 class MoveFailed(RCEError):
@@ -48,7 +52,7 @@ class MoveFailed(RCEError):
 class MoveResult:
     """A move done: from host ``from_tid`` (cid ``old_cid``) to ``to_tid`` (``new_cid``); ``make_s``:
     s to build and wire the new copy, ``switch_s``: s to point every peer at it, ``drain_s``: s the
-    old copy drained."""
+    old copy drained (and handed its state over); ``states``: nodes that took their old state."""
     user: str
     ctag: str
     from_tid: int
@@ -58,6 +62,7 @@ class MoveResult:
     make_s: float
     switch_s: float
     drain_s: float
+    states: int = 0
 
 
 class Mover:
@@ -99,7 +104,8 @@ class Mover:
         conns = [(me, peer) for rec in ifaces for me, peer in self.state.connections_of(rec.iid)]
         log.info("container moving", user=c.user, ctag=c.ctag, from_tid=old_tid, to_tid=tid, cid=new.cid, why=why)
         try:
-            answer = await self.control.create_container(new)
+            handoff = (await self.control.host_call(c, "describe")).get("handoff") or []
+            answer = await self.control.create_container(new, handoff=bool(handoff))
             for name, value in self.state.params_of(c):
                 await self.control.host_call(new, "set_param", name=name, value=value)
             for rec in ifaces:
@@ -118,7 +124,7 @@ class Mover:
             await self.control.destroy_on(tid, new.cid)
             log.warning("container move failed; it runs where it was", user=c.user, ctag=c.ctag, to_tid=tid,
                         reason=str(e))
-            raise MoveFailed(f"container {c.ctag!r} not moved to host {tid}: {e}; it runs where it was") from None
+            raise MoveFailed(f"container {c.ctag!r} not moved to host {tid}, it runs where it was: {e}") from None
         t1 = time.monotonic()
         addr = answer["data_addr"]
         self.state.container_moved(c, tid, new.cid, addr, answer.get("sandbox", ""))
@@ -126,11 +132,15 @@ class Mover:
             await self.control.endpoint_call(peer, "connect", **self.control.connect_args(peer, me.iid, addr))
         t2 = time.monotonic()
         old = dataclasses.replace(c, cid=old_cid, tid=old_tid)
-        await self._drain(old)
+        moved_states = 0
+        if handoff:
+            moved_states = await self._hand_over(old, new)
+        else:
+            await self._drain(old)
         await self.control.destroy_on(old_tid, old_cid)
         t3 = time.monotonic()
         self.moves += 1
-        result = MoveResult(c.user, c.ctag, old_tid, tid, old_cid, new.cid, t1 - t0, t2 - t1, t3 - t2)
+        result = MoveResult(c.user, c.ctag, old_tid, tid, old_cid, new.cid, t1 - t0, t2 - t1, t3 - t2, moved_states)
         log.info("container moved", **dataclasses.asdict(result), why=why)
         self.control.notify_robot(c.user, c.owner, "ST", {"topic": "container", "cTag": c.ctag, "status": "running",
                                                           "sandbox": c.sandbox, "moved": True})
@@ -160,8 +170,23 @@ class Mover:
                 raise Timeout(f"its nodes did not take up {', '.join(missing)} within {READY_TIMEOUT:g} s")
             await asyncio.sleep(READY_POLL)
 
-    async def _drain(self, old: ContainerRec) -> None:
-        """Wait until the old copy's messages out stay still for DRAIN_QUIET s (at most DRAIN_MAX s)."""
+    async def _hand_over(self, old: ContainerRec, new: ContainerRec) -> int:
+        """The state of the old copy's nodes into the new copy's, which then take their held inputs
+        (:meth:`rce.node.Node.handoff`); how many nodes took a state. The old copy's inputs end at
+        the switch; it hands its state out once it has handled them (a short drain first, for what
+        was already on its way to it). A state that cannot be had leaves the new nodes to start fresh."""
+        await self._drain(old, HANDOFF_QUIET)
+        try:
+            states = (await self.control.host_call(old, "state_out")).get("states") or {}
+        except RCEError as e:
+            log.warning("old copy's state not had; the new copy starts fresh", user=old.user, ctag=old.ctag,
+                        reason=str(e))
+            states = {}
+        took = (await self.control.host_call(new, "state_in", states=states)).get("nodes") or []
+        return len(took)
+
+    async def _drain(self, old: ContainerRec, quiet: float = DRAIN_QUIET) -> None:
+        """Wait until the old copy's messages in and out stay still for ``quiet`` s (at most DRAIN_MAX s)."""
         end = time.monotonic() + DRAIN_MAX
         last, still_since = None, time.monotonic()
         while time.monotonic() < end:
@@ -173,6 +198,6 @@ class Mover:
             t = time.monotonic()
             if now != last:
                 last, still_since = now, t
-            elif t - still_since >= DRAIN_QUIET:
+            elif t - still_since >= quiet:
                 return
             await asyncio.sleep(0.05)

@@ -54,6 +54,10 @@ class _Use:
     rate_hz: float = 0.0
     in_bytes: float = 0.0
     out_bytes: float = 0.0
+    results: int = 0                 # results its nodes timed (rce.node.results), and how many were late
+    misses: int = 0
+    node_ms: float | None = None     # p90 of its nodes' latency over the last seconds, where it runs now
+    recent_misses: int = 0           # late results since the look before
 
 
 def asks_placement(data: dict) -> bool:
@@ -119,11 +123,16 @@ class Placement:
 
     def _count(self, c: ContainerRec, s: dict, now: float) -> None:
         cpu_s = float(s.get("cpu_seconds") or 0.0)
-        new = _Use(now, cpu_s, int(s.get("msgs_out") or 0), int(s.get("bytes_in") or 0), int(s.get("bytes_out") or 0))
+        res = s.get("results") or {}
+        new = _Use(now, cpu_s, int(s.get("msgs_out") or 0), int(s.get("bytes_in") or 0), int(s.get("bytes_out") or 0),
+                   results=int(res.get("results") or 0), misses=int(res.get("misses") or 0),
+                   node_ms=res.get("recent_p90_ms"))
         old = self.use.get((c.user, c.ctag))
         if old is not None and now > old.t:
             dt = now - old.t
-            new.rate_hz = max(0, new.msgs_out - old.msgs_out) / dt
+            new.recent_misses = max(0, new.misses - old.misses)
+            outputs = new.results - old.results if new.results > old.results else new.msgs_out - old.msgs_out
+            new.rate_hz = max(0, outputs) / dt
             new.in_bytes = max(0, new.bytes_in - old.bytes_in) / dt
             new.out_bytes = max(0, new.bytes_out - old.bytes_out) / dt
             busy = max(0.0, cpu_s - old.cpu_s) / dt                 # cores
@@ -145,7 +154,7 @@ class Placement:
         u = self.use.get((c.user, c.ctag))
         view = ContainerView(c.user, c.ctag, robot, d.get("deadline_ms"), u.work_ms if u else 0.0,
                              u.rate_hz if u else 0.0, u.in_bytes if u else 0.0, u.out_bytes if u else 0.0,
-                             float(d.get("cpu") or 0))
+                             float(d.get("cpu") or 0), u.node_ms if u else None)
         link = self.links.get((c.user, robot)) if robot else None
         links = {"cloud": link, "edge": link} if link is not None else ({} if robot else
                                                                          {"cloud": LinkView(0, float("inf")),
@@ -166,6 +175,7 @@ class Placement:
                      best=ch.target.zone if ch.target else None, move=ch.move, why=ch.why,
                      link_rtt_ms=link.rtt_ms if link else None, link_rate=link.rate if link else None,
                      work_ms=round(view.work_ms, 2), rate_hz=round(view.rate_hz, 2), in_bytes=round(view.in_bytes),
+                     node_ms=view.node_ms, misses=u.misses if u else 0,
                      battery=self.batteries.get((c.user, robot)) if robot else None)
         return ch
 
@@ -182,8 +192,11 @@ class Placement:
                              "pinned": None, "why": "asks no placement: on the least loaded shared host"})
                 continue
             best = f"{ch.target.zone} ({ch.target.host})" if ch.target else "-"
+            u = self.use.get((c.user, c.ctag))
             rows.append({"user": c.user, "ctag": c.ctag, "runs": runs, "best": best, "move": ch.move,
-                         "pinned": c.data.get("pinned"), "why": ch.why, **ch.to_json()})
+                         "pinned": c.data.get("pinned"), "why": ch.why, **ch.to_json(),
+                         "results": u.results if u else 0, "misses": u.misses if u else 0,
+                         "node_ms": u.node_ms if u else None})
         return rows
 
     async def move(self, c: ContainerRec, tid: int, why: str) -> dict:
@@ -196,7 +209,7 @@ class Placement:
         self.placer.moved(time.monotonic(), c.user, c.ctag)
         rec = {"t": time.time(), "user": c.user, "ctag": c.ctag, "from": names.get(r.from_tid, str(r.from_tid)),
                "to": names.get(r.to_tid, str(r.to_tid)), "make_s": round(r.make_s, 3),
-               "switch_s": round(r.switch_s, 4), "drain_s": round(r.drain_s, 3), "why": why}
+               "switch_s": round(r.switch_s, 4), "drain_s": round(r.drain_s, 3), "states": r.states, "why": why}
         self.moves = [*self.moves[-(MOVES_KEPT - 1):], rec]
         return rec
 

@@ -78,6 +78,7 @@ class ContainerView:
     in_bytes: float = 0.0
     out_bytes: float = 0.0
     cpu: float = 0.0
+    node_ms: float | None = None
 
 
 @dataclass(frozen=True)
@@ -97,11 +98,13 @@ class Option:
 
 
 def options(c: ContainerView, hosts: list[HostView], links: dict[str, LinkView],
-            energy: EnergyModel = EnergyModel()) -> list[Option]:
+            energy: EnergyModel = EnergyModel(), current_tid: int | None = None) -> list[Option]:
     """Every host that may run ``c`` (its robot's own computer, and shared hosts of the zone kinds
     in ``links``: a shared zone without a measured link is left out when ``c`` serves a robot),
     with its latency, margin and robot power. ``links``: zone kind (``"cloud"``, ``"edge"``) ->
-    :class:`LinkView`."""
+    :class:`LinkView`. On the host it runs on now (``current_tid``) the compute time is the
+    measured ``node_ms`` where it is the larger: what the model cannot see (CPU throttling,
+    queueing, a noisy neighbour) shows there first."""
     out = []
     for h in hosts:
         if not h.zone.serves(c.user, c.robot):
@@ -113,6 +116,8 @@ def options(c: ContainerView, hosts: list[HostView], links: dict[str, LinkView],
         compute = c.work_ms / share if share > 0 else float("inf")
         if c.work_ms == 0:
             compute = 0.0
+        if h.tid == current_tid and c.node_ms is not None:
+            compute = max(compute, c.node_ms)
         if h.zone.kind == "robot":
             link_ms, meets_link = 0.0, True
             watts = energy.cpu_w * c.work_ms * c.rate_hz / 1e3
@@ -210,7 +215,7 @@ class Placer:
                current_tid: int | None, battery_low: bool = False) -> Choice:
         """The choice for ``c`` at time ``now``; ``move`` is True only past the hysteresis in time."""
         key = (c.user, c.ctag)
-        ch = choose(options(c, hosts, links, self.energy), current_tid, battery_low, self.margin_gain,
+        ch = choose(options(c, hosts, links, self.energy, current_tid), current_tid, battery_low, self.margin_gain,
                     self.energy_gain, c.deadline_ms)
         if not ch.move:
             self._better_since.pop(key, None)

@@ -4,7 +4,7 @@ Link protocol (internal framing, :mod:`rce.transport.framing`): CONTROL requests
 ``hello``, ``advertise``, ``unadvertise``, ``subscribe``, ``unsubscribe``,
 ``advertise_service``, ``unadvertise_service``, ``resolve_service``,
 ``get_param``, ``set_param``, ``delete_param``, ``describe``, and the notifications
-``undecodable``, ``direct_closed`` and ``fd_channel``; DATA frames:
+``undecodable``, ``handoff``, ``direct_closed`` and ``fd_channel``; DATA frames:
 
 - node -> bus ``MSG dst=publisher handle`` publishes;
 - bus -> node ``MSG dst=subscription handle`` delivers;
@@ -89,6 +89,7 @@ class NodeSession:
         # what this node published (in) and was delivered (out), for per-node statistics
         self.msgs_in = self.bytes_in = self.msgs_out = self.bytes_out = 0
         self.undecodable = 0           # messages the node reported it could not deserialize
+        self.handoff = False           # the node hands its state over when its container moves
         peer.on_close = lambda _p: self.close()
         peer.link.on_drop = self._lost
         if server.token is None:
@@ -116,6 +117,11 @@ class NodeSession:
         return {"node": self.node, "msgs_in": self.msgs_in, "bytes_in": self.bytes_in, "msgs_out": self.msgs_out,
                 "bytes_out": self.bytes_out, "dropped": sum(s.dropped for s in self.subs.values()),
                 "undecodable": self.undecodable}
+
+    @BUS_OPS.op("handoff")
+    async def op_handoff(self, args: dict) -> None:
+        """The node hands its state over when its container moves (:meth:`rce.node.Node.handoff`)."""
+        self.handoff = True
 
     @BUS_OPS.op("undecodable")
     async def op_undecodable(self, args: dict) -> None:

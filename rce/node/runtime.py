@@ -26,12 +26,14 @@ JSON-form dict (:mod:`rce.messages`).
 from __future__ import annotations
 
 import asyncio
+import base64
 import functools
 import inspect
 import itertools
 import os
 import signal
 import sys
+import time
 import weakref
 from collections import deque
 from typing import Any, Awaitable, Callable
@@ -39,12 +41,13 @@ from typing import Any, Awaitable, Callable
 from rce.transport import framing
 
 from rce.transport import rpc
-from rce.plumbing.errors import MessageError, NotFound, RCEError, Unavailable
+from rce.plumbing.errors import MessageError, NotFound, RCEError, RequestError, Unavailable
 from rce.transport.link import Responder, settle_reply
 from rce.messages import MessageRegistry, default_registry, wire_name
 from rce.node.naming import join, resolve
 from rce.node.links import DirectLinks
 from rce.node.package_path import load_package_types, search_path
+from rce.node.results import INPUT_ARRIVAL, ResultClock, stamp_of
 from rce.plumbing.pending import PendingCalls
 from rce.plumbing.process import run_loop
 from rce.plumbing.tasks import Tasks
@@ -54,6 +57,9 @@ _NO = object()
 #: container's zygote inherits the zygote's registry and need not parse the same files again).
 _LOADED: weakref.WeakKeyDictionary = weakref.WeakKeyDictionary()
 SERVICE_TIMEOUT = 30.0   # s a service call waits for its response unless the caller says otherwise
+HOLD_MAX = 20.0          # s a move's new copy holds its inputs for its state at most (Node.handoff)
+HANDLED_POLL = 0.005     # s between looks at the subscribers while the state waits for them
+MAX_STATE = 8 * 2**20    # bytes of state a node hands over
 
 
 def definitions_key(env: dict | None = None) -> tuple:
@@ -107,6 +113,7 @@ class Publisher:
         if src >= 0:
             self.node._peer.send_raw(self._head(payload, src), payload)
         self.published += 1
+        self.node.results.published(msg, time.monotonic())
         await self.node._peer.link.drain()
         if self.node._direct is not None:
             await self.node._direct.drain(self.handle)
@@ -121,6 +128,7 @@ class Publisher:
             self.dropped += 1
             return False
         self.published += 1
+        self.node.results.published(msg, time.monotonic())
         return True
 
     def _lost(self) -> None:
@@ -157,13 +165,14 @@ class Subscriber:
         self.node, self.topic, self.typename, self.callback = node, topic, typename, callback
         self.decode = decode or functools.partial(node.registry.deserialize, typename)
         self.queue_size = max(1, queue_size)
-        self.queue: deque[bytes] = deque()
+        self.queue: deque[tuple[bytes, float]] = deque()     # (payload, arrival: monotonic s)
         self.dropped = 0
         self.received = 0
         self.undecodable = 0       # messages that did not deserialize as typename (counted, logged, reported)
         self.handle = 0
         self._busy = False         # a drain is scheduled or a callback's awaitable is awaited
         self._stopped = False
+        self._running: list | None = None     # [arrival, running] of the input whose awaitable is awaited
         self._loop = asyncio.get_running_loop()     # kept: each lookup costs a getpid() on Python 3.11
 
     def _push(self, payload: bytes) -> None:
@@ -171,8 +180,14 @@ class Subscriber:
         if len(q) >= self.queue_size:
             q.popleft()
             self.dropped += 1
-        q.append(payload)
-        if not self._busy and not self._stopped:
+        q.append((payload, time.monotonic()))
+        if not self._busy and not self._stopped and not self.node.holding:
+            self._busy = True
+            self._loop.call_soon(self._drain)
+
+    def _release(self) -> None:
+        """Take what waited while the node held its inputs (:meth:`Node.handoff`)."""
+        if self.queue and not self._busy and not self._stopped:
             self._busy = True
             self._loop.call_soon(self._drain)
 
@@ -187,14 +202,16 @@ class Subscriber:
     def _take_until_awaitable(self) -> Awaitable | None:
         """Take waiting messages until a callback returns an awaitable (returned) or none is left (None)."""
         q = self.queue
-        while q and not self._stopped:
-            r = self._take(q.popleft())
+        while q and not self._stopped and not self.node.holding:
+            r = self._take(*q.popleft())
             if r is not None:
                 return r
         return None
 
-    def _take(self, payload: bytes) -> Awaitable | None:
-        """Deserialize ``payload`` and call the callback: its awaitable result, or None."""
+    def _take(self, payload: bytes, arrived: float) -> Awaitable | None:
+        """Deserialize ``payload`` (arrived at monotonic ``arrived`` s) and call the callback: its
+        awaitable result, or None. What the callback publishes is timed from ``arrived``
+        (:mod:`rce.node.results`)."""
         self.received += 1
         try:
             msg = self.decode(payload)
@@ -202,14 +219,20 @@ class Subscriber:
             self.undecodable += 1
             self.node.undecodable(f"subscriber {self.topic}", e)
             return None
+        self.node.results.arrived(stamp_of(msg), arrived)
+        running = [arrived, True]
+        INPUT_ARRIVAL.set(running)
         try:
             r = self.callback(msg)
         except Exception as e:
+            running[1] = False
             self._failed(e)
             return None
-        if r is None or r.__class__ is bool:        # most callbacks return None, or publish_nowait's bool:
-            return None                             # no ABC check
-        return r if inspect.isawaitable(r) else None
+        if r is None or r.__class__ is bool or not inspect.isawaitable(r):   # most callbacks return None, or
+            running[1] = False                                                # publish_nowait's bool
+            return None
+        self._running = running
+        return r
 
     async def _finish(self, r: Awaitable | None) -> None:
         try:
@@ -218,6 +241,8 @@ class Subscriber:
                     await r
                 except Exception as e:
                     self._failed(e)
+                if self._running is not None:
+                    self._running[1] = False
                 r = self._take_until_awaitable()
         finally:
             self._busy = False
@@ -271,11 +296,19 @@ class Node:
         self._responder = Responder(f"node {self.full_name}", self.tasks)
         self._ids = itertools.count(1)
         self._shutdown = asyncio.Event()
+        self.results = ResultClock()          # outputs timed from their inputs (rce.node.results)
+        # a move's new copy holds its inputs until its state arrives (handoff); never longer than HOLD_MAX
+        self.holding = os.environ.get("RCE_STATE_IN") == "1"
+        self._handoff: tuple[Callable, Callable] | None = None
+        if self.holding:
+            asyncio.get_running_loop().call_later(HOLD_MAX, self._release)
 
     async def _connect(self) -> None:
         self._peer = await rpc.connect_unix(self.bus_path, name=f"node {self.full_name}", on_data=self._on_data,
                                             on_close=lambda _p: self._shutdown.set())
         self._peer.link.on_drop = Publisher._lost        # publish_nowait's tag: its Publisher
+        self._peer.handlers.update({"node_results": self._op_results, "state_out": self._op_state_out,
+                                    "state_in": self._op_state_in})
         r = await self._peer.call("hello", name=self.full_name, pid=os.getpid(),
                                   container=os.environ.get("RCE_CONTAINER"), token=self.bus_token, direct=True)
         key = r.get("fd_key") if isinstance(r, dict) else None
@@ -288,6 +321,45 @@ class Node:
                 print(f"[{self.full_name}] no direct links (all traffic by the bus): {e}", file=sys.stderr)
                 return
             self._direct = direct
+
+    # -- results and handoff (the environment's requests) -----------------------------------------
+    async def _op_results(self, args: dict) -> dict:
+        return self.results.take()
+
+    async def _op_state_out(self, args: dict) -> dict:
+        """``{state: base64 | None}`` once the inputs that arrived so far are handled."""
+        while any(sub.queue or sub._busy for sub in self._subs.values()):
+            await asyncio.sleep(HANDLED_POLL)
+        if self._handoff is None:
+            return {"state": None}
+        state = self._handoff[0]()
+        if inspect.isawaitable(state):
+            state = await state
+        if not isinstance(state, (bytes, bytearray)):
+            raise RequestError(f"node {self.full_name}: its state_out returned {type(state).__name__}, not bytes")
+        if len(state) > MAX_STATE:
+            raise RequestError(f"node {self.full_name}: its state is {len(state)} bytes, more than {MAX_STATE}")
+        return {"state": base64.b64encode(state).decode()}
+
+    async def _op_state_in(self, args: dict) -> dict:
+        """Take ``state`` (base64, or None: start fresh) through the hook, then the held inputs."""
+        took = False
+        try:
+            state = args.get("state")
+            if self._handoff is not None and isinstance(state, str):
+                r = self._handoff[1](base64.b64decode(state))
+                if inspect.isawaitable(r):
+                    await r
+                took = True
+        finally:
+            self._release()
+        return {"took": took}
+
+    def _release(self) -> None:
+        if self.holding:
+            self.holding = False
+            for sub in self._subs.values():
+                sub._release()
 
     def undecodable(self, where: str, error: MessageError) -> None:
         """A message for ``where`` (a subscriber's topic, a service) did not deserialize: logged on
@@ -389,6 +461,19 @@ class Node:
             self._services.pop(h, None)
             raise
         return h
+
+    def handoff(self, state_out: Callable[[], bytes | Awaitable[bytes]],
+                state_in: Callable[[bytes], Any]) -> None:
+        """Carry this node's state across a move of its container (make-before-break,
+        docs/placement.md "Moves"). On the old copy, once its last input is handled,
+        ``state_out()`` returns the state as bytes (at most :data:`MAX_STATE`; may be async); on
+        the new copy ``state_in(state)`` takes it (may be async) before the node handles any input:
+        until then its inputs wait, in order, in its subscribers' queues (their ``queue_size``
+        bounds them, the oldest dropped and counted first), at most :data:`HOLD_MAX` s. A node
+        without a hook starts fresh. Call it before :meth:`spin`."""
+        self._handoff = (state_out, state_in)
+        if self._peer is not None and not self._peer.closed.is_set():
+            self._peer.notify("handoff")
 
     async def service_proxy(self, name: str, srv_class: str) -> ServiceProxy:
         """A callable proxy for service ``name`` of ``srv_class``."""

@@ -103,7 +103,7 @@ async def test_host_lost_container_re_created_on_the_other_host_with_everything(
     host_b = cloud.hosts[HOST_B]
     assert host_b.sent == [
         ("create_container", {"cid": new_cid, "user": U, "ctag": "c1", "group": None,
-                              "limits": dict.fromkeys(LIMIT_KEYS)}),
+                              "limits": dict.fromkeys(LIMIT_KEYS), "deadline_ms": None, "handoff": False}),
         ("set_param", {"cid": new_cid, "name": "rate", "value": 10}),
         ("add_interface", {"cid": new_cid, "iid": 1, "tag": "c1/req", "itype": "PublisherInterface",
                            "cls": "std_msgs/String", "addr": "/stringEchoReq"}),

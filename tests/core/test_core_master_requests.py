@@ -95,7 +95,8 @@ async def test_create_container(world):
     c = state.container(U, "c1")
     assert (c.state, c.data_addr, c.sandbox, c.group) == ("running", "unix:/c1", "unconfined", "g")
     assert host_link.sent == [("create_container", {"cid": c.cid, "user": U, "ctag": "c1", "group": "g",
-                                                    "limits": {**dict.fromkeys(LIMIT_KEYS), "cpu": 1}})]
+                                                    "limits": {**dict.fromkeys(LIMIT_KEYS), "cpu": 1},
+                                                    "deadline_ms": None, "handoff": False})]
     assert notes(robot_link) == [("ST", {"topic": "container", "cTag": "c1", "status": "running",
                                          "sandbox": "unconfined"})]
 

@@ -111,3 +111,12 @@ def test_a_robot_config_states_what_its_container_needs():
     assert parse_config({**base, "containers": [{"cTag": "old"}]}).containers[0].container_data() == {}
     with pytest.raises(ConfigError, match=r"containers\[0\]\.deadline_ms: must be a number of ms greater than 0"):
         parse_config({**base, "containers": [{"cTag": "c", "deadline_ms": -1}]})
+
+
+def test_the_measured_latency_where_it_runs_overrides_a_hopeful_model():
+    slow = ContainerView(**{**NODE.__dict__, "node_ms": 140.0})     # throttled there: measured 140 ms
+    o = by_zone(options(slow, [CLOUD, ROBOT], GOOD, current_tid=ROBOT.tid))
+    assert o["robot:r1"].compute_ms == pytest.approx(140) and not o["robot:r1"].meets
+    assert o["cloud"].compute_ms == pytest.approx(20), "other hosts keep the model"
+    ch = choose(options(slow, [CLOUD, ROBOT], GOOD, current_tid=ROBOT.tid), ROBOT.tid)
+    assert ch.move and ch.target.zone == "cloud"

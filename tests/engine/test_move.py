@@ -6,7 +6,10 @@ its container and reads the echoes.
 - pinned to the robot, the container moves there while the stream runs; pinned to the cloud, back:
   every message echoed exactly once and in order, the old copy destroyed, the robot told;
 - a move that fails part way (its node's package exists only in the cloud) leaves the container
-  running where it was, the stream undisturbed.
+  running where it was, the stream undisturbed;
+- a node that hands its state over (``Node.handoff``: a counter of the messages it handled) goes on
+  counting on the new host from where the old copy stopped: every count once, in order;
+- each container's results are timed by the engine from input to output, against its deadline.
 
 Prints each move's longest gap between echoes (``pytest -s``).
 """
@@ -29,6 +32,26 @@ RATE = 20.0      # Hz
 WAIT = 30.0
 
 
+COUNTER = """#!/usr/bin/env python3
+import rce.node
+
+
+async def main(node):
+    count = [0]
+    pub = await node.publisher("stringEchoResp", "std_msgs/String", queue_size=100)
+
+    def handle(msg):
+        count[0] += 1
+        pub.publish_nowait({"data": f"{count[0]}:{msg.data}"})
+    node.handoff(lambda: str(count[0]).encode(), lambda state: count.__setitem__(0, int(state)))
+    await node.subscriber("stringEchoReq", "std_msgs/String", handle, queue_size=100)
+    await node.service("stringEchoService", "Test/StringEcho", lambda req: {"data": req.data})
+    await node.spin()
+
+rce.node.run(main, "stringEcho")
+"""
+
+
 @pytest.fixture(scope="module")
 def eng(tmp_path_factory):
     work = tmp_path_factory.mktemp("move")
@@ -37,12 +60,17 @@ def eng(tmp_path_factory):
     src = Path(__import__("rce").__file__).parent / "packages" / "Test" / "stringEcho.py"
     (pkg / "stringEcho.py").write_text(src.read_text())
     os.chmod(pkg / "stringEcho.py", 0o755)
+    both = work / "pkgs-both" / "Counting"            # a node with state, on both hosts
+    both.mkdir(parents=True)
+    (both / "stringEcho.py").write_text(COUNTER)
+    os.chmod(both / "stringEcho.py", 0o755)
     e = start_engine(work / "engine", container_hosts=0)
     plain = dict(e.env)
-    e.env["RCE_PACKAGE_PATH"] = str(pkg.parent)
+    e.env["RCE_PACKAGE_PATH"] = f"{pkg.parent}:{both.parent}"
     e.add_container_host("--name", "dc1")
-    e.env = plain
+    e.env = {**plain, "RCE_PACKAGE_PATH": str(both.parent)}
     e.add_container_host("--zone", "robot:mover", "--user", "testUser", "--name", "mover-computer")
+    e.env = plain
     yield e
     e.stop()
 
@@ -50,8 +78,8 @@ def eng(tmp_path_factory):
 class Stream:
     """Numbered messages at RATE and their echoes, each stamped (monotonic s)."""
 
-    def __init__(self, r: RawRobot):
-        self.r, self.sent, self.echoes, self.other = r, 0, [], []
+    def __init__(self, r: RawRobot, parse=int):
+        self.r, self.sent, self.echoes, self.other, self.parse = r, 0, [], [], parse
 
     async def run(self) -> None:
         async with asyncio.TaskGroup() as tg:
@@ -69,7 +97,7 @@ class Stream:
         while True:
             m = await self.r.recv(60)
             if isinstance(m, dict) and m.get("type") == "DM" and m["data"]["iTag"] == "resp":
-                self.echoes.append((time.monotonic(), int(m["data"]["msg"]["data"])))
+                self.echoes.append((time.monotonic(), self.parse(m["data"]["msg"]["data"])))
             elif isinstance(m, dict):
                 self.other.append(m)
 
@@ -90,7 +118,7 @@ def host_of(eng, ctag: str) -> str:
 
 async def test_moves_to_the_robot_and_back_lose_nothing(eng):
     async with RawRobot(eng.master_url, "mover") as r:
-        await _echo_container(r, "echoM", "Converter", {"placement": "auto", "robot": "mover"})
+        await _echo_container(r, "echoM", "Converter", {"placement": "auto", "robot": "mover", "deadline_ms": 1000})
         assert host_of(eng, "echoM") == "dc1"
         s = Stream(r)
         task = asyncio.create_task(s.run())
@@ -130,6 +158,29 @@ async def test_moves_to_the_robot_and_back_lose_nothing(eng):
         assert [m["to"].split(" ")[0] for m in eng.admin("/api/placement/moves")][-2:] == ["robot:mover", "cloud"]
         ts = {t["name"]: t for t in eng.admin("/api/tasksets") if t["kind"] == "container"}
         assert ts["mover-computer"]["containers"] == 0 and ts["dc1"]["containers"] == 1
+        res = eng.admin("/api/containers/testUser/echoM/stats")["results"]
+        assert res["results"] >= 20 and res["deadline_ms"] == 1000, res     # timed on the copy it runs on now
+        assert 0 <= res["p50_ms"] <= res["max_ms"] and res["misses"] <= res["results"], res
+
+
+async def test_a_node_hands_its_state_over(eng):
+    async with RawRobot(eng.master_url, "mover") as r:
+        await _echo_container(r, "counter", "Converter", {"placement": "auto", "robot": "mover"}, pkg="Counting")
+        s = Stream(r, parse=lambda d: tuple(int(x) for x in d.split(":")))
+        task = asyncio.create_task(s.run())
+        try:
+            await s.until(10)
+            for where in ("mover-computer", "dc1"):
+                moved = await asyncio.to_thread(eng.admin, "/api/containers/testUser/counter/move", {"host": where})
+                assert moved["states"] == 1, moved
+                n = len(s.echoes)
+                await s.until(n + 10)
+        finally:
+            task.cancel()
+        counts = [c for _, (c, _) in s.echoes]
+        seqs = [q for _, (_, q) in s.echoes]
+        assert counts == list(range(counts[0], counts[0] + len(counts))), "the count goes on across both moves"
+        assert seqs == list(range(seqs[0], seqs[0] + len(seqs))), "every message handled once, in order"
 
 
 async def test_a_move_that_fails_part_way_leaves_it_running_where_it_was(eng):
