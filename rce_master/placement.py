@@ -159,7 +159,7 @@ class Placement:
         links = {"cloud": link, "edge": link} if link is not None else ({} if robot else
                                                                          {"cloud": LinkView(0, float("inf")),
                                                                           "edge": LinkView(0, float("inf"))})
-        low = robot is not None and self.batteries.get((c.user, robot), 100.0) < self.battery_low
+        low = self._low(c)
         ch = self.placer.decide(now, view, self.hosts(), links, c.tid, low)
         pinned = d.get("pinned") or (d.get("placement") if d.get("placement") not in (None, "auto") else None)
         if pinned:
@@ -179,6 +179,11 @@ class Placement:
                      battery=self.batteries.get((c.user, robot)) if robot else None)
         return ch
 
+    def _low(self, c: ContainerRec) -> bool:
+        """Whether the robot ``c`` serves is below the battery threshold."""
+        robot = c.data.get("robot")
+        return robot is not None and self.batteries.get((c.user, robot), 100.0) < self.battery_low
+
     def advice(self) -> list[dict]:
         """Per container: where it runs, where the placer would put it and why (``GET /api/placement``)."""
         ts = self.state.tasksets
@@ -196,7 +201,9 @@ class Placement:
             rows.append({"user": c.user, "ctag": c.ctag, "runs": runs, "best": best, "move": ch.move,
                          "pinned": c.data.get("pinned"), "why": ch.why, **ch.to_json(),
                          "results": u.results if u else 0, "misses": u.misses if u else 0,
-                         "node_ms": u.node_ms if u else None})
+                         "node_ms": u.node_ms if u else None,
+                         "battery": self.batteries.get((c.user, c.data["robot"])) if c.data.get("robot") else None,
+                         "battery_low": self._low(c)})
         return rows
 
     async def move(self, c: ContainerRec, tid: int, why: str) -> dict:

@@ -291,6 +291,7 @@ class Master:
                 "robot_disconnected": lambda args, tid=ts.tid: self._robot_disconnected(tid, args),
                 "robot_relay": lambda args, tid=ts.tid: self._robot_relay(tid, args),
                 "robot_link": self._robot_link,
+                "robot_battery": self._robot_battery,
                 "robot_request": self._robot_request, "container_bus": self._container_bus,
                 "container_param": self._container_param})
         else:
@@ -435,6 +436,13 @@ class Master:
         log.warning("container lost with its environment", tid=tid, cid=args["cid"], reason=reason)
         await self.failover.environment_lost(tid, args["cid"], reason)
         await self.state.store.flush()
+
+    async def _robot_battery(self, args: dict) -> None:
+        """A robot endpoint's reading of a robot's charge (its ``sensor_msgs/BatteryState``), for the placer."""
+        try:
+            self.placement.robot_battery(str(args["user"]), str(args["robot"]), args["percent"])
+        except RequestError as e:
+            log.warning("robot battery not taken", reason=str(e))
 
     async def _robot_link(self, args: dict) -> None:
         """A robot endpoint's measure of a robot's link (:mod:`rce_robot.link_report`), for the placer."""

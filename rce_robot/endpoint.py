@@ -286,11 +286,18 @@ class RobotEndpoint:
         log.info("robot endpoint up", ws_port=self.ws_port, data_addr=self.plane.addr)
 
     async def _watch_links(self) -> None:
-        """Tell the master each robot's measured link (:mod:`rce_robot.link_report`)."""
+        """Tell the master each robot's measured link (:mod:`rce_robot.link_report`) and, when it
+        moved by :data:`~rce_robot.link_report.BATTERY_STEP` points, its charge (read from the
+        ``sensor_msgs/BatteryState`` it publishes)."""
         loop = asyncio.get_running_loop()
         while True:
             await asyncio.sleep(link_report.EVERY)
             self.link_reports.sample(loop.time(), [(u, r, ns.ws) for (u, r), ns in self.namespaces.items()])
+            for (user, robot), ns in self.namespaces.items():
+                if ns.battery is not None and (ns.battery_told is None
+                                               or abs(ns.battery - ns.battery_told) >= link_report.BATTERY_STEP):
+                    ns.battery_told = ns.battery
+                    self.master.notify("robot_battery", user=user, robot=robot, percent=round(ns.battery, 2))
 
     def _tell_link(self, user: str, robot: str, rtt_ms: float, rate: float) -> None:
         self.master.notify("robot_link", user=user, robot=robot, rtt_ms=round(rtt_ms, 3), rate=rate)

@@ -26,6 +26,7 @@ if TYPE_CHECKING:
 
 # s a container's call to the robot's service waits for the robot's reply
 ROBOT_CALL_TIMEOUT = 30.0
+BATTERY = "sensor_msgs/msg/BatteryState"    # a robot's charge, read on its way for the placer
 
 
 class RobotLink(Protocol):
@@ -43,6 +44,9 @@ class RobotLink(Protocol):
 
     def send_error(self, reason: str) -> None:
         """Queue an ER for the robot."""
+
+    def battery_seen(self, percent: float) -> None:
+        """The robot's charge (0 - 100 %), read from a ``sensor_msgs/BatteryState`` it sent."""
 
 
 class RobotInterface(Interface):
@@ -105,6 +109,8 @@ class RobotInterface(Interface):
         if self.kind is Kind.SUBSCRIBER:
             payload = self._encode(self.msg_t, msg)
             self.msgs_in += 1
+            if self.msg_t == BATTERY:
+                self._battery(msg, payload)
             if not self.peers:
                 self.dropped += 1
                 return
@@ -118,6 +124,18 @@ class RobotInterface(Interface):
         except MessageError as e:
             self._robot_calls.fail(msg_id, e)
             raise
+
+    def _battery(self, msg: Any, payload: bytes | memoryview) -> None:
+        """Tell the session the charge a BatteryState carries (``percentage``, 0 - 1, REP 145 /
+        sensor_msgs; NaN: not measured, ignored)."""
+        try:
+            pct = msg.get("percentage") if isinstance(msg, dict) else \
+                self.registry.deserialize(self.msg_t, bytes(payload)).percentage
+            pct = float(pct)
+        except (MessageError, TypeError, ValueError, AttributeError):
+            return
+        if 0.0 <= pct <= 1.0:
+            self.link.battery_seen(100.0 * pct)
 
     def fail_robot_call(self, msg_id: Any, reason: str) -> None:
         """(ServiceClient*) The robot refuses the call from the cloud ``msg_id`` (a rosbridge

@@ -9,11 +9,12 @@ from typing import Any
 
 from rce.transport.lane_socket import link_info, socket_of
 
-__all__ = ["CHANGE", "EVERY", "REFRESH", "LinkReports"]
+__all__ = ["BATTERY_STEP", "CHANGE", "EVERY", "REFRESH", "LinkReports"]
 
 EVERY = 0.5       # s between looks at the robots' sockets
 CHANGE = 0.2      # a report when the round trip or the rate moved by this share
 REFRESH = 10.0    # s, a report at least this often per robot
+BATTERY_STEP = 1.0   # percentage points a robot's charge moves before the master is told again
 
 
 class LinkReports:

@@ -83,6 +83,8 @@ class RobotNamespace:
         self._gone = False
         self._grace_timer: asyncio.Task | None = None
         self._wake = asyncio.Event()
+        self.battery: float | None = None                   # its charge (%), from its BatteryState messages
+        self.battery_told: float | None = None              # the charge last told to the master
         self.bulk_ws: Any = None                            # the bulk link, while one has joined (docs/lanes.md)
         self._bulk_wake = asyncio.Event()
 
@@ -126,6 +128,9 @@ class RobotNamespace:
     def send_status(self, data: dict) -> None:
         self.session.send_status(data)
         self._pump()
+
+    def battery_seen(self, percent: float) -> None:
+        self.battery = percent
 
     def send_error(self, reason: str) -> None:
         """Queue an ER (:meth:`RobotSession.send_error`: cut short, rate-limited) and log it (rate-limited)."""

@@ -6,7 +6,8 @@ testUser``).
 - ``placement: robot`` runs on the robot's computer; another user's robot of the same name is refused;
 - ``auto`` starts in the cloud; the placer's advice (``rce-console placement``) weighs the cloud
   through the robot's measured link and the robot's computer, and says why; a pin shows;
-- zones, capacity and load show in ``rce-console tasksets`` and the master's metrics.
+- zones, capacity and load show in ``rce-console tasksets`` and the master's metrics;
+- the robot's charge reaches the placer from the ``sensor_msgs/BatteryState`` it publishes.
 """
 from __future__ import annotations
 
@@ -105,3 +106,22 @@ async def test_the_placer_advises_through_the_measured_link_and_takes_a_pin(eng)
         p = subprocess.run([str(BIN / "rce-console"), "--master", eng.master_url, "placement", "pin", "testUser",
                             "auto1", "moon"], capture_output=True, text=True, env=eng.env, timeout=60)
         assert p.returncode != 0 and "zone must be one of" in p.stderr
+
+
+@pytest.mark.asyncio
+async def test_the_robots_battery_state_reaches_the_placer(eng):
+    async with RawRobot(eng.master_url, "r1") as r:
+        await create(r, "auto2", deadline_ms=100, robot="r1")
+        await r.iface("r1", "battery", "SubscriberConverter", "sensor_msgs/BatteryState")
+        loop = asyncio.get_running_loop()
+        end = loop.time() + WAIT
+        while True:             # the endpoint tells the master within a second of a reading
+            await r.send("DM", {"iTag": "battery", "type": "sensor_msgs/BatteryState", "msgID": "",
+                                "msg": {"voltage": 24.1, "percentage": 0.15, "present": True}})
+            row = next(x for x in eng.admin("/api/placement") if x["ctag"] == "auto2")
+            if row["battery"] is not None:
+                break
+            assert loop.time() < end, row
+            await asyncio.sleep(0.2)
+        assert row["battery"] == 15.0
+        assert row["battery_low"], "below the placer's threshold (20 %): it now weighs the robot's energy first"
