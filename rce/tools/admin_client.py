@@ -12,8 +12,9 @@ whose Ctrl-C must not wait for a blocked thread); both share everything but the 
 
 A refusal raises the :class:`RCEError` subclass for its HTTP status with the master's one-line
 reason, as ``"GET /api/robots: HTTP 401: <reason>"`` (``.status`` holds the code): 401/403
-:class:`AuthError`, 404 :class:`NotFound`, 504 :class:`Timeout`, other 5xx and an unreachable
-master :class:`Unavailable`, other 4xx :class:`RequestError`.
+:class:`AuthError`, 404 :class:`NotFound`, 429 :class:`Throttled` (its ``retry_after`` from the
+``Retry-After`` header), 504 :class:`Timeout`, other 5xx and an unreachable master :class:`Unavailable`,
+other 4xx :class:`RequestError`.
 
 Several masters (``AdminClient("http://m1:9000/,http://m2:9000/", ...)`` or a list; docs/INTERNALS.md,
 "Several masters"): a request goes to the master that answered last, and to the others in turn
@@ -35,7 +36,8 @@ from typing import Any
 import aiohttp
 
 from rce.transport import tls
-from rce.plumbing.errors import AuthError, NotFound, RCEError, RequestError, Timeout, Unavailable, http_reason
+from rce.plumbing.errors import (AuthError, NotFound, RCEError, RequestError, Throttled, Timeout, Unavailable,
+                                 http_reason)
 
 TIMEOUT = 30.0        # s, an admin API request, on top of the op's own timeout (a bus call's, a sample's)
 TOKEN_ENV = "RCE_ADMIN_TOKEN"
@@ -66,9 +68,15 @@ def find_token(token: str | None = None, path: Path | None = None) -> str:
     return found
 
 
-def refusal(method: str, path: str, status: int, body: bytes | str) -> RCEError:
-    """The error for HTTP ``status`` with ``body`` (the master's reason) answering ``method path``."""
+def refusal(method: str, path: str, status: int, body: bytes | str, retry_after: str | None = None) -> RCEError:
+    """The error for HTTP ``status`` with ``body`` (the master's reason) answering ``method path``;
+    ``retry_after``: the answer's ``Retry-After`` (s), for a 429."""
     reason = http_reason(body, f"HTTP {status}", MAX_REASON)
+    if status == 429:
+        err = Throttled(f"{method} {path}: HTTP {status}: {reason}",
+                        retry_after=float(retry_after) if (retry_after or "").isdigit() else 1.0)
+        err.status = status
+        return err
     cls = (AuthError if status in (401, 403) else NotFound if status == 404 else Timeout if status == 504
            else Unavailable if status >= 500 else RequestError)
     err = cls(f"{method} {path}: HTTP {status}: {reason}")
@@ -116,7 +124,7 @@ class _Tries:
     def refused(self, status: int, headers: Any, body: bytes) -> None:
         """``base`` refused: a standby's refusal sends the request to the leader it names, any
         other refusal is raised."""
-        err = refusal(self.method, self.path, status, body)
+        err = refusal(self.method, self.path, status, body, headers.get("Retry-After"))
         leader = headers.get(LEADER_HEADER) if status == 503 else None
         if leader is None:
             raise err

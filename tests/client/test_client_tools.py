@@ -15,7 +15,7 @@ from aiohttp import web
 from rce.tools.admin_client import AdminClient, find_token, refusal
 from rce.bus.core import Bus
 from rce.bus.server import BusServer
-from rce.plumbing.errors import AuthError, MessageError, NotFound, RequestError, Timeout, Unavailable
+from rce.plumbing.errors import AuthError, MessageError, NotFound, RequestError, Throttled, Timeout, Unavailable
 from rce.node.package_path import BUILTIN_DIR
 from rce_client import tools
 
@@ -260,7 +260,7 @@ def test_admin_token_is_found_in_order(monkeypatch, tmp_path):
 
 
 @pytest.mark.parametrize("status, cls", [(400, RequestError), (401, AuthError), (403, AuthError), (404, NotFound),
-                                         (409, RequestError), (500, Unavailable), (503, Unavailable),
+                                         (409, RequestError), (429, Throttled), (500, Unavailable), (503, Unavailable),
                                          (504, Timeout)])
 def test_admin_refusals_carry_the_masters_reason(status, cls):
     e = refusal("POST", "/api/users", status, b"\nuser 'x' already exists\nmore\n")

@@ -168,7 +168,7 @@ FLEET_NEVER = {
 SANS_IO = ("rce_fleet.maps", "rce_fleet.planning", "rce_fleet.lifelong", "rce_fleet.sim",
            "rce_fleet.nodes.global_planner_core", "rce_fleet.nodes.move_client_core", "rce_fleet.nodes.tracking",
            "rce_fleet.operations.places", "rce_fleet.operations.battery", "rce_fleet.operations.tasks_api",
-           "rce_fleet.operations.dispatcher")
+           "rce_fleet.operations.dispatcher", "rce_fleet.operations.api_auth", "rce_fleet.operations.api_models")
 IO_MODULES = ("socket", "ssl", "asyncio", "selectors", "http", "urllib.request", "aiohttp", "websockets",
               "picows", "rce.transport", "rce.node", "rce.bus", "rce_client")
 

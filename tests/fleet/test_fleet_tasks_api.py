@@ -1,14 +1,17 @@
 """The operators' task API against a running fleet: ``rce-fleet serve`` as a process (engine
 processes, fleet container with the global planner and move_clients, pymunk robots as
 rce-ros clients) on the lab map (8x8 cells of 1 m), 2 robots, sped-up simulation, with a
-places file; ``rce-fleet task`` as processes (each logs in as an RCE client) and the JSON
-HTTP API of ``serve``'s web server."""
+places file; ``rce-fleet task`` as processes (an RCE client, or a client of the HTTP API) and the
+JSON HTTP API of ``serve``'s web server, here over TLS with a throw-away CA and with a users file
+of a viewer and an operator beside ``--dev``'s testUser (an admin)."""
 from __future__ import annotations
 
+import base64
 import json
 import os
 import re
 import signal
+import ssl
 import subprocess
 import sys
 import time
@@ -28,8 +31,25 @@ PLACES = "places:\n  - {name: pick1, kind: pickup, cell: 16}\n  - {name: drop1, 
          "  - {name: park2, kind: parking, cell: 7}\n"
 
 
-def start_serve(d: Path, *extra: str) -> dict:
-    """``rce-fleet serve`` on the lab map with the places above; returns {"proc", "page", "master", "log"}."""
+USERS = {"vera": ("viewer", "vera-pw"), "otto": ("operator", "otto-pw")}    # name: (role, password)
+ADMIN = ("testUser", "testUser")           # rce-master --dev's user, an admin
+
+
+def write_users(path: Path) -> Path:
+    """A master users file (what ``rce-console user add NAME --role ROLE --file PATH`` writes) of USERS."""
+    from rce_master.state import MasterState
+    from rce_master.users import UsersFile
+    st = MasterState()
+    for name, (role, pw) in USERS.items():
+        st.add_user(name, pw, role)
+    UsersFile(path).save(st)
+    return path
+
+
+def start_serve(d: Path, *extra: str, ca: str | None = None) -> dict:
+    """``rce-fleet serve`` on the lab map with the places above; returns {"proc", "page", "base", "master",
+    "log", "ssl", "auth"} (``ssl``: a client context trusting ``ca``, for ``--tls-cert``; ``auth``: the
+    Authorization header of a token of testUser, an admin)."""
     (d / "places.yaml").write_text(PLACES)
     log = d / "serve.log"
     argv = [str(BIN / "rce-fleet"), "serve", "--robots", "2", "--speedup", "10", "--grid", "8x8", "--web-port", "0",
@@ -40,11 +60,14 @@ def start_serve(d: Path, *extra: str) -> dict:
     deadline = time.monotonic() + URL_TIMEOUT_S
     while time.monotonic() < deadline:
         text = log.read_text(errors="replace")
-        page = re.search(r"operator page: (http://\S+)", text)
+        page = re.search(r"operator page: (https?://\S+)", text)
         master = re.search(r"rce-fleet: master (http://\S+)", text)
         if page and master:
             u = page.group(1)
-            return {"proc": p, "page": u, "base": u.split("/?")[0], "master": master.group(1), "log": log}
+            f = {"proc": p, "page": u, "base": u.split("/?")[0], "master": master.group(1), "log": log,
+                 "ssl": ssl.create_default_context(cafile=ca) if ca else None, "ca": ca}
+            f["auth"] = bearer(login(f, *ADMIN)[1]["token"])
+            return f
         if p.poll() is not None:
             break
         time.sleep(0.1)
@@ -64,9 +87,26 @@ def stop_serve(f: dict) -> None:
 
 @pytest.fixture(scope="module")
 def fleet(tmp_path_factory):
-    f = start_serve(tmp_path_factory.mktemp("tasks"))
+    from rce.transport.tls import make_dev_certificates
+    d = tmp_path_factory.mktemp("tasks")
+    certs = make_dev_certificates(d / "tls")
+    f = start_serve(d, "--tls-cert", str(certs.cert), "--tls-key", str(certs.key), "--users",
+                    str(write_users(d / "users.json")), ca=str(certs.ca))
     yield f
     stop_serve(f)
+
+
+def bearer(token: str) -> str:
+    return f"Bearer {token}"
+
+
+def basic(user: str, password: str) -> str:
+    return "Basic " + base64.b64encode(f"{user}:{password}".encode()).decode()
+
+
+def login(fleet, user: str, password: str, **extra) -> tuple[int, dict]:
+    """``POST /api/login``: (status, answer)."""
+    return http(fleet, "POST", "/api/login", {"user": user, "password": password, **extra}, auth=None)
 
 
 def cli(fleet, *args: str) -> subprocess.CompletedProcess:
@@ -74,15 +114,23 @@ def cli(fleet, *args: str) -> subprocess.CompletedProcess:
                           capture_output=True, text=True, timeout=CLI_TIMEOUT_S)
 
 
-def http(fleet, method: str, path: str, body: dict | None = None) -> tuple[int, dict | str]:
+def http(fleet, method: str, path: str, body: dict | None = None, auth: str | None = "admin",
+         headers: dict | None = None) -> tuple[int, dict | str]:
+    """One request to the page's server: (status, JSON answer or text). ``auth``: the Authorization
+    header ("admin": the fixture's testUser token; None: none); ``headers`` (a dict) gets the answer's."""
     data = json.dumps(body).encode() if body is not None else None
-    req = urllib.request.Request(fleet["base"] + path, data=data, method=method,
-                                 headers={"Content-Type": "application/json"} if data else {})
+    h = {"Content-Type": "application/json"} if data else {}
+    if auth:
+        h["Authorization"] = fleet["auth"] if auth == "admin" else auth
+    req = urllib.request.Request(fleet["base"] + path, data=data, method=method, headers=h)
     try:
-        with urllib.request.urlopen(req, timeout=15) as r:
+        with urllib.request.urlopen(req, timeout=15, context=fleet.get("ssl")) as r:
             raw, code = r.read().decode(), r.status
+            seen = r.headers
     except urllib.error.HTTPError as e:
-        raw, code = e.read().decode(), e.code
+        raw, code, seen = e.read().decode(), e.code, e.headers
+    if headers is not None:
+        headers.update(seen)
     try:
         return code, json.loads(raw)
     except json.JSONDecodeError:
@@ -161,3 +209,91 @@ def test_cli_without_a_master_says_so_once_and_exits_3():
                        capture_output=True, text=True, timeout=CLI_TIMEOUT_S)
     assert p.returncode == 3, p.stderr
     assert p.stderr.strip() == f"rce-fleet task: cannot reach the master at {url}: Connection refused", p.stderr
+
+
+def test_no_credential_401_viewer_403_operator_201_with_the_user_recorded(fleet):
+    assert fleet["page"].startswith("https://127.0.0.1:")          # TLS, trusted through the test CA
+    seen: dict = {}
+    for method, path in (("GET", "/api/tasks"), ("POST", "/api/tasks"), ("DELETE", "/api/tasks/T1"),
+                         ("GET", "/config.json"), ("GET", "/map.png"), ("GET", "/metrics")):
+        code, err = http(fleet, method, path, {"errands": ["pick1"]} if method == "POST" else None, auth=None,
+                         headers=seen)
+        assert code == 401 and err["code"] == "unauthorized" and "credential is needed" in err["error"], (path, err)
+        assert seen["WWW-Authenticate"] == 'Bearer realm="rce fleet", Basic realm="rce fleet"'
+    code, page = http(fleet, "GET", "/", auth=None)
+    assert code == 200 and 'src="fleet.js"' in page                  # the page itself shows its login form
+    vera, otto = basic("vera", USERS["vera"][1]), basic("otto", USERS["otto"][1])
+    code, lst = http(fleet, "GET", "/api/tasks", auth=vera)          # HTTP Basic over TLS
+    assert code == 200 and {r["robot"] for r in lst["robots"]} == {"Robot1", "Robot2"}
+    assert http(fleet, "GET", "/metrics", auth=vera)[0] == 200
+    code, err = http(fleet, "POST", "/api/tasks", {"errands": ["pick1", "drop1"]}, auth=vera)
+    assert code == 403 and err == {"error": "user 'vera' is viewer: this needs operator or above", "code": "forbidden"}
+    code, t = http(fleet, "POST", "/api/tasks", {"errands": ["drop1"], "earliest_start_s": 3600.0, "id": "o1"},
+                   auth=otto)
+    assert code == 201 and t["id"] == "o1" and t["source"] == "http:otto", t
+    assert http(fleet, "DELETE", "/api/tasks/o1", auth=vera)[0] == 403
+    code, gone = http(fleet, "DELETE", "/api/tasks/o1", auth=otto)
+    assert code == 200 and gone["state"] == "cancelled" and gone["cancelled_by"] == "http:otto", gone
+    assert gone["reason"] == "cancelled by http:otto"
+    code, err = http(fleet, "GET", "/api/tasks", auth=basic("otto", "wrong"))
+    assert code == 401 and err["error"] == "invalid user or password"
+    code, err = http(fleet, "GET", "/api/tasks", auth="Digest x")
+    assert code == 401 and "use 'Bearer TOKEN'" in err["error"]
+
+
+def test_tokens_expire_are_revoked_and_failed_logins_are_throttled(fleet):
+    code, a = login(fleet, "otto", USERS["otto"][1], ttl_s=1.0)
+    assert code == 200 and a["role"] == "operator" and a["token_type"] == "Bearer" and a["expires_in"] == 1.0
+    t0 = time.monotonic()
+    assert http(fleet, "GET", "/api/tasks", auth=bearer(a["token"]))[0] == 200
+    while (code := http(fleet, "GET", "/api/tasks", auth=bearer(a["token"]))[0]) == 200:
+        assert time.monotonic() - t0 < 10, "the token did not expire"
+        time.sleep(0.1)                   # polling the server's clock: the expiry is the behaviour under test
+    assert code == 401 and time.monotonic() - t0 >= 1.0
+    _, b = login(fleet, "otto", USERS["otto"][1])
+    assert 28000 < b["expires_in"] <= 28800                          # the default: 8 h
+    assert http(fleet, "POST", "/api/logout", auth=bearer(b["token"])) == (200, {"revoked": 1})
+    code, err = http(fleet, "GET", "/api/tasks", auth=bearer(b["token"]))
+    assert code == 401 and "unknown, expired or revoked" in err["error"]
+    _, v = login(fleet, "vera", USERS["vera"][1])
+    assert http(fleet, "DELETE", "/api/tokens/otto", auth=bearer(v["token"]))[0] == 403   # a viewer may not
+    assert http(fleet, "DELETE", "/api/tokens/vera") == (200, {"revoked": 1})             # an admin may
+    assert http(fleet, "GET", "/api/tasks", auth=bearer(v["token"]))[0] == 401
+    code, err = http(fleet, "POST", "/api/login", {"user": "vera", "pasword": "x"}, auth=None)
+    assert code == 400 and "unknown field(s) 'pasword'" in err["error"]
+    # failed logins back off as robots' do (5 free per user and address), even for a user that does not exist
+    seen: dict = {}
+    codes = [login(fleet, "mallory", "guess")[0] for _ in range(5)]
+    code, err = http(fleet, "POST", "/api/login", {"user": "mallory", "password": "guess"}, auth=None, headers=seen)
+    assert codes == [401] * 5 and code == 429 and err["code"] == "throttled" and int(seen["Retry-After"]) >= 1
+
+
+def test_the_openapi_document_validates_and_names_the_models(fleet):
+    from openapi_spec_validator import validate
+    code, doc = http(fleet, "GET", "/api/openapi.json", auth=None)
+    assert code == 200
+    validate(doc)                                                    # OpenAPI 3.1, with its JSON Schema dialect
+    assert doc["openapi"] == "3.1.0" and doc["servers"] == [{"url": fleet["base"] + "/"}]
+    schemas = doc["components"]["schemas"]
+    assert {"TaskRequest", "Task", "TaskList", "RobotWork", "ApiError", "LoginRequest", "LoginAnswer"} <= set(schemas)
+    assert schemas["TaskRequest"]["additionalProperties"] is False and "cancelled_by" in schemas["Task"]["properties"]
+    post = doc["paths"]["/api/tasks"]["post"]
+    assert set(post["responses"]) >= {"201", "400", "401", "403", "409"} and "operator" in post["summary"]
+    assert doc["paths"]["/api/login"]["post"]["security"] == [] and doc["security"] == [{"bearer": []}, {"basic": []}]
+    # what the API answers fits the document's models
+    from rce_fleet.operations.api_models import TaskList
+    TaskList.model_validate(http(fleet, "GET", "/api/tasks")[1])
+
+
+def test_cli_speaks_the_http_api_as_a_user_with_a_role(fleet):
+    def task(user: str, *args: str) -> subprocess.CompletedProcess:
+        return subprocess.run([str(BIN / "rce-fleet"), "task", *args, "--api", fleet["page"], "--user", user,
+                               "--ca-file", fleet["ca"]], capture_output=True, text=True, timeout=CLI_TIMEOUT_S,
+                              env=dict(os.environ, RCE_PASSWORD=USERS[user][1]))
+    p = task("otto", "add", "pick1", "--id", "h1", "--start-in", "3600")
+    assert p.returncode == 0 and re.match(r"h1\s+queued\s", p.stdout), p.stderr
+    denied = task("vera", "cancel", "h1")
+    assert denied.returncode == 1 and "refused (forbidden): user 'vera' is viewer" in denied.stderr, denied.stderr
+    got = task("vera", "get", "h1", "--json")
+    assert got.returncode == 0 and json.loads(got.stdout)["source"] == "http:otto", got.stderr
+    assert task("otto", "cancel", "h1").returncode == 0

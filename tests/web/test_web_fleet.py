@@ -233,9 +233,10 @@ def test_wrong_password_shows_an_error(page, fleet, tmp_path):
 
 
 def test_demo_prints_and_serves_the_page(tmp_path):
-    """``rce-fleet demo`` without --headless prints the page's URL and serves the page, its
-    config (no password in it) and the map image while the mission runs to its end."""
+    """``rce-fleet demo`` without --headless prints the page's URL and serves the page, and to a
+    logged-in user its config (no password in it) and the map image while the mission runs to its end."""
     import json
+    import urllib.error
     import urllib.request
     log = tmp_path / "demo.log"
     argv = [str(BIN / "rce-fleet"), "demo", "--mission", "--robots", "2", "--speedup", "5",
@@ -247,10 +248,19 @@ def test_demo_prints_and_serves_the_page(tmp_path):
         url = wait_url(log, p)
         assert url, log.read_text(errors="replace")[-3000:]
         base = url.split("?")[0]
-        with urllib.request.urlopen(base + "config.json", timeout=HTTP_TIMEOUT_S) as r:
+        with pytest.raises(urllib.error.HTTPError) as no:
+            urllib.request.urlopen(base + "config.json", timeout=HTTP_TIMEOUT_S)
+        assert no.value.code == 401
+        req = urllib.request.Request(base + "api/login", data=json.dumps({"user": "testUser", "password": "testUser"})
+                                     .encode(), headers={"Content-Type": "application/json"}, method="POST")
+        with urllib.request.urlopen(req, timeout=HTTP_TIMEOUT_S) as r:
+            auth = {"Authorization": "Bearer " + json.loads(r.read())["token"]}
+        with urllib.request.urlopen(urllib.request.Request(base + "config.json", headers=auth),
+                                    timeout=HTTP_TIMEOUT_S) as r:
             cfg = json.loads(r.read())
         assert cfg["container"] == "cTag_01" and cfg["master"].startswith("http://") and "password" not in cfg
-        with urllib.request.urlopen(base + "map.png", timeout=HTTP_TIMEOUT_S) as r:
+        with urllib.request.urlopen(urllib.request.Request(base + "map.png", headers=auth),
+                                    timeout=HTTP_TIMEOUT_S) as r:
             assert r.read(8) == b"\x89PNG\r\n\x1a\n"
         with urllib.request.urlopen(url, timeout=HTTP_TIMEOUT_S) as r:
             assert b'src="fleet.js"' in r.read()

@@ -7,7 +7,7 @@ from __future__ import annotations
 
 import pytest
 
-from tests.fleet.test_fleet_tasks_api import http, start_serve, stop_serve
+from tests.fleet.test_fleet_tasks_api import basic, http, start_serve, stop_serve
 
 STATES_TIMEOUT_MS = 30_000     # logged in, fleet states and task lists arriving
 ANSWER_TIMEOUT_MS = 15_000     # a request is answered in the page's log
@@ -17,7 +17,7 @@ DONE_TIMEOUT_MS = 60_000       # a pick-up -> drop-off task is done (lab map, sp
 
 @pytest.fixture(scope="module")
 def fleet(tmp_path_factory):
-    f = start_serve(tmp_path_factory.mktemp("webtasks"), "--battery", "")
+    f = start_serve(tmp_path_factory.mktemp("webtasks"), "--battery", "", "--metrics-public")
     yield f
     stop_serve(f)
 
@@ -46,6 +46,10 @@ def click_cell(page, cell: int) -> None:
 
 def test_operator_creates_watches_and_cancels_tasks_on_the_page(op, fleet):
     page = op
+    # the page logged in at the fleet's server first (config.json and map.png need a credential), then at
+    # the master: the map arrived with its token, the master's URL came from the config
+    page.wait_for_function("fleetView.map.loaded", timeout=STATES_TIMEOUT_MS)
+    assert page.evaluate("fleetView.config.master") == fleet["master"]
     # each robot's battery (full) and activity are shown
     page.wait_for_function("document.querySelectorAll('#work tbody tr').length == 2")
     assert page.inner_text("#work tbody tr[data-robot=Robot1] .bat b") == "100 %"
@@ -79,6 +83,7 @@ def test_operator_creates_watches_and_cancels_tasks_on_the_page(op, fleet):
     assert page.locator(f"#task-queue tr[data-task='{lid}'] button").count() == 0
     code, t = http(fleet, "GET", f"/api/tasks/{lid}")
     assert code == 200 and t["state"] == "cancelled" and t["source"].startswith("operator:")
+    assert t["cancelled_by"].startswith("operator:")
     # bad input: the fleet's reason in the page's log, nothing else lost
     page.fill("#task-errands", "pick1, dock9")
     page.click("#task-add")
@@ -104,3 +109,11 @@ def test_operator_creates_watches_and_cancels_tasks_on_the_page(op, fleet):
     h = page.evaluate("fleetView.tasks.history")
     assert len(h) >= 2 and h[-1]["done"] >= 1 and 0 < h[-1]["util"] <= 1
     assert "done 1" in page.inner_text("#task-stats")
+
+
+def test_plain_http_takes_tokens_not_basic_and_metrics_public_needs_none(fleet):
+    code, err = http(fleet, "GET", "/api/tasks", auth=basic("testUser", "testUser"))
+    assert code == 401 and "HTTP Basic only over TLS" in err["error"], err
+    code, text = http(fleet, "GET", "/metrics", auth=None)              # --metrics-public
+    assert code == 200 and "rce_fleet_tasks_open" in text
+    assert http(fleet, "GET", "/api/tasks", auth=None)[0] == 401         # the rest still needs a credential

@@ -13,6 +13,13 @@ HTTP port, next to two generated files:
 Given the fleet manager's :class:`~rce_fleet.operations.tasks_client.TaskChannel` (``tasks``), it also
 serves the JSON task API and ``/metrics`` (:mod:`rce_fleet.operations.http_api`).
 
+Who may: the page itself (``index.html`` and its scripts and styles) is open, so that it can show its
+login form; ``config.json``, ``map.png`` and ``relays.json`` need a viewer's credential, as the task
+API does (``auth``, :class:`~rce_fleet.operations.http_api.ApiAuth`). The page logs in with
+``POST /api/login`` and sends the token with its own calls, then logs in at the master with the same
+user and password for its RCE session. It listens on ``bind`` (default 127.0.0.1), over TLS given
+``ssl_context``.
+
 The page is served from another origin than the master's: its login ``GET /?userID=..`` is a
 cross-origin request, allowed by the master's ``Access-Control-Allow-Origin: *``, and its
 websocket goes to the robot endpoint the login names. (``rce-master --static /ui=DIR`` serves
@@ -186,18 +193,24 @@ class WebUI:
     """Serve the operator's page for a running fleet; ``await start()`` returns the page's URL.
     ``tasks``: the fleet manager's TaskChannel (the HTTP API and /metrics; None: none);
     ``places``: the fleet's :class:`~rce_fleet.operations.places.Places` (the page's task form);
-    ``relays()``: follower -> relay robot now (``relays.json``; None: no relays)."""
+    ``relays()``: follower -> relay robot now (``relays.json``; None: no relays); ``auth``: who may
+    (:class:`~rce_fleet.operations.http_api.ApiAuth`; None: no credential asked, only for a page without
+    the task API, such as a replay's: with ``tasks`` it raises ValueError); ``ssl_context``: serve HTTPS
+    (:func:`rce.transport.tls.server_context`)."""
 
     def __init__(self, master_url: str, occ, geo: GridGeometry, robots: list[str], *, ctag: str, user: str,
-                 password: str, bind: str = "127.0.0.1", port: int = DEFAULT_PORT, mission: bool = True,
+                 password: str, auth=None, bind: str = "127.0.0.1", port: int = DEFAULT_PORT, mission: bool = True,
                  title: str = "rce fleet", tasks=None, places=None,
-                 relays: Callable[[], dict[str, str]] | None = None):
+                 relays: Callable[[], dict[str, str]] | None = None, ssl_context=None):
         self.master_url, self.occ, self.geo, self.robots = master_url, occ, geo, list(robots)
         self.ctag, self.user, self.password = ctag, user, password
         self.bind, self.port, self.title = bind, port, title
         self.mission = MissionRunner(master_url, geo, robots, user=user, password=password, ctag=ctag) \
             if mission else None
         self.tasks, self.places, self.relays = tasks, places, relays
+        if tasks is not None and auth is None:
+            raise ValueError("the task API needs auth (an ApiAuth): who may call it")
+        self.auth, self.ssl_context = auth, ssl_context
         self.url = ""
         self._runner: web.AppRunner | None = None
 
@@ -219,13 +232,20 @@ class WebUI:
         async def index(_req):
             return web.FileResponse(WEB_DIR / "index.html", headers=nocache)
 
-        async def config(_req):
+        async def viewer(req):
+            if self.auth is not None:
+                await self.auth.require(req, "viewer")
+
+        async def config(req):
+            await viewer(req)
             return web.Response(text=cfg, content_type="application/json", headers=nocache)
 
-        async def mapimg(_req):
+        async def mapimg(req):
+            await viewer(req)
             return web.Response(body=png, content_type="image/png", headers=nocache)
 
-        async def relays(_req):
+        async def relays(req):
+            await viewer(req)
             return web.json_response({"relays": self.relays()}, headers=nocache)
 
         app = web.Application()
@@ -236,25 +256,26 @@ class WebUI:
         app.router.add_get("/map.png", mapimg)
         if self.tasks is not None:
             from ..operations.http_api import add_routes
-            add_routes(app, self.tasks)
+            add_routes(app, self.tasks, self.auth)
         app.router.add_static("/", WEB_DIR, show_index=False)
         if self.mission is not None:
             await self.mission.start()
         self._runner = web.AppRunner(app, access_log=None)
         await self._runner.setup()
-        site = web.TCPSite(self._runner, self.bind, self.port)
+        site = web.TCPSite(self._runner, self.bind, self.port, ssl_context=self.ssl_context)
         try:
             await site.start()
         except OSError:
             if not self.port:
                 raise
             log.warning("web port in use, taking a free one", port=self.port)
-            site = web.TCPSite(self._runner, self.bind, 0)
+            site = web.TCPSite(self._runner, self.bind, 0, ssl_context=self.ssl_context)
             await site.start()
         port = site._server.sockets[0].getsockname()[1]
         host = self.bind if self.bind not in ("0.0.0.0", "::", "") else socket.gethostname()
+        host = f"[{host}]" if ":" in host else host
         # 127.0.0.1/localhost are secure contexts (crypto.subtle); rce.js has a fallback elsewhere
-        self.url = f"http://{host}:{port}/?user={self.user}"
+        self.url = f"{'https' if self.ssl_context else 'http'}://{host}:{port}/?user={self.user}"
         log.info("operator page up", url=self.url)
         return self.url
 

@@ -1,94 +1,237 @@
 """The fleet's JSON HTTP API and Prometheus metrics, on ``rce-fleet serve``'s web server.
 
-Routes (the fleet manager's :class:`~rce_fleet.operations.tasks_client.TaskChannel` does the work):
+Routes (the fleet manager's :class:`~rce_fleet.operations.tasks_client.TaskChannel` does the work; the
+role each needs in brackets, :mod:`rce_fleet.operations.api_auth`; the models and the OpenAPI document:
+:mod:`rce_fleet.operations.api_models`):
 
-==========================  =========================================================================
-``POST /api/tasks``         body ``{"errands": ["pick1", "42"], "priority": 0, "earliest_start_s": 0,
-                            "deadline_s": 0, "id": ""}`` -> 201 and the task; 400 (bad request), 409
-                            (the id exists) with ``{"error", "code"}``;
-                            a field not listed here is a 400
-``GET /api/tasks``          the task list: ``tasks`` (open, then recently closed), ``robots`` (each
-                            robot's task, activity, battery), counts and times
-``GET /api/tasks/ID``       one task, 404 when the fleet does not know it
-``DELETE /api/tasks/ID``    cancel it -> 200 and the task; 404 unknown, 409 already closed
-``GET /metrics``            Prometheus text: tasks by state, queue length, task times, per-robot
-                            utilisation, battery and tasks done
-==========================  =========================================================================
+==============================  =====================================================================
+``POST /api/login``             ``{"user", "password", "ttl_s"?}`` -> ``{"token", "token_type":
+                                "Bearer", "expires_in", "user", "role"}``; 401 wrong user or password,
+                                429 (``Retry-After``) after repeated failures [anyone]
+``POST /api/logout``            revoke the bearer token the request carries [viewer]
+``DELETE /api/tokens/USER``     revoke every token of USER -> ``{"revoked": n}`` [admin]
+``POST /api/tasks``             body ``{"errands": ["pick1", "42"], "priority": 0, "earliest_start_s": 0,
+                                "deadline_s": 0, "id": ""}`` -> 201 and the task, its ``source``
+                                ``http:USER``; 400 (bad request), 409 (the id exists); a field not
+                                listed here is a 400 [operator]
+``GET /api/tasks``              the task list: ``tasks`` (open, then recently closed), ``robots`` (each
+                                robot's task, activity, battery), counts and times [viewer]
+``GET /api/tasks/ID``           one task, 404 when the fleet does not know it [viewer]
+``DELETE /api/tasks/ID``        cancel it -> 200 and the task, its ``cancelled_by`` ``http:USER``; 404
+                                unknown, 409 already closed [operator]
+``GET /api/openapi.json``       the OpenAPI 3.1 document [anyone]
+``GET /metrics``                Prometheus text: tasks by state, queue length, task times, per-robot
+                                utilisation, battery and tasks done [viewer; anyone with
+                                ``metrics_public``]
+==============================  =====================================================================
+
+A credential is ``Authorization: Bearer TOKEN`` (from ``POST /api/login``) or ``Authorization: Basic``
+(a user and password of the master, over TLS only: in clear HTTP it is refused). No credential, or a
+wrong, expired or revoked one: 401 with ``WWW-Authenticate``; a role below the route's: 403. Every
+refusal is ``{"error", "code"}``. Passwords are checked by the master (``POST /api/auth`` of its admin
+API), which throttles repeated failures per user and client address as it does robots' logins.
 
 A task is ``{"id", "errands", "cells", "priority", "state", "robot", "next_errand", "reason",
-"source", "created", "earliest_start", "deadline", "assigned", "active", "finished", "reached"}``
-(times in fleet seconds, 0: not reached; ``reached``: the time each errand was reached, in order).
-A request the fleet does not answer within 10 s is a 504.
+"source", "cancelled_by", "created", "earliest_start", "deadline", "assigned", "active", "finished",
+"reached"}`` (times in fleet seconds, 0: not reached; ``reached``: the time each errand was reached, in
+order). A request the fleet does not answer within 10 s is a 504.
 """
 from __future__ import annotations
 
+import hashlib
 import json
+import time
+from typing import Awaitable, Callable
 
 from aiohttp import web
+from pydantic import ValidationError
 
+from rce.plumbing.errors import AuthError, RCEError, Throttled
+
+from .api_auth import DEFAULT_TTL_S, Identity, TokenBook, allows, parse_authorization
+from .api_models import LoginAnswer, LoginRequest, TaskRequest, openapi_document
 from .tasks_client import TaskChannel, TaskRefused
 
-__all__ = ["add_routes", "prometheus_text"]
+__all__ = ["ApiAuth", "add_routes", "master_password_check", "prometheus_text"]
 
 STATUS = {"bad_request": 400, "not_found": 404, "conflict": 409, "timeout": 504}
-FIELDS = ("errands", "priority", "earliest_start_s", "deadline_s", "id")   # of a POST's body
+FIELDS = tuple(TaskRequest.model_fields)            # of a POST's body
+NUMBERS = ("priority", "earliest_start_s", "deadline_s")
+REALM = 'realm="rce fleet"'
+
+# (user, password, client address) -> the user's role; raises AuthError (wrong) or Throttled (backing off)
+PasswordCheck = Callable[[str, str, str], Awaitable[str]]
 
 
-def _error(status: int, code: str, text: str) -> web.Response:
-    return web.json_response({"error": text, "code": code}, status=status)
+def _error(status: int, code: str, text: str, headers: dict | None = None) -> web.Response:
+    return web.json_response({"error": text, "code": code}, status=status, headers=headers)
 
 
-def add_routes(app: web.Application, channel: TaskChannel) -> None:
-    """Add the task API and ``/metrics`` (module docstring) to ``app``."""
+class Refusal(web.HTTPException):
+    """A refusal raised from a handler: ``{"error", "code"}`` with ``status`` (and ``headers``)."""
+
+    def __init__(self, status: int, code: str, text: str, headers: dict | None = None):
+        self.status_code = status
+        super().__init__(text=json.dumps({"error": text, "code": code}), content_type="application/json",
+                         headers=headers)
+
+
+def master_password_check(client) -> PasswordCheck:
+    """The :data:`PasswordCheck` of a master: ``POST /api/auth`` through ``client``, an
+    :class:`rce.tools.admin_client.AdminClient` holding the master's admin token."""
+    async def check(user: str, password: str, addr: str) -> str:
+        digest = hashlib.sha256(password.encode()).hexdigest()        # what a robot sends (DESIGN 3.2)
+        answer = await client.arequest("POST", "/api/auth", {"user": user, "password": digest, "addr": addr})
+        return str(answer["role"])
+    return check
+
+
+class ApiAuth:
+    """Who a request comes from and whether its role is enough: bearer tokens of a
+    :class:`~rce_fleet.operations.api_auth.TokenBook` (lifetime ``ttl_s``), else HTTP Basic over TLS,
+    checked by ``check_password``; ``metrics_public``: ``/metrics`` needs no credential."""
+
+    def __init__(self, check_password: PasswordCheck, *, ttl_s: float = DEFAULT_TTL_S, metrics_public: bool = False,
+                 clock: Callable[[], float] = time.monotonic):
+        self.check_password, self.metrics_public, self.clock = check_password, metrics_public, clock
+        self.book = TokenBook(ttl_s)
+
+    def _unauthorized(self, req: web.Request, text: str) -> Refusal:
+        schemes = f"Bearer {REALM}" + (f", Basic {REALM}" if req.secure else "")
+        return Refusal(401, "unauthorized", text, {"WWW-Authenticate": schemes})
+
+    async def password(self, req: web.Request, user: str, password: str) -> str:
+        """The role of ``user`` if ``password`` is right (the master checks it); raises :class:`Refusal`
+        401 (wrong), 429 (backing off) or 503 (the master cannot be asked)."""
+        try:
+            return await self.check_password(user, password, req.remote or "")
+        except Throttled as e:
+            raise Refusal(429, "throttled", f"too many failed logins; retry after {e.retry_after:g} s",
+                          {"Retry-After": str(max(1, round(e.retry_after)))}) from None
+        except AuthError:
+            raise self._unauthorized(req, "invalid user or password") from None
+        except RCEError as e:
+            raise Refusal(503, "unavailable", f"cannot check the password at the master: {e.message}") from None
+
+    async def require(self, req: web.Request, role: str) -> Identity:
+        """The identity of ``req`` when its role allows ``role``; raises :class:`Refusal` 401 (no,
+        malformed, wrong, expired or revoked credential; Basic without TLS) or 403 (a lower role)."""
+        try:
+            cred = parse_authorization(req.headers.get("Authorization", ""))
+        except ValueError as e:
+            raise self._unauthorized(req, str(e)) from None
+        if cred is None:
+            raise self._unauthorized(req, "a credential is needed: Authorization: Bearer TOKEN (POST /api/login)"
+                                          + (" or Basic" if req.secure else ""))
+        kind, a, b = cred
+        if kind == "bearer":
+            who = self.book.check(a, self.clock())
+            if who is None:
+                raise self._unauthorized(req, "the token is unknown, expired or revoked; log in again")
+        elif not req.secure:
+            raise self._unauthorized(req, "HTTP Basic only over TLS (https://); over http:// log in with "
+                                          "POST /api/login and send the token")
+        else:
+            who = Identity(a, await self.password(req, a, b), "basic")
+        if not allows(who.role, role):
+            raise Refusal(403, "forbidden", f"user {who.user!r} is {who.role}: this needs {role} or above")
+        return who
+
+
+def _json_body(body: object, model):
+    """``body`` validated by ``model``; raises :class:`Refusal` 400 with what was wrong."""
+    if not isinstance(body, dict):
+        raise Refusal(400, "bad_request", "the body must be a JSON object")
+    try:
+        return model.model_validate(body)
+    except ValidationError as e:
+        raise Refusal(400, "bad_request", _why(e, model)) from None
+
+
+def _why(e: ValidationError, model) -> str:
+    errs = e.errors()
+    if unknown := sorted(str(x["loc"][0]) for x in errs if x["type"] == "extra_forbidden"):
+        return (f"unknown field(s) {', '.join(map(repr, unknown))} "
+                f"(a {'task' if model is TaskRequest else 'login'} has {', '.join(model.model_fields)})")
+    field = str(errs[0]["loc"][0]) if errs[0]["loc"] else ""
+    if model is TaskRequest and field == "errands":
+        return "errands must be a list of cell numbers or place names"
+    if model is TaskRequest and field in NUMBERS:
+        return "priority, earliest_start_s and deadline_s must be numbers"
+    return f"{field}: {errs[0]['msg'].lower()}" if field else errs[0]["msg"]
+
+
+async def _read_json(req: web.Request) -> object:
+    try:
+        return await req.json()
+    except (json.JSONDecodeError, UnicodeDecodeError):
+        raise Refusal(400, "bad_request", "the body must be a JSON object") from None
+
+
+def add_routes(app: web.Application, channel: TaskChannel, auth: ApiAuth) -> None:
+    """Add the task API, the login and ``/metrics`` (module docstring) to ``app``; ``auth`` says who may."""
+
+    async def login(req: web.Request) -> web.Response:
+        lr = _json_body(await _read_json(req), LoginRequest)
+        role = await auth.password(req, lr.user, lr.password)
+        token, life = auth.book.issue(lr.user, role, auth.clock(), lr.ttl_s)
+        return web.json_response(LoginAnswer(token=token, expires_in=life, user=lr.user, role=role).model_dump(),
+                                 headers={"Cache-Control": "no-store"})
+
+    async def logout(req: web.Request) -> web.Response:
+        who = await auth.require(req, "viewer")
+        revoked = who.via == "bearer" and auth.book.revoke(req.headers["Authorization"].split(None, 1)[1].strip())
+        return web.json_response({"revoked": int(revoked)})
+
+    async def revoke_user(req: web.Request) -> web.Response:
+        await auth.require(req, "admin")
+        return web.json_response({"revoked": auth.book.revoke_user(req.match_info["user"])})
 
     async def post(req: web.Request) -> web.Response:
+        who = await auth.require(req, "operator")
+        t = _json_body(await _read_json(req), TaskRequest)
         try:
-            body = await req.json()
-        except (json.JSONDecodeError, UnicodeDecodeError):
-            return _error(400, "bad_request", "the body must be a JSON object")
-        if not isinstance(body, dict):
-            return _error(400, "bad_request", "the body must be a JSON object")
-        if unknown := sorted(set(body) - set(FIELDS)):     # a misspelt "priority" is not silently 0
-            return _error(400, "bad_request", f"unknown field(s) {', '.join(map(repr, unknown))} "
-                                              f"(a task has {', '.join(FIELDS)})")
-        errands = body.get("errands")
-        if not isinstance(errands, list) or not all(isinstance(e, (str, int)) and not isinstance(e, bool)
-                                                    for e in errands):
-            return _error(400, "bad_request", "errands must be a list of cell numbers or place names")
-        try:
-            prio, es, dl = (float(body.get(k, 0.0) or 0.0) for k in ("priority", "earliest_start_s", "deadline_s"))
-        except (TypeError, ValueError):
-            return _error(400, "bad_request", "priority, earliest_start_s and deadline_s must be numbers")
-        try:
-            task = await channel.add(errands, priority=prio, earliest_start_s=es, deadline_s=dl,
-                                     task_id=str(body.get("id") or ""))
+            task = await channel.add(t.errands, priority=t.priority, earliest_start_s=t.earliest_start_s,
+                                     deadline_s=t.deadline_s, task_id=t.id, source=f"http:{who.user}")
         except TaskRefused as e:
             return _error(STATUS.get(e.code, 400), e.code, e.reason)
         return web.json_response(task, status=201, headers={"Location": f"/api/tasks/{task['id']}"})
 
-    async def listing(_req: web.Request) -> web.Response:
+    async def listing(req: web.Request) -> web.Response:
+        await auth.require(req, "viewer")
         return web.json_response(_public(channel.latest))
 
     async def one(req: web.Request) -> web.Response:
+        await auth.require(req, "viewer")
         t = channel.get(req.match_info["id"])
         if t is None:
             return _error(404, "not_found", f"no task {req.match_info['id']!r} among the open and recent tasks")
         return web.json_response(t)
 
     async def delete(req: web.Request) -> web.Response:
+        who = await auth.require(req, "operator")
         try:
-            return web.json_response(await channel.cancel(req.match_info["id"]))
+            return web.json_response(await channel.cancel(req.match_info["id"], source=f"http:{who.user}"))
         except TaskRefused as e:
             return _error(STATUS.get(e.code, 400), e.code, e.reason)
 
-    async def metrics(_req: web.Request) -> web.Response:
+    async def openapi(req: web.Request) -> web.Response:
+        return web.json_response(openapi_document(f"{req.scheme}://{req.host}/", auth.metrics_public))
+
+    async def metrics(req: web.Request) -> web.Response:
+        if not auth.metrics_public:
+            await auth.require(req, "viewer")
         return web.Response(text=prometheus_text(channel.latest), content_type="text/plain", charset="utf-8",
                             headers={"Cache-Control": "no-store"})
 
+    app.router.add_post("/api/login", login)
+    app.router.add_post("/api/logout", logout)
+    app.router.add_delete("/api/tokens/{user}", revoke_user)
     app.router.add_post("/api/tasks", post)
     app.router.add_get("/api/tasks", listing)
     app.router.add_get("/api/tasks/{id}", one)
     app.router.add_delete("/api/tasks/{id}", delete)
+    app.router.add_get("/api/openapi.json", openapi)
     app.router.add_get("/metrics", metrics)
 
 

@@ -1,16 +1,26 @@
 """``rce-fleet task add|list|get|cancel``: the operators' task API from a shell.
 
-It logs in at the master as an RCE client (robotID ``taskCli-XXXXXX``, like the page),
-attaches a :class:`rce_fleet.operations.tasks_client.TaskChannel` to the fleet container, sends one
-request, prints the answer and leaves (removing the interfaces it added)::
+With ``--api URL`` (or ``$RCE_FLEET_API``) it speaks the fleet's HTTP task API
+(:mod:`rce_fleet.operations.http_api`) as the user ``--user``: with ``--token`` (or
+``$RCE_FLEET_TOKEN``), else it logs in with ``--password`` (or ``$RCE_PASSWORD``) for a short-lived
+token and logs out after; the user's role decides (a viewer may list and get, an operator also add
+and cancel), and the task records ``http:USER``. ``--ca-file`` (or ``$RCE_CA_FILE``) trusts an
+https:// API's CA.
 
+Without it, it logs in at the master as an RCE client of the fleet container's own user (robotID
+``taskCli-XXXXXX``, like the page), attaches a :class:`rce_fleet.operations.tasks_client.TaskChannel`
+to the fleet container, sends one request, prints the answer and leaves (removing the interfaces it
+added)::
+
+    rce-fleet task add pick1 drop1 --priority 2 --api http://127.0.0.1:8000/ --user alice
     rce-fleet task add pick1 drop1 --priority 2 --master http://127.0.0.1:PORT/
     rce-fleet task list [--json]
     rce-fleet task get T3
     rce-fleet task cancel T3
 
-Exit codes: 0 done, 1 the fleet refused the request (its reason on stderr), 2 bad flags,
-3 the fleet cannot be reached (login, container, no answer).
+Exit codes: 0 done, 1 the fleet refused the request (its reason on stderr; also a wrong
+credential or a role below the request's), 2 bad flags, 3 the fleet cannot be reached (login,
+container, no answer).
 """
 from __future__ import annotations
 
@@ -35,9 +45,18 @@ def add_task_parser(sub) -> None:
     common = argparse.ArgumentParser(add_help=False)
     common.add_argument("--master", default=os.environ.get("RCE_MASTER", DEFAULT_MASTER), metavar="URL",
                         help="the master's login URL (default $RCE_MASTER or %(default)s; rce-fleet serve prints it)")
-    common.add_argument("--user", default=USER, help=f"user (default {USER})")
+    common.add_argument("--api", default=os.environ.get("RCE_FLEET_API"), metavar="URL",
+                        help="the fleet's HTTP task API (rce-fleet serve's page URL; default $RCE_FLEET_API); "
+                             "without it: an RCE client at --master")
+    common.add_argument("--user", default=os.environ.get("RCE_USER", USER),
+                        help=f"user (default $RCE_USER, else {USER})")
     common.add_argument("--password", default=os.environ.get("RCE_PASSWORD", PASSWORD),
                         help="password (default $RCE_PASSWORD, else rce-master --dev's)")
+    common.add_argument("--token", default=os.environ.get("RCE_FLEET_TOKEN"),
+                        help="with --api: a bearer token from POST /api/login instead of the password "
+                             "(default $RCE_FLEET_TOKEN)")
+    common.add_argument("--ca-file", default=None, metavar="FILE",
+                        help="with an https:// --api: the CA that signed its certificate (default $RCE_CA_FILE)")
     common.add_argument("--container", default=FLEET_CTAG, metavar="CTAG",
                         help=f"fleet container (default {FLEET_CTAG})")
     common.add_argument("--json", action="store_true", help="print JSON")
@@ -102,19 +121,76 @@ async def _run(args) -> int:
         except TaskRefused as e:
             print(f"rce-fleet task: refused ({e.code}): {e.reason}", file=sys.stderr)
             return EXIT_UNREACHABLE if e.code == "timeout" else EXIT_REFUSED
-        if args.json:
-            print(json.dumps(out, indent=1))
-        elif args.action == "list":
-            print(f"queued {out.get('queued', 0)}  done {out.get('done', 0)}  failed {out.get('failed', 0)}  "
-                  f"cancelled {out.get('cancelled', 0)}")
-            for t in out.get("tasks", []):
-                print(_line(t))
-        else:
-            print(_line(out))
+        _print(args, out)
         return EXIT_OK
     finally:
         await ch.detach()
         await conn.close()
+
+
+def _print(args, out: dict) -> None:
+    if args.json:
+        print(json.dumps(out, indent=1))
+    elif args.action == "list":
+        print(f"queued {out.get('queued', 0)}  done {out.get('done', 0)}  failed {out.get('failed', 0)}  "
+              f"cancelled {out.get('cancelled', 0)}")
+        for t in out.get("tasks", []):
+            print(_line(t))
+    else:
+        print(_line(out))
+
+
+LOGIN_TTL_S = 300.0       # s the token of a one-request login lives (it is revoked after the request anyway)
+
+
+async def _run_http(args) -> int:
+    """``rce-fleet task`` against the HTTP task API (module docstring)."""
+    import aiohttp
+
+    from rce.transport.tls import client_context
+    base = args.api.split("?")[0].rstrip("/") + "/"
+    ssl = client_context(args.ca_file) if base.startswith("https:") else None
+    if args.action == "add":
+        method, path, body = "POST", "api/tasks", {"errands": args.errands, "priority": args.priority,
+                                                   "earliest_start_s": args.start_in, "deadline_s": args.deadline_in,
+                                                   "id": args.id}
+    elif args.action == "list":
+        method, path, body = "GET", "api/tasks", None
+    else:
+        method, path, body = "GET" if args.action == "get" else "DELETE", f"api/tasks/{args.id}", None
+    timeout = aiohttp.ClientTimeout(total=args.timeout)
+    try:
+        async with aiohttp.ClientSession(timeout=timeout) as http:
+            token = args.token
+            if not token:
+                async with http.post(base + "api/login", ssl=ssl, json={"user": args.user, "password": args.password,
+                                                                       "ttl_s": LOGIN_TTL_S}) as r:
+                    answer = await r.json(content_type=None)
+                    if r.status != 200:
+                        return _refused(r.status, answer, f"cannot log in at {base} as {args.user!r}")
+                    token = answer["token"]
+            auth = {"Authorization": f"Bearer {token}"}
+            try:
+                async with http.request(method, base + path, json=body, headers=auth, ssl=ssl) as r:
+                    out = await r.json(content_type=None)
+                    if r.status >= 400:
+                        return _refused(r.status, out, "refused")
+            finally:
+                if not args.token:
+                    async with http.post(base + "api/logout", headers=auth, ssl=ssl):
+                        pass
+    except (aiohttp.ClientError, OSError, ValueError) as e:
+        print(f"rce-fleet task: cannot reach the task API at {base}: {e or type(e).__name__}", file=sys.stderr)
+        return EXIT_UNREACHABLE
+    _print(args, out)
+    return EXIT_OK
+
+
+def _refused(status: int, answer, what: str) -> int:
+    why = answer.get("error") if isinstance(answer, dict) else str(answer)
+    code = answer.get("code") if isinstance(answer, dict) else f"HTTP {status}"
+    print(f"rce-fleet task: {what} ({code}): {why}", file=sys.stderr)
+    return EXIT_UNREACHABLE if status in (502, 503, 504) else EXIT_REFUSED
 
 
 def run_task(args) -> int:
@@ -123,4 +199,4 @@ def run_task(args) -> int:
     setup_logging()
     import logging
     logging.getLogger("rce.client").setLevel(logging.WARNING)
-    return asyncio.run(_run(args))
+    return asyncio.run(_run_http(args) if args.api else _run(args))

@@ -49,10 +49,11 @@ class Refused(Exception):
 
 @dataclass
 class TaskRecord:
-    """One task of the book: what operators gave (string id, errands as given, source, time
-    window in fleet s, 0: none) beside the pool's :class:`~rce_fleet.lifelong.Task`, which
-    owns its state: ``state``, ``robot``, ``reason``, ``history`` and the fleet time (s) it
-    was ``assigned``, became ``active`` and ``finished`` (0 when not (yet) reached)."""
+    """One task of the book: what operators gave (string id, errands as given, source: who
+    created it, time window in fleet s, 0: none; ``cancelled_by``: who cancelled it) beside the
+    pool's :class:`~rce_fleet.lifelong.Task`, which owns its state: ``state``, ``robot``,
+    ``reason``, ``history`` and the fleet time (s) it was ``assigned``, became ``active`` and
+    ``finished`` (0 when not (yet) reached)."""
 
     id: str
     task: Task
@@ -61,6 +62,7 @@ class TaskRecord:
     created: float
     earliest_start: float = 0.0
     deadline: float = 0.0
+    cancelled_by: str = ""
 
     @property
     def cells(self) -> tuple[int, ...]:
@@ -104,8 +106,9 @@ class TaskRecord:
         t = self.task
         return {"id": self.id, "errands": list(self.errands), "cells": list(t.errands), "priority": t.priority,
                 "state": self.state.value, "robot": self.robot, "next_errand": t.next_errand, "reason": self.reason,
-                "source": self.source, "created": self.created, "earliest_start": self.earliest_start,
-                "deadline": self.deadline, "assigned": self.assigned, "active": self.active,
+                "source": self.source, "cancelled_by": self.cancelled_by, "created": self.created,
+                "earliest_start": self.earliest_start, "deadline": self.deadline, "assigned": self.assigned,
+                "active": self.active,
                 "finished": self.finished, "reached": list(t.reached)}
 
 
@@ -153,7 +156,8 @@ class TaskBook:
                 raise Refused("not_found", f"no task {tid!r}")
             if not rec.open:
                 raise Refused("conflict", f"task {tid!r} is {rec.state.value}: it cannot be cancelled")
-            self.close(rec, TaskState.CANCELLED, f"cancelled by {req.get('source') or 'an operator'}", now)
+            rec.cancelled_by = str(req.get("source") or "")
+            self.close(rec, TaskState.CANCELLED, f"cancelled by {rec.cancelled_by or 'an operator'}", now)
             return self._answer(req, tid, None)
         except Refused as e:
             return self._answer(req, tid, e)

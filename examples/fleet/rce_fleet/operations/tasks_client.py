@@ -143,18 +143,21 @@ class TaskChannel:
         return a
 
     async def add(self, errands: list, *, priority: float = 0.0, earliest_start_s: float = 0.0,
-                  deadline_s: float = 0.0, task_id: str = "", timeout: float = ANSWER_TIMEOUT_S) -> dict:
-        """Queue a task (errands: cells or place names, in order); returns its ``fleet/TaskStatus``
-        (JSON form). Raises :class:`TaskRefused` with the fleet's reason."""
+                  deadline_s: float = 0.0, task_id: str = "", timeout: float = ANSWER_TIMEOUT_S,
+                  source: str = "") -> dict:
+        """Queue a task (errands: cells or place names, in order) on behalf of ``source`` (default: the
+        channel's); returns its ``fleet/TaskStatus`` (JSON form). Raises :class:`TaskRefused` with the
+        fleet's reason."""
         a = await self._ask(self._pub, {"id": task_id, "errands": [str(e) for e in errands],
                                         "priority": float(priority), "earliest_start_s": float(earliest_start_s),
-                                        "deadline_s": float(deadline_s), "source": self.source}, timeout)
+                                        "deadline_s": float(deadline_s), "source": source or self.source}, timeout)
         return self.get(a["id"]) or {"id": a["id"], "state": "queued"}
 
-    async def cancel(self, task_id: str, timeout: float = ANSWER_TIMEOUT_S) -> dict:
-        """Cancel task ``task_id``; returns its status. Raises :class:`TaskRefused` (not_found,
-        conflict: already closed)."""
-        a = await self._ask(self._cancel_pub, {"id": str(task_id), "source": self.source}, timeout)
+    async def cancel(self, task_id: str, timeout: float = ANSWER_TIMEOUT_S, source: str = "") -> dict:
+        """Cancel task ``task_id`` on behalf of ``source`` (default: the channel's; the task's
+        ``cancelled_by``); returns its status. Raises :class:`TaskRefused` (not_found, conflict: already
+        closed)."""
+        a = await self._ask(self._cancel_pub, {"id": str(task_id), "source": source or self.source}, timeout)
         return self.get(a["id"]) or {"id": a["id"], "state": "cancelled"}
 
     def tasks(self) -> list[dict]:

@@ -28,14 +28,25 @@ const RELAYS_EVERY = 1000;       // ms between asks for the followers' relays (r
 
 // ---------------------------------------------------------------------------------------------
 // configuration: URL query (master, user, container, map, mission) > config.json next to the page >
-// defaults (the master that serves the page, the fleet container cTag_01, map.png next to the page)
+// defaults (the master that serves the page, the fleet container cTag_01, map.png next to the page).
+// Served by rce-fleet, config.json, map.png and relays.json need a credential (401 without): the login
+// then first asks the fleet's server for a token (POST api/login, the same user and password) and
+// sends it with those calls (apiLogin); the master field is filled from config.json after it.
 // ---------------------------------------------------------------------------------------------
+let apiToken = null;             // bearer token from the fleet's server (POST api/login), while logged in
+
+function authed(path, init = {}) {
+  const headers = { ...(init.headers || {}), ...(apiToken ? { Authorization: `Bearer ${apiToken}` } : {}) };
+  return fetch(path, { cache: "no-store", ...init, headers });
+}
+
 async function loadConfig() {
   const cfg = { master: location.origin + "/", user: "", container: "cTag_01", map: "map.png",
-                robotPrefix: "operator", missionTopic: null, title: "" };
+                robotPrefix: "operator", missionTopic: null, title: "", apiLogin: false };
   try {
-    const r = await fetch("config.json", { cache: "no-store" });
+    const r = await authed("config.json");
     if (r.ok) Object.assign(cfg, await r.json());
+    else if (r.status === 401) cfg.apiLogin = true;
   } catch (e) { /* no config.json: served by rce-master --static, defaults are right */ }
   const q = new URLSearchParams(location.search);
   for (const k of ["master", "user", "container", "map"]) if (q.get(k)) cfg[k] = q.get(k);
@@ -162,6 +173,29 @@ function newSince(prev, cur) {
 // ---------------------------------------------------------------------------------------------
 // login and interface setup
 // ---------------------------------------------------------------------------------------------
+async function apiLogin(user, password) {
+  // the fleet's server: a token for config.json, map.png and relays.json, then the configuration
+  const r = await fetch("api/login", { method: "POST", cache: "no-store", headers: { "Content-Type": "application/json" },
+                                       body: JSON.stringify({ user, password }) });
+  const a = await r.json().catch(() => ({}));
+  if (!r.ok) throw new Error(`the fleet's server refused the login: ${a.error || `HTTP ${r.status}`}`);
+  apiToken = a.token;
+  cfg = { ...(await loadConfig()), apiLogin: true };
+  view.config = { ...cfg };
+  $("master").value = cfg.master;
+  if (!$("container").value.trim()) $("container").value = cfg.container;
+  if (cfg.title) $("title").textContent = cfg.title;
+  await loadMap();
+  startRelays();
+}
+
+async function apiLogout() {
+  if (!apiToken) return;
+  const r = authed("api/logout", { method: "POST" });
+  apiToken = null;
+  await r.catch(() => { /* the server is gone: the token dies with it */ });
+}
+
 async function onLogin(ev) {
   ev.preventDefault();
   const btn = $("login-btn");
@@ -169,14 +203,16 @@ async function onLogin(ev) {
   $("login-error").textContent = "";
   const password = $("password").value;
   $("password").value = "";
-  const container = $("container").value.trim() || cfg.container;
   const robotID = `${cfg.robotPrefix}-${newId().slice(0, 6)}`;
-  // reconnect: a lost link is resumed with the session token the client keeps (the password is gone)
-  const c = new Client({ master: $("master").value.trim(), userID: $("user").value.trim(), robotID, password,
-                         reconnect: true });
+  let c = null;
   view.phase = "connecting";
   setConn("connecting", "wait");
   try {
+    if (cfg.apiLogin || apiToken) await apiLogin($("user").value.trim(), password);
+    const container = $("container").value.trim() || cfg.container;
+    // reconnect: a lost link is resumed with the session token the client keeps (the password is gone)
+    c = new Client({ master: $("master").value.trim(), userID: $("user").value.trim(), robotID, password,
+                     reconnect: true });
     await c.connect();
     client = c;
     view.updates = 0;                 // a new session: its first state is announced again
@@ -217,6 +253,7 @@ async function onLogin(ev) {
       c.close();
     }
     client = null;
+    await apiLogout();
   } finally {
     btn.disabled = false;
   }
@@ -338,6 +375,7 @@ async function onLogout() {
   view.connected = false;
   $("logout").disabled = false;
   c.close();
+  await apiLogout();
   log("info", "logged out");
 }
 
@@ -586,6 +624,33 @@ mapImg.onload = () => {
   staticKey = "";
 };
 mapImg.onerror = () => { view.map = { loaded: false, error: `cannot load ${mapImg.src}`, width: 0, height: 0 }; };
+
+async function loadMap() {
+  // with a token the image comes through fetch (an <img> cannot send the Authorization header)
+  const url = new URL(cfg.map, location.href);
+  if (!apiToken || url.origin !== location.origin) { mapImg.src = url.href; return; }
+  try {
+    const r = await authed(url.href);
+    if (!r.ok) throw new Error(`HTTP ${r.status}`);
+    if (mapImg.src.startsWith("blob:")) URL.revokeObjectURL(mapImg.src);
+    mapImg.src = URL.createObjectURL(await r.blob());
+  } catch (e) {
+    view.map = { loaded: false, error: `cannot load ${url.href}: ${e.message}`, width: 0, height: 0 };
+  }
+}
+
+let relaysTimer = null;
+function startRelays() {
+  if (!cfg.relays || relaysTimer) return;
+  const askRelays = async () => {
+    try {
+      const r = await authed("relays.json");
+      if (r.ok) view.relays = (await r.json()).relays || {};
+    } catch (e) { /* the demo is stopping: keep the last */ }
+  };
+  askRelays();
+  relaysTimer = setInterval(askRelays, RELAYS_EVERY);
+}
 
 // ---------------------------------------------------------------------------------------------
 // drawing
@@ -920,16 +985,13 @@ $("user").value = cfg.user || "";
 $("container").value = cfg.container;
 if (cfg.title) $("title").textContent = cfg.title;
 if (cfg.user) $("password").focus(); else $("user").focus();
-mapImg.src = new URL(cfg.map, location.href).href;
-if (cfg.relays) {
-  const askRelays = async () => {
-    try {
-      const r = await fetch("relays.json", { cache: "no-store" });
-      if (r.ok) view.relays = (await r.json()).relays || {};
-    } catch (e) { /* the demo is stopping: keep the last */ }
-  };
-  askRelays();
-  setInterval(askRelays, RELAYS_EVERY);
+if (cfg.apiLogin) {
+  // the fleet's server names the master after the login
+  $("master").required = false;
+  $("master").closest("label").hidden = true;
+} else {
+  loadMap();
+  startRelays();
 }
 select(null);
 requestAnimationFrame(frame);

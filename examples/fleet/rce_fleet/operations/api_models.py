@@ -1,0 +1,190 @@
+"""The task API's request and response models (pydantic), and its OpenAPI 3.1 document built from them.
+
+The models are the API's contract: :mod:`rce_fleet.operations.http_api` validates a ``POST /api/tasks``
+body and a ``POST /api/login`` body with them, and :func:`openapi_document` publishes their JSON
+Schemas (pydantic's, JSON Schema 2020-12, which OpenAPI 3.1 takes as it is) under
+``components/schemas`` with the routes, the roles each needs and the security schemes
+(``GET /api/openapi.json``). Field names are the fleet's (``fleet/TaskStatus``, ``fleet/TaskList``).
+Sans-I/O: pydantic only.
+"""
+from __future__ import annotations
+
+from typing import Literal
+
+from pydantic import BaseModel, ConfigDict, Field, StrictFloat, StrictInt, StrictStr
+
+from .tasks_api import MAX_ERRANDS
+
+__all__ = ["ApiError", "LoginAnswer", "LoginRequest", "RobotWork", "Task", "TaskList", "TaskRequest",
+           "openapi_document"]
+
+TaskState = Literal["queued", "assigned", "active", "done", "failed", "cancelled"]
+
+
+class TaskRequest(BaseModel):
+    """``POST /api/tasks``: a new task. A field not listed here is refused (a misspelt ``priority`` is
+    not silently 0)."""
+    model_config = ConfigDict(extra="forbid", title="TaskRequest")
+
+    errands: list[StrictStr | StrictInt] = Field(
+        description=f"in order: cell numbers (42 or \"42\") or place names; 1 to {MAX_ERRANDS}")
+    priority: StrictFloat = Field(0.0, description="higher first (one unit is worth about 100 cells of travel)")
+    earliest_start_s: StrictFloat = Field(0.0, description="fleet s from now before which it does not start")
+    deadline_s: StrictFloat = Field(0.0, description="fleet s from now by which it must be done (0: none)")
+    id: StrictStr = Field("", description="task id wanted (1-64 of A-Z a-z 0-9 _ . : -); empty: the fleet names it")
+
+
+class Task(BaseModel):
+    """One task (``fleet/TaskStatus``). Times are fleet seconds (the robots' clock); 0: not (yet) reached."""
+    id: str
+    errands: list[str] = Field(description="as given (cells or place names)")
+    cells: list[int] = Field(description="the errands' cells")
+    priority: float
+    state: TaskState
+    robot: str = Field(description="its robot (empty: none)")
+    next_errand: int = Field(description="index of the errand it waits for")
+    reason: str = Field(description="why it failed or was cancelled")
+    source: str = Field(description="who created it: http:USER (this API), cli:USER, operator:ROBOTID (the page), "
+                                    "stream (a generated run)")
+    cancelled_by: str = Field("", description="who cancelled it, in the same form as source (empty: not cancelled)")
+    created: float
+    earliest_start: float
+    deadline: float
+    assigned: float
+    active: float
+    finished: float
+    reached: list[float] = Field(description="fleet time each errand was reached, in order")
+
+
+class RobotWork(BaseModel):
+    """One robot's work (``fleet/RobotTask``)."""
+    robot: str
+    task: str = Field(description="its task's id (empty: none)")
+    activity: Literal["unknown", "idle", "parking", "task", "to_charger", "charging"]
+    battery_pct: float = Field(description="battery level, % (-1: not reported)")
+    busy_s: float = Field(description="fleet s spent on tasks so far")
+    since_s: float = Field(description="fleet s since it was first seen")
+    charges: int
+    tasks_done: int
+
+
+class TaskList(BaseModel):
+    """``GET /api/tasks``: the open tasks, then the most recently closed ones, each robot's work and the
+    counts and times of closed tasks (``fleet/TaskList``)."""
+    seq: int
+    tasks: list[Task]
+    robots: list[RobotWork]
+    queued: int
+    done: int
+    failed: int
+    cancelled: int
+    deadline_missed: int = Field(description="tasks done after their deadline or failed for it")
+    mean_s: float = Field(description="mean s from creation to done, over done tasks")
+    p95_s: float
+
+
+class ApiError(BaseModel):
+    """Every refusal: a one-line reason and a code."""
+    error: str
+    code: Literal["bad_request", "unauthorized", "forbidden", "not_found", "conflict", "too_large", "throttled",
+                  "timeout", "unavailable"]
+
+
+class LoginRequest(BaseModel):
+    """``POST /api/login``: a user of the master and the password; ``ttl_s`` asks for a token that expires
+    sooner than the server's default."""
+    model_config = ConfigDict(extra="forbid")
+
+    user: StrictStr = Field(min_length=1)
+    password: StrictStr = Field(min_length=1)
+    ttl_s: StrictFloat | None = Field(None, gt=0, description="s the token lives (at most the server's --token-ttl)")
+
+
+class LoginAnswer(BaseModel):
+    """A bearer token for ``Authorization: Bearer TOKEN`` until ``expires_in`` s from now (or logout)."""
+    token: str
+    token_type: Literal["Bearer"] = "Bearer"
+    expires_in: float = Field(description="s from now")
+    user: str
+    role: Literal["viewer", "operator", "admin"]
+
+
+def _ref(name: str) -> dict:
+    return {"$ref": f"#/components/schemas/{name}"}
+
+
+def _json(schema: dict, description: str) -> dict:
+    return {"description": description, "content": {"application/json": {"schema": schema}}}
+
+
+def _op(summary: str, role: str | None, answers: dict[str, dict], body: str | None = None,
+        path_id: bool = False) -> dict:
+    """One operation: ``role`` None is open to anyone; else 401 without a credential, 403 below ``role``."""
+    op: dict = {"summary": summary + (f" (role {role} or above)" if role else ""), "responses": dict(answers)}
+    if body:
+        op["requestBody"] = {"required": True, "content": {"application/json": {"schema": _ref(body)}}}
+    if path_id:
+        op["parameters"] = [{"name": "id", "in": "path", "required": True, "schema": {"type": "string"}}]
+    if role is None:
+        op["security"] = []
+    else:
+        op["responses"]["401"] = _json(_ref("ApiError"), "no credential, or a wrong, expired or revoked one")
+        op["responses"]["403"] = _json(_ref("ApiError"), f"the user's role is below {role}")
+    return op
+
+
+def openapi_document(server_url: str = "/", metrics_public: bool = False) -> dict:
+    """The OpenAPI 3.1 document of the task API (``GET /api/openapi.json``): the routes, the models'
+    JSON Schemas and the security schemes (a bearer token from ``POST /api/login``, or HTTP Basic over
+    TLS). ``server_url``: the API's base URL; ``metrics_public``: ``/metrics`` needs no credential."""
+    from pydantic.json_schema import models_json_schema
+    models = [(m, "validation" if m in (TaskRequest, LoginRequest) else "serialization")
+              for m in (TaskRequest, Task, RobotWork, TaskList, ApiError, LoginRequest, LoginAnswer)]
+    _, defs = models_json_schema(models, ref_template="#/components/schemas/{model}")
+    err = _ref("ApiError")
+    task = _json(_ref("Task"), "the task")
+    paths = {
+        "/api/login": {"post": _op("Log in with a user of the master: a bearer token", None, {
+            "200": _json(_ref("LoginAnswer"), "the token"), "400": _json(err, "a malformed body"),
+            "401": _json(err, "a wrong user or password"),
+            "429": _json(err, "too many failed logins: wait Retry-After s")}, body="LoginRequest")},
+        "/api/logout": {"post": _op("Revoke the token the request carries", "viewer", {
+            "200": {"description": "revoked"}})},
+        "/api/tokens/{user}": {"delete": {**_op("Revoke every token of a user", "admin", {
+            "200": {"description": "how many were revoked"}}), "parameters": [
+                {"name": "user", "in": "path", "required": True, "schema": {"type": "string"}}]}},
+        "/api/tasks": {
+            "get": _op("The task list", "viewer", {"200": _json(_ref("TaskList"), "the tasks")}),
+            "post": _op("Queue a task", "operator", {
+                "201": {**task, "headers": {"Location": {"schema": {"type": "string"},
+                                                         "description": "/api/tasks/ID"}}},
+                "400": _json(err, "a bad request (unknown field, place, cell, ...)"),
+                "409": _json(err, "the id exists"), "413": _json(err, "a body over 1 MiB"),
+                "504": _json(err, "the fleet did not answer within 10 s")}, body="TaskRequest")},
+        "/api/tasks/{id}": {
+            "get": _op("One task", "viewer", {"200": task, "404": _json(err, "not among the open and recent tasks")},
+                       path_id=True),
+            "delete": _op("Cancel a task", "operator", {"200": task, "404": _json(err, "no such task"),
+                                                        "409": _json(err, "already closed")}, path_id=True)},
+        "/api/openapi.json": {"get": _op("This document", None, {"200": {"description": "OpenAPI 3.1"}})},
+        "/metrics": {"get": _op("Prometheus text: tasks by state, queue, task times, per-robot utilisation, "
+                                "battery", None if metrics_public else "viewer",
+                                {"200": {"description": "text/plain; version=0.0.4",
+                                         "content": {"text/plain": {"schema": {"type": "string"}}}}})},
+    }
+    return {
+        "openapi": "3.1.0",
+        "info": {"title": "rce fleet task API", "version": "1",
+                 "description": "Tasks for the warehouse fleet of rce-fleet serve. Credentials are the rce "
+                                "master's users; roles: viewer (read), operator (add, cancel), admin (also "
+                                "revoke others' tokens)."},
+        "servers": [{"url": server_url}],
+        "security": [{"bearer": []}, {"basic": []}],
+        "paths": paths,
+        "components": {"schemas": defs["$defs"],
+                       "securitySchemes": {"bearer": {"type": "http", "scheme": "bearer",
+                                                      "description": "a token from POST /api/login"},
+                                           "basic": {"type": "http", "scheme": "basic",
+                                                     "description": "a user and password of the master; over "
+                                                                    "TLS only"}}},
+    }
