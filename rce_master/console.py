@@ -13,7 +13,8 @@
     rce-console user add NAME --file users.json       # offline: add a hashed record to a --users file
     rce-console leader                                # which master leads (several masters on etcd)
     rce-console placement                             # per container: where it runs, where it would serve best, why
-    rce-console placement pin USER CTAG cloud|edge|robot|auto    # pin it (auto: the placer decides again)
+    rce-console placement pin USER CTAG cloud|edge|robot|auto    # pin it (moved there now; auto: the placer decides)
+    rce-console placement moves                       # the last moves: when, from, to, the switch, why
 
 With several masters (``--master`` repeated, or URLs separated by commas) a request goes to one
 that answers, and a change to the leader (:mod:`rce.tools.admin_client`).
@@ -173,7 +174,7 @@ def parser() -> argparse.ArgumentParser:
     c.add_argument("--to", metavar="HOST", help="move: the container host (name or tid), make-before-break")
     pl = sub.add_parser("placement", help="where each container runs, where the placer would put it and why; "
                                           "pin one")
-    pl.add_argument("action", nargs="?", choices=["pin"], help="pin USER CTAG ZONE")
+    pl.add_argument("action", nargs="?", choices=["pin", "moves"], help="pin USER CTAG ZONE; moves: the last moves")
     pl.add_argument("pin_args", nargs="*", metavar="USER CTAG ZONE")
     t = sub.add_parser("top", help="per-container resource use, refreshing")
     t.add_argument("--interval", type=float, default=2.0, help="seconds between refreshes")
@@ -240,12 +241,25 @@ def run(args: argparse.Namespace, out: Console) -> None:
             res = client.request("POST", f"/api/placement/{user}/{ctag}", {"pin": zone})
             out.print(f"container {user}/{ctag}: " + (f"pinned to {res['pinned']}" if res.get("pinned")
                                                       else "unpinned; the placer decides"))
+            if res.get("moved"):
+                m = res["moved"]
+                out.print(f"moved from {m['from']} to {m['to']} (switched in {m['switch_s'] * 1e3:.1f} ms)")
+            return
+        if args.action == "moves":
+            rows = client.request("GET", "/api/placement/moves")
+            if args.json:
+                print(json.dumps(rows, indent=1))
+            else:
+                for m in rows:
+                    m["when"] = time.strftime("%H:%M:%S", time.localtime(m["t"]))
+                out.print(table("moves", rows, ["when", "user", "ctag", "from", "to", "switch_s", "drain_s", "why"]))
             return
         rows = client.request("GET", "/api/placement")
         if args.json:
             print(json.dumps(rows, indent=1))
         else:
-            out.print(table("placement", rows, ["user", "ctag", "runs", "best", "move", "pinned", "why"]))
+            out.print(table("placement", rows, ["user", "ctag", "runs", "best", "move", "pinned", "misses", "node_ms",
+                                                "why"]))
     elif args.cmd == "top":
         if args.once:
             if args.json:

@@ -17,6 +17,8 @@ from __future__ import annotations
 
 import asyncio
 import os
+import subprocess
+import sys
 import time
 from pathlib import Path
 
@@ -156,6 +158,9 @@ async def test_moves_to_the_robot_and_back_lose_nothing(eng):
                   f"built {rec['make_s']:.2f} s, switched {rec['switch_s'] * 1e3:.1f} ms, "
                   f"drained {rec['drain_s']:.2f} s")
         assert [m["to"].split(" ")[0] for m in eng.admin("/api/placement/moves")][-2:] == ["robot:mover", "cloud"]
+        shown = subprocess.run([str(Path(sys.executable).parent / "rce-console"), "--master", eng.master_url,
+                                "placement", "moves"], capture_output=True, text=True, env=eng.env, timeout=60)
+        assert shown.returncode == 0 and "robot:mover" in shown.stdout and "pinned to robot" in shown.stdout, shown
         ts = {t["name"]: t for t in eng.admin("/api/tasksets") if t["kind"] == "container"}
         assert ts["mover-computer"]["containers"] == 0 and ts["dc1"]["containers"] == 1
         res = eng.admin("/api/containers/testUser/echoM/stats")["results"]
