@@ -205,16 +205,7 @@ def run(args: argparse.Namespace, out: Console) -> None:
         else:
             out.print(table(args.cmd, rows, COLUMNS[args.cmd]))
     elif args.cmd == "user":
-        if args.action == "add":
-            u = client.request("POST", "/api/users", {"name": args.name, "role": args.role or DEFAULT_ROLE,
-                                                      "password": _read_password(args.password_stdin)})
-            out.print(f"user {args.name!r} added, is {u['role']}")
-        elif args.action == "role":
-            u = client.request("POST", f"/api/users/{args.name}", {"role": _role_given(args)})
-            out.print(f"user {args.name!r} is now {u['role']}")
-        else:
-            client.request("DELETE", f"/api/users/{args.name}")
-            out.print(f"user {args.name!r} deleted")
+        _user(args, client, out)
     elif args.cmd == "logs":
         logs = client.request("GET", f"/api/containers/{args.user}/{args.ctag}/logs/{args.ntag}")
         for stream in ("stdout", "stderr"):
@@ -271,6 +262,20 @@ def run(args: argparse.Namespace, out: Console) -> None:
             while True:
                 time.sleep(args.interval)
                 live.update(top_table(client))
+
+
+def _user(args: argparse.Namespace, client: AdminClient, out: Console) -> None:
+    """``user add|role|del NAME`` on the master."""
+    if args.action == "add":
+        u = client.request("POST", "/api/users", {"name": args.name, "role": args.role or DEFAULT_ROLE,
+                                                  "password": _read_password(args.password_stdin)})
+        out.print(f"user {args.name!r} added, is {u['role']}")
+    elif args.action == "role":
+        u = client.request("POST", f"/api/users/{args.name}", {"role": _role_given(args)})
+        out.print(f"user {args.name!r} is now {u['role']}")
+    else:
+        client.request("DELETE", f"/api/users/{args.name}")
+        out.print(f"user {args.name!r} deleted")
 
 
 def _user_file(args: argparse.Namespace) -> None:
