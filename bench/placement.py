@@ -1,0 +1,582 @@
+"""Where a node with a deadline serves best while the robot's link and battery change: the placer
+(docs/placement.md) against the two static placements, in network namespaces this bench makes and
+removes (root; also after a failure: rce/tools/netlab.py).
+
+Topology: the cloud (the real engine: rce-master, a cloud container host ``cloud-dc1``, and by
+default the robot endpoint rce-robot) in the root namespace; the robot in namespace R, joined to it
+by one veth pair: the robot's own process (an ``rce_client`` connection) and its own computer, a
+``robot:`` container host (``rce-container --zone robot:ROBOT --user USER``) whose CPU is capped at
+:data:`ROBOT_CPU` cores by a cgroup the bench makes for it (v2 ``cpu.max``, or v1
+``cpu.cfs_quota_us`` where the cpu controller is v1). ``--endpoint robot`` runs the robot endpoint
+in R instead (the robot's messages then reach a container on its own computer without crossing the
+link, but the link the placer measures is the robot's local websocket).
+
+The link: each end shapes what it sends with HTB (one class, a ``pfifo`` of :data:`QUEUE` packets):
+:data:`GOOD_RATE` while good, :data:`BAD_RATE` while bad. This kernel has no ``netem``: no delay is
+added; the bad link's round trip is its queue's (a saturated 1 Mbit/s FIFO of :data:`QUEUE` packets
+holds up to ~0.5 s), which the robot endpoint's kernel measures on the robot's websocket (TCP_INFO),
+as the placer reads it.
+
+The node (``bench/packages/benchcostmap/costmap.py``): a costmap from each ``sensor_msgs/LaserScan``
+of :data:`SCAN_POINTS` returns (~40 kB, 10 Hz: 3.2 Mbit/s, which 1 Mbit/s cannot carry), answered
+with a ``geometry_msgs/PointStamped`` carrying the scan's header; deadline :data:`DEADLINE_MS` ms
+from the scan's stamp to its result back at the robot. Its work grows with the scan's finite returns:
+most scans are sparse (:data:`LIGHT_FRACTION` of the beams return), one in :data:`HEAVY_EVERY` is
+cluttered (every beam returns, ~4x the work), so that the robot's capped CPU meets the deadline on
+the sparse scans and misses it on the cluttered ones.
+
+Script (``--phase-s`` s per phase, default 30): good link (the node belongs in the cloud); the link
+falls to :data:`BAD_RATE` (it belongs on the robot); the link returns; the robot's battery falls to
+:data:`BATTERY_LOW_PCT` % (``POST /api/robots/{user}/{robot}/battery``: saving the robot's energy
+wins). The same script three ways: ``cloud`` (containerData ``placement: cloud``), ``robot``
+(``placement: robot``), ``placer`` (``placement: auto`` with ``deadline_ms``, ``robot``,
+``consumes``).
+
+Per system it reports deadline misses per phase (a result later than the deadline after its scan's
+stamp, or never; a scan the robot could not send within one period counts as missed), results lost
+and duplicated (by the scans' header.seq), the robot's modelled energy (the placer's
+:class:`~rce_master.placer.EnergyModel`: W per core x the container's CPU seconds while on the
+robot's computer, plus J per byte x the bytes across the link, both ways, from the veth's counters),
+each move (its time, hosts, the longest time without a result around it, the placer's reason) and
+the placer's word as ``GET /api/placement`` gave it, sampled every :data:`POLL` s. JSON in
+``bench/results/placement.json`` and a PNG timeline beside it::
+
+    sudo .venv/bin/python bench/placement.py [--phase-s 30] [--systems cloud,robot,placer]
+                                             [--endpoint cloud|robot] [--out FILE]
+"""
+from __future__ import annotations
+
+import argparse
+import asyncio
+import contextlib
+import json
+import os
+import shutil
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+BENCH = Path(__file__).resolve().parent
+sys.path.insert(0, str(BENCH))
+
+USER, PASSWORD = "testUser", "testUser"
+ROBOT = "rover"                 # the robot's ID (its computer's zone: robot:rover)
+CTAG = "costmap"
+RATE_HZ = 10.0                  # scans per second
+DEADLINE_MS = 100.0             # from a scan's stamp to its result back at the robot
+SCAN_POINTS = 10_000            # returns per scan: 40 kB of float32 ranges
+LIGHT_FRACTION = 0.1            # share of a sparse scan's beams that return
+HEAVY_EVERY = 10                # one scan in this many is cluttered (every beam returns)
+NODE_ARGS = "--cells 160 --passes 4 --samples 300 --queue 100"
+ROBOT_CPU = 0.3                 # cores of the robot's computer (cgroup CPU quota)
+CPU_PERIOD_US = 100_000
+GOOD_RATE, BAD_RATE = "100mbit", "1mbit"
+QUEUE = 40                      # packets in each end's FIFO (bounded: ~0.5 s at 1 Mbit/s)
+BATTERY_START_PCT, BATTERY_LOW_PCT = 80.0, 12.0
+PHASES = ("good link", "link 1 Mbit/s", "link back", "battery low")
+POLL = 0.5                      # s between looks at the placer's word, the container's host and CPU
+CGROUP_EMPTY_WAIT = 10.0        # s for the robot computer's processes to leave its cgroup after it stopped
+READY_WAIT = 120.0              # s for the robot's container to answer its first scan
+SYSTEMS = {"cloud": "cloud", "robot": "robot", "placer": "auto"}
+
+
+# -- the robot: runs in namespace R --------------------------------------------------------------
+def scan_bytes(points: int, fraction: float) -> bytearray:
+    """A serialized ``sensor_msgs/LaserScan`` of ``points`` beams of which ``fraction`` return
+    (finite ranges 0.5 - 4.5 m, the rest inf); header.seq at bytes 0-3, header.stamp at 4-11."""
+    import numpy as np
+    from rosbags.typesys import Stores, get_typestore
+    ts = get_typestore(Stores.ROS1_NOETIC)
+    t = ts.types
+    rng = np.random.default_rng(7)
+    ranges = np.full(points, np.inf, np.float32)
+    hit = rng.random(points) < fraction
+    ranges[hit] = rng.uniform(0.5, 4.5, int(hit.sum())).astype(np.float32)
+    scan = t["sensor_msgs/msg/LaserScan"](
+        header=t["std_msgs/msg/Header"](seq=0, stamp=t["builtin_interfaces/msg/Time"](sec=0, nanosec=0),
+                                        frame_id="laser"),
+        angle_min=-np.pi, angle_max=np.pi, angle_increment=2 * np.pi / points, time_increment=0.0, scan_time=0.1,
+        range_min=0.1, range_max=30.0, ranges=ranges, intensities=np.zeros(0, np.float32))
+    return bytearray(ts.serialize_ros1(scan, "sensor_msgs/msg/LaserScan"))
+
+
+def stamped(template: bytearray, seq: int, wall: float) -> bytes:
+    """``template`` with header.seq ``seq`` and header.stamp ``wall`` (s)."""
+    template[0:12] = seq.to_bytes(4, "little") + int(wall).to_bytes(4, "little") + \
+        int((wall % 1) * 1e9).to_bytes(4, "little")
+    return bytes(template)
+
+
+async def robot_main(a: argparse.Namespace) -> dict:
+    """Set the container up, send the scans for the whole script, collect the results. Prints
+    ``ready T0`` (monotonic s) once the first result is back; returns the record."""
+    from rce_client.connection import Connection
+    conn = await Connection.login_connect(a.master, USER, PASSWORD, ROBOT, allow_reconnect=True)
+    data = {"placement": SYSTEMS[a.system], "deadline_ms": DEADLINE_MS, "robot": ROBOT, "consumes": ["scan"]}
+    await conn.create_container(CTAG, **data)
+    await conn.add_node(CTAG, "costmap", "benchcostmap", "costmap.py", args=NODE_ARGS)
+    for tag, itype, cls, addr in (("scan", "PublisherInterface", "sensor_msgs/LaserScan", "/scan"),
+                                  ("done", "SubscriberInterface", "geometry_msgs/PointStamped", "/costmap_done")):
+        await conn.add_interface(CTAG, tag, itype, cls, addr)
+    await conn.add_interface(ROBOT, "scan", "SubscriberForwarder", "sensor_msgs/LaserScan")
+    await conn.add_interface(ROBOT, "done", "PublisherConverter", "geometry_msgs/PointStamped")
+    for tag in ("scan", "done"):
+        await conn.connect_interfaces(f"{CTAG}/{tag}", f"{ROBOT}/{tag}")
+    await conn.wait_interfaces_up(["scan", "done"], timeout=READY_WAIT)
+    light, heavy = scan_bytes(SCAN_POINTS, LIGHT_FRACTION), scan_bytes(SCAN_POINTS, 1.0)
+    sent: dict[int, float] = {}                       # seq -> monotonic s at its stamp
+    skipped: list[float] = []                         # ticks whose scan could not be sent in time
+    got: list[tuple[int, float, float]] = []          # (seq, arrival monotonic s, node CPU ms)
+    first = asyncio.Event()
+    failed: list[int] = []                            # scans whose send the connection refused
+    node_dropped = [0]                                # scans the node's queue dropped (its copies' largest count)
+
+    def on_result(m: dict) -> None:
+        got.append((int(m["header"]["seq"]), time.monotonic(), float(m["point"]["z"])))
+        node_dropped[0] = max(node_dropped[0], int(str(m["header"].get("frame_id", "=0")).rpartition("=")[2] or 0))
+        first.set()
+    conn.subscriber("done", "geometry_msgs/PointStamped", on_result)
+    errors: list[str] = []
+    conn.on_error(lambda *err: errors.append(f"{time.monotonic():.3f} {err}"))
+    pub = conn.publisher("scan", "sensor_msgs/LaserScan")
+    end = [float("inf")]
+    pending: list[asyncio.Task] = []
+
+    async def scans() -> None:
+        seq, t_next = 0, time.monotonic()
+        while t_next < end[0]:
+            if pending and not pending[0].done():
+                skipped.append(t_next)                # the link has not taken the last one yet
+            else:
+                if pending and pending.pop().exception() is not None:
+                    failed.append(seq)                # refused (e.g. the link to the cloud was lost meanwhile)
+                seq += 1
+                sent[seq] = time.monotonic()
+                frame = stamped(heavy if seq % HEAVY_EVERY == 0 else light, seq, time.time())
+                pending.append(asyncio.ensure_future(pub.publish(frame)))
+            t_next += 1 / RATE_HZ
+            await asyncio.sleep(max(0.0, t_next - time.monotonic()))      # the sensor's period
+
+    sender = asyncio.ensure_future(scans())
+    await asyncio.wait_for(first.wait(), READY_WAIT)
+    t0 = time.monotonic()
+    print(f"ready {t0}", flush=True)
+    end[0] = t0 + 4 * a.phase_s
+    await sender
+    drain = min(5.0, max(2.0, a.phase_s))
+    await asyncio.sleep(drain)                        # the last results on their way
+    with contextlib.suppress(Exception):
+        await conn.close()
+    return {"t0": t0, "sent": [[s, t] for s, t in sent.items() if t >= t0], "skipped": [t for t in skipped if t >= t0],
+            "got": [list(g) for g in got], "node_dropped": node_dropped[0],
+            "send_failed": failed, "errors": errors[-20:]}
+
+
+# -- the cloud side: namespaces, shaping, cgroup, the engine -------------------------------------
+def shape(lab, link, rate: str) -> None:
+    """Both ends of ``link`` send at most ``rate`` (HTB, one class) through a ``QUEUE``-packet FIFO."""
+    for ns, dev in ((link.a, link.a_dev), (link.b, link.b_dev)):
+        tc = [*(("ip", "netns", "exec", ns) if ns else ()), "tc"]
+        subprocess.run([*tc, "qdisc", "del", "dev", dev, "root"], capture_output=True)
+        for args in (("qdisc", "add", "dev", dev, "root", "handle", "1:", "htb", "default", "10"),
+                     ("class", "add", "dev", dev, "parent", "1:", "classid", "1:10", "htb", "rate", rate, "ceil",
+                      rate, "burst", "15k"),
+                     ("qdisc", "add", "dev", dev, "parent", "1:10", "pfifo", "limit", str(QUEUE))):
+            subprocess.run([*tc, *args], check=True, capture_output=True, text=True)
+
+
+def link_bytes(dev: str) -> int:
+    """Bytes the root end ``dev`` of the link sent and received."""
+    base = Path("/sys/class/net") / dev / "statistics"
+    return int((base / "tx_bytes").read_text()) + int((base / "rx_bytes").read_text())
+
+
+class CpuCap:
+    """A cgroup capping what runs in it at ``cores`` (v2 ``cpu.max``, else v1 ``cpu.cfs_quota_us``);
+    :meth:`wrap` runs a command in it; removed by :meth:`close`."""
+
+    def __init__(self, name: str, cores: float):
+        v2 = Path("/sys/fs/cgroup")
+        if "cpu" in ((v2 / "cgroup.controllers").read_text().split() if (v2 / "cgroup.controllers").exists() else []):
+            subtree = (v2 / "cgroup.subtree_control").read_text().split()
+            if "cpu" not in subtree:
+                (v2 / "cgroup.subtree_control").write_text("+cpu")
+            self.dir = v2 / name
+            self.dir.mkdir(exist_ok=True)
+            (self.dir / "cpu.max").write_text(f"{int(cores * CPU_PERIOD_US)} {CPU_PERIOD_US}")
+            self.how = f"cgroup v2 {self.dir}/cpu.max {int(cores * CPU_PERIOD_US)} {CPU_PERIOD_US}"
+        else:
+            self.dir = Path("/sys/fs/cgroup/cpu") / name
+            self.dir.mkdir(exist_ok=True)
+            (self.dir / "cpu.cfs_period_us").write_text(str(CPU_PERIOD_US))
+            (self.dir / "cpu.cfs_quota_us").write_text(str(int(cores * CPU_PERIOD_US)))
+            self.how = f"cgroup v1 {self.dir}/cpu.cfs_quota_us {int(cores * CPU_PERIOD_US)} per {CPU_PERIOD_US}"
+
+    def wrap(self, argv: list[str]) -> list[str]:
+        """``argv`` started inside this cgroup (its shell joins it, then execs it)."""
+        return ["sh", "-c", f'echo $$ > {self.dir}/cgroup.procs && exec "$@"', "sh", *argv]
+
+    def close(self) -> None:
+        """Remove the cgroup and whatever cgroups a host left under it, once the processes the bench
+        started in it have exited (at most :data:`CGROUP_EMPTY_WAIT` s)."""
+        if not self.dir.exists():
+            return
+        end = time.monotonic() + CGROUP_EMPTY_WAIT
+        while time.monotonic() < end and any((d / "cgroup.procs").read_text().strip()
+                                             for d in [self.dir, *self.dir.rglob("*")] if d.is_dir()):
+            time.sleep(0.1)              # the stopped host's last processes exiting
+        for d in sorted((p for p in self.dir.rglob("*") if p.is_dir()), key=lambda p: len(p.parts), reverse=True):
+            try:
+                d.rmdir()
+            except OSError:
+                pass
+        try:
+            self.dir.rmdir()
+        except OSError as e:
+            print(f"placement: cgroup {self.dir} not removed: {e}", file=sys.stderr)
+
+
+def start(lab, link, work: Path, cap: CpuCap, endpoint: str):
+    """The engine for one system: master, cloud host and robot endpoint in the root namespace (or the
+    endpoint in R), the robot's computer in R under ``cap``. Returns it (stop it with ``stop()``)."""
+    from rce.tools.launch import command, start_engine
+    e = start_engine(work, robot_tasksets=1 if endpoint == "cloud" else 0, container_hosts=1,
+                     master_args=("--bind", "0.0.0.0"),
+                     robot_args=("--bind", "0.0.0.0", "--advertise-host", link.a_ip),
+                     container_args=("--bind", "0.0.0.0", "--advertise-host", link.a_ip, "--name", "cloud-dc1"),
+                     env={"RCE_PACKAGE_PATH": str(BENCH / "packages")})
+    ctl = f"{link.a_ip}:{e.control_port}"
+    try:
+        if endpoint == "robot":
+            ready = work / "robot-endpoint.ready"
+            _, info = e.spawn("robot-endpoint", lab.wrap("r", [
+                *command("rce-robot"), ctl, "--port", "0", "--data-port", "0", "--metrics-port", "0",
+                "--rosbridge-port", "0", "--bind", "0.0.0.0", "--advertise-host", link.b_ip,
+                "--ready-file", str(ready)]), ready)
+            e.robot_ready.append(dict(info, host=link.b_ip))      # its /metrics, from the root namespace
+        ready = work / "robot-computer.ready"
+        e.spawn("robot-computer", cap.wrap(lab.wrap("r", [
+            *command("rce-container"), ctl, "--zone", f"robot:{ROBOT}", "--user", USER, "--name", "robot-computer",
+            "--bind", link.b_ip, "--advertise-host", link.b_ip, "--runtime-dir", str(work / "rt-robot"),
+            "--ready-file", str(ready)])), ready)
+    except Exception:
+        e.stop()
+        raise
+    return e
+
+
+async def run_system(system: str, lab, link, work: Path, cap: CpuCap, a: argparse.Namespace) -> dict:
+    """One system through the script: the robot's record, the bench's samples, the moves."""
+    shape(lab, link, GOOD_RATE)
+    e = start(lab, link, work, cap, a.endpoint)
+    try:
+        return await drive(system, lab, link, e, work, a)
+    finally:
+        e.stop()
+
+
+async def drive(system: str, lab, link, e, work: Path, a: argparse.Namespace) -> dict:
+    master = f"http://{link.a_ip}:{e.http_port}/"
+
+    def admin(path: str, body: dict | None = None):
+        return asyncio.to_thread(e.admin, path, body)
+    await admin(f"/api/robots/{USER}/{ROBOT}/battery", {"percent": BATTERY_START_PCT})
+    hosts = [{k: t.get(k) for k in ("name", "zone", "capacity")} for t in await admin("/api/tasksets")
+             if t["kind"] == "container"]
+    log = open(work / "robot.log", "wb")
+    proc = await asyncio.create_subprocess_exec(
+        *lab.wrap("r", [sys.executable, __file__, "--role", "robot", "--system", system, "--master", master,
+                        "--phase-s", str(a.phase_s)]),
+        stdout=asyncio.subprocess.PIPE, stderr=log, limit=2**26)
+    try:
+        line = b""
+        async with asyncio.timeout(READY_WAIT + 30):
+            while not line.startswith(b"ready"):
+                line = await proc.stdout.readline()
+                if not line:
+                    raise RuntimeError(f"robot exited before it was ready:\n{(work / 'robot.log').read_text()[-3000:]}")
+        t0 = float(line.split()[1])
+        wall0 = time.time() - (time.monotonic() - t0)        # wall clock at t0
+        samples, words = [], []
+        last: tuple[list, dict] = ([], {})          # the last /api/placement rows and container stats seen
+        bytes0 = link_bytes(link.a_dev)
+        done = set()
+        end = t0 + 4 * a.phase_s
+        while (now := time.monotonic()) < end:
+            k = int((now - t0) // a.phase_s)
+            if k >= 1 and 1 not in done:
+                done.add(1)
+                shape(lab, link, BAD_RATE)
+            if k >= 2 and 2 not in done:
+                done.add(2)
+                shape(lab, link, GOOD_RATE)
+            if k >= 3 and 3 not in done:
+                done.add(3)
+                await admin(f"/api/robots/{USER}/{ROBOT}/battery", {"percent": BATTERY_LOW_PCT})
+            try:
+                rows = await admin("/api/placement")
+                cs = await admin("/api/containers")
+                st = await admin(f"/api/containers/{USER}/{CTAG}/stats")
+            except Exception as err:          # noqa: BLE001 (a look that failed mid-move: the next one counts)
+                print(f"placement: a look failed: {err}", flush=True)
+                await asyncio.sleep(POLL)
+                continue
+            last = (rows, st)
+            t = time.monotonic() - t0
+            host = next((c["host"] for c in cs if c["ctag"] == CTAG), None)
+            samples.append((round(t, 3), host, float(st.get("cpu_seconds") or 0.0), link_bytes(link.a_dev) - bytes0))
+            row = next((r for r in rows if r["ctag"] == CTAG), None)
+            if row is not None:
+                word = {"t_s": round(t, 2), "runs": row["runs"], "best": row["best"], "move": row["move"],
+                        "why": row["why"]}
+                if not words or any(words[-1][k] != word[k] for k in ("runs", "best", "move")):
+                    words.append(word)
+            await asyncio.sleep(max(0.0, POLL - (time.monotonic() - now)))     # the sampling period
+        out, _ = await asyncio.wait_for(proc.communicate(), 60 + a.phase_s)
+        if proc.returncode != 0:
+            raise RuntimeError(f"robot failed ({proc.returncode}):\n{(work / 'robot.log').read_text()[-3000:]}")
+        rec = json.loads(out.decode().strip().splitlines()[-1])
+        moves = [dict(m, t_s=round(m["t"] - wall0, 3)) for m in await admin("/api/placement/moves")
+                 if m["ctag"] == CTAG and m["t"] >= wall0]
+        final, stats = last
+        drops = {"container (its last copy)": {k: stats.get(k) for k in ("msgs_in", "msgs_out", "dropped")},
+                 "node (its last copy)": {k: (stats.get("per_node") or {}).get("costmap", {}).get(k)
+                                          for k in ("msgs_in", "msgs_out", "dropped")}}
+        drops["node queue (largest count of a copy)"] = rec["node_dropped"]
+        drops.update({name: await asyncio.to_thread(endpoint_counter, e, name)
+                      for name in ("rce_robot_dropped", "rce_robot_shed", "rce_robot_superseded",
+                                   "rce_robot_resume_lost", "rce_robot_duplicates")})
+        total_bytes = link_bytes(link.a_dev) - bytes0
+    finally:
+        if proc.returncode is None:
+            proc.terminate()
+            await proc.wait()
+    return {"robot": rec, "samples": samples, "words": words, "moves": moves, "link_bytes": total_bytes,
+            "hosts": hosts, "drops": drops,
+            "placement_final": [r for r in final if r["ctag"] == CTAG],
+            "master_log": [ln for ln in (work / "master.log").read_text(errors="replace").splitlines()
+                           if '"placement' in ln or "container mov" in ln]}
+
+
+def endpoint_counter(e, name: str) -> float:
+    """The sum of the robot endpoint's metric ``name`` over its samples (all labels; 0 if absent)."""
+    import urllib.request
+    info = e.robot_ready[0]
+    host = info.get("host") or "127.0.0.1"
+    url = f"http://{host if host != '0.0.0.0' else '127.0.0.1'}:{info['metrics_port']}/metrics"
+    try:
+        with urllib.request.urlopen(url, timeout=10) as resp:
+            text = resp.read().decode()
+    except OSError:
+        return float("nan")
+    return sum(float(line.rsplit(" ", 1)[1]) for line in text.splitlines()
+               if line.startswith(name) and not line.startswith(f"{name}_created"))
+
+
+# -- the numbers ---------------------------------------------------------------------------------
+def analyse(raw: dict, phase_s: float) -> dict:
+    """The numbers of one system from its raw record (module docstring)."""
+    from rce_master.placer import EnergyModel
+    rec = raw["robot"]
+    t0 = rec["t0"]
+    deadline = DEADLINE_MS / 1e3
+    sent = {int(s): t - t0 for s, t in rec["sent"]}
+    arrivals: dict[int, list[float]] = {}
+    cpu_ms: dict[int, float] = {}
+    for seq, t, ms in rec["got"]:
+        arrivals.setdefault(int(seq), []).append(t - t0)
+        cpu_ms[int(seq)] = ms
+    by_phase = [0, 0, 0, 0]
+    series = []
+    for seq, ts in sorted(sent.items()):
+        k = min(3, int(ts // phase_s))
+        lat = arrivals[seq][0] - ts if seq in arrivals else None
+        if lat is None or lat > deadline:
+            by_phase[k] += 1
+        series.append((round(ts, 3), None if lat is None else round(lat * 1e3, 2)))
+    for ts in rec["skipped"]:
+        by_phase[min(3, int((ts - t0) // phase_s))] += 1
+    not_sent = set(rec["send_failed"])
+    lost = sorted(s for s in sent if s not in arrivals and s not in not_sent)
+    lost_by_phase = [0, 0, 0, 0]
+    for s in lost:
+        lost_by_phase[min(3, int(sent[s] // phase_s))] += 1
+    dup = sum(len(v) - 1 for v in arrivals.values() if len(v) > 1)
+    results = sorted(t for ts in arrivals.values() for t in ts if t >= 0)
+    moves = []
+    for m in raw["moves"]:
+        end = m["t_s"]
+        begin = end - m["make_s"] - m["switch_s"] - m["drain_s"]
+        switch = end - m["drain_s"]
+        gaps = [b - a for a, b in zip(results, results[1:], strict=False) if b >= begin - 0.5 and a <= end + 0.5]
+        around = [s for s, ts in sent.items() if begin - 1 <= ts <= end + 1]
+        moves.append({"t_s": round(switch, 3), "from": m["from"], "to": m["to"],
+                      "gap_s": round(max(gaps, default=0), 3),
+                      "why": m["why"], "began_s": round(begin, 3), "make_s": m["make_s"], "switch_s": m["switch_s"],
+                      "drain_s": m["drain_s"],
+                      "lost": sum(1 for s in around if s not in arrivals and s not in not_sent),
+                      "duplicated": sum(len(arrivals[s]) - 1 for s in around if s in arrivals)})
+    robot_cpu = 0.0
+    prev = None
+    for _, host, cpu, _ in raw["samples"]:
+        if prev is not None and host == prev[0] and host == "robot-computer":
+            robot_cpu += max(0.0, cpu - prev[1]) if cpu >= prev[1] else cpu
+        elif prev is not None and host == "robot-computer" and host != prev[0]:
+            robot_cpu += cpu                               # a new copy's CPU since it was built
+        prev = (host, cpu)
+    em = EnergyModel()
+    energy = em.cpu_w * robot_cpu + em.radio_j_per_byte * raw["link_bytes"]
+    return {"deadline_misses": sum(by_phase), "deadline_misses_by_phase": by_phase,
+            "robot_energy_j": round(energy, 3), "lost": len(lost), "duplicated": dup, "moves": moves,
+            "lost_by_phase": lost_by_phase, "drops": raw["drops"],
+            "scans": len(sent), "skipped_at_robot": len(rec["skipped"]), "send_failed": len(not_sent),
+            "robot_errors": rec["errors"],
+            "robot_cpu_s": round(robot_cpu, 3), "link_bytes": raw["link_bytes"],
+            "energy_model": {"cpu_w": em.cpu_w, "radio_j_per_byte": em.radio_j_per_byte},
+            "node_cpu_ms": {"sparse_p50": _p50([v for s, v in cpu_ms.items() if s % HEAVY_EVERY]),
+                            "cluttered_p50": _p50([v for s, v in cpu_ms.items() if not s % HEAVY_EVERY])},
+            "placer_word": raw["words"], "placement_final": raw["placement_final"],
+            "container_hosts": raw["hosts"], "ran_on": _host_spans(raw["samples"]), "latency_ms": series,
+            "master_log": raw["master_log"][-60:]}
+
+
+def _p50(xs: list[float]) -> float | None:
+    xs = sorted(xs)
+    return round(xs[len(xs) // 2], 2) if xs else None
+
+
+def _host_spans(samples: list) -> list[dict]:
+    spans = []
+    for t, host, _, _ in samples:
+        if not spans or spans[-1]["host"] != host:
+            spans.append({"from_s": t, "host": host})
+    return spans
+
+
+def targets(systems: dict, phase_s: float) -> dict:
+    """The targets the issue sets, each with whether this run met it (None: not measured here)."""
+    out = {}
+    if {"cloud", "robot", "placer"} <= set(systems):
+        p, c, r = (systems[k]["deadline_misses"] for k in ("placer", "cloud", "robot"))
+        worse = max(c, r)
+        out["fewer_misses_than_either_static"] = p < c and p < r
+        out["5x_fewer_than_the_worse"] = p * 5 <= worse
+    moves = [m for s in systems.values() for m in s["moves"]]
+    out["move_gap_under_300ms"] = all(m["gap_s"] < 0.3 for m in moves) if moves else None
+    out["0_lost_or_duplicated_across_moves"] = all(m["lost"] == 0 and m["duplicated"] == 0 for m in moves) \
+        if moves else None
+    if "placer" in systems:
+        pm = systems["placer"]["moves"]
+        changes = [phase_s * k for k in (1, 2, 3)]
+        reactions = []
+        for at in changes:
+            first = next((m for m in pm if m["began_s"] >= at - 0.5), None)
+            if first is not None and first["began_s"] < at + phase_s:
+                reactions.append(round(first["began_s"] - at, 2))
+        out["decision_after_change_s"] = reactions
+        out["decides_within_2s"] = all(x <= 2.0 for x in reactions) if reactions else None
+        starts = [m["began_s"] for m in pm]
+        out["never_twice_within_hysteresis"] = all(b - a >= 10.0 for a, b in zip(starts, starts[1:], strict=False))
+    return out
+
+
+def plot(res: dict, png: Path) -> None:
+    """Per system: each scan's latency against its send time, the deadline, phases, moves."""
+    from common import pyplot
+    plt = pyplot()
+    names = list(res["systems"])
+    fig, axes = plt.subplots(len(names), 1, figsize=(12, 2.8 * len(names)), sharex=True, squeeze=False)
+    ps = res["phase_s"]
+    for ax, name in zip(axes[:, 0], names, strict=False):
+        s = res["systems"][name]
+        pts = [(t, v) for t, v in s["latency_ms"] if v is not None]
+        never = [t for t, v in s["latency_ms"] if v is None]
+        ax.scatter([t for t, _ in pts], [v for _, v in pts], s=3, color="C0", label="result latency")
+        top = max([v for _, v in pts] + [DEADLINE_MS * 3])
+        ax.scatter(never, [top] * len(never), s=6, marker="x", color="C3", label="no result")
+        ax.axhline(DEADLINE_MS, color="C3", lw=1, ls="--", label=f"deadline {DEADLINE_MS:g} ms")
+        for k in range(4):
+            ax.axvspan(k * ps, (k + 1) * ps, color=("white", "0.85", "white", "#fff3cc")[k], zorder=-1)
+            ax.text(k * ps + 0.3, 0.97, PHASES[k], transform=ax.get_xaxis_transform(), fontsize=8, va="top")
+        for m in s["moves"]:
+            ax.axvline(m["t_s"], color="C2", lw=1.5)
+            ax.text(m["t_s"], 0.85, f" -> {m['to'].split(' ')[0]} (gap {m['gap_s'] * 1e3:.0f} ms)",
+                    transform=ax.get_xaxis_transform(), fontsize=7, color="C2", va="top")
+        ax.set_yscale("log")
+        ax.set_ylabel("ms")
+        ax.set_title(f"{name}: {s['deadline_misses']} misses {s['deadline_misses_by_phase']}, "
+                     f"robot energy {s['robot_energy_j']:.1f} J, lost {s['lost']}, dup {s['duplicated']}", fontsize=9)
+        ax.legend(loc="upper right", fontsize=7)
+    axes[-1, 0].set_xlabel("s since the script began (scan's send time)")
+    fig.tight_layout()
+    fig.savefig(png, dpi=100)
+
+
+async def bench(a: argparse.Namespace) -> dict:
+    from common import git_head
+    from rce.tools.netlab import NetLab
+    res: dict = {"bench": "placement", "git": git_head(), "phase_s": a.phase_s, "endpoint": a.endpoint,
+                 "deadline_ms": DEADLINE_MS, "rate_hz": RATE_HZ, "scan_points": SCAN_POINTS,
+                 "light_fraction": LIGHT_FRACTION, "heavy_every": HEAVY_EVERY, "node_args": NODE_ARGS,
+                 "robot_cpu": ROBOT_CPU, "good_rate": GOOD_RATE, "bad_rate": BAD_RATE, "queue_packets": QUEUE,
+                 "battery_pct": [BATTERY_START_PCT, BATTERY_LOW_PCT], "load_before": os.getloadavg(),
+                 "systems": {}}
+    root = Path(tempfile.mkdtemp(prefix="rce-placement-"))
+    cap = CpuCap(f"rce-placement-bench-{os.getpid()}", ROBOT_CPU)
+    res["robot_cpu_cap"] = cap.how
+    try:
+        with NetLab("plb") as lab:
+            lab.namespace("r")
+            link = lab.link(None, "r", 1)
+            lab.route("r", "default", link.a_ip)
+            for system in a.systems.split(","):
+                print(f"placement: {system} ({4 * a.phase_s:g} s) ...", flush=True)
+                raw = await run_system(system, lab, link, root / system, cap, a)
+                res["systems"][system] = analyse(raw, a.phase_s)
+                s = res["systems"][system]
+                print(f"   misses {s['deadline_misses']} {s['deadline_misses_by_phase']}, energy "
+                      f"{s['robot_energy_j']} J, lost {s['lost']}, dup {s['duplicated']}, moves "
+                      f"{[(m['t_s'], m['to'], m['gap_s']) for m in s['moves']]}", flush=True)
+    finally:
+        cap.close()
+    res["targets"] = targets(res["systems"], a.phase_s)
+    res["load_after"] = os.getloadavg()
+    res["logs"] = str(root)
+    return res
+
+
+def main(argv=None) -> int:
+    p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    p.add_argument("--phase-s", type=float, default=30.0, help="s per phase (4 phases)")
+    p.add_argument("--systems", default="cloud,robot,placer")
+    p.add_argument("--endpoint", choices=("cloud", "robot"), default="cloud",
+                   help="where the robot endpoint (rce-robot) runs: the cloud (default) or the robot's namespace")
+    p.add_argument("--out", type=Path, default=BENCH / "results" / "placement.json")
+    p.add_argument("--keep-logs", action="store_true", help="keep the engines' logs (printed path)")
+    p.add_argument("--role", choices=("bench", "robot"), default="bench", help=argparse.SUPPRESS)
+    p.add_argument("--system", default="placer", help=argparse.SUPPRESS)
+    p.add_argument("--master", help=argparse.SUPPRESS)
+    a = p.parse_args(argv)
+    if a.role == "robot":
+        print(json.dumps(asyncio.run(robot_main(a))), flush=True)
+        return 0
+    if os.geteuid() != 0:
+        print("placement: needs root (network namespaces, tc, cgroups)", file=sys.stderr)
+        return 2
+    from common import write_json
+    res = asyncio.run(bench(a))
+    write_json(a.out, res)
+    plot(res, a.out.with_suffix(".png"))
+    if not a.keep_logs:
+        shutil.rmtree(res["logs"], ignore_errors=True)
+    print(json.dumps({k: {x: v[x] for x in ("deadline_misses", "deadline_misses_by_phase", "robot_energy_j", "lost",
+                                            "duplicated", "moves")} for k, v in res["systems"].items()}, indent=1))
+    print(json.dumps(res["targets"]))
+    print(f"placement: wrote {a.out} and {a.out.with_suffix('.png')}")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
