@@ -79,6 +79,12 @@ class McapRecorder(Recording):
                                  sequence=self.counts[topic])
         self.counts[topic] += 1
 
+    def add_metadata(self, name: str, data: dict[str, str]) -> None:
+        """Add an MCAP metadata record ``name`` (string keys and values), e.g. what a player needs besides
+        the messages. Ignored after :meth:`close`."""
+        if self._writer is not None:
+            self._writer.add_metadata(name=name, data=data)
+
     def close(self) -> Path:
         """Finish the file and give it its name; returns the path. Idempotent."""
         if self._writer is not None:

@@ -296,3 +296,36 @@ def test_the_run_is_recorded_in_mcap(fleet):
     assert GOAL in path_ends                  # the goal the Foxglove client sent: a path to it was planned
     assert topics["/fleet/tasks"] == "fleet/TaskList"
     assert f"recorded {sum(counts.values())} message(s)" in fleet["log"].read_text(errors="replace")
+
+
+def test_replay_plays_the_recording_onto_the_page(fleet, browser, tmp_path):
+    """After the recording test: ``rce-fleet replay run.mcap --loop`` and the operator page, logged in as usual,
+    draws the recorded fleet."""
+    assert fleet["mcap"].exists(), "the recording test runs first"
+    log = tmp_path / "replay.log"
+    p = subprocess.Popen([str(BIN / "rce-fleet"), "replay", str(fleet["mcap"]), "--loop", "--speed", "2",
+                          "--web-port", "0"], stdout=open(log, "wb"), stderr=subprocess.STDOUT,
+                         start_new_session=True, env=dict(os.environ, RCE_LOG_JSON="1"))
+    try:
+        deadline, page_url = time.monotonic() + START_TIMEOUT_S, None
+        while page_url is None and time.monotonic() < deadline and p.poll() is None:
+            m = re.search(r"operator page: (http://\S+)", log.read_text(errors="replace"))
+            page_url = m.group(1) if m else None
+            time.sleep(LOG_POLL_S)              # polling the log: the process tells nothing else
+        assert page_url, log.read_text(errors="replace")[-3000:]
+        ctx = browser.new_context()
+        page = ctx.new_page()
+        page.goto(page_url)
+        page.wait_for_function("document.querySelector('#user').value !== ''", timeout=START_TIMEOUT_S * 1000)
+        page.fill("#password", "testUser")
+        page.click("#login-btn")
+        page.wait_for_function("fleetView.connected && fleetView.updates >= 3 && "
+                               "Object.keys(fleetView.robots).length == 3", timeout=START_TIMEOUT_S * 1000)
+        robots = page.evaluate("fleetView.robots")
+        grid = page.evaluate("[fleetView.grid.rows, fleetView.grid.cols]")
+        ctx.close()
+    finally:
+        code = stop(p)
+    assert sorted(robots) == sorted(STARTS) and grid == [8, 8]
+    assert all(r["cell"] >= 0 for r in robots.values())
+    assert code == 0, log.read_text(errors="replace")[-3000:]

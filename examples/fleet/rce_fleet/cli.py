@@ -7,12 +7,14 @@
     rce-fleet demo --mission [--map YAML] [--robots N] [--grid RxC | --cell M] [--seed S] [--speedup K]
                    [--goal RobotN=CELL]... [--start RobotN=CELL]... [--block CELL@S]...
                    [--obstacle CELL@S]... [--fault master@T[+S] | link:RobotN@T[+S]]...
-                   [--timeout S] [--plot PNG] [--report JSON] [--bag FILE.bag]
+                   [--timeout S] [--plot PNG] [--report JSON] [--bag FILE.bag] [--record FILE.mcap]
+                   [--foxglove-port P]
                    [--headless] [--web-port P] [--places YAML] [--battery KEY=V,...]
                    [--out-of-coverage RobotN,... [--radio-range M]]      # the seed paper's one mission
     rce-fleet serve [same options, no mission]      # until Ctrl-C
                    [--web-bind ADDR] [--tls-cert PEM --tls-key PEM] [--users FILE] [--metrics-public]
                    [--token-ttl S]                  # the page and the task API: docs/task-api.md
+    rce-fleet replay RUN.mcap [--speed K] [--loop] [--web-port P | --headless] [--foxglove-port P]
     rce-fleet task add ERRAND... [--priority P] [--start-in S] [--deadline-in S] [--id ID] [--master URL | --api URL]
     rce-fleet task list [--json] | task get ID | task cancel ID     # the operators' task API
     rce-fleet configs [--out DIR] [--robots N] [--url URL]   # write robot1.config ...
@@ -189,6 +191,16 @@ def build_parser() -> argparse.ArgumentParser:
                    help=f"tasks per simulated minute (default {DEMO_TASK_RATE:g} on the warehouse)")
     s = sub.add_parser("serve", help="the same system without a mission, until Ctrl-C")
     _run_args(s, False)
+    rp = sub.add_parser("replay", help="play a recording of --record FILE.mcap back onto the operator page "
+                        "(and Foxglove), until Ctrl-C")
+    rp.add_argument("recording", metavar="RUN.mcap", help="the MCAP file rce-fleet demo/serve --record wrote")
+    rp.add_argument("--speed", type=_positive, default=1.0, metavar="K", help="K times the recorded pace (default 1)")
+    rp.add_argument("--loop", action="store_true", help="start again at the end of the file")
+    rp.add_argument("--web-port", type=int, default=8000, metavar="PORT",
+                    help="port of the operator's web page (default 8000; any free port when taken; 0 = ephemeral)")
+    rp.add_argument("--headless", action="store_true", help="no operator web page")
+    rp.add_argument("--foxglove-port", type=int, metavar="PORT", help="also serve the replay to Foxglove/Lichtblick "
+                    "on PORT (0 = ephemeral)")
     c = sub.add_parser("configs", help="write the robots' configs (robot1.config ...)")
     c.add_argument("--out", default="configs", metavar="DIR", help="directory (default configs)")
     c.add_argument("--robots", type=int, default=10, metavar="N", help="how many (default 10)")
@@ -316,6 +328,10 @@ def main(argv: list[str] | None = None) -> None:
         return
     if args.cmd == "grid":
         sys.exit(_print_grid(args))
+    if args.cmd == "replay":
+        from .live.replay import run as replay
+        sys.exit(replay(args.recording, speed=args.speed, loop=args.loop,
+                        web_port=None if args.headless else args.web_port, foxglove_port=args.foxglove_port))
     from .live.demo import (EXIT_USAGE, Options, UsageError, parse_battery, parse_cell_at, parse_faults,
                        parse_robot_cell, run, web_access)
     mission = args.cmd == "demo" and args.mission

@@ -450,7 +450,9 @@ class Run:
             self.events.append(f"recording the fleet topics to {o.bag}")
             log.info("recording", bag=o.bag, topics=len(self.bag.topics()))
         if o.record:
-            self.record = FleetBag(o.record, self.robots, recorder_id="fleetMcapRecorder")
+            from .fleet_scene import FleetScene
+            self.record = FleetBag(o.record, self.robots, recorder_id="fleetMcapRecorder",
+                                   scene=FleetScene(self.geo, self.occ, self.places, reg))
             await self._bounded(self.record.start(self.engine.master_url, reg, SETUP_TIMEOUT_S), "recorder setup")
             self.events.append(f"recording the fleet topics to {o.record}")
         if o.foxglove_port is not None:

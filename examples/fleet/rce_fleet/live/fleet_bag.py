@@ -23,10 +23,11 @@ class FleetBag:
     """One run's recording of the fleet topics at ``path`` (``.bag``: a ROS 1 bag v2.0; ``.mcap``: MCAP),
     by the client ``recorder_id``."""
 
-    def __init__(self, path: str, robots: list[str], recorder_id: str = RECORDER_ID):
+    def __init__(self, path: str, robots: list[str], recorder_id: str = RECORDER_ID, scene=None):
         self.path = path
         self.robots = robots
         self.recorder_id = recorder_id
+        self.scene = scene          # a FleetScene: an MCAP file also gets the map, the places and the grid
         self.bag: BagRecorder | McapRecorder | None = None
         self.recorder: Connection | None = None
 
@@ -45,6 +46,8 @@ class FleetBag:
         ``timeout`` s, OSError when the bag cannot be written."""
         self.bag = recorder_for(self.path, reg)
         self.bag.open()
+        if isinstance(self.bag, McapRecorder) and self.scene is not None:
+            write_scene(self.bag, self.scene, self.robots)
         self.recorder = await Connection.connect(master_url, USER, PASSWORD, self.recorder_id, allow_reconnect=True)
         await record_container(self.recorder, FLEET_CTAG, self.topics(), self.bag, timeout=timeout)
 
@@ -63,3 +66,17 @@ class FleetBag:
     def report(self) -> dict | None:
         """The report's ``bag`` section: the path and the messages per topic (None before ``start``)."""
         return {"path": str(self.bag.path), "messages": dict(self.bag.counts)} if self.bag else None
+
+
+REPLAY_METADATA = "rce-fleet"     # the MCAP metadata record rce-fleet replay reads: grid, places, robots
+
+
+def write_scene(rec: McapRecorder, scene, robots: list[str]) -> None:
+    """Start an MCAP recording with what a player needs besides the messages: ``/map``
+    (``nav_msgs/OccupancyGrid``) and ``/fleet/places`` (``visualization_msgs/MarkerArray``), and the metadata
+    record :data:`REPLAY_METADATA` (``grid``: the grid's parameter, ``places``, ``robots``; JSON strings)."""
+    import json
+    rec.write("/map", "nav_msgs/OccupancyGrid", scene.occupancy_grid())
+    rec.write("/fleet/places", "visualization_msgs/MarkerArray", scene.place_markers())
+    rec.add_metadata(REPLAY_METADATA, {"grid": json.dumps(scene.geo.to_param()), "robots": json.dumps(robots),
+                                       "places": json.dumps(scene.places.to_param() if scene.places else [])})
