@@ -4,6 +4,7 @@
 
     rce-ros configs/debug.config [--bus PATH | --ros] [--timeout S] [--keep] [--url MASTER_URL] [--no-resume]
                                  [--relay-port PORT [--relay-max N] [--relay-rate BYTES_S]] [--relays HOST:PORT,...]
+                                 [--record FILE.mcap]
 
 1. Loads the robot config (:func:`rce.protocol.config.load_config`, JSON or YAML). A bad config is
    refused before anything is sent: exit code 2 and the ConfigError (file, key path, reason).
@@ -35,6 +36,10 @@
    coverage (:class:`rce_client.relay.RobotRelay`: at most ``--relay-max`` at once, its own traffic first);
    with ``--relays HOST:PORT,...`` it is a follower: it logs in and dials its endpoint directly when
    it can, else through the first relay that answers, and moves between them by session resume.
+
+7. ``--record FILE.mcap``: every message of the bridged topics, both ways, is written to an MCAP file as
+   it crosses the bridge (its ROS 1 bytes, on the interface's local topic; :mod:`rce_client.mcap_recorder`);
+   ``FILE.bag``: a ROS 1 bag. The file is finished at the stop and its counts printed.
 
 Every ER from the cloud is printed with its reason. SIGINT/SIGTERM tear down: the interfaces
 and containers this run created are removed (unless ``--keep``), the websocket is closed,
@@ -255,8 +260,11 @@ class RobotBridge:
                  relays: list[tuple[str, int]] | None = None, relay_port: int | None = None,
                  relay_max: int = DEFAULT_MAX_FOLLOWERS, relay_rate: float = DEFAULT_RATE, relay_bind: str = "0.0.0.0",
                  routes: Routes | None = None, lanes: bool = False, bulk_rate: Pacing | None = None,
-                 mptcp: bool = False):
+                 mptcp: bool = False, record: str | None = None):
         self.cfg, self.source, self.bus_path = config, source, bus_path
+        self.record = record                     # --record FILE.mcap|FILE.bag: the bridged topics recorded
+        self.recorder = None
+        self.not_recorded = 0
         self.timeout, self.keep, self.resume = timeout, keep, resume
         self.lanes, self.bulk_rate, self.mptcp = lanes, bulk_rate, mptcp
         self.url = url or config.url
@@ -327,6 +335,10 @@ class RobotBridge:
         """Run until stopped; returns the exit code (0 clean stop, 1 failure)."""
         load_package_types(self.registry)
         self._check_local_types()     # ConfigError before anything is sent
+        if self.record:
+            from rce_client.mcap_recorder import recorder_for
+            self.recorder = recorder_for(self.record, self.registry)
+            self.recorder.open()
         await self.graph.start()
         try:
             try:
@@ -352,6 +364,11 @@ class RobotBridge:
                 c.close()
             self._report_drops()
             await self.graph.close()
+            if self.recorder is not None:
+                self.recorder.close()
+                self.out(f"rce-ros: {self.recorder.summary()}" + (f"; {self.not_recorded} not recorded (a topic "
+                                                                   f"recorded with another class)"
+                                                                   if self.not_recorded else ""))
 
     def _report_drops(self) -> None:
         """Print the messages this run dropped, per interface (nothing when none were)."""
@@ -434,9 +451,9 @@ class RobotBridge:
                 if k.prefix == "Subscriber":
                     to_cloud = _ToCloud(self, k)
                     self._to_cloud.append(to_cloud)
-                    graph.subscribe(k, to_cloud.deliver)
+                    graph.subscribe(k, self._recorded(k, to_cloud.deliver))
                 elif k.prefix == "Publisher":
-                    self._from_cloud(k, graph.advertise(k))
+                    self._from_cloud(k, self._recorded(k, graph.advertise(k)))
                 elif k.prefix == "ServiceProvider":
                     graph.advertise_service(k, self._cloud_service(k))
                 else:
@@ -444,6 +461,22 @@ class RobotBridge:
             except RCEError as e:
                 raise ConfigError(f"{self.source}: interface {k.spec.iTag} at {k.addr}: {e.message}") from None
             log.info("bridged", itag=k.spec.iTag, itype=k.spec.iType, addr=k.addr)
+
+    def _recorded(self, kind: _Kind, fn: Callable[[bytes], Any]) -> Callable[[bytes], Any]:
+        """``fn``, and with ``--record`` each message it takes written first to the recording, on the
+        interface's local topic (a forwarder's class unknown here: not recorded)."""
+        rec = self.recorder
+        if rec is None or not kind.types:
+            return fn
+        topic, cls = kind.addr, kind.spec.iCls
+
+        def recorded(payload: bytes) -> Any:
+            try:
+                rec.write(topic, cls, payload)
+            except MessageError:
+                self.not_recorded += 1
+            return fn(payload)
+        return recorded
 
     def _from_cloud(self, kind: _Kind, publish: Callable[[bytes], Any]) -> None:
         """PublisherConverter/Forwarder: DMs from the cloud published (serialized) with ``publish``."""
@@ -557,6 +590,8 @@ def build_parser() -> argparse.ArgumentParser:
                    help="seconds to wait for the robot-side interfaces to come up (default 30)")
     p.add_argument("--keep", action="store_true", help="do not remove interfaces and containers on exit (note: "
                    "the master still destroys a robot's containers when the robot disconnects)")
+    p.add_argument("--record", metavar="FILE.mcap", help="record every topic the robot's interfaces bridge, both "
+                   "ways, into an MCAP file (ROS 1 encoding, one channel per topic; FILE.bag: a ROS 1 bag)")
     p.add_argument("--url", metavar="MASTER_URL", help="master login URL (overrides the config's url)")
     p.add_argument("--no-resume", dest="resume", action="store_false",
                    help="do not ask for session resume: a lost link ends the run (exit code 1)")
@@ -613,7 +648,7 @@ def main(argv: list[str] | None = None) -> None:
         bridge = RobotBridge(cfg, args.config, bus_path, timeout=args.timeout, keep=args.keep, url=args.url,
                              resume=args.resume, graph=graph, relays=relays, relay_port=args.relay_port,
                              relay_max=args.relay_max, relay_rate=args.relay_rate, lanes=args.lanes,
-                             bulk_rate=args.uplink_rate, mptcp=args.mptcp)
+                             bulk_rate=args.uplink_rate, mptcp=args.mptcp, record=args.record)
         loop = asyncio.get_running_loop()
         for sig in (signal.SIGINT, signal.SIGTERM):
             loop.add_signal_handler(sig, bridge.stop.set)
