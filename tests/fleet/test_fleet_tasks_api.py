@@ -275,8 +275,10 @@ def test_the_openapi_document_validates_and_names_the_models(fleet):
     validate(doc)                                                    # OpenAPI 3.1, with its JSON Schema dialect
     assert doc["openapi"] == "3.1.0" and doc["servers"] == [{"url": fleet["base"] + "/"}]
     schemas = doc["components"]["schemas"]
-    assert {"TaskRequest", "Task", "TaskList", "RobotWork", "ApiError", "LoginRequest", "LoginAnswer"} <= set(schemas)
-    assert schemas["TaskRequest"]["additionalProperties"] is False and "cancelled_by" in schemas["Task"]["properties"]
+    assert {"TaskRequest", "FleetTask", "TaskList", "RobotWork", "ApiError", "LoginRequest",
+            "LoginAnswer"} <= set(schemas)
+    assert schemas["TaskRequest"]["additionalProperties"] is False
+    assert "cancelled_by" in schemas["FleetTask"]["properties"]
     post = doc["paths"]["/api/tasks"]["post"]
     assert set(post["responses"]) >= {"201", "400", "401", "403", "409"} and "operator" in post["summary"]
     assert doc["paths"]["/api/login"]["post"]["security"] == [] and doc["security"] == [{"bearer": []}, {"basic": []}]

@@ -15,7 +15,7 @@ from pydantic import BaseModel, ConfigDict, Field, StrictFloat, StrictInt, Stric
 
 from .tasks_api import MAX_ERRANDS
 
-__all__ = ["ApiError", "LoginAnswer", "LoginRequest", "RobotWork", "Task", "TaskList", "TaskRequest",
+__all__ = ["ApiError", "FleetTask", "LoginAnswer", "LoginRequest", "RobotWork", "TaskList", "TaskRequest",
            "openapi_document"]
 
 TaskState = Literal["queued", "assigned", "active", "done", "failed", "cancelled"]
@@ -34,7 +34,7 @@ class TaskRequest(BaseModel):
     id: StrictStr = Field("", description="task id wanted (1-64 of A-Z a-z 0-9 _ . : -); empty: the fleet names it")
 
 
-class Task(BaseModel):
+class FleetTask(BaseModel):
     """One task (``fleet/TaskStatus``). Times are fleet seconds (the robots' clock); 0: not (yet) reached."""
     id: str
     errands: list[str] = Field(description="as given (cells or place names)")
@@ -72,7 +72,7 @@ class TaskList(BaseModel):
     """``GET /api/tasks``: the open tasks, then the most recently closed ones, each robot's work and the
     counts and times of closed tasks (``fleet/TaskList``)."""
     seq: int
-    tasks: list[Task]
+    tasks: list[FleetTask]
     robots: list[RobotWork]
     queued: int
     done: int
@@ -139,10 +139,10 @@ def openapi_document(server_url: str = "/", metrics_public: bool = False) -> dic
     TLS). ``server_url``: the API's base URL; ``metrics_public``: ``/metrics`` needs no credential."""
     from pydantic.json_schema import models_json_schema
     models = [(m, "validation" if m in (TaskRequest, LoginRequest) else "serialization")
-              for m in (TaskRequest, Task, RobotWork, TaskList, ApiError, LoginRequest, LoginAnswer)]
+              for m in (TaskRequest, FleetTask, RobotWork, TaskList, ApiError, LoginRequest, LoginAnswer)]
     _, defs = models_json_schema(models, ref_template="#/components/schemas/{model}")
     err = _ref("ApiError")
-    task = _json(_ref("Task"), "the task")
+    task = _json(_ref("FleetTask"), "the task")
     paths = {
         "/api/login": {"post": _op("Log in with a user of the master: a bearer token", None, {
             "200": _json(_ref("LoginAnswer"), "the token"), "400": _json(err, "a malformed body"),

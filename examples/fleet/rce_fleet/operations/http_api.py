@@ -67,7 +67,7 @@ def _error(status: int, code: str, text: str, headers: dict | None = None) -> we
     return web.json_response({"error": text, "code": code}, status=status, headers=headers)
 
 
-class Refusal(web.HTTPException):
+class ApiRefusal(web.HTTPException):
     """A refusal raised from a handler: ``{"error", "code"}`` with ``status`` (and ``headers``)."""
 
     def __init__(self, status: int, code: str, text: str, headers: dict | None = None):
@@ -96,25 +96,25 @@ class ApiAuth:
         self.check_password, self.metrics_public, self.clock = check_password, metrics_public, clock
         self.book = TokenBook(ttl_s)
 
-    def _unauthorized(self, req: web.Request, text: str) -> Refusal:
+    def _unauthorized(self, req: web.Request, text: str) -> ApiRefusal:
         schemes = f"Bearer {REALM}" + (f", Basic {REALM}" if req.secure else "")
-        return Refusal(401, "unauthorized", text, {"WWW-Authenticate": schemes})
+        return ApiRefusal(401, "unauthorized", text, {"WWW-Authenticate": schemes})
 
     async def password(self, req: web.Request, user: str, password: str) -> str:
-        """The role of ``user`` if ``password`` is right (the master checks it); raises :class:`Refusal`
+        """The role of ``user`` if ``password`` is right (the master checks it); raises :class:`ApiRefusal`
         401 (wrong), 429 (backing off) or 503 (the master cannot be asked)."""
         try:
             return await self.check_password(user, password, req.remote or "")
         except Throttled as e:
-            raise Refusal(429, "throttled", f"too many failed logins; retry after {e.retry_after:g} s",
+            raise ApiRefusal(429, "throttled", f"too many failed logins; retry after {e.retry_after:g} s",
                           {"Retry-After": str(max(1, round(e.retry_after)))}) from None
         except AuthError:
             raise self._unauthorized(req, "invalid user or password") from None
         except RCEError as e:
-            raise Refusal(503, "unavailable", f"cannot check the password at the master: {e.message}") from None
+            raise ApiRefusal(503, "unavailable", f"cannot check the password at the master: {e.message}") from None
 
     async def require(self, req: web.Request, role: str) -> Identity:
-        """The identity of ``req`` when its role allows ``role``; raises :class:`Refusal` 401 (no,
+        """The identity of ``req`` when its role allows ``role``; raises :class:`ApiRefusal` 401 (no,
         malformed, wrong, expired or revoked credential; Basic without TLS) or 403 (a lower role)."""
         try:
             cred = parse_authorization(req.headers.get("Authorization", ""))
@@ -134,18 +134,18 @@ class ApiAuth:
         else:
             who = Identity(a, await self.password(req, a, b), "basic")
         if not allows(who.role, role):
-            raise Refusal(403, "forbidden", f"user {who.user!r} is {who.role}: this needs {role} or above")
+            raise ApiRefusal(403, "forbidden", f"user {who.user!r} is {who.role}: this needs {role} or above")
         return who
 
 
 def _json_body(body: object, model):
-    """``body`` validated by ``model``; raises :class:`Refusal` 400 with what was wrong."""
+    """``body`` validated by ``model``; raises :class:`ApiRefusal` 400 with what was wrong."""
     if not isinstance(body, dict):
-        raise Refusal(400, "bad_request", "the body must be a JSON object")
+        raise ApiRefusal(400, "bad_request", "the body must be a JSON object")
     try:
         return model.model_validate(body)
     except ValidationError as e:
-        raise Refusal(400, "bad_request", _why(e, model)) from None
+        raise ApiRefusal(400, "bad_request", _why(e, model)) from None
 
 
 def _why(e: ValidationError, model) -> str:
@@ -165,7 +165,7 @@ async def _read_json(req: web.Request) -> object:
     try:
         return await req.json()
     except (json.JSONDecodeError, UnicodeDecodeError):
-        raise Refusal(400, "bad_request", "the body must be a JSON object") from None
+        raise ApiRefusal(400, "bad_request", "the body must be a JSON object") from None
 
 
 def add_routes(app: web.Application, channel: TaskChannel, auth: ApiAuth) -> None:
