@@ -209,7 +209,7 @@ class Connection(Verbs, Handles, Reconnecting):
 
         Raises :class:`AuthError` (bad credentials: HTTP or handshake 401/403, with the cloud's reason)
         or :class:`Unavailable`; ValueError for ``lanes`` without ``allow_reconnect``."""
-        ws_url = await login(master_url, user_id, version, timeout, ssl_context, routes)
+        ws_url = await login(master_url, user_id, version, timeout, ssl_context, routes, robot_id)
         conn = await cls.open(ws_url, user_id, password, robot_id, timeout=timeout, expiry=expiry,
                               allow_reconnect=allow_reconnect, max_reconnect_attempts=max_reconnect_attempts,
                               reconnect_time_wait=reconnect_time_wait, max_reconnect_wait=max_reconnect_wait,

@@ -60,7 +60,7 @@ def _socket_failure(error: BaseException) -> str:
 
 async def login(master_url: str, user_id: str, version: str = CLIENT_VERSION,
                 timeout: float = CONNECT_TIMEOUT, ssl_context: ssl.SSLContext | None = None,
-                routes: Routes | None = None) -> str:
+                routes: Routes | None = None, robot_id: str | None = None) -> str:
     """Ask the master for this user's robot endpoint; returns its websocket URL.
 
     ``GET master_url?userID=U&version=V`` -> ``{"url": ws_url, "current"?: V'}`` (``current``
@@ -68,8 +68,10 @@ async def login(master_url: str, user_id: str, version: str = CLIENT_VERSION,
     with ``ssl_context`` (default :func:`rce.transport.tls.client_context`: ``$RCE_CA_FILE``, else the
     system's CAs). Raises :class:`AuthError` (HTTP 401/403) or :class:`Unavailable` (any other
     HTTP error, an unreachable or untrusted master, a malformed answer) with the master's
-    one-line reason. ``routes``: a follower's paths (direct, else a relay; :mod:`rce_client.routes`)."""
-    url = with_query(master_url, userID=user_id, version=version)
+    one-line reason. ``routes``: a follower's paths (direct, else a relay; :mod:`rce_client.routes`).
+    ``robot_id``: the robot logging in (``&robotID=R``, which a 2013 master ignores), so that a master
+    hands it the endpoint on its own computer where one runs (``rce-robot --zone robot:R``)."""
+    url = with_query(master_url, userID=user_id, version=version, **({"robotID": robot_id} if robot_id else {}))
     try:
         if routes is not None:
             status, phrase, body = await routes.get(url, ssl_context, timeout)

@@ -170,7 +170,8 @@ class Reconnecting:
         Raises :class:`Unavailable` (the master is unreachable; try again) or :class:`AuthError`."""
         master_url, password, version = self.relogin
         timeout = self.reconnect.timeout
-        ws_url = await login(master_url, self.user_id, version, timeout, self.ssl_context, self.routes)
+        ws_url = await login(master_url, self.user_id, version, timeout, self.ssl_context, self.routes,
+                             self.robot_id)
         if ws_url == self.ws_url:
             return False
         ws = await open_robot_link(ws_url, self.user_id, password, self.robot_id, timeout=timeout,

@@ -73,7 +73,9 @@ class Verbs:
 
     async def create_container(self, tag: str, group: str | None = None, **container_data: Any) -> None:
         """CC: create container ``tag``. ``container_data`` keys: ``groupIp``, ``size``, ``cpu``
-        (cores), ``memory`` (MiB), ``bandwidth``, ``specialFeatures`` (None values are left out)."""
+        (cores), ``memory`` (MiB), ``bandwidth``, ``specialFeatures``, and where it runs:
+        ``placement`` (``auto``, ``cloud``, ``edge``, ``robot``), ``deadline_ms``, ``robot``,
+        ``consumes`` (docs/placement.md); None values are left out."""
         cd = {k: v for k, v in {"group": group, **container_data}.items() if v is not None}
         data: dict = {"containerTag": tag}
         if cd:

@@ -156,11 +156,14 @@ class Placement:
                              u.rate_hz if u else 0.0, u.in_bytes if u else 0.0, u.out_bytes if u else 0.0,
                              float(d.get("cpu") or 0), u.node_ms if u else None)
         link = self.links.get((c.user, robot)) if robot else None
-        links = {"cloud": link, "edge": link} if link is not None else ({} if robot else
-                                                                         {"cloud": LinkView(0, float("inf")),
-                                                                          "edge": LinkView(0, float("inf"))})
+        unmeasured = robot is not None and link is None     # its robot's link is not measured yet
+        links = {"cloud": link, "edge": link} if link is not None else {"cloud": LinkView(0, float("inf")),
+                                                                        "edge": LinkView(0, float("inf"))}
         low = self._low(c)
         ch = self.placer.decide(now, view, self.hosts(), links, c.tid, low)
+        if unmeasured and ch.move:
+            ch = Choice(ch.target, ch.current, False, f"robot {robot}'s link is not measured yet; {ch.why}",
+                        ch.options)
         pinned = d.get("pinned") or (d.get("placement") if d.get("placement") not in (None, "auto") else None)
         if pinned:
             how = "user pin" if d.get("pinned") else "its placement"

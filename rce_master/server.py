@@ -491,7 +491,8 @@ class Master:
         return resp
 
     async def _login(self, request: web.Request) -> web.Response:
-        """``GET /?userID=U&version=V`` -> ``{"url": ws_url, "current"?: V'}`` (DESIGN section 3.1). The
+        """``GET /?userID=U&version=V[&robotID=R]`` -> ``{"url": ws_url, "current"?: V'}`` (DESIGN section
+        3.1; with ``robotID``, the endpoint on that robot's own computer where one runs). The
         same answer whether user ``U`` exists or not (the password is checked at the robot endpoint, and
         fails there the same way for both): user names cannot be enumerated here."""
         q = request.query
@@ -505,7 +506,7 @@ class Master:
         if version not in SUPPORTED_VERSIONS and version > CLIENT_VERSION:
             self.metrics.logins.labels("bad_version").inc()
             raise RequestError(f"client version {version!r} is not supported (this master speaks {CLIENT_VERSION})")
-        ts = self.state.pick_robot_taskset()
+        ts = self.state.pick_robot_taskset(user, q.get("robotID"))
         body = {"url": ts.info["ws_url"]}
         if version < CLIENT_VERSION:
             body["current"] = CLIENT_VERSION

@@ -260,9 +260,14 @@ class MasterState(StateIndex):
         self._delete(ts)
         return lost, robots
 
-    def pick_robot_taskset(self) -> TaskSet:
-        """The least loaded robot task set. Raises :class:`TaskSetAbsent` if none is registered."""
-        cands = [t for t in self.tasksets.values() if t.kind == "robot" and not t.lost]
+    def pick_robot_taskset(self, user: str | None = None, robot: str | None = None) -> TaskSet:
+        """The robot endpoint for ``user``'s robot ``robot``: the one on that robot's own computer
+        (zone ``robot:ROBOT``, :mod:`rce.protocol.zones`) when it is up, else the least loaded shared
+        one (an endpoint on a robot's computer serves that robot alone). Raises
+        :class:`TaskSetAbsent` if none may take it."""
+        up = [t for t in self.tasksets.values() if t.kind == "robot" and not t.lost]
+        own = [t for t in up if t.zone.kind == "robot" and robot and t.zone.serves(user or "", robot)]
+        cands = own or [t for t in up if t.zone.kind != "robot"]
         if not cands:
             raise TaskSetAbsent("no robot endpoint is available; start rce-robot")
         return min(cands, key=lambda t: (t.robots, t.tid))

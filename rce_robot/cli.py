@@ -22,6 +22,7 @@ from rce.protocol.frames import DEFAULT_EXPIRY
 from rce.protocol.limits import DEFAULT_MAX_PENDING_TOTAL
 from rce.protocol.pacer import rate_arg
 from rce.protocol.resume import DEFAULT_GRACE, DEFAULT_RESUME_BUFFER
+from rce.protocol.zones import parse_zone
 from rce.protocol.session import DEFAULT_MAX_LAG, DEFAULT_MAX_MESSAGE, DEFAULT_QUEUE_SIZE
 from rce_robot.endpoint import RobotEndpoint
 from rce_robot import ws_link
@@ -89,6 +90,11 @@ def parser() -> argparse.ArgumentParser:
     p.add_argument("--ws-impl", choices=ws_link.IMPLS, default=ws_link.DEFAULT_IMPL,
                    help="the websocket library that serves robots and rosbridge clients (default "
                         f"{ws_link.DEFAULT_IMPL}; docs/INTERNALS.md \"The robot endpoint's websocket\")")
+    p.add_argument("--zone", default="cloud", metavar="ZONE",
+                   help="where this endpoint stands: cloud (default), edge, or robot:ROBOT_ID (that robot's own "
+                        "computer: it serves that robot alone, the master hands it that robot's logins, and the "
+                        "robot's link is measured on its uplink; docs/placement.md)")
+    p.add_argument("--user", default=None, metavar="NAME", help="with --zone robot:ROBOT_ID: the robot's user")
     p.add_argument("--ready-file", type=Path, help="write {ws_port, data_addr, pid} here once registered")
     p.add_argument("--cluster-key-file", type=Path, default=None, metavar="PATH", help=cluster_auth.KEY_FLAG_HELP)
     tls.add_server_arguments(p, "serve wss:// to robots and rosbridge clients (and https:// /metrics)")
@@ -97,6 +103,7 @@ def parser() -> argparse.ArgumentParser:
 
 async def amain(args: argparse.Namespace) -> None:
     masters = parse_masters(args.master_ip, args.master_port)
+    zone = parse_zone(args.zone, args.user)                                # exit 2 for a bad zone
     ep = RobotEndpoint(name=args.name or f"{socket.gethostname()}-robot-{os.getpid()}",
                        cluster_key=cluster_auth.ClusterKey.load(args.cluster_key_file),
                        advertise_host=args.advertise_host or args.bind, max_message=args.max_message,
@@ -104,7 +111,7 @@ async def amain(args: argparse.Namespace) -> None:
                        grace=args.grace, resume_buffer=args.resume_buffer,
                        max_pending_total=args.max_pending_binary, ssl_context=tls.server_context_from(args),
                        max_lag=args.max_lag or None, bulk_rate=args.bulk_rate, mptcp=args.mptcp,
-                       ws_impl=args.ws_impl)
+                       ws_impl=args.ws_impl, zone=zone)
     loop = asyncio.get_running_loop()
     for sig in (signal.SIGINT, signal.SIGTERM):
         loop.add_signal_handler(sig, ep.stopped.set)

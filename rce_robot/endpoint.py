@@ -10,6 +10,7 @@ import socket
 import ssl
 from collections import Counter
 from http import HTTPStatus
+from typing import Any
 from urllib.parse import parse_qs, urlsplit
 
 from aiohttp import web
@@ -20,6 +21,7 @@ from rce.transport.cluster_auth import ClusterKey, token_of
 from rce.transport.dataplane import DataPlane
 from rce.plumbing.errors import AuthError, NotFound, RCEError, Throttled
 from rce.protocol.interface_type import InterfaceType
+from rce.protocol.zones import CLOUD, Zone
 from rce.protocol.lanes import Lane, parse_lane
 from rce.protocol.lane_queue import DELAY_BOUNDS
 from rce.protocol.pacer import Pacing, new_pacer
@@ -42,7 +44,7 @@ from rce_robot.rosbridge import SESSION_COUNTERS as ROSBRIDGE_COUNTERS
 from rce_robot.rosbridge import RosbridgeServer
 from rce_robot.rosbridge_session import RosbridgeSession
 from rce_robot import link_report, ws_link
-from rce_robot.link_report import LinkReports
+from rce_robot.link_report import LinkReports, Uplink, websocket_link
 
 log = get_logger("rce.robot")
 PING_INTERVAL = 20.0     # s between websocket pings to a robot
@@ -216,10 +218,11 @@ class RobotEndpoint:
                  resume_buffer: int = DEFAULT_RESUME_BUFFER, max_pending_total: int = DEFAULT_MAX_PENDING_TOTAL,
                  ssl_context: ssl.SSLContext | None = None, max_lag: float | None = DEFAULT_MAX_LAG,
                  cluster_key: ClusterKey, bulk_rate: Pacing | None = None, mptcp: bool = False,
-                 ws_impl: str = ws_link.DEFAULT_IMPL):
+                 ws_impl: str = ws_link.DEFAULT_IMPL, zone: Zone = CLOUD):
         if ws_impl not in ws_link.IMPLS:
             raise ValueError(f"ws_impl must be one of {', '.join(ws_link.IMPLS)}; got {ws_impl!r}")
         self.ws_impl = ws_impl
+        self.zone = zone
         self.name, self.advertise_host = name, advertise_host
         self.ssl_context = ssl_context
         self.cluster_key = cluster_key
@@ -246,6 +249,7 @@ class RobotEndpoint:
         self.stopped = asyncio.Event()
         self.relays: dict[tuple[str, str], str] = {}      # (user, robot) -> the relay its link goes through now
         self.link_reports = LinkReports(self._tell_link)
+        self.uplink = Uplink(self._master_socket, self._data_sockets)    # on a robot's computer: its link
         self._link_task: asyncio.Task | None = None
 
     async def start(self, masters: list[Address], bind: str, port: int, data_port: int,
@@ -267,7 +271,7 @@ class RobotEndpoint:
         host = f"[{self.advertise_host}]" if ":" in self.advertise_host else self.advertise_host
         scheme = "wss" if self.ssl_context else "ws"
         info = {"kind": "robot", "name": self.name, "host": self.advertise_host, "ws_url": f"{scheme}://{host}:{self.ws_port}/",
-                "data_addr": self.plane.addr}
+                "data_addr": self.plane.addr, "zone": str(self.zone), "zone_user": self.zone.user}
         self.master = MasterLink(masters, ROBOT_OPS.handlers(self), info, report=self._report, on_registered=self._obey,
                                  master_wait=self.master_wait, cluster_key=self.cluster_key)
         await self.master.start()
@@ -292,12 +296,24 @@ class RobotEndpoint:
         loop = asyncio.get_running_loop()
         while True:
             await asyncio.sleep(link_report.EVERY)
-            self.link_reports.sample(loop.time(), [(u, r, ns.ws) for (u, r), ns in self.namespaces.items()])
+            if self.zone.kind == "robot":       # its robot's websocket is local: the robot's link is the uplink
+                up = self.uplink.measure()
+                robots = [(u, r, up) for (u, r) in self.namespaces]
+            else:
+                robots = [(u, r, websocket_link(ns.ws)) for (u, r), ns in self.namespaces.items()]
+            self.link_reports.sample(loop.time(), robots)
             for (user, robot), ns in self.namespaces.items():
                 if ns.battery is not None and (ns.battery_told is None
                                                or abs(ns.battery - ns.battery_told) >= link_report.BATTERY_STEP):
                     ns.battery_told = ns.battery
                     self.master.notify("robot_battery", user=user, robot=robot, percent=round(ns.battery, 2))
+
+    def _master_socket(self) -> Any:
+        peer = self.master.peer if self.master is not None else None
+        return peer.link.writer.get_extra_info("socket") if peer is not None else None
+
+    def _data_sockets(self) -> list[Any]:
+        return [d.link.writer.get_extra_info("socket") for d in self.plane.dialled() if d.link is not None]
 
     def _tell_link(self, user: str, robot: str, rtt_ms: float, rate: float) -> None:
         self.master.notify("robot_link", user=user, robot=robot, rtt_ms=round(rtt_ms, 3), rate=rate)
@@ -355,6 +371,9 @@ class RobotEndpoint:
         except ValueError as e:
             return connection.respond(HTTPStatus.BAD_REQUEST, f"{e}\n")
         user, robot = q["userID"], q["robotID"]
+        if not self.zone.serves(user, robot):
+            return connection.respond(HTTPStatus.FORBIDDEN, f"this endpoint runs on robot {self.zone.robot}'s "
+                                      f"computer and serves that robot alone (zone {self.zone})\n")
         try:
             await self.master.call("auth", user=user, robot=robot, password=normalise_password(q["password"]),
                                    addr=peer_address(connection))

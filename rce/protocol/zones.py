@@ -1,4 +1,4 @@
-"""Where a container host stands: its zone (DESIGN section 9).
+"""Where a container host or a robot endpoint stands: its zone (DESIGN section 9).
 
 - ``cloud``: a machine in the data centre, shared by every user;
 - ``edge``: a machine near the robots (on the site's network), shared by every user;
@@ -6,7 +6,8 @@
   (``rce-container --zone robot:r1 --user alice``).
 
 A host registers its zone with the master (``register`` args ``zone`` and ``zone_user``); the
-master places a container on a ``robot:`` host only for that user and that robot.
+master places a container on a ``robot:`` host only for that user and that robot, and hands a
+``robot:`` endpoint (``rce-robot --zone robot:r1 --user alice``) only that robot's logins.
 """
 from __future__ import annotations
 
@@ -54,5 +55,5 @@ def parse_zone(text: str, user: str | None = None) -> Zone:
     if not robot:
         raise RequestError(f"zone {text!r}: give the robot's ID, e.g. robot:r1")
     if not user:
-        raise RequestError(f"zone {text!r} serves one user: give the robot's user (rce-container --user NAME)")
+        raise RequestError(f"zone {text!r} serves one user: give the robot's user (--user NAME)")
     return Zone("robot", robot, user)

@@ -295,6 +295,10 @@ class DataPlane:
         self.addr = f"[{host}]:{real_port}" if ":" in host else f"{host}:{real_port}"
         return self.addr
 
+    def dialled(self) -> list["_Dialled"]:
+        """The links this plane dialled (to the other planes it sends to), up or still dialling."""
+        return list(self._dialled.values())
+
     async def close(self) -> None:
         """Close the listener and all links; calls in flight fail with :class:`Unavailable`."""
         if self._server:

@@ -111,6 +111,18 @@ def link_info(sock: socket.socket) -> tuple[float, float] | None:
     return rtt / 1e6, float(rate)
 
 
+def link_sample(sock: socket.socket) -> tuple[float, float, bool] | None:
+    """:func:`link_info` and whether the delivery rate was app-limited (the sender had nothing
+    more to send, so the rate says nothing of the path: ``tcpi_delivery_rate_app_limited``, bit 0
+    of byte 7 of ``struct tcp_info``); None where the kernel gives none."""
+    info = _tcp_info(sock)
+    if info is None:
+        return None
+    (rtt,) = struct.unpack_from("I", info, _TCPI_RTT)
+    rate = struct.unpack_from("Q", info, _TCPI_DELIVERY_RATE)[0] if len(info) >= _TCPI_RATE_LEN else 0
+    return rtt / 1e6, float(rate), bool(info[7] & 1)
+
+
 class PacedLink:
     """A bulk link's ``pacer`` on its ``sock`` (None: a socket not known, e.g. a test double; then only
     the pacer). Counters: :attr:`samples` taken; :attr:`kernel_pacing`: the kernel took

@@ -20,7 +20,11 @@ from pathlib import Path
 
 import pytest
 
+from websockets.asyncio.client import connect
+from websockets.exceptions import InvalidStatus
+
 from rce.tools.launch import start_engine
+from rce_client import Connection
 from wsclient import RawRobot
 
 BIN = Path(sys.executable).parent
@@ -125,3 +129,37 @@ async def test_the_robots_battery_state_reaches_the_placer(eng):
             await asyncio.sleep(0.2)
         assert row["battery"] == 15.0
         assert row["battery_low"], "below the placer's threshold (20 %): it now weighs the robot's energy first"
+
+
+@pytest.mark.asyncio
+async def test_an_endpoint_on_a_robots_computer_serves_that_robot_alone_and_measures_its_uplink(eng):
+    info = eng.add_robot_taskset("--zone", "robot:r3", "--user", "testUser", "--name", "r3-endpoint")
+    own = f"ws://127.0.0.1:{info['ws_port']}/"
+
+    def login(robot: str | None) -> str:
+        q = "?userID=testUser&version=20130902" + (f"&robotID={robot}" if robot else "")
+        with urllib.request.urlopen(eng.master_url + q, timeout=10) as resp:
+            return json.loads(resp.read())["url"]
+    assert login("r3") == own, "a robot with an endpoint on its own computer is handed that one"
+    assert login("r1") != own and login(None) != own, "other robots, and a 2013 login, never get it"
+    with pytest.raises(InvalidStatus) as err:             # another robot straight at it: refused before a session
+
+        async with connect(f"{own}?userID=testUser&robotID=r4&password=x"):
+            pass
+    assert err.value.response.status_code == 403
+    conn = await Connection.login_connect(eng.master_url, "testUser", "testUser", "r3")
+    try:
+        assert conn.ws_url == own
+        await conn.create_container("near", placement="auto", robot="r3", deadline_ms=100)
+        loop = asyncio.get_running_loop()
+        end = loop.time() + WAIT
+        while True:             # the uplink (its link to the master) is measured and told within a second
+            row = next((x for x in eng.admin("/api/placement") if x["ctag"] == "near"), None)
+            zones = {o["zone"]: o for o in (row or {}).get("options") or []}
+            if "cloud" in zones and zones["cloud"]["link_ms"] > 0:
+                break
+            assert loop.time() < end, row
+            await asyncio.sleep(0.2)
+        assert "robot:r3" not in zones or zones["robot:r3"]["link_ms"] == 0
+    finally:
+        await conn.close()
