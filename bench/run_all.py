@@ -1,6 +1,6 @@
 """Run every benchmark script, one after the other (``make bench``): rtt, rtt_gap (``rtt.py
 --gap 1.0`` at 3 B and 1.6 kB: sparse messages), rtt_cpu, fleet_load, paper_experiments, planner,
-container_start, faults, stall, login_attack, lanes. A script that does not exist
+container_start, faults, stall, login_attack, lanes, ws_impl, foxglove. A script that does not exist
 (yet) is skipped with a message.
 Each writes its own results to ``bench/results/``; this prints a summary and exits non-zero
 if any script failed.
@@ -19,7 +19,7 @@ from pathlib import Path
 
 BENCH = Path(__file__).resolve().parent
 SCRIPTS = ("rtt", "rtt_gap", "rtt_cpu", "fleet_load", "paper_experiments", "planner", "container_start", "faults",
-           "stall", "login_attack", "lanes", "ws_impl")
+           "stall", "login_attack", "lanes", "ws_impl", "foxglove")
 # a name that is not a script's: (script, its arguments)
 VARIANTS = {"rtt_gap": ("rtt", ["--gap", "1.0", "--sizes", "3,1623"])}
 
