@@ -14,6 +14,7 @@ the operator's web page, injected faults, simulated radios and the bag recorder.
 - :mod:`.fleet_bag`: the fleet's topics recorded into a ROS 1 bag or an MCAP file.
 - :mod:`.fleet_scene`, :mod:`.foxglove`: the live fleet for Foxglove and Lichtblick (map, poses, paths,
   markers) over the Foxglove WebSocket protocol.
+- :mod:`.replay`: ``rce-fleet replay``: a recording played back onto the operator page.
 
 The top layer below :mod:`rce_fleet.cli`: may import every other part of rce_fleet; nothing but the
 CLI imports it.
