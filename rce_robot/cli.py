@@ -58,6 +58,9 @@ def parser() -> argparse.ArgumentParser:
     p.add_argument("--rosbridge-port", type=int, default=ROSBRIDGE_PORT,
                    help=f"websocket port for rosbridge v2 clients (roslibpy, roslibjs; 0 = ephemeral, "
                         f"-1 = off; default {ROSBRIDGE_PORT})")
+    p.add_argument("--foxglove-port", type=int, default=-1, metavar="PORT",
+                   help="websocket port for Foxglove and Lichtblick (the Foxglove WebSocket protocol on a container's "
+                        "graph, rce_robot.foxglove; needs the rosbridge endpoint; 0 = ephemeral; default -1 = off)")
     p.add_argument("--metrics-port", type=int, default=None, help="serve Prometheus /metrics on this port")
     p.add_argument("--advertise-host", default=None, metavar="HOST",
                    help="address robots and environments reach this host by (default: --bind)")
@@ -115,17 +118,25 @@ async def amain(args: argparse.Namespace) -> None:
     loop = asyncio.get_running_loop()
     for sig in (signal.SIGINT, signal.SIGTERM):
         loop.add_signal_handler(sig, ep.stopped.set)
+    foxglove = None
     try:
         await unless_stopped(ep.start(masters, args.bind, args.port, args.data_port, args.metrics_port,
                                       None if args.rosbridge_port < 0 else args.rosbridge_port), ep.stopped)
+        if args.foxglove_port >= 0 and ep.rosbridge is not None and not ep.stopped.is_set():
+            from rce_robot.foxglove import RobotFoxglove
+            foxglove = RobotFoxglove(ep.rosbridge)
+            await foxglove.start(args.bind, args.foxglove_port)
         if not ep.stopped.is_set():
             write_ready_file(args.ready_file, {"ws_port": ep.ws_port, "data_addr": ep.plane.addr, "pid": os.getpid(),
                                                "metrics_port": ep.metrics_port,
                                                "rosbridge_port": ep.rosbridge.port if ep.rosbridge else None,
+                                               "foxglove_port": foxglove.port if foxglove else None,
                                                "tid": ep.master.tid})
             await ep.stopped.wait()
     finally:
         log.info("robot endpoint stopping")
+        if foxglove is not None:
+            await foxglove.stop()
         await ep.stop()
 
 

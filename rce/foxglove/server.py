@@ -22,6 +22,10 @@ What it does:
 - Each client has one :class:`~rce.protocol.outbox.Outbox` (rce's one policy: per channel the newest is
   kept; past ``queue_size`` messages the busiest channel's oldest is dropped, counted), a writer task, and
   a bound on its control messages (statuses past :data:`CONTROL_MAX` waiting are dropped, counted).
+- With ``per_client``, each client has channels and services of its own (what one user's container has), made by
+  ``on_connect(client)`` with :meth:`FoxgloveClient.add_channel` and :meth:`FoxgloveClient.add_service` and fed with
+  :meth:`FoxgloveClient.publish`; ``on_subscribe(client, channel)`` and ``on_unsubscribe`` say when a client starts
+  and stops wanting a channel, ``on_disconnect(client)`` when it is gone.
 - Client publishing and service calls go to ``on_publish(client, channel, payload)`` and
   ``on_service_call(client, service, encoding, payload) -> (encoding, payload)``; an
   :class:`~rce.plumbing.errors.RCEError` from either is a ``status`` error (a failed call: a
@@ -68,6 +72,8 @@ CLOSE_PROTOCOL = 1002     # close code: protocol error (RFC 6455)
 Authenticate = Callable[[dict[str, str]], Awaitable[Any]]
 OnPublish = Callable[["FoxgloveClient", ClientChannel, bytes], Awaitable[None]]
 OnServiceCall = Callable[["FoxgloveClient", Service, str, bytes], Awaitable[tuple[str, bytes]]]
+OnClient = Callable[["FoxgloveClient"], Awaitable[None]]
+OnChannel = Callable[["FoxgloveClient", Channel], Awaitable[None]]
 COUNTERS = {"messages_out": "Messages queued for Foxglove clients",
             "dropped": "Messages to Foxglove clients dropped (a client's queue full)",
             "status_errors": "status errors sent to Foxglove clients (bad input, refused publishes)",
@@ -83,7 +89,11 @@ class FoxgloveClient:
 
     def __init__(self, server: "FoxgloveServer", ws: ServerConnection, principal: Any, queue_size: int):
         self.server, self.ws, self.principal = server, ws, principal
-        self.state = ClientState(server.channels, server.services, client_publish=server.on_publish is not None)
+        self.channels: dict[int, Channel] = {} if server.per_client else server.channels
+        self.services: dict[int, Service] = {} if server.per_client else server.services
+        self.state = ClientState(self.channels, self.services, client_publish=server.on_publish is not None)
+        self.by_topic: dict[str, Channel] = {}
+        self.session: Any = None          # what ``on_connect`` keeps for this client
         self.outbox: Outbox[str | bytes] = Outbox(queue_size)
         self.status_dropped = 0
         self._ready = asyncio.Event()
@@ -92,6 +102,30 @@ class FoxgloveClient:
     def dropped(self) -> int:
         """Messages dropped for this client: its queue was full."""
         return self.outbox.dropped
+
+    def add_channel(self, topic: str, schema_name: str, schema: str, *, encoding: str = fp.ROS1,
+                    schema_encoding: str = fp.ROS1MSG) -> Channel:
+        """A channel of this client alone (``per_client`` servers), advertised to it; returns it."""
+        ch = Channel(next(self.server._ids), topic, schema_name, schema, encoding, schema_encoding)
+        self.channels[ch.id] = self.by_topic[topic] = ch
+        self.send_control(fp.advertise([ch]))
+        return ch
+
+    def add_service(self, name: str, type_: str, request_schema: str, response_schema: str) -> Service:
+        """A service of this client alone (``per_client`` servers), advertised to it; returns it."""
+        s = Service(next(self.server._service_ids), name, type_, request_schema, response_schema)
+        self.services[s.id] = s
+        self.send_control(fp.advertise_services([s]))
+        return s
+
+    def publish(self, channel_id: int, payload: bytes, stamp_ns: int | None = None) -> bool:
+        """Queue ``payload`` on this client's ``channel_id`` if it is subscribed to it; returns whether it was."""
+        sid = self.state.by_channel.get(channel_id)
+        if sid is None:
+            return False
+        self.send_data(channel_id, fp.message_data(sid, time.time_ns() if stamp_ns is None else stamp_ns, payload))
+        self.server.counts["messages_out"] += 1
+        return True
 
     def send_control(self, frame: str | bytes, *, droppable: bool = False) -> bool:
         """Queue a control message (advertise, status, a service response); ``droppable`` ones (statuses)
@@ -135,13 +169,19 @@ class FoxgloveServer:
     """A Foxglove WebSocket server named ``name`` (module docstring). ``authenticate``: the login (None:
     every client is let in, for tests of the protocol alone); ``on_publish`` (None: no ``clientPublish``);
     ``on_service_call`` (None: no ``services``); ``queue_size``: messages per client (:data:`QUEUE_SIZE`);
-    ``metric_prefix``: the names of ``/metrics``' counters (``PREFIX_dropped`` ...)."""
+    ``metric_prefix``: the names of ``/metrics``' counters (``PREFIX_dropped`` ...); ``per_client``,
+    ``on_connect``, ``on_disconnect``, ``on_subscribe``, ``on_unsubscribe``: channels of each client's own (module
+    docstring)."""
 
     def __init__(self, name: str, *, authenticate: Authenticate | None = None, on_publish: OnPublish | None = None,
                  on_service_call: OnServiceCall | None = None, queue_size: int = QUEUE_SIZE,
-                 max_clients: int = MAX_CLIENTS, metric_prefix: str = "rce_foxglove"):
+                 max_clients: int = MAX_CLIENTS, metric_prefix: str = "rce_foxglove", per_client: bool = False,
+                 on_connect: OnClient | None = None, on_disconnect: OnClient | None = None,
+                 on_subscribe: OnChannel | None = None, on_unsubscribe: OnChannel | None = None):
         self.name, self.authenticate = name, authenticate
         self.on_publish, self.on_service_call = on_publish, on_service_call
+        self.per_client, self.on_connect, self.on_disconnect = per_client, on_connect, on_disconnect
+        self.on_subscribe, self.on_unsubscribe = on_subscribe, on_unsubscribe
         self.queue_size, self.max_clients, self.metric_prefix = queue_size, max_clients, metric_prefix
         self.channels: dict[int, Channel] = {}
         self.services: dict[int, Service] = {}
@@ -266,24 +306,28 @@ class FoxgloveServer:
             return connection.respond(status, e.message + "\n")
 
     async def _serve(self, ws: ServerConnection) -> None:
+        client = FoxgloveClient(self, ws, getattr(ws, "rce_principal", None), self.queue_size)
         if ws.subprotocol != fp.SUBPROTOCOL:
             await ws.send(fp.status(fp.ERROR, f"this server speaks the {fp.SUBPROTOCOL} subprotocol; the client "
                                               f"offered {ws.request.headers.get('Sec-WebSocket-Protocol') or 'none'}"))
             self.counts["status_errors"] += 1
             await ws.close(CLOSE_PROTOCOL, f"subprotocol {fp.SUBPROTOCOL} required")
+            if self.on_disconnect is not None:      # what the login took (a robot session) is given back
+                await self.on_disconnect(client)
             return
-        client = FoxgloveClient(self, ws, getattr(ws, "rce_principal", None), self.queue_size)
         self.clients.add(client)
         self.counts["clients_total"] += 1
         caps = (["clientPublish"] if self.on_publish else []) + (["services"] if self.on_service_call else [])
         client.send_control(fp.server_info(self.name, caps, supported_encodings=list(fp.CLIENT_ENCODINGS)))
-        client.send_control(fp.advertise(list(self.channels.values())))
-        if self.services:
-            client.send_control(fp.advertise_services(list(self.services.values())))
+        client.send_control(fp.advertise(list(client.channels.values())))
+        if client.services:
+            client.send_control(fp.advertise_services(list(client.services.values())))
         log.info("Foxglove client connected", peer=str(ws.remote_address), principal=str(client.principal))
         writer = Tasks("foxglove writer")
         writer.spawn(client.write(), name="writer")
         try:
+            if self.on_connect is not None:
+                await self.on_connect(client)
             async for msg in ws:
                 events = client.state.receive_text(msg) if isinstance(msg, str) else client.state.receive_binary(msg)
                 for ev in events:
@@ -291,8 +335,13 @@ class FoxgloveServer:
                 await asyncio.sleep(0)          # a flood of ops costs its sender, not the others
         except ConnectionClosed:
             pass
+        except RCEError as e:           # on_connect refused: say why, then close
+            client.status(fp.ERROR, e.message)
+            await asyncio.sleep(0)
         finally:
             self.clients.discard(client)
+            if self.on_disconnect is not None:
+                await self.on_disconnect(client)
             await writer.cancel_all()
             log.info("Foxglove client disconnected", peer=str(ws.remote_address), dropped=client.dropped,
                      status_dropped=client.status_dropped)
@@ -301,9 +350,13 @@ class FoxgloveServer:
         match ev:
             case fp.Problem(message=message, level=level):
                 client.status(level, message)
-            case fp.Subscribed(subscription_id=sid, channel_id=cid) if cid in self.latched:
-                stamp, payload = self.latched[cid]
-                client.send_data(cid, fp.message_data(sid, stamp, payload))
+            case fp.Subscribed(subscription_id=sid, channel_id=cid):
+                if cid in self.latched:
+                    stamp, payload = self.latched[cid]
+                    client.send_data(cid, fp.message_data(sid, stamp, payload))
+                await self._hook(self.on_subscribe, client, client.channels.get(cid))
+            case fp.Unsubscribed(channel_id=cid):
+                await self._hook(self.on_unsubscribe, client, client.channels.get(cid))
             case fp.Published(channel=ch, payload=payload):
                 self.counts["published_in"] += 1
                 try:
@@ -313,9 +366,17 @@ class FoxgloveServer:
             case fp.ServiceCalled():
                 await self._call(client, ev)
 
+    @staticmethod
+    async def _hook(hook: OnChannel | None, client: FoxgloveClient, channel: Channel | None) -> None:
+        if hook is not None and channel is not None:
+            try:
+                await hook(client, channel)
+            except RCEError as e:
+                client.status(fp.ERROR, f"{channel.topic}: {e.message}")
+
     async def _call(self, client: FoxgloveClient, ev: fp.ServiceCalled) -> None:
         self.counts["service_calls"] += 1
-        service = self.services[ev.service_id]
+        service = client.services[ev.service_id]
         try:
             encoding, payload = await self.on_service_call(client, service, ev.encoding, ev.payload)
         except RCEError as e:

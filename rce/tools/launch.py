@@ -143,7 +143,8 @@ class Engine:
         ready = self.workdir / f"robot{n}.ready"
         _, info = self.spawn(f"robot{n}", [*command("rce-robot"), ",".join(self.masters),
                                            "--port", "0", "--data-port", "0", "--metrics-port", "0",
-                                           "--rosbridge-port", "0", "--ready-file", str(ready), *self.tls_args,
+                                           "--rosbridge-port", "0", "--foxglove-port", "0", "--ready-file", str(ready),
+                                           *self.tls_args,
                                            *extra], ready)
         self.robot_ready.append(info)
         return info
