@@ -17,7 +17,8 @@ Usage::
     .venv/bin/python bench/lifelong.py [--quick] [--only NAME ...] [--steps N] [--problems JSON ...]
         [--generate MAP ... --robots N,... ] [--sweep] [--seed S] [--problem-dir DIR]
         [--peer PATH | --build-peer DIR] [--plan-time-limit MS] [--scheduler batch|greedy|both]
-        [--cache-mb MB] [--lanes N] [--crowd-w W] [--data ../shared/data] [--json PATH] [--plot PATH]
+        [--cache-mb MB] [--lanes N] [--crowd-w W] [--max-active N] [--window on|off] [--data ../shared/data]
+        [--json PATH] [--plot PATH]
         [--outputs DIR]
 
 ``--quick`` runs a small cut (two problems, 100 steps) for the test suite; published
@@ -64,7 +65,8 @@ def published(results_md: Path) -> dict[str, dict]:
 
 def run_one(path: Path, steps: int, limit_ms: float, scheduler: str, seed: int, pub: dict | None,
             outputs: Path | None, cache_mb: float | None = None, lanes: int | None = None,
-            crowd_w: float | None = None, peer: Path | None = None) -> dict:
+            crowd_w: float | None = None, peer: Path | None = None, max_active: int | None = None,
+            window: bool | None = None) -> dict:
     """Run one problem (and the start-kit binary ``peer`` on it, when given); returns its row (with
     the finished-over-time curve)."""
     from rce_fleet.lifelong import load_problem
@@ -75,7 +77,8 @@ def run_one(path: Path, steps: int, limit_ms: float, scheduler: str, seed: int, 
         res = run_lifelong(prob, steps, plan_time_limit_ms=limit_ms, seed=seed, scheduler=scheduler, progress=cb,
                            record=outputs is not None,
                            cache_bytes=None if cache_mb is None else int(cache_mb * 2 ** 20),
-                           lanes=LANES if lanes is None else lanes, crowd_w=crowd_w)
+                           lanes=LANES if lanes is None else lanes, crowd_w=crowd_w, max_active=max_active,
+                           planner_kw=None if window is None else {"ops": window})
     s = res.summary()
     row = {"problem": path.stem, "robots": prob.team_size, "steps": steps, "scheduler": scheduler, **s,
            "tasks_per_step": s["tasks_finished"] / steps, "curve": res.finished.tolist()}
@@ -196,6 +199,10 @@ def _parser() -> argparse.ArgumentParser:
     ap.add_argument("--lanes", type=int, help="extra cost of a move against a one-way lane (0: no lanes)")
     ap.add_argument("--crowd-w", type=float, help="scheduler's steps per robot crowding a task's errands "
                     "(default: 5 for 3,000 robots or more, else 0)")
+    ap.add_argument("--max-active", type=int, metavar="N",
+                    help="robots holding a task at most (0: no bound; default: 0.25 of the free cells when more)")
+    ap.add_argument("--window", choices=("on", "off"),
+                    help="the windowed plan of operations refined by LNS (default: on from 0.1 robots per free cell)")
     ap.add_argument("--json", type=Path)
     ap.add_argument("--plot", type=Path)
     ap.add_argument("--outputs", type=Path, help="also write each run's start-kit output JSON into DIR")
@@ -265,7 +272,8 @@ def main(argv: list[str] | None = None) -> int:
         info = pub.get(p.stem)
         for sch in scheds:
             rows.append(run_one(p, steps, args.plan_time_limit, sch, args.seed, info, args.outputs, args.cache_mb,
-                                args.lanes, args.crowd_w, peer if sch == scheds[-1] else None))
+                                args.lanes, args.crowd_w, peer if sch == scheds[-1] else None, args.max_active,
+                                None if args.window is None else args.window == "on"))
             json_path.parent.mkdir(parents=True, exist_ok=True)
             json_path.write_text(json.dumps({"plan_time_limit_ms": args.plan_time_limit, "git": git_head(),
                                              "date": time.strftime("%Y-%m-%d"), "peer": str(peer) if peer else None,

@@ -51,13 +51,16 @@ class PIBTPlanner:
                  seed: int = 0, swap: bool = True, claim_steps: int = 1,
                  stuck_steps: int = 20, noise: float = 100.0, samples: int = 16, sample_frac: float = 0.5,
                  window: int = 20, flow: TrafficFlow | None = None, flow_frac: float = 0.5,
-                 flow_passes: int = 1):
+                 flow_passes: int = 1, ops: bool = False, lns: bool = True, lns_frac: float = 0.5,
+                 ops_kw: dict | None = None):
         self.grid, self.cache, self.model, self.turn_w, self.swap = grid, cache, model, float(turn_w), swap
         self.claim_steps = claim_steps
         self.stuck_steps, self.noise = stuck_steps, noise
         self.samples, self.sample_frac, self.window = samples, sample_frac, window
         self.flow, self.flow_frac, self.flow_passes = flow, flow_frac, flow_passes
         self._ptable = cache.table
+        self.ops, self.lns, self.lns_frac, self.ops_kw, self.seed = ops, lns, lns_frac, ops_kw or {}, seed
+        self._window = None
         self.rng = np.random.default_rng(seed)
         self._goal_prev: np.ndarray | None = None
         self.elapsed: np.ndarray | None = None
@@ -121,7 +124,9 @@ class PIBTPlanner:
         nxt = np.empty(n, dtype=np.int64)
         turns = self.model == MAPF_T
         act = np.empty(n, dtype=np.int64)
-        if turns and self.samples > 1:
+        if turns and self.ops:
+            act = self._windowed(pos, head, goals, pslot, order, rnd, deadline, hard)
+        elif turns and self.samples > 1:
             act = self._rollouts(pos, head, goals, slot, pslot, order, rnd, deadline)
         else:
             self._convert(pos, head, goals, pslot, order, rnd, nxt, act)
@@ -131,6 +136,27 @@ class PIBTPlanner:
         self.stats["maps"] += cache.computed - computed0
         self.stats["deferred"] += deferred
         return act
+
+    def _windowed(self, pos, head, goals, pslot, order, rnd, deadline, hard) -> np.ndarray:
+        """PIBT's one-step answer first (the fallback, always ready), then the windowed plan of
+        operations refined by LNS until ``lns_frac`` of the way from ``deadline`` to ``hard``
+        (:class:`~.window.WindowPlan`); its first actions when it finished in time."""
+        from .window import WindowPlan
+        n = pos.shape[0]
+        nxt = np.empty(n, dtype=np.int64)
+        act = np.empty(n, dtype=np.int64)
+        self._convert(pos, head, goals, pslot, order, rnd, nxt, act)
+        if self._window is None or self._window.n != n:
+            self._window = WindowPlan(self.grid, n, seed=self.seed, **self.ops_kw)
+        scale = np.where(self.stuck > self.stuck_steps, self.noise, 1.0) if self.noise > 0 else np.ones(n)
+        end = deadline if hard is None else deadline + self.lns_frac * max(0.0, hard - deadline)
+        wact = self._window.plan(pos, head, self._ptable, pslot, goals, order, scale, end, self.lns)
+        if hard is not None and time.perf_counter() > hard:
+            self.stats["window_late"] = self.stats.get("window_late", 0) + 1
+            return act
+        self.claim[:] = -1
+        self.claim_age[:] = 0
+        return wact
 
     def _rollouts(self, pos, head, goals, slot, pslot, order, rnd, deadline) -> np.ndarray:
         """Windowed lookahead: the plain PIBT step first (always complete), then, while time

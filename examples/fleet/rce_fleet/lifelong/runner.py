@@ -21,12 +21,14 @@ from .flow import TrafficFlow
 from .flow import warm_up as flow_warm_up
 from .guidance import lane_costs
 from .kernels import warm_up
+from .window import warm_up as window_warm_up
 from .lorr import LorrProblem
 from .pibt import PIBTPlanner
-from .scheduler import make_scheduler
+from .scheduler import BatchScheduler, make_scheduler
 from .simulator import MAPF_T, Simulator
 
-__all__ = ["CROWD_TEAM", "CROWD_W", "GUIDE_DENSITY", "LANES", "PACKED_DENSITY", "RunResult", "run_lifelong"]
+__all__ = ["ACTIVE_FRAC", "CROWD_TEAM", "CROWD_W", "GUIDE_DENSITY", "LANES", "PACKED_DENSITY", "RunResult",
+           "WINDOW_DENSITY", "WINDOW_TEAM", "run_lifelong"]
 
 LANES = 4        # extra cost of a move against a one-way lane (measured: docs/lifelong.md)
 CROWD_W = 5.0    # scheduler's steps per robot crowding a task's errands beyond its share ...
@@ -34,6 +36,9 @@ CROWD_TEAM = 3000  # ... for teams of this size and more (measured: docs/lifelon
 HARD_FRAC = 0.7    # past this share of the limit a robot with a new goal and no row yet waits a step
 GUIDE_DENSITY = 0.1  # robots per free cell from which guide paths lead (below: each robot's shortest way)
 PACKED_DENSITY = 0.8  # robots per free cell from which a turning robot holds no second cell (claim_steps 0)
+ACTIVE_FRAC = 0.25    # robots holding a task per free cell at most (batch scheduler; the rest stand aside)
+WINDOW_DENSITY = 0.1  # robots per free cell from which (to PACKED_DENSITY) the windowed plan (+ LNS) leads ...
+WINDOW_TEAM = 1000    # ... for teams up to this size (larger ones not measured with it)
 
 
 @dataclass
@@ -60,7 +65,7 @@ def run_lifelong(problem: LorrProblem, steps: int, plan_time_limit_ms: float = 1
                  scheduler: str = "batch", model: str = MAPF_T, budget_frac: float = 0.5,
                  cache_bytes: int | None = None, lanes: int = LANES, crowd_w: float | None = None,
                  record: bool = True, guide: bool | None = None, planner_kw: dict | None = None,
-                 flow_kw: dict | None = None,
+                 flow_kw: dict | None = None, max_active: int | None = None,
                  progress: Callable[[int, int, float], None] | None = None) -> RunResult:
     """Run ``problem`` for ``steps`` time steps under the rules (:mod:`.simulator`).
 
@@ -75,6 +80,11 @@ def run_lifelong(problem: LorrProblem, steps: int, plan_time_limit_ms: float = 1
     the team has at least ``GUIDE_DENSITY`` robots per free cell (on sparser teams the detours they
     ask for cost more than the jams they avoid: docs/lifelong.md); from ``PACKED_DENSITY`` robots per
     free cell a robot that turns towards a cell does not hold it (``claim_steps=0``; measured there);
+    from ``WINDOW_DENSITY`` to ``PACKED_DENSITY`` robots per free cell, in teams up to ``WINDOW_TEAM``,
+    the planner answers with the windowed plan of operations refined by LNS (:mod:`.window`;
+    ``planner_kw={"ops": False}`` turns it off);
+    max_active: at most this many robots hold a task (batch scheduler); None (default):
+    ``ACTIVE_FRAC`` of the free cells when the team is larger, 0: no bound;
     progress: called after each step with (step, tasks finished, planner ms).
     Compilation happens before step 0 (:func:`~.kernels.warm_up`). Raises ValueError for a
     bad scheduler or model name, MemoryError when the maps of the team do not fit.
@@ -85,9 +95,12 @@ def run_lifelong(problem: LorrProblem, steps: int, plan_time_limit_ms: float = 1
         guide = density >= GUIDE_DENSITY
     if density >= PACKED_DENSITY:       # the cell a turning robot would hold is the one the others need
         planner_kw = {"claim_steps": 0, **(planner_kw or {})}
+    if model == MAPF_T and WINDOW_DENSITY <= density < PACKED_DENSITY and problem.team_size <= WINDOW_TEAM:
+        planner_kw = {"ops": True, **(planner_kw or {})}
     if cache_bytes is None:
         cache_bytes = cache_bytes_for(grid, problem.team_size)
     warm_up()
+    window_warm_up()
     if guide:
         flow_warm_up()
     t_start = time.perf_counter()
@@ -95,6 +108,10 @@ def run_lifelong(problem: LorrProblem, steps: int, plan_time_limit_ms: float = 1
     if crowd_w is None:
         crowd_w = CROWD_W if problem.team_size >= CROWD_TEAM else 0.0
     sched = make_scheduler(scheduler, cache, crowd_w)
+    if max_active is None and problem.team_size > ACTIVE_FRAC * len(grid.free_cells()):
+        max_active = int(ACTIVE_FRAC * len(grid.free_cells()))
+    if max_active is not None and max_active > 0 and isinstance(sched, BatchScheduler):
+        sched.max_active = max_active
     flow = None
     if guide:
         kw = {"turn": int(model == MAPF_T), **(flow_kw or {})}
@@ -123,9 +140,11 @@ def run_lifelong(problem: LorrProblem, steps: int, plan_time_limit_ms: float = 1
         finished[k] = sim.finished
         if progress is not None:
             progress(k + 1, sim.finished, dt * 1e3)
-    stats = {"scheduler": scheduler, "lanes": lanes, "crowd_w": crowd_w, "guide": guide,
+    stats = {"scheduler": scheduler, "max_active": getattr(sched, "max_active", None), "lanes": lanes,
+             "crowd_w": crowd_w, "guide": guide,
              "claim_steps": planner.claim_steps, "scheduler_ms_total": sched_ms,
-             **planner.stats, **(flow.stats if flow is not None else {}),
+             **planner.stats, **(planner._window.stats if planner._window is not None else {}),
+             **(flow.stats if flow is not None else {}),
              "distance_maps": cache.computed, "maps_evicted": cache.evicted, "cache_rows": cache.capacity,
              "cache_rows_used": len(cache)}
     return RunResult(sim, plan_ms, finished, time.perf_counter() - t_start, stats)

@@ -219,7 +219,9 @@ class GreedyScheduler(Scheduler):
 class BatchScheduler(Scheduler):
     """Batch assignment (module docstring): robots without an opened task against unopened
     tasks, re-solved at each step where a robot is free. keep_bonus: steps of finish time a
-    robot's current task is favoured by (hysteresis)."""
+    robot's current task is favoured by (hysteresis). ``max_active`` (None: no bound): at most
+    that many robots hold a task, the cheapest pairs of the assignment kept; the others stand
+    aside without one (on a packed map fewer robots on the move finish more: docs/lifelong.md)."""
 
     name = "batch"
 
@@ -228,6 +230,7 @@ class BatchScheduler(Scheduler):
         self.keep_bonus, self.max_cells = keep_bonus, max_cells
         self._greedy = GreedyScheduler(cache)
         self.fallbacks = 0
+        self.max_active: int | None = None
 
     def schedule(self, pos, assignment, tasks, t, deadline):
         prop = assignment.copy()
@@ -252,7 +255,18 @@ class BatchScheduler(Scheduler):
             if j is not None:
                 cost[i, j] -= self.keep_bonus
         cost[~np.isfinite(cost)] = 1e9
-        rows, cols = linear_sum_assignment(cost)
+        if self.max_active is not None:         # at most max_active robots hold a task: the cheapest pairs
+            allowed = max(0, self.max_active - len(opened))
+            if 2 * allowed < len(robots):       # only the robots with the cheapest tasks (a smaller problem)
+                near = np.argsort(cost.min(axis=1), kind="stable")[:2 * allowed]
+                sub, sub_cols = linear_sum_assignment(cost[near])
+                rows, cols = near[sub], sub_cols
+            else:
+                rows, cols = linear_sum_assignment(cost)
+            keep = np.argsort(cost[rows, cols], kind="stable")[:allowed]
+            rows, cols = rows[keep], cols[keep]
+        else:
+            rows, cols = linear_sum_assignment(cost)
         prop[robots] = -1
         for i, j in zip(rows.tolist(), cols.tolist(), strict=True):
             if cost[i, j] < 1e9:
