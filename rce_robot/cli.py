@@ -125,7 +125,7 @@ async def amain(args: argparse.Namespace) -> None:
         if args.foxglove_port >= 0 and ep.rosbridge is not None and not ep.stopped.is_set():
             from rce_robot.foxglove import RobotFoxglove
             foxglove = RobotFoxglove(ep.rosbridge)
-            await foxglove.start(args.bind, args.foxglove_port)
+            await foxglove.start(args.bind, args.foxglove_port, ep.ssl_context)
         if not ep.stopped.is_set():
             write_ready_file(args.ready_file, {"ws_port": ep.ws_port, "data_addr": ep.plane.addr, "pid": os.getpid(),
                                                "metrics_port": ep.metrics_port,

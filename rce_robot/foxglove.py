@@ -59,9 +59,9 @@ class RobotFoxglove:
         """The port it listens on."""
         return self.server.port
 
-    async def start(self, bind: str, port: int) -> None:
-        """Listen on ``bind``:``port`` (0: ephemeral)."""
-        await self.server.start(bind, port)
+    async def start(self, bind: str, port: int, ssl_context=None) -> None:
+        """Listen on ``bind``:``port`` (0: ephemeral); wss:// with ``ssl_context`` (the task set's TLS)."""
+        await self.server.start(bind, port, ssl_context)
 
     async def stop(self) -> None:
         """Close the server and its clients' sessions."""

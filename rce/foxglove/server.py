@@ -39,6 +39,7 @@ from __future__ import annotations
 
 import asyncio
 import itertools
+import ssl
 import time
 from collections.abc import Awaitable, Callable
 from http import HTTPStatus
@@ -255,12 +256,13 @@ class FoxgloveServer:
         return n
 
     # -- the server ---------------------------------------------------------------------------------------
-    async def start(self, bind: str = "127.0.0.1", port: int = 0) -> int:
-        """Listen on ``bind``:``port`` (0: ephemeral); returns the port (also :attr:`port`)."""
+    async def start(self, bind: str = "127.0.0.1", port: int = 0, ssl_context: ssl.SSLContext | None = None) -> int:
+        """Listen on ``bind``:``port`` (0: ephemeral), wss:// with ``ssl_context``; returns the port (also
+        :attr:`port`)."""
         self._server = await serve(self._serve, bind, port, process_request=self._handshake,
                                    select_subprotocol=_select, compression=None, max_size=MAX_FRAME,
                                    max_queue=READ_AHEAD, ping_interval=PING_INTERVAL, ping_timeout=PING_TIMEOUT,
-                                   server_header=None)
+                                   server_header=None, ssl=ssl_context)
         self.port = self._server.sockets[0].getsockname()[1]
         log.info("Foxglove WebSocket server up", name=self.name, port=self.port)
         return self.port
