@@ -139,6 +139,10 @@ def _run_args(p: argparse.ArgumentParser, mission: bool) -> None:
     p.add_argument("--out-of-coverage", type=_robots, default=[], metavar="RobotN,...",
                    help="robots without coverage of their own: they reach the cloud only through relays on the "
                    "other robots within --radio-range (docs/relays.md)")
+    p.add_argument("--edge-hosts", action="store_true",
+                   help="give each robot a computer of its own (a container host in zone robot:RobotN) and each "
+                   "move_client a container the placer places; a robot out of coverage keeps it on board "
+                   "(docs/placement.md)")
     p.add_argument("--radio-range", type=_positive, metavar="M",
                    help="metres between two robots that hear each other (default: 3/4 of the map's shorter side: "
                    "6 on the lab map, 22.6 on warehouse.yaml)")
@@ -368,6 +372,7 @@ def main(argv: list[str] | None = None) -> None:
                        web_port=args.web_port, places=args.places, lifelong=lifelong,
                        duration=duration, task_rate=task_rate,
                        battery=parse_battery(args.battery, lifelong), out_of_coverage=args.out_of_coverage,
+                       edge_hosts=args.edge_hosts,
                        radio_range=args.radio_range)
     except UsageError as e:
         print(f"rce-fleet: {e}", file=sys.stderr)

@@ -23,6 +23,14 @@ cancelSender_N SubscriberInterface cancelReceiver_N PublisherFwd    /RobotN/move
 Robot-side interfaces are Forwarders (the serialized ROS message as a binary part: no JSON
 on the robot's side); the robot's local topics carry the names a TurtleBot's ``amcl`` and
 ``move_base`` use.
+
+``robot_config(n, placement=...)`` (``rce-fleet demo --edge-hosts``) gives the move_client a
+container of its own, ``mc_RobotN``, which the placer places (``auto``) or which stays on the
+robot's own computer (``robot``): the robot's pose goes to both containers, its goals and cancels
+come from ``mc_RobotN``, and the planner's paths, clearances and cancels
+(``/RobotN/goalNodesList``, ``/RobotN/clearance``, ``/RobotN/cancelGoal``) and the move_client's
+``/RobotN/progress`` cross between the two containers through container-to-container connections
+(docs/placement.md).
 """
 from __future__ import annotations
 
@@ -49,22 +57,52 @@ _LINKS = [
 ]
 
 
+# between the fleet container (planner) and a move_client's own container: (iTag, class, topic, from the planner?)
+_PLANNER_LINKS = [
+    ("goalNodesList", "std_msgs/Int32MultiArray", "/Robot{n}/goalNodesList", True),
+    ("clearance", "fleet/Clearance", "/Robot{n}/clearance", True),
+    ("cancelGoal", "std_msgs/Bool", "/Robot{n}/cancelGoal", True),
+    ("progress", "fleet/MoveProgress", "/Robot{n}/progress", False),
+]
+MOVE_CLIENT_DEADLINE_MS = 200    # a move_client answers a pose within this (its control loop's period: 5 Hz)
+
+
 def robot_config(index: int, url: str = DEFAULT_URL, user: str = USER, password: str = PASSWORD,
-                 ctag: str = FLEET_CTAG) -> dict:
-    """The config of robot ``Robot<n>`` (a dict in the seed's JSON format)."""
+                 ctag: str = FLEET_CTAG, placement: str | None = None, params: dict | None = None) -> dict:
+    """The config of robot ``Robot<n>`` (a dict in the seed's JSON format). ``placement``
+    (``auto``, ``robot``, ``cloud``): the move_client runs in a container of its own, ``mc_Robot<n>``,
+    placed so (module doc), with the parameters ``params`` (name -> value: the grid it reads); None:
+    in the fleet container ``ctag``."""
     rid = f"Robot{index}"
+    mc = f"mc_{rid}" if placement else ctag
     interfaces, connections = [], []
     for c_tag, c_type, r_tag, r_type, cls, c_addr, r_addr in _LINKS:
         c_tag, r_tag, c_addr = c_tag.format(n=index), r_tag.format(n=index), c_addr.format(n=index)
-        interfaces.append({"eTag": ctag, "iTag": c_tag, "iType": c_type, "iCls": cls, "addr": c_addr})
+        # the planner reads poses and obstacles; the move_client reads poses and sends goals and cancels
+        ends = [ctag] if c_tag.startswith("obstacles") else [mc] if c_type == "SubscriberInterface" else \
+            sorted({ctag, mc})
+        for e in ends:
+            interfaces.append({"eTag": e, "iTag": c_tag, "iType": c_type, "iCls": cls, "addr": c_addr})
+            connections.append({"tagA": f"{e}/{c_tag}", "tagB": f"{rid}/{r_tag}"})
         interfaces.append({"eTag": rid, "iTag": r_tag, "iType": r_type, "iCls": cls, "addr": r_addr})
-        connections.append({"tagA": f"{ctag}/{c_tag}", "tagB": f"{rid}/{r_tag}"})
+    containers = []
+    if placement:
+        containers.append({"cTag": mc, "placement": placement, "robot": rid, "deadline_ms": MOVE_CLIENT_DEADLINE_MS,
+                           "consumes": [f"amclPoseSender_{index}"]})
+        for tag, cls, addr, from_planner in _PLANNER_LINKS:
+            addr = addr.format(n=index)
+            out, into = (ctag, mc) if from_planner else (mc, ctag)
+            interfaces.append({"eTag": out, "iTag": f"{tag}Out_{index}", "iType": "SubscriberInterface", "iCls": cls,
+                               "addr": addr})
+            interfaces.append({"eTag": into, "iTag": f"{tag}In_{index}", "iType": "PublisherInterface", "iCls": cls,
+                               "addr": addr})
+            connections.append({"tagA": f"{out}/{tag}Out_{index}", "tagB": f"{into}/{tag}In_{index}"})
     return {
         "url": url, "userID": user, "password": password, "robotID": rid,
-        "containers": [],
-        "nodes": [{"cTag": ctag, "nTag": f"move_client_node_{index}", "pkg": "fleet", "exe": "move_client",
+        "containers": containers,
+        "nodes": [{"cTag": mc, "nTag": f"move_client_node_{index}", "pkg": "fleet", "exe": "move_client",
                    "args": f"--robot {rid}", "namespace": rid}],
-        "parameters": [],
+        "parameters": [{"cTag": mc, "name": k, "value": v} for k, v in (params or {}).items()] if placement else [],
         "interfaces": interfaces,
         "connections": connections,
     }

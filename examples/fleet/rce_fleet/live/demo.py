@@ -70,7 +70,7 @@ from .demo_output import (EXIT_FAIL, EXIT_OK, EXIT_UNREACHABLE, EXIT_USAGE, acti
                           table, write_outputs)
 from .faults import Fault, FaultInjector, parse_fault
 from .fleet_bag import FleetBag
-from ..maps.geometry import GridGeometry, components
+from ..maps.geometry import GRID_PARAM, GridGeometry, components
 from ..maps.grid import fleet_grid
 from ..maps.lab_map import write_lab_map
 from .manager import FleetManager
@@ -162,6 +162,7 @@ class Options:
     task_rate: float = 6.0          # tasks per sim minute of a lifelong run
     battery: BatteryParams | None = None   # simulated batteries (``--battery``; a lifelong run has them)
     out_of_coverage: list[str] = field(default_factory=list)   # robots reaching the cloud only through relays
+    edge_hosts: bool = False        # each robot's own computer (zone robot:RobotN) and a placed move_client container
     radio_range: float | None = None       # m between robots that hear each other (None: rce_fleet.live.radio default)
 
 
@@ -292,6 +293,7 @@ class Run:
         self.refused: list[str] = []               # why the fleet refused generated tasks
         self.radio: Radio | None = None            # --out-of-coverage: the radio links to the relays
         self.master_relays: dict[str, dict] = {}   # follower -> the master's relay and relay_since (asked every 1 s)
+        self.placement: dict = {}                  # --edge-hosts: the placer's rows and moves at the end
         # a run by tasks, sampled each sim second: (sim s, tasks done, {robot: activity}); bounded
         self.timeline: deque[tuple[float, int, dict[str, str]]] = deque(maxlen=TIMELINE_MAX)
         self.timeline_dropped = 0                  # samples the bound dropped (the report says how many)
@@ -392,6 +394,8 @@ class Run:
         self.wall_total = time.monotonic() - wall0
         if self.radio is not None:
             await self._ask_master_relays()
+        if o.edge_hosts and self.engine is not None:
+            await self._ask_placement()
         try:
             for rec in (self.bag, self.record):     # before the report, which gives the bag's counts
                 if rec is not None:
@@ -416,6 +420,8 @@ class Run:
                                               master_args=("--state", str(state), *users),
                                               admin_token=f"fleet-{random.getrandbits(64):016x}")
         log.info("engine up", master=self.engine.master_url, workdir=str(self.workdir))
+        if o.edge_hosts:
+            await self._bounded(self._robot_computers(), "the robots' computers")
         self.faults = FaultInjector(o.faults, self.engine, self.tasks, USER, self.mission_t)
         print(f"rce-fleet: master {self.engine.master_url}  (rce-fleet task list --master {self.engine.master_url})",
               flush=True)
@@ -505,10 +511,27 @@ class Run:
     def _on_tasks(self, task_list: dict) -> None:
         self.task_list = task_list
 
+    async def _robot_computers(self) -> None:
+        """``--edge-hosts``: a container host per robot, in zone ``robot:RobotN``, serving the fleet's
+        user alone (a robot's own computer, here a process on this machine)."""
+        for r in self.robots:
+            await asyncio.to_thread(self.engine.add_container_host, "--zone", f"robot:{r}", "--user", USER,
+                                    "--name", f"{r}-computer", "--warm", "0")
+        self.events.append(f"{len(self.robots)} robots' computers (zone robot:RobotN); the placer places move_clients")
+        self.tasks.spawn(self._watch_placement(), name="placement")
+
+    def _move_client_placement(self, robot: str) -> str | None:
+        """Where ``robot``'s move_client runs: None (the fleet container) without ``--edge-hosts``;
+        else on board for a robot out of coverage, where the placer says for the others."""
+        if not self.o.edge_hosts:
+            return None
+        return "robot" if robot in self.o.out_of_coverage else "auto"
+
     async def _connect_robots(self) -> None:
         """Write the robots' configs and connect them, a few at a time (each sets up its node and
         interfaces); a robot whose link a fault cuts logs in through its proxy's login relay."""
-        cfgs = {r: robot_config(int(r[5:]), self.engine.master_url) for r in self.robots}
+        cfgs = {r: robot_config(int(r[5:]), self.engine.master_url, placement=self._move_client_placement(r),
+                                params={GRID_PARAM: self.geo.to_param()}) for r in self.robots}
         if self.o.battery is not None:
             for r, cfg in cfgs.items():
                 ifaces, links = battery_links(int(r[5:]), FLEET_CTAG)
@@ -559,6 +582,25 @@ class Run:
             return
         self.master_relays = {r["robot"]: {"relay": r.get("relay"), "relay_since": r.get("relay_since")}
                               for r in rows if r["robot"] in self.o.out_of_coverage}
+
+    async def _ask_placement(self) -> None:
+        """Keep where each move_client ran at the end, the placer's word on it, and the moves made."""
+        try:
+            rows = await asyncio.to_thread(self.engine.admin, "/api/placement")
+            moves = await asyncio.to_thread(self.engine.admin, "/api/placement/moves")
+        except (RCEError, OSError) as e:
+            log.warning("could not ask the master for the placement", reason=str(e))
+            return
+        self.placement = {"containers": [{k: r.get(k) for k in ("ctag", "runs", "best", "move", "pinned", "why",
+                                                                "results", "misses", "node_ms", "battery")}
+                                         for r in rows if r["ctag"].startswith("mc_")],
+                          "moves": [m for m in moves if m["ctag"].startswith("mc_")]}
+
+    async def _watch_placement(self) -> None:
+        """Ask the master's placer every :data:`RELAYS_EVERY_S` s (the web page's placement table)."""
+        while True:
+            await self._ask_placement()
+            await asyncio.sleep(RELAYS_EVERY_S)     # the period, a timer
 
     async def _watch_relays(self) -> None:
         """Ask the master for the followers' relays every :data:`RELAYS_EVERY_S` s (the web page's lines)."""
@@ -744,7 +786,7 @@ class Run:
         self.web = WebUI(self.engine.master_url, self.occ, self.geo, self.robots, ctag=FLEET_CTAG, user=USER,
                          password=PASSWORD, auth=auth, bind=w.bind, port=self.o.web_port, tasks=self.manager.tasks,
                          places=self.places, relays=self._relay_lines if self.radio is not None else None,
-                         ssl_context=ssl_context)
+                         ssl_context=ssl_context, placement=(lambda: self.placement) if self.o.edge_hosts else None)
         url = await self._bounded(self.web.start(), "web page setup")
         self.events.append(f"operator page: {url}")
         print(f"rce-fleet: operator page: {url}  (log in as {USER}; rce-master --dev password {PASSWORD})",

@@ -162,6 +162,10 @@ def write_outputs(run, code: int, reason: str) -> None:
               flush=True)
     if rep.get("tasks"):
         print(kpi_lines(rep), flush=True)
+    if rep.get("placement"):
+        pl = rep["placement"]
+        where = ", ".join(f"{c['ctag'][3:]} {c['runs'].split(' ')[0]}" for c in pl["containers"])
+        print(f"rce-fleet: move_clients ran on: {where}; {len(pl['moves'])} moves", flush=True)
     if rep.get("plot"):
         what = "tasks done and activity" if o.lifelong else "paths"
         print(f"rce-fleet: {what} plotted to {rep['plot']}", flush=True)
@@ -235,6 +239,7 @@ def report(run, code: int, reason: str) -> dict:
         "per_robot": per,
         **lifelong_report(run, per),
         **({"coverage": run.radio.report() | {"master": run.master_relays}} if run.radio else {}),
+        **({"placement": run.placement} if run.placement else {}),
         "workdir": str(run.workdir),
     }
 

@@ -8,13 +8,16 @@ HTTP port, next to two generated files:
   user to prefill (never a password), the mission topic and the named places (for the task form);
 * ``relays.json`` (given ``relays``): ``{"relays": {follower: relay}}``, the robots whose link to the
   cloud goes through another robot's relay, as the master knows it (docs/relays.md); the page draws
-  a line from each follower to its relay.
+  a line from each follower to its relay;
+* ``placement.json`` (given ``placement``): ``{"containers": [{ctag, runs, best, move, pinned, misses,
+  node_ms, why}], "moves": [...]}``, where each placed container runs, where the master's placer
+  would put it and why, and its last moves (docs/placement.md); the page shows them in a table.
 
 Given the fleet manager's :class:`~rce_fleet.operations.tasks_client.TaskChannel` (``tasks``), it also
 serves the JSON task API and ``/metrics`` (:mod:`rce_fleet.operations.http_api`).
 
 Who may: the page itself (``index.html`` and its scripts and styles) is open, so that it can show its
-login form; ``config.json``, ``map.png`` and ``relays.json`` need a viewer's credential, as the task
+login form; ``config.json``, ``map.png``, ``relays.json`` and ``placement.json`` need a viewer's credential, as the task
 API does (``auth``, :class:`~rce_fleet.operations.http_api.ApiAuth`). The page logs in with
 ``POST /api/login`` and sends the token with its own calls, then logs in at the master with the same
 user and password for its RCE session. It listens on ``bind`` (default 127.0.0.1), over TLS given
@@ -193,7 +196,8 @@ class WebUI:
     """Serve the operator's page for a running fleet; ``await start()`` returns the page's URL.
     ``tasks``: the fleet manager's TaskChannel (the HTTP API and /metrics; None: none);
     ``places``: the fleet's :class:`~rce_fleet.operations.places.Places` (the page's task form);
-    ``relays()``: follower -> relay robot now (``relays.json``; None: no relays); ``auth``: who may
+    ``relays()``: follower -> relay robot now (``relays.json``; None: no relays); ``placement()``: the
+    placer's rows and moves (``placement.json``; None: not shown); ``auth``: who may
     (:class:`~rce_fleet.operations.http_api.ApiAuth`; None: no credential asked, only for a page without
     the task API, such as a replay's: with ``tasks`` it raises ValueError); ``ssl_context``: serve HTTPS
     (:func:`rce.transport.tls.server_context`)."""
@@ -201,13 +205,14 @@ class WebUI:
     def __init__(self, master_url: str, occ, geo: GridGeometry, robots: list[str], *, ctag: str, user: str,
                  password: str, auth=None, bind: str = "127.0.0.1", port: int = DEFAULT_PORT, mission: bool = True,
                  title: str = "rce fleet", tasks=None, places=None,
-                 relays: Callable[[], dict[str, str]] | None = None, ssl_context=None):
+                 relays: Callable[[], dict[str, str]] | None = None, ssl_context=None,
+                 placement: Callable[[], dict] | None = None):
         self.master_url, self.occ, self.geo, self.robots = master_url, occ, geo, list(robots)
         self.ctag, self.user, self.password = ctag, user, password
         self.bind, self.port, self.title = bind, port, title
         self.mission = MissionRunner(master_url, geo, robots, user=user, password=password, ctag=ctag) \
             if mission else None
-        self.tasks, self.places, self.relays = tasks, places, relays
+        self.tasks, self.places, self.relays, self.placement = tasks, places, relays, placement
         if tasks is not None and auth is None:
             raise ValueError("the task API needs auth (an ApiAuth): who may call it")
         self.auth, self.ssl_context = auth, ssl_context
@@ -220,7 +225,7 @@ class WebUI:
                 "missionTopic": MISSION_TOPIC if self.mission else None, "title": self.title,
                 "robots": self.robots, "tasks": self.tasks is not None,
                 "places": self.places.to_param() if self.places is not None else [],
-                "relays": self.relays is not None}
+                "relays": self.relays is not None, "placement": self.placement is not None}
 
     async def start(self) -> str:
         """Start the mission runner and the HTTP server (on ``port``, or any free port when it
@@ -248,10 +253,16 @@ class WebUI:
             await viewer(req)
             return web.json_response({"relays": self.relays()}, headers=nocache)
 
+        async def placement(req):
+            await viewer(req)
+            return web.json_response(self.placement(), headers=nocache)
+
         app = web.Application()
         app.router.add_get("/", index)
         if self.relays is not None:
             app.router.add_get("/relays.json", relays)
+        if self.placement is not None:
+            app.router.add_get("/placement.json", placement)
         app.router.add_get("/config.json", config)
         app.router.add_get("/map.png", mapimg)
         if self.tasks is not None:

@@ -81,6 +81,7 @@ const view = window.fleetView = {
   listeners: [],         // fn(fleetState) called for every /fleet/state (tests record with it)
   fps: 0, drawMs: 0,     // frames per second, mean drawing time per frame (ms)
   relays: {},            // follower -> relay robot (relays.json), while its link goes through the relay
+  placement: null,       // --edge-hosts: {containers, moves} (placement.json), where compute runs
   relayLines: [],        // the follower -> relay lines the last frame drew: {follower, relay, from, to} (canvas px)
   // helpers for tests (client coordinates, CSS px); applyState draws a fleet state as if it came
   // from the cloud (replays, rendering tests)
@@ -187,6 +188,7 @@ async function apiLogin(user, password) {
   if (cfg.title) $("title").textContent = cfg.title;
   await loadMap();
   startRelays();
+  startPlacement();
 }
 
 async function apiLogout() {
@@ -639,6 +641,37 @@ async function loadMap() {
   }
 }
 
+// --edge-hosts: where each move_client runs and the placer's word on it (placement.json, every 1 s)
+let placementTimer = null;
+function startPlacement() {
+  if (!cfg.placement || placementTimer) return;
+  const table = document.getElementById("placement");
+  table.hidden = false;
+  const ask = async () => {
+    try {
+      const r = await authed("placement.json");
+      if (!r.ok) return;
+      view.placement = await r.json();
+      const body = table.querySelector("tbody");
+      body.replaceChildren(...(view.placement.containers || []).map((c) => {
+        const tr = document.createElement("tr");
+        const cells = [c.ctag, c.runs, c.best, c.misses, c.node_ms == null ? "-" : c.node_ms.toFixed(1), c.why];
+        for (const v of cells) {
+          const td = document.createElement("td");
+          td.textContent = String(v ?? "-");
+          tr.append(td);
+        }
+        tr.lastChild.className = "why";
+        tr.lastChild.title = c.why || "";
+        if (c.move) tr.className = "moving";
+        return tr;
+      }));
+    } catch (e) { /* the demo is stopping: keep the last */ }
+  };
+  ask();
+  placementTimer = setInterval(ask, RELAYS_EVERY);
+}
+
 let relaysTimer = null;
 function startRelays() {
   if (!cfg.relays || relaysTimer) return;
@@ -992,6 +1025,7 @@ if (cfg.apiLogin) {
 } else {
   loadMap();
   startRelays();
+  startPlacement();
 }
 select(null);
 requestAnimationFrame(frame);
