@@ -410,11 +410,12 @@ def analyse(raw: dict, phase_s: float) -> dict:
         end = m["t_s"]
         begin = end - m["make_s"] - m["switch_s"] - m["drain_s"]
         switch = end - m["drain_s"]
-        gaps = [b - a for a, b in zip(results, results[1:], strict=False) if b >= begin - 0.5 and a <= end + 0.5]
+        gaps = [b - a for a, b in zip(results, results[1:], strict=False) if b >= switch - 1.0 and a <= end + 0.5]
         around = [s for s, ts in sent.items() if begin - 1 <= ts <= end + 1]
         moves.append({"t_s": round(switch, 3), "from": m["from"], "to": m["to"],
                       "gap_s": round(max(gaps, default=0), 3),
-                      "why": m["why"], "began_s": round(begin, 3), "make_s": m["make_s"], "switch_s": m["switch_s"],
+                      "why": m["why"], "began_s": round(begin, 3), "ended_s": round(end, 3), "make_s": m["make_s"],
+                      "switch_s": m["switch_s"],
                       "drain_s": m["drain_s"],
                       "lost": sum(1 for s in around if s not in arrivals and s not in not_sent),
                       "duplicated": sum(len(arrivals[s]) - 1 for s in around if s in arrivals)})
@@ -431,7 +432,8 @@ def analyse(raw: dict, phase_s: float) -> dict:
     return {"deadline_misses": sum(by_phase), "deadline_misses_by_phase": by_phase,
             "robot_energy_j": round(energy, 3), "lost": len(lost), "duplicated": dup, "moves": moves,
             "lost_by_phase": lost_by_phase, "drops": raw["drops"],
-            "scans": len(sent), "skipped_at_robot": len(rec["skipped"]), "send_failed": len(not_sent),
+            "scans": len(sent), "skipped_at_robot": len(rec["skipped"]),
+            "skipped_s": [round(t - t0, 3) for t in rec["skipped"]], "send_failed": len(not_sent),
             "robot_errors": rec["errors"],
             "robot_cpu_s": round(robot_cpu, 3), "link_bytes": raw["link_bytes"],
             "energy_model": {"cpu_w": em.cpu_w, "radio_j_per_byte": em.radio_j_per_byte},
@@ -468,17 +470,23 @@ def targets(systems: dict, phase_s: float) -> dict:
     out["0_lost_or_duplicated_across_moves"] = all(m["lost"] == 0 and m["duplicated"] == 0 for m in moves) \
         if moves else None
     if "placer" in systems:
-        pm = systems["placer"]["moves"]
-        changes = [phase_s * k for k in (1, 2, 3)]
+        from rce_master.placer import Placer
+        dwell = Placer().dwell_s
+        pm, words = systems["placer"]["moves"], systems["placer"]["placer_word"]
         reactions = []
-        for at in changes:
-            first = next((m for m in pm if m["began_s"] >= at - 0.5), None)
-            if first is not None and first["began_s"] < at + phase_s:
-                reactions.append(round(first["began_s"] - at, 2))
-        out["decision_after_change_s"] = reactions
-        out["decides_within_2s"] = all(x <= 2.0 for x in reactions) if reactions else None
-        starts = [m["began_s"] for m in pm]
-        out["never_twice_within_hysteresis"] = all(b - a >= 10.0 for a, b in zip(starts, starts[1:], strict=False))
+        for k in (1, 2, 3):
+            at = phase_s * k
+            word = next((w for w in words if w["t_s"] >= at), None)
+            move = next((m for m in pm if at - 0.5 <= m["began_s"] < at + phase_s), None)
+            reactions.append({"change": PHASES[k], "at_s": at,
+                              "word_changed_after_s": None if word is None or word["t_s"] >= at + phase_s
+                              else round(word["t_s"] - at, 2), "word": word,
+                              "moved_after_s": None if move is None else round(move["began_s"] - at, 2)})
+        out["reactions"] = reactions
+        seen = [r["word_changed_after_s"] for r in reactions if r["word_changed_after_s"] is not None]
+        out["decides_within_2s"] = all(x <= 2.0 for x in seen) if seen else None
+        out["never_twice_within_hysteresis"] = all(b["began_s"] - a["ended_s"] >= dwell - 0.1
+                                                   for a, b in zip(pm, pm[1:], strict=False))
     return out
 
 
@@ -500,9 +508,11 @@ def plot(res: dict, png: Path) -> None:
         for k in range(4):
             ax.axvspan(k * ps, (k + 1) * ps, color=("white", "0.85", "white", "#fff3cc")[k], zorder=-1)
             ax.text(k * ps + 0.3, 0.97, PHASES[k], transform=ax.get_xaxis_transform(), fontsize=8, va="top")
-        for m in s["moves"]:
+        skipped = s.get("skipped_s") or []
+        ax.scatter(skipped, [top * 0.6] * len(skipped), s=6, marker="|", color="0.4", label="not sent in time")
+        for i, m in enumerate(s["moves"]):
             ax.axvline(m["t_s"], color="C2", lw=1.5)
-            ax.text(m["t_s"], 0.85, f" -> {m['to'].split(' ')[0]} (gap {m['gap_s'] * 1e3:.0f} ms)",
+            ax.text(m["t_s"], (0.88, 0.78, 0.68)[i % 3], f" -> {m['to'].split(' ')[0]} (gap {m['gap_s'] * 1e3:.0f} ms)",
                     transform=ax.get_xaxis_transform(), fontsize=7, color="C2", va="top")
         ax.set_yscale("log")
         ax.set_ylabel("ms")
