@@ -262,6 +262,37 @@ async def test_json_publish_goes_to_the_fleet(fleet):
     assert c.statuses == []
 
 
+async def test_a_pose_on_goal_pose_is_a_goal(fleet):
+    """Foxglove's 3D panel "Publish pose" on /Robot3/goal_pose: the robot's goal is the cell of that point."""
+    from rce.messages import MessageRegistry
+    from rce.node.package_path import load_package_types
+    reg = MessageRegistry()
+    load_package_types(reg)
+    c = await _open(fleet)
+    state = await c.advertised("/fleet/state")
+    await c.send("subscribe", subscriptions=[{"id": 1, "channelId": state["id"]}])
+    async with asyncio.timeout(STEP_TIMEOUT_S):
+        st = reg.bytes_to_json("fleet/msg/FleetState", (await c.data.get())[2])
+    target = STARTS["Robot1"]              # Robot1's start: free once Robot1 left for GOAL
+    row, col = divmod(target, st["cols"])  # its centre, from the grid the fleet state describes (map yaw 0)
+    x, y = st["grid_x"] + (col + 0.5) * st["cell_w"], st["grid_y"] - (row + 0.5) * st["cell_h"]
+    await c.send("advertise", channels=[{"id": 5, "topic": "/Robot3/goal_pose", "encoding": "json",
+                                         "schemaName": "geometry_msgs/PoseStamped"}])
+    pose = {"header": {"frame_id": "map"}, "pose": {"position": {"x": x, "y": y}, "orientation": {"w": 1.0}}}
+    await c.ws.send(b"\x01" + (5).to_bytes(4, "little") + json.dumps(pose).encode())
+    r = None
+    try:
+        async with asyncio.timeout(STEP_TIMEOUT_S):
+            while r is None or r["goal"] != target:
+                st = reg.bytes_to_json("fleet/msg/FleetState", (await c.data.get())[2])
+                r = next(r for r in st["robots"] if r["robot"] == "Robot3")
+    except TimeoutError:
+        raise AssertionError(f"Robot3 never got goal {target}: {r}; statuses {c.statuses}") from None
+    await c.ws.send(b"\x01" + (5).to_bytes(4, "little") + json.dumps({"pose": {"position": {"x": 1e6, "y": 0}}}).encode())
+    await c.status("is outside the grid")
+    await c.close()
+
+
 def test_the_run_is_recorded_in_mcap(fleet):
     """Last: stop the fleet, read its MCAP back."""
     from mcap.reader import make_reader

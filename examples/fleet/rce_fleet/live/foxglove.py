@@ -13,7 +13,9 @@ global planner publishes them, and what Foxglove's 3D panel draws without plugin
 
 Clients may publish (``clientPublish``), in ``ros1`` or ``json``, on the operator's topics: ``/fleet/goal``
 (``fleet/RobotGoal``), ``/fleet/block`` (``fleet/CellBlock``), ``/fleet/task`` (``fleet/Task``) and
-``/fleet/task_cancel`` (``fleet/TaskCancel``); anything else is answered with a ``status`` error.
+``/fleet/task_cancel`` (``fleet/TaskCancel``); and ``/RobotN/goal_pose`` (``geometry_msgs/PoseStamped``, what the
+3D panel's "Publish pose" sends, in frame ``map``): RobotN's goal is the grid cell of that point. Anything else is
+answered with a ``status`` error.
 
 The fleet's messages come through one RCE client, robotID ``fleetFoxglove``: container
 ``SubscriberInterface`` -> ``PublisherForwarder`` for the two fleet topics, ``SubscriberForwarder`` ->
@@ -23,6 +25,7 @@ bytes), never re-encoded.
 from __future__ import annotations
 
 import itertools
+import re
 import time
 
 import orjson
@@ -45,6 +48,7 @@ SETUP_TIMEOUT_S = 30.0               # s for the server's interfaces to come up
 LOGIN_TIMEOUT_S = 10.0               # s for one client's login check
 CLOSE_TIMEOUT_S = 5.0                # s the cloud gets to confirm the removal of the server's interfaces
 FLEET_TOPICS = (("/fleet/state", "fleet/FleetState"), ("/fleet/tasks", "fleet/TaskList"))
+GOAL_POSE = re.compile(r"^/(Robot\d+)/goal_pose$")   # a robot's goal as a pose (Foxglove's "Publish pose")
 OPERATOR_TOPICS = {"/fleet/goal": "fleet/RobotGoal", "/fleet/block": "fleet/CellBlock", "/fleet/task": "fleet/Task",
                    "/fleet/task_cancel": "fleet/TaskCancel"}
 
@@ -191,9 +195,13 @@ class FleetFoxglove:
         return user
 
     async def _publish(self, client, ch: ClientChannel, payload: bytes) -> None:
+        if (m := GOAL_POSE.match(ch.topic)) and m.group(1) in self.robots:
+            payload = self._goal_of_pose(m.group(1), ch, payload)
+            ch = ClientChannel(ch.id, "/fleet/goal", "ros1", "fleet/RobotGoal")
         cls = OPERATOR_TOPICS.get(ch.topic)
         if cls is None:
-            raise RequestError(f"not a topic this fleet takes; publish on one of {', '.join(OPERATOR_TOPICS)}")
+            raise RequestError(f"not a topic this fleet takes; publish on one of {', '.join(OPERATOR_TOPICS)} or "
+                               f"/RobotN/goal_pose")
         if ch.schema_name not in (cls, self.reg.msg_type(cls)):
             raise MessageError(f"the fleet takes {cls} here, not {ch.schema_name}")
         typename = self.reg.msg_type(cls)
@@ -206,6 +214,22 @@ class FleetFoxglove:
             self.reg.check_structure(typename, payload)
         await self.pubs[ch.topic].publish(payload)
         log.info("Foxglove client published", topic=ch.topic, user=str(client.principal), bytes=len(payload))
+
+
+    def _goal_of_pose(self, robot: str, ch: ClientChannel, payload: bytes) -> bytes:
+        """The ``fleet/RobotGoal`` (ROS 1 bytes) of a ``geometry_msgs/PoseStamped`` on ``/RobotN/goal_pose``: the cell
+        of its position. Raises MessageError for another class, a pose that does not decode or is off the grid."""
+        if ch.schema_name not in (_wire(POSE), POSE):
+            raise MessageError(f"the fleet takes {_wire(POSE)} here, not {ch.schema_name}")
+        try:
+            pose = orjson.loads(payload) if ch.encoding == JSON else self.reg.bytes_to_json(POSE, payload)
+            x, y = float(pose["pose"]["position"]["x"]), float(pose["pose"]["position"]["y"])
+        except (orjson.JSONDecodeError, KeyError, TypeError, ValueError) as e:
+            raise MessageError(f"not a {_wire(POSE)}: {e}") from None
+        cell = self.scene.geo.cell_of(x, y)
+        if cell is None:
+            raise MessageError(f"({x:.2f}, {y:.2f}) is outside the grid")
+        return self.reg.json_to_bytes("fleet/msg/RobotGoal", {"robot": robot, "cell": cell})
 
 
 def _wire(typename: str) -> str:
