@@ -288,7 +288,8 @@ async def test_a_pose_on_goal_pose_is_a_goal(fleet):
                 r = next(r for r in st["robots"] if r["robot"] == "Robot3")
     except TimeoutError:
         raise AssertionError(f"Robot3 never got goal {target}: {r}; statuses {c.statuses}") from None
-    await c.ws.send(b"\x01" + (5).to_bytes(4, "little") + json.dumps({"pose": {"position": {"x": 1e6, "y": 0}}}).encode())
+    far = {"pose": {"position": {"x": 1e6, "y": 0}}}
+    await c.ws.send(b"\x01" + (5).to_bytes(4, "little") + json.dumps(far).encode())
     await c.status("is outside the grid")
     await c.close()
 
