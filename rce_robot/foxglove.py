@@ -25,7 +25,7 @@ from typing import Any
 import cbor2
 import orjson
 
-from rce.foxglove.protocol import JSON, ClientChannel, Service, ros1_schema
+from rce.foxglove.protocol import JSON, ClientChannel, FoxgloveService, ros1_schema
 from rce.foxglove.server import FoxgloveClient, FoxgloveServer
 from rce.messages import default_registry
 from rce.plumbing.errors import AuthError, MessageError, NotFound, RCEError, RequestError
@@ -140,7 +140,8 @@ class RobotFoxglove:
             advertised.add(ch.topic)
         await self._op(client, {"op": "publish", "topic": ch.topic, "msg": msg})
 
-    async def _call(self, client: FoxgloveClient, service: Service, encoding: str, payload: bytes) -> tuple[str, bytes]:
+    async def _call(self, client: FoxgloveClient, service: FoxgloveService, encoding: str,
+                    payload: bytes) -> tuple[str, bytes]:
         session = client.session
         req, resp = self.reg.srv_types(service.type)
         args = _json(payload) if encoding == JSON else self.reg.bytes_to_json(req, payload, session.forms)

@@ -68,7 +68,7 @@ class Channel:
 
 
 @dataclass(frozen=True)
-class Service:
+class FoxgloveService:
     """A server service: ``id`` (u32), ``name``, ``type`` (``pkg/Name``), the request's and response's
     definitions (ROS 1 ``ros1msg`` text)."""
     id: int
@@ -154,12 +154,12 @@ Event = Subscribed | Unsubscribed | Advertised | Unadvertised | Published | Serv
 @dataclass
 class ClientState:
     """One client's subscriptions and advertised channels, against the server's ``channels`` and
-    ``services`` (id -> :class:`Channel` / :class:`Service`, read at each message, never changed here).
+    ``services`` (id -> :class:`Channel` / :class:`FoxgloveService`, read at each message, never changed here).
 
     Each subscribe, unsubscribe, advertise or unadvertise entry is taken or refused on its own: the
     good entries of a message with a bad one still count."""
     channels: Mapping[int, Channel]
-    services: Mapping[int, Service] = field(default_factory=dict)
+    services: Mapping[int, FoxgloveService] = field(default_factory=dict)
     client_publish: bool = True
     subscriptions: dict[int, int] = field(default_factory=dict)      # subscription id -> channel id
     by_channel: dict[int, int] = field(default_factory=dict)         # channel id -> subscription id
@@ -379,7 +379,7 @@ def unadvertise(channel_ids: list[int]) -> str:
     return _text({"op": "unadvertise", "channelIds": channel_ids})
 
 
-def advertise_services(services: list[Service]) -> str:
+def advertise_services(services: list[FoxgloveService]) -> str:
     """An ``advertiseServices`` message."""
     return _text({"op": "advertiseServices", "services": [s.to_json() for s in services]})
 

@@ -57,7 +57,7 @@ from rce.plumbing.tasks import Tasks
 from rce.protocol.outbox import Outbox
 
 from . import protocol as fp
-from .protocol import Channel, ClientChannel, ClientState, Service
+from .protocol import Channel, ClientChannel, ClientState, FoxgloveService
 
 log = get_logger("rce.foxglove")
 
@@ -72,7 +72,7 @@ CLOSE_PROTOCOL = 1002     # close code: protocol error (RFC 6455)
 
 Authenticate = Callable[[dict[str, str]], Awaitable[Any]]
 OnPublish = Callable[["FoxgloveClient", ClientChannel, bytes], Awaitable[None]]
-OnServiceCall = Callable[["FoxgloveClient", Service, str, bytes], Awaitable[tuple[str, bytes]]]
+OnServiceCall = Callable[["FoxgloveClient", FoxgloveService, str, bytes], Awaitable[tuple[str, bytes]]]
 OnClient = Callable[["FoxgloveClient"], Awaitable[None]]
 OnChannel = Callable[["FoxgloveClient", Channel], Awaitable[None]]
 COUNTERS = {"messages_out": "Messages queued for Foxglove clients",
@@ -91,7 +91,7 @@ class FoxgloveClient:
     def __init__(self, server: "FoxgloveServer", ws: ServerConnection, principal: Any, queue_size: int):
         self.server, self.ws, self.principal = server, ws, principal
         self.channels: dict[int, Channel] = {} if server.per_client else server.channels
-        self.services: dict[int, Service] = {} if server.per_client else server.services
+        self.services: dict[int, FoxgloveService] = {} if server.per_client else server.services
         self.state = ClientState(self.channels, self.services, client_publish=server.on_publish is not None)
         self.by_topic: dict[str, Channel] = {}
         self.session: Any = None          # what ``on_connect`` keeps for this client
@@ -112,9 +112,9 @@ class FoxgloveClient:
         self.send_control(fp.advertise([ch]))
         return ch
 
-    def add_service(self, name: str, type_: str, request_schema: str, response_schema: str) -> Service:
+    def add_service(self, name: str, type_: str, request_schema: str, response_schema: str) -> FoxgloveService:
         """A service of this client alone (``per_client`` servers), advertised to it; returns it."""
-        s = Service(next(self.server._service_ids), name, type_, request_schema, response_schema)
+        s = FoxgloveService(next(self.server._service_ids), name, type_, request_schema, response_schema)
         self.services[s.id] = s
         self.send_control(fp.advertise_services([s]))
         return s
@@ -185,7 +185,7 @@ class FoxgloveServer:
         self.on_subscribe, self.on_unsubscribe = on_subscribe, on_unsubscribe
         self.queue_size, self.max_clients, self.metric_prefix = queue_size, max_clients, metric_prefix
         self.channels: dict[int, Channel] = {}
-        self.services: dict[int, Service] = {}
+        self.services: dict[int, FoxgloveService] = {}
         self.by_topic: dict[str, Channel] = {}
         self.latched: dict[int, tuple[int, bytes]] = {}       # channel id -> (stamp ns, payload) of latched ones
         self._latching: set[int] = set()
@@ -225,9 +225,9 @@ class FoxgloveServer:
             c.state.forget_channel(channel_id)
             c.send_control(frame)
 
-    def add_service(self, name: str, type_: str, request_schema: str, response_schema: str) -> Service:
+    def add_service(self, name: str, type_: str, request_schema: str, response_schema: str) -> FoxgloveService:
         """Advertise service ``name`` of ``type_`` (``pkg/Name``) to every client; returns it."""
-        s = Service(next(self._service_ids), name, type_, request_schema, response_schema)
+        s = FoxgloveService(next(self._service_ids), name, type_, request_schema, response_schema)
         self.services[s.id] = s
         for c in self.clients:
             c.send_control(fp.advertise_services([s]))

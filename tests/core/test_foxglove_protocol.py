@@ -13,7 +13,7 @@ from rce.messages import default_registry
 
 CHANNELS = {1: fp.Channel(1, "/a", "std_msgs/String", "string data"),
             2: fp.Channel(2, "/b", "std_msgs/Bool", "bool data")}
-SERVICES = {9: fp.Service(9, "/echo", "Test/StringEcho", "string data", "string data")}
+SERVICES = {9: fp.FoxgloveService(9, "/echo", "Test/StringEcho", "string data", "string data")}
 
 
 def state(**kw) -> fp.ClientState:
