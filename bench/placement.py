@@ -2,20 +2,22 @@
 (docs/placement.md) against the two static placements, in network namespaces this bench makes and
 removes (root; also after a failure: rce/tools/netlab.py).
 
-Topology: the cloud (the real engine: rce-master, a cloud container host ``cloud-dc1``, and by
-default the robot endpoint rce-robot) in the root namespace; the robot in namespace R, joined to it
-by one veth pair: the robot's own process (an ``rce_client`` connection) and its own computer, a
-``robot:`` container host (``rce-container --zone robot:ROBOT --user USER``) whose CPU is capped at
-:data:`ROBOT_CPU` cores by a cgroup the bench makes for it (v2 ``cpu.max``, or v1
-``cpu.cfs_quota_us`` where the cpu controller is v1). ``--endpoint robot`` runs the robot endpoint
-in R instead (the robot's messages then reach a container on its own computer without crossing the
-link, but the link the placer measures is the robot's local websocket).
+Topology: the cloud (the real engine: rce-master, a cloud container host ``cloud-dc1`` and a shared
+robot endpoint) in the root namespace; the robot in namespace R, joined to it by one veth pair: the
+robot's own process (an ``rce_client`` connection) and its own computer, with a ``robot:`` container
+host (``rce-container --zone robot:ROBOT --user USER``) whose CPU is capped at :data:`ROBOT_CPU`
+cores by a cgroup the bench makes for it (v2 ``cpu.max``, or v1 ``cpu.cfs_quota_us`` where the cpu
+controller is v1) and a robot endpoint of its own (``rce-robot --zone robot:ROBOT --user USER``,
+which the master hands the robot's logins to): a container on the robot's computer is reached
+without crossing the link, and the link the placer weighs is that endpoint's uplink.
+``--endpoint cloud`` leaves the robot to the cloud's endpoint instead (the link is then measured on
+the robot's websocket, and a container on the robot's computer is reached through the cloud: its
+messages cross the link twice).
 
 The link: each end shapes what it sends with HTB (one class, a ``pfifo`` of :data:`QUEUE` packets):
 :data:`GOOD_RATE` while good, :data:`BAD_RATE` while bad. This kernel has no ``netem``: no delay is
 added; the bad link's round trip is its queue's (a saturated 1 Mbit/s FIFO of :data:`QUEUE` packets
-holds up to ~0.5 s), which the robot endpoint's kernel measures on the robot's websocket (TCP_INFO),
-as the placer reads it.
+holds up to ~0.5 s), which the kernel's TCP_INFO shows the placer (module ``rce_robot.link_report``).
 
 The node (``bench/packages/benchcostmap/costmap.py``): a costmap from each ``sensor_msgs/LaserScan``
 of :data:`SCAN_POINTS` returns (~40 kB, 10 Hz: 3.2 Mbit/s, which 1 Mbit/s cannot carry), answered
@@ -42,7 +44,7 @@ the placer's word as ``GET /api/placement`` gave it, sampled every :data:`POLL` 
 ``bench/results/placement.json`` and a PNG timeline beside it::
 
     sudo .venv/bin/python bench/placement.py [--phase-s 30] [--systems cloud,robot,placer]
-                                             [--endpoint cloud|robot] [--out FILE]
+                                             [--endpoint robot|cloud] [--out FILE]
 """
 from __future__ import annotations
 
@@ -52,6 +54,7 @@ import contextlib
 import json
 import os
 import shutil
+import signal
 import subprocess
 import sys
 import tempfile
@@ -239,10 +242,11 @@ class CpuCap:
 
 
 def start(lab, link, work: Path, cap: CpuCap, endpoint: str):
-    """The engine for one system: master, cloud host and robot endpoint in the root namespace (or the
-    endpoint in R), the robot's computer in R under ``cap``. Returns it (stop it with ``stop()``)."""
+    """The engine for one system: master, cloud host and a shared robot endpoint in the root namespace,
+    the robot's computer in R under ``cap`` (with the robot's own endpoint when ``endpoint`` is
+    ``"robot"``). Returns it (stop it with ``stop()``)."""
     from rce.tools.launch import command, start_engine
-    e = start_engine(work, robot_tasksets=1 if endpoint == "cloud" else 0, container_hosts=1,
+    e = start_engine(work, robot_tasksets=1, container_hosts=1,
                      master_args=("--bind", "0.0.0.0"),
                      robot_args=("--bind", "0.0.0.0", "--advertise-host", link.a_ip),
                      container_args=("--bind", "0.0.0.0", "--advertise-host", link.a_ip, "--name", "cloud-dc1"),
@@ -252,10 +256,10 @@ def start(lab, link, work: Path, cap: CpuCap, endpoint: str):
         if endpoint == "robot":
             ready = work / "robot-endpoint.ready"
             _, info = e.spawn("robot-endpoint", lab.wrap("r", [
-                *command("rce-robot"), ctl, "--port", "0", "--data-port", "0", "--metrics-port", "0",
-                "--rosbridge-port", "0", "--bind", "0.0.0.0", "--advertise-host", link.b_ip,
-                "--ready-file", str(ready)]), ready)
-            e.robot_ready.append(dict(info, host=link.b_ip))      # its /metrics, from the root namespace
+                *command("rce-robot"), ctl, "--zone", f"robot:{ROBOT}", "--user", USER, "--port", "0",
+                "--data-port", "0", "--metrics-port", "0", "--rosbridge-port", "0", "--bind", "0.0.0.0",
+                "--advertise-host", link.b_ip, "--ready-file", str(ready)]), ready)
+            e.robot_ready.insert(0, dict(info, host=link.b_ip))   # the robot's; /metrics from the root namespace
         ready = work / "robot-computer.ready"
         e.spawn("robot-computer", cap.wrap(lab.wrap("r", [
             *command("rce-container"), ctl, "--zone", f"robot:{ROBOT}", "--user", USER, "--name", "robot-computer",
@@ -557,12 +561,16 @@ async def bench(a: argparse.Namespace) -> dict:
     return res
 
 
+def _interrupt(*_) -> None:
+    raise KeyboardInterrupt
+
+
 def main(argv=None) -> int:
     p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     p.add_argument("--phase-s", type=float, default=30.0, help="s per phase (4 phases)")
     p.add_argument("--systems", default="cloud,robot,placer")
-    p.add_argument("--endpoint", choices=("cloud", "robot"), default="cloud",
-                   help="where the robot endpoint (rce-robot) runs: the cloud (default) or the robot's namespace")
+    p.add_argument("--endpoint", choices=("robot", "cloud"), default="robot",
+                   help="the robot's endpoint: on its computer (rce-robot --zone robot:ID, default) or the cloud's")
     p.add_argument("--out", type=Path, default=BENCH / "results" / "placement.json")
     p.add_argument("--keep-logs", action="store_true", help="keep the engines' logs (printed path)")
     p.add_argument("--role", choices=("bench", "robot"), default="bench", help=argparse.SUPPRESS)
@@ -576,6 +584,7 @@ def main(argv=None) -> int:
         print("placement: needs root (network namespaces, tc, cgroups)", file=sys.stderr)
         return 2
     from common import write_json
+    signal.signal(signal.SIGTERM, _interrupt)          # a kill ends the run through its clean-ups
     res = asyncio.run(bench(a))
     write_json(a.out, res)
     plot(res, a.out.with_suffix(".png"))
