@@ -217,6 +217,7 @@ class Placement:
         names = {t.tid: f"{t.zone} ({t.name})" for t in self.state.tasksets.values()}
         r = await self.mover.move(c.user, c.ctag, tid, why)
         self.placer.moved(time.monotonic(), c.user, c.ctag)
+        self.use.pop((c.user, c.ctag), None)         # the new copy's counters start from 0
         rec = {"t": time.time(), "user": c.user, "ctag": c.ctag, "from": names.get(r.from_tid, str(r.from_tid)),
                "to": names.get(r.to_tid, str(r.to_tid)), "make_s": round(r.make_s, 3),
                "switch_s": round(r.switch_s, 4), "drain_s": round(r.drain_s, 3), "states": r.states, "why": why}
