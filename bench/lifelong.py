@@ -200,9 +200,11 @@ def _parser() -> argparse.ArgumentParser:
     ap.add_argument("--crowd-w", type=float, help="scheduler's steps per robot crowding a task's errands "
                     "(default: 5 for 3,000 robots or more, else 0)")
     ap.add_argument("--max-active", type=int, metavar="N",
-                    help="robots holding a task at most (0: no bound; default: 0.25 of the free cells when more)")
+                    help="robots holding a task at most (0: no bound; default: 0.25 of the free cells from 0.25 "
+                         "robots per free cell)")
     ap.add_argument("--window", choices=("on", "off"),
-                    help="the windowed plan of operations refined by LNS (default: on from 0.1 robots per free cell)")
+                    help="the windowed plan (operations + LNS) as a candidate of the lookahead (default: on "
+                         "from 0.1 to 0.8 robots per free cell, up to 1,000 robots)")
     ap.add_argument("--json", type=Path)
     ap.add_argument("--plot", type=Path)
     ap.add_argument("--outputs", type=Path, help="also write each run's start-kit output JSON into DIR")

@@ -102,3 +102,20 @@ def test_planner_with_the_window_keeps_every_step_valid_on_a_packed_map():
         goals[done] = -1
     assert reached > 0
     assert planner._window.stats["window_steps"] == 40
+
+
+def test_batch_scheduler_gives_tasks_to_at_most_max_active_robots_the_cheapest_pairs():
+    from rce_fleet.lifelong import BatchScheduler, TaskPool
+    g = LifelongGrid(np.ones((1, 20), dtype=bool))
+    pool = TaskPool()
+    for errands in [(1, 2), (10, 11), (18, 19), (5, 6)]:
+        pool.add(errands)
+    sched = BatchScheduler(DistanceCache(g))
+    sched.max_active = 2
+    pos = np.array([0, 9, 14, 13])
+    prop = sched.schedule(pos, np.full(4, -1), pool.open, 0, time.perf_counter() + 1)
+    # the assignment of all four (0 -> task 0: finish 2, 9 -> 3: 5, 14 -> 2: 5, 13 -> 1: 4, the least
+    # in sum), then its two cheapest pairs
+    assert prop.tolist() == [0, -1, -1, 1]
+    sched.max_active = None
+    assert (sched.schedule(pos, np.full(4, -1), pool.open, 0, time.perf_counter() + 1) >= 0).sum() == 4

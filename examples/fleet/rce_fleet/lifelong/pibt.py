@@ -11,6 +11,9 @@ by LaCAM*'s swap technique (Okumura, IJCAI-23); a robot turning towards a cell h
 a step (commitment); a robot stuck for ``stuck_steps`` gets noisy costs; when time allows,
 rollouts of ``window`` PIBT steps choose among tie-breaks of the first step (windowed
 lookahead in the spirit of the LoRR 2023 winner's windowed planning, Jiang et al., SoCS 2024).
+With ``ops`` the first step of a windowed plan of operations refined by LNS
+(:class:`~.window.WindowPlan`) is one of those candidates (``ops_candidate``, the default), or
+the answer itself (``ops_candidate=False``: measured to jam over long runs, docs/lifelong.md).
 
 Time budget: distance maps for new goals are the only unbounded work; when the step's
 deadline is near, a robot whose goal map is not yet computed waits (costs it one step,
@@ -43,7 +46,10 @@ class PIBTPlanner:
     noise: a robot without progress for that many steps gets tie-breaks scaled by ``noise``
     (a random walk out of a jam); samples, window, sample_frac: the lookahead (rollouts of
     ``window`` steps from ``samples`` tie-breaks, within ``sample_frac`` of the time left;
-    samples=1 turns it off). ``plan(pos, head, goals, deadline)`` returns (n,) action codes
+    samples=1 turns it off); ops, lns, lns_frac, ops_kw, ops_candidate: the windowed plan of
+    operations (:class:`~.window.WindowPlan` with ``ops_kw``; LNS on it with ``lns``, until
+    ``lns_frac`` of the time to ``deadline``) as a candidate of the lookahead, or answered
+    directly. ``plan(pos, head, goals, deadline)`` returns (n,) action codes
     (:mod:`.kernels`). Measured worth of each: ``docs/lifelong.md``.
     """
 
@@ -52,7 +58,7 @@ class PIBTPlanner:
                  stuck_steps: int = 20, noise: float = 100.0, samples: int = 16, sample_frac: float = 0.5,
                  window: int = 20, flow: TrafficFlow | None = None, flow_frac: float = 0.5,
                  flow_passes: int = 1, ops: bool = False, lns: bool = True, lns_frac: float = 0.5,
-                 ops_kw: dict | None = None):
+                 ops_kw: dict | None = None, ops_candidate: bool = True):
         self.grid, self.cache, self.model, self.turn_w, self.swap = grid, cache, model, float(turn_w), swap
         self.claim_steps = claim_steps
         self.stuck_steps, self.noise = stuck_steps, noise
@@ -60,6 +66,7 @@ class PIBTPlanner:
         self.flow, self.flow_frac, self.flow_passes = flow, flow_frac, flow_passes
         self._ptable = cache.table
         self.ops, self.lns, self.lns_frac, self.ops_kw, self.seed = ops, lns, lns_frac, ops_kw or {}, seed
+        self.ops_candidate = ops_candidate
         self._window = None
         self.rng = np.random.default_rng(seed)
         self._goal_prev: np.ndarray | None = None
@@ -124,7 +131,11 @@ class PIBTPlanner:
         nxt = np.empty(n, dtype=np.int64)
         turns = self.model == MAPF_T
         act = np.empty(n, dtype=np.int64)
-        if turns and self.ops:
+        if turns and self.ops and self.ops_candidate and self.samples > 1:
+            wact = self._window_plan(pos, head, goals, pslot, order, time.perf_counter()
+                                     + self.lns_frac * max(0.0, deadline - time.perf_counter()))
+            act = self._rollouts(pos, head, goals, slot, pslot, order, rnd, deadline, wact)
+        elif turns and self.ops:
             act = self._windowed(pos, head, goals, pslot, order, rnd, deadline, hard)
         elif turns and self.samples > 1:
             act = self._rollouts(pos, head, goals, slot, pslot, order, rnd, deadline)
@@ -137,20 +148,25 @@ class PIBTPlanner:
         self.stats["deferred"] += deferred
         return act
 
+    def _window_plan(self, pos, head, goals, pslot, order, stop) -> np.ndarray:
+        """The first actions of the windowed plan (:class:`~.window.WindowPlan`), LNS until ``stop``."""
+        from .window import WindowPlan
+        n = pos.shape[0]
+        if self._window is None or self._window.n != n:
+            self._window = WindowPlan(self.grid, n, seed=self.seed, **self.ops_kw)
+        scale = np.where(self.stuck > self.stuck_steps, self.noise, 1.0) if self.noise > 0 else np.ones(n)
+        return self._window.plan(pos, head, self._ptable, pslot, goals, order, scale, stop, self.lns)
+
     def _windowed(self, pos, head, goals, pslot, order, rnd, deadline, hard) -> np.ndarray:
         """PIBT's one-step answer first (the fallback, always ready), then the windowed plan of
         operations refined by LNS until ``lns_frac`` of the way from ``deadline`` to ``hard``
         (:class:`~.window.WindowPlan`); its first actions when it finished in time."""
-        from .window import WindowPlan
         n = pos.shape[0]
         nxt = np.empty(n, dtype=np.int64)
         act = np.empty(n, dtype=np.int64)
         self._convert(pos, head, goals, pslot, order, rnd, nxt, act)
-        if self._window is None or self._window.n != n:
-            self._window = WindowPlan(self.grid, n, seed=self.seed, **self.ops_kw)
-        scale = np.where(self.stuck > self.stuck_steps, self.noise, 1.0) if self.noise > 0 else np.ones(n)
         end = deadline if hard is None else deadline + self.lns_frac * max(0.0, hard - deadline)
-        wact = self._window.plan(pos, head, self._ptable, pslot, goals, order, scale, end, self.lns)
+        wact = self._window_plan(pos, head, goals, pslot, order, end)
         if hard is not None and time.perf_counter() > hard:
             self.stats["window_late"] = self.stats.get("window_late", 0) + 1
             return act
@@ -158,7 +174,7 @@ class PIBTPlanner:
         self.claim_age[:] = 0
         return wact
 
-    def _rollouts(self, pos, head, goals, slot, pslot, order, rnd, deadline) -> np.ndarray:
+    def _rollouts(self, pos, head, goals, slot, pslot, order, rnd, deadline, wfirst=None) -> np.ndarray:
         """Windowed lookahead: the plain PIBT step first (always complete), then, while time
         remains, rollouts of ``window`` PIBT steps from other tie-breaks of the first step;
         keep the first step of the rollout that brings the robots closest (heading-aware, a
@@ -182,7 +198,7 @@ class PIBTPlanner:
         d1 = np.empty(n)
         heading_costs(nbr, table, slot, pos, head, d0)
         best, best_state, best_score = plain[0], plain[1:], -np.inf
-        k = 0
+        k = chosen = 0
         for k in range(self.samples):
             if time.perf_counter() > stop:
                 break
@@ -194,6 +210,16 @@ class PIBTPlanner:
                     self.claim, self.claim_age = plain[1].copy(), plain[2].copy()
                     act[:] = plain[0]
                 else:
+                    if step == 0 and k == 1 and wfirst is not None:     # the windowed plan's first step
+                        self.claim, self.claim_age = np.full(n, -1, np.int64), np.zeros(n, np.int64)
+                        act[:] = wfirst
+                        first = (wfirst.copy(), self.claim.copy(), self.claim_age.copy())
+                        p, h = _apply(self.grid, p, h, act, MAPF_T)
+                        done = (g >= 0) & (p == g)
+                        g[done] = -1
+                        sl[done] = -1
+                        pl[done] = -1
+                        continue
                     if step == 0:
                         self.claim, self.claim_age = claim0.copy(), age0.copy()
                     elif time.perf_counter() > stop:
@@ -216,7 +242,10 @@ class PIBTPlanner:
             score = float((d0 - d1)[slot >= 0].sum())
             if score > best_score:
                 best, best_state, best_score = first[0], first[1:], score
+                chosen = k
         self.stats["samples"] += k
+        if wfirst is not None and chosen == 1:
+            self.stats["window_chosen"] = self.stats.get("window_chosen", 0) + 1
         self.claim, self.claim_age = best_state[0].copy(), best_state[1].copy()
         return best
 

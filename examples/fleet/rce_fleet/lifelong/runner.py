@@ -27,8 +27,8 @@ from .pibt import PIBTPlanner
 from .scheduler import BatchScheduler, make_scheduler
 from .simulator import MAPF_T, Simulator
 
-__all__ = ["ACTIVE_FRAC", "CROWD_TEAM", "CROWD_W", "GUIDE_DENSITY", "LANES", "PACKED_DENSITY", "RunResult",
-           "WINDOW_DENSITY", "WINDOW_TEAM", "run_lifelong"]
+__all__ = ["ACTIVE_DENSITY", "ACTIVE_FRAC", "CROWD_TEAM", "CROWD_W", "GUIDE_DENSITY", "LANES", "PACKED_DENSITY",
+           "RunResult", "WINDOW_DENSITY", "WINDOW_TEAM", "run_lifelong"]
 
 LANES = 4        # extra cost of a move against a one-way lane (measured: docs/lifelong.md)
 CROWD_W = 5.0    # scheduler's steps per robot crowding a task's errands beyond its share ...
@@ -36,7 +36,8 @@ CROWD_TEAM = 3000  # ... for teams of this size and more (measured: docs/lifelon
 HARD_FRAC = 0.7    # past this share of the limit a robot with a new goal and no row yet waits a step
 GUIDE_DENSITY = 0.1  # robots per free cell from which guide paths lead (below: each robot's shortest way)
 PACKED_DENSITY = 0.8  # robots per free cell from which a turning robot holds no second cell (claim_steps 0)
-ACTIVE_FRAC = 0.25    # robots holding a task per free cell at most (batch scheduler; the rest stand aside)
+ACTIVE_FRAC = 0.25    # robots holding a task per free cell at most (batch scheduler; the rest stand aside) ...
+ACTIVE_DENSITY = 0.25 # ... in teams of this many robots per free cell or more
 WINDOW_DENSITY = 0.1  # robots per free cell from which (to PACKED_DENSITY) the windowed plan (+ LNS) leads ...
 WINDOW_TEAM = 1000    # ... for teams up to this size (larger ones not measured with it)
 
@@ -84,7 +85,7 @@ def run_lifelong(problem: LorrProblem, steps: int, plan_time_limit_ms: float = 1
     the planner answers with the windowed plan of operations refined by LNS (:mod:`.window`;
     ``planner_kw={"ops": False}`` turns it off);
     max_active: at most this many robots hold a task (batch scheduler); None (default):
-    ``ACTIVE_FRAC`` of the free cells when the team is larger, 0: no bound;
+    ``ACTIVE_FRAC`` of the free cells from ``ACTIVE_DENSITY`` robots per free cell, 0: no bound;
     progress: called after each step with (step, tasks finished, planner ms).
     Compilation happens before step 0 (:func:`~.kernels.warm_up`). Raises ValueError for a
     bad scheduler or model name, MemoryError when the maps of the team do not fit.
@@ -108,7 +109,7 @@ def run_lifelong(problem: LorrProblem, steps: int, plan_time_limit_ms: float = 1
     if crowd_w is None:
         crowd_w = CROWD_W if problem.team_size >= CROWD_TEAM else 0.0
     sched = make_scheduler(scheduler, cache, crowd_w)
-    if max_active is None and problem.team_size > ACTIVE_FRAC * len(grid.free_cells()):
+    if max_active is None and density >= ACTIVE_DENSITY:
         max_active = int(ACTIVE_FRAC * len(grid.free_cells()))
     if max_active is not None and max_active > 0 and isinstance(sched, BatchScheduler):
         sched.max_active = max_active

@@ -254,7 +254,8 @@ class BatchScheduler(Scheduler):
             j = col.get(int(assignment[a]))
             if j is not None:
                 cost[i, j] -= self.keep_bonus
-        cost[~np.isfinite(cost)] = 1e9
+        bad = ~np.isfinite(cost)
+        cost[bad] = 1e9
         if self.max_active is not None:         # at most max_active robots hold a task: the cheapest pairs
             allowed = max(0, self.max_active - len(opened))
             if 2 * allowed < len(robots):       # only the robots with the cheapest tasks (a smaller problem)
@@ -269,7 +270,7 @@ class BatchScheduler(Scheduler):
             rows, cols = linear_sum_assignment(cost)
         prop[robots] = -1
         for i, j in zip(rows.tolist(), cols.tolist(), strict=True):
-            if cost[i, j] < 1e9:
+            if not bad[i, j]:
                 prop[robots[i]] = cand[j].id
         return prop
 

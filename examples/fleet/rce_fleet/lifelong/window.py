@@ -15,7 +15,9 @@ windowed planning, Jiang et al., "Scaling Lifelong Multi-Agent Path Finding to M
 Settings", SoCS 2024): the robots around a random robot are planned again in a random order,
 and the new operations are kept when their summed cost is lower. Only the first action of
 each operation is executed; the next step plans again, the rest of the last step's operation
-tried first.
+favoured. The lifelong planner (:class:`~.pibt.PIBTPlanner`, ``ops``) takes this first step as
+one candidate of its lookahead: it is executed when PIBT rolled out from it brings the robots
+closest, so a plan that would walk into a deadlock PIBT resolves (a corridor swap) is not chosen.
 
 Cost of an operation: the heading-aware distance (:func:`~.kernels.heading_cost`) at the
 window's end, plus 0.05 of those on the way, plus a tie-break; an operation that reaches the
@@ -78,14 +80,16 @@ def _trajectory(nbr, ops, k, u, h, cells, heads):
 
 
 @njit(cache=True)
-def op_costs(nbr, ops, pos, head, dist, slot, goal, rnd, prev_op, keep_bonus, traj, cost, rank):
+def op_costs(nbr, ops, pos, head, dist, slot, goal, rnd, prev_op, keep_bonus, seed, traj, cost, rank):
     """Cost of every operation of every robot, and the operations sorted by it.
 
     pos, head, goal (n,) int64; dist (k, cells) uint16 rows, slot (n,) a robot's row (-1: no
-    goal); rnd (n,) tie-break scale (a robot stuck in a jam gets a larger one); prev_op (n,)
+    goal); rnd (n,) tie-break scale (a robot stuck in a jam gets a larger one: a random walk),
+    the tie-breaks drawn anew from ``seed`` at each call; prev_op (n,)
     the operation whose rest continues the last step's plan (-1: none), favoured by
     ``keep_bonus``. Writes traj (n, m, DEPTH + 1) cells (-1: not allowed), cost (n, m) and
     rank (n, m): operation indices by increasing cost, the not allowed ones last."""
+    np.random.seed(seed)
     n = pos.shape[0]
     m = ops.shape[0]
     depth = ops.shape[1]
@@ -119,7 +123,7 @@ def op_costs(nbr, ops, pos, head, dist, slot, goal, rnd, prev_op, keep_bonus, tr
                     c = heading_cost(nbr, dist, s, cells[depth], heads[depth])
                     for t in range(1, depth):
                         c += 0.05 * heading_cost(nbr, dist, s, cells[t], heads[t])
-            c += rnd[a] * ((k * 7919 + a * 104729) % 1000) * 1e-5
+            c += rnd[a] * np.random.random() * 0.01
             if k == prev_op[a]:
                 c -= keep_bonus
             cost[a, k] = c
@@ -419,7 +423,7 @@ class WindowPlan:
         reaches ``stop``, one chunk of rounds at a time (``chunk_s``)."""
         import time
         op_costs(self.grid.nbr, OPERATIONS, pos, head, dist, slot, goal, rnd, self.prev_op, self.keep_bonus,
-                 self.traj, self.cost, self.rank)
+                 int(self.rng.integers(2 ** 31)), self.traj, self.cost, self.rank)
         self.stats["window_fallbacks"] += plan_window(self.traj, self.rank, pos, order, self.planned, self.res,
                                                       self.max_depth, self.budget, self.total_budget * len(pos))
         if lns:
