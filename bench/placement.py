@@ -44,7 +44,7 @@ the placer's word as ``GET /api/placement`` gave it, sampled every :data:`POLL` 
 ``bench/results/placement.json`` and a PNG timeline beside it::
 
     sudo .venv/bin/python bench/placement.py [--phase-s 30] [--systems cloud,robot,placer]
-                                             [--endpoint robot|cloud] [--out FILE]
+                                             [--endpoint robot|cloud] [--bad-rate 1mbit] [--out FILE]
 """
 from __future__ import annotations
 
@@ -312,7 +312,7 @@ async def drive(system: str, lab, link, e, work: Path, a: argparse.Namespace) ->
             k = int((now - t0) // a.phase_s)
             if k >= 1 and 1 not in done:
                 done.add(1)
-                shape(lab, link, BAD_RATE)
+                shape(lab, link, a.bad_rate)
             if k >= 2 and 2 not in done:
                 done.add(2)
                 shape(lab, link, GOOD_RATE)
@@ -351,7 +351,8 @@ async def drive(system: str, lab, link, e, work: Path, a: argparse.Namespace) ->
         drops["node queue (largest count of a copy)"] = rec["node_dropped"]
         drops.update({name: await asyncio.to_thread(endpoint_counter, e, name)
                       for name in ("rce_robot_dropped", "rce_robot_shed", "rce_robot_superseded",
-                                   "rce_robot_resume_lost", "rce_robot_duplicates")})
+                                   "rce_robot_resume_lost", "rce_robot_duplicates", "rce_robot_lane_dropped",
+                                   "rce_robot_dataplane_dropped")})
         total_bytes = link_bytes(link.a_dev) - bytes0
     finally:
         if proc.returncode is None:
@@ -534,7 +535,7 @@ async def bench(a: argparse.Namespace) -> dict:
     res: dict = {"bench": "placement", "git": git_head(), "phase_s": a.phase_s, "endpoint": a.endpoint,
                  "deadline_ms": DEADLINE_MS, "rate_hz": RATE_HZ, "scan_points": SCAN_POINTS,
                  "light_fraction": LIGHT_FRACTION, "heavy_every": HEAVY_EVERY, "node_args": NODE_ARGS,
-                 "robot_cpu": ROBOT_CPU, "good_rate": GOOD_RATE, "bad_rate": BAD_RATE, "queue_packets": QUEUE,
+                 "robot_cpu": ROBOT_CPU, "good_rate": GOOD_RATE, "bad_rate": a.bad_rate, "queue_packets": QUEUE,
                  "battery_pct": [BATTERY_START_PCT, BATTERY_LOW_PCT], "load_before": os.getloadavg(),
                  "systems": {}}
     root = Path(tempfile.mkdtemp(prefix="rce-placement-"))
@@ -571,6 +572,8 @@ def main(argv=None) -> int:
     p.add_argument("--systems", default="cloud,robot,placer")
     p.add_argument("--endpoint", choices=("robot", "cloud"), default="robot",
                    help="the robot's endpoint: on its computer (rce-robot --zone robot:ID, default) or the cloud's")
+    p.add_argument("--bad-rate", default=BAD_RATE, help=f"the link's rate in the second phase (tc units; "
+                   f"default {BAD_RATE})")
     p.add_argument("--out", type=Path, default=BENCH / "results" / "placement.json")
     p.add_argument("--keep-logs", action="store_true", help="keep the engines' logs (printed path)")
     p.add_argument("--role", choices=("bench", "robot"), default="bench", help=argparse.SUPPRESS)

@@ -1,6 +1,8 @@
 """Smoke test of bench/placement.py: the whole script with 2 s phases, the three systems (cloud,
 robot, placer) in the network namespaces it makes, to the end: JSON of the documented shape, no
-result lost or duplicated, and its PNG."""
+result lost or duplicated, and its PNG. The second phase's link is 20 Mbit/s here, which carries the
+scans: at 1 Mbit/s the data plane drops scans that waited past its ``max_delay`` for the link, by
+design (rce/transport/link.py), and which those are depends on the machine's speed."""
 from __future__ import annotations
 
 import json
@@ -21,7 +23,8 @@ pytestmark = pytest.mark.skipif(os.geteuid() != 0, reason="needs root: network n
 @pytest.mark.timeout(RUN_TIMEOUT + 20)
 def test_placement_smoke(tmp_path):
     out = tmp_path / "placement.json"
-    r = subprocess.run([sys.executable, str(ROOT / "bench" / "placement.py"), "--phase-s", "2", "--out", str(out)],
+    r = subprocess.run([sys.executable, str(ROOT / "bench" / "placement.py"), "--phase-s", "2", "--bad-rate", "20mbit",
+                        "--out", str(out)],
                        cwd=ROOT, capture_output=True, text=True, timeout=RUN_TIMEOUT)
     assert r.returncode == 0, f"exit {r.returncode}\n{r.stdout[-3000:]}\n{r.stderr[-3000:]}"
     d = json.loads(out.read_text())
@@ -32,9 +35,10 @@ def test_placement_smoke(tmp_path):
         assert len(by_phase) == 4 and all(isinstance(x, int) for x in by_phase)
         assert sum(by_phase) == s["deadline_misses"], name
         assert s["scans"] >= 4 * 2 * 10 * 0.8, (name, s["scans"])        # 10 Hz for 8 s, give or take
-        assert (s["lost"], s["duplicated"]) == (0, 0), (name, s["lost"], s["duplicated"], s["drops"])
+        assert (s["lost"], s["duplicated"]) == (0, 0), (name, s["lost_by_phase"], s["duplicated"], s["drops"])
         for m in s["moves"]:
             assert MOVE_KEYS <= set(m) and m["gap_s"] >= 0, m
+            assert (m["lost"], m["duplicated"]) == (0, 0), m
     assert d["systems"]["robot"]["robot_energy_j"] > d["systems"]["cloud"]["robot_energy_j"]   # CPU on the robot
     assert not d["systems"]["cloud"]["moves"] and not d["systems"]["robot"]["moves"]          # pinned by placement
     assert out.with_suffix(".png").stat().st_size > 10_000
