@@ -56,8 +56,8 @@ class _Use:
     out_bytes: float = 0.0
     results: int = 0                 # results its nodes timed (rce.node.results), and how many were late
     misses: int = 0
-    node_ms: float | None = None     # p90 of its nodes' latency over the last seconds, where it runs now
-    recent_misses: int = 0           # late results since the look before
+    node_ms: float | None = None     # p50 of its nodes' latency over the last seconds, where it runs now
+    miss_rate: float | None = None   # the share of those results that missed its deadline (None: none)
 
 
 def asks_placement(data: dict) -> bool:
@@ -126,11 +126,11 @@ class Placement:
         res = s.get("results") or {}
         new = _Use(now, cpu_s, int(s.get("msgs_out") or 0), int(s.get("bytes_in") or 0), int(s.get("bytes_out") or 0),
                    results=int(res.get("results") or 0), misses=int(res.get("misses") or 0),
-                   node_ms=res.get("recent_p90_ms"))
+                   node_ms=res.get("recent_p50_ms"),
+                   miss_rate=(res["recent_misses"] / res["recent_results"]) if res.get("recent_results") else None)
         old = self.use.get((c.user, c.ctag))
         if old is not None and now > old.t:
             dt = now - old.t
-            new.recent_misses = max(0, new.misses - old.misses)
             outputs = new.results - old.results if new.results > old.results else new.msgs_out - old.msgs_out
             new.rate_hz = max(0, outputs) / dt
             new.in_bytes = max(0, new.bytes_in - old.bytes_in) / dt
@@ -154,7 +154,7 @@ class Placement:
         u = self.use.get((c.user, c.ctag))
         view = ContainerView(c.user, c.ctag, robot, d.get("deadline_ms"), u.work_ms if u else 0.0,
                              u.rate_hz if u else 0.0, u.in_bytes if u else 0.0, u.out_bytes if u else 0.0,
-                             float(d.get("cpu") or 0), u.node_ms if u else None)
+                             float(d.get("cpu") or 0), u.node_ms if u else None, u.miss_rate if u else None)
         link = self.links.get((c.user, robot)) if robot else None
         unmeasured = robot is not None and link is None     # its robot's link is not measured yet
         links = {"cloud": link, "edge": link} if link is not None else {"cloud": LinkView(0, float("inf")),
@@ -178,7 +178,7 @@ class Placement:
                      best=ch.target.zone if ch.target else None, move=ch.move, why=ch.why,
                      link_rtt_ms=link.rtt_ms if link else None, link_rate=link.rate if link else None,
                      work_ms=round(view.work_ms, 2), rate_hz=round(view.rate_hz, 2), in_bytes=round(view.in_bytes),
-                     node_ms=view.node_ms, misses=u.misses if u else 0,
+                     node_ms=view.node_ms, miss_rate=view.miss_rate, misses=u.misses if u else 0,
                      battery=self.batteries.get((c.user, robot)) if robot else None)
         return ch
 

@@ -32,8 +32,8 @@ from dataclasses import asdict, dataclass, field
 
 from rce.protocol.zones import Zone
 
-__all__ = ["Choice", "ContainerView", "EnergyModel", "HostView", "LinkView", "Option", "Placer", "choose",
-           "options"]
+__all__ = ["MISS_RATE_OK", "Choice", "ContainerView", "EnergyModel", "HostView", "LinkView", "Option", "Placer",
+           "choose", "options"]
 
 
 @dataclass(frozen=True)
@@ -68,7 +68,10 @@ class ContainerView:
     """A container as the placer sees it. ``deadline_ms``: due time of a result (None: no deadline,
     any host meets it); ``work_ms``: core-ms of CPU per result (measured); ``rate_hz``: results per
     second; ``in_bytes`` and ``out_bytes``: bytes per second it reads from and sends to its robot;
-    ``cpu``: cores it asked for (its share is at most that, when given)."""
+    ``cpu``: cores it asked for (its share is at most that, when given); ``node_ms``: its nodes'
+    own latency from input to output where it runs now, measured (the median of the last seconds,
+    :mod:`rce.node.results`; None: not measured), and ``miss_rate`` the share of those results that
+    missed the deadline."""
     user: str
     ctag: str
     robot: str | None
@@ -79,6 +82,11 @@ class ContainerView:
     out_bytes: float = 0.0
     cpu: float = 0.0
     node_ms: float | None = None
+    miss_rate: float | None = None
+
+
+#: the share of its recent results a container may miss where it runs before that host counts as missing
+MISS_RATE_OK = 0.1
 
 
 @dataclass(frozen=True)
@@ -102,9 +110,11 @@ def options(c: ContainerView, hosts: list[HostView], links: dict[str, LinkView],
     """Every host that may run ``c`` (its robot's own computer, and shared hosts of the zone kinds
     in ``links``: a shared zone without a measured link is left out when ``c`` serves a robot),
     with its latency, margin and robot power. ``links``: zone kind (``"cloud"``, ``"edge"``) ->
-    :class:`LinkView`. On the host it runs on now (``current_tid``) the compute time is the
-    measured ``node_ms`` where it is the larger: what the model cannot see (CPU throttling,
-    queueing, a noisy neighbour) shows there first."""
+    :class:`LinkView`. On the host it runs on now (``current_tid``) what is measured counts: the
+    compute time is the measured median ``node_ms`` where it is the larger (CPU throttling,
+    queueing, a noisy neighbour show there first), and a host where more than :data:`MISS_RATE_OK`
+    of the recent results were late misses its deadline whatever the model says. The median is
+    compared with the other hosts' model (a mean): both are a typical result, not its tail."""
     out = []
     for h in hosts:
         if not h.zone.serves(c.user, c.robot):
@@ -133,8 +143,9 @@ def options(c: ContainerView, hosts: list[HostView], links: dict[str, LinkView],
             watts = energy.radio_j_per_byte * (c.in_bytes + c.out_bytes)
         latency = compute + link_ms
         margin = (c.deadline_ms - latency) if c.deadline_ms is not None else float("inf")
+        late = h.tid == current_tid and c.miss_rate is not None and c.miss_rate > MISS_RATE_OK
         out.append(Option(h.tid, h.name, str(h.zone), compute, link_ms, latency, margin, watts,
-                          meets_link and margin >= 0))
+                          meets_link and margin >= 0 and not late))
     return out
 
 

@@ -38,7 +38,9 @@ from rce.tools.admin_client import LEADER_HEADER
 from rce.transport.cluster_auth import ClusterKey, Gate
 from rce.plumbing.errors import AuthError, NotFound, NotLeader, RCEError, RequestError, Throttled, Timeout, Unavailable
 from rce.plumbing.log import get_logger
+from rce.transport import lane_socket
 from rce.transport.rpc import RpcPeer
+from rce.protocol.lanes import Lane
 from rce.plumbing.tasks import Tasks
 from rce_master import reconcile
 from rce_master.admin import AdminApi
@@ -267,6 +269,7 @@ class Master:
 
     # -- control plane -------------------------------------------------------------------------
     async def _accept(self, reader: asyncio.StreamReader, writer: asyncio.StreamWriter) -> None:
+        lane_socket.mark(writer.get_extra_info("socket"), Lane.CONTROL)   # ahead of data on a robot's link
         if not await self.gate.admit(reader, writer):       # refused, logged and counted
             return
         peer = RpcPeer(reader, writer, name="taskset", on_close=self._peer_closed)

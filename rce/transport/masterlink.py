@@ -36,9 +36,11 @@ from rce.transport import framing
 from rce.transport import rpc
 from rce.transport.cluster_auth import AuthFailed, ClusterKey, initiate
 from rce.plumbing.errors import ConfigError, NotLeader, RCEError, RequestError, Unavailable
+from rce.transport.lane_socket import mark
 from rce.transport.link import STREAM_LIMIT, nodelay
 from rce.plumbing.log import get_logger
 from rce.plumbing.tasks import Tasks
+from rce.protocol.lanes import Lane
 
 log = get_logger("rce.masterlink")
 T = TypeVar("T")
@@ -60,9 +62,11 @@ Streams = tuple[asyncio.StreamReader, asyncio.StreamWriter]
 
 
 async def open_tcp(addr: Address) -> Streams:
-    """Open a TCP stream to ``addr`` (Nagle off), as every control link does."""
+    """Open a TCP stream to ``addr`` (Nagle off, marked DSCP EF: the control lane, ahead of the data
+    that shares a robot's link with it, :mod:`rce.transport.lane_socket`), as every control link does."""
     reader, writer = await asyncio.open_connection(addr[0], addr[1], limit=STREAM_LIMIT)
     nodelay(writer)
+    mark(writer.get_extra_info("socket"), Lane.CONTROL)
     return reader, writer
 
 
