@@ -132,9 +132,7 @@ class PIBTPlanner:
         turns = self.model == MAPF_T
         act = np.empty(n, dtype=np.int64)
         if turns and self.ops and self.ops_candidate and self.samples > 1:
-            wact = self._window_plan(pos, head, goals, pslot, order, time.perf_counter()
-                                     + self.lns_frac * max(0.0, deadline - time.perf_counter()))
-            act = self._rollouts(pos, head, goals, slot, pslot, order, rnd, deadline, wact)
+            act = self._rollouts(pos, head, goals, slot, pslot, order, rnd, deadline, window=True)
         elif turns and self.ops:
             act = self._windowed(pos, head, goals, pslot, order, rnd, deadline, hard)
         elif turns and self.samples > 1:
@@ -174,12 +172,13 @@ class PIBTPlanner:
         self.claim_age[:] = 0
         return wact
 
-    def _rollouts(self, pos, head, goals, slot, pslot, order, rnd, deadline, wfirst=None) -> np.ndarray:
+    def _rollouts(self, pos, head, goals, slot, pslot, order, rnd, deadline, window=False) -> np.ndarray:
         """Windowed lookahead: the plain PIBT step first (always complete), then, while time
         remains, rollouts of ``window`` PIBT steps from other tie-breaks of the first step;
         keep the first step of the rollout that brings the robots closest (heading-aware, a
         reached goal counts 0). Skipped when ``samples`` rollouts cannot fit before half the
-        time left to ``deadline``."""
+        time left to ``deadline``. With ``window``, the first step of the windowed plan
+        (refined by LNS for ``lns_frac`` of the time left) is the second rollout's."""
         from .simulator import _apply
         n = pos.shape[0]
         table = self.cache.table
@@ -194,6 +193,11 @@ class PIBTPlanner:
         stop = t_a + self.sample_frac * max(0.0, deadline - t_a)
         if 2 * self.window * t_step * 1.5 > stop - time.perf_counter():
             return plain[0]                   # no time for two rollouts: the plain step
+        wfirst = None
+        if window:
+            now = time.perf_counter()
+            wfirst = self._window_plan(pos, head, goals, pslot, order, now + self.lns_frac * max(0.0, deadline - now))
+            stop = time.perf_counter() + self.sample_frac * max(0.0, deadline - time.perf_counter())
         d0 = np.empty(n)
         d1 = np.empty(n)
         heading_costs(nbr, table, slot, pos, head, d0)
