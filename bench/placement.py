@@ -14,7 +14,8 @@ without crossing the link, and the link the placer weighs is that endpoint's upl
 the robot's websocket, and a container on the robot's computer is reached through the cloud: its
 messages cross the link twice).
 
-The link: each end shapes what it sends with HTB (one class, a ``pfifo`` of :data:`QUEUE` packets):
+The link: each end shapes what it sends with HTB (one class, a ``pfifo`` of :data:`QUEUE` packets;
+with ``--dscp`` an EF class for the engine's control links served first beside it):
 :data:`GOOD_RATE` while good, :data:`BAD_RATE` while bad. This kernel has no ``netem``: no delay is
 added; the bad link's round trip is its queue's (a saturated 1 Mbit/s FIFO of :data:`QUEUE` packets
 holds up to ~0.5 s), which the kernel's TCP_INFO shows the placer (module ``rce_robot.link_report``).
@@ -44,7 +45,8 @@ the placer's word as ``GET /api/placement`` gave it, sampled every :data:`POLL` 
 ``bench/results/placement.json`` and a PNG timeline beside it::
 
     sudo .venv/bin/python bench/placement.py [--phase-s 30] [--systems cloud,robot,placer]
-                                             [--endpoint robot|cloud] [--bad-rate 1mbit] [--out FILE]
+                                             [--endpoint robot|cloud] [--bad-rate 1mbit] [--dscp]
+                                             [--out FILE]
 """
 from __future__ import annotations
 
@@ -178,16 +180,33 @@ async def robot_main(a: argparse.Namespace) -> dict:
 
 
 # -- the cloud side: namespaces, shaping, cgroup, the engine -------------------------------------
-def shape(lab, link, rate: str) -> None:
-    """Both ends of ``link`` send at most ``rate`` (HTB, one class) through a ``QUEUE``-packet FIFO."""
+def shape(lab, link, rate: str, dscp: bool = False) -> None:
+    """Both ends of ``link`` send at most ``rate`` with HTB, through ``QUEUE``-packet FIFOs: one class
+    (marks ignored), or with ``dscp`` an EF class (``tos`` 0xb8: the engine's control links) served
+    first, 30 % of ``rate`` assured, beside the rest, each borrowing up to ``rate``."""
+    classes = ((10, 0.7, 1), (20, 0.3, 0)) if dscp else ((10, 1.0, 0),)
+    bits = _bits(rate)
     for ns, dev in ((link.a, link.a_dev), (link.b, link.b_dev)):
         tc = [*(("ip", "netns", "exec", ns) if ns else ()), "tc"]
         subprocess.run([*tc, "qdisc", "del", "dev", dev, "root"], capture_output=True)
-        for args in (("qdisc", "add", "dev", dev, "root", "handle", "1:", "htb", "default", "10"),
-                     ("class", "add", "dev", dev, "parent", "1:", "classid", "1:10", "htb", "rate", rate, "ceil",
-                      rate, "burst", "15k"),
-                     ("qdisc", "add", "dev", dev, "parent", "1:10", "pfifo", "limit", str(QUEUE))):
+        cmds = [("qdisc", "add", "dev", dev, "root", "handle", "1:", "htb", "default", "10"),
+                ("class", "add", "dev", dev, "parent", "1:", "classid", "1:1", "htb", "rate", rate, "ceil", rate,
+                 "burst", "15k")]
+        for cid, share, prio in classes:
+            cmds += [("class", "add", "dev", dev, "parent", "1:1", "classid", f"1:{cid}", "htb", "rate",
+                      f"{int(bits * share)}bit", "ceil", rate, "burst", "15k", "prio", str(prio)),
+                     ("qdisc", "add", "dev", dev, "parent", f"1:{cid}", "pfifo", "limit", str(QUEUE))]
+        if dscp:
+            cmds.append(("filter", "add", "dev", dev, "parent", "1:", "protocol", "ip", "prio", "1", "u32", "match",
+                         "ip", "tos", "0xb8", "0xfc", "flowid", "1:20"))
+        for args in cmds:
             subprocess.run([*tc, *args], check=True, capture_output=True, text=True)
+
+
+def _bits(rate: str) -> int:
+    """Bits/s of a tc rate such as ``1mbit``."""
+    from rce.tools.netlab import _tc_bits
+    return _tc_bits(rate)
 
 
 def link_bytes(dev: str) -> int:
@@ -273,7 +292,7 @@ def start(lab, link, work: Path, cap: CpuCap, endpoint: str):
 
 async def run_system(system: str, lab, link, work: Path, cap: CpuCap, a: argparse.Namespace) -> dict:
     """One system through the script: the robot's record, the bench's samples, the moves."""
-    shape(lab, link, GOOD_RATE)
+    shape(lab, link, GOOD_RATE, a.dscp)
     e = start(lab, link, work, cap, a.endpoint)
     try:
         return await drive(system, lab, link, e, work, a)
@@ -312,10 +331,10 @@ async def drive(system: str, lab, link, e, work: Path, a: argparse.Namespace) ->
             k = int((now - t0) // a.phase_s)
             if k >= 1 and 1 not in done:
                 done.add(1)
-                shape(lab, link, a.bad_rate)
+                shape(lab, link, a.bad_rate, a.dscp)
             if k >= 2 and 2 not in done:
                 done.add(2)
-                shape(lab, link, GOOD_RATE)
+                shape(lab, link, GOOD_RATE, a.dscp)
             if k >= 3 and 3 not in done:
                 done.add(3)
                 await admin(f"/api/robots/{USER}/{ROBOT}/battery", {"percent": BATTERY_LOW_PCT})
@@ -535,7 +554,8 @@ async def bench(a: argparse.Namespace) -> dict:
     res: dict = {"bench": "placement", "git": git_head(), "phase_s": a.phase_s, "endpoint": a.endpoint,
                  "deadline_ms": DEADLINE_MS, "rate_hz": RATE_HZ, "scan_points": SCAN_POINTS,
                  "light_fraction": LIGHT_FRACTION, "heavy_every": HEAVY_EVERY, "node_args": NODE_ARGS,
-                 "robot_cpu": ROBOT_CPU, "good_rate": GOOD_RATE, "bad_rate": a.bad_rate, "queue_packets": QUEUE,
+                 "robot_cpu": ROBOT_CPU, "good_rate": GOOD_RATE, "bad_rate": a.bad_rate, "dscp": a.dscp,
+                 "queue_packets": QUEUE,
                  "battery_pct": [BATTERY_START_PCT, BATTERY_LOW_PCT], "load_before": os.getloadavg(),
                  "systems": {}}
     root = Path(tempfile.mkdtemp(prefix="rce-placement-"))
@@ -574,6 +594,8 @@ def main(argv=None) -> int:
                    help="the robot's endpoint: on its computer (rce-robot --zone robot:ID, default) or the cloud's")
     p.add_argument("--bad-rate", default=BAD_RATE, help=f"the link's rate in the second phase (tc units; "
                    f"default {BAD_RATE})")
+    p.add_argument("--dscp", action="store_true",
+                   help="the link serves DSCP EF (the engine's control links) first; default: one FIFO")
     p.add_argument("--out", type=Path, default=BENCH / "results" / "placement.json")
     p.add_argument("--keep-logs", action="store_true", help="keep the engines' logs (printed path)")
     p.add_argument("--role", choices=("bench", "robot"), default="bench", help=argparse.SUPPRESS)
