@@ -249,7 +249,7 @@ class RobotEndpoint:
         self.stopped = asyncio.Event()
         self.relays: dict[tuple[str, str], str] = {}      # (user, robot) -> the relay its link goes through now
         self.link_reports = LinkReports(self._tell_link)
-        self.uplink = Uplink(self._master_socket, self._data_sockets)    # on a robot's computer: its link
+        self.uplink = Uplink(self._master_socket, self.plane.link_sockets)    # on a robot's computer: its link
         self._link_task: asyncio.Task | None = None
 
     async def start(self, masters: list[Address], bind: str, port: int, data_port: int,
@@ -297,7 +297,7 @@ class RobotEndpoint:
         while True:
             await asyncio.sleep(link_report.EVERY)
             if self.zone.kind == "robot":       # its robot's websocket is local: the robot's link is the uplink
-                up = self.uplink.measure()
+                up = self.uplink.measure(loop.time())
                 robots = [(u, r, up) for (u, r) in self.namespaces]
             else:
                 robots = [(u, r, websocket_link(ns.ws)) for (u, r), ns in self.namespaces.items()]
@@ -312,8 +312,6 @@ class RobotEndpoint:
         peer = self.master.peer if self.master is not None else None
         return peer.link.writer.get_extra_info("socket") if peer is not None else None
 
-    def _data_sockets(self) -> list[Any]:
-        return [d.link.writer.get_extra_info("socket") for d in self.plane.dialled() if d.link is not None]
 
     def _tell_link(self, user: str, robot: str, rtt_ms: float, rate: float) -> None:
         self.master.notify("robot_link", user=user, robot=robot, rtt_ms=round(rtt_ms, 3), rate=rate)

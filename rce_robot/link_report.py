@@ -18,12 +18,13 @@ from typing import Any
 
 from rce.transport.lane_socket import link_info, link_sample, socket_of
 
-__all__ = ["BATTERY_STEP", "CHANGE", "EVERY", "REFRESH", "LinkReports", "Uplink", "websocket_link"]
+__all__ = ["BATTERY_STEP", "CHANGE", "EVERY", "RATE_HOLD", "REFRESH", "LinkReports", "Uplink", "websocket_link"]
 
 EVERY = 0.5       # s between looks at the robots' sockets
 CHANGE = 0.2      # a report when the round trip or the rate moved by this share
 REFRESH = 10.0    # s, a report at least this often per robot
 BATTERY_STEP = 1.0   # percentage points a robot's charge moves before the master is told again
+RATE_HOLD = 20.0     # s an uplink's rate is kept after it was last measured (Uplink)
 
 
 class LinkReports:
@@ -61,14 +62,18 @@ def websocket_link(ws: Any) -> tuple[float, float] | None:
 
 class Uplink:
     """The uplink of an endpoint on a robot's computer (module doc): ``control()`` gives the socket
-    of its link to the master, ``data()`` the sockets of its data links to other hosts."""
+    of its link to the master, ``data()`` the sockets of its data links to other hosts. A rate is
+    kept :data:`RATE_HOLD` s after the last time it was measured (a link that stops carrying the
+    stream, its container moved to the robot, says nothing of its rate: once the hold ends the rate
+    is unknown again, and the cloud is weighed by its round trip alone, a probe every hold at most)."""
 
     def __init__(self, control: Callable[[], Any], data: Callable[[], Iterable[Any]]):
         self.control, self.data = control, data
-        self.rate = 0.0              # bytes/s: the last rate measured while not app-limited
+        self.rate = 0.0              # bytes/s: the last rate measured while not app-limited (0: unknown)
+        self.rate_at = float("-inf")
 
-    def measure(self) -> tuple[float, float] | None:
-        """``(rtt_s, rate)`` now (None while there is no link to the master)."""
+    def measure(self, now: float) -> tuple[float, float] | None:
+        """``(rtt_s, rate)`` at monotonic ``now`` s (None while there is no link to the master)."""
         sock = self.control()
         info = link_sample(sock) if sock is not None else None
         if info is None:
@@ -76,7 +81,9 @@ class Uplink:
         rates = [s[1] for s in (link_sample(d) for d in self.data() if d is not None)
                  if s is not None and not s[2] and s[1] > 0]
         if rates:
-            self.rate = max(rates)
+            self.rate, self.rate_at = max(rates), now
+        elif now - self.rate_at > RATE_HOLD:
+            self.rate = 0.0
         return info[0], self.rate
 
 

@@ -295,9 +295,11 @@ class DataPlane:
         self.addr = f"[{host}]:{real_port}" if ":" in host else f"{host}:{real_port}"
         return self.addr
 
-    def dialled(self) -> list["_Dialled"]:
-        """The links this plane dialled (to the other planes it sends to), up or still dialling."""
-        return list(self._dialled.values())
+    def link_sockets(self) -> list:
+        """The sockets of this plane's links that are up: those it dialled (to the planes it sends
+        to) and those it accepted (direct links of nodes, which it sends their claimed messages on)."""
+        links = [d.link for d in self._dialled.values() if d.link is not None] + [a.link for a in self._accepted]
+        return [s for s in (link.writer.get_extra_info("socket") for link in links) if s is not None]
 
     async def close(self) -> None:
         """Close the listener and all links; calls in flight fail with :class:`Unavailable`."""
