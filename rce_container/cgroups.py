@@ -172,30 +172,50 @@ def cpu_max_cores(text: str) -> float | None:
         return None
 
 
+def cfs_quota_cores(quota: str, period: str) -> float | None:
+    """v1 ``cpu.cfs_quota_us`` and ``cpu.cfs_period_us`` texts as cores (None: no limit, quota -1)."""
+    try:
+        q, p = int(quota), int(period)
+    except ValueError:
+        return None
+    return q / p if q > 0 and p > 0 else None
+
+
 def host_cpus() -> float:
-    """The cores this process may use: the CPUs it may run on (affinity), capped by the v2
-    ``cpu.max`` of its own cgroup and every ancestor (a robot's computer capped at 0.3 cores
-    says 0.3)."""
+    """The cores this process may use: the CPUs it may run on (affinity), capped by the CPU quota
+    of its own cgroup and every ancestor: v2 ``cpu.max``, or v1 ``cpu.cfs_quota_us`` over
+    ``cpu.cfs_period_us`` where the cpu controller is a v1 hierarchy (a robot's computer capped at
+    0.3 cores says 0.3)."""
     cores = float(len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count() or 1)
     try:
         mounts = parse_mountinfo(Path("/proc/self/mountinfo").read_text())
-        own = parse_proc_cgroup(Path("/proc/self/cgroup").read_text()).get("")
+        groups = parse_proc_cgroup(Path("/proc/self/cgroup").read_text())
     except OSError:
         return cores
+    v1 = next((m for m in mounts if m.version == 1 and "cpu" in m.controllers), None)
+    if v1 is not None and groups.get("cpu") is not None:
+        def v1_limit(d: Path) -> float | None:
+            return cfs_quota_cores((d / "cpu.cfs_quota_us").read_text(), (d / "cpu.cfs_period_us").read_text())
+        return min(cores, _ancestors_min(Path(v1.path), groups["cpu"], v1_limit))
     v2 = next((m for m in mounts if m.version == 2), None)
-    if v2 is None or own is None:
+    if v2 is None or groups.get("") is None:
         return cores
-    d = Path(v2.path) / own.lstrip("/")
-    root = Path(v2.path)
+    return min(cores, _ancestors_min(Path(v2.path), groups[""], lambda d: cpu_max_cores((d / "cpu.max").read_text())))
+
+
+def _ancestors_min(root: Path, own: str, limit) -> float:
+    """The least ``limit(dir)`` (cores, or None: none) of cgroup ``own`` under mount ``root`` and its
+    ancestors up to the mount; inf without any."""
+    d, least = root / own.lstrip("/"), float("inf")
     while True:
         try:
-            limit = cpu_max_cores((d / "cpu.max").read_text())
+            v = limit(d)
         except OSError:
-            limit = None
-        if limit is not None:
-            cores = min(cores, limit)
+            v = None
+        if v is not None:
+            least = min(least, v)
         if d == root or root not in d.parents:
-            return cores
+            return least
         d = d.parent
 
 
