@@ -32,14 +32,15 @@ from rce_master.control import Control
 from rce_master.model import ContainerRec, InterfaceRec
 from rce_master.state import MasterState
 
-__all__ = ["DRAIN_MAX", "DRAIN_QUIET", "READY_TIMEOUT", "MoveFailed", "MoveResult", "Mover"]
+__all__ = ["DRAIN_GAPS", "DRAIN_MAX", "DRAIN_QUIET", "READY_TIMEOUT", "MoveFailed", "MoveResult", "Mover"]
 
 log = get_logger("rce.master.move")
 
 READY_TIMEOUT = 20.0   # s the new copy's nodes have to come up
 READY_POLL = 0.05      # s between looks at its bus
 DRAIN_QUIET = 0.3      # s the old copy's counters must stay still before it is destroyed
-DRAIN_MAX = 5.0        # s the old copy may drain at most
+DRAIN_MAX = 10.0       # s the old copy may drain at most
+DRAIN_GAPS = 3.0       # the old copy is drained once still for this many of its longest pause between arrivals
 HANDOFF_QUIET = 0.05   # s the same before its state is handed out (its nodes then finish what they hold)
 
 
@@ -186,9 +187,12 @@ class Mover:
         return len(took)
 
     async def _drain(self, old: ContainerRec, quiet: float = DRAIN_QUIET) -> None:
-        """Wait until the old copy's messages in and out stay still for ``quiet`` s (at most DRAIN_MAX s)."""
+        """Wait until the old copy's messages in and out stay still for ``quiet`` s, or for
+        :data:`DRAIN_GAPS` times the longest pause between two of its arrivals seen while it drains,
+        whichever is longer (on a thin link what was sent before the switch arrives slowly: one
+        40 kB message takes 0.3 s at 1 Mbit/s); at most :data:`DRAIN_MAX` s."""
         end = time.monotonic() + DRAIN_MAX
-        last, still_since = None, time.monotonic()
+        last, still_since, gap = None, time.monotonic(), 0.0
         while time.monotonic() < end:
             try:
                 s = await self.control.host_call(old, "stats")
@@ -197,7 +201,9 @@ class Mover:
             now = (s.get("msgs_in"), s.get("msgs_out"))
             t = time.monotonic()
             if now != last:
+                if last is not None:
+                    gap = max(gap, t - still_since)
                 last, still_since = now, t
-            elif t - still_since >= quiet:
+            elif t - still_since >= max(quiet, DRAIN_GAPS * gap):
                 return
             await asyncio.sleep(0.05)

@@ -37,7 +37,7 @@ __all__ = ["BATTERY_LOW", "POLL", "Placement"]
 
 log = get_logger("rce.master.placement")
 
-POLL = 1.0            # s between looks at the containers' counters
+POLL = 0.5            # s between looks at the containers' counters
 MOVES_KEPT = 100      # moves kept for GET /api/placement/moves
 BATTERY_LOW = 20.0    # per cent
 

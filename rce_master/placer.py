@@ -215,7 +215,7 @@ class Placer:
     when it last moved, so that a move happens only once the better host has held for
     ``settle_s`` and never twice within ``dwell_s`` (times: the caller's clock, s)."""
 
-    def __init__(self, settle_s: float = 1.0, dwell_s: float = 10.0, margin_gain: float = 0.2,
+    def __init__(self, settle_s: float = 0.5, dwell_s: float = 10.0, margin_gain: float = 0.2,
                  energy_gain: float = 0.2, energy: EnergyModel = EnergyModel()):
         self.settle_s, self.dwell_s = settle_s, dwell_s
         self.margin_gain, self.energy_gain, self.energy = margin_gain, energy_gain, energy
