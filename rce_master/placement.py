@@ -127,7 +127,7 @@ class Placement:
         new = _Use(now, cpu_s, int(s.get("msgs_out") or 0), int(s.get("bytes_in") or 0), int(s.get("bytes_out") or 0),
                    results=int(res.get("results") or 0), misses=int(res.get("misses") or 0),
                    node_ms=res.get("recent_p50_ms"),
-                   miss_rate=(res["recent_misses"] / res["recent_results"]) if res.get("recent_results") else None)
+                   miss_rate=(res["late_misses"] / res["late_results"]) if res.get("late_results") else None)
         old = self.use.get((c.user, c.ctag))
         if old is not None and now > old.t:
             dt = now - old.t

@@ -85,8 +85,9 @@ class ContainerView:
     miss_rate: float | None = None
 
 
-#: the share of its recent results a container may miss where it runs before that host counts as missing
-MISS_RATE_OK = 0.1
+#: the share of its results of the last 10 s a container may miss where it runs before that host counts
+#: as missing its deadline
+MISS_RATE_OK = 0.05
 
 
 @dataclass(frozen=True)

@@ -20,7 +20,7 @@ from rce.transport.lane_socket import link_info, link_sample, socket_of
 
 __all__ = ["BATTERY_STEP", "CHANGE", "EVERY", "RATE_HOLD", "REFRESH", "LinkReports", "Uplink", "websocket_link"]
 
-EVERY = 0.5       # s between looks at the robots' sockets
+EVERY = 0.25      # s between looks at the robots' sockets
 CHANGE = 0.2      # a report when the round trip or the rate moved by this share
 REFRESH = 10.0    # s, a report at least this often per robot
 BATTERY_STEP = 1.0   # percentage points a robot's charge moves before the master is told again

@@ -27,7 +27,8 @@ INPUT_ARRIVAL: contextvars.ContextVar[list | None] = contextvars.ContextVar("rce
 MAX_SAMPLES = 4096     # samples a node keeps between two asks; more are counted in ``overflow``
 MAX_STAMPS = 256       # input stamps a node remembers for rule 2
 KEPT = 512             # latencies a container keeps for its percentiles
-RECENT_S = 2.0         # s of latencies in ``recent_p90_ms``: what the placer reacts to
+RECENT_S = 2.0         # s of latencies in ``recent_p50_ms`` and ``recent_p90_ms``: what the placer reacts to
+LATE_S = 10.0          # s of results in ``late_results`` and ``late_misses``: the share late where it runs
 
 
 def stamp_of(msg) -> tuple[int, int] | None:
@@ -112,18 +113,20 @@ class ResultStats:
             self.misses += sum(1 for s in ms if s > self.deadline_ms)
 
     def stats(self, now: float) -> dict:
-        """``{results, misses, deadline_ms, p50_ms, p99_ms, max_ms, recent_results, recent_misses,
-        recent_p50_ms, recent_p90_ms, unseen}`` at monotonic ``now`` s: percentiles over the last
+        """``{results, misses, deadline_ms, p50_ms, p99_ms, max_ms, recent_p50_ms, recent_p90_ms,
+        late_results, late_misses, unseen}`` at monotonic ``now`` s: percentiles over the last
         :data:`KEPT` results (None before the first); ``recent_*`` over those of the last
-        :data:`RECENT_S` s (what the placer reacts to; percentiles None without any); ``unseen``:
-        results a node could not keep a sample of."""
+        :data:`RECENT_S` s (None without any); ``late_*``: the results of the last :data:`LATE_S` s
+        and how many of them missed the deadline (what the placer reacts to); ``unseen``: results a
+        node could not keep a sample of."""
         r = sorted(m for _, m in self.recent)
         fresh = sorted(m for t, m in self.recent if now - t <= RECENT_S)
 
         def pct(xs: list[float], q: float) -> float | None:
             return round(xs[min(len(xs) - 1, int(q * len(xs)))], 3) if xs else None
-        late = sum(1 for m in fresh if self.deadline_ms is not None and m > self.deadline_ms)
+        window = [m for t, m in self.recent if now - t <= LATE_S]
+        late = sum(1 for m in window if self.deadline_ms is not None and m > self.deadline_ms)
         return {"results": self.results, "misses": self.misses, "deadline_ms": self.deadline_ms,
                 "p50_ms": pct(r, 0.5), "p99_ms": pct(r, 0.99), "max_ms": round(r[-1], 3) if r else None,
-                "recent_results": len(fresh), "recent_misses": late, "recent_p50_ms": pct(fresh, 0.5),
-                "recent_p90_ms": pct(fresh, 0.9), "unseen": self.unseen}
+                "recent_p50_ms": pct(fresh, 0.5), "recent_p90_ms": pct(fresh, 0.9),
+                "late_results": len(window), "late_misses": late, "unseen": self.unseen}

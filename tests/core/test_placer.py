@@ -126,5 +126,5 @@ def test_a_host_where_recent_results_were_late_misses_whatever_the_model():
     late = ContainerView(**{**NODE.__dict__, "node_ms": 20.0, "miss_rate": 0.3})    # the typical result is fine
     o = by_zone(options(late, [CLOUD, ROBOT], GOOD, current_tid=CLOUD.tid))
     assert not o["cloud"].meets and o["robot:r1"].meets
-    ok = ContainerView(**{**NODE.__dict__, "node_ms": 20.0, "miss_rate": 0.05})
+    ok = ContainerView(**{**NODE.__dict__, "node_ms": 20.0, "miss_rate": 0.02})
     assert by_zone(options(ok, [CLOUD, ROBOT], GOOD, current_tid=CLOUD.tid))["cloud"].meets
