@@ -200,7 +200,7 @@ def _parser() -> argparse.ArgumentParser:
     ap.add_argument("--crowd-w", type=float, help="scheduler's steps per robot crowding a task's errands "
                     "(default: 5 for 3,000 robots or more, else 0)")
     ap.add_argument("--max-active", type=int, metavar="N",
-                    help="robots holding a task at most (0: no bound; default: 0.25 of the free cells from 0.25 "
+                    help="robots holding a task at most (0: no bound; default: 0.3 of the free cells from 0.3 "
                          "robots per free cell)")
     ap.add_argument("--window", choices=("on", "off"),
                     help="the windowed plan (operations + LNS) as a candidate of the lookahead (default: on "

@@ -36,8 +36,8 @@ CROWD_TEAM = 3000  # ... for teams of this size and more (measured: docs/lifelon
 HARD_FRAC = 0.7    # past this share of the limit a robot with a new goal and no row yet waits a step
 GUIDE_DENSITY = 0.1  # robots per free cell from which guide paths lead (below: each robot's shortest way)
 PACKED_DENSITY = 0.8  # robots per free cell from which a turning robot holds no second cell (claim_steps 0)
-ACTIVE_FRAC = 0.25    # robots holding a task per free cell at most (batch scheduler; the rest stand aside) ...
-ACTIVE_DENSITY = 0.25 # ... in teams of this many robots per free cell or more
+ACTIVE_FRAC = 0.3     # robots holding a task per free cell at most (batch scheduler; the rest stand aside) ...
+ACTIVE_DENSITY = 0.3  # ... in teams of this many robots per free cell or more
 WINDOW_DENSITY = 0.1  # robots per free cell from which (to PACKED_DENSITY) the windowed plan (+ LNS) leads ...
 WINDOW_TEAM = 1000    # ... for teams up to this size (larger ones not measured with it)
 
