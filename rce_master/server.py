@@ -32,7 +32,7 @@ from pathlib import Path
 
 from aiohttp import web
 from prometheus_client import CollectorRegistry, Counter, Gauge, generate_latest, CONTENT_TYPE_LATEST
-from prometheus_client.core import GaugeMetricFamily
+from prometheus_client.core import CounterMetricFamily, GaugeMetricFamily
 
 from rce.tools.admin_client import LEADER_HEADER
 from rce.transport.cluster_auth import ClusterKey, Gate
@@ -103,6 +103,34 @@ class _HostCollector:
             fams[1].add_metric(labels, t.cpu_load)
             fams[2].add_metric(labels, t.containers)
         yield from fams
+
+
+class _PlacementCollector:
+    """Per container that asks for a placement, labelled ``user``, ``ctag`` (and ``host``, where it
+    runs): ``rce_master_container_results`` and ``rce_master_container_deadline_misses`` (its nodes'
+    results timed by the engine, and those late, on the copy that runs now: a move starts them
+    again); and the placer's ``rce_master_container_moves_total`` / ``_move_failures_total``."""
+
+    def __init__(self, state: MasterState, placement: Placement, mover: Mover):
+        self.state, self.placement, self.mover = state, placement, mover
+
+    def collect(self):
+        res = GaugeMetricFamily("rce_master_container_results", "Results a container's nodes gave, timed from "
+                                "their inputs (its copy that runs now)", labels=["user", "ctag", "host"])
+        late = GaugeMetricFamily("rce_master_container_deadline_misses", "Of those, results later than the "
+                                 "container's deadline_ms", labels=["user", "ctag", "host"])
+        for (user, ctag), u in list(self.placement.use.items()):
+            c = self.state.containers.get((user, ctag))
+            host = self.state.tasksets.get(c.tid) if c is not None else None
+            labels = [user, ctag, host.name if host is not None else ""]
+            res.add_metric(labels, float(u.results))
+            late.add_metric(labels, float(u.misses))
+        yield res
+        yield late
+        yield CounterMetricFamily("rce_master_container_moves", "Containers moved, make-before-break",
+                                  value=self.mover.moves)
+        yield CounterMetricFamily("rce_master_container_move_failures", "Moves that failed (the container ran "
+                                  "on where it was)", value=self.mover.failed)
 
 
 class MasterMetrics:
@@ -182,6 +210,7 @@ class Master:
         self.failover = Failover(self.state, self.control, self.tasks)
         self.metrics = MasterMetrics(self.state, self.office, self.failover)
         self.metrics.registry.register(self.passwords)
+        self.metrics.registry.register(_PlacementCollector(self.state, self.placement, self.mover))
         self._control: asyncio.AbstractServer | None = None
         self._runner: web.AppRunner | None = None
         self.http_port = self.control_port = 0

@@ -20,6 +20,7 @@ import os
 import subprocess
 import sys
 import time
+import urllib.request
 from pathlib import Path
 
 import pytest
@@ -163,6 +164,10 @@ async def test_moves_to_the_robot_and_back_lose_nothing(eng):
         assert shown.returncode == 0 and "robot:mover" in shown.stdout and "pinned to robot" in shown.stdout, shown
         ts = {t["name"]: t for t in eng.admin("/api/tasksets") if t["kind"] == "container"}
         assert ts["mover-computer"]["containers"] == 0 and ts["dc1"]["containers"] == 1
+        with urllib.request.urlopen(eng.master_url + "metrics", timeout=10) as resp:
+            metrics = resp.read().decode()
+        assert "rce_master_container_moves_total 2.0" in metrics, "the two moves, counted"
+        assert 'rce_master_container_results{ctag="echoM",host="dc1",user="testUser"}' in metrics
         res = eng.admin("/api/containers/testUser/echoM/stats")["results"]
         assert res["results"] >= 20 and res["deadline_ms"] == 1000, res     # timed on the copy it runs on now
         assert 0 <= res["p50_ms"] <= res["max_ms"] and res["misses"] <= res["results"], res
