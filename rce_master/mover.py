@@ -41,7 +41,6 @@ READY_POLL = 0.05      # s between looks at its bus
 DRAIN_QUIET = 0.3      # s the old copy's counters must stay still before it is destroyed
 DRAIN_MAX = 10.0       # s the old copy may drain at most
 DRAIN_GAPS = 3.0       # the old copy is drained once still for this many of its longest pause between arrivals
-HANDOFF_QUIET = 0.05   # s the same before its state is handed out (its nodes then finish what they hold)
 
 
 class MoveFailed(RCEError):
@@ -174,9 +173,11 @@ class Mover:
     async def _hand_over(self, old: ContainerRec, new: ContainerRec) -> int:
         """The state of the old copy's nodes into the new copy's, which then take their held inputs
         (:meth:`rce.node.Node.handoff`); how many nodes took a state. The old copy's inputs end at
-        the switch; it hands its state out once it has handled them (a short drain first, for what
-        was already on its way to it). A state that cannot be had leaves the new nodes to start fresh."""
-        await self._drain(old, HANDOFF_QUIET)
+        the switch; it hands its state out once it has handled them (after the same drain as any move,
+        for what was already on its way to it). A state that cannot be had leaves the new nodes to
+        start fresh. The drain is a quiet time, not a fence: a message still in flight to the
+        old copy past it would reach the old copy after its state was handed out."""
+        await self._drain(old)
         try:
             states = (await self.control.host_call(old, "state_out")).get("states") or {}
         except RCEError as e:
