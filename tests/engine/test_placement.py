@@ -114,9 +114,9 @@ async def test_the_placer_advises_through_the_measured_link_and_takes_a_pin(eng)
 
 @pytest.mark.asyncio
 async def test_the_robots_battery_state_reaches_the_placer(eng):
-    async with RawRobot(eng.master_url, "r1") as r:
-        await create(r, "auto2", deadline_ms=100, robot="r1")
-        await r.iface("r1", "battery", "SubscriberConverter", "sensor_msgs/BatteryState")
+    async with RawRobot(eng.master_url, "rb") as r:         # a robot of its own: r1's sessions come and go above
+        await create(r, "auto2", deadline_ms=100, robot="rb")
+        await r.iface("rb", "battery", "SubscriberConverter", "sensor_msgs/BatteryState")
         loop = asyncio.get_running_loop()
         end = loop.time() + WAIT
         while True:             # the endpoint tells the master within a second of a reading
