@@ -6,7 +6,6 @@ design (rce/transport/link.py), and which those are depends on the machine's spe
 from __future__ import annotations
 
 import json
-import os
 import subprocess
 import sys
 from pathlib import Path
@@ -16,9 +15,6 @@ import pytest
 ROOT = Path(__file__).resolve().parents[2]
 RUN_TIMEOUT = 110        # s: three engines, each 4 x 2 s of script (about 50 s on a quiet machine)
 MOVE_KEYS = {"t_s", "from", "to", "gap_s", "why"}
-
-pytestmark = pytest.mark.skipif(os.geteuid() != 0, reason="needs root: network namespaces, tc, cgroups")
-
 
 @pytest.mark.timeout(RUN_TIMEOUT + 20)
 def test_placement_smoke(tmp_path):

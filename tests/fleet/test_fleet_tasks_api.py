@@ -75,14 +75,20 @@ def start_serve(d: Path, *extra: str, ca: str | None = None) -> dict:
     pytest.fail(f"rce-fleet serve did not come up:\n{log.read_text(errors='replace')[-3000:]}")
 
 
+def stop(p: subprocess.Popen) -> int:
+    """SIGINT, as Ctrl-C; killed (its process group) after STOP_TIMEOUT_S. Returns the exit code."""
+    if p.poll() is None:
+        p.send_signal(signal.SIGINT)
+        try:
+            p.wait(STOP_TIMEOUT_S)
+        except subprocess.TimeoutExpired:
+            os.killpg(p.pid, signal.SIGKILL)
+            p.wait()
+    return p.returncode
+
+
 def stop_serve(f: dict) -> None:
-    p = f["proc"]
-    p.send_signal(signal.SIGINT)
-    try:
-        p.wait(STOP_TIMEOUT_S)
-    except subprocess.TimeoutExpired:
-        os.killpg(p.pid, signal.SIGKILL)
-        p.wait()
+    stop(f["proc"])
 
 
 @pytest.fixture(scope="module")

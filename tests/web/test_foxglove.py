@@ -18,7 +18,6 @@ import hashlib
 import json
 import os
 import re
-import signal
 import subprocess
 import sys
 import time
@@ -30,6 +29,8 @@ import pytest
 from websockets.asyncio.client import connect
 from websockets.exceptions import ConnectionClosed, InvalidStatus
 
+from tests.fleet.test_fleet_tasks_api import stop
+
 BIN = Path(sys.executable).parent
 NODE_DIR = Path(__file__).resolve().parent / "foxglove"
 CLIENT = NODE_DIR / "fleet_client.mjs"
@@ -38,7 +39,6 @@ GOAL = 35                      # Robot1's goal: three cells east of its start
 URL_RE = re.compile(r"Foxglove WebSocket: ws://127\.0\.0\.1:(\d+)/")
 START_TIMEOUT_S = 90           # wall s for rce-fleet to start everything and print the Foxglove URL
 LOG_POLL_S = 0.1               # wall s between reads of rce-fleet's output while waiting for the URL
-STOP_TIMEOUT_S = 30            # wall s rce-fleet gets to stop after SIGINT
 NODE_TIMEOUT_MS = 40_000       # the Node client's whole run (subscribe, publish, see the robot move)
 STEP_TIMEOUT_S = 10.0          # one answer from the server
 PASSWORD = hashlib.sha256(b"testUser").hexdigest()
@@ -64,18 +64,6 @@ def fleet(tmp_path_factory):
         pytest.fail(f"rce-fleet serve printed no Foxglove URL:\n{log.read_text(errors='replace')[-3000:]}")
     yield {"port": port, "proc": p, "log": log, "mcap": mcap}
     stop(p)
-
-
-def stop(p: subprocess.Popen) -> int:
-    """SIGINT, as Ctrl-C; killed after STOP_TIMEOUT_S. Returns the exit code."""
-    if p.poll() is None:
-        p.send_signal(signal.SIGINT)
-        try:
-            p.wait(STOP_TIMEOUT_S)
-        except subprocess.TimeoutExpired:
-            os.killpg(p.pid, signal.SIGKILL)
-            p.wait()
-    return p.returncode
 
 
 def _wait_port(log: Path, proc: subprocess.Popen) -> int | None:

@@ -18,12 +18,13 @@ from urllib.parse import urlsplit
 
 import pytest
 
+from tests.fleet.test_fleet_tasks_api import stop
+
 BIN = Path(sys.executable).parent
 STARTS = {"Robot1": 32, "Robot2": 7, "Robot3": 63}
 URL_RE = re.compile(r"operator page: (http://\S+)")
 URL_TIMEOUT_S = 90        # wall s for rce-fleet to start the engine, the fleet and the page and print its URL
 LOG_POLL_S = 0.1          # wall s between reads of rce-fleet's output while waiting for the URL
-STOP_TIMEOUT_S = 30       # wall s rce-fleet gets to stop after SIGINT before it is killed
 STATES_TIMEOUT_MS = 30_000     # logged in, fleet states arriving
 LOG_TIMEOUT_S = 15.0           # a request the page sent is settled in its log (ok or error)
 STOP_LOG_TIMEOUT_S = 20.0      # the mission's stop is settled (a goal drop for every robot)
@@ -50,12 +51,7 @@ def fleet(tmp_path_factory):
         p.kill()
         pytest.fail(f"rce-fleet serve printed no page URL:\n{log.read_text(errors='replace')[-3000:]}")
     yield {"url": url, "proc": p, "log": log, "dir": d}
-    p.send_signal(signal.SIGINT)
-    try:
-        p.wait(STOP_TIMEOUT_S)
-    except subprocess.TimeoutExpired:
-        os.killpg(p.pid, signal.SIGKILL)
-        p.wait()
+    stop(p)
 
 
 def wait_url(log: Path, proc: subprocess.Popen) -> str | None:
