@@ -247,7 +247,7 @@ class DirectRoutes:
             peers, handles, gen, size = claim
             grants = self._grants([(nl, iid, peer) for peer in peers])
             await session.peer.call("direct_subscribe", timeout=CALL_TIMEOUT, link=nl.lid, iid=iid, peers=list(peers),
-                              handles=list(handles), gen=gen, size=size, grants=grants)
+                              handles=list(handles), gen=gen, size=size, grants=grants, at=self.env.plane.addr)
             st.claims[(addr, iid)] = claim
 
     def _grants(self, pairs: list[tuple[_NodeLink, int, int]]) -> list:

@@ -88,6 +88,7 @@ class GroupContainer:
         self.server = BusServer(env.bus, token=token, direct=env.direct is not None)
         if env.direct is not None:
             self.server.on_direct_closed.append(env.direct.link_closed)
+        self.server.on_direct_fence.append(env.plane.fence_arrived)
         self.sandbox = env.sandbox_cls(cid, ctag, limits, self.workdir, grace=env.grace, bus_socket=self.socket,
                                        scope=env.scope)
         self.launcher = Launcher(self.sandbox, self.socket, ctag, self._status, bus_token=token,
@@ -453,11 +454,15 @@ class Environment:
 
     @ENV_OPS.op("connect")
     async def op_connect(self, args: dict) -> dict:
-        """``{cid, iid, peer_iid, peer_addr, token}``: connect an interface to a peer interface
-        (``token``: the master's credential for sending to it)."""
-        self._interface(args).connect(int(args["peer_iid"]), args["peer_addr"], token_of(args))
+        """``{cid, iid, peer_iid, peer_addr, token, fence?}`` -> ``{fenced}``: connect an interface to a
+        peer interface (``token``: the master's credential for sending to it); a connection pointed
+        at a moved container's new copy fences its old one with ``fence`` (the move's id),
+        ``fenced`` fences sent (:meth:`rce.protocol.interfaces.Interface.connect`)."""
+        fence = args.get("fence")
+        fenced = self._interface(args).connect(int(args["peer_iid"]), args["peer_addr"], token_of(args),
+                                               fence if type(fence) is int else None)
         self._touch()
-        return {}
+        return {"fenced": fenced}
 
     @ENV_OPS.op("disconnect")
     async def op_disconnect(self, args: dict) -> dict:
@@ -554,6 +559,39 @@ class Environment:
                 r = None
             states[s.node] = r.get("state") if isinstance(r, dict) else None
         return {"states": states}
+
+    @ENV_OPS.op("drain")
+    async def op_drain(self, args: dict) -> dict:
+        """``{cid, fence, expect: [[src, dst, n]...], timeout}`` -> ``{complete, missing, unsettled,
+        unflushed, waited_s}``: a moved container's old copy finishes (:mod:`rce_master.mover`). It waits
+        until ``n`` fences ``fence`` of each connection ``src -> dst`` came (nothing more is on its
+        way to it), its nodes handled every input that came before them (``settle``), and each peer
+        its interfaces send to acknowledged the end of their stream (every output reached it);
+        at most ``timeout`` s (s) in all, then it says what did not happen: ``missing`` fences
+        ``[[src, dst, n]...]``, ``unsettled`` nodes, ``unflushed`` peer addresses."""
+        c = self._container(args)
+        loop = asyncio.get_running_loop()
+        t0 = loop.time()
+        end = t0 + max(0.0, float(args.get("timeout") or 0.0))
+        fid = int(args["fence"])
+        expect = {(int(a), int(b)): int(n) for a, b, n in args.get("expect") or () if int(n) > 0}
+        missing = await self.plane.wait_fences(fid, expect, end - loop.time())
+        unsettled = []
+        for s in c.sessions():
+            try:
+                left = max(0.05, end - loop.time())
+                r = await s.peer.request("settle", {"timeout": left}, left + 1.0)
+                if isinstance(r, dict) and r.get("unflushed"):
+                    unsettled.append(s.node)
+            except RCEError as e:
+                log.warning("node not settled before its copy goes", cid=c.cid, node=s.node, reason=str(e))
+                unsettled.append(s.node)
+        addrs = {a for iface in c.interfaces.values() for a in iface.peers.values()}
+        unflushed = await self.plane.flush(addrs, max(0.05, end - loop.time()))
+        self.plane.fences.pop(fid, None)
+        return {"complete": not (missing or unsettled or unflushed),
+                "missing": [[a, b, n] for (a, b), n in missing.items()], "unsettled": unsettled,
+                "unflushed": sorted(unflushed), "waited_s": round(loop.time() - t0, 3)}
 
     @ENV_OPS.op("state_in")
     async def op_state_in(self, args: dict) -> dict:

@@ -581,7 +581,7 @@ class ContainerHost:
 
     @HOST_OPS.relay("add_node", "remove_node", "set_param", "delete_param", "get_param", "add_interface",
                     "remove_interface", "connect", "disconnect", "describe", "bus_publish", "bus_call", "bus_sample",
-                    "logs", "resize_container", "state_out", "state_in")
+                    "logs", "resize_container", "state_out", "state_in", "drain")
     async def relay(self, op: str, args: dict) -> Any:
         """Relay ``op`` (one of :data:`HOST_OPS`' relayed ops) to the environment of the op's
         ``cid``; its answer. Raises :class:`NotFound` for an unknown cid, :class:`Unavailable`
@@ -592,6 +592,8 @@ class ContainerHost:
             timeout = float(args.get("timeout") or BUS_CALL_TIMEOUT) + REPLY_MARGIN
         elif op == "remove_node":
             timeout = self.grace + REPLY_MARGIN
+        elif op == "drain":
+            timeout = float(args.get("timeout") or 0.0) + REPLY_MARGIN
         result = await c.env.peer.request(op, args, timeout)
         if op == "add_node":
             c.nodes.setdefault(args.get("ntag"), (result or {}).get("pid"))

@@ -20,7 +20,7 @@ errors with a one-line reason (:mod:`rce_master.server`).
 | ``GET /api/containers/{user}/{ctag}/logs/{ntag}`` | a node's kept stdout/stderr |
 | ``GET /api/placement`` | per container: where it runs, where the placer would put it and why |
 | ``POST /api/placement/{user}/{ctag}`` ``{pin}`` | pin it to ``cloud``, ``edge``, ``robot`` (moved there); ``auto`` |
-| ``GET /api/placement/moves`` | the last moves: ``{t, user, ctag, from, to, make_s, switch_s, drain_s, why}`` |
+| ``GET /api/placement/moves`` | the last moves (``{t, user, ctag, from, to, make_s, ...}``, mover.py) |
 | ``POST /api/containers/{user}/{ctag}/move`` ``{host, why?}`` | move it there (host name or tid), make-before-break |
 | ``POST /api/robots/{user}/{robot}/battery`` ``{percent}`` | a robot's charge, for the placer |
 | ``GET /api/leader`` | ``{leading, leader, self}``: whether this master leads, the leader's and its own addresses |

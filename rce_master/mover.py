@@ -9,11 +9,18 @@
    end is told ``connect`` with the new data address, which replaces the old one
    (:meth:`rce.protocol.interfaces.Interface.connect`): from that message on, the peer sends to the
    new copy only. Nothing is sent twice: each message goes to exactly one copy.
-3. **Break**: the old copy finishes what it had already received (its messages out stay still for
-   :data:`DRAIN_QUIET` s, at most :data:`DRAIN_MAX` s) and is destroyed. When its nodes hand their
-   state over (:meth:`rce.node.Node.handoff`), the new copy was made holding its inputs; the old
-   copy hands its state out once it has handled its last input, the new copy takes it, then the
-   inputs it held, in order (nothing handled twice, nothing skipped).
+3. **Break**: the old copy finishes what was already on its way to it, behind a fence. Each peer
+   told ``connect`` first sends a fence down each path it used to the old copy, after the last
+   message it sent there (:meth:`rce.transport.dataplane.DataPlane.fence`), and says how many it
+   sent. The old copy goes once it got every fence, its nodes handled every input that came
+   before them, and each peer it sends to acknowledged the end of its stream (its last outputs
+   arrived; ``drain`` op of :class:`rce_container.environment.Environment`); at most
+   :data:`DRAIN_MAX` s, so that a dead or stalled peer cannot hang a move: past it the old copy
+   goes anyway, and the fall-back is logged and counted (:attr:`Mover.fence_timeouts`). When its
+   nodes hand their state over (:meth:`rce.node.Node.handoff`), the new copy was made holding its
+   inputs; the old copy hands its state out after the same fence, the new copy takes it, then the
+   inputs it held, in order (nothing handled twice, nothing skipped). Without a hook the new copy
+   handles new inputs from the switch on, while the old one finishes its last ones.
 
 A move that fails before the switch (the new host refuses, a node does not come up) destroys
 what it made there and leaves the container running where it was (:class:`MoveFailed`).
@@ -32,15 +39,13 @@ from rce_master.control import Control
 from rce_master.model import ContainerRec, InterfaceRec
 from rce_master.state import MasterState
 
-__all__ = ["DRAIN_GAPS", "DRAIN_MAX", "DRAIN_QUIET", "READY_TIMEOUT", "MoveFailed", "MoveResult", "Mover"]
+__all__ = ["DRAIN_MAX", "READY_TIMEOUT", "MoveFailed", "MoveResult", "Mover"]
 
 log = get_logger("rce.master.move")
 
 READY_TIMEOUT = 20.0   # s the new copy's nodes have to come up
 READY_POLL = 0.05      # s between looks at its bus
-DRAIN_QUIET = 0.3      # s the old copy's counters must stay still before it is destroyed
-DRAIN_MAX = 10.0       # s the old copy may drain at most
-DRAIN_GAPS = 3.0       # the old copy is drained once still for this many of its longest pause between arrivals
+DRAIN_MAX = 10.0       # s the old copy may wait for its fences, its nodes and its peers' acknowledgements at most
 
 
 class MoveFailed(RCEError):
@@ -52,7 +57,9 @@ class MoveFailed(RCEError):
 class MoveResult:
     """A move done: from host ``from_tid`` (cid ``old_cid``) to ``to_tid`` (``new_cid``); ``make_s``:
     s to build and wire the new copy, ``switch_s``: s to point every peer at it, ``drain_s``: s the
-    old copy drained (and handed its state over); ``states``: nodes that took their old state."""
+    old copy drained (and handed its state over); ``states``: nodes that took their old state;
+    ``fenced``: the old copy went only after every fence, its nodes and its peers' acknowledgements
+    (False: after :data:`DRAIN_MAX` s, or a peer could not be told; ``unfenced`` says what was missing)."""
     user: str
     ctag: str
     from_tid: int
@@ -63,6 +70,8 @@ class MoveResult:
     switch_s: float
     drain_s: float
     states: int = 0
+    fenced: bool = True
+    unfenced: str = ""
 
 
 class Mover:
@@ -72,6 +81,7 @@ class Mover:
         self.state, self.control = state, control
         self.moving: set[tuple[str, str]] = set()
         self.moves = self.failed = 0
+        self.fence_timeouts = 0       # moves whose old copy went before everything was fenced (DRAIN_MAX, a peer gone)
 
     async def move(self, user: str, ctag: str, tid: int, why: str = "") -> MoveResult:
         """Move container ``user/ctag`` to container host ``tid``. Raises :class:`MoveFailed`
@@ -128,19 +138,38 @@ class Mover:
         t1 = time.monotonic()
         addr = answer["data_addr"]
         self.state.container_moved(c, tid, new.cid, addr, answer.get("sandbox", ""))
+        expect: list[list[int]] = []             # [src, dst, fences] the old copy is to get
+        unreached: list[str] = []
         for me, peer in conns:                   # the switch: each peer sends to the new copy from now on
-            await self.control.endpoint_call(peer, "connect", **self.control.connect_args(peer, me.iid, addr))
+            try:
+                r = await self.control.endpoint_call(peer, "connect", fence=new.cid,
+                                                     **self.control.connect_args(peer, me.iid, addr))
+            except RCEError as e:                # it may still send to the old copy: nothing fences that
+                log.warning("a peer of a moved container was not switched", user=c.user, ctag=c.ctag,
+                            peer=peer.tag, reason=str(e))
+                unreached.append(peer.tag)
+                continue
+            n = int((r or {}).get("fenced") or 0) if isinstance(r, dict) else 0
+            if n:
+                expect.append([peer.iid, me.iid, n])
         t2 = time.monotonic()
         old = dataclasses.replace(c, cid=old_cid, tid=old_tid)
         moved_states = 0
+        done = await self._finish_old(old, new.cid, expect)
+        if unreached:
+            done = dict(done, complete=False, unreached=unreached)
         if handoff:
             moved_states = await self._hand_over(old, new)
-        else:
-            await self._drain(old)
         await self.control.destroy_on(old_tid, old_cid)
         t3 = time.monotonic()
         self.moves += 1
-        result = MoveResult(c.user, c.ctag, old_tid, tid, old_cid, new.cid, t1 - t0, t2 - t1, t3 - t2, moved_states)
+        fenced = bool(done.get("complete"))
+        if not fenced:
+            self.fence_timeouts += 1
+        unfenced = "" if fenced else ", ".join(f"{k}: {done[k]}" for k in ("missing", "unsettled", "unflushed",
+                                                                         "unreached", "error") if done.get(k))
+        result = MoveResult(c.user, c.ctag, old_tid, tid, old_cid, new.cid, t1 - t0, t2 - t1, t3 - t2, moved_states,
+                            fenced, unfenced)
         log.info("container moved", **dataclasses.asdict(result), why=why)
         self.control.notify_robot(c.user, c.owner, "ST", {"topic": "container", "cTag": c.ctag, "status": "running",
                                                           "sandbox": c.sandbox, "moved": True})
@@ -172,12 +201,9 @@ class Mover:
 
     async def _hand_over(self, old: ContainerRec, new: ContainerRec) -> int:
         """The state of the old copy's nodes into the new copy's, which then take their held inputs
-        (:meth:`rce.node.Node.handoff`); how many nodes took a state. The old copy's inputs end at
-        the switch; it hands its state out once it has handled them (after the same drain as any move,
-        for what was already on its way to it). A state that cannot be had leaves the new nodes to
-        start fresh. The drain is a quiet time, not a fence: a message still in flight to the
-        old copy past it would reach the old copy after its state was handed out."""
-        await self._drain(old)
+        (:meth:`rce.node.Node.handoff`); how many nodes took a state. Called once the old copy has
+        handled its last inputs (:meth:`_finish_old`). A state that cannot be had leaves the new
+        nodes to start fresh."""
         try:
             states = (await self.control.host_call(old, "state_out")).get("states") or {}
         except RCEError as e:
@@ -187,24 +213,17 @@ class Mover:
         took = (await self.control.host_call(new, "state_in", states=states)).get("nodes") or []
         return len(took)
 
-    async def _drain(self, old: ContainerRec, quiet: float = DRAIN_QUIET) -> None:
-        """Wait until the old copy's messages in and out stay still for ``quiet`` s, or for
-        :data:`DRAIN_GAPS` times the longest pause between two of its arrivals seen while it drains,
-        whichever is longer (on a thin link what was sent before the switch arrives slowly: one
-        40 kB message takes 0.3 s at 1 Mbit/s); at most :data:`DRAIN_MAX` s."""
-        end = time.monotonic() + DRAIN_MAX
-        last, still_since, gap = None, time.monotonic(), 0.0
-        while time.monotonic() < end:
-            try:
-                s = await self.control.host_call(old, "stats")
-            except RCEError:
-                return
-            now = (s.get("msgs_in"), s.get("msgs_out"))
-            t = time.monotonic()
-            if now != last:
-                if last is not None:
-                    gap = max(gap, t - still_since)
-                last, still_since = now, t
-            elif t - still_since >= max(quiet, DRAIN_GAPS * gap):
-                return
-            await asyncio.sleep(0.05)
+    async def _finish_old(self, old: ContainerRec, fence: int, expect: list[list[int]]) -> dict:
+        """Wait until the old copy got the fences ``expect`` (``[src, dst, n]``: ``n`` fences ``fence``
+        of connection ``src -> dst``), handled what came before them and its peers took its last
+        outputs, at most :data:`DRAIN_MAX` s (module doc). Returns the ``drain`` op's answer
+        (``complete`` False: it goes without them, logged)."""
+        try:
+            done = await self.control.host_request(old, "drain", {"fence": fence, "expect": expect,
+                                                                  "timeout": DRAIN_MAX}, DRAIN_MAX + 5.0)
+        except RCEError as e:
+            done = {"complete": False, "error": str(e)}
+        if not done.get("complete"):
+            log.warning("old copy of a moved container goes before it was fenced", user=old.user, ctag=old.ctag,
+                        cid=old.cid, **{k: v for k, v in done.items() if k != "complete"})
+        return done

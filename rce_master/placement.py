@@ -220,7 +220,8 @@ class Placement:
         self.use.pop((c.user, c.ctag), None)         # the new copy's counters start from 0
         rec = {"t": time.time(), "user": c.user, "ctag": c.ctag, "from": names.get(r.from_tid, str(r.from_tid)),
                "to": names.get(r.to_tid, str(r.to_tid)), "make_s": round(r.make_s, 3),
-               "switch_s": round(r.switch_s, 4), "drain_s": round(r.drain_s, 3), "states": r.states, "why": why}
+               "switch_s": round(r.switch_s, 4), "drain_s": round(r.drain_s, 3), "states": r.states,
+               "fenced": r.fenced, "unfenced": r.unfenced, "why": why}
         self.moves = [*self.moves[-(MOVES_KEPT - 1):], rec]
         return rec
 

@@ -109,7 +109,9 @@ class _PlacementCollector:
     """Per container that asks for a placement, labelled ``user``, ``ctag`` (and ``host``, where it
     runs): ``rce_master_container_results`` and ``rce_master_container_deadline_misses`` (its nodes'
     results timed by the engine, and those late, on the copy that runs now: a move starts them
-    again); and the placer's ``rce_master_container_moves_total`` / ``_move_failures_total``."""
+    again); and the placer's ``rce_master_container_moves_total`` / ``_move_failures_total`` /
+    ``_move_fence_timeouts_total`` (moves whose old copy went before all was fenced: after the
+    mover's ``DRAIN_MAX``, or a peer that could not be switched)."""
 
     def __init__(self, state: MasterState, placement: Placement, mover: Mover):
         self.state, self.placement, self.mover = state, placement, mover
@@ -131,6 +133,8 @@ class _PlacementCollector:
                                   value=self.mover.moves)
         yield CounterMetricFamily("rce_master_container_move_failures", "Moves that failed (the container ran "
                                   "on where it was)", value=self.mover.failed)
+        yield CounterMetricFamily("rce_master_container_move_fence_timeouts", "Moves whose old copy went before "
+                                  "every fence, input and output was accounted for", value=self.mover.fence_timeouts)
 
 
 class MasterMetrics:

@@ -565,8 +565,9 @@ class RobotEndpoint:
 
     @ROBOT_OPS.op("connect")
     async def _op_connect(self, args: dict) -> dict:
-        self._iface(args["iid"]).connect(args["peer_iid"], args["peer_addr"], token_of(args))
-        return {}
+        fence = args.get("fence")
+        return {"fenced": self._iface(args["iid"]).connect(args["peer_iid"], args["peer_addr"], token_of(args),
+                                                           fence if type(fence) is int else None)}
 
     @ROBOT_OPS.op("disconnect")
     async def _op_disconnect(self, args: dict) -> dict:

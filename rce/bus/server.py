@@ -4,7 +4,7 @@ Link protocol (internal framing, :mod:`rce.transport.framing`): CONTROL requests
 ``hello``, ``advertise``, ``unadvertise``, ``subscribe``, ``unsubscribe``,
 ``advertise_service``, ``unadvertise_service``, ``resolve_service``,
 ``get_param``, ``set_param``, ``delete_param``, ``describe``, and the notifications
-``undecodable``, ``handoff``, ``direct_closed`` and ``fd_channel``; DATA frames:
+``undecodable``, ``handoff``, ``direct_closed``, ``direct_fence`` and ``fd_channel``; DATA frames:
 
 - node -> bus ``MSG dst=publisher handle`` publishes;
 - bus -> node ``MSG dst=subscription handle`` delivers;
@@ -252,6 +252,13 @@ class NodeSession:
         for cb in self.server.on_direct_closed:
             cb(self, int(args["link"]))
 
+    @BUS_OPS.op("direct_fence")
+    async def op_direct_fence(self, args: dict) -> None:
+        """``{fence, src, dst}`` (a notification): a fence of ``src -> dst`` came on one of the node's
+        direct links, behind everything that came there before it (:meth:`rce.transport.dataplane.DataPlane.fence`)."""
+        for cb in self.server.on_direct_fence:
+            cb(int(args["fence"]), int(args["src"]), int(args["dst"]))
+
     @BUS_OPS.op("get_param")
     async def op_get_param(self, args: dict):
         return self.bus.get_param(args["name"])
@@ -342,6 +349,7 @@ class BusServer:
         self.direct = direct
         self.fd_keys: dict[str, NodeSession] = {}
         self.on_direct_closed: list = []     # cb(session, link id): a node's direct link ended
+        self.on_direct_fence: list = []      # cb(fence id, src, dst): a fence came on a node's direct link
         self.max_buffer = max_buffer
         self.token, self.owner = token, owner
         self.uids = None if uids is None else frozenset(uids)

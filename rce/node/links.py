@@ -12,10 +12,12 @@ follows its orders, which come as requests on the node's bus link:
   publisher ``handle`` sends each message as ``MSG dst src`` on each target's link, and to the
   bus as well only when ``local`` (other subscribers are there), marked with ``version`` so the
   bus skips what this route reached. No targets: back to the bus alone.
-- ``direct_subscribe {link, iid, peers, handles, gen, size, grants}``: claim interface ``iid`` on
+- ``direct_subscribe {link, iid, peers, handles, gen, size, grants, at?}``: claim interface ``iid`` on
   ``link`` as one of the ``size`` members of claim generation ``gen`` (:mod:`rce.transport.dataplane`,
   "Direct links"): once all have claimed, its messages from ``peers`` arrive here and go to
-  subscriber ``handles``. ``direct_unsubscribe {link, iid}`` releases the claim.
+  subscriber ``handles`` (``at``: the data address of the environment holding ``iid``, so that the far
+  plane takes the claim only while it sends ``iid``'s messages there: a moved container's new copy
+  claims nothing before the switch). ``direct_unsubscribe {link, iid}`` releases the claim.
 - ``direct_counts {}`` -> ``{iid: [messages, bytes, dropped]}`` per interface this node stood
   in for (the environment adds them to the interfaces' counters).
 
@@ -30,6 +32,7 @@ environment sends ``SCM_RIGHTS`` (unix(7)) messages of an 8-byte link id and one
 from __future__ import annotations
 
 import asyncio
+import itertools
 import socket
 import struct
 from collections import deque
@@ -80,6 +83,8 @@ class DirectLinks:
         self._buf = b""
         self._arrived: dict[int, int] = {}                   # link id -> socket fd not yet taken
         self._waiting: dict[int, asyncio.Future] = {}
+        self._eos_ids = itertools.count(1)
+        self._eos: dict[int, asyncio.Future] = {}           # end of stream id -> its acknowledgement
 
     def handlers(self) -> dict:
         """The bus-link request handlers (op -> coroutine function)."""
@@ -198,8 +203,10 @@ class DirectLinks:
         self.claims[(int(args["link"]), iid)] = (frozenset(int(p) for p in args["peers"]),
                                                tuple(int(h) for h in args["handles"]))
         self.counts.setdefault(iid, [0, 0, 0])
-        link.send(framing.encode_control({"claim": iid, "gen": int(args.get("gen", 0)),
-                                          "size": int(args.get("size", 1))}))
+        claim = {"claim": iid, "gen": int(args.get("gen", 0)), "size": int(args.get("size", 1))}
+        if isinstance(args.get("at"), str):
+            claim["at"] = args["at"]          # where the far end sends iid's messages: only then it takes the claim
+        link.send(framing.encode_control(claim))
         return {}
 
     async def op_direct_unsubscribe(self, args: dict) -> dict:
@@ -242,12 +249,62 @@ class DirectLinks:
         for link, *_ in (r.targets if r else ()):
             await link.drain()
 
+    async def flush(self, timeout: float) -> list[int]:
+        """End of stream on each direct link this node publishes on, and wait (at most ``timeout``
+        s) for each far end's acknowledgement: every message sent before has reached it and was
+        handed on. Returns the links that did not acknowledge (a link that ends counts as done)."""
+        loop = asyncio.get_running_loop()
+        lids = {lid for r in self.routes.values() for link, *_ in r.targets
+                for lid, lk in self.links.items() if lk is link}
+        waits = {}
+        for lid in lids:
+            link = self.links.get(lid)
+            if link is None or link.closed.is_set():
+                continue
+            k = next(self._eos_ids)
+            fut = self._eos[k] = loop.create_future()
+            try:
+                link.send(framing.encode_control({"eos": k}))
+            except (LinkFull, Unavailable):
+                self._eos.pop(k, None)
+                continue
+            waits[lid] = (fut, link)
+
+        async def one(fut: asyncio.Future, link: FramedLink) -> bool:
+            closed = asyncio.ensure_future(link.closed.wait())
+            try:
+                done, _ = await asyncio.wait([fut, closed], timeout=timeout, return_when=asyncio.FIRST_COMPLETED)
+            finally:
+                closed.cancel()
+            return bool(done)
+        oks = await asyncio.gather(*(one(f, lk) for f, lk in waits.values()))
+        for f, _ in waits.values():
+            f.cancel()
+        return [lid for lid, ok in zip(waits, oks, strict=True) if not ok]
+
+    def _control(self, lid: int, frame: dict) -> None:
+        if "released" in frame:
+            self.claims.pop((lid, frame["released"]), None)
+        elif "fence" in frame:            # its peer sends here no more: the environment counts it (DataPlane.fence)
+            pair, fid = frame.get("fence"), frame.get("id")
+            peer = self.node._peer
+            if isinstance(pair, list) and len(pair) == 2 and peer is not None and not peer.closed.is_set():
+                peer.notify("direct_fence", fence=fid, src=pair[0], dst=pair[1])
+        elif "eos_ack" in frame:
+            fut = self._eos.pop(frame["eos_ack"], None) if isinstance(frame["eos_ack"], int) else None
+            if fut is not None and not fut.done():
+                fut.set_result(True)
+        elif "eos" in frame:
+            link = self.links.get(lid)
+            if link is not None:
+                link.send(framing.encode_control({"eos_ack": frame["eos"]}))
+        else:
+            raise ProtocolError(f"direct link {lid}: unexpected control frame {str(frame)[:120]}")
+
     def _on_frame(self, lid: int, frame: framing.DataFrame | dict) -> None:
         if isinstance(frame, dict):
-            if "released" in frame:
-                self.claims.pop((lid, frame["released"]), None)
-                return
-            raise ProtocolError(f"direct link {lid}: unexpected control frame {str(frame)[:120]}")
+            self._control(lid, frame)
+            return
         claim = self.claims.get((lid, frame.dst)) if frame.op == framing.MSG else None
         if claim is None or frame.src not in claim[0]:
             self.counts.setdefault(frame.dst, [0, 0, 0])[2] += 1     # not for a claim of this link: dropped

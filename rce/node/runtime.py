@@ -59,6 +59,7 @@ _LOADED: weakref.WeakKeyDictionary = weakref.WeakKeyDictionary()
 SERVICE_TIMEOUT = 30.0   # s a service call waits for its response unless the caller says otherwise
 HOLD_MAX = 20.0          # s a move's new copy holds its inputs for its state at most (Node.handoff)
 HANDLED_POLL = 0.005     # s between looks at the subscribers while the state waits for them
+SETTLE_FLUSH = 10.0      # s a moved copy's node waits for its direct links' far ends to take its last outputs
 MAX_STATE = 8 * 2**20    # bytes of state a node hands over
 
 
@@ -308,7 +309,7 @@ class Node:
                                             on_close=lambda _p: self._shutdown.set())
         self._peer.link.on_drop = Publisher._lost        # publish_nowait's tag: its Publisher
         self._peer.handlers.update({"node_results": self._op_results, "state_out": self._op_state_out,
-                                    "state_in": self._op_state_in})
+                                    "state_in": self._op_state_in, "settle": self._op_settle})
         r = await self._peer.call("hello", name=self.full_name, pid=os.getpid(),
                                   container=os.environ.get("RCE_CONTAINER"), token=self.bus_token, direct=True)
         key = r.get("fd_key") if isinstance(r, dict) else None
@@ -326,10 +327,23 @@ class Node:
     async def _op_results(self, args: dict) -> dict:
         return self.results.take()
 
+    async def _handled(self) -> None:
+        """Return once the inputs that arrived so far are handled (a node holding its inputs for
+        its state has none to handle)."""
+        while not self.holding and any(sub.queue or sub._busy for sub in self._subs.values()):
+            await asyncio.sleep(HANDLED_POLL)
+
+    async def _op_settle(self, args: dict) -> dict:
+        """A moved container's old copy goes (:mod:`rce_master.mover`): ``{unflushed: [link ids]}`` once
+        the inputs that arrived so far are handled and what they caused, sent on the node's direct
+        links, reached the far ends (at most ``timeout`` s, default :data:`SETTLE_FLUSH` s)."""
+        await self._handled()
+        unflushed = await self._direct.flush(float(args.get("timeout") or SETTLE_FLUSH)) if self._direct else []
+        return {"unflushed": unflushed}
+
     async def _op_state_out(self, args: dict) -> dict:
         """``{state: base64 | None}`` once the inputs that arrived so far are handled."""
-        while any(sub.queue or sub._busy for sub in self._subs.values()):
-            await asyncio.sleep(HANDLED_POLL)
+        await self._handled()
         if self._handoff is None:
             return {"state": None}
         state = self._handoff[0]()

@@ -49,17 +49,26 @@ class Interface:
         self.plane.forbid(self.iid)
         self.peers.clear()
 
-    def connect(self, peer_iid: int, addr: str, token: bytes) -> None:
+    def connect(self, peer_iid: int, addr: str, token: bytes, fence: int | None = None) -> int:
         """Add a connection to interface ``peer_iid`` reachable at data address ``addr``;
         ``token``: the master's credential for sending to it (:mod:`rce.transport.cluster_auth`).
         A connection that exists already is pointed at ``addr`` in one step (its container moved,
-        :mod:`rce_master.mover`): from here on it goes there, and the old copy's claims end."""
+        :mod:`rce_master.mover`): from here on it goes there, and the old copy's claims end; with
+        ``fence`` (the move's fence id) the old copy first gets a fence behind the last message sent
+        to it on each path (:meth:`rce.transport.dataplane.DataPlane.fence`). Returns how many fences
+        went out (0: none, or nothing can still be on its way to the old copy)."""
         old = self.peers.get(peer_iid)
+        fenced = 0
         if old is not None and old != addr:
+            if fence is not None:
+                fenced = self.plane.fence(self.iid, peer_iid, old, fence)
             self.plane.drop_claims(peer_iid)
         self.peers[peer_iid] = addr
         self.plane.allow(self.iid, peer_iid, token)
+        if old != addr:
+            self.plane.readdressed(peer_iid)
         self.on_peers_changed()
+        return fenced
 
     def disconnect(self, peer_iid: int) -> None:
         """Drop the connection to interface ``peer_iid`` (no error if absent)."""

@@ -26,13 +26,24 @@ Only peers the master introduced send (:mod:`rce.transport.cluster_auth`, "Data-
 Direct links (nodes' shortcut past their environment, :mod:`rce_container.direct_routes`): a
 dialler that was granted ``(x, dst)`` on a link speaks for interface ``x`` and may *claim* it,
 ``{"claim": x, "gen": g, "size": n}``: generation ``g`` of ``x``'s claim set has ``n`` members
-(the nodes that subscribe to what ``x`` publishes). While all ``n`` of the newest generation
+(the nodes that subscribe to what ``x`` publishes; ``"at": addr``, the data address of ``x``'s
+environment: a claim made at an address this plane does not send ``x``'s messages to, a moved
+container's new copy before its switch, waits until it does). While all ``n`` of the newest generation
 have claimed, this plane sends what its interfaces send to ``x`` on each of their accepted links
 (one copy each) instead of to ``x``'s own address; while the set is incomplete (being built, or
 a member released or gone), everything goes to ``x``'s address as before, so no member misses
 a message and none gets one twice. ``{"release": x}`` takes this link out of the set and is
 answered ``{"released": x}`` (every frame for ``x`` sent before it has gone ahead). A claim
 without such a grant closes the link (``unauthenticated``); claims end with their link.
+
+Fences and end of stream (a container's move, :mod:`rce_master.mover`): when a connection's peer is
+pointed at a new address (:meth:`DataPlane.fence`), this plane first sends ``{"fence": [src, dst],
+"id": f}`` on every path that carried ``src -> dst`` to the old copy (its dialled link to the old
+address, and each accepted link of ``dst``'s claim set), after the last message it sent there; the
+old copy's plane counts each fence it gets (:meth:`DataPlane.fence_arrived`; a node's direct link
+reports the fences it gets the same way), so it knows when nothing more will come. Before the old
+copy goes, :meth:`DataPlane.flush` sends ``{"eos": k}`` on its links to its peers and waits for
+each peer's ``{"eos_ack": k}``, which the peer sends once it has handed on every frame before it.
 
 What receives frames registers here by id as a :class:`Receiver` (the interfaces of
 :mod:`rce.protocol.interfaces`). Outgoing links are bounded (``max_buffer`` bytes waiting in the
@@ -45,6 +56,8 @@ from __future__ import annotations
 
 import asyncio
 import collections
+import contextlib
+import itertools
 import secrets
 from typing import Protocol
 
@@ -117,16 +130,25 @@ class _Dialled:
             if self.nonce is None and "nonce" in frame:
                 self._ready(parse_nonce(frame["nonce"]))
                 return
-            raise ProtocolError(f"data link to {self.addr}: unexpected control frame {str(frame)[:120]}")
+            self._control(frame)
+            return
         if frame.op in (framing.SRV_RESP, framing.SRV_ERR) and settle_reply(self.plane.calls, frame):
             return
         self.plane.dropped += 1          # a late reply, or something the acceptor should not send
+
+    def _control(self, frame: dict) -> None:
+        if "eos_ack" in frame:
+            self.plane.eos_acked(frame["eos_ack"])
+            return
+        raise ProtocolError(f"data link to {self.addr}: unexpected control frame {str(frame)[:120]}")
 
     def _ready(self, nonce: bytes) -> None:
         self.nonce = nonce
         backlog, self.backlog, self.backlog_bytes = self.backlog, collections.deque(), 0
         for pair, chunk, n in backlog:
-            if not self._offer(pair, chunk, b"", n):
+            if pair is None:             # a control frame (a fence) queued behind the messages
+                self._control_send(chunk)
+            elif not self._offer(pair, chunk, b"", n):
                 self.plane.dropped += 1
 
     def offer(self, pair: Pair, head: bytes, payload: bytes | memoryview) -> bool:
@@ -137,6 +159,26 @@ class _Dialled:
             return False
         self.backlog.append((pair, head + payload, len(payload)))
         self.backlog_bytes += n
+        return True
+
+    def control(self, frame: dict) -> bool:
+        """Send a control frame after every frame offered before it (queued behind the backlog while
+        the link connects); False if the link is gone or refuses it."""
+        chunk = framing.encode_control(frame)
+        if self.nonce is None:
+            if self.plane._dialled.get(self.addr) is not self:
+                return False
+            self.backlog.append((None, chunk, 0))
+            return True
+        return self._control_send(chunk)
+
+    def _control_send(self, chunk: bytes) -> bool:
+        if self.link is None:
+            return False
+        try:
+            self.link.send(chunk)
+        except (LinkFull, Unavailable):
+            return False
         return True
 
     def _offer(self, pair: Pair, head: bytes, payload: bytes | memoryview, nbytes: int) -> bool:
@@ -199,6 +241,8 @@ class _Accepted:
 
     def _closed(self, _link: FramedLink) -> None:
         self.plane._accepted.discard(self)
+        for parked in self.plane._parked.values():
+            parked.pop(self, None)
         for iid in self.claims:
             self.plane._unclaim(iid, self)
         self.claims.clear()
@@ -212,6 +256,12 @@ class _Accepted:
                 self._claim(frame)
             elif "release" in frame:
                 self._release(frame["release"])
+            elif "fence" in frame:
+                self._fence(frame)
+            elif "eos" in frame:
+                self.link.send(framing.encode_control({"eos_ack": frame["eos"]}))
+            elif "eos_ack" in frame:
+                self.plane.eos_acked(frame["eos_ack"])
             else:
                 self.granted.add(cluster_auth.check_grant(self.plane.data_key, self.nonce, frame))
         except (cluster_auth.AuthFailed, ProtocolError) as e:
@@ -228,6 +278,10 @@ class _Accepted:
             raise ProtocolError(f"a claim is {{claim: iid, gen: int, size: 1..{MAX_CLAIMERS}}}, not {str(frame)[:80]}")
         if not any(src == iid for src, _dst in self.granted):
             raise ProtocolError(f"claim of interface {iid} without a grant from it on this link")
+        at = frame.get("at")
+        if isinstance(at, str) and not self.plane.sends_to(iid, at):
+            self.plane._parked.setdefault(iid, {})[self] = frame     # a moved copy's: taken at its switch
+            return
         cs = self.plane._claims.get(iid)
         if cs is None or gen > cs.gen:
             if cs is not None:
@@ -240,9 +294,20 @@ class _Accepted:
             cs.links.append(self)
         self.claims.add(iid)
 
+    def _fence(self, frame: dict) -> None:
+        """``{fence: [src, dst], id}``: the dialler sends ``src -> dst`` here no more (module doc)."""
+        pair, fid = frame.get("fence"), frame.get("id")
+        if not (isinstance(pair, list) and len(pair) == 2 and all(type(x) is int for x in pair)
+                and type(fid) is int):
+            raise ProtocolError(f"a fence is {{fence: [src, dst], id: int}}, not {str(frame)[:80]}")
+        if (pair[0], pair[1]) not in self.granted:
+            return                        # nothing of that connection came on this link: nothing to fence
+        self.plane.fence_arrived(fid, pair[0], pair[1])
+
     def _release(self, iid: object) -> None:
         if isinstance(iid, int):
             self.plane._unclaim(iid, self)
+            self.plane._parked.get(iid, {}).pop(self, None)
         self.claims.discard(iid)
         try:
             self.link.send(framing.encode_control({"released": iid}))
@@ -282,7 +347,12 @@ class DataPlane:
         self._dialled: dict[str, _Dialled] = {}
         self._accepted: set[_Accepted] = set()
         self._claims: dict[int, _ClaimSet] = {}      # interface id -> the links that claimed it
+        self._parked: dict[int, dict[_Accepted, dict]] = {}   # claims made at an address not sent to (yet)
         self._server: asyncio.AbstractServer | None = None
+        self.fences: dict[int, collections.Counter] = {}   # fence id -> (src, dst) -> fences that came
+        self._fence_seen = asyncio.Event()
+        self._eos_ids = itertools.count(1)
+        self._eos: dict[int, asyncio.Future] = {}
         # counters (metrics and status)
         self.msgs_in = self.msgs_out = self.bytes_in = self.bytes_out = self.dropped = 0
         self.refused = self.unauthenticated = 0
@@ -320,6 +390,20 @@ class DataPlane:
             if not cs.links:
                 del self._claims[iid]
 
+    def sends_to(self, iid: int, addr: str) -> bool:
+        """Whether a local interface sends to interface ``iid`` at data address ``addr``."""
+        return any(r.peers.get(iid) == addr for r in self.interfaces.values())
+
+    def readdressed(self, iid: int) -> None:
+        """Interface ``iid`` is now reached at another address: the claims parked for that address
+        (its new copy's nodes claimed it before the switch) are taken."""
+        for a, frame in list(self._parked.get(iid, {}).items()):
+            if self.sends_to(iid, frame["at"]) and not a.link.closed.is_set():
+                del self._parked[iid][a]
+                a._claim(frame)
+        if not self._parked.get(iid):
+            self._parked.pop(iid, None)
+
     def drop_claims(self, iid: int) -> None:
         """End interface ``iid``'s claim set (its copy moved: the nodes that claimed it are the old
         copy's); what is sent to ``iid`` goes to its address until a new set is complete."""
@@ -327,6 +411,94 @@ class DataPlane:
         if cs is not None:
             for a in cs.links:
                 a.claims.discard(iid)
+
+    # -- fences and end of stream (module doc) ----------------------------------------------------
+    def fence(self, src: int, dst: int, old_addr: str, fid: int) -> int:
+        """Fence ``src -> dst`` at its old copy (``dst`` now lives at another address): send the fence
+        ``fid`` on every path that may have carried it there, behind what went before: the link
+        dialled to ``old_addr`` and each accepted link of ``dst``'s claim set. Returns how many
+        fences went out (0: nothing of it can still be on its way)."""
+        frame = {"fence": [src, dst], "id": fid}
+        n = 0
+        cs = self._claims.get(dst)
+        for a in (cs.links if cs is not None else ()):
+            if (src, dst) in self.credentials and not a.link.closed.is_set():
+                try:
+                    a.link.send(framing.encode_control(frame))
+                    n += 1
+                except (LinkFull, Unavailable):
+                    log.warning("fence not sent: a direct link is saturated", plane=self.name, src=src, dst=dst)
+        d = self._dialled.get(old_addr)
+        if d is not None and ((src, dst) in d.granted or any(p == (src, dst) for p, _, _ in d.backlog)):
+            if d.control(frame):
+                n += 1
+            else:
+                log.warning("fence not sent: the link to the old copy is gone or full", plane=self.name,
+                            peer=old_addr, src=src, dst=dst)
+        return n
+
+    def fence_arrived(self, fid: int, src: int, dst: int) -> None:
+        """A fence ``fid`` of ``src -> dst`` came (on an accepted link, or reported by a node)."""
+        self.fences.setdefault(fid, collections.Counter())[(src, dst)] += 1
+        self._fence_seen.set()
+
+    def fences_missing(self, fid: int, expect: dict[Pair, int]) -> dict[Pair, int]:
+        """Of ``expect`` (``(src, dst)`` -> fences to come), those not all come yet: how many are missing."""
+        got = self.fences.get(fid) or {}
+        return {p: n - got.get(p, 0) for p, n in expect.items() if got.get(p, 0) < n}
+
+    async def wait_fences(self, fid: int, expect: dict[Pair, int], timeout: float) -> dict[Pair, int]:
+        """Wait until every fence of ``expect`` came, at most ``timeout`` s; returns the missing ones
+        (empty: all came)."""
+        loop = asyncio.get_running_loop()
+        end = loop.time() + timeout
+        while self.fences_missing(fid, expect) and loop.time() < end:
+            self._fence_seen.clear()
+            with contextlib.suppress(TimeoutError):
+                async with asyncio.timeout(end - loop.time()):
+                    await self._fence_seen.wait()
+        return self.fences_missing(fid, expect)
+
+    def eos_acked(self, k: object) -> None:
+        """A peer acknowledged end of stream ``k``: it handed on everything sent before."""
+        fut = self._eos.pop(k, None) if isinstance(k, int) else None
+        if fut is not None and not fut.done():
+            fut.set_result(True)
+
+    async def flush(self, addrs: set[str], timeout: float) -> list[str]:
+        """Send end of stream on the links dialled to ``addrs`` and wait (at most ``timeout`` s) until
+        each peer acknowledges it: every message sent there before has reached that peer and was
+        handed on. Returns the addresses that did not acknowledge (a link gone counts as done: what
+        it held is lost with it, and counted)."""
+        waits: dict[str, asyncio.Future] = {}
+        loop = asyncio.get_running_loop()
+        for addr in addrs:
+            d = self._dialled.get(addr)
+            if d is None:
+                continue
+            k = next(self._eos_ids)
+            fut = self._eos[k] = loop.create_future()
+            if d.control({"eos": k}):
+                waits[addr] = fut
+            else:
+                self._eos.pop(k, None)
+        if not waits:
+            return []
+        closed = {addr: self._dialled[addr].link.closed for addr in waits
+                  if addr in self._dialled and self._dialled[addr].link is not None}
+
+        async def one(addr: str) -> bool:
+            ends = [waits[addr]] + ([asyncio.ensure_future(closed[addr].wait())] if addr in closed else [])
+            try:
+                done, _ = await asyncio.wait(ends, timeout=timeout, return_when=asyncio.FIRST_COMPLETED)
+            finally:
+                for f in ends[1:]:
+                    f.cancel()
+            return bool(done)
+        results = await asyncio.gather(*(one(a) for a in waits))
+        for fut in waits.values():
+            fut.cancel()
+        return [a for a, ok in zip(waits, results, strict=True) if not ok]
 
     # -- credentials ------------------------------------------------------------------------------
     def allow(self, src: int, dst: int, token: bytes) -> None:
