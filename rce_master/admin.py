@@ -21,7 +21,7 @@ errors with a one-line reason (:mod:`rce_master.server`).
 | ``GET /api/placement`` | per container: where it runs, where the placer would put it and why |
 | ``POST /api/placement/{user}/{ctag}`` ``{pin}`` | pin it to ``cloud``, ``edge``, ``robot`` (moved there); ``auto`` |
 | ``GET /api/placement/moves`` | the last moves (``{t, user, ctag, from, to, make_s, ...}``, mover.py) |
-| ``POST /api/containers/{user}/{ctag}/move`` ``{host, why?}`` | move it there (host name or tid), make-before-break |
+| ``POST /api/containers/{user}/{ctag}/move`` ``{host, why?, drain_max_s?}`` | move it there, make-before-break |
 | ``POST /api/robots/{user}/{robot}/battery`` ``{percent}`` | a robot's charge, for the placer |
 | ``GET /api/leader`` | ``{leading, leader, self}``: whether this master leads, the leader's and its own addresses |
 
@@ -195,7 +195,10 @@ class AdminApi:
                      if t.kind == "container" and not t.lost and want in (t.name, t.tid)), None)
         if host is None:
             raise RequestError(f"move: 'host' must name a container host that is up (its name or tid), got {want!r}")
-        moved = await self.placement.move(c, host.tid, str(d.get("why") or "moved by the operator"))
+        drain = d.get("drain_max_s")
+        if drain is not None and (type(drain) not in (int, float) or not 0 < drain <= 60):
+            raise RequestError(f"move: 'drain_max_s' must be a number of seconds from 0 to 60, got {drain!r}")
+        moved = await self.placement.move(c, host.tid, str(d.get("why") or "moved by the operator"), drain)
         await self.state.store.flush()
         return web.json_response(moved)
 

@@ -83,8 +83,9 @@ class Mover:
         self.moves = self.failed = 0
         self.fence_timeouts = 0       # moves whose old copy went before everything was fenced (DRAIN_MAX, a peer gone)
 
-    async def move(self, user: str, ctag: str, tid: int, why: str = "") -> MoveResult:
-        """Move container ``user/ctag`` to container host ``tid``. Raises :class:`MoveFailed`
+    async def move(self, user: str, ctag: str, tid: int, why: str = "", drain_max: float | None = None) -> MoveResult:
+        """Move container ``user/ctag`` to container host ``tid``; ``drain_max``: s its old copy may
+        wait for its fences, inputs and outputs at most (default :data:`DRAIN_MAX`). Raises :class:`MoveFailed`
         (it runs where it was), :class:`RequestError` for a container that is not running, is
         already there or is being moved, :class:`~rce.plumbing.errors.NotFound` for none."""
         c = self.state.container(user, ctag)
@@ -102,11 +103,11 @@ class Mover:
             raise RequestError(f"host {host.name} ({host.zone}) does not serve container {ctag!r}")
         self.moving.add(key)
         try:
-            return await self._move(c, tid, why)
+            return await self._move(c, tid, why, DRAIN_MAX if drain_max is None else drain_max)
         finally:
             self.moving.discard(key)
 
-    async def _move(self, c: ContainerRec, tid: int, why: str) -> MoveResult:
+    async def _move(self, c: ContainerRec, tid: int, why: str, drain_max: float) -> MoveResult:
         t0 = time.monotonic()
         old_tid, old_cid = c.tid, c.cid
         new = dataclasses.replace(c, cid=self.state.reserve_cid(), tid=tid, state="starting")
@@ -155,7 +156,7 @@ class Mover:
         t2 = time.monotonic()
         old = dataclasses.replace(c, cid=old_cid, tid=old_tid)
         moved_states = 0
-        done = await self._finish_old(old, new.cid, expect)
+        done = await self._finish_old(old, new.cid, expect, drain_max)
         if unreached:
             done = dict(done, complete=False, unreached=unreached)
         if handoff:
@@ -213,14 +214,14 @@ class Mover:
         took = (await self.control.host_call(new, "state_in", states=states)).get("nodes") or []
         return len(took)
 
-    async def _finish_old(self, old: ContainerRec, fence: int, expect: list[list[int]]) -> dict:
+    async def _finish_old(self, old: ContainerRec, fence: int, expect: list[list[int]], drain_max: float) -> dict:
         """Wait until the old copy got the fences ``expect`` (``[src, dst, n]``: ``n`` fences ``fence``
         of connection ``src -> dst``), handled what came before them and its peers took its last
-        outputs, at most :data:`DRAIN_MAX` s (module doc). Returns the ``drain`` op's answer
+        outputs, at most ``drain_max`` s (module doc). Returns the ``drain`` op's answer
         (``complete`` False: it goes without them, logged)."""
         try:
             done = await self.control.host_request(old, "drain", {"fence": fence, "expect": expect,
-                                                                  "timeout": DRAIN_MAX}, DRAIN_MAX + 5.0)
+                                                                  "timeout": drain_max}, drain_max + 5.0)
         except RCEError as e:
             done = {"complete": False, "error": str(e)}
         if not done.get("complete"):

@@ -21,7 +21,6 @@ it and why; ``POST /api/placement/{user}/{ctag}`` ``{"pin": "cloud"|"edge"|"robo
 from __future__ import annotations
 
 import asyncio
-import contextlib
 import time
 from dataclasses import dataclass
 
@@ -81,18 +80,21 @@ class Placement:
         self.use: dict[tuple[str, str], _Use] = {}
         self.last_word: dict[tuple[str, str], tuple] = {}
         self.decisions = 0
+        self._changed = asyncio.Event()           # a robot's link or battery changed: decide again now
 
     # -- inputs ------------------------------------------------------------------------------------
     def robot_link(self, user: str, robot: str, rtt_ms: float, rate: float) -> None:
         """A robot's measured link: round trip ``rtt_ms``, delivery rate ``rate`` bytes/s (0: not
         measured; the link then counts by its round trip alone)."""
         self.links[(user, robot)] = LinkView(float(rtt_ms), float(rate) if rate and rate > 0 else float("inf"))
+        self._changed.set()
 
     def robot_battery(self, user: str, robot: str, percent: float) -> None:
         """A robot's charge, per cent (0-100). Raises :class:`RequestError` for another value."""
         if not isinstance(percent, (int, float)) or isinstance(percent, bool) or not 0 <= percent <= 100:
             raise RequestError(f"battery of robot {robot!r}: 'percent' must be a number from 0 to 100, got {percent!r}")
         self.batteries[(user, robot)] = float(percent)
+        self._changed.set()
 
     def pin(self, user: str, ctag: str, zone: str) -> ContainerRec:
         """Pin container ``user/ctag`` to zone kind ``zone`` (``auto``: unpin). Raises
@@ -209,13 +211,14 @@ class Placement:
                          "battery_low": self._low(c)})
         return rows
 
-    async def move(self, c: ContainerRec, tid: int, why: str) -> dict:
-        """Move ``c`` to host ``tid`` now (:class:`~rce_master.mover.Mover`); the move's record.
+    async def move(self, c: ContainerRec, tid: int, why: str, drain_max: float | None = None) -> dict:
+        """Move ``c`` to host ``tid`` now (:class:`~rce_master.mover.Mover`; ``drain_max``: s its old
+        copy may wait for its fences at most, default the mover's); the move's record.
         Raises :class:`~rce_master.mover.MoveFailed` (it runs where it was) or :class:`RequestError`."""
         if self.mover is None:
             raise RequestError("this master moves no containers")
         names = {t.tid: f"{t.zone} ({t.name})" for t in self.state.tasksets.values()}
-        r = await self.mover.move(c.user, c.ctag, tid, why)
+        r = await self.mover.move(c.user, c.ctag, tid, why, drain_max)
         self.placer.moved(time.monotonic(), c.user, c.ctag)
         self.use.pop((c.user, c.ctag), None)         # the new copy's counters start from 0
         rec = {"t": time.time(), "user": c.user, "ctag": c.ctag, "from": names.get(r.from_tid, str(r.from_tid)),
@@ -240,18 +243,31 @@ class Placement:
                 self.placer.moved(time.monotonic(), c.user, c.ctag)      # no retry within the dwell
         self._moving[key] = asyncio.get_running_loop().create_task(run(), name=f"move {c.user}/{c.ctag}")
 
+    def _decide(self) -> None:
+        for c in list(self.state.containers.values()):
+            ch = self.word(c)
+            if ch is not None and ch.move and c.state == "running":
+                self._carry_out(c, ch)
+
     async def run(self, stop: asyncio.Event) -> None:
-        """Poll the counters, re-decide and carry out the placer's moves every :data:`POLL` s
-        until ``stop`` is set."""
+        """Poll the counters every :data:`POLL` s, and re-decide and carry out the placer's moves
+        after each poll and as soon as a robot's link or battery changes, until ``stop`` is set."""
+        loop = asyncio.get_running_loop()
         while not stop.is_set():
             await self.poll()
-            for c in list(self.state.containers.values()):
-                ch = self.word(c)
-                if ch is not None and ch.move and c.state == "running":
-                    self._carry_out(c, ch)
-            with contextlib.suppress(TimeoutError):
-                async with asyncio.timeout(POLL):
-                    await stop.wait()
+            self._changed.clear()
+            self._decide()
+            end = loop.time() + POLL
+            while not stop.is_set() and (left := end - loop.time()) > 0:
+                waits = [asyncio.ensure_future(stop.wait()), asyncio.ensure_future(self._changed.wait())]
+                try:
+                    await asyncio.wait(waits, timeout=left, return_when=asyncio.FIRST_COMPLETED)
+                finally:
+                    for w in waits:
+                        w.cancel()
+                if self._changed.is_set() and not stop.is_set():
+                    self._changed.clear()
+                    self._decide()
 
     def forget(self, user: str, ctag: str) -> None:
         """Drop what is kept of a container that is gone."""

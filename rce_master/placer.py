@@ -23,8 +23,9 @@ than the bytes sent.
 the most margin wins; when the robot's battery is below its threshold, the least robot energy
 wins. **Hysteresis**: the placer keeps the current host while it meets the deadline unless
 another beats it by ``margin_gain`` of the deadline (or, on a low battery, by ``energy_gain`` of
-the power), the better host must stay better for ``settle_s``, and a container is never moved
-twice within ``dwell_s``. A user's pin overrides everything.
+the power), the better host must stay better for ``settle_s`` (``settle_miss_s`` when the current
+host misses the deadline: every moment there costs results), and a container is never moved twice
+within ``dwell_s``. A user's pin overrides everything.
 """
 from __future__ import annotations
 
@@ -214,11 +215,12 @@ def _words(o: Option) -> str:
 class Placer:
     """The placer's memory across decisions: per container, when a better host was first seen and
     when it last moved, so that a move happens only once the better host has held for
-    ``settle_s`` and never twice within ``dwell_s`` (times: the caller's clock, s)."""
+    ``settle_s`` (``settle_miss_s`` when the host it runs on misses its deadline) and never twice
+    within ``dwell_s`` (times: the caller's clock, s)."""
 
     def __init__(self, settle_s: float = 0.5, dwell_s: float = 10.0, margin_gain: float = 0.2,
-                 energy_gain: float = 0.2, energy: EnergyModel = EnergyModel()):
-        self.settle_s, self.dwell_s = settle_s, dwell_s
+                 energy_gain: float = 0.2, energy: EnergyModel = EnergyModel(), settle_miss_s: float = 0.2):
+        self.settle_s, self.dwell_s, self.settle_miss_s = settle_s, dwell_s, settle_miss_s
         self.margin_gain, self.energy_gain, self.energy = margin_gain, energy_gain, energy
         self._better_since: dict[tuple[str, str], tuple[int, float]] = {}
         self._moved_at: dict[tuple[str, str], float] = {}
@@ -236,7 +238,8 @@ class Placer:
         if tid != ch.target.tid:
             since = now
         self._better_since[key] = (ch.target.tid, since)
-        wait = max(since + self.settle_s, self._moved_at.get(key, -float("inf")) + self.dwell_s) - now
+        settle = self.settle_s if ch.current is None or ch.current.meets else self.settle_miss_s
+        wait = max(since + settle, self._moved_at.get(key, -float("inf")) + self.dwell_s) - now
         if wait > 0:
             return Choice(ch.target, ch.current, False, f"{ch.why}; moves in {wait:.1f} s if it holds", ch.options)
         return ch

@@ -63,7 +63,7 @@ def test_no_host_meets_it_then_it_stays():
 
 
 def test_hysteresis_in_time_settle_then_dwell():
-    p = Placer(settle_s=1.0, dwell_s=10.0)
+    p = Placer(settle_s=1.0, dwell_s=10.0, settle_miss_s=1.0)
     ch = p.decide(0.0, NODE, [CLOUD, ROBOT], BAD, CLOUD.tid)
     assert ch.target.tid == ROBOT.tid and not ch.move and "moves in 1.0 s" in ch.why
     assert not p.decide(0.5, NODE, [CLOUD, ROBOT], BAD, CLOUD.tid).move
@@ -75,10 +75,14 @@ def test_hysteresis_in_time_settle_then_dwell():
         assert ch.target.tid == CLOUD.tid and not ch.move
     assert p.decide(11.0, NODE, [CLOUD, ROBOT], GOOD, ROBOT.tid).move
     # a better host that does not hold for the settle time never moves it
-    q = Placer(settle_s=1.0)
+    q = Placer(settle_s=1.0, settle_miss_s=1.0)
     assert not q.decide(0.0, NODE, [CLOUD, ROBOT], BAD, CLOUD.tid).move
     assert not q.decide(0.6, NODE, [CLOUD, ROBOT], GOOD, CLOUD.tid).move
     assert not q.decide(1.2, NODE, [CLOUD, ROBOT], BAD, CLOUD.tid).move, "settling starts again"
+    # where it runs misses its deadline: the better host need hold only settle_miss_s
+    m = Placer(settle_s=1.0, settle_miss_s=0.2)
+    assert not m.decide(0.0, NODE, [CLOUD, ROBOT], BAD, CLOUD.tid).move
+    assert m.decide(0.2, NODE, [CLOUD, ROBOT], BAD, CLOUD.tid).move
 
 
 @pytest.mark.parametrize("text,user,err", [
