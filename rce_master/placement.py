@@ -39,6 +39,8 @@ log = get_logger("rce.master.placement")
 POLL = 0.5            # s between looks at the containers' counters
 MOVES_KEPT = 100      # moves kept for GET /api/placement/moves
 BATTERY_LOW = 20.0    # per cent
+WARMUP = 3.0          # s a container's copy runs before the share of its late results counts (its first results
+                      # are slow: imports, first calls)
 
 
 @dataclass
@@ -57,6 +59,7 @@ class _Use:
     misses: int = 0
     node_ms: float | None = None     # p50 of its nodes' latency over the last seconds, where it runs now
     miss_rate: float | None = None   # the share of those results that missed its deadline (None: none)
+    since: float = 0.0               # monotonic s of the first look at this copy
 
 
 def asks_placement(data: dict) -> bool:
@@ -131,6 +134,9 @@ class Placement:
                    node_ms=res.get("recent_p50_ms"),
                    miss_rate=(res["late_misses"] / res["late_results"]) if res.get("late_results") else None)
         old = self.use.get((c.user, c.ctag))
+        new.since = old.since if old is not None else now
+        if now - new.since < WARMUP:
+            new.miss_rate = None
         if old is not None and now > old.t:
             dt = now - old.t
             outputs = new.results - old.results if new.results > old.results else new.msgs_out - old.msgs_out
