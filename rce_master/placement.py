@@ -22,14 +22,14 @@ from __future__ import annotations
 
 import asyncio
 import time
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 from rce.plumbing.errors import RCEError, RequestError
 from rce.plumbing.log import get_logger
 from rce.protocol.schema import PLACEMENTS
 from rce_master.model import ContainerRec
 from rce_master.mover import Mover
-from rce_master.placer import Choice, ContainerView, HostView, LinkView, Placer
+from rce_master.placer import Choice, ContainerView, HostView, LinkView, Placer, late_share
 from rce_master.state import NEED_KEYS, MasterState
 
 __all__ = ["BATTERY_LOW", "POLL", "Placement"]
@@ -39,8 +39,9 @@ log = get_logger("rce.master.placement")
 POLL = 0.5            # s between looks at the containers' counters
 MOVES_KEPT = 100      # moves kept for GET /api/placement/moves
 BATTERY_LOW = 20.0    # per cent
-WARMUP = 3.0          # s a container's copy runs before the share of its late results counts (its first results
-                      # are slow: imports, first calls)
+WARMUP = 3.0          # s a container's copy runs before its results count for the placer (its first results are
+                      # slow: imports, first calls): its late share and its measured median
+MARKS_KEPT_S = 120.0  # s of a copy's counters kept for its late share (placer.late_share)
 
 
 @dataclass
@@ -58,8 +59,10 @@ class _Use:
     results: int = 0                 # results its nodes timed (rce.node.results), and how many were late
     misses: int = 0
     node_ms: float | None = None     # p50 of its nodes' latency over the last seconds, where it runs now
-    miss_rate: float | None = None   # the share of those results that missed its deadline (None: none)
+    miss_rate: float | None = None   # the share of its results that missed its deadline, as it persisted
     since: float = 0.0               # monotonic s of the first look at this copy
+    cid: int | None = None           # the copy these counters are of (a move makes a new one)
+    marks: list[tuple[float, int, int]] = field(default_factory=list)   # (t, results, misses) after its warm-up
 
 
 def asks_placement(data: dict) -> bool:
@@ -88,8 +91,15 @@ class Placement:
     # -- inputs ------------------------------------------------------------------------------------
     def robot_link(self, user: str, robot: str, rtt_ms: float, rate: float) -> None:
         """A robot's measured link: round trip ``rtt_ms``, delivery rate ``rate`` bytes/s (0: not
-        measured; the link then counts by its round trip alone)."""
-        self.links[(user, robot)] = LinkView(float(rtt_ms), float(rate) if rate and rate > 0 else float("inf"))
+        measured now). A rate once measured is kept while the reports say 0 (a link that carries
+        nothing is as thin as it was last measured, until a fresh measure says otherwise); a link
+        never measured counts by its round trip alone."""
+        old = self.links.get((user, robot))
+        if rate and rate > 0:
+            r = float(rate)
+        else:
+            r = old.rate if old is not None else float("inf")
+        self.links[(user, robot)] = LinkView(float(rtt_ms), r)
         self._changed.set()
 
     def robot_battery(self, user: str, robot: str, percent: float) -> None:
@@ -131,12 +141,17 @@ class Placement:
         res = s.get("results") or {}
         new = _Use(now, cpu_s, int(s.get("msgs_out") or 0), int(s.get("bytes_in") or 0), int(s.get("bytes_out") or 0),
                    results=int(res.get("results") or 0), misses=int(res.get("misses") or 0),
-                   node_ms=res.get("recent_p50_ms"),
-                   miss_rate=(res["late_misses"] / res["late_results"]) if res.get("late_results") else None)
+                   node_ms=res.get("recent_p50_ms"), cid=c.cid)
         old = self.use.get((c.user, c.ctag))
+        if old is not None and old.cid != c.cid:
+            old = None                    # a new copy (a move's switch): its record starts afresh
         new.since = old.since if old is not None else now
         if now - new.since < WARMUP:
-            new.miss_rate = None
+            new.node_ms = None            # its first results are slow: they say nothing of the host
+        else:
+            new.marks = [m for m in (old.marks if old is not None else []) if now - m[0] <= MARKS_KEPT_S]
+            new.marks.append((now, new.results, new.misses))
+        new.miss_rate = late_share(new.marks)
         if old is not None and now > old.t:
             dt = now - old.t
             outputs = new.results - old.results if new.results > old.results else new.msgs_out - old.msgs_out

@@ -33,8 +33,8 @@ from dataclasses import asdict, dataclass, field
 
 from rce.protocol.zones import Zone
 
-__all__ = ["MISS_RATE_OK", "Choice", "ContainerView", "EnergyModel", "HostView", "LinkView", "Option", "Placer",
-           "choose", "options"]
+__all__ = ["LATE_WINDOW_S", "MIN_RESULTS", "MISS_RATE_OK", "Choice", "ContainerView", "EnergyModel", "HostView",
+           "LinkView", "Option", "Placer", "choose", "late_share", "options"]
 
 
 @dataclass(frozen=True)
@@ -71,8 +71,8 @@ class ContainerView:
     second; ``in_bytes`` and ``out_bytes``: bytes per second it reads from and sends to its robot;
     ``cpu``: cores it asked for (its share is at most that, when given); ``node_ms``: its nodes'
     own latency from input to output where it runs now, measured (the median of the last seconds,
-    :mod:`rce.node.results`; None: not measured), and ``miss_rate`` the share of those results that
-    missed the deadline."""
+    :mod:`rce.node.results`; None: not measured), and ``miss_rate`` the share of its results there
+    that missed the deadline, as it persisted (:func:`late_share`; None: no record yet)."""
     user: str
     ctag: str
     robot: str | None
@@ -86,9 +86,33 @@ class ContainerView:
     miss_rate: float | None = None
 
 
-#: the share of its results of the last 10 s a container may miss where it runs before that host counts
-#: as missing its deadline
+#: the share of its results a container may miss where it runs, in each of two windows in a row
+#: (:func:`late_share`), before that host counts as missing its deadline
 MISS_RATE_OK = 0.05
+LATE_WINDOW_S = 4.0    # s a window of a copy's results spans at least (:func:`late_share`)
+MIN_RESULTS = 20       # results a window holds at least: fewer say nothing of a share of 5 %
+
+
+def late_share(marks: list[tuple[float, int, int]], window_s: float = LATE_WINDOW_S,
+               min_results: int = MIN_RESULTS) -> float | None:
+    """The share of a copy's results that missed its deadline, as it persisted: the smaller of
+    the shares of the last two windows in a row, each spanning at least ``window_s`` s and holding
+    at least ``min_results`` results; None until there are two such windows (a young copy, or a
+    quiet one, has no record yet). ``marks``: ``(t, results, misses)`` looks at the copy's
+    cumulative counters (t in s, oldest first), from the end of its warm-up on, so that the slow
+    first results of a fresh copy (imports, first calls: the move itself) never count. One bad
+    window (a burst of late results) does not make a host miss its deadline; two do."""
+    if not marks:
+        return None
+    t, r, m = marks[-1]
+    shares = []
+    for _ in range(2):
+        start = next((x for x in reversed(marks) if t - x[0] >= window_s and r - x[1] >= min_results), None)
+        if start is None:
+            return None
+        shares.append((m - start[2]) / (r - start[1]))
+        t, r, m = start
+    return min(shares)
 
 
 @dataclass(frozen=True)
@@ -115,7 +139,8 @@ def options(c: ContainerView, hosts: list[HostView], links: dict[str, LinkView],
     :class:`LinkView`. On the host it runs on now (``current_tid``) what is measured counts: the
     compute time is the measured median ``node_ms`` where it is the larger (CPU throttling,
     queueing, a noisy neighbour show there first), and a host where more than :data:`MISS_RATE_OK`
-    of the recent results were late misses its deadline whatever the model says. The median is
+    of its results were late in two windows in a row (``miss_rate``, :func:`late_share`) misses
+    its deadline whatever the model says. The median is
     compared with the other hosts' model (a mean): both are a typical result, not its tail."""
     out = []
     for h in hosts:

@@ -326,7 +326,7 @@ class Master:
                 "auth": self._auth, "robot_connected": lambda args, tid=ts.tid: self._robot_connected(tid, args),
                 "robot_disconnected": lambda args, tid=ts.tid: self._robot_disconnected(tid, args),
                 "robot_relay": lambda args, tid=ts.tid: self._robot_relay(tid, args),
-                "robot_link": self._robot_link,
+                "robot_link": self._robot_link, "link_probe": self._link_probe,
                 "robot_battery": self._robot_battery,
                 "robot_request": self._robot_request, "container_bus": self._container_bus,
                 "container_param": self._container_param})
@@ -483,6 +483,12 @@ class Master:
     async def _robot_link(self, args: dict) -> None:
         """A robot endpoint's measure of a robot's link (:mod:`rce_robot.link_report`), for the placer."""
         self.placement.robot_link(str(args["user"]), str(args["robot"]), float(args["rtt_ms"]), float(args["rate"]))
+
+    async def _link_probe(self, args: dict) -> dict:
+        """A robot endpoint's probe of its uplink (:func:`rce_robot.link_report.probe_rate`): answered
+        at once, with the bytes of its ``pad``; nothing else is done with it."""
+        pad = args.get("pad")
+        return {"bytes": len(pad) if isinstance(pad, str) else 0}
 
     async def _node_status(self, args: dict) -> None:
         detail = {k: args[k] for k in ("code", "signal", "reason") if args.get(k) is not None}

@@ -19,7 +19,7 @@ from prometheus_client.core import CounterMetricFamily, GaugeMetricFamily, Histo
 
 from rce.transport.cluster_auth import ClusterKey, token_of
 from rce.transport.dataplane import DataPlane
-from rce.plumbing.errors import AuthError, NotFound, RCEError, Throttled
+from rce.plumbing.errors import AuthError, NotFound, ProtocolError, RCEError, RequestError, Throttled
 from rce.protocol.interface_type import InterfaceType
 from rce.protocol.zones import CLOUD, Zone
 from rce.protocol.lanes import Lane, parse_lane
@@ -52,6 +52,7 @@ PING_TIMEOUT = 60.0      # s a robot may leave a ping unanswered before its link
 WS_MAX_QUEUE = 64        # frames the websocket reads ahead of the session
 SESSION_OPEN_WAIT = 5.0  # s a master op for a robot whose login was accepted waits for its websocket to open (a robot
                          # that moved here: the master installs its interfaces right after robot_connected)
+PROBE_TIMEOUT = 5.0      # s an uplink probe's answers may take (a slower link gives no sample)
 
 #: The ops the master sends a robot task set.
 ROBOT_OPS = OpTable("master -> robot task set")
@@ -251,6 +252,9 @@ class RobotEndpoint:
         self.link_reports = LinkReports(self._tell_link)
         self.uplink = Uplink(self._master_socket, self.plane.link_sockets)    # on a robot's computer: its link
         self._link_task: asyncio.Task | None = None
+        self._probe_task: asyncio.Task | None = None
+        self._probed_at = float("-inf")   # monotonic s of the last uplink probe
+        self._probe_ok = True             # the master answers link probes
 
     async def start(self, masters: list[Address], bind: str, port: int, data_port: int,
                     metrics_port: int | None = None, rosbridge_port: int | None = None) -> None:
@@ -298,6 +302,11 @@ class RobotEndpoint:
             await asyncio.sleep(link_report.EVERY)
             if self.zone.kind == "robot":       # its robot's websocket is local: the robot's link is the uplink
                 up = self.uplink.measure(loop.time())
+                if (up is not None and self.namespaces and self._probe_ok and self.uplink.wants_probe(loop.time())
+                        and loop.time() - self._probed_at >= link_report.PROBE_EVERY
+                        and (self._probe_task is None or self._probe_task.done())):
+                    self._probed_at = loop.time()
+                    self._probe_task = asyncio.create_task(self._probe(), name="uplink probe")
                 robots = [(u, r, up) for (u, r) in self.namespaces]
             else:
                 robots = [(u, r, websocket_link(ns.ws)) for (u, r), ns in self.namespaces.items()]
@@ -307,6 +316,27 @@ class RobotEndpoint:
                                                or abs(ns.battery - ns.battery_told) >= link_report.BATTERY_STEP):
                     ns.battery_told = ns.battery
                     self.master.notify("robot_battery", user=user, robot=robot, percent=round(ns.battery, 2))
+
+    async def _probe(self) -> None:
+        """Probe the uplink's rate (:func:`~rce_robot.link_report.probe_rate`): a small ``link_probe``
+        to the master and one of :data:`~rce_robot.link_report.PROBE_BYTES` right behind it; a master
+        without the op (older) is not probed again."""
+        loop = asyncio.get_running_loop()
+        done: dict[str, float] = {}
+
+        async def one(name: str, pad: str) -> None:
+            await self.master.call("link_probe", timeout=PROBE_TIMEOUT, pad=pad)
+            done[name] = loop.time()
+        try:
+            await asyncio.gather(one("small", ""), one("large", "x" * link_report.PROBE_BYTES))
+        except (ProtocolError, RequestError) as e:     # an older master: unknown op
+            self._probe_ok = False
+            log.info("the master takes no link probes: the uplink's rate is measured on busy data links only",
+                     reason=str(e))
+            return
+        except RCEError:
+            return                        # no master now, or a link too slow for the timeout: no sample
+        self.uplink.probed(loop.time(), link_report.probe_rate(done["small"], done["large"]))
 
     def _master_socket(self) -> Any:
         peer = self.master.peer if self.master is not None else None

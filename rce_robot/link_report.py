@@ -9,8 +9,13 @@ Where the link is measured depends on where the robot endpoint stands:
 - an endpoint on the robot's own computer (``rce-robot --zone robot:ID``): the robot's websocket is
   local, and the robot's link is the endpoint's uplink (:class:`Uplink`): the round trip of its
   control link to the master, and the delivery rate of its data links to the other hosts whenever
-  they carried more than they were app-limited by (the last such rate is kept while they are idle:
-  a link that carries nothing says nothing of its rate)."""
+  they carried more than they were app-limited by. While no data link measures a rate (they are
+  idle or app-limited: a link that carries little says nothing of its rate), the endpoint probes
+  the link every :data:`PROBE_EVERY` s (:func:`probe_rate`): a small request to the master and,
+  right behind it, one of :data:`PROBE_BYTES`; the time between their answers is what the link
+  took to carry the larger one. The last rate measured either way is kept (never forgotten for
+  being old: a link that could not carry a stream stays that thin until a fresh measure says
+  otherwise)."""
 from __future__ import annotations
 
 from collections.abc import Callable, Iterable
@@ -18,13 +23,17 @@ from typing import Any
 
 from rce.transport.lane_socket import link_info, link_sample, socket_of
 
-__all__ = ["BATTERY_STEP", "CHANGE", "EVERY", "RATE_HOLD", "REFRESH", "LinkReports", "Uplink", "websocket_link"]
+__all__ = ["BATTERY_STEP", "CHANGE", "EVERY", "PROBE_BYTES", "PROBE_EVERY", "PROBE_KEEP_S", "REFRESH", "LinkReports",
+           "Uplink", "probe_rate", "websocket_link"]
 
 EVERY = 0.25      # s between looks at the robots' sockets
 CHANGE = 0.2      # a report when the round trip or the rate moved by this share
 REFRESH = 10.0    # s, a report at least this often per robot
 BATTERY_STEP = 1.0   # percentage points a robot's charge moves before the master is told again
-RATE_HOLD = 20.0     # s an uplink's rate is kept after it was last measured (Uplink)
+PROBE_BYTES = 12_000   # bytes of a probe: within a TCP initial window (10 segments), so one flight after idle
+PROBE_EVERY = 1.0      # s between probes while no data link measures the rate (~96 kbit/s of the link's time)
+PROBE_KEEP_S = 3.5     # s of probes the rate is the best of (a probe's error only ever adds time: the fastest
+                       # of the last few is the nearest to the link's rate)
 
 
 class LinkReports:
@@ -60,17 +69,30 @@ def websocket_link(ws: Any) -> tuple[float, float] | None:
     return link_info(sock) if sock is not None else None
 
 
+def probe_rate(small_done_s: float, large_done_s: float, nbytes: int = PROBE_BYTES) -> float:
+    """The link's rate (bytes/s) from a probe: a small message and, sent right behind it, one of
+    ``nbytes`` more bytes, answered at monotonic ``small_done_s`` and ``large_done_s`` s. The larger
+    one waited behind the smaller at the link's bottleneck, so the time between the answers is what
+    the link took to carry ``nbytes`` (packet-pair dispersion: the round trip cancels). A spacing
+    under 0.1 ms counts as 0.1 ms (the clock's and the loop's grain: a rate above ``nbytes`` /
+    0.1 ms is not told apart)."""
+    return nbytes / max(large_done_s - small_done_s, 1e-4)
+
+
 class Uplink:
     """The uplink of an endpoint on a robot's computer (module doc): ``control()`` gives the socket
-    of its link to the master, ``data()`` the sockets of its data links to other hosts. A rate is
-    kept :data:`RATE_HOLD` s after the last time it was measured (a link that stops carrying the
-    stream, its container moved to the robot, says nothing of its rate: once the hold ends the rate
-    is unknown again, and the cloud is weighed by its round trip alone, a probe every hold at most)."""
+    of its link to the master, ``data()`` the sockets of its data links to other hosts. The rate is
+    the last one a busy data link measured; while none has for :data:`PROBE_EVERY` s,
+    :meth:`wants_probe` says so and :meth:`probed` takes a probe's rate, and the rate is the
+    fastest probe of the last :data:`PROBE_KEEP_S` s. A rate is never forgotten for being old (a
+    link that stops carrying the stream, its container moved to the robot, is as thin as it was
+    last measured, until a probe says otherwise)."""
 
     def __init__(self, control: Callable[[], Any], data: Callable[[], Iterable[Any]]):
         self.control, self.data = control, data
-        self.rate = 0.0              # bytes/s: the last rate measured while not app-limited (0: unknown)
-        self.rate_at = float("-inf")
+        self.rate = 0.0              # bytes/s: the last rate measured (0: never measured)
+        self.rate_at = float("-inf")   # monotonic s of the last rate a busy data link measured
+        self.probes: list[tuple[float, float]] = []    # (monotonic s, bytes/s) of the recent probes
 
     def measure(self, now: float) -> tuple[float, float] | None:
         """``(rtt_s, rate)`` at monotonic ``now`` s (None while there is no link to the master)."""
@@ -82,9 +104,20 @@ class Uplink:
                  if s is not None and not s[2] and s[1] > 0]
         if rates:
             self.rate, self.rate_at = max(rates), now
-        elif now - self.rate_at > RATE_HOLD:
-            self.rate = 0.0
+            self.probes.clear()
         return info[0], self.rate
+
+    def wants_probe(self, now: float) -> bool:
+        """Whether no busy data link measured the rate for :data:`PROBE_EVERY` s (monotonic ``now``)."""
+        return now - self.rate_at > PROBE_EVERY
+
+    def probed(self, now: float, rate: float) -> None:
+        """A probe's rate (bytes/s, :func:`probe_rate`) at monotonic ``now`` s; ignored while a busy
+        data link measures the rate."""
+        if not self.wants_probe(now) or rate <= 0:
+            return
+        self.probes = [p for p in self.probes if now - p[0] <= PROBE_KEEP_S] + [(now, rate)]
+        self.rate = max(r for _, r in self.probes)
 
 
 def _moved(old: float, new: float) -> bool:

@@ -1,12 +1,14 @@
 """Robots' links as the placer sees them (rce_robot.link_report) on real loopback TCP sockets: an
-endpoint on a robot's computer measures its uplink, keeps a rate it measured while a link was busy
-for RATE_HOLD s, then forgets it; reports go out when a link moved."""
+endpoint on a robot's computer measures its uplink, keeps the last rate it measured (a busy link's,
+or its probes' while no link is busy); reports go out when a link moved."""
 from __future__ import annotations
 
 import socket
 
 from rce.transport.lane_socket import link_sample
-from rce_robot.link_report import CHANGE, RATE_HOLD, LinkReports, Uplink
+import pytest
+
+from rce_robot.link_report import CHANGE, PROBE_BYTES, PROBE_EVERY, PROBE_KEEP_S, LinkReports, Uplink, probe_rate
 
 
 def busy_pair() -> tuple[socket.socket, socket.socket]:
@@ -32,7 +34,7 @@ def busy_pair() -> tuple[socket.socket, socket.socket]:
     return a, b
 
 
-def test_the_uplink_keeps_a_busy_links_rate_for_its_hold_then_forgets_it():
+def test_the_uplink_keeps_a_busy_links_rate_until_a_probe_says_otherwise():
     a, b = busy_pair()
     try:
         rtt, rate, app_limited = link_sample(a)
@@ -41,9 +43,17 @@ def test_the_uplink_keeps_a_busy_links_rate_for_its_hold_then_forgets_it():
         up = Uplink(lambda: a, lambda: data)
         rtt_s, measured = up.measure(100.0)
         assert measured > 0
+        assert not up.wants_probe(100.0 + PROBE_EVERY / 2)
         data.clear()                                        # its container moved: the link idles
-        assert up.measure(100.0 + RATE_HOLD / 2)[1] == measured
-        assert up.measure(100.0 + RATE_HOLD + 1)[1] == 0.0, "an idle link's rate is unknown after the hold"
+        assert up.measure(100.0 + 600)[1] == measured, "an idle link is as thin as it was last measured"
+        assert up.wants_probe(100.0 + 600)
+        up.probed(701.0, 125_000.0)                         # probes: 1 Mbit/s, then the link is back
+        assert up.measure(701.0)[1] == 125_000.0
+        up.probed(702.0, 5e6)
+        up.probed(703.0, 2e6)                               # a probe slowed by the loop: the fastest stands
+        assert up.rate == 5e6
+        up.probed(703.0 + PROBE_KEEP_S + 0.5, 1e6)          # the fast one is too old now
+        assert up.rate == 1e6
         assert Uplink(lambda: None, lambda: data).measure(0.0) is None, "no link to the master: not measured"
     finally:
         a.close()
@@ -57,3 +67,8 @@ def test_a_report_goes_out_when_a_link_moved_and_not_otherwise():
     assert reports.sample(0.5, [("u", "r", (0.010 * (1 + CHANGE / 2), 1e6))]) == 0
     assert reports.sample(1.0, [("u", "r", (0.010 * (1 + 2 * CHANGE), 1e6))]) == 1
     assert [s[:2] for s in sent] == [("u", "r"), ("u", "r")] and sent[0][2] == 10.0
+
+
+def test_a_probe_is_the_spacing_of_two_answers():
+    assert probe_rate(10.0, 10.096) == pytest.approx(PROBE_BYTES / 0.096)     # 12 kB in 96 ms: 1 Mbit/s
+    assert probe_rate(10.0, 10.0) == pytest.approx(PROBE_BYTES / 1e-4), "below the grain: bounded"

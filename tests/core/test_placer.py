@@ -7,7 +7,7 @@ import pytest
 
 from rce.plumbing.errors import RequestError
 from rce.protocol.zones import Zone, parse_zone
-from rce_master.placer import ContainerView, EnergyModel, HostView, LinkView, Placer, choose, options
+from rce_master.placer import MISS_RATE_OK, ContainerView, EnergyModel, HostView, LinkView, Placer, choose, options
 
 CLOUD = HostView(1, "dc1", Zone("cloud"), cpu=8, load=1)
 ROBOT = HostView(2, "r1-computer", Zone("robot", "r1", "alice"), cpu=0.3)
@@ -132,3 +132,87 @@ def test_a_host_where_recent_results_were_late_misses_whatever_the_model():
     assert not o["cloud"].meets and o["robot:r1"].meets
     ok = ContainerView(**{**NODE.__dict__, "node_ms": 20.0, "miss_rate": 0.02})
     assert by_zone(options(ok, [CLOUD, ROBOT], GOOD, current_tid=CLOUD.tid))["cloud"].meets
+
+
+# -- a copy's record, the link's bound (rce_master.placer.late_share, rce_master.placement) -------------------------
+def marks_at(share: float, seconds: float, start: float = 0.0, hz: float = 10.0, every: float = 0.5,
+             base: tuple[int, int] = (0, 0)) -> list[tuple[float, int, int]]:
+    """Looks every ``every`` s at a copy that yields ``hz`` results a second, ``share`` of them late."""
+    out, r, m = [], float(base[0]), float(base[1])
+    t = start
+    while t <= start + seconds + 1e-9:
+        out.append((t, int(r), int(m)))
+        r += hz * every
+        m += hz * every * share
+        t += every
+    return out
+
+
+def test_a_late_share_counts_only_once_two_windows_of_enough_results_hold_it():
+    from rce_master.placer import LATE_WINDOW_S, MIN_RESULTS, late_share
+    assert late_share([]) is None
+    assert late_share(marks_at(0.5, LATE_WINDOW_S * 1.5)) is None, "one window: a young copy has no record yet"
+    assert late_share(marks_at(0.2, 2 * LATE_WINDOW_S)) == pytest.approx(0.2)
+    slow = marks_at(0.5, 2 * LATE_WINDOW_S, hz=MIN_RESULTS / LATE_WINDOW_S / 2)       # 10 results a window
+    assert late_share(slow) is None, "windows of fewer than MIN_RESULTS results say nothing"
+    assert late_share(marks_at(0.5, 4 * LATE_WINDOW_S, hz=MIN_RESULTS / LATE_WINDOW_S / 2)) == pytest.approx(0.5)
+    # one bad window after good ones (a burst) is not a host that misses; two in a row are
+    good = marks_at(0.0, 2 * LATE_WINDOW_S)
+    t, r, m = good[-1]
+    burst = good + marks_at(0.3, LATE_WINDOW_S, start=t + 0.5, base=(r + 5, m))[1:]
+    assert late_share(burst) == pytest.approx(0.0)
+    t, r, m = burst[-1]
+    both = burst + marks_at(0.3, LATE_WINDOW_S, start=t + 0.5, base=(r + 5, m + 1.5))[1:]
+    assert late_share(both) > MISS_RATE_OK
+
+
+class _Rec:
+    def __init__(self, cid: int):
+        self.user, self.ctag, self.cid = "alice", "costmap", cid
+
+
+def stats(results: int, misses: int, p50: float = 6.0) -> dict:
+    return {"cpu_seconds": results * 0.006, "msgs_out": results, "bytes_in": results * 40_000, "bytes_out": 0,
+            "results": {"results": results, "misses": misses, "recent_p50_ms": p50}}
+
+
+def test_a_fresh_copys_slow_first_results_never_make_it_move():
+    from rce_master.placement import WARMUP, Placement
+    p = Placement(None, None)
+    # a fresh copy: its first two results are late (imports), then it meets its deadline
+    p._count(_Rec(1), stats(0, 0, p50=None), 0.0)
+    p._count(_Rec(1), stats(10, 2, p50=150.0), 1.0)
+    u = p.use[("alice", "costmap")]
+    assert u.node_ms is None and u.miss_rate is None, "its warm-up says nothing of the host"
+    t, results = WARMUP, 30
+    while t < WARMUP + 12:
+        p._count(_Rec(1), stats(results, 2 + results // 100), t)      # 1 % late after the warm-up
+        t, results = t + 0.5, results + 5
+    u = p.use[("alice", "costmap")]
+    assert u.miss_rate is not None and u.miss_rate < MISS_RATE_OK, u.miss_rate
+    o = by_zone(options(ContainerView(**{**NODE.__dict__, "node_ms": u.node_ms, "miss_rate": u.miss_rate}),
+                        [CLOUD, ROBOT], GOOD, current_tid=CLOUD.tid))
+    assert o["cloud"].meets
+    # a move's switch: the new copy (another cid) starts its record afresh, its own warm-up first
+    p._count(_Rec(2), stats(3, 3, p50=180.0), t)
+    u = p.use[("alice", "costmap")]
+    assert u.cid == 2 and u.miss_rate is None and u.node_ms is None and u.marks == []
+
+
+def test_a_link_rate_once_measured_is_kept_as_a_bound_while_reports_carry_none():
+    from rce_master.placement import Placement
+    p = Placement(None, None)
+    p.robot_link("alice", "r1", 5.0, 0.0)
+    assert p.links[("alice", "r1")].rate == float("inf"), "never measured: the round trip alone"
+    p.robot_link("alice", "r1", 60.0, 125_000.0)          # the link fell to 1 Mbit/s, measured while busy
+    p.robot_link("alice", "r1", 5.0, 0.0)                 # the container left it: nothing measured, rtt low
+    link = p.links[("alice", "r1")]
+    assert link.rtt_ms == 5.0 and link.rate == 125_000.0
+    stream = ContainerView(**{**NODE.__dict__, "in_bytes": 400_000, "miss_rate": 0.07})
+    ch = Placer(settle_s=0.0, settle_miss_s=0.0).decide(100.0, stream, [CLOUD, ROBOT], {"cloud": link}, ROBOT.tid)
+    assert not ch.move and not by_zone(ch.options)["cloud"].meets, \
+        "a robot that misses 7 % does not go back onto a link last measured too thin for its stream"
+    p.robot_link("alice", "r1", 5.0, 10e6)                # a probe: the link is back
+    ch = Placer(settle_s=0.0, settle_miss_s=0.0).decide(101.0, stream, [CLOUD, ROBOT],
+                                                        {"cloud": p.links[("alice", "r1")]}, ROBOT.tid)
+    assert ch.move and ch.target.tid == CLOUD.tid
