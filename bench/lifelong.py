@@ -3,10 +3,11 @@ against the league's default entry run in the same benchmark on the same problem
 limit (the start-kit v2.1.2's ``lifelong``, built from source: ``bench/startkit_peer.py``).
 
 Problems: the shared ones in ``../shared/data/lorr/`` at their official number of steps (default),
-problem JSONs of your own (``--problems``), problems generated on any map as the league's Problem
-Generator makes them (``--generate MAP --robots N,...``), or the density sweep over every shared map
-(``--sweep``: random-32-32-20 at 100 - 800 robots, Paris and brc202d at 1,000 / 3,000, sortation and
-warehouse at 2,000 / 5,000 / 10,000).
+problem JSONs of your own (``--problems``; at the steps of a ``simulation_time.json`` beside their
+domain folder when there is one, as in the league's Benchmark-Archive), problems generated on any
+map as the league's Problem Generator makes them (``--generate MAP --robots N,...``), or the
+density sweep over every shared map (``--sweep``: random-32-32-20 at 100 - 800 robots, Paris and
+brc202d at 1,000 / 3,000, sortation and warehouse at 2,000 / 5,000 / 10,000).
 
 Prints a table: tasks finished by rce and by the peer with the ratio, the published default entry's
 and best known (``lorr/RESULTS.md``; scaled by steps on a cut, and marked), planner ms per step
@@ -17,7 +18,8 @@ Usage::
     .venv/bin/python bench/lifelong.py [--quick] [--only NAME ...] [--steps N] [--problems JSON ...]
         [--generate MAP ... --robots N,... ] [--sweep] [--seed S] [--problem-dir DIR]
         [--peer PATH | --build-peer DIR] [--plan-time-limit MS] [--scheduler batch|greedy|both]
-        [--cache-mb MB] [--lanes N] [--crowd-w W] [--max-active N] [--window on|off] [--data ../shared/data]
+        [--cache-mb MB] [--lanes N] [--crowd-w W] [--max-active N] [--window on|off] [--epibt on|off]
+        [--data ../shared/data]
         [--json PATH] [--plot PATH]
         [--outputs DIR]
 
@@ -63,10 +65,22 @@ def published(results_md: Path) -> dict[str, dict]:
     return out
 
 
+def simulation_time(problem: Path) -> int | None:
+    """The official steps of ``problem`` from the league's ``simulation_time.json`` (name -> steps)
+    beside its domain folder, as the Benchmark-Archive's evaluation instances have it; None
+    without one."""
+    for d in (problem.parent, problem.parent.parent):
+        f = d / "simulation_time.json"
+        if f.is_file():
+            steps = json.loads(f.read_text()).get(problem.stem)
+            return int(steps) if steps else None
+    return None
+
+
 def run_one(path: Path, steps: int, limit_ms: float, scheduler: str, seed: int, pub: dict | None,
             outputs: Path | None, cache_mb: float | None = None, lanes: int | None = None,
             crowd_w: float | None = None, peer: Path | None = None, max_active: int | None = None,
-            window: bool | None = None) -> dict:
+            window: bool | None = None, epibt: bool | None = None) -> dict:
     """Run one problem (and the start-kit binary ``peer`` on it, when given); returns its row (with
     the finished-over-time curve)."""
     from rce_fleet.lifelong import load_problem
@@ -78,7 +92,8 @@ def run_one(path: Path, steps: int, limit_ms: float, scheduler: str, seed: int, 
                            record=outputs is not None,
                            cache_bytes=None if cache_mb is None else int(cache_mb * 2 ** 20),
                            lanes=LANES if lanes is None else lanes, crowd_w=crowd_w, max_active=max_active,
-                           planner_kw=None if window is None else {"ops": window})
+                           planner_kw={**({} if window is None else {"ops": window}),
+                                       **({} if epibt is None else {"epibt": epibt})} or None)
     s = res.summary()
     row = {"problem": path.stem, "robots": prob.team_size, "steps": steps, "scheduler": scheduler, **s,
            "tasks_per_step": s["tasks_finished"] / steps, "curve": res.finished.tolist()}
@@ -205,6 +220,8 @@ def _parser() -> argparse.ArgumentParser:
     ap.add_argument("--window", choices=("on", "off"),
                     help="the windowed plan (operations + LNS) as a candidate of the lookahead (default: on "
                          "from 0.1 to 0.8 robots per free cell, up to 1,000 robots)")
+    ap.add_argument("--epibt", choices=("on", "off"),
+                    help="EPIBT with LNS answers (default: on from 0.3 robots per free cell, MAPF_T)")
     ap.add_argument("--json", type=Path)
     ap.add_argument("--plot", type=Path)
     ap.add_argument("--outputs", type=Path, help="also write each run's start-kit output JSON into DIR")
@@ -228,7 +245,8 @@ def _problems(args, lorr: Path, pub: dict) -> list[tuple[Path, int]]:
             out.append((path, args.steps or GENERATED_STEPS))
         return out + [(p, args.steps or GENERATED_STEPS) for p in args.problems or ()]
     if args.problems:
-        return [(p, args.steps or pub.get(p.stem, {}).get("steps", GENERATED_STEPS)) for p in args.problems]
+        return [(p, args.steps or pub.get(p.stem, {}).get("steps") or simulation_time(p) or GENERATED_STEPS)
+                for p in args.problems]
     problems = sorted(lorr.glob("*.domain/*.json"), key=lambda p: pub.get(p.stem, {}).get("robots", 0))
     if args.quick:
         problems = [p for p in problems if p.stem in QUICK]
@@ -275,7 +293,8 @@ def main(argv: list[str] | None = None) -> int:
         for sch in scheds:
             rows.append(run_one(p, steps, args.plan_time_limit, sch, args.seed, info, args.outputs, args.cache_mb,
                                 args.lanes, args.crowd_w, peer if sch == scheds[-1] else None, args.max_active,
-                                None if args.window is None else args.window == "on"))
+                                None if args.window is None else args.window == "on",
+                                None if args.epibt is None else args.epibt == "on"))
             json_path.parent.mkdir(parents=True, exist_ok=True)
             json_path.write_text(json.dumps({"plan_time_limit_ms": args.plan_time_limit, "git": git_head(),
                                              "date": time.strftime("%Y-%m-%d"), "peer": str(peer) if peer else None,

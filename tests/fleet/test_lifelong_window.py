@@ -86,21 +86,26 @@ def test_a_robot_in_a_corridor_end_turns_and_leaves_for_one_behind_it():
     assert OPERATIONS[w.planned[1]].tolist()[:2] == [ACT_W, ACT_F]   # follows once it faces away
 
 
-def test_planner_with_the_window_keeps_every_step_valid_on_a_packed_map():
+def drive_packed(steps: int = 40, soft: float = 0.05, hard: float = 0.1, **planner_kw) -> PIBTPlanner:
+    """A :class:`PIBTPlanner` (``planner_kw``) run ``steps`` steps on a packed 12 x 12 map of
+    100 robots, each step's actions checked under the rules; it reaches goals."""
     g, pos, head, goals = _packed(7, 12, 12, 100)
-    cache = DistanceCache(g, max_bytes=2 ** 24)
-    planner = PIBTPlanner(g, cache, seed=1, ops=True)
+    planner = PIBTPlanner(g, DistanceCache(g, max_bytes=2 ** 24), seed=1, **planner_kw)
     reached = 0
-    for _ in range(40):
+    for _ in range(steps):
         now = time.perf_counter()
-        act = planner.plan(pos, head, goals, now + 0.05, now + 0.1)
-        new_pos, new_head, errors = check_actions(g, pos, head, act)
+        act = planner.plan(pos, head, goals, now + soft, now + hard)
+        pos, head, errors = check_actions(g, pos, head, act)
         assert errors == []
-        pos, head = new_pos, new_head
         done = (goals >= 0) & (pos == goals)
         reached += int(done.sum())
         goals[done] = -1
     assert reached > 0
+    return planner
+
+
+def test_planner_with_the_window_keeps_every_step_valid_on_a_packed_map():
+    planner = drive_packed(ops=True)
     # the window is planned whenever the lookahead has time for its rollouts (nearly every step)
     assert planner._window.stats["window_steps"] >= 30
 

@@ -19,13 +19,15 @@ from .grid import EAST, NORTH, SOUTH, WEST, LifelongGrid
 __all__ = ["lane_costs"]
 
 
-def lane_costs(grid: LifelongGrid, against: int = 1, min_cells: int = 4) -> np.ndarray:
+def lane_costs(grid: LifelongGrid, against: int = 1, min_cells: int = 4, everywhere: bool = False) -> np.ndarray:
     """(cells, 4) uint8 move costs for :class:`~.distances.DistanceCache`: 1 everywhere,
     ``1 + against`` for a move out of a corridor cell against its lane.
 
     Lanes: the rows (columns) with at least ``min_cells`` horizontal (vertical) corridor
     cells, numbered top to bottom (left to right); even rows run east, odd rows west, even
-    columns south, odd columns north. Raises ValueError for ``against`` outside 0..254.
+    columns south, odd columns north. With ``everywhere`` every row and column of the map is a
+    lane (by its index: even rows east, even columns south), corridor or not: the crisscross
+    graph over an open map. Raises ValueError for ``against`` outside 0..254.
     """
     if not 0 <= against <= 254:
         raise ValueError(f"against must be in 0..254, got {against}")
@@ -38,8 +40,12 @@ def lane_costs(grid: LifelongGrid, against: int = 1, min_cells: int = 4) -> np.n
     vert = free & (nbr[:, EAST] < 0) & (nbr[:, WEST] < 0) & ((nbr[:, NORTH] >= 0) | (nbr[:, SOUTH] >= 0))
     horiz = horiz.reshape(grid.rows, grid.cols)
     vert = vert.reshape(grid.rows, grid.cols)
-    rows = np.flatnonzero(horiz.sum(axis=1) >= min_cells)
-    cols = np.flatnonzero(vert.sum(axis=0) >= min_cells)
+    if everywhere:
+        horiz = vert = free.reshape(grid.rows, grid.cols)
+        rows, cols = np.arange(grid.rows), np.arange(grid.cols)
+    else:
+        rows = np.flatnonzero(horiz.sum(axis=1) >= min_cells)
+        cols = np.flatnonzero(vert.sum(axis=0) >= min_cells)
     for k, r in enumerate(rows):
         cells = r * grid.cols + np.flatnonzero(horiz[r])
         cost[cells, WEST if k % 2 == 0 else EAST] += against

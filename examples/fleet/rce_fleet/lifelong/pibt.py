@@ -58,7 +58,8 @@ class PIBTPlanner:
                  stuck_steps: int = 20, noise: float = 100.0, samples: int = 16, sample_frac: float = 0.5,
                  window: int = 20, flow: TrafficFlow | None = None, flow_frac: float = 0.5,
                  flow_passes: int = 1, ops: bool = False, lns: bool = True, lns_frac: float = 0.5,
-                 ops_kw: dict | None = None, ops_candidate: bool = True):
+                 ops_kw: dict | None = None, ops_candidate: bool = True, epibt: bool = False,
+                 epibt_kw: dict | None = None, epibt_frac: float = 0.9):
         self.grid, self.cache, self.model, self.turn_w, self.swap = grid, cache, model, float(turn_w), swap
         self.claim_steps = claim_steps
         self.stuck_steps, self.noise = stuck_steps, noise
@@ -68,6 +69,7 @@ class PIBTPlanner:
         self.ops, self.lns, self.lns_frac, self.ops_kw, self.seed = ops, lns, lns_frac, ops_kw or {}, seed
         self.ops_candidate = ops_candidate
         self._window = None
+        self.epibt, self.epibt_kw, self.epibt_frac, self._epibt = epibt, epibt_kw or {}, epibt_frac, None
         self.rng = np.random.default_rng(seed)
         self._goal_prev: np.ndarray | None = None
         self.elapsed: np.ndarray | None = None
@@ -131,7 +133,9 @@ class PIBTPlanner:
         nxt = np.empty(n, dtype=np.int64)
         turns = self.model == MAPF_T
         act = np.empty(n, dtype=np.int64)
-        if turns and self.ops and self.ops_candidate and self.samples > 1:
+        if turns and self.epibt:
+            act = self._epibt_step(pos, head, goals, pslot, order, rnd, deadline, hard)
+        elif turns and self.ops and self.ops_candidate and self.samples > 1:
             act = self._rollouts(pos, head, goals, slot, pslot, order, rnd, deadline, window=True)
         elif turns and self.ops:
             act = self._windowed(pos, head, goals, pslot, order, rnd, deadline, hard)
@@ -154,6 +158,27 @@ class PIBTPlanner:
             self._window = WindowPlan(self.grid, n, seed=self.seed, **self.ops_kw)
         scale = np.where(self.stuck > self.stuck_steps, self.noise, 1.0) if self.noise > 0 else np.ones(n)
         return self._window.plan(pos, head, self._ptable, pslot, goals, order, scale, stop, self.lns)
+
+    def _epibt_step(self, pos, head, goals, pslot, order, rnd, deadline, hard) -> np.ndarray:
+        """PIBT's one-step answer first (the fallback, always ready), then EPIBT with LNS
+        (:class:`~.epibt.EPIBTPlan`) until ``epibt_frac`` of the way from ``deadline`` to ``hard``;
+        its first actions when it finished in time."""
+        from .epibt import EPIBTPlan
+        n = pos.shape[0]
+        nxt = np.empty(n, dtype=np.int64)
+        act = np.empty(n, dtype=np.int64)
+        self._convert(pos, head, goals, pslot, order, rnd, nxt, act)
+        if self._epibt is None or self._epibt.n != n:
+            self._epibt = EPIBTPlan(self.grid, n, seed=self.seed, **self.epibt_kw)
+        scale = np.where(self.stuck > self.stuck_steps, self.noise, 1.0) if self.noise > 0 else np.ones(n)
+        end = deadline if hard is None else deadline + self.epibt_frac * max(0.0, hard - deadline)
+        eact = self._epibt.plan(pos, head, self._ptable, pslot, goals, order, scale, end, self.lns)
+        if hard is not None and time.perf_counter() > hard:
+            self.stats["epibt_late"] = self.stats.get("epibt_late", 0) + 1
+            return act
+        self.claim[:] = -1
+        self.claim_age[:] = 0
+        return eact
 
     def _windowed(self, pos, head, goals, pslot, order, rnd, deadline, hard) -> np.ndarray:
         """PIBT's one-step answer first (the fallback, always ready), then the windowed plan of

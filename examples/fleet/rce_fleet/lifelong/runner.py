@@ -21,6 +21,7 @@ from .flow import TrafficFlow
 from .flow import warm_up as flow_warm_up
 from .guidance import lane_costs
 from .kernels import warm_up
+from .epibt import warm_up as epibt_warm_up
 from .window import warm_up as window_warm_up
 from .lorr import LorrProblem
 from .pibt import PIBTPlanner
@@ -28,7 +29,7 @@ from .scheduler import BatchScheduler, make_scheduler
 from .simulator import MAPF_T, Simulator
 
 __all__ = ["ACTIVE_DENSITY", "ACTIVE_FRAC", "CROWD_TEAM", "CROWD_W", "GUIDE_DENSITY", "LANES", "PACKED_DENSITY",
-           "RunResult", "WINDOW_DENSITY", "WINDOW_TEAM", "run_lifelong"]
+           "EPIBT_DENSITY", "OPEN_LANES", "RunResult", "WINDOW_DENSITY", "WINDOW_TEAM", "run_lifelong"]
 
 LANES = 4        # extra cost of a move against a one-way lane (measured: docs/lifelong.md)
 CROWD_W = 5.0    # scheduler's steps per robot crowding a task's errands beyond its share ...
@@ -40,6 +41,8 @@ ACTIVE_FRAC = 0.3     # robots holding a task per free cell at most (batch sched
 ACTIVE_DENSITY = 0.3  # ... in teams of this many robots per free cell or more
 WINDOW_DENSITY = 0.1  # robots per free cell from which (to PACKED_DENSITY) the windowed plan (+ LNS) leads ...
 WINDOW_TEAM = 1000    # ... for teams up to this size (larger ones not measured with it)
+EPIBT_DENSITY = 0.3   # robots per free cell from which EPIBT with LNS answers (MAPF_T) ...
+OPEN_LANES = 9        # ... and, on a map without corridors, every row and column is a lane (against: 1 + 9)
 
 
 @dataclass
@@ -66,7 +69,7 @@ def run_lifelong(problem: LorrProblem, steps: int, plan_time_limit_ms: float = 1
                  scheduler: str = "batch", model: str = MAPF_T, budget_frac: float = 0.5,
                  cache_bytes: int | None = None, lanes: int = LANES, crowd_w: float | None = None,
                  record: bool = True, guide: bool | None = None, planner_kw: dict | None = None,
-                 flow_kw: dict | None = None, max_active: int | None = None,
+                 flow_kw: dict | None = None, max_active: int | None = None, open_lanes: int | None = None,
                  progress: Callable[[int, int, float], None] | None = None) -> RunResult:
     """Run ``problem`` for ``steps`` time steps under the rules (:mod:`.simulator`).
 
@@ -83,7 +86,10 @@ def run_lifelong(problem: LorrProblem, steps: int, plan_time_limit_ms: float = 1
     free cell a robot that turns towards a cell does not hold it (``claim_steps=0``; measured there);
     from ``WINDOW_DENSITY`` to ``PACKED_DENSITY`` robots per free cell, in teams up to ``WINDOW_TEAM``,
     the planner answers with the windowed plan of operations refined by LNS (:mod:`.window`;
-    ``planner_kw={"ops": False}`` turns it off);
+    ``planner_kw={"ops": False}`` turns it off); from ``EPIBT_DENSITY`` it answers with EPIBT and
+    LNS instead (:mod:`.epibt`; ``planner_kw={"epibt": False}`` turns it off); open_lanes: on a map
+    without corridor lanes, every row and column becomes a lane with this extra cost against it
+    (None: ``OPEN_LANES`` under EPIBT, else 0);
     max_active: at most this many robots hold a task (batch scheduler); None (default):
     ``ACTIVE_FRAC`` of the free cells from ``ACTIVE_DENSITY`` robots per free cell, 0: no bound;
     progress: called after each step with (step, tasks finished, planner ms).
@@ -96,16 +102,25 @@ def run_lifelong(problem: LorrProblem, steps: int, plan_time_limit_ms: float = 1
         guide = density >= GUIDE_DENSITY
     if density >= PACKED_DENSITY:       # the cell a turning robot would hold is the one the others need
         planner_kw = {"claim_steps": 0, **(planner_kw or {})}
-    if model == MAPF_T and WINDOW_DENSITY <= density < PACKED_DENSITY and problem.team_size <= WINDOW_TEAM:
+    epibt = model == MAPF_T and density >= EPIBT_DENSITY and (planner_kw or {}).get("epibt", True)
+    if epibt:
+        planner_kw = {"epibt": True, **(planner_kw or {})}
+    elif model == MAPF_T and WINDOW_DENSITY <= density < PACKED_DENSITY and problem.team_size <= WINDOW_TEAM:
         planner_kw = {"ops": True, **(planner_kw or {})}
     if cache_bytes is None:
         cache_bytes = cache_bytes_for(grid, problem.team_size)
     warm_up()
     window_warm_up()
+    epibt_warm_up()
     if guide:
         flow_warm_up()
     t_start = time.perf_counter()
-    cache = DistanceCache(grid, max_bytes=cache_bytes, cost=lane_costs(grid, lanes) if lanes else None)
+    cost = lane_costs(grid, lanes) if lanes else None
+    if open_lanes is None:
+        open_lanes = OPEN_LANES if epibt and lanes else 0
+    if open_lanes and (cost is None or (cost == 1).all()):       # no corridors: the crisscross everywhere
+        cost = lane_costs(grid, open_lanes, everywhere=True)
+    cache = DistanceCache(grid, max_bytes=cache_bytes, cost=cost)
     if crowd_w is None:
         crowd_w = CROWD_W if problem.team_size >= CROWD_TEAM else 0.0
     sched = make_scheduler(scheduler, cache, crowd_w)
@@ -142,9 +157,10 @@ def run_lifelong(problem: LorrProblem, steps: int, plan_time_limit_ms: float = 1
         if progress is not None:
             progress(k + 1, sim.finished, dt * 1e3)
     stats = {"scheduler": scheduler, "max_active": getattr(sched, "max_active", None), "lanes": lanes,
-             "crowd_w": crowd_w, "guide": guide,
+             "crowd_w": crowd_w, "guide": guide, "epibt": epibt, "open_lanes": open_lanes,
              "claim_steps": planner.claim_steps, "scheduler_ms_total": sched_ms,
              **planner.stats, **(planner._window.stats if planner._window is not None else {}),
+             **(planner._epibt.stats if planner._epibt is not None else {}),
              **(flow.stats if flow is not None else {}),
              "distance_maps": cache.computed, "maps_evicted": cache.evicted, "cache_rows": cache.capacity,
              "cache_rows_used": len(cache)}

@@ -1,0 +1,314 @@
+"""EPIBT: PIBT over operations, every robot always holding a plan, refined by LNS.
+
+Yukhnevich and Andreychuk, "Enhancing PIBT via Multi-Action Operations" (arXiv 2511.09193,
+2025; the operations planner of the League of Robot Runners 2024). Each robot holds an
+*operation*, a sequence of ``DEPTH`` actions (:data:`~.window.OPERATIONS`), and its path in
+(cell, heading) over the window; the plans of all robots are free of vertex and swap conflicts
+at every step of the window at all times. A step starts from last step's operations continued
+(their rest, then a wait), or where those do not fit together, from waits and the continued
+operations that fit.
+
+*Build* of a robot: its plan is taken out, then its operations are tried from the cheapest; an
+operation that meets no plan is taken; one that meets exactly one robot's plan takes that
+robot's place, and that robot builds in turn (priority inheritance); one that meets two or more
+is skipped. A robot already in the chain is never displaced, and a robot is displaced at most
+``revisits`` times per pass. When the chain finds nothing every plan is put back.
+
+- **First pass**: robots in priority order build (a robot displaced earlier in the pass does not
+  build again as a root), and only robots of lower priority than the root may be displaced.
+  Priority: PIBT's (steps since the robot's goal last changed; robots without a task last). The
+  paper orders by the steps left of each robot's task; on random-32-32-20 at 400 and 700 robots
+  that finished fewer tasks here (docs/lifelong.md).
+- **LNS passes** while the step's time lasts: robots in a random order build again, any robot
+  may be displaced, and the new plans are kept only when the weighted progress of all robots
+  does not fall. Progress of a robot: the cost of waiting minus the cost of its operation
+  (:func:`~.window.op_costs`), weighted by ((n + 1 - rank) / (n + 1))^2 of its priority rank
+  (0 without a task).
+
+Only the first action of each operation is executed; it is a valid joint action by
+construction.
+"""
+from __future__ import annotations
+
+import time
+
+import numpy as np
+from numba import njit
+
+from ..numba_cache import seed
+from .window import CONTINUE, DEPTH, OPERATIONS, op_costs
+
+seed(__file__)          # numba's cache entries prepared in the tree (sandboxed nodes)
+
+__all__ = ["EPIBTPlan", "warm_up"]
+
+WAIT_OP = 0             # OPERATIONS[0]: wait, wait, wait
+
+
+@njit(cache=True)
+def _conflict(a, k, traj, res):
+    """The robot whose plan operation ``k`` of robot ``a`` meets (vertex or swap, any step of
+    the window): -1 none, -2 more than one. ``res`` (DEPTH + 1, cells): the robot at each cell
+    at each step (row 0: where the robots stand now)."""
+    depth = traj.shape[2] - 1
+    who = -1
+    for t in range(1, depth + 1):
+        v = traj[a, k, t]
+        r = res[t, v]
+        if r >= 0 and r != a:
+            if who == -1:
+                who = r
+            elif who != r:
+                return -2
+        u = traj[a, k, t - 1]
+        if v != u:
+            w = res[t - 1, v]
+            if w >= 0 and w != a and res[t, u] == w:
+                if who == -1:
+                    who = w
+                elif who != w:
+                    return -2
+    return who
+
+
+@njit(cache=True)
+def _add(a, k, traj, res, gain, score):
+    for t in range(1, traj.shape[2]):
+        res[t, traj[a, k, t]] = a
+    score[0] += gain[a, k]
+
+
+@njit(cache=True)
+def _remove(a, k, traj, res, gain, score):
+    for t in range(1, traj.shape[2]):
+        v = traj[a, k, t]
+        if res[t, v] == a:
+            res[t, v] = -1
+    score[0] -= gain[a, k]
+
+
+@njit(cache=True)
+def _build(root, inherit, keep_worse, traj, rank, gain, res, desire, prank, instack, vstamp, vnum, now, revisits,
+           max_chain, fr_a, fr_j, fr_old, fr_child, score):
+    """Build robot ``root`` (module docstring). inherit: only robots of lower priority (larger
+    ``prank``) than the root may be displaced; keep_worse: keep the result even when the
+    weighted progress ``score[0]`` fell. Returns 1 when a new plan was taken, 0 when every plan
+    was put back. fr_*: (max_chain + 1,) int64 scratch."""
+    m = rank.shape[1]
+    old_score = score[0]
+    _remove(root, desire[root], traj, res, gain, score)
+    sp = 0
+    fr_a[0] = root
+    fr_j[0] = 0
+    fr_old[0] = desire[root]
+    fr_child[0] = -1
+    instack[root] = True
+    while True:
+        a = fr_a[sp]
+        c = fr_child[sp]
+        if c >= 0:                       # the robot it displaced found nothing: both back
+            _remove(a, desire[a], traj, res, gain, score)
+            _add(c, desire[c], traj, res, gain, score)
+            fr_child[sp] = -1
+        pushed = False
+        while fr_j[sp] < m:
+            k = rank[a, fr_j[sp]]
+            fr_j[sp] += 1
+            if traj[a, k, 0] < 0:        # not allowed (the rest are not either)
+                fr_j[sp] = m
+                break
+            b = _conflict(a, k, traj, res)
+            if b == -2:
+                continue
+            if b == -1:
+                desire[a] = k
+                _add(a, k, traj, res, gain, score)
+                if not keep_worse and score[0] < old_score - 1e-9:
+                    for i in range(sp + 1):          # worse: every plan of the chain back
+                        _remove(fr_a[i], desire[fr_a[i]], traj, res, gain, score)
+                    for i in range(sp + 1):
+                        desire[fr_a[i]] = fr_old[i]
+                        _add(fr_a[i], fr_old[i], traj, res, gain, score)
+                        instack[fr_a[i]] = False
+                    return 0
+                for i in range(sp + 1):
+                    instack[fr_a[i]] = False
+                return 1
+            if instack[b] or sp + 1 >= max_chain:
+                continue
+            if vstamp[b] == now and vnum[b] >= revisits:
+                continue
+            if inherit and prank[b] <= prank[root]:
+                continue
+            desire[a] = k
+            _remove(b, desire[b], traj, res, gain, score)
+            _add(a, k, traj, res, gain, score)
+            fr_child[sp] = b
+            if vstamp[b] != now:
+                vstamp[b] = now
+                vnum[b] = 0
+            vnum[b] += 1
+            sp += 1
+            fr_a[sp] = b
+            fr_j[sp] = 0
+            fr_old[sp] = desire[b]
+            fr_child[sp] = -1
+            instack[b] = True
+            pushed = True
+            break
+        if pushed:
+            continue
+        desire[a] = fr_old[sp]           # nothing for this robot: its old plan (put back by its parent)
+        instack[a] = False
+        if sp == 0:
+            _add(a, desire[a], traj, res, gain, score)
+            return 0
+        sp -= 1
+
+
+@njit(cache=True)
+def epibt_init(traj, pos, prev, desire, res, gain, score):
+    """Every robot takes last step's operation continued (prev (n,); -1: none, then it waits).
+    When those plans meet (an action other than planned was executed), every robot waits
+    instead and takes its continued operation where it fits, in rounds until none more fits (a
+    robot that follows another fits once the one ahead moved on; robots that follow each other
+    round a cycle wait)."""
+    n = pos.shape[0]
+    depth = traj.shape[2] - 1
+    res[:] = -1
+    score[0] = 0.0
+    for a in range(n):
+        res[0, pos[a]] = a
+        k = prev[a]
+        desire[a] = k if k > 0 and traj[a, k, 0] >= 0 else 0
+        _add(a, desire[a], traj, res, gain, score)
+    whole = True
+    for a in range(n):
+        k = desire[a]
+        for t in range(1, depth + 1):
+            if res[t, traj[a, k, t]] != a:          # another robot's plan took the cell
+                whole = False
+        if whole and _conflict(a, k, traj, res) != -1:
+            whole = False
+        if not whole:
+            break
+    if whole:
+        return
+    res[1:] = -1
+    score[0] = 0.0
+    for a in range(n):
+        desire[a] = 0
+        _add(a, 0, traj, res, gain, score)
+    changed = True
+    while changed:
+        changed = False
+        for a in range(n):
+            k = prev[a]
+            if desire[a] != 0 or k <= 0 or traj[a, k, 0] < 0:
+                continue
+            _remove(a, 0, traj, res, gain, score)
+            if _conflict(a, k, traj, res) == -1:
+                desire[a] = k
+                _add(a, k, traj, res, gain, score)
+                changed = True
+            else:
+                _add(a, 0, traj, res, gain, score)
+
+
+@njit(cache=True)
+def epibt_pass(order, start, stop, inherit, keep_worse, traj, rank, gain, res, desire, prank, instack, vstamp,
+               vnum, now, revisits, max_chain, score):
+    """Robots ``order[start:stop]`` build unless displaced already in this pass (pass stamp
+    ``now``); returns how many took a new plan."""
+    fr = np.empty((4, max_chain + 1), np.int64)
+    took = 0
+    for i in range(start, stop):
+        r = order[i]
+        if vstamp[r] == now:
+            continue
+        vstamp[r] = now
+        vnum[r] = 1
+        took += _build(r, inherit, keep_worse, traj, rank, gain, res, desire, prank, instack, vstamp, vnum, now,
+                       revisits, max_chain, fr[0], fr[1], fr[2], fr[3], score)
+    return took
+
+
+class EPIBTPlan:
+    """EPIBT with LNS for a MAPF_T fleet (module docstring), one call per step.
+
+    grid: the map; n: robots; seed: the LNS's orders and the tie-breaks; keep_bonus: cost taken
+    off the operation that continues last step's (steps); revisits: times a robot may be
+    displaced per pass; max_chain: robots in one chain of displacements at most; chunk:
+    robots built per compiled call between clock checks. Memory: n x |OPERATIONS| x
+    (DEPTH + 1) int64 cells plus two float arrays of n x |OPERATIONS| (about 2 KiB per
+    robot). ``stats`` counts passes and plans taken.
+    """
+
+    def __init__(self, grid, n: int, seed: int = 0, keep_bonus: float = 0.2, revisits: int = 10,
+                 max_chain: int = 256, chunk: int = 64):
+        self.grid, self.n = grid, n
+        m = OPERATIONS.shape[0]
+        self.traj = np.empty((n, m, DEPTH + 1), np.int64)
+        self.cost = np.empty((n, m))
+        self.gain = np.empty((n, m))
+        self.rank = np.empty((n, m), np.int64)
+        self.desire = np.zeros(n, np.int64)
+        self.res = np.full((DEPTH + 1, grid.n_cells), -1, np.int64)
+        self.prev_op = np.full(n, -1, np.int64)
+        self.instack = np.zeros(n, np.bool_)
+        self.vstamp = np.zeros(n, np.int64)
+        self.vnum = np.zeros(n, np.int64)
+        self.score = np.zeros(1)
+        self.now = 0
+        self.keep_bonus, self.revisits, self.max_chain, self.chunk = keep_bonus, revisits, max_chain, chunk
+        self.rng = np.random.default_rng(seed)
+        self.stats = {"epibt_steps": 0, "epibt_passes": 0, "epibt_taken": 0, "epibt_unfinished": 0}
+
+    def _pass(self, order: np.ndarray, inherit: bool, keep_worse: bool, prank: np.ndarray, stop: float) -> bool:
+        """One pass over ``order`` in chunks; False when ``stop`` came first."""
+        self.now += 1
+        for s in range(0, len(order), self.chunk):
+            if time.perf_counter() >= stop:
+                return False
+            self.stats["epibt_taken"] += epibt_pass(
+                order, s, min(len(order), s + self.chunk), inherit, keep_worse, self.traj, self.rank, self.gain,
+                self.res, self.desire, prank, self.instack, self.vstamp, self.vnum, self.now, self.revisits,
+                self.max_chain, self.score)
+        self.stats["epibt_passes"] += 1
+        return True
+
+    def plan(self, pos: np.ndarray, head: np.ndarray, dist: np.ndarray, slot: np.ndarray, goal: np.ndarray,
+             order: np.ndarray, rnd: np.ndarray, stop: float, lns: bool = True) -> np.ndarray:
+        """The first actions (n,) int64 of the plans. pos, head, goal, slot (n,) int64 (slot:
+        the robot's row in ``dist``, -1 without a goal); order (n,) int64: robots by decreasing
+        priority; rnd (n,) tie-break scale. The first pass, then LNS passes (with ``lns``), run
+        until ``time.perf_counter()`` reaches ``stop``; what is built by then is answered
+        (always a valid joint action)."""
+        n = len(pos)
+        op_costs(self.grid.nbr, OPERATIONS, pos, head, dist, slot, goal, rnd, self.prev_op, self.keep_bonus,
+                 int(self.rng.integers(2 ** 31)), self.traj, self.cost, self.rank)
+        prank = np.empty(n, np.int64)
+        prank[order] = np.arange(n)
+        power = np.where(slot >= 0, ((n + 1 - prank) / (n + 1)) ** 2, 0.0)
+        allowed = self.traj[:, :, 0] >= 0
+        self.gain[:] = np.where(allowed, power[:, None] * (self.cost[:, :1] - np.where(allowed, self.cost, 0.0)),
+                                0.0)
+        epibt_init(self.traj, pos, self.prev_op, self.desire, self.res, self.gain, self.score)
+        done = self._pass(order, True, True, prank, stop)
+        if not done:
+            self.stats["epibt_unfinished"] += 1
+        while lns and done and time.perf_counter() < stop:
+            done = self._pass(self.rng.permutation(n).astype(np.int64), False, False, prank, stop)
+        self.stats["epibt_steps"] += 1
+        self.prev_op = CONTINUE[self.desire]
+        return OPERATIONS[self.desire, 0].copy()
+
+
+def warm_up() -> None:
+    """Compile (or load from numba's cache) this module's kernels on a 3 x 3 grid."""
+    from .grid import LifelongGrid
+    g = LifelongGrid(np.ones((3, 3), dtype=bool))
+    dist = np.zeros((1, g.n_cells), dtype=np.uint16)
+    e = EPIBTPlan(g, 2)
+    e.plan(np.array([0, 4], np.int64), np.zeros(2, np.int64), dist, np.array([0, -1], np.int64),
+           np.array([8, -1], np.int64), np.arange(2, dtype=np.int64), np.zeros(2), time.perf_counter() + 0.01)

@@ -1,0 +1,145 @@
+"""rce_fleet.lifelong.epibt: every robot holds a plan free of conflicts over the whole window at
+all times, a robot of higher priority displaces one in its way, LNS never lowers the weighted
+progress, a step cut short still answers a valid joint action, and the runner turns EPIBT and the
+open-map lanes on where they were measured to pay."""
+from __future__ import annotations
+
+import time
+from pathlib import Path
+
+import numpy as np
+
+from rce_fleet.lifelong import DistanceCache, LifelongGrid, check_actions
+from rce_fleet.lifelong.epibt import EPIBTPlan, epibt_init, epibt_pass, warm_up
+from rce_fleet.lifelong.guidance import lane_costs
+from rce_fleet.lifelong.grid import EAST, NORTH, SOUTH, WEST
+from rce_fleet.lifelong.kernels import ACT_F, ACT_W
+from rce_fleet.lifelong.window import DEPTH, OPERATIONS
+
+from .test_lifelong_window import _packed, drive_packed
+
+
+def _check_plans(g, e, pos):
+    """Every step of the window: no two robots on a cell, no swap, moves along the map; and the
+    reservation table says exactly where each robot's plan is."""
+    n = len(pos)
+    cells = e.traj[np.arange(n), e.desire]                   # (n, DEPTH + 1)
+    assert (cells[:, 0] == pos).all() and (e.traj[np.arange(n), e.desire, 0] >= 0).all()
+    for t in range(1, DEPTH + 1):
+        assert len(set(cells[:, t].tolist())) == n, f"two robots on a cell at step {t}"
+        assert (e.res[t][cells[:, t]] == np.arange(n)).all() and (e.res[t] >= 0).sum() == n
+        before = {int(c): a for a, c in enumerate(cells[:, t - 1])}
+        for a in np.flatnonzero(cells[:, t] != cells[:, t - 1]):
+            assert cells[a, t] in g.nbr[cells[a, t - 1]]
+            b = before.get(int(cells[a, t]))
+            assert b is None or cells[b, t] != cells[a, t - 1], f"swap of {a} and {b} at step {t}"
+
+
+def _slots(cache, goals):
+    return np.array([cache.slot(int(x)) if x >= 0 else -1 for x in goals], dtype=np.int64)
+
+
+def test_plans_are_conflict_free_and_lns_never_lowers_the_weighted_progress():
+    warm_up()
+    for seed in range(4):
+        g, pos, head, goals = _packed(seed)
+        cache = DistanceCache(g, max_bytes=2 ** 24)
+        slot = _slots(cache, goals)
+        order = np.random.default_rng(seed).permutation(len(pos)).astype(np.int64)
+        e = EPIBTPlan(g, len(pos), seed=seed)
+        act = e.plan(pos, head, cache.table, slot, goals, order, np.ones(len(pos)), time.perf_counter() + 5, lns=False)
+        _check_plans(g, e, pos)
+        assert check_actions(g, pos, head, act)[2] == []
+        first = float(e.score[0])
+        assert first > 0                                     # robots with a task make progress
+        prank = np.empty(len(pos), np.int64)
+        prank[order] = np.arange(len(pos))
+        for k in range(20):                                  # LNS passes: any robot displaced, kept if not worse
+            e.now += 1
+            perm = np.random.default_rng(k).permutation(len(pos)).astype(np.int64)
+            epibt_pass(perm, 0, len(perm), False, False, e.traj, e.rank, e.gain, e.res, e.desire, prank, e.instack,
+                       e.vstamp, e.vnum, e.now, e.revisits, e.max_chain, e.score)
+            assert e.score[0] >= first - 1e-6
+            _check_plans(g, e, pos)
+        # the score is the weighted progress of the plans held, recomputed from scratch
+        assert abs(e.gain[np.arange(len(pos)), e.desire].sum() - e.score[0]) < 1e-6
+
+
+def test_a_robot_of_higher_priority_displaces_the_one_in_its_way():
+    # a one-cell corridor: robot 1 stands east of robot 0, facing east; robot 0 (first in priority)
+    # wants the east end; robot 1 has no task and its plan (wait) is in the way
+    g = LifelongGrid(np.ones((1, 5), dtype=bool))
+    cache = DistanceCache(g, max_bytes=2 ** 20)
+    pos = np.array([1, 2], dtype=np.int64)
+    head = np.array([EAST, EAST], dtype=np.int64)
+    goals = np.array([4, -1], dtype=np.int64)
+    e = EPIBTPlan(g, 2)
+    act = e.plan(pos, head, cache.table, _slots(cache, goals), goals, np.array([0, 1], np.int64), np.zeros(2),
+                 time.perf_counter() + 5, lns=False)
+    assert OPERATIONS[e.desire[0]].tolist() == [ACT_F, ACT_F, ACT_W] or act[0] == ACT_F
+    assert act.tolist() == [ACT_F, ACT_F]                    # both move: the front one makes way
+    assert OPERATIONS[e.desire[1]].tolist()[:2] == [ACT_F, ACT_F]
+    # the other way round, robot 1 may not displace robot 0 in the first pass: robot 0 first
+    e2 = EPIBTPlan(g, 2)
+    goals2 = np.array([-1, 0], dtype=np.int64)
+    head2 = np.array([NORTH, WEST], dtype=np.int64)
+    act2 = e2.plan(pos, head2, cache.table, _slots(cache, goals2), goals2, np.array([0, 1], np.int64),
+                   np.zeros(2), time.perf_counter() + 5, lns=False)
+    assert check_actions(g, pos, head2, act2)[2] == []
+    assert act2[1] != ACT_F                                  # robot 0 (higher priority, no task) holds its cell
+
+
+def test_last_steps_plans_continue_and_a_step_cut_short_still_answers_a_valid_action():
+    g, pos, head, goals = _packed(3, 12, 12, 110)
+    cache = DistanceCache(g, max_bytes=2 ** 24)
+    slot = _slots(cache, goals)
+    order = np.arange(len(pos), dtype=np.int64)
+    e = EPIBTPlan(g, len(pos), seed=2)
+    act = e.plan(pos, head, cache.table, slot, goals, order, np.ones(len(pos)), time.perf_counter() + 0.05)
+    new_pos, new_head, errors = check_actions(g, pos, head, act)
+    assert errors == []
+    # the continuation of every plan fits the next step's start (nothing else moved)
+    res = np.full_like(e.res, -1)
+    desire = np.zeros(len(pos), np.int64)
+    e2 = EPIBTPlan(g, len(pos), seed=2)
+    e2.prev_op = e.prev_op.copy()
+    e2.plan(new_pos, new_head, cache.table, slot, goals, order, np.ones(len(pos)), time.perf_counter() + 5, lns=False)
+    score = np.zeros(1)
+    epibt_init(e2.traj, new_pos, e.prev_op, desire, res, e2.gain, score)
+    moving = OPERATIONS[e.prev_op][:, 0] != ACT_W
+    assert (desire[moving] == e.prev_op[moving]).all()
+    # a deadline already past: the first pass stops at once, yet the answer is valid
+    act3 = e2.plan(new_pos, new_head, cache.table, slot, goals, order, np.ones(len(pos)), time.perf_counter() - 1)
+    assert check_actions(g, new_pos, new_head, act3)[2] == []
+    assert e2.stats["epibt_unfinished"] == 1
+    _check_plans(g, e2, new_pos)
+
+
+def test_planner_with_epibt_keeps_every_step_valid_and_reaches_goals_on_a_packed_map():
+    planner = drive_packed(soft=0.02, hard=0.05, epibt=True)
+    assert planner._epibt.stats["epibt_steps"] == 40 and planner._epibt.stats["epibt_passes"] >= 40
+
+
+def test_open_lanes_cross_every_row_and_column_and_corridor_lanes_stay_as_they_were():
+    g = LifelongGrid(np.ones((4, 4), dtype=bool))
+    assert (lane_costs(g, 4) == 1).all()                     # an open map has no corridor lanes
+    c = lane_costs(g, 9, everywhere=True)
+    assert c[0, WEST] == 10 and c[0, EAST] == 1              # row 0 runs east
+    assert c[4, EAST] == 10 and c[4, WEST] == 1              # row 1 runs west
+    assert c[0, NORTH] == 10 and c[1, SOUTH] == 10           # column 0 runs south, column 1 north
+    assert int(c.max()) == 10 and int(c.min()) == 1
+
+
+def test_runner_answers_with_epibt_and_open_lanes_from_0_3_robots_per_free_cell():
+    from rce_fleet.lifelong.lorr import LorrProblem
+    from rce_fleet.lifelong.runner import EPIBT_DENSITY, OPEN_LANES, run_lifelong
+    g = LifelongGrid(np.ones((8, 8), dtype=bool))
+    rng = np.random.default_rng(0)
+    tasks = [tuple(int(c) for c in rng.choice(64, size=2, replace=False)) for _ in range(200)]
+    for n, on in ((12, False), (int(EPIBT_DENSITY * 64) + 4, True)):
+        prob = LorrProblem(Path("open8.json"), g, np.arange(n, dtype=np.int64) * 2 % 64, tasks, n, 1.5)
+        r = run_lifelong(prob, 30, plan_time_limit_ms=200, seed=0)
+        s = r.summary()
+        assert s["invalid_steps"] == 0 and s["timeouts"] == 0
+        assert s["epibt"] is on and s["open_lanes"] == (OPEN_LANES if on else 0)
+        assert (s.get("epibt_steps", 0) == 30) is on
