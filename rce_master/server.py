@@ -210,6 +210,7 @@ class Master:
         self.admin = AdminApi(self.state, self.control, admin_token, self.users, self.office, self.placement,
                               self.passwords)
         self.robot_locks: dict[tuple[str, str], asyncio.Lock] = defaultdict(asyncio.Lock)
+        self.robot_logins: dict[tuple[str, str], tuple[int, str]] = {}   # robot -> (endpoint tid, its login's session)
         self.tasks = Tasks("rce-master")
         self.failover = Failover(self.state, self.control, self.tasks)
         self.metrics = MasterMetrics(self.state, self.office, self.failover)
@@ -374,6 +375,9 @@ class Master:
         return {}
 
     async def _robot_connected(self, tid: int, args: dict) -> dict:
+        """``robot_connected {user, robot, session?}``: a login of the robot was accepted on endpoint
+        ``tid``; ``session`` names it (an endpoint's own id of the login), so that only the
+        disconnect of that session ends the robot's namespace (:meth:`_robot_disconnected`)."""
         user, robot = args["user"], args["robot"]
         old = self.state.robot(user, robot)
         host = self.state.tasksets.get(old.tid) if old is not None else None
@@ -386,6 +390,12 @@ class Master:
                             "restarted")
             async with self.robot_locks[(user, robot)]:
                 await self.control.robot_gone(user, robot)
+        elif old is not None and old.tid == tid and self._replaces(tid, args):
+            # a new login of the robot on the endpoint that still holds its previous session, whose end
+            # has not been told yet: that session is over (its late disconnect is then ignored)
+            log.info("robot's previous session ended: a new login replaced it", user=user, robot=robot)
+            async with self.robot_locks[(user, robot)]:
+                await self.control.robot_gone(user, robot)
         elif old is not None and old.tid != tid and host is not None and host.lost:
             # its old endpoint is absent (it died, or has not come back since the master restarted): the
             # robot takes its namespace over here, once its session is open on this endpoint
@@ -393,11 +403,27 @@ class Master:
             await self.state.store.flush()
             log.info("robot moved", user=user, robot=robot, old_tid=old.tid, tid=tid, interfaces=len(recs))
             self.tasks.spawn(self._robot_moved(user, robot, recs), name=f"robot-{user}/{robot}-moved")
+            self._logged_in(tid, args)
             return {}
         self.state.robot_connect(user, robot, tid)
         await self.state.store.flush()
+        self._logged_in(tid, args)
         log.info("robot connected", user=user, robot=robot)
         return {}
+
+    def _replaces(self, tid: int, args: dict) -> bool:
+        """Whether login ``args`` on endpoint ``tid`` names another session than the robot's last one there."""
+        last, session = self.robot_logins.get((args["user"], args["robot"])), args.get("session")
+        return isinstance(session, str) and last is not None and last[0] == tid and last[1] != session
+
+    def _logged_in(self, tid: int, args: dict) -> None:
+        """Remember the session a robot's accepted login opened on endpoint ``tid`` (none named: an
+        older endpoint, whose disconnects end the namespace whichever session they end)."""
+        key, session = (args["user"], args["robot"]), args.get("session")
+        if isinstance(session, str):
+            self.robot_logins[key] = (tid, session)
+        else:
+            self.robot_logins.pop(key, None)
 
     async def _robot_relay(self, tid: int, args: dict) -> dict:
         """``robot_relay {user, robot, relay}``: the robot's link to the cloud goes through robot ``relay``
@@ -428,9 +454,20 @@ class Master:
             await self.state.store.flush()
 
     async def _robot_disconnected(self, tid: int, args: dict) -> dict:
+        """``robot_disconnected {user, robot, session?}``: the robot's session on endpoint ``tid``
+        ended; its namespace goes unless it is no longer on that endpoint, or the disconnect names
+        another session than the robot's last login (an old session's late end, after a new login
+        of the same robot: the new one keeps its interfaces)."""
         r = self.state.robot(args["user"], args["robot"])
         if r is None or r.tid != tid:          # not (or no longer) on this endpoint: nothing to forget
             return {}
+        key = (args["user"], args["robot"])
+        session, last = args.get("session"), self.robot_logins.get(key)
+        if isinstance(session, str) and last is not None and last != (tid, session):
+            log.info("an old session's end ignored: the robot logged in again since", user=key[0], robot=key[1],
+                     session=session)
+            return {}
+        self.robot_logins.pop(key, None)
         async with self.robot_locks[(args["user"], args["robot"])]:
             await self.control.robot_gone(args["user"], args["robot"])
         self.robot_locks.pop((args["user"], args["robot"]), None)

@@ -6,6 +6,7 @@ from __future__ import annotations
 import asyncio
 import hashlib
 import hmac
+import secrets
 import socket
 import ssl
 from collections import Counter
@@ -418,9 +419,11 @@ class RobotEndpoint:
         if old is not None and old.detached:      # a new login (no token) ends the detached session first
             await old.close("a new login replaced this session")
         try:
-            await self.master.call("robot_connected", user=user, robot=robot)
+            login = secrets.token_hex(8)      # names this login's session in robot_disconnected
+            await self.master.call("robot_connected", user=user, robot=robot, session=login)
         except RCEError as e:
             return connection.respond(HTTPStatus.CONFLICT, e.message + "\n")
+        connection.rce_login = login
         connection.rce_identity, connection.rce_resume = (user, robot), q.get("resume") == "1"
         connection.rce_ack, connection.rce_max_lag, connection.rce_relay = None, max_lag, relay_name(q)
         self.opening.setdefault((user, robot), asyncio.Event())
@@ -483,6 +486,7 @@ class RobotEndpoint:
         resume = ResumeOptions(grace=self.grace, buffer=self.resume_buffer) if ws.rce_resume else None
         session = RobotSession(robot, limits, resume, budget=self.budget)
         ns = RobotNamespace(user, robot, self.master, session, on_gone=self._session_gone, parser=self.parser)
+        ns.login = getattr(ws, "rce_login", None)
         self.namespaces[(user, robot)] = ns
         if (opened := self.opening.pop((user, robot), None)) is not None:
             opened.set()
@@ -524,7 +528,7 @@ class RobotEndpoint:
         for iid in [i for i, itf in self.by_iid.items() if itf.link is ns]:
             del self.by_iid[iid]
         try:
-            await self.master.call("robot_disconnected", user=user, robot=robot)
+            await self.master.call("robot_disconnected", user=user, robot=robot, session=ns.login)
         except RCEError as e:
             log.warning("could not report disconnect", robot=robot, reason=str(e))
         log.info("robot disconnected", user=user, robot=robot)

@@ -77,6 +77,7 @@ class RobotNamespace:
         self.forms = JsonForms(learn=True)   # the JSON forms the robot gets back (docs/INTERNALS.md)
         self.tasks = Tasks(f"robot {user}/{robot}")        # the session's: requests, calls, the grace timer
         self.ws: Any = None                                 # the link being served; None while detached
+        self.login: str | None = None                       # the endpoint's name of the login that opened it
         self.ended = False
         self.detached_since: float | None = None            # monotonic s
         self._on_gone = on_gone
