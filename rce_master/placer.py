@@ -33,8 +33,8 @@ from dataclasses import asdict, dataclass, field
 
 from rce.protocol.zones import Zone
 
-__all__ = ["LATE_WINDOW_S", "MIN_RESULTS", "MISS_RATE_OK", "Choice", "ContainerView", "EnergyModel", "HostView",
-           "LinkView", "Option", "Placer", "choose", "late_share", "options"]
+__all__ = ["LATE_RECORD_S", "LATE_WINDOW_S", "MIN_RESULTS", "MISS_RATE_OK", "Choice", "ContainerView", "EnergyModel",
+           "HostView", "LinkView", "Option", "Placer", "choose", "late_share", "options"]
 
 
 @dataclass(frozen=True)
@@ -237,18 +237,30 @@ def _words(o: Option) -> str:
             f"robot {o.robot_w:.2f} W")
 
 
+#: s a host where a container's own results were late (its late share, :func:`late_share`) stays known
+#: for it: the model's mean hides a heavy tail (one scan in ten that takes 4x the work), the record does not
+LATE_RECORD_S = 120.0
+
+
 class Placer:
     """The placer's memory across decisions: per container, when a better host was first seen and
     when it last moved, so that a move happens only once the better host has held for
     ``settle_s`` (``settle_miss_s`` when the host it runs on misses its deadline) and never twice
-    within ``dwell_s`` (times: the caller's clock, s)."""
+    within ``dwell_s``; and the hosts where its own results were late (more than
+    :data:`MISS_RATE_OK` in two windows in a row) in the last ``late_record_s``: while the host it
+    runs on meets its deadline, it is not moved to such a host for more margin or less energy
+    (meeting the deadline comes first, and there it was measured not to). Times: the caller's
+    clock, s."""
 
     def __init__(self, settle_s: float = 0.5, dwell_s: float = 10.0, margin_gain: float = 0.2,
-                 energy_gain: float = 0.2, energy: EnergyModel = EnergyModel(), settle_miss_s: float = 0.2):
+                 energy_gain: float = 0.2, energy: EnergyModel = EnergyModel(), settle_miss_s: float = 0.2,
+                 late_record_s: float = LATE_RECORD_S):
         self.settle_s, self.dwell_s, self.settle_miss_s = settle_s, dwell_s, settle_miss_s
         self.margin_gain, self.energy_gain, self.energy = margin_gain, energy_gain, energy
+        self.late_record_s = late_record_s
         self._better_since: dict[tuple[str, str], tuple[int, float]] = {}
         self._moved_at: dict[tuple[str, str], float] = {}
+        self._late_at: dict[tuple[str, str], dict[int, float]] = {}    # container -> host tid -> when it was late there
 
     def decide(self, now: float, c: ContainerView, hosts: list[HostView], links: dict[str, LinkView],
                current_tid: int | None, battery_low: bool = False) -> Choice:
@@ -256,6 +268,14 @@ class Placer:
         key = (c.user, c.ctag)
         ch = choose(options(c, hosts, links, self.energy, current_tid), current_tid, battery_low, self.margin_gain,
                     self.energy_gain, c.deadline_ms)
+        late = self._late_at.setdefault(key, {})
+        if current_tid is not None and c.miss_rate is not None and c.miss_rate > MISS_RATE_OK:
+            late[current_tid] = now
+        if ch.move and ch.current is not None and ch.current.meets and \
+                now - late.get(ch.target.tid, -float("inf")) <= self.late_record_s:
+            ago = now - late[ch.target.tid]
+            ch = Choice(ch.target, ch.current, False, f"{ch.why}; but its results were late on {ch.target.zone} "
+                                                      f"{ago:.0f} s ago: stays", ch.options)
         if not ch.move:
             self._better_since.pop(key, None)
             return ch
@@ -278,3 +298,4 @@ class Placer:
         """Drop what is kept of a container that is gone."""
         self._better_since.pop((user, ctag), None)
         self._moved_at.pop((user, ctag), None)
+        self._late_at.pop((user, ctag), None)

@@ -216,3 +216,26 @@ def test_a_link_rate_once_measured_is_kept_as_a_bound_while_reports_carry_none()
     ch = Placer(settle_s=0.0, settle_miss_s=0.0).decide(101.0, stream, [CLOUD, ROBOT],
                                                         {"cloud": p.links[("alice", "r1")]}, ROBOT.tid)
     assert ch.move and ch.target.tid == CLOUD.tid
+
+
+def test_no_move_for_margin_or_energy_to_a_host_where_its_own_results_were_late():
+    from rce_master.placer import LATE_RECORD_S
+    p = Placer(settle_s=0.0, settle_miss_s=0.0, dwell_s=0.0)
+    light = {**NODE.__dict__, "work_ms": 6.0}                              # 20 ms on the robot's 0.3 cores, by the mean
+    on_robot = ContainerView(**{**light, "miss_rate": 0.17})               # but its heavy scans miss there
+    ch = p.decide(10.0, on_robot, [CLOUD, ROBOT], GOOD, ROBOT.tid)
+    assert ch.move and ch.target.tid == CLOUD.tid, "the robot misses by its record: to the cloud"
+    p.moved(10.0, "alice", "costmap")
+    slow_link = {"cloud": LinkView(rtt_ms=30, rate=1e6)}                     # the model's robot has more margin
+    in_cloud = ContainerView(**{**light, "miss_rate": 0.0})
+    assert choose(options(in_cloud, [CLOUD, ROBOT], slow_link, current_tid=CLOUD.tid), CLOUD.tid,
+                  deadline_ms=100).move
+    ch = p.decide(20.0, in_cloud, [CLOUD, ROBOT], slow_link, CLOUD.tid)
+    assert not ch.move and "late on robot:r1" in ch.why
+    assert not p.decide(21.0, in_cloud, [CLOUD, ROBOT], slow_link, CLOUD.tid, battery_low=True).move
+    assert p.decide(10.0 + LATE_RECORD_S + 1, in_cloud, [CLOUD, ROBOT], slow_link, CLOUD.tid).move, \
+        "the record is kept for LATE_RECORD_S"
+    # where it runs misses its deadline, a host with a late record may still take it (it missed less)
+    q = Placer(settle_s=0.0, settle_miss_s=0.0, dwell_s=0.0)
+    q.decide(0.0, on_robot, [CLOUD, ROBOT], GOOD, ROBOT.tid)
+    assert q.decide(1.0, NODE, [CLOUD, ROBOT], BAD, CLOUD.tid).move
