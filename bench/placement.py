@@ -544,12 +544,14 @@ def targets(systems: dict, phase_s: float) -> dict:
             at = phase_s * k
             word = next((w for w in words if w["t_s"] >= at), None)
             move = next((m for m in pm if at - 0.5 <= m["began_s"] < at + phase_s), None)
-            reactions.append({"change": PHASES[k], "at_s": at,
-                              "word_changed_after_s": None if word is None or word["t_s"] >= at + phase_s
-                              else round(word["t_s"] - at, 2), "word": word,
-                              "moved_after_s": None if move is None else round(move["began_s"] - at, 2)})
+            changed = None if word is None or word["t_s"] >= at + phase_s else round(word["t_s"] - at, 2)
+            moved = None if move is None else round(move["began_s"] - at, 2)
+            # the placer's word is sampled every POLL s: a move that began first is its decision
+            decided = min((x for x in (changed, moved) if x is not None), default=None)
+            reactions.append({"change": PHASES[k], "at_s": at, "word_changed_after_s": changed, "word": word,
+                              "moved_after_s": moved, "decided_after_s": decided})
         out["reactions"] = reactions
-        seen = [r["word_changed_after_s"] for r in reactions if r["word_changed_after_s"] is not None]
+        seen = [r["decided_after_s"] for r in reactions if r["decided_after_s"] is not None]
         out["decides_within_2s"] = all(x <= 2.0 for x in seen) if seen else None
         out["never_twice_within_hysteresis"] = all(b["began_s"] - a["ended_s"] >= dwell - 0.1
                                                    for a, b in zip(pm, pm[1:], strict=False))

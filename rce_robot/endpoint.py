@@ -319,8 +319,8 @@ class RobotEndpoint:
                     self.master.notify("robot_battery", user=user, robot=robot, percent=round(ns.battery, 2))
 
     async def _probe(self) -> None:
-        """Probe the uplink's rate (:func:`~rce_robot.link_report.probe_rate`): a small ``link_probe``
-        to the master and one of :data:`~rce_robot.link_report.PROBE_BYTES` right behind it; a master
+        """Probe the uplink's rate (:func:`~rce_robot.link_report.probe_rate`): two ``link_probe``
+        requests of :data:`~rce_robot.link_report.PROBE_BYTES` to the master, back to back; a master
         without the op (older) is not probed again."""
         loop = asyncio.get_running_loop()
         done: dict[str, float] = {}
@@ -329,7 +329,8 @@ class RobotEndpoint:
             await self.master.call("link_probe", timeout=PROBE_TIMEOUT, pad=pad)
             done[name] = loop.time()
         try:
-            await asyncio.gather(one("small", ""), one("large", "x" * link_report.PROBE_BYTES))
+            pad = "x" * link_report.PROBE_BYTES
+            await asyncio.gather(one("first", pad), one("second", pad))
         except (ProtocolError, RequestError) as e:     # an older master: unknown op
             self._probe_ok = False
             log.info("the master takes no link probes: the uplink's rate is measured on busy data links only",
@@ -337,7 +338,7 @@ class RobotEndpoint:
             return
         except RCEError:
             return                        # no master now, or a link too slow for the timeout: no sample
-        self.uplink.probed(loop.time(), link_report.probe_rate(done["small"], done["large"]))
+        self.uplink.probed(loop.time(), link_report.probe_rate(done["first"], done["second"]))
 
     def _master_socket(self) -> Any:
         peer = self.master.peer if self.master is not None else None

@@ -11,9 +11,9 @@ Where the link is measured depends on where the robot endpoint stands:
   control link to the master, and the delivery rate of its data links to the other hosts whenever
   they carried more than they were app-limited by. While no data link measures a rate (they are
   idle or app-limited: a link that carries little says nothing of its rate), the endpoint probes
-  the link every :data:`PROBE_EVERY` s (:func:`probe_rate`): a small request to the master and,
-  right behind it, one of :data:`PROBE_BYTES`; the time between their answers is what the link
-  took to carry the larger one. The last rate measured either way is kept (never forgotten for
+  the link every :data:`PROBE_EVERY` s (:func:`probe_rate`): two requests of :data:`PROBE_BYTES`
+  each to the master, back to back; the time between their answers is what the link took to carry
+  the second. The last rate measured either way is kept (never forgotten for
   being old: a link that could not carry a stream stays that thin until a fresh measure says
   otherwise)."""
 from __future__ import annotations
@@ -30,8 +30,9 @@ EVERY = 0.25      # s between looks at the robots' sockets
 CHANGE = 0.2      # a report when the round trip or the rate moved by this share
 REFRESH = 10.0    # s, a report at least this often per robot
 BATTERY_STEP = 1.0   # percentage points a robot's charge moves before the master is told again
-PROBE_BYTES = 12_000   # bytes of a probe: within a TCP initial window (10 segments), so one flight after idle
-PROBE_EVERY = 1.0      # s between probes while no data link measures the rate (~96 kbit/s of the link's time)
+PROBE_BYTES = 12_000   # bytes of each of a probe's two requests (the first drains a shaper's burst allowance, up to
+                       # its size; both fit in ~2 TCP initial windows)
+PROBE_EVERY = 1.0      # s between probes while no data link measures the rate (24 kB: ~190 kbit/s of the link's time)
 PROBE_KEEP_S = 3.5     # s of probes the rate is the best of (a probe's error only ever adds time: the fastest
                        # of the last few is the nearest to the link's rate)
 
@@ -69,14 +70,15 @@ def websocket_link(ws: Any) -> tuple[float, float] | None:
     return link_info(sock) if sock is not None else None
 
 
-def probe_rate(small_done_s: float, large_done_s: float, nbytes: int = PROBE_BYTES) -> float:
-    """The link's rate (bytes/s) from a probe: a small message and, sent right behind it, one of
-    ``nbytes`` more bytes, answered at monotonic ``small_done_s`` and ``large_done_s`` s. The larger
-    one waited behind the smaller at the link's bottleneck, so the time between the answers is what
-    the link took to carry ``nbytes`` (packet-pair dispersion: the round trip cancels). A spacing
-    under 0.1 ms counts as 0.1 ms (the clock's and the loop's grain: a rate above ``nbytes`` /
-    0.1 ms is not told apart)."""
-    return nbytes / max(large_done_s - small_done_s, 1e-4)
+def probe_rate(first_done_s: float, second_done_s: float, nbytes: int = PROBE_BYTES) -> float:
+    """The link's rate (bytes/s) from a probe: two messages of ``nbytes`` sent back to back,
+    answered at monotonic ``first_done_s`` and ``second_done_s`` s. The second waited behind the
+    first at the link's bottleneck, so the time between the answers is what the link took to carry
+    ``nbytes`` (packet-pair dispersion: the round trip cancels; the first also drains a shaper's
+    burst allowance, so that a burst up to ``nbytes`` cannot pass the second at line rate, and a
+    larger one, up to ``2 * nbytes``, makes the rate look at most ``nbytes / (2 * nbytes - burst)``
+    times too fast). A spacing under 0.1 ms counts as 0.1 ms (the clock's and the loop's grain)."""
+    return nbytes / max(second_done_s - first_done_s, 1e-4)
 
 
 class Uplink:
