@@ -319,9 +319,10 @@ class RobotEndpoint:
                     self.master.notify("robot_battery", user=user, robot=robot, percent=round(ns.battery, 2))
 
     async def _probe(self) -> None:
-        """Probe the uplink's rate (:func:`~rce_robot.link_report.probe_rate`): two ``link_probe``
-        requests of :data:`~rce_robot.link_report.PROBE_BYTES` to the master, back to back; a master
-        without the op (older) is not probed again."""
+        """Probe the uplink's rate (:func:`~rce_robot.link_report.probe_rate`): a ``link_probe`` request
+        of :data:`~rce_robot.link_report.PROBE_DRAIN_BYTES` to the master and one of
+        :data:`~rce_robot.link_report.PROBE_BYTES` right behind it; a master without the op (older) is
+        not probed again."""
         loop = asyncio.get_running_loop()
         done: dict[str, float] = {}
 
@@ -329,8 +330,8 @@ class RobotEndpoint:
             await self.master.call("link_probe", timeout=PROBE_TIMEOUT, pad=pad)
             done[name] = loop.time()
         try:
-            pad = "x" * link_report.PROBE_BYTES
-            await asyncio.gather(one("first", pad), one("second", pad))
+            await asyncio.gather(one("first", "x" * link_report.PROBE_DRAIN_BYTES),
+                                 one("second", "x" * link_report.PROBE_BYTES))
         except (ProtocolError, RequestError) as e:     # an older master: unknown op
             self._probe_ok = False
             log.info("the master takes no link probes: the uplink's rate is measured on busy data links only",

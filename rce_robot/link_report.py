@@ -11,9 +11,9 @@ Where the link is measured depends on where the robot endpoint stands:
   control link to the master, and the delivery rate of its data links to the other hosts whenever
   they carried more than they were app-limited by. While no data link measures a rate (they are
   idle or app-limited: a link that carries little says nothing of its rate), the endpoint probes
-  the link every :data:`PROBE_EVERY` s (:func:`probe_rate`): two requests of :data:`PROBE_BYTES`
-  each to the master, back to back; the time between their answers is what the link took to carry
-  the second. The last rate measured either way is kept (never forgotten for
+  the link every :data:`PROBE_EVERY` s (:func:`probe_rate`): a request of :data:`PROBE_DRAIN_BYTES`
+  to the master and one of :data:`PROBE_BYTES` right behind it; the time between their answers is
+  what the link took to carry the second. The last rate measured either way is kept (never forgotten for
   being old: a link that could not carry a stream stays that thin until a fresh measure says
   otherwise)."""
 from __future__ import annotations
@@ -23,16 +23,16 @@ from typing import Any
 
 from rce.transport.lane_socket import link_info, link_sample, socket_of
 
-__all__ = ["BATTERY_STEP", "CHANGE", "EVERY", "PROBE_BYTES", "PROBE_EVERY", "PROBE_KEEP_S", "REFRESH", "LinkReports",
-           "Uplink", "probe_rate", "websocket_link"]
+__all__ = ["BATTERY_STEP", "CHANGE", "EVERY", "PROBE_BYTES", "PROBE_DRAIN_BYTES", "PROBE_EVERY", "PROBE_KEEP_S",
+           "REFRESH", "LinkReports", "Uplink", "probe_rate", "websocket_link"]
 
 EVERY = 0.25      # s between looks at the robots' sockets
 CHANGE = 0.2      # a report when the round trip or the rate moved by this share
 REFRESH = 10.0    # s, a report at least this often per robot
 BATTERY_STEP = 1.0   # percentage points a robot's charge moves before the master is told again
-PROBE_BYTES = 12_000   # bytes of each of a probe's two requests (the first drains a shaper's burst allowance, up to
-                       # its size; both fit in ~2 TCP initial windows)
-PROBE_EVERY = 1.0      # s between probes while no data link measures the rate (24 kB: ~190 kbit/s of the link's time)
+PROBE_DRAIN_BYTES = 32_000   # bytes of a probe's first request: it drains a shaper's burst allowance (up to its size)
+PROBE_BYTES = 16_000   # bytes of its second request, which the link's rate spaces from the first
+PROBE_EVERY = 1.0      # s between probes while no data link measures the rate (48 kB: ~380 kbit/s of the link's time)
 PROBE_KEEP_S = 3.5     # s of probes the rate is the best of (a probe's error only ever adds time: the fastest
                        # of the last few is the nearest to the link's rate)
 
@@ -71,13 +71,14 @@ def websocket_link(ws: Any) -> tuple[float, float] | None:
 
 
 def probe_rate(first_done_s: float, second_done_s: float, nbytes: int = PROBE_BYTES) -> float:
-    """The link's rate (bytes/s) from a probe: two messages of ``nbytes`` sent back to back,
-    answered at monotonic ``first_done_s`` and ``second_done_s`` s. The second waited behind the
-    first at the link's bottleneck, so the time between the answers is what the link took to carry
-    ``nbytes`` (packet-pair dispersion: the round trip cancels; the first also drains a shaper's
-    burst allowance, so that a burst up to ``nbytes`` cannot pass the second at line rate, and a
-    larger one, up to ``2 * nbytes``, makes the rate look at most ``nbytes / (2 * nbytes - burst)``
-    times too fast). A spacing under 0.1 ms counts as 0.1 ms (the clock's and the loop's grain)."""
+    """The link's rate (bytes/s) from a probe: a message of :data:`PROBE_DRAIN_BYTES` and one of
+    ``nbytes`` sent right behind it, answered at monotonic ``first_done_s`` and ``second_done_s`` s.
+    The second waited behind the first at the link's bottleneck, so the time between the answers is
+    what the link took to carry ``nbytes`` (packet-pair dispersion: the round trip cancels). The
+    first drains a shaper's burst allowance: a burst of up to :data:`PROBE_DRAIN_BYTES` cannot pass
+    the second at line rate (a larger one, up to both, makes the rate look too fast by at most
+    ``nbytes / (drain + nbytes - burst)``). A spacing under 0.1 ms counts as 0.1 ms (the clock's and
+    the loop's grain)."""
     return nbytes / max(second_done_s - first_done_s, 1e-4)
 
 

@@ -70,5 +70,5 @@ def test_a_report_goes_out_when_a_link_moved_and_not_otherwise():
 
 
 def test_a_probe_is_the_spacing_of_two_answers():
-    assert probe_rate(10.0, 10.096) == pytest.approx(PROBE_BYTES / 0.096)     # 12 kB in 96 ms: 1 Mbit/s
+    assert probe_rate(10.0, 10.128) == pytest.approx(PROBE_BYTES / 0.128)     # 16 kB in 128 ms: 1 Mbit/s
     assert probe_rate(10.0, 10.0) == pytest.approx(PROBE_BYTES / 1e-4), "below the grain: bounded"
