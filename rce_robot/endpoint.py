@@ -303,7 +303,7 @@ class RobotEndpoint:
             await asyncio.sleep(link_report.EVERY)
             if self.zone.kind == "robot":       # its robot's websocket is local: the robot's link is the uplink
                 up = self.uplink.measure(loop.time())
-                if (up is not None and self.namespaces and self._probe_ok and self.uplink.wants_probe(loop.time())
+                if (up is not None and self.namespaces and self._probe_ok
                         and loop.time() - self._probed_at >= link_report.PROBE_EVERY
                         and (self._probe_task is None or self._probe_task.done())):
                     self._probed_at = loop.time()

@@ -9,9 +9,9 @@ Where the link is measured depends on where the robot endpoint stands:
 - an endpoint on the robot's own computer (``rce-robot --zone robot:ID``): the robot's websocket is
   local, and the robot's link is the endpoint's uplink (:class:`Uplink`): the round trip of its
   control link to the master, and the delivery rate of its data links to the other hosts whenever
-  they carried more than they were app-limited by. While no data link measures a rate (they are
-  idle or app-limited: a link that carries little says nothing of its rate), the endpoint probes
-  the link every :data:`PROBE_EVERY` s (:func:`probe_rate`): a request of :data:`PROBE_DRAIN_BYTES`
+  they carried more than they were app-limited by. An idle or app-limited link says nothing of its
+  rate, so the endpoint also probes the link every :data:`PROBE_EVERY` s (:func:`probe_rate`): a
+  request of :data:`PROBE_DRAIN_BYTES`
   to the master and one of :data:`PROBE_BYTES` right behind it; the time between their answers is
   what the link took to carry the second. The last rate measured either way is kept (never forgotten for
   being old: a link that could not carry a stream stays that thin until a fresh measure says
@@ -32,9 +32,8 @@ REFRESH = 10.0    # s, a report at least this often per robot
 BATTERY_STEP = 1.0   # percentage points a robot's charge moves before the master is told again
 PROBE_DRAIN_BYTES = 32_000   # bytes of a probe's first request: it drains a shaper's burst allowance (up to its size)
 PROBE_BYTES = 16_000   # bytes of its second request, which the link's rate spaces from the first
-PROBE_EVERY = 1.0      # s between probes while no data link measures the rate (48 kB: ~380 kbit/s of the link's time)
-PROBE_KEEP_S = 3.5     # s of probes the rate is the best of (a probe's error only ever adds time: the fastest
-                       # of the last few is the nearest to the link's rate)
+PROBE_EVERY = 1.0      # s between probes (48 kB: ~380 kbit/s of the link's time)
+PROBE_KEEP_S = 1.25    # s of measurements the rate is the fastest of (each errs only low)
 
 
 class LinkReports:
@@ -85,17 +84,17 @@ def probe_rate(first_done_s: float, second_done_s: float, nbytes: int = PROBE_BY
 class Uplink:
     """The uplink of an endpoint on a robot's computer (module doc): ``control()`` gives the socket
     of its link to the master, ``data()`` the sockets of its data links to other hosts. The rate is
-    the last one a busy data link measured; while none has for :data:`PROBE_EVERY` s,
-    :meth:`wants_probe` says so and :meth:`probed` takes a probe's rate, and the rate is the
-    fastest probe of the last :data:`PROBE_KEEP_S` s. A rate is never forgotten for being old (a
-    link that stops carrying the stream, its container moved to the robot, is as thin as it was
-    last measured, until a probe says otherwise)."""
+    the fastest of what was measured in the last :data:`PROBE_KEEP_S` s: the delivery rates of busy
+    data links and the endpoint's probes (:meth:`probed`, every :data:`PROBE_EVERY` s). Each of
+    them errs only low (a data link's sample taken right after it idled is about the stream's own
+    rate; a probe's answers can be read late), so the fastest is the nearest to the link's rate. A
+    rate is never forgotten for being old: with nothing measured in the window, the link is as thin
+    (or as fast) as it was last measured, until a measurement says otherwise."""
 
     def __init__(self, control: Callable[[], Any], data: Callable[[], Iterable[Any]]):
         self.control, self.data = control, data
         self.rate = 0.0              # bytes/s: the last rate measured (0: never measured)
-        self.rate_at = float("-inf")   # monotonic s of the last rate a busy data link measured
-        self.probes: list[tuple[float, float]] = []    # (monotonic s, bytes/s) of the recent probes
+        self.samples: list[tuple[float, float]] = []    # (monotonic s, bytes/s) of the last PROBE_KEEP_S s
 
     def measure(self, now: float) -> tuple[float, float] | None:
         """``(rtt_s, rate)`` at monotonic ``now`` s (None while there is no link to the master)."""
@@ -105,22 +104,18 @@ class Uplink:
             return None
         rates = [s[1] for s in (link_sample(d) for d in self.data() if d is not None)
                  if s is not None and not s[2] and s[1] > 0]
-        if rates:
-            self.rate, self.rate_at = max(rates), now
-            self.probes.clear()
+        self._take(now, rates)
         return info[0], self.rate
 
-    def wants_probe(self, now: float) -> bool:
-        """Whether no busy data link measured the rate for :data:`PROBE_EVERY` s (monotonic ``now``)."""
-        return now - self.rate_at > PROBE_EVERY
-
     def probed(self, now: float, rate: float) -> None:
-        """A probe's rate (bytes/s, :func:`probe_rate`) at monotonic ``now`` s; ignored while a busy
-        data link measures the rate."""
-        if not self.wants_probe(now) or rate <= 0:
-            return
-        self.probes = [p for p in self.probes if now - p[0] <= PROBE_KEEP_S] + [(now, rate)]
-        self.rate = max(r for _, r in self.probes)
+        """A probe's rate (bytes/s, :func:`probe_rate`) at monotonic ``now`` s."""
+        if rate > 0:
+            self._take(now, [rate])
+
+    def _take(self, now: float, rates: list[float]) -> None:
+        self.samples = [x for x in self.samples if now - x[0] <= PROBE_KEEP_S] + [(now, r) for r in rates]
+        if self.samples:
+            self.rate = max(r for _, r in self.samples)
 
 
 def _moved(old: float, new: float) -> bool:
