@@ -54,11 +54,12 @@ def test_plans_are_conflict_free_and_lns_never_lowers_the_weighted_progress():
         assert first > 0                                     # robots with a task make progress
         prank = np.empty(len(pos), np.int64)
         prank[order] = np.arange(len(pos))
+        c = e.chains[0]
         for k in range(20):                                  # LNS passes: any robot displaced, kept if not worse
-            e.now += 1
+            c.now += 1
             perm = np.random.default_rng(k).permutation(len(pos)).astype(np.int64)
-            epibt_pass(perm, 0, len(perm), False, False, e.traj, e.rank, e.gain, e.res, e.desire, prank, e.instack,
-                       e.vstamp, e.vnum, e.now, e.revisits, e.max_chain, e.score)
+            epibt_pass(perm, 0, len(perm), False, False, e.traj, e.rank, e.gain, c.res, c.desire, prank, c.instack,
+                       c.vstamp, c.vnum, c.now, e.revisits, e.max_chain, c.score)
             assert e.score[0] >= first - 1e-6
             _check_plans(g, e, pos)
         # the score is the weighted progress of the plans held, recomputed from scratch
@@ -115,8 +116,30 @@ def test_last_steps_plans_continue_and_a_step_cut_short_still_answers_a_valid_ac
     _check_plans(g, e2, new_pos)
 
 
+def test_two_lns_chains_run_at_once_and_the_better_plans_are_answered():
+    g, pos, head, goals = _packed(5, 12, 12, 110)
+    cache = DistanceCache(g, max_bytes=2 ** 24)
+    slot = _slots(cache, goals)
+    order = np.arange(len(pos), dtype=np.int64)
+    e = EPIBTPlan(g, len(pos), seed=4, threads=2)
+    assert e.stats["epibt_threads"] == 2
+    for _ in range(3):
+        act = e.plan(pos, head, cache.table, slot, goals, order, np.ones(len(pos)), time.perf_counter() + 0.1)
+        assert check_actions(g, pos, head, act)[2] == []
+        _check_plans(g, e, pos)
+        a, b = e.chains
+        assert a.passes > 1 and b.passes > 1                 # both chains ran passes
+        assert a.score[0] >= b.score[0] - 1e-9               # the answer is the better chain's
+        assert (OPERATIONS[e.desire, 0] == act).all()
+
+
 def test_planner_with_epibt_keeps_every_step_valid_and_reaches_goals_on_a_packed_map():
-    planner = drive_packed(soft=0.02, hard=0.05, epibt=True)
+    # EPIBT's first step as a candidate of the lookahead (the default): planned whenever the
+    # lookahead has time for its rollouts (nearly every step)
+    planner = drive_packed(epibt=True)
+    assert planner._epibt.stats["epibt_steps"] >= 30 and planner._window is None
+    # answered directly: every step
+    planner = drive_packed(soft=0.02, hard=0.05, epibt=True, ops_candidate=False)
     assert planner._epibt.stats["epibt_steps"] == 40 and planner._epibt.stats["epibt_passes"] >= 40
 
 
@@ -142,4 +165,4 @@ def test_runner_answers_with_epibt_and_open_lanes_from_0_3_robots_per_free_cell(
         s = r.summary()
         assert s["invalid_steps"] == 0 and s["timeouts"] == 0
         assert s["epibt"] is on and s["open_lanes"] == (OPEN_LANES if on else 0)
-        assert (s.get("epibt_steps", 0) == 30) is on
+        assert (s.get("epibt_steps", 0) > 0) is on

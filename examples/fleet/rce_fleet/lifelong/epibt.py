@@ -21,9 +21,11 @@ is skipped. A robot already in the chain is never displaced, and a robot is disp
   that finished fewer tasks here (docs/lifelong.md).
 - **LNS passes** while the step's time lasts: robots in a random order build again, any robot
   may be displaced, and the new plans are kept only when the weighted progress of all robots
-  does not fall. Progress of a robot: the cost of waiting minus the cost of its operation
-  (:func:`~.window.op_costs`), weighted by ((n + 1 - rank) / (n + 1))^2 of its priority rank
-  (0 without a task).
+  does not fall. Two chains of passes run at once on a 2-core machine (threads; the compiled
+  passes release the GIL), each from the first pass's plans in its own random orders, and the
+  plans of the better one are answered (the paper's parallel variant). Progress of a robot: the
+  cost of waiting minus the cost of its operation (:func:`~.window.op_costs`), weighted by
+  ((n + 1 - rank) / (n + 1))^2 of its priority rank (0 without a task).
 
 Only the first action of each operation is executed; it is a valid joint action by
 construction.
@@ -166,7 +168,7 @@ def _build(root, inherit, keep_worse, traj, rank, gain, res, desire, prank, inst
         sp -= 1
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def epibt_init(traj, pos, prev, desire, res, gain, score):
     """Every robot takes last step's operation continued (prev (n,); -1: none, then it waits).
     When those plans meet (an action other than planned was executed), every robot waits
@@ -215,7 +217,7 @@ def epibt_init(traj, pos, prev, desire, res, gain, score):
                 _add(a, 0, traj, res, gain, score)
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def epibt_pass(order, start, stop, inherit, keep_worse, traj, rank, gain, res, desire, prank, instack, vstamp,
                vnum, now, revisits, max_chain, score):
     """Robots ``order[start:stop]`` build unless displaced already in this pass (pass stamp
@@ -233,49 +235,101 @@ def epibt_pass(order, start, stop, inherit, keep_worse, traj, rank, gain, res, d
     return took
 
 
+class _Chain:
+    """One copy of the plans that LNS passes refine (its own plans, reservations, score and
+    pass stamps; the operations' paths and gains are shared, read only)."""
+
+    def __init__(self, n: int, res_shape: tuple[int, int]):
+        self.desire = np.zeros(n, np.int64)
+        self.res = np.full(res_shape, -1, np.int64)
+        self.instack = np.zeros(n, np.bool_)
+        self.vstamp = np.zeros(n, np.int64)
+        self.vnum = np.zeros(n, np.int64)
+        self.score = np.zeros(1)
+        self.now = 0
+        self.passes = 0
+        self.taken = 0
+
+    def take(self, other: _Chain) -> None:
+        """Start from ``other``'s plans."""
+        self.desire[:] = other.desire
+        self.res[:] = other.res
+        self.score[:] = other.score
+        self.instack[:] = False
+
+    def run(self, plan: EPIBTPlan, order: np.ndarray, inherit: bool, keep_worse: bool, prank: np.ndarray,
+            stop: float) -> bool:
+        """One pass over ``order`` in chunks (the kernel runs without the GIL); False when
+        ``stop`` came first."""
+        self.now += 1
+        for s in range(0, len(order), plan.chunk):
+            if time.perf_counter() >= stop:
+                return False
+            self.taken += epibt_pass(order, s, min(len(order), s + plan.chunk), inherit, keep_worse, plan.traj,
+                                     plan.rank, plan.gain, self.res, self.desire, prank, self.instack, self.vstamp,
+                                     self.vnum, self.now, plan.revisits, plan.max_chain, self.score)
+        self.passes += 1
+        return True
+
+    def lns(self, plan: EPIBTPlan, prank: np.ndarray, stop: float, seed_: int) -> None:
+        """LNS passes in random orders until ``stop``."""
+        rng = np.random.default_rng(seed_)
+        n = len(self.desire)
+        while time.perf_counter() < stop:
+            if not self.run(plan, rng.permutation(n).astype(np.int64), False, False, prank, stop):
+                break
+
+
 class EPIBTPlan:
     """EPIBT with LNS for a MAPF_T fleet (module docstring), one call per step.
 
     grid: the map; n: robots; seed: the LNS's orders and the tie-breaks; keep_bonus: cost taken
     off the operation that continues last step's (steps); revisits: times a robot may be
     displaced per pass; max_chain: robots in one chain of displacements at most; chunk:
-    robots built per compiled call between clock checks. Memory: n x |OPERATIONS| x
-    (DEPTH + 1) int64 cells plus two float arrays of n x |OPERATIONS| (about 2 KiB per
-    robot). ``stats`` counts passes and plans taken.
+    robots built per compiled call between clock checks; threads: LNS chains run at once, each
+    from the first pass's plans with its own random orders, the best kept (default: the CPUs
+    this process may use, at most 2; the kernels release the GIL). Memory: n x |OPERATIONS| x
+    (DEPTH + 1) int64 cells plus two float arrays of n x |OPERATIONS| (about 2 KiB per robot),
+    and per chain a reservation table of (DEPTH + 1) x cells int64. ``stats`` counts steps,
+    passes and plans taken, and the steps whose first pass the deadline cut short.
     """
 
     def __init__(self, grid, n: int, seed: int = 0, keep_bonus: float = 0.2, revisits: int = 10,
-                 max_chain: int = 256, chunk: int = 64):
+                 max_chain: int = 256, chunk: int = 64, threads: int | None = None):
+        import os
         self.grid, self.n = grid, n
         m = OPERATIONS.shape[0]
         self.traj = np.empty((n, m, DEPTH + 1), np.int64)
         self.cost = np.empty((n, m))
         self.gain = np.empty((n, m))
         self.rank = np.empty((n, m), np.int64)
-        self.desire = np.zeros(n, np.int64)
-        self.res = np.full((DEPTH + 1, grid.n_cells), -1, np.int64)
         self.prev_op = np.full(n, -1, np.int64)
-        self.instack = np.zeros(n, np.bool_)
-        self.vstamp = np.zeros(n, np.int64)
-        self.vnum = np.zeros(n, np.int64)
-        self.score = np.zeros(1)
-        self.now = 0
+        if threads is None:
+            threads = min(2, len(os.sched_getaffinity(0)))
+        self.chains = [_Chain(n, (DEPTH + 1, grid.n_cells)) for _ in range(max(1, threads))]
+        self._pool = None
+        if len(self.chains) > 1:
+            from concurrent.futures import ThreadPoolExecutor
+            self._pool = ThreadPoolExecutor(len(self.chains) - 1, thread_name_prefix="epibt-lns")
         self.keep_bonus, self.revisits, self.max_chain, self.chunk = keep_bonus, revisits, max_chain, chunk
         self.rng = np.random.default_rng(seed)
-        self.stats = {"epibt_steps": 0, "epibt_passes": 0, "epibt_taken": 0, "epibt_unfinished": 0}
+        self.stats = {"epibt_steps": 0, "epibt_passes": 0, "epibt_taken": 0, "epibt_unfinished": 0,
+                      "epibt_threads": len(self.chains)}
 
-    def _pass(self, order: np.ndarray, inherit: bool, keep_worse: bool, prank: np.ndarray, stop: float) -> bool:
-        """One pass over ``order`` in chunks; False when ``stop`` came first."""
-        self.now += 1
-        for s in range(0, len(order), self.chunk):
-            if time.perf_counter() >= stop:
-                return False
-            self.stats["epibt_taken"] += epibt_pass(
-                order, s, min(len(order), s + self.chunk), inherit, keep_worse, self.traj, self.rank, self.gain,
-                self.res, self.desire, prank, self.instack, self.vstamp, self.vnum, self.now, self.revisits,
-                self.max_chain, self.score)
-        self.stats["epibt_passes"] += 1
-        return True
+    @property
+    def desire(self) -> np.ndarray:
+        """(n,) each robot's operation in the plans answered last."""
+        return self.chains[0].desire
+
+    @property
+    def res(self) -> np.ndarray:
+        """(DEPTH + 1, cells) the robot at each cell at each step of those plans (-1: none)."""
+        return self.chains[0].res
+
+    @property
+    def score(self) -> np.ndarray:
+        """(1,) their weighted progress."""
+        return self.chains[0].score
 
     def plan(self, pos: np.ndarray, head: np.ndarray, dist: np.ndarray, slot: np.ndarray, goal: np.ndarray,
              order: np.ndarray, rnd: np.ndarray, stop: float, lns: bool = True) -> np.ndarray:
@@ -293,15 +347,30 @@ class EPIBTPlan:
         allowed = self.traj[:, :, 0] >= 0
         self.gain[:] = np.where(allowed, power[:, None] * (self.cost[:, :1] - np.where(allowed, self.cost, 0.0)),
                                 0.0)
-        epibt_init(self.traj, pos, self.prev_op, self.desire, self.res, self.gain, self.score)
-        done = self._pass(order, True, True, prank, stop)
+        main = self.chains[0]
+        passes0, taken0 = sum(c.passes for c in self.chains), sum(c.taken for c in self.chains)
+        epibt_init(self.traj, pos, self.prev_op, main.desire, main.res, self.gain, main.score)
+        done = main.run(self, order, True, True, prank, stop)
         if not done:
             self.stats["epibt_unfinished"] += 1
-        while lns and done and time.perf_counter() < stop:
-            done = self._pass(self.rng.permutation(n).astype(np.int64), False, False, prank, stop)
+        if lns and done and time.perf_counter() < stop:
+            seeds = self.rng.integers(2 ** 31, size=len(self.chains))
+            others = self.chains[1:]
+            for c in others:
+                c.take(main)
+            futures = [self._pool.submit(c.lns, self, prank, stop, int(sd)) for c, sd in zip(others, seeds[1:],
+                                                                                               strict=True)]
+            main.lns(self, prank, stop, int(seeds[0]))
+            for f in futures:
+                f.result()
+            best = max(self.chains, key=lambda c: c.score[0])
+            if best is not main:
+                main.take(best)
         self.stats["epibt_steps"] += 1
-        self.prev_op = CONTINUE[self.desire]
-        return OPERATIONS[self.desire, 0].copy()
+        self.stats["epibt_passes"] += sum(c.passes for c in self.chains) - passes0
+        self.stats["epibt_taken"] += sum(c.taken for c in self.chains) - taken0
+        self.prev_op = CONTINUE[main.desire]
+        return OPERATIONS[main.desire, 0].copy()
 
 
 def warm_up() -> None:

@@ -49,8 +49,10 @@ class PIBTPlanner:
     samples=1 turns it off); ops, lns, lns_frac, ops_kw, ops_candidate: the windowed plan of
     operations (:class:`~.window.WindowPlan` with ``ops_kw``; LNS on it with ``lns``, until
     ``lns_frac`` of the time to ``deadline``) as a candidate of the lookahead, or answered
-    directly. ``plan(pos, head, goals, deadline)`` returns (n,) action codes
-    (:mod:`.kernels`). Measured worth of each: ``docs/lifelong.md``.
+    directly; epibt, epibt_kw, epibt_frac: the same with EPIBT (:class:`~.epibt.EPIBTPlan` with
+    ``epibt_kw``) in place of the windowed plan (answered directly, it runs until ``epibt_frac``
+    of the way from ``deadline`` to ``hard``). ``plan(pos, head, goals, deadline)`` returns (n,)
+    action codes (:mod:`.kernels`). Measured worth of each: ``docs/lifelong.md``.
     """
 
     def __init__(self, grid: LifelongGrid, cache: DistanceCache, model: str = MAPF_T, turn_w: float = 0.5,
@@ -133,11 +135,11 @@ class PIBTPlanner:
         nxt = np.empty(n, dtype=np.int64)
         turns = self.model == MAPF_T
         act = np.empty(n, dtype=np.int64)
-        if turns and self.epibt:
-            act = self._epibt_step(pos, head, goals, pslot, order, rnd, deadline, hard)
+        if turns and self.epibt and self.ops_candidate and self.samples > 1:
+            act = self._rollouts(pos, head, goals, slot, pslot, order, rnd, deadline, window=True)
         elif turns and self.ops and self.ops_candidate and self.samples > 1:
             act = self._rollouts(pos, head, goals, slot, pslot, order, rnd, deadline, window=True)
-        elif turns and self.ops:
+        elif turns and (self.ops or self.epibt):
             act = self._windowed(pos, head, goals, pslot, order, rnd, deadline, hard)
         elif turns and self.samples > 1:
             act = self._rollouts(pos, head, goals, slot, pslot, order, rnd, deadline)
@@ -151,9 +153,32 @@ class PIBTPlanner:
         return act
 
     def _window_plan(self, pos, head, goals, pslot, order, stop) -> np.ndarray:
-        """The first actions of the windowed plan (:class:`~.window.WindowPlan`), LNS until ``stop``."""
+        """The first actions of the windowed plan (:class:`~.window.WindowPlan`, or with ``epibt``
+        :class:`~.epibt.EPIBTPlan`), LNS until ``stop``."""
         from .window import WindowPlan
         n = pos.shape[0]
+        if self.epibt:
+            from .epibt import EPIBTPlan
+            if self._epibt is None or self._epibt.n != n:
+                self._epibt = EPIBTPlan(self.grid, n, seed=self.seed, **self.epibt_kw)
+            scale = np.where(self.stuck > self.stuck_steps, self.noise, 1.0) if self.noise > 0 else np.ones(n)
+            return self._epibt.plan(pos, head, self._ptable, pslot, goals, order, scale, stop, self.lns)
+        if self._window is None or self._window.n != n:
+            self._window = WindowPlan(self.grid, n, seed=self.seed, **self.ops_kw)
+        scale = np.where(self.stuck > self.stuck_steps, self.noise, 1.0) if self.noise > 0 else np.ones(n)
+        return self._window.plan(pos, head, self._ptable, pslot, goals, order, scale, stop, self.lns)
+
+    def _window_plan(self, pos, head, goals, pslot, order, stop) -> np.ndarray:
+        """The first actions of the windowed plan (:class:`~.window.WindowPlan`, or with ``epibt``
+        :class:`~.epibt.EPIBTPlan`), LNS until ``stop``."""
+        from .window import WindowPlan
+        n = pos.shape[0]
+        if self.epibt:
+            from .epibt import EPIBTPlan
+            if self._epibt is None or self._epibt.n != n:
+                self._epibt = EPIBTPlan(self.grid, n, seed=self.seed, **self.epibt_kw)
+            scale = np.where(self.stuck > self.stuck_steps, self.noise, 1.0) if self.noise > 0 else np.ones(n)
+            return self._epibt.plan(pos, head, self._ptable, pslot, goals, order, scale, stop, self.lns)
         if self._window is None or self._window.n != n:
             self._window = WindowPlan(self.grid, n, seed=self.seed, **self.ops_kw)
         scale = np.where(self.stuck > self.stuck_steps, self.noise, 1.0) if self.noise > 0 else np.ones(n)
@@ -182,13 +207,15 @@ class PIBTPlanner:
 
     def _windowed(self, pos, head, goals, pslot, order, rnd, deadline, hard) -> np.ndarray:
         """PIBT's one-step answer first (the fallback, always ready), then the windowed plan of
-        operations refined by LNS until ``lns_frac`` of the way from ``deadline`` to ``hard``
-        (:class:`~.window.WindowPlan`); its first actions when it finished in time."""
+        operations refined by LNS (:class:`~.window.WindowPlan`, or EPIBT with ``epibt``) until
+        ``lns_frac`` (``epibt_frac``) of the way from ``deadline`` to ``hard``; its first actions
+        when it finished in time."""
         n = pos.shape[0]
         nxt = np.empty(n, dtype=np.int64)
         act = np.empty(n, dtype=np.int64)
         self._convert(pos, head, goals, pslot, order, rnd, nxt, act)
-        end = deadline if hard is None else deadline + self.lns_frac * max(0.0, hard - deadline)
+        frac = self.epibt_frac if self.epibt else self.lns_frac
+        end = deadline if hard is None else deadline + frac * max(0.0, hard - deadline)
         wact = self._window_plan(pos, head, goals, pslot, order, end)
         if hard is not None and time.perf_counter() > hard:
             self.stats["window_late"] = self.stats.get("window_late", 0) + 1

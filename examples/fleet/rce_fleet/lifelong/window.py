@@ -8,9 +8,9 @@ no C C, which R R equals), each a path in (cell, heading) over the window. Robot
 priority order; an operation is taken when no robot already planned holds any of its cells at
 the same step (vertex) or crosses it (swap), and a robot not yet planned that stands in its
 way plans next with inherited priority, depth-first, undone when it finds no operation
-(priority inheritance with backtracking over operations, as in EPIBT, the LoRR 2024 entry of
-Nurlan et al., "EPIBT: Exploring Operations in PIBT", 2025). The plan of the window is then
-refined by large neighbourhood search while the step's time lasts (the LoRR 2023 winner's
+(priority inheritance with backtracking over operations, as in EPIBT: Yukhnevich and
+Andreychuk, "Enhancing PIBT via Multi-Action Operations", arXiv 2511.09193, 2025; :mod:`.epibt`).
+The plan of the window is then refined by large neighbourhood search while the step's time lasts (the LoRR 2023 winner's
 windowed planning, Jiang et al., "Scaling Lifelong Multi-Agent Path Finding to More Realistic
 Settings", SoCS 2024): the robots around a random robot are planned again in a random order,
 and the new operations are kept when their summed cost is lower. Only the first action of
