@@ -155,55 +155,19 @@ class PIBTPlanner:
     def _window_plan(self, pos, head, goals, pslot, order, stop) -> np.ndarray:
         """The first actions of the windowed plan (:class:`~.window.WindowPlan`, or with ``epibt``
         :class:`~.epibt.EPIBTPlan`), LNS until ``stop``."""
-        from .window import WindowPlan
-        n = pos.shape[0]
-        if self.epibt:
-            from .epibt import EPIBTPlan
-            if self._epibt is None or self._epibt.n != n:
-                self._epibt = EPIBTPlan(self.grid, n, seed=self.seed, **self.epibt_kw)
-            scale = np.where(self.stuck > self.stuck_steps, self.noise, 1.0) if self.noise > 0 else np.ones(n)
-            return self._epibt.plan(pos, head, self._ptable, pslot, goals, order, scale, stop, self.lns)
-        if self._window is None or self._window.n != n:
-            self._window = WindowPlan(self.grid, n, seed=self.seed, **self.ops_kw)
-        scale = np.where(self.stuck > self.stuck_steps, self.noise, 1.0) if self.noise > 0 else np.ones(n)
-        return self._window.plan(pos, head, self._ptable, pslot, goals, order, scale, stop, self.lns)
-
-    def _window_plan(self, pos, head, goals, pslot, order, stop) -> np.ndarray:
-        """The first actions of the windowed plan (:class:`~.window.WindowPlan`, or with ``epibt``
-        :class:`~.epibt.EPIBTPlan`), LNS until ``stop``."""
-        from .window import WindowPlan
-        n = pos.shape[0]
-        if self.epibt:
-            from .epibt import EPIBTPlan
-            if self._epibt is None or self._epibt.n != n:
-                self._epibt = EPIBTPlan(self.grid, n, seed=self.seed, **self.epibt_kw)
-            scale = np.where(self.stuck > self.stuck_steps, self.noise, 1.0) if self.noise > 0 else np.ones(n)
-            return self._epibt.plan(pos, head, self._ptable, pslot, goals, order, scale, stop, self.lns)
-        if self._window is None or self._window.n != n:
-            self._window = WindowPlan(self.grid, n, seed=self.seed, **self.ops_kw)
-        scale = np.where(self.stuck > self.stuck_steps, self.noise, 1.0) if self.noise > 0 else np.ones(n)
-        return self._window.plan(pos, head, self._ptable, pslot, goals, order, scale, stop, self.lns)
-
-    def _epibt_step(self, pos, head, goals, pslot, order, rnd, deadline, hard) -> np.ndarray:
-        """PIBT's one-step answer first (the fallback, always ready), then EPIBT with LNS
-        (:class:`~.epibt.EPIBTPlan`) until ``epibt_frac`` of the way from ``deadline`` to ``hard``;
-        its first actions when it finished in time."""
         from .epibt import EPIBTPlan
+        from .window import WindowPlan
         n = pos.shape[0]
-        nxt = np.empty(n, dtype=np.int64)
-        act = np.empty(n, dtype=np.int64)
-        self._convert(pos, head, goals, pslot, order, rnd, nxt, act)
-        if self._epibt is None or self._epibt.n != n:
-            self._epibt = EPIBTPlan(self.grid, n, seed=self.seed, **self.epibt_kw)
+        if self.epibt:
+            if self._epibt is None or self._epibt.n != n:
+                self._epibt = EPIBTPlan(self.grid, n, seed=self.seed, **self.epibt_kw)
+            plan = self._epibt
+        else:
+            if self._window is None or self._window.n != n:
+                self._window = WindowPlan(self.grid, n, seed=self.seed, **self.ops_kw)
+            plan = self._window
         scale = np.where(self.stuck > self.stuck_steps, self.noise, 1.0) if self.noise > 0 else np.ones(n)
-        end = deadline if hard is None else deadline + self.epibt_frac * max(0.0, hard - deadline)
-        eact = self._epibt.plan(pos, head, self._ptable, pslot, goals, order, scale, end, self.lns)
-        if hard is not None and time.perf_counter() > hard:
-            self.stats["epibt_late"] = self.stats.get("epibt_late", 0) + 1
-            return act
-        self.claim[:] = -1
-        self.claim_age[:] = 0
-        return eact
+        return plan.plan(pos, head, self._ptable, pslot, goals, order, scale, stop, self.lns)
 
     def _windowed(self, pos, head, goals, pslot, order, rnd, deadline, hard) -> np.ndarray:
         """PIBT's one-step answer first (the fallback, always ready), then the windowed plan of
