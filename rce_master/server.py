@@ -390,12 +390,6 @@ class Master:
                             "restarted")
             async with self.robot_locks[(user, robot)]:
                 await self.control.robot_gone(user, robot)
-        elif old is not None and old.tid == tid and self._replaces(tid, args):
-            # a new login of the robot on the endpoint that still holds its previous session, whose end
-            # has not been told yet: that session is over (its late disconnect is then ignored)
-            log.info("robot's previous session ended: a new login replaced it", user=user, robot=robot)
-            async with self.robot_locks[(user, robot)]:
-                await self.control.robot_gone(user, robot)
         elif old is not None and old.tid != tid and host is not None and host.lost:
             # its old endpoint is absent (it died, or has not come back since the master restarted): the
             # robot takes its namespace over here, once its session is open on this endpoint
@@ -410,11 +404,6 @@ class Master:
         self._logged_in(tid, args)
         log.info("robot connected", user=user, robot=robot)
         return {}
-
-    def _replaces(self, tid: int, args: dict) -> bool:
-        """Whether login ``args`` on endpoint ``tid`` names another session than the robot's last one there."""
-        last, session = self.robot_logins.get((args["user"], args["robot"])), args.get("session")
-        return isinstance(session, str) and last is not None and last[0] == tid and last[1] != session
 
     def _logged_in(self, tid: int, args: dict) -> None:
         """Remember the session a robot's accepted login opened on endpoint ``tid`` (none named: an

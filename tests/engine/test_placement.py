@@ -132,34 +132,6 @@ async def test_the_robots_battery_state_reaches_the_placer(eng):
 
 
 @pytest.mark.asyncio
-async def test_an_old_sessions_late_end_leaves_a_new_login_its_interfaces(eng):
-    """A robot logs in again while its old session is still open on the endpoint (its end not told
-    yet): the new login replaces it, and the old session's disconnect, which names that session,
-    does not take the new one's interfaces."""
-    old = await RawRobot(eng.master_url, "rs").__aenter__()
-    try:
-        async with RawRobot(eng.master_url, "rs") as r:
-            await create(r, "auto3", deadline_ms=100, robot="rs")
-            await r.iface("rs", "battery", "SubscriberConverter", "sensor_msgs/BatteryState")
-            await old.ws.close()                            # the old session ends now: after the new login
-            await asyncio.sleep(1.0)
-            loop = asyncio.get_running_loop()
-            end = loop.time() + WAIT
-            while True:
-                await r.send("DM", {"iTag": "battery", "type": "sensor_msgs/BatteryState", "msgID": "",
-                                    "msg": {"voltage": 24.1, "percentage": 0.5, "present": True}})
-                row = next((x for x in eng.admin("/api/placement") if x["ctag"] == "auto3"), None)
-                assert row is not None, "the new login's container is gone with the old session"
-                if row["battery"] is not None:
-                    break
-                assert loop.time() < end, row
-                await asyncio.sleep(0.2)
-            assert row["battery"] == 50.0
-    finally:
-        await old.ws.close()
-
-
-@pytest.mark.asyncio
 async def test_an_endpoint_on_a_robots_computer_serves_that_robot_alone_and_measures_its_uplink(eng):
     info = eng.add_robot_taskset("--zone", "robot:r3", "--user", "testUser", "--name", "r3-endpoint")
     own = f"ws://127.0.0.1:{info['ws_port']}/"
