@@ -295,7 +295,7 @@ class EPIBTPlan:
     """
 
     def __init__(self, grid, n: int, seed: int = 0, keep_bonus: float = 0.2, revisits: int = 10,
-                 max_chain: int = 256, chunk: int = 64, threads: int | None = None):
+                 max_chain: int = 256, chunk: int = 16, threads: int | None = None):
         import os
         self.grid, self.n = grid, n
         m = OPERATIONS.shape[0]
