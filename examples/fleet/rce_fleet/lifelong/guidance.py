@@ -36,14 +36,14 @@ def lane_costs(grid: LifelongGrid, against: int = 1, min_cells: int = 4, everywh
     cost = np.ones(nbr.shape, dtype=np.uint8)
     if against == 0:
         return cost
-    horiz = free & (nbr[:, NORTH] < 0) & (nbr[:, SOUTH] < 0) & ((nbr[:, EAST] >= 0) | (nbr[:, WEST] >= 0))
-    vert = free & (nbr[:, EAST] < 0) & (nbr[:, WEST] < 0) & ((nbr[:, NORTH] >= 0) | (nbr[:, SOUTH] >= 0))
-    horiz = horiz.reshape(grid.rows, grid.cols)
-    vert = vert.reshape(grid.rows, grid.cols)
     if everywhere:
         horiz = vert = free.reshape(grid.rows, grid.cols)
         rows, cols = np.arange(grid.rows), np.arange(grid.cols)
     else:
+        horiz = free & (nbr[:, NORTH] < 0) & (nbr[:, SOUTH] < 0) & ((nbr[:, EAST] >= 0) | (nbr[:, WEST] >= 0))
+        vert = free & (nbr[:, EAST] < 0) & (nbr[:, WEST] < 0) & ((nbr[:, NORTH] >= 0) | (nbr[:, SOUTH] >= 0))
+        horiz = horiz.reshape(grid.rows, grid.cols)
+        vert = vert.reshape(grid.rows, grid.cols)
         rows = np.flatnonzero(horiz.sum(axis=1) >= min_cells)
         cols = np.flatnonzero(vert.sum(axis=0) >= min_cells)
     for k, r in enumerate(rows):

@@ -135,9 +135,7 @@ class PIBTPlanner:
         nxt = np.empty(n, dtype=np.int64)
         turns = self.model == MAPF_T
         act = np.empty(n, dtype=np.int64)
-        if turns and self.epibt and self.ops_candidate and self.samples > 1:
-            act = self._rollouts(pos, head, goals, slot, pslot, order, rnd, deadline, window=True)
-        elif turns and self.ops and self.ops_candidate and self.samples > 1:
+        if turns and (self.ops or self.epibt) and self.ops_candidate and self.samples > 1:
             act = self._rollouts(pos, head, goals, slot, pslot, order, rnd, deadline, window=True)
         elif turns and (self.ops or self.epibt):
             act = self._windowed(pos, head, goals, pslot, order, rnd, deadline, hard)

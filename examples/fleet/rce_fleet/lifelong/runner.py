@@ -111,7 +111,8 @@ def run_lifelong(problem: LorrProblem, steps: int, plan_time_limit_ms: float = 1
         cache_bytes = cache_bytes_for(grid, problem.team_size)
     warm_up()
     window_warm_up()
-    epibt_warm_up()
+    if epibt:
+        epibt_warm_up()
     if guide:
         flow_warm_up()
     t_start = time.perf_counter()
