@@ -166,3 +166,48 @@ def test_runner_answers_with_epibt_and_open_lanes_from_0_3_robots_per_free_cell(
         assert s["invalid_steps"] == 0 and s["timeouts"] == 0
         assert s["epibt"] is on and s["open_lanes"] == (OPEN_LANES if on else 0)
         assert (s.get("epibt_steps", 0) > 0) is on
+
+
+_COMPILES_SCRIPT = """
+import json, pkgutil, importlib, sys
+import numpy as np
+from pathlib import Path
+from numba.core.registry import CPUDispatcher
+import rce_fleet.lifelong as L
+from rce_fleet.lifelong import LifelongGrid
+from rce_fleet.lifelong.lorr import LorrProblem
+from rce_fleet.lifelong.runner import EPIBT_DENSITY, run_lifelong
+
+def signatures():
+    out = {}
+    for m in pkgutil.iter_modules(L.__path__):
+        mod = importlib.import_module("rce_fleet.lifelong." + m.name)
+        for k, v in vars(mod).items():
+            if isinstance(v, CPUDispatcher):
+                out[m.name + "." + k] = len(v.signatures)
+    return out
+
+g = LifelongGrid(np.ones((8, 8), dtype=bool))
+rng = np.random.default_rng(0)
+tasks = [tuple(int(c) for c in rng.choice(64, size=2, replace=False)) for _ in range(200)]
+n = int(EPIBT_DENSITY * 64) + 4
+prob = LorrProblem(Path("open8.json"), g, np.arange(n, dtype=np.int64) * 2 % 64, tasks, n, 1.5)
+run_lifelong(prob, 0, plan_time_limit_ms=200, seed=0)          # the warm-ups only
+before = signatures()
+s = run_lifelong(prob, 20, plan_time_limit_ms=200, seed=0).summary()
+after = signatures()
+print(json.dumps({"epibt": s["epibt"], "compiled": sorted(k for k in after if after[k] != before.get(k, 0))}))
+"""
+
+
+def test_a_run_compiles_no_kernel_after_its_warm_ups():
+    """A kernel first compiled inside a step takes seconds: the step times out (a fresh process,
+    so that nothing compiled by other tests hides it)."""
+    import json
+    import subprocess
+    import sys
+    done = subprocess.run([sys.executable, "-c", _COMPILES_SCRIPT], capture_output=True, text=True, timeout=600)
+    assert done.returncode == 0, done.stderr[-3000:]
+    out = json.loads(done.stdout.strip().splitlines()[-1])
+    assert out["epibt"] is True
+    assert out["compiled"] == []
