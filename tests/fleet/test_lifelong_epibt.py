@@ -14,7 +14,7 @@ from rce_fleet.lifelong.epibt import EPIBTPlan, epibt_init, epibt_pass, warm_up
 from rce_fleet.lifelong.guidance import lane_costs
 from rce_fleet.lifelong.grid import EAST, NORTH, SOUTH, WEST
 from rce_fleet.lifelong.kernels import ACT_F, ACT_W
-from rce_fleet.lifelong.window import DEPTH, OPERATIONS
+from rce_fleet.lifelong.window import DEPTH
 
 from .test_lifelong_window import _packed, drive_packed
 
@@ -37,6 +37,20 @@ def _check_plans(g, e, pos):
 
 def _slots(cache, goals):
     return np.array([cache.slot(int(x)) if x >= 0 else -1 for x in goals], dtype=np.int64)
+
+
+def test_operations_end_in_no_turn_and_every_continuation_is_in_the_set():
+    from rce_fleet.lifelong.epibt import EPIBT_OPERATIONS as ops
+    from rce_fleet.lifelong.window import continuations
+    from rce_fleet.lifelong.kernels import ACT_C, ACT_R
+    names = {ACT_F: "F", ACT_W: "W", ACT_R: "R", ACT_C: "C"}
+    got = sorted("".join(names[a] for a in o) for o in ops.tolist())
+    # the paper's 17 operations of depth 3 (Yukhnevich and Andreychuk, arXiv 2511.09193)
+    assert got == sorted("WWW RRF RWF CWF WWF RFW CFW WFW RFF CFF FWW WFF FRF FCF FWF FFW FFF".split())
+    assert ops[0].tolist() == [ACT_W] * DEPTH
+    cont = continuations(ops)
+    assert (cont >= 0).all()
+    assert [ops[c].tolist() for c in cont] == [o[1:] + [ACT_W] for o in ops.tolist()]
 
 
 def test_plans_are_conflict_free_and_lns_never_lowers_the_weighted_progress():
@@ -77,9 +91,9 @@ def test_a_robot_of_higher_priority_displaces_the_one_in_its_way():
     e = EPIBTPlan(g, 2)
     act = e.plan(pos, head, cache.table, _slots(cache, goals), goals, np.array([0, 1], np.int64), np.zeros(2),
                  time.perf_counter() + 5, lns=False)
-    assert OPERATIONS[e.desire[0]].tolist() == [ACT_F, ACT_F, ACT_W] or act[0] == ACT_F
+    assert e.ops[e.desire[0]].tolist() == [ACT_F, ACT_F, ACT_W] or act[0] == ACT_F
     assert act.tolist() == [ACT_F, ACT_F]                    # both move: the front one makes way
-    assert OPERATIONS[e.desire[1]].tolist()[:2] == [ACT_F, ACT_F]
+    assert e.ops[e.desire[1]].tolist()[:2] == [ACT_F, ACT_F]
     # the other way round, robot 1 may not displace robot 0 in the first pass: robot 0 first
     e2 = EPIBTPlan(g, 2)
     goals2 = np.array([-1, 0], dtype=np.int64)
@@ -107,7 +121,7 @@ def test_last_steps_plans_continue_and_a_step_cut_short_still_answers_a_valid_ac
     e2.plan(new_pos, new_head, cache.table, slot, goals, order, np.ones(len(pos)), time.perf_counter() + 5, lns=False)
     score = np.zeros(1)
     epibt_init(e2.traj, new_pos, e.prev_op, desire, res, e2.gain, score)
-    moving = OPERATIONS[e.prev_op][:, 0] != ACT_W
+    moving = e.ops[e.prev_op][:, 0] != ACT_W
     assert (desire[moving] == e.prev_op[moving]).all()
     # a deadline already past: the first pass stops at once, yet the answer is valid
     act3 = e2.plan(new_pos, new_head, cache.table, slot, goals, order, np.ones(len(pos)), time.perf_counter() - 1)
@@ -130,7 +144,7 @@ def test_two_lns_chains_run_at_once_and_the_better_plans_are_answered():
         a, b = e.chains
         assert a.passes > 1 and b.passes > 1                 # both chains ran passes
         assert a.score[0] >= b.score[0] - 1e-9               # the answer is the better chain's
-        assert (OPERATIONS[e.desire, 0] == act).all()
+        assert (e.ops[e.desire, 0] == act).all()
 
 
 def test_planner_with_epibt_keeps_every_step_valid_and_reaches_goals_on_a_packed_map():

@@ -2,7 +2,7 @@
 
 Yukhnevich and Andreychuk, "Enhancing PIBT via Multi-Action Operations" (arXiv 2511.09193,
 2025; the operations planner of the League of Robot Runners 2024). Each robot holds an
-*operation*, a sequence of ``DEPTH`` actions (:data:`~.window.OPERATIONS`), and its path in
+*operation*, a sequence of ``DEPTH`` actions (:data:`EPIBT_OPERATIONS`), and its path in
 (cell, heading) over the window; the plans of all robots are free of vertex and swap conflicts
 at every step of the window at all times. A step starts from last step's operations continued
 (their rest, then a wait), or where those do not fit together, from waits and the continued
@@ -32,19 +32,66 @@ construction.
 """
 from __future__ import annotations
 
+import itertools
 import time
 
 import numpy as np
 from numba import njit
 
 from ..numba_cache import seed
-from .window import CONTINUE, DEPTH, OPERATIONS, op_costs
+from .kernels import ACT_C, ACT_F, ACT_R, ACT_W
+from .window import DEPTH, continuations, op_costs
 
 seed(__file__)          # numba's cache entries prepared in the tree (sandboxed nodes)
 
-__all__ = ["EPIBTPlan", "warm_up"]
+__all__ = ["EPIBT_OPERATIONS", "EPIBTPlan", "warm_up"]
 
-WAIT_OP = 0             # OPERATIONS[0]: wait, wait, wait
+WAIT_OP = 0             # the first operation of every set: wait, wait, wait
+
+
+def _epibt_operations(depth: int) -> np.ndarray:
+    """EPIBT's operations for MAPF_T (the paper's rules): action sequences of ``depth`` in which
+    every turn is followed by a forward move later in the sequence (a turn at the end buys
+    nothing the cost of the end state does not see), with no turn undone or repeated three times
+    before that move, and one sequence per path (the cells at each step and the last heading;
+    of sequences with the same path the one that turns first). (m, depth) int64, the all-wait
+    sequence first; 17 sequences at depth 3 where all sequences without a turn undone are 45."""
+    dr = ((0, 1), (1, 0), (0, -1), (-1, 0))            # any fixed convention: only paths are compared
+    seen: dict[tuple, int] = {}
+    out = [(ACT_W,) * depth]
+    seen[(0, ((0, 0),) * depth)] = 0
+    for seq in itertools.product((ACT_F, ACT_R, ACT_C, ACT_W), repeat=depth):
+        last_f = max((i for i, a in enumerate(seq) if a == ACT_F), default=-1)
+        if any(a in (ACT_R, ACT_C) for a in seq[last_f + 1:]):
+            continue
+        runs: list[int] = []
+        ok = True
+        for a in seq:                        # the turns before each forward move
+            if a == ACT_F:
+                ok = ok and len(set(runs)) <= 1 and len(runs) <= 2
+                runs = []
+            elif a != ACT_W:
+                runs.append(a)
+        if not ok:
+            continue
+        r = c = h = 0
+        cells = []
+        for a in seq:
+            if a == ACT_F:
+                r, c = r + dr[h][0], c + dr[h][1]
+            elif a == ACT_R:
+                h = (h + 1) % 4
+            elif a == ACT_C:
+                h = (h + 3) % 4
+            cells.append((r, c))
+        key = (h, tuple(cells))
+        if key not in seen:
+            seen[key] = len(out)
+            out.append(seq)
+    return np.array(out, dtype=np.int64)
+
+
+EPIBT_OPERATIONS = _epibt_operations(DEPTH)
 
 
 @njit(cache=True)
@@ -288,17 +335,21 @@ class EPIBTPlan:
     displaced per pass; max_chain: robots in one chain of displacements at most; chunk:
     robots built per compiled call between clock checks; threads: LNS chains run at once, each
     from the first pass's plans with its own random orders, the best kept (default: the CPUs
-    this process may use, at most 2; the kernels release the GIL). Memory: n x |OPERATIONS| x
-    (DEPTH + 1) int64 cells plus two float arrays of n x |OPERATIONS| (about 2 KiB per robot),
+    this process may use, at most 2; the kernels release the GIL); operations: (m, DEPTH) the
+    action sequences tried, the all-wait one first (default :data:`EPIBT_OPERATIONS`). Memory:
+    n x m x (DEPTH + 1) int64 cells plus two float arrays of n x m (about 1 KiB per robot),
     and per chain a reservation table of (DEPTH + 1) x cells int64. ``stats`` counts steps,
     passes and plans taken, and the steps whose first pass the deadline cut short.
     """
 
     def __init__(self, grid, n: int, seed: int = 0, keep_bonus: float = 0.2, revisits: int = 10,
-                 max_chain: int = 256, chunk: int = 16, threads: int | None = None):
+                 max_chain: int = 256, chunk: int = 16, threads: int | None = None,
+                 operations: np.ndarray | None = None):
         import os
         self.grid, self.n = grid, n
-        m = OPERATIONS.shape[0]
+        self.ops = EPIBT_OPERATIONS if operations is None else np.asarray(operations, np.int64)
+        self.cont = continuations(self.ops)
+        m = self.ops.shape[0]
         self.traj = np.empty((n, m, DEPTH + 1), np.int64)
         self.cost = np.empty((n, m))
         self.gain = np.empty((n, m))
@@ -339,7 +390,7 @@ class EPIBTPlan:
         until ``time.perf_counter()`` reaches ``stop``; what is built by then is answered
         (always a valid joint action)."""
         n = len(pos)
-        op_costs(self.grid.nbr, OPERATIONS, pos, head, dist, slot, goal, rnd, self.prev_op, self.keep_bonus,
+        op_costs(self.grid.nbr, self.ops, pos, head, dist, slot, goal, rnd, self.prev_op, self.keep_bonus,
                  int(self.rng.integers(2 ** 31)), self.traj, self.cost, self.rank)
         prank = np.empty(n, np.int64)
         prank[order] = np.arange(n)
@@ -369,8 +420,8 @@ class EPIBTPlan:
         self.stats["epibt_steps"] += 1
         self.stats["epibt_passes"] += sum(c.passes for c in self.chains) - passes0
         self.stats["epibt_taken"] += sum(c.taken for c in self.chains) - taken0
-        self.prev_op = CONTINUE[main.desire]
-        return OPERATIONS[main.desire, 0].copy()
+        self.prev_op = self.cont[main.desire]
+        return self.ops[main.desire, 0].copy()
 
 
 def warm_up() -> None:

@@ -37,7 +37,8 @@ from .kernels import ACT_C, ACT_F, ACT_R, ACT_W, heading_cost
 
 seed(__file__)          # numba's cache entries prepared in the tree (sandboxed nodes)
 
-__all__ = ["CONTINUE", "DEPTH", "OPERATIONS", "WindowPlan", "lns_rounds", "op_costs", "plan_window", "warm_up"]
+__all__ = ["CONTINUE", "DEPTH", "OPERATIONS", "WindowPlan", "continuations", "lns_rounds", "op_costs", "plan_window",
+           "warm_up"]
 
 DEPTH = 3
 
@@ -374,13 +375,14 @@ def lns_rounds(iters, shape, traj, rank, cost, pos, planned, res, saved, radius,
     return improved
 
 
-def _continuations(ops: np.ndarray) -> np.ndarray:
-    """For each operation, the one that continues it a step later (its last actions, then a wait)."""
+def continuations(ops: np.ndarray) -> np.ndarray:
+    """For each operation of ``ops`` (m, depth), the index of the one that continues it a step
+    later (its last actions, then a wait; -1 where the set has none)."""
     index = {tuple(o): i for i, o in enumerate(ops.tolist())}
     return np.array([index.get(tuple(o[1:]) + (ACT_W,), -1) for o in ops.tolist()], dtype=np.int64)
 
 
-CONTINUE = _continuations(OPERATIONS)
+CONTINUE = continuations(OPERATIONS)
 
 
 class WindowPlan:
