@@ -75,7 +75,9 @@ DEADLINE_MS = 100.0             # from a scan's stamp to its result back at the 
 SCAN_POINTS = 10_000            # returns per scan: 40 kB of float32 ranges
 LIGHT_FRACTION = 0.1            # share of a sparse scan's beams that return
 HEAVY_EVERY = 10                # one scan in this many is cluttered (every beam returns)
-NODE_ARGS = "--cells 160 --passes 4 --samples 300 --queue 100"
+CELLS, PASSES = 160, 4          # the node's grid (cells a side) and inflation passes
+NODE_ARGS = f"--cells {CELLS} --passes {PASSES} --queue 100"     # and --samples, from calibrate()
+HEAVY_MS = 47.0                 # core-ms a cluttered scan costs the node (calibrate(): the same on any machine)
 ROBOT_CPU = 0.3                 # cores of the robot's computer (cgroup CPU quota)
 CPU_PERIOD_US = 100_000
 GOOD_RATE, BAD_RATE = "100mbit", "1mbit"
@@ -96,16 +98,53 @@ def scan_bytes(points: int, fraction: float) -> bytearray:
     from rosbags.typesys import Stores, get_typestore
     ts = get_typestore(Stores.ROS1_NOETIC)
     t = ts.types
-    rng = np.random.default_rng(7)
-    ranges = np.full(points, np.inf, np.float32)
-    hit = rng.random(points) < fraction
-    ranges[hit] = rng.uniform(0.5, 4.5, int(hit.sum())).astype(np.float32)
+    ranges = scan_ranges(points, fraction)
     scan = t["sensor_msgs/msg/LaserScan"](
         header=t["std_msgs/msg/Header"](seq=0, stamp=t["builtin_interfaces/msg/Time"](sec=0, nanosec=0),
                                         frame_id="laser"),
         angle_min=-np.pi, angle_max=np.pi, angle_increment=2 * np.pi / points, time_increment=0.0, scan_time=0.1,
         range_min=0.1, range_max=30.0, ranges=ranges, intensities=np.zeros(0, np.float32))
     return bytearray(ts.serialize_ros1(scan, "sensor_msgs/msg/LaserScan"))
+
+
+def scan_ranges(points: int, fraction: float):
+    """A scan's ``points`` ranges (m, float32) of which ``fraction`` return (0.5 - 4.5 m), the rest inf."""
+    import numpy as np
+    rng = np.random.default_rng(7)
+    ranges = np.full(points, np.inf, np.float32)
+    hit = rng.random(points) < fraction
+    ranges[hit] = rng.uniform(0.5, 4.5, int(hit.sum())).astype(np.float32)
+    return ranges
+
+
+def calibrate(target_ms: float = HEAVY_MS) -> dict:
+    """The node's ``--samples`` for which a cluttered scan costs ``target_ms`` core-ms on this machine
+    (the node's own ``costmap``, timed here in CPU time, median of 5, by secant steps from two
+    sample counts: the work is about linear in them), so that the script's premise holds on a faster or a
+    slower machine: a cluttered scan fits the deadline on a core of its own and not on the robot's
+    :data:`ROBOT_CPU`. Returns ``{samples, node_args, heavy_ms, light_ms}`` (ms: at those samples)."""
+    import numpy as np
+    sys.path.insert(0, str(BENCH / "packages" / "benchcostmap"))
+    from costmap import costmap
+    heavy, light = scan_ranges(SCAN_POINTS, 1.0), scan_ranges(SCAN_POINTS, LIGHT_FRACTION)
+
+    def cost(ranges, samples: int) -> float:
+        ts = []
+        for _ in range(5):
+            t0 = time.process_time()
+            costmap(ranges, -np.pi, 2 * np.pi / SCAN_POINTS, CELLS, PASSES, samples)
+            ts.append((time.process_time() - t0) * 1e3)
+        return sorted(ts)[2]
+    a, b = (100, cost(heavy, 100)), (300, cost(heavy, 300))
+    for _ in range(2):                   # secant steps towards target_ms
+        slope = (b[1] - a[1]) / (b[0] - a[0])
+        samples = max(20, min(1000, int(round(b[0] + (target_ms - b[1]) / slope)) if slope > 0 else 300))
+        if samples in (a[0], b[0]):
+            break
+        a, b = b, (samples, cost(heavy, samples))
+    samples, heavy_ms = b
+    return {"samples": samples, "node_args": f"{NODE_ARGS} --samples {samples}", "heavy_ms": round(heavy_ms, 2),
+            "light_ms": round(cost(light, samples), 2)}
 
 
 def stamped(template: bytearray, seq: int, wall: float) -> bytes:
@@ -122,7 +161,7 @@ async def robot_main(a: argparse.Namespace) -> dict:
     conn = await Connection.login_connect(a.master, USER, PASSWORD, ROBOT, allow_reconnect=True)
     data = {"placement": SYSTEMS[a.system], "deadline_ms": DEADLINE_MS, "robot": ROBOT, "consumes": ["scan"]}
     await conn.create_container(CTAG, **data)
-    await conn.add_node(CTAG, "costmap", "benchcostmap", "costmap.py", args=NODE_ARGS)
+    await conn.add_node(CTAG, "costmap", "benchcostmap", "costmap.py", args=a.node_args)
     for tag, itype, cls, addr in (("scan", "PublisherInterface", "sensor_msgs/LaserScan", "/scan"),
                                   ("done", "SubscriberInterface", "geometry_msgs/PointStamped", "/costmap_done")):
         await conn.add_interface(CTAG, tag, itype, cls, addr)
@@ -285,10 +324,12 @@ def start(lab, link, work: Path, cap: CpuCap, endpoint: str):
                 "--advertise-host", link.b_ip, "--ready-file", str(ready)]), ready)
             e.robot_ready.insert(0, dict(info, host=link.b_ip))   # the robot's; /metrics from the root namespace
         ready = work / "robot-computer.ready"
-        e.spawn("robot-computer", cap.wrap(lab.wrap("r", [
-            *command("rce-container"), ctl, "--zone", f"robot:{ROBOT}", "--user", USER, "--name", "robot-computer",
-            "--bind", link.b_ip, "--advertise-host", link.b_ip, "--runtime-dir", str(work / "rt-robot"),
-            "--ready-file", str(ready)])), ready)
+        # nsenter, not `ip netns exec`: that mounts a sysfs of its own over /sys, without the cgroup
+        # mounts, and the robot's computer could not read its CPU cap (it would register every core)
+        e.spawn("robot-computer", cap.wrap([
+            "nsenter", f"--net=/run/netns/{lab.full('r')}", *command("rce-container"), ctl, "--zone",
+            f"robot:{ROBOT}", "--user", USER, "--name", "robot-computer", "--bind", link.b_ip, "--advertise-host",
+            link.b_ip, "--runtime-dir", str(work / "rt-robot"), "--ready-file", str(ready)]), ready)
     except Exception:
         e.stop()
         raise
@@ -316,8 +357,9 @@ async def drive(system: str, lab, link, e, work: Path, a: argparse.Namespace) ->
     log = open(work / "robot.log", "wb")
     proc = await asyncio.create_subprocess_exec(
         *lab.wrap("r", [sys.executable, __file__, "--role", "robot", "--system", system, "--master", master,
-                        "--phase-s", str(a.phase_s)]),
+                        "--phase-s", str(a.phase_s), "--node-args", a.node_args]),
         stdout=asyncio.subprocess.PIPE, stderr=log, limit=2**26)
+    scripted: asyncio.Future | None = None
     try:
         line = b""
         async with asyncio.timeout(READY_WAIT + 30):
@@ -331,19 +373,20 @@ async def drive(system: str, lab, link, e, work: Path, a: argparse.Namespace) ->
         dropped: list[tuple[float, float]] = []       # (s, messages the robot endpoint dropped and counted so far)
         last: tuple[list, dict] = ([], {})          # the last /api/placement rows and container stats seen
         bytes0 = link_bytes(link.a_dev)
-        done = set()
         end = t0 + 4 * a.phase_s
+        changes: list[float] = []                   # s at which each change of the script took effect
+
+        async def script() -> None:
+            """Each phase's change at its start (not at the next sample), timed when it took effect."""
+            for k, change in ((1, lambda: shape(lab, link, a.bad_rate, a.dscp)),
+                              (2, lambda: shape(lab, link, GOOD_RATE, a.dscp)),
+                              (3, lambda: e.admin(f"/api/robots/{USER}/{ROBOT}/battery",
+                                                  {"percent": BATTERY_LOW_PCT}))):
+                await asyncio.sleep(max(0.0, t0 + k * a.phase_s - time.monotonic()))   # the script's clock
+                await asyncio.to_thread(change)
+                changes.append(round(time.monotonic() - t0, 3))
+        scripted = asyncio.ensure_future(script())
         while (now := time.monotonic()) < end:
-            k = int((now - t0) // a.phase_s)
-            if k >= 1 and 1 not in done:
-                done.add(1)
-                shape(lab, link, a.bad_rate, a.dscp)
-            if k >= 2 and 2 not in done:
-                done.add(2)
-                shape(lab, link, GOOD_RATE, a.dscp)
-            if k >= 3 and 3 not in done:
-                done.add(3)
-                await admin(f"/api/robots/{USER}/{ROBOT}/battery", {"percent": BATTERY_LOW_PCT})
             try:
                 rows = await admin("/api/placement")
                 cs = await admin("/api/containers")
@@ -364,6 +407,7 @@ async def drive(system: str, lab, link, e, work: Path, a: argparse.Namespace) ->
                 if not words or any(words[-1][k] != word[k] for k in ("runs", "best", "move")):
                     words.append(word)
             await asyncio.sleep(max(0.0, POLL - (time.monotonic() - now)))     # the sampling period
+        await scripted
         out, _ = await asyncio.wait_for(proc.communicate(), 60 + a.phase_s)
         if proc.returncode != 0:
             raise RuntimeError(f"robot failed ({proc.returncode}):\n{(work / 'robot.log').read_text()[-3000:]}")
@@ -381,11 +425,13 @@ async def drive(system: str, lab, link, e, work: Path, a: argparse.Namespace) ->
                                    "rce_robot_dataplane_dropped")})
         total_bytes = link_bytes(link.a_dev) - bytes0
     finally:
+        if scripted is not None and not scripted.done():
+            scripted.cancel()
         if proc.returncode is None:
             proc.terminate()
             await proc.wait()
     return {"robot": rec, "samples": samples, "words": words, "moves": moves, "link_bytes": total_bytes,
-            "counted_drops": dropped,
+            "counted_drops": dropped, "changes": changes,
             "hosts": hosts, "drops": drops,
             "placement_final": [r for r in final if r["ctag"] == CTAG],
             "master_log": [ln for ln in (work / "master.log").read_text(errors="replace").splitlines()
@@ -477,7 +523,7 @@ def analyse(raw: dict, phase_s: float) -> dict:
                       "gap_before_move_s": round(gap_in(max(0.0, begin - 1.0), begin), 3),
                       "gap_across_switch_s": round(after[0] - before[-1], 3) if before and after else None,
                       "why": m["why"], "began_s": round(begin, 3), "ended_s": round(end, 3), "make_s": m["make_s"],
-                      "switch_s": m["switch_s"],
+                      "switch_s": m["switch_s"], "make_steps": m.get("make_steps"),
                       "drain_s": m["drain_s"], "fenced": m.get("fenced"), "unfenced": m.get("unfenced"),
                       "lost": lost_here,
                       # of those, what the robot endpoint dropped and counted (a link that does not keep
@@ -506,7 +552,7 @@ def analyse(raw: dict, phase_s: float) -> dict:
             "energy_model": {"cpu_w": em.cpu_w, "radio_j_per_byte": em.radio_j_per_byte},
             "node_cpu_ms": {"sparse_p50": _p50([v for s, v in cpu_ms.items() if s % HEAVY_EVERY]),
                             "cluttered_p50": _p50([v for s, v in cpu_ms.items() if not s % HEAVY_EVERY])},
-            "placer_word": raw["words"], "placement_final": raw["placement_final"],
+            "changes_s": raw["changes"], "placer_word": raw["words"], "placement_final": raw["placement_final"],
             "container_hosts": raw["hosts"], "ran_on": _host_spans(raw["samples"]), "latency_ms": series,
             "master_log": raw["master_log"][-60:]}
 
@@ -544,15 +590,16 @@ def targets(systems: dict, phase_s: float) -> dict:
         dwell = Placer().dwell_s
         pm, words = systems["placer"]["moves"], systems["placer"]["placer_word"]
         reactions = []
+        took = systems["placer"].get("changes_s") or []
         for k in (1, 2, 3):
-            at = phase_s * k
+            at = took[k - 1] if len(took) >= k else phase_s * k      # when the change took effect
             word = next((w for w in words if w["t_s"] >= at), None)
             move = next((m for m in pm if at - 0.5 <= m["began_s"] < at + phase_s), None)
             changed = None if word is None or word["t_s"] >= at + phase_s else round(word["t_s"] - at, 2)
             moved = None if move is None else round(move["began_s"] - at, 2)
             # the placer's word is sampled every POLL s: a move that began first is its decision
             decided = min((x for x in (changed, moved) if x is not None), default=None)
-            reactions.append({"change": PHASES[k], "at_s": at, "word_changed_after_s": changed, "word": word,
+            reactions.append({"change": PHASES[k], "at_s": round(at, 3), "word_changed_after_s": changed, "word": word,
                               "moved_after_s": moved, "decided_after_s": decided})
         out["reactions"] = reactions
         seen = [r["decided_after_s"] for r in reactions if r["decided_after_s"] is not None]
@@ -599,11 +646,15 @@ def plot(res: dict, png: Path) -> None:
 async def bench(a: argparse.Namespace) -> dict:
     from common import git_head
     from rce.tools.netlab import NetLab
+    node = calibrate(a.heavy_ms)
+    a.node_args = node["node_args"]
+    print(f"placement: node {a.node_args}: a cluttered scan {node['heavy_ms']} core-ms, a sparse one "
+          f"{node['light_ms']}", flush=True)
     res: dict = {"bench": "placement", "git": git_head(), "phase_s": a.phase_s, "endpoint": a.endpoint,
                  "deadline_ms": DEADLINE_MS, "rate_hz": RATE_HZ, "scan_points": SCAN_POINTS,
-                 "light_fraction": LIGHT_FRACTION, "heavy_every": HEAVY_EVERY, "node_args": NODE_ARGS,
+                 "light_fraction": LIGHT_FRACTION, "heavy_every": HEAVY_EVERY, "node_args": a.node_args,
                  "robot_cpu": ROBOT_CPU, "good_rate": GOOD_RATE, "bad_rate": a.bad_rate, "dscp": a.dscp,
-                 "queue_packets": QUEUE,
+                 "queue_packets": QUEUE, "node_calibration": node,
                  "battery_pct": [BATTERY_START_PCT, BATTERY_LOW_PCT], "load_before": os.getloadavg(),
                  "systems": {}}
     root = Path(tempfile.mkdtemp(prefix="rce-placement-"))
@@ -642,12 +693,16 @@ def main(argv=None) -> int:
                    help="the robot's endpoint: on its computer (rce-robot --zone robot:ID, default) or the cloud's")
     p.add_argument("--bad-rate", default=BAD_RATE, help=f"the link's rate in the second phase (tc units; "
                    f"default {BAD_RATE})")
+    p.add_argument("--heavy-ms", type=float, default=HEAVY_MS,
+                   help=f"core-ms a cluttered scan costs the node (its --samples are set to that on this machine; "
+                        f"default {HEAVY_MS:g})")
     p.add_argument("--dscp", action="store_true",
                    help="the link serves DSCP EF (the engine's control links) first; default: one FIFO")
     p.add_argument("--out", type=Path, default=BENCH / "results" / "placement.json")
     p.add_argument("--keep-logs", action="store_true", help="keep the engines' logs (printed path)")
     p.add_argument("--role", choices=("bench", "robot"), default="bench", help=argparse.SUPPRESS)
     p.add_argument("--system", default="placer", help=argparse.SUPPRESS)
+    p.add_argument("--node-args", default=f"{NODE_ARGS} --samples 300", help=argparse.SUPPRESS)
     p.add_argument("--master", help=argparse.SUPPRESS)
     a = p.parse_args(argv)
     if a.role == "robot":

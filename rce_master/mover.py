@@ -59,7 +59,8 @@ class MoveResult:
     s to build and wire the new copy, ``switch_s``: s to point every peer at it, ``drain_s``: s the
     old copy drained (and handed its state over); ``states``: nodes that took their old state;
     ``fenced``: the old copy went only after every fence, its nodes and its peers' acknowledgements
-    (False: after :data:`DRAIN_MAX` s, or a peer could not be told; ``unfenced`` says what was missing)."""
+    (False: after :data:`DRAIN_MAX` s, or a peer could not be told; ``unfenced`` says what was missing);
+    ``make_steps``: s each step of the make took (``create``, ``interfaces``, ``nodes``, ``ready``, ``wired``)."""
     user: str
     ctag: str
     from_tid: int
@@ -72,6 +73,7 @@ class MoveResult:
     states: int = 0
     fenced: bool = True
     unfenced: str = ""
+    make_steps: dict = dataclasses.field(default_factory=dict)
 
 
 class Mover:
@@ -114,21 +116,32 @@ class Mover:
         ifaces = self.state.interfaces_of(c.user, c.ctag, robot_side=False)
         conns = [(me, peer) for rec in ifaces for me, peer in self.state.connections_of(rec.iid)]
         log.info("container moving", user=c.user, ctag=c.ctag, from_tid=old_tid, to_tid=tid, cid=new.cid, why=why)
+        steps: dict[str, float] = {}
+        mark = [t0]
+
+        def step(name: str) -> None:
+            now = time.monotonic()
+            steps[name], mark[0] = round(now - mark[0], 3), now
         try:
             handoff = (await self.control.host_call(c, "describe")).get("handoff") or []
             answer = await self.control.create_container(new, handoff=bool(handoff))
+            step("create")
             for name, value in self.state.params_of(c):
                 await self.control.host_call(new, "set_param", name=name, value=value)
             for rec in ifaces:
                 await self.control.host_call(new, "add_interface", iid=rec.iid, tag=rec.tag, itype=rec.itype,
                                              cls=rec.cls, addr=rec.addr)
+            step("interfaces")
             for n in self.state.nodes_of(c):
                 await self.control.start_node(new, n.ntag, n.spec)
+            step("nodes")
             await self._ready(new, ifaces)
+            step("ready")
             self._still(c, old_cid)
             for me, peer in conns:               # its results can go out: the new copy knows its peers
                 await self.control.host_call(new, "connect", **self.control.connect_args(
                     me, peer.iid, self.state.data_addr(peer)))
+            step("wired")
             self._still(c, old_cid)
         except (RCEError, MoveFailed) as e:
             self.failed += 1
@@ -170,7 +183,7 @@ class Mover:
         unfenced = "" if fenced else ", ".join(f"{k}: {done[k]}" for k in ("missing", "unsettled", "unflushed",
                                                                          "unreached", "error") if done.get(k))
         result = MoveResult(c.user, c.ctag, old_tid, tid, old_cid, new.cid, t1 - t0, t2 - t1, t3 - t2, moved_states,
-                            fenced, unfenced)
+                            fenced, unfenced, steps)
         log.info("container moved", **dataclasses.asdict(result), why=why)
         self.control.notify_robot(c.user, c.owner, "ST", {"topic": "container", "cTag": c.ctag, "status": "running",
                                                           "sandbox": c.sandbox, "moved": True})

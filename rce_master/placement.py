@@ -175,9 +175,10 @@ class Placement:
         d = c.data
         robot = d.get("robot")
         u = self.use.get((c.user, c.ctag))
+        here = u is not None and u.cid == c.cid     # its record is of the copy that runs now (not one just moved)
         view = ContainerView(c.user, c.ctag, robot, d.get("deadline_ms"), u.work_ms if u else 0.0,
                              u.rate_hz if u else 0.0, u.in_bytes if u else 0.0, u.out_bytes if u else 0.0,
-                             float(d.get("cpu") or 0), u.node_ms if u else None, u.miss_rate if u else None)
+                             float(d.get("cpu") or 0), u.node_ms if here else None, u.miss_rate if here else None)
         link = self.links.get((c.user, robot)) if robot else None
         unmeasured = robot is not None and link is None     # its robot's link is not measured yet
         links = {"cloud": link, "edge": link} if link is not None else {"cloud": LinkView(0, float("inf")),
@@ -244,7 +245,8 @@ class Placement:
         self.use.pop((c.user, c.ctag), None)         # the new copy's counters start from 0
         rec = {"t": time.time(), "user": c.user, "ctag": c.ctag, "from": names.get(r.from_tid, str(r.from_tid)),
                "to": names.get(r.to_tid, str(r.to_tid)), "make_s": round(r.make_s, 3),
-               "switch_s": round(r.switch_s, 4), "drain_s": round(r.drain_s, 3), "states": r.states,
+               "switch_s": round(r.switch_s, 4), "drain_s": round(r.drain_s, 3), "make_steps": r.make_steps,
+               "states": r.states,
                "fenced": r.fenced, "unfenced": r.unfenced, "why": why}
         self.moves = [*self.moves[-(MOVES_KEPT - 1):], rec]
         return rec
@@ -264,31 +266,39 @@ class Placement:
                 self.placer.moved(time.monotonic(), c.user, c.ctag)      # no retry within the dwell
         self._moving[key] = asyncio.get_running_loop().create_task(run(), name=f"move {c.user}/{c.ctag}")
 
-    def _decide(self) -> None:
+    def _decide(self) -> float:
+        """Decide on every container and start the moves the placer asks for; returns s until a
+        pending move's hysteresis ends (inf: none pending)."""
+        due = float("inf")
         for c in list(self.state.containers.values()):
             ch = self.word(c)
             if ch is not None and ch.move and c.state == "running":
                 self._carry_out(c, ch)
+            elif ch is not None and ch.wait_s > 0:
+                due = min(due, ch.wait_s)
+        return due
 
     async def run(self, stop: asyncio.Event) -> None:
         """Poll the counters every :data:`POLL` s, and re-decide and carry out the placer's moves
-        after each poll and as soon as a robot's link or battery changes, until ``stop`` is set."""
+        after each poll, as soon as a robot's link or battery changes, and when a pending move's
+        hysteresis ends (it moves then, not at the next poll), until ``stop`` is set."""
         loop = asyncio.get_running_loop()
         while not stop.is_set():
             await self.poll()
             self._changed.clear()
-            self._decide()
+            due = loop.time() + self._decide()
             end = loop.time() + POLL
-            while not stop.is_set() and (left := end - loop.time()) > 0:
-                waits = [asyncio.ensure_future(stop.wait()), asyncio.ensure_future(self._changed.wait())]
-                try:
-                    await asyncio.wait(waits, timeout=left, return_when=asyncio.FIRST_COMPLETED)
-                finally:
-                    for w in waits:
-                        w.cancel()
-                if self._changed.is_set() and not stop.is_set():
+            while not stop.is_set() and (now := loop.time()) < end:
+                if (left := min(end, due) - now) > 0:
+                    waits = [asyncio.ensure_future(stop.wait()), asyncio.ensure_future(self._changed.wait())]
+                    try:
+                        await asyncio.wait(waits, timeout=left, return_when=asyncio.FIRST_COMPLETED)
+                    finally:
+                        for w in waits:
+                            w.cancel()
+                if not stop.is_set() and (self._changed.is_set() or loop.time() >= due):
                     self._changed.clear()
-                    self._decide()
+                    due = loop.time() + self._decide()
 
     def forget(self, user: str, ctag: str) -> None:
         """Drop what is kept of a container that is gone."""

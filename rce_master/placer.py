@@ -180,12 +180,14 @@ def options(c: ContainerView, hosts: list[HostView], links: dict[str, LinkView],
 class Choice:
     """The placer's word on one container: ``target`` (None: no host can run it), ``current``
     (where it runs, None if nowhere the placer knows), ``move``: the placer wants it moved now,
-    ``why``: the reason in words, ``options``: every host it weighed."""
+    ``why``: the reason in words, ``options``: every host it weighed; ``wait_s``: s until it moves if
+    the better host holds (0: no move pending, or it moves now)."""
     target: Option | None
     current: Option | None
     move: bool
     why: str
     options: list[Option] = field(default_factory=list)
+    wait_s: float = 0.0
 
     def to_json(self) -> dict:
         return {"target": asdict(self.target) if self.target else None,
@@ -286,7 +288,8 @@ class Placer:
         settle = self.settle_s if ch.current is None or ch.current.meets else self.settle_miss_s
         wait = max(since + settle, self._moved_at.get(key, -float("inf")) + self.dwell_s) - now
         if wait > 0:
-            return Choice(ch.target, ch.current, False, f"{ch.why}; moves in {wait:.1f} s if it holds", ch.options)
+            return Choice(ch.target, ch.current, False, f"{ch.why}; moves in {wait:.1f} s if it holds", ch.options,
+                          wait)
         return ch
 
     def moved(self, now: float, user: str, ctag: str) -> None:

@@ -45,7 +45,7 @@ from rce_robot.rosbridge import SESSION_COUNTERS as ROSBRIDGE_COUNTERS
 from rce_robot.rosbridge import RosbridgeServer
 from rce_robot.rosbridge_session import RosbridgeSession
 from rce_robot import link_report, ws_link
-from rce_robot.link_report import LinkReports, Uplink, websocket_link
+from rce_robot.link_report import LinkReports, Uplink, crosses_uplink, websocket_link
 
 log = get_logger("rce.robot")
 PING_INTERVAL = 20.0     # s between websocket pings to a robot
@@ -251,7 +251,8 @@ class RobotEndpoint:
         self.stopped = asyncio.Event()
         self.relays: dict[tuple[str, str], str] = {}      # (user, robot) -> the relay its link goes through now
         self.link_reports = LinkReports(self._tell_link)
-        self.uplink = Uplink(self._master_socket, self.plane.link_sockets)    # on a robot's computer: its link
+        self.uplink = Uplink(self._master_socket,     # on a robot's computer: its link
+                             lambda: [s for s in self.plane.link_sockets() if crosses_uplink(s)])
         self._link_task: asyncio.Task | None = None
         self._probe_task: asyncio.Task | None = None
         self._probed_at = float("-inf")   # monotonic s of the last uplink probe
@@ -303,7 +304,9 @@ class RobotEndpoint:
             await asyncio.sleep(link_report.EVERY)
             if self.zone.kind == "robot":       # its robot's websocket is local: the robot's link is the uplink
                 up = self.uplink.measure(loop.time())
-                if (up is not None and self.namespaces and self._probe_ok
+                # no probe while a data link waits for the uplink: it measures the link better (its
+                # backlog), and a probe would hold the control links' class up for the link's time
+                if (up is not None and self.namespaces and self._probe_ok and not self.uplink.waiting
                         and loop.time() - self._probed_at >= link_report.PROBE_EVERY
                         and (self._probe_task is None or self._probe_task.done())):
                     self._probed_at = loop.time()

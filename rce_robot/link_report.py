@@ -9,22 +9,26 @@ Where the link is measured depends on where the robot endpoint stands:
 - an endpoint on the robot's own computer (``rce-robot --zone robot:ID``): the robot's websocket is
   local, and the robot's link is the endpoint's uplink (:class:`Uplink`): the round trip of its
   control link to the master, and the delivery rate of its data links to the other hosts whenever
-  they carried more than they were app-limited by. An idle or app-limited link says nothing of its
-  rate, so the endpoint also probes the link every :data:`PROBE_EVERY` s (:func:`probe_rate`): a
-  request of :data:`PROBE_DRAIN_BYTES`
+  they carried more than they were app-limited by. A data link that has held bytes it could not
+  send at every look for :data:`BACKLOG_S` s is backed up: what the uplink carried meanwhile is its
+  rate (a link that falls is seen within that time). An idle or app-limited link says nothing of its
+  rate, so the endpoint also probes the link every :data:`PROBE_EVERY` s (:func:`probe_rate`), unless
+  a data link waits for it: a request of :data:`PROBE_DRAIN_BYTES`
   to the master and one of :data:`PROBE_BYTES` right behind it; the time between their answers is
   what the link took to carry the second. The last rate measured either way is kept (never forgotten for
   being old: a link that could not carry a stream stays that thin until a fresh measure says
   otherwise)."""
 from __future__ import annotations
 
+import ipaddress
 from collections.abc import Callable, Iterable
 from typing import Any
 
-from rce.transport.lane_socket import link_info, link_sample, socket_of
+from rce.transport.lane_socket import link_backlog, link_info, link_sample, socket_of
 
-__all__ = ["BATTERY_STEP", "CHANGE", "EVERY", "PROBE_BYTES", "PROBE_DRAIN_BYTES", "PROBE_EVERY", "PROBE_KEEP_S",
-           "REFRESH", "LinkReports", "Uplink", "probe_rate", "websocket_link"]
+__all__ = ["BACKLOG_S", "BATTERY_STEP", "CHANGE", "EVERY", "PROBE_BYTES", "PROBE_DRAIN_BYTES", "PROBE_EVERY",
+           "PROBE_KEEP_S", "REFRESH", "RWND_SHARE", "LinkReports", "Uplink", "crosses_uplink", "probe_rate",
+           "websocket_link"]
 
 EVERY = 0.25      # s between looks at the robots' sockets
 CHANGE = 0.2      # a report when the round trip or the rate moved by this share
@@ -34,6 +38,8 @@ PROBE_DRAIN_BYTES = 32_000   # bytes of a probe's first request: it drains a sha
 PROBE_BYTES = 16_000   # bytes of its second request, which the link's rate spaces from the first
 PROBE_EVERY = 1.0      # s between probes (48 kB: ~380 kbit/s of the link's time)
 PROBE_KEEP_S = 1.25    # s of measurements the rate is the fastest of (each errs only low)
+BACKLOG_S = 0.5        # s a data link holds unsent bytes at every look before its throughput is the link's rate
+RWND_SHARE = 0.1       # share of that time it may have waited for its reader's window (more: the reader's rate)
 
 
 class LinkReports:
@@ -83,18 +89,32 @@ def probe_rate(first_done_s: float, second_done_s: float, nbytes: int = PROBE_BY
 
 class Uplink:
     """The uplink of an endpoint on a robot's computer (module doc): ``control()`` gives the socket
-    of its link to the master, ``data()`` the sockets of its data links to other hosts. The rate is
-    the fastest of what was measured in the last :data:`PROBE_KEEP_S` s: the delivery rates of busy
-    data links and the endpoint's probes (:meth:`probed`, every :data:`PROBE_EVERY` s). Each of
-    them errs only low (a data link's sample taken right after it idled is about the stream's own
-    rate; a probe's answers can be read late), so the fastest is the nearest to the link's rate. A
-    rate is never forgotten for being old: with nothing measured in the window, the link is as thin
-    (or as fast) as it was last measured, until a measurement says otherwise."""
+    of its link to the master, ``data()`` the sockets of its data links that cross the uplink
+    (:func:`crosses_uplink`: not those to a peer on the same computer).
+
+    **Backed up**: when a data link has held bytes it could not send yet (``tcpi_notsent_bytes``) at
+    every look of the last :data:`BACKLOG_S` s, not held back by its reader (the peer's receive
+    window), the link carried all it could the whole time: what the uplink's links got acknowledged
+    over that time (``tcpi_bytes_acked``, the link to the master's and the data links') is its rate,
+    a measurement that errs neither low nor high. It stands alone: what was measured before is
+    forgotten (a link that falls is seen within :data:`BACKLOG_S` s and a look).
+
+    Otherwise the rate is the fastest of what was measured in the last :data:`PROBE_KEEP_S` s: the
+    delivery rates of busy data links and the endpoint's probes (:meth:`probed`, every
+    :data:`PROBE_EVERY` s). Each of them errs only low (a data link's sample taken right after it
+    idled is about the stream's own rate; a probe's answers can be read late), so the fastest is
+    the nearest to the link's rate. A rate is never forgotten for being old: with nothing measured
+    in the window, the link is as thin (or as fast) as it was last measured, until a measurement
+    says otherwise."""
 
     def __init__(self, control: Callable[[], Any], data: Callable[[], Iterable[Any]]):
         self.control, self.data = control, data
         self.rate = 0.0              # bytes/s: the last rate measured (0: never measured)
         self.samples: list[tuple[float, float]] = []    # (monotonic s, bytes/s) of the last PROBE_KEEP_S s
+        self.backed_up = 0           # looks whose rate was a backed-up link's (counter)
+        self.waiting = False         # a data link held bytes it could not send yet at the last look
+        # per socket (its id): looks (monotonic s, bytes acked, bytes not sent, us held by the reader's window)
+        self._looks: dict[int, list[tuple[float, int, int, int]]] = {}
 
     def measure(self, now: float) -> tuple[float, float] | None:
         """``(rtt_s, rate)`` at monotonic ``now`` s (None while there is no link to the master)."""
@@ -102,10 +122,38 @@ class Uplink:
         info = link_sample(sock) if sock is not None else None
         if info is None:
             return None
-        rates = [s[1] for s in (link_sample(d) for d in self.data() if d is not None)
-                 if s is not None and not s[2] and s[1] > 0]
-        self._take(now, rates)
+        data = [d for d in self.data() if d is not None]
+        rates = [s[1] for s in (link_sample(d) for d in data) if s is not None and not s[2] and s[1] > 0]
+        full = self._backlog(now, sock, data)
+        if full is not None:
+            self.backed_up += 1
+            self.samples, self.rate = [(now, full)], full
+        else:
+            self._take(now, rates)
         return info[0], self.rate
+
+    def _backlog(self, now: float, control: Any, data: list[Any]) -> float | None:
+        """The uplink's rate (bytes/s) if a data link was backed up over the last :data:`BACKLOG_S` s
+        (class doc), else None; records this look."""
+        looks: dict[int, list[tuple[float, int, int, int]]] = {}
+        for sock in (control, *data):
+            got = link_backlog(sock)
+            if got is not None:
+                kept = [x for x in self._looks.get(id(sock), ()) if now - x[0] <= BACKLOG_S + 2 * EVERY]
+                looks[id(sock)] = [*kept, (now, *got)]
+        self._looks = looks
+        self.waiting = any(looks[id(d)][-1][2] > 0 for d in data if id(d) in looks)
+        spans = [_span(looks.get(id(d), ()), now) for d in data]
+        backed = [sp for sp in spans if sp and all(x[2] > 0 for x in sp)
+                  and (sp[-1][3] - sp[0][3]) / 1e6 < RWND_SHARE * (sp[-1][0] - sp[0][0])]
+        if not backed:
+            return None
+        t0 = min(sp[0][0] for sp in backed)
+        acked = 0
+        for xs in looks.values():
+            first = next((x for x in reversed(xs) if x[0] <= t0), xs[0])
+            acked += xs[-1][1] - first[1]
+        return acked / (now - t0)
 
     def probed(self, now: float, rate: float) -> None:
         """A probe's rate (bytes/s, :func:`probe_rate`) at monotonic ``now`` s."""
@@ -116,6 +164,24 @@ class Uplink:
         self.samples = [x for x in self.samples if now - x[0] <= PROBE_KEEP_S] + [(now, r) for r in rates]
         if self.samples:
             self.rate = max(r for _, r in self.samples)
+
+
+def _span(looks, now: float) -> list | None:
+    """The looks of one socket from the newest at least :data:`BACKLOG_S` s old to ``now`` (None:
+    it has none that old)."""
+    start = next((i for i in range(len(looks) - 1, -1, -1) if now - looks[i][0] >= BACKLOG_S), None)
+    return None if start is None else list(looks[start:])
+
+
+def crosses_uplink(sock: Any) -> bool:
+    """Whether a connected socket may cross the computer's uplink: its peer is not this computer
+    (its own address, or loopback). A link to a container host on the same computer says nothing
+    of the uplink (its delivery rate is the memory's, its backlog its reader's)."""
+    try:
+        peer, me = sock.getpeername()[0], sock.getsockname()[0]
+    except (OSError, AttributeError, IndexError, TypeError):
+        return False
+    return peer != me and not ipaddress.ip_address(peer.split("%")[0]).is_loopback
 
 
 def _moved(old: float, new: float) -> bool:

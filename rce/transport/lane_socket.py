@@ -41,6 +41,7 @@ SAMPLE_EVERY = 0.005           # s: TCP_INFO is read at most this often per bulk
 # struct tcp_info (linux/tcp.h): byte offsets of the fields read, and the length that holds them all
 _TCPI_RTT, _TCPI_BYTES_ACKED, _TCPI_NOTSENT, _TCPI_MIN_RTT, _TCPI_LEN = 68, 120, 144, 148, 152
 _TCPI_DELIVERY_RATE, _TCPI_RATE_LEN = 160, 168
+_TCPI_RWND_LIMITED, _TCPI_RWND_LEN = 176, 184
 
 
 def mark(sock: socket.socket | None, lane: Lane) -> bool:
@@ -121,6 +122,21 @@ def link_sample(sock: socket.socket) -> tuple[float, float, bool] | None:
     (rtt,) = struct.unpack_from("I", info, _TCPI_RTT)
     rate = struct.unpack_from("Q", info, _TCPI_DELIVERY_RATE)[0] if len(info) >= _TCPI_RATE_LEN else 0
     return rtt / 1e6, float(rate), bool(info[7] & 1)
+
+
+def link_backlog(sock: socket.socket) -> tuple[int, int, int] | None:
+    """``sock``'s bytes acknowledged by its peer so far, bytes written and not yet sent (waiting for
+    the congestion window), and us it was held back by the peer's receive window so far (a reader
+    that does not keep up, not the path), from Linux ``TCP_INFO`` (``tcpi_bytes_acked``,
+    ``tcpi_notsent_bytes``, ``tcpi_rwnd_limited``: Linux >= 4.10); None where the kernel gives none
+    (:func:`_tcp_info`) or not all of them."""
+    info = _tcp_info(sock)
+    if info is None or len(info) < _TCPI_RWND_LEN:
+        return None
+    (acked,) = struct.unpack_from("Q", info, _TCPI_BYTES_ACKED)
+    (notsent,) = struct.unpack_from("I", info, _TCPI_NOTSENT)
+    (rwnd_us,) = struct.unpack_from("Q", info, _TCPI_RWND_LIMITED)
+    return acked, notsent, rwnd_us
 
 
 class PacedLink:

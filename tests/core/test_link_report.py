@@ -1,14 +1,19 @@
 """Robots' links as the placer sees them (rce_robot.link_report) on real loopback TCP sockets: an
 endpoint on a robot's computer measures its uplink, keeps the last rate it measured (a busy link's,
-or its probes', the fastest of the last PROBE_KEEP_S s); reports go out when a link moved."""
+or its probes', the fastest of the last PROBE_KEEP_S s; a backed-up link's throughput alone);
+reports go out when a link moved."""
 from __future__ import annotations
 
+import contextlib
 import socket
+import threading
+import time
 
-from rce.transport.lane_socket import link_sample
+from rce.transport.lane_socket import SO_MAX_PACING_RATE, link_sample
 import pytest
 
-from rce_robot.link_report import CHANGE, PROBE_BYTES, PROBE_EVERY, PROBE_KEEP_S, LinkReports, Uplink, probe_rate
+from rce_robot.link_report import (BACKLOG_S, CHANGE, EVERY, PROBE_BYTES, PROBE_EVERY, PROBE_KEEP_S, LinkReports,
+                                   Uplink, crosses_uplink, probe_rate)
 
 
 def busy_pair() -> tuple[socket.socket, socket.socket]:
@@ -71,3 +76,76 @@ def test_a_report_goes_out_when_a_link_moved_and_not_otherwise():
 def test_a_probe_is_the_spacing_of_two_answers():
     assert probe_rate(10.0, 10.128) == pytest.approx(PROBE_BYTES / 0.128)     # 16 kB in 128 ms: 1 Mbit/s
     assert probe_rate(10.0, 10.0) == pytest.approx(PROBE_BYTES / 1e-4), "below the grain: bounded"
+
+
+PACED = 200_000          # bytes/s the kernel lets the "thin link" socket send (SO_MAX_PACING_RATE)
+
+
+def paced_pair() -> tuple[socket.socket, socket.socket, list[threading.Thread]]:
+    """A loopback pair whose sender the kernel paces at PACED bytes/s in small segments, with a
+    writer that has far more to send than that and a reader that takes everything at once: a link
+    that is the bottleneck (bytes wait unsent), not its reader."""
+    srv = socket.socket()
+    srv.setsockopt(socket.IPPROTO_TCP, socket.TCP_MAXSEG, 1400)
+    srv.bind(("127.0.0.1", 0))
+    srv.listen()
+    a = socket.socket()
+    a.setsockopt(socket.IPPROTO_TCP, socket.TCP_MAXSEG, 1400)
+    a.connect(srv.getsockname())
+    b, _ = srv.accept()
+    srv.close()
+    a.setsockopt(socket.SOL_SOCKET, SO_MAX_PACING_RATE, PACED)
+
+    def read() -> None:
+        with contextlib.suppress(OSError):
+            while b.recv(1 << 20):
+                pass
+
+    def write() -> None:
+        with contextlib.suppress(OSError):          # closed at the end of the test
+            a.sendall(b"x" * (10 * PACED))
+    threads = [threading.Thread(target=f, daemon=True) for f in (read, write)]
+    for t in threads:
+        t.start()
+    return a, b, threads
+
+
+def look(up: Uplink, looks: int) -> float:
+    """The uplink's rate after ``looks`` looks EVERY s apart (the endpoint's own cadence: what is
+    measured is bytes over that time)."""
+    for _ in range(looks):
+        time.sleep(EVERY)
+        up.measure(time.monotonic())
+    return up.rate
+
+
+def test_a_backed_up_link_is_measured_at_once_and_a_slow_reader_is_not_a_thin_link():
+    a, b, threads = paced_pair()
+    quiet, idle = busy_pair()                       # a control link: its own peer, nothing to say
+    try:
+        up = Uplink(lambda: quiet, lambda: [a])
+        up.probed(time.monotonic(), 50e6)          # the link was fast a moment ago
+        rate = look(up, int(BACKLOG_S / EVERY) + 2)
+        assert up.backed_up >= 1 and up.waiting, "bytes waited at every look: the link is the bottleneck"
+        assert PACED / 3 < rate < PACED * 3, (rate, "what it carried, whatever was measured before")
+        up.probed(time.monotonic(), 40e6)          # a probe right after: the fastest of the window again
+        assert up.rate == 40e6
+    finally:
+        for s in (a, b):
+            with contextlib.suppress(OSError):
+                s.shutdown(socket.SHUT_RDWR)          # the writer and the reader end
+        for s in (a, b, quiet, idle):
+            s.close()
+        for t in threads:
+            t.join(5)
+    # a reader that does not read: bytes wait too, but for its receive window, not for the link
+    c, d = busy_pair()
+    try:
+        up = Uplink(lambda: c, lambda: [c])
+        up.probed(time.monotonic(), 50e6)
+        look(up, int(BACKLOG_S / EVERY) + 2)
+        assert up.backed_up == 0 and up.rate >= 50e6, "its backlog is its reader's: the link is not thin"
+        assert not crosses_uplink(c), "a link on this computer says nothing of the uplink"
+    finally:
+        c.close()
+        d.close()

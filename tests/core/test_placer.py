@@ -239,3 +239,46 @@ def test_no_move_for_margin_or_energy_to_a_host_where_its_own_results_were_late(
     q = Placer(settle_s=0.0, settle_miss_s=0.0, dwell_s=0.0)
     q.decide(0.0, on_robot, [CLOUD, ROBOT], GOOD, ROBOT.tid)
     assert q.decide(1.0, NODE, [CLOUD, ROBOT], BAD, CLOUD.tid).move
+
+
+
+async def test_a_pending_move_is_made_when_its_hysteresis_ends_not_at_the_next_poll(monkeypatch):
+    import asyncio
+    import types
+
+    from rce_master import placement
+    from rce_master.model import ContainerRec, TaskSet
+    from rce_master.mover import MoveFailed
+    monkeypatch.setattr(placement, "POLL", 60.0)          # the next poll would come far too late
+    hosts = {1: TaskSet(1, "container", "dc1", "h", {"capacity": {"cpu": 8}}),
+             2: TaskSet(2, "container", "r1-computer", "h", {"capacity": {"cpu": 0.3}, "zone": "robot:r1",
+                                                             "zone_user": "alice"})}
+    c = ContainerRec(7, "alice", "costmap", "r1", 1, None, {"placement": "auto", "deadline_ms": 100, "robot": "r1",
+                                                            "consumes": ["scan"]}, state="running")
+    state = types.SimpleNamespace(containers={("alice", "costmap"): c}, tasksets=hosts)
+    polled, moved = asyncio.Event(), asyncio.Event()
+    asked = []
+
+    async def host_stats(_c):
+        polled.set()
+        return stats(100, 0)
+
+    class Mover:
+        async def move(self, user, ctag, tid, why, drain_max):
+            asked.append(tid)
+            moved.set()
+            raise MoveFailed("not moved: the test only asks when")
+    p = placement.Placement(state, host_stats, Placer(settle_miss_s=0.05), mover=Mover())
+    p.robot_link("alice", "r1", 5.0, 10e6)
+    stop = asyncio.Event()
+    task = asyncio.create_task(p.run(stop))
+    try:
+        await asyncio.wait_for(polled.wait(), 10)
+        p.robot_link("alice", "r1", 300.0, 10e6)          # the link's round trip grows: the cloud misses
+        ch = p.word(c)
+        assert not ch.move and ch.target.tid == 2 and 0 < ch.wait_s < 0.05 + 1e-6, ch
+        await asyncio.wait_for(moved.wait(), 10)          # at the end of its settle, with no poll meanwhile
+        assert asked == [2]
+    finally:
+        stop.set()
+        await task
