@@ -79,7 +79,9 @@ CELLS, PASSES = 160, 4          # the node's grid (cells a side) and inflation p
 NODE_ARGS = f"--cells {CELLS} --passes {PASSES} --queue 100"     # and --samples, from calibrate()
 HEAVY_MS = 47.0                 # core-ms a cluttered scan costs the node (calibrate(): the same on any machine)
 ROBOT_CPU = 0.3                 # cores of the robot's computer (cgroup CPU quota)
-CPU_PERIOD_US = 100_000
+CPU_PERIOD_US = 10_000          # the cap's period: short beside the scans' 100 ms, so that the robot's computer is
+                                # slow and not bursty (a 100 ms period locks in phase with the 10 Hz scans: a
+                                # cluttered scan met or missed its deadline by where in the period it came)
 GOOD_RATE, BAD_RATE = "100mbit", "1mbit"
 QUEUE = 40                      # packets in each end's FIFO (bounded: ~0.5 s at 1 Mbit/s)
 BATTERY_START_PCT, BATTERY_LOW_PCT = 80.0, 12.0
