@@ -139,7 +139,8 @@ class Uplink:
         for sock in (control, *data):
             got = link_backlog(sock)
             if got is not None:
-                kept = [x for x in self._looks.get(id(sock), ()) if now - x[0] <= BACKLOG_S + 2 * EVERY]
+                kept = [x for x in self._looks.get(id(sock), ()) if now - x[0] <= BACKLOG_S + 2 * EVERY
+                        and x[1] <= got[0]]           # (a socket gone, and its id taken by a new one: not its looks)
                 looks[id(sock)] = [*kept, (now, *got)]
         self._looks = looks
         self.waiting = any(looks[id(d)][-1][2] > 0 for d in data if id(d) in looks)
