@@ -157,6 +157,16 @@ def test_planner_with_epibt_keeps_every_step_valid_and_reaches_goals_on_a_packed
     assert planner._epibt.stats["epibt_steps"] == 40 and planner._epibt.stats["epibt_passes"] >= 40
 
 
+def test_window_bias_makes_the_lookahead_take_epibts_first_step():
+    # a bias beyond any rollout's lead: EPIBT's first step in every step it was planned (every step
+    # with time for the rollouts); one below any: never
+    taken = drive_packed(steps=20, soft=0.2, hard=0.4, epibt=True, window_bias=1e6)
+    assert taken._epibt.stats["epibt_steps"] >= 15
+    assert taken.stats.get("window_chosen") == taken._epibt.stats["epibt_steps"]
+    never = drive_packed(steps=20, soft=0.2, hard=0.4, epibt=True, window_bias=-1e6)
+    assert never._epibt.stats["epibt_steps"] >= 15 and never.stats.get("window_chosen", 0) == 0
+
+
 def test_open_lanes_cross_every_row_and_column_and_corridor_lanes_stay_as_they_were():
     g = LifelongGrid(np.ones((4, 4), dtype=bool))
     assert (lane_costs(g, 4) == 1).all()                     # an open map has no corridor lanes
@@ -167,9 +177,9 @@ def test_open_lanes_cross_every_row_and_column_and_corridor_lanes_stay_as_they_w
     assert int(c.max()) == 10 and int(c.min()) == 1
 
 
-def test_runner_answers_with_epibt_and_open_lanes_from_0_3_robots_per_free_cell():
+def test_runner_answers_with_epibt_its_bias_and_open_lanes_from_0_3_robots_per_free_cell():
     from rce_fleet.lifelong.lorr import LorrProblem
-    from rce_fleet.lifelong.runner import EPIBT_DENSITY, OPEN_LANES, run_lifelong
+    from rce_fleet.lifelong.runner import EPIBT_BIAS, EPIBT_DENSITY, OPEN_LANES, run_lifelong
     g = LifelongGrid(np.ones((8, 8), dtype=bool))
     rng = np.random.default_rng(0)
     tasks = [tuple(int(c) for c in rng.choice(64, size=2, replace=False)) for _ in range(200)]
@@ -179,6 +189,7 @@ def test_runner_answers_with_epibt_and_open_lanes_from_0_3_robots_per_free_cell(
         s = r.summary()
         assert s["invalid_steps"] == 0 and s["timeouts"] == 0
         assert s["epibt"] is on and s["open_lanes"] == (OPEN_LANES if on else 0)
+        assert s["window_bias"] == (EPIBT_BIAS if on else 0.0)
         assert (s.get("epibt_steps", 0) > 0) is on
 
 

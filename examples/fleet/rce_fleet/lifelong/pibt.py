@@ -51,7 +51,9 @@ class PIBTPlanner:
     ``lns_frac`` of the time to ``deadline``) as a candidate of the lookahead, or answered
     directly; epibt, epibt_kw, epibt_frac: the same with EPIBT (:class:`~.epibt.EPIBTPlan` with
     ``epibt_kw``) in place of the windowed plan (answered directly, it runs until ``epibt_frac``
-    of the way from ``deadline`` to ``hard``). ``plan(pos, head, goals, deadline)`` returns (n,)
+    of the way from ``deadline`` to ``hard``); window_bias: steps per robot with a goal added to
+    the score of the rollout from the windowed plan's (EPIBT's) first step, so that the lookahead
+    takes it unless a PIBT rollout brings the robots closer by more. ``plan(pos, head, goals, deadline)`` returns (n,)
     action codes (:mod:`.kernels`). Measured worth of each: ``docs/lifelong.md``.
     """
 
@@ -61,7 +63,7 @@ class PIBTPlanner:
                  window: int = 20, flow: TrafficFlow | None = None, flow_frac: float = 0.5,
                  flow_passes: int = 1, ops: bool = False, lns: bool = True, lns_frac: float = 0.5,
                  ops_kw: dict | None = None, ops_candidate: bool = True, epibt: bool = False,
-                 epibt_kw: dict | None = None, epibt_frac: float = 0.9):
+                 epibt_kw: dict | None = None, epibt_frac: float = 0.9, window_bias: float = 0.0):
         self.grid, self.cache, self.model, self.turn_w, self.swap = grid, cache, model, float(turn_w), swap
         self.claim_steps = claim_steps
         self.stuck_steps, self.noise = stuck_steps, noise
@@ -72,6 +74,7 @@ class PIBTPlanner:
         self.ops_candidate = ops_candidate
         self._window = None
         self.epibt, self.epibt_kw, self.epibt_frac, self._epibt = epibt, epibt_kw or {}, epibt_frac, None
+        self.window_bias = window_bias
         self.rng = np.random.default_rng(seed)
         self._goal_prev: np.ndarray | None = None
         self.elapsed: np.ndarray | None = None
@@ -215,6 +218,7 @@ class PIBTPlanner:
         d0 = np.empty(n)
         d1 = np.empty(n)
         heading_costs(nbr, table, slot, pos, head, d0)
+        n_goal = int((slot >= 0).sum())
         best, best_state, best_score = plain[0], plain[1:], -np.inf
         k = chosen = 0
         for k in range(self.samples):
@@ -258,6 +262,8 @@ class PIBTPlanner:
                 break
             heading_costs(nbr, table, sl, p, h, d1)
             score = float((d0 - d1)[slot >= 0].sum())
+            if k == 1 and wfirst is not None:
+                score += self.window_bias * n_goal
             if score > best_score:
                 best, best_state, best_score = first[0], first[1:], score
                 chosen = k

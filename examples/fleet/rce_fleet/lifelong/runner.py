@@ -29,7 +29,7 @@ from .scheduler import BatchScheduler, make_scheduler
 from .simulator import MAPF_T, Simulator
 
 __all__ = ["ACTIVE_DENSITY", "ACTIVE_FRAC", "CROWD_TEAM", "CROWD_W", "GUIDE_DENSITY", "LANES", "PACKED_DENSITY",
-           "EPIBT_DENSITY", "OPEN_LANES", "RunResult", "WINDOW_DENSITY", "WINDOW_TEAM", "run_lifelong"]
+           "EPIBT_BIAS", "EPIBT_DENSITY", "OPEN_LANES", "RunResult", "WINDOW_DENSITY", "WINDOW_TEAM", "run_lifelong"]
 
 LANES = 4        # extra cost of a move against a one-way lane (measured: docs/lifelong.md)
 CROWD_W = 5.0    # scheduler's steps per robot crowding a task's errands beyond its share ...
@@ -42,7 +42,8 @@ ACTIVE_DENSITY = 0.3  # ... in teams of this many robots per free cell or more
 WINDOW_DENSITY = 0.1  # robots per free cell from which (to PACKED_DENSITY) the windowed plan (+ LNS) leads ...
 WINDOW_TEAM = 1000    # ... for teams up to this size (larger ones not measured with it)
 EPIBT_DENSITY = 0.3   # robots per free cell from which EPIBT with LNS answers (MAPF_T) ...
-OPEN_LANES = 9        # ... and, on a map without corridors, every row and column is a lane (against: 1 + 9)
+OPEN_LANES = 9        # ... and, on a map without corridors, every row and column is a lane (against: 1 + 9) ...
+EPIBT_BIAS = 0.2      # ... and the lookahead takes its first step unless a rollout leads by this per robot
 
 
 @dataclass
@@ -87,7 +88,9 @@ def run_lifelong(problem: LorrProblem, steps: int, plan_time_limit_ms: float = 1
     from ``WINDOW_DENSITY`` to ``PACKED_DENSITY`` robots per free cell, in teams up to ``WINDOW_TEAM``,
     the planner answers with the windowed plan of operations refined by LNS (:mod:`.window`;
     ``planner_kw={"ops": False}`` turns it off); from ``EPIBT_DENSITY`` it answers with EPIBT and
-    LNS instead (:mod:`.epibt`; ``planner_kw={"epibt": False}`` turns it off); open_lanes: on a map
+    LNS instead (:mod:`.epibt`; ``planner_kw={"epibt": False}`` turns it off), its first step taken
+    unless a PIBT rollout brings the robots closer by ``EPIBT_BIAS`` steps per robot with a goal
+    (``planner_kw={"window_bias": ...}``); open_lanes: on a map
     without corridor lanes, every row and column becomes a lane with this extra cost against it
     (None: ``OPEN_LANES`` under EPIBT, else 0);
     max_active: at most this many robots hold a task (batch scheduler); None (default):
@@ -104,7 +107,7 @@ def run_lifelong(problem: LorrProblem, steps: int, plan_time_limit_ms: float = 1
         planner_kw = {"claim_steps": 0, **(planner_kw or {})}
     epibt = model == MAPF_T and density >= EPIBT_DENSITY and (planner_kw or {}).get("epibt", True)
     if epibt:
-        planner_kw = {"epibt": True, **(planner_kw or {})}
+        planner_kw = {"epibt": True, "window_bias": EPIBT_BIAS, **(planner_kw or {})}
     elif model == MAPF_T and WINDOW_DENSITY <= density < PACKED_DENSITY and problem.team_size <= WINDOW_TEAM:
         planner_kw = {"ops": True, **(planner_kw or {})}
     if cache_bytes is None:
@@ -159,6 +162,7 @@ def run_lifelong(problem: LorrProblem, steps: int, plan_time_limit_ms: float = 1
             progress(k + 1, sim.finished, dt * 1e3)
     stats = {"scheduler": scheduler, "max_active": getattr(sched, "max_active", None), "lanes": lanes,
              "crowd_w": crowd_w, "guide": guide, "epibt": epibt, "open_lanes": open_lanes,
+             "window_bias": planner.window_bias,
              "claim_steps": planner.claim_steps, "scheduler_ms_total": sched_ms,
              **planner.stats, **(planner._window.stats if planner._window is not None else {}),
              **(planner._epibt.stats if planner._epibt is not None else {}),
