@@ -63,11 +63,9 @@ ENV_TIMEOUT = 30.0         # s a new environment has to say hello (start Python,
 RELAY_TIMEOUT = 30.0       # s an op relayed to an environment waits for its answer
 REPLY_MARGIN = 10.0        # s on top of an op's own time limit (a bus_call's timeout, the grace period of
                            # stopping nodes) for the environment to answer it
-SPARE_REFILL_S = 10.0      # s after a spare environment was taken before the next one starts: a start (an
-                           # interpreter and its imports, ~0.5 core-s) would compete for the host's cores with the
-                           # container it was taken for, while that one's nodes come up and take their first inputs
-SMALL_HOST_CPU = 1.0       # cores below which a host starts a spare only while it runs no container (on a
-                           # robot's computer capped at 0.3 cores a start takes its nodes' CPU for seconds)
+SMALL_HOST_CPU = 1.0       # cores below which a host starts a spare only while it runs no container: a start
+                           # (an interpreter and its imports, ~0.5 core-s) on a robot's computer capped at 0.3
+                           # cores takes the CPU of the container its last spare went to for seconds
 EXIT_MARGIN = 5.0          # s on top of the grace period for an environment to exit before it is killed
 
 CONTROL_SOCKET = "host.sock"
@@ -130,9 +128,9 @@ class ContainerHost:
     removed on exit only if ``own_runtime_dir``); ``sandbox``: sandbox kind or ``"auto"``;
     ``env_timeout``: s to wait for a new environment's hello; ``grace``: s between SIGTERM
     and SIGKILL for nodes; ``warm``: idle environments kept started, so that a new group's
-    ``create_container`` does not wait for a Python process to start (one taken is replaced
-    :data:`SPARE_REFILL_S` s later, not while the container it went to comes up; on a host of
-    less than :data:`SMALL_HOST_CPU` cores only once it runs no container); ``metrics_port``: serve
+    ``create_container`` does not wait for a Python process to start (one taken is replaced at
+    once; on a host of less than :data:`SMALL_HOST_CPU` cores only once it runs no container);
+    ``metrics_port``: serve
     Prometheus ``/metrics`` on ``bind`` at this port (0: an ephemeral one, read back from
     ``self.metrics_port``; None: no metrics server); ``cluster_key``: proved to the master on every
     link (:mod:`rce.transport.cluster_auth`); each environment gets only its own data key derived from it;
@@ -163,7 +161,6 @@ class ContainerHost:
         # environments' zygote templates fork from it (an environment execs its own when it cannot)
         self.zygote_template = ZygoteTemplate.for_nodes(self.runtime_dir)
         self._spare_tasks: list[asyncio.Task] = []
-        self._refill_timer: asyncio.TimerHandle | None = None     # the spares' refill after one was taken
         self.capacity = host_cpus()            # cores this host may use
         self.socket_dir = socket_dir_for(self.runtime_dir)
         self.control_path = str(self.socket_dir / CONTROL_SOCKET)
@@ -223,8 +220,6 @@ class ContainerHost:
         if self._closing:
             return
         self._closing = True
-        if self._refill_timer is not None:
-            self._refill_timer.cancel()
         envs = list(self.envs)
         for env, r in zip(envs, await asyncio.gather(*(self._stop_env(e) for e in envs), return_exceptions=True),
                           strict=True):
@@ -279,17 +274,12 @@ class ContainerHost:
             self._spare_tasks.append(t)
             t.add_done_callback(self._spare_tasks.remove)
 
-    def _refill_later(self) -> None:
-        """Refill the spares :data:`SPARE_REFILL_S` s from now (a refill already due stands): a
-        create_container meanwhile that finds none starts its environment itself, as without spares."""
-        if self._refill_timer is None and not self._closing:
-            self._refill_timer = asyncio.get_running_loop().call_later(SPARE_REFILL_S, self._refill_due)
-
-    def _refill_due(self) -> None:
-        self._refill_timer = None
-        if self.containers and self.capacity < SMALL_HOST_CPU:
-            return                        # when its last container goes (op_destroy_container)
-        self._refill_spares()
+    def _refill_after_take(self) -> None:
+        """A spare was taken: refill at once, but on a small host only once it runs no container
+        (``op_destroy_container``); a create_container meanwhile that finds no spare starts its
+        environment itself, as without spares."""
+        if self.capacity >= SMALL_HOST_CPU:
+            self._refill_spares()
 
     async def _start_spare(self) -> None:
         try:
@@ -555,7 +545,7 @@ class ContainerHost:
                 else:
                     env = await self._spawn_env(key)
                 self.groups[key] = env
-                self._refill_later()
+                self._refill_after_take()
             env.cids.add(cid)
             try:
                 res = await env.peer.call("add_container", cid=cid, ctag=ctag, user=user, group=group,
@@ -599,7 +589,7 @@ class ContainerHost:
             if not env.cids:
                 await self._stop_env(env)
                 self._group_locks.pop(env.key, None)
-        if not self.containers and self._refill_timer is None:
+        if not self.containers and self.capacity < SMALL_HOST_CPU:
             self._refill_spares()         # a small host's spare, held back while it ran containers
         log.info("container destroyed", cid=c.cid, ctag=c.ctag)
         return {}
