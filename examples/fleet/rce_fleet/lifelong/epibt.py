@@ -57,9 +57,8 @@ def _epibt_operations(depth: int) -> np.ndarray:
     of sequences with the same path the one that turns first). (m, depth) int64, the all-wait
     sequence first; 17 sequences at depth 3 where all sequences without a turn undone are 45."""
     dr = ((0, 1), (1, 0), (0, -1), (-1, 0))            # any fixed convention: only paths are compared
-    seen: dict[tuple, int] = {}
     out = [(ACT_W,) * depth]
-    seen[(0, ((0, 0),) * depth)] = 0
+    seen = {(0, ((0, 0),) * depth)}                     # (last heading, cells) of the sequences kept
     for seq in itertools.product((ACT_F, ACT_R, ACT_C, ACT_W), repeat=depth):
         last_f = max((i for i, a in enumerate(seq) if a == ACT_F), default=-1)
         if any(a in (ACT_R, ACT_C) for a in seq[last_f + 1:]):
@@ -86,7 +85,7 @@ def _epibt_operations(depth: int) -> np.ndarray:
             cells.append((r, c))
         key = (h, tuple(cells))
         if key not in seen:
-            seen[key] = len(out)
+            seen.add(key)
             out.append(seq)
     return np.array(out, dtype=np.int64)
 

@@ -218,7 +218,8 @@ class PIBTPlanner:
         d0 = np.empty(n)
         d1 = np.empty(n)
         heading_costs(nbr, table, slot, pos, head, d0)
-        n_goal = int((slot >= 0).sum())
+        has = slot >= 0                      # robots with a goal: the ones a rollout is scored on
+        n_goal = int(has.sum())
         best, best_state, best_score = plain[0], plain[1:], -np.inf
         k = chosen = 0
         for k in range(self.samples):
@@ -261,7 +262,7 @@ class PIBTPlanner:
             if not complete:
                 break
             heading_costs(nbr, table, sl, p, h, d1)
-            score = float((d0 - d1)[slot >= 0].sum())
+            score = float((d0 - d1)[has].sum())
             if k == 1 and wfirst is not None:
                 score += self.window_bias * n_goal
             if score > best_score:
