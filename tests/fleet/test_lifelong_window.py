@@ -125,3 +125,22 @@ def test_batch_scheduler_gives_tasks_to_at_most_max_active_robots_the_cheapest_p
     assert prop.tolist() == [0, -1, -1, 1]
     sched.max_active = None
     assert (sched.schedule(pos, np.full(4, -1), pool.open, 0, time.perf_counter() + 1) >= 0).sum() == 4
+
+
+def test_the_greedy_bids_of_a_team_too_large_for_one_assignment_keep_max_active_too():
+    """A batch too large for one assignment falls back to greedy bids; the bound holds there as
+    well: robots without a task take free places until max_active hold one, then only outbid."""
+    from rce_fleet.lifelong import BatchScheduler, TaskPool
+    g = LifelongGrid(np.ones((1, 20), dtype=bool))
+    pool = TaskPool()
+    for errands in [(1, 2), (10, 11), (18, 19), (5, 6)]:
+        pool.add(errands)
+    sched = BatchScheduler(DistanceCache(g), max_cells=1)      # every batch is too large: greedy bids
+    sched.max_active = 2
+    pos = np.array([0, 9, 14, 13])
+    prop = sched.schedule(pos, np.full(4, -1), pool.open, 0, time.perf_counter() + 1)
+    assert sched.fallbacks == 1 and (prop >= 0).sum() == 2
+    held = prop.copy()                                       # the next step: the bound still holds
+    assert (sched.schedule(pos, held, pool.open, 1, time.perf_counter() + 1) >= 0).sum() == 2
+    sched.max_active = None
+    assert (sched.schedule(pos, np.full(4, -1), pool.open, 0, time.perf_counter() + 1) >= 0).sum() == 4

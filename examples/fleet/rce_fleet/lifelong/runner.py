@@ -25,7 +25,7 @@ from .epibt import warm_up as epibt_warm_up
 from .window import warm_up as window_warm_up
 from .lorr import LorrProblem
 from .pibt import PIBTPlanner
-from .scheduler import BatchScheduler, make_scheduler
+from .scheduler import make_scheduler
 from .simulator import MAPF_T, Simulator
 
 __all__ = ["ACTIVE_DENSITY", "ACTIVE_FRAC", "CROWD_TEAM", "CROWD_W", "GUIDE_DENSITY", "LANES", "PACKED_DENSITY",
@@ -37,7 +37,7 @@ CROWD_TEAM = 3000  # ... for teams of this size and more (measured: docs/lifelon
 HARD_FRAC = 0.7    # past this share of the limit a robot with a new goal and no row yet waits a step
 GUIDE_DENSITY = 0.1  # robots per free cell from which guide paths lead (below: each robot's shortest way)
 PACKED_DENSITY = 0.8  # robots per free cell from which a turning robot holds no second cell (claim_steps 0)
-ACTIVE_FRAC = 0.3     # robots holding a task per free cell at most (batch scheduler; the rest stand aside) ...
+ACTIVE_FRAC = 0.3     # robots holding a task per free cell at most (the rest stand aside) ...
 ACTIVE_DENSITY = 0.3  # ... in teams of this many robots per free cell or more
 WINDOW_DENSITY = 0.1  # robots per free cell from which (to PACKED_DENSITY) the windowed plan (+ LNS) leads ...
 WINDOW_TEAM = 1000    # ... for teams up to this size (larger ones not measured with it)
@@ -93,7 +93,7 @@ def run_lifelong(problem: LorrProblem, steps: int, plan_time_limit_ms: float = 1
     (``planner_kw={"window_bias": ...}``); open_lanes: on a map
     without corridor lanes, every row and column becomes a lane with this extra cost against it
     (None: ``OPEN_LANES`` under EPIBT, else 0);
-    max_active: at most this many robots hold a task (batch scheduler); None (default):
+    max_active: at most this many robots hold a task; None (default):
     ``ACTIVE_FRAC`` of the free cells from ``ACTIVE_DENSITY`` robots per free cell, 0: no bound;
     progress: called after each step with (step, tasks finished, planner ms).
     Compilation happens before step 0 (:func:`~.kernels.warm_up`). Raises ValueError for a
@@ -130,7 +130,7 @@ def run_lifelong(problem: LorrProblem, steps: int, plan_time_limit_ms: float = 1
     sched = make_scheduler(scheduler, cache, crowd_w)
     if max_active is None and density >= ACTIVE_DENSITY:
         max_active = int(ACTIVE_FRAC * len(grid.free_cells()))
-    if max_active is not None and max_active > 0 and isinstance(sched, BatchScheduler):
+    if max_active is not None and max_active > 0:
         sched.max_active = max_active
     flow = None
     if guide:

@@ -157,7 +157,10 @@ class GreedyScheduler(Scheduler):
     """Auction on finish time with outbidding of unopened tasks (module docstring).
 
     margin: steps by which a bid must beat the holder's to take its task; max_rounds bounds
-    the chain of outbid robots per step.
+    the chain of outbid robots per step. ``max_active`` (None: no bound): at most that many robots
+    hold a task; once they do, a robot without one may only outbid a holder (robots bid in index
+    order, so which robots take the free places is not the cheapest choice, as in
+    :class:`BatchScheduler`).
     """
 
     name = "greedy"
@@ -165,6 +168,7 @@ class GreedyScheduler(Scheduler):
     def __init__(self, cache: DistanceCache, margin: float = 2.0, reassign: bool = True, chunk: int = 64):
         super().__init__(cache)
         self.margin, self.reassign, self.chunk = margin, reassign, chunk
+        self.max_active: int | None = None
 
     def schedule(self, pos, assignment, tasks, t, deadline):
         prop = assignment.copy()
@@ -186,6 +190,7 @@ class GreedyScheduler(Scheduler):
             tr = self._travel_pairs(slots[held], e0[held], pos[holder[held]])
             holder_bid[held] = _finish(tr, length[held], early[held], late[held])
         queue = list(free)
+        holding = int((prop >= 0).sum())
         rows: dict[int, np.ndarray] = {}
         budget = len(free) + len(cand)
         k = 0
@@ -202,8 +207,10 @@ class GreedyScheduler(Scheduler):
             k += 1
             bid = rows[r]
             ok = holder < 0
+            if self.max_active is not None and holding >= self.max_active:
+                ok[:] = False                  # no place left: only a holder's task may change hands
             if self.reassign:
-                ok |= bid < holder_bid - self.margin
+                ok |= (holder >= 0) & (bid < holder_bid - self.margin)
             j = int(np.argmin(np.where(ok, bid, np.inf)))
             if not ok[j] or not np.isfinite(bid[j]):
                 continue
@@ -211,6 +218,8 @@ class GreedyScheduler(Scheduler):
             if old >= 0:
                 prop[old] = -1
                 queue.append(old)
+            else:
+                holding += 1
             holder[j], holder_bid[j] = r, bid[j]
             prop[r] = cand[j].id
         return prop
@@ -243,6 +252,7 @@ class BatchScheduler(Scheduler):
         robots = np.array([a for a in range(len(pos)) if a not in opened], dtype=np.int64)
         if len(robots) * len(cand) > self.max_cells:        # too big for one step: bid greedily
             self.fallbacks += 1
+            self._greedy.max_active = self.max_active
             return self._greedy.schedule(pos, assignment, tasks, t, deadline)
         self._prepare(cand, deadline)
         slots, e0, length = self._estimates(cand)
