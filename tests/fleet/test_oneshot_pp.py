@@ -261,7 +261,7 @@ def test_lacam_along_one_way_lanes_in_a_crowd_with_scatter_as_the_fallback():
     assert plain["paths"].shape == tail["paths"].shape and (plain["paths"] == tail["paths"]).all()
     assert lanes["paths"].shape != plain["paths"].shape or (lanes["paths"] != plain["paths"]).any()
     calls = itertools.count(0.0, 1e-4)
-    out = plan_one_shot(g, starts, goals, time_limit_s=3, clock=lambda: next(calls))
+    out = plan_one_shot(g, starts, goals, time_limit_s=1, clock=lambda: next(calls))
     assert out["solved"] and out["initial"] == "lacam lanes" and out["first_tries"] == []
     seeds = [s for s, _ in out["lane_tries"]]
     assert seeds == list(range(len(seeds)))                    # one process: seeds 0, 1, ... in turn
@@ -269,20 +269,20 @@ def test_lacam_along_one_way_lanes_in_a_crowd_with_scatter_as_the_fallback():
     assert out["first_sum_of_costs"] == out["lane_tries"][-1][1]
     assert out["sum_of_costs"] <= out["first_sum_of_costs"]
     assert_valid(g, out, starts, goals)
-    two = plan_one_shot(g, starts, goals, time_limit_s=3, workers=2, clock=lambda: next(calls))
+    two = plan_one_shot(g, starts, goals, time_limit_s=1, workers=2, clock=lambda: next(calls))
     assert two["solved"] and two["initial"] == "lacam lanes"
     assert two["first_sum_of_costs"] in [c for _, c in two["lane_tries"]]
     assert_valid(g, two, starts, goals)
     # no time for the lanes: LaCAM with scatter takes over
-    fallback = plan_one_shot(g, starts, goals, time_limit_s=3, lane_share=0.0, clock=lambda: next(calls))
+    fallback = plan_one_shot(g, starts, goals, time_limit_s=1, lane_share=0.0, clock=lambda: next(calls))
     assert fallback["solved"] and fallback["initial"] == "lacam"
     assert fallback["lane_tries"] == [] and len(fallback["first_tries"]) == 1
     assert_valid(g, fallback, starts, goals)
-    few = plan_one_shot(g, starts[:5], goals[:5], time_limit_s=3, clock=lambda: next(calls))   # 0.1 per cell
+    few = plan_one_shot(g, starts[:5], goals[:5], time_limit_s=1, clock=lambda: next(calls))   # 0.1 per cell
     assert few["solved"] and few["initial"] == "lacam" and few["lane_tries"] == []
     open_floor = grid(["......"] * 6)
     pick = rng.choice(36, 20, replace=False)
-    flat = plan_one_shot(open_floor, pick[:10], pick[10:], time_limit_s=3, clock=lambda: next(calls))
+    flat = plan_one_shot(open_floor, pick[:10], pick[10:], time_limit_s=1, clock=lambda: next(calls))
     assert flat["solved"] and flat["initial"] == "lacam" and flat["lane_tries"] == []
     assert_valid(open_floor, flat, pick[:10], pick[10:])
 
