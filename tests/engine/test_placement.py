@@ -58,7 +58,7 @@ async def create(r: RawRobot, ctag: str, **data) -> dict:
 
 @pytest.mark.asyncio
 async def test_zones_keep_robot_computers_to_their_robot(eng):
-    # r1 stays connected to the end: the containers it owns go when it leaves (after its resume grace)
+    # r1 stays connected to the end: the containers it owns are destroyed once it leaves
     async with RawRobot(eng.master_url, "r1") as r:
         for ctag in ("plain1", "plain2", "plain3"):
             await create(r, ctag)

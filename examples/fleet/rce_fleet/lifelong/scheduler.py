@@ -43,13 +43,15 @@ class Scheduler:
 
     ``schedule(pos, assignment, tasks, t, deadline)`` returns the proposed (n,) task id per
     robot (-1 none); it never moves an opened task, and stops computing new distance maps at
-    ``deadline`` (a ``time.perf_counter()`` value).
+    ``deadline`` (a ``time.perf_counter()`` value). ``max_active`` (None: no bound): at most that
+    many robots hold a task; the others stand aside without one.
     """
 
     name = "base"
     map_share = 0.5          # share of the scheduler's time for new first-errand maps
     crowd_w = 0.0            # steps added per robot in the block of a task's first and last errand
     crowd_block = 10         # side of those blocks (cells)
+    max_active: int | None = None
 
     def __init__(self, cache: DistanceCache):
         self.cache = cache
@@ -157,10 +159,9 @@ class GreedyScheduler(Scheduler):
     """Auction on finish time with outbidding of unopened tasks (module docstring).
 
     margin: steps by which a bid must beat the holder's to take its task; max_rounds bounds
-    the chain of outbid robots per step. ``max_active`` (None: no bound): at most that many robots
-    hold a task; once they do, a robot without one may only outbid a holder (robots bid in index
-    order, so which robots take the free places is not the cheapest choice, as in
-    :class:`BatchScheduler`).
+    the chain of outbid robots per step. Once ``max_active`` robots hold a task, a robot without
+    one may only outbid a holder (robots bid in index order, so which robots take the free places
+    is not the cheapest choice, as in :class:`BatchScheduler`).
     """
 
     name = "greedy"
@@ -168,7 +169,6 @@ class GreedyScheduler(Scheduler):
     def __init__(self, cache: DistanceCache, margin: float = 2.0, reassign: bool = True, chunk: int = 64):
         super().__init__(cache)
         self.margin, self.reassign, self.chunk = margin, reassign, chunk
-        self.max_active: int | None = None
 
     def schedule(self, pos, assignment, tasks, t, deadline):
         prop = assignment.copy()
@@ -228,9 +228,9 @@ class GreedyScheduler(Scheduler):
 class BatchScheduler(Scheduler):
     """Batch assignment (module docstring): robots without an opened task against unopened
     tasks, re-solved at each step where a robot is free. keep_bonus: steps of finish time a
-    robot's current task is favoured by (hysteresis). ``max_active`` (None: no bound): at most
-    that many robots hold a task, the cheapest pairs of the assignment kept; the others stand
-    aside without one (on a packed map fewer robots on the move finish more: docs/lifelong.md)."""
+    robot's current task is favoured by (hysteresis). Under ``max_active`` the cheapest pairs of
+    the assignment are kept; the others stand aside without one (on a packed map fewer robots on
+    the move finish more: docs/lifelong.md)."""
 
     name = "batch"
 
@@ -239,7 +239,6 @@ class BatchScheduler(Scheduler):
         self.keep_bonus, self.max_cells = keep_bonus, max_cells
         self._greedy = GreedyScheduler(cache)
         self.fallbacks = 0
-        self.max_active: int | None = None
 
     def schedule(self, pos, assignment, tasks, t, deadline):
         prop = assignment.copy()
