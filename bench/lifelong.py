@@ -19,6 +19,7 @@ Usage::
         [--generate MAP ... --robots N,... ] [--sweep] [--seed S] [--problem-dir DIR]
         [--peer PATH | --build-peer DIR] [--plan-time-limit MS] [--scheduler batch|greedy|both]
         [--cache-mb MB] [--lanes N] [--crowd-w W] [--max-active N] [--window on|off] [--epibt on|off]
+        [--keep-right N] [--admission on|off]
         [--data ../shared/data]
         [--json PATH] [--plot PATH]
         [--outputs DIR]
@@ -80,7 +81,8 @@ def simulation_time(problem: Path) -> int | None:
 def run_one(path: Path, steps: int, limit_ms: float, scheduler: str, seed: int, pub: dict | None,
             outputs: Path | None, cache_mb: float | None = None, lanes: int | None = None,
             crowd_w: float | None = None, peer: Path | None = None, max_active: int | None = None,
-            window: bool | None = None, epibt: bool | None = None) -> dict:
+            window: bool | None = None, epibt: bool | None = None, keep_right: int | None = None,
+            admission: bool | None = None) -> dict:
     """Run one problem (and the start-kit binary ``peer`` on it, when given); returns its row (with
     the finished-over-time curve)."""
     from rce_fleet.lifelong import load_problem
@@ -92,6 +94,7 @@ def run_one(path: Path, steps: int, limit_ms: float, scheduler: str, seed: int, 
                            record=outputs is not None,
                            cache_bytes=None if cache_mb is None else int(cache_mb * 2 ** 20),
                            lanes=LANES if lanes is None else lanes, crowd_w=crowd_w, max_active=max_active,
+                           keep_right=keep_right, admission=admission,
                            planner_kw={**({} if window is None else {"ops": window}),
                                        **({} if epibt is None else {"epibt": epibt})} or None)
     s = res.summary()
@@ -217,6 +220,12 @@ def _parser() -> argparse.ArgumentParser:
     ap.add_argument("--max-active", type=int, metavar="N",
                     help="robots holding a task at most (0: no bound; default: 0.3 of the free cells from 0.3 "
                          "robots per free cell)")
+    ap.add_argument("--keep-right", type=int, metavar="N",
+                    help="extra cost of a move against the keep-right lane of a corridor 2 - 12 cells wide "
+                         "(0: none; default 4)")
+    ap.add_argument("--admission", choices=("on", "off"),
+                    help="the bound on robots holding a task set at run time by how many are stuck (default: "
+                         "on where no --max-active bound holds)")
     ap.add_argument("--window", choices=("on", "off"),
                     help="the windowed plan (operations + LNS) as a candidate of the lookahead (default: on "
                          "from 0.1 to 0.8 robots per free cell, up to 1,000 robots)")
@@ -294,7 +303,8 @@ def main(argv: list[str] | None = None) -> int:
             rows.append(run_one(p, steps, args.plan_time_limit, sch, args.seed, info, args.outputs, args.cache_mb,
                                 args.lanes, args.crowd_w, peer if sch == scheds[-1] else None, args.max_active,
                                 None if args.window is None else args.window == "on",
-                                None if args.epibt is None else args.epibt == "on"))
+                                None if args.epibt is None else args.epibt == "on", args.keep_right,
+                                None if args.admission is None else args.admission == "on"))
             json_path.parent.mkdir(parents=True, exist_ok=True)
             json_path.write_text(json.dumps({"plan_time_limit_ms": args.plan_time_limit, "git": git_head(),
                                              "date": time.strftime("%Y-%m-%d"), "peer": str(peer) if peer else None,

@@ -108,3 +108,19 @@ def test_the_run_picks_guidance_and_turn_commitment_by_density(tmp_path):
     got = [(r.stats["guide"], r.stats["claim_steps"], r.sim.invalid_steps)
            for r in (run_lifelong(p, 8, record=False) for p in (sparse, dense, packed))]
     assert got == [(False, 1, 0), (True, 1, 0), (True, 0, 0)]
+
+
+def test_tasks_taken_back_by_the_run_time_bound_keep_the_schedule_rules():
+    """A bound set at run time (admission) takes unopened tasks back: each robot that loses one
+    gets its -1 entry, no task is held twice, and the output replays to its count."""
+    p = load_problem(PROBLEM)
+    res = run_lifelong(p, 60, plan_time_limit_ms=1000.0, seed=1, record=True, admission=True,
+                       admission_kw={"window": 5, "target": 0.99, "decrease": 0.7, "start": None})
+    out = res.sim.output()
+    bounds = [b for _, _, b in res.stats["admission"]]
+    assert res.stats["shed"] > 0 and bounds[0] is not None and bounds[-1] < bounds[0]
+    assert out["numTaskFinished"] > 0 and out["numScheduleErrors"] == 0
+    assert schedule_faults(out) == []
+    assert any(e.endswith(":-1") for s in out["actualSchedule"] for e in s.split(",") if e)
+    again = replay(p.grid, p.tasks, p.reveal, out)
+    assert again.finished == out["numTaskFinished"] and again.invalid_steps == 0 and again.schedule_errors == []

@@ -167,6 +167,43 @@ def test_cache_bound_holds_every_free_cell_when_memory_allows_else_a_share_or_an
         cache_bytes_for(big, 7000, available=2 ** 28, share=0.25, floor=0)
     assert cache_bytes_for(big, 5000, available=2 ** 34) == 2 * 10_000 * 10_000
 
+def test_robots_keep_right_in_a_corridor_four_cells_wide_and_rooms_keep_no_lanes():
+    from rce_fleet.lifelong.guidance import keep_right_costs
+    # two 16 x 8 rooms (wider than a corridor's 12) joined by a corridor 4 cells wide and 20 long
+    g = grid(["." * 8 + ("." * 20 if 2 <= r <= 5 else "#" * 20) + "." * 8 for r in range(16)])
+    cost = keep_right_costs(g, against=4)
+    east, south, west, north = 0, 1, 2, 3
+    cols = g.cols
+
+    def cell(r, c):
+        return r * cols + c
+    for c in range(8, 28):
+        for r in (2, 3):                      # north half: the lane runs west
+            assert cost[cell(r, c), east] == 5 and cost[cell(r, c), west] == 1
+        for r in (4, 5):                      # south half: east
+            assert cost[cell(r, c), west] == 5 and cost[cell(r, c), east] == 1
+        for r in range(2, 6):                 # across the corridor: free
+            assert cost[cell(r, c), north] == 1 and cost[cell(r, c), south] == 1
+    for c in list(range(8)) + list(range(28, 36)):        # rooms: no lanes
+        assert (cost[[cell(r, c) for r in range(16)]] == 1).all()
+    # a robot bound west from the south half crosses over first: the way along the south half
+    # costs 4 more per cell, so its distance is the plain one plus the two steps across
+    lanes = DistanceCache(g, cost=cost)
+    plain = DistanceCache(g)
+    start, goal = cell(5, 30), cell(5, 4)
+    assert lanes.table[lanes.slot(goal), start] == plain.table[plain.slot(goal), start] + 2 + 2
+    assert lanes.table[lanes.slot(start), goal] == plain.table[plain.slot(start), goal]
+    # added on top of given costs; odd widths leave their middle row free; 0 adds nothing
+    base = np.full(g.nbr.shape, 3, dtype=np.uint8)
+    assert (keep_right_costs(g, against=4, cost=base)[cell(2, 10)] == [7, 3, 3, 3]).all()
+    assert (keep_right_costs(g, against=0) == 1).all()
+    odd = grid(["#" * 20, "." * 20, "." * 20, "." * 20, "#" * 20])
+    mid = keep_right_costs(odd, against=4)
+    assert (mid[2 * 20 + 5] == 1).all() and mid[20 + 5, east] == 5 and mid[3 * 20 + 5, west] == 5
+    with pytest.raises(ValueError, match="max_width"):
+        keep_right_costs(g, max_width=1)
+
+
 def test_weighted_maps_equal_bfs_at_unit_cost_and_lanes_send_robots_round_a_one_way_row():
     from rce_fleet.lifelong.guidance import lane_costs
     g = load_problem(RANDOM).grid

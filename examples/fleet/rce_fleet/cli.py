@@ -21,6 +21,7 @@
     rce-fleet grid [--map YAML] [--grid RxC | --cell M]     # print the grid's cell numbers
     rce-fleet lifelong PROBLEM.json --steps N [--plan-time-limit MS] [--output OUT.json] [--seed S]
                    [--scheduler batch|greedy] [--cache-mb MB] [--lanes N]   # a LoRR 2024 problem under its rules
+                   [--keep-right N] [--max-active N] [--admission on|off]
 """
 from __future__ import annotations
 
@@ -229,6 +230,12 @@ def build_parser() -> argparse.ArgumentParser:
                     "available memory, at least 1024)")
     lf.add_argument("--lanes", type=int, metavar="N", help="extra cost of a move against a one-way lane in "
                     "one-cell-wide corridors (0: no lanes; default 4)")
+    lf.add_argument("--keep-right", type=int, metavar="N", help="extra cost of a move against the keep-right "
+                    "lane of a corridor 2 - 12 cells wide (0: none; default 4)")
+    lf.add_argument("--max-active", type=int, metavar="N", help="robots holding a task at most (0: no bound; "
+                    "default: 0.3 of the free cells from 0.3 robots per free cell)")
+    lf.add_argument("--admission", choices=("on", "off"), help="the bound on robots holding a task set at run "
+                    "time by how many are stuck (default: on where no --max-active bound holds)")
     lf.add_argument("--crowd-w", type=float, metavar="W", help="steps the scheduler adds per robot crowding a "
                     "task's errands beyond its share (default 5 for 3,000 robots or more, else 0)")
     lf.add_argument("--no-progress", action="store_true", help="no progress bar")
@@ -278,7 +285,8 @@ def _lifelong(args: argparse.Namespace) -> int:
             res = run_lifelong(problem, args.steps, plan_time_limit_ms=args.plan_time_limit, seed=args.seed,
                                scheduler=args.scheduler, cache_bytes=cache_bytes,
                                **({} if args.lanes is None else {"lanes": args.lanes}), crowd_w=args.crowd_w,
-                               progress=cb)
+                               keep_right=args.keep_right, max_active=args.max_active,
+                               admission=None if args.admission is None else args.admission == "on", progress=cb)
         s = res.summary()
         print(f"{problem.path.name}: {s['tasks_finished']} tasks finished in {s['steps']} steps by "
               f"{problem.team_size} robots; planner ms p50 {s['plan_ms_p50']:.1f} p99 {s['plan_ms_p99']:.1f} max "

@@ -16,10 +16,11 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from .admission import FlowAdmission
 from .distances import DistanceCache, cache_bytes_for
 from .flow import TrafficFlow
 from .flow import warm_up as flow_warm_up
-from .guidance import lane_costs
+from .guidance import keep_right_costs, lane_costs
 from .kernels import warm_up
 from .epibt import warm_up as epibt_warm_up
 from .window import warm_up as window_warm_up
@@ -28,10 +29,13 @@ from .pibt import PIBTPlanner
 from .scheduler import make_scheduler
 from .simulator import MAPF_T, Simulator
 
-__all__ = ["ACTIVE_DENSITY", "ACTIVE_FRAC", "CROWD_TEAM", "CROWD_W", "GUIDE_DENSITY", "LANES", "PACKED_DENSITY",
-           "EPIBT_BIAS", "EPIBT_DENSITY", "OPEN_LANES", "RunResult", "WINDOW_DENSITY", "WINDOW_TEAM", "run_lifelong"]
+__all__ = ["ACTIVE_DENSITY", "ACTIVE_FRAC", "ADMISSION_START", "CROWD_TEAM", "CROWD_W", "GUIDE_DENSITY", "KEEP_RIGHT",
+           "LANES", "PACKED_DENSITY", "EPIBT_BIAS", "EPIBT_DENSITY", "OPEN_LANES", "RunResult", "WINDOW_DENSITY",
+           "WINDOW_TEAM", "run_lifelong"]
 
 LANES = 4        # extra cost of a move against a one-way lane (measured: docs/lifelong.md)
+ADMISSION_START = 0.04  # robots per free cell the run-time bound starts at (--admission on; measured there)
+KEEP_RIGHT = 4   # extra cost of a move against the keep-right lane of a corridor 2 - 12 cells wide (measured there)
 CROWD_W = 5.0    # scheduler's steps per robot crowding a task's errands beyond its share ...
 CROWD_TEAM = 3000  # ... for teams of this size and more (measured: docs/lifelong.md)
 HARD_FRAC = 0.7    # past this share of the limit a robot with a new goal and no row yet waits a step
@@ -71,6 +75,7 @@ def run_lifelong(problem: LorrProblem, steps: int, plan_time_limit_ms: float = 1
                  cache_bytes: int | None = None, lanes: int = LANES, crowd_w: float | None = None,
                  record: bool = True, guide: bool | None = None, planner_kw: dict | None = None,
                  flow_kw: dict | None = None, max_active: int | None = None, open_lanes: int | None = None,
+                 keep_right: int | None = None, admission: bool | None = None, admission_kw: dict | None = None,
                  progress: Callable[[int, int, float], None] | None = None) -> RunResult:
     """Run ``problem`` for ``steps`` time steps under the rules (:mod:`.simulator`).
 
@@ -92,9 +97,14 @@ def run_lifelong(problem: LorrProblem, steps: int, plan_time_limit_ms: float = 1
     unless a PIBT rollout brings the robots closer by ``EPIBT_BIAS`` steps per robot with a goal
     (``planner_kw={"window_bias": ...}``); open_lanes: on a map
     without corridor lanes, every row and column becomes a lane with this extra cost against it
-    (None: ``OPEN_LANES`` under EPIBT, else 0);
+    (None: ``OPEN_LANES`` under EPIBT, else 0); keep_right: the extra cost of a move against the
+    keep-right lane of a corridor 2 - 12 cells wide (:func:`~.guidance.keep_right_costs`; None:
+    ``KEEP_RIGHT``, 0: none);
     max_active: at most this many robots hold a task; None (default):
     ``ACTIVE_FRAC`` of the free cells from ``ACTIVE_DENSITY`` robots per free cell, 0: no bound;
+    admission: where no ``max_active`` bound holds, the bound is set at run time by the share of
+    robots with a task that move (:class:`~.admission.FlowAdmission` with ``admission_kw``, from
+    ``ADMISSION_START`` robots per free cell; None: off);
     progress: called after each step with (step, tasks finished, planner ms).
     Compilation happens before step 0 (:func:`~.kernels.warm_up`). Raises ValueError for a
     bad scheduler or model name, MemoryError when the maps of the team do not fit.
@@ -124,6 +134,10 @@ def run_lifelong(problem: LorrProblem, steps: int, plan_time_limit_ms: float = 1
         open_lanes = OPEN_LANES if epibt and lanes else 0
     if open_lanes and (cost is None or (cost == 1).all()):       # no corridors: the crisscross everywhere
         cost = lane_costs(grid, open_lanes, everywhere=True)
+    if keep_right is None:
+        keep_right = KEEP_RIGHT
+    if keep_right:
+        cost = keep_right_costs(grid, keep_right, cost=cost)
     cache = DistanceCache(grid, max_bytes=cache_bytes, cost=cost)
     if crowd_w is None:
         crowd_w = CROWD_W if problem.team_size >= CROWD_TEAM else 0.0
@@ -142,6 +156,12 @@ def run_lifelong(problem: LorrProblem, steps: int, plan_time_limit_ms: float = 1
     plan_ms = np.zeros(steps)
     finished = np.zeros(steps, dtype=np.int64)
     sched_ms = 0.0
+    if admission is None:
+        admission = False
+    control = None
+    if admission and sched.max_active is None:
+        control = FlowAdmission(problem.team_size, **{"start": int(ADMISSION_START * len(grid.free_cells())),
+                                                      **(admission_kw or {})})
     for k in range(steps):
         t0 = time.perf_counter()
         deadline = t0 + budget_frac * limit
@@ -155,18 +175,25 @@ def run_lifelong(problem: LorrProblem, steps: int, plan_time_limit_ms: float = 1
         actions = planner.plan(sim.pos, sim.head, goals, deadline, t0 + HARD_FRAC * limit)
         dt = time.perf_counter() - t0
         sched_ms += (t1 - t0) * 1e3
+        p_before = sim.pos.copy()
         sim.step(actions, prop, plan_time_s=dt, timed_out=dt > limit)
+        if control is not None:
+            held = prop >= 0
+            sched.max_active = control.observe(k, int((held & (sim.pos != p_before)).sum()), int(held.sum()))
         plan_ms[k] = dt * 1e3
         finished[k] = sim.finished
         if progress is not None:
             progress(k + 1, sim.finished, dt * 1e3)
     stats = {"scheduler": scheduler, "max_active": getattr(sched, "max_active", None), "lanes": lanes,
+             "keep_right": keep_right,
              "crowd_w": crowd_w, "guide": guide, "epibt": epibt, "open_lanes": open_lanes,
              "window_bias": planner.window_bias,
              "claim_steps": planner.claim_steps, "scheduler_ms_total": sched_ms,
              **planner.stats, **(planner._window.stats if planner._window is not None else {}),
              **(planner._epibt.stats if planner._epibt is not None else {}),
              **(flow.stats if flow is not None else {}),
+             "shed": sched.shed + getattr(getattr(sched, "_greedy", None), "shed", 0),
+             "admission": control.decisions if control is not None else None,
              "distance_maps": cache.computed, "maps_evicted": cache.evicted, "cache_rows": cache.capacity,
              "cache_rows_used": len(cache)}
     return RunResult(sim, plan_ms, finished, time.perf_counter() - t_start, stats)

@@ -52,10 +52,33 @@ class Scheduler:
     crowd_w = 0.0            # steps added per robot in the block of a task's first and last errand
     crowd_block = 10         # side of those blocks (cells)
     max_active: int | None = None
+    shed = 0                 # unopened tasks taken back to keep max_active
 
     def __init__(self, cache: DistanceCache):
         self.cache = cache
         self.cols = cache.grid.cols
+
+    def _shed(self, pos: np.ndarray, assignment: np.ndarray, tasks: dict[int, Task]) -> np.ndarray:
+        """A copy of ``assignment`` within ``max_active``: when more robots hold a task, the
+        unopened tasks of those farthest (Manhattan) from their first errand are taken back,
+        until the bound holds or no unopened task is left to take."""
+        prop = assignment.copy()
+        if self.max_active is None:
+            return prop
+        holders = np.flatnonzero(prop >= 0)
+        excess = len(holders) - self.max_active
+        if excess <= 0:
+            return prop
+        unopened = [a for a in holders.tolist() if not tasks[int(prop[a])].opened]
+        if not unopened:
+            return prop
+        ids = np.array(unopened, dtype=np.int64)
+        goal = np.fromiter((tasks[int(prop[a])].goal for a in unopened), dtype=np.int64, count=len(unopened))
+        far = np.abs(pos[ids] // self.cols - goal // self.cols) + np.abs(pos[ids] % self.cols - goal % self.cols)
+        drop = ids[np.argsort(-far, kind="stable")[:excess]]
+        prop[drop] = -1
+        self.shed += len(drop)
+        return prop
 
     # -- estimates ----------------------------------------------------------------------
     def _prepare(self, tasks: list[Task], deadline: float) -> None:
@@ -171,8 +194,8 @@ class GreedyScheduler(Scheduler):
         self.margin, self.reassign, self.chunk = margin, reassign, chunk
 
     def schedule(self, pos, assignment, tasks, t, deadline):
-        prop = assignment.copy()
-        free = [int(a) for a in np.flatnonzero(assignment < 0)]
+        prop = self._shed(pos, assignment, tasks)
+        free = [int(a) for a in np.flatnonzero(prop < 0)]
         if not free:
             return prop
         cand = [tk for tk in tasks.values() if not tk.opened]
@@ -182,7 +205,8 @@ class GreedyScheduler(Scheduler):
         self._prepare(cand, t0 + self.map_share * max(0.0, deadline - t0))
         slots, e0, length = self._estimates(cand)
         length = length + self._crowd(pos, cand)
-        holder = np.fromiter((tk.agent for tk in cand), dtype=np.int64, count=len(cand))
+        holder = np.fromiter((tk.agent if tk.agent >= 0 and prop[tk.agent] == tk.id else -1 for tk in cand),
+                             dtype=np.int64, count=len(cand))        # a task just shed has none
         early, late = _windows(cand, t)
         holder_bid = np.full(len(cand), np.inf)
         held = np.flatnonzero(holder >= 0)
@@ -241,8 +265,8 @@ class BatchScheduler(Scheduler):
         self.fallbacks = 0
 
     def schedule(self, pos, assignment, tasks, t, deadline):
-        prop = assignment.copy()
-        if not (assignment < 0).any():
+        prop = self._shed(pos, assignment, tasks)
+        if not (prop < 0).any():
             return prop
         cand = [tk for tk in tasks.values() if not tk.opened]
         if not cand:

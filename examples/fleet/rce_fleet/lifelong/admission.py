@@ -1,0 +1,72 @@
+"""How many robots may hold a task, set at run time by the flow they make.
+
+A team larger than its map's corridors can carry jams: robots routed through a packed corridor
+mouth wait there, more arrive, and the jam grows until most of the team waits (docs/lifelong.md,
+"A jam on GAME"). A jam, once grown, stays: its robots hold tasks they have opened, which cannot
+be taken back. Fewer robots on the move finish more, but how many a map carries depends on its
+corridors and on where the tasks are, so the bound is found while the team runs, as a network
+finds its sending rate: additive increase, multiplicative decrease (Chiu and Jain, "Analysis of
+the increase and decrease algorithms for congestion avoidance in computer networks", 1989; TCP's
+congestion avoidance, Jacobson, SIGCOMM 1988), from a bound that starts low.
+
+The signal is the flow: the share of the robots holding a task that changed cell in a step, over
+a window of steps. Below ``target`` the team is jamming and the bound falls to ``decrease`` of
+the robots holding a task; above ``target + band`` it rises by ``increase`` of the team (while
+the bound is what holds robots back). The scheduler then takes unopened tasks back from the
+robots farthest from them until the bound holds (:class:`~.scheduler.Scheduler`'s
+``max_active``). A map whose robots turn often moves a smaller share of them when nothing jams
+(0.69 on random-32-32-20 at 100 robots, 0.8 - 0.9 on the city, game and warehouse maps), so the
+target is a setting, not a law: measured in docs/lifelong.md.
+"""
+from __future__ import annotations
+
+__all__ = ["FlowAdmission"]
+
+
+class FlowAdmission:
+    """AIMD control of the number of robots holding a task (module docstring).
+
+    team: robots in the team; window: steps per decision; target, band: the share of task
+    holders that moved (per step, over the window) below which the bound falls, and the margin
+    above it from which it rises; decrease: the factor it falls by; increase: the share of the
+    team it rises by; floor: the lowest bound, as a share of the team; start: the first bound
+    (robots; None: none); slow_start: the factor it grows by instead while it has not fallen yet
+    (1: none). ``bound`` is None while no bound holds. Raises ValueError for a share outside
+    (0, 1] or a window below 1.
+    """
+
+    def __init__(self, team: int, window: int = 25, target: float = 0.8, band: float = 0.05,
+                 decrease: float = 0.85, increase: float = 0.02, floor: float = 0.1, start: int | None = None,
+                 slow_start: float = 1.0):
+        for name, v in (("target", target), ("decrease", decrease), ("increase", increase), ("floor", floor)):
+            if not 0.0 < v <= 1.0:
+                raise ValueError(f"{name} must be in (0, 1], got {v}")
+        if window < 1:
+            raise ValueError(f"window must be at least 1 step, got {window}")
+        self.team, self.window, self.target, self.band = team, window, target, band
+        self.decrease, self.increase, self.floor = decrease, increase, max(1, int(floor * team))
+        self.bound: int | None = None if start is None or start >= team else max(self.floor, int(start))
+        self.slow_start = slow_start
+        self._moved = self._holding = self._steps = 0
+        self.decisions: list[tuple[int, float, int | None]] = []   # (step, share, bound) per window
+
+    def observe(self, step: int, moved: int, holding: int) -> int | None:
+        """Count one step: ``moved`` robots holding a task changed cell, of ``holding``. Returns
+        the bound (robots), None for none."""
+        self._moved += moved
+        self._holding += holding
+        self._steps += 1
+        if self._steps < self.window:
+            return self.bound
+        share = self._moved / self._holding if self._holding else 1.0
+        self._moved = self._holding = self._steps = 0
+        if share < self.target:
+            base = holding if self.bound is None else min(self.bound, holding)
+            self.bound = max(self.floor, int(self.decrease * base))
+            self.slow_start = 1.0
+        elif share > self.target + self.band and self.bound is not None and holding >= self.bound - 1:
+            self.bound = max(self.bound + max(1, int(self.increase * self.team)), int(self.bound * self.slow_start))
+            if self.bound >= self.team:
+                self.bound = None
+        self.decisions.append((step, round(share, 3), self.bound))
+        return self.bound
