@@ -71,6 +71,10 @@ MAX_MESSAGE = 256 * 1024
 MAX_ERROR = 1024
 #: Signals the zygote handles itself (blocked while it forks, reset in the child).
 HANDLED_SIGNALS = {signal.SIGCHLD, signal.SIGTERM, signal.SIGHUP, signal.SIGINT}
+#: The :data:`HANDLED_SIGNALS` this interpreter started with ignored (``nohup``, a shell's
+#: background job): an exec'd node inherits them ignored (:manpage:`execve(2)` keeps SIG_IGN), so a
+#: forked one keeps them ignored too.
+INHERITED_IGNORED = frozenset(sig for sig in HANDLED_SIGNALS if signal.getsignal(sig) == signal.SIG_IGN)
 #: Bytes of padding on the zygote's command line: room for a forked node's own command line
 #: (:func:`set_cmdline`).
 CMDLINE_ROOM = 1024
@@ -111,11 +115,17 @@ def preload() -> None:
 
 def reset_signals() -> None:
     """In a fresh child of a fork server: the signal dispositions an exec'd interpreter starts
-    with, and the :data:`HANDLED_SIGNALS` the server blocked around the fork unblocked (one
-    that arrived meanwhile is delivered now, to the default action)."""
-    for sig in (signal.SIGCHLD, signal.SIGTERM, signal.SIGHUP):
-        signal.signal(sig, signal.SIG_DFL)
-    signal.signal(signal.SIGINT, signal.default_int_handler)
+    with (the default, Python's KeyboardInterrupt for SIGINT, or ignored where the server's
+    interpreter started with it ignored: :data:`INHERITED_IGNORED`), and the
+    :data:`HANDLED_SIGNALS` the server blocked around the fork unblocked (one that arrived
+    meanwhile is delivered now, to that action)."""
+    for sig in (signal.SIGCHLD, signal.SIGTERM, signal.SIGHUP, signal.SIGINT):
+        if sig in INHERITED_IGNORED:
+            signal.signal(sig, signal.SIG_IGN)
+        elif sig == signal.SIGINT:
+            signal.signal(sig, signal.default_int_handler)
+        else:
+            signal.signal(sig, signal.SIG_DFL)
     signal.set_wakeup_fd(-1)
     signal.pthread_sigmask(signal.SIG_UNBLOCK, HANDLED_SIGNALS)
 

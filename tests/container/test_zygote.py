@@ -168,6 +168,36 @@ async def test_a_forked_node_sees_what_an_execd_node_sees(box, via):
             await box.template.close()
 
 
+async def test_signals_the_host_was_started_with_ignored_stay_ignored_in_a_forked_node(box):
+    """Under ``nohup`` or as a shell's background job a host starts with SIGINT / SIGHUP ignored:
+    an exec'd node inherits them ignored, and so does a forked one."""
+    old = {sig: signal.getsignal(sig) for sig in (signal.SIGINT, signal.SIGHUP)}
+    for sig in old:
+        signal.signal(sig, signal.SIG_IGN)
+    template = ZygoteTemplate.for_nodes(box.template.env["HOME"])
+    forked = execd = None
+    try:
+        template.start_soon()
+        assert await template.wait_started()
+        box.template = template
+        forked, execd = box.launcher(), box.launcher(zygote=False)
+        spec = {"ntag": "look", "pkg": "ZTest", "exe": "look.py", "args": "x", "name": "looker"}
+        await forked.add(spec)
+        await execd.add(spec)
+        seen_forked = json.loads((await wait_logs(forked, "look"))[0])["signals"]
+        seen_execd = json.loads((await wait_logs(execd, "look"))[0])["signals"]
+        assert forked.forks == 1 and execd.forks == 0
+        assert seen_execd["SIGINT"] == seen_execd["SIGHUP"] == str(signal.SIG_IGN)
+        assert seen_forked == seen_execd
+    finally:
+        for sig, handler in old.items():
+            signal.signal(sig, handler)
+        for lc in (forked, execd):
+            if lc is not None:
+                await lc.close()
+        await template.close()
+
+
 async def test_exit_signal_logs_respawn_crash_and_removal(box):
     lc = box.launcher()
     try:
