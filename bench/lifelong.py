@@ -224,8 +224,8 @@ def _parser() -> argparse.ArgumentParser:
                     help="extra cost of a move against the keep-right lane of a corridor 2 - 12 cells wide "
                          "(0: none; default 4)")
     ap.add_argument("--admission", choices=("on", "off"),
-                    help="the bound on robots holding a task set at run time by how many are stuck (default: "
-                         "on where no --max-active bound holds)")
+                    help="the bound on robots holding a task set at run time by the share of them that move "
+                         "(default off; ignored under --max-active)")
     ap.add_argument("--window", choices=("on", "off"),
                     help="the windowed plan (operations + LNS) as a candidate of the lookahead (default: on "
                          "from 0.1 to 0.8 robots per free cell, up to 1,000 robots)")

@@ -235,7 +235,7 @@ def build_parser() -> argparse.ArgumentParser:
     lf.add_argument("--max-active", type=int, metavar="N", help="robots holding a task at most (0: no bound; "
                     "default: 0.3 of the free cells from 0.3 robots per free cell)")
     lf.add_argument("--admission", choices=("on", "off"), help="the bound on robots holding a task set at run "
-                    "time by how many are stuck (default: on where no --max-active bound holds)")
+                    "time by the share of them that move (default off; ignored under --max-active)")
     lf.add_argument("--crowd-w", type=float, metavar="W", help="steps the scheduler adds per robot crowding a "
                     "task's errands beyond its share (default 5 for 3,000 robots or more, else 0)")
     lf.add_argument("--no-progress", action="store_true", help="no progress bar")

@@ -156,8 +156,6 @@ def run_lifelong(problem: LorrProblem, steps: int, plan_time_limit_ms: float = 1
     plan_ms = np.zeros(steps)
     finished = np.zeros(steps, dtype=np.int64)
     sched_ms = 0.0
-    if admission is None:
-        admission = False
     control = None
     if admission and sched.max_active is None:
         control = FlowAdmission(problem.team_size, **{"start": int(ADMISSION_START * len(grid.free_cells())),
@@ -175,7 +173,7 @@ def run_lifelong(problem: LorrProblem, steps: int, plan_time_limit_ms: float = 1
         actions = planner.plan(sim.pos, sim.head, goals, deadline, t0 + HARD_FRAC * limit)
         dt = time.perf_counter() - t0
         sched_ms += (t1 - t0) * 1e3
-        p_before = sim.pos.copy()
+        p_before = sim.pos.copy() if control is not None else None
         sim.step(actions, prop, plan_time_s=dt, timed_out=dt > limit)
         if control is not None:
             held = prop >= 0

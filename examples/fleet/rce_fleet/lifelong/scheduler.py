@@ -74,7 +74,7 @@ class Scheduler:
             return prop
         ids = np.array(unopened, dtype=np.int64)
         goal = np.fromiter((tasks[int(prop[a])].goal for a in unopened), dtype=np.int64, count=len(unopened))
-        far = np.abs(pos[ids] // self.cols - goal // self.cols) + np.abs(pos[ids] % self.cols - goal % self.cols)
+        far = self._manhattan_pairs(pos[ids], goal)
         drop = ids[np.argsort(-far, kind="stable")[:excess]]
         prop[drop] = -1
         self.shed += len(drop)
@@ -135,6 +135,12 @@ class Scheduler:
         rb, cb = divmod(b, self.cols)
         return abs(ra - rb) + abs(ca - cb)
 
+    def _manhattan_pairs(self, cells: np.ndarray, targets: np.ndarray) -> np.ndarray:
+        """(k,) Manhattan steps from cells[i] to targets[i]."""
+        r0, c0 = np.divmod(targets, self.cols)
+        rr, cc = np.divmod(cells, self.cols)
+        return np.abs(rr - r0) + np.abs(cc - c0)
+
     def _travel(self, slots: np.ndarray, e0: np.ndarray, cells: np.ndarray) -> np.ndarray:
         """(len(cells), len(slots)) steps from each cell to each task's first errand."""
         table = self.cache.table
@@ -153,9 +159,7 @@ class Scheduler:
         out = np.empty(len(slots))
         have = slots >= 0
         out[have] = self.cache.table[slots[have], cells[have]]
-        r0, c0 = np.divmod(e0[~have], self.cols)
-        rr, cc = np.divmod(cells[~have], self.cols)
-        out[~have] = np.abs(rr - r0) + np.abs(cc - c0)
+        out[~have] = self._manhattan_pairs(cells[~have], e0[~have])
         return out
 
     def schedule(self, pos: np.ndarray, assignment: np.ndarray, tasks: dict[int, Task], t: int,
@@ -276,7 +280,7 @@ class BatchScheduler(Scheduler):
         if len(robots) * len(cand) > self.max_cells:        # too big for one step: bid greedily
             self.fallbacks += 1
             self._greedy.max_active = self.max_active
-            return self._greedy.schedule(pos, assignment, tasks, t, deadline)
+            return self._greedy.schedule(pos, prop, tasks, t, deadline)     # already within the bound
         self._prepare(cand, deadline)
         slots, e0, length = self._estimates(cand)
         length = length + self._crowd(pos, cand)
