@@ -61,7 +61,7 @@ def test_plans_are_conflict_free_and_lns_never_lowers_the_weighted_progress():
         slot = _slots(cache, goals)
         order = np.random.default_rng(seed).permutation(len(pos)).astype(np.int64)
         e = EPIBTPlan(g, len(pos), seed=seed)
-        act = e.plan(pos, head, cache.table, slot, goals, order, np.ones(len(pos)), time.perf_counter() + 5, lns=False)
+        act = e.plan(pos, head, cache.table, slot, goals, order, time.perf_counter() + 5, lns=False)
         _check_plans(g, e, pos)
         assert check_actions(g, pos, head, act)[2] == []
         first = float(e.score[0])
@@ -80,6 +80,40 @@ def test_plans_are_conflict_free_and_lns_never_lowers_the_weighted_progress():
         assert abs(e.gain[np.arange(len(pos)), e.desire].sum() - e.score[0]) < 1e-6
 
 
+def test_operation_costs_are_the_papers_steps_to_the_goal_with_moving_now_preferred():
+    from rce_fleet.lifelong.epibt import EPIBT_OPERATIONS as ops, epibt_costs, operation_preference
+    from rce_fleet.lifelong.kernels import ACT_C, ACT_R
+    names = {ACT_F: "F", ACT_W: "W", ACT_R: "R", ACT_C: "C"}
+    idx = {"".join(names[a] for a in o): k for k, o in enumerate(ops.tolist())}
+    pref = operation_preference(ops)
+    assert pref.min() >= 0 and pref.max() < 1
+    assert pref[idx["FFF"]] == pref.max() and pref[idx["WWW"]] == pref.min()
+    # a corridor 1 x 9: robot 0 at cell 1 facing east, its goal at cell 3; robot 1 at cell 8 facing
+    # west, its goal at cell 0 (out of reach of one operation); robot 2 at cell 5 without a goal
+    g = LifelongGrid(np.ones((1, 9), dtype=bool))
+    cache = DistanceCache(g, max_bytes=2 ** 20)
+    pos = np.array([1, 8, 5], np.int64)
+    head = np.array([EAST, WEST, EAST], np.int64)
+    goals = np.array([3, 0, -1], np.int64)
+    n, m = len(pos), len(ops)
+    traj = np.empty((n, m, DEPTH + 1), np.int64)
+    cost = np.empty((n, m))
+    rank = np.empty((n, m), np.int64)
+    epibt_costs(g.nbr, ops, pref, pos, head, cache.table, _slots(cache, goals), goals, traj, cost, rank)
+    c = cost + pref[None, :]                                  # the steps, without the tie-break
+    assert c[0, idx["FFW"]] == 1 and c[0, idx["FFF"]] == 1   # the goal reached at step 2: t - 1
+    assert c[0, idx["WFF"]] == 2                             # reached at step 3
+    assert c[0, idx["WWW"]] == 2 + DEPTH                     # not reached: steps left + DEPTH
+    assert ops[rank[0, 0]].tolist() == [ACT_F, ACT_F, ACT_F]  # of equal cost, moving now is preferred
+    assert c[1, idx["FFF"]] == 8 - 3 + DEPTH and c[1, idx["WWW"]] == 8 + DEPTH
+    assert ops[rank[1, 0]].tolist() == [ACT_F, ACT_F, ACT_F]
+    assert (traj[0, idx["FFF"]] == [1, 2, 3, 4]).all()
+    for off in ("RFF", "CFF"):                               # north or south of a corridor: not allowed,
+        assert traj[0, idx[off], 0] == -1 and cost[0, idx[off]] >= 1e18
+        assert idx[off] in rank[0, -8:].tolist()             # ranked last
+    assert np.allclose(c[2][traj[2, :, 0] >= 0], 0)          # no goal: only the tie-break orders them
+
+
 def test_a_robot_of_higher_priority_displaces_the_one_in_its_way():
     # a one-cell corridor: robot 1 stands east of robot 0, facing east; robot 0 (first in priority)
     # wants the east end; robot 1 has no task and its plan (wait) is in the way
@@ -89,7 +123,7 @@ def test_a_robot_of_higher_priority_displaces_the_one_in_its_way():
     head = np.array([EAST, EAST], dtype=np.int64)
     goals = np.array([4, -1], dtype=np.int64)
     e = EPIBTPlan(g, 2)
-    act = e.plan(pos, head, cache.table, _slots(cache, goals), goals, np.array([0, 1], np.int64), np.zeros(2),
+    act = e.plan(pos, head, cache.table, _slots(cache, goals), goals, np.array([0, 1], np.int64),
                  time.perf_counter() + 5, lns=False)
     assert e.ops[e.desire[0]].tolist() == [ACT_F, ACT_F, ACT_W] or act[0] == ACT_F
     assert act.tolist() == [ACT_F, ACT_F]                    # both move: the front one makes way
@@ -99,7 +133,7 @@ def test_a_robot_of_higher_priority_displaces_the_one_in_its_way():
     goals2 = np.array([-1, 0], dtype=np.int64)
     head2 = np.array([NORTH, WEST], dtype=np.int64)
     act2 = e2.plan(pos, head2, cache.table, _slots(cache, goals2), goals2, np.array([0, 1], np.int64),
-                   np.zeros(2), time.perf_counter() + 5, lns=False)
+                   time.perf_counter() + 5, lns=False)
     assert check_actions(g, pos, head2, act2)[2] == []
     assert act2[1] != ACT_F                                  # robot 0 (higher priority, no task) holds its cell
 
@@ -110,7 +144,7 @@ def test_last_steps_plans_continue_and_a_step_cut_short_still_answers_a_valid_ac
     slot = _slots(cache, goals)
     order = np.arange(len(pos), dtype=np.int64)
     e = EPIBTPlan(g, len(pos), seed=2)
-    act = e.plan(pos, head, cache.table, slot, goals, order, np.ones(len(pos)), time.perf_counter() + 0.05)
+    act = e.plan(pos, head, cache.table, slot, goals, order, time.perf_counter() + 0.05)
     new_pos, new_head, errors = check_actions(g, pos, head, act)
     assert errors == []
     # the continuation of every plan fits the next step's start (nothing else moved)
@@ -118,13 +152,13 @@ def test_last_steps_plans_continue_and_a_step_cut_short_still_answers_a_valid_ac
     desire = np.zeros(len(pos), np.int64)
     e2 = EPIBTPlan(g, len(pos), seed=2)
     e2.prev_op = e.prev_op.copy()
-    e2.plan(new_pos, new_head, cache.table, slot, goals, order, np.ones(len(pos)), time.perf_counter() + 5, lns=False)
+    e2.plan(new_pos, new_head, cache.table, slot, goals, order, time.perf_counter() + 5, lns=False)
     score = np.zeros(1)
     epibt_init(e2.traj, new_pos, e.prev_op, desire, res, e2.gain, score)
     moving = e.ops[e.prev_op][:, 0] != ACT_W
     assert (desire[moving] == e.prev_op[moving]).all()
     # a deadline already past: the first pass stops at once, yet the answer is valid
-    act3 = e2.plan(new_pos, new_head, cache.table, slot, goals, order, np.ones(len(pos)), time.perf_counter() - 1)
+    act3 = e2.plan(new_pos, new_head, cache.table, slot, goals, order, time.perf_counter() - 1)
     assert check_actions(g, new_pos, new_head, act3)[2] == []
     assert e2.stats["epibt_unfinished"] == 1
     _check_plans(g, e2, new_pos)
@@ -138,7 +172,7 @@ def test_two_lns_chains_run_at_once_and_the_better_plans_are_answered():
     e = EPIBTPlan(g, len(pos), seed=4, threads=2)
     assert e.stats["epibt_threads"] == 2
     for _ in range(3):
-        act = e.plan(pos, head, cache.table, slot, goals, order, np.ones(len(pos)), time.perf_counter() + 0.1)
+        act = e.plan(pos, head, cache.table, slot, goals, order, time.perf_counter() + 0.1)
         assert check_actions(g, pos, head, act)[2] == []
         _check_plans(g, e, pos)
         a, b = e.chains

@@ -24,7 +24,7 @@ is skipped. A robot already in the chain is never displaced, and a robot is disp
   does not fall. Two chains of passes run at once on a 2-core machine (threads; the compiled
   passes release the GIL), each from the first pass's plans in its own random orders, and the
   plans of the better one are answered (the paper's parallel variant). Progress of a robot: the
-  cost of waiting minus the cost of its operation (:func:`~.window.op_costs`), weighted by
+  cost of waiting minus the cost of its operation (:func:`epibt_costs`), weighted by
   ((n + 1 - rank) / (n + 1))^2 of its priority rank (0 without a task).
 
 Only the first action of each operation is executed; it is a valid joint action by
@@ -39,8 +39,8 @@ import numpy as np
 from numba import njit
 
 from ..numba_cache import seed
-from .kernels import ACT_C, ACT_F, ACT_R, ACT_W
-from .window import DEPTH, continuations, op_costs
+from .kernels import ACT_C, ACT_F, ACT_R, ACT_W, heading_cost
+from .window import DEPTH, continuations, op_path
 
 seed(__file__)          # numba's cache entries prepared in the tree (sandboxed nodes)
 
@@ -91,6 +91,53 @@ def _epibt_operations(depth: int) -> np.ndarray:
 
 
 EPIBT_OPERATIONS = _epibt_operations(DEPTH)
+
+
+def operation_preference(ops: np.ndarray) -> np.ndarray:
+    """(m,) float64 in [0, 1): the tie-break between operations whose costs are equal, larger
+    preferred: the paper's operation weight (a forward move at step t of D counts 10 (D - t + 1), a
+    wait -3 (D - t), a turn -2 (D - t); t from 0), ranked and divided by m, so that it never
+    outweighs a step of cost. Moving now is preferred to moving later."""
+    d = ops.shape[1]
+    t = np.arange(d)
+    w = ((ops == ACT_F) * (d - t + 1) * 10 - (ops == ACT_W) * (d - t) * 3
+         - ((ops == ACT_R) | (ops == ACT_C)) * (d - t) * 2).sum(axis=1)
+    rank = np.empty(len(ops))
+    rank[np.argsort(w, kind="stable")] = np.arange(len(ops))
+    return rank / len(ops)
+
+
+@njit(cache=True, nogil=True)
+def epibt_costs(nbr, ops, pref, pos, head, dist, slot, goal, traj, cost, rank):
+    """The paper's cost of every operation of every robot (its "smart distance"), and the
+    operations sorted by it. An operation that reaches the robot's goal at step t costs t - 1;
+    any other costs the heading-aware steps to the goal from where it ends
+    (:func:`~.kernels.heading_cost`) plus DEPTH; ties go to the larger ``pref`` (m,). A robot
+    without a goal: every operation costs 0 less its preference. pos, head, goal, slot (n,)
+    int64 (slot: the robot's row of ``dist`` (k, cells) uint16, -1 without a goal). Writes traj (n,
+    m, DEPTH + 1) cells (-1: not allowed), cost (n, m) and rank (n, m): operation indices by
+    increasing cost, the not allowed ones last. No noise and no bonus for continuing: the plans
+    carried from the last step already start every robot where it was going."""
+    n = pos.shape[0]
+    m = ops.shape[0]
+    depth = ops.shape[1]
+    cells = np.empty(depth + 1, np.int64)
+    heads = np.empty(depth + 1, np.int64)
+    for a in range(n):
+        s = slot[a]
+        for k in range(m):
+            if not op_path(nbr, ops, a, k, pos, head, cells, heads, traj):
+                cost[a, k] = 1e18
+                continue
+            c = 0.0
+            if s >= 0:
+                c = heading_cost(nbr, dist, s, cells[depth], heads[depth]) + depth
+                for t in range(1, depth + 1):
+                    if cells[t] == goal[a]:
+                        c = float(t - 1)
+                        break
+            cost[a, k] = c - pref[k]
+        rank[a] = np.argsort(cost[a], kind="mergesort")
 
 
 @njit(cache=True)
@@ -179,8 +226,10 @@ def _build(root, inherit, keep_worse, traj, rank, gain, res, desire, prank, inst
                         _add(fr_a[i], fr_old[i], traj, res, gain, score)
                         instack[fr_a[i]] = False
                     return 0
-                for i in range(sp + 1):
+                for i in range(sp + 1):        # the chain's robots stay as built for the rest of the pass
                     instack[fr_a[i]] = False
+                    vstamp[fr_a[i]] = now
+                    vnum[fr_a[i]] = revisits
                 return 1
             if instack[b] or sp + 1 >= max_chain:
                 continue
@@ -329,8 +378,7 @@ class _Chain:
 class EPIBTPlan:
     """EPIBT with LNS for a MAPF_T fleet (module docstring), one call per step.
 
-    grid: the map; n: robots; seed: the LNS's orders and the tie-breaks; keep_bonus: cost taken
-    off the operation that continues last step's (steps); revisits: times a robot may be
+    grid: the map; n: robots; seed: the LNS's orders; revisits: times a robot may be
     displaced per pass; max_chain: robots in one chain of displacements at most; chunk:
     robots built per compiled call between clock checks; threads: LNS chains run at once, each
     from the first pass's plans with its own random orders, the best kept (default: the CPUs
@@ -341,13 +389,14 @@ class EPIBTPlan:
     passes and plans taken, and the steps whose first pass the deadline cut short.
     """
 
-    def __init__(self, grid, n: int, seed: int = 0, keep_bonus: float = 0.2, revisits: int = 10,
+    def __init__(self, grid, n: int, seed: int = 0, revisits: int = 10,
                  max_chain: int = 256, chunk: int = 16, threads: int | None = None,
                  operations: np.ndarray | None = None):
         import os
         self.grid, self.n = grid, n
         self.ops = EPIBT_OPERATIONS if operations is None else np.asarray(operations, np.int64)
         self.cont = continuations(self.ops)
+        self.pref = operation_preference(self.ops)
         m = self.ops.shape[0]
         self.traj = np.empty((n, m, DEPTH + 1), np.int64)
         self.cost = np.empty((n, m))
@@ -361,7 +410,7 @@ class EPIBTPlan:
         if len(self.chains) > 1:
             from concurrent.futures import ThreadPoolExecutor
             self._pool = ThreadPoolExecutor(len(self.chains) - 1, thread_name_prefix="epibt-lns")
-        self.keep_bonus, self.revisits, self.max_chain, self.chunk = keep_bonus, revisits, max_chain, chunk
+        self.revisits, self.max_chain, self.chunk = revisits, max_chain, chunk
         self.rng = np.random.default_rng(seed)
         self.stats = {"epibt_steps": 0, "epibt_passes": 0, "epibt_taken": 0, "epibt_unfinished": 0,
                       "epibt_threads": len(self.chains)}
@@ -382,15 +431,15 @@ class EPIBTPlan:
         return self.chains[0].score
 
     def plan(self, pos: np.ndarray, head: np.ndarray, dist: np.ndarray, slot: np.ndarray, goal: np.ndarray,
-             order: np.ndarray, rnd: np.ndarray, stop: float, lns: bool = True) -> np.ndarray:
+             order: np.ndarray, stop: float, lns: bool = True) -> np.ndarray:
         """The first actions (n,) int64 of the plans. pos, head, goal, slot (n,) int64 (slot:
         the robot's row in ``dist``, -1 without a goal); order (n,) int64: robots by decreasing
-        priority; rnd (n,) tie-break scale. The first pass, then LNS passes (with ``lns``), run
+        priority (operations costed by :func:`epibt_costs`). The first pass, then LNS passes (with ``lns``), run
         until ``time.perf_counter()`` reaches ``stop``; what is built by then is answered
         (always a valid joint action)."""
         n = len(pos)
-        op_costs(self.grid.nbr, self.ops, pos, head, dist, slot, goal, rnd, self.prev_op, self.keep_bonus,
-                 int(self.rng.integers(2 ** 31)), self.traj, self.cost, self.rank)
+        epibt_costs(self.grid.nbr, self.ops, self.pref, pos, head, dist, slot, goal, self.traj, self.cost,
+                    self.rank)
         prank = np.empty(n, np.int64)
         prank[order] = np.arange(n)
         power = np.where(slot >= 0, ((n + 1 - prank) / (n + 1)) ** 2, 0.0)
@@ -432,5 +481,5 @@ def warm_up() -> None:
     # no clock in the way: the first pass must run (a stop already past would skip it, and its kernel
     # would then compile inside a run's first step, seconds over the step's limit)
     e.plan(np.array([0, 4], np.int64), np.zeros(2, np.int64), dist, np.array([0, -1], np.int64),
-           np.array([8, -1], np.int64), np.arange(2, dtype=np.int64), np.zeros(2), time.perf_counter() + 3600.0,
+           np.array([8, -1], np.int64), np.arange(2, dtype=np.int64), time.perf_counter() + 3600.0,
            lns=False)

@@ -167,6 +167,8 @@ class PIBTPlanner:
             if self._window is None or self._window.n != n:
                 self._window = WindowPlan(self.grid, n, seed=self.seed, **self.ops_kw)
             plan = self._window
+        if self.epibt:
+            return plan.plan(pos, head, self._ptable, pslot, goals, order, stop, self.lns)
         scale = np.where(self.stuck > self.stuck_steps, self.noise, 1.0) if self.noise > 0 else np.ones(n)
         return plan.plan(pos, head, self._ptable, pslot, goals, order, scale, stop, self.lns)
 

@@ -80,6 +80,19 @@ def _trajectory(nbr, ops, k, u, h, cells, heads):
     return True
 
 
+@njit(cache=True, nogil=True)
+def op_path(nbr, ops, a, k, pos, head, cells, heads, traj):
+    """Operation ``k`` of robot ``a`` from (pos[a], head[a]): its cells into ``traj[a, k]`` (DEPTH +
+    1,) and ``cells``/``heads``; False (and ``traj[a, k, 0]`` -1) when it moves off the map or
+    into an obstacle."""
+    if not _trajectory(nbr, ops, k, pos[a], head[a], cells, heads):
+        traj[a, k, 0] = -1
+        return False
+    for t in range(ops.shape[1] + 1):
+        traj[a, k, t] = cells[t]
+    return True
+
+
 @njit(cache=True)
 def op_costs(nbr, ops, pos, head, dist, slot, goal, rnd, prev_op, keep_bonus, seed, traj, cost, rank):
     """Cost of every operation of every robot, and the operations sorted by it.
@@ -99,12 +112,9 @@ def op_costs(nbr, ops, pos, head, dist, slot, goal, rnd, prev_op, keep_bonus, se
     for a in range(n):
         s = slot[a]
         for k in range(m):
-            if not _trajectory(nbr, ops, k, pos[a], head[a], cells, heads):
-                traj[a, k, 0] = -1
+            if not op_path(nbr, ops, a, k, pos, head, cells, heads, traj):
                 cost[a, k] = 1e18
                 continue
-            for t in range(depth + 1):
-                traj[a, k, t] = cells[t]
             moves = 0
             for t in range(depth):
                 if ops[k, t] != ACT_W:
