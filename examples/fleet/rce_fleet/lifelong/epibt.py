@@ -12,7 +12,8 @@ operations that fit.
 operation that meets no plan is taken; one that meets exactly one robot's plan takes that
 robot's place, and that robot builds in turn (priority inheritance); one that meets two or more
 is skipped. A robot already in the chain is never displaced, and a robot is displaced at most
-``revisits`` times per pass. When the chain finds nothing every plan is put back.
+``revisits`` times per pass. When the chain finds nothing every plan is put back; when it finds a
+plan, its robots stay as built for the rest of the pass (as in the authors' code).
 
 - **First pass**: robots in priority order build (a robot displaced earlier in the pass does not
   build again as a root), and only robots of lower priority than the root may be displaced.
@@ -109,11 +110,12 @@ def operation_preference(ops: np.ndarray) -> np.ndarray:
 
 @njit(cache=True, nogil=True)
 def epibt_costs(nbr, ops, pref, pos, head, dist, slot, goal, traj, cost, rank):
-    """The paper's cost of every operation of every robot (its "smart distance"), and the
-    operations sorted by it. An operation that reaches the robot's goal at step t costs t - 1;
+    """The paper's cost of every operation of every robot (the "smart distance" of the authors'
+    code), and the operations sorted by it. An operation that reaches the robot's goal at step t costs t - 1;
     any other costs the heading-aware steps to the goal from where it ends
     (:func:`~.kernels.heading_cost`) plus DEPTH; ties go to the larger ``pref`` (m,). A robot
-    without a goal: every operation costs 0 less its preference. pos, head, goal, slot (n,)
+    without a goal: every operation costs 0 less its preference (it moves forward where that is
+    free, which finished more than waiting: docs/lifelong.md). pos, head, goal, slot (n,)
     int64 (slot: the robot's row of ``dist`` (k, cells) uint16, -1 without a goal). Writes traj (n,
     m, DEPTH + 1) cells (-1: not allowed), cost (n, m) and rank (n, m): operation indices by
     increasing cost, the not allowed ones last. No noise and no bonus for continuing: the plans
