@@ -3,6 +3,7 @@ taking unopened tasks back to keep it."""
 from __future__ import annotations
 
 import time
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -81,3 +82,31 @@ def test_a_lower_bound_takes_unopened_tasks_back_from_the_robots_farthest_from_t
     assert prop.tolist() == [-1, -1, -1, -1, tids[4]]
     sched.max_active = None                              # no bound: nothing is taken back
     assert (sched.schedule(pos, assignment, pool.open, 1, time.perf_counter() + 1) >= 0).sum() == 5
+
+
+def test_the_default_bound_is_lower_on_a_map_of_aisles_than_on_an_open_one():
+    """From ACTIVE_DENSITY robots per free cell a share of the free cells may hold a task: ACTIVE_FRAC,
+    or AISLE_ACTIVE_FRAC where one-cell corridor lanes (shelves' aisles) hold AISLE_SHARE of them."""
+    from rce_fleet.lifelong import runner
+    from rce_fleet.lifelong.lorr import LorrProblem
+    rng = np.random.default_rng(0)
+
+    def problem(free: np.ndarray) -> LorrProblem:
+        g = LifelongGrid(free)
+        cells = g.free_cells()
+        n = int(0.4 * len(cells))
+        starts = rng.choice(cells, n, replace=False).astype(np.int64)
+        tasks = [tuple(int(c) for c in rng.choice(cells, 2, replace=False)) for _ in range(2 * n)]
+        return LorrProblem(path=Path("t.json"), grid=g, starts=starts, tasks=tasks, team_size=n,
+                           num_tasks_reveal=1.5)
+
+    aisles = np.ones((21, 30), dtype=bool)
+    aisles[1:20:2, 2:28] = False                  # shelves: rows of blocked cells with one-cell aisles between
+    open_ = np.ones((21, 30), dtype=bool)
+    for free, frac in ((aisles, runner.AISLE_ACTIVE_FRAC), (open_, runner.ACTIVE_FRAC)):
+        p = problem(free)
+        res = runner.run_lifelong(p, 2, plan_time_limit_ms=300.0, record=False)
+        n_free = len(p.grid.free_cells())
+        assert (res.stats["aisles"] >= runner.AISLE_SHARE) == (frac == runner.AISLE_ACTIVE_FRAC)
+        assert res.stats["max_active"] == int(frac * n_free)
+        assert res.summary()["invalid_steps"] == 0

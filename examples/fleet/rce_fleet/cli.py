@@ -233,7 +233,8 @@ def build_parser() -> argparse.ArgumentParser:
     lf.add_argument("--keep-right", type=int, metavar="N", help="extra cost of a move against the keep-right "
                     "lane of a corridor 2 - 12 cells wide (0: none; default 4)")
     lf.add_argument("--max-active", type=int, metavar="N", help="robots holding a task at most (0: no bound; "
-                    "default: 0.3 of the free cells from 0.3 robots per free cell)")
+                    "default: 0.3 of the free cells, 0.2 on a map of one-cell aisles, from 0.3 robots "
+                    "per free cell)")
     lf.add_argument("--admission", choices=("on", "off"), help="the bound on robots holding a task set at run "
                     "time by the share of them that move (default off; ignored under --max-active)")
     lf.add_argument("--crowd-w", type=float, metavar="W", help="steps the scheduler adds per robot crowding a "

@@ -29,7 +29,8 @@ from .pibt import PIBTPlanner
 from .scheduler import make_scheduler
 from .simulator import MAPF_T, Simulator
 
-__all__ = ["ACTIVE_DENSITY", "ACTIVE_FRAC", "ADMISSION_START", "CROWD_TEAM", "CROWD_W", "GUIDE_DENSITY", "KEEP_RIGHT",
+__all__ = ["ACTIVE_DENSITY", "ACTIVE_FRAC", "ADMISSION_START", "AISLE_ACTIVE_FRAC", "AISLE_SHARE",
+           "CROWD_TEAM", "CROWD_W", "GUIDE_DENSITY", "KEEP_RIGHT",
            "LANES", "PACKED_DENSITY", "EPIBT_BIAS", "EPIBT_DENSITY", "OPEN_LANES", "RunResult", "WINDOW_DENSITY",
            "WINDOW_TEAM", "run_lifelong"]
 
@@ -43,6 +44,8 @@ GUIDE_DENSITY = 0.06  # robots per free cell from which guide paths lead (below:
 PACKED_DENSITY = 0.8  # robots per free cell from which a turning robot holds no second cell (claim_steps 0)
 ACTIVE_FRAC = 0.3     # robots holding a task per free cell at most (the rest stand aside) ...
 ACTIVE_DENSITY = 0.3  # ... in teams of this many robots per free cell or more
+AISLE_ACTIVE_FRAC = 0.2   # ... and on maps of aisles: at least AISLE_SHARE of the free cells in one-cell corridor lanes
+AISLE_SHARE = 0.2
 WINDOW_DENSITY = 0.1  # robots per free cell from which (to PACKED_DENSITY) the windowed plan (+ LNS) leads ...
 WINDOW_TEAM = 1000    # ... for teams up to this size (larger ones not measured with it)
 EPIBT_DENSITY = 0.3   # robots per free cell from which EPIBT with LNS answers (MAPF_T) ...
@@ -102,6 +105,8 @@ def run_lifelong(problem: LorrProblem, steps: int, plan_time_limit_ms: float = 1
     ``KEEP_RIGHT``, 0: none);
     max_active: at most this many robots hold a task; None (default):
     ``ACTIVE_FRAC`` of the free cells from ``ACTIVE_DENSITY`` robots per free cell, 0: no bound;
+    ``AISLE_ACTIVE_FRAC`` instead on a map of aisles (at least ``AISLE_SHARE`` of its free cells in
+    one-cell corridor lanes, as a warehouse's shelves make them: measured in docs/lifelong.md);
     admission: where no ``max_active`` bound holds, the bound is set at run time by the share of
     robots with a task that move (:class:`~.admission.FlowAdmission` with ``admission_kw``, from
     ``ADMISSION_START`` robots per free cell; None: off);
@@ -129,7 +134,10 @@ def run_lifelong(problem: LorrProblem, steps: int, plan_time_limit_ms: float = 1
     if guide:
         flow_warm_up()
     t_start = time.perf_counter()
-    cost = lane_costs(grid, lanes) if lanes else None
+    corridors = lane_costs(grid, max(1, lanes))
+    cost = corridors if lanes else None
+    n_free = max(1, len(grid.free_cells()))
+    aisles = float((corridors > 1).any(axis=1).sum()) / n_free       # share of free cells in corridor lanes
     if open_lanes is None:
         open_lanes = OPEN_LANES if epibt and lanes else 0
     if open_lanes and (cost is None or (cost == 1).all()):       # no corridors: the crisscross everywhere
@@ -143,7 +151,7 @@ def run_lifelong(problem: LorrProblem, steps: int, plan_time_limit_ms: float = 1
         crowd_w = CROWD_W if problem.team_size >= CROWD_TEAM else 0.0
     sched = make_scheduler(scheduler, cache, crowd_w)
     if max_active is None and density >= ACTIVE_DENSITY:
-        max_active = int(ACTIVE_FRAC * len(grid.free_cells()))
+        max_active = int((AISLE_ACTIVE_FRAC if aisles >= AISLE_SHARE else ACTIVE_FRAC) * n_free)
     if max_active is not None and max_active > 0:
         sched.max_active = max_active
     flow = None
@@ -183,6 +191,7 @@ def run_lifelong(problem: LorrProblem, steps: int, plan_time_limit_ms: float = 1
         if progress is not None:
             progress(k + 1, sim.finished, dt * 1e3)
     stats = {"scheduler": scheduler, "max_active": getattr(sched, "max_active", None), "lanes": lanes,
+             "aisles": round(aisles, 3),
              "keep_right": keep_right,
              "crowd_w": crowd_w, "guide": guide, "epibt": epibt, "open_lanes": open_lanes,
              "window_bias": planner.window_bias,
