@@ -115,7 +115,8 @@ def run_lifelong(problem: LorrProblem, steps: int, plan_time_limit_ms: float = 1
     bad scheduler or model name, MemoryError when the maps of the team do not fit.
     """
     grid = problem.grid
-    density = problem.team_size / max(1, len(grid.free_cells()))
+    n_free = max(1, len(grid.free_cells()))
+    density = problem.team_size / n_free
     if guide is None:
         guide = density >= GUIDE_DENSITY
     if density >= PACKED_DENSITY:       # the cell a turning robot would hold is the one the others need
@@ -134,10 +135,12 @@ def run_lifelong(problem: LorrProblem, steps: int, plan_time_limit_ms: float = 1
     if guide:
         flow_warm_up()
     t_start = time.perf_counter()
-    corridors = lane_costs(grid, max(1, lanes))
-    cost = corridors if lanes else None
-    n_free = max(1, len(grid.free_cells()))
-    aisles = float((corridors > 1).any(axis=1).sum()) / n_free       # share of free cells in corridor lanes
+    cost = lane_costs(grid, lanes) if lanes else None
+    aisles = None           # share of the free cells in one-cell corridor lanes, where the bound needs it
+    if max_active is None and density >= ACTIVE_DENSITY:
+        corridors = cost if cost is not None else lane_costs(grid, 1)
+        aisles = float((corridors > 1).any(axis=1).sum()) / n_free
+        max_active = int((AISLE_ACTIVE_FRAC if aisles >= AISLE_SHARE else ACTIVE_FRAC) * n_free)
     if open_lanes is None:
         open_lanes = OPEN_LANES if epibt and lanes else 0
     if open_lanes and (cost is None or (cost == 1).all()):       # no corridors: the crisscross everywhere
@@ -150,8 +153,6 @@ def run_lifelong(problem: LorrProblem, steps: int, plan_time_limit_ms: float = 1
     if crowd_w is None:
         crowd_w = CROWD_W if problem.team_size >= CROWD_TEAM else 0.0
     sched = make_scheduler(scheduler, cache, crowd_w)
-    if max_active is None and density >= ACTIVE_DENSITY:
-        max_active = int((AISLE_ACTIVE_FRAC if aisles >= AISLE_SHARE else ACTIVE_FRAC) * n_free)
     if max_active is not None and max_active > 0:
         sched.max_active = max_active
     flow = None
@@ -166,7 +167,7 @@ def run_lifelong(problem: LorrProblem, steps: int, plan_time_limit_ms: float = 1
     sched_ms = 0.0
     control = None
     if admission and sched.max_active is None:
-        control = FlowAdmission(problem.team_size, **{"start": int(ADMISSION_START * len(grid.free_cells())),
+        control = FlowAdmission(problem.team_size, **{"start": int(ADMISSION_START * n_free),
                                                       **(admission_kw or {})})
     for k in range(steps):
         t0 = time.perf_counter()
@@ -191,7 +192,7 @@ def run_lifelong(problem: LorrProblem, steps: int, plan_time_limit_ms: float = 1
         if progress is not None:
             progress(k + 1, sim.finished, dt * 1e3)
     stats = {"scheduler": scheduler, "max_active": getattr(sched, "max_active", None), "lanes": lanes,
-             "aisles": round(aisles, 3),
+             "aisles": None if aisles is None else round(aisles, 3),
              "keep_right": keep_right,
              "crowd_w": crowd_w, "guide": guide, "epibt": epibt, "open_lanes": open_lanes,
              "window_bias": planner.window_bias,
