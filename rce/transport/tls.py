@@ -42,8 +42,8 @@ def server_context(cert_file: str | Path, key_file: str | Path) -> ssl.SSLContex
     for what, path in (("--tls-cert", cert_file), ("--tls-key", key_file)):
         if not Path(path).is_file():
             raise ConfigError(f"{what} {path}: no such file")
-    ctx = ssl.create_default_context(ssl.Purpose.CLIENT_AUTH)
-    ctx.minimum_version = MIN_VERSION
+    ctx = ssl.SSLContext(ssl.PROTOCOL_TLS_SERVER)       # the secure defaults, without the system's CAs:
+    ctx.minimum_version = MIN_VERSION                   # a server that asks no client certificate needs none
     try:
         ctx.load_cert_chain(str(cert_file), str(key_file))
     except (ssl.SSLError, OSError) as e:
@@ -76,18 +76,17 @@ def add_client_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 def client_context(ca_file: str | Path | None = None) -> ssl.SSLContext:
-    """The client context: verifies the server's certificate and host name against ``ca_file``
-    (PEM), else ``$RCE_CA_FILE``, else the system's CAs. Raises :class:`ConfigError` naming the
-    CA file when it cannot be read."""
+    """The client context: verifies the server's certificate and host name against the CA(s) of
+    ``ca_file`` (PEM) alone, else of ``$RCE_CA_FILE`` alone, else against the system's CAs: a CA file
+    pins the cloud's CA, and a certificate from any other CA, one the system trusts included, is
+    refused. Raises :class:`ConfigError` naming the CA file when it cannot be read."""
     ca = ca_file or os.environ.get(CA_FILE_ENV) or None
-    ctx = ssl.create_default_context()
+    try:
+        ctx = ssl.create_default_context(cafile=str(ca) if ca else None)
+    except (ssl.SSLError, OSError) as e:
+        source = "--ca-file" if ca_file else f"${CA_FILE_ENV}"
+        raise ConfigError(f"{source} {ca}: cannot load the CA certificate(s): {e}") from None
     ctx.minimum_version = MIN_VERSION
-    if ca:
-        try:
-            ctx.load_verify_locations(cafile=str(ca))
-        except (ssl.SSLError, OSError) as e:
-            source = "--ca-file" if ca_file else f"${CA_FILE_ENV}"
-            raise ConfigError(f"{source} {ca}: cannot load the CA certificate(s): {e}") from None
     return ctx
 
 

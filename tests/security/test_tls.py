@@ -2,7 +2,8 @@
 ``--tls-key`` (a CA and a 127.0.0.1 certificate made at test time, :func:`rce.transport.tls.make_dev_certificates`)
 serves login, /metrics and the web page over https and robots and rosbridge clients over wss; login
 hands out wss:// URLs; rce_client echoes through a container over wss with the CA file; a plain-text
-client cannot talk to the TLS ports; a client that trusts another CA fails with a clear error; the
+client cannot talk to the TLS ports; a client that trusts another CA fails with a clear error, and a CA
+file pins the cloud's CA (the system's CAs are not trusted beside it); the
 operator's web page works over https/wss in Chromium (which trusts only the test certificate)."""
 from __future__ import annotations
 
@@ -117,6 +118,24 @@ async def test_a_client_trusting_another_ca_fails_clearly(tls_engine, other_ca):
         await Connection.open(ws_url, "testUser", "testUser", "caBot", ssl_context=ctx)
     with pytest.raises(urllib.error.URLError, match="CERTIFICATE_VERIFY_FAILED"):
         _get(tls_engine.master_url, None)                  # the system's CAs do not know the test CA either
+
+
+async def test_a_ca_file_pins_the_clouds_ca_and_the_systems_cas_are_not_trusted_beside_it(tls_engine, other_ca,
+                                                                                          monkeypatch):
+    """The engine's CA made one of the system's CAs (OpenSSL's ``SSL_CERT_FILE``): a client without a CA
+    file then trusts the engine, and one given another CA's file does not."""
+    monkeypatch.setenv("SSL_CERT_FILE", str(tls_engine.ca_file))
+    monkeypatch.delenv("SSL_CERT_DIR", raising=False)
+    monkeypatch.delenv(tls.CA_FILE_ENV, raising=False)
+    status, _ = _get(tls_engine.master_url + "metrics", None)     # the system's CAs: the engine's among them
+    assert status == 200
+    with pytest.raises(Unavailable, match=r"certificate of https://127\.0\.0\.1:\d+/ is not trusted"):
+        await login(tls_engine.master_url, "testUser", ssl_context=tls.client_context(other_ca))
+    with pytest.raises(urllib.error.URLError, match="CERTIFICATE_VERIFY_FAILED"):
+        _get(tls_engine.master_url, other_ca)
+    monkeypatch.setenv(tls.CA_FILE_ENV, str(other_ca))           # the same pin from the environment
+    with pytest.raises(urllib.error.URLError, match="CERTIFICATE_VERIFY_FAILED"):
+        _get(tls_engine.master_url, None)
 
 
 async def test_rosbridge_serves_wss(tls_engine):
