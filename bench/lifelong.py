@@ -226,7 +226,7 @@ def _parser() -> argparse.ArgumentParser:
     ap.add_argument("--admission", choices=("on", "off"),
                     help="the bound on robots holding a task set at run time by the share of them that move "
                          "(default off; ignored under --max-active; turn it on for maps of rooms and "
-                         "corridors at 0.1 - 0.3 robots per free cell, where the team jams without it)")
+                         "corridors at about 0.15 - 0.2 robots per free cell, where the team jams without it)")
     ap.add_argument("--window", choices=("on", "off"),
                     help="the windowed plan (operations + LNS) as a candidate of the lookahead (default: on "
                          "from 0.1 to 0.8 robots per free cell, up to 1,000 robots)")
