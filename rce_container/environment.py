@@ -47,6 +47,7 @@ from rce.node.package_path import load_package_types
 from rce.node.results import ResultStats
 from rce_container import sandbox as sandboxes
 from rce_container.direct_routes import DirectRoutes
+from rce_container.env_layout import BUS_CALL_TIMEOUT, MAX_SOCKET_PATH, container_paths
 from rce_container.interfaces import BusInterface, make_interface
 from rce_container.launcher import LOG_LINES, Launcher
 from rce_container.ros1_graph import Ros1Graph
@@ -55,23 +56,15 @@ from rce_container.zygote_client import ZygoteTemplate
 
 log = get_logger("rce.container.env")
 
-SOCKET_NAME = "bus.sock"
 MAX_SAMPLE = 10000        # messages, bound of one bus_sample
 MAX_SAMPLE_TIMEOUT = 300  # s, the longest a bus_sample may wait
-BUS_CALL_TIMEOUT = 10.0   # s a bus_call waits for the service when the request gives no timeout
 BUS_SAMPLE_TIMEOUT = 5.0  # s a bus_sample waits for messages when the request gives no timeout
-MAX_SOCKET_PATH = 107     # bytes, sun_path minus the NUL
 BUS_TOKEN_BYTES = 32      # random bytes of a container's bus token (64 hex chars, 256 bits)
 RESULTS_TIMEOUT = 1.0     # s a node has to hand over its result samples
 STATE_TIMEOUT = 10.0      # s a node has to hand its state out, or take it in (rce.node.Node.handoff)
 
 #: The ops the task set sends an environment (the module doc): those it relays from the master, and its own.
 ENV_OPS = OpTable("container task set -> environment")
-
-
-def container_paths(runtime_dir: Path, socket_dir: Path, cid: int) -> tuple[Path, Path]:
-    """(private workdir, bus socket path) of container ``cid``: the one place the layout lives."""
-    return Path(runtime_dir) / f"c{cid}", Path(socket_dir) / f"c{cid}" / SOCKET_NAME
 
 
 class GroupContainer:

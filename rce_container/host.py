@@ -54,7 +54,7 @@ from rce.plumbing.tasks import Tasks
 from rce_container import metrics
 from rce_container import sandbox as sandboxes
 from rce_container.env_template_client import EnvTemplate
-from rce_container.environment import BUS_CALL_TIMEOUT, MAX_SOCKET_PATH, container_paths
+from rce_container.env_layout import BUS_CALL_TIMEOUT, MAX_SOCKET_PATH, container_paths
 from rce_container.usage import measure
 from rce_container.zygote_client import ForkedChild, ZygoteTemplate
 
