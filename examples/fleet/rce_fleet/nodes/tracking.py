@@ -10,7 +10,7 @@ import math
 from collections.abc import Iterable, Mapping
 
 from ..maps.geometry import GridGeometry
-from ..sim.local_nav import NavParams
+from ..sim.nav_params import NavParams
 
 __all__ = ["CellTracker", "ObstacleFilter"]
 

@@ -9,23 +9,34 @@ no wall clock, so the caller chooses real time or any speed-up.
   with lidar (lidar.py), odometry (odometry.py) and an AMCL stand-in
   (localisation.py).
 - :class:`LocalNavigator` (local_nav.py): the robot's own local planner
-  (dynamic window approach) with obstacle stop / avoidance.
+  (dynamic window approach) with obstacle stop / avoidance; its parameters
+  :class:`NavParams` (nav_params.py).
 - :class:`ObstacleDetector` (obstacles.py): lidar hits not explained by the
   static map, for marking blocked cells.
 """
 
-from .local_nav import LocalNavigator, NavParams
-from .lidar import Lidar, LidarParams, scan_to_points
-from .localisation import LocalisationModel, LocalisationParams, wrap_angle
-from .obstacles import ObstacleDetector, detected_obstacles
-from .odometry import Odometry, OdometryNoise
-from .robot import RobotParams, SimRobot
-from .walls import PixelRect, blocked_mask, merge_rectangles, rect_to_world
-from .world import SimWorld
+from __future__ import annotations
 
-__all__ = [
-    "Lidar", "LidarParams", "LocalNavigator", "NavParams", "ObstacleDetector", "LocalisationModel",
-    "LocalisationParams", "Odometry", "OdometryNoise", "PixelRect", "RobotParams", "SimRobot",
-    "SimWorld", "blocked_mask", "detected_obstacles", "merge_rectangles", "rect_to_world",
-    "scan_to_points", "wrap_angle",
-]
+import importlib
+
+#: each public name -> the module that defines it; a module is imported on the first use of one of its
+#: names, so that importing one part (:mod:`.nav_params`, a node's) does not load the others (numba, scipy, pymunk)
+_WHERE = {
+    "LocalNavigator": "local_nav", "NavParams": "nav_params",
+    "Lidar": "lidar", "LidarParams": "lidar", "scan_to_points": "lidar",
+    "LocalisationModel": "localisation", "LocalisationParams": "localisation", "wrap_angle": "localisation",
+    "ObstacleDetector": "obstacles", "detected_obstacles": "obstacles",
+    "Odometry": "odometry", "OdometryNoise": "odometry",
+    "RobotParams": "robot", "SimRobot": "robot",
+    "PixelRect": "walls", "blocked_mask": "walls", "merge_rectangles": "walls", "rect_to_world": "walls",
+    "SimWorld": "world",
+}
+
+__all__ = sorted(_WHERE)
+
+
+def __getattr__(name: str):
+    """``rce_fleet.sim.SimWorld`` (...): the name from its module, imported then."""
+    if name in _WHERE:
+        return getattr(importlib.import_module(f".{_WHERE[name]}", __name__), name)
+    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
