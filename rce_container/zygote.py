@@ -63,7 +63,7 @@ import traceback
 from typing import NoReturn
 
 #: Modules every Python node imports (the node runtime and the message codec, numpy included).
-PRELOAD = ("rce.node.runtime", "rce.messages", "rce.node.package_path", "numpy")
+PRELOAD = ("rce.node.runtime", "rce.messages", "rce.node.package_path")
 #: Bytes of the largest request (argv + environment of one node); the host refuses larger ones
 #: and then starts that node with exec.
 MAX_MESSAGE = 256 * 1024

@@ -41,13 +41,13 @@ gives the same result or the error that names the field. A class the generator d
 from __future__ import annotations
 
 import base64
-import functools
 import keyword
 import math
 import struct
 import sys
 from typing import Any, Callable, NamedTuple
 
+import numpy as np
 from rosbags.typesys.base import Nodetype
 
 from rce.messages.ros_strings import ERRORS
@@ -57,6 +57,12 @@ __all__ = ["Codec", "Fallback", "JsonReader", "compile_codec", "compile_json_rea
 #: struct format character of each ROS 1 base type (as rosbags packs them: ``byte`` signed, ``char`` unsigned)
 _FMT = {"bool": "?", "byte": "b", "char": "B", "int8": "b", "uint8": "B", "int16": "h", "uint16": "H",
         "int32": "i", "uint32": "I", "int64": "q", "uint64": "Q", "float32": "f", "float64": "d"}
+#: numpy dtype of each base type in an array (rosbags' ``ndtype``)
+_DTYPE = {t: np.dtype({"bool": "bool", "char": "uint8"}.get(t, t)) for t in _FMT}
+#: item size -> the arrays rosbags writes as their memory (numbers in native order; a uint8 array for
+#: a ``byte[]``, as the JSON codec makes it, as well as the int8 rosbags reads)
+_RAW = {size: frozenset(np.dtype(f"{k}{size}") for k in "iuf" if k != "f" or size > 1) | (
+    {np.dtype(bool)} if size == 1 else set()) for size in (1, 2, 4, 8)}
 _FLOATS = {"float32", "float64"}
 _BYTES = {"uint8", "char", "byte"}                    # arrays of these are bytes in JSON (base64 or a binary part)
 #: a time's keys in each JSON form that is an object (rce.messages.forms); the others are the general path's
@@ -65,26 +71,6 @@ _TIME_TYPES = {"builtin_interfaces/msg/Time", "builtin_interfaces/msg/Duration"}
 _TIME_KEYS = {"sec": "secs", "nanosec": "nsecs"}     # a time's fields -> their keys in rce's JSON form
 _PLACEHOLDER = "structure_needs_at_least_one_member"  # rosbags' field of an empty message
 _IMAGE = "sensor_msgs/msg/Image"                      # has forms of its own (a PNG part): the JSON path never
-
-
-class _Numpy(NamedTuple):
-    """numpy and the tables the generated code takes from it."""
-    np: Any
-    #: numpy dtype of each base type in an array (rosbags' ``ndtype``)
-    dtype: dict[str, Any]
-    #: item size -> the arrays rosbags writes as their memory (numbers in native order; a uint8 array
-    #: for a ``byte[]``, as the JSON codec makes it, as well as the int8 rosbags reads)
-    raw: dict[int, frozenset]
-
-
-@functools.cache
-def _numpy() -> _Numpy:
-    """numpy, imported by the first class compiled: a process that only routes messages never loads it."""
-    import numpy as np
-    dtype = {t: np.dtype({"bool": "bool", "char": "uint8"}.get(t, t)) for t in _FMT}
-    raw = {size: frozenset(np.dtype(f"{k}{size}") for k in "iuf" if k != "f" or size > 1) | (
-        {np.dtype(bool)} if size == 1 else set()) for size in (1, 2, 4, 8)}
-    return _Numpy(np, dtype, raw)
 
 
 class Fallback(Exception):
@@ -184,8 +170,7 @@ class _Generator:
         JSON reader in those forms (``cache`` then holds readers by ``(type, key)``)."""
         self.fielddefs, self.classes, self.max_sequence, self.cache = fielddefs, classes, max_sequence, cache
         self.key = key
-        self.np = np = _numpy()
-        self.ns: dict[str, Any] = {"Fallback": Fallback, "frombuffer": np.np.frombuffer, "ndarray": np.np.ndarray,
+        self.ns: dict[str, Any] = {"Fallback": Fallback, "frombuffer": np.frombuffer, "ndarray": np.ndarray,
                                    "U32": struct.Struct("<I").unpack_from, "P32": struct.Struct("<I").pack,
                                    "pack": struct.pack, "MAXSEQ": max_sequence, "ERR": ERRORS,
                                    "complete": _complete, "finite": _finite, "b64": base64.b64encode}
@@ -351,7 +336,7 @@ class _Generator:
                       f"    {v} = {form.format('bytes(buf[pos:pos + n])')}", "    pos += n"]
         elif sub_nt == Nodetype.BASE and sub_arg[0] in _FMT:
             size = struct.calcsize(_FMT[sub_arg[0]])
-            dt = self.const(self.np.dtype[sub_arg[0]], "DT")
+            dt = self.const(_DTYPE[sub_arg[0]], "DT")
             lines += [f"    {v} = frombuffer(buf, dtype={dt}, count=n, offset=pos)", f"    pos += n * {size}"]
             if self.key is not None:
                 lines.append(f"    {v} = {'finite(' if sub_arg[0] in _FLOATS else '('}{v}.tolist())")
@@ -411,8 +396,8 @@ class _Generator:
         lines.append(f"    {a} = {val}")
         self.array_head(nt, length, a, lines, run)
         if sub_nt == Nodetype.BASE and sub_arg[0] in _FMT:
-            size = self.np.dtype[sub_arg[0]].itemsize
-            ok = self.const(self.np.raw[size], "OK", ("OK", size))
+            size = _DTYPE[sub_arg[0]].itemsize
+            ok = self.const(_RAW[size], "OK", ("OK", size))
             lines += [f"    if type({a}) is not ndarray or {a}.dtype not in {ok} or {a}.ndim != 1:",
                       "        raise Fallback('not an array of the field type')", f"    out.append({a}.tobytes())"]
         elif sub_nt == Nodetype.BASE and sub_arg[0] == "string":
