@@ -75,19 +75,46 @@ def add_client_arguments(parser: argparse.ArgumentParser) -> None:
                         f"(default ${CA_FILE_ENV}, else the system's CAs)")
 
 
+#: client contexts made so far: (CA file, its identity on disk) -> context (:func:`client_context`)
+_CLIENT_CONTEXTS: dict[tuple, ssl.SSLContext] = {}
+
+
 def client_context(ca_file: str | Path | None = None) -> ssl.SSLContext:
     """The client context: verifies the server's certificate and host name against the CA(s) of
     ``ca_file`` (PEM) alone, else of ``$RCE_CA_FILE`` alone, else against the system's CAs: a CA file
     pins the cloud's CA, and a certificate from any other CA, one the system trusts included, is
-    refused. Raises :class:`ConfigError` naming the CA file when it cannot be read."""
+    refused. Raises :class:`ConfigError` naming the CA file when it cannot be read.
+
+    A context is made once per CA file as it is on disk (inode, size, modification time: a file
+    replaced or changed is read again) and shared by the callers that ask for it, as an ``SSLContext``
+    may be: loading the system's CAs costs ~50 ms of CPU, which every connection paid."""
     ca = ca_file or os.environ.get(CA_FILE_ENV) or None
+    key = _ca_identity(ca)
+    if key in _CLIENT_CONTEXTS:
+        return _CLIENT_CONTEXTS[key]
     try:
         ctx = ssl.create_default_context(cafile=str(ca) if ca else None)
     except (ssl.SSLError, OSError) as e:
         source = "--ca-file" if ca_file else f"${CA_FILE_ENV}"
         raise ConfigError(f"{source} {ca}: cannot load the CA certificate(s): {e}") from None
     ctx.minimum_version = MIN_VERSION
+    if key is not None:
+        _CLIENT_CONTEXTS[key] = ctx
     return ctx
+
+
+def _ca_identity(ca: str | Path | None) -> tuple | None:
+    """The key of CA file ``ca`` in :data:`_CLIENT_CONTEXTS`, None when it cannot be read (no context
+    is kept for it). The system's CAs (``ca`` None) are the files OpenSSL reads (``$SSL_CERT_FILE``,
+    ``$SSL_CERT_DIR``, else its own), as they are now."""
+    if ca is None:
+        paths = ssl.get_default_verify_paths()
+        return ("system", paths.capath, paths.cafile and _ca_identity(paths.cafile))
+    try:
+        st = os.stat(ca)
+    except OSError:
+        return None
+    return (str(ca), st.st_dev, st.st_ino, st.st_size, st.st_mtime_ns)
 
 
 def for_url(url: str, ctx: ssl.SSLContext | None) -> ssl.SSLContext | None:
