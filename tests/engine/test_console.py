@@ -13,6 +13,12 @@ from wsclient import RawRobot, login
 BIN = Path(sys.executable).parent
 
 
+@pytest.fixture
+def engine(shared_engine):
+    """The module's engine: its tests use distinct robots, containers and users."""
+    return shared_engine
+
+
 def console(eng, *args, stdin: str | None = None, check=True) -> subprocess.CompletedProcess:
     p = subprocess.run([str(BIN / "rce-console"), "--master", eng.master_url, *args], input=stdin,
                        capture_output=True, text=True, env=eng.env, timeout=60)

@@ -130,8 +130,8 @@ def containers(engine) -> dict[str, tuple[int, str]]:
     return {c["ctag"]: (c["cid"], c["state"]) for c in engine.admin("/api/containers")}
 
 
-async def test_link_cut_for_5s_resumes_with_nothing_lost(engine_each_ws_impl):
-    engine = engine_each_ws_impl
+async def test_link_cut_for_5s_resumes_with_nothing_lost(engine_ws_impls):
+    engine = engine_ws_impls
     proxy = await TcpProxy(engine.robot_ready[0]["ws_port"]).start()
     echoes, resumed, lost_links, reconnected = Echoes(), [], [], []
     conn = await Connection.open(proxy.url, "testUser", "testUser", "resumeBot", allow_reconnect=True)
@@ -353,8 +353,8 @@ class ProxiedRobot(RawRobot):
             pass
 
 
-async def test_a_2013_client_sees_todays_protocol(engine_each_ws_impl):
-    engine = engine_each_ws_impl
+async def test_a_2013_client_sees_todays_protocol(engine_ws_impls):
+    engine = engine_ws_impls
     proxy = await TcpProxy(engine.robot_ready[0]["ws_port"]).start()
     try:
         async with ProxiedRobot(proxy.url, "oldBot") as r:
