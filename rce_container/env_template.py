@@ -3,8 +3,9 @@
 
 Every container group runs in an environment process (:mod:`rce_container.environment`). Started
 as a fresh interpreter, each spends most of its start importing the engine. The template imports
-:mod:`rce_container.environment` once, when the task set starts, and forks one child per
-environment; the child runs :func:`rce_container.environment.main` with the environment's
+:mod:`rce_container.environment` once, when the task set starts, builds the message registry
+(:func:`rce.messages.default_registry`, the ROS 1 typestore) each environment starts from, and forks
+one child per environment; the child runs :func:`rce_container.environment.main` with the environment's
 arguments, as ``python -m rce_container.environment ARGS`` would, and shows that command line
 (:func:`rce_container.zygote.set_cmdline`). The template holds no secret: an environment gets
 its data key from the task set after its hello, never through the template.
@@ -136,6 +137,8 @@ def main(argv: list[str] | None = None) -> int:
     sock = socket.socket(fileno=int(argv[0]))
     try:
         from rce_container import environment  # noqa: F401 -- the imports every fork starts with
+        from rce.messages import default_registry
+        default_registry()             # and the message registry (the ROS 1 typestore) each one builds
     except BaseException as e:         # noqa: BLE001 -- reported to the task set, which then execs environments
         send(sock, {"op": "failed", "error": f"{type(e).__name__}: {e}"})
         return 1
