@@ -4,7 +4,7 @@
 (:mod:`.ros1`).
 
 The runtime (and with it the message registry) is imported on the first use of one of its names,
-so that a process that only needs :mod:`.naming` (the master, a container host) does not load it."""
+so that a process that only needs :mod:`.naming` (the master) does not load it."""
 from __future__ import annotations
 
 import importlib
