@@ -31,13 +31,14 @@ import urllib.error
 import urllib.request
 from collections.abc import Iterator, Sequence
 from pathlib import Path
-from typing import Any
-
-import aiohttp
+from typing import TYPE_CHECKING, Any
 
 from rce.transport import tls
 from rce.plumbing.errors import (AuthError, NotFound, RCEError, RequestError, Throttled, Timeout, Unavailable,
                                  http_reason)
+
+if TYPE_CHECKING:
+    import aiohttp      # imported by the first arequest: a command line that calls request only never loads it
 
 TIMEOUT = 30.0        # s, an admin API request, on top of the op's own timeout (a bus call's, a sample's)
 TOKEN_ENV = "RCE_ADMIN_TOKEN"
@@ -191,6 +192,7 @@ class AdminClient:
 
     async def arequest(self, method: str, path: str, body: Any = None, op_timeout: float = 0.0) -> Any:
         """:meth:`request` for asyncio (one HTTP session, kept until :meth:`aclose`)."""
+        import aiohttp
         if self._session is None:
             self._session = aiohttp.ClientSession(headers=self._headers())
         tries = _Tries(self, method, path, self.timeout + op_timeout)
