@@ -237,8 +237,8 @@ def build_parser() -> argparse.ArgumentParser:
                     "per free cell)")
     lf.add_argument("--admission", choices=("on", "off"), help="the bound on robots holding a task set at run "
                     "time by the share of them that move (default off; ignored under --max-active; turn it on for "
-                    "maps of rooms and corridors at about 0.15 - 0.2 robots per free cell, where the team jams "
-                    "without it)")
+                    "game maps, open areas joined by a few passages, at 0.1 - 0.2 robots per free cell, where the "
+                    "whole team jams; not for city maps, warehouses or small maps, where it holds the team back)")
     lf.add_argument("--crowd-w", type=float, metavar="W", help="steps the scheduler adds per robot crowding a "
                     "task's errands beyond its share (default 5 for 3,000 robots or more, else 0)")
     lf.add_argument("--no-progress", action="store_true", help="no progress bar")
