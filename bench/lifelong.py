@@ -86,6 +86,7 @@ def run_one(path: Path, steps: int, limit_ms: float, scheduler: str, seed: int, 
     """Run one problem (and the start-kit binary ``peer`` on it, when given); returns its row (with
     the finished-over-time curve)."""
     from rce_fleet.lifelong import load_problem
+    from rce_fleet.lifelong.admission import jam_note
     from rce_fleet.lifelong.runner import LANES, rich_progress, run_lifelong
 
     prob = load_problem(path)
@@ -98,6 +99,8 @@ def run_one(path: Path, steps: int, limit_ms: float, scheduler: str, seed: int, 
                            planner_kw={**({} if window is None else {"ops": window}),
                                        **({} if epibt is None else {"epibt": epibt})} or None)
     s = res.summary()
+    if (note := jam_note(s)) is not None:
+        print(f"{path.stem}: {note}", file=sys.stderr)
     row = {"problem": path.stem, "robots": prob.team_size, "steps": steps, "scheduler": scheduler, **s,
            "tasks_per_step": s["tasks_finished"] / steps, "curve": res.finished.tolist()}
     if pub:

@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 
 from rce_fleet.lifelong import BatchScheduler, DistanceCache, GreedyScheduler, LifelongGrid, TaskPool
-from rce_fleet.lifelong.admission import FlowAdmission
+from rce_fleet.lifelong.admission import FlowAdmission, JamDetector, packed
 
 
 def test_the_bound_falls_while_the_team_jams_and_rises_while_it_flows_then_lets_go():
@@ -110,3 +110,64 @@ def test_the_default_bound_is_lower_on_a_map_of_aisles_than_on_an_open_one():
         assert (res.stats["aisles"] >= runner.AISLE_SHARE) == (frac == runner.AISLE_ACTIVE_FRAC)
         assert res.stats["max_active"] == int(frac * n_free)
         assert res.summary()["invalid_steps"] == 0
+
+
+def test_packed_robots_are_the_ones_whose_every_free_neighbour_cell_is_held():
+    free = np.ones((3, 4), dtype=bool)
+    free[0, 3] = False                                    # a blocked neighbour counts as held
+    g = LifelongGrid(free)
+    pos = np.array([1, 4, 5, 6, 9, 2])                    # (0,1) (1,0) (1,1) (1,2) (2,1) (0,2)
+    occupied = np.zeros(g.n_cells + 1, dtype=bool)
+    occupied[pos] = True
+    # (1,1): all four neighbours held; (0,2): (0,1) and (1,2) held, (0,3) blocked; each other has a free one
+    assert packed(g.nbr, pos, occupied).tolist() == [False, False, True, False, False, True]
+    occupied[10] = True                                   # (2,2) held: (1,2) still has (1,3) free
+    assert packed(g.nbr, np.array([6]), occupied).tolist() == [False]
+    occupied[7] = True
+    assert packed(g.nbr, np.array([6]), occupied).tolist() == [True]
+
+
+def test_a_jam_is_a_packed_share_that_grows_past_the_first_window_not_one_that_is_high_all_along():
+    flat = JamDetector(window=2)
+    for k in range(40):                                   # dense but flowing: 12 % packed all along
+        assert flat.observe(k, 12, 100) is False
+    assert flat.jam_at is None and flat.shares == [0.12] * 20
+    growing = JamDetector(window=2, factor=3.0, least=0.1)
+    seen = [growing.observe(k, int(share * 1000), 1000)
+            for k, share in enumerate([0.02, 0.02, 0.05, 0.05, 0.08, 0.08, 0.12, 0.12, 0.3, 0.3])]
+    # 0.05 and 0.08 are over 3x the first window's 0.02 but under the least share 0.1; 0.12 is a jam
+    assert seen == [False] * 7 + [True] * 3
+    assert growing.jam_at == 7 and growing.shares == [0.02, 0.05, 0.08, 0.12, 0.3]
+    with pytest.raises(ValueError, match="window"):
+        JamDetector(window=0)
+
+
+def _two_rooms(door: bool):
+    """Two open rooms of 20 x 40 cells with, when ``door``, a wall between them and one door in it;
+    190 robots (0.12 per free cell), every task across from one room to the other."""
+    from rce_fleet.lifelong.lorr import LorrProblem
+    h, w = 20, 40
+    free = np.ones((h, 2 * w + 1), dtype=bool)
+    if door:
+        free[:, w] = False
+        free[h // 2, w] = True
+    g = LifelongGrid(free)
+    rng = np.random.default_rng(0)
+    cells = g.free_cells()
+    left, right = cells[cells % (2 * w + 1) < w], cells[cells % (2 * w + 1) > w]
+    starts = rng.choice(cells, 190, replace=False).astype(np.int64)
+    tasks = [(int(rng.choice(left)), int(rng.choice(right)))[::1 if i % 2 else -1] for i in range(760)]
+    return LorrProblem(path=Path("t.json"), grid=g, starts=starts, tasks=tasks, team_size=190, num_tasks_reveal=1.5)
+
+
+def test_a_run_reports_the_jam_at_a_door_and_none_where_the_same_team_has_room():
+    from rce_fleet.lifelong import runner
+    jam = runner.run_lifelong(_two_rooms(door=True), 100, plan_time_limit_ms=100.0, record=False)
+    shares = jam.stats["packed_shares"]
+    assert jam.stats["jam_at"] in (49, 74, 99)            # the end of a 25-step window after the first
+    assert max(shares) > max(0.15, 3 * shares[0])
+    open_ = runner.run_lifelong(_two_rooms(door=False), 100, plan_time_limit_ms=100.0, record=False)
+    assert open_.stats["jam_at"] is None and max(open_.stats["packed_shares"]) < 0.05
+    assert open_.sim.finished > 3 * jam.sim.finished
+    bounded = runner.run_lifelong(_two_rooms(door=True), 2, plan_time_limit_ms=100.0, record=False, admission=True)
+    assert bounded.stats["jam_at"] is None and bounded.stats["packed_shares"] is None   # a bound holds: not watched

@@ -102,3 +102,21 @@ def test_lifelong_cli_refuses_an_unwritable_output_before_it_runs(tmp_path, caps
     cap = capsys.readouterr()
     assert f"--output {out}: cannot write: No such file or directory" in cap.err
     assert "tasks finished" not in cap.out
+
+
+def test_lifelong_cli_says_when_the_team_jams_and_what_to_turn_on(tmp_path, capsys):
+    """Two open rooms joined by one door, random tasks over both: the team packs the door."""
+    from rce_fleet.lifelong.generate import write_problem
+    rows = ["".join("@" if c == 40 and r != 10 else "." for c in range(81)) for r in range(20)]
+    door = tmp_path / "door.map"
+    door.write_text("type octile\nheight 20\nwidth 81\nmap\n" + "\n".join(rows) + "\n")
+    problem = write_problem(door, 190, 1, tmp_path)
+    with pytest.raises(SystemExit) as e:
+        main(["lifelong", str(problem), "--steps", "100", "--plan-time-limit", "100", "--no-progress"])
+    assert e.value.code == 0
+    err = capsys.readouterr().err
+    assert "the team jammed from step" in err and "--admission on" in err
+    with pytest.raises(SystemExit) as e:
+        main(["lifelong", str(problem), "--steps", "100", "--plan-time-limit", "100", "--no-progress",
+              "--admission", "on"])
+    assert e.value.code == 0 and "jammed" not in capsys.readouterr().err

@@ -252,6 +252,7 @@ def _lifelong(args: argparse.Namespace) -> int:
     import json
 
     from .lifelong import ProblemError, load_problem
+    from .lifelong.admission import jam_note
     from .lifelong.runner import rich_progress, run_lifelong
     if not 1 <= args.steps <= LIFELONG_MAX_STEPS:
         print(f"rce-fleet lifelong: --steps must be 1 - {LIFELONG_MAX_STEPS:,}, got {args.steps:,}", file=sys.stderr)
@@ -295,6 +296,8 @@ def _lifelong(args: argparse.Namespace) -> int:
               f"{problem.team_size} robots; planner ms p50 {s['plan_ms_p50']:.1f} p99 {s['plan_ms_p99']:.1f} max "
               f"{s['plan_ms_max']:.1f}; timeouts {s['timeouts']}, invalid steps {s['invalid_steps']}, "
               f"schedule errors {s['schedule_errors']}")
+        if (note := jam_note(s)) is not None:
+            print(f"rce-fleet lifelong: {note}", file=sys.stderr)
         if f is not None:
             json.dump(res.sim.output(problem.version), f)
             print(f"wrote {args.output}")

@@ -20,7 +20,9 @@ target is a setting, not a law: measured in docs/lifelong.md.
 """
 from __future__ import annotations
 
-__all__ = ["FlowAdmission"]
+import numpy as np
+
+__all__ = ["FlowAdmission", "JamDetector", "jam_note", "packed"]
 
 
 class FlowAdmission:
@@ -70,3 +72,66 @@ class FlowAdmission:
                 self.bound = None
         self.decisions.append((step, round(share, 3), self.bound))
         return self.bound
+
+
+def packed(nbr: np.ndarray, pos: np.ndarray, occupied: np.ndarray) -> np.ndarray:
+    """Which robots are packed in: every free neighbour cell of theirs held by a robot.
+
+    nbr: (cells, 4) int32 neighbours (-1: blocked, :class:`~.grid.LifelongGrid`); pos: (n,)
+    int64 cells; occupied: (cells + 1,) bool, True where a robot stands, its last entry False
+    (the one a blocked neighbour's -1 reads). Returns (n,) bool."""
+    nb = nbr[pos]
+    return (occupied[nb] | (nb < 0)).all(axis=1)
+
+
+class JamDetector:
+    """Tells a jam growing from a team that is merely dense, by how many robots are packed in.
+
+    A jam on a map of open areas joined by narrow passages starts as robots pressing into a passage
+    from both sides; the crowd packs solid, and every robot routed through it joins (docs/lifelong.md,
+    "Maps it was not tuned on"). The share of the robots holding a task whose every free neighbour
+    cell is held by a robot (:func:`packed`) then grows window after window: on ost003d with 2,000
+    robots 0.007 in the first 25 steps, 0.06 by step 50, 0.36 by step 100. A team that is dense but
+    flows packs a share that stays flat (random-32-32-20 at 200 robots: 0.045 - 0.098 all run). So
+    a jam is a share over ``factor`` times the first window's and over ``least``. It is seen too
+    late to prevent (by then most robots have opened their tasks, which are never taken back): it is
+    a diagnosis, reported so that a user can turn the run-time bound on (``--admission on``).
+
+    window: steps per window; factor, least: as above. ``jam_at``: the step that closed the first
+    window showing a jam (None: none yet); ``shares``: the share of each window. Raises ValueError
+    for a window below 1.
+    """
+
+    def __init__(self, window: int = 25, factor: float = 3.0, least: float = 0.15):
+        if window < 1:
+            raise ValueError(f"window must be at least 1 step, got {window}")
+        self.window, self.factor, self.least = window, factor, least
+        self.jam_at: int | None = None
+        self.shares: list[float] = []
+        self._packed = self._holding = self._steps = 0
+
+    def observe(self, step: int, packed_holders: int, holding: int) -> bool:
+        """Count one step: ``packed_holders`` of the ``holding`` robots with a task are packed in.
+        Returns True once a jam has been seen."""
+        self._packed += packed_holders
+        self._holding += holding
+        self._steps += 1
+        if self._steps == self.window:
+            share = self._packed / self._holding if self._holding else 0.0
+            self._packed = self._holding = self._steps = 0
+            self.shares.append(round(share, 3))
+            if self.jam_at is None and share > max(self.least, self.factor * self.shares[0]):
+                self.jam_at = step
+        return self.jam_at is not None
+
+
+def jam_note(stats: dict) -> str | None:
+    """What to tell the user of a run whose :class:`JamDetector` saw a jam (``stats`` of
+    :func:`~.runner.run_lifelong`: ``jam_at``, ``packed_shares``); None when it saw none."""
+    if stats.get("jam_at") is None:
+        return None
+    shares = stats["packed_shares"]
+    return (f"the team jammed from step {stats['jam_at']}: the share of robots with a task packed in (every free "
+            f"neighbour cell held by a robot) rose from {shares[0]:.3f} to {max(shares):.3f}; on a game map (open "
+            "areas joined by a few passages) --admission on keeps fewer robots moving and finishes more "
+            "(docs/lifelong.md, \"Maps it was not tuned on\")")

@@ -16,7 +16,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from .admission import FlowAdmission
+from .admission import FlowAdmission, JamDetector, packed
 from .distances import DistanceCache, cache_bytes_for
 from .flow import TrafficFlow
 from .flow import warm_up as flow_warm_up
@@ -111,6 +111,9 @@ def run_lifelong(problem: LorrProblem, steps: int, plan_time_limit_ms: float = 1
     robots with a task that move (:class:`~.admission.FlowAdmission` with ``admission_kw``, from
     ``ADMISSION_START`` robots per free cell; None: off);
     progress: called after each step with (step, tasks finished, planner ms).
+    Where no bound holds, a :class:`~.admission.JamDetector` watches the share of the robots with a
+    task that are packed in; ``stats`` give its ``packed_shares`` (per 25 steps) and ``jam_at``,
+    the step a jam was seen (None: none).
     Compilation happens before step 0 (:func:`~.kernels.warm_up`). Raises ValueError for a
     bad scheduler or model name, MemoryError when the maps of the team do not fit.
     """
@@ -169,6 +172,8 @@ def run_lifelong(problem: LorrProblem, steps: int, plan_time_limit_ms: float = 1
     if admission and sched.max_active is None:
         control = FlowAdmission(problem.team_size, **{"start": int(ADMISSION_START * n_free),
                                                       **(admission_kw or {})})
+    detector = JamDetector() if control is None and sched.max_active is None else None
+    occupied = np.zeros(grid.n_cells + 1, dtype=bool)
     for k in range(steps):
         t0 = time.perf_counter()
         deadline = t0 + budget_frac * limit
@@ -184,6 +189,11 @@ def run_lifelong(problem: LorrProblem, steps: int, plan_time_limit_ms: float = 1
         sched_ms += (t1 - t0) * 1e3
         p_before = sim.pos.copy() if control is not None else None
         sim.step(actions, prop, plan_time_s=dt, timed_out=dt > limit)
+        if detector is not None:
+            held = np.flatnonzero(prop >= 0)
+            occupied[:] = False
+            occupied[sim.pos] = True
+            detector.observe(k, int(packed(grid.nbr, sim.pos[held], occupied).sum()), len(held))
         if control is not None:
             held = prop >= 0
             sched.max_active = control.observe(k, int((held & (sim.pos != p_before)).sum()), int(held.sum()))
@@ -202,6 +212,8 @@ def run_lifelong(problem: LorrProblem, steps: int, plan_time_limit_ms: float = 1
              **(flow.stats if flow is not None else {}),
              "shed": sched.shed + getattr(getattr(sched, "_greedy", None), "shed", 0),
              "admission": control.decisions if control is not None else None,
+             "jam_at": detector.jam_at if detector is not None else None,
+             "packed_shares": detector.shares if detector is not None else None,
              "distance_maps": cache.computed, "maps_evicted": cache.evicted, "cache_rows": cache.capacity,
              "cache_rows_used": len(cache)}
     return RunResult(sim, plan_ms, finished, time.perf_counter() - t_start, stats)
