@@ -16,7 +16,7 @@ import socket
 import sys
 import tempfile
 
-from rce.plumbing.process import run_loop
+from rce.plumbing.process import exit_process, run_loop
 from rce.protocol.zones import parse_zone
 from rce.transport import cluster_auth
 from rce.transport import framing
@@ -99,10 +99,11 @@ def main(argv: list[str] | None = None) -> None:
     args = parser().parse_args(argv)
     setup_logging()
     try:
-        sys.exit(run_loop(amain(args)))
+        code = run_loop(amain(args))
     except RCEError as e:        # configuration errors (e.g. an unavailable sandbox)
         print(f"rce-container: {e}", file=sys.stderr)
         sys.exit(2)
+    exit_process(code)
 
 
 if __name__ == "__main__":

@@ -37,7 +37,8 @@ import socket
 import sys
 import traceback
 
-from rce_container.zygote import (HANDLED_SIGNALS, ForkServer, exit_child, exit_code, reset_signals, send,
+from rce.plumbing.process import exit_now
+from rce_container.zygote import (HANDLED_SIGNALS, ForkServer, exit_code, reset_signals, send,
                                   set_cmdline)
 
 #: The command line a forked environment shows (``ps``, psutil), before its arguments.
@@ -65,7 +66,7 @@ def _run_environment(args: list[str], led: int, inherited: list[int]) -> None:
         code = exit_code(e)
     except BaseException:              # noqa: BLE001 -- reported as the interpreter would
         traceback.print_exc()
-    exit_child(code)
+    exit_now(code)
 
 
 class EnvForkServer(ForkServer):
@@ -148,4 +149,4 @@ def main(argv: list[str] | None = None) -> int:
 
 
 if __name__ == "__main__":
-    sys.exit(main())
+    exit_now(main())

@@ -50,7 +50,6 @@ Stdlib only at module level; the node runtime is imported in :func:`preload`.
 """
 from __future__ import annotations
 
-import atexit
 import ctypes
 import json
 import os
@@ -61,6 +60,8 @@ import socket
 import sys
 import traceback
 from typing import NoReturn
+
+from rce.plumbing.process import exit_now
 
 #: Modules every Python node imports (the node runtime and the message codec, numpy included).
 PRELOAD = ("rce.node.runtime", "rce.messages", "rce.node.package_path")
@@ -182,18 +183,7 @@ def _run_child(req: dict, out: int, err: int, sock: socket.socket, report: int, 
             os.write(report, f"uncaught {type(e).__name__}: {e}"[:MAX_ERROR].encode(errors="replace"))
         except OSError:
             pass
-    exit_child(code)
-
-
-def exit_child(code: int) -> NoReturn:
-    """End a forked child as an interpreter ends: its atexit functions, stdout and stderr
-    flushed, then exit ``code`` (``os._exit``: nothing of the server's runs)."""
-    try:
-        atexit._run_exitfuncs()
-        sys.stdout.flush()
-        sys.stderr.flush()
-    finally:
-        os._exit(code)
+    exit_now(code)
 
 
 class ForkServer:
@@ -437,4 +427,4 @@ def main(argv: list[str] | None = None) -> int:
 
 
 if __name__ == "__main__":
-    sys.exit(main())
+    exit_now(main())

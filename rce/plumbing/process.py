@@ -3,11 +3,13 @@ wrapper."""
 from __future__ import annotations
 
 import asyncio
+import atexit
 import json
 import os
 import sys
+import threading
 from pathlib import Path
-from typing import Any, Awaitable, Callable
+from typing import Any, Awaitable, Callable, NoReturn
 
 from rce.plumbing.errors import RCEError
 from rce.plumbing.log import setup_logging
@@ -62,5 +64,25 @@ def run(prog: str, amain: Callable[[Any], Awaitable[Any]], args: Any) -> None:
     except OSError as e:
         print(f"{prog}: {e.strerror or e}", file=sys.stderr)
         sys.exit(1)
-    if isinstance(code, int):
+    exit_process(code if isinstance(code, int) else 0)
+
+
+def exit_process(code: int) -> NoReturn:
+    """Exit ``code`` once the process is done (:func:`exit_now`); while a thread that is not a
+    daemon runs, the interpreter's own exit instead (it waits for the thread)."""
+    if any(t.is_alive() and not t.daemon for t in threading.enumerate() if t is not threading.main_thread()):
         sys.exit(code)
+    exit_now(code)
+
+
+def exit_now(code: int) -> NoReturn:
+    """End the process as the interpreter ends: its atexit functions (logging's flush among them),
+    stdout and stderr flushed, then exit ``code`` with ``os._exit``: the imported modules are not
+    torn down (~0.1 s of CPU for a process with the engine's libraries), and a forked child runs
+    nothing of its parent's."""
+    try:
+        atexit._run_exitfuncs()
+        sys.stdout.flush()
+        sys.stderr.flush()
+    finally:
+        os._exit(code)
