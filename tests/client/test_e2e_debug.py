@@ -96,6 +96,13 @@ async def tool(*argv: str, env: dict, timeout: float = 60.0) -> tuple[int, str, 
 
 
 @pytest.fixture
+def engine(shared_engine):
+    """The module's engine: its tests run one after the other with the same robot ID and container
+    tag, the first one's robot and container gone (its ``rce-ros`` stopped, checked) before the next."""
+    return shared_engine
+
+
+@pytest.fixture
 async def robot(engine):
     """``rce-ros configs/debug.config`` (URL rewritten to the engine's master), ready."""
     d = Path(tempfile.mkdtemp(prefix="rce-e2e-"))
