@@ -53,8 +53,9 @@ def run_loop(coro: Awaitable[Any]) -> Any:
 
 
 def run(prog: str, amain: Callable[[Any], Awaitable[Any]], args: Any) -> None:
-    """Set up logging and run ``amain(args)``; an :class:`RCEError` or an OS error (a port in use,
-    an unreachable master) exits 1 with a one-line reason instead of a traceback."""
+    """Set up logging and run ``amain(args)``, then end the process (:func:`exit_process`) with its
+    code (0 unless it returns an int); an :class:`RCEError` or an OS error (a port in use, an
+    unreachable master) exits 1 with a one-line reason instead of a traceback."""
     setup_logging()
     try:
         code = run_loop(amain(args))
