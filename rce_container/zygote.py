@@ -46,7 +46,8 @@ zygote's socket, which then says ``ready`` or ``failed`` as above) and ``{"op": 
 A child leads its own session and process group (as ``setsid`` does for an exec'd node), so
 the host stops it as before: SIGTERM to its group, SIGKILL after the grace period. When the
 host's end closes (its environment is gone) the zygote SIGKILLs every child's group and exits.
-Stdlib only at module level; the node runtime is imported in :func:`preload`.
+Stdlib and :mod:`rce.plumbing` (the exit a child ends by) only at module level; the node runtime
+is imported in :func:`preload`.
 """
 from __future__ import annotations
 
