@@ -61,7 +61,7 @@ from typing import Any, Awaitable, Callable
 
 from rce.protocol.lanes import Lane, interface_lane
 from rce.transport import tls
-from rce.plumbing.process import exit_process, run_loop
+from rce.plumbing.process import exit_command, run_loop
 from rce.bus.core import Bus, Subscription
 from rce.bus.server import BusServer
 from rce.protocol.config import InterfaceSpec, RobotConfig, load_config
@@ -618,8 +618,8 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 def main(argv: list[str] | None = None) -> None:
-    """Entry point of ``rce-ros``: exits 0 after a clean stop, 1 on failure, 2 on a bad config (as the
-    command, ``argv`` None, through :func:`~rce.plumbing.process.exit_process`; else by ``SystemExit``)."""
+    """Entry point of ``rce-ros``: exits 0 after a clean stop, 1 on failure, 2 on a bad config
+    (:func:`~rce.plumbing.process.exit_command`)."""
     args = build_parser().parse_args(argv)
     setup_logging()
     try:
@@ -663,9 +663,7 @@ def main(argv: list[str] | None = None) -> None:
     except RCEError as e:
         print(f"rce-ros: {e.message}", file=sys.stderr)
         code = 1
-    if argv is None:            # the command itself: no teardown of the interpreter's modules
-        exit_process(code)
-    sys.exit(code)
+    exit_command(code, argv)
 
 
 if __name__ == "__main__":

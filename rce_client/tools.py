@@ -55,7 +55,7 @@ from rce.plumbing.log import setup_logging
 from rce.messages import MessageRegistry, default_registry
 from rce.node.naming import resolve
 from rce.node.package_path import load_package_types
-from rce.plumbing.process import exit_process, run_loop
+from rce.plumbing.process import exit_command, run_loop
 from rce.plumbing.tasks import Tasks
 from rce_client.bag import BagRecorder
 from rce_client.paths import bus_dir, running_buses
@@ -541,8 +541,7 @@ async def service_cmd(args: argparse.Namespace, backend) -> int:
 
 
 def _run(prog: str, parser: argparse.ArgumentParser, cmd, argv: list[str] | None) -> None:
-    """Run ``cmd`` and exit with its code: as the command (``argv`` None: the process's own) through
-    :func:`~rce.plumbing.process.exit_process`, for a caller that gives ``argv`` by ``SystemExit``."""
+    """Run ``cmd`` and exit with its code (:func:`~rce.plumbing.process.exit_command`)."""
     args = parser.parse_args(argv)
     setup_logging(level=os.environ.get("RCE_LOG_LEVEL", "WARNING"))
 
@@ -567,9 +566,7 @@ def _run(prog: str, parser: argparse.ArgumentParser, cmd, argv: list[str] | None
         code = 1
     except KeyboardInterrupt:
         code = 0
-    if argv is None:            # the command itself: no teardown of the interpreter's modules
-        exit_process(code)
-    sys.exit(code)
+    exit_command(code, argv)
 
 
 def topic_main(argv: list[str] | None = None) -> None:

@@ -76,6 +76,15 @@ def exit_process(code: int) -> NoReturn:
     exit_now(code)
 
 
+def exit_command(code: int, argv: list[str] | None) -> NoReturn:
+    """Exit a command's ``main(argv)`` with ``code``: run as the command (``argv`` None, the process
+    its own) through :func:`exit_process`, with no teardown of its modules; called with ``argv`` by
+    another program (a test), by ``SystemExit``, which leaves the caller's process alive."""
+    if argv is None:
+        exit_process(code)
+    sys.exit(code)
+
+
 def exit_now(code: int) -> NoReturn:
     """End the process as the interpreter ends: its atexit functions (logging's flush among them),
     stdout and stderr flushed (stdout's flush failing exits 120, as the interpreter does), then exit

@@ -391,8 +391,8 @@ def main(argv: list[str] | None = None) -> None:
     except UsageError as e:
         print(f"rce-fleet: {e}", file=sys.stderr)
         sys.exit(EXIT_USAGE)
-    from rce.plumbing.process import exit_process
-    exit_process(run(opts))      # without the interpreter's teardown of numba, scipy and matplotlib
+    from rce.plumbing.process import exit_command
+    exit_command(run(opts), argv)      # as the command, without the teardown of numba, scipy and matplotlib
 
 
 if __name__ == "__main__":

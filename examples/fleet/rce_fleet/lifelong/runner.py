@@ -173,7 +173,7 @@ def run_lifelong(problem: LorrProblem, steps: int, plan_time_limit_ms: float = 1
         control = FlowAdmission(problem.team_size, **{"start": int(ADMISSION_START * n_free),
                                                       **(admission_kw or {})})
     detector = JamDetector() if control is None and sched.max_active is None else None
-    occupied = np.zeros(grid.n_cells + 1, dtype=bool)
+    occupied = np.zeros(grid.n_cells + 1, dtype=bool) if detector is not None else None
     for k in range(steps):
         t0 = time.perf_counter()
         deadline = t0 + budget_frac * limit
