@@ -104,7 +104,7 @@ class Robot:
         return max((b - a, a) for a, b in zip(t, t[1:], strict=False))
 
 
-async def echo_container(robot: Robot, ctag: str, suffix: str) -> None:
+async def echo_container(engine, robot: Robot, ctag: str, suffix: str) -> None:
     """Container ``ctag`` with stringEcho, wired to robot-side converters ``req<suffix>``/``resp<suffix>``."""
     rid = robot.raw.robot
     await robot.raw.send("CC", {"containerTag": ctag})
@@ -122,6 +122,13 @@ async def echo_container(robot: Robot, ctag: str, suffix: str) -> None:
     up = set()
     while up != {f"req{suffix}", f"resp{suffix}"}:
         up.add((await robot.expect("ST", lambda d: d.get("topic") == "iu" and d.get("status") is True))["iTag"])
+    # the interfaces are up before the master has answered the CX; the robot sends its requests
+    # one at a time, so once a later CN is done the CX is answered (a kill now loses no answer)
+    await robot.raw.cn(setParam=[{"containerTag": ctag, "name": "wired", "value": 1}])
+    deadline = time.monotonic() + 30
+    while not any(p["ctag"] == ctag and p["name"] == "wired" for p in engine.admin("/api/parameters")):
+        assert time.monotonic() < deadline, f"container {ctag}: the CN after its CX was not done"
+        await asyncio.sleep(0.02)
 
 
 async def echoing(robot: Robot, name: str, timeout: float = 30.0) -> None:
@@ -148,7 +155,7 @@ async def test_nothing_stops_while_the_master_is_away(engine):
         robot = Robot(raw)
         stop = asyncio.Event()
         reader = asyncio.ensure_future(robot.read())
-        await echo_container(robot, "awayC1", "1")
+        await echo_container(engine, robot, "awayC1", "1")
         streams = [asyncio.ensure_future(robot.stream("a", "req1", stop))]
         await echoing(robot, "a")
         tids = {t["kind"]: t["tid"] for t in engine.admin("/api/state")["tasksets"]}
@@ -184,7 +191,7 @@ async def test_nothing_stops_while_the_master_is_away(engine):
                     break
                 await asyncio.sleep(0.02)
             assert metric(metrics_port, "rce_robot_master_available") == 1
-            await echo_container(robot, "awayC2", "2")               # CC, CN, CX work again
+            await echo_container(engine, robot, "awayC2", "2")               # CC, CN, CX work again
             streams.append(asyncio.ensure_future(robot.stream("b", "req2", stop)))
             await echoing(robot, "b")
             await asyncio.sleep(1.0)                                 # both streams run together a while
@@ -215,7 +222,7 @@ async def test_a_request_waits_for_a_host_that_has_not_re_registered_yet(engine)
     async with RawRobot(engine.master_url, "waitBot") as raw:
         robot = Robot(raw)
         reader = asyncio.ensure_future(robot.read())
-        await echo_container(robot, "waitC", "1")
+        await echo_container(engine, robot, "waitC", "1")
         tids = {t["kind"]: t["tid"] for t in engine.admin("/api/state")["tasksets"]}
         host = proc(engine, "rce-container")
         engine.procs[0].send_signal(signal.SIGKILL)
