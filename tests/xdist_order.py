@@ -47,7 +47,6 @@ SPREAD = (
     "tests/fleet/test_fleet_e2e.py",
     "tests/engine/test_quickstart_restart.py",
     "tests/fleet/test_fleet_faults.py",
-    "tests/client/test_e2e_debug.py",
 )
 
 
