@@ -54,7 +54,7 @@ def engine_each_ws_impl(request, tmp_path: Path):
 def pytest_runtest_makereport(item, call):
     """Attach the engine's process logs to a failing test's report."""
     if call.when == "call" and call.excinfo is not None:
-        for name in ("engine", "shared_engine", "engine_ws_impls", "engine_each_ws_impl"):
+        for name in ("engine", "shared_engine", "engine_ws_impls", "engine_each_ws_impl", "eng"):
             e = item.funcargs.get(name) if hasattr(item, "funcargs") else None
             if isinstance(e, Engine):
                 item.add_report_section("call", "engine logs", e.log_text())

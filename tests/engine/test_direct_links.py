@@ -20,9 +20,16 @@ pytestmark = pytest.mark.asyncio
 WAIT = 30.0      # s, the most a step that normally takes well under a second may take
 
 
+PACKAGES = Path(__file__).resolve().parents[2] / "bench" / "packages"     # benchecho: a topic echo node
+
+
 @pytest.fixture(scope="module")
-def eng(shared_engine):
-    return shared_engine
+def eng(tmp_path_factory):
+    """The module's engine, with bench/packages on its package path (its tests use distinct robots and containers)."""
+    from rce.tools.launch import start_engine
+    e = start_engine(tmp_path_factory.mktemp("engine"), env={"RCE_PACKAGE_PATH": str(PACKAGES)})
+    yield e
+    e.stop()
 
 
 def stats(eng, ctag: str) -> dict:
@@ -165,21 +172,11 @@ async def test_bus_path_when_direct_links_are_off(tmp_path):
         await asyncio.to_thread(e.stop)
 
 
-async def test_two_subscriber_nodes_share_a_claim_and_a_survivor_misses_nothing(tmp_path):
+async def test_two_subscriber_nodes_share_a_claim_and_a_survivor_misses_nothing(eng):
     """Two echo nodes (bench/packages' benchecho) subscribe /pose: both claim it (one claim set
     of 2), each gets every message once (two echoes per request), none through the
     environment. kill -9 of one: the set is incomplete, so the robot endpoint sends by the
     environment again and the survivor echoes every message; then its set of 1 goes direct."""
-    from rce.tools.launch import start_engine
-    packages = Path(__file__).resolve().parents[2] / "bench" / "packages"
-    eng = await asyncio.to_thread(start_engine, tmp_path / "engine", env={"RCE_PACKAGE_PATH": str(packages)})
-    try:
-        await _two_echo_nodes(eng)
-    finally:
-        await asyncio.to_thread(eng.stop)
-
-
-async def _two_echo_nodes(eng) -> None:
     async with RawRobot(eng.master_url, "direct2") as r:
         ctag = "direct2C"
         await topic_echo(r, ctag, [{"nodeTag": n, "pkg": "benchecho", "exe": "echo.py", "name": n,
