@@ -350,8 +350,9 @@ def main(argv: list[str] | None = None) -> None:
         from .live.replay import run as replay
         sys.exit(replay(args.recording, speed=args.speed, loop=args.loop,
                         web_port=None if args.headless else args.web_port, foxglove_port=args.foxglove_port))
-    from .live.demo import (EXIT_USAGE, Options, UsageError, parse_battery, parse_cell_at, parse_faults,
-                       parse_robot_cell, run, web_access)
+    from .live.demo_output import EXIT_USAGE
+    from .live.options import (Options, UsageError, check_robots, parse_battery, parse_cell_at, parse_faults,
+                               parse_robot_cell, web_access)
     mission = args.cmd == "demo" and args.mission
     lifelong = args.cmd == "demo" and not mission
     if lifelong and args.map is None and args.robots is None:       # the warehouse of ``make demo``
@@ -388,10 +389,13 @@ def main(argv: list[str] | None = None) -> None:
                        battery=parse_battery(args.battery, lifelong), out_of_coverage=args.out_of_coverage,
                        edge_hosts=args.edge_hosts,
                        radio_range=args.radio_range)
+        check_robots(opts)              # before the run's imports: a bad flag is refused at once
     except UsageError as e:
         print(f"rce-fleet: {e}", file=sys.stderr)
         sys.exit(EXIT_USAGE)
     from rce.plumbing.process import exit_command
+
+    from .live.demo import run
     exit_command(run(opts), argv)      # as the command, without the teardown of numba, scipy and matplotlib
 
 

@@ -2,6 +2,7 @@
 the operator's web page, injected faults, simulated radios and the bag recorder.
 
 - :mod:`.demo`: ``rce-fleet demo`` / ``rce-fleet serve``: the whole fleet system.
+- :mod:`.options`: their flags, parsed and checked before the run's imports (a bad flag is refused at once).
 - :mod:`.task_stream`: the generated task stream of a lifelong run and its report sections.
 - :mod:`.demo_output`: the live table, progress line, ``--report`` JSON and PNGs.
 - :mod:`.plot`: PNG of a run's map and robot paths.

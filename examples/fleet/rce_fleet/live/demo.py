@@ -53,7 +53,6 @@ import sys
 import tempfile
 import time
 from collections import deque
-from dataclasses import dataclass, field
 from pathlib import Path
 
 from rce.plumbing.errors import RCEError
@@ -64,11 +63,11 @@ from rce.node.package_path import load_package_types
 from rce.plumbing.process import run_loop
 from rce.plumbing.tasks import Tasks
 
-from ..operations.battery import BatteryParams, battery_links
+from ..operations.battery import battery_links
 from ..configs import FLEET_CTAG, PASSWORD, USER, robot_config
 from .demo_output import (EXIT_FAIL, EXIT_OK, EXIT_UNREACHABLE, EXIT_USAGE, activities, blocked_by, progress_line,
                           table, write_outputs)
-from .faults import Fault, FaultInjector, parse_fault
+from .faults import FaultInjector
 from .fleet_bag import FleetBag
 from ..maps.geometry import GRID_PARAM, GridGeometry, components
 from ..maps.grid import fleet_grid
@@ -78,6 +77,8 @@ from ..maps.occupancy import MapError, load_map
 from .task_stream import TaskStream
 from ..operations.places import PlaceError, Places, generate_places
 from .radio import Radio, default_range
+from .options import (Options, UsageError, WebAccess, check_robots, parse_battery, parse_cell_at,  # noqa: F401
+                      parse_faults, parse_robot_cell, web_access)
 from .simhost import SimHost
 
 log = get_logger("fleet.demo")
@@ -94,135 +95,6 @@ PROGRESS_EVERY_S = 5.0     # wall s between plain progress lines (no live table)
 RELAYS_EVERY_S = 1.0       # wall s between asks for the followers' relays at the master (--out-of-coverage)
 TEARDOWN_TIMEOUT_S = 10.0  # wall s the web page and the fleet manager each get to close before they are left
 SIM_STOP_TIMEOUT_S = 5.0   # wall s the robots' bridges get to remove their nodes and interfaces
-
-
-class UsageError(ValueError):
-    """A bad flag value; the message says which and why."""
-
-
-@dataclass
-class WebAccess:
-    """Where the page and the task API listen and who may use them: ``bind`` (address), ``tls_cert`` and
-    ``tls_key`` (PEM files: HTTPS), ``users`` (the master's ``--users`` file), ``metrics_public``
-    (``/metrics`` without a credential), ``token_ttl`` (s a login's token lives; None: the default)."""
-
-    bind: str = "127.0.0.1"
-    tls_cert: str | None = None
-    tls_key: str | None = None
-    users: str | None = None
-    metrics_public: bool = False
-    token_ttl: float | None = None
-
-
-def web_access(args) -> WebAccess:
-    """The :class:`WebAccess` of ``rce-fleet demo``/``serve``'s flags. Raises UsageError for one of
-    ``--tls-cert``/``--tls-key`` without the other, or a ``--users`` file that is not there."""
-    if (args.tls_cert is None) != (args.tls_key is None):
-        raise UsageError("give both --tls-cert and --tls-key, or neither")
-    for flag, path in (("--tls-cert", args.tls_cert), ("--tls-key", args.tls_key), ("--users", args.users)):
-        if path is not None and not Path(path).is_file():
-            raise UsageError(f"{flag} {path}: no such file")
-    return WebAccess(args.web_bind, str(args.tls_cert) if args.tls_cert else None,
-                     str(args.tls_key) if args.tls_key else None, str(Path(args.users).resolve()) if args.users
-                     else None, args.metrics_public, args.token_ttl)
-
-
-@dataclass
-class Options:
-    """What to run: the ``rce-fleet demo``/``serve`` flags (see :mod:`rce_fleet.cli`)."""
-
-    map: str | None = None
-    robots: int = 3
-    grid: tuple[int, int] | None = None
-    cell: float | None = None
-    seed: int = 1
-    speedup: float = 3.0
-    headless: bool = False
-    timeout: float = 300.0          # wall s the run may take (``--timeout``; ``serve``: until Ctrl-C)
-    goals: dict[str, int] = field(default_factory=dict)
-    starts: dict[str, int] = field(default_factory=dict)
-    blocks: list[tuple[int, float]] = field(default_factory=list)
-    obstacles: list[tuple[int, float]] = field(default_factory=list)
-    plot: str | None = "fleet_paths.png"
-    report: str | None = None
-    bag: str | None = None          # ROS 1 bag of the fleet topics (``--bag``)
-    record: str | None = None       # MCAP (``.mcap``) or ROS 1 bag of the fleet topics (``--record``)
-    foxglove_port: int | None = None   # the Foxglove WebSocket server (rce_fleet.live.foxglove); None: none
-    workdir: str | None = None
-    keep: bool = False
-    lidar_blocking: bool = True
-    mission: bool = True
-    live: bool | None = None        # None: when stdout is a terminal
-    web_port: int = 8000            # the operator's web page (rce_fleet.live.webui); taken if free, else any
-    web: WebAccess = field(default_factory=WebAccess)   # where the page and the task API listen, who may use them
-    faults: list[Fault] = field(default_factory=list)   # ``--fault`` (rce_fleet.live.faults)
-    places: str | None = None       # ``--places`` YAML (None: generated for the map)
-    lifelong: bool = False          # ``demo --lifelong``: a generated task stream for ``duration`` sim s
-    duration: float = 600.0         # sim s of a lifelong run
-    task_rate: float = 6.0          # tasks per sim minute of a lifelong run
-    battery: BatteryParams | None = None   # simulated batteries (``--battery``; a lifelong run has them)
-    out_of_coverage: list[str] = field(default_factory=list)   # robots reaching the cloud only through relays
-    edge_hosts: bool = False        # each robot's own computer (zone robot:RobotN) and a placed move_client container
-    radio_range: float | None = None       # m between robots that hear each other (None: rce_fleet.live.radio default)
-
-
-def parse_battery(spec: str | None, lifelong: bool) -> BatteryParams | None:
-    """``--battery KEY=VALUE,...`` (keys of :class:`rce_fleet.operations.battery.BatteryParams`; empty:
-    the defaults) -> params; None without the flag unless ``lifelong``. Raises UsageError."""
-    if spec is None:
-        return BatteryParams() if lifelong else None
-    kw = {}
-    for item in filter(None, (x.strip() for x in spec.split(","))):
-        k, sep, v = item.partition("=")
-        if not sep or k not in BatteryParams.__dataclass_fields__:
-            raise UsageError(f"--battery {item!r}: expected KEY=VALUE with KEY one of "
-                             f"{', '.join(BatteryParams.__dataclass_fields__)}")
-        try:
-            kw[k] = float(v)
-        except ValueError:
-            raise UsageError(f"--battery {item!r}: {v!r} is not a number") from None
-    try:
-        return BatteryParams(**kw)
-    except ValueError as e:
-        raise UsageError(f"--battery: {e}") from None
-
-
-def parse_robot_cell(items: list[str], what: str) -> dict[str, int]:
-    """``["Robot1=12", ...]`` -> ``{"Robot1": 12}``; raises UsageError."""
-    out = {}
-    for it in items or []:
-        rid, sep, cell = it.partition("=")
-        try:
-            if not sep or not rid:
-                raise ValueError
-            out[rid] = int(cell)
-        except ValueError:
-            raise UsageError(f"--{what} {it!r}: expected ROBOT=CELL, e.g. Robot1=42") from None
-    return out
-
-
-def parse_cell_at(items: list[str], what: str) -> list[tuple[int, float]]:
-    """``["26@5", ...]`` -> ``[(26, 5.0)]``; raises UsageError."""
-    out = []
-    for it in items or []:
-        cell, sep, t = it.partition("@")
-        try:
-            if not sep:
-                raise ValueError
-            out.append((int(cell), float(t)))
-        except ValueError:
-            raise UsageError(f"--{what} {it!r}: expected CELL@SECONDS, e.g. 26@5") from None
-        if out[-1][1] < 0:
-            raise UsageError(f"--{what} {it!r}: seconds must be >= 0")
-    return out
-
-
-def parse_faults(items: list[str]) -> list[Fault]:
-    """``["master@5", "link:Robot1@5+5"]`` -> faults (:func:`rce_fleet.live.faults.parse_fault`); raises UsageError."""
-    try:
-        return [parse_fault(it) for it in items or []]
-    except ValueError as e:
-        raise UsageError(str(e)) from None
 
 
 def choose_cells(geo: GridGeometry, robots: list[str], seed: int, starts: dict[str, int],
@@ -303,10 +175,7 @@ class Run:
         """Check the options, load the map, cut the grid, choose starts and goals; raises
         UsageError naming the bad flag."""
         o = self.o
-        if o.robots < 1:
-            raise UsageError("--robots must be >= 1")
-        if o.speedup <= 0:
-            raise UsageError("--speedup must be > 0")
+        check_robots(o)
         self.workdir = Path(o.workdir).resolve() if o.workdir else Path(tempfile.mkdtemp(prefix="rce-fleet-"))
         self.workdir.mkdir(parents=True, exist_ok=True)
         map_path = o.map or str(write_lab_map(self.workdir / "map"))
@@ -320,10 +189,8 @@ class Run:
         except ValueError as e:
             raise UsageError(f"--grid/--cell: {e}") from None
         self.geo = GridGeometry.from_cellgrid(grid)
-        for r in list(o.goals) + list(o.starts) + [f.robot for f in o.faults if f.robot]:
-            if r not in self.robots:
-                raise UsageError(f"unknown robot {r!r}: the robots are Robot1..Robot{o.robots}")
-        self._check_coverage()
+        if o.out_of_coverage and o.radio_range is None:     # the default: rce_fleet.live.radio.default_range
+            o.radio_range = default_range(self.occ.width_m, self.occ.height_m)
         for r, c in o.goals.items():
             if not self.geo.valid(c):
                 raise UsageError(f"--goal {r}={c}: cell outside the {self.geo.rows}x{self.geo.cols} grid")
@@ -351,25 +218,6 @@ class Run:
         if self.grid_note:
             log.info(self.grid_note)
             self.events.append(self.grid_note)
-
-    def _check_coverage(self) -> None:
-        """Check ``--out-of-coverage`` and ``--radio-range`` (default: :func:`rce_fleet.live.radio.default_range`)."""
-        o = self.o
-        for r in o.out_of_coverage:
-            if r not in self.robots:
-                raise UsageError(f"--out-of-coverage: unknown robot {r!r}: the robots are Robot1..Robot{o.robots}")
-        if not o.out_of_coverage:
-            return
-        if len(set(o.out_of_coverage)) == len(self.robots):
-            raise UsageError("--out-of-coverage: at least one robot must have coverage, to relay for the others")
-        for f in o.faults:
-            if f.robot in o.out_of_coverage:
-                raise UsageError(f"--fault {f.name}: {f.robot} is out of coverage (its links are radio links "
-                                 f"to relays, which drop as the robots move)")
-        if o.radio_range is None:
-            o.radio_range = default_range(self.occ.width_m, self.occ.height_m)
-        elif not o.radio_range > 0:
-            raise UsageError("--radio-range must be > 0 m")
 
     # -- run --------------------------------------------------------------------------------------
     async def run(self) -> int:

@@ -25,7 +25,6 @@ from __future__ import annotations
 
 import asyncio
 import time
-from dataclasses import dataclass, field
 from typing import Callable
 
 from rce.plumbing.errors import RCEError
@@ -36,48 +35,12 @@ from rce.transport.tcpproxy import TcpProxy
 from rce_client.connection import Connection, login
 
 from .linkproxy import LoginRelay
+from .options import LINK_CUT_S, MASTER_DOWN_S, SPEC_HELP, Fault, parse_fault  # noqa: F401  (the --fault SPEC)
 
 log = get_logger("fleet.faults")
 
-MASTER_DOWN_S = 2.0        # wall s the master stays dead (master@T without +S)
-LINK_CUT_S = 5.0           # wall s a robot's link stays cut (link:ROBOT@T without +S)
 RECOVERY_TIMEOUT_S = 60.0  # wall s after a fault ends for the fleet to be served again, else the run fails
 POLL_S = 0.05              # wall s between checks that the restarted master serves (admin API, login)
-SPEC_HELP = "master@T[+S] or link:ROBOT@T[+S] (T: sim s after the goals; S: wall s), e.g. master@5 or link:Robot1@5+5"
-
-
-@dataclass
-class Fault:
-    """One ``--fault``: ``kind`` master or link, at ``at`` sim s after the goals, for ``duration`` wall s."""
-    kind: str
-    at: float
-    duration: float
-    robot: str = ""
-    record: dict = field(default_factory=dict)
-
-    @property
-    def name(self) -> str:
-        return "master" if self.kind == "master" else f"link:{self.robot}"
-
-
-def parse_fault(text: str) -> Fault:
-    """``"master@5"`` / ``"link:Robot1@5+5"`` -> :class:`Fault`; raises ValueError naming the flag."""
-    head, sep, when = text.partition("@")
-    t, plus, dur = when.partition("+")
-    try:
-        if not sep:
-            raise ValueError
-        at, duration = float(t), (float(dur) if plus else None)
-    except ValueError:
-        raise ValueError(f"--fault {text!r}: expected {SPEC_HELP}") from None
-    if at < 0 or (duration is not None and not duration > 0):
-        raise ValueError(f"--fault {text!r}: T must be >= 0 and S > 0")
-    if head == "master":
-        return Fault("master", at, MASTER_DOWN_S if duration is None else duration)
-    kind, colon, robot = head.partition(":")
-    if kind == "link" and colon and robot:
-        return Fault("link", at, LINK_CUT_S if duration is None else duration, robot)
-    raise ValueError(f"--fault {text!r}: unknown fault {head!r}; expected {SPEC_HELP}")
 
 
 class FaultInjector:
