@@ -226,11 +226,8 @@ def _parser() -> argparse.ArgumentParser:
     ap.add_argument("--keep-right", type=int, metavar="N",
                     help="extra cost of a move against the keep-right lane of a corridor 2 - 12 cells wide "
                          "(0: none; default 4)")
-    ap.add_argument("--admission", choices=("on", "off"),
-                    help="the bound on robots holding a task set at run time by the share of them that move "
-                         "(default off; ignored under --max-active; turn it on for game maps, open areas joined "
-                         "by a few passages, at 0.1 - 0.2 robots per free cell, where the whole team jams; not "
-                         "for city maps, warehouses or small maps, where it holds the team back)")
+    from rce_fleet.cli import ADMISSION_HELP
+    ap.add_argument("--admission", choices=("on", "off"), help=ADMISSION_HELP)
     ap.add_argument("--window", choices=("on", "off"),
                     help="the windowed plan (operations + LNS) as a candidate of the lookahead (default: on "
                          "from 0.1 to 0.8 robots per free cell, up to 1,000 robots)")

@@ -60,6 +60,22 @@ def test_a_bound_that_starts_low_grows_by_its_slow_start_factor_until_the_first_
     assert FlowAdmission(1000, start=5, floor=0.1).bound == 100       # nor below the floor
 
 
+def test_with_the_jam_gate_the_bound_falls_only_while_robots_pack_in_and_rises_whenever_they_do_not():
+    ctl = FlowAdmission(1000, window=2, target=0.8, decrease=0.5, increase=0.1, floor=0.1, start=400,
+                        jam_factor=2.0, jam_least=0.05)
+    ctl.observe(0, 200, 400, 4)
+    assert ctl.observe(1, 200, 400, 4) == 500           # 0.5 moving but 0.01 packed in: no jam, it rises
+    ctl.observe(2, 250, 500, 20)
+    assert ctl.observe(3, 250, 500, 20) == 600          # 0.04 packed: under the least share, still none
+    ctl.observe(4, 300, 600, 60)
+    assert ctl.observe(5, 300, 600, 60) == 300          # 0.1 packed, over 2x the first 0.01: a jam, halved
+    ctl.observe(6, 280, 300, 60)
+    assert ctl.observe(7, 280, 300, 60) == 300          # packed but moving (0.93): held
+    ctl.observe(8, 150, 300, 3)
+    assert ctl.observe(9, 150, 300, 3) == 400           # the crowd cleared: it rises again
+    assert [d[2] for d in ctl.decisions] == [500, 600, 300, 300, 400]
+
+
 @pytest.mark.parametrize("scheduler", [GreedyScheduler, BatchScheduler])
 def test_a_lower_bound_takes_unopened_tasks_back_from_the_robots_farthest_from_them(scheduler):
     g = LifelongGrid(np.ones((1, 40), dtype=bool))

@@ -129,7 +129,8 @@ def test_batch_scheduler_gives_tasks_to_at_most_max_active_robots_the_cheapest_p
 
 def test_the_greedy_bids_of_a_team_too_large_for_one_assignment_keep_max_active_too():
     """A batch too large for one assignment falls back to greedy bids; the bound holds there as
-    well: robots without a task take free places until max_active hold one, then only outbid."""
+    well: robots without a task take free places until max_active hold one, then stand aside and
+    do not bid: the held tasks stay with their holders."""
     from rce_fleet.lifelong import BatchScheduler, TaskPool
     g = LifelongGrid(np.ones((1, 20), dtype=bool))
     pool = TaskPool()
@@ -141,6 +142,10 @@ def test_the_greedy_bids_of_a_team_too_large_for_one_assignment_keep_max_active_
     prop = sched.schedule(pos, np.full(4, -1), pool.open, 0, time.perf_counter() + 1)
     assert sched.fallbacks == 1 and (prop >= 0).sum() == 2
     held = prop.copy()                                       # the next step: the bound still holds
-    assert (sched.schedule(pos, held, pool.open, 1, time.perf_counter() + 1) >= 0).sum() == 2
+    for a in np.flatnonzero(held >= 0):                      # as the simulator records the schedule
+        pool.assign(int(held[a]), int(a))
+    assert (sched.schedule(pos, held, pool.open, 1, time.perf_counter() + 1) == held).all()
+    pos[1], pos[3] = 19, 10                  # a holder 9 cells from its task, a robot standing aside on it
+    assert (sched.schedule(pos, held, pool.open, 2, time.perf_counter() + 1) == held).all()
     sched.max_active = None
     assert (sched.schedule(pos, np.full(4, -1), pool.open, 0, time.perf_counter() + 1) >= 0).sum() == 4

@@ -29,6 +29,12 @@ import argparse
 import sys
 from pathlib import Path
 
+# the help of --admission, rce-fleet lifelong's and bench/lifelong.py's
+ADMISSION_HELP = ("the bound on robots holding a task set at run time: it starts at 0.04 robots per free cell, "
+                  "rises while robots flow and falls while they pack in at narrow passages (default: on from 0.1 "
+                  "to 0.3 robots per free cell on maps of 4,000 free cells or more that are not maps of one-cell "
+                  "aisles, else off; ignored under --max-active)")
+
 __all__ = ["main", "build_parser"]
 
 DEMO_TIMEOUT_S = 300.0   # wall s a demo mission may take by default (--timeout)
@@ -235,10 +241,7 @@ def build_parser() -> argparse.ArgumentParser:
     lf.add_argument("--max-active", type=int, metavar="N", help="robots holding a task at most (0: no bound; "
                     "default: 0.3 of the free cells, 0.2 on a map of one-cell aisles, from 0.3 robots "
                     "per free cell)")
-    lf.add_argument("--admission", choices=("on", "off"), help="the bound on robots holding a task set at run "
-                    "time by the share of them that move (default off; ignored under --max-active; turn it on for "
-                    "game maps, open areas joined by a few passages, at 0.1 - 0.2 robots per free cell, where the "
-                    "whole team jams; not for city maps, warehouses or small maps, where it holds the team back)")
+    lf.add_argument("--admission", choices=("on", "off"), help=ADMISSION_HELP)
     lf.add_argument("--crowd-w", type=float, metavar="W", help="steps the scheduler adds per robot crowding a "
                     "task's errands beyond its share (default 5 for 3,000 robots or more, else 0)")
     lf.add_argument("--no-progress", action="store_true", help="no progress bar")

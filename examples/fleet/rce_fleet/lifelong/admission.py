@@ -15,8 +15,11 @@ the robots holding a task; above ``target + band`` it rises by ``increase`` of t
 the bound is what holds robots back). The scheduler then takes unopened tasks back from the
 robots farthest from them until the bound holds (:class:`~.scheduler.Scheduler`'s
 ``max_active``). A map whose robots turn often moves a smaller share of them when nothing jams
-(0.69 on random-32-32-20 at 100 robots, 0.8 - 0.9 on the city, game and warehouse maps), so the
-target is a setting, not a law: measured in docs/lifelong.md.
+(0.69 on random-32-32-20 at 100 robots, 0.75 - 0.9 on the city, game and warehouse maps), so the
+share moving alone holds back teams that flow. With the jam gate (``jam_factor``) the bound falls
+only while robots also pack in (every free neighbour cell held by a robot: :func:`packed`) and
+rises whenever they do not: a team that turns but flows keeps growing, a team pressing into a
+passage is held back before its crowd packs solid (measured in docs/lifelong.md).
 """
 from __future__ import annotations
 
@@ -33,13 +36,16 @@ class FlowAdmission:
     above it from which it rises; decrease: the factor it falls by; increase: the share of the
     team it rises by; floor: the lowest bound, as a share of the team; start: the first bound
     (robots; None: none); slow_start: the factor it grows by instead while it has not fallen yet
-    (1: none). ``bound`` is None while no bound holds. Raises ValueError for a share outside
+    (1: none); jam_factor, jam_least: with them the bound falls only while a jam grows (the share
+    of holders packed in, :func:`packed`, over ``jam_factor`` times the first window's and over
+    ``jam_least``) and rises whenever none does, whatever the share moving (None: the share moving
+    alone decides). ``bound`` is None while no bound holds. Raises ValueError for a share outside
     (0, 1] or a window below 1.
     """
 
     def __init__(self, team: int, window: int = 25, target: float = 0.8, band: float = 0.05,
                  decrease: float = 0.85, increase: float = 0.02, floor: float = 0.1, start: int | None = None,
-                 slow_start: float = 1.0):
+                 slow_start: float = 1.0, jam_factor: float | None = None, jam_least: float = 0.05):
         for name, v in (("target", target), ("decrease", decrease), ("increase", increase), ("floor", floor)):
             if not 0.0 < v <= 1.0:
                 raise ValueError(f"{name} must be in (0, 1], got {v}")
@@ -49,19 +55,37 @@ class FlowAdmission:
         self.decrease, self.increase, self.floor = decrease, increase, max(1, int(floor * team))
         self.bound: int | None = None if start is None or start >= team else max(self.floor, int(start))
         self.slow_start = slow_start
-        self._moved = self._holding = self._steps = 0
+        self.jam_factor, self.jam_least = jam_factor, jam_least
+        self._first_packed: float | None = None
+        self._moved = self._holding = self._steps = self._packed = 0
         self.decisions: list[tuple[int, float, int | None]] = []   # (step, share, bound) per window
 
-    def observe(self, step: int, moved: int, holding: int) -> int | None:
-        """Count one step: ``moved`` robots holding a task changed cell, of ``holding``. Returns
-        the bound (robots), None for none."""
+    def observe(self, step: int, moved: int, holding: int, packed_holders: int = 0) -> int | None:
+        """Count one step: ``moved`` robots holding a task changed cell, ``packed_holders`` of them
+        are packed in, of ``holding``. Returns the bound (robots), None for none."""
         self._moved += moved
         self._holding += holding
+        self._packed += packed_holders
         self._steps += 1
         if self._steps < self.window:
             return self.bound
         share = self._moved / self._holding if self._holding else 1.0
-        self._moved = self._holding = self._steps = 0
+        packed_share = self._packed / self._holding if self._holding else 0.0
+        self._moved = self._holding = self._steps = self._packed = 0
+        if self.jam_factor is not None:
+            if self._first_packed is None:
+                self._first_packed = packed_share
+            jam = packed_share > max(self.jam_least, self.jam_factor * self._first_packed)
+            if jam and share < self.target:
+                base = holding if self.bound is None else min(self.bound, holding)
+                self.bound = max(self.floor, int(self.decrease * base))
+                self.slow_start = 1.0
+            elif not jam and self.bound is not None and holding >= self.bound - 1:
+                self.bound = max(self.bound + max(1, int(self.increase * self.team)), int(self.bound * self.slow_start))
+                if self.bound >= self.team:
+                    self.bound = None
+            self.decisions.append((step, round(share, 3), self.bound))
+            return self.bound
         if share < self.target:
             base = holding if self.bound is None else min(self.bound, holding)
             self.bound = max(self.floor, int(self.decrease * base))

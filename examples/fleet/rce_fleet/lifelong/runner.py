@@ -29,13 +29,17 @@ from .pibt import PIBTPlanner
 from .scheduler import make_scheduler
 from .simulator import MAPF_T, Simulator
 
-__all__ = ["ACTIVE_DENSITY", "ACTIVE_FRAC", "ADMISSION_START", "AISLE_ACTIVE_FRAC", "AISLE_SHARE",
+__all__ = ["ACTIVE_DENSITY", "ACTIVE_FRAC", "ADMISSION_CELLS", "ADMISSION_DENSITY", "ADMISSION_JAM",
+           "ADMISSION_START", "AISLE_ACTIVE_FRAC", "AISLE_SHARE",
            "CROWD_TEAM", "CROWD_W", "GUIDE_DENSITY", "KEEP_RIGHT",
            "LANES", "PACKED_DENSITY", "EPIBT_BIAS", "EPIBT_DENSITY", "OPEN_LANES", "RunResult", "WINDOW_DENSITY",
            "WINDOW_TEAM", "run_lifelong"]
 
 LANES = 4        # extra cost of a move against a one-way lane (measured: docs/lifelong.md)
 ADMISSION_START = 0.04  # robots per free cell the run-time bound starts at (--admission on; measured there)
+ADMISSION_DENSITY = 0.1  # robots per free cell from which (to ACTIVE_DENSITY) the run-time bound is on unless
+ADMISSION_CELLS = 4000   # ... turned off, on maps of this many free cells or more that are not maps of aisles
+ADMISSION_JAM = {"jam_factor": 2.0, "jam_least": 0.03}  # it falls only while robots pack in (measured there)
 KEEP_RIGHT = 4   # extra cost of a move against the keep-right lane of a corridor 2 - 12 cells wide (measured there)
 CROWD_W = 5.0    # scheduler's steps per robot crowding a task's errands beyond its share ...
 CROWD_TEAM = 3000  # ... for teams of this size and more (measured: docs/lifelong.md)
@@ -108,8 +112,10 @@ def run_lifelong(problem: LorrProblem, steps: int, plan_time_limit_ms: float = 1
     ``AISLE_ACTIVE_FRAC`` instead on a map of aisles (at least ``AISLE_SHARE`` of its free cells in
     one-cell corridor lanes, as a warehouse's shelves make them: measured in docs/lifelong.md);
     admission: where no ``max_active`` bound holds, the bound is set at run time by the share of
-    robots with a task that move (:class:`~.admission.FlowAdmission` with ``admission_kw``, from
-    ``ADMISSION_START`` robots per free cell; None: off);
+    robots with a task that move and the share packed in (:class:`~.admission.FlowAdmission` with
+    ``ADMISSION_JAM`` and ``admission_kw``, from ``ADMISSION_START`` robots per free cell); None
+    (default): on from ``ADMISSION_DENSITY`` robots per free cell on maps of ``ADMISSION_CELLS`` free
+    cells or more that are not maps of aisles (measured in docs/lifelong.md), else off;
     progress: called after each step with (step, tasks finished, planner ms).
     Where no bound holds, a :class:`~.admission.JamDetector` watches the share of the robots with a
     task that are packed in; ``stats`` give its ``packed_shares`` (per 25 steps) and ``jam_at``,
@@ -139,11 +145,16 @@ def run_lifelong(problem: LorrProblem, steps: int, plan_time_limit_ms: float = 1
         flow_warm_up()
     t_start = time.perf_counter()
     cost = lane_costs(grid, lanes) if lanes else None
-    aisles = None           # share of the free cells in one-cell corridor lanes, where the bound needs it
-    if max_active is None and density >= ACTIVE_DENSITY:
+    aisles = None           # share of the free cells in one-cell corridor lanes, where a bound needs it
+    if max_active is None and (density >= ACTIVE_DENSITY or admission is None and density >= ADMISSION_DENSITY
+                               and n_free >= ADMISSION_CELLS):
         corridors = cost if cost is not None else lane_costs(grid, 1)
         aisles = float((corridors > 1).any(axis=1).sum()) / n_free
+    if max_active is None and density >= ACTIVE_DENSITY:
         max_active = int((AISLE_ACTIVE_FRAC if aisles >= AISLE_SHARE else ACTIVE_FRAC) * n_free)
+    if admission is None:
+        admission = aisles is not None and aisles < AISLE_SHARE and density >= ADMISSION_DENSITY \
+            and n_free >= ADMISSION_CELLS
     if open_lanes is None:
         open_lanes = OPEN_LANES if epibt and lanes else 0
     if open_lanes and (cost is None or (cost == 1).all()):       # no corridors: the crisscross everywhere
@@ -170,10 +181,11 @@ def run_lifelong(problem: LorrProblem, steps: int, plan_time_limit_ms: float = 1
     sched_ms = 0.0
     control = None
     if admission and sched.max_active is None:
-        control = FlowAdmission(problem.team_size, **{"start": int(ADMISSION_START * n_free),
+        control = FlowAdmission(problem.team_size, **{"start": int(ADMISSION_START * n_free), **ADMISSION_JAM,
                                                       **(admission_kw or {})})
     detector = JamDetector() if control is None and sched.max_active is None else None
-    occupied = np.zeros(grid.n_cells + 1, dtype=bool) if detector is not None else None
+    watch = detector is not None or (control is not None and control.jam_factor is not None)
+    occupied = np.zeros(grid.n_cells + 1, dtype=bool) if watch else None
     for k in range(steps):
         t0 = time.perf_counter()
         deadline = t0 + budget_frac * limit
@@ -189,14 +201,18 @@ def run_lifelong(problem: LorrProblem, steps: int, plan_time_limit_ms: float = 1
         sched_ms += (t1 - t0) * 1e3
         p_before = sim.pos.copy() if control is not None else None
         sim.step(actions, prop, plan_time_s=dt, timed_out=dt > limit)
-        if detector is not None:
+        n_packed = 0
+        if watch:
             held = np.flatnonzero(prop >= 0)
             occupied[:] = False
             occupied[sim.pos] = True
-            detector.observe(k, int(packed(grid.nbr, sim.pos[held], occupied).sum()), len(held))
+            n_packed = int(packed(grid.nbr, sim.pos[held], occupied).sum())
+        if detector is not None:
+            detector.observe(k, n_packed, int((prop >= 0).sum()))
         if control is not None:
             held = prop >= 0
-            sched.max_active = control.observe(k, int((held & (sim.pos != p_before)).sum()), int(held.sum()))
+            sched.max_active = control.observe(k, int((held & (sim.pos != p_before)).sum()), int(held.sum()),
+                                               n_packed)
         plan_ms[k] = dt * 1e3
         finished[k] = sim.finished
         if progress is not None:
@@ -211,6 +227,7 @@ def run_lifelong(problem: LorrProblem, steps: int, plan_time_limit_ms: float = 1
              **(planner._epibt.stats if planner._epibt is not None else {}),
              **(flow.stats if flow is not None else {}),
              "shed": sched.shed + getattr(getattr(sched, "_greedy", None), "shed", 0),
+             "admission_on": control is not None,
              "admission": control.decisions if control is not None else None,
              "jam_at": detector.jam_at if detector is not None else None,
              "packed_shares": detector.shares if detector is not None else None,

@@ -186,9 +186,10 @@ class GreedyScheduler(Scheduler):
     """Auction on finish time with outbidding of unopened tasks (module docstring).
 
     margin: steps by which a bid must beat the holder's to take its task; max_rounds bounds
-    the chain of outbid robots per step. Once ``max_active`` robots hold a task, a robot without
-    one may only outbid a holder (robots bid in index order, so which robots take the free places
-    is not the cheapest choice, as in :class:`BatchScheduler`).
+    the chain of outbid robots per step. Once ``max_active`` robots hold a task, the robots without
+    one stand aside and do not bid: the bids of thousands of robots standing aside, every step, took
+    the step's time from the planner (docs/lifelong.md). Robots bid in index order, so which robots
+    take the free places is not the cheapest choice, as in :class:`BatchScheduler`.
     """
 
     name = "greedy"
@@ -200,7 +201,8 @@ class GreedyScheduler(Scheduler):
     def schedule(self, pos, assignment, tasks, t, deadline):
         prop = self._shed(pos, assignment, tasks)
         free = [int(a) for a in np.flatnonzero(prop < 0)]
-        if not free:
+        holding = len(prop) - len(free)
+        if not free or self.max_active is not None and holding >= self.max_active:
             return prop
         cand = [tk for tk in tasks.values() if not tk.opened]
         if not cand:
@@ -218,11 +220,10 @@ class GreedyScheduler(Scheduler):
             tr = self._travel_pairs(slots[held], e0[held], pos[holder[held]])
             holder_bid[held] = _finish(tr, length[held], early[held], late[held])
         queue = list(free)
-        holding = int((prop >= 0).sum())
         rows: dict[int, np.ndarray] = {}
         budget = len(free) + len(cand)
         k = 0
-        while k < len(queue) and budget > 0:
+        while k < len(queue) and budget > 0 and (self.max_active is None or holding < self.max_active):
             r = queue[k]
             if r not in rows:                  # bids of the next chunk of robots, while time remains
                 if rows and time.perf_counter() > deadline:
@@ -235,8 +236,6 @@ class GreedyScheduler(Scheduler):
             k += 1
             bid = rows[r]
             ok = holder < 0
-            if self.max_active is not None and holding >= self.max_active:
-                ok[:] = False                  # no place left: only a holder's task may change hands
             if self.reassign:
                 ok |= (holder >= 0) & (bid < holder_bid - self.margin)
             j = int(np.argmin(np.where(ok, bid, np.inf)))
