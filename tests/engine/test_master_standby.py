@@ -29,6 +29,7 @@ import sys
 import time
 import urllib.request
 from pathlib import Path
+from types import SimpleNamespace
 
 import pytest
 
@@ -212,7 +213,7 @@ async def test_real_task_sets_follow_the_standby_and_nothing_stops(tmp_path, etc
             robot = Robot(raw)
             stop = asyncio.Event()
             reader = asyncio.ensure_future(robot.read())
-            await echo_container(robot, "sbC1", "1")
+            await echo_container(e, robot, "sbC1", "1")
             streams = [asyncio.ensure_future(robot.stream("a", "req1", stop))]
             await echoing(robot, "a")
             tids = sorted(t["tid"] for t in e.admin("/api/state")["tasksets"])
@@ -238,7 +239,8 @@ async def test_real_task_sets_follow_the_standby_and_nothing_stops(tmp_path, etc
                 assert raw.ws.state.name == "OPEN"
                 await until(lambda: "standbyBot/late" in [i["tag"] for i in standby.request("GET", "/api/interfaces")],
                             what="the CN that waited for the new leader done")
-                await echo_container(robot, "sbC2", "2")              # CC, CN, CX through the new leader
+                new_leader = SimpleNamespace(admin=lambda path: standby.request("GET", path))
+                await echo_container(new_leader, robot, "sbC2", "2")  # CC, CN, CX through the new leader
                 streams.append(asyncio.ensure_future(robot.stream("b", "req2", stop)))
                 await echoing(robot, "b")
                 await until(lambda: len(robot.echoes["b"]) >= RATE / 2, what="both streams echo together")
