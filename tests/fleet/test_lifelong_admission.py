@@ -185,5 +185,39 @@ def test_a_run_reports_the_jam_at_a_door_and_none_where_the_same_team_has_room()
     open_ = runner.run_lifelong(_two_rooms(door=False), 100, plan_time_limit_ms=100.0, record=False)
     assert open_.stats["jam_at"] is None and max(open_.stats["packed_shares"]) < 0.05
     assert open_.sim.finished > 3 * jam.sim.finished
-    bounded = runner.run_lifelong(_two_rooms(door=True), 2, plan_time_limit_ms=100.0, record=False, admission=True)
+    bounded = runner.run_lifelong(_two_rooms(door=True), 100, plan_time_limit_ms=100.0, record=False,
+                                  admission=True)
     assert bounded.stats["jam_at"] is None and bounded.stats["packed_shares"] is None   # a bound holds: not watched
+    bounds = [b for _, _, b in bounded.stats["admission"]]
+    assert bounds[-1] < bounds[0] and bounded.sim.finished > jam.sim.finished   # it fell as robots packed in
+
+
+def test_the_run_time_bound_is_on_by_default_on_large_maps_at_0_1_to_0_3_robots_per_free_cell_without_aisles():
+    from rce_fleet.lifelong import runner
+    from rce_fleet.lifelong.lorr import LorrProblem
+    rng = np.random.default_rng(1)
+
+    def on(free: np.ndarray, density: float, **kw) -> bool:
+        g = LifelongGrid(free)
+        cells = g.free_cells()
+        n = int(density * len(cells))
+        starts = rng.choice(cells, n, replace=False).astype(np.int64)
+        tasks = [tuple(int(c) for c in rng.choice(cells, 2, replace=False)) for _ in range(2 * n)]
+        p = LorrProblem(path=Path("t.json"), grid=g, starts=starts, tasks=tasks, team_size=n, num_tasks_reveal=1.5)
+        res = runner.run_lifelong(p, 1, plan_time_limit_ms=300.0, record=False, **kw)
+        assert res.summary()["invalid_steps"] == 0
+        return res.stats["admission_on"]
+
+    rooms = np.ones((64, 72), dtype=bool)         # four rooms, walls with two doors each
+    rooms[32, :] = rooms[:, 36] = False
+    rooms[32, 10] = rooms[32, 50] = rooms[10, 36] = rooms[50, 36] = True
+    assert len(LifelongGrid(rooms).free_cells()) >= runner.ADMISSION_CELLS
+    aisles = np.ones((104, 80), dtype=bool)
+    aisles[1:103:2, 2:78] = False                  # shelves with one-cell aisles between
+    assert len(LifelongGrid(aisles).free_cells()) >= runner.ADMISSION_CELLS
+    assert on(rooms, 0.15)
+    assert not on(rooms, 0.15, admission=False)
+    assert not on(rooms, 0.05)                    # too few robots to jam
+    assert not on(rooms, 0.35)                    # the fixed bound of dense teams holds instead
+    assert not on(rooms[:30, :60], 0.15)          # a small map
+    assert not on(aisles, 0.15)                   # a map of aisles
