@@ -115,7 +115,7 @@ def test_tasks_taken_back_by_the_run_time_bound_keep_the_schedule_rules():
     gets its -1 entry, no task is held twice, and the output replays to its count."""
     p = load_problem(PROBLEM)
     res = run_lifelong(p, 60, plan_time_limit_ms=1000.0, seed=1, record=True, admission=True,
-                       admission_kw={"window": 5, "target": 0.99, "decrease": 0.7, "start": None})
+                       admission_kw={"window": 5, "target": 0.99, "decrease": 0.7, "start": None, "jam_factor": None})
     out = res.sim.output()
     bounds = [b for _, _, b in res.stats["admission"]]
     assert res.stats["shed"] > 0 and bounds[0] is not None and bounds[-1] < bounds[0]
