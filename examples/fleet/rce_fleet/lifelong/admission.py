@@ -25,7 +25,7 @@ from __future__ import annotations
 
 import numpy as np
 
-__all__ = ["FlowAdmission", "JamDetector", "jam_note", "packed"]
+__all__ = ["FlowAdmission", "JamDetector", "grows", "jam_note", "packed"]
 
 
 class FlowAdmission:
@@ -72,30 +72,29 @@ class FlowAdmission:
         share = self._moved / self._holding if self._holding else 1.0
         packed_share = self._packed / self._holding if self._holding else 0.0
         self._moved = self._holding = self._steps = self._packed = 0
-        if self.jam_factor is not None:
+        if self.jam_factor is None:                       # the share moving alone decides
+            fall, rise = share < self.target, share > self.target + self.band
+        else:                                             # the jam gate
             if self._first_packed is None:
                 self._first_packed = packed_share
-            jam = packed_share > max(self.jam_least, self.jam_factor * self._first_packed)
-            if jam and share < self.target:
-                base = holding if self.bound is None else min(self.bound, holding)
-                self.bound = max(self.floor, int(self.decrease * base))
-                self.slow_start = 1.0
-            elif not jam and self.bound is not None and holding >= self.bound - 1:
-                self.bound = max(self.bound + max(1, int(self.increase * self.team)), int(self.bound * self.slow_start))
-                if self.bound >= self.team:
-                    self.bound = None
-            self.decisions.append((step, round(share, 3), self.bound))
-            return self.bound
-        if share < self.target:
+            jam = grows(packed_share, self._first_packed, self.jam_factor, self.jam_least)
+            fall, rise = jam and share < self.target, not jam
+        if fall:
             base = holding if self.bound is None else min(self.bound, holding)
             self.bound = max(self.floor, int(self.decrease * base))
             self.slow_start = 1.0
-        elif share > self.target + self.band and self.bound is not None and holding >= self.bound - 1:
+        elif rise and self.bound is not None and holding >= self.bound - 1:
             self.bound = max(self.bound + max(1, int(self.increase * self.team)), int(self.bound * self.slow_start))
             if self.bound >= self.team:
                 self.bound = None
         self.decisions.append((step, round(share, 3), self.bound))
         return self.bound
+
+
+def grows(share: float, first: float, factor: float, least: float) -> bool:
+    """A jam: a packed share (:func:`packed`, over a window) over ``factor`` times the first
+    window's ``first`` and over ``least``."""
+    return share > max(least, factor * first)
 
 
 def packed(nbr: np.ndarray, pos: np.ndarray, occupied: np.ndarray) -> np.ndarray:
@@ -144,7 +143,7 @@ class JamDetector:
             share = self._packed / self._holding if self._holding else 0.0
             self._packed = self._holding = self._steps = 0
             self.shares.append(round(share, 3))
-            if self.jam_at is None and share > max(self.least, self.factor * self.shares[0]):
+            if self.jam_at is None and grows(share, self.shares[0], self.factor, self.least):
                 self.jam_at = step
         return self.jam_at is not None
 

@@ -145,16 +145,15 @@ def run_lifelong(problem: LorrProblem, steps: int, plan_time_limit_ms: float = 1
         flow_warm_up()
     t_start = time.perf_counter()
     cost = lane_costs(grid, lanes) if lanes else None
+    auto = admission is None and density >= ADMISSION_DENSITY and n_free >= ADMISSION_CELLS
     aisles = None           # share of the free cells in one-cell corridor lanes, where a bound needs it
-    if max_active is None and (density >= ACTIVE_DENSITY or admission is None and density >= ADMISSION_DENSITY
-                               and n_free >= ADMISSION_CELLS):
+    if max_active is None and (density >= ACTIVE_DENSITY or auto):
         corridors = cost if cost is not None else lane_costs(grid, 1)
         aisles = float((corridors > 1).any(axis=1).sum()) / n_free
     if max_active is None and density >= ACTIVE_DENSITY:
         max_active = int((AISLE_ACTIVE_FRAC if aisles >= AISLE_SHARE else ACTIVE_FRAC) * n_free)
     if admission is None:
-        admission = aisles is not None and aisles < AISLE_SHARE and density >= ADMISSION_DENSITY \
-            and n_free >= ADMISSION_CELLS
+        admission = auto and aisles is not None and aisles < AISLE_SHARE
     if open_lanes is None:
         open_lanes = OPEN_LANES if epibt and lanes else 0
     if open_lanes and (cost is None or (cost == 1).all()):       # no corridors: the crisscross everywhere
@@ -201,16 +200,15 @@ def run_lifelong(problem: LorrProblem, steps: int, plan_time_limit_ms: float = 1
         sched_ms += (t1 - t0) * 1e3
         p_before = sim.pos.copy() if control is not None else None
         sim.step(actions, prop, plan_time_s=dt, timed_out=dt > limit)
+        held = prop >= 0
         n_packed = 0
         if watch:
-            held = np.flatnonzero(prop >= 0)
             occupied[:] = False
             occupied[sim.pos] = True
             n_packed = int(packed(grid.nbr, sim.pos[held], occupied).sum())
         if detector is not None:
-            detector.observe(k, n_packed, int((prop >= 0).sum()))
+            detector.observe(k, n_packed, int(held.sum()))
         if control is not None:
-            held = prop >= 0
             sched.max_active = control.observe(k, int((held & (sim.pos != p_before)).sum()), int(held.sum()),
                                                n_packed)
         plan_ms[k] = dt * 1e3
