@@ -68,6 +68,14 @@ def pytest_sessionstart(session):
                                 "../shared/data beside the project (see the project's shared folder)")
 
 
+def pytest_collection_modifyitems(config, items):
+    """Under ``--dist loadfile``, the workers collect the tests in the order the scheduler hands them
+    out (tests/xdist_order.py): the scheduler names a test by its index in that collection."""
+    if config.getvalue("dist") == "loadfile":
+        from xdist_order import order_items
+        order_items(items)
+
+
 @pytest.hookimpl(optionalhook=True)
 def pytest_xdist_make_scheduler(config, log):
     """``--dist loadfile`` hands out the longest files first and splits some per test (tests/xdist_order.py)."""
