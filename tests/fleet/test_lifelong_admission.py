@@ -76,6 +76,21 @@ def test_with_the_jam_gate_the_bound_falls_only_while_robots_pack_in_and_rises_w
     assert [d[2] for d in ctl.decisions] == [500, 600, 300, 300, 400]
 
 
+def test_with_the_gate_a_bound_grows_by_its_slow_start_factor_only_while_far_from_a_jam():
+    ctl = FlowAdmission(1000, window=2, decrease=0.5, increase=0.01, floor=0.1, start=200, slow_start=1.5,
+                        jam_factor=2.0, jam_least=0.1, calm=0.5)
+    ctl.observe(0, 100, 200, 2)
+    assert ctl.observe(1, 100, 200, 2) == 300           # 0.01 packed, under half the jam's 0.1: x 1.5
+    ctl.observe(2, 150, 300, 21)
+    assert ctl.observe(3, 150, 300, 21) == 310          # 0.07 packed: no jam, but near one: + 1 % of the team
+    ctl.observe(4, 150, 310, 6)
+    assert ctl.observe(5, 150, 310, 6) == 465           # calm again: x 1.5
+    ctl.observe(6, 150, 465, 60)
+    assert ctl.observe(7, 150, 465, 60) == 232          # 0.13 packed: a jam, halved, and slow start is over
+    ctl.observe(8, 200, 232, 1)
+    assert ctl.observe(9, 200, 232, 1) == 242           # calm, but from now on + 1 % a window
+
+
 @pytest.mark.parametrize("scheduler", [GreedyScheduler, BatchScheduler])
 def test_a_lower_bound_takes_unopened_tasks_back_from_the_robots_farthest_from_them(scheduler):
     g = LifelongGrid(np.ones((1, 40), dtype=bool))
@@ -178,35 +193,39 @@ def _two_rooms(door: bool):
 
 def test_a_run_reports_the_jam_at_a_door_and_none_where_the_same_team_has_room():
     from rce_fleet.lifelong import runner
-    jam = runner.run_lifelong(_two_rooms(door=True), 100, plan_time_limit_ms=100.0, record=False)
+    jam = runner.run_lifelong(_two_rooms(door=True), 100, plan_time_limit_ms=100.0, record=False, admission=False)
     shares = jam.stats["packed_shares"]
     assert jam.stats["jam_at"] in (49, 74, 99)            # the end of a 25-step window after the first
     assert max(shares) > max(0.15, 3 * shares[0])
-    open_ = runner.run_lifelong(_two_rooms(door=False), 100, plan_time_limit_ms=100.0, record=False)
+    open_ = runner.run_lifelong(_two_rooms(door=False), 100, plan_time_limit_ms=100.0, record=False,
+                                admission=False)
     assert open_.stats["jam_at"] is None and max(open_.stats["packed_shares"]) < 0.05
     assert open_.sim.finished > 3 * jam.sim.finished
-    bounded = runner.run_lifelong(_two_rooms(door=True), 100, plan_time_limit_ms=100.0, record=False,
-                                  admission=True)
+    bounded = runner.run_lifelong(_two_rooms(door=True), 100, plan_time_limit_ms=100.0, record=False)
+    assert bounded.stats["admission_on"]                  # by default, at 0.12 robots per free cell
     assert bounded.stats["jam_at"] is None and bounded.stats["packed_shares"] is None   # a bound holds: not watched
     bounds = [b for _, _, b in bounded.stats["admission"]]
     assert bounds[-1] < bounds[0] and bounded.sim.finished > jam.sim.finished   # it fell as robots packed in
 
 
-def test_the_run_time_bound_is_on_by_default_on_large_maps_at_0_1_to_0_3_robots_per_free_cell_without_aisles():
+def test_the_run_time_bound_is_on_by_default_at_0_1_to_0_3_robots_per_free_cell_without_aisles():
     from rce_fleet.lifelong import runner
     from rce_fleet.lifelong.lorr import LorrProblem
     rng = np.random.default_rng(1)
 
-    def on(free: np.ndarray, density: float, **kw) -> bool:
+    def run(free: np.ndarray, density: float, steps: int = 1, **kw):
         g = LifelongGrid(free)
         cells = g.free_cells()
         n = int(density * len(cells))
         starts = rng.choice(cells, n, replace=False).astype(np.int64)
         tasks = [tuple(int(c) for c in rng.choice(cells, 2, replace=False)) for _ in range(2 * n)]
         p = LorrProblem(path=Path("t.json"), grid=g, starts=starts, tasks=tasks, team_size=n, num_tasks_reveal=1.5)
-        res = runner.run_lifelong(p, 1, plan_time_limit_ms=300.0, record=False, **kw)
+        res = runner.run_lifelong(p, steps, plan_time_limit_ms=300.0 if steps == 1 else 100.0, record=False, **kw)
         assert res.summary()["invalid_steps"] == 0
-        return res.stats["admission_on"]
+        return res
+
+    def on(free: np.ndarray, density: float, **kw) -> bool:
+        return run(free, density, **kw).stats["admission_on"]
 
     rooms = np.ones((64, 72), dtype=bool)         # four rooms, walls with two doors each
     rooms[32, :] = rooms[:, 36] = False
@@ -219,5 +238,11 @@ def test_the_run_time_bound_is_on_by_default_on_large_maps_at_0_1_to_0_3_robots_
     assert not on(rooms, 0.15, admission=False)
     assert not on(rooms, 0.05)                    # too few robots to jam
     assert not on(rooms, 0.35)                    # the fixed bound of dense teams holds instead
-    assert not on(rooms[:30, :60], 0.15)          # a small map
     assert not on(aisles, 0.15)                   # a map of aisles
+    small = rooms[:30, :60]                       # a small map: on, from half the team
+    assert len(LifelongGrid(small).free_cells()) < runner.ADMISSION_CELLS
+    res = run(small, 0.15, steps=25)
+    team = res.sim.n
+    start = int(runner.ADMISSION_SMALL_START * team)
+    (step, _, bound), = res.stats["admission"]    # the first window: no jam yet, it rises
+    assert step == 24 and start < bound <= int(start * runner.ADMISSION_SMALL["slow_start"])

@@ -39,13 +39,16 @@ class FlowAdmission:
     (1: none); jam_factor, jam_least: with them the bound falls only while a jam grows (the share
     of holders packed in, :func:`packed`, over ``jam_factor`` times the first window's and over
     ``jam_least``) and rises whenever none does, whatever the share moving (None: the share moving
-    alone decides). ``bound`` is None while no bound holds. Raises ValueError for a share outside
+    alone decides); calm: with the gate, slow start grows the bound only while the packed share is
+    under this share of a jam's, and by ``increase`` alone nearer one (None: until the first jam,
+    whatever the packed share). ``bound`` is None while no bound holds. Raises ValueError for a share outside
     (0, 1] or a window below 1.
     """
 
     def __init__(self, team: int, window: int = 25, target: float = 0.8, band: float = 0.05,
                  decrease: float = 0.85, increase: float = 0.02, floor: float = 0.1, start: int | None = None,
-                 slow_start: float = 1.0, jam_factor: float | None = None, jam_least: float = 0.05):
+                 slow_start: float = 1.0, jam_factor: float | None = None, jam_least: float = 0.05,
+                 calm: float | None = None):
         for name, v in (("target", target), ("decrease", decrease), ("increase", increase), ("floor", floor)):
             if not 0.0 < v <= 1.0:
                 raise ValueError(f"{name} must be in (0, 1], got {v}")
@@ -55,7 +58,7 @@ class FlowAdmission:
         self.decrease, self.increase, self.floor = decrease, increase, max(1, int(floor * team))
         self.bound: int | None = None if start is None or start >= team else max(self.floor, int(start))
         self.slow_start = slow_start
-        self.jam_factor, self.jam_least = jam_factor, jam_least
+        self.jam_factor, self.jam_least, self.calm = jam_factor, jam_least, calm
         self._first_packed: float | None = None
         self._moved = self._holding = self._steps = self._packed = 0
         self.decisions: list[tuple[int, float, int | None]] = []   # (step, share, bound) per window
@@ -72,6 +75,7 @@ class FlowAdmission:
         share = self._moved / self._holding if self._holding else 1.0
         packed_share = self._packed / self._holding if self._holding else 0.0
         self._moved = self._holding = self._steps = self._packed = 0
+        grow = self.slow_start
         if self.jam_factor is None:                       # the share moving alone decides
             fall, rise = share < self.target, share > self.target + self.band
         else:                                             # the jam gate
@@ -79,12 +83,15 @@ class FlowAdmission:
                 self._first_packed = packed_share
             jam = grows(packed_share, self._first_packed, self.jam_factor, self.jam_least)
             fall, rise = jam and share < self.target, not jam
+            if self.calm is not None and not packed_share < self.calm * max(self.jam_least,
+                                                                             self.jam_factor * self._first_packed):
+                grow = 1.0                                # near a jam: additive only
         if fall:
             base = holding if self.bound is None else min(self.bound, holding)
             self.bound = max(self.floor, int(self.decrease * base))
             self.slow_start = 1.0
         elif rise and self.bound is not None and holding >= self.bound - 1:
-            self.bound = max(self.bound + max(1, int(self.increase * self.team)), int(self.bound * self.slow_start))
+            self.bound = max(self.bound + max(1, int(self.increase * self.team)), int(self.bound * grow))
             if self.bound >= self.team:
                 self.bound = None
         self.decisions.append((step, round(share, 3), self.bound))

@@ -30,7 +30,8 @@ from .scheduler import make_scheduler
 from .simulator import MAPF_T, Simulator
 
 __all__ = ["ACTIVE_DENSITY", "ACTIVE_FRAC", "ADMISSION_CELLS", "ADMISSION_DENSITY", "ADMISSION_JAM",
-           "ADMISSION_START", "AISLE_ACTIVE_FRAC", "AISLE_SHARE",
+           "ADMISSION_JAM_DENSITY", "ADMISSION_SMALL", "ADMISSION_SMALL_START", "ADMISSION_START",
+           "AISLE_ACTIVE_FRAC", "AISLE_SHARE",
            "CROWD_TEAM", "CROWD_W", "GUIDE_DENSITY", "KEEP_RIGHT",
            "LANES", "PACKED_DENSITY", "EPIBT_BIAS", "EPIBT_DENSITY", "OPEN_LANES", "RunResult", "WINDOW_DENSITY",
            "WINDOW_TEAM", "run_lifelong"]
@@ -38,8 +39,12 @@ __all__ = ["ACTIVE_DENSITY", "ACTIVE_FRAC", "ADMISSION_CELLS", "ADMISSION_DENSIT
 LANES = 4        # extra cost of a move against a one-way lane (measured: docs/lifelong.md)
 ADMISSION_START = 0.04  # robots per free cell the run-time bound starts at (--admission on; measured there)
 ADMISSION_DENSITY = 0.1  # robots per free cell from which (to ACTIVE_DENSITY) the run-time bound is on unless
-ADMISSION_CELLS = 4000   # ... turned off, on maps of this many free cells or more that are not maps of aisles
-ADMISSION_JAM = {"jam_factor": 2.0, "jam_least": 0.08}  # it falls only while robots pack in (measured there)
+                         # turned off, on maps that are not maps of aisles
+ADMISSION_JAM = {"jam_factor": 2.0, "jam_least": 0.08}  # it falls only while robots pack in (measured there) ...
+ADMISSION_JAM_DENSITY = 0.5  # ... over at least this times the robots per free cell (a dense team flowing packs more)
+ADMISSION_CELLS = 4000   # on maps of fewer free cells (short tasks: a crowd clears soon) the bound starts at ...
+ADMISSION_SMALL_START = 0.5  # ... this share of the team, and grows as ADMISSION_SMALL says: x 1.25 a window while
+ADMISSION_SMALL = {"slow_start": 1.25, "calm": 0.5}  # the packed share is under half a jam's (measured there)
 KEEP_RIGHT = 4   # extra cost of a move against the keep-right lane of a corridor 2 - 12 cells wide (measured there)
 CROWD_W = 5.0    # scheduler's steps per robot crowding a task's errands beyond its share ...
 CROWD_TEAM = 3000  # ... for teams of this size and more (measured: docs/lifelong.md)
@@ -113,9 +118,11 @@ def run_lifelong(problem: LorrProblem, steps: int, plan_time_limit_ms: float = 1
     one-cell corridor lanes, as a warehouse's shelves make them: measured in docs/lifelong.md);
     admission: where no ``max_active`` bound holds, the bound is set at run time by the share of
     robots with a task that move and the share packed in (:class:`~.admission.FlowAdmission` with
-    ``ADMISSION_JAM`` and ``admission_kw``, from ``ADMISSION_START`` robots per free cell); None
-    (default): on from ``ADMISSION_DENSITY`` robots per free cell on maps of ``ADMISSION_CELLS`` free
-    cells or more that are not maps of aisles (measured in docs/lifelong.md), else off;
+    ``ADMISSION_JAM``, its least packed share at least ``ADMISSION_JAM_DENSITY`` times the robots per
+    free cell, and ``admission_kw``; from ``ADMISSION_START`` robots per free cell, or on maps of fewer
+    than ``ADMISSION_CELLS`` free cells from ``ADMISSION_SMALL_START`` of the team, with
+    ``ADMISSION_SMALL``); None (default): on from ``ADMISSION_DENSITY`` robots per free cell on maps
+    that are not maps of aisles (measured in docs/lifelong.md), else off;
     progress: called after each step with (step, tasks finished, planner ms).
     Where no bound holds, a :class:`~.admission.JamDetector` watches the share of the robots with a
     task that are packed in; ``stats`` give its ``packed_shares`` (per 25 steps) and ``jam_at``,
@@ -145,7 +152,7 @@ def run_lifelong(problem: LorrProblem, steps: int, plan_time_limit_ms: float = 1
         flow_warm_up()
     t_start = time.perf_counter()
     cost = lane_costs(grid, lanes) if lanes else None
-    auto = admission is None and density >= ADMISSION_DENSITY and n_free >= ADMISSION_CELLS
+    auto = admission is None and density >= ADMISSION_DENSITY
     aisles = None           # share of the free cells in one-cell corridor lanes, where a bound needs it
     if max_active is None and (density >= ACTIVE_DENSITY or auto):
         corridors = cost if cost is not None else lane_costs(grid, 1)
@@ -180,8 +187,11 @@ def run_lifelong(problem: LorrProblem, steps: int, plan_time_limit_ms: float = 1
     sched_ms = 0.0
     control = None
     if admission and sched.max_active is None:
-        control = FlowAdmission(problem.team_size, **{"start": int(ADMISSION_START * n_free), **ADMISSION_JAM,
-                                                      **(admission_kw or {})})
+        kw = {"start": int(ADMISSION_START * n_free), **ADMISSION_JAM}
+        kw["jam_least"] = max(kw["jam_least"], ADMISSION_JAM_DENSITY * density)
+        if n_free < ADMISSION_CELLS:
+            kw.update(ADMISSION_SMALL, start=int(ADMISSION_SMALL_START * problem.team_size))
+        control = FlowAdmission(problem.team_size, **{**kw, **(admission_kw or {})})
     detector = JamDetector() if control is None and sched.max_active is None else None
     watch = detector is not None or (control is not None and control.jam_factor is not None)
     occupied = np.zeros(grid.n_cells + 1, dtype=bool) if watch else None
