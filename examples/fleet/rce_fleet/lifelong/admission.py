@@ -25,7 +25,7 @@ from __future__ import annotations
 
 import numpy as np
 
-__all__ = ["FlowAdmission", "JamDetector", "grows", "jam_note", "packed"]
+__all__ = ["FlowAdmission", "JamDetector", "jam_note", "jam_share", "packed"]
 
 
 class FlowAdmission:
@@ -40,9 +40,9 @@ class FlowAdmission:
     of holders packed in, :func:`packed`, over ``jam_factor`` times the first window's and over
     ``jam_least``) and rises whenever none does, whatever the share moving (None: the share moving
     alone decides); calm: with the gate, slow start grows the bound only while the packed share is
-    under this share of a jam's, and by ``increase`` alone nearer one (None: until the first jam,
-    whatever the packed share). ``bound`` is None while no bound holds. Raises ValueError for a share outside
-    (0, 1] or a window below 1.
+    under this share of a jam's (:func:`jam_share`), and by ``increase`` alone nearer one (None: until
+    the first jam, whatever the packed share). ``bound`` is None while no bound holds. Raises
+    ValueError for a share outside (0, 1] or a window below 1.
     """
 
     def __init__(self, team: int, window: int = 25, target: float = 0.8, band: float = 0.05,
@@ -81,10 +81,10 @@ class FlowAdmission:
         else:                                             # the jam gate
             if self._first_packed is None:
                 self._first_packed = packed_share
-            jam = grows(packed_share, self._first_packed, self.jam_factor, self.jam_least)
+            over = jam_share(self._first_packed, self.jam_factor, self.jam_least)
+            jam = packed_share > over
             fall, rise = jam and share < self.target, not jam
-            if self.calm is not None and not packed_share < self.calm * max(self.jam_least,
-                                                                             self.jam_factor * self._first_packed):
+            if self.calm is not None and packed_share >= self.calm * over:
                 grow = 1.0                                # near a jam: additive only
         if fall:
             base = holding if self.bound is None else min(self.bound, holding)
@@ -98,10 +98,10 @@ class FlowAdmission:
         return self.bound
 
 
-def grows(share: float, first: float, factor: float, least: float) -> bool:
-    """A jam: a packed share (:func:`packed`, over a window) over ``factor`` times the first
-    window's ``first`` and over ``least``."""
-    return share > max(least, factor * first)
+def jam_share(first: float, factor: float, least: float) -> float:
+    """The packed share (:func:`packed`, over a window) over which a jam grows: ``factor`` times the
+    first window's ``first``, and at least ``least``."""
+    return max(least, factor * first)
 
 
 def packed(nbr: np.ndarray, pos: np.ndarray, occupied: np.ndarray) -> np.ndarray:
@@ -150,7 +150,7 @@ class JamDetector:
             share = self._packed / self._holding if self._holding else 0.0
             self._packed = self._holding = self._steps = 0
             self.shares.append(round(share, 3))
-            if self.jam_at is None and grows(share, self.shares[0], self.factor, self.least):
+            if self.jam_at is None and share > jam_share(self.shares[0], self.factor, self.least):
                 self.jam_at = step
         return self.jam_at is not None
 

@@ -187,11 +187,11 @@ def run_lifelong(problem: LorrProblem, steps: int, plan_time_limit_ms: float = 1
     sched_ms = 0.0
     control = None
     if admission and sched.max_active is None:
-        kw = {"start": int(ADMISSION_START * n_free), **ADMISSION_JAM}
-        kw["jam_least"] = max(kw["jam_least"], ADMISSION_JAM_DENSITY * density)
+        ctl_kw = {**ADMISSION_JAM, "start": int(ADMISSION_START * n_free),
+                  "jam_least": max(ADMISSION_JAM["jam_least"], ADMISSION_JAM_DENSITY * density)}
         if n_free < ADMISSION_CELLS:
-            kw.update(ADMISSION_SMALL, start=int(ADMISSION_SMALL_START * problem.team_size))
-        control = FlowAdmission(problem.team_size, **{**kw, **(admission_kw or {})})
+            ctl_kw.update(ADMISSION_SMALL, start=int(ADMISSION_SMALL_START * problem.team_size))
+        control = FlowAdmission(problem.team_size, **{**ctl_kw, **(admission_kw or {})})
     detector = JamDetector() if control is None and sched.max_active is None else None
     watch = detector is not None or (control is not None and control.jam_factor is not None)
     occupied = np.zeros(grid.n_cells + 1, dtype=bool) if watch else None
