@@ -35,8 +35,7 @@ from pathlib import Path
 from typing import Any
 
 import psutil
-from aiohttp import web
-from prometheus_client import CONTENT_TYPE_LATEST, generate_latest
+from prometheus_client import generate_latest
 
 from rce.transport import framing
 
@@ -45,6 +44,7 @@ from rce.transport.cluster_auth import ClusterKey, peer_pid
 from rce.plumbing.errors import NotFound, RCEError, RequestError, Timeout, Unavailable
 from rce.transport.link import STREAM_LIMIT
 from rce.plumbing.log import get_logger
+from rce.plumbing.metrics_http import MetricsServer
 from rce.transport.masterlink import MASTER_PORT, MasterLink, parse_masters
 from rce.transport.op_table import OpTable
 from rce.plumbing.pending import PendingCalls
@@ -153,7 +153,7 @@ class ContainerHost:
         self.sandbox_cls = sandboxes.select(sandbox)
         self.scope = sandboxes.host_scope(self.name)
         self.metrics_port = metrics_port
-        self._http = None
+        self._http: MetricsServer | None = None
         self.max_frame, self.env_timeout, self.grace = max_frame, env_timeout, grace
         self.warm = max(0, warm)
         self.spares: list[EnvHandle] = []
@@ -230,7 +230,7 @@ class ContainerHost:
         await self.zygote_template.close()
         await asyncio.to_thread(self.sandbox_cls.cleanup_host, self.scope)   # anything a crash left behind
         if self._http is not None:
-            await self._http.cleanup()
+            await self._http.close()
         if self.master:
             await self.master.close()
         if self._server:
@@ -645,18 +645,12 @@ class ContainerHost:
 
     # -- Prometheus ----------------------------------------------------------------------------
     async def _start_metrics(self) -> None:
-        app = web.Application()
-        app.router.add_get("/metrics", self._metrics)
-        self._http = web.AppRunner(app, access_log=None)
-        await self._http.setup()
-        site = web.TCPSite(self._http, self.bind, self.metrics_port)
-        await site.start()
-        self.metrics_port = site._server.sockets[0].getsockname()[1]
+        self._http = MetricsServer(self._metrics)
+        self.metrics_port = await self._http.start(self.bind, self.metrics_port)
         log.info("metrics served", url=f"http://{self.bind}:{self.metrics_port}/metrics")
 
-    async def _metrics(self, request: web.Request) -> web.Response:
-        registry = metrics.snapshot_registry(await self.op_stats({}))
-        return web.Response(body=generate_latest(registry), headers={"Content-Type": CONTENT_TYPE_LATEST})
+    async def _metrics(self) -> bytes:
+        return generate_latest(metrics.snapshot_registry(await self.op_stats({})))
 
 
 

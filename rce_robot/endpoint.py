@@ -14,8 +14,7 @@ from http import HTTPStatus
 from typing import Any
 from urllib.parse import parse_qs, urlsplit
 
-from aiohttp import web
-from prometheus_client import CONTENT_TYPE_LATEST, CollectorRegistry, Gauge, generate_latest
+from prometheus_client import CollectorRegistry, Gauge, generate_latest
 from prometheus_client.core import CounterMetricFamily, GaugeMetricFamily, HistogramMetricFamily
 
 from rce.transport.cluster_auth import ClusterKey, token_of
@@ -28,6 +27,7 @@ from rce.protocol.lane_queue import DELAY_BOUNDS
 from rce.protocol.pacer import Pacing, new_pacer
 from rce.transport.lane_socket import mptcp_socket
 from rce.plumbing.log import get_logger
+from rce.plumbing.metrics_http import MetricsServer
 from rce.transport.masterlink import MASTER_WAIT, Address, MasterLink
 from rce.messages import default_registry
 from rce.transport.op_table import OpTable
@@ -246,7 +246,7 @@ class RobotEndpoint:
         self.ws_port = 0
         self.metrics_port = 0
         self._ws_server = None
-        self._http: web.AppRunner | None = None
+        self._http: MetricsServer | None = None
         self.rosbridge: RosbridgeServer | None = None
         self.stopped = asyncio.Event()
         self.relays: dict[tuple[str, str], str] = {}      # (user, robot) -> the relay its link goes through now
@@ -285,13 +285,8 @@ class RobotEndpoint:
             self.rosbridge = RosbridgeServer(self.master, self.by_iid, self.max_lag, self.ws_impl)
             await self.rosbridge.start(bind, rosbridge_port, self.ssl_context)
         if metrics_port is not None:
-            app = web.Application()
-            app.router.add_get("/metrics", self._metrics)
-            self._http = web.AppRunner(app, access_log=None)
-            await self._http.setup()
-            site = web.TCPSite(self._http, bind, metrics_port, ssl_context=self.ssl_context)
-            await site.start()
-            self.metrics_port = site._server.sockets[0].getsockname()[1]
+            self._http = MetricsServer(self._metrics)
+            self.metrics_port = await self._http.start(bind, metrics_port, self.ssl_context)
         self._link_task = asyncio.create_task(self._watch_links(), name="robot-links")
         log.info("robot endpoint up", ws_port=self.ws_port, data_addr=self.plane.addr)
 
@@ -380,10 +375,10 @@ class RobotEndpoint:
         await self.plane.close()
         self.parser.close()
         if self._http:
-            await self._http.cleanup()
+            await self._http.close()
 
-    async def _metrics(self, request: web.Request) -> web.Response:
-        return web.Response(body=generate_latest(self.metrics.registry), headers={"Content-Type": CONTENT_TYPE_LATEST})
+    async def _metrics(self) -> bytes:
+        return generate_latest(self.metrics.registry)
 
     # -- websocket -------------------------------------------------------------------------------
     async def _handshake(self, connection, request):
