@@ -65,7 +65,7 @@ from typing import NoReturn
 from rce.plumbing.process import exit_now
 
 #: Modules every Python node imports (the node runtime and the message codec, numpy included).
-PRELOAD = ("rce.node.runtime", "rce.messages", "rce.node.package_path")
+PRELOAD = ("rce.node.runtime", "rce.messages", "rce.messages.compiled", "rce.node.package_path")
 #: Bytes of the largest request (argv + environment of one node); the host refuses larger ones
 #: and then starts that node with exec.
 MAX_MESSAGE = 256 * 1024

@@ -39,12 +39,12 @@ from rosbags.typesys.base import Nodetype
 from rce.plumbing.errors import MessageError
 from rce.messages.forms import (RCE_FORMS, JsonForms, duration_to_seconds, image_from_bytes, image_to_bytes,
                                iso_to_time, seconds_to_duration, time_to_iso)
-from rce.messages.compiled import Codec, JsonReader, compile_codec, compile_json_reader
 from rce.messages.structure import Short, Walker, compile_walker
 from rce.messages import ros_strings
 
-if TYPE_CHECKING:
-    import numpy as np      # loaded by the first converter that needs it: a process that only routes never does
+if TYPE_CHECKING:     # both loaded by the first converter that needs them: a process that only routes never does
+    import numpy as np
+    from rce.messages.compiled import Codec, JsonReader
 
 ros_strings.install()       # ROS strings carry any bytes, as in rospy (rce.messages.ros_strings)
 
@@ -228,6 +228,7 @@ class MessageRegistry:
             pass
         if typename not in self.store.fielddefs:
             return None
+        from rce.messages.compiled import compile_codec
         return compile_codec(self.store.fielddefs, self.store.types, typename, self.store.max_sequence_length,
                              self._codecs)
 
@@ -313,6 +314,7 @@ class MessageRegistry:
         key = (forms or RCE_FORMS).key
         reader = self._readers.get((typename, key), False)
         if reader is False:
+            from rce.messages.compiled import compile_json_reader
             reader = (compile_json_reader(self.store.fielddefs, self.store.types, typename, key,
                                           self.store.max_sequence_length, self._readers)
                       if typename in self.store.fielddefs else None)
