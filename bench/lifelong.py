@@ -229,10 +229,11 @@ def _parser() -> argparse.ArgumentParser:
     from rce_fleet.cli import ADMISSION_HELP
     ap.add_argument("--admission", choices=("on", "off"), help=ADMISSION_HELP)
     ap.add_argument("--window", choices=("on", "off"),
-                    help="the windowed plan (operations + LNS) as a candidate of the lookahead (default: on "
-                         "from 0.1 to 0.8 robots per free cell, up to 1,000 robots)")
+                    help="the windowed plan (operations + LNS) as a candidate of the lookahead where EPIBT is "
+                         "off (default: on from 0.1 to 0.8 robots per free cell, up to 1,000 robots)")
     ap.add_argument("--epibt", choices=("on", "off"),
-                    help="EPIBT with LNS answers (default: on from 0.3 robots per free cell, MAPF_T)")
+                    help="EPIBT with LNS as a candidate of the lookahead (default: on from 0.3 robots per "
+                         "free cell, and from 0.1 up to 1,000 robots; MAPF_T)")
     ap.add_argument("--json", type=Path)
     ap.add_argument("--plot", type=Path)
     ap.add_argument("--outputs", type=Path, help="also write each run's start-kit output JSON into DIR")

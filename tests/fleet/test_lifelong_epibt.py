@@ -212,13 +212,13 @@ def test_open_lanes_cross_every_row_and_column_and_corridor_lanes_stay_as_they_w
     assert int(c.max()) == 10 and int(c.min()) == 1
 
 
-def test_runner_answers_with_epibt_its_bias_and_open_lanes_from_0_3_robots_per_free_cell():
+def test_runner_answers_with_epibt_its_bias_and_open_lanes_from_0_1_robots_per_free_cell_in_small_teams():
     from rce_fleet.lifelong.lorr import LorrProblem
-    from rce_fleet.lifelong.runner import EPIBT_BIAS, EPIBT_DENSITY, OPEN_LANES, run_lifelong
+    from rce_fleet.lifelong.runner import EPIBT_BIAS, OPEN_LANES, WINDOW_DENSITY, run_lifelong
     g = LifelongGrid(np.ones((8, 8), dtype=bool))
     rng = np.random.default_rng(0)
     tasks = [tuple(int(c) for c in rng.choice(64, size=2, replace=False)) for _ in range(200)]
-    for n, on in ((12, False), (int(EPIBT_DENSITY * 64) + 4, True)):
+    for n, on in ((4, False), (int(WINDOW_DENSITY * 64) + 4, True)):
         prob = LorrProblem(Path("open8.json"), g, np.arange(n, dtype=np.int64) * 2 % 64, tasks, n, 1.5)
         r = run_lifelong(prob, 30, plan_time_limit_ms=200, seed=0)
         s = r.summary()
@@ -228,6 +228,20 @@ def test_runner_answers_with_epibt_its_bias_and_open_lanes_from_0_3_robots_per_f
         assert s["epibt"] is on and s["open_lanes"] == (OPEN_LANES if on else 0)
         assert s["window_bias"] == (EPIBT_BIAS if on else 0.0)
         assert (s.get("epibt_steps", 0) > 0) is on
+
+
+def test_runner_keeps_epibt_for_0_3_robots_per_free_cell_in_teams_over_a_thousand():
+    from rce_fleet.lifelong.lorr import LorrProblem
+    from rce_fleet.lifelong.runner import EPIBT_DENSITY, WINDOW_TEAM, run_lifelong
+    g = LifelongGrid(np.ones((80, 80), dtype=bool))
+    n = WINDOW_TEAM + 100                                   # 0.17 robots per free cell
+    assert n / 6400 < EPIBT_DENSITY
+    tasks = [(int(c), int(c + 1)) for c in range(0, 6398, 3)]
+    prob = LorrProblem(Path("open80.json"), g, np.arange(n, dtype=np.int64) * 5, tasks, n, 1.5)
+    s = run_lifelong(prob, 0, plan_time_limit_ms=200, seed=0).summary()       # the rule and warm-ups only
+    assert s["epibt"] is False
+    prob = LorrProblem(Path("open80.json"), g, np.arange(2000, dtype=np.int64) * 3, tasks, 2000, 1.5)
+    assert run_lifelong(prob, 0, plan_time_limit_ms=200, seed=0).summary()["epibt"] is True
 
 
 _COMPILES_SCRIPT = """

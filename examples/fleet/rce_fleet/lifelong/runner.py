@@ -55,9 +55,9 @@ ACTIVE_FRAC = 0.3     # robots holding a task per free cell at most (the rest st
 ACTIVE_DENSITY = 0.3  # ... in teams of this many robots per free cell or more
 AISLE_ACTIVE_FRAC = 0.2   # ... and on maps of aisles: at least AISLE_SHARE of the free cells in one-cell corridor lanes
 AISLE_SHARE = 0.2
-WINDOW_DENSITY = 0.1  # robots per free cell from which (to PACKED_DENSITY) the windowed plan (+ LNS) leads ...
-WINDOW_TEAM = 1000    # ... for teams up to this size (larger ones not measured with it)
-EPIBT_DENSITY = 0.3   # robots per free cell from which EPIBT with LNS answers (MAPF_T) ...
+WINDOW_DENSITY = 0.1  # robots per free cell from which EPIBT (+ LNS) leads (with EPIBT off: the windowed plan
+WINDOW_TEAM = 1000    # of operations, to PACKED_DENSITY) in teams up to this size (larger ones not measured with it)
+EPIBT_DENSITY = 0.3   # robots per free cell from which EPIBT with LNS answers (MAPF_T) in any team ...
 OPEN_LANES = 9        # ... and, on a map without corridors, every row and column is a lane (against: 1 + 9) ...
 EPIBT_BIAS = 0.2      # ... and the lookahead takes its first step unless a rollout leads by this per robot
 
@@ -102,10 +102,11 @@ def run_lifelong(problem: LorrProblem, steps: int, plan_time_limit_ms: float = 1
     the team has at least ``GUIDE_DENSITY`` robots per free cell (on sparser teams the detours they
     ask for cost more than the jams they avoid: docs/lifelong.md); from ``PACKED_DENSITY`` robots per
     free cell a robot that turns towards a cell does not hold it (``claim_steps=0``; measured there);
-    from ``WINDOW_DENSITY`` to ``PACKED_DENSITY`` robots per free cell, in teams up to ``WINDOW_TEAM``,
-    the planner answers with the windowed plan of operations refined by LNS (:mod:`.window`;
-    ``planner_kw={"ops": False}`` turns it off); from ``EPIBT_DENSITY`` it answers with EPIBT and
-    LNS instead (:mod:`.epibt`; ``planner_kw={"epibt": False}`` turns it off), its first step taken
+    from ``EPIBT_DENSITY`` robots per free cell, and from ``WINDOW_DENSITY`` in teams up to
+    ``WINDOW_TEAM``, the planner answers with EPIBT and LNS (:mod:`.epibt`; ``planner_kw={"epibt":
+    False}`` turns it off, and then from ``WINDOW_DENSITY`` to ``PACKED_DENSITY`` in those teams the
+    windowed plan of operations refined by LNS takes its place: :mod:`.window`,
+    ``planner_kw={"ops": False}`` turns that off too), its first step taken
     unless a PIBT rollout brings the robots closer by ``EPIBT_BIAS`` steps per robot with a goal
     (``planner_kw={"window_bias": ...}``); open_lanes: on a map
     without corridor lanes, every row and column becomes a lane with this extra cost against it
@@ -137,10 +138,12 @@ def run_lifelong(problem: LorrProblem, steps: int, plan_time_limit_ms: float = 1
         guide = density >= GUIDE_DENSITY
     if density >= PACKED_DENSITY:       # the cell a turning robot would hold is the one the others need
         planner_kw = {"claim_steps": 0, **(planner_kw or {})}
-    epibt = model == MAPF_T and density >= EPIBT_DENSITY and (planner_kw or {}).get("epibt", True)
+    small = problem.team_size <= WINDOW_TEAM
+    epibt = (model == MAPF_T and density >= (WINDOW_DENSITY if small else EPIBT_DENSITY)
+             and (planner_kw or {}).get("epibt", True))
     if epibt:
         planner_kw = {"epibt": True, "window_bias": EPIBT_BIAS, **(planner_kw or {})}
-    elif model == MAPF_T and WINDOW_DENSITY <= density < PACKED_DENSITY and problem.team_size <= WINDOW_TEAM:
+    elif model == MAPF_T and WINDOW_DENSITY <= density < PACKED_DENSITY and small:
         planner_kw = {"ops": True, **(planner_kw or {})}
     if cache_bytes is None:
         cache_bytes = cache_bytes_for(grid, problem.team_size)
