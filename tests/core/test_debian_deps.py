@@ -15,6 +15,7 @@ import importlib.util
 import shutil
 import subprocess
 import sys
+from collections.abc import Iterator
 from pathlib import Path
 
 ROOT = Path(__file__).resolve().parents[2]
@@ -34,17 +35,26 @@ def manifest() -> list[tuple[str, list[str]]]:
     return out
 
 
-def _guarded(node: ast.AST, parents: dict[ast.AST, ast.AST]) -> bool:
-    """An import inside ``try: ... except ImportError`` (an optional dependency)."""
-    while node in parents:
-        node = parents[node]
-        if isinstance(node, ast.Try) and any(
-                isinstance(h.type, ast.Name) and h.type.id in ("ImportError", "ModuleNotFoundError")
-                or isinstance(h.type, ast.Tuple) and any(getattr(e, "id", "") in ("ImportError", "ModuleNotFoundError")
-                                                         for e in h.type.elts)
-                for h in node.handlers):
-            return True
-    return False
+def _catches_import_error(node: ast.stmt) -> bool:
+    """A ``try`` with an ``except ImportError`` (or ``ModuleNotFoundError``) handler."""
+    return isinstance(node, ast.Try) and any(
+        isinstance(h.type, ast.Name) and h.type.id in ("ImportError", "ModuleNotFoundError")
+        or isinstance(h.type, ast.Tuple) and any(getattr(e, "id", "") in ("ImportError", "ModuleNotFoundError")
+                                                 for e in h.type.elts)
+        for h in node.handlers)
+
+
+def _statements(body: list[ast.stmt], guarded: bool = False) -> Iterator[tuple[ast.stmt, bool]]:
+    """Each statement of ``body`` and of the blocks in it, with whether it lies anywhere inside a
+    ``try: ... except ImportError`` (an optional dependency). Imports are statements, so the
+    expressions are not walked."""
+    for stmt in body:
+        yield stmt, guarded
+        inner = guarded or _catches_import_error(stmt)
+        blocks = [getattr(stmt, f, ()) for f in ("body", "orelse", "finalbody")]
+        blocks += [part.body for f in ("handlers", "cases") for part in getattr(stmt, f, ())]
+        for block in blocks:
+            yield from _statements(block, inner)
 
 
 def imported_modules() -> dict[str, str]:
@@ -54,16 +64,14 @@ def imported_modules() -> dict[str, str]:
         for path in sorted((ROOT / top).rglob("*.py")):
             if SKIP_DIRS & set(path.parts):
                 continue
-            tree = ast.parse(path.read_bytes(), str(path))
-            parents = {child: node for node in ast.walk(tree) for child in ast.iter_child_nodes(node)}
-            for node in ast.walk(tree):
+            for node, guarded in _statements(ast.parse(path.read_bytes(), str(path)).body):
                 if isinstance(node, ast.Import):
                     names = [a.name for a in node.names]
                 elif isinstance(node, ast.ImportFrom) and node.level == 0 and node.module:
                     names = [node.module]
                 else:
                     continue
-                if _guarded(node, parents):
+                if guarded:
                     continue
                 for name in names:
                     found.setdefault(name.split(".")[0], str(path.relative_to(ROOT)))
