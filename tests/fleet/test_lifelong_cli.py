@@ -20,7 +20,8 @@ RANDOM = DATA / "lorr" / "random.domain" / "random_32_32_20_100.json"
 def test_lifelong_cli_writes_an_output_that_replays_with_its_task_count(tmp_path, capsys):
     out = tmp_path / "out.json"
     with pytest.raises(SystemExit) as e:
-        main(["lifelong", str(RANDOM), "--steps", "40", "--output", str(out), "--seed", "3", "--no-progress"])
+        main(["lifelong", str(RANDOM), "--steps", "40", "--output", str(out), "--seed", "3", "--no-progress",
+              "--plan-time-limit", "500"])      # the planner spends about half its limit: half the CPU
     assert e.value.code == 0
     text = capsys.readouterr().out
     assert "tasks finished in 40 steps by 100 robots" in text and "timeouts 0" in text
@@ -36,7 +37,7 @@ def test_lifelong_cli_takes_lanes_crowd_and_cache_bounds_and_refuses_a_cache_too
     out = tmp_path / "out.json"
     with pytest.raises(SystemExit) as e:
         main(["lifelong", str(RANDOM), "--steps", "20", "--output", str(out), "--lanes", "0", "--crowd-w", "5",
-              "--cache-mb", "1", "--no-progress"])          # 1 MiB: 512 of its 819 maps: some evicted
+              "--cache-mb", "1", "--no-progress", "--plan-time-limit", "250"])   # 1 MiB: 512 of its 819 maps
     assert e.value.code in (0, 1)
     d = json.loads(out.read_text())
     p = load_problem(RANDOM)
@@ -62,7 +63,7 @@ def test_lifelong_cli_names_a_malformed_problem_file_and_line(tmp_path, capsys):
 def test_bench_lifelong_quick(tmp_path):
     js, png = tmp_path / "l.json", tmp_path / "l.png"
     r = subprocess.run([sys.executable, str(ROOT / "bench" / "lifelong.py"), "--quick", "--json", str(js),
-                        "--plot", str(png)], capture_output=True, text=True, timeout=120)
+                        "--plot", str(png), "--plan-time-limit", "500"], capture_output=True, text=True, timeout=120)
     assert r.returncode == 0, r.stderr[-2000:]
     runs = json.loads(js.read_text())["runs"]
     assert {x["problem"] for x in runs} == {"random_32_32_20_100", "paris_1_256_250"}
