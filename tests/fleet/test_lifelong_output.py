@@ -114,7 +114,7 @@ def test_tasks_taken_back_by_the_run_time_bound_keep_the_schedule_rules():
     """A bound set at run time (admission) takes unopened tasks back: each robot that loses one
     gets its -1 entry, no task is held twice, and the output replays to its count."""
     p = load_problem(PROBLEM)
-    res = run_lifelong(p, 60, plan_time_limit_ms=1000.0, seed=1, record=True, admission=True,
+    res = run_lifelong(p, 60, plan_time_limit_ms=250.0, seed=1, record=True, admission=True,
                        admission_kw={"window": 5, "target": 0.99, "decrease": 0.7, "start": None, "jam_factor": None})
     out = res.sim.output()
     bounds = [b for _, _, b in res.stats["admission"]]

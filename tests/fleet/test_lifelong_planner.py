@@ -366,7 +366,7 @@ def test_one_shot_pibt_on_the_movingai_warehouse():
 
 def test_lifelong_run_on_the_random_problem_finishes_tasks_without_errors():
     from rce_fleet.lifelong.runner import run_lifelong
-    res = run_lifelong(load_problem(RANDOM), 60, record=False)
+    res = run_lifelong(load_problem(RANDOM), 60, plan_time_limit_ms=500.0, record=False)
     s = res.summary()
     assert s["invalid_steps"] == 0 and s["schedule_errors"] == 0
     assert s["tasks_finished"] > 60
