@@ -13,10 +13,10 @@ from __future__ import annotations
 
 import asyncio
 import socket
-from http import HTTPStatus
 from urllib.parse import urlsplit
 
 from rce.plumbing.errors import Unavailable
+from rce.plumbing.http1 import closing_answer
 
 MAX_HEAD = 8192                 # bytes of a CONNECT request or answer head, CRLFCRLF included
 RELAY_HEADER = "RCE-Relay"      # the answer's header naming the relay (its robot ID)
@@ -84,12 +84,9 @@ def parse_request(head: bytes) -> tuple[str, int]:
 def answer(status: int, reason: str = "", name: str = "") -> bytes:
     """The relay's answer head: 200 names the relay (``RCE-Relay: name``); an error carries ``reason``
     as a one-line text body and closes."""
-    phrase = HTTPStatus(status).phrase if status != 200 else "Connection established"
     if status == 200:
-        return f"HTTP/1.1 200 {phrase}\r\n{RELAY_HEADER}: {name}\r\n\r\n".encode()
-    body = (reason.replace("\n", " ") + "\n").encode()
-    return (f"HTTP/1.1 {status} {phrase}\r\nContent-Type: text/plain; charset=utf-8\r\n"
-            f"Content-Length: {len(body)}\r\nConnection: close\r\n\r\n").encode() + body
+        return f"HTTP/1.1 200 Connection established\r\n{RELAY_HEADER}: {name}\r\n\r\n".encode()
+    return closing_answer(status, (reason.replace("\n", " ") + "\n").encode(), "text/plain; charset=utf-8")
 
 
 def parse_answer(head: bytes, body: bytes = b"") -> tuple[int, str]:

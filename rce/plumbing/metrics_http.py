@@ -23,6 +23,7 @@ from http import HTTPStatus
 
 from prometheus_client import CONTENT_TYPE_LATEST
 
+from rce.plumbing.http1 import closing_answer
 from rce.plumbing.log import get_logger
 
 __all__ = ["HEAD_TIMEOUT", "MAX_HEAD", "MetricsServer"]
@@ -59,8 +60,7 @@ class MetricsServer:
             except (asyncio.IncompleteReadError, asyncio.LimitOverrunError, TimeoutError):
                 return
             status, body = await self._answer(head.split(b"\r\n", 1)[0].split(b" "))
-            writer.write(b"HTTP/1.1 %d %s\r\nContent-Type: %s\r\nContent-Length: %d\r\nConnection: close\r\n\r\n"
-                         % (status, status.phrase.encode(), CONTENT_TYPE_LATEST.encode(), len(body)) + body)
+            writer.write(closing_answer(status, body, CONTENT_TYPE_LATEST))
             await writer.drain()
         except (ConnectionError, ssl.SSLError) as e:
             log.debug("metrics client gone", error=str(e))
