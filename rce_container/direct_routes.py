@@ -19,6 +19,11 @@ Rules, recomputed whenever the bus graph, an interface or a connection changes:
   X's messages to each member. Any other subscriber (an interface, ``bus_sample``, a
   recording, a ROS 1 node) ends the claims, and the messages come through the bus again; a
   change of members starts a new set, and until it is complete the bus carries them.
+- **Order.** A node's new route holds its messages until what it sent by the bus before has
+  been handed on at the far ends (:meth:`rce.transport.dataplane.DataPlane.flush`), when the
+  environment's links there carried any. When a claim set completes, messages the peers sent through this environment just
+  before may still be on their way; the nodes hold what comes directly until this environment
+  has passed the far plane's switch marker on to them (:meth:`DirectRoutes.switch_arrived`).
 - Services, and nodes that do not take direct links (ROS 1 nodes' relay, older runtimes), go
   through the bus as before.
 
@@ -100,6 +105,7 @@ class DirectRoutes:
         self._gens: dict[int, tuple[int, tuple]] = {}     # PublisherInterface id -> (claim generation, its shape)
         env.bus.on_graph.append(self.touch)
         env.bus.on_change.append(self.touch)
+        env.plane.on_switch.append(self.switch_arrived)
         # counters (environment stats)
         self.links_opened = self.dial_failures = self.route_failures = 0
 
@@ -123,6 +129,14 @@ class DirectRoutes:
                     st.pubs = {h: k for h, k in st.pubs.items() if addr not in k[2]}
                     st.claims = {k: v for k, v in st.claims.items() if k[0] != addr}
         self.touch()
+
+    def switch_arrived(self, iid: int, sid: int) -> None:
+        """A far plane's switch marker ``sid`` for interface ``iid`` came, behind every message it sent
+        here before (:mod:`rce.transport.dataplane`, "Direct links"), and those are on the bus: tell
+        the nodes, behind those messages on their bus links, so that the claimers among them stop
+        holding what came to them directly."""
+        for session in self.states:
+            session.peer.notify("direct_switch", iid=iid, id=sid)
 
     def stats(self) -> dict:
         """``{enabled, nodes, links, routes, claims, links_opened, dial_failures, route_failures}``."""
@@ -226,11 +240,24 @@ class DirectRoutes:
         reached = {src for _, _, src in targets}
         session.routes.setdefault(handle, {})[version] = frozenset(sub for sub in served
                                                                    if served_by[sub].iid in reached)
+        plane = self.env.plane
+        behind = {addr for addr, dst, src in targets if plane.carried(addr, dst)}
         await session.peer.call("direct_publish", timeout=CALL_TIMEOUT, handle=handle, version=version, local=local,
-                          targets=[[links[addr].lid, dst, src] for addr, dst, src in targets], grants=grants)
+                          targets=[[links[addr].lid, dst, src] for addr, dst, src in targets], grants=grants,
+                          hold=bool(behind))
         # frames of older versions have all arrived
         session.routes[handle] = {version: session.routes[handle][version]}
         st.pubs[handle] = key
+        if behind:      # what went by the bus first reaches the far ends first (rce.node.links)
+            self.tasks.spawn(self._go(session, handle, version, behind), name=f"direct go {handle}")
+
+    async def _go(self, session: NodeSession, handle: int, version: int, addrs: set[str]) -> None:
+        """Once the far planes at ``addrs`` have handed on what this environment sent them, let
+        route ``version`` of ``session``'s publisher ``handle`` send what it held."""
+        unflushed = await self.env.plane.flush(addrs, CALL_TIMEOUT)
+        if unflushed:
+            log.warning("direct route released unflushed", node=session.node, handle=handle, peers=unflushed)
+        session.peer.notify("direct_go", handle=handle, version=version)
 
     async def _claims(self, session: NodeSession, st: _NodeState, wanted: dict) -> None:
         for key in [k for k in st.claims if k not in wanted]:

@@ -11,7 +11,11 @@ follows its orders, which come as requests on the node's bus link:
 - ``direct_publish {handle, version, targets: [[link, dst, src]], local, grants}``: from now on
   publisher ``handle`` sends each message as ``MSG dst src`` on each target's link, and to the
   bus as well only when ``local`` (other subscribers are there), marked with ``version`` so the
-  bus skips what this route reached. No targets: back to the bus alone.
+  bus skips what this route reached. No targets: back to the bus alone. ``hold``: messages this
+  publisher sent by the bus may still be on their way to the far ends (the environment's link to
+  them still connects, or is slow); the route's messages wait here, in order (at most
+  :data:`MAX_HELD`, the oldest dropped and counted), until ``direct_go {handle, version}`` says
+  those have been handed on there (:meth:`rce.transport.dataplane.DataPlane.flush`).
 - ``direct_subscribe {link, iid, peers, handles, gen, size, grants, at?}``: claim interface ``iid`` on
   ``link`` as one of the ``size`` members of claim generation ``gen`` (:mod:`rce.transport.dataplane`,
   "Direct links"): once all have claimed, its messages from ``peers`` arrive here and go to
@@ -20,6 +24,13 @@ follows its orders, which come as requests on the node's bus link:
   claims nothing before the switch). ``direct_unsubscribe {link, iid}`` releases the claim.
 - ``direct_counts {}`` -> ``{iid: [messages, bytes, dropped]}`` per interface this node stood
   in for (the environment adds them to the interfaces' counters).
+
+Order across a claim's start (:mod:`rce.transport.dataplane`, "Direct links"): a far plane
+whose claim set completes while it had sent the interface's messages through the environment
+sends ``{"switch": iid, "id": s}`` on the link ahead of the first direct message; the node holds
+what comes on that link for ``iid`` (bounded by its subscribers' largest ``queue_size``, the
+oldest dropped and counted) until the environment's ``direct_switch {iid, id}`` notification
+arrives on the bus link, behind the messages that went that way, or :data:`SWITCH_HOLD` s pass.
 
 ``grants`` are the data-plane grant frames (:mod:`rce.transport.cluster_auth`) the environment computed
 for the link's nonce; the node sends them before the first frame that needs them. When a link
@@ -35,6 +46,7 @@ import asyncio
 import itertools
 import socket
 import struct
+import sys
 from collections import deque
 from typing import Any
 
@@ -46,6 +58,9 @@ LINK_ID = struct.Struct("!Q")     # the id that goes with each socket on the fd 
 FD_WAIT = 10.0                    # s ``direct_link`` waits for its socket on the fd channel
 MAX_FDS = 16                      # sockets taken per read of the fd channel
 MAX_BUFFER = 16 * 1024 * 1024     # bytes that may wait unread per direct link (then messages drop, counted)
+MAX_HELD = 1000                   # messages a held route keeps until ``direct_go``
+SWITCH_HOLD = 2.0                 # s direct messages wait at most for the bus path's switch marker
+MAX_PASSED = 64                   # switch markers kept that came by the bus before their direct one
 
 
 def _lost(tag: tuple[list[int], int]) -> None:
@@ -58,12 +73,24 @@ def _lost(tag: tuple[list[int], int]) -> None:
 
 class _Route:
     """A publisher's direct route: ``targets`` ``(link, dst, src, counts)``; ``local``: the bus
-    has other subscribers too; ``version``: marks its bus frames."""
+    has other subscribers too; ``version``: marks its bus frames; ``held``: its messages waiting
+    for ``direct_go`` (None: it sends at once)."""
 
-    __slots__ = ("version", "targets", "local")
+    __slots__ = ("version", "targets", "local", "held")
 
-    def __init__(self, version: int, targets: list, local: bool):
+    def __init__(self, version: int, targets: list, local: bool, hold: bool = False):
         self.version, self.targets, self.local = version, targets, local
+        self.held: deque[bytes] | None = deque() if hold else None
+
+
+class _Hold:
+    """Direct messages held after a switch marker ``sid`` until the bus path's marker comes."""
+
+    __slots__ = ("sid", "queue", "timer")
+
+    def __init__(self, sid: int, timer: asyncio.TimerHandle):
+        self.sid, self.timer = sid, timer
+        self.queue: deque[bytes] = deque()
 
 
 class DirectLinks:
@@ -85,12 +112,16 @@ class DirectLinks:
         self._waiting: dict[int, asyncio.Future] = {}
         self._eos_ids = itertools.count(1)
         self._eos: dict[int, asyncio.Future] = {}           # end of stream id -> its acknowledgement
+        self._holds: dict[tuple[int, int], _Hold] = {}       # (link, interface id) -> held after a switch marker
+        self._passed: dict[tuple[int, int], None] = {}       # (iid, marker id) that came by the bus first
+        self.switch_timeouts = 0         # holds ended by SWITCH_HOLD, not by the bus path's marker
 
     def handlers(self) -> dict:
         """The bus-link request handlers (op -> coroutine function)."""
         return {"direct_link": self.op_direct_link, "direct_publish": self.op_direct_publish,
                 "direct_subscribe": self.op_direct_subscribe, "direct_unsubscribe": self.op_direct_unsubscribe,
-                "direct_counts": self.op_direct_counts}
+                "direct_counts": self.op_direct_counts, "direct_switch": self.op_direct_switch,
+                "direct_go": self.op_direct_go}
 
     # -- the fd channel --------------------------------------------------------------------------
     async def open_channel(self, path: str, key: str) -> None:
@@ -190,11 +221,21 @@ class DirectLinks:
         self._grant(args)
         targets = [(self._link(lid), int(dst), int(src), self.counts.setdefault(int(src), [0, 0, 0]))
                    for lid, dst, src in args.get("targets") or ()]
+        old = self.routes.pop(handle, None)
+        if old is not None and old.held:
+            self._send(old, old.held)         # the older route's order is kept: its messages go first
         if targets:
-            self.routes[handle] = _Route(int(args["version"]), targets, bool(args.get("local")))
-        else:
-            self.routes.pop(handle, None)
+            self.routes[handle] = _Route(int(args["version"]), targets, bool(args.get("local")),
+                                         bool(args.get("hold")))
         return {}
+
+    async def op_direct_go(self, args: dict) -> None:
+        """``{handle, version}`` (a notification): what publisher ``handle`` sent by the bus before its
+        route ``version`` has been handed on at the far ends; the route's held messages go."""
+        r = self.routes.get(int(args["handle"]))
+        if r is not None and r.version == int(args["version"]) and r.held is not None:
+            held, r.held = r.held, None
+            self._send(r, held)
 
     async def op_direct_subscribe(self, args: dict) -> dict:
         """``{link, iid, peers, handles, gen, size, grants}``: claim interface ``iid`` on ``link``."""
@@ -222,6 +263,49 @@ class DirectLinks:
         self.claims.pop(key, None)
         return {}
 
+    async def op_direct_switch(self, args: dict) -> None:
+        """``{iid, id}`` (a notification, behind the messages the bus carried for ``iid``): the bus
+        path's switch marker; what was held behind the direct marker ``id`` goes on."""
+        iid, sid = int(args["iid"]), int(args["id"])
+        for key, hold in list(self._holds.items()):
+            if key[1] == iid and hold.sid == sid:
+                self._release(key)
+                return
+        self._passed[(iid, sid)] = None
+        while len(self._passed) > MAX_PASSED:
+            del self._passed[next(iter(self._passed))]
+
+    def _switch(self, lid: int, frame: dict) -> None:
+        """``{switch: iid, id}`` on link ``lid``: hold its direct messages for ``iid`` (module doc)."""
+        iid, sid = frame.get("switch"), frame.get("id")
+        if not (type(iid) is int and type(sid) is int):
+            raise ProtocolError(f"direct link {lid}: a switch marker is {{switch: iid, id: int}}, not {str(frame)[:80]}")
+        if (iid, sid) in self._passed:       # the bus path's marker came first: nothing is behind
+            del self._passed[(iid, sid)]
+            return
+        key = (lid, iid)
+        if key in self._holds:
+            self._release(key)
+        self._holds[key] = _Hold(sid, asyncio.get_running_loop().call_later(SWITCH_HOLD, self._expire, key))
+
+    def _expire(self, key: tuple[int, int]) -> None:
+        self.switch_timeouts += 1
+        print(f"[{getattr(self.node, 'full_name', '?')}] no switch marker by the bus for interface {key[1]} "
+              f"in {SWITCH_HOLD:g} s: its direct messages go on", file=sys.stderr)
+        self._release(key)
+
+    def _release(self, key: tuple[int, int]) -> None:
+        hold = self._holds.pop(key, None)
+        if hold is None:
+            return
+        hold.timer.cancel()
+        claim = self.claims.get(key)
+        for payload in hold.queue:
+            if claim is None:
+                self.counts.setdefault(key[1], [0, 0, 0])[2] += 1
+            else:
+                self._deliver(claim, key[1], payload)
+
     async def op_direct_counts(self, args: dict) -> dict:
         """``{}`` -> ``{iid: [messages, bytes, dropped]}`` since the node started."""
         return {str(iid): c for iid, c in self.counts.items()}
@@ -234,14 +318,26 @@ class DirectLinks:
         r = self.routes.get(handle)
         if r is None:
             return 0
-        n = len(payload)
-        for link, dst, src, c in r.targets:
-            if link.offer(framing.encode_data_header(framing.MSG, dst, src, 0, n), payload, (c, n)):
-                c[0] += 1
-                c[1] += n
-            else:
-                c[2] += 1
+        if r.held is None:
+            self._send(r, (payload,))
+        else:
+            if len(r.held) >= MAX_HELD:
+                r.held.popleft()
+                for *_, c in r.targets:
+                    c[2] += 1
+            r.held.append(payload)
         return r.version if r.local else -1
+
+    @staticmethod
+    def _send(r: _Route, payloads) -> None:
+        for payload in payloads:
+            n = len(payload)
+            for link, dst, src, c in r.targets:
+                if link.offer(framing.encode_data_header(framing.MSG, dst, src, 0, n), payload, (c, n)):
+                    c[0] += 1
+                    c[1] += n
+                else:
+                    c[2] += 1
 
     async def drain(self, handle: int) -> None:
         """Wait for publisher ``handle``'s direct links to drain (backpressure)."""
@@ -290,6 +386,8 @@ class DirectLinks:
             peer = self.node._peer
             if isinstance(pair, list) and len(pair) == 2 and peer is not None and not peer.closed.is_set():
                 peer.notify("direct_fence", fence=fid, src=pair[0], dst=pair[1])
+        elif "switch" in frame:
+            self._switch(lid, frame)
         elif "eos_ack" in frame:
             fut = self._eos.pop(frame["eos_ack"], None) if isinstance(frame["eos_ack"], int) else None
             if fut is not None and not fut.done():
@@ -310,12 +408,24 @@ class DirectLinks:
             self.counts.setdefault(frame.dst, [0, 0, 0])[2] += 1     # not for a claim of this link: dropped
             return
         payload = bytes(frame.payload)
+        hold = self._holds.get((lid, frame.dst)) if self._holds else None
+        if hold is None:
+            self._deliver(claim, frame.dst, payload)
+            return
+        subs = self.node._subs
+        if len(hold.queue) >= max((subs[h].queue_size for h in claim[1] if h in subs), default=1):
+            hold.queue.popleft()
+            self.counts[frame.dst][2] += 1
+        hold.queue.append(payload)
+
+    def _deliver(self, claim: tuple[frozenset[int], tuple[int, ...]], iid: int, payload: bytes) -> None:
+        """Give ``payload`` (a message for claimed interface ``iid``) to the claim's subscribers."""
         subs = self.node._subs
         for h in claim[1]:
             sub = subs.get(h)
             if sub is not None:
                 sub._push(payload)
-        c = self.counts[frame.dst]
+        c = self.counts[iid]
         c[0] += 1
         c[1] += len(payload)
 
@@ -325,6 +435,8 @@ class DirectLinks:
         del self.links[lid]
         for h in [h for h, r in self.routes.items() if any(t[0].closed.is_set() for t in r.targets)]:
             del self.routes[h]
+        for key in [k for k in self._holds if k[0] == lid]:
+            self._release(key)               # what came before the link ended is the node's
         for key in [k for k in self.claims if k[0] == lid]:
             del self.claims[key]
         peer = self.node._peer
@@ -338,4 +450,7 @@ class DirectLinks:
         self.links.clear()
         self.routes.clear()
         self.claims.clear()
+        for hold in self._holds.values():
+            hold.timer.cancel()
+        self._holds.clear()
         self._close_channel()

@@ -36,6 +36,15 @@ a message and none gets one twice. ``{"release": x}`` takes this link out of the
 answered ``{"released": x}`` (every frame for ``x`` sent before it has gone ahead). A claim
 without such a grant closes the link (``unauthenticated``); claims end with their link.
 
+Switch markers keep the order across that change of path. Messages sent to ``x``'s address just
+before the set completed may still be on their way (in the backlog of a link that connects, in
+the environment, on its bus) when the first direct one reaches a member. So when a set completes
+and the link dialled to ``x``'s address has carried or holds anything for ``x``, this plane sends
+``{"switch": x, "id": s}`` there, behind those messages, and ``{"switch": x, "id": s}`` on each
+member's link, ahead of the first direct message. The environment's plane, once it has handed on
+everything before its marker, tells the members through their bus (:attr:`DataPlane.on_switch`);
+a member holds what comes directly for ``x`` until then (:mod:`rce.node.links`).
+
 Fences and end of stream (a container's move, :mod:`rce_master.mover`): when a connection's peer is
 pointed at a new address (:meth:`DataPlane.fence`), this plane first sends ``{"fence": [src, dst],
 "id": f}`` on every path that carried ``src -> dst`` to the old copy (its dialled link to the old
@@ -172,6 +181,10 @@ class _Dialled:
             return True
         return self._control_send(chunk)
 
+    def carried(self, dst: int) -> bool:
+        """Has this link carried, or does its backlog hold, a message for interface ``dst``?"""
+        return any(d == dst for _s, d in self.granted) or any(p is not None and p[1] == dst for p, _, _ in self.backlog)
+
     def _control_send(self, chunk: bytes) -> bool:
         if self.link is None:
             return False
@@ -258,6 +271,8 @@ class _Accepted:
                 self._release(frame["release"])
             elif "fence" in frame:
                 self._fence(frame)
+            elif "switch" in frame:
+                self._switch_arrived(frame)
             elif "eos" in frame:
                 self.link.send(framing.encode_control({"eos_ack": frame["eos"]}))
             elif "eos_ack" in frame:
@@ -292,6 +307,8 @@ class _Accepted:
             return                        # a stale generation: the environment has moved on
         if self not in cs.links:
             cs.links.append(self)
+            if len(cs.links) == cs.size:
+                self.plane._switch(iid, cs)
         self.claims.add(iid)
 
     def _fence(self, frame: dict) -> None:
@@ -303,6 +320,16 @@ class _Accepted:
         if (pair[0], pair[1]) not in self.granted:
             return                        # nothing of that connection came on this link: nothing to fence
         self.plane.fence_arrived(fid, pair[0], pair[1])
+
+    def _switch_arrived(self, frame: dict) -> None:
+        """``{switch: x, id}``: the dialler sends ``x``'s messages to its claimers from now on; every
+        frame it sent here before has been handed on (module doc)."""
+        iid, sid = frame.get("switch"), frame.get("id")
+        if not (type(iid) is int and type(sid) is int):
+            raise ProtocolError(f"a switch marker is {{switch: iid, id: int}}, not {str(frame)[:80]}")
+        if any(dst == iid for _src, dst in self.granted):
+            for cb in self.plane.on_switch:
+                cb(iid, sid)
 
     def _release(self, iid: object) -> None:
         if isinstance(iid, int):
@@ -350,6 +377,7 @@ class DataPlane:
         self._parked: dict[int, dict[_Accepted, dict]] = {}   # claims made at an address not sent to (yet)
         self._server: asyncio.AbstractServer | None = None
         self.fences: dict[int, collections.Counter] = {}   # fence id -> (src, dst) -> fences that came
+        self.on_switch: list = []          # cb(iid, marker id): a switch marker came, behind what went before it
         self._fence_seen = asyncio.Event()
         self._eos_ids = itertools.count(1)
         self._eos: dict[int, asyncio.Future] = {}
@@ -403,6 +431,28 @@ class DataPlane:
                 a._claim(frame)
         if not self._parked.get(iid):
             self._parked.pop(iid, None)
+
+    def _switch(self, dst: int, cs: _ClaimSet) -> None:
+        """``dst``'s claim set ``cs`` is complete: put switch markers behind what went to ``dst``'s
+        address and ahead of what goes to the members (module doc), when something went there."""
+        sid = secrets.randbits(62)             # the markers of several far planes never mix
+        paths = 0
+        for addr in {r.peers.get(dst) for r in self.interfaces.values()} - {None}:
+            if self.carried(addr, dst) and self._dialled[addr].control({"switch": dst, "id": sid}):
+                paths += 1
+        if not paths:
+            return
+        marker = framing.encode_control({"switch": dst, "id": sid})
+        for a in cs.links:
+            try:
+                a.link.send(marker)
+            except (LinkFull, Unavailable):
+                pass                           # saturated or closing: the member stops holding on its own
+
+    def carried(self, addr: str, dst: int) -> bool:
+        """Has the link dialled to ``addr`` carried, or does it hold, a message for interface ``dst``?"""
+        d = self._dialled.get(addr)
+        return d is not None and d.carried(dst)
 
     def drop_claims(self, iid: int) -> None:
         """End interface ``iid``'s claim set (its copy moved: the nodes that claimed it are the old

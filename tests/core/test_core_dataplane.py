@@ -267,12 +267,15 @@ async def node_link(net: MemNet, addr: str, src: int, dst: int) -> tuple[asyncio
     return reader, writer
 
 
+_READ: dict[int, list] = {}        # id(decoder) -> frames decoded and not yet taken
+
+
 async def next_frame(reader: asyncio.StreamReader, decoder: framing.FrameDecoder):
-    while True:
-        frames = decoder.feed(await asyncio.wait_for(reader.read(4096), STEP))
-        if frames:
-            assert len(frames) == 1
-            return frames[0]
+    """The next frame on ``reader`` (frames that came in one read are taken one at a time)."""
+    pending = _READ.setdefault(id(decoder), [])
+    while not pending:
+        pending.extend(decoder.feed(await asyncio.wait_for(reader.read(4096), STEP)))
+    return pending.pop(0)
 
 
 async def test_a_complete_claim_set_gets_each_message_once_and_an_incomplete_one_none(net):
@@ -281,6 +284,7 @@ async def test_a_complete_claim_set_gets_each_message_once_and_an_incomplete_one
     go to e:2; while the set is complete, one copy goes to each member and none to e:2."""
     r, e = net.plane("r:1"), net.plane("e:2")
     env_side = e.interfaces[30] = Iface(30, {10: "r:1"})
+    r.interfaces[10] = Iface(10, {30: "e:2"})
     allow(r, 10, 30, "e:2")
     (ra, wa), (rb, wb) = await node_link(net, "r:1", 30, 10), await node_link(net, "r:1", 30, 10)
     da, db = framing.FrameDecoder(), framing.FrameDecoder()
@@ -288,10 +292,14 @@ async def test_a_complete_claim_set_gets_each_message_once_and_an_incomplete_one
     await until(lambda: 30 in r._claims and len(r._claims[30].links) == 1, "the first claim")
     assert r.send("e:2", MSG, 30, 10, 0, b"one")                     # incomplete: by the environment
     assert await asyncio.wait_for(env_side.inbox.get(), STEP) == b"one"
+    switched = []
+    e.on_switch.append(lambda iid, sid: switched.append((iid, sid)))
     wb.transport.write(framing.encode_control({"claim": 30, "gen": 1, "size": 2}))
     await until(lambda: r.stats()["claims"] == 1, "the set complete")
     assert r.send("e:2", MSG, 30, 10, 0, b"two")
-    for reader, dec in ((ra, da), (rb, db)):
+    await until(lambda: switched, "the switch marker behind 'one' at e:2")
+    for reader, dec in ((ra, da), (rb, db)):      # 'one' went by e:2: a marker goes ahead of 'two'
+        assert await next_frame(reader, dec) == {"switch": 30, "id": switched[0][1]}
         f = await next_frame(reader, dec)
         assert (f.op, f.dst, f.src, bytes(f.payload)) == (MSG, 30, 10, b"two")
     assert env_side.inbox.empty()
@@ -303,6 +311,7 @@ async def test_a_complete_claim_set_gets_each_message_once_and_an_incomplete_one
     wb.transport.write(framing.encode_control({"claim": 30, "gen": 2, "size": 1}))     # a new generation
     await until(lambda: r._claims[30].gen == 2 and r.stats()["claims"] == 1, "generation 2")
     assert r.send("e:2", MSG, 30, 10, 0, b"four")
+    assert (await next_frame(rb, db))["switch"] == 30
     assert bytes((await next_frame(rb, db)).payload) == b"four"
     wb.transport.close()                                              # the node dies: its claims go
     await until(lambda: 30 not in r._claims, "the claim gone with its link")
@@ -320,3 +329,48 @@ async def test_a_claim_without_a_grant_closes_the_link(net):
     writer.transport.write(framing.encode_control({"claim": 30, "gen": 1, "size": 1}))
     assert await asyncio.wait_for(reader.read(), STEP) == b""
     assert r.stats()["unauthenticated"] == 2 and not r._claims
+
+
+async def test_messages_still_on_the_way_to_the_environment_come_before_the_direct_ones(net):
+    """The robot's plane r:1 sends interface 30's messages to its environment e:2 while the link
+    to e:2 still connects (held in its backlog); then a node claims 30 and the next message goes
+    directly. The markers: e:2 gets one behind the held messages (and reports it once it has
+    handed them on), the node one ahead of the direct message, with the same id, so that the node
+    can hold the direct message until the held ones have come through its bus."""
+    r, e = net.plane("r:1"), net.plane("e:2")
+    env_side = e.interfaces[30] = Iface(30, {10: "r:1"})
+    r.interfaces[10] = Iface(10, {30: "e:2"})                        # the robot's interface, connected to 30
+    allow(r, 10, 30, "e:2")
+    reader, writer = await node_link(net, "r:1", 30, 10)
+    dec = framing.FrameDecoder()
+    net.gate.clear()                                                 # the dial to e:2 hangs
+    assert r.send("e:2", MSG, 30, 10, 0, b"held-0") and r.send("e:2", MSG, 30, 10, 0, b"held-1")
+    switched = []
+
+    def on_switch(iid: int, sid: int) -> None:
+        switched.append((iid, sid, env_side.inbox.qsize()))
+    e.on_switch.append(on_switch)
+    writer.transport.write(framing.encode_control({"claim": 30, "gen": 1, "size": 1}))
+    await until(lambda: r.stats()["claims"] == 1, "the set complete")
+    assert r.send("e:2", MSG, 30, 10, 0, b"direct")
+    marker = await next_frame(reader, dec)
+    assert marker.keys() == {"switch", "id"} and marker["switch"] == 30
+    assert bytes((await next_frame(reader, dec)).payload) == b"direct"
+    assert not switched and env_side.inbox.empty()
+    net.gate.set()                                                   # the link to e:2 comes up
+    assert await asyncio.wait_for(env_side.inbox.get(), STEP) == b"held-0"
+    assert await asyncio.wait_for(env_side.inbox.get(), STEP) == b"held-1"
+    await until(lambda: switched, "the marker at e:2")
+    assert switched == [(30, marker["id"], 2)], "reported after both held messages were handed on"
+
+
+async def test_no_switch_marker_when_nothing_went_by_the_environment(net):
+    r, e = net.plane("r:1"), net.plane("e:2")
+    e.interfaces[30] = Iface(30, {10: "r:1"})
+    r.interfaces[10] = Iface(10, {30: "e:2"})
+    allow(r, 10, 30, "e:2")
+    reader, writer = await node_link(net, "r:1", 30, 10)
+    writer.transport.write(framing.encode_control({"claim": 30, "gen": 1, "size": 1}))
+    await until(lambda: r.stats()["claims"] == 1, "the set complete")
+    assert r.send("e:2", MSG, 30, 10, 0, b"first")
+    assert bytes((await next_frame(reader, framing.FrameDecoder())).payload) == b"first"

@@ -208,3 +208,51 @@ async def test_two_subscriber_nodes_share_a_claim_and_a_survivor_misses_nothing(
         await until(lambda: stats(eng, ctag), lambda s: direct(s)["claims"] == 1 and direct(s)["routes"] == 1)
         for i in range(n):
             assert await echo(r, f"d{i}", timeout=5.0) is not None
+
+
+async def test_echoes_keep_their_order_while_the_paths_change_under_a_stream(eng):
+    """Numbered messages at 200 Hz from the moment the interfaces are up: the first go through the
+    environment (whose data links are still being dialled), then the node's claim and route take
+    over; two samples of /stringEchoReq end the claim and it comes back each time. Through every
+    change of path, each echo comes once and in order: messages still on their way by the
+    environment arrive before the direct ones behind them (the switch markers, the held route)."""
+    async with RawRobot(eng.master_url, "directO") as r:
+        ctag = "directOC"
+        echoes: list[int] = []
+        sent = 0
+
+        async def send() -> None:
+            nonlocal sent
+            while True:
+                await r.send("DM", {"iTag": "req", "type": "std_msgs/String", "msgID": "",
+                                    "msg": {"data": str(sent)}})
+                sent += 1
+                await asyncio.sleep(0.005)
+
+        async def read() -> None:
+            while True:
+                m = await r.recv(60)
+                if isinstance(m, dict) and m.get("type") == "DM" and m["data"]["iTag"] == "resp":
+                    echoes.append(int(m["data"]["msg"]["data"]))
+
+        await _echo_container(r, ctag, "Converter")
+        tasks = [asyncio.create_task(send()), asyncio.create_task(read())]
+        try:
+            await until(lambda: stats(eng, ctag), lambda s: direct(s)["claims"] >= 1 and direct(s)["routes"] >= 1)
+            for _ in range(2):
+                msgs = await asyncio.to_thread(eng.admin, f"/api/containers/testUser/{ctag}/sample",
+                                               {"topic": "/stringEchoReq", "count": 20, "timeout": WAIT})
+                assert len(msgs) == 20
+                await until(lambda: stats(eng, ctag), lambda s: direct(s)["claims"] >= 1)
+            n = len(echoes)
+            deadline = time.monotonic() + WAIT
+            while len(echoes) < n + 100:
+                assert time.monotonic() < deadline, f"{len(echoes) - n} echoes of 100 after the last change"
+                await asyncio.sleep(0.05)
+        finally:
+            for t in tasks:
+                t.cancel()
+        assert echoes == sorted(echoes), [(a, b) for a, b in zip(echoes, echoes[1:]) if b < a][:5]
+        assert len(echoes) == len(set(echoes)), "no echo twice"
+        missing = sorted(set(range(echoes[0], echoes[-1] + 1)) - set(echoes))
+        assert not missing, f"lost while the paths changed: {missing[:20]}"
