@@ -21,9 +21,10 @@ Rules, recomputed whenever the bus graph, an interface or a connection changes:
   change of members starts a new set, and until it is complete the bus carries them.
 - **Order.** A node's new route holds its messages until what it sent by the bus before has
   been handed on at the far ends (:meth:`rce.transport.dataplane.DataPlane.flush`), when the
-  environment's links there carried any. When a claim set completes, messages the peers sent through this environment just
-  before may still be on their way; the nodes hold what comes directly until this environment
-  has passed the far plane's switch marker on to them (:meth:`DirectRoutes.switch_arrived`).
+  environment's links there carried any. When a claim set completes, messages the peers sent
+  through this environment just before may still be on their way; the nodes hold what comes
+  directly until this environment has passed the far plane's switch marker on to them
+  (:meth:`DirectRoutes.switch_arrived`).
 - Services, and nodes that do not take direct links (ROS 1 nodes' relay, older runtimes), go
   through the bus as before.
 

@@ -279,7 +279,8 @@ class DirectLinks:
         """``{switch: iid, id}`` on link ``lid``: hold its direct messages for ``iid`` (module doc)."""
         iid, sid = frame.get("switch"), frame.get("id")
         if not (type(iid) is int and type(sid) is int):
-            raise ProtocolError(f"direct link {lid}: a switch marker is {{switch: iid, id: int}}, not {str(frame)[:80]}")
+            raise ProtocolError(f"direct link {lid}: a switch marker is {{switch: iid, id: int}}, "
+                                f"not {str(frame)[:80]}")
         if (iid, sid) in self._passed:       # the bus path's marker came first: nothing is behind
             del self._passed[(iid, sid)]
             return
