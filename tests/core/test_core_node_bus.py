@@ -5,38 +5,11 @@ from __future__ import annotations
 import asyncio
 
 import pytest
-from memlink import pipe
 
-import rce.node
-from rce.bus.core import Bus
-from rce.bus.server import BusServer
 from rce.plumbing.errors import MessageError, NotFound, RequestError, Timeout
 
 STEP = 5.0   # s, the longest any single wait may take
 ECHO = "Test/StringEcho"
-
-
-@pytest.fixture
-async def bus(monkeypatch):
-    """A bus and its server; ``rce.node.init_node(bus="mem")`` connects to it."""
-    b = Bus("mem-bus")
-    server = BusServer(b)
-
-    async def open_unix_connection(path, limit=None):
-        (ra, wa), (rb, wb) = pipe()
-        await server._accept(rb, wb)           # what the server's listener does with a new connection
-        return ra, wa
-    monkeypatch.setattr(asyncio, "open_unix_connection", open_unix_connection)
-    nodes = []
-
-    async def node(name: str) -> rce.node.Node:
-        n = await rce.node.init_node(name, bus="mem", argv=[])
-        nodes.append(n)
-        return n
-    yield b, server, node
-    for n in nodes:
-        await n.close()
-    await server.close()
 
 
 async def test_topic_between_two_nodes(bus):

@@ -9,9 +9,6 @@ import struct
 import pytest
 from memlink import pipe
 
-import rce.node
-from rce.bus.core import Bus
-from rce.bus.server import BusServer
 from rce.node import links
 from rce.transport import framing
 from rce.transport.link import FramedLink
@@ -27,17 +24,10 @@ def string(text: str) -> bytes:
 
 
 @pytest.fixture
-async def node_with_a_link(monkeypatch):
+async def node_with_a_link(bus):
     """(bus, server, node, the node's direct links, the far end's writer, what the callback got)."""
-    b = Bus("mem-bus")
-    server = BusServer(b)
-
-    async def open_unix_connection(path, limit=None):
-        (ra, wa), (rb, wb) = pipe()
-        await server._accept(rb, wb)
-        return ra, wa
-    monkeypatch.setattr(asyncio, "open_unix_connection", open_unix_connection)
-    node = await rce.node.init_node("listener", bus="mem", argv=[])
+    b, server, new_node = bus
+    node = await new_node("listener")
     direct = node._direct = links.DirectLinks(node)
     node._peer.handlers.update(direct.handlers())
     got: asyncio.Queue = asyncio.Queue()
@@ -47,8 +37,6 @@ async def node_with_a_link(monkeypatch):
     await direct.op_direct_subscribe({"link": LID, "iid": IID, "peers": [PEER], "handles": [sub.handle],
                                       "gen": 1, "size": 1})
     yield b, server, node, direct, wb, got
-    await node.close()
-    await server.close()
 
 
 def far_end(writer, *frames) -> None:
