@@ -181,9 +181,12 @@ class _Dialled:
             return True
         return self._control_send(chunk)
 
-    def carried(self, dst: int) -> bool:
-        """Has this link carried, or does its backlog hold, a message for interface ``dst``?"""
-        return any(d == dst for _s, d in self.granted) or any(p is not None and p[1] == dst for p, _, _ in self.backlog)
+    def carried(self, dst: int, src: int | None = None) -> bool:
+        """Has this link carried, or does its backlog hold, a message for interface ``dst`` (from
+        ``src``; None: from any)?"""
+        def match(p: Pair | None) -> bool:
+            return p is not None and p[1] == dst and (src is None or p[0] == src)
+        return any(match(p) for p in self.granted) or any(match(p) for p, _, _ in self.backlog)
 
     def _control_send(self, chunk: bytes) -> bool:
         if self.link is None:
@@ -479,7 +482,7 @@ class DataPlane:
                 except (LinkFull, Unavailable):
                     log.warning("fence not sent: a direct link is saturated", plane=self.name, src=src, dst=dst)
         d = self._dialled.get(old_addr)
-        if d is not None and ((src, dst) in d.granted or any(p == (src, dst) for p, _, _ in d.backlog)):
+        if d is not None and d.carried(dst, src):
             if d.control(frame):
                 n += 1
             else:
