@@ -216,7 +216,8 @@ async def test_echoes_keep_their_order_while_the_paths_change_under_a_stream(eng
     over; two samples of /stringEchoReq end the claim and it comes back each time. Through every
     change of path, each echo comes once and in order: messages still on their way by the
     environment arrive before the direct ones behind them (the switch markers, the held route)."""
-    async with RawRobot(eng.master_url, "directO") as r:
+    # never shed, even on a loaded machine (maxLag=0): every message must come back
+    async with RawRobot(eng.master_url, "directO", query="&maxLag=0") as r:
         ctag = "directOC"
         echoes: list[int] = []
         sent = 0

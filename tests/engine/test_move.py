@@ -120,7 +120,8 @@ def host_of(eng, ctag: str) -> str:
 
 
 async def test_moves_to_the_robot_and_back_lose_nothing(eng):
-    async with RawRobot(eng.master_url, "mover") as r:
+    # never shed, even on a loaded machine (maxLag=0): every message must come back
+    async with RawRobot(eng.master_url, "mover", query="&maxLag=0") as r:
         await _echo_container(r, "echoM", "Converter", {"placement": "auto", "robot": "mover", "deadline_ms": 1000})
         assert host_of(eng, "echoM") == "dc1"
         s = Stream(r)

@@ -109,7 +109,8 @@ async def test_moves_across_a_thin_link_lose_nothing(world):
     lab, link, e = world
     for side in ("a", "b"):
         lab.shape(link, side, "2mbit")
-    async with RawRobot(e.master_url, ROBOT) as r:
+    # never shed, even on a loaded machine (maxLag=0): every message must come back
+    async with RawRobot(e.master_url, ROBOT, query="&maxLag=0") as r:
         await _echo_container(r, "thin", "Converter", {"placement": "robot", "robot": ROBOT})
         assert host_of(e, "thin") == "f-computer"
         b = Bursts(r)
