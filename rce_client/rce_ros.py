@@ -51,6 +51,7 @@ from __future__ import annotations
 
 import argparse
 import asyncio
+import math
 import os
 import signal
 import socket
@@ -245,7 +246,8 @@ class RobotBridge:
     in a task, ``ready`` tells when the interfaces are up, ``stop.set()`` tears down.
     ``resume``: ask for session resume and ride out lost links (:class:`Connection` ``allow_reconnect``).
     ``lanes``, ``bulk_rate``, ``mptcp``: a bulk link beside the session's (paced as ``bulk_rate`` says),
-    Multipath TCP (:class:`Connection`; docs/lanes.md).
+    Multipath TCP (:class:`Connection`; docs/lanes.md). ``max_lag``: s the cloud endpoint may stay behind
+    this robot's frames before it sheds its topic messages (``maxLag``; 0: never; None: the endpoint's).
     ``graph(bridge)`` makes the robot-side graph the interfaces are bridged to (default
     :class:`LocalBusGraph`; ``rce-ros --ros``: :class:`rce_client.ros1_bridge.RospyGraph`).
     ``relays``: [(host, port)] of relays to reach the cloud through when the direct path fails (or
@@ -260,13 +262,13 @@ class RobotBridge:
                  relays: list[tuple[str, int]] | None = None, relay_port: int | None = None,
                  relay_max: int = DEFAULT_MAX_FOLLOWERS, relay_rate: float = DEFAULT_RATE, relay_bind: str = "0.0.0.0",
                  routes: Routes | None = None, lanes: bool = False, bulk_rate: Pacing | None = None,
-                 mptcp: bool = False, record: str | None = None):
+                 mptcp: bool = False, record: str | None = None, max_lag: float | None = None):
         self.cfg, self.source, self.bus_path = config, source, bus_path
         self.record = record                     # --record FILE.mcap|FILE.bag: the bridged topics recorded
         self.recorder = None
         self.not_recorded = 0
         self.timeout, self.keep, self.resume = timeout, keep, resume
-        self.lanes, self.bulk_rate, self.mptcp = lanes, bulk_rate, mptcp
+        self.lanes, self.bulk_rate, self.mptcp, self.max_lag = lanes, bulk_rate, mptcp, max_lag
         self.url = url or config.url
         self.registry = registry or default_registry()
         self.out = out or (lambda text: print(text, flush=True))
@@ -393,7 +395,7 @@ class RobotBridge:
         self.conn = await self._until_stop(Connection.connect(self.url, cfg.userID, cfg.password, cfg.robotID,
                                                               allow_reconnect=self.resume, routes=self.routes,
                                                               lanes=self.lanes, bulk_rate=self.bulk_rate,
-                                                              mptcp=self.mptcp))
+                                                              mptcp=self.mptcp, max_lag=self.max_lag))
         conn = self.conn
         conn.on_error(lambda reason: self.err(f"rce-ros: error from the cloud: {reason}"))
         conn.on_status(self._on_status)
@@ -610,6 +612,9 @@ def build_parser() -> argparse.ArgumentParser:
                    help="with --lanes, pace the bulk link to RATE: bytes/s, or with a unit (1.25MB, 10Mbit), a little "
                         "below the robot's uplink; 'auto' (the default): under the rate estimated for the uplink's "
                         "path; 'off': not paced (docs/lanes.md)")
+    p.add_argument("--max-lag", type=float, metavar="S",
+                   help="seconds the cloud endpoint may stay behind this robot's frames before it sheds its topic "
+                        "messages, counted (0: never, for streams that must come whole; default: the endpoint's, 1 s)")
     p.add_argument("--mptcp", action="store_true",
                    help="connect over Multipath TCP where the kernel offers it (net.mptcp.enabled), else TCP")
     tls.add_client_arguments(p)
@@ -638,6 +643,8 @@ def main(argv: list[str] | None = None) -> None:
         build_parser().error(str(e))
     if args.relay_max < 1:
         build_parser().error(f"--relay-max must be at least 1, got {args.relay_max}")
+    if args.max_lag is not None and not (args.max_lag >= 0 and math.isfinite(args.max_lag)):
+        build_parser().error(f"--max-lag must be 0 or more seconds, got {args.max_lag:g}")
     if args.ca_file:           # the https:// login and the wss:// endpoint trust it (rce.transport.tls.client_context)
         os.environ[tls.CA_FILE_ENV] = str(args.ca_file)
 
@@ -649,7 +656,8 @@ def main(argv: list[str] | None = None) -> None:
         bridge = RobotBridge(cfg, args.config, bus_path, timeout=args.timeout, keep=args.keep, url=args.url,
                              resume=args.resume, graph=graph, relays=relays, relay_port=args.relay_port,
                              relay_max=args.relay_max, relay_rate=args.relay_rate, lanes=args.lanes,
-                             bulk_rate=args.uplink_rate, mptcp=args.mptcp, record=args.record)
+                             bulk_rate=args.uplink_rate, mptcp=args.mptcp, record=args.record,
+                             max_lag=args.max_lag)
         loop = asyncio.get_running_loop()
         for sig in (signal.SIGINT, signal.SIGTERM):
             loop.add_signal_handler(sig, bridge.stop.set)

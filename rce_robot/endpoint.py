@@ -491,7 +491,7 @@ class RobotEndpoint:
         if (opened := self.opening.pop((user, robot), None)) is not None:
             opened.set()
         log.info("robot connected", user=user, robot=robot, peer=str(ws.remote_address), resume=ws.rce_resume,
-                 relay=ws.rce_relay or None)
+                 relay=ws.rce_relay or None, max_lag=ws.rce_max_lag or 0)     # s; 0: never shed
         self._relayed(ns, ws.rce_relay)
         await ns.serve(ws)
 

@@ -169,3 +169,12 @@ def test_rce_ros_unreachable_master_exits_1(tmp_path, capsys):
     assert "cannot reach the master at http://127.0.0.1:9/" in err
     assert f"export RCE_BUS={tmp_path / 'b.sock'}" in out
     assert not (tmp_path / "b.sock").exists()           # the local bus went away with it
+
+
+@pytest.mark.parametrize("bad", ["-1", "nan", "inf"])
+def test_rce_ros_refuses_a_max_lag_that_is_not_0_or_more_seconds(tmp_path, capsys, bad):
+    cfg = _mutate("interfaces.0.iCls", "std_msgs/String")
+    cfg["url"] = "http://127.0.0.1:9/"
+    code, out, err = _run_rce_ros([str(write(tmp_path, cfg)), "--bus", str(tmp_path / "b.sock"), f"--max-lag={bad}"],
+                                  capsys)
+    assert code == 2 and "--max-lag must be 0 or more seconds" in err and out == ""

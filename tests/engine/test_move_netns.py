@@ -13,6 +13,7 @@ bridging its local bus, joined to the cloud by one veth pair.
 from __future__ import annotations
 
 import asyncio
+import json
 import os
 import time
 from pathlib import Path
@@ -131,10 +132,14 @@ def host_of(e, ctag: str) -> str:
 
 async def test_moves_across_the_robots_link(world):
     lab, link, e, tmp = world
-    run = await RosRun.start(lab, "r", robot_config(f"http://{link.a_ip}:{e.http_port}/"), tmp)
+    # never shed, even on a loaded machine (--max-lag 0): every message must come back
+    run = await RosRun.start(lab, "r", robot_config(f"http://{link.a_ip}:{e.http_port}/"), tmp, "--max-lag", "0")
     node = None
     try:
         await run.wait_line("rce-ros: ready")
+        connected = [json.loads(line) for log in e.logs if log.exists() for line in log.read_text().splitlines()
+                     if '"robot connected"' in line and f'"robot": "{ROBOT}"' in line]
+        assert connected and connected[-1]["max_lag"] == 0, connected   # the endpoint took rce-ros's --max-lag
         node = await rce.node.init_node("tester", bus=str(run.bus), argv=[])
         s = Streams(node)
         await s.start()
