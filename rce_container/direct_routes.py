@@ -243,14 +243,16 @@ class DirectRoutes:
                                                                    if served_by[sub].iid in reached)
         plane = self.env.plane
         behind = {addr for addr, dst, src in targets if plane.carried(addr, dst)}
-        await session.peer.call("direct_publish", timeout=CALL_TIMEOUT, handle=handle, version=version, local=local,
-                          targets=[[links[addr].lid, dst, src] for addr, dst, src in targets], grants=grants,
-                          hold=bool(behind))
+        try:
+            await session.peer.call("direct_publish", timeout=CALL_TIMEOUT, handle=handle, version=version,
+                                    local=local, targets=[[links[addr].lid, dst, src] for addr, dst, src in targets],
+                                    grants=grants, hold=bool(behind))
+        finally:        # also when the call timed out: the node may have taken the route all the same
+            if behind:  # what went by the bus first reaches the far ends first (rce.node.links)
+                self.tasks.spawn(self._go(session, handle, version, behind), name=f"direct go {handle}")
         # frames of older versions have all arrived
         session.routes[handle] = {version: session.routes[handle][version]}
         st.pubs[handle] = key
-        if behind:      # what went by the bus first reaches the far ends first (rce.node.links)
-            self.tasks.spawn(self._go(session, handle, version, behind), name=f"direct go {handle}")
 
     async def _go(self, session: NodeSession, handle: int, version: int, addrs: set[str]) -> None:
         """Once the far planes at ``addrs`` have handed on what this environment sent them, let

@@ -15,7 +15,8 @@ follows its orders, which come as requests on the node's bus link:
   publisher sent by the bus may still be on their way to the far ends (the environment's link to
   them still connects, or is slow); the route's messages wait here, in order (at most
   :data:`MAX_HELD`, the oldest dropped and counted), until ``direct_go {handle, version}`` says
-  those have been handed on there (:meth:`rce.transport.dataplane.DataPlane.flush`).
+  those have been handed on there (:meth:`rce.transport.dataplane.DataPlane.flush`), or
+  :data:`ROUTE_HOLD` s pass.
 - ``direct_subscribe {link, iid, peers, handles, gen, size, grants, at?}``: claim interface ``iid`` on
   ``link`` as one of the ``size`` members of claim generation ``gen`` (:mod:`rce.transport.dataplane`,
   "Direct links"): once all have claimed, its messages from ``peers`` arrive here and go to
@@ -59,6 +60,7 @@ FD_WAIT = 10.0                    # s ``direct_link`` waits for its socket on th
 MAX_FDS = 16                      # sockets taken per read of the fd channel
 MAX_BUFFER = 16 * 1024 * 1024     # bytes that may wait unread per direct link (then messages drop, counted)
 MAX_HELD = 1000                   # messages a held route keeps until ``direct_go``
+ROUTE_HOLD = 10.0                 # s a held route waits for ``direct_go`` at most (then it sends, and says so)
 SWITCH_HOLD = 2.0                 # s direct messages wait at most for the bus path's switch marker
 MAX_PASSED = 64                   # switch markers kept that came by the bus before their direct one
 
@@ -76,20 +78,22 @@ class _Route:
     has other subscribers too; ``version``: marks its bus frames; ``held``: its messages waiting
     for ``direct_go`` (None: it sends at once)."""
 
-    __slots__ = ("version", "targets", "local", "held")
+    __slots__ = ("version", "targets", "local", "held", "timer")
 
     def __init__(self, version: int, targets: list, local: bool, hold: bool = False):
         self.version, self.targets, self.local = version, targets, local
         self.held: deque[bytes] | None = deque() if hold else None
+        self.timer: asyncio.TimerHandle | None = None
 
 
 class _Hold:
-    """Direct messages held after a switch marker ``sid`` until the bus path's marker comes."""
+    """Direct messages held after a switch marker ``sid`` until the bus path's marker comes;
+    ``handles``: the subscribers they are for (kept should the claim end meanwhile)."""
 
-    __slots__ = ("sid", "queue", "timer")
+    __slots__ = ("sid", "queue", "timer", "handles")
 
-    def __init__(self, sid: int, timer: asyncio.TimerHandle):
-        self.sid, self.timer = sid, timer
+    def __init__(self, sid: int, timer: asyncio.TimerHandle, handles: tuple[int, ...]):
+        self.sid, self.timer, self.handles = sid, timer, handles
         self.queue: deque[bytes] = deque()
 
 
@@ -115,6 +119,7 @@ class DirectLinks:
         self._holds: dict[tuple[int, int], _Hold] = {}       # (link, interface id) -> held after a switch marker
         self._passed: dict[tuple[int, int], None] = {}       # (iid, marker id) that came by the bus first
         self.switch_timeouts = 0         # holds ended by SWITCH_HOLD, not by the bus path's marker
+        self.route_timeouts = 0          # held routes released by ROUTE_HOLD, not by direct_go
 
     def handlers(self) -> dict:
         """The bus-link request handlers (op -> coroutine function)."""
@@ -222,20 +227,37 @@ class DirectLinks:
         targets = [(self._link(lid), int(dst), int(src), self.counts.setdefault(int(src), [0, 0, 0]))
                    for lid, dst, src in args.get("targets") or ()]
         old = self.routes.pop(handle, None)
-        if old is not None and old.held:
-            self._send(old, old.held)         # the older route's order is kept: its messages go first
+        if old is not None:
+            self._go(old)                     # the older route's order is kept: its messages go first
         if targets:
-            self.routes[handle] = _Route(int(args["version"]), targets, bool(args.get("local")),
-                                         bool(args.get("hold")))
+            r = self.routes[handle] = _Route(int(args["version"]), targets, bool(args.get("local")),
+                                             bool(args.get("hold")))
+            if r.held is not None:
+                r.timer = asyncio.get_running_loop().call_later(ROUTE_HOLD, self._route_expire, handle, r)
         return {}
+
+    def _route_expire(self, handle: int, r: _Route) -> None:
+        if self.routes.get(handle) is r and r.held is not None:
+            self.route_timeouts += 1
+            print(f"[{getattr(self.node, 'full_name', '?')}] no direct_go for publisher {handle} in "
+                  f"{ROUTE_HOLD:g} s: its held messages go", file=sys.stderr)
+            self._go(r)
+
+    def _go(self, r: _Route) -> None:
+        """Route ``r`` holds no more: what it held goes, in order."""
+        if r.timer is not None:
+            r.timer.cancel()
+            r.timer = None
+        if r.held is not None:
+            held, r.held = r.held, None
+            self._send(r, held)
 
     async def op_direct_go(self, args: dict) -> None:
         """``{handle, version}`` (a notification): what publisher ``handle`` sent by the bus before its
         route ``version`` has been handed on at the far ends; the route's held messages go."""
         r = self.routes.get(int(args["handle"]))
-        if r is not None and r.version == int(args["version"]) and r.held is not None:
-            held, r.held = r.held, None
-            self._send(r, held)
+        if r is not None and r.version == int(args["version"]):
+            self._go(r)
 
     async def op_direct_subscribe(self, args: dict) -> dict:
         """``{link, iid, peers, handles, gen, size, grants}``: claim interface ``iid`` on ``link``."""
@@ -287,7 +309,9 @@ class DirectLinks:
         key = (lid, iid)
         if key in self._holds:
             self._release(key)
-        self._holds[key] = _Hold(sid, asyncio.get_running_loop().call_later(SWITCH_HOLD, self._expire, key))
+        claim = self.claims.get(key)
+        self._holds[key] = _Hold(sid, asyncio.get_running_loop().call_later(SWITCH_HOLD, self._expire, key),
+                                 claim[1] if claim is not None else ())
 
     def _expire(self, key: tuple[int, int]) -> None:
         self.switch_timeouts += 1
@@ -300,12 +324,9 @@ class DirectLinks:
         if hold is None:
             return
         hold.timer.cancel()
-        claim = self.claims.get(key)
+        claim = self.claims.get(key) or (frozenset(), hold.handles)      # the claim may have ended meanwhile
         for payload in hold.queue:
-            if claim is None:
-                self.counts.setdefault(key[1], [0, 0, 0])[2] += 1
-            else:
-                self._deliver(claim, key[1], payload)
+            self._deliver(claim, key[1], payload)
 
     async def op_direct_counts(self, args: dict) -> dict:
         """``{}`` -> ``{iid: [messages, bytes, dropped]}`` since the node started."""
@@ -426,7 +447,7 @@ class DirectLinks:
             sub = subs.get(h)
             if sub is not None:
                 sub._push(payload)
-        c = self.counts[iid]
+        c = self.counts.setdefault(iid, [0, 0, 0])
         c[0] += 1
         c[1] += len(payload)
 
@@ -454,4 +475,7 @@ class DirectLinks:
         for hold in self._holds.values():
             hold.timer.cancel()
         self._holds.clear()
+        for r in self.routes.values():
+            if r.timer is not None:
+                r.timer.cancel()
         self._close_channel()

@@ -118,3 +118,38 @@ async def test_a_held_route_sends_once_the_environment_says_go(node_with_a_link)
     assert pub.publish_nowait({"data": "r3"})          # released: at once
     f = decoder.feed(await asyncio.wait_for(rb.read(4096), STEP))
     assert [bytes(x.payload) for x in f] == [string("r3")]
+
+
+async def test_a_held_route_without_go_sends_after_route_hold(node_with_a_link, monkeypatch):
+    """The environment's ``direct_go`` never comes (its call timed out, it went): the route's held
+    messages go after ROUTE_HOLD, in order, and the node counts it."""
+    monkeypatch.setattr(links, "ROUTE_HOLD", 0.2)
+    b, server, node, direct, far, got = node_with_a_link
+    (ra, wa), (rb, wb) = pipe()
+    direct.links[2] = FramedLink(ra, wa, name="direct link 2", on_frame=lambda f: None).start()
+    pub = await node.publisher("/resp", "std_msgs/String")
+    await direct.op_direct_publish({"handle": pub.handle, "version": 5, "targets": [[2, 40, 20]],
+                                    "local": False, "hold": True})
+    for i in range(2):
+        assert pub.publish_nowait({"data": f"r{i}"})
+    decoder = framing.FrameDecoder()
+    frames: list = []
+    while len(frames) < 2:
+        frames += decoder.feed(await asyncio.wait_for(rb.read(4096), STEP))
+    assert [bytes(f.payload) for f in frames] == [string("r0"), string("r1")]
+    assert direct.route_timeouts == 1
+
+
+async def test_messages_held_when_the_claim_ends_still_reach_the_subscriber(node_with_a_link):
+    """The claim ends (released) while direct messages wait behind a switch marker: they were the
+    node's, and its subscriber gets them when the bus path's marker comes."""
+    b, server, node, direct, far, got = node_with_a_link
+    far_end(far, {"switch": IID, "id": 3}, "direct-0")
+    for _ in range(100):
+        if direct._holds and direct._holds[(LID, IID)].queue:
+            break
+        await asyncio.sleep(0)
+    direct._control(LID, {"released": IID})
+    (session,) = server.sessions
+    session.peer.notify("direct_switch", iid=IID, id=3)
+    assert await taken(got, 1) == ["direct-0"]
