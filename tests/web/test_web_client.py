@@ -134,7 +134,8 @@ class ThreadedProxy:
 
 SETUP_RESUME_JS = """async ({url, rid}) => {
     const m = await import('./rce.js');
-    const c = new m.Client({userID: 'testUser', robotID: rid, password: 'testUser', endpoint: url, reconnect: true});
+    const c = new m.Client({userID: 'testUser', robotID: rid, password: 'testUser', endpoint: url, reconnect: true,
+                            maxLag: 0});
     const t = window.resumeTest = {got: [], events: [], c};
     c.on('disconnected', () => t.events.push('disconnected'));
     c.on('reconnected', () => t.events.push('reconnected'));
@@ -186,6 +187,11 @@ def test_the_page_resumes_a_lost_link_with_its_token(ui_engine, web_root, page, 
         resume = px.proxy.requests[-1].decode()
         assert "session=" in resume and "password" not in resume and "resume=1" not in resume
         assert "password=" in px.proxy.requests[0].decode() and "resume=1" in px.proxy.requests[0].decode()
+        assert "maxLag=0" in px.proxy.requests[0].decode() and "maxLag=0" in resume     # kept across the resume
+        bad = page.evaluate("""async () => { const m = await import('./rce.js');
+            try { new m.Client({userID: 'u', robotID: 'r', password: 'p', maxLag: -1}); return null; }
+            catch (e) { return e.message; } }""")
+        assert bad and "maxLag must be null or a number of seconds >= 0" in bad
         assert page.evaluate("window.resumeTest.c._password") is None
     finally:
         page.evaluate("() => window.resumeTest && window.resumeTest.c.close()")

@@ -212,9 +212,10 @@ async function onLogin(ev) {
   try {
     if (cfg.apiLogin || apiToken) await apiLogin($("user").value.trim(), password);
     const container = $("container").value.trim() || cfg.container;
-    // reconnect: a lost link is resumed with the session token the client keeps (the password is gone)
+    // reconnect: a lost link is resumed with the session token the client keeps (the password is gone);
+    // maxLag 0: an operator's commands (tasks, cancels, goals, blocks) are never shed by a loaded endpoint
     c = new Client({ master: $("master").value.trim(), userID: $("user").value.trim(), robotID, password,
-                     reconnect: true });
+                     reconnect: true, maxLag: 0 });
     await c.connect();
     client = c;
     view.updates = 0;                 // a new session: its first state is announced again

@@ -716,7 +716,9 @@ export class Client {
    * of a known robot endpoint: no login at the master); reconnect (ask for session
    * resume and ride out lost links), maxReconnectAttempts (dials per gap; null: until the session's
    * grace has passed), reconnectWaitMs, maxReconnectWaitMs (the backoff), resumeBuffer (messages kept
-   * until the cloud acks them).
+   * until the cloud acks them); maxLag (s the robot endpoint may stay behind this connection's frames
+   * before it sheds its topic messages, counted; 0: never, for an operator's commands; null: the
+   * endpoint's default, 1 s; docs/INTERNALS.md "A peer that does not keep up"), kept across resumes.
    *
    * Events (on()): "status" (data of every ST), "interface" (iTag, up), "error" (the text of an
    * ER that no call or barrier took), "message" (dm: {iTag, type, msgID, msg}), "notice" (text:
@@ -727,7 +729,11 @@ export class Client {
    */
   constructor({ master, userID, robotID, password, version = CLIENT_VERSION, expiry = DEFAULT_EXPIRY, endpoint = null,
                 reconnect = false, maxReconnectAttempts = null, reconnectWaitMs = RECONNECT_WAIT_MS,
-                maxReconnectWaitMs = RECONNECT_WAIT_MAX_MS, resumeBuffer = DEFAULT_RESUME_BUFFER }) {
+                maxReconnectWaitMs = RECONNECT_WAIT_MAX_MS, resumeBuffer = DEFAULT_RESUME_BUFFER, maxLag = null }) {
+    if (maxLag !== null && !(typeof maxLag === "number" && maxLag >= 0 && Number.isFinite(maxLag))) {
+      throw new RCEError("usage", `maxLag must be null or a number of seconds >= 0, got ${JSON.stringify(maxLag)}`);
+    }
+    this.maxLag = maxLag;
     this.master = master;
     this.endpoint = endpoint;
     this.userID = userID;
@@ -784,7 +790,8 @@ export class Client {
 
   /** The robot endpoint's URL with userID, robotID and `extra` query values. */
   _url(extra) {
-    const q = new URLSearchParams({ userID: this.userID, robotID: this.robotID, ...extra });
+    const q = new URLSearchParams({ userID: this.userID, robotID: this.robotID,
+                                    ...(this.maxLag !== null ? { maxLag: String(this.maxLag) } : {}), ...extra });
     return this.wsUrl + (this.wsUrl.includes("?") ? "&" : "?") + q.toString();
   }
 
