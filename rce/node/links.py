@@ -239,9 +239,12 @@ class DirectLinks:
     def _route_expire(self, handle: int, r: _Route) -> None:
         if self.routes.get(handle) is r and r.held is not None:
             self.route_timeouts += 1
-            print(f"[{getattr(self.node, 'full_name', '?')}] no direct_go for publisher {handle} in "
-                  f"{ROUTE_HOLD:g} s: its held messages go", file=sys.stderr)
+            self._say(f"no direct_go for publisher {handle} in {ROUTE_HOLD:g} s: its held messages go")
             self._go(r)
+
+    def _say(self, text: str) -> None:
+        """A line on the node's stderr (its log), naming the node."""
+        print(f"[{getattr(self.node, 'full_name', '?')}] {text}", file=sys.stderr)
 
     def _go(self, r: _Route) -> None:
         """Route ``r`` holds no more: what it held goes, in order."""
@@ -315,8 +318,8 @@ class DirectLinks:
 
     def _expire(self, key: tuple[int, int]) -> None:
         self.switch_timeouts += 1
-        print(f"[{getattr(self.node, 'full_name', '?')}] no switch marker by the bus for interface {key[1]} "
-              f"in {SWITCH_HOLD:g} s: its direct messages go on", file=sys.stderr)
+        self._say(f"no switch marker by the bus for interface {key[1]} in {SWITCH_HOLD:g} s: "
+                  f"its direct messages go on")
         self._release(key)
 
     def _release(self, key: tuple[int, int]) -> None:
@@ -324,9 +327,10 @@ class DirectLinks:
         if hold is None:
             return
         hold.timer.cancel()
-        claim = self.claims.get(key) or (frozenset(), hold.handles)      # the claim may have ended meanwhile
+        claim = self.claims.get(key)
+        handles = claim[1] if claim is not None else hold.handles      # the claim may have ended meanwhile
         for payload in hold.queue:
-            self._deliver(claim, key[1], payload)
+            self._deliver(handles, key[1], payload)
 
     async def op_direct_counts(self, args: dict) -> dict:
         """``{}`` -> ``{iid: [messages, bytes, dropped]}`` since the node started."""
@@ -432,7 +436,7 @@ class DirectLinks:
         payload = bytes(frame.payload)
         hold = self._holds.get((lid, frame.dst)) if self._holds else None
         if hold is None:
-            self._deliver(claim, frame.dst, payload)
+            self._deliver(claim[1], frame.dst, payload)
             return
         subs = self.node._subs
         if len(hold.queue) >= max((subs[h].queue_size for h in claim[1] if h in subs), default=1):
@@ -440,10 +444,10 @@ class DirectLinks:
             self.counts[frame.dst][2] += 1
         hold.queue.append(payload)
 
-    def _deliver(self, claim: tuple[frozenset[int], tuple[int, ...]], iid: int, payload: bytes) -> None:
-        """Give ``payload`` (a message for claimed interface ``iid``) to the claim's subscribers."""
+    def _deliver(self, handles: tuple[int, ...], iid: int, payload: bytes) -> None:
+        """Give ``payload`` (a message for claimed interface ``iid``) to subscribers ``handles``."""
         subs = self.node._subs
-        for h in claim[1]:
+        for h in handles:
             sub = subs.get(h)
             if sub is not None:
                 sub._push(payload)

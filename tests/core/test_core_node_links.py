@@ -49,6 +49,27 @@ async def taken(got: asyncio.Queue, n: int) -> list[str]:
     return [await asyncio.wait_for(got.get(), STEP) for _ in range(n)]
 
 
+async def held_route(node, direct, version: int, n: int):
+    """A publisher of /resp routed on a second direct link (its far end's reader returned), to
+    interface 40 from 20, its route held (``hold``), and ``n`` messages ``r0``... published."""
+    (ra, wa), (rb, wb) = pipe()
+    direct.links[2] = FramedLink(ra, wa, name="direct link 2", on_frame=lambda f: None).start()
+    pub = await node.publisher("/resp", "std_msgs/String")
+    await direct.op_direct_publish({"handle": pub.handle, "version": version, "targets": [[2, 40, 20]],
+                                    "local": False, "hold": True})
+    for i in range(n):
+        assert pub.publish_nowait({"data": f"r{i}"})
+    return pub, rb
+
+
+async def frames_on(reader: asyncio.StreamReader, decoder, n: int) -> list:
+    """The next ``n`` frames (at least) on ``reader``."""
+    frames: list = []
+    while len(frames) < n:
+        frames += decoder.feed(await asyncio.wait_for(reader.read(4096), STEP))
+    return frames
+
+
 async def test_direct_messages_behind_a_switch_marker_wait_for_the_bus_path(node_with_a_link):
     """The far end switches while two messages are still on their way by the environment: the
     direct ones wait until the environment's notification comes behind them on the bus."""
@@ -99,21 +120,13 @@ async def test_a_held_route_sends_once_the_environment_says_go(node_with_a_link)
     """A route given while the publisher's earlier messages may still be on their way by the
     environment (``hold``): its messages wait, in order, until ``direct_go``, then go."""
     b, server, node, direct, far, got = node_with_a_link
-    (ra, wa), (rb, wb) = pipe()
-    direct.links[2] = FramedLink(ra, wa, name="direct link 2", on_frame=lambda f: None).start()
-    pub = await node.publisher("/resp", "std_msgs/String")
-    await direct.op_direct_publish({"handle": pub.handle, "version": 4, "targets": [[2, 40, 20]],
-                                    "local": False, "hold": True})
-    for i in range(3):
-        assert pub.publish_nowait({"data": f"r{i}"})
+    pub, rb = await held_route(node, direct, 4, 3)
     decoder = framing.FrameDecoder()
     await asyncio.sleep(0)
     assert not rb._buffer, "nothing before go"
     (session,) = server.sessions
     session.peer.notify("direct_go", handle=pub.handle, version=4)
-    frames: list = []
-    while len(frames) < 3:
-        frames += decoder.feed(await asyncio.wait_for(rb.read(4096), STEP))
+    frames = await frames_on(rb, decoder, 3)
     assert [(f.dst, f.src, bytes(f.payload)) for f in frames] == [(40, 20, string(f"r{i}")) for i in range(3)]
     assert pub.publish_nowait({"data": "r3"})          # released: at once
     f = decoder.feed(await asyncio.wait_for(rb.read(4096), STEP))
@@ -125,17 +138,8 @@ async def test_a_held_route_without_go_sends_after_route_hold(node_with_a_link, 
     messages go after ROUTE_HOLD, in order, and the node counts it."""
     monkeypatch.setattr(links, "ROUTE_HOLD", 0.2)
     b, server, node, direct, far, got = node_with_a_link
-    (ra, wa), (rb, wb) = pipe()
-    direct.links[2] = FramedLink(ra, wa, name="direct link 2", on_frame=lambda f: None).start()
-    pub = await node.publisher("/resp", "std_msgs/String")
-    await direct.op_direct_publish({"handle": pub.handle, "version": 5, "targets": [[2, 40, 20]],
-                                    "local": False, "hold": True})
-    for i in range(2):
-        assert pub.publish_nowait({"data": f"r{i}"})
-    decoder = framing.FrameDecoder()
-    frames: list = []
-    while len(frames) < 2:
-        frames += decoder.feed(await asyncio.wait_for(rb.read(4096), STEP))
+    pub, rb = await held_route(node, direct, 5, 2)
+    frames = await frames_on(rb, framing.FrameDecoder(), 2)
     assert [bytes(f.payload) for f in frames] == [string("r0"), string("r1")]
     assert direct.route_timeouts == 1
 
