@@ -13,7 +13,7 @@ import numpy as np
 import pytest
 
 from rce_fleet.cli import main
-from rce_fleet.lifelong import MAPF, MAPF_T, load_problem, replay
+from rce_fleet.lifelong import MAPF, MAPF_T, ProblemError, load_problem, replay
 from rce_fleet.lifelong.grid import MAX_STEPS
 from rce_fleet.lifelong.kernels import UNREACHABLE
 from rce_fleet.lifelong.runner import run_lifelong
@@ -109,6 +109,32 @@ def test_the_2023_form_and_a_rows_cols_header_run(tmp_path):
     assert e.value.code == 0
     d = json.loads(out.read_text())
     assert d["teamSize"] == 3 and d["numTaskFinished"] > 0 and d["numPlannerErrors"] == 0
+
+
+def test_a_movingai_map_of_0_1_values_is_read_and_generated_on_for_the_start_kit_too(tmp_path):
+    """The converted MovingAI form of the shared data (rows, columns, then 0/1 values, 1 blocked):
+    read as the one-shot planner reads it, a problem generated on it names an octile copy the
+    start-kit can read (same cells), and it runs under the rules; a bad row is named with its line."""
+    from rce_fleet.lifelong import load_lorr_map
+    from rce_fleet.lifelong.generate import write_problem as generate
+    from rce_fleet.planning import load_movingai_map
+    src = Path(__file__).resolve().parents[2] / ".." / "shared" / "data" / "mapf" / "warehouse-10-20-10-2-1.map"
+    grid = load_lorr_map(src)
+    assert grid.free.shape == (63, 161) and (grid.free == load_movingai_map(src).free).all()
+    prob = generate(src, 40, 3, tmp_path / "gen", tasks=500)
+    spec = json.loads(prob.read_text())
+    copy = (prob.parent / spec["mapFile"]).resolve()
+    assert copy.parent == (tmp_path / "gen" / "maps").resolve()
+    text = copy.read_text().split("\n")
+    assert text[:4] == ["type octile", "height 63", "width 161", "map"] and set("".join(text[4:])) == {".", "@"}
+    problem = load_problem(prob)
+    assert (problem.grid.free == grid.free).all()
+    res = run_lifelong(problem, 20)
+    assert res.sim.t == 20 and res.sim.invalid_steps == 0
+    bad = tmp_path / "bad.map"
+    bad.write_text("2\n3\n0 1 0\n0 2 0\n")
+    with pytest.raises(ProblemError, match=r"bad\.map:4: map row 1: expected 3 values 0 \(free\) or 1 \(blocked\)"):
+        load_lorr_map(bad)
 
 
 def test_a_map_in_separate_parts_runs_to_the_end_and_names_the_task_no_robot_can_finish(tmp_path, capsys):

@@ -17,6 +17,7 @@ from pathlib import Path
 import numpy as np
 
 from .grid import LifelongGrid
+from ..planning.movingai import is_converted
 from .lorr import _read, load_lorr_map
 
 __all__ = ["ENDPOINT_MARKS", "generate_problem", "write_problem"]
@@ -49,8 +50,11 @@ def _largest_part(grid: LifelongGrid) -> np.ndarray:
 
 
 def _endpoints(map_path: Path, grid: LifelongGrid) -> np.ndarray:
-    """(cells,) bool: cells marked ``E`` or ``S`` in the map file (all False when none are)."""
+    """(cells,) bool: cells marked ``E`` or ``S`` in the map file (all False when none are, and on
+    a map of 0/1 values)."""
     lines = _read(map_path)
+    if is_converted(lines):
+        return np.zeros(grid.n_cells, dtype=bool)
     bare = [ln.strip() for ln in lines]
     body = lines[bare.index("map") + 1:] if "map" in bare else lines[1:]
     marks = np.zeros(grid.n_cells, dtype=bool)
@@ -95,10 +99,12 @@ def write_problem(map_path: str | Path, robots: int, seed: int, out_dir: str | P
                   tasks: int = TASKS, reveal: float = 1.5) -> Path:
     """Write a generated problem (:func:`generate_problem`) into ``out_dir`` as
     ``MAPSTEM_ROBOTS_sSEED.json`` with its ``agents/`` and ``tasks/`` files; returns the JSON's path.
-    ``reveal``: ``numTasksReveal`` (open tasks per robot; the league's 1.5)."""
-    map_path, out_dir = Path(map_path).resolve(), Path(out_dir)
-    starts, task_list = generate_problem(map_path, robots, seed, tasks)
-    name = f"{map_path.stem.replace('-', '_')}_{robots}_s{seed}"
+    ``reveal``: ``numTasksReveal`` (open tasks per robot; the league's 1.5). A map of 0/1 values
+    (:func:`~rce_fleet.planning.movingai.converted_free`), which the start-kit cannot read, is written
+    beside them as ``maps/MAPSTEM.map`` in the octile form and the JSON names that copy."""
+    src, out_dir = Path(map_path).resolve(), Path(out_dir)
+    starts, task_list = generate_problem(src, robots, seed, tasks)
+    name = f"{src.stem.replace('-', '_')}_{robots}_s{seed}"
     (out_dir / "agents").mkdir(parents=True, exist_ok=True)
     (out_dir / "tasks").mkdir(parents=True, exist_ok=True)
     (out_dir / "agents" / f"{name}.agents").write_text(
@@ -106,7 +112,14 @@ def write_problem(map_path: str | Path, robots: int, seed: int, out_dir: str | P
     (out_dir / "tasks" / f"{name}.tasks").write_text(
         "# version for LoRR 2024\n" + f"{len(task_list)}\n" + "".join(",".join(map(str, t.tolist())) + "\n"
                                                                       for t in task_list))
-    spec = {"mapFile": os.path.relpath(map_path, out_dir.resolve()), "agentFile": f"agents/{name}.agents",
+    map_file = src
+    if is_converted(_read(src)):               # 0/1 values: the start-kit reads '@' and 'T' as blocked
+        map_file = (out_dir / "maps" / f"{src.stem}.map").resolve()
+        map_file.parent.mkdir(parents=True, exist_ok=True)
+        free = load_lorr_map(src).free
+        map_file.write_text(f"type octile\nheight {free.shape[0]}\nwidth {free.shape[1]}\nmap\n"
+                            + "".join("".join(".@"[int(not v)] for v in row) + "\n" for row in free))
+    spec = {"mapFile": os.path.relpath(map_file, out_dir.resolve()), "agentFile": f"agents/{name}.agents",
             "teamSize": robots, "taskFile": f"tasks/{name}.tasks", "numTasksReveal": reveal,
             "version": "2024 LoRR"}
     path = out_dir / f"{name}.json"

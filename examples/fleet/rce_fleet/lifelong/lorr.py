@@ -22,6 +22,7 @@ from pathlib import Path
 import numpy as np
 from scipy import ndimage
 
+from ..planning.movingai import MapFileError, converted_free, is_converted, octile_header
 from .grid import LifelongGrid
 
 __all__ = ["LorrProblem", "ProblemError", "load_lorr_map", "load_problem"]
@@ -81,39 +82,35 @@ OBSTACLES = b"@T"      # every other map character is free (the start-kit's Grid
 def load_lorr_map(path: str | Path) -> LifelongGrid:
     """A :class:`LifelongGrid` from a LoRR map: a MovingAI ``type octile`` header (``height``,
     ``width``, then ``map``) or a first line ``rows,cols``, then one line per row; ``@`` and
-    ``T`` are blocked, every other character free (:data:`OBSTACLES`). Raises ProblemError
-    naming the file and line."""
+    ``T`` are blocked, every other character free (:data:`OBSTACLES`). A MovingAI map in the
+    converted form of ``../shared/data/SOURCES.md`` (rows, columns, then 0/1 values, 1 blocked:
+    :func:`~rce_fleet.planning.movingai.converted_free`) is read too. Raises ProblemError naming
+    the file and line."""
     path = Path(path)
     lines = _read(path)
-    if lines and "," in lines[0] and not lines[0].lstrip().startswith("type"):
-        try:
-            rows, cols = (int(x) for x in lines[0].split(",")[:2])
-        except ValueError:
-            raise ProblemError(path, f"expected 'rows,cols', got {lines[0]!r}", 1) from None
-        i = 0                                   # the rows follow the first line
-    else:
-        hdr: dict[str, str] = {}
-        i = 0
-        while i < len(lines) and lines[i].strip() != "map":
-            parts = lines[i].split()
-            if len(parts) == 2:
-                hdr[parts[0]] = parts[1]
-            elif parts:
-                raise ProblemError(path, f"expected 'key value' or 'map', got {lines[i]!r}", i + 1)
-            i += 1
-        try:
-            rows, cols = int(hdr["height"]), int(hdr["width"])
-        except KeyError as exc:
-            raise ProblemError(path, f"header has no {exc.args[0]!r} line", 1) from None
-        except ValueError:
-            raise ProblemError(path, "height and width must be integers", 1) from None
-        if i >= len(lines):
-            raise ProblemError(path, "no 'map' line", len(lines))
-    if rows < 1 or cols < 1:
-        raise ProblemError(path, f"the map must have at least one row and column, got {rows} x {cols}", i + 1)
+    try:
+        if is_converted(lines):
+            free = converted_free(path, lines)
+            return LifelongGrid(free)
+        if lines and "," in lines[0] and not lines[0].lstrip().startswith("type"):
+            try:
+                rows, cols = (int(x) for x in lines[0].split(",")[:2])
+            except ValueError:
+                raise ProblemError(path, f"expected 'rows,cols', got {lines[0]!r}", 1) from None
+            i = 0                                   # the rows follow the first line
+            if rows < 1 or cols < 1:
+                raise ProblemError(path, f"the map must have at least one row and column, got {rows} x {cols}", 1)
+            if len(lines) - 1 < rows:               # before allocating rows x cols
+                raise ProblemError(path, f"the header says {rows} rows but {len(lines) - 1} follow", len(lines))
+        else:
+            rows, cols, i = octile_header(path, lines)
+    except ProblemError:
+        raise
+    except MapFileError as exc:
+        raise ProblemError(exc.path, exc.reason, exc.line) from None
+    except ValueError as exc:                       # LifelongGrid's: no free cell
+        raise ProblemError(path, str(exc)) from None
     body = lines[i + 1: i + 1 + rows]
-    if len(body) < rows:                       # before allocating rows x cols
-        raise ProblemError(path, f"the header says {rows} rows but {len(body)} follow", len(lines))
     free = np.zeros((rows, cols), dtype=bool)
     blocked = np.frombuffer(OBSTACLES, dtype=np.uint8)
     for r in range(rows):

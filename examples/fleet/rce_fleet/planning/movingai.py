@@ -18,14 +18,24 @@ import numpy as np
 
 from .graph import GridGraph
 
-__all__ = ["FREE_TERRAIN", "BLOCKED_TERRAIN", "load_movingai_map", "load_movingai_scen"]
+__all__ = ["FREE_TERRAIN", "BLOCKED_TERRAIN", "MapFileError", "converted_free", "is_converted", "load_movingai_map",
+           "load_movingai_scen", "octile_header"]
 
 FREE_TERRAIN = ".GS"
 BLOCKED_TERRAIN = "@OTW"
 
 
-def _err(path: Path, line: int | None, msg: str) -> ValueError:
-    return ValueError(f"{path}:{line}: {msg}" if line is not None else f"{path}: {msg}")
+class MapFileError(ValueError):
+    """A malformed map or scenario file: ``path``, ``line`` (1-based, or None) and ``reason``;
+    its text is ``path:line: reason``."""
+
+    def __init__(self, path: str | Path, line: int | None, reason: str):
+        self.path, self.line, self.reason = str(path), line, reason
+        super().__init__(f"{path}:{line}: {reason}" if line is not None else f"{path}: {reason}")
+
+
+def _err(path: Path, line: int | None, msg: str) -> MapFileError:
+    return MapFileError(path, line, msg)
 
 
 def _lines(path: Path, what: str) -> list[str]:
@@ -45,8 +55,10 @@ def _int(path: Path, line: int, text: str, what: str) -> int:
         raise _err(path, line, f"expected {what} (an integer), got {text!r}") from None
 
 
-def _octile(path: Path, lines: list[str]) -> np.ndarray:
-    """The free cells of an original-form map: header lines ``key value`` up to ``map``."""
+def octile_header(path: Path, lines: list[str]) -> tuple[int, int, int]:
+    """(rows, columns, index of the ``map`` line) of an original-form map's ``lines``: header lines
+    ``key value`` (``height`` and ``width`` among them, in any order) up to ``map``, and at least
+    ``rows`` lines after it. Raises :class:`MapFileError` naming the file and line."""
     hdr: dict[str, tuple[int, str]] = {}
     i = 0
     while i < len(lines) and lines[i].strip() != "map":
@@ -66,11 +78,16 @@ def _octile(path: Path, lines: list[str]) -> np.ndarray:
     rows, cols = size
     if rows < 1 or cols < 1:
         raise _err(path, hdr["height"][0], f"the map must have at least one row and column, got {rows} x {cols}")
-    body = lines[i + 1:i + 1 + rows]
-    if len(body) < rows:                     # before allocating rows x cols
-        raise _err(path, len(lines), f"the header says {rows} rows but {len(body)} follow")
+    if len(lines) - i - 1 < rows:            # before allocating rows x cols
+        raise _err(path, len(lines), f"the header says {rows} rows but {len(lines) - i - 1} follow")
+    return rows, cols, i
+
+
+def _octile(path: Path, lines: list[str]) -> np.ndarray:
+    """The free cells of an original-form map (:func:`octile_header`, then the terrain)."""
+    rows, cols, i = octile_header(path, lines)
     free = np.zeros((rows, cols), dtype=bool)
-    for r, ln in enumerate(body):
+    for r, ln in enumerate(lines[i + 1:i + 1 + rows]):
         if len(ln) < cols:
             raise _err(path, i + 2 + r, f"map row {r} has {len(ln)} cells, expected {cols}")
         for c, ch in enumerate(ln[:cols]):
@@ -81,8 +98,14 @@ def _octile(path: Path, lines: list[str]) -> np.ndarray:
     return free
 
 
-def _converted(path: Path, lines: list[str]) -> np.ndarray:
-    """The free cells of a converted-form map: rows, columns, then 0/1 values (1 = blocked)."""
+def is_converted(lines: list[str]) -> bool:
+    """Whether ``lines`` are a converted-form map: its first two lines one integer each."""
+    return len(lines) >= 2 and lines[0].strip().isdigit() and lines[1].strip().isdigit()
+
+
+def converted_free(path: Path, lines: list[str]) -> np.ndarray:
+    """(rows, cols) bool, True where free, of a converted-form map's ``lines``: rows, columns, then
+    0/1 values (1 = blocked). Raises :class:`MapFileError` naming the file and line."""
     if len(lines) < 2:
         raise _err(path, 1, "expected the number of rows and of columns on the first two lines")
     rows, cols = _int(path, 1, lines[0].strip(), "the number of rows"), _int(path, 2, lines[1].strip(), "the columns")
@@ -107,11 +130,11 @@ def load_movingai_map(path: str | Path) -> GridGraph:
     values (1 = blocked). Original form: ``type octile``, ``height``, ``width`` (in any
     order), ``map``, then the rows; terrain per :data:`FREE_TERRAIN` and
     :data:`BLOCKED_TERRAIN`. Raises ValueError naming the file and line: a missing file, a bad
-    header, a short row, an unknown character, or no free cell.
+    header, a short row, an unknown character, or no free cell (a :class:`MapFileError`).
     """
     path = Path(path)
     lines = _lines(path, "map")
-    free = _octile(path, lines) if lines[0].strip().startswith("type") else _converted(path, lines)
+    free = _octile(path, lines) if lines[0].strip().startswith("type") else converted_free(path, lines)
     if not free.any():
         raise _err(path, None, "the map has no free cell")
     return GridGraph(free)
