@@ -19,8 +19,10 @@
    goes anyway, and the fall-back is logged and counted (:attr:`Mover.fence_timeouts`). When its
    nodes hand their state over (:meth:`rce.node.Node.handoff`), the new copy was made holding its
    inputs; the old copy hands its state out after the same fence, the new copy takes it, then the
-   inputs it held, in order (nothing handled twice, nothing skipped). Without a hook the new copy
-   handles new inputs from the switch on, while the old one finishes its last ones.
+   inputs it held, in order (nothing handled twice, nothing skipped). A container made with
+   ``ordered_moves`` is moved the same way without a state: its results keep one order per
+   interface. Otherwise the new copy handles new inputs from the switch on, while the old one
+   finishes its last ones.
 
 A move that fails before the switch (the new host refuses, a node does not come up) destroys
 what it made there and leaves the container running where it was (:class:`MoveFailed`).
@@ -123,8 +125,9 @@ class Mover:
             now = time.monotonic()
             steps[name], mark[0] = round(now - mark[0], 3), now
         try:
-            handoff = (await self.control.host_call(c, "describe")).get("handoff") or []
-            answer = await self.control.create_container(new, handoff=bool(handoff))
+            hooks = (await self.control.host_call(c, "describe")).get("handoff") or []
+            handoff = bool(hooks) or bool(c.data.get("ordered_moves"))     # the new copy holds its inputs
+            answer = await self.control.create_container(new, handoff=handoff)
             step("create")
             for name, value in self.state.params_of(c):
                 await self.control.host_call(new, "set_param", name=name, value=value)

@@ -112,6 +112,7 @@ PLACEMENTS = ("auto", "cloud", "edge", "robot")
 Placement = Annotated[str, _rule(lambda v: v in PLACEMENTS, "must be one of 'auto', 'cloud', 'edge', 'robot'")]
 #: A time in ms, greater than 0.
 Millis = Annotated[float, _rule(lambda v: _is_number(v) and v > 0, "must be a number of ms greater than 0")]
+Flag = Annotated[bool, _rule(lambda v: isinstance(v, bool), "must be true or false")]
 #: Interface tags of the robot a container serves.
 Tags = Annotated[list[str], _rule(lambda v: isinstance(v, list) and all(_is_str(t) and t for t in v),
                                   "must be a list of non-empty strings")]
@@ -145,7 +146,11 @@ class ContainerData(Component):
     ``placement`` (``auto``, the default once any of these is given; ``cloud``, ``edge``,
     ``robot``), ``deadline_ms`` (the latency its results are due within, input to output),
     ``robot`` (the robotID it serves; needed for ``robot``) and ``consumes`` (the interface tags of
-    that robot it reads, whose measured bytes a placement off the robot carries over the link)."""
+    that robot it reads, whose measured bytes a placement off the robot carries over the link).
+    ``ordered_moves``: true makes a move's new copy hold its inputs until the old copy has handled
+    its last ones and its peers have its last results, so that results keep one order per
+    interface across the move (its gap is then the old copy's drain); false or absent: the new
+    copy serves at once (``docs/placement.md``, Moves)."""
     group: Text | None = None
     groupIp: Text | None = None
     size: Limit | None = None
@@ -158,6 +163,7 @@ class ContainerData(Component):
     deadline_ms: Millis | None = None
     robot: Tag | None = None
     consumes: Tags | None = None
+    ordered_moves: Flag | None = None
 
     @model_validator(mode="after")
     def _robot_named(self):

@@ -109,12 +109,15 @@ def test_a_robot_config_states_what_its_container_needs():
     from rce.protocol.config import parse_config
     base = {"url": "http://m:9000/", "userID": "alice", "password": "p", "robotID": "r1"}
     cfg = parse_config({**base, "containers": [{"cTag": "costmap", "placement": "auto", "deadline_ms": 100,
-                                                "robot": "r1", "consumes": ["scan"], "cpu": 0.5}]})
+                                                "robot": "r1", "consumes": ["scan"], "cpu": 0.5,
+                                                "ordered_moves": True}]})
     assert cfg.containers[0].container_data() == {"placement": "auto", "deadline_ms": 100, "robot": "r1",
-                                                  "consumes": ["scan"], "cpu": 0.5}
+                                                  "consumes": ["scan"], "cpu": 0.5, "ordered_moves": True}
     assert parse_config({**base, "containers": [{"cTag": "old"}]}).containers[0].container_data() == {}
     with pytest.raises(ConfigError, match=r"containers\[0\]\.deadline_ms: must be a number of ms greater than 0"):
         parse_config({**base, "containers": [{"cTag": "c", "deadline_ms": -1}]})
+    with pytest.raises(ConfigError, match=r"containers\[0\]\.ordered_moves: must be true or false"):
+        parse_config({**base, "containers": [{"cTag": "c", "ordered_moves": "yes"}]})
 
 
 def test_the_measured_latency_where_it_runs_overrides_a_hopeful_model():

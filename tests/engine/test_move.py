@@ -9,7 +9,9 @@ its container and reads the echoes.
   running where it was, the stream undisturbed;
 - a node that hands its state over (``Node.handoff``: a counter of the messages it handled) goes on
   counting on the new host from where the old copy stopped: every count once, in order;
-- each container's results are timed by the engine from input to output, against its deadline.
+- each container's results are timed by the engine from input to output, against its deadline;
+- a container with ``ordered_moves`` keeps its echoes in order though its old copy has a backlog
+  (a node of 40 ms an input, sent a burst) when the move begins.
 
 Prints each move's longest gap between echoes (``pytest -s``).
 """
@@ -55,6 +57,26 @@ rce.node.run(main, "stringEcho")
 """
 
 
+SLOW = """#!/usr/bin/env python3
+import time
+
+import rce.node
+
+
+async def main(node):
+    pub = await node.publisher("stringEchoResp", "std_msgs/String", queue_size=200)
+
+    def handle(msg):
+        time.sleep(0.04)                  # 40 ms of work an input: a burst leaves a backlog
+        pub.publish_nowait({"data": msg.data})
+    await node.subscriber("stringEchoReq", "std_msgs/String", handle, queue_size=200)
+    await node.service("stringEchoService", "Test/StringEcho", lambda req: {"data": req.data})
+    await node.spin()
+
+rce.node.run(main, "stringEcho")
+"""
+
+
 @pytest.fixture(scope="module")
 def eng(tmp_path_factory):
     work = tmp_path_factory.mktemp("move")
@@ -67,6 +89,10 @@ def eng(tmp_path_factory):
     both.mkdir(parents=True)
     (both / "stringEcho.py").write_text(COUNTER)
     os.chmod(both / "stringEcho.py", 0o755)
+    slow = work / "pkgs-both" / "SlowEcho"            # 40 ms an input, on both hosts
+    slow.mkdir(parents=True)
+    (slow / "stringEcho.py").write_text(SLOW)
+    os.chmod(slow / "stringEcho.py", 0o755)
     e = start_engine(work / "engine", container_hosts=0)
     plain = dict(e.env)
     e.env["RCE_PACKAGE_PATH"] = f"{pkg.parent}:{both.parent}"
@@ -81,8 +107,8 @@ def eng(tmp_path_factory):
 class Stream:
     """Numbered messages at RATE and their echoes, each stamped (monotonic s)."""
 
-    def __init__(self, r: RawRobot, parse=int):
-        self.r, self.sent, self.echoes, self.other, self.parse = r, 0, [], [], parse
+    def __init__(self, r: RawRobot, parse=int, rate: float = RATE):
+        self.r, self.sent, self.echoes, self.other, self.parse, self.rate = r, 0, [], [], parse, rate
 
     async def run(self) -> None:
         async with asyncio.TaskGroup() as tg:
@@ -91,10 +117,13 @@ class Stream:
 
     async def _send(self) -> None:
         while True:
-            await self.r.send("DM", {"iTag": "req", "type": "std_msgs/String", "msgID": "",
-                                     "msg": {"data": str(self.sent)}})
-            self.sent += 1
-            await asyncio.sleep(1 / RATE)
+            await self.send()
+            await asyncio.sleep(1 / self.rate)
+
+    async def send(self) -> None:
+        """The next numbered message (numbered before it is sent: a burst may interleave)."""
+        k, self.sent = self.sent, self.sent + 1
+        await self.r.send("DM", {"iTag": "req", "type": "std_msgs/String", "msgID": "", "msg": {"data": str(k)}})
 
     async def _read(self) -> None:
         while True:
@@ -215,3 +244,33 @@ async def test_a_move_that_fails_part_way_leaves_it_running_where_it_was(eng):
         assert not sorted(set(range(seqs[0], seqs[-1] + 1)) - set(seqs)), "the stream went on undisturbed"
         ts = {t["name"]: t for t in eng.admin("/api/tasksets") if t["kind"] == "container"}
         assert ts["mover-computer"]["containers"] == 0
+
+
+async def test_a_container_with_ordered_moves_keeps_its_results_in_order_across_a_backlog(eng):
+    """The old copy still has 60 inputs to handle (2.4 s of work) when the move begins; without
+    ``ordered_moves`` the new copy's first echoes would overtake them."""
+    async with RawRobot(eng.master_url, "mover", query="&maxLag=0") as r:
+        await _echo_container(r, "ordered", "Converter", {"placement": "auto", "robot": "mover",
+                                                            "ordered_moves": True}, pkg="SlowEcho")
+        assert host_of(eng, "ordered") == "dc1"
+        s = Stream(r, rate=10.0)
+        task = asyncio.create_task(s.run())
+        try:
+            await s.until(1)
+            first = s.echoes[0][1]
+            await s.until(5)
+            for _ in range(60):
+                await s.send()
+            moved = await asyncio.to_thread(eng.admin, "/api/containers/testUser/ordered/move",
+                                            {"host": "mover-computer"})
+            assert moved["states"] == 0 and moved["fenced"], moved
+            assert host_of(eng, "ordered") == "mover-computer"
+            n = s.sent
+            await s.until(n - first + 10)
+        finally:
+            task.cancel()
+        seqs = [q for _, q in s.echoes]
+        assert len(seqs) == len(set(seqs)), "no echo twice"
+        overtaken = [(a, b) for a, b in zip(seqs, seqs[1:], strict=False) if b < a]
+        assert not overtaken, f"echoes in order: {overtaken[:5]}"
+        assert not sorted(set(range(first, seqs[-1] + 1)) - set(seqs)), "none lost"
