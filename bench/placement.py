@@ -46,7 +46,7 @@ the placer's word as ``GET /api/placement`` gave it, sampled every :data:`POLL` 
 
     sudo .venv/bin/python bench/placement.py [--phase-s 30] [--systems cloud,robot,placer]
                                              [--endpoint robot|cloud] [--bad-rate 1mbit] [--dscp]
-                                             [--out FILE]
+                                             [--ordered-moves] [--out FILE]
 """
 from __future__ import annotations
 
@@ -164,7 +164,8 @@ async def robot_main(a: argparse.Namespace) -> dict:
     ``ready T0`` (monotonic s) once the first result is back; returns the record."""
     from rce_client.connection import Connection
     conn = await Connection.login_connect(a.master, USER, PASSWORD, ROBOT, allow_reconnect=True)
-    data = {"placement": SYSTEMS[a.system], "deadline_ms": DEADLINE_MS, "robot": ROBOT, "consumes": ["scan"]}
+    data = {"placement": SYSTEMS[a.system], "deadline_ms": DEADLINE_MS, "robot": ROBOT, "consumes": ["scan"],
+            **({"ordered_moves": True} if a.ordered_moves else {})}
     await conn.create_container(CTAG, **data)
     await conn.add_node(CTAG, "costmap", "benchcostmap", "costmap.py", args=a.node_args)
     for tag, itype, cls, addr in (("scan", "PublisherInterface", "sensor_msgs/LaserScan", "/scan"),
@@ -362,7 +363,8 @@ async def drive(system: str, lab, link, e, work: Path, a: argparse.Namespace) ->
     log = open(work / "robot.log", "wb")
     proc = await asyncio.create_subprocess_exec(
         *lab.wrap("r", [sys.executable, __file__, "--role", "robot", "--system", system, "--master", master,
-                        "--phase-s", str(a.phase_s), "--node-args", a.node_args]),
+                        "--phase-s", str(a.phase_s), "--node-args", a.node_args,
+                        *(["--ordered-moves"] if a.ordered_moves else [])]),
         stdout=asyncio.subprocess.PIPE, stderr=log, limit=2**26)
     scripted: asyncio.Future | None = None
     try:
@@ -659,7 +661,7 @@ async def bench(a: argparse.Namespace) -> dict:
                  "deadline_ms": DEADLINE_MS, "rate_hz": RATE_HZ, "scan_points": SCAN_POINTS,
                  "light_fraction": LIGHT_FRACTION, "heavy_every": HEAVY_EVERY, "node_args": a.node_args,
                  "robot_cpu": ROBOT_CPU, "good_rate": GOOD_RATE, "bad_rate": a.bad_rate, "dscp": a.dscp,
-                 "queue_packets": QUEUE, "node_calibration": node,
+                 "ordered_moves": a.ordered_moves, "queue_packets": QUEUE, "node_calibration": node,
                  "battery_pct": [BATTERY_START_PCT, BATTERY_LOW_PCT], "load_before": os.getloadavg(),
                  "systems": {}}
     root = Path(tempfile.mkdtemp(prefix="rce-placement-"))
@@ -703,6 +705,9 @@ def main(argv=None) -> int:
                         f"default {HEAVY_MS:g})")
     p.add_argument("--dscp", action="store_true",
                    help="the link serves DSCP EF (the engine's control links) first; default: one FIFO")
+    p.add_argument("--ordered-moves", action="store_true",
+                   help="the container asks ordered_moves: its results keep one order across a move, whose gap "
+                        "is then the old copy's drain")
     p.add_argument("--out", type=Path, default=BENCH / "results" / "placement.json")
     p.add_argument("--keep-logs", action="store_true", help="keep the engines' logs (printed path)")
     p.add_argument("--role", choices=("bench", "robot"), default="bench", help=argparse.SUPPRESS)
