@@ -112,6 +112,7 @@ PLACEMENTS = ("auto", "cloud", "edge", "robot")
 Placement = Annotated[str, _rule(lambda v: v in PLACEMENTS, "must be one of 'auto', 'cloud', 'edge', 'robot'")]
 #: A time in ms, greater than 0.
 Millis = Annotated[float, _rule(lambda v: _is_number(v) and v > 0, "must be a number of ms greater than 0")]
+#: A JSON boolean (not 0 or 1).
 Flag = Annotated[bool, _rule(lambda v: isinstance(v, bool), "must be true or false")]
 #: Interface tags of the robot a container serves.
 Tags = Annotated[list[str], _rule(lambda v: isinstance(v, list) and all(_is_str(t) and t for t in v),
