@@ -77,22 +77,21 @@ rce.node.run(main, "stringEcho")
 """
 
 
+def _package(d: Path, code: str) -> Path:
+    """Package directory ``d`` with ``code`` as its executable ``stringEcho.py``."""
+    d.mkdir(parents=True)
+    (d / "stringEcho.py").write_text(code)
+    os.chmod(d / "stringEcho.py", 0o755)
+    return d
+
+
 @pytest.fixture(scope="module")
 def eng(tmp_path_factory):
     work = tmp_path_factory.mktemp("move")
-    pkg = work / "pkgs" / "CloudEcho"                  # a package only the cloud host has
-    pkg.mkdir(parents=True)
     src = Path(__import__("rce").__file__).parent / "packages" / "Test" / "stringEcho.py"
-    (pkg / "stringEcho.py").write_text(src.read_text())
-    os.chmod(pkg / "stringEcho.py", 0o755)
-    both = work / "pkgs-both" / "Counting"            # a node with state, on both hosts
-    both.mkdir(parents=True)
-    (both / "stringEcho.py").write_text(COUNTER)
-    os.chmod(both / "stringEcho.py", 0o755)
-    slow = work / "pkgs-both" / "SlowEcho"            # 40 ms an input, on both hosts
-    slow.mkdir(parents=True)
-    (slow / "stringEcho.py").write_text(SLOW)
-    os.chmod(slow / "stringEcho.py", 0o755)
+    pkg = _package(work / "pkgs" / "CloudEcho", src.read_text())      # a package only the cloud host has
+    both = _package(work / "pkgs-both" / "Counting", COUNTER)          # a node with state, on both hosts
+    _package(work / "pkgs-both" / "SlowEcho", SLOW)                    # 40 ms an input, on both hosts
     e = start_engine(work / "engine", container_hosts=0)
     plain = dict(e.env)
     e.env["RCE_PACKAGE_PATH"] = f"{pkg.parent}:{both.parent}"

@@ -16,8 +16,8 @@ from pathlib import Path
 
 import numpy as np
 
-from .grid import LifelongGrid
 from ..planning.movingai import is_converted
+from .grid import LifelongGrid
 from .lorr import _read, load_lorr_map
 
 __all__ = ["ENDPOINT_MARKS", "generate_problem", "write_problem"]

@@ -34,8 +34,7 @@ class MapFileError(ValueError):
         super().__init__(f"{path}:{line}: {reason}" if line is not None else f"{path}: {reason}")
 
 
-def _err(path: Path, line: int | None, msg: str) -> MapFileError:
-    return MapFileError(path, line, msg)
+_err = MapFileError
 
 
 def _lines(path: Path, what: str) -> list[str]:
