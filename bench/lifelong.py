@@ -17,7 +17,8 @@ Usage::
 
     .venv/bin/python bench/lifelong.py [--quick] [--only NAME ...] [--steps N] [--problems JSON ...]
         [--generate MAP ... --robots N,... ] [--sweep] [--seed S] [--problem-dir DIR]
-        [--peer PATH | --build-peer DIR] [--plan-time-limit MS] [--scheduler batch|greedy|both]
+        [--peer PATH [--peer-args ARGS] [--peer-cwd DIR] | --build-peer DIR]
+        [--plan-time-limit MS] [--scheduler batch|greedy|both]
         [--cache-mb MB] [--lanes N] [--crowd-w W] [--max-active N] [--window on|off] [--epibt on|off]
         [--keep-right N] [--admission on|off]
         [--data ../shared/data]
@@ -34,6 +35,7 @@ import argparse
 import json
 import os
 import re
+import shlex
 import sys
 import time
 from pathlib import Path
@@ -82,7 +84,7 @@ def run_one(path: Path, steps: int, limit_ms: float, scheduler: str, seed: int, 
             outputs: Path | None, cache_mb: float | None = None, lanes: int | None = None,
             crowd_w: float | None = None, peer: Path | None = None, max_active: int | None = None,
             window: bool | None = None, epibt: bool | None = None, keep_right: int | None = None,
-            admission: bool | None = None) -> dict:
+            admission: bool | None = None, peer_args: tuple[str, ...] = (), peer_cwd: Path | None = None) -> dict:
     """Run one problem (and the start-kit binary ``peer`` on it, when given); returns its row (with
     the finished-over-time curve)."""
     from rce_fleet.lifelong import load_problem
@@ -112,8 +114,10 @@ def run_one(path: Path, steps: int, limit_ms: float, scheduler: str, seed: int, 
     if peer is not None:
         from startkit_peer import run_peer
         try:
-            with rich_progress(steps, f"{path.stem} (start-kit default)") as pcb:
-                got = run_peer(peer, path, steps, limit_ms, progress=lambda k: pcb(k, 0, 0.0))
+            label = " ".join((peer.name, *peer_args))
+            with rich_progress(steps, f"{path.stem} (peer: {label})") as pcb:
+                got = run_peer(peer, path, steps, limit_ms, progress=lambda k: pcb(k, 0, 0.0),
+                               extra=peer_args, cwd=peer_cwd)
         except RuntimeError as e:          # the peer died (e.g. out of memory): the row says so, the run goes on
             row["peer_error"] = str(e).splitlines()[0]
             print(f"start-kit failed on {path.name}: {row['peer_error']}", file=sys.stderr)
@@ -214,6 +218,12 @@ def _parser() -> argparse.ArgumentParser:
     ap.add_argument("--scheduler", choices=("batch", "greedy", "both"), default="batch")
     ap.add_argument("--seed", type=int, default=0, help="seed of the generated problems and of the planner")
     ap.add_argument("--peer", type=Path, metavar="PATH", help="the start-kit's lifelong binary: run it beside rce")
+    ap.add_argument("--peer-args", type=shlex.split, default=(), metavar="ARGS",
+                    help="more arguments for a --peer that takes its own (an entry built on the start-kit), "
+                         "one shell-quoted string")
+    ap.add_argument("--peer-cwd", type=Path, metavar="DIR",
+                    help="the directory the --peer runs in (default: a temporary one), for an entry that reads "
+                         "its own data files from there")
     ap.add_argument("--build-peer", type=Path, metavar="DIR",
                     help="build the start-kit checked out at DIR (bench/startkit_peer.py) and use it as --peer")
     ap.add_argument("--cache-mb", type=float, help="bound of the distance maps (default: sized to the team and memory)")
@@ -307,10 +317,12 @@ def main(argv: list[str] | None = None) -> int:
                                 args.lanes, args.crowd_w, peer if sch == scheds[-1] else None, args.max_active,
                                 None if args.window is None else args.window == "on",
                                 None if args.epibt is None else args.epibt == "on", args.keep_right,
-                                None if args.admission is None else args.admission == "on"))
+                                None if args.admission is None else args.admission == "on",
+                                tuple(args.peer_args), args.peer_cwd))
             json_path.parent.mkdir(parents=True, exist_ok=True)
             json_path.write_text(json.dumps({"plan_time_limit_ms": args.plan_time_limit, "git": git_head(),
                                              "date": time.strftime("%Y-%m-%d"), "peer": str(peer) if peer else None,
+                                             "peer_args": list(args.peer_args),
                                              "wall_s": time.perf_counter() - t0, "runs": rows}, indent=1))
     print_table(rows)
     print(f"wrote {json_path}")

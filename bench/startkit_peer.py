@@ -54,17 +54,22 @@ def _run(argv: list[str], what: str) -> None:
         raise RuntimeError(f"{what} failed ({done.returncode}):\n{done.stdout.decode(errors='replace')[-3000:]}")
 
 
-def run_peer(binary: Path, problem: Path, steps: int, limit_ms: float, progress=None) -> dict:
+def run_peer(binary: Path, problem: Path, steps: int, limit_ms: float, progress=None,
+             extra: tuple[str, ...] = (), cwd: Path | None = None) -> dict:
     """Run the start-kit on ``problem`` for ``steps`` steps at ``limit_ms`` per step (its
-    preprocessing limit is its default, 30 s). ``progress(step)`` is called as its log says steps
-    are done. Returns its output's counts and the wall time: {tasks_finished,
-    timeouts, invalid_steps, schedule_errors, wall_s}. Raises RuntimeError when it fails."""
+    preprocessing limit is its default, 30 s). ``extra`` are more arguments for an entry built on
+    the start-kit that takes its own (the 2024 winner's ``--pa 'pepibt(4)_lns' --gg enable --sa
+    greedy``); ``cwd`` is the directory it runs in, for an entry that reads its own data files
+    from there (default: a fresh temporary directory, so that no file it writes lands elsewhere).
+    ``progress(step)`` is called as its log says steps are done. Returns its output's
+    counts and the wall time: {tasks_finished, timeouts, invalid_steps, schedule_errors, wall_s}.
+    Raises RuntimeError when it fails."""
     with tempfile.TemporaryDirectory(prefix="rce-startkit-") as tmp:
         out, log = Path(tmp) / "out.json", Path(tmp) / "log.txt"
         argv = [str(binary), "-i", str(problem.resolve()), "-o", str(out), "-s", str(steps), "-t", str(int(limit_ms)),
-                "-c", "3", "-l", str(log)]
+                "-c", "3", "-l", str(log), *extra]
         t0 = time.perf_counter()
-        proc = subprocess.Popen(argv, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE)
+        proc = subprocess.Popen(argv, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, cwd=cwd or tmp)
         seen = 0
         while proc.poll() is None:
             try:

@@ -14,7 +14,6 @@ from rce_fleet.lifelong.epibt import EPIBTPlan, epibt_init, epibt_pass, warm_up
 from rce_fleet.lifelong.guidance import lane_costs
 from rce_fleet.lifelong.grid import EAST, NORTH, SOUTH, WEST
 from rce_fleet.lifelong.kernels import ACT_F, ACT_W
-from rce_fleet.lifelong.window import DEPTH
 
 from .test_lifelong_window import _packed, drive_packed
 
@@ -23,9 +22,9 @@ def _check_plans(g, e, pos):
     """Every step of the window: no two robots on a cell, no swap, moves along the map; and the
     reservation table says exactly where each robot's plan is."""
     n = len(pos)
-    cells = e.traj[np.arange(n), e.desire]                   # (n, DEPTH + 1)
+    cells = e.traj[np.arange(n), e.desire]                   # (n, depth + 1)
     assert (cells[:, 0] == pos).all() and (e.traj[np.arange(n), e.desire, 0] >= 0).all()
-    for t in range(1, DEPTH + 1):
+    for t in range(1, cells.shape[1]):
         assert len(set(cells[:, t].tolist())) == n, f"two robots on a cell at step {t}"
         assert (e.res[t][cells[:, t]] == np.arange(n)).all() and (e.res[t] >= 0).sum() == n
         before = {int(c): a for a, c in enumerate(cells[:, t - 1])}
@@ -40,17 +39,22 @@ def _slots(cache, goals):
 
 
 def test_operations_end_in_no_turn_and_every_continuation_is_in_the_set():
-    from rce_fleet.lifelong.epibt import EPIBT_OPERATIONS as ops
+    from rce_fleet.lifelong.epibt import EPIBT_DEPTH, EPIBT_OPERATIONS, epibt_operations
     from rce_fleet.lifelong.window import continuations
     from rce_fleet.lifelong.kernels import ACT_C, ACT_R
     names = {ACT_F: "F", ACT_W: "W", ACT_R: "R", ACT_C: "C"}
-    got = sorted("".join(names[a] for a in o) for o in ops.tolist())
+    got = sorted("".join(names[a] for a in o) for o in epibt_operations(3).tolist())
     # the paper's 17 operations of depth 3 (Yukhnevich and Andreychuk, arXiv 2511.09193)
     assert got == sorted("WWW RRF RWF CWF WWF RFW CFW WFW RFF CFF FWW WFF FRF FCF FWF FFW FFF".split())
-    assert ops[0].tolist() == [ACT_W] * DEPTH
-    cont = continuations(ops)
-    assert (cont >= 0).all()
-    assert [ops[c].tolist() for c in cont] == [o[1:] + [ACT_W] for o in ops.tolist()]
+    assert EPIBT_OPERATIONS.shape == (48, EPIBT_DEPTH) and EPIBT_DEPTH == 4
+    for ops in (epibt_operations(3), EPIBT_OPERATIONS, epibt_operations(5)):
+        depth = ops.shape[1]
+        seqs = ["".join(names[a] for a in o) for o in ops.tolist()]
+        assert seqs[0] == "W" * depth and len(set(seqs)) == len(seqs)
+        assert all(s.rstrip("W")[-1:] in ("", "F") for s in seqs)     # no turn without a move after it
+        cont = continuations(ops)
+        assert (cont >= 0).all()
+        assert [ops[c].tolist() for c in cont] == [o[1:] + [ACT_W] for o in ops.tolist()]
 
 
 def test_plans_are_conflict_free_and_lns_never_lowers_the_weighted_progress():
@@ -81,7 +85,9 @@ def test_plans_are_conflict_free_and_lns_never_lowers_the_weighted_progress():
 
 
 def test_operation_costs_are_the_papers_steps_to_the_goal_with_moving_now_preferred():
-    from rce_fleet.lifelong.epibt import EPIBT_OPERATIONS as ops, epibt_costs, operation_preference
+    from rce_fleet.lifelong.epibt import epibt_operations, epibt_costs, operation_preference
+    depth = 3
+    ops = epibt_operations(depth)
     from rce_fleet.lifelong.kernels import ACT_C, ACT_R
     names = {ACT_F: "F", ACT_W: "W", ACT_R: "R", ACT_C: "C"}
     idx = {"".join(names[a] for a in o): k for k, o in enumerate(ops.tolist())}
@@ -96,16 +102,16 @@ def test_operation_costs_are_the_papers_steps_to_the_goal_with_moving_now_prefer
     head = np.array([EAST, WEST, EAST], np.int64)
     goals = np.array([3, 0, -1], np.int64)
     n, m = len(pos), len(ops)
-    traj = np.empty((n, m, DEPTH + 1), np.int64)
+    traj = np.empty((n, m, depth + 1), np.int64)
     cost = np.empty((n, m))
     rank = np.empty((n, m), np.int64)
     epibt_costs(g.nbr, ops, pref, pos, head, cache.table, _slots(cache, goals), goals, traj, cost, rank)
     c = cost + pref[None, :]                                  # the steps, without the tie-break
     assert c[0, idx["FFW"]] == 1 and c[0, idx["FFF"]] == 1   # the goal reached at step 2: t - 1
     assert c[0, idx["WFF"]] == 2                             # reached at step 3
-    assert c[0, idx["WWW"]] == 2 + DEPTH                     # not reached: steps left + DEPTH
+    assert c[0, idx["WWW"]] == 2 + depth                     # not reached: steps left + depth
     assert ops[rank[0, 0]].tolist() == [ACT_F, ACT_F, ACT_F]  # of equal cost, moving now is preferred
-    assert c[1, idx["FFF"]] == 8 - 3 + DEPTH and c[1, idx["WWW"]] == 8 + DEPTH
+    assert c[1, idx["FFF"]] == 8 - 3 + depth and c[1, idx["WWW"]] == 8 + depth
     assert ops[rank[1, 0]].tolist() == [ACT_F, ACT_F, ACT_F]
     assert (traj[0, idx["FFF"]] == [1, 2, 3, 4]).all()
     for off in ("RFF", "CFF"):                               # north or south of a corridor: not allowed,

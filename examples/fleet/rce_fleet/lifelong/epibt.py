@@ -2,7 +2,7 @@
 
 Yukhnevich and Andreychuk, "Enhancing PIBT via Multi-Action Operations" (arXiv 2511.09193,
 2025; the operations planner of the League of Robot Runners 2024). Each robot holds an
-*operation*, a sequence of ``DEPTH`` actions (:data:`EPIBT_OPERATIONS`), and its path in
+*operation*, a sequence of ``EPIBT_DEPTH`` (4) actions (:data:`EPIBT_OPERATIONS`), and its path in
 (cell, heading) over the window; the plans of all robots are free of vertex and swap conflicts
 at every step of the window at all times. A step starts from last step's operations continued
 (their rest, then a wait), or where those do not fit together, from waits and the continued
@@ -41,22 +41,23 @@ from numba import njit
 
 from ..numba_cache import seed
 from .kernels import ACT_C, ACT_F, ACT_R, ACT_W, heading_cost
-from .window import DEPTH, continuations, op_path
+from .window import continuations, op_path
 
 seed(__file__)          # numba's cache entries prepared in the tree (sandboxed nodes)
 
-__all__ = ["EPIBT_OPERATIONS", "EPIBTPlan", "warm_up"]
+__all__ = ["EPIBT_DEPTH", "EPIBT_OPERATIONS", "EPIBTPlan", "epibt_operations", "warm_up"]
 
 WAIT_OP = 0             # the first operation of every set: wait, wait, wait
 
 
-def _epibt_operations(depth: int) -> np.ndarray:
+def epibt_operations(depth: int) -> np.ndarray:
     """EPIBT's operations for MAPF_T (the paper's rules): action sequences of ``depth`` in which
     every turn is followed by a forward move later in the sequence (a turn at the end buys
     nothing the cost of the end state does not see), with no turn undone or repeated three times
     before that move, and one sequence per path (the cells at each step and the last heading;
     of sequences with the same path the one that turns first). (m, depth) int64, the all-wait
-    sequence first; 17 sequences at depth 3 where all sequences without a turn undone are 45."""
+    sequence first; 17 sequences at depth 3 (where all sequences without a turn undone are 45),
+    48 at depth 4, 136 at depth 5."""
     dr = ((0, 1), (1, 0), (0, -1), (-1, 0))            # any fixed convention: only paths are compared
     out = [(ACT_W,) * depth]
     seen = {(0, ((0, 0),) * depth)}                     # (last heading, cells) of the sequences kept
@@ -91,7 +92,10 @@ def _epibt_operations(depth: int) -> np.ndarray:
     return np.array(out, dtype=np.int64)
 
 
-EPIBT_OPERATIONS = _epibt_operations(DEPTH)
+# Four actions, as the 2024 winner's entry runs: on the main round's RANDOM-03 and RANDOM-04 (400
+# and 700 robots) 6 - 8 % more tasks than three, and five fewer again (docs/lifelong.md).
+EPIBT_DEPTH = 4
+EPIBT_OPERATIONS = epibt_operations(EPIBT_DEPTH)
 
 
 def operation_preference(ops: np.ndarray) -> np.ndarray:
@@ -113,11 +117,11 @@ def epibt_costs(nbr, ops, pref, pos, head, dist, slot, goal, traj, cost, rank):
     """The paper's cost of every operation of every robot (the "smart distance" of the authors'
     code), and the operations sorted by it. An operation that reaches the robot's goal at step t costs t - 1;
     any other costs the heading-aware steps to the goal from where it ends
-    (:func:`~.kernels.heading_cost`) plus DEPTH; ties go to the larger ``pref`` (m,). A robot
+    (:func:`~.kernels.heading_cost`) plus the depth; ties go to the larger ``pref`` (m,). A robot
     without a goal: every operation costs 0 less its preference (it moves forward where that is
     free, which finished more than waiting: docs/lifelong.md). pos, head, goal, slot (n,)
     int64 (slot: the robot's row of ``dist`` (k, cells) uint16, -1 without a goal). Writes traj (n,
-    m, DEPTH + 1) cells (-1: not allowed), cost (n, m) and rank (n, m): operation indices by
+    m, depth + 1) cells (-1: not allowed), cost (n, m) and rank (n, m): operation indices by
     increasing cost, the not allowed ones last. No noise and no bonus for continuing: the plans
     carried from the last step already start every robot where it was going."""
     n = pos.shape[0]
@@ -145,7 +149,7 @@ def epibt_costs(nbr, ops, pref, pos, head, dist, slot, goal, traj, cost, rank):
 @njit(cache=True)
 def _conflict(a, k, traj, res):
     """The robot whose plan operation ``k`` of robot ``a`` meets (vertex or swap, any step of
-    the window): -1 none, -2 more than one. ``res`` (DEPTH + 1, cells): the robot at each cell
+    the window): -1 none, -2 more than one. ``res`` (depth + 1, cells): the robot at each cell
     at each step (row 0: where the robots stand now)."""
     depth = traj.shape[2] - 1
     who = -1
@@ -384,10 +388,10 @@ class EPIBTPlan:
     displaced per pass; max_chain: robots in one chain of displacements at most; chunk:
     robots built per compiled call between clock checks; threads: LNS chains run at once, each
     from the first pass's plans with its own random orders, the best kept (default: the CPUs
-    this process may use, at most 2; the kernels release the GIL); operations: (m, DEPTH) the
+    this process may use, at most 2; the kernels release the GIL); operations: (m, depth) the
     action sequences tried, the all-wait one first (default :data:`EPIBT_OPERATIONS`). Memory:
-    n x m x (DEPTH + 1) int64 cells plus two float arrays of n x m (about 1 KiB per robot),
-    and per chain a reservation table of (DEPTH + 1) x cells int64. ``stats`` counts steps,
+    n x m x (depth + 1) int64 cells plus three arrays of n x m (about 3 KiB per robot at depth 4),
+    and per chain a reservation table of (depth + 1) x cells int64. ``stats`` counts steps,
     passes and plans taken, and the steps whose first pass the deadline cut short.
     """
 
@@ -399,15 +403,15 @@ class EPIBTPlan:
         self.ops = EPIBT_OPERATIONS if operations is None else np.asarray(operations, np.int64)
         self.cont = continuations(self.ops)
         self.pref = operation_preference(self.ops)
-        m = self.ops.shape[0]
-        self.traj = np.empty((n, m, DEPTH + 1), np.int64)
+        m, depth = self.ops.shape
+        self.traj = np.empty((n, m, depth + 1), np.int64)
         self.cost = np.empty((n, m))
         self.gain = np.empty((n, m))
         self.rank = np.empty((n, m), np.int64)
         self.prev_op = np.full(n, -1, np.int64)
         if threads is None:
             threads = min(2, len(os.sched_getaffinity(0)))
-        self.chains = [_Chain(n, (DEPTH + 1, grid.n_cells)) for _ in range(max(1, threads))]
+        self.chains = [_Chain(n, (depth + 1, grid.n_cells)) for _ in range(max(1, threads))]
         self._pool = None
         if len(self.chains) > 1:
             from concurrent.futures import ThreadPoolExecutor
@@ -424,7 +428,7 @@ class EPIBTPlan:
 
     @property
     def res(self) -> np.ndarray:
-        """(DEPTH + 1, cells) the robot at each cell at each step of those plans (-1: none)."""
+        """(depth + 1, cells) the robot at each cell at each step of those plans (-1: none)."""
         return self.chains[0].res
 
     @property
