@@ -115,6 +115,8 @@ def run_one(path: Path, steps: int, limit_ms: float, scheduler: str, seed: int, 
         from startkit_peer import run_peer
         try:
             label = " ".join((peer.name, *peer_args))
+            if peer_args:                  # an entry other than the default one: named by its source tree
+                row["peer_label"] = f"peer {peer.resolve().parent.parent.name}"
             with rich_progress(steps, f"{path.stem} (peer: {label})") as pcb:
                 got = run_peer(peer, path, steps, limit_ms, progress=lambda k: pcb(k, 0, 0.0),
                                extra=peer_args, cwd=peer_cwd)
@@ -175,7 +177,7 @@ def plot(rows: list[dict], path: Path) -> None:
         r = mine[0]
         if "peer_tasks_finished" in r:
             ax.scatter([r["steps"]], [r["peer_tasks_finished"]], color="C3", marker="x", zorder=3,
-                       label="default entry, same run")
+                       label=f"{r.get('peer_label', 'default entry')}, same run")
         if "default" in r:
             steps = r["steps"]
             ax.plot([0, steps], [0, r["default"]], "--", color="grey", label="default entry (pro rata)")
