@@ -93,6 +93,14 @@ def test_operator_creates_watches_and_cancels_tasks_on_the_page(op, fleet):
     page.wait_for_function("(id) => fleetView.tasks.list.some(t => t.id == id && t.state == 'done')", arg=tid,
                            timeout=DONE_TIMEOUT_MS)
     assert page.inner_text(f"{row} .state") == "done"
+    # the table is updated in place: task lists that change no order move no row (a row moved under the
+    # pointer between press and release would lose the operator's click)
+    page.evaluate("""() => { window.rowMoves = 0; new MutationObserver((ms) => { for (const m of ms)
+        window.rowMoves += m.addedNodes.length; }).observe(document.querySelector('#task-queue tbody'),
+        {childList: true}); }""")
+    lists = page.evaluate("fleetView.tasks.lists")
+    page.wait_for_function("(n) => fleetView.tasks.lists >= n + 2", arg=lists, timeout=STATES_TIMEOUT_MS)
+    assert page.evaluate("window.rowMoves") == 0
     # a click on the task shows its history: created, assigned, opened, each errand, done, with times
     assert page.is_hidden("#task-history")
     page.click(f"{row} .id")

@@ -146,6 +146,7 @@ export class TaskPanel {
     const m = this.model;
     const tbody = this.$("task-queue").tBodies[0];
     const seen = new Set();
+    let next = tbody.firstElementChild;   // where the list's next row belongs
     for (const t of m.list) {
       seen.add(t.id);
       let tr = this.rows.get(t.id);
@@ -156,7 +157,10 @@ export class TaskPanel {
                        `<td class="age"></td><td class="act"></td>`;
         this.rows.set(t.id, tr);
       }
-      tbody.append(tr);       // keeps the list's order: open tasks, then the newest closed ones
+      // the list's order (open tasks, then the newest closed ones), moving only rows out of place: a row
+      // moved between a press and its release under the pointer loses the operator's click
+      if (tr === next) next = next.nextElementSibling;
+      else tbody.insertBefore(tr, next);
       const set = (cls, text, title) => {
         const td = tr.querySelector(`.${cls}`);
         if (td.textContent !== text) td.textContent = text;
