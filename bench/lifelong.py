@@ -122,7 +122,7 @@ def run_one(path: Path, steps: int, limit_ms: float, scheduler: str, seed: int, 
                                extra=peer_args, cwd=peer_cwd)
         except RuntimeError as e:          # the peer died (e.g. out of memory): the row says so, the run goes on
             row["peer_error"] = str(e).splitlines()[0]
-            print(f"start-kit failed on {path.name}: {row['peer_error']}", file=sys.stderr)
+            print(f"peer {peer.name} failed on {path.name}: {row['peer_error']}", file=sys.stderr)
         else:
             row.update({f"peer_{k}": v for k, v in got.items()})
             if got["tasks_finished"]:

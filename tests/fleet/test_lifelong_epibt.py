@@ -86,9 +86,9 @@ def test_plans_are_conflict_free_and_lns_never_lowers_the_weighted_progress():
 
 def test_operation_costs_are_the_papers_steps_to_the_goal_with_moving_now_preferred():
     from rce_fleet.lifelong.epibt import epibt_operations, epibt_costs, operation_preference
+    from rce_fleet.lifelong.kernels import ACT_C, ACT_R
     depth = 3
     ops = epibt_operations(depth)
-    from rce_fleet.lifelong.kernels import ACT_C, ACT_R
     names = {ACT_F: "F", ACT_W: "W", ACT_R: "R", ACT_C: "C"}
     idx = {"".join(names[a] for a in o): k for k, o in enumerate(ops.tolist())}
     pref = operation_preference(ops)

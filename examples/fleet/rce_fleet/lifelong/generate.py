@@ -16,7 +16,7 @@ from pathlib import Path
 
 import numpy as np
 
-from ..planning.movingai import is_converted
+from ..planning.movingai import converted_free, is_converted
 from .grid import LifelongGrid
 from .lorr import _read, load_lorr_map
 
@@ -112,11 +112,11 @@ def write_problem(map_path: str | Path, robots: int, seed: int, out_dir: str | P
     (out_dir / "tasks" / f"{name}.tasks").write_text(
         "# version for LoRR 2024\n" + f"{len(task_list)}\n" + "".join(",".join(map(str, t.tolist())) + "\n"
                                                                       for t in task_list))
-    map_file = src
-    if is_converted(_read(src)):               # 0/1 values: the start-kit reads '@' and 'T' as blocked
+    map_file, lines = src, _read(src)
+    if is_converted(lines):                    # 0/1 values: the start-kit reads '@' and 'T' as blocked
         map_file = (out_dir / "maps" / f"{src.stem}.map").resolve()
         map_file.parent.mkdir(parents=True, exist_ok=True)
-        free = load_lorr_map(src).free
+        free = converted_free(src, lines)
         map_file.write_text(f"type octile\nheight {free.shape[0]}\nwidth {free.shape[1]}\nmap\n"
                             + "".join("".join(".@"[int(not v)] for v in row) + "\n" for row in free))
     spec = {"mapFile": os.path.relpath(map_file, out_dir.resolve()), "agentFile": f"agents/{name}.agents",
