@@ -116,8 +116,9 @@ def test_a_lower_bound_takes_unopened_tasks_back_from_the_robots_farthest_from_t
 
 
 def test_the_default_bound_is_lower_on_a_map_of_aisles_than_on_an_open_one():
-    """From ACTIVE_DENSITY robots per free cell a share of the free cells may hold a task: ACTIVE_FRAC,
-    or AISLE_ACTIVE_FRAC where one-cell corridor lanes (shelves' aisles) hold AISLE_SHARE of them."""
+    """From ACTIVE_DENSITY robots per free cell a share of the free cells may hold a task: ACTIVE_FRAC
+    (EPIBT_ACTIVE_FRAC where EPIBT answers, MAPF_T), or AISLE_ACTIVE_FRAC where one-cell corridor lanes
+    (shelves' aisles) hold AISLE_SHARE of them."""
     from rce_fleet.lifelong import runner
     from rce_fleet.lifelong.lorr import LorrProblem
     rng = np.random.default_rng(0)
@@ -125,7 +126,7 @@ def test_the_default_bound_is_lower_on_a_map_of_aisles_than_on_an_open_one():
     def problem(free: np.ndarray) -> LorrProblem:
         g = LifelongGrid(free)
         cells = g.free_cells()
-        n = int(0.4 * len(cells))
+        n = int(0.6 * len(cells))
         starts = rng.choice(cells, n, replace=False).astype(np.int64)
         tasks = [tuple(int(c) for c in rng.choice(cells, 2, replace=False)) for _ in range(2 * n)]
         return LorrProblem(path=Path("t.json"), grid=g, starts=starts, tasks=tasks, team_size=n,
@@ -134,11 +135,15 @@ def test_the_default_bound_is_lower_on_a_map_of_aisles_than_on_an_open_one():
     aisles = np.ones((21, 30), dtype=bool)
     aisles[1:20:2, 2:28] = False                  # shelves: rows of blocked cells with one-cell aisles between
     open_ = np.ones((21, 30), dtype=bool)
-    for free, frac in ((aisles, runner.AISLE_ACTIVE_FRAC), (open_, runner.ACTIVE_FRAC)):
+    assert runner.AISLE_ACTIVE_FRAC < runner.ACTIVE_FRAC < runner.EPIBT_ACTIVE_FRAC < 0.6
+    for free, frac, model in ((aisles, runner.AISLE_ACTIVE_FRAC, "MAPF_T"), (open_, runner.EPIBT_ACTIVE_FRAC, "MAPF_T"),
+                              (open_, runner.ACTIVE_FRAC, "MAPF")):
         p = problem(free)
-        res = runner.run_lifelong(p, 2, plan_time_limit_ms=300.0, record=False)
+        res = runner.run_lifelong(p, 2, plan_time_limit_ms=300.0, record=False, model=model)
+        assert res.stats.get("epibt", False) == (model == "MAPF_T")
         n_free = len(p.grid.free_cells())
         assert (res.stats["aisles"] >= runner.AISLE_SHARE) == (frac == runner.AISLE_ACTIVE_FRAC)
+        assert res.stats["max_active"] < p.team_size
         assert res.stats["max_active"] == int(frac * n_free)
         assert res.summary()["invalid_steps"] == 0
 

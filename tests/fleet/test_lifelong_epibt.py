@@ -10,7 +10,7 @@ from pathlib import Path
 import numpy as np
 
 from rce_fleet.lifelong import DistanceCache, LifelongGrid, check_actions
-from rce_fleet.lifelong.epibt import EPIBTPlan, epibt_init, epibt_pass, warm_up
+from rce_fleet.lifelong.epibt import EPIBTPlan, epibt_anneal, epibt_init, epibt_pass, warm_up
 from rce_fleet.lifelong.guidance import lane_costs
 from rce_fleet.lifelong.grid import EAST, NORTH, SOUTH, WEST
 from rce_fleet.lifelong.kernels import ACT_F, ACT_W
@@ -175,7 +175,7 @@ def test_two_lns_chains_run_at_once_and_the_better_plans_are_answered():
     cache = DistanceCache(g, max_bytes=2 ** 24)
     slot = _slots(cache, goals)
     order = np.arange(len(pos), dtype=np.int64)
-    e = EPIBTPlan(g, len(pos), seed=4, threads=2)
+    e = EPIBTPlan(g, len(pos), seed=4, threads=2, anneal=False)          # greedy passes
     assert e.stats["epibt_threads"] == 2
     for _ in range(3):
         act = e.plan(pos, head, cache.table, slot, goals, order, time.perf_counter() + 0.1)
@@ -185,6 +185,45 @@ def test_two_lns_chains_run_at_once_and_the_better_plans_are_answered():
         assert a.passes > 1 and b.passes > 1                 # both chains ran passes
         assert a.score[0] >= b.score[0] - 1e-9               # the answer is the better chain's
         assert (e.ops[e.desire, 0] == act).all()
+
+
+def test_annealing_keeps_a_worse_result_only_when_hot_and_restarts_answer_the_best_plans_seen():
+    warm_up()
+    g, pos, head, goals = _packed(3)
+    cache = DistanceCache(g, max_bytes=2 ** 24)
+    slot = _slots(cache, goals)
+    order = np.random.default_rng(3).permutation(len(pos)).astype(np.int64)
+    prank = np.empty(len(pos), np.int64)
+    prank[order] = np.arange(len(pos))
+    e = EPIBTPlan(g, len(pos), seed=3, anneal=True)
+    e.plan(pos, head, cache.table, slot, goals, order, time.perf_counter() + 5, lns=False)
+    first = float(e.score[0])
+    c = e.chains[0]
+    saved = (c.desire.copy(), c.res.copy(), c.score.copy())
+    lowest = {}
+    for temp in (0.0, 1e6):                       # cold: only builds that keep the progress; hot: any
+        c.desire[:], c.res[:], c.score[:] = saved
+        low = first
+        for i in range(400):
+            took, t_after = epibt_anneal(i, 1, temp, 0.5, 0.0, e.traj, e.rank, e.gain, c.res, c.desire, prank,
+                                         c.instack, c.vstamp, c.vnum, c.now + 1, e.revisits, e.max_chain, c.score)
+            c.now += 1
+            assert t_after == temp * 0.5                             # the temperature decays per build
+            low = min(low, float(c.score[0]))
+            _check_plans(g, e, pos)
+        lowest[temp] = low
+        assert abs(e.gain[np.arange(len(pos)), c.desire].sum() - c.score[0]) < 1e-6
+    assert lowest[0.0] >= first - 1e-9
+    assert lowest[1e6] < first - 1e-6
+    # restarts on two threads from the first pass's plans: the answer is the best seen, never below it
+    e2 = EPIBTPlan(g, len(pos), seed=3, anneal=True, threads=2, restart=2)
+    act = e2.plan(pos, head, cache.table, slot, goals, order, time.perf_counter() + 0.2)
+    assert check_actions(g, pos, head, act)[2] == []
+    _check_plans(g, e2, pos)
+    assert all(ch.passes > 1 for ch in e2.chains)               # every thread ran restarts
+    assert e2.score[0] >= first - 1e-9
+    assert e2.score[0] == max(b.score[0] for b in e2._best)
+    assert (e2.ops[e2.desire, 0] == act).all()
 
 
 def test_planner_with_epibt_keeps_every_step_valid_and_reaches_goals_on_a_packed_map():

@@ -30,11 +30,10 @@ from .scheduler import make_scheduler
 from .simulator import MAPF_T, Simulator
 
 __all__ = ["ACTIVE_DENSITY", "ACTIVE_FRAC", "ADMISSION_CELLS", "ADMISSION_DENSITY", "ADMISSION_JAM",
-           "ADMISSION_JAM_DENSITY", "ADMISSION_SMALL", "ADMISSION_SMALL_START", "ADMISSION_START",
-           "AISLE_ACTIVE_FRAC", "AISLE_SHARE",
-           "CROWD_TEAM", "CROWD_W", "GUIDE_DENSITY", "KEEP_RIGHT",
-           "LANES", "PACKED_DENSITY", "EPIBT_BIAS", "EPIBT_DENSITY", "OPEN_LANES", "RunResult", "WINDOW_DENSITY",
-           "WINDOW_TEAM", "run_lifelong"]
+           "ADMISSION_JAM_DENSITY", "ADMISSION_SMALL", "ADMISSION_SMALL_START", "ADMISSION_START", "AISLE_ACTIVE_FRAC",
+           "AISLE_SHARE", "CROWD_TEAM", "CROWD_W", "EPIBT_ACTIVE_FRAC", "EPIBT_BIAS", "EPIBT_DENSITY",
+           "EPIBT_LNS_FRAC", "GUIDE_DENSITY", "KEEP_RIGHT", "LANES", "OPEN_LANES", "PACKED_DENSITY", "RunResult",
+           "WINDOW_DENSITY", "WINDOW_TEAM", "run_lifelong"]
 
 LANES = 4        # extra cost of a move against a one-way lane (measured: docs/lifelong.md)
 ADMISSION_START = 0.04  # robots per free cell the run-time bound starts at (--admission on; measured there)
@@ -52,6 +51,7 @@ HARD_FRAC = 0.7    # past this share of the limit a robot with a new goal and no
 GUIDE_DENSITY = 0.06  # robots per free cell from which guide paths lead (below: each robot's shortest way)
 PACKED_DENSITY = 0.8  # robots per free cell from which a turning robot holds no second cell (claim_steps 0)
 ACTIVE_FRAC = 0.3     # robots holding a task per free cell at most (the rest stand aside) ...
+EPIBT_ACTIVE_FRAC = 0.43  # ... where EPIBT answers (350 of RANDOM-04's 819 free cells: docs/lifelong.md) ...
 ACTIVE_DENSITY = 0.3  # ... in teams of this many robots per free cell or more
 AISLE_ACTIVE_FRAC = 0.2   # ... and on maps of aisles: at least AISLE_SHARE of the free cells in one-cell corridor lanes
 AISLE_SHARE = 0.2
@@ -60,6 +60,7 @@ WINDOW_TEAM = 1000    # of operations, to PACKED_DENSITY) in teams up to this si
 EPIBT_DENSITY = 0.3   # robots per free cell from which EPIBT with LNS answers (MAPF_T) in any team ...
 OPEN_LANES = 9        # ... and, on a map without corridors, every row and column is a lane (against: 1 + 9) ...
 EPIBT_BIAS = 0.2      # ... and the lookahead takes its first step unless a rollout leads by this per robot
+EPIBT_LNS_FRAC = 0.9  # ... and from EPIBT_DENSITY its LNS spends this share of the time to the step's deadline
 
 
 @dataclass
@@ -108,13 +109,16 @@ def run_lifelong(problem: LorrProblem, steps: int, plan_time_limit_ms: float = 1
     windowed plan of operations refined by LNS takes its place: :mod:`.window`,
     ``planner_kw={"ops": False}`` turns that off too), its first step taken
     unless a PIBT rollout brings the robots closer by ``EPIBT_BIAS`` steps per robot with a goal
-    (``planner_kw={"window_bias": ...}``); open_lanes: on a map
+    (``planner_kw={"window_bias": ...}``), and from ``EPIBT_DENSITY`` its LNS spends
+    ``EPIBT_LNS_FRAC`` of the time to the step's deadline, the rollouts the rest
+    (``planner_kw={"lns_frac": ...}``); open_lanes: on a map
     without corridor lanes, every row and column becomes a lane with this extra cost against it
     (None: ``OPEN_LANES`` under EPIBT, else 0); keep_right: the extra cost of a move against the
     keep-right lane of a corridor 2 - 12 cells wide (:func:`~.guidance.keep_right_costs`; None:
     ``KEEP_RIGHT``, 0: none);
     max_active: at most this many robots hold a task; None (default):
-    ``ACTIVE_FRAC`` of the free cells from ``ACTIVE_DENSITY`` robots per free cell, 0: no bound;
+    ``ACTIVE_FRAC`` of the free cells from ``ACTIVE_DENSITY`` robots per free cell
+    (``EPIBT_ACTIVE_FRAC`` where EPIBT answers), 0: no bound;
     ``AISLE_ACTIVE_FRAC`` instead on a map of aisles (at least ``AISLE_SHARE`` of its free cells in
     one-cell corridor lanes, as a warehouse's shelves make them: measured in docs/lifelong.md);
     admission: where no ``max_active`` bound holds, the bound is set at run time by the share of
@@ -142,7 +146,8 @@ def run_lifelong(problem: LorrProblem, steps: int, plan_time_limit_ms: float = 1
     epibt = (model == MAPF_T and density >= (WINDOW_DENSITY if small else EPIBT_DENSITY)
              and (planner_kw or {}).get("epibt", True))
     if epibt:
-        planner_kw = {"epibt": True, "window_bias": EPIBT_BIAS, **(planner_kw or {})}
+        dense = {"lns_frac": EPIBT_LNS_FRAC} if density >= EPIBT_DENSITY else {}
+        planner_kw = {"epibt": True, "window_bias": EPIBT_BIAS, **dense, **(planner_kw or {})}
     elif model == MAPF_T and WINDOW_DENSITY <= density < PACKED_DENSITY and small:
         planner_kw = {"ops": True, **(planner_kw or {})}
     if cache_bytes is None:
@@ -161,7 +166,8 @@ def run_lifelong(problem: LorrProblem, steps: int, plan_time_limit_ms: float = 1
         corridors = cost if cost is not None else lane_costs(grid, 1)
         aisles = float((corridors > 1).any(axis=1).sum()) / n_free
     if max_active is None and density >= ACTIVE_DENSITY:
-        max_active = int((AISLE_ACTIVE_FRAC if aisles >= AISLE_SHARE else ACTIVE_FRAC) * n_free)
+        open_frac = EPIBT_ACTIVE_FRAC if epibt else ACTIVE_FRAC
+        max_active = int((AISLE_ACTIVE_FRAC if aisles >= AISLE_SHARE else open_frac) * n_free)
     if admission is None:
         admission = auto and aisles is not None and aisles < AISLE_SHARE
     if open_lanes is None:
