@@ -42,6 +42,7 @@ from __future__ import annotations
 
 import itertools
 import time
+from functools import partial
 
 import numpy as np
 from numba import njit
@@ -529,19 +530,17 @@ class EPIBTPlan:
         if not done:
             self.stats["epibt_unfinished"] += 1
         if lns and done and time.perf_counter() < stop:
-            seeds = self.rng.integers(2 ** 31, size=len(self.chains))
-            others = self.chains[1:]
-            if self.anneal:
+            seeds = [int(sd) for sd in self.rng.integers(2 ** 31, size=len(self.chains))]
+            if self.anneal:                  # every chain restarts from the first pass's plans
                 self._base.take(main)
-                futures = [self._pool.submit(c.anneal, self, prank, stop, int(sd), self._base, b)
-                           for c, sd, b in zip(others, seeds[1:], self._best[1:], strict=True)]
-                main.anneal(self, prank, stop, int(seeds[0]), self._base, self._best[0])
-            else:
-                for c in others:
+                jobs = [partial(c.anneal, self, prank, stop, sd, self._base, b)
+                        for c, sd, b in zip(self.chains, seeds, self._best, strict=True)]
+            else:                            # every chain passes on from the first pass's plans
+                for c in self.chains[1:]:
                     c.take(main)
-                futures = [self._pool.submit(c.lns, self, prank, stop, int(sd))
-                           for c, sd in zip(others, seeds[1:], strict=True)]
-                main.lns(self, prank, stop, int(seeds[0]))
+                jobs = [partial(c.lns, self, prank, stop, sd) for c, sd in zip(self.chains, seeds, strict=True)]
+            futures = [self._pool.submit(job) for job in jobs[1:]]
+            jobs[0]()                        # the main chain on this thread
             for f in futures:
                 f.result()
             best = max(self.chains, key=lambda c: c.score[0])
