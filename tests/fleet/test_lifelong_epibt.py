@@ -236,6 +236,15 @@ def test_planner_with_epibt_keeps_every_step_valid_and_reaches_goals_on_a_packed
     assert planner._epibt.stats["epibt_steps"] == 40 and planner._epibt.stats["epibt_passes"] >= 40
 
 
+def test_epibt_answers_when_the_lookahead_has_no_time_for_its_rollouts():
+    # rollouts of a million steps never fit (as one PIBT step of thousands of robots takes
+    # milliseconds): EPIBT's plan answers every step, not the plain PIBT step
+    planner = drive_packed(epibt=True, window=10 ** 6)
+    assert planner._epibt.stats["epibt_steps"] == 40 and planner.stats.get("window_chosen", 0) == 0
+    plain = drive_packed(window=10 ** 6)
+    assert plain._epibt is None
+
+
 def test_window_bias_makes_the_lookahead_take_epibts_first_step():
     # a bias beyond any rollout's lead: EPIBT's first step in every step whose rollout from it was
     # scored (nearly all; on a loaded machine the rollouts of a step may end before it); one below
@@ -275,17 +284,33 @@ def test_runner_answers_with_epibt_its_bias_and_open_lanes_from_0_1_robots_per_f
         assert (s.get("epibt_steps", 0) > 0) is on
 
 
-def test_runner_keeps_epibt_for_0_3_robots_per_free_cell_in_teams_over_a_thousand():
+def test_runner_answers_with_epibt_in_teams_over_a_thousand_from_0_1_off_aisles_and_from_0_3_on_them():
     from rce_fleet.lifelong.lorr import LorrProblem
-    from rce_fleet.lifelong.runner import EPIBT_DENSITY, WINDOW_TEAM, run_lifelong
+    from rce_fleet.lifelong.runner import (AISLE_SHARE, EPIBT_DENSITY, OPEN_LANES, WINDOW_DENSITY, WINDOW_TEAM,
+                                           run_lifelong)
+    n = WINDOW_TEAM + 100
+    # an open map: 0.17 robots per free cell
     g = LifelongGrid(np.ones((80, 80), dtype=bool))
-    n = WINDOW_TEAM + 100                                   # 0.17 robots per free cell
-    assert n / 6400 < EPIBT_DENSITY
+    assert WINDOW_DENSITY < n / 6400 < EPIBT_DENSITY
     tasks = [(int(c), int(c + 1)) for c in range(0, 6398, 3)]
     prob = LorrProblem(Path("open80.json"), g, np.arange(n, dtype=np.int64) * 5, tasks, n, 1.5)
     s = run_lifelong(prob, 0, plan_time_limit_ms=200, seed=0).summary()       # the rule and warm-ups only
-    assert s["epibt"] is False
-    prob = LorrProblem(Path("open80.json"), g, np.arange(2000, dtype=np.int64) * 3, tasks, 2000, 1.5)
+    assert s["epibt"] is True and s["aisles"] < AISLE_SHARE
+    # ... over the crisscross graph, every row and column a lane, without guide paths or keep-right
+    assert s["crisscross"] is True and s["open_lanes"] == OPEN_LANES
+    assert s["guide"] is False and s["keep_right"] == 0
+    # a map of aisles: one-cell corridors between rows of shelves, cross aisles at both ends
+    free = np.ones((161, 80), dtype=bool)
+    free[1::2, 1:-1] = False
+    g = LifelongGrid(free)
+    cells = g.free_cells()
+    assert WINDOW_DENSITY < n / len(cells) < EPIBT_DENSITY
+    tasks = [(int(a), int(b)) for a, b in zip(cells[::3], cells[1::3], strict=False)]
+    prob = LorrProblem(Path("aisles.json"), g, cells[::5][:n], tasks, n, 1.5)
+    s = run_lifelong(prob, 0, plan_time_limit_ms=200, seed=0).summary()
+    assert s["epibt"] is False and s["aisles"] >= AISLE_SHARE and s["crisscross"] is False
+    many = int(EPIBT_DENSITY * len(cells)) + 10
+    prob = LorrProblem(Path("aisles.json"), g, cells[::2][:many], tasks, many, 1.5)
     assert run_lifelong(prob, 0, plan_time_limit_ms=200, seed=0).summary()["epibt"] is True
 
 

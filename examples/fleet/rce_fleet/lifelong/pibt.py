@@ -139,7 +139,7 @@ class PIBTPlanner:
         turns = self.model == MAPF_T
         act = np.empty(n, dtype=np.int64)
         if turns and (self.ops or self.epibt) and self.ops_candidate and self.samples > 1:
-            act = self._rollouts(pos, head, goals, slot, pslot, order, rnd, deadline, window=True)
+            act = self._rollouts(pos, head, goals, slot, pslot, order, rnd, deadline, window=True, hard=hard)
         elif turns and (self.ops or self.epibt):
             act = self._windowed(pos, head, goals, pslot, order, rnd, deadline, hard)
         elif turns and self.samples > 1:
@@ -172,15 +172,16 @@ class PIBTPlanner:
         scale = np.where(self.stuck > self.stuck_steps, self.noise, 1.0) if self.noise > 0 else np.ones(n)
         return plan.plan(pos, head, self._ptable, pslot, goals, order, scale, stop, self.lns)
 
-    def _windowed(self, pos, head, goals, pslot, order, rnd, deadline, hard) -> np.ndarray:
-        """PIBT's one-step answer first (the fallback, always ready), then the windowed plan of
-        operations refined by LNS (:class:`~.window.WindowPlan`, or EPIBT with ``epibt``) until
-        ``lns_frac`` (``epibt_frac``) of the way from ``deadline`` to ``hard``; its first actions
-        when it finished in time."""
+    def _windowed(self, pos, head, goals, pslot, order, rnd, deadline, hard, act=None) -> np.ndarray:
+        """PIBT's one-step answer first (the fallback, always ready; ``act`` when given), then the
+        windowed plan of operations refined by LNS (:class:`~.window.WindowPlan`, or EPIBT with
+        ``epibt``) until ``lns_frac`` (``epibt_frac``) of the way from ``deadline`` to ``hard``;
+        its first actions when it finished in time."""
         n = pos.shape[0]
-        nxt = np.empty(n, dtype=np.int64)
-        act = np.empty(n, dtype=np.int64)
-        self._convert(pos, head, goals, pslot, order, rnd, nxt, act)
+        if act is None:
+            nxt = np.empty(n, dtype=np.int64)
+            act = np.empty(n, dtype=np.int64)
+            self._convert(pos, head, goals, pslot, order, rnd, nxt, act)
         frac = self.epibt_frac if self.epibt else self.lns_frac
         end = deadline if hard is None else deadline + frac * max(0.0, hard - deadline)
         wact = self._window_plan(pos, head, goals, pslot, order, end)
@@ -191,13 +192,16 @@ class PIBTPlanner:
         self.claim_age[:] = 0
         return wact
 
-    def _rollouts(self, pos, head, goals, slot, pslot, order, rnd, deadline, window=False) -> np.ndarray:
+    def _rollouts(self, pos, head, goals, slot, pslot, order, rnd, deadline, window=False,
+                  hard=None) -> np.ndarray:
         """Windowed lookahead: the plain PIBT step first (always complete), then, while time
         remains, rollouts of ``window`` PIBT steps from other tie-breaks of the first step;
         keep the first step of the rollout that brings the robots closest (heading-aware, a
-        reached goal counts 0). Skipped when ``samples`` rollouts cannot fit before half the
-        time left to ``deadline``. With ``window``, the first step of the windowed plan
-        (refined by LNS for ``lns_frac`` of the time left) is the second rollout's."""
+        reached goal counts 0). Skipped when two rollouts cannot fit before half the time left
+        to ``deadline``: then the plain step, or with ``window`` the windowed plan alone
+        (:meth:`_windowed`; a team of thousands, where one PIBT step takes milliseconds). With
+        ``window``, the first step of the windowed plan (refined by LNS for ``lns_frac`` of the
+        time left) is the second rollout's."""
         from .simulator import _apply
         n = pos.shape[0]
         table = self.cache.table
@@ -210,8 +214,10 @@ class PIBTPlanner:
         plain = (act.copy(), self.claim.copy(), self.claim_age.copy())
         t_step = time.perf_counter() - t_a
         stop = t_a + self.sample_frac * max(0.0, deadline - t_a)
-        if 2 * self.window * t_step * 1.5 > stop - time.perf_counter():
-            return plain[0]                   # no time for two rollouts: the plain step
+        if 2 * self.window * t_step * 1.5 > stop - time.perf_counter():   # no time for two rollouts
+            if window:
+                return self._windowed(pos, head, goals, pslot, order, rnd, deadline, hard, act=plain[0])
+            return plain[0]
         wfirst = None
         if window:
             now = time.perf_counter()

@@ -55,8 +55,9 @@ EPIBT_ACTIVE_FRAC = 0.43  # ... where EPIBT answers (350 of RANDOM-04's 819 free
 ACTIVE_DENSITY = 0.3  # ... in teams of this many robots per free cell or more
 AISLE_ACTIVE_FRAC = 0.2   # ... and on maps of aisles: at least AISLE_SHARE of the free cells in one-cell corridor lanes
 AISLE_SHARE = 0.2
-WINDOW_DENSITY = 0.1  # robots per free cell from which EPIBT (+ LNS) leads (with EPIBT off: the windowed plan
-WINDOW_TEAM = 1000    # of operations, to PACKED_DENSITY) in teams up to this size (larger ones not measured with it)
+WINDOW_DENSITY = 0.1  # robots per free cell from which EPIBT (+ LNS) leads in teams up to WINDOW_TEAM and in
+WINDOW_TEAM = 1000    # any team on a map that is not a map of aisles (GAME's 6,500: docs/lifelong.md); with EPIBT
+                      # off the windowed plan of operations, to PACKED_DENSITY, in teams up to WINDOW_TEAM
 EPIBT_DENSITY = 0.3   # robots per free cell from which EPIBT with LNS answers (MAPF_T) in any team ...
 OPEN_LANES = 9        # ... and, on a map without corridors, every row and column is a lane (against: 1 + 9) ...
 EPIBT_BIAS = 0.2      # ... and the lookahead takes its first step unless a rollout leads by this per robot
@@ -104,8 +105,9 @@ def run_lifelong(problem: LorrProblem, steps: int, plan_time_limit_ms: float = 1
     ask for cost more than the jams they avoid: docs/lifelong.md); from ``PACKED_DENSITY`` robots per
     free cell a robot that turns towards a cell does not hold it (``claim_steps=0``; measured there);
     from ``EPIBT_DENSITY`` robots per free cell, and from ``WINDOW_DENSITY`` in teams up to
-    ``WINDOW_TEAM``, the planner answers with EPIBT and LNS (:mod:`.epibt`; ``planner_kw={"epibt":
-    False}`` turns it off, and then from ``WINDOW_DENSITY`` to ``PACKED_DENSITY`` in those teams the
+    ``WINDOW_TEAM`` and in any team on a map that is not a map of aisles (below), the planner answers
+    with EPIBT and LNS (:mod:`.epibt`; ``planner_kw={"epibt": False}`` turns it off, and then from
+    ``WINDOW_DENSITY`` to ``PACKED_DENSITY`` in teams up to ``WINDOW_TEAM`` the
     windowed plan of operations refined by LNS takes its place: :mod:`.window`,
     ``planner_kw={"ops": False}`` turns that off too), its first step taken
     unless a PIBT rollout brings the robots closer by ``EPIBT_BIAS`` steps per robot with a goal
@@ -115,7 +117,10 @@ def run_lifelong(problem: LorrProblem, steps: int, plan_time_limit_ms: float = 1
     without corridor lanes, every row and column becomes a lane with this extra cost against it
     (None: ``OPEN_LANES`` under EPIBT, else 0); keep_right: the extra cost of a move against the
     keep-right lane of a corridor 2 - 12 cells wide (:func:`~.guidance.keep_right_costs`; None:
-    ``KEEP_RIGHT``, 0: none);
+    ``KEEP_RIGHT``, 0: none). Where EPIBT answers a team over ``WINDOW_TEAM`` below
+    ``EPIBT_DENSITY`` (a map that is not a map of aisles), every row and column is a lane, corridors
+    or not, in place of guide paths and keep-right lanes (guide, keep_right None: off), as the 2024
+    winner's grid guidance on GAME and CITY (measured on GAME: docs/lifelong.md);
     max_active: at most this many robots hold a task; None (default):
     ``ACTIVE_FRAC`` of the free cells from ``ACTIVE_DENSITY`` robots per free cell
     (``EPIBT_ACTIVE_FRAC`` where EPIBT answers), 0: no bound;
@@ -138,13 +143,17 @@ def run_lifelong(problem: LorrProblem, steps: int, plan_time_limit_ms: float = 1
     grid = problem.grid
     n_free = max(1, len(grid.free_cells()))
     density = problem.team_size / n_free
-    if guide is None:
-        guide = density >= GUIDE_DENSITY
     if density >= PACKED_DENSITY:       # the cell a turning robot would hold is the one the others need
         planner_kw = {"claim_steps": 0, **(planner_kw or {})}
     small = problem.team_size <= WINDOW_TEAM
-    epibt = (model == MAPF_T and density >= (WINDOW_DENSITY if small else EPIBT_DENSITY)
+    cost = lane_costs(grid, lanes) if lanes else None
+    corridors = cost if cost is not None else lane_costs(grid, 1)
+    aisles = float((corridors > 1).any(axis=1).sum()) / n_free     # share of free cells in one-cell lanes
+    epibt = (model == MAPF_T and density >= (WINDOW_DENSITY if small or aisles < AISLE_SHARE else EPIBT_DENSITY)
              and (planner_kw or {}).get("epibt", True))
+    crisscross = epibt and not small and density < EPIBT_DENSITY     # a large team off aisles: the winner's grid
+    if guide is None:
+        guide = density >= GUIDE_DENSITY and not crisscross
     if epibt:
         dense = {"lns_frac": EPIBT_LNS_FRAC} if density >= EPIBT_DENSITY else {}
         planner_kw = {"epibt": True, "window_bias": EPIBT_BIAS, **dense, **(planner_kw or {})}
@@ -159,23 +168,18 @@ def run_lifelong(problem: LorrProblem, steps: int, plan_time_limit_ms: float = 1
     if guide:
         flow_warm_up()
     t_start = time.perf_counter()
-    cost = lane_costs(grid, lanes) if lanes else None
     auto = admission is None and density >= ADMISSION_DENSITY
-    aisles = None           # share of the free cells in one-cell corridor lanes, where a bound needs it
-    if max_active is None and (density >= ACTIVE_DENSITY or auto):
-        corridors = cost if cost is not None else lane_costs(grid, 1)
-        aisles = float((corridors > 1).any(axis=1).sum()) / n_free
     if max_active is None and density >= ACTIVE_DENSITY:
         open_frac = EPIBT_ACTIVE_FRAC if epibt else ACTIVE_FRAC
         max_active = int((AISLE_ACTIVE_FRAC if aisles >= AISLE_SHARE else open_frac) * n_free)
     if admission is None:
-        admission = auto and aisles is not None and aisles < AISLE_SHARE
+        admission = auto and aisles < AISLE_SHARE
     if open_lanes is None:
         open_lanes = OPEN_LANES if epibt and lanes else 0
-    if open_lanes and (cost is None or (cost == 1).all()):       # no corridors: the crisscross everywhere
+    if open_lanes and (crisscross or cost is None or (cost == 1).all()):    # the crisscross everywhere
         cost = lane_costs(grid, open_lanes, everywhere=True)
     if keep_right is None:
-        keep_right = KEEP_RIGHT
+        keep_right = 0 if crisscross else KEEP_RIGHT
     if keep_right:
         cost = keep_right_costs(grid, keep_right, cost=cost)
     cache = DistanceCache(grid, max_bytes=cache_bytes, cost=cost)
@@ -235,8 +239,8 @@ def run_lifelong(problem: LorrProblem, steps: int, plan_time_limit_ms: float = 1
         if progress is not None:
             progress(k + 1, sim.finished, dt * 1e3)
     stats = {"scheduler": scheduler, "max_active": getattr(sched, "max_active", None), "lanes": lanes,
-             "aisles": None if aisles is None else round(aisles, 3),
-             "keep_right": keep_right,
+             "aisles": round(aisles, 3),
+             "keep_right": keep_right, "crisscross": crisscross,
              "crowd_w": crowd_w, "guide": guide, "epibt": epibt, "open_lanes": open_lanes,
              "window_bias": planner.window_bias,
              "claim_steps": planner.claim_steps, "scheduler_ms_total": sched_ms,
