@@ -239,9 +239,9 @@ def test_planner_with_epibt_keeps_every_step_valid_and_reaches_goals_on_a_packed
 def test_epibt_answers_when_the_lookahead_has_no_time_for_its_rollouts():
     # rollouts of a million steps never fit (as one PIBT step of thousands of robots takes
     # milliseconds): EPIBT's plan answers every step, not the plain PIBT step
-    planner = drive_packed(epibt=True, window=10 ** 6)
-    assert planner._epibt.stats["epibt_steps"] == 40 and planner.stats.get("window_chosen", 0) == 0
-    plain = drive_packed(window=10 ** 6)
+    planner = drive_packed(steps=20, soft=0.02, hard=0.05, epibt=True, window=10 ** 6)
+    assert planner._epibt.stats["epibt_steps"] == 20 and planner.stats.get("window_chosen", 0) == 0
+    plain = drive_packed(steps=20, window=10 ** 6)
     assert plain._epibt is None
 
 
