@@ -91,6 +91,39 @@ def test_with_the_gate_a_bound_grows_by_its_slow_start_factor_only_while_far_fro
     assert ctl.observe(9, 200, 232, 1) == 242           # calm, but from now on + 1 % a window
 
 
+def test_a_slow_jam_is_met_by_its_drop_from_the_best_flow_and_the_bound_stays_under_where_it_jammed():
+    ctl = FlowAdmission(1000, window=2, target=0.5, decrease=0.8, increase=0.1, floor=0.1, start=400,
+                        jam_factor=2.0, jam_least=0.05, drop=0.05, ceiling=0.7)
+    ctl.observe(0, 380, 400, 4)
+    assert ctl.observe(1, 380, 400, 4) == 500           # 0.95 moving, 0.01 packed: it rises
+    ctl.observe(2, 460, 500, 40)
+    assert ctl.observe(3, 460, 500, 40) == 500          # 0.08 packed: a jam, but 0.92 moving is near the best
+    ctl.observe(4, 440, 500, 40)
+    assert ctl.observe(5, 440, 500, 40) == 350          # 0.88: 0.07 under the best (over target): it falls,
+    assert ctl.decisions[-1] == (5, 0.88, 350, 0.08)     # at once to 0.7 x 500, not 0.8 x 500
+    ctl.observe(6, 100, 350, 50)
+    assert ctl.observe(7, 100, 350, 50) == 280          # the jam goes on: x 0.8, the ceiling is kept
+    for k, want in ((8, 350), (10, 350)):
+        b = ctl.bound
+        ctl.observe(k, b, b, 1)
+        assert ctl.observe(k + 1, b, b, 1) == want       # calm: + 100 a window, never over the ceiling
+    ctl.observe(12, 150, 350, 40)
+    assert ctl.observe(13, 150, 350, 40) == 244         # a jam at the ceiling lowers it: int(0.7 x 350)
+    for k in range(14, 30, 2):
+        b = ctl.bound
+        ctl.observe(k, b, b, 1)
+        ctl.observe(k + 1, b, b, 1)
+    assert ctl.bound == 244                              # and the new ceiling holds
+    free = FlowAdmission(1000, window=2, target=0.5, decrease=0.8, increase=0.1, start=400, jam_factor=2.0,
+                         jam_least=0.05)
+    for k in range(0, 6, 2):
+        free.observe(k, 440 if k else 380, 500 if k else 400, 40 if k else 4)
+        free.observe(k + 1, 440 if k else 380, 500 if k else 400, 40 if k else 4)
+    assert free.bound == 500                            # without drop: 0.88 moving is over target, held
+    with pytest.raises(ValueError, match="ceiling"):
+        FlowAdmission(10, ceiling=1.5)
+
+
 @pytest.mark.parametrize("scheduler", [GreedyScheduler, BatchScheduler])
 def test_a_lower_bound_takes_unopened_tasks_back_from_the_robots_farthest_from_them(scheduler):
     g = LifelongGrid(np.ones((1, 40), dtype=bool))
@@ -209,7 +242,7 @@ def test_a_run_reports_the_jam_at_a_door_and_none_where_the_same_team_has_room()
     bounded = runner.run_lifelong(_two_rooms(door=True), 100, plan_time_limit_ms=100.0, record=False)
     assert bounded.stats["admission_on"]                  # by default, at 0.12 robots per free cell
     assert bounded.stats["jam_at"] is None and bounded.stats["packed_shares"] is None   # a bound holds: not watched
-    bounds = [b for _, _, b in bounded.stats["admission"]]
+    bounds = [d[2] for d in bounded.stats["admission"]]
     assert bounds[-1] < bounds[0], bounds                 # it fell as robots packed in
     assert bounded.summary()["invalid_steps"] == 0
 
@@ -250,5 +283,5 @@ def test_the_run_time_bound_is_on_by_default_at_0_1_to_0_3_robots_per_free_cell_
     res = run(small, 0.15, steps=25)
     team = res.sim.n
     start = int(runner.ADMISSION_SMALL_START * team)
-    (step, _, bound), = res.stats["admission"]    # the first window: no jam yet, it rises
+    (step, _, bound, _), = res.stats["admission"]    # the first window: no jam yet, it rises
     assert step == 24 and start < bound <= int(start * runner.ADMISSION_SMALL["slow_start"])

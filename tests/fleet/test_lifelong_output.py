@@ -117,7 +117,7 @@ def test_tasks_taken_back_by_the_run_time_bound_keep_the_schedule_rules():
     res = run_lifelong(p, 60, plan_time_limit_ms=250.0, seed=1, record=True, admission=True,
                        admission_kw={"window": 5, "target": 0.99, "decrease": 0.7, "start": None, "jam_factor": None})
     out = res.sim.output()
-    bounds = [b for _, _, b in res.stats["admission"]]
+    bounds = [d[2] for d in res.stats["admission"]]
     assert res.stats["shed"] > 0 and bounds[0] is not None and bounds[-1] < bounds[0]
     assert out["numTaskFinished"] > 0 and out["numScheduleErrors"] == 0
     assert schedule_faults(out) == []

@@ -20,6 +20,14 @@ share moving alone holds back teams that flow. With the jam gate (``jam_factor``
 only while robots also pack in (every free neighbour cell held by a robot: :func:`packed`) and
 rises whenever they do not: a team that turns but flows keeps growing, a team pressing into a
 passage is held back before its crowd packs solid (measured in docs/lifelong.md).
+
+On a large map a fall acts late: opened tasks are never taken back, so the robots on a task fall
+to the bound only as their tasks end, hundreds of steps on GAME, while a jam at the corridor mouths
+grows over as many. A bound that falls by ``decrease`` and grows back then overshoots again and
+again. So, with the gate, the bound also falls while robots pack in and the share moving is
+``drop`` under its best since the last fall (a jam growing slowly is met before the share reaches
+``target``), the first fall of a jam goes at once to ``ceiling`` of the bound it fell from, and the
+bound never grows past that again, as TCP's slow-start threshold remembers the window that lost.
 """
 from __future__ import annotations
 
@@ -41,15 +49,22 @@ class FlowAdmission:
     ``jam_least``) and rises whenever none does, whatever the share moving (None: the share moving
     alone decides); calm: with the gate, slow start grows the bound only while the packed share is
     under this share of a jam's (:func:`jam_share`), and by ``increase`` alone nearer one (None: until
-    the first jam, whatever the packed share). ``bound`` is None while no bound holds. Raises
-    ValueError for a share outside (0, 1] or a window below 1.
+    the first jam, whatever the packed share); drop: with the gate, the bound also falls while a jam
+    grows and the share moving is this far below the best window's since the bound last fell (a jam
+    that grows slowly is met before the share reaches ``target``; None: ``target`` alone); ceiling:
+    the first fall of a jam goes at once to this share of the bound it fell from, and the bound
+    never grows past it again (a jam at it lowers it the same way), as TCP's slow-start threshold
+    remembers the window that lost (None: no ceiling). ``bound`` is None
+    while no bound holds; ``decisions``: (step, share moving, bound, packed share) per window.
+    Raises ValueError for a share outside (0, 1] or a window below 1.
     """
 
     def __init__(self, team: int, window: int = 25, target: float = 0.8, band: float = 0.05,
                  decrease: float = 0.85, increase: float = 0.02, floor: float = 0.1, start: int | None = None,
                  slow_start: float = 1.0, jam_factor: float | None = None, jam_least: float = 0.05,
-                 calm: float | None = None):
-        for name, v in (("target", target), ("decrease", decrease), ("increase", increase), ("floor", floor)):
+                 calm: float | None = None, drop: float | None = None, ceiling: float | None = None):
+        for name, v in (("target", target), ("decrease", decrease), ("increase", increase), ("floor", floor),
+                        ("ceiling", 1.0 if ceiling is None else ceiling)):
             if not 0.0 < v <= 1.0:
                 raise ValueError(f"{name} must be in (0, 1], got {v}")
         if window < 1:
@@ -58,10 +73,13 @@ class FlowAdmission:
         self.decrease, self.increase, self.floor = decrease, increase, max(1, int(floor * team))
         self.bound: int | None = None if start is None or start >= team else max(self.floor, int(start))
         self.slow_start = slow_start
-        self.jam_factor, self.jam_least, self.calm = jam_factor, jam_least, calm
+        self.jam_factor, self.jam_least, self.calm, self.drop, self.ceiling = jam_factor, jam_least, calm, drop, ceiling
         self._first_packed: float | None = None
+        self._best = 0.0                                  # the best share moving since the last fall
+        self._cap: int | None = None                      # the ceiling's bound (robots), after a fall
+        self._falling = False                             # the bound fell and has not risen since
         self._moved = self._holding = self._steps = self._packed = 0
-        self.decisions: list[tuple[int, float, int | None]] = []   # (step, share, bound) per window
+        self.decisions: list[tuple[int, float, int | None, float]] = []
 
     def observe(self, step: int, moved: int, holding: int, packed_holders: int = 0) -> int | None:
         """Count one step: ``moved`` robots holding a task changed cell, ``packed_holders`` of them
@@ -83,18 +101,26 @@ class FlowAdmission:
                 self._first_packed = packed_share
             over = jam_share(self._first_packed, self.jam_factor, self.jam_least)
             jam = packed_share > over
-            fall, rise = jam and share < self.target, not jam
+            low = share < self.target or (self.drop is not None and share < self._best - self.drop)
+            fall, rise = jam and low, not jam
             if self.calm is not None and packed_share >= self.calm * over:
                 grow = 1.0                                # near a jam: additive only
+        self._best = max(self._best, share)
         if fall:
             base = holding if self.bound is None else min(self.bound, holding)
+            if self.ceiling is not None and not self._falling:     # the first fall of a jam
+                self._cap = max(self.floor, int(self.ceiling * base))
             self.bound = max(self.floor, int(self.decrease * base))
-            self.slow_start = 1.0
+            if self._cap is not None:                     # the first fall goes to the ceiling at once
+                self.bound = min(self.bound, self._cap)
+            self.slow_start, self._best, self._falling = 1.0, 0.0, True
         elif rise and self.bound is not None and holding >= self.bound - 1:
-            self.bound = max(self.bound + max(1, int(self.increase * self.team)), int(self.bound * grow))
+            grown = max(self.bound + max(1, int(self.increase * self.team)), int(self.bound * grow))
+            self.bound = grown if self._cap is None else min(grown, max(self._cap, self.bound))
+            self._falling = False
             if self.bound >= self.team:
                 self.bound = None
-        self.decisions.append((step, round(share, 3), self.bound))
+        self.decisions.append((step, round(share, 3), self.bound, round(packed_share, 3)))
         return self.bound
 
 

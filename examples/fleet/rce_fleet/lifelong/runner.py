@@ -39,11 +39,16 @@ LANES = 4        # extra cost of a move against a one-way lane (measured: docs/l
 ADMISSION_START = 0.04  # robots per free cell the run-time bound starts at (--admission on; measured there)
 ADMISSION_DENSITY = 0.1  # robots per free cell from which (to ACTIVE_DENSITY) the run-time bound is on unless
                          # turned off, on maps that are not maps of aisles
-ADMISSION_JAM = {"jam_factor": 2.0, "jam_least": 0.08}  # it falls only while robots pack in (measured there) ...
-ADMISSION_JAM_DENSITY = 0.5  # ... over at least this times the robots per free cell (a dense team flowing packs more)
+# It falls only while robots pack in (over jam_least, and over ADMISSION_JAM_DENSITY times the robots per free
+# cell: a dense team flowing packs more) and flow under target or 0.04 under their best since it last fell; the
+# first fall goes at once to 0.7 of where it jammed, and it never grows past that again (a fall acts only as
+# tasks end, hundreds of steps on a large map: GAME, docs/lifelong.md)
+ADMISSION_JAM = {"jam_factor": 2.0, "jam_least": 0.08, "drop": 0.04, "ceiling": 0.7}
+ADMISSION_JAM_DENSITY = 0.5
 ADMISSION_CELLS = 4000   # on maps of fewer free cells (short tasks: a crowd clears soon) the bound starts at ...
 ADMISSION_SMALL_START = 0.5  # ... this share of the team, and grows as ADMISSION_SMALL says: x 1.25 a window while
-ADMISSION_SMALL = {"slow_start": 1.25, "calm": 0.5}  # the packed share is under half a jam's (measured there)
+ADMISSION_SMALL = {"slow_start": 1.25, "calm": 0.5,  # the packed share is under half a jam's (measured there),
+                   "drop": None, "ceiling": None}  # and falls on target alone, with no ceiling: a fall acts soon
 KEEP_RIGHT = 4   # extra cost of a move against the keep-right lane of a corridor 2 - 12 cells wide (measured there)
 CROWD_W = 5.0    # scheduler's steps per robot crowding a task's errands beyond its share ...
 CROWD_TEAM = 3000  # ... for teams of this size and more (measured: docs/lifelong.md)
