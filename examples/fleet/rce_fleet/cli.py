@@ -32,7 +32,8 @@ from pathlib import Path
 # the help of --admission, rce-fleet lifelong's and bench/lifelong.py's
 ADMISSION_HELP = ("the bound on robots holding a task set at run time: it starts at 0.04 robots per free cell "
                   "(half the team on maps under 4,000 free cells), rises while robots flow and falls while they "
-                  "pack in at narrow passages (default: on from 0.1 to 0.3 robots per free cell on maps that are "
+                  "pack in at narrow passages, on larger maps at once to 0.7 of where they jammed and never "
+                  "past it again (default: on from 0.1 to 0.3 robots per free cell on maps that are "
                   "not maps of one-cell aisles, else off; ignored under --max-active)")
 
 __all__ = ["main", "build_parser"]
