@@ -82,6 +82,7 @@ log = get_logger("rce.ros")
 OWNER = "/rce_ros"
 QUEUE_SIZE = 100            # messages waiting to go to the cloud, per interface
 TEARDOWN_TIMEOUT = 5.0      # s to wait for the cloud to process the teardown requests
+CONNECT_WAIT = 5.0          # s a robot-side service call waits for its interface to be wired to the cloud
 
 
 class _Stopped(Exception):
@@ -497,13 +498,19 @@ class RobotBridge:
 
     def _cloud_service(self, kind: _Kind) -> Callable[[bytes], Awaitable[bytes]]:
         """ServiceProviderConverter/Forwarder: the handler of the robot-side service ``k.addr``, whose
-        calls (request bytes -> response bytes) go to the cloud. Raises :class:`RCEError`."""
+        calls (request bytes -> response bytes) go to the cloud. A call while the interface is not
+        wired to the cloud (rce-ros just started, or the cloud away) waits up to ``CONNECT_WAIT`` s
+        for it. Raises :class:`RCEError` (:class:`Unavailable` when it stays unwired)."""
         client = self.conn.service(kind.spec.iTag, kind.spec.iCls)
         reg, itag = self.registry, kind.spec.iTag
 
         async def handler(payload: bytes) -> bytes:
-            if not self.conn.interfaces.get(itag):
-                raise Unavailable(f"service {kind.addr}: interface {itag} is not connected to the cloud")
+            if not self.conn.interfaces.get(itag):          # just set up, or the cloud away: wait a little
+                try:
+                    await self.conn.wait_interfaces_up([itag], CONNECT_WAIT)
+                except Unavailable:
+                    raise Unavailable(f"service {kind.addr}: interface {itag} is not connected to the cloud "
+                                      f"(waited {CONNECT_WAIT:g} s)") from None
             if kind.forwarder:
                 resp = await client.call(payload, timeout=None)
                 if isinstance(resp, (bytes, bytearray)):

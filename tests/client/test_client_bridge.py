@@ -219,3 +219,30 @@ async def test_second_bridge_on_the_same_socket_is_refused(cloud):
             await other.run()
     finally:
         assert await run.stop() == 0
+
+
+async def test_a_call_while_its_interface_is_unwired_waits_for_the_wiring_then_fails_naming_it(cloud, monkeypatch):
+    from rce_client import rce_ros
+    run = Run(config(cloud.login_url))
+    await run.ready()
+    node = await rce.node.init_node("tester", bus=run.bus, argv=[])
+    try:
+        await cloud.send("ST", {"topic": "iu", "iTag": "svc", "status": False})     # the cloud side went away
+        svc = await node.service_proxy("/cloud_echo", "Test/StringEcho")
+        svcb = await node.service_proxy("/cloud_echo_b", "Test/StringEcho")
+        waiting = asyncio.ensure_future(svc({"data": "held"}))
+        assert (await svcb({"data": "after"})).data == "after"   # the bridge has the first call by now
+        assert not waiting.done()
+        assert not [m for m in cloud.log if m["type"] == "DM" and m["data"]["iTag"] == "svc"]
+        await cloud.send("ST", {"topic": "iu", "iTag": "svc", "status": True})      # wired again: it goes out
+        assert (await asyncio.wait_for(waiting, 5)).data == "held"
+
+        monkeypatch.setattr(rce_ros, "CONNECT_WAIT", 0.2)
+        await cloud.send("ST", {"topic": "iu", "iTag": "svc", "status": False})
+        assert (await svcb({"data": "sync"})).data == "sync"
+        with pytest.raises(Exception, match=r"interface svc is not connected to the cloud \(waited 0.2 s\)"):
+            await asyncio.wait_for(svc({"data": "never"}), 5)
+        assert (await svcb({"data": "still"})).data == "still"                    # the others go on
+    finally:
+        await node.close()
+    assert await run.stop() == 0
