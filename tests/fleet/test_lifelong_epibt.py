@@ -357,3 +357,35 @@ def test_a_run_compiles_no_kernel_after_its_warm_ups():
     out = json.loads(done.stdout.strip().splitlines()[-1])
     assert out["epibt"] is True
     assert out["compiled"] == []
+
+
+def _tunnel_run(steps: int, **planner_kw) -> dict[int, int]:
+    """Two robots head-on in a one-cell corridor whose lower end is a dead end: robot 0 at the
+    dead end wants the top row, robot 1 wants the dead end. EPIBT's first pass answers every step
+    (a second to the deadline, so that PIBT's answer never stands in); each step is checked under
+    the rules. Returns {robot: step it reached its goal}."""
+    from rce_fleet.lifelong import PIBTPlanner
+    g = LifelongGrid(np.array([[ch == "." for ch in row] for row in
+                               [".@@@", "....", ".@@@", ".@@@", ".@@@", ".@@@"]]))
+    pos, head = np.array([20, 16], np.int64), np.array([WEST, SOUTH], np.int64)
+    goals = np.array([6, 20], np.int64)
+    planner = PIBTPlanner(g, DistanceCache(g), seed=1, epibt=True, samples=1, lns=False, **planner_kw)
+    reached = {}
+    for t in range(steps):
+        now = time.perf_counter()
+        act = planner.plan(pos, head, goals, now + 0.5, now + 1.0)
+        pos, head, errors = check_actions(g, pos, head, act)
+        assert errors == [] and planner.stats.get("window_late", 0) == 0
+        for a in np.flatnonzero((goals >= 0) & (pos == goals)):
+            reached[int(a)] = t
+            goals[a] = -1
+    return reached
+
+
+def test_a_robot_that_cannot_pass_yields_so_a_dead_end_corridor_does_not_hold_both_for_good():
+    # without the yield the robot of higher priority (1, by the seed's tie-break) waits for the dead end
+    # its partner cannot leave, and EPIBT's chain never displaces it: nothing moves
+    assert _tunnel_run(60, yield_steps=0) == {}
+    # with it the robot without progress goes under the other, which backs it out of the way
+    reached = _tunnel_run(120)
+    assert set(reached) == {0, 1} and reached[0] < reached[1]

@@ -53,7 +53,9 @@ class PIBTPlanner:
     ``epibt_kw``) in place of the windowed plan (answered directly, it runs until ``epibt_frac``
     of the way from ``deadline`` to ``hard``); window_bias: steps per robot with a goal added to
     the score of the rollout from the windowed plan's (EPIBT's) first step, so that the lookahead
-    takes it unless a PIBT rollout brings the robots closer by more. ``plan(pos, head, goals, deadline)`` returns (n,)
+    takes it unless a PIBT rollout brings the robots closer by more; yield_steps: under EPIBT a robot
+    without progress for more than this many steps yields its priority (:meth:`_yield_order`; 0:
+    never). ``plan(pos, head, goals, deadline)`` returns (n,)
     action codes (:mod:`.kernels`). Measured worth of each: ``docs/lifelong.md``.
     """
 
@@ -63,7 +65,8 @@ class PIBTPlanner:
                  window: int = 20, flow: TrafficFlow | None = None, flow_frac: float = 0.5,
                  flow_passes: int = 1, ops: bool = False, lns: bool = True, lns_frac: float = 0.5,
                  ops_kw: dict | None = None, ops_candidate: bool = True, epibt: bool = False,
-                 epibt_kw: dict | None = None, epibt_frac: float = 0.9, window_bias: float = 0.0):
+                 epibt_kw: dict | None = None, epibt_frac: float = 0.9, window_bias: float = 0.0,
+                 yield_steps: int = 20):
         self.grid, self.cache, self.model, self.turn_w, self.swap = grid, cache, model, float(turn_w), swap
         self.claim_steps = claim_steps
         self.stuck_steps, self.noise = stuck_steps, noise
@@ -74,7 +77,7 @@ class PIBTPlanner:
         self.ops_candidate = ops_candidate
         self._window = None
         self.epibt, self.epibt_kw, self.epibt_frac, self._epibt = epibt, epibt_kw or {}, epibt_frac, None
-        self.window_bias = window_bias
+        self.window_bias, self.yield_steps = window_bias, yield_steps
         self.rng = np.random.default_rng(seed)
         self._goal_prev: np.ndarray | None = None
         self.elapsed: np.ndarray | None = None
@@ -96,6 +99,7 @@ class PIBTPlanner:
             self.claim_age = np.zeros(n, dtype=np.int64)
             self.best_d = np.zeros(n, dtype=np.int64)
             self.stuck = np.zeros(n, dtype=np.int64)
+            self.yield_key = self.rng.random(n)
         changed = goals != self._goal_prev
         self.elapsed[changed] = 0
         self.claim[changed] = -1
@@ -135,6 +139,7 @@ class PIBTPlanner:
         self.stuck = np.where(better, 0, self.stuck + 1)
         if self.noise > 0:
             rnd[self.stuck > self.stuck_steps] *= self.noise
+        self._eorder = self._yield_order(goals, prio) if self.epibt else order
         nxt = np.empty(n, dtype=np.int64)
         turns = self.model == MAPF_T
         act = np.empty(n, dtype=np.int64)
@@ -153,6 +158,23 @@ class PIBTPlanner:
         self.stats["deferred"] += deferred
         return act
 
+    def _yield_order(self, goals: np.ndarray, prio: np.ndarray) -> np.ndarray:
+        """EPIBT's order (n,) int64: PIBT's, except that a robot with a goal and no progress for
+        more than ``yield_steps`` steps yields: it goes under every robot with a goal that
+        progresses (above the robots without one), the robots yielding in an order drawn at
+        random, drawn again every ``yield_steps`` steps. EPIBT's chain only displaces robots of
+        lower priority than its root, so without it a robot of high priority that cannot pass
+        (head-on in a one-cell corridor whose end the other robot cannot leave) holds both
+        robots for good: PIBT leaves such a deadlock by noise (``stuck_steps``), EPIBT has none."""
+        if self.yield_steps <= 0:
+            return np.argsort(-prio, kind="stable").astype(np.int64)
+        over = self.stuck - self.yield_steps
+        yielding = (goals >= 0) & (over > 0)
+        redraw = yielding & (over % self.yield_steps == 1)
+        self.yield_key[redraw] = self.rng.random(int(redraw.sum()))
+        prio = np.where(yielding, 1.0 + 0.5 * self.yield_key, np.where(goals >= 0, prio + 2.0, prio))
+        return np.argsort(-prio, kind="stable").astype(np.int64)
+
     def _window_plan(self, pos, head, goals, pslot, order, stop) -> np.ndarray:
         """The first actions of the windowed plan (:class:`~.window.WindowPlan`, or with ``epibt``
         :class:`~.epibt.EPIBTPlan`), LNS until ``stop``."""
@@ -168,7 +190,7 @@ class PIBTPlanner:
                 self._window = WindowPlan(self.grid, n, seed=self.seed, **self.ops_kw)
             plan = self._window
         if self.epibt:
-            return plan.plan(pos, head, self._ptable, pslot, goals, order, stop, self.lns)
+            return plan.plan(pos, head, self._ptable, pslot, goals, self._eorder, stop, self.lns)
         scale = np.where(self.stuck > self.stuck_steps, self.noise, 1.0) if self.noise > 0 else np.ones(n)
         return plan.plan(pos, head, self._ptable, pslot, goals, order, scale, stop, self.lns)
 
