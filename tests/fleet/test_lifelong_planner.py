@@ -2,6 +2,7 @@
 (conflict-free steps for both action models, corridor swaps, one-shot PIBT)."""
 from __future__ import annotations
 
+import dataclasses
 import time
 from pathlib import Path
 
@@ -371,6 +372,24 @@ def test_lifelong_run_on_the_random_problem_finishes_tasks_without_errors():
     assert s["invalid_steps"] == 0 and s["schedule_errors"] == 0
     assert s["tasks_finished"] > 60
     assert isinstance(res.sim, Simulator)
+    assert (s["yield_steps"], s["stuck_steps"]) == (20, 20)       # 100 robots on 819 free cells
+
+
+def test_a_dense_team_on_a_larger_map_does_not_yield():
+    from rce_fleet.lifelong.runner import run_lifelong
+    p = load_problem(RANDOM)
+    p = dataclasses.replace(p, starts=np.asarray(p.grid.free_cells()[:300], np.int64), team_size=300)  # 0.37 a cell
+    assert run_lifelong(p, 2, plan_time_limit_ms=200.0, record=False).stats["yield_steps"] == 0
+
+
+def test_on_a_map_of_a_few_cells_a_robot_without_progress_yields_after_five_steps(tmp_path):
+    from rce_fleet.lifelong.runner import SMALL_MAP_STUCK, run_lifelong
+    s = run_lifelong(load_problem(write_problem(tmp_path, "2\n0\n4\n")), 20, plan_time_limit_ms=50.0).summary()
+    assert SMALL_MAP_STUCK == 5
+    assert s["invalid_steps"] == 0 and (s["yield_steps"], s["stuck_steps"]) == (5, 5)
+    kept = run_lifelong(load_problem(write_problem(tmp_path, "2\n0\n4\n")), 5, plan_time_limit_ms=50.0,
+                        planner_kw={"yield_steps": 0}).summary()
+    assert (kept["yield_steps"], kept["stuck_steps"]) == (0, 5)
 
 
 def assert_solution(g: LifelongGrid, paths: np.ndarray, starts, goals) -> None:

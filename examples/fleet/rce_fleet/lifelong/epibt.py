@@ -19,7 +19,8 @@ plan, its robots stay as built for the rest of the pass (as in the authors' code
   build again as a root), and only robots of lower priority than the root may be displaced.
   Priority: PIBT's (steps since the robot's goal last changed; robots without a task last), except
   that a robot without progress for 20 steps yields to the robots that progress
-  (:class:`~.pibt.PIBTPlanner`'s ``yield_steps``: two robots head-on in a dead-end corridor). The
+  (:class:`~.pibt.PIBTPlanner`'s ``yield_steps``: two robots head-on in a dead-end corridor; the
+  runner turns it off in dense teams). The
   paper orders by the steps left of each robot's task; on random-32-32-20 at 400 and 700 robots
   that finished fewer tasks here (docs/lifelong.md).
 - **LNS** while the step's time lasts, as the 2024 winner's code runs it (github.com/Straple/LORR24,

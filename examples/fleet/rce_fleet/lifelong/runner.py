@@ -33,7 +33,7 @@ __all__ = ["ACTIVE_DENSITY", "ACTIVE_FRAC", "ADMISSION_CELLS", "ADMISSION_DENSIT
            "ADMISSION_JAM_DENSITY", "ADMISSION_SMALL", "ADMISSION_SMALL_START", "ADMISSION_START", "AISLE_ACTIVE_FRAC",
            "AISLE_SHARE", "CROWD_TEAM", "CROWD_W", "EPIBT_ACTIVE_FRAC", "EPIBT_BIAS", "EPIBT_DENSITY",
            "EPIBT_LNS_FRAC", "GUIDE_DENSITY", "KEEP_RIGHT", "LANES", "OPEN_LANES", "PACKED_DENSITY", "RunResult",
-           "WINDOW_DENSITY", "WINDOW_TEAM", "run_lifelong"]
+           "SMALL_MAP_CELLS", "SMALL_MAP_STUCK", "WINDOW_DENSITY", "WINDOW_TEAM", "run_lifelong"]
 
 LANES = 4        # extra cost of a move against a one-way lane (measured: docs/lifelong.md)
 ADMISSION_START = 0.04  # robots per free cell the run-time bound starts at (--admission on; measured there)
@@ -67,6 +67,9 @@ EPIBT_DENSITY = 0.3   # robots per free cell from which EPIBT with LNS answers (
 OPEN_LANES = 9        # ... and, on a map without corridors, every row and column is a lane (against: 1 + 9) ...
 EPIBT_BIAS = 0.2      # ... and the lookahead takes its first step unless a rollout leads by this per robot
 EPIBT_LNS_FRAC = 0.9  # ... and from EPIBT_DENSITY its LNS spends this share of the time to the step's deadline
+SMALL_MAP_CELLS = 100  # on maps of fewer free cells a robot without progress for ...
+SMALL_MAP_STUCK = 5     # ... this many steps yields its priority (EPIBT) and walks at random (PIBT), not 20: a
+                        # dead end there is a few cells away (13 maps of 7 - 64 cells: docs/lifelong.md)
 
 
 @dataclass
@@ -138,6 +141,10 @@ def run_lifelong(problem: LorrProblem, steps: int, plan_time_limit_ms: float = 1
     than ``ADMISSION_CELLS`` free cells from ``ADMISSION_SMALL_START`` of the team, with
     ``ADMISSION_SMALL``); None (default): on from ``ADMISSION_DENSITY`` robots per free cell on maps
     that are not maps of aisles (measured in docs/lifelong.md), else off;
+    on maps of fewer than ``SMALL_MAP_CELLS`` free cells a robot without progress for
+    ``SMALL_MAP_STUCK`` steps yields its priority under EPIBT and walks at random under PIBT (20
+    steps elsewhere: :class:`~.pibt.PIBTPlanner`'s ``yield_steps`` and ``stuck_steps``), and from
+    ``EPIBT_DENSITY`` robots per free cell on larger maps none yields;
     progress: called after each step with (step, tasks finished, planner ms).
     Where no bound holds, a :class:`~.admission.JamDetector` watches the share of the robots with a
     task that are packed in; ``stats`` give its ``packed_shares`` (per 25 steps) and ``jam_at``,
@@ -150,6 +157,10 @@ def run_lifelong(problem: LorrProblem, steps: int, plan_time_limit_ms: float = 1
     density = problem.team_size / n_free
     if density >= PACKED_DENSITY:       # the cell a turning robot would hold is the one the others need
         planner_kw = {"claim_steps": 0, **(planner_kw or {})}
+    if n_free < SMALL_MAP_CELLS:
+        planner_kw = {"yield_steps": SMALL_MAP_STUCK, "stuck_steps": SMALL_MAP_STUCK, **(planner_kw or {})}
+    elif density >= EPIBT_DENSITY:      # a dense team: robots wait in crowds, and yielding cost (docs/lifelong.md)
+        planner_kw = {"yield_steps": 0, **(planner_kw or {})}
     small = problem.team_size <= WINDOW_TEAM
     cost = lane_costs(grid, lanes) if lanes else None
     corridors = cost if cost is not None else lane_costs(grid, 1)
@@ -247,7 +258,8 @@ def run_lifelong(problem: LorrProblem, steps: int, plan_time_limit_ms: float = 1
              "aisles": round(aisles, 3),
              "keep_right": keep_right, "crisscross": crisscross,
              "crowd_w": crowd_w, "guide": guide, "epibt": epibt, "open_lanes": open_lanes,
-             "window_bias": planner.window_bias,
+             "window_bias": planner.window_bias, "yield_steps": planner.yield_steps,
+             "stuck_steps": planner.stuck_steps,
              "claim_steps": planner.claim_steps, "scheduler_ms_total": sched_ms,
              **planner.stats, **(planner._window.stats if planner._window is not None else {}),
              **(planner._epibt.stats if planner._epibt is not None else {}),
