@@ -139,7 +139,7 @@ class PIBTPlanner:
         self.stuck = np.where(better, 0, self.stuck + 1)
         if self.noise > 0:
             rnd[self.stuck > self.stuck_steps] *= self.noise
-        self._eorder = self._yield_order(goals, prio) if self.epibt else order
+        self._eorder = self._yield_order(goals, prio, order) if self.epibt else order
         nxt = np.empty(n, dtype=np.int64)
         turns = self.model == MAPF_T
         act = np.empty(n, dtype=np.int64)
@@ -158,16 +158,16 @@ class PIBTPlanner:
         self.stats["deferred"] += deferred
         return act
 
-    def _yield_order(self, goals: np.ndarray, prio: np.ndarray) -> np.ndarray:
-        """EPIBT's order (n,) int64: PIBT's, except that a robot with a goal and no progress for
-        more than ``yield_steps`` steps yields: it goes under every robot with a goal that
-        progresses (above the robots without one), the robots yielding in an order drawn at
-        random, drawn again every ``yield_steps`` steps. EPIBT's chain only displaces robots of
+    def _yield_order(self, goals: np.ndarray, prio: np.ndarray, order: np.ndarray) -> np.ndarray:
+        """EPIBT's order (n,) int64: PIBT's (``order``, by ``prio``), except that a robot with a
+        goal and no progress for more than ``yield_steps`` steps yields: it goes under every robot
+        with a goal that progresses (above the robots without one), the robots yielding in an order
+        drawn at random, drawn again every ``yield_steps`` steps. EPIBT's chain only displaces robots of
         lower priority than its root, so without it a robot of high priority that cannot pass
         (head-on in a one-cell corridor whose end the other robot cannot leave) holds both
         robots for good: PIBT leaves such a deadlock by noise (``stuck_steps``), EPIBT has none."""
         if self.yield_steps <= 0:
-            return np.argsort(-prio, kind="stable").astype(np.int64)
+            return order
         over = self.stuck - self.yield_steps
         yielding = (goals >= 0) & (over > 0)
         redraw = yielding & (over % self.yield_steps == 1)
