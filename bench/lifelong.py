@@ -20,7 +20,7 @@ Usage::
         [--peer PATH [--peer-args ARGS] [--peer-cwd DIR] | --build-peer DIR]
         [--plan-time-limit MS] [--scheduler batch|greedy|both]
         [--cache-mb MB] [--lanes N] [--crowd-w W] [--max-active N] [--window on|off] [--epibt on|off]
-        [--keep-right N] [--admission on|off]
+        [--keep-right N] [--admission on|off] [--replan on|off]
         [--data ../shared/data]
         [--json PATH] [--plot PATH]
         [--outputs DIR]
@@ -84,7 +84,8 @@ def run_one(path: Path, steps: int, limit_ms: float, scheduler: str, seed: int, 
             outputs: Path | None, cache_mb: float | None = None, lanes: int | None = None,
             crowd_w: float | None = None, peer: Path | None = None, max_active: int | None = None,
             window: bool | None = None, epibt: bool | None = None, keep_right: int | None = None,
-            admission: bool | None = None, peer_args: tuple[str, ...] = (), peer_cwd: Path | None = None) -> dict:
+            admission: bool | None = None, peer_args: tuple[str, ...] = (), peer_cwd: Path | None = None,
+            replan: bool | None = None) -> dict:
     """Run one problem (and the start-kit binary ``peer`` on it, when given); returns its row (with
     the finished-over-time curve)."""
     from rce_fleet.lifelong import load_problem
@@ -97,7 +98,7 @@ def run_one(path: Path, steps: int, limit_ms: float, scheduler: str, seed: int, 
                            record=outputs is not None,
                            cache_bytes=None if cache_mb is None else int(cache_mb * 2 ** 20),
                            lanes=LANES if lanes is None else lanes, crowd_w=crowd_w, max_active=max_active,
-                           keep_right=keep_right, admission=admission,
+                           keep_right=keep_right, admission=admission, replan=replan,
                            planner_kw={**({} if window is None else {"ops": window}),
                                        **({} if epibt is None else {"epibt": epibt})} or None)
     s = res.summary()
@@ -238,8 +239,9 @@ def _parser() -> argparse.ArgumentParser:
     ap.add_argument("--keep-right", type=int, metavar="N",
                     help="extra cost of a move against the keep-right lane of a corridor 2 - 12 cells wide "
                          "(0: none; default 4)")
-    from rce_fleet.cli import ADMISSION_HELP
+    from rce_fleet.cli import ADMISSION_HELP, REPLAN_HELP
     ap.add_argument("--admission", choices=("on", "off"), help=ADMISSION_HELP)
+    ap.add_argument("--replan", choices=("on", "off"), help=REPLAN_HELP)
     ap.add_argument("--window", choices=("on", "off"),
                     help="the windowed plan (operations + LNS) as a candidate of the lookahead where EPIBT is "
                          "off (default: on from 0.1 to 0.8 robots per free cell, up to 1,000 robots)")
@@ -321,7 +323,8 @@ def main(argv: list[str] | None = None) -> int:
                                 None if args.window is None else args.window == "on",
                                 None if args.epibt is None else args.epibt == "on", args.keep_right,
                                 None if args.admission is None else args.admission == "on",
-                                tuple(args.peer_args), args.peer_cwd))
+                                tuple(args.peer_args), args.peer_cwd,
+                                None if args.replan is None else args.replan == "on"))
             json_path.parent.mkdir(parents=True, exist_ok=True)
             json_path.write_text(json.dumps({"plan_time_limit_ms": args.plan_time_limit, "git": git_head(),
                                              "date": time.strftime("%Y-%m-%d"), "peer": str(peer) if peer else None,

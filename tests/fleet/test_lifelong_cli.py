@@ -121,3 +121,22 @@ def test_lifelong_cli_says_when_the_team_jams_and_what_to_turn_on(tmp_path, caps
     with pytest.raises(SystemExit) as e:        # by default the bound is on at 0.12 robots per free cell
         main(["lifelong", str(problem), "--steps", "100", "--plan-time-limit", "250", "--no-progress"])
     assert e.value.code == 0 and "jammed" not in capsys.readouterr().err
+
+
+@pytest.mark.parametrize("replan", ["on", "off"])
+def test_lifelong_cli_runs_whole_plans_or_the_step_planner_on_a_map_of_a_few_cells(tmp_path, capsys, replan):
+    from rce_fleet.lifelong.generate import write_problem
+    from rce_fleet.lifelong.lorr import load_problem
+    from rce_fleet.lifelong.simulator import replay
+    tunnel = tmp_path / "tunnel.map"
+    tunnel.write_text("type octile\nheight 6\nwidth 4\nmap\n.@@@\n....\n.@@@\n.@@@\n.@@@\n.@@@\n")
+    problem = write_problem(tunnel, 3, 1, tmp_path)
+    out = tmp_path / "run.json"
+    with pytest.raises(SystemExit) as e:
+        main(["lifelong", str(problem), "--steps", "60", "--plan-time-limit", "100", "--no-progress",
+              "--replan", replan, "--output", str(out)])
+    assert e.value.code == 0
+    assert "tasks finished in 60 steps by 3 robots" in capsys.readouterr().out
+    p = load_problem(problem)
+    doc = json.loads(out.read_text())
+    assert replay(p.grid, p.tasks, p.reveal, doc).finished == doc["numTaskFinished"]

@@ -21,7 +21,7 @@
     rce-fleet grid [--map YAML] [--grid RxC | --cell M]     # print the grid's cell numbers
     rce-fleet lifelong PROBLEM.json --steps N [--plan-time-limit MS] [--output OUT.json] [--seed S]
                    [--scheduler batch|greedy] [--cache-mb MB] [--lanes N]   # a LoRR 2024 problem under its rules
-                   [--keep-right N] [--max-active N] [--admission on|off]
+                   [--keep-right N] [--max-active N] [--admission on|off] [--replan on|off]
 """
 from __future__ import annotations
 
@@ -35,6 +35,11 @@ ADMISSION_HELP = ("the bound on robots holding a task set at run time: it starts
                   "pack in at narrow passages, on larger maps at once to 0.7 of where they jammed and never "
                   "past it again (default: on from 0.1 to 0.3 robots per free cell on maps that are "
                   "not maps of one-cell aisles, else off; ignored under --max-active)")
+# the help of --replan, the same in both
+REPLAN_HELP = ("whole LaCAM plans to the current goals, executed under turns in the plan's order and planned "
+               "again at every arrival, the step's planner answering where no plan is found in time (default: on "
+               "on maps under 100 free cells of which at least half have two free neighbours or fewer: "
+               "corridors and dead ends; MAPF_T)")
 
 __all__ = ["main", "build_parser"]
 
@@ -243,6 +248,7 @@ def build_parser() -> argparse.ArgumentParser:
                     "default: 0.43 of the free cells where EPIBT answers, else 0.3, 0.2 on a map of "
                     "one-cell aisles, from 0.3 robots per free cell)")
     lf.add_argument("--admission", choices=("on", "off"), help=ADMISSION_HELP)
+    lf.add_argument("--replan", choices=("on", "off"), help=REPLAN_HELP)
     lf.add_argument("--crowd-w", type=float, metavar="W", help="steps the scheduler adds per robot crowding a "
                     "task's errands beyond its share (default 5 for 3,000 robots or more, else 0)")
     lf.add_argument("--no-progress", action="store_true", help="no progress bar")
@@ -294,7 +300,8 @@ def _lifelong(args: argparse.Namespace) -> int:
                                scheduler=args.scheduler, cache_bytes=cache_bytes,
                                **({} if args.lanes is None else {"lanes": args.lanes}), crowd_w=args.crowd_w,
                                keep_right=args.keep_right, max_active=args.max_active,
-                               admission=None if args.admission is None else args.admission == "on", progress=cb)
+                               admission=None if args.admission is None else args.admission == "on",
+                               replan=None if args.replan is None else args.replan == "on", progress=cb)
         s = res.summary()
         print(f"{problem.path.name}: {s['tasks_finished']} tasks finished in {s['steps']} steps by "
               f"{problem.team_size} robots; planner ms p50 {s['plan_ms_p50']:.1f} p99 {s['plan_ms_p99']:.1f} max "

@@ -26,6 +26,8 @@ from .epibt import warm_up as epibt_warm_up
 from .window import warm_up as window_warm_up
 from .lorr import LorrProblem
 from .pibt import PIBTPlanner
+from .refine import warm_up as refine_warm_up
+from .replan import ReplanPlanner
 from .scheduler import make_scheduler
 from .simulator import MAPF_T, Simulator
 
@@ -33,7 +35,7 @@ __all__ = ["ACTIVE_DENSITY", "ACTIVE_FRAC", "ADMISSION_CELLS", "ADMISSION_DENSIT
            "ADMISSION_JAM_DENSITY", "ADMISSION_SMALL", "ADMISSION_SMALL_START", "ADMISSION_START", "AISLE_ACTIVE_FRAC",
            "AISLE_SHARE", "CROWD_TEAM", "CROWD_W", "EPIBT_ACTIVE_FRAC", "EPIBT_BIAS", "EPIBT_DENSITY",
            "EPIBT_LNS_FRAC", "GUIDE_DENSITY", "KEEP_RIGHT", "LANES", "OPEN_LANES", "PACKED_DENSITY", "RunResult",
-           "SMALL_MAP_CELLS", "SMALL_MAP_STUCK", "WINDOW_DENSITY", "WINDOW_TEAM", "run_lifelong"]
+           "REPLAN_CORRIDORS", "SMALL_MAP_CELLS", "SMALL_MAP_STUCK", "WINDOW_DENSITY", "WINDOW_TEAM", "run_lifelong"]
 
 LANES = 4        # extra cost of a move against a one-way lane (measured: docs/lifelong.md)
 ADMISSION_START = 0.04  # robots per free cell the run-time bound starts at (--admission on; measured there)
@@ -70,6 +72,8 @@ EPIBT_LNS_FRAC = 0.9  # ... and from EPIBT_DENSITY its LNS spends this share of 
 SMALL_MAP_CELLS = 100  # on maps of fewer free cells a robot without progress for ...
 SMALL_MAP_STUCK = 5     # ... this many steps yields its priority (EPIBT) and walks at random (PIBT), not 20: a
                         # dead end there is a few cells away (13 maps of 7 - 64 cells: docs/lifelong.md)
+REPLAN_CORRIDORS = 0.5  # ... and where at least this share of the free cells has two free neighbours or fewer
+                        # (corridors and dead ends), whole LaCAM plans answer (:mod:`.replan`; measured there)
 
 
 @dataclass
@@ -98,6 +102,7 @@ def run_lifelong(problem: LorrProblem, steps: int, plan_time_limit_ms: float = 1
                  record: bool = True, guide: bool | None = None, planner_kw: dict | None = None,
                  flow_kw: dict | None = None, max_active: int | None = None, open_lanes: int | None = None,
                  keep_right: int | None = None, admission: bool | None = None, admission_kw: dict | None = None,
+                 replan: bool | None = None,
                  progress: Callable[[int, int, float], None] | None = None) -> RunResult:
     """Run ``problem`` for ``steps`` time steps under the rules (:mod:`.simulator`).
 
@@ -145,6 +150,10 @@ def run_lifelong(problem: LorrProblem, steps: int, plan_time_limit_ms: float = 1
     ``SMALL_MAP_STUCK`` steps yields its priority under EPIBT and walks at random under PIBT (20
     steps elsewhere: :class:`~.pibt.PIBTPlanner`'s ``yield_steps`` and ``stuck_steps``), and from
     ``EPIBT_DENSITY`` robots per free cell on larger maps none yields;
+    replan: whole LaCAM plans answer each step, planned again at every goal change and executed under
+    turns in the plan's order (:class:`~.replan.ReplanPlanner`, the planner above its fallback); None
+    (default): on maps of fewer than ``SMALL_MAP_CELLS`` free cells of which at least
+    ``REPLAN_CORRIDORS`` have two free neighbours or fewer (corridors and dead ends), MAPF_T only;
     progress: called after each step with (step, tasks finished, planner ms).
     Where no bound holds, a :class:`~.admission.JamDetector` watches the share of the robots with a
     task that are packed in; ``stats`` give its ``packed_shares`` (per 25 steps) and ``jam_at``,
@@ -209,6 +218,15 @@ def run_lifelong(problem: LorrProblem, steps: int, plan_time_limit_ms: float = 1
         kw = {"turn": int(model == MAPF_T), **(flow_kw or {})}
         flow = TrafficFlow(grid, cache, problem.team_size, cost=cache.cost, seed_=seed, **kw)
     planner = PIBTPlanner(grid, cache, model=model, seed=seed, flow=flow, **(planner_kw or {}))
+    step_planner = planner
+    if replan is None:
+        free = grid.free_cells()
+        corridor = float(((grid.nbr[free] >= 0).sum(axis=1) <= 2).mean())
+        replan = n_free < SMALL_MAP_CELLS and corridor >= REPLAN_CORRIDORS
+    replan = bool(replan and model == MAPF_T)
+    if replan:
+        refine_warm_up()
+        step_planner = ReplanPlanner(grid, planner, seed=seed)
     sim = Simulator(grid, problem.starts, problem.tasks, problem.reveal, model=model, record=record)
     limit = plan_time_limit_ms / 1e3
     plan_ms = np.zeros(steps)
@@ -234,7 +252,7 @@ def run_lifelong(problem: LorrProblem, steps: int, plan_time_limit_ms: float = 1
         if len(has):
             open_ = sim.pool.open
             goals[has] = [open_[int(prop[a])].goal for a in has]
-        actions = planner.plan(sim.pos, sim.head, goals, deadline, t0 + HARD_FRAC * limit)
+        actions = step_planner.plan(sim.pos, sim.head, goals, deadline, t0 + HARD_FRAC * limit)
         dt = time.perf_counter() - t0
         sched_ms += (t1 - t0) * 1e3
         p_before = sim.pos.copy() if control is not None else None
@@ -258,10 +276,11 @@ def run_lifelong(problem: LorrProblem, steps: int, plan_time_limit_ms: float = 1
              "aisles": round(aisles, 3),
              "keep_right": keep_right, "crisscross": crisscross,
              "crowd_w": crowd_w, "guide": guide, "epibt": epibt, "open_lanes": open_lanes,
-             "window_bias": planner.window_bias, "yield_steps": planner.yield_steps,
+             "window_bias": planner.window_bias, "replan": replan, "yield_steps": planner.yield_steps,
              "stuck_steps": planner.stuck_steps,
              "claim_steps": planner.claim_steps, "scheduler_ms_total": sched_ms,
-             **planner.stats, **(planner._window.stats if planner._window is not None else {}),
+             **planner.stats, **(step_planner.stats if step_planner is not planner else {}),
+             **(planner._window.stats if planner._window is not None else {}),
              **(planner._epibt.stats if planner._epibt is not None else {}),
              **(flow.stats if flow is not None else {}),
              "shed": sched.shed + getattr(getattr(sched, "_greedy", None), "shed", 0),
