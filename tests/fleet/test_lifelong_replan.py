@@ -146,6 +146,19 @@ def test_where_no_plan_exists_the_fallback_answers_and_the_rules_hold():
     assert planner.stats["fallback_steps"] == 5 and planner.stats["replans"] == 0
 
 
+def test_a_goal_its_robot_cannot_reach_leaves_the_step_to_the_fallback():
+    from rce_fleet.lifelong import PIBTPlanner
+    from rce_fleet.lifelong.replan import ReplanPlanner
+    warm_up()
+    g = grid(["..@..", "..@.."])                  # two parts, no way between them
+    planner = ReplanPlanner(g, PIBTPlanner(g, DistanceCache(g), seed=0))
+    pos, head, goals = np.array([0, 9]), np.array([EAST, WEST]), np.array([4, 5])
+    now = time.perf_counter()
+    act = planner.plan(pos, head, goals, now + 0.2, now + 0.4)
+    assert check_actions(g, pos, head, act)[2] == []
+    assert planner.stats["fallback_steps"] == 1
+
+
 def test_a_run_on_a_map_of_a_few_cells_plans_whole_plans_and_replays_under_the_rules(tmp_path):
     from rce_fleet.lifelong.lorr import load_problem
     from rce_fleet.lifelong.runner import run_lifelong

@@ -14,7 +14,8 @@ no livelock, whatever the map. Two robots may share a goal (two tasks with an er
 cell) and a robot without a task has none: one-shot MAPF needs a distinct goal per robot, so the
 robot nearest a shared goal keeps it and the others, and the robots without a task, stay where
 they stand or take the nearest cell no one else has (they make way and wait there). Where LaCAM
-finds no plan in time (or none exists), the fallback planner answers the step
+finds no plan in time (or none exists, or a goal lies in a part of the map its robot cannot reach),
+the fallback planner answers the step
 (:class:`~.pibt.PIBTPlanner`), and LaCAM tries again at the next step.
 """
 from __future__ import annotations
@@ -121,7 +122,10 @@ class ReplanPlanner:
             self.seed += 1
             tries += 1
             left = deadline - time.perf_counter()
-            res = solve_lacam(self.grid, pos, target, time_limit_s=left, seed=self.seed, cache=self.cache)
+            try:
+                res = solve_lacam(self.grid, pos, target, time_limit_s=left, seed=self.seed, cache=self.cache)
+            except ValueError:                    # a goal in another part of the map: no plan reaches it
+                break
             if not res["solved"]:
                 break                             # out of time, or no plan exists: another seed will not do
             paths = res["paths"]
