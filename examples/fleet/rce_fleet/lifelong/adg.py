@@ -74,6 +74,7 @@ class PlanExecution:
 
     @property
     def done(self) -> bool:
+        """True once every robot stands on its path's last cell."""
         return all(int(self.progress[a]) == len(self.cells[a]) - 1 for a in range(self.n))
 
     def expected(self) -> np.ndarray:
