@@ -174,3 +174,16 @@ def test_a_run_on_a_map_of_a_few_cells_plans_whole_plans_and_replays_under_the_r
     assert s["replan"] is True and s["replans"] > 5
     assert s["invalid_steps"] == 0 and s["timeouts"] == 0 and s["tasks_finished"] >= 5
     assert replay(p.grid, p.tasks, p.reveal, r.sim.output()).finished == s["tasks_finished"]
+
+
+@pytest.mark.parametrize("robots, whole", [(4, True), (14, False)])
+def test_on_loops_without_a_dead_end_whole_plans_answer_only_a_sparse_team(tmp_path, robots, whole):
+    from rce_fleet.lifelong.generate import write_problem
+    from rce_fleet.lifelong.lorr import load_problem
+    from rce_fleet.lifelong.runner import run_lifelong
+    rows = ["..........", ".@@@@@@@@.", "..........", ".@@@@@@@@.", "..........", ".@@@@@@@@.", ".........."]
+    shelves = tmp_path / "shelves.map"                # 46 free cells, three loops, no dead end
+    shelves.write_text("type octile\nheight 7\nwidth 10\nmap\n" + "\n".join(rows) + "\n")
+    p = load_problem(write_problem(shelves, robots, 1, tmp_path))
+    s = run_lifelong(p, 3, plan_time_limit_ms=100.0).summary()
+    assert s["replan"] is whole and s["invalid_steps"] == 0

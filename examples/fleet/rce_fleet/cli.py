@@ -38,8 +38,9 @@ ADMISSION_HELP = ("the bound on robots holding a task set at run time: it starts
 # the help of --replan, the same in both
 REPLAN_HELP = ("whole LaCAM plans to the current goals, executed under turns in the plan's order and planned "
                "again at every arrival, the step's planner answering where no plan is found in time (default: on "
-               "on maps under 100 free cells of which at least half have two free neighbours or fewer: "
-               "corridors and dead ends; MAPF_T)")
+               "on maps under 100 free cells of which at least half have two free neighbours or fewer "
+               "(corridors and dead ends), if the map has a dead end or the team is under 0.3 robots per "
+               "free cell; MAPF_T)")
 
 __all__ = ["main", "build_parser"]
 

@@ -35,7 +35,8 @@ __all__ = ["ACTIVE_DENSITY", "ACTIVE_FRAC", "ADMISSION_CELLS", "ADMISSION_DENSIT
            "ADMISSION_JAM_DENSITY", "ADMISSION_SMALL", "ADMISSION_SMALL_START", "ADMISSION_START", "AISLE_ACTIVE_FRAC",
            "AISLE_SHARE", "CROWD_TEAM", "CROWD_W", "EPIBT_ACTIVE_FRAC", "EPIBT_BIAS", "EPIBT_DENSITY",
            "EPIBT_LNS_FRAC", "GUIDE_DENSITY", "KEEP_RIGHT", "LANES", "OPEN_LANES", "PACKED_DENSITY", "RunResult",
-           "REPLAN_CORRIDORS", "SMALL_MAP_CELLS", "SMALL_MAP_STUCK", "WINDOW_DENSITY", "WINDOW_TEAM", "run_lifelong"]
+           "REPLAN_CORRIDORS", "REPLAN_DENSITY", "SMALL_MAP_CELLS", "SMALL_MAP_STUCK", "WINDOW_DENSITY",
+           "WINDOW_TEAM", "run_lifelong"]
 
 LANES = 4        # extra cost of a move against a one-way lane (measured: docs/lifelong.md)
 ADMISSION_START = 0.04  # robots per free cell the run-time bound starts at (--admission on; measured there)
@@ -73,7 +74,9 @@ SMALL_MAP_CELLS = 100  # on maps of fewer free cells a robot without progress fo
 SMALL_MAP_STUCK = 5     # ... this many steps yields its priority (EPIBT) and walks at random (PIBT), not 20: a
                         # dead end there is a few cells away (13 maps of 7 - 64 cells: docs/lifelong.md)
 REPLAN_CORRIDORS = 0.5  # ... and where at least this share of the free cells has two free neighbours or fewer
-                        # (corridors and dead ends), whole LaCAM plans answer (:mod:`.replan`; measured there)
+                        # (corridors and dead ends), whole LaCAM plans answer (:mod:`.replan`; measured there) ...
+REPLAN_DENSITY = 0.3    # ... if the map has a dead end, or the team is under this many robots per free cell: on
+                        # loops without a dead end a denser team circulates better under EPIBT
 
 
 @dataclass
@@ -153,7 +156,8 @@ def run_lifelong(problem: LorrProblem, steps: int, plan_time_limit_ms: float = 1
     replan: whole LaCAM plans answer each step, planned again at every goal change and executed under
     turns in the plan's order (:class:`~.replan.ReplanPlanner`, the planner above its fallback); None
     (default): on maps of fewer than ``SMALL_MAP_CELLS`` free cells of which at least
-    ``REPLAN_CORRIDORS`` have two free neighbours or fewer (corridors and dead ends), MAPF_T only;
+    ``REPLAN_CORRIDORS`` have two free neighbours or fewer (corridors and dead ends), if the map has
+    a dead end or the team is under ``REPLAN_DENSITY`` robots per free cell, MAPF_T only;
     progress: called after each step with (step, tasks finished, planner ms).
     Where no bound holds, a :class:`~.admission.JamDetector` watches the share of the robots with a
     task that are packed in; ``stats`` give its ``packed_shares`` (per 25 steps) and ``jam_at``,
@@ -220,9 +224,9 @@ def run_lifelong(problem: LorrProblem, steps: int, plan_time_limit_ms: float = 1
     planner = PIBTPlanner(grid, cache, model=model, seed=seed, flow=flow, **(planner_kw or {}))
     step_planner = planner
     if replan is None:
-        free = grid.free_cells()
-        corridor = float(((grid.nbr[free] >= 0).sum(axis=1) <= 2).mean())
-        replan = n_free < SMALL_MAP_CELLS and corridor >= REPLAN_CORRIDORS
+        degree = (grid.nbr[grid.free_cells()] >= 0).sum(axis=1)
+        replan = (n_free < SMALL_MAP_CELLS and float((degree <= 2).mean()) >= REPLAN_CORRIDORS
+                  and (bool((degree == 1).any()) or density < REPLAN_DENSITY))
     replan = bool(replan and model == MAPF_T)
     if replan:
         refine_warm_up()
