@@ -157,6 +157,14 @@ def test_a_goal_its_robot_cannot_reach_leaves_the_step_to_the_fallback():
     act = planner.plan(pos, head, goals, now + 0.2, now + 0.4)
     assert check_actions(g, pos, head, act)[2] == []
     assert planner.stats["fallback_steps"] == 1
+    # robot 1 alone in a one-cell part whose cell robot 0 (elsewhere) has for its goal: no distinct goal for it
+    g = grid(["..@."])
+    planner = ReplanPlanner(g, PIBTPlanner(g, DistanceCache(g), seed=0))
+    pos, head, goals = np.array([0, 3]), np.array([EAST, WEST]), np.array([3, -1])
+    now = time.perf_counter()
+    act = planner.plan(pos, head, goals, now + 0.2, now + 0.4)
+    assert check_actions(g, pos, head, act)[2] == []
+    assert planner.stats["fallback_steps"] == 1
 
 
 def test_a_run_on_a_map_of_a_few_cells_plans_whole_plans_and_replays_under_the_rules(tmp_path):

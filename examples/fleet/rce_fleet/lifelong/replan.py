@@ -81,9 +81,10 @@ class ReplanPlanner:
 
     grid: the map; fallback: the planner that answers a step without a plan (a
     :class:`~.pibt.PIBTPlanner`, with ``plan(pos, head, goals, deadline, hard)``); seed: LaCAM's
-    and LNS's; refine: LNS shortens each new plan (sum of costs) until ``refine_frac`` of the time
-    to the deadline. ``plan`` returns (n,) action codes. ``stats``: plans made, steps answered from
-    a plan, steps the fallback answered (LaCAM found no plan in time).
+    and LNS's; tries: plans found (a new seed each) at most per replanning, while the deadline
+    lasts; refine: LNS shortens each (sum of costs) for ``refine_share`` of the time then left.
+    ``plan`` returns (n,) action codes. ``stats``: replannings that found a plan, plans found in
+    them, steps answered from a plan, steps the fallback answered (no plan).
     """
 
     def __init__(self, grid: LifelongGrid, fallback, seed: int = 0, refine: bool = True, refine_share: float = 0.1,
@@ -115,7 +116,10 @@ class ReplanPlanner:
         """The best of the plans found by ``deadline`` (LaCAM with a new seed each, then LNS):
         the least sum, over the robots with a goal, of the steps to their goal executed under
         turns (:meth:`~.adg.PlanExecution.arrivals`). None when LaCAM found none."""
-        target = distinct_goals(self.grid, pos, goals, self.cache)
+        try:
+            target = distinct_goals(self.grid, pos, goals, self.cache)
+        except ValueError:                        # goals of robots elsewhere fill a part of the map
+            return None
         has = goals >= 0
         best, best_cost, tries = None, None, 0
         while time.perf_counter() < deadline and tries < self.tries:
