@@ -224,9 +224,11 @@ def run_lifelong(problem: LorrProblem, steps: int, plan_time_limit_ms: float = 1
     planner = PIBTPlanner(grid, cache, model=model, seed=seed, flow=flow, **(planner_kw or {}))
     step_planner = planner
     if replan is None:
-        degree = (grid.nbr[grid.free_cells()] >= 0).sum(axis=1)
-        replan = (n_free < SMALL_MAP_CELLS and float((degree <= 2).mean()) >= REPLAN_CORRIDORS
-                  and (bool((degree == 1).any()) or density < REPLAN_DENSITY))
+        replan = False
+        if n_free < SMALL_MAP_CELLS:
+            degree = (grid.nbr[grid.free_cells()] >= 0).sum(axis=1)
+            replan = (float((degree <= 2).mean()) >= REPLAN_CORRIDORS
+                      and (bool((degree == 1).any()) or density < REPLAN_DENSITY))
     replan = bool(replan and model == MAPF_T)
     if replan:
         refine_warm_up()
