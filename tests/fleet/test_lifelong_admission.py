@@ -285,3 +285,13 @@ def test_the_run_time_bound_is_on_by_default_at_0_1_to_0_3_robots_per_free_cell_
     start = int(runner.ADMISSION_SMALL_START * team)
     (step, _, bound, _), = res.stats["admission"]    # the first window: no jam yet, it rises
     assert step == 24 and start < bound <= int(start * runner.ADMISSION_SMALL["slow_start"])
+
+
+def test_the_jam_note_advises_the_bound_off_maps_of_aisles_only():
+    from rce_fleet.lifelong.admission import jam_note
+    stats = {"jam_at": 124, "packed_shares": [0.019, 0.2, 0.432], "aisle_map": False}
+    assert "--admission on keeps fewer robots moving" in jam_note(stats)
+    note = jam_note({**stats, "aisle_map": True})
+    assert note.startswith("the team jammed from step 124") and "0.432" in note
+    assert "on this map of aisles the run-time bound (--admission on) finished fewer" in note
+    assert jam_note({**stats, "jam_at": None}) is None

@@ -279,7 +279,7 @@ def run_lifelong(problem: LorrProblem, steps: int, plan_time_limit_ms: float = 1
         if progress is not None:
             progress(k + 1, sim.finished, dt * 1e3)
     stats = {"scheduler": scheduler, "max_active": getattr(sched, "max_active", None), "lanes": lanes,
-             "aisles": round(aisles, 3),
+             "aisles": round(aisles, 3), "aisle_map": aisles >= AISLE_SHARE,
              "keep_right": keep_right, "crisscross": crisscross,
              "crowd_w": crowd_w, "guide": guide, "epibt": epibt, "open_lanes": open_lanes,
              "window_bias": planner.window_bias, "replan": replan, "yield_steps": planner.yield_steps,
