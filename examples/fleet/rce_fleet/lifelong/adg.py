@@ -22,6 +22,7 @@ from __future__ import annotations
 import numpy as np
 
 from .kernels import ACT_C, ACT_F, ACT_R, ACT_W
+from .simulator import turned
 
 __all__ = ["PlanExecution"]
 
@@ -40,26 +41,33 @@ class PlanExecution:
         paths = np.asarray(paths, dtype=np.int64)
         if paths.ndim != 2 or paths.shape[0] < 1:
             raise ValueError(f"paths must be (T + 1, n) cells, got shape {paths.shape}")
-        self.nbr = nbr
         self.n = paths.shape[1]
-        self.cells: list[list[int]] = []          # per robot: the cells it enters, in order
-        times: list[list[int]] = []
+        seqs: list[np.ndarray] = []               # per robot: the cells it enters, in order
+        times: list[np.ndarray] = []              # and the plan's time it enters each
         for a in range(self.n):
             col = paths[:, a]
-            at = [0] + (np.flatnonzero(col[1:] != col[:-1]) + 1).tolist()
-            seq = col[at]
-            bad = np.flatnonzero(~(nbr[seq[:-1]] == seq[1:, None]).any(axis=1))
-            if len(bad):
-                k = int(bad[0]) + 1
-                raise ValueError(f"robot {a}: cell {seq[k]} at time {at[k]} is not a neighbour of {seq[k - 1]}")
-            self.cells.append(seq.tolist())
+            at = np.concatenate(([0], np.flatnonzero(col[1:] != col[:-1]) + 1))
+            seqs.append(col[at])
             times.append(at)
         # every visit (robot, index into its path), and the visit of the same cell just before it in
         # the plan's time: only that one need be waited for, as it waited for the one before it
-        lens = np.array([len(c) for c in self.cells], dtype=np.int64)
-        self._off = np.concatenate(([0], np.cumsum(lens)[:-1])).astype(np.int64)
-        cell = np.concatenate([np.asarray(c, dtype=np.int64) for c in self.cells]) if self.n else np.zeros(0, np.int64)
-        when = np.concatenate([np.asarray(t, dtype=np.int64) for t in times]) if self.n else np.zeros(0, np.int64)
+        lens = np.array([len(c) for c in seqs], dtype=np.int64)
+        self._off = np.concatenate(([0], np.cumsum(lens)))[:-1].astype(np.int64)   # each robot's first visit
+        cell = np.concatenate(seqs) if self.n else np.zeros(0, np.int64)
+        self._cell, self._last = cell, lens - 1
+        # the heading a robot faces to enter each visit's cell from its path's cell before (0 for a start)
+        start = np.zeros(len(cell), dtype=bool)
+        start[self._off] = True
+        self._enter = np.zeros(len(cell), dtype=np.int64)
+        k = np.flatnonzero(~start)
+        match = nbr[cell[k - 1]] == cell[k, None]
+        when = np.concatenate(times).astype(np.int64) if self.n else np.zeros(0, np.int64)
+        bad = k[~match.any(axis=1)]
+        if len(bad):
+            v = int(bad[0])
+            a = int(np.searchsorted(self._off, v, side="right")) - 1
+            raise ValueError(f"robot {a}: cell {cell[v]} at time {when[v]} is not a neighbour of {cell[v - 1]}")
+        self._enter[k] = np.argmax(match, axis=1)
         robot = np.repeat(np.arange(self.n, dtype=np.int64), lens)
         index = np.arange(len(cell), dtype=np.int64) - np.repeat(self._off, lens)
         order = np.lexsort((when, cell))
@@ -75,11 +83,11 @@ class PlanExecution:
     @property
     def done(self) -> bool:
         """True once every robot stands on its path's last cell."""
-        return all(int(self.progress[a]) == len(self.cells[a]) - 1 for a in range(self.n))
+        return bool((self.progress == self._last).all())
 
     def expected(self) -> np.ndarray:
         """(n,) the cell each robot stands on by the plan's progress."""
-        return np.array([self.cells[a][int(self.progress[a])] for a in range(self.n)], dtype=np.int64)
+        return self._cell[self._off + self.progress]
 
     def arrivals(self, head: np.ndarray, limit: int = 10_000) -> np.ndarray:
         """(n,) int64: the step at which each robot would reach its path's end, executed from
@@ -94,7 +102,7 @@ class PlanExecution:
                     return at
                 cells = self.expected()
                 act = self.step(head)
-                head = np.where(act == ACT_R, (head + 1) % 4, np.where(act == ACT_C, (head + 3) % 4, head))
+                head = turned(head, act)
                 moved = self.expected() != cells
                 at[moved] = t
             raise RuntimeError(f"the plan did not end within {limit} steps")
@@ -108,22 +116,17 @@ class PlanExecution:
         n = self.n
         want = np.full(n, -1, dtype=np.int64)     # the robot that must leave first (-1: none; -2: blocked)
         act = np.full(n, ACT_W, dtype=np.int64)
-        facing = np.zeros(n, dtype=bool)
         for a in range(n):
             i = int(self.progress[a])
-            seq = self.cells[a]
-            if i == len(seq) - 1:
+            if i == self._last[a]:
                 want[a] = -2
                 continue
-            u, v = seq[i], seq[i + 1]
-            h = int(np.flatnonzero(self.nbr[u] == v)[0])
-            d = (h - int(head[a])) % 4
+            k = self._off[a] + i + 1
+            d = (int(self._enter[k]) - int(head[a])) % 4
             if d:
                 act[a] = ACT_R if d in (1, 2) else ACT_C
                 want[a] = -2
                 continue
-            facing[a] = True
-            k = self._off[a] + i + 1
             b, j = int(self._pred_robot[k]), int(self._pred_index[k])
             if b < 0 or self.progress[b] > j:
                 continue                          # the cell is free now
@@ -139,19 +142,16 @@ class PlanExecution:
                 state[a] = 1
                 chain.append(a)
                 a = int(want[a])
-            if a >= 0 and state[a] == 1:          # a cycle of robots moving into each other's cells
-                ok = len(chain) - chain.index(a) > 2
-                go = ok
+            if a >= 0 and state[a] == 1:          # a cycle of robots moving into each other's cells (not a swap)
+                go = len(chain) - chain.index(a) > 2
             elif a >= 0:                          # reached a robot already resolved
                 go = bool(moves[a])
             else:
                 go = a == -1                      # the chain ends at a free cell (-1) or a blocked robot (-2)
-            for b in reversed(chain):
-                if want[b] == -2:
-                    go = False
-                moves[b] = go and facing[b]
+            for b in reversed(chain):             # a robot moves when the one it waits for does
+                go = go and want[b] != -2
+                moves[b] = go
                 state[b] = 2
-                go = moves[b]
         act[moves] = ACT_F
         self.progress[moves] += 1
         return act

@@ -172,6 +172,10 @@ def run_lifelong(problem: LorrProblem, steps: int, plan_time_limit_ms: float = 1
         planner_kw = {"claim_steps": 0, **(planner_kw or {})}
     if n_free < SMALL_MAP_CELLS:
         planner_kw = {"yield_steps": SMALL_MAP_STUCK, "stuck_steps": SMALL_MAP_STUCK, **(planner_kw or {})}
+        if replan is None:              # mostly corridors, with a dead end or a sparse team: whole plans
+            degree = (grid.nbr[grid.free_cells()] >= 0).sum(axis=1)
+            replan = (float((degree <= 2).mean()) >= REPLAN_CORRIDORS
+                      and (bool((degree == 1).any()) or density < REPLAN_DENSITY))
     elif density >= EPIBT_DENSITY:      # a dense team: robots wait in crowds, and yielding cost (docs/lifelong.md)
         planner_kw = {"yield_steps": 0, **(planner_kw or {})}
     small = problem.team_size <= WINDOW_TEAM
@@ -223,12 +227,6 @@ def run_lifelong(problem: LorrProblem, steps: int, plan_time_limit_ms: float = 1
         flow = TrafficFlow(grid, cache, problem.team_size, cost=cache.cost, seed_=seed, **kw)
     planner = PIBTPlanner(grid, cache, model=model, seed=seed, flow=flow, **(planner_kw or {}))
     step_planner = planner
-    if replan is None:
-        replan = False
-        if n_free < SMALL_MAP_CELLS:
-            degree = (grid.nbr[grid.free_cells()] >= 0).sum(axis=1)
-            replan = (float((degree <= 2).mean()) >= REPLAN_CORRIDORS
-                      and (bool((degree == 1).any()) or density < REPLAN_DENSITY))
     replan = bool(replan and model == MAPF_T)
     if replan:
         refine_warm_up()

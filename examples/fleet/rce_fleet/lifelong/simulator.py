@@ -32,12 +32,21 @@ from .grid import HEADING_NAMES, LifelongGrid
 from .kernels import ACT_C, ACT_F, ACT_R, ACT_W, MOVE_WAIT
 from .tasks import TaskPool
 
-__all__ = ["MAPF", "MAPF_T", "Simulator", "StepReport", "check_actions", "replay", "schedule_entries"]
+__all__ = ["MAPF", "MAPF_T", "Simulator", "StepReport", "check_actions", "replay", "schedule_entries", "turned"]
 
 MAPF_T = "MAPF_T"
 MAPF = "MAPF"
 T_LETTERS = "FRCW"          # index = ACT_F, ACT_R, ACT_C, ACT_W
 M_LETTERS = "RDLUW"         # 4-neighbour: right (east), down (south), left (west), up (north), wait
+
+
+def turned(head: np.ndarray, actions: np.ndarray) -> np.ndarray:
+    """(n,) headings after MAPF_T ``actions`` (n,): ``R`` adds a quarter turn clockwise, ``C``
+    takes one away, modulo 4; the rest keep theirs."""
+    new_head = head.copy()
+    new_head[actions == ACT_R] = (head[actions == ACT_R] + 1) % 4
+    new_head[actions == ACT_C] = (head[actions == ACT_C] + 3) % 4
+    return new_head
 
 
 def _apply(grid: LifelongGrid, pos: np.ndarray, head: np.ndarray, actions: np.ndarray, model: str):
@@ -46,10 +55,7 @@ def _apply(grid: LifelongGrid, pos: np.ndarray, head: np.ndarray, actions: np.nd
         fwd = actions == ACT_F
         new_pos = pos.copy()
         new_pos[fwd] = grid.nbr[pos[fwd], head[fwd]]
-        new_head = head.copy()
-        new_head[actions == ACT_R] = (head[actions == ACT_R] + 1) % 4
-        new_head[actions == ACT_C] = (head[actions == ACT_C] + 3) % 4
-        return new_pos, new_head
+        return new_pos, turned(head, actions)
     mv = actions != MOVE_WAIT
     new_pos = pos.copy()
     new_pos[mv] = grid.nbr[pos[mv], actions[mv]]
