@@ -13,7 +13,7 @@ from pathlib import Path
 import pytest
 
 ROOT = Path(__file__).resolve().parents[2]
-RUN_TIMEOUT = 110        # s: three engines, each 4 x 2 s of script (about 50 s on a quiet machine)
+RUN_TIMEOUT = 110        # s: the calibration and three engines, each 4 x 2 s of script (about 60 s on a quiet machine)
 MOVE_KEYS = {"t_s", "from", "to", "gap_s", "why"}
 
 @pytest.mark.timeout(RUN_TIMEOUT + 20)
@@ -25,6 +25,9 @@ def test_placement_smoke(tmp_path):
     assert r.returncode == 0, f"exit {r.returncode}\n{r.stdout[-3000:]}\n{r.stderr[-3000:]}"
     d = json.loads(out.read_text())
     assert set(d["systems"]) == {"cloud", "robot", "placer"}
+    cal = d["node_calibration"]             # set on the robot's capped computer: slower there than uncapped
+    assert cal["robot_heavy_ms"] > cal["heavy_ms"] > cal["light_ms"] > 0, cal
+    assert f"--samples {cal['samples']}" in d["node_args"], (cal, d["node_args"])
     for name, s in d["systems"].items():
         assert isinstance(s["deadline_misses"], int) and isinstance(s["robot_energy_j"], float), name
         by_phase = s["deadline_misses_by_phase"]
