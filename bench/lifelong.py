@@ -233,13 +233,11 @@ def _parser() -> argparse.ArgumentParser:
     ap.add_argument("--lanes", type=int, help="extra cost of a move against a one-way lane (0: no lanes)")
     ap.add_argument("--crowd-w", type=float, help="scheduler's steps per robot crowding a task's errands "
                     "(default: 5 for 3,000 robots or more, else 0)")
-    ap.add_argument("--max-active", type=int, metavar="N",
-                    help="robots holding a task at most (0: no bound; default: 0.43 of the free cells where EPIBT "
-                         "answers, else 0.3, 0.2 on a map of one-cell aisles, from 0.3 robots per free cell)")
+    from rce_fleet.cli import ADMISSION_HELP, MAX_ACTIVE_HELP, REPLAN_HELP
+    ap.add_argument("--max-active", type=int, metavar="N", help=MAX_ACTIVE_HELP)
     ap.add_argument("--keep-right", type=int, metavar="N",
                     help="extra cost of a move against the keep-right lane of a corridor 2 - 12 cells wide "
                          "(0: none; default 4)")
-    from rce_fleet.cli import ADMISSION_HELP, REPLAN_HELP
     ap.add_argument("--admission", choices=("on", "off"), help=ADMISSION_HELP)
     ap.add_argument("--replan", choices=("on", "off"), help=REPLAN_HELP)
     ap.add_argument("--window", choices=("on", "off"),

@@ -181,6 +181,34 @@ def test_the_default_bound_is_lower_on_a_map_of_aisles_than_on_an_open_one():
         assert res.summary()["invalid_steps"] == 0
 
 
+def test_on_a_map_of_aisles_a_jam_cuts_the_robots_holding_a_task():
+    """Shelves to the map's east edge make every aisle a dead end, and every errand lies deep in them:
+    robots going in meet robots coming out head-on and pack the aisles. On a map of aisles, where
+    no bound holds, the run cuts the robots holding a task to AISLE_JAM_CUT of those holding one
+    when the jam is seen; with ``max_active=0`` (no bound) it does not."""
+    from rce_fleet.lifelong import runner
+    from rce_fleet.lifelong.lorr import LorrProblem
+    rng = np.random.default_rng(0)
+    free = np.ones((21, 40), dtype=bool)
+    free[1:20:2, 3:40] = False
+    g = LifelongGrid(free)
+    cells = g.free_cells()
+    n = int(0.15 * len(cells))
+    deep = cells[cells % 40 >= 34]
+    starts = rng.choice(cells[cells % 40 < 20], n, replace=False).astype(np.int64)
+    tasks = [tuple(int(c) for c in rng.choice(deep, 2, replace=False)) for _ in range(2 * n)]
+    p = LorrProblem(path=Path("t.json"), grid=g, starts=starts, tasks=tasks, team_size=n, num_tasks_reveal=1.5)
+    res = runner.run_lifelong(p, 125, plan_time_limit_ms=200.0, record=False)
+    s = res.stats
+    assert s["aisle_map"] and s["jam_at"] is not None, s["packed_shares"]
+    assert s["jam_cut"] is not None and s["jam_cut"] <= int(runner.AISLE_JAM_CUT * n)
+    assert s["max_active"] == s["jam_cut"]
+    assert (res.sim.assignment >= 0).sum() <= s["jam_cut"] + n // 10      # opened tasks are never taken back
+    assert res.summary()["invalid_steps"] == 0
+    off = runner.run_lifelong(p, 125, plan_time_limit_ms=200.0, record=False, max_active=0)
+    assert off.stats["jam_at"] is not None and off.stats["jam_cut"] is None and off.stats["max_active"] is None
+
+
 def test_packed_robots_are_the_ones_whose_every_free_neighbour_cell_is_held():
     free = np.ones((3, 4), dtype=bool)
     free[0, 3] = False                                    # a blocked neighbour counts as held
@@ -294,4 +322,7 @@ def test_the_jam_note_advises_the_bound_off_maps_of_aisles_only():
     note = jam_note({**stats, "aisle_map": True})
     assert note.startswith("the team jammed from step 124") and "0.432" in note
     assert "on this map of aisles the run-time bound (--admission on) finished fewer" in note
+    assert "held a task from then on" not in note
+    note = jam_note({**stats, "aisle_map": True, "jam_cut": 7000})
+    assert "at most 7000 robots held a task from then on" in note and "finished fewer" in note
     assert jam_note({**stats, "jam_at": None}) is None

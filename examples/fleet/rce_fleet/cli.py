@@ -36,6 +36,9 @@ ADMISSION_HELP = ("the bound on robots holding a task set at run time: it starts
                   "past it again (default: on from 0.1 to 0.3 robots per free cell on maps that are "
                   "not maps of one-cell aisles, else off; ignored under --max-active)")
 # the help of --replan, the same in both
+MAX_ACTIVE_HELP = ("robots holding a task at most (0: no bound, no cut; default: 0.43 of the free cells where EPIBT "
+                   "answers, else 0.3, 0.2 on a map of one-cell aisles, from 0.3 robots per free cell; below that "
+                   "on a map of aisles 0.7 of the robots holding a task when a jam is first seen)")
 REPLAN_HELP = ("whole LaCAM plans to the current goals, executed under turns in the plan's order and planned "
                "again at every arrival, the step's planner answering where no plan is found in time (default: on "
                "on maps under 100 free cells of which at least half have two free neighbours or fewer "
@@ -245,9 +248,7 @@ def build_parser() -> argparse.ArgumentParser:
                     "one-cell-wide corridors (0: no lanes; default 4)")
     lf.add_argument("--keep-right", type=int, metavar="N", help="extra cost of a move against the keep-right "
                     "lane of a corridor 2 - 12 cells wide (0: none; default 4)")
-    lf.add_argument("--max-active", type=int, metavar="N", help="robots holding a task at most (0: no bound; "
-                    "default: 0.43 of the free cells where EPIBT answers, else 0.3, 0.2 on a map of "
-                    "one-cell aisles, from 0.3 robots per free cell)")
+    lf.add_argument("--max-active", type=int, metavar="N", help=MAX_ACTIVE_HELP)
     lf.add_argument("--admission", choices=("on", "off"), help=ADMISSION_HELP)
     lf.add_argument("--replan", choices=("on", "off"), help=REPLAN_HELP)
     lf.add_argument("--crowd-w", type=float, metavar="W", help="steps the scheduler adds per robot crowding a "

@@ -183,16 +183,19 @@ class JamDetector:
 
 def jam_note(stats: dict) -> str | None:
     """What to tell the user of a run whose :class:`JamDetector` saw a jam (``stats`` of
-    :func:`~.runner.run_lifelong`: ``jam_at``, ``packed_shares``, ``aisle_map``); None when it saw
-    none. On a map of aisles (``aisle_map``: at least :data:`~.runner.AISLE_SHARE` of its free cells
-    in one-cell lanes) it does not advise the run-time bound: there it finished fewer (SORTATION,
-    10,000 robots, 1,000 steps: 14,367 against 18,631)."""
+    :func:`~.runner.run_lifelong`: ``jam_at``, ``packed_shares``, ``aisle_map``, ``jam_cut``); None
+    when it saw none. On a map of aisles (``aisle_map``: at least :data:`~.runner.AISLE_SHARE` of its
+    free cells in one-cell lanes) it says what the run did, the cut to ``jam_cut`` robots holding a
+    task, and does not advise the run-time bound: there it finished fewer (SORTATION, 10,000 robots,
+    1,000 steps: 14,367 against 18,631)."""
     if stats.get("jam_at") is None:
         return None
     shares = stats["packed_shares"]
     jam = (f"the team jammed from step {stats['jam_at']}: the share of robots with a task packed in (every free "
            f"neighbour cell held by a robot) rose from {shares[0]:.3f} to {max(shares):.3f}")
     if stats.get("aisle_map"):
-        return jam + "; on this map of aisles the run-time bound (--admission on) finished fewer, not more"
+        cut = (f"; at most {stats['jam_cut']} robots held a task from then on, cut from those holding one"
+               if stats.get("jam_cut") is not None else "")
+        return jam + cut + "; on this map of aisles the run-time bound (--admission on) finished fewer, not more"
     return (jam + "; on a game map (open areas joined by a few passages) --admission on keeps fewer robots moving "
             "and finishes more (docs/lifelong.md, \"Maps it was not tuned on\")")

@@ -33,7 +33,7 @@ from .simulator import MAPF_T, Simulator
 
 __all__ = ["ACTIVE_DENSITY", "ACTIVE_FRAC", "ADMISSION_CELLS", "ADMISSION_DENSITY", "ADMISSION_JAM",
            "ADMISSION_JAM_DENSITY", "ADMISSION_SMALL", "ADMISSION_SMALL_START", "ADMISSION_START", "AISLE_ACTIVE_FRAC",
-           "AISLE_SHARE", "CROWD_TEAM", "CROWD_W", "EPIBT_ACTIVE_FRAC", "EPIBT_BIAS", "EPIBT_DENSITY",
+           "AISLE_JAM_CUT", "AISLE_SHARE", "CROWD_TEAM", "CROWD_W", "EPIBT_ACTIVE_FRAC", "EPIBT_BIAS", "EPIBT_DENSITY",
            "EPIBT_LNS_FRAC", "GUIDE_DENSITY", "KEEP_RIGHT", "LANES", "OPEN_LANES", "PACKED_DENSITY", "RunResult",
            "REPLAN_CORRIDORS", "REPLAN_DENSITY", "SMALL_MAP_CELLS", "SMALL_MAP_STUCK", "WINDOW_DENSITY",
            "WINDOW_TEAM", "run_lifelong"]
@@ -62,6 +62,8 @@ ACTIVE_FRAC = 0.3     # robots holding a task per free cell at most (the rest st
 EPIBT_ACTIVE_FRAC = 0.43  # ... where EPIBT answers (350 of RANDOM-04's 819 free cells: docs/lifelong.md) ...
 ACTIVE_DENSITY = 0.3  # ... in teams of this many robots per free cell or more
 AISLE_ACTIVE_FRAC = 0.2   # ... and on maps of aisles: at least AISLE_SHARE of the free cells in one-cell corridor lanes
+AISLE_JAM_CUT = 0.7       # on a map of aisles where no bound holds, once a jam is seen, at most this share of the
+                          # robots then holding a task hold one from then on (measured: docs/lifelong.md)
 AISLE_SHARE = 0.2
 WINDOW_DENSITY = 0.1  # robots per free cell from which EPIBT (+ LNS) leads in teams up to WINDOW_TEAM and in
 WINDOW_TEAM = 1000    # any team on a map that is not a map of aisles (GAME's 6,500: docs/lifelong.md); with EPIBT
@@ -141,7 +143,9 @@ def run_lifelong(problem: LorrProblem, steps: int, plan_time_limit_ms: float = 1
     ``ACTIVE_FRAC`` of the free cells from ``ACTIVE_DENSITY`` robots per free cell
     (``EPIBT_ACTIVE_FRAC`` where EPIBT answers), 0: no bound;
     ``AISLE_ACTIVE_FRAC`` instead on a map of aisles (at least ``AISLE_SHARE`` of its free cells in
-    one-cell corridor lanes, as a warehouse's shelves make them: measured in docs/lifelong.md);
+    one-cell corridor lanes, as a warehouse's shelves and a sortation centre's chutes make them), and
+    below ``ACTIVE_DENSITY`` there, once the jam detector (below) sees a jam, ``AISLE_JAM_CUT`` of
+    the robots then holding a task (``stats["jam_cut"]``; measured in docs/lifelong.md);
     admission: where no ``max_active`` bound holds, the bound is set at run time by the share of
     robots with a task that move and the share packed in (:class:`~.admission.FlowAdmission` with
     ``ADMISSION_JAM``, its least packed share at least ``ADMISSION_JAM_DENSITY`` times the robots per
@@ -161,7 +165,7 @@ def run_lifelong(problem: LorrProblem, steps: int, plan_time_limit_ms: float = 1
     progress: called after each step with (step, tasks finished, planner ms).
     Where no bound holds, a :class:`~.admission.JamDetector` watches the share of the robots with a
     task that are packed in; ``stats`` give its ``packed_shares`` (per 25 steps) and ``jam_at``,
-    the step a jam was seen (None: none).
+    the step a jam was seen (None: none); on a map of aisles the bound is then cut (``max_active``).
     Compilation happens before step 0 (:func:`~.kernels.warm_up`). Raises ValueError for a
     bad scheduler or model name, MemoryError when the maps of the team do not fit.
     """
@@ -244,6 +248,8 @@ def run_lifelong(problem: LorrProblem, steps: int, plan_time_limit_ms: float = 1
             ctl_kw.update(ADMISSION_SMALL, start=int(ADMISSION_SMALL_START * problem.team_size))
         control = FlowAdmission(problem.team_size, **{**ctl_kw, **(admission_kw or {})})
     detector = JamDetector() if control is None and sched.max_active is None else None
+    cut_on_jam = detector is not None and aisles >= AISLE_SHARE and max_active is None
+    jam_cut = None
     watch = detector is not None or (control is not None and control.jam_factor is not None)
     occupied = np.zeros(grid.n_cells + 1, dtype=bool) if watch else None
     for k in range(steps):
@@ -267,8 +273,8 @@ def run_lifelong(problem: LorrProblem, steps: int, plan_time_limit_ms: float = 1
             occupied[:] = False
             occupied[sim.pos] = True
             n_packed = int(packed(grid.nbr, sim.pos[held], occupied).sum())
-        if detector is not None:
-            detector.observe(k, n_packed, int(held.sum()))
+        if detector is not None and detector.observe(k, n_packed, int(held.sum())) and cut_on_jam and jam_cut is None:
+            jam_cut = sched.max_active = max(1, int(AISLE_JAM_CUT * held.sum()))
         if control is not None:
             sched.max_active = control.observe(k, int((held & (sim.pos != p_before)).sum()), int(held.sum()),
                                                n_packed)
@@ -290,7 +296,7 @@ def run_lifelong(problem: LorrProblem, steps: int, plan_time_limit_ms: float = 1
              "shed": sched.shed + getattr(getattr(sched, "_greedy", None), "shed", 0),
              "admission_on": control is not None,
              "admission": control.decisions if control is not None else None,
-             "jam_at": detector.jam_at if detector is not None else None,
+             "jam_at": detector.jam_at if detector is not None else None, "jam_cut": jam_cut,
              "packed_shares": detector.shares if detector is not None else None,
              "distance_maps": cache.computed, "maps_evicted": cache.evicted, "cache_rows": cache.capacity,
              "cache_rows_used": len(cache)}
