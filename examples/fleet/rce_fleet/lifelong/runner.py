@@ -145,7 +145,8 @@ def run_lifelong(problem: LorrProblem, steps: int, plan_time_limit_ms: float = 1
     ``AISLE_ACTIVE_FRAC`` instead on a map of aisles (at least ``AISLE_SHARE`` of its free cells in
     one-cell corridor lanes, as a warehouse's shelves and a sortation centre's chutes make them), and
     below ``ACTIVE_DENSITY`` there, once the jam detector (below) sees a jam, ``AISLE_JAM_CUT`` of
-    the robots then holding a task (``stats["jam_cut"]``; measured in docs/lifelong.md);
+    the robots then holding a task (``stats["jam_cut"]``; not under whole plans, which bring every
+    robot to its goal; measured in docs/lifelong.md);
     admission: where no ``max_active`` bound holds, the bound is set at run time by the share of
     robots with a task that move and the share packed in (:class:`~.admission.FlowAdmission` with
     ``ADMISSION_JAM``, its least packed share at least ``ADMISSION_JAM_DENSITY`` times the robots per
@@ -248,7 +249,7 @@ def run_lifelong(problem: LorrProblem, steps: int, plan_time_limit_ms: float = 1
             ctl_kw.update(ADMISSION_SMALL, start=int(ADMISSION_SMALL_START * problem.team_size))
         control = FlowAdmission(problem.team_size, **{**ctl_kw, **(admission_kw or {})})
     detector = JamDetector() if control is None and sched.max_active is None else None
-    cut_on_jam = detector is not None and aisles >= AISLE_SHARE and max_active is None
+    cut_on_jam = detector is not None and aisles >= AISLE_SHARE and max_active is None and not replan
     jam_cut = None
     watch = detector is not None or (control is not None and control.jam_factor is not None)
     occupied = np.zeros(grid.n_cells + 1, dtype=bool) if watch else None
