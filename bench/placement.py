@@ -669,14 +669,23 @@ def plot(res: dict, png: Path) -> None:
 
 
 async def bench(a: argparse.Namespace) -> dict:
-    from common import git_head
-    from rce.tools.netlab import NetLab
+    """The three systems' runs (``a.systems``) and the targets; the robot computer's cgroup made for
+    them and removed after, whatever happens."""
     cap = CpuCap(f"rce-placement-bench-{os.getpid()}", ROBOT_CPU)
     try:
-        node = calibrate_on_robot(cap, a.heavy_ms)
-    except BaseException:
+        res = await _bench_in(a, cap)
+    finally:
         cap.close()
-        raise
+    res["targets"] = targets(res["systems"], a.phase_s)
+    res["load_after"] = os.getloadavg()
+    return res
+
+
+async def _bench_in(a: argparse.Namespace, cap: "CpuCap") -> dict:
+    """:func:`bench` with the robot computer's cgroup ``cap`` made (and removed by the caller)."""
+    from common import git_head
+    from rce.tools.netlab import NetLab
+    node = calibrate_on_robot(cap, a.heavy_ms)
     a.node_args = node["node_args"]
     print(f"placement: node {a.node_args}: a cluttered scan {node['robot_heavy_ms']} ms on the robot's computer "
           f"({node['heavy_ms']} core-ms uncapped), a sparse one {node['robot_light_ms']} ms ({node['light_ms']})",
@@ -687,27 +696,21 @@ async def bench(a: argparse.Namespace) -> dict:
                  "robot_cpu": ROBOT_CPU, "good_rate": GOOD_RATE, "bad_rate": a.bad_rate, "dscp": a.dscp,
                  "ordered_moves": a.ordered_moves, "queue_packets": QUEUE, "node_calibration": node,
                  "battery_pct": [BATTERY_START_PCT, BATTERY_LOW_PCT], "load_before": os.getloadavg(),
-                 "systems": {}}
+                 "systems": {}, "robot_cpu_cap": cap.how}
     root = Path(tempfile.mkdtemp(prefix="rce-placement-"))
-    res["robot_cpu_cap"] = cap.how
-    try:
-        with NetLab("plb") as lab:
-            lab.namespace("r")
-            link = lab.link(None, "r", 1)
-            lab.route("r", "default", link.a_ip)
-            for system in a.systems.split(","):
-                print(f"placement: {system} ({4 * a.phase_s:g} s) ...", flush=True)
-                raw = await run_system(system, lab, link, root / system, cap, a)
-                res["systems"][system] = analyse(raw, a.phase_s)
-                s = res["systems"][system]
-                print(f"   misses {s['deadline_misses']} {s['deadline_misses_by_phase']}, energy "
-                      f"{s['robot_energy_j']} J, lost {s['lost']}, dup {s['duplicated']}, moves "
-                      f"{[(m['t_s'], m['to'], m['gap_s']) for m in s['moves']]}", flush=True)
-    finally:
-        cap.close()
-    res["targets"] = targets(res["systems"], a.phase_s)
-    res["load_after"] = os.getloadavg()
     res["logs"] = str(root)
+    with NetLab("plb") as lab:
+        lab.namespace("r")
+        link = lab.link(None, "r", 1)
+        lab.route("r", "default", link.a_ip)
+        for system in a.systems.split(","):
+            print(f"placement: {system} ({4 * a.phase_s:g} s) ...", flush=True)
+            raw = await run_system(system, lab, link, root / system, cap, a)
+            res["systems"][system] = analyse(raw, a.phase_s)
+            s = res["systems"][system]
+            print(f"   misses {s['deadline_misses']} {s['deadline_misses_by_phase']}, energy "
+                  f"{s['robot_energy_j']} J, lost {s['lost']}, dup {s['duplicated']}, moves "
+                  f"{[(m['t_s'], m['to'], m['gap_s']) for m in s['moves']]}", flush=True)
     return res
 
 
