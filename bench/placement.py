@@ -134,12 +134,13 @@ def costmap_ms(fraction: float, samples: int, clock=time.process_time) -> float:
     return sorted(ts)[3]
 
 
-def calibrate(target_ms: float, clock=time.process_time) -> dict:
-    """The node's ``--samples`` for which a cluttered scan takes ``target_ms`` ms by ``clock`` where
-    this process runs (:func:`costmap_ms`, by secant steps from two sample counts: the work is about
-    linear in them; up to 6 steps, until within 5 % of the target: on a shared machine one timing
-    may be off by a third). Returns ``{samples, node_args, heavy_ms, light_ms}`` (ms by ``clock``,
-    at those samples)."""
+def calibrate(target_ms: float) -> dict:
+    """The node's ``--samples`` for which a cluttered scan takes ``target_ms`` ms of wall time where
+    this process runs (inside the robot computer's cgroup: :func:`calibrate_on_robot`), by
+    :func:`costmap_ms` and secant steps from two sample counts (the work is about linear in them; up
+    to 6 steps, until within 5 % of the target: on a shared machine one timing may be off by a third).
+    Returns ``{samples, node_args, heavy_ms, light_ms}`` (wall ms, at those samples)."""
+    clock = time.perf_counter
     a, b = (100, costmap_ms(1.0, 100, clock)), (300, costmap_ms(1.0, 300, clock))
     for _ in range(6):                   # secant steps towards target_ms
         if abs(b[1] - target_ms) <= 0.05 * target_ms:
@@ -154,7 +155,7 @@ def calibrate(target_ms: float, clock=time.process_time) -> dict:
             "light_ms": round(costmap_ms(LIGHT_FRACTION, samples, clock), 2)}
 
 
-def calibrate_on_robot(cap: "CpuCap", target_ms: float = ROBOT_HEAVY_MS) -> dict:
+def calibrate_on_robot(cap: CpuCap, target_ms: float = ROBOT_HEAVY_MS) -> dict:
     """The node's work set on the robot's computer itself: :func:`calibrate` run inside ``cap`` by the
     wall clock, so that a cluttered scan takes ``target_ms`` there (its cap's throttling and
     whatever else loads this machine at the time included), then timed here, uncapped, in CPU time
@@ -681,7 +682,7 @@ async def bench(a: argparse.Namespace) -> dict:
     return res
 
 
-async def _bench_in(a: argparse.Namespace, cap: "CpuCap") -> dict:
+async def _bench_in(a: argparse.Namespace, cap: CpuCap) -> dict:
     """:func:`bench` with the robot computer's cgroup ``cap`` made (and removed by the caller)."""
     from common import git_head
     from rce.tools.netlab import NetLab
@@ -745,7 +746,7 @@ def main(argv=None) -> int:
         print(json.dumps(asyncio.run(robot_main(a))), flush=True)
         return 0
     if a.role == "calibrate":                      # inside the robot computer's cgroup
-        print(json.dumps(calibrate(a.heavy_ms, clock=time.perf_counter)), flush=True)
+        print(json.dumps(calibrate(a.heavy_ms)), flush=True)
         return 0
     if os.geteuid() != 0:
         print("placement: needs root (network namespaces, tc, cgroups)", file=sys.stderr)

@@ -187,7 +187,8 @@ def run_lifelong(problem: LorrProblem, steps: int, plan_time_limit_ms: float = 1
     cost = lane_costs(grid, lanes) if lanes else None
     corridors = cost if cost is not None else lane_costs(grid, 1)
     aisles = float((corridors > 1).any(axis=1).sum()) / n_free     # share of free cells in one-cell lanes
-    epibt = (model == MAPF_T and density >= (WINDOW_DENSITY if small or aisles < AISLE_SHARE else EPIBT_DENSITY)
+    aisle_map = aisles >= AISLE_SHARE
+    epibt = (model == MAPF_T and density >= (WINDOW_DENSITY if small or not aisle_map else EPIBT_DENSITY)
              and (planner_kw or {}).get("epibt", True))
     crisscross = epibt and not small and density < EPIBT_DENSITY     # a large team off aisles: the winner's grid
     if guide is None:
@@ -209,9 +210,9 @@ def run_lifelong(problem: LorrProblem, steps: int, plan_time_limit_ms: float = 1
     auto = admission is None and density >= ADMISSION_DENSITY
     if max_active is None and density >= ACTIVE_DENSITY:
         open_frac = EPIBT_ACTIVE_FRAC if epibt else ACTIVE_FRAC
-        max_active = int((AISLE_ACTIVE_FRAC if aisles >= AISLE_SHARE else open_frac) * n_free)
+        max_active = int((AISLE_ACTIVE_FRAC if aisle_map else open_frac) * n_free)
     if admission is None:
-        admission = auto and aisles < AISLE_SHARE
+        admission = auto and not aisle_map
     if open_lanes is None:
         open_lanes = OPEN_LANES if epibt and lanes else 0
     if open_lanes and (crisscross or cost is None or (cost == 1).all()):    # the crisscross everywhere
@@ -249,7 +250,7 @@ def run_lifelong(problem: LorrProblem, steps: int, plan_time_limit_ms: float = 1
             ctl_kw.update(ADMISSION_SMALL, start=int(ADMISSION_SMALL_START * problem.team_size))
         control = FlowAdmission(problem.team_size, **{**ctl_kw, **(admission_kw or {})})
     detector = JamDetector() if control is None and sched.max_active is None else None
-    cut_on_jam = detector is not None and aisles >= AISLE_SHARE and max_active is None and not replan
+    cut_on_jam = detector is not None and aisle_map and max_active is None and not replan
     jam_cut = None
     watch = detector is not None or (control is not None and control.jam_factor is not None)
     occupied = np.zeros(grid.n_cells + 1, dtype=bool) if watch else None
@@ -284,7 +285,7 @@ def run_lifelong(problem: LorrProblem, steps: int, plan_time_limit_ms: float = 1
         if progress is not None:
             progress(k + 1, sim.finished, dt * 1e3)
     stats = {"scheduler": scheduler, "max_active": getattr(sched, "max_active", None), "lanes": lanes,
-             "aisles": round(aisles, 3), "aisle_map": aisles >= AISLE_SHARE,
+             "aisles": round(aisles, 3), "aisle_map": aisle_map,
              "keep_right": keep_right, "crisscross": crisscross,
              "crowd_w": crowd_w, "guide": guide, "epibt": epibt, "open_lanes": open_lanes,
              "window_bias": planner.window_bias, "replan": replan, "yield_steps": planner.yield_steps,
