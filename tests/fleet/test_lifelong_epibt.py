@@ -284,21 +284,25 @@ def test_runner_answers_with_epibt_its_bias_and_open_lanes_from_0_1_robots_per_f
         assert (s.get("epibt_steps", 0) > 0) is on
 
 
-def test_runner_answers_with_epibt_in_teams_over_a_thousand_from_0_1_off_aisles_and_from_0_3_on_them():
+def test_runner_answers_with_epibt_in_teams_over_a_thousand_from_0_02_off_aisles_and_from_0_3_on_them():
     from rce_fleet.lifelong.lorr import LorrProblem
-    from rce_fleet.lifelong.runner import (AISLE_SHARE, EPIBT_DENSITY, OPEN_LANES, WINDOW_DENSITY, WINDOW_TEAM,
-                                           run_lifelong)
+    from rce_fleet.lifelong.runner import (AISLE_SHARE, CRISSCROSS_DENSITY, EPIBT_DENSITY, KEEP_RIGHT, OPEN_LANES,
+                                           WINDOW_DENSITY, WINDOW_TEAM, run_lifelong)
     n = WINDOW_TEAM + 100
-    # an open map: 0.17 robots per free cell
-    g = LifelongGrid(np.ones((80, 80), dtype=bool))
-    assert WINDOW_DENSITY < n / 6400 < EPIBT_DENSITY
-    tasks = [(int(c), int(c + 1)) for c in range(0, 6398, 3)]
-    prob = LorrProblem(Path("open80.json"), g, np.arange(n, dtype=np.int64) * 5, tasks, n, 1.5)
-    s = run_lifelong(prob, 0, plan_time_limit_ms=200, seed=0).summary()       # the rule and warm-ups only
-    assert s["epibt"] is True and s["aisles"] < AISLE_SHARE
-    # ... over the crisscross graph, every row and column a lane, without guide paths or keep-right
-    assert s["crisscross"] is True and s["open_lanes"] == OPEN_LANES
-    assert s["guide"] is False and s["keep_right"] == 0
+    # open maps: 0.17 robots per free cell; 0.043 (as CITY-01, where a small team would run PIBT); 0.017
+    for side, on in ((80, True), (160, True), (256, False)):
+        g = LifelongGrid(np.ones((side, side), dtype=bool))
+        cells = side * side
+        assert (n / cells >= CRISSCROSS_DENSITY) is on and n / cells < EPIBT_DENSITY
+        assert (side == 80) is (n / cells >= WINDOW_DENSITY)
+        tasks = [(int(c), int(c + 1)) for c in range(0, 2 * n, 2)]
+        prob = LorrProblem(Path(f"open{side}.json"), g, np.arange(n, dtype=np.int64) * 5, tasks, n, 1.5)
+        s = run_lifelong(prob, 0, plan_time_limit_ms=200, seed=0).summary()       # the rule and warm-ups only
+        assert s["epibt"] is on and s["aisles"] < AISLE_SHARE
+        # ... over the crisscross graph, every row and column a lane, without guide paths or keep-right
+        assert s["crisscross"] is on and s["open_lanes"] == (OPEN_LANES if on else 0)
+        assert s["keep_right"] == (0 if on else KEEP_RIGHT)
+        assert s["guide"] is False          # (under 0.06 robots per free cell, none without EPIBT either)
     # a map of aisles: one-cell corridors between rows of shelves, cross aisles at both ends
     free = np.ones((161, 80), dtype=bool)
     free[1::2, 1:-1] = False

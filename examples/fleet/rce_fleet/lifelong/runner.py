@@ -33,10 +33,10 @@ from .simulator import MAPF_T, Simulator
 
 __all__ = ["ACTIVE_DENSITY", "ACTIVE_FRAC", "ADMISSION_CELLS", "ADMISSION_DENSITY", "ADMISSION_JAM",
            "ADMISSION_JAM_DENSITY", "ADMISSION_SMALL", "ADMISSION_SMALL_START", "ADMISSION_START", "AISLE_ACTIVE_FRAC",
-           "AISLE_JAM_CUT", "AISLE_SHARE", "CROWD_TEAM", "CROWD_W", "EPIBT_ACTIVE_FRAC", "EPIBT_BIAS", "EPIBT_DENSITY",
-           "EPIBT_LNS_FRAC", "GUIDE_DENSITY", "KEEP_RIGHT", "LANES", "OPEN_LANES", "PACKED_DENSITY", "RunResult",
-           "REPLAN_CORRIDORS", "REPLAN_DENSITY", "SMALL_MAP_CELLS", "SMALL_MAP_STUCK", "WINDOW_DENSITY",
-           "WINDOW_TEAM", "run_lifelong"]
+           "AISLE_JAM_CUT", "AISLE_SHARE", "CRISSCROSS_DENSITY", "CROWD_TEAM", "CROWD_W", "EPIBT_ACTIVE_FRAC",
+           "EPIBT_BIAS", "EPIBT_DENSITY", "EPIBT_LNS_FRAC", "GUIDE_DENSITY", "KEEP_RIGHT", "LANES", "OPEN_LANES",
+           "PACKED_DENSITY", "RunResult", "REPLAN_CORRIDORS", "REPLAN_DENSITY", "SMALL_MAP_CELLS", "SMALL_MAP_STUCK",
+           "WINDOW_DENSITY", "WINDOW_TEAM", "run_lifelong"]
 
 LANES = 4        # extra cost of a move against a one-way lane (measured: docs/lifelong.md)
 ADMISSION_START = 0.04  # robots per free cell the run-time bound starts at (--admission on; measured there)
@@ -65,9 +65,10 @@ AISLE_ACTIVE_FRAC = 0.2   # ... and on maps of aisles: at least AISLE_SHARE of t
 AISLE_JAM_CUT = 0.7       # on a map of aisles where no bound holds, once a jam is seen, at most this share of the
                           # robots then holding a task hold one from then on (measured: docs/lifelong.md)
 AISLE_SHARE = 0.2
-WINDOW_DENSITY = 0.1  # robots per free cell from which EPIBT (+ LNS) leads in teams up to WINDOW_TEAM and in
-WINDOW_TEAM = 1000    # any team on a map that is not a map of aisles (GAME's 6,500: docs/lifelong.md); with EPIBT
-                      # off the windowed plan of operations, to PACKED_DENSITY, in teams up to WINDOW_TEAM
+WINDOW_DENSITY = 0.1  # robots per free cell from which EPIBT (+ LNS) leads in teams up to WINDOW_TEAM; with EPIBT
+WINDOW_TEAM = 1000    # off the windowed plan of operations, to PACKED_DENSITY, in teams up to WINDOW_TEAM
+CRISSCROSS_DENSITY = 0.02  # ... and from this in larger teams on a map that is not a map of aisles, over the
+                           # crisscross graph (GAME's 6,500, CITY-01's 1,500 at 0.032: docs/lifelong.md)
 EPIBT_DENSITY = 0.3   # robots per free cell from which EPIBT with LNS answers (MAPF_T) in any team ...
 OPEN_LANES = 9        # ... and, on a map without corridors, every row and column is a lane (against: 1 + 9) ...
 EPIBT_BIAS = 0.2      # ... and the lookahead takes its first step unless a rollout leads by this per robot
@@ -122,8 +123,9 @@ def run_lifelong(problem: LorrProblem, steps: int, plan_time_limit_ms: float = 1
     the team has at least ``GUIDE_DENSITY`` robots per free cell (on sparser teams the detours they
     ask for cost more than the jams they avoid: docs/lifelong.md); from ``PACKED_DENSITY`` robots per
     free cell a robot that turns towards a cell does not hold it (``claim_steps=0``; measured there);
-    from ``EPIBT_DENSITY`` robots per free cell, and from ``WINDOW_DENSITY`` in teams up to
-    ``WINDOW_TEAM`` and in any team on a map that is not a map of aisles (below), the planner answers
+    from ``EPIBT_DENSITY`` robots per free cell, from ``WINDOW_DENSITY`` in teams up to
+    ``WINDOW_TEAM``, and from ``CRISSCROSS_DENSITY`` in larger teams on a map that is not a map of
+    aisles (below), the planner answers
     with EPIBT and LNS (:mod:`.epibt`; ``planner_kw={"epibt": False}`` turns it off, and then from
     ``WINDOW_DENSITY`` to ``PACKED_DENSITY`` in teams up to ``WINDOW_TEAM`` the
     windowed plan of operations refined by LNS takes its place: :mod:`.window`,
@@ -188,7 +190,8 @@ def run_lifelong(problem: LorrProblem, steps: int, plan_time_limit_ms: float = 1
     corridors = cost if cost is not None else lane_costs(grid, 1)
     aisles = float((corridors > 1).any(axis=1).sum()) / n_free     # share of free cells in one-cell lanes
     aisle_map = aisles >= AISLE_SHARE
-    epibt = (model == MAPF_T and density >= (WINDOW_DENSITY if small or not aisle_map else EPIBT_DENSITY)
+    epibt = (model == MAPF_T
+             and density >= (WINDOW_DENSITY if small else EPIBT_DENSITY if aisle_map else CRISSCROSS_DENSITY)
              and (planner_kw or {}).get("epibt", True))
     crisscross = epibt and not small and density < EPIBT_DENSITY     # a large team off aisles: the winner's grid
     if guide is None:
