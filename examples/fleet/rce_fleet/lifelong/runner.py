@@ -32,11 +32,12 @@ from .scheduler import make_scheduler
 from .simulator import MAPF_T, Simulator
 
 __all__ = ["ACTIVE_DENSITY", "ACTIVE_FRAC", "ADMISSION_CELLS", "ADMISSION_DENSITY", "ADMISSION_JAM",
-           "ADMISSION_JAM_DENSITY", "ADMISSION_SMALL", "ADMISSION_SMALL_START", "ADMISSION_START", "AISLE_ACTIVE_FRAC",
-           "AISLE_JAM_CUT", "AISLE_SHARE", "CRISSCROSS_DENSITY", "CROWD_TEAM", "CROWD_W", "EPIBT_ACTIVE_FRAC",
-           "EPIBT_BIAS", "EPIBT_DENSITY", "EPIBT_LNS_FRAC", "GUIDE_DENSITY", "KEEP_RIGHT", "LANES", "OPEN_LANES",
-           "PACKED_DENSITY", "RunResult", "REPLAN_CORRIDORS", "REPLAN_DENSITY", "SMALL_MAP_CELLS", "SMALL_MAP_STUCK",
-           "WINDOW_DENSITY", "WINDOW_TEAM", "run_lifelong"]
+           "ADMISSION_JAM_DENSITY", "ADMISSION_SMALL", "ADMISSION_SMALL_START", "ADMISSION_START",
+           "AISLE_ACTIVE_FRAC", "AISLE_EPIBT_DENSITY", "AISLE_JAM_CUT", "AISLE_SHARE", "CRISSCROSS_DENSITY",
+           "CROWD_TEAM", "CROWD_W", "EPIBT_ACTIVE_FRAC", "EPIBT_BIAS", "EPIBT_DENSITY", "EPIBT_LNS_FRAC",
+           "GUIDE_DENSITY", "KEEP_RIGHT", "LANES", "OPEN_LANES", "PACKED_DENSITY", "REPLAN_CORRIDORS",
+           "REPLAN_DENSITY", "RunResult", "SMALL_MAP_CELLS", "SMALL_MAP_STUCK", "WINDOW_DENSITY", "WINDOW_TEAM",
+           "run_lifelong"]
 
 LANES = 4        # extra cost of a move against a one-way lane (measured: docs/lifelong.md)
 ADMISSION_START = 0.04  # robots per free cell the run-time bound starts at (--admission on; measured there)
@@ -70,6 +71,8 @@ WINDOW_TEAM = 1000    # off the windowed plan of operations, to PACKED_DENSITY, 
 CRISSCROSS_DENSITY = 0.02  # ... and from this in larger teams on a map that is not a map of aisles, over the
                            # crisscross graph (GAME's 6,500, CITY-01's 1,500 at 0.032: docs/lifelong.md)
 EPIBT_DENSITY = 0.3   # robots per free cell from which EPIBT with LNS answers (MAPF_T) in any team ...
+AISLE_EPIBT_DENSITY = 0.15  # ... (from this in teams over WINDOW_TEAM on a map of aisles: SORTATION's 10,000 at
+                            # 0.18, docs/lifelong.md) ...
 OPEN_LANES = 9        # ... and, on a map without corridors, every row and column is a lane (against: 1 + 9) ...
 EPIBT_BIAS = 0.2      # ... and the lookahead takes its first step unless a rollout leads by this per robot
 EPIBT_LNS_FRAC = 0.9  # ... and from EPIBT_DENSITY its LNS spends this share of the time to the step's deadline
@@ -124,14 +127,15 @@ def run_lifelong(problem: LorrProblem, steps: int, plan_time_limit_ms: float = 1
     ask for cost more than the jams they avoid: docs/lifelong.md); from ``PACKED_DENSITY`` robots per
     free cell a robot that turns towards a cell does not hold it (``claim_steps=0``; measured there);
     from ``EPIBT_DENSITY`` robots per free cell, from ``WINDOW_DENSITY`` in teams up to
-    ``WINDOW_TEAM``, and from ``CRISSCROSS_DENSITY`` in larger teams on a map that is not a map of
-    aisles (below), the planner answers
+    ``WINDOW_TEAM``, and in larger teams from ``CRISSCROSS_DENSITY`` on a map that is not a map of
+    aisles (below) and from ``AISLE_EPIBT_DENSITY`` on a map of aisles, the planner answers
     with EPIBT and LNS (:mod:`.epibt`; ``planner_kw={"epibt": False}`` turns it off, and then from
     ``WINDOW_DENSITY`` to ``PACKED_DENSITY`` in teams up to ``WINDOW_TEAM`` the
     windowed plan of operations refined by LNS takes its place: :mod:`.window`,
     ``planner_kw={"ops": False}`` turns that off too), its first step taken
     unless a PIBT rollout brings the robots closer by ``EPIBT_BIAS`` steps per robot with a goal
-    (``planner_kw={"window_bias": ...}``), and from ``EPIBT_DENSITY`` its LNS spends
+    (``planner_kw={"window_bias": ...}``), and from ``EPIBT_DENSITY`` (``AISLE_EPIBT_DENSITY`` in larger
+    teams on a map of aisles) its LNS spends
     ``EPIBT_LNS_FRAC`` of the time to the step's deadline, the rollouts the rest
     (``planner_kw={"lns_frac": ...}``); open_lanes: on a map
     without corridor lanes, every row and column becomes a lane with this extra cost against it
@@ -159,7 +163,7 @@ def run_lifelong(problem: LorrProblem, steps: int, plan_time_limit_ms: float = 1
     on maps of fewer than ``SMALL_MAP_CELLS`` free cells a robot without progress for
     ``SMALL_MAP_STUCK`` steps yields its priority under EPIBT and walks at random under PIBT (20
     steps elsewhere: :class:`~.pibt.PIBTPlanner`'s ``yield_steps`` and ``stuck_steps``), and from
-    ``EPIBT_DENSITY`` robots per free cell on larger maps none yields;
+    ``EPIBT_DENSITY`` robots per free cell (``AISLE_EPIBT_DENSITY``, as above) on larger maps none yields;
     replan: whole LaCAM plans answer each step, planned again at every goal change and executed under
     turns in the plan's order (:class:`~.replan.ReplanPlanner`, the planner above its fallback); None
     (default): on maps of fewer than ``SMALL_MAP_CELLS`` free cells of which at least
@@ -175,6 +179,12 @@ def run_lifelong(problem: LorrProblem, steps: int, plan_time_limit_ms: float = 1
     grid = problem.grid
     n_free = max(1, len(grid.free_cells()))
     density = problem.team_size / n_free
+    small = problem.team_size <= WINDOW_TEAM
+    cost = lane_costs(grid, lanes) if lanes else None
+    corridors = cost if cost is not None else lane_costs(grid, 1)
+    aisles = float((corridors > 1).any(axis=1).sum()) / n_free     # share of free cells in one-cell lanes
+    aisle_map = aisles >= AISLE_SHARE
+    dense_from = AISLE_EPIBT_DENSITY if aisle_map and not small else EPIBT_DENSITY
     if density >= PACKED_DENSITY:       # the cell a turning robot would hold is the one the others need
         planner_kw = {"claim_steps": 0, **(planner_kw or {})}
     if n_free < SMALL_MAP_CELLS:
@@ -183,21 +193,16 @@ def run_lifelong(problem: LorrProblem, steps: int, plan_time_limit_ms: float = 1
             degree = (grid.nbr[grid.free_cells()] >= 0).sum(axis=1)
             replan = (float((degree <= 2).mean()) >= REPLAN_CORRIDORS
                       and (bool((degree == 1).any()) or density < REPLAN_DENSITY))
-    elif density >= EPIBT_DENSITY:      # a dense team: robots wait in crowds, and yielding cost (docs/lifelong.md)
+    elif density >= dense_from:         # a dense team: robots wait in crowds, and yielding cost (docs/lifelong.md)
         planner_kw = {"yield_steps": 0, **(planner_kw or {})}
-    small = problem.team_size <= WINDOW_TEAM
-    cost = lane_costs(grid, lanes) if lanes else None
-    corridors = cost if cost is not None else lane_costs(grid, 1)
-    aisles = float((corridors > 1).any(axis=1).sum()) / n_free     # share of free cells in one-cell lanes
-    aisle_map = aisles >= AISLE_SHARE
     epibt = (model == MAPF_T
-             and density >= (WINDOW_DENSITY if small else EPIBT_DENSITY if aisle_map else CRISSCROSS_DENSITY)
+             and density >= (WINDOW_DENSITY if small else dense_from if aisle_map else CRISSCROSS_DENSITY)
              and (planner_kw or {}).get("epibt", True))
-    crisscross = epibt and not small and density < EPIBT_DENSITY     # a large team off aisles: the winner's grid
+    crisscross = epibt and not small and not aisle_map and density < EPIBT_DENSITY    # the winner's grid
     if guide is None:
         guide = density >= GUIDE_DENSITY and not crisscross
     if epibt:
-        dense = {"lns_frac": EPIBT_LNS_FRAC} if density >= EPIBT_DENSITY else {}
+        dense = {"lns_frac": EPIBT_LNS_FRAC} if density >= dense_from else {}
         planner_kw = {"epibt": True, "window_bias": EPIBT_BIAS, **dense, **(planner_kw or {})}
     elif model == MAPF_T and WINDOW_DENSITY <= density < PACKED_DENSITY and small:
         planner_kw = {"ops": True, **(planner_kw or {})}
