@@ -245,8 +245,8 @@ def _parser() -> argparse.ArgumentParser:
                          "off (default: on from 0.1 to 0.8 robots per free cell, up to 1,000 robots)")
     ap.add_argument("--epibt", choices=("on", "off"),
                     help="EPIBT with LNS as a candidate of the lookahead (default: on from 0.3 robots per "
-                         "free cell, and from 0.1 up to 1,000 robots or on maps that are not maps of aisles; "
-                         "MAPF_T)")
+                         "free cell, from 0.1 up to 1,000 robots, and in larger teams from 0.02 on maps that are "
+                         "not maps of aisles and from 0.15 on maps of aisles; MAPF_T)")
     ap.add_argument("--json", type=Path)
     ap.add_argument("--plot", type=Path)
     ap.add_argument("--outputs", type=Path, help="also write each run's start-kit output JSON into DIR")
