@@ -101,7 +101,8 @@ class Metrics:
         Gauge("rce_robot_connections", "Connected robots", registry=r).set_function(lambda: len(ep.namespaces))
         Gauge("rce_robot_interfaces", "Robot-side interfaces", registry=r).set_function(
             lambda: sum(len(n.interfaces) for n in ep.namespaces.values()))
-        for k in ("msgs_in", "msgs_out", "bytes_in", "bytes_out", "dropped", "refused", "unauthenticated"):
+        for k in ("msgs_in", "msgs_out", "bytes_in", "bytes_out", "dropped", "refused", "unauthenticated",
+                  "moved_unsent"):
             Gauge(f"rce_robot_dataplane_{k}", f"Data plane {k}", registry=r).set_function(
                 lambda k=k: getattr(ep.plane, k))
         Gauge("rce_robot_queue_depth", "Data messages waiting to go to robots", registry=r).set_function(

@@ -55,17 +55,22 @@ class Interface:
         A connection that exists already is pointed at ``addr`` in one step (its container moved,
         :mod:`rce_master.mover`): from here on it goes there, and the old copy's claims end; with
         ``fence`` (the move's fence id) the old copy first gets a fence behind the last message sent
-        to it on each path (:meth:`rce.transport.dataplane.DataPlane.fence`). Returns how many fences
-        went out (0: none, or nothing can still be on its way to the old copy)."""
+        to it on each path (:meth:`rce.transport.dataplane.DataPlane.fence`). Messages to it that
+        had not left this process yet go to the new address instead, first
+        (:meth:`~rce.transport.dataplane.DataPlane.take_unsent`). Returns how many fences went out
+        (0: none, or nothing can still be on its way to the old copy)."""
         old = self.peers.get(peer_iid)
         fenced = 0
+        unsent: list = []
         if old is not None and old != addr:
+            unsent = self.plane.take_unsent(self.iid, peer_iid, old)
             if fence is not None:
                 fenced = self.plane.fence(self.iid, peer_iid, old, fence)
             self.plane.drop_claims(peer_iid)
         self.peers[peer_iid] = addr
         self.plane.allow(self.iid, peer_iid, token)
         if old != addr:
+            self.plane.send_unsent(self.iid, peer_iid, addr, unsent)
             self.plane.readdressed(peer_iid)
         self.on_peers_changed()
         return fenced

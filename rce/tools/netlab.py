@@ -150,9 +150,13 @@ class NetLab:
         ns, dev = (link.a, link.a_dev) if side == "a" else (link.b, link.b_dev)
         self.ip(*self._in(ns), "link", "set", dev, "up" if up else "down")
 
-    def shape(self, link: Link, side: str, rate: str = "10mbit", dscp: bool = False) -> None:
+    def shape(self, link: Link, side: str, rate: str = "10mbit", dscp: bool = False, queue: int = 1000,
+              one_segment: bool = False) -> None:
         """Shape what ``link``'s end on ``side`` ("a" or "b") sends to ``rate`` (tc units, e.g. ``10mbit``)
-        with HTB (RFC-less, Linux's hierarchical token bucket), a 1000-packet FIFO under each class:
+        with HTB (RFC-less, Linux's hierarchical token bucket), a ``queue``-packet FIFO under each class
+        (a radio's queue is short: 40 packets are ~0.5 s at 1 Mbit/s); ``one_segment``: one TCP segment
+        a packet (``gso_max_segs 1``: HTB lets a segmentation-offload packet of up to 64 kB through at
+        once and pays for it after, which no radio does):
 
         - ``dscp=False``: one class, one FIFO: DSCP marks are ignored;
         - ``dscp=True``: a class per mark by u32 ``tos`` filters: 1:10 EF (0xB8) assured 30 % of ``rate``,
@@ -165,6 +169,9 @@ class NetLab:
 
         def run(*args: str) -> None:
             subprocess.run([*tc, *args], check=True, capture_output=True, text=True)
+        if one_segment:
+            subprocess.run([*tc[:-1], "ip", "link", "set", "dev", dev, "gso_max_segs", "1"], check=True,
+                           capture_output=True)
         bits = _tc_bits(rate)
         run("qdisc", "add", "dev", dev, "root", "handle", "1:", "htb", "default", "20")
         run("class", "add", "dev", dev, "parent", "1:", "classid", "1:1", "htb", "rate", rate, "ceil", rate)
@@ -172,7 +179,7 @@ class NetLab:
         for cid, share, prio in classes:
             run("class", "add", "dev", dev, "parent", "1:1", "classid", f"1:{cid}", "htb", "rate",
                 f"{int(bits * share)}bit", "ceil", rate, "prio", str(prio))
-            run("qdisc", "add", "dev", dev, "parent", f"1:{cid}", "pfifo", "limit", "1000")
+            run("qdisc", "add", "dev", dev, "parent", f"1:{cid}", "pfifo", "limit", str(queue))
         if dscp:
             for tos, cid in (("0xb8", 10), ("0x20", 30)):
                 run("filter", "add", "dev", dev, "parent", "1:", "protocol", "ip", "prio", "1", "u32", "match",

@@ -126,7 +126,7 @@ class _Dialled:
         nodelay(writer, data=True)
         self.link = FramedLink(reader, writer, name=f"data link to {self.addr}", on_frame=self._on_frame,
                                on_close=lambda _link: self._gone(), max_frame=self.plane.max_frame,
-                               max_buffer=self.plane.max_buffer, on_drop=self.plane._lost).start()
+                               max_buffer=self.plane.max_buffer, on_drop=self.plane._lost, data=True).start()
 
     def _gone(self) -> None:
         if self.plane._dialled.get(self.addr) is self:
@@ -187,6 +187,24 @@ class _Dialled:
         def match(p: Pair | None) -> bool:
             return p is not None and p[1] == dst and (src is None or p[0] == src)
         return any(match(p) for p in self.granted) or any(match(p) for p, _, _ in self.backlog)
+
+    def take_back(self, pair: Pair) -> list[tuple[bytes, bytes | memoryview]]:
+        """Take ``pair``'s messages that have not left this plane yet (in the backlog while the link
+        connects, or in its link's queue) out, in order: ``(header, payload)`` each."""
+        taken: list[tuple[bytes, bytes | memoryview]] = []
+        if self.backlog:
+            kept: collections.deque = collections.deque()
+            for entry in self.backlog:
+                if entry[0] == pair:
+                    chunk = entry[1]
+                    taken.append((chunk[:framing.DATA_HEADER_LEN], chunk[framing.DATA_HEADER_LEN:]))
+                    self.backlog_bytes -= len(chunk)
+                else:
+                    kept.append(entry)
+            self.backlog = kept
+        if self.link is not None:
+            taken += [(f, p) for f, p, _tag in self.link.take_back(lambda f: framing.data_pair(f) == pair)]
+        return taken
 
     def _control_send(self, chunk: bytes) -> bool:
         if self.link is None:
@@ -253,7 +271,8 @@ class _Accepted:
         self.warned = False
         self.link = FramedLink(reader, writer, name=f"data link from {writer.get_extra_info('peername')}",
                                on_frame=self._on_frame, on_close=self._closed,
-                               max_frame=plane.max_frame, max_buffer=plane.max_buffer, on_drop=plane._lost)
+                               max_frame=plane.max_frame, max_buffer=plane.max_buffer, on_drop=plane._lost,
+                               data=True)
 
     def _closed(self, _link: FramedLink) -> None:
         self.plane._accepted.discard(self)
@@ -387,6 +406,7 @@ class DataPlane:
         # counters (metrics and status)
         self.msgs_in = self.msgs_out = self.bytes_in = self.bytes_out = self.dropped = 0
         self.refused = self.unauthenticated = 0
+        self.moved_unsent = 0              # messages a move took back from the old copy's link and sent to the new
 
     async def listen(self, bind: str = "127.0.0.1", port: int = 0, advertise_host: str | None = None) -> str:
         """Start the listener; returns and stores the advertised address ``host:port``."""
@@ -456,6 +476,47 @@ class DataPlane:
         """Has the link dialled to ``addr`` carried, or does it hold, a message for interface ``dst``?"""
         d = self._dialled.get(addr)
         return d is not None and d.carried(dst)
+
+    def take_unsent(self, src: int, dst: int, old_addr: str) -> list[tuple[bytes, bytes | memoryview]]:
+        """Take the messages of ``src -> dst`` that have not left this plane for its old copy yet back
+        out, in order, ``(header, payload)`` each: those in the backlog or queue of the link dialled to
+        ``old_addr``, then those queued on every direct link of ``dst``'s claim set (what a link's
+        socket took has left). ``dst`` lives at another address now, and they go there instead
+        (:meth:`send_unsent`), so the old copy never sees them and the new one does once."""
+        pair = (src, dst)
+        d = self._dialled.get(old_addr)
+        taken = d.take_back(pair) if d is not None else []
+        cs = self._claims.get(dst)
+        if cs is not None and len(cs.links) == cs.size:
+            # the old copy's nodes got them on their direct links, a copy each (module doc): only what
+            # has left on none of them goes to the new copy
+            def mine(f: bytes) -> bool:
+                return framing.data_pair(f) == pair
+            common = set.intersection(*({id(f) for f in a.link.queued(mine)} for a in cs.links))
+            if common:
+                for i, a in enumerate(cs.links):
+                    got = a.link.take_back(lambda f: id(f) in common)
+                    if i == 0:
+                        taken += [(f, p) for f, p, _tag in got]
+                    else:
+                        self.msgs_out -= len(got)      # counted once per member when they were offered
+                        self.bytes_out -= sum(len(p) for _f, p, _tag in got)
+        return taken
+
+    def send_unsent(self, src: int, dst: int, addr: str, taken: list[tuple[bytes, bytes | memoryview]]) -> None:
+        """Send what :meth:`take_unsent` took to ``dst`` at its new address ``addr``, ahead of what is
+        sent there next (counted in ``moved_unsent``; a message the new link cannot take is dropped
+        and counted as any other)."""
+        if not taken:
+            return
+        d = self._dialled.get(addr)
+        if d is None:
+            d = self._dialled[addr] = _Dialled(self, addr)
+        for head, payload in taken:
+            if d.offer((src, dst), head, payload):
+                self.moved_unsent += 1
+            else:
+                self._lost(len(payload))
 
     def drop_claims(self, iid: int) -> None:
         """End interface ``iid``'s claim set (its copy moved: the nodes that claimed it are the old
@@ -680,13 +741,16 @@ class DataPlane:
             self.bytes_out -= nbytes
 
     def stats(self) -> dict:
-        """``{msgs_in, msgs_out, bytes_in, bytes_out, dropped, refused, unauthenticated, links, claims}``:
+        """``{msgs_in, msgs_out, bytes_in, bytes_out, dropped, refused, unauthenticated, links, claims,
+        moved_unsent}``:
         ``dropped`` includes what waited past a link's ``max_delay`` for a peer that did not keep up
         (:mod:`rce.transport.link`); ``refused`` frames from senders not connected to their interface,
         ``unauthenticated``
         links closed for a wrong credential, ``links`` outgoing, ``claims`` interfaces reached on
-        direct links (module doc)."""
+        direct links (module doc), ``moved_unsent`` messages a move sent to the new copy that had not left
+        for the old one (:meth:`take_unsent`)."""
         return {"msgs_in": self.msgs_in, "msgs_out": self.msgs_out, "bytes_in": self.bytes_in,
                 "bytes_out": self.bytes_out, "dropped": self.dropped, "refused": self.refused,
                 "unauthenticated": self.unauthenticated, "links": len(self._dialled),
-                "claims": sum(len(c.links) == c.size for c in self._claims.values())}
+                "claims": sum(len(c.links) == c.size for c in self._claims.values()),
+                "moved_unsent": self.moved_unsent}

@@ -59,6 +59,18 @@ def encode_data_header(op: int, dst: int, src: int, call_id: int, payload_len: i
     return _HEAD.pack(1 + _DATA.size + payload_len, DATA) + _DATA.pack(op, dst, src, call_id)
 
 
+DATA_HEADER_LEN = _HEAD.size + _DATA.size     # bytes of encode_data_header's header
+
+
+def data_pair(header: bytes | memoryview) -> tuple[int, int] | None:
+    """``(src, dst)`` of the DATA frame whose header (its first :data:`DATA_HEADER_LEN` bytes, or
+    more) is ``header``; None for any other frame."""
+    if len(header) < DATA_HEADER_LEN or header[4] != DATA:
+        return None
+    _op, dst, src, _cid = _DATA.unpack_from(header, _HEAD.size)
+    return src, dst
+
+
 def encode_data(op: int, dst: int, src: int, call_id: int, payload: bytes) -> bytes:
     """Frame a DATA message in one buffer (convenient for small payloads)."""
     return encode_data_header(op, dst, src, call_id, len(payload)) + payload

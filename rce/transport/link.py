@@ -33,7 +33,18 @@ messages, at most ``max_delay`` late in this process, instead of an ever older b
 that must not be lost (:meth:`FramedLink.send`) waits in the same queue, so the order of frames
 never changes, and is never dropped: it takes the room of the oldest offered frames first.
 ``on_drop(tag)`` hears of each offered frame dropped after :meth:`FramedLink.offer` took it
-(its ``tag``), so the sender's counters stay right.
+(its ``tag``), so the sender's counters stay right. :meth:`FramedLink.take_back` takes offered frames
+that are still in the queue back out, unsent, for a sender that now sends them elsewhere (a moved
+container's new copy).
+
+A data link (``data=True``) bounds what waits below its queue in time as well as in bytes. As it
+sends, it reads its socket's delivery rate (``TCP_INFO``) at most every :data:`FIT_EVERY` s, and
+whenever the kernel measured it while the link had more to send (not app-limited), lets the kernel
+(``TCP_NOTSENT_LOWAT``) and the transport (its high-water mark) each hold what the link sends in
+:data:`UNSENT_S` at that rate: at least :data:`MIN_UNSENT` bytes, at most :data:`NOTSENT_LOWAT` and
+the transport's own mark. On loopback that changes nothing; on a link of 1
+Mbit/s the kernel would otherwise hold 1 MiB unsent, 8 s of sending beyond the reach of
+``max_delay``, and a stream the link cannot carry would arrive seconds late instead of newest first.
 
 Writes are corked per loop pass: the frames of one pass wait in the link's cork and go out
 together in one ``writelines`` (one system call) when the pass ends (a ``call_soon`` callback
@@ -53,6 +64,7 @@ from collections.abc import Awaitable, Callable, Iterator
 from typing import Any
 
 from rce.transport import framing
+from rce.transport.lane_socket import link_sample
 from rce.plumbing.errors import ProtocolError, RCEError, RequestError, Unavailable
 from rce.plumbing.log import get_logger
 from rce.plumbing.pending import PendingCalls
@@ -66,8 +78,13 @@ JOIN_MAX = 64 * 1024                 # bytes: a payload up to this is joined to 
 MAX_IN_FLIGHT = 1024                 # requests one Responder runs at once; more are refused (Unavailable)
 DEFAULT_MAX_DELAY = 1.0              # s an offered frame may wait in a link's queue for a slow peer (module doc)
 HIGH_WATER = 64 * 1024               # bytes: a transport's high-water mark when it cannot tell its own
-NOTSENT_LOWAT = 1024 * 1024           # bytes a data link's socket keeps unsent in the kernel (data_socket)
+NOTSENT_LOWAT = 1024 * 1024           # bytes a data link's socket keeps unsent in the kernel at most (data_socket)
+TCP_NOTSENT_LOWAT = getattr(socket, "TCP_NOTSENT_LOWAT", None)   # None: a platform without it
 CORK_MAX = 256 * 1024                # bytes a link's cork holds within one loop pass before they go out (module doc)
+UNSENT_S = 0.05                      # s of sending, at a backed-up data link's measured rate, its kernel and its
+                                     # transport may each hold unsent (module doc)
+MIN_UNSENT = 16 * 1024               # bytes they may hold whatever the rate
+FIT_EVERY = 0.1                      # s between looks at a backed-up data link's delivery rate
 
 Frame = dict | framing.DataFrame
 
@@ -84,7 +101,8 @@ class FramedLink:
     frame accepted, bytes; ``max_buffer`` and ``hard_buffer``: write bounds of :meth:`offer`
     and :meth:`send`, bytes, counting what waits in the transport and in the link's queue;
     ``max_delay``: s an offered frame may wait in the link's queue (None: no age bound);
-    ``on_drop(tag)``: called for each offered frame dropped after it was taken (module doc).
+    ``on_drop(tag)``: called for each offered frame dropped after it was taken (module doc);
+    ``data``: a data link, whose unsent bytes below its queue follow its measured rate (module doc).
 
     The link ends on EOF, a socket error, a bad frame (logged, :class:`ProtocolError` from
     the decoder or from ``on_frame``), any other exception from ``on_frame`` (logged with its
@@ -99,7 +117,7 @@ class FramedLink:
                  on_close: Callable[["FramedLink"], Any] | None = None,
                  max_frame: int = framing.DEFAULT_MAX_FRAME, max_buffer: int = DEFAULT_MAX_BUFFER,
                  hard_buffer: int | None = None, max_delay: float | None = DEFAULT_MAX_DELAY,
-                 on_drop: Callable[[Any], Any] | None = None):
+                 on_drop: Callable[[Any], Any] | None = None, data: bool = False):
         self.reader, self.writer, self.transport = reader, writer, writer.transport
         self.name = name
         self.on_frame = on_frame
@@ -114,7 +132,11 @@ class FramedLink:
         self.dropped = self.refused = self.expired = 0
         self._receiver: _Receiver | None = None
         limits = getattr(self.transport, "get_write_buffer_limits", None)
-        self._high = limits()[1] if limits is not None else HIGH_WATER
+        self._high = self._high_max = limits()[1] if limits is not None else HIGH_WATER
+        sock = writer.get_extra_info("socket") if data else None
+        self._fit_sock = sock if (sock is not None and sock.family in (socket.AF_INET, socket.AF_INET6)
+                                  and TCP_NOTSENT_LOWAT is not None) else None
+        self._lowat, self._fitted_at = NOTSENT_LOWAT, float("-inf")
         # frames waiting for the transport to drain: (loop time taken, frame, payload, tag, droppable)
         self._queue: collections.deque[tuple[float, bytes, bytes | memoryview, Any, bool]] = collections.deque()
         self._queued_bytes = 0
@@ -187,6 +209,10 @@ class FramedLink:
         if self.closed.is_set() or t.is_closing():
             self.dropped += 1
             return False
+        if self._fit_sock is not None:
+            now = self._loop.time()
+            if now - self._fitted_at >= FIT_EVERY:
+                self._fit_unsent(now)
         waiting = self.waiting
         if self._queue or waiting > self._high:
             if self._enqueue(frame, payload, n, tag, True, self.max_buffer):
@@ -243,6 +269,52 @@ class FramedLink:
         q.append((now, frame, payload, tag, droppable))
         self._queued_bytes += nbytes
         return True
+
+    def _fit_unsent(self, now: float) -> None:
+        """Let the kernel and the transport each hold what this data link sends in :data:`UNSENT_S`
+        at its delivery rate, within their bounds (module doc); a rate measured while the link had
+        nothing more to send (app-limited) says nothing of the path and is not used."""
+        self._fitted_at = now
+        info = link_sample(self._fit_sock)
+        if info is None or info[1] <= 0 or info[2]:
+            return
+        want = int(info[1] * UNSENT_S)
+        lowat = max(MIN_UNSENT, min(NOTSENT_LOWAT, want))
+        if abs(lowat - self._lowat) > self._lowat // 4 and not self._set_lowat(lowat):
+            return
+        high = max(MIN_UNSENT, min(self._high_max, want))
+        if high != self._high:
+            self.transport.set_write_buffer_limits(high=high)
+            self._high = high
+
+    def _set_lowat(self, lowat: int) -> bool:
+        try:
+            self._fit_sock.setsockopt(socket.IPPROTO_TCP, TCP_NOTSENT_LOWAT, lowat)
+        except OSError:
+            self._fit_sock = None            # closed under us, or a kernel without the option
+            return False
+        self._lowat = lowat
+        return True
+
+    def queued(self, which: Callable[[bytes], bool]) -> list[bytes]:
+        """The headers of the offered frames waiting in the link's queue that ``which`` accepts, in
+        order; nothing is taken."""
+        return [e[1] for e in self._queue if e[4] and which(e[1])]
+
+    def take_back(self, which: Callable[[bytes], bool]) -> list[tuple[bytes, bytes | memoryview, Any]]:
+        """Take the offered frames still waiting in the link's queue whose header ``which`` accepts
+        out of it, unsent and not counted as dropped, in order: ``(frame, payload, tag)`` each, for
+        a sender that sends them elsewhere now. What the cork, the transport or the kernel took has
+        left for good."""
+        taken, kept = [], collections.deque()
+        for entry in self._queue:
+            if entry[4] and which(entry[1]):
+                taken.append((entry[1], entry[2], entry[3]))
+                self._queued_bytes -= len(entry[1]) + len(entry[2])
+            else:
+                kept.append(entry)
+        self._queue = kept
+        return taken
 
     def _droppable_bytes(self) -> int:
         return sum(len(f) + len(p) for _t, f, p, _tag, d in self._queue if d)
@@ -464,7 +536,8 @@ def data_socket(sock: socket.socket) -> None:
     in the kernel (``TCP_NOTSENT_LOWAT``, tcp(7)). Without that bound Linux keeps megabytes
     (``tcp_wmem``) for a peer that is not reading, out of the link's reach: with it the rest
     waits in the link's queue, where the oldest messages give way to the newest (module doc).
+    A backed-up :class:`FramedLink` made with ``data=True`` lowers the bound to its measured rate.
     No-op for other sockets."""
     _nodelay(sock)
-    if sock.family in (socket.AF_INET, socket.AF_INET6) and hasattr(socket, "TCP_NOTSENT_LOWAT"):
-        sock.setsockopt(socket.IPPROTO_TCP, socket.TCP_NOTSENT_LOWAT, NOTSENT_LOWAT)
+    if sock.family in (socket.AF_INET, socket.AF_INET6) and TCP_NOTSENT_LOWAT is not None:
+        sock.setsockopt(socket.IPPROTO_TCP, TCP_NOTSENT_LOWAT, NOTSENT_LOWAT)

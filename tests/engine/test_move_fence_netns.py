@@ -84,6 +84,15 @@ class Bursts:
             assert time.monotonic() < end, f"{len(self.echoes)} echoes of {n}"
             await asyncio.sleep(0.02)
 
+    async def first_echo(self) -> None:
+        """One message a sensor's period until the first echo (the node may subscribe a moment after
+        the interfaces are up)."""
+        end = time.monotonic() + WAIT
+        while not self.echoes:
+            assert time.monotonic() < end, "no echo"
+            await self.send(1)
+            await asyncio.sleep(0.2)                           # the sensor's period
+
     async def all_back(self) -> None:
         """Until every message sent so far came back (or WAIT passes)."""
         end = time.monotonic() + WAIT
@@ -144,11 +153,7 @@ async def test_a_fence_that_cannot_arrive_does_not_hang_the_move(world):
         b = Bursts(r)
         reader = asyncio.create_task(b.read())
         try:
-            end = time.monotonic() + WAIT
-            while not b.echoes:                                # the node may subscribe a moment after
-                assert time.monotonic() < end, "no echo"       # the interfaces are up
-                await b.send(1)
-                await asyncio.sleep(0.2)                       # the sensor's period
+            await b.first_echo()
             # all the cloud sends to the robot's computer at 8 kbit/s (its messages, by the environment's
             # data port or a node's direct link), but the master's control link to its host
             control_port = e.masters[0].rsplit(":", 1)[1]
@@ -176,3 +181,55 @@ async def test_a_fence_that_cannot_arrive_does_not_hang_the_move(world):
         text = resp.read().decode()
     assert any(line.startswith("rce_master_container_move_fence_timeouts_total") and float(line.split()[-1]) >= 1
                for line in text.splitlines()), "the fall-back is counted"
+
+
+def endpoint_metric(e, name: str) -> float:
+    """The cloud robot endpoint's counter ``name`` (its /metrics)."""
+    with urllib.request.urlopen(f"http://127.0.0.1:{e.robot_ready[0]['metrics_port']}/metrics", timeout=10) as resp:
+        return float(next(x for x in resp.read().decode().splitlines() if x.startswith(name + " ")).split()[1])
+
+
+async def test_what_had_not_left_for_the_old_copy_goes_to_the_new_one(world):
+    """A stream the 1 Mbit/s link to the robot's computer cannot carry (8 kB every 40 ms, 1.6 Mbit/s)
+    backs up in the endpoint's link to the container there; when the container moves to the cloud,
+    what waits in that link's queue goes to the new copy instead. Every message is echoed once, or
+    was dropped by the endpoint for waiting past its 1 s and counted: none is lost by the move."""
+    lab, link, e = world
+    lab.shape(link, "a", "1mbit", queue=40, one_segment=True)     # the cloud -> the robot's computer
+    lab.shape(link, "b", "100mbit")
+    async with RawRobot(e.master_url, ROBOT, query="&maxLag=0") as r:
+        await _echo_container(r, "unsent", "Converter", {"placement": "robot", "robot": ROBOT})
+        b = Bursts(r)
+        reader = asyncio.create_task(b.read())
+        try:
+            await b.first_echo()
+            await b.all_back()
+            first, dropped0 = b.sent, endpoint_metric(e, "rce_robot_dataplane_dropped")
+            moved0 = endpoint_metric(e, "rce_robot_dataplane_moved_unsent")
+
+            async def stream() -> None:
+                while True:
+                    await b.send(1)
+                    await asyncio.sleep(0.04)
+            sender = asyncio.create_task(stream())
+            await asyncio.sleep(1.5)                           # the link backs up
+            moved = await move(e, "unsent", "fc1")
+            assert host_of(e, "unsent") == "fc1" and moved["fenced"] is True, moved
+            await asyncio.sleep(0.5)
+            sender.cancel()
+
+            def accounted() -> tuple[int, float]:
+                return (len({n for n in b.echoes if n >= first}),
+                        endpoint_metric(e, "rce_robot_dataplane_dropped") - dropped0)
+            end = time.monotonic() + WAIT                      # each echoed, or dropped and counted
+            while sum(await asyncio.to_thread(accounted)) < b.sent - first and time.monotonic() < end:
+                await asyncio.sleep(0.1)
+            _, dropped = await asyncio.to_thread(accounted)
+            taken = endpoint_metric(e, "rce_robot_dataplane_moved_unsent") - moved0
+        finally:
+            reader.cancel()
+    echoed = [n for n in b.echoes if n >= first]
+    assert len(echoed) == len(set(echoed)), "nothing echoed twice"
+    assert taken > 0, "messages waiting for the old copy's link went to the new copy"
+    assert b.sent - first == len(echoed) + dropped, \
+        f"{b.sent - first} sent, {len(echoed)} echoed, {dropped:.0f} dropped and counted: the rest was lost"
