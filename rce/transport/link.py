@@ -81,10 +81,10 @@ HIGH_WATER = 64 * 1024               # bytes: a transport's high-water mark when
 NOTSENT_LOWAT = 1024 * 1024           # bytes a data link's socket keeps unsent in the kernel at most (data_socket)
 TCP_NOTSENT_LOWAT = getattr(socket, "TCP_NOTSENT_LOWAT", None)   # None: a platform without it
 CORK_MAX = 256 * 1024                # bytes a link's cork holds within one loop pass before they go out (module doc)
-UNSENT_S = 0.05                      # s of sending, at a backed-up data link's measured rate, its kernel and its
-                                     # transport may each hold unsent (module doc)
+UNSENT_S = 0.05                      # s of sending, at a data link's measured rate, its kernel and its transport
+                                     # may each hold unsent (module doc)
 MIN_UNSENT = 16 * 1024               # bytes they may hold whatever the rate
-FIT_EVERY = 0.1                      # s between looks at a backed-up data link's delivery rate
+FIT_EVERY = 0.1                      # s between looks at a sending data link's delivery rate
 
 Frame = dict | framing.DataFrame
 
