@@ -5,14 +5,14 @@
 
 Subscribes to SCAN (``sensor_msgs/LaserScan``) and, for each scan, builds a local costmap as a
 navigation stack's obstacle layer does, in numpy: every finite return is marked on a ``CELLS`` x
-``CELLS`` grid (5 cm cells) and the space along its beam is cleared (each beam sampled at every
-of ``SAMPLES`` points, a block of beams at a time), then the obstacles are inflated by ``PASSES`` passes of a 3 x 3 max filter with
-a cost decay. The work grows with the number of finite returns (a cluttered scene costs more than
-an empty one) and with ``PASSES``. Each result is published on OUT as a
-``geometry_msgs/PointStamped`` whose header is the scan's (its ``seq`` and ``stamp``, so the
+``CELLS`` grid (5 cm cells) and the space along its beam is cleared (each beam sampled at every of
+``SAMPLES`` points, a block of beams at a time), then the obstacles are inflated by ``PASSES``
+passes of a 3 x 3 max filter with a cost decay. The work grows with the number of finite returns (a
+cluttered scene costs more than an empty one) and with ``PASSES``. Each result is published on OUT
+as a ``geometry_msgs/PointStamped`` whose header is the scan's (its ``seq`` and ``stamp``, so the
 sender matches results to scans and measures the latency end to end; its ``frame_id`` is
-``dropped=N``: the scans its subscriber's queue of ``QUEUE`` dropped so far, oldest first); its point holds the lethal
-cells (x), the inflated cells (y) and the CPU ms the scan took (z)."""
+``dropped=N``: the scans its subscriber's queue of ``QUEUE`` dropped so far, oldest first); its
+point holds the lethal cells (x), the inflated cells (y) and the CPU ms the scan took (z)."""
 import argparse
 import time
 
