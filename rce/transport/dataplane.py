@@ -50,7 +50,10 @@ pointed at a new address (:meth:`DataPlane.fence`), this plane first sends ``{"f
 "id": f}`` on every path that carried ``src -> dst`` to the old copy (its dialled link to the old
 address, and each accepted link of ``dst``'s claim set), after the last message it sent there; the
 old copy's plane counts each fence it gets (:meth:`DataPlane.fence_arrived`; a node's direct link
-reports the fences it gets the same way), so it knows when nothing more will come. Before the old
+reports the fences it gets the same way), so it knows when nothing more will come. What this plane
+had sent to the old copy but still holds (a link's backlog or queue, behind a thin link) it first
+takes back and sends to the new address, ahead of what follows (:meth:`DataPlane.take_unsent`): the
+old copy never gets it, the new one gets it once. Before the old
 copy goes, :meth:`DataPlane.flush` sends ``{"eos": k}`` on its links to its peers and waits for
 each peer's ``{"eos_ack": k}``, which the peer sends once it has handed on every frame before it.
 
