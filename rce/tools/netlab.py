@@ -7,6 +7,8 @@ on exit, also after a failure, and reaps when a killed run left them (docs/testi
         lab.route("l1", "default", up.a_ip)
         subprocess.Popen(lab.wrap("l1", ["rce-ros", ...]))
         lab.set_up(up, False, side="b")                # l1's end down: packets into it are lost silently
+        far = lab.link(None, "f", 2, delay=True)       # with a delay line in the middle (rce.tools.delayline)
+        lab.set_delay(far, 50)                         # 50 ms each way from now on
 
 Addresses are ``10.S.N.1`` (side a) and ``10.S.N.2`` (side b) for link number N, with S the first of
 :data:`SUBNETS` that no address of the root namespace uses and no other lab holds (so that labs of runs at
@@ -18,7 +20,10 @@ import fcntl
 import os
 import re
 import subprocess
+import sys
 from dataclasses import dataclass
+
+from rce.tools import delayline
 
 SUBNETS = range(201, 250)   # second octets a NetLab may give its addresses
 LOCK_DIR = "/run/rce-netlab"   # where labs hold their subnets (flock)
@@ -33,6 +38,7 @@ class Link:
     b_dev: str
     a_ip: str
     b_ip: str
+    control: str | None = None     # the control socket of the delay line in its middle, if it has one
 
 
 class NetLab:
@@ -44,6 +50,7 @@ class NetLab:
         self.links: list[Link] = []
         self.subnet = SUBNETS[0]
         self._lock: int | None = None          # the fd holding this lab's subnet (flock), closed with it
+        self._delay_lines: list[subprocess.Popen] = []
 
     def __enter__(self) -> "NetLab":
         self._reap_stale()
@@ -77,6 +84,15 @@ class NetLab:
     def close(self) -> None:
         """Delete every link's root end and every namespace made (the kernel may tear a namespace's devices
         down later, so the root ends are deleted here rather than left to it)."""
+        for p in self._delay_lines:
+            p.terminate()
+        for p in self._delay_lines:
+            try:
+                p.wait(5)
+            except subprocess.TimeoutExpired:
+                p.kill()
+                p.wait()
+        self._delay_lines.clear()
         for link in self.links:
             if link.a is None:
                 subprocess.run(["ip", "link", "del", link.a_dev], capture_output=True)
@@ -120,21 +136,61 @@ class NetLab:
         """The full name of namespace ``name`` (None: the root namespace)."""
         return None if name is None else f"{self.prefix}-{name}"
 
-    def link(self, a: str | None, b: str, n: int) -> Link:
+    def link(self, a: str | None, b: str, n: int, delay: bool = False) -> Link:
         """A veth pair between namespaces ``a`` (None: root) and ``b`` (short names, made already) with
-        addresses ``10.S.n.1/30`` and ``.2/30`` (S: :attr:`subnet`), both ends up."""
+        addresses ``10.S.n.1/30`` and ``.2/30`` (S: :attr:`subnet`), both ends up.
+
+        ``delay``: the link is two veth pairs bridged by a delay line (:mod:`rce.tools.delayline`) in a
+        namespace of its own (``dlN``), which holds every frame :meth:`set_delay` ms each way (0 until
+        then); the ends, their addresses and their shaping (:meth:`shape`) are as without it. Raises
+        RuntimeError when the delay line does not start."""
         a_dev, b_dev = f"v{os.getpid()}a{n}", f"v{os.getpid()}b{n}"
         fa, fb = self.full(a), self.full(b)
-        self.ip("link", "add", a_dev, "type", "veth", "peer", "name", b_dev)
-        self.ip("link", "set", b_dev, "netns", fb)
-        if fa is not None:
-            self.ip("link", "set", a_dev, "netns", fa)
-        link = Link(fa, fb, a_dev, b_dev, f"10.{self.subnet}.{n}.1", f"10.{self.subnet}.{n}.2")
+        control = None
+        if not delay:
+            self._veth(a_dev, fa, b_dev, fb)
+        else:
+            mid = self.namespace(f"dl{n}")
+            m_a, m_b = f"v{os.getpid()}p{n}", f"v{os.getpid()}q{n}"
+            self._veth(a_dev, fa, m_a, mid)
+            self._veth(m_b, mid, b_dev, fb)
+            for dev in (m_a, m_b):
+                self.ip("-n", mid, "link", "set", dev, "up")
+            control = os.path.join(LOCK_DIR, f"{mid}.sock")
+            p = subprocess.Popen(self.wrap(f"dl{n}", [sys.executable, "-m", "rce.tools.delayline", m_a, m_b,
+                                                        "--control", control]),
+                                 stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+            self._delay_lines.append(p)
+            if p.stdout.readline().strip() != "ready":
+                p.kill()
+                raise RuntimeError(f"delay line of link {n} did not start: {p.stderr.read()[-1000:]}")
+        link = Link(fa, fb, a_dev, b_dev, f"10.{self.subnet}.{n}.1", f"10.{self.subnet}.{n}.2", control)
         for ns, dev, addr in ((fa, a_dev, link.a_ip), (fb, b_dev, link.b_ip)):
             self.ip(*self._in(ns), "addr", "add", f"{addr}/30", "dev", dev)
             self.ip(*self._in(ns), "link", "set", dev, "up")
         self.links.append(link)
         return link
+
+    def _veth(self, a_dev: str, a_ns: str | None, b_dev: str, b_ns: str | None) -> None:
+        """A veth pair ``a_dev`` (in ``a_ns``, None: root) <-> ``b_dev`` (in ``b_ns``)."""
+        self.ip("link", "add", a_dev, "type", "veth", "peer", "name", b_dev)
+        for dev, ns in ((b_dev, b_ns), (a_dev, a_ns)):
+            if ns is not None:
+                self.ip("link", "set", dev, "netns", ns)
+
+    def set_delay(self, link: Link, ms: float) -> dict:
+        """Set the delay line of ``link`` (made with ``delay=True``) to ``ms`` ms each way; returns its
+        counters ``{"delay_ms", "forwarded", "dropped", "held"}``. Raises ValueError for a link without
+        a delay line, RuntimeError when the line refuses the value."""
+        if link.control is None:
+            raise ValueError(f"link {link.a_dev} <-> {link.b_dev} has no delay line (made without delay=True)")
+        return delayline.request(link.control, f"delay {ms:g}")
+
+    def delay_stats(self, link: Link) -> dict:
+        """The counters of ``link``'s delay line: ``{"delay_ms", "forwarded", "dropped", "held"}``."""
+        if link.control is None:
+            raise ValueError(f"link {link.a_dev} <-> {link.b_dev} has no delay line (made without delay=True)")
+        return delayline.request(link.control, "stats")
 
     @staticmethod
     def _in(ns: str | None) -> tuple[str, ...]:
