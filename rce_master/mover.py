@@ -4,7 +4,9 @@
    with its parameters, its container-side interfaces (the same iids) and its nodes; the move
    waits until its nodes are up: every topic a container-side ``PublisherInterface`` feeds has a
    node subscribed, every service a ``ServiceClientInterface`` calls is provided (at most
-   :data:`READY_TIMEOUT` s). Its interfaces learn their peers, so its results can go out.
+   :data:`READY_TIMEOUT` s). Meanwhile its interfaces learn their peers, so its results can go out
+   (no input reaches it before the switch). Each step's requests go at once: a step costs one
+   round trip to the new host, which may be a robot's computer across a slow link.
 2. **Switch**, in one step per connection: the master's state names the new copy, and each peer
    end is told ``connect`` with the new data address, which replaces the old one
    (:meth:`rce.protocol.interfaces.Interface.connect`): from that message on, the peer sends to the
@@ -62,7 +64,8 @@ class MoveResult:
     old copy drained (and handed its state over); ``states``: nodes that took their old state;
     ``fenced``: the old copy went only after every fence, its nodes and its peers' acknowledgements
     (False: after :data:`DRAIN_MAX` s, or a peer could not be told; ``unfenced`` says what was missing);
-    ``make_steps``: s each step of the make took (``create``, ``interfaces``, ``nodes``, ``ready``, ``wired``)."""
+    ``make_steps``: s each step of the make took (``create``, ``interfaces``, ``nodes``, then ``ready`` and
+    ``wired``, which overlap: each counted from the end of ``nodes``)."""
     user: str
     ctag: str
     from_tid: int
@@ -129,22 +132,25 @@ class Mover:
             handoff = bool(hooks) or bool(c.data.get("ordered_moves"))     # the new copy holds its inputs
             answer = await self.control.create_container(new, handoff=handoff)
             step("create")
-            for name, value in self.state.params_of(c):
-                await self.control.host_call(new, "set_param", name=name, value=value)
-            for rec in ifaces:
-                await self.control.host_call(new, "add_interface", iid=rec.iid, tag=rec.tag, itype=rec.itype,
-                                             cls=rec.cls, addr=rec.addr)
+            # each step's requests go at once (a round trip a step, not one a request: the new host may be
+            # a robot's computer across a link of 100 ms), and a step begins once the last has its answers
+            await asyncio.gather(
+                *(self.control.host_call(new, "set_param", name=name, value=value)
+                  for name, value in self.state.params_of(c)),
+                *(self.control.host_call(new, "add_interface", iid=rec.iid, tag=rec.tag, itype=rec.itype,
+                                         cls=rec.cls, addr=rec.addr) for rec in ifaces))
             step("interfaces")
-            for n in self.state.nodes_of(c):
-                await self.control.start_node(new, n.ntag, n.spec)
+            await asyncio.gather(*(self.control.start_node(new, n.ntag, n.spec) for n in self.state.nodes_of(c)))
             step("nodes")
-            await self._ready(new, ifaces)
-            step("ready")
             self._still(c, old_cid)
-            for me, peer in conns:               # its results can go out: the new copy knows its peers
-                await self.control.host_call(new, "connect", **self.control.connect_args(
-                    me, peer.iid, self.state.data_addr(peer)))
-            step("wired")
+
+            async def timed(name: str, work) -> None:
+                await work
+                steps[name] = round(time.monotonic() - mark[0], 3)
+            # while its nodes come up, the new copy learns its peers, so that its results can go out
+            await asyncio.gather(timed("ready", self._ready(new, ifaces)), timed("wired", asyncio.gather(*(
+                self.control.host_call(new, "connect", **self.control.connect_args(
+                    me, peer.iid, self.state.data_addr(peer))) for me, peer in conns))))
             self._still(c, old_cid)
         except (RCEError, MoveFailed) as e:
             self.failed += 1
@@ -157,15 +163,18 @@ class Mover:
         self.state.container_moved(c, tid, new.cid, addr, answer.get("sandbox", ""))
         expect: list[list[int]] = []             # [src, dst, fences] the old copy is to get
         unreached: list[str] = []
-        for me, peer in conns:                   # the switch: each peer sends to the new copy from now on
-            try:
-                r = await self.control.endpoint_call(peer, "connect", fence=new.cid,
-                                                     **self.control.connect_args(peer, me.iid, addr))
-            except RCEError as e:                # it may still send to the old copy: nothing fences that
+        # the switch: each peer sends to the new copy from now on (all told at once)
+        answers = await asyncio.gather(*(self.control.endpoint_call(peer, "connect", fence=new.cid,
+                                                                    **self.control.connect_args(peer, me.iid, addr))
+                                         for me, peer in conns), return_exceptions=True)
+        for (me, peer), r in zip(conns, answers, strict=True):
+            if isinstance(r, RCEError):          # it may still send to the old copy: nothing fences that
                 log.warning("a peer of a moved container was not switched", user=c.user, ctag=c.ctag,
-                            peer=peer.tag, reason=str(e))
+                            peer=peer.tag, reason=str(r))
                 unreached.append(peer.tag)
                 continue
+            if isinstance(r, BaseException):
+                raise r
             n = int((r or {}).get("fenced") or 0) if isinstance(r, dict) else 0
             if n:
                 expect.append([peer.iid, me.iid, n])
