@@ -256,6 +256,7 @@ class RobotEndpoint:
                              lambda: [s for s in self.plane.link_sockets() if crosses_uplink(s)])
         self._link_task: asyncio.Task | None = None
         self._probe_task: asyncio.Task | None = None
+        self._ping_task: asyncio.Task | None = None
         self._probed_at = float("-inf")   # monotonic s of the last uplink probe
         self._probe_ok = True             # the master answers link probes
 
@@ -307,6 +308,10 @@ class RobotEndpoint:
                         and (self._probe_task is None or self._probe_task.done())):
                     self._probed_at = loop.time()
                     self._probe_task = asyncio.create_task(self._probe(), name="uplink probe")
+                # its round trip: a ping a look, but not behind a probe (it would time the probe's bytes)
+                if (up is not None and self.namespaces and (self._probe_task is None or self._probe_task.done())
+                        and (self._ping_task is None or self._ping_task.done())):
+                    self._ping_task = asyncio.create_task(self._ping(), name="uplink ping")
                 robots = [(u, r, up) for (u, r) in self.namespaces]
             else:
                 robots = [(u, r, websocket_link(ns.ws)) for (u, r), ns in self.namespaces.items()]
@@ -339,6 +344,21 @@ class RobotEndpoint:
         except RCEError:
             return                        # no master now, or a link too slow for the timeout: no sample
         self.uplink.probed(loop.time(), link_report.probe_rate(done["first"], done["second"]))
+
+    async def _ping(self) -> None:
+        """Time a ``ping`` request to the master (its round trip: :meth:`Uplink.pinged
+        <rce_robot.link_report.Uplink.pinged>`); no sample when it fails or takes over
+        :data:`PROBE_TIMEOUT` s."""
+        peer = self.master.peer if self.master is not None else None
+        if peer is None:
+            return                        # no master now: nothing to time
+        loop = asyncio.get_running_loop()
+        t0 = loop.time()
+        try:
+            await peer.request("ping", {}, PROBE_TIMEOUT)
+        except RCEError:
+            return
+        self.uplink.pinged(loop.time(), loop.time() - t0)
 
     def _master_socket(self) -> Any:
         peer = self.master.peer if self.master is not None else None

@@ -8,7 +8,9 @@ Where the link is measured depends on where the robot endpoint stands:
 - a shared endpoint (cloud, edge): on the robot's own websocket, which crosses the robot's link;
 - an endpoint on the robot's own computer (``rce-robot --zone robot:ID``): the robot's websocket is
   local, and the robot's link is the endpoint's uplink (:class:`Uplink`): the round trip of its
-  control link to the master, and the delivery rate of its data links to the other hosts whenever
+  control link to the master (a ``ping`` request every look, the least of the last
+  :data:`PING_KEEP_S` s: the kernel's smoothed round trip of a link that carries little takes
+  seconds to follow a link that fell), and the delivery rate of its data links to the other hosts whenever
   they carried more than they were app-limited by. A data link that has held bytes it could not
   send at every look for :data:`BACKLOG_S` s is backed up: what the uplink carried meanwhile is its
   rate (a link that falls is seen within that time). An idle or app-limited link says nothing of its
@@ -26,9 +28,9 @@ from typing import Any
 
 from rce.transport.lane_socket import link_backlog, link_info, link_sample, socket_of
 
-__all__ = ["BACKLOG_S", "BATTERY_STEP", "CHANGE", "EVERY", "PROBE_BYTES", "PROBE_DRAIN_BYTES", "PROBE_EVERY",
-           "PROBE_KEEP_S", "REFRESH", "RWND_SHARE", "LinkReports", "Uplink", "crosses_uplink", "probe_rate",
-           "websocket_link"]
+__all__ = ["BACKLOG_S", "BATTERY_STEP", "CHANGE", "EVERY", "PING_KEEP_S", "PROBE_BYTES", "PROBE_DRAIN_BYTES",
+           "PROBE_EVERY", "PROBE_KEEP_S", "REFRESH", "RWND_SHARE", "LinkReports", "Uplink", "crosses_uplink",
+           "probe_rate", "websocket_link"]
 
 EVERY = 0.25      # s between looks at the robots' sockets
 CHANGE = 0.2      # a report when the round trip or the rate moved by this share
@@ -40,6 +42,7 @@ PROBE_EVERY = 1.0      # s between probes (48 kB: ~380 kbit/s of the link's time
 PROBE_KEEP_S = 1.25    # s of measurements the rate is the fastest of (each errs only low)
 BACKLOG_S = 0.5        # s a data link holds unsent bytes at every look before its throughput is the link's rate
 RWND_SHARE = 0.1       # share of that time it may have waited for its reader's window (more: the reader's rate)
+PING_KEEP_S = 0.6      # s of pings the round trip is the least of (two or three: one that waited is not the link)
 
 
 class LinkReports:
@@ -99,6 +102,14 @@ class Uplink:
     a measurement that errs neither low nor high. It stands alone: what was measured before is
     forgotten (a link that falls is seen within :data:`BACKLOG_S` s and a look).
 
+    **Round trip**: the least of the pings of the last :data:`PING_KEEP_S` s (:meth:`pinged`: a
+    request to the master and its answer, every look while no probe is on the link), else the
+    kernel's smoothed round trip of the link to the master (``tcpi_rtt``). A ping measures the round
+    trip a container's messages would see now; the kernel's estimate moves an eighth of the way to
+    each new sample, and a control link that carries a keepalive a second takes seconds to show a
+    link whose delay grew tenfold. The least of two or three pings is not fooled by one that waited
+    behind a burst, and a link that fell is seen within :data:`PING_KEEP_S` s.
+
     Otherwise the rate is the fastest of what was measured in the last :data:`PROBE_KEEP_S` s: the
     delivery rates of busy data links and the endpoint's probes (:meth:`probed`, every
     :data:`PROBE_EVERY` s). Each of them errs only low (a data link's sample taken right after it
@@ -112,6 +123,7 @@ class Uplink:
         self.rate = 0.0              # bytes/s: the last rate measured (0: never measured)
         self.samples: list[tuple[float, float]] = []    # (monotonic s, bytes/s) of the last PROBE_KEEP_S s
         self.backed_up = 0           # looks whose rate was a backed-up link's (counter)
+        self.pings: list[tuple[float, float]] = []      # (monotonic s, round trip s) of the last PING_KEEP_S s
         self.waiting = False         # a data link held bytes it could not send yet at the last look
         # per socket (its id): looks (monotonic s, bytes acked, bytes not sent, us held by the reader's window)
         self._looks: dict[int, list[tuple[float, int, int, int]]] = {}
@@ -130,7 +142,13 @@ class Uplink:
             self.samples, self.rate = [(now, full)], full
         else:
             self._take(now, rates)
-        return info[0], self.rate
+        self.pings = [x for x in self.pings if now - x[0] <= PING_KEEP_S]
+        return (min(r for _, r in self.pings) if self.pings else info[0]), self.rate
+
+    def pinged(self, now: float, rtt_s: float) -> None:
+        """A ping's round trip ``rtt_s`` (s), answered at monotonic ``now`` s (class doc)."""
+        if rtt_s >= 0:
+            self.pings.append((now, rtt_s))
 
     def _backlog(self, now: float, control: Any, data: list[Any]) -> float | None:
         """The uplink's rate (bytes/s) if a data link was backed up over the last :data:`BACKLOG_S` s

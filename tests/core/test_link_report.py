@@ -12,8 +12,8 @@ import time
 from rce.transport.lane_socket import SO_MAX_PACING_RATE, link_sample
 import pytest
 
-from rce_robot.link_report import (BACKLOG_S, CHANGE, EVERY, PROBE_BYTES, PROBE_EVERY, PROBE_KEEP_S, LinkReports,
-                                   Uplink, crosses_uplink, probe_rate)
+from rce_robot.link_report import (BACKLOG_S, CHANGE, EVERY, PING_KEEP_S, PROBE_BYTES, PROBE_EVERY, PROBE_KEEP_S,
+                                   LinkReports, Uplink, crosses_uplink, probe_rate)
 
 
 def busy_pair() -> tuple[socket.socket, socket.socket]:
@@ -149,3 +149,24 @@ def test_a_backed_up_link_is_measured_at_once_and_a_slow_reader_is_not_a_thin_li
     finally:
         c.close()
         d.close()
+
+
+def test_the_uplinks_round_trip_is_its_pings_least_of_late_and_the_kernels_without_them():
+    a, b = busy_pair()
+    try:
+        up = Uplink(lambda: a, lambda: [])
+        kernel_rtt = link_sample(a)[0]
+        assert up.measure(10.0)[0] == kernel_rtt, "no ping yet: the kernel's smoothed round trip"
+        up.pinged(10.0, 0.010)
+        assert up.measure(10.1)[0] == 0.010
+        up.pinged(10.25, 0.105)                         # the link's delay grew: one ping is not the link yet
+        assert up.measure(10.3)[0] == 0.010
+        up.pinged(10.5, 0.400)                          # one that waited behind a burst
+        up.pinged(10.75, 0.102)
+        assert up.measure(10.8)[0] == 0.102, "once the fast one is older than PING_KEEP_S, the link is slow"
+        up.pinged(11.0, 0.011)                          # the link is back: the first fast ping says so
+        assert up.measure(11.0)[0] == 0.011
+        assert up.measure(11.0 + PING_KEEP_S + 0.1)[0] == kernel_rtt, "pings that old say nothing"
+    finally:
+        a.close()
+        b.close()
