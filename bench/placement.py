@@ -15,13 +15,16 @@ the robot's websocket, and a container on the robot's computer is reached throug
 messages cross the link twice).
 
 The link: each end shapes what it sends with HTB (one class, a ``pfifo`` of :data:`QUEUE` packets;
-with ``--dscp`` an EF class for the engine's control links served first beside it):
-:data:`GOOD_RATE` while good, :data:`BAD_RATE` while bad. This kernel has no ``netem``: no delay is
-added; the bad link's round trip is its queue's (a saturated 1 Mbit/s FIFO of :data:`QUEUE` packets
-holds up to ~0.5 s), which the kernel's TCP_INFO shows the placer (module ``rce_robot.link_report``).
+with ``--dscp`` an EF class for the engine's control links served first beside it), and a delay line
+in the middle (``rce.tools.delayline``: this kernel has no ``netem``) holds every frame a one-way
+delay each way: :data:`GOOD_RATE` and :data:`GOOD_DELAY_MS` ms while good, :data:`BAD_RATE` and
+:data:`BAD_DELAY_MS` ms while bad (a 100 ms round trip: the cloud cannot answer within the deadline
+however fast it computes). The kernel's TCP_INFO shows the placer the round trip and the rate (module
+``rce_robot.link_report``).
 
 The node (``bench/packages/benchcostmap/costmap.py``): a costmap from each ``sensor_msgs/LaserScan``
-of :data:`SCAN_POINTS` returns (~40 kB, 10 Hz: 3.2 Mbit/s, which 1 Mbit/s cannot carry), answered
+of :data:`SCAN_POINTS` beams (a 270-degree scanner at 0.25 degrees, ~4.4 kB, 10 Hz: 0.35 Mbit/s,
+which the bad link carries: the cloud's results keep coming there, late), answered
 with a ``geometry_msgs/PointStamped`` carrying the scan's header; deadline :data:`DEADLINE_MS` ms
 from the scan's stamp to its result back at the robot. Its work grows with the scan's finite returns:
 most scans are sparse (:data:`LIGHT_FRACTION` of the beams return), one in :data:`HEAVY_EVERY` is
@@ -29,9 +32,9 @@ cluttered (every beam returns, ~10x the work), so that the robot's capped CPU me
 the sparse scans and misses it on the cluttered ones.
 
 Script (``--phase-s`` s per phase, default 30): good link (the node belongs in the cloud); the link
-falls to :data:`BAD_RATE` (it belongs on the robot); the link returns; the robot's battery falls to
-:data:`BATTERY_LOW_PCT` % (``POST /api/robots/{user}/{robot}/battery``: saving the robot's energy
-wins). The same script three ways: ``cloud`` (containerData ``placement: cloud``), ``robot``
+falls to :data:`BAD_RATE` and :data:`BAD_DELAY_MS` ms (it belongs on the robot); the link returns;
+the robot's battery falls to :data:`BATTERY_LOW_PCT` % (``POST /api/robots/{user}/{robot}/battery``:
+saving the robot's energy wins). The same script three ways: ``cloud`` (containerData ``placement: cloud``), ``robot``
 (``placement: robot``), ``placer`` (``placement: auto`` with ``deadline_ms``, ``robot``,
 ``consumes``).
 
@@ -45,8 +48,11 @@ the placer's word as ``GET /api/placement`` gave it, sampled every :data:`POLL` 
 ``bench/results/placement.json`` and a PNG timeline beside it::
 
     sudo .venv/bin/python bench/placement.py [--phase-s 30] [--systems cloud,robot,placer]
-                                             [--endpoint robot|cloud] [--bad-rate 1mbit] [--dscp]
-                                             [--ordered-moves] [--out FILE]
+                                             [--endpoint robot|cloud] [--bad-rate 1mbit] [--bad-delay-ms 50]
+                                             [--scan-points 1081] [--dscp] [--ordered-moves] [--out FILE]
+
+``--scan-points 10000 --bad-delay-ms 0`` is the link starved by rate instead (a 40 kB scan, 3.2 Mbit/s
+into 1 Mbit/s, no delay): there the cloud's results stop rather than come late.
 """
 from __future__ import annotations
 
@@ -72,7 +78,7 @@ ROBOT = "rover"                 # the robot's ID (its computer's zone: robot:rov
 CTAG = "costmap"
 RATE_HZ = 10.0                  # scans per second
 DEADLINE_MS = 100.0             # from a scan's stamp to its result back at the robot
-SCAN_POINTS = 10_000            # returns per scan: 40 kB of float32 ranges
+SCAN_POINTS = 1_081             # beams per scan (270 degrees at 0.25 degrees): 4.3 kB of float32 ranges
 LIGHT_FRACTION = 0.1            # share of a sparse scan's beams that return
 HEAVY_EVERY = 10                # one scan in this many is cluttered (every beam returns)
 CELLS, PASSES = 160, 4          # the node's grid (cells a side) and inflation passes
@@ -84,6 +90,7 @@ CPU_PERIOD_US = 10_000          # the cap's period: short beside the scans' 100 
                                 # slow and not bursty (a 100 ms period locks in phase with the 10 Hz scans: a
                                 # cluttered scan met or missed its deadline by where in the period it came)
 GOOD_RATE, BAD_RATE = "100mbit", "1mbit"
+GOOD_DELAY_MS, BAD_DELAY_MS = 5.0, 50.0     # one way, each way: a 10 ms round trip to a nearby cloud, then 100 ms
 QUEUE = 40                      # packets in each end's FIFO (bounded: ~0.5 s at 1 Mbit/s)
 BATTERY_START_PCT, BATTERY_LOW_PCT = 80.0, 12.0
 PHASES = ("good link", "link 1 Mbit/s", "link back", "battery low")
@@ -120,55 +127,62 @@ def scan_ranges(points: int, fraction: float):
     return ranges
 
 
-def costmap_ms(fraction: float, samples: int, clock=time.process_time) -> float:
-    """ms by ``clock`` (median of 7) the node's own ``costmap`` takes here on a scan of which
-    ``fraction`` of the beams return, each cleared at ``samples`` points."""
+def costmap_ms(points: int, fraction: float, samples: int, clock=time.process_time) -> float:
+    """ms by ``clock`` (median of 7) the node's own ``costmap`` takes here on a scan of ``points``
+    beams of which ``fraction`` return, each cleared at ``samples`` points."""
     import numpy as np
     sys.path.insert(0, str(BENCH / "packages" / "benchcostmap"))
     from costmap import costmap
-    ranges, ts = scan_ranges(SCAN_POINTS, fraction), []
+    ranges, ts = scan_ranges(points, fraction), []
     for _ in range(7):
         t0 = clock()
-        costmap(ranges, -np.pi, 2 * np.pi / SCAN_POINTS, CELLS, PASSES, samples)
+        costmap(ranges, -np.pi, 2 * np.pi / points, CELLS, PASSES, samples)
         ts.append((clock() - t0) * 1e3)
     return sorted(ts)[3]
 
 
-def calibrate(target_ms: float) -> dict:
-    """The node's ``--samples`` for which a cluttered scan takes ``target_ms`` ms of wall time where
+def calibrate(target_ms: float, points: int = SCAN_POINTS) -> dict:
+    """The node's ``--samples`` for which a cluttered scan of ``points`` beams takes ``target_ms`` ms of wall time where
     this process runs (inside the robot computer's cgroup: :func:`calibrate_on_robot`), by
     :func:`costmap_ms` and secant steps from two sample counts (the work is about linear in them; up
     to 6 steps, until within 5 % of the target: on a shared machine one timing may be off by a third).
     Returns ``{samples, node_args, heavy_ms, light_ms}`` (wall ms, at those samples)."""
     clock = time.perf_counter
-    a, b = (100, costmap_ms(1.0, 100, clock)), (300, costmap_ms(1.0, 300, clock))
+    first = max(20, 1_000_000 // points)              # ~the same work a scan whatever its beams
+    a, b = (first, costmap_ms(points, 1.0, first, clock)), (3 * first, costmap_ms(points, 1.0, 3 * first, clock))
     for _ in range(6):                   # secant steps towards target_ms
         if abs(b[1] - target_ms) <= 0.05 * target_ms:
             break
         slope = (b[1] - a[1]) / (b[0] - a[0])
-        samples = max(20, min(1000, int(round(b[0] + (target_ms - b[1]) / slope)) if slope > 0 else 300))
+        samples = max(20, min(100 * first, int(round(b[0] + (target_ms - b[1]) / slope)) if slope > 0 else 3 * first))
         if samples in (a[0], b[0]):
             break
-        a, b = b, (samples, costmap_ms(1.0, samples, clock))
+        a, b = b, (samples, costmap_ms(points, 1.0, samples, clock))
     samples, heavy_ms = b
     return {"samples": samples, "node_args": f"{NODE_ARGS} --samples {samples}", "heavy_ms": round(heavy_ms, 2),
-            "light_ms": round(costmap_ms(LIGHT_FRACTION, samples, clock), 2)}
+            "light_ms": round(costmap_ms(points, LIGHT_FRACTION, samples, clock), 2)}
 
 
-def calibrate_on_robot(cap: CpuCap, target_ms: float = ROBOT_HEAVY_MS) -> dict:
+def calibrate_on_robot(cap: CpuCap, target_ms: float = ROBOT_HEAVY_MS, points: int = SCAN_POINTS) -> dict:
     """The node's work set on the robot's computer itself: :func:`calibrate` run inside ``cap`` by the
     wall clock, so that a cluttered scan takes ``target_ms`` there (its cap's throttling and
     whatever else loads this machine at the time included), then timed here, uncapped, in CPU time
     for the record. Returns ``{samples, node_args, robot_heavy_ms, robot_light_ms, heavy_ms,
     light_ms}``. Raises RuntimeError when the calibration in the cgroup fails."""
     out = subprocess.run(cap.wrap([sys.executable, str(Path(__file__).resolve()), "--role", "calibrate",
-                                   "--heavy-ms", str(target_ms)]), capture_output=True, text=True, timeout=300)
+                                   "--heavy-ms", str(target_ms), "--scan-points", str(points)]),
+                       capture_output=True, text=True, timeout=300)
     if out.returncode != 0:
         raise RuntimeError(f"placement: calibration on the robot's computer failed: {out.stderr.strip()[-500:]}")
     robot = json.loads(out.stdout.strip().splitlines()[-1])
     return {"samples": robot["samples"], "node_args": robot["node_args"], "robot_heavy_ms": robot["heavy_ms"],
-            "robot_light_ms": robot["light_ms"], "heavy_ms": round(costmap_ms(1.0, robot["samples"]), 2),
-            "light_ms": round(costmap_ms(LIGHT_FRACTION, robot["samples"]), 2)}
+            "robot_light_ms": robot["light_ms"], "heavy_ms": round(costmap_ms(points, 1.0, robot["samples"]), 2),
+            "light_ms": round(costmap_ms(points, LIGHT_FRACTION, robot["samples"]), 2)}
+
+
+def drain_s(phase_s: float) -> float:
+    """s the robot waits for the last results after its last scan."""
+    return min(5.0, max(2.0, phase_s))
 
 
 def stamped(template: bytearray, seq: int, wall: float) -> bytes:
@@ -195,17 +209,18 @@ async def robot_main(a: argparse.Namespace) -> dict:
     for tag in ("scan", "done"):
         await conn.connect_interfaces(f"{CTAG}/{tag}", f"{ROBOT}/{tag}")
     await conn.wait_interfaces_up(["scan", "done"], timeout=READY_WAIT)
-    light, heavy = scan_bytes(SCAN_POINTS, LIGHT_FRACTION), scan_bytes(SCAN_POINTS, 1.0)
+    light, heavy = scan_bytes(a.scan_points, LIGHT_FRACTION), scan_bytes(a.scan_points, 1.0)
     sent: dict[int, float] = {}                       # seq -> monotonic s at its stamp
     skipped: list[float] = []                         # ticks whose scan could not be sent in time
-    got: list[tuple[int, float, float]] = []          # (seq, arrival monotonic s, node CPU ms)
+    got: list[tuple[int, float, float, str]] = []     # (seq, arrival monotonic s, node CPU ms, the node copy's ID)
     first = asyncio.Event()
     failed: list[int] = []                            # scans whose send the connection refused
     node_dropped = [0]                                # scans the node's queue dropped (its copies' largest count)
 
     def on_result(m: dict) -> None:
-        got.append((int(m["header"]["seq"]), time.monotonic(), float(m["point"]["z"])))
-        node_dropped[0] = max(node_dropped[0], int(str(m["header"].get("frame_id", "=0")).rpartition("=")[2] or 0))
+        tags = dict(kv.partition("=")[::2] for kv in str(m["header"].get("frame_id", "")).split(";"))
+        got.append((int(m["header"]["seq"]), time.monotonic(), float(m["point"]["z"]), tags.get("copy", "")))
+        node_dropped[0] = max(node_dropped[0], int(tags.get("dropped") or 0))
         first.set()
     conn.subscriber("done", "geometry_msgs/PointStamped", on_result)
     errors: list[str] = []
@@ -235,8 +250,7 @@ async def robot_main(a: argparse.Namespace) -> dict:
     print(f"ready {t0}", flush=True)
     end[0] = t0 + 4 * a.phase_s
     await sender
-    drain = min(5.0, max(2.0, a.phase_s))
-    await asyncio.sleep(drain)                        # the last results on their way
+    await asyncio.sleep(drain_s(a.phase_s))                        # the last results on their way
     with contextlib.suppress(Exception):
         await conn.close()
     return {"t0": t0, "sent": [[s, t] for s, t in sent.items() if t >= t0], "skipped": [t for t in skipped if t >= t0],
@@ -364,6 +378,7 @@ def start(lab, link, work: Path, cap: CpuCap, endpoint: str):
 async def run_system(system: str, lab, link, work: Path, cap: CpuCap, a: argparse.Namespace) -> dict:
     """One system through the script: the robot's record, the bench's samples, the moves."""
     shape(lab, link, GOOD_RATE, a.dscp)
+    lab.set_delay(link, GOOD_DELAY_MS)
     e = start(lab, link, work, cap, a.endpoint)
     try:
         return await drive(system, lab, link, e, work, a)
@@ -382,7 +397,7 @@ async def drive(system: str, lab, link, e, work: Path, a: argparse.Namespace) ->
     log = open(work / "robot.log", "wb")
     proc = await asyncio.create_subprocess_exec(
         *lab.wrap("r", [sys.executable, __file__, "--role", "robot", "--system", system, "--master", master,
-                        "--phase-s", str(a.phase_s), "--node-args", a.node_args,
+                        "--phase-s", str(a.phase_s), "--node-args", a.node_args, "--scan-points", str(a.scan_points),
                         *(["--ordered-moves"] if a.ordered_moves else [])]),
         stdout=asyncio.subprocess.PIPE, stderr=log, limit=2**26)
     scripted: asyncio.Future | None = None
@@ -404,8 +419,8 @@ async def drive(system: str, lab, link, e, work: Path, a: argparse.Namespace) ->
 
         async def script() -> None:
             """Each phase's change at its start (not at the next sample), timed when it took effect."""
-            for k, change in ((1, lambda: shape(lab, link, a.bad_rate, a.dscp)),
-                              (2, lambda: shape(lab, link, GOOD_RATE, a.dscp)),
+            for k, change in ((1, lambda: (shape(lab, link, a.bad_rate, a.dscp), lab.set_delay(link, a.bad_delay_ms))),
+                              (2, lambda: (shape(lab, link, GOOD_RATE, a.dscp), lab.set_delay(link, GOOD_DELAY_MS))),
                               (3, lambda: e.admin(f"/api/robots/{USER}/{ROBOT}/battery",
                                                   {"percent": BATTERY_LOW_PCT}))):
                 await asyncio.sleep(max(0.0, t0 + k * a.phase_s - time.monotonic()))   # the script's clock
@@ -495,7 +510,7 @@ def analyse(raw: dict, phase_s: float) -> dict:
     sent = {int(s): t - t0 for s, t in rec["sent"]}
     arrivals: dict[int, list[float]] = {}
     cpu_ms: dict[int, float] = {}
-    for seq, t, ms in rec["got"]:
+    for seq, t, ms, _ in rec["got"]:
         arrivals.setdefault(int(seq), []).append(t - t0)
         cpu_ms[int(seq)] = ms
     by_phase = [0, 0, 0, 0]
@@ -515,8 +530,9 @@ def analyse(raw: dict, phase_s: float) -> dict:
         lost_by_phase[min(3, int(sent[s] // phase_s))] += 1
     dup = sum(len(v) - 1 for v in arrivals.values() if len(v) > 1)
     results = sorted(t for ts in arrivals.values() for t in ts if t >= 0)
-    order = [int(seq) for seq, t, _ in sorted(rec["got"], key=lambda g: g[1])]
-    reordered_at = [t - t0 for (seq, t, _), prev in zip(sorted(rec["got"], key=lambda g: g[1])[1:],
+    by_arrival = sorted(rec["got"], key=lambda g: g[1])
+    order = [int(g[0]) for g in by_arrival]
+    reordered_at = [t - t0 for (seq, t, _, _), prev in zip(by_arrival[1:],
                                                          itertools.accumulate(order, max), strict=False) if seq < prev]
     drops = [(t, n) for t, n in raw.get("counted_drops", []) if n == n]      # NaN: a scrape that failed
 
@@ -530,22 +546,27 @@ def analyse(raw: dict, phase_s: float) -> dict:
         """The longest time without a result between s ``a`` and ``b`` (a result or a bound at each end)."""
         ts = [a, *(t for t in results if a < t < b), b]
         return max(y - x for x, y in zip(ts, ts[1:], strict=False))
+    copies = [(t - t0, copy) for _, t, _, copy in by_arrival if t >= t0]
     moves = []
     for m in raw["moves"]:
         end = m["t_s"]
         begin = end - m["make_s"] - m["switch_s"] - m["drain_s"]
         switch = end - m["drain_s"]
         gaps = [b - a for a, b in zip(results, results[1:], strict=False) if b >= switch - 1.0 and a <= end + 0.5]
+        handover = handover_gap(copies, begin, 4 * phase_s + drain_s(phase_s))
         around = [s for s, ts in sent.items() if begin - 1 <= ts <= end + 1]
         before = [t for t in results if t < switch]
         after = [t for t in results if t >= switch]
         lost_here = sum(1 for s in around if s not in arrivals and s not in not_sent)
         dropped = counted(begin - 1, end + 2)
         moves.append({"t_s": round(switch, 3), "from": m["from"], "to": m["to"],
-                      "gap_s": round(max(gaps, default=0), 3),
-                      # what the gap is made of: the longest gap in the s before the move began (the
-                      # link's own, no move yet), and the one across the switch (last result before
-                      # it to the first after)
+                      "gap_s": None if handover is None else round(handover, 3),
+                      # beside the move's own gap: the longest time without a result from 1 s before
+                      # the switch to 0.5 s after the move (the copies' own gaps included: a
+                      # cluttered scan on the robot's computer), what it is made of: the longest
+                      # gap in the s before the move began (the link's own, no move yet), and the
+                      # one across the switch (last result before it to the first after)
+                      "longest_gap_around_s": round(max(gaps, default=0), 3),
                       "gap_before_move_s": round(gap_in(max(0.0, begin - 1.0), begin), 3),
                       "gap_across_switch_s": round(after[0] - before[-1], 3) if before and after else None,
                       "why": m["why"], "began_s": round(begin, 3), "ended_s": round(end, 3), "make_s": m["make_s"],
@@ -567,7 +588,11 @@ def analyse(raw: dict, phase_s: float) -> dict:
         prev = (host, cpu)
     em = EnergyModel()
     energy = em.cpu_w * robot_cpu + em.radio_j_per_byte * raw["link_bytes"]
+    # the longest time without a result in each phase, moves or not (a copy's own: the robot's cluttered scans)
+    gaps_by_phase = [round(max((b - a for a, b in zip(results, results[1:], strict=False)
+                                if k * phase_s <= a < (k + 1) * phase_s), default=0.0), 3) for k in range(4)]
     return {"deadline_misses": sum(by_phase), "deadline_misses_by_phase": by_phase,
+            "longest_gap_by_phase_s": gaps_by_phase,
             "robot_energy_j": round(energy, 3), "lost": len(lost), "duplicated": dup, "moves": moves,
             "reordered": len(reordered_at), "dropped_counted": drops[-1][1] if drops else None,
             "lost_by_phase": lost_by_phase, "drops": raw["drops"],
@@ -581,6 +606,30 @@ def analyse(raw: dict, phase_s: float) -> dict:
             "changes_s": raw["changes"], "placer_word": raw["words"], "placement_final": raw["placement_final"],
             "container_hosts": raw["hosts"], "ran_on": _host_spans(raw["samples"]), "latency_ms": series,
             "master_log": raw["master_log"][-60:]}
+
+
+def handover_gap(copies: list[tuple[float, str]], begin: float, end: float) -> float | None:
+    """A move's gap (s): the longest time without a result while the node's results pass from its
+    old copy to its new one. ``copies``: ``(arrival s, copy ID)`` of every result, by arrival; the
+    old copy answered last before the move began at ``begin`` s, the new copy is the first other one
+    to answer after it. From the result before the first that either copy gave in the handover (the
+    new copy's first, or the old copy's last if it came first) to the later of the two, the longest
+    time between results (the new copy's first after the old copy's last, where they do not
+    overlap). When no new copy answered by ``end`` (s, the record's end): from the old copy's last
+    result to ``end``. None when no copy answered before the move."""
+    old = next((c for t, c in reversed(copies) if t < begin), None)
+    if old is None:
+        return None
+    new_first = next((t for t, c in copies if t >= begin and c != old), None)
+    if new_first is None:
+        return end - max(t for t, c in copies if c == old)
+    new = next(c for t, c in copies if t == new_first and c != old)
+    old_last = max(t for t, c in copies if c == old)
+    lo, hi = min(new_first, old_last), max(new_first, old_last)
+    ts = [t for t, c in copies if lo <= t <= hi and c in (old, new)]
+    before = [t for t, _ in copies if t < lo]
+    ts = ([before[-1]] if before else []) + ts
+    return max((y - x for x, y in zip(ts, ts[1:], strict=False)), default=0.0)
 
 
 def _p50(xs: list[float]) -> float | None:
@@ -620,11 +669,15 @@ def targets(systems: dict, phase_s: float) -> dict:
         for k in (1, 2, 3):
             at = took[k - 1] if len(took) >= k else phase_s * k      # when the change took effect
             word = next((w for w in words if w["t_s"] >= at), None)
+            # its decision: the first word after the change that says move (a word that only names
+            # another best, held back by the hysteresis, decides nothing)
+            says_move = next((w for w in words if at <= w["t_s"] < at + phase_s and w["move"]), None)
             move = next((m for m in pm if at - 0.5 <= m["began_s"] < at + phase_s), None)
             changed = None if word is None or word["t_s"] >= at + phase_s else round(word["t_s"] - at, 2)
             moved = None if move is None else round(move["began_s"] - at, 2)
             # the placer's word is sampled every POLL s: a move that began first is its decision
-            decided = min((x for x in (changed, moved) if x is not None), default=None)
+            decided = min((x for x in (None if says_move is None else round(says_move["t_s"] - at, 2), moved)
+                           if x is not None), default=None)
             reactions.append({"change": PHASES[k], "at_s": round(at, 3), "word_changed_after_s": changed, "word": word,
                               "moved_after_s": moved, "decided_after_s": decided})
         out["reactions"] = reactions
@@ -686,15 +739,16 @@ async def _bench_in(a: argparse.Namespace, cap: CpuCap) -> dict:
     """:func:`bench` with the robot computer's cgroup ``cap`` made (and removed by the caller)."""
     from common import git_head
     from rce.tools.netlab import NetLab
-    node = calibrate_on_robot(cap, a.heavy_ms)
+    node = calibrate_on_robot(cap, a.heavy_ms, a.scan_points)
     a.node_args = node["node_args"]
     print(f"placement: node {a.node_args}: a cluttered scan {node['robot_heavy_ms']} ms on the robot's computer "
           f"({node['heavy_ms']} core-ms uncapped), a sparse one {node['robot_light_ms']} ms ({node['light_ms']})",
           flush=True)
     res: dict = {"bench": "placement", "git": git_head(), "phase_s": a.phase_s, "endpoint": a.endpoint,
-                 "deadline_ms": DEADLINE_MS, "rate_hz": RATE_HZ, "scan_points": SCAN_POINTS,
+                 "deadline_ms": DEADLINE_MS, "rate_hz": RATE_HZ, "scan_points": a.scan_points,
                  "light_fraction": LIGHT_FRACTION, "heavy_every": HEAVY_EVERY, "node_args": a.node_args,
                  "robot_cpu": ROBOT_CPU, "good_rate": GOOD_RATE, "bad_rate": a.bad_rate, "dscp": a.dscp,
+                 "good_delay_ms": GOOD_DELAY_MS, "bad_delay_ms": a.bad_delay_ms,
                  "ordered_moves": a.ordered_moves, "queue_packets": QUEUE, "node_calibration": node,
                  "battery_pct": [BATTERY_START_PCT, BATTERY_LOW_PCT], "load_before": os.getloadavg(),
                  "systems": {}, "robot_cpu_cap": cap.how}
@@ -702,7 +756,7 @@ async def _bench_in(a: argparse.Namespace, cap: CpuCap) -> dict:
     res["logs"] = str(root)
     with NetLab("plb") as lab:
         lab.namespace("r")
-        link = lab.link(None, "r", 1)
+        link = lab.link(None, "r", 1, delay=True)
         lab.route("r", "default", link.a_ip)
         for system in a.systems.split(","):
             print(f"placement: {system} ({4 * a.phase_s:g} s) ...", flush=True)
@@ -727,6 +781,10 @@ def main(argv=None) -> int:
                    help="the robot's endpoint: on its computer (rce-robot --zone robot:ID, default) or the cloud's")
     p.add_argument("--bad-rate", default=BAD_RATE, help=f"the link's rate in the second phase (tc units; "
                    f"default {BAD_RATE})")
+    p.add_argument("--bad-delay-ms", type=float, default=BAD_DELAY_MS,
+                   help=f"the link's one-way delay, each way, in the second phase (ms; default {BAD_DELAY_MS:g})")
+    p.add_argument("--scan-points", type=int, default=SCAN_POINTS,
+                   help=f"beams per scan (4 bytes each; default {SCAN_POINTS}: 0.35 Mbit/s at 10 Hz)")
     p.add_argument("--heavy-ms", type=float, default=ROBOT_HEAVY_MS,
                    help=f"ms a cluttered scan takes on the robot's computer (the node's --samples are set to that "
                         f"there at the start; default {ROBOT_HEAVY_MS:g})")
@@ -746,7 +804,7 @@ def main(argv=None) -> int:
         print(json.dumps(asyncio.run(robot_main(a))), flush=True)
         return 0
     if a.role == "calibrate":                      # inside the robot computer's cgroup
-        print(json.dumps(calibrate(a.heavy_ms)), flush=True)
+        print(json.dumps(calibrate(a.heavy_ms, a.scan_points)), flush=True)
         return 0
     if os.geteuid() != 0:
         print("placement: needs root (network namespaces, tc, cgroups)", file=sys.stderr)

@@ -1,8 +1,8 @@
 """Smoke test of bench/placement.py: the whole script with 2 s phases, the three systems (cloud,
 robot, placer) in the network namespaces it makes, to the end: JSON of the documented shape, no
-result lost or duplicated, and its PNG. The second phase's link is 20 Mbit/s here, which carries the
-scans: at 1 Mbit/s the data plane drops scans that waited past its ``max_delay`` for the link, by
-design (rce/transport/link.py), and which those are depends on the machine's speed."""
+result lost or duplicated, and its PNG. The second phase's link is 20 Mbit/s (and the bench's 50 ms
+each way, through its delay line) here: the smoke test checks that the script runs to its end and
+what it writes, not the placer's numbers, which on a 1 Mbit/s link depend on the machine's speed."""
 from __future__ import annotations
 
 import json
@@ -25,6 +25,7 @@ def test_placement_smoke(tmp_path):
     assert r.returncode == 0, f"exit {r.returncode}\n{r.stdout[-3000:]}\n{r.stderr[-3000:]}"
     d = json.loads(out.read_text())
     assert set(d["systems"]) == {"cloud", "robot", "placer"}
+    assert (d["bad_rate"], d["bad_delay_ms"], d["scan_points"]) == ("20mbit", 50.0, 1081), d
     cal = d["node_calibration"]             # set on the robot's capped computer: slower there than uncapped
     assert cal["robot_heavy_ms"] > cal["heavy_ms"] > cal["light_ms"] > 0, cal
     assert f"--samples {cal['samples']}" in d["node_args"], (cal, d["node_args"])

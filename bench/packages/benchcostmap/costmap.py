@@ -11,9 +11,11 @@ passes of a 3 x 3 max filter with a cost decay. The work grows with the number o
 cluttered scene costs more than an empty one) and with ``PASSES``. Each result is published on OUT
 as a ``geometry_msgs/PointStamped`` whose header is the scan's (its ``seq`` and ``stamp``, so the
 sender matches results to scans and measures the latency end to end; its ``frame_id`` is
-``dropped=N``: the scans its subscriber's queue of ``QUEUE`` dropped so far, oldest first); its
+``copy=ID;dropped=N``: a random ID of this process, which tells the copies of a moved container
+apart, and the scans its subscriber's queue of ``QUEUE`` dropped so far, oldest first); its
 point holds the lethal cells (x), the inflated cells (y) and the CPU ms the scan took (z)."""
 import argparse
+import secrets
 import time
 
 import numpy as np
@@ -21,15 +23,16 @@ import numpy as np
 import rce.node
 
 
-BLOCK = 256    # beams cleared at once: each temporary stays under ~1 MB and is reused by the allocator (all
-               # 10,000 beams at once allocated ~100 MB of fresh pages a cluttered scan, whose page faults
-               # made its time on a capped robot computer swing 3x from one scan to the next on a VM)
+COPY = secrets.token_hex(4)    # this process: a move's old and new copies answer with different IDs
+BLOCK = 1 << 16    # beam samples cleared at once: each temporary stays under ~1 MB and is reused by the
+                   # allocator (every beam at once allocated ~100 MB of fresh pages a cluttered scan, whose
+                   # page faults made its time on a capped robot computer swing 3x from one scan to the next)
 
 
 def costmap(ranges: np.ndarray, angle_min: float, angle_inc: float, cells: int, passes: int,
             samples: int = 80) -> np.ndarray:
     """The inflated costmap (``cells`` x ``cells`` uint8, 254 lethal) of one scan's ``ranges`` (m),
-    each beam cleared at ``samples`` points, :data:`BLOCK` beams at a time."""
+    each beam cleared at ``samples`` points, :data:`BLOCK` beam samples at a time."""
     res = 0.05
     half = cells // 2
     grid = np.zeros((cells, cells), np.uint8)
@@ -40,9 +43,10 @@ def costmap(ranges: np.ndarray, angle_min: float, angle_inc: float, cells: int, 
     dy = (r * np.sin(a) / res).astype(np.float32)
     t = np.linspace(0.0, 1.0, max(1, samples), endpoint=False, dtype=np.float32)[None, :]
     free = np.zeros((cells, cells), bool)
-    for b in range(0, len(r), BLOCK):                                       # every beam, cleared
-        xs = (half + dx[b:b + BLOCK, None] * t).astype(np.int32)
-        ys = (half + dy[b:b + BLOCK, None] * t).astype(np.int32)
+    block = max(1, BLOCK // max(1, samples))                                # beams at once
+    for b in range(0, len(r), block):                                       # every beam, cleared
+        xs = (half + dx[b:b + block, None] * t).astype(np.int32)
+        ys = (half + dy[b:b + block, None] * t).astype(np.int32)
         inside = (xs >= 0) & (xs < cells) & (ys >= 0) & (ys < cells)
         free[ys[inside], xs[inside]] = True
     ex = (half + dx).astype(np.int32)                                       # its end, marked
@@ -78,7 +82,7 @@ async def main(node: rce.node.Node) -> None:
         ms = (time.process_time() - t0) * 1e3
         pub.publish_nowait({"header": {"seq": m.header.seq, "stamp": {"sec": m.header.stamp.sec,
                                                                       "nanosec": m.header.stamp.nanosec},
-                                       "frame_id": f"dropped={sub.dropped if sub else 0}"},
+                                       "frame_id": f"copy={COPY};dropped={sub.dropped if sub else 0}"},
                             "point": {"x": float((c == 254).sum()), "y": float((c > 0).sum()), "z": ms}})
     sub = await node.subscriber(a.scan, "sensor_msgs/LaserScan", on_scan, queue_size=a.queue)
     await node.spin()
