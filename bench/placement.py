@@ -78,6 +78,7 @@ ROBOT = "rover"                 # the robot's ID (its computer's zone: robot:rov
 CTAG = "costmap"
 RATE_HZ = 10.0                  # scans per second
 DEADLINE_MS = 100.0             # from a scan's stamp to its result back at the robot
+CALIBRATION_SPREAD = (0.6, 0.8, 1.0, 1.2, 1.4)    # sample counts the calibration times, as shares of its guess
 SCAN_POINTS = 1_081             # beams per scan (270 degrees at 0.25 degrees): 4.3 kB of float32 ranges
 LIGHT_FRACTION = 0.1            # share of a sparse scan's beams that return
 HEAVY_EVERY = 10                # one scan in this many is cluttered (every beam returns)
@@ -142,24 +143,26 @@ def costmap_ms(points: int, fraction: float, samples: int, clock=time.process_ti
 
 
 def calibrate(target_ms: float, points: int = SCAN_POINTS) -> dict:
-    """The node's ``--samples`` for which a cluttered scan of ``points`` beams takes ``target_ms`` ms of wall time where
-    this process runs (inside the robot computer's cgroup: :func:`calibrate_on_robot`), by
-    :func:`costmap_ms` and secant steps from two sample counts (the work is about linear in them; up
-    to 6 steps, until within 5 % of the target: on a shared machine one timing may be off by a third).
-    Returns ``{samples, node_args, heavy_ms, light_ms}`` (wall ms, at those samples)."""
+    """The node's ``--samples`` for which a cluttered scan of ``points`` beams takes ``target_ms`` ms
+    of wall time where this process runs (inside the robot computer's cgroup:
+    :func:`calibrate_on_robot`). The work is linear in the samples, but under a CPU cap one timing
+    (:func:`costmap_ms`, itself a median of 7) may be off by half: two sample counts give a first
+    guess, then a least-squares line through timings at :data:`CALIBRATION_SPREAD` times that guess,
+    each taken twice, gives the answer. Returns ``{samples, node_args, heavy_ms, light_ms}`` (wall
+    ms at those samples, ``heavy_ms`` by the line)."""
+    import numpy as np
     clock = time.perf_counter
     first = max(20, 1_000_000 // points)              # ~the same work a scan whatever its beams
-    a, b = (first, costmap_ms(points, 1.0, first, clock)), (3 * first, costmap_ms(points, 1.0, 3 * first, clock))
-    for _ in range(6):                   # secant steps towards target_ms
-        if abs(b[1] - target_ms) <= 0.05 * target_ms:
-            break
-        slope = (b[1] - a[1]) / (b[0] - a[0])
-        samples = max(20, min(100 * first, int(round(b[0] + (target_ms - b[1]) / slope)) if slope > 0 else 3 * first))
-        if samples in (a[0], b[0]):
-            break
-        a, b = b, (samples, costmap_ms(points, 1.0, samples, clock))
-    samples, heavy_ms = b
-    return {"samples": samples, "node_args": f"{NODE_ARGS} --samples {samples}", "heavy_ms": round(heavy_ms, 2),
+    lo, hi = costmap_ms(points, 1.0, first, clock), costmap_ms(points, 1.0, 3 * first, clock)
+    slope = (hi - lo) / (2 * first)
+    guess = int(round(3 * first + (target_ms - hi) / slope)) if slope > 0 else 3 * first
+    guess = max(20, min(100 * first, guess))
+    xs = [max(20, int(guess * f)) for f in CALIBRATION_SPREAD for _ in range(2)]
+    ys = [costmap_ms(points, 1.0, x, clock) for x in xs]
+    a, b = np.polyfit(xs, ys, 1)
+    samples = max(20, min(100 * first, int(round((target_ms - b) / a)) if a > 0 else guess))
+    return {"samples": samples, "node_args": f"{NODE_ARGS} --samples {samples}",
+            "heavy_ms": round(float(a * samples + b), 2),
             "light_ms": round(costmap_ms(points, LIGHT_FRACTION, samples, clock), 2)}
 
 
