@@ -285,3 +285,27 @@ async def test_a_pending_move_is_made_when_its_hysteresis_ends_not_at_the_next_p
     finally:
         stop.set()
         await task
+
+
+def test_from_a_host_where_some_results_are_late_to_one_where_none_were():
+    from rce_master.placer import LATE_RECORD_S
+    p = Placer(settle_s=0.0, settle_miss_s=0.0, dwell_s=0.0)
+    light = {**NODE.__dict__, "work_ms": 6.0}
+    in_cloud = ContainerView(**{**light, "miss_rate": 0.0})                 # never late in the cloud
+    assert not p.decide(0.0, in_cloud, [CLOUD, ROBOT], GOOD, CLOUD.tid).move
+    assert p.decide(1.0, in_cloud, [CLOUD, ROBOT], BAD, CLOUD.tid).move, "the link fell: to the robot"
+    p.moved(1.0, "alice", "costmap")
+    on_robot = ContainerView(**{**light, "node_ms": 20.0, "miss_rate": 0.04})  # a heavy scan in 25 late: it meets
+    ch = p.decide(20.0, on_robot, [CLOUD, ROBOT], BAD, ROBOT.tid)
+    assert not ch.move, "the cloud misses by the model: a clean record there does not count"
+    near = {"cloud": LinkView(rtt_ms=20, rate=10e6)}                         # back, but not better by the hysteresis
+    assert not choose(options(on_robot, [CLOUD, ROBOT], near, current_tid=ROBOT.tid), ROBOT.tid,
+                      deadline_ms=100).move
+    ch = p.decide(21.0, on_robot, [CLOUD, ROBOT], near, ROBOT.tid)
+    assert ch.move and ch.target.tid == CLOUD.tid and "none on cloud" in ch.why, ch.why
+    never_late = ContainerView(**{**light, "node_ms": 20.0, "miss_rate": 0.0})
+    assert not p.decide(22.0, never_late, [CLOUD, ROBOT], near, ROBOT.tid).move, "no late result: the model decides"
+    q = Placer(settle_s=0.0, settle_miss_s=0.0, dwell_s=0.0)
+    q.decide(0.0, in_cloud, [CLOUD, ROBOT], GOOD, CLOUD.tid)
+    assert not q.decide(LATE_RECORD_S + 1, on_robot, [CLOUD, ROBOT], near, ROBOT.tid).move, \
+        "a clean record is kept for LATE_RECORD_S"
