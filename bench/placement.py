@@ -43,9 +43,10 @@ stamp, or never; a scan the robot could not send within one period counts as mis
 and duplicated (by the scans' header.seq), the robot's modelled energy (the placer's
 :class:`~rce_master.placer.EnergyModel`: W per core x the container's CPU seconds while on the
 robot's computer, plus J per byte x the bytes across the link, both ways, from the veth's counters),
-each move (its time, hosts, the longest time without a result around it, the placer's reason) and
-the placer's word as ``GET /api/placement`` gave it, sampled every :data:`POLL` s. JSON in
-``bench/results/placement.json`` and a PNG timeline beside it::
+each move (its time, hosts, its gap: the longest time without a result while the results pass from
+the old copy to the new one, :func:`handover_gap`; the longest around it, the copies' own gaps
+included; the placer's reason) and the placer's word as ``GET /api/placement`` gave it, sampled
+every :data:`POLL` s. JSON in ``bench/results/placement.json`` and a PNG timeline beside it::
 
     sudo .venv/bin/python bench/placement.py [--phase-s 30] [--systems cloud,robot,placer]
                                              [--endpoint robot|cloud] [--bad-rate 1mbit] [--bad-delay-ms 50]
