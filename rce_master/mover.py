@@ -161,23 +161,7 @@ class Mover:
         t1 = time.monotonic()
         addr = answer["data_addr"]
         self.state.container_moved(c, tid, new.cid, addr, answer.get("sandbox", ""))
-        expect: list[list[int]] = []             # [src, dst, fences] the old copy is to get
-        unreached: list[str] = []
-        # the switch: each peer sends to the new copy from now on (all told at once)
-        answers = await asyncio.gather(*(self.control.endpoint_call(peer, "connect", fence=new.cid,
-                                                                    **self.control.connect_args(peer, me.iid, addr))
-                                         for me, peer in conns), return_exceptions=True)
-        for (me, peer), r in zip(conns, answers, strict=True):
-            if isinstance(r, RCEError):          # it may still send to the old copy: nothing fences that
-                log.warning("a peer of a moved container was not switched", user=c.user, ctag=c.ctag,
-                            peer=peer.tag, reason=str(r))
-                unreached.append(peer.tag)
-                continue
-            if isinstance(r, BaseException):
-                raise r
-            n = int((r or {}).get("fenced") or 0) if isinstance(r, dict) else 0
-            if n:
-                expect.append([peer.iid, me.iid, n])
+        expect, unreached = await self._switch(c, new.cid, conns, addr)
         t2 = time.monotonic()
         old = dataclasses.replace(c, cid=old_cid, tid=old_tid)
         moved_states = 0
@@ -200,6 +184,30 @@ class Mover:
         self.control.notify_robot(c.user, c.owner, "ST", {"topic": "container", "cTag": c.ctag, "status": "running",
                                                           "sandbox": c.sandbox, "moved": True})
         return result
+
+    async def _switch(self, c: ContainerRec, cid: int, conns: list[tuple[InterfaceRec, InterfaceRec]],
+                      addr: str) -> tuple[list[list[int]], list[str]]:
+        """Tell every peer of ``c``'s interfaces (``conns``: ``(its interface, the peer's)``) to send to
+        the new copy ``cid`` at data address ``addr`` from now on, all at once, each with a fence.
+        Returns the fences the old copy is to get (``[src, dst, n]``) and the tags of the peers that
+        could not be told (they may still send to the old copy: nothing fences that)."""
+        answers = await asyncio.gather(*(self.control.endpoint_call(peer, "connect", fence=cid,
+                                                                    **self.control.connect_args(peer, me.iid, addr))
+                                         for me, peer in conns), return_exceptions=True)
+        expect: list[list[int]] = []
+        unreached: list[str] = []
+        for (me, peer), r in zip(conns, answers, strict=True):
+            if isinstance(r, RCEError):
+                log.warning("a peer of a moved container was not switched", user=c.user, ctag=c.ctag,
+                            peer=peer.tag, reason=str(r))
+                unreached.append(peer.tag)
+                continue
+            if isinstance(r, BaseException):
+                raise r
+            n = int((r or {}).get("fenced") or 0) if isinstance(r, dict) else 0
+            if n:
+                expect.append([peer.iid, me.iid, n])
+        return expect, unreached
 
     def _still(self, c: ContainerRec, cid: int) -> None:
         if self.state.containers.get((c.user, c.ctag)) is not c or c.cid != cid or c.state != "running":
