@@ -94,11 +94,11 @@ async def test_the_placer_advises_through_the_measured_link_and_takes_a_pin(eng)
         while True:                      # the robot endpoint reports the link within a second
             row = next(x for x in eng.admin("/api/placement") if x["ctag"] == "auto1")
             zones = {o["zone"]: o for o in row.get("options") or []}
-            if "cloud" in zones:
+            if "cloud" in zones and zones["cloud"]["link_ms"] > 0:     # weighed before the report: no link yet
                 break
             assert loop.time() < end, row
             await asyncio.sleep(0.2)
-        assert set(zones) == {"cloud", "robot:r1"} and zones["cloud"]["link_ms"] > 0
+        assert set(zones) == {"cloud", "robot:r1"}
         assert row["runs"].startswith("cloud") and not row["move"] and row["why"]
         out = console(eng, "placement")
         assert "auto1" in out and "cloud" in out
