@@ -699,6 +699,8 @@ def plot(res: dict, png: Path) -> None:
     names = list(res["systems"])
     fig, axes = plt.subplots(len(names), 1, figsize=(12, 2.8 * len(names)), sharex=True, squeeze=False)
     ps = res["phase_s"]
+    labels = [*PHASES]
+    labels[1] = f"link {res['bad_rate']}, {res['bad_delay_ms']:g} ms each way"
     for ax, name in zip(axes[:, 0], names, strict=False):
         s = res["systems"][name]
         pts = [(t, v) for t, v in s["latency_ms"] if v is not None]
@@ -709,7 +711,7 @@ def plot(res: dict, png: Path) -> None:
         ax.axhline(DEADLINE_MS, color="C3", lw=1, ls="--", label=f"deadline {DEADLINE_MS:g} ms")
         for k in range(4):
             ax.axvspan(k * ps, (k + 1) * ps, color=("white", "0.85", "white", "#fff3cc")[k], zorder=-1)
-            ax.text(k * ps + 0.3, 0.97, PHASES[k], transform=ax.get_xaxis_transform(), fontsize=8, va="top")
+            ax.text(k * ps + 0.3, 0.97, labels[k], transform=ax.get_xaxis_transform(), fontsize=8, va="top")
         skipped = s.get("skipped_s") or []
         ax.scatter(skipped, [top * 0.6] * len(skipped), s=6, marker="|", color="0.4", label="not sent in time")
         for i, m in enumerate(s["moves"]):
