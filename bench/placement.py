@@ -624,10 +624,9 @@ def handover_gap(copies: list[tuple[float, str]], begin: float, end: float) -> f
     old = next((c for t, c in reversed(copies) if t < begin), None)
     if old is None:
         return None
-    new_first = next((t for t, c in copies if t >= begin and c != old), None)
+    new_first, new = next(((t, c) for t, c in copies if t >= begin and c != old), (None, None))
     if new_first is None:
         return end - max(t for t, c in copies if c == old)
-    new = next(c for t, c in copies if t == new_first and c != old)
     old_last = max(t for t, c in copies if c == old)
     lo, hi = min(new_first, old_last), max(new_first, old_last)
     ts = [t for t, c in copies if lo <= t <= hi and c in (old, new)]

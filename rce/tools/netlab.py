@@ -182,15 +182,11 @@ class NetLab:
         """Set the delay line of ``link`` (made with ``delay=True``) to ``ms`` ms each way; returns its
         counters ``{"delay_ms", "forwarded", "dropped", "held"}``. Raises ValueError for a link without
         a delay line, RuntimeError when the line refuses the value."""
-        if link.control is None:
-            raise ValueError(f"link {link.a_dev} <-> {link.b_dev} has no delay line (made without delay=True)")
-        return delayline.request(link.control, f"delay {ms:g}")
+        return delayline.request(_control(link), f"delay {ms:g}")
 
     def delay_stats(self, link: Link) -> dict:
         """The counters of ``link``'s delay line: ``{"delay_ms", "forwarded", "dropped", "held"}``."""
-        if link.control is None:
-            raise ValueError(f"link {link.a_dev} <-> {link.b_dev} has no delay line (made without delay=True)")
-        return delayline.request(link.control, "stats")
+        return delayline.request(_control(link), "stats")
 
     @staticmethod
     def _in(ns: str | None) -> tuple[str, ...]:
@@ -257,6 +253,13 @@ class NetLab:
     def wrap(self, ns: str, argv: list[str]) -> list[str]:
         """``argv`` run in namespace ``ns`` (short name)."""
         return ["ip", "netns", "exec", self.full(ns), *argv]
+
+
+def _control(link: Link) -> str:
+    """The control socket of ``link``'s delay line; ValueError for a link made without one."""
+    if link.control is None:
+        raise ValueError(f"link {link.a_dev} <-> {link.b_dev} has no delay line (made without delay=True)")
+    return link.control
 
 
 def qdisc_backlog(tc_output: str) -> int:
