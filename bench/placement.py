@@ -36,7 +36,8 @@ falls to :data:`BAD_RATE` and :data:`BAD_DELAY_MS` ms (it belongs on the robot);
 the robot's battery falls to :data:`BATTERY_LOW_PCT` % (``POST /api/robots/{user}/{robot}/battery``:
 saving the robot's energy wins). The same script three ways: ``cloud`` (containerData ``placement: cloud``), ``robot``
 (``placement: robot``), ``placer`` (``placement: auto`` with ``deadline_ms``, ``robot``,
-``consumes``).
+``consumes`` and ``spare``: a made copy waits on the host it would move to next, so that a move
+there only switches; ``--no-spare``: each move makes its new copy first).
 
 Per system it reports deadline misses per phase (a result later than the deadline after its scan's
 stamp, or never; a scan the robot could not send within one period counts as missed), results lost
@@ -202,7 +203,8 @@ async def robot_main(a: argparse.Namespace) -> dict:
     from rce_client.connection import Connection
     conn = await Connection.login_connect(a.master, USER, PASSWORD, ROBOT, allow_reconnect=True)
     data = {"placement": SYSTEMS[a.system], "deadline_ms": DEADLINE_MS, "robot": ROBOT, "consumes": ["scan"],
-            **({"ordered_moves": True} if a.ordered_moves else {})}
+            **({"ordered_moves": True} if a.ordered_moves else {}),
+            **({"spare": True} if a.spare and SYSTEMS[a.system] == "auto" else {})}
     await conn.create_container(CTAG, **data)
     await conn.add_node(CTAG, "costmap", "benchcostmap", "costmap.py", args=a.node_args)
     for tag, itype, cls, addr in (("scan", "PublisherInterface", "sensor_msgs/LaserScan", "/scan"),
@@ -402,7 +404,7 @@ async def drive(system: str, lab, link, e, work: Path, a: argparse.Namespace) ->
     proc = await asyncio.create_subprocess_exec(
         *lab.wrap("r", [sys.executable, __file__, "--role", "robot", "--system", system, "--master", master,
                         "--phase-s", str(a.phase_s), "--node-args", a.node_args, "--scan-points", str(a.scan_points),
-                        *(["--ordered-moves"] if a.ordered_moves else [])]),
+                        *(["--ordered-moves"] if a.ordered_moves else []), *([] if a.spare else ["--no-spare"])]),
         stdout=asyncio.subprocess.PIPE, stderr=log, limit=2**26)
     scripted: asyncio.Future | None = None
     try:
@@ -574,7 +576,7 @@ def analyse(raw: dict, phase_s: float) -> dict:
                       "gap_before_move_s": round(gap_in(max(0.0, begin - 1.0), begin), 3),
                       "gap_across_switch_s": round(after[0] - before[-1], 3) if before and after else None,
                       "why": m["why"], "began_s": round(begin, 3), "ended_s": round(end, 3), "make_s": m["make_s"],
-                      "switch_s": m["switch_s"], "make_steps": m.get("make_steps"),
+                      "switch_s": m["switch_s"], "make_steps": m.get("make_steps"), "spare": m.get("spare"),
                       "drain_s": m["drain_s"], "fenced": m.get("fenced"), "unfenced": m.get("unfenced"),
                       "lost": lost_here,
                       # of those, what the robot endpoint dropped and counted (a link that does not keep
@@ -754,7 +756,7 @@ async def _bench_in(a: argparse.Namespace, cap: CpuCap) -> dict:
                  "light_fraction": LIGHT_FRACTION, "heavy_every": HEAVY_EVERY, "node_args": a.node_args,
                  "robot_cpu": ROBOT_CPU, "good_rate": GOOD_RATE, "bad_rate": a.bad_rate, "dscp": a.dscp,
                  "good_delay_ms": GOOD_DELAY_MS, "bad_delay_ms": a.bad_delay_ms,
-                 "ordered_moves": a.ordered_moves, "queue_packets": QUEUE, "node_calibration": node,
+                 "ordered_moves": a.ordered_moves, "spare": a.spare, "queue_packets": QUEUE, "node_calibration": node,
                  "battery_pct": [BATTERY_START_PCT, BATTERY_LOW_PCT], "load_before": os.getloadavg(),
                  "systems": {}, "robot_cpu_cap": cap.how}
     root = Path(tempfile.mkdtemp(prefix="rce-placement-"))
@@ -798,6 +800,9 @@ def main(argv=None) -> int:
     p.add_argument("--ordered-moves", action="store_true",
                    help="the container asks ordered_moves: its results keep one order across a move, whose gap "
                         "is then the old copy's drain")
+    p.add_argument("--no-spare", dest="spare", action="store_false",
+                   help="the placer's container asks no spare: each move makes its new copy first (default: a "
+                        "spare is kept made on the host it would move to next, and a move there only switches)")
     p.add_argument("--out", type=Path, default=BENCH / "results" / "placement.json")
     p.add_argument("--keep-logs", action="store_true", help="keep the engines' logs (printed path)")
     p.add_argument("--role", choices=("bench", "robot", "calibrate"), default="bench", help=argparse.SUPPRESS)

@@ -75,7 +75,7 @@ class Verbs:
         """CC: create container ``tag``. ``container_data`` keys: ``groupIp``, ``size``, ``cpu``
         (cores), ``memory`` (MiB), ``bandwidth``, ``specialFeatures``, and where it runs:
         ``placement`` (``auto``, ``cloud``, ``edge``, ``robot``), ``deadline_ms``, ``robot``,
-        ``consumes``, ``ordered_moves`` (docs/placement.md); None values are left out."""
+        ``consumes``, ``ordered_moves``, ``spare`` (docs/placement.md); None values are left out."""
         cd = {k: v for k, v in {"group": group, **container_data}.items() if v is not None}
         data: dict = {"containerTag": tag}
         if cd:

@@ -54,6 +54,9 @@ COLUMNS = {
 }
 
 
+PLACEMENT_COLUMNS = ["user", "ctag", "runs", "best", "move", "pinned", "spare", "misses", "node_ms", "why"]
+MOVE_COLUMNS = ["when", "user", "ctag", "from", "to", "spare", "switch_s", "drain_s", "why"]
+
 def _cell(value: Any) -> str:
     if value is None:
         return ""
@@ -241,14 +244,13 @@ def run(args: argparse.Namespace, out: Console) -> None:
             else:
                 for m in rows:
                     m["when"] = time.strftime("%H:%M:%S", time.localtime(m["t"]))
-                out.print(table("moves", rows, ["when", "user", "ctag", "from", "to", "switch_s", "drain_s", "why"]))
+                out.print(table("moves", rows, MOVE_COLUMNS))
             return
         rows = client.request("GET", "/api/placement")
         if args.json:
             print(json.dumps(rows, indent=1))
         else:
-            out.print(table("placement", rows, ["user", "ctag", "runs", "best", "move", "pinned", "misses", "node_ms",
-                                                "why"]))
+            out.print(table("placement", rows, PLACEMENT_COLUMNS))
     elif args.cmd == "top":
         if args.once:
             if args.json:

@@ -13,6 +13,12 @@ Inputs, all measured (:mod:`rce_master.placer` is the model):
   (e.g. by the fleet from ``sensor_msgs/BatteryState``); below ``battery_low`` per cent, saving the
   robot's energy wins.
 
+A container that asks for a spare (``spare: true``) is kept one on the host the placer ranks next
+after the one it runs on (:func:`rce_master.placer.runner_up`; :mod:`rce_master.mover`, Spares): made
+when it has none, kept while that host may run it (a spare does not follow every turn of the
+ranking: its make costs the host), destroyed when the container is pinned, stops, is removed or
+asks no more.
+
 Every change of the placer's word on a container is logged with its inputs (``placement``). The
 admin API's ``GET /api/placement`` gives, per container, where it runs, where the placer would put
 it and why; ``POST /api/placement/{user}/{ctag}`` ``{"pin": "cloud"|"edge"|"robot"|"auto"}`` pins it
@@ -29,7 +35,7 @@ from rce.plumbing.log import get_logger
 from rce.protocol.schema import PLACEMENTS
 from rce_master.model import ContainerRec
 from rce_master.mover import Mover
-from rce_master.placer import Choice, ContainerView, HostView, LinkView, Placer, late_share
+from rce_master.placer import Choice, ContainerView, HostView, LinkView, Placer, late_share, runner_up
 from rce_master.state import NEED_KEYS, MasterState
 
 __all__ = ["BATTERY_LOW", "POLL", "Placement"]
@@ -42,6 +48,7 @@ BATTERY_LOW = 20.0    # per cent
 WARMUP = 3.0          # s a container's copy runs before its results count for the placer (its first results are
                       # slow: imports, first calls): its late share and its measured median
 MARKS_KEPT_S = 120.0  # s of a copy's counters kept for its late share (placer.late_share)
+SPARE_RETRY_S = 10.0  # s after a spare's make failed before another is made
 
 
 @dataclass
@@ -87,6 +94,7 @@ class Placement:
         self.last_word: dict[tuple[str, str], tuple] = {}
         self.decisions = 0
         self._changed = asyncio.Event()           # a robot's link or battery changed: decide again now
+        self._spare_failed: dict[tuple[str, str], float] = {}   # when a container's spare was first seen failed
 
     # -- inputs ------------------------------------------------------------------------------------
     def robot_link(self, user: str, robot: str, rtt_ms: float, rate: float) -> None:
@@ -225,8 +233,12 @@ class Placement:
                 continue
             best = f"{ch.target.zone} ({ch.target.host})" if ch.target else "-"
             u = self.use.get((c.user, c.ctag))
+            sp = self.mover.spare_of(c.user, c.ctag) if self.mover is not None else None
+            spare = None
+            if sp is not None and sp[0] in ts:
+                spare = f"{str(ts[sp[0]].zone)} ({ts[sp[0]].name})" + ("" if sp[1] else ", being made")
             rows.append({"user": c.user, "ctag": c.ctag, "runs": runs, "best": best, "move": ch.move,
-                         "pinned": c.data.get("pinned"), "why": ch.why, **ch.to_json(),
+                         "pinned": c.data.get("pinned"), "spare": spare, "why": ch.why, **ch.to_json(),
                          "results": u.results if u else 0, "misses": u.misses if u else 0,
                          "node_ms": u.node_ms if u else None,
                          "battery": self.batteries.get((c.user, c.data["robot"])) if c.data.get("robot") else None,
@@ -246,7 +258,7 @@ class Placement:
         rec = {"t": time.time(), "user": c.user, "ctag": c.ctag, "from": names.get(r.from_tid, str(r.from_tid)),
                "to": names.get(r.to_tid, str(r.to_tid)), "make_s": round(r.make_s, 3),
                "switch_s": round(r.switch_s, 4), "drain_s": round(r.drain_s, 3), "make_steps": r.make_steps,
-               "states": r.states,
+               "spare": r.spare, "states": r.states,
                "fenced": r.fenced, "unfenced": r.unfenced, "why": why}
         self.moves = [*self.moves[-(MOVES_KEPT - 1):], rec]
         return rec
@@ -267,8 +279,8 @@ class Placement:
         self._moving[key] = asyncio.get_running_loop().create_task(run(), name=f"move {c.user}/{c.ctag}")
 
     def _decide(self) -> float:
-        """Decide on every container and start the moves the placer asks for; returns s until a
-        pending move's hysteresis ends (inf: none pending)."""
+        """Decide on every container, start the moves the placer asks for and keep the spares
+        asked for; returns s until a pending move's hysteresis ends (inf: none pending)."""
         due = float("inf")
         for c in list(self.state.containers.values()):
             ch = self.word(c)
@@ -276,7 +288,44 @@ class Placement:
                 self._carry_out(c, ch)
             elif ch is not None and ch.wait_s > 0:
                 due = min(due, ch.wait_s)
+            if ch is not None:
+                self._keep_spare(c, ch)
+        if self.mover is not None:
+            for user, ctag in list(self.mover.spares):
+                if (user, ctag) not in self.state.containers:
+                    self.mover.drop_spare(user, ctag)
+            for key in [k for k in self._spare_failed if k not in self.state.containers]:
+                del self._spare_failed[key]
         return due
+
+    def _keep_spare(self, c: ContainerRec, ch: Choice) -> None:
+        """Make ``c`` a spare on the host ranked next (:func:`runner_up`) when it asks for one and has
+        none; drop the one it has when it asks no more, is pinned or is not running."""
+        if self.mover is None:
+            return
+        key = (c.user, c.ctag)
+        pinned = c.data.get("pinned") or c.data.get("placement") not in (None, "auto")
+        wants = bool(c.data.get("spare")) and not pinned and c.state == "running"
+        if not wants or self.mover.spare_stale(c):
+            if key in self.mover.spares:
+                self.mover.drop_spare(c.user, c.ctag)
+            return
+        task = self._moving.get(key)
+        if task is not None and not task.done():
+            return
+        if self.mover.spare_failed(c.user, c.ctag):
+            if time.monotonic() - self._spare_failed.setdefault(key, time.monotonic()) < SPARE_RETRY_S:
+                return
+            self._spare_failed.pop(key, None)
+        elif key in self.mover.spares:
+            return
+        nxt = runner_up(ch, self._low(c))
+        if nxt is None:
+            return
+        try:
+            self.mover.make_spare(c.user, c.ctag, nxt.tid)
+        except RCEError as e:
+            log.warning("spare not made", user=c.user, ctag=c.ctag, tid=nxt.tid, reason=str(e))
 
     async def run(self, stop: asyncio.Event) -> None:
         """Poll the counters every :data:`POLL` s, and re-decide and carry out the placer's moves

@@ -38,7 +38,7 @@ from dataclasses import asdict, dataclass, field
 from rce.protocol.zones import Zone
 
 __all__ = ["LATE_RECORD_S", "LATE_WINDOW_S", "MIN_RESULTS", "MISS_RATE_OK", "Choice", "ContainerView", "EnergyModel",
-           "HostView", "LinkView", "Option", "Placer", "choose", "late_share", "options"]
+           "HostView", "LinkView", "Option", "Placer", "choose", "late_share", "options", "runner_up"]
 
 
 @dataclass(frozen=True)
@@ -235,6 +235,14 @@ def choose(opts: list[Option], current_tid: int | None, battery_low: bool = Fals
                                            f"{cur.margin_ms:.0f} ms on {cur.zone}", opts)
     return Choice(best, cur, False, f"stays on {cur.zone} ({_words(cur)}): {best.zone} is not better by "
                                     f"the hysteresis", opts)
+
+
+def runner_up(ch: Choice, battery_low: bool = False) -> Option | None:
+    """The host ``ch`` ranks best after the one the container runs on (where a spare of it serves:
+    the host it would move to next), whether or not it meets the deadline now; None if there is no
+    other."""
+    others = [o for o in ch.options if ch.current is None or o.tid != ch.current.tid]
+    return min(others, key=lambda o: _rank(o, battery_low)) if others else None
 
 
 def _words(o: Option) -> str:

@@ -135,6 +135,11 @@ class _PlacementCollector:
                                   "on where it was)", value=self.mover.failed)
         yield CounterMetricFamily("rce_master_container_move_fence_timeouts", "Moves whose old copy went before "
                                   "every fence, input and output was accounted for", value=self.mover.fence_timeouts)
+        yield GaugeMetricFamily("rce_master_container_spares", "Spare copies of containers, made and fed nothing "
+                                "(docs/placement.md, Spares)", value=sum(self.mover.spare_of(*k) is not None
+                                                                         for k in list(self.mover.spares)))
+        yield CounterMetricFamily("rce_master_container_spares_taken", "Moves that took a spare (switch and break "
+                                  "only)", value=self.mover.spares_taken)
 
 
 class MasterMetrics:
@@ -277,6 +282,7 @@ class Master:
             if tid not in (None, ts.tid):
                 continue
             got, gone = self.state.drop_taskset(ts.tid)
+            self.mover.host_lost(ts.tid)
             self.restored_absent.discard(ts.tid)
             log.warning("task set did not come back", tid=ts.tid, name=ts.name, containers=len(got),
                         robots=len(gone))
@@ -363,6 +369,7 @@ class Master:
             self.tasks.spawn(self._end_grace(tid), name=f"taskset-{tid}-grace")
             return
         lost, robots = self.state.drop_taskset(tid)
+        self.mover.host_lost(tid)
         log.warning("task set gone", tid=tid, name=peer.name, containers=len(lost), robots=len(robots))
         self.tasks.spawn(self.failover.taskset_lost(lost, robots), name=f"taskset-{tid}-lost")
 
@@ -495,6 +502,8 @@ class Master:
         if not isinstance(args.get("cid"), int):
             raise RequestError(f"container_lost needs an integer 'cid', got {args.get('cid')!r}")
         reason = str(args.get("reason") or "its environment exited")
+        if self.mover.spare_lost(tid, args["cid"]):
+            return
         log.warning("container lost with its environment", tid=tid, cid=args["cid"], reason=reason)
         await self.failover.environment_lost(tid, args["cid"], reason)
         await self.state.store.flush()

@@ -151,7 +151,9 @@ class ContainerData(Component):
     ``ordered_moves``: true makes a move's new copy hold its inputs until the old copy has handled
     its last ones and its peers have its last results, so that results keep one order per
     interface across the move (its gap is then the old copy's drain); false or absent: the new
-    copy serves at once (``docs/placement.md``, Moves)."""
+    copy serves at once (``docs/placement.md``, Moves). ``spare``: true keeps a made copy of it, fed
+    nothing, on the host the placer would move it to next, so that a move there only switches
+    (``docs/placement.md``, Spares)."""
     group: Text | None = None
     groupIp: Text | None = None
     size: Limit | None = None
@@ -165,6 +167,7 @@ class ContainerData(Component):
     robot: Tag | None = None
     consumes: Tags | None = None
     ordered_moves: Flag | None = None
+    spare: Flag | None = None
 
     @model_validator(mode="after")
     def _robot_named(self):

@@ -267,6 +267,8 @@ async def test_a_pending_move_is_made_when_its_hysteresis_ends_not_at_the_next_p
         return stats(100, 0)
 
     class Mover:
+        spares: dict = {}
+
         async def move(self, user, ctag, tid, why, drain_max):
             asked.append(tid)
             moved.set()
@@ -309,3 +311,13 @@ def test_from_a_host_where_some_results_are_late_to_one_where_none_were():
     q.decide(0.0, in_cloud, [CLOUD, ROBOT], GOOD, CLOUD.tid)
     assert not q.decide(LATE_RECORD_S + 1, on_robot, [CLOUD, ROBOT], near, ROBOT.tid).move, \
         "a clean record is kept for LATE_RECORD_S"
+
+
+def test_a_spare_goes_where_the_placer_ranks_next():
+    from rce_master.placer import runner_up
+    ch = Placer().decide(0.0, NODE, [CLOUD, ROBOT], GOOD, CLOUD.tid)
+    assert ch.current.tid == CLOUD.tid and runner_up(ch).tid == ROBOT.tid
+    ch = Placer().decide(0.0, NODE, [CLOUD, ROBOT], BAD, ROBOT.tid)
+    assert runner_up(ch).tid == CLOUD.tid, "the cloud misses now, but it is where the container goes back to"
+    ch = Placer().decide(0.0, NODE, [ROBOT], GOOD, ROBOT.tid)
+    assert runner_up(ch) is None, "no other host: no spare"

@@ -1,0 +1,192 @@
+"""A container's spare (``containerData`` ``spare: true``), against a real engine on loopback: a
+master, a robot task set, a cloud container host and robot ``spare``'s own computer (``--zone
+robot:spare``). The robot sends numbered ``std_msgs/String`` at 20 Hz to ``stringEcho.py`` in its
+container and reads the echoes.
+
+- the master keeps a made copy on the host the placer ranks next; a move there takes it (only the
+  switch and the break), a new spare is made on the host it left, and the move back takes that:
+  every message echoed once, in order;
+- a spare made before the container changed (a parameter set since) is destroyed and a fresh one
+  made, which the move takes;
+- kill -9 of a spare's environment: the master forgets it (the container is not lost, its robot
+  told nothing), makes another, and the next move takes that one.
+"""
+from __future__ import annotations
+
+import asyncio
+import time
+import urllib.request
+from contextlib import asynccontextmanager
+from pathlib import Path
+
+import psutil
+import pytest
+
+from rce.tools.launch import start_engine
+from test_dataflow import _echo_container
+from test_move import Stream, host_of
+from wsclient import RawRobot
+
+pytestmark = pytest.mark.asyncio
+
+WAIT = 30.0
+ROBOT_HOST = "spare-computer"
+DATA = {"placement": "auto", "robot": "spare", "spare": True}
+
+
+@pytest.fixture(scope="module")
+def eng(tmp_path_factory):
+    e = start_engine(tmp_path_factory.mktemp("spare") / "engine", container_hosts=0)
+    e.add_container_host("--name", "dc1")
+    e.add_container_host("--zone", "robot:spare", "--user", "testUser", "--name", ROBOT_HOST)
+    yield e
+    e.stop()
+
+
+async def spare_on(eng, ctag: str, host: str) -> dict:
+    """The placement row of ``ctag`` once its spare is made on ``host``."""
+    end = time.monotonic() + WAIT
+    while True:
+        rows = await asyncio.to_thread(eng.admin, "/api/placement")
+        row = next(r for r in rows if r["ctag"] == ctag)
+        if row.get("spare") and row["spare"].endswith(f"({host})"):
+            return row
+        assert time.monotonic() < end, f"no spare of {ctag} on {host}: {row.get('spare')}"
+        await asyncio.sleep(0.1)
+
+
+def environments(host_name: str) -> dict[int, int]:
+    """Container host ``host_name``'s containers, copies and spares alike: cid -> the pid of the
+    environment process that serves its bus socket (``c<cid>/bus.sock``; a host also keeps an idle
+    environment ready, which serves none)."""
+    host = next(p for p in psutil.process_iter(["cmdline"])
+                if any("rce-container" in a for a in p.info["cmdline"] or []) and host_name in p.info["cmdline"])
+    out = {}
+    for p in host.children(recursive=True):
+        try:
+            if "rce_container.environment" not in " ".join(p.cmdline()):
+                continue
+            for conn in p.net_connections("unix"):
+                path = Path(conn.laddr) if isinstance(conn.laddr, str) and conn.laddr else None
+                if path is not None and path.name == "bus.sock" and conn.status == psutil.CONN_NONE:
+                    out[int(path.parent.name[1:])] = p.pid
+        except psutil.NoSuchProcess:
+            continue
+    return out
+
+
+async def environments_on(host: str, n: int) -> None:
+    """Wait until ``host`` runs ``n`` environments (a container each: its copies and spares)."""
+    end = time.monotonic() + WAIT
+    while len(environments(host)) != n:
+        assert time.monotonic() < end, f"{host}: environments {environments(host)}, not {n}"
+        await asyncio.sleep(0.1)
+
+
+@asynccontextmanager
+async def robot(eng):
+    """Robot ``spare`` logged in; on the way out, waits until the master let it go (the next test logs
+    it in again)."""
+    async with RawRobot(eng.master_url, "spare", query="&maxLag=0") as r:
+        yield r
+    end = time.monotonic() + WAIT
+    while any(x.get("robot") == "spare" for x in await asyncio.to_thread(eng.admin, "/api/robots")):
+        assert time.monotonic() < end, "robot spare still logged in"
+        await asyncio.sleep(0.05)
+
+
+def checked(s: Stream) -> None:
+    seqs = [q for _, q in s.echoes]
+    assert seqs == sorted(seqs), "echoes in order"
+    assert len(seqs) == len(set(seqs)), "no echo twice"
+    assert not sorted(set(range(seqs[0], seqs[-1] + 1)) - set(seqs)), "nothing lost"
+
+
+async def test_a_move_takes_its_spare_and_the_way_back_takes_the_next(eng):
+    async with robot(eng) as r:
+        await _echo_container(r, "spareEcho", "Converter", DATA)
+        assert host_of(eng, "spareEcho") == "dc1"
+        row = await spare_on(eng, "spareEcho", ROBOT_HOST)
+        assert row["runs"].endswith("(dc1)") and row["spare"].startswith("robot:spare"), row
+        s = Stream(r)
+        task = asyncio.create_task(s.run())
+        try:
+            await s.until(10)
+            for where, back in ((ROBOT_HOST, "dc1"), ("dc1", ROBOT_HOST)):
+                await spare_on(eng, "spareEcho", where)
+                moved = await asyncio.to_thread(eng.admin, "/api/containers/testUser/spareEcho/move", {"host": where})
+                assert moved["spare"] is True, moved
+                assert host_of(eng, "spareEcho") == where
+                n = len(s.echoes)
+                await s.until(n + 20)
+                await spare_on(eng, "spareEcho", back)        # a new spare where it was
+            await s.until(s.sent - s.echoes[0][1] - 2)
+        finally:
+            task.cancel()
+        checked(s)
+        with urllib.request.urlopen(eng.master_url + "metrics", timeout=10) as resp:
+            metrics = resp.read().decode()
+        assert "rce_master_container_spares_taken_total 2.0" in metrics
+        assert "rce_master_container_spares 1.0" in metrics
+        await r.send("DC", {"containerTag": "spareEcho"})
+        await environments_on(ROBOT_HOST, 0)              # its spare goes with it
+        await environments_on("dc1", 0)
+
+
+async def test_a_spare_made_before_a_change_is_replaced(eng):
+    async with robot(eng) as r:
+        await _echo_container(r, "staleEcho", "Converter", DATA)
+        await spare_on(eng, "staleEcho", ROBOT_HOST)
+        await environments_on(ROBOT_HOST, 1)
+        (old,) = environments(ROBOT_HOST)
+        await r.cn(setParam=[{"containerTag": "staleEcho", "name": "changed", "value": 1}])
+        end = time.monotonic() + WAIT
+        while set(environments(ROBOT_HOST)) in ({old}, set()):     # the stale spare destroyed, a fresh one made
+            assert time.monotonic() < end, "the spare made before the parameter was kept"
+            await asyncio.sleep(0.1)
+        await spare_on(eng, "staleEcho", ROBOT_HOST)
+        s = Stream(r)
+        task = asyncio.create_task(s.run())
+        try:
+            await s.until(10)
+            moved = await asyncio.to_thread(eng.admin, "/api/containers/testUser/staleEcho/move", {"host": ROBOT_HOST})
+            assert moved["spare"] is True, moved
+            n = len(s.echoes)
+            await s.until(n + 20)
+        finally:
+            task.cancel()
+        checked(s)
+        await environments_on(ROBOT_HOST, 1)               # the moved copy only
+        await r.send("DC", {"containerTag": "staleEcho"})
+        await environments_on(ROBOT_HOST, 0)
+        await environments_on("dc1", 0)
+
+
+async def test_kill_9_of_a_spare_s_environment_is_forgotten_and_another_made(eng):
+    async with robot(eng) as r:
+        await _echo_container(r, "lostSpare", "Converter", DATA)
+        await spare_on(eng, "lostSpare", ROBOT_HOST)
+        await environments_on(ROBOT_HOST, 1)
+        ((cid, env),) = environments(ROBOT_HOST).items()
+        psutil.Process(env).kill()
+        end = time.monotonic() + WAIT
+        while set(environments(ROBOT_HOST)) in (set(), {cid}):      # forgotten, and another made
+            assert time.monotonic() < end, "no new spare after the old one's environment died"
+            await asyncio.sleep(0.1)
+        await spare_on(eng, "lostSpare", ROBOT_HOST)
+        assert host_of(eng, "lostSpare") == "dc1"
+        state = next(c for c in await asyncio.to_thread(eng.admin, "/api/containers") if c["ctag"] == "lostSpare")
+        assert state["state"] == "running", state
+        s = Stream(r)
+        task = asyncio.create_task(s.run())
+        try:
+            await s.until(10)
+            moved = await asyncio.to_thread(eng.admin, "/api/containers/testUser/lostSpare/move", {"host": ROBOT_HOST})
+            assert moved["spare"] is True, moved
+            n = len(s.echoes)
+            await s.until(n + 20)
+        finally:
+            task.cancel()
+        checked(s)
+        told = [m for m in s.other if m.get("type") == "ST" and m["data"].get("status") == "lost"]
+        assert not told, "the robot was told of a lost container: the spare is not the container"
