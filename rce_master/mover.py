@@ -373,9 +373,14 @@ class Mover:
         the new copy ``cid`` at data address ``addr`` from now on, all at once, each with a fence.
         Returns the fences the old copy is to get (``[src, dst, n]``) and the tags of the peers that
         could not be told (they may still send to the old copy: nothing fences that)."""
-        answers = await asyncio.gather(*(self.control.endpoint_call(peer, "connect", fence=cid,
-                                                                    **self.control.connect_args(peer, me.iid, addr))
-                                         for me, peer in conns), return_exceptions=True)
+        t0 = time.monotonic()
+
+        async def told(me: InterfaceRec, peer: InterfaceRec) -> dict:
+            r = await self.control.endpoint_call(peer, "connect", fence=cid, **self.control.connect_args(peer, me.iid,
+                                                                                                         addr))
+            log.info("peer switched", user=c.user, ctag=c.ctag, peer=peer.tag, s=round(time.monotonic() - t0, 3))
+            return r
+        answers = await asyncio.gather(*(told(me, peer) for me, peer in conns), return_exceptions=True)
         expect: list[list[int]] = []
         unreached: list[str] = []
         for (me, peer), r in zip(conns, answers, strict=True):
