@@ -102,6 +102,48 @@ def checked(s: Stream) -> None:
     assert not sorted(set(range(seqs[0], seqs[-1] + 1)) - set(seqs)), "nothing lost"
 
 
+async def made_with_spare(eng, r: RawRobot, ctag: str) -> dict[int, int]:
+    """Container ``ctag`` made in the cloud, its spare made on the robot's computer: the robot
+    computer's containers (:func:`environments`: the spare alone)."""
+    await _echo_container(r, ctag, "Converter", DATA)
+    await spare_on(eng, ctag, ROBOT_HOST)
+    await environments_on(ROBOT_HOST, 1)
+    return environments(ROBOT_HOST)
+
+
+async def removed(r: RawRobot, ctag: str) -> None:
+    """DC ``ctag``: nothing of it is left on either host."""
+    await r.send("DC", {"containerTag": ctag})
+    await environments_on(ROBOT_HOST, 0)
+    await environments_on("dc1", 0)
+
+
+async def replaced(eng, ctag: str, cid: int) -> None:
+    """Wait until ``ctag``'s spare on the robot's computer is another than ``cid``, and ready."""
+    end = time.monotonic() + WAIT
+    while set(environments(ROBOT_HOST)) in (set(), {cid}):
+        assert time.monotonic() < end, f"spare c{cid} of {ctag} was not replaced"
+        await asyncio.sleep(0.1)
+    await spare_on(eng, ctag, ROBOT_HOST)
+
+
+async def to_the_spare(eng, r: RawRobot, ctag: str) -> Stream:
+    """Move ``ctag`` to the robot's computer while the echo stream runs: it takes its spare there,
+    and every echo comes once, in order. Returns the stream."""
+    s = Stream(r)
+    task = asyncio.create_task(s.run())
+    try:
+        await s.until(10)
+        moved = await asyncio.to_thread(eng.admin, f"/api/containers/testUser/{ctag}/move", {"host": ROBOT_HOST})
+        assert moved["spare"] is True, moved
+        n = len(s.echoes)
+        await s.until(n + 20)
+    finally:
+        task.cancel()
+    checked(s)
+    return s
+
+
 async def test_a_move_takes_its_spare_and_the_way_back_takes_the_next(eng):
     async with robot(eng) as r:
         await _echo_container(r, "spareEcho", "Converter", DATA)
@@ -128,65 +170,27 @@ async def test_a_move_takes_its_spare_and_the_way_back_takes_the_next(eng):
             metrics = resp.read().decode()
         assert "rce_master_container_spares_taken_total 2.0" in metrics
         assert "rce_master_container_spares 1.0" in metrics
-        await r.send("DC", {"containerTag": "spareEcho"})
-        await environments_on(ROBOT_HOST, 0)              # its spare goes with it
-        await environments_on("dc1", 0)
+        await removed(r, "spareEcho")                      # its spare goes with it
 
 
 async def test_a_spare_made_before_a_change_is_replaced(eng):
     async with robot(eng) as r:
-        await _echo_container(r, "staleEcho", "Converter", DATA)
-        await spare_on(eng, "staleEcho", ROBOT_HOST)
-        await environments_on(ROBOT_HOST, 1)
-        (old,) = environments(ROBOT_HOST)
+        (old,) = await made_with_spare(eng, r, "staleEcho")
         await r.cn(setParam=[{"containerTag": "staleEcho", "name": "changed", "value": 1}])
-        end = time.monotonic() + WAIT
-        while set(environments(ROBOT_HOST)) in ({old}, set()):     # the stale spare destroyed, a fresh one made
-            assert time.monotonic() < end, "the spare made before the parameter was kept"
-            await asyncio.sleep(0.1)
-        await spare_on(eng, "staleEcho", ROBOT_HOST)
-        s = Stream(r)
-        task = asyncio.create_task(s.run())
-        try:
-            await s.until(10)
-            moved = await asyncio.to_thread(eng.admin, "/api/containers/testUser/staleEcho/move", {"host": ROBOT_HOST})
-            assert moved["spare"] is True, moved
-            n = len(s.echoes)
-            await s.until(n + 20)
-        finally:
-            task.cancel()
-        checked(s)
+        await replaced(eng, "staleEcho", old)         # the stale spare destroyed, a fresh one made
+        await to_the_spare(eng, r, "staleEcho")
         await environments_on(ROBOT_HOST, 1)               # the moved copy only
-        await r.send("DC", {"containerTag": "staleEcho"})
-        await environments_on(ROBOT_HOST, 0)
-        await environments_on("dc1", 0)
+        await removed(r, "staleEcho")
 
 
 async def test_kill_9_of_a_spare_s_environment_is_forgotten_and_another_made(eng):
     async with robot(eng) as r:
-        await _echo_container(r, "lostSpare", "Converter", DATA)
-        await spare_on(eng, "lostSpare", ROBOT_HOST)
-        await environments_on(ROBOT_HOST, 1)
-        ((cid, env),) = environments(ROBOT_HOST).items()
+        ((cid, env),) = (await made_with_spare(eng, r, "lostSpare")).items()
         psutil.Process(env).kill()
-        end = time.monotonic() + WAIT
-        while set(environments(ROBOT_HOST)) in (set(), {cid}):      # forgotten, and another made
-            assert time.monotonic() < end, "no new spare after the old one's environment died"
-            await asyncio.sleep(0.1)
-        await spare_on(eng, "lostSpare", ROBOT_HOST)
+        await replaced(eng, "lostSpare", cid)         # forgotten, and another made
         assert host_of(eng, "lostSpare") == "dc1"
         state = next(c for c in await asyncio.to_thread(eng.admin, "/api/containers") if c["ctag"] == "lostSpare")
         assert state["state"] == "running", state
-        s = Stream(r)
-        task = asyncio.create_task(s.run())
-        try:
-            await s.until(10)
-            moved = await asyncio.to_thread(eng.admin, "/api/containers/testUser/lostSpare/move", {"host": ROBOT_HOST})
-            assert moved["spare"] is True, moved
-            n = len(s.echoes)
-            await s.until(n + 20)
-        finally:
-            task.cancel()
-        checked(s)
+        s = await to_the_spare(eng, r, "lostSpare")
         told = [m for m in s.other if m.get("type") == "ST" and m["data"].get("status") == "lost"]
         assert not told, "the robot was told of a lost container: the spare is not the container"
