@@ -21,6 +21,10 @@ and an ER naming why, and a task re-creates it (:meth:`Failover._recover`):
 3. mark it ``running``; ``connect`` both ends of each of its connections whose other end is up
    (the robot-side end gets the new data address and says ``iu true``); ST ``running``.
 
+A container with a spare (:mod:`rce_master.mover`, Spares) that still holds is not re-created: its
+spare, made and wired beforehand on another host that is up, becomes it (steps 1 and 2 skipped; its
+nodes start fresh, with no state handed over), then step 3.
+
 When no host can take it, it waits (``lost``) and is tried again each time a container host
 registers, for up to ``wait`` s. A re-creation that fails is undone on its host, and that host
 is not tried again for this loss. After ``attempts`` re-creations (an environment that dies at
@@ -32,6 +36,7 @@ from __future__ import annotations
 
 import asyncio
 import time
+from collections.abc import Callable
 from dataclasses import dataclass, field
 
 from rce.plumbing.errors import RCEError, Unavailable
@@ -39,6 +44,7 @@ from rce.plumbing.log import get_logger
 from rce.plumbing.tasks import Tasks
 from rce_master.control import Control
 from rce_master.model import ContainerRec, InterfaceRec, Robot
+from rce_master.mover import Made
 from rce_master.state import MasterState
 
 log = get_logger("rce.master")
@@ -68,11 +74,13 @@ class Recovery:
 class Failover:
     """Re-creates lost containers (see the module doc) on ``state`` through ``control``; its tasks
     are kept in ``tasks``. ``attempts``, ``wait`` (s) and ``stable`` (s): as the defaults
-    :data:`RECOVERY_ATTEMPTS`, :data:`RECOVERY_WAIT`, :data:`RECOVERY_STABLE`."""
+    :data:`RECOVERY_ATTEMPTS`, :data:`RECOVERY_WAIT`, :data:`RECOVERY_STABLE`; ``spares(c)``: a lost
+    container's spare that still holds, taken (:meth:`rce_master.mover.Mover.claim_spare`)."""
 
     def __init__(self, state: MasterState, control: Control, tasks: Tasks, *, attempts: int = RECOVERY_ATTEMPTS,
-                 wait: float = RECOVERY_WAIT, stable: float = RECOVERY_STABLE):
-        self.state, self.control, self.tasks = state, control, tasks
+                 wait: float = RECOVERY_WAIT, stable: float = RECOVERY_STABLE,
+                 spares: Callable[[ContainerRec], Made | None] | None = None):
+        self.state, self.control, self.tasks, self.spares = state, control, tasks, spares
         self.attempts, self.wait, self.stable = attempts, wait, stable
         self.recoveries: dict[tuple[str, str], Recovery] = {}     # (user, ctag) -> its failover, while it matters
         self.recovered = self.gave_up = 0                         # counters (metrics)
@@ -167,6 +175,14 @@ class Failover:
             if rec.attempts >= self.attempts:
                 self._give_up(c, f"{rec.attempts} re-creations failed")
                 return
+            made = self.spares(c) if self.spares is not None else None
+            if made is not None:
+                rec.attempts += 1
+                if await self._attempt(c, made.rec.tid, made):
+                    rec.recovered_at = time.monotonic()
+                    return
+                rec.failed.add(made.rec.tid)
+                continue
             try:
                 host = self.state.pick_container_host(c.data, c.user, exclude=rec.failed, prefer=rec.prefer)
             except Unavailable as e:
@@ -180,13 +196,17 @@ class Failover:
                 return
             rec.failed.add(host.tid)
 
-    async def _attempt(self, container: ContainerRec, tid: int) -> bool:
-        """One re-creation of ``container`` on host ``tid``; True when it runs there. Undone when it fails."""
+    async def _attempt(self, container: ContainerRec, tid: int, spare: Made | None = None) -> bool:
+        """One re-creation of ``container`` on host ``tid`` (or the take-over of its ``spare`` there);
+        True when it runs there. Undone when it fails."""
         t0 = time.monotonic()
-        self.state.container_recovering(container, tid)
+        self.state.container_recovering(container, tid, spare.rec.cid if spare is not None else None)
         cid = container.cid
         try:
-            await self._rebuild(container, cid)
+            if spare is None:
+                await self._rebuild(container, cid)
+            else:
+                await self._adopt(container, cid, spare)
         except (RCEError, _Superseded) as e:
             await self.control.destroy_on(tid, cid)
             if self._current(container) and container.cid == cid and container.state == "recovering":
@@ -196,8 +216,8 @@ class Failover:
                             reason=e.message)
             return False
         self.recovered += 1
-        log.info("container re-created", user=container.user, ctag=container.ctag, cid=cid, tid=tid,
-                 ms=round((time.monotonic() - t0) * 1000, 1))
+        log.info("container re-created" if spare is None else "container taken over by its spare", user=container.user,
+                 ctag=container.ctag, cid=cid, tid=tid, ms=round((time.monotonic() - t0) * 1000, 1))
         return True
 
     async def _rebuild(self, container: ContainerRec, cid: int) -> None:
@@ -214,6 +234,21 @@ class Failover:
             self._check(container, cid)
             await self.control.start_node(container, n.ntag, n.spec)
             self.state.node_running(n)
+        await self._running(container, cid, answer)
+
+    async def _adopt(self, container: ContainerRec, cid: int, spare: Made) -> None:
+        """Lost ``container`` runs as its ``spare`` (now ``cid``), made and wired beforehand: its nodes
+        are up (a spare made holding its inputs for a state takes none: they start fresh), then as
+        :meth:`_rebuild` ends."""
+        if spare.handoff:
+            await self.control.host_call(container, "state_in", states={})
+        for n in self.state.nodes_of(container):
+            self.state.node_running(n)
+        await self._running(container, cid, spare.answer)
+
+    async def _running(self, container: ContainerRec, cid: int, answer: dict) -> None:
+        """``container`` (``cid``), made on its host (``answer``: its ``data_addr`` and ``sandbox``),
+        runs: its connections are made again, its owner is told."""
         self._check(container, cid)
         self.state.container_ready(container, answer["data_addr"], answer.get("sandbox", ""))
         for a, b in self._live_connections(container):          # read right after it runs: see _live_connections

@@ -37,7 +37,9 @@ fed nothing, so it costs that host memory and no CPU. A move to that host takes 
 switches and breaks; a move elsewhere destroys it. A spare is taken only if it is of the copy that
 runs now and nothing it was made from changed since (parameters, interfaces, nodes, connections,
 limits: :meth:`Mover.basis`); otherwise the move makes a fresh copy. One whose environment died
-or whose host went is forgotten (:meth:`Mover.spare_lost`, :meth:`Mover.host_lost`).
+or whose host went is forgotten (:meth:`Mover.spare_lost`, :meth:`Mover.host_lost`). When the
+container itself is lost with its host or environment, its failover takes its spare rather than
+re-create it (:meth:`Mover.claim_spare`, :mod:`rce_master.failover`).
 """
 from __future__ import annotations
 
@@ -224,6 +226,22 @@ class Mover:
             if sp.tid == tid:
                 del self.spares[key]
                 sp.task.cancel()
+
+    def claim_spare(self, c: ContainerRec) -> Made | None:
+        """For the failover of lost container ``c``: its spare, taken from the spares, when it is
+        made, of the copy that was lost and of what ``c`` is now (:meth:`basis`), on a host that is
+        up; None otherwise (a spare that does not hold is destroyed)."""
+        sp = self.spares.get((c.user, c.ctag))
+        made = _made(sp) if sp is not None else None
+        if made is None:
+            return None
+        host = self.state.tasksets.get(sp.tid)
+        if made.of_cid != c.cid or made.basis != self.basis(c) or host is None or host.lost:
+            self.drop_spare(c.user, c.ctag)
+            return None
+        del self.spares[(c.user, c.ctag)]
+        self.spares_taken += 1
+        return made
 
     def basis(self, c: ContainerRec) -> str:
         """What a copy of ``c`` is made from, as one string: its group, limits and deadline, its

@@ -16,8 +16,8 @@ Inputs, all measured (:mod:`rce_master.placer` is the model):
 A container that asks for a spare (``spare: true``) is kept one on the host the placer ranks next
 after the one it runs on (:func:`rce_master.placer.runner_up`; :mod:`rce_master.mover`, Spares): made
 when it has none, kept while that host may run it (a spare does not follow every turn of the
-ranking: its make costs the host), destroyed when the container is pinned, stops, is removed or
-asks no more.
+ranking: its make costs the host), destroyed when the container is pinned, is removed or asks no
+more; a lost container's spare becomes it (:mod:`rce_master.failover`).
 
 Every change of the placer's word on a container is logged with its inputs (``placement``). The
 admin API's ``GET /api/placement`` gives, per container, where it runs, where the placer would put
@@ -299,13 +299,14 @@ class Placement:
         return due
 
     def _keep_spare(self, c: ContainerRec, ch: Choice) -> None:
-        """Make ``c`` a spare on the host ranked next (:func:`runner_up`) when it asks for one and has
-        none; drop the one it has when it asks no more, is pinned or is not running."""
-        if self.mover is None:
+        """Make ``c`` a spare on the host ranked next (:func:`runner_up`) when it runs, asks for one and
+        has none; drop the one it has when it asks no more, is pinned, or the spare no longer holds.
+        A lost container's spare is left to its failover (:meth:`rce_master.mover.Mover.claim_spare`)."""
+        if self.mover is None or c.state != "running":
             return
         key = (c.user, c.ctag)
         pinned = c.data.get("pinned") or c.data.get("placement") not in (None, "auto")
-        wants = bool(c.data.get("spare")) and not pinned and c.state == "running"
+        wants = bool(c.data.get("spare")) and not pinned
         if not wants or self.mover.spare_stale(c):
             if key in self.mover.spares:
                 self.mover.drop_spare(c.user, c.ctag)

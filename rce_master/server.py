@@ -217,7 +217,7 @@ class Master:
         self.robot_locks: dict[tuple[str, str], asyncio.Lock] = defaultdict(asyncio.Lock)
         self.robot_logins: dict[tuple[str, str], tuple[int, str]] = {}   # robot -> (endpoint tid, its login's session)
         self.tasks = Tasks("rce-master")
-        self.failover = Failover(self.state, self.control, self.tasks)
+        self.failover = Failover(self.state, self.control, self.tasks, spares=self.mover.claim_spare)
         self.metrics = MasterMetrics(self.state, self.office, self.failover)
         self.metrics.registry.register(self.passwords)
         self.metrics.registry.register(_PlacementCollector(self.state, self.placement, self.mover))

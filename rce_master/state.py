@@ -394,15 +394,15 @@ class MasterState(StateIndex):
         self._put(container, state="lost")
 
     @_atomic
-    def container_recovering(self, container: ContainerRec, tid: int) -> None:
+    def container_recovering(self, container: ContainerRec, tid: int, cid: int | None = None) -> None:
         """Re-create lost container ``c`` on host ``tid``: it gets a new ``cid`` (a copy its old
-        host may still hold keeps the old one, and is dropped when that host re-registers), its
-        container-side interfaces move with it, its nodes are ``starting`` again. Raises
-        :class:`RequestError` unless ``c`` is the user's current, lost container."""
+        host may still hold keeps the old one, and is dropped when that host re-registers), or
+        ``cid``, its spare's, its container-side interfaces move with it, its nodes are ``starting``
+        again. Raises :class:`RequestError` unless ``c`` is the user's current, lost container."""
         if not _current(self.containers, (container.user, container.ctag), container) or container.state != "lost":
             raise RequestError(f"container {container.ctag!r} is not lost: it is {container.state} (or gone)")
         old = container.cid
-        self._put(container, cid=self._next_id("cid"), tid=tid, state="recovering")
+        self._put(container, cid=self._next_id("cid") if cid is None else cid, tid=tid, state="recovering")
         for rec in self.interfaces_of(container.user, container.ctag, robot_side=False):
             if rec.location == old:
                 self._put(rec, location=container.cid)

@@ -9,7 +9,9 @@ container and reads the echoes.
 - a spare made before the container changed (a parameter set since) is destroyed and a fresh one
   made, which the move takes;
 - kill -9 of a spare's environment: the master forgets it (the container is not lost, its robot
-  told nothing), makes another, and the next move takes that one.
+  told nothing), makes another, and the next move takes that one;
+- kill -9 of the host the container runs on: its failover takes the spare (the container runs on as
+  the spare's copy on the robot's computer, nothing re-created).
 """
 from __future__ import annotations
 
@@ -55,12 +57,19 @@ async def spare_on(eng, ctag: str, host: str) -> dict:
         await asyncio.sleep(0.1)
 
 
-def environments(host_name: str) -> dict[int, int]:
+def host_process(eng, name: str) -> psutil.Process:
+    """The process of ``eng``'s container host ``name`` (other engines, in other test workers, name
+    theirs alike)."""
+    def ours(argv: list[str]) -> bool:
+        return any("rce-container" in a for a in argv) and name in argv and str(eng.workdir) in " ".join(argv)
+    return next(p for p in psutil.process_iter(["cmdline"]) if ours(p.info["cmdline"] or []))
+
+
+def environments(eng, host_name: str) -> dict[int, int]:
     """Container host ``host_name``'s containers, copies and spares alike: cid -> the pid of the
     environment process that serves its bus socket (``c<cid>/bus.sock``; a host also keeps an idle
     environment ready, which serves none)."""
-    host = next(p for p in psutil.process_iter(["cmdline"])
-                if any("rce-container" in a for a in p.info["cmdline"] or []) and host_name in p.info["cmdline"])
+    host = host_process(eng, host_name)
     out = {}
     for p in host.children(recursive=True):
         try:
@@ -75,11 +84,11 @@ def environments(host_name: str) -> dict[int, int]:
     return out
 
 
-async def environments_on(host: str, n: int) -> None:
-    """Wait until ``host`` runs ``n`` environments (a container each: its copies and spares)."""
+async def environments_on(eng, host: str, n: int) -> None:
+    """Wait until ``host`` runs ``n`` containers (copies and spares)."""
     end = time.monotonic() + WAIT
-    while len(environments(host)) != n:
-        assert time.monotonic() < end, f"{host}: environments {environments(host)}, not {n}"
+    while len(environments(eng, host)) != n:
+        assert time.monotonic() < end, f"{host}: containers {environments(eng, host)}, not {n}"
         await asyncio.sleep(0.1)
 
 
@@ -107,21 +116,21 @@ async def made_with_spare(eng, r: RawRobot, ctag: str) -> dict[int, int]:
     computer's containers (:func:`environments`: the spare alone)."""
     await _echo_container(r, ctag, "Converter", DATA)
     await spare_on(eng, ctag, ROBOT_HOST)
-    await environments_on(ROBOT_HOST, 1)
-    return environments(ROBOT_HOST)
+    await environments_on(eng, ROBOT_HOST, 1)
+    return environments(eng, ROBOT_HOST)
 
 
-async def removed(r: RawRobot, ctag: str) -> None:
+async def removed(eng, r: RawRobot, ctag: str) -> None:
     """DC ``ctag``: nothing of it is left on either host."""
     await r.send("DC", {"containerTag": ctag})
-    await environments_on(ROBOT_HOST, 0)
-    await environments_on("dc1", 0)
+    await environments_on(eng, ROBOT_HOST, 0)
+    await environments_on(eng, "dc1", 0)
 
 
 async def replaced(eng, ctag: str, cid: int) -> None:
     """Wait until ``ctag``'s spare on the robot's computer is another than ``cid``, and ready."""
     end = time.monotonic() + WAIT
-    while set(environments(ROBOT_HOST)) in (set(), {cid}):
+    while set(environments(eng, ROBOT_HOST)) in (set(), {cid}):
         assert time.monotonic() < end, f"spare c{cid} of {ctag} was not replaced"
         await asyncio.sleep(0.1)
     await spare_on(eng, ctag, ROBOT_HOST)
@@ -170,7 +179,7 @@ async def test_a_move_takes_its_spare_and_the_way_back_takes_the_next(eng):
             metrics = resp.read().decode()
         assert "rce_master_container_spares_taken_total 2.0" in metrics
         assert "rce_master_container_spares 1.0" in metrics
-        await removed(r, "spareEcho")                      # its spare goes with it
+        await removed(eng, r, "spareEcho")                      # its spare goes with it
 
 
 async def test_a_spare_made_before_a_change_is_replaced(eng):
@@ -179,8 +188,8 @@ async def test_a_spare_made_before_a_change_is_replaced(eng):
         await r.cn(setParam=[{"containerTag": "staleEcho", "name": "changed", "value": 1}])
         await replaced(eng, "staleEcho", old)         # the stale spare destroyed, a fresh one made
         await to_the_spare(eng, r, "staleEcho")
-        await environments_on(ROBOT_HOST, 1)               # the moved copy only
-        await removed(r, "staleEcho")
+        await environments_on(eng, ROBOT_HOST, 1)               # the moved copy only
+        await removed(eng, r, "staleEcho")
 
 
 async def test_kill_9_of_a_spare_s_environment_is_forgotten_and_another_made(eng):
@@ -194,3 +203,28 @@ async def test_kill_9_of_a_spare_s_environment_is_forgotten_and_another_made(eng
         s = await to_the_spare(eng, r, "lostSpare")
         told = [m for m in s.other if m.get("type") == "ST" and m["data"].get("status") == "lost"]
         assert not told, "the robot was told of a lost container: the spare is not the container"
+
+
+async def test_kill_9_of_its_host_hands_the_container_to_its_spare(eng):
+    """Last in this module: the cloud host goes for good."""
+    async with robot(eng) as r:
+        ((cid, _),) = (await made_with_spare(eng, r, "hostGone")).items()
+        cloud = host_process(eng, "dc1")
+        s = Stream(r)
+        task = asyncio.create_task(s.run())
+        try:
+            await s.until(10)
+            t_kill = time.monotonic()
+            cloud.kill()
+            n = len(s.echoes)
+            await s.until(n + 20)                             # echoed again, by the spare
+        finally:
+            task.cancel()
+        print(f"kill -9 of the container's host: the longest gap between echoes "
+              f"{s.gap(t_kill - 0.5, s.echoes[-1][0]):.2f} s, its spare serving after it")
+        c = next(c for c in (await asyncio.to_thread(eng.admin, "/api/state"))["containers"] if c["ctag"] == "hostGone")
+        assert c["cid"] == cid and c["state"] == "running", "the spare became the container, not a re-created copy"
+        assert host_of(eng, "hostGone") == ROBOT_HOST
+        told = [m["data"]["status"] for m in s.other if m.get("type") == "ST" and m["data"].get("topic") == "container"]
+        assert "lost" in told and told[-1] == "running", told
+        assert set(environments(eng, ROBOT_HOST)) == {cid}, "nothing else was made there"
