@@ -268,28 +268,39 @@ async def robot_main(a: argparse.Namespace) -> dict:
 def shape(lab, link, rate: str, dscp: bool = False) -> None:
     """Both ends of ``link`` send at most ``rate`` with HTB, through ``QUEUE``-packet FIFOs: one class
     (marks ignored), or with ``dscp`` an EF class (``tos`` 0xb8: the engine's control links) served
-    first, 30 % of ``rate`` assured, beside the rest, each borrowing up to ``rate``."""
+    first, 30 % of ``rate`` assured, beside the rest, each borrowing up to ``rate``. Made on the first
+    call; later calls change the classes' rates in place (``tc class change``), so that what waits in
+    the queues stays there, as it does in a radio whose rate falls: taking the qdisc down and up again
+    would drop it all, control packets too, and their retransmission timeouts (0.2 s and more) would
+    be the bench's, not the link's."""
     classes = ((10, 0.7, 1), (20, 0.3, 0)) if dscp else ((10, 1.0, 0),)
     bits = _bits(rate)
     for ns, dev in ((link.a, link.a_dev), (link.b, link.b_dev)):
         tc = [*(("ip", "netns", "exec", ns) if ns else ()), "tc"]
-        # one packet a segment: HTB lets a whole segmentation-offload packet (up to 64 kB) through at
-        # once and pays it back after, which no radio does (a 48 kB probe crossed "1 Mbit/s" at once)
-        subprocess.run([*tc[:-1], "ip", "link", "set", "dev", dev, "gso_max_segs", "1"], check=True,
-                       capture_output=True)
-        subprocess.run([*tc, "qdisc", "del", "dev", dev, "root"], capture_output=True)
-        cmds = [("qdisc", "add", "dev", dev, "root", "handle", "1:", "htb", "default", "10"),
-                ("class", "add", "dev", dev, "parent", "1:", "classid", "1:1", "htb", "rate", rate, "ceil", rate,
+        verb = "change" if (ns, dev) in _SHAPED else "add"
+        cmds = [("class", verb, "dev", dev, "parent", "1:", "classid", "1:1", "htb", "rate", rate, "ceil", rate,
                  "burst", "15k")]
         for cid, share, prio in classes:
-            cmds += [("class", "add", "dev", dev, "parent", "1:1", "classid", f"1:{cid}", "htb", "rate",
-                      f"{int(bits * share)}bit", "ceil", rate, "burst", "15k", "prio", str(prio)),
-                     ("qdisc", "add", "dev", dev, "parent", f"1:{cid}", "pfifo", "limit", str(QUEUE))]
-        if dscp:
-            cmds.append(("filter", "add", "dev", dev, "parent", "1:", "protocol", "ip", "prio", "1", "u32", "match",
-                         "ip", "tos", "0xb8", "0xfc", "flowid", "1:20"))
+            cmds.append(("class", verb, "dev", dev, "parent", "1:1", "classid", f"1:{cid}", "htb", "rate",
+                         f"{int(bits * share)}bit", "ceil", rate, "burst", "15k", "prio", str(prio)))
+        if verb == "add":
+            # one packet a segment: HTB lets a whole segmentation-offload packet (up to 64 kB) through at
+            # once and pays it back after, which no radio does (a 48 kB probe crossed "1 Mbit/s" at once)
+            subprocess.run([*tc[:-1], "ip", "link", "set", "dev", dev, "gso_max_segs", "1"], check=True,
+                           capture_output=True)
+            subprocess.run([*tc, "qdisc", "del", "dev", dev, "root"], capture_output=True)
+            cmds.insert(0, ("qdisc", "add", "dev", dev, "root", "handle", "1:", "htb", "default", "10"))
+            cmds += [("qdisc", "add", "dev", dev, "parent", f"1:{cid}", "pfifo", "limit", str(QUEUE))
+                     for cid, _, _ in classes]
+            if dscp:
+                cmds.append(("filter", "add", "dev", dev, "parent", "1:", "protocol", "ip", "prio", "1", "u32",
+                             "match", "ip", "tos", "0xb8", "0xfc", "flowid", "1:20"))
         for args in cmds:
             subprocess.run([*tc, *args], check=True, capture_output=True, text=True)
+        _SHAPED.add((ns, dev))
+
+
+_SHAPED: set[tuple[str | None, str]] = set()    # link ends shaped so far (a system's run makes its link anew)
 
 
 def _bits(rate: str) -> int:
