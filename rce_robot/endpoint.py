@@ -255,7 +255,6 @@ class RobotEndpoint:
         self.uplink = Uplink(self._master_socket,     # on a robot's computer: its link
                              lambda: [s for s in self.plane.link_sockets() if crosses_uplink(s)])
         self._link_task: asyncio.Task | None = None
-        self._probe_task: asyncio.Task | None = None
         self._ping_task: asyncio.Task | None = None
         self._probed_at = float("-inf")   # monotonic s of the last uplink probe
         self._probe_ok = True             # the master answers link probes
@@ -301,17 +300,10 @@ class RobotEndpoint:
             await asyncio.sleep(link_report.EVERY)
             if self.zone.kind == "robot":       # its robot's websocket is local: the robot's link is the uplink
                 up = self.uplink.measure(loop.time())
-                # no probe while a data link waits for the uplink: it measures the link better (its
-                # backlog), and a probe would hold the control links' class up for the link's time
-                if (up is not None and self.namespaces and self._probe_ok and not self.uplink.waiting
-                        and loop.time() - self._probed_at >= link_report.PROBE_EVERY
-                        and (self._probe_task is None or self._probe_task.done())):
-                    self._probed_at = loop.time()
-                    self._probe_task = asyncio.create_task(self._probe(), name="uplink probe")
-                # its round trip: a ping a look, but not behind a probe (it would time the probe's bytes)
-                if (up is not None and self.namespaces and (self._probe_task is None or self._probe_task.done())
-                        and (self._ping_task is None or self._ping_task.done())):
-                    self._ping_task = asyncio.create_task(self._ping(), name="uplink ping")
+                # its round trip: a ping a look (not behind a probe: it would time the probe's bytes),
+                # and after it, when one is due, a probe of its rate (link_report.Uplink.probe_due)
+                if up is not None and self.namespaces and (self._ping_task is None or self._ping_task.done()):
+                    self._ping_task = asyncio.create_task(self._ping_and_probe(), name="uplink ping")
                 robots = [(u, r, up) for (u, r) in self.namespaces]
             else:
                 robots = [(u, r, websocket_link(ns.ws)) for (u, r), ns in self.namespaces.items()]
@@ -345,10 +337,11 @@ class RobotEndpoint:
             return                        # no master now, or a link too slow for the timeout: no sample
         self.uplink.probed(loop.time(), link_report.probe_rate(done["first"], done["second"]))
 
-    async def _ping(self) -> None:
+    async def _ping_and_probe(self) -> None:
         """Time a ``ping`` request to the master (its round trip: :meth:`Uplink.pinged
-        <rce_robot.link_report.Uplink.pinged>`); no sample when it fails or takes over
-        :data:`PROBE_TIMEOUT` s."""
+        <rce_robot.link_report.Uplink.pinged>`; no sample when it fails or takes over
+        :data:`PROBE_TIMEOUT` s), then probe the uplink's rate if a probe is due
+        (:meth:`Uplink.probe_due <rce_robot.link_report.Uplink.probe_due>`)."""
         peer = self.master.peer if self.master is not None else None
         if peer is None:
             return                        # no master now: nothing to time
@@ -359,6 +352,9 @@ class RobotEndpoint:
         except RCEError:
             return
         self.uplink.pinged(loop.time(), loop.time() - t0)
+        if self._probe_ok and self.uplink.probe_due(loop.time(), self._probed_at):
+            self._probed_at = loop.time()
+            await self._probe()
 
     def _master_socket(self) -> Any:
         peer = self.master.peer if self.master is not None else None

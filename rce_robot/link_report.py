@@ -14,10 +14,15 @@ Where the link is measured depends on where the robot endpoint stands:
   they carried more than they were app-limited by. A data link that has held bytes it could not
   send at every look for :data:`BACKLOG_S` s is backed up: what the uplink carried meanwhile is its
   rate (a link that falls is seen within that time). An idle or app-limited link says nothing of its
-  rate, so the endpoint also probes the link every :data:`PROBE_EVERY` s (:func:`probe_rate`), unless
-  a data link waits for it: a request of :data:`PROBE_DRAIN_BYTES`
+  rate, so the endpoint also probes the link (:func:`probe_rate`): a request of :data:`PROBE_DRAIN_BYTES`
   to the master and one of :data:`PROBE_BYTES` right behind it; the time between their answers is
-  what the link took to carry the second. The last rate measured either way is kept (never forgotten for
+  what the link took to carry the second. A probe holds the control links' class up for as long as
+  the link takes to carry it (0.38 s at 1 Mbit/s), so it goes only right after a ping (which sees a
+  link that fell first), at most every :data:`PROBE_EVERY` s and :data:`PROBE_SHARE` of the link's
+  time, never while a data link waits for the uplink, and not for :data:`PROBE_HOLD_S` s after the
+  round trip grew (:meth:`Uplink.probe_due`): a switch to a container that moved because the link
+  fell does not wait behind it. Once the round trip moved, the next probe goes as soon as it may.
+  The last rate measured either way is kept (never forgotten for
   being old: a link that could not carry a stream stays that thin until a fresh measure says
   otherwise)."""
 from __future__ import annotations
@@ -29,8 +34,8 @@ from typing import Any
 from rce.transport.lane_socket import link_backlog, link_info, link_sample, socket_of
 
 __all__ = ["BACKLOG_S", "BATTERY_STEP", "CHANGE", "EVERY", "PING_KEEP_S", "PROBE_BYTES", "PROBE_DRAIN_BYTES",
-           "PROBE_EVERY", "PROBE_KEEP_S", "REFRESH", "RWND_SHARE", "LinkReports", "Uplink", "crosses_uplink",
-           "probe_rate", "websocket_link"]
+           "PROBE_EVERY", "PROBE_HOLD_S", "PROBE_KEEP_S", "PROBE_SHARE", "REFRESH", "RWND_SHARE", "LinkReports",
+           "Uplink", "crosses_uplink", "probe_rate", "websocket_link"]
 
 EVERY = 0.25      # s between looks at the robots' sockets
 CHANGE = 0.2      # a report when the round trip or the rate moved by this share
@@ -43,6 +48,9 @@ PROBE_KEEP_S = 1.25    # s of measurements the rate is the fastest of (each errs
 BACKLOG_S = 0.5        # s a data link holds unsent bytes at every look before its throughput is the link's rate
 RWND_SHARE = 0.1       # share of that time it may have waited for its reader's window (more: the reader's rate)
 PING_KEEP_S = 0.6      # s of pings the round trip is the least of (two or three: one that waited is not the link)
+PROBE_SHARE = 0.05     # share of the link's time its probes take at most (at its last measured rate)
+PROBE_HOLD_S = 2.0     # s without a probe after a ping's round trip moved: the placer may move containers now
+PING_MOVE_S = 0.005    # s a ping must differ by (beside CHANGE) for the round trip to have moved (jitter is not)
 
 
 class LinkReports:
@@ -125,6 +133,8 @@ class Uplink:
         self.backed_up = 0           # looks whose rate was a backed-up link's (counter)
         self.pings: list[tuple[float, float]] = []      # (monotonic s, round trip s) of the last PING_KEEP_S s
         self.waiting = False         # a data link held bytes it could not send yet at the last look
+        self.rtt_moved_at = float("-inf")   # monotonic s of the last ping whose round trip moved (pinged)
+        self.rtt_rose = False               # ... and whether it grew
         # per socket (its id): looks (monotonic s, bytes acked, bytes not sent, us held by the reader's window)
         self._looks: dict[int, list[tuple[float, int, int, int]]] = {}
 
@@ -146,9 +156,31 @@ class Uplink:
         return (min(r for _, r in self.pings) if self.pings else info[0]), self.rate
 
     def pinged(self, now: float, rtt_s: float) -> None:
-        """A ping's round trip ``rtt_s`` (s), answered at monotonic ``now`` s (class doc)."""
-        if rtt_s >= 0:
-            self.pings.append((now, rtt_s))
+        """A ping's round trip ``rtt_s`` (s), answered at monotonic ``now`` s (class doc). One that
+        differs from the least of the pings kept by :data:`CHANGE` of it and :data:`PING_MOVE_S` marks
+        the round trip as moved (:meth:`probe_due`)."""
+        if rtt_s < 0:
+            return
+        kept = [r for t, r in self.pings if now - t <= PING_KEEP_S]
+        if kept and abs(rtt_s - min(kept)) >= max(PING_MOVE_S, CHANGE * min(kept)):
+            self.rtt_moved_at, self.rtt_rose = now, rtt_s > min(kept)
+        self.pings.append((now, rtt_s))
+
+    def probe_due(self, now: float, probed_at: float) -> bool:
+        """Whether a probe may go at monotonic ``now`` s, the last having gone at ``probed_at``: never
+        while a data link waits for the uplink, nor for :data:`PROBE_HOLD_S` s after the round trip
+        grew (the link fell: the probe would take it longest, when containers may move across it);
+        at once once the round trip moved since the last probe (its rate moved too, likely); else
+        every :data:`PROBE_EVERY` s, and no oftener than keeps probes to :data:`PROBE_SHARE` of the
+        link's time at its last measured rate."""
+        if self.waiting or (self.rtt_rose and now - self.rtt_moved_at < PROBE_HOLD_S):
+            return False
+        if self.rtt_moved_at > probed_at:
+            return True
+        spacing = PROBE_EVERY
+        if self.rate > 0:
+            spacing = max(spacing, (PROBE_DRAIN_BYTES + PROBE_BYTES) / self.rate / PROBE_SHARE)
+        return now - probed_at >= spacing
 
     def _backlog(self, now: float, control: Any, data: list[Any]) -> float | None:
         """The uplink's rate (bytes/s) if a data link was backed up over the last :data:`BACKLOG_S` s

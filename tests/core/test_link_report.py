@@ -170,3 +170,25 @@ def test_the_uplinks_round_trip_is_its_pings_least_of_late_and_the_kernels_witho
     finally:
         a.close()
         b.close()
+
+
+def test_a_probe_keeps_out_of_the_way_of_a_link_that_fell():
+    from rce_robot.link_report import PROBE_HOLD_S, PROBE_SHARE, PROBE_DRAIN_BYTES
+    up = Uplink(lambda: None, lambda: [])
+    up.rate = 12.5e6                                        # 100 Mbit/s
+    for k in range(4):
+        up.pinged(10.0 + 0.25 * k, 0.010)
+    assert up.probe_due(11.0, 9.9) and not up.probe_due(11.0, 10.5), "every PROBE_EVERY s on a fast link"
+    up.pinged(11.25, 0.101)                                 # the link fell: 10 -> 101 ms
+    assert up.rtt_rose and not up.probe_due(11.3, 9.0), "no probe while containers may move across it"
+    assert up.probe_due(11.25 + PROBE_HOLD_S, 9.0), "then one, at once: its rate moved too"
+    up.rate = 125_000.0                                     # it measured 1 Mbit/s
+    probed = 13.3
+    gap = (PROBE_DRAIN_BYTES + PROBE_BYTES) / up.rate / PROBE_SHARE
+    assert not up.probe_due(probed + PROBE_EVERY, probed) and up.probe_due(probed + gap, probed), \
+        f"at 1 Mbit/s a probe goes every {gap:.1f} s: {PROBE_SHARE:.0%} of the link's time"
+    up.pinged(probed + 0.75, 0.101)
+    up.pinged(probed + 1.0, 0.010)                          # the link is back: a probe at once (it is quick now)
+    assert not up.rtt_rose and up.probe_due(probed + 1.0, probed)
+    up.waiting = True
+    assert not up.probe_due(probed + 100.0, probed), "never while a data link waits for the uplink"
