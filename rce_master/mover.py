@@ -191,7 +191,7 @@ class Mover:
         if sp is None:
             return False
         made = _made(sp)
-        return sp.tid == c.tid or (made is not None and (made.of_cid != c.cid or made.basis != self.basis(c)))
+        return sp.tid == c.tid or (made is not None and not self._holds(made, c))
 
     def drop_spare(self, user: str, ctag: str) -> None:
         """Destroy container ``user/ctag``'s spare, if it has one (in the background)."""
@@ -236,12 +236,16 @@ class Mover:
         if made is None:
             return None
         host = self.state.tasksets.get(sp.tid)
-        if made.of_cid != c.cid or made.basis != self.basis(c) or host is None or host.lost:
+        if not self._holds(made, c) or host is None or host.lost:
             self.drop_spare(c.user, c.ctag)
             return None
         del self.spares[(c.user, c.ctag)]
         self.spares_taken += 1
         return made
+
+    def _holds(self, made: Made, c: ContainerRec) -> bool:
+        """Whether copy ``made`` can serve as ``c``: made of the copy ``c`` is now, from what ``c`` is now."""
+        return made.of_cid == c.cid and made.basis == self.basis(c)
 
     def basis(self, c: ContainerRec) -> str:
         """What a copy of ``c`` is made from, as one string: its group, limits and deadline, its
@@ -284,7 +288,7 @@ class Mover:
                 raise                             # this move was cancelled; the spare goes on
             self.spares.pop((c.user, c.ctag), None)
             return None
-        if made.of_cid != c.cid or made.basis != self.basis(c) or self.state.containers.get((c.user, c.ctag)) is not c:
+        if not self._holds(made, c) or self.state.containers.get((c.user, c.ctag)) is not c:
             log.info("spare no longer holds; the move makes a fresh copy", user=c.user, ctag=c.ctag, tid=tid)
             self.drop_spare(c.user, c.ctag)
             return None
