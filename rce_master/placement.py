@@ -77,6 +77,12 @@ def asks_placement(data: dict) -> bool:
     return any(k in data for k in ("placement", "pinned", *NEED_KEYS))
 
 
+def pinned_to(data: dict) -> str | None:
+    """The zone kind a container's containerData pins it to (a user's pin, or a placement other than
+    ``auto``), None when the placer places it."""
+    return data.get("pinned") or (data.get("placement") if data.get("placement") not in (None, "auto") else None)
+
+
 class Placement:
     """The placer's inputs and advice for the master's ``state``; ``host_stats(container)`` awaits a
     container's counters from its host (the ``stats`` op)."""
@@ -196,7 +202,7 @@ class Placement:
         if unmeasured and ch.move:
             ch = Choice(ch.target, ch.current, False, f"robot {robot}'s link is not measured yet; {ch.why}",
                         ch.options)
-        pinned = d.get("pinned") or (d.get("placement") if d.get("placement") not in (None, "auto") else None)
+        pinned = pinned_to(d)
         if pinned:
             how = "user pin" if d.get("pinned") else "its placement"
             ch = Choice(ch.target, ch.current, False, f"pinned to {pinned} ({how}); the placer would say: {ch.why}",
@@ -305,8 +311,7 @@ class Placement:
         if self.mover is None or c.state != "running":
             return
         key = (c.user, c.ctag)
-        pinned = c.data.get("pinned") or c.data.get("placement") not in (None, "auto")
-        wants = bool(c.data.get("spare")) and not pinned
+        wants = bool(c.data.get("spare")) and not pinned_to(c.data)
         if not wants or self.mover.spare_stale(c):
             if key in self.mover.spares:
                 self.mover.drop_spare(c.user, c.ctag)
