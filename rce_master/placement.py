@@ -15,7 +15,8 @@ Inputs, all measured (:mod:`rce_master.placer` is the model):
 
 A container that asks for a spare (``spare: true``) is kept one on the host the placer ranks next
 after the one it runs on (:func:`rce_master.placer.runner_up`; :mod:`rce_master.mover`, Spares): made
-when it has none, kept while that host may run it (a spare does not follow every turn of the
+when it has none and what it is made from has not changed for :data:`SPARE_SETTLE_S` s, kept while
+that host may run it (a spare does not follow every turn of the
 ranking: its make costs the host), destroyed when the container is pinned, is removed or asks no
 more; a lost container's spare becomes it (:mod:`rce_master.failover`).
 
@@ -49,6 +50,8 @@ WARMUP = 3.0          # s a container's copy runs before its results count for t
                       # slow: imports, first calls): its late share and its measured median
 MARKS_KEPT_S = 120.0  # s of a copy's counters kept for its late share (placer.late_share)
 SPARE_RETRY_S = 10.0  # s after a spare's make failed before another is made
+SPARE_SETTLE_S = 2.0  # s what a container is made from must stay the same before a spare of it is made (a robot
+                      # sets a container up in several requests: a spare made between them would be made again)
 
 
 @dataclass
@@ -101,6 +104,7 @@ class Placement:
         self.decisions = 0
         self._changed = asyncio.Event()           # a robot's link or battery changed: decide again now
         self._spare_failed: dict[tuple[str, str], float] = {}   # when a container's spare was first seen failed
+        self._basis: dict[tuple[str, str], tuple[str, float]] = {}   # what it is made from, and since when
 
     # -- inputs ------------------------------------------------------------------------------------
     def robot_link(self, user: str, robot: str, rtt_ms: float, rate: float) -> None:
@@ -300,8 +304,9 @@ class Placement:
             for user, ctag in list(self.mover.spares):
                 if (user, ctag) not in self.state.containers:
                     self.mover.drop_spare(user, ctag)
-            for key in [k for k in self._spare_failed if k not in self.state.containers]:
-                del self._spare_failed[key]
+            for kept in (self._spare_failed, self._basis):
+                for key in [k for k in kept if k not in self.state.containers]:
+                    del kept[key]
         return due
 
     def _keep_spare(self, c: ContainerRec, ch: Choice) -> None:
@@ -324,6 +329,11 @@ class Placement:
                 return
             self._spare_failed.pop(key, None)
         elif key in self.mover.spares:
+            return
+        basis, now = self.mover.basis(c), time.monotonic()
+        if self._basis.get(key, ("", 0.0))[0] != basis:
+            self._basis[key] = (basis, now)
+        if now - self._basis[key][1] < SPARE_SETTLE_S:
             return
         nxt = runner_up(ch, self._low(c))
         if nxt is None:

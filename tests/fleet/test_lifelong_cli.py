@@ -133,7 +133,7 @@ def test_lifelong_cli_runs_whole_plans_or_the_step_planner_on_a_map_of_a_few_cel
     problem = write_problem(tunnel, 3, 1, tmp_path)
     out = tmp_path / "run.json"
     with pytest.raises(SystemExit) as e:
-        main(["lifelong", str(problem), "--steps", "60", "--plan-time-limit", "100", "--no-progress",
+        main(["lifelong", str(problem), "--steps", "60", "--plan-time-limit", "300", "--no-progress",
               "--replan", replan, "--output", str(out)])
     assert e.value.code == 0
     assert "tasks finished in 60 steps by 3 robots" in capsys.readouterr().out
