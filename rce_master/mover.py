@@ -174,7 +174,7 @@ class Mover:
         """Where container ``user/ctag`` has a spare: ``(tid, ready)`` (False: still being made), or
         None (none, or its make failed)."""
         sp = self.spares.get((user, ctag))
-        if sp is None or (sp.task.done() and _made(sp) is None):
+        if sp is None or self.spare_failed(user, ctag):
             return None
         return sp.tid, sp.task.done()
 
