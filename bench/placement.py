@@ -42,7 +42,7 @@ there only switches; ``--no-spare``: each move makes its new copy first).
 Per system it reports deadline misses per phase (a result later than the deadline after its scan's
 stamp, or never; a scan the robot could not send within one period counts as missed), results lost
 and duplicated (by the scans' header.seq), the robot's modelled energy (the placer's
-:class:`~rce_master.placer.EnergyModel`: W per core x the container's CPU seconds while on the
+:class:`~rce_master.placement.placer.EnergyModel`: W per core x the container's CPU seconds while on the
 robot's computer, plus J per byte x the bytes across the link, both ways, from the veth's counters),
 each move (its time, hosts, its gap: the longest time without a result while the results pass from
 the old copy to the new one, :func:`handover_gap`; the longest around it, the copies' own gaps
@@ -520,7 +520,7 @@ def endpoint_counter(e, name: str) -> float:
 # -- the numbers ---------------------------------------------------------------------------------
 def analyse(raw: dict, phase_s: float) -> dict:
     """The numbers of one system from its raw record (module docstring)."""
-    from rce_master.placer import EnergyModel
+    from rce_master.placement.placer import EnergyModel
     rec = raw["robot"]
     t0 = rec["t0"]
     deadline = DEADLINE_MS / 1e3
@@ -679,7 +679,7 @@ def targets(systems: dict, phase_s: float) -> dict:
                                                    for m in moves) if moves else None
     out["moves_fenced"] = all(m["fenced"] for m in moves) if moves else None
     if "placer" in systems:
-        from rce_master.placer import Placer
+        from rce_master.placement.placer import Placer
         dwell = Placer().dwell_s
         pm, words = systems["placer"]["moves"], systems["placer"]["placer_word"]
         reactions = []

@@ -63,7 +63,7 @@ from rce.plumbing.log import get_logger
 from rce.protocol.events import (BarrierFailed, BarrierPassed, CallFailed, Detached, Dropped, ErrorReceived,
                                  InterfaceChanged, MessageReceived, ResponseReceived, SessionStatus, StatusReceived,
                                  unhandled)
-from rce.protocol.pacer import Pacing
+from rce.interfaces.pacer import Pacing
 from rce.protocol.resume import DEFAULT_RESUME_BUFFER
 from rce.protocol.session import ClientSession
 from rce.plumbing.tasks import Tasks

@@ -23,7 +23,7 @@ from rce import protocol
 from rce.plumbing.errors import RCEError, Timeout
 from rce.plumbing.log import get_logger
 from rce.protocol.events import MessageReceived
-from rce.protocol.lanes import Lane, interface_lane, message_lane
+from rce.interfaces.lanes import Lane, interface_lane, message_lane
 from rce.protocol.session import ClientSession
 from rce.plumbing.tasks import Tasks
 

@@ -7,7 +7,7 @@ lane's topic data both ways, while the session's own link becomes the control la
 - Out: each bulk interface keeps its newest messages waiting (:class:`~rce.protocol.outbox.Outbox`, as
   a ROS publisher's queue: :data:`BULK_QUEUE` in all, none older than :data:`BULK_MAX_LAG` s while a newer
   one waits); a writer sends one whole message at a time, in frames of at most 16 KiB
-  paced as ``rate`` says (:func:`~rce.protocol.pacer.new_pacer`: bytes/s; ``"auto"`` or None: under the
+  paced as ``rate`` says (:func:`~rce.interfaces.pacer.new_pacer`: bytes/s; ``"auto"`` or None: under the
   rate estimated for the uplink's path from the bulk socket, :class:`~rce.transport.lane_socket.PacedLink`;
   ``"off"``: not paced). Drops are counted.
 - In: the cloud's bulk DMs go to the same handlers as those on the session's link.
@@ -28,10 +28,10 @@ from rce.plumbing.errors import Unavailable
 from rce.plumbing.log import get_logger
 from rce.plumbing.tasks import Tasks
 from rce.protocol.frames import DM
-from rce.protocol.lanes import Lane
+from rce.interfaces.lanes import Lane
 from rce.protocol.outbox import Outbox
-from rce.protocol.pacer import Pacing, new_pacer
-from rce.protocol.rate_estimator import Mode
+from rce.interfaces.pacer import Pacing, new_pacer
+from rce.interfaces.rate_estimator import Mode
 from rce.protocol.session import ClientSession
 from rce.transport import lane_socket
 from rce.transport.lane_socket import PacedLink, fragments, socket_of
@@ -76,7 +76,7 @@ class LaneOwner(Protocol):
 
 class BulkLane:
     """The bulk link of ``conn``; ``rate``: how its writer is paced (bytes/s, ``"auto"`` or None: the
-    path's rate estimated, ``"off"``: not paced; :func:`~rce.protocol.pacer.new_pacer`). Counters:
+    path's rate estimated, ``"off"``: not paced; :func:`~rce.interfaces.pacer.new_pacer`). Counters:
     :attr:`sent` (messages written whole), :attr:`bytes`, :attr:`dropped` (the newest-per-interface
     bound), :attr:`joins` (links joined), :attr:`received` (DMs taken on it); :meth:`pacing`."""
 
@@ -107,7 +107,7 @@ class BulkLane:
         return self.conn.session.bulk_in
 
     def pacing(self) -> dict | None:
-        """The uplink's pacing (:meth:`~rce.protocol.pacer.Pacer.stats`: ``rate_source``, ``rate`` bytes/s,
+        """The uplink's pacing (:meth:`~rce.interfaces.pacer.Pacer.stats`: ``rate_source``, ``rate`` bytes/s,
         and when estimated ``rate_estimate`` bytes/s, ``rate_mode``, ...); None: not paced."""
         return self.pacer.stats() if self.pacer is not None else None
 

@@ -60,7 +60,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Awaitable, Callable
 
-from rce.protocol.lanes import Lane, interface_lane
+from rce.interfaces.lanes import Lane, interface_lane
 from rce.transport import tls
 from rce.plumbing.process import exit_command, run_loop
 from rce.bus.core import Bus, Subscription
@@ -72,7 +72,7 @@ from rce.messages import MessageRegistry, default_registry, wire_name
 from rce.node.naming import validate_name
 from rce.node.package_path import load_package_types
 from rce.protocol import split_interface_type
-from rce.protocol.pacer import Pacing, rate_arg
+from rce.interfaces.pacer import Pacing, rate_arg
 from rce_client.connection import Connection, Message
 from rce_client.paths import default_bus_path
 from rce_client.relay import DEFAULT_MAX_FOLLOWERS, DEFAULT_RATE, RobotRelay

@@ -3,7 +3,7 @@
 :class:`RospyGraph` is the robot-side graph of :class:`rce_client.rce_ros.RobotBridge` when
 ``--ros`` is given (instead of the local bus): one rospy node (``rospy.init_node("rce_ros",
 anonymous=True, disable_signals=True)``) on the ROS 1 master named by ``ROS_MASTER_URI``
-(Debian's ros-comm, found by :func:`rce.node.ros1.import_rospy`). Each robot-side interface is bridged
+(Debian's ros-comm, found by :func:`rce.messages.debian_ros1.import_rospy`). Each robot-side interface is bridged
 at its ``addr`` (default ``/<iTag>``), which is a ROS 1 graph name:
 
 - ``SubscriberConverter/Forwarder``: a ``rospy.Subscriber`` on topic ``addr``;
@@ -33,7 +33,7 @@ from typing import Any, Awaitable, Callable
 
 from rce.plumbing.errors import ConfigError, RCEError, RequestError, Unavailable
 from rce.plumbing.log import get_logger
-from rce.node.ros1 import import_rospy
+from rce.messages.debian_ros1 import import_rospy
 from rce.messages.ros1_types import (message_identity, raw_message_class, raw_service_class, service_identity)
 
 log = get_logger("rce.ros.ros1")

@@ -119,7 +119,7 @@ class Verbs:
         ``SubscriberConverter``) and message/service class ``cls`` on endpoint ``etag`` (a
         container tag, or this robot's ID for robot-side interfaces); ``addr`` is the topic or
         service name on that endpoint's bus; ``lane``: ``control``, ``state`` or ``bulk``
-        (:mod:`rce.protocol.lanes`; None: from ``cls``)."""
+        (:mod:`rce.interfaces.lanes`; None: from ``cls``)."""
         itf = {"endpointTag": etag, "interfaceTag": itag, "interfaceType": itype, "className": cls}
         if addr:
             itf["addr"] = addr

@@ -450,7 +450,7 @@ class Environment:
         """``{cid, iid, peer_iid, peer_addr, token, fence?}`` -> ``{fenced}``: connect an interface to a
         peer interface (``token``: the master's credential for sending to it); a connection pointed
         at a moved container's new copy fences its old one with ``fence`` (the move's id),
-        ``fenced`` fences sent (:meth:`rce.protocol.interfaces.Interface.connect`)."""
+        ``fenced`` fences sent (:meth:`rce.transport.interface.Interface.connect`)."""
         fence = args.get("fence")
         fenced = self._interface(args).connect(int(args["peer_iid"]), args["peer_addr"], token_of(args),
                                                fence if type(fence) is int else None)
@@ -556,7 +556,7 @@ class Environment:
     @ENV_OPS.op("drain")
     async def op_drain(self, args: dict) -> dict:
         """``{cid, fence, expect: [[src, dst, n]...], timeout}`` -> ``{complete, missing, unsettled,
-        unflushed, waited_s}``: a moved container's old copy finishes (:mod:`rce_master.mover`). It waits
+        unflushed, waited_s}``: a moved container's old copy finishes (:mod:`rce_master.placement.mover`). It waits
         until ``n`` fences ``fence`` of each connection ``src -> dst`` came (nothing more is on its
         way to it), its nodes handled every input that came before them (``settle``), and each peer
         its interfaces send to acknowledged the end of their stream (every output reached it);

@@ -1,6 +1,6 @@
 """Container-side interfaces: the ends of connections that live on a container's bus.
 
-Each is a :class:`rce.protocol.interfaces.Interface` (data-plane half) whose local side is the
+Each is a :class:`rce.transport.interface.Interface` (data-plane half) whose local side is the
 environment's :class:`~rce.bus.core.Bus`, named on the side where it acts:
 
 - :class:`PublisherInterface` publishes into the container what its peers send;
@@ -17,8 +17,8 @@ from __future__ import annotations
 from rce.bus.core import SERVICE_TIMEOUT, Bus, Subscription, Topic
 from rce.transport.dataplane import DataPlane
 from rce.plumbing.errors import MessageError, RequestError
-from rce.protocol.interface_type import InterfaceType, Kind
-from rce.protocol.interfaces import Interface
+from rce.interfaces.kind import InterfaceType, Kind
+from rce.transport.interface import Interface
 from rce.messages import MessageRegistry, default_registry, store_name, wire_name
 from rce.node.naming import resolve
 from rce.node.package_path import load_package_types

@@ -13,7 +13,7 @@ added and stopped with its last (docs/INTERNALS.md, "ROS 1 nodes in containers")
   ``ROS_MASTER_URI``, ``ROS_IP=127.0.0.1`` (rospy and rosmaster then listen on loopback only),
   ``ROS_HOME`` (in the container's workdir), ``ROS_NAMESPACE`` (the node's namespace, as
   roslaunch sets it), ``PYTHONPATH`` (the package's ``src`` directory, where catkin keeps a
-  package's Python modules, then Debian's ROS 1 packages, :func:`rce.node.ros1.ros1_paths`), and the
+  package's Python modules, then Debian's ROS 1 packages, :func:`rce.messages.debian_ros1.ros1_paths`), and the
   argument ``__name:=NAME`` (the node's name, as roslaunch passes it).
 """
 from __future__ import annotations
@@ -32,7 +32,7 @@ from rce.plumbing.errors import ConfigError, RCEError
 from rce.plumbing.log import get_logger
 from rce.node.naming import join
 from rce.node.package_path import find_package
-from rce.node.ros1 import DEBIAN_PACKAGES, ros1_paths
+from rce.messages.debian_ros1 import DEBIAN_PACKAGES, ros1_paths
 from rce.plumbing.tasks import Tasks
 from rce_container.launcher import LOG_LINES, Launcher, _pump
 from rce_container.node_env import NODE_PATH, node_env

@@ -42,7 +42,7 @@ from rce.messages import default_registry
 from rce.node import Node, Publisher
 from rce.node.package_path import load_package_types
 from rce.plumbing.process import run_loop
-from rce.node.ros1 import import_rospy
+from rce.messages.debian_ros1 import import_rospy
 from rce.messages.ros1_types import (Ros1Message, Ros1Service, message_identity, raw_message_class,
                                    raw_service_class, service_identity)
 from rce_container.ros1_plan import bus_graph, flatten_params, param_changes, plan, relay_name, ros1_graph

@@ -2,7 +2,7 @@
 SQLite file (``--state``, default :func:`default_state_path`; with ``--dev`` one per port,
 :func:`dev_state_path`), in memory (``--state :memory:``),
 or in etcd shared with other masters (``--store etcd://HOST:PORT[,HOST:PORT...][/PREFIX/]``: one
-leads, the others stand by; :mod:`rce_master.leadership`)."""
+leads, the others stand by; :mod:`rce_master.leadership.elected`)."""
 from __future__ import annotations
 
 import argparse
@@ -19,12 +19,13 @@ from rce.plumbing.process import run, write_ready_file
 from rce.plumbing.log import get_logger
 from rce.transport import cluster_auth
 from rce.transport import tls
-from rce_master import leadership, login_guard, token
-from rce_master.reconcile import RECONCILE_GRACE
+from rce_master.auth import login_guard, token
+from rce_master.leadership import elected as leadership
+from rce_master.state.reconcile import RECONCILE_GRACE
 from rce_master.server import Master
-from rce_master.state import DEFAULT_MAX_CONTAINERS, DEFAULT_MAX_INTERFACES, DEFAULT_MAX_NODES, Quotas
-from rce_master.sqlite_store import SqliteStore
-from rce_master.store import MemoryStore, Store
+from rce_master.state.master_state import DEFAULT_MAX_CONTAINERS, DEFAULT_MAX_INTERFACES, DEFAULT_MAX_NODES, Quotas
+from rce_master.state.sqlite_store import SqliteStore
+from rce_master.state.store import MemoryStore, Store
 
 log = get_logger("rce.master")
 MEMORY = ":memory:"          # --state value for a state kept in memory only (lost when the master exits)

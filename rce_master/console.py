@@ -38,7 +38,7 @@ from rich.table import Table
 
 from rce.tools.admin_client import AdminClient
 from rce.plumbing.errors import RCEError, RequestError
-from rce_master.model import DEFAULT_ROLE, ROLES
+from rce_master.state.model import DEFAULT_ROLE, ROLES
 
 DEFAULT_MASTER = "http://127.0.0.1:9000/"
 COLUMNS = {
@@ -281,8 +281,8 @@ def _user(args: argparse.Namespace, client: AdminClient, out: Console) -> None:
 def _user_file(args: argparse.Namespace) -> None:
     """Offline: add or delete a user in a ``--users`` file, by the master's own rules (imported here:
     the master's state and the protocol's models, which the other commands do not load)."""
-    from rce_master.state import MasterState
-    from rce_master.users import UsersFile
+    from rce_master.state.master_state import MasterState
+    from rce_master.auth.users import UsersFile
     users, state = UsersFile(args.file), MasterState()
     users.load(state)
     if args.action == "add" and args.name in state.users:      # before asking for the password

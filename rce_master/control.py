@@ -1,7 +1,7 @@
 """The master's side of the control plane (docs/INTERNALS.md, "Control ops"): its links to the
 task sets, and the I/O that requests, the admin API and teardowns share (call a container's
 host or an interface's endpoint, tell both ends of a connection, tell a robot, destroy a
-container). It reads :class:`~rce_master.state.MasterState` and changes it only through its
+container). It reads :class:`~rce_master.state.master_state.MasterState` and changes it only through its
 operations.
 """
 from __future__ import annotations
@@ -14,9 +14,9 @@ from rce.transport.cluster_auth import ClusterKey
 from rce.plumbing.errors import RCEError, Unavailable
 from rce.plumbing.log import get_logger
 from rce.transport.rpc import CALL_TIMEOUT, RpcPeer
-from rce_master.model import LIMIT_KEYS, ContainerRec, InterfaceRec, NodeRec
-from rce_master.reconcile import Reconciled
-from rce_master.state import MasterState, Pairs, TaskSetAbsent
+from rce_master.state.model import LIMIT_KEYS, ContainerRec, InterfaceRec, NodeRec
+from rce_master.state.reconcile import Reconciled
+from rce_master.state.master_state import MasterState, Pairs, TaskSetAbsent
 
 log = get_logger("rce.master")
 
@@ -112,7 +112,7 @@ class Control:
     async def create_container(self, container: ContainerRec, handoff: bool = False) -> dict:
         """``create_container`` on ``container``'s host with its group, limits (``container.data``, as last
         resized) and deadline; the host's ``{data_addr, sandbox, startup_ms}``. ``handoff``: it is a
-        move's new copy, whose nodes wait for their state (:mod:`rce_master.mover`)."""
+        move's new copy, whose nodes wait for their state (:mod:`rce_master.placement.mover`)."""
         return await self.host_request(container, "create_container", {
             "user": container.user, "ctag": container.ctag, "group": container.group,
             "limits": {k: container.data.get(k) for k in LIMIT_KEYS},
@@ -261,7 +261,7 @@ class Control:
         self.notify_robot(container.user, container.owner, "ER", f"container {container.ctag!r} was lost: {why}")
 
     async def reconciled(self, out: Reconciled) -> None:
-        """After :func:`rce_master.reconcile.register`: tell the peers of forgotten interfaces and
+        """After :func:`rce_master.state.reconcile.register`: tell the peers of forgotten interfaces and
         of moved containers, the robots of lost containers and nodes (again, for lost containers
         of the robots it kept: their endpoint was absent when they were lost), and forget the
         robots it did not report. Its lost containers are the failover's (:mod:`rce_master.failover`)."""

@@ -21,7 +21,7 @@ and an ER naming why, and a task re-creates it (:meth:`Failover._recover`):
 3. mark it ``running``; ``connect`` both ends of each of its connections whose other end is up
    (the robot-side end gets the new data address and says ``iu true``); ST ``running``.
 
-A container with a spare (:mod:`rce_master.mover`, Spares) that still holds is not re-created: its
+A container with a spare (:mod:`rce_master.placement.mover`, Spares) that still holds is not re-created: its
 spare, made and wired beforehand on another host that is up, becomes it (steps 1 and 2 skipped; its
 nodes start fresh, with no state handed over), then step 3.
 
@@ -43,9 +43,9 @@ from rce.plumbing.errors import RCEError, Unavailable
 from rce.plumbing.log import get_logger
 from rce.plumbing.tasks import Tasks
 from rce_master.control import Control
-from rce_master.model import ContainerRec, InterfaceRec, Robot
-from rce_master.mover import Made
-from rce_master.state import MasterState
+from rce_master.state.model import ContainerRec, InterfaceRec, Robot
+from rce_master.placement.mover import Made
+from rce_master.state.master_state import MasterState
 
 log = get_logger("rce.master")
 
@@ -75,7 +75,7 @@ class Failover:
     """Re-creates lost containers (see the module doc) on ``state`` through ``control``; its tasks
     are kept in ``tasks``. ``attempts``, ``wait`` (s) and ``stable`` (s): as the defaults
     :data:`RECOVERY_ATTEMPTS`, :data:`RECOVERY_WAIT`, :data:`RECOVERY_STABLE`; ``spares(c)``: a lost
-    container's spare that still holds, taken (:meth:`rce_master.mover.Mover.claim_spare`)."""
+    container's spare that still holds, taken (:meth:`rce_master.placement.mover.Mover.claim_spare`)."""
 
     def __init__(self, state: MasterState, control: Control, tasks: Tasks, *, attempts: int = RECOVERY_ATTEMPTS,
                  wait: float = RECOVERY_WAIT, stable: float = RECOVERY_STABLE,

@@ -6,7 +6,7 @@ type, or a CN/CX component, touches one class and one table entry.
 A request arrives as its type and data as the robot sent them; :func:`handle` parses the data
 into its model (:func:`rce.protocol.schema.parse`, the schema the robot endpoint validated it
 with), and each handler reads the model's attributes. The handler's body only asks
-:class:`~rce_master.state.MasterState` (which enforces the rules) and tells the task sets
+:class:`~rce_master.state.master_state.MasterState` (which enforces the rules) and tells the task sets
 (:class:`~rce_master.control.Control`). Each component is a :class:`Step`: ``reserve`` (the state
 change), ``tell`` (the I/O), ``confirm`` (the state change once told) and ``undo`` (when telling
 failed). A step whose far end timed out may still have
@@ -24,8 +24,8 @@ from rce.plumbing.errors import RCEError, RequestError, Timeout
 from rce.plumbing.log import get_logger
 from rce.protocol import schema
 from rce_master.control import Control
-from rce_master.model import limits_of
-from rce_master.state import MasterState
+from rce_master.state.model import limits_of
+from rce_master.state.master_state import MasterState
 
 log = get_logger("rce.master")
 

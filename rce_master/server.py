@@ -1,15 +1,15 @@
-"""rce-master's asyncio shell around :class:`~rce_master.state.MasterState`.
+"""rce-master's asyncio shell around :class:`~rce_master.state.master_state.MasterState`.
 
 - Control plane (TCP, default 8080): task sets register and exchange the ops of
   docs/INTERNALS.md; robot requests go to their handlers (:mod:`rce_master.requests`).
 - HTTP (default 9000): robot login ``GET /?userID=U&version=V`` (DESIGN 3.1), the
-  JSON admin API under ``/api/`` (:mod:`rce_master.admin`, Bearer token), Prometheus ``/metrics``.
+  JSON admin API under ``/api/`` (:mod:`rce_master.http.admin`, Bearer token), Prometheus ``/metrics``.
 
 No data flows through the master, and the shell changes no state itself: it asks
 :class:`MasterState`, and tells the task sets what that returns (:class:`~rce_master.control.Control`).
 
 On a store a previous master left, the state comes back with every task set absent; each one
-that re-registers is reconciled (:mod:`rce_master.reconcile`), and those still absent after the
+that re-registers is reconciled (:mod:`rce_master.state.reconcile`), and those still absent after the
 reconciliation grace are dropped as if their link had closed (docs/INTERNALS.md, "Master state
 and restart"). A robot task set whose link closes is absent in the same way, for the same grace, and
 its robots may move to another endpoint meanwhile (docs/INTERNALS.md, "Moving to another endpoint").
@@ -17,7 +17,7 @@ A container lost with its host or environment is re-created elsewhere (:mod:`rce
 docs/INTERNALS.md, "Container failover").
 
 Several masters on etcd (docs/INTERNALS.md, "Several masters"): a master that stands by (its
-``office`` does not lead, :mod:`rce_master.office`) serves login and admin reads from the state it
+``office`` does not lead, :mod:`rce_master.leadership.office`) serves login and admin reads from the state it
 follows, and refuses ``register`` and admin writes with :class:`~rce.plumbing.errors.NotLeader` naming the
 leader; once elected, :meth:`Master.take_office` makes it the master that restarted on the state.
 Every answer that follows a change waits until the store has it (:meth:`Store.flush`).
@@ -40,21 +40,21 @@ from rce.plumbing.errors import AuthError, NotFound, NotLeader, RCEError, Reques
 from rce.plumbing.log import get_logger
 from rce.transport import lane_socket
 from rce.transport.rpc import RpcPeer
-from rce.protocol.lanes import Lane
+from rce.interfaces.lanes import Lane
 from rce.plumbing.tasks import Tasks
-from rce_master import reconcile
-from rce_master.admin import AdminApi
+from rce_master.state import reconcile
+from rce_master.http.admin import AdminApi
 from rce_master.control import Control
 from rce_master.failover import Failover
-from rce_master.login_guard import LoginGuard, PasswordCheck
-from rce_master.model import Robot, TaskSet
-from rce_master.office import RETRY_AFTER_NO_LEADER, Alone, Office, require_leader
-from rce_master.mover import Mover
-from rce_master.placement import Placement
+from rce_master.auth.login_guard import LoginGuard, PasswordCheck
+from rce_master.state.model import Robot, TaskSet
+from rce_master.leadership.office import RETRY_AFTER_NO_LEADER, Alone, Office, require_leader
+from rce_master.placement.mover import Mover
+from rce_master.placement.advice import Placement
 from rce_master.requests import Request, handle
-from rce_master.state import MasterState, Quotas, TaskSetAbsent
-from rce_master.store import Store
-from rce_master.users import UsersFile
+from rce_master.state.master_state import MasterState, Quotas, TaskSetAbsent
+from rce_master.state.store import Store
+from rce_master.auth.users import UsersFile
 
 log = get_logger("rce.master")
 
@@ -191,8 +191,8 @@ class Master:
     (default: alone, it always does; on etcd its election); ``cluster_key``: what every task set
     must prove it holds before its link is served (:mod:`rce.transport.cluster_auth`), and what the data-plane
     credentials handed out with ``connect`` derive from; ``quotas``: per-user bounds on containers, nodes
-    and interfaces (default :class:`~rce_master.state.Quotas`); ``login_guard``: the back-off of failed
-    logins (default :class:`~rce_master.login_guard.LoginGuard`'s defaults)."""
+    and interfaces (default :class:`~rce_master.state.master_state.Quotas`); ``login_guard``: the back-off of failed
+    logins (default :class:`~rce_master.auth.login_guard.LoginGuard`'s defaults)."""
 
     def __init__(self, *, users_file: Path | None = None, admin_token: str, dev: bool = False,
                  store: Store | None = None, reconcile_grace: float = reconcile.RECONCILE_GRACE,
@@ -472,7 +472,7 @@ class Master:
         return {}
 
     async def _container_bus(self, args: dict) -> dict:
-        """``container_bus {user, ctag}`` (a rosbridge session, :mod:`rce_robot.rosbridge`): the bus of
+        """``container_bus {user, ctag}`` (a rosbridge session, :mod:`rce_robot.rosbridge.endpoint`): the bus of
         the user's container ``ctag`` as its host describes it. Raises NotFound unless the user has it."""
         c = self.state.container(args["user"], args["ctag"])
         return await self.control.host_request(c, "describe", {}, wait=False)

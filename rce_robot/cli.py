@@ -20,13 +20,13 @@ from rce.transport.masterlink import MASTER_PORT, MASTER_WAIT, parse_masters, un
 from rce.plumbing.process import run, write_ready_file
 from rce.protocol.frames import DEFAULT_EXPIRY
 from rce.protocol.limits import DEFAULT_MAX_PENDING_TOTAL
-from rce.protocol.pacer import rate_arg
+from rce.interfaces.pacer import rate_arg
 from rce.protocol.resume import DEFAULT_GRACE, DEFAULT_RESUME_BUFFER
 from rce.protocol.zones import parse_zone
 from rce.protocol.session import DEFAULT_MAX_LAG, DEFAULT_MAX_MESSAGE, DEFAULT_QUEUE_SIZE
 from rce_robot.endpoint import RobotEndpoint
 from rce_robot import ws_link
-from rce_robot.rosbridge import ROSBRIDGE_PORT
+from rce_robot.rosbridge.endpoint import ROSBRIDGE_PORT
 
 log = get_logger("rce.robot")
 

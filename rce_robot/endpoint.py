@@ -20,11 +20,11 @@ from prometheus_client.core import CounterMetricFamily, GaugeMetricFamily, Histo
 from rce.transport.cluster_auth import ClusterKey, token_of
 from rce.transport.dataplane import DataPlane
 from rce.plumbing.errors import AuthError, NotFound, ProtocolError, RCEError, RequestError, Throttled
-from rce.protocol.interface_type import InterfaceType
+from rce.interfaces.kind import InterfaceType
 from rce.protocol.zones import CLOUD, Zone
-from rce.protocol.lanes import Lane, parse_lane
+from rce.interfaces.lanes import Lane, parse_lane
 from rce.protocol.lane_queue import DELAY_BOUNDS
-from rce.protocol.pacer import Pacing, new_pacer
+from rce.interfaces.pacer import Pacing, new_pacer
 from rce.transport.lane_socket import mptcp_socket
 from rce.plumbing.log import get_logger
 from rce.plumbing.metrics_http import MetricsServer
@@ -41,9 +41,9 @@ from rce_robot.front_door import master_away, peer_address, refuse_in_band, rela
 from rce_robot.interfaces import RobotInterface
 from rce_robot.namespace import CLOSE_POLICY, RobotNamespace
 from rce_robot.parse_pool import ParsePool
-from rce_robot.rosbridge import SESSION_COUNTERS as ROSBRIDGE_COUNTERS
-from rce_robot.rosbridge import RosbridgeServer
-from rce_robot.rosbridge_session import RosbridgeSession
+from rce_robot.rosbridge.endpoint import SESSION_COUNTERS as ROSBRIDGE_COUNTERS
+from rce_robot.rosbridge.endpoint import RosbridgeServer
+from rce_robot.rosbridge.session import RosbridgeSession
 from rce_robot import link_report, ws_link
 from rce_robot.link_report import LinkReports, Uplink, crosses_uplink, websocket_link
 
@@ -263,7 +263,7 @@ class RobotEndpoint:
                     metrics_port: int | None = None, rosbridge_port: int | None = None) -> None:
         """Listen (data plane, websocket), then register with one of ``masters`` (control
         addresses; retried with backoff until one takes this task set), then serve metrics and
-        rosbridge v2 clients (:mod:`rce_robot.rosbridge`; ``rosbridge_port`` None: not served).
+        rosbridge v2 clients (:mod:`rce_robot.rosbridge.endpoint`; ``rosbridge_port`` None: not served).
         Raises :class:`RCEError` when the master refuses this task set."""
         await self.plane.listen(bind, data_port, self.advertise_host)
         self.plane.data_key = self.cluster_key.data_key(self.plane.addr)

@@ -4,7 +4,7 @@ container's graph in Foxglove and Lichtblick, over the Foxglove WebSocket protoc
 A client opens ``ws://HOST:PORT/?userID=U&password=SHA256HEX&container=CTAG`` (``&robotID=R`` optional; default
 ``foxgloveN``). Before the websocket opens the master checks the password, that ``U`` has container ``CTAG`` and
 takes ``R`` as a connected robot, as for a rosbridge client (refusals: HTTP 401, 404, 403). The client is then a
-rosbridge session of the endpoint (:class:`~rce_robot.rosbridge_session.RosbridgeSession`, a robot namespace whose
+rosbridge session of the endpoint (:class:`~rce_robot.rosbridge.session.RosbridgeSession`, a robot namespace whose
 interfaces the master makes on its behalf), driven with rosbridge ops:
 
 - the container's topics are advertised as channels (encoding ``ros1``, schema encoding ``ros1msg``, the full ROS 1
@@ -31,8 +31,8 @@ from rce.messages import default_registry
 from rce.plumbing.errors import AuthError, MessageError, NotFound, RCEError, RequestError
 from rce.plumbing.log import get_logger
 from rce.plumbing.tasks import Tasks
-from rce_robot.rosbridge import RosbridgeServer
-from rce_robot.rosbridge_session import RosbridgeSession
+from rce_robot.rosbridge.endpoint import RosbridgeServer
+from rce_robot.rosbridge.session import RosbridgeSession
 
 log = get_logger("rce.foxglove")
 

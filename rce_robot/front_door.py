@@ -29,7 +29,7 @@ def refuse_in_band(query: dict) -> bool:
 
 def peer_address(connection) -> str:
     """The IP address a websocket ``connection`` (websockets' ``ServerConnection``) comes from: what
-    the master's login throttling counts by (:mod:`rce_master.login_guard`)."""
+    the master's login throttling counts by (:mod:`rce_master.auth.login_guard`)."""
     addr = connection.remote_address
     return str(addr[0]) if addr else ""
 

@@ -13,9 +13,9 @@ from __future__ import annotations
 from typing import TYPE_CHECKING, Any, Protocol
 
 from rce.plumbing.errors import MessageError, ProtocolError, RequestError, Unavailable
-from rce.protocol.interface_type import InterfaceType, Kind, Side
-from rce.protocol.interfaces import Interface
-from rce.protocol.lanes import Lane
+from rce.interfaces.kind import InterfaceType, Kind, Side
+from rce.transport.interface import Interface
+from rce.interfaces.lanes import Lane
 from rce.messages.forms import JsonForms
 from rce.messages import MessageRegistry
 from rce.plumbing.pending import PendingCalls
@@ -54,7 +54,7 @@ class RobotInterface(Interface):
     Publisher, Subscriber, ServiceClient or ServiceProvider), for class ``cls``, in the
     session ``link`` of its robot. ``robot_call_timeout``: s a call from the cloud waits
     for the robot's reply (ServiceClient kinds). ``lane``: the lane the robot set for it
-    (:mod:`rce.protocol.lanes`; None: from ``cls``).
+    (:mod:`rce.interfaces.lanes`; None: from ``cls``).
 
     Raises :class:`MessageError` at creation if ``cls`` is not a known message (or, for the
     service kinds, service) class."""

@@ -1,4 +1,4 @@
-"""Each robot's link as the master's placer sees it (:mod:`rce_master.placer`): the round trip and
+"""Each robot's link as the master's placer sees it (:mod:`rce_master.placement.placer`): the round trip and
 delivery rate the kernel measures (``TCP_INFO``), told to the master as ``robot_link {user, robot,
 rtt_ms, rate}`` every :data:`EVERY` s when either moved by :data:`CHANGE` or more since the last
 report, and at least every :data:`REFRESH` s.

@@ -34,8 +34,8 @@ from rce.transport.masterlink import MasterLink
 from rce.plumbing.tasks import Tasks
 from rce_robot.interfaces import RobotInterface
 from rce_robot import ws_link
-from rce.protocol.lanes import BULK_SIZE, Lane
-from rce.protocol.pacer import Pacer
+from rce.interfaces.lanes import BULK_SIZE, Lane
+from rce.interfaces.pacer import Pacer
 from rce.transport import lane_socket
 from rce.transport.lane_socket import PacedLink, fragments, socket_of
 from rce_robot.parse_pool import ParsePool
@@ -280,7 +280,7 @@ class RobotNamespace:
     async def serve_bulk(self, ws: Any, pacer: Pacer | None = None) -> None:
         """Serve a bulk link that joined the session (``?session=TOKEN&lane=bulk``) until it closes: the
         bulk lane's topic DMs go on it, unnumbered, in frames of at most
-        :data:`~rce.protocol.lanes.BULK_SIZE` bytes, paced by ``pacer`` (None: as fast as the link takes
+        :data:`~rce.interfaces.lanes.BULK_SIZE` bytes, paced by ``pacer`` (None: as fast as the link takes
         them); the robot's DMs on it come in. It is marked DSCP CS1 and the session's own link becomes the
         control lane (:func:`rce.transport.lane_socket.mark`). A bulk link already there is closed. When it
         closes, the bulk lane goes on the session's link again. The pacer's rate (set, or estimated from the

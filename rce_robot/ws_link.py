@@ -2,7 +2,7 @@
 picows (Cython, callback based; about half websockets' CPU per frame, docs/benchmarks.md) or
 websockets (pure Python, asyncio).
 
-The session shells (:mod:`rce_robot.namespace`, :mod:`rce_robot.rosbridge`) see one surface: the
+The session shells (:mod:`rce_robot.namespace`, :mod:`rce_robot.rosbridge.endpoint`) see one surface: the
 part of websockets' ``ServerConnection`` they use (``async for frame in ws``, ``await ws.send(m)``
 with ``m`` a str, bytes or an async iterable of fragments, ``await ws.drain()``, ``await
 ws.close(code, reason)``, ``ws.close_code``, ``ws.remote_address``, ``ws.transport``;

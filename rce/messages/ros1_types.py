@@ -27,7 +27,7 @@ from typing import Any, Callable
 
 from rce.plumbing.errors import ConfigError, MessageError
 from rce.messages import MessageRegistry
-from rce.node.ros1 import import_rospy
+from rce.messages.debian_ros1 import import_rospy
 
 #: The separator between the parts of a full message definition (genmsg ``compute_full_text``).
 DEFINITION_SEPARATOR = "\n" + "=" * 80 + "\n"

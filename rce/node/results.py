@@ -11,7 +11,7 @@ An output is caused by an input when
 
 An output that neither rule ties to an input is not a result and is not timed. The latency is the
 node's own (queueing in the node and compute); the placer adds the links around it
-(:mod:`rce_master.placer`). The environment asks each node for its samples (``node_results``) and
+(:mod:`rce_master.placement.placer`). The environment asks each node for its samples (``node_results``) and
 counts them against the container's deadline (:class:`ResultStats`).
 """
 from __future__ import annotations

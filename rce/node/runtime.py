@@ -334,7 +334,7 @@ class Node:
             await asyncio.sleep(HANDLED_POLL)
 
     async def _op_settle(self, args: dict) -> dict:
-        """A moved container's old copy goes (:mod:`rce_master.mover`): ``{unflushed: [link ids]}`` once
+        """A moved container's old copy goes (:mod:`rce_master.placement.mover`): ``{unflushed: [link ids]}`` once
         the inputs that arrived so far are handled and what they caused, sent on the node's direct
         links, reached the far ends (at most ``timeout`` s, default :data:`SETTLE_FLUSH` s)."""
         await self._handled()

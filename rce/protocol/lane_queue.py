@@ -1,6 +1,6 @@
 """What waits to go to a peer, by lane, sans I/O (docs/lanes.md "Scheduling").
 
-:class:`LaneQueues` holds one :class:`~rce.protocol.outbox.Outbox` per :class:`~rce.protocol.lanes.Lane`
+:class:`LaneQueues` holds one :class:`~rce.protocol.outbox.Outbox` per :class:`~rce.interfaces.lanes.Lane`
 (the one outbox policy in each: control items are never dropped, data items keep each key's newest) and
 takes the next item by strict priority, control before state before bulk, with a minimum share for the
 lower lanes: a lane that has waited while ``starve_after`` items of higher lanes went out gets the next
@@ -17,7 +17,7 @@ from bisect import bisect_left
 from dataclasses import dataclass, field
 from typing import Any, Generic, TypeVar
 
-from rce.protocol.lanes import Lane
+from rce.interfaces.lanes import Lane
 from rce.protocol.outbox import Outbox
 
 T = TypeVar("T")

@@ -1,7 +1,7 @@
 """What waits to go to a peer that may not keep up, sans I/O: one bounded outbox with one policy
 (docs/INTERNALS.md "A peer that does not keep up"), used by the RCE robot session
 (:class:`~rce.protocol.robot_session.RobotSession`) and the rosbridge session
-(:mod:`rce_robot.rosbridge_outbox`).
+(:mod:`rce_robot.rosbridge.outbox`).
 
 - Control items (statuses, answers, errors) are never dropped here; the owner bounds them.
 - Data items (topic messages) are keyed by their interface (or topic) and keep each key's newest,

@@ -25,7 +25,7 @@ from typing import Any
 from rce.protocol.error_limits import ErrorLimits
 from rce.protocol.frames import DM, ER, ST, encode
 from rce.protocol.lane_queue import ALL_LANES, LaneQueues
-from rce.protocol.lanes import Lane
+from rce.interfaces.lanes import Lane
 from rce.protocol.resume import AK, Frame, Outgoing
 
 _CONTROL_STATE = (Lane.CONTROL, Lane.STATE)     # the session's link's lanes while a bulk link takes bulk

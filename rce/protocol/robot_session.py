@@ -11,8 +11,8 @@ from rce.messages import takes_binary_message
 from rce.protocol.events import CaughtUp, CloseLink, Deliver, Lagging, RequestReady, ServiceCall
 from rce.protocol.frames import DEFAULT_EXPIRY, DEFAULT_MAX_PENDING_BYTES, DEFAULT_MAX_PENDING_PARTS, DM, ST
 from rce.protocol.holdback import HoldBack
-from rce.protocol.lanes import Lane, interface_lane, message_lane
-from rce.protocol.pacer import Pacer
+from rce.interfaces.lanes import Lane, interface_lane, message_lane
+from rce.interfaces.pacer import Pacer
 from rce.protocol.limits import DEFAULT_MAX_LAG, ER_BURST, ER_RATE, LagGate, PartBudget, short_repr
 from rce.protocol.robot_outbox import RobotOutbox, dm
 from rce.protocol.resume import (ACK_DELAY, ACK_EVERY, DEFAULT_GRACE, DEFAULT_RESUME_BUFFER, DEFAULT_RESUME_BYTES,
@@ -244,7 +244,7 @@ class RobotSession(SessionCore):
     # -- the interface table ------------------------------------------------------------------------
     def add_interface(self, itag: str, itype: str, cls: str, lane: Lane | None = None) -> None:
         """A robot-side interface ``itag`` of type ``itype`` and class ``cls`` now exists; ``lane``: the
-        lane the robot set for it (None: from ``cls``, :func:`~rce.protocol.lanes.default_lane`).
+        lane the robot set for it (None: from ``cls``, :func:`~rce.interfaces.lanes.default_lane`).
         Raises as :func:`robot_interface_type`."""
         kind, side = robot_interface_type(itype)
         self.interfaces[itag] = (kind, side, cls)
@@ -258,8 +258,8 @@ class RobotSession(SessionCore):
 
     def lane_of(self, itag: str, msg: Any = None) -> Lane:
         """The lane a topic DM of interface ``itag`` with message ``msg`` takes
-        (:func:`~rce.protocol.lanes.message_lane`: a serialized message, bytes, larger than
-        :data:`~rce.protocol.lanes.BULK_SIZE` goes bulk unless the robot set the lane); an unknown
+        (:func:`~rce.interfaces.lanes.message_lane`: a serialized message, bytes, larger than
+        :data:`~rce.interfaces.lanes.BULK_SIZE` goes bulk unless the robot set the lane); an unknown
         interface's: state."""
         lane, explicit = self.lanes.get(itag, (Lane.STATE, False))
         return message_lane(lane, explicit, len(msg) if isinstance(msg, (bytes, bytearray, memoryview)) else 0)

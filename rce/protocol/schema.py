@@ -10,7 +10,7 @@ wire uses the long ones (``containerTag``, ``nodeTag``...; the aliases).
 :func:`parse` checks a complete message and returns its data as a model (:class:`CCData`,
 :class:`DCData`, :class:`CNData`, :class:`CXData`, :class:`DataMessage`), which travels on past
 validation: the master's request handlers read its attributes, an interface type is an
-:class:`~rce.protocol.interface_type.InterfaceType` parsed once. :func:`validate` checks the same way and
+:class:`~rce.interfaces.kind.InterfaceType` parsed once. :func:`validate` checks the same way and
 returns the data as sent, for a shell that passes the request on (the robot session forwards it to
 the master). Both raise :class:`ProtocolError` naming the type and the key path of the first
 problem, e.g. ``CN.data.addNodes[0]: missing key 'pkg'``. Wire components take keys they do not
@@ -24,8 +24,8 @@ from pydantic import BaseModel, ConfigDict, Field, PlainValidator, TypeAdapter, 
 from pydantic_core import PydanticCustomError
 
 from rce.plumbing.errors import ProtocolError
-from rce.protocol.interface_type import InterfaceType
-from rce.protocol.lanes import Lane, parse_lane
+from rce.interfaces.kind import InterfaceType
+from rce.interfaces.lanes import Lane, parse_lane
 from rce.protocol.frames import CC, CN, CX, DC, DM
 from rce.protocol.limits import MAX_ER_TEXT, short_repr, truncate
 
@@ -106,7 +106,7 @@ MsgID = Annotated[Union[str, int], _rule(lambda v: _is_str(v) or (isinstance(v, 
                                           "must be a string or an integer")]
 Features = Annotated[list[str], _rule(lambda v: isinstance(v, list) and all(map(_is_str, v)),
                                       "must be a list of strings")]
-#: Where a container may run (:mod:`rce_master.placer`): ``auto`` (the placer decides), ``cloud``,
+#: Where a container may run (:mod:`rce_master.placement.placer`): ``auto`` (the placer decides), ``cloud``,
 #: ``edge`` or ``robot`` (the computer of the robot it serves).
 PLACEMENTS = ("auto", "cloud", "edge", "robot")
 Placement = Annotated[str, _rule(lambda v: v in PLACEMENTS, "must be one of 'auto', 'cloud', 'edge', 'robot'")]
@@ -118,9 +118,9 @@ Flag = Annotated[bool, _rule(lambda v: isinstance(v, bool), "must be true or fal
 Tags = Annotated[list[str], _rule(lambda v: isinstance(v, list) and all(_is_str(t) and t for t in v),
                                   "must be a list of non-empty strings")]
 #: An interface type (prefix x suffix, DESIGN section 3.5; RCE alpha names accepted), parsed into its
-#: :class:`~rce.protocol.interface_type.InterfaceType` (a ``str``: its canonical name on the wire).
+#: :class:`~rce.interfaces.kind.InterfaceType` (a ``str``: its canonical name on the wire).
 IType = Annotated[InterfaceType, PlainValidator(_interface_type)]
-#: A lane (:mod:`rce.protocol.lanes`): ``"control"``, ``"state"`` or ``"bulk"``.
+#: A lane (:mod:`rce.interfaces.lanes`): ``"control"``, ``"state"`` or ``"bulk"``.
 LaneName = Annotated[Lane, PlainValidator(_lane)]
 #: An interface named ``endpointTag/interfaceTag``.
 InterfaceRef = Annotated[str, PlainValidator(_interface_ref)]
@@ -142,7 +142,7 @@ class ContainerData(Component):
     ``pids`` tasks are limits (absent or 0: none); ``size`` is the original RCE's container size
     class (its client always sends ``size: 1``) and ``bandwidth`` bytes/s: both recorded only.
 
-    What it needs, for the placer (:mod:`rce_master.placer`; every key optional, a container that
+    What it needs, for the placer (:mod:`rce_master.placement.placer`; every key optional, a container that
     gives none of them is placed as before, on the least loaded cloud or edge host):
     ``placement`` (``auto``, the default once any of these is given; ``cloud``, ``edge``,
     ``robot``), ``deadline_ms`` (the latency its results are due within, input to output),
@@ -207,7 +207,7 @@ class InterfaceComponent(Component):
     iType: IType = Field(alias="interfaceType")
     iCls: Tag = Field(alias="className")
     addr: Text | None = None
-    lane: LaneName | None = None      # absent: from the class (rce.protocol.lanes.default_lane)
+    lane: LaneName | None = None      # absent: from the class (rce.interfaces.lanes.default_lane)
 
 
 class ConnectionComponent(Component):

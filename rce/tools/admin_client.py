@@ -1,4 +1,4 @@
-"""The one client of the master's admin API (routes: :mod:`rce_master.admin`), for rce-console,
+"""The one client of the master's admin API (routes: :mod:`rce_master.http.admin`), for rce-console,
 rce-topic/rce-service ``--container``, the engine launcher (:mod:`rce.tools.launch`) and the benchmarks.
 
 JSON in and out, ``Authorization: Bearer TOKEN``. Blocking (:meth:`AdminClient.request`, for

@@ -45,7 +45,7 @@ member's link, ahead of the first direct message. The environment's plane, once 
 everything before its marker, tells the members through their bus (:attr:`DataPlane.on_switch`);
 a member holds what comes directly for ``x`` until then (:mod:`rce.node.links`).
 
-Fences and end of stream (a container's move, :mod:`rce_master.mover`): when a connection's peer is
+Fences and end of stream (a container's move, :mod:`rce_master.placement.mover`): when a connection's peer is
 pointed at a new address (:meth:`DataPlane.fence`), this plane first sends ``{"fence": [src, dst],
 "id": f}`` on every path that carried ``src -> dst`` to the old copy (its dialled link to the old
 address, and each accepted link of ``dst``'s claim set), after the last message it sent there; the
@@ -58,7 +58,7 @@ copy goes, :meth:`DataPlane.flush` sends ``{"eos": k}`` on its links to its peer
 each peer's ``{"eos_ack": k}``, which the peer sends once it has handed on every frame before it.
 
 What receives frames registers here by id as a :class:`Receiver` (the interfaces of
-:mod:`rce.protocol.interfaces`). Outgoing links are bounded (``max_buffer`` bytes waiting in the
+:mod:`rce.transport.interface`). Outgoing links are bounded (``max_buffer`` bytes waiting in the
 socket, or in the backlog while the link connects); a message that would pass the bound
 is dropped and counted (:meth:`rce.transport.link.FramedLink.offer`), and so is one that waited longer
 than :data:`rce.transport.link.DEFAULT_MAX_DELAY` for a peer that does not keep up (oldest first:

@@ -6,8 +6,8 @@
   written next is not stuck behind a deep socket buffer; Linux tcp(7)). The bulk link is DSCP CS1
   (``IP_TOS`` 0x20, RFC 4594's low-priority data). A link alone (a client with one websocket) is left
   unmarked: it carries every lane.
-- :class:`PacedLink`: a bulk link's :class:`~rce.protocol.pacer.Pacer` on its socket. It writes one
-  websocket message's fragments of at most :data:`~rce.protocol.lanes.BULK_SIZE`, each when the pacer says
+- :class:`PacedLink`: a bulk link's :class:`~rce.interfaces.pacer.Pacer` on its socket. It writes one
+  websocket message's fragments of at most :data:`~rce.interfaces.lanes.BULK_SIZE`, each when the pacer says
   (:meth:`PacedLink.fragments`); it has the kernel pace the socket's packets to the pacer's rate
   (``SO_MAX_PACING_RATE``, Linux's TCP internal pacing), so a fragment reaches the bottleneck spread out,
   not as a burst; and when the rate is estimated it feeds the pacer the socket's ``TCP_INFO``
@@ -26,9 +26,9 @@ from typing import Any
 from urllib.parse import urlsplit
 
 from rce.plumbing.log import get_logger
-from rce.protocol.lanes import BULK_SIZE, Lane
-from rce.protocol.pacer import Pacer, chunks
-from rce.protocol.rate_estimator import PathSample
+from rce.interfaces.lanes import BULK_SIZE, Lane
+from rce.interfaces.pacer import Pacer, chunks
+from rce.interfaces.rate_estimator import PathSample
 
 log = get_logger("rce.transport")
 

@@ -40,7 +40,7 @@ from rce.transport.lane_socket import mark
 from rce.transport.link import STREAM_LIMIT, nodelay
 from rce.plumbing.log import get_logger
 from rce.plumbing.tasks import Tasks
-from rce.protocol.lanes import Lane
+from rce.interfaces.lanes import Lane
 
 log = get_logger("rce.masterlink")
 T = TypeVar("T")

@@ -28,7 +28,7 @@ import pytest
 from rce.plumbing.errors import ConfigError
 from rce.messages import MessageRegistry, default_registry
 from rce.node.package_path import load_package_types
-from rce.node.ros1 import import_rospy
+from rce.messages.debian_ros1 import import_rospy
 from rce_client.ros1_bridge import Counts, Handoff
 from rce.messages.ros1_types import (DEFINITION_SEPARATOR, message_identity, raw_message_class, raw_service_class,
                                    service_identity)

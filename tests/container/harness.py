@@ -20,7 +20,7 @@ import psutil
 
 from rce.transport.cluster_auth import KEY_ENV, ClusterKey, respond
 from rce.transport.dataplane import DataPlane
-from rce.protocol.interfaces import Interface
+from rce.transport.interface import Interface
 from rce.transport.rpc import RpcPeer
 
 BIN = Path(sys.executable).parent

@@ -11,10 +11,10 @@ from rce.plumbing.errors import Unavailable
 from rce.plumbing.tasks import Tasks
 from rce_master.control import Control
 from rce_master.failover import Failover
-from rce_master.model import LIMIT_KEYS
+from rce_master.state.model import LIMIT_KEYS
 from rce_master.requests import Request, handle
-from rce_master.state import MasterState
-from rce_master.store import MemoryStore
+from rce_master.state.master_state import MasterState
+from rce_master.state.store import MemoryStore
 from test_core_master_requests import Link, notes
 
 U = "alice"

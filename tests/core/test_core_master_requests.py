@@ -9,9 +9,9 @@ import pytest
 
 from rce.plumbing.errors import NotFound, ProtocolError, RequestError, Timeout, Unavailable
 from rce_master.control import Control
-from rce_master.model import LIMIT_KEYS
+from rce_master.state.model import LIMIT_KEYS
 from rce_master.requests import CN_STEPS, CX_STEPS, REQUESTS, Request, handle
-from rce_master.state import MasterState
+from rce_master.state.master_state import MasterState
 
 U = "alice"
 ROBOT_TID, HOST_TID = 1, 2

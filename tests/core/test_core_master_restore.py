@@ -1,5 +1,5 @@
 """The master's state after a restart, and the reconciliation with the task sets that come back
-(rce_master.reconcile, docs/INTERNALS.md "Master state and restart"), sans I/O: the state rebuilt
+(rce_master.state.reconcile, docs/INTERNALS.md "Master state and restart"), sans I/O: the state rebuilt
 from a reopened SQLite file equals the one before, ids go on, task sets are absent until they
 re-register, and a returning task set's report decides what is kept, lost, forgotten or dropped."""
 from __future__ import annotations
@@ -10,10 +10,10 @@ import pytest
 
 from rce.plumbing.errors import RequestError, Unavailable
 from rce.protocol.schema import InterfaceComponent
-from rce_master.reconcile import register
-from rce_master.sqlite_store import SqliteStore
-from rce_master.state import MasterState, TaskSetAbsent
-from rce_master.store import MemoryStore
+from rce_master.state.reconcile import register
+from rce_master.state.sqlite_store import SqliteStore
+from rce_master.state.master_state import MasterState, TaskSetAbsent
+from rce_master.state.store import MemoryStore
 from test_core_store import FailingStore, assert_same, busy_state
 
 U, V = "alice", "bob"

@@ -1,4 +1,4 @@
-"""rce_master.state: the master's command data structure and its rules, sans I/O."""
+"""rce_master.state.master_state: the master's command data structure and its rules, sans I/O."""
 from __future__ import annotations
 
 import hashlib
@@ -8,9 +8,9 @@ import pytest
 
 from rce.plumbing.errors import AuthError, NotFound, RCEError, RequestError, Unavailable
 from rce.protocol.schema import parse
-from rce_master.model import User, password_digest
-from rce_master.state import MasterState
-from rce_master.store import MemoryStore
+from rce_master.state.model import User, password_digest
+from rce_master.state.master_state import MasterState
+from rce_master.state.store import MemoryStore
 
 U, V = "alice", "bob"
 
@@ -723,7 +723,7 @@ def test_robot_relay_is_stored_with_its_time(wired):
 
 
 def test_robot_record_stored_before_relays_loads():
-    from rce_master.model import Robot
+    from rce_master.state.model import Robot
     r = Robot.from_record({"user": U, "robot": "r1", "tid": 1, "since": 5.0})
     assert (r.relay, r.relay_since) == ("", 0.0)
 

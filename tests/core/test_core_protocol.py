@@ -12,7 +12,7 @@ from hypothesis import strategies as st
 from pydantic import ValidationError
 
 from rce.plumbing.errors import MessageError, ProtocolError, RequestError
-from rce.protocol.interface_type import InterfaceType, Kind, Side
+from rce.interfaces.kind import InterfaceType, Kind, Side
 from rce.protocol import (DEFAULT_EXPIRY, ID_LEN, Assembler, encode, is_part_id, new_id, split_interface_type,
                           validate)
 from rce.protocol import schema

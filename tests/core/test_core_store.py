@@ -1,4 +1,4 @@
-"""rce_master.store and the master's state on it: every change is a record in the store, a
+"""rce_master.state.store and the master's state on it: every change is a record in the store, a
 failed operation changes nothing, and the state rebuilt from the store's records equals the
 original (what the next issue's restart from a SQLite or etcd store relies on)."""
 from __future__ import annotations
@@ -10,9 +10,9 @@ import pytest
 
 from rce.plumbing.errors import RequestError
 from rce.protocol.schema import InterfaceComponent, NodeComponent
-from rce_master.model import password_digest
-from rce_master.state import MasterState
-from rce_master.store import MemoryStore
+from rce_master.state.model import password_digest
+from rce_master.state.master_state import MasterState
+from rce_master.state.store import MemoryStore
 
 U, V = "alice", "bob"
 

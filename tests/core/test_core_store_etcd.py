@@ -1,4 +1,4 @@
-"""rce_master.etcd_store and rce_master.election on a real etcd on loopback (tests/etcd_server.py).
+"""rce_master.state.etcd_store and rce_master.leadership.election on a real etcd on loopback (tests/etcd_server.py).
 
 The store: each batch is one etcd transaction (all its records at one revision, or none), the
 state reloads whole in another store, a batch too large or not JSON changes nothing, a standby
@@ -19,10 +19,10 @@ from pathlib import Path
 import pytest
 
 from rce.plumbing.errors import ConfigError, NotLeader, RequestError, Unavailable
-from rce_master.election import LEASE_TTL, Election
-from rce_master.etcd import EtcdClient, parse_url, range_end
-from rce_master.etcd_store import EtcdStore
-from rce_master.state import MasterState
+from rce_master.leadership.election import LEASE_TTL, Election
+from rce_master.leadership.etcd import EtcdClient, parse_url, range_end
+from rce_master.state.etcd_store import EtcdStore
+from rce_master.state.master_state import MasterState
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 from etcd_server import EtcdServer  # noqa: E402

@@ -1,4 +1,4 @@
-"""rce_master.sqlite_store: the master's state in one SQLite file. Records and batches behave
+"""rce_master.state.sqlite_store: the master's state in one SQLite file. Records and batches behave
 as in the memory store; a batch is one transaction (all or nothing, also when SQLite fails half
 way); the file reopens with the same records, also after its writer was killed with SIGKILL; one
 master per file (the lock refuses a second opener and is released when the holder dies)."""
@@ -15,8 +15,8 @@ from pathlib import Path
 import pytest
 
 from rce.plumbing.errors import ConfigError, RequestError, Unavailable
-from rce_master.sqlite_store import LAYOUT, SqliteStore
-from rce_master.store import MemoryStore
+from rce_master.state.sqlite_store import LAYOUT, SqliteStore
+from rce_master.state.store import MemoryStore
 
 U = "alice"
 
@@ -87,7 +87,7 @@ def test_reopen_gives_the_same_records(path):
 
 
 def test_a_killed_writer_loses_nothing_it_committed_and_releases_the_lock(path):
-    code = ("import os, sys; from rce_master.sqlite_store import SqliteStore\n"
+    code = ("import os, sys; from rce_master.state.sqlite_store import SqliteStore\n"
             "s = SqliteStore(sys.argv[1])\n"
             "for i in range(50): s.commit([(('node', 'u', 'c', str(i)), {'i': i}), (('counter', 'n'), {'next': i})])\n"
             "os.kill(os.getpid(), 9)\n")
@@ -103,7 +103,7 @@ def test_a_second_opener_is_refused_until_the_first_closes(store, path):
     msg = str(ei.value)
     assert str(path) in msg and f"pid {os.getpid()}" in msg and "another rce-master" in msg
     # another process is refused too
-    code = "import sys; from rce_master.sqlite_store import SqliteStore; SqliteStore(sys.argv[1])"
+    code = "import sys; from rce_master.state.sqlite_store import SqliteStore; SqliteStore(sys.argv[1])"
     p = subprocess.run([sys.executable, "-c", code, str(path)], capture_output=True, text=True, timeout=60)
     assert p.returncode != 0 and "is in use by another rce-master" in p.stderr
     store.close()

@@ -11,11 +11,11 @@ from rce.protocol import schema
 from rce.protocol.events import Deliver
 from rce.protocol.frames import encode
 from rce.protocol.lane_queue import LaneQueues
-from rce.protocol.pacer import Pacer, chunks, parse_rate
-from rce.protocol.lanes import BULK_SIZE, Lane, default_lane, interface_lane, message_lane, parse_lane
+from rce.interfaces.pacer import Pacer, chunks, parse_rate
+from rce.interfaces.lanes import BULK_SIZE, Lane, default_lane, interface_lane, message_lane, parse_lane
 from rce.protocol.robot_session import LANES_STATUS_EVERY
 from rce.protocol.session import ResumeOptions, RobotSession
-from rce_robot.rosbridge_outbox import RosbridgeOutbox
+from rce_robot.rosbridge.outbox import RosbridgeOutbox
 
 
 @pytest.mark.parametrize("cls, service, lane", [

@@ -1,4 +1,4 @@
-"""The placer's model and its choices (rce_master.placer), on the inputs of the placement script:
+"""The placer's model and its choices (rce_master.placement.placer), on the inputs of the placement script:
 a node with a 100 ms deadline that reads a 10 Hz, 10 kB sensor stream from its robot and burns
 20 core-ms per result, a cloud host with free cores and a robot whose computer has 0.3 of a core."""
 from __future__ import annotations
@@ -7,7 +7,8 @@ import pytest
 
 from rce.plumbing.errors import RequestError
 from rce.protocol.zones import Zone, parse_zone
-from rce_master.placer import MISS_RATE_OK, ContainerView, EnergyModel, HostView, LinkView, Placer, choose, options
+from rce_master.placement.placer import (MISS_RATE_OK, ContainerView, EnergyModel, HostView, LinkView, Placer, choose,
+                                         options)
 
 CLOUD = HostView(1, "dc1", Zone("cloud"), cpu=8, load=1)
 ROBOT = HostView(2, "r1-computer", Zone("robot", "r1", "alice"), cpu=0.3)
@@ -137,7 +138,7 @@ def test_a_host_where_recent_results_were_late_misses_whatever_the_model():
     assert by_zone(options(ok, [CLOUD, ROBOT], GOOD, current_tid=CLOUD.tid))["cloud"].meets
 
 
-# -- a copy's record, the link's bound (rce_master.placer.late_share, rce_master.placement) -------------------------
+# -- a copy's record, the link's bound (rce_master.placement.placer.late_share, rce_master.placement.advice) ---
 def marks_at(share: float, seconds: float, start: float = 0.0, hz: float = 10.0, every: float = 0.5,
              base: tuple[int, int] = (0, 0)) -> list[tuple[float, int, int]]:
     """Looks every ``every`` s at a copy that yields ``hz`` results a second, ``share`` of them late."""
@@ -152,7 +153,7 @@ def marks_at(share: float, seconds: float, start: float = 0.0, hz: float = 10.0,
 
 
 def test_a_late_share_counts_only_once_two_windows_of_enough_results_hold_it():
-    from rce_master.placer import LATE_WINDOW_S, MIN_RESULTS, late_share
+    from rce_master.placement.placer import LATE_WINDOW_S, MIN_RESULTS, late_share
     assert late_share([]) is None
     assert late_share(marks_at(0.5, LATE_WINDOW_S * 1.5)) is None, "one window: a young copy has no record yet"
     assert late_share(marks_at(0.2, 2 * LATE_WINDOW_S)) == pytest.approx(0.2)
@@ -180,7 +181,7 @@ def stats(results: int, misses: int, p50: float = 6.0) -> dict:
 
 
 def test_a_fresh_copys_slow_first_results_never_make_it_move():
-    from rce_master.placement import WARMUP, Placement
+    from rce_master.placement.advice import WARMUP, Placement
     p = Placement(None, None)
     # a fresh copy: its first two results are late (imports), then it meets its deadline
     p._count(_Rec(1), stats(0, 0, p50=None), 0.0)
@@ -203,7 +204,7 @@ def test_a_fresh_copys_slow_first_results_never_make_it_move():
 
 
 def test_a_link_rate_once_measured_is_kept_as_a_bound_while_reports_carry_none():
-    from rce_master.placement import Placement
+    from rce_master.placement.advice import Placement
     p = Placement(None, None)
     p.robot_link("alice", "r1", 5.0, 0.0)
     assert p.links[("alice", "r1")].rate == float("inf"), "never measured: the round trip alone"
@@ -222,7 +223,7 @@ def test_a_link_rate_once_measured_is_kept_as_a_bound_while_reports_carry_none()
 
 
 def test_no_move_for_margin_or_energy_to_a_host_where_its_own_results_were_late():
-    from rce_master.placer import LATE_RECORD_S
+    from rce_master.placement.placer import LATE_RECORD_S
     p = Placer(settle_s=0.0, settle_miss_s=0.0, dwell_s=0.0)
     light = {**NODE.__dict__, "work_ms": 6.0}                              # 20 ms on the robot's 0.3 cores, by the mean
     on_robot = ContainerView(**{**light, "miss_rate": 0.17})               # but its heavy scans miss there
@@ -249,9 +250,9 @@ async def test_a_pending_move_is_made_when_its_hysteresis_ends_not_at_the_next_p
     import asyncio
     import types
 
-    from rce_master import placement
-    from rce_master.model import ContainerRec, TaskSet
-    from rce_master.mover import MoveFailed
+    from rce_master.placement import advice as placement
+    from rce_master.state.model import ContainerRec, TaskSet
+    from rce_master.placement.mover import MoveFailed
     monkeypatch.setattr(placement, "POLL", 60.0)          # the next poll would come far too late
     hosts = {1: TaskSet(1, "container", "dc1", "h", {"capacity": {"cpu": 8}}),
              2: TaskSet(2, "container", "r1-computer", "h", {"capacity": {"cpu": 0.3}, "zone": "robot:r1",
@@ -290,7 +291,7 @@ async def test_a_pending_move_is_made_when_its_hysteresis_ends_not_at_the_next_p
 
 
 def test_from_a_host_where_some_results_are_late_to_one_where_none_were():
-    from rce_master.placer import LATE_RECORD_S
+    from rce_master.placement.placer import LATE_RECORD_S
     p = Placer(settle_s=0.0, settle_miss_s=0.0, dwell_s=0.0)
     light = {**NODE.__dict__, "work_ms": 6.0}
     in_cloud = ContainerView(**{**light, "miss_rate": 0.0})                 # never late in the cloud
@@ -314,7 +315,7 @@ def test_from_a_host_where_some_results_are_late_to_one_where_none_were():
 
 
 def test_a_spare_goes_where_the_placer_ranks_next():
-    from rce_master.placer import runner_up
+    from rce_master.placement.placer import runner_up
     ch = Placer().decide(0.0, NODE, [CLOUD, ROBOT], GOOD, CLOUD.tid)
     assert ch.current.tid == CLOUD.tid and runner_up(ch).tid == ROBOT.tid
     ch = Placer().decide(0.0, NODE, [CLOUD, ROBOT], BAD, ROBOT.tid)

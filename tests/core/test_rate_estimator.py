@@ -1,4 +1,4 @@
-"""The bulk lane's rate estimator (rce.protocol.rate_estimator) fed by a bottleneck model, the pacer
+"""The bulk lane's rate estimator (rce.interfaces.rate_estimator) fed by a bottleneck model, the pacer
 that follows it, and TCP_INFO read from a real loopback socket (rce.transport.lane_socket)."""
 from __future__ import annotations
 
@@ -6,9 +6,9 @@ import socket
 
 import pytest
 
-from rce.protocol.pacer import AUTO, OFF, Pacer, new_pacer, parse_pacing
+from rce.interfaces.pacer import AUTO, OFF, Pacer, new_pacer, parse_pacing
 from rce.protocol.robot_session import ResumeOptions, RobotSession
-from rce.protocol.rate_estimator import (INITIAL_RATE, MAX_INTERVAL, NOTSENT_LIMIT, Mode, PathSample,
+from rce.interfaces.rate_estimator import (INITIAL_RATE, MAX_INTERVAL, NOTSENT_LIMIT, Mode, PathSample,
                                          RateEstimator)
 from rce.transport.lane_socket import PacedLink, tcp_sample
 

@@ -16,7 +16,7 @@ from rce.protocol.limits import (ER_BURST, MAX_ER_TEXT, MAX_JSON_DEPTH, PartBudg
 from rce.protocol.events import RequestReady
 from rce.protocol.schema import InterfaceComponent, NodeComponent
 from rce.protocol.session import RobotSession, SessionLimits
-from rce_master.state import MasterState, QuotaExceeded, Quotas
+from rce_master.state.master_state import MasterState, QuotaExceeded, Quotas
 
 
 def ers(s: RobotSession) -> list[str]:

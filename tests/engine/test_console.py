@@ -76,7 +76,7 @@ def test_roles_are_set_listed_and_told_by_the_password_check(engine):
     assert users["vera"] == "viewer" and users["testUser"] == "admin"          # --dev's user administers
     assert "is now operator" in console(engine, "user", "role", "vera", "--role", "operator").stdout
     from rce.plumbing.errors import AuthError, Throttled
-    from rce_master.model import password_digest
+    from rce_master.state.model import password_digest
     ok = engine.admin("/api/auth", {"user": "vera", "password": password_digest("v3ra"), "addr": "192.0.2.7"})
     assert ok == {"user": "vera", "role": "operator"}
     for _ in range(5):                      # the robots' login guard: five free failures per user and address

@@ -33,11 +33,11 @@ from rce.messages import default_registry
 from rce.protocol.robot_outbox import CONTROL_BACKLOG
 from rce_robot import ws_cork
 from rce_robot.endpoint import RobotEndpoint
-from rce_robot.rosbridge import RosbridgeServer
-from rce_robot.rosbridge_compression import cbor_publish, cbor_raw_publish, png_op
-from rce_robot.rosbridge_fragments import Defragmenter
-from rce_robot.rosbridge_outbox import RosbridgeOutbox
-from rce_robot.rosbridge_session import Bridge, RosbridgeSession, RosbridgeSubscription
+from rce_robot.rosbridge.endpoint import RosbridgeServer
+from rce_robot.rosbridge.compression import cbor_publish, cbor_raw_publish, png_op
+from rce_robot.rosbridge.fragments import Defragmenter
+from rce_robot.rosbridge.outbox import RosbridgeOutbox
+from rce_robot.rosbridge.session import Bridge, RosbridgeSession, RosbridgeSubscription
 from wsclient import RawRobot
 
 pytestmark = pytest.mark.asyncio

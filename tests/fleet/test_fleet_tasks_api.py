@@ -37,8 +37,8 @@ ADMIN = ("testUser", "testUser")           # rce-master --dev's user, an admin
 
 def write_users(path: Path) -> Path:
     """A master users file (what ``rce-console user add NAME --role ROLE --file PATH`` writes) of USERS."""
-    from rce_master.state import MasterState
-    from rce_master.users import UsersFile
+    from rce_master.state.master_state import MasterState
+    from rce_master.auth.users import UsersFile
     st = MasterState()
     for name, (role, pw) in USERS.items():
         st.add_user(name, pw, role)

@@ -1,5 +1,5 @@
 """Login hardening (docs/SECURITY.md "Login"): the rules of
-:mod:`rce_master.login_guard` without sockets, then against a real engine: user names cannot be
+:mod:`rce_master.auth.login_guard` without sockets, then against a real engine: user names cannot be
 enumerated (login and handshake answer the same), failures back off per user (from one address)
 and per address with 429 + Retry-After while the real user from another address still logs in,
 and a real login succeeds during a password attack that gets 429s (the latencies are in
@@ -18,10 +18,10 @@ from websockets.exceptions import InvalidStatus
 
 from rce.plumbing.errors import AuthError, Throttled
 from rce.tools.launch import start_engine
-from rce_master import users as users_mod
-from rce_master.login_guard import FailureTable, LoginGuard, PasswordCheck
-from rce_master.model import User, password_digest
-from rce_master.scrypt_pool import NORMAL, URGENT, PriorityPool
+from rce_master.auth import users as users_mod
+from rce_master.auth.login_guard import FailureTable, LoginGuard, PasswordCheck
+from rce_master.state.model import User, password_digest
+from rce_master.auth.scrypt_pool import NORMAL, URGENT, PriorityPool
 
 PER_USER, PER_ADDRESS = 3, 6          # the engine's --login-failures-per-user/-address: small, for a quick test
 HANDSHAKE_TIMEOUT = 20.0              # s a websocket handshake may take on a busy machine (scrypt queued)

@@ -1,7 +1,7 @@
 """Who may call the fleet's task API, sans-I/O: roles, bearer tokens and the ``Authorization`` header.
 
 Credentials are the rce master's users (the master checks the password, through the same login guard
-as the robots' front door: :mod:`rce_master.login_guard`); each user has a role, kept in the master's
+as the robots' front door: :mod:`rce_master.auth.login_guard`); each user has a role, kept in the master's
 user record:
 
 =========  =============================================================================
