@@ -81,6 +81,9 @@ class _OldSpelling(argparse.Action):
 def parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(prog="rce-master", description="RCE master: robot login, admin API, control plane.")
     p.add_argument("--dev", action="store_true", help="provision user testUser/testUser (development only)")
+    p.add_argument("--no-dev-user", action="store_true",
+                   help="with --dev, provision no testUser: the users come from --users alone (rce-fleet serve "
+                        "gives its own, so that no well-known login exists)")
     p.add_argument("--bind", default="127.0.0.1", help="address to listen on (default 127.0.0.1)")
     p.add_argument("--port", type=int, default=9000, help="HTTP port: login, admin API, /metrics (0 = ephemeral)")
     p.add_argument("--control-port", type=int, default=8080, help="control-plane port for task sets (0 = ephemeral)")
@@ -132,8 +135,8 @@ async def amain(args: argparse.Namespace) -> None:
     guard = login_guard.LoginGuard(per_user=args.login_failures_per_user, per_address=args.login_failures_per_address,
                                    backoff_max=args.login_backoff_max)
     cluster_key = cluster_auth.ClusterKey.load_or_create(args.cluster_key_file)
-    make = functools.partial(Master, users_file=args.users, admin_token=admin_token, dev=args.dev,
-                             cluster_key=cluster_key,
+    make = functools.partial(Master, users_file=args.users, admin_token=admin_token,
+                             dev=args.dev and not args.no_dev_user, cluster_key=cluster_key,
                              reconcile_grace=args.reconcile_grace, login_guard=guard,
                              quotas=Quotas(args.max_containers, args.max_nodes, args.max_interfaces))
     stop = stop_event()
