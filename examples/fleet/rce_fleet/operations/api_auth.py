@@ -13,8 +13,11 @@ admin      also revokes any user's tokens (``DELETE /api/tokens/USER``)
 :class:`TokenBook` keeps the bearer tokens ``POST /api/login`` issues: random (256 bits), kept only as
 their SHA-256, each bound to a user and role, valid ``ttl_s`` seconds (the server's ``--token-ttl``,
 or less when the login asks), and revocable (``POST /api/logout``, or an admin's revocation of a
-user's tokens). At most ``max_tokens`` live at once: past it the oldest is forgotten (counted). Times
-are given by the caller (monotonic s).
+user's tokens). One user holds at most ``max_per_user`` live tokens: a further login ends that user's
+oldest (counted in ``evicted_user``), so no user's logins can push out another's. At most ``max_tokens``
+live at once in all: past it the oldest is forgotten (counted in ``evicted``). The book lives in the
+serving process's memory: a restart of ``rce-fleet serve`` ends every token (the login's answer says so,
+``survives_restart``). Times are given by the caller (monotonic s).
 """
 from __future__ import annotations
 
@@ -30,6 +33,7 @@ __all__ = ["DEFAULT_TTL_S", "ROLES", "Identity", "TokenBook", "allows", "parse_a
 ROLES = ("viewer", "operator", "admin")     # in order: each may do what the ones before it may
 DEFAULT_TTL_S = 8 * 3600.0                  # s a token lives by default: a work shift (rce-fleet serve --token-ttl)
 MAX_TOKENS = 10_000                         # live tokens at most (~1 MB); past it the oldest is forgotten
+MAX_PER_USER = 32                           # live tokens of one user at most; past it that user's oldest ends
 
 
 def allows(role: str, needed: str) -> bool:
@@ -56,12 +60,16 @@ class _Token:
 class TokenBook:
     """Bearer tokens (the module docstring). ``ttl_s``: the longest a token lives (s, > 0)."""
 
-    def __init__(self, ttl_s: float = DEFAULT_TTL_S, max_tokens: int = MAX_TOKENS):
+    def __init__(self, ttl_s: float = DEFAULT_TTL_S, max_tokens: int = MAX_TOKENS, max_per_user: int = MAX_PER_USER):
         if not ttl_s > 0:
             raise ValueError(f"the token lifetime must be > 0 s, got {ttl_s!r}")
-        self.ttl_s, self.max_tokens = float(ttl_s), int(max_tokens)
+        if max_per_user < 1 or max_tokens < 1:
+            raise ValueError(f"the token bounds must be >= 1, got {max_tokens!r} and {max_per_user!r} per user")
+        self.ttl_s, self.max_tokens, self.max_per_user = float(ttl_s), int(max_tokens), int(max_per_user)
         self.tokens: OrderedDict[str, _Token] = OrderedDict()       # sha256 hex -> token, oldest first
-        self.evicted = 0
+        self.by_user: dict[str, OrderedDict[str, None]] = {}        # user -> its keys, oldest first
+        self.evicted = 0          # tokens forgotten for the bound of all (max_tokens)
+        self.evicted_user = 0     # tokens ended for their user's bound (max_per_user)
 
     @staticmethod
     def _key(token: str) -> str:
@@ -73,34 +81,56 @@ class TokenBook:
         self.expire(now)
         life = self.ttl_s if ttl_s is None else min(float(ttl_s), self.ttl_s)
         token = secrets.token_urlsafe(32)
-        self.tokens[self._key(token)] = _Token(user, role, now + life)
+        key = self._key(token)
+        mine = self.by_user.setdefault(user, OrderedDict())
+        while len(mine) >= self.max_per_user:
+            self._drop(next(iter(mine)))
+            self.evicted_user += 1
+        self.tokens[key] = _Token(user, role, now + life)
+        mine[key] = None
         while len(self.tokens) > self.max_tokens:
-            self.tokens.popitem(last=False)
+            self._drop(next(iter(self.tokens)))
             self.evicted += 1
         return token, life
 
     def check(self, token: str, now: float) -> Identity | None:
         """The identity ``token`` stands for; None when it is unknown, expired or revoked."""
-        t = self.tokens.get(self._key(token))
+        return self.check_digest(self._key(token), now)
+
+    def check_digest(self, digest_hex: str, now: float) -> Identity | None:
+        """As :meth:`check`, given the token's SHA-256 (hex) rather than the token: what an RCE client
+        sends for its password (the page's session through the fleet's server, :mod:`rce_fleet.live.page_door`)."""
+        t = self.tokens.get(digest_hex.lower())
         if t is None or t.expires <= now:
             return None
         return Identity(t.user, t.role, "bearer")
 
     def revoke(self, token: str) -> bool:
         """End ``token``; False when it was not live."""
-        return self.tokens.pop(self._key(token), None) is not None
+        return self._drop(self._key(token))
 
     def revoke_user(self, user: str) -> int:
         """End every token of ``user``; returns how many."""
-        keys = [k for k, t in self.tokens.items() if t.user == user]
+        keys = list(self.by_user.get(user, ()))
         for k in keys:
-            del self.tokens[k]
+            self._drop(k)
         return len(keys)
 
     def expire(self, now: float) -> None:
         """Forget the expired tokens (O(n) over the live ones, at each issue)."""
         for k in [k for k, t in self.tokens.items() if t.expires <= now]:
-            del self.tokens[k]
+            self._drop(k)
+
+    def _drop(self, key: str) -> bool:
+        t = self.tokens.pop(key, None)
+        if t is None:
+            return False
+        mine = self.by_user.get(t.user)
+        if mine is not None:
+            mine.pop(key, None)
+            if not mine:
+                del self.by_user[t.user]
+        return True
 
 
 def parse_authorization(header: str) -> tuple[str, str, str] | None:

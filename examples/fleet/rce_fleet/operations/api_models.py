@@ -101,12 +101,15 @@ class LoginRequest(BaseModel):
 
 
 class LoginAnswer(BaseModel):
-    """A bearer token for ``Authorization: Bearer TOKEN`` until ``expires_in`` s from now (or logout)."""
+    """A bearer token for ``Authorization: Bearer TOKEN`` until ``expires_in`` s from now (or logout, or a
+    restart of the server: tokens live in its memory alone)."""
     token: str
     token_type: Literal["Bearer"] = "Bearer"
     expires_in: float = Field(description="s from now")
     user: str
     role: Literal["viewer", "operator", "admin"]
+    survives_restart: Literal[False] = Field(False, description="false: a restart of rce-fleet serve ends every "
+                                             "token (they live in its memory); log in again then")
 
 
 def _ref(name: str) -> dict:

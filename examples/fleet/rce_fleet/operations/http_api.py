@@ -6,8 +6,9 @@ role each needs in brackets, :mod:`rce_fleet.operations.api_auth`; the models an
 
 ==============================  =====================================================================
 ``POST /api/login``             ``{"user", "password", "ttl_s"?}`` -> ``{"token", "token_type":
-                                "Bearer", "expires_in", "user", "role"}``; 401 wrong user or password,
-                                429 (``Retry-After``) after repeated failures [anyone]
+                                "Bearer", "expires_in", "user", "role", "survives_restart": false}``;
+                                401 wrong user or password (and the fleet's own internal user, never
+                                a person's login), 429 (``Retry-After``) after repeated failures [anyone]
 ``POST /api/logout``            revoke the bearer token the request carries [viewer]
 ``DELETE /api/tokens/USER``     revoke every token of USER -> ``{"revoked": n}`` [admin]
 ``POST /api/tasks``             body ``{"errands": ["pick1", "42"], "priority": 0, "earliest_start_s": 0,
@@ -19,7 +20,8 @@ role each needs in brackets, :mod:`rce_fleet.operations.api_auth`; the models an
 ``GET /api/tasks/ID``           one task, 404 when the fleet does not know it [viewer]
 ``DELETE /api/tasks/ID``        cancel it -> 200 and the task, its ``cancelled_by`` ``http:USER``; 404
                                 unknown, 409 already closed [operator]
-``GET /api/openapi.json``       the OpenAPI 3.1 document [anyone]
+``GET /api/openapi.json``       the OpenAPI 3.1 document; its server is ``/`` (relative: the ``Host``
+                                header names nothing in it) [anyone]
 ``GET /metrics``                Prometheus text: tasks by state, queue length, task times, per-robot
                                 utilisation, battery and tasks done [viewer; anyone with
                                 ``metrics_public``]
@@ -46,7 +48,7 @@ from typing import Awaitable, Callable
 from aiohttp import web
 from pydantic import ValidationError
 
-from rce.plumbing.errors import AuthError, RCEError, Throttled
+from rce.plumbing.errors import AuthError, RCEError, RequestError, Throttled
 
 from .api_auth import DEFAULT_TTL_S, Identity, TokenBook, allows, parse_authorization
 from .api_models import LoginAnswer, LoginRequest, TaskRequest, openapi_document
@@ -89,12 +91,25 @@ def master_password_check(client) -> PasswordCheck:
 class ApiAuth:
     """Who a request comes from and whether its role is enough: bearer tokens of a
     :class:`~rce_fleet.operations.api_auth.TokenBook` (lifetime ``ttl_s``), else HTTP Basic over TLS,
-    checked by ``check_password``; ``metrics_public``: ``/metrics`` needs no credential."""
+    checked by ``check_password``; ``metrics_public``: ``/metrics`` needs no credential; ``internal``: user
+    names that are never a person's login (the fleet's own user): refused as a wrong password is, unasked."""
 
     def __init__(self, check_password: PasswordCheck, *, ttl_s: float = DEFAULT_TTL_S, metrics_public: bool = False,
-                 clock: Callable[[], float] = time.monotonic):
+                 clock: Callable[[], float] = time.monotonic, internal: frozenset[str] = frozenset()):
         self.check_password, self.metrics_public, self.clock = check_password, metrics_public, clock
+        self.internal = frozenset(internal)
         self.book = TokenBook(ttl_s)
+
+    def bearer(self, token: str, needed: str) -> Identity:
+        """The identity of bearer ``token`` when its role allows ``needed`` (another door's check, e.g. the
+        Foxglove port's); raises :class:`~rce.plumbing.errors.AuthError` (unknown, expired or revoked) or
+        :class:`~rce.plumbing.errors.RequestError` (a lower role)."""
+        who = self.book.check(token, self.clock()) if token else None
+        if who is None:
+            raise AuthError("a bearer token from POST /api/login is needed (unknown, expired or revoked)")
+        if not allows(who.role, needed):
+            raise RequestError(f"user {who.user!r} is {who.role}: this needs {needed} or above")
+        return who
 
     def _unauthorized(self, req: web.Request, text: str) -> ApiRefusal:
         schemes = f"Bearer {REALM}" + (f", Basic {REALM}" if req.secure else "")
@@ -103,6 +118,8 @@ class ApiAuth:
     async def password(self, req: web.Request, user: str, password: str) -> str:
         """The role of ``user`` if ``password`` is right (the master checks it); raises :class:`ApiRefusal`
         401 (wrong), 429 (backing off) or 503 (the master cannot be asked)."""
+        if user in self.internal:
+            raise self._unauthorized(req, "invalid user or password")
         try:
             return await self.check_password(user, password, req.remote or "")
         except Throttled as e:
@@ -216,7 +233,7 @@ def add_routes(app: web.Application, channel: TaskChannel, auth: ApiAuth) -> Non
             return _error(STATUS.get(e.code, 400), e.code, e.reason)
 
     async def openapi(req: web.Request) -> web.Response:
-        return web.json_response(openapi_document(f"{req.scheme}://{req.host}/", auth.metrics_public))
+        return web.json_response(openapi_document("/", auth.metrics_public))
 
     async def metrics(req: web.Request) -> web.Response:
         if not auth.metrics_public:
