@@ -13,7 +13,8 @@ What it does:
   the websocket opens; it returns who the client is (kept as :attr:`FoxgloveClient.principal`) or raises
   :class:`~rce.plumbing.errors.AuthError` (HTTP 401), :class:`~rce.plumbing.errors.NotFound` (404) or another
   :class:`~rce.plumbing.errors.RCEError` (403), with a one-line reason in the body.
-- ``GET /metrics`` (no upgrade) answers the server's counters as Prometheus text.
+- ``GET /metrics`` (no upgrade) answers the server's counters as Prometheus text; given ``authorize_metrics(query,
+  headers)``, only once that returned (its :class:`~rce.plumbing.errors.RCEError` refuses it as the login's does).
 - A client that does not offer ``foxglove.websocket.v1`` is accepted without a subprotocol, sent a
   ``status`` error naming the subprotocol and closed with 1002 (protocol error).
 - Channels (:meth:`FoxgloveServer.add_channel`) are advertised to every client; a ``latched`` channel keeps
@@ -71,6 +72,7 @@ READ_AHEAD = 16           # client messages read ahead of the handler
 CLOSE_PROTOCOL = 1002     # close code: protocol error (RFC 6455)
 
 Authenticate = Callable[[dict[str, str]], Awaitable[Any]]
+AuthorizeMetrics = Callable[[dict[str, str], Headers], Awaitable[None]]
 OnPublish = Callable[["FoxgloveClient", ClientChannel, bytes], Awaitable[None]]
 OnServiceCall = Callable[["FoxgloveClient", FoxgloveService, str, bytes], Awaitable[tuple[str, bytes]]]
 OnClient = Callable[["FoxgloveClient"], Awaitable[None]]
@@ -170,7 +172,8 @@ class FoxgloveServer:
     """A Foxglove WebSocket server named ``name`` (module docstring). ``authenticate``: the login (None:
     every client is let in, for tests of the protocol alone); ``on_publish`` (None: no ``clientPublish``);
     ``on_service_call`` (None: no ``services``); ``queue_size``: messages per client (:data:`QUEUE_SIZE`);
-    ``metric_prefix``: the names of ``/metrics``' counters (``PREFIX_dropped`` ...); ``per_client``,
+    ``metric_prefix``: the names of ``/metrics``' counters (``PREFIX_dropped`` ...); ``authorize_metrics``: who may
+    read them (None: anyone); ``per_client``,
     ``on_connect``, ``on_disconnect``, ``on_subscribe``, ``on_unsubscribe``: channels of each client's own (module
     docstring)."""
 
@@ -178,8 +181,9 @@ class FoxgloveServer:
                  on_service_call: OnServiceCall | None = None, queue_size: int = QUEUE_SIZE,
                  max_clients: int = MAX_CLIENTS, metric_prefix: str = "rce_foxglove", per_client: bool = False,
                  on_connect: OnClient | None = None, on_disconnect: OnClient | None = None,
-                 on_subscribe: OnChannel | None = None, on_unsubscribe: OnChannel | None = None):
-        self.name, self.authenticate = name, authenticate
+                 on_subscribe: OnChannel | None = None, on_unsubscribe: OnChannel | None = None,
+                 authorize_metrics: AuthorizeMetrics | None = None):
+        self.name, self.authenticate, self.authorize_metrics = name, authenticate, authorize_metrics
         self.on_publish, self.on_service_call = on_publish, on_service_call
         self.per_client, self.on_connect, self.on_disconnect = per_client, on_connect, on_disconnect
         self.on_subscribe, self.on_unsubscribe = on_subscribe, on_unsubscribe
@@ -289,12 +293,17 @@ class FoxgloveServer:
 
     async def _handshake(self, connection: ServerConnection, request) -> Response | None:
         parts = urlsplit(request.path)
+        query = {k: v[0] for k, v in parse_qs(parts.query).items()}
         if parts.path == "/metrics" and "upgrade" not in request.headers.get("Connection", "").lower():
-            return Response(200, "OK", Headers([("Content-Type", "text/plain; version=0.0.4; charset=utf-8")]),
-                            self.metrics_text().encode())
+            try:
+                if self.authorize_metrics is not None:
+                    await self.authorize_metrics(query, request.headers)
+            except RCEError as e:
+                return _refuse(connection, e, "metrics")
+            return Response(200, "OK", Headers([("Content-Type", "text/plain; version=0.0.4; charset=utf-8"),
+                                                ("Cache-Control", "no-store")]), self.metrics_text().encode())
         if len(self.clients) >= self.max_clients:
             return connection.respond(HTTPStatus.SERVICE_UNAVAILABLE, f"over {self.max_clients} Foxglove clients\n")
-        query = {k: v[0] for k, v in parse_qs(parts.query).items()}
         if self.authenticate is None:
             connection.rce_principal = None
             return None
@@ -302,10 +311,7 @@ class FoxgloveServer:
             connection.rce_principal = await self.authenticate(query)
             return None
         except RCEError as e:
-            status = (HTTPStatus.UNAUTHORIZED if isinstance(e, AuthError) else
-                      HTTPStatus.NOT_FOUND if isinstance(e, NotFound) else HTTPStatus.FORBIDDEN)
-            log.info("Foxglove client refused", status=int(status), reason=e.message, user=query.get("userID"))
-            return connection.respond(status, e.message + "\n")
+            return _refuse(connection, e, "client", user=query.get("userID"))
 
     async def _serve(self, ws: ServerConnection) -> None:
         client = FoxgloveClient(self, ws, getattr(ws, "rce_principal", None), self.queue_size)
@@ -385,6 +391,14 @@ class FoxgloveServer:
             client.send_control(fp.service_call_failure(ev.service_id, ev.call_id, e.message))
             return
         client.send_control(fp.service_call_response(ev.service_id, ev.call_id, encoding, payload))
+
+
+def _refuse(connection: ServerConnection, e: RCEError, what: str, **fields) -> Response:
+    """The HTTP answer to a refused login: 401 (AuthError), 404 (NotFound), else 403, its reason in the body."""
+    status = (HTTPStatus.UNAUTHORIZED if isinstance(e, AuthError) else
+              HTTPStatus.NOT_FOUND if isinstance(e, NotFound) else HTTPStatus.FORBIDDEN)
+    log.info(f"Foxglove {what} refused", status=int(status), reason=e.message, **fields)
+    return connection.respond(status, e.message + "\n")
 
 
 def _select(_connection: ServerConnection, offered) -> str | None:

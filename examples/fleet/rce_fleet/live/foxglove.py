@@ -1,9 +1,12 @@
 """``rce-fleet serve --foxglove-port P``: the live fleet for Foxglove and Lichtblick, over the Foxglove
 WebSocket protocol (:mod:`rce.foxglove`).
 
-Open ``ws://HOST:P/?userID=U&password=SHA256HEX`` in Foxglove ("Open connection", "Foxglove WebSocket"):
-the login is the operator page's (the master checks ``U``'s password, given as the hex SHA-256 of it as
-every rce front door takes it, by opening a robot session with it) and ``U`` must be the fleet's user.
+Open ``wss://HOST:P/?token=TOKEN`` (``ws://`` without TLS) in Foxglove ("Open connection", "Foxglove
+WebSocket"), ``TOKEN`` a bearer token of the operator page's ``POST /api/login`` (docs/task-api.md): the
+port is one more door of the page's server, on its address (``--web-bind``), its TLS (``--tls-cert``) and its
+credentials. A viewer may watch; publishing needs an operator. No password or digest of one is taken here
+(a token expires and can be revoked; a password's digest works at every rce door). ``GET /metrics`` needs a
+viewer's token too (``Authorization: Bearer`` or ``?token=``), unless ``--metrics-public``.
 
 Advertised, with their full ROS 1 definitions (encoding ``ros1``, schema encoding ``ros1msg``): the
 fleet's own ``/fleet/state`` (``fleet/FleetState``) and ``/fleet/tasks`` (``fleet/TaskList``) as the
@@ -15,9 +18,10 @@ Clients may publish (``clientPublish``), in ``ros1`` or ``json``, on the operato
 (``fleet/RobotGoal``), ``/fleet/block`` (``fleet/CellBlock``), ``/fleet/task`` (``fleet/Task``) and
 ``/fleet/task_cancel`` (``fleet/TaskCancel``); and ``/RobotN/goal_pose`` (``geometry_msgs/PoseStamped``, what the
 3D panel's "Publish pose" sends, in frame ``map``): RobotN's goal is the grid cell of that point. Anything else is
-answered with a ``status`` error.
+answered with a ``status`` error. Who did it is the server's to say: the ``source`` of a task, a cancel or a block
+is set to ``foxglove:USER`` of the client's token, whatever the client sent.
 
-The fleet's messages come through one RCE client, robotID ``fleetFoxglove``: container
+The fleet's messages come through one RCE client of the fleet's internal user, robotID ``fleetFoxglove``: container
 ``SubscriberInterface`` -> ``PublisherForwarder`` for the two fleet topics, ``SubscriberForwarder`` ->
 ``PublisherInterface`` for the four operator topics, so messages go as the engine carries them (ROS 1
 bytes), never re-encoded.
@@ -35,36 +39,37 @@ from rce.foxglove.server import FoxgloveServer
 from rce.plumbing.errors import AuthError, MessageError, RCEError, RequestError
 from rce.plumbing.log import get_logger
 from rce_client.connection import Connection
-from rce_client.dial import HandshakeRefused, close_quietly, dial, login, with_query
 
 from ..configs import FLEET_CTAG
+from ..operations.api_auth import allows
 from .fleet_scene import GRID, MARKERS, PATH, POSE, FleetScene
 
 log = get_logger("fleet.foxglove")
 
 ROBOT_ID = "fleetFoxglove"           # robotID of the server's RCE client
-LOGIN_ID = "foxgloveLogin"           # robotID prefix of the login check's short session
 SETUP_TIMEOUT_S = 30.0               # s for the server's interfaces to come up
-LOGIN_TIMEOUT_S = 10.0               # s for one client's login check
 CLOSE_TIMEOUT_S = 5.0                # s the cloud gets to confirm the removal of the server's interfaces
 FLEET_TOPICS = (("/fleet/state", "fleet/FleetState"), ("/fleet/tasks", "fleet/TaskList"))
 GOAL_POSE = re.compile(r"^/(Robot\d+)/goal_pose$")   # a robot's goal as a pose (Foxglove's "Publish pose")
 OPERATOR_TOPICS = {"/fleet/goal": "fleet/RobotGoal", "/fleet/block": "fleet/CellBlock", "/fleet/task": "fleet/Task",
                    "/fleet/task_cancel": "fleet/TaskCancel"}
+STAMPED = {"/fleet/block", "/fleet/task", "/fleet/task_cancel"}    # their ``source`` is the server's to set
 
 
 class FleetFoxglove:
     """The fleet's Foxglove server (module docstring): ``master_url`` and ``user``/``password`` (the fleet's
-    owner, whose client it runs as), ``scene`` (:class:`~rce_fleet.live.fleet_scene.FleetScene`),
-    ``robots`` (``Robot1`` ...)."""
+    internal user, whose client it runs as), ``scene`` (:class:`~rce_fleet.live.fleet_scene.FleetScene`),
+    ``robots`` (``Robot1`` ...), ``auth`` (the page's :class:`~rce_fleet.operations.http_api.ApiAuth`: its tokens
+    are this port's credentials), ``bind``, ``port`` and ``ssl_context`` (wss://) as the page's."""
 
-    def __init__(self, master_url: str, scene: FleetScene, robots: list[str], *, user: str, password: str,
-                 ctag: str = FLEET_CTAG, bind: str = "127.0.0.1", port: int = 0):
+    def __init__(self, master_url: str, scene: FleetScene, robots: list[str], *, user: str, password: str, auth,
+                 ctag: str = FLEET_CTAG, bind: str = "127.0.0.1", port: int = 0, ssl_context=None):
         self.master_url, self.scene, self.robots = master_url, scene, list(robots)
         self.user, self.password, self.ctag, self.bind, self.port = user, password, ctag, bind, port
+        self.auth, self.ssl_context = auth, ssl_context
         self.reg = scene.reg
         self.server = FoxgloveServer("rce-fleet", authenticate=self._login, on_publish=self._publish,
-                                     metric_prefix="rce_fleet_foxglove")
+                                     metric_prefix="rce_fleet_foxglove", authorize_metrics=self._metrics)
         self.conn: Connection | None = None
         self.pubs: dict = {}
         self.ch: dict[str, int] = {}             # topic -> channel id
@@ -89,9 +94,10 @@ class FleetFoxglove:
         self.server.publish(self.ch["/map"], self.scene.occupancy_grid())
         self.server.publish(self.ch["/fleet/places"], self.scene.place_markers())
         await self._connect(timeout)
-        await self.server.start(self.bind, self.port)
+        await self.server.start(self.bind, self.port, self.ssl_context)
         self.port = self.server.port
-        self.url = f"ws://{self.bind}:{self.port}/?userID={self.user}&password=SHA256HEX"
+        host = f"[{self.bind}]" if ":" in self.bind else self.bind
+        self.url = f"{'wss' if self.ssl_context else 'ws'}://{host}:{self.port}/?token=TOKEN"
         log.info("Foxglove server up", url=self.url)
         return self.url
 
@@ -172,29 +178,25 @@ class FleetFoxglove:
             self.server.publish(cid, self.scene.task_markers(self._state, self._tasks, t), now)
 
     # -- clients ---------------------------------------------------------------------------------------
-    async def _login(self, query: dict[str, str]) -> str:
-        """The operator page's login for ``userID`` and ``password`` (hex SHA-256): a short robot session at
-        the user's robot endpoint. Returns the user; raises AuthError (401) or RequestError (403)."""
-        user, password = query.get("userID", ""), query.get("password", "").lower()
-        if not user or not password:
-            raise AuthError("give userID and password (the hex SHA-256 of the password) in the URL's query")
-        if len(password) != 64 or any(ch not in "0123456789abcdef" for ch in password):
-            raise AuthError("password must be the hex SHA-256 digest (64 hex digits) of the password")
-        ws_url = await login(self.master_url, user, timeout=LOGIN_TIMEOUT_S)
-        robot = f"{LOGIN_ID}{next(self._logins)}"
-        try:
-            ws = await dial(with_query(ws_url, userID=user, robotID=robot, password=password, refusal="http"),
-                            LOGIN_TIMEOUT_S)
-        except HandshakeRefused as e:
-            if e.status in (401, 403):
-                raise AuthError(f"login refused for {user}: {e.reason}") from None
-            raise RequestError(f"the robot endpoint refused the login check (HTTP {e.status}): {e.reason}") from None
-        await close_quietly(ws)
-        if user != self.user:
-            raise RequestError(f"user {user} has no fleet here (this fleet is {self.user}'s)")
-        return user
+    async def _login(self, query: dict[str, str]):
+        """A client's login: ``token``, a bearer token of the page's (a viewer's at least). Returns its
+        :class:`~rce_fleet.operations.api_auth.Identity`; raises AuthError (401) or RequestError (403)."""
+        if "password" in query and "token" not in query:
+            raise AuthError("this port takes no password: log in at the page's POST /api/login and open "
+                            "?token=TOKEN")
+        return self.auth.bearer(query.get("token", ""), "viewer")
+
+    async def _metrics(self, query: dict[str, str], headers) -> None:
+        """Who may read ``/metrics``: anyone with ``--metrics-public``, else a viewer's token."""
+        if self.auth.metrics_public:
+            return
+        scheme, _, value = headers.get("Authorization", "").partition(" ")
+        self.auth.bearer(value.strip() if scheme.lower() == "bearer" else query.get("token", ""), "viewer")
 
     async def _publish(self, client, ch: ClientChannel, payload: bytes) -> None:
+        who = client.principal
+        if not allows(who.role, "operator"):
+            raise RequestError(f"user {who.user!r} is {who.role}: publishing needs operator or above")
         if (m := GOAL_POSE.match(ch.topic)) and m.group(1) in self.robots:
             payload = self._goal_of_pose(m.group(1), ch, payload)
             ch = ClientChannel(ch.id, "/fleet/goal", "ros1", "fleet/RobotGoal")
@@ -207,13 +209,20 @@ class FleetFoxglove:
         typename = self.reg.msg_type(cls)
         if ch.encoding == JSON:
             try:
-                payload = self.reg.json_to_bytes(typename, orjson.loads(payload))
+                msg = orjson.loads(payload)
             except orjson.JSONDecodeError as e:
                 raise MessageError(f"not JSON: {e}") from None
+            if ch.topic in STAMPED and isinstance(msg, dict):
+                msg["source"] = f"foxglove:{who.user}"
+            payload = self.reg.json_to_bytes(typename, msg)
         else:
             self.reg.check_structure(typename, payload)
+            if ch.topic in STAMPED:
+                msg = self.reg.bytes_to_json(typename, payload)
+                msg["source"] = f"foxglove:{who.user}"
+                payload = self.reg.json_to_bytes(typename, msg)
         await self.pubs[ch.topic].publish(payload)
-        log.info("Foxglove client published", topic=ch.topic, user=str(client.principal), bytes=len(payload))
+        log.info("Foxglove client published", topic=ch.topic, user=who.user, bytes=len(payload))
 
 
     def _goal_of_pose(self, robot: str, ch: ClientChannel, payload: bytes) -> bytes:
