@@ -13,6 +13,7 @@
                    [--out-of-coverage RobotN,... [--radio-range M]]      # the seed paper's one mission
     rce-fleet serve [same options, no mission]      # until Ctrl-C
                    [--web-bind ADDR] [--tls-cert PEM --tls-key PEM] [--users FILE] [--metrics-public]
+                   [--admin-password-file FILE]
                    [--token-ttl S]                  # the page and the task API: docs/task-api.md
     rce-fleet replay RUN.mcap [--speed K] [--loop] [--web-port P | --headless] [--foxglove-port P]
     rce-fleet task add ERRAND... [--priority P] [--start-in S] [--deadline-in S] [--id ID] [--master URL | --api URL]
@@ -176,9 +177,12 @@ def _web_args(p: argparse.ArgumentParser) -> None:
                    help="address of the page and the task API (default 127.0.0.1; 0.0.0.0: every interface; "
                    "give it TLS then)")
     add_server_arguments(p, "serve the page and the task API over HTTPS (HTTP Basic needs it)")
-    p.add_argument("--users", metavar="FILE", help="the master's users file (rce-console user add NAME --role "
-                   "ROLE --file FILE): who may log in to the page and the task API (default: rce-master --dev's "
-                   "testUser, an admin)")
+    p.add_argument("--users", metavar="FILE", help="a master's users file (rce-console user add NAME --role "
+                   "ROLE --file FILE), read only: who may log in to the page, the task API and the Foxglove port")
+    p.add_argument("--admin-password-file", metavar="FILE", help="the first line of FILE is the password of the "
+                   "first admin, user admin (default on loopback without --users: a password made for the run, "
+                   "written to admin-password in the work dir, 0600; beyond loopback this or an admin in --users "
+                   "is needed)")
     p.add_argument("--metrics-public", action="store_true", help="/metrics without a credential (default: a viewer's)")
     p.add_argument("--token-ttl", type=_positive, default=None, metavar="S",
                    help="s a token from POST /api/login lives (default 28800: 8 h)")

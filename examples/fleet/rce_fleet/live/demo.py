@@ -27,9 +27,12 @@ master that is killed comes back with it.
 
 ``serve`` runs the same system without a mission until Ctrl-C (or ``--timeout``).
 
-The operator's page and the task API listen on ``--web-bind`` (127.0.0.1), over TLS with
-``--tls-cert``/``--tls-key``, and take the master's users (``--users FILE`` adds a users file to
-``--dev``'s testUser) with their roles (:class:`WebAccess`, docs/task-api.md).
+The fleet runs as its own internal user, with a password made for the run; people log in to the
+operator's page, the task API and the Foxglove port with the master's users and their roles (``--users
+FILE``, ``--admin-password-file FILE``, or on loopback a first admin's password made for the run and
+written to a 0600 file; :mod:`rce_fleet.live.access`). The page, the task API and the Foxglove port listen
+on ``--web-bind`` (127.0.0.1), over TLS with ``--tls-cert``/``--tls-key`` (:class:`WebAccess`,
+docs/task-api.md, docs/SECURITY.md).
 
 Tasks. The fleet takes operators' tasks in every mode (:mod:`rce_fleet.operations.tasks_api`): named
 places come from ``--places FILE`` or are generated for the map and written to
@@ -64,7 +67,8 @@ from rce.plumbing.process import run_loop
 from rce.plumbing.tasks import Tasks
 
 from ..operations.battery import battery_links
-from ..configs import FLEET_CTAG, PASSWORD, USER, robot_config
+from ..configs import FLEET_CTAG, robot_config
+from .access import prepare_access
 from .demo_output import (EXIT_FAIL, EXIT_OK, EXIT_UNREACHABLE, EXIT_USAGE, activities, blocked_by, progress_line,
                           table, write_outputs)
 from .faults import FaultInjector
@@ -218,6 +222,7 @@ class Run:
         if self.grid_note:
             log.info(self.grid_note)
             self.events.append(self.grid_note)
+        self.access = prepare_access(o.web, self.workdir, page=not o.headless)
 
     # -- run --------------------------------------------------------------------------------------
     async def run(self) -> int:
@@ -263,19 +268,20 @@ class Run:
     async def _run(self) -> tuple[int, str]:
         o = self.o
         state = self.workdir / "engine" / "master.sqlite3"
-        users = ("--users", o.web.users) if o.web.users else ()
+        users = ("--no-dev-user", "--users", str(self.access.users_file))
         self.engine = await asyncio.to_thread(start_engine, self.workdir / "engine",
                                               master_args=("--state", str(state), *users),
                                               admin_token=f"fleet-{random.getrandbits(64):016x}")
         log.info("engine up", master=self.engine.master_url, workdir=str(self.workdir))
         if o.edge_hosts:
             await self._bounded(self._robot_computers(), "the robots' computers")
-        self.faults = FaultInjector(o.faults, self.engine, self.tasks, USER, self.mission_t)
-        print(f"rce-fleet: master {self.engine.master_url}  (rce-fleet task list --master {self.engine.master_url})",
+        self.faults = FaultInjector(o.faults, self.engine, self.tasks, self.access.user, self.mission_t)
+        print(f"rce-fleet: master {self.engine.master_url}  (the engine: the fleet's own user; people use the page)",
               flush=True)
         args = " ".join(a for a, on in (("--no-lidar-blocking", not o.lidar_blocking), ("--park-idle", o.lifelong))
                         if on)
         self.manager = FleetManager(self.engine.master_url, self.geo, self.robots, planner_args=args,
+                                    user=self.access.user, password=self.access.password,
                                     on_state=self._on_state, places=self.places, battery=o.battery,
                                     on_tasks=self._on_tasks)
         await self._bounded(self.manager.start(timeout=SETUP_TIMEOUT_S), "fleet manager setup")
@@ -300,14 +306,16 @@ class Run:
             await self._start_web()
         if o.bag:
             self.bag = FleetBag(o.bag, self.robots)
-            await self._bounded(self.bag.start(self.engine.master_url, reg, SETUP_TIMEOUT_S), "bag recorder setup")
+            await self._bounded(self.bag.start(self.engine.master_url, reg, SETUP_TIMEOUT_S, self.access.user,
+                                               self.access.password), "bag recorder setup")
             self.events.append(f"recording the fleet topics to {o.bag}")
             log.info("recording", bag=o.bag, topics=len(self.bag.topics()))
         if o.record:
             from .fleet_scene import FleetScene
             self.record = FleetBag(o.record, self.robots, recorder_id="fleetMcapRecorder",
                                    scene=FleetScene(self.geo, self.occ, self.places, reg))
-            await self._bounded(self.record.start(self.engine.master_url, reg, SETUP_TIMEOUT_S), "recorder setup")
+            await self._bounded(self.record.start(self.engine.master_url, reg, SETUP_TIMEOUT_S, self.access.user,
+                                                  self.access.password), "recorder setup")
             self.events.append(f"recording the fleet topics to {o.record}")
         if o.foxglove_port is not None:
             await self._start_foxglove(reg)
@@ -363,7 +371,7 @@ class Run:
         """``--edge-hosts``: a container host per robot, in zone ``robot:RobotN``, serving the fleet's
         user alone (a robot's own computer, here a process on this machine)."""
         for r in self.robots:
-            await asyncio.to_thread(self.engine.add_container_host, "--zone", f"robot:{r}", "--user", USER,
+            await asyncio.to_thread(self.engine.add_container_host, "--zone", f"robot:{r}", "--user", self.access.user,
                                     "--name", f"{r}-computer", "--warm", "0")
         self.events.append(f"{len(self.robots)} robots' computers (zone robot:RobotN); the placer places move_clients")
         self.tasks.spawn(self._watch_placement(), name="placement")
@@ -378,16 +386,19 @@ class Run:
     async def _connect_robots(self) -> None:
         """Write the robots' configs and connect them, a few at a time (each sets up its node and
         interfaces); a robot whose link a fault cuts logs in through its proxy's login relay."""
-        cfgs = {r: robot_config(int(r[5:]), self.engine.master_url, placement=self._move_client_placement(r),
+        cfgs = {r: robot_config(int(r[5:]), self.engine.master_url, self.access.user, self.access.password,
+                                placement=self._move_client_placement(r),
                                 params={GRID_PARAM: self.geo.to_param()}) for r in self.robots}
         if self.o.battery is not None:
             for r, cfg in cfgs.items():
                 ifaces, links = battery_links(int(r[5:]), FLEET_CTAG)
                 cfg["interfaces"] += ifaces
                 cfg["connections"] += links
-        (self.workdir / "configs").mkdir(exist_ok=True)
+        (self.workdir / "configs").mkdir(mode=0o700, exist_ok=True)      # they hold the internal user's password
         for r, cfg in cfgs.items():
-            (self.workdir / "configs" / f"robot{r[5:]}.config").write_text(json.dumps(cfg, indent=2))
+            path = self.workdir / "configs" / f"robot{r[5:]}.config"
+            path.touch(mode=0o600)
+            path.write_text(json.dumps(cfg, indent=2))
         logins = await self.faults.start_links()
         sem = asyncio.Semaphore(CONNECTING_AT_ONCE)
         followers = [r for r in self.robots if r in self.o.out_of_coverage]
@@ -622,32 +633,38 @@ class Run:
 
         from ..operations.api_auth import DEFAULT_TTL_S
         from ..operations.http_api import ApiAuth, master_password_check
+        from .access import is_loopback
         from .webui import WebUI
-        w = self.o.web
+        w, acc = self.o.web, self.access
         self.admin_client = AdminClient(self.engine.master_url, self.engine.admin_token)
-        auth = ApiAuth(master_password_check(self.admin_client), ttl_s=w.token_ttl or DEFAULT_TTL_S,
-                       metrics_public=w.metrics_public)
-        ssl_context = server_context(w.tls_cert, w.tls_key) if w.tls_cert else None
-        if ssl_context is None and w.bind not in ("127.0.0.1", "localhost", "::1"):
-            log.warning("the page and the task API listen beyond loopback without TLS: passwords and tokens "
-                        "travel in clear (give --tls-cert and --tls-key)", bind=w.bind)
-        self.web = WebUI(self.engine.master_url, self.occ, self.geo, self.robots, ctag=FLEET_CTAG, user=USER,
-                         password=PASSWORD, auth=auth, bind=w.bind, port=self.o.web_port, tasks=self.manager.tasks,
-                         places=self.places, relays=self._relay_lines if self.radio is not None else None,
-                         ssl_context=ssl_context, placement=(lambda: self.placement) if self.o.edge_hosts else None)
+        self.api_auth = ApiAuth(master_password_check(self.admin_client), ttl_s=w.token_ttl or DEFAULT_TTL_S,
+                                metrics_public=w.metrics_public, internal=frozenset({acc.user}))
+        self.ssl_context = server_context(w.tls_cert, w.tls_key) if w.tls_cert else None
+        if self.ssl_context is None and not is_loopback(w.bind):
+            log.warning("the page, the task API and the Foxglove port listen beyond loopback without TLS: "
+                        "passwords and tokens travel in clear (give --tls-cert and --tls-key)", bind=w.bind)
+        self.web = WebUI(self.engine.master_url, self.occ, self.geo, self.robots, ctag=FLEET_CTAG, user=acc.user,
+                         password=acc.password, auth=self.api_auth, bind=w.bind, port=self.o.web_port,
+                         tasks=self.manager.tasks, places=self.places,
+                         relays=self._relay_lines if self.radio is not None else None,
+                         ssl_context=self.ssl_context, login_user=acc.admin_user,
+                         placement=(lambda: self.placement) if self.o.edge_hosts else None)
         url = await self._bounded(self.web.start(), "web page setup")
         self.events.append(f"operator page: {url}")
-        print(f"rce-fleet: operator page: {url}  (log in as {USER}; rce-master --dev password {PASSWORD})",
-              flush=True)
+        print(f"rce-fleet: operator page: {url}  ({acc.admin_note})" if acc.admin_note else
+              f"rce-fleet: operator page: {url}", flush=True)
 
     async def _start_foxglove(self, reg) -> None:
         from .fleet_scene import FleetScene
         from .foxglove import FleetFoxglove
+        w = self.o.web
         self.foxglove = FleetFoxglove(self.engine.master_url, FleetScene(self.geo, self.occ, self.places, reg),
-                                      self.robots, user=USER, password=PASSWORD, port=self.o.foxglove_port)
+                                      self.robots, user=self.access.user, password=self.access.password,
+                                      auth=self.api_auth, bind=w.bind, port=self.o.foxglove_port,
+                                      ssl_context=self.ssl_context)
         url = await self._bounded(self.foxglove.start(), "Foxglove server setup")
         self.events.append(f"Foxglove: {url}")
-        print(f"rce-fleet: Foxglove WebSocket: {url}  (SHA256HEX: the hex SHA-256 of {USER}'s password)", flush=True)
+        print(f"rce-fleet: Foxglove WebSocket: {url}  (TOKEN: a token of the page's POST /api/login)", flush=True)
 
     async def _teardown(self) -> None:
         t0 = time.monotonic()

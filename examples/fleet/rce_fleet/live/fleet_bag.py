@@ -39,8 +39,10 @@ class FleetBag:
         tasks = [("/fleet/tasks", "fleet/TaskList")] if str(self.path).lower().endswith(".mcap") else []
         return [*per_robot, ("/fleet/state", "fleet/FleetState"), *tasks]
 
-    async def start(self, master_url: str, reg: MessageRegistry, timeout: float) -> None:
-        """Open the bag and connect the recorder to the fleet container's topics.
+    async def start(self, master_url: str, reg: MessageRegistry, timeout: float, user: str = USER,
+                    password: str = PASSWORD) -> None:
+        """Open the bag and connect the recorder, as ``user`` (the fleet container's owner), to the fleet
+        container's topics.
 
         Raises RCEError when the engine refuses the recorder or its interfaces, TimeoutError after
         ``timeout`` s, OSError when the bag cannot be written."""
@@ -48,7 +50,7 @@ class FleetBag:
         self.bag.open()
         if isinstance(self.bag, McapRecorder) and self.scene is not None:
             write_scene(self.bag, self.scene, self.robots)
-        self.recorder = await Connection.connect(master_url, USER, PASSWORD, self.recorder_id, allow_reconnect=True)
+        self.recorder = await Connection.connect(master_url, user, password, self.recorder_id, allow_reconnect=True)
         await record_container(self.recorder, FLEET_CTAG, self.topics(), self.bag, timeout=timeout)
 
     async def stop(self, timeout: float) -> None:

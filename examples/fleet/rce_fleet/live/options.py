@@ -58,7 +58,8 @@ class UsageError(ValueError):
 class WebAccess:
     """Where the page and the task API listen and who may use them: ``bind`` (address), ``tls_cert`` and
     ``tls_key`` (PEM files: HTTPS), ``users`` (the master's ``--users`` file), ``metrics_public``
-    (``/metrics`` without a credential), ``token_ttl`` (s a login's token lives; None: the default)."""
+    (``/metrics`` without a credential), ``token_ttl`` (s a login's token lives; None: the default),
+    ``admin_password_file`` (the first admin's password, :mod:`rce_fleet.live.access`)."""
 
     bind: str = "127.0.0.1"
     tls_cert: str | None = None
@@ -66,6 +67,7 @@ class WebAccess:
     users: str | None = None
     metrics_public: bool = False
     token_ttl: float | None = None
+    admin_password_file: str | None = None
 
 
 def web_access(args) -> WebAccess:
@@ -73,12 +75,16 @@ def web_access(args) -> WebAccess:
     ``--tls-cert``/``--tls-key`` without the other, or a ``--users`` file that is not there."""
     if (args.tls_cert is None) != (args.tls_key is None):
         raise UsageError("give both --tls-cert and --tls-key, or neither")
-    for flag, path in (("--tls-cert", args.tls_cert), ("--tls-key", args.tls_key), ("--users", args.users)):
+    for flag, path in (("--tls-cert", args.tls_cert), ("--tls-key", args.tls_key), ("--users", args.users),
+                       ("--admin-password-file", args.admin_password_file)):
         if path is not None and not Path(path).is_file():
             raise UsageError(f"{flag} {path}: no such file")
+    if args.foxglove_port is not None and args.headless:
+        raise UsageError("--foxglove-port logs clients in with the page's tokens (POST /api/login): drop --headless")
     return WebAccess(args.web_bind, str(args.tls_cert) if args.tls_cert else None,
                      str(args.tls_key) if args.tls_key else None, str(Path(args.users).resolve()) if args.users
-                     else None, args.metrics_public, args.token_ttl)
+                     else None, args.metrics_public, args.token_ttl,
+                     str(Path(args.admin_password_file).resolve()) if args.admin_password_file else None)
 
 
 @dataclass

@@ -4,8 +4,9 @@
 HTTP port, next to two generated files:
 
 * ``map.png``: the map image (browsers do not show PGM), drawn by the page under the grid;
-* ``config.json``: where the page logs in (the master's URL), the fleet container's tag, the
-  user to prefill (never a password), the mission topic and the named places (for the task form);
+* ``config.json``: where the page logs in (the master's URL, or ``door``: the page's RCE session through
+  this server, :mod:`rce_fleet.live.page_door`), the fleet container's tag, the user to prefill (never a
+  password), the mission topic and the named places (for the task form);
 * ``relays.json`` (given ``relays``): ``{"relays": {follower: relay}}``, the robots whose link to the
   cloud goes through another robot's relay, as the master knows it (docs/relays.md); the page draws
   a line from each follower to its relay;
@@ -19,9 +20,10 @@ serves the JSON task API and ``/metrics`` (:mod:`rce_fleet.operations.http_api`)
 Who may: the page itself (``index.html`` and its scripts and styles) is open, so that it can show its
 login form; ``config.json``, ``map.png``, ``relays.json`` and ``placement.json`` need a viewer's credential, as the task
 API does (``auth``, :class:`~rce_fleet.operations.http_api.ApiAuth`). The page logs in with
-``POST /api/login`` and sends the token with its own calls, then logs in at the master with the same
-user and password for its RCE session. It listens on ``bind`` (default 127.0.0.1), over TLS given
-``ssl_context``.
+``POST /api/login`` and sends the token with its own calls; with the task API its RCE session goes through
+this server (``GET /rce/ws``, as the fleet's internal user, the frames checked for the person's role), else
+(a replay's page) it logs in at the master. It listens on ``bind`` (default 127.0.0.1), over TLS given
+``ssl_context``; every answer carries the headers of :mod:`rce_fleet.operations.web_headers`.
 
 The page is served from another origin than the master's: its login ``GET /?userID=..`` is a
 cross-origin request, allowed by the master's ``Access-Control-Allow-Origin: *``, and its
@@ -50,6 +52,7 @@ from rce.plumbing.log import get_logger
 from rce_client.connection import Connection
 
 from ..maps.geometry import GridGeometry, components
+from ..operations.web_headers import add_security_headers
 
 log = get_logger("fleet.web")
 
@@ -200,15 +203,18 @@ class WebUI:
     placer's rows and moves (``placement.json``; None: not shown); ``auth``: who may
     (:class:`~rce_fleet.operations.http_api.ApiAuth`; None: no credential asked, only for a page without
     the task API, such as a replay's: with ``tasks`` it raises ValueError); ``ssl_context``: serve HTTPS
-    (:func:`rce.transport.tls.server_context`)."""
+    (:func:`rce.transport.tls.server_context`). ``user``/``password``: the fleet container's owner (the fleet's
+    internal user: the mission runner's and the page sessions' login); ``login_user``: the user the page
+    prefills (default ``user``)."""
 
     def __init__(self, master_url: str, occ, geo: GridGeometry, robots: list[str], *, ctag: str, user: str,
                  password: str, auth=None, bind: str = "127.0.0.1", port: int = DEFAULT_PORT, mission: bool = True,
                  title: str = "rce fleet", tasks=None, places=None,
                  relays: Callable[[], dict[str, str]] | None = None, ssl_context=None,
-                 placement: Callable[[], dict] | None = None):
+                 placement: Callable[[], dict] | None = None, login_user: str | None = None):
         self.master_url, self.occ, self.geo, self.robots = master_url, occ, geo, list(robots)
         self.ctag, self.user, self.password = ctag, user, password
+        self.login_user = user if login_user is None else login_user
         self.bind, self.port, self.title = bind, port, title
         self.mission = MissionRunner(master_url, geo, robots, user=user, password=password, ctag=ctag) \
             if mission else None
@@ -221,7 +227,8 @@ class WebUI:
 
     def config(self) -> dict:
         """The page's ``config.json`` (no password in it)."""
-        return {"master": self.master_url, "user": self.user, "container": self.ctag, "map": "map.png",
+        return {"master": self.master_url, "user": self.login_user, "container": self.ctag, "map": "map.png",
+                "door": "rce/ws" if self.tasks is not None else None,
                 "missionTopic": MISSION_TOPIC if self.mission else None, "title": self.title,
                 "robots": self.robots, "tasks": self.tasks is not None,
                 "places": self.places.to_param() if self.places is not None else [],
@@ -258,6 +265,7 @@ class WebUI:
             return web.json_response(self.placement(), headers=nocache)
 
         app = web.Application()
+        add_security_headers(app, tls=self.ssl_context is not None)
         app.router.add_get("/", index)
         if self.relays is not None:
             app.router.add_get("/relays.json", relays)
@@ -267,7 +275,10 @@ class WebUI:
         app.router.add_get("/map.png", mapimg)
         if self.tasks is not None:
             from ..operations.http_api import add_routes
+            from .page_door import PageDoor
             add_routes(app, self.tasks, self.auth)
+            self.door = PageDoor(self.master_url, self.user, self.password, self.auth, self.ctag)
+            self.door.add_routes(app)
         app.router.add_static("/", WEB_DIR, show_index=False)
         if self.mission is not None:
             await self.mission.start()
@@ -286,7 +297,8 @@ class WebUI:
         host = self.bind if self.bind not in ("0.0.0.0", "::", "") else socket.gethostname()
         host = f"[{host}]" if ":" in host else host
         # 127.0.0.1/localhost are secure contexts (crypto.subtle); rce.js has a fallback elsewhere
-        self.url = f"{'https' if self.ssl_context else 'http'}://{host}:{port}/?user={self.user}"
+        self.url = f"{'https' if self.ssl_context else 'http'}://{host}:{port}/" + \
+            (f"?user={self.login_user}" if self.login_user else "")
         log.info("operator page up", url=self.url)
         return self.url
 

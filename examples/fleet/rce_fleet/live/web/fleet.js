@@ -31,9 +31,13 @@ const RELAYS_EVERY = 1000;       // ms between asks for the followers' relays (r
 // defaults (the master that serves the page, the fleet container cTag_01, map.png next to the page).
 // Served by rce-fleet, config.json, map.png and relays.json need a credential (401 without): the login
 // then first asks the fleet's server for a token (POST api/login, the same user and password) and
-// sends it with those calls (apiLogin); the master field is filled from config.json after it.
+// sends it with those calls (apiLogin); the master field is filled from config.json after it. With
+// config.door (rce-fleet serve) the RCE session goes through the fleet's server too (rce/ws on this
+// page's origin, the token as its password): the server carries it as the fleet's own user and checks
+// each frame for the person's role, so a viewer's page adds no interface that publishes.
 // ---------------------------------------------------------------------------------------------
 let apiToken = null;             // bearer token from the fleet's server (POST api/login), while logged in
+let apiRole = null;              // the role that came with it (viewer, operator, admin)
 
 function authed(path, init = {}) {
   const headers = { ...(init.headers || {}), ...(apiToken ? { Authorization: `Bearer ${apiToken}` } : {}) };
@@ -181,6 +185,7 @@ async function apiLogin(user, password) {
   const a = await r.json().catch(() => ({}));
   if (!r.ok) throw new Error(`the fleet's server refused the login: ${a.error || `HTTP ${r.status}`}`);
   apiToken = a.token;
+  apiRole = a.role;
   cfg = { ...(await loadConfig()), apiLogin: true };
   view.config = { ...cfg };
   $("master").value = cfg.master;
@@ -214,7 +219,10 @@ async function onLogin(ev) {
     const container = $("container").value.trim() || cfg.container;
     // reconnect: a lost link is resumed with the session token the client keeps (the password is gone);
     // maxLag 0: an operator's commands (tasks, cancels, goals, blocks) are never shed by a loaded endpoint
-    c = new Client({ master: $("master").value.trim(), userID: $("user").value.trim(), robotID, password,
+    const door = apiToken && cfg.door ? new URL(cfg.door, location.href) : null;
+    if (door) door.protocol = location.protocol === "https:" ? "wss:" : "ws:";
+    c = new Client({ master: $("master").value.trim(), userID: $("user").value.trim(), robotID,
+                     password: door ? apiToken : password, endpoint: door ? door.href : null,
                      reconnect: true, maxLag: 0 });
     await c.connect();
     client = c;
@@ -290,12 +298,19 @@ async function setupInterfaces(c, ctag, rid) {
   const pairs = [[`${ctag}/${tags.cstate}`, `${rid}/${tags.state}`], [`${ctag}/${tags.cgoal}`, `${rid}/${tags.goal}`],
                  [`${ctag}/${tags.cblock}`, `${rid}/${tags.block}`], [`${ctag}/${tags.ctask}`, `${rid}/${tags.task}`],
                  [`${ctag}/${tags.ccancel}`, `${rid}/${tags.cancel}`], [`${ctag}/${tags.ctasks}`, `${rid}/${tags.tasks}`]];
-  const up = [tags.state, tags.goal, tags.block, tags.task, tags.cancel, tags.tasks];
+  let up = [tags.state, tags.goal, tags.block, tags.task, tags.cancel, tags.tasks];
   if (cfg.missionTopic) {
     ifaces.push(I(ctag, tags.cmission, "PublisherInterface", "std_msgs/String", cfg.missionTopic),
                 I(rid, tags.mission, "SubscriberConverter", "std_msgs/String"));
     pairs.push([`${ctag}/${tags.cmission}`, `${rid}/${tags.mission}`]);
     up.push(tags.mission);
+  }
+  if (apiRole === "viewer") {            // watches only: the fleet's server refuses what would publish
+    const reads = [tags.state, tags.tasks];
+    up = reads;
+    ifaces.splice(0, ifaces.length, ...ifaces.filter((i) => !["PublisherInterface", "SubscriberConverter"]
+      .includes(i.interfaceType)));
+    pairs.splice(0, pairs.length, ...pairs.filter(([, b]) => reads.includes(b.split("/")[1])));
   }
   c.subscribe(tags.state, onFleetState);
   taskPanel = taskPanel || new TaskPanel({
