@@ -11,7 +11,7 @@ FOXGLOVE_JS := tests/web/foxglove/node_modules/.installed
 $(STAMP): pyproject.toml
 	$(PY) -m venv $(VENV)
 	$(BIN)/pip install --quiet --upgrade pip
-	$(BIN)/pip install --quiet -e '.[test]'
+	$(BIN)/pip install --quiet -e '.[test,ros2]'
 	touch $(STAMP)
 
 ## setup: create .venv, install rce with its test extras and the Debian packages tests need (when root)

@@ -447,13 +447,15 @@ class Environment:
 
     @ENV_OPS.op("connect")
     async def op_connect(self, args: dict) -> dict:
-        """``{cid, iid, peer_iid, peer_addr, token, fence?}`` -> ``{fenced}``: connect an interface to a
-        peer interface (``token``: the master's credential for sending to it); a connection pointed
-        at a moved container's new copy fences its old one with ``fence`` (the move's id),
-        ``fenced`` fences sent (:meth:`rce.transport.interface.Interface.connect`)."""
-        fence = args.get("fence")
+        """``{cid, iid, peer_iid, peer_addr, token, fence?, peer_cls?}`` -> ``{fenced}``: connect an
+        interface to a peer interface (``token``: the master's credential for sending to it); a
+        connection pointed at a moved container's new copy fences its old one with ``fence`` (the
+        move's id), ``fenced`` fences sent (:meth:`rce.transport.interface.Interface.connect`);
+        ``peer_cls``: the peer's class (one of the other ROS: this end converts what it sends)."""
+        fence, peer_cls = args.get("fence"), args.get("peer_cls")
         fenced = self._interface(args).connect(int(args["peer_iid"]), args["peer_addr"], token_of(args),
-                                               fence if type(fence) is int else None)
+                                               fence if type(fence) is int else None,
+                                               peer_cls if isinstance(peer_cls, str) else None)
         self._touch()
         return {"fenced": fenced}
 

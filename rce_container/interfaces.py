@@ -19,9 +19,14 @@ from rce.transport.dataplane import DataPlane
 from rce.plumbing.errors import MessageError, RequestError
 from rce.interfaces.kind import InterfaceType, Kind
 from rce.transport.interface import Interface
+from rce.interfaces.classes import Conversion
 from rce.messages import MessageRegistry, default_registry, store_name, wire_name
+from rce.messages.convert import conversion
+from rce.plumbing.log import get_logger
 from rce.node.naming import resolve
 from rce.node.package_path import load_package_types
+
+log = get_logger("rce.container.interfaces")
 
 DEFAULT_QUEUE = 100   # messages, bound of a SubscriberInterface's bus subscription
 SERVICE_WAIT = 10.0   # s a call from a peer waits for its service to be provided (its node may be starting)
@@ -45,6 +50,16 @@ class BusInterface(Interface):
         self.bus, self.cid, self.addr = bus, cid, addr
         self.owner = f"interface:{tag}"
         self.bytes_in = self.bytes_out = 0
+
+    def conversion(self, peer_cls: str) -> Conversion:
+        try:
+            return conversion(default_registry(), self.kind, self.cls, peer_cls)
+        except MessageError as e:
+            raise MessageError(f"interface {self.tag} ({self.cls}) cannot be connected to {peer_cls}: "
+                               f"{e.message}") from None
+
+    def on_convert_error(self, error: MessageError) -> None:
+        log.warning("message not converted", interface=self.tag, cls=self.cls, reason=error.message)
 
     def send_message(self, payload: bytes | memoryview) -> int:
         n = super().send_message(payload)

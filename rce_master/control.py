@@ -150,11 +150,13 @@ class Control:
             log.debug("ignored on teardown", reason=str(e))
 
     # -- what both ends and the robot are told --------------------------------------------------------
-    def connect_args(self, me: InterfaceRec, peer_iid: int, peer_addr: str) -> dict:
-        """The ``connect`` telling ``me`` its peer ``peer_iid`` at ``peer_addr``, with the credential
-        that lets it send there (:mod:`rce.transport.cluster_auth`, "Data-plane credentials")."""
-        return {"iid": me.iid, "peer_iid": peer_iid, "peer_addr": peer_addr,
-                "token": self.key.connection_token(me.iid, peer_iid, peer_addr)}
+    def connect_args(self, me: InterfaceRec, peer: InterfaceRec, peer_addr: str) -> dict:
+        """The ``connect`` telling ``me`` its peer ``peer`` at ``peer_addr``, with the credential
+        that lets it send there (:mod:`rce.transport.cluster_auth`, "Data-plane credentials") and the
+        peer's class (``peer_cls``: where one end is ROS 1 and the other ROS 2, the sender converts,
+        :mod:`rce.messages.convert`)."""
+        return {"iid": me.iid, "peer_iid": peer.iid, "peer_addr": peer_addr, "peer_cls": peer.cls,
+                "token": self.key.connection_token(me.iid, peer.iid, peer_addr)}
 
     async def tell_connect(self, end_a: InterfaceRec, end_b: InterfaceRec) -> None:
         """Tell both ends of a new connection the other's iid, data address and credential; the
@@ -163,8 +165,8 @@ class Control:
         if end_b.kind in ("Publisher", "ServiceClient"):
             end_a, end_b = end_b, end_a
         addr_a, addr_b = self.state.data_addr(end_a), self.state.data_addr(end_b)
-        await self.endpoint_call(end_a, "connect", **self.connect_args(end_a, end_b.iid, addr_b))
-        await self.endpoint_call(end_b, "connect", **self.connect_args(end_b, end_a.iid, addr_a))
+        await self.endpoint_call(end_a, "connect", **self.connect_args(end_a, end_b, addr_b))
+        await self.endpoint_call(end_b, "connect", **self.connect_args(end_b, end_a, addr_a))
 
     async def tell_disconnect(self, end_a: InterfaceRec, end_b: InterfaceRec) -> None:
         """Tell both ends a connection is gone (quietly: either may be gone too). An end whose task
@@ -191,7 +193,7 @@ class Control:
         for rec in self.state.interfaces_of(container.user, container.ctag):
             for me, peer in self.state.connections_of(rec.iid):
                 await self.quiet(self.endpoint_call(peer, "connect",
-                                                    **self.connect_args(peer, me.iid, container.data_addr)))
+                                                    **self.connect_args(peer, me, container.data_addr)))
 
     def notify_robot(self, user: str, robot: str, type_: str, data: Any) -> None:
         """Send the robot an ST or ER (``notify``) through its endpoint, if it is connected."""

@@ -617,8 +617,10 @@ class RobotEndpoint:
     @ROBOT_OPS.op("connect")
     async def _op_connect(self, args: dict) -> dict:
         fence = args.get("fence")
+        peer_cls = args.get("peer_cls")
         return {"fenced": self._iface(args["iid"]).connect(args["peer_iid"], args["peer_addr"], token_of(args),
-                                                           fence if type(fence) is int else None)}
+                                                           fence if type(fence) is int else None,
+                                                           peer_cls if isinstance(peer_cls, str) else None)}
 
     @ROBOT_OPS.op("disconnect")
     async def _op_disconnect(self, args: dict) -> dict:

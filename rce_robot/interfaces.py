@@ -16,6 +16,8 @@ from rce.plumbing.errors import MessageError, ProtocolError, RequestError, Unava
 from rce.interfaces.kind import InterfaceType, Kind, Side
 from rce.transport.interface import Interface
 from rce.interfaces.lanes import Lane
+from rce.interfaces.classes import Conversion
+from rce.messages.convert import conversion
 from rce.messages.forms import JsonForms
 from rce.messages import MessageRegistry
 from rce.plumbing.pending import PendingCalls
@@ -92,6 +94,17 @@ class RobotInterface(Interface):
         if self.side is Side.CONVERTER:
             return self.registry.bytes_to_json(typename, bytes(payload), self.link.forms)
         return payload
+
+    # -- ROS 1 <-> ROS 2 ------------------------------------------------------------------------
+    def conversion(self, peer_cls: str) -> Conversion:
+        try:
+            return conversion(self.registry, self.kind, self.cls, peer_cls)
+        except MessageError as e:
+            raise MessageError(f"interface {self.itag!r} ({self.cls}) cannot be connected to {peer_cls}: "
+                               f"{e.message}") from None
+
+    def on_convert_error(self, error: MessageError) -> None:
+        self.link.send_error(f"interface {self.itag!r}: a message to the cloud was not converted: {error.message}")
 
     # -- status ----------------------------------------------------------------------------------
     def on_peers_changed(self) -> None:

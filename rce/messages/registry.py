@@ -24,10 +24,17 @@ own :class:`JsonForms` to :meth:`MessageRegistry.json_to_bytes` and
 
 Forwarders do not convert: :meth:`MessageRegistry.check_structure` checks that serialized
 bytes fit their class without decoding them (:mod:`rce.messages.structure`).
+
+ROS 2: a class in ROS 2's form (``std_msgs/msg/String``, ``std_srvs/srv/Trigger``, an action's
+parts) is a ROS 2 type, serialized as CDR by the registry's ROS 2 half (:mod:`rce.messages.ros2`,
+:attr:`MessageRegistry.ros2`). Its type names carry :data:`ROS2_PREFIX` here
+(``ros2:std_msgs/msg/String``), so that every method takes either kind and the two typestores'
+names never meet.
 """
 from __future__ import annotations
 
 import base64
+import functools
 import math
 import threading
 from pathlib import Path
@@ -36,6 +43,7 @@ from typing import TYPE_CHECKING, Any, Callable
 from rosbags.typesys import Stores, get_types_from_msg, get_typestore
 from rosbags.typesys.base import Nodetype
 
+from rce.interfaces.classes import is_ros2_name
 from rce.plumbing.errors import MessageError
 from rce.messages.forms import (RCE_FORMS, JsonForms, duration_to_seconds, image_from_bytes, image_to_bytes,
                                iso_to_time, seconds_to_duration, time_to_iso)
@@ -68,6 +76,30 @@ Decoder = Callable[[Any], Any]                   # typestore value -> json value
 FormsKey = tuple[str, str, str, str]             # JsonForms.key: what a decoder's output depends on
 
 
+#: The prefix of a ROS 2 type's name in the registry (the name after it is the ROS 2 typestore's).
+ROS2_PREFIX = "ros2:"
+_ros2_factory: Callable[[], Any] | None = None
+
+
+def set_ros2_factory(factory: Callable[[], Any]) -> None:
+    """Set what makes a registry's ROS 2 half (:class:`rce.messages.ros2.Ros2Registry`, which sets
+    itself when ``rce.messages`` is imported)."""
+    global _ros2_factory
+    _ros2_factory = factory
+
+
+def _or_ros2(method: Callable) -> Callable:
+    """A registry method of a type name that hands ROS 2 names (:data:`ROS2_PREFIX`) to the ROS 2 half."""
+    name = method.__name__
+
+    @functools.wraps(method)
+    def dispatch(self: "MessageRegistry", typename: str, *args: Any, **kwargs: Any) -> Any:
+        if typename.__class__ is str and typename.startswith(ROS2_PREFIX):
+            return getattr(self.ros2, name)(typename[len(ROS2_PREFIX):], *args, **kwargs)
+        return method(self, typename, *args, **kwargs)
+    return dispatch
+
+
 def takes_binary_message(cls: str) -> bool:
     """Can a converter of message class ``cls`` (``pkg/Name``) take a whole message as one binary
     part? True for ``sensor_msgs/Image`` (a PNG or JPEG file, as the original RCE's image converter)."""
@@ -78,21 +110,24 @@ def takes_binary_message(cls: str) -> bool:
 
 
 def store_name(wire: str) -> str:
-    """``std_msgs/String`` -> ``std_msgs/msg/String`` (names already in store form pass through).
+    """``std_msgs/String`` -> ``std_msgs/msg/String`` (the ROS 1 typestore's name); a ROS 2 name
+    ``std_msgs/msg/String`` -> ``ros2:std_msgs/msg/String``.
 
-    Raises :class:`MessageError` for a name that is not ``pkg/Name``."""
+    Raises :class:`MessageError` for a name in neither form."""
     if not isinstance(wire, str):
         raise MessageError(f"message class must be a string like 'std_msgs/String', got {wire!r}")
+    if is_ros2_name(wire):
+        return ROS2_PREFIX + wire.strip("/")
     parts = wire.strip("/").split("/")
     if len(parts) == 2 and all(parts):
         return f"{parts[0]}/msg/{parts[1]}"
-    if len(parts) == 3 and parts[1] in ("msg", "srv") and parts[0] and parts[2]:
-        return f"{parts[0]}/msg/{parts[2]}"
-    raise MessageError(f"malformed message class {wire!r}: expected 'pkg/Name'")
+    raise MessageError(f"malformed message class {wire!r}: expected 'pkg/Name' (ROS 1) or 'pkg/msg/Name' (ROS 2)")
 
 
 def wire_name(store: str) -> str:
-    """``std_msgs/msg/String`` -> ``std_msgs/String``."""
+    """``std_msgs/msg/String`` -> ``std_msgs/String``; ``ros2:std_msgs/msg/String`` -> ``std_msgs/msg/String``."""
+    if store.startswith(ROS2_PREFIX):
+        return store[len(ROS2_PREFIX):]
     pkg, _, name = store.split("/")
     return f"{pkg}/{name}"
 
@@ -112,6 +147,18 @@ class MessageRegistry:
         self._codecs: dict[str, Codec | None] = {}   # store type -> its compiled codec (rce.messages.compiled)
         self._readers: dict[tuple, JsonReader | None] = {}   # (store type, forms key) -> its compiled JSON reader
         self._services: set[str] = set()   # wire names of registered services
+        self._ros2: MessageRegistry | None = None
+        #: (source, destination) type names -> their ROS 1 <-> ROS 2 converter (rce.messages.convert)
+        self.converters: dict[tuple[str, str], Callable[[bytes | memoryview], bytes]] = {}
+
+    @property
+    def ros2(self) -> "MessageRegistry":
+        """The ROS 2 half (:class:`rce.messages.ros2.Ros2Registry`), made on first use."""
+        if self._ros2 is None:
+            if _ros2_factory is None:
+                raise MessageError("ROS 2 types are not available in this process (rce.messages.ros2 not loaded)")
+            self._ros2 = _ros2_factory()
+        return self._ros2
 
     # -- registration -----------------------------------------------------------------------
     def register_msg(self, wire: str, text: str) -> None:
@@ -197,6 +244,8 @@ class MessageRegistry:
     # -- lookup -----------------------------------------------------------------------------
     def msg_type(self, wire: str) -> str:
         """Store name of message class ``wire``; raises :class:`MessageError` if unknown."""
+        if is_ros2_name(wire):
+            return ROS2_PREFIX + self.ros2.msg_type(wire)
         name = store_name(wire)
         if name not in self.store.fielddefs:
             raise MessageError(f"unknown message class {wire!r}")
@@ -204,6 +253,8 @@ class MessageRegistry:
 
     def srv_types(self, wire: str) -> tuple[str, str]:
         """(request, response) store names of service class ``wire``; :class:`MessageError` if unknown."""
+        if is_ros2_name(wire):
+            return tuple(ROS2_PREFIX + t for t in self.ros2.srv_types(wire))
         base = store_name(wire)
         req, resp = base + "Request", base + "Response"
         if req not in self.store.fielddefs or resp not in self.store.fielddefs:
@@ -219,6 +270,7 @@ class MessageRegistry:
             return False
 
     # -- serialization ----------------------------------------------------------------------
+    @_or_ros2
     def codec(self, typename: str) -> Codec | None:
         """The compiled codec of store type ``typename`` (:mod:`rce.messages.compiled`), or None for
         a class it does not handle (rosbags' functions then do all the work)."""
@@ -232,6 +284,7 @@ class MessageRegistry:
         return compile_codec(self.store.fielddefs, self.store.types, typename, self.store.max_sequence_length,
                              self._codecs)
 
+    @_or_ros2
     def serialize(self, typename: str, msg: Any) -> bytes:
         """ROS 1 serialize typestore instance ``msg`` of store type ``typename`` (the compiled
         codec, or rosbags' serializer for what it does not take). Raises :class:`MessageError`."""
@@ -246,6 +299,7 @@ class MessageRegistry:
         except Exception as e:
             raise MessageError(f"cannot serialize {wire_name(typename)}: {e}") from e
 
+    @_or_ros2
     def deserialize(self, typename: str, data: bytes) -> Any:
         """Inverse of :meth:`serialize`; :class:`MessageError` if ``data`` does not fit the type."""
         codec = self.codec(typename)
@@ -259,6 +313,7 @@ class MessageRegistry:
         except Exception as e:
             raise MessageError(f"{len(data)} bytes do not deserialize as {wire_name(typename)}: {e}") from e
 
+    @_or_ros2
     def check_structure(self, typename: str, payload: bytes | memoryview) -> None:
         """Check that ROS 1 serialized ``payload`` fits store type ``typename`` without decoding it
         (what a forwarder does: strings are not decoded, numbers not read; :mod:`rce.messages.structure`).
@@ -275,6 +330,7 @@ class MessageRegistry:
             raise MessageError(f"{len(buf)} bytes do not fit {wire_name(typename)}: {len(buf) - end} byte(s) "
                                f"left after the last field")
 
+    @_or_ros2
     def from_json(self, typename: str, obj: Any, forms: JsonForms | None = None) -> Any:
         """Build a typestore instance of ``typename`` from JSON ``obj`` (an object; for
         ``sensor_msgs/Image`` also a PNG or JPEG file as ``bytes``). ``forms``: the sending client's
@@ -288,12 +344,14 @@ class MessageRegistry:
         except MessageError as e:   # nested encoders name their own class; name the outer one
             raise MessageError(f"{wire_name(typename)}: {e.message.split(': ', 1)[-1]}") from None
 
+    @_or_ros2
     def to_json(self, typename: str, msg: Any, forms: JsonForms | None = None) -> Any:
         """JSON-ready form of typestore instance ``msg`` of ``typename``, in ``forms`` (default rce's):
         a dict, or ``bytes`` (a binary part) for an image in the ``png``/``jpeg`` form. Raises
         :class:`MessageError` when the message has no such form (an image encoding PNG cannot hold)."""
         return self._decoder(typename, (forms or RCE_FORMS).key)(msg)
 
+    @_or_ros2
     def json_to_bytes(self, typename: str, obj: Any, forms: JsonForms | None = None) -> bytes:
         """JSON -> ROS 1 serialized bytes (what a converter does with a robot's message; a node that
         publishes a dict). The same bytes and errors as :meth:`serialize` of :meth:`from_json`; a
@@ -307,6 +365,7 @@ class MessageRegistry:
                 pass
         return self.serialize(typename, self.from_json(typename, obj, forms))
 
+    @_or_ros2
     def bytes_to_json(self, typename: str, data: bytes, forms: JsonForms | None = None) -> Any:
         """ROS 1 serialized bytes -> JSON (what a converter sends to a robot), in ``forms``: the same
         value and errors as :meth:`to_json` of :meth:`deserialize`, read straight from the bytes where

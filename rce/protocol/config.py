@@ -12,8 +12,10 @@ from pathlib import Path
 from typing import Any
 
 import yaml
-from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_validator
+from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator, model_validator
 
+from rce.interfaces import actions
+from rce.interfaces.qos import QoS, parse_qos
 from rce.plumbing.errors import ConfigError
 from rce.protocol import schema
 from rce.protocol.schema import key_path
@@ -53,12 +55,23 @@ class ParameterSpec(schema.ParameterComponent):
 
 
 class InterfaceSpec(schema.InterfaceComponent):
-    """An interface on an endpoint (a container tag, or the robot's own robotID)."""
+    """An interface on an endpoint (a container tag, or the robot's own robotID). ``qos``: the QoS
+    of its ROS 2 end (:mod:`rce.interfaces.qos`; a profile name or an object; absent: ROS 2's
+    default). ``action``: set on the parts of an action entry (:mod:`rce.interfaces.actions`), the
+    action's own iTag."""
     model_config = _FILE
+    qos: QoS | None = None
+    action: str | None = None
+
+    @field_validator("qos", mode="before")
+    @classmethod
+    def _qos(cls, value: Any) -> QoS | None:
+        return None if value is None else parse_qos(value)
 
     def component(self) -> dict:
         """The CN addInterfaces component for this interface."""
-        return {k: v for k, v in self.model_dump(by_alias=True).items() if v not in (None, "")}
+        return {k: v for k, v in self.model_dump(by_alias=True, exclude={"qos", "action"}).items()
+                if v not in (None, "")}
 
 
 class ConnectionSpec(schema.ConnectionComponent):
@@ -77,6 +90,34 @@ class RobotConfig(_Model):
     parameters: list[ParameterSpec] = Field(default_factory=list)
     interfaces: list[InterfaceSpec] = Field(default_factory=list)
     connections: list[ConnectionSpec] = Field(default_factory=list)
+
+    @model_validator(mode="before")
+    @classmethod
+    def _expand_actions(cls, data: Any) -> Any:
+        """Each action entry (``ActionProvider*``/``ActionClient*``) becomes its five parts, and each
+        connection between two actions the five connections of their parts (:mod:`rce.interfaces.actions`)."""
+        if not isinstance(data, dict) or not isinstance(data.get("interfaces"), list):
+            return data
+        out, names = [], set()
+        for i, entry in enumerate(data["interfaces"]):
+            if not (isinstance(entry, dict) and actions.is_action_type(entry.get("iType"))):
+                out.append(entry)
+                continue
+            for key in ("eTag", "iTag", "iCls"):
+                if not isinstance(entry.get(key), str) or not entry[key]:
+                    raise _KeyError(f"interfaces[{i}].{key}", "must be a non-empty string")
+            try:
+                out += [{**part, "action": entry["iTag"]} for part in actions.expand_interface(entry)]
+            except ValueError as e:
+                raise _KeyError(f"interfaces[{i}].iCls", str(e)) from None
+            names.add(f"{entry['eTag']}/{entry['iTag']}")
+        conns = []
+        for c in data.get("connections") or []:
+            if isinstance(c, dict) and c.get("tagA") in names and c.get("tagB") in names:
+                conns += [{**c, "tagA": a, "tagB": b} for a, b in actions.expand_connection(c["tagA"], c["tagB"])]
+            else:
+                conns.append(c)
+        return {**data, "interfaces": out, "connections": conns if "connections" in data else []}
 
     @model_validator(mode="after")
     def _cross_checks(self) -> "RobotConfig":

@@ -335,7 +335,7 @@ class Mover:
             # while its nodes come up, the new copy learns its peers, so that its results can go out
             await asyncio.gather(timed("ready", self._ready(new, ifaces)), timed("wired", asyncio.gather(*(
                 self.control.host_call(new, "connect", **self.control.connect_args(
-                    me, peer.iid, self.state.data_addr(peer))) for me, peer in conns))))
+                    me, peer, self.state.data_addr(peer))) for me, peer in conns))))
             self._still(c, old_cid)
         except (RCEError, MoveFailed) as e:
             await self.control.destroy_on(tid, new.cid)
@@ -398,8 +398,8 @@ class Mover:
         t0 = time.monotonic()
 
         async def told(me: InterfaceRec, peer: InterfaceRec) -> dict:
-            r = await self.control.endpoint_call(peer, "connect", fence=cid, **self.control.connect_args(peer, me.iid,
-                                                                                                         addr))
+            r = await self.control.endpoint_call(peer, "connect", fence=cid,
+                                                 **self.control.connect_args(peer, me, addr))
             log.info("peer switched", user=c.user, ctag=c.ctag, peer=peer.tag, s=round(time.monotonic() - t0, 3))
             return r
         answers = await asyncio.gather(*(told(me, peer) for me, peer in conns), return_exceptions=True)

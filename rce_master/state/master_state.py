@@ -31,6 +31,7 @@ from dataclasses import dataclass
 from typing import Any
 
 from rce.plumbing.errors import AuthError, NotFound, RequestError, Unavailable
+from rce.interfaces.classes import same_type
 from rce.interfaces.kind import Kind
 from rce.protocol import schema
 from rce_master.state.index import StateIndex, lost_reason
@@ -606,7 +607,7 @@ class MasterState(StateIndex):
         if Kind(a.kind).peer != b.kind:
             raise RequestError(f"cannot connect {a.tag} ({a.itype}) with {b.tag} ({b.itype}): a {a.kind} pairs "
                                f"only with a {Kind(a.kind).peer}")
-        if a.cls != b.cls:
+        if not same_type(a.cls, b.cls):
             raise RequestError(f"cannot connect {a.tag} ({a.cls}) with {b.tag} ({b.cls}): classes differ")
         if a.robot_side and b.robot_side:
             raise RequestError(f"cannot connect two robot-side interfaces ({a.tag}, {b.tag}); "

@@ -57,7 +57,8 @@ def test_interface_types_and_classes():
     with pytest.raises(ProtocolError, match="Bogus"):
         interface_kind("BogusInterface")
     assert check_class("Publisher", "std_msgs/String") == "std_msgs/String"
-    assert check_class("Subscriber", "std_msgs/msg/String") == "std_msgs/String"
+    assert check_class("Subscriber", "std_msgs/msg/String") == "std_msgs/msg/String"     # a ROS 2 class stays one
+    assert check_class("ServiceClient", "std_srvs/srv/Trigger") == "std_srvs/srv/Trigger"
     assert check_class("ServiceClient", "Test/StringEcho") == "Test/StringEcho"
     with pytest.raises(MessageError, match="Test/StringEcho"):
         check_class("Publisher", "Test/StringEcho")          # a service is not a message class

@@ -112,12 +112,12 @@ async def test_host_lost_container_re_created_on_the_other_host_with_everything(
         ("add_node", {"cid": new_cid, "ntag": "echo", "pkg": "Test", "exe": "stringEcho.py", "args": "",
                       "name": None, "namespace": None, "respawn": None}),
         ("connect", {"cid": new_cid, "iid": 1, "peer_iid": 3, "peer_addr": ROBOT_ADDR,
-                     "token": cloud.control.key.connection_token(1, 3, ROBOT_ADDR)}),
+                     "peer_cls": "std_msgs/String", "token": cloud.control.key.connection_token(1, 3, ROBOT_ADDR)}),
         ("connect", {"cid": new_cid, "iid": 2, "peer_iid": 4, "peer_addr": ROBOT_ADDR,
-                     "token": cloud.control.key.connection_token(2, 4, ROBOT_ADDR)})]
+                     "peer_cls": "std_msgs/String", "token": cloud.control.key.connection_token(2, 4, ROBOT_ADDR)})]
     # the robot-side ends get the new data address (iu true) and their credentials for it, then ST running
     assert [a for op, a in cloud.robot.sent if op == "connect"] == [
-        {"iid": me, "peer_iid": peer, "peer_addr": c.data_addr,
+        {"iid": me, "peer_iid": peer, "peer_addr": c.data_addr, "peer_cls": "std_msgs/String",
          "token": cloud.control.key.connection_token(me, peer, c.data_addr)} for me, peer in ((3, 1), (4, 2))]
     assert notes(cloud.robot)[-1] == ("ST", {"topic": "container", "cTag": "c1", "status": "running",
                                              "sandbox": "unconfined"})

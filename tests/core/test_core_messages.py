@@ -25,8 +25,8 @@ def msg_error(fn, *args) -> str:
 @pytest.mark.parametrize("wire, store", [
     ("std_msgs/String", "std_msgs/msg/String"),
     ("/std_msgs/String/", "std_msgs/msg/String"),
-    ("std_msgs/msg/String", "std_msgs/msg/String"),
-    ("Test/srv/StringEcho", "Test/msg/StringEcho"),
+    ("std_msgs/msg/String", "ros2:std_msgs/msg/String"),     # ROS 2's form names a ROS 2 type (CDR)
+    ("Test/srv/StringEcho", "ros2:Test/srv/StringEcho"),
 ])
 def test_store_name(wire, store):
     assert store_name(wire) == store
@@ -65,7 +65,8 @@ def test_unknown_service_class(reg):
 
 def test_known_classes(reg):
     assert reg.msg_type("std_msgs/String") == "std_msgs/msg/String"
-    assert reg.msg_type("sensor_msgs/msg/LaserScan") == "sensor_msgs/msg/LaserScan"
+    assert reg.msg_type("sensor_msgs/LaserScan") == "sensor_msgs/msg/LaserScan"
+    assert reg.msg_type("sensor_msgs/msg/LaserScan") == "ros2:sensor_msgs/msg/LaserScan"
 
 
 # -- round trips --------------------------------------------------------------------------------
