@@ -122,10 +122,12 @@ def test_action_entries_become_five_parts():
     assert robot["fib.send_goal"].iType == "ServiceProviderForwarder"
     assert robot["fib.send_goal"].iCls == "test_msgs/action/Fibonacci_SendGoal"
     assert robot["fib.send_goal"].addr == "/fibonacci/_action/send_goal"
-    assert robot["fib.feedback"].iType == "PublisherForwarder" and robot["fib.status"].qos.durability == "transient_local"
+    assert robot["fib.feedback"].iType == "PublisherForwarder"
+    assert robot["fib.status"].qos.durability == "transient_local"
     assert robot["fib.cancel_goal"].iCls == "action_msgs/srv/CancelGoal" and robot["fib.cancel_goal"].action == "fib"
     cloud = {i.iTag: i for i in cfg.interfaces if i.eTag == "c"}
-    assert cloud["fib.get_result"].iType == "ServiceClientInterface" and cloud["fib.status"].iType == "SubscriberInterface"
+    assert cloud["fib.get_result"].iType == "ServiceClientInterface"
+    assert cloud["fib.status"].iType == "SubscriberInterface"
     assert cloud["fib.get_result"].addr == "/fib/_action/get_result"
     assert sorted((c.tagA, c.tagB) for c in cfg.connections) == sorted(
         (f"r/fib.{p}", f"c/fib.{p}") for p in ("send_goal", "get_result", "cancel_goal", "feedback", "status"))
