@@ -8,10 +8,11 @@ FOXGLOVE_JS := tests/web/foxglove/node_modules/.installed
 
 .PHONY: setup test demo bench bytecode system-deps clean
 
-$(STAMP): pyproject.toml
+# Two distributions from this repository: rce (the engine, the root) and rce-fleet (examples/fleet), both editable.
+$(STAMP): pyproject.toml examples/fleet/pyproject.toml
 	$(PY) -m venv $(VENV)
 	$(BIN)/pip install --quiet --upgrade pip
-	$(BIN)/pip install --quiet -e '.[test,ros2]'
+	$(BIN)/pip install --quiet -e '.[test,ros2]' -e examples/fleet
 	touch $(STAMP)
 
 ## setup: create .venv, install rce with its test extras and the Debian packages tests need (when root)
