@@ -3,7 +3,7 @@ processes, fleet container with the global planner and move_clients, pymunk robo
 rce-ros clients) on the lab map (8x8 cells of 1 m), 2 robots, sped-up simulation, with a
 places file; ``rce-fleet task`` as processes (an RCE client, or a client of the HTTP API) and the
 JSON HTTP API of ``serve``'s web server, here over TLS with a throw-away CA and with a users file
-of a viewer and an operator beside ``--dev``'s testUser (an admin)."""
+of a viewer and an operator beside the first admin of ``--admin-password-file``."""
 from __future__ import annotations
 
 import base64
@@ -32,7 +32,7 @@ PLACES = "places:\n  - {name: pick1, kind: pickup, cell: 16}\n  - {name: drop1, 
 
 
 USERS = {"vera": ("viewer", "vera-pw"), "otto": ("operator", "otto-pw")}    # name: (role, password)
-ADMIN = ("testUser", "testUser")           # rce-master --dev's user, an admin
+ADMIN = ("admin", "first-admin-pw")      # the first admin (--admin-password-file)
 
 
 def write_users(path: Path) -> Path:
@@ -49,12 +49,13 @@ def write_users(path: Path) -> Path:
 def start_serve(d: Path, *extra: str, ca: str | None = None) -> dict:
     """``rce-fleet serve`` on the lab map with the places above; returns {"proc", "page", "base", "master",
     "log", "ssl", "auth"} (``ssl``: a client context trusting ``ca``, for ``--tls-cert``; ``auth``: the
-    Authorization header of a token of testUser, an admin)."""
+    Authorization header of a token of the first admin)."""
     (d / "places.yaml").write_text(PLACES)
+    (d / "admin-pw").write_text(ADMIN[1] + "\n")
     log = d / "serve.log"
     argv = [str(BIN / "rce-fleet"), "serve", "--robots", "2", "--speedup", "10", "--grid", "8x8", "--web-port", "0",
             "--no-live", "--workdir", str(d / "work"), "--timeout", "600", "--places", str(d / "places.yaml"),
-            "--start", "Robot1=33", "--start", "Robot2=38", *extra]
+            "--start", "Robot1=33", "--start", "Robot2=38", "--admin-password-file", str(d / "admin-pw"), *extra]
     p = subprocess.Popen(argv, stdout=open(log, "wb"), stderr=subprocess.STDOUT, start_new_session=True,
                          env=dict(os.environ, RCE_LOG_JSON="1"))
     deadline = time.monotonic() + URL_TIMEOUT_S
@@ -116,14 +117,17 @@ def login(fleet, user: str, password: str, **extra) -> tuple[int, dict]:
 
 
 def cli(fleet, *args: str) -> subprocess.CompletedProcess:
-    return subprocess.run([str(BIN / "rce-fleet"), "task", *args, "--master", fleet["master"]],
-                          capture_output=True, text=True, timeout=CLI_TIMEOUT_S)
+    """``rce-fleet task ARGS`` at the fleet's task API as the first admin (people use the page's doors: the
+    master's RCE door is the fleet's own user's)."""
+    return subprocess.run([str(BIN / "rce-fleet"), "task", *args, "--api", fleet["page"], "--user", ADMIN[0],
+                           *(("--ca-file", fleet["ca"]) if fleet.get("ca") else ())], capture_output=True, text=True,
+                          timeout=CLI_TIMEOUT_S, env=dict(os.environ, RCE_PASSWORD=ADMIN[1]))
 
 
 def http(fleet, method: str, path: str, body: dict | None = None, auth: str | None = "admin",
          headers: dict | None = None) -> tuple[int, dict | str]:
     """One request to the page's server: (status, JSON answer or text). ``auth``: the Authorization
-    header ("admin": the fixture's testUser token; None: none); ``headers`` (a dict) gets the answer's."""
+    header ("admin": the fixture's admin token; None: none); ``headers`` (a dict) gets the answer's."""
     data = json.dumps(body).encode() if body is not None else None
     h = {"Content-Type": "application/json"} if data else {}
     if auth:
@@ -167,8 +171,8 @@ def test_cli_adds_lists_and_cancels_and_refuses_bad_input_with_the_reason(fleet)
     assert lst.returncode == 0, lst.stderr
     tasks = {t["id"]: t for t in json.loads(lst.stdout)["tasks"]}
     c1 = tasks["c1"]
-    assert c1["state"] == "cancelled" and c1["source"].startswith("cli:") and c1["cells"] == [23, 16]
-    assert c1["reason"].startswith("cancelled by cli:") and c1["finished"] >= c1["created"] > 0
+    assert c1["state"] == "cancelled" and c1["source"] == "http:admin" and c1["cells"] == [23, 16]
+    assert c1["reason"] == "cancelled by http:admin" and c1["finished"] >= c1["created"] > 0
 
 
 def test_http_api_creates_gets_cancels_and_says_why_not(fleet):
@@ -280,7 +284,7 @@ def test_the_openapi_document_validates_and_names_the_models(fleet):
     code, doc = http(fleet, "GET", "/api/openapi.json", auth=None)
     assert code == 200
     validate(doc)                                                    # OpenAPI 3.1, with its JSON Schema dialect
-    assert doc["openapi"] == "3.1.0" and doc["servers"] == [{"url": fleet["base"] + "/"}]
+    assert doc["openapi"] == "3.1.0" and doc["servers"] == [{"url": "/"}]      # relative: Host names nothing
     schemas = doc["components"]["schemas"]
     assert {"TaskRequest", "FleetTask", "TaskList", "RobotWork", "ApiError", "LoginRequest",
             "LoginAnswer"} <= set(schemas)

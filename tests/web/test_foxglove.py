@@ -41,19 +41,21 @@ START_TIMEOUT_S = 90           # wall s for rce-fleet to start everything and pr
 LOG_POLL_S = 0.1               # wall s between reads of rce-fleet's output while waiting for the URL
 NODE_TIMEOUT_MS = 40_000       # the Node client's whole run (subscribe, publish, see the robot move)
 STEP_TIMEOUT_S = 10.0          # one answer from the server
-PASSWORD = hashlib.sha256(b"testUser").hexdigest()
+ADMIN_PW = "foxglove-admin-pw"     # the first admin's (--admin-password-file): an operator may publish
 SUB = "foxglove.websocket.v1"
 NPM_HINT = "the Foxglove client is not installed: run `make setup` (npm ci --prefix tests/web/foxglove)"
 
 
 @pytest.fixture(scope="module")
 def fleet(tmp_path_factory):
-    """``rce-fleet serve --foxglove-port 0 --record``; yields {"port", "proc", "log", "mcap"}; stopped with SIGINT."""
+    """``rce-fleet serve --foxglove-port 0 --record``; yields {"port", "proc", "log", "mcap", "token"} (a token
+    of the page's POST /api/login, the port's credential); stopped with SIGINT."""
     d = tmp_path_factory.mktemp("foxglove")
     log, mcap = d / "serve.log", d / "run.mcap"
+    (d / "admin-pw").write_text(ADMIN_PW + "\n")
     argv = [str(BIN / "rce-fleet"), "serve", "--robots", str(len(STARTS)), "--speedup", "5", "--seed", "3",
-            "--grid", "8x8", "--headless", "--no-live", "--foxglove-port", "0", "--record", str(mcap),
-            "--workdir", str(d / "work"), "--timeout", "600",
+            "--grid", "8x8", "--web-port", "0", "--no-live", "--foxglove-port", "0", "--record", str(mcap),
+            "--workdir", str(d / "work"), "--timeout", "600", "--admin-password-file", str(d / "admin-pw"),
             *[a for r, c in STARTS.items() for a in ("--start", f"{r}={c}")]]
     out = open(log, "wb")
     p = subprocess.Popen(argv, stdout=out, stderr=subprocess.STDOUT, start_new_session=True,
@@ -62,7 +64,12 @@ def fleet(tmp_path_factory):
     if port is None:
         p.kill()
         pytest.fail(f"rce-fleet serve printed no Foxglove URL:\n{log.read_text(errors='replace')[-3000:]}")
-    yield {"port": port, "proc": p, "log": log, "mcap": mcap}
+    page = re.search(r"operator page: (http://\S+?/)", log.read_text(errors="replace")).group(1)
+    req = urllib.request.Request(page + "api/login", data=json.dumps({"user": "admin", "password": ADMIN_PW}).encode(),
+                                 headers={"Content-Type": "application/json"}, method="POST")
+    with urllib.request.urlopen(req, timeout=STEP_TIMEOUT_S) as r:
+        token = json.loads(r.read())["token"]
+    yield {"port": port, "proc": p, "log": log, "mcap": mcap, "token": token}
     stop(p)
 
 
@@ -78,8 +85,8 @@ def _wait_port(log: Path, proc: subprocess.Popen) -> int | None:
     return None
 
 
-def url(fleet, password: str = PASSWORD) -> str:
-    return f"ws://127.0.0.1:{fleet['port']}/?userID=testUser&password={password}"
+def url(fleet, token: str | None = None) -> str:
+    return f"ws://127.0.0.1:{fleet['port']}/?token={fleet['token'] if token is None else token}"
 
 
 class Client:
@@ -158,11 +165,15 @@ def test_foxglove_client_sees_poses_and_sends_a_goal(fleet):
 
 async def test_bad_login_and_wrong_subprotocol_are_refused(fleet):
     with pytest.raises(InvalidStatus) as e:
-        await connect(url(fleet, hashlib.sha256(b"wrong").hexdigest()), subprotocols=[SUB])
+        await connect(url(fleet, "wrong"), subprotocols=[SUB])
     assert e.value.response.status_code == 401
     with pytest.raises(InvalidStatus) as e:
         await connect(f"ws://127.0.0.1:{fleet['port']}/", subprotocols=[SUB])
-    assert e.value.response.status_code == 401 and b"userID and password" in e.value.response.body
+    assert e.value.response.status_code == 401 and b"bearer token" in e.value.response.body
+    with pytest.raises(InvalidStatus) as e:        # a password's digest is no credential here
+        digest = hashlib.sha256(ADMIN_PW.encode()).hexdigest()
+        await connect(f"ws://127.0.0.1:{fleet['port']}/?userID=admin&password={digest}", subprotocols=[SUB])
+    assert e.value.response.status_code == 401 and b"takes no password" in e.value.response.body
     async with connect(url(fleet), subprotocols=["foxglove.websocket.v2"]) as ws:
         msg = orjson.loads(await asyncio.wait_for(ws.recv(), STEP_TIMEOUT_S))
         assert msg["op"] == "status" and msg["level"] == 2 and SUB in msg["message"]
@@ -222,7 +233,8 @@ async def test_bad_clients_get_status_errors_and_harm_no_other(fleet):
     assert not [s for s in good.statuses], good.statuses
     await good.close()
     await bad.close()
-    metrics = urllib.request.urlopen(f"http://127.0.0.1:{fleet['port']}/metrics", timeout=STEP_TIMEOUT_S).read()
+    metrics = urllib.request.urlopen(urllib.request.Request(f"http://127.0.0.1:{fleet['port']}/metrics", headers={
+        "Authorization": f"Bearer {fleet['token']}"}), timeout=STEP_TIMEOUT_S).read()
     counts = dict(line.split() for line in metrics.decode().splitlines() if line and not line.startswith("#"))
     assert int(counts["rce_fleet_foxglove_status_errors"]) >= 3000 + 10, (counts, flood_s)
     assert int(counts["rce_fleet_foxglove_clients_total"]) >= 3 and "rce_fleet_foxglove_dropped" in counts

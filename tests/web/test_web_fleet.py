@@ -1,7 +1,9 @@
 """The operator's page against the real fleet: ``rce-fleet serve`` as a process (engine processes,
 fleet container with the global planner and move_clients, pymunk robots as rce-ros clients) on
 the project's lab map (8x8 cells of 1 m), 3 robots, sped-up simulation. The page is served by
-rce-fleet on its own port, so its login at the master is cross-origin (CORS).
+rce-fleet on its own port, and its RCE session goes through that server (``/rce/ws``, as the fleet's own
+user), so the master and the robot endpoint stay on loopback. The person logs in as the first admin,
+whose password the run made and wrote to a 0600 file.
 
 What the tests read is the page's own model (``window.fleetView``), which is built from the
 fleet's ``/fleet/state`` only; recorders added with ``fleetView.listeners`` see every state."""
@@ -68,13 +70,24 @@ def wait_url(log: Path, proc: subprocess.Popen) -> str | None:
     return None
 
 
-def login(page, fleet, password="testUser"):
+def admin_password(log: Path) -> str:
+    """The first admin's password a loopback run made: read from the 0600 file whose path it printed (the
+    password itself is printed nowhere)."""
+    text = log.read_text(errors="replace")
+    path = Path(re.search(r"log in as admin; the password is in (\S+?)\)", text).group(1))
+    assert oct(path.stat().st_mode & 0o777) == "0o600"
+    password = path.read_text().strip()
+    assert password and password not in text
+    return password
+
+
+def login(page, fleet, password=None):
     page.goto(fleet["url"])
     # fleet.js fills the form after its config.json arrives: wait for that, then check it
     page.wait_for_function("document.querySelector('#user').value !== ''", timeout=STATES_TIMEOUT_MS)
-    assert page.input_value("#user") == "testUser"          # prefilled from the URL
+    assert page.input_value("#user") == "admin"             # prefilled from the URL
     assert page.input_value("#password") == ""              # never the password
-    page.fill("#password", password)
+    page.fill("#password", admin_password(fleet["log"]) if password is None else password)
     page.click("#login-btn")
 
 
@@ -128,10 +141,11 @@ def far_goal(page, robot: str, min_dist: int) -> int:
     return max(cands, key=lambda c: (manhattan(c, here), -c))
 
 
-def test_login_cross_origin_and_every_robot_moves(op, fleet, tmp_path):
+def test_login_through_the_page_server_and_every_robot_moves(op, fleet, tmp_path):
     page = op
-    master = page.evaluate("fleetView.config.master")
-    assert urlsplit(master).netloc != urlsplit(fleet["url"]).netloc    # the login was cross-origin
+    said = page.evaluate("fleetView.log.map(l => l.text).filter(t => t.includes('robot endpoint'))")
+    netloc = urlsplit(fleet["url"]).netloc
+    assert said and said[-1].endswith(f"robot endpoint ws://{netloc}/rce/ws"), said   # the page's own server
     assert page.evaluate("fleetView.map.loaded") and page.evaluate("fleetView.map.width") > 0
     before = robots(page)
     assert {r: v["cell"] for r, v in before.items()} == STARTS
@@ -247,7 +261,8 @@ def test_demo_prints_and_serves_the_page(tmp_path):
         with pytest.raises(urllib.error.HTTPError) as no:
             urllib.request.urlopen(base + "config.json", timeout=HTTP_TIMEOUT_S)
         assert no.value.code == 401
-        req = urllib.request.Request(base + "api/login", data=json.dumps({"user": "testUser", "password": "testUser"})
+        req = urllib.request.Request(base + "api/login", data=json.dumps({"user": "admin",
+                                                                          "password": admin_password(log)})
                                      .encode(), headers={"Content-Type": "application/json"}, method="POST")
         with urllib.request.urlopen(req, timeout=HTTP_TIMEOUT_S) as r:
             auth = {"Authorization": "Bearer " + json.loads(r.read())["token"]}

@@ -9,7 +9,7 @@ from __future__ import annotations
 
 import pytest
 
-from tests.fleet.test_fleet_tasks_api import start_serve, stop_serve
+from tests.fleet.test_fleet_tasks_api import ADMIN, start_serve, stop_serve
 from tests.web.test_web_fleet import STATES_TIMEOUT_MS
 
 RELAY_COLOUR = (0x1F, 0x77, 0xB4)     # PALETTE[0] of fleet.js: Robot1's colour
@@ -28,7 +28,7 @@ def fleet(tmp_path_factory):
 def log_in(page, fleet) -> None:
     page.goto(fleet["page"])
     page.wait_for_function("document.querySelector('#user').value !== ''", timeout=STATES_TIMEOUT_MS)
-    page.fill("#password", "testUser")
+    page.fill("#password", ADMIN[1])
     page.click("#login-btn")
     page.wait_for_function("fleetView.connected && Object.keys(fleetView.robots).length == 2",
                            timeout=STATES_TIMEOUT_MS)

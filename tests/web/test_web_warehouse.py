@@ -14,6 +14,8 @@ from pathlib import Path
 
 import pytest
 
+from tests.fleet.test_fleet_tasks_api import ADMIN
+
 BIN = Path(sys.executable).parent
 WAREHOUSE = Path(__file__).resolve().parents[2] / ".." / "shared" / "data" / "maps" / "warehouse.yaml"
 URL_TIMEOUT_S = 120
@@ -24,8 +26,9 @@ STATES_TIMEOUT_MS = 60_000
 def warehouse(tmp_path_factory):
     d = tmp_path_factory.mktemp("warehouse")
     log = d / "serve.log"
+    (d / "admin-pw").write_text(ADMIN[1] + "\n")
     argv = [str(BIN / "rce-fleet"), "serve", "--map", str(WAREHOUSE), "--robots", "4", "--web-port", "0",
-            "--no-live", "--workdir", str(d / "work"), "--timeout", "600"]
+            "--no-live", "--workdir", str(d / "work"), "--timeout", "600", "--admin-password-file", str(d / "admin-pw")]
     p = subprocess.Popen(argv, stdout=open(log, "wb"), stderr=subprocess.STDOUT, start_new_session=True,
                          env=dict(os.environ, RCE_LOG_JSON="1"))
     deadline = time.monotonic() + URL_TIMEOUT_S
@@ -55,7 +58,7 @@ def test_the_page_is_readable_on_the_warehouse(browser, warehouse, tmp_path):
     try:
         page.goto(warehouse)
         page.wait_for_function("document.querySelector('#user').value !== ''", timeout=STATES_TIMEOUT_MS)
-        page.fill("#password", "testUser")
+        page.fill("#password", ADMIN[1])
         page.click("#login-btn")
         page.wait_for_function("fleetView.connected && fleetView.updates >= 2 && fleetView.grid",
                                timeout=STATES_TIMEOUT_MS)

@@ -41,7 +41,7 @@ from rce.plumbing.log import get_logger
 from rce_client.connection import Connection
 
 from ..configs import FLEET_CTAG
-from ..operations.api_auth import allows
+from ..operations.api_auth import Identity, allows
 from .fleet_scene import GRID, MARKERS, PATH, POSE, FleetScene
 
 log = get_logger("fleet.foxglove")
@@ -60,9 +60,10 @@ class FleetFoxglove:
     """The fleet's Foxglove server (module docstring): ``master_url`` and ``user``/``password`` (the fleet's
     internal user, whose client it runs as), ``scene`` (:class:`~rce_fleet.live.fleet_scene.FleetScene`),
     ``robots`` (``Robot1`` ...), ``auth`` (the page's :class:`~rce_fleet.operations.http_api.ApiAuth`: its tokens
-    are this port's credentials), ``bind``, ``port`` and ``ssl_context`` (wss://) as the page's."""
+    are this port's credentials; None: a replay's, on loopback, where anyone may watch and no one publish),
+    ``bind``, ``port`` and ``ssl_context`` (wss://) as the page's."""
 
-    def __init__(self, master_url: str, scene: FleetScene, robots: list[str], *, user: str, password: str, auth,
+    def __init__(self, master_url: str, scene: FleetScene, robots: list[str], *, user: str, password: str, auth=None,
                  ctag: str = FLEET_CTAG, bind: str = "127.0.0.1", port: int = 0, ssl_context=None):
         self.master_url, self.scene, self.robots = master_url, scene, list(robots)
         self.user, self.password, self.ctag, self.bind, self.port = user, password, ctag, bind, port
@@ -181,6 +182,8 @@ class FleetFoxglove:
     async def _login(self, query: dict[str, str]):
         """A client's login: ``token``, a bearer token of the page's (a viewer's at least). Returns its
         :class:`~rce_fleet.operations.api_auth.Identity`; raises AuthError (401) or RequestError (403)."""
+        if self.auth is None:
+            return Identity("replay", "viewer", "none")
         if "password" in query and "token" not in query:
             raise AuthError("this port takes no password: log in at the page's POST /api/login and open "
                             "?token=TOKEN")
@@ -188,7 +191,7 @@ class FleetFoxglove:
 
     async def _metrics(self, query: dict[str, str], headers) -> None:
         """Who may read ``/metrics``: anyone with ``--metrics-public``, else a viewer's token."""
-        if self.auth.metrics_public:
+        if self.auth is None or self.auth.metrics_public:
             return
         scheme, _, value = headers.get("Authorization", "").partition(" ")
         self.auth.bearer(value.strip() if scheme.lower() == "bearer" else query.get("token", ""), "viewer")
