@@ -32,8 +32,12 @@ NODE_PATH = "/usr/local/bin:/usr/bin:/bin"
 #: ``LANG`` of a node: UTF-8 without depending on the host's locale settings.
 NODE_LANG = "C.UTF-8"
 #: Host variables a node sees unchanged when the host has them: where packages and their
-#: message types are found (rce's and ROS 1's search paths), and the engine's log format.
-PASSED_THROUGH = ("RCE_PACKAGE_PATH", "ROS_PACKAGE_PATH", "RCE_LOG_JSON", "RCE_LOG_LEVEL")
+#: message types are found (rce's and ROS 1's search paths), the engine's log format, and where
+#: the ROS 2 wheels' shared libraries are (``LD_LIBRARY_PATH``, with the wheels' mark that it is set:
+#: without it, their ``ros_wheels_bootstrapper.pth`` re-executes every Python of the venv to set it,
+#: which a sandboxed node may not do).
+PASSED_THROUGH = ("RCE_PACKAGE_PATH", "ROS_PACKAGE_PATH", "RCE_LOG_JSON", "RCE_LOG_LEVEL", "LD_LIBRARY_PATH",
+                  "_ROS_WHEELS_BOOTSTRAP_COMPLETE")
 #: The only names ``$(env X)`` / ``$(optenv X)`` in node args may read (from the node's own
 #: environment above; the bus token and everything of the host's are not readable this way).
 ENV_DIRECTIVE_ALLOWED = frozenset({

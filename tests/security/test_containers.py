@@ -215,7 +215,8 @@ async def test_one_users_node_cannot_see_or_join_another_users_container(tmp_pat
         # a minimal, explicit environment: no host variable, no admin token (PWD: nsenter --wd sets it)
         assert set(seen["env"]) <= {"PATH", "HOME", "LANG", "PYTHONUNBUFFERED", "PYTHONPATH", "RCE_BUS",
                                     "RCE_BUS_TOKEN", "RCE_CONTAINER", "RCE_NODE_NAME", "RCE_NAMESPACE",
-                                    "RCE_PACKAGE_PATH", "RCE_LOG_JSON", "RCE_LOG_LEVEL", "PWD"}, seen["env"]
+                                    "RCE_PACKAGE_PATH", "RCE_LOG_JSON", "RCE_LOG_LEVEL", "PWD",
+                                    "LD_LIBRARY_PATH", "_ROS_WHEELS_BOOTSTRAP_COMPLETE"}, seen["env"]
         # $(env X) cannot copy a host variable into argv
         with pytest.raises(RequestError, match="RCE_ADMIN_TOKEN"):
             await mb.call("add_node", cid=1, ntag="leak", pkg="Attack", exe="attack.py",
