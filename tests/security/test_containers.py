@@ -157,7 +157,8 @@ async def run_as(uid: int, *argv: str, mount_ns_of: int | None = None) -> dict:
     enter = ["nsenter", "-t", str(mount_ns_of), "-m", "--"] if mount_ns_of else []
     cmd = [*enter, "setpriv", f"--reuid={uid}", f"--regid={uid}", "--clear-groups", "--inh-caps=-all",
            "--bounding-set=-all", "--", sys.executable, "-", *argv]
-    env = {"PATH": os.environ["PATH"], "PYTHONPATH": str(RUNTIME_ROOT)}
+    env = {"PATH": os.environ["PATH"], "PYTHONPATH": str(RUNTIME_ROOT),
+           **{k: os.environ[k] for k in ("LD_LIBRARY_PATH", "_ROS_WHEELS_BOOTSTRAP_COMPLETE") if k in os.environ}}
     r = await asyncio.to_thread(subprocess.run, cmd, input=ATTACK, capture_output=True, text=True, timeout=STEP,
                                 env=env, cwd="/")
     assert r.returncode == 0 and r.stdout, r.stderr
