@@ -1,4 +1,4 @@
-"""Asyncio client library for the RCE client protocol (DESIGN section 3).
+"""Asyncio client library for the RCE client protocol (docs/design.md, section 3).
 
 ::
 

@@ -1,4 +1,4 @@
-"""Sending on a client connection: one writer at a time, and the requests (DESIGN section 3): CC,
+"""Sending on a client connection: one writer at a time, and the requests (docs/design.md, section 3.3): CC,
 DC, CN and CX, fire-and-forget as in the RCE alpha (the cloud answers a refused request with an ER
 and reports interface and node states with ST), and the barrier that waits until the cloud has
 handled everything sent before it.

@@ -1,4 +1,4 @@
-"""The robot requests (DESIGN section 3: CC, DC, CN, CX), one handler each, in one table
+"""The robot requests (docs/design.md, section 3.3: CC, DC, CN, CX), one handler each, in one table
 (:data:`REQUESTS`), the way rosbridge_suite registers its capabilities
 (``rosbridge_library/capabilities/``, listed in ``rosbridge_protocol.py``): adding a request
 type, or a CN/CX component, touches one class and one table entry.

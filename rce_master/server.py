@@ -2,7 +2,7 @@
 
 - Control plane (TCP, default 8080): task sets register and exchange the ops of
   docs/INTERNALS.md; robot requests go to their handlers (:mod:`rce_master.requests`).
-- HTTP (default 9000): robot login ``GET /?userID=U&version=V`` (DESIGN 3.1), the
+- HTTP (default 9000): robot login ``GET /?userID=U&version=V`` (docs/design.md, section 3.1), the
   JSON admin API under ``/api/`` (:mod:`rce_master.http.admin`, Bearer token), Prometheus ``/metrics``.
 
 No data flows through the master, and the shell changes no state itself: it asks
@@ -568,8 +568,8 @@ class Master:
         return resp
 
     async def _login(self, request: web.Request) -> web.Response:
-        """``GET /?userID=U&version=V[&robotID=R]`` -> ``{"url": ws_url, "current"?: V'}`` (DESIGN section
-        3.1; with ``robotID``, the endpoint on that robot's own computer where one runs). The
+        """``GET /?userID=U&version=V[&robotID=R]`` -> ``{"url": ws_url, "current"?: V'}`` (docs/design.md,
+        section 3.1; with ``robotID``, the endpoint on that robot's own computer where one runs). The
         same answer whether user ``U`` exists or not (the password is checked at the robot endpoint, and
         fails there the same way for both): user names cannot be enumerated here."""
         q = request.query

@@ -1,4 +1,4 @@
-"""The robot task set: the websocket server robots connect to (DESIGN section 3), one
+"""The robot task set: the websocket server robots connect to (docs/design.md, section 3), one
 :class:`~rce_robot.namespace.RobotNamespace` per robot, the robot-side interfaces and
 this process's data-plane endpoint."""
 from __future__ import annotations
@@ -61,7 +61,7 @@ ROBOT_OPS = OpTable("master -> robot task set")
 
 def normalise_password(p: str) -> str:
     """The hex SHA-256 digest from the ``password`` query value. The RCE alpha client sent the raw
-    32-byte digest (URL-encoded); DESIGN section 3.2 sends its hex form. Both are accepted."""
+    32-byte digest (URL-encoded); docs/design.md, section 3.2, sends its hex form. Both are accepted."""
     if len(p) == 64 and all(c in "0123456789abcdefABCDEF" for c in p):
         return p.lower()
     raw = p.encode("latin-1", errors="replace")

@@ -1,5 +1,5 @@
 """Robot-side interfaces: converters (JSON <-> ROS message) and forwarders (serialized
-ROS message as a binary part ``msg*``), DESIGN section 3.5.
+ROS message as a binary part ``msg*``), docs/design.md, section 3.5.
 
 Each lives in one robot's session and is connected over the data plane to container
 interfaces. What the robot sends arrives here (:meth:`RobotInterface.from_robot`,

@@ -1,4 +1,4 @@
-"""The type of an interface (DESIGN section 3.5), parsed once: a kind (the prefix) and a side (the suffix).
+"""The type of an interface (docs/design.md, section 3.5), parsed once: a kind (the prefix) and a side (the suffix).
 
 The wire names an interface type with one string, e.g. ``"PublisherConverter"``, or one of the
 RCE alpha client's names for the service-client kinds (``"ServiceConverter"``...).

@@ -1,6 +1,6 @@
 """The JSON forms of time, duration, images and byte arrays, and which of them one client gets.
 
-A converter (DESIGN section 3.5) turns JSON into ROS messages and back. rce's own clients use
+A converter (docs/design.md, section 4.3) turns JSON into ROS messages and back. rce's own clients use
 one form of each kind; the original RCE's clients (rce-comm 20130902) used others. Both are
 accepted on input, always; on output each client gets the form it used (:class:`JsonForms`).
 
@@ -16,7 +16,7 @@ image (``sensor_msgs/       ``json`` a message object (``data`` base64);  ``json
 Image``)                    ``png``/``jpeg`` the encoded image as a
                             binary part (the original's image converter)
 byte array (``uint8[]``,    ``base64`` a string; ``binary`` a binary      ``base64``
-``char[]``, ``byte[]``)     part (``key*``, DESIGN section 3.4)
+``char[]``, ``byte[]``)     part (``key*``, docs/design.md, section 3.4)
 ==========================  ============================================  ==================
 
 Sources: the original's time and duration converters (``rce-core/rce/util/converter.py``:

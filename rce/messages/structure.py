@@ -1,6 +1,6 @@
 """Does a ROS 1 serialized message fit its class? A length walk, without building the message.
 
-A forwarder passes the robot's bytes through untouched (DESIGN section 3.5), as the original
+A forwarder passes the robot's bytes through untouched (docs/design.md, section 4.2), as the original
 RCE did: strings are not decoded (a ``std_msgs/String`` that is not UTF-8 passes), numbers are
 not read. What is checked is the structure: every length prefix stays inside the payload and
 the last field ends exactly at its end.

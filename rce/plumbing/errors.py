@@ -39,13 +39,13 @@ class RCEError(Exception):
 
 
 class ProtocolError(RCEError):
-    """A client or internal frame that does not follow the protocol (DESIGN section 3)."""
+    """A client or internal frame that does not follow the protocol (docs/design.md, section 3)."""
 
     code = "protocol"
 
 
 class MessageError(RCEError):
-    """An unknown message class, or a message that does not fit its class (DESIGN section 4)."""
+    """An unknown message class, or a message that does not fit its class (docs/design.md, section 4.1)."""
 
     code = "message"
 

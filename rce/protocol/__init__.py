@@ -1,4 +1,4 @@
-"""The robot <-> cloud client protocol (DESIGN section 3), sans I/O.
+"""The robot <-> cloud client protocol (docs/design.md, section 3), sans I/O.
 
 - :mod:`rce.protocol.frames`: text frames and binary parts (:class:`Assembler`, :func:`encode`);
 - :mod:`rce.protocol.schema`: the one schema of robot -> cloud requests (:func:`validate`),

@@ -1,4 +1,4 @@
-"""The one robot-config loader (DESIGN section 3.6): the seed paper's ``robot1.config``
+"""The one robot-config loader (docs/design.md, section 3.6): the seed paper's ``robot1.config``
 JSON, or YAML with the same keys.
 
 The whole file is validated before anything is sent; a bad config raises

@@ -1,4 +1,4 @@
-"""Frames of the robot <-> cloud client protocol (DESIGN section 3.3-3.4), sans I/O.
+"""Frames of the robot <-> cloud client protocol (docs/design.md, section 3.3-3.4), sans I/O.
 
 Wire-compatible with the RoboEarth/Rapyuta RCE alpha client: JSON text frames
 ``{"type": T, "data": {...}}`` with T in CC, DC, CN, CX, DM, ST, ER; a message
@@ -29,7 +29,7 @@ from rce.protocol.limits import MAX_JSON_DEPTH, PartBudget, json_too_deep, short
 CC, DC, CN, CX, DM, ST, ER = "CC", "DC", "CN", "CX", "DM", "ST", "ER"
 ID_LEN = 32                       # chars of a binary part id (hex), the first bytes of its binary frame
 _HEX_ID = re.compile(r"[0-9a-fA-F]{32}")
-DEFAULT_EXPIRY = 60.0             # s an incomplete message or an orphan part waits (DESIGN section 3.4)
+DEFAULT_EXPIRY = 60.0             # s an incomplete message or an orphan part waits (docs/design.md, section 3.4)
 DEFAULT_MAX_PENDING_BYTES = 256 * 1024 * 1024   # bytes of binary parts held while waiting for their message
 DEFAULT_MAX_PENDING_MESSAGES = 1000             # messages held while waiting for their binary parts
 DEFAULT_MAX_PENDING_PARTS = 1000                # binary parts held while waiting for their message (each costs

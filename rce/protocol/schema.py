@@ -1,4 +1,4 @@
-"""The one schema of robot -> cloud requests (DESIGN section 3.3): CC, DC, CN (with each
+"""The one schema of robot -> cloud requests (docs/design.md, section 3.3): CC, DC, CN (with each
 component kind), CX and DM, as pydantic models.
 
 Each rule is written once, as a field type with its own error text (:data:`Tag`,
@@ -117,7 +117,7 @@ Flag = Annotated[bool, _rule(lambda v: isinstance(v, bool), "must be true or fal
 #: Interface tags of the robot a container serves.
 Tags = Annotated[list[str], _rule(lambda v: isinstance(v, list) and all(_is_str(t) and t for t in v),
                                   "must be a list of non-empty strings")]
-#: An interface type (prefix x suffix, DESIGN section 3.5; RCE alpha names accepted), parsed into its
+#: An interface type (prefix x suffix, docs/design.md, section 3.5; RCE alpha names accepted), parsed into its
 #: :class:`~rce.interfaces.kind.InterfaceType` (a ``str``: its canonical name on the wire).
 IType = Annotated[InterfaceType, PlainValidator(_interface_type)]
 #: A lane (:mod:`rce.interfaces.lanes`): ``"control"``, ``"state"`` or ``"bulk"``.

@@ -1,4 +1,4 @@
-"""Where a container host or a robot endpoint stands: its zone (DESIGN section 9).
+"""Where a container host or a robot endpoint stands: its zone (docs/design.md, section 9.1).
 
 - ``cloud``: a machine in the data centre, shared by every user;
 - ``edge``: a machine near the robots (on the site's network), shared by every user;

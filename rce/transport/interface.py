@@ -1,4 +1,4 @@
-"""Interfaces: the ends of connections (DESIGN section 3.5), sans transport details.
+"""Interfaces: the ends of connections (docs/design.md, section 3.5), sans transport details.
 
 An interface has a kind (prefix) and a side (suffix). Each is named on the side
 where it acts:

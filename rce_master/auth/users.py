@@ -18,7 +18,7 @@ _NOBODY = User("", os.urandom(16), os.urandom(32))
 
 
 def verify(users: dict[str, User], name: str, digest_hex: str) -> bool:
-    """True if ``digest_hex`` (the hex SHA-256 of the password, DESIGN section 3.2) is the password
+    """True if ``digest_hex`` (the hex SHA-256 of the password, docs/design.md, section 3.2) is the password
     of user ``name`` in ``users``. Runs one scrypt (RFC 7914; ~50 ms of CPU, and releases the GIL)
     whether the user exists or not, so that the time taken does not tell which. Blocking: run it
     off the event loop (:class:`~rce_master.auth.login_guard.PasswordCheck` does)."""

@@ -1,4 +1,4 @@
-"""Moving a running container to another host, make-before-break (DESIGN section 9).
+"""Moving a running container to another host, make-before-break (docs/design.md, section 9.4).
 
 1. **Make**: the container is created on the new host under a new ``cid`` (its old copy runs on),
    with its parameters, its container-side interfaces (the same iids) and its nodes; the move

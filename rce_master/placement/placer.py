@@ -1,4 +1,4 @@
-"""Where a container serves best: the placer's model and its decisions, sans I/O (DESIGN section 9).
+"""Where a container serves best: the placer's model and its decisions, sans I/O (docs/design.md, section 9.3).
 
 For each container whose placement is ``auto`` the placer weighs every host that may run it
 (:func:`options`): the cloud's and the edge's shared hosts, and the computer of the robot it

@@ -1,4 +1,4 @@
-"""The master's command data structure (DESIGN section 1) and every change to it, sans I/O.
+"""The master's command data structure (docs/design.md, section 2.2) and every change to it, sans I/O.
 
 Users, task sets, robots, containers, nodes, parameters, interfaces and connections, with every
 rule the master enforces: tags are scoped per user, robot-side interfaces belong to the robot

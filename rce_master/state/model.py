@@ -1,4 +1,4 @@
-"""The records of the master's command data structure (DESIGN section 1): users, task sets,
+"""The records of the master's command data structure (docs/design.md, section 2.2): users, task sets,
 robots, containers, nodes, parameters, interfaces and connections.
 
 Each record class knows its store key (:mod:`rce_master.state.store`) and its JSON form
@@ -29,7 +29,7 @@ DEFAULT_ROLE = "operator"   # a record without a role (written before roles exis
 
 
 def password_digest(password: str) -> str:
-    """The hex SHA-256 a client sends for ``password`` (DESIGN section 3.2)."""
+    """The hex SHA-256 a client sends for ``password`` (docs/design.md, section 3.2)."""
     return hashlib.sha256(password.encode()).hexdigest()
 
 

@@ -1,5 +1,5 @@
 """The master's state in one SQLite file (``rce-master --state PATH``): the embedded
-:class:`~rce_master.state.store.Store` a master restarts from (DESIGN section 8, "state in a store").
+:class:`~rce_master.state.store.Store` a master restarts from (docs/design.md, section 8.1).
 
 - One table, ``records(key TEXT PRIMARY KEY, kind TEXT, record TEXT)``: ``key`` is the store key
   as a JSON array of strings, ``kind`` its first element, ``record`` the record's JSON text.

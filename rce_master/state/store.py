@@ -1,4 +1,4 @@
-"""The store under the master's state (DESIGN section 8, "state in a store"): every change to
+"""The store under the master's state (docs/design.md, section 8.1): every change to
 :class:`~rce_master.state.master_state.MasterState` passes through it as records put and deleted by key.
 
 - A **key** is a tuple of strings whose first element names the kind of record:

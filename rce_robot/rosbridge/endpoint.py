@@ -1,5 +1,5 @@
 """The rosbridge v2 endpoint of a robot task set (``rce-robot --rosbridge-port``, 9090 by
-default; DESIGN section 2): a websocket server that speaks RobotWebTools' rosbridge protocol,
+default; docs/design.md, section 2.1): a websocket server that speaks RobotWebTools' rosbridge protocol,
 so that unmodified roslibpy and roslibjs reach a container's graph.
 
 A client connects to ``ws://HOST:PORT/?userID=U&robotID=R&password=SHA256HEX&container=CTAG``.
@@ -35,7 +35,7 @@ from rce_robot.rosbridge.session import RosbridgeSession
 
 log = get_logger("rce.rosbridge")
 
-ROSBRIDGE_PORT = 9090       # rosbridge_suite's default port (DESIGN section 2)
+ROSBRIDGE_PORT = 9090       # rosbridge_suite's default port (docs/design.md, section 2.1)
 PING_INTERVAL = 20.0        # s between websocket pings to a client
 PING_TIMEOUT = 60.0         # s a client may leave a ping unanswered before its link counts as lost
 WS_MAX_QUEUE = 64           # messages the websocket reads ahead of the session

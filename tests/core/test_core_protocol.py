@@ -700,7 +700,7 @@ def test_assembler_bounds_the_messages_waiting_for_parts():
 
 # -- one schema for the wire and the robot config -----------------------------------------------
 def test_wire_components_take_keys_they_do_not_know():
-    """The RCE alpha client may send more than DESIGN section 3 names: components and DM data
+    """The RCE alpha client may send more than docs/design.md, section 3.3, names: components and DM data
     take unknown keys; only the CN and CX objects (whose keys say what to do) refuse them."""
     node = {"containerTag": "c", "nodeTag": "n", "pkg": "Test", "exe": "e", "launcher": "x"}
     assert validate({"type": "CN", "data": {"addNodes": [node]}})[1]["addNodes"][0] == node

@@ -1,7 +1,7 @@
 """The task model of a lifelong fleet: a task is an ordered list of errands (cells) with a
 priority and an optional earliest start and deadline, and the pool that holds its state.
 
-States (DESIGN section 9; the League of Robot Runners' task rules, start-kit v2.1.2
+States (docs/design.md, section 7.2; the League of Robot Runners' task rules, start-kit v2.1.2
 ``TaskManager.cpp``): ``queued`` (open, no robot), ``assigned`` (a robot is on its way to
 the first errand; the task may still be given to another robot), ``active`` (its robot
 reached the first errand: "opened", never reassigned), ``done``, ``failed`` (its deadline

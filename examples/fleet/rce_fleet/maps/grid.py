@@ -2,7 +2,7 @@
 
 The seed paper (section IV-A, "Global Planner") divides the map into an
 equispaced 8x8 grid and runs Dijkstra on it. Cells are numbered row-major from
-0, row 0 at the TOP of the image, column 0 at the left (DESIGN section 6).
+0, row 0 at the TOP of the image, column 0 at the left (docs/design.md, section 6.1).
 
 Which part of the image is cut: by default (``crop=True``) the bounding box of
 the map's *known* pixels (not -1). A SLAM map such as ``turtlebot3_world`` is a

@@ -5,7 +5,7 @@ The node (``packages/fleet/global_planner``) is a thin shell: it subscribes the 
 feeds each message to :class:`GlobalPlannerCore` and publishes the :class:`Out` items it
 returns, in order. Planning itself is :class:`rce_fleet.planning.FleetPlanner`.
 
-Topics (per robot N; DESIGN section 6 and the seed paper, section III-C):
+Topics (per robot N; docs/design.md, section 6.2, and the seed paper, section III-C):
 
 =============================  ===================================  ==============================
 topic                          type                                 meaning

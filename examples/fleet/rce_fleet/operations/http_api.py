@@ -82,7 +82,7 @@ def master_password_check(client) -> PasswordCheck:
     """The :data:`PasswordCheck` of a master: ``POST /api/auth`` through ``client``, an
     :class:`rce.tools.admin_client.AdminClient` holding the master's admin token."""
     async def check(user: str, password: str, addr: str) -> str:
-        digest = hashlib.sha256(password.encode()).hexdigest()        # what a robot sends (DESIGN 3.2)
+        digest = hashlib.sha256(password.encode()).hexdigest()        # what a robot sends (docs/design.md, section 3.2)
         answer = await client.arequest("POST", "/api/auth", {"user": user, "password": digest, "addr": addr})
         return str(answer["role"])
     return check

@@ -1,4 +1,4 @@
-"""Sans-I/O fleet simulator core (DESIGN section 6: simulated robots).
+"""Sans-I/O fleet simulator core (docs/design.md, section 6.3: simulated robots).
 
 Plain classes advanced by the caller with ``dt`` (s): no sockets, no asyncio,
 no wall clock, so the caller chooses real time or any speed-up.

@@ -1,7 +1,7 @@
 """Which lidar hits are NEW obstacles, i.e. not the map's static walls.
 
 The fleet marks grid cells blocked when a robot's lidar sees something the
-map does not explain (DESIGN section 6).  :class:`ObstacleDetector` turns a
+map does not explain (docs/design.md, section 6.2).  :class:`ObstacleDetector` turns a
 scan into world-frame hit points and drops every point within
 ``wall_tolerance`` of a blocked (occupied or unknown) map pixel, using a
 Euclidean distance transform of the map computed once (scipy.ndimage), and

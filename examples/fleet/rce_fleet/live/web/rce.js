@@ -1,4 +1,4 @@
-// rce.js: the RCE client protocol (DESIGN section 3) from the browser. No build step, no
+// rce.js: the RCE client protocol (docs/design.md, section 3) from the browser. No build step, no
 // dependencies: an ES module that any page imports with
 //
 //     import { Client } from "./rce.js";
@@ -137,7 +137,7 @@ export function newId() {
 }
 
 // ---------------------------------------------------------------------------------------------
-// Login (DESIGN 3.1): GET MASTER/?userID=U&version=V -> {"url": ws_url, "current"?}
+// Login (docs/design.md, section 3.1): GET MASTER/?userID=U&version=V -> {"url": ws_url, "current"?}
 // ---------------------------------------------------------------------------------------------
 export async function login(master, userID, version = CLIENT_VERSION) {
   const base = master.endsWith("/") ? master : master + "/";
@@ -165,7 +165,7 @@ export async function login(master, userID, version = CLIENT_VERSION) {
 
 
 // ---------------------------------------------------------------------------------------------
-// JSON values and binary parts (DESIGN 3.4)
+// JSON values and binary parts (docs/design.md, section 3.4)
 // ---------------------------------------------------------------------------------------------
 const isBytes = (v) => v instanceof Uint8Array || v instanceof ArrayBuffer;
 const isObject = (v) => v !== null && typeof v === "object" && !Array.isArray(v);
