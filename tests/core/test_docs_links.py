@@ -12,7 +12,7 @@ ROOT = Path(__file__).resolve().parents[2]
 
 _FENCE = re.compile(r"^\s*(```|~~~)")
 _CODE = re.compile(r"`+[^`]*`+")
-_LINK = re.compile(r"!?\[(?:[^\[\]]|\[[^\]]*\])*\]\(\s*<?([^)\s>]+)>?(?:\s+\"[^\"]*\")?\s*\)")
+_LINK = re.compile(r"!?\[(?:[^\[\]]|\[[^\]]*\])*\]\(\s*<?([^)\s>]*)>?(?:\s+\"[^\"]*\")?\s*\)")
 _HEADING = re.compile(r"^(#{1,6})\s+(.*?)\s*#*\s*$")
 _HTML_ID = re.compile(r"<a\s+(?:name|id)=\"([^\"]+)\"")
 _EXTERNAL = ("http:", "https:", "mailto:", "ftp:")
@@ -23,16 +23,17 @@ def markdown_files() -> list[Path]:
     return [ROOT / "README.md", *sorted((ROOT / "docs").rglob("*.md"))]
 
 
-def _prose_lines(text: str) -> list[tuple[int, str]]:
-    """(line number, line) outside fenced code blocks, inline code removed."""
+def _prose(text: str) -> str:
+    """``text`` with fenced code blocks blanked and inline code removed, line for line (a link's
+    text may run over a line break)."""
     out, fenced = [], False
-    for no, line in enumerate(text.splitlines(), 1):
+    for line in text.splitlines():
         if _FENCE.match(line):
             fenced = not fenced
-            continue
-        if not fenced:
-            out.append((no, _CODE.sub("", line)))
-    return out
+            out.append("")
+        else:
+            out.append("" if fenced else _CODE.sub("", line))
+    return "\n".join(out)
 
 
 def slug(heading: str) -> str:
@@ -49,8 +50,7 @@ def anchors(path: Path) -> set[str]:
     seen: dict[str, int] = {}
     out: set[str] = set()
     text = path.read_text(encoding="utf-8")
-    for _, line in _prose_lines(text):
-        out.update(_HTML_ID.findall(line))
+    out.update(_HTML_ID.findall(_prose(text)))
     fenced = False
     for line in text.splitlines():
         if _FENCE.match(line):
@@ -70,20 +70,24 @@ def broken_links(files: list[Path], root: Path = ROOT) -> list[str]:
     cache: dict[Path, set[str]] = {}
     bad = []
     for f in files:
-        for no, line in _prose_lines(f.read_text(encoding="utf-8")):
-            for target in _LINK.findall(line):
-                if target.startswith(_EXTERNAL):
-                    continue
-                where, _, anchor = target.partition("#")
-                dest = (f.parent / where).resolve() if where else f
-                name = f"{f.relative_to(root)}:{no}: {target}"
-                if not dest.exists():
-                    bad.append(f"{name}: no such file")
-                elif anchor and dest.suffix == ".md":
-                    if dest not in cache:
-                        cache[dest] = anchors(dest)
-                    if anchor not in cache[dest]:
-                        bad.append(f"{name}: no heading with that anchor in {dest.relative_to(root)}")
+        prose = _prose(f.read_text(encoding="utf-8"))
+        for m in _LINK.finditer(prose):
+            target, no = m.group(1), prose.count("\n", 0, m.start(1)) + 1
+            if target.startswith(_EXTERNAL):
+                continue
+            if not target:
+                bad.append(f"{f.relative_to(root)}:{no}: (empty): a link to nowhere")
+                continue
+            where, _, anchor = target.partition("#")
+            dest = (f.parent / where).resolve() if where else f
+            name = f"{f.relative_to(root)}:{no}: {target}"
+            if not dest.exists():
+                bad.append(f"{name}: no such file")
+            elif anchor and dest.suffix == ".md":
+                if dest not in cache:
+                    cache[dest] = anchors(dest)
+                if anchor not in cache[dest]:
+                    bad.append(f"{name}: no heading with that anchor in {dest.relative_to(root)}")
     return bad
 
 
@@ -98,8 +102,9 @@ def test_the_check_finds_a_missing_file_and_a_missing_anchor(tmp_path: Path) -> 
     (tmp_path / "a.md").write_text("# Top\n\n## The 2024 winner's code, and `ops`\n\nx\n\n## Top\n")
     (tmp_path / "b.md").write_text(
         "[ok](a.md#the-2024-winners-code-and-ops) [ok](a.md#top-1) [ok](#here) [site](https://x.y/#z)\n"
-        "# Here\n[gone](c.md) [no anchor](a.md#nowhere)\n"
+        "# Here\n[gone](c.md) [no anchor](a.md#nowhere) [over a line\nbreak](d.md) [empty]()\n"
         "```\n[in code](nothing.md)\n```\n`[inline](nothing.md)`\n")
     bad = broken_links([tmp_path / "b.md"], root=tmp_path)
     assert bad == ["b.md:3: c.md: no such file",
-                   "b.md:3: a.md#nowhere: no heading with that anchor in a.md"]
+                   "b.md:3: a.md#nowhere: no heading with that anchor in a.md",
+                   "b.md:4: d.md: no such file", "b.md:4: (empty): a link to nowhere"]
