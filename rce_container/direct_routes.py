@@ -25,6 +25,8 @@ Rules, recomputed whenever the bus graph, an interface or a connection changes:
   through this environment just before may still be on their way; the nodes hold what comes
   directly until this environment has passed the far plane's switch marker on to them
   (:meth:`DirectRoutes.switch_arrived`).
+- A ``SubscriberInterface`` with a peer of the other ROS (ROS 1 and ROS 2 ends,
+  :mod:`rce.messages.convert`) is served by the bus: it converts what it sends there.
 - Services, and nodes that do not take direct links (ROS 1 nodes' relay, older runtimes), go
   through the bus as before.
 
@@ -169,7 +171,8 @@ class DirectRoutes:
         served_by: dict[Subscription, SubscriberInterface] = {}
         publishers: list[PublisherInterface] = []
         for iface in list(self.env.interfaces.values()):
-            if isinstance(iface, SubscriberInterface) and iface.sub is not None and iface.peers:
+            if isinstance(iface, SubscriberInterface) and iface.sub is not None and iface.peers \
+                    and not iface.conversions:      # a peer of the other ROS gets what the interface converts
                 served_by[iface.sub] = iface
             elif isinstance(iface, PublisherInterface) and iface.topic is not None and iface.peers:
                 publishers.append(iface)
