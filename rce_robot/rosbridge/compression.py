@@ -9,9 +9,10 @@
 - ``cbor``: the ``publish`` op as one binary websocket message in CBOR (RFC 8949, ``cbor2``), with
   rosbridge's ``internal/cbor_conversion.py`` rules: ``uint8[]``/``char[]`` as byte strings,
   numeric arrays as little-endian typed arrays (RFC 8746 tags, :data:`TYPED_ARRAY_TAGS`), time
-  and duration ``{secs, nsecs}``.
+  and duration as the JSON has them (``{secs, nsecs}``; ``{sec, nanosec}`` for ROS 2 types).
 - ``cbor-raw``: ``{op: "publish", topic, msg: {secs, nsecs, bytes}}`` in CBOR: ``bytes`` the ROS 1
-  serialization, ``secs``/``nsecs`` the time the endpoint received it.
+  serialization (CDR for a ROS 2 type, as rosbridge_suite's ROS 2 server sends), ``secs``/``nsecs`` the time
+  the endpoint received it.
 """
 from __future__ import annotations
 
@@ -24,6 +25,7 @@ import cbor2
 from rosbags.interfaces import Nodetype
 
 from rce.messages import MessageRegistry
+from rce.messages.registry import ROS2_PREFIX
 
 COMPRESSIONS = ("none", "png", "cbor", "cbor-raw")
 # ROS array item type -> (RFC 8746 tag, little-endian numpy dtype); rosbridge's TAGGED_ARRAY_FORMATS
@@ -31,7 +33,7 @@ TYPED_ARRAY_TAGS = {"uint16": (69, "<u2"), "uint32": (70, "<u4"), "uint64": (71,
                     "int8": (72, "i1"), "int16": (77, "<i2"), "int32": (78, "<i4"), "int64": (79, "<i8"),
                     "float32": (85, "<f4"), "float64": (86, "<f8")}
 BYTE_STREAMS = ("uint8", "char")       # arrays sent as CBOR byte strings (rosbridge's BYTESTREAM_TYPES)
-TIME_TYPES = ("builtin_interfaces/msg/Time", "builtin_interfaces/msg/Duration")   # already {secs, nsecs}
+TIME_TYPES = ("builtin_interfaces/msg/Time", "builtin_interfaces/msg/Duration")   # already in their JSON form
 
 
 def png_op(text: str) -> dict:
@@ -49,11 +51,14 @@ def png_op(text: str) -> dict:
 def cbor_publish(registry: MessageRegistry, typename: str, topic: str, msg: Any) -> bytes:
     """The ``publish`` op of ``msg`` (a message of ``typename`` in rosbridge's JSON form, as a
     converter gives it) in CBOR, typed as rosbridge's ``extract_cbor_values``."""
+    if typename.startswith(ROS2_PREFIX):         # the ROS 2 half's own names
+        registry, typename = registry.ros2, typename[len(ROS2_PREFIX):]
     return cbor2.dumps({"op": "publish", "topic": topic, "msg": _values(registry, typename, msg)})
 
 
 def cbor_raw_publish(registry: MessageRegistry, typename: str, topic: str, msg: Any, received: float) -> bytes:
-    """The ``cbor-raw`` ``publish`` op: ``msg`` as its ROS 1 bytes, ``received`` (Unix s) as secs/nsecs."""
+    """The ``cbor-raw`` ``publish`` op: ``msg`` as its ROS 1 bytes (CDR for a ROS 2 ``typename``), ``received``
+    (Unix s) as secs/nsecs."""
     secs = math.floor(received)
     raw = registry.json_to_bytes(typename, msg)
     return cbor2.dumps({"op": "publish", "topic": topic,

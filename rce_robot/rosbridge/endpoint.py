@@ -162,7 +162,7 @@ class RosbridgeServer:
         if self.sessions.get((session.user, session.robot)) is session:
             del self.sessions[(session.user, session.robot)]
         self.ended.update(session.stats())
-        for iid in [i for i, itf in self.by_iid.items() if itf.link is session]:
+        for iid in [i for i, itf in self.by_iid.items() if session.owns(itf)]:
             await self.by_iid.pop(iid).stop()
         try:
             await self.master.call("robot_disconnected", user=session.user, robot=session.robot)

@@ -20,6 +20,18 @@ MAX_PENDING_CHARS = 16 * 1024 * 1024   # characters of fragment data one session
                                        # largest websocket message, rce_robot.rosbridge.endpoint.MAX_MESSAGE)
 MAX_FRAGMENTS = 65536         # most fragments one message may have (``total``)
 FRAGMENT_COST = 64            # characters each held fragment counts for on top of its data (its entry)
+MIN_FRAGMENT_SIZE = 64        # characters: the least fragment_size taken (smaller ones would send one op per few bytes)
+
+
+def fragment_size_of(op: dict) -> int | None:
+    """An op's ``fragment_size`` (characters; None when absent). ProtocolError below :data:`MIN_FRAGMENT_SIZE`."""
+    size = op.get("fragment_size")
+    if size is None:
+        return None
+    if not isinstance(size, int) or isinstance(size, bool) or size < MIN_FRAGMENT_SIZE:
+        raise ProtocolError(f"op {op.get('op')!r}: fragment_size must be an integer >= {MIN_FRAGMENT_SIZE} "
+                            f"(characters), got {size!r}")
+    return size
 
 
 def fragment(text: str, size: int, mid: str) -> list[str]:

@@ -5,6 +5,9 @@ container's bus. Request and response fields are those of the ``rosapi`` package
 files (rosbridge_suite): ``GetParam {name, default} -> {value}`` and ``SetParam {name, value}``
 carry values as JSON text, as rosapi's ``params.py`` does (a missing parameter answers
 ``default`` parsed as JSON, or the text itself when it is not JSON; without a default, ``null``).
+Types are answered as the graph names them: ``std_msgs/msg/String`` for a ROS 2 topic, as the ROS 2
+rosapi does. ``action_servers`` (ROS 2 rosapi's ``GetActionServers``) lists the actions the graph serves: the
+names ``NAME`` whose ``NAME/_action/send_goal`` service is on it (:mod:`rce.interfaces.actions`).
 """
 from __future__ import annotations
 
@@ -68,6 +71,12 @@ def _type_of(kind: str, key: str):
     return answer
 
 
+async def _action_servers(graph: Graph, args: dict) -> dict:
+    suffix = "/_action/send_goal"
+    return {"action_servers": sorted(s["name"][:-len(suffix)] for s in (await graph.describe()).get("services", [])
+                                     if s["name"].endswith(suffix))}
+
+
 async def _get_param(graph: Graph, args: dict) -> dict:
     name, default = _name(args), args.get("default") or ""
     try:
@@ -105,7 +114,7 @@ ROSAPI = {"/rosapi/topics": _topics, "/rosapi/services": _services,
           "/rosapi/topic_type": _type_of("topics", "topic"), "/rosapi/service_type": _type_of("services", "service"),
           "/rosapi/get_param": _get_param, "/rosapi/set_param": _set_param,
           "/rosapi/get_param_names": _param_names, "/rosapi/has_param": _has_param,
-          "/rosapi/delete_param": _delete_param}
+          "/rosapi/delete_param": _delete_param, "/rosapi/action_servers": _action_servers}
 
 
 async def rosapi_answer(service: str, args: Any, graph: Graph) -> dict:

@@ -10,6 +10,14 @@ robot-side converter in this session, connected to it. The converters are ordina
 :class:`~rce_robot.interfaces.RobotLink` and turns what they send into rosbridge ``publish``
 ops (and calls from the container into ``call_service`` ops). docs/INTERNALS.md "rosbridge v2" has the table of ops.
 
+ROS 2: a type named in ROS 2's form (``std_msgs/msg/String``, ``std_srvs/srv/Trigger``), as roslibpy and
+roslibjs send them to rosbridge_suite's ROS 2 server, makes a ROS 2 converter: its messages are CDR inside the
+engine, and its JSON has ROS 2 rosbridge's forms (time and duration ``{sec, nanosec}``, :data:`ROS2_FORMS`).
+The container's end of a name takes the class the container's graph has for it when that is the same type
+in the other ROS's form (``std_msgs/String`` for ``std_msgs/msg/String``): the engine converts between the
+two ends (:mod:`rce.messages.convert`), so a ROS 2 client reaches ROS 1 nodes and the other way round.
+Actions (``send_action_goal``, ``advertise_action``...) are :mod:`rce_robot.rosbridge.actions`.
+
 What a subscription sends may be compressed (``png``, ``cbor``, ``cbor-raw``:
 :mod:`rce_robot.rosbridge.compression`) and, as a subscription or a ``call_service`` asks with
 ``fragment_size``, split into ``fragment`` ops; the client's own ``fragment`` ops are reassembled
@@ -27,12 +35,14 @@ import json
 import time
 from collections import deque
 from dataclasses import dataclass, field
-from collections.abc import Awaitable
+from collections.abc import Awaitable, Callable
 from typing import Any
 
 from rce.plumbing.errors import ProtocolError, RCEError, Timeout
 from rce.plumbing.log import get_logger
 from rce.transport.masterlink import MasterLink
+from rce.interfaces.classes import is_ros2_name, same_type
+from rce.interfaces.actions import call_timeout
 from rce.messages.forms import JsonForms
 from rce.protocol import jsontext
 from rce.interfaces.lanes import Lane, interface_lane, parse_lane
@@ -41,8 +51,9 @@ from rce.protocol.schema import validate
 from rce.plumbing.tasks import Tasks
 from rce_robot.interfaces import RobotInterface
 from rce_robot.namespace import CLOSE_POLICY, LAG_LOG, REQUEST_TIMEOUT
+from rce_robot.rosbridge.actions import RosbridgeActions
 from rce_robot.rosbridge.compression import COMPRESSIONS, cbor_publish, cbor_raw_publish, png_op
-from rce_robot.rosbridge.fragments import Defragmenter
+from rce_robot.rosbridge.fragments import Defragmenter, fragment_size_of
 from rce_robot.rosbridge.outbox import RosbridgeOutbox
 from rce_robot.rosbridge.rosapi import ROSAPI, rosapi_answer
 
@@ -51,18 +62,23 @@ log = get_logger("rce.rosbridge")
 INTERFACE_UP_WAIT = 10.0   # s a new topic or service waits for its interfaces to connect before the op goes on
 DESCRIBE_TIMEOUT = 15.0    # s a look-up of the container's graph (types, rosapi) waits for the master
 MAX_CLOSE_REASON = 120     # bytes of a close reason (a websocket close frame carries at most 123)
-MIN_FRAGMENT_SIZE = 64     # characters: the least fragment_size taken (smaller ones would send one op per few bytes)
 # role -> (container interface type, robot-side interface type); the role letter starts the robot-side tag
 ROLES = {"p": ("PublisherInterface", "SubscriberConverter"),      # the client advertises and publishes
          "s": ("SubscriberInterface", "PublisherConverter"),      # the client subscribes
          "c": ("ServiceClientInterface", "ServiceProviderConverter"),   # the client calls a service
          "v": ("ServiceProviderInterface", "ServiceClientConverter")}   # the client provides a service
+ROS2_FORMS = JsonForms(time="sec", duration="sec")     # rosbridge_suite's ROS 2 JSON: builtin_interfaces' own fields
+OnMessage = Callable[[Any], None]                      # a bridge's own taker of its topic's messages (JSON)
+OnCall = Callable[[Any, Any], None]                    # a bridge's own taker of the container's calls (msgID, request)
 
 
 @dataclass
 class Bridge:
     """One topic or service of the container's graph reached through a pair of interfaces:
-    ``itag`` (robot side, in this session) and ``ctag_itag`` (on the container's bus)."""
+    ``itag`` (robot side, in this session, of class ``cls``, the client's) and ``ctag_itag`` (on the
+    container's bus, of class ``container_cls``: the graph's, see the module docstring). ``on_message`` /
+    ``on_call``: what takes its topic's messages / the container's calls instead of the client's
+    subscriptions / a ``call_service`` op to the client (an action's parts, :mod:`rce_robot.rosbridge.actions`)."""
     role: str
     name: str
     cls: str
@@ -70,6 +86,21 @@ class Bridge:
     ctag_itag: str
     lane: Lane = Lane.STATE           # what its topic data to the client goes in (docs/lanes.md)
     up: asyncio.Event = field(default_factory=asyncio.Event)
+    container_cls: str = ""
+    on_message: OnMessage | None = None
+    on_call: OnCall | None = None
+
+
+class Ros2Link:
+    """A session as its ROS 2 converters see it (:class:`rce_robot.interfaces.RobotLink`): the session itself,
+    with JSON in ROS 2 rosbridge's forms (:data:`ROS2_FORMS`) instead of the session's ROS 1 ones."""
+    forms = ROS2_FORMS
+
+    def __init__(self, session: "RosbridgeSession"):
+        self.session = session
+
+    def __getattr__(self, name: str) -> Any:
+        return getattr(self.session, name)
 
 
 class RosbridgeSubscription:
@@ -87,17 +118,6 @@ class RosbridgeSubscription:
         self.last = float("-inf")                                  # monotonic s of the last message sent
         self.timer: asyncio.TimerHandle | None = None
         self.dropped = 0
-
-
-def _fragment_size(op: dict) -> int | None:
-    """An op's ``fragment_size`` (characters; None when absent). ProtocolError below :data:`MIN_FRAGMENT_SIZE`."""
-    size = op.get("fragment_size")
-    if size is None:
-        return None
-    if not isinstance(size, int) or isinstance(size, bool) or size < MIN_FRAGMENT_SIZE:
-        raise ProtocolError(f"op {op.get('op')!r}: fragment_size must be an integer >= {MIN_FRAGMENT_SIZE} "
-                            f"(characters), got {size!r}")
-    return size
 
 
 def _field(op: dict, name: str, kind: type = str) -> Any:
@@ -141,6 +161,8 @@ class RosbridgeSession:
                     "subscribe": self._subscribe, "unsubscribe": self._unsubscribe,
                     "call_service": self._call_service, "advertise_service": self._advertise_service,
                     "unadvertise_service": self._unadvertise_service, "service_response": self._service_response}
+        self.actions = RosbridgeActions(self)
+        self.ops.update(self.actions.ops)
         self.ops_in = self.errors = self.queue_dropped = self._n = 0
         self.closing: asyncio.Task | None = None     # closing a client that does not read
         self.ws: Any = None                 # the client's websocket (set by the server)
@@ -185,22 +207,40 @@ class RosbridgeSession:
 
     # -- RobotLink -------------------------------------------------------------------------------------
     def add_interface(self, iface: RobotInterface) -> None:
-        """Robot-side interface ``iface`` now exists (the master's ``add_interface``)."""
+        """Robot-side interface ``iface`` now exists (the master's ``add_interface``). A ROS 2 one speaks ROS 2
+        rosbridge's JSON (:class:`Ros2Link`); an action's ``get_result`` that the client serves waits as long as
+        the goal runs (:func:`rce.interfaces.actions.call_timeout`)."""
         self.interfaces[iface.itag] = iface
+        if is_ros2_name(iface.cls):
+            iface.link = Ros2Link(self)
+            iface.robot_call_timeout = max(iface.robot_call_timeout, call_timeout(iface.cls))
 
     def remove_interface(self, iface: RobotInterface) -> None:
         if self.interfaces.get(iface.itag) is iface:
             del self.interfaces[iface.itag]
+
+    def owns(self, iface: RobotInterface) -> bool:
+        """Is ``iface`` one of this session's converters?"""
+        return iface.link is self or getattr(iface.link, "session", None) is self
+
+    def battery_seen(self, percent: float) -> None:
+        """A rosbridge client's ``BatteryState`` says nothing of a robot's link: not reported to the placer."""
 
     def send_dm(self, itag: str, cls: str, msg_id: Any, msg: Any, data: bool = False) -> bool:
         """A message from the container on a subscribed topic: to each subscription of it; or a
         call from the container to a service the client provides: a ``call_service`` to the client."""
         bridge = self.by_itag.get(itag)
         if bridge is not None and bridge.role == "v":
+            if bridge.on_call is not None:
+                bridge.on_call(msg_id, msg)
+                return True
             return self.send({"op": "call_service", "id": msg_id, "service": bridge.name, "args": msg})
         if bridge is None or bridge.role != "s":
             self.queue_dropped += 1
             return False
+        if bridge.on_message is not None:
+            bridge.on_message(msg)
+            return True
         for sub in list(self.subs.get(bridge.name, {}).values()):
             self._deliver(bridge, sub, msg)
         return True
@@ -344,7 +384,7 @@ class RosbridgeSession:
         if not isinstance(throttle, (int, float)) or not isinstance(queue, int) or throttle < 0 or queue < 0:
             raise ProtocolError(f"subscribe {topic!r}: throttle_rate (ms) and queue_length must be numbers >= 0, "
                                 f"got {throttle!r}, {queue!r}")
-        size = _fragment_size(op)
+        size = fragment_size_of(op)
         cls = op.get("type") or await self._type_of("topics", topic)
         await self._bridge("s", topic, str(cls), _lane(op))
         sid = str(op.get("id") or f"subscribe:{topic}")
@@ -366,7 +406,7 @@ class RosbridgeSession:
         args = op.get("args") or {}
         if not isinstance(args, (dict, list)):
             raise ProtocolError(f"call_service {service!r}: args must be an object, got {args!r}")
-        size = _fragment_size(op)
+        size = fragment_size_of(op)
         if service in ROSAPI:
             self.tasks.spawn(self._reply(service, op.get("id"), rosapi_answer(service, args, self), size),
                              name=service)
@@ -430,6 +470,18 @@ class RosbridgeSession:
                 return str(entry["type"])
         raise ProtocolError(f"{kind[:-1]} {name!r} is not on container {self.ctag!r}'s graph; give its type")
 
+    async def _graph_class(self, role: str, name: str, cls: str) -> str:
+        """The class the container's end of ``name`` (a topic, or a service for roles c and v) takes: the one
+        the container's graph has for it where that is ``cls``'s type in the other ROS's form (the engine
+        converts between the two ends); else ``cls``."""
+        kind = "services" if role in ("c", "v") else "topics"
+        for entry in (await self.describe()).get(kind, []):
+            graph_cls = entry.get("type")
+            if entry.get("name") == name and isinstance(graph_cls, str) and graph_cls.strip("/") != cls \
+                    and same_type(graph_cls, cls):
+                return graph_cls.strip("/")
+        return cls
+
     async def _request(self, type_: str, data: dict) -> None:
         """Send a CN/CX built from the client's ops to the master, through the same schema check a
         robot's own requests meet (:func:`rce.protocol.schema.validate`: names, types, tags)."""
@@ -437,11 +489,12 @@ class RosbridgeSession:
         await self.master.call("robot_request", timeout=REQUEST_TIMEOUT, user=self.user, robot=self.robot,
                                type=type_, data=data)
 
-    async def _bridge(self, role: str, name: str, cls: str, lane: Lane | None = None) -> Bridge:
+    async def _bridge(self, role: str, name: str, cls: str, lane: Lane | None = None, *,
+                      on_message: OnMessage | None = None, on_call: OnCall | None = None) -> Bridge:
         """The interfaces of ``name`` in ``role`` (:data:`ROLES`), created and connected through the
         master on first use (``lane``: the robot-side interface's, :mod:`rce.interfaces.lanes`; None: from
-        ``cls``; the first op on a name sets it); waits up to :data:`INTERFACE_UP_WAIT` s for them to
-        connect."""
+        ``cls``; the first op on a name sets it; ``on_message``, ``on_call``: :class:`Bridge`'s); waits up to
+        :data:`INTERFACE_UP_WAIT` s for them to connect."""
         bridge = self.bridges.get((role, name))
         if bridge is not None:
             if bridge.cls != cls.strip("/"):
@@ -450,13 +503,14 @@ class RosbridgeSession:
         self._n += 1
         itag = f"{role}{self._n}"
         bridge = Bridge(role, name, cls.strip("/"), itag, f"rosbridge.{self.robot}.{itag}",
-                        interface_lane(cls, role in ("c", "v"), lane))
+                        interface_lane(cls, role in ("c", "v"), lane), on_message=on_message, on_call=on_call)
         container_type, robot_type = ROLES[role]
         self.by_itag[itag] = bridge
         try:
+            bridge.container_cls = await self._graph_class(role, name, bridge.cls)
             await self._request("CN", {"addInterfaces": [
                 {"endpointTag": self.ctag, "interfaceTag": bridge.ctag_itag, "interfaceType": container_type,
-                 "className": bridge.cls, "addr": name},
+                 "className": bridge.container_cls, "addr": name},
                 {"endpointTag": self.robot, "interfaceTag": itag, "interfaceType": robot_type,
                  "className": bridge.cls, **({"lane": lane.value} if lane else {})}]})
         except RCEError:
@@ -493,6 +547,7 @@ class RosbridgeSession:
             await self.ws.close(CLOSE_POLICY, reason.encode()[:MAX_CLOSE_REASON].decode(errors="ignore"))
             return
         await self.tasks.cancel_all()
+        self.actions.close()
         for subs in self.subs.values():
             for sub in subs.values():
                 if sub.timer is not None:
