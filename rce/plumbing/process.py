@@ -1,13 +1,18 @@
-"""What every rce process entry point shares: the ready file, private (secret) files, and the run/exit
-wrapper."""
+"""What every rce process entry point shares: the ready file, private (secret) files, the run/exit
+wrapper, and children that die with their parent (:func:`popen_tied`)."""
 from __future__ import annotations
 
 import asyncio
 import atexit
+import ctypes
 import json
 import os
+import queue
+import signal
+import subprocess
 import sys
 import threading
+from concurrent.futures import Future
 from pathlib import Path
 from typing import Any, Awaitable, Callable, NoReturn
 
@@ -40,6 +45,52 @@ def create_private_file(path: Path, text: str) -> bool:
         return False
     finally:
         os.unlink(tmp)
+
+
+PR_SET_PDEATHSIG = 1            # prctl(2): the signal a process gets when the thread that forked it ends
+SPAWN_QUEUE = 64                # starts waiting for the spawner thread (each caller waits for its own)
+_spawner: tuple[int, queue.Queue] | None = None     # (pid, requests) of this process's spawner thread
+_spawner_lock = threading.Lock()
+
+
+def _tie_to(prctl, parent: int, sig: int):
+    """A ``preexec_fn``: the child gets ``sig`` when its parent ends (``PR_SET_PDEATHSIG``, prctl(2)); a
+    parent already gone by then (the child was re-parented) sends it at once."""
+    def preexec() -> None:
+        if prctl(PR_SET_PDEATHSIG, sig, 0, 0, 0) != 0:
+            raise OSError(ctypes.get_errno(), "prctl(PR_SET_PDEATHSIG) failed")
+        if os.getppid() != parent:
+            os.kill(os.getpid(), sig)
+    return preexec
+
+
+def _spawn_forever(requests: queue.Queue) -> None:
+    prctl = ctypes.CDLL(None, use_errno=True).prctl        # resolved here, never between fork and exec
+    while True:
+        fut, argv, sig, kw = requests.get()
+        if fut.set_running_or_notify_cancel():
+            try:
+                fut.set_result(subprocess.Popen(argv, preexec_fn=_tie_to(prctl, os.getpid(), sig), **kw))
+            except BaseException as e:      # noqa: BLE001 -- the caller's to raise
+                fut.set_exception(e)
+
+
+def popen_tied(argv: list[str], *, pdeathsig: int = signal.SIGTERM, **popen_kw) -> subprocess.Popen:
+    """``subprocess.Popen(argv, **popen_kw)`` whose child gets ``pdeathsig`` (default SIGTERM: it stops
+    as on ``kill``, its own children with it) when this process ends, even by SIGKILL, so that nothing it
+    started is left running (Linux ``PR_SET_PDEATHSIG``, prctl(2), set in the child between fork and exec).
+    The kernel sends it when the *thread* that forked the child ends, so every child is forked by one
+    daemon thread of this process (started on first use), which ends only with the process: callers on
+    short-lived threads (``asyncio.to_thread``) are safe. Raises what Popen raises (OSError, ...)."""
+    global _spawner
+    with _spawner_lock:
+        if _spawner is None or _spawner[0] != os.getpid():      # none yet, or a forked copy's parent's
+            _spawner = (os.getpid(), queue.Queue(SPAWN_QUEUE))
+            threading.Thread(target=_spawn_forever, args=(_spawner[1],), name="rce-spawner", daemon=True).start()
+        requests = _spawner[1]
+    fut: Future = Future()
+    requests.put((fut, list(argv), int(pdeathsig), popen_kw))
+    return fut.result()
 
 
 def run_loop(coro: Awaitable[Any]) -> Any:

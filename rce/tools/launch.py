@@ -1,6 +1,7 @@
 """The engine launcher: start the real engine (rce-master, rce-robot, rce-container) as
 processes on loopback with ephemeral ports, for the fleet demo, tests and benchmarks. Readiness comes from each
-process's ``--ready-file``, never from sleeping.
+process's ``--ready-file``, never from sleeping. Every process it starts gets SIGTERM when the launching
+process ends, however it ends (:func:`rce.plumbing.process.popen_tied`), and stops its own children then.
 
 ::
 
@@ -28,7 +29,7 @@ from typing import Any
 from rce.transport import tls as _tls
 from rce.transport.cluster_auth import KEY_ENV, ClusterKey
 from rce.tools.admin_client import AdminClient
-from rce.plumbing.process import create_private_file
+from rce.plumbing.process import create_private_file, popen_tied
 
 __all__ = ["BIN", "Engine", "start_engine", "wait_file", "command"]
 
@@ -132,8 +133,8 @@ class Engine:
         self.logs.append(log)
         if ready:       # a workdir used before holds the last run's file, with its dead ports
             ready.unlink(missing_ok=True)
-        p = subprocess.Popen(argv, stdout=open(log, "wb"), stderr=subprocess.STDOUT, env=self.env,
-                             start_new_session=True)
+        # tied to this process: a launcher killed with SIGKILL leaves no engine process running
+        p = popen_tied(argv, stdout=open(log, "wb"), stderr=subprocess.STDOUT, env=self.env, start_new_session=True)
         self.procs.append(p)
         info = wait_file(ready, p, timeout) if ready else {}
         return p, info
