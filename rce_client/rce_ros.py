@@ -2,7 +2,7 @@
 
 ::
 
-    rce-ros configs/debug.config [--bus PATH | --ros] [--timeout S] [--keep] [--url MASTER_URL] [--no-resume]
+    rce-ros configs/debug.config [--bus PATH | --ros | --ros2] [--timeout S] [--keep] [--url MASTER_URL] [--no-resume]
                                  [--relay-port PORT [--relay-max N] [--relay-rate BYTES_S]] [--relays HOST:PORT,...]
                                  [--record FILE.mcap]
 
@@ -25,7 +25,8 @@
    - ``ServiceClientConverter/Forwarder``: the cloud's calls run against the local service ``addr``.
 
    With ``--ros`` there is no local bus: the interfaces are bridged to the ROS 1 master named by
-   ``ROS_MASTER_URI``, each at its ``addr`` (:mod:`rce_client.ros1_bridge`).
+   ``ROS_MASTER_URI``, each at its ``addr`` (:mod:`rce_client.ros1_bridge`); with ``--ros2``, to the
+   robot's ROS 2 graph as one rclpy node named after the robot (:mod:`rce_client.ros2_bridge`).
 
 5. Asks for session resume (docs/INTERNALS.md "Session resume"; ``--no-resume``: not): when the link
    to the cloud drops, the local bus stays up and local programs never notice: their messages to
@@ -595,6 +596,8 @@ def build_parser() -> argparse.ArgumentParser:
                    "or /tmp/rce-<uid>/<robotID>.sock)")
     p.add_argument("--ros", action="store_true", help="bridge the robot-side interfaces to the ROS 1 master named "
                    "by ROS_MASTER_URI (Debian's ros-comm) instead of a local bus")
+    p.add_argument("--ros2", action="store_true", help="bridge the robot-side interfaces to the robot's ROS 2 graph "
+                   "(rclpy; ROS_DOMAIN_ID) as one node named after the robot, instead of a local bus")
     p.add_argument("--timeout", type=float, default=30.0, metavar="S",
                    help="seconds to wait for the robot-side interfaces to come up (default 30)")
     p.add_argument("--keep", action="store_true", help="do not remove interfaces and containers on exit (note: "
@@ -641,9 +644,10 @@ def main(argv: list[str] | None = None) -> None:
         sys.exit(2)
     if args.lanes and not args.resume:
         build_parser().error("--lanes needs resume: the bulk link joins the session with its token (drop --no-resume)")
-    if args.ros and args.bus:
-        build_parser().error("--bus and --ros exclude each other: with --ros the interfaces are on the ROS 1 graph")
-    bus_path = None if args.ros else args.bus or default_bus_path(cfg.robotID)
+    if sum(map(bool, (args.ros, args.ros2, args.bus))) > 1:
+        build_parser().error("--bus, --ros and --ros2 exclude each other: with --ros the interfaces are on the ROS 1 "
+                             "graph, with --ros2 on the ROS 2 graph")
+    bus_path = None if args.ros or args.ros2 else args.bus or default_bus_path(cfg.robotID)
     try:
         relays = parse_relays(args.relays) if args.relays else None
     except ValueError as e:
@@ -660,6 +664,9 @@ def main(argv: list[str] | None = None) -> None:
         if args.ros:
             from rce_client.ros1_bridge import RospyGraph
             graph = RospyGraph
+        elif args.ros2:
+            from rce_client.ros2_bridge import RclpyGraph
+            graph = RclpyGraph
         bridge = RobotBridge(cfg, args.config, bus_path, timeout=args.timeout, keep=args.keep, url=args.url,
                              resume=args.resume, graph=graph, relays=relays, relay_port=args.relay_port,
                              relay_max=args.relay_max, relay_rate=args.relay_rate, lanes=args.lanes,
