@@ -7,12 +7,16 @@ takes ``R`` as a connected robot, as for a rosbridge client (refusals: HTTP 401,
 rosbridge session of the endpoint (:class:`~rce_robot.rosbridge.session.RosbridgeSession`, a robot namespace whose
 interfaces the master makes on its behalf), driven with rosbridge ops:
 
-- the container's topics are advertised as channels (encoding ``ros1``, schema encoding ``ros1msg``, the full ROS 1
-  definition), its services as services (``services``), as they are when the client connects;
-- a Foxglove ``subscribe`` is a rosbridge ``subscribe`` with ``cbor-raw`` compression: the ROS 1 bytes come back
-  and go out as ``MESSAGE_DATA``, with the time they were received;
-- a client channel (``clientPublish``, ``ros1`` or ``json``) is a rosbridge ``advertise`` and its messages
-  ``publish`` ops; a service call is a ``call_service`` whose answer goes back as ``SERVICE_CALL_RESPONSE`` (or
+- the container's topics are advertised as channels, its services as services (``services``), as they are when the
+  client connects: a ROS 1 type's with encoding ``ros1``, schema encoding ``ros1msg`` and the full ROS 1 definition;
+  a ROS 2 type's (``pkg/msg/T``, ``pkg/srv/T``) with ``cdr``, ``ros2msg`` and the ROS 2 ``.msg`` texts
+  (:func:`rce.foxglove.protocol.ros2_schema`), as Foxglove's ROS 2 bridge advertises them;
+- a Foxglove ``subscribe`` is a rosbridge ``subscribe`` with ``cbor-raw`` compression: the serialized message
+  (ROS 1, or CDR) comes back and goes out as ``MESSAGE_DATA``, with the time it was received;
+- a client channel (``clientPublish`` in ``ros1``, ``cdr`` or ``json``: ``supportedEncodings``) is a rosbridge
+  ``advertise`` of its schema name and its messages ``publish`` ops, each decoded as the class its encoding names
+  (``cdr``: the ROS 2 form of the schema name, ``ros1``: the ROS 1 form); a service call (in any of the three) is a
+  ``call_service`` whose answer goes back, in the call's encoding, as ``SERVICE_CALL_RESPONSE`` (or
   ``serviceCallFailure``);
 - the session's ``status`` errors reach the client as Foxglove ``status`` errors.
 """
@@ -25,9 +29,12 @@ from typing import Any
 import cbor2
 import orjson
 
-from rce.foxglove.protocol import JSON, ClientChannel, FoxgloveService, ros1_schema
+from rce.foxglove.protocol import (ALL_CLIENT_ENCODINGS, CDR, JSON, ROS2MSG, ClientChannel, FoxgloveService,
+                                   ros1_schema, ros2_schema)
 from rce.foxglove.server import FoxgloveClient, FoxgloveServer
+from rce.interfaces.classes import is_ros2_name, plain_name
 from rce.messages import default_registry
+from rce.messages.registry import ROS2_PREFIX
 from rce.plumbing.errors import AuthError, MessageError, NotFound, RCEError, RequestError
 from rce.plumbing.log import get_logger
 from rce.plumbing.tasks import Tasks
@@ -50,7 +57,8 @@ class RobotFoxglove:
         self.server = FoxgloveServer("rce-robot", authenticate=self._auth, on_publish=self._publish,
                                      on_service_call=self._call, per_client=True, on_connect=self._connect,
                                      on_disconnect=self._disconnect, on_subscribe=self._subscribe,
-                                     on_unsubscribe=self._unsubscribe, metric_prefix="rce_robot_foxglove")
+                                     on_unsubscribe=self._unsubscribe, metric_prefix="rce_robot_foxglove",
+                                     client_encodings=ALL_CLIENT_ENCODINGS)
         self._robots = itertools.count(1)
         self._calls = itertools.count(1)
 
@@ -99,14 +107,22 @@ class RobotFoxglove:
                 typename = self.reg.msg_type(t["type"])
             except MessageError:
                 continue                                    # a class this endpoint does not know: not offered
-            client.add_channel(t["name"], t["type"], ros1_schema(self.reg.store, typename))
+            if typename.startswith(ROS2_PREFIX):
+                client.add_channel(t["name"], t["type"], self._schema(typename), encoding=CDR, schema_encoding=ROS2MSG)
+            else:
+                client.add_channel(t["name"], t["type"], self._schema(typename))
         for s in graph.get("services", []):
             try:
                 req, resp = self.reg.srv_types(s["type"])
             except MessageError:
                 continue
-            store = self.reg.store
-            client.add_service(s["name"], s["type"], ros1_schema(store, req), ros1_schema(store, resp))
+            client.add_service(s["name"], s["type"], self._schema(req), self._schema(resp))
+
+    def _schema(self, typename: str) -> str:
+        """The schema of registry type ``typename``: ``ros2msg`` for a ROS 2 one, else ``ros1msg``."""
+        if typename.startswith(ROS2_PREFIX):
+            return ros2_schema(self.reg.ros2, typename[len(ROS2_PREFIX):])
+        return ros1_schema(self.reg.store, typename)
 
     async def _disconnect(self, client: FoxgloveClient) -> None:
         session = client.session
@@ -131,8 +147,8 @@ class RobotFoxglove:
 
     async def _publish(self, client: FoxgloveClient, ch: ClientChannel, payload: bytes) -> None:
         session = client.session
-        typename = self.reg.msg_type(ch.schema_name)
-        msg = _json(payload) if ch.encoding == JSON else self.reg.bytes_to_json(typename, payload, session.forms)
+        msg = _json(payload) if ch.encoding == JSON else \
+            self.reg.bytes_to_json(self.reg.msg_type(_twin(ch.schema_name, ch.encoding, "msg")), payload)
         advertised = getattr(session, "fox_advertised", set())
         session.fox_advertised = advertised
         if ch.topic not in advertised:
@@ -143,8 +159,8 @@ class RobotFoxglove:
     async def _call(self, client: FoxgloveClient, service: FoxgloveService, encoding: str,
                     payload: bytes) -> tuple[str, bytes]:
         session = client.session
-        req, resp = self.reg.srv_types(service.type)
-        args = _json(payload) if encoding == JSON else self.reg.bytes_to_json(req, payload, session.forms)
+        req, resp = ("", "") if encoding == JSON else self.reg.srv_types(_twin(service.type, encoding, "srv"))
+        args = _json(payload) if encoding == JSON else self.reg.bytes_to_json(req, payload)
         call_id = f"foxcall{next(self._calls)}"
         done = session.fox_calls[call_id] = asyncio.get_running_loop().create_future()
         try:
@@ -161,7 +177,7 @@ class RobotFoxglove:
         values = answer.get("values") or {}
         if encoding == JSON:
             return JSON, orjson.dumps(values)
-        return encoding, self.reg.json_to_bytes(resp, values, session.forms)
+        return encoding, self.reg.json_to_bytes(resp, values)
 
     async def _pump(self, client: FoxgloveClient, session: RosbridgeSession) -> None:
         """What the rosbridge session sends its client, as Foxglove messages."""
@@ -187,6 +203,17 @@ class RobotFoxglove:
                 done.set_result(op)
         elif op.get("op") == "status" and op.get("level") == "error":
             client.status(2, str(op.get("msg", "")))
+
+
+def _twin(cls: str, encoding: str, sub: str) -> str:
+    """``cls`` (a message class for ``sub`` ``msg``, a service's for ``srv``) in the form of ``encoding``'s ROS:
+    ROS 2's ``pkg/SUB/Name`` for ``cdr``, ROS 1's ``pkg/Name`` for ``ros1``."""
+    if encoding != CDR:
+        return plain_name(cls)
+    if is_ros2_name(cls):
+        return cls.strip("/")
+    pkg, _, name = plain_name(cls).partition("/")
+    return f"{pkg}/{sub}/{name}"
 
 
 def _json(payload: bytes) -> Any:

@@ -19,24 +19,35 @@ events; what breaks the protocol or a bound is a :class:`Problem` event, which t
 ``status`` error, and nothing else of the client's or any other client's state changes. The builders
 (:func:`server_info`, :func:`status`, :func:`message_data`, ...) make the server's messages.
 
-rce's channels carry ROS 1 messages: message encoding ``ros1``, schema encoding ``ros1msg``, the schema
-being the full message definition as a ROS 1 bag stores it (the class's text, then each type it uses
-after a line of ``=``), as rosbags' ``generate_msgdef`` writes it.
+rce's channels carry a ROS 1 type's messages as ``ros1`` with a ``ros1msg`` schema, the full message definition as
+a ROS 1 bag stores it (the class's text, then each type it uses after a line of ``=``), as rosbags'
+``generate_msgdef`` writes it (:func:`ros1_schema`); a ROS 2 type's (``pkg/msg/T``) as ``cdr`` with a ``ros2msg``
+schema, the same layout of ROS 2 ``.msg`` texts (:func:`ros2_schema`): the well-known encodings of MCAP's registry
+(https://mcap.dev/spec/registry), which Foxglove's ROS 2 bridge uses too. A service of a ROS 2 type is advertised
+with ``cdr`` and ``ros2msg`` (:class:`FoxgloveService`). Which encodings a client may publish and call services in
+is the server's choice (``ClientState.encodings``; :data:`CLIENT_ENCODINGS` by default).
 """
 from __future__ import annotations
 
 import struct
 from collections.abc import Mapping
 from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
 
 import orjson
+
+from rce.interfaces.classes import is_ros2_name
 
 SUBPROTOCOL = "foxglove.websocket.v1"
 INFO, WARNING, ERROR = 0, 1, 2                      # status levels
 MESSAGE_DATA, TIME, SERVICE_CALL_RESPONSE = 1, 2, 3  # server binary opcodes
 CLIENT_MESSAGE_DATA, SERVICE_CALL_REQUEST = 1, 2     # client binary opcodes
 ROS1, ROS1MSG, JSON = "ros1", "ros1msg", "json"
-CLIENT_ENCODINGS = (ROS1, JSON)                     # what clients may publish and call services in
+CDR, ROS2MSG = "cdr", "ros2msg"                      # ROS 2's message and schema encodings (MCAP's registry)
+CLIENT_ENCODINGS = (ROS1, JSON)                     # what clients may publish and call services in (default)
+ALL_CLIENT_ENCODINGS = (ROS1, CDR, JSON)            # ... on a server that takes ROS 2's CDR too
+SCHEMA_SEPARATOR = "=" * 80                         # between the definitions of a ros1msg / ros2msg schema
 
 MAX_SUBSCRIPTIONS = 1024        # subscriptions one client may hold
 MAX_CLIENT_CHANNELS = 256       # channels one client may advertise
@@ -69,18 +80,24 @@ class Channel:
 
 @dataclass(frozen=True)
 class FoxgloveService:
-    """A server service: ``id`` (u32), ``name``, ``type`` (``pkg/Name``), the request's and response's
-    definitions (ROS 1 ``ros1msg`` text)."""
+    """A server service: ``id`` (u32), ``name``, ``type`` (``pkg/Name``; a ROS 2 type ``pkg/srv/Name``), the
+    request's and response's definitions (``ros1msg`` text; ``ros2msg`` for a ROS 2 type)."""
     id: int
     name: str
     type: str
     request_schema: str
     response_schema: str
 
+    @property
+    def encodings(self) -> tuple[str, str]:
+        """(message encoding, schema encoding): ``cdr``, ``ros2msg`` for a ROS 2 type, else ``ros1``, ``ros1msg``."""
+        return (CDR, ROS2MSG) if is_ros2_name(self.type) else (ROS1, ROS1MSG)
+
     def to_json(self) -> dict:
         """The service as ``advertiseServices`` lists it (with the deprecated ``requestSchema`` and
         ``responseSchema`` too, for older clients)."""
-        req = {"encoding": ROS1, "schemaName": f"{self.type}_Request", "schemaEncoding": ROS1MSG,
+        encoding, schema_encoding = self.encodings
+        req = {"encoding": encoding, "schemaName": f"{self.type}_Request", "schemaEncoding": schema_encoding,
                "schema": self.request_schema}
         resp = {**req, "schemaName": f"{self.type}_Response", "schema": self.response_schema}
         return {"id": self.id, "name": self.name, "type": self.type, "request": req, "response": resp,
@@ -90,7 +107,7 @@ class FoxgloveService:
 @dataclass(frozen=True)
 class ClientChannel:
     """A channel a client advertised for publishing: ``id`` (the client's u32), ``topic``, ``encoding``
-    (one of :data:`CLIENT_ENCODINGS`), ``schema_name``."""
+    (one of its server's client encodings, :attr:`ClientState.encodings`), ``schema_name``."""
     id: int
     topic: str
     encoding: str
@@ -157,10 +174,12 @@ class ClientState:
     ``services`` (id -> :class:`Channel` / :class:`FoxgloveService`, read at each message, never changed here).
 
     Each subscribe, unsubscribe, advertise or unadvertise entry is taken or refused on its own: the
-    good entries of a message with a bad one still count."""
+    good entries of a message with a bad one still count. ``encodings``: what the client may publish and call
+    services in (the server's ``supportedEncodings``)."""
     channels: Mapping[int, Channel]
     services: Mapping[int, FoxgloveService] = field(default_factory=dict)
     client_publish: bool = True
+    encodings: tuple[str, ...] = CLIENT_ENCODINGS
     subscriptions: dict[int, int] = field(default_factory=dict)      # subscription id -> channel id
     by_channel: dict[int, int] = field(default_factory=dict)         # channel id -> subscription id
     client_channels: dict[int, ClientChannel] = field(default_factory=dict)
@@ -251,7 +270,7 @@ class ClientState:
             return [chans]
         out: list[Event] = []
         for c in chans:
-            got = _client_channel(c)
+            got = _client_channel(c, self.encodings)
             if isinstance(got, Problem):
                 out.append(got)
             elif got.id in self.client_channels:
@@ -298,9 +317,9 @@ class ClientState:
         payload = bytes(data[_CALL_HEADER.size + n:])
         if service_id not in self.services:
             return [Problem(f"service call {call_id}: unknown service {service_id}")]
-        if encoding not in CLIENT_ENCODINGS:
+        if encoding not in self.encodings:
             return [Problem(f"service call {call_id}: encoding {encoding!r} is not one of "
-                            f"{', '.join(CLIENT_ENCODINGS)}")]
+                            f"{', '.join(self.encodings)}")]
         if len(payload) > MAX_CLIENT_PAYLOAD:
             return [Problem(f"service call {call_id}: request of {len(payload)} bytes is over the "
                             f"{MAX_CLIENT_PAYLOAD}-byte limit")]
@@ -325,7 +344,7 @@ def _u32(d: dict, key: str) -> int | None:
     return v if isinstance(v, int) and not isinstance(v, bool) and 0 <= v <= U32 else None
 
 
-def _client_channel(c) -> ClientChannel | Problem:
+def _client_channel(c, encodings: tuple[str, ...]) -> ClientChannel | Problem:
     if not isinstance(c, dict):
         return Problem(f"advertise: a channel must be an object, got {c!r:.80}")
     cid = _u32(c, "id")
@@ -337,9 +356,9 @@ def _client_channel(c) -> ClientChannel | Problem:
     if not isinstance(schema, str) or not schema or len(schema) > MAX_TOPIC:
         return Problem(f"advertise: channel {cid} ({topic}): 'schemaName' must be a string of 1 - {MAX_TOPIC} "
                        f"characters")
-    if enc not in CLIENT_ENCODINGS:
+    if enc not in encodings:
         return Problem(f"advertise: channel {cid} ({topic}): encoding {enc!r} is not one of "
-                       f"{', '.join(CLIENT_ENCODINGS)}")
+                       f"{', '.join(encodings)}")
     return ClientChannel(cid, topic, enc, schema)
 
 
@@ -405,3 +424,65 @@ def ros1_schema(store, typename: str) -> str:
     ``store``: its text and, after a line of 80 ``=``, each type it uses (``MSG: pkg/Name``), as in a bag."""
     text, _md5 = store.generate_msgdef(typename)
     return text
+
+
+def ros2_schema(registry: Any, typename: str) -> str:
+    """The ``ros2msg`` schema of ROS 2 type ``typename`` (a typestore name, ``pkg/msg/Name``, a service's
+    ``pkg/srv/Name_Request``, an action part's ``pkg/action/Name_SendGoal_Request``...) of ``registry`` (the ROS 2
+    half of the message registry, :class:`rce.messages.ros2.Ros2Registry`: its ``store`` and ament ``prefixes``):
+    the type's ``.msg`` text, then each type it uses, depth first, once, after a line of 80 ``=`` and
+    ``MSG: pkg/msg/Name`` (MCAP's ``ros2msg``, the layout of ``ros1msg``). A message's text is its installed
+    ``share/<pkg>/msg/<Name>.msg`` (comments, defaults and constants as written), as rosbag2 and Foxglove's ROS 2
+    bridge read them; a type without one (a service's or an action's part, a node package's type) is written
+    from its definition by rosbags."""
+    from rosbags.interfaces import Nodetype
+    store = registry.store
+    out: list[str] = []
+    seen: set[str] = set()
+
+    def visit(name: str) -> None:
+        seen.add(name)
+        if out:
+            out.append(f"{SCHEMA_SEPARATOR}\nMSG: {name}\n")
+        out.append(_ros2_text(registry, name))
+        for _, (nt, arg) in store.fielddefs[name][1]:
+            sub = arg[0] if nt in (Nodetype.ARRAY, Nodetype.SEQUENCE) else (nt, arg)
+            if sub[0] == Nodetype.NAME and sub[1] not in seen:
+                visit(sub[1])
+    visit(typename)
+    return "".join(out)
+
+
+def _ros2_text(registry: Any, name: str) -> str:
+    """One ROS 2 type's own ``.msg`` text, ending with a newline (see :func:`ros2_schema`)."""
+    pkg, sub, base = name.split("/")
+    if sub == "msg":
+        for prefix in registry.prefixes:
+            f = Path(prefix) / "share" / pkg / "msg" / f"{base}.msg"
+            if f.is_file():
+                text = f.read_text()
+                return text if text.endswith("\n") else text + "\n"
+    consts, fields = registry.store.fielddefs[name]
+    lines = [f"{t} {c}={_const(v)}" for c, t, v in consts]
+    lines += [f"{_field_type(*ftype)} {fname}" for fname, ftype in fields
+              if fname != "structure_needs_at_least_one_member"]      # rosidl's member of an empty message
+    return "".join(line + "\n" for line in lines)
+
+
+def _field_type(nt: Any, arg: Any) -> str:
+    """A field's type in ``.msg`` syntax from a rosbags field definition (``string<=22``, ``int32[3]``,
+    ``float64[<=5]``, ``pkg/msg/Name[]``)."""
+    from rosbags.interfaces import Nodetype
+    if nt == Nodetype.BASE:
+        t, bound = arg
+        return f"{t}<={bound}" if bound else t
+    if nt == Nodetype.NAME:
+        return arg
+    item, n = _field_type(*arg[0]), arg[1]
+    return f"{item}[{n}]" if nt == Nodetype.ARRAY else f"{item}[<={n}]" if n else f"{item}[]"
+
+
+def _const(value: Any) -> str:
+    if isinstance(value, bool):
+        return "true" if value else "false"
+    return orjson.dumps(value).decode() if isinstance(value, str) else str(value)

@@ -94,7 +94,8 @@ class FoxgloveClient:
         self.server, self.ws, self.principal = server, ws, principal
         self.channels: dict[int, Channel] = {} if server.per_client else server.channels
         self.services: dict[int, FoxgloveService] = {} if server.per_client else server.services
-        self.state = ClientState(self.channels, self.services, client_publish=server.on_publish is not None)
+        self.state = ClientState(self.channels, self.services, client_publish=server.on_publish is not None,
+                                 encodings=server.client_encodings)
         self.by_topic: dict[str, Channel] = {}
         self.session: Any = None          # what ``on_connect`` keeps for this client
         self.outbox: Outbox[str | bytes] = Outbox(queue_size)
@@ -175,19 +176,21 @@ class FoxgloveServer:
     ``metric_prefix``: the names of ``/metrics``' counters (``PREFIX_dropped`` ...); ``authorize_metrics``: who may
     read them (None: anyone); ``per_client``,
     ``on_connect``, ``on_disconnect``, ``on_subscribe``, ``on_unsubscribe``: channels of each client's own (module
-    docstring)."""
+    docstring); ``client_encodings``: what clients may publish and call services in (``supportedEncodings``)."""
 
     def __init__(self, name: str, *, authenticate: Authenticate | None = None, on_publish: OnPublish | None = None,
                  on_service_call: OnServiceCall | None = None, queue_size: int = QUEUE_SIZE,
                  max_clients: int = MAX_CLIENTS, metric_prefix: str = "rce_foxglove", per_client: bool = False,
                  on_connect: OnClient | None = None, on_disconnect: OnClient | None = None,
                  on_subscribe: OnChannel | None = None, on_unsubscribe: OnChannel | None = None,
-                 authorize_metrics: AuthorizeMetrics | None = None):
+                 authorize_metrics: AuthorizeMetrics | None = None,
+                 client_encodings: tuple[str, ...] = fp.CLIENT_ENCODINGS):
         self.name, self.authenticate, self.authorize_metrics = name, authenticate, authorize_metrics
         self.on_publish, self.on_service_call = on_publish, on_service_call
         self.per_client, self.on_connect, self.on_disconnect = per_client, on_connect, on_disconnect
         self.on_subscribe, self.on_unsubscribe = on_subscribe, on_unsubscribe
         self.queue_size, self.max_clients, self.metric_prefix = queue_size, max_clients, metric_prefix
+        self.client_encodings = client_encodings          # what clients may publish and call in (supportedEncodings)
         self.channels: dict[int, Channel] = {}
         self.services: dict[int, FoxgloveService] = {}
         self.by_topic: dict[str, Channel] = {}
@@ -326,7 +329,7 @@ class FoxgloveServer:
         self.clients.add(client)
         self.counts["clients_total"] += 1
         caps = (["clientPublish"] if self.on_publish else []) + (["services"] if self.on_service_call else [])
-        client.send_control(fp.server_info(self.name, caps, supported_encodings=list(fp.CLIENT_ENCODINGS)))
+        client.send_control(fp.server_info(self.name, caps, supported_encodings=list(self.client_encodings)))
         client.send_control(fp.advertise(list(client.channels.values())))
         if client.services:
             client.send_control(fp.advertise_services(list(client.services.values())))
