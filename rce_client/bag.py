@@ -21,6 +21,7 @@ import time
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
+from rce.interfaces.classes import is_ros2_name
 from rce.plumbing.errors import MessageError, RequestError
 from rce.messages import MessageRegistry, default_registry
 
@@ -87,10 +88,14 @@ class BagRecorder(Recording):
     def write(self, topic: str, cls: str, payload: bytes | memoryview, stamp_ns: int | None = None) -> None:
         """Add ``payload`` (a ROS 1 serialized ``cls`` message, ``pkg/Name``) on ``topic``, received
         at ``stamp_ns`` (ns since the epoch; default now). Raises :class:`MessageError` for an
-        unknown class or a topic already recorded with another class."""
+        unknown class, a ROS 2 class (CDR has no place in a ROS 1 bag) or a topic already recorded
+        with another class."""
         if self._writer is None:
             self.late += 1
             return
+        if is_ros2_name(cls):
+            raise MessageError(f"topic {topic}: a ROS 1 bag holds ROS 1 messages, not {cls} (CDR); record ROS 2 "
+                               f"topics into FILE.mcap")
         typename = self.registry.msg_type(cls)
         entry = self._conns.get(topic)
         if entry is None:

@@ -39,7 +39,8 @@
    it can, else through the first relay that answers, and moves between them by session resume.
 
 7. ``--record FILE.mcap``: every message of the bridged topics, both ways, is written to an MCAP file as
-   it crosses the bridge (its ROS 1 bytes, on the interface's local topic; :mod:`rce_client.mcap_recorder`);
+   it crosses the bridge (its bytes, ROS 1 or a ROS 2 class's CDR, on the interface's local topic;
+   :mod:`rce_client.mcap_recorder`);
    ``FILE.bag``: a ROS 1 bag. The file is finished at the stop and its counts printed.
 
 Every ER from the cloud is printed with its reason. SIGINT/SIGTERM tear down: the interfaces
@@ -341,7 +342,9 @@ class RobotBridge:
         self._check_local_types()     # ConfigError before anything is sent
         if self.record:
             from rce_client.mcap_recorder import recorder_for
-            self.recorder = recorder_for(self.record, self.registry)
+            self.recorder = recorder_for(self.record, self.registry, [
+                (k.addr, k.spec.iCls, k.spec.qos) for k in self.kinds
+                if k.types and k.prefix in ("Publisher", "Subscriber")])        # the topics it records
             self.recorder.open()
         await self.graph.start()
         try:
@@ -603,7 +606,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--keep", action="store_true", help="do not remove interfaces and containers on exit (note: "
                    "the master still destroys a robot's containers when the robot disconnects)")
     p.add_argument("--record", metavar="FILE.mcap", help="record every topic the robot's interfaces bridge, both "
-                   "ways, into an MCAP file (ROS 1 encoding, one channel per topic; FILE.bag: a ROS 1 bag)")
+                   "ways, into an MCAP file (one channel per topic: ros1, or cdr for a ROS 2 class; FILE.bag: a "
+                   "ROS 1 bag)")
     p.add_argument("--url", metavar="MASTER_URL", help="master login URL (overrides the config's url)")
     p.add_argument("--no-resume", dest="resume", action="store_false",
                    help="do not ask for session resume: a lost link ends the run (exit code 1)")
