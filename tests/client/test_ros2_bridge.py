@@ -29,6 +29,7 @@ import pytest
 
 from rce.interfaces.qos import QoS
 from rce.plumbing.errors import ConfigError
+from rce_client.ros2_spin import NoAnswer, Spinner
 from rce_client.ros2_types import node_name, qos_profile, rclpy_class
 
 from .test_e2e_debug import BIN, Proc
@@ -239,3 +240,48 @@ def test_qos_profiles_and_node_names():
     latched = qos_profile(QoS(durability="transient_local", history="keep_all"))
     assert (latched.durability, latched.history) == (DurabilityPolicy.TRANSIENT_LOCAL, HistoryPolicy.KEEP_ALL)
     assert [node_name(r) for r in ("robot1", "my-robot.2", "7up")] == ["robot1", "my_robot_2", "rce_7up"]
+
+
+async def test_executor_goes_on_past_failing_and_unanswered_calls(ros2_domain, monkeypatch):
+    """The bridge's rclpy thread (:class:`Spinner`): a service call left unanswered (NoAnswer) and one whose
+    callback fails end alone; the next call, answered from the asyncio loop while the executor waits, still is."""
+    import rclpy
+    from rclpy.context import Context
+    from rclpy.executors import SingleThreadedExecutor
+    from rclpy.signals import SignalHandlerOptions
+    from std_srvs.srv import SetBool
+    monkeypatch.setenv("ROS_DOMAIN_ID", str(ros2_domain))
+    monkeypatch.setenv("ROS_AUTOMATIC_DISCOVERY_RANGE", "LOCALHOST")
+    loop = asyncio.get_running_loop()
+    spinner = Spinner("unit_bridge")
+    spinner.start()
+    outcomes = iter(["no answer", "fail", "answer"])
+
+    async def serve(request, response):                 # in rclpy's thread
+        what = next(outcomes)
+        if what == "no answer":
+            raise NoAnswer("/unit")
+        if what == "fail":
+            raise ValueError("a fault in one callback")
+        fut = asyncio.run_coroutine_threadsafe(asyncio.sleep(0, result="from the loop"), loop)
+        response.success, response.message = True, (await spinner.rclpy_future(fut)).result()
+        return response
+    spinner.node.create_service(SetBool, "/unit", serve, callback_group=spinner.group)
+
+    ctx = Context()                                      # the robot's own program, with its own context
+    rclpy.init(context=ctx, signal_handler_options=SignalHandlerOptions.NO)
+    node = rclpy.create_node("unit_robot", context=ctx)
+    executor = SingleThreadedExecutor(context=ctx)
+    executor.add_node(node)
+    try:
+        client = node.create_client(SetBool, "/unit")
+        assert await asyncio.to_thread(client.wait_for_service, timeout_sec=STEP)
+        calls = [client.call_async(SetBool.Request(data=True)) for _ in range(3)]
+        await asyncio.to_thread(executor.spin_until_future_complete, calls[2], timeout_sec=STEP)
+        assert calls[2].result().message == "from the loop"
+        assert not calls[0].done() and not calls[1].done() and spinner.callback_errors == 1
+    finally:
+        executor.shutdown()
+        node.destroy_node()
+        rclpy.shutdown(context=ctx)
+        await asyncio.to_thread(spinner.close, 5.0)
