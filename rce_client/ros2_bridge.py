@@ -71,9 +71,17 @@ class RclpyGraph:
 
     async def start(self) -> None:
         """Resolve every robot-side class, then start the node (and the clients of ServiceClient*)."""
+        heard: dict[str, str] = {}           # topic -> the Subscriber* interface that takes it from the graph
         for k in self.bridge.kinds:
             self.classes[k.spec.iTag] = self._resolve(k)
             self.counts[k.spec.iTag] = Counts()
+            if k.prefix == "Subscriber":
+                heard[k.addr] = k.spec.iTag
+        for k in self.bridge.kinds:
+            if k.prefix == "Publisher" and k.addr in heard:
+                raise ConfigError(f"{self.bridge.source}: interfaces {heard[k.addr]} and {k.spec.iTag} are both at "
+                                  f"{k.addr}: on a ROS 2 graph the bridge would take what it publishes there and send "
+                                  f"it to the cloud again (rclpy does not tell its own messages apart)")
         try:
             import rclpy  # noqa: F401
         except ImportError as e:

@@ -197,13 +197,19 @@ async def test_ros2_graph_through_the_cloud(engine, ros2_env, tmp_path):
      "module nopkg.msg is not installed"),
     ("ServiceClientForwarder", "std_msgs/msg/String", "interface chat (std_msgs/msg/String): a ServiceClientForwarder "
      "needs a service class"),
+    ("PublisherForwarder", "std_msgs/msg/String", "interfaces tap and chat are both at /chat: on a ROS 2 graph the "
+     "bridge would take what it publishes there and send it to the cloud again"),
 ])
 async def test_classes_rclpy_cannot_bridge_are_refused_before_login(tmp_path, ros2_env, itype, cls, error):
-    """A ROS 1 class, a class rclpy does not have, a message class for a service: exit 2 naming the
-    interface and the class, before anything is sent (the config's URL is a closed port)."""
+    """A ROS 1 class, a class rclpy does not have, a message class for a service, a topic the bridge would
+    both publish and take: exit 2 naming the interface and the class, before anything is sent (the
+    config's URL is a closed port)."""
     cfg = tmp_path / "ros2.config"
+    itfs = [{"eTag": ROBOT, "iTag": "chat", "iType": itype, "iCls": cls, "addr": "/chat"}]
+    if itype == "PublisherForwarder":
+        itfs.insert(0, {"eTag": ROBOT, "iTag": "tap", "iType": "SubscriberForwarder", "iCls": cls, "addr": "/chat"})
     cfg.write_text(json.dumps({"url": "http://127.0.0.1:9/", "userID": "u", "password": "p", "robotID": ROBOT,
-                               "interfaces": [{"eTag": ROBOT, "iTag": "chat", "iType": itype, "iCls": cls}]}))
+                               "interfaces": itfs}))
     p = await Proc.start(str(BIN / "rce-ros"), str(cfg), "--ros2", env=ros2_env)
     assert await p.wait(STEP) == 2, p.dump()
     assert f"rce-ros: {cfg}: {error}" in p.human_err() and "logging in" not in p.text(), p.dump()
