@@ -187,7 +187,10 @@ async def test_ros2_graph_through_the_cloud(engine, ros2_env, tmp_path):
         await ros.kill()
         if servers is not None:
             servers.p.stdin.close()
-            await servers.kill()
+            try:
+                assert await servers.wait(STEP) == 0, servers.dump()
+            finally:
+                await servers.kill()
 
 
 @pytest.mark.parametrize("itype, cls, error", [

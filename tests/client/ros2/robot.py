@@ -118,9 +118,12 @@ def serve(node, name: str, action: str) -> None:
                  cancel_callback=lambda _req: CancelResponse.ACCEPT)
     ex = MultiThreadedExecutor(4)
     ex.add_node(node)
-    threading.Thread(target=ex.spin, daemon=True).start()
+    spinning = threading.Thread(target=ex.spin, daemon=True)
+    spinning.start()
     say("serving")
     sys.stdin.read()            # until the test closes stdin
+    ex.shutdown()               # then a clean exit: DDS's shared-memory segments go with it
+    spinning.join(DEADLINE)
 
 
 def call(node, name: str) -> None:
