@@ -228,3 +228,31 @@ async def test_cbor_of_a_ros2_type():
     raw = cbor2.loads(cbor_raw_publish(reg, string, "/s", {"data": "hi"}, 3.5))["msg"]
     assert (raw["secs"], raw["nsecs"], raw["bytes"][:4]) == (3, 500_000_000, b"\x00\x01\x00\x00")   # CDR, little endian
     assert reg.deserialize(string, raw["bytes"]).data == "hi"
+
+
+async def test_bad_action_ops_get_status_and_goals_to_nobody_end(eng):
+    async with RawRobot(eng.master_url, "r2Owner4") as r:
+        await _container(r, "r2C4")
+        async with connect(_url(eng, "r2Raw", "r2C4")) as ws:
+            for bad, says in (({"op": "send_action_goal", "action": "/a", "action_type": "std_msgs/msg/String"},
+                               "action type 'pkg/action/Type'"),
+                              ({"op": "send_action_goal", "action_type": "test_msgs/action/Fibonacci"}, "'action'"),
+                              ({"op": "send_action_goal", "action": "/a", "action_type": "test_msgs/action/Fibonacci",
+                                "args": [1]}, "args must be an object"),
+                              ({"op": "cancel_action_goal", "action": "/a", "id": "g9"}, "no goal 'g9'"),
+                              ({"op": "action_result", "action": "/a", "id": "g9", "status": 4}, "not advertised"),
+                              ({"op": "unadvertise_action", "action": "/a"}, "not advertised"),
+                              ({"op": "advertise_action", "action": "/a", "type": "test_msgs/action/NoSuch"},
+                               "test_msgs/action/NoSuch")):
+                await ws.send(json.dumps(bad))
+                async with asyncio.timeout(STEP_WAIT):
+                    while (m := json.loads(await ws.recv()))["op"] != "status":
+                        pass
+                assert m["level"] == "error" and says in m["msg"], (bad, m)
+            await ws.send(json.dumps({"op": "send_action_goal", "id": "lost", "action": "/nobody",
+                                      "action_type": "test_msgs/action/Fibonacci", "args": {"order": 3}}))
+            async with asyncio.timeout(STEP_WAIT):
+                while (m := json.loads(await ws.recv()))["op"] != "action_result":
+                    pass
+    assert (m["id"], m["action"], m["result"], m["status"]) == ("lost", "/nobody", False, 0)
+    assert "/nobody/_action/send_goal" in m["values"], m       # the container waited 10 s for a server
