@@ -28,7 +28,7 @@ import pytest
 from rce.plumbing.errors import ConfigError
 from rce.messages import MessageRegistry, default_registry
 from rce.node.package_path import load_package_types
-from rce.messages.debian_ros1 import import_rospy
+from rce.messages.debian_ros1 import forget_ros1, import_rospy
 from rce_client.ros1_bridge import Counts, Handoff
 from rce.messages.ros1_types import (DEFINITION_SEPARATOR, message_identity, raw_message_class, raw_service_class,
                                    service_identity)
@@ -255,6 +255,14 @@ async def test_ros_master_missing_is_refused_before_login(tmp_path, master, code
 
 
 # -- without a master -----------------------------------------------------------------------------
+@pytest.fixture(autouse=True)
+def ros1_modules_go_after():
+    """A test that imports rospy in this process leaves the message packages' names to ROS 2 again
+    (the worker goes on with other tests; rce.messages.debian_ros1)."""
+    yield
+    forget_ros1()
+
+
 @pytest.fixture(scope="module")
 def registry() -> MessageRegistry:
     reg = default_registry()
@@ -326,3 +334,17 @@ async def test_handoff_is_bounded_and_counts_drops():
     assert got == [b"\x00", b"\x01", b"\x02"] and (counts.from_ros, counts.dropped) == (5, 2)
     assert handoff.offer(b"\x05") and handoff.in_flight == 1
 
+
+
+def test_a_ros1_process_takes_ros1_message_packages_before_ros2s():
+    """ROS 2's wheels put std_msgs and rosgraph_msgs in the venv: rospy (which needs ROS 1's) still works,
+    and the process can go back to ROS 2's."""
+    from std_msgs.msg import String as Ros2String
+    assert hasattr(Ros2String, "get_fields_and_field_types")            # ROS 2's, from the venv
+    import_rospy()
+    from rosgraph_msgs.msg import Log              # what rospy imports; ROS 2's rosgraph_msgs has no Log
+    from std_msgs.msg import String
+    assert String._md5sum == "992ce8a1687cec8c8bd883ec73ca41d1" and Log._type == "rosgraph_msgs/Log"
+    forget_ros1()
+    from std_msgs.msg import String as Again
+    assert hasattr(Again, "get_fields_and_field_types") and not hasattr(Again, "_md5sum")
