@@ -25,6 +25,8 @@ from typing import Any
 
 import orjson
 
+from rce.protocol.limits import short_repr
+
 from .api_auth import allows
 
 __all__ = ["READS", "WRITES", "ROBOT_ID", "PageRules", "Refused"]
@@ -49,7 +51,7 @@ class PageRules:
 
     def __init__(self, user: str, role: str, robot_id: str, ctag: str):
         if not ROBOT_ID.match(robot_id):
-            raise Refused(f"robotID {robot_id!r}: the page's are operator-ID (letters and digits)")
+            raise Refused(f"robotID {short_repr(robot_id)}: the page's are operator-ID (letters and digits)")
         self.user, self.role, self.robot_id, self.ctag = user, role, robot_id, ctag
         self.operator = allows(role, "operator")
         self.writers: dict[str, str] = {}       # the page's SubscriberConverter tags -> class
@@ -62,7 +64,7 @@ class PageRules:
             raise Refused(f"not JSON: {e}") from None
         if not isinstance(m, dict) or m.get("type") not in TYPES or not isinstance(m.get("data"), dict):
             kind = m.get("type") if isinstance(m, dict) else type(m).__name__
-            raise Refused(f"a {kind!r} message: the page may send {', '.join(sorted(TYPES))} only")
+            raise Refused(f"a {short_repr(kind)} message: the page may send {', '.join(sorted(TYPES))} only")
         data = m["data"]
         match m["type"]:
             case "CN":

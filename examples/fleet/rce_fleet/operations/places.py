@@ -23,6 +23,8 @@ from pathlib import Path
 
 import yaml
 
+from rce.protocol.limits import short_repr
+
 from ..maps.geometry import GridGeometry, components
 
 __all__ = ["KINDS", "PLACES_PARAM", "Place", "PlaceError", "Places", "generate_places"]
@@ -94,7 +96,7 @@ class Places:
                 cell = int(text)
             except ValueError:
                 known = ", ".join(sorted(self.by_name)) or "none declared"
-                raise PlaceError(f"unknown place {text!r} (places: {known})") from None
+                raise PlaceError(f"unknown place {short_repr(text)} (places: {known})") from None
         if not self.geo.valid(cell):
             raise PlaceError(f"cell {cell} is outside the {self.geo.rows}x{self.geo.cols} grid "
                              f"(cells 0..{self.geo.n_cells - 1})")

@@ -26,6 +26,8 @@ from collections import deque
 from dataclasses import dataclass
 from typing import Callable
 
+from rce.protocol.limits import short_repr
+
 from ..lifelong import Task, TaskPool, TaskState
 from .places import PlaceError, Places
 
@@ -37,6 +39,8 @@ KEEP_CLOSED = 200           # closed tasks kept for look-ups (the oldest are for
 SHOW_CLOSED = 50            # closed tasks in each fleet/TaskList
 KEEP_ANSWERS = 100          # answers in each fleet/TaskList (the newest)
 ID_RE = re.compile(r"^[A-Za-z0-9_.:-]{1,64}$")
+MAX_TAG = 128               # characters of a request's ``request`` and ``source`` kept (the rest cut): they are
+                            # echoed in every fleet/TaskList, and no answer carries more than a short prefix of input
 
 
 class Refused(Exception):
@@ -153,17 +157,19 @@ class TaskBook:
             if rec is None:
                 if tid in self._ids:
                     raise Refused("conflict", f"task {tid!r} is closed (long ago)")
-                raise Refused("not_found", f"no task {tid!r}")
+                raise Refused("not_found", f"no task {short_repr(tid)}")
             if not rec.open:
                 raise Refused("conflict", f"task {tid!r} is {rec.state.value}: it cannot be cancelled")
-            rec.cancelled_by = str(req.get("source") or "")
+            rec.cancelled_by = _tag(req.get("source"))
             self.close(rec, TaskState.CANCELLED, f"cancelled by {rec.cancelled_by or 'an operator'}", now)
             return self._answer(req, tid, None)
         except Refused as e:
             return self._answer(req, tid, e)
 
     def _answer(self, req: dict, tid: str, err: Refused | None) -> dict:
-        a = {"request": str(req.get("request") or ""), "id": tid, "ok": err is None,
+        """The answer to ``req``: it names the task by ``tid`` only when that is a task id (an id that is not,
+        a megabyte of text say, is named in the error by its first characters alone)."""
+        a = {"request": _tag(req.get("request")), "id": tid if ID_RE.match(tid) else "", "ok": err is None,
              "code": err.code if err else "", "error": err.text if err else ""}
         self.answers.append(a)
         self.changed = True
@@ -173,7 +179,7 @@ class TaskBook:
         tid = str(req.get("id") or "").strip()
         if tid:
             if not ID_RE.match(tid):
-                raise Refused("bad_request", f"task id {tid!r}: use 1-64 letters, digits or _ . : -")
+                raise Refused("bad_request", f"task id {short_repr(tid)}: use 1-64 letters, digits or _ . : -")
             if tid in self._ids:
                 raise Refused("conflict", f"task {tid!r} exists already")
         errands = [str(e).strip() for e in (req.get("errands") or [])]
@@ -209,7 +215,9 @@ class TaskBook:
         k = self.step_s
         task = self.pool.add(cells, priority=prio, earliest_start=math.ceil((now + es) / k) if es else 0,
                              deadline=math.floor((now + dl) / k) if dl else None, release=int(now / k), at=now)
-        rec = TaskRecord(tid, task, errands, str(req.get("source") or ""), now,
+        # a cell's errand as its number (``0016`` is 16), a place's as its name
+        errands = [e if e in self.places.by_name else str(c) for e, c in zip(errands, cells, strict=True)]
+        rec = TaskRecord(tid, task, errands, _tag(req.get("source")), now,
                          earliest_start=now + es if es else 0.0, deadline=now + dl if dl else 0.0)
         self.records[tid] = self.by_pool[task.id] = rec
         self._ids.add(tid)
@@ -291,11 +299,16 @@ class TaskBook:
                 **self.stats()}
 
 
+def _tag(value) -> str:
+    """A request's ``request`` or ``source`` as kept and echoed: text, its first :data:`MAX_TAG` characters."""
+    return str(value or "")[:MAX_TAG]
+
+
 def _number(v, what: str) -> float:
     try:
         x = float(v)
-    except (TypeError, ValueError):
-        raise Refused("bad_request", f"{what} {v!r} is not a number") from None
+    except (TypeError, ValueError, OverflowError):
+        raise Refused("bad_request", f"{what} {short_repr(v)} is not a number") from None
     if not math.isfinite(x):
         raise Refused("bad_request", f"{what} must be finite")
     return x
