@@ -23,7 +23,8 @@ API does (``auth``, :class:`~rce_fleet.operations.http_api.ApiAuth`). The page l
 ``POST /api/login`` and sends the token with its own calls; with the task API its RCE session goes through
 this server (``GET /rce/ws``, as the fleet's internal user, the frames checked for the person's role), else
 (a replay's page) it logs in at the master. It listens on ``bind`` (default 127.0.0.1), over TLS given
-``ssl_context``; every answer carries the headers of :mod:`rce_fleet.operations.web_headers`.
+``ssl_context``; every answer carries the headers of :mod:`rce_fleet.operations.web_headers`, and every error
+is the API's JSON error (:mod:`rce_fleet.operations.api_errors`), the page's files' too.
 
 The page is served from another origin than the master's: its login ``GET /?userID=..`` is a
 cross-origin request, allowed by the master's ``Access-Control-Allow-Origin: *``, and its
@@ -52,6 +53,7 @@ from rce.plumbing.log import get_logger
 from rce_client.connection import Connection
 
 from ..maps.geometry import GridGeometry, components
+from ..operations.api_errors import MAX_BODY, json_errors
 from ..operations.web_headers import add_security_headers
 
 log = get_logger("fleet.web")
@@ -195,6 +197,12 @@ class MissionRunner:
         self.goals_sent += 1
 
 
+def _file(path: Path):
+    async def handler(_req):
+        return web.FileResponse(path)
+    return handler
+
+
 class WebUI:
     """Serve the operator's page for a running fleet; ``await start()`` returns the page's URL.
     ``tasks``: the fleet manager's TaskChannel (the HTTP API and /metrics; None: none);
@@ -264,7 +272,7 @@ class WebUI:
             await viewer(req)
             return web.json_response(self.placement(), headers=nocache)
 
-        app = web.Application()
+        app = web.Application(middlewares=[json_errors], client_max_size=MAX_BODY)
         add_security_headers(app, tls=self.ssl_context is not None)
         app.router.add_get("/", index)
         if self.relays is not None:
@@ -279,7 +287,9 @@ class WebUI:
             add_routes(app, self.tasks, self.auth)
             self.door = PageDoor(self.master_url, self.user, self.password, self.auth, self.ctag)
             self.door.add_routes(app)
-        app.router.add_static("/", WEB_DIR, show_index=False)
+        for f in sorted(WEB_DIR.iterdir()):     # the page's files, each its own route: any other path is a 404
+            if f.is_file():                      # (or a 405 for a route of another method), never a file's
+                app.router.add_get(f"/{f.name}", _file(f))
         if self.mission is not None:
             await self.mission.start()
         self._runner = web.AppRunner(app, access_log=None)

@@ -28,6 +28,8 @@ import secrets
 from collections import OrderedDict
 from dataclasses import dataclass
 
+from rce.protocol.limits import short_repr
+
 __all__ = ["DEFAULT_TTL_S", "ROLES", "Identity", "TokenBook", "allows", "parse_authorization"]
 
 ROLES = ("viewer", "operator", "admin")     # in order: each may do what the ones before it may
@@ -151,4 +153,5 @@ def parse_authorization(header: str) -> tuple[str, str, str] | None:
         if not sep or not user:
             raise ValueError("Authorization: Basic needs base64 of user:password")
         return "basic", user, password
-    raise ValueError(f"Authorization: use 'Bearer TOKEN' (POST /api/login) or 'Basic' over TLS, not {scheme!r}")
+    raise ValueError(f"Authorization: use 'Bearer TOKEN' (POST /api/login) or 'Basic' over TLS, not "
+                     f"{short_repr(scheme)}")

@@ -9,11 +9,11 @@ Sans-I/O: pydantic only.
 """
 from __future__ import annotations
 
-from typing import Literal
+from typing import ClassVar, Literal
 
 from pydantic import BaseModel, ConfigDict, Field, StrictFloat, StrictInt, StrictStr
 
-from .tasks_api import MAX_ERRANDS
+from .tasks_api import ID_RE, MAX_ERRANDS
 
 __all__ = ["ApiError", "FleetTask", "LoginAnswer", "LoginRequest", "RobotWork", "TaskList", "TaskRequest",
            "openapi_document"]
@@ -25,13 +25,20 @@ class TaskRequest(BaseModel):
     """``POST /api/tasks``: a new task. A field not listed here is refused (a misspelt ``priority`` is
     not silently 0)."""
     model_config = ConfigDict(extra="forbid", title="TaskRequest")
+    kind: ClassVar[str] = "task"
+    hints: ClassVar[dict[str, str]] = {
+        "errands": f"errands must be a list of 1 to {MAX_ERRANDS} cell numbers or place names",
+        "id": "id: use 1-64 letters, digits or _ . : - (or none: the fleet names the task)",
+        **dict.fromkeys(("priority", "earliest_start_s", "deadline_s"),
+                        "priority, earliest_start_s and deadline_s must be numbers")}
 
     errands: list[StrictStr | StrictInt] = Field(
-        description=f"in order: cell numbers (42 or \"42\") or place names; 1 to {MAX_ERRANDS}")
+        max_length=MAX_ERRANDS, description=f"in order: cell numbers (42 or \"42\") or place names; 1 to {MAX_ERRANDS}")
     priority: StrictFloat = Field(0.0, description="higher first (one unit is worth about 100 cells of travel)")
     earliest_start_s: StrictFloat = Field(0.0, description="fleet s from now before which it does not start")
     deadline_s: StrictFloat = Field(0.0, description="fleet s from now by which it must be done (0: none)")
-    id: StrictStr = Field("", description="task id wanted (1-64 of A-Z a-z 0-9 _ . : -); empty: the fleet names it")
+    id: StrictStr = Field("", pattern=f"^({ID_RE.pattern[1:-1]})?$",
+                          description="task id wanted (1-64 of A-Z a-z 0-9 _ . : -); empty: the fleet names it")
 
 
 class FleetTask(BaseModel):
@@ -86,14 +93,15 @@ class TaskList(BaseModel):
 class ApiError(BaseModel):
     """Every refusal: a one-line reason and a code."""
     error: str
-    code: Literal["bad_request", "unauthorized", "forbidden", "not_found", "conflict", "too_large", "throttled",
-                  "timeout", "unavailable"]
+    code: Literal["bad_request", "unauthorized", "forbidden", "not_found", "method_not_allowed", "conflict",
+                  "too_large", "throttled", "internal", "bad_gateway", "unavailable", "timeout"]
 
 
 class LoginRequest(BaseModel):
     """``POST /api/login``: a user of the master and the password; ``ttl_s`` asks for a token that expires
     sooner than the server's default."""
     model_config = ConfigDict(extra="forbid")
+    kind: ClassVar[str] = "login"
 
     user: StrictStr = Field(min_length=1)
     password: StrictStr = Field(min_length=1)
@@ -121,18 +129,28 @@ def _json(schema: dict, description: str) -> dict:
 
 
 def _op(summary: str, role: str | None, answers: dict[str, dict], body: str | None = None,
-        path_id: bool = False) -> dict:
-    """One operation: ``role`` None is open to anyone; else 401 without a credential, 403 below ``role``."""
+        path: str | None = None) -> dict:
+    """One operation with every status it can give: ``answers``, and 500 for any; with a ``body``, 400 (a
+    malformed one) and 413 (over 1 MiB); ``role`` None is open to anyone, else 401 without a credential, 403
+    below ``role``, and for HTTP Basic (checked at the master) 429 and 503. ``path``: its path parameter."""
+    err = _ref("ApiError")
     op: dict = {"summary": summary + (f" (role {role} or above)" if role else ""), "responses": dict(answers)}
     if body:
         op["requestBody"] = {"required": True, "content": {"application/json": {"schema": _ref(body)}}}
-    if path_id:
-        op["parameters"] = [{"name": "id", "in": "path", "required": True, "schema": {"type": "string"}}]
+        op["responses"].setdefault("400", _json(err, "a malformed body: not JSON (a lone surrogate, a number "
+                                                     "beyond a double), nested deeper than 64 levels, a field "
+                                                     "unknown or of the wrong type"))
+        op["responses"]["413"] = _json(err, "a body over 1 MiB")
+    if path:
+        op["parameters"] = [{"name": path, "in": "path", "required": True, "schema": {"type": "string"}}]
     if role is None:
         op["security"] = []
     else:
-        op["responses"]["401"] = _json(_ref("ApiError"), "no credential, or a wrong, expired or revoked one")
-        op["responses"]["403"] = _json(_ref("ApiError"), f"the user's role is below {role}")
+        op["responses"]["401"] = _json(err, "no credential, or a wrong, expired or revoked one")
+        op["responses"]["403"] = _json(err, f"the user's role is below {role}")
+        op["responses"].setdefault("429", _json(err, "HTTP Basic: too many failed logins; wait Retry-After s"))
+        op["responses"].setdefault("503", _json(err, "HTTP Basic: the master cannot check the password now"))
+    op["responses"]["500"] = _json(err, "an internal error (the server's log says more)")
     return op
 
 
@@ -141,34 +159,38 @@ def openapi_document(server_url: str = "/", metrics_public: bool = False) -> dic
     JSON Schemas and the security schemes (a bearer token from ``POST /api/login``, or HTTP Basic over
     TLS). ``server_url``: the API's base URL; ``metrics_public``: ``/metrics`` needs no credential."""
     from pydantic.json_schema import models_json_schema
-    models = [(m, "validation" if m in (TaskRequest, LoginRequest) else "serialization")
-              for m in (TaskRequest, FleetTask, RobotWork, TaskList, ApiError, LoginRequest, LoginAnswer)]
+    requests = (TaskRequest, LoginRequest)
+    models = [(m, "validation" if m in requests else "serialization")
+              for m in (*requests, FleetTask, RobotWork, TaskList, ApiError, LoginAnswer)]
     _, defs = models_json_schema(models, ref_template="#/components/schemas/{model}")
     err = _ref("ApiError")
     task = _json(_ref("FleetTask"), "the task")
     paths = {
         "/api/login": {"post": _op("Log in with a user of the master: a bearer token", None, {
-            "200": _json(_ref("LoginAnswer"), "the token"), "400": _json(err, "a malformed body"),
+            "200": _json(_ref("LoginAnswer"), "the token"),
             "401": _json(err, "a wrong user or password"),
-            "429": _json(err, "too many failed logins: wait Retry-After s")}, body="LoginRequest")},
+            "429": _json(err, "too many failed logins: wait Retry-After s"),
+            "503": _json(err, "the master cannot check the password now")}, body="LoginRequest")},
         "/api/logout": {"post": _op("Revoke the token the request carries", "viewer", {
             "200": {"description": "revoked"}})},
-        "/api/tokens/{user}": {"delete": {**_op("Revoke every token of a user", "admin", {
-            "200": {"description": "how many were revoked"}}), "parameters": [
-                {"name": "user", "in": "path", "required": True, "schema": {"type": "string"}}]}},
+        "/api/tokens/{user}": {"delete": _op("Revoke every token of a user", "admin", {
+            "200": {"description": "how many were revoked"}}, path="user")},
         "/api/tasks": {
             "get": _op("The task list", "viewer", {"200": _json(_ref("TaskList"), "the tasks")}),
             "post": _op("Queue a task", "operator", {
                 "201": {**task, "headers": {"Location": {"schema": {"type": "string"},
                                                          "description": "/api/tasks/ID"}}},
                 "400": _json(err, "a bad request (unknown field, place, cell, ...)"),
-                "409": _json(err, "the id exists"), "413": _json(err, "a body over 1 MiB"),
+                "409": _json(err, "the id exists"),
                 "504": _json(err, "the fleet did not answer within 10 s")}, body="TaskRequest")},
         "/api/tasks/{id}": {
             "get": _op("One task", "viewer", {"200": task, "404": _json(err, "not among the open and recent tasks")},
-                       path_id=True),
-            "delete": _op("Cancel a task", "operator", {"200": task, "404": _json(err, "no such task"),
-                                                        "409": _json(err, "already closed")}, path_id=True)},
+                       path="id"),
+            "delete": _op("Cancel a task", "operator", {"200": task, "400": _json(err, "refused by the fleet"),
+                                                        "404": _json(err, "no such task"),
+                                                        "409": _json(err, "already closed"),
+                                                        "504": _json(err, "the fleet did not answer within 10 s")},
+                          path="id")},
         "/api/openapi.json": {"get": _op("This document", None, {"200": {"description": "OpenAPI 3.1"}})},
         "/metrics": {"get": _op("Prometheus text: tasks by state, queue, task times, per-robot utilisation, "
                                 "battery", None if metrics_public else "viewer",

@@ -30,8 +30,11 @@ role each needs in brackets, :mod:`rce_fleet.operations.api_auth`; the models an
 A credential is ``Authorization: Bearer TOKEN`` (from ``POST /api/login``) or ``Authorization: Basic``
 (a user and password of the master, over TLS only: in clear HTTP it is refused). No credential, or a
 wrong, expired or revoked one: 401 with ``WWW-Authenticate``; a role below the route's: 403. Every
-refusal is ``{"error", "code"}``. Passwords are checked by the master (``POST /api/auth`` of its admin
-API), which throttles repeated failures per user and client address as it does robots' logins.
+refusal is ``{"error", "code"}`` (:mod:`rce_fleet.operations.api_errors`: aiohttp's own 404, 405, 413 and any
+500 too), and quotes no more than a short prefix of anything the client sent. A body is JSON within the
+engine's bounds (:mod:`rce_fleet.operations.api_body`: 64 levels, UTF-8 without lone surrogates, numbers
+that fit a double), else a 400 naming what was wrong. Passwords are checked by the master (``POST /api/auth``
+of its admin API), which throttles repeated failures per user and client address as it does robots' logins.
 
 A task is ``{"id", "errands", "cells", "priority", "state", "robot", "next_errand", "reason",
 "source", "cancelled_by", "created", "earliest_start", "deadline", "assigned", "active", "finished",
@@ -41,41 +44,27 @@ order). A request the fleet does not answer within 10 s is a 504.
 from __future__ import annotations
 
 import hashlib
-import json
 import time
 from typing import Awaitable, Callable
 
 from aiohttp import web
-from pydantic import ValidationError
 
 from rce.plumbing.errors import AuthError, RCEError, RequestError, Throttled
+from rce.protocol.limits import short_repr
 
 from .api_auth import DEFAULT_TTL_S, Identity, TokenBook, allows, parse_authorization
+from .api_body import read_model
+from .api_errors import ApiRefusal, error_response
 from .api_models import LoginAnswer, LoginRequest, TaskRequest, openapi_document
 from .tasks_client import TaskChannel, TaskRefused
 
 __all__ = ["ApiAuth", "add_routes", "master_password_check", "prometheus_text"]
 
 STATUS = {"bad_request": 400, "not_found": 404, "conflict": 409, "timeout": 504}
-FIELDS = tuple(TaskRequest.model_fields)            # of a POST's body
-NUMBERS = ("priority", "earliest_start_s", "deadline_s")
 REALM = 'realm="rce fleet"'
 
 # (user, password, client address) -> the user's role; raises AuthError (wrong) or Throttled (backing off)
 PasswordCheck = Callable[[str, str, str], Awaitable[str]]
-
-
-def _error(status: int, code: str, text: str, headers: dict | None = None) -> web.Response:
-    return web.json_response({"error": text, "code": code}, status=status, headers=headers)
-
-
-class ApiRefusal(web.HTTPException):
-    """A refusal raised from a handler: ``{"error", "code"}`` with ``status`` (and ``headers``)."""
-
-    def __init__(self, status: int, code: str, text: str, headers: dict | None = None):
-        self.status_code = status
-        super().__init__(text=json.dumps({"error": text, "code": code}), content_type="application/json",
-                         headers=headers)
 
 
 def master_password_check(client) -> PasswordCheck:
@@ -155,41 +144,11 @@ class ApiAuth:
         return who
 
 
-def _json_body(body: object, model):
-    """``body`` validated by ``model``; raises :class:`ApiRefusal` 400 with what was wrong."""
-    if not isinstance(body, dict):
-        raise ApiRefusal(400, "bad_request", "the body must be a JSON object")
-    try:
-        return model.model_validate(body)
-    except ValidationError as e:
-        raise ApiRefusal(400, "bad_request", _why(e, model)) from None
-
-
-def _why(e: ValidationError, model) -> str:
-    errs = e.errors()
-    if unknown := sorted(str(x["loc"][0]) for x in errs if x["type"] == "extra_forbidden"):
-        return (f"unknown field(s) {', '.join(map(repr, unknown))} "
-                f"(a {'task' if model is TaskRequest else 'login'} has {', '.join(model.model_fields)})")
-    field = str(errs[0]["loc"][0]) if errs[0]["loc"] else ""
-    if model is TaskRequest and field == "errands":
-        return "errands must be a list of cell numbers or place names"
-    if model is TaskRequest and field in NUMBERS:
-        return "priority, earliest_start_s and deadline_s must be numbers"
-    return f"{field}: {errs[0]['msg'].lower()}" if field else errs[0]["msg"]
-
-
-async def _read_json(req: web.Request) -> object:
-    try:
-        return await req.json()
-    except (json.JSONDecodeError, UnicodeDecodeError):
-        raise ApiRefusal(400, "bad_request", "the body must be a JSON object") from None
-
-
 def add_routes(app: web.Application, channel: TaskChannel, auth: ApiAuth) -> None:
     """Add the task API, the login and ``/metrics`` (module docstring) to ``app``; ``auth`` says who may."""
 
     async def login(req: web.Request) -> web.Response:
-        lr = _json_body(await _read_json(req), LoginRequest)
+        lr = await read_model(req, LoginRequest)
         role = await auth.password(req, lr.user, lr.password)
         token, life = auth.book.issue(lr.user, role, auth.clock(), lr.ttl_s)
         return web.json_response(LoginAnswer(token=token, expires_in=life, user=lr.user, role=role).model_dump(),
@@ -206,12 +165,12 @@ def add_routes(app: web.Application, channel: TaskChannel, auth: ApiAuth) -> Non
 
     async def post(req: web.Request) -> web.Response:
         who = await auth.require(req, "operator")
-        t = _json_body(await _read_json(req), TaskRequest)
+        t = await read_model(req, TaskRequest)
         try:
             task = await channel.add(t.errands, priority=t.priority, earliest_start_s=t.earliest_start_s,
                                      deadline_s=t.deadline_s, task_id=t.id, source=f"http:{who.user}")
         except TaskRefused as e:
-            return _error(STATUS.get(e.code, 400), e.code, e.reason)
+            return error_response(STATUS.get(e.code, 400), e.reason)
         return web.json_response(task, status=201, headers={"Location": f"/api/tasks/{task['id']}"})
 
     async def listing(req: web.Request) -> web.Response:
@@ -222,7 +181,7 @@ def add_routes(app: web.Application, channel: TaskChannel, auth: ApiAuth) -> Non
         await auth.require(req, "viewer")
         t = channel.get(req.match_info["id"])
         if t is None:
-            return _error(404, "not_found", f"no task {req.match_info['id']!r} among the open and recent tasks")
+            return error_response(404, f"no task {short_repr(req.match_info['id'])} among the open and recent tasks")
         return web.json_response(t)
 
     async def delete(req: web.Request) -> web.Response:
@@ -230,7 +189,7 @@ def add_routes(app: web.Application, channel: TaskChannel, auth: ApiAuth) -> Non
         try:
             return web.json_response(await channel.cancel(req.match_info["id"], source=f"http:{who.user}"))
         except TaskRefused as e:
-            return _error(STATUS.get(e.code, 400), e.code, e.reason)
+            return error_response(STATUS.get(e.code, 400), e.reason)
 
     async def openapi(req: web.Request) -> web.Response:
         return web.json_response(openapi_document("/", auth.metrics_public))
