@@ -310,3 +310,21 @@ def test_cli_speaks_the_http_api_as_a_user_with_a_role(fleet):
     got = task("vera", "get", "h1", "--json")
     assert got.returncode == 0 and json.loads(got.stdout)["source"] == "http:otto", got.stderr
     assert task("otto", "cancel", "h1").returncode == 0
+
+
+def test_task_cli_whose_reader_stops_reading_ends_quietly(fleet):
+    """``rce-fleet task list | head -1``, with the reader gone before the first line: no traceback."""
+    p = subprocess.Popen([str(BIN / "rce-fleet"), "task", "list", "--api", fleet["page"], "--user", ADMIN[0],
+                          "--ca-file", fleet["ca"]], stdout=subprocess.PIPE, stderr=subprocess.PIPE,
+                         env=dict(os.environ, RCE_PASSWORD=ADMIN[1]))
+    p.stdout.close()                         # the reader stops reading: every write to stdout is EPIPE
+    err = p.stderr.read().decode(errors="replace")
+    assert p.wait(CLI_TIMEOUT_S) == 141, err
+    assert "Traceback" not in err and "BrokenPipeError" not in err, err
+
+
+def test_task_get_of_an_id_with_a_slash_says_there_is_no_such_task(fleet):
+    p = cli(fleet, "get", "a/b")
+    assert p.returncode == 1, (p.stdout, p.stderr)
+    assert p.stderr.strip() == "rce-fleet task: refused (not_found): no task 'a/b' among the open and recent tasks", \
+        p.stderr

@@ -27,6 +27,7 @@
 from __future__ import annotations
 
 import argparse
+import os
 import sys
 from pathlib import Path
 
@@ -60,6 +61,7 @@ DEMO_TASK_RATE = 6.0
 DEMO_BATTERY = "capacity_wh=20,initial=0.6,initial_spread=0.45,charge_w=500"
 DEMO_PLOT, DEMO_TASKS_PLOT = "fleet_paths.png", "fleet_tasks.png"   # a mission's paths; a run's tasks and activity
 SERVE_TIMEOUT_S = 10 ** 9   # wall s ``serve`` runs by default: until Ctrl-C
+EXIT_PIPE = 141            # 128 + SIGPIPE: stdout's reader stopped reading
 LIFELONG_MAX_STEPS = 10 ** 7   # steps a lifelong run records (LoRR's runs: 500 - 5,000; 10^7 is 116 days at 1 s a step)
 
 
@@ -349,7 +351,19 @@ def _print_grid(args: argparse.Namespace) -> int:
 
 def main(argv: list[str] | None = None) -> None:
     """Run ``rce-fleet``; exits with the demo's code (0 ok, 1 failure or timeout, 2 bad
-    flags, 3 an unreachable goal)."""
+    flags, 3 an unreachable goal). A reader that stops reading its output (``rce-fleet task list | head -1``)
+    ends it quietly, with :data:`EXIT_PIPE`, as a shell reports a program that SIGPIPE ended."""
+    try:
+        try:
+            _main(argv)
+        finally:
+            sys.stdout.flush()
+    except BrokenPipeError:
+        os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())   # nothing more to flush at exit
+        sys.exit(EXIT_PIPE)
+
+
+def _main(argv: list[str] | None) -> None:
     args = build_parser().parse_args(argv)
     if args.cmd == "lifelong":
         sys.exit(_lifelong(args))

@@ -140,16 +140,9 @@ def _print(args, out: dict) -> None:
         print(_line(out))
 
 
-LOGIN_TTL_S = 300.0       # s the token of a one-request login lives (it is revoked after the request anyway)
-
-
 async def _run_http(args) -> int:
     """``rce-fleet task`` against the HTTP task API (module docstring)."""
-    import aiohttp
-
-    from rce.transport.tls import client_context
-    base = args.api.split("?")[0].rstrip("/") + "/"
-    ssl = client_context(args.ca_file) if base.startswith("https:") else None
+    from .api_client import ApiRefused, ApiUnreachable, Caller, call, part, report
     if args.action == "add":
         method, path, body = "POST", "api/tasks", {"errands": args.errands, "priority": args.priority,
                                                    "earliest_start_s": args.start_in, "deadline_s": args.deadline_in,
@@ -157,40 +150,14 @@ async def _run_http(args) -> int:
     elif args.action == "list":
         method, path, body = "GET", "api/tasks", None
     else:
-        method, path, body = "GET" if args.action == "get" else "DELETE", f"api/tasks/{args.id}", None
-    timeout = aiohttp.ClientTimeout(total=args.timeout)
+        method, path, body = "GET" if args.action == "get" else "DELETE", f"api/tasks/{part(args.id)}", None
+    who = Caller(args.api, args.user, args.password, args.token, args.ca_file, args.timeout)
     try:
-        async with aiohttp.ClientSession(timeout=timeout) as http:
-            token = args.token
-            if not token:
-                async with http.post(base + "api/login", ssl=ssl, json={"user": args.user, "password": args.password,
-                                                                       "ttl_s": LOGIN_TTL_S}) as r:
-                    answer = await r.json(content_type=None)
-                    if r.status != 200:
-                        return _refused(r.status, answer, f"cannot log in at {base} as {args.user!r}")
-                    token = answer["token"]
-            auth = {"Authorization": f"Bearer {token}"}
-            try:
-                async with http.request(method, base + path, json=body, headers=auth, ssl=ssl) as r:
-                    out = await r.json(content_type=None)
-                    if r.status >= 400:
-                        return _refused(r.status, out, "refused")
-            finally:
-                if not args.token:
-                    async with http.post(base + "api/logout", headers=auth, ssl=ssl):
-                        pass
-    except (aiohttp.ClientError, OSError, ValueError) as e:
-        print(f"rce-fleet task: cannot reach the task API at {base}: {e or type(e).__name__}", file=sys.stderr)
-        return EXIT_UNREACHABLE
+        out = await call(who, method, path, body)
+    except (ApiRefused, ApiUnreachable) as e:
+        return report("rce-fleet task", e)
     _print(args, out)
     return EXIT_OK
-
-
-def _refused(status: int, answer, what: str) -> int:
-    why = answer.get("error") if isinstance(answer, dict) else str(answer)
-    code = answer.get("code") if isinstance(answer, dict) else f"HTTP {status}"
-    print(f"rce-fleet task: {what} ({code}): {why}", file=sys.stderr)
-    return EXIT_UNREACHABLE if status in (502, 503, 504) else EXIT_REFUSED
 
 
 def run_task(args) -> int:
