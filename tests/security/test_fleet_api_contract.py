@@ -186,5 +186,7 @@ def test_openapi_lists_every_status_each_operation_gives(fleet):
         assert not body or {"400", "413"} <= statuses, (path, method)
         open_ = doc["paths"][path][method].get("security") == []
         assert open_ or {"401", "403", "429", "503"} <= statuses, (path, method)
+    assert {("/api/users", "get"), ("/api/users", "post"), ("/api/users/{name}", "patch"),
+            ("/api/users/{name}", "delete")} <= set(ops)
     assert {"method_not_allowed", "too_large", "internal"} <= set(
         doc["components"]["schemas"]["ApiError"]["properties"]["code"]["enum"])

@@ -18,6 +18,8 @@
     rce-fleet replay RUN.mcap [--speed K] [--loop] [--web-port P | --headless] [--foxglove-port P]
     rce-fleet task add ERRAND... [--priority P] [--start-in S] [--deadline-in S] [--id ID] [--master URL | --api URL]
     rce-fleet task list [--json] | task get ID | task cancel ID     # the operators' task API
+    rce-fleet users [list] | users add NAME [--role R] | users role NAME --role R | users password NAME
+                   | users remove NAME  --api URL                   # an admin's: the users of a running serve
     rce-fleet configs [--out DIR] [--robots N] [--url URL]   # write robot1.config ...
     rce-fleet grid [--map YAML] [--grid RxC | --cell M]     # print the grid's cell numbers
     rce-fleet lifelong PROBLEM.json --steps N [--plan-time-limit MS] [--output OUT.json] [--seed S]
@@ -233,7 +235,9 @@ def build_parser() -> argparse.ArgumentParser:
     c.add_argument("--robots", type=int, default=10, metavar="N", help="how many (default 10)")
     c.add_argument("--url", default="http://127.0.0.1:9000/", help="master login URL written into them")
     from .operations.task_cli import add_task_parser
+    from .operations.users_cli import add_users_parser
     add_task_parser(sub)
+    add_users_parser(sub)
     g = sub.add_parser("grid", help="print the grid's cell numbers (## = not free)")
     _map_args(g)
     lf = sub.add_parser("lifelong", help="run a League of Robot Runners 2024 problem under its rules "
@@ -370,6 +374,9 @@ def _main(argv: list[str] | None) -> None:
     if args.cmd == "task":
         from .operations.task_cli import run_task
         sys.exit(run_task(args))
+    if args.cmd == "users":
+        from .operations.users_cli import run_users
+        sys.exit(run_users(args))
     if args.cmd == "configs":
         from .configs import write_configs
         for path in write_configs(args.out, args.robots, args.url):

@@ -8,7 +8,9 @@ robot endpoint as the fleet's internal user and carries the frames both ways, ea
 :class:`~rce_fleet.operations.page_rules.PageRules` for the person's role; a frame the rules refuse closes
 the page's link with 1008 and the reason. A resume (``session``, ``ack``, no password) is let through
 for a robotID this server opened, while the token that opened it is live; the robot endpoint checks the
-session token. So the page works on the page's address, port and TLS alone (the master and the robot
+session token. When a user's tokens are revoked (an admin's ``DELETE /api/tokens/USER``, a new role or
+password, a removal: :mod:`rce_fleet.operations.api_users`), that user's page sessions are closed with 1008.
+So the page works on the page's address, port and TLS alone (the master and the robot
 endpoint stay on loopback), and no person ever holds the internal user's password.
 
 Refusals before the websocket opens: 401 (no, an unknown, expired or revoked token; a user that is not
@@ -24,6 +26,7 @@ from aiohttp import WSMsgType, web
 
 from rce.plumbing.errors import RCEError
 from rce.plumbing.log import get_logger
+from rce.plumbing.tasks import Tasks
 from rce_client.dial import HandshakeRefused, close_quietly, dial, hash_password, login, with_query
 from websockets.exceptions import ConnectionClosed
 
@@ -37,6 +40,7 @@ DIAL_TIMEOUT_S = 10.0      # s for the robot endpoint's handshake
 OPENED_KEPT = 1024         # robotIDs remembered for their resumes (the oldest forgotten first)
 PASSED = ("resume", "session", "ack", "maxLag", "refusal")     # query values carried to the robot endpoint
 CLOSE_POLICY = 1008
+REVOKED = b"the user's tokens were revoked: log in again"     # the close reason then (at most 123 bytes)
 
 
 class PageDoor:
@@ -50,6 +54,15 @@ class PageDoor:
         self.opened: OrderedDict[str, str] = OrderedDict()     # robotID -> the token digest that opened it
         self.sessions = 0
         self.refused = 0           # frames refused (their links closed)
+        self.live: dict[str, set[web.WebSocketResponse]] = {}     # user -> its open page sessions
+        self.tasks = Tasks("page-door")
+        auth.on_revoke.append(self.end_user)
+
+    def end_user(self, user: str) -> None:
+        """``user``'s tokens were revoked (a new role or password, a removal, an admin's revocation): close its
+        page sessions with 1008; the page logs in again."""
+        for ws in list(self.live.get(user, ())):
+            self.tasks.spawn(ws.close(code=CLOSE_POLICY, message=REVOKED), name="page-revoked")
 
     def add_routes(self, app: web.Application) -> None:
         """Add ``GET /rce/ws`` to ``app``."""
@@ -89,11 +102,16 @@ class PageDoor:
         ws = web.WebSocketResponse(max_msg_size=MAX_FRAME, heartbeat=20.0)
         await ws.prepare(req)
         self.sessions += 1
+        self.live.setdefault(who.user, set()).add(ws)
         log.info("page session", user=who.user, role=who.role, robot=rules.robot_id, resume="session" in passed)
         try:
             await _pump(ws, up, rules, self)
         finally:
             self.sessions -= 1
+            mine = self.live.get(who.user, set())
+            mine.discard(ws)
+            if not mine:
+                self.live.pop(who.user, None)
             await close_quietly(up)
         return ws
 

@@ -4,11 +4,11 @@ Credentials are the rce master's users (the master checks the password, through 
 as the robots' front door: :mod:`rce_master.auth.login_guard`); each user has a role, kept in the master's
 user record:
 
-=========  =============================================================================
+=========  ===================================================================================================
 viewer     reads the tasks (``GET /api/tasks``), ``/metrics`` and the operator page
 operator   also adds and cancels tasks (``POST /api/tasks``, ``DELETE /api/tasks/ID``)
-admin      also revokes any user's tokens (``DELETE /api/tokens/USER``)
-=========  =============================================================================
+admin      also manages the users (``/api/users``) and revokes any user's tokens (``DELETE /api/tokens/USER``)
+=========  ===================================================================================================
 
 :class:`TokenBook` keeps the bearer tokens ``POST /api/login`` issues: random (256 bits), kept only as
 their SHA-256, each bound to a user and role, valid ``ttl_s`` seconds (the server's ``--token-ttl``,

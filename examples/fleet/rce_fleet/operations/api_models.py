@@ -16,7 +16,7 @@ from pydantic import BaseModel, ConfigDict, Field, StrictFloat, StrictInt, Stric
 from .tasks_api import ID_RE, MAX_ERRANDS
 
 __all__ = ["ApiError", "FleetTask", "LoginAnswer", "LoginRequest", "RobotWork", "TaskList", "TaskRequest",
-           "openapi_document"]
+           "UserAdd", "UserChange", "UserChanged", "UserInfo", "UserList", "openapi_document"]
 
 TaskState = Literal["queued", "assigned", "active", "done", "failed", "cancelled"]
 
@@ -120,6 +120,56 @@ class LoginAnswer(BaseModel):
                                              "token (they live in its memory); log in again then")
 
 
+Role = Literal["viewer", "operator", "admin"]
+MIN_PASSWORD = 8            # characters of a password an admin sets, at least (as the first admin's)
+MAX_PASSWORD = 1024         # ... at most
+MAX_NAME = 64               # characters of a new user's name at most
+
+
+class UserAdd(BaseModel):
+    """``POST /api/users``: a new user of the master, with its role (default operator, as ``rce-console user
+    add``'s)."""
+    model_config = ConfigDict(extra="forbid")
+    kind: ClassVar[str] = "user"
+    hints: ClassVar[dict[str, str]] = {
+        "name": f"name: 1-{MAX_NAME} letters, digits, '_', '-' or '.'",
+        "password": f"password: {MIN_PASSWORD}-{MAX_PASSWORD} characters",
+        "role": "role: viewer, operator or admin"}
+
+    name: StrictStr = Field(min_length=1, max_length=MAX_NAME, pattern=r"^[A-Za-z0-9_.-]+$")
+    password: StrictStr = Field(min_length=MIN_PASSWORD, max_length=MAX_PASSWORD)
+    role: Role = "operator"
+
+
+class UserChange(BaseModel):
+    """``PATCH /api/users/NAME``: a new role, a new password, or both. Either ends the user's tokens and page
+    sessions: the user logs in again (and gets the new role)."""
+    model_config = ConfigDict(extra="forbid")
+    kind: ClassVar[str] = "user change"
+    hints: ClassVar[dict[str, str]] = {"password": UserAdd.hints["password"], "role": UserAdd.hints["role"]}
+
+    role: Role | None = None
+    password: StrictStr | None = Field(None, min_length=MIN_PASSWORD, max_length=MAX_PASSWORD)
+
+
+class UserInfo(BaseModel):
+    """A user of the master and its role."""
+    name: str
+    role: Role
+
+
+class UserList(BaseModel):
+    """``GET /api/users``: the master's users (people's; the fleet's internal user is none of them)."""
+    users: list[UserInfo]
+
+
+class UserChanged(BaseModel):
+    """A user added, changed or removed (``role`` empty), and how many of its tokens ended."""
+    name: str
+    role: Role | Literal[""]
+    revoked: int = Field(description="tokens of the user that ended (its page sessions with them)")
+
+
 def _ref(name: str) -> dict:
     return {"$ref": f"#/components/schemas/{name}"}
 
@@ -159,9 +209,10 @@ def openapi_document(server_url: str = "/", metrics_public: bool = False) -> dic
     JSON Schemas and the security schemes (a bearer token from ``POST /api/login``, or HTTP Basic over
     TLS). ``server_url``: the API's base URL; ``metrics_public``: ``/metrics`` needs no credential."""
     from pydantic.json_schema import models_json_schema
-    requests = (TaskRequest, LoginRequest)
+    requests = (TaskRequest, LoginRequest, UserAdd, UserChange)
     models = [(m, "validation" if m in requests else "serialization")
-              for m in (*requests, FleetTask, RobotWork, TaskList, ApiError, LoginAnswer)]
+              for m in (*requests, FleetTask, RobotWork, TaskList, ApiError, LoginAnswer, UserInfo, UserList,
+                        UserChanged)]
     _, defs = models_json_schema(models, ref_template="#/components/schemas/{model}")
     err = _ref("ApiError")
     task = _json(_ref("FleetTask"), "the task")
@@ -173,7 +224,7 @@ def openapi_document(server_url: str = "/", metrics_public: bool = False) -> dic
             "503": _json(err, "the master cannot check the password now")}, body="LoginRequest")},
         "/api/logout": {"post": _op("Revoke the token the request carries", "viewer", {
             "200": {"description": "revoked"}})},
-        "/api/tokens/{user}": {"delete": _op("Revoke every token of a user", "admin", {
+        "/api/tokens/{user}": {"delete": _op("Revoke every token of a user (and end its page sessions)", "admin", {
             "200": {"description": "how many were revoked"}}, path="user")},
         "/api/tasks": {
             "get": _op("The task list", "viewer", {"200": _json(_ref("TaskList"), "the tasks")}),
@@ -191,6 +242,19 @@ def openapi_document(server_url: str = "/", metrics_public: bool = False) -> dic
                                                         "409": _json(err, "already closed"),
                                                         "504": _json(err, "the fleet did not answer within 10 s")},
                           path="id")},
+        "/api/users": {
+            "get": _op("The master's users and their roles", "admin", {"200": _json(_ref("UserList"), "the users")}),
+            "post": _op("Add a user of the master", "admin", {
+                "201": _json(_ref("UserChanged"), "added"),
+                "409": _json(err, "the user exists")}, body="UserAdd")},
+        "/api/users/{name}": {
+            "patch": _op("Give a user a role or a password; its tokens and page sessions end", "admin", {
+                "200": _json(_ref("UserChanged"), "changed"), "404": _json(err, "no such user"),
+                "409": _json(err, "the last admin would be none, or the user has robots connected")},
+                body="UserChange", path="name"),
+            "delete": _op("Remove a user; its tokens and page sessions end", "admin", {
+                "200": _json(_ref("UserChanged"), "removed (role empty)"), "404": _json(err, "no such user"),
+                "409": _json(err, "the last admin, or a user with robots connected")}, path="name")},
         "/api/openapi.json": {"get": _op("This document", None, {"200": {"description": "OpenAPI 3.1"}})},
         "/metrics": {"get": _op("Prometheus text: tasks by state, queue, task times, per-robot utilisation, "
                                 "battery", None if metrics_public else "viewer",
@@ -202,7 +266,7 @@ def openapi_document(server_url: str = "/", metrics_public: bool = False) -> dic
         "info": {"title": "rce fleet task API", "version": "1",
                  "description": "Tasks for the warehouse fleet of rce-fleet serve. Credentials are the rce "
                                 "master's users; roles: viewer (read), operator (add, cancel), admin (also "
-                                "revoke others' tokens)."},
+                                "manage the users and revoke their tokens)."},
         "servers": [{"url": server_url}],
         "security": [{"bearer": []}, {"basic": []}],
         "paths": paths,

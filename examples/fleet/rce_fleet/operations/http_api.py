@@ -10,7 +10,10 @@ role each needs in brackets, :mod:`rce_fleet.operations.api_auth`; the models an
                                 401 wrong user or password (and the fleet's own internal user, never
                                 a person's login), 429 (``Retry-After``) after repeated failures [anyone]
 ``POST /api/logout``            revoke the bearer token the request carries [viewer]
-``DELETE /api/tokens/USER``     revoke every token of USER -> ``{"revoked": n}`` [admin]
+``DELETE /api/tokens/USER``     revoke every token of USER -> ``{"revoked": n}``, and end its page
+                                sessions [admin]
+``/api/users[/NAME]``           the master's users: list, add, a role or password, remove
+                                (:mod:`rce_fleet.operations.api_users`) [admin]
 ``POST /api/tasks``             body ``{"errands": ["pick1", "42"], "priority": 0, "earliest_start_s": 0,
                                 "deadline_s": 0, "id": ""}`` -> 201 and the task, its ``source``
                                 ``http:USER``; 400 (bad request), 409 (the id exists); a field not
@@ -43,7 +46,6 @@ order). A request the fleet does not answer within 10 s is a 504.
 """
 from __future__ import annotations
 
-import hashlib
 import time
 from typing import Awaitable, Callable
 
@@ -55,6 +57,7 @@ from rce.protocol.limits import short_repr
 from .api_auth import DEFAULT_TTL_S, Identity, TokenBook, allows, parse_authorization
 from .api_body import read_model
 from .api_errors import ApiRefusal, error_response
+from .api_users import MasterUsers, add_user_routes
 from .api_models import LoginAnswer, LoginRequest, TaskRequest, openapi_document
 from .tasks_client import TaskChannel, TaskRefused
 
@@ -67,27 +70,39 @@ REALM = 'realm="rce fleet"'
 PasswordCheck = Callable[[str, str, str], Awaitable[str]]
 
 
-def master_password_check(client) -> PasswordCheck:
+def master_password_check(client) -> MasterUsers:
     """The :data:`PasswordCheck` of a master: ``POST /api/auth`` through ``client``, an
-    :class:`rce.tools.admin_client.AdminClient` holding the master's admin token."""
-    async def check(user: str, password: str, addr: str) -> str:
-        digest = hashlib.sha256(password.encode()).hexdigest()        # what a robot sends (docs/design.md, section 3.2)
-        answer = await client.arequest("POST", "/api/auth", {"user": user, "password": digest, "addr": addr})
-        return str(answer["role"])
-    return check
+    :class:`rce.tools.admin_client.AdminClient` holding the master's admin token. It is a
+    :class:`~rce_fleet.operations.api_users.MasterUsers`, so an :class:`ApiAuth` made with it also lets an admin
+    manage the master's users (``/api/users``)."""
+    return MasterUsers(client)
 
 
 class ApiAuth:
     """Who a request comes from and whether its role is enough: bearer tokens of a
     :class:`~rce_fleet.operations.api_auth.TokenBook` (lifetime ``ttl_s``), else HTTP Basic over TLS,
     checked by ``check_password``; ``metrics_public``: ``/metrics`` needs no credential; ``internal``: user
-    names that are never a person's login (the fleet's own user): refused as a wrong password is, unasked."""
+    names that are never a person's login (the fleet's own user): refused as a wrong password is, unasked;
+    ``users``: the master's users for an admin to manage (``/api/users``; by default ``check_password`` when it
+    is a :class:`~rce_fleet.operations.api_users.MasterUsers`, else none). ``on_revoke``: callables given a
+    user whose tokens were all revoked (the page's door ends that user's sessions)."""
 
     def __init__(self, check_password: PasswordCheck, *, ttl_s: float = DEFAULT_TTL_S, metrics_public: bool = False,
-                 clock: Callable[[], float] = time.monotonic, internal: frozenset[str] = frozenset()):
+                 clock: Callable[[], float] = time.monotonic, internal: frozenset[str] = frozenset(),
+                 users: MasterUsers | None = None):
         self.check_password, self.metrics_public, self.clock = check_password, metrics_public, clock
         self.internal = frozenset(internal)
         self.book = TokenBook(ttl_s)
+        self.users = users if users is not None else check_password if isinstance(check_password, MasterUsers) \
+            else None
+        self.on_revoke: list[Callable[[str], None]] = []
+
+    def revoke_user(self, user: str) -> int:
+        """End every token of ``user`` and tell :attr:`on_revoke`; returns how many tokens ended."""
+        n = self.book.revoke_user(user)
+        for tell in self.on_revoke:
+            tell(user)
+        return n
 
     def bearer(self, token: str, needed: str) -> Identity:
         """The identity of bearer ``token`` when its role allows ``needed`` (another door's check, e.g. the
@@ -161,7 +176,7 @@ def add_routes(app: web.Application, channel: TaskChannel, auth: ApiAuth) -> Non
 
     async def revoke_user(req: web.Request) -> web.Response:
         await auth.require(req, "admin")
-        return web.json_response({"revoked": auth.book.revoke_user(req.match_info["user"])})
+        return web.json_response({"revoked": auth.revoke_user(req.match_info["user"])})
 
     async def post(req: web.Request) -> web.Response:
         who = await auth.require(req, "operator")
@@ -209,6 +224,8 @@ def add_routes(app: web.Application, channel: TaskChannel, auth: ApiAuth) -> Non
     app.router.add_delete("/api/tasks/{id}", delete)
     app.router.add_get("/api/openapi.json", openapi)
     app.router.add_get("/metrics", metrics)
+    if auth.users is not None:
+        add_user_routes(app, auth, auth.users)
 
 
 def _public(task_list: dict | None) -> dict:
