@@ -22,7 +22,7 @@ from urllib.parse import parse_qs, urlsplit
 
 from websockets.exceptions import ConnectionClosed
 
-from rce.plumbing.errors import AuthError, NotFound, RCEError, Throttled
+from rce.plumbing.errors import AuthError, NotFound, RCEError, Throttled, Unavailable
 from rce.plumbing.log import get_logger
 from rce.transport.masterlink import MasterLink
 from rce.protocol.limits import DEFAULT_MAX_LAG, parse_max_lag
@@ -165,6 +165,8 @@ class RosbridgeServer:
         for iid in [i for i, itf in self.by_iid.items() if session.owns(itf)]:
             await self.by_iid.pop(iid).stop()
         try:
+            if not self.master.available:         # stopping, or the master is away: its registration learns it
+                raise Unavailable("the master is away")
             await self.master.call("robot_disconnected", user=session.user, robot=session.robot)
         except RCEError as e:
             log.warning("could not report a rosbridge disconnect", robot=session.robot, reason=e.message)

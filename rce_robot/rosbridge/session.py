@@ -38,7 +38,7 @@ from dataclasses import dataclass, field
 from collections.abc import Awaitable, Callable
 from typing import Any
 
-from rce.plumbing.errors import ProtocolError, RCEError, Timeout
+from rce.plumbing.errors import ProtocolError, RCEError, Timeout, Unavailable
 from rce.plumbing.log import get_logger
 from rce.transport.masterlink import MasterLink
 from rce.interfaces.classes import is_ros2_name, same_type
@@ -552,11 +552,20 @@ class RosbridgeSession:
             for sub in subs.values():
                 if sub.timer is not None:
                     sub.timer.cancel()
-        for bridge in list(self.bridges.values()):
-            await self._drop_quietly(bridge)
+        bridges = list(self.bridges.values())
+        for i, bridge in enumerate(bridges):
+            if not self.master.available or not await self._drop_quietly(bridge):
+                log.info("the master is away: the session's other interfaces are left to its disconnect",
+                         robot=self.robot, left=len(bridges) - i - 1)
+                break
 
-    async def _drop_quietly(self, bridge: Bridge) -> None:
+    async def _drop_quietly(self, bridge: Bridge) -> bool:
+        """:meth:`_drop`, its error logged; False when the master is away or silent (later ones would wait too)."""
         try:
             await self._drop(bridge)
+        except (Unavailable, Timeout) as e:
+            log.info("could not remove a rosbridge interface", name=bridge.name, reason=e.message)
+            return False
         except RCEError as e:
             log.info("could not remove a rosbridge interface", name=bridge.name, reason=e.message)
+        return True
