@@ -41,6 +41,8 @@ _ACTION_PARTS = {
     "_FeedbackMessage": "unique_identifier_msgs/UUID goal_id\n{T}_Feedback feedback",
 }
 _ACTION_SERVICES = ("_SendGoal", "_GetResult")
+#: The one field rosidl gives an empty message (a struct needs a member; its CDR is one byte).
+_EMPTY = [("structure_needs_at_least_one_member", (Nodetype.BASE, ("uint8", 0)))]
 
 
 def split_name(cls: str) -> tuple[str, str, str]:
@@ -212,6 +214,13 @@ class Ros2Registry(MessageRegistry):
         """Check that CDR ``payload`` fits ``typename`` (it is decoded: CDR's alignment leaves no
         cheaper walk). Raises :class:`MessageError` naming the class."""
         self.deserialize(typename, payload)
+
+    def to_json(self, typename: str, msg: Any, forms=None) -> Any:
+        """As :meth:`MessageRegistry.to_json`; an empty message (``std_srvs/srv/Trigger``'s request) is
+        ``{}``, without the placeholder rosidl gives it in CDR (``structure_needs_at_least_one_member``)."""
+        if self.store.fielddefs[typename][1] == _EMPTY:
+            return {}
+        return super().to_json(typename, msg, forms)
 
     def json_to_bytes(self, typename: str, obj: Any, forms=None) -> bytes:
         return self.serialize(typename, self.from_json(typename, obj, forms))

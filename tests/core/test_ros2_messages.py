@@ -46,6 +46,7 @@ def test_cdr_is_rclpy_bytes(reg):
 def test_services_and_action_parts_from_share(reg):
     from test_msgs.action import Fibonacci
     req_t, resp_t = reg.srv_types("std_srvs/srv/Trigger")
+    assert reg.bytes_to_json(req_t, reg.json_to_bytes(req_t, {})) == {}      # an empty request is {}, as in ROS 2
     assert reg.bytes_to_json(resp_t, reg.json_to_bytes(resp_t, {"success": True, "message": "ok"})) == \
         {"success": True, "message": "ok"}
     goal = Fibonacci.Impl.SendGoalService.Request()
