@@ -71,7 +71,7 @@ from rce.protocol.config import InterfaceSpec, RobotConfig, load_config
 from rce.plumbing.errors import ConfigError, MessageError, RCEError, Unavailable
 from rce.plumbing.log import get_logger, setup_logging
 from rce.messages import MessageRegistry, default_registry, wire_name
-from rce.node.naming import validate_name
+from rce.interfaces.naming import validate_name
 from rce.node.package_path import load_package_types
 from rce.protocol import split_interface_type
 from rce.interfaces.pacer import Pacing, rate_arg

@@ -53,7 +53,7 @@ from rce.tools.admin_client import AdminClient
 from rce.plumbing.errors import MessageError, NotFound, RCEError, RequestError, Unavailable
 from rce.plumbing.log import setup_logging
 from rce.messages import MessageRegistry, default_registry
-from rce.node.naming import resolve
+from rce.interfaces.naming import resolve
 from rce.node.package_path import load_package_types
 from rce.plumbing.process import exit_command, run_loop
 from rce.plumbing.tasks import Tasks

@@ -41,7 +41,7 @@ from rce.transport.dataplane import DataPlane
 from rce.plumbing.errors import MessageError, NotFound, RCEError, RequestError
 from rce.plumbing.log import get_logger, setup_logging
 from rce.messages import MessageRegistry, default_registry, wire_name
-from rce.node.naming import resolve
+from rce.interfaces.naming import resolve
 from rce.transport.op_table import OpTable
 from rce.node.package_path import load_package_types
 from rce.node.results import ResultStats

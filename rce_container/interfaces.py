@@ -23,7 +23,7 @@ from rce.interfaces.classes import Conversion
 from rce.messages import MessageRegistry, default_registry, store_name, wire_name
 from rce.messages.convert import conversion
 from rce.plumbing.log import get_logger
-from rce.node.naming import resolve
+from rce.interfaces.naming import resolve
 from rce.node.package_path import load_package_types
 
 log = get_logger("rce.container.interfaces")

@@ -43,7 +43,7 @@ from typing import Any, Callable
 
 from rce.plumbing.errors import NotFound, RCEError, RequestError
 from rce.plumbing.log import get_logger
-from rce.node.naming import join, validate_name
+from rce.interfaces.naming import join, validate_name
 from rce.node.package_path import find_executable, find_package
 from rce.plumbing.tasks import Tasks
 from rce_container.node_env import ENV_DIRECTIVE_ALLOWED, directive_env, node_env

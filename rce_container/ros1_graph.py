@@ -30,7 +30,7 @@ from typing import Any
 from rce.bus.core import Bus
 from rce.plumbing.errors import ConfigError, RCEError
 from rce.plumbing.log import get_logger
-from rce.node.naming import join
+from rce.interfaces.naming import join
 from rce.node.package_path import find_package
 from rce.messages.debian_ros1 import DEBIAN_PACKAGES, ros1_paths
 from rce.plumbing.tasks import Tasks

@@ -19,7 +19,7 @@ from operator import attrgetter
 from typing import Any, Awaitable, Callable
 
 from rce.plumbing.errors import MessageError, NotFound, RequestError, Timeout
-from rce.node.naming import validate_name
+from rce.interfaces.naming import validate_name
 
 Deliver = Callable[[bytes | memoryview], bool]    # returns False when the message was dropped; a view stays valid
 ServiceHandler = Callable[[bytes], Awaitable[bytes]]

@@ -17,7 +17,7 @@ A node connects to its bus (a container's environment, or the robot's local bus
 under ``rce-ros``) through the Unix socket named by ``RCE_BUS`` (or ``bus=``).
 Its name and namespace come from the arguments, ``RCE_NODE_NAME`` /
 ``RCE_NAMESPACE``, or ROS-style ``__name:=`` / ``__ns:=`` command-line
-remappings. Names resolve as in ROS (:mod:`rce.node.naming`).
+remappings. Names resolve as in ROS (:mod:`rce.interfaces.naming`).
 
 Messages handed to callbacks are rosbags typestore instances (attribute access
 like rospy messages); ``publish`` and service handlers accept an instance or a
@@ -44,7 +44,7 @@ from rce.transport import rpc
 from rce.plumbing.errors import MessageError, NotFound, RCEError, RequestError, Unavailable
 from rce.transport.link import Responder, settle_reply
 from rce.messages import MessageRegistry, default_registry, wire_name
-from rce.node.naming import join, resolve
+from rce.interfaces.naming import join, resolve
 from rce.node.links import DirectLinks
 from rce.node.package_path import load_package_types, search_path
 from rce.node.results import INPUT_ARRIVAL, ResultClock, stamp_of

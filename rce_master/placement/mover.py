@@ -49,7 +49,7 @@ import json
 import time
 from dataclasses import dataclass
 
-from rce.node.naming import resolve
+from rce.interfaces.naming import resolve
 from rce.plumbing.errors import RCEError, RequestError, Timeout
 from rce.plumbing.log import get_logger
 from rce_master.control import Control

@@ -15,7 +15,7 @@ import json
 from typing import Any, Protocol
 
 from rce.plumbing.errors import NotFound, ProtocolError
-from rce.node.naming import resolve
+from rce.interfaces.naming import resolve
 
 
 class Graph(Protocol):

@@ -1,10 +1,10 @@
-"""rce.node.naming: ROS graph names."""
+"""rce.interfaces.naming: ROS graph names."""
 from __future__ import annotations
 
 import pytest
 
 from rce.plumbing.errors import RequestError
-from rce.node.naming import join, resolve, validate_name
+from rce.interfaces.naming import join, resolve, validate_name
 
 
 @pytest.mark.parametrize("name, ns, node, expected", [
