@@ -235,9 +235,11 @@ async def test_connect_and_disconnect(interfaces):
     assert len(state.connections) == 1
     # the receiving end (the PublisherInterface) first; each end gets its credential for sending to the other
     assert host_link.sent == [("connect", {"cid": 1, "iid": 2, "peer_iid": 1, "peer_addr": "tcp://10.0.0.1:10030",
-                                           "peer_cls": "std_msgs/String", "token": control.key.connection_token(2, 1, "tcp://10.0.0.1:10030")})]
+                                           "peer_cls": "std_msgs/String",
+                                           "token": control.key.connection_token(2, 1, "tcp://10.0.0.1:10030")})]
     assert robot_link.sent == [("connect", {"iid": 1, "peer_iid": 2, "peer_addr": "unix:/c1",
-                                            "peer_cls": "std_msgs/String", "token": control.key.connection_token(1, 2, "unix:/c1")})]
+                                            "peer_cls": "std_msgs/String",
+                                            "token": control.key.connection_token(1, 2, "unix:/c1")})]
     await handle(req(interfaces), "CX", {"disconnect": [{"tagA": "r1/a", "tagB": "c1/b"}]})
     assert state.connections == set() and robot_link.ops()[-1] == "disconnect" and host_link.ops()[-1] == "disconnect"
 
