@@ -166,6 +166,7 @@ class Run:
         self.tasks = Tasks("fleet-demo")           # operator requests sent from sim timers
         self.task_list: dict | None = None         # the newest /fleet/tasks
         self.generated = 0                         # tasks the lifelong stream sent
+        self.first_done: float | None = None       # sim s from the start to the first task done
         self.refused: list[str] = []               # why the fleet refused generated tasks
         self.radio: Radio | None = None            # --out-of-coverage: the radio links to the relays
         self.master_relays: dict[str, dict] = {}   # follower -> the master's relay and relay_since (asked every 1 s)
@@ -283,7 +284,7 @@ class Run:
         self.manager = FleetManager(self.engine.master_url, self.geo, self.robots, planner_args=args,
                                     user=self.access.user, password=self.access.password,
                                     on_state=self._on_state, places=self.places, battery=o.battery,
-                                    on_tasks=self._on_tasks)
+                                    on_tasks=self._on_tasks, on_alert=self._on_alert)
         await self._bounded(self.manager.start(timeout=SETUP_TIMEOUT_S), "fleet manager setup")
         reg = default_registry()
         load_package_types(reg)
@@ -366,6 +367,13 @@ class Run:
 
     def _on_tasks(self, task_list: dict) -> None:
         self.task_list = task_list
+        if self.first_done is None and task_list.get("done") and self.t_mission is not None:
+            done = [t["finished"] for t in task_list.get("tasks", []) if t.get("state") == "done"]
+            self.first_done = (min(done) if done else self.sim.time) - self.t_mission
+
+    def _on_alert(self, robot: str, text: str) -> None:
+        """A robot's stall alert (the fleet manager logged it): on the console too."""
+        self.events.append(f"t={self.mission_t():.0f}s ALERT {text}")
 
     async def _robot_computers(self) -> None:
         """``--edge-hosts``: a container host per robot, in zone ``robot:RobotN``, serving the fleet's

@@ -172,16 +172,17 @@ def write_outputs(run, code: int, reason: str) -> None:
 
 
 def kpi_lines(rep: dict) -> str:
-    """The KPIs of a run by tasks as console lines: tasks done and per hour, task time mean and p95,
-    utilisation, charges."""
+    """The KPIs of a run by tasks as console lines: tasks done and per hour, the sim time the first was
+    done, task time mean and p95, utilisation, charges, stall alerts."""
     t, per = rep["tasks"], rep.get("per_robot", {})
     util = [w["utilisation"] for w in per.values() if "utilisation" in w]
     charges = sum(int(w.get("charges", 0)) for w in per.values())
     mean_util = 100.0 * sum(util) / len(util) if util else 0.0
+    first = "-" if t.get("first_done_s") is None else f"{t['first_done_s']:.0f} s"
     return (f"rce-fleet: tasks done {t['done']} in {rep['lifelong']['duration_s']:.0f} s sim "
-            f"({t['per_hour']:.0f} per hour), failed {t['failed']}, queued {t['queued']}\n"
+            f"({t['per_hour']:.0f} per hour), failed {t['failed']}, queued {t['queued']}; first done at {first} sim\n"
             f"rce-fleet: task time mean {t['mean_s']:.1f} s, p95 {t['p95_s']:.1f} s; "
-            f"utilisation {mean_util:.0f} %; charges {charges}")
+            f"utilisation {mean_util:.0f} %; charges {charges}; stall alerts {len(rep.get('alerts', []))}")
 
 
 def report(run, code: int, reason: str) -> dict:
@@ -234,6 +235,9 @@ def report(run, code: int, reason: str) -> dict:
                     "replans_abandoned": fs.get("replans_abandoned", 0),
                     "robots_deferred_total": fs.get("robots_deferred_total", 0)},
         "errors": fs.get("errors", []),
+        "alerts": [{"t_s": round(a["t"] - (t0 or 0.0), 2), "robot": a["robot"], "text": a["text"]}
+                   for a in (run.manager.alerts if run.manager else [])],
+        "alerts_dropped": run.manager.alerts_dropped if run.manager else 0,
         "bag": run.bag.report() if run.bag else None,
         "faults": run.faults.report() if run.faults else [],
         "per_robot": per,
@@ -254,7 +258,9 @@ def lifelong_report(run, per: dict) -> dict:
     t = run.mission_t()
     delays = goal_motion_delays(run.task_list, run.sim)
     ds = sorted(delays)
-    return {"tasks": tasks_section(run.task_list, t, run.generated),
+    tasks = tasks_section(run.task_list, t, run.generated)
+    tasks["first_done_s"] = round(run.first_done, 2) if run.first_done is not None else None
+    return {"tasks": tasks,
             "lifelong": {"duration_s": round(t, 2), "task_rate_per_min": run.o.task_rate,
                          "generated": run.generated, "refused": run.refused[:20],
                          "real_time_factor": round(t / max(time.monotonic() - run.wall_mission, 1e-9), 3),

@@ -24,10 +24,16 @@ It also sets ``/fleet/places`` (:mod:`rce_fleet.operations.places`) and ``/fleet
 (``tasks``): the operators' task API that ``rce-fleet serve``'s HTTP API and the demo's task
 generator use. ``task_stats`` keeps what a warehouse manager watches (tasks done per minute,
 queue length, utilisation), for the page's plots and the Prometheus metrics.
+
+Stalls. Each ``fleet/TaskList`` names, per robot, the stall alert the dispatcher raised
+(:mod:`rce_fleet.operations.dispatcher`: a robot that holds work and makes no progress): the manager
+logs each new alert as a warning, and the robot's return to progress; ``alerts`` keeps the newest
+(bounded) for the run's report, and ``on_alert(robot, text)`` hears them.
 """
 from __future__ import annotations
 
 import asyncio
+from collections import deque
 from typing import Callable
 
 from rce.plumbing.errors import RCEError, Unavailable
@@ -45,6 +51,7 @@ log = get_logger("fleet.manager")
 MANAGER_ID = "fleetManager"
 SETUP_TIMEOUT_S = 60.0   # s for the fleet container, its planner and the operator interfaces to come up
 CLOSE_TIMEOUT_S = 5.0    # s the cloud gets to confirm the container's removal at close
+MAX_ALERTS = 200         # stall alerts kept in ``FleetManager.alerts`` (the oldest go first, counted)
 
 _IFACES = [  # container iTag, container type, manager iTag, manager type, class, topic
     ("fleetGoalReceiver", "PublisherInterface", "fleetGoalSender", "SubscriberConverter", "fleet/RobotGoal",
@@ -62,19 +69,24 @@ class FleetManager:
     ``on_state(state_dict)`` receives every ``/fleet/state``; ``latest`` keeps the last one.
     ``container_cpu``: cores the fleet container asks for (its ``containerData`` ``cpu``: the
     cores the master reserves for it, its CPU quota and its weight when every core is busy;
-    None: no request, the weight of one process)."""
+    None: no request, the weight of one process). ``on_alert(robot, text)``: a robot's new stall
+    alert (module docstring)."""
 
     def __init__(self, master_url: str, geometry: GridGeometry, robots: list[str], *, user: str = USER,
                  password: str = PASSWORD, robot_id: str = MANAGER_ID, ctag: str = FLEET_CTAG,
                  planner_args: str = "", on_state: Callable[[dict], None] | None = None,
                  container_cpu: float | None = None, places: Places | None = None,
-                 battery: BatteryParams | None = None, on_tasks: Callable[[dict], None] | None = None):
+                 battery: BatteryParams | None = None, on_tasks: Callable[[dict], None] | None = None,
+                 on_alert: Callable[[str, str], None] | None = None):
         self.master_url, self.geo, self.robots = master_url, geometry, list(robots)
         self.user, self.password, self.robot_id, self.ctag = user, password, robot_id, ctag
         self.planner_args = planner_args
         self.container_cpu = container_cpu
         self.on_state = on_state
-        self.places, self.battery, self.on_tasks = places, battery, on_tasks
+        self.places, self.battery, self.on_tasks, self.on_alert = places, battery, on_tasks, on_alert
+        self.alerts: deque[dict] = deque(maxlen=MAX_ALERTS)   # {"t": fleet s, "robot", "text"}, newest last
+        self.alerts_dropped = 0
+        self._alert_of: dict[str, str] = {}                  # robot -> its current alert
         self.tasks: TaskChannel | None = None
         self.conn: Connection | None = None
         self.latest: dict | None = None
@@ -118,9 +130,31 @@ class FleetManager:
         if len(self.errors) > n:
             raise Unavailable(f"fleet manager setup refused: {self.errors[n]}")
         await conn.wait_interfaces_up([m for _, _, m, _, _, _ in _IFACES], timeout)
-        self.tasks = TaskChannel(conn, self.robot_id, self.ctag, source="manager", on_tasks=self.on_tasks)
+        self.tasks = TaskChannel(conn, self.robot_id, self.ctag, source="manager", on_tasks=self._on_task_list)
         await self.tasks.attach(timeout)
         log.info("fleet container up", ctag=self.ctag, robots=len(self.robots))
+
+    def _on_task_list(self, task_list: dict) -> None:
+        """Log the robots' new stall alerts and their returns to progress, then pass the list on."""
+        stamp = task_list.get("header", {}).get("stamp", {})
+        t = float(stamp.get("secs", 0)) + float(stamp.get("nsecs", 0)) / 1e9
+        for r in task_list.get("robots", []):
+            name, text = r.get("robot", ""), str(r.get("alert", ""))
+            before = self._alert_of.get(name, "")
+            if text == before:
+                continue
+            self._alert_of[name] = text
+            if text:
+                log.warning("robot stalled", robot=name, stalled_s=round(float(r.get("stalled_s", 0.0)), 1),
+                            t_fleet=round(t, 1), alert=text)
+                self.alerts_dropped += len(self.alerts) == self.alerts.maxlen
+                self.alerts.append({"t": round(t, 2), "robot": name, "text": text})
+                if self.on_alert:
+                    self.on_alert(name, text)
+            else:
+                log.info("robot makes progress again", robot=name, t_fleet=round(t, 1))
+        if self.on_tasks:
+            self.on_tasks(task_list)
 
     def _on_error(self, reason: str) -> None:
         self.errors.append(reason)

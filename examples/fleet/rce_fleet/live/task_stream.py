@@ -7,9 +7,12 @@ and the numbers a warehouse manager reads in its report.
   prediction (``bench/fleet_live.py``) replays the very same tasks.
 - :func:`tasks_section`: the report's ``tasks`` section from the fleet's newest
   ``fleet/TaskList``: done, failed, cancelled, per_hour, mean_s, p95_s, deadline_missed, and
-  ``failed_reasons`` (reason -> count, over the failed tasks the list still shows).
+  ``failed_reasons`` (reason -> count, over the failed tasks the list still shows), and ``list``: the
+  tasks the list shows (the open ones and the newest closed ones: id, state, robot, errands, and
+  the fleet times it was created and finished).
 - :func:`robot_section`: per robot, ``utilisation`` (share of its time on a task),
-  ``distance_m``, ``battery_min_pct`` and ``charges`` (simulator ground truth where there is one).
+  ``distance_m``, ``battery_min_pct`` and ``charges`` (simulator ground truth where there is one),
+  ``tasks_done`` and ``stalls`` (the dispatcher's stall alerts).
 - :func:`goal_motion_delays`: sim s from each task's assignment to its robot's first motion
   after it (robots that were standing when they got the task).
 """
@@ -67,7 +70,9 @@ def tasks_section(task_list: dict | None, duration_s: float, generated: int = 0)
             "per_hour": round(done * 3600.0 / duration_s, 2) if duration_s > 0 else 0.0,
             "mean_s": round(float(tl.get("mean_s", 0.0)), 2), "p95_s": round(float(tl.get("p95_s", 0.0)), 2),
             "deadline_missed": int(tl.get("deadline_missed", 0)), "queued": int(tl.get("queued", 0)),
-            "generated": generated, "failed_reasons": reasons}
+            "generated": generated, "failed_reasons": reasons,
+            "list": [{k: t.get(k) for k in ("id", "state", "robot", "errands", "created", "finished", "reason")}
+                     for t in tl.get("tasks", [])]}
 
 
 def robot_section(task_list: dict | None, sim) -> dict[str, dict]:
@@ -82,7 +87,7 @@ def robot_section(task_list: dict | None, sim) -> dict[str, dict]:
                      "distance_m": round(bot.distance, 2),
                      "battery_min_pct": round(100.0 * b.min_wh / b.params.capacity_wh, 2) if b else None,
                      "charges": b.charges if b else 0, "ran_flat": bool(b and b.flat),
-                     "tasks_done": int(w.get("tasks_done", 0))}
+                     "tasks_done": int(w.get("tasks_done", 0)), "stalls": int(w.get("stalls", 0))}
     return out
 
 

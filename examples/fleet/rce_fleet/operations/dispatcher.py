@@ -30,10 +30,25 @@ Each call of :meth:`Dispatcher.update` (the global planner's tick, ~5 Hz) at fle
 A robot that an operator sends somewhere (``/fleet/goal``) is the operator's until it
 arrives or its goal is dropped: it takes no task, and an unopened task it held goes back to
 the queue.
+
+Stalls. A robot that holds work (a task, or the way to a charger or a parking place) and makes no
+progress (enters no new cell and does not reach its goal) for :data:`STALL_S` fleet seconds is
+*stalled*: something the fleet does not know holds it (an obstacle its lidar cannot see, a goal it
+cannot be planned to, a jam). That is an alert (``stalled_s``, ``stalls`` and ``alert`` in its
+``fleet/RobotTask``; :attr:`Dispatcher.alerts`), and the fleet recovers, one step per
+:data:`STALL_S` while the robot stays where it is:
+
+- an unopened task goes back to the queue for another robot, and the stalled robot is offered no
+  task for :data:`BENCH_S` unless it moves (the task is re-assigned);
+- a charger or parking place it cannot reach is given up for another one (another cell);
+- an opened task (the robot carries its load) is re-planned first: its goal is dropped and set
+  again, so the planner plans it afresh from where it stands; when the robot is still held after
+  that, the task fails with the reason, instead of staying active unseen.
 """
 from __future__ import annotations
 
 import time
+from collections import deque
 from collections.abc import Iterable
 from dataclasses import dataclass
 
@@ -52,6 +67,9 @@ UNREACHABLE = 65535
 WAIT_RADIUS = 3            # steps from a taken station within which a robot waits for it
 SWAP_STEPS = 3             # steps nearer to a station by which a robot takes it from the one sent there
 START_HORIZON_STEPS = 20    # tasks whose earliest start is further ahead than this are not offered yet
+STALL_S = 60.0              # fleet s a robot holding work may make no progress before it counts as stalled
+BENCH_S = 120.0             # fleet s a robot that stalled on a task is offered none (unless it moves meanwhile)
+MAX_ALERTS = 100            # alerts kept in Dispatcher.alerts (the oldest go first; alerts_dropped counts them)
 
 IDLE, PARKING, TASK, TO_CHARGER, CHARGING, OPERATOR, UNKNOWN = (
     "idle", "parking", "task", "to_charger", "charging", "operator", "unknown")
@@ -84,6 +102,16 @@ class _Work:
     tasks_done: int = 0
     worked: bool = False           # it has had a task (then it parks when idle)
     spot: int | None = None        # where it waits for a goal another robot holds
+    still: tuple | None = None     # (cell, goal) it held work at without progress since ``still_since``
+    still_since: float = 0.0
+    stall_cell: int | None = None  # where it stalled (the alert ends when it leaves that cell)
+    stall_start: float = 0.0       # fleet time it stopped making progress there
+    stall_rounds: int = 0          # recovery steps taken there
+    stalls: int = 0                # stalls so far (alerts raised)
+    alert: str = ""                # the current stall alert ("" while it makes progress)
+    benched_until: float = -1.0    # fleet time until which it is offered no task (it stalled on one)
+    avoid: set[int] | None = None  # chargers / parking places it could not reach (chosen last)
+    replan: bool = False           # drop its goal at the next step and set it again (a fresh plan)
 
 
 class Dispatcher:
@@ -107,6 +135,8 @@ class Dispatcher:
         self.names: list[str] = []
         self.last_now: float | None = None
         self.schedule_ms: list[float] = []
+        self.alerts: deque[dict] = deque(maxlen=MAX_ALERTS)   # stall alerts: t, robot, cell, activity, task, text
+        self.alerts_dropped = 0
 
     # -- inputs -------------------------------------------------------------------------------------
     def add_robot(self, name: str) -> None:
@@ -143,7 +173,7 @@ class Dispatcher:
             self._drop_task(r)
         for w in self.robots.values():
             if w.target == cell and w.activity in (TO_CHARGER, PARKING):
-                w.activity, w.target = IDLE, None
+                self._give_up_target(w)
 
     def _drop_task(self, rec: TaskRecord) -> None:
         for w in self.robots.values():
@@ -172,6 +202,7 @@ class Dispatcher:
             if w.task is not None and not w.task.open:      # cancelled or failed meanwhile
                 w.task, w.activity = None, IDLE
             self._progress(w, v, now)
+            self._watch_stall(w, v, now)
         self._batteries(view, now)
         self._allocate(view, now)
         return self._goals(view)
@@ -199,8 +230,65 @@ class Dispatcher:
             w.charges += 1
         elif w.activity == CHARGING and self.battery and w.battery >= self.battery.recharge:
             w.activity, w.target = IDLE, None
-        elif w.activity == PARKING and v.stuck:
-            w.activity, w.target = IDLE, None
+        elif w.activity in (PARKING, TO_CHARGER) and v.stuck:
+            self._give_up_target(w)
+        if w.activity in (CHARGING, PARKING) and at and v.cell == w.target:
+            w.avoid = None                  # it reached one: every place is worth a try again
+
+    def _watch_stall(self, w: _Work, v: RobotView, now: float) -> None:
+        """Stalls (module docstring): how long ``w`` has held work at one cell without progress; an
+        alert and a recovery step every :data:`STALL_S` of it. The alert stays until the robot enters
+        another cell."""
+        if w.alert and v.cell != w.stall_cell:          # it moves again: the stall is over
+            w.alert, w.stall_rounds, w.stall_cell, w.benched_until = "", 0, None, -1.0
+        if not (w.activity in (TASK, TO_CHARGER, PARKING) and v.goal is not None
+                and not (v.arrived and v.cell == v.goal)):
+            w.still = None                  # no way to make progress on (no goal, or at it)
+            return
+        if w.still != (v.cell, v.goal):
+            w.still, w.still_since = (v.cell, v.goal), now
+            return
+        if now - w.still_since < STALL_S:
+            return
+        if not w.alert:
+            w.stall_cell, w.stall_start = v.cell, w.still_since
+        w.stall_rounds += 1
+        w.stalls += 1
+        what = f"task {w.task.id}" if w.activity == TASK and w.task is not None else \
+            {TO_CHARGER: "its way to a charger", PARKING: "its way to parking"}.get(w.activity, w.activity)
+        action = self._recover(w, now)
+        w.alert = (f"{w.name} made no progress for {now - w.stall_start:.0f} s at cell {v.cell} on {what} "
+                   f"(goal {v.goal}): {action}")
+        if len(self.alerts) == self.alerts.maxlen:
+            self.alerts_dropped += 1
+        self.alerts.append({"t": now, "robot": w.name, "cell": v.cell, "goal": v.goal, "text": w.alert})
+        w.still_since = now                 # the next step after another STALL_S without progress
+
+    def _recover(self, w: _Work, now: float) -> str:
+        """One recovery step for stalled ``w`` (module docstring); returns what it did."""
+        rec = w.task
+        if w.activity == TASK and rec is not None and not rec.task.opened:
+            self.book.unassign(rec, now)
+            w.task, w.activity, w.benched_until = None, IDLE, now + BENCH_S
+            return f"task {rec.id} goes back to the queue for another robot; {w.name} takes none for " \
+                   f"{BENCH_S:.0f} s unless it moves"
+        if w.activity == TASK and rec is not None:
+            if w.stall_rounds == 1:
+                w.replan = True
+                return f"re-planned (its goal dropped and set again); task {rec.id} stays with it"
+            self.book.close(rec, TaskState.FAILED, f"{w.name} made no progress for {now - w.stall_start:.0f} s "
+                            f"at cell {w.stall_cell} (stalled)", now)
+            w.task, w.activity, w.benched_until = None, IDLE, now + BENCH_S
+            return f"task {rec.id} failed (it was opened: its load is on {w.name}; an operator should look)"
+        target = w.target
+        self._give_up_target(w)
+        return f"gives cell {target} up for another one"
+
+    def _give_up_target(self, w: _Work) -> None:
+        """``w`` cannot reach its charger or parking place: choose another (that one last)."""
+        if w.target is not None:
+            w.avoid = (w.avoid or set()) | {w.target}
+        w.activity, w.target = IDLE, None
 
     def _batteries(self, view: dict[str, RobotView], now: float) -> None:
         if self.battery is None:
@@ -226,14 +314,16 @@ class Dispatcher:
         return True
 
     def _nearest_free(self, cell: int, cells: list[int], view: dict[str, RobotView], me: _Work) -> int | None:
-        """The nearest of ``cells`` that no other robot stands on or heads to."""
+        """The nearest of ``cells`` that no other robot stands on or heads to; those ``me`` could not
+        reach before (``me.avoid``) only when no other is free."""
         taken = {w.target for w in self.robots.values() if w is not me and w.target is not None}
         taken |= {v.cell for n, v in view.items() if n != me.name and v.cell is not None}
-        best, bd = None, UNREACHABLE
+        avoid = me.avoid or set()
+        best, bd = None, (True, UNREACHABLE)
         for c in cells:
             if c in taken:
                 continue
-            d = self._dist(cell, c)
+            d = (c in avoid, self._dist(cell, c))
             if d < bd:
                 best, bd = c, d
         return best
@@ -257,6 +347,8 @@ class Dispatcher:
                 continue
             if self.battery and 0 <= w.battery < self.battery.threshold:
                 continue
+            if w.benched_until > now and w.task is None:
+                continue                    # it stalled on a task: the others take the work for a while
             assignment[i] = w.task.task.id if w.task is not None else -1
         if not (assignment < 0).any():
             return
@@ -329,6 +421,12 @@ class Dispatcher:
         owner = self._owners(wants, held, view)
         for name, want in wants.items():
             w, v = self.robots[name], view[name]
+            if w.replan:                    # a stall's re-plan: drop the goal now, set it again at the next step
+                w.replan, w.sent = False, None
+                if v.goal is not None:
+                    out[name] = -1
+                    held.pop(name, None)
+                    continue
             if want is not None and owner[want] != name:
                 # another robot heads there, or is nearer: wait beside it (off the other places) until it is free
                 spot = self._waiting_spot(want, v.cell, w, held, view)
@@ -403,6 +501,12 @@ class Dispatcher:
         return got
 
     # -- views ------------------------------------------------------------------------------------------
+    def stalled_s(self, name: str, now: float) -> float:
+        """Fleet s robot ``name`` has held work without progress, once that is :data:`STALL_S` or more
+        (it is stalled); else 0."""
+        w = self.robots[name]
+        return now - w.stall_start if w.alert else 0.0
+
     def robot_messages(self, now: float) -> list[dict]:
         """``fleet/RobotTask`` entries (JSON form), by robot name."""
         out = []
@@ -411,5 +515,6 @@ class Dispatcher:
             out.append({"robot": name, "task": w.task.id if w.task else "", "activity": w.activity,
                         "battery_pct": round(w.battery * 100, 2) if w.battery >= 0 else -1.0,
                         "busy_s": w.busy_s, "since_s": (now - w.since) if w.since is not None else 0.0,
-                        "charges": w.charges, "tasks_done": w.tasks_done})
+                        "charges": w.charges, "tasks_done": w.tasks_done,
+                        "stalled_s": self.stalled_s(name, now), "stalls": w.stalls, "alert": w.alert})
         return out

@@ -4,8 +4,9 @@
 //   sends    /fleet/task_cancel (fleet/TaskCancel)
 //   receives /fleet/tasks       (fleet/TaskList: tasks with state, robot and times; answers to
 //                                requests; each robot's activity, task and battery)
-// and shows the queue (state, robot, age, a cancel button), each robot's battery and task, and
-// three small live plots: tasks done per minute, queue length, utilisation.
+// and shows the queue (state, robot, age in sim s, a cancel button), each robot's battery and task, its
+// stall alert (a robot holding work that makes no progress: in its row and in the log), and three
+// small live plots: tasks done per minute, queue length, utilisation.
 //
 // Its model is window.fleetView.tasks (see `model` below).
 
@@ -25,6 +26,7 @@ export class TaskPanel {
     this.seq = 0;
     this.waiting = new Map();      // request -> {entry, text, deadline}
     this.rows = new Map();
+    this.alerts = new Map();       // robot -> the stall alert the log has shown
     this.model = view.tasks = { list: [], robots: {}, stats: {}, answers: [], history: [], stamp: 0, lists: 0 };
     this.lastPlot = 0;
     const sel = $("task-place");
@@ -106,6 +108,13 @@ export class TaskPanel {
     m.stats = { queued: msg.queued, done: msg.done, failed: msg.failed, cancelled: msg.cancelled,
                 deadlineMissed: msg.deadline_missed, meanS: msg.mean_s, p95S: msg.p95_s };
     m.robots = Object.fromEntries((msg.robots || []).map((r) => [r.robot, r]));
+    for (const r of msg.robots || []) {
+      const before = this.alerts.get(r.robot) || "";
+      if ((r.alert || "") === before) continue;
+      this.alerts.set(r.robot, r.alert || "");
+      if (r.alert) this.log("error", `ALERT ${r.alert}`);
+      else this.log("ok", `${r.robot} makes progress again`);
+    }
     for (const a of m.answers) {
       const w = this.waiting.get(a.request);
       if (!w) continue;
@@ -190,12 +199,12 @@ export class TaskPanel {
   }
 
   /** The shown task's history: created, assigned (to whom), opened, each errand reached, and how it
-   * ended, with fleet times (s); from its fleet/TaskStatus. */
+   * ended, with fleet times (simulated s: the robots' clock); from its fleet/TaskStatus. */
   renderHistory() {
     const box = this.$("task-history");
     const t = this.shown && this.model.list.find((x) => x.id === this.shown);
     if (!t) { box.hidden = true; return; }
-    const at = (s) => `${(+s).toFixed(1)} s`;
+    const at = (s) => `${(+s).toFixed(1)} s sim`;     // fleet time: the robots' (simulated) clock
     const lines = [[t.created, `created by ${t.source || "?"}`]];
     if (t.assigned > 0) lines.push([t.assigned, `assigned to ${t.robot || "a robot"}`]);
     if (t.active > 0) lines.push([t.active, "opened (first errand reached)"]);
@@ -231,7 +240,10 @@ export class TaskPanel {
       }
       tr.dataset.robot = n;
       tr.querySelector(".id").textContent = n;
-      tr.querySelector(".act").textContent = r.activity;
+      const act = tr.querySelector(".act");
+      act.textContent = r.alert ? `${r.activity}: stalled ${(+r.stalled_s || 0).toFixed(0)} s` : r.activity;
+      act.className = r.alert ? "act alert" : "act";
+      act.title = r.alert || "";
       tr.querySelector(".task").textContent = r.task || "-";
       const pct = r.battery_pct;
       tr.querySelector(".bat b").textContent = pct >= 0 ? `${pct.toFixed(0)} %` : "-";
