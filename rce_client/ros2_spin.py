@@ -31,15 +31,16 @@ class NoAnswer(Exception):
 
 
 class Spinner:
-    """rclpy context, node ``name`` and its executor thread.
+    """rclpy context, node ``name`` and its executor thread; ``domain_id``: the ROS 2 domain of the
+    context (None: ``ROS_DOMAIN_ID``'s), so one process can hold nodes of several graphs apart.
 
     ``node`` is made by :meth:`start` (in the caller's thread, before the thread spins);
     ``group`` is a reentrant callback group for every entity (a service call waiting for the cloud
     holds no other callback back). :meth:`close` stops the executor, joins the thread, destroys
     the node and shuts the context down."""
 
-    def __init__(self, name: str):
-        self.name = name
+    def __init__(self, name: str, domain_id: int | None = None):
+        self.name, self.domain_id = name, domain_id
         self.context: Any = None
         self.node: Any = None
         self.executor: Any = None
@@ -59,7 +60,8 @@ class Spinner:
         from rclpy.signals import SignalHandlerOptions
 
         self.context = Context()
-        rclpy.init(args=["rce-ros"], context=self.context, signal_handler_options=SignalHandlerOptions.NO)
+        rclpy.init(args=["rce-ros"], context=self.context, domain_id=self.domain_id,
+                   signal_handler_options=SignalHandlerOptions.NO)
         self.node = Node(self.name, context=self.context, start_parameter_services=False, enable_rosout=False)
         self.group = ReentrantCallbackGroup()
         self.executor = SingleThreadedExecutor(context=self.context)
