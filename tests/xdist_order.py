@@ -49,6 +49,8 @@ LONG_FIRST = (
     "tests/engine/test_failover.py",
     "tests/fleet/test_fleet_tasks_bench.py",
     "tests/web/test_web_relays.py",
+    "tests/web/test_web_roles.py",
+    "tests/fleet/test_fleet_users_api.py",
     "tests/fleet/test_sim.py",
     "tests/fleet/test_fleet_bag.py",
     "tests/container/test_sandbox.py",
