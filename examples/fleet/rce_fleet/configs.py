@@ -31,13 +31,18 @@ come from ``mc_RobotN``, and the planner's paths, clearances and cancels
 (``/RobotN/goalNodesList``, ``/RobotN/clearance``, ``/RobotN/cancelGoal``) and the move_client's
 ``/RobotN/progress`` cross between the two containers through container-to-container connections
 (docs/placement.md).
+
+``ros2_config(cfg)`` is the config of the same robot as a ROS 2 robot (``rce-fleet demo --ros2``,
+``rce-ros CONFIG --ros2``): its robot-side interfaces name their classes in ROS 2's form
+(``geometry_msgs/msg/PoseStamped``, ``actionlib_msgs/msg/GoalID``, ``sensor_msgs/msg/BatteryState``) at
+the same topics, and the cloud's ends keep their ROS 1 classes: the engine converts, the sending end.
 """
 from __future__ import annotations
 
 import json
 from pathlib import Path
 
-__all__ = ["robot_config", "write_configs", "FLEET_CTAG", "DEFAULT_URL", "USER", "PASSWORD"]
+__all__ = ["robot_config", "ros2_config", "write_configs", "FLEET_CTAG", "DEFAULT_URL", "USER", "PASSWORD"]
 
 FLEET_CTAG = "cTag_01"
 DEFAULT_URL = "http://127.0.0.1:9000/"
@@ -106,6 +111,21 @@ def robot_config(index: int, url: str = DEFAULT_URL, user: str = USER, password:
         "interfaces": interfaces,
         "connections": connections,
     }
+
+
+def ros2_class(cls: str) -> str:
+    """A message class in ROS 2's form: ``pkg/Type`` -> ``pkg/msg/Type`` (one already so is kept)."""
+    parts = cls.strip("/").split("/")
+    return f"{parts[0]}/msg/{parts[1]}" if len(parts) == 2 else cls
+
+
+def ros2_config(cfg: dict) -> dict:
+    """A copy of robot config ``cfg`` (:func:`robot_config`'s, with any interfaces added to it) whose
+    robot-side interfaces (eTag = its robotID) name their classes in ROS 2's form (:func:`ros2_class`);
+    the others are kept."""
+    rid = cfg["robotID"]
+    return cfg | {"interfaces": [it | {"iCls": ros2_class(it["iCls"])} if it["eTag"] == rid else dict(it)
+                                 for it in cfg["interfaces"]]}
 
 
 def dumps(cfg: dict) -> str:
