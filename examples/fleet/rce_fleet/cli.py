@@ -165,6 +165,9 @@ def _run_args(p: argparse.ArgumentParser, mission: bool) -> None:
                    help="give each robot a computer of its own (a container host in zone robot:RobotN) and each "
                    "move_client a container the placer places; a robot out of coverage keeps it on board "
                    "(docs/placement.md)")
+    p.add_argument("--ros2", action="store_true",
+                   help="ROS 2 robots: each on a ROS 2 graph of its own (a domain leased for the run), bridged to the "
+                   "cloud by an rce-ros --ros2 process (docs/fleet.md)")
     p.add_argument("--radio-range", type=_positive, metavar="M",
                    help="metres between two robots that hear each other (default: 3/4 of the map's shorter side: "
                    "6 on the lab map, 22.6 on warehouse.yaml)")
@@ -426,7 +429,7 @@ def _main(argv: list[str] | None) -> None:
                        duration=duration, task_rate=task_rate,
                        battery=parse_battery(args.battery, lifelong), out_of_coverage=args.out_of_coverage,
                        edge_hosts=args.edge_hosts,
-                       radio_range=args.radio_range)
+                       radio_range=args.radio_range, ros2=args.ros2)
         check_robots(opts)              # before the run's imports: a bad flag is refused at once
     except UsageError as e:
         print(f"rce-fleet: {e}", file=sys.stderr)

@@ -288,8 +288,12 @@ class Run:
         await self._bounded(self.manager.start(timeout=SETUP_TIMEOUT_S), "fleet manager setup")
         reg = default_registry()
         load_package_types(reg)
+        ros2 = None
+        if o.ros2:                      # ROS 2 robots, each with an rce-ros --ros2 process
+            from .ros2_robots import Ros2Robots
+            ros2 = Ros2Robots(self.workdir / "ros2")
         self.sim = SimHost(self.occ, self.geo, reg, seed=o.seed, speedup=o.speedup, battery=o.battery,
-                           chargers=self.places.cells("charger"))
+                           chargers=self.places.cells("charger"), ros2=ros2)
         for r in self.robots:
             self.sim.spawn(r, self.starts[r])
         self.sim.start()

@@ -124,6 +124,7 @@ class Options:
     out_of_coverage: list[str] = field(default_factory=list)   # robots reaching the cloud only through relays
     edge_hosts: bool = False        # each robot's own computer (zone robot:RobotN) and a placed move_client container
     radio_range: float | None = None       # m between robots that hear each other (None: rce_fleet.live.radio default)
+    ros2: bool = False              # ROS 2 robots, each with an rce-ros --ros2 process (rce_fleet.live.ros2_robots)
 
 
 def parse_battery(spec: str | None, lifelong: bool) -> BatteryParams | None:
@@ -199,6 +200,10 @@ def check_robots(o: Options) -> None:
     for r in o.out_of_coverage:
         if r not in robots:
             raise UsageError(f"--out-of-coverage: unknown robot {r!r}: the robots are Robot1..Robot{o.robots}")
+    if o.ros2 and (o.out_of_coverage or any(f.kind == "link" for f in o.faults)):
+        raise UsageError(f"--ros2 with {'--out-of-coverage' if o.out_of_coverage else '--fault link:'}: a ROS 2 "
+                         f"robot's bridge is an rce-ros process of its own, whose link the demo does not route "
+                         f"(drop --ros2 for relays and link faults)")
     if not o.out_of_coverage:
         return
     if len(set(o.out_of_coverage)) == len(robots):

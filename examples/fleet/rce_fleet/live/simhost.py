@@ -26,6 +26,10 @@ become box obstacles, placed as soon as no robot is inside the box's footprint.
 
 Ground truth for tests and reports, checked every physics substep: the smallest distance
 between two robots, every cell each robot's centre entered and when, its driven path.
+
+With ``ros2`` (:class:`rce_fleet.live.ros2_robots.Ros2Robots`, ``rce-fleet demo --ros2``) each robot is
+a ROS 2 robot instead: the same topics in ROS 2's classes (:data:`TOPICS`, :data:`COMMANDS`; the
+messages CDR) on a ROS 2 graph of its own, bridged by an ``rce-ros --ros2`` process.
 """
 from __future__ import annotations
 
@@ -44,6 +48,7 @@ from rce.messages import MessageRegistry
 from rce.plumbing.tasks import Tasks
 from rce_client.rce_ros import RobotBridge
 
+from ..configs import ros2_class
 from ..operations.battery import BATTERY_TOPIC, T_BATTERY, Battery, BatteryParams
 from ..maps.geometry import GridGeometry, quaternion_from_yaw
 from .points_wire import PointsWire
@@ -55,6 +60,11 @@ OWNER = "/simulator"
 T_POSE, T_OBST = "geometry_msgs/PoseWithCovarianceStamped", "geometry_msgs/PoseArray"
 T_ODOM, T_SCAN = "nav_msgs/Odometry", "sensor_msgs/LaserScan"
 T_GOAL, T_CANCEL = "geometry_msgs/PoseStamped", "actionlib_msgs/GoalID"
+#: what a robot publishes: (name, topic, ROS 1 class); a ROS 2 robot's classes are their ROS 2 forms
+TOPICS = (("pose", "/amcl_pose", T_POSE), ("obstacles", "/obstacles", T_OBST), ("odom", "/odom", T_ODOM),
+          ("scan", "/scan", T_SCAN), ("battery", BATTERY_TOPIC, T_BATTERY))
+#: what a robot takes: (name, topic, ROS 1 class)
+COMMANDS = (("goal", "/move_base_simple/goal", T_GOAL), ("cancel", "/move_base/cancel", T_CANCEL))
 
 #: s a robot's bridge may take to log in and bring its node and interfaces up (the bridge's
 #: own setup timeout; :meth:`SimHost.connect` waits ``BRIDGE_GRACE_S`` longer, so the
@@ -74,20 +84,42 @@ MAX_OBSTACLE_POINTS = 120
 MOVING_M = 0.02
 
 
+class BusPort:
+    """A robot's topic on its local bus: :meth:`publish` a message's bytes; :meth:`wanted`: does
+    anything subscribe to it?"""
+
+    __slots__ = ("bus", "topic")
+
+    def __init__(self, bus, topic):
+        self.bus, self.topic = bus, topic
+
+    def publish(self, payload: bytes) -> None:
+        self.bus.publish(self.topic, payload)
+
+    def wanted(self) -> bool:
+        return bool(self.topic.subscriptions)
+
+
 def _stamp(sim_time: float) -> dict:
     return {"secs": int(sim_time), "nsecs": int(round((sim_time % 1.0) * 1e9)) % 1_000_000_000}
 
 
 @dataclass
 class SimBot:
-    """One simulated robot: the physics body, its navigator, its bridge and ground truth."""
+    """One simulated robot: the physics body, its navigator, its bridge and ground truth. ``ports``:
+    name (:data:`TOPICS`) -> where it publishes (a :class:`BusPort`, or a ROS 2 publisher's port);
+    ``live``: it publishes (its bridge is up; a ROS 2 robot, once its node is); ``task`` ends when its
+    bridge does; ``bridge``: the in-process bridge (None for a ROS 2 robot, whose bridge is a process:
+    ``ros2``, a :class:`rce_fleet.live.ros2_robots.Ros2Robot`)."""
     rid: str
     robot: object
     nav: LocalNavigator
     start_cell: int
     bridge: RobotBridge | None = None
     task: asyncio.Task | None = None
-    topics: dict = field(default_factory=dict)
+    ports: dict = field(default_factory=dict)
+    live: bool = False
+    ros2: object | None = None
     last_scan: tuple | None = None
     goals_received: int = 0
     cancels_received: int = 0
@@ -104,13 +136,14 @@ class SimBot:
 
 class SimHost:
     """See the module docstring. ``occ_map``: the :class:`rce_fleet.maps.occupancy.OccupancyMap`;
-    ``geometry``: the grid; ``registry``: one message registry shared by all bridges."""
+    ``geometry``: the grid; ``registry``: one message registry shared by all bridges; ``ros2``: the
+    robots are ROS 2 robots (:class:`rce_fleet.live.ros2_robots.Ros2Robots`), None: on local buses."""
 
     def __init__(self, occ_map, geometry: GridGeometry, registry: MessageRegistry, *, seed: int = 0,
                  speedup: float = 1.0, dt: float = 0.1, scan_every: int = 2, pose_every: int = 2,
                  obstacles_every: int = 10, box_margin: float = 0.1, obstacle_range: float = 2.0,
                  publish_obstacles: bool = True, battery: BatteryParams | None = None,
-                 chargers: list[int] = (), battery_every: int = 10):
+                 chargers: list[int] = (), battery_every: int = 10, ros2=None):
         if speedup <= 0:
             raise ValueError("speedup must be > 0")
         self.map, self.geo, self.registry = occ_map, geometry, registry
@@ -138,7 +171,12 @@ class SimHost:
         self._task: asyncio.Task | None = None
         self._stopping = False
         self.radius = self.world.robot_params.radius
-        self._points_wire = PointsWire("map")
+        self.ros2 = ros2
+        self._points_wire = PointsWire("map", ros2=ros2 is not None)
+        form = ros2_class if ros2 is not None else str
+        #: name (TOPICS, COMMANDS) -> the robots' class there and its registry type
+        self.classes = {name: form(cls) for name, _, cls in TOPICS + COMMANDS}
+        self._types = {name: registry.msg_type(cls) for name, cls in self.classes.items()}
 
     @property
     def time(self) -> float:
@@ -166,8 +204,14 @@ class SimHost:
         """Connect robot ``rid`` to the cloud with ``config`` (its robot config dict) through an
         in-process rce-ros bridge (``bridge_kw``: more :class:`~rce_client.rce_ros.RobotBridge` keywords,
         e.g. its relay or routes); returns when its interfaces are up. Raises RuntimeError
-        with the bridge's reason when it fails."""
+        with the bridge's reason when it fails. A ROS 2 robot (``ros2``) is connected by its
+        :meth:`~rce_fleet.live.ros2_robots.Ros2Robots.connect` (no ``bridge_kw``)."""
         bot = self.bots[rid]
+        if self.ros2 is not None:
+            if bridge_kw:
+                raise ValueError(f"{rid}: a ROS 2 robot's bridge is an rce-ros process: no {', '.join(bridge_kw)}")
+            await self.ros2.connect(bot, config, master_url, timeout, self._topics(), self._commands(bot))
+            return
         source = f"<{rid} config>"
         errors: list[str] = []
 
@@ -180,12 +224,27 @@ class SimHost:
                              err=err, **bridge_kw)
         bot.bridge = bridge
         bus = bridge.bus
-        bot.topics = {name: bus.advertise(topic, typ, OWNER) for name, topic, typ in
-                      (("pose", "/amcl_pose", T_POSE), ("obstacles", "/obstacles", T_OBST),
-                       ("odom", "/odom", T_ODOM), ("scan", "/scan", T_SCAN),
-                       ("battery", BATTERY_TOPIC, T_BATTERY))}
-        reg = self.registry
-        goal_t, cancel_t = reg.msg_type(T_GOAL), reg.msg_type(T_CANCEL)
+        bot.ports = {name: BusPort(bus, bus.advertise(topic, cls, OWNER)) for name, topic, cls in self._topics()}
+        for topic, cls, handler in self._commands(bot):
+            bus.subscribe(topic, cls, handler, OWNER, 100)
+        bot.task = self.tasks.spawn(bridge.run(), name=f"bridge-{rid}")
+        ready = self.tasks.spawn(bridge.ready.wait(), name=f"ready-{rid}")
+        done, _ = await asyncio.wait({ready, bot.task}, timeout=timeout + BRIDGE_GRACE_S,
+                                     return_when=asyncio.FIRST_COMPLETED)
+        if ready not in done:
+            ready.cancel()
+            why = errors[-1] if errors else f"interfaces not up within {timeout:g} s"
+            raise RuntimeError(f"{rid}: cannot connect to the cloud: {why}")
+        bot.live = True
+
+    def _topics(self) -> list[tuple[str, str, str]]:
+        """What every robot publishes: (name, topic, class) (:data:`TOPICS`, in the robots' form)."""
+        return [(name, topic, self.classes[name]) for name, topic, _ in TOPICS]
+
+    def _commands(self, bot: SimBot) -> list[tuple[str, str, Callable[[bytes], bool]]]:
+        """What ``bot`` takes: (topic, class, handler of a message's bytes) (:data:`COMMANDS`). A handler
+        raises :class:`rce.plumbing.errors.MessageError` for bytes that are not its class."""
+        reg, goal_t, cancel_t = self.registry, self._types["goal"], self._types["cancel"]
 
         def on_goal(payload: bytes) -> bool:
             m = reg.deserialize(goal_t, payload)
@@ -201,17 +260,8 @@ class SimHost:
             bot.nav.cancel()
             bot.robot.cmd_vel(0.0, 0.0)
             return True
-
-        bus.subscribe("/move_base_simple/goal", T_GOAL, on_goal, OWNER, 100)
-        bus.subscribe("/move_base/cancel", T_CANCEL, on_cancel, OWNER, 100)
-        bot.task = self.tasks.spawn(bridge.run(), name=f"bridge-{rid}")
-        ready = self.tasks.spawn(bridge.ready.wait(), name=f"ready-{rid}")
-        done, _ = await asyncio.wait({ready, bot.task}, timeout=timeout + BRIDGE_GRACE_S,
-                                     return_when=asyncio.FIRST_COMPLETED)
-        if ready not in done:
-            ready.cancel()
-            why = errors[-1] if errors else f"interfaces not up within {timeout:g} s"
-            raise RuntimeError(f"{rid}: cannot connect to the cloud: {why}")
+        handlers = {"goal": on_goal, "cancel": on_cancel}
+        return [(topic, self.classes[name], handlers[name]) for name, topic, _ in COMMANDS]
 
     # -- blocked cells ---------------------------------------------------------------------------
     def set_blocked(self, blocked: dict[int, str]) -> None:
@@ -285,7 +335,7 @@ class SimHost:
             driving = bot.nav.state in ("driving", "blocked")
             scan = None
             if k % self.scan_every == 0 and (driving or k % self.obstacles_every == 0
-                                             or "scan" in bot.topics and bot.topics["scan"].subscriptions):
+                                             or "scan" in bot.ports and bot.ports["scan"].wanted()):
                 scan = r.scan()
                 bot.last_scan = (scan, pose, k)
             v, w = bot.nav.update(pose, dt, scan)
@@ -349,34 +399,34 @@ class SimHost:
 
     # -- publishing --------------------------------------------------------------------------------
     def _publish(self, tick: int) -> None:
-        reg = self.registry
+        reg, ty = self.registry, self._types
         t = self.time
         for bot in self.bots.values():
-            if bot.bridge is None or not bot.bridge.ready.is_set():
+            if not bot.live:
                 continue
-            bus, tp = bot.bridge.bus, bot.topics
+            tp = bot.ports
             if tick % self.pose_every == 0:
                 x, y, yaw, cov = bot.robot.localisation()
                 msg = {"header": {"stamp": _stamp(t), "frame_id": "map"},
                        "pose": {"pose": {"position": {"x": x, "y": y, "z": 0.0},
                                          "orientation": quaternion_from_yaw(yaw)},
                                 "covariance": cov}}
-                bus.publish(tp["pose"], reg.json_to_bytes(reg.msg_type(T_POSE), msg))
-            if tp["odom"].subscriptions:
+                tp["pose"].publish(reg.json_to_bytes(ty["pose"], msg))
+            if tp["odom"].wanted():
                 ox, oy, oyaw, v, w = bot.robot.odom()
                 msg = {"header": {"stamp": _stamp(t), "frame_id": "odom"}, "child_frame_id": "base_footprint",
                        "pose": {"pose": {"position": {"x": ox, "y": oy}, "orientation": quaternion_from_yaw(oyaw)}},
                        "twist": {"twist": {"linear": {"x": v}, "angular": {"z": w}}}}
-                bus.publish(tp["odom"], reg.json_to_bytes(reg.msg_type(T_ODOM), msg))
-            if bot.last_scan is not None and bot.last_scan[2] == tick and tp["scan"].subscriptions:
+                tp["odom"].publish(reg.json_to_bytes(ty["odom"], msg))
+            if bot.last_scan is not None and bot.last_scan[2] == tick and tp["scan"].wanted():
                 p = bot.robot.lidar.params
                 msg = {"header": {"stamp": _stamp(t), "frame_id": "base_scan"}, "angle_min": p.angle_min,
                        "angle_max": p.angle_max, "angle_increment": p.angle_increment, "scan_time": 1.0 / p.rate_hz,
                        "range_min": p.range_min, "range_max": p.range_max,
                        "ranges": [float(v) for v in bot.last_scan[0]]}
-                bus.publish(tp["scan"], reg.json_to_bytes(reg.msg_type(T_SCAN), msg))
+                tp["scan"].publish(reg.json_to_bytes(ty["scan"], msg))
             if bot.battery is not None and tick % self.battery_every == 0:
-                bus.publish(tp["battery"], reg.json_to_bytes(reg.msg_type(T_BATTERY), bot.battery.message(_stamp(t))))
+                tp["battery"].publish(reg.json_to_bytes(ty["battery"], bot.battery.message(_stamp(t))))
             if self.publish_obstacles and tick % self.obstacles_every == 0 and bot.last_scan is not None:
                 scan, pose, _ = bot.last_scan
                 pts = self.detector.detect_points(scan, pose)
@@ -384,8 +434,8 @@ class SimHost:
                 if len(pts):
                     self.obstacle_points_dropped += max(0, len(pts) - MAX_OBSTACLE_POINTS)
                     stamp = _stamp(t)
-                    bus.publish(tp["obstacles"], self._points_wire.pack(stamp["secs"], stamp["nsecs"],
-                                                                         pts[:MAX_OBSTACLE_POINTS]))
+                    tp["obstacles"].publish(self._points_wire.pack(stamp["secs"], stamp["nsecs"],
+                                                                   pts[:MAX_OBSTACLE_POINTS]))
 
     # -- teardown ----------------------------------------------------------------------------------
     async def stop(self, timeout: float = STOP_TIMEOUT_S, first: list[str] = ()) -> None:
@@ -395,6 +445,8 @@ class SimHost:
         self._stopping = True
         if self._task is not None:
             await asyncio.gather(self._task, return_exceptions=True)
+        if self.ros2 is not None:
+            await self.ros2.stop(timeout)
         for group in ([r for r in self.bots if r in first], [r for r in self.bots if r not in first]):
             tasks = []
             for bot in (self.bots[r] for r in group):

@@ -1,0 +1,285 @@
+"""The fleet's simulated robots as ROS 2 robots (``rce-fleet demo --ros2``, ``rce-fleet serve --ros2``).
+
+Each robot of the :class:`~rce_fleet.live.simhost.SimHost` gets a ROS 2 graph of its own: a domain id
+leased for the run (:func:`rce_container.ros2_graph.lease_domain`: held by no other robot, container or
+test of this machine) with discovery on this host only (``ROS_AUTOMATIC_DISCOVERY_RANGE=LOCALHOST``). On
+it run two nodes:
+
+- ``/simulator``, the simulated robot: an rclpy node in the simulator's process, in a context of its
+  own on the robot's domain, spun by a thread (:class:`rce_client.ros2_spin.Spinner`). It publishes
+  ``/amcl_pose`` (``geometry_msgs/msg/PoseWithCovarianceStamped``; reliable, transient local, depth 1,
+  as Nav2's amcl), ``/obstacles`` (``geometry_msgs/msg/PoseArray``), ``/battery``
+  (``sensor_msgs/msg/BatteryState``, with batteries), and while something subscribes ``/odom``
+  (``nav_msgs/msg/Odometry``) and ``/scan`` (``sensor_msgs/msg/LaserScan``; best effort, depth 5: the
+  sensor-data QoS of lidar drivers). It takes goals on ``/move_base_simple/goal``
+  (``geometry_msgs/msg/PoseStamped``) and cancels on ``/move_base/cancel`` (``actionlib_msgs/msg/GoalID``).
+  The messages are CDR built by rce's registry (:meth:`rce.messages.MessageRegistry.json_to_bytes`) and
+  published as bytes; what it takes reaches the simulator's loop through a bounded handoff per topic
+  (:class:`rce_client.ros1_bridge.Handoff`: 100 in flight, more dropped and counted).
+- ``/RobotN``, its bridge to the cloud: ``rce-ros CONFIG --ros2``, a process of its own (tied to this
+  one: it ends when this process does), with the robot's config whose robot-side interfaces name ROS 2
+  classes (:func:`rce_fleet.configs.ros2_config`). The cloud's ends keep their ROS 1 classes; the engine
+  converts between the two, at the sending end. Its output goes to ``RobotN.log`` in the work
+  directory's ``ros2/``; the counts per interface it prints at its stop are kept (:meth:`Ros2Robots.summary`).
+
+The fleet's own messages (``fleet/Clearance``, ``fleet/MoveProgress``, ``fleet/FleetState``...) never
+reach a robot: they stay ROS 1, between the cloud's nodes and the operators.
+
+rcl takes ``ROS_AUTOMATIC_DISCOVERY_RANGE`` from the environment only, so :class:`Ros2Robots` sets it in
+this process (and ``ROS_LOG_DIR``, unless set, to the run's ``ros2/log``).
+"""
+from __future__ import annotations
+
+import asyncio
+import collections
+import os
+import re
+import signal
+import subprocess
+import sys
+from pathlib import Path
+from typing import Any, Callable
+
+from rce.plumbing.errors import MessageError
+from rce.plumbing.log import get_logger
+from rce.plumbing.process import popen_tied
+from rce.plumbing.tasks import Tasks
+
+from ..configs import ros2_config
+
+log = get_logger("fleet.ros2")
+
+NODE = "simulator"           # the simulated robot's node on each robot's graph
+RANGE = "LOCALHOST"          # ROS_AUTOMATIC_DISCOVERY_RANGE of every robot's graph
+HANDOFF_LIMIT = 100          # messages per topic on their way from rclpy's thread to the loop
+BRIDGE_GRACE_S = 5.0         # s beyond rce-ros's own --timeout that its "ready" may take (its start-up)
+OUTPUT_LINES = 30            # last lines of each rce-ros kept for the reason of a failure
+LINE_LIMIT = 1 << 20         # bytes in one line of rce-ros's output (a longer one is cut)
+CLOSE_TIMEOUT_S = 5.0        # s a node's executor gets to stop
+#: QoS of the simulated robot's publishers, as the ROS 2 drivers of a TurtleBot publish them (Nav2's amcl: the
+#: last pose for late subscribers; lidar drivers: sensor data). Not named: rclpy's default, reliable, depth 10.
+QOS = {"pose": "amcl", "scan": "sensor_data"}
+COUNTS = re.compile(r"rce-ros: ROS 2 (\S+): (\d+) from ROS 2, (\d+) to ROS 2, (\d+) dropped, (\d+) failed")
+
+
+def rce_ros_command() -> list[str]:
+    """argv prefix of ``rce-ros``: the script beside this interpreter, else ``python -m``."""
+    script = Path(sys.executable).parent / "rce-ros"
+    return [str(script)] if script.is_file() else [sys.executable, "-m", "rce_client.rce_ros"]
+
+
+def _qos(name: str) -> Any:
+    from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy, qos_profile_sensor_data
+    kind = QOS.get(name)
+    if kind == "amcl":
+        return QoSProfile(depth=1, reliability=ReliabilityPolicy.RELIABLE, durability=DurabilityPolicy.TRANSIENT_LOCAL)
+    if kind == "sensor_data":
+        return qos_profile_sensor_data
+    return QoSProfile(depth=10)
+
+
+class Ros2Port:
+    """A topic the simulated robot publishes on its ROS 2 graph: :meth:`publish` CDR bytes;
+    :meth:`wanted`: does a subscription on the graph match it? ``sent`` counts what was published."""
+
+    __slots__ = ("pub", "sent")
+
+    def __init__(self, pub: Any):
+        self.pub, self.sent = pub, 0
+
+    def publish(self, payload: bytes) -> None:
+        self.pub.publish(payload)
+        self.sent += 1
+
+    def wanted(self) -> bool:
+        return self.pub.get_subscription_count() > 0
+
+
+class Ros2Robot:
+    """One ROS 2 robot: its domain lease, its ``/simulator`` node (:attr:`spinner`), its publishers
+    (:attr:`ports`), what it took (:attr:`counts`, topic -> :class:`rce_client.ros1_bridge.Counts`;
+    ``bad``: bytes that were not their class) and its rce-ros process (:attr:`proc`, the counts it printed
+    at its stop in :attr:`bridged`: iTag -> (from ROS 2, to ROS 2, dropped, failed))."""
+
+    def __init__(self, rid: str, lease: Any):
+        self.rid, self.lease = rid, lease
+        self.domain: int = lease.domain
+        self.spinner: Any = None
+        self.ports: dict[str, Ros2Port] = {}
+        self.counts: dict[str, Any] = {}
+        self.proc: subprocess.Popen | None = None
+        self.reader: asyncio.Task | None = None      # reads its output; ends with it (its exit code)
+        self.ready = asyncio.Event()
+        self.output: collections.deque[str] = collections.deque(maxlen=OUTPUT_LINES)
+        self.bridged: dict[str, tuple[int, int, int, int]] = {}
+
+    def start_node(self, topics: list[tuple[str, str, str]],
+                   commands: list[tuple[str, str, Callable[[bytes], bool]]], loop: asyncio.AbstractEventLoop) -> None:
+        """Blocking (call it in a thread): the node on the robot's domain, a publisher per topic
+        (name, topic, class), a raw subscription per command (topic, class, handler run in ``loop``)."""
+        from rce_client.ros1_bridge import Counts, Handoff
+        from rce_client.ros2_spin import Spinner
+        from rce_client.ros2_types import rclpy_class
+        self.spinner = Spinner(NODE, domain_id=self.domain)
+        self.spinner.start()
+        node = self.spinner.node
+        for name, topic, cls in topics:
+            self.ports[name] = Ros2Port(node.create_publisher(rclpy_class(name, cls), topic, _qos(name)))
+        for topic, cls, handler in commands:
+            counts = self.counts[topic] = Counts()
+            hand = Handoff(loop, self._taker(topic, cls, handler, counts), counts, HANDOFF_LIMIT)
+            node.create_subscription(rclpy_class(topic, cls), topic, hand.offer, _qos(""), raw=True,
+                                     callback_group=self.spinner.group)
+
+    def _taker(self, topic: str, cls: str, handler: Callable[[bytes], bool], counts: Any) -> Callable[[bytes], None]:
+        def take(payload: bytes) -> None:
+            try:
+                handler(payload)
+            except MessageError as e:
+                counts.add(bad=1)
+                log.warning("message refused", robot=self.rid, topic=topic, cls=cls, reason=str(e))
+        return take
+
+    def close(self) -> None:
+        """Blocking: destroy the node, shut its context down, give the domain back."""
+        try:
+            if self.spinner is not None:
+                self.spinner.close(CLOSE_TIMEOUT_S)
+        finally:
+            self.lease.release()
+
+
+class Ros2Robots:
+    """The simulator's robots as ROS 2 robots (see the module doc): :meth:`connect` each, :meth:`stop`
+    all. ``workdir``: where the bridges' configs and output go (made 0700: the configs hold the fleet's
+    password); ``out(line)``: prints a robot's domain once its bridge is up; ``lease``: leases a
+    domain (default :func:`rce_container.ros2_graph.lease_domain`)."""
+
+    def __init__(self, workdir: Path, out: Callable[[str], None] = lambda line: print(line, flush=True),
+                 lease: Callable[[], Any] | None = None):
+        self.dir = Path(workdir)
+        self.dir.mkdir(mode=0o700, parents=True, exist_ok=True)
+        self.out = out
+        if lease is None:
+            from rce_container.ros2_graph import lease_domain as lease
+        self._lease = lease
+        self.robots: dict[str, Ros2Robot] = {}
+        self.tasks = Tasks("fleet-ros2")
+        os.environ["ROS_AUTOMATIC_DISCOVERY_RANGE"] = RANGE       # rcl reads it from the environment only
+        os.environ.setdefault("ROS_LOG_DIR", str(self.dir / "log"))
+
+    async def connect(self, bot: Any, config: dict, master_url: str, timeout: float,
+                      topics: list[tuple[str, str, str]], commands: list[tuple[str, str, Callable[[bytes], bool]]]
+                      ) -> Ros2Robot:
+        """Make ``bot`` (a :class:`~rce_fleet.live.simhost.SimBot`) a ROS 2 robot: lease its domain, start
+        its node (it publishes from now on: ``bot.ports``, ``bot.live``), then its ``rce-ros --ros2`` with
+        ``config`` (its robot config, made ROS 2 here) logging in at ``master_url``; returns when the
+        bridge's interfaces are up (within ``timeout`` s, its ``--timeout``). ``bot.task`` ends when the
+        bridge's process does. Raises RuntimeError with rce-ros's reason when it fails."""
+        rid = bot.rid
+        lease = await asyncio.to_thread(self._lease)
+        robot = self.robots[rid] = Ros2Robot(rid, lease)
+        bot.ros2 = robot
+        await asyncio.to_thread(robot.start_node, topics, commands, asyncio.get_running_loop())
+        bot.ports, bot.live = robot.ports, True
+        path = self.dir / f"{rid.lower()}.config"
+        path.touch(mode=0o600)
+        path.write_text(_json(ros2_config(config) | {"url": master_url}))
+        env = dict(os.environ, ROS_DOMAIN_ID=str(robot.domain), ROS_AUTOMATIC_DISCOVERY_RANGE=RANGE)
+        logfile = open(self.dir / f"{rid}.log", "wb")
+        try:
+            robot.proc = await asyncio.to_thread(
+                popen_tied, [*rce_ros_command(), str(path), "--ros2", "--timeout", f"{timeout:g}"],
+                stdout=subprocess.PIPE, stderr=subprocess.STDOUT, env=env, start_new_session=True)
+        except OSError:
+            logfile.close()
+            raise
+        bot.task = robot.reader = self.tasks.spawn(self._read(robot, logfile), name=f"rce-ros-{rid}")
+        ready = self.tasks.spawn(robot.ready.wait(), name=f"ready-{rid}")
+        done, _ = await asyncio.wait({ready, bot.task}, timeout=timeout + BRIDGE_GRACE_S,
+                                     return_when=asyncio.FIRST_COMPLETED)
+        if ready not in done:
+            ready.cancel()
+            said = [ln for ln in robot.output if ln.startswith("rce-ros:")]
+            how = f"exited with {robot.proc.poll()}" if bot.task.done() else f"not ready within {timeout:g} s"
+            raise RuntimeError(f"{rid}: cannot connect to the cloud: rce-ros --ros2 {how}"
+                               f"{': ' + said[-1] if said else ''} (see {self.dir / (rid + '.log')})")
+        self.out(f"rce-fleet: {rid}: a ROS 2 robot on domain {robot.domain} (ROS_DOMAIN_ID={robot.domain} "
+                 f"ROS_AUTOMATIC_DISCOVERY_RANGE={RANGE}): /{NODE} and its bridge rce-ros --ros2 "
+                 f"(pid {robot.proc.pid})")
+        return robot
+
+    async def _read(self, robot: Ros2Robot, logfile) -> int:
+        """Tee rce-ros's output to its log, note its ready line and its counts; its exit code at the end."""
+        loop = asyncio.get_running_loop()
+        reader = asyncio.StreamReader(limit=LINE_LIMIT)
+        transport, _ = await loop.connect_read_pipe(lambda: asyncio.StreamReaderProtocol(reader), robot.proc.stdout)
+        try:
+            while True:
+                try:
+                    raw = await reader.readline()
+                except ValueError:                     # a line over LINE_LIMIT: its start is gone, go on
+                    raw = b"(a line too long to keep)\n"
+                if not raw:
+                    break
+                logfile.write(raw)
+                line = raw.decode(errors="replace").rstrip()
+                robot.output.append(line)
+                if line.startswith("rce-ros: ready"):
+                    robot.ready.set()
+                elif (m := COUNTS.match(line)) is not None:
+                    robot.bridged[m.group(1)] = tuple(int(x) for x in m.groups()[1:])
+        finally:
+            transport.close()
+            logfile.close()
+        return await asyncio.to_thread(robot.proc.wait)
+
+    async def stop(self, timeout: float) -> None:
+        """Stop every bridge (SIGTERM: rce-ros removes its interfaces and prints its counts; SIGKILL after
+        ``timeout`` s), then every node, and give the domains back."""
+        procs = [r.proc for r in self.robots.values() if r.proc is not None and r.proc.poll() is None]
+        for p in procs:
+            p.send_signal(signal.SIGTERM)
+        readers = [r.reader for r in self.robots.values() if r.reader is not None and not r.reader.done()]
+        if procs:
+            await asyncio.to_thread(_wait_all, procs, timeout)
+        if readers:
+            await asyncio.wait(readers, timeout=timeout)
+        for r in self.robots.values():
+            await asyncio.to_thread(r.close)
+        await self.tasks.cancel_all()
+        if self.robots:
+            self.out(self.summary())
+
+    def summary(self) -> str:
+        """One line: the robots' domains, what their bridges carried each way, dropped and failed, and what
+        the simulated robots published and took (their messages' counts)."""
+        from_ros = sum(v[0] for r in self.robots.values() for v in r.bridged.values())
+        to_ros = sum(v[1] for r in self.robots.values() for v in r.bridged.values())
+        dropped = sum(v[2] for r in self.robots.values() for v in r.bridged.values())
+        failed = sum(v[3] for r in self.robots.values() for v in r.bridged.values())
+        sent = sum(p.sent for r in self.robots.values() for p in r.ports.values())
+        took = sum(c.from_ros for r in self.robots.values() for c in r.counts.values())
+        lost = sum(c.dropped + c.bad for r in self.robots.values() for c in r.counts.values())
+        domains = ", ".join(f"{rid} {r.domain}" for rid, r in self.robots.items())
+        return (f"rce-fleet: ROS 2 robots (domains {domains}): their rce-ros --ros2 carried {from_ros} messages from "
+                f"ROS 2 to the cloud and {to_ros} to ROS 2, {dropped} dropped, {failed} failed; the robots "
+                f"published {sent} and took {took} ({lost} dropped or refused)")
+
+
+def _wait_all(procs: list[subprocess.Popen], timeout: float) -> None:
+    """Wait for ``procs`` to end, together within ``timeout`` s; SIGKILL (the process group) those that do not."""
+    import time
+    deadline = time.monotonic() + timeout
+    for p in procs:
+        try:
+            p.wait(max(0.0, deadline - time.monotonic()))
+        except subprocess.TimeoutExpired:
+            log.warning("rce-ros did not stop in time: killed", pid=p.pid)
+            os.killpg(p.pid, signal.SIGKILL)
+            p.wait()
+
+
+def _json(cfg: dict) -> str:
+    import json
+    return json.dumps(cfg, indent=2)
