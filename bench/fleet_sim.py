@@ -34,7 +34,9 @@ def run(robots: int, ticks: int, seed: int = 1) -> dict:
     from rce_fleet.maps.geometry import GridGeometry
     from rce_fleet.maps.grid import make_grid
     from rce_fleet.maps.occupancy import load_map
-    from rce_fleet.sim import LocalNavigator, ObstacleDetector, SimWorld
+    from rce_fleet.sim.local_nav import LocalNavigator
+    from rce_fleet.sim.obstacles import ObstacleDetector
+    from rce_fleet.sim.world import SimWorld
     occ = load_map(WAREHOUSE)
     world, detector = SimWorld(occ, seed=seed), ObstacleDetector(occ)
     geo = GridGeometry.from_cellgrid(make_grid(occ, cell_m=1.2))

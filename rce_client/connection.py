@@ -55,7 +55,7 @@ from typing import Any, Awaitable, Callable, Iterable
 from websockets.asyncio.client import ClientConnection
 from websockets.exceptions import ConnectionClosed
 
-from rce import protocol
+from rce.protocol import frames
 
 from rce.transport import tls
 from rce.plumbing.errors import Unavailable
@@ -123,7 +123,7 @@ class Connection(Verbs, Handles, Reconnecting):
     version) of a connection made by a login, which lets it move."""
 
     def __init__(self, ws: ClientConnection, user_id: str, robot_id: str, ws_url: str,
-                 expiry: float = protocol.DEFAULT_EXPIRY, reconnect: Reconnect | None = None):
+                 expiry: float = frames.DEFAULT_EXPIRY, reconnect: Reconnect | None = None):
         self.ws, self.user_id, self.robot_id, self.ws_url = ws, user_id, robot_id, ws_url
         self.reconnect = reconnect
         self.session = ClientSession(expiry=expiry, resume=reconnect is not None,
@@ -171,7 +171,7 @@ class Connection(Verbs, Handles, Reconnecting):
     @classmethod
     async def login_connect(cls, master_url: str, user_id: str, password: str, robot_id: str, *,
                             version: str = CLIENT_VERSION, timeout: float = CONNECT_TIMEOUT,
-                            expiry: float = protocol.DEFAULT_EXPIRY, allow_reconnect: bool = False,
+                            expiry: float = frames.DEFAULT_EXPIRY, allow_reconnect: bool = False,
                             max_reconnect_attempts: int | None = None, reconnect_time_wait: float = RECONNECT_WAIT,
                             max_reconnect_wait: float = RECONNECT_WAIT_MAX, resume_buffer: int = DEFAULT_RESUME_BUFFER,
                             endpoint_gone_after: int = ENDPOINT_GONE_AFTER, ssl_context: ssl.SSLContext | None = None,
@@ -221,7 +221,7 @@ class Connection(Verbs, Handles, Reconnecting):
 
     @classmethod
     async def open(cls, ws_url: str, user_id: str, password: str, robot_id: str, *,
-                   timeout: float = CONNECT_TIMEOUT, expiry: float = protocol.DEFAULT_EXPIRY,
+                   timeout: float = CONNECT_TIMEOUT, expiry: float = frames.DEFAULT_EXPIRY,
                    allow_reconnect: bool = False, max_reconnect_attempts: int | None = None,
                    reconnect_time_wait: float = RECONNECT_WAIT, max_reconnect_wait: float = RECONNECT_WAIT_MAX,
                    resume_buffer: int = DEFAULT_RESUME_BUFFER,

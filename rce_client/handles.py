@@ -19,7 +19,7 @@ from __future__ import annotations
 import inspect
 from typing import Any, Callable, Protocol
 
-from rce import protocol
+from rce.protocol import frames
 from rce.plumbing.errors import RCEError, Timeout
 from rce.plumbing.log import get_logger
 from rce.protocol.events import MessageReceived
@@ -69,7 +69,7 @@ class Publisher:
         if bulk is not None and bulk.up and lane is Lane.BULK:
             bulk.put(self.itag, self.cls, msg)
         else:
-            await self.conn.send(protocol.DM, {"iTag": self.itag, "type": self.cls, "msg": msg},
+            await self.conn.send(frames.DM, {"iTag": self.itag, "type": self.cls, "msg": msg},
                                  newest_of=None if lane is Lane.CONTROL else self.itag)
         self.sent += 1
 
@@ -143,7 +143,7 @@ class ServiceProvider:
         out = {"iTag": self.itag, "type": call.type or self.srv_cls, "msg": resp}
         if msg_id is not None:
             out["msgID"] = msg_id
-        await self.conn.send(protocol.DM, out)
+        await self.conn.send(frames.DM, out)
 
 
 class Handles:

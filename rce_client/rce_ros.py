@@ -73,7 +73,7 @@ from rce.plumbing.log import get_logger, setup_logging
 from rce.messages import MessageRegistry, default_registry, wire_name
 from rce.interfaces.naming import validate_name
 from rce.node.package_path import load_package_types
-from rce.protocol import split_interface_type
+from rce.protocol.schema import split_interface_type
 from rce.interfaces.pacer import Pacing, rate_arg
 from rce_client.connection import Connection, Message
 from rce_client.paths import default_bus_path

@@ -11,7 +11,7 @@ from typing import Any
 from websockets.asyncio.client import ClientConnection
 from websockets.exceptions import ConnectionClosed
 
-from rce import protocol
+from rce.protocol import frames
 from rce.plumbing.errors import Timeout, Unavailable
 from rce.plumbing.log import get_logger
 from rce.protocol.session import ClientSession
@@ -80,16 +80,16 @@ class Verbs:
         data: dict = {"containerTag": tag}
         if cd:
             data["containerData"] = cd
-        await self.send(protocol.CC, data)
+        await self.send(frames.CC, data)
 
     async def destroy_container(self, tag: str) -> None:
         """DC: destroy container ``tag`` (with its nodes, interfaces and connections)."""
-        await self.send(protocol.DC, {"containerTag": tag})
+        await self.send(frames.DC, {"containerTag": tag})
 
     async def configure(self, cn_data: dict) -> None:
         """CN with raw data: any of ``addNodes``, ``removeNodes``, ``setParam``, ``deleteParam``,
         ``addInterfaces``, ``removeInterfaces``, each a list of components."""
-        await self.send(protocol.CN, cn_data)
+        await self.send(frames.CN, cn_data)
 
     async def add_node(self, ctag: str, ntag: str, pkg: str, exe: str, args: str | list[str] = "",
                        name: str | None = None, namespace: str | None = None,
@@ -133,11 +133,11 @@ class Verbs:
 
     async def connect_interfaces(self, tag_a: str, tag_b: str) -> None:
         """CX connect: wire interfaces ``tag_a`` and ``tag_b`` (each ``endpointTag/interfaceTag``)."""
-        await self.send(protocol.CX, {"connect": [{"tagA": tag_a, "tagB": tag_b}]})
+        await self.send(frames.CX, {"connect": [{"tagA": tag_a, "tagB": tag_b}]})
 
     async def disconnect(self, tag_a: str, tag_b: str) -> None:
         """CX disconnect: remove the connection between ``tag_a`` and ``tag_b``."""
-        await self.send(protocol.CX, {"disconnect": [{"tagA": tag_a, "tagB": tag_b}]})
+        await self.send(frames.CX, {"disconnect": [{"tagA": tag_a, "tagB": tag_b}]})
 
     async def barrier(self, timeout: float = WAIT_TIMEOUT) -> bool:
         """Wait until the cloud has processed every request sent before this call.

@@ -21,7 +21,7 @@ from rce.messages.convert import conversion
 from rce.messages.forms import JsonForms
 from rce.messages import MessageRegistry
 from rce.plumbing.pending import PendingCalls
-from rce.protocol import new_id
+from rce.protocol.frames import new_id
 
 if TYPE_CHECKING:
     from rce.transport.dataplane import DataPlane

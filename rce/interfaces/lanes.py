@@ -19,7 +19,7 @@ from enum import StrEnum
 from typing import Any
 
 from rce.plumbing.errors import ProtocolError
-from rce.protocol.limits import short_repr
+from rce.plumbing.text import short_repr
 
 BULK_SIZE = 16 * 1024      # bytes: a message of a default-laned interface above this travels bulk; also
                            # the largest frame a bulk lane writes (docs/lanes.md "Frames")

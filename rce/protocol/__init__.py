@@ -12,21 +12,3 @@
 - :mod:`rce.protocol.limits`: the bounds a session keeps under hostile input (JSON depth, ER
   text and rate, the endpoint's budget of pending binary parts).
 """
-import importlib
-
-#: The package's names and the modules that define them. They load on first use (PEP 562), so a
-#: process that needs only a light part (an environment: interface types) does not build the
-#: pydantic schema.
-_EXPORTS = {**dict.fromkeys(("CC", "CN", "CX", "DC", "DEFAULT_EXPIRY", "DM", "ER", "ID_LEN", "ST", "Assembler",
-                             "encode", "is_part_id", "new_id"), "rce.protocol.frames"),
-            "split_interface_type": "rce.protocol.schema", "validate": "rce.protocol.schema"}
-
-__all__ = list(_EXPORTS)
-
-
-def __getattr__(name: str):
-    if name not in _EXPORTS:
-        raise AttributeError(f"module 'rce.protocol' has no attribute {name!r}")
-    value = getattr(importlib.import_module(_EXPORTS[name]), name)
-    globals()[name] = value
-    return value

@@ -24,7 +24,8 @@ import orjson
 
 from rce.plumbing.errors import ProtocolError
 from rce.protocol import jsontext
-from rce.protocol.limits import MAX_JSON_DEPTH, PartBudget, json_too_deep, short_repr, truncate
+from rce.plumbing.text import short_repr
+from rce.protocol.limits import MAX_JSON_DEPTH, PartBudget, json_too_deep, truncate
 
 CC, DC, CN, CX, DM, ST, ER = "CC", "DC", "CN", "CX", "DM", "ST", "ER"
 ID_LEN = 32                       # chars of a binary part id (hex), the first bytes of its binary frame

@@ -4,7 +4,8 @@ parts waiting for their message. docs/SECURITY.md "Limits" lists them with their
 
 - :func:`json_too_deep`: a bracket-depth scan that skips strings (C-speed regular expressions),
   run before ``json.loads`` so that a deep frame costs neither a RecursionError nor a deep walk.
-- :func:`short_repr`: a value quoted in an error, cut short before it is formatted.
+- :func:`rce.plumbing.text.short_repr` (the layers below use it too): a value quoted in an error, cut
+  short before it is formatted.
 - :func:`truncate`: the first :data:`MAX_ER_TEXT` bytes of a text (UTF-8), with a marker.
 - :class:`TokenBucket`: ``rate`` tokens per s up to ``burst`` (the classic token bucket, as
   in RFC 2697's committed-burst bucket, one colour).
@@ -16,15 +17,15 @@ from __future__ import annotations
 
 import math
 import re
-import reprlib
 from dataclasses import dataclass
 from itertools import accumulate
+
+from rce.plumbing.text import SHORT_REPR, short_repr  # noqa: F401 (a session's limits quote values with it)
 
 MAX_JSON_DEPTH = 64             # nesting of JSON arrays and objects in a frame; ROS messages nest a few levels,
                                 # and Python's json and the walks after it recurse (a 1000-deep frame raised)
 MAX_ER_TEXT = 512               # bytes (UTF-8) of an ER's text: an ER names what was wrong, it never echoes a value
 TRUNCATED = " ... [{n} more bytes]"   # the marker after a truncated text
-SHORT_REPR = 80                 # chars of a value an error message quotes (a tag, a type, a bad value)
 ER_RATE = 20.0                  # ERs per s a session sends a robot for its bad input, on average ...
 ER_BURST = 50                   # ... and at most this many at once (token bucket); the rest are dropped and counted
 LOG_RATE = 2.0                  # log lines per s a session writes about its robot's bad input, on average ...
@@ -102,24 +103,6 @@ class PartBudget:
     def give(self, n: int) -> None:
         """``n`` held bytes are released (consumed, expired, replaced, or their session ended)."""
         self.held -= n
-
-
-def _short_repr() -> reprlib.Repr:
-    r = reprlib.Repr()
-    r.maxstring, r.maxother, r.maxlevel = SHORT_REPR, SHORT_REPR, 3
-    r.maxlist = r.maxdict = r.maxtuple = r.maxset = 6
-    return r
-
-
-_REPR = _short_repr()
-
-
-def short_repr(value: object) -> str:
-    """``repr(value)`` cut short (strings and other values to about :data:`SHORT_REPR` chars, at most 6
-    items of a container, 3 levels; at most twice :data:`SHORT_REPR` chars in all): what an error
-    message quotes of a value, at a bounded cost."""
-    r = _REPR.repr(value)
-    return r if len(r) <= 2 * SHORT_REPR else r[:2 * SHORT_REPR] + "..."
 
 
 class LagGate:

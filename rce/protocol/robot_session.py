@@ -13,7 +13,8 @@ from rce.protocol.frames import DEFAULT_EXPIRY, DEFAULT_MAX_PENDING_BYTES, DEFAU
 from rce.protocol.holdback import HoldBack
 from rce.interfaces.lanes import Lane, interface_lane, message_lane
 from rce.interfaces.pacer import Pacer
-from rce.protocol.limits import DEFAULT_MAX_LAG, ER_BURST, ER_RATE, LagGate, PartBudget, short_repr
+from rce.plumbing.text import short_repr
+from rce.protocol.limits import DEFAULT_MAX_LAG, ER_BURST, ER_RATE, LagGate, PartBudget
 from rce.protocol.robot_outbox import RobotOutbox, dm
 from rce.protocol.resume import (ACK_DELAY, ACK_EVERY, DEFAULT_GRACE, DEFAULT_RESUME_BUFFER, DEFAULT_RESUME_BYTES,
                                  SESSION_TOPIC, new_token)

@@ -27,7 +27,8 @@ from rce.plumbing.errors import ProtocolError
 from rce.interfaces.kind import InterfaceType
 from rce.interfaces.lanes import Lane, parse_lane
 from rce.protocol.frames import CC, CN, CX, DC, DM
-from rce.protocol.limits import MAX_ER_TEXT, short_repr, truncate
+from rce.plumbing.text import short_repr
+from rce.protocol.limits import MAX_ER_TEXT, truncate
 
 ROBOT_TO_CLOUD = (CC, DC, CN, CX, DM)
 

@@ -21,7 +21,7 @@ from urllib.parse import parse_qsl, urlsplit
 from aiohttp import web
 from websockets.asyncio.server import serve
 
-from rce import protocol
+from rce.protocol import frames as wire
 
 
 class FakeEndpoint:
@@ -37,7 +37,7 @@ class FakeEndpoint:
         self.connected = asyncio.Event()
         self.disconnected = asyncio.Event()
         self.robot_itfs: dict[str, str] = {}   # robot-side iTag -> interfaceType (auto mode)
-        self.assembler = protocol.Assembler()
+        self.assembler = wire.Assembler()
         self.server = None
 
     async def start(self) -> "FakeEndpoint":
@@ -80,7 +80,7 @@ class FakeEndpoint:
 
     # -- sending ---------------------------------------------------------------------------------
     async def send(self, type_: str, data, *, binary_first: bool = False) -> None:
-        text, frames = protocol.encode({"type": type_, "data": data})
+        text, frames = wire.encode({"type": type_, "data": data})
         order = frames + [text] if binary_first else [text] + frames
         for f in order:
             await self.ws.send(f)

@@ -15,7 +15,8 @@ from rce.messages import forms as message_forms
 from rce.plumbing.errors import MessageError
 from rce.messages.forms import RCE_FORMS, JsonForms, image_to_bytes, iso_to_time, time_to_iso
 from rce.messages import MessageRegistry, takes_binary_message
-from rce.protocol import Assembler, encode, validate
+from rce.protocol.frames import Assembler, encode
+from rce.protocol.schema import validate
 
 HEADER, DURATION, IMAGE = "std_msgs/msg/Header", "std_msgs/msg/Duration", "sensor_msgs/msg/Image"
 T0 = 1378123200          # 2013-09-02T12:00:00 UTC: rce-comm 20130902's release day

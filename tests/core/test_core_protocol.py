@@ -13,8 +13,8 @@ from pydantic import ValidationError
 
 from rce.plumbing.errors import MessageError, ProtocolError, RequestError
 from rce.interfaces.kind import InterfaceType, Kind, Side
-from rce.protocol import (DEFAULT_EXPIRY, ID_LEN, Assembler, encode, is_part_id, new_id, split_interface_type,
-                          validate)
+from rce.protocol.frames import DEFAULT_EXPIRY, ID_LEN, Assembler, encode, is_part_id, new_id
+from rce.protocol.schema import split_interface_type, validate
 from rce.protocol import schema
 from rce.protocol.frames import _binary_refs, _resolve, parse_frame, parse_text
 

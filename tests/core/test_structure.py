@@ -232,3 +232,61 @@ def test_sans_io_cores_import_no_sockets():
     assert sum(1 for m in mods if _within(m, SANS_IO)) > 40
     offences = _io_offences(mods)
     assert not offences, "sans-I/O cores importing I/O:\n" + "\n".join(offences)
+
+
+# The engine's layers, bottom to top: a package imports only packages of lower layers (docs/layout.md).
+# rce.interfaces (interface kinds, lanes, QoS, class names, graph names) sits below the data plane
+# (rce.transport) and the robot protocol (rce.protocol), which both use it.
+ENGINE_LAYERS = (
+    ("rce", "rce.plumbing"),
+    ("rce.interfaces",),
+    ("rce.messages", "rce.transport"),
+    ("rce.protocol", "rce.bus", "rce.tools"),
+    ("rce.foxglove", "rce.node"),
+    ("rce_master", "rce_robot", "rce_container", "rce_client"),
+    ("rce_fleet",),
+)
+
+
+def _engine_package(module: str) -> str:
+    parts = module.split(".")
+    return f"rce.{parts[1]}" if parts[0] == "rce" and len(parts) > 1 and parts[1] != "__init__" else parts[0]
+
+
+def _upward_imports(mods: dict[str, Path]) -> list[str]:
+    """Each import of a package of the same or a higher layer (another package), as ``module imports name``."""
+    rank = {pkg: i for i, layer in enumerate(ENGINE_LAYERS) for pkg in layer}
+    known = set(mods)
+    out = []
+    for m, p in sorted(mods.items()):
+        mine = _engine_package(m)
+        for n in sorted(_imports(p, m, known)):
+            theirs = _engine_package(n)
+            if theirs != mine and theirs in rank and mine in rank and rank[theirs] >= rank[mine]:
+                out.append(f"{m} ({mine}, layer {rank[mine]}) imports {n} ({theirs}, layer {rank[theirs]})")
+    return out
+
+
+def test_layer_finder_finds_an_upward_import(tmp_path: Path):
+    low = tmp_path / "lanes.py"
+    low.write_text("from rce.protocol.limits import truncate\n")
+    mods = {"rce.interfaces.lanes": low, "rce.protocol.limits": tmp_path / "limits.py"}
+    (tmp_path / "limits.py").write_text("")
+    assert _upward_imports(mods) == ["rce.interfaces.lanes (rce.interfaces, layer 1) imports rce.protocol.limits "
+                                     "(rce.protocol, layer 3)"]
+
+
+def test_engine_layers_point_down():
+    mods = _modules()
+    assert {_engine_package(m) for m in mods} <= {p for layer in ENGINE_LAYERS for p in layer}, \
+        "a package of the engine has no layer in ENGINE_LAYERS"
+    offences = _upward_imports(mods)
+    assert not offences, "imports against the engine's layers:\n" + "\n".join(offences)
+
+
+def test_no_lazy_module_attributes():
+    """No module ``__getattr__`` (PEP 562) stands in for imports: a name is imported from the module that
+    defines it, so go-to-definition and the import graph above see it."""
+    found = [f"{p.relative_to(ROOT)}:{n.lineno}" for m, p in sorted(_modules().items())
+             for n in ast.parse(p.read_text()).body if isinstance(n, ast.FunctionDef) and n.name == "__getattr__"]
+    assert not found, "module __getattr__ hooks:\n" + "\n".join(found)

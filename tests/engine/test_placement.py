@@ -24,7 +24,7 @@ from websockets.asyncio.client import connect
 from websockets.exceptions import InvalidStatus
 
 from rce.tools.launch import start_engine
-from rce_client import Connection
+from rce_client.connection import Connection
 from wsclient import RawRobot
 
 BIN = Path(sys.executable).parent

@@ -385,7 +385,8 @@ def test_no_obstacles_reported_at_the_map_border():
     """The simulator closes the map's border with walls; the robots' obstacle detector must
     count them as static even where the image's edge pixels are free (warehouse.yaml's bottom
     edge), or cells along the border get blocked by phantom lidar obstacles."""
-    from rce_fleet.sim import ObstacleDetector, SimWorld
+    from rce_fleet.sim.obstacles import ObstacleDetector
+    from rce_fleet.sim.world import SimWorld
     m = load_map(SHARED / "warehouse.yaml")
     geo = GridGeometry.from_cellgrid(make_grid(m, cell_m=1.2))
     world = SimWorld(m, seed=3)

@@ -11,10 +11,11 @@ import numpy as np
 import pytest
 
 from rce_fleet.maps.occupancy import OccupancyMap, load_map
-from rce_fleet.sim import (
-    LidarParams, LocalNavigator, ObstacleDetector, SimWorld, blocked_mask,
-    merge_rectangles, scan_to_points,
-)
+from rce_fleet.sim.lidar import LidarParams, scan_to_points
+from rce_fleet.sim.local_nav import LocalNavigator
+from rce_fleet.sim.obstacles import ObstacleDetector
+from rce_fleet.sim.walls import blocked_mask, merge_rectangles
+from rce_fleet.sim.world import SimWorld
 from rce_fleet.sim.walls import rasterise
 
 ROOT = Path(__file__).resolve().parents[2]

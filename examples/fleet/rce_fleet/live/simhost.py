@@ -52,7 +52,9 @@ from ..configs import ros2_class
 from ..operations.battery import BATTERY_TOPIC, T_BATTERY, Battery, BatteryParams
 from ..maps.geometry import GridGeometry, quaternion_from_yaw
 from .points_wire import PointsWire
-from ..sim import LocalNavigator, ObstacleDetector, SimWorld
+from ..sim.local_nav import LocalNavigator
+from ..sim.obstacles import ObstacleDetector
+from ..sim.world import SimWorld
 
 log = get_logger("fleet.sim")
 
