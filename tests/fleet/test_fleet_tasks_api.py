@@ -92,13 +92,17 @@ def stop_serve(f: dict) -> None:
     stop(f["proc"])
 
 
+def start_tls_serve(d: Path, *extra: str) -> dict:
+    """:func:`start_serve` over TLS (a throw-away CA in ``d``) with the users file of :data:`USERS`."""
+    from rce.transport.tls import make_dev_certificates
+    certs = make_dev_certificates(d / "tls")
+    return start_serve(d, "--tls-cert", str(certs.cert), "--tls-key", str(certs.key), "--users",
+                       str(write_users(d / "users.json")), *extra, ca=str(certs.ca))
+
+
 @pytest.fixture(scope="module")
 def fleet(tmp_path_factory):
-    from rce.transport.tls import make_dev_certificates
-    d = tmp_path_factory.mktemp("tasks")
-    certs = make_dev_certificates(d / "tls")
-    f = start_serve(d, "--tls-cert", str(certs.cert), "--tls-key", str(certs.key), "--users",
-                    str(write_users(d / "users.json")), ca=str(certs.ca))
+    f = start_tls_serve(tmp_path_factory.mktemp("tasks"))
     yield f
     stop_serve(f)
 

@@ -19,7 +19,7 @@ import orjson
 import pytest
 from websockets.asyncio.client import connect
 
-from tests.fleet.test_fleet_tasks_api import USERS, http, login, start_serve, stop_serve, write_users
+from tests.fleet.test_fleet_tasks_api import USERS, http, login, start_tls_serve, stop_serve
 
 SHORT = 1024                  # bytes: an answer that quotes input quotes a short prefix of it, well under this
 MEGA = 1_000_000              # characters of the megabyte inputs
@@ -28,11 +28,7 @@ STEP_TIMEOUT_S = 15.0
 
 @pytest.fixture(scope="module")
 def fleet(tmp_path_factory):
-    from rce.transport.tls import make_dev_certificates
-    d = tmp_path_factory.mktemp("contract")
-    certs = make_dev_certificates(d / "tls")
-    f = start_serve(d, "--tls-cert", str(certs.cert), "--tls-key", str(certs.key), "--users",
-                    str(write_users(d / "users.json")), ca=str(certs.ca))
+    f = start_tls_serve(tmp_path_factory.mktemp("contract"))
     yield f
     stop_serve(f)
 

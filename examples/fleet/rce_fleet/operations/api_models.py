@@ -44,7 +44,7 @@ class TaskRequest(BaseModel):
 class FleetTask(BaseModel):
     """One task (``fleet/TaskStatus``). Times are fleet seconds (the robots' clock); 0: not (yet) reached."""
     id: str
-    errands: list[str] = Field(description="as given (cells or place names)")
+    errands: list[str] = Field(description="as given: place names, and cells as their numbers")
     cells: list[int] = Field(description="the errands' cells")
     priority: float
     state: TaskState

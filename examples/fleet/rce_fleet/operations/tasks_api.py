@@ -53,8 +53,8 @@ class Refused(Exception):
 
 @dataclass
 class TaskRecord:
-    """One task of the book: what operators gave (string id, errands as given, source: who
-    created it, time window in fleet s, 0: none; ``cancelled_by``: who cancelled it) beside the
+    """One task of the book: what operators gave (string id, errands as given: a place by its name, a cell by
+    its number; source: who created it, time window in fleet s, 0: none; ``cancelled_by``: who cancelled it) beside the
     pool's :class:`~rce_fleet.lifelong.Task`, which owns its state: ``state``, ``robot``,
     ``reason``, ``history`` and the fleet time (s) it was ``assigned``, became ``active`` and
     ``finished`` (0 when not (yet) reached)."""
