@@ -47,7 +47,8 @@ from collections.abc import Collection
 from pathlib import Path
 
 from rce.transport import framing
-from rce.bus.core import Bus, Subscription, Topic
+from rce.bus.core import SERVICE_TIMEOUT, Bus, Subscription, Topic
+from rce.interfaces.actions import call_timeout
 from rce.plumbing.errors import AuthError, NotFound, RCEError, RequestError
 from rce.transport.link import STREAM_LIMIT, Responder, settle_reply
 from rce.plumbing.log import get_logger
@@ -299,7 +300,8 @@ class NodeSession:
         async def call() -> bytes:
             if name is None:
                 raise NotFound(f"unknown service handle {handle}")
-            return await self.bus.call_service(name, payload)
+            s = self.bus.services.get(name)    # an action's get_result waits for its goal's end, not 30 s
+            return await self.bus.call_service(name, payload, timeout=call_timeout(s.type) if s else SERVICE_TIMEOUT)
 
         def reply(resp: bytes) -> None:
             send(framing.encode_data_header(framing.SRV_RESP, 0, 0, call_id, len(resp)), resp)
