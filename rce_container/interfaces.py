@@ -14,6 +14,8 @@ Payloads stay ROS 1 serialized bytes end to end. Bus owners are ``interface:<tag
 """
 from __future__ import annotations
 
+import asyncio
+
 from rce.bus.core import SERVICE_TIMEOUT, Bus, Subscription, Topic
 from rce.transport.dataplane import DataPlane
 from rce.plumbing.errors import MessageError, RequestError
@@ -29,7 +31,8 @@ from rce.node.package_path import load_package_types
 log = get_logger("rce.container.interfaces")
 
 DEFAULT_QUEUE = 100   # messages, bound of a SubscriberInterface's bus subscription
-SERVICE_WAIT = 10.0   # s a call from a peer waits for its service to be provided (its node may be starting)
+SERVICE_WAIT = 10.0   # s a call from a peer waits for its service to be provided (its node may be starting),
+                      # and a call to a ServiceProviderInterface for its connection
 
 
 class BusInterface(Interface):
@@ -133,11 +136,16 @@ class ServiceClientInterface(BusInterface):
 
 
 class ServiceProviderInterface(BusInterface):
-    """Provides service ``addr`` on the bus; every call goes to the connected peer."""
+    """Provides service ``addr`` on the bus; every call goes to the connected peer. A call made
+    before the interface is connected waits up to ``connect_wait`` s for it (a node may call as soon
+    as it starts, before the robot's CX: a ROS 2 action client sends its goal once the action's
+    services are there)."""
 
     kind = Kind.SERVICE_PROVIDER
+    connect_wait = SERVICE_WAIT
 
     async def start(self) -> None:
+        self._connected = asyncio.Event()
         self.bus.advertise_service(self.addr, self.cls, self._call, self.owner)
         await super().start()
 
@@ -145,7 +153,19 @@ class ServiceProviderInterface(BusInterface):
         await super().stop()
         self.bus.unadvertise_service(self.addr, self.owner)
 
+    def on_peers_changed(self) -> None:
+        if self.peers:
+            self._connected.set()
+        else:
+            self._connected.clear()
+
     async def _call(self, payload: bytes) -> bytes:
+        if not self.peers:
+            try:
+                async with asyncio.timeout(self.connect_wait):
+                    await self._connected.wait()
+            except TimeoutError:
+                pass                     # call_peer says it is not connected
         self.bytes_out += len(payload)
         resp = await self.call_peer(payload)
         self.msgs_in += 1
