@@ -18,7 +18,9 @@ Each call of :meth:`Dispatcher.update` (the global planner's tick, ~5 Hz) at fle
    energy (to the first errand, through the last, and on to the nearest charger, plus a 5 %
    reserve) is more than its battery holds: it goes to charge instead;
 5. idle robots drive to the nearest free parking place (``park_idle``, or once they have
-   done a task), out of the aisles and off the stations;
+   done a task), out of the aisles and off the stations; one that has had no task yet waits
+   :data:`PARK_AFTER_S` where it stands first (a fleet that starts gets its first tasks there, not
+   on the way to parking);
 6. a goal cell another robot heads to is not sent yet (the planner refuses two robots one
    goal): the robot waits on the free cell nearest to it (within ``WAIT_RADIUS`` steps; no
    place, no other robot's goal or cell), not where it stands (often the station it just
@@ -70,6 +72,7 @@ START_HORIZON_STEPS = 20    # tasks whose earliest start is further ahead than t
 STALL_S = 60.0              # fleet s a robot holding work may make no progress before it counts as stalled
 BENCH_S = 120.0             # fleet s a robot that stalled on a task is offered none (unless it moves meanwhile)
 MAX_ALERTS = 100            # alerts kept in Dispatcher.alerts (the oldest go first; alerts_dropped counts them)
+PARK_AFTER_S = 30.0         # fleet s a robot that has had no task yet stands idle before it drives to parking
 
 IDLE, PARKING, TASK, TO_CHARGER, CHARGING, OPERATOR, UNKNOWN = (
     "idle", "parking", "task", "to_charger", "charging", "operator", "unknown")
@@ -205,7 +208,7 @@ class Dispatcher:
             self._watch_stall(w, v, now)
         self._batteries(view, now)
         self._allocate(view, now)
-        return self._goals(view)
+        return self._goals(view, now)
 
     def _progress(self, w: _Work, v: RobotView, now: float) -> None:
         at = v.arrived and v.goal is not None and v.goal == v.cell
@@ -399,7 +402,7 @@ class Dispatcher:
         need = b.energy_wh(metres, steps * self.book.step_s) + RESERVE * b.capacity_wh
         return need <= w.battery * b.capacity_wh
 
-    def _goals(self, view: dict[str, RobotView]) -> dict[str, int]:
+    def _goals(self, view: dict[str, RobotView], now: float) -> dict[str, int]:
         out: dict[str, int] = {}
         held = {n: w.sent for n, w in self.robots.items() if w.sent is not None}
         held.update({n: v.goal for n, v in view.items() if v.goal is not None and n not in held})
@@ -408,7 +411,8 @@ class Dispatcher:
             v = view.get(name)
             if v is None or v.cell is None or w.activity in (OPERATOR, UNKNOWN):
                 continue
-            if w.activity == IDLE and (self.park_idle or w.worked) and self.parking and v.cell not in self.parking:
+            ready = w.worked or (self.park_idle and w.since is not None and now - w.since >= PARK_AFTER_S)
+            if w.activity == IDLE and ready and self.parking and v.cell not in self.parking:
                 c = self._nearest_free(v.cell, self.parking, view, w)
                 if c is not None:
                     w.activity, w.target = PARKING, c
