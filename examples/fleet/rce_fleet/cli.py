@@ -54,13 +54,16 @@ __all__ = ["main", "build_parser"]
 DEMO_TIMEOUT_S = 300.0   # wall s a demo mission may take by default (--timeout)
 DEFAULT_SPEEDUP = 3.0
 # ``rce-fleet demo`` (``make demo``): the warehouse run by tasks, about two minutes of wall time at
-# speed-up 4, batteries starting between 15 and 60 % so that some robots go to charge within it
+# speed-up 4: workstations all over the warehouse (each pick-up with its drop-off 3 steps away), a task
+# waiting per robot at the start, and batteries starting between 30 and 90 % of 10 Wh, so that the
+# robots that start low go to charge once they need it (below 20 %), within the run
 DEMO_MAP = Path(__file__).resolve().parents[3] / ".." / "shared" / "data" / "maps" / "warehouse.yaml"
 DEMO_ROBOTS = 12
 DEMO_DURATION_S = 420.0
 DEMO_SPEEDUP = 4.0
 DEMO_TASK_RATE = 6.0
-DEMO_BATTERY = "capacity_wh=20,initial=0.6,initial_spread=0.45,charge_w=500"
+DEMO_BATTERY = "capacity_wh=10,initial=0.9,initial_spread=0.6,charge_w=500"
+DEMO_STATIONS = "paired"
 DEMO_PLOT, DEMO_TASKS_PLOT = "fleet_paths.png", "fleet_tasks.png"   # a mission's paths; a run's tasks and activity
 SERVE_TIMEOUT_S = 10 ** 9   # wall s ``serve`` runs by default: until Ctrl-C
 EXIT_PIPE = 141            # 128 + SIGPIPE: stdout's reader stopped reading
@@ -221,6 +224,14 @@ def build_parser() -> argparse.ArgumentParser:
                    help=f"simulated seconds of the run by tasks (default {DEMO_DURATION_S:g} on the warehouse)")
     d.add_argument("--task-rate", type=_rate, default=None, metavar="R/min",
                    help=f"tasks per simulated minute (default {DEMO_TASK_RATE:g} on the warehouse)")
+    d.add_argument("--backlog", type=int, default=None, metavar="N",
+                   help="tasks waiting when the run by tasks starts, before the stream's (default 0; one per "
+                   "robot on the warehouse)")
+    d.add_argument("--stations", choices=("split", "paired"), default=None,
+                   help="generated stations (without --places): split, pick-ups in the map's left third and "
+                   "drop-offs in its right third, each task's drop-off drawn at random; paired, workstations "
+                   "all over the map, each drop-off 3 steps from a pick-up and each task's drop-off the one "
+                   f"nearest its pick-up (default split; {DEMO_STATIONS} on the warehouse)")
     s = sub.add_parser("serve", help="the same system without a mission, until Ctrl-C")
     _run_args(s, False)
     rp = sub.add_parser("replay", help="play a recording of --record FILE.mcap back onto the operator page "
@@ -402,6 +413,8 @@ def _main(argv: list[str] | None) -> None:
             args.robots = DEMO_ROBOTS
             args.battery = DEMO_BATTERY if args.battery is None else args.battery
             args.speedup = DEMO_SPEEDUP if args.speedup == DEFAULT_SPEEDUP else args.speedup
+            args.stations = DEMO_STATIONS if args.stations is None else args.stations
+            args.backlog = DEMO_ROBOTS if args.backlog is None else args.backlog
         else:
             print(f"rce-fleet: the warehouse map {DEMO_MAP} is not here; running on the lab map", file=sys.stderr)
     if args.robots is None:
@@ -426,7 +439,8 @@ def _main(argv: list[str] | None) -> None:
                        foxglove_port=args.foxglove_port, workdir=args.workdir, keep=args.keep,
                        lidar_blocking=not args.no_lidar_blocking, mission=mission, live=args.live,
                        web_port=args.web_port, places=args.places, lifelong=lifelong,
-                       duration=duration, task_rate=task_rate,
+                       duration=duration, task_rate=task_rate, stations=getattr(args, "stations", None) or "split",
+                       backlog=getattr(args, "backlog", None) or 0,
                        battery=parse_battery(args.battery, lifelong), out_of_coverage=args.out_of_coverage,
                        edge_hosts=args.edge_hosts,
                        radio_range=args.radio_range, ros2=args.ros2)

@@ -95,6 +95,7 @@ MIN_READY_WAIT_S = 1.0     # wall s the wait for every robot and move_client to 
 CONNECTING_AT_ONCE = 4     # robots connecting at the same time (each sets up its node and interfaces)
 WATCH_PERIOD_S = 0.25      # wall s between checks of the run (mission end, engine, Ctrl-C)
 TIMELINE_MAX = 100_000     # samples of a run by tasks kept for its PNG (one per sim s: 27 h; the oldest go first)
+CHARGE_TRIPS_MAX = 100     # trips to a charger kept per robot for the report (the newest)
 PROGRESS_EVERY_S = 5.0     # wall s between plain progress lines (no live table)
 RELAYS_EVERY_S = 1.0       # wall s between asks for the followers' relays at the master (--out-of-coverage)
 TEARDOWN_TIMEOUT_S = 10.0  # wall s the web page and the fleet manager each get to close before they are left
@@ -174,6 +175,7 @@ class Run:
         # a run by tasks, sampled each sim second: (sim s, tasks done, {robot: activity}); bounded
         self.timeline: deque[tuple[float, int, dict[str, str]]] = deque(maxlen=TIMELINE_MAX)
         self.timeline_dropped = 0                  # samples the bound dropped (the report says how many)
+        self.charge_trips: dict[str, deque] = {}   # robot -> (sim s, battery %) of each trip to a charger
 
     # -- set-up ---------------------------------------------------------------------------------
     def prepare(self) -> None:
@@ -204,7 +206,8 @@ class Run:
                 raise UsageError(f"cell {c} is outside the {self.geo.rows}x{self.geo.cols} grid")
         self.starts, self.goals = choose_cells(self.geo, self.robots, o.seed, o.starts, o.goals, o.mission)
         try:
-            self.places = Places.load(o.places, self.geo) if o.places else generate_places(self.geo, o.robots)
+            self.places = Places.load(o.places, self.geo) if o.places else \
+                generate_places(self.geo, o.robots, paired=o.stations == "paired")
         except PlaceError as e:
             if o.places or o.lifelong:
                 raise UsageError(f"--places: {e}") from None
@@ -217,7 +220,8 @@ class Run:
             if not o.duration > 0:
                 raise UsageError("--duration must be > 0")
             try:
-                self.stream = TaskStream(self.places, o.task_rate, o.seed).times_and_errands(o.duration)
+                self.stream = TaskStream(self.places, o.task_rate, o.seed, backlog=o.backlog,
+                                         nearest_drop=o.stations == "paired").times_and_errands(o.duration)
             except ValueError as e:
                 raise UsageError(f"--task-rate/--places: {e}") from None
         if self.grid_note:
@@ -629,7 +633,14 @@ class Run:
         if self.timeline and t - self.timeline[-1][0] < 1.0:
             return
         self.timeline_dropped += len(self.timeline) == TIMELINE_MAX
-        self.timeline.append((t, int((self.task_list or {}).get("done", 0)), activities(self)))
+        acts = activities(self)
+        before = self.timeline[-1][2] if self.timeline else {}
+        for r, a in acts.items():          # each trip to a charger: when, and the battery then (simulator's)
+            b = self.sim.bots[r].battery
+            if a == "to charger" and before.get(r) != a and b is not None:
+                trips = self.charge_trips.setdefault(r, deque(maxlen=CHARGE_TRIPS_MAX))
+                trips.append((round(t, 1), round(100.0 * b.fraction, 1)))
+        self.timeline.append((t, int((self.task_list or {}).get("done", 0)), acts))
 
     # -- display ---------------------------------------------------------------------------------
     def mission_t(self) -> float:

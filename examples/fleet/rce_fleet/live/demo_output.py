@@ -250,11 +250,12 @@ def report(run, code: int, reason: str) -> dict:
 
 def lifelong_report(run, per: dict) -> dict:
     """The ``tasks`` section and the task stream's numbers of a lifelong run; adds each robot's
-    work (utilisation, distance_m, battery_min_pct, charges) to ``per``."""
+    work (utilisation, distance_m, battery_min_pct, charges, and ``charge_trips``: [sim s, battery %]
+    as each trip to a charger began) to ``per``."""
     if not run.o.lifelong or run.t_mission is None:
         return {}
     for r, work in robot_section(run.task_list, run.sim).items():
-        per.setdefault(r, {}).update(work)
+        per.setdefault(r, {}).update(work, charge_trips=[list(x) for x in run.charge_trips.get(r, ())])
     t = run.mission_t()
     delays = goal_motion_delays(run.task_list, run.sim)
     ds = sorted(delays)

@@ -120,6 +120,8 @@ class Options:
     lifelong: bool = False          # ``demo --lifelong``: a generated task stream for ``duration`` sim s
     duration: float = 600.0         # sim s of a lifelong run
     task_rate: float = 6.0          # tasks per sim minute of a lifelong run
+    stations: str = "split"         # generated stations: split (left / right thirds) or paired (workstations)
+    backlog: int = 0                # tasks waiting when a lifelong run starts
     battery: BatteryParams | None = None   # simulated batteries (``--battery``; a lifelong run has them)
     out_of_coverage: list[str] = field(default_factory=list)   # robots reaching the cloud only through relays
     edge_hosts: bool = False        # each robot's own computer (zone robot:RobotN) and a placed move_client container
@@ -191,6 +193,8 @@ def check_robots(o: Options) -> None:
     ``--goal``, ``--start``, ``--fault``, ``--out-of-coverage`` name. Raises UsageError naming the flag."""
     if o.robots < 1:
         raise UsageError("--robots must be >= 1")
+    if o.backlog < 0:
+        raise UsageError("--backlog must be >= 0 tasks")
     if o.speedup <= 0:
         raise UsageError("--speedup must be > 0")
     robots = {f"Robot{i}" for i in range(1, o.robots + 1)}

@@ -3,7 +3,8 @@ and the numbers a warehouse manager reads in its report.
 
 - :class:`TaskStream`: tasks arriving as a Poisson process of ``rate_per_min`` per simulated
   minute, each a pick-up station then a drop-off station drawn at random (seeded) from the
-  places; :meth:`TaskStream.times_and_errands` is the stream itself, so the offline
+  places (or the drop-off nearest the pick-up, ``nearest_drop``), after ``backlog`` tasks waiting
+  at the start; :meth:`TaskStream.times_and_errands` is the stream itself, so the offline
   prediction (``bench/fleet_live.py``) replays the very same tasks.
 - :func:`tasks_section`: the report's ``tasks`` section from the fleet's newest
   ``fleet/TaskList``: done, failed, cancelled, per_hour, mean_s, p95_s, deadline_missed, and
@@ -28,27 +29,55 @@ __all__ = ["TaskStream", "goal_motion_delays", "robot_section", "tasks_section"]
 
 
 class TaskStream:
-    """Pick-up -> drop-off tasks at ``rate_per_min`` per simulated minute (Poisson, ``seed``).
-    Raises ValueError when the places have no pick-up or no drop-off station or the rate is
-    not > 0."""
+    """Pick-up -> drop-off tasks at ``rate_per_min`` per simulated minute (Poisson, ``seed``), after
+    ``backlog`` tasks that wait at the start (time 0: the orders a shift begins with). Each drop-off is
+    drawn at random, or with ``nearest_drop`` it is the drop-off nearest the pick-up (steps on the
+    places' grid; the first by name on a tie). Raises ValueError when the places have no pick-up or
+    no drop-off station, the rate is not > 0 or the backlog < 0."""
 
-    def __init__(self, places: Places, rate_per_min: float, seed: int = 1):
+    def __init__(self, places: Places, rate_per_min: float, seed: int = 1, *, backlog: int = 0,
+                 nearest_drop: bool = False):
         self.picks, self.drops = [p.name for p in places.of_kind("pickup")], [p.name for p in places.of_kind("dropoff")]
         if not self.picks or not self.drops:
             raise ValueError("generated tasks need pick-up and drop-off places (--places)")
         if not rate_per_min > 0:
             raise ValueError(f"task rate must be > 0 per minute, got {rate_per_min}")
-        self.rate, self.seed = rate_per_min, seed
+        if backlog < 0:
+            raise ValueError(f"the backlog must be >= 0 tasks, got {backlog}")
+        self.rate, self.seed, self.backlog = rate_per_min, seed, int(backlog)
+        self.drop_of = _nearest_drops(places) if nearest_drop else None
 
     def times_and_errands(self, duration_s: float) -> list[tuple[float, list[str]]]:
-        """(s after the start, [pick-up, drop-off]) for every task arriving within ``duration_s``."""
+        """(s after the start, [pick-up, drop-off]) for every task waiting at the start or arriving within
+        ``duration_s``."""
         rng = random.Random(self.seed)
         out, t = [], 0.0
+
+        def errands() -> list[str]:
+            pick = rng.choice(self.picks)
+            return [pick, self.drop_of[pick] if self.drop_of else rng.choice(self.drops)]
+        out += [(0.0, errands()) for _ in range(self.backlog)]
         while True:
             t += rng.expovariate(self.rate / 60.0)
             if t >= duration_s:
                 return out
-            out.append((t, [rng.choice(self.picks), rng.choice(self.drops)]))
+            out.append((t, errands()))
+
+
+def _nearest_drops(places: Places) -> dict[str, str]:
+    """Pick-up name -> the name of the drop-off fewest steps from it on the places' grid (breadth-first
+    over the free cells; a pick-up that reaches none gets the first by name)."""
+    geo = places.geo
+    drops = {p.cell: p.name for p in places.of_kind("dropoff")}
+    out = {}
+    for pick in places.of_kind("pickup"):
+        seen, ring, found = {pick.cell}, [pick.cell], None
+        while ring and found is None:
+            found = min((drops[c] for c in ring if c in drops), default=None)
+            ring = sorted({n for c in ring for n in geo.neighbours(c) if geo.is_free(n) and n not in seen})
+            seen.update(ring)
+        out[pick.name] = found or min(drops.values())
+    return out
 
 
 def _percentile(xs: list[float], q: float) -> float:

@@ -30,6 +30,7 @@ from ..maps.geometry import GridGeometry, components
 __all__ = ["KINDS", "PLACES_PARAM", "Place", "PlaceError", "Places", "generate_places"]
 
 KINDS = ("pickup", "dropoff", "charger", "parking")
+PAIR_STEPS = 3                   # steps from a pick-up to its drop-off in generate_places(paired=True)
 PLACES_PARAM = "/fleet/places"   # the parameter the fleet manager sets for the global planner
 
 
@@ -159,10 +160,12 @@ class Places:
         return p
 
 
-def generate_places(geo: GridGeometry, robots: int, stations: int | None = None) -> Places:
+def generate_places(geo: GridGeometry, robots: int, stations: int | None = None, paired: bool = False) -> Places:
     """Places for a map without a file, in the largest connected part of the grid: pick-up
     stations in the left third, drop-off stations in the right third (``stations`` each;
-    default one per four robots, at least 2 and up to 6, and at most one per 40 cells),
+    default one per four robots, at least 2 and up to 6, and at most one per 40 cells; ``paired``:
+    the pick-ups spread over the whole part instead, each with a drop-off :data:`PAIR_STEPS` steps
+    from it, as a workstation's in and out),
     ``ceil(robots / 3)`` chargers spread over the top rows, and parking on dead ends
     and cells along walls, towards the map's edges, as many as there
     are robots where the grid has them. A robot may stand on any place for long, so no place
@@ -220,8 +223,14 @@ def generate_places(geo: GridGeometry, robots: int, stations: int | None = None)
         low = 0
     left = [c for c in comp if geo.rc(c)[1] - lo <= span / 3 and deg[c] >= 2 and geo.rc(c)[0] >= low]
     right = [c for c in comp if hi - geo.rc(c)[1] <= span / 3 and deg[c] >= 2 and geo.rc(c)[0] >= low]
-    places += [Place(f"pick{i + 1}", "pickup", c) for i, c in enumerate(spread(left, n_st))]
-    places += [Place(f"drop{i + 1}", "dropoff", c) for i, c in enumerate(spread(right, n_st))]
+    if paired:
+        room = {c for c in comp if deg[c] >= 2 and geo.rc(c)[0] >= low}      # off the chargers' rows
+        pairs = [(p, _pair(p, nbrs, room, safe, taken)) for p in spread(sorted(room), n_st)]
+        picks, drops = [p for p, d in pairs if d is not None], [d for _, d in pairs if d is not None]
+    else:
+        picks, drops = spread(left, n_st), spread(right, n_st)
+    places += [Place(f"pick{i + 1}", "pickup", c) for i, c in enumerate(picks)]
+    places += [Place(f"drop{i + 1}", "dropoff", c) for i, c in enumerate(drops)]
     # parking: dead ends first, then cells along walls (degree 3), then corridors, far from
     # the middle and from the stations
     mid_r = sum(geo.rc(c)[0] for c in comp) / len(comp)
@@ -239,3 +248,20 @@ def generate_places(geo: GridGeometry, robots: int, stations: int | None = None)
             taken.add(c)
     places += [Place(f"park{i + 1}", "parking", c) for i, c in enumerate(parking)]
     return Places(places, geo)
+
+
+def _pair(pick: int, nbrs: dict[int, list[int]], room: set[int], safe, taken: set[int]) -> int | None:
+    """A drop-off for ``pick``: the first cell (by number) of ``room`` :data:`PAIR_STEPS` steps from it that
+    ``safe`` allows (taken then), nearer ones if none; None when there is none."""
+    seen, ring = {pick}, [pick]
+    rings = []
+    for _ in range(PAIR_STEPS):
+        ring = sorted({n for c in ring for n in nbrs[c] if n not in seen})
+        seen.update(ring)
+        rings.append(ring)
+    for ring in reversed(rings):
+        for c in ring:
+            if c in room and c not in taken and safe(c):
+                taken.add(c)
+                return c
+    return None
