@@ -46,6 +46,19 @@ SYNC_TIMEOUT = 10.0        # s the environment waits for one sync of the relay
 LOOPBACK = "127.0.0.1"     # where the graph listens (ROS_IP): nothing of it is reachable from off the host
 
 
+async def provided_or_exited(bus: Bus, service: str, procs: list[Any], timeout: float) -> bool:
+    """True once ``service`` is provided on ``bus`` (a relay is ready); False when one of ``procs``
+    exits first, or after ``timeout`` s."""
+    waits = [asyncio.ensure_future(bus.wait_for_service(service, timeout)),
+             *(asyncio.ensure_future(p.wait()) for p in procs)]
+    try:
+        await asyncio.wait(waits, return_when=asyncio.FIRST_COMPLETED)
+        return waits[0].done() and waits[0].result() is not None
+    finally:
+        for w in waits:
+            w.cancel()
+
+
 def free_loopback_port() -> int:
     """A TCP port free on the loopback now (for rosmaster in a container that shares the host's
     network; another process may still take it before rosmaster binds it)."""
@@ -172,14 +185,7 @@ class Ros1Graph:
     async def _ready(self, service: str) -> bool:
         """True once the relay provides ``service`` on the bus; False when rosmaster or the relay
         exits first, or after :data:`START_TIMEOUT` s."""
-        waits = [asyncio.ensure_future(self.bus.wait_for_service(service, START_TIMEOUT)),
-                 *(asyncio.ensure_future(p.wait()) for p in self.procs.values())]
-        try:
-            await asyncio.wait(waits, return_when=asyncio.FIRST_COMPLETED)
-            return waits[0].done() and waits[0].result() is not None
-        finally:
-            for w in waits:
-                w.cancel()
+        return await provided_or_exited(self.bus, service, list(self.procs.values()), START_TIMEOUT)
 
     async def _stop(self) -> None:
         """Stop the relay, then rosmaster (each SIGTERM, then SIGKILL after the sandbox's grace)."""

@@ -42,6 +42,14 @@ def is_ros1_package(pkg_dir: Path) -> bool:
     """True when ``pkg_dir/package.xml`` depends on :data:`ROS1_CLIENT_LIBS`.
 
     Raises :class:`RequestError` naming the file for a package.xml that is not well-formed XML."""
+    return depends_on(pkg_dir, ROS1_CLIENT_LIBS)
+
+
+def depends_on(pkg_dir: Path, libs: tuple[str, ...]) -> bool:
+    """True when ``pkg_dir/package.xml`` (formats 1 - 3) has a run-time dependency (:data:`DEPEND_TAGS`)
+    on one of ``libs``; False without a package.xml.
+
+    Raises :class:`RequestError` naming the file for a package.xml that is not well-formed XML."""
     path = Path(pkg_dir) / "package.xml"
     if not path.is_file():
         return False
@@ -49,7 +57,7 @@ def is_ros1_package(pkg_dir: Path) -> bool:
         root = ET.parse(path).getroot()
     except (ET.ParseError, OSError) as e:
         raise RequestError(f"{path}: cannot read the ROS package manifest: {e}") from None
-    return any((el.text or "").strip() in ROS1_CLIENT_LIBS for tag in DEPEND_TAGS for el in root.iter(tag))
+    return any((el.text or "").strip() in libs for tag in DEPEND_TAGS for el in root.iter(tag))
 
 
 @dataclass
@@ -104,26 +112,29 @@ def _others(names: set[str] | None, me: str) -> bool:
     return bool(names and names - {me})
 
 
-def plan(bus: GraphView, ros: GraphView, me: str) -> Plan:
-    """The bridges the relay named ``me`` (on both graphs) should have now (module doc)."""
+def plan(bus: GraphView, ros: GraphView, me: str, *, relay_prefix: str = RELAY_PREFIX,
+         node_services: tuple[str, ...] = NODE_SERVICES, graph: str = "ROS 1") -> Plan:
+    """The bridges the relay named ``me`` (on both graphs) should have now (module doc).
+    ``relay_prefix``, ``node_services`` and ``graph`` (its name in messages) describe the ROS graph
+    (:mod:`rce_container.ros2_plan` uses the same rule for ROS 2)."""
     p = Plan()
     for topic in set(bus.publishers) | set(ros.publishers):
-        if topic.startswith(RELAY_PREFIX):
+        if topic.startswith(relay_prefix):
             continue
         bus_t, ros_t = bus.types.get(topic), ros.types.get(topic)
         if bus_t and ros_t and bus_t != ros_t and ros_t != "*":
-            p.conflicts[topic] = f"type conflict: {bus_t} on the bus, {ros_t} in ROS 1"
+            p.conflicts[topic] = f"type conflict: {bus_t} on the bus, {ros_t} in {graph}"
             continue
         if _others(bus.publishers.get(topic), me) and _others(ros.subscribers.get(topic), me):
             p.to_ros[topic] = bus_t
         if _others(ros.publishers.get(topic), me) and _others(bus.subscribers.get(topic), me) and ros_t:
             p.to_bus[topic] = ros_t
     for name, provider in ros.services.items():
-        if provider != me and not name.startswith(RELAY_PREFIX) and not name.endswith(NODE_SERVICES) \
+        if provider != me and not name.startswith(relay_prefix) and not name.endswith(node_services) \
                 and bus.services.get(name, me) == me:
             p.services_to_bus.add(name)
     for name, provider in bus.services.items():
-        if provider != me and not name.startswith(RELAY_PREFIX) and ros.services.get(name, me) == me:
+        if provider != me and not name.startswith(relay_prefix) and ros.services.get(name, me) == me:
             p.services_to_ros[name] = bus.service_types[name]
     return p
 

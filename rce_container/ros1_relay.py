@@ -6,7 +6,8 @@ named :func:`~rce_container.ros1_plan.relay_name` on each, and moves serialized 
 between them untouched (``rospy.AnyMsg`` and the raw classes of
 :mod:`rce.messages.ros1_types`; the bus never decodes either):
 
-- every :data:`POLL_INTERVAL` s, and whenever its ``sync`` service is called, it reads both
+- every :data:`~rce_container.relay_base.POLL_INTERVAL` s, and whenever its ``sync`` service is
+  called (:func:`rce_container.relay_base.run`), it reads both
   graphs (rosmaster's ``getSystemState``/``getTopicTypes``, the bus's ``describe``) and makes the
   bridges :func:`rce_container.ros1_plan.plan` asks for: topics bus -> ROS 1 and ROS 1 -> bus,
   services ROS 1 -> bus (type and MD5 sum probed from the service, as ``rosservice`` does) and
@@ -17,94 +18,39 @@ between them untouched (``rospy.AnyMsg`` and the raw classes of
   of :meth:`Relay.stats`) syncs at once; the environment calls it before a ROS 1 node starts and
   after a parameter changes.
 
-Bounds: bus -> ROS 1 messages wait in one queue of :data:`QUEUE_SIZE` for the publishing
-thread; ROS 1 -> bus at most :data:`QUEUE_SIZE` wait for the event loop; beyond, they are
+Bounds: bus -> ROS 1 messages wait in one queue of :data:`~rce_container.relay_base.QUEUE_SIZE`
+for the publishing thread; ROS 1 -> bus at most as many wait for the event loop; beyond, they are
 dropped and counted (:meth:`Relay.stats`).
 """
 from __future__ import annotations
 
-import argparse
 import asyncio
-import json
 import os
 import queue
-import signal
-import sys
 import threading
 import time
 import warnings
 from collections import deque
 from typing import Any
 
-from rce.plumbing.errors import ConfigError, RCEError, Unavailable
-from rce.plumbing.log import get_logger, setup_logging
+from rce.plumbing.errors import RCEError, Unavailable
+from rce.plumbing.log import get_logger
 from rce.messages import default_registry
-from rce.node import Node, Publisher
+from rce.node import Publisher
 from rce.node.package_path import load_package_types
-from rce.plumbing.process import run_loop
 from rce.messages.debian_ros1 import import_rospy
 from rce.messages.ros1_types import (Ros1Message, Ros1Service, message_identity, raw_message_class,
                                    raw_service_class, service_identity)
+from rce_container import relay_base
+from rce_container.relay_base import QUEUE_SIZE, RawNode
 from rce_container.ros1_plan import bus_graph, flatten_params, param_changes, plan, relay_name, ros1_graph
 
 log = get_logger("rce.container.ros1_relay")
 
-POLL_INTERVAL = 0.5      # s between two looks at both graphs (ros1_bridge's dynamic_bridge polls every 1 s)
 MASTER_WAIT = 20.0       # s the relay waits for its rosmaster to answer before giving up
 MASTER_POLL = 0.05       # s between two tries to reach it
-QUEUE_SIZE = 1000        # messages waiting per direction (bus -> ROS 1: for the publishing thread;
-                         # ROS 1 -> bus: for the event loop); beyond, dropped and counted
 SERVICE_TIMEOUT = 30.0   # s a bridged service call may take (rospy's client has no timeout of its own)
 ECHO_MEMORY = 100        # own messages remembered per topic bridged both ways (to not send them back)
-SYNC_TYPE = "std_srvs/Empty"   # the type the sync service is announced with on the bus (bytes in, JSON out)
-
-
-class _Sink:
-    """A bus subscription's receiver of raw bytes (the duck type :class:`rce.node.Node` delivers to)."""
-
-    def __init__(self, push):
-        self._push = push
-
-
-class RawNode(Node):
-    """A bus node that publishes, subscribes and serves serialized bytes, never decoding them."""
-
-    def _encode(self, typename: str, msg: Any) -> bytes:
-        return bytes(msg)
-
-    async def _serve(self, handle: int, payload: bytes) -> bytes:
-        return await self._services[handle][0](payload)
-
-    async def raw_publisher(self, topic: str, wire: str) -> Publisher:
-        """Advertise ``topic`` with class ``wire`` (``pkg/Name``, not checked against a registry)."""
-        return Publisher(self, topic, wire, await self._peer.call("advertise", topic=topic, type=wire))
-
-    async def raw_subscriber(self, topic: str, wire: str, push, queue_size: int = QUEUE_SIZE) -> int:
-        """Subscribe ``push(payload)`` to ``topic``; returns the handle for :meth:`unsubscribe`."""
-        h = next(self._ids)
-        self._subs[h] = _Sink(push)
-        await self._peer.call("subscribe", topic=topic, type=wire, queue_size=queue_size, handle=h)
-        return h
-
-    async def unsubscribe(self, handle: int) -> None:
-        self._subs.pop(handle, None)
-        await self._peer.call("unsubscribe", handle=handle)
-
-    async def raw_service(self, name: str, wire: str, handler) -> int:
-        """Provide ``name``: ``await handler(request bytes)`` -> response bytes. Returns its handle."""
-        h = next(self._ids)
-        self._services[h] = (handler, wire, wire)
-        await self._peer.call("advertise_service", service=name, type=wire, handle=h)
-        return h
-
-    async def unadvertise_service(self, handle: int) -> None:
-        self._services.pop(handle, None)
-        await self._peer.call("unadvertise_service", handle=handle)
-
-    async def raw_call(self, name: str, payload: bytes, timeout: float) -> bytes:
-        """Call bus service ``name`` with request bytes; the response bytes."""
-        r = await self._peer.call("resolve_service", service=name)
-        return await self._call(r["handle"], payload, timeout)
 
 
 def wait_for_master(master: Any, timeout: float = MASTER_WAIT) -> None:
@@ -314,62 +260,22 @@ class Relay:
                 "services_to_bus": sorted(self.srv_to_bus), "services_to_ros": sorted(self.srv_to_ros),
                 "problems": dict(self.problems)}
 
-    async def run(self) -> None:
-        """Serve ``sync`` and sync every :data:`POLL_INTERVAL` s until :attr:`stopping` or the bus goes."""
-        async def on_sync(_payload: bytes) -> bytes:
-            return json.dumps(await self.sync()).encode()
-        await self.node.raw_service(f"{self.me}/sync", SYNC_TYPE, on_sync)
-        while not self.stopping.is_set() and not self.node.is_shutdown:
-            try:
-                await self.sync()
-            except (OSError, RCEError) as e:      # rosmaster or the bus busy or going: next round
-                log.warning("sync failed", reason=str(e))
-            try:
-                async with asyncio.timeout(POLL_INTERVAL):
-                    await self.stopping.wait()
-            except TimeoutError:
-                pass
-
 
 async def serve(cid: int) -> None:
-    """Connect both graphs and relay until SIGTERM/SIGINT or the bus closes, then exit the process (0)."""
+    """Connect both graphs and relay until SIGTERM/SIGINT or the bus closes (:func:`relay_base.serve`)."""
     rospy = import_rospy()
     import rosgraph
     me = relay_name(cid)
     await asyncio.to_thread(wait_for_master, rosgraph.Master(me))
     rospy.init_node(me.lstrip("/"), disable_signals=True, disable_rosout=True)
-    node = RawNode(me.lstrip("/"), "/", os.environ["RCE_BUS"], default_registry(), os.environ.get("RCE_BUS_TOKEN"))
-    await node._connect()
-    relay = Relay(node, me)
-    loop = asyncio.get_running_loop()
-    for sig in (signal.SIGINT, signal.SIGTERM):
-        loop.add_signal_handler(sig, relay.stopping.set)
-    log.info("ROS 1 relay ready", name=me, master=os.environ.get("ROS_MASTER_URI"))
-    try:
-        await relay.run()
-    finally:
-        await node.close()
-    # Exit at once, without rospy.signal_shutdown or waiting for rospy's and the executor's threads:
-    # that unregisters from the rosmaster that is stopped next anyway and waits out the poll loops
-    # of rospy's servers (~1.5 s, more than a sandbox's grace); exiting closes every socket.
-    sys.stdout.flush()
-    sys.stderr.flush()
-    os._exit(0)
+
+    async def make(bus: RawNode) -> Relay:
+        return Relay(bus, me)
+    await relay_base.serve(me, make, graph="ROS 1", master=os.environ.get("ROS_MASTER_URI"))
 
 
 def main(argv: list[str] | None = None) -> None:
-    p = argparse.ArgumentParser(prog="python -m rce_container.ros1_relay",
-                                description="relay between a container's bus and its ROS 1 graph "
-                                            "(started by the container's environment)")
-    p.add_argument("--cid", type=int, required=True, help="the container id (names the relay)")
-    args = p.parse_args(argv)
-    setup_logging()
-    try:
-        run_loop(serve(args.cid))
-    except (ConfigError, Unavailable) as e:
-        log.error("ROS 1 relay cannot start", reason=e.message)
-        print(f"ros1_relay: {e.message}", file=sys.stderr)
-        sys.exit(1)
+    relay_base.main("rce_container.ros1_relay", "ROS 1", serve, argv)
 
 
 if __name__ == "__main__":
