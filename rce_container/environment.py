@@ -51,6 +51,7 @@ from rce_container.env_layout import BUS_CALL_TIMEOUT, MAX_SOCKET_PATH, containe
 from rce_container.interfaces import BusInterface, make_interface
 from rce_container.launcher import LOG_LINES, Launcher
 from rce_container.ros1_graph import Ros1Graph
+from rce_container.ros2_graph import Ros2Graph
 from rce_container.usage import CpuRate, measure
 from rce_container.zygote_client import ZygoteTemplate
 
@@ -89,6 +90,9 @@ class GroupContainer:
         if handoff:
             self.launcher.extra_env["RCE_STATE_IN"] = "1"
         self.ros1 = Ros1Graph(self.launcher, cid, env.bus)     # rosmaster and relay, while it has ROS 1 nodes
+        # its ROS 2 relay, while it has ROS 2 nodes; it tells the robot what it cannot bridge
+        self.ros2 = Ros2Graph(self.launcher, cid, env.bus, lambda: self.interfaces,
+                              lambda iid, tag, status, reason: env.notify_interface(cid, iid, tag, status, reason))
         self.interfaces: dict[int, BusInterface] = {}
 
     def _status(self, ntag: str, status: str, **fields: Any) -> None:
@@ -110,6 +114,7 @@ class GroupContainer:
         """Kill the nodes, drop the interfaces, close the socket, remove the workdir."""
         await self.launcher.close()
         await self.ros1.close()
+        await self.ros2.close()
         await self.sandbox.close()
         for iface in list(self.interfaces.values()):
             await self.env.drop_interface(iface)
@@ -269,6 +274,12 @@ class Environment:
         if self.peer:
             self.peer.notify("node_status", cid=cid, ntag=ntag, status=status, **fields)
 
+    def notify_interface(self, cid: int, iid: int, tag: str, status: str, reason: str) -> None:
+        """Send ``interface_status {cid, iid, tag, status, reason}`` to the task set: how a container
+        interface is bridged into its ROS 2 graph (:mod:`rce_container.ros2_graph`)."""
+        if self.peer:
+            self.peer.notify("interface_status", cid=cid, iid=iid, tag=tag, status=status, reason=reason)
+
     def _container(self, args: dict) -> GroupContainer:
         c = self.containers.get(args.get("cid"))
         if c is None:
@@ -352,14 +363,18 @@ class Environment:
     @ENV_OPS.op("add_node")
     async def op_add_node(self, args: dict) -> dict:
         """``{cid, ntag, pkg, exe, args, name, namespace, respawn}`` -> ``{ntag, pid}``. A node of a
-        ROS 1 package first gets its container's ROS 1 graph (:mod:`rce_container.ros1_graph`)."""
+        ROS 1 package first gets its container's ROS 1 graph (:mod:`rce_container.ros1_graph`), one of
+        a ROS 2 package its ROS 2 graph (:mod:`rce_container.ros2_graph`)."""
         c = self._container(args)
+        graph = c.ros1
         kind = await c.ros1.prepare(args)
+        if kind is None:
+            graph, kind = c.ros2, await c.ros2.prepare(args)
         try:
             return await c.launcher.add(args, kind)
         finally:
             if kind is not None and args.get("ntag") not in c.launcher.nodes:
-                await c.ros1.node_gone(args["ntag"])
+                await graph.node_gone(args["ntag"])
 
     @ENV_OPS.op("remove_node")
     async def op_remove_node(self, args: dict) -> dict:
@@ -367,6 +382,7 @@ class Environment:
         c = self._container(args)
         await c.launcher.remove(args["ntag"])
         await c.ros1.node_gone(args["ntag"])
+        await c.ros2.node_gone(args["ntag"])
         return {}
 
     @ENV_OPS.op("logs")
@@ -380,7 +396,7 @@ class Environment:
         """``{cid, name, value}``: set a parameter (global name) on the group's bus."""
         self._container(args)
         self.bus.set_param(resolve(args["name"], "/"), args.get("value"))
-        await self._sync_ros1()
+        await self._sync_graphs()
         return {}
 
     @ENV_OPS.op("delete_param")
@@ -388,12 +404,13 @@ class Environment:
         """``{cid, name}``: delete a parameter (and its subtree). NotFound if not set."""
         self._container(args)
         self.bus.delete_param(resolve(args["name"], "/"))
-        await self._sync_ros1()
+        await self._sync_graphs()
         return {}
 
-    async def _sync_ros1(self) -> None:
-        """Copy the bus's parameters into the ROS 1 graphs of the group's containers now."""
-        await asyncio.gather(*(c.ros1.sync() for c in self.containers.values()))
+    async def _sync_graphs(self) -> None:
+        """Copy the bus's parameters into the ROS 1 graphs of the group's containers, and set them
+        on the running nodes of their ROS 2 graphs, now."""
+        await asyncio.gather(*(g.sync() for c in self.containers.values() for g in (c.ros1, c.ros2)))
 
     @ENV_OPS.op("get_param")
     async def op_get_param(self, args: dict) -> dict:
@@ -627,10 +644,12 @@ class Environment:
                                  # refused: connections to the group's bus sockets turned away
                            dataplane: {msgs_in, msgs_out, bytes_in, bytes_out, dropped, links},
                            zygote_template: {pid, forked, running}},   # forked: from the task set's
-             ros1?: {master_uri, running, nodes, pids, relay}}  # while it has ROS 1 nodes (Ros1Graph.info)
+             ros1?: {master_uri, running, nodes, pids, relay},  # while it has ROS 1 nodes (Ros1Graph.info)
+             ros2?: {domain_id, running, nodes, pids, relay}}   # while it has ROS 2 nodes (Ros2Graph.info)
         """
         c = self._container(args)
         await c.ros1.sync()
+        await c.ros2.sync("stats")
         if self.direct is not None:
             await self.direct.collect()
         await c.collect_results()
@@ -649,7 +668,8 @@ class Environment:
             "direct": self.direct.stats() if self.direct is not None else {"enabled": False},
             "zygote_template": {"pid": self.template.pid, "forked": self.template.forked,
                                 "running": self.template.alive}},
-            **({"ros1": c.ros1.info()} if c.ros1.ntags else {})}
+            **({"ros1": c.ros1.info()} if c.ros1.ntags else {}),
+            **({"ros2": c.ros2.info()} if c.ros2.ntags else {})}
 
 
 def given_socket(fd: int | None) -> socket.socket | None:

@@ -7,8 +7,9 @@ containers and their nodes (:class:`rce.transport.masterlink.MasterLink`; node s
 its bounded backlog). It listens on a Unix control socket
 (``RUNTIME/host.sock``) that its environment processes dial. The master never talks to an
 environment: every container op arrives here, names its ``cid``, and is relayed to the
-environment that serves the container's group. ``node_status`` notifications travel the other
-way (environment -> here -> master).
+environment that serves the container's group. ``node_status`` and ``interface_status`` (what
+a container's ROS 2 relay cannot bridge) notifications travel the other way (environment -> here
+-> master).
 
 Groups: containers of one user created with the same ``group`` share one environment (one
 bus); a container without a group gets an environment of its own. An environment is spawned
@@ -264,7 +265,10 @@ class ContainerHost:
 
         async def node_status(args: dict) -> None:
             self._on_node_status(args)
-        peer.handlers.update(hello=hello, node_status=node_status)
+
+        async def interface_status(args: dict) -> None:     # how an interface is bridged into ROS 2
+            self._to_master("interface_status", **args)
+        peer.handlers.update(hello=hello, node_status=node_status, interface_status=interface_status)
         peer.start()
 
     def _refill_spares(self) -> None:

@@ -338,7 +338,7 @@ class Master:
                 "robot_request": self._robot_request, "container_bus": self._container_bus,
                 "container_param": self._container_param})
         else:
-            peer.handlers.update({"node_status": self._node_status,
+            peer.handlers.update({"node_status": self._node_status, "interface_status": self._interface_status,
                                   "container_lost": lambda args, tid=ts.tid: self._container_lost(tid, args)})
         log.info("task set registered", tid=ts.tid, kind=ts.kind, name=ts.name, host=ts.host, resumed=out.resumed,
                  lost=len(out.lost), dropped=len(out.drop_containers) + len(out.drop_interfaces),
@@ -531,6 +531,22 @@ class Master:
         c = self.state.container_by_cid(args["cid"])
         if n and c:
             self.control.tell_node_status(c, n, args["status"], detail)
+
+    async def _interface_status(self, args: dict) -> None:
+        """A host's word on how a container interface is bridged into its container's ROS 2 graph
+        (:mod:`rce_container.ros2_graph`): the owner gets ``ST {topic: interface, cTag, iTag, status,
+        reason}``, and an ER with the reason unless the status is ``ok``. Nothing is recorded."""
+        c = self.state.container_by_cid(args.get("cid"))
+        rec = next((r for r in self.state.interfaces_of(c.user, c.ctag, robot_side=False)
+                    if r.iid == args.get("iid")), None) if c else None
+        status, reason = str(args.get("status")), str(args.get("reason") or "")
+        if rec is None:
+            return
+        self.control.notify_robot(c.user, c.owner, "ST", {"topic": "interface", "cTag": c.ctag, "iTag": rec.itag,
+                                                          "status": status, "reason": reason})
+        if status != "ok":
+            self.control.notify_robot(c.user, c.owner, "ER",
+                                      f"interface {rec.itag!r} in container {c.ctag!r}: {reason}")
 
     # -- HTTP ------------------------------------------------------------------------------------
     def _app(self, static_dirs: dict[str, Path]) -> web.Application:
