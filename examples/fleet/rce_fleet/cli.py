@@ -17,6 +17,7 @@
                    [--token-ttl S]                  # the page and the task API: docs/task-api.md
     rce-fleet replay RUN.mcap [--speed K] [--loop] [--web-port P | --headless] [--foxglove-port P]
     rce-fleet task add ERRAND... [--priority P] [--start-in S] [--deadline-in S] [--id ID] [--master URL | --api URL]
+                   # S: fleet time, the robots' clock: simulated s under serve (--speedup K: K a wall second)
     rce-fleet task list [--json] | task get ID | task cancel ID     # the operators' task API
     rce-fleet users [list] | users add NAME [--role R] | users role NAME --role R | users password NAME
                    | users remove NAME  --api URL                   # an admin's: the users of a running serve
@@ -133,7 +134,7 @@ def _run_args(p: argparse.ArgumentParser, mission: bool) -> None:
     p.add_argument("--seed", type=int, default=1, help="random starts/goals and sensor noise (default 1)")
     p.add_argument("--speedup", type=_positive, default=DEFAULT_SPEEDUP, metavar="K",
                    help=f"simulated time runs K times faster than wall time (default {DEFAULT_SPEEDUP:g}; demo on the "
-                   f"warehouse {DEMO_SPEEDUP:g})")
+                   f"warehouse {DEMO_SPEEDUP:g}); the fleet's clock, and every time of its tasks, is simulated time")
     p.add_argument("--start", action="append", default=[], metavar="RobotN=CELL", help="start cell of a robot")
     p.add_argument("--headless", action="store_true", help="no operator web page")
     p.add_argument("--web-port", type=int, default=8000, metavar="PORT",
@@ -195,7 +196,7 @@ def _web_args(p: argparse.ArgumentParser) -> None:
                    "is needed)")
     p.add_argument("--metrics-public", action="store_true", help="/metrics without a credential (default: a viewer's)")
     p.add_argument("--token-ttl", type=_positive, default=None, metavar="S",
-                   help="s a token from POST /api/login lives (default 28800: 8 h)")
+                   help="wall s a token from POST /api/login lives (default 28800: 8 h)")
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -211,9 +212,10 @@ def build_parser() -> argparse.ArgumentParser:
     d.add_argument("--goal", action="append", default=[], metavar="RobotN=CELL",
                    help="goal cell of a robot (repeatable; the others get random free cells)")
     d.add_argument("--block", action="append", default=[], metavar="CELL@S",
-                   help="block CELL S sim seconds after the goals were sent (repeatable)")
+                   help="block CELL S simulated seconds after the goals were sent (repeatable)")
     d.add_argument("--obstacle", action="append", default=[], metavar="CELL@S",
-                   help="drop a box in CELL at S sim seconds, unannounced: the robots' lidars must find it")
+                   help="drop a box in CELL S simulated seconds after the goals were sent (the start of a run by "
+                   "tasks), unannounced: the robots' lidars must find it")
     d.add_argument("--fault", action="append", default=[], metavar="SPEC",
                    help="inject a fault T sim seconds after the goals were sent (repeatable): master@T[+S] kills "
                    "rce-master (kill -9) and restarts it on its state file after S wall seconds (default 2); "

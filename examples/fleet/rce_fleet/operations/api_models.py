@@ -5,6 +5,8 @@ body and a ``POST /api/login`` body with them, and :func:`openapi_document` publ
 Schemas (pydantic's, JSON Schema 2020-12, which OpenAPI 3.1 takes as it is) under
 ``components/schemas`` with the routes, the roles each needs and the security schemes
 (``GET /api/openapi.json``). Field names are the fleet's (``fleet/TaskStatus``, ``fleet/TaskList``).
+Every time says its clock: fleet time is the robots' clock, simulated seconds under ``rce-fleet serve`` and
+``demo`` (``--speedup K``: K of them a wall second); a token's lifetime is wall time.
 Sans-I/O: pydantic only.
 """
 from __future__ import annotations
@@ -35,14 +37,18 @@ class TaskRequest(BaseModel):
     errands: list[StrictStr | StrictInt] = Field(
         max_length=MAX_ERRANDS, description=f"in order: cell numbers (42 or \"42\") or place names; 1 to {MAX_ERRANDS}")
     priority: StrictFloat = Field(0.0, description="higher first (one unit is worth about 100 cells of travel)")
-    earliest_start_s: StrictFloat = Field(0.0, description="fleet s from now before which it does not start")
-    deadline_s: StrictFloat = Field(0.0, description="fleet s from now by which it must be done (0: none)")
+    earliest_start_s: StrictFloat = Field(0.0, description="fleet s from now before which it does not start (the "
+                                          "robots' clock: simulated s under rce-fleet serve, --speedup of them a "
+                                          "wall second)")
+    deadline_s: StrictFloat = Field(0.0, description="fleet s from now by which it must be done (0: none; the robots' "
+                                    "clock: simulated s under rce-fleet serve, --speedup of them a wall second)")
     id: StrictStr = Field("", pattern=f"^({ID_RE.pattern[1:-1]})?$",
                           description="task id wanted (1-64 of A-Z a-z 0-9 _ . : -); empty: the fleet names it")
 
 
 class FleetTask(BaseModel):
-    """One task (``fleet/TaskStatus``). Times are fleet seconds (the robots' clock); 0: not (yet) reached."""
+    """One task (``fleet/TaskStatus``). Times are fleet time, s: the robots' clock, simulated seconds under
+    rce-fleet serve and demo (--speedup K: K of them a wall second); 0: not (yet) reached."""
     id: str
     errands: list[str] = Field(description="as given: place names, and cells as their numbers")
     cells: list[int] = Field(description="the errands' cells")
@@ -54,13 +60,13 @@ class FleetTask(BaseModel):
     source: str = Field(description="who created it: http:USER (this API), cli:USER, operator:ROBOTID (the page), "
                                     "stream (a generated run)")
     cancelled_by: str = Field("", description="who cancelled it, in the same form as source (empty: not cancelled)")
-    created: float
-    earliest_start: float
-    deadline: float
-    assigned: float
-    active: float
-    finished: float
-    reached: list[float] = Field(description="fleet time each errand was reached, in order")
+    created: float = Field(description="fleet time it was created (simulated s)")
+    earliest_start: float = Field(description="fleet time before which it does not start (simulated s; 0: none)")
+    deadline: float = Field(description="fleet time by which it must be done (simulated s; 0: none)")
+    assigned: float = Field(description="fleet time it was last given to a robot (simulated s; 0: not yet)")
+    active: float = Field(description="fleet time its robot reached its first errand (simulated s; 0: not yet)")
+    finished: float = Field(description="fleet time it was done, failed or cancelled (simulated s; 0: open)")
+    reached: list[float] = Field(description="fleet time each errand was reached, in order (simulated s)")
 
 
 class RobotWork(BaseModel):
@@ -69,10 +75,14 @@ class RobotWork(BaseModel):
     task: str = Field(description="its task's id (empty: none)")
     activity: Literal["unknown", "idle", "parking", "task", "to_charger", "charging"]
     battery_pct: float = Field(description="battery level, % (-1: not reported)")
-    busy_s: float = Field(description="fleet s spent on tasks so far")
-    since_s: float = Field(description="fleet s since it was first seen")
+    busy_s: float = Field(description="fleet s spent on tasks so far (simulated s)")
+    since_s: float = Field(description="fleet s since it was first seen (simulated s)")
     charges: int
     tasks_done: int
+    stalled_s: float = Field(0.0, description="fleet s it has held work at one cell without progress, once it "
+                             "stalled (60 simulated s; 0: it makes progress, or has nothing to do)")
+    stalls: int = Field(0, description="stalls so far: each an alert and a recovery step")
+    alert: str = Field("", description="its current stall: where, on what, what the fleet did (empty: none)")
 
 
 class TaskList(BaseModel):
@@ -86,8 +96,8 @@ class TaskList(BaseModel):
     failed: int
     cancelled: int
     deadline_missed: int = Field(description="tasks done after their deadline or failed for it")
-    mean_s: float = Field(description="mean s from creation to done, over done tasks")
-    p95_s: float
+    mean_s: float = Field(description="mean simulated s from creation to done, over done tasks")
+    p95_s: float = Field(description="95th percentile of the simulated s from creation to done")
 
 
 class ApiError(BaseModel):
@@ -105,7 +115,8 @@ class LoginRequest(BaseModel):
 
     user: StrictStr = Field(min_length=1)
     password: StrictStr = Field(min_length=1)
-    ttl_s: StrictFloat | None = Field(None, gt=0, description="s the token lives (at most the server's --token-ttl)")
+    ttl_s: StrictFloat | None = Field(None, gt=0, description="wall s the token lives (at most the server's "
+                                      "--token-ttl)")
 
 
 class LoginAnswer(BaseModel):
@@ -113,7 +124,7 @@ class LoginAnswer(BaseModel):
     restart of the server: tokens live in its memory alone)."""
     token: str
     token_type: Literal["Bearer"] = "Bearer"
-    expires_in: float = Field(description="s from now")
+    expires_in: float = Field(description="wall s from now")
     user: str
     role: Literal["viewer", "operator", "admin"]
     survives_restart: Literal[False] = Field(False, description="false: a restart of rce-fleet serve ends every "

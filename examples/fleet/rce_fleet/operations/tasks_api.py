@@ -203,7 +203,8 @@ class TaskBook:
         es = _number(req.get("earliest_start_s", 0.0), "earliest_start_s")
         dl = _number(req.get("deadline_s", 0.0), "deadline_s")
         if es < 0 or dl < 0:
-            raise Refused("bad_request", "earliest_start_s and deadline_s must be >= 0 (s from now; 0: none)")
+            raise Refused("bad_request", "earliest_start_s and deadline_s must be >= 0 (fleet time: simulated s "
+                                         "from now; 0: none)")
         if dl and dl <= es:
             raise Refused("bad_request", f"deadline_s {dl:g} is not after earliest_start_s {es:g}")
         if not tid:
@@ -264,7 +265,8 @@ class TaskBook:
         """Fail every open task whose deadline passed (counted in ``deadline_missed``)."""
         late = [r for r in self.by_pool.values() if r.deadline and now > r.deadline]
         for r in late:
-            self.close(r, TaskState.FAILED, f"deadline passed ({r.deadline - r.created:.0f} s after creation)", now)
+            self.close(r, TaskState.FAILED, f"deadline passed ({r.deadline - r.created:.0f} s after creation, "
+                       f"fleet time)", now)
             self.deadline_missed += 1
         return late
 
