@@ -32,14 +32,17 @@ from __future__ import annotations
 
 import asyncio
 import collections
+import json
 import os
 import re
 import signal
 import subprocess
 import sys
+import time
 from pathlib import Path
 from typing import Any, Callable
 
+from rce.interfaces.qos import parse_qos
 from rce.plumbing.errors import MessageError
 from rce.plumbing.log import get_logger
 from rce.plumbing.process import popen_tied
@@ -56,10 +59,13 @@ BRIDGE_GRACE_S = 5.0         # s beyond rce-ros's own --timeout that its "ready"
 OUTPUT_LINES = 30            # last lines of each rce-ros kept for the reason of a failure
 LINE_LIMIT = 1 << 20         # bytes in one line of rce-ros's output (a longer one is cut)
 CLOSE_TIMEOUT_S = 5.0        # s a node's executor gets to stop
-#: QoS of the simulated robot's publishers, as the ROS 2 drivers of a TurtleBot publish them (Nav2's amcl: the
-#: last pose for late subscribers; lidar drivers: sensor data). Not named: rclpy's default, reliable, depth 10.
-QOS = {"pose": "amcl", "scan": "sensor_data"}
+#: QoS profiles (:data:`rce.interfaces.qos.PROFILES`) of the simulated robot's publishers, as a TurtleBot's ROS 2
+#: drivers have them: Nav2's amcl keeps the last pose for late subscribers (reliable, transient local, depth 1:
+#: ``map``), lidar drivers publish sensor data (best effort, depth 5). Not named: rclpy's default (reliable,
+#: volatile, depth 10), the subscriptions' too.
+QOS = {"pose": "map", "scan": "sensor_data"}
 COUNTS = re.compile(r"rce-ros: ROS 2 (\S+): (\d+) from ROS 2, (\d+) to ROS 2, (\d+) dropped, (\d+) failed")
+NOT_SENT = re.compile(r"rce-ros: (\S+): (\d+) message\(s\) not sent to the cloud")
 
 
 def rce_ros_command() -> list[str]:
@@ -69,13 +75,9 @@ def rce_ros_command() -> list[str]:
 
 
 def _qos(name: str) -> Any:
-    from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy, qos_profile_sensor_data
-    kind = QOS.get(name)
-    if kind == "amcl":
-        return QoSProfile(depth=1, reliability=ReliabilityPolicy.RELIABLE, durability=DurabilityPolicy.TRANSIENT_LOCAL)
-    if kind == "sensor_data":
-        return qos_profile_sensor_data
-    return QoSProfile(depth=10)
+    """rclpy's QoS profile of the robot's topic ``name`` (:data:`QOS`)."""
+    from rce_client.ros2_types import qos_profile
+    return qos_profile(parse_qos(QOS[name]) if name in QOS else None)
 
 
 class Ros2Port:
@@ -112,6 +114,9 @@ class Ros2Robot:
         self.ready = asyncio.Event()
         self.output: collections.deque[str] = collections.deque(maxlen=OUTPUT_LINES)
         self.bridged: dict[str, tuple[int, int, int, int]] = {}
+        self.not_sent: dict[str, int] = {}             # iTag -> messages rce-ros did not send (before its link was up)
+        self.started = time.monotonic()                # its rce-ros's start (monotonic s)
+        self.node_s = 0.0                              # wall s its node took to start
 
     def start_node(self, topics: list[tuple[str, str, str]],
                    commands: list[tuple[str, str, Callable[[bytes], bool]]], loop: asyncio.AbstractEventLoop) -> None:
@@ -128,7 +133,7 @@ class Ros2Robot:
         for topic, cls, handler in commands:
             counts = self.counts[topic] = Counts()
             hand = Handoff(loop, self._taker(topic, cls, handler, counts), counts, HANDOFF_LIMIT)
-            node.create_subscription(rclpy_class(topic, cls), topic, hand.offer, _qos(""), raw=True,
+            node.create_subscription(rclpy_class(topic, cls), topic, hand.offer, _qos(topic), raw=True,
                                      callback_group=self.spinner.group)
 
     def _taker(self, topic: str, cls: str, handler: Callable[[bytes], bool], counts: Any) -> Callable[[bytes], None]:
@@ -180,11 +185,13 @@ class Ros2Robots:
         lease = await asyncio.to_thread(self._lease)
         robot = self.robots[rid] = Ros2Robot(rid, lease)
         bot.ros2 = robot
+        t0 = time.monotonic()
         await asyncio.to_thread(robot.start_node, topics, commands, asyncio.get_running_loop())
+        robot.node_s = time.monotonic() - t0
         bot.ports, bot.live = robot.ports, True
         path = self.dir / f"{rid.lower()}.config"
         path.touch(mode=0o600)
-        path.write_text(_json(ros2_config(config) | {"url": master_url}))
+        path.write_text(json.dumps(ros2_config(config) | {"url": master_url}, indent=2))
         env = dict(os.environ, ROS_DOMAIN_ID=str(robot.domain), ROS_AUTOMATIC_DISCOVERY_RANGE=RANGE)
         logfile = open(self.dir / f"{rid}.log", "wb")
         try:
@@ -194,6 +201,7 @@ class Ros2Robots:
         except OSError:
             logfile.close()
             raise
+        robot.started = time.monotonic()
         bot.task = robot.reader = self.tasks.spawn(self._read(robot, logfile), name=f"rce-ros-{rid}")
         ready = self.tasks.spawn(robot.ready.wait(), name=f"ready-{rid}")
         done, _ = await asyncio.wait({ready, bot.task}, timeout=timeout + BRIDGE_GRACE_S,
@@ -227,8 +235,12 @@ class Ros2Robots:
                 robot.output.append(line)
                 if line.startswith("rce-ros: ready"):
                     robot.ready.set()
+                    log.info("ROS 2 robot up", robot=robot.rid, domain=robot.domain, node_s=round(robot.node_s, 2),
+                             bridge_s=round(time.monotonic() - robot.started, 2))
                 elif (m := COUNTS.match(line)) is not None:
                     robot.bridged[m.group(1)] = tuple(int(x) for x in m.groups()[1:])
+                elif (m := NOT_SENT.match(line)) is not None:
+                    robot.not_sent[m.group(1)] = int(m.group(2))
         finally:
             transport.close()
             logfile.close()
@@ -252,24 +264,26 @@ class Ros2Robots:
             self.out(self.summary())
 
     def summary(self) -> str:
-        """One line: the robots' domains, what their bridges carried each way, dropped and failed, and what
+        """One line: the robots' domains, what their bridges carried each way, dropped and failed (and the
+        messages they took from ROS 2 before their interfaces were connected: not sent on), and what
         the simulated robots published and took (their messages' counts)."""
         from_ros = sum(v[0] for r in self.robots.values() for v in r.bridged.values())
         to_ros = sum(v[1] for r in self.robots.values() for v in r.bridged.values())
         dropped = sum(v[2] for r in self.robots.values() for v in r.bridged.values())
         failed = sum(v[3] for r in self.robots.values() for v in r.bridged.values())
+        not_sent = sum(n for r in self.robots.values() for n in r.not_sent.values())
         sent = sum(p.sent for r in self.robots.values() for p in r.ports.values())
         took = sum(c.from_ros for r in self.robots.values() for c in r.counts.values())
         lost = sum(c.dropped + c.bad for r in self.robots.values() for c in r.counts.values())
         domains = ", ".join(f"{rid} {r.domain}" for rid, r in self.robots.items())
         return (f"rce-fleet: ROS 2 robots (domains {domains}): their rce-ros --ros2 carried {from_ros} messages from "
-                f"ROS 2 to the cloud and {to_ros} to ROS 2, {dropped} dropped, {failed} failed; the robots "
-                f"published {sent} and took {took} ({lost} dropped or refused)")
+                f"ROS 2 to the cloud ({not_sent} of them before their interfaces were connected: not sent on) and "
+                f"{to_ros} to ROS 2, {dropped} dropped, {failed} failed; the robots published {sent} and took {took} "
+                f"({lost} dropped or refused)")
 
 
 def _wait_all(procs: list[subprocess.Popen], timeout: float) -> None:
     """Wait for ``procs`` to end, together within ``timeout`` s; SIGKILL (the process group) those that do not."""
-    import time
     deadline = time.monotonic() + timeout
     for p in procs:
         try:
@@ -279,7 +293,3 @@ def _wait_all(procs: list[subprocess.Popen], timeout: float) -> None:
             os.killpg(p.pid, signal.SIGKILL)
             p.wait()
 
-
-def _json(cfg: dict) -> str:
-    import json
-    return json.dumps(cfg, indent=2)
