@@ -26,7 +26,7 @@ from rce.tools.launch import start_engine
 from rce_robot.ws_link import IMPLS as WS_IMPLS
 from rce_client.connection import Connection, login
 
-WEB_DIR = Path(__file__).resolve().parents[2] / "examples" / "fleet" / "rce_fleet" / "live" / "web"
+WEB_DIR = Path(__file__).resolve().parents[2] / "rce" / "web"      # echo.html and rce.js: the engine's
 CHROMIUM = os.environ.get("RCE_CHROMIUM", "/usr/bin/chromium")
 ECHO_TIMEOUT = 30.0          # s for a container, its echo node and the interfaces to come up on a busy machine
 PAGE_TIMEOUT_MS = 60_000     # ms the web page's echo test may take (as tests/web/test_web_client.py)

@@ -12,7 +12,7 @@ from pathlib import Path
 
 import pytest
 
-WEB_DIR = Path(__file__).resolve().parents[2] / "examples" / "fleet" / "rce_fleet" / "live" / "web"
+from web_paths import ENGINE_WEB
 CHROMIUM = os.environ.get("RCE_CHROMIUM", "/usr/bin/chromium")
 CHROMIUM_ARGS = ["--no-sandbox", "--disable-gpu", "--disable-background-networking", "--disable-quic",
                  "--no-first-run", "--disable-component-update", "--disable-sync"]
@@ -39,9 +39,9 @@ class _QuietHandler(SimpleHTTPRequestHandler):
 
 @pytest.fixture(scope="session")
 def web_root():
-    """The web directory served over HTTP on 127.0.0.1 (a free port; a secure context, so
-    ``crypto.subtle`` exists), for tests of rce.js that need no engine; yields its URL, ending in /."""
-    server = ThreadingHTTPServer(("127.0.0.1", 0), functools.partial(_QuietHandler, directory=str(WEB_DIR)))
+    """The engine's web directory (rce.js, echo.html) served over HTTP on 127.0.0.1 (a free port; a secure
+    context, so ``crypto.subtle`` exists), for tests of rce.js that need no engine; yields its URL, ending in /."""
+    server = ThreadingHTTPServer(("127.0.0.1", 0), functools.partial(_QuietHandler, directory=str(ENGINE_WEB)))
     thread = threading.Thread(target=server.serve_forever, name="web-root", daemon=True)
     thread.start()
     yield f"http://127.0.0.1:{server.server_address[1]}/"

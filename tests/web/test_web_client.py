@@ -9,13 +9,13 @@ from __future__ import annotations
 
 import pytest
 
-from conftest import WEB_DIR
+from web_paths import ENGINE_WEB
 from rce.tools.launch import start_engine
 
 
 @pytest.fixture(scope="module")
 def ui_engine(tmp_path_factory):
-    e = start_engine(tmp_path_factory.mktemp("engine"), master_args=("--static", f"/ui={WEB_DIR}"))
+    e = start_engine(tmp_path_factory.mktemp("engine"), master_args=("--static", f"/ui={ENGINE_WEB}"))
     yield e
     e.stop()
 

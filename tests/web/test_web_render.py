@@ -5,7 +5,7 @@ from __future__ import annotations
 
 import pytest
 
-from conftest import WEB_DIR
+from web_paths import page_dir
 from rce.tools.launch import start_engine
 
 
@@ -16,7 +16,7 @@ def ui_master(tmp_path_factory):
     from rce_fleet.live.webui import map_png
     (d / "map.png").write_bytes(map_png(lab_map()))
     e = start_engine(tmp_path_factory.mktemp("engine"), robot_tasksets=0, container_hosts=0,
-                     master_args=("--static", f"/ui={WEB_DIR}", "--static", f"/data={d}"))
+                     master_args=("--static", f"/ui={page_dir(d / 'ui')}", "--static", f"/data={d}"))
     yield e
     e.stop()
 

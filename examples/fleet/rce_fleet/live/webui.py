@@ -1,6 +1,7 @@
 """The operator's web page for ``rce-fleet demo`` / ``rce-fleet serve``.
 
-:class:`WebUI` serves ``rce_fleet/live/web/`` (index.html, fleet.js, rce.js, style.css) on its own
+:class:`WebUI` serves ``rce_fleet/live/web/`` (index.html, fleet.js, style.css) and the engine's
+``rce/web/rce.js`` on its own
 HTTP port, next to two generated files:
 
 * ``map.png``: the map image (browsers do not show PGM), drawn by the page under the grid;
@@ -48,6 +49,8 @@ from typing import Callable
 
 from aiohttp import web
 
+import rce
+
 from rce.plumbing.errors import RCEError, Unavailable
 from rce.plumbing.log import get_logger
 from rce_client.connection import Connection
@@ -59,6 +62,8 @@ from ..operations.web_headers import add_security_headers
 log = get_logger("fleet.web")
 
 WEB_DIR = Path(__file__).parent / "web"
+#: The engine's browser client, rce.js (the page imports it as ./rce.js): it ships with the engine.
+RCE_JS = Path(rce.__file__).parent / "web" / "rce.js"
 MISSION_TOPIC = "/fleet/mission"
 MISSION_ID = "fleetMission"
 DEFAULT_PORT = 8000
@@ -287,8 +292,8 @@ class WebUI:
             add_routes(app, self.tasks, self.auth)
             self.door = PageDoor(self.master_url, self.user, self.password, self.auth, self.ctag)
             self.door.add_routes(app)
-        for f in sorted(WEB_DIR.iterdir()):     # the page's files, each its own route: any other path is a 404
-            if f.is_file():                      # (or a 405 for a route of another method), never a file's
+        for f in [*sorted(WEB_DIR.iterdir()), RCE_JS]:   # the page's files, each its own route: any other path
+            if f.is_file():                                # is a 404 (or a 405 for a route of another method)
                 app.router.add_get(f"/{f.name}", _file(f))
         if self.mission is not None:
             await self.mission.start()
