@@ -67,7 +67,7 @@ def _explain(rep: dict, out: str) -> str:
 
 def test_committed_robot_configs_are_the_generators_output():
     for n in range(1, 11):
-        path = ROOT / "configs" / f"robot{n}.config"
+        path = ROOT / "examples" / "fleet" / "configs" / f"robot{n}.config"
         assert path.read_text() == dumps(robot_config(n)), f"{path} differs: run `rce-fleet configs`"
 
 

@@ -1,7 +1,7 @@
 """Robot configs of the fleet (the seed paper's ``robot1.config`` format, section III-C-2).
 
-``robot_config(n)`` is the config of simulated robot ``RobotN``; ``configs/robot1.config``
-... ``configs/robot10.config`` are its output (``rce-fleet configs`` rewrites them;
+``robot_config(n)`` is the config of simulated robot ``RobotN``; ``examples/fleet/configs/robot1.config``
+... ``examples/fleet/configs/robot10.config`` are its output (``rce-fleet configs`` rewrites them;
 ``tests/fleet/test_fleet_e2e.py`` checks they match). The fleet manager
 (:mod:`rce_fleet.live.manager`, robotID ``fleetManager``) creates the fleet container
 ``cTag_01`` and the global planner before the robots connect, so a robot's config adds
