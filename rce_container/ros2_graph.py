@@ -194,7 +194,8 @@ class Ros2Graph:
             raw = await self.bus.call_service(f"{relay_name(self.cid)}/{what}", b"", timeout=SYNC_TIMEOUT)
             self.relay_stats = json.loads(raw)
         except (RCEError, ValueError) as e:
-            log.warning("ROS 2 relay did not answer", container=self.launcher.ctag, reason=str(e))
+            if self.running:           # (not one stopped meanwhile)
+                log.warning("ROS 2 relay did not answer", container=self.launcher.ctag, reason=str(e))
             return
         self._tell()
 

@@ -353,13 +353,15 @@ async def serve(cid: int) -> None:
     node = rclpy.create_node(me.lstrip("/"), enable_rosout=False, start_parameter_services=False)
     executor = SingleThreadedExecutor()
     executor.add_node(node)
-    threading.Thread(target=executor.spin, name="ros2 executor", daemon=True).start()
+    spinning = threading.Thread(target=executor.spin, name="ros2 executor", daemon=True)
+    spinning.start()
 
     async def make(bus: RawNode) -> Relay:
         return Relay(bus, node, me)
 
-    def cleanup() -> None:        # Fast DDS removes its shared-memory segments with its participant
-        executor.shutdown(timeout_sec=EXIT_WAIT)
+    def cleanup() -> None:        # Fast DDS removes its shared-memory segments with its participant,
+        executor.shutdown(timeout_sec=EXIT_WAIT)      # once the executor no longer waits on the node
+        spinning.join(EXIT_WAIT)
         node.destroy_node()
         rclpy.shutdown()
     await relay_base.serve(me, make, cleanup, graph="ROS 2", domain=os.environ.get("ROS_DOMAIN_ID"))
