@@ -109,8 +109,10 @@ def _side(itype: str) -> str:
 
 def expand_connection(tag_a: str, tag_b: str) -> list[tuple[str, str]]:
     """The five connections between the parts of actions ``tag_a`` and ``tag_b``
-    (``endpointTag/interfaceTag`` each)."""
-    return [(f"{tag_a}.{p.name}", f"{tag_b}.{p.name}") for p in PARTS]
+    (``endpointTag/interfaceTag`` each), the topics first: a goal sent as soon as its service is
+    wired then finds its feedback and status wired already, and misses none of them."""
+    ordered = sorted(PARTS, key=lambda p: p.provider_kind.startswith("Service"))
+    return [(f"{tag_a}.{p.name}", f"{tag_b}.{p.name}") for p in ordered]
 
 
 def call_timeout(cls: str) -> float:

@@ -130,6 +130,7 @@ def test_action_entries_become_five_parts():
     assert cloud["fib.get_result"].iType == "ServiceClientInterface"
     assert cloud["fib.status"].iType == "SubscriberInterface"
     assert cloud["fib.get_result"].addr == "/fib/_action/get_result"
+    assert [c.tagA for c in cfg.connections][:2] == ["r/fib.feedback", "r/fib.status"]    # topics wired first
     assert sorted((c.tagA, c.tagB) for c in cfg.connections) == sorted(
         (f"r/fib.{p}", f"c/fib.{p}") for p in ("send_goal", "get_result", "cancel_goal", "feedback", "status"))
     assert "qos" not in robot["fib.status"].component() and "action" not in robot["fib.status"].component()
