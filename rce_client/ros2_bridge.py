@@ -42,7 +42,8 @@ from rce.plumbing.errors import ConfigError, MessageError, RCEError, Unavailable
 from rce.plumbing.log import get_logger
 from rce_client.ros1_bridge import Counts, Handoff
 from rce_client.ros2_spin import NoAnswer, Spinner, asyncio_future
-from rce_client.ros2_types import describe_qos, is_service_class, node_name, qos_profile, rclpy_class
+from rce.ros2.classes import qos_profile
+from rce_client.ros2_types import describe_qos, is_service_class, node_name, rclpy_class
 
 log = get_logger("rce.ros.ros2")
 

@@ -1,45 +1,20 @@
-"""rclpy's classes, QoS profiles and node names for the robot-side interfaces of ``rce-ros --ros2``.
+"""rclpy's classes and node names for the robot-side interfaces of ``rce-ros --ros2``.
 
-An interface's class is named in ROS 2's form (:func:`rce.interfaces.classes.is_ros2_name`); the
-rclpy class of that name is the generated Python class of its package (``std_msgs/msg/String`` ->
-``std_msgs.msg.String``, as ``rosidl_runtime_py.utilities.get_interface`` finds it). An action's
-parts (:mod:`rce.interfaces.actions`) are the classes rosidl generates inside the action's class:
-
-=====================================  ==================================================
-rce class                              rclpy class
-=====================================  ==================================================
-``pkg/action/T_SendGoal``              ``pkg.action.T.Impl.SendGoalService``
-``pkg/action/T_GetResult``             ``pkg.action.T.Impl.GetResultService``
-``pkg/action/T_FeedbackMessage``       ``pkg.action.T.Impl.FeedbackMessage``
-``pkg/action/T_Goal`` (``_Result``,    ``pkg.action.T.Goal`` (``.Result``, ``.Feedback``)
-``_Feedback``)
-``action_msgs/srv/CancelGoal``,        plain: ``action_msgs.srv.CancelGoal``,
-``action_msgs/msg/GoalStatusArray``    ``action_msgs.msg.GoalStatusArray``
-=====================================  ==================================================
+The rclpy class of an interface's class, with an action's parts, is :func:`rce.ros2.classes.rclpy_class`'s
+(the table of names there); here it is refused naming the interface.
 
 A class in ROS 1's form (``std_msgs/String``) is refused on a ``--ros2`` bridge: its bytes would be
 ROS 1 serialized, which no rclpy node reads (:func:`check_ros2_class`).
 """
 from __future__ import annotations
 
-import importlib
 import re
 from typing import Any
 
 from rce.interfaces.classes import is_ros2_name
 from rce.interfaces.qos import QoS
-from rce.plumbing.errors import ConfigError
-
-#: Suffixes of an action's part classes -> the attribute path of their rclpy class under the action's class.
-ACTION_PARTS = {
-    "_SendGoal": ("Impl", "SendGoalService"),
-    "_GetResult": ("Impl", "GetResultService"),
-    "_FeedbackMessage": ("Impl", "FeedbackMessage"),
-    "_Goal": ("Goal",),
-    "_Result": ("Result",),
-    "_Feedback": ("Feedback",),
-}
-
+from rce.plumbing.errors import ConfigError, MessageError
+from rce.ros2 import classes
 
 def check_ros2_class(itag: str, cls: str) -> None:
     """Refuse a class not in ROS 2's form for interface ``itag``: :class:`ConfigError` that says so
@@ -55,42 +30,19 @@ def check_ros2_class(itag: str, cls: str) -> None:
 
 
 def rclpy_class(itag: str, cls: str) -> Any:
-    """The rclpy message or service class of ROS 2 class ``cls`` (the table above) for interface
-    ``itag``. Raises :class:`ConfigError` naming the interface and the class when it is not in ROS 2's
-    form, its package's Python module is not installed, or the module has no such class."""
+    """The rclpy message or service class of ROS 2 class ``cls`` (:func:`rce.ros2.classes.rclpy_class`)
+    for interface ``itag``. Raises :class:`ConfigError` naming the interface and the class when it is not
+    in ROS 2's form, its package's Python module is not installed, or the module has no such class."""
     check_ros2_class(itag, cls)
-    pkg, sub, name = cls.strip("/").split("/")
-    attrs: tuple[str, ...] = (name,)
-    if sub == "action":
-        for suffix, path in ACTION_PARTS.items():
-            if name.endswith(suffix) and len(name) > len(suffix):
-                attrs = (name[:-len(suffix)], *path)
-                break
-    where = f"interface {itag} ({cls})"
     try:
-        obj: Any = importlib.import_module(f"{pkg}.{sub}")
-    except ImportError as e:
-        raise ConfigError(f"{where}: no rclpy class: the Python module {pkg}.{sub} is not installed ({e}); "
-                          f"install the package's ROS 2 interfaces (e.g. ros-jazzy-{pkg.replace('_', '-')})") from None
-    for i, attr in enumerate(attrs):
-        obj = getattr(obj, attr, None)
-        if obj is None:
-            raise ConfigError(f"{where}: no rclpy class: {pkg}.{sub} has no {'.'.join(attrs[:i + 1])}")
-    return obj
+        return classes.rclpy_class(cls)
+    except MessageError as e:
+        raise ConfigError(f"interface {itag} ({cls}): {e.message}") from None
 
 
 def is_service_class(rclpy_cls: Any) -> bool:
     """Is ``rclpy_cls`` a service class (one with ``Request`` and ``Response``)?"""
     return hasattr(rclpy_cls, "Request") and hasattr(rclpy_cls, "Response")
-
-
-def qos_profile(qos: QoS | None) -> Any:
-    """rclpy's ``QoSProfile`` of a config's :class:`~rce.interfaces.qos.QoS` (None: rclpy's default,
-    reliable, volatile, keep last 10, which is also ``qos_profile_services_default``)."""
-    from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
-    q = qos or QoS()
-    return QoSProfile(depth=q.depth, reliability=ReliabilityPolicy[q.reliability.upper()],
-                      durability=DurabilityPolicy[q.durability.upper()], history=HistoryPolicy[q.history.upper()])
 
 
 def describe_qos(qos: QoS | None) -> str:

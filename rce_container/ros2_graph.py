@@ -26,7 +26,6 @@ from __future__ import annotations
 
 import asyncio
 import collections
-import fcntl
 import json
 import os
 import re
@@ -43,7 +42,8 @@ from rce.plumbing.tasks import Tasks
 from rce_container.launcher import LOG_LINES, Launcher, _pump
 from rce_container.node_env import node_env
 from rce_container.ros1_graph import provided_or_exited
-from rce_container.ros2_plan import (DOMAIN_IDS, domain_of, interface_statuses, is_ros2_package, node_args,
+from rce.ros2.domains import DomainLease, lease_domain
+from rce_container.ros2_plan import (domain_of, interface_statuses, is_ros2_package, node_args,
                                      params_yaml, relay_name, ros2_parameters, status_changes)
 
 log = get_logger("rce.container.ros2")
@@ -52,52 +52,9 @@ START_TIMEOUT = 30.0       # s for the relay to be ready (it imports rclpy, join
 SYNC_TIMEOUT = 10.0        # s the environment waits for one sync of the relay
 WATCH_INTERVAL = 1.0       # s between two readings of the relay's stats (what it cannot bridge)
 RMW = "rmw_fastrtps_cpp"   # the middleware of the ROS 2 wheels installed with rce
-DOMAIN_LOCK_DIRS = (Path("/run/rce/ros2-domains"), Path(f"/tmp/rce-ros2-domains-{os.getuid()}"))
 
 #: ``report(iid, tag, status, reason)``: tell the robot how a container interface is bridged.
 Report = Callable[[int, str, str, str], None]
-
-
-class DomainLease:
-    """One leased ROS 2 domain id (``domain``) until :meth:`release`."""
-
-    def __init__(self, domain: int, fd: int = -1):
-        self.domain, self._fd = domain, fd
-
-    def release(self) -> None:
-        """Give the domain id back (idempotent)."""
-        if self._fd >= 0:
-            os.close(self._fd)
-            self._fd = -1
-
-
-def lease_domain(lock_dir: Path | None = None) -> DomainLease:
-    """A ROS 2 domain id of :data:`DOMAIN_IDS` no other container on this machine holds, and not
-    the host's own ``ROS_DOMAIN_ID``: held by an exclusive ``flock(2)`` on ``lock_dir/<id>``
-    (default: the first of :data:`DOMAIN_LOCK_DIRS` that can be made) while the lease lives (a
-    crashed environment frees it). Raises :class:`RCEError` when every id is held."""
-    dirs = [lock_dir] if lock_dir else list(DOMAIN_LOCK_DIRS)
-    for d in dirs:
-        try:
-            d.mkdir(parents=True, exist_ok=True, mode=0o700)
-            break
-        except OSError:
-            continue
-    else:
-        raise RCEError(f"cannot make a ROS 2 domain lock directory ({', '.join(map(str, dirs))})")
-    host = os.environ.get("ROS_DOMAIN_ID", "0")
-    for domain in DOMAIN_IDS:
-        if str(domain) == host:
-            continue
-        fd = os.open(d / str(domain), os.O_RDWR | os.O_CREAT | os.O_CLOEXEC, 0o600)
-        try:
-            fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
-        except BlockingIOError:
-            os.close(fd)
-            continue
-        return DomainLease(domain, fd)
-    raise RCEError(f"every ROS 2 domain id of {DOMAIN_IDS.start} - {DOMAIN_IDS.stop - 1} is held by a container "
-                   f"of this machine (unconfined sandboxes have no network namespace to share one)")
 
 
 class Ros2Graph:

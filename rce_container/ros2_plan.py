@@ -32,6 +32,7 @@ from typing import Any
 
 import yaml
 
+from rce.ros2.domains import DOMAIN_IDS   # the ids a container is given (rce.ros2.domains)
 from rce.interfaces.classes import is_ros2_name
 from rce.interfaces.qos import QoS
 from rce.interfaces.naming import join
@@ -47,9 +48,6 @@ RELAY_PREFIX = "/rce_ros2_relay"
 NODE_SERVICES = tuple(f"/{s}" for s in (
     "describe_parameters", "get_parameter_types", "get_parameters", "list_parameters", "set_parameters",
     "set_parameters_atomically", "get_type_description", "get_logger_levels", "set_logger_levels"))
-#: ROS 2 domain ids a container is given (ROS 2's advice for Linux: 0 - 101; 0, every ROS 2
-#: program's default, is left to the host).
-DOMAIN_IDS = range(1, 102)
 SUB_DEPTH = 100       # messages the relay's subscriptions hold for its executor (DDS drops beyond)
 PUB_DEPTH = 10        # messages the relay's volatile publishers keep for reliable resends (ROS 2's default)
 LATCHED_DEPTH = 1     # messages its transient-local publishers keep for late subscribers (ROS 1 latching)

@@ -7,53 +7,20 @@ relay's process (rclpy imported), never in the environment.
 from __future__ import annotations
 
 import asyncio
-import importlib
 from typing import Any
 
 from rclpy.duration import Infinite
 from rclpy.node import Node as RclpyNode
 from rclpy.parameter import Parameter
-from rclpy.qos import DurabilityPolicy, HistoryPolicy, LivelinessPolicy, QoSProfile, ReliabilityPolicy
+from rclpy.qos import DurabilityPolicy, LivelinessPolicy, ReliabilityPolicy
 from rclpy.task import Future
 
 from rce.interfaces.qos import QoS
-from rce.messages.ros2 import split_name
 from rce.interfaces.naming import join
-from rce.plumbing.errors import MessageError
 from rce_container.ros2_plan import Endpoint, Ros2View
 
-#: Where rosidl keeps an action's parts on its class (``Fibonacci.Impl.SendGoalService``).
-ACTION_PARTS = {"_SendGoal": "SendGoalService", "_GetResult": "GetResultService",
-                "_FeedbackMessage": "FeedbackMessage"}
 FOREVER_S = 2**31      # s: DDS's "infinite" durations (2^31 - 1 s and more) count as none
 SERVICE_POLL = 0.01    # s between two looks at whether a service's server is matched yet
-
-
-def ros2_class(name: str) -> Any:
-    """The rclpy class of ROS 2 type ``name`` (``pkg/msg/T``, ``pkg/srv/T``, an action's part
-    ``pkg/action/T_SendGoal``...) from its installed Python type support.
-
-    Raises :class:`MessageError` naming the type when it has none (the relay bridges only types
-    whose ROS 2 Python packages are installed with rce)."""
-    pkg, kind, typ = split_name(name)
-    try:
-        mod = importlib.import_module(f"{pkg}.{kind}")
-        if hasattr(mod, typ):
-            return getattr(mod, typ)
-        for suffix, attr in ACTION_PARTS.items():
-            if kind == "action" and typ.endswith(suffix):
-                return getattr(getattr(mod, typ[:-len(suffix)]).Impl, attr)
-    except (ImportError, AttributeError):
-        pass
-    raise MessageError(f"ROS 2 type {name!r} has no Python type support installed (package {pkg!r})")
-
-
-def profile(q: QoS) -> QoSProfile:
-    """An rclpy profile of :class:`QoS` ``q`` (deadline, lifespan, liveliness: DDS's defaults)."""
-    return QoSProfile(
-        reliability=ReliabilityPolicy.BEST_EFFORT if q.reliability == "best_effort" else ReliabilityPolicy.RELIABLE,
-        durability=DurabilityPolicy.TRANSIENT_LOCAL if q.durability == "transient_local" else DurabilityPolicy.VOLATILE,
-        history=HistoryPolicy.KEEP_ALL if q.history == "keep_all" else HistoryPolicy.KEEP_LAST, depth=q.depth)
 
 
 def _finite(duration: Any) -> float | None:

@@ -115,9 +115,9 @@ class Relay:
 
     async def _bridge_to_ros(self, topic: str, wire: str, qos: QoS) -> None:
         from rclpy.event_handler import PublisherEventCallbacks
-        from rce_container.ros2_rclpy import profile, ros2_class
+        from rce.ros2.classes import qos_profile, rclpy_class
         events = PublisherEventCallbacks(incompatible_qos=lambda e: self._qos_event(topic, e, "publisher"))
-        pub = self.node.create_publisher(ros2_class(wire), topic, profile(qos), event_callbacks=events)
+        pub = self.node.create_publisher(rclpy_class(wire), topic, qos_profile(qos), event_callbacks=events)
         bus_echo, ros_echo = (d.setdefault(topic, deque(maxlen=ECHO_MEMORY)) for d in (self.bus_echo, self.ros_echo))
 
         def push(payload: bytes) -> None:
@@ -140,8 +140,8 @@ class Relay:
     # -- ROS 2 -> bus --------------------------------------------------------------------------
     async def _bridge_to_bus(self, topic: str, wire: str, qos: QoS) -> None:
         from rclpy.event_handler import SubscriptionEventCallbacks
-        from rce_container.ros2_rclpy import profile, ros2_class
-        cls = ros2_class(wire)
+        from rce.ros2.classes import qos_profile, rclpy_class
+        cls = rclpy_class(wire)
         bus_pub: Publisher = await self.bus.raw_publisher(topic, wire)
         bus_echo, ros_echo = (d.setdefault(topic, deque(maxlen=ECHO_MEMORY)) for d in (self.bus_echo, self.ros_echo))
 
@@ -164,7 +164,8 @@ class Relay:
             self.loop.call_soon_threadsafe(forward, payload)
         events = SubscriptionEventCallbacks(incompatible_qos=lambda e: self._qos_event(topic, e, "subscription"))
         try:
-            sub = self.node.create_subscription(cls, topic, on_message, profile(qos), raw=True, event_callbacks=events)
+            sub = self.node.create_subscription(cls, topic, on_message, qos_profile(qos), raw=True,
+                                                event_callbacks=events)
         except BaseException:
             await bus_pub.unregister()
             raise
@@ -180,8 +181,9 @@ class Relay:
     async def _service_to_bus(self, name: str, wire: str) -> None:
         """Provide ROS 2 service ``name`` (type ``wire``) on the bus."""
         from rclpy.serialization import deserialize_message, serialize_message
-        from rce_container.ros2_rclpy import call, ros2_class
-        cls = ros2_class(wire)
+        from rce.ros2.classes import rclpy_class
+        from rce_container.ros2_rclpy import call
+        cls = rclpy_class(wire)
         client = self.node.create_client(cls, name)
         timeout = call_timeout(wire)
 
@@ -205,8 +207,8 @@ class Relay:
         """Provide bus service ``name`` (type ``wire``) in ROS 2; each call is answered when the
         bus answers it (module doc)."""
         from rclpy.serialization import serialize_message
-        from rce_container.ros2_rclpy import ros2_class
-        cls = ros2_class(wire)
+        from rce.ros2.classes import rclpy_class
+        cls = rclpy_class(wire)
         srv = self.node.create_service(cls, name, lambda request, _response: _Pending(serialize_message(request)))
         send = srv.send_response
 

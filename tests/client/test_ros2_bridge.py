@@ -18,7 +18,6 @@ Synchronisation is on printed lines and exits, each with a deadline; no sleeps."
 from __future__ import annotations
 
 import asyncio
-import fcntl
 import json
 import os
 import signal
@@ -30,7 +29,9 @@ import pytest
 from rce.interfaces.qos import QoS
 from rce.plumbing.errors import ConfigError
 from rce_client.ros2_spin import NoAnswer, Spinner
-from rce_client.ros2_types import node_name, qos_profile, rclpy_class
+from rce.ros2.classes import qos_profile
+from rce.ros2.domains import lease_domain
+from rce_client.ros2_types import node_name, rclpy_class
 
 from .test_e2e_debug import BIN, Proc
 
@@ -38,35 +39,17 @@ STEP = 60.0                  # s for one step (a loaded 2-core machine)
 ROBOT = "ros2Robot"
 CTAG = "cRos2"
 ROBOT_PY = Path(__file__).parent / "ros2" / "robot.py"
-DOMAIN_LOCK_DIRS = (Path("/run/rce/ros2-domains"), Path(f"/tmp/rce-ros2-domains-{os.getuid()}"))
 
 
 @pytest.fixture
 def ros2_domain():
-    """A ROS 2 domain ID (1 - 101) no other test or container of this machine holds, held while the test
-    runs: an exclusive flock on ``<dir>/<id>``, in the directories and pool that containers lease their
-    own domains from when their sandbox has no network namespace (rce_container's ``lease_domain``), so
-    the two never pick the same ID. Tried from one the pid picks."""
-    for d in DOMAIN_LOCK_DIRS:
-        try:
-            d.mkdir(parents=True, exist_ok=True, mode=0o700)
-            break
-        except OSError:
-            continue
-    for i in range(101):
-        domain = (os.getpid() + i) % 101 + 1
-        fd = os.open(d / str(domain), os.O_RDWR | os.O_CREAT | os.O_CLOEXEC, 0o600)
-        try:
-            fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
-        except BlockingIOError:
-            os.close(fd)
-            continue
-        try:
-            yield domain
-        finally:
-            os.close(fd)
-        return
-    raise AssertionError("every ROS 2 domain ID 1 - 101 is held by another test or container")
+    """A ROS 2 domain ID no other test or container of this machine holds, held while the test runs
+    (:func:`rce.ros2.domains.lease_domain`)."""
+    lease = lease_domain()
+    try:
+        yield lease.domain
+    finally:
+        lease.release()
 
 
 @pytest.fixture

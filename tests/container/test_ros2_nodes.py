@@ -32,7 +32,8 @@ from rce.plumbing.errors import NotFound, RequestError
 from rce.tools.launch import start_engine
 from rce_container.launcher import Launcher
 from rce_container.ros1_plan import GraphView, bus_graph
-from rce_container.ros2_graph import Ros2Graph, lease_domain
+from rce.ros2.domains import lease_domain
+from rce_container.ros2_graph import Ros2Graph
 from rce_container.ros2_plan import (LATCHED_DEPTH, SUB_DEPTH, Endpoint, Ros2View, domain_of, interface_statuses,
                                      is_ros2_package, node_args, offer_for, plan, relay_name, request_for,
                                      ros2_parameters, status_changes)

@@ -242,7 +242,7 @@ ENGINE_LAYERS = (
     ("rce.interfaces",),
     ("rce.messages", "rce.transport"),
     ("rce.protocol", "rce.bus", "rce.tools"),
-    ("rce.foxglove", "rce.node"),
+    ("rce.foxglove", "rce.node", "rce.ros2"),
     ("rce_master", "rce_robot", "rce_container", "rce_client"),
     ("rce_fleet",),
 )

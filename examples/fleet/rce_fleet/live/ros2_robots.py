@@ -76,7 +76,7 @@ def rce_ros_command() -> list[str]:
 
 def _qos(name: str) -> Any:
     """rclpy's QoS profile of the robot's topic ``name`` (:data:`QOS`)."""
-    from rce_client.ros2_types import qos_profile
+    from rce.ros2.classes import qos_profile
     return qos_profile(parse_qos(QOS[name]) if name in QOS else None)
 
 
@@ -166,7 +166,7 @@ class Ros2Robots:
         self.dir.mkdir(mode=0o700, parents=True, exist_ok=True)
         self.out = out
         if lease is None:
-            from rce_container.ros2_graph import lease_domain as lease
+            from rce.ros2.domains import lease_domain as lease
         self._lease = lease
         self.robots: dict[str, Ros2Robot] = {}
         self.tasks = Tasks("fleet-ros2")
