@@ -36,7 +36,7 @@ from pathlib import Path
 import psutil
 
 from common import (BENCH, RESULTS, USER, PASSWORD, anchor_sizes, console, engine, fmt_ms, fmt_ratio, fmt_size,
-                    free_port, git_head, median, percentile, pyplot, write_json)
+                    free_port, git_head, median, percentile, proc_label, proc_tree, pyplot, write_json)
 
 PING = BENCH / "ros2" / "ping.py"
 RELAY = BENCH / "ros2" / "relay.py"
@@ -71,17 +71,33 @@ def wait_line(proc: subprocess.Popen, prefix: str, timeout: float = READY_S) -> 
 
 def ping(env: dict, sizes: list[int], reps: int, meter: list[psutil.Process] = ()) -> dict:
     """Run the ping node in ``env``'s graph; returns its result, with ``cpu_ms_procs``: CPU per round trip
-    (ms) of each process in ``meter`` over the whole measurement."""
+    (ms) of each process in ``meter`` and its descendants (a container host's environments, relay and nodes)
+    over the whole measurement, by process name."""
     spec = {"sizes": sizes, "reps": {str(s): reps_for(s, reps) for s in sizes}, "wait_s": READY_S}
-    cpu0 = {p.pid: sum(p.cpu_times()[:2]) for p in meter}
+    meter = proc_tree([p.pid for p in meter])
+    cpu0 = {p.pid: _cpu(p) for p in meter}
     r = subprocess.run([sys.executable, str(PING)], input=json.dumps(spec) + "\n", env=env, capture_output=True,
                        text=True, timeout=3600)
     if r.returncode != 0 or not r.stdout.strip():
         raise RuntimeError(f"ping failed ({r.returncode}): {r.stderr[-2000:]}")
     out = json.loads(r.stdout.strip().splitlines()[-1])
     n = sum(spec["reps"].values()) + len(sizes)
-    out["cpu_ms_procs"] = {p.name() + f":{p.pid}": (sum(p.cpu_times()[:2]) - cpu0[p.pid]) * 1e3 / n for p in meter}
+    out["cpu_ms_procs"] = {}
+    for p in meter:
+        used = _cpu(p)
+        if used is not None and cpu0[p.pid] is not None:
+            label = proc_label(p)
+            out["cpu_ms_procs"][label] = out["cpu_ms_procs"].get(label, 0.0) + (used - cpu0[p.pid]) * 1e3 / n
+    out["cpu_ms_procs"]["ping (rclpy)"] = out["cpu_ms"]
     return out
+
+
+def _cpu(p: psutil.Process) -> float | None:
+    """User + system CPU s of ``p``; None once it is gone."""
+    try:
+        return sum(p.cpu_times()[:2])
+    except psutil.Error:
+        return None
 
 
 def stop(*procs: subprocess.Popen) -> None:
@@ -215,7 +231,9 @@ def print_table(con, res: dict) -> None:
     con.print(t)
     for n in names:
         cpu = res["series"][n]["cpu_ms_procs"]
-        con.print(f"CPU per round trip, {n}: " + ", ".join(f"{k} {v:.3f} ms" for k, v in cpu.items()))
+        con.print(f"CPU per round trip, {n}: " + ", ".join(
+            f"{k} {v:.3f} ms" if isinstance(v, float) else f"{k} " + "/".join(f"{x:.2f}" for x in v.values()) + " ms"
+            for k, v in cpu.items() if not isinstance(v, float) or v >= 0.005))
 
 
 def plot(res: dict, path: Path) -> None:
