@@ -46,3 +46,19 @@ def test_the_command_line_and_the_page_name_their_clocks():
     page = (PAGE / "index.html").read_text()
     assert "age, sim s" in page
     assert "s sim`" in (PAGE / "tasks.js").read_text()
+
+
+def test_the_task_command_names_the_clock_of_its_times():
+    said = " ".join(subprocess.run([str(BIN / "rce-fleet"), "task", "add", "--help"], capture_output=True, text=True,
+                                   timeout=60).stdout.split())
+    assert "earliest start, fleet time: simulated s from now" in said and "deadline, fleet time: simulated s" in said
+
+
+def test_metrics_carry_a_stalled_robot():
+    """A robot that holds work and does not move shows on /metrics (its fleet/RobotTask's stall fields)."""
+    from rce_fleet.operations.http_api import prometheus_text
+    text = prometheus_text({"robots": [{"robot": "Robot1", "busy_s": 10.0, "since_s": 100.0, "stalled_s": 75.0,
+                                        "stalls": 2}, {"robot": "Robot2", "busy_s": 0.0, "since_s": 100.0}]})
+    assert 'rce_fleet_robot_stalled_seconds{robot="Robot1"} 75' in text
+    assert 'rce_fleet_robot_stalls_total{robot="Robot1"} 2' in text
+    assert 'rce_fleet_robot_stalled_seconds{robot="Robot2"} 0' in text

@@ -267,4 +267,9 @@ def prometheus_text(task_list: dict | None) -> str:
            [(f'{{robot="{r["robot"]}"}}', float(r.get("tasks_done", 0))) for r in robots])
     metric("rce_fleet_robot_charges_total", "counter", "Charging sessions a robot began.",
            [(f'{{robot="{r["robot"]}"}}', float(r.get("charges", 0))) for r in robots])
+    metric("rce_fleet_robot_stalled_seconds", "gauge",
+           "Fleet seconds a robot holding work has made no progress (0: it moves; an alert from 60 s).",
+           [(f'{{robot="{r["robot"]}"}}', float(r.get("stalled_s", 0.0))) for r in robots])
+    metric("rce_fleet_robot_stalls_total", "counter", "Times a robot holding work was found stalled.",
+           [(f'{{robot="{r["robot"]}"}}', float(r.get("stalls", 0))) for r in robots])
     return "\n".join(lines) + "\n"

@@ -65,8 +65,10 @@ def add_task_parser(sub) -> None:
     a = ts.add_parser("add", parents=[common], help="queue a task: errands in order (cell numbers or place names)")
     a.add_argument("errands", nargs="+", metavar="ERRAND")
     a.add_argument("--priority", type=float, default=0.0, help="higher first (default 0)")
-    a.add_argument("--start-in", type=float, default=0.0, metavar="S", help="earliest start, s from now")
-    a.add_argument("--deadline-in", type=float, default=0.0, metavar="S", help="deadline, s from now (0: none)")
+    a.add_argument("--start-in", type=float, default=0.0, metavar="S",
+                   help="earliest start, fleet time: simulated s from now (--speedup of them a wall second)")
+    a.add_argument("--deadline-in", type=float, default=0.0, metavar="S",
+                   help="deadline, fleet time: simulated s from now (0: none; --speedup of them a wall second)")
     a.add_argument("--id", default="", help="task id (default: the fleet names it)")
     ts.add_parser("list", parents=[common], help="the open tasks and the most recently closed ones")
     g = ts.add_parser("get", parents=[common], help="one task")
