@@ -1,4 +1,5 @@
-"""Values quoted in errors and logs, at a bounded cost: :func:`short_repr`.
+"""Values quoted in errors and logs, at a bounded cost: :func:`short_repr`; where a value was, as a key
+path: :func:`key_path`.
 
 Every layer names the bad value it refuses, and none echoes more than a short prefix of it (an
 error message is not a copy of hostile input)."""
@@ -25,3 +26,12 @@ def short_repr(value: object) -> str:
     message quotes of a value, at a bounded cost."""
     r = _REPR.repr(value)
     return r if len(r) <= 2 * SHORT_REPR else r[:2 * SHORT_REPR] + "..."
+
+
+def key_path(loc: tuple) -> str:
+    """A pydantic error location as a key path: ``("CN", "data", "addNodes", 0)`` ->
+    ``CN.data.addNodes[0]``."""
+    out = ""
+    for p in loc:
+        out += f"[{p}]" if isinstance(p, int) else (f".{p}" if out else str(p))
+    return out

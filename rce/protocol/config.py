@@ -18,7 +18,7 @@ from rce.interfaces import actions
 from rce.interfaces.qos import QoS, parse_qos
 from rce.plumbing.errors import ConfigError
 from rce.protocol import schema
-from rce.protocol.schema import key_path
+from rce.plumbing.text import key_path
 
 # A config file uses the schema's field names (the short keys) and refuses keys it does not know.
 _FILE = ConfigDict(extra="forbid", validate_by_name=True, validate_by_alias=False, loc_by_alias=False)

@@ -27,7 +27,7 @@ from rce.plumbing.errors import ProtocolError
 from rce.interfaces.kind import InterfaceType
 from rce.interfaces.lanes import Lane, parse_lane
 from rce.protocol.frames import CC, CN, CX, DC, DM
-from rce.plumbing.text import short_repr
+from rce.plumbing.text import key_path, short_repr
 from rce.protocol.limits import MAX_ER_TEXT, truncate
 
 ROBOT_TO_CLOUD = (CC, DC, CN, CX, DM)
@@ -331,15 +331,6 @@ _REQUEST = TypeAdapter(Request)
 
 
 # -- errors --------------------------------------------------------------------------------------
-def key_path(loc: tuple) -> str:
-    """A pydantic error location as a key path: ``("CN", "data", "addNodes", 0)`` ->
-    ``CN.data.addNodes[0]``."""
-    out = ""
-    for p in loc:
-        out += f"[{p}]" if isinstance(p, int) else (f".{p}" if out else str(p))
-    return out
-
-
 def _describe(err: dict, msg: Any) -> str:
     """One line for the first error of a request: the key path, then what is wrong."""
     kind, loc, value = err["type"], tuple(err["loc"]), err.get("input")

@@ -236,10 +236,13 @@ def test_sans_io_cores_import_no_sockets():
 
 # The engine's layers, bottom to top: a package imports only packages of lower layers (docs/layout.md).
 # rce.interfaces (interface kinds, lanes, QoS, class names, graph names) sits below the data plane
-# (rce.transport) and the robot protocol (rce.protocol), which both use it.
+# (rce.transport) and the robot protocol (rce.protocol), which both use it. rce.contract (every control
+# op as its model) sits above rce.interfaces, whose types its models use, and below rce.transport (whose
+# op tables parse into its models) and every package that talks on a link.
 ENGINE_LAYERS = (
     ("rce", "rce.plumbing"),
     ("rce.interfaces",),
+    ("rce.contract",),
     ("rce.messages", "rce.transport"),
     ("rce.protocol", "rce.bus", "rce.tools"),
     ("rce.foxglove", "rce.node", "rce.ros2"),
