@@ -32,6 +32,8 @@ from pathlib import Path
 from typing import Any
 
 from rce.plumbing.process import run_loop
+from rce.contract import environment as ops
+from rce.contract import node as to_node
 from rce.transport import framing
 from rce.transport import rpc
 from rce.bus.core import Bus
@@ -175,7 +177,7 @@ class GroupContainer:
         runtime does not time results (ROS 1 nodes, older runtimes) is skipped."""
         for s in self.sessions():
             try:
-                self.results.add(await s.peer.call("node_results", timeout=RESULTS_TIMEOUT), time.monotonic())
+                self.results.add(await s.peer.ask(to_node.NodeResults(), RESULTS_TIMEOUT), time.monotonic())
             except RCEError:
                 continue
 
@@ -252,7 +254,7 @@ class Environment:
         await self.template.wait_started()      # a spare environment is warm once its template is
         self.peer = await rpc.connect_unix(control_path, ENV_OPS.handlers(self), name="container task set",
                                            on_close=lambda _p: self.done.set(), max_frame=self.max_frame)
-        await self.peer.call("hello", env_id=self.env_id, pid=os.getpid(), data_addr=self.plane.addr)
+        await self.peer.ask(ops.EnvHello(env_id=self.env_id, pid=os.getpid(), data_addr=self.plane.addr))
         log.info("environment ready", env=self.env_id, data_addr=self.plane.addr,
                  sandbox=self.sandbox_cls.kind)
 
@@ -272,18 +274,18 @@ class Environment:
     def notify_status(self, cid: int, ntag: str, status: str, **fields: Any) -> None:
         """Send ``node_status {cid, ntag, status, ...}`` to the task set."""
         if self.peer:
-            self.peer.notify("node_status", cid=cid, ntag=ntag, status=status, **fields)
+            self.peer.tell(ops.NodeStatusReport(cid=cid, ntag=ntag, status=status, **fields))
 
     def notify_interface(self, cid: int, iid: int, tag: str, status: str, reason: str) -> None:
         """Send ``interface_status {cid, iid, tag, status, reason}`` to the task set: how a container
         interface is bridged into its ROS 2 graph (:mod:`rce_container.ros2_graph`)."""
         if self.peer:
-            self.peer.notify("interface_status", cid=cid, iid=iid, tag=tag, status=status, reason=reason)
+            self.peer.tell(ops.InterfaceStatus(cid=cid, iid=iid, tag=tag, status=status, reason=reason))
 
-    def _container(self, args: dict) -> GroupContainer:
-        c = self.containers.get(args.get("cid"))
+    def _container(self, cid: int) -> GroupContainer:
+        c = self.containers.get(cid)
         if c is None:
-            raise NotFound(f"container {args.get('cid')!r} is not in this environment")
+            raise NotFound(f"container {cid!r} is not in this environment")
         return c
 
     def _touch(self) -> None:
@@ -298,17 +300,15 @@ class Environment:
         await iface.stop()
 
     # -- containers ----------------------------------------------------------------------------
-    @ENV_OPS.op("add_container")
-    async def op_add_container(self, args: dict) -> dict:
+    @ENV_OPS.op("add_container", args=ops.EnvAddContainer)
+    async def op_add_container(self, args: ops.EnvAddContainer) -> dict:
         """``{cid, ctag, user, group, limits}`` -> ``{data_addr, sandbox, socket}``."""
-        cid = args["cid"]
+        cid = args.cid
         c = self.containers.get(cid)
         if c is None:
-            deadline = args.get("deadline_ms")
-            c = GroupContainer(self, cid, args.get("ctag") or f"c{cid}", args.get("user", ""), args.get("group"),
-                               args.get("limits") or {},
-                               float(deadline) if isinstance(deadline, (int, float)) and deadline > 0 else None,
-                               bool(args.get("handoff")))
+            deadline = args.deadline_ms
+            c = GroupContainer(self, cid, args.ctag or f"c{cid}", args.user, args.group, args.limits or {},
+                               deadline if deadline is not None and deadline > 0 else None, args.handoff)
             self.containers[cid] = c
             try:
                 await c.start()
@@ -319,17 +319,17 @@ class Environment:
             log.info("container added", env=self.env_id, cid=cid, ctag=c.ctag, socket=c.socket)
         return {"data_addr": self.plane.addr, "sandbox": c.sandbox.status, "socket": c.socket}
 
-    @ENV_OPS.op("remove_container")
-    async def op_remove_container(self, args: dict) -> dict:
+    @ENV_OPS.op("remove_container", args=ops.EnvRemoveContainer)
+    async def op_remove_container(self, args: ops.EnvRemoveContainer) -> dict:
         """``{cid}``: kill the container's nodes, drop its interfaces and socket."""
-        c = self._container(args)
+        c = self._container(args.cid)
         del self.containers[c.cid]
         await c.close()
         log.info("container removed", env=self.env_id, cid=c.cid, ctag=c.ctag)
         return {}
 
-    @ENV_OPS.op("shutdown")
-    async def op_shutdown(self, args: dict) -> dict:
+    @ENV_OPS.op("shutdown", args=ops.EnvShutdown)
+    async def op_shutdown(self, args: ops.EnvShutdown) -> dict:
         """Destroy every container; the task set closes the link afterwards."""
         await self._close_containers()
         return {}
@@ -343,67 +343,66 @@ class Environment:
             if isinstance(r, Exception):
                 log.error("container did not close cleanly", env=self.env_id, cid=c.cid, exc_info=r)
 
-    @ENV_OPS.op("resize_container")
-    async def op_resize_container(self, args: dict) -> dict:
+    @ENV_OPS.op("resize_container", args=ops.EnvResizeContainer)
+    async def op_resize_container(self, args: ops.EnvResizeContainer) -> dict:
         """``{cid, limits: {cpu, memory, size, bandwidth}}`` -> ``{sandbox, limits, cgroup?}``:
         new limits for the container's sandbox, written into its cgroup while its nodes keep
         running (recorded only by the unconfined sandbox); 0 removes a limit. ``cgroup``: the
         limit files as the kernel now reports them."""
-        c = self._container(args)
-        limits = args.get("limits") or {}
-        if not isinstance(limits, dict):
-            raise RequestError(f"resize_container: 'limits' must be an object, got {limits!r}")
-        await c.sandbox.resize(limits)
+        c = self._container(args.cid)
+        await c.sandbox.resize(args.limits or {})
         log.info("container resized", cid=c.cid, ctag=c.ctag, limits=c.sandbox.limits)
         info = c.sandbox.info()
         return {"sandbox": c.sandbox.status, "limits": c.sandbox.limits,
                 **({"cgroup": info["cgroup"]["files"]} if "cgroup" in info else {})}
 
     # -- nodes ---------------------------------------------------------------------------------
-    @ENV_OPS.op("add_node")
-    async def op_add_node(self, args: dict) -> dict:
+    @ENV_OPS.op("add_node", args=ops.EnvAddNode)
+    async def op_add_node(self, args: ops.EnvAddNode) -> dict:
         """``{cid, ntag, pkg, exe, args, name, namespace, respawn}`` -> ``{ntag, pid}``. A node of a
         ROS 1 package first gets its container's ROS 1 graph (:mod:`rce_container.ros1_graph`), one of
-        a ROS 2 package its ROS 2 graph (:mod:`rce_container.ros2_graph`)."""
-        c = self._container(args)
+        a ROS 2 package its ROS 2 graph (:mod:`rce_container.ros2_graph`). The launcher and the graphs
+        keep the node's spec as the wire has it (a repeated identical spec is no new node)."""
+        c = self._container(args.cid)
+        spec = args.wire()
         graph = c.ros1
-        kind = await c.ros1.prepare(args)
+        kind = await c.ros1.prepare(spec)
         if kind is None:
-            graph, kind = c.ros2, await c.ros2.prepare(args)
+            graph, kind = c.ros2, await c.ros2.prepare(spec)
         try:
-            return await c.launcher.add(args, kind)
+            return await c.launcher.add(spec, kind)
         finally:
-            if kind is not None and args.get("ntag") not in c.launcher.nodes:
-                await graph.node_gone(args["ntag"])
+            if kind is not None and args.ntag not in c.launcher.nodes:
+                await graph.node_gone(args.ntag)
 
-    @ENV_OPS.op("remove_node")
-    async def op_remove_node(self, args: dict) -> dict:
+    @ENV_OPS.op("remove_node", args=ops.EnvRemoveNode)
+    async def op_remove_node(self, args: ops.EnvRemoveNode) -> dict:
         """``{cid, ntag}``: stop the node (SIGTERM, then SIGKILL after the grace period)."""
-        c = self._container(args)
-        await c.launcher.remove(args["ntag"])
-        await c.ros1.node_gone(args["ntag"])
-        await c.ros2.node_gone(args["ntag"])
+        c = self._container(args.cid)
+        await c.launcher.remove(args.ntag)
+        await c.ros1.node_gone(args.ntag)
+        await c.ros2.node_gone(args.ntag)
         return {}
 
-    @ENV_OPS.op("logs")
-    async def op_logs(self, args: dict) -> dict:
+    @ENV_OPS.op("logs", args=ops.EnvLogs)
+    async def op_logs(self, args: ops.EnvLogs) -> dict:
         """``{cid, ntag, lines?}`` -> ``{stdout: [line...], stderr: [line...]}`` (last lines)."""
-        return self._container(args).launcher.logs(args["ntag"], args.get("lines", LOG_LINES))
+        return self._container(args.cid).launcher.logs(args.ntag, LOG_LINES if args.lines is None else args.lines)
 
     # -- parameters ----------------------------------------------------------------------------
-    @ENV_OPS.op("set_param")
-    async def op_set_param(self, args: dict) -> dict:
+    @ENV_OPS.op("set_param", args=ops.EnvSetParam)
+    async def op_set_param(self, args: ops.EnvSetParam) -> dict:
         """``{cid, name, value}``: set a parameter (global name) on the group's bus."""
-        self._container(args)
-        self.bus.set_param(resolve(args["name"], "/"), args.get("value"))
+        self._container(args.cid)
+        self.bus.set_param(resolve(args.name, "/"), args.value)
         await self._sync_graphs()
         return {}
 
-    @ENV_OPS.op("delete_param")
-    async def op_delete_param(self, args: dict) -> dict:
+    @ENV_OPS.op("delete_param", args=ops.EnvDeleteParam)
+    async def op_delete_param(self, args: ops.EnvDeleteParam) -> dict:
         """``{cid, name}``: delete a parameter (and its subtree). NotFound if not set."""
-        self._container(args)
-        self.bus.delete_param(resolve(args["name"], "/"))
+        self._container(args.cid)
+        self.bus.delete_param(resolve(args.name, "/"))
         await self._sync_graphs()
         return {}
 
@@ -412,23 +411,23 @@ class Environment:
         on the running nodes of their ROS 2 graphs, now."""
         await asyncio.gather(*(g.sync() for c in self.containers.values() for g in (c.ros1, c.ros2)))
 
-    @ENV_OPS.op("get_param")
-    async def op_get_param(self, args: dict) -> dict:
+    @ENV_OPS.op("get_param", args=ops.EnvGetParam)
+    async def op_get_param(self, args: ops.EnvGetParam) -> dict:
         """``{cid, name}`` -> ``{value}``: a parameter's value (a subtree as an object), for a
         rosbridge client's ``/rosapi/get_param``. NotFound if not set."""
-        self._container(args)
-        return {"value": self.bus.get_param(resolve(args["name"], "/"))}
+        self._container(args.cid)
+        return {"value": self.bus.get_param(resolve(args.name, "/"))}
 
     # -- interfaces ----------------------------------------------------------------------------
-    @ENV_OPS.op("add_interface")
-    async def op_add_interface(self, args: dict) -> dict:
+    @ENV_OPS.op("add_interface", args=ops.EnvAddInterface)
+    async def op_add_interface(self, args: ops.EnvAddInterface) -> dict:
         """``{cid, iid, tag, itype, cls, addr?}`` -> ``{iid, addr}``: create and start a
         container-side interface. Idempotent for the same spec; MessageError for an unknown class."""
-        c = self._container(args)
-        iid = args["iid"]
+        c = self._container(args.cid)
+        iid = args.iid
         old = self.interfaces.get(iid)
-        iface = make_interface(self.plane, self.bus, c.cid, iid, args.get("tag"), args.get("itype"), args.get("cls"),
-                               args.get("addr"), self.registry)
+        iface = make_interface(self.plane, self.bus, c.cid, iid, args.tag, args.itype, args.cls, args.addr,
+                               self.registry)
         if old is not None:
             if (old.cid, old.kind, old.cls, old.addr) == (c.cid, iface.kind, iface.cls, iface.addr):
                 return {"iid": iid, "addr": old.addr}
@@ -439,67 +438,68 @@ class Environment:
                  addr=iface.addr)
         return {"iid": iid, "addr": iface.addr}
 
-    def _interface(self, args: dict) -> BusInterface:
-        c = self._container(args)
-        iface = c.interfaces.get(args.get("iid"))
+    def _interface(self, cid: int, iid: int) -> BusInterface:
+        c = self._container(cid)
+        iface = c.interfaces.get(iid)
         if iface is None:
-            raise NotFound(f"interface {args.get('iid')!r} does not exist in container {c.ctag!r}")
+            raise NotFound(f"interface {iid!r} does not exist in container {c.ctag!r}")
         return iface
 
-    @ENV_OPS.op("remove_interface")
-    async def op_remove_interface(self, args: dict) -> dict:
+    @ENV_OPS.op("remove_interface", args=ops.EnvRemoveInterface)
+    async def op_remove_interface(self, args: ops.EnvRemoveInterface) -> dict:
         """``{cid, iid}``: stop and drop an interface (its connections go with it)."""
-        await self.drop_interface(self._interface(args))
+        await self.drop_interface(self._interface(args.cid, args.iid))
         return {}
 
-    @ENV_OPS.op("data_key")
-    async def op_data_key(self, args: dict) -> dict:
+    @ENV_OPS.op("data_key", args=ops.EnvDataKey)
+    async def op_data_key(self, args: ops.EnvDataKey) -> dict:
         """``{key}`` (hex; from the task set, once, right after ``hello``): this environment's data
         key, derived from the cluster key and its data address (:mod:`rce.transport.cluster_auth`); peers'
         grants are checked with it."""
         if self.plane.data_key is not None:
             raise RequestError("this environment has its data key already")
-        self.plane.data_key = bytes.fromhex(str(args.get("key")))
+        try:
+            self.plane.data_key = bytes.fromhex(args.key)
+        except ValueError:
+            raise RequestError("data_key: 'key' must be hex digits") from None
         return {}
 
-    @ENV_OPS.op("connect")
-    async def op_connect(self, args: dict) -> dict:
+    @ENV_OPS.op("connect", args=ops.EnvConnect)
+    async def op_connect(self, args: ops.EnvConnect) -> dict:
         """``{cid, iid, peer_iid, peer_addr, token, fence?, peer_cls?}`` -> ``{fenced}``: connect an
         interface to a peer interface (``token``: the master's credential for sending to it); a
         connection pointed at a moved container's new copy fences its old one with ``fence`` (the
         move's id), ``fenced`` fences sent (:meth:`rce.transport.interface.Interface.connect`);
         ``peer_cls``: the peer's class (one of the other ROS: this end converts what it sends)."""
-        fence, peer_cls = args.get("fence"), args.get("peer_cls")
-        fenced = self._interface(args).connect(int(args["peer_iid"]), args["peer_addr"], token_of(args),
-                                               fence if type(fence) is int else None,
-                                               peer_cls if isinstance(peer_cls, str) else None)
+        fenced = self._interface(args.cid, args.iid).connect(args.peer_iid, args.peer_addr, token_of(args.token),
+                                                             args.fence, args.peer_cls)
         self._touch()
         return {"fenced": fenced}
 
-    @ENV_OPS.op("disconnect")
-    async def op_disconnect(self, args: dict) -> dict:
+    @ENV_OPS.op("disconnect", args=ops.EnvDisconnect)
+    async def op_disconnect(self, args: ops.EnvDisconnect) -> dict:
         """``{cid, iid, peer_iid}``: drop one connection (no error if absent)."""
-        self._interface(args).disconnect(int(args["peer_iid"]))
+        self._interface(args.cid, args.iid).disconnect(args.peer_iid)
         self._touch()
         return {}
 
     # -- bus tools -----------------------------------------------------------------------------
-    @ENV_OPS.op("describe")
-    async def op_describe(self, args: dict) -> dict:
+    @ENV_OPS.op("describe", args=ops.EnvDescribe)
+    async def op_describe(self, args: ops.EnvDescribe) -> dict:
         """``{cid}`` -> :meth:`Bus.describe` of the group's bus, plus ``launched``: the
         container's nodes as the launcher sees them (``ntag, pid, running, restarts, argv``), and
         ``handoff``: the names of its nodes that hand their state over when it moves."""
-        c = self._container(args)
+        c = self._container(args.cid)
         return {**self.bus.describe(), "launched": [n.info() for n in c.launcher.nodes.values()],
                 "handoff": sorted(s.node for s in c.sessions() if s.handoff)}
 
-    @ENV_OPS.op("bus_publish")
-    async def op_bus_publish(self, args: dict) -> dict:
+    @ENV_OPS.op("bus_publish", args=ops.EnvBusPublish)
+    async def op_bus_publish(self, args: ops.EnvBusPublish) -> dict:
         """``{cid, topic, type, msg}`` -> ``{delivered}``: publish a JSON message once."""
-        self._container(args)
-        topic = resolve(args["topic"], "/")
-        typename = self.registry.msg_type(args["type"])
-        payload = self.registry.json_to_bytes(typename, args.get("msg") or {})
+        self._container(args.cid)
+        topic = resolve(args.topic, "/")
+        typename = self.registry.msg_type(args.type)
+        payload = self.registry.json_to_bytes(typename, args.msg or {})
         owner = "admin:bus_publish"
         t = self.bus.advertise(topic, wire_name(typename), owner)
         try:
@@ -507,35 +507,35 @@ class Environment:
         finally:
             self.bus.unadvertise(topic, owner)
 
-    @ENV_OPS.op("bus_call")
-    async def op_bus_call(self, args: dict) -> Any:
+    @ENV_OPS.op("bus_call", args=ops.EnvBusCall)
+    async def op_bus_call(self, args: ops.EnvBusCall) -> Any:
         """``{cid, service, request, timeout}`` -> the JSON response. NotFound for an absent
         service, Timeout after ``timeout`` s (default :data:`BUS_CALL_TIMEOUT`), the provider's
         error otherwise."""
-        self._container(args)
-        name = resolve(args["service"], "/")
+        self._container(args.cid)
+        name = resolve(args.service, "/")
         s = self.bus.services.get(name)
         if s is None:
-            raise NotFound(f"service {name!r} is not provided in container {args['cid']}")
+            raise NotFound(f"service {name!r} is not provided in container {args.cid}")
         req_t, resp_t = self.registry.srv_types(s.type)
-        payload = self.registry.json_to_bytes(req_t, args.get("request") or {})
-        resp = await self.bus.call_service(name, payload, None, float(args.get("timeout") or BUS_CALL_TIMEOUT))
+        payload = self.registry.json_to_bytes(req_t, args.request or {})
+        resp = await self.bus.call_service(name, payload, None, args.timeout or BUS_CALL_TIMEOUT)
         return self.registry.bytes_to_json(resp_t, resp)
 
-    @ENV_OPS.op("bus_sample")
-    async def op_bus_sample(self, args: dict) -> list:
+    @ENV_OPS.op("bus_sample", args=ops.EnvBusSample)
+    async def op_bus_sample(self, args: ops.EnvBusSample) -> list:
         """``{cid, topic, count, timeout, type?}`` -> up to ``count`` JSON messages received on
         ``topic`` within ``timeout`` s. The type comes from the topic (or ``type``); NotFound
         if neither is known."""
-        self._container(args)
-        topic = resolve(args["topic"], "/")
+        self._container(args.cid)
+        topic = resolve(args.topic, "/")
         t = self.bus.topics.get(topic)
-        wire = t.type if t is not None else args.get("type")
+        wire = t.type if t is not None else args.type
         if not wire:
             raise NotFound(f"topic {topic!r} does not exist; give its 'type' to wait for it")
         typename = self.registry.msg_type(wire)
-        count = max(1, min(int(args.get("count") or 1), MAX_SAMPLE))
-        timeout = max(0.0, min(float(args.get("timeout") or BUS_SAMPLE_TIMEOUT), MAX_SAMPLE_TIMEOUT))
+        count = max(1, min(args.count or 1, MAX_SAMPLE))
+        timeout = max(0.0, min(args.timeout or BUS_SAMPLE_TIMEOUT, MAX_SAMPLE_TIMEOUT))
         got: list[bytes] = []
         full = asyncio.Event()
 
@@ -556,24 +556,24 @@ class Environment:
         return [self.registry.bytes_to_json(typename, p) for p in got]
 
     # -- status --------------------------------------------------------------------------------
-    @ENV_OPS.op("state_out")
-    async def op_state_out(self, args: dict) -> dict:
+    @ENV_OPS.op("state_out", args=ops.EnvStateOut)
+    async def op_state_out(self, args: ops.EnvStateOut) -> dict:
         """``{cid}`` -> ``{states: {node name: base64 | None}}``: each node's state, from the nodes
         that hand theirs over (:meth:`rce.node.Node.handoff`; None: no hook, or it failed: logged).
         Each node hands it out once its inputs so far are handled."""
-        c = self._container(args)
+        c = self._container(args.cid)
         states: dict[str, str | None] = {}
         for s in c.sessions():
             try:
-                r = await s.peer.call("state_out", timeout=STATE_TIMEOUT)
+                r = await s.peer.ask(to_node.NodeStateOut(), STATE_TIMEOUT)
             except RCEError as e:
                 log.warning("node's state not handed out", cid=c.cid, node=s.node, reason=str(e))
                 r = None
             states[s.node] = r.get("state") if isinstance(r, dict) else None
         return {"states": states}
 
-    @ENV_OPS.op("drain")
-    async def op_drain(self, args: dict) -> dict:
+    @ENV_OPS.op("drain", args=ops.EnvDrain)
+    async def op_drain(self, args: ops.EnvDrain) -> dict:
         """``{cid, fence, expect: [[src, dst, n]...], timeout}`` -> ``{complete, missing, unsettled,
         unflushed, waited_s}``: a moved container's old copy finishes (:mod:`rce_master.placement.mover`). It waits
         until ``n`` fences ``fence`` of each connection ``src -> dst`` came (nothing more is on its
@@ -581,18 +581,18 @@ class Environment:
         its interfaces send to acknowledged the end of their stream (every output reached it);
         at most ``timeout`` s (s) in all, then it says what did not happen: ``missing`` fences
         ``[[src, dst, n]...]``, ``unsettled`` nodes, ``unflushed`` peer addresses."""
-        c = self._container(args)
+        c = self._container(args.cid)
         loop = asyncio.get_running_loop()
         t0 = loop.time()
-        end = t0 + max(0.0, float(args.get("timeout") or 0.0))
-        fid = int(args["fence"])
-        expect = {(int(a), int(b)): int(n) for a, b, n in args.get("expect") or () if int(n) > 0}
+        end = t0 + max(0.0, args.timeout or 0.0)
+        fid = args.fence
+        expect = {(a, b): n for a, b, n in args.expect if n > 0}
         missing = await self.plane.wait_fences(fid, expect, end - loop.time())
         unsettled = []
         for s in c.sessions():
             try:
                 left = max(0.05, end - loop.time())
-                r = await s.peer.request("settle", {"timeout": left}, left + 1.0)
+                r = await s.peer.ask(to_node.NodeSettle(timeout=left), left + 1.0)
                 if isinstance(r, dict) and r.get("unflushed"):
                     unsettled.append(s.node)
             except RCEError as e:
@@ -605,16 +605,16 @@ class Environment:
                 "missing": [[a, b, n] for (a, b), n in missing.items()], "unsettled": unsettled,
                 "unflushed": sorted(unflushed), "waited_s": round(loop.time() - t0, 3)}
 
-    @ENV_OPS.op("state_in")
-    async def op_state_in(self, args: dict) -> dict:
+    @ENV_OPS.op("state_in", args=ops.EnvStateIn)
+    async def op_state_in(self, args: ops.EnvStateIn) -> dict:
         """``{cid, states: {node name: base64 | None}}``: each node of a move's new copy takes its
         state (or starts fresh) and then the inputs it held; ``{nodes: [names that took a state]}``."""
-        c = self._container(args)
-        states = args.get("states") or {}
+        c = self._container(args.cid)
+        states = args.states or {}
         took = []
         for s in c.sessions():
             try:
-                r = await s.peer.call("state_in", state=states.get(s.node), timeout=STATE_TIMEOUT)
+                r = await s.peer.ask(to_node.NodeStateIn(state=states.get(s.node)), STATE_TIMEOUT)
             except RCEError as e:
                 log.warning("node did not take its state", cid=c.cid, node=s.node, reason=str(e))
                 continue
@@ -622,8 +622,8 @@ class Environment:
                 took.append(s.node)
         return {"nodes": took}
 
-    @ENV_OPS.op("stats")
-    async def op_stats(self, args: dict) -> dict:
+    @ENV_OPS.op("stats", args=ops.EnvStats)
+    async def op_stats(self, args: ops.EnvStats) -> dict:
         """``{cid}`` -> counters of the container and of its group::
 
             {cid, user, ctag, group, sandbox, limits: {cpu?, memory?, size?, bandwidth?},
@@ -647,7 +647,7 @@ class Environment:
              ros1?: {master_uri, running, nodes, pids, relay},  # while it has ROS 1 nodes (Ros1Graph.info)
              ros2?: {domain_id, running, nodes, pids, relay}}   # while it has ROS 2 nodes (Ros2Graph.info)
         """
-        c = self._container(args)
+        c = self._container(args.cid)
         await c.ros1.sync()
         await c.ros2.sync("stats")
         if self.direct is not None:

@@ -38,6 +38,9 @@ from typing import Any
 import psutil
 from prometheus_client import generate_latest
 
+from rce.contract import environment as env_ops
+from rce.contract import host as ops
+from rce.contract.base import OpArgs
 from rce.transport import framing
 
 from rce.transport import rpc
@@ -46,6 +49,7 @@ from rce.plumbing.errors import NotFound, RCEError, RequestError, Timeout, Unava
 from rce.transport.link import STREAM_LIMIT
 from rce.plumbing.log import get_logger
 from rce.plumbing.metrics_http import MetricsServer
+from rce.contract import master as to_master
 from rce.transport.masterlink import MASTER_PORT, MasterLink, parse_masters
 from rce.transport.op_table import OpTable
 from rce.plumbing.pending import PendingCalls
@@ -74,6 +78,8 @@ CONTROL_SOCKET = "host.sock"
 #: The ops the master sends a container task set: its own, and those relayed, unchanged, to the
 #: environment that serves the op's ``cid`` (each of them an op of ``rce_container.environment.ENV_OPS``).
 HOST_OPS = OpTable("master -> container task set")
+#: What an environment tells its container task set.
+FROM_ENV_OPS = OpTable("environment -> container task set")
 
 
 def socket_dir_for(runtime_dir: Path) -> Path:
@@ -115,7 +121,7 @@ class ContainerRecord:
     env: EnvHandle
     result: dict
     nodes: dict[str, int | None] = field(default_factory=dict)
-    statuses: dict[str, str] = field(default_factory=dict)
+    statuses: dict[str, env_ops.NodeStatus] = field(default_factory=dict)
 
 
 class ContainerHost:
@@ -256,20 +262,33 @@ class ContainerHost:
     # -- environments --------------------------------------------------------------------------
     async def _accept_env(self, reader: asyncio.StreamReader, writer: asyncio.StreamWriter) -> None:
         peer = rpc.RpcPeer(reader, writer, name="environment", max_frame=self.max_frame)
-
-        async def hello(args: dict) -> dict:
-            env_id = args.get("env_id")
-            if not isinstance(env_id, int) or not self._hellos.settle(env_id, (peer, args)):
-                raise RequestError(f"unexpected environment {env_id!r}")
-            return {}
-
-        async def node_status(args: dict) -> None:
-            self._on_node_status(args)
-
-        async def interface_status(args: dict) -> None:     # how an interface is bridged into ROS 2
-            self._to_master("interface_status", **args)
-        peer.handlers.update(hello=hello, node_status=node_status, interface_status=interface_status)
+        peer.handlers.update(FROM_ENV_OPS.handlers(self, context=peer))
         peer.start()
+
+    @FROM_ENV_OPS.op("hello", args=env_ops.EnvHello)
+    async def _op_env_hello(self, peer: rpc.RpcPeer, args: env_ops.EnvHello) -> dict:
+        """An environment this task set started is ready (:meth:`_spawn_env` waits for it)."""
+        if not self._hellos.settle(args.env_id, (peer, args)):
+            raise RequestError(f"unexpected environment {args.env_id!r}")
+        return {}
+
+    @FROM_ENV_OPS.op("node_status", args=env_ops.NodeStatusReport)
+    async def _op_env_node_status(self, _peer: rpc.RpcPeer, args: env_ops.NodeStatusReport) -> None:
+        """A node's status: kept for the report of a re-registration, and passed on to the master."""
+        c = self.containers.get(args.cid)
+        if c is not None:
+            if args.status == env_ops.NodeStatus.STARTED:
+                c.nodes[args.ntag] = args.pid
+            elif args.status in (env_ops.NodeStatus.EXITED, env_ops.NodeStatus.RESPAWNING) and args.ntag in c.nodes:
+                c.nodes[args.ntag] = None           # (not a node removed meanwhile)
+            if args.ntag in c.nodes:
+                c.statuses[args.ntag] = args.status
+        self._to_master(args)
+
+    @FROM_ENV_OPS.op("interface_status", args=env_ops.InterfaceStatus)
+    async def _op_env_interface_status(self, _peer: rpc.RpcPeer, args: env_ops.InterfaceStatus) -> None:
+        """How an interface is bridged into its container's ROS 2 graph: passed on to the master."""
+        self._to_master(args)
 
     def _refill_spares(self) -> None:
         """Start environments in the background until ``warm`` spares are ready or starting."""
@@ -352,7 +371,7 @@ class ContainerHost:
                 zygote_template.close()            # the environment has its own descriptor of it
         env.peer.name = f"environment {env.env_id}"
         env.peer.on_close = lambda _p, e=env: self._env_link_closed(e)
-        env.data_addr = info.get("data_addr", "")
+        env.data_addr = info.data_addr
         await self._give_data_key(env)
         self.envs.add(env)
         self.tasks.spawn(self._watch_env(env), name=f"environment {env.env_id}")
@@ -368,7 +387,7 @@ class ContainerHost:
         try:
             if pid != env.proc.pid:
                 raise Unavailable(f"environment {env.env_id}'s hello came from pid {pid}, not {env.proc.pid}")
-            await env.peer.call("data_key", key=self.cluster_key.data_key(env.data_addr).hex())
+            await env.peer.ask(env_ops.EnvDataKey(key=self.cluster_key.data_key(env.data_addr).hex()))
         except RCEError:
             await self._kill_env_proc(env)
             raise
@@ -411,11 +430,11 @@ class ContainerHost:
             for ntag, pid in list(c.nodes.items()):
                 if pid:
                     _kill_group(pid)
-                self._to_master("node_status", cid=cid, ntag=ntag, status="exited",
-                                reason=f"environment exited with code {env.exit_code}")
+                self._to_master(env_ops.NodeStatusReport(cid=cid, ntag=ntag, status=env_ops.NodeStatus.EXITED,
+                                                         reason=f"environment exited with code {env.exit_code}"))
                 c.nodes[ntag] = None
-                c.statuses[ntag] = "exited"
-            self._to_master("container_lost", cid=cid, reason=f"its environment {why}")
+                c.statuses[ntag] = env_ops.NodeStatus.EXITED
+            self._to_master(to_master.ContainerLost(cid=cid, reason=f"its environment {why}"))
             await asyncio.to_thread(self.sandbox_cls.cleanup_container, self.scope, cid)
 
     async def _stop_env(self, env: EnvHandle) -> None:
@@ -430,7 +449,7 @@ class ContainerHost:
         clean = False
         if env.alive:
             try:
-                await env.peer.call("shutdown", timeout=self.grace + REPLY_MARGIN)
+                await env.peer.ask(env_ops.EnvShutdown(), self.grace + REPLY_MARGIN)
                 clean = True
             except RCEError as e:
                 log.warning("environment did not shut down cleanly", env=env.env_id, reason=e.message)
@@ -464,29 +483,18 @@ class ContainerHost:
             await env.proc.wait()
 
     # -- master ops ----------------------------------------------------------------------------
-    def _to_master(self, op: str, **args: Any) -> None:
+    def _to_master(self, msg: OpArgs) -> None:
         """A notification the master must get: while it is away it waits in the link's backlog."""
         if self.master:
-            self.master.notify(op, keep=True, **args)
-
-    def _on_node_status(self, args: dict) -> None:
-        c = self.containers.get(args.get("cid"))
-        if c is not None:
-            ntag, status = args.get("ntag"), args.get("status")
-            if status == "started":
-                c.nodes[ntag] = args.get("pid")
-            elif status in ("exited", "respawning") and ntag in c.nodes:     # not a node removed meanwhile
-                c.nodes[ntag] = None
-            if ntag in c.nodes and isinstance(status, str) and status:
-                c.statuses[ntag] = status
-        self._to_master("node_status", **args)
+            self.master.tell(msg, keep=True)
 
     def _report(self) -> dict:
         """What this host holds, for re-registering: every container whose environment runs,
         with its data address, sandbox, and nodes with their last status."""
         return {"containers": [
             {"cid": c.cid, "data_addr": c.result["data_addr"], "sandbox": c.result["sandbox"],
-             "nodes": [{"ntag": ntag, "status": c.statuses.get(ntag, "starting")} for ntag in sorted(c.nodes)]}
+             "nodes": [{"ntag": ntag, "status": c.statuses.get(ntag, env_ops.NodeStatus.STARTING)}
+                       for ntag in sorted(c.nodes)]}
             for c in self.containers.values() if c.env.alive]}
 
     async def _obey(self, answer: dict) -> None:
@@ -494,27 +502,27 @@ class ContainerHost:
         for cid in answer.get("drop_containers") or []:
             log.warning("the master does not have this container: destroying it", cid=cid)
             try:
-                await self.op_destroy_container({"cid": cid})
+                await self.op_destroy_container(ops.DestroyContainer(cid=cid))
             except RCEError as e:
                 log.warning("could not destroy a container the master dropped", cid=cid, reason=e.message)
         for n in answer.get("drop_nodes") or []:
             log.warning("the master does not have this node: removing it", cid=n.get("cid"), ntag=n.get("ntag"))
             try:
-                await self.relay("remove_node", {"cid": n.get("cid"), "ntag": n.get("ntag")})
+                await self.relay("remove_node", HOST_OPS.parse("remove_node", n))
             except RCEError as e:
                 log.warning("could not remove a node the master dropped", reason=e.message, **n)
 
-    def _record(self, args: dict) -> ContainerRecord:
-        c = self.containers.get(args.get("cid"))
+    def _record(self, cid: int) -> ContainerRecord:
+        c = self.containers.get(cid)
         if c is None:
-            raise NotFound(f"container {args.get('cid')!r} does not exist on container host {self.name!r}")
+            raise NotFound(f"container {cid!r} does not exist on container host {self.name!r}")
         if not c.env.alive:
             raise Unavailable(f"the environment of container {c.ctag!r} is gone"
                               + (f" (exit code {c.env.exit_code})" if c.env.exit_code is not None else ""))
         return c
 
-    @HOST_OPS.op("create_container")
-    async def op_create_container(self, args: dict) -> dict:
+    @HOST_OPS.op("create_container", args=ops.CreateContainer)
+    async def op_create_container(self, args: ops.CreateContainer) -> dict:
         """``{cid, user, ctag, group, limits, deadline_ms?, handoff?}`` -> ``{data_addr, sandbox,
         startup_ms}`` once the environment serves the container (``deadline_ms``: its results'
         due time, counted in its stats; ``handoff``: it is a move's new copy, its nodes wait for
@@ -524,9 +532,7 @@ class ContainerHost:
         Raises :class:`RequestError` for a cid reused with another tag, :class:`Unavailable`
         if the environment exits before it is ready, :class:`Timeout` if it does not get
         ready within ``env_timeout`` s."""
-        cid, user, ctag, group = args.get("cid"), args.get("user", ""), args.get("ctag"), args.get("group") or None
-        if not isinstance(cid, int) or isinstance(cid, bool):
-            raise RequestError(f"create_container needs an integer 'cid', got {cid!r}")
+        cid, user, ctag, group = args.cid, args.user, args.ctag, args.group or None
         old = self.containers.get(cid)
         if old is not None:
             if (old.user, old.ctag) == (user, ctag):
@@ -552,9 +558,9 @@ class ContainerHost:
                 self._refill_after_take()
             env.cids.add(cid)
             try:
-                res = await env.peer.call("add_container", cid=cid, ctag=ctag, user=user, group=group,
-                                          limits=args.get("limits") or {}, deadline_ms=args.get("deadline_ms"),
-                                          handoff=bool(args.get("handoff")), timeout=self.env_timeout)
+                res = await env.peer.ask(env_ops.EnvAddContainer(cid=cid, ctag=ctag, user=user, group=group,
+                                                              limits=args.limits or {}, deadline_ms=args.deadline_ms,
+                                                              handoff=args.handoff), self.env_timeout)
             except BaseException:
                 env.cids.discard(cid)
                 if not env.cids:
@@ -567,13 +573,13 @@ class ContainerHost:
                  data_addr=result["data_addr"], startup_ms=result["startup_ms"])
         return result
 
-    @HOST_OPS.op("destroy_container")
-    async def op_destroy_container(self, args: dict) -> dict:
+    @HOST_OPS.op("destroy_container", args=ops.DestroyContainer)
+    async def op_destroy_container(self, args: ops.DestroyContainer) -> dict:
         """``{cid}``: kill every node of the container, drop its interfaces and socket; stop its
         environment if it was the group's last container. Raises :class:`NotFound`."""
-        c = self.containers.get(args.get("cid"))
+        c = self.containers.get(args.cid)
         if c is None:
-            raise NotFound(f"container {args.get('cid')!r} does not exist on container host {self.name!r}")
+            raise NotFound(f"container {args.cid!r} does not exist on container host {self.name!r}")
         env = c.env
         async with self._group_locks.setdefault(env.key, asyncio.Lock()):
             del self.containers[c.cid]
@@ -581,7 +587,7 @@ class ContainerHost:
             clean = False
             if env.alive:
                 try:
-                    await env.peer.call("remove_container", cid=c.cid, timeout=self.grace + REPLY_MARGIN)
+                    await env.peer.ask(env_ops.EnvRemoveContainer(cid=c.cid), self.grace + REPLY_MARGIN)
                     clean = True
                 except RCEError as e:
                     log.warning("environment failed to remove a container", cid=c.cid, reason=e.message)
@@ -598,42 +604,44 @@ class ContainerHost:
         log.info("container destroyed", cid=c.cid, ctag=c.ctag)
         return {}
 
-    @HOST_OPS.relay("add_node", "remove_node", "set_param", "delete_param", "get_param", "add_interface",
-                    "remove_interface", "connect", "disconnect", "describe", "bus_publish", "bus_call", "bus_sample",
-                    "logs", "resize_container", "state_out", "state_in", "drain")
-    async def relay(self, op: str, args: dict) -> Any:
-        """Relay ``op`` (one of :data:`HOST_OPS`' relayed ops) to the environment of the op's
-        ``cid``; its answer. Raises :class:`NotFound` for an unknown cid, :class:`Unavailable`
+    @HOST_OPS.relay(env_ops.EnvAddNode, env_ops.EnvRemoveNode, env_ops.EnvSetParam, env_ops.EnvDeleteParam,
+                    env_ops.EnvGetParam, env_ops.EnvAddInterface, env_ops.EnvRemoveInterface, env_ops.EnvConnect,
+                    env_ops.EnvDisconnect, env_ops.EnvDescribe, env_ops.EnvBusPublish, env_ops.EnvBusCall,
+                    env_ops.EnvBusSample, env_ops.EnvLogs, env_ops.EnvResizeContainer, env_ops.EnvStateOut,
+                    env_ops.EnvStateIn, env_ops.EnvDrain)
+    async def relay(self, op: str, args: env_ops.OnContainer) -> Any:
+        """Relay ``op`` (one of :data:`HOST_OPS`' relayed ops, an environment's) to the environment of
+        the op's ``cid``; its answer. Raises :class:`NotFound` for an unknown cid, :class:`Unavailable`
         when its environment is gone, and what the environment raises."""
-        c = self._record(args)
+        c = self._record(args.cid)
         timeout = RELAY_TIMEOUT
-        if op in ("bus_call", "bus_sample"):
-            timeout = float(args.get("timeout") or BUS_CALL_TIMEOUT) + REPLY_MARGIN
-        elif op == "remove_node":
+        if isinstance(args, (env_ops.EnvBusCall, env_ops.EnvBusSample)):
+            timeout = (args.timeout or BUS_CALL_TIMEOUT) + REPLY_MARGIN
+        elif isinstance(args, env_ops.EnvRemoveNode):
             timeout = self.grace + REPLY_MARGIN
-        elif op == "drain":
-            timeout = float(args.get("timeout") or 0.0) + REPLY_MARGIN
-        result = await c.env.peer.request(op, args, timeout)
-        if op == "add_node":
-            c.nodes.setdefault(args.get("ntag"), (result or {}).get("pid"))
-            c.statuses.setdefault(args.get("ntag"), "starting")
-        elif op == "remove_node":
-            c.nodes.pop(args.get("ntag"), None)
-            c.statuses.pop(args.get("ntag"), None)
+        elif isinstance(args, env_ops.EnvDrain):
+            timeout = (args.timeout or 0.0) + REPLY_MARGIN
+        result = await c.env.peer.ask(args, timeout)
+        if isinstance(args, env_ops.EnvAddNode):
+            c.nodes.setdefault(args.ntag, (result or {}).get("pid"))
+            c.statuses.setdefault(args.ntag, env_ops.NodeStatus.STARTING)
+        elif isinstance(args, env_ops.EnvRemoveNode):
+            c.nodes.pop(args.ntag, None)
+            c.statuses.pop(args.ntag, None)
         return result
 
-    @HOST_OPS.op("stats")
-    async def op_stats(self, args: dict) -> dict:
+    @HOST_OPS.op("stats", args=ops.HostStats)
+    async def op_stats(self, args: ops.HostStats) -> dict:
         """``{cid}`` -> the container's counters (see ``Environment.op_stats``); without a cid,
         ``{name, tid, sandbox, environments, containers: [per-container stats...]}``."""
-        if args.get("cid") is not None:
-            c = self._record(args)
-            return await c.env.peer.call("stats", cid=c.cid)
+        if args.cid is not None:
+            c = self._record(args.cid)
+            return await c.env.peer.ask(env_ops.EnvStats(cid=c.cid))
         out = []
         for c in list(self.containers.values()):
             if c.env.alive:
                 try:
-                    out.append(await c.env.peer.call("stats", cid=c.cid))
+                    out.append(await c.env.peer.ask(env_ops.EnvStats(cid=c.cid)))
                 except RCEError as e:
                     out.append({"cid": c.cid, "ctag": c.ctag, "error": e.message})
             else:
@@ -654,7 +662,7 @@ class ContainerHost:
         log.info("metrics served", url=f"http://{self.bind}:{self.metrics_port}/metrics")
 
     async def _metrics(self) -> bytes:
-        return generate_latest(metrics.snapshot_registry(await self.op_stats({})))
+        return generate_latest(metrics.snapshot_registry(await self.op_stats(ops.HostStats())))
 
 
 

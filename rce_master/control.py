@@ -8,8 +8,12 @@ from __future__ import annotations
 
 import asyncio
 from collections.abc import Awaitable
-from typing import Any
+from typing import Any, TypeVar
 
+from rce.contract import environment as to_env
+from rce.contract import host as to_host
+from rce.contract import robot as to_robot
+from rce.contract.base import OpArgs
 from rce.transport.cluster_auth import ClusterKey
 from rce.plumbing.errors import RCEError, Unavailable
 from rce.plumbing.log import get_logger
@@ -25,6 +29,14 @@ CREATE_TIMEOUT = 60.0     # s, create_container: it returns once the environment
 # has not re-registered yet) waits for it before it is refused: hosts redial within rce.transport.masterlink's
 # 2 s backoff cap, so a robot's request right after a takeover waits instead of failing
 ABSENT_WAIT = 10.0
+A = TypeVar("A", bound=OpArgs)
+B = TypeVar("B", bound=OpArgs)
+
+
+async def _ask(peer: RpcPeer, msg: OpArgs, timeout: float | None) -> Any:
+    """Send typed op ``msg`` on ``peer`` and await its answer (as :meth:`RpcPeer.ask`; through
+    ``request``, which a test's stand-in for a link also has)."""
+    return await peer.request(msg.OP, msg.wire(), timeout)
 
 
 class Control:
@@ -49,7 +61,18 @@ class Control:
                            wait: bool = True) -> Any:
         """Send ``op`` with ``args`` (plus ``cid``) to the host of ``container``; its answer. An
         absent host is waited for (``wait``, robot requests: up to :data:`ABSENT_WAIT`), or refused
-        at once (the admin API: its HTTP 503 says when to ask again)."""
+        at once (the admin API: its HTTP 503 says when to ask again). The admin API passes a body on
+        so; the engine's own ops go typed, through :meth:`host_ask`."""
+        return await (await self._host_peer(container, wait)).request(op, {"cid": container.cid, **args}, timeout)
+
+    async def host_ask(self, container: ContainerRec, msg: OpArgs, timeout: float = CALL_TIMEOUT,
+                       wait: bool = True) -> Any:
+        """Send op ``msg`` (a host's, :mod:`rce.contract.host`, or an environment's it relays,
+        :mod:`rce.contract.environment`, naming its ``cid``) to the host of ``container``; its answer.
+        ``wait`` as for :meth:`host_request`."""
+        return await _ask(await self._host_peer(container, wait), msg, timeout)
+
+    async def _host_peer(self, container: ContainerRec, wait: bool) -> RpcPeer:
         peer = self.peers.get(container.tid)
         if peer is None:
             what = f"the host of container {container.ctag!r}"
@@ -57,7 +80,7 @@ class Control:
                 self._check_absent(container.tid, what)
                 raise Unavailable(f"{what} is gone")
             peer = await self._host_back(container.tid, what)
-        return await peer.request(op, {"cid": container.cid, **args}, timeout)
+        return peer
 
     def attach(self, tid: int, peer: RpcPeer) -> None:
         """Task set ``tid`` (re-)registered on link ``peer``: calls waiting for it go on."""
@@ -90,56 +113,67 @@ class Control:
         if ts.lost and wait:
             raise TaskSetAbsent(f"{what} has not re-registered since the master restarted; try again later")
 
-    async def host_call(self, container: ContainerRec, op: str, **args: Any) -> Any:
-        """:meth:`host_request` with the op's arguments as keywords (timeout: ``rce.transport.rpc.CALL_TIMEOUT``)."""
-        return await self.host_request(container, op, args)
-
-    async def endpoint_call(self, rec: InterfaceRec, op: str, **args: Any) -> Any:
-        """Send ``op`` to the endpoint holding interface ``rec``: its robot task set (robot side)
-        or its container's host (container side, with ``cid``)."""
+    async def endpoint_ask(self, rec: InterfaceRec, msg: OpArgs) -> Any:
+        """Send op ``msg`` to the endpoint holding interface ``rec``: its robot task set (robot side,
+        an op of :mod:`rce.contract.robot`) or its container's host (container side, an op of
+        :mod:`rce.contract.environment`, :meth:`to_end` builds either)."""
         if not rec.robot_side:
             c = self.state.container_by_cid(rec.location)
             if c is None:
                 raise Unavailable(f"container {rec.etag!r} is gone")
-            return await self.host_request(c, op, args)
+            return await self.host_ask(c, msg)
         peer = self.peers.get(rec.location)
         if peer is None:
             self._check_absent(rec.location, f"the robot endpoint of {rec.tag}")
             raise Unavailable(f"the robot endpoint of {rec.tag} is gone")
-        return await peer.request(op, args, CALL_TIMEOUT)
+        return await _ask(peer, msg, CALL_TIMEOUT)
+
+    @staticmethod
+    def to_end(rec: InterfaceRec, robot_op: type[A], env_op: type[B], cid: int | None = None, **fields: Any) -> A | B:
+        """The op for the endpoint holding ``rec``: ``robot_op`` of ``fields`` on a robot's side,
+        else ``env_op`` on container ``cid`` (default: the one the state has ``rec`` in)."""
+        if rec.robot_side:
+            return robot_op(**fields)
+        return env_op(cid=rec.location if cid is None else cid, **fields)
 
     # -- what a container is made of (a CC and CN, and its re-creation after a loss) --------------------
     async def create_container(self, container: ContainerRec, handoff: bool = False) -> dict:
         """``create_container`` on ``container``'s host with its group, limits (``container.data``, as last
         resized) and deadline; the host's ``{data_addr, sandbox, startup_ms}``. ``handoff``: it is a
         move's new copy, whose nodes wait for their state (:mod:`rce_master.placement.mover`)."""
-        return await self.host_request(container, "create_container", {
-            "user": container.user, "ctag": container.ctag, "group": container.group,
-            "limits": {k: container.data.get(k) for k in LIMIT_KEYS},
-            "deadline_ms": container.data.get("deadline_ms"), "handoff": handoff},
-            CREATE_TIMEOUT)
+        return await self.host_ask(container, to_host.CreateContainer(
+            cid=container.cid, user=container.user, ctag=container.ctag, group=container.group,
+            limits={k: container.data.get(k) for k in LIMIT_KEYS}, deadline_ms=container.data.get("deadline_ms"),
+            handoff=handoff), CREATE_TIMEOUT)
 
     async def start_node(self, container: ContainerRec, ntag: str, spec: dict) -> Any:
         """``add_node`` on ``container``'s host: node ``ntag`` of addNodes entry ``spec``."""
-        return await self.host_call(container, "add_node", ntag=ntag, pkg=spec["pkg"], exe=spec["exe"],
-                                    args=spec.get("args", ""), name=spec.get("name"),
-                                    namespace=spec.get("namespace"), respawn=spec.get("respawn"))
+        return await self.host_ask(container, to_env.EnvAddNode(
+            cid=container.cid, ntag=ntag, pkg=spec["pkg"], exe=spec["exe"], args=spec.get("args", ""),
+            name=spec.get("name"), namespace=spec.get("namespace"), respawn=spec.get("respawn")))
 
-    async def install_interface(self, rec: InterfaceRec) -> Any:
+    async def install_interface(self, rec: InterfaceRec, into: ContainerRec | None = None) -> Any:
         """``add_interface`` on the endpoint of ``rec``: its robot task set (robot side) or its
-        container's host (container side)."""
+        container's host (container side; ``into``: the copy of its container to install it in, a
+        move's new one; default: the one the state has it in)."""
         if rec.robot_side:
-            return await self.endpoint_call(rec, "add_interface", user=rec.user, robot=rec.etag, iid=rec.iid,
-                                            itag=rec.itag, itype=rec.itype, cls=rec.cls, lane=rec.lane)
-        return await self.endpoint_call(rec, "add_interface", iid=rec.iid, tag=rec.tag, itype=rec.itype,
-                                        cls=rec.cls, addr=rec.addr)
+            return await self.endpoint_ask(rec, to_robot.EndpointAddInterface(
+                user=rec.user, robot=rec.etag, iid=rec.iid, itag=rec.itag, itype=rec.itype, cls=rec.cls, lane=rec.lane))
+        msg = to_env.EnvAddInterface(cid=rec.location if into is None else into.cid, iid=rec.iid, tag=rec.tag,
+                                  itype=rec.itype, cls=rec.cls, addr=rec.addr)
+        return await (self.endpoint_ask(rec, msg) if into is None else self.host_ask(into, msg))
+
+    async def remove_interface(self, rec: InterfaceRec) -> Any:
+        """``remove_interface`` on the endpoint of ``rec``."""
+        msg = self.to_end(rec, to_robot.EndpointRemoveInterface, to_env.EnvRemoveInterface, iid=rec.iid)
+        return await self.endpoint_ask(rec, msg)
 
     async def destroy_on(self, tid: int, cid: int) -> None:
         """Destroy container ``cid`` on host ``tid`` whatever the state says (undoing a re-creation
         the state no longer wants), quietly."""
         peer = self.peers.get(tid)
         if peer is not None:
-            await self.quiet(peer.request("destroy_container", {"cid": cid}, CALL_TIMEOUT))
+            await self.quiet(_ask(peer, to_host.DestroyContainer(cid=cid), CALL_TIMEOUT))
 
     @staticmethod
     async def quiet(call: Awaitable[Any]) -> None:
@@ -150,13 +184,18 @@ class Control:
             log.debug("ignored on teardown", reason=str(e))
 
     # -- what both ends and the robot are told --------------------------------------------------------
-    def connect_args(self, me: InterfaceRec, peer: InterfaceRec, peer_addr: str) -> dict:
+    def connect_op(self, me: InterfaceRec, peer: InterfaceRec, peer_addr: str, *, fence: int | None = None,
+                   cid: int | None = None) -> to_robot.EndpointConnect | to_env.EnvConnect:
         """The ``connect`` telling ``me`` its peer ``peer`` at ``peer_addr``, with the credential
         that lets it send there (:mod:`rce.transport.cluster_auth`, "Data-plane credentials") and the
         peer's class (``peer_cls``: where one end is ROS 1 and the other ROS 2, the sender converts,
-        :mod:`rce.messages.convert`)."""
-        return {"iid": me.iid, "peer_iid": peer.iid, "peer_addr": peer_addr, "peer_cls": peer.cls,
-                "token": self.key.connection_token(me.iid, peer.iid, peer_addr)}
+        :mod:`rce.messages.convert`); ``fence``: a move's (:mod:`rce_master.placement.mover`); ``cid``:
+        the copy of ``me``'s container it goes to (as for :meth:`to_end`)."""
+        fields: dict[str, Any] = {"iid": me.iid, "peer_iid": peer.iid, "peer_addr": peer_addr, "peer_cls": peer.cls,
+                                  "token": self.key.connection_token(me.iid, peer.iid, peer_addr)}
+        if fence is not None:
+            fields["fence"] = fence
+        return self.to_end(me, to_robot.EndpointConnect, to_env.EnvConnect, cid, **fields)
 
     async def tell_connect(self, end_a: InterfaceRec, end_b: InterfaceRec) -> None:
         """Tell both ends of a new connection the other's iid, data address and credential; the
@@ -165,8 +204,13 @@ class Control:
         if end_b.kind in ("Publisher", "ServiceClient"):
             end_a, end_b = end_b, end_a
         addr_a, addr_b = self.state.data_addr(end_a), self.state.data_addr(end_b)
-        await self.endpoint_call(end_a, "connect", **self.connect_args(end_a, end_b, addr_b))
-        await self.endpoint_call(end_b, "connect", **self.connect_args(end_b, end_a, addr_a))
+        await self.endpoint_ask(end_a, self.connect_op(end_a, end_b, addr_b))
+        await self.endpoint_ask(end_b, self.connect_op(end_b, end_a, addr_a))
+
+    async def disconnect_end(self, me: InterfaceRec, peer_iid: int) -> Any:
+        """``disconnect`` the connection of ``me`` to interface ``peer_iid``, on ``me``'s endpoint."""
+        msg = self.to_end(me, to_robot.EndpointDisconnect, to_env.EnvDisconnect, iid=me.iid, peer_iid=peer_iid)
+        return await self.endpoint_ask(me, msg)
 
     async def tell_disconnect(self, end_a: InterfaceRec, end_b: InterfaceRec) -> None:
         """Tell both ends a connection is gone (quietly: either may be gone too). An end whose task
@@ -174,7 +218,7 @@ class Control:
         longer have the connection) are what it reconciles with."""
         for me, peer in ((end_a, end_b), (end_b, end_a)):
             if self._attached(me):
-                await self.quiet(self.endpoint_call(me, "disconnect", iid=me.iid, peer_iid=peer.iid))
+                await self.quiet(self.disconnect_end(me, peer.iid))
 
     def _attached(self, rec: InterfaceRec) -> bool:
         """The task set holding interface ``rec`` has a link to this master now."""
@@ -192,15 +236,15 @@ class Control:
         (a ``connect`` for a connection that exists replaces the peer's address)."""
         for rec in self.state.interfaces_of(container.user, container.ctag):
             for me, peer in self.state.connections_of(rec.iid):
-                await self.quiet(self.endpoint_call(peer, "connect",
-                                                    **self.connect_args(peer, me, container.data_addr)))
+                await self.quiet(self.endpoint_ask(peer, self.connect_op(peer, me, container.data_addr)))
 
     def notify_robot(self, user: str, robot: str, type_: str, data: Any) -> None:
         """Send the robot an ST or ER (``notify``) through its endpoint, if it is connected."""
         r = self.state.robot(user, robot)
         peer = self.peers.get(r.tid) if r else None
         if peer:
-            peer.notify("notify", user=user, robot=robot, type=type_, data=data)
+            msg = to_robot.EndpointNotify(user=user, robot=robot, type=type_, data=data)
+            peer.notify(msg.OP, **msg.wire())
 
     def tell_node_status(self, container: ContainerRec, node: NodeRec, status: str, detail: dict) -> None:
         """ST ``node`` to the container's owner; an ER too when the node exited with an error."""
@@ -219,7 +263,7 @@ class Control:
         await self.tell_disconnects(pairs)
         if not container.down and container.tid in self.peers:      # a recovering one is undone by its re-creation
             try:
-                await self.host_call(container, "destroy_container")
+                await self.host_ask(container, to_host.DestroyContainer(cid=container.cid))
             except RCEError as e:
                 log.warning("destroy failed", ctag=container.ctag, reason=str(e))
         log.info("container destroyed", user=container.user, ctag=container.ctag, cid=container.cid)
@@ -254,7 +298,7 @@ class Control:
         for rec in self.state.interfaces_of(container.user, container.ctag, robot_side=False):
             for me, peer in self.state.connections_of(rec.iid):
                 if peer.robot_side or peer.location != container.cid:
-                    await self.quiet(self.endpoint_call(peer, "disconnect", iid=peer.iid, peer_iid=me.iid))
+                    await self.quiet(self.disconnect_end(peer, me.iid))
 
     def tell_lost(self, container: ContainerRec, why: str) -> None:
         """Tell ``container``'s owner ``ST {topic: container, cTag, status: lost}`` and an ER saying ``why``."""

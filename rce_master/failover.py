@@ -39,6 +39,7 @@ import time
 from collections.abc import Callable
 from dataclasses import dataclass, field
 
+from rce.contract import environment as to_env
 from rce.plumbing.errors import RCEError, Unavailable
 from rce.plumbing.log import get_logger
 from rce.plumbing.tasks import Tasks
@@ -226,7 +227,7 @@ class Failover:
         answer = await self.control.create_container(container)
         for name, value in self.state.params_of(container):
             self._check(container, cid)
-            await self.control.host_call(container, "set_param", name=name, value=value)
+            await self.control.host_ask(container, to_env.EnvSetParam(cid=container.cid, name=name, value=value))
         for rec in self.state.interfaces_of(container.user, container.ctag, robot_side=False):
             self._check(container, cid)
             await self.control.install_interface(rec)
@@ -241,7 +242,7 @@ class Failover:
         are up (a spare made holding its inputs for a state takes none: they start fresh), then as
         :meth:`_rebuild` ends."""
         if spare.handoff:
-            await self.control.host_call(container, "state_in", states={})
+            await self.control.host_ask(container, to_env.EnvStateIn(cid=container.cid, states={}))
         for n in self.state.nodes_of(container):
             self.state.node_running(n)
         await self._running(container, cid, spare.answer)

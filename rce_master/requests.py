@@ -20,6 +20,8 @@ from __future__ import annotations
 from dataclasses import dataclass
 from typing import Any
 
+from rce.contract import environment as to_env
+from rce.contract import host as to_host
 from rce.plumbing.errors import RCEError, RequestError, Timeout
 from rce.plumbing.log import get_logger
 from rce.protocol import schema
@@ -96,7 +98,7 @@ class CreateContainerStep(Step):
     async def undo(self, req, container, told):
         await req.control.tell_disconnects(req.state.container_failed(container))
         if told:
-            await req.control.quiet(req.control.host_call(container, "destroy_container"))
+            await req.control.quiet(req.control.host_ask(container, to_host.DestroyContainer(cid=container.cid)))
 
 
 class DestroyContainerStep(Step):
@@ -128,7 +130,7 @@ class AddNode(Step):
         c, n = held
         req.state.node_failed(n)
         if told:
-            await req.control.quiet(req.control.host_call(c, "remove_node", ntag=n.ntag))
+            await req.control.quiet(req.control.host_ask(c, to_env.EnvRemoveNode(cid=c.cid, ntag=n.ntag)))
 
 
 class RemoveNode(Step):
@@ -138,7 +140,7 @@ class RemoveNode(Step):
         return req.state.remove_node(req.user, spec.cTag, spec.nTag)
 
     async def tell(self, req, spec, container):
-        await req.control.host_call(container, "remove_node", ntag=spec.nTag)
+        await req.control.host_ask(container, to_env.EnvRemoveNode(cid=container.cid, ntag=spec.nTag))
 
 
 class SetParam(Step):
@@ -148,7 +150,7 @@ class SetParam(Step):
         return req.state.container(req.user, spec.cTag)
 
     async def tell(self, req, spec, container):
-        await req.control.host_call(container, "set_param", name=spec.name, value=spec.value)
+        await req.control.host_ask(container, to_env.EnvSetParam(cid=container.cid, name=spec.name, value=spec.value))
 
     def confirm(self, req, spec, container, answer):
         req.state.set_param(req.user, container.ctag, spec.name, spec.value)
@@ -161,7 +163,7 @@ class DeleteParam(Step):
         return req.state.delete_param(req.user, spec.cTag, spec.name)
 
     async def tell(self, req, spec, container):
-        await req.control.host_call(container, "delete_param", name=spec.name)
+        await req.control.host_ask(container, to_env.EnvDeleteParam(cid=container.cid, name=spec.name))
 
 
 class AddInterface(Step):
@@ -176,7 +178,7 @@ class AddInterface(Step):
     async def undo(self, req, rec, told):
         await req.control.tell_disconnects(req.state.interface_refused(rec))
         if told:
-            await req.control.quiet(req.control.endpoint_call(rec, "remove_interface", iid=rec.iid))
+            await req.control.quiet(req.control.remove_interface(rec))
 
 
 class RemoveInterface(Step):
@@ -189,8 +191,8 @@ class RemoveInterface(Step):
         rec, pairs = held
         for a, b in pairs:
             other = b if a.iid == rec.iid else a
-            await req.control.quiet(req.control.endpoint_call(other, "disconnect", iid=other.iid, peer_iid=rec.iid))
-        await req.control.quiet(req.control.endpoint_call(rec, "remove_interface", iid=rec.iid))
+            await req.control.quiet(req.control.disconnect_end(other, rec.iid))
+        await req.control.quiet(req.control.remove_interface(rec))
 
 
 class ResizeContainer(Step):
@@ -201,7 +203,8 @@ class ResizeContainer(Step):
         return req.state.container(req.user, spec.cTag)
 
     async def tell(self, req, spec, container):
-        return await req.control.host_call(container, "resize_container", limits=limits_of(spec.model_dump()))
+        return await req.control.host_ask(container, to_env.EnvResizeContainer(cid=container.cid,
+                                                                            limits=limits_of(spec.model_dump())))
 
     def confirm(self, req, spec, container, answer):
         req.state.resize(req.user, container.ctag, limits_of(spec.model_dump()))

@@ -46,9 +46,11 @@ from collections import Counter
 from collections.abc import Callable
 from pathlib import Path
 
+from rce.contract import handshake as steps
 from rce.transport import framing
 from rce.plumbing.errors import ConfigError, ProtocolError, RCEError, RequestError, Timeout
 from rce.transport.link import nodelay
+from rce.transport.op_table import OpTable
 from rce.plumbing.log import get_logger
 from rce.plumbing.process import create_private_file
 
@@ -173,17 +175,17 @@ def connection_token(data_key: bytes, src: int, dst: int) -> bytes:
     return _mac(data_key, b"connection", f"{src}>{dst}".encode())
 
 
-def token_of(args: dict) -> bytes:
-    """The credential of a ``connect`` op's arguments (``token``: hex). Raises
+def token_of(token: object) -> bytes:
+    """The credential a ``connect`` op carries as its ``token`` (hex), as bytes. Raises
     :class:`~rce.plumbing.errors.RequestError` naming what is wrong."""
     try:
-        token = bytes.fromhex(args.get("token") or "")
+        raw = bytes.fromhex(token or "")          # type: ignore[arg-type]  (anything else: refused below)
     except (TypeError, ValueError):
-        token = b""
-    if len(token) != hashlib.sha256().digest_size:
+        raw = b""
+    if len(raw) != hashlib.sha256().digest_size:
         raise RequestError(f"connect: 'token' must be the master's credential, 64 hex digits; got "
-                           f"{str(args.get('token'))[:80]!r}")
-    return token
+                           f"{str(token)[:80]!r}")
+    return raw
 
 
 def grant_proof(token: bytes, nonce: bytes, src: int, dst: int) -> bytes:
@@ -225,6 +227,10 @@ def peer_pid(writer: asyncio.StreamWriter) -> int | None:
 
 
 # -- the handshake, sans I/O --------------------------------------------------------------------------
+#: The handshake's steps: each message the peer may send (``{"auth": kind, ...}``), and the step that takes it.
+HANDSHAKE = OpTable("cluster handshake", sync=True, error=ProtocolError)
+
+
 class Handshake:
     """One side of the control-link handshake (module doc). ``role``: ``"initiator"`` (the
     dialler) or ``"responder"``; ``purpose``: what the link is for (both sides must agree);
@@ -261,47 +267,51 @@ class Handshake:
             raise AuthFailed(f"the peer refused us: {str(msg.get('reason'))[:200]}")
         if self.done or kind != self._expect:
             raise ProtocolError(f"cluster handshake: expected {self._expect!r}, got {str(msg)[:120]}")
-        return getattr(self, f"_on_{kind}")(msg)
+        return HANDSHAKE.call(self, kind, msg)
 
-    def _take_nonce(self, msg: dict) -> None:
+    def _take_nonce(self, msg: steps.HandshakeHello | steps.HandshakeChallenge) -> None:
         try:
-            nonce = bytes.fromhex(msg.get("nonce") or "")
+            nonce = bytes.fromhex(msg.nonce or "")
         except (TypeError, ValueError):
             nonce = b""
         if len(nonce) != NONCE_BYTES:
             raise ProtocolError(f"cluster handshake: a nonce is {2 * NONCE_BYTES} hex digits")
         self.peer_nonce = nonce
 
-    def _check_key_id(self, msg: dict) -> None:
-        if msg.get("key_id") != self.key.key_id:
-            raise AuthFailed(f"cluster keys differ (the peer's id is {str(msg.get('key_id'))[:16]!r}, ours "
+    def _check_key_id(self, msg: steps.HandshakeHello | steps.HandshakeChallenge) -> None:
+        if msg.key_id != self.key.key_id:
+            raise AuthFailed(f"cluster keys differ (the peer's id is {str(msg.key_id)[:16]!r}, ours "
                              f"{self.key.key_id!r}): give every process the same --cluster-key-file")
 
-    def _on_hello(self, msg: dict) -> dict:
-        if msg.get("v") != VERSION or msg.get("purpose") != self.purpose:
+    @HANDSHAKE.op("hello", args=steps.HandshakeHello)
+    def _on_hello(self, msg: steps.HandshakeHello) -> dict:
+        if msg.v != VERSION or msg.purpose != self.purpose:
             raise ProtocolError(f"cluster handshake: expected version {VERSION} for {self.purpose!r}, got version "
-                                f"{msg.get('v')!r} for {str(msg.get('purpose'))[:40]!r}")
+                                f"{msg.v!r} for {str(msg.purpose)[:40]!r}")
         self._take_nonce(msg)
         self._check_key_id(msg)
         self._expect = "response"
         return {"auth": "challenge", "nonce": self.nonce.hex(), "proof": self._proof("responder"),
                 "key_id": self.key.key_id}
 
-    def _on_challenge(self, msg: dict) -> dict:
+    @HANDSHAKE.op("challenge", args=steps.HandshakeChallenge)
+    def _on_challenge(self, msg: steps.HandshakeChallenge) -> dict:
         self._take_nonce(msg)
         self._check_key_id(msg)
-        if not hmac.compare_digest(str(msg.get("proof")), self._proof("responder")):
+        if not hmac.compare_digest(str(msg.proof), self._proof("responder")):
             raise AuthFailed("the peer does not hold the cluster key (wrong proof)")
         self._expect = "ok"
         return {"auth": "response", "proof": self._proof("initiator")}
 
-    def _on_response(self, msg: dict) -> dict:
-        if not hmac.compare_digest(str(msg.get("proof")), self._proof("initiator")):
+    @HANDSHAKE.op("response", args=steps.HandshakeResponse)
+    def _on_response(self, msg: steps.HandshakeResponse) -> dict:
+        if not hmac.compare_digest(str(msg.proof), self._proof("initiator")):
             raise AuthFailed("the peer does not hold the cluster key (wrong proof)")
         self.done = True
         return {"auth": "ok"}
 
-    def _on_ok(self, _msg: dict) -> None:
+    @HANDSHAKE.op("ok", args=steps.HandshakeOk)
+    def _on_ok(self, _msg: steps.HandshakeOk) -> None:
         self.done = True
         return None
 

@@ -31,6 +31,7 @@ from collections import deque
 from collections.abc import Awaitable, Callable
 from typing import Any, TypeVar
 
+from rce.contract.base import OpArgs
 from rce.transport import framing
 
 from rce.transport import rpc
@@ -235,10 +236,21 @@ class MasterLink:
                 raise Unavailable(f"the {self.name} went away before it answered (it may have done it)") from None
             raise
 
+    async def ask(self, msg: OpArgs, timeout: float | None = rpc.CALL_TIMEOUT) -> Any:
+        """:meth:`call` with typed op ``msg`` (:mod:`rce.contract`)."""
+        return await self.request(msg.OP, msg.wire(), timeout)
+
+    def tell(self, msg: OpArgs, *, keep: bool = False) -> bool:
+        """:meth:`notify` with typed op ``msg`` (:mod:`rce.contract`)."""
+        return self._notify(msg.OP, msg.wire(), keep)
+
     def notify(self, op: str, *, keep: bool = False, **args: Any) -> bool:
         """Send notification ``op`` if the master is here. Otherwise, with ``keep``, it waits in
         the backlog for the next registration (the oldest is dropped when it is full, counted in
         ``dropped``); without, it is dropped. True when it went out now."""
+        return self._notify(op, args, keep)
+
+    def _notify(self, op: str, args: dict, keep: bool) -> bool:
         if self.peer is not None and not self.peer.closed.is_set() and not self._backlog:
             self.peer.notify(op, **args)
             return True

@@ -7,6 +7,9 @@ DATA frames on the same link go to ``on_data``. A TCP control link opens with th
 handshake (:mod:`rce.transport.cluster_auth`: :func:`connect` here, :class:`~rce.transport.cluster_auth.Gate` at the
 master) before the first of these frames.
 
+A typed op (:mod:`rce.contract`) is sent as its model (:meth:`RpcPeer.ask`, :meth:`RpcPeer.tell`) and
+parsed into it by the receiving :class:`~rce.transport.op_table.OpTable`: the wire is the same.
+
 Each incoming request runs in its own task (:class:`rce.transport.link.Responder`), so a slow handler
 never stalls the link; handlers that need ordering serialise themselves (the master keeps
 one queue per robot). Control frames are never dropped: a peer that leaves more than the
@@ -15,8 +18,10 @@ link's hard bound unread is cut off (the link closes and every call on it fails)
 from __future__ import annotations
 
 import asyncio
-from typing import Any, Awaitable, Callable
+from typing import Any, Callable
 
+from rce.contract.base import OpArgs
+from rce.transport.op_table import Handler
 from rce.transport import cluster_auth
 
 from rce.transport import framing
@@ -26,7 +31,6 @@ from rce.plumbing.log import get_logger
 from rce.plumbing.pending import PendingCalls
 from rce.plumbing.tasks import Tasks
 
-Handler = Callable[[dict], Awaitable[Any]]
 log = get_logger("rce.rpc")
 
 CALL_TIMEOUT = 30.0          # s a control request waits for its reply unless the caller says otherwise
@@ -119,6 +123,15 @@ class RpcPeer:
             raise Unavailable(f"control link to {self.name} is closed")
         return await self.calls.call(lambda rid: self._send({"id": rid, "op": op, "args": args}), timeout,
                                      what=repr(op))
+
+    async def ask(self, msg: OpArgs, timeout: float | None = CALL_TIMEOUT) -> Any:
+        """Send op ``msg`` (its ``OP``, its :meth:`~rce.contract.base.OpArgs.wire` as the arguments) and
+        await its result; raises as :meth:`call` does."""
+        return await self.request(msg.OP, msg.wire(), timeout)
+
+    def tell(self, msg: OpArgs) -> None:
+        """Send op ``msg`` as a notification (no reply). Ignored on a closed link."""
+        self._send_quietly({"op": msg.OP, "args": msg.wire()})
 
     def notify(self, op: str, **args) -> None:
         """Send a notification (no reply). Ignored on a closed link."""

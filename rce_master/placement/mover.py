@@ -49,6 +49,7 @@ import json
 import time
 from dataclasses import dataclass
 
+from rce.contract import environment as to_env
 from rce.interfaces.naming import resolve
 from rce.plumbing.errors import RCEError, RequestError, Timeout
 from rce.plumbing.log import get_logger
@@ -313,17 +314,16 @@ class Mover:
             now = time.monotonic()
             steps[name], mark[0] = round(now - mark[0], 3), now
         try:
-            hooks = (await self.control.host_call(c, "describe")).get("handoff") or []
+            hooks = (await self.control.host_ask(c, to_env.EnvDescribe(cid=c.cid))).get("handoff") or []
             handoff = bool(hooks) or bool(c.data.get("ordered_moves"))     # the new copy holds its inputs
             answer = await self.control.create_container(new, handoff=handoff)
             step("create")
             # each step's requests go at once (a round trip a step, not one a request: the new host may be
             # a robot's computer across a link of 100 ms), and a step begins once the last has its answers
             await asyncio.gather(
-                *(self.control.host_call(new, "set_param", name=name, value=value)
+                *(self.control.host_ask(new, to_env.EnvSetParam(cid=new.cid, name=name, value=value))
                   for name, value in self.state.params_of(c)),
-                *(self.control.host_call(new, "add_interface", iid=rec.iid, tag=rec.tag, itype=rec.itype,
-                                         cls=rec.cls, addr=rec.addr) for rec in ifaces))
+                *(self.control.install_interface(rec, into=new) for rec in ifaces))
             step("interfaces")
             await asyncio.gather(*(self.control.start_node(new, n.ntag, n.spec) for n in self.state.nodes_of(c)))
             step("nodes")
@@ -334,8 +334,8 @@ class Mover:
                 steps[name] = round(time.monotonic() - mark[0], 3)
             # while its nodes come up, the new copy learns its peers, so that its results can go out
             await asyncio.gather(timed("ready", self._ready(new, ifaces)), timed("wired", asyncio.gather(*(
-                self.control.host_call(new, "connect", **self.control.connect_args(
-                    me, peer, self.state.data_addr(peer))) for me, peer in conns))))
+                self.control.host_ask(new, self.control.connect_op(me, peer, self.state.data_addr(peer), cid=new.cid))
+                for me, peer in conns))))
             self._still(c, old_cid)
         except (RCEError, MoveFailed) as e:
             await self.control.destroy_on(tid, new.cid)
@@ -398,8 +398,7 @@ class Mover:
         t0 = time.monotonic()
 
         async def told(me: InterfaceRec, peer: InterfaceRec) -> dict:
-            r = await self.control.endpoint_call(peer, "connect", fence=cid,
-                                                 **self.control.connect_args(peer, me, addr))
+            r = await self.control.endpoint_ask(peer, self.control.connect_op(peer, me, addr, fence=cid))
             log.info("peer switched", user=c.user, ctag=c.ctag, peer=peer.tag, s=round(time.monotonic() - t0, 3))
             return r
         answers = await asyncio.gather(*(told(me, peer) for me, peer in conns), return_exceptions=True)
@@ -428,7 +427,7 @@ class Mover:
         services = {resolve(r.addr, "/") for r in ifaces if r.kind == "ServiceClient"}
         deadline = time.monotonic() + READY_TIMEOUT
         while True:
-            bus = await self.control.host_call(new, "describe")
+            bus = await self.control.host_ask(new, to_env.EnvDescribe(cid=new.cid))
             subscribed = {t["name"] for t in bus["topics"]
                           if any(not s.startswith("interface:") for s in t["subscribers"])}
             provided = {s["name"] for s in bus["services"] if not str(s["provider"]).startswith("interface:")}
@@ -448,12 +447,12 @@ class Mover:
         handled its last inputs (:meth:`_finish_old`). A state that cannot be had leaves the new
         nodes to start fresh."""
         try:
-            states = (await self.control.host_call(old, "state_out")).get("states") or {}
+            states = (await self.control.host_ask(old, to_env.EnvStateOut(cid=old.cid))).get("states") or {}
         except RCEError as e:
             log.warning("old copy's state not had; the new copy starts fresh", user=old.user, ctag=old.ctag,
                         reason=str(e))
             states = {}
-        took = (await self.control.host_call(new, "state_in", states=states)).get("nodes") or []
+        took = (await self.control.host_ask(new, to_env.EnvStateIn(cid=new.cid, states=states))).get("nodes") or []
         return len(took)
 
     async def _finish_old(self, old: ContainerRec, fence: int, expect: list[list[int]], drain_max: float) -> dict:
@@ -462,8 +461,8 @@ class Mover:
         outputs, at most ``drain_max`` s (module doc). Returns the ``drain`` op's answer
         (``complete`` False: it goes without them, logged)."""
         try:
-            done = await self.control.host_request(old, "drain", {"fence": fence, "expect": expect,
-                                                                  "timeout": drain_max}, drain_max + 5.0)
+            done = await self.control.host_ask(old, to_env.EnvDrain(cid=old.cid, fence=fence, expect=expect,
+                                                                 timeout=drain_max), drain_max + 5.0)
         except RCEError as e:
             done = {"complete": False, "error": str(e)}
         if not done.get("complete"):
