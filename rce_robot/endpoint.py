@@ -17,12 +17,14 @@ from urllib.parse import parse_qs, urlsplit
 from prometheus_client import CollectorRegistry, Gauge, generate_latest
 from prometheus_client.core import CounterMetricFamily, GaugeMetricFamily, HistogramMetricFamily
 
+from rce.contract import master as to_master
+from rce.contract import robot as ops
 from rce.transport.cluster_auth import ClusterKey, token_of
 from rce.transport.dataplane import DataPlane
 from rce.plumbing.errors import AuthError, NotFound, ProtocolError, RCEError, RequestError, Throttled
 from rce.interfaces.kind import InterfaceType
 from rce.protocol.zones import CLOUD, Zone
-from rce.interfaces.lanes import Lane, parse_lane
+from rce.interfaces.lanes import Lane
 from rce.protocol.lane_queue import DELAY_BOUNDS
 from rce.interfaces.pacer import Pacing, new_pacer
 from rce.transport.lane_socket import mptcp_socket
@@ -312,7 +314,7 @@ class RobotEndpoint:
                 if ns.battery is not None and (ns.battery_told is None
                                                or abs(ns.battery - ns.battery_told) >= link_report.BATTERY_STEP):
                     ns.battery_told = ns.battery
-                    self.master.notify("robot_battery", user=user, robot=robot, percent=round(ns.battery, 2))
+                    self.master.tell(to_master.RobotBattery(user=user, robot=robot, percent=round(ns.battery, 2)))
 
     async def _probe(self) -> None:
         """Probe the uplink's rate (:func:`~rce_robot.link_report.probe_rate`): a ``link_probe`` request
@@ -323,7 +325,7 @@ class RobotEndpoint:
         done: dict[str, float] = {}
 
         async def one(name: str, pad: str) -> None:
-            await self.master.call("link_probe", timeout=PROBE_TIMEOUT, pad=pad)
+            await self.master.ask(to_master.LinkProbe(pad=pad), PROBE_TIMEOUT)
             done[name] = loop.time()
         try:
             await asyncio.gather(one("first", "x" * link_report.PROBE_DRAIN_BYTES),
@@ -362,7 +364,7 @@ class RobotEndpoint:
 
 
     def _tell_link(self, user: str, robot: str, rtt_ms: float, rate: float) -> None:
-        self.master.notify("robot_link", user=user, robot=robot, rtt_ms=round(rtt_ms, 3), rate=rate)
+        self.master.tell(to_master.RobotLinkReport(user=user, robot=robot, rtt_ms=round(rtt_ms, 3), rate=rate))
 
     def _listen_socket(self, bind: str, port: int) -> socket.socket:
         """(``mptcp``) The websocket server's listening socket: MPTCP where the kernel offers it, else TCP."""
@@ -421,8 +423,8 @@ class RobotEndpoint:
             return connection.respond(HTTPStatus.FORBIDDEN, f"this endpoint runs on robot {self.zone.robot}'s "
                                       f"computer and serves that robot alone (zone {self.zone})\n")
         try:
-            await self.master.call("auth", user=user, robot=robot, password=normalise_password(q["password"]),
-                                   addr=peer_address(connection))
+            await self.master.ask(to_master.Auth(user=user, robot=robot, password=normalise_password(q["password"]),
+                                                 addr=peer_address(connection)))
         except (AuthError, Throttled) as e:
             if refuse_in_band(q):           # a 2013 client: one ER, then close (_session)
                 connection.rce_refused = e.message
@@ -437,7 +439,7 @@ class RobotEndpoint:
             await old.close("a new login replaced this session")
         try:
             login = secrets.token_hex(8)      # names this login's session in robot_disconnected
-            await self.master.call("robot_connected", user=user, robot=robot, session=login)
+            await self.master.ask(to_master.RobotConnected(user=user, robot=robot, session=login))
         except RCEError as e:
             return connection.respond(HTTPStatus.CONFLICT, e.message + "\n")
         connection.rce_login = login
@@ -521,7 +523,7 @@ class RobotEndpoint:
 
         async def report() -> None:
             try:
-                await self.master.call("robot_relay", user=ns.user, robot=ns.robot, relay=relay)
+                await self.master.ask(to_master.RobotRelayChanged(user=ns.user, robot=ns.robot, relay=relay))
             except RCEError as e:
                 log.warning("could not report the robot's relay", robot=ns.robot, relay=relay, reason=str(e))
         ns.tasks.spawn(report(), name="robot-relay")
@@ -545,7 +547,7 @@ class RobotEndpoint:
         for iid in [i for i, itf in self.by_iid.items() if itf.link is ns]:
             del self.by_iid[iid]
         try:
-            await self.master.call("robot_disconnected", user=user, robot=robot, session=ns.login)
+            await self.master.ask(to_master.RobotDisconnected(user=user, robot=robot, session=ns.login))
         except RCEError as e:
             log.warning("could not report disconnect", robot=robot, reason=str(e))
         log.info("robot disconnected", user=user, robot=robot)
@@ -562,23 +564,23 @@ class RobotEndpoint:
     async def _obey(self, answer: dict) -> None:
         """A register answer: remove the interfaces and close the robots the master does not have."""
         for iid in answer.get("drop_interfaces") or []:
-            await self._op_remove_interface({"iid": iid})
-        closing = [self._find(r) for r in answer.get("close_robots") or []]
+            await self._op_remove_interface(ops.EndpointRemoveInterface(iid=iid))
+        closing = [self._find(r.get("user"), r.get("robot")) for r in answer.get("close_robots") or []]
         await asyncio.gather(*(ns.close("the master does not know this session (it restarted without it); "
                                         "connect again") for ns in closing if ns is not None))
 
     # -- master ops --------------------------------------------------------------------------------
-    def _find(self, args: dict) -> RobotNamespace | RosbridgeSession | None:
-        """Robot ``args["robot"]`` of ``args["user"]``: an RCE robot's namespace or a rosbridge client's session."""
-        ns = self.namespaces.get((args["user"], args["robot"]))
+    def _find(self, user: str, robot: str) -> RobotNamespace | RosbridgeSession | None:
+        """Robot ``robot`` of ``user``: an RCE robot's namespace or a rosbridge client's session."""
+        ns = self.namespaces.get((user, robot))
         if ns is None and self.rosbridge is not None:
-            return self.rosbridge.sessions.get((args["user"], args["robot"]))
+            return self.rosbridge.sessions.get((user, robot))
         return ns
 
-    def _ns(self, args: dict) -> RobotNamespace | RosbridgeSession:
-        ns = self._find(args)
+    def _ns(self, user: str, robot: str) -> RobotNamespace | RosbridgeSession:
+        ns = self._find(user, robot)
         if ns is None:
-            raise NotFound(f"robot {args['robot']!r} is not connected to this endpoint")
+            raise NotFound(f"robot {robot!r} is not connected to this endpoint")
         return ns
 
     def _iface(self, iid: int) -> RobotInterface:
@@ -587,59 +589,56 @@ class RobotEndpoint:
             raise NotFound(f"no robot-side interface with id {iid}")
         return iface
 
-    @ROBOT_OPS.op("add_interface")
-    async def _op_add_interface(self, args: dict) -> dict:
-        opening = self.opening.get((args["user"], args["robot"]))
-        if opening is not None and (args["user"], args["robot"]) not in self.namespaces:
+    @ROBOT_OPS.op("add_interface", args=ops.EndpointAddInterface)
+    async def _op_add_interface(self, args: ops.EndpointAddInterface) -> dict:
+        key = (args.user, args.robot)
+        opening = self.opening.get(key)
+        if opening is not None and key not in self.namespaces:
             try:
                 async with asyncio.timeout(SESSION_OPEN_WAIT):
                     await opening.wait()
             except TimeoutError:        # its websocket never opened: the login was abandoned
-                self.opening.pop((args["user"], args["robot"]), None)
-        ns = self._ns(args)
-        itype = InterfaceType.parse(args["itype"], robot_side=True)
-        lane = None if args.get("lane") is None else parse_lane(args["lane"], f"interface {args['itag']!r}")
-        iface = RobotInterface(ns, self.plane, self.registry, args["iid"], args["itag"], itype, args["cls"], lane=lane)
+                self.opening.pop(key, None)
+        ns = self._ns(args.user, args.robot)
+        itype = InterfaceType.parse(args.itype, robot_side=True)
+        iface = RobotInterface(ns, self.plane, self.registry, args.iid, args.itag, itype, args.cls, lane=args.lane)
         await iface.start()
         ns.add_interface(iface)
         self.by_iid[iface.iid] = iface
         return {}
 
-    @ROBOT_OPS.op("remove_interface")
-    async def _op_remove_interface(self, args: dict) -> dict:
-        iface = self.by_iid.pop(args["iid"], None)
+    @ROBOT_OPS.op("remove_interface", args=ops.EndpointRemoveInterface)
+    async def _op_remove_interface(self, args: ops.EndpointRemoveInterface) -> dict:
+        iface = self.by_iid.pop(args.iid, None)
         if iface:
             iface.link.remove_interface(iface)
             await iface.stop()
             iface.on_peers_changed()
         return {}
 
-    @ROBOT_OPS.op("connect")
-    async def _op_connect(self, args: dict) -> dict:
-        fence = args.get("fence")
-        peer_cls = args.get("peer_cls")
-        return {"fenced": self._iface(args["iid"]).connect(args["peer_iid"], args["peer_addr"], token_of(args),
-                                                           fence if type(fence) is int else None,
-                                                           peer_cls if isinstance(peer_cls, str) else None)}
+    @ROBOT_OPS.op("connect", args=ops.EndpointConnect)
+    async def _op_connect(self, args: ops.EndpointConnect) -> dict:
+        return {"fenced": self._iface(args.iid).connect(args.peer_iid, args.peer_addr, token_of(args.token),
+                                                        args.fence, args.peer_cls)}
 
-    @ROBOT_OPS.op("disconnect")
-    async def _op_disconnect(self, args: dict) -> dict:
-        iface = self.by_iid.get(args["iid"])
+    @ROBOT_OPS.op("disconnect", args=ops.EndpointDisconnect)
+    async def _op_disconnect(self, args: ops.EndpointDisconnect) -> dict:
+        iface = self.by_iid.get(args.iid)
         if iface:
-            iface.disconnect(args["peer_iid"])
+            iface.disconnect(args.peer_iid)
         return {}
 
-    @ROBOT_OPS.op("notify")
-    async def _op_notify(self, args: dict) -> None:
-        ns = self._find(args)
+    @ROBOT_OPS.op("notify", args=ops.EndpointNotify)
+    async def _op_notify(self, args: ops.EndpointNotify) -> None:
+        ns = self._find(args.user, args.robot)
         if ns is None:
             return
-        if args["type"] == "ER":
-            ns.send_error(str(args["data"]))
+        if args.type == "ER":
+            ns.send_error(str(args.data))
         else:
-            ns.send_status(args["data"])
+            ns.send_status(args.data)
 
-    @ROBOT_OPS.op("close_robot")
-    async def _op_close_robot(self, args: dict) -> dict:
-        await self._ns(args).close(args.get("reason", "closed by the master"))
+    @ROBOT_OPS.op("close_robot", args=ops.EndpointCloseRobot)
+    async def _op_close_robot(self, args: ops.EndpointCloseRobot) -> dict:
+        await self._ns(args.user, args.robot).close(args.reason)
         return {}

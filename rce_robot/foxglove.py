@@ -35,6 +35,7 @@ from rce.foxglove.server import FoxgloveClient, FoxgloveServer
 from rce.interfaces.classes import is_ros2_name, plain_name
 from rce.messages import default_registry
 from rce.messages.registry import ROS2_PREFIX
+from rce.contract import master as to_master
 from rce.plumbing.errors import AuthError, MessageError, NotFound, RCEError, RequestError
 from rce.plumbing.log import get_logger
 from rce.plumbing.tasks import Tasks
@@ -82,14 +83,14 @@ class RobotFoxglove:
         if len(password) != 64 or any(c not in "0123456789abcdef" for c in password):
             raise AuthError("password must be the hex SHA-256 digest (64 hex digits) of the password")
         robot = query.get("robotID") or f"{ROBOT_PREFIX}{next(self._robots)}"
-        await self.rb.master.call("auth", user=user, robot=robot, password=password, addr="foxglove")
+        await self.rb.master.ask(to_master.Auth(user=user, robot=robot, password=password, addr="foxglove"))
         try:
-            await self.rb.master.call("container_bus", user=user, ctag=ctag)
+            await self.rb.master.ask(to_master.ContainerBus(user=user, ctag=ctag))
         except NotFound:
             raise
         except RCEError as e:
             raise NotFound(e.message) from None
-        await self.rb.master.call("robot_connected", user=user, robot=robot)
+        await self.rb.master.ask(to_master.RobotConnected(user=user, robot=robot))
         return user, robot, ctag
 
     async def _connect(self, client: FoxgloveClient) -> None:
@@ -128,7 +129,8 @@ class RobotFoxglove:
         session = client.session
         if session is None:
             try:
-                await self.rb.master.call("robot_disconnected", user=client.principal[0], robot=client.principal[1])
+                await self.rb.master.ask(to_master.RobotDisconnected(user=client.principal[0],
+                                                                     robot=client.principal[1]))
             except RCEError:
                 pass
             return

@@ -23,6 +23,7 @@ from typing import Any
 
 from websockets.exceptions import ConnectionClosed
 
+from rce.contract import master as to_master
 from rce.plumbing.errors import ProtocolError, RCEError
 from rce.plumbing.log import get_logger
 from rce.messages.forms import JsonForms
@@ -356,8 +357,8 @@ class RobotNamespace:
 
     async def _request(self, type_: str, data: dict) -> None:
         try:
-            await self.master.call("robot_request", timeout=REQUEST_TIMEOUT, user=self.user, robot=self.robot,
-                                   type=type_, data=data)
+            await self.master.ask(to_master.RobotRequest(user=self.user, robot=self.robot, type=type_, data=data),
+                                  REQUEST_TIMEOUT)
         except RCEError as e:
             self.session.request_done(e.message)
         else:

@@ -22,6 +22,7 @@ from urllib.parse import parse_qs, urlsplit
 
 from websockets.exceptions import ConnectionClosed
 
+from rce.contract import master as to_master
 from rce.plumbing.errors import AuthError, NotFound, RCEError, Throttled, Unavailable
 from rce.plumbing.log import get_logger
 from rce.transport.masterlink import MasterLink
@@ -120,19 +121,19 @@ class RosbridgeServer:
         if (away := master_away(connection, self.master)) is not None:
             return refuse(HTTPStatus.SERVICE_UNAVAILABLE, "the master is unavailable", away)
         user, robot, ctag = q["userID"], q["robotID"], q["container"]
-        steps = ((HTTPStatus.UNAUTHORIZED, "auth", {"user": user, "robot": robot, "password": password,
-                                                    "addr": peer_address(connection)}),
-                 (HTTPStatus.NOT_FOUND, "container_bus", {"user": user, "ctag": ctag}),
-                 (HTTPStatus.CONFLICT, "robot_connected", {"user": user, "robot": robot}))
-        for status, op, args in steps:
+        steps = ((HTTPStatus.UNAUTHORIZED, to_master.Auth(user=user, robot=robot, password=password,
+                                                          addr=peer_address(connection))),
+                 (HTTPStatus.NOT_FOUND, to_master.ContainerBus(user=user, ctag=ctag)),
+                 (HTTPStatus.CONFLICT, to_master.RobotConnected(user=user, robot=robot)))
+        for status, msg in steps:
             try:
-                await self.master.call(op, **args)
+                await self.master.ask(msg)
             except (AuthError, NotFound) as e:
                 return refuse(status, e.message)
             except Throttled as e:
                 return refuse(HTTPStatus.TOO_MANY_REQUESTS, e.message, throttled(connection, e))
             except RCEError as e:
-                return refuse(status if op == "robot_connected" else HTTPStatus.SERVICE_UNAVAILABLE, e.message)
+                return refuse(status if msg.OP == "robot_connected" else HTTPStatus.SERVICE_UNAVAILABLE, e.message)
         connection.rce_rosbridge, connection.rce_max_lag = (user, robot, ctag), max_lag
         return None
 
@@ -167,7 +168,7 @@ class RosbridgeServer:
         try:
             if not self.master.available:         # stopping, or the master is away: its registration learns it
                 raise Unavailable("the master is away")
-            await self.master.call("robot_disconnected", user=session.user, robot=session.robot)
+            await self.master.ask(to_master.RobotDisconnected(user=session.user, robot=session.robot))
         except RCEError as e:
             log.warning("could not report a rosbridge disconnect", robot=session.robot, reason=e.message)
         log.info("rosbridge client disconnected", user=session.user, robot=session.robot, **session.stats())

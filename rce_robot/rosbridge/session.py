@@ -38,6 +38,7 @@ from dataclasses import dataclass, field
 from collections.abc import Awaitable, Callable
 from typing import Any
 
+from rce.contract import master as to_master
 from rce.plumbing.errors import ProtocolError, RCEError, Timeout, Unavailable
 from rce.plumbing.log import get_logger
 from rce.transport.masterlink import MasterLink
@@ -447,12 +448,12 @@ class RosbridgeSession:
     # -- the graph through the master --------------------------------------------------------------------
     async def describe(self) -> dict:
         """The container's bus (:meth:`rce.bus.core.Bus.describe`), through the master."""
-        return await self.master.call("container_bus", timeout=DESCRIBE_TIMEOUT, user=self.user, ctag=self.ctag)
+        return await self.master.ask(to_master.ContainerBus(user=self.user, ctag=self.ctag), DESCRIBE_TIMEOUT)
 
     async def get_param(self, name: str) -> Any:
         """Parameter ``name`` (global) of the container's bus, through the master; NotFound if not set."""
-        answer = await self.master.call("container_param", timeout=DESCRIBE_TIMEOUT, user=self.user, ctag=self.ctag,
-                                        name=name)
+        answer = await self.master.ask(to_master.ContainerParam(user=self.user, ctag=self.ctag, name=name),
+                                       DESCRIBE_TIMEOUT)
         return answer.get("value")
 
     async def set_param(self, name: str, value: Any) -> None:
@@ -486,8 +487,8 @@ class RosbridgeSession:
         """Send a CN/CX built from the client's ops to the master, through the same schema check a
         robot's own requests meet (:func:`rce.protocol.schema.validate`: names, types, tags)."""
         validate({"type": type_, "data": data})
-        await self.master.call("robot_request", timeout=REQUEST_TIMEOUT, user=self.user, robot=self.robot,
-                               type=type_, data=data)
+        await self.master.ask(to_master.RobotRequest(user=self.user, robot=self.robot, type=type_, data=data),
+                              REQUEST_TIMEOUT)
 
     async def _bridge(self, role: str, name: str, cls: str, lane: Lane | None = None, *,
                       on_message: OnMessage | None = None, on_call: OnCall | None = None) -> Bridge:
