@@ -34,11 +34,15 @@ from aiohttp import web
 from prometheus_client import CollectorRegistry, Counter, Gauge, generate_latest, CONTENT_TYPE_LATEST
 from prometheus_client.core import CounterMetricFamily, GaugeMetricFamily
 
+from rce.contract import environment as to_env
+from rce.contract import host as to_host
+from rce.contract import master as ops
 from rce.tools.admin_client import LEADER_HEADER
 from rce.transport.cluster_auth import ClusterKey, Gate
 from rce.plumbing.errors import AuthError, NotFound, NotLeader, RCEError, RequestError, Throttled, Timeout, Unavailable
 from rce.plumbing.log import get_logger
 from rce.transport import lane_socket
+from rce.transport.op_table import OpTable
 from rce.transport.rpc import RpcPeer
 from rce.interfaces.lanes import Lane
 from rce.plumbing.tasks import Tasks
@@ -47,7 +51,7 @@ from rce_master.http.admin import AdminApi
 from rce_master.control import Control
 from rce_master.failover import Failover
 from rce_master.auth.login_guard import LoginGuard, PasswordCheck
-from rce_master.state.model import Robot, TaskSet
+from rce_master.state.model import ContainerRec, Robot, TaskSet
 from rce_master.leadership.office import RETRY_AFTER_NO_LEADER, Alone, Office, require_leader
 from rce_master.placement.mover import Mover
 from rce_master.placement.advice import Placement
@@ -64,6 +68,13 @@ MAX_HTTP_BODY = 16 * 1024 * 1024                   # bytes, an admin API request
 HTTP_STATUS = ((AuthError, 401), (NotFound, 404), (Timeout, 504), (Throttled, 429), (Unavailable, 503), (RCEError, 400))
 RETRY_AFTER = 5                                    # s, Retry-After of a 503 for an absent task set (login, admin
 #                                                    API): about a reconnecting task set's backoff
+
+#: What a task set sends the master first, and alone until it is registered (served with its link).
+MASTER_OPS = OpTable("task set -> master")
+#: What a registered robot task set sends the master (served with its tid).
+ROBOT_SET_OPS = OpTable("robot task set -> master")
+#: What a registered container task set sends the master (served with its tid).
+HOST_SET_OPS = OpTable("container task set -> master")
 
 
 class _RelayCollector:
@@ -209,8 +220,7 @@ class Master:
                          on_refused=lambda reason: self.metrics.control_refused.labels(reason).inc())
         self.users = UsersFile(users_file) if users_file else None
         self.mover = Mover(self.state, self.control)
-        self.placement = Placement(self.state, lambda c: self.control.host_request(c, "stats", {}, PLACEMENT_STATS_S,
-                                                                                   wait=False), mover=self.mover)
+        self.placement = Placement(self.state, self._container_stats, mover=self.mover)
         self.passwords = PasswordCheck(login_guard)     # the auth op's throttling and scrypt pool (login_guard.py)
         self.admin = AdminApi(self.state, self.control, admin_token, self.users, self.office, self.placement,
                               self.passwords)
@@ -313,33 +323,29 @@ class Master:
         if not await self.gate.admit(reader, writer):       # refused, logged and counted
             return
         peer = RpcPeer(reader, writer, name="taskset", on_close=self._peer_closed)
-        peer.handlers["register"] = lambda args, peer=peer: self._register(peer, args)
+        peer.handlers.update(MASTER_OPS.handlers(self, context=peer))
         peer.start()
 
-    async def _register(self, peer: RpcPeer, args: dict) -> dict:
+    async def _container_stats(self, c: ContainerRec) -> dict:
+        """``stats`` of container ``c`` from its host, for the placer (an absent host: refused at once)."""
+        return await self.control.host_ask(c, to_host.HostStats(cid=c.cid), PLACEMENT_STATS_S, wait=False)
+
+    @MASTER_OPS.op("register", args=ops.Register)
+    async def _op_register(self, peer: RpcPeer, args: ops.Register) -> dict:
+        """A task set registers (or re-registers, reporting what it holds: :mod:`rce_master.state.reconcile`);
+        its link then serves the ops of its kind."""
         require_leader(self.office, "register")
         if "tid" in peer.info:
             raise RequestError("this task set is already registered")
-        out = reconcile.register(self.state, args.get("kind", ""), args.get("name") or peer.peername,
-                                 args.get("host") or "127.0.0.1", args)
+        out = reconcile.register(self.state, args.kind, args.name or peer.peername, args.host or "127.0.0.1",
+                                 args.model_dump(exclude_unset=True))
         ts = out.taskset
         self.restored_absent.discard(ts.tid)
         peer.info["tid"] = ts.tid
         peer.name = f"{ts.kind}:{ts.name}"
         self.control.attach(ts.tid, peer)
         peer.keepalive()      # silent for rce.transport.rpc.KEEPALIVE_TIMEOUT (4 s): lost, its containers marked lost
-        if ts.kind == "robot":
-            peer.handlers.update({
-                "auth": self._auth, "robot_connected": lambda args, tid=ts.tid: self._robot_connected(tid, args),
-                "robot_disconnected": lambda args, tid=ts.tid: self._robot_disconnected(tid, args),
-                "robot_relay": lambda args, tid=ts.tid: self._robot_relay(tid, args),
-                "robot_link": self._robot_link, "link_probe": self._link_probe,
-                "robot_battery": self._robot_battery,
-                "robot_request": self._robot_request, "container_bus": self._container_bus,
-                "container_param": self._container_param})
-        else:
-            peer.handlers.update({"node_status": self._node_status, "interface_status": self._interface_status,
-                                  "container_lost": lambda args, tid=ts.tid: self._container_lost(tid, args)})
+        peer.handlers.update((ROBOT_SET_OPS if ts.kind == "robot" else HOST_SET_OPS).handlers(self, context=ts.tid))
         log.info("task set registered", tid=ts.tid, kind=ts.kind, name=ts.name, host=ts.host, resumed=out.resumed,
                  lost=len(out.lost), dropped=len(out.drop_containers) + len(out.drop_interfaces),
                  robots_gone=len(out.gone))
@@ -374,18 +380,19 @@ class Master:
         self.tasks.spawn(self.failover.taskset_lost(lost, robots), name=f"taskset-{tid}-lost")
 
     # -- robot endpoint ops --------------------------------------------------------------------
-    async def _auth(self, args: dict) -> dict:
+    @ROBOT_SET_OPS.op("auth", args=ops.Auth)
+    async def _op_auth(self, _tid: int, args: ops.Auth) -> dict:
         """``auth {user, password, addr}`` (``addr``: the address the robot or rosbridge client logs in
         from): raises AuthError, or Throttled (429) while the user or address backs off (login_guard.py)."""
-        await self.passwords.authenticate(self.state.users, str(args.get("user", "")), args.get("password", ""),
-                                          str(args.get("addr") or ""))
+        await self.passwords.authenticate(self.state.users, args.user, args.password, args.addr)
         return {}
 
-    async def _robot_connected(self, tid: int, args: dict) -> dict:
+    @ROBOT_SET_OPS.op("robot_connected", args=ops.RobotConnected)
+    async def _op_robot_connected(self, tid: int, args: ops.RobotConnected) -> dict:
         """``robot_connected {user, robot, session?}``: a login of the robot was accepted on endpoint
         ``tid``; ``session`` names it (an endpoint's own id of the login), so that only the
-        disconnect of that session ends the robot's namespace (:meth:`_robot_disconnected`)."""
-        user, robot = args["user"], args["robot"]
+        disconnect of that session ends the robot's namespace (:meth:`_op_robot_disconnected`)."""
+        user, robot = args.user, args.robot
         old = self.state.robot(user, robot)
         host = self.state.tasksets.get(old.tid) if old is not None else None
         if old is not None and old.tid in self.restored_absent and not self._namespace_up(old):
@@ -412,19 +419,20 @@ class Master:
         log.info("robot connected", user=user, robot=robot)
         return {}
 
-    def _logged_in(self, tid: int, args: dict) -> None:
+    def _logged_in(self, tid: int, args: ops.RobotConnected) -> None:
         """Remember the session a robot's accepted login opened on endpoint ``tid`` (none named: an
         older endpoint, whose disconnects end the namespace whichever session they end)."""
-        key, session = (args["user"], args["robot"]), args.get("session")
-        if isinstance(session, str):
-            self.robot_logins[key] = (tid, session)
+        key = (args.user, args.robot)
+        if args.session is not None:
+            self.robot_logins[key] = (tid, args.session)
         else:
             self.robot_logins.pop(key, None)
 
-    async def _robot_relay(self, tid: int, args: dict) -> dict:
+    @ROBOT_SET_OPS.op("robot_relay", args=ops.RobotRelayChanged)
+    async def _op_robot_relay(self, tid: int, args: ops.RobotRelayChanged) -> dict:
         """``robot_relay {user, robot, relay}``: the robot's link to the cloud goes through robot ``relay``
         ("" for its own path) from now on (docs/relays.md)."""
-        r = self.state.robot_relay(args["user"], args["robot"], tid, str(args.get("relay") or ""))
+        r = self.state.robot_relay(args.user, args.robot, tid, args.relay)
         if r is not None:
             await self.state.store.flush()
             log.info("robot's path to the cloud", user=r.user, robot=r.robot, relay=r.relay or "(direct)")
@@ -449,47 +457,51 @@ class Master:
             await self.control.robot_moved(recs)
             await self.state.store.flush()
 
-    async def _robot_disconnected(self, tid: int, args: dict) -> dict:
+    @ROBOT_SET_OPS.op("robot_disconnected", args=ops.RobotDisconnected)
+    async def _op_robot_disconnected(self, tid: int, args: ops.RobotDisconnected) -> dict:
         """``robot_disconnected {user, robot, session?}``: the robot's session on endpoint ``tid``
         ended; its namespace goes unless it is no longer on that endpoint, or the disconnect names
         another session than the robot's last login (an old session's late end, after a new login
         of the same robot: the new one keeps its interfaces)."""
-        r = self.state.robot(args["user"], args["robot"])
+        key = (args.user, args.robot)
+        r = self.state.robot(*key)
         if r is None or r.tid != tid:          # not (or no longer) on this endpoint: nothing to forget
             return {}
-        key = (args["user"], args["robot"])
-        session, last = args.get("session"), self.robot_logins.get(key)
-        if isinstance(session, str) and last is not None and last != (tid, session):
+        session, last = args.session, self.robot_logins.get(key)
+        if session is not None and last is not None and last != (tid, session):
             log.info("an old session's end ignored: the robot logged in again since", user=key[0], robot=key[1],
                      session=session)
             return {}
         self.robot_logins.pop(key, None)
-        async with self.robot_locks[(args["user"], args["robot"])]:
-            await self.control.robot_gone(args["user"], args["robot"])
-        self.robot_locks.pop((args["user"], args["robot"]), None)
+        async with self.robot_locks[key]:
+            await self.control.robot_gone(*key)
+        self.robot_locks.pop(key, None)
         await self.state.store.flush()
-        log.info("robot disconnected", user=args["user"], robot=args["robot"])
+        log.info("robot disconnected", user=args.user, robot=args.robot)
         return {}
 
-    async def _container_bus(self, args: dict) -> dict:
+    @ROBOT_SET_OPS.op("container_bus", args=ops.ContainerBus)
+    async def _op_container_bus(self, _tid: int, args: ops.ContainerBus) -> dict:
         """``container_bus {user, ctag}`` (a rosbridge session, :mod:`rce_robot.rosbridge.endpoint`): the bus of
         the user's container ``ctag`` as its host describes it. Raises NotFound unless the user has it."""
-        c = self.state.container(args["user"], args["ctag"])
-        return await self.control.host_request(c, "describe", {}, wait=False)
+        c = self.state.container(args.user, args.ctag)
+        return await self.control.host_ask(c, to_env.EnvDescribe(cid=c.cid), wait=False)
 
-    async def _container_param(self, args: dict) -> dict:
+    @ROBOT_SET_OPS.op("container_param", args=ops.ContainerParam)
+    async def _op_container_param(self, _tid: int, args: ops.ContainerParam) -> dict:
         """``container_param {user, ctag, name}`` (a rosbridge client's ``/rosapi/get_param``):
         ``{value}`` of parameter ``name`` on the bus of the user's container ``ctag``. Raises
         NotFound unless the user has the container and the parameter is set."""
-        c = self.state.container(args["user"], args["ctag"])
-        return await self.control.host_request(c, "get_param", {"name": str(args.get("name") or "")}, wait=False)
+        c = self.state.container(args.user, args.ctag)
+        return await self.control.host_ask(c, to_env.EnvGetParam(cid=c.cid, name=args.name), wait=False)
 
-    async def _robot_request(self, args: dict) -> dict:
+    @ROBOT_SET_OPS.op("robot_request", args=ops.RobotRequest)
+    async def _op_robot_request(self, _tid: int, args: ops.RobotRequest) -> dict:
         """``robot_request {user, robot, type, data}``: one robot's requests run one at a time, in order."""
-        user, robot, t = args["user"], args["robot"], args["type"]
+        user, robot, t = args.user, args.robot, args.type
         async with self.robot_locks[(user, robot)]:
             try:
-                await handle(Request(user, robot, self.state, self.control), t, args.get("data") or {})
+                await handle(Request(user, robot, self.state, self.control), t, args.data or {})
                 await self.state.store.flush()
             except RCEError:
                 self.metrics.requests.labels(t, "error").inc()
@@ -497,49 +509,53 @@ class Master:
         self.metrics.requests.labels(t, "ok").inc()
         return {}
 
-    async def _container_lost(self, tid: int, args: dict) -> None:
+    @HOST_SET_OPS.op("container_lost", args=ops.ContainerLost)
+    async def _op_container_lost(self, tid: int, args: ops.ContainerLost) -> None:
         """``container_lost {cid, reason}`` from host ``tid``: the container's environment died."""
-        if not isinstance(args.get("cid"), int):
-            raise RequestError(f"container_lost needs an integer 'cid', got {args.get('cid')!r}")
-        reason = str(args.get("reason") or "its environment exited")
-        if self.mover.spare_lost(tid, args["cid"]):
+        reason = args.reason or "its environment exited"
+        if self.mover.spare_lost(tid, args.cid):
             return
-        log.warning("container lost with its environment", tid=tid, cid=args["cid"], reason=reason)
-        await self.failover.environment_lost(tid, args["cid"], reason)
+        log.warning("container lost with its environment", tid=tid, cid=args.cid, reason=reason)
+        await self.failover.environment_lost(tid, args.cid, reason)
         await self.state.store.flush()
 
-    async def _robot_battery(self, args: dict) -> None:
+    @ROBOT_SET_OPS.op("robot_battery", args=ops.RobotBattery)
+    async def _op_robot_battery(self, _tid: int, args: ops.RobotBattery) -> None:
         """A robot endpoint's reading of a robot's charge (its ``sensor_msgs/BatteryState``), for the placer."""
         try:
-            self.placement.robot_battery(str(args["user"]), str(args["robot"]), args["percent"])
+            self.placement.robot_battery(args.user, args.robot, args.percent)
         except RequestError as e:
             log.warning("robot battery not taken", reason=str(e))
 
-    async def _robot_link(self, args: dict) -> None:
+    @ROBOT_SET_OPS.op("robot_link", args=ops.RobotLinkReport)
+    async def _op_robot_link(self, _tid: int, args: ops.RobotLinkReport) -> None:
         """A robot endpoint's measure of a robot's link (:mod:`rce_robot.link_report`), for the placer."""
-        self.placement.robot_link(str(args["user"]), str(args["robot"]), float(args["rtt_ms"]), float(args["rate"]))
+        self.placement.robot_link(args.user, args.robot, args.rtt_ms, args.rate)
 
-    async def _link_probe(self, args: dict) -> dict:
+    @ROBOT_SET_OPS.op("link_probe", args=ops.LinkProbe)
+    async def _op_link_probe(self, _tid: int, args: ops.LinkProbe) -> dict:
         """A robot endpoint's probe of its uplink (:func:`rce_robot.link_report.probe_rate`): answered
         at once, with the bytes of its ``pad``; nothing else is done with it."""
-        pad = args.get("pad")
-        return {"bytes": len(pad) if isinstance(pad, str) else 0}
+        return {"bytes": len(args.pad)}
 
-    async def _node_status(self, args: dict) -> None:
-        detail = {k: args[k] for k in ("code", "signal", "reason") if args.get(k) is not None}
-        n = self.state.node_status(args["cid"], args["ntag"], args["status"], detail)
-        c = self.state.container_by_cid(args["cid"])
+    @HOST_SET_OPS.op("node_status", args=ops.NodeStatusReport)
+    async def _op_node_status(self, _tid: int, args: ops.NodeStatusReport) -> None:
+        """A node's status, as its environment reported it: recorded, and its container's owner told."""
+        detail = {k: v for k in ("code", "signal", "reason") if (v := getattr(args, k)) is not None}
+        n = self.state.node_status(args.cid, args.ntag, args.status, detail)
+        c = self.state.container_by_cid(args.cid)
         if n and c:
-            self.control.tell_node_status(c, n, args["status"], detail)
+            self.control.tell_node_status(c, n, args.status, detail)
 
-    async def _interface_status(self, args: dict) -> None:
+    @HOST_SET_OPS.op("interface_status", args=ops.InterfaceStatus)
+    async def _op_interface_status(self, _tid: int, args: ops.InterfaceStatus) -> None:
         """A host's word on how a container interface is bridged into its container's ROS 2 graph
         (:mod:`rce_container.ros2_graph`): the owner gets ``ST {topic: interface, cTag, iTag, status,
         reason}``, and an ER with the reason unless the status is ``ok``. Nothing is recorded."""
-        c = self.state.container_by_cid(args.get("cid"))
+        c = self.state.container_by_cid(args.cid)
         rec = next((r for r in self.state.interfaces_of(c.user, c.ctag, robot_side=False)
-                    if r.iid == args.get("iid")), None) if c else None
-        status, reason = str(args.get("status")), str(args.get("reason") or "")
+                    if r.iid == args.iid), None) if c else None
+        status, reason = args.status, args.reason
         if rec is None:
             return
         self.control.notify_robot(c.user, c.owner, "ST", {"topic": "interface", "cTag": c.ctag, "iTag": rec.itag,

@@ -5,7 +5,7 @@ from __future__ import annotations
 import pytest
 
 from rce.transport.cluster_auth import ClusterKey
-from rce_master.server import Master
+from rce_master.server import ROBOT_SET_OPS, Master
 
 ENDPOINT = 5      # the robot endpoint's task set id
 
@@ -13,11 +13,12 @@ ENDPOINT = 5      # the robot endpoint's task set id
 @pytest.mark.asyncio
 async def test_an_old_sessions_late_disconnect_leaves_the_new_login():
     m = Master(admin_token="t", cluster_key=ClusterKey.generate())
-    await m._robot_connected(ENDPOINT, {"user": "u", "robot": "r", "session": "a"})
-    await m._robot_disconnected(ENDPOINT, {"user": "u", "robot": "r", "session": "a"})
+    ops = ROBOT_SET_OPS.handlers(m, context=ENDPOINT)       # as the endpoint's link serves them
+    await ops["robot_connected"]({"user": "u", "robot": "r", "session": "a"})
+    await ops["robot_disconnected"]({"user": "u", "robot": "r", "session": "a"})
     assert m.state.robot("u", "r") is None, "a session's own end ends it"
-    await m._robot_connected(ENDPOINT, {"user": "u", "robot": "r", "session": "b"})
-    await m._robot_disconnected(ENDPOINT, {"user": "u", "robot": "r", "session": "a"})     # a's end, late
+    await ops["robot_connected"]({"user": "u", "robot": "r", "session": "b"})
+    await ops["robot_disconnected"]({"user": "u", "robot": "r", "session": "a"})     # a's end, late
     assert m.state.robot("u", "r") is not None, "the new login keeps its namespace"
-    await m._robot_disconnected(ENDPOINT, {"user": "u", "robot": "r"})     # an older endpoint names none
+    await ops["robot_disconnected"]({"user": "u", "robot": "r"})     # an older endpoint names none
     assert m.state.robot("u", "r") is None
