@@ -48,6 +48,7 @@ import socket
 import time
 from typing import TYPE_CHECKING, Any
 
+from rce.contract import node as to_node
 from rce.transport import cluster_auth
 
 from rce.transport import framing
@@ -139,7 +140,7 @@ class DirectRoutes:
         the nodes, behind those messages on their bus links, so that the claimers among them stop
         holding what came to them directly."""
         for session in self.states:
-            session.peer.notify("direct_switch", iid=iid, id=sid)
+            session.peer.tell(to_node.DirectSwitch(iid=iid, id=sid))
 
     def stats(self) -> dict:
         """``{enabled, nodes, links, routes, claims, links_opened, dial_failures, route_failures}``."""
@@ -234,8 +235,8 @@ class DirectRoutes:
         if not all(links.values()):
             targets, key = [], ((), True, frozenset())      # a far plane is unreachable: all by the bus
         if not targets:
-            await session.peer.call("direct_publish", timeout=CALL_TIMEOUT, handle=handle, version=0, targets=[],
-                              local=True, grants=[])
+            await session.peer.ask(to_node.DirectPublish(handle=handle, version=0, targets=[], local=True, grants=[]),
+                                   CALL_TIMEOUT)
             session.routes.pop(handle, None)
             st.pubs[handle] = key
             return
@@ -247,9 +248,9 @@ class DirectRoutes:
         plane = self.env.plane
         behind = {addr for addr, dst, src in targets if plane.carried(addr, dst)}
         try:
-            await session.peer.call("direct_publish", timeout=CALL_TIMEOUT, handle=handle, version=version,
-                                    local=local, targets=[[links[addr].lid, dst, src] for addr, dst, src in targets],
-                                    grants=grants, hold=bool(behind))
+            await session.peer.ask(to_node.DirectPublish(
+                handle=handle, version=version, local=local, grants=grants, hold=bool(behind),
+                targets=[(links[addr].lid, dst, src) for addr, dst, src in targets]), CALL_TIMEOUT)
         finally:        # also when the call timed out: the node may have taken the route all the same
             if behind:  # what went by the bus first reaches the far ends first (rce.node.links)
                 self.tasks.spawn(self._go(session, handle, version, behind), name=f"direct go {handle}")
@@ -263,14 +264,14 @@ class DirectRoutes:
         unflushed = await self.env.plane.flush(addrs, CALL_TIMEOUT)
         if unflushed:
             log.warning("direct route released unflushed", node=session.node, handle=handle, peers=unflushed)
-        session.peer.notify("direct_go", handle=handle, version=version)
+        session.peer.tell(to_node.DirectGo(handle=handle, version=version))
 
     async def _claims(self, session: NodeSession, st: _NodeState, wanted: dict) -> None:
         for key in [k for k in st.claims if k not in wanted]:
             nl = st.links.get(key[0])
             del st.claims[key]
             if nl is not None:
-                await session.peer.call("direct_unsubscribe", timeout=CALL_TIMEOUT, link=nl.lid, iid=key[1])
+                await session.peer.ask(to_node.DirectUnsubscribe(link=nl.lid, iid=key[1]), CALL_TIMEOUT)
         for (addr, iid), claim in wanted.items():
             if st.claims.get((addr, iid)) == claim:
                 continue
@@ -279,17 +280,18 @@ class DirectRoutes:
                 continue
             peers, handles, gen, size = claim
             grants = self._grants([(nl, iid, peer) for peer in peers])
-            await session.peer.call("direct_subscribe", timeout=CALL_TIMEOUT, link=nl.lid, iid=iid, peers=list(peers),
-                              handles=list(handles), gen=gen, size=size, grants=grants, at=self.env.plane.addr)
+            await session.peer.ask(to_node.DirectSubscribe(
+                link=nl.lid, iid=iid, peers=list(peers), handles=list(handles), gen=gen, size=size, grants=grants,
+                at=self.env.plane.addr), CALL_TIMEOUT)
             st.claims[(addr, iid)] = claim
 
-    def _grants(self, pairs: list[tuple[_NodeLink, int, int]]) -> list:
+    def _grants(self, pairs: list[tuple[_NodeLink, int, int]]) -> list[to_node.Grant]:
         """``[[link id, grant frame]]`` for each ``(link, src, dst)`` not yet granted on its link."""
         out = []
         for nl, src, dst in pairs:
             token = self.env.plane.credentials.get((src, dst))
             if token is not None and (src, dst) not in nl.granted:
-                out.append([nl.lid, cluster_auth.grant_frame(token, nl.nonce, src, dst)])
+                out.append((nl.lid, cluster_auth.grant_frame(token, nl.nonce, src, dst)))
                 nl.granted.add((src, dst))
         return out
 
@@ -320,7 +322,7 @@ class DirectRoutes:
             raise ProtocolError(f"cannot pass a direct link to node {session.node!r}: {e}") from None
         finally:
             sock.close()                  # the node holds its own copy now
-        await session.peer.call("direct_link", timeout=CALL_TIMEOUT, link=lid, name=addr)
+        await session.peer.ask(to_node.DirectLink(link=lid, name=addr), CALL_TIMEOUT)
         nl = st.links[addr] = _NodeLink(lid, addr, nonce)
         self.links_opened += 1
         return nl
@@ -333,7 +335,7 @@ class DirectRoutes:
             if not st.links:
                 continue
             try:
-                counts = await s.peer.call("direct_counts", timeout=COUNTS_TIMEOUT)
+                counts = await s.peer.ask(to_node.DirectCounts(), COUNTS_TIMEOUT)
             except RCEError:
                 continue
             for key, value in (counts or {}).items():

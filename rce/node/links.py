@@ -51,9 +51,12 @@ import sys
 from collections import deque
 from typing import Any
 
+from rce.contract import bus as to_bus
+from rce.contract import node as ops
 from rce.transport import framing
 from rce.plumbing.errors import ProtocolError, Timeout, Unavailable
 from rce.transport.link import STREAM_LIMIT, FramedLink, LinkFull
+from rce.transport.op_table import OpTable
 
 LINK_ID = struct.Struct("!Q")     # the id that goes with each socket on the fd channel
 FD_WAIT = 10.0                    # s ``direct_link`` waits for its socket on the fd channel
@@ -63,6 +66,9 @@ MAX_HELD = 1000                   # messages a held route keeps until ``direct_g
 ROUTE_HOLD = 10.0                 # s a held route waits for ``direct_go`` at most (then it sends, and says so)
 SWITCH_HOLD = 2.0                 # s direct messages wait at most for the bus path's switch marker
 MAX_PASSED = 64                   # switch markers kept that came by the bus before their direct one
+
+#: The ops of a node's direct links, which its environment sends on the node's bus link.
+DIRECT_OPS = OpTable("environment -> node (direct links)")
 
 
 def _lost(tag: tuple[list[int], int]) -> None:
@@ -121,13 +127,6 @@ class DirectLinks:
         self.switch_timeouts = 0         # holds ended by SWITCH_HOLD, not by the bus path's marker
         self.route_timeouts = 0          # held routes released by ROUTE_HOLD, not by direct_go
 
-    def handlers(self) -> dict:
-        """The bus-link request handlers (op -> coroutine function)."""
-        return {"direct_link": self.op_direct_link, "direct_publish": self.op_direct_publish,
-                "direct_subscribe": self.op_direct_subscribe, "direct_unsubscribe": self.op_direct_unsubscribe,
-                "direct_counts": self.op_direct_counts, "direct_switch": self.op_direct_switch,
-                "direct_go": self.op_direct_go}
-
     # -- the fd channel --------------------------------------------------------------------------
     async def open_channel(self, path: str, key: str) -> None:
         """Open the fd channel to the bus socket ``path`` and name it with ``key`` (the hello's
@@ -181,9 +180,10 @@ class DirectLinks:
         self._arrived.clear()
 
     # -- ops ------------------------------------------------------------------------------------
-    async def op_direct_link(self, args: dict) -> dict:
+    @DIRECT_OPS.op("direct_link", args=ops.DirectLink)
+    async def op_direct_link(self, args: ops.DirectLink) -> dict:
         """``{link, name?}``: take the socket of ``link`` from the fd channel."""
-        lid = int(args["link"])
+        lid = args.link
         fd = self._arrived.pop(lid, None)
         if fd is None:
             fut = self._waiting[lid] = asyncio.get_running_loop().create_future()
@@ -203,35 +203,35 @@ class DirectLinks:
         old = self.links.pop(lid, None)
         if old is not None:
             old.close("replaced")
-        self.links[lid] = FramedLink(reader, writer, name=f"direct link {lid} to {args.get('name', '?')}",
+        self.links[lid] = FramedLink(reader, writer, name=f"direct link {lid} to {args.name}",
                                      on_frame=lambda frame: self._on_frame(lid, frame),
                                      on_close=lambda _l: self._link_closed(lid),
                                      max_frame=framing.DEFAULT_MAX_FRAME, max_buffer=MAX_BUFFER,
                                      on_drop=_lost).start()
         return {}
 
-    def _link(self, lid: object) -> FramedLink:
-        link = self.links.get(int(lid))
+    def _link(self, lid: int) -> FramedLink:
+        link = self.links.get(lid)
         if link is None or link.closed.is_set():
             raise Unavailable(f"direct link {lid} is not open")
         return link
 
-    def _grant(self, args: dict) -> None:
-        for lid, frame in args.get("grants") or ():
+    def _grant(self, grants: list[ops.Grant]) -> None:
+        for lid, frame in grants:
             self._link(lid).send(framing.encode_control(frame))
 
-    async def op_direct_publish(self, args: dict) -> dict:
+    @DIRECT_OPS.op("direct_publish", args=ops.DirectPublish)
+    async def op_direct_publish(self, args: ops.DirectPublish) -> dict:
         """``{handle, version, targets, local, grants}`` (module doc)."""
-        handle = int(args["handle"])
-        self._grant(args)
-        targets = [(self._link(lid), int(dst), int(src), self.counts.setdefault(int(src), [0, 0, 0]))
-                   for lid, dst, src in args.get("targets") or ()]
+        handle = args.handle
+        self._grant(args.grants)
+        targets = [(self._link(lid), dst, src, self.counts.setdefault(src, [0, 0, 0]))
+                   for lid, dst, src in args.targets]
         old = self.routes.pop(handle, None)
         if old is not None:
             self._go(old)                     # the older route's order is kept: its messages go first
         if targets:
-            r = self.routes[handle] = _Route(int(args["version"]), targets, bool(args.get("local")),
-                                             bool(args.get("hold")))
+            r = self.routes[handle] = _Route(args.version, targets, args.local, args.hold)
             if r.held is not None:
                 r.timer = asyncio.get_running_loop().call_later(ROUTE_HOLD, self._route_expire, handle, r)
         return {}
@@ -255,29 +255,31 @@ class DirectLinks:
             held, r.held = r.held, None
             self._send(r, held)
 
-    async def op_direct_go(self, args: dict) -> None:
+    @DIRECT_OPS.op("direct_go", args=ops.DirectGo)
+    async def op_direct_go(self, args: ops.DirectGo) -> None:
         """``{handle, version}`` (a notification): what publisher ``handle`` sent by the bus before its
         route ``version`` has been handed on at the far ends; the route's held messages go."""
-        r = self.routes.get(int(args["handle"]))
-        if r is not None and r.version == int(args["version"]):
+        r = self.routes.get(args.handle)
+        if r is not None and r.version == args.version:
             self._go(r)
 
-    async def op_direct_subscribe(self, args: dict) -> dict:
+    @DIRECT_OPS.op("direct_subscribe", args=ops.DirectSubscribe)
+    async def op_direct_subscribe(self, args: ops.DirectSubscribe) -> dict:
         """``{link, iid, peers, handles, gen, size, grants}``: claim interface ``iid`` on ``link``."""
-        link, iid = self._link(args["link"]), int(args["iid"])
-        self._grant(args)
-        self.claims[(int(args["link"]), iid)] = (frozenset(int(p) for p in args["peers"]),
-                                               tuple(int(h) for h in args["handles"]))
+        link, iid = self._link(args.link), args.iid
+        self._grant(args.grants)
+        self.claims[(args.link, iid)] = (frozenset(args.peers), tuple(args.handles))
         self.counts.setdefault(iid, [0, 0, 0])
-        claim = {"claim": iid, "gen": int(args.get("gen", 0)), "size": int(args.get("size", 1))}
-        if isinstance(args.get("at"), str):
-            claim["at"] = args["at"]          # where the far end sends iid's messages: only then it takes the claim
+        claim = {"claim": iid, "gen": args.gen, "size": args.size}
+        if args.at is not None:
+            claim["at"] = args.at             # where the far end sends iid's messages: only then it takes the claim
         link.send(framing.encode_control(claim))
         return {}
 
-    async def op_direct_unsubscribe(self, args: dict) -> dict:
+    @DIRECT_OPS.op("direct_unsubscribe", args=ops.DirectUnsubscribe)
+    async def op_direct_unsubscribe(self, args: ops.DirectUnsubscribe) -> dict:
         """``{link, iid}``: release the claim (its entry goes when the far end says ``released``)."""
-        key = (int(args["link"]), int(args["iid"]))
+        key = (args.link, args.iid)
         link = self.links.get(key[0])
         if key in self.claims and link is not None and not link.closed.is_set():
             try:
@@ -288,10 +290,11 @@ class DirectLinks:
         self.claims.pop(key, None)
         return {}
 
-    async def op_direct_switch(self, args: dict) -> None:
+    @DIRECT_OPS.op("direct_switch", args=ops.DirectSwitch)
+    async def op_direct_switch(self, args: ops.DirectSwitch) -> None:
         """``{iid, id}`` (a notification, behind the messages the bus carried for ``iid``): the bus
         path's switch marker; what was held behind the direct marker ``id`` goes on."""
-        iid, sid = int(args["iid"]), int(args["id"])
+        iid, sid = args.iid, args.id
         for key, hold in list(self._holds.items()):
             if key[1] == iid and hold.sid == sid:
                 self._release(key)
@@ -332,7 +335,8 @@ class DirectLinks:
         for payload in hold.queue:
             self._deliver(handles, key[1], payload)
 
-    async def op_direct_counts(self, args: dict) -> dict:
+    @DIRECT_OPS.op("direct_counts", args=ops.DirectCounts)
+    async def op_direct_counts(self, args: ops.DirectCounts) -> dict:
         """``{}`` -> ``{iid: [messages, bytes, dropped]}`` since the node started."""
         return {str(iid): c for iid, c in self.counts.items()}
 
@@ -410,8 +414,9 @@ class DirectLinks:
         elif "fence" in frame:            # its peer sends here no more: the environment counts it (DataPlane.fence)
             pair, fid = frame.get("fence"), frame.get("id")
             peer = self.node._peer
-            if isinstance(pair, list) and len(pair) == 2 and peer is not None and not peer.closed.is_set():
-                peer.notify("direct_fence", fence=fid, src=pair[0], dst=pair[1])
+            if isinstance(pair, list) and len(pair) == 2 and all(type(x) is int for x in (fid, *pair)) \
+                    and peer is not None and not peer.closed.is_set():
+                peer.tell(to_bus.BusDirectFence(fence=fid, src=pair[0], dst=pair[1]))
         elif "switch" in frame:
             self._switch(lid, frame)
         elif "eos_ack" in frame:
@@ -467,7 +472,7 @@ class DirectLinks:
             del self.claims[key]
         peer = self.node._peer
         if peer is not None:
-            peer.notify("direct_closed", link=lid)
+            peer.tell(to_bus.BusDirectClosed(link=lid))
 
     def close(self) -> None:
         """Close every direct link and the fd channel."""

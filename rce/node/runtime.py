@@ -38,14 +38,17 @@ import weakref
 from collections import deque
 from typing import Any, Awaitable, Callable
 
+from rce.contract import bus as to_bus
+from rce.contract import node as ops
 from rce.transport import framing
 
 from rce.transport import rpc
+from rce.transport.op_table import OpTable
 from rce.plumbing.errors import MessageError, NotFound, RCEError, RequestError, Unavailable
 from rce.transport.link import Responder, settle_reply
 from rce.messages import MessageRegistry, default_registry, wire_name
 from rce.interfaces.naming import join, resolve
-from rce.node.links import DirectLinks
+from rce.node.links import DIRECT_OPS, DirectLinks
 from rce.node.package_path import load_package_types, search_path
 from rce.node.results import INPUT_ARRIVAL, ResultClock, stamp_of
 from rce.plumbing.pending import PendingCalls
@@ -61,6 +64,9 @@ HOLD_MAX = 20.0          # s a move's new copy holds its inputs for its state at
 HANDLED_POLL = 0.005     # s between looks at the subscribers while the state waits for them
 SETTLE_FLUSH = 10.0      # s a moved copy's node waits for its direct links' far ends to take its last outputs
 MAX_STATE = 8 * 2**20    # bytes of state a node hands over
+
+#: What a node's environment asks it on its bus link, besides its direct links' ops (:data:`DIRECT_OPS`).
+NODE_OPS = OpTable("environment -> node")
 
 
 def definitions_key(env: dict | None = None) -> tuple:
@@ -148,7 +154,7 @@ class Publisher:
         return framing.encode_data_header(framing.MSG, self.handle, src, 0, len(payload))
 
     async def unregister(self) -> None:
-        await self.node._peer.call("unadvertise", handle=self.handle)
+        await self.node._peer.ask(to_bus.BusUnadvertise(handle=self.handle))
 
 
 class Subscriber:
@@ -258,7 +264,7 @@ class Subscriber:
 
     async def unregister(self) -> None:
         self._stop()
-        await self.node._peer.call("unsubscribe", handle=self.handle)
+        await self.node._peer.ask(to_bus.BusUnsubscribe(handle=self.handle))
 
 
 class ServiceProxy:
@@ -274,7 +280,7 @@ class ServiceProxy:
         :class:`~rce.plumbing.errors.Timeout` after ``timeout`` s."""
         payload = self.node._encode(self.req_type, {} if request is None else request)
         if self.handle is None:
-            r = await self.node._peer.call("resolve_service", service=self.name)
+            r = await self.node._peer.ask(to_bus.BusResolveService(service=self.name))
             self.handle = r["handle"]
         data = await self.node._call(self.handle, payload, timeout)
         return self.node.registry.deserialize(self.resp_type, data)
@@ -308,14 +314,14 @@ class Node:
         self._peer = await rpc.connect_unix(self.bus_path, name=f"node {self.full_name}", on_data=self._on_data,
                                             on_close=lambda _p: self._shutdown.set())
         self._peer.link.on_drop = Publisher._lost        # publish_nowait's tag: its Publisher
-        self._peer.handlers.update({"node_results": self._op_results, "state_out": self._op_state_out,
-                                    "state_in": self._op_state_in, "settle": self._op_settle})
-        r = await self._peer.call("hello", name=self.full_name, pid=os.getpid(),
-                                  container=os.environ.get("RCE_CONTAINER"), token=self.bus_token, direct=True)
+        self._peer.handlers.update(NODE_OPS.handlers(self))
+        r = await self._peer.ask(to_bus.BusHello(name=self.full_name, pid=os.getpid(),
+                                              container=os.environ.get("RCE_CONTAINER"), token=self.bus_token,
+                                              direct=True))
         key = r.get("fd_key") if isinstance(r, dict) else None
         if isinstance(key, str):             # the environment offers direct links (rce.node.links)
             direct = DirectLinks(self)
-            self._peer.handlers.update(direct.handlers())
+            self._peer.handlers.update(DIRECT_OPS.handlers(direct))
             try:
                 await direct.open_channel(self.bus_path, key)
             except OSError as e:
@@ -324,7 +330,8 @@ class Node:
             self._direct = direct
 
     # -- results and handoff (the environment's requests) -----------------------------------------
-    async def _op_results(self, args: dict) -> dict:
+    @NODE_OPS.op("node_results", args=ops.NodeResults)
+    async def _op_results(self, args: ops.NodeResults) -> dict:
         return self.results.take()
 
     async def _handled(self) -> None:
@@ -333,15 +340,17 @@ class Node:
         while not self.holding and any(sub.queue or sub._busy for sub in self._subs.values()):
             await asyncio.sleep(HANDLED_POLL)
 
-    async def _op_settle(self, args: dict) -> dict:
+    @NODE_OPS.op("settle", args=ops.NodeSettle)
+    async def _op_settle(self, args: ops.NodeSettle) -> dict:
         """A moved container's old copy goes (:mod:`rce_master.placement.mover`): ``{unflushed: [link ids]}`` once
         the inputs that arrived so far are handled and what they caused, sent on the node's direct
         links, reached the far ends (at most ``timeout`` s, default :data:`SETTLE_FLUSH` s)."""
         await self._handled()
-        unflushed = await self._direct.flush(float(args.get("timeout") or SETTLE_FLUSH)) if self._direct else []
+        unflushed = await self._direct.flush(args.timeout or SETTLE_FLUSH) if self._direct else []
         return {"unflushed": unflushed}
 
-    async def _op_state_out(self, args: dict) -> dict:
+    @NODE_OPS.op("state_out", args=ops.NodeStateOut)
+    async def _op_state_out(self, args: ops.NodeStateOut) -> dict:
         """``{state: base64 | None}`` once the inputs that arrived so far are handled."""
         await self._handled()
         if self._handoff is None:
@@ -355,13 +364,13 @@ class Node:
             raise RequestError(f"node {self.full_name}: its state is {len(state)} bytes, more than {MAX_STATE}")
         return {"state": base64.b64encode(state).decode()}
 
-    async def _op_state_in(self, args: dict) -> dict:
+    @NODE_OPS.op("state_in", args=ops.NodeStateIn)
+    async def _op_state_in(self, args: ops.NodeStateIn) -> dict:
         """Take ``state`` (base64, or None: start fresh) through the hook, then the held inputs."""
         took = False
         try:
-            state = args.get("state")
-            if self._handoff is not None and isinstance(state, str):
-                r = self._handoff[1](base64.b64decode(state))
+            if self._handoff is not None and args.state is not None:
+                r = self._handoff[1](base64.b64decode(args.state))
                 if inspect.isawaitable(r):
                     await r
                 took = True
@@ -381,7 +390,7 @@ class Node:
         (``undecodable``: the container's stats, ``rce_node_undecodable_total``)."""
         print(f"[{self.full_name}] {where}: message dropped, it does not deserialize: {error.message}", file=sys.stderr)
         if self._peer is not None and not self._peer.closed.is_set():
-            self._peer.notify("undecodable", where=where, error=error.message[:200])
+            self._peer.tell(to_bus.BusUndecodable(where=where, error=error.message[:200]))
 
     def resolve(self, name: str) -> str:
         """Resolve a graph name for this node (global, relative or ``~private``)."""
@@ -437,7 +446,7 @@ class Node:
         for an unknown class or a topic of another class."""
         t = self.registry.msg_type(msg_class)
         name = self.resolve(topic)
-        h = await self._peer.call("advertise", topic=name, type=wire_name(t))
+        h = await self._peer.ask(to_bus.BusAdvertise(topic=name, type=wire_name(t)))
         return Publisher(self, name, t, h)
 
     async def subscriber(self, topic: str, msg_class: str, callback: Callable[[Any], Any],
@@ -455,8 +464,8 @@ class Node:
         sub.handle = next(self._ids)
         self._subs[sub.handle] = sub       # before the request: messages may arrive before its reply
         try:
-            await self._peer.call("subscribe", topic=name, type=wire_name(t), queue_size=queue_size,
-                                  handle=sub.handle)
+            await self._peer.ask(to_bus.BusSubscribe(topic=name, type=wire_name(t), queue_size=queue_size,
+                                                  handle=sub.handle))
         except BaseException:
             self._subs.pop(sub.handle, None)
             sub._stop()
@@ -470,7 +479,8 @@ class Node:
         h = next(self._ids)
         self._services[h] = (handler, req_t, resp_t)   # before the request: calls may arrive before its reply
         try:
-            await self._peer.call("advertise_service", service=self.resolve(name), type=srv_class.strip("/"), handle=h)
+            await self._peer.ask(to_bus.BusAdvertiseService(service=self.resolve(name), type=srv_class.strip("/"),
+                                                         handle=h))
         except BaseException:
             self._services.pop(h, None)
             raise
@@ -487,7 +497,7 @@ class Node:
         without a hook starts fresh. Call it before :meth:`spin`."""
         self._handoff = (state_out, state_in)
         if self._peer is not None and not self._peer.closed.is_set():
-            self._peer.notify("handoff")
+            self._peer.tell(to_bus.BusHandoff())
 
     async def service_proxy(self, name: str, srv_class: str) -> ServiceProxy:
         """A callable proxy for service ``name`` of ``srv_class``."""
@@ -497,21 +507,21 @@ class Node:
     async def get_param(self, name: str, default: Any = _NO) -> Any:
         """Parameter value (JSON types). Raises :class:`NotFound` unless ``default`` is given."""
         try:
-            return await self._peer.call("get_param", name=self.resolve(name))
+            return await self._peer.ask(to_bus.BusGetParam(name=self.resolve(name)))
         except RCEError:
             if default is _NO:
                 raise
             return default
 
     async def set_param(self, name: str, value: Any) -> None:
-        await self._peer.call("set_param", name=self.resolve(name), value=value)
+        await self._peer.ask(to_bus.BusSetParam(name=self.resolve(name), value=value))
 
     async def delete_param(self, name: str) -> None:
-        await self._peer.call("delete_param", name=self.resolve(name))
+        await self._peer.ask(to_bus.BusDeleteParam(name=self.resolve(name)))
 
     async def describe(self) -> dict:
         """Topics, services, parameters and nodes of the bus."""
-        return await self._peer.call("describe")
+        return await self._peer.ask(to_bus.BusDescribe())
 
     @property
     def is_shutdown(self) -> bool:

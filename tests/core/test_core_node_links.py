@@ -9,6 +9,7 @@ import struct
 import pytest
 from memlink import pipe
 
+from rce.contract import node as to_node
 from rce.node import links
 from rce.transport import framing
 from rce.transport.link import FramedLink
@@ -29,13 +30,13 @@ async def node_with_a_link(bus):
     b, server, new_node = bus
     node = await new_node("listener")
     direct = node._direct = links.DirectLinks(node)
-    node._peer.handlers.update(direct.handlers())
+    node._peer.handlers.update(links.DIRECT_OPS.handlers(direct))
     got: asyncio.Queue = asyncio.Queue()
     sub = await node.subscriber("/req", "std_msgs/String", lambda m: got.put_nowait(m.data), queue_size=10)
     (ra, wa), (rb, wb) = pipe()
     direct.links[LID] = FramedLink(ra, wa, name="direct link", on_frame=lambda f: direct._on_frame(LID, f)).start()
-    await direct.op_direct_subscribe({"link": LID, "iid": IID, "peers": [PEER], "handles": [sub.handle],
-                                      "gen": 1, "size": 1})
+    await direct.op_direct_subscribe(to_node.DirectSubscribe(link=LID, iid=IID, peers=[PEER], handles=[sub.handle],
+                                                             gen=1, size=1))
     yield b, server, node, direct, wb, got
 
 
@@ -55,8 +56,8 @@ async def held_route(node, direct, version: int, n: int):
     (ra, wa), (rb, wb) = pipe()
     direct.links[2] = FramedLink(ra, wa, name="direct link 2", on_frame=lambda f: None).start()
     pub = await node.publisher("/resp", "std_msgs/String")
-    await direct.op_direct_publish({"handle": pub.handle, "version": version, "targets": [[2, 40, 20]],
-                                    "local": False, "hold": True})
+    await direct.op_direct_publish(to_node.DirectPublish(handle=pub.handle, version=version, targets=[(2, 40, 20)],
+                                                         local=False, hold=True))
     for i in range(n):
         assert pub.publish_nowait({"data": f"r{i}"})
     return pub, rb
