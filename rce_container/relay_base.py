@@ -13,6 +13,7 @@ import signal
 import sys
 from typing import Any, Awaitable, Callable, Protocol
 
+from rce.contract import bus as to_bus
 from rce.messages import default_registry
 from rce.node import Node, Publisher
 from rce.plumbing.errors import ConfigError, RCEError, Unavailable
@@ -44,33 +45,33 @@ class RawNode(Node):
 
     async def raw_publisher(self, topic: str, wire: str) -> Publisher:
         """Advertise ``topic`` with class ``wire`` (``pkg/Name``, not checked against a registry)."""
-        return Publisher(self, topic, wire, await self._peer.call("advertise", topic=topic, type=wire))
+        return Publisher(self, topic, wire, await self._peer.ask(to_bus.BusAdvertise(topic=topic, type=wire)))
 
     async def raw_subscriber(self, topic: str, wire: str, push, queue_size: int = QUEUE_SIZE) -> int:
         """Subscribe ``push(payload)`` to ``topic``; returns the handle for :meth:`unsubscribe`."""
         h = next(self._ids)
         self._subs[h] = _Sink(push)
-        await self._peer.call("subscribe", topic=topic, type=wire, queue_size=queue_size, handle=h)
+        await self._peer.ask(to_bus.BusSubscribe(topic=topic, type=wire, queue_size=queue_size, handle=h))
         return h
 
     async def unsubscribe(self, handle: int) -> None:
         self._subs.pop(handle, None)
-        await self._peer.call("unsubscribe", handle=handle)
+        await self._peer.ask(to_bus.BusUnsubscribe(handle=handle))
 
     async def raw_service(self, name: str, wire: str, handler) -> int:
         """Provide ``name``: ``await handler(request bytes)`` -> response bytes. Returns its handle."""
         h = next(self._ids)
         self._services[h] = (handler, wire, wire)
-        await self._peer.call("advertise_service", service=name, type=wire, handle=h)
+        await self._peer.ask(to_bus.BusAdvertiseService(service=name, type=wire, handle=h))
         return h
 
     async def unadvertise_service(self, handle: int) -> None:
         self._services.pop(handle, None)
-        await self._peer.call("unadvertise_service", handle=handle)
+        await self._peer.ask(to_bus.BusUnadvertiseService(handle=handle))
 
     async def raw_call(self, name: str, payload: bytes, timeout: float) -> bytes:
         """Call bus service ``name`` with request bytes; the response bytes."""
-        r = await self._peer.call("resolve_service", service=name)
+        r = await self._peer.ask(to_bus.BusResolveService(service=name))
         return await self._call(r["handle"], payload, timeout)
 
 

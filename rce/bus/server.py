@@ -46,6 +46,7 @@ import struct
 from collections.abc import Collection
 from pathlib import Path
 
+from rce.contract import bus as ops
 from rce.transport import framing
 from rce.bus.core import SERVICE_TIMEOUT, Bus, Subscription, Topic
 from rce.interfaces.actions import call_timeout
@@ -119,49 +120,49 @@ class NodeSession:
                 "bytes_out": self.bytes_out, "dropped": sum(s.dropped for s in self.subs.values()),
                 "undecodable": self.undecodable}
 
-    @BUS_OPS.op("handoff")
-    async def op_handoff(self, args: dict) -> None:
+    @BUS_OPS.op("handoff", args=ops.BusHandoff)
+    async def op_handoff(self, args: ops.BusHandoff) -> None:
         """The node hands its state over when its container moves (:meth:`rce.node.Node.handoff`)."""
         self.handoff = True
 
-    @BUS_OPS.op("undecodable")
-    async def op_undecodable(self, args: dict) -> None:
+    @BUS_OPS.op("undecodable", args=ops.BusUndecodable)
+    async def op_undecodable(self, args: ops.BusUndecodable) -> None:
         """``{where, error}``: the node could not deserialize a message delivered to it (counted)."""
         self.undecodable += 1
-        log.warning("node could not deserialize a message", node=self.node, where=str(args.get("where"))[:100],
-                    error=str(args.get("error"))[:200])
+        log.warning("node could not deserialize a message", node=self.node, where=args.where[:100],
+                    error=args.error[:200])
 
     # -- control ops ---------------------------------------------------------------------------
-    @BUS_OPS.op("hello", unauthenticated=True)
-    async def op_hello(self, args: dict) -> dict:
+    @BUS_OPS.op("hello", args=ops.BusHello, unauthenticated=True)
+    async def op_hello(self, args: ops.BusHello) -> dict:
         """``{name, pid, container, token}`` -> ``{bus}``. Raises :class:`AuthError` (and
         closes the link) when the bus has a token and ``token`` is not it."""
         token = self.server.token
         if token is not None and self.node is None:
-            given = args.get("token")
+            given = args.token
             if not isinstance(given, str) or not hmac.compare_digest(given.encode(), token.encode()):
-                self.server.refuse(f"hello of {args.get('name')!r} (pid {args.get('pid')!r}) with "
+                self.server.refuse(f"hello of {args.name!r} (pid {args.pid!r}) with "
                                    + ("no" if given is None else "a wrong") + " bus token")
                 self.peer.tasks.spawn(self._drop(), name="drop a refused node")
                 raise AuthError(f"bus {self.bus.name}: wrong or missing bus token (RCE_BUS_TOKEN); "
                                 "only the container's own nodes may join its bus")
             self._admit()
-        self.node = args.get("name") or self.owner
+        self.node = args.name or self.owner
         self.owner = self.calls.name = self.node
-        self.bus.nodes[self.node] = {"pid": args.get("pid"), "container": args.get("container")}
+        self.bus.nodes[self.node] = {"pid": args.pid, "container": args.container}
         reply = {"bus": self.bus.name}
-        if self.server.direct and args.get("direct") is True and not self.direct:
+        if self.server.direct and args.direct and not self.direct:
             self.direct = True
             reply["fd_key"] = self.fd_key = secrets.token_hex(16)
             self.server.fd_keys[self.fd_key] = self
         self.server.changed()
         return reply
 
-    @BUS_OPS.op("fd_channel", unauthenticated=True)
-    async def op_fd_channel(self, args: dict) -> None:
+    @BUS_OPS.op("fd_channel", args=ops.BusFdChannel, unauthenticated=True)
+    async def op_fd_channel(self, args: ops.BusFdChannel) -> None:
         """``{key}`` (a notification, the only frame of a node's second connection): this
         connection is the fd channel of the session whose hello got ``fd_key`` = ``key``."""
-        owner = self.server.fd_keys.pop(args.get("key"), None) if isinstance(args.get("key"), str) else None
+        owner = self.server.fd_keys.pop(args.key, None) if isinstance(args.key, str) else None
         if owner is None or owner.fd_sock is not None or self.node is not None:
             self.server.refuse("an fd channel with an unknown key")
             self.peer.tasks.spawn(self._drop(), name="drop a refused fd channel")
@@ -173,32 +174,31 @@ class NodeSession:
         owner.channel = self.peer
         self.server.changed()
 
-    @BUS_OPS.op("advertise")
-    async def op_advertise(self, args: dict) -> int:
-        t = self.bus.advertise(args["topic"], args["type"], self.owner)
+    @BUS_OPS.op("advertise", args=ops.BusAdvertise)
+    async def op_advertise(self, args: ops.BusAdvertise) -> int:
+        t = self.bus.advertise(args.topic, args.type, self.owner)
         h = next(self.ids)
         self.pubs[h] = t
         self.server.changed()
         return h
 
-    @BUS_OPS.op("unadvertise")
-    async def op_unadvertise(self, args: dict) -> None:
-        t = self.pubs.pop(args["handle"], None)
+    @BUS_OPS.op("unadvertise", args=ops.BusUnadvertise)
+    async def op_unadvertise(self, args: ops.BusUnadvertise) -> None:
+        t = self.pubs.pop(args.handle, None)
         if t:
             self.bus.unadvertise(t.name, self.owner)
 
-    def _handle(self, args: dict) -> int:
+    def _handle(self, h: int | None) -> int:
         """The handle the node chose (so frames can arrive before the reply), or a fresh one."""
-        h = args.get("handle")
         if h is None:
             return next(self.ids) + (1 << 40)
-        if not isinstance(h, int) or h <= 0 or h >= (1 << 40) or h in self.subs or h in self.services:
+        if h <= 0 or h >= (1 << 40) or h in self.subs or h in self.services:
             raise RequestError(f"bad or duplicate handle {h!r}")
         return h
 
-    @BUS_OPS.op("subscribe")
-    async def op_subscribe(self, args: dict) -> int:
-        h = self._handle(args)
+    @BUS_OPS.op("subscribe", args=ops.BusSubscribe)
+    async def op_subscribe(self, args: ops.BusSubscribe) -> int:
+        h = self._handle(args.handle)
         offer = self.peer.link.offer
 
         def deliver(payload: bytes, _h=h) -> bool:
@@ -208,72 +208,72 @@ class NodeSession:
             self.msgs_out += 1
             self.bytes_out += n
             return True
-        self.subs[h] = self.bus.subscribe(args["topic"], args["type"], deliver, self.owner, args.get("queue_size", 100))
+        self.subs[h] = self.bus.subscribe(args.topic, args.type, deliver, self.owner, args.queue_size)
         self.server.changed()
         return h
 
-    @BUS_OPS.op("unsubscribe")
-    async def op_unsubscribe(self, args: dict) -> None:
-        sub = self.subs.pop(args["handle"], None)
+    @BUS_OPS.op("unsubscribe", args=ops.BusUnsubscribe)
+    async def op_unsubscribe(self, args: ops.BusUnsubscribe) -> None:
+        sub = self.subs.pop(args.handle, None)
         if sub:
             self.bus.unsubscribe(sub)
 
-    @BUS_OPS.op("advertise_service")
-    async def op_advertise_service(self, args: dict) -> int:
-        h = self._handle(args)
+    @BUS_OPS.op("advertise_service", args=ops.BusAdvertiseService)
+    async def op_advertise_service(self, args: ops.BusAdvertiseService) -> int:
+        h = self._handle(args.handle)
 
         async def handler(payload: bytes, _h=h) -> bytes:
             # no timeout of its own: the bus's call_service bounds the call and cancels this
             return await self.calls.call(
                 lambda cid: self.peer.send_raw(framing.encode_data_header(framing.SRV_REQ, _h, 0, cid, len(payload)),
-                                               payload), None, what=f"the call to its service {args['service']!r}")
-        self.bus.advertise_service(args["service"], args["type"], handler, self.owner)
-        self.services[h] = args["service"]
+                                               payload), None, what=f"the call to its service {args.service!r}")
+        self.bus.advertise_service(args.service, args.type, handler, self.owner)
+        self.services[h] = args.service
         self.server.changed()
         return h
 
-    @BUS_OPS.op("unadvertise_service")
-    async def op_unadvertise_service(self, args: dict) -> None:
-        name = self.services.pop(args["handle"], None)
+    @BUS_OPS.op("unadvertise_service", args=ops.BusUnadvertiseService)
+    async def op_unadvertise_service(self, args: ops.BusUnadvertiseService) -> None:
+        name = self.services.pop(args.handle, None)
         if name:
             self.bus.unadvertise_service(name, self.owner)
 
-    @BUS_OPS.op("resolve_service")
-    async def op_resolve_service(self, args: dict) -> dict:
-        s = self.bus.services.get(args["service"])
+    @BUS_OPS.op("resolve_service", args=ops.BusResolveService)
+    async def op_resolve_service(self, args: ops.BusResolveService) -> dict:
+        s = self.bus.services.get(args.service)
         if s is None:
-            raise NotFound(f"service {args['service']!r} is not provided on {self.bus.name}")
+            raise NotFound(f"service {args.service!r} is not provided on {self.bus.name}")
         h = next(self.ids)
         self.resolved[h] = s.name
         return {"handle": h, "type": s.type}
 
-    @BUS_OPS.op("direct_closed")
-    async def op_direct_closed(self, args: dict) -> None:
+    @BUS_OPS.op("direct_closed", args=ops.BusDirectClosed)
+    async def op_direct_closed(self, args: ops.BusDirectClosed) -> None:
         """``{link}`` (a notification): the node's direct link ``link`` ended."""
         for cb in self.server.on_direct_closed:
-            cb(self, int(args["link"]))
+            cb(self, args.link)
 
-    @BUS_OPS.op("direct_fence")
-    async def op_direct_fence(self, args: dict) -> None:
+    @BUS_OPS.op("direct_fence", args=ops.BusDirectFence)
+    async def op_direct_fence(self, args: ops.BusDirectFence) -> None:
         """``{fence, src, dst}`` (a notification): a fence of ``src -> dst`` came on one of the node's
         direct links, behind everything that came there before it (:meth:`rce.transport.dataplane.DataPlane.fence`)."""
         for cb in self.server.on_direct_fence:
-            cb(int(args["fence"]), int(args["src"]), int(args["dst"]))
+            cb(args.fence, args.src, args.dst)
 
-    @BUS_OPS.op("get_param")
-    async def op_get_param(self, args: dict):
-        return self.bus.get_param(args["name"])
+    @BUS_OPS.op("get_param", args=ops.BusGetParam)
+    async def op_get_param(self, args: ops.BusGetParam):
+        return self.bus.get_param(args.name)
 
-    @BUS_OPS.op("set_param")
-    async def op_set_param(self, args: dict) -> None:
-        self.bus.set_param(args["name"], args.get("value"))
+    @BUS_OPS.op("set_param", args=ops.BusSetParam)
+    async def op_set_param(self, args: ops.BusSetParam) -> None:
+        self.bus.set_param(args.name, args.value)
 
-    @BUS_OPS.op("delete_param")
-    async def op_delete_param(self, args: dict) -> None:
-        self.bus.delete_param(args["name"])
+    @BUS_OPS.op("delete_param", args=ops.BusDeleteParam)
+    async def op_delete_param(self, args: ops.BusDeleteParam) -> None:
+        self.bus.delete_param(args.name)
 
-    @BUS_OPS.op("describe")
-    async def op_describe(self, args: dict) -> dict:
+    @BUS_OPS.op("describe", args=ops.BusDescribe)
+    async def op_describe(self, args: ops.BusDescribe) -> dict:
         return self.bus.describe()
 
     # -- data ----------------------------------------------------------------------------------

@@ -29,17 +29,12 @@ ENGINE = ("rce", "rce_master", "rce_robot", "rce_container", "rce_client")
 HANDLER_PREFIXES = ("op_", "_op_")
 
 # (serving class, its table): every link of the control plane
-OP_SETS = [(bus_server.NodeSession, bus_server.BUS_OPS),
-           (environment.Environment, environment.ENV_OPS),
-           (host.ContainerHost, host.HOST_OPS),
-           (host.ContainerHost, host.FROM_ENV_OPS),
-           (endpoint.RobotEndpoint, endpoint.ROBOT_OPS),
-           (cluster_auth.Handshake, cluster_auth.HANDSHAKE),
-           (master_server.Master, master_server.MASTER_OPS),
-           (master_server.Master, master_server.ROBOT_SET_OPS),
-           (master_server.Master, master_server.HOST_SET_OPS),
-           (node_links.DirectLinks, node_links.DIRECT_OPS),
-           (node_runtime.Node, node_runtime.NODE_OPS)]
+OP_SETS = [(bus_server.NodeSession, bus_server.BUS_OPS), (environment.Environment, environment.ENV_OPS),
+           (host.ContainerHost, host.HOST_OPS), (host.ContainerHost, host.FROM_ENV_OPS),
+           (endpoint.RobotEndpoint, endpoint.ROBOT_OPS), (node_links.DirectLinks, node_links.DIRECT_OPS),
+           (node_runtime.Node, node_runtime.NODE_OPS), (cluster_auth.Handshake, cluster_auth.HANDSHAKE),
+           (master_server.Master, master_server.MASTER_OPS), (master_server.Master, master_server.ROBOT_SET_OPS),
+           (master_server.Master, master_server.HOST_SET_OPS)]
 
 
 def _where(cls: type) -> tuple[Path, ast.ClassDef]:
@@ -90,11 +85,6 @@ def _op_prefixed(node: ast.AST) -> bool:
     elif isinstance(node, ast.JoinedStr) and node.values:
         node = node.values[0]
     return isinstance(node, ast.Constant) and isinstance(node.value, str) and node.value.startswith(HANDLER_PREFIXES)
-
-# the links whose ops are still to be typed (they are, link by link), and the files whose dispatch is still built
-# by hand: both lists only shrink
-UNTYPED_YET = {'node -> bus'}
-HAND_BUILT_YET = {}
 
 
 def _built_name(node: ast.AST) -> bool:
@@ -265,8 +255,7 @@ def _tables_of(cls: type) -> list[OpTable]:
 
 @pytest.mark.parametrize("cls,table", OP_SETS, ids=lambda x: getattr(x, "__name__", getattr(x, "link", "")))
 def test_every_handler_is_in_a_table_and_every_entry_is_a_typed_method(cls, table):
-    problems = unregistered(cls, _tables_of(cls)) + dangling(cls, table) + \
-        ([] if table.link in UNTYPED_YET else untyped(cls, table))
+    problems = unregistered(cls, _tables_of(cls)) + dangling(cls, table) + untyped(cls, table)
     assert not problems, "\n".join(problems)
     assert len(table) > 0
 
@@ -286,7 +275,6 @@ def test_no_handler_is_found_by_reflection():
 
 
 def test_no_link_builds_its_dispatch_by_hand():
-    found = [x for p in ENGINE for f in sorted((ROOT / p).rglob("*.py")) for x in hand_built(f)
-             if str(f.relative_to(ROOT)) not in HAND_BUILT_YET]
+    found = [x for p in ENGINE for f in sorted((ROOT / p).rglob("*.py")) for x in hand_built(f)]
     assert not found, "dispatch built by hand (serve the link's OpTable instead):\n" + "\n".join(
         x.replace(str(ROOT) + "/", "") for x in found)
