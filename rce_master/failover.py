@@ -44,6 +44,7 @@ from rce.plumbing.errors import RCEError, Unavailable
 from rce.plumbing.log import get_logger
 from rce.plumbing.tasks import Tasks
 from rce_master.control import Control
+from rce_master.state.lifecycle import ContainerState
 from rce_master.state.model import ContainerRec, InterfaceRec, Robot
 from rce_master.placement.mover import Made
 from rce_master.state.master_state import MasterState
@@ -119,9 +120,9 @@ class Failover:
         away, after which the container was found lost and moved) only the remains go. One being
         created there (a CC, a re-creation) is left to that, which fails and undoes itself."""
         c = self.state.container_by_cid(cid)
-        if c is not None and c.tid == tid and c.state in ("starting", "recovering"):
+        if c is not None and c.tid == tid and c.state in (ContainerState.STARTING, ContainerState.RECOVERING):
             return
-        running = c is not None and c.tid == tid and c.state == "running"
+        running = c is not None and c.tid == tid and c.state == ContainerState.RUNNING
         if running:
             self.state.container_lost(c)
         await self.control.destroy_on(tid, cid)
@@ -169,7 +170,7 @@ class Failover:
         """Re-create ``rec.c`` until it runs, is destroyed, or the bounds say stop."""
         c = rec.c
         deadline = time.monotonic() + self.wait
-        while self._current(c) and c.state == "lost":
+        while self._current(c) and c.state == ContainerState.LOST:
             if self._orphan(c):                               # its robot left while it waited for a host
                 await self._forget(c, "not re-created")
                 return
@@ -210,7 +211,7 @@ class Failover:
                 await self._adopt(container, cid, spare)
         except (RCEError, _Superseded) as e:
             await self.control.destroy_on(tid, cid)
-            if self._current(container) and container.cid == cid and container.state == "recovering":
+            if self._current(container) and container.cid == cid and container.state == ContainerState.RECOVERING:
                 self.state.container_lost(container)
             if isinstance(e, RCEError):
                 log.warning("container re-creation failed", user=container.user, ctag=container.ctag, cid=cid, tid=tid,
@@ -254,7 +255,7 @@ class Failover:
         self.state.container_ready(container, answer["data_addr"], answer.get("sandbox", ""))
         for a, b in self._live_connections(container):          # read right after it runs: see _live_connections
             await self.control.quiet(self.control.tell_connect(a, b))
-        if self._current(container) and container.cid == cid and container.state == "running":
+        if self._current(container) and container.cid == cid and container.state == ContainerState.RUNNING:
             self.control.notify_robot(container.user, container.owner, "ST",
                                       {"topic": "container", "cTag": container.ctag, "status": "running",
                                        "sandbox": container.sandbox})
@@ -275,7 +276,7 @@ class Failover:
                     up = peer.location in self.control.peers
                 else:
                     other = self.state.container_by_cid(peer.location)
-                    up = other is not None and other.state == "running"
+                    up = other is not None and other.state == ContainerState.RUNNING
                 if up:
                     out.append((me, peer))
         return out
@@ -303,5 +304,5 @@ class Failover:
         return self.state.containers.get((container.user, container.ctag)) is container
 
     def _check(self, container: ContainerRec, cid: int) -> None:
-        if not self._current(container) or container.cid != cid or container.state != "recovering":
+        if not self._current(container) or container.cid != cid or container.state != ContainerState.RECOVERING:
             raise _Superseded(container.ctag)

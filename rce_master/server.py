@@ -51,6 +51,7 @@ from rce_master.http.admin import AdminApi
 from rce_master.control import Control
 from rce_master.failover import Failover
 from rce_master.auth.login_guard import LoginGuard, PasswordCheck
+from rce_master.state.lifecycle import ContainerState
 from rce_master.state.model import ContainerRec, Robot, TaskSet
 from rce_master.leadership.office import RETRY_AFTER_NO_LEADER, Alone, Office, require_leader
 from rce_master.placement.mover import Mover
@@ -448,7 +449,7 @@ class Master:
                 c = None if peer.robot_side else self.state.container_by_cid(peer.location)
                 if c is not None:
                     used.append(c)
-        return all(c.state == "running" and c.tid in peers for c in used)
+        return all(c.state == ContainerState.RUNNING and c.tid in peers for c in used)
 
     async def _robot_moved(self, user: str, robot: str, recs: list) -> None:
         """Install a moved robot's interfaces on its new endpoint and connect them again, before its

@@ -44,6 +44,7 @@ from aiohttp import web
 from rce.plumbing.errors import AuthError, RequestError
 from rce.protocol import schema
 from rce_master.control import Control
+from rce_master.state.lifecycle import ContainerState
 from rce_master.state.model import DEFAULT_ROLE
 from rce_master.auth.login_guard import PasswordCheck
 from rce_master.leadership.office import Alone, Office, require_leader
@@ -181,7 +182,8 @@ class AdminApi:
         await self.state.store.flush()
         moved = None
         here = self.state.tasksets.get(c.tid)
-        if c.data.get("pinned") and c.state == "running" and (here is None or here.zone.kind != c.data["pinned"]):
+        if c.data.get("pinned") and c.state == ContainerState.RUNNING \
+                and (here is None or here.zone.kind != c.data["pinned"]):
             host = self.state.pick_container_host(c.data, c.user, exclude={c.tid})
             moved = await self.placement.move(c, host.tid, f"pinned to {c.data['pinned']}")
             await self.state.store.flush()

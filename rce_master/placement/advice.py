@@ -35,6 +35,7 @@ from dataclasses import dataclass, field
 from rce.plumbing.errors import RCEError, RequestError
 from rce.plumbing.log import get_logger
 from rce.protocol.schema import PLACEMENTS
+from rce_master.state.lifecycle import ContainerState
 from rce_master.state.model import ContainerRec
 from rce_master.placement.mover import Mover
 from rce_master.placement.placer import Choice, ContainerView, HostView, LinkView, Placer, late_share, runner_up
@@ -147,7 +148,7 @@ class Placement:
     async def poll(self) -> None:
         """Read the counters of every running container that asks for a placement, once."""
         for c in list(self.state.containers.values()):
-            if c.state != "running" or not asks_placement(c.data):
+            if c.state != ContainerState.RUNNING or not asks_placement(c.data):
                 continue
             try:
                 s = await self.host_stats(c)
@@ -295,7 +296,7 @@ class Placement:
         due = float("inf")
         for c in list(self.state.containers.values()):
             ch = self.word(c)
-            if ch is not None and ch.move and c.state == "running":
+            if ch is not None and ch.move and c.state == ContainerState.RUNNING:
                 self._carry_out(c, ch)
             elif ch is not None and ch.wait_s > 0:
                 due = min(due, ch.wait_s)
@@ -314,7 +315,7 @@ class Placement:
         """Make ``c`` a spare on the host ranked next (:func:`runner_up`) when it runs, asks for one and
         has none; drop the one it has when it asks no more, is pinned, or the spare no longer holds.
         A lost container's spare is left to its failover (:meth:`rce_master.placement.mover.Mover.claim_spare`)."""
-        if self.mover is None or c.state != "running":
+        if self.mover is None or c.state != ContainerState.RUNNING:
             return
         key = (c.user, c.ctag)
         wants = bool(c.data.get("spare")) and not pinned_to(c.data)

@@ -54,6 +54,7 @@ from rce.interfaces.naming import resolve
 from rce.plumbing.errors import RCEError, RequestError, Timeout
 from rce.plumbing.log import get_logger
 from rce_master.control import Control
+from rce_master.state.lifecycle import ContainerState
 from rce_master.state.model import LIMIT_KEYS, ContainerRec, InterfaceRec
 from rce_master.state.master_state import MasterState
 
@@ -262,7 +263,7 @@ class Mover:
 
     def _check(self, user: str, ctag: str, tid: int) -> ContainerRec:
         c = self.state.container(user, ctag)
-        if c.state != "running":
+        if c.state != ContainerState.RUNNING:
             raise RequestError(f"container {ctag!r} is {c.state}: only a running container moves")
         if c.tid == tid:
             raise RequestError(f"container {ctag!r} already runs on host {tid}")
@@ -304,7 +305,7 @@ class Mover:
         t0 = time.monotonic()
         old_cid = c.cid
         basis = self.basis(c)
-        new = dataclasses.replace(c, cid=self.state.reserve_cid(), tid=tid, state="starting")
+        new = dataclasses.replace(c, cid=self.state.reserve_cid(), tid=tid, state=ContainerState.STARTING)
         ifaces = self.state.interfaces_of(c.user, c.ctag, robot_side=False)
         conns = [(me, peer) for rec in ifaces for me, peer in self.state.connections_of(rec.iid)]
         steps: dict[str, float] = {}
@@ -418,7 +419,7 @@ class Mover:
         return expect, unreached
 
     def _still(self, c: ContainerRec, cid: int) -> None:
-        if self.state.containers.get((c.user, c.ctag)) is not c or c.cid != cid or c.state != "running":
+        if self.state.containers.get((c.user, c.ctag)) is not c or c.cid != cid or c.state != ContainerState.RUNNING:
             raise MoveFailed(f"container {c.ctag!r} was removed, lost or replaced meanwhile")
 
     async def _ready(self, new: ContainerRec, ifaces: list[InterfaceRec]) -> None:

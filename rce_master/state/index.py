@@ -15,6 +15,7 @@ from operator import attrgetter
 from typing import Any, Callable
 
 from rce.plumbing.errors import NotFound, Unavailable
+from rce_master.state.lifecycle import ContainerState
 from rce_master.state.model import ConnectionRec, ContainerRec, InterfaceRec, NodeRec, Robot, TaskSet, User
 from rce_master.state.store import Key, Store
 
@@ -76,7 +77,7 @@ class StateIndex:
         ts = self._upsert(self.tasksets, tid, TaskSet, new)
         if ts is not None and known is None:              # (re)created: count what runs on it
             ts.robots = sum(r.tid == tid for r in self.robots.values())
-            on_it = [c for c in self.containers.values() if c.tid == tid and c.state != "lost"]
+            on_it = [c for c in self.containers.values() if c.tid == tid and c.state != ContainerState.LOST]
             ts.containers = len(on_it)
             ts.cpu_load = sum(c.load()[0] for c in on_it)
             ts.mem_load = sum(c.load()[1] for c in on_it)
@@ -90,7 +91,8 @@ class StateIndex:
     def _apply_container(self, key: Key, old: dict | None, new: dict | None) -> None:
         for rec, sign in ((old, -1), (new, 1)):
             # a host carries what runs (or starts) on it; a lost container weighs on none
-            host = self.tasksets.get(rec["tid"]) if rec is not None and rec.get("state") != "lost" else None
+            running = rec is not None and rec.get("state") != ContainerState.LOST
+            host = self.tasksets.get(rec["tid"]) if running else None
             if host is not None:
                 data = rec["data"]
                 host.containers += sign
@@ -255,6 +257,6 @@ class StateIndex:
 
 def lost_reason(container: ContainerRec) -> str:
     """What became of lost (or recovering) ``container``, for the refusals that name it."""
-    if container.state == "recovering":
+    if container.state == ContainerState.RECOVERING:
         return f"container {container.ctag!r} was lost with its host and is being re-created on another host"
     return f"container {container.ctag!r} was lost with its host and waits for a container host to be re-created on"

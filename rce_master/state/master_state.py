@@ -30,11 +30,13 @@ from contextlib import contextmanager
 from dataclasses import dataclass
 from typing import Any
 
+from rce.contract.environment import NodeStatus
 from rce.plumbing.errors import AuthError, NotFound, RequestError, Unavailable
 from rce.interfaces.classes import same_type
 from rce.interfaces.kind import Kind
 from rce.protocol import schema
 from rce_master.state.index import StateIndex, lost_reason
+from rce_master.state.lifecycle import ContainerState, check_move
 from rce_master.state.model import (DEFAULT_ROLE, ConnectionRec, ContainerRec, InterfaceRec, NodeRec, Robot, TaskSet,
                               User, check_role, param_key)
 from rce_master.state.store import Key, MemoryStore, Store, encode
@@ -139,6 +141,17 @@ class MasterState(StateIndex):
 
     def _put(self, obj: Any, **changes: Any) -> None:
         self._write(obj.store_key, {**obj.to_record(), **changes})
+
+    def _move(self, rec: ContainerRec | NodeRec, to: ContainerState | NodeStatus, **changes: Any) -> None:
+        """Move record ``rec`` (a container or a node) to state ``to``, with ``changes``, as its lifecycle
+        allows (:func:`~rce_master.state.lifecycle.check_move`: raises
+        :class:`~rce_master.state.lifecycle.IllegalMove` for a move its table does not have). Every
+        change of a container's state or a node's status goes through here."""
+        if isinstance(rec, ContainerRec):
+            self._put(rec, state=check_move(ContainerState, f"container {rec.ctag!r}", rec.state, to), **changes)
+        else:
+            self._put(rec, status=check_move(NodeStatus, f"node {rec.ntag!r} in container {rec.ctag!r}", rec.status,
+                                             to), **changes)
 
     def _delete(self, obj: Any) -> None:
         self._write(obj.store_key, None)
@@ -254,7 +267,7 @@ class MasterState(StateIndex):
         ts = self.tasksets.get(tid)
         if ts is None:
             return [], []
-        lost = [c for c in self.containers.values() if c.tid == tid and c.state != "lost"]
+        lost = [c for c in self.containers.values() if c.tid == tid and c.state != ContainerState.LOST]
         for c in lost:
             self.container_lost(c)
         robots = [r for r in self.robots.values() if r.tid == tid]
@@ -383,16 +396,17 @@ class MasterState(StateIndex):
     def container_ready(self, container: ContainerRec, data_addr: str, sandbox: str) -> None:
         """The host created (or re-created) ``c``: ``running``. Raises :class:`Unavailable` when it
         was removed or lost meanwhile."""
-        if not _current(self.containers, (container.user, container.ctag), container) or container.state == "lost":
+        if not _current(self.containers, (container.user, container.ctag), container) \
+                or container.state == ContainerState.LOST:
             raise Unavailable(f"container {container.ctag!r} was removed or lost while it was created")
-        self._put(container, state="running", data_addr=data_addr, sandbox=sandbox)
+        self._move(container, ContainerState.RUNNING, data_addr=data_addr, sandbox=sandbox)
 
     @_atomic
     def container_lost(self, container: ContainerRec) -> None:
         """``c`` is gone with its host or environment (or its host re-registered without it):
         ``lost``. Its nodes, parameters, interfaces and connections stay, for its re-creation
         (:meth:`container_recovering`) or until its robot destroys it (DC) or leaves."""
-        self._put(container, state="lost")
+        self._move(container, ContainerState.LOST)
 
     @_atomic
     def container_recovering(self, container: ContainerRec, tid: int, cid: int | None = None) -> None:
@@ -400,15 +414,16 @@ class MasterState(StateIndex):
         host may still hold keeps the old one, and is dropped when that host re-registers), or
         ``cid``, its spare's, its container-side interfaces move with it, its nodes are ``starting``
         again. Raises :class:`RequestError` unless ``c`` is the user's current, lost container."""
-        if not _current(self.containers, (container.user, container.ctag), container) or container.state != "lost":
+        if not _current(self.containers, (container.user, container.ctag), container) \
+                or container.state != ContainerState.LOST:
             raise RequestError(f"container {container.ctag!r} is not lost: it is {container.state} (or gone)")
         old = container.cid
-        self._put(container, cid=self._next_id("cid") if cid is None else cid, tid=tid, state="recovering")
+        self._move(container, ContainerState.RECOVERING, cid=self._next_id("cid") if cid is None else cid, tid=tid)
         for rec in self.interfaces_of(container.user, container.ctag, robot_side=False):
             if rec.location == old:
                 self._put(rec, location=container.cid)
         for n in self.nodes_of(container):
-            self._put(n, status="starting", detail={})
+            self._move(n, NodeStatus.STARTING, detail={})
 
     @_atomic
     def reserve_cid(self) -> int:
@@ -420,7 +435,8 @@ class MasterState(StateIndex):
         """Running container ``c`` runs as ``cid`` on host ``tid`` at ``data_addr`` from now on (a
         move's switch, :mod:`rce_master.placement.mover`): its container-side interfaces move with it. Raises
         :class:`RequestError` unless ``c`` is the user's current, running container."""
-        if not _current(self.containers, (container.user, container.ctag), container) or container.state != "running":
+        if not _current(self.containers, (container.user, container.ctag), container) \
+                or container.state != ContainerState.RUNNING:
             raise RequestError(f"container {container.ctag!r} is not running: it is {container.state} (or gone)")
         old = container.cid
         self._put(container, cid=cid, tid=tid, data_addr=data_addr, sandbox=sandbox)
@@ -434,15 +450,15 @@ class MasterState(StateIndex):
         ``lost`` again (that work died with it). Returns every lost container that ever ran,
         by cid: the ones to re-create once hosts register."""
         for c in self.containers.values():
-            if c.state == "recovering":
-                self._put(c, state="lost")
-        return sorted((c for c in self.containers.values() if c.state == "lost" and c.data_addr),
+            if c.state == ContainerState.RECOVERING:
+                self._move(c, ContainerState.LOST)
+        return sorted((c for c in self.containers.values() if c.state == ContainerState.LOST and c.data_addr),
                       key=lambda c: c.cid)
 
     @_atomic
     def container_found(self, container: ContainerRec, tid: int, data_addr: str, sandbox: str) -> None:
         """Host ``tid`` reported ``c`` running when it re-registered: ``running`` there, at ``data_addr``."""
-        self._put(container, tid=tid, data_addr=data_addr, sandbox=sandbox, state="running")
+        self._move(container, ContainerState.RUNNING, tid=tid, data_addr=data_addr, sandbox=sandbox)
 
     @_atomic
     def container_failed(self, container: ContainerRec) -> Pairs:
@@ -498,8 +514,8 @@ class MasterState(StateIndex):
     @_atomic
     def node_running(self, node: NodeRec) -> None:
         """The host launched ``n``: ``running``, unless a status report came first."""
-        if _current(self.nodes, (node.user, node.ctag, node.ntag), node) and node.status == "starting":
-            self._put(node, status="running")
+        if _current(self.nodes, (node.user, node.ctag, node.ntag), node) and node.status == NodeStatus.STARTING:
+            self._move(node, NodeStatus.RUNNING)
 
     @_atomic
     def node_failed(self, node: NodeRec) -> None:
@@ -518,12 +534,13 @@ class MasterState(StateIndex):
         return c
 
     @_atomic
-    def node_status(self, cid: int, ntag: str, status: str, detail: dict) -> NodeRec | None:
-        """A host's report on node ``ntag`` of container ``cid``; None for a node not known."""
+    def node_status(self, cid: int, ntag: str, status: NodeStatus, detail: dict) -> NodeRec | None:
+        """A host's report on node ``ntag`` of container ``cid``; None for a node not known. Raises
+        :class:`~rce_master.state.lifecycle.IllegalMove` for a status its node cannot take now."""
         c = self.container_by_cid(cid)
         n = self.nodes.get((c.user, c.ctag, ntag)) if c else None
         if n is not None:
-            self._put(n, status=status, detail=dict(detail))
+            self._move(n, status, detail=dict(detail))
         return n
 
     @_atomic
@@ -615,7 +632,7 @@ class MasterState(StateIndex):
         for x in (a, b):
             if not x.robot_side:
                 c = self.container_by_cid(x.location)
-                if c is None or c.state != "running":
+                if c is None or c.state != ContainerState.RUNNING:
                     raise Unavailable(f"container {x.etag!r} of interface {x.tag} is not running")
         conn = ConnectionRec(user, min(a.iid, b.iid), max(a.iid, b.iid))
         if conn in self.connections:

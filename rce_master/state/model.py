@@ -14,14 +14,13 @@ import os
 from dataclasses import dataclass, field
 from typing import Any
 
+from rce.contract.environment import NodeStatus
 from rce.protocol.zones import Zone, parse_zone
+from rce_master.state.lifecycle import DOWN, ContainerState
 from rce_master.state.store import Key
 
 SCRYPT = {"n": 2**14, "r": 8, "p": 1}     # RFC 7914 cost: ~50 ms of CPU per check, by design
 LIMIT_KEYS = ("cpu", "memory", "pids", "size", "bandwidth")   # container limits and sizes (docs/INTERNALS.md)
-# container states with no container behind them: lost with its host (or environment), and being re-created
-# on a host (docs/INTERNALS.md, "Container failover")
-LOST_STATES = ("lost", "recovering")
 # what a user may do on the fleet's task API (docs/task-api.md): viewer reads tasks, metrics and the operator page;
 # operator also adds and cancels tasks; admin also revokes others' tokens. Robots' logins do not look at it.
 ROLES = ("viewer", "operator", "admin")
@@ -146,8 +145,9 @@ class ContainerRec(_Record):
 
     ``state``: ``starting`` (its CC runs), ``running``, ``lost`` (its host or environment went
     away; ``tid`` still names that host) or ``recovering`` (being re-created on host ``tid``
-    under a new ``cid``, see :mod:`rce_master.failover`). ``data_addr`` stays the last address
-    it ran at while it is lost or recovering ("" only before it first ran)."""
+    under a new ``cid``, see :mod:`rce_master.failover`), moving as
+    :data:`~rce_master.state.lifecycle.CONTAINER_TRANSITIONS` allows. ``data_addr`` stays the last
+    address it ran at while it is lost or recovering ("" only before it first ran)."""
     cid: int
     user: str
     ctag: str
@@ -155,9 +155,12 @@ class ContainerRec(_Record):
     tid: int                  # container host
     group: str | None
     data: dict                # containerData, with the limits as last resized
-    state: str = "starting"   # starting | running | lost | recovering
+    state: ContainerState = ContainerState.STARTING
     data_addr: str = ""
     sandbox: str = ""
+
+    def __post_init__(self) -> None:
+        self.state = ContainerState(self.state)       # a stored record has its str
 
     @property
     def store_key(self) -> Key:
@@ -166,7 +169,7 @@ class ContainerRec(_Record):
     @property
     def down(self) -> bool:
         """Lost, or being re-created: no container serves it now."""
-        return self.state in LOST_STATES
+        return self.state in DOWN
 
     def load(self) -> tuple[float, float]:
         """(cpu cores, memory MiB) it asked of its host."""
@@ -177,13 +180,17 @@ class ContainerRec(_Record):
 
 @dataclass
 class NodeRec(_Record):
-    """A node in container ``ctag``; ``spec``: its addNodes entry; ``detail``: code/signal/reason."""
+    """A node in container ``ctag``; ``spec``: its addNodes entry; ``status``: where it is in its life
+    (:data:`~rce_master.state.lifecycle.NODE_TRANSITIONS`); ``detail``: code/signal/reason."""
     user: str
     ctag: str
     ntag: str
     spec: dict
-    status: str = "starting"
+    status: NodeStatus = NodeStatus.STARTING
     detail: dict = field(default_factory=dict)
+
+    def __post_init__(self) -> None:
+        self.status = NodeStatus(self.status)         # a stored record has its str
 
     @property
     def store_key(self) -> Key:

@@ -21,8 +21,10 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 from typing import Any
 
+from rce.contract.environment import NodeStatus
 from rce.plumbing.errors import RequestError
 from rce.protocol.zones import parse_zone
+from rce_master.state.lifecycle import ContainerState
 from rce_master.state.model import ContainerRec, NodeRec, Robot, TaskSet
 from rce_master.state.master_state import MasterState, Pairs
 
@@ -38,7 +40,7 @@ class ContainerReport:
     cid: int
     data_addr: str
     sandbox: str | None = None
-    nodes: dict[str, str] | None = None
+    nodes: dict[str, NodeStatus] | None = None
 
 
 @dataclass
@@ -65,7 +67,7 @@ class Report:
             where = f"containers[{i}]"
             nodes = None
             if _dict(c, where).get("nodes") is not None:
-                nodes = {_str(n, "ntag", f"{where}.nodes[{j}]"): _str(n, "status", f"{where}.nodes[{j}]")
+                nodes = {_str(n, "ntag", f"{where}.nodes[{j}]"): _status(n, f"{where}.nodes[{j}]")
                          for j, n in enumerate(_list(c, "nodes", where))}
             sandbox = _str(c, "sandbox", where) if c.get("sandbox") is not None else None
             cid = _check_int(c.get("cid"), f"{where}.cid")
@@ -171,7 +173,7 @@ def _containers(state: MasterState, out: Reconciled, report: Report) -> None:
         if rep.nodes is not None:
             _nodes(state, out, c, nodes.get(cid, []), rep.nodes)
     for c in [c for c in state.containers.values()
-              if c.tid == tid and c.state != "lost" and c.cid not in report.containers]:
+              if c.tid == tid and c.state != ContainerState.LOST and c.cid not in report.containers]:
         state.container_lost(c)
         out.lost.append(c)
 
@@ -210,6 +212,13 @@ def _str(record: Any, key: str, where: str) -> str:
     if not isinstance(v, str) or not v:
         raise RequestError(f"register: {where}.{key} must be a non-empty string, got {v!r}")
     return v
+
+
+def _status(record: Any, where: str) -> NodeStatus:
+    v = _str(record, "status", where)
+    if v not in NodeStatus._value2member_map_:
+        raise RequestError(f"register: {where}.status must be one of {', '.join(NodeStatus)}, got {v!r}")
+    return NodeStatus(v)
 
 
 def _check_int(value: Any, where: str) -> int:

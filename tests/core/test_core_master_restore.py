@@ -98,6 +98,9 @@ def test_a_bad_robot_report_is_refused_naming_the_field_and_changes_nothing(args
     ({"tid": 2, "containers": [{"cid": -1, "data_addr": "x"}]}, r"containers\[0\].cid must be a positive integer"),
     ({"tid": 2, "containers": [{"cid": 1, "data_addr": "x", "nodes": [{"ntag": "n1"}]}]},
      r"containers\[0\].nodes\[0\].status must be a non-empty string"),
+    ({"tid": 2, "containers": [{"cid": 1, "data_addr": "x", "nodes": [{"ntag": "n1", "status": "flying"}]}]},
+     r"containers\[0\].nodes\[0\].status must be one of starting, running, started, respawning, exited, "
+     r"got 'flying'"),
     ({"tid": 2, "containers": [{"cid": 1, "data_addr": "x", "nodes": "n1"}]}, r"containers\[0\].nodes must be a list"),
 ])
 def test_a_bad_host_report_is_refused_naming_the_field(args, error):

@@ -8,6 +8,8 @@ import pytest
 
 from rce.plumbing.errors import AuthError, NotFound, RCEError, RequestError, Unavailable
 from rce.protocol.schema import parse
+from rce.contract.environment import NodeStatus
+from rce_master.state.lifecycle import LIFECYCLES, NODE_TRANSITIONS, ContainerState, IllegalMove, check_move
 from rce_master.state.model import User, password_digest
 from rce_master.state.master_state import MasterState
 from rce_master.state.store import MemoryStore
@@ -358,6 +360,38 @@ def test_nodes_and_params(ms):
     ms.delete_param(U, "c1", "none")
     with pytest.raises(NotFound):
         ms.set_param(U, "nope", "x", 1)
+
+
+def test_lifecycles_say_every_move_in_one_table():
+    """Each state of each lifecycle has its row, naming only states of that lifecycle; a container that
+    runs is never re-created without being lost first, and the master's own ``running`` follows only
+    a node's ``starting``."""
+    for kind, table in LIFECYCLES.items():
+        assert set(table) == set(kind) and all(set(to) <= set(kind) for to in table.values())
+    assert check_move(ContainerState, "container 'c'", "lost", "recovering") is ContainerState.RECOVERING
+    assert check_move(ContainerState, "container 'c'", "running", "running") is ContainerState.RUNNING
+    with pytest.raises(IllegalMove, match=r"^container 'c' cannot go from running to recovering "
+                                          r"\(from running: lost\)$"):
+        check_move(ContainerState, "container 'c'", "running", "recovering")
+    assert [s for s in NodeStatus if NodeStatus.RUNNING in NODE_TRANSITIONS[s]] == [NodeStatus.STARTING]
+    with pytest.raises(ValueError):
+        check_move(NodeStatus, "node 'n'", "running", "flying")
+
+
+def test_a_record_moves_only_as_its_lifecycle_allows_and_a_refused_move_changes_nothing(ms):
+    c = running(ms, U, "c1")
+    assert c.state is ContainerState.RUNNING
+    _, n = ms.add_node(U, component("addNodes", {"containerTag": "c1", "nodeTag": "n1", "pkg": "Test", "exe": "e"}))
+    ms.node_status(c.cid, "n1", "exited", {"code": 3})
+    with pytest.raises(IllegalMove, match="node 'n1' in container 'c1' cannot go from exited to running"):
+        ms.node_status(c.cid, "n1", "running", {})
+    assert (n.status, n.detail) == (NodeStatus.EXITED, {"code": 3})
+    ms.container_lost(c)
+    ms.container_recovering(c, c.tid)
+    assert (c.state, n.status) == (ContainerState.RECOVERING, NodeStatus.STARTING)
+    restored = MasterState(ms.store)                  # a stored state comes back as its lifecycle's member
+    assert restored.containers[(U, "c1")].state is ContainerState.RECOVERING
+    assert restored.nodes[(U, "c1", "n1")].status is NodeStatus.STARTING
 
 
 # -- interfaces ---------------------------------------------------------------------------------
