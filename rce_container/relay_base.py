@@ -75,7 +75,7 @@ class RawNode(Node):
         return await self._call(r["handle"], payload, timeout)
 
 
-class Relay(Protocol):
+class RelayLike(Protocol):
     """What :func:`serve` and :func:`run` ask of a relay: its name on both graphs, a ``stopping``
     event, ``sync()`` (look at both graphs now, return its stats) and ``stats()``."""
     me: str
@@ -86,7 +86,7 @@ class Relay(Protocol):
     def stats(self) -> dict: ...
 
 
-async def run(relay: Relay, bus: RawNode) -> None:
+async def run(relay: RelayLike, bus: RawNode) -> None:
     """Serve ``<me>/sync`` (sync now, answer the stats as JSON) and ``<me>/stats`` (the stats) on
     ``bus``, and sync every :data:`POLL_INTERVAL` s until ``relay.stopping`` or the bus goes."""
     async def on_sync(_payload: bytes) -> bytes:
@@ -108,7 +108,7 @@ async def run(relay: Relay, bus: RawNode) -> None:
             pass
 
 
-async def serve(me: str, make: Callable[[RawNode], Awaitable[Relay]], cleanup: Callable[[], None] | None = None,
+async def serve(me: str, make: Callable[[RawNode], Awaitable[RelayLike]], cleanup: Callable[[], None] | None = None,
                 **about: Any) -> None:
     """Connect the bus node ``me`` (``RCE_BUS``, ``RCE_BUS_TOKEN``), make the relay on it, and relay
     until SIGTERM/SIGINT or the bus closes; then run ``cleanup`` (what exiting does not undo) and exit

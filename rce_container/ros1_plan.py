@@ -97,7 +97,7 @@ def ros1_graph(system_state: list, topic_types: list) -> GraphView:
 
 
 @dataclass
-class Plan:
+class Ros1Plan:
     """What the relay should bridge: ``to_ros``/``to_bus``: topic -> type (bus -> ROS 1 and
     ROS 1 -> bus), ``services_to_bus``: ROS 1 services the relay provides on the bus,
     ``services_to_ros``: bus services (-> type) it provides in the ROS 1 graph."""
@@ -113,11 +113,11 @@ def _others(names: set[str] | None, me: str) -> bool:
 
 
 def plan(bus: GraphView, ros: GraphView, me: str, *, relay_prefix: str = RELAY_PREFIX,
-         node_services: tuple[str, ...] = NODE_SERVICES, graph: str = "ROS 1") -> Plan:
+         node_services: tuple[str, ...] = NODE_SERVICES, graph: str = "ROS 1") -> Ros1Plan:
     """The bridges the relay named ``me`` (on both graphs) should have now (module doc).
     ``relay_prefix``, ``node_services`` and ``graph`` (its name in messages) describe the ROS graph
     (:mod:`rce_container.ros2_plan` uses the same rule for ROS 2)."""
-    p = Plan()
+    p = Ros1Plan()
     for topic in set(bus.publishers) | set(ros.publishers):
         if topic.startswith(relay_prefix):
             continue

@@ -15,12 +15,12 @@ between them untouched (``rospy.AnyMsg`` and the raw classes of
 - it copies the bus's parameters to rosmaster (``rospy.get_param`` in a ROS 1 node sees the
   parameters a robot sets with CN ``setParam``);
 - its bus service ``<relay name>/sync`` (request and response are bytes: empty, then the JSON
-  of :meth:`Relay.stats`) syncs at once; the environment calls it before a ROS 1 node starts and
+  of :meth:`Ros1Relay.stats`) syncs at once; the environment calls it before a ROS 1 node starts and
   after a parameter changes.
 
 Bounds: bus -> ROS 1 messages wait in one queue of :data:`~rce_container.relay_base.QUEUE_SIZE`
 for the publishing thread; ROS 1 -> bus at most as many wait for the event loop; beyond, they are
-dropped and counted (:meth:`Relay.stats`).
+dropped and counted (:meth:`Ros1Relay.stats`).
 """
 from __future__ import annotations
 
@@ -67,7 +67,7 @@ def wait_for_master(master: Any, timeout: float = MASTER_WAIT) -> None:
         time.sleep(MASTER_POLL)
 
 
-class Relay:
+class Ros1Relay:
     """The bridges of one container between its bus (``node``) and its ROS 1 graph (module doc)."""
 
     def __init__(self, node: RawNode, me: str):
@@ -269,8 +269,8 @@ async def serve(cid: int) -> None:
     await asyncio.to_thread(wait_for_master, rosgraph.Master(me))
     rospy.init_node(me.lstrip("/"), disable_signals=True, disable_rosout=True)
 
-    async def make(bus: RawNode) -> Relay:
-        return Relay(bus, me)
+    async def make(bus: RawNode) -> Ros1Relay:
+        return Ros1Relay(bus, me)
     await relay_base.serve(me, make, graph="ROS 1", master=os.environ.get("ROS_MASTER_URI"))
 
 

@@ -180,7 +180,7 @@ class Ros2View:
 
 
 @dataclass
-class Plan:
+class Ros2Plan:
     """What the relay should bridge: ``to_ros``/``to_bus``: topic -> (type, the QoS of the relay's
     publisher in ROS 2 / of its subscription there), ``services_to_bus``/``services_to_ros``:
     service -> type, ``conflicts``: name -> why it is left alone, ``incompatible``: topic -> which
@@ -209,11 +209,11 @@ def offer_for(requests: list[QoS]) -> QoS:
                durability="transient_local" if latched else "volatile", depth=LATCHED_DEPTH if latched else PUB_DEPTH)
 
 
-def plan(bus: GraphView, ros: Ros2View, me: str) -> Plan:
+def plan(bus: GraphView, ros: Ros2View, me: str) -> Ros2Plan:
     """The bridges the relay named ``me`` (on both graphs) should have now (module doc). A bus
     service of a ROS 1 class is not offered in ROS 2 (a ROS 1 relay of the same container serves it)."""
     base = bridge_plan(bus, ros.view(), me, relay_prefix=RELAY_PREFIX, node_services=NODE_SERVICES, graph="ROS 2")
-    p = Plan(conflicts=dict(base.conflicts))
+    p = Ros2Plan(conflicts=dict(base.conflicts))
     for topic, t in base.to_ros.items():
         subs = [e for e in ros.subscribers.get(topic, []) if e.node != me]
         p.to_ros[topic] = (t, offer_for([e.qos for e in subs]))
@@ -233,7 +233,7 @@ def plan(bus: GraphView, ros: Ros2View, me: str) -> Plan:
 def interface_statuses(addrs: dict[int, str], stats: dict) -> dict[int, tuple[str, str]]:
     """``{iid: (status, reason)}`` for the container interfaces (``addrs``: iid -> topic or
     service) whose name the relay could not bridge as asked, from its :meth:`stats
-    <rce_container.ros2_relay.Relay.stats>`: ``incompatible_qos`` (``incompatible``) before
+    <rce_container.ros2_relay.Ros2Relay.stats>`: ``incompatible_qos`` (``incompatible``) before
     ``not_bridged`` (``problems``: a type conflict, a type without Python support...)."""
     out = {}
     incompatible, problems = stats.get("incompatible") or {}, stats.get("problems") or {}

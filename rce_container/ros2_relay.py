@@ -17,7 +17,7 @@ the two with :func:`rce_container.ros2_plan.plan`:
 - QoS: its subscriptions take what the publishers offer, its publishers offer what the
   subscriptions need (:func:`~rce_container.ros2_plan.request_for`,
   :func:`~rce_container.ros2_plan.offer_for`), a bridge made again when that changes;
-  subscriptions it cannot match are in ``incompatible`` (:meth:`Relay.stats`), and so is every
+  subscriptions it cannot match are in ``incompatible`` (:meth:`Ros2Relay.stats`), and so is every
   incompatible-QoS event DDS reports on its endpoints;
 - parameters: a change of the bus's parameters is set on the running ROS 2 nodes that declared
   them (their ``set_parameters`` service); at a node's start they come in its parameter file.
@@ -58,7 +58,7 @@ ECHO_MEMORY = 100        # own messages remembered per topic bridged both ways (
 
 
 @dataclass
-class Bridge:
+class TopicBridge:
     """One topic bridged: ``bus`` (the bus subscription's handle, or the bus publisher), ``ros``
     (the rclpy publisher or subscription), its ROS 2 ``type`` and ``qos``."""
     bus: Any
@@ -67,15 +67,15 @@ class Bridge:
     qos: QoS
 
 
-class Relay:
+class Ros2Relay:
     """The bridges of one container between its bus (``bus``) and its ROS 2 graph (``node``, an
     rclpy node spun by an executor in another thread); see the module doc."""
 
     def __init__(self, bus: RawNode, node: Any, me: str):
         self.bus, self.node, self.me = bus, node, me
         self.loop = asyncio.get_running_loop()
-        self.to_ros: dict[str, Bridge] = {}
-        self.to_bus: dict[str, Bridge] = {}
+        self.to_ros: dict[str, TopicBridge] = {}
+        self.to_bus: dict[str, TopicBridge] = {}
         self.srv_to_bus: dict[str, tuple[int, Any]] = {}     # service -> (bus handle, rclpy client)
         self.srv_to_ros: dict[str, Any] = {}                 # service -> rclpy service
         self.bus_echo: dict[str, deque] = {}                 # what the relay put on the bus, per topic
@@ -135,7 +135,7 @@ class Relay:
         except BaseException:
             self.node.destroy_publisher(pub)
             raise
-        self.to_ros[topic] = Bridge(handle, pub, wire, qos)
+        self.to_ros[topic] = TopicBridge(handle, pub, wire, qos)
 
     # -- ROS 2 -> bus --------------------------------------------------------------------------
     async def _bridge_to_bus(self, topic: str, wire: str, qos: QoS) -> None:
@@ -169,7 +169,7 @@ class Relay:
         except BaseException:
             await bus_pub.unregister()
             raise
-        self.to_bus[topic] = Bridge(bus_pub, sub, wire, qos)
+        self.to_bus[topic] = TopicBridge(bus_pub, sub, wire, qos)
 
     def _qos_event(self, topic: str, event: Any, what: str) -> None:
         """DDS found a ROS 2 endpoint whose QoS does not match the relay's ``what`` on ``topic``."""
@@ -209,11 +209,11 @@ class Relay:
         from rclpy.serialization import serialize_message
         from rce.ros2.classes import rclpy_class
         cls = rclpy_class(wire)
-        srv = self.node.create_service(cls, name, lambda request, _response: _Pending(serialize_message(request)))
+        srv = self.node.create_service(cls, name, lambda request, _response: _LaterAnswer(serialize_message(request)))
         send = srv.send_response
 
         def send_response(response: Any, header: Any) -> None:      # the executor's thread
-            if not isinstance(response, _Pending):
+            if not isinstance(response, _LaterAnswer):
                 send(response, header)
             elif not self.calls.acquire(blocking=False):
                 self.counts["call_errors"] += 1
@@ -338,7 +338,7 @@ class Relay:
                 "params": dict(self.params)}
 
 
-class _Pending:
+class _LaterAnswer:
     """What a service callback of the relay returns: the request, answered later (module doc)."""
 
     def __init__(self, payload: bytes):
@@ -358,8 +358,8 @@ async def serve(cid: int) -> None:
     spinning = threading.Thread(target=executor.spin, name="ros2 executor", daemon=True)
     spinning.start()
 
-    async def make(bus: RawNode) -> Relay:
-        return Relay(bus, node, me)
+    async def make(bus: RawNode) -> Ros2Relay:
+        return Ros2Relay(bus, node, me)
 
     def cleanup() -> None:        # Fast DDS removes its shared-memory segments with its participant,
         executor.shutdown(timeout_sec=EXIT_WAIT)      # once the executor no longer waits on the node

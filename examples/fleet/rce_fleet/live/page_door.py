@@ -30,7 +30,7 @@ from rce.plumbing.tasks import Tasks
 from rce_client.dial import HandshakeRefused, close_quietly, dial, hash_password, login, with_query
 from websockets.exceptions import ConnectionClosed
 
-from ..operations.page_rules import PageRules, Refused
+from ..operations.page_rules import PageRefused, PageRules
 
 log = get_logger("fleet.page_door")
 
@@ -78,7 +78,7 @@ class PageDoor:
                                             "own user; log in again")
         try:
             return who, digest, PageRules(who.user, who.role, rid, self.ctag)
-        except Refused as e:
+        except PageRefused as e:
             raise web.HTTPBadRequest(text=str(e)) from None
 
     async def handle(self, req: web.Request) -> web.StreamResponse:
@@ -142,7 +142,7 @@ async def _pump(ws: web.WebSocketResponse, up, rules: PageRules, door: PageDoor)
                 await up.send(rules.text(m.data))
             elif m.type == WSMsgType.BINARY:
                 rules.binary()
-    except Refused as e:
+    except PageRefused as e:
         door.refused += 1
         log.warning("page frame refused", user=rules.user, robot=rules.robot_id, reason=str(e))
         await ws.close(code=CLOSE_POLICY, message=f"refused: {e}".encode()[:120])

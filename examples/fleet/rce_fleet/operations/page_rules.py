@@ -15,7 +15,7 @@ through only what the page itself does (``live/web/fleet.js``), for the person's
 - ``AK`` (acknowledgements of a resumed session).
 
 Anything else (``CC``, ``DC``, another endpoint's interfaces, another topic, binary frames) raises
-:class:`Refused` naming it; the shell then closes the page's link (1008). A frame is never changed but
+:class:`PageRefused` naming it; the shell then closes the page's link (1008). A frame is never changed but
 for the ``source`` it stamps (its ``seq`` is kept, so a resumed session's numbering holds).
 """
 from __future__ import annotations
@@ -29,7 +29,7 @@ from rce.protocol.limits import short_repr
 
 from .api_auth import allows
 
-__all__ = ["READS", "WRITES", "ROBOT_ID", "PageRules", "Refused"]
+__all__ = ["READS", "WRITES", "ROBOT_ID", "PageRules", "PageRefused"]
 
 READS = {"/fleet/state": "fleet/FleetState", "/fleet/tasks": "fleet/TaskList"}
 WRITES = {"/fleet/goal": "fleet/RobotGoal", "/fleet/block": "fleet/CellBlock", "/fleet/task": "fleet/Task",
@@ -41,7 +41,7 @@ PROBE = re.compile(r"^(rcesync[A-Za-z0-9]{1,32})/([ab])$")
 TYPES = {"CN", "CX", "DM", "AK"}
 
 
-class Refused(ValueError):
+class PageRefused(ValueError):
     """A frame the page may not send; the message says what and why."""
 
 
@@ -51,20 +51,20 @@ class PageRules:
 
     def __init__(self, user: str, role: str, robot_id: str, ctag: str):
         if not ROBOT_ID.match(robot_id):
-            raise Refused(f"robotID {short_repr(robot_id)}: the page's are operator-ID (letters and digits)")
+            raise PageRefused(f"robotID {short_repr(robot_id)}: the page's are operator-ID (letters and digits)")
         self.user, self.role, self.robot_id, self.ctag = user, role, robot_id, ctag
         self.operator = allows(role, "operator")
         self.writers: dict[str, str] = {}       # the page's SubscriberConverter tags -> class
 
     def text(self, frame: str) -> str:
-        """The frame to forward (``frame`` itself, or with a stamped ``source``); raises :class:`Refused`."""
+        """The frame to forward (``frame`` itself, or with a stamped ``source``); raises :class:`PageRefused`."""
         try:
             m = orjson.loads(frame)
         except orjson.JSONDecodeError as e:
-            raise Refused(f"not JSON: {e}") from None
+            raise PageRefused(f"not JSON: {e}") from None
         if not isinstance(m, dict) or m.get("type") not in TYPES or not isinstance(m.get("data"), dict):
             kind = m.get("type") if isinstance(m, dict) else type(m).__name__
-            raise Refused(f"a {short_repr(kind)} message: the page may send {', '.join(sorted(TYPES))} only")
+            raise PageRefused(f"a {short_repr(kind)} message: the page may send {', '.join(sorted(TYPES))} only")
         data = m["data"]
         match m["type"]:
             case "CN":
@@ -77,55 +77,57 @@ class PageRules:
         return frame
 
     def binary(self) -> None:
-        """A binary frame: the page sends none (its interfaces are converters); raises :class:`Refused`."""
-        raise Refused("binary frames: the page's interfaces are converters (JSON)")
+        """A binary frame: the page sends none (its interfaces are converters); raises :class:`PageRefused`."""
+        raise PageRefused("binary frames: the page's interfaces are converters (JSON)")
 
     # -- the rules ----------------------------------------------------------------------------------
     def _configure(self, data: dict) -> None:
         if set(data) - {"addInterfaces", "removeInterfaces"}:
-            raise Refused(f"CN {', '.join(sorted(set(data) - {'addInterfaces', 'removeInterfaces'}))}: the page "
+            raise PageRefused(f"CN {', '.join(sorted(set(data) - {'addInterfaces', 'removeInterfaces'}))}: the page "
                           "may add and remove interfaces only")
         for i in _items(data.get("addInterfaces", []), "CN addInterfaces"):
             self._add(i)
         for i in _items(data.get("removeInterfaces", []), "CN removeInterfaces"):
             if not self._own(str(i.get("endpointTag")), str(i.get("interfaceTag"))):
-                raise Refused(f"CN removeInterfaces {i.get('endpointTag')}/{i.get('interfaceTag')}: not this page's")
+                raise PageRefused(f"CN removeInterfaces {i.get('endpointTag')}/{i.get('interfaceTag')}: "
+                                  f"not this page's")
 
     def _add(self, i: dict) -> None:
         etag, itag, kind, cls = (str(i.get(k, "")) for k in ("endpointTag", "interfaceTag", "interfaceType",
                                                             "className"))
         where = f"CN addInterfaces {etag}/{itag}"
         if not self._own(etag, itag):
-            raise Refused(f"{where}: not this page's (its robot {self.robot_id}, or {self.ctag}/{self.robot_id}_...)")
+            raise PageRefused(f"{where}: not this page's (its robot {self.robot_id}, or "
+                              f"{self.ctag}/{self.robot_id}_...)")
         if etag == self.robot_id:
             if kind == "SubscriberConverter" and self.operator:
                 self.writers[itag] = cls
             elif kind != "PublisherConverter":
-                raise Refused(f"{where}: a {kind} {self._needs(kind == 'SubscriberConverter')}")
+                raise PageRefused(f"{where}: a {kind} {self._needs(kind == 'SubscriberConverter')}")
             return
         topic = str(i.get("addr", ""))
         table = READS if kind == "SubscriberInterface" else WRITES if kind == "PublisherInterface" else None
         if table is None or table.get(topic) != cls:
-            raise Refused(f"{where}: a {kind} of {cls} on {topic!r} is not one of the page's")
+            raise PageRefused(f"{where}: a {kind} of {cls} on {topic!r} is not one of the page's")
         if table is WRITES and not self.operator:
-            raise Refused(f"{where}: {self._needs(True)}")
+            raise PageRefused(f"{where}: {self._needs(True)}")
 
     def _connect(self, data: dict) -> None:
         if set(data) - {"connect", "disconnect"}:
-            raise Refused("CX: connect and disconnect only")
+            raise PageRefused("CX: connect and disconnect only")
         for pair in _items(data.get("connect", []), "CX connect") + _items(data.get("disconnect", []), "CX disconnect"):
             a, b = str(pair.get("tagA", "")), str(pair.get("tagB", ""))
             pa, pb = PROBE.match(a), PROBE.match(b)
             if pa and pb and pa.group(1) == pb.group(1):
                 continue
             if not (self._own_tag(a) and self._own_tag(b)):
-                raise Refused(f"CX {a} - {b}: not between this page's interfaces")
+                raise PageRefused(f"CX {a} - {b}: not between this page's interfaces")
 
     def _message(self, data: dict) -> bool:
         itag = str(data.get("iTag", ""))
         cls = self.writers.get(itag)
         if cls is None:
-            raise Refused(f"DM on {itag!r}: not one of this page's publishing interfaces")
+            raise PageRefused(f"DM on {itag!r}: not one of this page's publishing interfaces")
         msg = data.get("msg")
         if cls in STAMPED and isinstance(msg, dict):
             msg["source"] = f"page:{self.user}"
@@ -149,5 +151,5 @@ class PageRules:
 
 def _items(value: Any, where: str) -> list[dict]:
     if not isinstance(value, list) or not all(isinstance(x, dict) for x in value):
-        raise Refused(f"{where}: expected a list of objects")
+        raise PageRefused(f"{where}: expected a list of objects")
     return value

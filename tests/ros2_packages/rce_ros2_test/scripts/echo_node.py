@@ -22,7 +22,8 @@ class Echo(Node):
     def __init__(self):
         super().__init__("echo_node")
         self.declare_parameter("prefix", "")
-        latched = self.create_publisher(String, "latched", QoSProfile(depth=1, durability=DurabilityPolicy.TRANSIENT_LOCAL))
+        latched = self.create_publisher(String, "latched",
+                                        QoSProfile(depth=1, durability=DurabilityPolicy.TRANSIENT_LOCAL))
         latched.publish(String(data="published once, at the start"))
         self.out = self.create_publisher(String, "out", 10)
         self.create_subscription(String, "in", self.on_message, 10)
