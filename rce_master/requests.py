@@ -3,9 +3,10 @@
 (``rosbridge_library/capabilities/``, listed in ``rosbridge_protocol.py``): adding a request
 type, or a CN/CX component, touches one class and one table entry.
 
-A request arrives as its type and data as the robot sent them; :func:`handle` parses the data
-into its model (:func:`rce.protocol.schema.parse`, the schema the robot endpoint validated it
-with), and each handler reads the model's attributes. The handler's body only asks
+A request arrives as its type and data as the robot endpoint sent them (the wire form of the
+model its session validated); :func:`handle` validates the data into its model with the same
+function (:func:`rce.protocol.schema.validate`), once, and each handler reads the model's attributes.
+The handler's body only asks
 :class:`~rce_master.state.master_state.MasterState` (which enforces the rules) and tells the task sets
 (:class:`~rce_master.control.Control`). Each component is a :class:`Step`: ``reserve`` (the state
 change), ``tell`` (the I/O), ``confirm`` (the state change once told) and ``undo`` (when telling
@@ -269,5 +270,5 @@ async def handle(req: Request, type_: str, data: dict) -> None:
     handler = REQUESTS.get(type_)
     if handler is None:
         raise RequestError(f"unknown request type {type_!r}")
-    _, model = schema.parse({"type": type_, "data": data})
+    _, model = schema.validate({"type": type_, "data": data})
     await handler.run(req, model)

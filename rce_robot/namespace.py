@@ -30,6 +30,7 @@ from rce.messages.forms import JsonForms
 from rce.protocol.limits import LOG_BURST, LOG_RATE, TokenBucket, truncate
 from rce.protocol.events import (CaughtUp, CloseLink, Deliver, Lagging, RequestReady, RobotEvent, ServiceCall,
                                  unhandled)
+from rce.protocol.schema import RequestData
 from rce.protocol.session import RobotSession
 from rce.transport.masterlink import MasterLink
 from rce.plumbing.tasks import Tasks
@@ -355,10 +356,10 @@ class RobotNamespace:
             case _:
                 unhandled(ev)
 
-    async def _request(self, type_: str, data: dict) -> None:
+    async def _request(self, type_: str, data: RequestData) -> None:
         try:
-            await self.master.ask(to_master.RobotRequest(user=self.user, robot=self.robot, type=type_, data=data),
-                                  REQUEST_TIMEOUT)
+            await self.master.ask(to_master.RobotRequest(user=self.user, robot=self.robot, type=type_,
+                                                         data=data.wire()), REQUEST_TIMEOUT)
         except RCEError as e:
             self.session.request_done(e.message)
         else:

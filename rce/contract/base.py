@@ -16,7 +16,7 @@ from __future__ import annotations
 
 from typing import Annotated, Any, ClassVar, TypeVar
 
-from pydantic import BaseModel, ConfigDict, PlainValidator, ValidationError
+from pydantic import BaseModel, ConfigDict, PlainSerializer, PlainValidator, ValidationError
 
 from rce.interfaces.kind import InterfaceType
 from rce.plumbing.errors import RCEError, RequestError
@@ -25,7 +25,7 @@ from rce.plumbing.text import key_path, short_repr
 #: An interface type as the wire names it (its canonical name, or an RCE alpha one), parsed once
 #: (:meth:`InterfaceType.parse`): an unknown one is refused with that method's
 #: :class:`~rce.plumbing.errors.ProtocolError` naming it; which side may take it is the receiver's to say.
-IType = Annotated[InterfaceType, PlainValidator(InterfaceType.parse)]
+IType = Annotated[InterfaceType, PlainValidator(InterfaceType.parse), PlainSerializer(str)]
 
 
 class OpArgs(BaseModel):

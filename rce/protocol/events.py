@@ -17,14 +17,16 @@ from __future__ import annotations
 from dataclasses import dataclass, fields
 from typing import Any, NoReturn, get_args
 
+from rce.protocol.schema import Component, RequestData
+
 
 # -- the cloud side (RobotSession) -------------------------------------------------------------------
 @dataclass(frozen=True, slots=True)
 class RequestReady:
-    """A robot's request (``type``: CC, DC, CN or CX; ``data``: its validated data) is next for the
-    master: send it, then :meth:`~rce.protocol.session.RobotSession.request_done`."""
+    """A robot's request (``type``: CC, DC, CN or CX; ``data``: its model, :func:`rce.protocol.schema.validate`)
+    is next for the master: send it (``data.wire()``), then :meth:`~rce.protocol.session.RobotSession.request_done`."""
     type: str
-    data: dict
+    data: RequestData
 
 
 @dataclass(frozen=True, slots=True)
@@ -163,7 +165,12 @@ def as_record(event: Event) -> dict[str, Any]:
     """``event`` as the session vectors write it: ``{"event": name, field: value, ...}`` with the wire's
     key names (``iTag``, ``msgID``)."""
     return {"event": NAMES[type(event)],
-            **{_WIRE_KEYS.get(f.name, f.name): getattr(event, f.name) for f in fields(event)}}
+            **{_WIRE_KEYS.get(f.name, f.name): _wire(getattr(event, f.name)) for f in fields(event)}}
+
+
+def _wire(value: Any) -> Any:
+    """A field's value as the wire has it (a request's model: its wire form)."""
+    return value.wire() if isinstance(value, Component) else value
 
 
 def unhandled(event: object) -> NoReturn:

@@ -9,6 +9,7 @@ from collections import deque
 from dataclasses import dataclass
 
 from rce.plumbing.errors import ProtocolError
+from rce.protocol.schema import RequestData
 
 
 @dataclass(slots=True)
@@ -18,12 +19,13 @@ class _Held:
 
 
 class HoldBack:
-    """Requests (``(type, data)``) waiting for the master, the one it handles (:attr:`in_flight`: its
-    type), and the DMs (their ``data``) that wait for earlier requests. ``queue_size``: each queue's bound."""
+    """Requests (``(type, data)``, ``data`` their model) waiting for the master, the one it handles
+    (:attr:`in_flight`: its type), and the DMs (their ``data``) that wait for earlier requests.
+    ``queue_size``: each queue's bound."""
 
     def __init__(self, queue_size: int):
         self.queue_size = queue_size
-        self.requests: deque[tuple[str, dict]] = deque()
+        self.requests: deque[tuple[str, RequestData]] = deque()
         self.in_flight: str | None = None
         self._received = self._done = 0                 # requests taken / answered
         self._held: deque[_Held] = deque()
@@ -43,12 +45,12 @@ class HoldBack:
         """DMs waiting for earlier requests."""
         return len(self._held)
 
-    def add(self, type_: str, data: dict) -> None:
+    def add(self, type_: str, data: RequestData) -> None:
         """A request of the robot's (the caller checked :attr:`full`)."""
         self._received += 1
         self.requests.append((type_, data))
 
-    def next(self) -> tuple[str, dict] | None:
+    def next(self) -> tuple[str, RequestData] | None:
         """The request to send to the master now, or None (one is in flight, or none waits)."""
         if self.in_flight is not None or not self.requests:
             return None

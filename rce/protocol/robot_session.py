@@ -6,7 +6,8 @@ from __future__ import annotations
 from dataclasses import dataclass
 from typing import Any
 
-from rce.plumbing.errors import ProtocolError, RequestError
+from rce.plumbing.errors import ProtocolError
+from rce.interfaces.kind import InterfaceType, Kind, Side
 from rce.messages import takes_binary_message
 from rce.protocol.events import CaughtUp, CloseLink, Deliver, Lagging, RequestReady, ServiceCall
 from rce.protocol.frames import DEFAULT_EXPIRY, DEFAULT_MAX_PENDING_BYTES, DEFAULT_MAX_PENDING_PARTS, DM, ST
@@ -18,7 +19,7 @@ from rce.protocol.limits import DEFAULT_MAX_LAG, ER_BURST, ER_RATE, LagGate, Par
 from rce.protocol.robot_outbox import RobotOutbox, dm
 from rce.protocol.resume import (ACK_DELAY, ACK_EVERY, DEFAULT_GRACE, DEFAULT_RESUME_BUFFER, DEFAULT_RESUME_BYTES,
                                  SESSION_TOPIC, new_token)
-from rce.protocol.schema import split_interface_type, validate
+from rce.protocol.schema import dm_data, validate
 from rce.protocol.session_core import SessionCore
 
 DEFAULT_QUEUE_SIZE = 1000                   # messages per robot in each bounded queue (like a ROS queue_size)
@@ -110,7 +111,7 @@ class RobotSession(SessionCore):
         self.robot, self.max_message, self.queue_size = robot, limits.max_message, limits.queue_size
         self.lag = LagGate(limits.max_lag)                        # sheds topic DMs while the shell lags
         self.requests = HoldBack(limits.queue_size)               # requests to the master, DMs held for them
-        self.interfaces: dict[str, tuple[str, str, str]] = {}     # iTag -> (kind, side, cls)
+        self.interfaces: dict[str, tuple[InterfaceType, str]] = {}     # iTag -> (its type, its class)
         self.lanes: dict[str, tuple[Lane, bool]] = {}             # iTag -> (its lane, set by the robot)
         self.calls = 0                                            # service calls in flight
         self.msgs_in = self.dropped_in = 0
@@ -154,17 +155,20 @@ class RobotSession(SessionCore):
             return
         self.msgs_in += 1
         try:
-            t, data = validate(msg)
+            if type(msg) is dict and msg.get("type") == DM:      # its data travels on as its dict (schema.dm_data)
+                data, request = dm_data(msg), None
+            else:
+                data, (t, request) = None, validate(msg)
         except ProtocolError as e:
             self.send_error(e.message)
             return
-        if t == DM:
+        if request is None:
             self._on_dm(data)
         elif self.requests.full:
             self.dropped_in += 1
             self.send_error(f"{t}: refused: {len(self.requests.requests)} requests already wait for the master")
         else:
-            self.requests.add(t, data)
+            self.requests.add(t, request)
             self._next_request()
 
     def backlog(self, frames: int, now: float) -> None:
@@ -209,11 +213,11 @@ class RobotSession(SessionCore):
         if itf is None:
             self.send_error(f"DM: no interface {itag!r} on robot {self.robot!r}")
             return
-        kind, side, cls = itf
-        refusal = _refusal(itag, kind, side, cls, data)
+        itype, cls = itf
+        refusal = _refusal(itag, itype, cls, data)
         if refusal:
             self.send_error(refusal)
-        elif kind != "ServiceProvider":
+        elif itype.kind is not Kind.SERVICE_PROVIDER:
             if not self.lag.admit(itag, self._now):
                 if self.lag.episode == 1:
                     behind = round(self.lag.behind(self._now), 3)
@@ -234,7 +238,7 @@ class RobotSession(SessionCore):
         ``msg``: the response goes to the robot with the call's msgID (never dropped)."""
         self.calls -= 1
         itag = call["iTag"]
-        self.send_dm(itag, self.interfaces.get(itag, ("", "", call["type"]))[2], call.get("msgID") or "", msg)
+        self.send_dm(itag, self.interfaces.get(itag, (None, call["type"]))[1], call.get("msgID") or "", msg)
 
     def fail_call(self, call: dict, reason: str) -> None:
         """The service of a :class:`~rce.protocol.events.ServiceCall` (its ``data``: ``call``) failed: an
@@ -247,9 +251,9 @@ class RobotSession(SessionCore):
         """A robot-side interface ``itag`` of type ``itype`` and class ``cls`` now exists; ``lane``: the
         lane the robot set for it (None: from ``cls``, :func:`~rce.interfaces.lanes.default_lane`).
         Raises as :func:`robot_interface_type`."""
-        kind, side = robot_interface_type(itype)
-        self.interfaces[itag] = (kind, side, cls)
-        self.lanes[itag] = (interface_lane(cls, kind.startswith("Service"), lane), lane is not None)
+        parsed = robot_interface_type(itype)
+        self.interfaces[itag] = (parsed, cls)
+        self.lanes[itag] = (interface_lane(cls, parsed.kind.service, lane), lane is not None)
 
     def remove_interface(self, itag: str) -> None:
         """Robot-side interface ``itag`` is gone."""
@@ -337,7 +341,7 @@ class RobotSession(SessionCore):
                 continue
             self.msgs_in += 1
             try:
-                _, data = validate(msg)
+                data = dm_data(msg)
             except ProtocolError as e:
                 self.send_error(e.message)
                 continue
@@ -441,26 +445,22 @@ class RobotSession(SessionCore):
         return stats
 
 
-def robot_interface_type(itype: str) -> tuple[str, str]:
-    """``(kind, side)`` of a robot-side interface type (a Converter or Forwarder). Raises
-    :class:`ProtocolError` for an unknown type, :class:`RequestError` for a container-side one."""
-    kind, side = split_interface_type(itype)
-    if side == "Interface":
-        raise RequestError(f"{itype} is a container interface, not a robot-side one")
-    return kind, side
+def robot_interface_type(itype: str | InterfaceType) -> InterfaceType:
+    """A robot-side interface type (a Converter or Forwarder), parsed. Raises :class:`ProtocolError`
+    for an unknown type, :class:`RequestError` for a container-side one."""
+    return InterfaceType.parse(itype, robot_side=True)
 
 
-def _refusal(itag: str, kind: str, side: str, cls: str, data: dict) -> str | None:
-    """Why interface ``itag`` cannot take this DM, or None."""
+def _refusal(itag: str, itype: InterfaceType, cls: str, data: dict) -> str | None:
+    """Why interface ``itag`` (of type ``itype``, class ``cls``) cannot take this DM, or None."""
     if str(data["type"]).strip("/") != cls:
         return f"DM: interface {itag!r} carries {cls!r}, not {data['type']!r}"
-    itype = kind + side
-    if kind == "Publisher":
+    if itype.kind is Kind.PUBLISHER:
         return (f"{itype} {itag!r} sends messages to the robot; it does not take messages from it "
                 f"(use a SubscriberConverter)")
     binary = isinstance(data.get("msg"), (bytes, bytearray))
-    if side == "Converter" and binary and not takes_binary_message(cls):
-        return f"{itype} {itag!r} takes JSON messages; use a {kind}Forwarder for serialized binary messages"
-    if side == "Forwarder" and not binary:
+    if itype.side is Side.CONVERTER and binary and not takes_binary_message(cls):
+        return f"{itype} {itag!r} takes JSON messages; use a {itype.kind}Forwarder for serialized binary messages"
+    if itype.side is Side.FORWARDER and not binary:
         return f"{itype} {itag!r} takes the serialized message as binary part 'msg*'"
     return None

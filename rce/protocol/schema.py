@@ -7,12 +7,13 @@ config (:mod:`rce.protocol.config`) builds its models on the component models he
 keys (``cTag``, ``nTag``, ``eTag``, ``iTag``, ``iType``, ``iCls``; the field names) where the
 wire uses the long ones (``containerTag``, ``nodeTag``...; the aliases).
 
-:func:`parse` checks a complete message and returns its data as a model (:class:`CCData`,
+:func:`validate` checks a complete message and returns its data as a model (:class:`CCData`,
 :class:`DCData`, :class:`CNData`, :class:`CXData`, :class:`DataMessage`), which travels on past
-validation: the master's request handlers read its attributes, an interface type is an
-:class:`~rce.interfaces.kind.InterfaceType` parsed once. :func:`validate` checks the same way and
-returns the data as sent, for a shell that passes the request on (the robot session forwards it to
-the master). Both raise :class:`ProtocolError` naming the type and the key path of the first
+validation: the robot session hands its shell the model, the shell sends the master its wire form,
+and the master's request handlers read the attributes of the model it validates that into; an
+interface type is an :class:`~rce.interfaces.kind.InterfaceType` parsed once. :func:`dm_data`
+checks a DM the same way and returns its data as sent (DMs come at data rates). Both raise
+:class:`ProtocolError` naming the type and the key path of the first
 problem, e.g. ``CN.data.addNodes[0]: missing key 'pkg'``. Wire components take keys they do not
 know (the RCE alpha client may send more); the CN and CX objects do not.
 """
@@ -20,7 +21,8 @@ from __future__ import annotations
 
 from typing import Annotated, Any, Literal, TypeVar, Union
 
-from pydantic import BaseModel, ConfigDict, Field, PlainValidator, TypeAdapter, ValidationError, model_validator
+from pydantic import (BaseModel, ConfigDict, Field, PlainSerializer, PlainValidator, TypeAdapter, ValidationError,
+                      model_validator)
 from pydantic_core import PydanticCustomError
 
 from rce.plumbing.errors import ProtocolError
@@ -120,9 +122,9 @@ Tags = Annotated[list[str], _rule(lambda v: isinstance(v, list) and all(_is_str(
                                   "must be a list of non-empty strings")]
 #: An interface type (prefix x suffix, docs/design.md, section 3.5; RCE alpha names accepted), parsed into its
 #: :class:`~rce.interfaces.kind.InterfaceType` (a ``str``: its canonical name on the wire).
-IType = Annotated[InterfaceType, PlainValidator(_interface_type)]
+IType = Annotated[InterfaceType, PlainValidator(_interface_type), PlainSerializer(str)]
 #: A lane (:mod:`rce.interfaces.lanes`): ``"control"``, ``"state"`` or ``"bulk"``.
-LaneName = Annotated[Lane, PlainValidator(_lane)]
+LaneName = Annotated[Lane, PlainValidator(_lane), PlainSerializer(str)]
 #: An interface named ``endpointTag/interfaceTag``.
 InterfaceRef = Annotated[str, PlainValidator(_interface_ref)]
 
@@ -364,9 +366,12 @@ def _valid_dm(msg: Any) -> bool:
             and ("msg" in data or "msg*" in data))
 
 
-def parse(msg: Any) -> tuple[str, RequestData]:
+def validate(msg: Any) -> tuple[str, RequestData]:
     """Check a complete robot -> cloud message; return ``(type, data)`` with ``data`` its model
-    (:data:`RequestData`).
+    (:data:`RequestData`), which travels on past validation: the robot session hands a request to its
+    shell as it (:class:`~rce.protocol.events.RequestReady`), and the master's request handlers read
+    its attributes (:func:`rce_master.requests.handle` validates the data it receives with this
+    function too: one parse per process).
 
     Raises :class:`ProtocolError` naming the type and key path of the first problem."""
     try:
@@ -376,15 +381,15 @@ def parse(msg: Any) -> tuple[str, RequestData]:
     return m.type, m.data
 
 
-def validate(msg: Any) -> tuple[str, dict]:
-    """Check a complete robot -> cloud message as :func:`parse` does; return ``(type, data)``
-    with ``data`` as sent, for a shell that passes it on. A well-formed DM takes the hand check
-    :func:`_valid_dm` (a DM comes at data rates); everything else the model.
+def dm_data(msg: Any) -> dict:
+    """The data of DM ``msg`` as sent, checked as :func:`validate` checks it: a well-formed DM takes
+    the hand check :func:`_valid_dm` and travels on as its dict (a DM comes at data rates, and its
+    model would cost ~10x the check); anything else the model, which names the problem.
 
     Raises :class:`ProtocolError` naming the type and key path of the first problem."""
     if not _valid_dm(msg):
-        parse(msg)
-    return msg["type"], msg["data"]
+        validate(msg)
+    return msg["data"]
 
 
 C = TypeVar("C", bound=Component)

@@ -486,9 +486,9 @@ class RosbridgeSession:
     async def _request(self, type_: str, data: dict) -> None:
         """Send a CN/CX built from the client's ops to the master, through the same schema check a
         robot's own requests meet (:func:`rce.protocol.schema.validate`: names, types, tags)."""
-        validate({"type": type_, "data": data})
-        await self.master.ask(to_master.RobotRequest(user=self.user, robot=self.robot, type=type_, data=data),
-                              REQUEST_TIMEOUT)
+        _, request = validate({"type": type_, "data": data})
+        await self.master.ask(to_master.RobotRequest(user=self.user, robot=self.robot, type=type_,
+                                                     data=request.wire()), REQUEST_TIMEOUT)
 
     async def _bridge(self, role: str, name: str, cls: str, lane: Lane | None = None, *,
                       on_message: OnMessage | None = None, on_call: OnCall | None = None) -> Bridge:

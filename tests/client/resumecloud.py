@@ -91,7 +91,7 @@ class ResumeCloud:
         for ev in s.events_received():
             match ev:
                 case RequestReady(type=type_, data=data):
-                    self._request(type_, data)
+                    self._request(type_, data.wire())       # what the robot endpoint sends the master
                 case Deliver(itag=itag, data=data):
                     self.taken.append(data)
                     if itag in self.echo:

@@ -7,7 +7,7 @@ import json
 import pytest
 
 from rce.plumbing.errors import AuthError, NotFound, RCEError, RequestError, Unavailable
-from rce.protocol.schema import parse
+from rce.protocol.schema import validate
 from rce.contract.environment import NodeStatus
 from rce_master.state.lifecycle import LIFECYCLES, NODE_TRANSITIONS, ContainerState, IllegalMove, check_move
 from rce_master.state.model import User, password_digest
@@ -43,7 +43,7 @@ def iface(ms: MasterState, user: str, robot: str, etag: str, itag: str, itype: s
 def component(key: str, spec: dict):
     """The model of CN component ``spec`` of list ``key``, as the master's request handlers get it
     (the schema refuses what is not a valid component, e.g. an unknown interface type)."""
-    return getattr(parse({"type": "CN", "data": {key: [spec]}})[1], key)[0]
+    return getattr(validate({"type": "CN", "data": {key: [spec]}})[1], key)[0]
 
 
 # -- users --------------------------------------------------------------------------------------

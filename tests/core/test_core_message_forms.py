@@ -304,6 +304,6 @@ def test_every_noetic_message_fits_itself_and_not_one_byte_less(reg):
 # -- containerData: size is a size class, pids the task limit ----------------------------------------------
 def test_container_data_size_and_pids():
     t, data = validate({"type": "CC", "data": {"containerTag": "c", "containerData": {"size": 1, "pids": 64}}})
-    assert data["containerData"] == {"size": 1, "pids": 64}
+    assert data.wire()["containerData"] == {"size": 1, "pids": 64} and data.containerData.pids == 64
     with pytest.raises(Exception, match="containerData.pids"):
         validate({"type": "CC", "data": {"containerTag": "c", "containerData": {"pids": -1}}})

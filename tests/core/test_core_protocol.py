@@ -56,12 +56,13 @@ def test_validate_envelope_errors(msg, parts):
 
 # -- CC / DC ------------------------------------------------------------------------------------
 def test_validate_cc_minimal_and_full():
-    assert validate({"type": "CC", "data": {"containerTag": "c1"}}) == ("CC", {"containerTag": "c1"})
+    t, cc = validate({"type": "CC", "data": {"containerTag": "c1"}})
+    assert (t, cc.cTag, cc.wire()) == ("CC", "c1", {"containerTag": "c1"})
     full = {"containerTag": "c1", "containerData": {
         "group": "g", "groupIp": "10.0.0.1", "size": 2, "cpu": 0.5, "memory": 256, "bandwidth": 0,
         "specialFeatures": ["gpu"]}}
     t, data = validate({"type": "CC", "data": full})
-    assert t == "CC" and data is not None and data["containerData"]["cpu"] == 0.5
+    assert t == "CC" and data.containerData.cpu == 0.5 and data.wire() == full
     # containerData: null is the same as absent
     assert validate({"type": "CC", "data": {"containerTag": "c1", "containerData": None}})[0] == "CC"
 
@@ -87,7 +88,7 @@ def test_validate_cc_errors(data, parts):
 
 
 def test_validate_dc():
-    assert validate({"type": "DC", "data": {"containerTag": "c1"}}) == ("DC", {"containerTag": "c1"})
+    assert validate({"type": "DC", "data": {"containerTag": "c1"}}) == ("DC", schema.DCData(containerTag="c1"))
     raises(["DC.data", "missing key 'containerTag'"], validate, {"type": "DC", "data": {}})
     raises(["DC.data.containerTag: ", "got None"], validate, {"type": "DC", "data": {"containerTag": None}})
 
@@ -115,12 +116,13 @@ GOOD_CN = {
 @pytest.mark.parametrize("key", list(GOOD_CN))
 def test_validate_cn_each_key_alone(key):
     t, data = validate({"type": "CN", "data": {key: GOOD_CN[key]}})
-    assert t == "CN" and data[key] == GOOD_CN[key]
+    assert t == "CN" and len(getattr(data, key)) == len(GOOD_CN[key])
+    assert validate({"type": "CN", "data": data.wire()}) == (t, data)        # its wire form says the same
 
 
 def test_validate_cn_all_keys_and_empty():
     assert validate({"type": "CN", "data": GOOD_CN})[0] == "CN"
-    assert validate({"type": "CN", "data": {}}) == ("CN", {})
+    assert validate({"type": "CN", "data": {}}) == ("CN", schema.CNData())
     assert validate({"type": "CN", "data": {"addNodes": []}})[0] == "CN"
 
 
@@ -165,8 +167,8 @@ def test_validate_cn_errors(data, parts):
 # -- CX -----------------------------------------------------------------------------------------
 def test_validate_cx_good():
     data = {"connect": [{"tagA": "c/i", "tagB": "r/j"}], "disconnect": [{"tagA": "c/i", "tagB": "c2/k"}]}
-    assert validate({"type": "CX", "data": data}) == ("CX", data)
-    assert validate({"type": "CX", "data": {}}) == ("CX", {})
+    assert validate({"type": "CX", "data": data})[1].wire() == data
+    assert validate({"type": "CX", "data": {}}) == ("CX", schema.CXData())
 
 
 @pytest.mark.parametrize("tag", ["ci", "/c/i", "c/i/", "c/i/j", "/", "c//i", ""])
@@ -202,7 +204,10 @@ def test_validate_cx_error_names_the_tag_format():
     {"iTag": "i", "type": "std_msgs/String", "msg*": ID1},
 ])
 def test_validate_dm_good(data):
-    assert validate({"type": "DM", "data": data}) == ("DM", data)
+    """A DM's data travels on as sent (dm_data); validate gives its model."""
+    assert schema.dm_data({"type": "DM", "data": data}) == data
+    t, dm = validate({"type": "DM", "data": data})
+    assert (t, dm.iTag, dm.msgID) == ("DM", "i", data.get("msgID"))
 
 
 @pytest.mark.parametrize("data, parts", [
@@ -215,6 +220,7 @@ def test_validate_dm_good(data):
 ])
 def test_validate_dm_errors(data, parts):
     raises(parts, validate, {"type": "DM", "data": data})
+    raises(parts, schema.dm_data, {"type": "DM", "data": data})
 
 
 _DM_VALUES = st.one_of(st.none(), st.booleans(), st.integers(), st.floats(allow_nan=False),
@@ -226,18 +232,18 @@ _DM_DATA = st.dictionaries(st.sampled_from(["iTag", "type", "msgID", "msg", "msg
 @settings(max_examples=400, deadline=None)
 @given(data=_DM_DATA, envelope=st.sampled_from(["DM", "CC", None]))
 def test_dm_hand_check_agrees_with_the_model(data, envelope):
-    """validate's hand check of a DM (schema._valid_dm) passes exactly what the pydantic model passes:
-    the same (type, data), or the model's error text."""
+    """dm_data's hand check of a DM (schema._valid_dm) passes exactly what the pydantic model passes:
+    the data as sent, or the model's error text."""
     msg = {"type": envelope, "data": data}
     try:
         schema._REQUEST.validate_python(msg)
     except ValidationError:
         assert not schema._valid_dm(msg)
         with pytest.raises(ProtocolError):
-            validate(msg)
+            schema.dm_data(msg)
         return
     if envelope == "DM":
-        assert schema._valid_dm(msg) and validate(msg) == ("DM", data)
+        assert schema._valid_dm(msg) and schema.dm_data(msg) == data
 
 
 _PLAIN = st.none() | st.booleans() | st.integers(-2**63, 2**64 - 1) | st.text(max_size=3)   # exact (jsontext)
@@ -301,27 +307,26 @@ def test_interface_type_is_parsed_once_into_kind_and_side():
         raises(["unknown interface type", repr(bad)], InterfaceType.parse, bad)
 
 
-def test_parse_returns_the_models_validate_the_data_as_sent():
-    """parse() hands the request on as its model (what the master's handlers read), with the
-    interface type parsed; validate() checks the same way and returns the data as sent."""
+def test_validate_returns_the_models():
+    """validate() hands the request on as its model (what the robot session's shell and the master's
+    handlers read), with the interface type parsed; its wire form has the wire's keys."""
     itf = {"endpointTag": "r", "interfaceTag": "i", "interfaceType": "ServiceConverter", "className": "a/B", "x": 1}
     node = {"containerTag": "c", "nodeTag": "n", "pkg": "Test", "exe": "e", "args": ["-v"]}
     msg = {"type": "CN", "data": {"addInterfaces": [itf], "addNodes": [node]}}
-    t, cn = schema.parse(msg)
+    t, cn = validate(msg)
     assert t == "CN" and isinstance(cn, schema.CNData) and cn.removeNodes == []
     assert (cn.addNodes[0].cTag, cn.addNodes[0].nTag, cn.addNodes[0].args) == ("c", "n", ["-v"])
     assert cn.addInterfaces[0].iType is InterfaceType.SERVICE_CLIENT_CONVERTER
     assert cn.addNodes[0].wire() == node                                  # the wire's keys, only those given
     assert cn.addInterfaces[0].wire() == {**{k: v for k, v in itf.items() if k != "x"},
                                           "interfaceType": "ServiceClientConverter"}
-    assert validate(msg) == ("CN", msg["data"])
-    assert schema.parse({"type": "CC", "data": {"containerTag": "c1"}})[1].cTag == "c1"
-    assert schema.parse({"type": "DC", "data": {"containerTag": "c1"}})[1] == schema.DCData.model_validate(
+    assert validate({"type": "CC", "data": {"containerTag": "c1"}})[1].cTag == "c1"
+    assert validate({"type": "DC", "data": {"containerTag": "c1"}})[1] == schema.DCData.model_validate(
         {"containerTag": "c1"})
-    cx = schema.parse({"type": "CX", "data": {"connect": [{"tagA": "c/i", "tagB": "r/i"}]}})[1]
+    cx = validate({"type": "CX", "data": {"connect": [{"tagA": "c/i", "tagB": "r/i"}]}})[1]
     assert (cx.connect[0].tagA, cx.disconnect) == ("c/i", [])
-    assert schema.parse({"type": "DM", "data": {"iTag": "i", "type": "t", "msg": {}}})[1].iTag == "i"
-    raises(["CN.data.addNodes[0]", "missing key 'pkg'"], schema.parse,
+    assert validate({"type": "DM", "data": {"iTag": "i", "type": "t", "msg": {}}})[1].iTag == "i"
+    raises(["CN.data.addNodes[0]", "missing key 'pkg'"], validate,
            {"type": "CN", "data": {"addNodes": [{"containerTag": "c", "nodeTag": "n", "exe": "e"}]}})
 
 
@@ -652,7 +657,7 @@ def test_encode_round_trip_through_assembler():
     for f in reversed(frames):
         assert a.feed_binary(f, now=0) == []
     assert a.feed_text(text, now=0) == [expected]
-    assert validate(expected) == ("DM", expected["data"])
+    assert schema.dm_data(expected) == expected["data"]
 
 
 def test_encode_list_of_bytes_round_trips_as_list_of_ids():
@@ -703,9 +708,11 @@ def test_wire_components_take_keys_they_do_not_know():
     """The RCE alpha client may send more than docs/design.md, section 3.3, names: components and DM data
     take unknown keys; only the CN and CX objects (whose keys say what to do) refuse them."""
     node = {"containerTag": "c", "nodeTag": "n", "pkg": "Test", "exe": "e", "launcher": "x"}
-    assert validate({"type": "CN", "data": {"addNodes": [node]}})[1]["addNodes"][0] == node
+    cn = validate({"type": "CN", "data": {"addNodes": [node]}})[1]
+    assert cn.addNodes[0].wire() == {k: v for k, v in node.items() if k != "launcher"}      # taken, not passed on
     assert validate({"type": "CC", "data": {"containerTag": "c", "extra": 1}})[0] == "CC"
-    assert validate({"type": "DM", "data": {"iTag": "i", "type": "t", "msg": {}, "seq": 3}})[0] == "DM"
+    dm = {"iTag": "i", "type": "t", "msg": {}, "seq": 3}
+    assert validate({"type": "DM", "data": dm})[0] == "DM" and schema.dm_data({"type": "DM", "data": dm}) == dm
     assert validate({"type": "CC", "data": {"containerTag": "c"}, "id": 7})[0] == "CC"
 
 
@@ -731,10 +738,10 @@ def test_the_config_builds_on_the_schema_components():
                         "connections": [{"tagA": "c/i", "tagB": "r/i"}]})
     # what the config sends passes the wire schema unchanged
     cc = {"containerTag": "c", "containerData": cfg.containers[0].container_data()}
-    assert validate({"type": "CC", "data": cc}) == ("CC", {"containerTag": "c",
-                                                           "containerData": {"group": "g", "cpu": 1}})
+    assert validate({"type": "CC", "data": cc})[1].wire() == {"containerTag": "c",
+                                                              "containerData": {"group": "g", "cpu": 1}}
     cn = {"addNodes": [n.component() for n in cfg.nodes], "addInterfaces": [i.component() for i in cfg.interfaces]}
-    assert validate({"type": "CN", "data": cn})[1]["addNodes"] == [
+    assert validate({"type": "CN", "data": cn})[1].wire()["addNodes"] == [
         {"containerTag": "c", "nodeTag": "n", "pkg": "Test", "exe": "e", "args": ["-v"]}]
     assert cn["addInterfaces"] == [{"endpointTag": "c", "interfaceTag": "i", "interfaceType": "PublisherInterface",
                                     "className": "std_msgs/String", "addr": "/p"}]

@@ -9,6 +9,7 @@ from pathlib import Path
 
 import pytest
 
+from rce.interfaces.kind import InterfaceType, Kind, Side
 from rce.plumbing.errors import ProtocolError, RequestError
 from rce.protocol.frames import ID_LEN, Assembler
 from rce.protocol.limits import PartBudget
@@ -95,8 +96,9 @@ def test_request_done_without_a_request_is_a_bug():
 
 
 def test_interface_types_of_the_robot_side():
-    assert robot_interface_type("ServiceConverter") == ("ServiceClient", "Converter")     # RCE alpha name
-    assert robot_interface_type("PublisherForwarder") == ("Publisher", "Forwarder")
+    t = robot_interface_type("ServiceConverter")                      # RCE alpha name
+    assert t is InterfaceType.SERVICE_CLIENT_CONVERTER and (t.kind, t.side) == (Kind.SERVICE_CLIENT, Side.CONVERTER)
+    assert robot_interface_type("PublisherForwarder") is InterfaceType.PUBLISHER_FORWARDER
     with pytest.raises(RequestError, match="PublisherInterface is a container interface"):
         robot_interface_type("PublisherInterface")
     with pytest.raises(ProtocolError, match="unknown interface type 'Publisher'"):
