@@ -57,19 +57,12 @@ class Control:
         self._back: dict[int, asyncio.Event] = {}      # tid -> set when that absent task set is back
 
     # -- calls ----------------------------------------------------------------------------------------
-    async def host_request(self, container: ContainerRec, op: str, args: dict, timeout: float = CALL_TIMEOUT,
-                           wait: bool = True) -> Any:
-        """Send ``op`` with ``args`` (plus ``cid``) to the host of ``container``; its answer. An
-        absent host is waited for (``wait``, robot requests: up to :data:`ABSENT_WAIT`), or refused
-        at once (the admin API: its HTTP 503 says when to ask again). The admin API passes a body on
-        so; the engine's own ops go typed, through :meth:`host_ask`."""
-        return await (await self._host_peer(container, wait)).request(op, {"cid": container.cid, **args}, timeout)
-
     async def host_ask(self, container: ContainerRec, msg: OpArgs, timeout: float = CALL_TIMEOUT,
                        wait: bool = True) -> Any:
         """Send op ``msg`` (a host's, :mod:`rce.contract.host`, or an environment's it relays,
         :mod:`rce.contract.environment`, naming its ``cid``) to the host of ``container``; its answer.
-        ``wait`` as for :meth:`host_request`."""
+        An absent host is waited for (``wait``, robot requests: up to :data:`ABSENT_WAIT`), or refused
+        at once (the admin API: its HTTP 503 says when to ask again)."""
         return await _ask(await self._host_peer(container, wait), msg, timeout)
 
     async def _host_peer(self, container: ContainerRec, wait: bool) -> RpcPeer:

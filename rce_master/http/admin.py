@@ -41,6 +41,9 @@ import hmac
 
 from aiohttp import web
 
+from rce.contract import environment as to_env
+from rce.contract import host as to_host
+from rce.contract.base import OpArgs, parse
 from rce.plumbing.errors import AuthError, RequestError
 from rce.protocol import schema
 from rce_master.control import Control
@@ -56,8 +59,10 @@ from rce_master.auth.users import UsersFile
 LISTS = ("users", "robots", "containers", "nodes", "parameters", "interfaces", "connections", "tasksets")
 BUS_TIMEOUT = 10.0          # s, a bus op without its own "timeout" (call, sample), and describe/stats/logs
 BUS_TIMEOUT_MARGIN = 5.0    # s, added to the op's own timeout: the host answers only once that has passed
-HOST_OPS = {"bus": ("describe", "GET"), "publish": ("bus_publish", "POST"), "call": ("bus_call", "POST"),
-            "sample": ("bus_sample", "POST"), "stats": ("stats", "GET")}   # route -> (host op, method)
+# route -> (the op its container's host is asked, method); the request's body is the op's arguments
+HOST_OPS: dict[str, tuple[type[OpArgs], str]] = {
+    "bus": (to_env.EnvDescribe, "GET"), "publish": (to_env.EnvBusPublish, "POST"), "call": (to_env.EnvBusCall, "POST"),
+    "sample": (to_env.EnvBusSample, "POST"), "stats": (to_host.HostStats, "GET")}
 
 
 class AdminApi:
@@ -86,7 +91,7 @@ class AdminApi:
         base = "/api/containers/{user}/{ctag}"
         for route, (op, method) in HOST_OPS.items():
             app.router.add_route(method, f"{base}/{route}", self._host_op(op))
-        app.router.add_get(base + "/logs/{ntag}", self._host_op("logs"))
+        app.router.add_get(base + "/logs/{ntag}", self._host_op(to_env.EnvLogs))
         app.router.add_post(base + "/resize", self._resize)
         if self.placement is not None:
             app.router.add_get("/api/placement", self._advice)
@@ -162,14 +167,15 @@ class AdminApi:
             self.users.save(self.state)
         return web.json_response({})
 
-    def _host_op(self, op: str):
+    def _host_op(self, op: type[OpArgs]):
+        """The handler of a route that asks a container's host op ``op``, with the request's body as its
+        arguments (parsed here: a bad one is a 400 naming the key, before any host is asked)."""
         async def handler(request: web.Request) -> web.Response:
             args = await self._body(request)
             c = self.state.container(request.match_info["user"], request.match_info["ctag"])
-            if "ntag" in request.match_info:
-                args["ntag"] = request.match_info["ntag"]
-            timeout = float(args.get("timeout") or BUS_TIMEOUT) + BUS_TIMEOUT_MARGIN
-            return web.json_response(await self.control.host_request(c, op, args, timeout, wait=False))
+            msg = parse(op, {**args, **request.match_info, "cid": c.cid}, op=op.OP, link="admin API")
+            timeout = (getattr(msg, "timeout", None) or BUS_TIMEOUT) + BUS_TIMEOUT_MARGIN
+            return web.json_response(await self.control.host_ask(c, msg, timeout, wait=False))
         return handler
 
     async def _advice(self, request: web.Request) -> web.Response:

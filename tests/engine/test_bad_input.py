@@ -12,6 +12,7 @@ import pytest
 from websockets.asyncio.client import connect
 from websockets.exceptions import ConnectionClosed, InvalidStatus
 
+from rce.plumbing.errors import RequestError
 from wsclient import RawRobot, login
 
 pytestmark = pytest.mark.asyncio
@@ -79,6 +80,21 @@ async def test_unknown_package_names_pkg_and_exe(eng):
         await r.cn(addNodes=[{"containerTag": "pkgc", "nodeTag": "n", "pkg": "Test", "exe": "nope.py"}])
         assert "nope.py" in await r.expect("ER")
     await _with_bystander(eng, "unknown_pkg", body)
+
+
+async def test_a_bad_admin_op_is_refused_by_the_master_naming_the_key(eng):
+    """The admin API's container ops are parsed into their ops' models at the master: a bad body is a 400
+    naming the op and the key, and the container, its host and the robot's session go on."""
+    async def body(r):
+        await r.send("CC", {"containerTag": "adminc"})
+        await r.probe()                                  # the CC is done before the probe's ER comes
+        url = "/api/containers/testUser/adminc"
+        with pytest.raises(RequestError, match="admin API: op 'bus_call': service: Field required"):
+            await asyncio.to_thread(eng.admin, f"{url}/call", {"request": {}})
+        with pytest.raises(RequestError, match=r"admin API: op 'bus_sample': count: Input should be a valid integer"):
+            await asyncio.to_thread(eng.admin, f"{url}/sample", {"topic": "/t", "count": "many"})
+        assert (await asyncio.to_thread(eng.admin, f"{url}/bus"))["launched"] == []
+    await _with_bystander(eng, "bad_admin", body)
 
 
 async def test_unpairable_interfaces(eng):
