@@ -37,6 +37,7 @@ BAD_INPUT = {
     "test_bad_credentials_at_websocket": "the websocket handshake: no session yet",
     "test_a_2013_client_that_only_reads_frames_learns_its_login_failed": "the websocket handshake: no session yet",
     "test_duplicate_robot_id_refused": "the websocket handshake: no session yet",
+    "test_a_bad_admin_op_is_refused_by_the_master_naming_the_key": "the master's admin API: no robot session",
 }
 
 
