@@ -9,6 +9,7 @@ from enum import StrEnum
 from typing import Any
 
 from rce.contract.base import IType, OpArgs
+from rce.contract.robot import EndpointConnect, EndpointDisconnect
 
 
 class NodeStatus(StrEnum):
@@ -35,7 +36,7 @@ class EnvHello(OpArgs):
 class NodeStatusReport(OpArgs):
     """(a notification) Node ``ntag`` of container ``cid`` is ``status``: ``pid`` once started,
     ``restarts`` when respawning, ``code``, ``signal`` and ``reason`` when it exited. Its host passes
-    it on to the master unchanged (:class:`rce.contract.master`)."""
+    it on to the master unchanged (:mod:`rce.contract.master`)."""
     OP = "node_status"
     cid: int
     ntag: str
@@ -169,21 +170,15 @@ class EnvRemoveInterface(OnContainer):
     iid: int
 
 
-class EnvConnect(OnContainer):
-    """As :class:`rce.contract.robot.Connect`, for a container-side interface: ``{fenced}``."""
+class EnvConnect(OnContainer, EndpointConnect):
+    """:class:`rce.contract.robot.EndpointConnect` for a container-side interface of container ``cid``:
+    ``{fenced}``."""
     OP = "connect"
-    iid: int
-    peer_iid: int
-    peer_addr: str
-    token: str = ""
-    fence: int | None = None
-    peer_cls: str | None = None
 
 
-class EnvDisconnect(OnContainer):
+class EnvDisconnect(OnContainer, EndpointDisconnect):
+    """:class:`rce.contract.robot.EndpointDisconnect` for a container-side interface of container ``cid``."""
     OP = "disconnect"
-    iid: int
-    peer_iid: int
 
 
 # -- the bus and a move ----------------------------------------------------------------------------------

@@ -42,21 +42,22 @@ class Auth(OpArgs):
     addr: str = ""
 
 
-class RobotConnected(OpArgs):
-    """A login of ``robot`` was accepted; ``session`` names it (the endpoint's id of the login), so
-    only the disconnect of that session ends the robot's namespace."""
-    OP = "robot_connected"
+class _RobotSession(OpArgs):
+    """Robot ``robot`` of ``user``, and ``session``, the endpoint's id of one of its logins."""
     user: str
     robot: str
     session: str | None = None
 
 
-class RobotDisconnected(OpArgs):
+class RobotConnected(_RobotSession):
+    """A login of ``robot`` was accepted; ``session`` names it, so only the disconnect of that session
+    ends the robot's namespace."""
+    OP = "robot_connected"
+
+
+class RobotDisconnected(_RobotSession):
     """The robot's session ``session`` ended (none named: an older endpoint, any session)."""
     OP = "robot_disconnected"
-    user: str
-    robot: str
-    session: str | None = None
 
 
 class RobotRelayChanged(OpArgs):
