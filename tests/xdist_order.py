@@ -32,7 +32,6 @@ LONG_FIRST = (
     "tests/web/test_web_tasks.py",
     "tests/web/test_web_stall.py",
     "tests/client/test_ros2_bridge.py",
-    "tests/fleet/test_demo_first_minutes.py",
     "tests/container/test_ros2_nodes.py",
     "tests/fleet/test_fleet_ros2.py",
     "tests/security/test_fleet_doors.py",
