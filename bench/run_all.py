@@ -18,8 +18,8 @@ import time
 from pathlib import Path
 
 BENCH = Path(__file__).resolve().parent
-SCRIPTS = ("rtt", "rtt_gap", "rtt_cpu", "rtt_ros2", "fleet_load", "paper_experiments", "planner", "container_start", "faults",
-           "stall", "login_attack", "lanes", "ws_impl", "foxglove")
+SCRIPTS = ("rtt", "rtt_gap", "rtt_cpu", "rtt_ros2", "fleet_load", "paper_experiments", "planner", "container_start",
+           "faults", "stall", "login_attack", "lanes", "ws_impl", "foxglove")
 # a name that is not a script's: (script, its arguments)
 VARIANTS = {"rtt_gap": ("rtt", ["--gap", "1.0", "--sizes", "3,1623"])}
 
