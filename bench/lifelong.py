@@ -7,7 +7,11 @@ problem JSONs of your own (``--problems``; at the steps of a ``simulation_time.j
 domain folder when there is one, as in the league's Benchmark-Archive), problems generated on any
 map as the league's Problem Generator makes them (``--generate MAP --robots N,...``), or the
 density sweep over every shared map (``--sweep``: random-32-32-20 at 100 - 800 robots, Paris and
-brc202d at 1,000 / 3,000, sortation and warehouse at 2,000 / 5,000 / 10,000).
+brc202d at 1,000 / 3,000, sortation and warehouse at 2,000 / 5,000 / 10,000), or the 2024 main
+round's ten instances at their full length (``--main-round``: ``bench/lifelong_main_round.py``),
+beside the default entry and the 2024 winner's code (``--winner``, built from source outside the
+repository: docs/lifelong.md), each (instance, system) result kept as it finishes so that a rerun
+resumes, rce's outputs replayed under the rules, the table written into docs/results/lifelong.md.
 
 Prints a table: tasks finished by rce and by the peer with the ratio, the published default entry's
 and best known (``lorr/RESULTS.md``; scaled by steps on a cut, and marked), planner ms per step
@@ -17,6 +21,8 @@ Usage::
 
     .venv/bin/python bench/lifelong.py [--quick] [--only NAME ...] [--steps N] [--problems JSON ...]
         [--generate MAP ... --robots N,... ] [--sweep] [--seed S] [--problem-dir DIR]
+        [--main-round [--archive DIR] [--results DIR] [--doc MD]
+         [--winner PATH [--winner-args ARGS] [--winner-cwd DIR]]]
         [--peer PATH [--peer-args ARGS] [--peer-cwd DIR] | --build-peer DIR]
         [--plan-time-limit MS] [--scheduler batch|greedy|both]
         [--cache-mb MB] [--lanes N] [--crowd-w W] [--max-active N] [--window on|off] [--epibt on|off]
@@ -52,6 +58,10 @@ SWEEP = {"random.domain/maps/random-32-32-20.map": (100, 200, 400, 600, 800),
          "warehouse.domain/maps/sortation_large.map": (2000, 5000, 10000),
          "warehouse.domain/maps/warehouse_large.map": (2000, 5000, 10000)}
 GENERATED_STEPS = 1000          # steps of a generated problem when --steps is not given
+PEERS = (ROOT / ".." / "peers").resolve()      # where the docs check out the peers' sources
+# the 2024 winner's command (github.com/Straple/LORR24): EPIBT with operations of four actions and LNS,
+# its guidance graph, the greedy scheduler
+WINNER_ARGS = ("--pa", "pepibt(4)_lns", "--gg", "enable", "--sa", "greedy")
 
 
 def published(results_md: Path) -> dict[str, dict]:
@@ -85,17 +95,19 @@ def run_one(path: Path, steps: int, limit_ms: float, scheduler: str, seed: int, 
             crowd_w: float | None = None, peer: Path | None = None, max_active: int | None = None,
             window: bool | None = None, epibt: bool | None = None, keep_right: int | None = None,
             admission: bool | None = None, peer_args: tuple[str, ...] = (), peer_cwd: Path | None = None,
-            replan: bool | None = None) -> dict:
+            replan: bool | None = None, validate: bool = False) -> dict:
     """Run one problem (and the start-kit binary ``peer`` on it, when given); returns its row (with
-    the finished-over-time curve)."""
-    from rce_fleet.lifelong import load_problem
+    the finished-over-time curve). With ``validate``, rce's output is replayed under the rules
+    (``rce_fleet.lifelong.replay``): ``replayed_tasks`` and ``replay_invalid_steps`` in the row,
+    and ``replay_error`` when the replay does not give the run's count."""
+    from rce_fleet.lifelong import load_problem, replay
     from rce_fleet.lifelong.admission import jam_note
     from rce_fleet.lifelong.runner import LANES, rich_progress, run_lifelong
 
     prob = load_problem(path)
     with rich_progress(steps, f"{path.stem} ({scheduler})") as cb:
         res = run_lifelong(prob, steps, plan_time_limit_ms=limit_ms, seed=seed, scheduler=scheduler, progress=cb,
-                           record=outputs is not None,
+                           record=outputs is not None or validate,
                            cache_bytes=None if cache_mb is None else int(cache_mb * 2 ** 20),
                            lanes=LANES if lanes is None else lanes, crowd_w=crowd_w, max_active=max_active,
                            keep_right=keep_right, admission=admission, replan=replan,
@@ -106,6 +118,13 @@ def run_one(path: Path, steps: int, limit_ms: float, scheduler: str, seed: int, 
         print(f"{path.stem}: {note}", file=sys.stderr)
     row = {"problem": path.stem, "robots": prob.team_size, "steps": steps, "scheduler": scheduler, **s,
            "tasks_per_step": s["tasks_finished"] / steps, "curve": res.finished.tolist()}
+    if validate:
+        again = replay(prob.grid, prob.tasks, prob.reveal, res.sim.output(prob.version))
+        row.update(replayed_tasks=again.finished, replay_invalid_steps=again.invalid_steps)
+        if again.finished != s["tasks_finished"] or again.invalid_steps != s["invalid_steps"]:
+            row["replay_error"] = (f"replayed under the rules to {again.finished} tasks and {again.invalid_steps} "
+                                   f"invalid steps, against the run's {s['tasks_finished']} and {s['invalid_steps']}")
+            print(f"{path.stem}: {row['replay_error']}", file=sys.stderr)
     if pub:
         scale = steps / pub["steps"]
         row.update(official_steps=pub["steps"], scaled=scale != 1.0, default=pub["default"] * scale,
@@ -250,7 +269,106 @@ def _parser() -> argparse.ArgumentParser:
     ap.add_argument("--json", type=Path)
     ap.add_argument("--plot", type=Path)
     ap.add_argument("--outputs", type=Path, help="also write each run's start-kit output JSON into DIR")
+    mr = ap.add_argument_group("the 2024 main round (--main-round)")
+    mr.add_argument("--main-round", action="store_true",
+                    help="run the 2024 main round's ten instances (--only: some of them) at their steps from "
+                         "simulation_time.json, rce beside --peer and --winner; resumes from --results")
+    mr.add_argument("--archive", type=Path, default=PEERS / "Benchmark-Archive", metavar="DIR",
+                    help="a checkout of MAPF-Competition/Benchmark-Archive (or its 2024 main-round folder; "
+                         "default ../peers/Benchmark-Archive)")
+    mr.add_argument("--results", type=Path, default=RESULTS / "main_round", metavar="DIR",
+                    help="one JSON per finished (instance, system); a rerun skips those there "
+                         "(default bench/results/main_round)")
+    mr.add_argument("--doc", type=Path, metavar="MD",
+                    help="the markdown file whose main-round table is replaced (default docs/results/lifelong.md, "
+                         "written only when every run is at its full length)")
+    mr.add_argument("--winner", type=Path, metavar="PATH",
+                    help="the 2024 winner's lifelong binary, built from its source (docs/lifelong.md)")
+    mr.add_argument("--winner-args", type=shlex.split, default=WINNER_ARGS, metavar="ARGS",
+                    help=f"its arguments, one shell-quoted string (default \"{shlex.join(WINNER_ARGS)}\")")
+    mr.add_argument("--winner-cwd", type=Path, metavar="DIR",
+                    help="the directory it runs in, where it reads its guidance maps (its source tree; default: "
+                         "two levels above --winner)")
     return ap
+
+
+def _rce_runner(args, peer: Path | None, validate: bool = False):
+    """``run(problem, steps, scheduler, pub)`` -> rce's row on it, with the CLI's settings (and
+    ``peer`` run beside it when given)."""
+    def run(path: Path, steps: int, scheduler: str = "batch", pub: dict | None = None,
+            with_peer: bool = True) -> dict:
+        return run_one(path, steps, args.plan_time_limit, scheduler, args.seed, pub, args.outputs, args.cache_mb,
+                       args.lanes, args.crowd_w, peer if with_peer else None, args.max_active,
+                       None if args.window is None else args.window == "on",
+                       None if args.epibt is None else args.epibt == "on", args.keep_right,
+                       None if args.admission is None else args.admission == "on",
+                       tuple(args.peer_args), args.peer_cwd,
+                       None if args.replan is None else args.replan == "on", validate)
+    return run
+
+
+def _peer_runner(binary: Path, extra: tuple[str, ...], cwd: Path | None, limit_ms: float, label: str):
+    """``run(problem, steps)`` -> a start-kit-built entry's counts on it, or ``{"error": ...}``
+    when it fails (e.g. killed out of memory), so that the round goes on."""
+    def run(path: Path, steps: int) -> dict:
+        from rce_fleet.lifelong.runner import rich_progress
+        from startkit_peer import run_peer
+        try:
+            with rich_progress(steps, f"{path.stem} ({label})") as cb:
+                return run_peer(binary, path, steps, limit_ms, progress=lambda k: cb(k, 0, 0.0), extra=extra,
+                                cwd=cwd)
+        except RuntimeError as e:
+            print(f"{label} failed on {path.name}: {e}", file=sys.stderr)
+            return {"error": str(e).splitlines()[0]}
+    return run
+
+
+def _main_round(args, peer: Path | None) -> int:
+    """``--main-round``: run what is not in ``--results`` yet, print and write the table."""
+    import lifelong_main_round as mr
+    from rich.console import Console
+
+    con = Console(stderr=True)
+    try:
+        todo = mr.instances(args.archive, args.only)
+    except (OSError, ValueError) as e:
+        print(f"--main-round: {e}", file=sys.stderr)
+        return 2
+    official = {n: s for n, _, s in todo}
+    if args.steps:
+        todo = [(n, p, args.steps) for n, p, _ in todo]
+    runners = {"rce": _rce_runner(args, None, validate=True)}
+    if args.winner is not None:
+        if not os.access(args.winner, os.X_OK):
+            print(f"--winner {args.winner}: not an executable (docs/lifelong.md says how it is built)",
+                  file=sys.stderr)
+            return 2
+        runners["winner"] = _peer_runner(args.winner, tuple(args.winner_args),
+                                         args.winner_cwd or args.winner.resolve().parent.parent,
+                                         args.plan_time_limit, "winner")
+    if peer is not None:
+        runners["default"] = _peer_runner(peer, (), None, args.plan_time_limit, "default entry")
+    rce_run = runners["rce"]
+    runners["rce"] = lambda path, steps: {**rce_run(path, steps), "official_steps": official[path.stem]}
+    head = git_head()
+    got = mr.run_round(todo, runners, args.results, args.plan_time_limit,
+                       {"date": time.strftime("%Y-%m-%d"), "commit": head},
+                       lambda line: con.print(line, soft_wrap=True, highlight=False))
+    text = mr.table(todo, got)
+    print(text)
+    cut = any(s != official[n] for n, _, s in todo)
+    doc = args.doc or (None if cut else ROOT / "docs" / "results" / "lifelong.md")
+    if doc is not None:
+        try:
+            mr.write_table(doc, text)
+        except (OSError, ValueError) as e:
+            print(f"--doc: {e}", file=sys.stderr)
+            return 2
+        print(f"wrote the table into {doc}")
+    else:
+        print("a cut (--steps): the record's table is left alone (--doc MD writes it)")
+    rce = [r for (_, s), r in got.items() if s == "rce"]
+    return 1 if any(r["timeouts"] or r["invalid_steps"] or "replay_error" in r for r in rce) else 0
 
 
 def _problems(args, lorr: Path, pub: dict) -> list[tuple[Path, int]]:
@@ -286,6 +404,10 @@ def main(argv: list[str] | None = None) -> int:
     args = ap.parse_args(argv)
     if args.generate and not args.robots:
         ap.error("--generate needs --robots N,...")
+    if args.main_round and (args.quick or args.problems or args.generate or args.sweep):
+        ap.error("--main-round runs the main round's instances: not with --quick, --problems, --generate or --sweep")
+    if args.main_round and args.scheduler == "both":
+        ap.error("--main-round runs one scheduler")
     lorr = args.data / "lorr"
     if not (lorr / "RESULTS.md").is_file():
         print(f"LoRR problems not found under {lorr}", file=sys.stderr)
@@ -302,6 +424,8 @@ def main(argv: list[str] | None = None) -> int:
     if peer is not None and not os.access(peer, os.X_OK):
         print(f"--peer {peer}: not an executable (build it: bench/startkit_peer.py)", file=sys.stderr)
         return 2
+    if args.main_round:
+        return _main_round(args, peer)
     try:
         problems = _problems(args, lorr, pub)
     except (OSError, ValueError) as e:
@@ -313,16 +437,10 @@ def main(argv: list[str] | None = None) -> int:
     plot_path = args.plot or RESULTS / f"{stem}.png"
     rows = []
     t0 = time.perf_counter()
+    run = _rce_runner(args, peer)
     for p, steps in problems:
-        info = pub.get(p.stem)
         for sch in scheds:
-            rows.append(run_one(p, steps, args.plan_time_limit, sch, args.seed, info, args.outputs, args.cache_mb,
-                                args.lanes, args.crowd_w, peer if sch == scheds[-1] else None, args.max_active,
-                                None if args.window is None else args.window == "on",
-                                None if args.epibt is None else args.epibt == "on", args.keep_right,
-                                None if args.admission is None else args.admission == "on",
-                                tuple(args.peer_args), args.peer_cwd,
-                                None if args.replan is None else args.replan == "on"))
+            rows.append(run(p, steps, sch, pub.get(p.stem), with_peer=sch == scheds[-1]))
             json_path.parent.mkdir(parents=True, exist_ok=True)
             json_path.write_text(json.dumps({"plan_time_limit_ms": args.plan_time_limit, "git": git_head(),
                                              "date": time.strftime("%Y-%m-%d"), "peer": str(peer) if peer else None,

@@ -1,0 +1,171 @@
+"""The League of Robot Runners 2024 main round in ``bench/lifelong.py --main-round``: its ten
+instances at their full length, rce beside the 2024 winner's code and the default entry, one
+result JSON per (instance, system) written as it finishes, so that a rerun resumes where a run
+stopped, and the table of all of them in ``docs/results/lifelong.md`` between markers.
+
+Instances: MAPF-Competition/Benchmark-Archive, ``2024 Competition/Main Round Evaluation
+Instances/`` (``random.domain/RANDOM-01.json`` ..., and ``simulation_time.json``: instance name ->
+steps), read from a checkout outside the repository. Best known: that archive's ``2024
+Competition/README.md`` (commit 25ffd5b), copied into ``BEST_KNOWN``.
+"""
+from __future__ import annotations
+
+import json
+import os
+import re
+import time
+from collections.abc import Callable
+from pathlib import Path
+
+# (instance, domain folder) in the archive's order of the record's tables
+MAIN_ROUND = (("RANDOM-01", "random.domain"), ("RANDOM-02", "random.domain"), ("RANDOM-03", "random.domain"),
+              ("RANDOM-04", "random.domain"), ("RANDOM-05", "random.domain"), ("CITY-01", "city.domain"),
+              ("CITY-02", "city.domain"), ("GAME", "game.domain"), ("SORTATION", "warehouse.domain"),
+              ("WAREHOUSE", "warehouse.domain"))
+# tasks finished by the best known solution, and its team (Benchmark-Archive, 2024 Competition/README.md)
+BEST_KNOWN = {"RANDOM-01": (696, "RAPID"), "RANDOM-02": (1260, "Kitty_Knight"), "RANDOM-03": (2368, "No_Man's_Sky"),
+              "RANDOM-04": (2585, "No_Man's_Sky"), "RANDOM-05": (3050, "No_Man's_Sky"),
+              "CITY-01": (8445, "Kitty_Knight"), "CITY-02": (17010, "SYSU-LCIS"), "GAME": (23274, "No_Man's_Sky"),
+              "SORTATION": (152714, "No_Man's_Sky"), "WAREHOUSE": (154834, "No_Man's_Sky")}
+SYSTEMS = ("rce", "winner", "default")
+MAIN_DIR = Path("2024 Competition") / "Main Round Evaluation Instances"
+BEGIN, END = "<!-- main-round table: begin (bench/lifelong.py --main-round) -->", "<!-- main-round table: end -->"
+
+
+def instances(archive: Path, only: list[str] | None = None) -> list[tuple[str, Path, int]]:
+    """(name, problem JSON, official steps) of the main round's instances under ``archive`` (a
+    Benchmark-Archive checkout, its ``2024 Competition`` folder or its main-round folder), in
+    ``MAIN_ROUND``'s order, those named in ``only`` when given. Raises FileNotFoundError naming
+    the missing file, ValueError for a name in ``only`` that is not an instance of the round."""
+    base = next((d for d in (archive / MAIN_DIR, archive / MAIN_DIR.name, archive)
+                 if (d / "simulation_time.json").is_file()), None)
+    if base is None:
+        raise FileNotFoundError(f"{archive}: no simulation_time.json of the 2024 main round here (a checkout of "
+                                "github.com/MAPF-Competition/Benchmark-Archive, or its "
+                                f"'{MAIN_DIR}' folder)")
+    names = [n for n, _ in MAIN_ROUND]
+    if bad := [n for n in only or () if n not in names]:
+        raise ValueError(f"--only {' '.join(bad)}: not a 2024 main-round instance ({', '.join(names)})")
+    steps = json.loads((base / "simulation_time.json").read_text())
+    out = []
+    for name, domain in MAIN_ROUND:
+        if only and name not in only:
+            continue
+        path = base / domain / f"{name}.json"
+        if not path.is_file():
+            raise FileNotFoundError(f"{path}: missing (the archive's {domain}/{name}.json)")
+        if name not in steps:
+            raise FileNotFoundError(f"{base / 'simulation_time.json'}: no steps for {name}")
+        out.append((name, path, int(steps[name])))
+    return out
+
+
+def result_path(results: Path, name: str, system: str, steps: int) -> Path:
+    """Where the result of ``system`` on instance ``name`` over ``steps`` steps is kept."""
+    return results / f"{name}.{system}.{steps}.json"
+
+
+def load_result(path: Path, limit_ms: float) -> dict | None:
+    """The finished result at ``path``, or None when there is none, it is not JSON, or it was run
+    at another time limit (then it is run again)."""
+    try:
+        d = json.loads(path.read_text())
+    except (OSError, ValueError):
+        return None
+    return d if isinstance(d, dict) and d.get("plan_time_limit_ms") == limit_ms else None
+
+
+def save_result(path: Path, row: dict) -> None:
+    """Write ``row`` to ``path`` whole or not at all (a temporary file renamed over it), so that a
+    run killed while writing leaves no half result for a rerun to skip."""
+    path.parent.mkdir(parents=True, exist_ok=True)
+    tmp = path.with_suffix(".json.tmp")
+    tmp.write_text(json.dumps(row, indent=1))
+    os.replace(tmp, path)
+
+
+def run_round(todo: list[tuple[str, Path, int]], runners: dict[str, Callable[[Path, int], dict]], results: Path,
+              limit_ms: float, stamp: dict, say: Callable[[str], None]) -> dict[tuple[str, str], dict]:
+    """Run every (instance, system) of ``todo`` x ``runners`` (system -> ``run(problem, steps)``
+    returning its row) that has no result in ``results`` yet; each result is saved as it
+    finishes, with ``stamp`` (date, commit) and the time limit. ``say`` gets one line per run
+    done or skipped. Returns (name, system) -> result for all of them."""
+    got: dict[tuple[str, str], dict] = {}
+    total, k = len(todo) * len(runners), 0
+    for name, path, steps in todo:
+        for system, run in runners.items():
+            k += 1
+            where = result_path(results, name, system, steps)
+            if (old := load_result(where, limit_ms)) is not None:
+                got[name, system] = old
+                say(f"[{k}/{total}] {name} {system}: done before ({_brief(old)}), {where}")
+                continue
+            t0 = time.perf_counter()
+            row = {**run(path, steps), "instance": name, "system": system, "steps": steps,
+                   "plan_time_limit_ms": limit_ms, **stamp, "wall_s": time.perf_counter() - t0}
+            save_result(where, row)
+            got[name, system] = row
+            say(f"[{k}/{total}] {name} {system}: {_brief(row)} in {row['wall_s'] / 60:.1f} min, {where}")
+    return got
+
+
+def _brief(r: dict) -> str:
+    if "error" in r:
+        return f"failed: {r['error']}"
+    return f"{r['tasks_finished']} tasks, {r['timeouts']} timeouts, {r['invalid_steps']} invalid steps"
+
+
+def table(todo: list[tuple[str, Path, int]], got: dict[tuple[str, str], dict]) -> str:
+    """The markdown table of the results in ``got`` for the instances of ``todo``: rce's tasks and
+    its ratio to the best known (pro rata on a cut, marked), to the winner's code and to the
+    default entry measured here (their timeouts in brackets), rce's planner ms, timeouts, date
+    and commit."""
+    head = ("| instance | robots | steps | rce | best known | rce / best | winner | rce / winner | default | "
+            "rce / default | rce planner ms p50 / p99 / max | rce timeouts | date | commit |")
+    lines = [head, "|" + "---|" * head.count(" | ") + "---|"]
+    for name, path, steps in todo:
+        r = got.get((name, "rce"))
+        if r is None:
+            continue
+        best, team = BEST_KNOWN[name]
+        official = r.get("official_steps", steps)
+        scale = steps / official
+        mine = r.get("tasks_finished")
+        cells = [name, f"{r.get('robots', _team(path)):,}",
+                 f"{steps:,}" if scale == 1 else f"{steps:,} of {official:,}",
+                 _count(r), f"{best:,} ({team})", _ratio(mine, best * scale) + ("" if scale == 1 else " pro rata")]
+        for system in ("winner", "default"):
+            p = got.get((name, system))
+            cells += [_count(p), _ratio(mine, p.get("tasks_finished") if p else None)]
+        ms = (f"{r['plan_ms_p50']:.0f} / {r['plan_ms_p99']:.0f} / {r['plan_ms_max']:.0f}"
+              if "plan_ms_p50" in r else "-")
+        cells += [ms, str(r.get("timeouts", "-")), r.get("date", "-"), r.get("commit", "-").split(" ")[0]]
+        lines.append("| " + " | ".join(cells) + " |")
+    return "\n".join(lines)
+
+
+def _team(path: Path) -> int:
+    return int(json.loads(path.read_text())["teamSize"])
+
+
+def _count(r: dict | None) -> str:
+    if r is None:
+        return "not run"
+    if "error" in r:
+        return "failed"
+    t = r.get("timeouts", 0)
+    return f"{r['tasks_finished']:,}" + (f" ({t})" if t and r.get("system") != "rce" else "")
+
+
+def _ratio(a: float | None, b: float | None) -> str:
+    return f"{a / b:.2f}" if a is not None and b else "-"
+
+
+def write_table(doc: Path, text: str) -> None:
+    """Replace what is between the main-round markers of ``doc`` with ``text``. Raises ValueError
+    naming the file when the markers are not there (once each, in order)."""
+    old = doc.read_text()
+    m = re.search(re.escape(BEGIN) + r"\n.*?" + re.escape(END), old, flags=re.S)
+    if m is None or old.count(BEGIN) != 1 or old.count(END) != 1:
+        raise ValueError(f"{doc}: no main-round table markers ({BEGIN} ... {END}) to write between")
+    doc.write_text(old[:m.start()] + f"{BEGIN}\n{text}\n{END}" + old[m.end():])

@@ -1,0 +1,76 @@
+"""``bench/lifelong.py --main-round``: the 2024 main round's layout read, one result JSON per
+(instance, system) written as it finishes, a rerun resuming from them, and the table written
+between its markers.
+
+The archive here is laid out as MAPF-Competition/Benchmark-Archive's main-round folder; its
+RANDOM-01 is built from the shared LoRR files of random-32-32-20 with 100 robots (the main
+round's map and team, the test round's agents and tasks), so the test needs no checkout."""
+from __future__ import annotations
+
+import json
+import shutil
+import subprocess
+import sys
+from pathlib import Path
+
+ROOT = Path(__file__).resolve().parents[2]
+RANDOM = ROOT / ".." / "shared" / "data" / "lorr" / "random.domain"
+BENCH = ROOT / "bench" / "lifelong.py"
+BEGIN, END = "<!-- main-round table: begin (bench/lifelong.py --main-round) -->", "<!-- main-round table: end -->"
+
+
+def _archive(tmp: Path) -> Path:
+    base = tmp / "2024 Competition" / "Main Round Evaluation Instances"
+    shutil.copytree(RANDOM, base / "random.domain", ignore=shutil.ignore_patterns("*.json"))
+    problem = json.loads((RANDOM / "random_32_32_20_100.json").read_text())
+    (base / "random.domain" / "RANDOM-01.json").write_text(json.dumps(problem))
+    (base / "simulation_time.json").write_text(json.dumps({"RANDOM-01": 600, "RANDOM-02": 600}))
+    return tmp
+
+
+def _bench(*argv) -> subprocess.CompletedProcess:
+    return subprocess.run([sys.executable, str(BENCH), "--main-round", *map(str, argv)], capture_output=True,
+                          text=True, timeout=120)
+
+
+def test_main_round_keeps_each_result_resumes_and_writes_the_table(tmp_path):
+    archive, res, doc = _archive(tmp_path / "archive"), tmp_path / "results", tmp_path / "record.md"
+    doc.write_text(f"# record\n\n{BEGIN}\nold table\n{END}\n\nafter\n")
+    args = ("--archive", archive, "--only", "RANDOM-01", "--steps", 3, "--results", res, "--plan-time-limit", 500,
+            "--doc", doc)
+    r = _bench(*args)
+    assert r.returncode == 0, r.stderr[-2000:]
+    kept = res / "RANDOM-01.rce.3.json"
+    d = json.loads(kept.read_text())
+    assert (d["instance"], d["system"], d["steps"], d["official_steps"]) == ("RANDOM-01", "rce", 3, 600)
+    assert d["robots"] == 100
+    assert d["plan_time_limit_ms"] == 500 and d["timeouts"] == 0 and d["invalid_steps"] == 0
+    assert d["replayed_tasks"] == d["tasks_finished"] and d["replay_invalid_steps"] == 0 and "replay_error" not in d
+    assert len(d["curve"]) == 3 and d["date"] and d["commit"]
+    assert [p.name for p in res.iterdir()] == [kept.name]          # one result, no temporary left behind
+    text = doc.read_text()
+    assert "old table" not in text and text.endswith(f"{END}\n\nafter\n")
+    row = next(ln for ln in text.splitlines() if ln.startswith("| RANDOM-01 |"))
+    assert "| 3 of 600 |" in row and "696 (RAPID)" in row and "pro rata" in row and "| not run |" in row
+    assert row.count("|") == text.splitlines()[text.splitlines().index(BEGIN) + 1].count("|")   # header's columns
+    stamp, before = kept.stat().st_mtime_ns, kept.read_bytes()
+
+    again = _bench(*args)                                          # resumes: nothing left to run
+    assert again.returncode == 0, again.stderr[-2000:]
+    assert "[1/1] RANDOM-01 rce: done before" in again.stderr and "(batch)" not in again.stderr
+    assert kept.stat().st_mtime_ns == stamp and kept.read_bytes() == before
+    assert row in doc.read_text()
+
+    bare = tmp_path / "bare.md"
+    bare.write_text("# no markers\n")
+    r = _bench(*args[:-2], "--doc", bare)      # resumed, then refused
+    assert r.returncode == 2 and f"{bare}: no main-round table markers" in r.stderr
+
+
+def test_main_round_names_what_is_missing(tmp_path):
+    r = _bench("--archive", tmp_path, "--steps", 3)
+    assert r.returncode == 2 and f"{tmp_path}: no simulation_time.json of the 2024 main round" in r.stderr
+    r = _bench("--archive", _archive(tmp_path), "--only", "RANDOM-06", "--steps", 3)
+    assert r.returncode == 2 and "--only RANDOM-06: not a 2024 main-round instance" in r.stderr
+    r = _bench("--archive", tmp_path, "--only", "RANDOM-02", "--steps", 3)
+    assert r.returncode == 2 and "random.domain/RANDOM-02.json: missing" in r.stderr
