@@ -56,6 +56,7 @@ WS_MAX_QUEUE = 64        # frames the websocket reads ahead of the session
 SESSION_OPEN_WAIT = 5.0  # s a master op for a robot whose login was accepted waits for its websocket to open (a robot
                          # that moved here: the master installs its interfaces right after robot_connected)
 PROBE_TIMEOUT = 5.0      # s an uplink probe's answers may take (a slower link gives no sample)
+STOP_REPORT_S = 1.0      # s a stopping endpoint waits for the master to take a robot's disconnect
 
 #: The ops the master sends a robot task set.
 ROBOT_OPS = OpTable("master -> robot task set")
@@ -241,6 +242,7 @@ class RobotEndpoint:
         self.registry = default_registry()
         load_package_types(self.registry)
         self.plane = DataPlane(f"robot:{name}")
+        self.stopping = False             # stop() began: the master is asked a moment only
         self.namespaces: dict[tuple[str, str], RobotNamespace] = {}
         self.by_iid: dict[int, RobotInterface] = {}
         self.opening: dict[tuple[str, str], asyncio.Event] = {}     # logins accepted, websocket not open yet
@@ -376,6 +378,7 @@ class RobotEndpoint:
         return sock
 
     async def stop(self) -> None:
+        self.stopping = True
         if self._link_task is not None:
             self._link_task.cancel()
         if self.master and not self.master.available:
@@ -546,10 +549,17 @@ class RobotEndpoint:
         self.metrics.session_ended(ns.session)
         for iid in [i for i, itf in self.by_iid.items() if itf.link is ns]:
             del self.by_iid[iid]
+        if not self.master.available:      # stopping, or the master is away: its registration learns it
+            log.info("robot disconnected; the master is away and learns it when this task set registers",
+                     user=user, robot=robot)
+            return
+        report = self.master.ask(to_master.RobotDisconnected(user=user, robot=robot, session=ns.login))
         try:
-            await self.master.ask(to_master.RobotDisconnected(user=user, robot=robot, session=ns.login))
-        except RCEError as e:
-            log.warning("could not report disconnect", robot=robot, reason=str(e))
+            # a stopping endpoint waits for the master a moment only: the master may be stopping with it (its
+            # parent killed: both get SIGTERM), and a lost task set's robots are gone for the master anyway
+            await (asyncio.wait_for(report, STOP_REPORT_S) if self.stopping else report)
+        except (RCEError, asyncio.TimeoutError) as e:
+            log.warning("could not report disconnect", robot=robot, reason=str(e) or type(e).__name__)
         log.info("robot disconnected", user=user, robot=robot)
 
     # -- the master link ---------------------------------------------------------------------------

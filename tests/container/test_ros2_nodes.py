@@ -308,13 +308,14 @@ async def _until_async(cond, what: str, timeout: float = STEP):
     return got
 
 
-async def _dm_until(r: RawRobot, inbox: Inbox, itag: str, data: str, out: str, want) -> dict:
-    """Send ``data`` on ``itag`` until a DM on ``out`` satisfies ``want`` (the relay bridges a topic
-    once both ends are there: what is sent before goes nowhere)."""
+async def _dm_until(r: RawRobot, inbox: Inbox, itag: str, data: str, out: str, want,
+                    cls: str = "std_msgs/msg/String") -> dict:
+    """Send ``data`` (a ``cls``) on ``itag`` until a DM on ``out`` satisfies ``want`` (the relay bridges a
+    topic once both ends are there: what is sent before goes nowhere)."""
     deadline = time.monotonic() + STEP
     while True:
         assert time.monotonic() < deadline, f"no answer on {out!r}: {inbox.frames[-10:]}"
-        await r.send("DM", {"iTag": itag, "type": "std_msgs/msg/String", "msgID": "", "msg": {"data": data}})
+        await r.send("DM", {"iTag": itag, "type": cls, "msgID": "", "msg": {"data": data}})
         try:
             dm = await inbox.find("DM", lambda d: d["iTag"] == out, timeout=0.5)
         except TimeoutError:
@@ -362,6 +363,14 @@ async def test_rclpy_node_in_a_container_talks_to_a_robot(ros2_engine):
         await r.send("CX", {"connect": [{"tagA": f"{ctag}/latched", "tagB": f"{rid}/latched"}]})
         dm = await inbox.find("DM", lambda d: d["iTag"] == "latched")
         assert dm["msg"] == {"data": "published once, at the start"}
+        # a ROS 1 robot's interfaces (std_msgs/String) reach the same ROS 2 node: the sending ends convert
+        await r.cn(addInterfaces=[_iface(ctag, "in1", "PublisherInterface", "std_msgs/msg/String", "/in"),
+                                  _iface(rid, "in1", "SubscriberConverter", "std_msgs/String"),
+                                  _iface(rid, "out1", "PublisherConverter", "std_msgs/String")])
+        await r.send("CX", {"connect": [{"tagA": f"{ctag}/in1", "tagB": f"{rid}/in1"},
+                                        {"tagA": f"{ctag}/out", "tagB": f"{rid}/out1"}]})
+        await inbox.up("in1", "out1")
+        await _dm_until(r, inbox, "in1", "from ROS 1", "out1", lambda d: d == "later:from ROS 1", cls="std_msgs/String")
 
         stats = await _stats(ros2_engine, ctag)
         assert stats["ros2"]["running"] and stats["ros2"]["nodes"] == ["echo"], stats["ros2"]
