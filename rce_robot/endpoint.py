@@ -553,12 +553,12 @@ class RobotEndpoint:
             log.info("robot disconnected; the master is away and learns it when this task set registers",
                      user=user, robot=robot)
             return
-        report = self.master.ask(to_master.RobotDisconnected(user=user, robot=robot, session=ns.login))
         try:
             # a stopping endpoint waits for the master a moment only: the master may be stopping with it (its
             # parent killed: both get SIGTERM), and a lost task set's robots are gone for the master anyway
-            await (asyncio.wait_for(report, STOP_REPORT_S) if self.stopping else report)
-        except (RCEError, asyncio.TimeoutError) as e:
+            async with asyncio.timeout(STOP_REPORT_S if self.stopping else None):
+                await self.master.ask(to_master.RobotDisconnected(user=user, robot=robot, session=ns.login))
+        except (RCEError, TimeoutError) as e:
             log.warning("could not report disconnect", robot=robot, reason=str(e) or type(e).__name__)
         log.info("robot disconnected", user=user, robot=robot)
 
