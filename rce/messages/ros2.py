@@ -8,12 +8,10 @@ in ROS 1's form, ``pkg/Type``, stays a ROS 1 type (:mod:`rce.messages.registry`)
 
 Definitions come from rosbags' Jazzy typestore (``Stores.ROS2_JAZZY``: the common interfaces),
 then from the ``.msg``, ``.srv`` and ``.action`` files every ROS 2 package installs under
-``share/<pkg>/{msg,srv,action}``
-of an ament prefix (``AMENT_PREFIX_PATH``, and this Python's own prefix, where the PyPI wheels of
-ROS 2 put them), loaded on first use with the types they use, and from node packages
-(:meth:`Ros2Registry.load_definitions`). A service ``pkg/srv/T`` is the pair ``T_Request`` and
-``T_Response``; an action ``pkg/action/T`` brings ``T_Goal``, ``T_Result``, ``T_Feedback`` and the
-types rosidl generates for its parts (``T_SendGoal``, ``T_GetResult``, ``T_FeedbackMessage``,
+``share/<pkg>/{msg,srv,action}`` of an ament prefix (``AMENT_PREFIX_PATH``, and this Python's own
+prefix, where the PyPI wheels of ROS 2 put them), loaded on first use with the types they use. A
+service ``pkg/srv/T`` is the pair ``T_Request`` and ``T_Response``; an action ``pkg/action/T``
+brings ``T_Goal``, ``T_Result``, ``T_Feedback`` and the types rosidl generates for its parts (``T_SendGoal``, ``T_GetResult``, ``T_FeedbackMessage``,
 :mod:`rce.interfaces.actions`; the layouts of rosidl's ``action/action.idl.em`` templates).
 """
 from __future__ import annotations
@@ -132,26 +130,6 @@ class Ros2Registry(MessageRegistry):
         self._register(typename, types)
         return typename in self.store.fielddefs
 
-    def load_definitions(self, pkg: str, pkg_dir: Path) -> list[str]:
-        """Register a node package's ROS 2 ``msg/*.msg`` and ``srv/*.srv`` (ament's layout). Returns the
-        class names registered; :class:`MessageError` naming the file on error."""
-        done = []
-        for f in sorted((pkg_dir / "msg").glob("*.msg")):
-            try:
-                self._register(f"{pkg}/msg/{f.stem}", get_types_from_msg(f.read_text(), f"{pkg}/msg/{f.stem}"))
-            except Exception as e:
-                raise MessageError(f"{f}: {e}") from e
-            done.append(f"{pkg}/msg/{f.stem}")
-        for f in sorted((pkg_dir / "srv").glob("*.srv")):
-            req, _, resp = f.read_text().partition("\n---")
-            try:
-                for half, text in (("_Request", req), ("_Response", resp)):
-                    self._register(f"{pkg}/srv/{f.stem}{half}", get_types_from_msg(text, f"{pkg}/srv/{f.stem}{half}"))
-            except Exception as e:
-                raise MessageError(f"{f}: {e}") from e
-            done.append(f"{pkg}/srv/{f.stem}")
-        return done
-
     # -- lookup -------------------------------------------------------------------------------
     def msg_type(self, wire: str) -> str:
         """Typestore name of ROS 2 message class ``wire`` (``pkg/msg/T``, or an action's
@@ -178,13 +156,6 @@ class Ros2Registry(MessageRegistry):
             raise MessageError(f"unknown ROS 2 service class {wire!r}: no definition in rosbags' Jazzy types nor "
                                f"under share/{pkg}/{sub}/ of {os.pathsep.join(map(str, self.prefixes))}")
         return req, resp
-
-    def is_service(self, wire: str) -> bool:
-        try:
-            self.srv_types(wire)
-            return True
-        except MessageError:
-            return False
 
     # -- CDR ----------------------------------------------------------------------------------
     def codec(self, typename: str) -> None:
