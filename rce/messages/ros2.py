@@ -11,8 +11,9 @@ then from the ``.msg``, ``.srv`` and ``.action`` files every ROS 2 package insta
 ``share/<pkg>/{msg,srv,action}`` of an ament prefix (``AMENT_PREFIX_PATH``, and this Python's own
 prefix, where the PyPI wheels of ROS 2 put them), loaded on first use with the types they use. A
 service ``pkg/srv/T`` is the pair ``T_Request`` and ``T_Response``; an action ``pkg/action/T``
-brings ``T_Goal``, ``T_Result``, ``T_Feedback`` and the types rosidl generates for its parts (``T_SendGoal``, ``T_GetResult``, ``T_FeedbackMessage``,
-:mod:`rce.interfaces.actions`; the layouts of rosidl's ``action/action.idl.em`` templates).
+brings ``T_Goal``, ``T_Result``, ``T_Feedback`` and the types rosidl generates for its parts
+(``T_SendGoal``, ``T_GetResult``, ``T_FeedbackMessage``, :mod:`rce.interfaces.actions`; the layouts
+of rosidl's ``action/action.idl.em`` templates).
 """
 from __future__ import annotations
 
