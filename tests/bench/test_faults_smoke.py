@@ -1,7 +1,10 @@
-"""Smoke test of bench/faults.py: ``--quick --no-ros1``, every fault on real engine processes, end
-to end. Whatever the engine survives today, the run ends, and its JSON has every fault (rce, and
-the ROS 1 rows marked skipped) with every field, figures that agree with each other, the commands
-it ran, and the PNG."""
+"""Smoke test of bench/faults.py: ``--quick --no-ros1 --faults master,leader,link`` on real engine
+processes, end to end. Whatever the engine survives today, the run ends, and its JSON has every fault
+run (rce, and the ROS 1 rows marked skipped) with every field, figures that agree with each other, the
+commands it ran, and the PNG. The three faults run here are the ones whose harness is the bench's own
+(a master restarted, etcd's leader, the proxy that cuts the link); the other three (a robot endpoint, a
+host, an environment killed with -9) are the engine's own tests (test_endpoint_failover, test_lost_host,
+test_failover), and each fault costs the smoke about 10 s."""
 from __future__ import annotations
 
 import json
@@ -13,18 +16,19 @@ from pathlib import Path
 import pytest
 
 ROOT = Path(__file__).resolve().parents[2]
-RCE_FAULTS = ("master", "leader", "link", "robot", "host", "environment")
+RCE_FAULTS = ("master", "leader", "link")
 ROS1_FAULTS = ("master", "link")
 FIELDS = ("fault", "system", "description", "survived", "served_again_s", "lost", "lost_seqs", "measured",
           "echoed", "not_sent", "duplicates", "max_gap_s", "notes", "extra", "events", "commands", "timeline")
-RUN_TIMEOUT = 420        # s: six faults, each on a fresh engine, at most a 10 s wait after each fault (--quick)
+RUN_TIMEOUT = 240        # s: three faults, each on a fresh engine, at most a 10 s wait after each fault (--quick)
 
 
 @pytest.mark.timeout(RUN_TIMEOUT + 30)
 def test_faults_smoke(tmp_path):
     out, png = tmp_path / "faults.json", tmp_path / "faults.png"
-    r = subprocess.run([sys.executable, str(ROOT / "bench" / "faults.py"), "--quick", "--no-ros1", "--json", str(out),
-                        "--plot", str(png)], cwd=ROOT, capture_output=True, text=True, timeout=RUN_TIMEOUT,
+    r = subprocess.run([sys.executable, str(ROOT / "bench" / "faults.py"), "--quick", "--no-ros1",
+                        "--faults", ",".join(RCE_FAULTS), "--json", str(out), "--plot", str(png)],
+                       cwd=ROOT, capture_output=True, text=True, timeout=RUN_TIMEOUT,
                        env=dict(os.environ, COLUMNS="160"))
     assert r.returncode == 0, f"exit {r.returncode}\n{r.stdout[-3000:]}\n{r.stderr[-3000:]}"
     assert "served again after (s)" in r.stdout                      # the table was printed

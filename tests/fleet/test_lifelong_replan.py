@@ -177,7 +177,7 @@ def test_a_run_on_a_map_of_a_few_cells_plans_whole_plans_and_replays_under_the_r
     (tmp_path / "p.json").write_text('{"mapFile": "m.map", "agentFile": "a.agents", "teamSize": 3, '
                                      '"taskFile": "t.tasks", "numTasksReveal": 1.5, "version": "2024 LoRR"}')
     p = load_problem(tmp_path / "p.json")
-    r = run_lifelong(p, 120, plan_time_limit_ms=100.0)
+    r = run_lifelong(p, 120, plan_time_limit_ms=300.0)  # the wall clock of a loaded machine is not what this tests
     s = r.summary()
     assert s["replan"] is True and s["replans"] > 5
     assert s["invalid_steps"] == 0 and s["timeouts"] == 0 and s["tasks_finished"] >= 5
