@@ -20,7 +20,7 @@ and best known (``lorr/RESULTS.md``; scaled by steps on a cut, and marked), plan
 Usage::
 
     .venv/bin/python bench/lifelong.py [--quick] [--only NAME ...] [--steps N] [--problems JSON ...]
-        [--generate MAP ... --robots N,... ] [--sweep] [--seed S] [--problem-dir DIR]
+        [--generate MAP ... --robots N,... ] [--sweep] [--heldout] [--seed S] [--problem-dir DIR]
         [--main-round [--archive DIR] [--results DIR] [--doc MD]
          [--winner PATH [--winner-args ARGS] [--winner-cwd DIR]]]
         [--peer PATH [--peer-args ARGS] [--peer-cwd DIR] | --build-peer DIR]
@@ -58,6 +58,10 @@ SWEEP = {"random.domain/maps/random-32-32-20.map": (100, 200, 400, 600, 800),
          "warehouse.domain/maps/sortation_large.map": (2000, 5000, 10000),
          "warehouse.domain/maps/warehouse_large.map": (2000, 5000, 10000)}
 GENERATED_STEPS = 1000          # steps of a generated problem when --steps is not given
+HELDOUT_STEPS = 200             # steps of a --heldout problem when --steps is not given
+HELDOUT_DENSITIES = (0.05, 0.2)   # robots per free cell of the --heldout problems
+# the tuned set beside the held-out one: maps the planner's constants were measured on
+TUNED = ("random.domain/maps/random-32-32-20.map",)
 PEERS = (ROOT / ".." / "peers").resolve()      # where the docs check out the peers' sources
 # the 2024 winner's command (github.com/Straple/LORR24): EPIBT with operations of four actions and LNS,
 # its guidance graph, the greedy scheduler
@@ -232,6 +236,10 @@ def _parser() -> argparse.ArgumentParser:
                     help="generate problems on these maps (with --robots), as the league's Problem Generator does")
     ap.add_argument("--robots", type=_robots, metavar="N,...", help="team sizes of --generate")
     ap.add_argument("--sweep", action="store_true", help="generate and run the density sweep on every shared map")
+    ap.add_argument("--heldout", action="store_true",
+                    help="maps no constant was set on (bench/heldout_maps.py) at 0.05 and 0.2 robots per free "
+                         f"cell, beside the tuned set's ({', '.join(Path(m).stem for m in TUNED)}), "
+                         f"{HELDOUT_STEPS} steps; the summary compares the two sets")
     ap.add_argument("--problem-dir", type=Path, default=RESULTS / "problems", metavar="DIR",
                     help="where generated problems are written (default bench/results/problems)")
     ap.add_argument("--steps", type=int, help="steps for every problem (default: the official number; "
@@ -376,6 +384,8 @@ def _problems(args, lorr: Path, pub: dict) -> list[tuple[Path, int]]:
     from rce_fleet.lifelong.generate import write_problem
 
     gen: list[tuple[Path, int]] = []
+    if args.heldout:
+        return heldout_problems(args.problem_dir, lorr, args.seed, args.steps or HELDOUT_STEPS)
     if args.sweep:
         gen += [(lorr / m, n) for m, teams in SWEEP.items() for n in teams]
     if args.generate:
@@ -399,11 +409,51 @@ def _problems(args, lorr: Path, pub: dict) -> list[tuple[Path, int]]:
             for p in problems]
 
 
+def heldout_problems(folder: Path, lorr: Path, seed: int, steps: int) -> list[tuple[Path, int]]:
+    """(problem JSON, steps) of ``--heldout``: the held-out maps (written to ``folder/heldout``) and
+    the tuned set's, each at :data:`HELDOUT_DENSITIES`, as the league's Problem Generator makes
+    problems (:mod:`rce_fleet.lifelong.generate`)."""
+    from heldout_maps import write_maps
+    from rce_fleet.lifelong.generate import write_problem
+    from rce_fleet.lifelong.lorr import load_lorr_map
+
+    maps = [(path, cells) for path, cells in write_maps(folder / "heldout").values()]
+    for m in TUNED:
+        free = load_lorr_map(lorr / m).free_cells()
+        maps.append((lorr / m, len(free)))
+    out = []
+    for path, cells in maps:
+        for d in HELDOUT_DENSITIES:
+            out.append((write_problem(path, max(1, round(d * cells)), seed, folder), steps))
+    return out
+
+
+def set_of(problem: str) -> str:
+    """``"held-out"`` for a problem on a held-out map, ``"tuned"`` for the others."""
+    from heldout_maps import HELDOUT
+    return "held-out" if any(problem.startswith(n.replace("-", "_")) for n in HELDOUT) else "tuned"
+
+
+def heldout_summary(rows: list[dict]) -> dict[str, dict]:
+    """Per set (held-out, tuned): the problems, and the geometric mean and least of rce's tasks over
+    the default entry's in the same run (rows with the peer's count)."""
+    import math
+    out = {}
+    for name in ("held-out", "tuned"):
+        ratios = [r["vs_peer"] for r in rows if "vs_peer" in r and set_of(r["problem"]) == name]
+        out[name] = {"problems": sum(1 for r in rows if set_of(r["problem"]) == name), "with_peer": len(ratios),
+                     "geomean_vs_peer": math.exp(sum(map(math.log, ratios)) / len(ratios)) if ratios else None,
+                     "least_vs_peer": min(ratios) if ratios else None}
+    return out
+
+
 def main(argv: list[str] | None = None) -> int:
     ap = _parser()
     args = ap.parse_args(argv)
     if args.generate and not args.robots:
         ap.error("--generate needs --robots N,...")
+    if args.heldout and (args.quick or args.problems or args.generate or args.sweep or args.main_round):
+        ap.error("--heldout runs its own problems: not with --quick, --problems, --generate, --sweep or --main-round")
     if args.main_round and (args.quick or args.problems or args.generate or args.sweep):
         ap.error("--main-round runs the main round's instances: not with --quick, --problems, --generate or --sweep")
     if args.main_round and args.scheduler == "both":
@@ -432,7 +482,8 @@ def main(argv: list[str] | None = None) -> int:
         print(f"bench/lifelong.py: {e}", file=sys.stderr)
         return 2
     scheds = ("greedy", "batch") if args.scheduler == "both" else (args.scheduler,)
-    stem = "lifelong_quick" if args.quick else ("lifelong_sweep" if args.sweep or args.generate else "lifelong")
+    stem = ("lifelong_quick" if args.quick else "lifelong_heldout" if args.heldout
+            else "lifelong_sweep" if args.sweep or args.generate else "lifelong")
     json_path = args.json or RESULTS / f"{stem}.json"
     plot_path = args.plot or RESULTS / f"{stem}.png"
     rows = []
@@ -447,6 +498,17 @@ def main(argv: list[str] | None = None) -> int:
                                              "peer_args": list(args.peer_args),
                                              "wall_s": time.perf_counter() - t0, "runs": rows}, indent=1))
     print_table(rows)
+    if args.heldout:
+        summary = heldout_summary(rows)
+        for name, x in summary.items():
+            if x["with_peer"]:
+                print(f"{name}: {x['problems']} problems, rce / default entry: geometric mean "
+                      f"{x['geomean_vs_peer']:.2f}, least {x['least_vs_peer']:.2f} ({x['with_peer']} beside it)")
+            else:
+                print(f"{name}: {x['problems']} problems (no --peer: no ratio)")
+        data = json.loads(json_path.read_text())
+        data["sets"] = summary
+        json_path.write_text(json.dumps(data, indent=1))
     print(f"wrote {json_path}")
     plot_path.parent.mkdir(parents=True, exist_ok=True)
     plot(rows, plot_path)

@@ -42,7 +42,7 @@ def test_a_robot_goes_round_against_a_stream_and_with_one_it_joins():
               ".@.",
               "..."])
     cache = DistanceCache(g, max_bytes=2 * g.n_cells * 9)
-    tf = TrafficFlow(g, cache, 5)
+    tf = TrafficFlow(g, cache, 5, threads=1)          # in order: each path sees those before it
     west, east = cell(g, 0, 0), cell(g, 0, 2)
     # three robots stream east along the top row; one goes west against them, one east with them
     pos = np.array([west, west, west, east, west], dtype=np.int64)
@@ -126,3 +126,40 @@ def test_past_the_hard_deadline_a_new_goal_waits_for_the_next_step():
     assert tf.update(pos, goals, slot, past, hard=past).tolist() == [-1, -1]
     assert tf.stats["guide_deferred"] == 1 and tf.goal[0] == -1
     assert tf.update(pos, goals, slot, time.perf_counter() + 60).tolist() == [0, -1] and tf.guided[0]
+
+
+def test_on_two_threads_the_flow_stays_the_sum_of_the_paths():
+    """Paths planned on two threads at once, goals changing and every path refined twice a step
+    (the same robot twice in the list): the flow is the sum of the paths after every step, each
+    path goes from its robot to its goal, and a lone robot listed three times is planned once at a
+    time."""
+    rows = ["." * 30] * 30
+    rows[10] = "." + "@" * 28 + "."
+    rows[20] = "." + "@" * 28 + "."
+    g = grid(rows)
+    cache = DistanceCache(g, max_bytes=2 * g.n_cells * g.n_cells)
+    rng = np.random.default_rng(5)
+    free = g.free_cells()
+    n = 300
+    tf = TrafficFlow(g, cache, n, threads=2)
+    assert tf.stats["guide_threads"] == 2
+    pos = rng.choice(free, n, replace=False).astype(np.int64)
+    far = time.perf_counter() + 60
+    for _ in range(5):
+        goals = np.where(rng.random(n) < 0.1, -1, rng.choice(free, n)).astype(np.int64)
+        slot = cache.slots(goals[goals >= 0])
+        full = np.full(n, -1, dtype=np.int64)
+        full[goals >= 0] = slot
+        rows_ = tf.update(pos, goals, full, far)
+        assert ((rows_ >= 0) == (goals >= 0)).all()
+        # each robot's first place in the list is planned; its second is skipped only if the other thread
+        # still plans its first then
+        assert int((goals >= 0).sum()) <= tf.refine(pos, full, far, passes=2) <= 2 * int((goals >= 0).sum())
+        assert (tf.flow == flow_from_paths(g, tf.paths)).all()
+        assert all(p[0] == s and p[-1] == gl for p, s, gl in zip(tf.paths, pos, goals, strict=True) if p is not None)
+    one = TrafficFlow(g, cache, 1, threads=2)
+    goals = np.array([free[-1]], dtype=np.int64)
+    slot = cache.slots(goals)
+    one.update(pos[:1], goals, slot, far)
+    refined = one.refine(pos[:1], slot, far, passes=3)
+    assert 1 <= refined <= 3 and (one.flow == flow_from_paths(g, one.paths)).all()

@@ -17,6 +17,10 @@ finding" (AAAI-24), the planner of the League of Robot Runners' default entry:
 - While the step's time lasts, guide paths are planned again against the others' current
   flow (the paper's Frank-Wolfe-style refinement), those most off their path first, then those
   planned longest ago.
+- Both the new goals' paths and the refinement run on ``threads`` threads at once (the kernels
+  release the GIL), each taking the next robot of the list; a path is planned against the flow as
+  it stands, without the paths being planned beside it at that moment (the refinement plans them
+  again later), and is added to the flow under a lock, so that the flow stays the sum of the paths.
 
 Arrays: ``nbr`` (cells, 4) int32 from :class:`~.grid.LifelongGrid`; ``cost`` (cells, 4) uint8,
 the length of each move (the one-way lanes of :mod:`.guidance`, else all 1); distance rows
@@ -24,7 +28,11 @@ uint16 with :data:`~.kernels.UNREACHABLE`.
 """
 from __future__ import annotations
 
+import os
+import threading
 import time
+from collections.abc import Callable
+from concurrent.futures import ThreadPoolExecutor
 
 import numpy as np
 from numba import njit
@@ -42,7 +50,7 @@ RADIUS = 3         # a path's row reaches this many steps off it (measured: docs
 _FLOW_CAP = (1 << 22) - 1      # the flow a key can hold; a path that meets more is as bad as any
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def flow_astar(nbr, cost, flow, h, start, goal, g, acc, parent, stamp, label, hk, hv, path, head, turn):
     """A* from ``start`` to ``goal`` minimising length + contraflow + vertex flow (module doc),
     a quarter turn costing ``turn`` steps (MAPF_T: 1; the robot starts facing ``head``, -1
@@ -116,7 +124,7 @@ def flow_astar(nbr, cost, flow, h, start, goal, g, acc, parent, stamp, label, hk
     return n
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def path_fill(nbr, path, out, dist, togo, queue, radius):
     """The distance row of a guide path ``path`` (int32 cells, start to goal) into ``out``
     (uint16, cells): steps to the nearest path cell plus the steps left along the path from
@@ -155,7 +163,7 @@ def path_fill(nbr, path, out, dist, togo, queue, radius):
     return tail
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def _flow_add(flow, path, n, sign):
     """Add (sign +1) or remove (-1) the moves of ``path[:n]`` to / from ``flow``."""
     for i in range(n - 1):
@@ -173,6 +181,25 @@ def _flow_add(flow, path, n, sign):
         flow[u, d] += sign
 
 
+class _Scratch:
+    """One thread's scratch for :func:`flow_astar` and :func:`path_fill`: (cells,) int32 arrays
+    (``dist`` -1 everywhere between calls), the heap's 4 x cells int64 keys and values, and the
+    A* call's label."""
+
+    def __init__(self, cells: int):
+        self.g = np.zeros(cells, dtype=np.int32)
+        self.acc = np.zeros(cells, dtype=np.int32)
+        self.parent = np.zeros(cells, dtype=np.int32)
+        self.stamp = np.zeros(cells, dtype=np.int32)
+        self.label = 0
+        self.hk = np.empty(4 * cells + 8, dtype=np.int64)
+        self.hv = np.empty(4 * cells + 8, dtype=np.int64)
+        self.path = np.empty(cells, dtype=np.int32)
+        self.dist = np.full(cells, -1, dtype=np.int32)
+        self.togo = np.empty(cells, dtype=np.int32)
+        self.queue = np.empty(cells, dtype=np.int32)
+
+
 class TrafficFlow:
     """Guide paths for a team of ``n`` robots and their distance rows (module doc).
 
@@ -181,13 +208,15 @@ class TrafficFlow:
     the rows current as goals change; ``refine`` plans guide paths again while time lasts.
     cost: (cells, 4) uint8 move lengths (default all 1); radius: how far off its path a
     robot's row reaches (:func:`path_fill`); turn: the steps a quarter turn costs a guide path
-    (1 for MAPF_T, 0 for 4-neighbour moves). Memory: ``n`` rows of 2 bytes a cell (1.4 GB
-    for 10,000 robots on a 500 x 140 map), written once when made so that no step pays for
-    the pages. Raises MemoryError (from numpy) if they cannot be had.
+    (1 for MAPF_T, 0 for 4-neighbour moves); threads: the threads that plan paths at once
+    (default: the CPUs this process may use, at most 2; 1: in order, as the paper plans them, the
+    same paths in every run). Memory: ``n`` rows of 2 bytes a cell (1.4 GB for 10,000 robots on a
+    500 x 140 map), written once when made so that no step pays for the pages, and per thread
+    about 60 bytes a cell of scratch. Raises MemoryError (from numpy) if they cannot be had.
     """
 
     def __init__(self, grid: LifelongGrid, cache: DistanceCache, n: int, cost: np.ndarray | None = None,
-                 seed_: int = 0, radius: int = RADIUS, turn: int = 1):
+                 seed_: int = 0, radius: int = RADIUS, turn: int = 1, threads: int | None = None):
         self.grid, self.cache, self.n, self.radius, self.turn = grid, cache, int(n), int(radius), int(turn)
         cells = grid.n_cells
         self.cost = cost if cost is not None else np.ones((cells, 4), dtype=np.uint8)
@@ -197,45 +226,76 @@ class TrafficFlow:
         self.guided = np.zeros(self.n, dtype=bool)               # the row follows a guide path
         self.planned_at = np.zeros(self.n, dtype=np.int64)       # the step its path was planned
         self.paths: list[np.ndarray | None] = [None] * self.n
-        self._g = np.zeros(cells, dtype=np.int32)
-        self._acc = np.zeros(cells, dtype=np.int32)
-        self._parent = np.zeros(cells, dtype=np.int32)
-        self._stamp = np.zeros(cells, dtype=np.int32)
-        self._label = 0
-        self._hk = np.empty(4 * cells + 8, dtype=np.int64)
-        self._hv = np.empty(4 * cells + 8, dtype=np.int64)
-        self._path = np.empty(cells, dtype=np.int32)
-        self._dist = np.full(cells, -1, dtype=np.int32)
-        self._togo = np.empty(cells, dtype=np.int32)
-        self._queue = np.empty(cells, dtype=np.int32)
+        if threads is None:
+            threads = min(2, len(os.sched_getaffinity(0)))
+        self._scratch = [_Scratch(cells) for _ in range(max(1, int(threads)))]
+        self._pool = (ThreadPoolExecutor(len(self._scratch) - 1, thread_name_prefix="guide-paths")
+                      if len(self._scratch) > 1 else None)
+        self._lock = threading.Lock()          # the flow, the paths, the stats and the list being worked
+        self._busy: set[int] = set()           # robots a thread is planning now
         self.rng = np.random.default_rng(seed_)
         self.step = 0
-        self.stats = {"guide_paths": 0, "guide_refined": 0, "guide_copied": 0, "guide_deferred": 0, "flow_ms": 0.0}
+        self.stats = {"guide_paths": 0, "guide_refined": 0, "guide_copied": 0, "guide_deferred": 0, "flow_ms": 0.0,
+                      "guide_threads": len(self._scratch)}
 
     def _drop(self, a: int) -> None:
-        p = self.paths[a]
-        if p is not None:
-            _flow_add(self.flow, p, p.shape[0], -1)
-            self.paths[a] = None
+        with self._lock:
+            p = self.paths[a]
+            if p is not None:
+                _flow_add(self.flow, p, p.shape[0], -1)
+                self.paths[a] = None
         self.guided[a] = False
 
-    def _plan(self, a: int, start: int, goal: int, slot: int, head: int = -1) -> bool:
-        self._label += 1
-        if self._label >= 2 ** 30:
-            self._stamp[:] = 0
-            self._label = 1
-        n = flow_astar(self.grid.nbr, self.cost, self.flow, self.cache.table[slot], start, goal, self._g, self._acc,
-                       self._parent, self._stamp, self._label, self._hk, self._hv, self._path, head, self.turn)
+    def _plan(self, a: int, start: int, goal: int, slot: int, head: int, s: _Scratch) -> bool:
+        s.label += 1
+        if s.label >= 2 ** 30:
+            s.stamp[:] = 0
+            s.label = 1
+        n = flow_astar(self.grid.nbr, self.cost, self.flow, self.cache.table[slot], start, goal, s.g, s.acc,
+                       s.parent, s.stamp, s.label, s.hk, s.hv, s.path, head, self.turn)
         if n == 0:
             return False
-        p = self._path[:n].copy()
-        _flow_add(self.flow, p, n, 1)
-        self.paths[a] = p
-        path_fill(self.grid.nbr, p, self.table[a], self._dist, self._togo, self._queue, self.radius)
+        p = s.path[:n].copy()
+        with self._lock:
+            _flow_add(self.flow, p, n, 1)
+            self.paths[a] = p
+            self.stats["guide_paths"] += 1
+        path_fill(self.grid.nbr, p, self.table[a], s.dist, s.togo, s.queue, self.radius)
         self.guided[a] = True
         self.planned_at[a] = self.step
-        self.stats["guide_paths"] += 1
         return True
+
+    def _each(self, robots: list[int], work: Callable[[int, _Scratch], bool]) -> int:
+        """``work(a, scratch)`` for the robots of ``robots`` in order, on every thread at once,
+        each thread taking the next robot not being worked on by another (a robot listed twice is
+        skipped while it is); a thread stops when ``work`` returns False (its deadline passed).
+        Returns the number of calls that returned True. An error in a thread is raised here."""
+        todo = iter(robots)
+        lock, busy = self._lock, self._busy
+
+        def worker(s: _Scratch) -> int:
+            done = 0
+            while True:
+                with lock:
+                    a = next(todo, None)
+                    while a is not None and a in busy:
+                        a = next(todo, None)
+                    if a is None:
+                        return done
+                    busy.add(a)
+                try:
+                    if not work(a, s):
+                        return done
+                    done += 1
+                finally:
+                    with lock:
+                        busy.discard(a)
+
+        if self._pool is None or len(robots) < 2:
+            return worker(self._scratch[0])
+        futures = [self._pool.submit(worker, s) for s in self._scratch[1:]]
+        done = worker(self._scratch[0])
+        return done + sum(f.result() for f in futures)
 
     def update(self, pos: np.ndarray, goals: np.ndarray, slot: np.ndarray, deadline: float,
                hard: float | None = None, head: np.ndarray | None = None) -> np.ndarray:
@@ -251,22 +311,28 @@ class TrafficFlow:
         for a in np.flatnonzero(goals != self.goal).tolist():
             self._drop(a)
             self.goal[a] = -1
-        for a in np.flatnonzero((goals >= 0) & (slot >= 0)).tolist():
-            if self.goal[a] == goals[a]:
-                out[a] = a
-                continue
+        have = np.flatnonzero((goals >= 0) & (slot >= 0))
+        kept = have[self.goal[have] == goals[have]]
+        out[kept] = kept
+
+        def new_goal(a: int, s: _Scratch) -> bool:
             g = int(goals[a])
             now = time.perf_counter()
-            if now < deadline and self._plan(a, int(pos[a]), g, int(slot[a]), -1 if head is None else int(head[a])):
+            if now < deadline and self._plan(a, int(pos[a]), g, int(slot[a]), -1 if head is None else int(head[a]), s):
                 pass
             elif hard is None or now < hard:
                 self.table[a] = self.cache.table[slot[a]]
-                self.stats["guide_copied"] += 1
+                with self._lock:
+                    self.stats["guide_copied"] += 1
             else:
-                self.stats["guide_deferred"] += 1
-                continue
+                with self._lock:
+                    self.stats["guide_deferred"] += 1
+                return True
             self.goal[a] = g
             out[a] = a
+            return True
+
+        self._each(have[self.goal[have] != goals[have]].tolist(), new_goal)
         self.stats["flow_ms"] += (time.perf_counter() - t0) * 1e3
         return out
 
@@ -284,14 +350,17 @@ class TrafficFlow:
         best = self.cache.table[slot[have], pos[have]].astype(np.int64)
         dev = np.where(self.guided[have], own - best, 1 << 30)
         order = np.lexsort((self.rng.random(len(have)), self.planned_at[have], -dev))
-        k = 0
-        for a in np.tile(have[order], passes).tolist():
+
+        def again(a: int, s: _Scratch) -> bool:
             if time.perf_counter() >= deadline:
-                break
+                return False
             self._drop(a)
-            if not self._plan(a, int(pos[a]), int(self.goal[a]), int(slot[a]), -1 if head is None else int(head[a])):
+            if not self._plan(a, int(pos[a]), int(self.goal[a]), int(slot[a]), -1 if head is None else int(head[a]),
+                              s):
                 self.table[a] = self.cache.table[slot[a]]
-            k += 1
+            return True
+
+        k = self._each(np.tile(have[order], passes).tolist(), again)
         self.stats["guide_refined"] += k
         self.stats["flow_ms"] += (time.perf_counter() - t0) * 1e3
         return k

@@ -17,6 +17,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from .admission import FlowAdmission, JamDetector, packed
+from .budget import StepBudget
 from .distances import DistanceCache, cache_bytes_for
 from .flow import TrafficFlow
 from .flow import warm_up as flow_warm_up
@@ -88,25 +89,35 @@ REPLAN_DENSITY = 0.3    # ... if the map has a dead end, or the team is under th
 @dataclass
 class RunResult:
     """The outcome of :func:`run_lifelong`: the simulator (with its output JSON), per-step
-    planner times (ms) and tasks finished after each step."""
+    planner times (ms), tasks finished after each step, and the CPU the process used in each
+    step's scheduler + planner call (s, every thread: ``cpu_s / plan_ms * 1e3`` is the cores the
+    step used)."""
 
     sim: Simulator
     plan_ms: np.ndarray
     finished: np.ndarray
     wall_s: float
     stats: dict = field(default_factory=dict)
+    cpu_s: np.ndarray | None = None
 
     def summary(self) -> dict:
-        """Tasks finished, timeouts, invalid steps and planner ms p50/p99/max."""
+        """Tasks finished, timeouts, invalid steps, planner ms p50/p99/max, and the cores the
+        planner used: its CPU time over its wall time, over the run (``cores``) and the median step's
+        (``cores_p50``)."""
         ms = self.plan_ms if len(self.plan_ms) else np.zeros(1)
+        cores = {}
+        if self.cpu_s is not None and len(self.plan_ms):
+            wall = np.maximum(self.plan_ms / 1e3, 1e-9)
+            cores = {"cores": round(float(self.cpu_s.sum() / wall.sum()), 3),
+                     "cores_p50": round(float(np.median(self.cpu_s / wall)), 3)}
         return {"steps": self.sim.t, "tasks_finished": self.sim.finished, "timeouts": self.sim.timeouts,
                 "invalid_steps": self.sim.invalid_steps, "schedule_errors": len(self.sim.schedule_errors),
                 "plan_ms_p50": float(np.percentile(ms, 50)), "plan_ms_p99": float(np.percentile(ms, 99)),
-                "plan_ms_max": float(ms.max()), "wall_s": self.wall_s, **self.stats}
+                "plan_ms_max": float(ms.max()), "wall_s": self.wall_s, **cores, **self.stats}
 
 
 def run_lifelong(problem: LorrProblem, steps: int, plan_time_limit_ms: float = 1000.0, seed: int = 0,
-                 scheduler: str = "batch", model: str = MAPF_T, budget_frac: float = 0.5,
+                 scheduler: str = "batch", model: str = MAPF_T, budget_frac: float | None = 0.5,
                  cache_bytes: int | None = None, lanes: int = LANES, crowd_w: float | None = None,
                  record: bool = True, guide: bool | None = None, planner_kw: dict | None = None,
                  flow_kw: dict | None = None, max_active: int | None = None, open_lanes: int | None = None,
@@ -247,7 +258,10 @@ def run_lifelong(problem: LorrProblem, steps: int, plan_time_limit_ms: float = 1
         step_planner = ReplanPlanner(grid, planner, seed=seed)
     sim = Simulator(grid, problem.starts, problem.tasks, problem.reveal, model=model, record=record)
     limit = plan_time_limit_ms / 1e3
+    budget = StepBudget(limit) if budget_frac is None else None
+    deadline_frac, hard_frac = (budget.deadline, budget.hard) if budget is not None else (budget_frac, HARD_FRAC)
     plan_ms = np.zeros(steps)
+    cpu_s = np.zeros(steps)
     finished = np.zeros(steps, dtype=np.int64)
     sched_ms = 0.0
     control = None
@@ -263,18 +277,22 @@ def run_lifelong(problem: LorrProblem, steps: int, plan_time_limit_ms: float = 1
     watch = detector is not None or (control is not None and control.jam_factor is not None)
     occupied = np.zeros(grid.n_cells + 1, dtype=bool) if watch else None
     for k in range(steps):
-        t0 = time.perf_counter()
-        deadline = t0 + budget_frac * limit
-        prop = sched.schedule(sim.pos, sim.assignment, sim.pool.open, sim.t, t0 + 0.5 * budget_frac * limit)
+        c0, t0 = time.process_time(), time.perf_counter()
+        deadline = t0 + deadline_frac * limit
+        prop = sched.schedule(sim.pos, sim.assignment, sim.pool.open, sim.t, t0 + 0.5 * deadline_frac * limit)
         t1 = time.perf_counter()
         goals = np.full(sim.n, -1, dtype=np.int64)
         has = np.flatnonzero(prop >= 0)
         if len(has):
             open_ = sim.pool.open
             goals[has] = [open_[int(prop[a])].goal for a in has]
-        actions = step_planner.plan(sim.pos, sim.head, goals, deadline, t0 + HARD_FRAC * limit)
+        actions = step_planner.plan(sim.pos, sim.head, goals, deadline, t0 + hard_frac * limit)
         dt = time.perf_counter() - t0
+        cpu_s[k] = time.process_time() - c0
         sched_ms += (t1 - t0) * 1e3
+        if budget is not None:
+            budget.observe(dt / limit)
+            deadline_frac, hard_frac = budget.deadline, budget.hard
         p_before = sim.pos.copy() if control is not None else None
         sim.step(actions, prop, plan_time_s=dt, timed_out=dt > limit)
         held = prop >= 0
@@ -309,8 +327,10 @@ def run_lifelong(problem: LorrProblem, steps: int, plan_time_limit_ms: float = 1
              "jam_at": detector.jam_at if detector is not None else None, "jam_cut": jam_cut,
              "packed_shares": detector.shares if detector is not None else None,
              "distance_maps": cache.computed, "maps_evicted": cache.evicted, "cache_rows": cache.capacity,
-             "cache_rows_used": len(cache)}
-    return RunResult(sim, plan_ms, finished, time.perf_counter() - t_start, stats)
+             "cache_rows_used": len(cache),
+             "budget": ({"hard": budget.hard, "falls": budget.falls, "history": budget.history} if budget is not None
+                        else {"deadline": budget_frac, "hard": HARD_FRAC})}
+    return RunResult(sim, plan_ms, finished, time.perf_counter() - t_start, stats, cpu_s)
 
 
 def rich_progress(total: int, label: str = "lifelong"):
