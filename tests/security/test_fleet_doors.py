@@ -301,6 +301,34 @@ def test_foxglove_port_is_on_the_page_address_over_tls_with_its_tokens(serve):
     asyncio.run(run())
 
 
+def test_a_new_role_closes_the_users_foxglove_sessions(serve):
+    """An operator demoted to viewer loses its Foxglove session at once (1008, the reason named), and its
+    old token opens none again: no one keeps a role they no longer have until they reconnect."""
+    admin = token(serve, "admin", ADMIN_PW)
+    code, a, _ = http(serve, "POST", "/api/users", {"name": "olga", "password": "olga-pw-123", "role": "operator"},
+                      token=admin)
+    assert code == 201, a
+    olga = token(serve, "olga", "olga-pw-123")
+
+    async def run() -> None:
+        ws, _ = await _fox(serve, f"token={olga}")
+        code, a, _ = await asyncio.to_thread(http, serve, "PATCH", "/api/users/olga", {"role": "viewer"}, admin)
+        assert code == 200 and a["revoked"] >= 1, a
+        with pytest.raises(ConnectionClosed) as e:
+            async with asyncio.timeout(STEP_TIMEOUT_S):
+                while True:
+                    await ws.recv()
+        assert e.value.rcvd.code == 1008 and "revoked" in e.value.rcvd.reason, e.value.rcvd
+        with pytest.raises(InvalidStatus) as e:
+            await connect(f"{serve['fox']}/?token={olga}", subprotocols=[SUB], ssl=serve["ssl"])
+        assert e.value.response.status_code == 401
+        again = await asyncio.to_thread(token, serve, "olga", "olga-pw-123")
+        ws, channels = await _fox(serve, f"token={again}")         # the new role's session
+        assert "/fleet/tasks" in channels
+        await ws.close()
+    asyncio.run(run())
+
+
 # -- 4. tokens: bounded per user, and the login says they end with a restart ---------------------------------
 def test_tokens_are_bounded_per_user_and_say_they_end_with_a_restart(serve):
     from rce_fleet.operations.api_auth import MAX_PER_USER

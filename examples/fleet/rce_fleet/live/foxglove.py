@@ -38,6 +38,7 @@ from rce.foxglove.protocol import JSON, ClientChannel, ros1_schema
 from rce.foxglove.server import FoxgloveServer
 from rce.plumbing.errors import AuthError, MessageError, RCEError, RequestError
 from rce.plumbing.log import get_logger
+from rce.plumbing.tasks import Tasks
 from rce_client.connection import Connection
 
 from ..configs import FLEET_CTAG
@@ -54,6 +55,8 @@ GOAL_POSE = re.compile(r"^/(Robot\d+)/goal_pose$")   # a robot's goal as a pose 
 OPERATOR_TOPICS = {"/fleet/goal": "fleet/RobotGoal", "/fleet/block": "fleet/CellBlock", "/fleet/task": "fleet/Task",
                    "/fleet/task_cancel": "fleet/TaskCancel"}
 STAMPED = {"/fleet/block", "/fleet/task", "/fleet/task_cancel"}    # their ``source`` is the server's to set
+CLOSE_POLICY = 1008                  # websocket close code: the session's credential no longer holds
+REVOKED = "the user's tokens were revoked: connect again with a new token"
 
 
 class FleetFoxglove:
@@ -61,7 +64,9 @@ class FleetFoxglove:
     internal user, whose client it runs as), ``scene`` (:class:`~rce_fleet.live.fleet_scene.FleetScene`),
     ``robots`` (``Robot1`` ...), ``auth`` (the page's :class:`~rce_fleet.operations.http_api.ApiAuth`: its tokens
     are this port's credentials; None: a replay's, on loopback, where anyone may watch and no one publish),
-    ``bind``, ``port`` and ``ssl_context`` (wss://) as the page's."""
+    ``bind``, ``port`` and ``ssl_context`` (wss://) as the page's. When a user's tokens are revoked (a new
+    role or password, a removal, an admin's revocation), its sessions here are closed with 1008, so no one
+    keeps a role they no longer have."""
 
     def __init__(self, master_url: str, scene: FleetScene, robots: list[str], *, user: str, password: str, auth=None,
                  ctag: str = FLEET_CTAG, bind: str = "127.0.0.1", port: int = 0, ssl_context=None):
@@ -77,7 +82,18 @@ class FleetFoxglove:
         self._state: dict | None = None
         self._tasks: dict | None = None
         self._logins = itertools.count(1)
+        self._closing = Tasks("fleet-foxglove")
         self.url = ""
+        if auth is not None:
+            auth.on_revoke.append(self.end_user)
+
+    def end_user(self, user: str) -> None:
+        """``user``'s tokens were revoked: close its sessions with 1008 (:data:`REVOKED`)."""
+        for client in list(self.server.clients):
+            who = client.principal
+            if isinstance(who, Identity) and who.user == user:
+                log.info("Foxglove session closed: its user's tokens were revoked", user=user)
+                self._closing.spawn(client.ws.close(CLOSE_POLICY, REVOKED), name="foxglove-revoked")
 
     async def start(self, timeout: float = SETUP_TIMEOUT_S) -> str:
         """Connect to the fleet container, advertise the channels and listen; returns the URL to open
@@ -135,6 +151,7 @@ class FleetFoxglove:
     async def close(self) -> None:
         """Stop serving, remove the server's interfaces from the fleet container and log out."""
         await self.server.stop()
+        await self._closing.cancel_all()
         if self.conn is not None and not self.conn.closed:
             try:
                 await self.conn.configure({"removeInterfaces": [{"endpointTag": self.ctag, "interfaceTag": t}
