@@ -166,7 +166,7 @@ def print_table(rows: list[dict]) -> None:
 
     t = Table(title="Lifelong fleet under the LoRR 2024 rules (MAPF_T), beside the start-kit's default entry")
     for col in ("problem", "robots", "steps", "sched", "tasks", "peer", "x peer", "default", "x default",
-                "best known", "x best", "tasks/step", "ms p50", "ms p99", "ms max", "timeouts", "invalid"):
+                "best known", "x best", "tasks/step", "ms p50", "ms p99", "ms max", "cores", "timeouts", "invalid"):
         t.add_column(col, justify="right", no_wrap=col == "problem")
     for r in rows:
         mark = "*" if r.get("scaled") else ""
@@ -179,7 +179,8 @@ def print_table(rows: list[dict]) -> None:
                   f"{r['best']:.0f}{mark}" if "best" in r else "-",
                   f"{r['vs_best']:.2f}" if "vs_best" in r else "-",
                   f"{r['tasks_per_step']:.2f}", f"{r['plan_ms_p50']:.1f}", f"{r['plan_ms_p99']:.1f}",
-                  f"{r['plan_ms_max']:.1f}", str(r["timeouts"]), str(r["invalid_steps"]))
+                  f"{r['plan_ms_max']:.1f}", f"{r['cores']:.2f}" if "cores" in r else "-", str(r["timeouts"]),
+                  str(r["invalid_steps"]))
     con = Console(width=max(Console().width, 210))
     con.print(t)
     if any(r.get("scaled") for r in rows):
