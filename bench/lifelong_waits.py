@@ -89,17 +89,23 @@ def plot(free: np.ndarray, maps: np.ndarray, windows: list[tuple[int, int]], pat
     from matplotlib.colors import LogNorm
 
     rows, cols = free.shape
-    w = min(7.0, 14.0 / len(windows)) if cols >= rows else 4.0
-    fig, axes = plt.subplots(1, len(windows), figsize=(w * len(windows), w * rows / cols + 0.9), squeeze=False)
+    k = len(windows)
+    if cols >= 2 * rows:                 # a wide map: the windows one above the other, each the page's width
+        fig, axes = plt.subplots(k, 1, figsize=(13.0, k * 13.0 * rows / cols + 1.2), squeeze=False)
+        axes = axes[:, 0]
+    else:
+        w = min(6.0, 14.0 / k)
+        fig, axes = plt.subplots(1, k, figsize=(w * k + 1.5, w * rows / cols + 1.0), squeeze=False)
+        axes = axes[0]
     top = max(1, int(maps.max()))
-    for ax, m, (a, b) in zip(axes[0], maps, windows, strict=True):
+    for ax, m, (a, b) in zip(axes, maps, windows, strict=True):
         ax.imshow(np.where(free, 1.0, 0.55), cmap="gray", vmin=0, vmax=1, interpolation="nearest")
         shown = np.ma.masked_where(m == 0, m)
         im = ax.imshow(shown, cmap="inferno_r", norm=LogNorm(vmin=1, vmax=top), interpolation="nearest")
         ax.set_title(f"steps {a}-{b}: {int(m.sum()):,} waits", fontsize=9)
         ax.set_xticks([])
         ax.set_yticks([])
-    fig.colorbar(im, ax=axes[0].tolist(), shrink=0.8, label="robot-steps waiting in the cell")
+    fig.colorbar(im, ax=list(axes), shrink=0.8, label="robot-steps waiting in the cell")
     fig.suptitle(title, fontsize=10)
     fig.savefig(path, dpi=110)
     plt.close(fig)
