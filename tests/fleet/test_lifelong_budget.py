@@ -52,16 +52,17 @@ def test_a_short_limit_keeps_the_margin_of_the_start():
 
 
 def test_a_run_with_the_measured_budget_moves_its_marks_up_on_steps_that_return_early(tmp_path):
-    """A small problem's steps return in milliseconds of their second: after 100 of them the marks move
-    up one notch; the run reports its marks, keeps its rules and times nothing out."""
+    """By default the marks are measured: a small problem's steps return in milliseconds of their second,
+    so after 100 of them the marks move up one notch; the run reports its marks, keeps its rules and times
+    nothing out. A fixed ``budget_frac`` keeps them."""
     from rce_fleet.lifelong.generate import write_problem
     from rce_fleet.lifelong.lorr import load_problem
     from rce_fleet.lifelong.runner import run_lifelong
     small = Path(__file__).resolve().parents[1] / "vectors" / "lorr_startkit" / "small-16-16.map"
     p = load_problem(write_problem(small, 4, 1, tmp_path))
-    s = run_lifelong(p, 120, plan_time_limit_ms=1000.0, budget_frac=None, record=False,
+    s = run_lifelong(p, 120, plan_time_limit_ms=1000.0, record=False,
                      planner_kw={"samples": 1}).summary()      # no lookahead: the plain step, milliseconds
     assert s["timeouts"] == 0 and s["invalid_steps"] == 0 and s["tasks_finished"] > 0
     assert s["budget"]["history"] == [(0, 0.7), (100, pytest.approx(0.75))] and s["budget"]["falls"] == 0, s["budget"]
-    fixed = run_lifelong(p, 3, plan_time_limit_ms=1000.0, record=False).summary()
+    fixed = run_lifelong(p, 3, plan_time_limit_ms=1000.0, budget_frac=0.5, record=False).summary()
     assert fixed["budget"] == {"deadline": 0.5, "hard": 0.7}

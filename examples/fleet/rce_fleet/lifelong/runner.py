@@ -1,11 +1,13 @@
 """A whole lifelong run: the simulator (rules), the scheduler and the planner, step by
 step, each step's scheduler + planner call timed by the wall clock against the limit.
 
-The step's work has a deadline at ``budget_frac`` of the limit (default 0.5; the
-scheduler's share ends at half of that): past it
-no new distance map is computed (the scheduler estimates by Manhattan distance, a robot
-whose goal map is missing waits), so the call returns with margin on a shared machine.
-A call that still overruns the limit is an all-wait step, counted as a timeout.
+The step's work has a deadline (the scheduler's share ends at half of it): past it no new
+distance map is computed (the scheduler estimates by Manhattan distance, a robot whose goal
+map is missing waits), and a later mark, ``hard``, where EPIBT's LNS stops, so the call
+returns with margin. The marks start at 0.5 and 0.7 of the limit and move up while the steps
+come back on time (:class:`~.budget.StepBudget`: the margin is measured, not set), or stay at
+``budget_frac`` and 0.7 when that is given. A call that still overruns the limit is an
+all-wait step, counted as a timeout.
 """
 from __future__ import annotations
 
@@ -57,7 +59,8 @@ ADMISSION_SMALL = {"slow_start": 1.25, "calm": 0.5,  # the packed share is under
 KEEP_RIGHT = 4   # extra cost of a move against the keep-right lane of a corridor 2 - 12 cells wide (measured there)
 CROWD_W = 5.0    # scheduler's steps per robot crowding a task's errands beyond its share ...
 CROWD_TEAM = 3000  # ... for teams of this size and more (measured: docs/lifelong.md)
-HARD_FRAC = 0.7    # past this share of the limit a robot with a new goal and no row yet waits a step
+HARD_FRAC = 0.7    # the share of the limit the step's hard mark starts at (a robot with a new goal and no row
+                   # by then waits a step); it moves up while steps come back on time (budget.py)
 GUIDE_DENSITY = 0.06  # robots per free cell from which guide paths lead (below: each robot's shortest way)
 PACKED_DENSITY = 0.8  # robots per free cell from which a turning robot holds no second cell (claim_steps 0)
 ACTIVE_FRAC = 0.3     # robots holding a task per free cell at most (the rest stand aside) ...
@@ -117,7 +120,7 @@ class RunResult:
 
 
 def run_lifelong(problem: LorrProblem, steps: int, plan_time_limit_ms: float = 1000.0, seed: int = 0,
-                 scheduler: str = "batch", model: str = MAPF_T, budget_frac: float | None = 0.5,
+                 scheduler: str = "batch", model: str = MAPF_T, budget_frac: float | None = None,
                  cache_bytes: int | None = None, lanes: int = LANES, crowd_w: float | None = None,
                  record: bool = True, guide: bool | None = None, planner_kw: dict | None = None,
                  flow_kw: dict | None = None, max_active: int | None = None, open_lanes: int | None = None,
@@ -126,7 +129,9 @@ def run_lifelong(problem: LorrProblem, steps: int, plan_time_limit_ms: float = 1
                  progress: Callable[[int, int, float], None] | None = None) -> RunResult:
     """Run ``problem`` for ``steps`` time steps under the rules (:mod:`.simulator`).
 
-    plan_time_limit_ms: the per-step limit (ms) of scheduler + planner; scheduler:
+    plan_time_limit_ms: the per-step limit (ms) of scheduler + planner; budget_frac: the step's
+    deadline as a share of the limit, fixed (``hard`` then at 0.7); None (default): both marks measured
+    while the run goes (:class:`~.budget.StepBudget`; ``stats["budget"]`` gives their history); scheduler:
     ``"batch"`` (default, the better measured) or ``"greedy"``; model: ``"MAPF_T"`` or
     ``"MAPF"``; cache_bytes: the bound of the distance maps (default
     :func:`~.distances.cache_bytes_for` the team and the machine's available memory); lanes:
@@ -258,7 +263,7 @@ def run_lifelong(problem: LorrProblem, steps: int, plan_time_limit_ms: float = 1
         step_planner = ReplanPlanner(grid, planner, seed=seed)
     sim = Simulator(grid, problem.starts, problem.tasks, problem.reveal, model=model, record=record)
     limit = plan_time_limit_ms / 1e3
-    budget = StepBudget(limit) if budget_frac is None else None
+    budget = StepBudget(limit, hard=HARD_FRAC) if budget_frac is None else None
     deadline_frac, hard_frac = (budget.deadline, budget.hard) if budget is not None else (budget_frac, HARD_FRAC)
     plan_ms = np.zeros(steps)
     cpu_s = np.zeros(steps)
