@@ -611,6 +611,8 @@ def analyse(raw: dict, phase_s: float) -> dict:
     return {"deadline_misses": sum(by_phase), "deadline_misses_by_phase": by_phase,
             "longest_gap_by_phase_s": gaps_by_phase,
             "robot_energy_j": round(energy, 3), "lost": len(lost), "duplicated": dup, "moves": moves,
+            # the first result's arrival (s): a move that began before it has no handover to time (gap_s None)
+            "first_result_s": round(copies[0][0], 3) if copies else None,
             "reordered": len(reordered_at), "dropped_counted": drops[-1][1] if drops else None,
             "lost_by_phase": lost_by_phase, "drops": raw["drops"],
             "scans": len(sent), "skipped_at_robot": len(rec["skipped"]),

@@ -181,7 +181,7 @@ def _flow_add(flow, path, n, sign):
         flow[u, d] += sign
 
 
-class _Scratch:
+class _PathScratch:
     """One thread's scratch for :func:`flow_astar` and :func:`path_fill`: (cells,) int32 arrays
     (``dist`` -1 everywhere between calls), the heap's 4 x cells int64 keys and values, and the
     A* call's label."""
@@ -228,7 +228,7 @@ class TrafficFlow:
         self.paths: list[np.ndarray | None] = [None] * self.n
         if threads is None:
             threads = min(2, len(os.sched_getaffinity(0)))
-        self._scratch = [_Scratch(cells) for _ in range(max(1, int(threads)))]
+        self._scratch = [_PathScratch(cells) for _ in range(max(1, int(threads)))]
         self._pool = (ThreadPoolExecutor(len(self._scratch) - 1, thread_name_prefix="guide-paths")
                       if len(self._scratch) > 1 else None)
         self._lock = threading.Lock()          # the flow, the paths, the stats and the list being worked
@@ -246,7 +246,7 @@ class TrafficFlow:
                 self.paths[a] = None
         self.guided[a] = False
 
-    def _plan(self, a: int, start: int, goal: int, slot: int, head: int, s: _Scratch) -> bool:
+    def _plan(self, a: int, start: int, goal: int, slot: int, head: int, s: _PathScratch) -> bool:
         s.label += 1
         if s.label >= 2 ** 30:
             s.stamp[:] = 0
@@ -265,7 +265,7 @@ class TrafficFlow:
         self.planned_at[a] = self.step
         return True
 
-    def _each(self, robots: list[int], work: Callable[[int, _Scratch], bool]) -> int:
+    def _each(self, robots: list[int], work: Callable[[int, _PathScratch], bool]) -> int:
         """``work(a, scratch)`` for the robots of ``robots`` in order, on every thread at once,
         each thread taking the next robot not being worked on by another (a robot listed twice is
         skipped while it is); a thread stops when ``work`` returns False (its deadline passed).
@@ -273,7 +273,7 @@ class TrafficFlow:
         todo = iter(robots)
         lock, busy = self._lock, self._busy
 
-        def worker(s: _Scratch) -> int:
+        def worker(s: _PathScratch) -> int:
             done = 0
             while True:
                 with lock:
@@ -315,7 +315,7 @@ class TrafficFlow:
         kept = have[self.goal[have] == goals[have]]
         out[kept] = kept
 
-        def new_goal(a: int, s: _Scratch) -> bool:
+        def new_goal(a: int, s: _PathScratch) -> bool:
             g = int(goals[a])
             now = time.perf_counter()
             if now < deadline and self._plan(a, int(pos[a]), g, int(slot[a]), -1 if head is None else int(head[a]), s):
@@ -351,7 +351,7 @@ class TrafficFlow:
         dev = np.where(self.guided[have], own - best, 1 << 30)
         order = np.lexsort((self.rng.random(len(have)), self.planned_at[have], -dev))
 
-        def again(a: int, s: _Scratch) -> bool:
+        def again(a: int, s: _PathScratch) -> bool:
             if time.perf_counter() >= deadline:
                 return False
             self._drop(a)
