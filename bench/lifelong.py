@@ -418,7 +418,7 @@ def heldout_problems(folder: Path, lorr: Path, seed: int, steps: int) -> list[tu
     from rce_fleet.lifelong.generate import write_problem
     from rce_fleet.lifelong.lorr import load_lorr_map
 
-    maps = [(path, cells) for path, cells in write_maps(folder / "heldout").values()]
+    maps = list(write_maps(folder / "heldout").values())
     for m in TUNED:
         free = load_lorr_map(lorr / m).free_cells()
         maps.append((lorr / m, len(free)))

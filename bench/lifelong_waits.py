@@ -28,14 +28,12 @@ STEP = np.array([[0, 1], [1, 0], [0, -1], [-1, 0]], dtype=np.int64)
 
 
 def read_map(path: Path) -> np.ndarray:
-    """(rows, cols) bool free cells of a MovingAI octile map (``.``, ``G``, ``S``, ``E`` free).
-    Raises ValueError naming the file when it has no ``map`` line."""
-    lines = path.read_text().splitlines()
-    try:
-        body = lines[[ln.strip() for ln in lines].index("map") + 1:]
-    except ValueError:
-        raise ValueError(f"{path}: no 'map' line (not a MovingAI map)") from None
-    return np.array([[ch in ".GSE" for ch in ln.rstrip("\n")] for ln in body if ln.strip()], dtype=bool)
+    """(rows, cols) bool free cells of a LoRR map, read as the start-kit reads it
+    (:func:`rce_fleet.lifelong.load_lorr_map`). Raises ProblemError (a ValueError) naming the file
+    and line."""
+    from rce_fleet.lifelong import load_lorr_map
+    grid = load_lorr_map(path)
+    return grid.flat.reshape(grid.rows, grid.cols)
 
 
 def actions(output: dict) -> np.ndarray:
