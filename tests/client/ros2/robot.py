@@ -20,6 +20,7 @@ import threading
 import time
 
 import rclpy
+from rclpy.duration import Duration
 from rclpy.action import ActionClient, ActionServer, CancelResponse
 from rclpy.callback_groups import ReentrantCallbackGroup
 from rclpy.event_handler import SubscriptionEventCallbacks
@@ -62,6 +63,10 @@ def bad(node, topic: str) -> None:
     pub = node.create_publisher(String, topic, 10)
     spin_until(node, lambda: pub.get_subscription_count() > 0, f"the bridge on {topic}")
     pub.publish(b"\x00\x01\x00\x00\xff\x00\x00\x00ab")      # CDR header, a string of 255 bytes, then 2 bytes
+    # a reliable writer that exits before the bridge's reader acknowledged the sample loses it
+    if not pub.wait_for_all_acked(Duration(seconds=DEADLINE)):
+        say(f"timeout: the bridge's acknowledgement on {topic}")
+        sys.exit(1)
     say("published bad bytes")
 
 
