@@ -99,7 +99,7 @@ def run_one(path: Path, steps: int, limit_ms: float, scheduler: str, seed: int, 
             crowd_w: float | None = None, peer: Path | None = None, max_active: int | None = None,
             window: bool | None = None, epibt: bool | None = None, keep_right: int | None = None,
             admission: bool | None = None, peer_args: tuple[str, ...] = (), peer_cwd: Path | None = None,
-            replan: bool | None = None, validate: bool = False) -> dict:
+            replan: bool | None = None, validate: bool = False, race: bool | None = None) -> dict:
     """Run one problem (and the start-kit binary ``peer`` on it, when given); returns its row (with
     the finished-over-time curve). With ``validate``, rce's output is replayed under the rules
     (``rce_fleet.lifelong.replay``): ``replayed_tasks`` and ``replay_invalid_steps`` in the row,
@@ -114,7 +114,7 @@ def run_one(path: Path, steps: int, limit_ms: float, scheduler: str, seed: int, 
                            record=outputs is not None or validate,
                            cache_bytes=None if cache_mb is None else int(cache_mb * 2 ** 20),
                            lanes=LANES if lanes is None else lanes, crowd_w=crowd_w, max_active=max_active,
-                           keep_right=keep_right, admission=admission, replan=replan,
+                           keep_right=keep_right, admission=admission, replan=replan, race=race,
                            planner_kw={**({} if window is None else {"ops": window}),
                                        **({} if epibt is None else {"epibt": epibt})} or None)
     s = res.summary()
@@ -275,6 +275,9 @@ def _parser() -> argparse.ArgumentParser:
                     help="EPIBT with LNS as a candidate of the lookahead (default: on from 0.3 robots per "
                          "free cell, from 0.1 up to 1,000 robots, and in larger teams from 0.02 on maps that are "
                          "not maps of aisles and from 0.15 on maps of aisles; MAPF_T)")
+    ap.add_argument("--race", choices=("on", "off"),
+                    help="EPIBT and PIBT race in short windows and the one whose robots make the more progress "
+                         "answers until the next race (rce_fleet.lifelong.race; MAPF_T)")
     ap.add_argument("--json", type=Path)
     ap.add_argument("--plot", type=Path)
     ap.add_argument("--outputs", type=Path, help="also write each run's start-kit output JSON into DIR")
@@ -312,7 +315,8 @@ def _rce_runner(args, peer: Path | None, validate: bool = False):
                        None if args.epibt is None else args.epibt == "on", args.keep_right,
                        None if args.admission is None else args.admission == "on",
                        tuple(args.peer_args), args.peer_cwd,
-                       None if args.replan is None else args.replan == "on", validate)
+                       None if args.replan is None else args.replan == "on", validate,
+                       None if args.race is None else args.race == "on")
     return run
 
 

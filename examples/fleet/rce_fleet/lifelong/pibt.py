@@ -80,6 +80,7 @@ class PIBTPlanner:
         self.window_bias, self.yield_steps = window_bias, yield_steps
         self.rng = np.random.default_rng(seed)
         self._goal_prev: np.ndarray | None = None
+        self.last_slot = np.zeros(0, dtype=np.int64)
         self.elapsed: np.ndarray | None = None
         self.tie: np.ndarray | None = None
         self.stats = {"pibt_ms": 0.0, "maps_ms": 0.0, "maps": 0, "deferred": 0, "cancelled": 0, "samples": 0}
@@ -117,6 +118,7 @@ class PIBTPlanner:
             else:
                 deferred += 1
         pslot = slot
+        self.last_slot = slot       # each robot's row of its goal's distance map this step (-1: none)
         self._ptable = cache.table
         if self.flow is not None:
             fhead = head if self.model == MAPF_T else None

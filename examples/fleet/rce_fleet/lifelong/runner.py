@@ -29,6 +29,7 @@ from .epibt import warm_up as epibt_warm_up
 from .window import warm_up as window_warm_up
 from .lorr import LorrProblem
 from .pibt import PIBTPlanner
+from .race import MethodRace, progress as race_progress
 from .refine import warm_up as refine_warm_up
 from .replan import ReplanPlanner
 from .scheduler import make_scheduler
@@ -125,7 +126,7 @@ def run_lifelong(problem: LorrProblem, steps: int, plan_time_limit_ms: float = 1
                  record: bool = True, guide: bool | None = None, planner_kw: dict | None = None,
                  flow_kw: dict | None = None, max_active: int | None = None, open_lanes: int | None = None,
                  keep_right: int | None = None, admission: bool | None = None, admission_kw: dict | None = None,
-                 replan: bool | None = None,
+                 replan: bool | None = None, race: bool | None = None, race_kw: dict | None = None,
                  progress: Callable[[int, int, float], None] | None = None) -> RunResult:
     """Run ``problem`` for ``steps`` time steps under the rules (:mod:`.simulator`).
 
@@ -185,6 +186,11 @@ def run_lifelong(problem: LorrProblem, steps: int, plan_time_limit_ms: float = 1
     (default): on maps of fewer than ``SMALL_MAP_CELLS`` free cells of which at least
     ``REPLAN_CORRIDORS`` have two free neighbours or fewer (corridors and dead ends), if the map has
     a dead end or the team is under ``REPLAN_DENSITY`` robots per free cell, MAPF_T only;
+    race: EPIBT and PIBT take turns in short windows and the one whose robots make the more progress
+    to their goals answers until the next race (:class:`~.race.MethodRace` with ``race_kw``; the
+    choice above answers first), each with its own settings above and, where ``ACTIVE_FRAC`` bounds
+    the robots holding a task, its own bound; ``stats["race"]`` lists the races. Not under whole
+    plans, MAPF, or a ``planner_kw`` that names ``epibt``; None (default): off;
     progress: called after each step with (step, tasks finished, planner ms).
     Where no bound holds, a :class:`~.admission.JamDetector` watches the share of the robots with a
     task that are packed in; ``stats`` give its ``packed_shares`` (per 25 steps) and ``jam_at``,
@@ -217,24 +223,33 @@ def run_lifelong(problem: LorrProblem, steps: int, plan_time_limit_ms: float = 1
     crisscross = epibt and not small and not aisle_map and density < EPIBT_DENSITY    # the winner's grid
     if guide is None:
         guide = density >= GUIDE_DENSITY and not crisscross
+    user_kw = dict(planner_kw or {})
+    # each method's own settings, as the constants above would set them for it
+    arms = {"epibt": {"epibt": True, "ops": False, "window_bias": EPIBT_BIAS,
+                      "lns_frac": EPIBT_LNS_FRAC if density >= dense_from else 0.5},
+            "pibt": {"epibt": False, "ops": model == MAPF_T and WINDOW_DENSITY <= density < PACKED_DENSITY and small,
+                     "window_bias": 0.0, "lns_frac": 0.5}}
     if epibt:
         dense = {"lns_frac": EPIBT_LNS_FRAC} if density >= dense_from else {}
         planner_kw = {"epibt": True, "window_bias": EPIBT_BIAS, **dense, **(planner_kw or {})}
-    elif model == MAPF_T and WINDOW_DENSITY <= density < PACKED_DENSITY and small:
+    elif arms["pibt"]["ops"]:
         planner_kw = {"ops": True, **(planner_kw or {})}
     if cache_bytes is None:
         cache_bytes = cache_bytes_for(grid, problem.team_size)
     warm_up()
     window_warm_up()
-    if epibt:
+    race = bool(race and model == MAPF_T and not (replan and n_free < SMALL_MAP_CELLS) and "epibt" not in user_kw)
+    if epibt or race:
         epibt_warm_up()
     if guide:
         flow_warm_up()
     t_start = time.perf_counter()
     auto = admission is None and density >= ADMISSION_DENSITY
+    arm_active = {}
     if max_active is None and density >= ACTIVE_DENSITY:
-        open_frac = EPIBT_ACTIVE_FRAC if epibt else ACTIVE_FRAC
-        max_active = int((AISLE_ACTIVE_FRAC if aisle_map else open_frac) * n_free)
+        arm_active = {"epibt": int((AISLE_ACTIVE_FRAC if aisle_map else EPIBT_ACTIVE_FRAC) * n_free),
+                      "pibt": int((AISLE_ACTIVE_FRAC if aisle_map else ACTIVE_FRAC) * n_free)}
+        max_active = arm_active["epibt" if epibt else "pibt"]
     if admission is None:
         admission = auto and not aisle_map
     if open_lanes is None:
@@ -258,6 +273,11 @@ def run_lifelong(problem: LorrProblem, steps: int, plan_time_limit_ms: float = 1
     planner = PIBTPlanner(grid, cache, model=model, seed=seed, flow=flow, **(planner_kw or {}))
     step_planner = planner
     replan = bool(replan and model == MAPF_T)
+    chooser = None
+    if race and not replan:
+        chooser = MethodRace(list(arms), first=0 if epibt else 1, **(race_kw or {}))
+        arms = {a: {k: v for k, v in kw.items() if k not in user_kw} for a, kw in arms.items()}
+    answering = "epibt" if epibt else "pibt"
     if replan:
         refine_warm_up()
         step_planner = ReplanPlanner(grid, planner, seed=seed)
@@ -291,6 +311,13 @@ def run_lifelong(problem: LorrProblem, steps: int, plan_time_limit_ms: float = 1
         if len(has):
             open_ = sim.pool.open
             goals[has] = [open_[int(prop[a])].goal for a in has]
+        if chooser is not None and chooser.arm() != answering:
+            answering = chooser.arm()
+            for key, value in arms[answering].items():
+                setattr(planner, key, value)
+            if arm_active and sched.max_active == arm_active["pibt" if answering == "epibt" else "epibt"]:
+                sched.max_active = arm_active[answering]
+        p_plan = sim.pos.copy() if chooser is not None else None
         actions = step_planner.plan(sim.pos, sim.head, goals, deadline, t0 + hard_frac * limit)
         dt = time.perf_counter() - t0
         cpu_s[k] = time.process_time() - c0
@@ -311,6 +338,8 @@ def run_lifelong(problem: LorrProblem, steps: int, plan_time_limit_ms: float = 1
         if control is not None:
             sched.max_active = control.observe(k, int((held & (sim.pos != p_before)).sum()), int(held.sum()),
                                                n_packed)
+        if chooser is not None:
+            chooser.observe(race_progress(cache.table, planner.last_slot, p_plan, sim.pos))
         plan_ms[k] = dt * 1e3
         finished[k] = sim.finished
         if progress is not None:
@@ -327,6 +356,8 @@ def run_lifelong(problem: LorrProblem, steps: int, plan_time_limit_ms: float = 1
              **(planner._epibt.stats if planner._epibt is not None else {}),
              **(flow.stats if flow is not None else {}),
              "shed": sched.shed + getattr(getattr(sched, "_greedy", None), "shed", 0),
+             "race": ({"history": chooser.history, "switches": chooser.switches, "last": answering}
+                      if chooser is not None else None),
              "admission_on": control is not None,
              "admission": control.decisions if control is not None else None,
              "jam_at": detector.jam_at if detector is not None else None, "jam_cut": jam_cut,
