@@ -337,7 +337,8 @@ def _peer_runner(binary: Path, extra: tuple[str, ...], cwd: Path | None, limit_m
 
 
 def _main_round(args, peer: Path | None) -> int:
-    """``--main-round``: run what is not in ``--results`` yet, print and write the table."""
+    """``--main-round``: run what is not in ``--results`` yet, print and write the table (with the
+    other instances' results on record there, at their official steps)."""
     import lifelong_main_round as mr
     from rich.console import Console
 
@@ -367,7 +368,9 @@ def _main_round(args, peer: Path | None) -> int:
     got = mr.run_round(todo, runners, args.results, args.plan_time_limit,
                        {"date": time.strftime("%Y-%m-%d"), "commit": head},
                        lambda line: con.print(line, soft_wrap=True, highlight=False))
-    text = mr.table(todo, got)
+    shown = mr.with_recorded(args.archive, todo, got, args.results, list(runners), args.plan_time_limit,
+                             args.steps)
+    text = mr.table(shown, got)
     print(text)
     cut = any(s != official[n] for n, _, s in todo)
     doc = args.doc or (None if cut else ROOT / "docs" / "results" / "lifelong.md")

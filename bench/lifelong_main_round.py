@@ -109,6 +109,32 @@ def run_round(todo: list[tuple[str, Path, int]], runners: dict[str, Callable[[Pa
     return got
 
 
+def with_recorded(archive: Path, todo: list[tuple[str, Path, int]], got: dict[tuple[str, str], dict],
+                  results: Path, systems: list[str], limit_ms: float,
+                  steps: int | None = None) -> list[tuple[str, Path, int]]:
+    """Every instance of the round in ``archive``, in its order: those of ``todo`` at their steps, the
+    others at ``steps`` (default: their official steps), whose results on record in ``results`` (of
+    ``systems``, at ``limit_ms``) are added to ``got``; so a run of one instance keeps the others'
+    rows in the table."""
+    mine = {name: (path, steps) for name, path, steps in todo}
+    shown = []
+    for name, _ in MAIN_ROUND:
+        if name in mine:
+            path, n = mine[name]
+        else:
+            try:
+                (_, path, n), = instances(archive, [name])
+            except FileNotFoundError:           # an archive without it: no row
+                continue
+            n = steps or n
+        shown.append((name, path, n))
+        for system in systems:
+            if (name, system) not in got and (old := load_result(result_path(results, name, system, n),
+                                                                   limit_ms)) is not None:
+                got[name, system] = old
+    return shown
+
+
 def _brief(r: dict) -> str:
     if "error" in r:
         return f"failed: {r['error']}"

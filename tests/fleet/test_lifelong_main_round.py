@@ -24,6 +24,7 @@ def _archive(tmp: Path) -> Path:
     shutil.copytree(RANDOM, base / "random.domain", ignore=shutil.ignore_patterns("*.json"))
     problem = json.loads((RANDOM / "random_32_32_20_100.json").read_text())
     (base / "random.domain" / "RANDOM-01.json").write_text(json.dumps(problem))
+    (base / "random.domain" / "RANDOM-02.json").write_text(json.dumps(problem))
     (base / "simulation_time.json").write_text(json.dumps({"RANDOM-01": 600, "RANDOM-02": 600}))
     return tmp
 
@@ -61,6 +62,12 @@ def test_main_round_keeps_each_result_resumes_and_writes_the_table(tmp_path):
     assert kept.stat().st_mtime_ns == stamp and kept.read_bytes() == before
     assert row in doc.read_text()
 
+    # a run of another instance keeps the first one's row (its result on record)
+    other = _bench(*[("RANDOM-02" if a == "RANDOM-01" else a) for a in args])
+    assert other.returncode == 0, other.stderr[-2000:]
+    rows = [ln.split(" | ")[0] for ln in doc.read_text().splitlines() if ln.startswith("| RANDOM-")]
+    assert rows == ["| RANDOM-01", "| RANDOM-02"] and row in doc.read_text(), doc.read_text()
+
     bare = tmp_path / "bare.md"
     bare.write_text("# no markers\n")
     r = _bench(*args[:-2], "--doc", bare)      # resumed, then refused
@@ -72,5 +79,5 @@ def test_main_round_names_what_is_missing(tmp_path):
     assert r.returncode == 2 and f"{tmp_path}: no simulation_time.json of the 2024 main round" in r.stderr
     r = _bench("--archive", _archive(tmp_path), "--only", "RANDOM-06", "--steps", 3)
     assert r.returncode == 2 and "--only RANDOM-06: not a 2024 main-round instance" in r.stderr
-    r = _bench("--archive", tmp_path, "--only", "RANDOM-02", "--steps", 3)
-    assert r.returncode == 2 and "random.domain/RANDOM-02.json: missing" in r.stderr
+    r = _bench("--archive", tmp_path, "--only", "RANDOM-03", "--steps", 3)
+    assert r.returncode == 2 and "random.domain/RANDOM-03.json: missing" in r.stderr
