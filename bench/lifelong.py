@@ -272,8 +272,8 @@ def _parser() -> argparse.ArgumentParser:
                     help="the windowed plan (operations + LNS) as a candidate of the lookahead where EPIBT is "
                          "off (default: on from 0.1 to 0.8 robots per free cell, up to 1,000 robots)")
     ap.add_argument("--epibt", choices=("on", "off"),
-                    help="EPIBT with LNS as a candidate of the lookahead (default: on from 0.3 robots per "
-                         "free cell, from 0.1 up to 1,000 robots, and in larger teams from 0.02 on maps that are "
+                    help="EPIBT with LNS as a candidate of the lookahead (default: on in teams up to 1,000 robots, "
+                         "from 0.3 robots per free cell in any team, and in larger teams from 0.02 on maps that are "
                          "not maps of aisles and from 0.15 on maps of aisles; MAPF_T)")
     ap.add_argument("--race", choices=("on", "off"),
                     help="EPIBT and PIBT race in short windows and the one whose robots make the more progress "

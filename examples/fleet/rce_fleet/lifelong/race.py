@@ -59,12 +59,14 @@ class MethodRace:
     window: steps an arm answers in a turn; settle: of those, the first ones not scored;
     rounds: turns of each arm in a race; margin: the share by which another arm must lead the one
     answering to take over; decisive: the share by which an arm leading every other after the first
-    round wins at once; hold, max_hold: steps from one race's end to the next, first and at most.
+    round wins at once; hold, max_hold: steps from one race's end to the next, first and at most;
+    start: the step the first race begins (before it, ``first`` answers).
     ``history`` lists each race: ``{"step", "scores": {arm: progress a step}, "chosen"}``.
     Raises ValueError for fewer than two arms, or for a window with no scored step."""
 
     def __init__(self, arms: Sequence[str], first: int = 0, window: int = 10, settle: int = 3, rounds: int = 2,
-                 margin: float = 0.03, decisive: float = 0.25, hold: int = 200, max_hold: int = 1600):
+                 margin: float = 0.03, decisive: float = 0.25, hold: int = 200, max_hold: int = 1600,
+                 start: int = 0):
         if len(arms) < 2:
             raise ValueError(f"a race needs two arms or more, not {list(arms)}")
         if not 0 <= settle < window:
@@ -78,7 +80,7 @@ class MethodRace:
         self.history: list[dict] = []
         self.switches = 0
         self._k = 0                 # steps observed
-        self._start = 0             # the step the current (or next) race begins
+        self._start = int(start)    # the step the current (or next) race begins
         self._sum = np.zeros(len(arms))
         self._n = np.zeros(len(arms), dtype=np.int64)
 

@@ -71,8 +71,8 @@ AISLE_ACTIVE_FRAC = 0.2   # ... and on maps of aisles: at least AISLE_SHARE of t
 AISLE_JAM_CUT = 0.7       # on a map of aisles where no bound holds, once a jam is seen, at most this share of the
                           # robots then holding a task hold one from then on (measured: docs/lifelong.md)
 AISLE_SHARE = 0.2
-WINDOW_DENSITY = 0.1  # robots per free cell from which EPIBT (+ LNS) leads in teams up to WINDOW_TEAM; with EPIBT
-WINDOW_TEAM = 1000    # off the windowed plan of operations, to PACKED_DENSITY, in teams up to WINDOW_TEAM
+WINDOW_TEAM = 1000    # EPIBT (+ LNS) leads in teams up to this size at any density (docs/lifelong.md) ...
+WINDOW_DENSITY = 0.1  # ... and with EPIBT off, the windowed plan of operations from this to PACKED_DENSITY
 CRISSCROSS_DENSITY = 0.02  # ... and from this in larger teams on a map that is not a map of aisles, over the
                            # crisscross graph (GAME's 6,500, CITY-01's 1,500 at 0.032: docs/lifelong.md)
 EPIBT_DENSITY = 0.3   # robots per free cell from which EPIBT with LNS answers (MAPF_T) in any team ...
@@ -143,8 +143,8 @@ def run_lifelong(problem: LorrProblem, steps: int, plan_time_limit_ms: float = 1
     the team has at least ``GUIDE_DENSITY`` robots per free cell (on sparser teams the detours they
     ask for cost more than the jams they avoid: docs/lifelong.md); from ``PACKED_DENSITY`` robots per
     free cell a robot that turns towards a cell does not hold it (``claim_steps=0``; measured there);
-    from ``EPIBT_DENSITY`` robots per free cell, from ``WINDOW_DENSITY`` in teams up to
-    ``WINDOW_TEAM``, and in larger teams from ``CRISSCROSS_DENSITY`` on a map that is not a map of
+    in teams up to ``WINDOW_TEAM`` robots, from ``EPIBT_DENSITY`` robots per free cell in any team,
+    and in larger teams from ``CRISSCROSS_DENSITY`` on a map that is not a map of
     aisles (below) and from ``AISLE_EPIBT_DENSITY`` on a map of aisles, the planner answers
     with EPIBT and LNS (:mod:`.epibt`; ``planner_kw={"epibt": False}`` turns it off, and then from
     ``WINDOW_DENSITY`` to ``PACKED_DENSITY`` in teams up to ``WINDOW_TEAM`` the
@@ -190,7 +190,9 @@ def run_lifelong(problem: LorrProblem, steps: int, plan_time_limit_ms: float = 1
     to their goals answers until the next race (:class:`~.race.MethodRace` with ``race_kw``; the
     choice above answers first), each with its own settings above and, where ``ACTIVE_FRAC`` bounds
     the robots holding a task, its own bound; ``stats["race"]`` lists the races. Not under whole
-    plans, MAPF, or a ``planner_kw`` that names ``epibt``; None (default): off;
+    plans, MAPF, or a ``planner_kw`` that names ``epibt``; None (default): off; whether it races or
+    not, ``stats["progress_per_step"]`` gives the robots' progress to their goals a step, the race's
+    score (:func:`~.race.progress`; 0 under whole plans);
     progress: called after each step with (step, tasks finished, planner ms).
     Where no bound holds, a :class:`~.admission.JamDetector` watches the share of the robots with a
     task that are packed in; ``stats`` give its ``packed_shares`` (per 25 steps) and ``jam_at``,
@@ -218,7 +220,7 @@ def run_lifelong(problem: LorrProblem, steps: int, plan_time_limit_ms: float = 1
     elif density >= dense_from:         # a dense team: robots wait in crowds, and yielding cost (docs/lifelong.md)
         planner_kw = {"yield_steps": 0, **(planner_kw or {})}
     epibt = (model == MAPF_T
-             and density >= (WINDOW_DENSITY if small else dense_from if aisle_map else CRISSCROSS_DENSITY)
+             and (small or density >= (dense_from if aisle_map else CRISSCROSS_DENSITY))
              and (planner_kw or {}).get("epibt", True))
     crisscross = epibt and not small and not aisle_map and density < EPIBT_DENSITY    # the winner's grid
     if guide is None:
@@ -238,7 +240,7 @@ def run_lifelong(problem: LorrProblem, steps: int, plan_time_limit_ms: float = 1
         cache_bytes = cache_bytes_for(grid, problem.team_size)
     warm_up()
     window_warm_up()
-    race = bool(race and model == MAPF_T and not (replan and n_free < SMALL_MAP_CELLS) and "epibt" not in user_kw)
+    race = bool(race and model == MAPF_T and not replan and "epibt" not in user_kw)
     if epibt or race:
         epibt_warm_up()
     if guide:
@@ -274,7 +276,7 @@ def run_lifelong(problem: LorrProblem, steps: int, plan_time_limit_ms: float = 1
     step_planner = planner
     replan = bool(replan and model == MAPF_T)
     chooser = None
-    if race and not replan:
+    if race:
         chooser = MethodRace(list(arms), first=0 if epibt else 1, **(race_kw or {}))
         arms = {a: {k: v for k, v in kw.items() if k not in user_kw} for a, kw in arms.items()}
     answering = "epibt" if epibt else "pibt"
@@ -289,6 +291,7 @@ def run_lifelong(problem: LorrProblem, steps: int, plan_time_limit_ms: float = 1
     cpu_s = np.zeros(steps)
     finished = np.zeros(steps, dtype=np.int64)
     sched_ms = 0.0
+    progress_sum = 0.0
     control = None
     if admission and sched.max_active is None:
         ctl_kw = {**ADMISSION_JAM, "start": int(ADMISSION_START * n_free),
@@ -317,7 +320,7 @@ def run_lifelong(problem: LorrProblem, steps: int, plan_time_limit_ms: float = 1
                 setattr(planner, key, value)
             if arm_active and sched.max_active == arm_active["pibt" if answering == "epibt" else "epibt"]:
                 sched.max_active = arm_active[answering]
-        p_plan = sim.pos.copy() if chooser is not None else None
+        p_plan = sim.pos.copy()
         actions = step_planner.plan(sim.pos, sim.head, goals, deadline, t0 + hard_frac * limit)
         dt = time.perf_counter() - t0
         cpu_s[k] = time.process_time() - c0
@@ -338,8 +341,10 @@ def run_lifelong(problem: LorrProblem, steps: int, plan_time_limit_ms: float = 1
         if control is not None:
             sched.max_active = control.observe(k, int((held & (sim.pos != p_before)).sum()), int(held.sum()),
                                                n_packed)
+        moved = race_progress(cache.table, planner.last_slot, p_plan, sim.pos) if not replan else 0.0
+        progress_sum += moved
         if chooser is not None:
-            chooser.observe(race_progress(cache.table, planner.last_slot, p_plan, sim.pos))
+            chooser.observe(moved)
         plan_ms[k] = dt * 1e3
         finished[k] = sim.finished
         if progress is not None:
@@ -356,6 +361,7 @@ def run_lifelong(problem: LorrProblem, steps: int, plan_time_limit_ms: float = 1
              **(planner._epibt.stats if planner._epibt is not None else {}),
              **(flow.stats if flow is not None else {}),
              "shed": sched.shed + getattr(getattr(sched, "_greedy", None), "shed", 0),
+             "progress_per_step": round(progress_sum / max(1, steps), 3),
              "race": ({"history": chooser.history, "switches": chooser.switches, "last": answering}
                       if chooser is not None else None),
              "admission_on": control is not None,
