@@ -144,27 +144,26 @@ def test_a_robot_of_higher_priority_displaces_the_one_in_its_way():
     assert act2[1] != ACT_F                                  # robot 0 (higher priority, no task) holds its cell
 
 
+def _plan_pair(shape, pos, head, goals, stop_s):
+    """EPIBT (seed 1) for two robots on an open map of ``shape``, robot 0 first: (plan, its actions)."""
+    g = LifelongGrid(np.ones(shape, dtype=bool))
+    cache = DistanceCache(g, max_bytes=2 ** 20)
+    pos, head, goals = (np.array(x, dtype=np.int64) for x in (pos, head, goals))
+    e = EPIBTPlan(g, 2, seed=1)
+    act = e.plan(pos, head, cache.table, _slots(cache, goals), goals, np.array([0, 1], np.int64),
+                 time.perf_counter() + stop_s)
+    assert check_actions(g, pos, head, act)[2] == []
+    return e, act
+
+
 def test_lns_is_skipped_exactly_when_every_robot_has_its_best_operation():
     # two robots far apart on an open map, each facing its goal: both take their best operation in the
     # first pass, so no plan can score more and LNS does not run (the step returns long before its stop)
-    g = LifelongGrid(np.ones((10, 10), dtype=bool))
-    cache = DistanceCache(g, max_bytes=2 ** 20)
-    pos, head, goals = (np.array([0, 90], dtype=np.int64), np.array([EAST, EAST], dtype=np.int64),
-                        np.array([9, 99], dtype=np.int64))
-    e = EPIBTPlan(g, 2, seed=1)
-    act = e.plan(pos, head, cache.table, _slots(cache, goals), goals, np.array([0, 1], np.int64),
-                 time.perf_counter() + 60)
+    e, act = _plan_pair((10, 10), [0, 90], [EAST, EAST], [9, 99], 60)
     assert act.tolist() == [ACT_F, ACT_F] and e.stats["epibt_lns_skipped"] == 1
     assert e.score[0] == e.gain.max(axis=1).sum() and e.chains[0].passes == 1
     # head-on in a one-cell corridor: one of them cannot have its best, and LNS runs to its stop
-    g2 = LifelongGrid(np.ones((1, 5), dtype=bool))
-    cache2 = DistanceCache(g2, max_bytes=2 ** 20)
-    pos2, head2, goals2 = (np.array([1, 3], dtype=np.int64), np.array([EAST, WEST], dtype=np.int64),
-                           np.array([4, 0], dtype=np.int64))
-    e2 = EPIBTPlan(g2, 2, seed=1)
-    act2 = e2.plan(pos2, head2, cache2.table, _slots(cache2, goals2), goals2, np.array([0, 1], np.int64),
-                   time.perf_counter() + 0.05)
-    assert check_actions(g2, pos2, head2, act2)[2] == []
+    e2, _ = _plan_pair((1, 5), [1, 3], [EAST, WEST], [4, 0], 0.05)
     assert e2.stats["epibt_lns_skipped"] == 0 and e2.chains[0].passes > 1
     assert e2.score[0] < e2.gain.max(axis=1).sum()
 
