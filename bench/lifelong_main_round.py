@@ -32,11 +32,12 @@ MAIN_DIR = Path("2024 Competition") / "Main Round Evaluation Instances"
 BEGIN, END = "<!-- main-round table: begin (bench/lifelong.py --main-round) -->", "<!-- main-round table: end -->"
 
 
-def instances(archive: Path, only: list[str] | None = None) -> list[tuple[str, Path, int]]:
+def instances(archive: Path, only: list[str] | None = None, missing_ok: bool = False) -> list[tuple[str, Path, int]]:
     """(name, problem JSON, official steps) of the main round's instances under ``archive`` (a
     Benchmark-Archive checkout, its ``2024 Competition`` folder or its main-round folder), in
     ``MAIN_ROUND``'s order, those named in ``only`` when given. Raises FileNotFoundError naming
-    the missing file, ValueError for a name in ``only`` that is not an instance of the round."""
+    the missing file (with ``missing_ok``, an instance without its files is left out), ValueError for a
+    name in ``only`` that is not an instance of the round."""
     base = next((d for d in (archive / MAIN_DIR, archive / MAIN_DIR.name, archive)
                  if (d / "simulation_time.json").is_file()), None)
     if base is None:
@@ -52,6 +53,8 @@ def instances(archive: Path, only: list[str] | None = None) -> list[tuple[str, P
         if only and name not in only:
             continue
         path = base / domain / f"{name}.json"
+        if missing_ok and (not path.is_file() or name not in steps):
+            continue
         if not path.is_file():
             raise FileNotFoundError(f"{path}: missing (the archive's {domain}/{name}.json)")
         if name not in steps:
@@ -118,15 +121,8 @@ def with_recorded(archive: Path, todo: list[tuple[str, Path, int]], got: dict[tu
     rows in the table."""
     mine = {name: (path, steps) for name, path, steps in todo}
     shown = []
-    for name, _ in MAIN_ROUND:
-        if name in mine:
-            path, n = mine[name]
-        else:
-            try:
-                (_, path, n), = instances(archive, [name])
-            except FileNotFoundError:           # an archive without it: no row
-                continue
-            n = steps or n
+    for name, path, n in instances(archive, missing_ok=True):
+        path, n = mine.get(name, (path, steps or n))
         shown.append((name, path, n))
         for system in systems:
             if (name, system) not in got and (old := load_result(result_path(results, name, system, n),

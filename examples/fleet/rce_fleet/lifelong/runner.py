@@ -231,11 +231,7 @@ def run_lifelong(problem: LorrProblem, steps: int, plan_time_limit_ms: float = 1
                       "lns_frac": EPIBT_LNS_FRAC if density >= dense_from else 0.5},
             "pibt": {"epibt": False, "ops": model == MAPF_T and WINDOW_DENSITY <= density < PACKED_DENSITY and small,
                      "window_bias": 0.0, "lns_frac": 0.5}}
-    if epibt:
-        dense = {"lns_frac": EPIBT_LNS_FRAC} if density >= dense_from else {}
-        planner_kw = {"epibt": True, "window_bias": EPIBT_BIAS, **dense, **(planner_kw or {})}
-    elif arms["pibt"]["ops"]:
-        planner_kw = {"ops": True, **(planner_kw or {})}
+    planner_kw = {**arms["epibt" if epibt else "pibt"], **(planner_kw or {})}
     if cache_bytes is None:
         cache_bytes = cache_bytes_for(grid, problem.team_size)
     warm_up()
@@ -320,7 +316,7 @@ def run_lifelong(problem: LorrProblem, steps: int, plan_time_limit_ms: float = 1
                 setattr(planner, key, value)
             if arm_active and sched.max_active == arm_active["pibt" if answering == "epibt" else "epibt"]:
                 sched.max_active = arm_active[answering]
-        p_plan = sim.pos.copy()
+        p_plan = sim.pos.copy()         # where the robots were: the step's progress, and who moved
         actions = step_planner.plan(sim.pos, sim.head, goals, deadline, t0 + hard_frac * limit)
         dt = time.perf_counter() - t0
         cpu_s[k] = time.process_time() - c0
@@ -328,7 +324,6 @@ def run_lifelong(problem: LorrProblem, steps: int, plan_time_limit_ms: float = 1
         if budget is not None:
             budget.observe(dt / limit)
             deadline_frac, hard_frac = budget.deadline, budget.hard
-        p_before = sim.pos.copy() if control is not None else None
         sim.step(actions, prop, plan_time_s=dt, timed_out=dt > limit)
         held = prop >= 0
         n_packed = 0
@@ -339,7 +334,7 @@ def run_lifelong(problem: LorrProblem, steps: int, plan_time_limit_ms: float = 1
         if detector is not None and detector.observe(k, n_packed, int(held.sum())) and cut_on_jam and jam_cut is None:
             jam_cut = sched.max_active = max(1, int(AISLE_JAM_CUT * held.sum()))
         if control is not None:
-            sched.max_active = control.observe(k, int((held & (sim.pos != p_before)).sum()), int(held.sum()),
+            sched.max_active = control.observe(k, int((held & (sim.pos != p_plan)).sum()), int(held.sum()),
                                                n_packed)
         moved = race_progress(cache.table, planner.last_slot, p_plan, sim.pos) if not replan else 0.0
         progress_sum += moved
