@@ -99,7 +99,8 @@ def run_one(path: Path, steps: int, limit_ms: float, scheduler: str, seed: int, 
             crowd_w: float | None = None, peer: Path | None = None, max_active: int | None = None,
             window: bool | None = None, epibt: bool | None = None, keep_right: int | None = None,
             admission: bool | None = None, peer_args: tuple[str, ...] = (), peer_cwd: Path | None = None,
-            replan: bool | None = None, validate: bool = False, race: bool | None = None) -> dict:
+            replan: bool | None = None, validate: bool = False, race: bool | None = None,
+            length_w: float | None = None) -> dict:
     """Run one problem (and the start-kit binary ``peer`` on it, when given); returns its row (with
     the finished-over-time curve). With ``validate``, rce's output is replayed under the rules
     (``rce_fleet.lifelong.replay``): ``replayed_tasks`` and ``replay_invalid_steps`` in the row,
@@ -114,7 +115,7 @@ def run_one(path: Path, steps: int, limit_ms: float, scheduler: str, seed: int, 
                            record=outputs is not None or validate,
                            cache_bytes=None if cache_mb is None else int(cache_mb * 2 ** 20),
                            lanes=LANES if lanes is None else lanes, crowd_w=crowd_w, max_active=max_active,
-                           keep_right=keep_right, admission=admission, replan=replan, race=race,
+                           keep_right=keep_right, admission=admission, replan=replan, race=race, length_w=length_w,
                            planner_kw={**({} if window is None else {"ops": window}),
                                        **({} if epibt is None else {"epibt": epibt})} or None)
     s = res.summary()
@@ -278,6 +279,9 @@ def _parser() -> argparse.ArgumentParser:
     ap.add_argument("--race", choices=("on", "off"),
                     help="EPIBT and PIBT race in short windows and the one whose robots make the more progress "
                          "answers until the next race (rce_fleet.lifelong.race; MAPF_T)")
+    ap.add_argument("--length-w", type=float, metavar="W",
+                    help="the share of a task's own length in its cost to a robot, beside the way to its first "
+                         "errand (default: the scheduler's)")
     ap.add_argument("--json", type=Path)
     ap.add_argument("--plot", type=Path)
     ap.add_argument("--outputs", type=Path, help="also write each run's start-kit output JSON into DIR")
@@ -316,7 +320,7 @@ def _rce_runner(args, peer: Path | None, validate: bool = False):
                        None if args.admission is None else args.admission == "on",
                        tuple(args.peer_args), args.peer_cwd,
                        None if args.replan is None else args.replan == "on", validate,
-                       None if args.race is None else args.race == "on")
+                       None if args.race is None else args.race == "on", args.length_w)
     return run
 
 
@@ -368,8 +372,7 @@ def _main_round(args, peer: Path | None) -> int:
     got = mr.run_round(todo, runners, args.results, args.plan_time_limit,
                        {"date": time.strftime("%Y-%m-%d"), "commit": head},
                        lambda line: con.print(line, soft_wrap=True, highlight=False))
-    shown = mr.with_recorded(args.archive, todo, got, args.results, list(runners), args.plan_time_limit,
-                             args.steps)
+    shown = mr.with_recorded(args.archive, todo, got, args.results, args.plan_time_limit, args.steps)
     text = mr.table(shown, got)
     print(text)
     cut = any(s != official[n] for n, _, s in todo)

@@ -29,6 +29,7 @@ BEST_KNOWN = {"RANDOM-01": (696, "RAPID"), "RANDOM-02": (1260, "Kitty_Knight"), 
               "SORTATION": (152714, "No_Man's_Sky"), "WAREHOUSE": (154834, "No_Man's_Sky")}
 SYSTEMS = ("rce", "winner", "default")
 MAIN_DIR = Path("2024 Competition") / "Main Round Evaluation Instances"
+WINDOW = 500         # steps per window of the rate's steadiness (the worst window over the best)
 BEGIN, END = "<!-- main-round table: begin (bench/lifelong.py --main-round) -->", "<!-- main-round table: end -->"
 
 
@@ -113,22 +114,39 @@ def run_round(todo: list[tuple[str, Path, int]], runners: dict[str, Callable[[Pa
 
 
 def with_recorded(archive: Path, todo: list[tuple[str, Path, int]], got: dict[tuple[str, str], dict],
-                  results: Path, systems: list[str], limit_ms: float,
-                  steps: int | None = None) -> list[tuple[str, Path, int]]:
+                  results: Path, limit_ms: float, steps: int | None = None) -> list[tuple[str, Path, int]]:
     """Every instance of the round in ``archive``, in its order: those of ``todo`` at their steps, the
     others at ``steps`` (default: their official steps), whose results on record in ``results`` (of
-    ``systems``, at ``limit_ms``) are added to ``got``; so a run of one instance keeps the others'
-    rows in the table."""
+    every system of ``SYSTEMS``, at ``limit_ms``) are added to ``got``; so a run of one instance keeps
+    the others' rows in the table, and a run of rce alone keeps the peers' results on record."""
     mine = {name: (path, steps) for name, path, steps in todo}
     shown = []
     for name, path, n in instances(archive, missing_ok=True):
         path, n = mine.get(name, (path, steps or n))
         shown.append((name, path, n))
-        for system in systems:
+        for system in SYSTEMS:
             if (name, system) not in got and (old := load_result(result_path(results, name, system, n),
                                                                    limit_ms)) is not None:
                 got[name, system] = old
     return shown
+
+
+def window_rates(curve: list[int], window: int = WINDOW) -> list[int]:
+    """Tasks finished in each whole ``window``-step window (steps 1 .. window, ...) of ``curve``
+    (tasks finished by the end of each step, cumulative, as a run's ``curve``); a last part window
+    is left out."""
+    ends = [0, *curve[window - 1::window]]
+    return [b - a for a, b in zip(ends, ends[1:], strict=False)]
+
+
+def steadiness(r: dict, window: int = WINDOW) -> str:
+    """The worst ``window``-step window's tasks over the best's in result ``r`` ("0.93 (worst
+    3-5k)"), or "-" with fewer than two whole windows."""
+    rates = window_rates(r.get("curve") or [], window)
+    if len(rates) < 2 or max(rates) <= 0:
+        return "-"
+    k = rates.index(min(rates))
+    return f"{min(rates) / max(rates):.2f} (worst: steps {k * window:,}-{(k + 1) * window:,})"
 
 
 def _brief(r: dict) -> str:
@@ -140,10 +158,11 @@ def _brief(r: dict) -> str:
 def table(todo: list[tuple[str, Path, int]], got: dict[tuple[str, str], dict]) -> str:
     """The markdown table of the results in ``got`` for the instances of ``todo``: rce's tasks and
     its ratio to the best known (pro rata on a cut, marked), to the winner's code and to the
-    default entry measured here (their timeouts in brackets), rce's planner ms, timeouts, date
-    and commit."""
+    default entry measured here (their timeouts in brackets), rce's planner ms, timeouts, the
+    steadiness of its rate (:func:`steadiness`), date and commit."""
     head = ("| instance | robots | steps | rce | best known | rce / best | winner | rce / winner | default | "
-            "rce / default | rce planner ms p50 / p99 / max | rce timeouts | date | commit |")
+            "rce / default | rce planner ms p50 / p99 / max | rce timeouts | rce 500-step windows, worst / best | "
+            "date | commit |")
     lines = [head, "|" + "---|" * head.count(" | ") + "---|"]
     for name, path, steps in todo:
         r = got.get((name, "rce"))
@@ -161,7 +180,8 @@ def table(todo: list[tuple[str, Path, int]], got: dict[tuple[str, str], dict]) -
             cells += [_count(p), _ratio(mine, p.get("tasks_finished") if p else None)]
         ms = (f"{r['plan_ms_p50']:.0f} / {r['plan_ms_p99']:.0f} / {r['plan_ms_max']:.0f}"
               if "plan_ms_p50" in r else "-")
-        cells += [ms, str(r.get("timeouts", "-")), r.get("date", "-"), r.get("commit", "-").split(" ")[0]]
+        cells += [ms, str(r.get("timeouts", "-")), steadiness(r), r.get("date", "-"),
+                  r.get("commit", "-").split(" ")[0]]
         lines.append("| " + " | ".join(cells) + " |")
     return "\n".join(lines)
 

@@ -16,6 +16,9 @@ from pathlib import Path
 ROOT = Path(__file__).resolve().parents[2]
 RANDOM = ROOT / ".." / "shared" / "data" / "lorr" / "random.domain"
 BENCH = ROOT / "bench" / "lifelong.py"
+sys.path.insert(0, str(BENCH.parent))
+from lifelong_main_round import steadiness, window_rates  # noqa: E402
+
 BEGIN, END = "<!-- main-round table: begin (bench/lifelong.py --main-round) -->", "<!-- main-round table: end -->"
 
 
@@ -62,16 +65,31 @@ def test_main_round_keeps_each_result_resumes_and_writes_the_table(tmp_path):
     assert kept.stat().st_mtime_ns == stamp and kept.read_bytes() == before
     assert row in doc.read_text()
 
-    # a run of another instance keeps the first one's row (its result on record)
+    # a run of another instance keeps the first one's row (its result on record), and a run of rce
+    # alone keeps the winner's result on record for its own instance
+    winner = {"tasks_finished": 7, "timeouts": 0, "invalid_steps": 0, "instance": "RANDOM-02", "system": "winner",
+              "steps": 3, "plan_time_limit_ms": 500}
+    (res / "RANDOM-02.winner.3.json").write_text(json.dumps(winner))
     other = _bench(*[("RANDOM-02" if a == "RANDOM-01" else a) for a in args])
     assert other.returncode == 0, other.stderr[-2000:]
-    rows = [ln.split(" | ")[0] for ln in doc.read_text().splitlines() if ln.startswith("| RANDOM-")]
-    assert rows == ["| RANDOM-01", "| RANDOM-02"] and row in doc.read_text(), doc.read_text()
+    rows = [ln for ln in doc.read_text().splitlines() if ln.startswith("| RANDOM-")]
+    assert [ln.split(" | ")[0] for ln in rows] == ["| RANDOM-01", "| RANDOM-02"] and row in rows, doc.read_text()
+    assert "| 7 | " in rows[1] and "| not run |" in rows[1], rows[1]      # the winner's on record, no default
 
     bare = tmp_path / "bare.md"
     bare.write_text("# no markers\n")
     r = _bench(*args[:-2], "--doc", bare)      # resumed, then refused
     assert r.returncode == 2 and f"{bare}: no main-round table markers" in r.stderr
+
+
+def test_the_rate_is_counted_in_whole_windows_and_the_worst_is_named():
+    curve = [k // 2 for k in range(1, 1201)]           # a task every second step, then none from step 1,000
+    curve[1000:] = [curve[999]] * 200
+    assert window_rates(curve, 500) == [250, 250]        # the last part window (steps 1,000 - 1,200) left out
+    slow = [min(k, 500) + max(0, k - 500) // 2 for k in range(1, 1501)]     # 1 a step, then 1 in 2
+    assert window_rates(slow, 500) == [500, 250, 250]
+    assert steadiness({"curve": slow}) == "0.50 (worst: steps 500-1,000)"
+    assert steadiness({"curve": slow[:999]}) == "-" and steadiness({}) == "-"     # under two whole windows
 
 
 def test_main_round_names_what_is_missing(tmp_path):

@@ -298,6 +298,21 @@ def test_schedulers_move_unopened_tasks_never_opened_ones(cls):
     assert prop[0] == 0 and prop[1] == 1
 
 
+@pytest.mark.parametrize("cls", [GreedyScheduler, BatchScheduler])
+def test_with_length_w_0_a_task_costs_its_way_to_the_first_errand_and_its_deadline_its_whole_length(cls):
+    g = grid(["." * 30])
+    pool = open_tasks([(3, 29), (6, 7)])      # from cell 0: 3 + 26 steps, or 6 + 1
+    short = cls(DistanceCache(g))
+    assert short.schedule(np.array([0]), np.array([-1]), pool.open, 0, time.perf_counter() + 1).tolist() == [1]
+    near = cls(DistanceCache(g))
+    near.length_w = 0.0                       # only the way to the first errand counts
+    assert near.schedule(np.array([0]), np.array([-1]), pool.open, 0, time.perf_counter() + 1).tolist() == [0]
+    late = TaskPool()
+    late.add([3, 29], deadline=20)            # its first errand is near, but it cannot end by step 20
+    late.add([6, 7])
+    assert near.schedule(np.array([0]), np.array([-1]), late.open, 0, time.perf_counter() + 1).tolist() == [1]
+
+
 def test_scheduler_respects_time_windows_and_priority():
     g = grid(["." * 10])
     pool = TaskPool()

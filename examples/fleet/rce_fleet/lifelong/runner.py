@@ -127,6 +127,7 @@ def run_lifelong(problem: LorrProblem, steps: int, plan_time_limit_ms: float = 1
                  flow_kw: dict | None = None, max_active: int | None = None, open_lanes: int | None = None,
                  keep_right: int | None = None, admission: bool | None = None, admission_kw: dict | None = None,
                  replan: bool | None = None, race: bool | None = None, race_kw: dict | None = None,
+                 length_w: float | None = None,
                  progress: Callable[[int, int, float], None] | None = None) -> RunResult:
     """Run ``problem`` for ``steps`` time steps under the rules (:mod:`.simulator`).
 
@@ -193,6 +194,9 @@ def run_lifelong(problem: LorrProblem, steps: int, plan_time_limit_ms: float = 1
     plans, MAPF, or a ``planner_kw`` that names ``epibt``; None (default): off; whether it races or
     not, ``stats["progress_per_step"]`` gives the robots' progress to their goals a step, the race's
     score (:func:`~.race.progress`; 0 under whole plans);
+    length_w: the share of a task's own length (first errand to last) in its cost to a robot, beside
+    the way to its first errand (:attr:`~.scheduler.Scheduler.length_w`); None (default): the
+    scheduler's;
     progress: called after each step with (step, tasks finished, planner ms).
     Where no bound holds, a :class:`~.admission.JamDetector` watches the share of the robots with a
     task that are packed in; ``stats`` give its ``packed_shares`` (per 25 steps) and ``jam_at``,
@@ -261,7 +265,7 @@ def run_lifelong(problem: LorrProblem, steps: int, plan_time_limit_ms: float = 1
     cache = DistanceCache(grid, max_bytes=cache_bytes, cost=cost)
     if crowd_w is None:
         crowd_w = CROWD_W if problem.team_size >= CROWD_TEAM else 0.0
-    sched = make_scheduler(scheduler, cache, crowd_w)
+    sched = make_scheduler(scheduler, cache, crowd_w, length_w)
     if max_active is not None and max_active > 0:
         sched.max_active = max_active
     flow = None
@@ -347,7 +351,7 @@ def run_lifelong(problem: LorrProblem, steps: int, plan_time_limit_ms: float = 1
     stats = {"scheduler": scheduler, "max_active": getattr(sched, "max_active", None), "lanes": lanes,
              "aisles": round(aisles, 3), "aisle_map": aisle_map,
              "keep_right": keep_right, "crisscross": crisscross,
-             "crowd_w": crowd_w, "guide": guide, "epibt": epibt, "open_lanes": open_lanes,
+             "crowd_w": crowd_w, "length_w": sched.length_w, "guide": guide, "epibt": epibt, "open_lanes": open_lanes,
              "window_bias": planner.window_bias, "replan": replan, "yield_steps": planner.yield_steps,
              "stuck_steps": planner.stuck_steps,
              "claim_steps": planner.claim_steps, "scheduler_ms_total": sched_ms,

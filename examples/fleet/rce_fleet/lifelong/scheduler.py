@@ -51,6 +51,7 @@ class Scheduler:
     map_share = 0.5          # share of the scheduler's time for new first-errand maps
     crowd_w = 0.0            # steps added per robot in the block of a task's first and last errand
     crowd_block = 10         # side of those blocks (cells)
+    length_w = 1.0           # share of a task's own length (first errand to last) in its cost
     max_active: int | None = None
     shed = 0                 # unopened tasks taken back to keep max_active
 
@@ -95,8 +96,10 @@ class Scheduler:
                 length += self.cache.dist(a, b)
             tk.length = length
 
-    def _estimates(self, tasks: list[Task]) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        """(slot, first errand, length) arrays; slot -1 and the Manhattan length where no map yet."""
+    def _estimates(self, tasks: list[Task]) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+        """(slot, first errand, length less the priority bonus, the cost's cut) arrays; slot -1 and
+        the Manhattan length where no map yet; the cut is the part of each length the cost leaves
+        out, (1 - ``length_w``) x length."""
         e0 = np.fromiter((tk.errands[0] for tk in tasks), dtype=np.int64, count=len(tasks))
         slots = np.fromiter((self.cache._slots.get(int(c), -1) if tk.length >= 0 else -1
                              for c, tk in zip(e0.tolist(), tasks, strict=True)), dtype=np.int64, count=len(tasks))
@@ -107,7 +110,7 @@ class Scheduler:
             else:
                 length[i] = sum(self._manhattan(a, b) for a, b in zip(tk.errands, tk.errands[1:], strict=False))
         bonus = np.fromiter((tk.priority * PRIORITY_STEPS for tk in tasks), dtype=float, count=len(tasks))
-        return slots, e0, length - bonus
+        return slots, e0, length - bonus, (1.0 - self.length_w) * length
 
     def _crowd(self, pos: np.ndarray, tasks: list[Task]) -> np.ndarray:
         """(len(tasks),) steps: ``crowd_w`` x the robots in the block (``crowd_block`` cells
@@ -175,11 +178,13 @@ def _windows(tasks: list[Task], t: int) -> tuple[np.ndarray, np.ndarray]:
     return early, late
 
 
-def _finish(travel: np.ndarray, length: np.ndarray, early: np.ndarray, late: np.ndarray) -> np.ndarray:
-    """Finish-time estimates with time windows: start no earlier than earliest_start; a task
-    that would miss its deadline costs infinity."""
+def _finish(travel: np.ndarray, length: np.ndarray, early: np.ndarray, late: np.ndarray,
+            cut: np.ndarray | float = 0.0) -> np.ndarray:
+    """Costs from finish-time estimates with time windows: start no earlier than earliest_start;
+    a task that would miss its deadline costs infinity; the others cost their finish time less
+    ``cut`` (steps of the task's own length the cost leaves out: :attr:`Scheduler.length_w`)."""
     fin = np.maximum(travel, early) + length
-    return np.where(fin > late, np.inf, fin)
+    return np.where(fin > late, np.inf, fin - cut)
 
 
 class GreedyScheduler(Scheduler):
@@ -209,7 +214,7 @@ class GreedyScheduler(Scheduler):
             return prop
         t0 = time.perf_counter()
         self._prepare(cand, t0 + self.map_share * max(0.0, deadline - t0))
-        slots, e0, length = self._estimates(cand)
+        slots, e0, length, cut = self._estimates(cand)
         length = length + self._crowd(pos, cand)
         holder = np.fromiter((tk.agent if tk.agent >= 0 and prop[tk.agent] == tk.id else -1 for tk in cand),
                              dtype=np.int64, count=len(cand))        # a task just shed has none
@@ -218,7 +223,7 @@ class GreedyScheduler(Scheduler):
         held = np.flatnonzero(holder >= 0)
         if len(held):
             tr = self._travel_pairs(slots[held], e0[held], pos[holder[held]])
-            holder_bid[held] = _finish(tr, length[held], early[held], late[held])
+            holder_bid[held] = _finish(tr, length[held], early[held], late[held], cut[held])
         queue = list(free)
         rows: dict[int, np.ndarray] = {}
         budget = len(free) + len(cand)
@@ -230,7 +235,7 @@ class GreedyScheduler(Scheduler):
                     break
                 chunk = [x for x in queue[k:k + self.chunk] if x not in rows]
                 bids = _finish(self._travel(slots, e0, pos[np.array(chunk, dtype=np.int64)]), length,
-                               early[None, :], late[None, :])
+                               early[None, :], late[None, :], cut[None, :])
                 rows.update(zip(chunk, bids, strict=True))
             budget -= 1
             k += 1
@@ -281,10 +286,10 @@ class BatchScheduler(Scheduler):
             self._greedy.max_active = self.max_active
             return self._greedy.schedule(pos, prop, tasks, t, deadline)     # already within the bound
         self._prepare(cand, deadline)
-        slots, e0, length = self._estimates(cand)
+        slots, e0, length, cut = self._estimates(cand)
         length = length + self._crowd(pos, cand)
         early, late = _windows(cand, t)
-        cost = _finish(self._travel(slots, e0, pos[robots]), length, early[None, :], late[None, :])
+        cost = _finish(self._travel(slots, e0, pos[robots]), length, early[None, :], late[None, :], cut[None, :])
         col = {tk.id: j for j, tk in enumerate(cand)}
         for i, a in enumerate(robots.tolist()):
             j = col.get(int(assignment[a]))
@@ -311,9 +316,9 @@ class BatchScheduler(Scheduler):
         return prop
 
 
-def make_scheduler(name: str, cache: DistanceCache, crowd_w: float = 0.0) -> Scheduler:
-    """``"greedy"`` or ``"batch"``, with ``crowd_w`` (:meth:`Scheduler._crowd`); raises
-    ValueError otherwise."""
+def make_scheduler(name: str, cache: DistanceCache, crowd_w: float = 0.0, length_w: float | None = None) -> Scheduler:
+    """``"greedy"`` or ``"batch"``, with ``crowd_w`` (:meth:`Scheduler._crowd`) and ``length_w``
+    (:attr:`Scheduler.length_w`; None: its default); raises ValueError otherwise."""
     if name == "greedy":
         sched: Scheduler = GreedyScheduler(cache)
     elif name == "batch":
@@ -322,4 +327,8 @@ def make_scheduler(name: str, cache: DistanceCache, crowd_w: float = 0.0) -> Sch
     else:
         raise ValueError(f"unknown scheduler {name!r} (greedy, batch)")
     sched.crowd_w = crowd_w
+    if length_w is not None:
+        sched.length_w = length_w
+        if isinstance(sched, BatchScheduler):
+            sched._greedy.length_w = length_w
     return sched
