@@ -333,7 +333,7 @@ def _peer_runner(binary: Path, extra: tuple[str, ...], cwd: Path | None, limit_m
         try:
             with rich_progress(steps, f"{path.stem} ({label})") as cb:
                 return run_peer(binary, path, steps, limit_ms, progress=lambda k: cb(k, 0, 0.0), extra=extra,
-                                cwd=cwd)
+                                cwd=cwd, curve=True)
         except RuntimeError as e:
             print(f"{label} failed on {path.name}: {e}", file=sys.stderr)
             return {"error": str(e).splitlines()[0]}

@@ -54,20 +54,42 @@ def _run(argv: list[str], what: str) -> None:
         raise RuntimeError(f"{what} failed ({done.returncode}):\n{done.stdout.decode(errors='replace')[-3000:]}")
 
 
+def finished_curve(out: dict, steps: int) -> list[int] | None:
+    """Tasks finished by the end of each of ``steps`` steps (cumulative), from a start-kit output's
+    ``events`` ([timestep, agent, task, errands reached], the timestep counted from 1 after the
+    first step's move) and ``tasks`` ([task, release, [row, col, ...]]): a task is finished when
+    its last errand is reached. None when the output has no events (written with ``-c`` 2 or 3)
+    or they do not add up to its ``numTaskFinished``."""
+    if not out.get("events") or not out.get("tasks"):
+        return None
+    errands = {int(t[0]): len(t[2]) // 2 for t in out["tasks"]}
+    per_step = [0] * steps
+    for t, _, task, seq in out["events"]:
+        if seq == errands.get(int(task)) and 1 <= t <= steps:
+            per_step[t - 1] += 1
+    curve, total = [], 0
+    for k in per_step:
+        total += k
+        curve.append(total)
+    return curve if total == int(out.get("numTaskFinished", -1)) else None
+
+
 def run_peer(binary: Path, problem: Path, steps: int, limit_ms: float, progress=None,
-             extra: tuple[str, ...] = (), cwd: Path | None = None) -> dict:
+             extra: tuple[str, ...] = (), cwd: Path | None = None, curve: bool = False) -> dict:
     """Run the start-kit on ``problem`` for ``steps`` steps at ``limit_ms`` per step (its
     preprocessing limit is its default, 30 s). ``extra`` are more arguments for an entry built on
     the start-kit that takes its own (the 2024 winner's ``--pa 'pepibt(4)_lns' --gg enable --sa
     greedy``); ``cwd`` is the directory it runs in, for an entry that reads its own data files
     from there (default: a fresh temporary directory, so that no file it writes lands elsewhere).
     ``progress(step)`` is called as its log says steps are done. Returns its output's
-    counts and the wall time: {tasks_finished, timeouts, invalid_steps, schedule_errors, wall_s}.
-    Raises RuntimeError when it fails."""
+    counts and the wall time: {tasks_finished, timeouts, invalid_steps, schedule_errors, wall_s},
+    and with ``curve`` the tasks finished by each step (:func:`finished_curve`; the output then
+    holds its events and paths, about 2 bytes per robot-step; none from an entry that writes no
+    events, as the 2024 winner's code). Raises RuntimeError when it fails."""
     with tempfile.TemporaryDirectory(prefix="rce-startkit-") as tmp:
         out, log = Path(tmp) / "out.json", Path(tmp) / "log.txt"
         argv = [str(binary), "-i", str(problem.resolve()), "-o", str(out), "-s", str(steps), "-t", str(int(limit_ms)),
-                "-c", "3", "-l", str(log), *extra]
+                "-c", "1" if curve else "3", "-l", str(log), *extra]
         t0 = time.perf_counter()
         proc = subprocess.Popen(argv, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, cwd=cwd or tmp)
         seen = 0
@@ -86,9 +108,12 @@ def run_peer(binary: Path, problem: Path, steps: int, limit_ms: float, progress=
             why = "killed (out of memory?)" if proc.returncode == -9 else f"exited {proc.returncode}"
             raise RuntimeError(f"start-kit {why} on {problem.name} after {wall:.0f} s\n{err}\n{tail}")
         d = json.loads(out.read_text())
-    return {"tasks_finished": int(d["numTaskFinished"]), "timeouts": int(d["numEntryTimeouts"]),
-            "invalid_steps": int(d["numPlannerErrors"]), "schedule_errors": int(d["numScheduleErrors"]),
-            "wall_s": wall}
+    got = {"tasks_finished": int(d["numTaskFinished"]), "timeouts": int(d["numEntryTimeouts"]),
+           "invalid_steps": int(d["numPlannerErrors"]), "schedule_errors": int(d["numScheduleErrors"]),
+           "wall_s": wall}
+    if curve and (c := finished_curve(d, steps)) is not None:
+        got["curve"] = c
+    return got
 
 
 def _last_step(log: Path, seen: int) -> int:

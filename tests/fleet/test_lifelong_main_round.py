@@ -13,11 +13,15 @@ import subprocess
 import sys
 from pathlib import Path
 
+from rce_fleet.lifelong import load_problem
+from rce_fleet.lifelong.runner import run_lifelong
+
 ROOT = Path(__file__).resolve().parents[2]
 RANDOM = ROOT / ".." / "shared" / "data" / "lorr" / "random.domain"
 BENCH = ROOT / "bench" / "lifelong.py"
 sys.path.insert(0, str(BENCH.parent))
 from lifelong_main_round import steadiness, window_rates  # noqa: E402
+from startkit_peer import finished_curve  # noqa: E402
 
 BEGIN, END = "<!-- main-round table: begin (bench/lifelong.py --main-round) -->", "<!-- main-round table: end -->"
 
@@ -90,6 +94,16 @@ def test_the_rate_is_counted_in_whole_windows_and_the_worst_is_named():
     assert window_rates(slow, 500) == [500, 250, 250]
     assert steadiness({"curve": slow}) == "0.50 (worst: steps 500-1,000)"
     assert steadiness({"curve": slow[:999]}) == "-" and steadiness({}) == "-"     # under two whole windows
+
+
+def test_a_start_kit_outputs_events_give_the_tasks_finished_by_each_step():
+    problem = load_problem(RANDOM / "random_32_32_20_100.json")
+    res = run_lifelong(problem, 40, plan_time_limit_ms=300, record=True)
+    out = res.sim.output()           # the start-kit's format, events and tasks included
+    assert res.finished[-1] > 0
+    assert finished_curve(out, 40) == res.finished.tolist()
+    assert finished_curve({**out, "events": []}, 40) is None                         # written with -c 3
+    assert finished_curve({**out, "numTaskFinished": out["numTaskFinished"] + 1}, 40) is None     # not adding up
 
 
 def test_main_round_names_what_is_missing(tmp_path):
