@@ -469,6 +469,8 @@ def main(argv: list[str] | None = None) -> int:
         ap.error("--main-round runs the main round's instances: not with --quick, --problems, --generate or --sweep")
     if args.main_round and args.scheduler == "both":
         ap.error("--main-round runs one scheduler")
+    if args.length_w is not None and not 0 <= args.length_w < float("inf"):
+        ap.error(f"--length-w {args.length_w}: a task's length weighs a finite share >= 0")
     lorr = args.data / "lorr"
     if not (lorr / "RESULTS.md").is_file():
         print(f"LoRR problems not found under {lorr}", file=sys.stderr)

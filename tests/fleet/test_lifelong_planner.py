@@ -13,6 +13,7 @@ from rce_fleet.lifelong import (MAPF, MAPF_T, BatchScheduler, DistanceCache, Gre
                                 PIBTPlanner, ProblemError, Simulator, TaskError, TaskPool, TaskState, check_actions,
                                 load_lorr_map, load_problem, solve_one_shot)
 from rce_fleet.lifelong.kernels import UNREACHABLE, heading_cost, warm_up
+from rce_fleet.lifelong.scheduler import make_scheduler
 
 DATA = Path(__file__).resolve().parents[2] / ".." / "shared" / "data"
 RANDOM = DATA / "lorr" / "random.domain" / "random_32_32_20_100.json"
@@ -311,6 +312,8 @@ def test_with_length_w_0_a_task_costs_its_way_to_the_first_errand_and_its_deadli
     late.add([3, 29], deadline=20)            # its first errand is near, but it cannot end by step 20
     late.add([6, 7])
     assert near.schedule(np.array([0]), np.array([-1]), late.open, 0, time.perf_counter() + 1).tolist() == [1]
+    with pytest.raises(ValueError, match="length_w must be a finite share >= 0"):
+        make_scheduler(cls.name, DistanceCache(g), length_w=-1.0)
 
 
 def test_scheduler_respects_time_windows_and_priority():

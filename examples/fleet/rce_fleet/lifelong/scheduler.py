@@ -318,7 +318,10 @@ class BatchScheduler(Scheduler):
 
 def make_scheduler(name: str, cache: DistanceCache, crowd_w: float = 0.0, length_w: float | None = None) -> Scheduler:
     """``"greedy"`` or ``"batch"``, with ``crowd_w`` (:meth:`Scheduler._crowd`) and ``length_w``
-    (:attr:`Scheduler.length_w`; None: its default); raises ValueError otherwise."""
+    (:attr:`Scheduler.length_w`; None: its default); raises ValueError for another name or a
+    ``length_w`` that is negative or not finite."""
+    if length_w is not None and not (np.isfinite(length_w) and length_w >= 0):
+        raise ValueError(f"length_w must be a finite share >= 0 of a task's length, got {length_w}")
     if name == "greedy":
         sched: Scheduler = GreedyScheduler(cache)
     elif name == "batch":
