@@ -10,6 +10,7 @@ Competition/README.md`` (commit 25ffd5b), copied into ``BEST_KNOWN``.
 """
 from __future__ import annotations
 
+import itertools
 import json
 import os
 import re
@@ -135,13 +136,12 @@ def window_rates(curve: list[int], window: int = WINDOW) -> list[int]:
     """Tasks finished in each whole ``window``-step window (steps 1 .. window, ...) of ``curve``
     (tasks finished by the end of each step, cumulative, as a run's ``curve``); a last part window
     is left out."""
-    ends = [0, *curve[window - 1::window]]
-    return [b - a for a, b in zip(ends, ends[1:], strict=False)]
+    return [b - a for a, b in itertools.pairwise([0, *curve[window - 1::window]])]
 
 
 def steadiness(r: dict, window: int = WINDOW) -> str:
-    """The worst ``window``-step window's tasks over the best's in result ``r`` ("0.93 (worst
-    3-5k)"), or "-" with fewer than two whole windows."""
+    """The worst ``window``-step window's tasks over the best's in result ``r``, and which steps it
+    was ("0.93 (worst: steps 500-1,000)"), or "-" with fewer than two whole windows."""
     rates = window_rates(r.get("curve") or [], window)
     if len(rates) < 2 or max(rates) <= 0:
         return "-"

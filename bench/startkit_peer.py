@@ -12,6 +12,7 @@ The binary is ``DIR/build/lifelong``.
 """
 from __future__ import annotations
 
+import itertools
 import json
 import os
 import re
@@ -67,11 +68,8 @@ def finished_curve(out: dict, steps: int) -> list[int] | None:
     for t, _, task, seq in out["events"]:
         if seq == errands.get(int(task)) and 1 <= t <= steps:
             per_step[t - 1] += 1
-    curve, total = [], 0
-    for k in per_step:
-        total += k
-        curve.append(total)
-    return curve if total == int(out.get("numTaskFinished", -1)) else None
+    curve = list(itertools.accumulate(per_step))
+    return curve if curve and curve[-1] == int(out.get("numTaskFinished", -1)) else None
 
 
 def run_peer(binary: Path, problem: Path, steps: int, limit_ms: float, progress=None,
