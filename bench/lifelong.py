@@ -283,7 +283,8 @@ def _parser() -> argparse.ArgumentParser:
                     help="the share of a task's own length in its cost to a robot, beside the way to its first "
                          "errand (default: the scheduler's)")
     ap.add_argument("--json", type=Path)
-    ap.add_argument("--plot", type=Path)
+    ap.add_argument("--plot", type=Path, help="the PNG of the runs (default bench/results/STEM.png; with "
+                    "--main-round, each instance's tasks per 100 steps, default DIR/main_round.png of --results)")
     ap.add_argument("--outputs", type=Path, help="also write each run's start-kit output JSON into DIR")
     mr = ap.add_argument_group("the 2024 main round (--main-round)")
     mr.add_argument("--main-round", action="store_true",
@@ -375,6 +376,9 @@ def _main_round(args, peer: Path | None) -> int:
     shown = mr.with_recorded(args.archive, todo, got, args.results, args.plan_time_limit, args.steps)
     text = mr.table(shown, got)
     print(text)
+    plot_path = args.plot or args.results / "main_round.png"
+    if mr.plot_round(shown, got, plot_path):
+        print(f"wrote {plot_path}")
     cut = any(s != official[n] for n, _, s in todo)
     doc = args.doc or (None if cut else ROOT / "docs" / "results" / "lifelong.md")
     if doc is not None:

@@ -149,6 +149,46 @@ def steadiness(r: dict, window: int = WINDOW) -> str:
     return f"{min(rates) / max(rates):.2f} (worst: steps {k * window:,}-{(k + 1) * window:,})"
 
 
+def plot_round(todo: list[tuple[str, Path, int]], got: dict[tuple[str, str], dict], path: Path,
+               every: int = 100) -> list[str]:
+    """PNG at ``path``: for each instance of ``todo`` with an rce result in ``got``, the tasks
+    finished in each ``every``-step window by every system whose result has a ``curve`` (rce, and
+    the default entry run with ``-c 1``; the winner's code writes no events, so it has none), and the
+    best known's mean rate over the official steps as a dotted line. Returns the instances drawn
+    (none: no file is written)."""
+    names = [(n, s) for n, _, s in todo if (n, "rce") in got]
+    if not names:
+        return []
+    import matplotlib
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    cols = min(len(names), 5)
+    rows = -(-len(names) // cols)
+    fig, axes = plt.subplots(rows, cols, figsize=(3.6 * cols, 3.0 * rows), squeeze=False)
+    cells = list(axes.flat)
+    for ax, (name, steps) in zip(cells, names, strict=False):
+        for k, system in enumerate(SYSTEMS):
+            if (r := got.get((name, system))) is not None and (rates := window_rates(r.get("curve") or [], every)):
+                ax.step([every * i for i in range(len(rates) + 1)], [*rates, rates[-1]], where="post", color=f"C{k}",
+                        label=f"{system} ({r['tasks_finished']:,})")
+        official = got[name, "rce"].get("official_steps", steps)
+        best, team = BEST_KNOWN[name]
+        ax.axhline(best * every / official, ls=":", color="black", label=f"best known's mean ({best:,})")
+        ax.set_title(f"{name}, {steps:,} steps", fontsize=9)
+        ax.set_xlabel("step")
+        ax.set_ylabel(f"tasks per {every} steps")
+        ax.set_ylim(bottom=0)
+        ax.legend(fontsize=6)
+    for ax in cells[len(names):]:
+        ax.set_visible(False)
+    fig.tight_layout()
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+    return [n for n, _ in names]
+
+
 def _brief(r: dict) -> str:
     if "error" in r:
         return f"failed: {r['error']}"

@@ -20,7 +20,7 @@ ROOT = Path(__file__).resolve().parents[2]
 RANDOM = ROOT / ".." / "shared" / "data" / "lorr" / "random.domain"
 BENCH = ROOT / "bench" / "lifelong.py"
 sys.path.insert(0, str(BENCH.parent))
-from lifelong_main_round import steadiness, window_rates  # noqa: E402
+from lifelong_main_round import plot_round, steadiness, window_rates  # noqa: E402
 from startkit_peer import finished_curve  # noqa: E402
 
 BEGIN, END = "<!-- main-round table: begin (bench/lifelong.py --main-round) -->", "<!-- main-round table: end -->"
@@ -55,7 +55,8 @@ def test_main_round_keeps_each_result_resumes_and_writes_the_table(tmp_path):
     assert d["plan_time_limit_ms"] == 500 and d["timeouts"] == 0 and d["invalid_steps"] == 0
     assert d["replayed_tasks"] == d["tasks_finished"] and d["replay_invalid_steps"] == 0 and "replay_error" not in d
     assert len(d["curve"]) == 3 and d["date"] and d["commit"]
-    assert [p.name for p in res.iterdir()] == [kept.name]          # one result, no temporary left behind
+    assert sorted(p.name for p in res.iterdir()) == [kept.name, "main_round.png"]   # no temporary left behind
+    assert (res / "main_round.png").read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
     text = doc.read_text()
     assert "old table" not in text and text.endswith(f"{END}\n\nafter\n")
     row = next(ln for ln in text.splitlines() if ln.startswith("| RANDOM-01 |"))
@@ -94,6 +95,19 @@ def test_the_rate_is_counted_in_whole_windows_and_the_worst_is_named():
     assert window_rates(slow, 500) == [500, 250, 250]
     assert steadiness({"curve": slow}) == "0.50 (worst: steps 500-1,000)"
     assert steadiness({"curve": slow[:999]}) == "-" and steadiness({}) == "-"     # under two whole windows
+
+
+def test_the_plot_draws_each_instance_with_an_rce_result(tmp_path):
+    slow = [min(k, 500) + max(0, k - 500) // 2 for k in range(1, 1001)]
+    got = {("RANDOM-04", "rce"): {"curve": slow, "tasks_finished": slow[-1]},
+           ("RANDOM-04", "default"): {"curve": [k // 4 for k in range(1, 1001)], "tasks_finished": 250},
+           ("RANDOM-04", "winner"): {"tasks_finished": 900},                   # no curve: not drawn, no error
+           ("RANDOM-05", "default"): {"curve": slow, "tasks_finished": slow[-1]}}     # no rce result: left out
+    todo = [("RANDOM-04", Path("RANDOM-04.json"), 1000), ("RANDOM-05", Path("RANDOM-05.json"), 2000)]
+    png = tmp_path / "img" / "round.png"
+    assert plot_round(todo, got, png) == ["RANDOM-04"]
+    assert png.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+    assert plot_round(todo[1:], got, tmp_path / "none.png") == [] and not (tmp_path / "none.png").exists()
 
 
 def test_a_start_kit_outputs_events_give_the_tasks_finished_by_each_step():
