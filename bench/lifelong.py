@@ -26,8 +26,8 @@ Usage::
         [--peer PATH [--peer-args ARGS] [--peer-cwd DIR] | --build-peer DIR]
         [--plan-time-limit MS] [--scheduler batch|greedy|both]
         [--cache-mb MB] [--lanes N] [--crowd-w W] [--max-active N] [--window on|off] [--epibt on|off]
-        [--keep-right N] [--admission on|off] [--replan on|off]
-        [--data ../shared/data]
+        [--keep-right N] [--admission on|off] [--replan on|off] [--race on|off] [--length-w W]
+        [--yield-steps N] [--data ../shared/data]
         [--json PATH] [--plot PATH]
         [--outputs DIR]
 
@@ -100,7 +100,7 @@ def run_one(path: Path, steps: int, limit_ms: float, scheduler: str, seed: int, 
             window: bool | None = None, epibt: bool | None = None, keep_right: int | None = None,
             admission: bool | None = None, peer_args: tuple[str, ...] = (), peer_cwd: Path | None = None,
             replan: bool | None = None, validate: bool = False, race: bool | None = None,
-            length_w: float | None = None) -> dict:
+            length_w: float | None = None, yield_steps: int | None = None) -> dict:
     """Run one problem (and the start-kit binary ``peer`` on it, when given); returns its row (with
     the finished-over-time curve). With ``validate``, rce's output is replayed under the rules
     (``rce_fleet.lifelong.replay``): ``replayed_tasks`` and ``replay_invalid_steps`` in the row,
@@ -117,7 +117,8 @@ def run_one(path: Path, steps: int, limit_ms: float, scheduler: str, seed: int, 
                            lanes=LANES if lanes is None else lanes, crowd_w=crowd_w, max_active=max_active,
                            keep_right=keep_right, admission=admission, replan=replan, race=race, length_w=length_w,
                            planner_kw={**({} if window is None else {"ops": window}),
-                                       **({} if epibt is None else {"epibt": epibt})} or None)
+                                       **({} if epibt is None else {"epibt": epibt}),
+                                       **({} if yield_steps is None else {"yield_steps": yield_steps})} or None)
     s = res.summary()
     if (note := jam_note(s)) is not None:
         print(f"{path.stem}: {note}", file=sys.stderr)
@@ -282,6 +283,10 @@ def _parser() -> argparse.ArgumentParser:
     ap.add_argument("--length-w", type=float, metavar="W",
                     help="the share of a task's own length in its cost to a robot, beside the way to its first "
                          "errand (default: the scheduler's)")
+    ap.add_argument("--yield-steps", type=int, metavar="N",
+                    help="under EPIBT a robot without progress for more than N steps yields its priority (0: none; "
+                         "default: 20, none from 0.3 robots per free cell, 0.15 on maps of aisles in teams over "
+                         "1,000, and 5 on maps of fewer than 100 free cells)")
     ap.add_argument("--json", type=Path)
     ap.add_argument("--plot", type=Path, help="the PNG of the runs (default bench/results/STEM.png; with "
                     "--main-round, each instance's tasks per 100 steps, default DIR/main_round.png of --results)")
@@ -321,7 +326,7 @@ def _rce_runner(args, peer: Path | None, validate: bool = False):
                        None if args.admission is None else args.admission == "on",
                        tuple(args.peer_args), args.peer_cwd,
                        None if args.replan is None else args.replan == "on", validate,
-                       None if args.race is None else args.race == "on", args.length_w)
+                       None if args.race is None else args.race == "on", args.length_w, args.yield_steps)
     return run
 
 
@@ -475,6 +480,8 @@ def main(argv: list[str] | None = None) -> int:
         ap.error("--main-round runs one scheduler")
     if args.length_w is not None and not 0 <= args.length_w < float("inf"):
         ap.error(f"--length-w {args.length_w}: a task's length weighs a finite share >= 0")
+    if args.yield_steps is not None and args.yield_steps < 0:
+        ap.error(f"--yield-steps {args.yield_steps}: steps without progress, >= 0 (0: none yields)")
     lorr = args.data / "lorr"
     if not (lorr / "RESULTS.md").is_file():
         print(f"LoRR problems not found under {lorr}", file=sys.stderr)

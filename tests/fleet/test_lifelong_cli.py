@@ -79,13 +79,14 @@ def test_bench_lifelong_generates_problems_on_a_map_and_runs_them(tmp_path):
     small = ROOT / "tests" / "vectors" / "lorr_startkit" / "small-16-16.map"
     r = subprocess.run([sys.executable, str(ROOT / "bench" / "lifelong.py"), "--generate", str(small),
                         "--robots", "10,30", "--seed", "4", "--steps", "15", "--problem-dir", str(tmp_path / "p"),
-                        "--length-w", "0.5", "--json", str(js), "--plot", str(png)],
+                        "--length-w", "0.5", "--yield-steps", "7", "--json", str(js), "--plot", str(png)],
                        capture_output=True, text=True, timeout=120)
     assert r.returncode == 0, r.stderr[-2000:]
     runs = json.loads(js.read_text())["runs"]
     assert [(x["problem"], x["robots"], x["steps"]) for x in runs] == [("small_16_16_10_s4", 10, 15),
                                                                         ("small_16_16_30_s4", 30, 15)]
-    assert all(x["invalid_steps"] == 0 and x["timeouts"] == 0 and x["length_w"] == 0.5 for x in runs)
+    assert all(x["invalid_steps"] == 0 and x["timeouts"] == 0 and x["length_w"] == 0.5 and x["yield_steps"] == 7
+               for x in runs)
     written = sorted(f.name for f in (tmp_path / "p").glob("*.json"))
     assert written == ["small_16_16_10_s4.json", "small_16_16_30_s4.json"]
     bad = subprocess.run([sys.executable, str(ROOT / "bench" / "lifelong.py"), "--generate", str(small)],
@@ -97,6 +98,9 @@ def test_bench_lifelong_generates_problems_on_a_map_and_runs_them(tmp_path):
     weight = subprocess.run([sys.executable, str(ROOT / "bench" / "lifelong.py"), "--quick", "--length-w", "-1"],
                             capture_output=True, text=True, timeout=60)
     assert weight.returncode == 2 and "--length-w -1.0: a task's length weighs a finite share >= 0" in weight.stderr
+    stuck = subprocess.run([sys.executable, str(ROOT / "bench" / "lifelong.py"), "--quick", "--yield-steps", "-2"],
+                           capture_output=True, text=True, timeout=60)
+    assert stuck.returncode == 2 and "--yield-steps -2: steps without progress, >= 0" in stuck.stderr
 
 
 def test_lifelong_cli_refuses_an_unwritable_output_before_it_runs(tmp_path, capsys):
