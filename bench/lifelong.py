@@ -116,9 +116,8 @@ def run_one(path: Path, steps: int, limit_ms: float, scheduler: str, seed: int, 
                            cache_bytes=None if cache_mb is None else int(cache_mb * 2 ** 20),
                            lanes=LANES if lanes is None else lanes, crowd_w=crowd_w, max_active=max_active,
                            keep_right=keep_right, admission=admission, replan=replan, race=race, length_w=length_w,
-                           planner_kw={**({} if window is None else {"ops": window}),
-                                       **({} if epibt is None else {"epibt": epibt}),
-                                       **({} if yield_steps is None else {"yield_steps": yield_steps})} or None)
+                           planner_kw={k: v for k, v in (("ops", window), ("epibt", epibt),
+                                                         ("yield_steps", yield_steps)) if v is not None} or None)
     s = res.summary()
     if (note := jam_note(s)) is not None:
         print(f"{path.stem}: {note}", file=sys.stderr)

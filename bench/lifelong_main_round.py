@@ -173,7 +173,7 @@ def plot_round(todo: list[tuple[str, Path, int]], got: dict[tuple[str, str], dic
                 ax.step([every * i for i in range(len(rates) + 1)], [*rates, rates[-1]], where="post", color=f"C{k}",
                         label=f"{system} ({r['tasks_finished']:,})")
         official = got[name, "rce"].get("official_steps", steps)
-        best, team = BEST_KNOWN[name]
+        best = BEST_KNOWN[name][0]
         ax.axhline(best * every / official, ls=":", color="black", label=f"best known's mean ({best:,})")
         ax.set_title(f"{name}, {steps:,} steps", fontsize=9)
         ax.set_xlabel("step")
