@@ -309,10 +309,10 @@ def test_runner_answers_with_epibt_its_bias_and_open_lanes_in_small_teams_at_any
         assert (s.get("epibt_steps", 0) > 0) is on
 
 
-def test_runner_answers_with_epibt_in_teams_over_a_thousand_from_0_02_off_aisles_and_from_0_15_on_them():
+def test_epibt_in_teams_over_a_thousand_from_0_02_off_aisles_and_0_15_on_them_where_lanes_lead():
     from rce_fleet.lifelong.lorr import LorrProblem
     from rce_fleet.lifelong.runner import (AISLE_EPIBT_DENSITY, AISLE_SHARE, CRISSCROSS_DENSITY, EPIBT_DENSITY,
-                                           KEEP_RIGHT, OPEN_LANES, WINDOW_TEAM, run_lifelong)
+                                           KEEP_RIGHT, LANES, OPEN_LANES, WINDOW_TEAM, run_lifelong)
     n = WINDOW_TEAM + 100
     # open maps: 0.17 robots per free cell; 0.043 (as CITY-01); 0.017
     for side, on in ((80, True), (160, True), (256, False)):
@@ -340,8 +340,13 @@ def test_runner_answers_with_epibt_in_teams_over_a_thousand_from_0_02_off_aisles
         prob = LorrProblem(Path("aisles.json"), g, cells[::5][:n], tasks, n, 1.5)
         s = run_lifelong(prob, 0, plan_time_limit_ms=200, seed=0).summary()
         assert s["epibt"] is on and s["aisles"] >= AISLE_SHARE and s["crisscross"] is False
-        assert s["guide"] is True and s["keep_right"] == KEEP_RIGHT and s["open_lanes"] == (OPEN_LANES if on else 0)
+        assert s["keep_right"] == KEEP_RIGHT and s["open_lanes"] == (OPEN_LANES if on else 0)
+        # under EPIBT the corridors' lanes lead, as strong as the open lanes, in place of guide paths
+        assert s["aisle_lanes"] is on and s["guide"] is not on and s["lanes"] == (OPEN_LANES if on else LANES)
         assert s["yield_steps"] == (0 if on else 20)
+        if on:      # a lane set by hand stays as set, and guide paths can still be asked for
+            s = run_lifelong(prob, 0, plan_time_limit_ms=200, seed=0, lanes=LANES, guide=True).summary()
+            assert s["aisle_lanes"] is True and s["lanes"] == LANES and s["guide"] is True
     many = int(EPIBT_DENSITY * len(cells)) + 10
     prob = LorrProblem(Path("aisles.json"), g, cells[::2][:many], tasks, many, 1.5)
     assert run_lifelong(prob, 0, plan_time_limit_ms=200, seed=0).summary()["epibt"] is True

@@ -122,7 +122,7 @@ class RunResult:
 
 def run_lifelong(problem: LorrProblem, steps: int, plan_time_limit_ms: float = 1000.0, seed: int = 0,
                  scheduler: str = "batch", model: str = MAPF_T, budget_frac: float | None = None,
-                 cache_bytes: int | None = None, lanes: int = LANES, crowd_w: float | None = None,
+                 cache_bytes: int | None = None, lanes: int | None = None, crowd_w: float | None = None,
                  record: bool = True, guide: bool | None = None, planner_kw: dict | None = None,
                  flow_kw: dict | None = None, max_active: int | None = None, open_lanes: int | None = None,
                  keep_right: int | None = None, admission: bool | None = None, admission_kw: dict | None = None,
@@ -137,7 +137,10 @@ def run_lifelong(problem: LorrProblem, steps: int, plan_time_limit_ms: float = 1
     ``"batch"`` (default, the better measured) or ``"greedy"``; model: ``"MAPF_T"`` or
     ``"MAPF"``; cache_bytes: the bound of the distance maps (default
     :func:`~.distances.cache_bytes_for` the team and the machine's available memory); lanes:
-    the extra cost of a move against a one-way lane (:func:`~.guidance.lane_costs`; 0: none);
+    the extra cost of a move against a one-way lane (:func:`~.guidance.lane_costs`; 0: none;
+    None (default): ``LANES``, and ``OPEN_LANES`` where EPIBT answers a team over ``WINDOW_TEAM`` on
+    a map of aisles, whose lanes then lead in place of guide paths, as the 2024 winner's guidance
+    graph on its warehouses: measured on WAREHOUSE, docs/lifelong.md);
     crowd_w: the scheduler's cost per robot crowding a task's errands (default
     ``CROWD_W`` for teams of ``CROWD_TEAM`` robots or more, else 0);
     guide: robots follow traffic-flow guide paths (:class:`~.flow.TrafficFlow`); None (default): when
@@ -208,7 +211,7 @@ def run_lifelong(problem: LorrProblem, steps: int, plan_time_limit_ms: float = 1
     n_free = max(1, len(grid.free_cells()))
     density = problem.team_size / n_free
     small = problem.team_size <= WINDOW_TEAM
-    cost = lane_costs(grid, lanes) if lanes else None
+    cost = lane_costs(grid, LANES if lanes is None else lanes) if lanes != 0 else None
     corridors = cost if cost is not None else lane_costs(grid, 1)
     aisles = float((corridors > 1).any(axis=1).sum()) / n_free     # share of free cells in one-cell lanes
     aisle_map = aisles >= AISLE_SHARE
@@ -227,8 +230,12 @@ def run_lifelong(problem: LorrProblem, steps: int, plan_time_limit_ms: float = 1
              and (small or density >= (dense_from if aisle_map else CRISSCROSS_DENSITY))
              and (planner_kw or {}).get("epibt", True))
     crisscross = epibt and not small and not aisle_map and density < EPIBT_DENSITY    # the winner's grid
+    aisle_lanes = epibt and not small and aisle_map     # the corridors' lanes lead, strong as the winner's
+    if lanes is None:
+        lanes = OPEN_LANES if aisle_lanes else LANES
+        cost = lane_costs(grid, lanes) if aisle_lanes else cost
     if guide is None:
-        guide = density >= GUIDE_DENSITY and not crisscross
+        guide = density >= GUIDE_DENSITY and not crisscross and not aisle_lanes
     user_kw = dict(planner_kw or {})
     # each method's own settings, as the constants above would set them for it
     arms = {"epibt": {"epibt": True, "ops": False, "window_bias": EPIBT_BIAS,
@@ -255,7 +262,7 @@ def run_lifelong(problem: LorrProblem, steps: int, plan_time_limit_ms: float = 1
     if admission is None:
         admission = auto and not aisle_map
     if open_lanes is None:
-        open_lanes = OPEN_LANES if epibt and lanes else 0
+        open_lanes = OPEN_LANES if epibt and lanes != 0 else 0
     if open_lanes and (crisscross or cost is None or (cost == 1).all()):    # the crisscross everywhere
         cost = lane_costs(grid, open_lanes, everywhere=True)
     if keep_right is None:
@@ -349,7 +356,7 @@ def run_lifelong(problem: LorrProblem, steps: int, plan_time_limit_ms: float = 1
         if progress is not None:
             progress(k + 1, sim.finished, dt * 1e3)
     stats = {"scheduler": scheduler, "max_active": getattr(sched, "max_active", None), "lanes": lanes,
-             "aisles": round(aisles, 3), "aisle_map": aisle_map,
+             "aisles": round(aisles, 3), "aisle_map": aisle_map, "aisle_lanes": aisle_lanes,
              "keep_right": keep_right, "crisscross": crisscross,
              "crowd_w": crowd_w, "length_w": sched.length_w, "guide": guide, "epibt": epibt, "open_lanes": open_lanes,
              "window_bias": planner.window_bias, "replan": replan, "yield_steps": planner.yield_steps,
