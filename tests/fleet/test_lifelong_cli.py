@@ -121,8 +121,8 @@ def test_lifelong_cli_says_when_the_team_jams_and_what_to_turn_on(tmp_path, caps
     door.write_text("type octile\nheight 20\nwidth 81\nmap\n" + "\n".join(rows) + "\n")
     problem = write_problem(door, 190, 1, tmp_path)
     with pytest.raises(SystemExit) as e:
-        main(["lifelong", str(problem), "--steps", "100", "--plan-time-limit", "250", "--no-progress",
-              "--admission", "off"])
+        main(["lifelong", str(problem), "--steps", "150", "--plan-time-limit", "250", "--no-progress",
+              "--admission", "off"])        # a jam is seen in its second 25-step window over the mark
     assert e.value.code == 0
     err = capsys.readouterr().err
     assert "the team jammed from step" in err and "--admission on" in err

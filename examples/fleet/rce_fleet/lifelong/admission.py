@@ -149,19 +149,25 @@ class JamDetector:
     cell is held by a robot (:func:`packed`) then grows window after window: on ost003d with 2,000
     robots 0.007 in the first 25 steps, 0.06 by step 50, 0.36 by step 100. A team that is dense but
     flows packs a share that stays flat (random-32-32-20 at 200 robots: 0.045 - 0.098 all run). So
-    a jam is a share over ``factor`` times the first window's and over ``least``. It is seen too
+    a jam is a share over ``factor`` times the first window's and over ``least``, in ``persist``
+    windows in a row: a team setting out packs in for a while and then spreads (WAREHOUSE's 10,000
+    robots under strong lanes: 0.053, 0.115, 0.150, 0.163, then 0.137 and falling), and a jam stays.
+    It is seen too
     late to prevent (by then most robots have opened their tasks, which are never taken back): it is
     a diagnosis, reported so that a user can turn the run-time bound on (``--admission on``).
 
-    window: steps per window; factor, least: as above. ``jam_at``: the step that closed the first
-    window showing a jam (None: none yet); ``shares``: the share of each window. Raises ValueError
-    for a window below 1.
+    window: steps per window; factor, least, persist: as above. ``jam_at``: the step that closed
+    the window showing a jam (None: none yet); ``shares``: the share of each window. Raises
+    ValueError for a window or persist below 1.
     """
 
-    def __init__(self, window: int = 25, factor: float = 3.0, least: float = 0.15):
+    def __init__(self, window: int = 25, factor: float = 3.0, least: float = 0.15, persist: int = 2):
         if window < 1:
             raise ValueError(f"window must be at least 1 step, got {window}")
-        self.window, self.factor, self.least = window, factor, least
+        if persist < 1:
+            raise ValueError(f"persist must be at least 1 window, got {persist}")
+        self.window, self.factor, self.least, self.persist = window, factor, least, persist
+        self._over = 0
         self.jam_at: int | None = None
         self.shares: list[float] = []
         self._packed = self._holding = self._steps = 0
@@ -176,7 +182,8 @@ class JamDetector:
             share = self._packed / self._holding if self._holding else 0.0
             self._packed = self._holding = self._steps = 0
             self.shares.append(round(share, 3))
-            if self.jam_at is None and share > jam_share(self.shares[0], self.factor, self.least):
+            self._over = self._over + 1 if share > jam_share(self.shares[0], self.factor, self.least) else 0
+            if self.jam_at is None and self._over >= self.persist:
                 self.jam_at = step
         return self.jam_at is not None
 
