@@ -152,9 +152,8 @@ class JamDetector:
     a jam is a share over ``factor`` times the first window's and over ``least``, in ``persist``
     windows in a row: a team setting out packs in for a while and then spreads (WAREHOUSE's 10,000
     robots under strong lanes: 0.053, 0.115, 0.150, 0.163, then 0.137 and falling), and a jam stays.
-    It is seen too
-    late to prevent (by then most robots have opened their tasks, which are never taken back): it is
-    a diagnosis, reported so that a user can turn the run-time bound on (``--admission on``).
+    It is seen too late to prevent (by then most robots have opened their tasks, which are never taken
+    back): it is a diagnosis, reported so that a user can turn the run-time bound on (``--admission on``).
 
     window: steps per window; factor, least, persist: as above. ``jam_at``: the step that closed
     the window showing a jam (None: none yet); ``shares``: the share of each window. Raises
