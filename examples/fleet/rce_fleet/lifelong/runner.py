@@ -211,8 +211,7 @@ def run_lifelong(problem: LorrProblem, steps: int, plan_time_limit_ms: float = 1
     n_free = max(1, len(grid.free_cells()))
     density = problem.team_size / n_free
     small = problem.team_size <= WINDOW_TEAM
-    cost = lane_costs(grid, LANES if lanes is None else lanes) if lanes != 0 else None
-    corridors = cost if cost is not None else lane_costs(grid, 1)
+    corridors = lane_costs(grid, 1)     # > 1 where a move goes against a one-way corridor lane
     aisles = float((corridors > 1).any(axis=1).sum()) / n_free     # share of free cells in one-cell lanes
     aisle_map = aisles >= AISLE_SHARE
     dense_from = AISLE_EPIBT_DENSITY if aisle_map and not small else EPIBT_DENSITY
@@ -233,7 +232,7 @@ def run_lifelong(problem: LorrProblem, steps: int, plan_time_limit_ms: float = 1
     aisle_lanes = epibt and not small and aisle_map     # the corridors' lanes lead, strong as the winner's
     if lanes is None:
         lanes = OPEN_LANES if aisle_lanes else LANES
-        cost = lane_costs(grid, lanes) if aisle_lanes else cost
+    cost = lane_costs(grid, lanes) if lanes else None
     if guide is None:
         guide = density >= GUIDE_DENSITY and not crisscross and not aisle_lanes
     user_kw = dict(planner_kw or {})
@@ -262,7 +261,7 @@ def run_lifelong(problem: LorrProblem, steps: int, plan_time_limit_ms: float = 1
     if admission is None:
         admission = auto and not aisle_map
     if open_lanes is None:
-        open_lanes = OPEN_LANES if epibt and lanes != 0 else 0
+        open_lanes = OPEN_LANES if epibt and lanes else 0
     if open_lanes and (crisscross or cost is None or (cost == 1).all()):    # the crisscross everywhere
         cost = lane_costs(grid, open_lanes, everywhere=True)
     if keep_right is None:
