@@ -185,7 +185,9 @@ def test_on_a_map_of_aisles_a_jam_cuts_the_robots_holding_a_task():
     """Shelves to the map's east edge make every aisle a dead end, and every errand lies deep in them:
     robots going in meet robots coming out head-on and pack the aisles. On a map of aisles, where
     no bound holds, the run cuts the robots holding a task to AISLE_JAM_CUT of those holding one
-    when the jam is seen; with ``max_active=0`` (no bound) it does not."""
+    when the jam is seen; with ``max_active=0`` (no bound) it does not. The jam takes two 25-step
+    windows to be seen, so the run goes on long enough after it for robots whose task is not yet
+    opened to let it go."""
     from rce_fleet.lifelong import runner
     from rce_fleet.lifelong.lorr import LorrProblem
     rng = np.random.default_rng(0)
@@ -198,7 +200,7 @@ def test_on_a_map_of_aisles_a_jam_cuts_the_robots_holding_a_task():
     starts = rng.choice(cells[cells % 40 < 20], n, replace=False).astype(np.int64)
     tasks = [tuple(int(c) for c in rng.choice(deep, 2, replace=False)) for _ in range(2 * n)]
     p = LorrProblem(path=Path("t.json"), grid=g, starts=starts, tasks=tasks, team_size=n, num_tasks_reveal=1.5)
-    res = runner.run_lifelong(p, 125, plan_time_limit_ms=200.0, record=False)
+    res = runner.run_lifelong(p, 200, plan_time_limit_ms=200.0, record=False)
     s = res.stats
     assert s["aisle_map"] and s["jam_at"] is not None, s["packed_shares"]
     assert s["jam_cut"] is not None and s["jam_cut"] <= int(runner.AISLE_JAM_CUT * n)
