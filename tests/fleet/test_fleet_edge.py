@@ -2,7 +2,11 @@
 its own (a container host in zone ``robot:RobotN``) and its move_client a container of its own,
 wired to the planner through container-to-container connections. The placer places the covered
 robots' move_clients (``auto``); Robot2, out of coverage, keeps its move_client on board. The mission
-is driven through the split containers: every robot reaches its goal."""
+is driven through the split containers: every robot reaches its goal.
+
+On the lab map (1 m cells), Robot2 (38 -> 55) and Robot1 (60 -> 62) stay within 4 m of each other
+the whole way, so Robot2 always hears a relay within the 6 m radio range (the drives out of range
+and back are tests/fleet/test_fleet_coverage.py's)."""
 from __future__ import annotations
 
 from rce_fleet.configs import robot_config
@@ -11,7 +15,8 @@ from .test_fleet_e2e import _explain, run_demo
 
 
 def test_move_clients_in_containers_of_their_own_placed_by_the_placer(tmp_path):
-    code, rep, out = run_demo(tmp_path, "--edge-hosts", "--out-of-coverage", "Robot2", "--radio-range", "6")
+    code, rep, out = run_demo(tmp_path, "--edge-hosts", "--out-of-coverage", "Robot2", "--radio-range", "6",
+                              "--start", "Robot2=38", "--goal", "Robot2=55", "--start", "Robot1=60", "--goal", "Robot1=62")
     assert code == 0 and rep["ok"], _explain(rep, out)
     placed = {c["ctag"]: c for c in rep["placement"]["containers"]}
     assert set(placed) == {"mc_Robot1", "mc_Robot2", "mc_Robot3"}

@@ -316,6 +316,31 @@ def test_lidar_points_block_a_cell_and_reroute(tb3):
     assert fleet.cancels["Robot1"] == 1
 
 
+def test_scans_from_before_an_unblock_do_not_block_the_cell_again(tb3):
+    """The operator unblocks a cell whose box the robots' lidars still see: scans taken before
+    the box went (in flight, or from a world that has not yet heard) arrive after the unblock.
+    They do not block the cell again; an obstacle still there after ``clear_hold_s`` does."""
+    fleet = VirtualFleet(tb3, {"Robot1": 30}, lidar_blocking=True)
+    hold = fleet.core.obstacles.clear_hold_s
+    fleet.route(fleet.core.on_goals({"Robot1": 17}))
+    cx, cy = tb3.center(28)
+    box = [(cx + d, cy + e) for d in (-0.05, 0.0, 0.05) for e in (-0.05, 0.05)]
+    fleet.clock.t = 1.0
+    fleet.route(fleet.core.on_block(28, True, "operator"))
+    fleet.route(fleet.core.on_obstacles("Robot1", box))       # the box, inside a blocked cell: not sighted
+    fleet.clock.t = 2.0
+    fleet.route(fleet.core.on_block(28, False, "operator"))
+    assert fleet.core.fp.blocked == {}
+    for t in (2.05, 2.1, 2.2, 2.0 + 0.9 * hold):               # scans that still show the box
+        fleet.clock.t = t
+        fleet.route(fleet.core.on_obstacles("Robot1", box))
+    assert fleet.core.fp.blocked == {} and 28 not in fleet.core.state()["blocked"]
+    for t in (2.0 + 1.1 * hold, 2.0 + 1.2 * hold):             # it is still there: sighted as usual
+        fleet.clock.t = t
+        fleet.route(fleet.core.on_obstacles("Robot1", box))
+    assert fleet.core.fp.blocked == {28: "lidar:Robot1"}
+
+
 def test_lidar_reports_wait_until_every_robot_has_a_pose(tb3):
     """A robot the planner serves but that has no pose yet stands somewhere unknown: the points
     the others' lidars see there are not used (counted), until it reports its pose."""

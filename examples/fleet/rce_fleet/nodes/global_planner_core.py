@@ -254,6 +254,7 @@ class GlobalPlannerCore:
         if cell not in self.fp.blocked:
             return []
         self.fp.unblock(cell)
+        self.obstacles.clear(cell, self.clock())      # scans from before the unblock do not block it again
         self.log("cell unblocked", cell=cell)
         return self._sync()
 

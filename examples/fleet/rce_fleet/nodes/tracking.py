@@ -54,23 +54,38 @@ class ObstacleFilter:
       ``robot_speed`` m/s times the age of that pose at the scan (a robot seen in the scan
       has moved on from a pose that arrived late, by at most its top speed times the lag),
     * in a cell that is not free on the static map, in a blocked cell, or within
-      ``edge_margin`` m of a blocked cell (the edges of the box that blocks it),
+      ``edge_margin`` m of a blocked cell (the edges of the box that blocks it); a cell the
+      operator unblocked counts as blocked here for ``clear_hold_s`` s (see below),
     * in a cell a robot is in.
 
     A cell with at least ``min_points`` remaining points in one report is *sighted*; it is
     returned for blocking once it was sighted in ``confirm`` reports within ``window_s``
     seconds (a single noisy scan never blocks a cell).
+
+    A cell the operator unblocked (:meth:`clear`) is not sighted for ``clear_hold_s`` seconds:
+    scans taken before the obstacle went (still in flight, or from a world that has not yet
+    heard of the unblock) must not block it again. An obstacle still there after that is
+    sighted as usual.
     """
 
     def __init__(self, geometry: GridGeometry, *, min_points: int = 3, confirm: int = 2, window_s: float = 5.0,
                  max_range: float = 2.0, robot_clearance: float = 0.3, edge_margin: float = 0.15,
-                 robot_speed: float = NavParams.max_linear):
+                 robot_speed: float = NavParams.max_linear, clear_hold_s: float = 2.0):
         self.geo = geometry
         self.min_points, self.confirm, self.window_s = int(min_points), int(confirm), float(window_s)
         self.max_range, self.robot_clearance = float(max_range), float(robot_clearance)
         self.robot_speed = float(robot_speed)
         self.edge_margin = float(edge_margin)
+        self.clear_hold_s = float(clear_hold_s)
         self.sightings: dict[int, list[float]] = {}
+        self.cleared: dict[int, float] = {}       # cell -> when the operator unblocked it, s (within clear_hold_s)
+
+    def clear(self, cell: int, now: float) -> None:
+        """The operator unblocked ``cell`` at ``now`` (s): its sightings are forgotten and, for
+        ``clear_hold_s`` s, points in it are not counted."""
+        self.sightings.pop(cell, None)
+        self.cleared = {c: t for c, t in self.cleared.items() if now - t < self.clear_hold_s}
+        self.cleared[cell] = now
 
     def _near_blocked(self, x: float, y: float, blocked: set[int]) -> bool:
         for b in blocked:
@@ -84,7 +99,7 @@ class ObstacleFilter:
         """Feed one report; returns the cells to block now (ascending). ``robot_poses``: robot ->
         its last (x, y), m; ``pose_ages``: robot -> how much older (or newer) that pose is than
         the scan, s (absent: 0)."""
-        blocked = set(blocked)
+        blocked = set(blocked) | {c for c, t in self.cleared.items() if now - t < self.clear_hold_s}
         occupied = set(robot_cells)
         ages = pose_ages or {}
         poses = [(px, py, (self.robot_clearance + self.robot_speed * abs(ages.get(r, 0.0))) ** 2)
