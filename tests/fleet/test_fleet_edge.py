@@ -15,8 +15,8 @@ from .test_fleet_e2e import _explain, run_demo
 
 
 def test_move_clients_in_containers_of_their_own_placed_by_the_placer(tmp_path):
-    code, rep, out = run_demo(tmp_path, "--edge-hosts", "--out-of-coverage", "Robot2", "--radio-range", "6",
-                              "--start", "Robot2=38", "--goal", "Robot2=55", "--start", "Robot1=60", "--goal", "Robot1=62")
+    mission = ("--start", "Robot2=38", "--goal", "Robot2=55", "--start", "Robot1=60", "--goal", "Robot1=62")
+    code, rep, out = run_demo(tmp_path, "--edge-hosts", "--out-of-coverage", "Robot2", "--radio-range", "6", *mission)
     assert code == 0 and rep["ok"], _explain(rep, out)
     placed = {c["ctag"]: c for c in rep["placement"]["containers"]}
     assert set(placed) == {"mc_Robot1", "mc_Robot2", "mc_Robot3"}
