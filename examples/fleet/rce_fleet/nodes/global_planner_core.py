@@ -235,7 +235,8 @@ class GlobalPlannerCore:
 
     def on_block(self, cell: int, blocked: bool = True, source: str = "operator") -> list[Out]:
         """Block (or unblock) ``cell`` (``/fleet/block`` or a lidar sighting). Re-plans at once;
-        the robots whose paths crossed the cell get cancelGoal before their new path."""
+        the robots whose paths crossed the cell get cancelGoal before their new path. After an
+        unblock, lidar reports do not block the cell again for ``ObstacleFilter.clear_hold_s``."""
         cell = int(cell)
         source = source or "operator"
         if not self.geo.valid(cell):
