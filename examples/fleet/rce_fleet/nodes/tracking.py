@@ -84,8 +84,12 @@ class ObstacleFilter:
         """The operator unblocked ``cell`` at ``now`` (s): its sightings are forgotten and, for
         ``clear_hold_s`` s, points in it are not counted."""
         self.sightings.pop(cell, None)
-        self.cleared = {c: t for c, t in self.cleared.items() if now - t < self.clear_hold_s}
+        self.cleared = {c: self.cleared[c] for c in self._held(now)}
         self.cleared[cell] = now
+
+    def _held(self, now: float) -> set[int]:
+        """The cells unblocked less than ``clear_hold_s`` s before ``now``."""
+        return {c for c, t in self.cleared.items() if now - t < self.clear_hold_s}
 
     def _near_blocked(self, x: float, y: float, blocked: set[int]) -> bool:
         for b in blocked:
@@ -99,7 +103,7 @@ class ObstacleFilter:
         """Feed one report; returns the cells to block now (ascending). ``robot_poses``: robot ->
         its last (x, y), m; ``pose_ages``: robot -> how much older (or newer) that pose is than
         the scan, s (absent: 0)."""
-        blocked = set(blocked) | {c for c, t in self.cleared.items() if now - t < self.clear_hold_s}
+        blocked = set(blocked) | self._held(now)
         occupied = set(robot_cells)
         ages = pose_ages or {}
         poses = [(px, py, (self.robot_clearance + self.robot_speed * abs(ages.get(r, 0.0))) ** 2)
