@@ -53,6 +53,7 @@ from rce_container.env_layout import BUS_CALL_TIMEOUT, MAX_SOCKET_PATH, containe
 from rce_container.interfaces import BusInterface, make_interface
 from rce_container.launcher import LOG_LINES, Launcher
 from rce_container.ros1_graph import Ros1Graph
+from rce_container.ros1_plan import bridged
 from rce_container.ros2_graph import Ros2Graph
 from rce_container.usage import CpuRate, measure
 from rce_container.zygote_client import ZygoteTemplate
@@ -470,9 +471,17 @@ class Environment:
         interface to a peer interface (``token``: the master's credential for sending to it); a
         connection pointed at a moved container's new copy fences its old one with ``fence`` (the
         move's id), ``fenced`` fences sent (:meth:`rce.transport.interface.Interface.connect`);
-        ``peer_cls``: the peer's class (one of the other ROS: this end converts what it sends)."""
-        fenced = self._interface(args.cid, args.iid).connect(args.peer_iid, args.peer_addr, token_of(args.token),
-                                                             args.fence, args.peer_cls)
+        ``peer_cls``: the peer's class (one of the other ROS: this end converts what it sends).
+        A ROS relay of the container that has not bridged the interface's name yet looks at its
+        graphs first: a node's endpoint that came up since its last poll is bridged before the
+        connection carries anything (an action's feedback wired before its goal, the goal sent as
+        soon as it is wired, finds its bridge made)."""
+        iface = self._interface(args.cid, args.iid)
+        c = self._container(args.cid)
+        for graph in (c.ros1, c.ros2):
+            if graph.running and not bridged(graph.relay_stats, iface.addr):
+                await graph.sync()
+        fenced = iface.connect(args.peer_iid, args.peer_addr, token_of(args.token), args.fence, args.peer_cls)
         self._touch()
         return {"fenced": fenced}
 

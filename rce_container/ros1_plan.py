@@ -139,6 +139,14 @@ def plan(bus: GraphView, ros: GraphView, me: str, *, relay_prefix: str = RELAY_P
     return p
 
 
+def bridged(stats: dict, name: str) -> bool:
+    """Is topic or service ``name`` bridged, either way, by a relay whose last stats
+    (``topics_to_ros``, ``topics_to_bus``, ``services_to_bus``, ``services_to_ros``, as both relays
+    give them) are ``stats``?"""
+    return any(name in (stats.get(k) or ()) for k in ("topics_to_ros", "topics_to_bus", "services_to_bus",
+                                                       "services_to_ros"))
+
+
 def flatten_params(tree: Any, prefix: str = "/") -> dict[str, Any]:
     """Leaves of a parameter tree (``get_param('/')``) as ``{global name: value}``; an empty
     dict is kept as a leaf (the parameter exists with that value)."""

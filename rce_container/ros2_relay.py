@@ -13,7 +13,9 @@ the two with :func:`rce_container.ros2_plan.plan`:
   has no raw services). A service the relay provides in ROS 2 answers later, from the event loop
   (its response goes out with ``send_response`` when the bus answers), so a call that lasts (an
   action's ``get_result`` waits for its goal's end) holds no thread;
-- with hidden names bridged like the others, an action is carried as its five parts;
+- with hidden names bridged like the others, an action is carried as its five parts; a goal goes
+  through only once the relay's bridges of its feedback and status are matched in DDS, as an
+  rclpy action client waits for its server (else its first feedback could be lost);
 - QoS: its subscriptions take what the publishers offer, its publishers offer what the
   subscriptions need (:func:`~rce_container.ros2_plan.request_for`,
   :func:`~rce_container.ros2_plan.offer_for`), a bridge made again when that changes;
@@ -36,9 +38,9 @@ import queue
 import threading
 from collections import deque
 from dataclasses import dataclass
-from typing import Any
+from typing import Any, Callable
 
-from rce.interfaces.actions import call_timeout
+from rce.interfaces.actions import call_timeout, goal_topics
 from rce.interfaces.qos import QoS
 from rce.node import Publisher
 from rce.plumbing.errors import RCEError
@@ -191,6 +193,7 @@ class Ros2Relay:
             self.counts["calls"] += 1
             try:
                 request = deserialize_message(payload, cls.Request)
+                await self._goal_topics_matched(name, self.to_bus, lambda sub: sub.get_publisher_count())
                 async with asyncio.timeout(timeout):
                     return serialize_message(await call(client, request, SERVICE_WAIT))
             except Exception as e:
@@ -230,6 +233,7 @@ class Ros2Relay:
         from rclpy.serialization import deserialize_message
         self.counts["calls"] += 1
         try:
+            await self._goal_topics_matched(name, self.to_ros, lambda pub: pub.get_subscription_count())
             response = deserialize_message(await self.bus.raw_call(name, payload, call_timeout(wire)), cls.Response)
         except Exception as e:
             self.counts["call_errors"] += 1
@@ -241,6 +245,24 @@ class Ros2Relay:
             send(response)
         except Exception as e:        # the service destroyed meanwhile
             log.debug("answer not sent", service=name, reason=str(e))
+
+    async def _goal_topics_matched(self, service: str, bridges: dict[str, TopicBridge],
+                                   matched: Callable[[Any], int]) -> None:
+        """Before a goal goes through an action's ``send_goal`` (``service``): wait up to
+        :data:`SERVICE_WAIT` s until each of the relay's bridges (``bridges``, ``to_bus`` on the
+        server's side, ``to_ros`` on the client's) of the action's feedback and status topics is
+        matched in DDS (``matched`` of its rclpy endpoint above 0), as an rclpy action client
+        waits for its server (:func:`~rce.interfaces.actions.goal_topics`). A bridge just made when
+        the goal comes would otherwise miss the goal's first feedback. Past the wait, the goal goes
+        on (a server that publishes none must still be reachable); any other service: no wait."""
+        from rce_container.ros2_rclpy import SERVICE_POLL
+        ends = [bridges[t].ros for t in goal_topics(service) if t in bridges]
+        try:
+            async with asyncio.timeout(SERVICE_WAIT):
+                while not all(matched(e) > 0 for e in ends):
+                    await asyncio.sleep(SERVICE_POLL)
+        except TimeoutError:
+            log.warning("a goal goes on before its action's feedback and status are matched", service=service)
 
     # -- the sync ------------------------------------------------------------------------------
     async def sync(self) -> dict:

@@ -115,6 +115,19 @@ def expand_connection(tag_a: str, tag_b: str) -> list[tuple[str, str]]:
     return [(f"{tag_a}.{p.name}", f"{tag_b}.{p.name}") for p in ordered]
 
 
+def goal_topics(service: str) -> tuple[str, ...]:
+    """The ROS 2 names of the feedback and status topics of the action whose ``send_goal`` service
+    is ``service`` (``NAME/_action/send_goal``); ``()`` for any other service. A goal should go to
+    its server only once these are matched (rcl_action's ``rcl_action_server_is_available`` asks the
+    same of an action client): DDS drops a volatile message its reader was not matched for yet, and
+    a goal's first feedback would be lost."""
+    suffix = "/_action/send_goal"
+    if not isinstance(service, str) or not service.endswith(suffix):
+        return ()
+    addr = service[:-len(suffix)]
+    return tuple(part_addr(addr, p) for p in PARTS if not p.provider_kind.startswith("Service"))
+
+
 def call_timeout(cls: str) -> float:
     """s a call of service class ``cls`` may wait for its response: :data:`RESULT_TIMEOUT` for an
     action's ``get_result`` (``pkg/action/T_GetResult``), else :data:`SERVICE_TIMEOUT`."""

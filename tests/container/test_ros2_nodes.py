@@ -411,6 +411,8 @@ async def test_an_rclpy_action_client_drives_an_action_server_in_another_contain
         await r.send("CX", {"connect": [{"tagA": "fibC/report", "tagB": f"{rid}/report"}]
                             + [{"tagA": f"fibC/fib.{p}", "tagB": f"fibS/fib.{p}"} for p in parts]})
         done = json.loads((await inbox.find("DM", lambda d: d["iTag"] == "report"))["msg"]["data"])
+        if done.get("feedback") != 5:     # where the feedback went: each relay's counts
+            done["relays"] = {c: (await _stats(ros2_engine, c))["ros2"]["relay"] for c in ("fibS", "fibC")}
         assert done == {"order": 6, "accepted": True, "status": "succeeded", "sequence": [0, 1, 1, 2, 3, 5, 8],
                         "feedback": 5}, done
         canceled = json.loads((await inbox.find("DM", lambda d: d["iTag"] == "report"))["msg"]["data"])
@@ -420,6 +422,29 @@ async def test_an_rclpy_action_client_drives_an_action_server_in_another_contain
         assert {f"/fibonacci/_action/{p}" for p in ("send_goal", "get_result", "cancel_goal")} \
             <= set(relay["services_to_ros"]), relay
         assert relay["call_errors"] == 0 and relay["calls"] == 5, relay     # two goals, two results, a cancel
+
+
+@pytest.mark.timeout(180)
+async def test_a_connection_finds_the_relays_bridge_made(ros2_engine):
+    """An interface added and wired within the relay's poll: the connection is made with its name
+    bridged already (else an action's first feedback, published as soon as the goal it follows is
+    wired, would find no bridge)."""
+    async with RawRobot(ros2_engine.master_url, "wirebot") as r:
+        inbox, ctag, rid = Inbox(r), "wireC", r.robot
+        await r.send("CC", {"containerTag": ctag})
+        await r.cn(addNodes=[{"containerTag": ctag, "nodeTag": "echo", "pkg": "rce_ros2_test", "exe": "echo_node.py"}])
+        await _until_async(lambda: _has(_relay_stat(ros2_engine, ctag, "services_to_bus"), "/set_flag"),
+                           "the relay to see the node")
+        await r.cn(addInterfaces=[_iface(ctag, "in", "PublisherInterface", "std_msgs/msg/String", "/in"),
+                                  _iface(rid, "in", "SubscriberConverter", "std_msgs/msg/String")])
+        await r.send("CX", {"connect": [{"tagA": f"{rid}/in", "tagB": f"{ctag}/in"}]})
+        await inbox.up("in")      # the robot's end is told last (the receiving end first): both are connected
+        relay = (await _stats(ros2_engine, ctag))["ros2"]["relay"]
+        assert "/in" in relay["topics_to_ros"], relay
+
+
+async def _has(stat, item) -> bool:
+    return item in ((await stat) or ())
 
 
 PROBE = """

@@ -136,6 +136,9 @@ def test_action_entries_become_five_parts():
     assert "qos" not in robot["fib.status"].component() and "action" not in robot["fib.status"].component()
     assert actions.call_timeout("test_msgs/action/Fibonacci_GetResult") == actions.RESULT_TIMEOUT
     assert actions.call_timeout("std_srvs/srv/Trigger") == actions.SERVICE_TIMEOUT
+    # a goal waits for its action's feedback and status to be matched; no other call waits
+    assert actions.goal_topics("/nav/fib/_action/send_goal") == ("/nav/fib/_action/feedback", "/nav/fib/_action/status")
+    assert actions.goal_topics("/nav/fib/_action/get_result") == () == actions.goal_topics("/add_two_ints")
 
 
 def test_action_entry_with_a_message_class_is_refused():

@@ -1,8 +1,10 @@
 #!/usr/bin/env python3
 """A plain rclpy action client of ``fibonacci`` (``test_msgs/action/Fibonacci``): one goal to its
 end, then one canceled after two feedbacks. What happened goes out as JSON on ``report``
-(``std_msgs/msg/String``, transient local: a late subscriber still gets every report)."""
+(``std_msgs/msg/String``, transient local: a late subscriber still gets every report); its
+``feedback`` counts the goal's feedback messages, those that come after its result too."""
 import json
+import time
 
 import rclpy
 from action_msgs.msg import GoalStatus
@@ -10,6 +12,8 @@ from rclpy.action import ActionClient
 from rclpy.qos import DurabilityPolicy, QoSProfile
 from std_msgs.msg import String
 from test_msgs.action import Fibonacci
+
+LATE_FEEDBACK = 5.0   # s a feedback may come after its goal's result
 
 
 def main():
@@ -36,8 +40,14 @@ def main():
         result = handle.get_result_async()
         rclpy.spin_until_future_complete(node, result)
         names = {GoalStatus.STATUS_SUCCEEDED: "succeeded", GoalStatus.STATUS_CANCELED: "canceled"}
+        sequence = list(result.result().result.sequence)
+        # feedback and result travel apart (two DDS topics, no order between them): a feedback
+        # sent before the result may come after it
+        late = time.monotonic() + LATE_FEEDBACK
+        while len(feedback) < len(sequence) - 2 and time.monotonic() < late:
+            rclpy.spin_once(node, timeout_sec=0.05)
         out.update(status=names.get(result.result().status, str(result.result().status)),
-                   sequence=list(result.result().result.sequence), feedback=len(feedback))
+                   sequence=sequence, feedback=len(feedback))
         report.publish(String(data=json.dumps(out)))
 
     run(6)
