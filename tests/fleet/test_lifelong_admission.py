@@ -10,6 +10,7 @@ import pytest
 
 from rce_fleet.lifelong import BatchScheduler, DistanceCache, GreedyScheduler, LifelongGrid, TaskPool
 from rce_fleet.lifelong.admission import FlowAdmission, JamDetector, packed
+from rce_fleet.lifelong.runner import jam_detector
 
 
 def test_the_bound_falls_while_the_team_jams_and_rises_while_it_flows_then_lets_go():
@@ -247,6 +248,23 @@ def test_a_jam_is_a_packed_share_that_grows_past_the_first_window_not_one_that_i
         JamDetector(window=0)
     with pytest.raises(ValueError, match="persist"):
         JamDetector(persist=0)
+
+
+def test_under_the_strong_aisle_lanes_a_team_setting_out_is_no_jam_and_a_jam_still_is():
+    # WAREHOUSE's 10,000 robots under the strong lanes, per 25 steps: 0.055 packed in the first window,
+    # up to 0.19 as the team sets out, then flowing
+    setting_out = [0.055, 0.116, 0.147, 0.158, 0.17, 0.18, 0.19, 0.186, 0.176, 0.15, 0.13, 0.12, 0.125]
+    # under the weak lanes a jam kept growing: 0.15 by step 400, 0.28 by step 2,000, 0.41 by step 4,800
+    jam = [0.05, 0.1, 0.15, 0.2, 0.24, 0.28, 0.3, 0.33, 0.41]
+
+    def seen(detector, shares):
+        """The window (index in ``shares``) that closed on a jam, or None."""
+        for k in range(len(shares) * detector.window):
+            detector.observe(k, int(shares[k // detector.window] * 10_000), 10_000)
+        return None if detector.jam_at is None else detector.jam_at // detector.window
+    assert seen(jam_detector(aisle_lanes=False), setting_out) == 5    # the plain mark, 3 x 0.055, cuts a flowing team
+    assert seen(jam_detector(aisle_lanes=True), setting_out) is None
+    assert seen(jam_detector(aisle_lanes=True), jam) == 6             # 0.28 and 0.3, both over 0.25
 
 
 def _two_rooms(door: bool):
