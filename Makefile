@@ -32,11 +32,13 @@ $(FOXGLOVE_JS): tests/web/foxglove/package.json tests/web/foxglove/package-lock.
 	npm ci --prefix tests/web/foxglove --no-audit --no-fund --silent
 	touch $(FOXGLOVE_JS)
 
-## test: the whole suite, in parallel (tests share no ports, files or state; a test file runs in one worker)
+## test: the whole suite, in parallel (tests share no ports, files or state; a test file runs in one worker),
+## ending with its 15 slowest tests (the suite must stay under 10 minutes on a 2-core machine)
 TEST_WORKERS ?= 4
 test: setup bytecode
 	$(BIN)/ruff check .
-	env -u PYTHONDONTWRITEBYTECODE $(BIN)/python -m pytest -q -p no:cacheprovider -n $(TEST_WORKERS) --dist loadfile $(PYTEST_ARGS)
+	env -u PYTHONDONTWRITEBYTECODE $(BIN)/python -m pytest -q -p no:cacheprovider -n $(TEST_WORKERS) --dist loadfile \
+		--durations=15 $(PYTEST_ARGS)
 
 ## bytecode: compile the project's modules once, so that the hundreds of processes a run starts
 ## load them instead of compiling them each (PYTHONDONTWRITEBYTECODE keeps Python from caching them)
