@@ -7,7 +7,7 @@ relay's process (rclpy imported), never in the environment.
 from __future__ import annotations
 
 import asyncio
-from typing import Any
+from typing import Any, Callable
 
 from rclpy.duration import Infinite
 from rclpy.node import Node as RclpyNode
@@ -71,9 +71,8 @@ async def call(client: Any, request: Any, wait: float) -> Any:
     relay's executor thread). Waits up to ``wait`` s for the server to be matched first (a request
     sent before would be lost). The caller bounds the whole call; cancelled, it is forgotten."""
     loop = asyncio.get_running_loop()
-    async with asyncio.timeout(wait):
-        while not client.service_is_ready():
-            await asyncio.sleep(SERVICE_POLL)
+    if not await holds_within(client.service_is_ready, wait):
+        raise TimeoutError(f"no server matched within {wait:g} s")
     fut: Future = client.call_async(request)
     done = loop.create_future()
 
@@ -92,6 +91,18 @@ async def call(client: Any, request: Any, wait: float) -> Any:
     finally:
         if not fut.done():
             client.remove_pending_request(fut)
+
+
+async def holds_within(ready: Callable[[], bool], wait: float) -> bool:
+    """Whether ``ready()`` (a look at DDS's matching, from this asyncio loop) holds within ``wait`` s,
+    looked at every :data:`SERVICE_POLL` s."""
+    try:
+        async with asyncio.timeout(wait):
+            while not ready():
+                await asyncio.sleep(SERVICE_POLL)
+    except TimeoutError:
+        return False
+    return True
 
 
 async def set_parameters(node: RclpyNode, target: str, params: dict[str, Any], wait: float) -> dict[str, str]:

@@ -255,13 +255,9 @@ class Ros2Relay:
         waits for its server (:func:`~rce.interfaces.actions.goal_topics`). A bridge just made when
         the goal comes would otherwise miss the goal's first feedback. Past the wait, the goal goes
         on (a server that publishes none must still be reachable); any other service: no wait."""
-        from rce_container.ros2_rclpy import SERVICE_POLL
+        from rce_container.ros2_rclpy import holds_within
         ends = [bridges[t].ros for t in goal_topics(service) if t in bridges]
-        try:
-            async with asyncio.timeout(SERVICE_WAIT):
-                while not all(matched(e) > 0 for e in ends):
-                    await asyncio.sleep(SERVICE_POLL)
-        except TimeoutError:
+        if not await holds_within(lambda: all(matched(e) > 0 for e in ends), SERVICE_WAIT):
             log.warning("a goal goes on before its action's feedback and status are matched", service=service)
 
     # -- the sync ------------------------------------------------------------------------------

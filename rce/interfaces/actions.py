@@ -53,6 +53,11 @@ class Part:
     cls: str
     qos: QoS | None = None
 
+    @property
+    def is_service(self) -> bool:
+        """Is the part one of the action's services (else one of its topics)?"""
+        return self.provider_kind.startswith("Service")
+
     def class_for(self, action_cls: str) -> str:
         """The part's class for action class ``action_cls`` (``pkg/action/T``)."""
         return self.cls.replace("{T}", action_cls)
@@ -111,7 +116,7 @@ def expand_connection(tag_a: str, tag_b: str) -> list[tuple[str, str]]:
     """The five connections between the parts of actions ``tag_a`` and ``tag_b``
     (``endpointTag/interfaceTag`` each), the topics first: a goal sent as soon as its service is
     wired then finds its feedback and status wired already, and misses none of them."""
-    ordered = sorted(PARTS, key=lambda p: p.provider_kind.startswith("Service"))
+    ordered = sorted(PARTS, key=lambda p: p.is_service)
     return [(f"{tag_a}.{p.name}", f"{tag_b}.{p.name}") for p in ordered]
 
 
@@ -125,7 +130,7 @@ def goal_topics(service: str) -> tuple[str, ...]:
     if not isinstance(service, str) or not service.endswith(suffix):
         return ()
     addr = service[:-len(suffix)]
-    return tuple(part_addr(addr, p) for p in PARTS if not p.provider_kind.startswith("Service"))
+    return tuple(part_addr(addr, p) for p in PARTS if not p.is_service)
 
 
 def call_timeout(cls: str) -> float:

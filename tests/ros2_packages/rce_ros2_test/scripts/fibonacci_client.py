@@ -42,7 +42,7 @@ def main():
         names = {GoalStatus.STATUS_SUCCEEDED: "succeeded", GoalStatus.STATUS_CANCELED: "canceled"}
         sequence = list(result.result().result.sequence)
         # feedback and result travel apart (two DDS topics, no order between them): a feedback
-        # sent before the result may come after it
+        # sent before the result may come after it (each feedback adds one to the server's [0, 1])
         late = time.monotonic() + LATE_FEEDBACK
         while len(feedback) < len(sequence) - 2 and time.monotonic() < late:
             rclpy.spin_once(node, timeout_sec=0.05)
