@@ -379,13 +379,13 @@ def _main_round(args, peer: Path | None) -> int:
                        {"date": time.strftime("%Y-%m-%d"), "commit": head},
                        lambda line: con.print(line, soft_wrap=True, highlight=False))
     shown = mr.with_recorded(args.archive, todo, got, args.results, args.plan_time_limit, args.steps)
-    text = mr.table(shown, got)
+    cut = any(s != official[n] for n, _, s in todo)
+    doc = args.doc or (None if cut else ROOT / "docs" / "results" / "lifelong.md")
+    text = mr.table(shown, got, mr.recorded_rows(doc) if doc is not None else None)
     print(text)
     plot_path = args.plot or args.results / "main_round.png"
     if mr.plot_round(shown, got, plot_path):
         print(f"wrote {plot_path}")
-    cut = any(s != official[n] for n, _, s in todo)
-    doc = args.doc or (None if cut else ROOT / "docs" / "results" / "lifelong.md")
     if doc is not None:
         try:
             mr.write_table(doc, text)

@@ -195,15 +195,18 @@ def _brief(r: dict) -> str:
     return f"{r['tasks_finished']} tasks, {r['timeouts']} timeouts, {r['invalid_steps']} invalid steps"
 
 
-def table(todo: list[tuple[str, Path, int]], got: dict[tuple[str, str], dict]) -> str:
+def table(todo: list[tuple[str, Path, int]], got: dict[tuple[str, str], dict],
+          kept: dict[str, str] | None = None) -> str:
     """The markdown table of the results in ``got`` for the instances of ``todo``: rce's tasks and
     its ratio to the best known (pro rata on a cut, marked), to the winner's code and to the
     default entry measured here (their timeouts in brackets), rce's planner ms, timeouts, the
-    steadiness of its rate (:func:`steadiness`), date and commit."""
+    steadiness of its rate (:func:`steadiness`), date and commit. An instance with no rce result
+    in ``got`` keeps its row of ``kept`` (instance -> row, as :func:`recorded_rows` reads them) as
+    it is, or has none; rows go in ``MAIN_ROUND``'s order."""
     head = ("| instance | robots | steps | rce | best known | rce / best | winner | rce / winner | default | "
             "rce / default | rce planner ms p50 / p99 / max | rce timeouts | rce 500-step windows, worst / best | "
             "date | commit |")
-    lines = [head, "|" + "---|" * head.count(" | ") + "---|"]
+    rows = dict(kept or {})
     for name, path, steps in todo:
         r = got.get((name, "rce"))
         if r is None:
@@ -222,8 +225,9 @@ def table(todo: list[tuple[str, Path, int]], got: dict[tuple[str, str], dict]) -
               if "plan_ms_p50" in r else "-")
         cells += [ms, str(r.get("timeouts", "-")), steadiness(r), r.get("date", "-"),
                   r.get("commit", "-").split(" ")[0]]
-        lines.append("| " + " | ".join(cells) + " |")
-    return "\n".join(lines)
+        rows[name] = "| " + " | ".join(cells) + " |"
+    return "\n".join([head, "|" + "---|" * head.count(" | ") + "---|",
+                      *(rows[name] for name, _ in MAIN_ROUND if name in rows)])
 
 
 def _team(path: Path) -> int:
@@ -241,6 +245,23 @@ def _count(r: dict | None) -> str:
 
 def _ratio(a: float | None, b: float | None) -> str:
     return f"{a / b:.2f}" if a is not None and b else "-"
+
+
+def recorded_rows(doc: Path) -> dict[str, str]:
+    """The rows of the table between the main-round markers of ``doc``, by instance (its first
+    cell); none when the file or its markers are missing. They keep a row whose results are not in
+    this run's ``--results`` (measured on another machine, or before) when the table is written."""
+    try:
+        old = doc.read_text()
+    except OSError:
+        return {}
+    m = re.search(re.escape(BEGIN) + r"\n(.*?)" + re.escape(END), old, flags=re.S)
+    rows = {}
+    for line in (m.group(1).splitlines() if m else ()):
+        name = line.split("|")[1].strip() if line.startswith("| ") else ""
+        if name in BEST_KNOWN:
+            rows[name] = line
+    return rows
 
 
 def write_table(doc: Path, text: str) -> None:

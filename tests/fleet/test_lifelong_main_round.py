@@ -87,6 +87,22 @@ def test_main_round_keeps_each_result_resumes_and_writes_the_table(tmp_path):
     assert r.returncode == 2 and f"{bare}: no main-round table markers" in r.stderr
 
 
+def test_rows_measured_elsewhere_stay_in_the_table_when_one_instance_is_run(tmp_path):
+    """A run into a fresh ``--results`` (another machine, the record's results not there) replaces
+    the rows it measured and keeps every other row of the table as it was, in the round's order."""
+    archive, doc = _archive(tmp_path / "archive"), tmp_path / "record.md"
+    city = "| CITY-01 | 1,500 | 3,000 | 8,382 | 8,445 (Kitty_Knight) | 0.99 | 8,000 | 1.05 | - | 2026-11-28 | c89b4c1 |"
+    second = "| RANDOM-02 | 200 | 600 | 1,083 | 1,260 (Kitty_Knight) | 0.86 | 1,196 | 0.91 | - | 2026-11-28 | dac76bf |"
+    stale = "| RANDOM-01 | 100 | 600 | 1 | 696 (RAPID) | 0.00 | - | - | - | 2026-01-01 | 0000000 |"
+    doc.write_text(f"# record\n\n{BEGIN}\n| instance | ... |\n|---|\n{city}\n{stale}\n{second}\n{END}\n")
+    r = _bench("--archive", archive, "--only", "RANDOM-01", "--steps", 3, "--results", tmp_path / "fresh",
+               "--plan-time-limit", 500, "--doc", doc)
+    assert r.returncode == 0, r.stderr[-2000:]
+    rows = [ln for ln in doc.read_text().splitlines() if ln.startswith("| ") and not ln.startswith("| instance")]
+    assert [ln.split(" | ")[0] for ln in rows] == ["| RANDOM-01", "| RANDOM-02", "| CITY-01"], rows
+    assert stale not in rows and "| 3 of 600 |" in rows[0] and rows[1:] == [second, city]
+
+
 def test_the_rate_is_counted_in_whole_windows_and_the_worst_is_named():
     curve = [k // 2 for k in range(1, 1201)]           # a task every second step, then none from step 1,000
     curve[1000:] = [curve[999]] * 200
