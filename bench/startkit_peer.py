@@ -25,6 +25,10 @@ from pathlib import Path
 PEER_TAG = "v2.1.2"
 DEBIAN_PACKAGES = ("libboost-all-dev", "cmake", "g++", "make")
 STEP_LINE = re.compile(rb"\[timestep=(\d+)\] planner returns")
+# ms of preprocessing an entry has before its first step: the 2024 rules give "30 minutes of preprocessing
+# time per map" (the start-kit's Prepare_Your_Submission.md); the start-kit's own default is 30 s, which the
+# 2024 winner's code overran on CITY-01 (1,500 robots on Paris_1_256) on this 2-core machine
+PREPROCESS_MS = 30 * 60 * 1000
 
 
 def build_peer(src: Path) -> Path:
@@ -74,8 +78,8 @@ def finished_curve(out: dict, steps: int) -> list[int] | None:
 
 def run_peer(binary: Path, problem: Path, steps: int, limit_ms: float, progress=None,
              extra: tuple[str, ...] = (), cwd: Path | None = None, curve: bool = False) -> dict:
-    """Run the start-kit on ``problem`` for ``steps`` steps at ``limit_ms`` per step (its
-    preprocessing limit is its default, 30 s). ``extra`` are more arguments for an entry built on
+    """Run the start-kit on ``problem`` for ``steps`` steps at ``limit_ms`` per step, with the rules'
+    preprocessing limit (``PREPROCESS_MS``, 30 minutes). ``extra`` are more arguments for an entry built on
     the start-kit that takes its own (the 2024 winner's ``--pa 'pepibt(4)_lns' --gg enable --sa
     greedy``); ``cwd`` is the directory it runs in, for an entry that reads its own data files
     from there (default: a fresh temporary directory, so that no file it writes lands elsewhere).
@@ -87,7 +91,7 @@ def run_peer(binary: Path, problem: Path, steps: int, limit_ms: float, progress=
     with tempfile.TemporaryDirectory(prefix="rce-startkit-") as tmp:
         out, log = Path(tmp) / "out.json", Path(tmp) / "log.txt"
         argv = [str(binary), "-i", str(problem.resolve()), "-o", str(out), "-s", str(steps), "-t", str(int(limit_ms)),
-                "-c", "1" if curve else "3", "-l", str(log), *extra]
+                "-p", str(PREPROCESS_MS), "-c", "1" if curve else "3", "-l", str(log), *extra]
         t0 = time.perf_counter()
         proc = subprocess.Popen(argv, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, cwd=cwd or tmp)
         seen = 0

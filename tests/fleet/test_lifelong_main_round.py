@@ -21,7 +21,7 @@ RANDOM = ROOT / ".." / "shared" / "data" / "lorr" / "random.domain"
 BENCH = ROOT / "bench" / "lifelong.py"
 sys.path.insert(0, str(BENCH.parent))
 from lifelong_main_round import plot_round, steadiness, window_rates  # noqa: E402
-from startkit_peer import finished_curve  # noqa: E402
+from startkit_peer import PREPROCESS_MS, finished_curve, run_peer  # noqa: E402
 
 BEGIN, END = "<!-- main-round table: begin (bench/lifelong.py --main-round) -->", "<!-- main-round table: end -->"
 
@@ -134,6 +134,26 @@ def test_a_start_kit_outputs_events_give_the_tasks_finished_by_each_step():
     assert finished_curve(out, 40) == res.finished.tolist()
     assert finished_curve({**out, "events": []}, 40) is None                         # written with -c 3
     assert finished_curve({**out, "numTaskFinished": out["numTaskFinished"] + 1}, 40) is None     # not adding up
+
+
+def test_a_peer_gets_the_rules_preprocessing_time(tmp_path):
+    """The start-kit's own default gives an entry 30 s to preprocess; the rules give 30 minutes per
+    map, and the harness asks for them. A stand-in for the entry's binary writes what it was given
+    and the smallest output the start-kit writes."""
+    entry = tmp_path / "lifelong"
+    entry.write_text(f"""#!{sys.executable}
+import json, sys
+argv = sys.argv[1:]
+json.dump(argv, open({str(tmp_path / "argv.json")!r}, "w"))
+json.dump({{"numTaskFinished": 4, "numEntryTimeouts": 0, "numPlannerErrors": 0, "numScheduleErrors": 0}},
+          open(argv[argv.index("-o") + 1], "w"))
+""")
+    entry.chmod(0o755)
+    got = run_peer(entry, RANDOM / "random_32_32_20_100.json", 7, 1000, extra=("--pa", "x"))
+    assert (got["tasks_finished"], got["timeouts"]) == (4, 0)
+    argv = json.loads((tmp_path / "argv.json").read_text())
+    assert argv[argv.index("-p") + 1] == str(PREPROCESS_MS) == "1800000"
+    assert (argv[argv.index("-s") + 1], argv[argv.index("-t") + 1], argv[-2:]) == ("7", "1000", ["--pa", "x"])
 
 
 def test_main_round_names_what_is_missing(tmp_path):
