@@ -252,10 +252,9 @@ def recorded_rows(doc: Path) -> dict[str, str]:
     cell); none when the file or its markers are missing. They keep a row whose results are not in
     this run's ``--results`` (measured on another machine, or before) when the table is written."""
     try:
-        old = doc.read_text()
+        m = _table_block(doc.read_text())
     except OSError:
         return {}
-    m = re.search(re.escape(BEGIN) + r"\n(.*?)" + re.escape(END), old, flags=re.S)
     rows = {}
     for line in (m.group(1).splitlines() if m else ()):
         name = line.split("|")[1].strip() if line.startswith("| ") else ""
@@ -268,7 +267,12 @@ def write_table(doc: Path, text: str) -> None:
     """Replace what is between the main-round markers of ``doc`` with ``text``. Raises ValueError
     naming the file when the markers are not there (once each, in order)."""
     old = doc.read_text()
-    m = re.search(re.escape(BEGIN) + r"\n.*?" + re.escape(END), old, flags=re.S)
+    m = _table_block(old)
     if m is None or old.count(BEGIN) != 1 or old.count(END) != 1:
         raise ValueError(f"{doc}: no main-round table markers ({BEGIN} ... {END}) to write between")
     doc.write_text(old[:m.start()] + f"{BEGIN}\n{text}\n{END}" + old[m.end():])
+
+
+def _table_block(text: str) -> re.Match | None:
+    """The main-round markers in ``text`` and what is between them (group 1), or None."""
+    return re.search(re.escape(BEGIN) + r"\n(.*?)" + re.escape(END), text, flags=re.S)
