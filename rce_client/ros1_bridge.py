@@ -50,12 +50,16 @@ MASTER_TIMEOUT = 10.0          # s to wait for the ROS 1 master to answer at sta
 class Counts:
     """What went through one bridged interface: ``to_ros`` / ``from_ros`` messages or calls,
     ``dropped`` (handoff full, a publish that failed, calls over ``CALLS_IN_FLIGHT``), ``bad``
-    (calls that failed: conversion, the cloud's or the ROS 1 service's error, timeout).
+    (calls that failed: conversion, the cloud's or the ROS 1 service's error, timeout), ``lost``
+    (ROS 2 only: messages the robot's middleware reports lost before the bridge took them, e.g. a
+    ``keep_last`` writer that replaced samples a starved bridge had not acknowledged: the graph's
+    QoS at work, not a drop of the bridge's).
     :meth:`add` is safe from rospy's threads."""
     from_ros: int = 0
     to_ros: int = 0
     dropped: int = 0
     bad: int = 0
+    lost: int = 0
 
     def __post_init__(self) -> None:
         self._lock = threading.Lock()

@@ -26,9 +26,10 @@ wait as long as its goal runs: :func:`rce.interfaces.actions.call_timeout`); a c
 no response (ROS 2 services have no error reply: the caller's timeout applies) and is logged and
 counted, naming the interface. A QoS that does not match a peer on the robot's graph (rclpy's
 ``incompatible_qos`` events) is printed and logged, naming the interface, the topic and the policy;
-messages the middleware reports lost (``message_lost``) are counted as dropped. A subscription's
-``keep_last`` depth (its QoS) bounds what waits in DDS for the bridge: there, as in every ROS 2
-subscription, a newer message replaces the oldest.
+messages the middleware reports lost (``message_lost``) are counted apart from the bridge's own drops,
+as lost on the robot's graph: a ``keep_last`` depth (the topic's QoS) bounds what waits in DDS for
+the bridge, and there, as in every ROS 2 subscription, a newer message replaces the oldest (Fast DDS
+reports it when a reliable writer replaced samples a starved bridge had not acknowledged).
 On close the node is destroyed, rclpy shut down, and the counts per interface printed.
 """
 from __future__ import annotations
@@ -126,7 +127,9 @@ class RclpyGraph:
         for itag, c in self.counts.items():
             qos = self.qos_incompatible.get(itag)
             self.bridge.out(f"rce-ros: ROS 2 {itag}: {c.from_ros} from ROS 2, {c.to_ros} to ROS 2, "
-                            f"{c.dropped} dropped, {c.bad} failed" + (f", {qos} QoS incompatible" if qos else ""))
+                            f"{c.dropped} dropped, {c.bad} failed" + (f", {c.lost} lost on the robot's graph"
+                                                                      if c.lost else "")
+                            + (f", {qos} QoS incompatible" if qos else ""))
         if spinner.callback_errors:
             self.bridge.out(f"rce-ros: ROS 2: {spinner.callback_errors} rclpy callback(s) failed (see the log)")
 
@@ -152,7 +155,7 @@ class RclpyGraph:
             self._report_lost, kind, event.total_count_change))
 
     def _report_lost(self, kind: Any, lost: int) -> None:
-        self.counts[kind.spec.iTag].add(dropped=lost)
+        self.counts[kind.spec.iTag].add(lost=lost)
         log.warning("messages lost on the robot's graph before the bridge took them", itag=kind.spec.iTag,
                     topic=kind.addr, lost=lost)
 

@@ -20,6 +20,7 @@ from __future__ import annotations
 import asyncio
 import json
 import os
+import re
 import signal
 import sys
 from pathlib import Path
@@ -174,6 +175,61 @@ async def test_ros2_graph_through_the_cloud(engine, ros2_env, tmp_path):
                 assert await servers.wait(STEP) == 0, servers.dump()
             finally:
                 await servers.kill()
+
+
+async def test_what_the_robots_graph_replaced_before_a_starved_bridge_took_it_is_counted_lost(engine, ros2_env,
+                                                                                                 tmp_path):
+    """A writer as amcl's (reliable, transient local, depth 1) at 1 kHz, the bridge stopped (SIGSTOP) for
+    4,000 of its messages: Fast DDS replaces what the bridge did not acknowledge and reports it lost. The
+    bridge logs and counts it apart from its own drops (none), and goes on."""
+    cfg = tmp_path / "flood.config"
+    cfg.write_text(json.dumps({
+        "url": engine.master_url, "userID": "testUser", "password": "testUser", "robotID": ROBOT,
+        "containers": [{"cTag": CTAG}],
+        "interfaces": [{"eTag": ROBOT, "iTag": "pose", "iType": "SubscriberForwarder", "iCls": "std_msgs/msg/String",
+                        "addr": "/pose", "qos": "map"},
+                       {"eTag": CTAG, "iTag": "pose", "iType": "PublisherInterface", "iCls": "std_msgs/msg/String",
+                        "addr": "/loop/pose"}],
+        "connections": [{"tagA": f"{CTAG}/pose", "tagB": f"{ROBOT}/pose"}]}))
+    ros = await Proc.start(str(BIN / "rce-ros"), str(cfg), "--ros2", "--timeout", "90", env=ros2_env)
+    writer = None
+    try:
+        await ros.wait_line(r"^rce-ros: ready \(1 interface\(s\) up", timeout=120)
+        writer = Proc(await asyncio.create_subprocess_exec(
+            sys.executable, str(ROBOT_PY), "flood", "/pose", env=ros2_env, stdin=asyncio.subprocess.PIPE,
+            stdout=asyncio.subprocess.PIPE, stderr=asyncio.subprocess.PIPE), "robot.py flood")
+        await writer.wait_line(r"^matched$", timeout=STEP)
+        for attempt in range(3):          # Fast DDS tells the reader at the writer's next heartbeat (3 s)
+            at = int((await writer.wait_line(r"^published \d+$", timeout=STEP)).split()[1])
+            at = max(at, *(int(w.split()[1]) for w in writer.lines["out"] if w.startswith("published ")))
+            ros.p.send_signal(signal.SIGSTOP)
+            try:
+                await writer.wait_line(rf"^published {at + 4000}$", timeout=STEP)
+            finally:
+                ros.p.send_signal(signal.SIGCONT)
+            try:
+                await ros.wait_line(r'"msg": "messages lost on the robot\'s graph before the bridge took them"',
+                                    key="err", timeout=10)
+                break
+            except AssertionError:
+                assert attempt < 2, ros.dump()
+        writer.p.stdin.close()
+        assert await writer.wait(STEP) == 0, writer.dump()
+        ros.p.send_signal(signal.SIGINT)
+        assert await ros.wait(STEP) == 0, ros.dump()
+        line = await ros.wait_line(r"^rce-ros: ROS 2 pose: ")
+        m = re.fullmatch(r"rce-ros: ROS 2 pose: (\d+) from ROS 2, 0 to ROS 2, 0 dropped, 0 failed, (\d+) lost on the "
+                         r"robot's graph", line)
+        assert m and int(m.group(1)) > 0 and int(m.group(2)) > 0, ros.dump()
+        reported = sum(json.loads(e)["lost"] for e in ros.lines["err"] if "lost on the robot's graph" in e)
+        assert reported == int(m.group(2)), ros.dump()
+        assert "rce-ros: removed 1 interface(s), destroyed 1 container(s)" in ros.text(), ros.dump()
+    finally:
+        if ros.p.returncode is None:
+            ros.p.send_signal(signal.SIGCONT)
+        await ros.kill()
+        if writer is not None:
+            await writer.kill()
 
 
 @pytest.mark.parametrize("itype, cls, error", [

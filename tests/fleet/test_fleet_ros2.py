@@ -33,7 +33,8 @@ LISTEN_S = 60.0              # wall s the test's node has to take each topic onc
 GOAL = "/move_base_simple/goal"
 DOMAIN = re.compile(r"rce-fleet: Robot1: a ROS 2 robot on domain (\d+) ")
 CARRIED = re.compile(r"carried (\d+) messages from ROS 2 to the cloud \((\d+) of them [^)]*\) and (\d+) to "
-                     r"ROS 2, (\d+) dropped, (\d+) failed; the robots published (\d+) and took (\d+) "
+                     r"ROS 2, (\d+) dropped, (\d+) failed \((\d+) lost on the robots' graphs, their QoS keeping the "
+                     r"newest\); the robots published (\d+) and took (\d+) "
                      r"\((\d+) dropped or refused\)")
 
 
@@ -164,8 +165,10 @@ def test_demo_ros2_runs_on_ros2_robots_and_ends_with_its_kpis(tmp_path, monkeypa
     assert re.search(r"rce-fleet: tasks done \d+ in 2\d s sim", text) and "utilisation" in text, text[-3000:]
     m = CARRIED.search(text)
     assert m, text[-3000:]
-    from_ros2, not_sent, to_ros2, dropped, failed, published, took, lost = map(int, m.groups())
-    assert from_ros2 > 100 and to_ros2 > 0 and dropped == failed == lost == 0, m.group(0)
+    from_ros2, not_sent, to_ros2, dropped, failed, lost, published, took, refused = map(int, m.groups())
+    # the bridges drop nothing; what a starved bridge's depth-1 /amcl_pose loses on the graph is counted apart
+    per_interface = "".join(p.read_text() for p in sorted((tmp_path / "run" / "ros2").glob("Robot*.log")))
+    assert from_ros2 > 100 and to_ros2 > 0 and dropped == failed == refused == 0, (m.group(0), per_interface)
     assert published >= from_ros2 > not_sent and took == to_ros2, m.group(0)
     rep = json.loads(report.read_text())      # written before the bridges stop: what the robots took by then
     goals = sum(r["waypoints_received"] for r in rep["per_robot"].values())

@@ -12,6 +12,8 @@ done, 1 (with the reason) when a step did not happen within ``DEADLINE`` s.
                                        ACTION, until stdin closes
     robot.py call NAME                 call SetBool NAME with data true
     robot.py goals ACTION              a goal to its end (feedback, result), then one cancelled on its way
+    robot.py flood TOPIC               publish on TOPIC as amcl publishes /amcl_pose (reliable, transient local,
+                                       depth 1) every PERIOD s, printing each thousandth, until stdin closes
 """
 from __future__ import annotations
 
@@ -32,6 +34,7 @@ from test_msgs.action import Fibonacci
 
 DEADLINE = 60.0      # s for each step (a loaded 2-core machine)
 STEP = 0.1           # s between the Fibonacci server's feedbacks
+PERIOD = 0.001       # s between the flood's messages
 
 
 def say(*words: object) -> None:
@@ -167,8 +170,22 @@ def goals(node, action: str) -> None:
         say(f"result: status={res.status} sequence={list(res.result.sequence)[:7]} {tail}")
 
 
+def flood(node, topic: str) -> None:
+    pub = node.create_publisher(String, topic, QoSProfile(depth=1, durability=DurabilityPolicy.TRANSIENT_LOCAL))
+    spin_until(node, lambda: pub.get_subscription_count() > 0, f"the bridge on {topic}")
+    say("matched")
+    closed = threading.Event()
+    threading.Thread(target=lambda: (sys.stdin.read(), closed.set()), daemon=True).start()
+    n = 0
+    while not closed.wait(PERIOD):
+        n += 1
+        pub.publish(String(data=f"pose {n}"))
+        if n % 1000 == 0:
+            say(f"published {n}")
+
+
 MODES = {"talk": talk, "bad": bad, "latched": latched, "reliable": reliable, "serve": serve, "call": call,
-         "goals": goals}
+         "goals": goals, "flood": flood}
 
 if __name__ == "__main__":
     rclpy.init()

@@ -64,7 +64,8 @@ CLOSE_TIMEOUT_S = 5.0        # s a node's executor gets to stop
 #: ``map``), lidar drivers publish sensor data (best effort, depth 5). Not named: rclpy's default (reliable,
 #: volatile, depth 10), the subscriptions' too.
 QOS = {"pose": "map", "scan": "sensor_data"}
-COUNTS = re.compile(r"rce-ros: ROS 2 (\S+): (\d+) from ROS 2, (\d+) to ROS 2, (\d+) dropped, (\d+) failed")
+COUNTS = re.compile(r"rce-ros: ROS 2 (\S+): (\d+) from ROS 2, (\d+) to ROS 2, (\d+) dropped, (\d+) failed"
+                    r"(?:, (\d+) lost on the robot's graph)?")
 NOT_SENT = re.compile(r"rce-ros: (\S+): (\d+) message\(s\) not sent to the cloud")
 
 
@@ -101,7 +102,8 @@ class Ros2Robot:
     """One ROS 2 robot: its domain lease, its ``/simulator`` node (:attr:`spinner`), its publishers
     (:attr:`ports`), what it took (:attr:`counts`, topic -> :class:`rce_client.ros1_bridge.Counts`;
     ``bad``: bytes that were not their class) and its rce-ros process (:attr:`proc`, the counts it printed
-    at its stop in :attr:`bridged`: iTag -> (from ROS 2, to ROS 2, dropped, failed))."""
+    at its stop in :attr:`bridged`: iTag -> (from ROS 2, to ROS 2, dropped, failed, lost on the robot's
+    graph))."""
 
     def __init__(self, rid: str, lease: Any):
         self.rid, self.lease = rid, lease
@@ -238,7 +240,7 @@ class Ros2Robots:
                     log.info("ROS 2 robot up", robot=robot.rid, domain=robot.domain, node_s=round(robot.node_s, 2),
                              bridge_s=round(time.monotonic() - robot.started, 2))
                 elif (m := COUNTS.match(line)) is not None:
-                    robot.bridged[m.group(1)] = tuple(int(x) for x in m.groups()[1:])
+                    robot.bridged[m.group(1)] = tuple(int(x or 0) for x in m.groups()[1:])
                 elif (m := NOT_SENT.match(line)) is not None:
                     robot.not_sent[m.group(1)] = int(m.group(2))
         finally:
@@ -265,21 +267,23 @@ class Ros2Robots:
 
     def summary(self) -> str:
         """One line: the robots' domains, what their bridges carried each way, dropped and failed (and the
-        messages they took from ROS 2 before their interfaces were connected: not sent on), and what
+        messages they took from ROS 2 before their interfaces were connected: not sent on; and those the
+        robots' middleware reported lost before the bridges took them), and what
         the simulated robots published and took (their messages' counts)."""
         from_ros = sum(v[0] for r in self.robots.values() for v in r.bridged.values())
         to_ros = sum(v[1] for r in self.robots.values() for v in r.bridged.values())
         dropped = sum(v[2] for r in self.robots.values() for v in r.bridged.values())
         failed = sum(v[3] for r in self.robots.values() for v in r.bridged.values())
+        lost = sum(v[4] for r in self.robots.values() for v in r.bridged.values())
         not_sent = sum(n for r in self.robots.values() for n in r.not_sent.values())
         sent = sum(p.sent for r in self.robots.values() for p in r.ports.values())
         took = sum(c.from_ros for r in self.robots.values() for c in r.counts.values())
-        lost = sum(c.dropped + c.bad for r in self.robots.values() for c in r.counts.values())
+        refused = sum(c.dropped + c.bad for r in self.robots.values() for c in r.counts.values())
         domains = ", ".join(f"{rid} {r.domain}" for rid, r in self.robots.items())
         return (f"rce-fleet: ROS 2 robots (domains {domains}): their rce-ros --ros2 carried {from_ros} messages from "
                 f"ROS 2 to the cloud ({not_sent} of them before their interfaces were connected: not sent on) and "
-                f"{to_ros} to ROS 2, {dropped} dropped, {failed} failed; the robots published {sent} and took {took} "
-                f"({lost} dropped or refused)")
+                f"{to_ros} to ROS 2, {dropped} dropped, {failed} failed ({lost} lost on the robots' graphs, their "
+                f"QoS keeping the newest); the robots published {sent} and took {took} ({refused} dropped or refused)")
 
 
 def _wait_all(procs: list[subprocess.Popen], timeout: float) -> None:
