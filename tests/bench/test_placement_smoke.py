@@ -20,8 +20,8 @@ MOVE_KEYS = {"t_s", "from", "to", "gap_s", "why", "began_s"}
 @pytest.mark.timeout(RUN_TIMEOUT + 20)
 def test_placement_smoke(tmp_path):
     out = tmp_path / "placement.json"
-    r = subprocess.run([sys.executable, str(ROOT / "bench" / "placement.py"), "--phase-s", str(PHASE_S), "--bad-rate", "20mbit",
-                        "--out", str(out)],
+    r = subprocess.run([sys.executable, str(ROOT / "bench" / "placement.py"), "--phase-s", str(PHASE_S),
+                        "--bad-rate", "20mbit", "--out", str(out)],
                        cwd=ROOT, capture_output=True, text=True, timeout=RUN_TIMEOUT)
     assert r.returncode == 0, f"exit {r.returncode}\n{r.stdout[-3000:]}\n{r.stderr[-3000:]}"
     d = json.loads(out.read_text())
