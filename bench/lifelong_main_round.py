@@ -153,8 +153,8 @@ def plot_round(todo: list[tuple[str, Path, int]], got: dict[tuple[str, str], dic
                every: int = 100) -> list[str]:
     """PNG at ``path``: for each instance of ``todo`` with an rce result in ``got``, the tasks
     finished in each ``every``-step window by every system whose result has a ``curve`` (rce, and
-    the default entry run with ``-c 1``; the winner's code writes no events, so it has none), and the
-    best known's mean rate over the official steps as a dotted line. Returns the instances drawn
+    the peers run with ``-c 1``: :func:`startkit_peer.finished_curve`), and the best known's mean
+    rate over the official steps as a dotted line. Returns the instances drawn
     (none: no file is written)."""
     names = [(n, s) for n, _, s in todo if (n, "rce") in got]
     if not names:

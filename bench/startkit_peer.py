@@ -59,18 +59,28 @@ def _run(argv: list[str], what: str) -> None:
         raise RuntimeError(f"{what} failed ({done.returncode}):\n{done.stdout.decode(errors='replace')[-3000:]}")
 
 
-def finished_curve(out: dict, steps: int) -> list[int] | None:
+def finished_curve(out: dict, steps: int, task_errands: list[int] | None = None) -> list[int] | None:
     """Tasks finished by the end of each of ``steps`` steps (cumulative), from a start-kit output's
     ``events`` ([timestep, agent, task, errands reached], the timestep counted from 1 after the
-    first step's move) and ``tasks`` ([task, release, [row, col, ...]]): a task is finished when
-    its last errand is reached. None when the output has no events (written with ``-c`` 2 or 3)
-    or they do not add up to its ``numTaskFinished``."""
-    if not out.get("events") or not out.get("tasks"):
+    first step's move): a task is finished when its last errand is reached. Each task's errands come
+    from the output's ``tasks`` ([task, release, [row, col, ...]]) or, for an output without them
+    (the 2024 winner's code writes its events but not its tasks), from ``task_errands``: the
+    errands of each line of the problem's task file, task ``i`` being line ``i`` modulo their
+    number (the start-kit reveals them in order, round again: ``TaskManager::reveal_tasks``). None
+    when the output has no events (written with ``-c`` 2 or 3), neither source of errands is
+    there, or the events do not add up to its ``numTaskFinished``."""
+    if not out.get("events"):
         return None
-    errands = {int(t[0]): len(t[2]) // 2 for t in out["tasks"]}
+    if out.get("tasks"):
+        errands = {int(t[0]): len(t[2]) // 2 for t in out["tasks"]}.get
+    elif task_errands:
+        def errands(task: int) -> int:
+            return task_errands[task % len(task_errands)]
+    else:
+        return None
     per_step = [0] * steps
     for t, _, task, seq in out["events"]:
-        if seq == errands.get(int(task)) and 1 <= t <= steps:
+        if seq == errands(int(task)) and 1 <= t <= steps:
             per_step[t - 1] += 1
     curve = list(itertools.accumulate(per_step))
     return curve if curve and curve[-1] == int(out.get("numTaskFinished", -1)) else None
@@ -86,8 +96,9 @@ def run_peer(binary: Path, problem: Path, steps: int, limit_ms: float, progress=
     ``progress(step)`` is called as its log says steps are done. Returns its output's
     counts and the wall time: {tasks_finished, timeouts, invalid_steps, schedule_errors, wall_s},
     and with ``curve`` the tasks finished by each step (:func:`finished_curve`; the output then
-    holds its events and paths, about 2 bytes per robot-step; none from an entry that writes no
-    events, as the 2024 winner's code). Raises RuntimeError when it fails."""
+    holds its events and paths, about 2 bytes per robot-step; the errands of each task from the
+    output, or from ``problem``'s task file when the output leaves its tasks out). Raises
+    RuntimeError when it fails."""
     with tempfile.TemporaryDirectory(prefix="rce-startkit-") as tmp:
         out, log = Path(tmp) / "out.json", Path(tmp) / "log.txt"
         argv = [str(binary), "-i", str(problem.resolve()), "-o", str(out), "-s", str(steps), "-t", str(int(limit_ms)),
@@ -113,9 +124,15 @@ def run_peer(binary: Path, problem: Path, steps: int, limit_ms: float, progress=
     got = {"tasks_finished": int(d["numTaskFinished"]), "timeouts": int(d["numEntryTimeouts"]),
            "invalid_steps": int(d["numPlannerErrors"]), "schedule_errors": int(d["numScheduleErrors"]),
            "wall_s": wall}
-    if curve and (c := finished_curve(d, steps)) is not None:
+    if curve and (c := finished_curve(d, steps, None if d.get("tasks") else _task_errands(problem))) is not None:
         got["curve"] = c
     return got
+
+
+def _task_errands(problem: Path) -> list[int]:
+    """The number of errands of each line of ``problem``'s task file, in order."""
+    from rce_fleet.lifelong.lorr import load_problem
+    return [len(t) for t in load_problem(problem).tasks]
 
 
 def _last_step(log: Path, seen: int) -> int:

@@ -134,6 +134,11 @@ def test_a_start_kit_outputs_events_give_the_tasks_finished_by_each_step():
     assert finished_curve(out, 40) == res.finished.tolist()
     assert finished_curve({**out, "events": []}, 40) is None                         # written with -c 3
     assert finished_curve({**out, "numTaskFinished": out["numTaskFinished"] + 1}, 40) is None     # not adding up
+    # an output without its tasks (the 2024 winner's code): each task's errands from the problem's task file
+    bare = {k: v for k, v in out.items() if k != "tasks"}
+    assert finished_curve(bare, 40) is None
+    assert finished_curve(bare, 40, [len(t) for t in problem.tasks]) == res.finished.tolist()
+    assert finished_curve(bare, 40, [len(t) + 1 for t in problem.tasks]) is None           # errands that do not match
 
 
 def test_a_peer_gets_the_rules_preprocessing_time(tmp_path):
