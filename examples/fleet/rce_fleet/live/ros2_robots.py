@@ -270,11 +270,8 @@ class Ros2Robots:
         messages they took from ROS 2 before their interfaces were connected: not sent on; and those the
         robots' middleware reported lost before the bridges took them), and what
         the simulated robots published and took (their messages' counts)."""
-        from_ros = sum(v[0] for r in self.robots.values() for v in r.bridged.values())
-        to_ros = sum(v[1] for r in self.robots.values() for v in r.bridged.values())
-        dropped = sum(v[2] for r in self.robots.values() for v in r.bridged.values())
-        failed = sum(v[3] for r in self.robots.values() for v in r.bridged.values())
-        lost = sum(v[4] for r in self.robots.values() for v in r.bridged.values())
+        rows = [v for r in self.robots.values() for v in r.bridged.values()]
+        from_ros, to_ros, dropped, failed, lost = (sum(col) for col in zip(*rows, (0,) * 5, strict=True))
         not_sent = sum(n for r in self.robots.values() for n in r.not_sent.values())
         sent = sum(p.sent for r in self.robots.values() for p in r.ports.values())
         took = sum(c.from_ros for r in self.robots.values() for c in r.counts.values())
