@@ -2,6 +2,7 @@
 taking unopened tasks back to keep it."""
 from __future__ import annotations
 
+import itertools
 import time
 from pathlib import Path
 
@@ -9,7 +10,7 @@ import numpy as np
 import pytest
 
 from rce_fleet.lifelong import BatchScheduler, DistanceCache, GreedyScheduler, LifelongGrid, TaskPool
-from rce_fleet.lifelong.admission import FlowAdmission, JamDetector, packed
+from rce_fleet.lifelong.admission import FlowAdmission, JamCut, JamDetector, packed
 from rce_fleet.lifelong.runner import jam_detector
 
 
@@ -205,6 +206,7 @@ def test_on_a_map_of_aisles_a_jam_cuts_the_robots_holding_a_task():
     s = res.stats
     assert s["aisle_map"] and s["jam_at"] is not None, s["packed_shares"]
     assert s["jam_cut"] is not None and s["jam_cut"] <= int(runner.AISLE_JAM_CUT * n)
+    assert s["jam_bounds"] == [(s["jam_at"], s["jam_cut"])]     # the jam at the aisles' dead ends stays
     assert s["max_active"] == s["jam_cut"]
     assert (res.sim.assignment >= 0).sum() <= s["jam_cut"] + n // 10      # opened tasks are never taken back
     assert res.summary()["invalid_steps"] == 0
@@ -265,6 +267,58 @@ def test_under_the_strong_aisle_lanes_a_team_setting_out_is_no_jam_and_a_jam_sti
     assert seen(jam_detector(aisle_lanes=False), setting_out) == 5    # the plain mark, 3 x 0.055, cuts a flowing team
     assert seen(jam_detector(aisle_lanes=True), setting_out) is None
     assert seen(jam_detector(aisle_lanes=True), jam) == 6             # 0.28 and 0.3, both over 0.25
+
+
+# WAREHOUSE's 10,000 robots under the strong aisle lanes, the packed share per 25 steps of a 1,000-step run
+# that jammed (2026-11-29): flowing at 0.13, a jam growing from step 300, cut at step 474 to 7,000, clearing
+# by step 825 as the tasks opened before the cut ended
+WAREHOUSE_JAM = [0.067, 0.139, 0.181, 0.179, 0.164, 0.144, 0.133, 0.129, 0.131, 0.133, 0.129, 0.136, 0.174, 0.183,
+                 0.196, 0.225, 0.249, 0.279, 0.311, 0.31, 0.316, 0.325, 0.308, 0.295, 0.289, 0.279, 0.29, 0.281,
+                 0.28, 0.277, 0.265, 0.244, 0.198, 0.193, 0.177, 0.179, 0.175, 0.168, 0.173, 0.206]
+
+
+def test_a_jam_cut_on_a_map_of_aisles_is_lifted_as_the_jam_clears_and_cut_again_at_the_next():
+    team = 10_000
+    guard = JamCut(jam_detector(aisle_lanes=True), team, cut=0.7, clear=0.8, increase=0.02)
+    holding = team                                        # the robots holding a task fill the bound at once
+
+    clock = itertools.count()
+
+    def window(share: float) -> int | None:
+        nonlocal holding
+        for _ in range(25):
+            bound = guard.observe(next(clock), int(share * holding), holding)
+        holding = team if bound is None else bound
+        return bound
+    bounds = [window(share) for share in WAREHOUSE_JAM]
+    assert bounds[:18] == [None] * 18                     # one window over the mark (0.25) is no jam yet
+    assert bounds[18:32] == [7000] * 14                   # the second is: cut to 0.7 of the holders, and held
+    # while the share is over 0.8 of the mark (0.2), then two windows under it: cleared
+    assert bounds[32:34] == [7000, 7000]
+    assert bounds[34:39] == [7200, 7400, 7600, 7800, 8000]   # + 2 % of the team a window, under 0.2
+    assert bounds[39] == 8000                             # 0.206: near the mark, held
+    assert guard.changes[0] == (474, 7000) and guard.changes[1] == (874, 7200)
+    bounds = [window(0.15) for _ in range(12)]
+    assert bounds == [*range(8200, team, 200), None, None, None]     # to no bound at all
+    bounds = [window(share) for share in (0.3, 0.3, 0.3)]
+    assert bounds == [None, 7000, 7000]                   # a jam again: cut again, from the holders then
+    assert [b for _, b in guard.changes].count(7000) == 2
+    # a jam seen while the bound grows back cuts it from the robots holding a task then
+    for share in (0.1, 0.1, 0.1):
+        window(share)
+    assert guard.bound == 7200
+    assert [window(0.3), window(0.3)] == [7200, int(0.7 * 7200)]
+    with pytest.raises(ValueError, match="clear"):
+        JamCut(JamDetector(), team, clear=0.0)
+
+
+def test_a_bound_grows_back_only_while_the_robots_holding_a_task_fill_it():
+    guard = JamCut(JamDetector(window=1, least=0.2), 1000, increase=0.1)
+    for k, share in enumerate([0.05, 0.3, 0.3, 0.1, 0.1]):     # the mark: 0.2
+        guard.observe(k, int(share * 1000), 1000)
+    assert guard.bound == 700 and guard.changes == [(2, 700)]
+    assert guard.observe(5, 10, 500) == 700               # 500 of 700 hold a task: the bound does not hold them back
+    assert guard.observe(6, 70, 699) == 800               # full (within one): it grows
 
 
 def _two_rooms(door: bool):
@@ -350,7 +404,15 @@ def test_the_jam_note_advises_the_bound_off_maps_of_aisles_only():
     note = jam_note({**stats, "aisle_map": True})
     assert note.startswith("the team jammed from step 124") and "0.432" in note
     assert "on this map of aisles the run-time bound (--admission on) finished fewer" in note
-    assert "held a task from then on" not in note
-    note = jam_note({**stats, "aisle_map": True, "jam_cut": 7000})
-    assert "at most 7000 robots held a task from then on" in note and "finished fewer" in note
+    assert "held a task from step" not in note
+    note = jam_note({**stats, "aisle_map": True, "jam_bounds": [(124, 7000)]})
+    assert "at most 7000 robots held a task from step 124, cut from those holding one;" in note
+    assert "grew back" not in note and "finished fewer" in note
+    note = jam_note({**stats, "aisle_map": True,
+                     "jam_bounds": [(124, 7000), (200, 7200), (225, 7400), (300, 5180), (400, 5380)]})
+    assert ("from step 124, cut from those holding one; the bound grew back as the jam cleared, from step 200, "
+            "and was cut again once at another jam; at most 5380 robots held a task at the end") in note
+    note = jam_note({**stats, "aisle_map": True, "jam_bounds": [(124, 7000), (200, 9000), (225, None)]})
+    assert "grew back as the jam cleared, from step 200; no bound held from step 225" in note
+    assert "cut again" not in note
     assert jam_note({**stats, "jam_at": None}) is None

@@ -18,7 +18,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from .admission import FlowAdmission, JamDetector, packed
+from .admission import FlowAdmission, JamCut, JamDetector, packed
 from .budget import StepBudget
 from .distances import DistanceCache, cache_bytes_for
 from .flow import TrafficFlow
@@ -69,7 +69,7 @@ EPIBT_ACTIVE_FRAC = 0.43  # ... where EPIBT answers (350 of RANDOM-04's 819 free
 ACTIVE_DENSITY = 0.3  # ... in teams of this many robots per free cell or more
 AISLE_ACTIVE_FRAC = 0.2   # ... and on maps of aisles: at least AISLE_SHARE of the free cells in one-cell corridor lanes
 AISLE_JAM_CUT = 0.7       # on a map of aisles where no bound holds, once a jam is seen, at most this share of the
-                          # robots then holding a task hold one from then on (measured: docs/lifelong.md)
+                          # robots then holding a task hold one until it clears (JamCut; measured: docs/lifelong.md)
 AISLE_SHARE = 0.2
 AISLE_LANES_JAM_LEAST = 0.25  # under the strong aisle lanes a jam's packed share is at least this (their teams
                               # setting out peak at 0.10 - 0.19 and flow; a jam under weak lanes passed 0.28)
@@ -184,8 +184,9 @@ def run_lifelong(problem: LorrProblem, steps: int, plan_time_limit_ms: float = 1
     ``AISLE_ACTIVE_FRAC`` instead on a map of aisles (at least ``AISLE_SHARE`` of its free cells in
     one-cell corridor lanes, as a warehouse's shelves and a sortation centre's chutes make them), and
     below ``ACTIVE_DENSITY`` there, once the jam detector (below) sees a jam, ``AISLE_JAM_CUT`` of
-    the robots then holding a task (``stats["jam_cut"]``; not under whole plans, which bring every
-    robot to its goal; measured in docs/lifelong.md);
+    the robots then holding a task, grown back as the jam clears (:class:`~.admission.JamCut`;
+    ``stats["jam_cut"]`` the first cut's bound, ``stats["jam_bounds"]`` every (step, bound); not under
+    whole plans, which bring every robot to its goal; measured in docs/lifelong.md);
     admission: where no ``max_active`` bound holds, the bound is set at run time by the share of
     robots with a task that move and the share packed in (:class:`~.admission.FlowAdmission` with
     ``ADMISSION_JAM``, its least packed share at least ``ADMISSION_JAM_DENSITY`` times the robots per
@@ -215,7 +216,8 @@ def run_lifelong(problem: LorrProblem, steps: int, plan_time_limit_ms: float = 1
     progress: called after each step with (step, tasks finished, planner ms).
     Where no bound holds, a :class:`~.admission.JamDetector` watches the share of the robots with a
     task that are packed in; ``stats`` give its ``packed_shares`` (per 25 steps) and ``jam_at``,
-    the step a jam was seen (None: none); on a map of aisles the bound is then cut (``max_active``).
+    the step a jam was first seen (None: none); on a map of aisles the bound is then cut, and lifted
+    as the jam clears (``max_active`` is the bound at the end).
     Compilation happens before step 0 (:func:`~.kernels.warm_up`). Raises ValueError for a
     bad scheduler or model name, MemoryError when the maps of the team do not fit.
     """
@@ -318,8 +320,8 @@ def run_lifelong(problem: LorrProblem, steps: int, plan_time_limit_ms: float = 1
             ctl_kw.update(ADMISSION_SMALL, start=int(ADMISSION_SMALL_START * problem.team_size))
         control = FlowAdmission(problem.team_size, **{**ctl_kw, **(admission_kw or {})})
     detector = jam_detector(aisle_lanes) if control is None and sched.max_active is None else None
-    cut_on_jam = detector is not None and aisle_map and max_active is None and not replan
-    jam_cut = None
+    guard = (JamCut(detector, problem.team_size, cut=AISLE_JAM_CUT)
+             if detector is not None and aisle_map and max_active is None and not replan else None)
     watch = detector is not None or (control is not None and control.jam_factor is not None)
     occupied = np.zeros(grid.n_cells + 1, dtype=bool) if watch else None
     for k in range(steps):
@@ -353,8 +355,10 @@ def run_lifelong(problem: LorrProblem, steps: int, plan_time_limit_ms: float = 1
             occupied[:] = False
             occupied[sim.pos] = True
             n_packed = int(packed(grid.nbr, sim.pos[held], occupied).sum())
-        if detector is not None and detector.observe(k, n_packed, int(held.sum())) and cut_on_jam and jam_cut is None:
-            jam_cut = sched.max_active = max(1, int(AISLE_JAM_CUT * held.sum()))
+        if guard is not None:
+            sched.max_active = guard.observe(k, n_packed, int(held.sum()))
+        elif detector is not None:
+            detector.observe(k, n_packed, int(held.sum()))
         if control is not None:
             sched.max_active = control.observe(k, int((held & (sim.pos != p_plan)).sum()), int(held.sum()),
                                                n_packed)
@@ -383,7 +387,9 @@ def run_lifelong(problem: LorrProblem, steps: int, plan_time_limit_ms: float = 1
                       if chooser is not None else None),
              "admission_on": control is not None,
              "admission": control.decisions if control is not None else None,
-             "jam_at": detector.jam_at if detector is not None else None, "jam_cut": jam_cut,
+             "jam_at": detector.jam_at if detector is not None else None,
+             "jam_cut": guard.changes[0][1] if guard is not None and guard.changes else None,
+             "jam_bounds": guard.changes if guard is not None else None,
              "packed_shares": detector.shares if detector is not None else None,
              "distance_maps": cache.computed, "maps_evicted": cache.evicted, "cache_rows": cache.capacity,
              "cache_rows_used": len(cache),
