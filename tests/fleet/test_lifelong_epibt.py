@@ -269,6 +269,26 @@ def test_epibt_answers_when_the_lookahead_has_no_time_for_its_rollouts():
     assert plain._epibt is None
 
 
+def test_a_lookahead_the_clock_cuts_short_answers_epibts_step_not_the_plain_pibt_step():
+    # the rollouts get half the time EPIBT's LNS leaves before the deadline (here about 1.5 ms of 30): two
+    # rollouts of 20 steps do not fit there, so EPIBT answers alone, on to the hard mark; and with a bias
+    # beyond any rollout's lead, whatever the clock lets the rollouts do, EPIBT's first step answers. (The
+    # plain PIBT step answered before, whenever the rollouts ran out of time: 10,000 robots on WAREHOUSE
+    # took it in most steps, after planning EPIBT for 0.6 s.)
+    from rce_fleet.lifelong import PIBTPlanner
+    g, pos, head, goals = _packed(7, 12, 12, 100)
+    planner = PIBTPlanner(g, DistanceCache(g, max_bytes=2 ** 24), seed=1, epibt=True, lns_frac=0.9,
+                          window_bias=1e6)
+    for _ in range(15):
+        now = time.perf_counter()
+        act = planner.plan(pos, head, goals, now + 0.03, now + 0.5)
+        e = planner._epibt
+        assert (act == e.ops[e.chains[0].desire, 0]).all()
+        pos, head, errors = check_actions(g, pos, head, act)
+        assert errors == []
+    assert planner._epibt.stats["epibt_steps"] == 15 and planner.stats.get("window_late", 0) == 0
+
+
 def test_window_bias_makes_the_lookahead_take_epibts_first_step():
     # a bias beyond any rollout's lead: EPIBT's first step in every step whose rollout from it was
     # scored (nearly all; on a loaded machine the rollouts of a step may end before it); one below

@@ -222,10 +222,12 @@ class PIBTPlanner:
         remains, rollouts of ``window`` PIBT steps from other tie-breaks of the first step;
         keep the first step of the rollout that brings the robots closest (heading-aware, a
         reached goal counts 0). Skipped when two rollouts cannot fit before half the time left
-        to ``deadline``: then the plain step, or with ``window`` the windowed plan alone
-        (:meth:`_windowed`; a team of thousands, where one PIBT step takes milliseconds). With
-        ``window``, the first step of the windowed plan (refined by LNS for ``lns_frac`` of the
-        time left) is the second rollout's."""
+        to ``deadline`` (with ``window``, half the time the windowed plan leaves): then the plain
+        step, or with ``window`` the windowed plan alone (:meth:`_windowed`, its LNS on to ``hard``;
+        a team of thousands, where one PIBT step takes milliseconds). With ``window``, the first
+        step of the windowed plan (refined by LNS for ``lns_frac`` of the time left) is the second
+        rollout's, and it answers when the clock cuts its rollout short: a rollout that was never
+        scored never outbids it."""
         from .simulator import _apply
         n = pos.shape[0]
         table = self.cache.table
@@ -238,7 +240,10 @@ class PIBTPlanner:
         plain = (act.copy(), self.claim.copy(), self.claim_age.copy())
         t_step = time.perf_counter() - t_a
         stop = t_a + self.sample_frac * max(0.0, deadline - t_a)
-        if 2 * self.window * t_step * 1.5 > stop - time.perf_counter():   # no time for two rollouts
+        room = stop - time.perf_counter()
+        if window:                           # the windowed plan first takes lns_frac of the time to the deadline
+            room = self.sample_frac * (1.0 - self.lns_frac) * max(0.0, deadline - time.perf_counter())
+        if 2 * self.window * t_step * 1.5 > room:   # no time for two rollouts
             if window:
                 return self._windowed(pos, head, goals, pslot, order, rnd, deadline, hard, act=plain[0])
             return plain[0]
@@ -254,6 +259,7 @@ class PIBTPlanner:
         n_goal = int(has.sum())
         best, best_state, best_score = plain[0], plain[1:], -np.inf
         k = chosen = 0
+        window_scored = False
         for k in range(self.samples):
             if time.perf_counter() > stop:
                 break
@@ -297,10 +303,13 @@ class PIBTPlanner:
             score = float((d0 - d1)[has].sum())
             if k == 1 and wfirst is not None:
                 score += self.window_bias * n_goal
+                window_scored = True
             if score > best_score:
                 best, best_state, best_score = first[0], first[1:], score
                 chosen = k
         self.stats["samples"] += k
+        if wfirst is not None and not window_scored:    # its rollout never scored: the windowed plan answers
+            best, best_state, chosen = wfirst, (np.full(n, -1, np.int64), np.zeros(n, np.int64)), 1
         if wfirst is not None and chosen == 1:
             self.stats["window_chosen"] = self.stats.get("window_chosen", 0) + 1
         self.claim, self.claim_age = best_state[0].copy(), best_state[1].copy()
