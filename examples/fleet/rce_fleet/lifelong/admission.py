@@ -138,7 +138,7 @@ def _cuts_said(changes: list) -> str:
     if cuts:
         said += f", and was cut again {({1: 'once', 2: 'twice'}).get(cuts, f'{cuts} times')} at another jam"
     if len(changes) > 1:
-        said += ("; no bound held from step " f"{last[0]}" if last[1] is None
+        said += (f"; no bound held from step {last[0]}" if last[1] is None
                  else f"; at most {last[1]} robots held a task at the end")
     return said
 
