@@ -247,10 +247,11 @@ class PIBTPlanner:
             if window:
                 return self._windowed(pos, head, goals, pslot, order, rnd, deadline, hard, act=plain[0])
             return plain[0]
-        wfirst = None
+        wplan = None                         # the windowed plan's first step, as plain: (actions, claim, claim_age)
         if window:
             now = time.perf_counter()
             wfirst = self._window_plan(pos, head, goals, pslot, order, now + self.lns_frac * max(0.0, deadline - now))
+            wplan = (wfirst, np.full(n, -1, np.int64), np.zeros(n, np.int64))     # it holds no turn cell
             stop = time.perf_counter() + self.sample_frac * max(0.0, deadline - time.perf_counter())
         d0 = np.empty(n)
         d1 = np.empty(n)
@@ -271,10 +272,10 @@ class PIBTPlanner:
                     self.claim, self.claim_age = plain[1].copy(), plain[2].copy()
                     act[:] = plain[0]
                 else:
-                    if step == 0 and k == 1 and wfirst is not None:     # the windowed plan's first step
-                        self.claim, self.claim_age = np.full(n, -1, np.int64), np.zeros(n, np.int64)
-                        act[:] = wfirst
-                        first = (wfirst.copy(), self.claim.copy(), self.claim_age.copy())
+                    if step == 0 and k == 1 and wplan is not None:     # the windowed plan's first step
+                        self.claim, self.claim_age = wplan[1].copy(), wplan[2].copy()
+                        act[:] = wplan[0]
+                        first = wplan
                         p, h = _apply(self.grid, p, h, act, MAPF_T)
                         done = (g >= 0) & (p == g)
                         g[done] = -1
@@ -301,16 +302,16 @@ class PIBTPlanner:
                 break
             heading_costs(nbr, table, sl, p, h, d1)
             score = float((d0 - d1)[has].sum())
-            if k == 1 and wfirst is not None:
+            if k == 1 and wplan is not None:
                 score += self.window_bias * n_goal
                 window_scored = True
             if score > best_score:
                 best, best_state, best_score = first[0], first[1:], score
                 chosen = k
         self.stats["samples"] += k
-        if wfirst is not None and not window_scored:    # its rollout never scored: the windowed plan answers
-            best, best_state, chosen = wfirst, (np.full(n, -1, np.int64), np.zeros(n, np.int64)), 1
-        if wfirst is not None and chosen == 1:
+        if wplan is not None and not window_scored:     # its rollout never scored: the windowed plan answers
+            best, best_state, chosen = wplan[0], wplan[1:], 1
+        if wplan is not None and chosen == 1:
             self.stats["window_chosen"] = self.stats.get("window_chosen", 0) + 1
         self.claim, self.claim_age = best_state[0].copy(), best_state[1].copy()
         return best
