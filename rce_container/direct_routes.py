@@ -247,12 +247,16 @@ class DirectRoutes:
                                                                    if served_by[sub].iid in reached)
         plane = self.env.plane
         behind = {addr for addr, dst, src in targets if plane.carried(addr, dst)}
+        reply = None
         try:
-            await session.peer.ask(to_node.DirectPublish(
+            reply = await session.peer.ask(to_node.DirectPublish(
                 handle=handle, version=version, local=local, grants=grants, hold=bool(behind),
                 targets=[(links[addr].lid, dst, src) for addr, dst, src in targets]), CALL_TIMEOUT)
         finally:        # also when the call timed out: the node may have taken the route all the same
-            if behind:  # what went by the bus first reaches the far ends first (rce.node.links)
+            if behind or not isinstance(reply, dict) or reply.get("held"):
+                # the node's bus messages sent before its answer came ahead of it on its bus link, and
+                # are on the far ends' links now: what went by the bus first reaches them first
+                behind |= {addr for addr, dst, src in targets if plane.carried(addr, dst)}
                 self.tasks.spawn(self._go(session, handle, version, behind), name=f"direct go {handle}")
         # frames of older versions have all arrived
         session.routes[handle] = {version: session.routes[handle][version]}

@@ -16,7 +16,9 @@ follows its orders, which come as requests on the node's bus link:
   them still connects, or is slow); the route's messages wait here, in order (at most
   :data:`MAX_HELD`, the oldest dropped and counted), until ``direct_go {handle, version}`` says
   those have been handed on there (:meth:`rce.transport.dataplane.DataPlane.flush`), or
-  :data:`ROUTE_HOLD` s pass.
+  :data:`ROUTE_HOLD` s pass. The node holds also without ``hold`` when the publisher has sent
+  by the bus alone before: those messages may still be on the bus link, where the environment
+  reads them only behind the answer ``{held}``, which tells it to send ``direct_go``.
 - ``direct_subscribe {link, iid, peers, handles, gen, size, grants, at?}``: claim interface ``iid`` on
   ``link`` as one of the ``size`` members of claim generation ``gen`` (:mod:`rce.transport.dataplane`,
   "Direct links"): once all have claimed, its messages from ``peers`` arrive here and go to
@@ -111,6 +113,7 @@ class DirectLinks:
         self.node = node
         self.links: dict[int, FramedLink] = {}
         self.routes: dict[int, _Route] = {}                  # publisher handle -> its route
+        self._by_bus: set[int] = set()                       # publisher handles that sent by the bus alone
         # (link, interface id) -> (its peers, the subscriber handles it feeds)
         self.claims: dict[tuple[int, int], tuple[frozenset[int], tuple[int, ...]]] = {}
         self.counts: dict[int, list[int]] = {}               # interface id -> [messages, bytes, dropped]
@@ -222,7 +225,8 @@ class DirectLinks:
 
     @DIRECT_OPS.op("direct_publish", args=ops.DirectPublish)
     async def op_direct_publish(self, args: ops.DirectPublish) -> dict:
-        """``{handle, version, targets, local, grants}`` (module doc)."""
+        """``{handle, version, targets, local, grants, hold}`` (module doc) -> ``{held}``: whether
+        the route holds its messages until ``direct_go``."""
         handle = args.handle
         self._grant(args.grants)
         targets = [(self._link(lid), dst, src, self.counts.setdefault(src, [0, 0, 0]))
@@ -230,11 +234,14 @@ class DirectLinks:
         old = self.routes.pop(handle, None)
         if old is not None:
             self._go(old)                     # the older route's order is kept: its messages go first
-        if targets:
-            r = self.routes[handle] = _Route(args.version, targets, args.local, args.hold)
-            if r.held is not None:
-                r.timer = asyncio.get_running_loop().call_later(ROUTE_HOLD, self._route_expire, handle, r)
-        return {}
+        if not targets:
+            return {"held": False}
+        # what this publisher sent by the bus may not have reached the environment's links yet
+        # (the environment reads it behind this answer): hold whenever there was any
+        r = self.routes[handle] = _Route(args.version, targets, args.local, args.hold or handle in self._by_bus)
+        if r.held is not None:
+            r.timer = asyncio.get_running_loop().call_later(ROUTE_HOLD, self._route_expire, handle, r)
+        return {"held": r.held is not None}
 
     def _route_expire(self, handle: int, r: _Route) -> None:
         if self.routes.get(handle) is r and r.held is not None:
@@ -347,6 +354,7 @@ class DirectLinks:
         subscribers), or -1 (no bus frame needed)."""
         r = self.routes.get(handle)
         if r is None:
+            self._by_bus.add(handle)
             return 0
         if r.held is None:
             self._send(r, (payload,))

@@ -134,6 +134,33 @@ async def test_a_held_route_sends_once_the_environment_says_go(node_with_a_link)
     assert [bytes(x.payload) for x in f] == [string("r3")]
 
 
+async def test_a_publisher_that_sent_by_the_bus_holds_its_first_route_without_being_told(node_with_a_link):
+    """The environment reads a node's bus messages only behind the node's answer to
+    ``direct_publish``, so it cannot know that some are still on their way: a publisher that has
+    sent by the bus holds its new route even without ``hold``, answers ``{held: true}``, and sends
+    once ``direct_go`` comes. A publisher that never sent by the bus starts at once."""
+    b, server, node, direct, far, got = node_with_a_link
+    (ra, wa), (rb, wb) = pipe()
+    direct.links[2] = FramedLink(ra, wa, name="direct link 2", on_frame=lambda f: None).start()
+    fresh = await node.publisher("/fresh", "std_msgs/String")
+    answer = await direct.op_direct_publish(to_node.DirectPublish(handle=fresh.handle, version=6,
+                                                                  targets=[(2, 41, 21)]))
+    assert answer == {"held": False}
+    pub = await node.publisher("/resp", "std_msgs/String")
+    assert pub.publish_nowait({"data": "by the bus"})
+    answer = await direct.op_direct_publish(to_node.DirectPublish(handle=pub.handle, version=7,
+                                                                  targets=[(2, 40, 20)]))
+    assert answer == {"held": True}
+    assert pub.publish_nowait({"data": "r0"}) and fresh.publish_nowait({"data": "f0"})
+    decoder = framing.FrameDecoder()
+    (f,) = await frames_on(rb, decoder, 1)
+    assert (f.dst, bytes(f.payload)) == (41, string("f0")), "the fresh route sends at once, the other holds"
+    (session,) = server.sessions
+    session.peer.notify("direct_go", handle=pub.handle, version=7)
+    (f,) = await frames_on(rb, decoder, 1)
+    assert (f.dst, bytes(f.payload)) == (40, string("r0"))
+
+
 async def test_a_held_route_without_go_sends_after_route_hold(node_with_a_link, monkeypatch):
     """The environment's ``direct_go`` never comes (its call timed out, it went): the route's held
     messages go after ROUTE_HOLD, in order, and the node counts it."""
