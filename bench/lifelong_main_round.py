@@ -202,7 +202,8 @@ def table(todo: list[tuple[str, Path, int]], got: dict[tuple[str, str], dict],
     default entry measured here (their timeouts in brackets), rce's planner ms, timeouts, the
     steadiness of its rate (:func:`steadiness`), date and commit. An instance with no rce result
     in ``got`` keeps its row of ``kept`` (instance -> row, as :func:`recorded_rows` reads them) as
-    it is, or has none; rows go in ``MAIN_ROUND``'s order."""
+    it is, or has none; a peer with no result in ``got`` keeps its count from that row, at the same
+    steps (a run of rce alone into a fresh ``--results``); rows go in ``MAIN_ROUND``'s order."""
     head = ("| instance | robots | steps | rce | best known | rce / best | winner | rce / winner | default | "
             "rce / default | rce planner ms p50 / p99 / max | rce timeouts | rce 500-step windows, worst / best | "
             "date | commit |")
@@ -218,9 +219,12 @@ def table(todo: list[tuple[str, Path, int]], got: dict[tuple[str, str], dict],
         cells = [name, f"{r.get('robots', _team(path)):,}",
                  f"{steps:,}" if scale == 1 else f"{steps:,} of {official:,}",
                  _count(r), f"{best:,} ({team})", _ratio(mine, best * scale) + ("" if scale == 1 else " pro rata")]
-        for system in ("winner", "default"):
+        for system, col in (("winner", 6), ("default", 8)):
             p = got.get((name, system))
-            cells += [_count(p), _ratio(mine, p.get("tasks_finished") if p else None)]
+            if p is None and (cell := _recorded_cell(rows.get(name), col, cells[2])) is not None:
+                cells += [cell, _ratio(mine, int(cell.split(" ")[0].replace(",", "")))]
+            else:
+                cells += [_count(p), _ratio(mine, p.get("tasks_finished") if p else None)]
         ms = (f"{r['plan_ms_p50']:.0f} / {r['plan_ms_p99']:.0f} / {r['plan_ms_max']:.0f}"
               if "plan_ms_p50" in r else "-")
         cells += [ms, str(r.get("timeouts", "-")), steadiness(r), r.get("date", "-"),
@@ -228,6 +232,15 @@ def table(todo: list[tuple[str, Path, int]], got: dict[tuple[str, str], dict],
         rows[name] = "| " + " | ".join(cells) + " |"
     return "\n".join([head, "|" + "---|" * head.count(" | ") + "---|",
                       *(rows[name] for name, _ in MAIN_ROUND if name in rows)])
+
+
+def _recorded_cell(row: str | None, col: int, steps: str) -> str | None:
+    """Cell ``col`` of the recorded ``row`` when it holds a peer's count at ``steps`` (the steps
+    cell as written), else None."""
+    cells = [c.strip() for c in row.split("|")[1:-1]] if row else []
+    if len(cells) <= col or cells[2] != steps or not cells[col][:1].isdigit():
+        return None
+    return cells[col]
 
 
 def _team(path: Path) -> int:

@@ -89,11 +89,13 @@ def test_main_round_keeps_each_result_resumes_and_writes_the_table(tmp_path):
 
 def test_rows_measured_elsewhere_stay_in_the_table_when_one_instance_is_run(tmp_path):
     """A run into a fresh ``--results`` (another machine, the record's results not there) replaces
-    the rows it measured and keeps every other row of the table as it was, in the round's order."""
+    the rows it measured and keeps every other row of the table as it was, in the round's order, and
+    in the row it measured, the peers' counts on record."""
     archive, doc = _archive(tmp_path / "archive"), tmp_path / "record.md"
     city = "| CITY-01 | 1,500 | 3,000 | 8,382 | 8,445 (Kitty_Knight) | 0.99 | 8,000 | 1.05 | - | 2026-11-28 | c89b4c1 |"
     second = "| RANDOM-02 | 200 | 600 | 1,083 | 1,260 (Kitty_Knight) | 0.86 | 1,196 | 0.91 | - | 2026-11-28 | dac76bf |"
-    stale = "| RANDOM-01 | 100 | 600 | 1 | 696 (RAPID) | 0.00 | - | - | - | 2026-01-01 | 0000000 |"
+    stale = ("| RANDOM-01 | 100 | 3 of 600 | 1 | 696 (RAPID) | 0.00 pro rata | 5 | 0.20 | 1,000 (2) | 0.00 | - | 0 "
+             "| - | 2026-01-01 | 0000000 |")
     doc.write_text(f"# record\n\n{BEGIN}\n| instance | ... |\n|---|\n{city}\n{stale}\n{second}\n{END}\n")
     r = _bench("--archive", archive, "--only", "RANDOM-01", "--steps", 3, "--results", tmp_path / "fresh",
                "--plan-time-limit", 500, "--doc", doc)
@@ -101,6 +103,10 @@ def test_rows_measured_elsewhere_stay_in_the_table_when_one_instance_is_run(tmp_
     rows = [ln for ln in doc.read_text().splitlines() if ln.startswith("| ") and not ln.startswith("| instance")]
     assert [ln.split(" | ")[0] for ln in rows] == ["| RANDOM-01", "| RANDOM-02", "| CITY-01"], rows
     assert stale not in rows and "| 3 of 600 |" in rows[0] and rows[1:] == [second, city]
+    cells = [c.strip() for c in rows[0].split("|")[1:-1]]
+    mine = int(cells[3].replace(",", ""))
+    # the peers' counts on record stay beside rce's new count, their ratios to it recomputed
+    assert cells[6:10] == ["5", f"{mine / 5:.2f}", "1,000 (2)", f"{mine / 1000:.2f}"], cells
 
 
 def test_the_rate_is_counted_in_whole_windows_and_the_worst_is_named():
