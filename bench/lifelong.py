@@ -304,6 +304,8 @@ def _parser() -> argparse.ArgumentParser:
     mr.add_argument("--doc", type=Path, metavar="MD",
                     help="the markdown file whose main-round table is replaced (default docs/results/lifelong.md, "
                          "written only when every run is at its full length)")
+    mr.add_argument("--peers-only", action="store_true",
+                    help="run only --winner and --peer; rce's count is its row's in the --doc table")
     mr.add_argument("--winner", type=Path, metavar="PATH",
                     help="the 2024 winner's lifelong binary, built from its source (docs/lifelong.md)")
     mr.add_argument("--winner-args", type=shlex.split, default=WINNER_ARGS, metavar="ARGS",
@@ -374,6 +376,11 @@ def _main_round(args, peer: Path | None) -> int:
         runners["default"] = _peer_runner(peer, (), None, args.plan_time_limit, "default entry")
     rce_run = runners["rce"]
     runners["rce"] = lambda path, steps: {**rce_run(path, steps), "official_steps": official[path.stem]}
+    if args.peers_only:
+        if len(runners) == 1:
+            print("--peers-only: give --winner or --peer", file=sys.stderr)
+            return 2
+        del runners["rce"]
     head = git_head()
     got = mr.run_round(todo, runners, args.results, args.plan_time_limit,
                        {"date": time.strftime("%Y-%m-%d"), "commit": head},

@@ -203,7 +203,9 @@ def table(todo: list[tuple[str, Path, int]], got: dict[tuple[str, str], dict],
     steadiness of its rate (:func:`steadiness`), date and commit. An instance with no rce result
     in ``got`` keeps its row of ``kept`` (instance -> row, as :func:`recorded_rows` reads them) as
     it is, or has none; a peer with no result in ``got`` keeps its count from that row, at the same
-    steps (a run of rce alone into a fresh ``--results``); rows go in ``MAIN_ROUND``'s order."""
+    steps (a run of rce alone into a fresh ``--results``), and a kept row takes the peers' new
+    counts at its steps (a run of the peers alone: :func:`_with_peers`); rows go in ``MAIN_ROUND``'s
+    order."""
     head = ("| instance | robots | steps | rce | best known | rce / best | winner | rce / winner | default | "
             "rce / default | rce planner ms p50 / p99 / max | rce timeouts | rce 500-step windows, worst / best | "
             "date | commit |")
@@ -211,6 +213,8 @@ def table(todo: list[tuple[str, Path, int]], got: dict[tuple[str, str], dict],
     for name, path, steps in todo:
         r = got.get((name, "rce"))
         if r is None:
+            if name in rows:
+                rows[name] = _with_peers(rows[name], name, steps, got)
             continue
         best, team = BEST_KNOWN[name]
         official = r.get("official_steps", steps)
@@ -232,6 +236,19 @@ def table(todo: list[tuple[str, Path, int]], got: dict[tuple[str, str], dict],
         rows[name] = "| " + " | ".join(cells) + " |"
     return "\n".join([head, "|" + "---|" * head.count(" | ") + "---|",
                       *(rows[name] for name, _ in MAIN_ROUND if name in rows)])
+
+
+def _with_peers(row: str, name: str, steps: int, got: dict[tuple[str, str], dict]) -> str:
+    """The recorded ``row`` of ``name`` with the counts of the peers in ``got`` in their cells, and
+    their ratios to rce's count on record, when the row is at ``steps``; else ``row`` as it is."""
+    cells = [c.strip() for c in row.split("|")[1:-1]]
+    if len(cells) < 10 or cells[2].split(" of ")[0] != f"{steps:,}" or not cells[3][:1].isdigit():
+        return row
+    mine = int(cells[3].split(" ")[0].replace(",", ""))
+    for system, col in (("winner", 6), ("default", 8)):
+        if (p := got.get((name, system))) is not None:
+            cells[col:col + 2] = [_count(p), _ratio(mine, p.get("tasks_finished"))]
+    return "| " + " | ".join(cells) + " |"
 
 
 def _recorded_cell(row: str | None, col: int, steps: str) -> str | None:

@@ -109,6 +109,34 @@ def test_rows_measured_elsewhere_stay_in_the_table_when_one_instance_is_run(tmp_
     assert cells[6:10] == ["5", f"{mine / 5:.2f}", "1,000 (2)", f"{mine / 1000:.2f}"], cells
 
 
+def test_a_run_of_the_peers_alone_fills_their_cells_in_rces_row_on_record(tmp_path):
+    """``--peers-only``: the winner's code runs (a stand-in binary here, which writes the start-kit's
+    counts), rce does not; its row on record keeps rce's count and takes the winner's, with their
+    ratio. The other rows are left as they were."""
+    archive, doc = _archive(tmp_path / "archive"), tmp_path / "record.md"
+    entry = tmp_path / "bin" / "lifelong"
+    entry.parent.mkdir()
+    entry.write_text(f"""#!{sys.executable}
+import json, sys
+argv = sys.argv[1:]
+json.dump({{"numTaskFinished": 40, "numEntryTimeouts": 0, "numPlannerErrors": 0, "numScheduleErrors": 0}},
+          open(argv[argv.index("-o") + 1], "w"))
+""")
+    entry.chmod(0o755)
+    first = ("| RANDOM-01 | 100 | 3 of 600 | 30 | 696 (RAPID) | 8.62 pro rata | not run | - | not run | - | 1 / 1 / 1 "
+             "| 0 | - | 2026-11-28 | c89b4c1 |")
+    second = "| RANDOM-02 | 200 | 600 | 1,083 | 1,260 (Kitty_Knight) | 0.86 | not run | - | 2026-11-28 | dac76bf |"
+    doc.write_text(f"# record\n\n{BEGIN}\n| instance | ... |\n|---|\n{first}\n{second}\n{END}\n")
+    r = _bench("--archive", archive, "--only", "RANDOM-01", "--steps", 3, "--results", tmp_path / "res",
+               "--peers-only", "--winner", entry, "--plan-time-limit", 500, "--doc", doc)
+    assert r.returncode == 0, r.stderr[-2000:]
+    assert [p.name for p in (tmp_path / "res").glob("*.json")] == ["RANDOM-01.winner.3.json"]
+    rows = [ln for ln in doc.read_text().splitlines() if ln.startswith("| R")]
+    assert rows == [first.replace("| not run | - | not run |", "| 40 | 0.75 | not run |"), second]
+    r = _bench("--archive", archive, "--only", "RANDOM-01", "--steps", 3, "--peers-only", "--doc", doc)
+    assert r.returncode == 2 and "--peers-only: give --winner or --peer" in r.stderr
+
+
 def test_the_rate_is_counted_in_whole_windows_and_the_worst_is_named():
     curve = [k // 2 for k in range(1, 1201)]           # a task every second step, then none from step 1,000
     curve[1000:] = [curve[999]] * 200
