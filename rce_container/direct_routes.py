@@ -21,10 +21,11 @@ Rules, recomputed whenever the bus graph, an interface or a connection changes:
   change of members starts a new set, and until it is complete the bus carries them.
 - **Order.** A node's new route holds its messages until what it sent by the bus before has
   been handed on at the far ends (:meth:`rce.transport.dataplane.DataPlane.flush`), when the
-  environment's links there carried any. When a claim set completes, messages the peers sent
-  through this environment just before may still be on their way; the nodes hold what comes
-  directly until this environment has passed the far plane's switch marker on to them
-  (:meth:`DirectRoutes.switch_arrived`).
+  environment's links there carried any, or the node had published by the bus (it answers
+  ``held``: those may still be on its bus link, and this environment reads them before the
+  answer). When a claim set completes, messages the peers sent through this environment just
+  before may still be on their way; the nodes hold what comes directly until this environment
+  has passed the far plane's switch marker on to them (:meth:`DirectRoutes.switch_arrived`).
 - A ``SubscriberInterface`` with a peer of the other ROS (ROS 1 and ROS 2 ends,
   :mod:`rce.messages.convert`) is served by the bus: it converts what it sends there.
 - Services, and nodes that do not take direct links (ROS 1 nodes' relay, older runtimes), go
