@@ -223,10 +223,11 @@ def table(todo: list[tuple[str, Path, int]], got: dict[tuple[str, str], dict],
         cells = [name, f"{r.get('robots', _team(path)):,}",
                  f"{steps:,}" if scale == 1 else f"{steps:,} of {official:,}",
                  _count(r), f"{best:,} ({team})", _ratio(mine, best * scale) + ("" if scale == 1 else " pro rata")]
+        kept_cells = _at_steps(rows.get(name), steps)
         for system, col in (("winner", 6), ("default", 8)):
             p = got.get((name, system))
-            if p is None and (cell := _recorded_cell(rows.get(name), col, cells[2])) is not None:
-                cells += [cell, _ratio(mine, int(cell.split(" ")[0].replace(",", "")))]
+            if p is None and kept_cells and (theirs := _number(kept_cells[col])) is not None:
+                cells += [kept_cells[col], _ratio(mine, theirs)]
             else:
                 cells += [_count(p), _ratio(mine, p.get("tasks_finished") if p else None)]
         ms = (f"{r['plan_ms_p50']:.0f} / {r['plan_ms_p99']:.0f} / {r['plan_ms_max']:.0f}"
@@ -241,23 +242,27 @@ def table(todo: list[tuple[str, Path, int]], got: dict[tuple[str, str], dict],
 def _with_peers(row: str, name: str, steps: int, got: dict[tuple[str, str], dict]) -> str:
     """The recorded ``row`` of ``name`` with the counts of the peers in ``got`` in their cells, and
     their ratios to rce's count on record, when the row is at ``steps``; else ``row`` as it is."""
-    cells = [c.strip() for c in row.split("|")[1:-1]]
-    if len(cells) < 10 or cells[2].split(" of ")[0] != f"{steps:,}" or not cells[3][:1].isdigit():
+    cells = _at_steps(row, steps)
+    mine = _number(cells[3]) if cells else None
+    if mine is None:
         return row
-    mine = int(cells[3].split(" ")[0].replace(",", ""))
     for system, col in (("winner", 6), ("default", 8)):
         if (p := got.get((name, system))) is not None:
             cells[col:col + 2] = [_count(p), _ratio(mine, p.get("tasks_finished"))]
     return "| " + " | ".join(cells) + " |"
 
 
-def _recorded_cell(row: str | None, col: int, steps: str) -> str | None:
-    """Cell ``col`` of the recorded ``row`` when it holds a peer's count at ``steps`` (the steps
-    cell as written), else None."""
+def _at_steps(row: str | None, steps: int) -> list[str] | None:
+    """The cells of a recorded table ``row`` when it is a full row at ``steps`` (its steps cell
+    ``N`` or ``N of M``), else None."""
     cells = [c.strip() for c in row.split("|")[1:-1]] if row else []
-    if len(cells) <= col or cells[2] != steps or not cells[col][:1].isdigit():
-        return None
-    return cells[col]
+    return cells if len(cells) >= 10 and cells[2].split(" of ")[0] == f"{steps:,}" else None
+
+
+def _number(cell: str) -> int | None:
+    """The count a table cell starts with (``"1,234 (5)"`` -> 1234), or None (``not run``, ``-``)."""
+    head = cell.split(" ")[0].replace(",", "")
+    return int(head) if head.isdigit() else None
 
 
 def _team(path: Path) -> int:

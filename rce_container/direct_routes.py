@@ -254,7 +254,7 @@ class DirectRoutes:
                 handle=handle, version=version, local=local, grants=grants, hold=bool(behind),
                 targets=[(links[addr].lid, dst, src) for addr, dst, src in targets]), CALL_TIMEOUT)
         finally:        # also when the call timed out: the node may have taken the route all the same
-            if behind or not isinstance(reply, dict) or reply.get("held"):
+            if reply is None or reply.get("held"):     # with hold=bool(behind), a node holds when behind
                 # the node's bus messages sent before its answer came ahead of it on its bus link, and
                 # are on the far ends' links now: what went by the bus first reaches them first
                 behind |= {addr for addr, dst, src in targets if plane.carried(addr, dst)}

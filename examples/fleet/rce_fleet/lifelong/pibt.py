@@ -240,9 +240,10 @@ class PIBTPlanner:
         plain = (act.copy(), self.claim.copy(), self.claim_age.copy())
         t_step = time.perf_counter() - t_a
         stop = t_a + self.sample_frac * max(0.0, deadline - t_a)
-        room = stop - time.perf_counter()
         if window:                           # the windowed plan first takes lns_frac of the time to the deadline
             room = self.sample_frac * (1.0 - self.lns_frac) * max(0.0, deadline - time.perf_counter())
+        else:
+            room = stop - time.perf_counter()
         if 2 * self.window * t_step * 1.5 > room:   # no time for two rollouts
             if window:
                 return self._windowed(pos, head, goals, pslot, order, rnd, deadline, hard, act=plain[0])
