@@ -31,6 +31,13 @@ HELDOUT = {
     "shelves-72-48-b2x6": ("shelves", {"rows": 48, "cols": 72, "bh": 2, "bw": 6, "aisle": 1, "margin": 4}, 15),
     "caves-64-64": ("caves", {"size": 64, "fill": 0.45}, 17),
 }
+# the same families at sizes that hold teams over 1,000 at 0.1 robots per free cell, where the planner's
+# thresholds choose between its step planners (19,408 - 27,807 free cells)
+HELDOUT_LARGE = {
+    "shelves-240-160-b2x8": ("shelves", {"rows": 160, "cols": 240, "bh": 2, "bw": 8, "aisle": 1, "margin": 8}, 21),
+    "caves-200-200": ("caves", {"size": 200, "fill": 0.45}, 23),
+    "rooms-180-180-r11-d2": ("rooms", {"size": 180, "room": 11, "door": 2}, 25),
+}
 
 
 def _maze(rnd: random.Random, size: int, w: int, loops: int) -> list[list[bool]]:
@@ -142,9 +149,9 @@ def _largest(free: list[list[bool]]) -> list[list[bool]]:
 
 
 def make_map(name: str) -> list[list[bool]]:
-    """The held-out map ``name`` (a key of :data:`HELDOUT`) as rows of free (True) cells, its
-    largest connected part only. Raises KeyError for a name not in the set."""
-    family, kw, seed = HELDOUT[name]
+    """The held-out map ``name`` (a key of :data:`HELDOUT` or :data:`HELDOUT_LARGE`) as rows of free
+    (True) cells, its largest connected part only. Raises KeyError for a name not in the set."""
+    family, kw, seed = {**HELDOUT, **HELDOUT_LARGE}[name]
     rnd = random.Random(seed)
     if family == "maze":
         free = _maze(rnd, **kw)
@@ -159,8 +166,8 @@ def make_map(name: str) -> list[list[bool]]:
 
 
 def write_maps(folder: Path, names: list[str] | None = None) -> dict[str, tuple[Path, int]]:
-    """Write the held-out maps (all, or ``names``) to ``folder`` as ``NAME.map``. Returns name ->
-    (path, free cells)."""
+    """Write the held-out maps (all of :data:`HELDOUT`, or ``names``) to ``folder`` as ``NAME.map``.
+    Returns name -> (path, free cells)."""
     folder.mkdir(parents=True, exist_ok=True)
     out = {}
     for name in names or HELDOUT:

@@ -60,6 +60,8 @@ SWEEP = {"random.domain/maps/random-32-32-20.map": (100, 200, 400, 600, 800),
 GENERATED_STEPS = 1000          # steps of a generated problem when --steps is not given
 HELDOUT_STEPS = 200             # steps of a --heldout problem when --steps is not given
 HELDOUT_DENSITIES = (0.05, 0.2)   # robots per free cell of the --heldout problems
+HELDOUT_LARGE_DENSITY = 0.1      # ... and of --heldout large's (teams of 1,941 - 2,781) ...
+HELDOUT_LARGE_STEPS = 400        # ... at this many steps (the race's first answer comes after step 100)
 # the tuned set beside the held-out one: maps the planner's constants were measured on
 TUNED = ("random.domain/maps/random-32-32-20.map",)
 PEERS = (ROOT / ".." / "peers").resolve()      # where the docs check out the peers' sources
@@ -238,10 +240,12 @@ def _parser() -> argparse.ArgumentParser:
                     help="generate problems on these maps (with --robots), as the league's Problem Generator does")
     ap.add_argument("--robots", type=_robots, metavar="N,...", help="team sizes of --generate")
     ap.add_argument("--sweep", action="store_true", help="generate and run the density sweep on every shared map")
-    ap.add_argument("--heldout", action="store_true",
+    ap.add_argument("--heldout", nargs="?", const="small", choices=("small", "large"),
                     help="maps no constant was set on (bench/heldout_maps.py) at 0.05 and 0.2 robots per free "
                          f"cell, beside the tuned set's ({', '.join(Path(m).stem for m in TUNED)}), "
-                         f"{HELDOUT_STEPS} steps; the summary compares the two sets")
+                         f"{HELDOUT_STEPS} steps; the summary compares the two sets; 'large': the same families "
+                         f"at sizes for teams over 1,000, at {HELDOUT_LARGE_DENSITY} robots per free cell, "
+                         f"{HELDOUT_LARGE_STEPS} steps")
     ap.add_argument("--problem-dir", type=Path, default=RESULTS / "problems", metavar="DIR",
                     help="where generated problems are written (default bench/results/problems)")
     ap.add_argument("--steps", type=int, help="steps for every problem (default: the official number; "
@@ -278,8 +282,9 @@ def _parser() -> argparse.ArgumentParser:
                          "from 0.3 robots per free cell in any team, and in larger teams from 0.02 on maps that are "
                          "not maps of aisles and from 0.15 on maps of aisles; MAPF_T)")
     ap.add_argument("--race", choices=("on", "off"),
-                    help="EPIBT and PIBT race in short windows and the one whose robots make the more progress "
-                         "answers until the next race (rce_fleet.lifelong.race; MAPF_T)")
+                    help="EPIBT and PIBT race in turns from step 100 and the one whose robots make the more "
+                         "progress answers until the next race (rce_fleet.lifelong.race; default: on under 0.3 robots "
+                         "per free cell, MAPF_T)")
     ap.add_argument("--length-w", type=float, metavar="W",
                     help="the share of a task's own length in its cost to a robot, beside the way to its first "
                          "errand (default: the scheduler's)")
@@ -412,7 +417,9 @@ def _problems(args, lorr: Path, pub: dict) -> list[tuple[Path, int]]:
 
     gen: list[tuple[Path, int]] = []
     if args.heldout:
-        return heldout_problems(args.problem_dir, lorr, args.seed, args.steps or HELDOUT_STEPS)
+        large = args.heldout == "large"
+        return heldout_problems(args.problem_dir, lorr, args.seed,
+                                args.steps or (HELDOUT_LARGE_STEPS if large else HELDOUT_STEPS), large=large)
     if args.sweep:
         gen += [(lorr / m, n) for m, teams in SWEEP.items() for n in teams]
     if args.generate:
@@ -436,14 +443,19 @@ def _problems(args, lorr: Path, pub: dict) -> list[tuple[Path, int]]:
             for p in problems]
 
 
-def heldout_problems(folder: Path, lorr: Path, seed: int, steps: int) -> list[tuple[Path, int]]:
+def heldout_problems(folder: Path, lorr: Path, seed: int, steps: int, large: bool = False) -> list[tuple[Path, int]]:
     """(problem JSON, steps) of ``--heldout``: the held-out maps (written to ``folder/heldout``) and
     the tuned set's, each at :data:`HELDOUT_DENSITIES`, as the league's Problem Generator makes
-    problems (:mod:`rce_fleet.lifelong.generate`)."""
-    from heldout_maps import write_maps
+    problems (:mod:`rce_fleet.lifelong.generate`); ``large``: the large held-out maps alone
+    (:data:`heldout_maps.HELDOUT_LARGE`), at :data:`HELDOUT_LARGE_DENSITY`."""
+    from heldout_maps import HELDOUT_LARGE, write_maps
     from rce_fleet.lifelong.generate import write_problem
     from rce_fleet.lifelong.lorr import load_lorr_map
 
+    if large:
+        maps = list(write_maps(folder / "heldout", list(HELDOUT_LARGE)).values())
+        return [(write_problem(path, round(HELDOUT_LARGE_DENSITY * cells), seed, folder), steps)
+                for path, cells in maps]
     maps = list(write_maps(folder / "heldout").values())
     for m in TUNED:
         free = load_lorr_map(lorr / m).free_cells()
@@ -457,8 +469,8 @@ def heldout_problems(folder: Path, lorr: Path, seed: int, steps: int) -> list[tu
 
 def set_of(problem: str) -> str:
     """``"held-out"`` for a problem on a held-out map, ``"tuned"`` for the others."""
-    from heldout_maps import HELDOUT
-    return "held-out" if any(problem.startswith(n.replace("-", "_")) for n in HELDOUT) else "tuned"
+    from heldout_maps import HELDOUT, HELDOUT_LARGE
+    return "held-out" if any(problem.startswith(n.replace("-", "_")) for n in {**HELDOUT, **HELDOUT_LARGE}) else "tuned"
 
 
 def heldout_summary(rows: list[dict]) -> dict[str, dict]:
@@ -513,8 +525,9 @@ def main(argv: list[str] | None = None) -> int:
         print(f"bench/lifelong.py: {e}", file=sys.stderr)
         return 2
     scheds = ("greedy", "batch") if args.scheduler == "both" else (args.scheduler,)
-    stem = ("lifelong_quick" if args.quick else "lifelong_heldout" if args.heldout
-            else "lifelong_sweep" if args.sweep or args.generate else "lifelong")
+    stem = ("lifelong_quick" if args.quick else "lifelong_heldout_large" if args.heldout == "large"
+            else "lifelong_heldout" if args.heldout else "lifelong_sweep" if args.sweep or args.generate
+            else "lifelong")
     json_path = args.json or RESULTS / f"{stem}.json"
     plot_path = args.plot or RESULTS / f"{stem}.png"
     rows = []

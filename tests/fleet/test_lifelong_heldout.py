@@ -15,8 +15,9 @@ ROOT = Path(__file__).resolve().parents[2]
 BENCH = ROOT / "bench"
 DATA = (ROOT / ".." / "shared" / "data" / "lorr").resolve()
 sys.path.insert(0, str(BENCH))
-from heldout_maps import HELDOUT, make_map, write_maps  # noqa: E402
-from lifelong import HELDOUT_DENSITIES, TUNED, heldout_problems, heldout_summary, set_of  # noqa: E402
+from heldout_maps import HELDOUT, HELDOUT_LARGE, make_map, write_maps  # noqa: E402
+from lifelong import (HELDOUT_DENSITIES, HELDOUT_LARGE_DENSITY, TUNED, heldout_problems,  # noqa: E402
+                      heldout_summary, set_of)
 
 
 def parts(free: np.ndarray) -> int:
@@ -73,3 +74,21 @@ def test_heldout_problems_cover_both_sets_at_each_density(tmp_path):
     s = heldout_summary(rows)
     assert s["held-out"] == {"problems": 2, "with_peer": 2, "geomean_vs_peer": 1.0, "least_vs_peer": 0.5}
     assert s["tuned"]["problems"] == 1 and s["tuned"]["geomean_vs_peer"] is None
+
+
+def test_the_large_held_out_maps_hold_teams_over_1000_at_their_density(tmp_path):
+    """The large set: fixed, one connected part each, of the small set's families; its problems are
+    teams over 1,000 (where the planner's thresholds choose its method), each named held-out."""
+    first, again = write_maps(tmp_path / "a", list(HELDOUT_LARGE)), write_maps(tmp_path / "b", list(HELDOUT_LARGE))
+    assert {f for f, _, _ in HELDOUT_LARGE.values()} <= {f for f, _, _ in HELDOUT.values()}
+    for name, (path, cells) in first.items():
+        assert path.read_bytes() == again[name][0].read_bytes(), name
+        grid = load_lorr_map(path)
+        free = grid.flat.reshape(grid.rows, grid.cols)
+        assert int(free.sum()) == cells and parts(free) == 1, (name, cells)
+    todo = heldout_problems(tmp_path / "p", DATA, seed=2, steps=9, large=True)
+    assert len(todo) == len(HELDOUT_LARGE) and {s for _, s in todo} == {9}
+    for path, _ in todo:
+        p = load_problem(path)
+        assert p.team_size > 1000 and set_of(path.stem) == "held-out", path.name
+        assert abs(p.team_size / len(p.grid.free_cells()) - HELDOUT_LARGE_DENSITY) < 0.001, path.name

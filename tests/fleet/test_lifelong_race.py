@@ -81,8 +81,8 @@ def test_a_run_races_epibt_and_pibt_and_keeps_the_rules(tmp_path):
     small = Path(__file__).resolve().parents[1] / "vectors" / "lorr_startkit" / "small-16-16.map"
     p = load_problem(write_problem(small, 12, 1, tmp_path))
     kw = {"plan_time_limit_ms": 300.0, "record": False, "planner_kw": {"samples": 4}}
-    race_kw = {"window": 10, "settle": 2, "hold": 30, "decisive": 10.0}
-    s = run_lifelong(p, 120, race=True, race_kw=race_kw, **kw).summary()
+    race_kw = {"start": 0, "window": 10, "settle": 2, "hold": 30, "decisive": 10.0}
+    s = run_lifelong(p, 120, race_kw=race_kw, **kw).summary()             # on by default
     # no timeouts asserted: a 300 ms limit on a machine the suite loads is a clock, not a check
     assert s["invalid_steps"] == 0 and s["tasks_finished"] > 0, s
     assert s["epibt"] is True                               # what answers a team of 12 before the first race
@@ -92,5 +92,39 @@ def test_a_run_races_epibt_and_pibt_and_keeps_the_rules(tmp_path):
     assert all(v > 0 for h in hist for v in h["scores"].values()), hist     # robots moved to their goals
     # EPIBT planned the steps of its turns, and not the others: PIBT answered 2 x 10 steps of each race
     assert 10 <= s.get("epibt_steps", 0) <= 120 - 20 * len(hist), s
-    off = run_lifelong(p, 5, **kw).summary()
-    assert off["race"] is None
+    late = run_lifelong(p, 5, **kw).summary()                   # the default race begins at step 100
+    assert late["race"] == {"history": [], "switches": 0, "last": "epibt"} and "epibt_steps" in late, late
+    assert run_lifelong(p, 5, race=False, **kw).summary()["race"] is None
+
+
+def test_an_arm_far_behind_is_dropped_after_its_early_steps_not_its_window():
+    """With ``early``, the arm answering keeps its place as soon as the other has that many scored
+    steps and trails it by ``decisive``: a method far behind costs settle + early steps of a race."""
+    r = MethodRace(["epibt", "pibt"], window=25, settle=5, early=5, hold=400, start=100)
+    seen = _run(r, {"epibt": 100.0, "pibt": 50.0}, 100 + 25 + 10)
+    assert seen == ["epibt"] * 125 + ["pibt"] * 10             # PIBT's turn ends after 5 + 5 steps
+    assert r.history == [{"step": 100, "scores": {"epibt": 100.0, "pibt": 50.0}, "chosen": "epibt"}]
+    assert not r.racing and r.switches == 0 and r._start == 135 + 400
+    close = MethodRace(["epibt", "pibt"], window=25, settle=5, early=5, start=0)
+    assert _run(close, {"epibt": 100.0, "pibt": 90.0}, 50) == ["epibt"] * 25 + ["pibt"] * 25   # 10 % behind: a turn
+    lead = MethodRace(["epibt", "pibt"], window=25, settle=5, early=5, start=0)
+    assert _run(lead, {"epibt": 50.0, "pibt": 100.0}, 50)[25:] == ["pibt"] * 25     # the other leading: no early stop
+    assert lead.history[0]["chosen"] == "pibt"
+
+
+def test_a_turn_keeps_the_bound_of_the_method_chosen_before_the_race(tmp_path):
+    """In a dense team each method has its own bound on the robots holding a task; a turn of the
+    other method in a race does not take tasks back to its bound (they would be given again when
+    the turn ends): the run ends inside PIBT's turn with EPIBT's bound."""
+    from rce_fleet.lifelong import runner
+    from rce_fleet.lifelong.generate import write_problem
+    from rce_fleet.lifelong.lorr import load_lorr_map, load_problem
+    small = Path(__file__).resolve().parents[1] / "vectors" / "lorr_startkit" / "small-16-16.map"
+    n_free = len(load_lorr_map(small).free_cells())
+    p = load_problem(write_problem(small, int(0.4 * n_free), 1, tmp_path))
+    race_kw = {"start": 0, "window": 10, "settle": 2, "decisive": 10.0, "early": 0}
+    assert runner.run_lifelong(p, 1, plan_time_limit_ms=300.0, record=False).summary()["race"] is None  # off so dense
+    s = runner.run_lifelong(p, 15, plan_time_limit_ms=300.0, record=False, race=True, race_kw=race_kw).summary()
+    assert s["epibt"] is True and s["race"]["last"] == "pibt" and not s["race"]["history"], s["race"]
+    assert s["max_active"] == int(runner.EPIBT_ACTIVE_FRAC * n_free) != int(runner.ACTIVE_FRAC * n_free)
+    assert s["invalid_steps"] == 0

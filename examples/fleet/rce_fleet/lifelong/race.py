@@ -16,7 +16,11 @@ closest to their goals answers until the next race.
   flow settles from the other method's last plan). After ``rounds`` rounds the arm with the most
   progress a step answers, the one answering before the race unless another leads it by
   ``margin``; after the first round an arm that leads every other by ``decisive`` wins at once,
-  so a method far behind costs one window.
+  so a method far behind costs one window; and with ``early``, the arm answering before the race
+  keeps it as soon as every other arm has ``early`` scored steps and it leads each of them by
+  ``decisive``, so a method far behind costs ``settle + early`` steps, not a window (the early stop
+  of action elimination: an arm whose mean is far under the leader's is dropped before its turns
+  are spent).
 - **Races repeat**, ``hold`` steps after the last one, and the hold doubles each time the same
   arm wins again (to ``max_hold``) and starts over when another wins: the choice follows a run
   that changes, and costs little in a run that does not (successive elimination of arms:
@@ -60,13 +64,15 @@ class MethodRace:
     rounds: turns of each arm in a race; margin: the share by which another arm must lead the one
     answering to take over; decisive: the share by which an arm leading every other after the first
     round wins at once; hold, max_hold: steps from one race's end to the next, first and at most;
-    start: the step the first race begins (before it, ``first`` answers).
+    start: the step the first race begins (before it, ``first`` answers); early: scored steps of each
+    other arm after which the arm answering keeps its place at once if it leads them all by
+    ``decisive`` (0: no early stop).
     ``history`` lists each race: ``{"step", "scores": {arm: progress a step}, "chosen"}``.
     Raises ValueError for fewer than two arms, or for a window with no scored step."""
 
     def __init__(self, arms: Sequence[str], first: int = 0, window: int = 10, settle: int = 3, rounds: int = 2,
                  margin: float = 0.03, decisive: float = 0.25, hold: int = 200, max_hold: int = 1600,
-                 start: int = 0):
+                 start: int = 0, early: int = 0):
         if len(arms) < 2:
             raise ValueError(f"a race needs two arms or more, not {list(arms)}")
         if not 0 <= settle < window:
@@ -74,7 +80,7 @@ class MethodRace:
         self.arms = list(arms)
         self.current = int(first)
         self.window, self.settle, self.rounds = window, settle, rounds
-        self.margin, self.decisive = margin, decisive
+        self.margin, self.decisive, self.early = margin, decisive, int(early)
         self.hold0, self.max_hold = hold, max_hold
         self.hold = hold
         self.history: list[dict] = []
@@ -109,6 +115,9 @@ class MethodRace:
             self._sum[i] += score
             self._n[i] += 1
         self._k += 1
+        if self.early and i != self.current and pos >= self.settle and self._behind():
+            self._decide(self._sum / np.maximum(self._n, 1))
+            return
         turns = (self._k - self._start) // self.window
         if (self._k - self._start) % self.window or turns % len(self.arms):
             return                                  # within a window, or a round not yet over
@@ -119,6 +128,16 @@ class MethodRace:
             mean[best] > 0 and bool((mean[best] >= (1 + self.decisive) * np.maximum(others, 0)).all()))
         if decided:
             self._decide(mean)
+
+    def _behind(self) -> bool:
+        """Whether every other arm has ``early`` scored steps and the arm answering leads each by
+        ``decisive``."""
+        others = [j for j in range(len(self.arms)) if j != self.current]
+        if self._n[self.current] == 0 or (self._n[others] < self.early).any():
+            return False
+        mean = self._sum / np.maximum(self._n, 1)
+        cur = mean[self.current]
+        return bool(cur > 0 and (cur >= (1 + self.decisive) * np.maximum(mean[others], 0)).all())
 
     def _decide(self, mean: np.ndarray) -> None:
         best = int(np.argmax(mean))

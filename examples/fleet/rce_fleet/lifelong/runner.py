@@ -39,7 +39,7 @@ __all__ = ["ACTIVE_DENSITY", "ACTIVE_FRAC", "ADMISSION_CELLS", "ADMISSION_DENSIT
            "ADMISSION_JAM_DENSITY", "ADMISSION_SMALL", "ADMISSION_SMALL_START", "ADMISSION_START",
            "AISLE_ACTIVE_FRAC", "AISLE_EPIBT_DENSITY", "AISLE_JAM_CUT", "AISLE_LANES_JAM_LEAST", "AISLE_SHARE",
            "CRISSCROSS_DENSITY", "CROWD_TEAM", "CROWD_W", "EPIBT_ACTIVE_FRAC", "EPIBT_BIAS", "EPIBT_DENSITY",
-           "EPIBT_LNS_FRAC", "GUIDE_DENSITY", "KEEP_RIGHT", "LANES", "OPEN_LANES", "PACKED_DENSITY",
+           "EPIBT_LNS_FRAC", "GUIDE_DENSITY", "KEEP_RIGHT", "LANES", "OPEN_LANES", "PACKED_DENSITY", "RACE",
            "REPLAN_CORRIDORS", "REPLAN_DENSITY", "RunResult", "SMALL_MAP_CELLS", "SMALL_MAP_STUCK", "WINDOW_DENSITY",
            "WINDOW_TEAM", "jam_detector", "run_lifelong"]
 
@@ -90,6 +90,11 @@ REPLAN_CORRIDORS = 0.5  # ... and where at least this share of the free cells ha
                         # (corridors and dead ends), whole LaCAM plans answer (:mod:`.replan`; measured there) ...
 REPLAN_DENSITY = 0.3    # ... if the map has a dead end, or the team is under this many robots per free cell: on
                         # loops without a dead end a denser team circulates better under EPIBT
+RACE = {"start": 100, "window": 25, "settle": 5, "margin": 0.01, "hold": 400, "early": 5}   # EPIBT and PIBT
+    # race while the run goes, the choice above answering first: from step 100 (after the team has spread out
+    # from its starts, where a greedy method leads and then jams), in turns of 25 steps, the one ahead by 1 %
+    # answering until the next race 400 steps later; a method 25 % behind is dropped after 5 scored steps;
+    # in teams under EPIBT_DENSITY (measured on the held-out maps, RANDOM-04, WAREHOUSE: docs/results/lifelong.md)
 
 
 def jam_detector(aisle_lanes: bool) -> JamDetector:
@@ -203,12 +208,16 @@ def run_lifelong(problem: LorrProblem, steps: int, plan_time_limit_ms: float = 1
     (default): on maps of fewer than ``SMALL_MAP_CELLS`` free cells of which at least
     ``REPLAN_CORRIDORS`` have two free neighbours or fewer (corridors and dead ends), if the map has
     a dead end or the team is under ``REPLAN_DENSITY`` robots per free cell, MAPF_T only;
-    race: EPIBT and PIBT take turns in short windows and the one whose robots make the more progress
-    to their goals answers until the next race (:class:`~.race.MethodRace` with ``race_kw``; the
-    choice above answers first), each with its own settings above and, where ``ACTIVE_FRAC`` bounds
-    the robots holding a task, its own bound; ``stats["race"]`` lists the races. Not under whole
-    plans, MAPF, or a ``planner_kw`` that names ``epibt``; None (default): off; whether it races or
-    not, ``stats["progress_per_step"]`` gives the robots' progress to their goals a step, the race's
+    race: EPIBT and PIBT take turns in windows and the one whose robots make the more progress
+    to their goals answers until the next race (:class:`~.race.MethodRace` with ``RACE`` updated by
+    ``race_kw``; the choice above answers first), each with its own settings above and, where
+    ``ACTIVE_FRAC`` bounds the robots holding a task, its own bound once the race has chosen it (a
+    turn keeps the bound of the method chosen before: tasks taken back for a turn and given again
+    are travel lost); ``stats["race"]`` lists the races. Not under whole plans, MAPF, or a
+    ``planner_kw`` that names ``epibt``; None (default): on under ``EPIBT_DENSITY`` robots per free
+    cell (denser teams made half EPIBT's progress under PIBT in every race, and a race cost RANDOM-04
+    5 % of its tasks), False: the choice above answers throughout; whether it races or not,
+    ``stats["progress_per_step"]`` gives the robots' progress to their goals a step, the race's
     score (:func:`~.race.progress`; 0 under whole plans);
     length_w: the share of a task's own length (first errand to last) in its cost to a robot, beside
     the way to its first errand (:attr:`~.scheduler.Scheduler.length_w`); None (default): the
@@ -260,7 +269,8 @@ def run_lifelong(problem: LorrProblem, steps: int, plan_time_limit_ms: float = 1
         cache_bytes = cache_bytes_for(grid, problem.team_size)
     warm_up()
     window_warm_up()
-    race = bool(race and model == MAPF_T and not replan and "epibt" not in user_kw)
+    race = bool((density < EPIBT_DENSITY if race is None else race)
+                and model == MAPF_T and not replan and "epibt" not in user_kw)
     if epibt or race:
         epibt_warm_up()
     if guide:
@@ -297,7 +307,7 @@ def run_lifelong(problem: LorrProblem, steps: int, plan_time_limit_ms: float = 1
     replan = bool(replan and model == MAPF_T)
     chooser = None
     if race:
-        chooser = MethodRace(list(arms), first=0 if epibt else 1, **(race_kw or {}))
+        chooser = MethodRace(list(arms), first=0 if epibt else 1, **{**RACE, **(race_kw or {})})
         arms = {a: {k: v for k, v in kw.items() if k not in user_kw} for a, kw in arms.items()}
     answering = "epibt" if epibt else "pibt"
     if replan:
@@ -334,12 +344,14 @@ def run_lifelong(problem: LorrProblem, steps: int, plan_time_limit_ms: float = 1
         if len(has):
             open_ = sim.pool.open
             goals[has] = [open_[int(prop[a])].goal for a in has]
-        if chooser is not None and chooser.arm() != answering:
-            answering = chooser.arm()
-            for key, value in arms[answering].items():
-                setattr(planner, key, value)
-            if arm_active and sched.max_active == arm_active["pibt" if answering == "epibt" else "epibt"]:
-                sched.max_active = arm_active[answering]
+        if chooser is not None:
+            if chooser.arm() != answering:
+                answering = chooser.arm()
+                for key, value in arms[answering].items():
+                    setattr(planner, key, value)
+            chosen = chooser.arms[chooser.current]      # the bound follows the race's choice, not its turns
+            if arm_active and sched.max_active == arm_active["pibt" if chosen == "epibt" else "epibt"]:
+                sched.max_active = arm_active[chosen]
         p_plan = sim.pos.copy()         # where the robots were: the step's progress, and who moved
         actions = step_planner.plan(sim.pos, sim.head, goals, deadline, t0 + hard_frac * limit)
         dt = time.perf_counter() - t0
