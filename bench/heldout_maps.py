@@ -38,6 +38,7 @@ HELDOUT_LARGE = {
     "caves-200-200": ("caves", {"size": 200, "fill": 0.45}, 23),
     "rooms-180-180-r11-d2": ("rooms", {"size": 180, "room": 11, "door": 2}, 25),
 }
+EVERY = {**HELDOUT, **HELDOUT_LARGE}    # every held-out map by name
 
 
 def _maze(rnd: random.Random, size: int, w: int, loops: int) -> list[list[bool]]:
@@ -151,7 +152,7 @@ def _largest(free: list[list[bool]]) -> list[list[bool]]:
 def make_map(name: str) -> list[list[bool]]:
     """The held-out map ``name`` (a key of :data:`HELDOUT` or :data:`HELDOUT_LARGE`) as rows of free
     (True) cells, its largest connected part only. Raises KeyError for a name not in the set."""
-    family, kw, seed = {**HELDOUT, **HELDOUT_LARGE}[name]
+    family, kw, seed = EVERY[name]
     rnd = random.Random(seed)
     if family == "maze":
         free = _maze(rnd, **kw)

@@ -469,8 +469,8 @@ def heldout_problems(folder: Path, lorr: Path, seed: int, steps: int, large: boo
 
 def set_of(problem: str) -> str:
     """``"held-out"`` for a problem on a held-out map, ``"tuned"`` for the others."""
-    from heldout_maps import HELDOUT, HELDOUT_LARGE
-    return "held-out" if any(problem.startswith(n.replace("-", "_")) for n in {**HELDOUT, **HELDOUT_LARGE}) else "tuned"
+    from heldout_maps import EVERY
+    return "held-out" if any(problem.startswith(n.replace("-", "_")) for n in EVERY) else "tuned"
 
 
 def heldout_summary(rows: list[dict]) -> dict[str, dict]:

@@ -115,29 +115,21 @@ class MethodRace:
             self._sum[i] += score
             self._n[i] += 1
         self._k += 1
-        if self.early and i != self.current and pos >= self.settle and self._behind():
-            self._decide(self._sum / np.maximum(self._n, 1))
+        mean = self._sum / np.maximum(self._n, 1)
+        others = np.arange(len(self.arms)) != self.current
+        if (self.early and i != self.current and pos >= self.settle and self._n[self.current] > 0
+                and (self._n[others] >= self.early).all() and self._leads(self.current, mean)):
+            self._decide(mean)                      # every other arm far behind after its early steps
             return
         turns = (self._k - self._start) // self.window
         if (self._k - self._start) % self.window or turns % len(self.arms):
             return                                  # within a window, or a round not yet over
-        mean = self._sum / np.maximum(self._n, 1)
-        best = int(np.argmax(mean))
-        others = np.delete(mean, best)
-        decided = turns // len(self.arms) >= self.rounds or (
-            mean[best] > 0 and bool((mean[best] >= (1 + self.decisive) * np.maximum(others, 0)).all()))
-        if decided:
+        if turns // len(self.arms) >= self.rounds or self._leads(int(np.argmax(mean)), mean):
             self._decide(mean)
 
-    def _behind(self) -> bool:
-        """Whether every other arm has ``early`` scored steps and the arm answering leads each by
-        ``decisive``."""
-        others = [j for j in range(len(self.arms)) if j != self.current]
-        if self._n[self.current] == 0 or (self._n[others] < self.early).any():
-            return False
-        mean = self._sum / np.maximum(self._n, 1)
-        cur = mean[self.current]
-        return bool(cur > 0 and (cur >= (1 + self.decisive) * np.maximum(mean[others], 0)).all())
+    def _leads(self, i: int, mean: np.ndarray) -> bool:
+        """Whether arm ``i`` (mean progress > 0) leads every other arm by ``decisive``."""
+        return bool(mean[i] > 0 and (mean[i] >= (1 + self.decisive) * np.maximum(np.delete(mean, i), 0)).all())
 
     def _decide(self, mean: np.ndarray) -> None:
         best = int(np.argmax(mean))
