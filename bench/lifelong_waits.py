@@ -48,34 +48,47 @@ def actions(output: dict) -> np.ndarray:
     return np.stack(rows)
 
 
-def wait_maps(free: np.ndarray, output: dict, windows: list[tuple[int, int]]) -> np.ndarray:
-    """(len(windows), rows, cols) int64: per window ``[a, b)`` of steps, the robot-steps of ``W`` in
-    each cell. Raises ValueError for a window outside the run or a robot that leaves the free cells
-    (an output of another map)."""
+def replay(free: np.ndarray, output: dict, last: int | None = None):
+    """The robots' states along ``output``'s ``actualPaths`` on the map ``free`` ((rows, cols) bool):
+    yields (t, actions of step t as uint8 letters, pos (n, 2) int64 row and column, head (n,) int64)
+    with the state after t steps, for t = 0 .. ``last`` - 1 (default: every step), then (``last``,
+    None, pos, head). The arrays are reused: read them before the next. Raises ValueError when a
+    robot leaves the free cells (an output of another map)."""
     acts = actions(output)
-    n, steps = acts.shape
-    for a, b in windows:
-        if not 0 <= a < b <= steps:
-            raise ValueError(f"window {a}:{b} outside the run's {steps} steps")
+    last = acts.shape[1] if last is None else last
     start = output["start"]
     pos = np.array([[s[0], s[1]] for s in start], dtype=np.int64)
     head = np.array([HEADING[s[2]] for s in start], dtype=np.int64)
-    out = np.zeros((len(windows), *free.shape), dtype=np.int64)
-    last = max(b for _, b in windows)
     for t in range(last):
         act = acts[:, t]
-        wait = act == ord("W")
-        for k, (a, b) in enumerate(windows):
-            if a <= t < b and wait.any():
-                np.add.at(out[k], (pos[wait, 0], pos[wait, 1]), 1)
+        yield t, act, pos, head
         fwd = act == ord("F")
         pos[fwd] += STEP[head[fwd]]
-        head = np.where(act == ord("R"), (head + 1) % 4, np.where(act == ord("C"), (head + 3) % 4, head))
+        head[:] = np.where(act == ord("R"), (head + 1) % 4, np.where(act == ord("C"), (head + 3) % 4, head))
         if fwd.any():
             r, c = pos[fwd, 0], pos[fwd, 1]
             if (r < 0).any() or (c < 0).any() or (r >= free.shape[0]).any() or (c >= free.shape[1]).any() \
                     or not free[r, c].all():
                 raise ValueError(f"step {t}: a robot moved off the map's free cells (is this the run's map?)")
+    yield last, None, pos, head
+
+
+def wait_maps(free: np.ndarray, output: dict, windows: list[tuple[int, int]]) -> np.ndarray:
+    """(len(windows), rows, cols) int64: per window ``[a, b)`` of steps, the robot-steps of ``W`` in
+    each cell. Raises ValueError for a window outside the run or a robot that leaves the free cells
+    (an output of another map)."""
+    steps = actions(output).shape[1]
+    for a, b in windows:
+        if not 0 <= a < b <= steps:
+            raise ValueError(f"window {a}:{b} outside the run's {steps} steps")
+    out = np.zeros((len(windows), *free.shape), dtype=np.int64)
+    for t, act, pos, _ in replay(free, output, max(b for _, b in windows)):
+        if act is None:
+            break
+        wait = act == ord("W")
+        for k, (a, b) in enumerate(windows):
+            if a <= t < b and wait.any():
+                np.add.at(out[k], (pos[wait, 0], pos[wait, 1]), 1)
     return out
 
 

@@ -16,7 +16,7 @@ import numpy as np
 from .grid import LifelongGrid
 from .kernels import UNREACHABLE, bfs_fill, bfs_pair, dial_fill
 
-__all__ = ["DistanceCache", "cache_bytes_for"]
+__all__ = ["DistanceCache", "cache_bytes_for", "heading_graph"]
 
 GiB = 2 ** 30
 
@@ -158,3 +158,26 @@ def one_shot_distances(grid: LifelongGrid, starts, goals, cache: DistanceCache |
         bad = int(np.flatnonzero(dist == UNREACHABLE)[0])
         raise ValueError(f"agent {bad}: goal {int(goals[bad])} cannot be reached from {int(starts[bad])}")
     return starts, goals, cache, rows, dist
+
+
+def heading_graph(grid: LifelongGrid) -> tuple[np.ndarray, np.ndarray]:
+    """The 2024 rules' moves as a graph over (cell, heading) states, for :func:`~.kernels.dial_fill`:
+    state ``cell * 4 + heading`` (headings 0 - 3: east, south, west, north). Returns (pred, cost):
+    pred (cells x 4, 4) int32, the states one action leads into each state from (-1: none; slot 0 the
+    state turning counter-clockwise into it, 1 clockwise, 2 moving forward into it), and cost (cells
+    x 4, 4) uint8, 1 for every action, stored where ``dial_fill`` reads the cost of the move from
+    ``pred[x, j]`` into ``x``: at ``cost[pred[x, j], (j + 2) % 4]``. ``dial_fill(pred, cost, goal * 4 +
+    h, ...)`` then gives the least steps (quarter turns and forward moves, one each) from every state
+    to ``goal`` facing ``h``: the exact cost to go, where :func:`~.kernels.heading_cost` bounds it
+    from a cell's map."""
+    n = grid.n_cells
+    x = np.arange(4 * n)
+    c, h = x // 4, x % 4
+    pred = np.full((4 * n, 4), -1, dtype=np.int32)
+    pred[:, 0] = c * 4 + (h + 1) % 4                 # (c, h + 1) turns counter-clockwise into (c, h)
+    pred[:, 1] = c * 4 + (h + 3) % 4                 # (c, h - 1) turns clockwise into (c, h)
+    back = grid.nbr[c, (h + 2) % 4]                  # the cell behind, whose forward move leads here
+    pred[:, 2] = np.where(back >= 0, back * 4 + h, -1)
+    blocked = ~grid.flat[c]
+    pred[blocked] = -1
+    return pred, np.ones((4 * n, 4), dtype=np.uint8)
