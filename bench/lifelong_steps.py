@@ -3,7 +3,7 @@
 A robot's time splits into cycles, one per task it finished: from its previous finish (or step 0)
 to this task's last errand. The least a cycle could take is the least MAPF_T steps (quarter turns
 and forward moves, one step each: the 2024 rules) from where the robot stood, facing as it faced,
-through the task's errands in order (Dial's search over (cell, heading) states:
+through the task's errands in order (a breadth-first search over (cell, heading) states:
 :func:`~rce_fleet.lifelong.distances.heading_graph`). The steps
 beyond it are the planner's (and the team's) cost, split by the actions taken:
 
@@ -49,19 +49,18 @@ class LeastSteps:
         from rce_fleet.lifelong.distances import DistanceCache, heading_graph
         self.grid = grid
         self.cells = DistanceCache(grid, max_bytes=max(max_bytes // 4, 2 * grid.n_cells * 16))
-        self._pred, self._cost = heading_graph(grid)
+        self._pred = heading_graph(grid)
         self._rows: OrderedDict[tuple[int, int], np.ndarray] = OrderedDict()
         self._keep = max(8, max_bytes // (8 * grid.n_cells))
-        self._stacks = np.empty((2, 4 * grid.n_cells), dtype=np.int32)
-        self._sizes = np.zeros(2, dtype=np.int64)
+        self._queue = np.empty(4 * grid.n_cells, dtype=np.int32)
 
     def _row(self, goal: int, arrive: int) -> np.ndarray:
-        from rce_fleet.lifelong.kernels import dial_fill
+        from rce_fleet.lifelong.kernels import bfs_fill
         key = (goal, arrive)
         row = self._rows.get(key)
         if row is None:
             row = np.empty(4 * self.grid.n_cells, dtype=np.uint16)
-            dial_fill(self._pred, self._cost, goal * 4 + arrive, row, self._stacks, self._sizes)
+            bfs_fill(self._pred, goal * 4 + arrive, row, self._queue)
             self._rows[key] = row
             if len(self._rows) > self._keep:
                 self._rows.popitem(last=False)
@@ -118,7 +117,7 @@ def steps_of(problem, output: dict, log: Path | None = None, least: LeastSteps |
         need.setdefault(s, set()).add(a)
     at = {}
     free = grid.flat.reshape(grid.rows, grid.cols)
-    for t, _, pos, head in replay(free, output):
+    for t, _, pos, head in replay(free, output["start"], acts):
         for a in (range(n) if t == 0 else need.get(t, ())):
             at[(t, a)] = (int(pos[a, 0]) * grid.cols + int(pos[a, 1]), int(head[a]))
     last = {a: 0 for a in range(n)}

@@ -48,15 +48,14 @@ def actions(output: dict) -> np.ndarray:
     return np.stack(rows)
 
 
-def replay(free: np.ndarray, output: dict, last: int | None = None):
-    """The robots' states along ``output``'s ``actualPaths`` on the map ``free`` ((rows, cols) bool):
-    yields (t, actions of step t as uint8 letters, pos (n, 2) int64 row and column, head (n,) int64)
-    with the state after t steps, for t = 0 .. ``last`` - 1 (default: every step), then (``last``,
-    None, pos, head). The arrays are reused: read them before the next. Raises ValueError when a
-    robot leaves the free cells (an output of another map)."""
-    acts = actions(output)
+def replay(free: np.ndarray, start: list, acts: np.ndarray, last: int | None = None):
+    """The robots' states along their actions ``acts`` (:func:`actions` of an output) from ``start``
+    (the output's [row, col, heading] per robot) on the map ``free`` ((rows, cols) bool): yields
+    (t, actions of step t as uint8 letters, pos (n, 2) int64 row and column, head (n,) int64) with
+    the state after t steps, for t = 0 .. ``last`` - 1 (default: every step), then (``last``, None,
+    pos, head). The arrays are reused: read them before the next. Raises ValueError when a robot
+    leaves the free cells (an output of another map)."""
     last = acts.shape[1] if last is None else last
-    start = output["start"]
     pos = np.array([[s[0], s[1]] for s in start], dtype=np.int64)
     head = np.array([HEADING[s[2]] for s in start], dtype=np.int64)
     for t in range(last):
@@ -77,12 +76,13 @@ def wait_maps(free: np.ndarray, output: dict, windows: list[tuple[int, int]]) ->
     """(len(windows), rows, cols) int64: per window ``[a, b)`` of steps, the robot-steps of ``W`` in
     each cell. Raises ValueError for a window outside the run or a robot that leaves the free cells
     (an output of another map)."""
-    steps = actions(output).shape[1]
+    acts = actions(output)
+    steps = acts.shape[1]
     for a, b in windows:
         if not 0 <= a < b <= steps:
             raise ValueError(f"window {a}:{b} outside the run's {steps} steps")
     out = np.zeros((len(windows), *free.shape), dtype=np.int64)
-    for t, act, pos, _ in replay(free, output, max(b for _, b in windows)):
+    for t, act, pos, _ in replay(free, output["start"], acts, max(b for _, b in windows)):
         if act is None:
             break
         wait = act == ord("W")

@@ -17,7 +17,7 @@ from lifelong_steps import main, steps_of  # noqa: E402
 
 from rce_fleet.lifelong.distances import heading_graph  # noqa: E402
 from rce_fleet.lifelong.grid import LifelongGrid  # noqa: E402
-from rce_fleet.lifelong.kernels import UNREACHABLE, dial_fill  # noqa: E402
+from rce_fleet.lifelong.kernels import UNREACHABLE, bfs_fill  # noqa: E402
 from rce_fleet.lifelong.lorr import load_problem  # noqa: E402
 
 # 3 x 5, a pillar at (1, 1): row-major cells, 0 - 4 on the top row
@@ -69,9 +69,8 @@ def test_the_least_steps_count_turns_and_moves_as_the_rules_do(arrive):
     free = rng.random((6, 7)) > 0.25
     free[2, 3] = True
     g = LifelongGrid(free)
-    pred, cost = heading_graph(g)
     row = np.empty(4 * g.n_cells, dtype=np.uint16)
-    dial_fill(pred, cost, (2 * 7 + 3) * 4 + arrive, row, np.empty((2, 4 * g.n_cells), np.int32), np.zeros(2, np.int64))
+    bfs_fill(heading_graph(g), (2 * 7 + 3) * 4 + arrive, row, np.empty(4 * g.n_cells, np.int32))
     want = _brute(free, (2, 3), arrive)
     assert (row.reshape(6, 7, 4)[free] == want[free]).all()
     assert row[(2 * 7 + 3) * 4 + 2] == {0: 2, 3: 1}[arrive]         # at the goal facing west, to face ``arrive``

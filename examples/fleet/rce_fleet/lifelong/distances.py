@@ -160,16 +160,14 @@ def one_shot_distances(grid: LifelongGrid, starts, goals, cache: DistanceCache |
     return starts, goals, cache, rows, dist
 
 
-def heading_graph(grid: LifelongGrid) -> tuple[np.ndarray, np.ndarray]:
-    """The 2024 rules' moves as a graph over (cell, heading) states, for :func:`~.kernels.dial_fill`:
-    state ``cell * 4 + heading`` (headings 0 - 3: east, south, west, north). Returns (pred, cost):
-    pred (cells x 4, 4) int32, the states one action leads into each state from (-1: none; slot 0 the
-    state turning counter-clockwise into it, 1 clockwise, 2 moving forward into it), and cost (cells
-    x 4, 4) uint8, 1 for every action, stored where ``dial_fill`` reads the cost of the move from
-    ``pred[x, j]`` into ``x``: at ``cost[pred[x, j], (j + 2) % 4]``. ``dial_fill(pred, cost, goal * 4 +
-    h, ...)`` then gives the least steps (quarter turns and forward moves, one each) from every state
-    to ``goal`` facing ``h``: the exact cost to go, where :func:`~.kernels.heading_cost` bounds it
-    from a cell's map."""
+def heading_graph(grid: LifelongGrid) -> np.ndarray:
+    """The 2024 rules' moves as a graph over (cell, heading) states, in the form of ``grid.nbr`` for
+    :func:`~.kernels.bfs_fill`: state ``cell * 4 + heading`` (headings 0 - 3: east, south, west,
+    north). Returns pred (cells x 4, 4) int32, the states one action (a quarter turn or a forward
+    move, one step each) leads into each state from (-1: none; slot 0 the state turning
+    counter-clockwise into it, 1 clockwise, 2 moving forward into it, 3 none). ``bfs_fill(pred,
+    goal * 4 + h, ...)`` then gives the least steps from every state to ``goal`` facing ``h``: the
+    exact cost to go, where :func:`~.kernels.heading_cost` bounds it from a cell's map."""
     n = grid.n_cells
     x = np.arange(4 * n)
     c, h = x // 4, x % 4
@@ -178,6 +176,5 @@ def heading_graph(grid: LifelongGrid) -> tuple[np.ndarray, np.ndarray]:
     pred[:, 1] = c * 4 + (h + 3) % 4                 # (c, h - 1) turns clockwise into (c, h)
     back = grid.nbr[c, (h + 2) % 4]                  # the cell behind, whose forward move leads here
     pred[:, 2] = np.where(back >= 0, back * 4 + h, -1)
-    blocked = ~grid.flat[c]
-    pred[blocked] = -1
-    return pred, np.ones((4 * n, 4), dtype=np.uint8)
+    pred[~grid.flat[c]] = -1
+    return pred
