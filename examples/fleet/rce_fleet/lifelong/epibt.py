@@ -12,7 +12,9 @@ operations that fit.
 operation that meets no plan is taken; one that meets exactly one robot's plan takes that
 robot's place, and that robot builds in turn (priority inheritance); one that meets two or more
 is skipped. A robot already in the chain is never displaced, and a robot is displaced at most
-``revisits`` times per pass. When the chain finds nothing every plan is put back; when it finds a
+``revisits`` times per pass; a displacement undone (the displaced robot found nothing, both plans put
+back) does not count, as the winner's code forgets it, and one build tries at most ``MAX_PUSHES``
+displacements (3,000, the winner's bound). When the chain finds nothing every plan is put back; when it finds a
 plan, its robots stay as built for the rest of the pass (as in the authors' code).
 
 - **First pass**: robots in priority order build (a robot displaced earlier in the pass does not
@@ -39,7 +41,17 @@ plan, its robots stay as built for the rest of the pass (as in the authors' code
   again, and the new plans are kept only when the progress does not fall.
 
 Only the first action of each operation is executed; it is a valid joint action by
-construction.
+construction. Two habits of the 2024 winner's code (github.com/Straple/LORR24, ``get_smart_dist`` and
+``ENABLE_SMART_OPERATION_EXECUTION`` in ``epibt.cpp``) let a robot turn where its plan stands still:
+
+- **Waits at the end are turns to be**: an operation whose last action is a wait is costed from the
+  best heading that wait could turn to (a quarter turn either way; after two waits, the half turn
+  too), so an operation that stops short of a corner is not charged for the turn it has time for.
+- **A turn in place is chosen when executed**: where the plan waits or turns in place this step
+  (all waits; a turn then a wait; two equal turns), the robot executes the one of those in-place
+  actions that leaves it facing closest to its goal (:func:`turn_in_place`), the wait on a tie. A
+  robot in place holds only its cell, so the joint action stays valid, and its plan continues from
+  its new heading through the same cells (:func:`in_place_continuations`).
 """
 from __future__ import annotations
 
@@ -56,9 +68,11 @@ from .window import continuations, op_path
 
 seed(__file__)          # numba's cache entries prepared in the tree (sandboxed nodes)
 
-__all__ = ["EPIBT_DEPTH", "EPIBT_OPERATIONS", "EPIBTPlan", "epibt_operations", "warm_up"]
+__all__ = ["EPIBT_DEPTH", "EPIBT_OPERATIONS", "EPIBTPlan", "epibt_operations", "in_place_continuations",
+           "trailing_waits", "turn_in_place", "warm_up"]
 
 WAIT_OP = 0             # the first operation of every set: wait, wait, wait
+MAX_PUSHES = 3000       # displacements one build tries at most (the 2024 winner's code: 3,000)
 
 
 def epibt_operations(depth: int) -> np.ndarray:
@@ -123,8 +137,101 @@ def operation_preference(ops: np.ndarray) -> np.ndarray:
     return rank / len(ops)
 
 
+def trailing_waits(ops: np.ndarray) -> np.ndarray:
+    """(m,) int64: the waits each operation of ``ops`` (m, depth) ends with, at most 2 (the turns
+    they could be: :func:`epibt_costs`)."""
+    out = np.zeros(len(ops), np.int64)
+    for k, op in enumerate(ops.tolist()):
+        while out[k] < min(2, len(op)) and op[len(op) - 1 - out[k]] == ACT_W:
+            out[k] += 1
+    return out
+
+
+def in_place_continuations(ops: np.ndarray) -> np.ndarray:
+    """(m, 4) int64: for operation k of ``ops`` (m, depth) whose first action is replaced by the
+    in-place action x (``ACT_R``, ``ACT_C`` or ``ACT_W``; the robot stays in its cell, facing
+    otherwise), the operation that carries the robot from its new heading through k's cells at
+    the same steps, then waits (-1: none in the set; for k's own first action, k's continuation).
+    Cells are compared in the robot's frame, so one table serves every heading."""
+    m, depth = ops.shape
+    dr = ((0, 1), (1, 0), (0, -1), (-1, 0))
+    turn = {ACT_R: 1, ACT_C: 3, ACT_W: 0}
+
+    def cells(k: int, h: int) -> tuple:
+        r = c = 0
+        out = []
+        for x in ops[k].tolist():
+            if x == ACT_F:
+                r, c = r + dr[h][0], c + dr[h][1]
+            elif x in turn:
+                h = (h + turn[x]) % 4
+            out.append((r, c))
+        return tuple(out)
+
+    by_path = {}
+    for j in range(m - 1, -1, -1):            # the first operation of a path wins
+        for h in range(4):
+            by_path[(h, cells(j, h))] = j
+    table = np.full((m, 4), -1, np.int64)
+    for k in range(m):
+        path = cells(k, 0)
+        want = path[1:] + path[-1:]
+        for x in (ACT_R, ACT_C, ACT_W):
+            table[k, x] = by_path.get((turn[x], want), -1)
+    return table
+
+
 @njit(cache=True, nogil=True)
-def epibt_costs(nbr, ops, pref, pos, head, dist, slot, goal, traj, cost, rank):
+def turn_in_place(nbr, ops, desire, pos, head, dist, slot, act, next_op, cont):
+    """The in-place action each robot executes (module docstring, after the 2024 winner's
+    ``ENABLE_SMART_OPERATION_EXECUTION``): where robot a's operation ``desire[a]`` starts with all
+    waits, a turn then a wait, or two equal turns, the candidates are (wait, either turn), (wait,
+    that turn) and (either turn); the one whose heading is closest to the goal
+    (:func:`~.kernels.heading_cost` of distance row ``slot[a]``) is written into ``act`` (n,), the
+    earlier candidate on a tie, and its continuation (``cont``, :func:`in_place_continuations`) into
+    ``next_op`` (n,). Robots without a goal (slot -1) keep their plans."""
+    cand = np.empty(3, np.int64)
+    for a in range(pos.shape[0]):
+        s = slot[a]
+        if s < 0:
+            continue
+        k = desire[a]
+        x0 = ops[k, 0]
+        nc = 0
+        if x0 == ACT_R or x0 == ACT_C:
+            if ops[k, 1] == x0:
+                if ops[k, 2] == ACT_W:
+                    cand[0], cand[1], cand[2], nc = ACT_W, ACT_R, ACT_C, 3
+                else:
+                    cand[0], cand[1], nc = ACT_R, ACT_C, 2
+            elif ops[k, 1] == ACT_W:
+                cand[0], cand[1], nc = ACT_W, x0, 2
+        elif x0 == ACT_W:
+            still = True
+            for t in range(ops.shape[1]):
+                if ops[k, t] != ACT_W:
+                    still = False
+            if still:
+                cand[0], cand[1], cand[2], nc = ACT_W, ACT_R, ACT_C, 3
+        best = x0
+        best_c = np.inf
+        for i in range(nc):
+            h = head[a]
+            if cand[i] == ACT_R:
+                h = (h + 1) & 3
+            elif cand[i] == ACT_C:
+                h = (h + 3) & 3
+            c = heading_cost(nbr, dist, s, pos[a], h)
+            if c < best_c:
+                best_c = c
+                best = cand[i]
+        if best != x0 and cont[k, best] >= 0:
+            act[a] = best
+            next_op[a] = cont[k, best]
+
+
+@njit(cache=True, nogil=True)
+def epibt_costs(nbr, ops, pref, pos, head, dist, slot, goal, traj, cost, rank, trail):
     """The paper's cost of every operation of every robot (the "smart distance" of the authors'
     code), and the operations sorted by it. An operation that reaches the robot's goal at step t costs t - 1;
     any other costs the heading-aware steps to the goal from where it ends
@@ -148,7 +255,14 @@ def epibt_costs(nbr, ops, pref, pos, head, dist, slot, goal, traj, cost, rank):
                 continue
             c = 0.0
             if s >= 0:
-                c = heading_cost(nbr, dist, s, cells[depth], heads[depth]) + depth
+                e = cells[depth]
+                h = heads[depth]
+                c = heading_cost(nbr, dist, s, e, h)
+                if trail[k] >= 1:
+                    c = min(c, heading_cost(nbr, dist, s, e, (h + 1) & 3), heading_cost(nbr, dist, s, e, (h + 3) & 3))
+                if trail[k] >= 2:
+                    c = min(c, heading_cost(nbr, dist, s, e, (h + 2) & 3))
+                c += depth
                 for t in range(1, depth + 1):
                     if cells[t] == goal[a]:
                         c = float(t - 1)
@@ -211,6 +325,7 @@ def _build(root, inherit, keep_worse, temp, skip_p, traj, rank, gain, res, desir
     m = rank.shape[1]
     old_score = score[0]
     _remove(root, desire[root], traj, res, gain, score)
+    pushes = 0
     sp = 0
     fr_a[0] = root
     fr_j[0] = 0
@@ -224,6 +339,9 @@ def _build(root, inherit, keep_worse, temp, skip_p, traj, rank, gain, res, desir
             _remove(a, desire[a], traj, res, gain, score)
             _add(c, desire[c], traj, res, gain, score)
             fr_child[sp] = -1
+            vnum[c] -= 1                 # a displacement undone does not count against the robot
+            if vnum[c] <= 0:
+                vstamp[c] = -1           # nor keep it from building as a root later in the pass
         pushed = False
         while fr_j[sp] < m:
             k = rank[a, fr_j[sp]]
@@ -252,7 +370,7 @@ def _build(root, inherit, keep_worse, temp, skip_p, traj, rank, gain, res, desir
                     vstamp[fr_a[i]] = now
                     vnum[fr_a[i]] = revisits
                 return 1
-            if instack[b] or sp + 1 >= max_chain:
+            if instack[b] or sp + 1 >= max_chain or pushes >= MAX_PUSHES:
                 continue
             if vstamp[b] == now and vnum[b] >= revisits:
                 continue
@@ -264,6 +382,7 @@ def _build(root, inherit, keep_worse, temp, skip_p, traj, rank, gain, res, desir
             _remove(b, desire[b], traj, res, gain, score)
             _add(a, k, traj, res, gain, score)
             fr_child[sp] = b
+            pushes += 1
             if vstamp[b] != now:
                 vstamp[b] = now
                 vnum[b] = 0
@@ -456,7 +575,8 @@ class EPIBTPlan:
     action sequences tried, the all-wait one first (default :data:`EPIBT_OPERATIONS`); anneal:
     LNS by annealed restarts (module docstring: ``temp``, ``decay`` per build, ``skip_p``,
     ``restart`` x n builds per restart, ``anneal_chunk`` builds per compiled call between clock
-    checks), else by greedy passes. Memory:
+    checks), else by greedy passes; in_place: waits at the end of an operation costed as the turns
+    they could be, and the in-place action facing the goal best executed (module docstring). Memory:
     n x m x (depth + 1) int64 cells plus three arrays of n x m (about 3 KiB per robot at depth 4),
     and per chain a reservation table of (depth + 1) x cells int64 (with ``anneal`` a second per
     chain, its best plans, and one of the first pass's plans). ``stats`` counts steps, passes
@@ -467,12 +587,16 @@ class EPIBTPlan:
     def __init__(self, grid, n: int, seed: int = 0, revisits: int = 10,
                  max_chain: int = 256, chunk: int = 16, threads: int | None = None,
                  operations: np.ndarray | None = None, anneal: bool = True, temp: float = 0.001,
-                 decay: float = 0.999, skip_p: float = 0.3, restart: int = 30, anneal_chunk: int = 128):
+                 decay: float = 0.999, skip_p: float = 0.3, restart: int = 30, anneal_chunk: int = 128,
+                 in_place: bool = True):
         import os
         self.grid, self.n = grid, n
         self.ops = EPIBT_OPERATIONS if operations is None else np.asarray(operations, np.int64)
         self.cont = continuations(self.ops)
         self.pref = operation_preference(self.ops)
+        self.in_place = in_place
+        self.trail = trailing_waits(self.ops) if in_place else np.zeros(len(self.ops), np.int64)
+        self.in_place_cont = in_place_continuations(self.ops)
         m, depth = self.ops.shape
         self.traj = np.empty((n, m, depth + 1), np.int64)
         self.cost = np.empty((n, m))
@@ -520,7 +644,7 @@ class EPIBTPlan:
         joint action)."""
         n = len(pos)
         epibt_costs(self.grid.nbr, self.ops, self.pref, pos, head, dist, slot, goal, self.traj, self.cost,
-                    self.rank)
+                    self.rank, self.trail)
         prank = np.empty(n, np.int64)
         prank[order] = np.arange(n)
         power = np.where(slot >= 0, ((n + 1 - prank) / (n + 1)) ** 2, 0.0)
@@ -558,7 +682,11 @@ class EPIBTPlan:
         self.stats["epibt_passes"] += sum(c.passes for c in self.chains) - passes0
         self.stats["epibt_taken"] += sum(c.taken for c in self.chains) - taken0
         self.prev_op = self.cont[main.desire]
-        return self.ops[main.desire, 0].copy()
+        act = self.ops[main.desire, 0].copy()
+        if self.in_place:
+            turn_in_place(self.grid.nbr, self.ops, main.desire, pos, head, dist, slot, act, self.prev_op,
+                          self.in_place_cont)
+        return act
 
 
 def warm_up() -> None:
