@@ -75,6 +75,24 @@ WAIT_OP = 0             # the first operation of every set: wait, wait, wait
 MAX_PUSHES = 3000       # displacements one build tries at most (the 2024 winner's code: 3,000)
 
 
+def _walk(seq, h: int = 0) -> tuple[tuple, int]:
+    """The cells (row, col offsets from the start, one per action) an action sequence passes through
+    from heading ``h``, and the heading it ends with; any fixed convention of headings serves, since
+    only paths are compared."""
+    dr = ((0, 1), (1, 0), (0, -1), (-1, 0))
+    r = c = 0
+    cells = []
+    for a in seq:
+        if a == ACT_F:
+            r, c = r + dr[h][0], c + dr[h][1]
+        elif a == ACT_R:
+            h = (h + 1) % 4
+        elif a == ACT_C:
+            h = (h + 3) % 4
+        cells.append((r, c))
+    return tuple(cells), h
+
+
 def epibt_operations(depth: int) -> np.ndarray:
     """EPIBT's operations for MAPF_T (the paper's rules): action sequences of ``depth`` in which
     every turn is followed by a forward move later in the sequence (a turn at the end buys
@@ -83,7 +101,6 @@ def epibt_operations(depth: int) -> np.ndarray:
     of sequences with the same path the one that turns first). (m, depth) int64, the all-wait
     sequence first; 17 sequences at depth 3 (where all sequences without a turn undone are 45),
     48 at depth 4, 136 at depth 5."""
-    dr = ((0, 1), (1, 0), (0, -1), (-1, 0))            # any fixed convention: only paths are compared
     out = [(ACT_W,) * depth]
     seen = {(0, ((0, 0),) * depth)}                     # (last heading, cells) of the sequences kept
     for seq in itertools.product((ACT_F, ACT_R, ACT_C, ACT_W), repeat=depth):
@@ -100,17 +117,8 @@ def epibt_operations(depth: int) -> np.ndarray:
                 runs.append(a)
         if not ok:
             continue
-        r = c = h = 0
-        cells = []
-        for a in seq:
-            if a == ACT_F:
-                r, c = r + dr[h][0], c + dr[h][1]
-            elif a == ACT_R:
-                h = (h + 1) % 4
-            elif a == ACT_C:
-                h = (h + 3) % 4
-            cells.append((r, c))
-        key = (h, tuple(cells))
+        cells, h = _walk(seq)
+        key = (h, cells)
         if key not in seen:
             seen.add(key)
             out.append(seq)
@@ -153,28 +161,16 @@ def in_place_continuations(ops: np.ndarray) -> np.ndarray:
     otherwise), the operation that carries the robot from its new heading through k's cells at
     the same steps, then waits (-1: none in the set; for k's own first action, k's continuation).
     Cells are compared in the robot's frame, so one table serves every heading."""
-    m, depth = ops.shape
-    dr = ((0, 1), (1, 0), (0, -1), (-1, 0))
+    m = len(ops)
     turn = {ACT_R: 1, ACT_C: 3, ACT_W: 0}
-
-    def cells(k: int, h: int) -> tuple:
-        r = c = 0
-        out = []
-        for x in ops[k].tolist():
-            if x == ACT_F:
-                r, c = r + dr[h][0], c + dr[h][1]
-            elif x in turn:
-                h = (h + turn[x]) % 4
-            out.append((r, c))
-        return tuple(out)
-
+    seqs = ops.tolist()
     by_path = {}
     for j in range(m - 1, -1, -1):            # the first operation of a path wins
         for h in range(4):
-            by_path[(h, cells(j, h))] = j
+            by_path[(h, _walk(seqs[j], h)[0])] = j
     table = np.full((m, 4), -1, np.int64)
     for k in range(m):
-        path = cells(k, 0)
+        path = _walk(seqs[k])[0]
         want = path[1:] + path[-1:]
         for x in (ACT_R, ACT_C, ACT_W):
             table[k, x] = by_path.get((turn[x], want), -1)
@@ -206,13 +202,8 @@ def turn_in_place(nbr, ops, desire, pos, head, dist, slot, act, next_op, cont):
                     cand[0], cand[1], nc = ACT_R, ACT_C, 2
             elif ops[k, 1] == ACT_W:
                 cand[0], cand[1], nc = ACT_W, x0, 2
-        elif x0 == ACT_W:
-            still = True
-            for t in range(ops.shape[1]):
-                if ops[k, t] != ACT_W:
-                    still = False
-            if still:
-                cand[0], cand[1], cand[2], nc = ACT_W, ACT_R, ACT_C, 3
+        elif k == WAIT_OP:
+            cand[0], cand[1], cand[2], nc = ACT_W, ACT_R, ACT_C, 3
         best = x0
         best_c = np.inf
         for i in range(nc):
@@ -596,7 +587,7 @@ class EPIBTPlan:
         self.pref = operation_preference(self.ops)
         self.in_place = in_place
         self.trail = trailing_waits(self.ops) if in_place else np.zeros(len(self.ops), np.int64)
-        self.in_place_cont = in_place_continuations(self.ops)
+        self.in_place_cont = in_place_continuations(self.ops) if in_place else None
         m, depth = self.ops.shape
         self.traj = np.empty((n, m, depth + 1), np.int64)
         self.cost = np.empty((n, m))
