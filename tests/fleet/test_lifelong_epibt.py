@@ -10,7 +10,7 @@ from pathlib import Path
 import numpy as np
 
 from rce_fleet.lifelong import DistanceCache, LifelongGrid, check_actions
-from rce_fleet.lifelong.epibt import EPIBTPlan, epibt_anneal, epibt_init, epibt_pass, warm_up
+from rce_fleet.lifelong.epibt import CALL_PUSHES, EPIBTPlan, epibt_anneal, epibt_init, epibt_pass, warm_up
 from rce_fleet.lifelong.guidance import lane_costs
 from rce_fleet.lifelong.grid import EAST, NORTH, SOUTH, WEST
 from rce_fleet.lifelong.kernels import ACT_F, ACT_W
@@ -83,8 +83,10 @@ def test_plans_are_conflict_free_and_lns_never_lowers_the_weighted_progress():
         for k in range(20):                                  # LNS passes: any robot displaced, kept if not worse
             c.now += 1
             perm = np.random.default_rng(k).permutation(len(pos)).astype(np.int64)
-            epibt_pass(perm, 0, len(perm), False, False, e.traj, e.rank, e.gain, c.res, c.desire, prank, c.instack,
-                       c.vstamp, c.vnum, c.now, e.revisits, e.max_chain, c.score)
+            _, reached = epibt_pass(perm, 0, len(perm), False, False, e.traj, e.rank, e.gain, c.res, c.desire,
+                                    prank, c.instack, c.vstamp, c.vnum, c.now, e.revisits, e.max_chain, c.score,
+                                    e.call_pushes)
+            assert reached == len(perm)                      # a few robots: far within one call's displacements
             assert e.score[0] >= first - 1e-6
             _check_plans(g, e, pos)
         # the score is the weighted progress of the plans held, recomputed from scratch
@@ -257,6 +259,34 @@ def test_turns_in_place_keep_every_step_valid_and_the_plans_continuing():
     assert changed > 0                                       # some robots turned where their plans stood still
 
 
+def test_a_compiled_call_stops_at_its_displacements_and_the_pass_goes_on_to_the_same_plans():
+    warm_up()
+    g, pos, head, goals = _packed(0, 12, 12, 90)
+    cache = DistanceCache(g, max_bytes=2 ** 24)
+    slot = _slots(cache, goals)
+    order = np.arange(len(pos), dtype=np.int64)
+    plans = []
+    for budget in (CALL_PUSHES, 1):              # one call per chunk of robots; one per build that displaced
+        e = EPIBTPlan(g, len(pos), seed=0, call_pushes=budget)
+        e.plan(pos, head, cache.table, slot, goals, order, time.perf_counter() + 5, lns=False)
+        _check_plans(g, e, pos)
+        plans.append(e.desire.copy())
+    assert (plans[0] == plans[1]).all()
+    # a call from the start of the pass with room for one displacement stops after the first build that displaced
+    c = e.chains[0]
+    prank = np.arange(len(pos), dtype=np.int64)
+    epibt_init(e.traj, pos, np.full(len(pos), -1, np.int64), c.desire, c.res, e.gain, c.score)
+    c.now += 1
+    _, reached = epibt_pass(order, 0, len(order), True, True, e.traj, e.rank, e.gain, c.res, c.desire, prank,
+                            c.instack, c.vstamp, c.vnum, c.now, e.revisits, e.max_chain, c.score, 1)
+    assert 0 < reached < len(order)
+    _check_plans(g, e, pos)
+    took, _, ran = epibt_anneal(0, 1000, 0.0, 1.0, 0.0, e.traj, e.rank, e.gain, c.res, c.desire, prank, c.instack,
+                                c.vstamp, c.vnum, c.now + 1, e.revisits, e.max_chain, c.score, 1)
+    assert 0 < ran < 1000
+    _check_plans(g, e, pos)
+
+
 def test_a_robot_of_higher_priority_displaces_the_one_in_its_way():
     # a one-cell corridor: robot 1 stands east of robot 0, facing east; robot 0 (first in priority)
     # wants the east end; robot 1 has no task and its plan (wait) is in the way
@@ -366,8 +396,10 @@ def test_annealing_keeps_a_worse_result_only_when_hot_and_restarts_answer_the_be
         c.desire[:], c.res[:], c.score[:] = saved
         low = first
         for i in range(400):
-            took, t_after = epibt_anneal(i, 1, temp, 0.5, 0.0, e.traj, e.rank, e.gain, c.res, c.desire, prank,
-                                         c.instack, c.vstamp, c.vnum, c.now + 1, e.revisits, e.max_chain, c.score)
+            took, t_after, ran = epibt_anneal(i, 1, temp, 0.5, 0.0, e.traj, e.rank, e.gain, c.res, c.desire,
+                                              prank, c.instack, c.vstamp, c.vnum, c.now + 1, e.revisits, e.max_chain,
+                                              c.score, e.call_pushes)
+            assert ran == 1
             c.now += 1
             assert t_after == temp * 0.5                             # the temperature decays per build
             low = min(low, float(c.score[0]))

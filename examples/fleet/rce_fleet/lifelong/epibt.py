@@ -40,6 +40,11 @@ plan, its robots stay as built for the rest of the pass (as in the authors' code
   (docs/lifelong.md); ``anneal=False`` runs those passes instead: robots in a random order build
   again, and the new plans are kept only when the progress does not fall.
 
+The builds run compiled, without the GIL, in calls of ``chunk`` robots (first pass) or
+``anneal_chunk`` builds (LNS) between readings of the step's clock; a call starts no more builds
+once its builds have tried ``CALL_PUSHES`` displacements (about 10 ms here), so one build of many
+displacements cannot carry a call far past the step's deadline.
+
 Only the first action of each operation is executed; it is a valid joint action by
 construction. Two habits of the 2024 winner's code (github.com/Straple/LORR24, ``get_smart_dist`` and
 ``ENABLE_SMART_OPERATION_EXECUTION`` in ``epibt.cpp``) let a robot turn where its plan stands still:
@@ -73,6 +78,7 @@ __all__ = ["EPIBT_DEPTH", "EPIBT_OPERATIONS", "EPIBTPlan", "epibt_operations", "
 
 WAIT_OP = 0             # the first operation of every set: wait, wait, wait
 MAX_PUSHES = 3000       # displacements one build tries at most (the 2024 winner's code: 3,000)
+CALL_PUSHES = 20000     # displacements after which a compiled call starts no more builds (about 10 ms)
 
 
 def _walk(seq, h: int = 0) -> tuple[tuple, int]:
@@ -306,13 +312,14 @@ def _remove(a, k, traj, res, gain, score):
 
 @njit(cache=True)
 def _build(root, inherit, keep_worse, temp, skip_p, traj, rank, gain, res, desire, prank, instack, vstamp, vnum,
-           now, revisits, max_chain, fr_a, fr_j, fr_old, fr_child, score):
+           now, revisits, max_chain, fr_a, fr_j, fr_old, fr_child, score, spent):
     """Build robot ``root`` (module docstring). inherit: only robots of lower priority (larger
     ``prank``) than the root may be displaced; keep_worse: keep the result even when the
     weighted progress ``score[0]`` fell; temp > 0: keep a result that fell by the share f of the
     old score with probability exp(-f / temp) (annealing); skip_p: the probability that a robot
     in the way is not displaced (the operation is skipped instead). Returns 1 when a new plan
-    was taken, 0 when every plan was put back. fr_*: (max_chain + 1,) int64 scratch."""
+    was taken, 0 when every plan was put back. fr_*: (max_chain + 1,) int64 scratch; spent: (1,)
+    int64, the displacements tried, added to."""
     m = rank.shape[1]
     old_score = score[0]
     _remove(root, desire[root], traj, res, gain, score)
@@ -374,6 +381,7 @@ def _build(root, inherit, keep_worse, temp, skip_p, traj, rank, gain, res, desir
             _add(a, k, traj, res, gain, score)
             fr_child[sp] = b
             pushes += 1
+            spent[0] += 1
             if vstamp[b] != now:
                 vstamp[b] = now
                 vnum[b] = 0
@@ -447,42 +455,52 @@ def epibt_init(traj, pos, prev, desire, res, gain, score):
 
 @njit(cache=True, nogil=True)
 def epibt_pass(order, start, stop, inherit, keep_worse, traj, rank, gain, res, desire, prank, instack, vstamp,
-               vnum, now, revisits, max_chain, score):
+               vnum, now, revisits, max_chain, score, budget):
     """Robots ``order[start:stop]`` build unless displaced already in this pass (pass stamp
-    ``now``); returns how many took a new plan."""
+    ``now``), until the builds have tried ``budget`` displacements (the caller reads its clock and
+    goes on from where this call stopped). Returns (plans taken, the index in ``order`` to go on
+    from)."""
     fr = np.empty((4, max_chain + 1), np.int64)
+    spent = np.zeros(1, np.int64)
     took = 0
     for i in range(start, stop):
+        if spent[0] >= budget:
+            return took, i
         r = order[i]
         if vstamp[r] == now:
             continue
         vstamp[r] = now
         vnum[r] = 1
         took += _build(r, inherit, keep_worse, 0.0, 0.0, traj, rank, gain, res, desire, prank, instack, vstamp,
-                       vnum, now, revisits, max_chain, fr[0], fr[1], fr[2], fr[3], score)
-    return took
+                       vnum, now, revisits, max_chain, fr[0], fr[1], fr[2], fr[3], score, spent)
+    return took, stop
 
 
 @njit(cache=True, nogil=True)
 def epibt_anneal(seed_, builds, temp, decay, skip_p, traj, rank, gain, res, desire, prank, instack, vstamp, vnum,
-                 now, revisits, max_chain, score):
+                 now, revisits, max_chain, score, budget):
     """``builds`` robots drawn at random (with replacement; numba's generator of this thread
     seeded with ``seed_``) build one after another, any robot may be displaced (each with
     probability 1 - ``skip_p``), and a result that lowers the weighted progress is kept by
-    annealing at temperature ``temp``, multiplied by ``decay`` after every build. Pass stamps
-    from ``now`` on, one per build. Returns (plans taken, the temperature reached)."""
+    annealing at temperature ``temp``, multiplied by ``decay`` after every build; no build starts
+    once the builds have tried ``budget`` displacements (the caller reads its clock). Pass
+    stamps from ``now`` on, one per build. Returns (plans taken, the temperature reached, builds
+    run)."""
     np.random.seed(seed_)
     fr = np.empty((4, max_chain + 1), np.int64)
+    spent = np.zeros(1, np.int64)
     n = desire.shape[0]
     took = 0
     for i in range(builds):
+        if spent[0] >= budget:
+            return took, temp, i
         r = np.random.randint(0, n)
         vstamp[r] = now + i
         vnum[r] = 1
         took += _build(r, False, False, temp, skip_p, traj, rank, gain, res, desire, prank, instack, vstamp, vnum,
-                       now + i, revisits, max_chain, fr[0], fr[1], fr[2], fr[3], score)
+                       now + i, revisits, max_chain, fr[0], fr[1], fr[2], fr[3], score, spent)
         temp *= decay
-    return took, temp
+    return took, temp, builds
 
 
 class _Chain:
@@ -509,15 +527,18 @@ class _Chain:
 
     def run(self, plan: EPIBTPlan, order: np.ndarray, inherit: bool, keep_worse: bool, prank: np.ndarray,
             stop: float) -> bool:
-        """One pass over ``order`` in chunks (the kernel runs without the GIL); False when
-        ``stop`` came first."""
+        """One pass over ``order`` in chunks of robots and of displacements (the kernel runs
+        without the GIL); False when ``stop`` came first."""
         self.now += 1
-        for s in range(0, len(order), plan.chunk):
+        s = 0
+        while s < len(order):
             if time.perf_counter() >= stop:
                 return False
-            self.taken += epibt_pass(order, s, min(len(order), s + plan.chunk), inherit, keep_worse, plan.traj,
-                                     plan.rank, plan.gain, self.res, self.desire, prank, self.instack, self.vstamp,
-                                     self.vnum, self.now, plan.revisits, plan.max_chain, self.score)
+            took, s = epibt_pass(order, s, min(len(order), s + plan.chunk), inherit, keep_worse, plan.traj,
+                                 plan.rank, plan.gain, self.res, self.desire, prank, self.instack, self.vstamp,
+                                 self.vnum, self.now, plan.revisits, plan.max_chain, self.score,
+                                 plan.call_pushes)
+            self.taken += took
         self.passes += 1
         return True
 
@@ -542,10 +563,10 @@ class _Chain:
             temp, left = plan.temp, plan.restart * n
             while left > 0 and time.perf_counter() < stop:
                 k = min(left, plan.anneal_chunk)
-                took, temp = epibt_anneal(int(rng.integers(2 ** 31)), k, temp, plan.decay, plan.skip_p, plan.traj,
-                                          plan.rank, plan.gain, self.res, self.desire, prank, self.instack,
-                                          self.vstamp, self.vnum, self.now + 1, plan.revisits, plan.max_chain,
-                                          self.score)
+                took, temp, k = epibt_anneal(int(rng.integers(2 ** 31)), k, temp, plan.decay, plan.skip_p,
+                                             plan.traj, plan.rank, plan.gain, self.res, self.desire, prank,
+                                             self.instack, self.vstamp, self.vnum, self.now + 1, plan.revisits,
+                                             plan.max_chain, self.score, plan.call_pushes)
                 self.now += k
                 self.taken += took
                 left -= k
@@ -560,9 +581,10 @@ class EPIBTPlan:
 
     grid: the map; n: robots; seed: the LNS's orders; revisits: times a robot may be
     displaced per pass; max_chain: robots in one chain of displacements at most; chunk:
-    robots built per compiled call between clock checks; threads: LNS chains run at once, each
-    from the first pass's plans with its own random orders, the best kept (default: the CPUs
-    this process may use, at most 2; the kernels release the GIL); operations: (m, depth) the
+    robots built per compiled call between clock checks (fewer where their builds tried
+    ``call_pushes`` displacements, :data:`CALL_PUSHES`; ``anneal_chunk`` likewise); threads: LNS
+    chains run at once, each from the first pass's plans with its own random orders, the best kept
+    (default: the CPUs this process may use, at most 2; the kernels release the GIL); operations: (m, depth) the
     action sequences tried, the all-wait one first (default :data:`EPIBT_OPERATIONS`); anneal:
     LNS by annealed restarts (module docstring: ``temp``, ``decay`` per build, ``skip_p``,
     ``restart`` x n builds per restart, ``anneal_chunk`` builds per compiled call between clock
@@ -579,7 +601,7 @@ class EPIBTPlan:
                  max_chain: int = 256, chunk: int = 16, threads: int | None = None,
                  operations: np.ndarray | None = None, anneal: bool = True, temp: float = 0.001,
                  decay: float = 0.999, skip_p: float = 0.3, restart: int = 30, anneal_chunk: int = 128,
-                 in_place: bool = True):
+                 in_place: bool = True, call_pushes: int = CALL_PUSHES):
         import os
         self.grid, self.n = grid, n
         self.ops = EPIBT_OPERATIONS if operations is None else np.asarray(operations, np.int64)
@@ -606,6 +628,7 @@ class EPIBTPlan:
             from concurrent.futures import ThreadPoolExecutor
             self._pool = ThreadPoolExecutor(len(self.chains) - 1, thread_name_prefix="epibt-lns")
         self.revisits, self.max_chain, self.chunk = revisits, max_chain, chunk
+        self.call_pushes = call_pushes
         self.rng = np.random.default_rng(seed)
         self.stats = {"epibt_steps": 0, "epibt_passes": 0, "epibt_taken": 0, "epibt_unfinished": 0,
                       "epibt_lns_skipped": 0, "epibt_threads": len(self.chains)}
@@ -693,4 +716,4 @@ def warm_up() -> None:
            lns=False)
     c = e.chains[0]
     epibt_anneal(0, 1, 0.001, 0.999, 0.3, e.traj, e.rank, e.gain, c.res, c.desire, np.arange(2, dtype=np.int64),
-                 c.instack, c.vstamp, c.vnum, c.now + 1, e.revisits, e.max_chain, c.score)
+                 c.instack, c.vstamp, c.vnum, c.now + 1, e.revisits, e.max_chain, c.score, e.call_pushes)
