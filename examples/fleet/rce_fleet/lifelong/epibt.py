@@ -12,10 +12,11 @@ operations that fit.
 operation that meets no plan is taken; one that meets exactly one robot's plan takes that
 robot's place, and that robot builds in turn (priority inheritance); one that meets two or more
 is skipped. A robot already in the chain is never displaced, and a robot is displaced at most
-``revisits`` times per pass; a displacement undone (the displaced robot found nothing, both plans put
-back) does not count, as the winner's code forgets it, and one build tries at most ``MAX_PUSHES``
-displacements (3,000, the winner's bound). When the chain finds nothing every plan is put back; when it finds a
-plan, its robots stay as built for the rest of the pass (as in the authors' code).
+``revisits`` times per pass; a displacement undone (the displaced robot found nothing, both plans
+put back) does not count, as the winner's code forgets it, and one build tries at most
+``MAX_PUSHES`` displacements (3,000, the winner's bound). When the chain finds nothing every plan
+is put back; when it finds a plan, its robots stay as built for the rest of the pass (as in the
+authors' code).
 
 - **First pass**: robots in priority order build (a robot displaced earlier in the pass does not
   build again as a root), and only robots of lower priority than the root may be displaced.
@@ -46,8 +47,9 @@ once its builds have tried ``CALL_PUSHES`` displacements (about 10 ms here), so 
 displacements cannot carry a call far past the step's deadline.
 
 Only the first action of each operation is executed; it is a valid joint action by
-construction. Two habits of the 2024 winner's code (github.com/Straple/LORR24, ``get_smart_dist`` and
-``ENABLE_SMART_OPERATION_EXECUTION`` in ``epibt.cpp``) let a robot turn where its plan stands still:
+construction. Two habits of the 2024 winner's code (github.com/Straple/LORR24, ``get_smart_dist``
+and ``ENABLE_SMART_OPERATION_EXECUTION`` in ``epibt.cpp``) let a robot turn where its plan stands
+still:
 
 - **Waits at the end are turns to be**: an operation whose last action is a wait is costed from the
   best heading that wait could turn to (a quarter turn either way; after two waits, the half turn
@@ -68,7 +70,7 @@ import numpy as np
 from numba import njit
 
 from ..numba_cache import seed
-from .kernels import ACT_C, ACT_F, ACT_R, ACT_W, heading_cost
+from .kernels import ACT_C, ACT_F, ACT_R, ACT_W, heading_cost, turned
 from .window import continuations, op_path
 
 seed(__file__)          # numba's cache entries prepared in the tree (sandboxed nodes)
@@ -213,12 +215,7 @@ def turn_in_place(nbr, ops, desire, pos, head, dist, slot, act, next_op, cont):
         best = x0
         best_c = np.inf
         for i in range(nc):
-            h = head[a]
-            if cand[i] == ACT_R:
-                h = (h + 1) & 3
-            elif cand[i] == ACT_C:
-                h = (h + 3) & 3
-            c = heading_cost(nbr, dist, s, pos[a], h)
+            c = heading_cost(nbr, dist, s, pos[a], turned(head[a], cand[i]))
             if c < best_c:
                 best_c = c
                 best = cand[i]
@@ -256,7 +253,8 @@ def epibt_costs(nbr, ops, pref, pos, head, dist, slot, goal, traj, cost, rank, t
                 h = heads[depth]
                 c = heading_cost(nbr, dist, s, e, h)
                 if trail[k] >= 1:
-                    c = min(c, heading_cost(nbr, dist, s, e, (h + 1) & 3), heading_cost(nbr, dist, s, e, (h + 3) & 3))
+                    c = min(c, heading_cost(nbr, dist, s, e, turned(h, ACT_R)),
+                            heading_cost(nbr, dist, s, e, turned(h, ACT_C)))
                 if trail[k] >= 2:
                     c = min(c, heading_cost(nbr, dist, s, e, (h + 2) & 3))
                 c += depth
@@ -323,7 +321,7 @@ def _build(root, inherit, keep_worse, temp, skip_p, traj, rank, gain, res, desir
     m = rank.shape[1]
     old_score = score[0]
     _remove(root, desire[root], traj, res, gain, score)
-    pushes = 0
+    spent0 = spent[0]                    # the displacements this build tries: spent[0] - spent0
     sp = 0
     fr_a[0] = root
     fr_j[0] = 0
@@ -368,7 +366,7 @@ def _build(root, inherit, keep_worse, temp, skip_p, traj, rank, gain, res, desir
                     vstamp[fr_a[i]] = now
                     vnum[fr_a[i]] = revisits
                 return 1
-            if instack[b] or sp + 1 >= max_chain or pushes >= MAX_PUSHES:
+            if instack[b] or sp + 1 >= max_chain or spent[0] - spent0 >= MAX_PUSHES:
                 continue
             if vstamp[b] == now and vnum[b] >= revisits:
                 continue
@@ -380,7 +378,6 @@ def _build(root, inherit, keep_worse, temp, skip_p, traj, rank, gain, res, desir
             _remove(b, desire[b], traj, res, gain, score)
             _add(a, k, traj, res, gain, score)
             fr_child[sp] = b
-            pushes += 1
             spent[0] += 1
             if vstamp[b] != now:
                 vstamp[b] = now
@@ -584,8 +581,8 @@ class EPIBTPlan:
     robots built per compiled call between clock checks (fewer where their builds tried
     ``call_pushes`` displacements, :data:`CALL_PUSHES`; ``anneal_chunk`` likewise); threads: LNS
     chains run at once, each from the first pass's plans with its own random orders, the best kept
-    (default: the CPUs this process may use, at most 2; the kernels release the GIL); operations: (m, depth) the
-    action sequences tried, the all-wait one first (default :data:`EPIBT_OPERATIONS`); anneal:
+    (default: the CPUs this process may use, at most 2; the kernels release the GIL); operations:
+    (m, depth) the action sequences tried, the all-wait one first (default :data:`EPIBT_OPERATIONS`); anneal:
     LNS by annealed restarts (module docstring: ``temp``, ``decay`` per build, ``skip_p``,
     ``restart`` x n builds per restart, ``anneal_chunk`` builds per compiled call between clock
     checks), else by greedy passes; in_place: waits at the end of an operation costed as the turns

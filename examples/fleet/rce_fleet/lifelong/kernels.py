@@ -22,7 +22,7 @@ seed(__file__)          # numba's cache entries prepared in the tree (sandboxed 
 
 __all__ = ["ACT_C", "ACT_F", "ACT_R", "ACT_W", "MOVE_WAIT", "NO_PREFER", "UNREACHABLE", "bfs_fill", "bfs_multi",
            "bfs_pair", "dial_fill", "heading_cost", "heap_pop", "heap_push", "prefer_table", "preferred",
-           "mapf_t_actions", "heading_costs", "pibt_step", "warm_up"]
+           "mapf_t_actions", "heading_costs", "pibt_step", "turned", "warm_up"]
 
 UNREACHABLE = 65535
 # MAPF_T actions (start-kit order of the letters F, R, C, W)
@@ -547,6 +547,17 @@ def mapf_t_actions(nbr, pos, head, nxt, dist, slot, act, claim):
             c = pos[a]
             a = mover_into[c]
     return cancelled
+
+
+@njit(cache=True)
+def turned(h, x):
+    """The heading (0 - 3, E S W N) after MAPF_T action ``x`` from heading ``h``: ``ACT_R`` a quarter
+    turn clockwise, ``ACT_C`` one counter-clockwise, a move or wait none."""
+    if x == ACT_R:
+        return (h + 1) & 3
+    if x == ACT_C:
+        return (h + 3) & 3
+    return h
 
 
 @njit(cache=True)

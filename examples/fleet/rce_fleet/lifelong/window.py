@@ -33,7 +33,7 @@ import numpy as np
 from numba import njit
 
 from ..numba_cache import seed
-from .kernels import ACT_C, ACT_F, ACT_R, ACT_W, heading_cost
+from .kernels import ACT_C, ACT_F, ACT_R, ACT_W, heading_cost, turned
 
 seed(__file__)          # numba's cache entries prepared in the tree (sandboxed nodes)
 
@@ -71,10 +71,7 @@ def _trajectory(nbr, ops, k, u, h, cells, heads):
             if v < 0:
                 return False
             u = v
-        elif x == ACT_R:
-            h = (h + 1) & 3
-        elif x == ACT_C:
-            h = (h + 3) & 3
+        h = turned(h, x)
         cells[t + 1] = u
         heads[t + 1] = h
     return True
