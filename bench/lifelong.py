@@ -68,6 +68,10 @@ PEERS = (ROOT / ".." / "peers").resolve()      # where the docs check out the pe
 # the 2024 winner's command (github.com/Straple/LORR24): EPIBT with operations of four actions and LNS,
 # its guidance graph, the greedy scheduler
 WINNER_ARGS = ("--pa", "pepibt(4)_lns", "--gg", "enable", "--sa", "greedy")
+# ... and what its authors added for one instance: on the competition's GAME 4,000 of the 6,500 robots
+# never take a task (``--disable_agents 4000``, their Solution/tester.cpp); with every robot on a task
+# its code jams there from step ~700 (docs/results/lifelong.md)
+WINNER_INSTANCE_ARGS = {"GAME": ("--disable_agents", "4000")}
 
 
 def published(results_md: Path) -> dict[str, dict]:
@@ -313,8 +317,10 @@ def _parser() -> argparse.ArgumentParser:
                     help="run only --winner and --peer; rce's count is its row's in the --doc table")
     mr.add_argument("--winner", type=Path, metavar="PATH",
                     help="the 2024 winner's lifelong binary, built from its source (docs/lifelong.md)")
-    mr.add_argument("--winner-args", type=shlex.split, default=WINNER_ARGS, metavar="ARGS",
-                    help=f"its arguments, one shell-quoted string (default \"{shlex.join(WINNER_ARGS)}\")")
+    mr.add_argument("--winner-args", type=shlex.split, metavar="ARGS",
+                    help=f"its arguments on every instance, one shell-quoted string (default "
+                         f"\"{shlex.join(WINNER_ARGS)}\", and on GAME its authors' "
+                         "\"--disable_agents 4000\" after them)")
     mr.add_argument("--winner-cwd", type=Path, metavar="DIR",
                     help="the directory it runs in, where it reads its guidance maps (its source tree; default: "
                          "two levels above --winner)")
@@ -337,19 +343,22 @@ def _rce_runner(args, peer: Path | None, validate: bool = False):
     return run
 
 
-def _peer_runner(binary: Path, extra: tuple[str, ...], cwd: Path | None, limit_ms: float, label: str):
-    """``run(problem, steps)`` -> a start-kit-built entry's counts on it, or ``{"error": ...}``
+def _peer_runner(binary: Path, extra: tuple[str, ...], cwd: Path | None, limit_ms: float, label: str,
+                 per_instance: dict[str, tuple[str, ...]] | None = None):
+    """``run(problem, steps)`` -> a start-kit-built entry's counts on it, with the arguments it was
+    given (``args``: ``extra``, then ``per_instance``'s for the problem's name), or ``{"error": ...}``
     when it fails (e.g. killed out of memory), so that the round goes on."""
     def run(path: Path, steps: int) -> dict:
         from rce_fleet.lifelong.runner import rich_progress
         from startkit_peer import run_peer
+        argv = (*extra, *(per_instance or {}).get(path.stem, ()))
         try:
             with rich_progress(steps, f"{path.stem} ({label})") as cb:
-                return run_peer(binary, path, steps, limit_ms, progress=lambda k: cb(k, 0, 0.0), extra=extra,
-                                cwd=cwd, curve=True)
+                return {**run_peer(binary, path, steps, limit_ms, progress=lambda k: cb(k, 0, 0.0), extra=argv,
+                                   cwd=cwd, curve=True), "args": list(argv)}
         except RuntimeError as e:
             print(f"{label} failed on {path.name}: {e}", file=sys.stderr)
-            return {"error": str(e).splitlines()[0]}
+            return {"error": str(e).splitlines()[0], "args": list(argv)}
     return run
 
 
@@ -374,9 +383,10 @@ def _main_round(args, peer: Path | None) -> int:
             print(f"--winner {args.winner}: not an executable (docs/lifelong.md says how it is built)",
                   file=sys.stderr)
             return 2
-        runners["winner"] = _peer_runner(args.winner, tuple(args.winner_args),
+        own = args.winner_args is None
+        runners["winner"] = _peer_runner(args.winner, WINNER_ARGS if own else tuple(args.winner_args),
                                          args.winner_cwd or args.winner.resolve().parent.parent,
-                                         args.plan_time_limit, "winner")
+                                         args.plan_time_limit, "winner", WINNER_INSTANCE_ARGS if own else None)
     if peer is not None:
         runners["default"] = _peer_runner(peer, (), None, args.plan_time_limit, "default entry")
     rce_run = runners["rce"]

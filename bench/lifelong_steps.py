@@ -27,7 +27,6 @@ from __future__ import annotations
 
 import argparse
 import json
-import re
 import sys
 from collections import OrderedDict
 from pathlib import Path
@@ -36,8 +35,8 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from lifelong_waits import actions, replay  # noqa: E402
+from startkit_peer import FINISH  # noqa: E402
 
-FINISH = re.compile(r"timestep=(\d+)\] Agent (\d+) finishes task (\d+)")
 ROW_BYTES = 512 * 2 ** 20          # the bound of the per-goal maps kept at once
 
 

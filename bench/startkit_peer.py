@@ -25,6 +25,7 @@ from pathlib import Path
 PEER_TAG = "v2.1.2"
 DEBIAN_PACKAGES = ("libboost-all-dev", "cmake", "g++", "make")
 STEP_LINE = re.compile(rb"\[timestep=(\d+)\] planner returns")
+FINISH = re.compile(r"timestep=(\d+)\] Agent (\d+) finishes task (\d+)")     # the start-kit's log
 # ms of preprocessing an entry has before its first step: the 2024 rules give "30 minutes of preprocessing
 # time per map" (the start-kit's Prepare_Your_Submission.md); the start-kit's own default is 30 s, which the
 # 2024 winner's code overran on CITY-01 (1,500 robots on Paris_1_256) on this 2-core machine
@@ -86,6 +87,20 @@ def finished_curve(out: dict, steps: int, task_errands: list[int] | None = None)
     return curve if curve and curve[-1] == int(out.get("numTaskFinished", -1)) else None
 
 
+def log_curve(log_text: str, steps: int, total: int) -> list[int] | None:
+    """Tasks finished by the end of each of ``steps`` steps (cumulative), from the start-kit's log
+    (``"[timestep=S] Agent A finishes task T"``, S counted as the output's events count it): for an
+    entry whose output leaves its events out (the 2024 winner's code). None when the log's finishes
+    do not add up to ``total`` (its ``numTaskFinished``)."""
+    per_step = [0] * steps
+    for m in FINISH.finditer(log_text):
+        t = int(m.group(1))
+        if 1 <= t <= steps:
+            per_step[t - 1] += 1
+    curve = list(itertools.accumulate(per_step))
+    return curve if curve and curve[-1] == total else None
+
+
 def run_peer(binary: Path, problem: Path, steps: int, limit_ms: float, progress=None,
              extra: tuple[str, ...] = (), cwd: Path | None = None, curve: bool = False) -> dict:
     """Run the start-kit on ``problem`` for ``steps`` steps at ``limit_ms`` per step, with the rules'
@@ -121,11 +136,15 @@ def run_peer(binary: Path, problem: Path, steps: int, limit_ms: float, progress=
             why = "killed (out of memory?)" if proc.returncode == -9 else f"exited {proc.returncode}"
             raise RuntimeError(f"start-kit {why} on {problem.name} after {wall:.0f} s\n{err}\n{tail}")
         d = json.loads(out.read_text())
-    got = {"tasks_finished": int(d["numTaskFinished"]), "timeouts": int(d["numEntryTimeouts"]),
-           "invalid_steps": int(d["numPlannerErrors"]), "schedule_errors": int(d["numScheduleErrors"]),
-           "wall_s": wall}
-    if curve and (c := finished_curve(d, steps, None if d.get("tasks") else _task_errands(problem))) is not None:
-        got["curve"] = c
+        got = {"tasks_finished": int(d["numTaskFinished"]), "timeouts": int(d["numEntryTimeouts"]),
+               "invalid_steps": int(d["numPlannerErrors"]), "schedule_errors": int(d["numScheduleErrors"]),
+               "wall_s": wall}
+        if curve:
+            c = finished_curve(d, steps, None if d.get("tasks") else _task_errands(problem))
+            if c is None and log.exists():
+                c = log_curve(log.read_text(errors="replace"), steps, got["tasks_finished"])
+            if c is not None:
+                got["curve"] = c
     return got
 
 

@@ -137,6 +137,46 @@ json.dump({{"numTaskFinished": 40, "numEntryTimeouts": 0, "numPlannerErrors": 0,
     assert r.returncode == 2 and "--peers-only: give --winner or --peer" in r.stderr
 
 
+def test_the_winners_code_runs_with_its_authors_line_for_each_instance(tmp_path):
+    """On GAME the 2024 winner's authors ran their code with 4,000 robots left without a task; the
+    harness gives it that line there and nothing more elsewhere, unless ``--winner-args`` sets one
+    line for all; the arguments given are kept in the result. A stand-in binary records its argv."""
+    archive = _archive(tmp_path / "archive")
+    base = archive / "2024 Competition" / "Main Round Evaluation Instances"
+    shutil.copytree(base / "random.domain", base / "game.domain")
+    (base / "game.domain" / "GAME.json").write_text((base / "random.domain" / "RANDOM-01.json").read_text())
+    (base / "simulation_time.json").write_text(json.dumps({"RANDOM-01": 600, "RANDOM-02": 600, "GAME": 5000}))
+    entry = tmp_path / "bin" / "lifelong"
+    entry.parent.mkdir()
+    entry.write_text(f"""#!{sys.executable}
+import json, pathlib, sys
+argv = sys.argv[1:]
+stem = pathlib.Path(argv[argv.index("-i") + 1]).stem
+json.dump(argv, open(pathlib.Path({str(tmp_path)!r}) / f"argv-{{stem}}.json", "w"))
+json.dump({{"numTaskFinished": 5, "numEntryTimeouts": 0, "numPlannerErrors": 0, "numScheduleErrors": 0}},
+          open(argv[argv.index("-o") + 1], "w"))
+""")
+    entry.chmod(0o755)
+    doc = tmp_path / "record.md"
+    doc.write_text(f"# record\n\n{BEGIN}\n| instance | ... |\n|---|\n{END}\n")
+    common = ("--archive", archive, "--only", "RANDOM-01", "GAME", "--steps", 3, "--peers-only", "--winner", entry,
+              "--winner-cwd", tmp_path, "--plan-time-limit", 500, "--doc", doc)
+    r = _bench(*common, "--results", tmp_path / "own")
+    assert r.returncode == 0, r.stderr[-2000:]
+    own = ["--pa", "pepibt(4)_lns", "--gg", "enable", "--sa", "greedy"]
+    tail = {stem: json.loads((tmp_path / f"argv-{stem}.json").read_text())[-8:] for stem in ("RANDOM-01", "GAME")}
+    assert tail["GAME"] == own + ["--disable_agents", "4000"]
+    assert tail["RANDOM-01"][-6:] == own and "--disable_agents" not in tail["RANDOM-01"]
+    kept = json.loads((tmp_path / "own" / "GAME.winner.3.json").read_text())
+    assert kept["args"] == own + ["--disable_agents", "4000"] and kept["tasks_finished"] == 5
+
+    r = _bench(*common, "--results", tmp_path / "set", "--winner-args", "--pa 'epibt(4)'")
+    assert r.returncode == 0, r.stderr[-2000:]
+    for stem in ("RANDOM-01", "GAME"):
+        assert json.loads((tmp_path / f"argv-{stem}.json").read_text())[-2:] == ["--pa", "epibt(4)"]
+    assert json.loads((tmp_path / "set" / "GAME.winner.3.json").read_text())["args"] == ["--pa", "epibt(4)"]
+
+
 def test_the_rate_is_counted_in_whole_windows_and_the_worst_is_named():
     curve = [k // 2 for k in range(1, 1201)]           # a task every second step, then none from step 1,000
     curve[1000:] = [curve[999]] * 200
@@ -193,6 +233,32 @@ json.dump({{"numTaskFinished": 4, "numEntryTimeouts": 0, "numPlannerErrors": 0, 
     argv = json.loads((tmp_path / "argv.json").read_text())
     assert argv[argv.index("-p") + 1] == str(PREPROCESS_MS) == "1800000"
     assert (argv[argv.index("-s") + 1], argv[argv.index("-t") + 1], argv[-2:]) == ("7", "1000", ["--pa", "x"])
+
+
+def test_a_peer_whose_output_leaves_its_events_out_gets_its_curve_from_its_log(tmp_path):
+    """The 2024 winner's code writes no events; the start-kit's log names each finish with its step.
+    The curve is read from there, and left out when the log's finishes do not add up to the count."""
+    entry = tmp_path / "lifelong"
+
+    def stand_in(finished: int) -> None:
+        entry.write_text(f"""#!{sys.executable}
+import json, sys
+argv = sys.argv[1:]
+with open(argv[argv.index("-l") + 1], "w") as log:
+    log.write("[2026-11-30 05:00:00.1]: *info* [timestep=0] Preprocessing success\\n")
+    for step, agent, task in ((2, 5, 11), (2, 6, 12), (4, 5, 13), (9, 1, 14)):
+        log.write(f"[2026-11-30 05:00:01.2]: *info* [timestep={{step}}] Agent {{agent}} finishes task {{task}}\\n")
+json.dump({{"numTaskFinished": {finished}, "numEntryTimeouts": 0, "numPlannerErrors": 0, "numScheduleErrors": 0,
+           "events": []}}, open(argv[argv.index("-o") + 1], "w"))
+""")
+        entry.chmod(0o755)
+
+    stand_in(3)           # the finish at step 9 is past the 5 steps run; the other three add up
+    got = run_peer(entry, RANDOM / "random_32_32_20_100.json", 5, 1000, curve=True)
+    assert got["tasks_finished"] == 3 and got["curve"] == [0, 2, 2, 3, 3]
+    stand_in(4)           # the count says 4, the log's steps hold 3: no curve rather than a wrong one
+    got = run_peer(entry, RANDOM / "random_32_32_20_100.json", 5, 1000, curve=True)
+    assert got["tasks_finished"] == 4 and "curve" not in got
 
 
 def test_main_round_names_what_is_missing(tmp_path):
