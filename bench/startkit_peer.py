@@ -79,12 +79,8 @@ def finished_curve(out: dict, steps: int, task_errands: list[int] | None = None)
             return task_errands[task % len(task_errands)]
     else:
         return None
-    per_step = [0] * steps
-    for t, _, task, seq in out["events"]:
-        if seq == errands(int(task)) and 1 <= t <= steps:
-            per_step[t - 1] += 1
-    curve = list(itertools.accumulate(per_step))
-    return curve if curve and curve[-1] == int(out.get("numTaskFinished", -1)) else None
+    return _cumulative((int(t) for t, _, task, seq in out["events"] if seq == errands(int(task))), steps,
+                       int(out.get("numTaskFinished", -1)))
 
 
 def log_curve(log_text: str, steps: int, total: int) -> list[int] | None:
@@ -92,9 +88,14 @@ def log_curve(log_text: str, steps: int, total: int) -> list[int] | None:
     (``"[timestep=S] Agent A finishes task T"``, S counted as the output's events count it): for an
     entry whose output leaves its events out (the 2024 winner's code). None when the log's finishes
     do not add up to ``total`` (its ``numTaskFinished``)."""
+    return _cumulative((int(m.group(1)) for m in FINISH.finditer(log_text)), steps, total)
+
+
+def _cumulative(finish_steps, steps: int, total: int) -> list[int] | None:
+    """Tasks finished by the end of each of ``steps`` steps from the steps (1-based) of the
+    finishes; None when those within the steps do not add up to ``total``."""
     per_step = [0] * steps
-    for m in FINISH.finditer(log_text):
-        t = int(m.group(1))
+    for t in finish_steps:
         if 1 <= t <= steps:
             per_step[t - 1] += 1
     curve = list(itertools.accumulate(per_step))
