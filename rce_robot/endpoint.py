@@ -296,27 +296,37 @@ class RobotEndpoint:
         log.info("robot endpoint up", ws_port=self.ws_port, data_addr=self.plane.addr)
 
     async def _watch_links(self) -> None:
-        """Tell the master each robot's measured link (:mod:`rce_robot.link_report`) and, when it
-        moved by :data:`~rce_robot.link_report.BATTERY_STEP` points, its charge (read from the
-        ``sensor_msgs/BatteryState`` it publishes)."""
+        """Every :data:`~rce_robot.link_report.EVERY` s, :meth:`_look` at the robots' links. A look
+        that fails is logged and the next one goes on: the placer never loses the reports for good."""
         loop = asyncio.get_running_loop()
         while True:
             await asyncio.sleep(link_report.EVERY)
-            if self.zone.kind == "robot":       # its robot's websocket is local: the robot's link is the uplink
-                up = self.uplink.measure(loop.time())
-                # its round trip: a ping a look (not behind a probe: it would time the probe's bytes),
-                # and after it, when one is due, a probe of its rate (link_report.Uplink.probe_due)
-                if up is not None and self.namespaces and (self._ping_task is None or self._ping_task.done()):
-                    self._ping_task = asyncio.create_task(self._ping_and_probe(), name="uplink ping")
-                robots = [(u, r, up) for (u, r) in self.namespaces]
-            else:
-                robots = [(u, r, websocket_link(ns.ws)) for (u, r), ns in self.namespaces.items()]
-            self.link_reports.sample(loop.time(), robots)
-            for (user, robot), ns in self.namespaces.items():
-                if ns.battery is not None and (ns.battery_told is None
-                                               or abs(ns.battery - ns.battery_told) >= link_report.BATTERY_STEP):
+            try:
+                self._look(loop.time())
+            except Exception:
+                log.exception("a look at the robots' links failed; the next one goes on")
+
+    def _look(self, now: float) -> None:
+        """Tell the master each robot's measured link (:mod:`rce_robot.link_report`) and its charge
+        (read from the ``sensor_msgs/BatteryState`` it publishes) when it moved by
+        :data:`~rce_robot.link_report.BATTERY_STEP` points. A charge the master was not there to hear
+        is told at the next look, and every charge again after each registration (:meth:`_obey`: a
+        master that restarted or took over keeps no charges)."""
+        if self.zone.kind == "robot":       # its robot's websocket is local: the robot's link is the uplink
+            up = self.uplink.measure(now)
+            # its round trip: a ping a look (not behind a probe: it would time the probe's bytes),
+            # and after it, when one is due, a probe of its rate (link_report.Uplink.probe_due)
+            if up is not None and self.namespaces and (self._ping_task is None or self._ping_task.done()):
+                self._ping_task = asyncio.create_task(self._ping_and_probe(), name="uplink ping")
+            robots = [(u, r, up) for (u, r) in self.namespaces]
+        else:
+            robots = [(u, r, websocket_link(ns.ws)) for (u, r), ns in self.namespaces.items()]
+        self.link_reports.sample(now, robots)
+        for (user, robot), ns in list(self.namespaces.items()):
+            if ns.battery is not None and (ns.battery_told is None
+                                           or abs(ns.battery - ns.battery_told) >= link_report.BATTERY_STEP):
+                if self.master.tell(to_master.RobotBattery(user=user, robot=robot, percent=round(ns.battery, 2))):
                     ns.battery_told = ns.battery
-                    self.master.tell(to_master.RobotBattery(user=user, robot=robot, percent=round(ns.battery, 2)))
 
     async def _probe(self) -> None:
         """Probe the uplink's rate (:func:`~rce_robot.link_report.probe_rate`): a ``link_probe`` request
@@ -572,7 +582,12 @@ class RobotEndpoint:
                 "interfaces": sorted(self.by_iid)}
 
     async def _obey(self, answer: dict) -> None:
-        """A register answer: remove the interfaces and close the robots the master does not have."""
+        """A register answer: remove the interfaces and close the robots the master does not have; the
+        robots' links and charges are told again at the next look (a master that restarted or took over
+        keeps neither)."""
+        self.link_reports.last.clear()
+        for ns in self.namespaces.values():
+            ns.battery_told = None
         for iid in answer.get("drop_interfaces") or []:
             await self._op_remove_interface(ops.EndpointRemoveInterface(iid=iid))
         closing = [self._find(r.get("user"), r.get("robot")) for r in answer.get("close_robots") or []]

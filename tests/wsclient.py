@@ -54,6 +54,14 @@ class RawRobot:
             if isinstance(m, dict) and m.get("type") == type_ and pred(m["data"]):
                 return m["data"]
 
+    async def errors_within(self, timeout: float) -> list:
+        """The next frame within ``timeout`` s, as a list of the ER it is (empty: none came, or another)."""
+        try:
+            m = await self.recv(timeout)
+        except TimeoutError:
+            return []
+        return [m["data"]] if isinstance(m, dict) and m.get("type") == "ER" else []
+
     async def probe(self) -> None:
         """Prove the session still answers: a DM to a missing interface must come back as ER."""
         await self.send("DM", {"iTag": "noSuchProbe", "type": "std_msgs/String", "msgID": "", "msg": {"data": ""}})
