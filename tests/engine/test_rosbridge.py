@@ -33,6 +33,7 @@ from rce.messages import default_registry
 from rce.protocol.robot_outbox import CONTROL_BACKLOG
 from rce_robot import ws_cork
 from rce_robot.endpoint import RobotEndpoint
+from rce_robot.link_report import LinkReports
 from rce_robot.rosbridge.endpoint import RosbridgeServer
 from rce_robot.rosbridge.compression import cbor_publish, cbor_raw_publish, png_op
 from rce_robot.rosbridge.fragments import Defragmenter
@@ -463,6 +464,7 @@ async def test_sessions_reported_and_closed_by_the_master():
     master does not have closes its websocket (1008, the reason)."""
     ep = object.__new__(RobotEndpoint)             # only the tables _report and _obey read
     ep.namespaces, ep.by_iid = {}, {}
+    ep.link_reports = LinkReports(lambda *report: None)
     ep.rosbridge = RosbridgeServer(master=None, by_iid=ep.by_iid)
     session = RosbridgeSession("u", "r", "c", master=None)
     closed: list[tuple[int, str]] = []
