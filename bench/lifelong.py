@@ -25,7 +25,7 @@ Usage::
          [--winner PATH [--winner-args ARGS] [--winner-cwd DIR]]]
         [--peer PATH [--peer-args ARGS] [--peer-cwd DIR] | --build-peer DIR]
         [--plan-time-limit MS] [--scheduler batch|greedy|both]
-        [--cache-mb MB] [--lanes N] [--crowd-w W] [--max-active N] [--window on|off] [--epibt on|off]
+        [--cache-mb MB] [--lanes N] [--crowd-w W] [--max-active N] [--pursue N] [--window on|off] [--epibt on|off]
         [--keep-right N] [--admission on|off] [--replan on|off] [--race on|off] [--length-w W]
         [--yield-steps N] [--data ../shared/data]
         [--json PATH] [--plot PATH]
@@ -106,7 +106,7 @@ def run_one(path: Path, steps: int, limit_ms: float, scheduler: str, seed: int, 
             window: bool | None = None, epibt: bool | None = None, keep_right: int | None = None,
             admission: bool | None = None, peer_args: tuple[str, ...] = (), peer_cwd: Path | None = None,
             replan: bool | None = None, validate: bool = False, race: bool | None = None,
-            length_w: float | None = None, yield_steps: int | None = None) -> dict:
+            length_w: float | None = None, yield_steps: int | None = None, pursue: int | None = None) -> dict:
     """Run one problem (and the start-kit binary ``peer`` on it, when given); returns its row (with
     the finished-over-time curve). With ``validate``, rce's output is replayed under the rules
     (``rce_fleet.lifelong.replay``): ``replayed_tasks`` and ``replay_invalid_steps`` in the row,
@@ -120,7 +120,7 @@ def run_one(path: Path, steps: int, limit_ms: float, scheduler: str, seed: int, 
         res = run_lifelong(prob, steps, plan_time_limit_ms=limit_ms, seed=seed, scheduler=scheduler, progress=cb,
                            record=outputs is not None or validate,
                            cache_bytes=None if cache_mb is None else int(cache_mb * 2 ** 20),
-                           lanes=lanes, crowd_w=crowd_w, max_active=max_active,
+                           lanes=lanes, crowd_w=crowd_w, max_active=max_active, pursue=pursue,
                            keep_right=keep_right, admission=admission, replan=replan, race=race, length_w=length_w,
                            planner_kw={k: v for k, v in (("ops", window), ("epibt", epibt),
                                                          ("yield_steps", yield_steps)) if v is not None} or None)
@@ -271,8 +271,9 @@ def _parser() -> argparse.ArgumentParser:
                     "runner's, 4, or 9 where EPIBT answers a team over 1,000 on a map of aisles)")
     ap.add_argument("--crowd-w", type=float, help="scheduler's steps per robot crowding a task's errands "
                     "(default: 5 for 3,000 robots or more, else 0)")
-    from rce_fleet.cli import ADMISSION_HELP, MAX_ACTIVE_HELP, REPLAN_HELP
+    from rce_fleet.cli import ADMISSION_HELP, MAX_ACTIVE_HELP, PURSUE_HELP, REPLAN_HELP
     ap.add_argument("--max-active", type=int, metavar="N", help=MAX_ACTIVE_HELP)
+    ap.add_argument("--pursue", type=int, metavar="N", help=PURSUE_HELP)
     ap.add_argument("--keep-right", type=int, metavar="N",
                     help="extra cost of a move against the keep-right lane of a corridor 2 - 12 cells wide "
                          "(0: none; default 4)")
@@ -339,7 +340,8 @@ def _rce_runner(args, peer: Path | None, validate: bool = False):
                        None if args.admission is None else args.admission == "on",
                        tuple(args.peer_args), args.peer_cwd,
                        None if args.replan is None else args.replan == "on", validate,
-                       None if args.race is None else args.race == "on", args.length_w, args.yield_steps)
+                       None if args.race is None else args.race == "on", args.length_w, args.yield_steps,
+                       args.pursue)
     return run
 
 
@@ -511,6 +513,9 @@ def main(argv: list[str] | None = None) -> int:
         ap.error(f"--length-w {args.length_w}: a task's length weighs a finite share >= 0")
     if args.yield_steps is not None and args.yield_steps < 0:
         ap.error(f"--yield-steps {args.yield_steps}: steps without progress, >= 0 (0: none yields)")
+    if args.pursue is not None and (args.pursue < 0 or args.pursue and (args.max_active or args.admission == "on")):
+        ap.error(f"--pursue {args.pursue}: robots pursuing their task, >= 0, and above 0 without --max-active or "
+                 "--admission on")
     lorr = args.data / "lorr"
     if not (lorr / "RESULTS.md").is_file():
         print(f"LoRR problems not found under {lorr}", file=sys.stderr)

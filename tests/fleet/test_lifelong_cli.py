@@ -101,6 +101,17 @@ def test_bench_lifelong_generates_problems_on_a_map_and_runs_them(tmp_path):
     stuck = subprocess.run([sys.executable, str(ROOT / "bench" / "lifelong.py"), "--quick", "--yield-steps", "-2"],
                            capture_output=True, text=True, timeout=60)
     assert stuck.returncode == 2 and "--yield-steps -2: steps without progress, >= 0" in stuck.stderr
+    both = subprocess.run([sys.executable, str(ROOT / "bench" / "lifelong.py"), "--quick", "--pursue", "5",
+                           "--max-active", "9"], capture_output=True, text=True, timeout=60)
+    assert both.returncode == 2 and "--pursue 5: robots pursuing their task, >= 0" in both.stderr
+
+
+def test_lifelong_cli_refuses_a_pursuit_bound_below_zero_or_beside_another_bound(capsys):
+    for bad in (["--pursue", "-1"], ["--pursue", "3", "--admission", "on"]):
+        with pytest.raises(SystemExit) as e:
+            main(["lifelong", str(RANDOM), "--steps", "5", "--no-progress", *bad])
+        assert e.value.code == 2
+        assert f"got --pursue {bad[1]}" in capsys.readouterr().err
 
 
 def test_lifelong_cli_refuses_an_unwritable_output_before_it_runs(tmp_path, capsys):

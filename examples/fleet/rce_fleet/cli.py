@@ -25,7 +25,7 @@
     rce-fleet grid [--map YAML] [--grid RxC | --cell M]     # print the grid's cell numbers
     rce-fleet lifelong PROBLEM.json --steps N [--plan-time-limit MS] [--output OUT.json] [--seed S]
                    [--scheduler batch|greedy] [--cache-mb MB] [--lanes N]   # a LoRR 2024 problem under its rules
-                   [--keep-right N] [--max-active N] [--admission on|off] [--replan on|off]
+                   [--keep-right N] [--max-active N] [--pursue N] [--admission on|off] [--replan on|off]
 """
 from __future__ import annotations
 
@@ -38,8 +38,13 @@ from pathlib import Path
 ADMISSION_HELP = ("the bound on robots holding a task set at run time: it starts at 0.04 robots per free cell "
                   "(half the team on maps under 4,000 free cells), rises while robots flow and falls while they "
                   "pack in at narrow passages, on larger maps at once to 0.7 of where they jammed and never "
-                  "past it again (default: on from 0.1 to 0.3 robots per free cell on maps that are "
-                  "not maps of one-cell aisles, else off; ignored under --max-active)")
+                  "past it again (default: on from 0.1 to 0.3 robots per free cell on maps under 4,000 free "
+                  "cells that are not maps of one-cell aisles, else off; ignored under --max-active)")
+# the help of --pursue, the same in both
+PURSUE_HELP = ("every robot may hold a task, and each step only N, those with the fewest steps left to the end of "
+               "theirs, pursue it; the others stand aside (0: off; default: 0.058 robots per free cell from 0.1 "
+               "to 0.3 robots per free cell on maps of 4,000 free cells or more that are not maps of one-cell "
+               "aisles, in place of --admission, else 0)")
 # the help of --replan, the same in both
 MAX_ACTIVE_HELP = ("robots holding a task at most (0: no bound, no cut; default: 0.43 of the free cells where EPIBT "
                    "answers, else 0.3, 0.2 on a map of one-cell aisles, from 0.3 robots per free cell; below that "
@@ -276,6 +281,7 @@ def build_parser() -> argparse.ArgumentParser:
     lf.add_argument("--keep-right", type=int, metavar="N", help="extra cost of a move against the keep-right "
                     "lane of a corridor 2 - 12 cells wide (0: none; default 4)")
     lf.add_argument("--max-active", type=int, metavar="N", help=MAX_ACTIVE_HELP)
+    lf.add_argument("--pursue", type=int, metavar="N", help=PURSUE_HELP)
     lf.add_argument("--admission", choices=("on", "off"), help=ADMISSION_HELP)
     lf.add_argument("--replan", choices=("on", "off"), help=REPLAN_HELP)
     lf.add_argument("--crowd-w", type=float, metavar="W", help="steps the scheduler adds per robot crowding a "
@@ -295,6 +301,10 @@ def _lifelong(args: argparse.Namespace) -> int:
     from .lifelong.runner import rich_progress, run_lifelong
     if not 1 <= args.steps <= LIFELONG_MAX_STEPS:
         print(f"rce-fleet lifelong: --steps must be 1 - {LIFELONG_MAX_STEPS:,}, got {args.steps:,}", file=sys.stderr)
+        return 2
+    if args.pursue is not None and (args.pursue < 0 or args.pursue and (args.max_active or args.admission == "on")):
+        print(f"rce-fleet lifelong: --pursue must be 0 or more, and above 0 it takes no --max-active or "
+              f"--admission on beside it; got --pursue {args.pursue}", file=sys.stderr)
         return 2
     try:
         problem = load_problem(args.problem)
@@ -328,7 +338,7 @@ def _lifelong(args: argparse.Namespace) -> int:
             res = run_lifelong(problem, args.steps, plan_time_limit_ms=args.plan_time_limit, seed=args.seed,
                                scheduler=args.scheduler, cache_bytes=cache_bytes,
                                lanes=args.lanes, crowd_w=args.crowd_w,
-                               keep_right=args.keep_right, max_active=args.max_active,
+                               keep_right=args.keep_right, max_active=args.max_active, pursue=args.pursue,
                                admission=None if args.admission is None else args.admission == "on",
                                replan=None if args.replan is None else args.replan == "on", progress=cb)
         s = res.summary()

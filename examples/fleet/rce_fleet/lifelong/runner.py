@@ -19,6 +19,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from .admission import FlowAdmission, JamCut, JamDetector, packed
+from .pursuit import pursuing, steps_left
 from .budget import StepBudget
 from .distances import DistanceCache, cache_bytes_for
 from .flow import TrafficFlow
@@ -39,9 +40,9 @@ __all__ = ["ACTIVE_DENSITY", "ACTIVE_FRAC", "ADMISSION_CELLS", "ADMISSION_DENSIT
            "ADMISSION_JAM_DENSITY", "ADMISSION_SMALL", "ADMISSION_SMALL_START", "ADMISSION_START",
            "AISLE_ACTIVE_FRAC", "AISLE_EPIBT_DENSITY", "AISLE_JAM_CUT", "AISLE_LANES_JAM_LEAST", "AISLE_SHARE",
            "CRISSCROSS_DENSITY", "CROWD_TEAM", "CROWD_W", "EPIBT_ACTIVE_FRAC", "EPIBT_BIAS", "EPIBT_DENSITY",
-           "EPIBT_LNS_FRAC", "GUIDE_DENSITY", "KEEP_RIGHT", "LANES", "OPEN_LANES", "PACKED_DENSITY", "RACE",
-           "REPLAN_CORRIDORS", "REPLAN_DENSITY", "RunResult", "SMALL_MAP_CELLS", "SMALL_MAP_STUCK", "WINDOW_DENSITY",
-           "WINDOW_TEAM", "jam_detector", "run_lifelong"]
+           "EPIBT_LNS_FRAC", "GUIDE_DENSITY", "KEEP_RIGHT", "LANES", "OPEN_LANES", "PACKED_DENSITY", "PURSUE_FRAC",
+           "RACE", "REPLAN_CORRIDORS", "REPLAN_DENSITY", "RunResult", "SMALL_MAP_CELLS", "SMALL_MAP_STUCK",
+           "WINDOW_DENSITY", "WINDOW_TEAM", "jam_detector", "run_lifelong"]
 
 LANES = 4        # extra cost of a move against a one-way lane (measured: docs/lifelong.md)
 ADMISSION_START = 0.04  # robots per free cell the run-time bound starts at (--admission on; measured there)
@@ -51,6 +52,9 @@ ADMISSION_DENSITY = 0.1  # robots per free cell from which (to ACTIVE_DENSITY) t
 # cell: a dense team flowing packs more) and flow under target or 0.04 under their best since it last fell; the
 # first fall goes at once to 0.7 of where it jammed, and it never grows past that again (a fall acts only as
 # tasks end, hundreds of steps on a large map: GAME, docs/lifelong.md)
+PURSUE_FRAC = 0.058  # robots per free cell that pursue their task, where the run-time bound would hold tasks on a
+                     # map of ADMISSION_CELLS or more (every robot then holds one: pursuit.py; the 2024 winner's
+                     # 2,500 of GAME's 6,500 robots on 43,151 free cells; measured on GAME, docs/lifelong.md)
 ADMISSION_JAM = {"jam_factor": 2.0, "jam_least": 0.08, "drop": 0.04, "ceiling": 0.7}
 ADMISSION_JAM_DENSITY = 0.5
 ADMISSION_CELLS = 4000   # on maps of fewer free cells (short tasks: a crowd clears soon) the bound starts at ...
@@ -144,7 +148,7 @@ def run_lifelong(problem: LorrProblem, steps: int, plan_time_limit_ms: float = 1
                  flow_kw: dict | None = None, max_active: int | None = None, open_lanes: int | None = None,
                  keep_right: int | None = None, admission: bool | None = None, admission_kw: dict | None = None,
                  replan: bool | None = None, race: bool | None = None, race_kw: dict | None = None,
-                 length_w: float | None = None,
+                 length_w: float | None = None, pursue: int | None = None,
                  progress: Callable[[int, int, float], None] | None = None) -> RunResult:
     """Run ``problem`` for ``steps`` time steps under the rules (:mod:`.simulator`).
 
@@ -222,6 +226,12 @@ def run_lifelong(problem: LorrProblem, steps: int, plan_time_limit_ms: float = 1
     length_w: the share of a task's own length (first errand to last) in its cost to a robot, beside
     the way to its first errand (:attr:`~.scheduler.Scheduler.length_w`); None (default): the
     scheduler's;
+    pursue: every robot may hold a task, and each step only this many, those with the fewest steps left
+    to the end of theirs, pursue it; the others stand aside (:mod:`.pursuit`, the 2024 winner's rule;
+    ``stats["pursue"]``); None (default): ``PURSUE_FRAC`` of the free cells where the run-time bound
+    would be on (below) on a map of ``ADMISSION_CELLS`` free cells or more, in its place (a bound on
+    the robots pursuing acts at the next step, one on those holding a task only as opened tasks end),
+    else 0: off. Raises ValueError for a negative count, or one beside ``max_active`` or ``admission``;
     progress: called after each step with (step, tasks finished, planner ms).
     Where no bound holds, a :class:`~.admission.JamDetector` watches the share of the robots with a
     task that are packed in; ``stats`` give its ``packed_shares`` (per 25 steps) and ``jam_at``,
@@ -276,12 +286,21 @@ def run_lifelong(problem: LorrProblem, steps: int, plan_time_limit_ms: float = 1
     if guide:
         flow_warm_up()
     t_start = time.perf_counter()
+    if pursue is not None and pursue < 0:
+        raise ValueError(f"pursue: the robots pursuing their task cannot be negative, got {pursue}")
+    if pursue and (max_active or admission):
+        raise ValueError("pursue bounds the robots pursuing a task: it takes no max_active or admission beside it")
     auto = admission is None and density >= ADMISSION_DENSITY
+    if pursue is None:
+        pursue = (int(PURSUE_FRAC * n_free) if auto and not aisle_map and n_free >= ADMISSION_CELLS
+                  and max_active is None and density < ACTIVE_DENSITY else 0)
     arm_active = {}
-    if max_active is None and density >= ACTIVE_DENSITY:
+    if max_active is None and density >= ACTIVE_DENSITY and not pursue:
         arm_active = {"epibt": int((AISLE_ACTIVE_FRAC if aisle_map else EPIBT_ACTIVE_FRAC) * n_free),
                       "pibt": int((AISLE_ACTIVE_FRAC if aisle_map else ACTIVE_FRAC) * n_free)}
         max_active = arm_active["epibt" if epibt else "pibt"]
+    if pursue:
+        admission = False
     if admission is None:
         admission = auto and not aisle_map
     if open_lanes is None:
@@ -331,7 +350,7 @@ def run_lifelong(problem: LorrProblem, steps: int, plan_time_limit_ms: float = 1
         control = FlowAdmission(problem.team_size, **{**ctl_kw, **(admission_kw or {})})
     detector = jam_detector(aisle_lanes) if control is None and sched.max_active is None else None
     guard = (JamCut(detector, problem.team_size, cut=AISLE_JAM_CUT)
-             if detector is not None and aisle_map and max_active is None and not replan else None)
+             if detector is not None and aisle_map and max_active is None and not replan and not pursue else None)
     watch = detector is not None or (control is not None and control.jam_factor is not None)
     occupied = np.zeros(grid.n_cells + 1, dtype=bool) if watch else None
     for k in range(steps):
@@ -344,6 +363,9 @@ def run_lifelong(problem: LorrProblem, steps: int, plan_time_limit_ms: float = 1
         if len(has):
             open_ = sim.pool.open
             goals[has] = [open_[int(prop[a])].goal for a in has]
+        if pursue:
+            go = pursuing(steps_left(sim.pos, prop, sim.pool.open, cache), pursue)
+            goals[~go] = -1
         if chooser is not None:
             if chooser.arm() != answering:
                 answering = chooser.arm()
@@ -361,7 +383,7 @@ def run_lifelong(problem: LorrProblem, steps: int, plan_time_limit_ms: float = 1
             budget.observe(dt / limit)
             deadline_frac, hard_frac = budget.deadline, budget.hard
         sim.step(actions, prop, plan_time_s=dt, timed_out=dt > limit)
-        held = prop >= 0
+        held = go if pursue else prop >= 0
         n_packed = 0
         if watch:
             occupied[:] = False
@@ -397,6 +419,7 @@ def run_lifelong(problem: LorrProblem, steps: int, plan_time_limit_ms: float = 1
              "progress_per_step": round(progress_sum / max(1, steps), 3),
              "race": ({"history": chooser.history, "switches": chooser.switches, "last": answering}
                       if chooser is not None else None),
+             "pursue": pursue,
              "admission_on": control is not None,
              "admission": control.decisions if control is not None else None,
              "jam_at": detector.jam_at if detector is not None else None,
