@@ -357,7 +357,10 @@ def test_a_run_reports_the_jam_at_a_door_and_none_where_the_same_team_has_room()
     assert bounded.summary()["invalid_steps"] == 0
 
 
-def test_the_run_time_bound_is_on_by_default_at_0_1_to_0_3_robots_per_free_cell_without_aisles():
+def test_the_run_time_bound_is_on_by_default_at_0_1_to_0_3_robots_per_free_cell_without_aisles_on_small_maps():
+    """From 0.1 to 0.3 robots per free cell on a map that is not a map of aisles: on maps under ADMISSION_CELLS
+    free cells the bound on holders is on; on larger ones a share of the robots pursues its task in its place
+    (test_lifelong_pursuit), and the bound on holders is on only when asked for."""
     from rce_fleet.lifelong import runner
     from rce_fleet.lifelong.lorr import LorrProblem
     rng = np.random.default_rng(1)
@@ -383,7 +386,10 @@ def test_the_run_time_bound_is_on_by_default_at_0_1_to_0_3_robots_per_free_cell_
     aisles = np.ones((104, 80), dtype=bool)
     aisles[1:103:2, 2:78] = False                  # shelves with one-cell aisles between
     assert len(LifelongGrid(aisles).free_cells()) >= runner.ADMISSION_CELLS
-    assert on(rooms, 0.15)
+    big = run(rooms, 0.15)
+    assert not big.stats["admission_on"]
+    assert big.stats["pursue"] == int(runner.PURSUE_FRAC * len(LifelongGrid(rooms).free_cells()))
+    assert on(rooms, 0.15, admission=True)
     assert not on(rooms, 0.15, admission=False)
     assert not on(rooms, 0.05)                    # too few robots to jam
     assert not on(rooms, 0.35)                    # the fixed bound of dense teams holds instead
