@@ -30,6 +30,7 @@ def test_steps_left_run_to_the_next_errand_then_through_the_later_ones_around_wa
     pool.reach(a, 0)                                    # robot 0 stood on its first errand: next is (0, 8)
     cache = DistanceCache(g)
     cache.slot(cell(0, 8))                              # its next errand's map is cached: the way round the wall
+    assert cache.cached(cell(0, 8)) >= 0 and cache.cached(cell(0, 3)) == -1     # looking computes nothing
     pos = np.array([cell(0, 0), cell(0, 2), cell(2, 2)])
     prop = np.array([a, b, -1])
     left = steps_left(pos, prop, pool.open, cache)

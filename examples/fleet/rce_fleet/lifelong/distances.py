@@ -111,6 +111,11 @@ class DistanceCache:
         self.computed += 1
         return s
 
+    def cached(self, goal: int) -> int:
+        """The row of ``table`` with the distance map of ``goal`` if it is cached, else -1 (computes
+        nothing, and leaves the maps' order of use as it is)."""
+        return self._slots.get(goal, -1)
+
     def slots(self, goals) -> np.ndarray:
         """The rows of ``table`` with the distance maps of ``goals`` ((n,) cells), in their
         order ((n,) int64; computed on a miss, so all of them must fit in the cache)."""

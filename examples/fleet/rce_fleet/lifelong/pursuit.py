@@ -42,8 +42,8 @@ def steps_left(pos: np.ndarray, prop: np.ndarray, tasks: dict[int, Task], cache:
     for a in np.flatnonzero(prop >= 0).tolist():
         tk = tasks[int(prop[a])]
         g, p = tk.goal, int(pos[a])
-        s = cache._slots.get(g)
-        if s is not None:
+        s = cache.cached(g)
+        if s >= 0:
             to = float(cache.table[s, p])
         else:
             to = float(abs(g // cols - p // cols) + abs(g % cols - p % cols))

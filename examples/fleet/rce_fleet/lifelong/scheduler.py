@@ -101,7 +101,7 @@ class Scheduler:
         the Manhattan length where no map yet; the cut is the part of each length the cost leaves
         out, (1 - ``length_w``) x length."""
         e0 = np.fromiter((tk.errands[0] for tk in tasks), dtype=np.int64, count=len(tasks))
-        slots = np.fromiter((self.cache._slots.get(int(c), -1) if tk.length >= 0 else -1
+        slots = np.fromiter((self.cache.cached(int(c)) if tk.length >= 0 else -1
                              for c, tk in zip(e0.tolist(), tasks, strict=True)), dtype=np.int64, count=len(tasks))
         length = np.empty(len(tasks))
         for i, tk in enumerate(tasks):
