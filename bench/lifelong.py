@@ -513,9 +513,11 @@ def main(argv: list[str] | None = None) -> int:
         ap.error(f"--length-w {args.length_w}: a task's length weighs a finite share >= 0")
     if args.yield_steps is not None and args.yield_steps < 0:
         ap.error(f"--yield-steps {args.yield_steps}: steps without progress, >= 0 (0: none yields)")
-    if args.pursue is not None and (args.pursue < 0 or args.pursue and (args.max_active or args.admission == "on")):
-        ap.error(f"--pursue {args.pursue}: robots pursuing their task, >= 0, and above 0 without --max-active or "
-                 "--admission on")
+    from rce_fleet.lifelong.pursuit import check_pursue
+    try:
+        check_pursue(args.pursue, args.max_active, args.admission == "on")
+    except ValueError as e:
+        ap.error(f"--pursue {args.pursue}: robots pursuing their task, >= 0, alone ({e})")
     lorr = args.data / "lorr"
     if not (lorr / "RESULTS.md").is_file():
         print(f"LoRR problems not found under {lorr}", file=sys.stderr)

@@ -298,13 +298,15 @@ def _lifelong(args: argparse.Namespace) -> int:
 
     from .lifelong import ProblemError, load_problem
     from .lifelong.admission import jam_note
+    from .lifelong.pursuit import check_pursue
     from .lifelong.runner import rich_progress, run_lifelong
     if not 1 <= args.steps <= LIFELONG_MAX_STEPS:
         print(f"rce-fleet lifelong: --steps must be 1 - {LIFELONG_MAX_STEPS:,}, got {args.steps:,}", file=sys.stderr)
         return 2
-    if args.pursue is not None and (args.pursue < 0 or args.pursue and (args.max_active or args.admission == "on")):
-        print(f"rce-fleet lifelong: --pursue must be 0 or more, and above 0 it takes no --max-active or "
-              f"--admission on beside it; got --pursue {args.pursue}", file=sys.stderr)
+    try:
+        check_pursue(args.pursue, args.max_active, args.admission == "on")
+    except ValueError as e:
+        print(f"rce-fleet lifelong: {e}; got --pursue {args.pursue}", file=sys.stderr)
         return 2
     try:
         problem = load_problem(args.problem)

@@ -17,7 +17,16 @@ import numpy as np
 from .distances import DistanceCache
 from .tasks import Task
 
-__all__ = ["pursuing", "steps_left"]
+__all__ = ["check_pursue", "pursuing", "steps_left"]
+
+
+def check_pursue(pursue: int | None, max_active: int | None = None, admission: bool | None = None) -> None:
+    """Raise ValueError unless ``pursue`` (robots pursuing their task; None: the default) is 0 or more,
+    and, above 0, comes without another bound (``max_active``, ``admission`` on) beside it."""
+    if pursue is not None and pursue < 0:
+        raise ValueError(f"the robots pursuing their task cannot be negative, got {pursue}")
+    if pursue and (max_active or admission):
+        raise ValueError("a bound on the robots pursuing a task takes no max_active or admission beside it")
 
 
 def _rest(tk: Task, cache: DistanceCache) -> list[int]:

@@ -19,7 +19,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from .admission import FlowAdmission, JamCut, JamDetector, packed
-from .pursuit import pursuing, steps_left
+from .pursuit import check_pursue, pursuing, steps_left
 from .budget import StepBudget
 from .distances import DistanceCache, cache_bytes_for
 from .flow import TrafficFlow
@@ -286,10 +286,7 @@ def run_lifelong(problem: LorrProblem, steps: int, plan_time_limit_ms: float = 1
     if guide:
         flow_warm_up()
     t_start = time.perf_counter()
-    if pursue is not None and pursue < 0:
-        raise ValueError(f"pursue: the robots pursuing their task cannot be negative, got {pursue}")
-    if pursue and (max_active or admission):
-        raise ValueError("pursue bounds the robots pursuing a task: it takes no max_active or admission beside it")
+    check_pursue(pursue, max_active, admission)
     auto = admission is None and density >= ADMISSION_DENSITY
     if pursue is None:
         pursue = (int(PURSUE_FRAC * n_free) if auto and not aisle_map and n_free >= ADMISSION_CELLS
