@@ -1,5 +1,6 @@
 """Which robots pursue their task this step: every robot may hold a task, and only those nearest
-its end go for it; the others stand aside (no goal this step: they yield and may be pushed).
+its end go for it; the others stand aside (no goal this step: they move as a robot without a task
+does, and may be pushed; held still instead, they finished no more: docs/results/lifelong.md).
 
 A bound on the robots *holding* a task acts only as tasks end, since an opened task is never taken
 back (the League of Robot Runners' rule); on a large map that is hundreds of steps, while a jam at
