@@ -1,5 +1,13 @@
 """A real etcd for tests (Debian's ``etcd-server``, ``/usr/bin/etcd``): one member on loopback,
-on ephemeral ports, in a directory of the test; ready once its ``/health`` answers.
+on ephemeral ports, in a directory of the test; ready once its ``/health`` answers and the member
+answering is this one (its name, from ``/v3/cluster/member/list``).
+
+The ports are found free, released, then bound by etcd, so another test's server may take one in
+between (pytest-xdist runs several at once). Then etcd exits ("address already in use") while the
+other server answers on the port: a start that checked only ``/health`` would hand the test the
+other etcd, and :meth:`EtcdServer.pause` would stop a process that is not the one answering. So
+the start checks whose member answers, and starts again on new ports when its etcd lost a port
+(at most :data:`START_ATTEMPTS` times).
 
 ::
 
@@ -12,6 +20,8 @@ A machine without etcd fails the test (never skips it) with the install hint.
 from __future__ import annotations
 
 import json
+import os
+import secrets
 import shutil
 import signal
 import socket
@@ -27,6 +37,7 @@ READY_TIMEOUT = 30.0     # s for etcd to answer /health (it takes < 1 s; a busy 
 HEALTH_TIMEOUT = 1.0     # s, one /health request
 POLL_INTERVAL = 0.05     # s between /health polls
 STOP_TIMEOUT = 10.0      # s etcd may take to exit on SIGTERM before it is killed
+START_ATTEMPTS = 3       # starts on new ports after etcd lost one of its ports to another server
 INSTALL_HINT = ("etcd is not installed: the tests of several masters run a real etcd. Install Debian's "
                 "etcd-server (`apt-get install etcd-server`; `make setup` does it when run as root, "
                 "through .ci/system-deps)")
@@ -54,6 +65,8 @@ class EtcdServer:
         self.workdir = Path(workdir)
         self.proc: subprocess.Popen | None = None
         self.port = self.peer_port = 0
+        self.name = ""
+        self._log_from = 0       # where this start's lines begin in etcd.log
 
     @property
     def endpoint(self) -> str:
@@ -65,33 +78,55 @@ class EtcdServer:
         return f"etcd://127.0.0.1:{self.port}"
 
     def start(self) -> "EtcdServer":
-        """Start etcd and wait until ``/health`` says it is healthy (at most :data:`READY_TIMEOUT` s)."""
+        """Start etcd and wait until it answers as itself (at most :data:`READY_TIMEOUT` s). Raises
+        RuntimeError when etcd exits for another reason than a port taken, or lost a port
+        :data:`START_ATTEMPTS` times; TimeoutError when it is not ready in time."""
         exe = etcd_binary()
         self.workdir.mkdir(parents=True, exist_ok=True)
-        self.port, self.peer_port = free_port(), free_port()
-        client, peer = f"http://127.0.0.1:{self.port}", f"http://127.0.0.1:{self.peer_port}"
-        argv = [exe, "--name", "default", "--data-dir", str(self.workdir / "data"),
-                "--listen-client-urls", client, "--advertise-client-urls", client,
-                "--listen-peer-urls", peer, "--initial-advertise-peer-urls", peer,
-                "--initial-cluster", f"default={peer}"]
-        self.proc = subprocess.Popen(argv, stdout=open(self.workdir / "etcd.log", "wb"), stderr=subprocess.STDOUT,
-                                     start_new_session=True)
-        self._wait_healthy()
-        return self
+        for _ in range(START_ATTEMPTS):
+            self.port, self.peer_port = free_port(), free_port()
+            self.name = f"rce-test-{os.getpid()}-{secrets.token_hex(4)}"
+            client, peer = f"http://127.0.0.1:{self.port}", f"http://127.0.0.1:{self.peer_port}"
+            argv = [exe, "--name", self.name, "--data-dir", str(self.workdir / "data"),
+                    "--listen-client-urls", client, "--advertise-client-urls", client,
+                    "--listen-peer-urls", peer, "--initial-advertise-peer-urls", peer,
+                    "--initial-cluster", f"{self.name}={peer}"]
+            shutil.rmtree(self.workdir / "data", ignore_errors=True)
+            with open(self.workdir / "etcd.log", "ab") as log:
+                self._log_from = log.tell()
+                self.proc = subprocess.Popen(argv, stdout=log, stderr=subprocess.STDOUT, start_new_session=True)
+            if self._wait_ready():
+                return self
+        raise RuntimeError(f"etcd lost one of its ports to another server {START_ATTEMPTS} times:\n{self.log()}")
 
-    def _wait_healthy(self) -> None:
+    def _wait_ready(self) -> bool:
+        """True once ``/health`` answers healthy and the member answering is this one; False when
+        etcd exited because one of its ports was taken."""
         deadline = time.monotonic() + READY_TIMEOUT
         while time.monotonic() < deadline:
             if self.proc.poll() is not None:
+                if b"address already in use" in (self.workdir / "etcd.log").read_bytes()[self._log_from:]:
+                    return False
                 raise RuntimeError(f"etcd exited with {self.proc.returncode} before it was ready:\n{self.log()}")
             try:
                 with urllib.request.urlopen(self.endpoint + "/health", timeout=HEALTH_TIMEOUT) as r:
-                    if json.loads(r.read()).get("health") == "true":
-                        return
-            except (urllib.error.URLError, OSError, ValueError):
+                    healthy = json.loads(r.read()).get("health") == "true"
+                if healthy and self.member_name() == self.name and self.proc.poll() is None:
+                    return True
+            except (urllib.error.URLError, OSError, ValueError, KeyError, TypeError):
                 pass
             time.sleep(POLL_INTERVAL)
         raise TimeoutError(f"etcd did not answer {self.endpoint}/health within {READY_TIMEOUT} s:\n{self.log()}")
+
+    def member_name(self) -> str | None:
+        """The name of the member that answers on :attr:`endpoint` (``/v3/cluster/member/list``).
+        Raises OSError, ValueError, KeyError or TypeError when it does not answer or answers
+        something else."""
+        request = urllib.request.Request(self.endpoint + "/v3/cluster/member/list", data=b"{}", method="POST")
+        with urllib.request.urlopen(request, timeout=HEALTH_TIMEOUT) as r:
+            answer = json.loads(r.read())
+        me = answer["header"]["member_id"]
+        return next((m.get("name") for m in answer.get("members", []) if m.get("ID") == me), None)
 
     def pause(self) -> None:
         """SIGSTOP: etcd stops answering (a partition, as its clients see it)."""
@@ -114,6 +149,7 @@ class EtcdServer:
             self.proc.wait()
 
     def log(self) -> str:
+        """The last 3,000 characters of etcd's log (every start's, in order)."""
         path = self.workdir / "etcd.log"
         return path.read_text(errors="replace")[-3000:] if path.exists() else ""
 
