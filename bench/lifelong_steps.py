@@ -18,10 +18,16 @@ and the stretch over it (the planner's part). Outputs in the start-kit's format 
 from the output's ``events`` ([step, robot, task, errands done]) or, for an entry whose output
 leaves them out, from the start-kit's log (``--log``: "[timestep=S] Agent A finishes task T").
 
+An output without paths (the 2024 winner's code leaves them out; ``--no-paths`` treats any output
+so) still splits the scheduler's part from the planner's: a robot that finished a task stands on
+its last errand, so each cycle's least is taken from there, facing the best way (the heading is
+not known), and the steps are counted, not split by action. Two runs compare fairly when both
+are read so.
+
 Usage::
 
     .venv/bin/python bench/lifelong_steps.py PROBLEM.json OUTPUT.json [OUTPUT.json ...] \\
-        [--log OUTPUT.json=LOG ...] [--from STEP] [--json PATH]
+        [--log OUTPUT.json=LOG ...] [--from STEP] [--to STEP] [--no-paths] [--json PATH]
 """
 from __future__ import annotations
 
@@ -34,7 +40,7 @@ from pathlib import Path
 import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from lifelong_waits import actions, replay  # noqa: E402
+from lifelong_waits import HEADING, actions, replay  # noqa: E402
 from startkit_peer import FINISH  # noqa: E402
 
 ROW_BYTES = 512 * 2 ** 20          # the bound of the per-goal maps kept at once
@@ -67,11 +73,15 @@ class LeastSteps:
             self._rows.move_to_end(key)
         return row
 
-    def chain(self, cell: int, head: int, errands: list[int]) -> tuple[int, int]:
-        """(least steps, shortest cells) from ``cell`` facing ``head`` through ``errands`` in order,
-        arriving at each facing any way; the shortest way in cells counts moves alone."""
+    def chain(self, cell: int, head: int | None, errands: list[int]) -> tuple[int, int]:
+        """(least steps, shortest cells) from ``cell`` facing ``head`` (None: the best way) through
+        ``errands`` in order, arriving at each facing any way; the shortest way in cells counts
+        moves alone."""
         cost = np.full(4, np.inf)
-        cost[head] = 0.0
+        if head is None:
+            cost[:] = 0.0
+        else:
+            cost[head] = 0.0
         cur, moves = cell, 0
         for e in errands:
             new = np.array([min(cost[h] + float(self._row(e, a)[cur * 4 + h]) for h in range(4)) for a in range(4)])
@@ -96,51 +106,70 @@ def finishes(output: dict, task_errands: list[int], log: Path | None) -> list[tu
 
 
 def steps_of(problem, output: dict, log: Path | None = None, least: LeastSteps | None = None,
-             start: int = 0) -> dict:
+             start: int = 0, end: int | None = None, paths: bool = True) -> dict:
     """The cycles of one run of ``problem`` (:class:`~rce_fleet.lifelong.lorr.LorrProblem`) from its
     start-kit ``output``: {tasks, robot_steps, cycle, least, least_turns, cells, waits, turns, moves,
-    turns_beyond, moves_beyond, tail} (sums over the finished tasks' cycles that begin at step
-    ``start`` or later, in steps: a run that holds robots back at first counts their idle steps in
-    their first cycle; ``tail`` the robot-steps after each robot's last finish). Raises ValueError
-    for an output of another problem (its team, or a robot off the map's free cells)."""
+    turns_beyond, moves_beyond, tail, paths} (sums over the finished tasks' cycles that begin at step
+    ``start`` or later and end by step ``end``, in steps: a run that holds robots back at first counts
+    their idle steps in their first cycle; ``tail`` the robot-steps after each robot's last finish).
+    Without paths (none in the output, or ``paths`` False) the robots' places come from their
+    finishes and the split by action is None (the module says how). Raises ValueError for an output
+    of another problem (its team, or a robot off the map's free cells)."""
     grid = problem.grid
-    acts = actions(output)
-    n, steps = acts.shape
+    paths = paths and bool(output.get("actualPaths"))
+    if paths:
+        acts = actions(output)
+        n, steps = acts.shape
+    else:
+        n, steps = len(output.get("start") or []), int(output.get("makespan") or 0)
     if n != problem.team_size:
         raise ValueError(f"the output has {n} robots, the problem {problem.team_size}")
     errands = [list(map(int, e)) for e in problem.tasks]
     done = finishes(output, [len(e) for e in errands], log)
+    steps = max(steps, done[-1][0])
     least = least or LeastSteps(grid)
-    need: dict[int, set[int]] = {}
-    for s, a, _ in done:
-        need.setdefault(s, set()).add(a)
-    at = {}
     free = grid.flat.reshape(grid.rows, grid.cols)
-    for t, _, pos, head in replay(free, output["start"], acts):
-        for a in (range(n) if t == 0 else need.get(t, ())):
-            at[(t, a)] = (int(pos[a, 0]) * grid.cols + int(pos[a, 1]), int(head[a]))
+    at = {}
+    if paths:
+        need: dict[int, set[int]] = {}
+        for s, a, _ in done:
+            need.setdefault(s, set()).add(a)
+        for t, _, pos, head in replay(free, output["start"], acts):
+            for a in (range(n) if t == 0 else need.get(t, ())):
+                at[(t, a)] = (int(pos[a, 0]) * grid.cols + int(pos[a, 1]), int(head[a]))
+    else:
+        for a, (r, c, h) in enumerate(output["start"]):
+            if not (0 <= r < grid.rows and 0 <= c < grid.cols and free[r, c]):
+                raise ValueError(f"robot {a} starts off the map's free cells, at ({r}, {c})")
+            at[(0, a)] = (r * grid.cols + c, HEADING[h])
+        for s, a, task in done:
+            at[(s, a)] = (errands[task % len(errands)][-1], None)
     last = {a: 0 for a in range(n)}
     out = dict.fromkeys(("cycle", "least", "cells", "waits", "turns", "moves"), 0)
     counted = 0
     for s, a, task in done:
         p = last[a]
         last[a] = s
-        if p < start:
+        if p < start or (end is not None and s > end):
             continue
         counted += 1
         cell, h = at[(p, a)]
         lst, cells = least.chain(cell, h, errands[task % len(errands)])
-        seg = acts[a, p:s]
         out["cycle"] += s - p
         out["least"] += lst
         out["cells"] += cells
-        out["waits"] += int((seg == ord("W")).sum())
-        out["turns"] += int(((seg == ord("R")) | (seg == ord("C"))).sum())
-        out["moves"] += int((seg == ord("F")).sum())
-    out.update(tasks=counted, start=start, robot_steps=n * steps, tail=sum(steps - s for s in last.values()),
-               least_turns=out["least"] - out["cells"])
+        if paths:
+            seg = acts[a, p:s]
+            out["waits"] += int((seg == ord("W")).sum())
+            out["turns"] += int(((seg == ord("R")) | (seg == ord("C"))).sum())
+            out["moves"] += int((seg == ord("F")).sum())
+    out.update(tasks=counted, start=start, end=end, paths=paths, robot_steps=n * steps,
+               tail=sum(steps - s for s in last.values()), least_turns=out["least"] - out["cells"])
     out["turns_beyond"] = out["turns"] - out["least_turns"]
     out["moves_beyond"] = out["moves"] - out["cells"]
+    if not paths:
+        for k in ("waits", "turns", "moves", "turns_beyond", "moves_beyond"):
+            out[k] = None
     return out
 
 
@@ -149,8 +178,14 @@ def summary(r: dict) -> str:
     k = max(1, r["tasks"])
     beyond = max(1, r["cycle"] - r["least"])
     begun = f" begun from step {r['start']:,}" if r.get("start") else ""
-    return (f"{r['tasks']:,} tasks{begun}; per task {r['cycle'] / k:.1f} steps against the least {r['least'] / k:.1f} "
-            f"(stretch {r['cycle'] / max(1, r['least']):.3f}); beyond it per task: waits {r['waits'] / k:.1f}, "
+    if r.get("end") is not None:
+        begun += f" and finished by step {r['end']:,}"
+    head = (f"{r['tasks']:,} tasks{begun}; per task {r['cycle'] / k:.1f} steps against the least {r['least'] / k:.1f} "
+            f"(stretch {r['cycle'] / max(1, r['least']):.3f})")
+    if not r.get("paths", True):
+        return (f"{head}, {r['cells'] / k:.1f} cells; read without paths: the least from each finish facing the "
+                f"best way, the steps beyond not split")
+    return (f"{head}; beyond it per task: waits {r['waits'] / k:.1f}, "
             f"turns {r['turns_beyond'] / k:.1f}, moves {r['moves_beyond'] / k:.1f} "
             f"({r['waits'] / beyond:.0%} / {r['turns_beyond'] / beyond:.0%} / {r['moves_beyond'] / beyond:.0%}); "
             f"after the last finish {r['tail'] / r['robot_steps']:.1%} of the robot-steps")
@@ -171,6 +206,10 @@ def main(argv: list[str] | None = None) -> int:
                     help="the start-kit log of an output whose events are left out")
     ap.add_argument("--from", dest="start", type=int, default=0, metavar="STEP",
                     help="count only the cycles that begin at this step or later (default 0: all)")
+    ap.add_argument("--to", dest="end", type=int, metavar="STEP",
+                    help="count only the cycles that end by this step (default: all)")
+    ap.add_argument("--no-paths", dest="paths", action="store_false",
+                    help="read every output as if it had no paths (to compare with one that has none)")
     ap.add_argument("--json", type=Path, help="write the counts of every run here")
     args = ap.parse_args(argv)
     from rce_fleet.lifelong.lorr import load_problem
@@ -180,7 +219,8 @@ def main(argv: list[str] | None = None) -> int:
         problem = load_problem(args.problem)
         least = LeastSteps(problem.grid)
         for path in args.outputs:
-            r = steps_of(problem, json.loads(path.read_text()), logs.get(str(path)), least, args.start)
+            r = steps_of(problem, json.loads(path.read_text()), logs.get(str(path)), least, args.start, args.end,
+                         args.paths)
             rows[str(path)] = r
             print(f"{path}: {summary(r)}")
     except (OSError, ValueError, KeyError) as e:

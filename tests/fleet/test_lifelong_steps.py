@@ -122,3 +122,31 @@ def test_finishes_come_from_the_log_and_bad_input_is_named(tmp_path, capsys):
     out.write_text(json.dumps({"start": [[0, 0, "E"]], "actualPaths": ["F"], "events": [[1, 0, 0, 1]]}))
     assert main([str(prob), str(out)]) == 2
     assert "the output has 1 robots, the problem 2" in capsys.readouterr().err
+
+
+def test_an_output_without_paths_is_read_from_the_finishes(tmp_path, capsys):
+    # robot 1 finishes task 1 at (2,2) facing east (F,F), then task 2 at (2,0): with its paths the least
+    # is 2 turns and 2 moves; without them the heading at a finish is not known, so the least faces west
+    prob = _problem(tmp_path, [[4, 14], [12], [10]], [0, 10])
+    out = {"start": [[0, 0, "E"], [2, 0, "E"]], "makespan": 10,
+           "actualPaths": ["F,W,F,F,F,R,C,R,F,F", "F,F,R,R,F,F,W,W,W,W"],
+           "events": [[2, 1, 1, 1], [5, 0, 0, 1], [6, 1, 2, 1], [10, 0, 0, 2]]}
+    problem = load_problem(prob)
+    with_paths = steps_of(problem, out)
+    assert (with_paths["tasks"], with_paths["cycle"], with_paths["least"], with_paths["cells"]) == (3, 16, 13, 10)
+    no_paths = steps_of(problem, {k: v for k, v in out.items() if k != "actualPaths"})
+    assert no_paths == steps_of(problem, out, paths=False)
+    assert (no_paths["tasks"], no_paths["cycle"], no_paths["least"], no_paths["cells"]) == (3, 16, 11, 10)
+    assert no_paths["waits"] is None and no_paths["turns_beyond"] is None and no_paths["robot_steps"] == 20
+    assert not no_paths["paths"] and with_paths["paths"]
+    # only the cycles that end by step 5: robot 1's first
+    assert (steps_of(problem, out, paths=False, end=5)["tasks"], steps_of(problem, out, end=5)["cycle"]) == (1, 2)
+    path = tmp_path / "o.json"
+    path.write_text(json.dumps(out))
+    assert main([str(prob), str(path), "--no-paths", "--from", "1", "--to", "6"]) == 0
+    assert ("1 tasks begun from step 1 and finished by step 6; per task 4.0 steps against the least 2.0 "
+            "(stretch 2.000), 2.0 cells; read without paths") in capsys.readouterr().out
+    out["start"][0] = [1, 1, "E"]                                                       # the pillar
+    path.write_text(json.dumps({k: v for k, v in out.items() if k != "actualPaths"}))
+    assert main([str(prob), str(path)]) == 2
+    assert "robot 0 starts off the map's free cells, at (1, 1)" in capsys.readouterr().err
