@@ -54,6 +54,8 @@ from pathlib import Path
 import numpy as np
 import psutil
 
+from common import process_cpu_s
+
 ROOT = Path(__file__).resolve().parents[1]
 WAREHOUSE = ROOT.parent / "shared" / "data" / "maps" / "warehouse.yaml"
 RCE_FLEET = Path(sys.executable).parent / "rce-fleet"
@@ -150,10 +152,10 @@ class TreeCpu:
             return
         for p in procs:
             try:
-                t = p.cpu_times()
+                cpu = process_cpu_s(p)
                 name = "demo" if p.pid == self.root.pid else Path(p.cmdline()[1] if len(p.cmdline()) > 1
                                                                      else p.name()).name
-                self.cpu[p.pid] = (name, t.user + t.system)
+                self.cpu[p.pid] = (name, cpu)
             except (psutil.Error, IndexError):
                 pass
 

@@ -125,7 +125,7 @@ from typing import Callable
 from rce_robot import ws_cork
 
 from common import (BENCH, PASSWORD, RESULTS, USER, ForeignLoad, add_ws_impl_argument, console, engine, fmt_ms,
-                    free_port, median, percentile, pyplot, set_nice, wait_quiet, write_json)
+                    free_port, median, percentile, process_cpu_s, pyplot, set_nice, wait_quiet, write_json)
 from fleet_floor import echo_main, floor_main
 from fleet_wiring import CTAG, DOWN, ECHO_SUFFIX, POSE, robot_wiring
 
@@ -636,8 +636,7 @@ class CpuWindow:
         out = {}
         for pid, (lab, p) in snap.items():
             try:
-                t = p.cpu_times()
-                out[pid] = (lab, t.user + t.system)
+                out[pid] = (lab, process_cpu_s(p))
             except Exception:
                 pass
         return out

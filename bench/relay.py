@@ -33,7 +33,7 @@ from pathlib import Path
 
 import psutil
 
-from common import RESULTS, engine, git_head, pyplot, write_json
+from common import RESULTS, engine, git_head, process_cpu_s, pyplot, write_json
 
 import rce.node
 from rce.tools.netlab import NetLab, RelayTopology
@@ -222,7 +222,7 @@ async def streams(lab: NetLab, topo: RelayTopology, e, bus: Path, procs: dict) -
                     topo.direct(True)
         rows = await asyncio.to_thread(e.admin, "/api/robots")
         path.append((now, next((r["relay"] or "direct" for r in rows if r["robot"] == "F"), "none")))
-        cpu.append((now, {k: sum(p.cpu_times()[:2]) for k, p in ps.items()}))
+        cpu.append((now, {k: process_cpu_s(p) for k, p in ps.items()}))
         await asyncio.sleep(POLL)                        # the sampling period, a timer
     for t in tasks:
         t.cancel()

@@ -29,7 +29,8 @@ from pathlib import Path
 
 import psutil
 
-from common import RESULTS, Engine, RawRobot, add_ws_impl_argument, console, engine, median, write_json
+from common import (RESULTS, Engine, RawRobot, add_ws_impl_argument, console, engine, median, process_cpu_s,
+                    write_json)
 from rtt import Path_, setup_echo
 
 ROLES = (("robot", ("rce-robot",)), ("environment", ("rce_container.environment",)), ("node", ("stringEcho",)),
@@ -73,8 +74,7 @@ def cpu_seconds(procs: dict[str, list[psutil.Process]]) -> dict[str, float]:
         total = 0.0
         for p in ps:
             try:
-                t = p.cpu_times()
-                total += t.user + t.system
+                total += process_cpu_s(p)
             except psutil.Error:
                 pass
         out[role] = total

@@ -36,7 +36,7 @@ from pathlib import Path
 import psutil
 
 from common import (BENCH, RESULTS, USER, PASSWORD, anchor_sizes, console, engine, fmt_ms, fmt_ratio, fmt_size,
-                    free_port, git_head, median, percentile, proc_label, proc_tree, pyplot, write_json)
+                    free_port, git_head, median, percentile, proc_label, proc_tree, process_cpu_s, pyplot, write_json)
 
 PING = BENCH / "ros2" / "ping.py"
 RELAY = BENCH / "ros2" / "relay.py"
@@ -95,7 +95,7 @@ def ping(env: dict, sizes: list[int], reps: int, meter: list[psutil.Process] = (
 def _cpu(p: psutil.Process) -> float | None:
     """User + system CPU s of ``p``; None once it is gone."""
     try:
-        return sum(p.cpu_times()[:2])
+        return process_cpu_s(p)
     except psutil.Error:
         return None
 

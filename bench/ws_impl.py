@@ -31,7 +31,7 @@ import sys
 import time
 from pathlib import Path
 
-from common import RESULTS, console, free_port, median, pyplot, ratio, write_json
+from common import RESULTS, console, free_port, median, process_cpu_s, pyplot, ratio, write_json
 
 TEXT = ('{"type":"DM","data":{"iTag":"amclPoseSender_1","type":"geometry_msgs/PoseWithCovarianceStamped",'
         '"msgID":"","msg*":"%032x"}}')
@@ -118,8 +118,7 @@ async def measure(port: int, pid: int, n: int, window: int, rtts: int, gap: floa
                 if got == 2 * n:
                     done.set()
                     return
-        t = proc.cpu_times()
-        c0 = t.user + t.system
+        c0 = process_cpu_s(proc)
         rd = asyncio.create_task(reader())
         w0 = time.perf_counter()
         for i in range(n):
@@ -129,8 +128,7 @@ async def measure(port: int, pid: int, n: int, window: int, rtts: int, gap: floa
                 await asyncio.sleep(0)
         await asyncio.wait_for(done.wait(), 120)
         wall = time.perf_counter() - w0
-        t = proc.cpu_times()
-        c1 = t.user + t.system
+        c1 = process_cpu_s(proc)
         await rd
     return {"rtt_ms": median(rtt), "rtt_gap_ms": median(lone), "server_us_per_msg": (c1 - c0) * 1e6 / (2 * n),
             "poses_per_s": n / wall, "server_cores": (c1 - c0) / wall}
