@@ -151,12 +151,14 @@ def test_login_through_the_page_server_and_every_robot_moves(op, fleet, tmp_path
     assert {r: v["cell"] for r, v in before.items()} == STARTS
     page.click("#mission-start")
     assert last_log(page, "mission start")["kind"] == "ok"
+    # positions come in continuously, and the page drew them: every robot away from its start, with a trail
+    # of at least 5 points (the trail grows with the positions drawn, so wait for both, not the first alone)
     page.wait_for_function("""(b) => Object.entries(fleetView.robots).every(([n, r]) =>
-        Math.hypot(r.x - b[n].x, r.y - b[n].y) > 0.5)""", arg=before, timeout=MOVE_TIMEOUT_MS)
+        Math.hypot(r.x - b[n].x, r.y - b[n].y) > 0.5 && (fleetView.trails[n] || []).length >= 5)""",
+                           arg=before, timeout=MOVE_TIMEOUT_MS)
     page.screenshot(path=str(tmp_path / "mission.png"))
-    # positions come in continuously, and the page drew them: trails, states, status table
     moved = page.evaluate("Object.fromEntries(Object.entries(fleetView.trails).map(([n, t]) => [n, t.length]))")
-    assert all(v >= 5 for v in moved.values()), moved
+    assert set(moved) == set(STARTS) and all(v >= 5 for v in moved.values()), moved
     assert page.evaluate("document.querySelectorAll('#robots tbody tr').length") == 3
     page.click("#mission-stop")
     assert last_log(page, "mission stop", timeout=STOP_LOG_TIMEOUT_S)["kind"] == "ok"
