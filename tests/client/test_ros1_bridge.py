@@ -138,11 +138,14 @@ class RosMaster:
         return dict(pubs), dict(subs), dict(srvs)
 
     def answers(self) -> bool:
+        """True once this rosmaster answers on its port (its getPid is this process's: a port found
+        free may be taken by another test's server before rosmaster binds it, and then rosmaster
+        exits while the other answers)."""
         if self.proc.poll() is not None:
             raise AssertionError(f"rosmaster exited with {self.proc.returncode}")
         try:
-            self.state()
-            return True
+            code, _, pid = xmlrpc.client.ServerProxy(self.uri).getPid("/test")
+            return code == 1 and pid == self.proc.pid
         except OSError:
             return False
 
@@ -348,3 +351,17 @@ def test_a_ros1_process_takes_ros1_message_packages_before_ros2s():
     forget_ros1()
     from std_msgs.msg import String as Again
     assert hasattr(Again, "get_fields_and_field_types") and not hasattr(Again, "_md5sum")
+
+
+async def test_a_rosmaster_whose_port_another_holds_is_not_taken_for_it(ros_master, tmp_path, monkeypatch):
+    # the fixture's port handed out again as "free", as a test's server in another worker may take it first:
+    # the second rosmaster cannot bind it, and the one answering there is the fixture's, never taken for it
+    monkeypatch.setattr(__import__(__name__, fromlist=["_free_port"]), "_free_port",
+                        lambda: int(ros_master.uri.rsplit(":", 1)[1].rstrip("/")))
+    other = RosMaster(tmp_path / "other")
+    try:
+        assert other.uri == ros_master.uri and ros_master.answers()
+        assert xmlrpc.client.ServerProxy(other.uri).getPid("/test")[2] == ros_master.proc.pid
+        assert not other.answers()
+    finally:
+        other.stop()
