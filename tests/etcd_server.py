@@ -65,7 +65,7 @@ class EtcdServer:
         self.workdir = Path(workdir)
         self.proc: subprocess.Popen | None = None
         self.port = self.peer_port = 0
-        self.name = ""
+        self.name = f"rce-test-{os.getpid()}-{secrets.token_hex(4)}"    # its member's, told from any other's
         self._log_from = 0       # where this start's lines begin in etcd.log
 
     @property
@@ -83,15 +83,15 @@ class EtcdServer:
         :data:`START_ATTEMPTS` times; TimeoutError when it is not ready in time."""
         exe = etcd_binary()
         self.workdir.mkdir(parents=True, exist_ok=True)
-        for _ in range(START_ATTEMPTS):
+        for attempt in range(START_ATTEMPTS):
+            if attempt:
+                shutil.rmtree(self.workdir / "data", ignore_errors=True)    # what the lost start began
             self.port, self.peer_port = free_port(), free_port()
-            self.name = f"rce-test-{os.getpid()}-{secrets.token_hex(4)}"
             client, peer = f"http://127.0.0.1:{self.port}", f"http://127.0.0.1:{self.peer_port}"
             argv = [exe, "--name", self.name, "--data-dir", str(self.workdir / "data"),
                     "--listen-client-urls", client, "--advertise-client-urls", client,
                     "--listen-peer-urls", peer, "--initial-advertise-peer-urls", peer,
                     "--initial-cluster", f"{self.name}={peer}"]
-            shutil.rmtree(self.workdir / "data", ignore_errors=True)
             with open(self.workdir / "etcd.log", "ab") as log:
                 self._log_from = log.tell()
                 self.proc = subprocess.Popen(argv, stdout=log, stderr=subprocess.STDOUT, start_new_session=True)
