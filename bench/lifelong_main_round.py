@@ -192,7 +192,8 @@ def plot_round(todo: list[tuple[str, Path, int]], got: dict[tuple[str, str], dic
 def _brief(r: dict) -> str:
     if "error" in r:
         return f"failed: {r['error']}"
-    return f"{r['tasks_finished']} tasks, {r['timeouts']} timeouts, {r['invalid_steps']} invalid steps"
+    peak = f", peak memory {r['peak_rss_mib'] / 1024:.1f} GiB" if "peak_rss_mib" in r else ""
+    return f"{r['tasks_finished']} tasks, {r['timeouts']} timeouts, {r['invalid_steps']} invalid steps{peak}"
 
 
 def table(todo: list[tuple[str, Path, int]], got: dict[tuple[str, str], dict],

@@ -16,6 +16,7 @@ import itertools
 import json
 import os
 import re
+import select
 import subprocess
 import sys
 import tempfile
@@ -110,11 +111,11 @@ def run_peer(binary: Path, problem: Path, steps: int, limit_ms: float, progress=
     greedy``); ``cwd`` is the directory it runs in, for an entry that reads its own data files
     from there (default: a fresh temporary directory, so that no file it writes lands elsewhere).
     ``progress(step)`` is called as its log says steps are done. Returns its output's
-    counts and the wall time: {tasks_finished, timeouts, invalid_steps, schedule_errors, wall_s},
-    and with ``curve`` the tasks finished by each step (:func:`finished_curve`; the output then
-    holds its events and paths, about 2 bytes per robot-step; the errands of each task from the
-    output, or from ``problem``'s task file when the output leaves its tasks out). Raises
-    RuntimeError when it fails."""
+    counts, the wall time and its peak resident memory in MiB: {tasks_finished, timeouts,
+    invalid_steps, schedule_errors, wall_s, peak_rss_mib}, and with ``curve`` the tasks finished by
+    each step (:func:`finished_curve`; the output then holds its events and paths, about 2 bytes per
+    robot-step; the errands of each task from the output, or from ``problem``'s task file when the
+    output leaves its tasks out). Raises RuntimeError when it fails, naming its peak memory."""
     with tempfile.TemporaryDirectory(prefix="rce-startkit-") as tmp:
         out, log = Path(tmp) / "out.json", Path(tmp) / "log.txt"
         argv = [str(binary), "-i", str(problem.resolve()), "-o", str(out), "-s", str(steps), "-t", str(int(limit_ms)),
@@ -122,24 +123,25 @@ def run_peer(binary: Path, problem: Path, steps: int, limit_ms: float, progress=
         t0 = time.perf_counter()
         proc = subprocess.Popen(argv, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, cwd=cwd or tmp)
         seen = 0
-        while proc.poll() is None:
-            try:
-                proc.wait(timeout=1.0)
-            except subprocess.TimeoutExpired:
-                pass
+
+        def tick() -> None:
+            nonlocal seen
             if progress is not None and log.exists():
                 seen = _last_step(log, seen)
                 progress(seen)
+
+        peak_mib = _wait(proc, tick)
         wall = time.perf_counter() - t0
         if proc.returncode != 0 or not out.is_file():
             err = proc.stderr.read().decode(errors="replace")[-2000:] if proc.stderr else ""
             tail = log.read_text(errors="replace")[-1000:] if log.exists() else ""
             why = "killed (out of memory?)" if proc.returncode == -9 else f"exited {proc.returncode}"
-            raise RuntimeError(f"start-kit {why} on {problem.name} after {wall:.0f} s\n{err}\n{tail}")
+            raise RuntimeError(f"start-kit {why} on {problem.name} after {wall:.0f} s, its peak resident memory "
+                               f"{peak_mib / 1024:.1f} GiB\n{err}\n{tail}")
         d = json.loads(out.read_text())
         got = {"tasks_finished": int(d["numTaskFinished"]), "timeouts": int(d["numEntryTimeouts"]),
                "invalid_steps": int(d["numPlannerErrors"]), "schedule_errors": int(d["numScheduleErrors"]),
-               "wall_s": wall}
+               "wall_s": wall, "peak_rss_mib": peak_mib}
         if curve:
             c = finished_curve(d, steps, None if d.get("tasks") else _task_errands(problem))
             if c is None and log.exists():
@@ -147,6 +149,22 @@ def run_peer(binary: Path, problem: Path, steps: int, limit_ms: float, progress=
             if c is not None:
                 got["curve"] = c
     return got
+
+
+def _wait(proc: subprocess.Popen, tick, every_s: float = 1.0) -> float:
+    """Wait for ``proc`` to exit, calling ``tick()`` every ``every_s`` s while it runs, and reap it.
+    Returns its peak resident memory in MiB (the kernel's ``ru_maxrss`` of that process alone, from
+    ``wait4(2)``); sets ``proc.returncode``. A pidfd (``pidfd_open(2)``) says when it has exited
+    without reaping it, so that ``wait4`` can still read its usage."""
+    fd = os.pidfd_open(proc.pid)
+    try:
+        while not select.select([fd], [], [], every_s)[0]:
+            tick()
+    finally:
+        os.close(fd)
+    _, status, usage = os.wait4(proc.pid, 0)
+    proc.returncode = os.waitstatus_to_exitcode(status)
+    return usage.ru_maxrss / 1024           # Linux gives KiB
 
 
 def _task_errands(problem: Path) -> list[int]:

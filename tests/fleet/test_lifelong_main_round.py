@@ -13,6 +13,8 @@ import subprocess
 import sys
 from pathlib import Path
 
+import pytest
+
 from rce_fleet.lifelong import load_problem
 from rce_fleet.lifelong.runner import run_lifelong
 
@@ -268,3 +270,28 @@ def test_main_round_names_what_is_missing(tmp_path):
     assert r.returncode == 2 and "--only RANDOM-06: not a 2024 main-round instance" in r.stderr
     r = _bench("--archive", tmp_path, "--only", "RANDOM-03", "--steps", 3)
     assert r.returncode == 2 and "random.domain/RANDOM-03.json: missing" in r.stderr
+
+
+def test_a_peers_peak_memory_is_measured_and_named_when_it_is_killed(tmp_path):
+    """The peers that do not fit this machine are killed out of memory: the harness reads each run's
+    peak resident memory from the kernel (that process's alone) and gives it with the counts, or in
+    the error of a run killed with SIGKILL. A stand-in entry holds 256 MiB it has written to."""
+    entry = tmp_path / "lifelong"
+
+    def stand_in(then: str) -> None:
+        entry.write_text(f"""#!{sys.executable}
+import json, os, sys
+argv = sys.argv[1:]
+held = b"x" * (256 << 20)
+json.dump({{"numTaskFinished": 2, "numEntryTimeouts": 0, "numPlannerErrors": 0, "numScheduleErrors": 0}},
+          open(argv[argv.index("-o") + 1], "w"))
+{then}
+""")
+        entry.chmod(0o755)
+
+    stand_in("")
+    got = run_peer(entry, RANDOM / "random_32_32_20_100.json", 5, 1000)
+    assert got["tasks_finished"] == 2 and 256 <= got["peak_rss_mib"] < 256 + 128, got
+    stand_in("os.kill(os.getpid(), 9)")
+    with pytest.raises(RuntimeError, match=r"killed \(out of memory\?\) .* peak resident memory 0\.[23] GiB"):
+        run_peer(entry, RANDOM / "random_32_32_20_100.json", 5, 1000)
