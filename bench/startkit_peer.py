@@ -16,7 +16,6 @@ import itertools
 import json
 import os
 import re
-import select
 import subprocess
 import sys
 import tempfile
@@ -152,19 +151,32 @@ def run_peer(binary: Path, problem: Path, steps: int, limit_ms: float, progress=
 
 
 def _wait(proc: subprocess.Popen, tick, every_s: float = 1.0) -> float:
-    """Wait for ``proc`` to exit, calling ``tick()`` every ``every_s`` s while it runs, and reap it.
-    Returns its peak resident memory in MiB (the kernel's ``ru_maxrss`` of that process alone, from
-    ``wait4(2)``); sets ``proc.returncode``. A pidfd (``pidfd_open(2)``) says when it has exited
-    without reaping it, so that ``wait4`` can still read its usage."""
-    fd = os.pidfd_open(proc.pid)
-    try:
-        while not select.select([fd], [], [], every_s)[0]:
+    """Wait for ``proc`` to exit, calling ``tick()`` every ``every_s`` s while it runs and once after. Returns its
+    peak resident memory in MiB: the largest ``VmHWM`` (the high-water mark of its own address
+    space, proc(5)) read at those times, so growth in its last ``every_s`` s goes unseen. Not
+    ``wait4``'s ``ru_maxrss``: that counts the parent's memory the child had before its exec."""
+    peak_kib = 0
+    while True:
+        peak_kib = max(peak_kib, _hwm_kib(proc.pid))
+        try:
+            proc.wait(timeout=every_s)
+        except subprocess.TimeoutExpired:
             tick()
-    finally:
-        os.close(fd)
-    _, status, usage = os.wait4(proc.pid, 0)
-    proc.returncode = os.waitstatus_to_exitcode(status)
-    return usage.ru_maxrss / 1024           # Linux gives KiB
+        else:
+            tick()
+            return peak_kib / 1024
+
+
+def _hwm_kib(pid: int) -> int:
+    """``VmHWM`` of ``pid`` in KiB from ``/proc/PID/status``; 0 once it has exited."""
+    try:
+        with open(f"/proc/{pid}/status") as f:
+            for line in f:
+                if line.startswith("VmHWM:"):
+                    return int(line.split()[1])
+    except (FileNotFoundError, ProcessLookupError):
+        pass
+    return 0
 
 
 def _task_errands(problem: Path) -> list[int]:

@@ -274,24 +274,38 @@ def test_main_round_names_what_is_missing(tmp_path):
 
 def test_a_peers_peak_memory_is_measured_and_named_when_it_is_killed(tmp_path):
     """The peers that do not fit this machine are killed out of memory: the harness reads each run's
-    peak resident memory from the kernel (that process's alone) and gives it with the counts, or in
-    the error of a run killed with SIGKILL. A stand-in entry holds 256 MiB it has written to."""
-    entry = tmp_path / "lifelong"
+    peak resident memory (its own address space's high-water mark) and gives it with the counts, or
+    in the error of a run killed with SIGKILL. A stand-in entry writes to 256 MiB, logs its first
+    step, and holds the memory until the harness has looked at it again after reporting that step."""
+    entry, go = tmp_path / "lifelong", tmp_path / "go"
 
     def stand_in(then: str) -> None:
+        go.unlink(missing_ok=True)
         entry.write_text(f"""#!{sys.executable}
-import json, os, sys
+import json, os, sys, time
 argv = sys.argv[1:]
 held = b"x" * (256 << 20)
+with open(argv[argv.index("-l") + 1], "w") as log:
+    log.write("[2026-11-30 05:00:00.1]: *info* [timestep=0] planner returns\\n")
+while not os.path.exists({str(go)!r}):
+    time.sleep(0.01)
 json.dump({{"numTaskFinished": 2, "numEntryTimeouts": 0, "numPlannerErrors": 0, "numScheduleErrors": 0}},
           open(argv[argv.index("-o") + 1], "w"))
 {then}
 """)
         entry.chmod(0o755)
 
+    reports: list[int] = []
+
+    def progress(step: int) -> None:    # the second report of step 0 done: the memory was read between the two
+        reports.append(step)
+        if reports.count(1) >= 2:
+            go.touch()
+
     stand_in("")
-    got = run_peer(entry, RANDOM / "random_32_32_20_100.json", 5, 1000)
-    assert got["tasks_finished"] == 2 and 256 <= got["peak_rss_mib"] < 256 + 128, got
+    got = run_peer(entry, RANDOM / "random_32_32_20_100.json", 5, 1000, progress=progress)
+    assert got["tasks_finished"] == 2 and 256 <= got["peak_rss_mib"] < 256 + 64, got
+    reports.clear()
     stand_in("os.kill(os.getpid(), 9)")
     with pytest.raises(RuntimeError, match=r"killed \(out of memory\?\) .* peak resident memory 0\.[23] GiB"):
-        run_peer(entry, RANDOM / "random_32_32_20_100.json", 5, 1000)
+        run_peer(entry, RANDOM / "random_32_32_20_100.json", 5, 1000, progress=progress)
