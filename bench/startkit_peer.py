@@ -121,15 +121,17 @@ def run_peer(binary: Path, problem: Path, steps: int, limit_ms: float, progress=
                 "-p", str(PREPROCESS_MS), "-c", "1" if curve else "3", "-l", str(log), *extra]
         t0 = time.perf_counter()
         proc = subprocess.Popen(argv, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, cwd=cwd or tmp)
-        seen = 0
-
-        def tick() -> None:
-            nonlocal seen
+        seen = peak_kib = 0
+        while proc.poll() is None:
+            peak_kib = max(peak_kib, _hwm_kib(proc.pid))    # read while it runs: growth in its last second unseen
+            try:
+                proc.wait(timeout=1.0)
+            except subprocess.TimeoutExpired:
+                pass
             if progress is not None and log.exists():
                 seen = _last_step(log, seen)
                 progress(seen)
-
-        peak_mib = _wait(proc, tick)
+        peak_mib = peak_kib / 1024
         wall = time.perf_counter() - t0
         if proc.returncode != 0 or not out.is_file():
             err = proc.stderr.read().decode(errors="replace")[-2000:] if proc.stderr else ""
@@ -150,25 +152,10 @@ def run_peer(binary: Path, problem: Path, steps: int, limit_ms: float, progress=
     return got
 
 
-def _wait(proc: subprocess.Popen, tick, every_s: float = 1.0) -> float:
-    """Wait for ``proc`` to exit, calling ``tick()`` every ``every_s`` s while it runs and once after. Returns its
-    peak resident memory in MiB: the largest ``VmHWM`` (the high-water mark of its own address
-    space, proc(5)) read at those times, so growth in its last ``every_s`` s goes unseen. Not
-    ``wait4``'s ``ru_maxrss``: that counts the parent's memory the child had before its exec."""
-    peak_kib = 0
-    while True:
-        peak_kib = max(peak_kib, _hwm_kib(proc.pid))
-        try:
-            proc.wait(timeout=every_s)
-        except subprocess.TimeoutExpired:
-            tick()
-        else:
-            tick()
-            return peak_kib / 1024
-
-
 def _hwm_kib(pid: int) -> int:
-    """``VmHWM`` of ``pid`` in KiB from ``/proc/PID/status``; 0 once it has exited."""
+    """``VmHWM`` of ``pid`` in KiB from ``/proc/PID/status`` (the high-water mark of its own address
+    space, proc(5)); 0 once it has exited. Not ``wait4``'s ``ru_maxrss``, which counts the parent's
+    memory the child held before its exec."""
     try:
         with open(f"/proc/{pid}/status") as f:
             for line in f:

@@ -19,6 +19,7 @@ import os
 import signal
 import socket
 import subprocess
+import sys
 import threading
 import xmlrpc.client
 from pathlib import Path
@@ -356,7 +357,7 @@ def test_a_ros1_process_takes_ros1_message_packages_before_ros2s():
 async def test_a_rosmaster_whose_port_another_holds_is_not_taken_for_it(ros_master, tmp_path, monkeypatch):
     # the fixture's port handed out again as "free", as a test's server in another worker may take it first:
     # the second rosmaster cannot bind it, and the one answering there is the fixture's, never taken for it
-    monkeypatch.setattr(__import__(__name__, fromlist=["_free_port"]), "_free_port",
+    monkeypatch.setattr(sys.modules[__name__], "_free_port",
                         lambda: int(ros_master.uri.rsplit(":", 1)[1].rstrip("/")))
     other = RosMaster(tmp_path / "other")
     try:

@@ -78,11 +78,12 @@ class Quickstart:
         another test's server may bind one first: the first start then begins again on ports found
         free again (a process of ours that lost a port exits saying so). Later starts keep the ports,
         as a user's terminals do."""
+        first = self.runs == 0
         for attempt in range(1, FIRST_START_ATTEMPTS + 1):
             try:
                 return self._start(ros)
             except PortTaken:
-                if self.runs > attempt or attempt == FIRST_START_ATTEMPTS:
+                if not first or attempt == FIRST_START_ATTEMPTS:
                     raise
                 self.kill_all()
                 self.procs.clear()
